@@ -1,0 +1,40 @@
+"""What routers share: the store, the settings, and time-parameter parsing."""
+
+from __future__ import annotations
+
+from fastapi import HTTPException, Request
+
+from mapservice.ports import HistoryStore
+from mapservice.settings import Settings
+from mapservice.wire2019 import parse_timestamp
+
+
+def get_store(request: Request) -> HistoryStore:
+    return request.app.state.store
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def parse_time_param(name: str, value: str) -> int:
+    """ISO 8601 (UTC when no zone is given) or epoch milliseconds."""
+    if value.lstrip("-").isdigit():
+        return int(value)
+    ms = parse_timestamp(value)
+    if ms is None:
+        raise HTTPException(
+            400, f"query parameter {name!r}: {value!r} is neither ISO 8601 "
+                 "(e.g. 2026-11-21T10:00:00Z) nor epoch milliseconds")
+    return ms
+
+
+def parse_window(from_: str, to: str, max_span_ms: int) -> tuple[int, int]:
+    f, t = parse_time_param("from", from_), parse_time_param("to", to)
+    if f > t:
+        raise HTTPException(400, f"'from' ({from_}) is after 'to' ({to}); swap them")
+    if t - f > max_span_ms:
+        raise HTTPException(
+            400, f"window of {(t - f) / 3_600_000:.1f} h is longer than the "
+                 f"{max_span_ms / 3_600_000:.0f} h allowed; split it")
+    return f, t

@@ -1,0 +1,40 @@
+"""Chunk-change history: every chunk write in a time window, in event-time order."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Query
+from pydantic import BaseModel
+
+from mapservice.ports import HistoryStore
+from mapservice.wire2019 import format_timestamp
+
+from ..deps import get_store, parse_window
+
+router = APIRouter(prefix="/api/v1/chunk-events", tags=["chunk-events"])
+MAX_SPAN_MS = 86_400_000
+
+
+class ChunkEvent(BaseModel):
+    row: int
+    column: int
+    timestamp: str
+    ts_ms: int
+    receive_time_ms: int
+    robotId: str
+    content_hash: str
+
+
+@router.get("", operation_id="listChunkEvents", response_model=list[ChunkEvent])
+def list_chunk_events(
+    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
+    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    limit: int = Query(10_000, ge=1, le=100_000),
+    store: HistoryStore = Depends(get_store),
+) -> list[ChunkEvent]:
+    f, t = parse_window(from_, to, MAX_SPAN_MS)
+    return [
+        ChunkEvent(row=r.row, column=r.column, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
+                   receive_time_ms=r.receive_time_ms, robotId=r.robot_id,
+                   content_hash=r.content_hash)
+        for r in store.chunk_events(f, t, limit)
+    ]

@@ -1,0 +1,17 @@
+"""What the history holds: row counts per table (duplicates already folded)."""
+
+from __future__ import annotations
+
+import msgspec
+from fastapi import APIRouter, Depends
+
+from mapservice.ports import HistoryStore
+
+from ..deps import get_store
+
+router = APIRouter(prefix="/api/v1/stats", tags=["stats"])
+
+
+@router.get("", operation_id="getHistoryStats")
+def get_stats(store: HistoryStore = Depends(get_store)) -> dict:
+    return msgspec.structs.asdict(store.counts())

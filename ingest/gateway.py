@@ -1,0 +1,175 @@
+"""The MQTT-to-Kafka gateway.
+
+Every MQTT message is validated and produced to Kafka (an event, or a dead letter with
+its reason), and acknowledged to the MQTT broker only once Kafka confirmed it. The MQTT
+session is persistent (clean_session=False, stable client id): if the gateway dies, the
+broker keeps and redelivers what was not acknowledged, and the history drops the
+duplicates this causes by each event's natural identity.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+
+import structlog
+
+from mapservice.adapters.clock import SystemClock
+from mapservice.adapters.kafka_publisher import KafkaPublisher
+from mapservice.health_server import serve_health
+from mapservice.mqtt import make_client, parse_mqtt_url
+from mapservice.ports import Clock, EventPublisher
+from mapservice.settings import Settings
+from mapservice.wire2019 import Limits
+
+from . import metrics
+from .meta_watcher import MetaWatcher
+from .router import Record, Router
+
+log = structlog.get_logger(__name__)
+
+
+class Ingestor:
+    """Broker-free core: route a message, publish it, call `ack` once it is durable."""
+
+    def __init__(self, settings: Settings, publisher: EventPublisher, clock: Clock,
+                 gateway_id: str) -> None:
+        self.router = Router(settings, gateway_id)
+        self.publisher = publisher
+        self.clock = clock
+        self.limits = Limits(
+            chunk_width=settings.chunk_width,
+            chunk_height=settings.chunk_height,
+            chunk_rows=settings.max_grid,
+            chunk_cols=settings.max_grid,
+            max_message_bytes=settings.max_message_bytes,
+            max_future_skew_ms=int(settings.max_future_skew_s * 1000),
+            retention_ms=settings.retention_ms,
+        )
+        self._base_limits = self.limits
+        self._in_flight = 0
+        self._lock = threading.Lock()
+
+    def apply_meta(self, meta) -> None:
+        self.limits = self._base_limits.with_meta(meta)
+
+    @property
+    def in_flight(self) -> int:
+        return self._in_flight
+
+    def handle(self, mqtt_topic: str, payload: bytes, ack) -> Record:
+        started = time.monotonic()
+        record = self.router.route(mqtt_topic, payload, self.clock.now_ms(), self.limits)
+        outcome = "accepted" if record.reason is None else "rejected"
+        if record.reason is not None:
+            metrics.REJECTED.labels(record.reason).inc()
+            log.info("message rejected", reason=record.reason, mqtt_topic=mqtt_topic[:200])
+        with self._lock:
+            self._in_flight += 1
+        metrics.IN_FLIGHT.inc()
+
+        def done(error: Exception | None) -> None:
+            if error is not None:
+                # Never drop: produce again until Kafka has it (the MQTT ack waits).
+                metrics.DELIVERY_FAILURES.inc()
+                log.warning("kafka delivery failed, retrying", error=str(error), topic=record.topic)
+                time.sleep(0.2)
+                self.publisher.publish(record.topic, record.key, record.value, done)
+                return
+            ack()
+            with self._lock:
+                self._in_flight -= 1
+            metrics.IN_FLIGHT.dec()
+            metrics.MESSAGES.labels(outcome).inc()
+            metrics.ACK_LATENCY.observe(time.monotonic() - started)
+
+        self.publisher.publish(record.topic, record.key, record.value, done)
+        return record
+
+
+class MqttGateway:
+    """Wires paho-mqtt (manual acks) to an Ingestor and a Kafka publisher."""
+
+    def __init__(self, settings: Settings, health_port: int | None = None) -> None:
+        self.settings = settings
+        self.gateway_id = settings.mqtt_client_id
+        self.publisher = KafkaPublisher(settings, client_id=self.gateway_id)
+        self.ingestor = Ingestor(settings, self.publisher, SystemClock(), self.gateway_id)
+        self.meta_watcher = MetaWatcher(settings, self.ingestor.apply_meta)
+        self.health_port = health_port
+        self._stop = threading.Event()
+        self._connected = threading.Event()
+        self.client = None
+
+    def _on_connect(self, client, _userdata, _flags, reason_code, _props) -> None:
+        if reason_code.is_failure:
+            log.error("mqtt connect refused", reason=str(reason_code))
+            return
+        client.subscribe([(t, 1) for t in self.settings.mqtt_subscriptions])
+        self._connected.set()
+        log.info("mqtt connected", subscriptions=self.settings.mqtt_subscriptions)
+
+    def _on_disconnect(self, _client, _userdata, _flags, reason_code, _props) -> None:
+        self._connected.clear()
+        if not self._stop.is_set():
+            log.warning("mqtt disconnected, reconnecting", reason=str(reason_code))
+
+    def _on_message(self, client, _userdata, msg) -> None:
+        if self._stop.is_set():
+            return  # not acknowledged: the persistent session redelivers it after restart
+        mid, qos = msg.mid, msg.qos
+        self.ingestor.handle(msg.topic, msg.payload, lambda: client.ack(mid, qos))
+
+    def status(self) -> dict:
+        return {"ok": self._connected.is_set(), "mqtt_connected": self._connected.is_set(),
+                "in_flight": self.ingestor.in_flight, "gateway": self.gateway_id}
+
+    def run(self) -> None:
+        host, port, tls = parse_mqtt_url(self.settings.mqtt_url)
+        s = self.settings
+        self.client = make_client(
+            self.gateway_id, clean_session=False, manual_ack=True,
+            username=s.mqtt_username,
+            password=s.mqtt_password.get_secret_value() if s.mqtt_password else None, tls=tls)
+        self.client.on_connect = self._on_connect
+        self.client.on_disconnect = self._on_disconnect
+        self.client.on_message = self._on_message
+        self.client.reconnect_delay_set(0.2, 5)
+        if self.health_port is not None:
+            serve_health(s.api_host, self.health_port, self.status)
+        self.meta_watcher.start()
+        log.info("gateway starting", mqtt=f"{host}:{port}", kafka=s.kafka_bootstrap)
+        while not self._stop.is_set():
+            try:
+                self.client.connect(host, port, keepalive=30)
+                break
+            except OSError as exc:
+                log.warning("mqtt broker unreachable, retrying", error=str(exc),
+                            hint=f"is an MQTT broker listening on {host}:{port}?")
+                time.sleep(1)
+        self.client.loop_start()
+        try:
+            while not self._stop.is_set():
+                self.publisher.poll(0.05)
+        finally:
+            # New messages are left unacknowledged (the subscription stays in the persistent
+            # session); everything already taken is delivered to Kafka and acknowledged.
+            remaining = self.publisher.flush(10)
+            deadline = time.monotonic() + 2
+            while self.ingestor.in_flight and time.monotonic() < deadline:
+                self.publisher.poll(0.05)
+            self.client.disconnect()
+            self.client.loop_stop()
+            self.meta_watcher.stop()
+            log.info("gateway stopped", undelivered=remaining)
+
+    def stop(self, *_args) -> None:
+        self._stop.set()
+
+
+def run_gateway(settings: Settings, health_port: int | None = None) -> None:
+    gateway = MqttGateway(settings, health_port)
+    signal.signal(signal.SIGTERM, gateway.stop)
+    signal.signal(signal.SIGINT, gateway.stop)
+    gateway.run()

@@ -1,0 +1,66 @@
+"""Pure routing: an MQTT message becomes a Kafka record (event or dead letter)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mapservice.events import (
+    ChunkUpdated,
+    DeadLetter,
+    Envelope,
+    PoseReported,
+    encode,
+    encode_dead_letter,
+    kafka_key,
+)
+from mapservice.settings import Settings
+from mapservice.wire2019 import Limits, Reason, Rejection, decode_chunk_create, decode_coordinates
+
+
+@dataclass(frozen=True)
+class Record:
+    topic: str
+    key: bytes
+    value: bytes
+    reason: str | None  # None for an accepted event
+    envelope: Envelope | None = None
+
+
+class Router:
+    """Knows the configured MQTT topics and the Kafka topics they feed."""
+
+    def __init__(self, settings: Settings, gateway_id: str) -> None:
+        self.settings = settings
+        self.gateway_id = gateway_id
+        self.chunk_topic = settings.create_chunk_topic
+        base = settings.coordinate_topic
+        # "iot/coordinates/#" -> "iot/coordinates/"; robots publish on iot/coordinates/<id>.
+        self.coordinate_prefix = base[:-1] if base.endswith("#") else base.rstrip("/") + "/"
+
+    def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
+        if mqtt_topic == self.chunk_topic:
+            result = decode_chunk_create(payload, receive_ms, limits)
+        elif mqtt_topic.startswith(self.coordinate_prefix):
+            robot_id = mqtt_topic[len(self.coordinate_prefix):]
+            result = decode_coordinates(robot_id, payload, receive_ms, limits)
+        else:
+            result = Rejection(Reason.UNKNOWN_TOPIC, f"no handler for MQTT topic {mqtt_topic!r}")
+        if isinstance(result, Rejection):
+            letter = DeadLetter(
+                reason=result.reason.value,
+                detail=result.detail,
+                mqtt_topic=mqtt_topic,
+                payload=payload,
+                receive_time_ms=receive_ms,
+                gateway=self.gateway_id,
+            )
+            return Record(self.settings.topic_dead_letter, mqtt_topic.encode(),
+                          encode_dead_letter(letter), result.reason.value)
+        return Record(self.topic_for(result), kafka_key(result), encode(result), None, result)
+
+    def topic_for(self, envelope: Envelope) -> str:
+        if isinstance(envelope.payload, PoseReported):
+            return self.settings.topic_pose_events
+        if isinstance(envelope.payload, ChunkUpdated):
+            return self.settings.topic_chunk_events
+        return self.settings.topic_meta_events

@@ -1,0 +1,243 @@
+"""ClickHouse behind the HistoryStore port, through clickhouse-connect.
+
+The same code serves `chdb:///dir` (embedded chDB) and `http(s)://host:8123` (a server).
+chDB allows one opener per directory and its client is not thread-safe, so every call
+goes through one lock; callers in an event loop run these methods in an executor.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from datetime import datetime, timezone
+
+import clickhouse_connect
+import msgspec
+
+from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
+from ..ports import ChunkRow, Counts, PoseRow
+from ..schema import migrations
+from ..settings import Settings
+
+_json = msgspec.json.Encoder()
+_BOOLISH = msgspec.json.Decoder(bool | str | None)
+
+
+def _flag(value: bool | str | None) -> str:
+    # Stored as JSON text so the 2019 API can answer with the type the robot sent.
+    return "" if value is None else _json.encode(value).decode()
+
+
+def _unflag(text: str) -> bool | str | None:
+    return None if text == "" else _BOOLISH.decode(text)
+
+
+def _ms(dt: datetime) -> int:
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return int(round(dt.timestamp() * 1000))
+
+
+def _mm(metres: float) -> int:
+    return int(round(metres * 1000))
+
+
+class ClickHouseStore:
+    """Construction does no I/O; the first call connects."""
+
+    def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
+                 username: str = "default", password: str = "") -> None:
+        self.dsn = dsn
+        self.database = database
+        self.retention_days = retention_days
+        self._username = username
+        self._password = password
+        self._client = None
+        self._lock = threading.RLock()
+        self._known_contents: dict[bytes, int] = {}  # hash -> day already written
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> "ClickHouseStore":
+        return cls(
+            settings.resolved_clickhouse_dsn,
+            settings.clickhouse_database,
+            settings.retention_days,
+            settings.clickhouse_username,
+            settings.clickhouse_password.get_secret_value(),
+        )
+
+    @property
+    def client(self):
+        with self._lock:
+            if self._client is None:
+                if self.dsn.startswith("chdb://"):
+                    self._client = clickhouse_connect.get_client(dsn=self.dsn)
+                else:
+                    self._client = clickhouse_connect.get_client(
+                        dsn=self.dsn, username=self._username, password=self._password
+                    )
+            return self._client
+
+    # --- schema ---------------------------------------------------------------------
+
+    def migrate(self) -> int:
+        db = self.database
+        with self._lock:
+            c = self.client
+            c.command(f"CREATE DATABASE IF NOT EXISTS {db}")
+            c.command(
+                f"CREATE TABLE IF NOT EXISTS {db}.schema_migrations (version UInt32, "
+                "description String, applied DateTime DEFAULT now()) "
+                "ENGINE = ReplacingMergeTree ORDER BY version"
+            )
+            applied = {r[0] for r in c.query(f"SELECT version FROM {db}.schema_migrations").result_rows}
+            version = max(applied, default=0)
+            for m in migrations(db, self.retention_days):
+                if m.version in applied:
+                    continue
+                for statement in m.statements:
+                    c.command(statement)
+                c.insert(f"{db}.schema_migrations", [[m.version, m.description]],
+                         column_names=["version", "description"])
+                version = m.version
+            return version
+
+    # --- writes ---------------------------------------------------------------------
+
+    def append(self, events: Sequence[Envelope]) -> None:
+        poses, chunks, contents, metas = [], [], [], []
+        for e in events:
+            p = e.payload
+            if isinstance(p, PoseReported):
+                path = p.path or ()
+                poses.append([
+                    e.robot_id, e.event_time_ms,
+                    _mm(p.position[0]), _mm(p.position[1]), _mm(p.position[2]),
+                    *p.orientation,
+                    p.battery_level, _flag(p.charging), _flag(p.loaded),
+                    p.path is not None,
+                    [_mm(x) for x, _ in path], [_mm(y) for _, y in path],
+                    e.receive_time_ms - e.event_time_ms,
+                ])
+            elif isinstance(p, ChunkUpdated):
+                chunks.append([e.event_time_ms, p.row, p.column, e.robot_id, p.content_hash,
+                               e.receive_time_ms - e.event_time_ms])
+                day = e.event_time_ms // 86_400_000
+                if self._known_contents.get(p.content_hash) != day:
+                    contents.append((p.content_hash, day, p.width, p.height, p.data))
+            elif isinstance(p, MapMetaSet):
+                metas.append([e.event_time_ms, e.robot_id, _json.encode(p.to_2019()).decode()])
+        db = self.database
+        with self._lock:
+            c = self.client
+            if contents:
+                # Contents first: an event must never reference pixels that are not stored.
+                c.insert(f"{db}.chunk_contents", [list(x) for x in contents],
+                         column_names=["content_hash", "day", "width", "height", "zlib_pixels"])
+                for h, day, *_ in contents:
+                    self._known_contents[h] = day
+                if len(self._known_contents) > 1_000_000:
+                    self._known_contents.clear()
+            if chunks:
+                c.insert(f"{db}.chunk_events", chunks,
+                         column_names=["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"])
+            if poses:
+                c.insert(f"{db}.poses", poses, column_names=[
+                    "robot_id", "ts", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "battery",
+                    "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"])
+            if metas:
+                c.insert(f"{db}.map_meta", metas, column_names=["ts", "robot_id", "meta"])
+
+    def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
+        if not records:
+            return
+        rows = [[r.receive_time_ms, r.reason, r.mqtt_topic, r.detail, r.payload, r.gateway]
+                for r in records]
+        with self._lock:
+            self.client.insert(f"{self.database}.dead_letters", rows, column_names=[
+                "received", "reason", "mqtt_topic", "detail", "payload", "gateway"])
+
+    # --- reads ----------------------------------------------------------------------
+
+    def _rows(self, sql: str, params: dict) -> list[tuple]:
+        with self._lock:
+            return self.client.query(sql, parameters=params).result_rows
+
+    def poses(self, from_ms: int, to_ms: int, robot_id: str | None = None,
+              limit: int = 100_000) -> list[PoseRow]:
+        where = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        params: dict = {"f": from_ms, "t": to_ms, "n": limit}
+        if robot_id is not None:
+            where += " AND robot_id = {r:String}"
+            params["r"] = robot_id
+        rows = self._rows(
+            f"SELECT robot_id, toUnixTimestamp64Milli(ts), x_mm, y_mm, z_mm, qx, qy, qz, qw, "
+            f"battery, charging, loaded, has_path, path_x_mm, path_y_mm, recv_lag_ms "
+            f"FROM {self.database}.poses FINAL WHERE {where} ORDER BY ts, robot_id LIMIT {{n:UInt32}}",
+            params,
+        )
+        return [
+            PoseRow(r[0], r[1], r[2] / 1000, r[3] / 1000, r[4] / 1000, r[5], r[6], r[7], r[8],
+                    r[9], _unflag(r[10]), _unflag(r[11]),
+                    tuple((x / 1000, y / 1000) for x, y in zip(r[13], r[14])) if r[12] else None,
+                    r[1] + r[15])
+            for r in rows
+        ]
+
+    def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
+        rows = self._rows(
+            f"SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
+            f"recv_lag_ms FROM {self.database}.chunk_events FINAL "
+            "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
+            "ORDER BY ts, row, col, robot_id LIMIT {n:UInt32}",
+            {"f": from_ms, "t": to_ms, "n": limit},
+        )
+        return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
+
+    def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
+        rows = self._rows(
+            f"SELECT width, height, zlib_pixels FROM {self.database}.chunk_contents "
+            "WHERE content_hash = unhex({h:String}) LIMIT 1",
+            {"h": content_hash.hex()},
+        )
+        if not rows:
+            return None
+        w, h, data = rows[0]
+        return w, h, data if isinstance(data, bytes) else data.encode("latin-1")
+
+    def latest_meta(self) -> MapMetaSet | None:
+        rows = self._rows(
+            f"SELECT meta FROM {self.database}.map_meta FINAL ORDER BY ts DESC LIMIT 1", {})
+        if not rows:
+            return None
+        doc = msgspec.json.decode(rows[0][0])
+        return MapMetaSet.from_2019(doc)
+
+    def counts(self) -> Counts:
+        db = self.database
+        (row,) = self._rows(
+            f"SELECT (SELECT count() FROM {db}.poses FINAL), "
+            f"(SELECT count() FROM {db}.chunk_events FINAL), "
+            f"(SELECT uniqExact(content_hash) FROM {db}.chunk_contents), "
+            f"(SELECT count() FROM {db}.dead_letters)", {})
+        return Counts(*row)
+
+    def storage_bytes(self) -> dict[str, int]:
+        """Bytes on disk per table (active parts), for benchmarks and operators."""
+        rows = self._rows(
+            "SELECT table, sum(bytes_on_disk) FROM system.parts WHERE database = {d:String} "
+            "AND active GROUP BY table", {"d": self.database})
+        return {t: int(b) for t, b in rows}
+
+    def optimize(self) -> None:
+        """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
+        with self._lock:
+            for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters"):
+                self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
+
+    def close(self) -> None:
+        with self._lock:
+            if self._client is not None:
+                self._client.close()
+                self._client = None
+

@@ -1,0 +1,154 @@
+"""`mapservice`: run the whole service, one component, simulated robots or a benchmark."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+import sys
+import time
+from pathlib import Path
+
+from .settings import Settings
+
+DEFAULT_MAP = Path(__file__).resolve().parent.parent / "maps" / "warehouse.yaml"
+
+
+def _settings(component: str) -> Settings:
+    from .logs import configure
+
+    try:
+        settings = Settings()
+    except ValueError as exc:
+        sys.exit(f"configuration error: {exc}")
+    configure(settings.log_level, settings.log_format, component)
+    return settings
+
+
+def cmd_gateway(args) -> None:
+    from mapservice.ingest.gateway import run_gateway
+    from .topics import ensure_topics
+
+    settings = _settings("gateway")
+    ensure_topics(settings)
+    run_gateway(settings, args.health_port)
+
+
+def cmd_serve(args, processors: bool = True, api: bool = True, component: str = "server") -> None:
+    from .server import serve
+
+    settings = _settings(component)
+    asyncio.run(serve(settings, processors=processors, api=api,
+                      health_port=getattr(args, "health_port", None)))
+
+
+def cmd_sim(args) -> None:
+    from .loadgen import RobotFleet
+    from .mapfile import load_ros_map
+
+    settings = _settings("sim")
+    fleet = RobotFleet(args.mqtt_url or settings.mqtt_url, load_ros_map(args.map), args.robots)
+    signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
+    try:
+        fleet.run(args.seconds)
+    except KeyboardInterrupt:
+        fleet.stop()
+
+
+def cmd_up(args) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    from .logs import configure
+    from .mapfile import load_ros_map, meta_for
+    from .stack import Stack
+
+    configure("INFO", "console", "up")
+    console = Console()
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop children on SIGTERM too
+    stack = Stack(Path(args.data_dir), mqtt=args.mqtt_url or "amqtt", api_port=args.api_port,
+                  mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port)
+    ros_map = load_ros_map(args.map)
+    try:
+        with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
+            stack.start_brokers()
+            stack.publish_meta(meta_for(ros_map))
+        with console.status("starting processors + API (creating the ClickHouse schema)..."):
+            stack.start_server()
+        with console.status("starting the MQTT-to-Kafka gateway..."):
+            stack.start_gateway()
+        if args.robots:
+            stack._spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map))
+        table = Table(title="mapservice is up", show_header=False)
+        table.add_row("API", stack.api_url + "  (docs at /docs)")
+        table.add_row("MQTT (robots)", stack.mqtt_url)
+        table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
+        table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
+        table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/healthz")
+        table.add_row("Simulated robots", f"{args.robots} on {args.map}")
+        table.add_row("Logs", str(stack.log_dir))
+        console.print(table)
+        console.print("Ctrl-C stops everything; `make up` again resumes on the same data.")
+        if args.open_browser:
+            import webbrowser
+
+            webbrowser.open(stack.api_url + "/docs")
+        while all(p.poll() is None for p in stack.procs.values()):
+            time.sleep(0.5)
+        dead = [n for n, p in stack.procs.items() if p.poll() is not None]
+        console.print(f"[red]stopped because {', '.join(dead)} exited; see {stack.log_dir}[/red]")
+    except KeyboardInterrupt:
+        console.print("stopping...")
+    except RuntimeError as exc:
+        console.print(f"[red]{exc}[/red]")
+        sys.exit(1)
+    finally:
+        stack.stop()
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="mapservice", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    up = sub.add_parser("up", help="run everything on embedded defaults, with simulated robots")
+    up.add_argument("--data-dir", default=".mapservice-data")
+    up.add_argument("--robots", type=int, default=5, help="simulated robots (0: none)")
+    up.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML for the simulation")
+    up.add_argument("--mqtt-url", help="use this MQTT broker instead of an embedded amqtt")
+    up.add_argument("--api-port", type=int, default=8080)
+    up.add_argument("--mqtt-port", type=int, default=1883)
+    up.add_argument("--kafka-port", type=int, default=0, help="0: a free port")
+    up.add_argument("--open-browser", action="store_true")
+    up.set_defaults(func=cmd_up)
+
+    gw = sub.add_parser("gateway", help="MQTT-to-Kafka gateway (configured from MAPSERVICE_*)")
+    gw.add_argument("--health-port", type=int, default=None)
+    gw.set_defaults(func=cmd_gateway)
+
+    pr = sub.add_parser("processors", help="stream processors: history sink (needs a ClickHouse server)")
+    pr.add_argument("--health-port", type=int, default=None)
+    pr.set_defaults(func=lambda a: cmd_serve(a, api=False, component="processors"))
+
+    api = sub.add_parser("api", help="HTTP API only (needs a ClickHouse server)")
+    api.set_defaults(func=lambda a: cmd_serve(a, processors=False, component="api"))
+
+    serve = sub.add_parser("serve", help="processors and API in one process (chdb needs this)")
+    serve.set_defaults(func=cmd_serve)
+
+    sim = sub.add_parser("sim", help="simulated robots publishing the 2019 workload over MQTT")
+    sim.add_argument("--robots", type=int, default=5)
+    sim.add_argument("--map", default=str(DEFAULT_MAP))
+    sim.add_argument("--mqtt-url", default=None)
+    sim.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    sim.set_defaults(func=cmd_sim)
+
+    from .bench import add_bench_parser
+
+    add_bench_parser(sub)
+
+    args = parser.parse_args(argv)
+    args.func(args)
+
+
+if __name__ == "__main__":
+    main()

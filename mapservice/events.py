@@ -1,0 +1,187 @@
+"""Frozen, versioned event envelopes and their payloads.
+
+An event's id is derived from what identifies it in the domain, never drawn at random:
+a QoS 1 redelivery of the same MQTT message must yield the same id so the history can
+drop it, and the history stores the identifying columns (robot, event time, chunk)
+instead of a 16-byte id per row.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Union
+
+import msgspec
+
+SCHEMA_VERSION = 1
+
+
+class ChunkUpdated(msgspec.Struct, frozen=True, tag="chunk.updated", array_like=True):
+    """A robot wrote one chunk of the shared map."""
+
+    row: int
+    column: int
+    width: int
+    height: int
+    data: bytes  # zlib-deflated 8-bit pixels, exactly as the robot sent them
+    content_hash: bytes  # blake2b-128 of the decompressed pixels
+
+
+class PoseReported(msgspec.Struct, frozen=True, tag="pose.reported", array_like=True):
+    """A robot's pose and status at one instant (positions in metres)."""
+
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]  # quaternion x, y, z, w
+    battery_level: float | None = None
+    # The 2019 contract leaves these untyped (booleans or strings); kept as sent.
+    charging: bool | str | None = None
+    loaded: bool | str | None = None
+    path: tuple[tuple[float, float], ...] | None = None
+
+
+class MapMetaSet(msgspec.Struct, frozen=True, tag="map.meta_set", array_like=True):
+    """The map's geometry: the 2019 meta.json plus ROS `resolution` and `origin`."""
+
+    width: int
+    height: int
+    chunk_width: int
+    chunk_height: int
+    chunk_rows: int
+    chunk_cols: int
+    comment: str = ""
+    max_brightness: str = "255"
+    resolution: float | None = None
+    origin: tuple[float, float, float] | None = None
+
+    def to_2019(self) -> dict:
+        doc: dict = {
+            "comment": self.comment,
+            "width": self.width,
+            "height": self.height,
+            "max_brightness": self.max_brightness,
+            "CHUNK_WIDTH": self.chunk_width,
+            "CHUNK_HEIGHT": self.chunk_height,
+            "CHUNK_ROWS": self.chunk_rows,
+            "CHUNK_COLS": self.chunk_cols,
+        }
+        if self.resolution is not None:
+            doc["resolution"] = self.resolution
+        if self.origin is not None:
+            doc["origin"] = list(self.origin)
+        return doc
+
+    @classmethod
+    def from_2019(cls, doc: dict) -> "MapMetaSet":
+        origin = doc.get("origin")
+        return cls(
+            width=int(doc["width"]),
+            height=int(doc["height"]),
+            chunk_width=int(doc["CHUNK_WIDTH"]),
+            chunk_height=int(doc["CHUNK_HEIGHT"]),
+            chunk_rows=int(doc["CHUNK_ROWS"]),
+            chunk_cols=int(doc["CHUNK_COLS"]),
+            comment=str(doc.get("comment", "")),
+            max_brightness=str(doc.get("max_brightness", "255")),
+            resolution=float(doc["resolution"]) if doc.get("resolution") is not None else None,
+            origin=tuple(float(v) for v in origin) if origin is not None else None,
+        )
+
+
+Payload = Union[ChunkUpdated, PoseReported, MapMetaSet]
+
+
+class Envelope(msgspec.Struct, frozen=True, array_like=True):
+    """What travels on Kafka: an immutable event with its identity and two clocks."""
+
+    event_id: str
+    type: str
+    version: int
+    robot_id: str
+    event_time_ms: int  # the robot's timestamp
+    receive_time_ms: int  # the gateway's clock
+    payload: Payload
+
+
+def _digest(*parts: object) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for part in parts:
+        h.update(part if isinstance(part, bytes) else str(part).encode())
+        h.update(b"\x1f")
+    return h.hexdigest()
+
+
+def event_id_for(robot_id: str, event_time_ms: int, payload: Payload) -> str:
+    """The natural identity of an event, as a hex digest.
+
+    A pose is identified by (robot, event time) and a chunk write by (chunk, robot,
+    event time), matching the 2019 ids `robotId:<id>_<ts>` and `row:<r>_column:<c>_<ts>`
+    (with the robot added so two robots writing one chunk in one second stay apart).
+    """
+    if isinstance(payload, PoseReported):
+        return _digest("pose", robot_id, event_time_ms)
+    if isinstance(payload, ChunkUpdated):
+        return _digest("chunk", payload.row, payload.column, robot_id, event_time_ms)
+    return _digest("meta", robot_id, event_time_ms, msgspec.msgpack.encode(payload))
+
+
+def type_of(payload: Payload) -> str:
+    return type(payload).__struct_config__.tag  # type: ignore[return-value]
+
+
+def make_envelope(
+    robot_id: str, event_time_ms: int, receive_time_ms: int, payload: Payload
+) -> Envelope:
+    return Envelope(
+        event_id=event_id_for(robot_id, event_time_ms, payload),
+        type=type_of(payload),
+        version=SCHEMA_VERSION,
+        robot_id=robot_id,
+        event_time_ms=event_time_ms,
+        receive_time_ms=receive_time_ms,
+        payload=payload,
+    )
+
+
+def kafka_key(envelope: Envelope) -> bytes:
+    """Chunk events are keyed by `row:column`, poses by robot id, so order per key holds."""
+    payload = envelope.payload
+    if isinstance(payload, ChunkUpdated):
+        return f"{payload.row}:{payload.column}".encode()
+    if isinstance(payload, MapMetaSet):
+        return b"map"
+    return envelope.robot_id.encode()
+
+
+_encoder = msgspec.msgpack.Encoder()
+_decoder = msgspec.msgpack.Decoder(Envelope)
+
+
+def encode(envelope: Envelope) -> bytes:
+    return _encoder.encode(envelope)
+
+
+def decode(data: bytes) -> Envelope:
+    return _decoder.decode(data)
+
+
+class DeadLetter(msgspec.Struct, frozen=True):
+    """A rejected MQTT message: the original bytes, where it came from and why."""
+
+    reason: str
+    detail: str
+    mqtt_topic: str
+    payload: bytes
+    receive_time_ms: int
+    gateway: str
+    version: int = SCHEMA_VERSION
+
+
+_dl_decoder = msgspec.msgpack.Decoder(DeadLetter)
+
+
+def encode_dead_letter(record: DeadLetter) -> bytes:
+    return _encoder.encode(record)
+
+
+def decode_dead_letter(data: bytes) -> DeadLetter:
+    return _dl_decoder.decode(data)

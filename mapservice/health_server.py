@@ -1,0 +1,37 @@
+"""A small HTTP endpoint for components without an API: /healthz and /metrics."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+
+def serve_health(host: str, port: int, status: Callable[[], dict]) -> ThreadingHTTPServer:
+    """Starts a daemon thread; `status()` returns a dict with a boolean `ok`."""
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+            if self.path == "/metrics":
+                body, ctype, code = generate_latest(), CONTENT_TYPE_LATEST, 200
+            elif self.path == "/healthz":
+                doc = status()
+                body = json.dumps(doc).encode()
+                ctype, code = "application/json", 200 if doc.get("ok") else 503
+            else:
+                body, ctype, code = b'{"detail":"use /healthz or /metrics"}', "application/json", 404
+            self.send_response(code)
+            self.send_header("Content-Type", ctype)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args) -> None:
+            pass
+
+    server = ThreadingHTTPServer((host, port), Handler)
+    threading.Thread(target=server.serve_forever, name="health", daemon=True).start()
+    return server

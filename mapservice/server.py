@@ -1,0 +1,63 @@
+"""Runs the processors and/or the API in one asyncio loop around one HistoryStore.
+
+With embedded ClickHouse (chdb) only one process may open the data directory, so
+`mapservice serve` runs both here; with a ClickHouse server they can run apart
+(`mapservice processors`, `mapservice api`) and scale separately.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import signal
+
+import structlog
+import uvicorn
+
+from .adapters.clickhouse_store import ClickHouseStore
+from .health_server import serve_health
+from .settings import Settings
+from .topics import ensure_topics
+
+log = structlog.get_logger(__name__)
+
+
+async def serve(settings: Settings, *, processors: bool = True, api: bool = True,
+                health_port: int | None = None) -> None:
+    from mapservice.api.app import create_app
+    from mapservice.processors.app import HistorySink, build_app
+
+    store = ClickHouseStore.from_settings(settings)
+    sink = HistorySink(store)
+    version = await sink.run(store.migrate)
+    log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
+    faust_app = None
+    if processors:
+        await asyncio.get_running_loop().run_in_executor(None, ensure_topics, settings)
+        faust_app = build_app(settings, sink)
+        await faust_app.start()
+        log.info("processors started", kafka=settings.kafka_bootstrap)
+    readiness = {"clickhouse": lambda: store.client is not None}
+    if faust_app is not None:
+        readiness["processors"] = lambda: not faust_app.should_stop
+    try:
+        if api:
+            config = uvicorn.Config(create_app(settings, store, readiness), host=settings.api_host,
+                                    port=settings.api_port, log_level="warning", access_log=False)
+            server = uvicorn.Server(config)
+            log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
+            await server.serve()
+        else:
+            stop = asyncio.Event()
+            loop = asyncio.get_running_loop()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.add_signal_handler(sig, stop.set)
+            if health_port is not None:
+                serve_health(settings.api_host, health_port, lambda: {
+                    "ok": all(check() for check in readiness.values())})
+            await stop.wait()
+    finally:
+        if faust_app is not None:
+            await faust_app.stop()
+        sink.executor.shutdown(wait=True)
+        store.close()
+        log.info("stopped")

@@ -1,0 +1,128 @@
+"""One settings object per process, read from the environment (prefix ``MAPSERVICE_``)."""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+DEFAULT_ADMIN_TOKEN = "local-admin-token"
+DEFAULT_CLICKHOUSE_PASSWORD = ""
+
+
+class Settings(BaseSettings):
+    """Everything a component needs to know; only addresses differ between modes."""
+
+    model_config = SettingsConfigDict(env_prefix="MAPSERVICE_", extra="ignore")
+
+    mode: Literal["local", "production"] = Field(
+        "local", description="`production` refuses default secrets."
+    )
+    data_dir: Path = Field(Path(".mapservice-data"), description="Embedded mode's state.")
+    log_level: str = "INFO"
+    log_format: Literal["console", "json"] = "console"
+
+    # Kafka
+    kafka_bootstrap: str = Field("127.0.0.1:9092", description="Kafka bootstrap servers.")
+    kafka_security_protocol: str = "PLAINTEXT"
+    kafka_sasl_mechanism: str | None = None
+    kafka_username: str | None = None
+    kafka_password: SecretStr | None = None
+    kafka_partitions: int = Field(6, ge=1, description="Partitions of topics the service creates.")
+    kafka_replication: int = Field(1, ge=1)
+    kafka_rebalance_timeout_s: float = Field(3.0, gt=0, description="Consumer-group rebalance timeout.")
+    topic_chunk_events: str = "mapservice.chunk-events.v1"
+    topic_pose_events: str = "mapservice.pose-events.v1"
+    topic_meta_events: str = "mapservice.meta-events.v1"
+    topic_dead_letter: str = "mapservice.dead-letter.v1"
+
+    # ClickHouse: chdb:///dir (embedded) or http(s)://host:8123
+    clickhouse_dsn: str = Field("", description="Empty means chdb:///<data_dir>/clickhouse.")
+    clickhouse_database: str = "mapservice"
+    clickhouse_username: str = "default"
+    clickhouse_password: SecretStr = SecretStr(DEFAULT_CLICKHOUSE_PASSWORD)
+
+    # MQTT (topic names as in the 2019 configuration, appendix A.3)
+    mqtt_url: str = Field("mqtt://127.0.0.1:1883", description="MQTT broker the gateway reads.")
+    mqtt_username: str | None = None
+    mqtt_password: SecretStr | None = None
+    mqtt_client_id: str = Field("mapservice-gateway", description="Stable: keeps the QoS 1 session.")
+    mqtt_share_group: str = Field("", description="Non-empty: subscribe via $share/<group>/.")
+    create_chunk_topic: str = "iot/chunks/create"
+    coordinate_topic: str = "iot/coordinates/#"
+    new_chunk_advertisement_topic: str = "iot/chunks/advertisement"
+
+    # Validation
+    chunk_width: int = Field(100, ge=1, le=4096, description="Used until a map meta is set.")
+    chunk_height: int = Field(100, ge=1, le=4096)
+    max_grid: int = Field(1000, ge=1, description="Row/column bound until a map meta is set.")
+    max_message_bytes: int = Field(256 * 1024, ge=1024)
+    max_future_skew_s: float = Field(300.0, ge=0)
+    retention_days: int = Field(7, ge=1)
+
+    # Processors
+    sink_batch_size: int = Field(2000, ge=1)
+    sink_batch_seconds: float = Field(0.2, gt=0)
+
+    # API
+    api_host: str = "127.0.0.1"
+    api_port: int = 8080
+    admin_token: SecretStr = SecretStr(DEFAULT_ADMIN_TOKEN)
+
+    @model_validator(mode="after")
+    def _refuse_default_secrets(self) -> "Settings":
+        if self.mode == "production":
+            if self.admin_token.get_secret_value() == DEFAULT_ADMIN_TOKEN:
+                raise ValueError(
+                    "MAPSERVICE_ADMIN_TOKEN still has its local default; set a secret "
+                    "before running with MAPSERVICE_MODE=production"
+                )
+            if self.resolved_clickhouse_dsn.startswith("http") and (
+                self.clickhouse_password.get_secret_value() == DEFAULT_CLICKHOUSE_PASSWORD
+            ):
+                raise ValueError(
+                    "MAPSERVICE_CLICKHOUSE_PASSWORD is empty; set it before running "
+                    "with MAPSERVICE_MODE=production"
+                )
+        return self
+
+    @property
+    def resolved_clickhouse_dsn(self) -> str:
+        if self.clickhouse_dsn:
+            return self.clickhouse_dsn
+        return f"chdb://{(self.data_dir / 'clickhouse').resolve()}"
+
+    @property
+    def retention_ms(self) -> int:
+        return self.retention_days * 86_400_000
+
+    @cached_property
+    def mqtt_subscriptions(self) -> list[str]:
+        prefix = f"$share/{self.mqtt_share_group}/" if self.mqtt_share_group else ""
+        return [prefix + self.create_chunk_topic, prefix + self.coordinate_topic]
+
+    def kafka_config(self) -> dict[str, str]:
+        """librdkafka settings shared by every confluent-kafka client of the service."""
+        conf: dict[str, str] = {
+            "bootstrap.servers": self.kafka_bootstrap,
+            "security.protocol": self.kafka_security_protocol,
+        }
+        if self.kafka_sasl_mechanism:
+            conf["sasl.mechanism"] = self.kafka_sasl_mechanism
+        if self.kafka_username:
+            conf["sasl.username"] = self.kafka_username
+        if self.kafka_password:
+            conf["sasl.password"] = self.kafka_password.get_secret_value()
+        return conf
+
+    @property
+    def kafka_topics(self) -> list[str]:
+        return [
+            self.topic_chunk_events,
+            self.topic_pose_events,
+            self.topic_meta_events,
+            self.topic_dead_letter,
+        ]

@@ -1,0 +1,154 @@
+"""The whole service on one machine: brokers plus each component in its own process.
+
+Used by `mapservice up`, `mapservice bench` and the integration tests, so all three
+run exactly what production runs, only with local addresses.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import httpx
+import structlog
+
+from . import embedded
+from .adapters.clock import SystemClock
+from .adapters.kafka_publisher import KafkaPublisher
+from .events import MapMetaSet, encode, kafka_key, make_envelope
+from .settings import Settings
+from .topics import ensure_topics
+
+log = structlog.get_logger(__name__)
+
+
+@dataclass
+class Stack:
+    data_dir: Path
+    mqtt: str = "amqtt"  # "amqtt", "mosquitto" or an mqtt:// URL of a running broker
+    api_port: int = 0
+    mqtt_port: int = 0
+    kafka_port: int = 0
+    health_port: int = 0
+    extra_env: dict[str, str] = field(default_factory=dict)
+    procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.data_dir = Path(self.data_dir).resolve()
+        self.log_dir = self.data_dir / "logs"
+        self.api_port = self.api_port or embedded.free_port()
+        self.kafka_port = self.kafka_port or embedded.free_port()
+        self.health_port = self.health_port or embedded.free_port()
+        if self.mqtt in ("amqtt", "mosquitto"):
+            self.mqtt_port = self.mqtt_port or embedded.free_port()
+            self.mqtt_url = f"mqtt://127.0.0.1:{self.mqtt_port}"
+        else:
+            self.mqtt_url = self.mqtt
+
+    @property
+    def api_url(self) -> str:
+        return f"http://127.0.0.1:{self.api_port}"
+
+    def env(self) -> dict[str, str]:
+        return {
+            **os.environ,
+            "MAPSERVICE_DATA_DIR": str(self.data_dir),
+            "MAPSERVICE_KAFKA_BOOTSTRAP": f"127.0.0.1:{self.kafka_port}",
+            "MAPSERVICE_MQTT_URL": self.mqtt_url,
+            "MAPSERVICE_API_HOST": "127.0.0.1",
+            "MAPSERVICE_API_PORT": str(self.api_port),
+            "PYTHONUNBUFFERED": "1",
+            **self.extra_env,
+        }
+
+    def settings(self) -> Settings:
+        env = self.env()
+        return Settings(data_dir=self.data_dir, kafka_bootstrap=env["MAPSERVICE_KAFKA_BOOTSTRAP"],
+                        mqtt_url=self.mqtt_url, api_port=self.api_port,
+                        **{k[len("MAPSERVICE_"):].lower(): v for k, v in self.extra_env.items()
+                           if k.startswith("MAPSERVICE_")})
+
+    def _log(self, name: str):
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        return open(self.log_dir / f"{name}.log", "ab")
+
+    def start_brokers(self) -> None:
+        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
+        if self.mqtt == "amqtt":
+            self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"))
+        elif self.mqtt == "mosquitto":
+            self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
+                                                          self._log("mosquitto"))
+        ensure_topics(self.settings())
+
+    def _spawn(self, name: str, *args: str) -> subprocess.Popen:
+        proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args], env=self.env(),
+                                stdout=self._log(name), stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        self.procs[name] = proc
+        return proc
+
+    def start_gateway(self) -> subprocess.Popen:
+        embedded.ensure_port_free(self.health_port, "the gateway's health endpoint")
+        proc = self._spawn("gateway", "gateway", "--health-port", str(self.health_port))
+        embedded.wait_for_port(self.health_port, proc=proc, what="gateway")
+        self.wait_healthy(f"http://127.0.0.1:{self.health_port}/healthz", "gateway", proc)
+        return proc
+
+    def start_server(self) -> subprocess.Popen:
+        embedded.ensure_port_free(self.api_port, "the API")
+        proc = self._spawn("server", "serve")
+        embedded.wait_for_port(self.api_port, timeout_s=120, proc=proc, what="server")
+        self.wait_healthy(f"{self.api_url}/readyz", "server", proc)
+        return proc
+
+    def wait_healthy(self, url: str, what: str, proc: subprocess.Popen,
+                     timeout_s: float = 60) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                raise RuntimeError(f"{what} exited ({proc.returncode}); see {self.log_dir}/{what}.log")
+            try:
+                if httpx.get(url, timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError(f"{what} not healthy at {url} after {timeout_s:.0f} s")
+
+    def publish_meta(self, meta: MapMetaSet) -> None:
+        settings = self.settings()
+        publisher = KafkaPublisher(settings, client_id="mapservice-up")
+        now = SystemClock().now_ms()
+        env = make_envelope("mapservice", now, now, meta)
+        errors: list = []
+        publisher.publish(settings.topic_meta_events, kafka_key(env), encode(env), errors.append)
+        if publisher.flush(30) or any(errors):
+            raise RuntimeError(f"could not publish the map meta to Kafka: {errors}")
+
+    def start(self) -> None:
+        self.start_brokers()
+        self.start_server()
+        self.start_gateway()
+
+    def stop(self) -> None:
+        for name in ("sim", "gateway", "server", "mqtt", "kafka"):
+            embedded.stop(self.procs.pop(name, None))
+        for proc in self.procs.values():
+            embedded.stop(proc)
+        self.procs.clear()
+
+    def __enter__(self) -> "Stack":
+        try:
+            self.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()

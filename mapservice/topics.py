@@ -1,0 +1,47 @@
+"""Creates the service's Kafka topics (tansu does not auto-create; production may not)."""
+
+from __future__ import annotations
+
+import time
+
+import structlog
+from confluent_kafka.admin import AdminClient, NewTopic
+
+from .settings import Settings
+
+log = structlog.get_logger(__name__)
+
+
+def ensure_topics(settings: Settings, timeout_s: float = 60.0) -> list[str]:
+    """Idempotent; waits for the broker. Returns the topics it created."""
+    admin = AdminClient(settings.kafka_config())
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            existing = set(admin.list_topics(timeout=5).topics)
+            break
+        except Exception as exc:
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"Kafka at {settings.kafka_bootstrap} did not answer in {timeout_s:.0f} s; "
+                    "check MAPSERVICE_KAFKA_BOOTSTRAP") from exc
+            time.sleep(0.5)
+    wanted = [t for t in settings.kafka_topics if t not in existing]
+    if not wanted:
+        return []
+    futures = admin.create_topics([
+        NewTopic(t, num_partitions=1 if t == settings.topic_meta_events else settings.kafka_partitions,
+                 replication_factor=settings.kafka_replication,
+                 config={"cleanup.policy": "compact"} if t == settings.topic_meta_events else {})
+        for t in wanted
+    ])
+    created = []
+    for topic, fut in futures.items():
+        try:
+            fut.result(timeout=30)
+            created.append(topic)
+        except Exception as exc:
+            if "TOPIC_ALREADY_EXISTS" not in str(exc):
+                raise
+    log.info("kafka topics created", topics=created)
+    return created

@@ -1,0 +1,121 @@
+"""faust-streaming agents that sink the event topics into the ClickHouse history.
+
+At-least-once: events are acknowledged (so their offsets may be committed) only after
+the insert that holds them succeeded; a crash before that re-delivers the batch, and the
+history's natural-identity keys absorb the repeat.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import faust
+import structlog
+from prometheus_client import Counter, Histogram
+
+from mapservice.ports import HistoryStore
+from mapservice.settings import Settings
+
+from .sink import decode_dead_letters, split_events
+
+log = structlog.get_logger(__name__)
+
+STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
+INSERT_SECONDS = Histogram("mapservice_sink_insert_seconds", "Duration of one history insert",
+                           buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
+INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that failed and were retried")
+
+
+def faust_broker_url(settings: Settings) -> str:
+    return ";".join(f"kafka://{h.strip()}" for h in settings.kafka_bootstrap.split(","))
+
+
+class HistorySink:
+    """Owns the store and the one thread that talks to it."""
+
+    def __init__(self, store: HistoryStore) -> None:
+        self.store = store
+        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
+
+    async def run(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+
+    async def insert_until_done(self, fn, batch, topic: str) -> None:
+        delay = 0.2
+        while True:
+            started = time.monotonic()
+            try:
+                await self.run(fn, batch)
+                INSERT_SECONDS.observe(time.monotonic() - started)
+                STORED.labels(topic).inc(len(batch))
+                return
+            except Exception as exc:  # retried: acknowledging now would lose the batch
+                INSERT_FAILURES.inc()
+                log.error("history insert failed, retrying", topic=topic, error=str(exc),
+                          batch=len(batch), retry_in=delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 10)
+
+
+def build_app(settings: Settings, sink: HistorySink) -> faust.App:
+    app = faust.App(
+        "mapservice-processors",
+        broker=faust_broker_url(settings),
+        broker_credentials=_faust_credentials(settings),
+        value_serializer="raw",
+        key_serializer="raw",
+        web_enabled=False,
+        store="memory://",
+        topic_partitions=settings.kafka_partitions,
+        consumer_auto_offset_reset="earliest",
+        broker_commit_interval=1.0,
+        # tansu holds a join for the whole rebalance timeout; short keeps start-up quick.
+        broker_rebalance_timeout=settings.kafka_rebalance_timeout_s,
+        broker_session_timeout=max(settings.kafka_rebalance_timeout_s, 10),
+        broker_heartbeat_interval=1.0,
+        producer_partitioner=None,
+    )
+    batch, within = settings.sink_batch_size, settings.sink_batch_seconds
+    now_ms = lambda: time.time_ns() // 1_000_000  # noqa: E731
+
+    for name in (settings.topic_chunk_events, settings.topic_pose_events,
+                 settings.topic_meta_events):
+        topic = app.topic(name, value_type=bytes, key_type=bytes)
+
+        async def sink_events(stream, _name=name):
+            async for events in stream.noack().noack_take(batch, within=within):
+                good, bad = split_events((e.value for e in events), now_ms())
+                if good:
+                    await sink.insert_until_done(sink.store.append, good, _name)
+                if bad:
+                    log.warning("undecodable records on an event topic", topic=_name, count=len(bad))
+                    await sink.insert_until_done(sink.store.append_dead_letters, bad, _name)
+                for e in events:
+                    e.ack()
+
+        app.agent(topic, name=f"history-{name}")(sink_events)
+
+    dl_topic = app.topic(settings.topic_dead_letter, value_type=bytes, key_type=bytes)
+
+    async def sink_dead_letters(stream):
+        async for events in stream.noack().noack_take(batch, within=within):
+            records = decode_dead_letters((e.value for e in events), now_ms())
+            await sink.insert_until_done(sink.store.append_dead_letters, records,
+                                         settings.topic_dead_letter)
+            for e in events:
+                e.ack()
+
+    app.agent(dl_topic, name="history-dead-letters")(sink_dead_letters)
+    return app
+
+
+def _faust_credentials(settings: Settings):
+    if settings.kafka_username and settings.kafka_password:
+        return faust.SASLCredentials(
+            username=settings.kafka_username,
+            password=settings.kafka_password.get_secret_value(),
+            mechanism=settings.kafka_sasl_mechanism or "PLAIN",
+        )
+    return None
