@@ -53,7 +53,6 @@ class Settings(BaseSettings):
     mqtt_share_group: str = Field("", description="Non-empty: subscribe via $share/<group>/.")
     create_chunk_topic: str = "iot/chunks/create"
     coordinate_topic: str = "iot/coordinates/#"
-    new_chunk_advertisement_topic: str = "iot/chunks/advertisement"
 
     # Validation
     chunk_width: int = Field(100, ge=1, le=4096, description="Used until a map meta is set.")
