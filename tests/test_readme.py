@@ -1,0 +1,96 @@
+"""The README runs: its configuration table matches the settings, and its try-it block works
+against `mapservice up` (which also stops cleanly and resumes on the same data)."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import pytest
+
+from mapservice.embedded import ensure_port_free, free_port
+from mapservice.settings import Settings
+from tests.fixtures.paths import README, ROOT
+
+
+def test_configuration_table_lists_every_setting():
+    """Every MAPSERVICE_* setting appears in the README table, and nothing else does."""
+    documented = set(re.findall(r"^\| `(MAPSERVICE_[A-Z0-9_]+)` \|", README.read_text(), re.M))
+    expected = {f"MAPSERVICE_{name.upper()}" for name in Settings.model_fields}
+    assert documented == expected
+
+
+def try_it_block() -> str:
+    text = README.read_text()
+    block = text.split("<!-- try-it -->", 1)[1].split("<!-- /try-it -->", 1)[0]
+    return block.split("```bash", 1)[1].rsplit("```", 1)[0]
+
+
+def start_up(data_dir, api_port: int, mqtt_port: int) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
+         "--robots", "2", "--api-port", str(api_port), "--mqtt-port", str(mqtt_port)],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)
+    deadline = time.monotonic() + 150
+    seen = []
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        seen.append(line)
+        if "mapservice is up" in line:
+            return proc
+    proc.kill()
+    raise AssertionError("mapservice up did not come up:\n" + "".join(seen[-40:]))
+
+
+def stop_up(proc: subprocess.Popen) -> int:
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    return proc.returncode
+
+
+@pytest.mark.integration
+def test_try_it_block_against_mapservice_up(tmp_path):
+    """`mapservice up` comes up; the README's mosquitto_pub pose is queryable within 2 s; Ctrl-C
+    stops everything; a second `up` on the same data dir still has it."""
+    api_port, mqtt_port = free_port(), free_port()
+    data_dir = tmp_path / "data"
+    proc = start_up(data_dir, api_port, mqtt_port)
+    try:
+        script = try_it_block().replace("-p 1883", f"-p {mqtt_port}").replace(
+            "127.0.0.1:8080", f"127.0.0.1:{api_port}")
+        publish, rest = script.split("sleep 1", 1)
+        started = time.monotonic()
+        subprocess.run(["bash", "-euc", publish], check=True, timeout=30)
+        found = []
+        while time.monotonic() - started < 2.0 and not found:
+            found = json.loads(subprocess.run(["bash", "-euc", rest], check=True, timeout=30,
+                                              capture_output=True, text=True).stdout)
+        assert found, "the README's pose was not queryable within 2 s"
+        assert found[0]["robotId"] == "demo-robot"
+        assert found[0]["position"] == [10.0, 20.0, 0.0]
+        assert found[0]["loaded"] is True and found[0]["charging"] is False
+        simulated = httpx.get(f"http://127.0.0.1:{api_port}/api/v1/stats").json()
+        assert simulated["poses"] >= 2  # the simulated robots are publishing too
+    finally:
+        code = stop_up(proc)
+    assert code == 0
+    for port in (api_port, mqtt_port):
+        ensure_port_free(port, "a component `up` should have stopped")
+
+    proc = start_up(data_dir, api_port, mqtt_port)
+    try:
+        now = time.time_ns() // 1_000_000
+        rows = httpx.get(f"http://127.0.0.1:{api_port}/api/v1/poses",
+                         params={"robotId": "demo-robot", "from": now - 3_600_000, "to": now}).json()
+        assert len(rows) == 1
+    finally:
+        assert stop_up(proc) == 0
