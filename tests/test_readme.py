@@ -78,8 +78,10 @@ def test_try_it_block_against_mapservice_up(tmp_path):
         assert found[0]["robotId"] == "demo-robot"
         assert found[0]["position"] == [10.0, 20.0, 0.0]
         assert found[0]["loaded"] is True and found[0]["charging"] is False
-        simulated = httpx.get(f"http://127.0.0.1:{api_port}/api/v1/stats").json()
-        assert simulated["poses"] >= 2  # the simulated robots are publishing too
+        deadline = time.monotonic() + 60
+        while httpx.get(f"http://127.0.0.1:{api_port}/api/v1/stats").json()["poses"] < 5:
+            assert time.monotonic() < deadline, "the simulated robots never published"
+            time.sleep(0.5)
     finally:
         code = stop_up(proc)
     assert code == 0
