@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, RedirectResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 router = APIRouter(tags=["health"])
+
+
+@router.get("/", include_in_schema=False)
+def root() -> RedirectResponse:
+    # The replay UI will be served here; until then the API's own docs are the front page.
+    return RedirectResponse("/docs")
 
 
 @router.get("/healthz", operation_id="getLiveness")

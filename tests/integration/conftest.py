@@ -20,8 +20,8 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.integration)
 
 
-def start_stack(tmp_path_factory, mqtt: str) -> Stack:
-    stack = Stack(tmp_path_factory.mktemp(f"stack-{mqtt}"), mqtt=mqtt)
+def start_stack(tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = None) -> Stack:
+    stack = Stack(tmp_path_factory.mktemp(f"stack-{mqtt}"), mqtt=mqtt, extra_env=extra_env or {})
     try:
         stack.start_brokers()
         stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml")))
