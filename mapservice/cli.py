@@ -46,13 +46,31 @@ def cmd_sim(args) -> None:
     from .loadgen import RobotFleet
     from .mapfile import load_ros_map
 
+    import structlog
+
     settings = _settings("sim")
+    log = structlog.get_logger("sim")
     fleet = RobotFleet(args.mqtt_url or settings.mqtt_url, load_ros_map(args.map), args.robots)
     signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
+    started, last = time.monotonic(), [0.0]
+
+    def progress(stats) -> None:
+        now = time.monotonic()
+        if now - last[0] >= 10:
+            last[0] = now
+            elapsed = now - started
+            log.info("simulating", robots=args.robots, poses=stats.poses, chunks=stats.chunks,
+                     rate_per_s=round((stats.poses + stats.chunks) / max(elapsed, 1e-9), 1))
+
+    log.info("simulated robots starting", robots=args.robots, map=str(args.map),
+             mqtt=args.mqtt_url or settings.mqtt_url)
     try:
-        fleet.run(args.seconds)
+        fleet.run(args.seconds, on_tick=progress)
     except KeyboardInterrupt:
         fleet.stop()
+    except OSError as exc:
+        sys.exit(f"cannot reach the MQTT broker at {fleet.mqtt_url}: {exc}; "
+                 "start one (e.g. `make up`) or pass --mqtt-url")
 
 
 def cmd_up(args) -> None:
