@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import re
+
 from fastapi import HTTPException, Request
 
 from mapservice.ports import HistoryStore
 from mapservice.settings import Settings
 from mapservice.wire2019 import parse_timestamp
+
+
+_EPOCH_MS = re.compile(r"-?[0-9]+")
 
 
 def get_store(request: Request) -> HistoryStore:
@@ -19,7 +24,7 @@ def get_settings(request: Request) -> Settings:
 
 def parse_time_param(name: str, value: str) -> int:
     """ISO 8601 (UTC when no zone is given) or epoch milliseconds."""
-    if value.lstrip("-").isdigit():
+    if _EPOCH_MS.fullmatch(value):  # not str.isdigit(): "--5" and "²" would reach int()
         return int(value)
     ms = parse_timestamp(value)
     if ms is None:

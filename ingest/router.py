@@ -34,8 +34,10 @@ class Router:
         self.gateway_id = gateway_id
         self.chunk_topic = settings.create_chunk_topic
         base = settings.coordinate_topic
-        # "iot/coordinates/#" -> "iot/coordinates/"; robots publish on iot/coordinates/<id>.
-        self.coordinate_prefix = base[:-1] if base.endswith("#") else base.rstrip("/") + "/"
+        # "iot/coordinates/#" or ".../+" -> "iot/coordinates/"; robots publish on
+        # iot/coordinates/<id>.
+        self.coordinate_prefix = (base[:-1] if base.endswith(("#", "+"))
+                                  else base.rstrip("/") + "/")
 
     def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
         if mqtt_topic == self.chunk_topic:

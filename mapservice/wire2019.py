@@ -120,7 +120,7 @@ class CoordinateUpdate(msgspec.Struct):
 
 _chunk_decoder = msgspec.json.Decoder(ChunkCreate)
 _pose_decoder = msgspec.json.Decoder(CoordinateUpdate)
-_ROBOT_ID = re.compile(r"^[A-Za-z0-9_.:@-]{1,64}$")
+_ROBOT_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")  # fullmatch: `$` would allow "id\n"
 MAX_PATH_POINTS = 1000
 MAX_ABS_METRES = 1e6
 
@@ -134,6 +134,8 @@ def _decode(decoder: msgspec.json.Decoder, data: bytes):
         return Rejection(reason, text)
     except msgspec.DecodeError as exc:
         return Rejection(Reason.NOT_JSON, f"payload is not JSON: {exc}")
+    except UnicodeDecodeError as exc:  # msgspec raises it for invalid UTF-8 inside a string
+        return Rejection(Reason.NOT_JSON, f"payload is not UTF-8 JSON: {exc}")
 
 
 def parse_timestamp(text: str) -> int | None:
@@ -173,7 +175,7 @@ def _check_time(text: str, now_ms: int, limits: Limits) -> int | Rejection:
 
 
 def _check_robot_id(robot_id: str) -> Rejection | None:
-    if not _ROBOT_ID.match(robot_id):
+    if not _ROBOT_ID.fullmatch(robot_id):
         return Rejection(
             Reason.BAD_ROBOT_ID,
             f"robotId {robot_id[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . : @ -",

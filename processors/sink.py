@@ -16,7 +16,7 @@ def split_events(values: Iterable[bytes], now_ms: int) -> tuple[list[Envelope], 
     for value in values:
         try:
             events.append(decode(value))
-        except (msgspec.DecodeError, TypeError) as exc:
+        except (msgspec.DecodeError, TypeError, UnicodeDecodeError) as exc:
             bad.append(DeadLetter(reason="undecodable_event", detail=str(exc)[:500],
                                   mqtt_topic="", payload=value or b"", receive_time_ms=now_ms,
                                   gateway="processors"))
@@ -28,7 +28,7 @@ def decode_dead_letters(values: Iterable[bytes], now_ms: int) -> list[DeadLetter
     for value in values:
         try:
             out.append(decode_dead_letter(value))
-        except (msgspec.DecodeError, TypeError) as exc:
+        except (msgspec.DecodeError, TypeError, UnicodeDecodeError) as exc:
             out.append(DeadLetter(reason="undecodable_dead_letter", detail=str(exc)[:500],
                                   mqtt_topic="", payload=value or b"", receive_time_ms=now_ms,
                                   gateway="processors"))

@@ -9,7 +9,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 router = APIRouter(tags=["health"])
 
 
-@router.get("/", include_in_schema=False)
+@router.get("/", operation_id="getRoot", include_in_schema=False)
 def root() -> RedirectResponse:
     # The replay UI will be served here; until then the API's own docs are the front page.
     return RedirectResponse("/docs")

@@ -159,9 +159,9 @@ class ClickHouseStore:
 
     # --- reads ----------------------------------------------------------------------
 
-    def _rows(self, sql: str, params: dict) -> list[tuple]:
+    def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
         with self._lock:
-            return self.client.query(sql, parameters=params).result_rows
+            return self.client.query(sql, parameters=params, **query_options).result_rows
 
     def poses(self, from_ms: int, to_ms: int, robot_id: str | None = None,
               limit: int = 100_000) -> list[PoseRow]:
@@ -199,11 +199,13 @@ class ClickHouseStore:
             f"SELECT width, height, zlib_pixels FROM {self.database}.chunk_contents "
             "WHERE content_hash = unhex({h:String}) LIMIT 1",
             {"h": content_hash.hex()},
+            # As bytes: read as text, zlib data that is not UTF-8 would come back as hex.
+            column_formats={"zlib_pixels": "bytes"},
         )
         if not rows:
             return None
         w, h, data = rows[0]
-        return w, h, data if isinstance(data, bytes) else data.encode("latin-1")
+        return w, h, bytes(data)
 
     def latest_meta(self) -> MapMetaSet | None:
         rows = self._rows(

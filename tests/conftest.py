@@ -1,0 +1,149 @@
+"""Shared fixtures for the fast (broker-free) tests: a fixed clock, 2019 wire messages
+(`wire`) and event envelopes (`ev`)."""
+
+from __future__ import annotations
+
+import base64
+import os
+import zlib
+from dataclasses import dataclass
+
+import msgspec
+import pytest
+
+from mapservice.adapters.clock import ManualClock
+from mapservice.events import (
+    ChunkUpdated,
+    DeadLetter,
+    Envelope,
+    MapMetaSet,
+    PoseReported,
+    make_envelope,
+)
+from mapservice.wire2019 import Limits, content_hash, format_timestamp
+
+# 2026-11-21T10:00:00Z: a fixed "now" so every test sees the same gateway clock.
+NOW_MS = 1_795_255_200_000
+
+
+@pytest.fixture(autouse=True)
+def _hermetic_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """No MAPSERVICE_* variable of the developer's shell leaks into Settings() in fast tests
+    (integration tests keep the environment they were started with)."""
+    if request.node.get_closest_marker("integration"):
+        return
+    for name in list(os.environ):
+        if name.upper().startswith("MAPSERVICE_"):
+            monkeypatch.delenv(name)
+
+
+@pytest.fixture
+def now_ms() -> int:
+    return NOW_MS
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock(NOW_MS)
+
+
+@pytest.fixture
+def limits() -> Limits:
+    return Limits()
+
+
+@dataclass
+class Wire:
+    """Builds 2019 MQTT payloads (listings 14 and 16) around a gateway clock."""
+
+    now_ms: int
+
+    def ts(self, offset_ms: int = 0) -> str:
+        """A 2019-style timestamp (no zone, UTC) `offset_ms` from now."""
+        return format_timestamp(self.now_ms + offset_ms)
+
+    @staticmethod
+    def b64z(raw: bytes) -> str:
+        return base64.b64encode(zlib.compress(raw)).decode()
+
+    def chunk_doc(self, **overrides) -> dict:
+        """Listing 14, field for field, with real 100 x 100 pixels and a current timestamp."""
+        doc = {
+            "pgmB64compressedData": self.b64z(bytes([205]) * 10_000),
+            "row": 3,
+            "column": 2,
+            "timestamp": self.ts(),
+            "robotId": "lkjlkj",
+        }
+        doc.update(overrides)
+        return doc
+
+    def chunk(self, **overrides) -> bytes:
+        return msgspec.json.encode(self.chunk_doc(**overrides))
+
+    def pose_doc(self, **overrides) -> dict:
+        """Listing 16 as printed (integers, string flags), with a current timestamp."""
+        doc = {
+            "robotId": "blabla",
+            "timestamp": self.ts(),
+            "pose": {
+                "position": {"x": 10, "y": 20, "z": 0},
+                "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+            },
+            "status": {"battery": {"battery_level": 3, "charging": "sdf"}, "loaded": "dfs"},
+        }
+        doc.update(overrides)
+        return doc
+
+    def pose(self, **overrides) -> bytes:
+        return msgspec.json.encode(self.pose_doc(**overrides))
+
+
+@pytest.fixture
+def wire(now_ms: int) -> Wire:
+    return Wire(now_ms)
+
+
+# --- events for store and API tests ---------------------------------------------------
+
+
+def pose_event(robot_id: str, t_ms: int, x: float = 1.0, y: float = 2.0, *,
+               receive_lag_ms: int = 40, **fields) -> Envelope:
+    payload = PoseReported(position=(x, y, 0.0), orientation=(0.0, 0.0, 0.0, 1.0),
+                           battery_level=fields.pop("battery_level", 80.0), **fields)
+    return make_envelope(robot_id, t_ms, t_ms + receive_lag_ms, payload)
+
+
+def chunk_event(robot_id: str, t_ms: int, row: int = 0, column: int = 0,
+                pixels: bytes = bytes(100 * 100), *, width: int = 100, height: int = 100,
+                receive_lag_ms: int = 25) -> Envelope:
+    payload = ChunkUpdated(row=row, column=column, width=width, height=height,
+                           data=zlib.compress(pixels), content_hash=content_hash(pixels))
+    return make_envelope(robot_id, t_ms, t_ms + receive_lag_ms, payload)
+
+
+def meta_event(t_ms: int, chunk_rows: int = 4, chunk_cols: int = 5,
+               robot_id: str = "admin") -> Envelope:
+    payload = MapMetaSet(width=chunk_cols * 100, height=chunk_rows * 100, chunk_width=100,
+                         chunk_height=100, chunk_rows=chunk_rows, chunk_cols=chunk_cols,
+                         comment=f"meta at {t_ms}", resolution=0.05, origin=(-1.5, 2.0, 0.0))
+    return make_envelope(robot_id, t_ms, t_ms, payload)
+
+
+def dead_letter(reason: str = "not_json", payload: bytes = b"{oops", t_ms: int = NOW_MS) -> DeadLetter:
+    return DeadLetter(reason=reason, detail="test", mqtt_topic="iot/chunks/create",
+                      payload=payload, receive_time_ms=t_ms, gateway="test-gw")
+
+
+@dataclass(frozen=True)
+class EventFactory:
+    pose = staticmethod(pose_event)
+    chunk = staticmethod(chunk_event)
+    meta = staticmethod(meta_event)
+    dead_letter = staticmethod(dead_letter)
+
+
+@pytest.fixture
+def ev() -> EventFactory:
+    """Builders of envelopes and dead letters (`ev.pose(...)`, `ev.chunk(...)`, ...)."""
+    return EventFactory()

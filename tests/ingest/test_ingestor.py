@@ -1,0 +1,171 @@
+"""The broker-free gateway core: route, publish, and ack only once the log has the record."""
+
+from __future__ import annotations
+
+import pytest
+
+from mapservice.adapters.memory_publisher import MemoryPublisher
+from mapservice.events import MapMetaSet, decode, decode_dead_letter
+from mapservice.ingest.gateway import Ingestor
+from mapservice.settings import Settings
+
+
+class Acks:
+    """Counts ack() calls, the way paho's client.ack(mid, qos) would be called."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def for_(self, name: str):
+        return lambda: self.calls.append(name)
+
+
+@pytest.fixture
+def publisher() -> MemoryPublisher:
+    return MemoryPublisher()
+
+
+@pytest.fixture
+def settings() -> Settings:
+    return Settings()
+
+
+@pytest.fixture
+def ingestor(settings, publisher, clock) -> Ingestor:
+    return Ingestor(settings, publisher, clock, gateway_id="gw-test")
+
+
+@pytest.fixture
+def acks() -> Acks:
+    return Acks()
+
+
+def test_accepted_chunk_is_published_to_chunk_topic(ingestor, publisher, settings, wire, acks) -> None:
+    """An accepted chunk lands on the chunk topic with key `row:column`."""
+    ingestor.handle("iot/chunks/create", wire.chunk(row=4, column=9), acks.for_("m1"))
+    publisher.poll()
+    assert list(publisher.records) == [settings.topic_chunk_events]
+    ((key, value),) = publisher.records[settings.topic_chunk_events]
+    assert key == b"4:9"
+    assert decode(value).payload.row == 4
+
+
+def test_accepted_pose_is_published_to_pose_topic(ingestor, publisher, settings, wire, acks,
+                                                  now_ms) -> None:
+    """An accepted pose lands on the pose topic keyed by robot, stamped with the clock's time."""
+    ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_("m1"))
+    publisher.poll()
+    ((key, value),) = publisher.records[settings.topic_pose_events]
+    assert key == b"blabla"
+    assert decode(value).receive_time_ms == now_ms
+
+
+def test_rejected_message_goes_to_dead_letter_topic(ingestor, publisher, settings, acks) -> None:
+    """A rejected message is published as a dead letter (reason, detail, bytes, topic) and acked."""
+    ingestor.handle("iot/chunks/create", b"\x00not json", acks.for_("bad"))
+    publisher.poll()
+    ((key, value),) = publisher.records[settings.topic_dead_letter]
+    letter = decode_dead_letter(value)
+    assert key == b"iot/chunks/create"
+    assert (letter.reason, letter.payload, letter.mqtt_topic, letter.gateway) == (
+        "not_json", b"\x00not json", "iot/chunks/create", "gw-test")
+    assert letter.detail
+    assert acks.calls == ["bad"]
+
+
+def test_ack_waits_for_delivery(ingestor, publisher, wire, acks) -> None:
+    """ack() is not called when handle() returns, only once the publisher delivered (on poll)."""
+    ingestor.handle("iot/chunks/create", wire.chunk(), acks.for_("chunk"))
+    ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_("pose"))
+    ingestor.handle("iot/chunks/create", b"garbage", acks.for_("bad"))
+    assert acks.calls == []
+    assert ingestor.in_flight == 3
+    assert not publisher.records
+    publisher.poll()
+    assert acks.calls == ["chunk", "pose", "bad"]
+    assert ingestor.in_flight == 0
+
+
+def test_failed_delivery_is_retried_and_ack_waits(ingestor, publisher, settings, wire, acks) -> None:
+    """A failed delivery is published again; ack waits until a delivery succeeds, once."""
+    publisher.fail_with = RuntimeError("broker down")
+    ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_("pose"))
+    publisher.poll()  # fails; the done-callback publishes again
+    publisher.poll()  # fails again
+    assert acks.calls == []
+    assert ingestor.in_flight == 1
+    assert not publisher.records[settings.topic_pose_events]
+    publisher.fail_with = None
+    publisher.poll()
+    assert acks.calls == ["pose"]
+    assert ingestor.in_flight == 0
+    assert len(publisher.records[settings.topic_pose_events]) == 1
+    publisher.poll()
+    assert acks.calls == ["pose"]  # acked exactly once
+
+
+def test_publisher_failing_from_the_start(settings, clock, wire, acks) -> None:
+    """MemoryPublisher(fail_with=...) never acks until the failure clears."""
+    publisher = MemoryPublisher(fail_with=OSError("no route to broker"))
+    ingestor = Ingestor(settings, publisher, clock, "gw")
+    ingestor.handle("iot/chunks/create", wire.chunk(), acks.for_("c"))
+    publisher.poll()
+    assert acks.calls == []
+    publisher.fail_with = None
+    assert publisher.flush() == 0
+    assert acks.calls == ["c"]
+
+
+def test_returned_record_describes_the_outcome(ingestor, wire) -> None:
+    """handle() returns the routed record: reason None for events, the code for rejections."""
+    assert ingestor.handle("iot/chunks/create", wire.chunk(), lambda: None).reason is None
+    assert ingestor.handle("iot/nowhere", wire.chunk(), lambda: None).reason == "unknown_topic"
+
+
+def test_clock_decides_what_is_too_new(ingestor, clock, wire, acks) -> None:
+    """The injected clock is the gateway's now: moving it back makes a message 'in the future'."""
+    assert ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None).reason is None
+    clock.advance(-3_600_000)
+    record = ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None)
+    assert record.reason == "timestamp_in_future"
+
+
+def test_settings_define_the_initial_limits(clock, wire) -> None:
+    """Chunk size, grid bound and message size come from the settings until a meta is set."""
+    s = Settings(chunk_width=10, chunk_height=10, max_grid=5, max_message_bytes=4096)
+    ing = Ingestor(s, MemoryPublisher(), clock, "gw")
+    small = wire.chunk(pgmB64compressedData=wire.b64z(bytes(100)), row=4, column=4)
+    assert ing.handle("iot/chunks/create", small, lambda: None).reason is None
+    assert ing.handle("iot/chunks/create", wire.chunk(), lambda: None).reason == "wrong_chunk_size"
+    assert ing.handle("iot/chunks/create", wire.chunk(
+        pgmB64compressedData=wire.b64z(bytes(100)), row=5), lambda: None).reason == "out_of_map"
+    assert ing.handle("iot/chunks/create", b"x" * 5000, lambda: None).reason == "oversized"
+
+
+def test_apply_meta_narrows_the_grid(ingestor, wire) -> None:
+    """After apply_meta, chunks outside the meta's rows/columns are out_of_map."""
+    assert ingestor.handle("iot/chunks/create", wire.chunk(row=10, column=10),
+                           lambda: None).reason is None
+    ingestor.apply_meta(MapMetaSet(width=300, height=200, chunk_width=100, chunk_height=100,
+                                   chunk_rows=2, chunk_cols=3))
+    assert ingestor.handle("iot/chunks/create", wire.chunk(row=10, column=10),
+                           lambda: None).reason == "out_of_map"
+    assert ingestor.handle("iot/chunks/create", wire.chunk(row=1, column=2),
+                           lambda: None).reason is None
+    assert ingestor.handle("iot/chunks/create", wire.chunk(row=2, column=0),
+                           lambda: None).reason == "out_of_map"
+
+
+def test_apply_meta_sets_chunk_size_and_does_not_compound(ingestor, wire) -> None:
+    """apply_meta replaces (not stacks) the previous meta, chunk size included."""
+    ingestor.apply_meta(MapMetaSet(width=100, height=100, chunk_width=50, chunk_height=50,
+                                   chunk_rows=2, chunk_cols=2))
+    half = wire.chunk(pgmB64compressedData=wire.b64z(bytes(2500)), row=1, column=1)
+    assert ingestor.handle("iot/chunks/create", half, lambda: None).reason is None
+    assert ingestor.handle("iot/chunks/create", wire.chunk(row=1, column=1),
+                           lambda: None).reason == "wrong_chunk_size"
+    ingestor.apply_meta(MapMetaSet(width=800, height=800, chunk_width=100, chunk_height=100,
+                                   chunk_rows=8, chunk_cols=8))
+    assert ingestor.handle("iot/chunks/create", wire.chunk(row=7, column=7),
+                           lambda: None).reason is None
+    assert ingestor.limits.max_message_bytes == Settings().max_message_bytes
