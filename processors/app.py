@@ -8,6 +8,7 @@ history's natural-identity keys absorb the repeat.
 from __future__ import annotations
 
 import asyncio
+import ssl
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -76,6 +77,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         broker_session_timeout=max(settings.kafka_rebalance_timeout_s, 10),
         broker_heartbeat_interval=1.0,
         producer_partitioner=None,
+        topic_replication_factor=settings.kafka_replication,
     )
     batch, within = settings.sink_batch_size, settings.sink_batch_seconds
     now_ms = lambda: time.time_ns() // 1_000_000  # noqa: E731
@@ -112,10 +114,16 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
 
 
 def _faust_credentials(settings: Settings):
+    """The same security settings the confluent-kafka clients use (librdkafka names)."""
+    protocol = settings.kafka_security_protocol.upper()
+    ssl_context = ssl.create_default_context() if protocol in ("SSL", "SASL_SSL") else None
     if settings.kafka_username and settings.kafka_password:
         return faust.SASLCredentials(
             username=settings.kafka_username,
             password=settings.kafka_password.get_secret_value(),
             mechanism=settings.kafka_sasl_mechanism or "PLAIN",
+            ssl_context=ssl_context,
         )
+    if ssl_context is not None:
+        return faust.SSLCredentials(ssl_context)
     return None
