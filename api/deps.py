@@ -6,7 +6,7 @@ import re
 
 from fastapi import HTTPException, Request
 
-from mapservice.ports import HistoryStore
+from mapservice.ports import Clock, HistoryStore
 from mapservice.settings import Settings
 from mapservice.wire2019 import parse_timestamp
 
@@ -20,6 +20,10 @@ def get_store(request: Request) -> HistoryStore:
 
 def get_settings(request: Request) -> Settings:
     return request.app.state.settings
+
+
+def get_clock(request: Request) -> Clock:
+    return request.app.state.clock
 
 
 def parse_time_param(name: str, value: str) -> int:
@@ -43,3 +47,14 @@ def parse_window(from_: str, to: str, max_span_ms: int) -> tuple[int, int]:
             400, f"window of {(t - f) / 3_600_000:.1f} h is longer than the "
                  f"{max_span_ms / 3_600_000:.0f} h allowed; split it")
     return f, t
+
+
+def parse_instant(value: str, settings: Settings, now_ms: int) -> int:
+    """An instant within the retention and not in the future, else a 400 that says why."""
+    at = parse_time_param("at", value)
+    if at > now_ms + 1000:
+        raise HTTPException(400, f"'at' ({value}) is in the future; the latest instant is now")
+    if at < now_ms - settings.retention_ms:
+        raise HTTPException(
+            400, f"'at' ({value}) is older than the {settings.retention_days}-day retention")
+    return at

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import msgspec
 
 from .events import DeadLetter, Envelope, MapMetaSet
+
+if TYPE_CHECKING:
+    from .timetravel import ChunkState
 
 
 class Clock(Protocol):
@@ -79,6 +82,15 @@ class HistoryStore(Protocol):
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
+
+    def map_at(self, at_ms: int) -> list["ChunkState"]:
+        """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
+
+    def robots_at(self, at_ms: int) -> list[PoseRow]:
+        """Per robot, its pose with the greatest event time at or before `at_ms`."""
+
+    def build_snapshots(self, up_to_ms: int) -> int:
+        """Builds the snapshots due up to `up_to_ms`; returns how many were built."""
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         """(width, height, zlib pixels) of a content hash, if stored."""

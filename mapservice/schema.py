@@ -95,7 +95,44 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                 SETTINGS ttl_only_drop_parts = 1""",
             ),
         ),
+        Migration(
+            2,
+            "snapshots of the map and of each robot's latest pose, and their log",
+            (
+                f"""CREATE TABLE IF NOT EXISTS {database}.map_snapshots (
+                    snap_ts DateTime64(3, 'UTC'),
+                    row UInt16,
+                    col UInt16,
+                    ts DateTime64(3, 'UTC'),
+                    robot_id LowCardinality(String),
+                    content_hash FixedString(16),
+                    built DateTime64(3, 'UTC')
+                ) ENGINE = ReplacingMergeTree(built)
+                PARTITION BY toDate(snap_ts)
+                ORDER BY (snap_ts, row, col)
+                TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.robot_snapshots (
+                    snap_ts DateTime64(3, 'UTC'),
+                    robot_id LowCardinality(String),
+                    ts DateTime64(3, 'UTC'),
+                    built DateTime64(3, 'UTC')
+                ) ENGINE = ReplacingMergeTree(built)
+                PARTITION BY toDate(snap_ts)
+                ORDER BY (snap_ts, robot_id)
+                TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.snapshot_log (
+                    snap_ts DateTime64(3, 'UTC'),
+                    built DateTime64(3, 'UTC'),
+                    chunks UInt32,
+                    robots UInt32
+                ) ENGINE = ReplacingMergeTree(built)
+                ORDER BY snap_ts
+                TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY""",
+            ),
+        ),
     ]
 
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2

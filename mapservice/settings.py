@@ -60,11 +60,15 @@ class Settings(BaseSettings):
     max_grid: int = Field(1000, ge=1, description="Row/column bound until a map meta is set.")
     max_message_bytes: int = Field(256 * 1024, ge=1024)
     max_future_skew_s: float = Field(300.0, ge=0)
-    retention_days: int = Field(7, ge=1)
+    # At most 24: receive-minus-event lag is stored in Int32 milliseconds.
+    retention_days: int = Field(7, ge=1, le=24)
 
     # Processors
     sink_batch_size: int = Field(2000, ge=1)
     sink_batch_seconds: float = Field(0.2, gt=0)
+
+    snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
+    snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")
 
     # API
     api_host: str = "127.0.0.1"

@@ -110,6 +110,18 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
                 e.ack()
 
     app.agent(dl_topic, name="history-dead-letters")(sink_dead_letters)
+
+    every_s, grace_ms = settings.snapshot_every_s, int(settings.snapshot_grace_s * 1000)
+
+    async def build_snapshots() -> None:
+        try:
+            built = await sink.run(sink.store.build_snapshots, now_ms() - grace_ms)
+            if built:
+                log.info("snapshots built", count=built)
+        except Exception as exc:  # the next tick tries again; reads stay correct meanwhile
+            log.error("snapshot build failed", error=str(exc))
+
+    app.timer(min(30.0, every_s / 4))(build_snapshots)
     return app
 
 

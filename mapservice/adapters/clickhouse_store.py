@@ -16,6 +16,7 @@ import msgspec
 
 from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
 from ..ports import ChunkRow, Counts, PoseRow
+from ..timetravel import ChunkState
 from ..schema import migrations
 from ..settings import Settings
 
@@ -42,12 +43,26 @@ def _mm(metres: float) -> int:
     return int(round(metres * 1000))
 
 
+_POSE_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, "
+                 "charging, loaded, has_path, path_x_mm, path_y_mm, recv_lag_ms")
+
+
+def _pose_row(r: tuple) -> PoseRow:
+    return PoseRow(r[0], r[1], r[2] / 1000, r[3] / 1000, r[4] / 1000, r[5], r[6], r[7], r[8],
+                   r[9], _unflag(r[10]), _unflag(r[11]),
+                   tuple((x / 1000, y / 1000) for x, y in zip(r[13], r[14])) if r[12] else None,
+                   r[1] + r[15])
+
+
 class ClickHouseStore:
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
-                 username: str = "default", password: str = "") -> None:
+                 username: str = "default", password: str = "",
+                 snapshot_every_ms: int = 600_000) -> None:
         self.dsn = dsn
+        self.snapshot_every_ms = snapshot_every_ms
+        self._last_snapshot_ms: int | None = None  # newest snapshot built, once known
         self.database = database
         self.retention_days = retention_days
         self._username = username
@@ -64,6 +79,7 @@ class ClickHouseStore:
             settings.retention_days,
             settings.clickhouse_username,
             settings.clickhouse_password.get_secret_value(),
+            int(settings.snapshot_every_s * 1000),
         )
 
     @property
@@ -147,6 +163,13 @@ class ClickHouseStore:
                     "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"])
             if metas:
                 c.insert(f"{db}.map_meta", metas, column_names=["ts", "robot_id", "meta"])
+            # A late event (at or before the newest snapshot) makes those snapshots wrong:
+            # rebuild them now, before the batch is acknowledged.
+            times = [row[0] for row in chunks] + [row[1] for row in poses]
+            if times:
+                last = self._newest_snapshot()
+                if last is not None and min(times) <= last:
+                    self._rebuild_from(min(times), last)
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         if not records:
@@ -156,6 +179,90 @@ class ClickHouseStore:
         with self._lock:
             self.client.insert(f"{self.database}.dead_letters", rows, column_names=[
                 "received", "reason", "mqtt_topic", "detail", "payload", "gateway"])
+
+    # --- snapshots ------------------------------------------------------------------
+    # A snapshot at S holds, per chunk, the winning write with event time <= S and, per
+    # robot, the time of its latest pose <= S. Snapshot S is built from snapshot S - every
+    # plus the events in (S - every, S], so building is cheap and reading the state at T
+    # costs one snapshot plus at most `every` of events, however old T is.
+
+    def _newest_snapshot(self) -> int | None:
+        if self._last_snapshot_ms is None:
+            rows = self.client.query(
+                f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() "
+                f"FROM {self.database}.snapshot_log").result_rows
+            if rows and rows[0][1]:
+                self._last_snapshot_ms = rows[0][0]
+        return self._last_snapshot_ms
+
+    def _snapshot_at_or_before(self, at_ms: int) -> int | None:
+        rows = self.client.query(
+            f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() FROM {self.database}.snapshot_log "
+            "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64})", parameters={"t": at_ms}).result_rows
+        return rows[0][0] if rows and rows[0][1] else None
+
+    def _build_one(self, snap_ms: int, prev_ms: int | None) -> None:
+        db = self.database
+        params = {"s": snap_ms, "p": prev_ms if prev_ms is not None else -1}
+        since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
+        prev_map = (f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
+                    "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+                    if prev_ms is not None else "")
+        prev_robots = (f"SELECT robot_id, ts FROM {db}.robot_snapshots FINAL "
+                       "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+                       if prev_ms is not None else "")
+        c = self.client
+        c.command(
+            f"INSERT INTO {db}.map_snapshots (snap_ts, row, col, ts, robot_id, content_hash, built) "
+            "SELECT fromUnixTimestamp64Milli({s:Int64}), row, col, max(ts), "
+            "argMax(robot_id, (ts, robot_id)), argMax(content_hash, (ts, robot_id)), now64(3) "
+            f"FROM ({prev_map}SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events "
+            f"WHERE {since}ts <= fromUnixTimestamp64Milli({{s:Int64}})) GROUP BY row, col",
+            parameters=params)
+        c.command(
+            f"INSERT INTO {db}.robot_snapshots (snap_ts, robot_id, ts, built) "
+            "SELECT fromUnixTimestamp64Milli({s:Int64}), robot_id, max(ts), now64(3) "
+            f"FROM ({prev_robots}SELECT robot_id, ts FROM {db}.poses "
+            f"WHERE {since}ts <= fromUnixTimestamp64Milli({{s:Int64}})) GROUP BY robot_id",
+            parameters=params)
+        c.command(
+            f"INSERT INTO {db}.snapshot_log (snap_ts, built, chunks, robots) "
+            "SELECT fromUnixTimestamp64Milli({s:Int64}), now64(3), "
+            f"(SELECT count() FROM {db}.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}})), "
+            f"(SELECT count() FROM {db}.robot_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}}))",
+            parameters=params)
+
+    def _rebuild_from(self, from_ms: int, last_ms: int) -> None:
+        every = self.snapshot_every_ms
+        first = -(-from_ms // every) * every  # the first snapshot that can contain from_ms
+        for snap in range(first, last_ms + 1, every):
+            self._build_one(snap, self._snapshot_at_or_before(snap - 1))
+
+    def build_snapshots(self, up_to_ms: int) -> int:
+        """Builds every grid snapshot up to `up_to_ms` not built yet; returns how many."""
+        every = self.snapshot_every_ms
+        with self._lock:
+            last = self._newest_snapshot()
+            if last is None:
+                rows = self.client.query(
+                    "SELECT toUnixTimestamp64Milli(min(ts)), count() FROM ("
+                    f"SELECT ts FROM {self.database}.chunk_events UNION ALL "
+                    f"SELECT ts FROM {self.database}.poses)").result_rows
+                if not rows[0][1]:
+                    return 0
+                # The first snapshot folds everything before it; each later one one interval.
+                oldest = max(rows[0][0], up_to_ms - self.retention_days * 86_400_000)
+                first = oldest // every * every
+                snaps = list(range(first, up_to_ms + 1, every))
+                prev = None
+            else:
+                snaps = list(range(last + every, up_to_ms + 1, every))
+                prev = last
+            for snap in snaps:
+                self._build_one(snap, prev)
+                prev = snap
+                self._last_snapshot_ms = snap
+            return len(snaps)
 
     # --- reads ----------------------------------------------------------------------
 
@@ -171,18 +278,46 @@ class ClickHouseStore:
             where += " AND robot_id = {r:String}"
             params["r"] = robot_id
         rows = self._rows(
-            f"SELECT robot_id, toUnixTimestamp64Milli(ts), x_mm, y_mm, z_mm, qx, qy, qz, qw, "
-            f"battery, charging, loaded, has_path, path_x_mm, path_y_mm, recv_lag_ms "
-            f"FROM {self.database}.poses FINAL WHERE {where} ORDER BY ts, robot_id LIMIT {{n:UInt32}}",
+            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL WHERE {where} "
+            "ORDER BY ts, robot_id LIMIT {n:UInt32}",
             params,
         )
-        return [
-            PoseRow(r[0], r[1], r[2] / 1000, r[3] / 1000, r[4] / 1000, r[5], r[6], r[7], r[8],
-                    r[9], _unflag(r[10]), _unflag(r[11]),
-                    tuple((x / 1000, y / 1000) for x, y in zip(r[13], r[14])) if r[12] else None,
-                    r[1] + r[15])
-            for r in rows
-        ]
+        return [_pose_row(r) for r in rows]
+
+    def map_at(self, at_ms: int) -> list[ChunkState]:
+        """Every chunk's winning write at or before `at_ms` (nearest snapshot + events)."""
+        db = self.database
+        with self._lock:
+            snap = self._snapshot_at_or_before(at_ms)
+            params = {"t": at_ms, "p": snap if snap is not None else -1}
+            since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if snap is not None else ""
+            base = (f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "
+                    "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+                    if snap is not None else "")
+            rows = self.client.query(
+                "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
+                "lower(hex(argMax(content_hash, (ts, robot_id)))) "
+                f"FROM ({base}SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events "
+                f"WHERE {since}ts <= fromUnixTimestamp64Milli({{t:Int64}})) "
+                "GROUP BY row, col ORDER BY row, col", parameters=params).result_rows
+        return [ChunkState(*r) for r in rows]
+
+    def robots_at(self, at_ms: int) -> list[PoseRow]:
+        """Each robot's latest pose at or before `at_ms` (nearest snapshot + events)."""
+        db = self.database
+        with self._lock:
+            snap = self._snapshot_at_or_before(at_ms)
+            params = {"t": at_ms, "p": snap if snap is not None else -1}
+            since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if snap is not None else ""
+            base = (f"SELECT robot_id, ts FROM {db}.robot_snapshots "
+                    "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+                    if snap is not None else "")
+            rows = self.client.query(
+                f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
+                f"SELECT robot_id, max(ts) FROM ({base}SELECT robot_id, ts FROM {db}.poses "
+                f"WHERE {since}ts <= fromUnixTimestamp64Milli({{t:Int64}})) GROUP BY robot_id) "
+                "ORDER BY robot_id", parameters=params).result_rows
+        return [_pose_row(r) for r in rows]
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = self._rows(

@@ -14,6 +14,7 @@ import numpy as np
 from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
 from ..ports import ChunkRow, Counts, PoseRow
 from ..schema import SCHEMA_VERSION
+from ..timetravel import ChunkState, fold_map, fold_robots
 
 
 def _mm(v: float) -> float:
@@ -68,6 +69,17 @@ class MemoryStore:
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
+
+    def map_at(self, at_ms: int) -> list[ChunkState]:
+        state = fold_map(list(self._chunks.values()), at_ms)
+        return [state[k] for k in sorted(state)]
+
+    def robots_at(self, at_ms: int) -> list[PoseRow]:
+        state = fold_robots(list(self._poses.values()), at_ms)
+        return [state[k] for k in sorted(state)]
+
+    def build_snapshots(self, up_to_ms: int) -> int:
+        return 0  # folds the whole history on every read: nothing to snapshot
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         return self._contents.get(content_hash)

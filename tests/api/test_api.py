@@ -8,6 +8,7 @@ import pytest
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 
+from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import IMMUTABLE
@@ -21,7 +22,7 @@ HASH = content_hash(PIXELS).hex()
 
 EXPECTED_OPERATION_IDS = {
     "getLiveness", "getReadiness", "listPoses", "listChunkEvents", "getChunkContent",
-    "getHistoryStats",
+    "getHistoryStats", "getMapAt", "getRobotsAt",
 }
 
 
@@ -43,7 +44,8 @@ def store(ev) -> MemoryStore:
 
 @pytest.fixture
 def client(store) -> TestClient:
-    return TestClient(create_app(Settings(), store, {}), raise_server_exceptions=False)
+    return TestClient(create_app(Settings(), store, {}, ManualClock(NOW + 60_000)),
+                      raise_server_exceptions=False)
 
 
 def _window(path: str, client: TestClient, f, t, **params):
@@ -246,3 +248,37 @@ def test_openapi_lists_the_stable_operation_ids(client) -> None:
     ids = [op["operationId"] for item in doc["paths"].values() for op in item.values()]
     assert sorted(ids) == sorted(EXPECTED_OPERATION_IDS)
 
+
+
+# --- time travel -------------------------------------------------------------------------
+
+
+def test_map_at_returns_each_chunks_winning_write(client) -> None:
+    """/api/v1/map?at=T lists, per chunk, the newest write at or before T."""
+    body = client.get("/api/v1/map", params={"at": NOW + 2000}).json()
+    chunks = {(c["row"], c["column"]): c for c in body["chunks"]}
+    assert set(chunks) == {(3, 2), (0, 1)}
+    assert chunks[(0, 1)]["ts_ms"] == NOW + 1500 and chunks[(0, 1)]["robotId"] == "r2"
+    later = client.get("/api/v1/map", params={"at": NOW + 3000}).json()
+    assert {(c["row"], c["column"]): c["ts_ms"] for c in later["chunks"]}[(0, 1)] == NOW + 2500
+
+
+def test_robots_at_returns_latest_pose_with_age(client) -> None:
+    """/api/v1/robots?at=T gives each robot's latest pose at or before T and its age."""
+    body = client.get("/api/v1/robots", params={"at": NOW + 1500}).json()
+    robots = {r["robotId"]: r for r in body["robots"]}
+    assert robots["r1"]["ts_ms"] == NOW + 1000 and robots["r1"]["age_ms"] == 500
+    assert robots["r1"]["position"][0] == 1.5
+    assert robots["r2"]["path"] == [[1.0, 1.0], [2.0, 2.0]]
+
+
+@pytest.mark.parametrize("at, fragment", [
+    (str(NOW + 3_600_000), "future"),
+    (str(NOW - 8 * 86_400_000), "retention"),
+    ("yesterday", "ISO 8601"),
+])
+def test_instant_outside_retention_or_malformed_is_400(client, at, fragment) -> None:
+    """An instant in the future, beyond the retention or malformed gets a 400 saying why."""
+    for path in ("/api/v1/map", "/api/v1/robots"):
+        r = client.get(path, params={"at": at})
+        assert r.status_code == 400 and fragment in r.json()["detail"]

@@ -1,0 +1,48 @@
+"""The map at any instant of the retention: metadata plus every chunk's winning write."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Query
+from pydantic import BaseModel
+
+from mapservice.ports import Clock, HistoryStore
+from mapservice.settings import Settings
+from mapservice.wire2019 import format_timestamp
+
+from ..deps import get_clock, get_settings, get_store, parse_instant
+
+router = APIRouter(prefix="/api/v1/map", tags=["map"])
+
+
+class ChunkAt(BaseModel):
+    row: int
+    column: int
+    timestamp: str
+    ts_ms: int
+    robotId: str
+    content_hash: str
+
+
+class MapAt(BaseModel):
+    at_ms: int
+    meta: dict | None
+    chunks: list[ChunkAt]
+
+
+@router.get("", operation_id="getMapAt", response_model=MapAt)
+def get_map_at(
+    at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
+    store: HistoryStore = Depends(get_store),
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+) -> MapAt:
+    now = clock.now_ms()
+    at_ms = parse_instant(at, settings, now) if at is not None else now
+    meta = store.latest_meta()
+    return MapAt(
+        at_ms=at_ms,
+        meta=meta.to_2019() if meta is not None else None,
+        chunks=[ChunkAt(row=c.row, column=c.column, timestamp=format_timestamp(c.ts_ms),
+                        ts_ms=c.ts_ms, robotId=c.robot_id, content_hash=c.content_hash)
+                for c in store.map_at(at_ms)],
+    )
