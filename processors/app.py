@@ -69,6 +69,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         key_serializer="raw",
         web_enabled=False,
         store="memory://",
+        datadir=str(settings.data_dir / "faust"),
         topic_partitions=settings.kafka_partitions,
         consumer_auto_offset_reset="earliest",
         broker_commit_interval=1.0,
