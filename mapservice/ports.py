@@ -95,6 +95,9 @@ class HistoryStore(Protocol):
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         """(width, height, zlib pixels) of a content hash, if stored."""
 
+    def chunk_contents(self, hashes: Sequence[bytes]) -> dict[bytes, tuple[int, int, bytes]]:
+        """Many content hashes at once; unknown ones are left out."""
+
     def latest_meta(self) -> MapMetaSet | None: ...
 
     def counts(self) -> Counts: ...

@@ -8,6 +8,7 @@ import zlib
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
 
 from mapservice.ports import HistoryStore
+from mapservice.render import chunk_pixels, png
 
 from ..deps import get_store
 
@@ -17,11 +18,11 @@ IMMUTABLE = "public, max-age=31536000, immutable"
 
 
 @router.get("/{content_hash}", operation_id="getChunkContent",
-            responses={200: {"content": {"application/octet-stream": {}}}})
+            responses={200: {"content": {"application/octet-stream": {}, "image/png": {}}}})
 def get_chunk_content(
     content_hash: str,
-    encoding: str = Query("zlib", pattern="^(zlib|raw)$",
-                          description="zlib: as the robot sent it; raw: width x height bytes"),
+    encoding: str = Query("zlib", pattern="^(zlib|raw|png)$",
+                          description="zlib: as the robot sent it; raw: width x height bytes; png"),
     store: HistoryStore = Depends(get_store),
 ) -> Response:
     if not _HEX32.match(content_hash):
@@ -30,7 +31,11 @@ def get_chunk_content(
     if found is None:
         raise HTTPException(404, f"no chunk content with hash {content_hash}")
     width, height, data = found
-    body = data if encoding == "zlib" else zlib.decompress(data)
-    return Response(body, media_type="application/octet-stream", headers={
+    if encoding == "png":
+        body, media = png(chunk_pixels(width, height, data)), "image/png"
+    else:
+        body = data if encoding == "zlib" else zlib.decompress(data)
+        media = "application/octet-stream"
+    return Response(body, media_type=media, headers={
         "Cache-Control": IMMUTABLE, "ETag": f'"{content_hash}"',
         "X-Chunk-Width": str(width), "X-Chunk-Height": str(height)})

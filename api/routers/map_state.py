@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, HTTPException, Query, Response
 from pydantic import BaseModel
 
 from mapservice.ports import Clock, HistoryStore
 from mapservice.settings import Settings
+from mapservice.render import png, stitch
 from mapservice.wire2019 import format_timestamp
 
 from ..deps import get_clock, get_settings, get_store, parse_instant
@@ -46,3 +47,23 @@ def get_map_at(
                         ts_ms=c.ts_ms, robotId=c.robot_id, content_hash=c.content_hash)
                 for c in store.map_at(at_ms)],
     )
+
+
+@router.get("/png", operation_id="getMapPngAt",
+            responses={200: {"content": {"image/png": {}}}})
+def get_map_png_at(
+    at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
+    scale: float = Query(1.0, gt=0, le=4, description="Image scale (nearest neighbour)"),
+    store: HistoryStore = Depends(get_store),
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+) -> Response:
+    now = clock.now_ms()
+    at_ms = parse_instant(at, settings, now) if at is not None else now
+    meta = store.latest_meta()
+    if meta is None:
+        raise HTTPException(404, "no map meta stored yet; robots POST one at start-up")
+    chunks = store.map_at(at_ms)
+    contents = store.chunk_contents([bytes.fromhex(c.content_hash) for c in chunks])
+    return Response(png(stitch(meta, chunks, contents), scale), media_type="image/png",
+                    headers={"X-Map-At-Ms": str(at_ms)})

@@ -342,6 +342,20 @@ class ClickHouseStore:
         w, h, data = rows[0]
         return w, h, bytes(data)
 
+    def chunk_contents(self, hashes: Sequence[bytes]) -> dict[bytes, tuple[int, int, bytes]]:
+        """Many content hashes at once: hash -> (width, height, zlib pixels)."""
+        if not hashes:
+            return {}
+        rows = self._rows(
+            f"SELECT content_hash, any(width), any(height), any(zlib_pixels) "
+            f"FROM {self.database}.chunk_contents WHERE content_hash IN "
+            "(SELECT arrayJoin(arrayMap(h -> toFixedString(unhex(h), 16), {hs:Array(String)}))) "
+            "GROUP BY content_hash",
+            {"hs": [h.hex() for h in set(hashes)]},
+            column_formats={"content_hash": "bytes", "any(zlib_pixels)": "bytes"},
+        )
+        return {bytes(h): (w, ht, bytes(d)) for h, w, ht, d in rows}
+
     def latest_meta(self) -> MapMetaSet | None:
         rows = self._rows(
             f"SELECT meta FROM {self.database}.map_meta FINAL ORDER BY ts DESC LIMIT 1", {})

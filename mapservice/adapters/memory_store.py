@@ -84,6 +84,9 @@ class MemoryStore:
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         return self._contents.get(content_hash)
 
+    def chunk_contents(self, hashes: Sequence[bytes]) -> dict[bytes, tuple[int, int, bytes]]:
+        return {h: self._contents[h] for h in set(hashes) if h in self._contents}
+
     def latest_meta(self) -> MapMetaSet | None:
         if not self._metas:
             return None

@@ -22,7 +22,7 @@ HASH = content_hash(PIXELS).hex()
 
 EXPECTED_OPERATION_IDS = {
     "getLiveness", "getReadiness", "listPoses", "listChunkEvents", "getChunkContent",
-    "getHistoryStats", "getMapAt", "getRobotsAt",
+    "getHistoryStats", "getMapAt", "getRobotsAt", "getMapPngAt",
 }
 
 
@@ -196,7 +196,7 @@ def test_chunk_content_raw_encoding(client) -> None:
     r = client.get(f"/api/v1/chunk-contents/{HASH}", params={"encoding": "raw"})
     assert r.status_code == 200 and r.content == PIXELS
     assert client.get(f"/api/v1/chunk-contents/{HASH}",
-                      params={"encoding": "png"}).status_code == 422
+                      params={"encoding": "bmp"}).status_code == 422
 
 
 def test_unknown_chunk_content_is_404(client) -> None:
@@ -282,3 +282,48 @@ def test_instant_outside_retention_or_malformed_is_400(client, at, fragment) -> 
     for path in ("/api/v1/map", "/api/v1/robots"):
         r = client.get(path, params={"at": at})
         assert r.status_code == 400 and fragment in r.json()["detail"]
+
+
+# --- pictures ----------------------------------------------------------------------------
+
+
+def _png_pixels(body: bytes):
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    return np.asarray(Image.open(io.BytesIO(body)))
+
+
+def test_map_png_at_t_has_each_chunks_pixels_in_place(store, ev) -> None:
+    """/api/v1/map/png?at=T stitches the winning chunks at their row/column; unwritten is 205."""
+    store.append([ev.meta(NOW - 1000, chunk_rows=4, chunk_cols=5)])
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW + 60_000)))
+    r = client.get("/api/v1/map/png", params={"at": NOW + 2000})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    img = _png_pixels(r.content)
+    assert img.shape == (400, 500)
+    assert img[300:400, 200:300].tobytes() == PIXELS  # row 3, column 2
+    assert img[0:100, 100:200].tobytes() == PIXELS  # row 0, column 1 at NOW + 1500
+    assert (img[100:200, 0:100] == 205).all()
+    later = _png_pixels(client.get("/api/v1/map/png", params={"at": NOW + 3000}).content)
+    assert (later[0:100, 100:200] == 0).all()  # replaced at NOW + 2500 by zeros
+    half = _png_pixels(client.get("/api/v1/map/png", params={"at": NOW + 3000, "scale": 0.5}).content)
+    assert half.shape == (200, 250)
+
+
+def test_map_png_without_meta_is_404(client) -> None:
+    """Without a map meta there is no geometry to stitch: 404 with a hint."""
+    r = client.get("/api/v1/map/png")
+    assert r.status_code == 404 and "meta" in r.json()["detail"]
+
+
+def test_chunk_content_as_png(client) -> None:
+    """encoding=png returns the chunk as a 100 x 100 greyscale PNG, immutable."""
+    from mapservice.wire2019 import content_hash
+
+    r = client.get(f"/api/v1/chunk-contents/{content_hash(PIXELS).hex()}", params={"encoding": "png"})
+    assert r.status_code == 200 and r.headers["content-type"] == "image/png"
+    assert "immutable" in r.headers["cache-control"]
+    assert _png_pixels(r.content).tobytes() == PIXELS
