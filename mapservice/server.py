@@ -15,6 +15,7 @@ import uvicorn
 
 from .adapters.clickhouse_store import ClickHouseStore
 from .health_server import serve_health
+from .live import LiveHub
 from .settings import Settings
 from .topics import ensure_topics
 
@@ -27,7 +28,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     from mapservice.processors.app import HistorySink, build_app
 
     store = ClickHouseStore.from_settings(settings)
-    sink = HistorySink(store)
+    live = LiveHub() if processors and api else None
+    sink = HistorySink(store, live)
     version = await sink.run(store.migrate)
     log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
     faust_app = None
@@ -41,7 +43,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         readiness["processors"] = lambda: not faust_app.should_stop
     try:
         if api:
-            config = uvicorn.Config(create_app(settings, store, readiness), host=settings.api_host,
+            config = uvicorn.Config(create_app(settings, store, readiness, live_hub=live), host=settings.api_host,
                                     port=settings.api_port, log_level="warning", access_log=False)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")

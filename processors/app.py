@@ -16,6 +16,7 @@ import faust
 import structlog
 from prometheus_client import Counter, Histogram
 
+from mapservice.live import LiveHub
 from mapservice.ports import HistoryStore
 from mapservice.settings import Settings
 
@@ -36,8 +37,9 @@ def faust_broker_url(settings: Settings) -> str:
 class HistorySink:
     """Owns the store and the one thread that talks to it."""
 
-    def __init__(self, store: HistoryStore) -> None:
+    def __init__(self, store: HistoryStore, live: LiveHub | None = None) -> None:
         self.store = store
+        self.live = live
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
 
     async def run(self, fn, *args):
@@ -92,6 +94,8 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
                 good, bad = split_events((e.value for e in events), now_ms())
                 if good:
                     await sink.insert_until_done(sink.store.append, good, _name)
+                    if sink.live is not None:
+                        sink.live.publish(good)
                 if bad:
                     log.warning("undecodable records on an event topic", topic=_name, count=len(bad))
                     await sink.insert_until_done(sink.store.append_dead_letters, bad, _name)

@@ -155,3 +155,25 @@ def test_gateway_sigkill_under_load_loses_and_duplicates_nothing(mosquitto_stack
     assert len(published_poses) > 500
     assert set(poses) == published_poses and len(poses) == len(published_poses)
     assert set(chunks) == published_chunks and len(chunks) == len(published_chunks)
+
+
+def test_live_websocket_streams_a_published_pose(mosquitto_stack):
+    """A pose published over MQTT arrives on /api/v1/live once it is stored."""
+    import json
+
+    from websockets.sync.client import connect
+
+    stack = mosquitto_stack
+    url = stack.api_url.replace("http://", "ws://") + "/api/v1/live"
+    with connect(url, open_timeout=10) as ws:
+        time.sleep(0.3)
+        ts = now_ms()
+        publish_all(stack, [("iot/coordinates/live-1",
+                             encode_coordinates("live-1", format_timestamp(ts), 3.0, 4.0))])
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            message = json.loads(ws.recv(timeout=30))
+            if message.get("robotId") == "live-1":
+                break
+        assert message["robotId"] == "live-1" and message["position"][:2] == [3.0, 4.0]
+        assert message["ts_ms"] == ts
