@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from fastapi import HTTPException, Request
+from fastapi import Depends, HTTPException, Query, Request
 
 from mapservice.ports import Clock, HistoryStore
 from mapservice.settings import Settings
@@ -58,3 +58,13 @@ def parse_instant(value: str, settings: Settings, now_ms: int) -> int:
         raise HTTPException(
             400, f"'at' ({value}) is older than the {settings.retention_days}-day retention")
     return at
+
+
+def at_instant(
+    at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+) -> int:
+    """The `at` query parameter as epoch ms, checked against the retention."""
+    now = clock.now_ms()
+    return parse_instant(at, settings, now) if at is not None else now

@@ -5,12 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
 from pydantic import BaseModel
 
-from mapservice.ports import Clock, HistoryStore
-from mapservice.settings import Settings
+from mapservice.ports import HistoryStore
 from mapservice.render import png, stitch
 from mapservice.wire2019 import format_timestamp
 
-from ..deps import get_clock, get_settings, get_store, parse_instant
+from ..deps import at_instant, get_store
 
 router = APIRouter(prefix="/api/v1/map", tags=["map"])
 
@@ -32,13 +31,9 @@ class MapAt(BaseModel):
 
 @router.get("", operation_id="getMapAt", response_model=MapAt)
 def get_map_at(
-    at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
+    at_ms: int = Depends(at_instant),
     store: HistoryStore = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
 ) -> MapAt:
-    now = clock.now_ms()
-    at_ms = parse_instant(at, settings, now) if at is not None else now
     meta = store.latest_meta()
     return MapAt(
         at_ms=at_ms,
@@ -52,14 +47,10 @@ def get_map_at(
 @router.get("/png", operation_id="getMapPngAt",
             responses={200: {"content": {"image/png": {}}}})
 def get_map_png_at(
-    at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
+    at_ms: int = Depends(at_instant),
     scale: float = Query(1.0, gt=0, le=4, description="Image scale (nearest neighbour)"),
     store: HistoryStore = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
 ) -> Response:
-    now = clock.now_ms()
-    at_ms = parse_instant(at, settings, now) if at is not None else now
     meta = store.latest_meta()
     if meta is None:
         raise HTTPException(404, "no map meta stored yet; robots POST one at start-up")

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends
 from pydantic import BaseModel
 
-from mapservice.ports import Clock, HistoryStore
-from mapservice.settings import Settings
+from mapservice.ports import HistoryStore
 from mapservice.wire2019 import format_timestamp
 
-from ..deps import get_clock, get_settings, get_store, parse_instant
+from ..deps import at_instant, get_store
 from .poses import Pose
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
@@ -26,13 +25,9 @@ class RobotsAt(BaseModel):
 
 @router.get("", operation_id="getRobotsAt", response_model=RobotsAt)
 def get_robots_at(
-    at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
+    at_ms: int = Depends(at_instant),
     store: HistoryStore = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
 ) -> RobotsAt:
-    now = clock.now_ms()
-    at_ms = parse_instant(at, settings, now) if at is not None else now
     return RobotsAt(at_ms=at_ms, robots=[
         RobotAt(robotId=r.robot_id, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
                 receive_time_ms=r.receive_time_ms, position=(r.x, r.y, r.z),
