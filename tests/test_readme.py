@@ -4,7 +4,6 @@ against `mapservice up` (which also stops cleanly and resumes on the same data).
 from __future__ import annotations
 
 import json
-import os
 import re
 import signal
 import subprocess
