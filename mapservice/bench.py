@@ -13,7 +13,13 @@ def add_bench_parser(sub) -> None:
     ingest.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
     ingest.add_argument("--repeat", type=int, default=1, help="runs; medians are reported")
     ingest.add_argument("--json", default=None, help="write the results as JSON to this file")
+    ingest.add_argument("--poll-interval", type=float, default=0.1,
+                        help="seconds between the latency poller's API reads")
     ingest.set_defaults(func=_run_ingest)
+
+    from .bench_timetravel import add_parser as add_timetravel_parser
+
+    add_timetravel_parser(kinds)
 
 
 def _run_ingest(args) -> None:

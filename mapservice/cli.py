@@ -164,6 +164,10 @@ def main(argv: list[str] | None = None) -> None:
 
     add_bench_parser(sub)
 
+    from .history_loader import add_parser as add_load_history_parser
+
+    add_load_history_parser(sub)
+
     args = parser.parse_args(argv)
     args.func(args)
 

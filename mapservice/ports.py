@@ -80,6 +80,14 @@ class HistoryStore(Protocol):
     ) -> list[PoseRow]:
         """Poses with from_ms <= event time < to_ms, ordered by time then robot."""
 
+    def poses_downsampled(
+        self, from_ms: int, to_ms: int, step_ms: int, robot_id: str | None = None,
+        limit: int = 100_000,
+    ) -> list[PoseRow]:
+        """Per robot, its first pose in each step [from_ms + k*step_ms, from_ms + (k+1)*step_ms)
+        of from_ms <= event time < to_ms: at most one frame per robot per step, ordered by
+        time then robot (a replay's poses at a coarser rate)."""
+
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
 

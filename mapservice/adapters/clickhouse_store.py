@@ -8,7 +8,7 @@ goes through one lock; callers in an event loop run these methods in an executor
 from __future__ import annotations
 
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
 
 import clickhouse_connect
@@ -43,15 +43,42 @@ def _mm(metres: float) -> int:
     return int(round(metres * 1000))
 
 
+# A pose's columns as the reads select them. The path travels as one string ("x y,x y",
+# millimetres; empty when has_path is false): parsing two Array columns costs the client far
+# more than a String column, and most poses carry no path.
 _POSE_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, "
-                 "charging, loaded, has_path, path_x_mm, path_y_mm, recv_lag_ms")
+                 "charging, loaded, has_path, if(has_path, arrayStringConcat(arrayMap((x, y) -> "
+                 "concat(toString(x), ' ', toString(y)), path_x_mm, path_y_mm), ','), ''), "
+                 "recv_lag_ms")
+# Every FINAL read of poses and chunk_events: both are partitioned by the day of `ts`, a
+# sorting-key column, so rows with one identity always share a partition and FINAL need
+# not merge across partitions (it then skips merging single-part partitions entirely).
+_FINAL_SETTINGS = "SETTINGS do_not_merge_across_partitions_select_final = 1"
 
 
-def _pose_row(r: tuple) -> PoseRow:
-    return PoseRow(r[0], r[1], r[2] / 1000, r[3] / 1000, r[4] / 1000, r[5], r[6], r[7], r[8],
-                   r[9], _unflag(r[10]), _unflag(r[11]),
-                   tuple((x / 1000, y / 1000) for x, y in zip(r[13], r[14])) if r[12] else None,
-                   r[1] + r[15])
+def _path(has_path: bool, text: str) -> tuple[tuple[float, float], ...] | None:
+    if not has_path:
+        return None
+    if not text:
+        return ()
+    return tuple((int(x) / 1000, int(y) / 1000)
+                 for x, y in (point.split(" ") for point in text.split(",")))
+
+
+def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
+    """PoseRows from the columns of a `_POSE_COLUMNS` query, column-wise (it is faster)."""
+    if not columns or not len(columns[0]):
+        return []
+    robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, lag = columns
+    flags: dict[str, bool | str | None] = {}
+
+    def unflag(texts: Sequence[str]) -> list:
+        return [flags[t] if t in flags else flags.setdefault(t, _unflag(t)) for t in texts]
+
+    return list(map(
+        PoseRow, robot, ts, [v / 1000 for v in x], [v / 1000 for v in y], [v / 1000 for v in z],
+        qx, qy, qz, qw, battery, unflag(charging), unflag(loaded), map(_path, has_path, path),
+        [t + lag_ms for t, lag_ms in zip(ts, lag)]))
 
 
 class ClickHouseStore:
@@ -264,25 +291,136 @@ class ClickHouseStore:
                 self._last_snapshot_ms = snap
             return len(snaps)
 
+    def _due_snapshots(self, up_to_ms: int) -> tuple[list[int], int | None]:
+        """The snapshots build_snapshots(up_to_ms) would build, and the one before them."""
+        every = self.snapshot_every_ms
+        last = self._newest_snapshot()
+        if last is not None:
+            return list(range(last + every, up_to_ms + 1, every)), last
+        rows = self.client.query(
+            "SELECT toUnixTimestamp64Milli(min(ts)), count() FROM ("
+            f"SELECT ts FROM {self.database}.chunk_events UNION ALL "
+            f"SELECT ts FROM {self.database}.poses)").result_rows
+        if not rows[0][1]:
+            return [], None
+        oldest = max(rows[0][0], up_to_ms - self.retention_days * 86_400_000)
+        return list(range(oldest // every * every, up_to_ms + 1, every)), None
+
+    def build_snapshots_bulk(self, up_to_ms: int, per_query: int = 144,
+                             on_progress: Callable[[int, int], None] | None = None) -> int:
+        """build_snapshots(up_to_ms), `per_query` snapshots per statement: the same rows.
+
+        For a run of snapshots S1 < ... < Sn following snapshot P (or none): each write
+        with P < t <= Sn (or any t <= Sn without P) falls in the bucket of the first
+        snapshot at or after it (S1 for everything older), P's rows in bucket P; the
+        winners per bucket and chunk (robot) are then carried forward to every later
+        snapshot with an ASOF JOIN. That is what the chain of `_build_one` computes, one
+        statement per table and run instead of three per snapshot.
+        """
+        with self._lock:
+            snaps, prev = self._due_snapshots(up_to_ms)
+            for i in range(0, len(snaps), per_query):
+                run = snaps[i:i + per_query]
+                self._build_run(run[0], run[-1], prev)
+                prev = run[-1]
+                self._last_snapshot_ms = prev
+                if on_progress is not None:
+                    on_progress(i + len(run), len(snaps))
+            return len(snaps)
+
+    def _build_run(self, first_ms: int, last_ms: int, prev_ms: int | None) -> None:
+        db, every = self.database, self.snapshot_every_ms
+        params = {"a": first_ms, "b": last_ms, "e": every, "p": prev_ms if prev_ms is not None else -1}
+        since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
+        bucket = ("greatest({a:Int64}, intDiv(toUnixTimestamp64Milli(ts) + {e:Int64} - 1, "
+                  "{e:Int64}) * {e:Int64})")
+        snap_times = "arrayJoin(range({a:Int64}, {b:Int64} + 1, {e:Int64}))"
+        prev_map = (f"SELECT {{p:Int64}} AS bucket, row, col, ts, robot_id, content_hash "
+                    f"FROM {db}.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{p:Int64}}) "
+                    "UNION ALL " if prev_ms is not None else "")
+        prev_robots = (f"SELECT {{p:Int64}} AS bucket, robot_id, ts FROM {db}.robot_snapshots FINAL "
+                       "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+                       if prev_ms is not None else "")
+        c = self.client
+        c.command(
+            f"INSERT INTO {db}.map_snapshots (snap_ts, row, col, ts, robot_id, content_hash, built) "
+            "WITH w AS (SELECT bucket, row, col, max(ts) AS win_ts, "
+            "argMax(robot_id, (ts, robot_id)) AS win_robot, "
+            "argMax(content_hash, (ts, robot_id)) AS win_hash "
+            f"FROM ({prev_map}SELECT {bucket} AS bucket, row, col, ts, robot_id, content_hash "
+            f"FROM {db}.chunk_events WHERE {since}ts <= fromUnixTimestamp64Milli({{b:Int64}})) "
+            "GROUP BY bucket, row, col) "
+            "SELECT fromUnixTimestamp64Milli(g.snap), g.row, g.col, w.win_ts, w.win_robot, "
+            "w.win_hash, now64(3) "
+            f"FROM (SELECT {snap_times} AS snap, row, col FROM (SELECT DISTINCT row, col FROM w)) AS g "
+            "ASOF JOIN w ON g.row = w.row AND g.col = w.col AND g.snap >= w.bucket",
+            parameters=params)
+        c.command(
+            f"INSERT INTO {db}.robot_snapshots (snap_ts, robot_id, ts, built) "
+            "WITH w AS (SELECT bucket, robot_id, max(ts) AS win_ts "
+            f"FROM ({prev_robots}SELECT {bucket} AS bucket, robot_id, ts FROM {db}.poses "
+            f"WHERE {since}ts <= fromUnixTimestamp64Milli({{b:Int64}})) GROUP BY bucket, robot_id) "
+            "SELECT fromUnixTimestamp64Milli(g.snap), g.robot_id, w.win_ts, now64(3) "
+            f"FROM (SELECT {snap_times} AS snap, robot_id FROM (SELECT DISTINCT robot_id FROM w)) AS g "
+            "ASOF JOIN w ON g.robot_id = w.robot_id AND g.snap >= w.bucket",
+            parameters=params)
+        window = ("snap_ts >= fromUnixTimestamp64Milli({a:Int64}) AND "
+                  "snap_ts <= fromUnixTimestamp64Milli({b:Int64})")
+        c.command(
+            f"INSERT INTO {db}.snapshot_log (snap_ts, built, chunks, robots) "
+            "SELECT fromUnixTimestamp64Milli(g.snap), now64(3), m.n, r.n "
+            f"FROM (SELECT {snap_times} AS snap) AS g "
+            "LEFT JOIN (SELECT toUnixTimestamp64Milli(snap_ts) AS snap, count() AS n "
+            f"FROM {db}.map_snapshots FINAL WHERE {window} GROUP BY snap_ts) AS m ON g.snap = m.snap "
+            "LEFT JOIN (SELECT toUnixTimestamp64Milli(snap_ts) AS snap, count() AS n "
+            f"FROM {db}.robot_snapshots FINAL WHERE {window} GROUP BY snap_ts) AS r ON g.snap = r.snap",
+            parameters=params)
+
     # --- reads ----------------------------------------------------------------------
 
     def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
         with self._lock:
             return self.client.query(sql, parameters=params, **query_options).result_rows
 
+    def _pose_query(self, sql: str, params: dict) -> list[PoseRow]:
+        with self._lock:
+            columns = self.client.query(sql, parameters=params).result_columns
+        return _pose_rows(columns)
+
     def poses(self, from_ms: int, to_ms: int, robot_id: str | None = None,
               limit: int = 100_000) -> list[PoseRow]:
+        # PREWHERE on sorting-key columns only: duplicates of one identity pass or fail
+        # together, so FINAL still sees all of them; the other columns are read only for
+        # granules holding rows of the window.
         where = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
         params: dict = {"f": from_ms, "t": to_ms, "n": limit}
         if robot_id is not None:
             where += " AND robot_id = {r:String}"
             params["r"] = robot_id
-        rows = self._rows(
-            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL WHERE {where} "
-            "ORDER BY ts, robot_id LIMIT {n:UInt32}",
+        return self._pose_query(
+            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL PREWHERE {where} "
+            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
             params,
         )
-        return [_pose_row(r) for r in rows]
+
+    def poses_downsampled(self, from_ms: int, to_ms: int, step_ms: int,
+                          robot_id: str | None = None, limit: int = 100_000) -> list[PoseRow]:
+        """Per robot and step bucket [from + k*step, from + (k+1)*step), its first pose in
+        from_ms <= event time < to_ms; ordered by time then robot, like poses()."""
+        if step_ms <= 0:
+            raise ValueError("step_ms must be positive")
+        where = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        params: dict = {"f": from_ms, "t": to_ms, "s": step_ms, "n": limit}
+        if robot_id is not None:
+            where += " AND robot_id = {r:String}"
+            params["r"] = robot_id
+        return self._pose_query(
+            f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {self.database}.poses FINAL WHERE {where} "
+            "ORDER BY robot_id, ts "
+            "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
+            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            params,
+        )
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Every chunk's winning write at or before `at_ms` (nearest snapshot + events)."""
@@ -303,28 +441,49 @@ class ClickHouseStore:
         return [ChunkState(*r) for r in rows]
 
     def robots_at(self, at_ms: int) -> list[PoseRow]:
-        """Each robot's latest pose at or before `at_ms` (nearest snapshot + events)."""
+        """Each robot's latest pose at or before `at_ms` (nearest snapshot + events).
+
+        A robot that reported in (snapshot, at_ms] is answered by one pass over those poses
+        (its latest there is its latest <= at_ms); only robots silent since the snapshot
+        need the snapshot's time of their last pose and a lookup of that row.
+        """
         db = self.database
         with self._lock:
             snap = self._snapshot_at_or_before(at_ms)
-            params = {"t": at_ms, "p": snap if snap is not None else -1}
-            since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if snap is not None else ""
-            base = (f"SELECT robot_id, ts FROM {db}.robot_snapshots "
-                    "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
-                    if snap is not None else "")
-            rows = self.client.query(
+            c = self.client
+            if snap is None:
+                columns = c.query(
+                    f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
+                    f"SELECT robot_id, max(ts) FROM {db}.poses "
+                    "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) GROUP BY robot_id) "
+                    f"ORDER BY robot_id {_FINAL_SETTINGS}", parameters={"t": at_ms}).result_columns
+                return _pose_rows(columns)
+            params: dict = {"t": at_ms, "p": snap}
+            recent = _pose_rows(c.query(
+                f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL "
+                "PREWHERE ts > fromUnixTimestamp64Milli({p:Int64}) "
+                "AND ts <= fromUnixTimestamp64Milli({t:Int64}) "
+                f"ORDER BY robot_id, ts DESC LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
+                parameters=params).result_columns)
+            params["seen"] = [r.robot_id for r in recent]
+            # max(ts): a rebuilt snapshot may still hold its older rows until merged.
+            silent = _pose_rows(c.query(
                 f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
-                f"SELECT robot_id, max(ts) FROM ({base}SELECT robot_id, ts FROM {db}.poses "
-                f"WHERE {since}ts <= fromUnixTimestamp64Milli({{t:Int64}})) GROUP BY robot_id) "
-                "ORDER BY robot_id", parameters=params).result_rows
-        return [_pose_row(r) for r in rows]
+                f"SELECT robot_id, max(ts) FROM {db}.robot_snapshots "
+                "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) "
+                "AND NOT has({seen:Array(String)}, robot_id) GROUP BY robot_id) "
+                f"{_FINAL_SETTINGS}", parameters=params).result_columns)
+        if not silent:
+            return recent  # already ordered by robot id
+        return sorted(recent + silent, key=lambda r: r.robot_id)
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
+        # PREWHERE on the sorting key's `ts`: as in poses(), FINAL sees every duplicate.
         rows = self._rows(
             f"SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
             f"recv_lag_ms FROM {self.database}.chunk_events FINAL "
-            "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            "ORDER BY ts, row, col, robot_id LIMIT {n:UInt32}",
+            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
+            f"ORDER BY ts, row, col, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
             {"f": from_ms, "t": to_ms, "n": limit},
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]

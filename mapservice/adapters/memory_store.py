@@ -66,6 +66,15 @@ class MemoryStore:
                 if from_ms <= r.ts_ms < to_ms and (robot_id is None or r.robot_id == robot_id)]
         return sorted(rows, key=lambda r: (r.ts_ms, r.robot_id))[:limit]
 
+    def poses_downsampled(self, from_ms: int, to_ms: int, step_ms: int,
+                          robot_id: str | None = None, limit: int = 100_000) -> list[PoseRow]:
+        if step_ms <= 0:
+            raise ValueError("step_ms must be positive")
+        first: dict[tuple[str, int], PoseRow] = {}
+        for r in self.poses(from_ms, to_ms, robot_id, limit=len(self._poses)):
+            first.setdefault((r.robot_id, (r.ts_ms - from_ms) // step_ms), r)
+        return sorted(first.values(), key=lambda r: (r.ts_ms, r.robot_id))[:limit]
+
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
