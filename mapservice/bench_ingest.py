@@ -23,6 +23,7 @@ process used while the fleet ran, divided by the fleet's wall time: 100 % is one
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import shutil
@@ -63,7 +64,7 @@ BASELINE_2019 = {"robots": 20, "bytes_per_day": 300e6, "bytes_per_robot_day": 15
 
 def _first_line(cmd: list[str]) -> str:
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=10)
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=10, check=False)
     except (OSError, subprocess.TimeoutExpired) as exc:
         return f"unknown ({exc})"
     text = (out.stdout or out.stderr).strip().splitlines()
@@ -114,9 +115,9 @@ def _git_state() -> dict:
     root = Path(__file__).resolve().parent.parent
     try:
         head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
-                              text=True, timeout=10).stdout.strip()
+                              text=True, timeout=10, check=False).stdout.strip()
         dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain"],
-                               capture_output=True, text=True, timeout=10).stdout.splitlines()
+                               capture_output=True, text=True, timeout=10, check=False).stdout.splitlines()
     except (OSError, subprocess.TimeoutExpired):
         return {}
     return {"head": head, "uncommitted": [line.strip() for line in dirty]}
@@ -161,7 +162,7 @@ class CpuMeter:
 
     def snapshot(self) -> dict:
         machine = psutil.cpu_times()
-        field = lambda name: getattr(machine, name, 0.0)  # noqa: E731 - fields vary by OS
+        field = lambda name: getattr(machine, name, 0.0)  # fields vary by OS
         snap = {name: _cpu_seconds(p) for name, p in self.procs.items()}
         me = self.me.cpu_times()
         snap["_bench_process"] = me.user + me.system
@@ -386,7 +387,7 @@ def measure_storage(data_dir: Path) -> dict:
     code = ("import sys; from mapservice.bench_ingest import _storage_main; "
             "_storage_main(sys.argv[1], sys.argv[2])")
     done = subprocess.run([sys.executable, "-c", code, str(data_dir), str(out)],
-                          capture_output=True, text=True, timeout=900)
+                          capture_output=True, text=True, timeout=900, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"storage measurement failed:\n{done.stderr[-2000:]}")
     return json.loads(out.read_text())
@@ -421,8 +422,8 @@ def _latencies(poller: QueryablePoller, keys: dict[Key, float]) -> tuple[list[fl
 def _pct(values: list[float], q: float) -> float | None:
     if not values:
         return None
-    s = sorted(values)
-    return s[min(len(s) - 1, max(0, int(round(q / 100.0 * len(s) + 0.5)) - 1))]
+    s = sorted(values)  # nearest rank: the smallest value with q % of the values at or below it
+    return s[min(len(s) - 1, max(0, math.ceil(q / 100.0 * len(s)) - 1))]
 
 
 def _status_line(run: int, runs: int, phase: str, elapsed: float, seconds: float, fleet,
