@@ -431,7 +431,7 @@ def main(args) -> None:
         raise SystemExit(f"load-history: {exc}") from None
     finally:
         store.close()
-    fmt = lambda ms: datetime.fromtimestamp(ms / 1000, timezone.utc).strftime("%Y-%m-%d %H:%M:%S")  # noqa: E731
+    fmt = lambda ms: datetime.fromtimestamp(ms / 1000, timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
     for note in result.notes:
         console.print(f"[yellow]note:[/yellow] {note}")
     console.print(

@@ -423,21 +423,24 @@ class ClickHouseStore:
         )
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
-        """Every chunk's winning write at or before `at_ms` (nearest snapshot + events)."""
+        """Every chunk's winning write at or before `at_ms` (nearest snapshot + events).
+
+        One statement: the nearest snapshot's time is a scalar subquery (ClickHouse folds
+        it to a constant before choosing granules). Without a snapshot it is the epoch, so
+        the snapshot side is empty and every event <= `at_ms` is folded.
+        """
         db = self.database
         with self._lock:
-            snap = self._snapshot_at_or_before(at_ms)
-            params = {"t": at_ms, "p": snap if snap is not None else -1}
-            since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if snap is not None else ""
-            base = (f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "
-                    "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
-                    if snap is not None else "")
             rows = self.client.query(
+                f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
+                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64})) AS snap "
                 "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
                 "lower(hex(argMax(content_hash, (ts, robot_id)))) "
-                f"FROM ({base}SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events "
-                f"WHERE {since}ts <= fromUnixTimestamp64Milli({{t:Int64}})) "
-                "GROUP BY row, col ORDER BY row, col", parameters=params).result_rows
+                f"FROM (SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "
+                "WHERE snap_ts = snap UNION ALL "
+                f"SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events "
+                "WHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64})) "
+                "GROUP BY row, col ORDER BY row, col", parameters={"t": at_ms}).result_rows
         return [ChunkState(*r) for r in rows]
 
     def robots_at(self, at_ms: int) -> list[PoseRow]:
@@ -449,8 +452,16 @@ class ClickHouseStore:
         """
         db = self.database
         with self._lock:
-            snap = self._snapshot_at_or_before(at_ms)
             c = self.client
+            # The nearest snapshot and its robots (max(ts): a rebuilt snapshot may still
+            # hold its older rows until merged).
+            listed = c.query(
+                f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
+                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64})) AS snap "
+                "SELECT toUnixTimestamp64Milli(any(snap)), robot_id "
+                f"FROM {db}.robot_snapshots WHERE snap_ts = snap GROUP BY robot_id",
+                parameters={"t": at_ms}).result_rows
+            snap = listed[0][0] if listed else self._snapshot_at_or_before(at_ms)
             if snap is None:
                 columns = c.query(
                     f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
@@ -465,16 +476,16 @@ class ClickHouseStore:
                 "AND ts <= fromUnixTimestamp64Milli({t:Int64}) "
                 f"ORDER BY robot_id, ts DESC LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
                 parameters=params).result_columns)
-            params["seen"] = [r.robot_id for r in recent]
-            # max(ts): a rebuilt snapshot may still hold its older rows until merged.
+            seen = {r.robot_id for r in recent}
+            params["silent"] = [robot for _, robot in listed if robot not in seen]
+            if not params["silent"]:
+                return recent  # ordered by robot id
             silent = _pose_rows(c.query(
                 f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
                 f"SELECT robot_id, max(ts) FROM {db}.robot_snapshots "
                 "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) "
-                "AND NOT has({seen:Array(String)}, robot_id) GROUP BY robot_id) "
+                "AND has({silent:Array(String)}, robot_id) GROUP BY robot_id) "
                 f"{_FINAL_SETTINGS}", parameters=params).result_columns)
-        if not silent:
-            return recent  # already ordered by robot id
         return sorted(recent + silent, key=lambda r: r.robot_id)
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
