@@ -71,15 +71,19 @@ def _first_line(cmd: list[str]) -> str:
     return text[0] if text else "unknown"
 
 
-def machine_facts() -> dict:
-    model = "unknown"
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo ("unknown" elsewhere)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
+                return line.split(":", 1)[1].strip()
     except OSError:
         pass
+    return "unknown"
+
+
+def machine_facts() -> dict:
+    model = cpu_model()
     try:
         from .embedded import tansu_binary
 

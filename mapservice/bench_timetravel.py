@@ -49,14 +49,9 @@ LOAD_FILE = "history-load.json"
 
 
 def machine_facts() -> dict:
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    from .bench_ingest import cpu_model
+
+    model = cpu_model()
     import clickhouse_connect
     try:
         import chdb
