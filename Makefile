@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: up test test-unit bench system-deps clean
+.PHONY: up test test-unit bench system-deps clean ui test-ui
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,11 +20,40 @@ system-deps:
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto mosquitto-clients >/dev/null; \
 	  else echo "please install mosquitto and mosquitto-clients (Debian: sudo apt-get install mosquitto mosquitto-clients)"; exit 1; fi; \
 	fi
+	@# tests/robot/test_drive_tty.py drives `mapservice drive` in a real terminal (tmux).
+	@if ! command -v tmux >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq tmux >/dev/null; \
+	  else echo "please install tmux (Debian: sudo apt-get install tmux)"; exit 1; fi; \
+	fi
+	@# The browser tests drive Debian's Chromium through Playwright (no browser download).
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	  else echo "please install chromium (Debian: sudo apt-get install chromium)"; exit 1; fi; \
+	fi
 
-up: $(STAMP)
+# The replay UI (replay-ui/, Node >= 20.19): npm ci when the lock file changes, a build
+# only when a source is newer than dist/.
+UI := replay-ui
+UI_SOURCES := $(shell find $(UI)/src -type f 2>/dev/null) $(wildcard $(UI)/*.html $(UI)/*.ts $(UI)/tsconfig.json)
+
+$(UI)/node_modules/.installed: $(UI)/package.json $(UI)/package-lock.json
+	cd $(UI) && npm ci --no-audit --no-fund
+	touch $@
+
+$(UI)/dist/index.html: $(UI)/node_modules/.installed $(UI_SOURCES)
+	cd $(UI) && npm run build
+
+ui: $(UI)/dist/index.html
+
+test-ui: $(UI)/node_modules/.installed
+	cd $(UI) && npx vitest run
+
+up: $(STAMP) ui
 	$(PY) -m mapservice.cli up $(ARGS)
 
-test: $(STAMP) system-deps
+test: $(STAMP) system-deps ui test-ui
 	$(PY) -m pytest $(ARGS)
 
 test-unit: $(STAMP)

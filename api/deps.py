@@ -68,3 +68,16 @@ def at_instant(
     """The `at` query parameter as epoch ms, checked against the retention."""
     now = clock.now_ms()
     return parse_instant(at, settings, now) if at is not None else now
+
+
+def window_in_retention(
+    from_: str, to: str, max_span_ms: int, settings: Settings, now_ms: int
+) -> tuple[int, int]:
+    """parse_window, and a 400 when the window starts before the retention (a minute of
+    slack: a client's "now - 7 days" is a little older when it arrives)."""
+    f, t = parse_window(from_, to, max_span_ms)
+    if f < now_ms - settings.retention_ms - 60_000:
+        raise HTTPException(
+            400, f"'from' ({from_}) is older than the {settings.retention_days}-day retention; "
+                 "nothing is kept before now minus the retention")
+    return f, t

@@ -21,6 +21,14 @@ def add_bench_parser(sub) -> None:
 
     add_timetravel_parser(kinds)
 
+    from .bench_sink import add_parser as add_sink_parser
+
+    add_sink_parser(kinds)
+
+    from .bench_ui import add_parser as add_ui_parser
+
+    add_ui_parser(kinds)
+
 
 def _run_ingest(args) -> None:
     from .bench_ingest import main

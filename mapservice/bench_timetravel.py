@@ -15,9 +15,17 @@ One run:
      per chunk over the whole history up to T), and check they are equal;
    - `robots_at(T)` and its naive query (latest pose per robot over all poses <= T),
      checked equal too;
-   - a 10 s event window: `chunk_events` + `poses` over [T, T + 10 s);
-   - a one-day pose window, downsampled to one pose per robot per `86400 s / --frames`
-     (`poses_downsampled`).
+   - a 10 s event window: `chunk_events` + `poses` over [T, T + 10 s) (what
+     GET /api/v1/events reads);
+   - a one-day window of poses downsampled to one pose per robot per `--step-s` (default
+     60 s: 1,440 frames a day, finer than replays need) and per 8,640 s (86400x at 10
+     frames/s), the window starting on a whole minute (the keyframe path, schema v4), side
+     by side with the same answer computed from every pose (the pre-v4 query), checked
+     equal; and the 86400x step from a start off the minute (keyframes plus the first
+     minute of each step from `poses`), checked equal every fourth round;
+   - the timeline over the whole history in 10-minute buckets and over one day in 1,000
+     buckets of 86.4 s (GET /api/v1/timeline), and a robot's track over a day at the step
+     (GET /api/v1/robots/{id}/track).
 
 Latencies are wall time around the store call, in this process (embedded chDB), from the
 call to the Python rows: what an API handler would wait. p99 is numpy's linear
@@ -40,7 +48,8 @@ import numpy as np
 
 DAY_MS = 86_400_000
 HOUR_MS = 3_600_000
-TARGETS_MS = {"map_at": 100.0, "robots_at": 50.0, "window_10s": 50.0, "day_downsampled": 200.0}
+TARGETS_MS = {"map_at": 100.0, "robots_at": 50.0, "window_10s": 50.0, "day_downsampled": 200.0,
+              "timeline": None, "track": None}
 BUSY_PATTERNS = ("bench ingest", "exp.py", "tansu", "mosquitto")
 LOAD_FILE = "history-load.json"
 
@@ -109,6 +118,19 @@ def naive_robots_at(store, at_ms: int) -> list[tuple[str, int]]:
             f"SELECT robot_id, toUnixTimestamp64Milli(max(ts)) FROM {db}.poses "
             "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) GROUP BY robot_id ORDER BY robot_id",
             parameters={"t": at_ms}).result_rows]
+
+
+def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> list:
+    """poses_downsampled from every pose (the query before the keyframes of schema v4)."""
+    from .adapters.clickhouse_store import _FINAL_SETTINGS, _POSE_COLUMNS
+
+    return store._pose_query(
+        f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {store.database}.poses FINAL "
+        "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
+        "ORDER BY robot_id, ts "
+        "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
+        f"ORDER BY ts, robot_id LIMIT 100000 {_FINAL_SETTINGS}",
+        {"f": from_ms, "t": to_ms, "s": step_ms})
 
 
 # --- measuring ------------------------------------------------------------------------------
@@ -197,7 +219,8 @@ def measure(store, args, start_ms: int, end_ms: int, console) -> dict:
     rng = random.Random(args.seed)
     n = args.queries
     every = store.snapshot_every_ms
-    step_ms = DAY_MS // args.frames
+    step_ms = int(args.step_s * 1000)
+    replay_step_ms = DAY_MS // 10  # 86400x at 10 frames/s: a frame per 8,640 s
     span = end_ms - start_ms
     old_centre = end_ms - 6 * DAY_MS if span > 6 * DAY_MS + HOUR_MS else start_ms + span // 2
     sets = {
@@ -208,14 +231,21 @@ def measure(store, args, start_ms: int, end_ms: int, console) -> dict:
     }
     day_lo = start_ms + DAY_MS if span > DAY_MS + HOUR_MS else end_ms - span // 2
     windows = [rng.randint(start_ms, end_ms - 10_000) for _ in range(n)]
-    days = [rng.randint(day_lo, end_ms) for _ in range(n)]
+    # Replay windows start on a whole minute (a client asking for the fast path does).
+    days = [rng.randint(day_lo, end_ms) // 60_000 * 60_000 for _ in range(n)]
+    robot_ids = [r.robot_id for r in store.robots_at(end_ms)]
+    week_from = (end_ms - min(span, 7 * DAY_MS)) // 60_000 * 60_000 + 60_000
+    week_buckets = (end_ms - week_from) // 600_000  # whole 10-minute buckets
     t: dict[str, list[float]] = {k: [] for k in (
         "map_at:random", "naive_map:random", "map_at:last_hour", "naive_map:last_hour",
         "map_at:6_days_ago", "naive_map:6_days_ago", "robots_at", "naive_robots",
-        "window_10s", "day_downsampled")}
+        "window_10s", "day_downsampled", "naive_downsampled", "day_replay_86400x",
+        "naive_replay_86400x", "replay_86400x_any_from", "timeline_week", "timeline_day",
+        "track_day")}
     checks = {"map_at_compared": 0, "map_at_mismatches": 0, "robots_compared": 0,
               "robots_mismatches": 0, "window_rows": 0, "downsampled_rows_max": 0,
-              "chunks_per_map_min": None}
+              "downsampled_compared": 0, "downsampled_mismatches": 0,
+              "chunks_per_map_min": None, "week_buckets": week_buckets}
 
     def window(at: int):
         return store.chunk_events(at, at + 10_000), store.poses(at, at + 10_000)
@@ -225,6 +255,7 @@ def measure(store, args, start_ms: int, end_ms: int, console) -> dict:
         store.map_at(at), naive_map_at(store, at), store.robots_at(at), naive_robots_at(store, at)
         window(at)
         store.poses_downsampled(at - DAY_MS, at, step_ms)
+        store.timeline(week_from, week_from + week_buckets * 600_000, week_buckets)
 
     from rich.progress import Progress
 
@@ -258,12 +289,39 @@ def measure(store, args, start_ms: int, end_ms: int, console) -> dict:
                     ms, (chunks, poses) = timed(window, windows[i])
                     t["window_10s"].append(ms)
                     checks["window_rows"] = max(checks["window_rows"], len(chunks) + len(poses))
-                    ms, frames = timed(store.poses_downsampled, days[i] - DAY_MS, days[i], step_ms)
-                    t["day_downsampled"].append(ms)
-                    checks["downsampled_rows_max"] = max(checks["downsampled_rows_max"], len(frames))
+                    f, to = days[i] - DAY_MS, days[i]
+                    for key, naive_key, step in (
+                            ("day_downsampled", "naive_downsampled", step_ms),
+                            ("day_replay_86400x", "naive_replay_86400x", replay_step_ms)):
+                        ms, frames = timed(store.poses_downsampled, f, to, step)
+                        t[key].append(ms)
+                        ms, want = timed(naive_poses_downsampled, store, f, to, step)
+                        t[naive_key].append(ms)
+                        checks["downsampled_compared"] += 1
+                        checks["downsampled_mismatches"] += frames != want
+                        checks["downsampled_rows_max"] = max(checks["downsampled_rows_max"],
+                                                             len(frames))
+                    # A replay position is any millisecond: the 86400x step from there.
+                    off = f + 1 + (i * 7_919) % 59_999
+                    ms, frames = timed(store.poses_downsampled, off, off + DAY_MS, replay_step_ms)
+                    t["replay_86400x_any_from"].append(ms)
+                    if i % 4 == 0:  # checked, untimed; timelines, tracks: a quarter as many
+                        checks["downsampled_compared"] += 1
+                        checks["downsampled_mismatches"] += frames != naive_poses_downsampled(
+                            store, off, off + DAY_MS, replay_step_ms)
+                        ms, _ = timed(store.timeline, week_from,
+                                      week_from + week_buckets * 600_000, week_buckets)
+                        t["timeline_week"].append(ms)
+                        ms, _ = timed(store.timeline, f, to, 1000)
+                        t["timeline_day"].append(ms)
+                        if robot_ids:
+                            ms, _ = timed(store.poses_downsampled, f, to, step_ms,
+                                          robot_ids[i % len(robot_ids)])
+                            t["track_day"].append(ms)
                 progress.advance(task)
     return {"latency_ms": {k: summary(v) for k, v in t.items()}, "checks": checks,
-            "step_ms": step_ms, "rounds": rounds, "busy_rounds": busy_rounds,
+            "step_ms": step_ms, "replay_step_ms": replay_step_ms,
+            "rounds": rounds, "busy_rounds": busy_rounds,
             "busy_seen": sorted(busy_seen)}
 
 
@@ -285,7 +343,15 @@ ROWS = [
     ("map_at(T), T ~6 days ago", "map_at:6_days_ago", "naive_map:6_days_ago", "map_at"),
     ("robots_at(T), random T", "robots_at", "naive_robots", "robots_at"),
     ("10 s window (chunk events + poses)", "window_10s", None, "window_10s"),
-    ("one-day poses, downsampled", "day_downsampled", None, "day_downsampled"),
+    ("one day, poses 1 per robot per --step-s", "day_downsampled", "naive_downsampled",
+     "day_downsampled"),
+    ("one day for 86400x (1 per robot per 8,640 s)", "day_replay_86400x", "naive_replay_86400x",
+     "day_downsampled"),
+    ("86400x, `from` off the minute (keyframes + heads)", "replay_86400x_any_from", None,
+     "day_downsampled"),
+    ("timeline, whole history, 10-min buckets", "timeline_week", None, "timeline"),
+    ("timeline, one day, 1,000 buckets of 86.4 s", "timeline_day", None, "timeline"),
+    ("track, one robot, one day at --step-s", "track_day", None, "track"),
 ]
 
 
@@ -300,9 +366,12 @@ def table_rows(results: dict) -> list[list[str]]:
         s = lat[key]
         ns = lat[naive] if naive else {}
         goal = TARGETS_MS[target]
+        if not s["n"]:
+            continue
         out.append([label, str(s["n"]), _fmt(s["p50"]), _fmt(s["p99"]), _fmt(s["max"]),
-                    _fmt(ns.get("p50")), _fmt(ns.get("p99")), f"<= {goal:.0f}",
-                    "yes" if s["p99"] <= goal else "NO"])
+                    _fmt(ns.get("p50")), _fmt(ns.get("p99")),
+                    "-" if goal is None else f"<= {goal:.0f}",
+                    "-" if goal is None else ("yes" if s["p99"] <= goal else "NO")])
     return out
 
 
@@ -376,9 +445,13 @@ def markdown(results: dict) -> str:
         f"Correctness: map_at(T) equal to the naive query for {checks['map_at_compared']} "
         f"instants, mismatches = {checks['map_at_mismatches']}; robots_at(T) equal to the naive "
         f"query for {checks['robots_compared']}, mismatches = {checks['robots_mismatches']}. "
+        f"Downsampled days (from pose_keyframes) equal to the same answer from every pose "
+        f"(the 'naive' column) for {checks.get('downsampled_compared', 0)} windows, "
+        f"mismatches = {checks.get('downsampled_mismatches', '?')}. "
         f"Downsampled day: step {results['measure']['step_ms']} ms, at most "
         f"{checks['downsampled_rows_max']:,} poses returned; 10 s windows returned up to "
-        f"{checks['window_rows']} rows.",
+        f"{checks['window_rows']} rows; the whole-history timeline has "
+        f"{checks.get('week_buckets', '?')} buckets.",
     ]
     if results.get("storage"):
         parts = ", ".join(f"{k} {v / 2**20:.1f} MiB" for k, v in sorted(results["storage"].items())
@@ -460,7 +533,9 @@ def add_parser(kinds) -> None:
     tt.add_argument("--reuse", action="store_true", help="measure history loaded by an earlier run")
     tt.add_argument("--queries", type=int, default=200, help="random instants (plus half as many "
                     "in the last hour and half as many six days ago)")
-    tt.add_argument("--frames", type=int, default=1000, help="downsampled frames per day")
+    tt.add_argument("--step-s", type=float, default=60.0,
+                    help="downsampling step of the one-day window (whole minutes take the "
+                    "keyframe path)")
     tt.add_argument("--one-by-one", type=int, default=12,
                     help="snapshots built one by one (timed) before the bulk build")
     tt.add_argument("--seed", type=int, default=7)

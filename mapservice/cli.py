@@ -42,37 +42,6 @@ def cmd_serve(args, processors: bool = True, api: bool = True, component: str = 
                       health_port=getattr(args, "health_port", None)))
 
 
-def cmd_sim(args) -> None:
-    from .loadgen import RobotFleet
-    from .mapfile import load_ros_map
-
-    import structlog
-
-    settings = _settings("sim")
-    log = structlog.get_logger("sim")
-    fleet = RobotFleet(args.mqtt_url or settings.mqtt_url, load_ros_map(args.map), args.robots)
-    signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
-    started, last = time.monotonic(), [0.0]
-
-    def progress(stats) -> None:
-        now = time.monotonic()
-        if now - last[0] >= 10:
-            last[0] = now
-            elapsed = now - started
-            log.info("simulating", robots=args.robots, poses=stats.poses, chunks=stats.chunks,
-                     rate_per_s=round((stats.poses + stats.chunks) / max(elapsed, 1e-9), 1))
-
-    log.info("simulated robots starting", robots=args.robots, map=str(args.map),
-             mqtt=args.mqtt_url or settings.mqtt_url)
-    try:
-        fleet.run(args.seconds, on_tick=progress)
-    except KeyboardInterrupt:
-        fleet.stop()
-    except OSError as exc:
-        sys.exit(f"cannot reach the MQTT broker at {fleet.mqtt_url}: {exc}; "
-                 "start one (e.g. `make up`) or pass --mqtt-url")
-
-
 def cmd_up(args) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -96,14 +65,18 @@ def cmd_up(args) -> None:
         with console.status("starting the MQTT-to-Kafka gateway..."):
             stack.start_gateway()
         if args.robots:
-            stack._spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map))
+            # The shift simulator (robots on the map's free space, paths, batteries, pallets
+            # and doors) unless the 2019 load test is asked for.
+            stack._spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map),
+                         *(["--load-test"] if args.load_test else []))
         table = Table(title="mapservice is up", show_header=False)
         table.add_row("API", stack.api_url + "  (docs at /docs)")
         table.add_row("MQTT (robots)", stack.mqtt_url)
         table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/healthz")
-        table.add_row("Simulated robots", f"{args.robots} on {args.map}")
+        table.add_row("Simulated robots", f"{args.robots} on {args.map}"
+                      + (" (2019 load test)" if args.load_test else " (shift simulator)"))
         table.add_row("Logs", str(stack.log_dir))
         console.print(table)
         console.print("Ctrl-C stops everything; `make up` again resumes on the same data.")
@@ -132,6 +105,8 @@ def main(argv: list[str] | None = None) -> None:
     up.add_argument("--data-dir", default=".mapservice-data")
     up.add_argument("--robots", type=int, default=5, help="simulated robots (0: none)")
     up.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML for the simulation")
+    up.add_argument("--load-test", action="store_true",
+                    help="simulate the 2019 load test (circles, re-sent chunks) instead of a shift")
     up.add_argument("--mqtt-url", help="use this MQTT broker instead of an embedded amqtt")
     up.add_argument("--api-port", type=int, default=8080)
     up.add_argument("--mqtt-port", type=int, default=1883)
@@ -153,12 +128,9 @@ def main(argv: list[str] | None = None) -> None:
     serve = sub.add_parser("serve", help="processors and API in one process (chdb needs this)")
     serve.set_defaults(func=cmd_serve)
 
-    sim = sub.add_parser("sim", help="simulated robots publishing the 2019 workload over MQTT")
-    sim.add_argument("--robots", type=int, default=5)
-    sim.add_argument("--map", default=str(DEFAULT_MAP))
-    sim.add_argument("--mqtt-url", default=None)
-    sim.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    sim.set_defaults(func=cmd_sim)
+    from mapservice.robot.cli import add_parsers as add_robot_parsers
+
+    add_robot_parsers(sub)  # map, sim, robot, drive
 
     from .bench import add_bench_parser
 

@@ -10,6 +10,7 @@ import msgspec
 from .events import DeadLetter, Envelope, MapMetaSet
 
 if TYPE_CHECKING:
+    from .legacy_query import ChunkQuery, PoseQuery
     from .timetravel import ChunkState
 
 
@@ -58,11 +59,56 @@ class ChunkRow(msgspec.Struct, frozen=True, array_like=True):
     receive_time_ms: int
 
 
+class SourceRecord(msgspec.Struct, frozen=True):
+    topic: str
+    partition: int
+    offset: int
+    value: bytes
+
+
+class EventSource(Protocol):
+    """Reads a durable log in batches; nothing counts as consumed until `commit`."""
+
+    def start(self) -> None: ...
+
+    def poll(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
+        """Up to `max_records` records, waiting at most `timeout_s` for the first."""
+
+    def commit(self, records: Sequence[SourceRecord]) -> bool:
+        """Marks the records consumed; False when they will be delivered again instead."""
+
+    def close(self) -> None: ...
+
+
 class Counts(msgspec.Struct, frozen=True):
     poses: int
     chunk_events: int
     chunk_contents: int
     dead_letters: int
+
+
+class ConflictRow(msgspec.Struct, frozen=True, array_like=True):
+    """Two robots wrote different content to one chunk within the conflict window:
+    `robot_a` at `ts_a_ms` first, `robot_b` at `ts_ms` (the later write's event time)."""
+
+    row: int
+    column: int
+    ts_ms: int
+    robot_a: str
+    ts_a_ms: int
+    hash_a: str  # hex
+    robot_b: str
+    hash_b: str  # hex
+
+
+class TimelineBucket(msgspec.Struct, frozen=True, array_like=True):
+    """Activity in [start_ms, start_ms + bucket_ms): chunk writes, conflicts (by their
+    `ts`) and robots with at least one pose."""
+
+    start_ms: int
+    chunk_changes: int
+    conflicts: int
+    robots_active: int
 
 
 class HistoryStore(Protocol):
@@ -91,6 +137,13 @@ class HistoryStore(Protocol):
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
 
+    def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
+        """[from_ms, to_ms) cut into `timetravel.timeline_buckets(...)`: one TimelineBucket
+        per bucket, empty ones included, in time order."""
+
+    def robot_known(self, robot_id: str) -> bool:
+        """Whether the robot has any pose in the history."""
+
     def map_at(self, at_ms: int) -> list["ChunkState"]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
 
@@ -100,6 +153,23 @@ class HistoryStore(Protocol):
     def build_snapshots(self, up_to_ms: int) -> int:
         """Builds the snapshots due up to `up_to_ms`; returns how many were built."""
 
+    # Conflicts (mapservice/conflicts.py has the rule).
+
+    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
+                          to_ms: int) -> list[ChunkRow]:
+        """Writes on the given (row, column) chunks with from_ms <= event time <= to_ms,
+        in event-time order (the neighbours a new write may conflict with)."""
+
+    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        """Idempotent on (ts, row, column, robot_a, robot_b); a repeat replaces the row."""
+
+    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
+        """Conflicts with from_ms <= ts < to_ms, ordered by ts, row, column, robot_a, robot_b."""
+
+    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        """Conflicts per bucket [from_ms + k*bucket_ms, ...) of from_ms <= ts < to_ms, keyed
+        by the bucket's start; empty buckets are left out."""
+
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         """(width, height, zlib pixels) of a content hash, if stored."""
 
@@ -107,6 +177,23 @@ class HistoryStore(Protocol):
         """Many content hashes at once; unknown ones are left out."""
 
     def latest_meta(self) -> MapMetaSet | None: ...
+
+    # The 2019 REST contract (mapservice/legacy_query.py has the query semantics).
+
+    def list_chunks(self, query: "ChunkQuery") -> list[ChunkRow]:
+        """Chunk writes passing the query's filters, in `query.order`, `skip` then `limit`
+        (the non-`latest` GET /api/chunk-service/chunks)."""
+
+    def list_poses(self, query: "PoseQuery") -> list[PoseRow]:
+        """Poses passing the query's filters, in `query.order`, `skip` then `limit`
+        (the non-`latest` GET /api/coordinate-service/robots)."""
+
+    def delete_chunks(self) -> int:
+        """Removes every chunk write and map snapshot (2019 DELETE /chunks); returns how
+        many writes were removed. Pixels stay until their TTL (nothing references them)."""
+
+    def delete_meta(self) -> int:
+        """Removes every stored map meta (2019 DELETE /meta); returns how many."""
 
     def counts(self) -> Counts: ...
 

@@ -132,7 +132,115 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                 TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY""",
             ),
         ),
+        Migration(
+            3,
+            "conflicts: two robots writing different content to one chunk within the window",
+            (
+                # Version ts_a: the rule is monotonic (mapservice/conflicts.py), so of two
+                # rows with one identity the one naming the later A is the right one,
+                # whatever order they were inserted in.
+                f"""CREATE TABLE IF NOT EXISTS {database}.conflicts (
+                    ts DateTime64(3, 'UTC'),
+                    row UInt16,
+                    col UInt16,
+                    robot_a LowCardinality(String),
+                    ts_a DateTime64(3, 'UTC'),
+                    hash_a FixedString(16),
+                    robot_b LowCardinality(String),
+                    hash_b FixedString(16)
+                ) ENGINE = ReplacingMergeTree(ts_a)
+                PARTITION BY toDate(ts)
+                ORDER BY (ts, row, col, robot_a, robot_b)
+                TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+            ),
+        ),
+        Migration(
+            4,
+            "poses sorted by (ts, robot_id); per-minute pose keyframes for downsampled reads",
+            _poses_by_time(database, ttl_days),
+        ),
     ]
 
 
-SCHEMA_VERSION = 2
+# The pose columns, in table order (the keyframe view and its backfill name them).
+POSE_COLUMNS = ("robot_id, ts, x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, charging, loaded, "
+                "has_path, path_x_mm, path_y_mm, recv_lag_ms")
+KEYFRAME_MS = 60_000  # one keyframe per robot per minute (pose_keyframes)
+
+
+def _poses_by_time(db: str, ttl_days: int) -> tuple[str, ...]:
+    """Schema v4 (bench timetravel, BENCHMARKS.md): every time-travel read of poses is a
+    time window across robots (robots at T, replay windows, snapshots), so `poses` is
+    re-sorted by (ts, robot_id): a window is one contiguous range of granules instead of
+    one range per robot. The identity (robot, ts) is unchanged, so is deduplication.
+    `pose_keyframes` holds each robot's first pose of every minute (a materialized view
+    fills it on every insert into `poses`): a downsampled read whose start and step are
+    whole minutes reads one row per robot per minute instead of every pose.
+
+    Safe to run twice: the copy goes to `poses_v4` (deduplicated on its identity), the swap
+    is one RENAME, the old table is dropped only once its rows are all in the new one.
+    Writers must be stopped while it runs (the service migrates before its processors
+    start); rows inserted into the old table during the copy would be lost.
+    """
+    return (
+        # A run interrupted after the RENAME left the old table behind: its rows are in `poses`.
+        f"DROP TABLE IF EXISTS {db}.poses_by_robot SYNC",
+        # On a second run the view is re-created below on the new table (its backfill
+        # covers whatever the view would have caught meanwhile).
+        f"DROP VIEW IF EXISTS {db}.pose_keyframes_mv SYNC",
+        f"""CREATE TABLE IF NOT EXISTS {db}.poses_v4 AS {db}.poses
+            ENGINE = ReplacingMergeTree
+            PARTITION BY toDate(ts)
+            ORDER BY (ts, robot_id)
+            TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+            SETTINGS ttl_only_drop_parts = 1""",
+        # Interleaved robots defeat Delta on positions; T64 (unused high bits cut per
+        # block) keeps them at ~2 bytes. Gorilla gains nothing on quaternions in any order
+        # and is the slowest codec to decode.
+        *(f"ALTER TABLE {db}.poses_v4 MODIFY COLUMN {column} {kind} CODEC({codec})"
+          for column, kind, codec in (
+              ("x_mm", "Int32", "T64, ZSTD(3)"), ("y_mm", "Int32", "T64, ZSTD(3)"),
+              ("z_mm", "Int32", "T64, ZSTD(3)"), ("qx", "Float32", "ZSTD(3)"),
+              ("qy", "Float32", "ZSTD(3)"), ("qz", "Float32", "ZSTD(3)"),
+              ("qw", "Float32", "ZSTD(3)"), ("battery", "Nullable(Float32)", "ZSTD(3)"))),
+        f"INSERT INTO {db}.poses_v4 SELECT * FROM {db}.poses",
+        f"RENAME TABLE {db}.poses TO {db}.poses_by_robot, {db}.poses_v4 TO {db}.poses",
+        f"DROP TABLE IF EXISTS {db}.poses_by_robot SYNC",
+        # ReplacingMergeTree(rank): of the rows of one (robot, minute) the earliest pose has
+        # the highest rank; two writes of that pose keep the later one, as `poses` does.
+        f"""CREATE TABLE IF NOT EXISTS {db}.pose_keyframes (
+            robot_id LowCardinality(String),
+            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+            x_mm Int32 CODEC(Delta, ZSTD(3)),
+            y_mm Int32 CODEC(Delta, ZSTD(3)),
+            z_mm Int32 CODEC(Delta, ZSTD(3)),
+            qx Float32 CODEC(ZSTD(3)),
+            qy Float32 CODEC(ZSTD(3)),
+            qz Float32 CODEC(ZSTD(3)),
+            qw Float32 CODEC(ZSTD(3)),
+            battery Nullable(Float32) CODEC(ZSTD(3)),
+            charging LowCardinality(String),
+            loaded LowCardinality(String),
+            has_path Bool,
+            path_x_mm Array(Int32) CODEC(ZSTD(3)),
+            path_y_mm Array(Int32) CODEC(ZSTD(3)),
+            recv_lag_ms Int32 CODEC(T64, ZSTD(3)),
+            cell DateTime('UTC') MATERIALIZED toStartOfMinute(ts),
+            rank UInt32 MATERIALIZED toUInt32({KEYFRAME_MS} - toUnixTimestamp64Milli(ts) % {KEYFRAME_MS})
+        ) ENGINE = ReplacingMergeTree(rank)
+        PARTITION BY toDate(cell)
+        ORDER BY (robot_id, cell)
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        # Per insert block only the first pose per robot and minute: the bulk loader's
+        # day-sized blocks shrink 60x before they are written.
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
+            AS SELECT {POSE_COLUMNS} FROM {db}.poses
+            ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
+        (f"INSERT INTO {db}.pose_keyframes ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} FROM {db}.poses "
+         "ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)"),
+    )
+
+
+SCHEMA_VERSION = 4

@@ -14,6 +14,7 @@ import structlog
 import uvicorn
 
 from .adapters.clickhouse_store import ClickHouseStore
+from .adapters.kafka_publisher import KafkaPublisher
 from .health_server import serve_health
 from .live import LiveHub
 from .settings import Settings
@@ -43,7 +44,10 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         readiness["processors"] = lambda: not faust_app.should_stop
     try:
         if api:
-            config = uvicorn.Config(create_app(settings, store, readiness, live_hub=live), host=settings.api_host,
+            # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
+            publisher = KafkaPublisher(settings, client_id="mapservice-api")
+            app = create_app(settings, store, readiness, live_hub=live, publisher=publisher)
+            config = uvicorn.Config(app, host=settings.api_host,
                                     port=settings.api_port, log_level="warning", access_log=False)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")

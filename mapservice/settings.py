@@ -70,9 +70,19 @@ class Settings(BaseSettings):
     snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
     snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")
 
+    # Live views, advertisements, conflicts, clock skew (issue 3)
+    advertisement_topic: str = Field("iot/chunks/advertisement",
+                                     description="2019 NEW_CHUNK_ADVERTISEMENT_TOPIC.")
+    public_base_url: str = Field("http://127.0.0.1:8080",
+                                 description="Base of the chunkUrl in advertisements.")
+    conflict_window_s: float = Field(60.0, ge=0, description="Different writes closer than this conflict.")
+    clock_skew_threshold_s: float = Field(5.0, ge=0, description="|receive - event time| beyond this is flagged.")
+    robot_offline_after_s: float = Field(10.0, gt=0, description="Silence after which a robot is offline.")
+
     # API
     api_host: str = "127.0.0.1"
     api_port: int = 8080
+    ui_dir: Path | None = Field(None, description="Built replay UI to serve; empty: replay-ui/dist of the checkout.")
     admin_token: SecretStr = SecretStr(DEFAULT_ADMIN_TOKEN)
 
     @model_validator(mode="after")

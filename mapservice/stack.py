@@ -61,6 +61,8 @@ class Stack:
             "MAPSERVICE_MQTT_URL": self.mqtt_url,
             "MAPSERVICE_API_HOST": "127.0.0.1",
             "MAPSERVICE_API_PORT": str(self.api_port),
+            # Advertisements' chunkUrl must name this API, whatever port it got.
+            "MAPSERVICE_PUBLIC_BASE_URL": os.environ.get("MAPSERVICE_PUBLIC_BASE_URL", self.api_url),
             "PYTHONUNBUFFERED": "1",
             **self.extra_env,
         }

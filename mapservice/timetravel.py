@@ -8,6 +8,7 @@ Receive order never matters, so late, out-of-order and duplicated events change 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 
 import msgspec
@@ -56,3 +57,18 @@ def snapshot_times(from_ms: int, to_ms: int, every_ms: int) -> list[int]:
     """Grid-aligned snapshot instants in (from_ms, to_ms]."""
     first = (from_ms // every_ms + 1) * every_ms
     return list(range(first, to_ms + 1, every_ms))
+
+
+def timeline_buckets(from_ms: int, to_ms: int, buckets: int) -> tuple[int, list[int]]:
+    """(bucket_ms, the buckets' starts) for [from_ms, to_ms) in at most `buckets` buckets
+    of equal whole milliseconds (the last one may end past `to_ms`; nothing there counts)."""
+    if buckets < 1:
+        raise ValueError("buckets must be at least 1")
+    span = max(0, to_ms - from_ms)
+    bucket_ms = max(1, -(-span // buckets))
+    return bucket_ms, list(range(from_ms, to_ms, bucket_ms))
+
+
+def yaw(qx: float, qy: float, qz: float, qw: float) -> float:
+    """Heading (rotation about z) of an orientation quaternion, radians in [-pi, pi]."""
+    return math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))

@@ -1,8 +1,9 @@
-"""faust-streaming agents that sink the event topics into the ClickHouse history.
+"""The processors: a faust app that sinks the event topics into the ClickHouse history,
+keeps the live views, and builds snapshots.
 
-At-least-once: events are acknowledged (so their offsets may be committed) only after
-the insert that holds them succeeded; a crash before that re-delivers the batch, and the
-history's natural-identity keys absorb the repeat.
+At-least-once: offsets are committed (faust: events acknowledged) only after the insert
+that holds them succeeded; a crash before that re-delivers the batch, and the history's
+natural-identity keys absorb the repeat.
 """
 
 from __future__ import annotations
@@ -16,11 +17,14 @@ import faust
 import structlog
 from prometheus_client import Counter, Histogram
 
+from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.live import LiveHub
 from mapservice.ports import HistoryStore
 from mapservice.settings import Settings
 
-from .sink import decode_dead_letters, split_events
+from .history_consumer import HistoryConsumer, HistoryConsumerService
+from .sink import decode_dead_letters
+from .views import LiveViews
 
 log = structlog.get_logger(__name__)
 
@@ -82,27 +86,19 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         producer_partitioner=None,
         topic_replication_factor=settings.kafka_replication,
     )
+    # Live views (issue 3): latest map + advertisements, robots, conflicts.
+    views = LiveViews.attach(app, settings, sink)
     batch, within = settings.sink_batch_size, settings.sink_batch_seconds
     now_ms = lambda: time.time_ns() // 1_000_000  # noqa: E731
 
-    for name in (settings.topic_chunk_events, settings.topic_pose_events,
-                 settings.topic_meta_events):
-        topic = app.topic(name, value_type=bytes, key_type=bytes)
-
-        async def sink_events(stream, _name=name):
-            async for events in stream.noack().noack_take(batch, within=within):
-                good, bad = split_events((e.value for e in events), now_ms())
-                if good:
-                    await sink.insert_until_done(sink.store.append, good, _name)
-                    if sink.live is not None:
-                        sink.live.publish(good)
-                if bad:
-                    log.warning("undecodable records on an event topic", topic=_name, count=len(bad))
-                    await sink.insert_until_done(sink.store.append_dead_letters, bad, _name)
-                for e in events:
-                    e.ack()
-
-        app.agent(topic, name=f"history-{name}")(sink_events)
+    # The event topics go to the history in batches below faust's per-record path
+    # (history_consumer.py says why); faust runs it, the dead letters, and the timers.
+    source = KafkaBatchSource(
+        settings, [settings.topic_chunk_events, settings.topic_pose_events,
+                   settings.topic_meta_events], group_id=f"{app.conf.id}-history")
+    consumer = HistoryConsumer(source, sink, views, batch, within)
+    source.on_assigned = consumer.on_assigned
+    app.service(HistoryConsumerService(consumer))
 
     dl_topic = app.topic(settings.topic_dead_letter, value_type=bytes, key_type=bytes)
 

@@ -3,16 +3,10 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
-from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 router = APIRouter(tags=["health"])
-
-
-@router.get("/", operation_id="getRoot", include_in_schema=False)
-def root() -> RedirectResponse:
-    # The replay UI will be served here; until then the API's own docs are the front page.
-    return RedirectResponse("/docs")
 
 
 @router.get("/healthz", operation_id="getLiveness")

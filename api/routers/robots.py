@@ -5,10 +5,12 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel
 
+from mapservice.liveview import clock_skew_ms, is_online, skew_flagged
 from mapservice.ports import HistoryStore
+from mapservice.settings import Settings
 from mapservice.wire2019 import format_timestamp
 
-from ..deps import at_instant, get_store
+from ..deps import at_instant, get_settings, get_store
 from .poses import Pose
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
@@ -16,6 +18,9 @@ router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
 
 class RobotAt(Pose):
     age_ms: int
+    online: bool  # age_ms <= robot_offline_after_s
+    clock_skew_ms: int  # receive time - event time of this pose
+    clock_skew_flag: bool  # |clock_skew_ms| > clock_skew_threshold_s
 
 
 class RobotsAt(BaseModel):
@@ -27,11 +32,16 @@ class RobotsAt(BaseModel):
 def get_robots_at(
     at_ms: int = Depends(at_instant),
     store: HistoryStore = Depends(get_store),
+    settings: Settings = Depends(get_settings),
 ) -> RobotsAt:
     return RobotsAt(at_ms=at_ms, robots=[
         RobotAt(robotId=r.robot_id, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
                 receive_time_ms=r.receive_time_ms, position=(r.x, r.y, r.z),
                 orientation=(r.qx, r.qy, r.qz, r.qw), battery_level=r.battery_level,
                 charging=r.charging, loaded=r.loaded,
-                path=list(r.path) if r.path is not None else None, age_ms=at_ms - r.ts_ms)
+                path=list(r.path) if r.path is not None else None, age_ms=at_ms - r.ts_ms,
+                online=is_online(at_ms - r.ts_ms, settings.robot_offline_after_s),
+                clock_skew_ms=clock_skew_ms(r.receive_time_ms, r.ts_ms),
+                clock_skew_flag=skew_flagged(clock_skew_ms(r.receive_time_ms, r.ts_ms),
+                                             settings.clock_skew_threshold_s))
         for r in store.robots_at(at_ms)])

@@ -8,6 +8,7 @@ goes through one lock; callers in an event loop run these methods in an executor
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
 
@@ -15,9 +16,10 @@ import clickhouse_connect
 import msgspec
 
 from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
-from ..ports import ChunkRow, Counts, PoseRow
-from ..timetravel import ChunkState
-from ..schema import migrations
+from ..legacy_query import ChunkQuery, PoseQuery, sort_column
+from ..ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
+from ..timetravel import ChunkState, timeline_buckets
+from ..schema import KEYFRAME_MS, POSE_COLUMNS, migrations
 from ..settings import Settings
 
 _json = msgspec.json.Encoder()
@@ -376,6 +378,56 @@ class ClickHouseStore:
             f"FROM {db}.robot_snapshots FINAL WHERE {window} GROUP BY snap_ts) AS r ON g.snap = r.snap",
             parameters=params)
 
+    # --- conflicts ------------------------------------------------------------------
+
+    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
+                          to_ms: int) -> list[ChunkRow]:
+        if not chunks:
+            return []
+        rows = self._rows(
+            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
+            f"recv_lag_ms FROM {self.database}.chunk_events FINAL "
+            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts <= fromUnixTimestamp64Milli({t:Int64}) "
+            "WHERE (row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
+            "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c)) "
+            f"ORDER BY ts, row, col, robot_id {_FINAL_SETTINGS}",
+            {"f": from_ms, "t": to_ms, "cs": [tuple(c) for c in set(chunks)]},
+        )
+        return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
+
+    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        if not rows:
+            return
+        data = [[c.ts_ms, c.row, c.column, c.robot_a, c.ts_a_ms, bytes.fromhex(c.hash_a),
+                 c.robot_b, bytes.fromhex(c.hash_b)] for c in rows]
+        with self._lock:
+            self.client.insert(f"{self.database}.conflicts", data, column_names=[
+                "ts", "row", "col", "robot_a", "ts_a", "hash_a", "robot_b", "hash_b"])
+
+    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
+        rows = self._rows(
+            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_a, toUnixTimestamp64Milli(ts_a), "
+            f"lower(hex(hash_a)), robot_b, lower(hex(hash_b)) FROM {self.database}.conflicts FINAL "
+            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
+            f"ORDER BY ts, row, col, robot_a, robot_b LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            {"f": from_ms, "t": to_ms, "n": limit},
+        )
+        return [ConflictRow(*r) for r in rows]
+
+    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        if bucket_ms <= 0:
+            raise ValueError("bucket_ms must be positive")
+        # Without FINAL: count distinct identities, the same number FINAL would give.
+        rows = self._rows(
+            "SELECT {f:Int64} + intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64}) * {b:Int64} "
+            "AS start, uniqExact(ts, row, col, robot_a, robot_b) "
+            f"FROM {self.database}.conflicts "
+            "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
+            "GROUP BY start ORDER BY start",
+            {"f": from_ms, "t": to_ms, "b": bucket_ms},
+        )
+        return {int(start): int(n) for start, n in rows}
+
     # --- reads ----------------------------------------------------------------------
 
     def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
@@ -414,6 +466,9 @@ class ClickHouseStore:
         if robot_id is not None:
             where += " AND robot_id = {r:String}"
             params["r"] = robot_id
+        aligned = from_ms % KEYFRAME_MS == 0 and step_ms % KEYFRAME_MS == 0
+        if aligned or step_ms >= 10 * KEYFRAME_MS:
+            return self._pose_query(self._keyframe_sql(aligned, robot_id), params)
         return self._pose_query(
             f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {self.database}.poses FINAL WHERE {where} "
             "ORDER BY robot_id, ts "
@@ -421,6 +476,38 @@ class ClickHouseStore:
             f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
             params,
         )
+
+    def _keyframe_sql(self, aligned: bool, robot_id: str | None) -> str:
+        """poses_downsampled from the per-minute keyframes (schema v4), exactly.
+
+        A step [b, b + step) is a head [b, next whole minute), then minutes starting in it.
+        Its first pose is either in the head, or the first pose of the first of those
+        minutes holding one in the step, i.e. that minute's keyframe (a minute cut by the
+        step's end counts only if its keyframe is before the end). So the candidates are
+        the keyframes in the window plus every pose in the heads, read from `poses`: none
+        when `from` and the step are whole minutes, a minute per step at most otherwise
+        (steps of 10 min or more, so at most a tenth of the window; only the time column
+        of the rest is read, to find them).
+        """
+        db = self.database
+        robot = " AND robot_id = {r:String}" if robot_id is not None else ""
+        window = ("ts >= fromUnixTimestamp64Milli({f:Int64}) "
+                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
+        candidates = (
+            f"SELECT {POSE_COLUMNS} FROM {db}.pose_keyframes FINAL "
+            "PREWHERE cell >= toStartOfMinute(fromUnixTimestamp64Milli({f:Int64})) "
+            f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} WHERE {window}")
+        if not aligned:
+            # The head of the step a pose falls in ends at the minute after the step's start.
+            start = ("({f:Int64} + intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
+                     "* {s:Int64})")
+            candidates += (
+                f" UNION ALL SELECT {POSE_COLUMNS} FROM {db}.poses FINAL PREWHERE {window}{robot} "
+                f"AND toUnixTimestamp64Milli(ts) < intDiv({start} + {KEYFRAME_MS - 1}, "
+                f"{KEYFRAME_MS}) * {KEYFRAME_MS}")
+        return (f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM ({candidates}) ORDER BY robot_id, ts "
+                "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
+                f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}")
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Every chunk's winning write at or before `at_ms` (nearest snapshot + events).
@@ -499,6 +586,41 @@ class ClickHouseStore:
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
 
+    def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
+        bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
+        if not starts:
+            return []
+        db = self.database
+        params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
+        window = ("ts >= fromUnixTimestamp64Milli({f:Int64}) "
+                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
+        bucket = "intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64})"
+        chunks = dict(self._rows(
+            f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL PREWHERE {window} "
+            f"GROUP BY k {_FINAL_SETTINGS}", params))
+        if from_ms % KEYFRAME_MS == 0 and bucket_ms % KEYFRAME_MS == 0:
+            # Buckets of whole minutes: a robot has a pose in a bucket iff it has a
+            # keyframe (its first pose of a minute) there.
+            robots = dict(self._rows(
+                f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.pose_keyframes FINAL "
+                "PREWHERE cell >= fromUnixTimestamp64Milli({f:Int64}) "
+                "AND cell < fromUnixTimestamp64Milli({t:Int64}) "
+                f"WHERE ts < fromUnixTimestamp64Milli({{t:Int64}}) GROUP BY k {_FINAL_SETTINGS}",
+                params))
+        else:  # a duplicate pose names the same robot: no FINAL needed
+            robots = dict(self._rows(
+                f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.poses PREWHERE {window} "
+                "GROUP BY k", params))
+        conflicts = self.conflict_counts(from_ms, to_ms, bucket_ms)
+        return [TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
+                for k, start in enumerate(starts)]
+
+    def robot_known(self, robot_id: str) -> bool:
+        # pose_keyframes is sorted by robot: a primary-key lookup, not a scan of `poses`.
+        return bool(self._rows(
+            f"SELECT 1 FROM {self.database}.pose_keyframes WHERE robot_id = {{r:String}} LIMIT 1",
+            {"r": robot_id}))
+
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         rows = self._rows(
             f"SELECT width, height, zlib_pixels FROM {self.database}.chunk_contents "
@@ -534,6 +656,78 @@ class ClickHouseStore:
         doc = msgspec.json.decode(rows[0][0])
         return MapMetaSet.from_2019(doc)
 
+    # --- the 2019 REST contract ----------------------------------------------------------
+
+    def list_chunks(self, query: ChunkQuery) -> list[ChunkRow]:
+        rows = self._legacy_rows(
+            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
+            f"recv_lag_ms FROM {self.database}.chunk_events FINAL", query,
+            lambda sql, params: self._rows(sql, params))
+        return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
+
+    def list_poses(self, query: PoseQuery) -> list[PoseRow]:
+        return self._legacy_rows(
+            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL", query, self._pose_query)
+
+    def _legacy_rows(self, select: str, query: ChunkQuery | PoseQuery, run: Callable) -> list:
+        """Filters only on sorting-key columns (PREWHERE keeps FINAL exact, as in poses()),
+        the order from the whitelist (never the client's text), LIMIT/OFFSET as bound
+        parameters. A newest-first read without a lower bound first tries the last hour,
+        then day: when that window alone fills skip + limit, the answer is the same."""
+        where = []
+        params: dict = {"n": query.limit, "s": query.skip}
+        for column, op, value in (("ts", "=", query.timestamp_ms),
+                                  ("ts", ">=", query.updated_since_ms),
+                                  ("ts", "<", query.updated_before_ms)):
+            if value is not None:
+                name = f"p{len(params)}"
+                where.append(f"{column} {op} fromUnixTimestamp64Milli({{{name}:Int64}})")
+                params[name] = value
+        if query.robot_id is not None:
+            where.append("robot_id = {robot:String}")
+            params["robot"] = query.robot_id
+        if isinstance(query, ChunkQuery):
+            for column, value in (("row", query.row), ("col", query.column)):
+                if value is not None:
+                    where.append(f"{column} = {{{column}:UInt16}}")
+                    params[column] = value
+        order = ", ".join(f"{sort_column(f)} {'DESC' if d == 'desc' else 'ASC'}"
+                          for f, d in query.order)
+
+        def sql(extra: list[str]) -> str:
+            clause = f" PREWHERE {' AND '.join(where + extra)}" if where or extra else ""
+            return (f"{select}{clause} ORDER BY {order} LIMIT {{n:UInt32}} OFFSET {{s:UInt32}} "
+                    f"{_FINAL_SETTINGS}")
+
+        if (query.limit and query.order[0] == ("timestamp", "desc")
+                and query.updated_since_ms is None and query.timestamp_ms is None):
+            upper = query.updated_before_ms or time.time_ns() // 1_000_000
+            for span_ms in (3_600_000, 86_400_000):
+                rows = run(sql(["ts >= fromUnixTimestamp64Milli({lower:Int64})"]),
+                           {**params, "lower": upper - span_ms})
+                if len(rows) == query.limit:
+                    return rows
+        return run(sql([]), params)
+
+    def delete_chunks(self) -> int:
+        db = self.database
+        with self._lock:
+            (removed,), = self._rows(f"SELECT count() FROM {db}.chunk_events FINAL", {})
+            # TRUNCATE, not a lightweight DELETE: the whole table goes, at once and without
+            # a mutation. Snapshots go too, or map_at would still answer with deleted
+            # writes; their log stays, so the next snapshot builds on an empty map.
+            self.client.command(f"TRUNCATE TABLE {db}.chunk_events")
+            self.client.command(f"TRUNCATE TABLE {db}.map_snapshots")
+            self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.conflicts")  # derived from them
+        return int(removed)
+
+    def delete_meta(self) -> int:
+        db = self.database
+        with self._lock:
+            (removed,), = self._rows(f"SELECT count() FROM {db}.map_meta FINAL", {})
+            self.client.command(f"TRUNCATE TABLE {db}.map_meta")
+        return int(removed)
+
     def counts(self) -> Counts:
         db = self.database
         (row,) = self._rows(
@@ -553,7 +747,8 @@ class ClickHouseStore:
     def optimize(self) -> None:
         """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
         with self._lock:
-            for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters"):
+            for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
+                          "pose_keyframes"):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
 
     def close(self) -> None:

@@ -12,9 +12,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
-from ..ports import ChunkRow, Counts, PoseRow
+from ..legacy_query import ChunkQuery, PoseQuery, select
+from ..ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
 from ..schema import SCHEMA_VERSION
-from ..timetravel import ChunkState, fold_map, fold_robots
+from ..timetravel import ChunkState, fold_map, fold_robots, timeline_buckets
 
 
 def _mm(v: float) -> float:
@@ -32,6 +33,7 @@ class MemoryStore:
         self._contents: dict[bytes, tuple[int, int, bytes]] = {}
         self._metas: dict[tuple[int, str], MapMetaSet] = {}
         self._dead: list[DeadLetter] = []
+        self._conflicts: dict[tuple[int, int, int, str, str], ConflictRow] = {}
         self._lock = threading.Lock()
 
     def migrate(self) -> int:
@@ -79,6 +81,23 @@ class MemoryStore:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
 
+    def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
+        bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
+        chunks = [0] * len(starts)
+        robots: list[set[str]] = [set() for _ in starts]
+        for c in self._chunks.values():
+            if from_ms <= c.ts_ms < to_ms:
+                chunks[(c.ts_ms - from_ms) // bucket_ms] += 1
+        for p in self._poses.values():
+            if from_ms <= p.ts_ms < to_ms:
+                robots[(p.ts_ms - from_ms) // bucket_ms].add(p.robot_id)
+        conflicts = self.conflict_counts(from_ms, to_ms, bucket_ms) if starts else {}
+        return [TimelineBucket(start, chunks[k], conflicts.get(start, 0), len(robots[k]))
+                for k, start in enumerate(starts)]
+
+    def robot_known(self, robot_id: str) -> bool:
+        return any(r == robot_id for r, _ in self._poses)
+
     def map_at(self, at_ms: int) -> list[ChunkState]:
         state = fold_map(list(self._chunks.values()), at_ms)
         return [state[k] for k in sorted(state)]
@@ -90,6 +109,34 @@ class MemoryStore:
     def build_snapshots(self, up_to_ms: int) -> int:
         return 0  # folds the whole history on every read: nothing to snapshot
 
+    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
+                          to_ms: int) -> list[ChunkRow]:
+        wanted = set(chunks)
+        rows = [r for r in self._chunks.values()
+                if from_ms <= r.ts_ms <= to_ms and (r.row, r.column) in wanted]
+        return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))
+
+    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        with self._lock:
+            for c in rows:
+                key = (c.ts_ms, c.row, c.column, c.robot_a, c.robot_b)
+                current = self._conflicts.get(key)
+                # As ReplacingMergeTree(ts_a): the row naming the later A wins.
+                if current is None or c.ts_a_ms >= current.ts_a_ms:
+                    self._conflicts[key] = c
+
+    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
+        return [self._conflicts[k] for k in sorted(self._conflicts) if from_ms <= k[0] < to_ms][:limit]
+
+    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        if bucket_ms <= 0:
+            raise ValueError("bucket_ms must be positive")
+        counts: dict[int, int] = {}
+        for ts in (k[0] for k in self._conflicts if from_ms <= k[0] < to_ms):
+            start = from_ms + (ts - from_ms) // bucket_ms * bucket_ms
+            counts[start] = counts.get(start, 0) + 1
+        return dict(sorted(counts.items()))
+
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         return self._contents.get(content_hash)
 
@@ -100,6 +147,25 @@ class MemoryStore:
         if not self._metas:
             return None
         return self._metas[max(self._metas)]
+
+    def list_chunks(self, query: ChunkQuery) -> list[ChunkRow]:
+        return select(list(self._chunks.values()), query)
+
+    def list_poses(self, query: PoseQuery) -> list[PoseRow]:
+        return select(list(self._poses.values()), query)
+
+    def delete_chunks(self) -> int:
+        with self._lock:
+            removed = len(self._chunks)
+            self._chunks.clear()
+            self._conflicts.clear()  # derived from the writes just deleted
+        return removed
+
+    def delete_meta(self) -> int:
+        with self._lock:
+            removed = len(self._metas)
+            self._metas.clear()
+        return removed
 
     def counts(self) -> Counts:
         return Counts(len(self._poses), len(self._chunks), len(self._contents), len(self._dead))

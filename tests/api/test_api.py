@@ -23,6 +23,13 @@ HASH = content_hash(PIXELS).hex()
 EXPECTED_OPERATION_IDS = {
     "getLiveness", "getReadiness", "listPoses", "listChunkEvents", "getChunkContent",
     "getHistoryStats", "getMapAt", "getRobotsAt", "getMapPngAt",
+    # the 2019 REST contract (api/routers/chunk_service.py, coordinate_service.py)
+    "getLegacyMeta", "postLegacyMeta", "putLegacyMeta", "deleteLegacyMeta", "postLegacyChunk",
+    "listLegacyChunks", "deleteLegacyChunks", "getLegacyChunk", "getLegacyChunkPng",
+    "listLegacyRobots",
+    # time-travel replay reads (api/routers/events.py, timeline.py, tracks.py)
+    "listEvents", "getTimeline", "getRobotTrack",
+    "listConflicts",
 }
 
 

@@ -256,13 +256,15 @@ def cli_invocations() -> list[tuple[str, list[str]]]:
 def test_every_mapservice_subcommand_is_accepted_by_the_cli(monkeypatch):
     """Every `mapservice ...` argv in infra/ parses with the real CLI and reaches its handler."""
     from mapservice import cli
+    from mapservice.robot import cli as robot_cli
 
     invocations = cli_invocations()
     assert {argv[0] for where, argv in invocations if where.startswith("compose:")} == COMPONENTS
     assert {argv[0] for where, argv in invocations if where.startswith("k8s:")} == COMPONENTS
     calls: list[tuple[str, dict]] = []
-    for handler in ("cmd_gateway", "cmd_serve", "cmd_sim", "cmd_up"):
-        monkeypatch.setattr(cli, handler,
+    for module, handler in ((cli, "cmd_gateway"), (cli, "cmd_serve"), (robot_cli, "cmd_sim"),
+                            (cli, "cmd_up")):
+        monkeypatch.setattr(module, handler,
                             lambda args, _h=handler, **kw: calls.append((_h, {"args": args, **kw})))
     for where, argv in invocations:
         calls.clear()
@@ -450,11 +452,15 @@ def test_strimzi_topics_match_the_settings():
 
 
 def test_dockerfile_installs_the_project_as_a_non_root_mapservice_image():
-    """The Dockerfile: python:3.11-slim, copies what `pip install .` needs, numeric non-root USER, mapservice."""
+    """The Dockerfile: the UI built by node, python:3.11-slim, what `pip install .` needs, non-root."""
     lines = [ln.strip() for ln in DOCKERFILE.read_text().splitlines()
              if ln.strip() and not ln.strip().startswith("#")]
     froms = [ln.split()[1] for ln in lines if ln.startswith("FROM ")]
-    assert froms and all(f == "python:3.11-slim" for f in froms), froms
+    assert froms[0].startswith("node:") and "FROM node:20-slim AS ui" in lines, froms
+    assert froms[1:] and all(f == "python:3.11-slim" for f in froms[1:]), froms
+    assert "RUN npm ci" in lines and "RUN npm run build" in lines
+    assert "COPY --from=ui /ui/dist /usr/share/mapservice/ui" in lines
+    assert "ENV MAPSERVICE_UI_DIR=/usr/share/mapservice/ui" in lines
     copied = set()
     for ln in lines:
         if ln.startswith("COPY ") and "--from=" not in ln:

@@ -111,6 +111,57 @@ def test_empty_appends_are_harmless(store) -> None:
     assert store.counts() == Counts(0, 0, 0, 0)
 
 
+# --- conflicts ----------------------------------------------------------------------------
+
+
+def _conflict(t0: int, dt: int, robot_a: str = "a", robot_b: str = "b", dt_a: int = 0,
+              row: int = 1, column: int = 2, ha: str = "11" * 16, hb: str = "22" * 16):
+    from mapservice.ports import ConflictRow
+    return ConflictRow(row, column, t0 + dt, robot_a, t0 + dt_a, ha, robot_b, hb)
+
+
+def test_conflicts_window_order_and_idempotence(store, t0) -> None:
+    """conflicts(from, to) holds from <= ts < to in identity order; a repeat adds no row."""
+    rows = [_conflict(t0, 2000, "c", "d"), _conflict(t0, 1000), _conflict(t0, 1000, row=0),
+            _conflict(t0, 5000)]
+    store.append_conflicts(rows)
+    store.append_conflicts(rows[:2])
+    store.append_conflicts([])
+    got = store.conflicts(t0, t0 + 5000)
+    assert [(c.ts_ms - t0, c.row, c.robot_a) for c in got] == [(1000, 0, "a"), (1000, 1, "a"),
+                                                               (2000, 1, "c")]
+    assert got[1] == rows[1]
+    assert len(store.conflicts(t0, t0 + 6000, limit=2)) == 2
+
+
+def test_conflict_identity_keeps_the_later_a(store, t0) -> None:
+    """Two rows with one identity keep the one naming the later A, whatever the insert order."""
+    later = _conflict(t0, 1000, dt_a=900, ha="33" * 16)
+    store.append_conflicts([later])
+    store.append_conflicts([_conflict(t0, 1000, dt_a=500)])
+    assert store.conflicts(t0, t0 + 2000) == [later]
+
+
+def test_conflict_counts_per_bucket(store, t0) -> None:
+    """conflict_counts counts each identity once per bucket, keyed by the bucket start."""
+    store.append_conflicts([_conflict(t0, 0), _conflict(t0, 999, row=3), _conflict(t0, 2500)])
+    store.append_conflicts([_conflict(t0, 0)])
+    assert store.conflict_counts(t0, t0 + 3000, 1000) == {t0: 2, t0 + 2000: 1}
+    assert store.conflict_counts(t0 + 1, t0 + 3000, 1000) == {t0 + 1: 1, t0 + 2001: 1}
+
+
+def test_chunk_writes_near_filters_chunks_and_closed_window(store, ev, t0) -> None:
+    """chunk_writes_near returns writes on the named chunks with from <= t <= to, in time order."""
+    store.append([ev.chunk("r1", t0, 1, 2), ev.chunk("r2", t0 + 1000, 1, 2),
+                  ev.chunk("r1", t0 + 500, 2, 1), ev.chunk("r3", t0 + 2000, 3, 3),
+                  ev.chunk("r1", t0 + 3000, 1, 2)])
+    rows = store.chunk_writes_near([(1, 2), (3, 3)], t0, t0 + 2000)
+    assert [(r.robot_id, r.ts_ms - t0, r.row, r.column) for r in rows] == [
+        ("r1", 0, 1, 2), ("r2", 1000, 1, 2), ("r3", 2000, 3, 3)]
+    assert rows[0].content_hash == store.chunk_events(t0, t0 + 1)[0].content_hash
+    assert store.chunk_writes_near([], t0, t0 + 5000) == []
+
+
 # --- windows, order, filters -------------------------------------------------------------
 
 
@@ -338,3 +389,222 @@ def test_clickhouse_store_reopens_with_its_data(chdb_dir, ev, t0) -> None:
     finally:
         again.close()
     assert os.path.isdir(chdb_dir)
+
+
+# --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
+
+from mapservice.legacy_query import parse_chunk_query, parse_pose_query
+
+
+def _legacy_history(ev, t0):
+    """Chunk writes and poses spread over two days, with ties in time, row and robot."""
+    day = 86_400_000
+    return [
+        ev.chunk("r1", t0, 0, 0), ev.chunk("r2", t0, 0, 0), ev.chunk("r1", t0 + 1000, 0, 1),
+        ev.chunk("r2", t0 + 2000, 1, 0, bytes([1]) * 10_000), ev.chunk("r1", t0 - 2 * 3_600_000, 1, 1),
+        ev.chunk("r3", t0 - day - 5, 2, 0), ev.chunk("r1", t0 + 3000, 0, 0),
+        ev.pose("r1", t0), ev.pose("r2", t0), ev.pose("r1", t0 + 1000), ev.pose("r2", t0 + 2000),
+        ev.pose("r3", t0 - 2 * 3_600_000), ev.pose("r3", t0 - day - 5), ev.pose("r1", t0 + 3000),
+    ]
+
+
+def _chunk_keys(rows, t0):
+    return [(r.ts_ms - t0, r.row, r.column, r.robot_id) for r in rows]
+
+
+def test_list_chunks_default_is_newest_first_ten(store, ev, t0) -> None:
+    """No parameters: the ten newest writes, newest first, ties by row, column, robot."""
+    store.append(_legacy_history(ev, t0))
+    rows = store.list_chunks(parse_chunk_query({}))
+    assert _chunk_keys(rows, t0)[:5] == [(3000, 0, 0, "r1"), (2000, 1, 0, "r2"),
+                                          (1000, 0, 1, "r1"), (0, 0, 0, "r1"), (0, 0, 0, "r2")]
+    assert len(rows) == 7 and rows[0].content_hash == content_hash(bytes(10_000)).hex()
+
+
+def test_list_chunks_filters(store, ev, t0) -> None:
+    """row, column, robotId, timestamp, updatedSince (inclusive), updatedBefore (exclusive)."""
+    store.append(_legacy_history(ev, t0))
+
+    def keys(**params):
+        return _chunk_keys(store.list_chunks(parse_chunk_query(
+            {k: str(v) for k, v in params.items()})), t0)
+
+    assert keys(row=1) == [(2000, 1, 0, "r2"), (-7_200_000, 1, 1, "r1")]
+    assert keys(column=1) == [(1000, 0, 1, "r1"), (-7_200_000, 1, 1, "r1")]
+    assert keys(row=0, column=0, robotId="r2") == [(0, 0, 0, "r2")]
+    assert keys(timestamp=t0) == [(0, 0, 0, "r1"), (0, 0, 0, "r2")]
+    assert keys(updatedSince=t0 + 1000) == [(3000, 0, 0, "r1"), (2000, 1, 0, "r2"),
+                                            (1000, 0, 1, "r1")]
+    assert keys(updatedSince=t0, updatedBefore=t0 + 1000) == [(0, 0, 0, "r1"), (0, 0, 0, "r2")]
+
+
+def test_list_chunks_sort_skip_limit(store, ev, t0) -> None:
+    """sort orders by the whitelisted fields; skip and limit page through the result."""
+    store.append(_legacy_history(ev, t0))
+
+    def keys(**params):
+        return _chunk_keys(store.list_chunks(parse_chunk_query(params)), t0)
+
+    assert keys(sort="timestamp:asc", limit="2") == [(-86_400_005, 2, 0, "r3"),
+                                                     (-7_200_000, 1, 1, "r1")]
+    assert keys(sort="row:desc,column:asc", limit="3") == [(-86_400_005, 2, 0, "r3"),
+                                                            (2000, 1, 0, "r2"),
+                                                            (-7_200_000, 1, 1, "r1")]
+    assert keys(sort="robotId:desc", limit="1") == [(-86_400_005, 2, 0, "r3")]
+    assert keys(skip="1", limit="2") == [(2000, 1, 0, "r2"), (1000, 0, 1, "r1")]
+    assert keys(limit="0") == []
+
+
+def test_list_poses_filters_sort_and_page(store, ev, t0) -> None:
+    """robotId, timestamp, updatedSince/Before, sort, skip and limit on poses."""
+    store.append(_legacy_history(ev, t0))
+
+    def keys(**params):
+        rows = store.list_poses(parse_pose_query({k: str(v) for k, v in params.items()}))
+        return [(r.ts_ms - t0, r.robot_id) for r in rows]
+
+    assert keys() == [(3000, "r1"), (2000, "r2"), (1000, "r1"), (0, "r1"), (0, "r2"),
+                      (-7_200_000, "r3"), (-86_400_005, "r3")]
+    assert keys(robotId="r3") == [(-7_200_000, "r3"), (-86_400_005, "r3")]
+    assert keys(timestamp=t0) == [(0, "r1"), (0, "r2")]
+    assert keys(updatedSince=t0 + 1000, updatedBefore=t0 + 3000) == [(2000, "r2"), (1000, "r1")]
+    assert keys(sort="robotId:desc,timestamp:asc", limit=3) == [
+        (-86_400_005, "r3"), (-7_200_000, "r3"), (0, "r2")]
+    assert keys(skip=5, limit=5) == [(-7_200_000, "r3"), (-86_400_005, "r3")]
+
+
+@pytest.mark.parametrize("params", [
+    {}, {"limit": "1"}, {"limit": "3", "skip": "2"}, {"sort": "timestamp:asc"},
+    {"updatedBefore": "T+1500"}, {"updatedBefore": "T+1500", "limit": "4"},
+    {"sort": "column:desc,row:asc,timestamp:asc"}, {"robotId": "r1", "sort": "row:asc"},
+    {"limit": "10000"},
+])
+def test_adapters_agree_on_legacy_queries(chdb_dir, ev, t0, params) -> None:
+    """ClickHouse answers every 2019 query exactly as the in-memory fold does."""
+    params = {k: str(t0 + int(v[2:])) if v.startswith("T+") else v for k, v in params.items()}
+    memory, clickhouse = MemoryStore(), _clickhouse(chdb_dir)
+    try:
+        for s in (memory, clickhouse):
+            s.migrate()
+            s.append(_legacy_history(ev, t0))
+        assert clickhouse.list_chunks(parse_chunk_query(params)) == \
+            memory.list_chunks(parse_chunk_query(params))
+        pose_params = {k: v for k, v in params.items() if "row" not in v and "column" not in v}
+        assert clickhouse.list_poses(parse_pose_query(pose_params)) == \
+            memory.list_poses(parse_pose_query(pose_params))
+    finally:
+        clickhouse.close()
+
+
+def test_delete_chunks_empties_history_and_map(store, ev, t0) -> None:
+    """delete_chunks removes every write, snapshot and conflict, keeps poses, counts what went."""
+    from mapservice.ports import ConflictRow
+
+    store.append(_legacy_history(ev, t0))
+    store.append_conflicts([ConflictRow(0, 0, t0, "r2", t0, "00" * 16, "r1", "11" * 16)])
+    assert len(store.conflicts(t0 - 1, t0 + 1)) == 1
+    store.build_snapshots(t0 + 10_000)
+    assert len(store.map_at(t0 + 10_000)) == 5
+    assert store.delete_chunks() == 7
+    assert store.list_chunks(parse_chunk_query({})) == []
+    assert store.map_at(t0 + 10_000) == [] and store.chunk_events(t0 - 10**9, t0 + 10**6) == []
+    assert store.counts().poses == 7 and store.conflicts(t0 - 1, t0 + 1) == []
+    store.append([ev.chunk("r9", t0 + 5000, 4, 4)])  # writes after a delete are kept
+    assert [(c.row, c.column) for c in store.map_at(t0 + 10_000)] == [(4, 4)]
+
+
+def test_delete_meta_removes_every_meta(store, ev, t0) -> None:
+    """delete_meta removes the stored metas: latest_meta is None until a new one is set."""
+    store.append([ev.meta(t0), ev.meta(t0 + 1)])
+    assert store.delete_meta() == 2
+    assert store.latest_meta() is None
+    store.append([ev.meta(t0 + 2, chunk_rows=7)])
+    assert store.latest_meta().chunk_rows == 7
+
+
+# --- time-travel replay reads: timeline, robot_known, keyframe downsampling --------------
+
+
+@pytest.fixture
+def m0(t0) -> int:
+    """A whole minute about an hour ago (keyframes are per minute)."""
+    return t0 // 60_000 * 60_000
+
+
+def test_timeline_counts_chunks_conflicts_and_robots(store, ev, m0) -> None:
+    """timeline() gives every bucket, empty ones too, for whole-minute and odd buckets alike."""
+    from mapservice.ports import ConflictRow, TimelineBucket
+
+    store.append([ev.pose("r1", m0 + 1000), ev.pose("r2", m0 + 59_999), ev.pose("r1", m0 + 61_000),
+                  ev.pose("r3", m0 + 179_000), ev.pose("r3", m0 + 181_000),
+                  ev.chunk("r1", m0, 0, 0), ev.chunk("r2", m0 + 500, 0, 1),
+                  ev.chunk("r1", m0 + 125_000, 0, 0), ev.chunk("r1", m0 + 180_000, 0, 0)])
+    store.append([ev.pose("r1", m0 + 1000)])  # a duplicate counts once
+    store.append_conflicts([ConflictRow(0, 1, m0 + 500, "r1", m0, "00" * 16, "r2", "11" * 16)])
+    assert store.timeline(m0, m0 + 180_000, 3) == [
+        TimelineBucket(m0, 2, 1, 2), TimelineBucket(m0 + 60_000, 0, 0, 1),
+        TimelineBucket(m0 + 120_000, 1, 0, 1)]
+    # 1,000 ms buckets starting off the minute: answered from every pose.
+    assert store.timeline(m0 + 59_000, m0 + 62_000, 3) == [
+        TimelineBucket(m0 + 59_000, 0, 0, 1), TimelineBucket(m0 + 60_000, 0, 0, 0),
+        TimelineBucket(m0 + 61_000, 0, 0, 1)]
+    assert store.timeline(m0, m0, 5) == []
+
+
+def test_robot_known(store, ev, t0) -> None:
+    """robot_known() is true once a robot has a pose, false for one that never reported."""
+    assert not store.robot_known("r1")
+    store.append([ev.pose("r1", t0), ev.chunk("r2", t0)])
+    assert store.robot_known("r1") and not store.robot_known("r2")
+
+
+def test_whole_minute_downsampling_matches_every_pose(chdb_dir, ev, m0) -> None:
+    """Downsampling from keyframes (whole-minute start and step, or steps of 10 min or more
+    from any start) equals the memory fold, with late, out-of-order and rewritten poses and
+    windows ending mid-minute."""
+    rng = np.random.default_rng(3)
+    times = sorted({int(t) for t in rng.integers(0, 10 * 60_000, 300)} | {12_345, 59_999, 60_000})
+    batches = [[ev.pose(f"r{int(rng.integers(0, 3))}", m0 + t, x=float(i % 7))
+                for i, t in enumerate(times[k::4])] for k in range(4)]
+    # Late: an earlier pose of a minute that already has a keyframe; and a rewrite.
+    late = [ev.pose("r0", m0 + 120_000, x=42.0), ev.pose("r1", m0 + times[0], x=-1.0)]
+    memory, clickhouse = MemoryStore(), _clickhouse(chdb_dir)
+    try:
+        for s in (memory, clickhouse):
+            s.migrate()
+            for batch in batches:
+                s.append(batch)
+            s.append(late)
+        for f, t, step in [(m0, m0 + 600_000, 60_000), (m0, m0 + 600_000, 180_000),
+                           (m0 + 60_000, m0 + 290_500, 120_000), (m0, m0 + 600_000, 600_000),
+                           # off the minute, steps of >= 10 min: keyframes plus raw heads
+                           (m0 + 12_345, m0 + 600_000, 600_000), (m0 - 7, m0 + 599_000, 650_001),
+                           (m0 + 59_999, m0 + 600_000, 777_777)]:
+            want = memory.poses_downsampled(f, t, step)
+            assert clickhouse.poses_downsampled(f, t, step) == want
+            assert (clickhouse.poses_downsampled(f, t, step, robot_id="r1")
+                    == memory.poses_downsampled(f, t, step, robot_id="r1"))
+        assert any(p.x == 42.0 for p in clickhouse.poses_downsampled(m0, m0 + 600_000, 60_000))
+        assert clickhouse.timeline(m0, m0 + 600_000, 10) == memory.timeline(m0, m0 + 600_000, 10)
+    finally:
+        clickhouse.close()
+
+
+def test_clickhouse_migration_v4_runs_twice_and_sorts_poses_by_time(chdb_dir, ev, t0) -> None:
+    """Schema v4 re-sorts poses by (ts, robot_id) keeping every row; run again it changes
+    nothing and the keyframe view still follows inserts."""
+    store = _clickhouse(chdb_dir)
+    try:
+        store.migrate()
+        store.append([ev.pose("r1", t0), ev.pose("r2", t0 + 1)])
+        db, c = store.database, store.client
+        c.command(f"DELETE FROM {db}.schema_migrations WHERE version = 4")
+        assert store.migrate() == SCHEMA_VERSION
+        (key,), = c.query("SELECT sorting_key FROM system.tables WHERE database = {d:String} "
+                          "AND name = 'poses'", parameters={"d": db}).result_rows
+        assert key == "ts, robot_id"
+        store.append([ev.pose("r3", t0 + 2)])
+        assert [p.robot_id for p in store.poses(t0, t0 + 10)] == ["r1", "r2", "r3"]
+        assert all(store.robot_known(r) for r in ("r1", "r2", "r3"))
+    finally:
+        store.close()

@@ -1,0 +1,321 @@
+"""The 2019 chunk service (appendix A.1), path for path, so 2019 robots work unchanged.
+
+Writes become events on Kafka, validated by the same rules as MQTT (`wire2019`), and are
+readable once the processors stored them; reads come from the history. Semantics of
+every parameter: `mapservice/legacy_query.py` and docs/contract-2019.md.
+"""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import Sequence
+
+import msgspec
+import structlog
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel
+
+from mapservice.events import MapMetaSet, make_envelope
+from mapservice.legacy_query import (
+    MAX_LIMIT,
+    ChunkQuery,
+    QueryError,
+    chunk_id,
+    latest_instant,
+    parse_chunk_id,
+    parse_chunk_query,
+    select,
+)
+from mapservice.ports import Clock, EventPublisher, HistoryStore
+from mapservice.render import chunk_pixels, png
+from mapservice.settings import Settings
+from mapservice.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
+
+from ..admin import require_admin
+from ..deps import get_clock, get_settings, get_store
+from ..publishing import get_publisher, publish_and_wait
+
+router = APIRouter(prefix="/api/chunk-service", tags=["2019 chunk service"])
+log = structlog.get_logger(__name__)
+META_ROBOT_ID = "api"  # the 2019 POST /meta names no robot
+
+
+class LegacyChunk(BaseModel):
+    """Listing 12/13; `chunk` and `type` are left out when `reduced=true`."""
+
+    row: int
+    column: int
+    timestamp: str
+    chunk: str | None = None
+    type: str | None = None
+    id: str
+    robotId: str
+
+
+class MetaDoc(msgspec.Struct):
+    """meta.json (listing 8/9) as a robot posts it; ROS resolution/origin are optional."""
+
+    width: int
+    height: int
+    CHUNK_WIDTH: int
+    CHUNK_HEIGHT: int
+    CHUNK_ROWS: int
+    CHUNK_COLS: int
+    comment: str = ""
+    max_brightness: str | int = "255"
+    resolution: float | None = None
+    origin: list[float] | None = None
+
+
+_meta_decoder = msgspec.json.Decoder(MetaDoc)
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    """The request body, refused with 413 past `limit` bytes before it is all in memory."""
+    body = bytearray()
+    async for part in request.stream():
+        body += part
+        if len(body) > limit:
+            raise HTTPException(413, f"oversized: the body exceeds the {limit}-byte limit "
+                                     "(MAPSERVICE_MAX_MESSAGE_BYTES)")
+    return bytes(body)
+
+
+def _index_response(index: str, doc_type: str, doc_id: str) -> dict:
+    # forced_refresh is false: the write is durable on Kafka, readable once stored.
+    return {"_index": index, "_type": doc_type, "_id": doc_id, "_version": 1,
+            "result": "created", "forced_refresh": False,
+            "_shards": {"total": 2, "successful": 1, "failed": 0},
+            "_seq_no": 0, "_primary_term": 1}
+
+
+# --- meta ------------------------------------------------------------------------------
+
+
+@router.get("/meta", operation_id="getLegacyMeta",
+            responses={404: {"description": "no meta stored yet: POST one"}})
+def get_meta(store: HistoryStore = Depends(get_store)) -> dict:
+    """The stored meta.json (listing 9)."""
+    meta = store.latest_meta()
+    if meta is None:
+        raise HTTPException(404, "no map meta stored yet; POST /api/chunk-service/meta")
+    return meta.to_2019()
+
+
+def parse_meta(body: bytes) -> MapMetaSet:
+    """meta.json to a MapMetaSet, or a 400 that says what is wrong."""
+    try:
+        doc = _meta_decoder.decode(body)
+    except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+        raise HTTPException(400, f"meta.json: {exc}") from None
+    sizes = {"width": doc.width, "height": doc.height, "CHUNK_WIDTH": doc.CHUNK_WIDTH,
+             "CHUNK_HEIGHT": doc.CHUNK_HEIGHT, "CHUNK_ROWS": doc.CHUNK_ROWS,
+             "CHUNK_COLS": doc.CHUNK_COLS}
+    for name, value in sizes.items():
+        high = 4096 if name in ("CHUNK_WIDTH", "CHUNK_HEIGHT") else 65_535
+        if not 1 <= value <= high:
+            raise HTTPException(400, f"meta.json: {name} = {value} is outside 1..{high}")
+    if doc.CHUNK_COLS * doc.CHUNK_WIDTH < doc.width or doc.CHUNK_ROWS * doc.CHUNK_HEIGHT < doc.height:
+        raise HTTPException(400, f"meta.json: {doc.CHUNK_ROWS} x {doc.CHUNK_COLS} chunks of "
+                                 f"{doc.CHUNK_WIDTH} x {doc.CHUNK_HEIGHT} do not cover "
+                                 f"{doc.width} x {doc.height} pixels")
+    if doc.origin is not None and len(doc.origin) != 3:
+        raise HTTPException(400, "meta.json: origin must be [x, y, yaw]")
+    return MapMetaSet.from_2019(msgspec.to_builtins(doc))
+
+
+_META_BODY = {"requestBody": {"required": True, "content": {"application/json": {
+    "example": {"comment": "# CREATOR: GIMP PNM Filter Version 1.1", "width": 4800,
+                "height": 3200, "max_brightness": "255", "CHUNK_WIDTH": 100,
+                "CHUNK_HEIGHT": 100, "CHUNK_ROWS": 32, "CHUNK_COLS": 48}}}}}
+
+
+# Section A.1.1 says robots "POSTS/PUTS" their meta.json: both are accepted.
+@router.put("/meta", operation_id="putLegacyMeta", openapi_extra=_META_BODY)
+@router.post("/meta", operation_id="postLegacyMeta", openapi_extra=_META_BODY)
+async def post_meta(
+    request: Request,
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+    publisher: EventPublisher = Depends(get_publisher),
+) -> dict:
+    """Stores meta.json through the event path (a map.meta_set event on Kafka); the
+    gateway validates chunks against it as soon as it has read it."""
+    meta = parse_meta(await _read_body(request, settings.max_message_bytes))
+    now = clock.now_ms()
+    envelope = make_envelope(META_ROBOT_ID, now, now, meta)
+    await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
+    request.app.state.posted_meta = (now, meta)
+    log.info("map meta posted", rows=meta.chunk_rows, cols=meta.chunk_cols,
+             chunk_width=meta.chunk_width, chunk_height=meta.chunk_height)
+    return _index_response("meta", "meta", "meta")
+
+
+@router.delete("/meta", operation_id="deleteLegacyMeta")
+def delete_meta(
+    caller: str = Depends(require_admin),
+    store: HistoryStore = Depends(get_store),
+) -> dict:
+    """Administrative: deletes the stored meta (needs the admin bearer token)."""
+    removed = store.delete_meta()
+    log.warning("map meta deleted by administrator", caller=caller, removed=removed)
+    return {"acknowledged": True, "deleted": removed}
+
+
+# --- chunks ----------------------------------------------------------------------------
+
+
+POSTED_META_GRACE_MS = 60_000
+
+
+def _meta_for_validation(request: Request, store: HistoryStore, now_ms: int) -> MapMetaSet | None:
+    """The stored meta, or one this API instance has just published and the processors
+    have not stored yet: a robot POSTs its meta and then its chunks at once (A.1.1)."""
+    stored = store.latest_meta()
+    posted_at, posted = getattr(request.app.state, "posted_meta", None) or (None, None)
+    if posted is None or stored == posted or now_ms - posted_at > POSTED_META_GRACE_MS:
+        return stored
+    return posted
+
+
+def _limits(settings: Settings, meta: MapMetaSet | None) -> Limits:
+    limits = Limits(chunk_width=settings.chunk_width, chunk_height=settings.chunk_height,
+                    chunk_rows=settings.max_grid, chunk_cols=settings.max_grid,
+                    max_message_bytes=settings.max_message_bytes,
+                    max_future_skew_ms=int(settings.max_future_skew_s * 1000),
+                    retention_ms=settings.retention_ms)
+    return limits.with_meta(meta) if meta is not None else limits
+
+
+@router.post("/chunks", operation_id="postLegacyChunk",
+             openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
+                 "example": {"pgmB64compressedData": "eNrt1rERwyAQRUG36HLcjlukABzIAbKPSAcDmt...",
+                             "row": 3, "column": 2, "timestamp": "2018-12-20T23:34:33",
+                             "robotId": "lkjlkj"}}}}})
+async def post_chunk(
+    request: Request,
+    settings: Settings = Depends(get_settings),
+    store: HistoryStore = Depends(get_store),
+    clock: Clock = Depends(get_clock),
+    publisher: EventPublisher = Depends(get_publisher),
+) -> dict:
+    """Listing 10 in, listing 11 out: validated exactly like an MQTT iot/chunks/create
+    message and written to Kafka like one."""
+    body = await _read_body(request, settings.max_message_bytes)
+    now = clock.now_ms()
+    meta = await run_in_threadpool(_meta_for_validation, request, store, now)
+    result = decode_chunk_create(body, now, _limits(settings, meta))
+    if isinstance(result, Rejection):
+        raise HTTPException(400, f"{result.reason.value}: {result.detail}")
+    await run_in_threadpool(publish_and_wait, publisher, settings, result)
+    payload = result.payload
+    return _index_response("chunks", "chunk", chunk_id(
+        payload.row, payload.column, format_timestamp(result.event_time_ms)))
+
+
+def _render(rows: Sequence, query: ChunkQuery, store: HistoryStore) -> list[dict]:
+    contents = {} if query.reduced else store.chunk_contents(
+        [bytes.fromhex(r.content_hash) for r in rows])
+    out = []
+    for r in rows:
+        ts = format_timestamp(r.ts_ms)
+        doc: dict = {"row": r.row, "column": r.column, "timestamp": ts}
+        if not query.reduced:
+            found = contents.get(bytes.fromhex(r.content_hash))
+            if found is None:
+                chunk = None
+            elif query.type == "png":
+                chunk = base64.b64encode(png(chunk_pixels(*found))).decode()
+            else:
+                chunk = base64.b64encode(found[2]).decode()
+            doc["chunk"], doc["type"] = chunk, query.type
+        doc["id"] = chunk_id(r.row, r.column, ts)
+        doc["robotId"] = r.robot_id
+        out.append(doc)
+    return out
+
+
+def _query_params(request: Request) -> dict[str, str]:
+    return dict(request.query_params)
+
+
+@router.get("/chunks", operation_id="listLegacyChunks",
+            responses={200: {"model": list[LegacyChunk]}, 400: {"description": "malformed parameter"}})
+def list_chunks(
+    request: Request,
+    row: str | None = Query(None, description="chunk row (number)"),
+    column: str | None = Query(None, description="chunk column (number)"),
+    timestamp: str | None = Query(None, description="exact write time (UTC ISO or epoch ms)"),
+    updatedSince: str | None = Query(None, description="writes at or after this time"),
+    updatedBefore: str | None = Query(None, description="writes before this time; with "
+                                      "latest=true: the complete map at this time"),
+    sort: str | None = Query(None, description="field:asc|desc[,...] of timestamp, row, "
+                             "column, robotId; default timestamp:desc"),
+    latest: str | None = Query(None, description="only each chunk's newest write (default false)"),
+    reduced: str | None = Query(None, description="leave out chunk and type (default false)"),
+    type: str | None = Query(None, description="pgm_base64_compressed (default) or png"),
+    limit: str | None = Query(None, description=f"default 10, at most {MAX_LIMIT}"),
+    skip: str | None = Query(None, description="default 0; skip + limit at most 10000"),
+    robotId: str | None = Query(None),
+    store: HistoryStore = Depends(get_store),
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+) -> JSONResponse:
+    """Listing 12: chunk writes; `latest=true&updatedBefore=T` is the map at T, read from
+    the nearest snapshot plus the events after it."""
+    try:
+        query = parse_chunk_query(_query_params(request))
+    except QueryError as exc:
+        raise HTTPException(400, str(exc)) from None
+    if query.latest:
+        now = clock.now_ms() + int(settings.max_future_skew_s * 1000)
+        rows = select(store.map_at(latest_instant(query, now)), query, ignore_time=True)
+    else:
+        rows = store.list_chunks(query)
+    return JSONResponse(_render(rows, query, store))
+
+
+@router.delete("/chunks", operation_id="deleteLegacyChunks")
+def delete_chunks(
+    caller: str = Depends(require_admin),
+    store: HistoryStore = Depends(get_store),
+) -> dict:
+    """Administrative: deletes every stored chunk write (needs the admin bearer token)."""
+    removed = store.delete_chunks()
+    log.warning("chunk history deleted by administrator", caller=caller, removed=removed)
+    return {"acknowledged": True, "deleted": removed}
+
+
+def _chunk_by_id(chunk_id_: str, store: HistoryStore):
+    try:
+        row, column, ts_ms = parse_chunk_id(chunk_id_)
+    except QueryError as exc:
+        raise HTTPException(404, f"no chunk with id {chunk_id_[:120]!r}: {exc}") from None
+    # Two robots writing one chunk at one instant: the 2019 id names both; the map's rule
+    # (greatest robot id wins) picks the one to return.
+    found = store.list_chunks(ChunkQuery(row=row, column=column, timestamp_ms=ts_ms,
+                                         sort=(("robotId", "desc"),), limit=1))
+    if not found:
+        raise HTTPException(404, f"no chunk with id {chunk_id_[:120]!r}")
+    return found[0]
+
+
+@router.get("/chunks/id/{chunk_id}", operation_id="getLegacyChunk",
+            responses={200: {"model": LegacyChunk}, 404: {"description": "no such chunk"}})
+def get_chunk(chunk_id: str, store: HistoryStore = Depends(get_store)) -> JSONResponse:
+    """Listing 13: one chunk by the id POST /chunks answered with."""
+    row = _chunk_by_id(chunk_id, store)
+    return JSONResponse(_render([row], ChunkQuery(), store)[0])
+
+
+@router.get("/chunks/id/{chunk_id}/png", operation_id="getLegacyChunkPng",
+            responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such chunk"}})
+def get_chunk_png(chunk_id: str, store: HistoryStore = Depends(get_store)) -> Response:
+    """The chunk as a greyscale PNG."""
+    row = _chunk_by_id(chunk_id, store)
+    found = store.chunk_content(bytes.fromhex(row.content_hash))
+    if found is None:
+        raise HTTPException(404, f"chunk {chunk_id[:120]!r} has no stored pixels")
+    return Response(png(chunk_pixels(*found)), media_type="image/png")

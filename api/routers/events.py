@@ -1,0 +1,88 @@
+"""Replay windows: every chunk change in [from, to) and the poses, downsampled on request.
+
+A replay at speed S showing F frames a second asks for `step_ms` = S / F seconds of
+history (86400x at 10 frames/s: 8,640,000). Whole-minute `from` and `step_ms`, or any
+`from` with a step of 10 min or more, are answered from per-minute keyframes (schema v4:
+a day costs about as much as its frames); smaller odd steps from every pose. Both exact.
+"""
+
+from __future__ import annotations
+
+import msgspec
+from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from pydantic import BaseModel
+
+from mapservice.ports import Clock, HistoryStore
+from mapservice.settings import Settings
+from mapservice.wire2019 import format_timestamp
+
+from ..deps import get_clock, get_settings, get_store, window_in_retention
+from .chunk_events import ChunkEvent
+from .poses import Pose
+
+router = APIRouter(prefix="/api/v1/events", tags=["events"])
+MAX_SPAN_MS = 86_400_000
+MAX_CHUNKS = 1_000_000
+MAX_POSES = 200_000
+_encode = msgspec.json.Encoder().encode
+
+
+class Events(BaseModel):
+    from_ms: int
+    to_ms: int
+    step_ms: int
+    chunks: list[ChunkEvent]
+    poses: list[Pose]
+    truncated: bool
+
+
+def chunk_doc(r) -> dict:
+    return {"row": r.row, "column": r.column, "timestamp": format_timestamp(r.ts_ms),
+            "ts_ms": r.ts_ms, "receive_time_ms": r.receive_time_ms, "robotId": r.robot_id,
+            "content_hash": r.content_hash}
+
+
+def pose_doc(r) -> dict:
+    return {"robotId": r.robot_id, "timestamp": format_timestamp(r.ts_ms), "ts_ms": r.ts_ms,
+            "receive_time_ms": r.receive_time_ms, "position": (r.x, r.y, r.z),
+            "orientation": (r.qx, r.qy, r.qz, r.qw), "battery_level": r.battery_level,
+            "charging": r.charging, "loaded": r.loaded, "path": r.path}
+
+
+@router.get("", operation_id="listEvents", response_model=Events, description=(
+    "Chunk changes in [from, to) in event-time order, all of them, and poses: every pose, "
+    "or with step_ms > 0 each robot's first pose in every step [from + k*step_ms, ...). "
+    "`truncated` is true when the window held more than "
+    f"{MAX_CHUNKS:,} chunk changes or {MAX_POSES:,} poses: the answer then covers "
+    "[from, to_ms) completely; ask again from to_ms. At most 24 h per request."))
+def list_events(
+    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
+    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    step_ms: int = Query(0, description="0: every pose; > 0: at most one pose per robot per "
+                                        "step (whole minutes from a whole-minute 'from', or "
+                                        ">= 600000 from any 'from', are fastest)"),
+    store: HistoryStore = Depends(get_store),
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+) -> Response:
+    if step_ms < 0:
+        raise HTTPException(400, f"step_ms ({step_ms}) is negative; use 0 for every pose or "
+                                 "a positive step in milliseconds")
+    f, t = window_in_retention(from_, to, MAX_SPAN_MS, settings, clock.now_ms())
+    chunks = store.chunk_events(f, t, MAX_CHUNKS + 1)
+    poses = (store.poses_downsampled(f, t, step_ms, limit=MAX_POSES + 1) if step_ms > 0
+             else store.poses(f, t, limit=MAX_POSES + 1))
+    truncated = len(chunks) > MAX_CHUNKS or len(poses) > MAX_POSES
+    if truncated:
+        # Cut both before the first instant a list may hold only part of, so that
+        # [from, cut) is complete and the next request (from = cut) repeats nothing.
+        cut = min(rows[-1].ts_ms for rows, cap in ((chunks, MAX_CHUNKS), (poses, MAX_POSES))
+                  if len(rows) > cap)
+        chunks = [r for r in chunks if r.ts_ms < cut]
+        poses = [r for r in poses if r.ts_ms < cut]
+        t = cut
+    body = {"from_ms": f, "to_ms": t, "step_ms": step_ms, "truncated": truncated,
+            "chunks": [chunk_doc(r) for r in chunks], "poses": [pose_doc(r) for r in poses]}
+    # Encoded directly: a day of a fleet is hundreds of thousands of objects, too many to
+    # validate one by one (the response model documents the same shape).
+    return Response(_encode(body), media_type="application/json")

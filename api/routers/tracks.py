@@ -1,0 +1,62 @@
+"""A robot's track over a window: where it was (x, y, heading) and its battery."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, HTTPException, Path, Query
+from pydantic import BaseModel
+
+from mapservice.ports import Clock, HistoryStore
+from mapservice.settings import Settings
+from mapservice.timetravel import yaw
+
+from ..deps import get_clock, get_settings, get_store, window_in_retention
+
+router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
+MAX_POINTS = 100_000
+MAX_SPAN_EVERY_POSE_MS = 86_400_000
+
+
+class TrackPoint(BaseModel):
+    ts_ms: int
+    x: float
+    y: float
+    yaw: float  # radians, counter-clockwise from +x, from the pose's quaternion
+    battery_level: float | None
+
+
+class Track(BaseModel):
+    robotId: str
+    from_ms: int
+    to_ms: int
+    points: list[TrackPoint]
+
+
+@router.get("/{robot_id}/track", operation_id="getRobotTrack", response_model=Track,
+            description="The robot's poses in [from, to): every one (windows up to 24 h), or "
+                        f"with step_ms > 0 its first in every step (at most {MAX_POINTS:,} points, "
+                        "windows up to the retention). 404 if the robot never reported.")
+def get_robot_track(
+    robot_id: str = Path(..., max_length=64),
+    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
+    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    step_ms: int = Query(0, description="0: every pose; > 0: at most one point per step"),
+    store: HistoryStore = Depends(get_store),
+    settings: Settings = Depends(get_settings),
+    clock: Clock = Depends(get_clock),
+) -> Track:
+    if step_ms < 0:
+        raise HTTPException(400, f"step_ms ({step_ms}) is negative; use 0 for every pose or "
+                                 "a positive step in milliseconds")
+    span = MAX_SPAN_EVERY_POSE_MS if step_ms == 0 else settings.retention_ms
+    f, t = window_in_retention(from_, to, span, settings, clock.now_ms())
+    if step_ms and (t - f) // step_ms > MAX_POINTS:
+        raise HTTPException(400, f"{(t - f) // step_ms:,} steps of {step_ms} ms is more than "
+                                 f"{MAX_POINTS:,}; use step_ms >= {-(-(t - f) // MAX_POINTS)}")
+    rows = (store.poses_downsampled(f, t, step_ms, robot_id, limit=MAX_POINTS + 1) if step_ms
+            else store.poses(f, t, robot_id, limit=MAX_POINTS + 1))
+    if not rows and not store.robot_known(robot_id):
+        raise HTTPException(404, f"robot {robot_id!r} has no pose in the history; "
+                                 "GET /api/v1/robots lists the robots")
+    return Track(robotId=robot_id, from_ms=f, to_ms=t, points=[
+        TrackPoint(ts_ms=r.ts_ms, x=r.x, y=r.y, yaw=yaw(r.qx, r.qy, r.qz, r.qw),
+                   battery_level=r.battery_level) for r in rows[:MAX_POINTS]])

@@ -1,0 +1,178 @@
+"""`mapservice bench ui`: the replay UI measured in headless Chromium (Debian's, via Playwright).
+
+Two histories are loaded with the bulk loader into embedded ClickHouse and served by the
+API in this process (uvicorn in a thread; no brokers needed for replay):
+
+- seek: `--days` of `--robots` robots; the page seeks to `--seeks` random instants and the
+  time from the seek to the first complete frame (map and robots at T loaded, every
+  chunk picture of the map drawn) is read from the page (`window.__replay.seekTimes`).
+  The first seek (cold picture cache) is reported apart.
+- frames: `--frame-minutes` of `--frame-robots` robots; the page plays at 8x for
+  `--play-seconds` and reports the script time of each animation frame (engine step,
+  chunk drawing, robot markers) and the interval between frames.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import shutil
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+DAY_MS = 86_400_000
+DIST = Path(__file__).resolve().parent.parent / "replay-ui" / "dist" / "index.html"
+
+
+def percentile(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    s = sorted(values)
+    return s[min(len(s) - 1, max(0, round(q / 100 * (len(s) - 1))))]
+
+
+class ApiThread:
+    """The API over one store, on a free port, in a daemon thread."""
+
+    def __init__(self, store, settings) -> None:
+        import uvicorn
+
+        from .api.app import create_app
+        from .embedded import free_port
+
+        self.port = free_port()
+        app = create_app(settings, store)
+        self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=self.port,
+                                                    log_level="warning"))
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> ApiThread:
+        self.thread.start()
+        deadline = time.monotonic() + 30
+        while not self.server.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(10)
+
+
+def load(path: Path, database: str, days: float, robots: int, end_ms: int):
+    """One chDB path per process: both histories share it, in two databases."""
+    from .adapters.clickhouse_store import ClickHouseStore
+    from .history_loader import DEFAULT_MAP, load_history
+    from .mapfile import load_ros_map
+
+    store = ClickHouseStore(f"chdb://{path}", database=database, snapshot_every_ms=600_000)
+    result = load_history(store, load_ros_map(DEFAULT_MAP), days=days, robots=robots,
+                          end_ms=end_ms, grid=(32, 48))
+    return store, result
+
+
+def browser_page(pw, url: str):
+    from .chromium import launch
+
+    browser = launch(pw)
+    page = browser.new_context(viewport={"width": 1280, "height": 800}).new_page()
+    page.goto(url)
+    page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=120_000)
+    return browser, page
+
+
+def seek_phase(pw, api_url: str, start_ms: int, end_ms: int, seeks: int, seed: int) -> dict:
+    rng = random.Random(seed)
+    browser, page = browser_page(pw, f"{api_url}/?t={end_ms - 60_000}")
+    try:
+        first = page.evaluate("() => window.__replay.seekTimes[0]")
+        times = []
+        for _ in range(seeks):
+            t = rng.randrange(start_ms + 60_000, end_ms - 60_000)
+            n = page.evaluate("() => window.__replay.seekTimes.length")
+            page.evaluate("(t) => window.__replay.seek(t)", t)
+            page.wait_for_function(f"() => window.__replay.seekTimes.length > {n}", timeout=120_000)
+            times.append(page.evaluate("() => window.__replay.seekTimes.at(-1)"))
+        images = page.evaluate("() => window.__replay.fetchedImages")
+        api_times = page.evaluate("() => window.__replay.seekApiTimes.slice(1)")
+    finally:
+        browser.close()
+    return {"first_seek_ms": first, "seeks": len(times), "p50_ms": percentile(times, 50),
+            "p95_ms": percentile(times, 95), "max_ms": max(times), "images_downloaded": images,
+            "api_part_p50_ms": percentile(api_times, 50), "api_part_p95_ms": percentile(api_times, 95)}
+
+
+def frame_phase(pw, api_url: str, start_ms: int, play_seconds: float) -> dict:
+    browser, page = browser_page(pw, f"{api_url}/?t={start_ms + 60_000}&speed=8")
+    try:
+        page.evaluate("() => { window.__replay.resetFrameStats(); window.__replay.play(8, 1); }")
+        time.sleep(play_seconds)
+        page.evaluate("() => window.__replay.pause()")
+        script = page.evaluate("() => window.__replay.frameTimes.slice()")
+        intervals = page.evaluate("() => window.__replay.frameIntervals.slice()")
+        robots = page.evaluate("() => window.__replay.robots().length")
+        applied = page.evaluate("() => window.__replay.log.length")
+    finally:
+        browser.close()
+    return {"frames": len(script), "robots_shown": robots, "writes_applied": applied,
+            "script_p50_ms": percentile(script, 50), "script_p95_ms": percentile(script, 95),
+            "interval_p50_ms": percentile(intervals, 50),
+            "interval_p95_ms": percentile(intervals, 95)}
+
+
+def main(args) -> None:
+    from playwright.sync_api import sync_playwright
+
+    from .settings import Settings
+
+    if not DIST.exists():
+        raise SystemExit("bench ui: the UI is not built; run `make ui` first")
+    tmp = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-ui-"))
+    end = time.time_ns() // 1_000_000 - 600_000
+    out: dict = {"days": args.days, "robots": args.robots, "frame_robots": args.frame_robots,
+                 "frame_minutes": args.frame_minutes}
+    stores = []
+    try:
+        with sync_playwright() as pw:
+            t0 = time.perf_counter()
+            store, result = load(tmp / "ch", "bench_seek", args.days, args.robots, end)
+            stores.append(store)
+            out["seek_history"] = {"poses": result.poses, "chunk_events": result.chunk_events,
+                                   "load_s": round(time.perf_counter() - t0, 1)}
+            settings = Settings(data_dir=tmp)
+            with ApiThread(store, settings) as api:
+                out["seek"] = seek_phase(pw, api.url, result.start_ms, result.end_ms,
+                                         args.seeks, args.seed)
+            print(json.dumps(out, indent=2), flush=True)
+            store, result = load(tmp / "ch", "bench_frames", args.frame_minutes / 1440,
+                                 args.frame_robots, end)
+            stores.append(store)
+            with ApiThread(store, settings) as api:
+                out["frames"] = frame_phase(pw, api.url, result.start_ms, args.play_seconds)
+    finally:
+        for store in reversed(stores):
+            store.close()
+        if not args.data_dir:
+            shutil.rmtree(tmp, ignore_errors=True)
+    print(json.dumps(out, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2))
+
+
+def add_parser(kinds) -> None:
+    p = kinds.add_parser("ui", help="the replay UI in headless Chromium: seek and frame times")
+    p.add_argument("--days", type=float, default=7.0, help="history for the seek measurement")
+    p.add_argument("--robots", type=int, default=20)
+    p.add_argument("--seeks", type=int, default=50)
+    p.add_argument("--frame-robots", type=int, default=200)
+    p.add_argument("--frame-minutes", type=float, default=30.0)
+    p.add_argument("--play-seconds", type=float, default=10.0)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    p.add_argument("--json", default=None, help="write the results as JSON to this file")
+    p.set_defaults(func=main)

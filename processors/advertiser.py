@@ -1,0 +1,102 @@
+"""Publishes the 2019 chunk advertisements over MQTT (paho, its own network thread).
+
+The sink must never wait for or fail because of MQTT: `publish` only queues (bounded),
+and a broker that is down, slow or refusing costs a logged, counted failure, not a stuck
+or crashed sink. Advertisements are hints (robots also download the whole map at start),
+so what is lost while the broker is away is not replayed.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import threading
+import time
+
+import msgspec
+import paho.mqtt.client as mqtt
+import structlog
+from prometheus_client import Counter
+
+from mapservice.mqtt import make_client, parse_mqtt_url
+from mapservice.settings import Settings
+
+log = structlog.get_logger(__name__)
+
+ADVERTISED = Counter("mapservice_advertisements_total",
+                     "Chunk advertisements handed to the MQTT client", ["result"])
+
+_json = msgspec.json.Encoder()
+
+
+class MqttAdvertiser:
+    """Constructing it does no I/O; `start()` connects in the background."""
+
+    def __init__(self, settings: Settings, *, qos: int = 1, max_queued: int = 10_000) -> None:
+        self.topic = settings.advertisement_topic
+        self.host, self.port, tls = parse_mqtt_url(settings.mqtt_url)
+        self.qos = qos
+        self.client = make_client(
+            f"mapservice-advertiser-{socket.gethostname()}-{os.getpid()}", clean_session=True,
+            username=settings.mqtt_username,
+            password=settings.mqtt_password.get_secret_value() if settings.mqtt_password else None,
+            tls=tls)
+        self.client.max_queued_messages_set(max_queued)
+        self.client.on_connect = self._on_connect
+        self.client.on_disconnect = self._on_disconnect
+        self.connected = threading.Event()
+        self._started = False
+        self.failures = 0
+        self._last_warning = -1e9
+
+    def start(self) -> None:
+        if self._started:
+            return
+        self._started = True
+        try:
+            self.client.connect_async(self.host, self.port, keepalive=30)
+            self.client.loop_start()  # reconnects by itself
+        except Exception as exc:  # a bad address must not stop the processors
+            log.error("advertiser could not start", error=str(exc), broker=f"{self.host}:{self.port}")
+
+    def publish(self, payload: dict) -> bool:
+        """Queues one advertisement; False (logged, counted) if it could not be queued."""
+        try:
+            rc = self.client.publish(self.topic, _json.encode(payload), qos=self.qos).rc
+            error = mqtt.error_string(rc)
+        except Exception as exc:  # never let MQTT trouble reach the sink
+            rc, error = -1, str(exc)
+        # Not connected yet (or reconnecting): paho keeps a QoS 1 message and sends it later.
+        offline = rc == mqtt.MQTT_ERR_NO_CONN and self.qos > 0
+        ok = rc == mqtt.MQTT_ERR_SUCCESS or offline
+        ADVERTISED.labels("queued_offline" if offline else "queued" if ok else "failed").inc()
+        if not ok:
+            self.failures += 1
+            now = time.monotonic()
+            if now - self._last_warning > 10:  # a broker outage must not flood the log
+                self._last_warning = now
+                log.warning("advertisement not published", error=error, topic=self.topic,
+                            failures=self.failures)
+        return ok
+
+    def stop(self) -> None:
+        if not self._started:
+            return
+        self._started = False
+        try:
+            self.client.disconnect()
+            self.client.loop_stop()
+        except Exception as exc:
+            log.warning("advertiser stop", error=str(exc))
+
+    def _on_connect(self, client, userdata, flags, reason_code, properties=None) -> None:
+        if reason_code.is_failure:
+            log.error("advertiser connection refused", reason=str(reason_code))
+            return
+        self.connected.set()
+        log.info("advertiser connected", broker=f"{self.host}:{self.port}", topic=self.topic)
+
+    def _on_disconnect(self, client, userdata, flags, reason_code, properties=None) -> None:
+        self.connected.clear()
+        if self._started:
+            log.warning("advertiser disconnected; paho reconnects", reason=str(reason_code))

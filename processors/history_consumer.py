@@ -1,0 +1,140 @@
+"""Moves the event topics into the history in batches, committing offsets after each insert.
+
+At-least-once: a batch's offsets are committed only after its events are in the history
+(and the live views and conflicts derived from them); a crash or rebalance before that
+re-delivers the batch, and the history's natural-identity keys absorb the repeat.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
+
+import mode
+import structlog
+from prometheus_client import Counter
+
+from mapservice.ports import EventSource, SourceRecord
+
+from .sink import split_events
+
+if TYPE_CHECKING:
+    from .app import HistorySink
+    from .views import LiveViews
+
+log = structlog.get_logger(__name__)
+
+COMMIT_FAILURES = Counter("mapservice_sink_commit_failures_total",
+                          "Batches stored but not committed (they will be re-delivered)")
+
+
+def _now_ms() -> int:
+    return time.time_ns() // 1_000_000
+
+
+async def store_values(sink: "HistorySink", views: "LiveViews | None", values: Sequence[bytes],
+                       topic: str, now_ms: int) -> None:
+    """Decodes, stores, and feeds the live stream and views; bad records become dead letters."""
+    good, bad = split_events(values, now_ms)
+    if good:
+        await sink.insert_until_done(sink.store.append, good, topic)
+        if sink.live is not None:
+            sink.live.publish(good)
+        if views is not None:
+            await views.on_stored(sink, good)  # conflicts, latest map, robots
+    if bad:
+        log.warning("undecodable records on an event topic", topic=topic, count=len(bad))
+        await sink.insert_until_done(sink.store.append_dead_letters, bad, topic)
+
+
+class HistoryConsumer:
+    """Owns one EventSource; every call to it runs on one thread of its own."""
+
+    def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
+                 batch_size: int, batch_seconds: float,
+                 now_ms: Callable[[], int] = _now_ms) -> None:
+        self.source = source
+        self.sink = sink
+        self.views = views
+        self.batch_size = batch_size
+        self.batch_seconds = batch_seconds
+        self.now_ms = now_ms
+        self.assigned = False  # set by the source's assignment callback (in its thread)
+        self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-consumer")
+
+    def on_assigned(self, partitions: list[tuple[str, int]]) -> None:
+        self.assigned = True
+
+    async def _call(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(self._thread, fn, *args)
+
+    async def start(self) -> None:
+        await self._call(self.source.start)
+
+    async def run_once(self) -> int:
+        """One batch: poll, store, commit. Returns how many records it handled."""
+        records: list[SourceRecord] = await self._call(
+            self.source.poll, self.batch_size, self.batch_seconds)
+        if self.assigned and self.views is not None:
+            # New partitions: rebuild the views from the history before their events
+            # (which may repeat what is stored) are applied.
+            self.assigned = False
+            self.views.loaded = False
+            try:
+                await self.sink.run(self.views.load)
+            except Exception as exc:  # on_stored rebuilds them before the next change
+                log.error("live views rebuild failed; retried with the next batch", error=str(exc))
+        if not records:
+            return 0
+        delay = 0.5
+        while True:
+            try:
+                await self._store(records)
+                break
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:
+                # Moving on would let the next commit cover this batch: retry it instead.
+                log.error("history batch failed, retrying", error=str(exc), records=len(records),
+                          retry_in=delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 10)
+        if not await self._call(self.source.commit, records):
+            COMMIT_FAILURES.inc()
+        return len(records)
+
+    async def _store(self, records: list[SourceRecord]) -> None:
+        by_topic: dict[str, list[bytes]] = {}
+        for r in records:
+            by_topic.setdefault(r.topic, []).append(r.value)
+        now = self.now_ms()
+        for topic, values in by_topic.items():
+            await store_values(self.sink, self.views, values, topic, now)
+
+    async def run(self, stopping: asyncio.Event) -> None:
+        await self.start()
+        try:
+            while not stopping.is_set():
+                await self.run_once()
+        finally:
+            await self._call(self.source.close)
+            self._thread.shutdown(wait=False)
+
+
+class HistoryConsumerService(mode.Service):
+    """Runs a HistoryConsumer for as long as the faust app runs."""
+
+    def __init__(self, consumer: HistoryConsumer, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.consumer = consumer
+        self._stopping = asyncio.Event()
+
+    @mode.Service.task
+    async def _consume(self) -> None:
+        await self.consumer.run(self._stopping)
+
+    async def on_stop(self) -> None:
+        self._stopping.set()

@@ -1,0 +1,229 @@
+"""The processors' live views: the latest map (advertised on MQTT), the robots, conflicts.
+
+Fed by the history sink after each insert (`on_stored`), so a view never shows, and an
+advertisement never names, a write the API cannot serve yet. The views are rebuilt from
+ClickHouse whenever faust assigns partitions (start-up, restart, rebalance), before any
+event of those partitions is consumed: the history is the changelog. The rules are pure
+functions in `mapservice/liveview.py` and `mapservice/conflicts.py`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Protocol
+
+import structlog
+from prometheus_client import Counter, Gauge
+
+from mapservice.conflicts import RecentWrites, record_conflicts
+from mapservice.events import ChunkUpdated, Envelope, PoseReported
+from mapservice.liveview import (
+    RobotState,
+    advertisement,
+    apply_chunks,
+    apply_poses,
+    online_robots,
+)
+from mapservice.ports import ChunkRow, HistoryStore
+from mapservice.settings import Settings
+
+if TYPE_CHECKING:
+    import faust
+
+    from .app import HistorySink
+
+log = structlog.get_logger(__name__)
+
+CONFLICTS = Counter("mapservice_conflicts_recorded_total", "Conflict rows written to the history")
+VIEW_CHANGES = Counter("mapservice_latest_map_changes_total", "Changes of the live latest map")
+ADS_DROPPED = Counter("mapservice_advertisements_dropped_total",
+                      "Advertisements dropped because too many were waiting to be encoded")
+MAX_PENDING_ADS = 10_000
+# Conflict neighbours of live batches come from memory (mapservice.conflicts.RecentWrites)
+# when the window is short enough to keep its writes; older ones from the store.
+RECENT_MAX_WINDOW_MS = 600_000
+RECENT_SLACK_MS = 120_000
+RECENT_MAX_ROWS = 200_000
+ROBOTS_ONLINE = Gauge("mapservice_robots_online", "Robots heard from within robot_offline_after_s")
+
+
+class Advertiser(Protocol):
+    def start(self) -> None: ...
+
+    def publish(self, payload: dict) -> bool: ...
+
+    def stop(self) -> None: ...
+
+
+def _now_ms() -> int:
+    return time.time_ns() // 1_000_000
+
+
+class LiveViews:
+    def __init__(self, settings: Settings, store: HistoryStore, advertiser: Advertiser | None,
+                 now_ms: Callable[[], int] = _now_ms) -> None:
+        self.settings = settings
+        self.store = store
+        self.advertiser = advertiser
+        self.now_ms = now_ms
+        self.latest: dict = {}  # (row, column) -> ChunkState
+        self.robots: dict[str, RobotState] = {}
+        self.online: set[str] = set()
+        self.loaded = False
+        self.recent: RecentWrites | None = None  # touched only in the store thread
+        self._recent_pruned_ms = 0
+        self.window_ms = int(settings.conflict_window_s * 1000)
+        # Encoding an advertisement (base64 + PNG) takes ~2 ms: one thread of its own keeps
+        # that off the event loop and keeps each chunk's advertisements in order.
+        self._ad_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="advertiser")
+        self._pending = 0
+        self._pending_lock = threading.Lock()
+
+    # --- blocking parts: run in the sink's store thread -----------------------------------
+
+    def load(self) -> None:
+        """Rebuilds both views from the history (latest over all stored event times)."""
+        horizon = self.now_ms() + int(self.settings.max_future_skew_s * 1000) + 86_400_000
+        latest = {(c.row, c.column): c for c in self.store.map_at(horizon)}
+        robots = {p.robot_id: RobotState(p.robot_id, p.ts_ms, p.receive_time_ms, p.receive_time_ms,
+                                         (p.x, p.y, p.z), p.battery_level, p.charging, p.loaded)
+                  for p in self.store.robots_at(horizon)}
+        self.latest, self.robots = latest, robots
+        self.recent = self._load_recent()
+        self.loaded = True
+        log.info("live views rebuilt from the history", chunks=len(latest), robots=len(robots))
+
+    def _recent_span_ms(self) -> int:
+        return 2 * self.window_ms + RECENT_SLACK_MS
+
+    def _load_recent(self) -> RecentWrites | None:
+        if self.window_ms > RECENT_MAX_WINDOW_MS:
+            return None
+        now = self.now_ms()
+        since = now - self._recent_span_ms()
+        rows = self.store.chunk_events(since, now + int(self.settings.max_future_skew_s * 1000) + 86_400_000,
+                                       limit=RECENT_MAX_ROWS)
+        if len(rows) >= RECENT_MAX_ROWS:
+            return None  # too busy to hold in memory: every batch asks the store
+        self._recent_pruned_ms = now
+        return RecentWrites(since, rows)
+
+    def record_conflicts(self, events: Sequence[Envelope]) -> int:
+        """Writes every conflict the stored batch creates or changes; returns how many rows."""
+        new = [ChunkRow(e.payload.row, e.payload.column, e.event_time_ms, e.robot_id,
+                        e.payload.content_hash.hex(), e.receive_time_ms)
+               for e in events if isinstance(e.payload, ChunkUpdated)]
+        now = self.now_ms()
+        if self.recent is not None and now - self._recent_pruned_ms > 10_000:
+            self.recent.forget_before(now - self._recent_span_ms())
+            self._recent_pruned_ms = now
+        count = record_conflicts(self.store, new, self.window_ms, self.recent)
+        CONFLICTS.inc(count)
+        return count
+
+    # --- in the event loop ----------------------------------------------------------------
+
+    async def on_stored(self, sink: "HistorySink", events: Sequence[Envelope]) -> None:
+        """After a batch is in the history, before it is acknowledged."""
+        if not self.loaded:
+            # The rebuild at assignment failed: rebuild now (this batch is in it already,
+            # so its changes go unadvertised) rather than let older writes win.
+            await self._until_done(sink, lambda _: self.load(), None)
+        if any(isinstance(e.payload, ChunkUpdated) for e in events):
+            await self._until_done(sink, self.record_conflicts, events)
+            for e in apply_chunks(self.latest, events):
+                VIEW_CHANGES.inc()
+                self.advertise(e)
+        if any(isinstance(e.payload, PoseReported) for e in events):
+            apply_poses(self.robots, events)
+
+    def advertise(self, e: Envelope) -> None:
+        """Hands the advertisement to the advertiser thread; never waits for it."""
+        if self.advertiser is None:
+            return
+        with self._pending_lock:
+            if self._pending >= MAX_PENDING_ADS:
+                ADS_DROPPED.inc()
+                return
+            self._pending += 1
+        self._ad_thread.submit(self._publish, e)
+
+    def _publish(self, e: Envelope) -> None:
+        try:
+            self.advertiser.publish(advertisement(e, self.settings.public_base_url))
+        except Exception as exc:  # advertising is best effort; the history is not at stake
+            log.warning("advertisement failed", error=str(exc))
+        finally:
+            with self._pending_lock:
+                self._pending -= 1
+
+    def flush(self) -> None:
+        """Waits until every advertisement handed over so far was published (tests)."""
+        self._ad_thread.submit(lambda: None).result()
+
+    def close(self) -> None:
+        self._ad_thread.shutdown(wait=True)
+
+    def check_presence(self) -> tuple[set[str], set[str]]:
+        """Logs robots going online/offline; returns (came online, went offline)."""
+        online = online_robots(self.robots, self.now_ms(), self.settings.robot_offline_after_s)
+        came, went = online - self.online, self.online - online
+        for robot in sorted(came):
+            log.info("robot online", robot=robot)
+        for robot in sorted(went):
+            state = self.robots.get(robot)  # gone from a rebuilt view if its history is
+            log.info("robot offline", robot=robot, silent_s=None if state is None else
+                     round((self.now_ms() - state.last_seen_ms) / 1000, 1))
+        self.online = online
+        ROBOTS_ONLINE.set(len(online))
+        return came, went
+
+    async def _until_done(self, sink: "HistorySink", fn, batch) -> None:
+        delay = 0.2
+        while True:
+            try:
+                await sink.run(fn, batch)
+                return
+            except Exception as exc:  # retried: acknowledging now would lose conflicts
+                log.error("live views update failed, retrying", error=str(exc), retry_in=delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 10)
+
+    # --- wiring ---------------------------------------------------------------------------
+
+    @classmethod
+    def attach(cls, app: "faust.App", settings: Settings, sink: "HistorySink",
+               advertiser: Advertiser | None = None) -> "LiveViews":
+        """Views for a faust app: rebuilt on every partition assignment (before consuming),
+        the advertiser started with them and stopped with the app, presence checked each second."""
+        if advertiser is None:
+            from .advertiser import MqttAdvertiser
+            advertiser = MqttAdvertiser(settings)
+        views = cls(settings, sink.store, advertiser)
+
+        async def rebuild(sender, *args, **kwargs) -> None:
+            # Submitted to the store thread before any batch of the new assignment is
+            # inserted there, so the rebuilt views hold exactly what was stored before.
+            views.loaded = False
+            try:
+                await sink.run(views.load)
+            except Exception as exc:  # raising here would crash the app; retried in on_stored
+                log.error("live views rebuild failed; retried with the next batch", error=str(exc))
+            advertiser.start()
+
+        async def stop(sender, *args, **kwargs) -> None:
+            await asyncio.get_running_loop().run_in_executor(None, views.close)
+            advertiser.stop()
+
+        app.on_partitions_assigned.connect(rebuild, weak=False)
+        app.on_before_shutdown.connect(stop, weak=False)
+
+        async def presence() -> None:
+            views.check_presence()
+
+        app.timer(1.0)(presence)
+        return views

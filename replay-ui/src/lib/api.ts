@@ -1,0 +1,162 @@
+/**
+ * The mapservice HTTP API as the replay needs it, with fallbacks: while an endpoint is
+ * missing (404 from an older server), the same data comes from the older endpoints.
+ */
+import type { Source } from "./buffer";
+import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline } from "./types";
+
+export class ApiError extends Error {
+  constructor(public status: number, message: string) {
+    super(message);
+  }
+}
+
+async function getJson<T>(url: string): Promise<T> {
+  const r = await fetch(url);
+  if (!r.ok) {
+    let detail = r.statusText;
+    try {
+      detail = (await r.json()).detail ?? detail;
+    } catch {
+      /* not JSON */
+    }
+    throw new ApiError(r.status, `${url}: ${r.status} ${typeof detail === "string" ? detail : JSON.stringify(detail)}`);
+  }
+  return r.json() as Promise<T>;
+}
+
+const LIMIT = 100_000;
+const DAY = 86_400_000;
+
+export interface MapAt {
+  at_ms: number;
+  meta: MapMeta | null;
+  chunks: ChunkCell[];
+}
+
+export class Api implements Source {
+  /** Endpoints found missing, so the fallback is used without asking again. */
+  missing = new Set<string>();
+
+  constructor(public base = "") {}
+
+  chunkUrl(hash: string): string {
+    return `${this.base}/api/v1/chunk-contents/${hash}?encoding=png`;
+  }
+
+  map(atMs: number): Promise<MapAt> {
+    return getJson<MapAt>(`${this.base}/api/v1/map?at=${Math.round(atMs)}`);
+  }
+
+  async mapAt(atMs: number): Promise<ChunkCell[]> {
+    return (await this.map(atMs)).chunks;
+  }
+
+  async robotsAt(atMs: number): Promise<RobotAt[]> {
+    return (await getJson<{ robots: RobotAt[] }>(`${this.base}/api/v1/robots?at=${Math.round(atMs)}`)).robots;
+  }
+
+  async events(fromMs: number, toMs: number, stepMs: number): Promise<EventWindow> {
+    if (!this.missing.has("events")) {
+      try {
+        return await getJson<EventWindow>(`${this.base}/api/v1/events?from=${fromMs}&to=${toMs}&step_ms=${stepMs}`);
+      } catch (e) {
+        if (!(e instanceof ApiError && e.status === 404 && this.isRouteMissing(e))) throw e;
+        this.missing.add("events");
+      }
+    }
+    return this.eventsFallback(fromMs, toMs, stepMs);
+  }
+
+  /** /chunk-events + /poses, downsampled here; truncated when either hit its limit. */
+  async eventsFallback(fromMs: number, toMs: number, stepMs: number): Promise<EventWindow> {
+    const [chunks, poses] = await Promise.all([
+      getJson<ChunkCell[]>(`${this.base}/api/v1/chunk-events?from=${fromMs}&to=${toMs}&limit=${LIMIT}`),
+      getJson<Pose[]>(`${this.base}/api/v1/poses?from=${fromMs}&to=${toMs}&limit=${LIMIT}`),
+    ]);
+    let truncated = chunks.length >= LIMIT;
+    let sampled = downsample(poses, stepMs);
+    if (poses.length >= LIMIT) {
+      // Poses ran out first: the window is complete only up to the last pose returned.
+      const lastPose = poses[poses.length - 1].ts_ms;
+      truncated = true;
+      const cut = chunks.findIndex((c) => c.ts_ms >= lastPose);
+      const kept = cut < 0 ? chunks : chunks.slice(0, cut);
+      // A last chunk write at the pose cut marks the complete prefix for `complete()`.
+      return { from_ms: fromMs, to_ms: toMs, step_ms: stepMs, chunks: kept.concat(marker(lastPose)), poses: sampled.filter((p) => p.ts_ms < lastPose), truncated };
+    }
+    return { from_ms: fromMs, to_ms: toMs, step_ms: stepMs, chunks, poses: sampled, truncated };
+  }
+
+  async timeline(fromMs: number, toMs: number, buckets: number): Promise<Timeline | null> {
+    if (this.missing.has("timeline")) return null;
+    try {
+      return await getJson<Timeline>(`${this.base}/api/v1/timeline?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&buckets=${buckets}`);
+    } catch (e) {
+      if (e instanceof ApiError && e.status === 404) {
+        this.missing.add("timeline");
+        return null;
+      }
+      throw e;
+    }
+  }
+
+  async conflicts(fromMs: number, toMs: number): Promise<Conflict[]> {
+    if (this.missing.has("conflicts")) return [];
+    try {
+      const r = await getJson<Conflict[] | { conflicts: Conflict[] }>(
+        `${this.base}/api/v1/conflicts?from=${Math.round(fromMs)}&to=${Math.round(Math.min(toMs, fromMs + DAY))}`);
+      return Array.isArray(r) ? r : r.conflicts;
+    } catch (e) {
+      if (e instanceof ApiError && e.status === 404) {
+        this.missing.add("conflicts");
+        return [];
+      }
+      throw e;
+    }
+  }
+
+  async track(robotId: string, fromMs: number, toMs: number, stepMs: number): Promise<Pose[]> {
+    const f = Math.round(fromMs);
+    const t = Math.round(toMs);
+    if (!this.missing.has("track")) {
+      try {
+        const r = await getJson<{ points: { ts_ms: number; x: number; y: number; yaw: number }[] }>(
+          `${this.base}/api/v1/robots/${encodeURIComponent(robotId)}/track?from=${f}&to=${t}&step_ms=${stepMs}`);
+        return r.points.map((p) => ({
+          robotId, ts_ms: p.ts_ms, position: [p.x, p.y, 0], orientation: [0, 0, Math.sin(p.yaw / 2), Math.cos(p.yaw / 2)],
+          battery_level: null, charging: null, loaded: null, path: null,
+        }));
+      } catch (e) {
+        if (!(e instanceof ApiError && e.status === 404 && this.isRouteMissing(e))) throw e;
+        this.missing.add("track");
+      }
+    }
+    return downsample(await getJson<Pose[]>(
+      `${this.base}/api/v1/poses?from=${f}&to=${t}&robotId=${encodeURIComponent(robotId)}&limit=${LIMIT}`), stepMs);
+  }
+
+  private isRouteMissing(e: ApiError): boolean {
+    return e.message.endsWith("Not Found");
+  }
+}
+
+function marker(ts: number): ChunkCell {
+  // Never applied: complete() drops writes at the last instant of a truncated window.
+  return { ts_ms: ts, row: -1, column: -1, robotId: "", content_hash: "" };
+}
+
+/** At most one pose per robot per `stepMs` (the first in each step), as the API does. */
+export function downsample(poses: Pose[], stepMs: number): Pose[] {
+  if (stepMs <= 0) return poses;
+  const seen = new Set<string>();
+  const out: Pose[] = [];
+  for (const p of poses) {
+    const k = `${p.robotId}\u0000${Math.floor(p.ts_ms / stepMs)}`;
+    if (!seen.has(k)) {
+      seen.add(k);
+      out.push(p);
+    }
+  }
+  return out;
+}

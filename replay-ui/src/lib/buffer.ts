@@ -1,0 +1,213 @@
+/**
+ * The prefetch buffer: one contiguous span [from, to) of history around the playhead.
+ *
+ * It holds every chunk write in the span (sorted, never downsampled) and the poses (one per
+ * robot per `stepMs` at high speed). The span grows ahead of the playhead by a look-ahead
+ * sized to the speed and is trimmed behind it. Growing backwards fetches the map and robots
+ * just before the new start, so every write in the buffer knows the cell it replaced.
+ */
+import { annotatePrev, cellKey, compareChanges } from "./mapstate";
+import type { ChunkCell, ChunkChange, EventWindow, Pose, RobotAt } from "./types";
+
+export interface Source {
+  events(fromMs: number, toMs: number, stepMs: number): Promise<EventWindow>;
+  mapAt(atMs: number): Promise<ChunkCell[]>;
+  robotsAt(atMs: number): Promise<RobotAt[]>;
+}
+
+/** Data time covered by one fetch: about two seconds of playback, 10 s to 6 h. */
+export function fetchSpanMs(speed: number): number {
+  return Math.min(21_600_000, Math.max(10_000, speed * 2_000));
+}
+
+/** What is kept behind the playhead: about two seconds of playback, 1 min to 6 h. */
+export function keepBehindMs(speed: number): number {
+  return Math.min(21_600_000, Math.max(60_000, speed * 2_000));
+}
+
+/** How far ahead of the playhead the buffer keeps: about four seconds of playback. */
+export function lookaheadMs(speed: number): number {
+  return Math.min(86_400_000, Math.max(20_000, speed * 4_000));
+}
+
+/** Pose downsampling for a speed: all poses up to 60x, about one per frame above. */
+export function poseStepMs(speed: number): number {
+  if (speed <= 60) return 0;
+  // Whole minutes: the API answers those from per-minute keyframes.
+  return Math.max(60_000, Math.round((speed * 16) / 60_000) * 60_000);
+}
+
+const MINUTE = 60_000;
+
+export class EventBuffer {
+  from: number;
+  to: number;
+  chunks: ChunkChange[] = [];
+  tracks = new Map<string, Pose[]>();
+  /** Each robot's latest pose before `from` (from the robots-at snapshot). */
+  base = new Map<string, RobotAt>();
+  stepMs: number;
+  private inflight: Promise<void> | null = null;
+  private generation = 0;
+  maxChunks = 400_000;
+
+  constructor(private source: Source, atMs: number, speed: number) {
+    this.from = atMs + 1;
+    this.to = atMs + 1;
+    this.stepMs = poseStepMs(speed);
+  }
+
+  /** Starts over at a seek: the caller has applied the map and robots at `atMs`. */
+  reset(atMs: number, speed: number, robots: RobotAt[]): void {
+    this.generation++;
+    this.inflight = null;
+    this.from = atMs + 1;
+    this.to = atMs + 1;
+    this.chunks = [];
+    this.tracks = new Map();
+    this.base = new Map(robots.map((r) => [r.robotId, r]));
+    this.stepMs = poseStepMs(speed);
+  }
+
+  /** True when every write with a < ts <= b (or b < ts <= a) is in the buffer. */
+  covers(a: number, b: number): boolean {
+    const lo = Math.min(a, b) + 1;
+    const hi = Math.max(a, b) + 1;
+    return lo >= this.from && hi <= this.to;
+  }
+
+  /** Fetches the next span needed ahead of the playhead, if any; one fetch at a time. */
+  ensure(playhead: number, direction: 1 | -1, speed: number, nowMs: number, minMs: number): Promise<void> | null {
+    if (this.inflight) return this.inflight;
+    const ahead = lookaheadMs(speed);
+    const span = fetchSpanMs(speed);
+    let task: (() => Promise<void>) | null = null;
+    if (direction > 0 && this.to < Math.min(playhead + ahead, nowMs + 1)) {
+      const f = this.to;
+      // Ends on a whole minute, so every later request starts on one (the API's fast path).
+      const t = Math.min(Math.ceil((f + span) / MINUTE) * MINUTE, nowMs + 1);
+      // Near now the windows get short: wait for two seconds of news unless the playhead
+      // is about to run out, instead of asking once per round trip.
+      const starving = this.to <= playhead + 1000;
+      if (t > f && (starving || t - f >= Math.min(span, 2000))) task = () => this.extendForward(f, t);
+    } else if (direction < 0 && this.from > Math.max(playhead - ahead, minMs)) {
+      const t = this.from;
+      const f = Math.max(Math.floor((t - span) / MINUTE) * MINUTE, minMs);
+      if (t > f) task = () => this.extendBackward(f, t);
+    }
+    if (!task) return null;
+    const gen = this.generation;
+    const p = task()
+      .catch((err) => {
+        if (gen === this.generation) throw err;
+      })
+      .finally(() => {
+        if (gen === this.generation) this.inflight = null;
+      });
+    this.inflight = p;
+    return p;
+  }
+
+  /** The playhead region [from, to) the last fetch covered up to (for "buffering" displays). */
+  get busy(): boolean {
+    return this.inflight !== null;
+  }
+
+  async extendForward(f: number, t: number): Promise<void> {
+    const gen = this.generation;
+    const w = await this.source.events(f, t, this.stepMs);
+    if (gen !== this.generation || f !== this.to) return;
+    const { chunks, poses, to } = complete(w, f, t);
+    chunks.sort(compareChanges);
+    this.chunks.push(...chunks);
+    for (const p of poses) this.addPose(p, false);
+    this.to = to;
+  }
+
+  async extendBackward(f: number, t: number): Promise<void> {
+    const gen = this.generation;
+    // The cells and robots as they were just before f, the base for the new writes' `prev`.
+    const [w, before, robots] = await Promise.all([
+      this.source.events(f, t, this.stepMs),
+      this.source.mapAt(f - 1),
+      this.source.robotsAt(f - 1),
+    ]);
+    if (gen !== this.generation || t !== this.from) return;
+    let { chunks, poses, to } = complete(w, f, t);
+    if (to < t) {
+      // Truncated: keep only what was returned up to `to`, and fetch less next time.
+      return this.extendBackward(f + Math.max(1, Math.floor((t - f) / 2)), t);
+    }
+    chunks.sort(compareChanges);
+    const baseCells = new Map(before.map((c) => [cellKey(c.row, c.column), c]));
+    annotatePrev((k) => baseCells.get(k) ?? null, chunks);
+    this.chunks = chunks.concat(this.chunks);
+    for (const p of poses) this.addPose(p, true);
+    this.base = new Map(robots.map((r) => [r.robotId, r]));
+    this.from = f;
+  }
+
+  private addPose(p: Pose, prepend: boolean): void {
+    let track = this.tracks.get(p.robotId);
+    if (!track) this.tracks.set(p.robotId, (track = []));
+    if (prepend) track.unshift(p);
+    else track.push(p);
+  }
+
+  /** Sorts tracks after bulk prepends (poses of one window arrive in time order). */
+  normalise(): void {
+    for (const track of this.tracks.values()) {
+      for (let i = 1; i < track.length; i++) {
+        if (track[i - 1].ts_ms > track[i].ts_ms) {
+          track.sort((a, b) => a.ts_ms - b.ts_ms);
+          break;
+        }
+      }
+    }
+  }
+
+  /** Drops what lies far behind the playhead (relative to the direction of play). */
+  trim(playhead: number, direction: 1 | -1, keepMs: number): void {
+    if (direction > 0 && playhead - keepMs > this.from) {
+      const cut = Math.min(playhead - keepMs, this.to);
+      let i = 0;
+      while (i < this.chunks.length && this.chunks[i].ts_ms < cut) i++;
+      this.chunks = this.chunks.slice(i);
+      for (const [id, track] of this.tracks) {
+        let j = 0;
+        while (j < track.length && track[j].ts_ms < cut) j++;
+        if (j > 0) {
+          this.base.set(id, track[j - 1]);
+          this.tracks.set(id, track.slice(j));
+        }
+      }
+      this.from = cut;
+    } else if (direction < 0 && playhead + keepMs < this.to) {
+      const cut = Math.max(playhead + keepMs, this.from);
+      let i = this.chunks.length;
+      while (i > 0 && this.chunks[i - 1].ts_ms >= cut) i--;
+      this.chunks = this.chunks.slice(0, i);
+      for (const [id, track] of this.tracks) {
+        let j = track.length;
+        while (j > 0 && track[j - 1].ts_ms >= cut) j--;
+        this.tracks.set(id, track.slice(0, j));
+      }
+      this.to = cut;
+    }
+  }
+}
+
+/**
+ * A window as far as it is complete. A truncated answer covers [from, to_ms) when the
+ * server cut it there; otherwise (the fallback endpoints) up to, not including, the time
+ * of its last chunk write, since writes sharing that instant may be cut.
+ */
+export function complete(w: EventWindow, f: number, t: number): { chunks: ChunkChange[]; poses: Pose[]; to: number } {
+  if (!w.truncated) return { chunks: w.chunks.slice(), poses: w.poses.slice(), to: t };
+  // /api/v1/events cuts a truncated answer itself and says where (to_ms < the asked end).
+  const last = w.to_ms > f && w.to_ms < t ? w.to_ms : w.chunks.length ? w.chunks[w.chunks.length - 1].ts_ms : f;
+  const to = Math.max(last, f + 1);
+  const chunks = w.chunks.filter((c) => c.ts_ms < to);
+  const poses = w.poses.filter((p) => p.ts_ms < to);
+  return { chunks, poses, to };
+}

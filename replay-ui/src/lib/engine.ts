@@ -1,0 +1,213 @@
+/**
+ * The replay engine: clock + buffer + map state + robots, advanced once per animation frame.
+ *
+ * A seek loads the map and robots at T in one go; then each frame moves the map from the
+ * last shown instant to the clock's, applying (or undoing) every buffered write in between.
+ * When the buffer does not reach the clock's instant yet, the playhead waits at the
+ * buffer's edge ("buffering") instead of skipping writes.
+ */
+import { Api } from "./api";
+import { EventBuffer, keepBehindMs, poseStepMs } from "./buffer";
+import { PlaybackClock, type Speed } from "./clock";
+import { ChunkImages } from "./images";
+import { LiveConnection, liveUrl, type LiveMessage } from "./live";
+import { MapState } from "./mapstate";
+import { INTERPOLATE_MAX_SPEED, OFFLINE_AFTER_MS, poseAt, type PlacedPose } from "./poses";
+import type { MapMeta, Pose, RobotAt } from "./types";
+
+export const RETENTION_MS = 7 * 86_400_000;
+
+export interface RobotView extends PlacedPose {
+  robotId: string;
+  status: RobotAt | Pose;
+  /** Silent for longer than the server's offline threshold at the playhead. */
+  offline: boolean;
+}
+
+export class ReplayEngine {
+  readonly api: Api;
+  readonly clock: PlaybackClock;
+  readonly state = new MapState();
+  readonly images: ChunkImages;
+  readonly buffer: EventBuffer;
+  meta: MapMeta | null = null;
+  /** The instant the map currently shows. */
+  playhead: number;
+  seeking = false;
+  buffering = false;
+  error: string | null = null;
+  /** Robot status from the last robots-at call (online, skew flags), by id. */
+  robotInfo = new Map<string, RobotAt>();
+  /** Live mode: latest pose per robot. */
+  livePoses = new Map<string, Pose>();
+  /** Bumped by every live pose (the view redraws robots only when something moved). */
+  liveVersion = 0;
+  live: LiveConnection;
+  seekStartedWall = 0;
+  seekPendingFrame = false;
+  /** Seek-to-first-complete-frame durations (ms), for the benchmark. */
+  seekTimes: number[] = [];
+  /** Of which: the map and robots at T from the API (the rest is chunk pictures and drawing). */
+  seekApiTimes: number[] = [];
+  /** Script time of each animation frame (ms) and the time between frames. */
+  frameTimes: number[] = [];
+  frameIntervals: number[] = [];
+  private seekGen = 0;
+  private lastStepMs: number;
+  onSeeked: () => void = () => {};
+
+  constructor(base = "", now = Date.now()) {
+    this.api = new Api(base);
+    this.clock = new PlaybackClock(now, now);
+    this.clock.minMs = now - RETENTION_MS;
+    this.playhead = now;
+    this.images = new ChunkImages((h) => this.api.chunkUrl(h));
+    this.buffer = new EventBuffer(this.api, now, 1);
+    this.lastStepMs = poseStepMs(1);
+    this.live = new LiveConnection(liveUrl(location), (m) => this.onLive(m), (reconnect) => {
+      // Whatever happened while disconnected is in the store: start again from now.
+      if (reconnect) void this.seek(Date.now(), true);
+    });
+  }
+
+  now(): number {
+    return Date.now();
+  }
+
+  /** Shows the whole map and all robots at T at once. */
+  async seek(t: number, keepLive = false): Promise<void> {
+    const wall = this.now();
+    this.clock.minMs = wall - RETENTION_MS + 60_000;
+    t = Math.round(Math.min(wall, Math.max(this.clock.minMs, t)));
+    const gen = ++this.seekGen;
+    this.seeking = true;
+    this.seekStartedWall = performance.now();
+    if (!keepLive) {
+      this.live.stop();
+      this.clock.seek(t, wall);
+    }
+    try {
+      const [map, robots] = await Promise.all([this.api.map(t), this.api.robotsAt(t)]);
+      if (gen !== this.seekGen) return;
+      this.seekApiTimes.push(performance.now() - this.seekStartedWall);
+      this.meta = map.meta ?? this.meta;
+      this.state.reset(map.chunks);
+      this.buffer.reset(t, this.clock.speed, robots);
+      this.lastStepMs = this.buffer.stepMs;
+      this.robotInfo = new Map(robots.map((r) => [r.robotId, r]));
+      this.livePoses = new Map(robots.map((r) => [r.robotId, r]));
+      this.liveVersion++;
+      this.playhead = t;
+      if (!keepLive) this.clock.hold(t, this.now());
+      this.error = null;
+      this.seekPendingFrame = true;
+      const pending = this.pendingLive;
+      this.pendingLive = [];
+      this.seeking = false;
+      for (const m of pending) this.onLive(m);
+      this.onSeeked();
+    } catch (e) {
+      if (gen === this.seekGen) this.error = String(e);
+    } finally {
+      if (gen === this.seekGen) this.seeking = false;
+    }
+  }
+
+  async goLive(): Promise<void> {
+    const wall = this.now();
+    this.clock.goLive(wall);
+    this.live.start();
+    await this.seek(wall, true);
+  }
+
+  setSpeed(speed: Speed): void {
+    this.clock.setSpeed(speed, this.now());
+    // Coarser or finer pose sampling needs a fresh buffer; writes are the same either way.
+    if (poseStepMs(speed) !== this.lastStepMs && !this.clock.live) void this.seek(this.playhead);
+  }
+
+  /** Advances to the clock's instant; called once per animation frame. */
+  frame(): void {
+    if (this.seeking || !this.meta) return;
+    const wall = this.now();
+    if (this.clock.live) {
+      this.playhead = wall;
+      return;
+    }
+    let target = Math.round(this.clock.time(wall));
+    const dir = this.clock.direction;
+    if (this.clock.playing && dir > 0 && target >= wall - 1000) {
+      // Caught up with now: live mode takes over (the WebSocket, not polling windows).
+      void this.goLive();
+      return;
+    }
+    this.buffering = false;
+    if (!this.buffer.covers(this.playhead, target)) {
+      const edge = target > this.playhead ? this.buffer.to - 1 : this.buffer.from - 1;
+      target = target > this.playhead ? Math.max(this.playhead, edge) : Math.min(this.playhead, edge);
+      this.clock.hold(target, wall);
+      this.buffering = true;
+    }
+    if (target !== this.playhead) {
+      this.state.move(this.buffer.chunks, this.playhead, target);
+      this.playhead = target;
+    }
+    const before = this.buffer.chunks.length;
+    const p = this.buffer.ensure(this.playhead, dir, this.clock.speed, wall, this.clock.minMs);
+    if (p) {
+      p.then(() => {
+        this.buffer.normalise();
+        // Prefetch the pictures of the writes just buffered, in playing order.
+        const fresh = dir > 0 ? this.buffer.chunks.slice(before) : this.buffer.chunks.slice(0, this.buffer.chunks.length - before).reverse();
+        for (const c of fresh.slice(0, 5000)) this.images.request(c.content_hash);
+      }).catch((e) => (this.error = String(e)));
+    }
+    this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));
+  }
+
+  /** Every robot at the playhead. */
+  robots(): RobotView[] {
+    const out: RobotView[] = [];
+    if (this.clock.live) {
+      for (const [id, p] of this.livePoses) {
+        const offline = this.now() - p.ts_ms > OFFLINE_AFTER_MS;
+        out.push({ robotId: id, status: this.robotInfo.get(id) ?? p, pose: p, x: p.position[0], y: p.position[1], yaw: null, offline });
+      }
+      return out;
+    }
+    const t = this.playhead;
+    const interpolate = this.clock.speed <= INTERPOLATE_MAX_SPEED;
+    const ids = new Set([...this.buffer.base.keys(), ...this.buffer.tracks.keys()]);
+    for (const id of ids) {
+      const track = this.buffer.tracks.get(id);
+      let placed = track ? poseAt(track, t, interpolate) : null;
+      if (!placed) {
+        const b = this.buffer.base.get(id);
+        if (!b || b.ts_ms > t) continue;
+        placed = { pose: b, x: b.position[0], y: b.position[1], yaw: null };
+      }
+      out.push({ robotId: id, status: placed.pose, ...placed, offline: t - placed.pose.ts_ms > OFFLINE_AFTER_MS });
+    }
+    return out;
+  }
+
+  private pendingLive: LiveMessage[] = [];
+
+  private onLive(m: LiveMessage): void {
+    if (!this.clock.live) return;
+    if (this.seeking) {
+      // Arrived while the snapshot loads: applied right after it (older ones lose the tie).
+      this.pendingLive.push(m);
+      return;
+    }
+    if (m.type === "chunk") {
+      this.state.applyForward([{ row: m.row, column: m.column, ts_ms: m.ts_ms, robotId: m.robotId, content_hash: m.content_hash }]);
+    } else if (m.type === "pose") {
+      const prev = this.livePoses.get(m.robotId);
+      if (!prev || prev.ts_ms <= m.ts_ms) {
+        this.livePoses.set(m.robotId, m);
+        this.liveVersion++;
+      }
+    }
+  }
+}

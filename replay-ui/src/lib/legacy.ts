@@ -1,0 +1,47 @@
+/** The 2019 REST contract (appendix A) as the controller page speaks it, like a robot. */
+import { quaternionOfYaw } from "./geo";
+import type { MapMeta } from "./types";
+
+/** "2018-12-20T23:34:33": the 2019 timestamp format (UTC, seconds). */
+export function timestamp2019(ms: number): string {
+  return new Date(ms).toISOString().slice(0, 19);
+}
+
+/** zlib (RFC 1950) stream of the bytes, base64: the 2019 `pgmB64compressedData`. */
+export async function pgmB64compressed(pixels: Uint8Array): Promise<string> {
+  const stream = new Blob([pixels as unknown as ArrayBuffer]).stream().pipeThrough(new CompressionStream("deflate"));
+  const bytes = new Uint8Array(await new Response(stream).arrayBuffer());
+  let s = "";
+  for (let i = 0; i < bytes.length; i += 0x8000) s += String.fromCharCode(...bytes.subarray(i, i + 0x8000));
+  return btoa(s);
+}
+
+export async function postChunk(meta: MapMeta, robotId: string, row: number, column: number, value: number, nowMs: number): Promise<Response> {
+  const pixels = new Uint8Array(meta.CHUNK_WIDTH * meta.CHUNK_HEIGHT).fill(value);
+  return fetch("/api/chunk-service/chunks", {
+    method: "POST",
+    headers: { "Content-Type": "application/json" },
+    body: JSON.stringify({ pgmB64compressedData: await pgmB64compressed(pixels), row, column, timestamp: timestamp2019(nowMs), robotId }),
+  });
+}
+
+/** Listing 16, the body a robot publishes on iot/coordinates/{robotId}. */
+export function poseMessage(robotId: string, x: number, y: number, yaw: number, nowMs: number, battery: number) {
+  const [qx, qy, qz, qw] = quaternionOfYaw(yaw);
+  return {
+    robotId,
+    timestamp: timestamp2019(nowMs),
+    pose: { position: { x, y, z: 0 }, orientation: { x: qx, y: qy, z: qz, w: qw } },
+    status: { battery: { battery_level: battery, charging: false }, loaded: false },
+  };
+}
+
+export async function getMeta(): Promise<MapMeta | null> {
+  const r = await fetch("/api/chunk-service/meta");
+  if (r.ok) {
+    const m = await r.json();
+    if (m && m.CHUNK_WIDTH) return m as MapMeta;
+  }
+  const v1 = await fetch("/api/v1/map");
+  return v1.ok ? ((await v1.json()).meta as MapMeta | null) : null;
+}

@@ -1,0 +1,151 @@
+/**
+ * The Leaflet side: a non-geographic map (L.CRS.Simple, one unit per map pixel) with the
+ * chunk tiles, info overlay, grid, conflicts, and the robots' canvas.
+ */
+import L from "leaflet";
+import type { RobotView } from "./engine";
+import { chunkBounds, gridBounds, metresToLatLng, metresToPixel, pixelToLatLng } from "./geo";
+import type { ChunkImages } from "./images";
+import { ChunkLayer, gridLines, InfoLayer, type InfoMode } from "./layers";
+import type { MapState } from "./mapstate";
+import { RobotLayer } from "./robotlayer";
+import type { Conflict, MapMeta } from "./types";
+
+export interface LayerToggles {
+  names: boolean;
+  battery: boolean;
+  paths: boolean;
+  borders: boolean;
+  info: boolean;
+  infoMode: InfoMode;
+  conflicts: boolean;
+}
+
+export class MapView {
+  readonly map: L.Map;
+  chunks: ChunkLayer | null = null;
+  info: InfoLayer | null = null;
+  grid: L.Polyline | null = null;
+  conflictLayer = L.layerGroup();
+  /** The selected robot's recent track (from /api/v1/robots/{id}/track). */
+  trail = L.polyline([], { color: "#1f6feb", weight: 2, opacity: 0.7, interactive: false });
+  robots: RobotLayer;
+  toggles: LayerToggles | null = null;
+  selected: string | null = null;
+  meta: MapMeta | null = null;
+  follow: string | null = null;
+  onRobotClick: (id: string) => void = () => {};
+  private fitted = false;
+
+  constructor(el: HTMLElement, private state: MapState, private images: ChunkImages) {
+    this.map = L.map(el, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 5, zoomSnap: 0.25, attributionControl: false, preferCanvas: true,
+      // Tiles appear at once: a seek shows the map at T, not a cross-fade from the old one.
+      fadeAnimation: false,
+      // The arrow keys step through time (the page's shortcuts), not pan the map.
+      keyboard: false });
+    this.map.setView([0, 0], 0);
+    this.robots = new RobotLayer(() => this.meta, () => ({
+      names: this.toggles?.names ?? true, battery: this.toggles?.battery ?? true,
+      paths: this.toggles?.paths ?? true, selected: this.selected,
+    }));
+    this.robots.onClick = (id) => this.onRobotClick(id);
+    this.robots.addTo(this.map);
+    this.trail.addTo(this.map);
+  }
+
+  /** (Re)builds the map layers for a meta; keeps the view unless it is the first one. */
+  setMeta(meta: MapMeta, toggles: LayerToggles, view?: { lat: number; lng: number; zoom: number } | null): void {
+    const same = this.meta && JSON.stringify(this.meta) === JSON.stringify(meta);
+    if (same) return;
+    this.meta = meta;
+    this.chunks?.overlay.remove();
+    this.info?.overlay.remove();
+    this.grid?.remove();
+    this.chunks = new ChunkLayer(meta, this.state, this.images);
+    this.chunks.overlay.addTo(this.map);
+    this.chunks.clear();
+    for (const k of this.state.cells.keys()) this.state.dirty.add(k);
+    this.info = new InfoLayer(meta);
+    this.grid = gridLines(meta);
+    this.applyToggles(toggles);
+    if (view) this.map.setView([view.lat, view.lng], view.zoom, { animate: false });
+    else if (!this.fitted) this.map.fitBounds(gridBounds(meta), { animate: false });
+    this.fitted = true;
+  }
+
+  applyToggles(t: LayerToggles): void {
+    if (!this.meta) return;
+    this.toggles = t;
+    this.robots.redraw();
+    if (this.grid) this.toggle(this.grid, t.borders);
+    if (this.info) this.toggle(this.info.overlay, t.info);
+    this.toggle(this.conflictLayer, t.conflicts);
+  }
+
+  private toggle(layer: L.Layer, on: boolean): void {
+    if (on && !this.map.hasLayer(layer)) layer.addTo(this.map);
+    if (!on && this.map.hasLayer(layer)) layer.remove();
+  }
+
+  /** Draws the changed chunks; true when every chunk shown has its picture. */
+  drawChunks(): boolean {
+    return this.chunks ? this.chunks.draw() : false;
+  }
+
+  drawInfo(t: number, mode: InfoMode): void {
+    if (this.info && this.map.hasLayer(this.info.overlay)) this.info.draw(this.state, t, mode);
+  }
+
+  updateRobots(robots: RobotView[]): void {
+    if (!this.meta) return;
+    if (this.follow) {
+      const r = robots.find((x) => x.robotId === this.follow);
+      if (r) this.map.panTo(metresToLatLng(this.meta, r.x, r.y), { animate: false });
+    }
+    this.robots.update(robots);
+  }
+
+  showTrail(points: { x: number; y: number }[]): void {
+    const meta = this.meta;
+    this.trail.setLatLngs(meta ? points.map((p) => metresToLatLng(meta, p.x, p.y)) : []);
+  }
+
+  showConflicts(conflicts: Conflict[], t: number, windowMs: number): void {
+    const meta = this.meta;
+    this.conflictLayer.clearLayers();
+    if (!meta) return;
+    for (const c of conflicts) {
+      if (c.ts_ms > t || c.ts_ms < t - windowMs) continue;
+      L.rectangle(chunkBounds(meta, c.row, c.column), { color: "#e00", weight: 3, fill: false, interactive: true })
+        .bindTooltip(`conflict ${c.robot_a} / ${c.robot_b} at ${new Date(c.ts_ms).toISOString()}`)
+        .addTo(this.conflictLayer);
+    }
+  }
+
+  fitGrid(): void {
+    if (this.meta) this.map.fitBounds(gridBounds(this.meta), { animate: false });
+  }
+
+  /** Where the robots were drawn, in page coordinates. */
+  drawnRobots(): { robotId: string; x: number; y: number }[] {
+    const r = this.map.getContainer().getBoundingClientRect();
+    return this.robots.drawn.map((d) => ({ robotId: d.robotId, x: r.left + d.x, y: r.top + d.y }));
+  }
+
+  /** The page point (CSS px, relative to the viewport) of a map pixel. */
+  screenPointOfPixel(row: number, col: number): { x: number; y: number } {
+    const p = this.map.latLngToContainerPoint(pixelToLatLng({ row, col }));
+    const r = this.map.getContainer().getBoundingClientRect();
+    return { x: r.left + p.x, y: r.top + p.y };
+  }
+
+  screenPointOfMetres(x: number, y: number): { x: number; y: number } {
+    const p = metresToPixel(this.meta!, x, y);
+    return this.screenPointOfPixel(p.row, p.col);
+  }
+
+  view(): { lat: number; lng: number; zoom: number } {
+    const c = this.map.getCenter();
+    return { lat: Math.round(c.lat * 10) / 10, lng: Math.round(c.lng * 10) / 10, zoom: this.map.getZoom() };
+  }
+}

@@ -1,0 +1,172 @@
+/**
+ * Robots drawn on one canvas the size of the map's viewport, redrawn each frame: two
+ * hundred robots cost one canvas, not two hundred moving DOM layers. Hit-testing for
+ * clicks is done here too.
+ */
+import L from "leaflet";
+import type { RobotView } from "./engine";
+import { metresToLatLng } from "./geo";
+import { batteryColour, yawOfPose } from "./poses";
+import type { MapMeta } from "./types";
+
+export interface RobotStyle {
+  names: boolean;
+  battery: boolean;
+  paths: boolean;
+  selected: string | null;
+}
+
+export interface DrawnRobot {
+  robotId: string;
+  x: number; // container px
+  y: number;
+}
+
+const RADIUS = 8;
+const NEUTRAL = "#4a90d9";
+
+export class RobotLayer extends L.Layer {
+  private canvas: HTMLCanvasElement | null = null;
+  private robots: RobotView[] = [];
+  /** Where each robot was drawn last (container coordinates), for clicks and tests. */
+  drawn: DrawnRobot[] = [];
+  onClick: (id: string) => void = () => {};
+
+  constructor(private meta: () => MapMeta | null, private style: () => RobotStyle) {
+    super();
+  }
+
+  onAdd(map: L.Map): this {
+    const canvas = (this.canvas = L.DomUtil.create("canvas", "robot-canvas leaflet-zoom-hide") as HTMLCanvasElement);
+    map.getPanes().markerPane.appendChild(canvas);
+    map.on("moveend zoomend resize viewreset", this.reset, this);
+    map.on("move", this.redraw, this);
+    map.on("click", this.click, this);
+    map.on("mousemove", this.hover, this);
+    this.reset();
+    return this;
+  }
+
+  onRemove(map: L.Map): this {
+    this.canvas?.remove();
+    this.canvas = null;
+    map.off("moveend zoomend resize viewreset", this.reset, this);
+    map.off("move", this.redraw, this);
+    map.off("click", this.click, this);
+    map.off("mousemove", this.hover, this);
+    return this;
+  }
+
+  private reset(): void {
+    const map = (this as any)._map as L.Map | undefined;
+    if (!map || !this.canvas) return;
+    const size = map.getSize();
+    const ratio = window.devicePixelRatio || 1;
+    if (this.canvas.width !== size.x * ratio || this.canvas.height !== size.y * ratio) {
+      this.canvas.width = size.x * ratio;
+      this.canvas.height = size.y * ratio;
+      this.canvas.style.width = `${size.x}px`;
+      this.canvas.style.height = `${size.y}px`;
+    }
+    this.redraw();
+  }
+
+  update(robots: RobotView[]): void {
+    this.robots = robots;
+    this.redraw();
+  }
+
+  redraw(): void {
+    const map = (this as any)._map as L.Map | undefined;
+    const meta = this.meta();
+    if (!map || !this.canvas || !meta) return;
+    // The canvas stays over the viewport while the map pane is dragged.
+    L.DomUtil.setPosition(this.canvas, map.containerPointToLayerPoint([0, 0]));
+    const ctx = this.canvas.getContext("2d")!;
+    const ratio = window.devicePixelRatio || 1;
+    ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
+    ctx.clearRect(0, 0, this.canvas.width, this.canvas.height);
+    const style = this.style();
+    const size = map.getSize();
+    const drawn: DrawnRobot[] = [];
+    if (style.paths) {
+      ctx.strokeStyle = "#7b2cbf";
+      ctx.lineWidth = 2;
+      ctx.setLineDash([4, 4]);
+      for (const r of this.robots) {
+        const path = r.pose.path;
+        if (!path || !path.length) continue;
+        ctx.beginPath();
+        const start = map.latLngToContainerPoint(metresToLatLng(meta, r.x, r.y));
+        ctx.moveTo(start.x, start.y);
+        for (const [x, y] of path) {
+          const p = map.latLngToContainerPoint(metresToLatLng(meta, x, y));
+          ctx.lineTo(p.x, p.y);
+        }
+        ctx.stroke();
+      }
+      ctx.setLineDash([]);
+    }
+    ctx.font = "11px system-ui, sans-serif";
+    for (const r of this.robots) {
+      const p = map.latLngToContainerPoint(metresToLatLng(meta, r.x, r.y));
+      drawn.push({ robotId: r.robotId, x: p.x, y: p.y });
+      if (p.x < -50 || p.y < -50 || p.x > size.x + 200 || p.y > size.y + 50) continue;
+      const yaw = r.yaw ?? yawOfPose(r.pose);
+      ctx.save();
+      ctx.globalAlpha = r.offline ? 0.4 : 1;
+      ctx.translate(p.x, p.y);
+      if (style.selected === r.robotId) {
+        ctx.beginPath();
+        ctx.arc(0, 0, RADIUS + 5, 0, 2 * Math.PI);
+        ctx.strokeStyle = "#1f6feb";
+        ctx.lineWidth = 3;
+        ctx.stroke();
+      }
+      ctx.beginPath();
+      ctx.arc(0, 0, RADIUS, 0, 2 * Math.PI);
+      ctx.fillStyle = style.battery ? batteryColour(r.pose.battery_level) : NEUTRAL;
+      ctx.fill();
+      ctx.lineWidth = 1.5;
+      ctx.strokeStyle = "#222";
+      ctx.stroke();
+      // Heading: counter-clockwise in the world is clockwise on a y-down screen.
+      ctx.rotate(-yaw);
+      ctx.beginPath();
+      ctx.moveTo(RADIUS - 4, -5);
+      ctx.lineTo(RADIUS + 5, 0);
+      ctx.lineTo(RADIUS - 4, 5);
+      ctx.closePath();
+      ctx.fillStyle = "#222";
+      ctx.fill();
+      ctx.restore();
+      if (style.names) {
+        const w = ctx.measureText(r.robotId).width;
+        ctx.fillStyle = "rgba(255,255,255,0.8)";
+        ctx.fillRect(p.x + RADIUS + 4, p.y - 7, w + 4, 14);
+        ctx.fillStyle = "#222";
+        ctx.fillText(r.robotId, p.x + RADIUS + 6, p.y + 4);
+      }
+    }
+    this.drawn = drawn;
+  }
+
+  /** The robot under a container point, if any (the topmost, i.e. drawn last). */
+  hit(x: number, y: number): string | null {
+    for (let i = this.drawn.length - 1; i >= 0; i--) {
+      const d = this.drawn[i];
+      if ((d.x - x) ** 2 + (d.y - y) ** 2 <= (RADIUS + 4) ** 2) return d.robotId;
+    }
+    return null;
+  }
+
+  private click(e: L.LeafletMouseEvent): void {
+    const id = this.hit(e.containerPoint.x, e.containerPoint.y);
+    if (id) this.onClick(id);
+  }
+
+  private hover(e: L.LeafletMouseEvent): void {
+    const map = (this as any)._map as L.Map;
+    map.getContainer().style.cursor = this.hit(e.containerPoint.x, e.containerPoint.y) ? "pointer" : "";
+  }
+}

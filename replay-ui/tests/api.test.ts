@@ -1,0 +1,54 @@
+import { afterEach, describe, expect, it, vi } from "vitest";
+import { Api, downsample } from "../src/lib/api";
+import type { Pose } from "../src/lib/types";
+
+function pose(robotId: string, ts: number): Pose {
+  return { robotId, ts_ms: ts, position: [0, 0, 0], orientation: [0, 0, 0, 1], battery_level: 1, charging: false, loaded: false, path: null };
+}
+
+function respond(routes: Record<string, unknown>) {
+  const calls: string[] = [];
+  vi.stubGlobal("fetch", async (url: string) => {
+    calls.push(url);
+    const path = url.split("?")[0];
+    if (!(path in routes)) return new Response(JSON.stringify({ detail: "Not Found" }), { status: 404, statusText: "Not Found" });
+    return new Response(JSON.stringify(routes[path]), { status: 200 });
+  });
+  return calls;
+}
+
+afterEach(() => vi.unstubAllGlobals());
+
+describe("Api", () => {
+  it("falls back to chunk-events and poses while /events is missing, and remembers it", async () => {
+    const chunk = { row: 1, column: 2, ts_ms: 5, robotId: "r", content_hash: "a".repeat(32) };
+    const calls = respond({ "/api/v1/chunk-events": [chunk], "/api/v1/poses": [pose("r", 1), pose("r", 2), pose("r", 70_000)] });
+    const api = new Api();
+    const w = await api.events(0, 100_000, 60_000);
+    expect(w.chunks).toEqual([chunk]);
+    expect(w.poses.map((p) => p.ts_ms)).toEqual([1, 70_000]);
+    expect(w.truncated).toBe(false);
+    await api.events(0, 100_000, 0);
+    expect(calls.filter((c) => c.startsWith("/api/v1/events"))).toHaveLength(1);
+  });
+
+  it("uses /events when it is there", async () => {
+    const body = { from_ms: 0, to_ms: 10, step_ms: 0, chunks: [], poses: [], truncated: false };
+    respond({ "/api/v1/events": body });
+    expect(await new Api().events(0, 10, 0)).toEqual(body);
+  });
+
+  it("treats a missing timeline or conflicts endpoint as no data, not an error", async () => {
+    respond({});
+    const api = new Api();
+    expect(await api.timeline(0, 10, 5)).toBeNull();
+    expect(await api.conflicts(0, 10)).toEqual([]);
+  });
+});
+
+describe("downsample", () => {
+  it("keeps each robot's first pose per step", () => {
+    const got = downsample([pose("a", 0), pose("b", 10), pose("a", 500), pose("a", 1000), pose("b", 1999)], 1000);
+    expect(got.map((p) => `${p.robotId}${p.ts_ms}`)).toEqual(["a0", "b10", "a1000", "b1999"]);
+  });
+});

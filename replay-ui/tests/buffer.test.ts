@@ -1,0 +1,136 @@
+import { describe, expect, it } from "vitest";
+import { EventBuffer, complete, fetchSpanMs, lookaheadMs, poseStepMs, type Source } from "../src/lib/buffer";
+import { SPEEDS } from "../src/lib/clock";
+import { cellKey, compareChanges, MapState } from "../src/lib/mapstate";
+import type { ChunkCell, ChunkChange, EventWindow, Pose } from "../src/lib/types";
+
+function history(n: number, span: number): ChunkChange[] {
+  const out: ChunkChange[] = [];
+  for (let i = 0; i < n; i++) {
+    out.push({ ts_ms: Math.floor((i * span) / n), row: i % 3, column: (i * 7) % 5, robotId: `r${i % 2}`, content_hash: `h${i}` });
+  }
+  return out.sort(compareChanges);
+}
+
+function fakeSource(all: ChunkChange[], limit = Infinity): Source & { calls: [number, number][] } {
+  const calls: [number, number][] = [];
+  const mapAt = async (t: number): Promise<ChunkCell[]> => {
+    const best = new Map<number, ChunkCell>();
+    for (const c of all) if (c.ts_ms <= t) best.set(cellKey(c.row, c.column), c);
+    return [...best.values()].map((c) => ({ ...c }));
+  };
+  return {
+    calls,
+    async events(f: number, t: number, step: number): Promise<EventWindow> {
+      calls.push([f, t]);
+      const inside = all.filter((c) => c.ts_ms >= f && c.ts_ms < t).map((c) => ({ ...c }));
+      const poses: Pose[] = [];
+      return { from_ms: f, to_ms: t, step_ms: step, chunks: inside.slice(0, limit), poses, truncated: inside.length > limit };
+    },
+    mapAt,
+    robotsAt: async () => [],
+  };
+}
+
+async function fill(b: EventBuffer, playhead: number, dir: 1 | -1, speed: number, now: number) {
+  for (let i = 0; i < 1000; i++) {
+    const p = b.ensure(playhead, dir, speed, now, 0);
+    if (!p) return;
+    await p;
+  }
+}
+
+describe("buffer sizing", () => {
+  it("looks further ahead and fetches bigger spans at higher speed", () => {
+    for (let i = 1; i < SPEEDS.length; i++) {
+      expect(lookaheadMs(SPEEDS[i])).toBeGreaterThanOrEqual(lookaheadMs(SPEEDS[i - 1]));
+      expect(fetchSpanMs(SPEEDS[i])).toBeGreaterThanOrEqual(fetchSpanMs(SPEEDS[i - 1]));
+    }
+    expect(lookaheadMs(86400)).toBeGreaterThan(3_600_000);
+    expect(poseStepMs(8)).toBe(0);
+    expect(poseStepMs(86400)).toBeGreaterThan(60_000);
+  });
+});
+
+describe("EventBuffer", () => {
+  it("keeps the look-ahead ahead of the playhead and no further than now", async () => {
+    const all = history(500, 100_000);
+    const src = fakeSource(all);
+    const b = new EventBuffer(src, 10_000, 8);
+    b.reset(10_000, 8, []);
+    await fill(b, 10_000, 1, 8, 50_000);
+    expect(b.covers(10_000, 10_000 + lookaheadMs(8))).toBe(true);
+    expect(b.to).toBeLessThanOrEqual(50_001);
+    expect(b.chunks).toEqual(all.filter((c) => c.ts_ms > 10_000 && c.ts_ms < b.to));
+  });
+
+  it("continues after a truncated window without losing writes", async () => {
+    const all = history(300, 30_000);
+    const src = fakeSource(all, 17);
+    const b = new EventBuffer(src, 0, 1);
+    b.reset(-1, 1, []);
+    for (let i = 0; i < 200 && b.to < 30_000; i++) await b.extendForward(b.to, b.to + 30_000);
+    expect(b.chunks.map((c) => c.content_hash)).toEqual(all.map((c) => c.content_hash));
+  });
+
+  it("plays backwards across a fetched span with exact previous states", async () => {
+    const all = history(600, 60_000);
+    const src = fakeSource(all);
+    const start = 50_000;
+    const b = new EventBuffer(src, start, 60);
+    b.reset(start, 60, []);
+    const s = new MapState();
+    s.reset(await src.mapAt(start));
+    await fill(b, start, -1, 60, 60_000);
+    expect(b.from).toBeLessThanOrEqual(start - 20_000);
+    s.move(b.chunks, start, 5_000);
+    const expected = await src.mapAt(5_000);
+    expect(new Map([...s.cells].map(([k, c]) => [k, c.content_hash]))).toEqual(
+      new Map(expected.map((c) => [cellKey(c.row, c.column), c.content_hash])));
+  });
+
+  it("trims behind the playhead", async () => {
+    const all = history(500, 100_000);
+    const b = new EventBuffer(fakeSource(all), 0, 8);
+    b.reset(0, 8, []);
+    await b.extendForward(1, 80_000);
+    b.trim(60_000, 1, 10_000);
+    expect(b.from).toBe(50_000);
+    expect(b.chunks[0].ts_ms).toBeGreaterThanOrEqual(50_000);
+  });
+
+  it("treats a truncated window as complete only before its last instant", () => {
+    const w: EventWindow = {
+      from_ms: 0, to_ms: 100, step_ms: 0, truncated: true, poses: [],
+      chunks: [10, 20, 20].map((ts, i) => ({ ts_ms: ts, row: 0, column: i, robotId: "r", content_hash: `${i}` })),
+    };
+    const c = complete(w, 0, 100);
+    expect(c.to).toBe(20);
+    expect(c.chunks).toHaveLength(1);
+    const cut = complete({ ...w, to_ms: 20, chunks: w.chunks.slice(0, 1) }, 0, 100);
+    expect(cut.to).toBe(20);
+  });
+
+  it("asks for whole-minute pose steps and whole-minute window starts after the first", async () => {
+    expect(poseStepMs(3600) % 60_000).toBe(0);
+    expect(poseStepMs(86400) % 60_000).toBe(0);
+    const src = fakeSource(history(10, 1_000_000));
+    const b = new EventBuffer(src, 12_345, 3600);
+    b.reset(12_345, 3600, []);
+    await fill(b, 12_345, 1, 3600, 10_000_000);
+    expect(src.calls.slice(1).every(([f]) => f % 60_000 === 0)).toBe(true);
+  });
+});
+
+describe("EventBuffer near now", () => {
+  it("does not poll tiny windows while the playhead has data ahead", async () => {
+    const src = fakeSource(history(10, 100_000));
+    const b = new EventBuffer(src, 90_000, 1);
+    b.reset(90_000, 1, []);
+    await fill(b, 90_000, 1, 1, 95_000);
+    const calls = src.calls.length;
+    expect(b.ensure(90_500, 1, 1, 95_500, 0)).toBeNull();
+    expect(src.calls.length).toBe(calls);
+    expect(b.ensure(94_500, 1, 1, 95_500, 0)).not.toBeNull();
+  });
+});

@@ -1,0 +1,463 @@
+"""`mapservice robot`: a robot agent that keeps its local map in sync with the service.
+
+The 2019 start-up and sync sequence (section 5.2 of the 2019 documentation), over the 2019
+REST and MQTT API (appendix A):
+
+1. GET /api/chunk-service/meta. None stored: POST this robot's meta and all its chunks.
+   Stored: download the whole map (GET /api/chunk-service/chunks?latest=true) into the
+   local map file.
+2. Every period: integrate chunks other robots changed (iot/chunks/advertisement, each
+   downloaded through its chunkUrl); in a period without any, look for local changes of
+   the map file and publish every chunk whose content hash changed and that changed by
+   more than the threshold (the seed's idea I.5) on iot/chunks/create.
+3. Every period: publish pose and status on iot/coordinates/{robotId}, from a simulated
+   drive on the map or from JSON odometry on a local MQTT topic (the 2019 ROS bridge).
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import queue
+import signal
+import sys
+import threading
+import time
+import zlib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import httpx
+import msgspec
+import numpy as np
+import structlog
+import yaml
+
+from mapservice.events import MapMetaSet
+from mapservice.mapfile import RosMap, load_ros_map, meta_for, write_pgm
+from mapservice.mqtt import make_client, parse_mqtt_url
+from mapservice.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
+
+from .chunks import chunk_pixels, meta_from_json, meta_to_json, paste_chunk
+from .faults import yaw_quaternion
+
+log = structlog.get_logger("robot")
+
+ADVERTISEMENT_TOPIC = "iot/chunks/advertisement"
+CHUNK_TOPIC = "iot/chunks/create"
+META_PATH = "/api/chunk-service/meta"
+CHUNKS_PATH = "/api/chunk-service/chunks"
+
+
+# --- the local map and what changed in it (pure) ---------------------------------------------
+
+
+@dataclass
+class LocalMap:
+    """The robot's map pixels and, per chunk, what the service is known to hold."""
+
+    pixels: np.ndarray
+    meta: MapMetaSet
+    fill: int
+    known: dict[tuple[int, int], tuple[bytes, bytes]] = field(default_factory=dict)  # hash, pixels
+
+    @classmethod
+    def of(cls, ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100) -> "LocalMap":
+        local = cls(ros_map.pixels.copy(), meta_for(ros_map, chunk_width, chunk_height),
+                    ros_map.unknown_value)
+        local.mark_all_known()
+        return local
+
+    def chunk(self, row: int, column: int) -> bytes:
+        return chunk_pixels(self.pixels, self.meta, row, column, self.fill)
+
+    def cells(self):
+        return ((r, c) for r in range(self.meta.chunk_rows) for c in range(self.meta.chunk_cols))
+
+    def mark_all_known(self) -> None:
+        for rc in self.cells():
+            data = self.chunk(*rc)
+            self.known[rc] = (content_hash(data), data)
+
+    def changes(self, pixels: np.ndarray, threshold: float = 0.0) -> list[tuple[int, int, bytes]]:
+        """Chunks of `pixels` whose hash differs from the known one and of which more than
+        `threshold` (a fraction of the chunk's pixels) changed; they become the known ones."""
+        self.pixels = pixels
+        out = []
+        for rc in self.cells():
+            data = self.chunk(*rc)
+            digest = content_hash(data)
+            known_hash, known = self.known.get(rc, (b"", b""))
+            if digest == known_hash:
+                continue
+            if known and len(known) == len(data):
+                changed = np.count_nonzero(np.frombuffer(data, np.uint8) != np.frombuffer(known, np.uint8))
+                if changed <= threshold * len(data):
+                    continue  # small noise: keep comparing against what the service holds
+            self.known[rc] = (digest, data)
+            out.append((*rc, data))
+        return out
+
+    def integrate(self, row: int, column: int, data: bytes) -> bool:
+        """Writes a chunk from the service into the map; False when it held it already."""
+        if not (0 <= row < self.meta.chunk_rows and 0 <= column < self.meta.chunk_cols):
+            return False
+        if len(data) != self.meta.chunk_width * self.meta.chunk_height:
+            raise ValueError(f"chunk ({row}, {column}) has {len(data)} bytes")
+        digest = content_hash(data)
+        self.known[(row, column)] = (digest, data)
+        if self.chunk(row, column) == data:
+            return False
+        pixels = self.pixels.copy()
+        paste_chunk(pixels, self.meta, row, column, data)
+        self.pixels = pixels
+        return True
+
+
+def decode_chunk_doc(doc: dict) -> tuple[int, int, bytes]:
+    """(row, column, pixels) of a chunk as the REST API returns it (listing 13)."""
+    kind = doc.get("type", "pgm_base64_compressed")
+    if kind != "pgm_base64_compressed":
+        raise ValueError(f"chunk type {kind!r}; ask for pgm_base64_compressed")
+    raw = doc.get("chunk") or doc.get("pgmB64compressedData")
+    if raw is None:
+        raise ValueError("chunk document has no 'chunk' field")
+    return int(doc["row"]), int(doc["column"]), zlib.decompress(base64.b64decode(raw))
+
+
+def chunk_body(row: int, column: int, data: bytes, robot_id: str, t_ms: int) -> dict:
+    """Listing 10: the JSON a robot POSTs to /api/chunk-service/chunks."""
+    return msgspec.json.decode(encode_chunk_create(row, column, data, format_timestamp(t_ms), robot_id))
+
+
+def compatible(local: MapMetaSet, remote: MapMetaSet) -> bool:
+    return (local.width, local.height, local.chunk_width, local.chunk_height) == (
+        remote.width, remote.height, remote.chunk_width, remote.chunk_height)
+
+
+# --- pose sources ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class PoseReading:
+    x: float
+    y: float
+    yaw_q: tuple[float, float, float, float]
+    battery: float = 100.0
+    charging: bool = False
+    loaded: bool = False
+    path: tuple[tuple[float, float], ...] | None = None
+
+
+class SimulatedPose:
+    """One robot of the simulator, driving between stations of the robot's own map."""
+
+    def __init__(self, ros_map: RosMap, robot_id: str, seed: int = 0) -> None:
+        from .sim import SimConfig, new_state
+
+        seed = seed or sum(robot_id.encode())
+        state = new_state(ros_map, 1, seed=seed, config=SimConfig(change_every_s=0))
+        self.state = replace(state, robots=(replace(state.robots[0], robot_id=robot_id),))
+
+    def read(self) -> PoseReading | None:
+        from .sim import step
+
+        self.state, out = step(self.state)
+        p = out.poses[0]
+        return PoseReading(p.x, p.y, yaw_quaternion(p.yaw), p.battery, p.charging, p.loaded,
+                           p.path)
+
+
+def parse_odometry(data: bytes) -> PoseReading | None:
+    """nav_msgs/Odometry as JSON ({"pose": {"pose": {...}}}), a bare geometry_msgs/Pose
+    ({"position", "orientation"}) or one wrapped in "pose"; optional battery/charging/loaded."""
+    try:
+        doc = msgspec.json.decode(data)
+        pose = doc
+        while isinstance(pose, dict) and "pose" in pose and "position" not in pose:
+            pose = pose["pose"]
+        pos, ori = pose["position"], pose.get("orientation") or {"x": 0, "y": 0, "z": 0, "w": 1}
+        status = doc.get("status") or {}
+        battery = (status.get("battery") or {}) if isinstance(status, dict) else {}
+        return PoseReading(float(pos["x"]), float(pos["y"]),
+                           (float(ori["x"]), float(ori["y"]), float(ori["z"]), float(ori["w"])),
+                           float(battery.get("battery_level", doc.get("battery", 100.0))),
+                           bool(battery.get("charging", doc.get("charging", False))),
+                           bool(status.get("loaded", doc.get("loaded", False))))
+    except (msgspec.DecodeError, KeyError, TypeError, ValueError, AttributeError):
+        return None
+
+
+class OdometryPose:
+    """The latest odometry message of a local MQTT topic, re-stamped when published."""
+
+    def __init__(self, mqtt_url: str, topic: str) -> None:
+        self.latest: PoseReading | None = None
+        self.bad = 0
+        host, port, tls = parse_mqtt_url(mqtt_url)
+        self.client = make_client(f"odom-{os.getpid()}-{time.time_ns() % 10**6}", tls=tls)
+        self.client.on_connect = lambda c, *_: c.subscribe(topic, qos=0)
+        self.client.on_message = self._on_message
+        self.client.connect(host, port, keepalive=30)
+        self.client.loop_start()
+
+    def _on_message(self, client, userdata, msg) -> None:
+        reading = parse_odometry(msg.payload)
+        if reading is None:
+            self.bad += 1
+        else:
+            self.latest = reading
+
+    def read(self) -> PoseReading | None:
+        return self.latest
+
+    def close(self) -> None:
+        self.client.loop_stop()
+        self.client.disconnect()
+
+
+# --- the agent -------------------------------------------------------------------------------
+
+
+class RobotAgent:
+    def __init__(self, map_yaml: str | Path, robot_id: str, api_url: str, mqtt_url: str, *,
+                 pose_source=None, threshold: float = 0.0, period_s: float = 1.0,
+                 chunk_width: int = 100, chunk_height: int = 100,
+                 http: httpx.Client | None = None) -> None:
+        self.map_yaml = Path(map_yaml)
+        self.ros_map = load_ros_map(self.map_yaml)
+        doc = yaml.safe_load(self.map_yaml.read_text())
+        self.image_path = (self.map_yaml.parent / doc["image"]).resolve()
+        self.robot_id = robot_id
+        self.mqtt_url = mqtt_url
+        self.threshold = threshold
+        self.period_s = period_s
+        self.local = LocalMap.of(self.ros_map, chunk_width, chunk_height)
+        self.http = http or httpx.Client(base_url=api_url.rstrip("/"), timeout=30)
+        self.pose_source = pose_source
+        self.adverts: queue.Queue[bytes] = queue.Queue()
+        self.stats = {"published_chunks": 0, "integrated_chunks": 0, "poses": 0, "errors": 0}
+        self._stop = threading.Event()
+        self._file_sig = self._signature()
+        self._pending = False  # the file changed and its chunks were not compared yet
+        self.client = None
+
+    # -- the map file
+
+    def _signature(self) -> tuple[int, ...]:
+        st = self.image_path.stat()
+        return st.st_mtime_ns, st.st_size, st.st_ino, st.st_ctime_ns
+
+    def _write_map(self) -> None:
+        tmp = self.image_path.with_name(f".{self.image_path.name}.{os.getpid()}.tmp")
+        write_pgm(tmp, self.local.pixels, magic=self.ros_map.magic, comment=self.ros_map.comment,
+                  maxval=self.ros_map.max_brightness)
+        os.replace(tmp, self.image_path)  # readers never see half a map
+        self._file_sig = self._signature()
+
+    def _read_map_pixels(self) -> np.ndarray | None:
+        sig = self._signature()
+        if sig == self._file_sig:
+            return None
+        try:
+            pixels = load_ros_map(self.map_yaml).pixels
+        except (OSError, ValueError) as exc:  # caught mid-write by another program
+            log.warning("map file unreadable, retrying", error=str(exc))
+            return None
+        self._file_sig = sig
+        if pixels.shape != self.local.pixels.shape:
+            log.error("map file changed size; keeping the old one", shape=pixels.shape)
+            return None
+        return pixels
+
+    # -- start-up (2019 sequence)
+
+    def remote_meta(self) -> MapMetaSet | None:
+        resp = self.http.get(META_PATH)
+        if resp.status_code == 404:
+            return None
+        resp.raise_for_status()
+        doc = resp.json() if resp.content else None
+        if not doc or "CHUNK_WIDTH" not in doc:
+            return None
+        return meta_from_json(doc)
+
+    def start(self) -> str:
+        """Uploads the map or downloads it; returns which ("uploaded" / "downloaded")."""
+        remote = self.remote_meta()
+        if remote is None:
+            self.http.post(META_PATH, json=meta_to_json(self.local.meta)).raise_for_status()
+            now = time.time_ns() // 1_000_000
+            for row, column in self.local.cells():
+                body = chunk_body(row, column, self.local.chunk(row, column), self.robot_id, now)
+                self.http.post(CHUNKS_PATH, json=body).raise_for_status()
+            log.info("uploaded map", robot=self.robot_id,
+                     chunks=self.local.meta.chunk_rows * self.local.meta.chunk_cols)
+            return "uploaded"
+        if not compatible(self.local.meta, remote):
+            raise RuntimeError(
+                f"the service's map is {remote.width} x {remote.height} px in {remote.chunk_width}"
+                f" x {remote.chunk_height} chunks, this robot's is {self.local.meta.width} x "
+                f"{self.local.meta.height} in {self.local.meta.chunk_width} x "
+                f"{self.local.meta.chunk_height}; use the same map")
+        self.download_map()
+        return "downloaded"
+
+    def download_map(self) -> int:
+        page, skip, count = 1000, 0, 0
+        while True:
+            resp = self.http.get(CHUNKS_PATH, params={"latest": "true", "limit": page, "skip": skip,
+                                                      "type": "pgm_base64_compressed"})
+            resp.raise_for_status()
+            docs = resp.json()
+            for doc in docs:
+                self.local.integrate(*decode_chunk_doc(doc))
+            count += len(docs)
+            if len(docs) < page:
+                break
+            skip += page
+        self._write_map()
+        log.info("downloaded map", robot=self.robot_id, chunks=count)
+        return count
+
+    # -- the loop
+
+    def _on_connect(self, client, userdata, flags, reason, properties=None) -> None:
+        client.subscribe(ADVERTISEMENT_TOPIC, qos=1)
+
+    def _on_message(self, client, userdata, msg) -> None:
+        self.adverts.put(msg.payload)
+
+    def connect(self) -> None:
+        host, port, tls = parse_mqtt_url(self.mqtt_url)
+        self.client = make_client(f"robot-{self.robot_id}", tls=tls)
+        self.client.on_connect = self._on_connect
+        self.client.on_message = self._on_message
+        self.client.connect(host, port, keepalive=30)
+        self.client.loop_start()
+
+    def _refresh_from_disk(self) -> None:
+        """Takes up edits of the map file; they stay pending until compared and published."""
+        pixels = self._read_map_pixels()
+        if pixels is not None:
+            self.local.pixels = pixels
+            self._pending = True
+
+    def integrate_adverts(self) -> int:
+        """Downloads and writes every advertised chunk of another robot; how many changed.
+
+        Local edits the file holds are read first, so writing the file keeps them (outside
+        the advertised chunks) for the next local check."""
+        if self.adverts.empty():
+            return 0
+        self._refresh_from_disk()
+        changed = 0
+        while True:
+            try:
+                raw = self.adverts.get_nowait()
+            except queue.Empty:
+                break
+            try:
+                advert = msgspec.json.decode(raw)
+                if advert.get("robotId") == self.robot_id:
+                    continue
+                changed += self.local.integrate(*self._fetch_advertised(advert))
+            except (msgspec.DecodeError, KeyError, TypeError, ValueError, AttributeError,
+                    zlib.error, httpx.HTTPError) as exc:
+                self.stats["errors"] += 1
+                log.warning("advertisement not integrated", error=str(exc))
+        if changed:
+            self._write_map()
+            self.stats["integrated_chunks"] += changed
+            log.info("integrated chunks of other robots", robot=self.robot_id, chunks=changed)
+        return changed
+
+    def _fetch_advertised(self, advert: dict) -> tuple[int, int, bytes]:
+        """The advertised chunk, downloaded through its chunkUrl (A.1.3); the copy inside
+        the advertisement only if the URL cannot be read (e.g. a wrong public_base_url)."""
+        try:
+            resp = self.http.get(advert["chunkUrl"])
+            resp.raise_for_status()
+            return decode_chunk_doc(resp.json())
+        except httpx.HTTPError:
+            if "chunk" not in advert:
+                raise
+            log.warning("chunkUrl unreadable; using the advertisement's copy", url=advert["chunkUrl"])
+            return decode_chunk_doc(advert)
+
+    def publish_local_changes(self) -> int:
+        self._refresh_from_disk()
+        if not self._pending:
+            return 0
+        self._pending = False
+        now = time.time_ns() // 1_000_000
+        changes = self.local.changes(self.local.pixels, self.threshold)
+        for row, column, data in changes:
+            self.client.publish(CHUNK_TOPIC, encode_chunk_create(
+                row, column, data, format_timestamp(now), self.robot_id), qos=1)
+        if changes:
+            self.stats["published_chunks"] += len(changes)
+            log.info("published local changes", robot=self.robot_id, chunks=len(changes))
+        return len(changes)
+
+    def publish_pose(self) -> bool:
+        reading = self.pose_source.read() if self.pose_source is not None else None
+        if reading is None:
+            return False
+        now = time.time_ns() // 1_000_000
+        self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
+            self.robot_id, format_timestamp(now), reading.x, reading.y, reading.yaw_q,
+            battery_level=reading.battery, charging=reading.charging, loaded=reading.loaded,
+            path=list(reading.path) if reading.path else None), qos=1)
+        self.stats["poses"] += 1
+        return True
+
+    def tick(self) -> None:
+        # 2019: an iteration that integrated external chunks skips the local check.
+        if not self.integrate_adverts():
+            self.publish_local_changes()
+        self.publish_pose()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self, seconds: float | None = None) -> None:
+        self.connect()
+        started = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                if seconds is not None and time.monotonic() - started >= seconds:
+                    break
+                began = time.monotonic()
+                self.tick()
+                self._stop.wait(max(0.0, self.period_s - (time.monotonic() - began)))
+        finally:
+            self.client.loop_stop()
+            self.client.disconnect()
+
+
+def main(args) -> None:
+    from mapservice.logs import configure
+
+    configure("INFO", "console", "robot")
+    source = None
+    try:
+        ros_map = load_ros_map(args.map)
+        if args.pose == "odom":
+            source = OdometryPose(args.odom_mqtt or args.mqtt, args.odom_topic)
+        else:
+            source = SimulatedPose(ros_map, args.robot_id)
+        agent = RobotAgent(args.map, args.robot_id, args.api, args.mqtt, pose_source=source,
+                           threshold=args.threshold, period_s=args.period,
+                           chunk_width=args.chunk_width, chunk_height=args.chunk_height)
+        signal.signal(signal.SIGTERM, lambda *_: agent.stop())
+        how = agent.start()
+        log.info("robot started", robot=args.robot_id, map=how, api=args.api, mqtt=args.mqtt)
+        agent.run(args.seconds)
+    except KeyboardInterrupt:
+        pass
+    except (OSError, ValueError, RuntimeError, httpx.HTTPError) as exc:
+        sys.exit(f"mapservice robot: {exc}")
+    finally:
+        if isinstance(source, OdometryPose):
+            source.close()

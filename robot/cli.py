@@ -1,0 +1,204 @@
+"""The robot-side subcommands: `map`, `sim`, `robot`, `drive` (registered by mapservice.cli)."""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+DEFAULT_MAP = Path(__file__).resolve().parent.parent / "maps" / "warehouse.yaml"
+
+
+def _probability(text: str) -> float:
+    import argparse
+
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text} is not a probability between 0 and 1")
+    return value
+
+
+# --- map -----------------------------------------------------------------------------------
+
+
+def cmd_map(args) -> None:
+    from .chunks import describe, slice_to_dir, stitch_dir
+
+    try:
+        if args.map_command == "slice":
+            meta = slice_to_dir(args.file, args.output_dir, args.chunk_width, args.chunk_height)
+            print(f"{meta.chunk_rows * meta.chunk_cols} chunks ({meta.chunk_rows} rows x "
+                  f"{meta.chunk_cols} columns of {meta.chunk_width} x {meta.chunk_height} px) "
+                  f"and meta.json in {args.output_dir}")
+        elif args.map_command == "stitch":
+            out = stitch_dir(args.working_dir, args.output,
+                             magic={"p2": "P2", "p5": "P5"}.get(args.format or ""))
+            print(f"wrote {out}")
+        else:
+            print(json.dumps(describe(args.file, args.chunk_width, args.chunk_height), indent=2))
+    except (OSError, ValueError, KeyError) as exc:
+        sys.exit(f"mapservice map {args.map_command}: {exc}")
+
+
+# --- sim -----------------------------------------------------------------------------------
+
+
+def cmd_sim(args) -> None:
+    import structlog
+
+    from mapservice.cli import _settings
+    from mapservice.mapfile import load_ros_map
+
+    settings = _settings("sim")
+    log = structlog.get_logger("sim")
+    mqtt_url = args.mqtt_url or settings.mqtt_url
+    ros_map = load_ros_map(args.map)
+    if args.load_test:
+        return _load_test(args, mqtt_url, ros_map, log)
+    from rich.console import Console
+    from rich.live import Live
+
+    from .faults import Faults
+    from .sim import SimConfig
+    from .simrun import SimRunner, progress_table
+
+    runner = SimRunner(mqtt_url, ros_map, args.robots, seed=args.seed, prefix=args.prefix,
+                       faults=Faults(args.clock_skew, args.loss, args.bad_rate),
+                       config=SimConfig(change_every_s=args.change_every))
+    signal.signal(signal.SIGTERM, lambda *_: runner.stop())
+    console = Console()
+    log.info("simulated robots starting", robots=args.robots, map=str(args.map), mqtt=mqtt_url)
+    last = [0.0]
+
+    def log_progress(r) -> None:
+        now = time.monotonic()
+        if now - last[0] >= 10:
+            last[0] = now
+            s = r.stats
+            log.info("simulating", robots=s.robots, poses=s.poses, chunks=s.chunks, bad=s.bad,
+                     lost=s.lost, errors=s.errors, map_changes=s.map_changes,
+                     rate_per_s=round(s.rate(), 1))
+
+    try:
+        if console.is_terminal and not args.quiet:
+            with Live(progress_table(runner), console=console, refresh_per_second=2) as live:
+                runner.run(args.seconds, on_tick=lambda r: live.update(progress_table(r)))
+        else:
+            runner.run(args.seconds, on_tick=log_progress)
+    except KeyboardInterrupt:
+        runner.stop()
+    except OSError as exc:
+        sys.exit(f"cannot reach the MQTT broker at {mqtt_url}: {exc}; "
+                 "start one (e.g. `make up`) or pass --mqtt-url")
+    s = runner.stats
+    log.info("simulation stopped", robots=s.robots, poses=s.poses, chunks=s.chunks, bad=s.bad,
+             lost=s.lost, errors=s.errors, map_changes=s.map_changes)
+
+
+def _load_test(args, mqtt_url, ros_map, log) -> None:
+    """The 2019 load test: one pose a second, the same chunks re-sent at new positions."""
+    from mapservice.loadgen import RobotFleet
+
+    fleet = RobotFleet(mqtt_url, ros_map, args.robots)
+    signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
+    started, last = time.monotonic(), [0.0]
+
+    def progress(stats) -> None:
+        now = time.monotonic()
+        if now - last[0] >= 10:
+            last[0] = now
+            log.info("simulating (load test)", robots=args.robots, poses=stats.poses,
+                     chunks=stats.chunks,
+                     rate_per_s=round((stats.poses + stats.chunks) / max(now - started, 1e-9), 1))
+
+    try:
+        fleet.run(args.seconds, on_tick=progress)
+    except KeyboardInterrupt:
+        fleet.stop()
+    except OSError as exc:
+        sys.exit(f"cannot reach the MQTT broker at {mqtt_url}: {exc}; "
+                 "start one (e.g. `make up`) or pass --mqtt-url")
+
+
+# --- robot, drive --------------------------------------------------------------------------
+
+
+def cmd_robot(args) -> None:
+    from .agent import main as agent_main
+
+    agent_main(args)
+
+
+def cmd_drive(args) -> None:
+    from .drive import main as drive_main
+
+    drive_main(args)
+
+
+def add_parsers(sub) -> None:
+    m = sub.add_parser("map", help="slice a ROS map into 2019 chunks, stitch it back, describe it")
+    msub = m.add_subparsers(dest="map_command", required=True)
+    sl = msub.add_parser("slice", help="cut a map (ROS YAML or PGM) into chunk PGMs + meta.json")
+    sl.add_argument("file", help="map YAML (or a bare P2/P5 PGM); relative paths are fine")
+    sl.add_argument("--output-dir", "-o", required=True)
+    sl.add_argument("--chunk-width", type=int, default=100)
+    sl.add_argument("--chunk-height", type=int, default=100)
+    st = msub.add_parser("stitch", help="put a sliced map back together (cropping the padding)")
+    st.add_argument("working_dir", help="directory with meta.json and the chunks")
+    st.add_argument("--output", "-o", required=True, help="a .pgm, or a .yaml (with its .pgm)")
+    st.add_argument("--format", choices=["p2", "p5"], help="PGM flavour (default: as sliced)")
+    info = msub.add_parser("info", help="size, geometry, chunk grid and pixel classes of a map")
+    info.add_argument("file")
+    info.add_argument("--chunk-width", type=int, default=100)
+    info.add_argument("--chunk-height", type=int, default=100)
+    m.set_defaults(func=cmd_map)
+
+    sim = sub.add_parser("sim", help="simulated robots on a real map, publishing over MQTT")
+    sim.add_argument("--robots", type=int, default=5)
+    sim.add_argument("--map", default=str(DEFAULT_MAP))
+    sim.add_argument("--mqtt-url", default=None)
+    sim.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    sim.add_argument("--seed", type=int, default=7)
+    sim.add_argument("--prefix", default="sim", help="robot ids are <prefix>-000, ...")
+    sim.add_argument("--clock-skew", type=float, default=0.0, metavar="SECONDS",
+                     help="each robot's clock is off by a fixed amount within +-SECONDS")
+    sim.add_argument("--loss", type=_probability, default=0.0,
+                     help="probability that a message is not sent")
+    sim.add_argument("--bad-rate", type=_probability, default=0.0,
+                     help="probability that a message is replaced by invalid input")
+    sim.add_argument("--change-every", type=float, default=20.0, metavar="SECONDS",
+                     help="mean time between map changes (pallets, doors); 0: none")
+    sim.add_argument("--load-test", action="store_true",
+                     help="the 2019 load test instead: robots in circles, the same chunks "
+                          "re-sent at new positions every 5 s")
+    sim.add_argument("--quiet", action="store_true", help="log lines instead of a live table")
+    sim.set_defaults(func=cmd_sim)
+
+    rb = sub.add_parser("robot", help="a robot agent: keeps its local map in sync with the service")
+    rb.add_argument("--map", required=True, help="the robot's map YAML (its PGM is kept in sync)")
+    rb.add_argument("--robot-id", required=True)
+    rb.add_argument("--api", default="http://127.0.0.1:8080", help="base URL of the 2019 REST API")
+    rb.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="cloud MQTT broker")
+    rb.add_argument("--pose", choices=["sim", "odom"], default="sim",
+                    help="sim: a simulated drive on the map; odom: JSON odometry from --odom-topic")
+    rb.add_argument("--odom-topic", default="robot/odom",
+                    help="local topic with nav_msgs/Odometry-like JSON (the 2019 ROS bridge)")
+    rb.add_argument("--odom-mqtt", default=None, help="broker of the odometry topic (default --mqtt)")
+    rb.add_argument("--threshold", type=float, default=0.0,
+                    help="publish a changed chunk when more than this fraction of it changed")
+    rb.add_argument("--period", type=float, default=1.0, help="seconds between pose/map checks")
+    rb.add_argument("--chunk-width", type=int, default=100)
+    rb.add_argument("--chunk-height", type=int, default=100)
+    rb.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    rb.set_defaults(func=cmd_robot)
+
+    dr = sub.add_parser("drive", help="drive one robot with the arrow keys and paint its chunk")
+    dr.add_argument("--map", default=str(DEFAULT_MAP))
+    dr.add_argument("--robot-id", default="driver")
+    dr.add_argument("--mqtt", default="mqtt://127.0.0.1:1883")
+    dr.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"),
+                    help="start position in metres (default: a free cell)")
+    dr.add_argument("--step", type=int, default=10, help="pixels per key press and per screen cell")
+    dr.set_defaults(func=cmd_drive)

@@ -1,0 +1,159 @@
+"""Path planning on an inflated, coarse occupancy grid (A* from the `pathfinding` package).
+
+The map is cut into square cells of `cell_px` pixels. A cell is *clear* when every pixel
+in it is drivable, and *ok* (a robot may plan through it) when no non-clear cell lies
+within `inflate` cells of it: the inflation keeps a robot's body off the racks. A path
+joins centres of ok cells; each step stays inside the two cells it joins (diagonal steps
+only where both side cells are ok too), so a path of ok cells never touches a pixel
+that is not drivable.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from pathfinding.core.diagonal_movement import DiagonalMovement
+from pathfinding.core.grid import Grid
+from pathfinding.finder.a_star import AStarFinder
+
+Cell = tuple[int, int]  # (row, col) on the coarse grid
+
+
+@dataclass(frozen=True)
+class PlanGrid:
+    cell_px: int
+    ok: np.ndarray  # bool (rows, cols)
+    # The pathfinding Grid of `ok`, built once: building it costs as much as a search.
+    _pf: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def pf_grid(self) -> Grid:
+        grid = self._pf.get("grid")
+        if grid is None:
+            grid = self._pf["grid"] = Grid(matrix=self.ok.astype(np.int8).tolist())
+        else:
+            grid.cleanup()
+        return grid
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.ok.shape  # type: ignore[return-value]
+
+    def centre_px(self, cell: Cell) -> tuple[float, float]:
+        """Continuous image coordinates (u = column, v = row) of a cell's centre."""
+        return ((cell[1] + 0.5) * self.cell_px, (cell[0] + 0.5) * self.cell_px)
+
+    def cell_at(self, u: float, v: float) -> Cell:
+        return (int(v // self.cell_px), int(u // self.cell_px))
+
+    def is_ok(self, cell: Cell) -> bool:
+        r, c = cell
+        return 0 <= r < self.ok.shape[0] and 0 <= c < self.ok.shape[1] and bool(self.ok[r, c])
+
+
+def disc(radius: int) -> list[tuple[int, int]]:
+    return [(dr, dc) for dr in range(-radius, radius + 1) for dc in range(-radius, radius + 1)
+            if dr * dr + dc * dc <= radius * radius + radius]
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Boolean dilation by a disc of `radius` cells (the grid is small: shifts are cheap)."""
+    if radius <= 0:
+        return mask.copy()
+    padded = np.pad(mask, radius, constant_values=False)
+    out = np.zeros_like(mask)
+    h, w = mask.shape
+    for dr, dc in disc(radius):
+        out |= padded[radius + dr:radius + dr + h, radius + dc:radius + dc + w]
+    return out
+
+
+def build_grid(drivable: np.ndarray, cell_px: int, inflate: int) -> PlanGrid:
+    """Coarse grid of `drivable` (bool, image rows x columns); pixels past the edge are not
+    drivable."""
+    h, w = drivable.shape
+    rows, cols = -(-h // cell_px), -(-w // cell_px)
+    padded = np.zeros((rows * cell_px, cols * cell_px), dtype=bool)
+    padded[:h, :w] = drivable
+    clear = padded.reshape(rows, cell_px, cols, cell_px).all(axis=(1, 3))
+    return PlanGrid(cell_px, ~dilate(~clear, inflate))
+
+
+def grid_for(drivable: np.ndarray, resolution: float, cell_m: float = 0.25,
+             robot_radius_m: float = 0.3) -> PlanGrid:
+    cell_px = max(1, round(cell_m / resolution))
+    inflate = max(1, math.ceil(robot_radius_m / (cell_px * resolution)))
+    return build_grid(drivable, cell_px, inflate)
+
+
+def largest_component(ok: np.ndarray) -> np.ndarray:
+    """The biggest 8-connected set of ok cells (stations go there so all are reachable)."""
+    labels = np.zeros(ok.shape, dtype=np.int32)
+    best, best_size, label = 0, 0, 0
+    h, w = ok.shape
+    for r0, c0 in zip(*np.nonzero(ok)):
+        if labels[r0, c0]:
+            continue
+        label += 1
+        labels[r0, c0] = label
+        size, queue = 0, deque([(r0, c0)])
+        while queue:
+            r, c = queue.popleft()
+            size += 1
+            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+                nr, nc = r + dr, c + dc
+                if 0 <= nr < h and 0 <= nc < w and ok[nr, nc] and not labels[nr, nc]:
+                    labels[nr, nc] = label
+                    queue.append((nr, nc))
+        if size > best_size:
+            best, best_size = label, size
+    return labels == best if best else np.zeros_like(ok)
+
+
+def plan(grid: PlanGrid, start: Cell, goal: Cell) -> list[Cell] | None:
+    """Shortest 8-connected path of ok cells from start to goal (both included), or None."""
+    if not (grid.is_ok(start) and grid.is_ok(goal)):
+        return None
+    if start == goal:
+        return [start]
+    pf_grid = grid.pf_grid()
+    finder = AStarFinder(diagonal_movement=DiagonalMovement.only_when_no_obstacle)
+    nodes, _ = finder.find_path(pf_grid.node(start[1], start[0]), pf_grid.node(goal[1], goal[0]),
+                                pf_grid)
+    if not nodes:
+        return None
+    return [(n.y, n.x) for n in nodes]
+
+
+def simplify(cells: list[Cell]) -> list[Cell]:
+    """Drops the cells in the middle of straight runs (the path's shape does not change)."""
+    if len(cells) <= 2:
+        return list(cells)
+    out = [cells[0]]
+    for prev, cur, nxt in zip(cells, cells[1:], cells[2:]):
+        if (cur[0] - prev[0], cur[1] - prev[1]) != (nxt[0] - cur[0], nxt[1] - cur[1]):
+            out.append(cur)
+    out.append(cells[-1])
+    return out
+
+
+def segment_pixels(a: tuple[float, float], b: tuple[float, float], step: float = 0.25):
+    """Image pixels (col, row) a straight segment between two (u, v) points passes over."""
+    (u0, v0), (u1, v1) = a, b
+    n = max(1, int(math.hypot(u1 - u0, v1 - v0) / step))
+    for i in range(n + 1):
+        t = i / n
+        yield int((u0 + (u1 - u0) * t) // 1), int((v0 + (v1 - v0) * t) // 1)
+
+
+def path_is_clear(points: list[tuple[float, float]], drivable: np.ndarray) -> bool:
+    """True when every pixel under the polyline is drivable."""
+    h, w = drivable.shape
+    pts = points if len(points) > 1 else points * 2
+    for a, b in zip(pts, pts[1:]):
+        for col, row in segment_pixels(a, b):
+            if not (0 <= row < h and 0 <= col < w and drivable[row, col]):
+                return False
+    return True

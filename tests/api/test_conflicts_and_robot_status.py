@@ -1,0 +1,82 @@
+"""GET /api/v1/conflicts, and the online / clock-skew fields of the robots at T."""
+
+from __future__ import annotations
+
+import pytest
+from fastapi.testclient import TestClient
+
+from mapservice.adapters.clock import ManualClock
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.api.app import create_app
+from mapservice.ports import ConflictRow
+from mapservice.settings import Settings
+
+NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
+HA, HB = "aa" * 16, "bb" * 16
+
+
+@pytest.fixture
+def store(ev) -> MemoryStore:
+    s = MemoryStore()
+    s.append([
+        ev.pose("steady", NOW - 10_000, receive_lag_ms=40),
+        ev.pose("skewed", NOW - 2_000, receive_lag_ms=-7_000),  # its clock runs 7 s ahead
+        ev.pose("silent", NOW - 10_001, receive_lag_ms=5_000),
+    ])
+    s.append_conflicts([ConflictRow(1, 2, NOW - 5_000, "a", NOW - 9_000, HA, "b", HB),
+                        ConflictRow(0, 0, NOW - 1_000, "b", NOW - 1_500, HB, "c", HA)])
+    return s
+
+
+@pytest.fixture
+def client(store) -> TestClient:
+    return TestClient(create_app(Settings(), store, {}, ManualClock(NOW)),
+                      raise_server_exceptions=False)
+
+
+def test_robots_at_carry_online_and_clock_skew(client) -> None:
+    """online is age <= robot_offline_after_s; skew is receive - event time, flagged beyond 5 s."""
+    body = client.get("/api/v1/robots", params={"at": NOW}).json()
+    got = {r["robotId"]: (r["online"], r["clock_skew_ms"], r["clock_skew_flag"]) for r in body["robots"]}
+    assert got == {"steady": (True, 40, False), "skewed": (True, -7_000, True),
+                   "silent": (False, 5_000, False)}
+
+
+def test_robot_thresholds_come_from_settings(store) -> None:
+    """The offline and skew thresholds are the settings'."""
+    app = create_app(Settings(robot_offline_after_s=1, clock_skew_threshold_s=10), store, {},
+                     ManualClock(NOW))
+    robots = TestClient(app).get("/api/v1/robots", params={"at": NOW}).json()["robots"]
+    assert [(r["online"], r["clock_skew_flag"]) for r in robots] == [(False, False)] * 3
+
+
+def test_conflicts_in_window_ordered(client) -> None:
+    """/api/v1/conflicts lists the conflicts with from <= ts < to, in time order."""
+    body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW}).json()
+    assert body["truncated"] is False and body["window_s"] == 60.0
+    assert body["conflicts"] == [
+        {"row": 1, "column": 2, "ts_ms": NOW - 5_000, "robot_a": "a", "ts_a_ms": NOW - 9_000,
+         "hash_a": HA, "robot_b": "b", "hash_b": HB},
+        {"row": 0, "column": 0, "ts_ms": NOW - 1_000, "robot_a": "b", "ts_a_ms": NOW - 1_500,
+         "hash_a": HB, "robot_b": "c", "hash_b": HA}]
+    body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW - 1_000}).json()
+    assert len(body["conflicts"]) == 1
+    body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW, "limit": 1}).json()
+    assert body["truncated"] is True and len(body["conflicts"]) == 1
+
+
+@pytest.mark.parametrize("params, fragment", [
+    ({"from": NOW, "to": NOW - 1}, "swap"),
+    ({"from": "yesterday", "to": NOW}, "ISO 8601"),
+    ({"from": NOW - 8 * 86_400_000, "to": NOW}, "split"),
+])
+def test_bad_conflict_windows_are_400_with_a_reason(client, params, fragment) -> None:
+    """from > to, unparseable times and spans beyond the retention get a 400 saying why."""
+    r = client.get("/api/v1/conflicts", params=params)
+    assert r.status_code == 400 and fragment in r.json()["detail"]
+
+
+def test_conflicts_need_from_and_to(client) -> None:
+    """Missing parameters are a 422 naming them."""
+    r = client.get("/api/v1/conflicts")
+    assert r.status_code == 422 and "from" in r.text

@@ -1,0 +1,91 @@
+"""The batch path from the event topics into the history: store first, then commit."""
+
+from __future__ import annotations
+
+import asyncio
+
+from mapservice.adapters.memory_source import MemorySource
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.events import encode
+from mapservice.processors.app import HistorySink
+from mapservice.processors.history_consumer import HistoryConsumer
+
+NOW = 1_795_255_200_000
+POSES, CHUNKS = "poses", "chunks"
+
+
+class FlakyStore(MemoryStore):
+    """Fails the first `failures` appends, as a ClickHouse that is briefly away would."""
+
+    def __init__(self, failures: int) -> None:
+        super().__init__()
+        self.failures = failures
+        self.attempts = 0
+
+    def append(self, events) -> None:
+        self.attempts += 1
+        if self.failures:
+            self.failures -= 1
+            raise ConnectionError("clickhouse away")
+        super().append(events)
+
+
+def consumer_for(store: MemoryStore, source: MemorySource, batch: int = 100) -> HistoryConsumer:
+    return HistoryConsumer(source, HistorySink(store), None, batch_size=batch, batch_seconds=0.01,
+                           now_ms=lambda: NOW)
+
+
+def drain(consumer: HistoryConsumer) -> None:
+    async def go() -> None:
+        await consumer.start()
+        while await consumer.run_once():
+            pass
+    asyncio.run(go())
+
+
+def test_every_record_is_stored_and_then_committed(ev) -> None:
+    """Poses and chunks from several partitions all reach the store; every offset is committed."""
+    source, store = MemorySource(), MemoryStore()
+    for i in range(25):
+        source.append(POSES, encode(ev.pose(f"r{i % 3}", NOW + i * 1000)), partition=i % 3)
+    source.append(CHUNKS, encode(ev.chunk("r1", NOW, 1, 2)))
+    drain(consumer_for(store, source, batch=7))
+    assert store.counts().poses == 25 and store.counts().chunk_events == 1
+    assert source.committed == {(POSES, 0): 9, (POSES, 1): 8, (POSES, 2): 8, (CHUNKS, 0): 1}
+
+
+def test_a_failed_insert_is_retried_before_anything_is_committed(ev) -> None:
+    """A store failure retries the same batch; the commit comes only after it was stored."""
+    source, store = MemorySource(), FlakyStore(failures=2)
+    source.append(POSES, encode(ev.pose("r1", NOW)))
+    commits_seen_at_attempt = []
+    original_commit = source.commit
+    source.commit = lambda records: (commits_seen_at_attempt.append(store.attempts),
+                                     original_commit(records))[1]
+    drain(consumer_for(store, source))
+    assert store.counts().poses == 1
+    assert commits_seen_at_attempt == [3]
+
+
+def test_undecodable_records_become_dead_letters_and_are_committed(ev) -> None:
+    """Garbage on an event topic is stored as a dead letter; the good record beside it is stored."""
+    source, store = MemorySource(), MemoryStore()
+    source.append(POSES, b"\xc1 not an envelope")
+    source.append(POSES, encode(ev.pose("r1", NOW)))
+    drain(consumer_for(store, source))
+    assert store.counts().dead_letters == 1 and store.counts().poses == 1
+    assert source.committed == {(POSES, 0): 2}
+
+
+def test_a_restart_before_the_commit_redelivers_without_duplicates(ev) -> None:
+    """Records stored but not committed come again after a restart and are stored once."""
+    source, store = MemorySource(), MemoryStore()
+    for i in range(10):
+        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
+    source.fail_commits = True  # the consumer dies between insert and commit
+    drain(consumer_for(store, source))
+    source.fail_commits = False
+    source.restart()
+    drain(consumer_for(store, source))
+    assert store.counts().poses == 10
+    assert source.committed == {(POSES, 0): 10}

@@ -1,0 +1,164 @@
+"""The processors' live views over a MemoryStore, without brokers: advertisements on
+changes only, rebuilt from the history, conflicts recorded, advertiser trouble contained."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.processors.app import HistorySink
+from mapservice.processors.views import LiveViews
+from mapservice.settings import Settings
+from tests.conftest import NOW_MS, chunk_event, pose_event
+
+
+class FakeAdvertiser:
+    def __init__(self, fail: bool = False) -> None:
+        self.sent: list[dict] = []
+        self.fail = fail
+
+    def start(self) -> None:
+        pass
+
+    def publish(self, payload: dict) -> bool:
+        if self.fail:
+            raise ConnectionError("broker gone")
+        self.sent.append(payload)
+        return True
+
+    def stop(self) -> None:
+        pass
+
+
+@pytest.fixture
+def sink():
+    s = HistorySink(MemoryStore())
+    yield s
+    s.executor.shutdown(wait=True)
+
+
+def _views(sink, advertiser, now=NOW_MS, **settings) -> LiveViews:
+    return LiveViews(Settings(public_base_url="http://api:8080", **settings), sink.store,
+                     advertiser, now_ms=lambda: now)
+
+
+def _store_and_view(views: LiveViews, sink: HistorySink, events) -> None:
+    sink.store.append(events)
+    asyncio.run(views.on_stored(sink, events))
+    views.flush()
+
+
+def test_changes_are_advertised_once_and_older_writes_never(sink) -> None:
+    """A newer write is advertised; an older one and a re-delivery are not."""
+    ads = FakeAdvertiser()
+    views = _views(sink, ads)
+    views.load()
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 1, 2)])
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS - 1000, 1, 2, bytes([7]) * 10_000),
+                                  chunk_event("a", NOW_MS, 1, 2)])
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS + 1000, 1, 2)])
+    assert [(a["robotId"], a["id"]) for a in ads.sent] == [
+        ("a", "row:1_column:2_2026-11-21T10:00:00"), ("b", "row:1_column:2_2026-11-21T10:00:01")]
+    assert ads.sent[0]["chunkUrl"].startswith("http://api:8080/api/chunk-service/chunks/id/")
+
+
+def test_rebuilt_views_continue_where_the_history_is(sink) -> None:
+    """After a restart the view comes from the store: stored writes are not re-advertised,
+    older ones still lose, newer ones are advertised."""
+    sink.store.append([chunk_event("a", NOW_MS, 0, 0), pose_event("r1", NOW_MS)])
+    ads = FakeAdvertiser()
+    views = _views(sink, ads)
+    views.load()
+    assert set(views.latest) == {(0, 0)} and set(views.robots) == {"r1"}
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 0, 0), chunk_event("b", NOW_MS - 5, 0, 0)])
+    assert ads.sent == []
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS + 5, 0, 0)])
+    assert [a["robotId"] for a in ads.sent] == ["b"]
+
+
+def test_conflicts_are_recorded_with_the_batch(sink) -> None:
+    """Different content from two robots within the window becomes a conflict row."""
+    views = _views(sink, None, conflict_window_s=10)
+    views.load()
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 4, 4)])
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS + 9_000, 4, 4, bytes([1]) * 10_000),
+                                  chunk_event("c", NOW_MS + 30_000, 4, 4, bytes([2]) * 10_000)])
+    rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
+    assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [("a", "b", 9_000)]
+
+
+def test_a_failing_advertiser_does_not_stop_the_sink(sink) -> None:
+    """An advertiser that raises is logged; the views still change and conflicts are stored."""
+    views = _views(sink, FakeAdvertiser(fail=True))
+    views.load()
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 0, 0)])
+    assert (0, 0) in views.latest
+
+
+def test_presence_transitions(sink) -> None:
+    """Robots go online when heard from and offline after robot_offline_after_s of silence."""
+    now = [NOW_MS]
+    views = LiveViews(Settings(robot_offline_after_s=10), sink.store, None, now_ms=lambda: now[0])
+    asyncio.run(views.on_stored(sink, [pose_event("r1", NOW_MS, receive_lag_ms=0)]))
+    assert views.check_presence() == ({"r1"}, set())
+    now[0] += 10_001
+    assert views.check_presence() == (set(), {"r1"})
+
+
+def test_attach_rebuilds_on_assignment_and_stops_the_advertiser(sink) -> None:
+    """On a faust app, partition assignment rebuilds the views and starts the advertiser;
+    shutdown stops it."""
+    import faust
+
+    class Recorder(FakeAdvertiser):
+        calls: list[str] = []
+
+        def start(self) -> None:
+            self.calls.append("start")
+
+        def stop(self) -> None:
+            self.calls.append("stop")
+
+    sink.store.append([chunk_event("a", NOW_MS, 2, 3)])
+    app = faust.App("views-test", broker="kafka://127.0.0.1:1", web_enabled=False, store="memory://")
+    adv = Recorder()
+    views = LiveViews.attach(app, Settings(), sink, adv)
+    assert views.latest == {}
+
+    async def lifecycle() -> None:
+        await app.on_partitions_assigned.send(set())
+        await app.on_before_shutdown.send()
+
+    asyncio.run(lifecycle())
+    assert set(views.latest) == {(2, 3)} and adv.calls == ["start", "stop"]
+
+
+def test_advertisements_beyond_the_backlog_bound_are_dropped(sink, monkeypatch) -> None:
+    """With the encoding backlog full, a change is dropped (counted), not queued or awaited."""
+    import mapservice.processors.views as views_module
+    monkeypatch.setattr(views_module, "MAX_PENDING_ADS", 0)
+    ads = FakeAdvertiser()
+    views = _views(sink, ads)
+    views.load()
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 0, 0)])
+    assert ads.sent == [] and (0, 0) in views.latest
+
+
+def test_a_failed_rebuild_is_retried_before_the_next_batch_is_applied(sink, monkeypatch) -> None:
+    """If rebuilding at assignment fails, the app keeps running and the next stored batch
+    rebuilds first, so an older write still cannot win."""
+    import faust
+
+    sink.store.append([chunk_event("a", NOW_MS, 0, 0)])
+    app = faust.App("views-fail", broker="kafka://127.0.0.1:1", web_enabled=False, store="memory://")
+    ads = FakeAdvertiser()
+    views = LiveViews.attach(app, Settings(), sink, ads)
+    real_map_at = sink.store.map_at
+    monkeypatch.setattr(sink.store, "map_at", lambda at: (_ for _ in ()).throw(OSError("down")))
+    asyncio.run(app.on_partitions_assigned.send(set()))
+    assert not views.loaded
+    monkeypatch.setattr(sink.store, "map_at", real_map_at)
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS - 1, 0, 0)])
+    assert views.loaded and ads.sent == [] and views.latest[(0, 0)].robot_id == "a"

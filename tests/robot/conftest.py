@@ -1,0 +1,29 @@
+"""Maps for the robot tests: the repository's and, when present, every map in ../shared/maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from mapservice import embedded
+from tests.fixtures.paths import MAPS, ROOT
+
+SHARED_MAPS = ROOT.parent / "shared" / "maps"
+
+
+def all_map_yamls() -> list[Path]:
+    """Every ROS map YAML we have, each name once (shared/ wins: it has the keep-out mask)."""
+    found: dict[str, Path] = {p.name: p for p in sorted(MAPS.glob("*.yaml"))}
+    if SHARED_MAPS.is_dir():
+        found.update({p.name: p for p in sorted(SHARED_MAPS.glob("*.yaml"))})
+    return [found[k] for k in sorted(found)]
+
+
+@pytest.fixture
+def mosquitto(tmp_path):
+    """A real Mosquitto on a free port; yields the port."""
+    port = embedded.free_port()
+    proc = embedded.start_mosquitto(port, tmp_path / "mosquitto")
+    yield port
+    embedded.stop(proc)

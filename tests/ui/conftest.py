@@ -1,0 +1,91 @@
+"""A running service with three hours of loaded history, and headless Chromium on the UI.
+
+The history is written by the bulk loader into the stack's embedded ClickHouse before the
+server opens it; then brokers, server (API + processors) and gateway run as in `make up`,
+so live mode sees poses published with mosquitto_pub. Chromium is Debian's, driven by
+Playwright (no browser download).
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from mapservice.adapters.clickhouse_store import ClickHouseStore
+from mapservice.chromium import chromium_path, launch
+from mapservice.history_loader import load_history
+from mapservice.mapfile import load_ros_map
+from mapservice.stack import Stack
+from tests.fixtures.paths import MAPS, ROOT
+from tests.integration.conftest import wait_for_meta
+
+DIST = ROOT / "replay-ui" / "dist" / "index.html"
+ARTIFACTS = ROOT / "test-artifacts" / "ui"
+HOURS = 3
+ROBOTS = 3
+
+
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if "/tests/ui/" in str(item.fspath):
+            item.add_marker(pytest.mark.integration)
+
+
+@pytest.fixture(scope="session")
+def history_stack(tmp_path_factory):
+    """The whole service on 127.0.0.1 over HOURS of history ending ten minutes ago."""
+    if not DIST.exists():
+        pytest.fail("replay-ui is not built: run `make ui` first")
+    stack = Stack(tmp_path_factory.mktemp("ui-stack"), mqtt="mosquitto",
+                  extra_env={"MAPSERVICE_SNAPSHOT_EVERY_S": "600"})
+    settings = stack.settings()
+    ros_map = load_ros_map(MAPS / "warehouse.yaml")
+    store = ClickHouseStore(settings.resolved_clickhouse_dsn, settings.clickhouse_database,
+                            settings.retention_days, snapshot_every_ms=600_000)
+    end = time.time_ns() // 1_000_000 - 600_000
+    try:
+        result = load_history(store, ros_map, days=HOURS / 24, robots=ROBOTS, end_ms=end,
+                              change_prob=0.3)
+    finally:
+        store.close()
+    try:
+        stack.start_brokers()
+        stack.publish_meta(result.meta)
+        stack.start_server()
+        stack.start_gateway()
+        wait_for_meta(stack)
+    except BaseException:
+        stack.stop()
+        raise
+    stack.history = result  # type: ignore[attr-defined]
+    yield stack
+    stack.stop()
+
+
+@pytest.fixture(scope="session")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    if chromium_path() is None:
+        pytest.fail("Chromium is missing: apt-get install chromium (or `make system-deps` as root)")
+    with sync_playwright() as pw:
+        b = launch(pw)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def page(browser, request):
+    """A fresh 1280x800 page; a screenshot of it is saved under test-artifacts/ui/."""
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    pg = context.new_page()
+    errors: list[str] = []
+    pg.on("pageerror", lambda e: errors.append(str(e)))
+    pg.errors = errors  # type: ignore[attr-defined]
+    yield pg
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    try:
+        pg.screenshot(path=str(ARTIFACTS / f"{request.node.name}.png"))
+    finally:
+        context.close()
