@@ -70,14 +70,20 @@ def start_tansu(port: int, log_file=None) -> subprocess.Popen:
     return proc
 
 
-def start_amqtt(port: int, log_file=None) -> subprocess.Popen:
+def start_amqtt(port: int, log_file=None, ws_port: int | None = None) -> subprocess.Popen:
+    """amqtt on 127.0.0.1:port; with ws_port also MQTT over WebSocket there (for browsers)."""
     ensure_port_free(port, "MQTT (amqtt)")
+    if ws_port:
+        ensure_port_free(ws_port, "MQTT over WebSocket (amqtt)")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mapservice.embedded", "amqtt", str(port)],
+        [sys.executable, "-m", "mapservice.embedded", "amqtt", str(port),
+         *([str(ws_port)] if ws_port else [])],
         stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
         start_new_session=True,
     )
     wait_for_port(port, proc=proc, what="amqtt")
+    if ws_port:
+        wait_for_port(ws_port, proc=proc, what="amqtt's WebSocket listener")
     return proc
 
 
@@ -89,28 +95,42 @@ set_tcp_nodelay true
 max_inflight_messages 1000
 max_queued_messages 1000000
 """
+# Browsers (the /controller page) speak MQTT only over WebSocket.
+MOSQUITTO_WS_LISTENER = """\
+listener {ws_port} 127.0.0.1
+protocol websockets
+"""
 
 
-def start_mosquitto(port: int, workdir: Path, log_file=None) -> subprocess.Popen:
+def start_mosquitto(port: int, workdir: Path, log_file=None,
+                    ws_port: int | None = None) -> subprocess.Popen:
+    """mosquitto on 127.0.0.1:port; with ws_port also MQTT over WebSocket there."""
     ensure_port_free(port, "MQTT (mosquitto)")
+    if ws_port:
+        ensure_port_free(ws_port, "MQTT over WebSocket (mosquitto)")
     binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     if not os.path.exists(binary):
         raise RuntimeError("mosquitto not installed: apt-get install mosquitto (make test does)")
     workdir.mkdir(parents=True, exist_ok=True)
     conf = workdir / f"mosquitto-{port}.conf"
-    conf.write_text(MOSQUITTO_CONF.format(port=port))
+    conf.write_text(MOSQUITTO_CONF.format(port=port)
+                    + (MOSQUITTO_WS_LISTENER.format(ws_port=ws_port) if ws_port else ""))
     proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log_file or subprocess.DEVNULL,
                             stderr=subprocess.STDOUT, start_new_session=True)
     wait_for_port(port, proc=proc, what="mosquitto")
+    if ws_port:
+        wait_for_port(ws_port, proc=proc, what="mosquitto's WebSocket listener")
     return proc
 
 
-async def _serve_amqtt(port: int) -> None:
+async def _serve_amqtt(port: int, ws_port: int | None = None) -> None:
     from amqtt.broker import Broker
 
+    listeners = {"default": {"type": "tcp", "bind": f"127.0.0.1:{port}", "max_connections": 10000}}
+    if ws_port:
+        listeners["ws"] = {"type": "ws", "bind": f"127.0.0.1:{ws_port}", "max_connections": 1000}
     broker = Broker({
-        "listeners": {"default": {"type": "tcp", "bind": f"127.0.0.1:{port}",
-                                  "max_connections": 10000}},
+        "listeners": listeners,
         "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
     })
     await broker.start()
@@ -132,10 +152,10 @@ def stop(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "amqtt":
+    if len(sys.argv) in (3, 4) and sys.argv[1] == "amqtt":
         try:
-            asyncio.run(_serve_amqtt(int(sys.argv[2])))
+            asyncio.run(_serve_amqtt(*(int(a) for a in sys.argv[2:])))
         except KeyboardInterrupt:
             pass
     else:
-        sys.exit("usage: python -m mapservice.embedded amqtt PORT")
+        sys.exit("usage: python -m mapservice.embedded amqtt PORT [WEBSOCKET_PORT]")

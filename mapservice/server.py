@@ -42,6 +42,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     readiness = {"clickhouse": lambda: store.client is not None}
     if faust_app is not None:
         readiness["processors"] = lambda: not faust_app.should_stop
+        # Until the consumer group hands out partitions, nothing reaches the history.
+        readiness["history_consumer"] = lambda: bool(sink.consumer and sink.consumer.has_partitions)
     try:
         if api:
             # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.

@@ -47,6 +47,8 @@ class Settings(BaseSettings):
 
     # MQTT (topic names as in the 2019 configuration, appendix A.3)
     mqtt_url: str = Field("mqtt://127.0.0.1:1883", description="MQTT broker the gateway reads.")
+    mqtt_ws_url: str = Field("", description="The broker's MQTT-over-WebSocket URL as browsers "
+                             "reach it (the /controller page); empty: the page cannot publish.")
     mqtt_username: str | None = None
     mqtt_password: SecretStr | None = None
     mqtt_client_id: str = Field("mapservice-gateway", description="Stable: keeps the QoS 1 session.")

@@ -32,6 +32,7 @@ class Stack:
     mqtt: str = "amqtt"  # "amqtt", "mosquitto" or an mqtt:// URL of a running broker
     api_port: int = 0
     mqtt_port: int = 0
+    mqtt_ws_port: int = 0  # the embedded broker's MQTT-over-WebSocket listener (browsers)
     kafka_port: int = 0
     health_port: int = 0
     extra_env: dict[str, str] = field(default_factory=dict)
@@ -46,8 +47,13 @@ class Stack:
         if self.mqtt in ("amqtt", "mosquitto"):
             self.mqtt_port = self.mqtt_port or embedded.free_port()
             self.mqtt_url = f"mqtt://127.0.0.1:{self.mqtt_port}"
+            self.mqtt_ws_port = self.mqtt_ws_port or embedded.free_port()
+            self.mqtt_ws_url = f"ws://127.0.0.1:{self.mqtt_ws_port}/mqtt"
         else:
             self.mqtt_url = self.mqtt
+            # A broker of its own: only the operator knows where browsers reach it.
+            self.mqtt_ws_url = self.extra_env.get(
+                "MAPSERVICE_MQTT_WS_URL", os.environ.get("MAPSERVICE_MQTT_WS_URL", ""))
 
     @property
     def api_url(self) -> str:
@@ -59,6 +65,7 @@ class Stack:
             "MAPSERVICE_DATA_DIR": str(self.data_dir),
             "MAPSERVICE_KAFKA_BOOTSTRAP": f"127.0.0.1:{self.kafka_port}",
             "MAPSERVICE_MQTT_URL": self.mqtt_url,
+            "MAPSERVICE_MQTT_WS_URL": self.mqtt_ws_url,
             "MAPSERVICE_API_HOST": "127.0.0.1",
             "MAPSERVICE_API_PORT": str(self.api_port),
             # Advertisements' chunkUrl must name this API, whatever port it got.
@@ -71,8 +78,9 @@ class Stack:
         env = self.env()
         return Settings(data_dir=self.data_dir, kafka_bootstrap=env["MAPSERVICE_KAFKA_BOOTSTRAP"],
                         mqtt_url=self.mqtt_url, api_port=self.api_port,
-                        **{k[len("MAPSERVICE_"):].lower(): v for k, v in self.extra_env.items()
-                           if k.startswith("MAPSERVICE_")})
+                        **{"mqtt_ws_url": self.mqtt_ws_url,
+                           **{k[len("MAPSERVICE_"):].lower(): v for k, v in self.extra_env.items()
+                              if k.startswith("MAPSERVICE_")}})
 
     def _log(self, name: str):
         self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -81,10 +89,12 @@ class Stack:
     def start_brokers(self) -> None:
         self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
         if self.mqtt == "amqtt":
-            self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"))
+            self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"),
+                                                      ws_port=self.mqtt_ws_port)
         elif self.mqtt == "mosquitto":
             self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
-                                                          self._log("mosquitto"))
+                                                          self._log("mosquitto"),
+                                                          ws_port=self.mqtt_ws_port)
         ensure_topics(self.settings())
 
     def _spawn(self, name: str, *args: str) -> subprocess.Popen:

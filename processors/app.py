@@ -45,6 +45,7 @@ class HistorySink:
         self.store = store
         self.live = live
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
+        self.consumer = None  # the HistoryConsumer feeding it, once build_app made one
 
     async def run(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
@@ -98,6 +99,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
                    settings.topic_meta_events], group_id=f"{app.conf.id}-history")
     consumer = HistoryConsumer(source, sink, views, batch, within)
     source.on_assigned = consumer.on_assigned
+    sink.consumer = consumer
     app.service(HistoryConsumerService(consumer))
 
     dl_topic = app.topic(settings.topic_dead_letter, value_type=bytes, key_type=bytes)

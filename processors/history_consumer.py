@@ -63,10 +63,12 @@ class HistoryConsumer:
         self.batch_seconds = batch_seconds
         self.now_ms = now_ms
         self.assigned = False  # set by the source's assignment callback (in its thread)
+        self.has_partitions = False  # readiness: events flow only once the group assigned some
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-consumer")
 
     def on_assigned(self, partitions: list[tuple[str, int]]) -> None:
         self.assigned = True
+        self.has_partitions = self.has_partitions or bool(partitions)
 
     async def _call(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self._thread, fn, *args)
@@ -82,11 +84,7 @@ class HistoryConsumer:
             # New partitions: rebuild the views from the history before their events
             # (which may repeat what is stored) are applied.
             self.assigned = False
-            self.views.loaded = False
-            try:
-                await self.sink.run(self.views.load)
-            except Exception as exc:  # on_stored rebuilds them before the next change
-                log.error("live views rebuild failed; retried with the next batch", error=str(exc))
+            await self.views.rebuild(self.sink)
         if not records:
             return 0
         delay = 0.5

@@ -193,33 +193,35 @@ class LiveViews:
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, 10)
 
+    async def rebuild(self, sink: "HistorySink") -> None:
+        """After a partition assignment, before any event of it is applied: the views as the
+        history holds them, and the advertiser running."""
+        # Submitted to the store thread before any batch of the new assignment is inserted
+        # there, so the rebuilt views hold exactly what was stored before.
+        self.loaded = False
+        try:
+            await sink.run(self.load)
+        except Exception as exc:  # raising here would stop the consumer; retried in on_stored
+            log.error("live views rebuild failed; retried with the next batch", error=str(exc))
+        if self.advertiser is not None:
+            self.advertiser.start()
+
     # --- wiring ---------------------------------------------------------------------------
 
     @classmethod
     def attach(cls, app: "faust.App", settings: Settings, sink: "HistorySink",
                advertiser: Advertiser | None = None) -> "LiveViews":
-        """Views for a faust app: rebuilt on every partition assignment (before consuming),
-        the advertiser started with them and stopped with the app, presence checked each second."""
+        """Views for a faust app: the history consumer rebuilds them on every partition
+        assignment (`rebuild`), the advertiser stops with the app, presence is checked each second."""
         if advertiser is None:
             from .advertiser import MqttAdvertiser
             advertiser = MqttAdvertiser(settings)
         views = cls(settings, sink.store, advertiser)
 
-        async def rebuild(sender, *args, **kwargs) -> None:
-            # Submitted to the store thread before any batch of the new assignment is
-            # inserted there, so the rebuilt views hold exactly what was stored before.
-            views.loaded = False
-            try:
-                await sink.run(views.load)
-            except Exception as exc:  # raising here would crash the app; retried in on_stored
-                log.error("live views rebuild failed; retried with the next batch", error=str(exc))
-            advertiser.start()
-
         async def stop(sender, *args, **kwargs) -> None:
             await asyncio.get_running_loop().run_in_executor(None, views.close)
             advertiser.stop()
 
-        app.on_partitions_assigned.connect(rebuild, weak=False)
         app.on_before_shutdown.connect(stop, weak=False)
 
         async def presence() -> None:

@@ -7,8 +7,10 @@ import asyncio
 
 import pytest
 
+from mapservice.adapters.memory_source import MemorySource
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.processors.app import HistorySink
+from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.views import LiveViews
 from mapservice.settings import Settings
 from tests.conftest import NOW_MS, chunk_event, pose_event
@@ -108,8 +110,8 @@ def test_presence_transitions(sink) -> None:
 
 
 def test_attach_rebuilds_on_assignment_and_stops_the_advertiser(sink) -> None:
-    """On a faust app, partition assignment rebuilds the views and starts the advertiser;
-    shutdown stops it."""
+    """A partition assignment to the history consumer rebuilds the views and starts the
+    advertiser; the faust app's shutdown stops it."""
     import faust
 
     class Recorder(FakeAdvertiser):
@@ -127,8 +129,12 @@ def test_attach_rebuilds_on_assignment_and_stops_the_advertiser(sink) -> None:
     views = LiveViews.attach(app, Settings(), sink, adv)
     assert views.latest == {}
 
+    consumer = HistoryConsumer(MemorySource(), sink, views, batch_size=10, batch_seconds=0.01)
+
     async def lifecycle() -> None:
-        await app.on_partitions_assigned.send(set())
+        await consumer.start()
+        consumer.on_assigned([("mapservice.chunk-events.v1", 0)])
+        await consumer.run_once()
         await app.on_before_shutdown.send()
 
     asyncio.run(lifecycle())
@@ -157,7 +163,9 @@ def test_a_failed_rebuild_is_retried_before_the_next_batch_is_applied(sink, monk
     views = LiveViews.attach(app, Settings(), sink, ads)
     real_map_at = sink.store.map_at
     monkeypatch.setattr(sink.store, "map_at", lambda at: (_ for _ in ()).throw(OSError("down")))
-    asyncio.run(app.on_partitions_assigned.send(set()))
+    consumer = HistoryConsumer(MemorySource(), sink, views, batch_size=10, batch_seconds=0.01)
+    consumer.on_assigned([("mapservice.chunk-events.v1", 0)])
+    asyncio.run(consumer.run_once())
     assert not views.loaded
     monkeypatch.setattr(sink.store, "map_at", real_map_at)
     _store_and_view(views, sink, [chunk_event("b", NOW_MS - 1, 0, 0)])
