@@ -1,11 +1,10 @@
-"""`mapservice bench sink`: CPU per event of the history path, faust agent vs batch consumer.
+"""`mapservice bench sink`: CPU per event of the processors' history path.
 
 Each run is a fresh process: it fills a pose topic on an embedded tansu with N events,
-then drains it into a store that only counts, and reports the CPU time (user + system of
-the whole process) and wall time from the first stored event to the last. The two ways:
-- `faust`: a faust agent with `stream.noack().noack_take(batch)`, ack after the insert
-  (the processors' history path before 2026-11-22);
-- `batch`: the processors' HistoryConsumer with the confluent-kafka KafkaBatchSource.
+then drains it through the processors' HistoryConsumer (confluent-kafka KafkaBatchSource,
+decode, store, commit) into a store that only counts, and reports the CPU time (user +
+system of the whole process) and wall time from the first stored event to the last: the
+cost of the path itself, without ClickHouse's insert.
 """
 
 from __future__ import annotations
@@ -21,11 +20,11 @@ import tempfile
 import time
 from pathlib import Path
 
-WAYS = ("faust", "batch")
+WAYS = ("batch",)
 
 
 def add_parser(kinds) -> None:
-    p = kinds.add_parser("sink", help="CPU per event of the history path: faust agent vs batch")
+    p = kinds.add_parser("sink", help="CPU per event of the processors' history path")
     p.add_argument("--events", type=int, default=60_000)
     p.add_argument("--repeat", type=int, default=3, help="runs per way; medians are reported")
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
@@ -61,7 +60,7 @@ async def _one(way: str, events: int) -> dict:
             _Counter.n += len(batch)
 
     port = free_port()
-    tansu = start_tansu(port)
+    tansu = start_tansu(port, log_file=open(os.environ.get('BENCH_SINK_TANSU_LOG', os.devnull), 'wb'))
     try:
         wait_for_port(port)
         data = Path(tempfile.mkdtemp(prefix="bench-sink-"))
@@ -81,18 +80,15 @@ async def _one(way: str, events: int) -> dict:
             raise RuntimeError("could not fill the topic")
         store = CountingStore()
         stopping = asyncio.Event()
-        if way == "faust":
-            task = await _start_faust(settings, store)
-        else:
-            from mapservice.adapters.kafka_batch_source import KafkaBatchSource
-            from mapservice.processors.app import HistorySink
-            from mapservice.processors.history_consumer import HistoryConsumer
+        from mapservice.adapters.kafka_batch_source import KafkaBatchSource
+        from mapservice.processors.app import HistorySink
+        from mapservice.processors.history_consumer import HistoryConsumer
 
-            source = KafkaBatchSource(settings, [settings.topic_pose_events], "bench-sink")
-            consumer = HistoryConsumer(source, HistorySink(store), None,
-                                       settings.sink_batch_size, settings.sink_batch_seconds)
-            source.on_assigned = consumer.on_assigned
-            task = asyncio.create_task(consumer.run(stopping))
+        source = KafkaBatchSource(settings, [settings.topic_pose_events], "bench-sink")
+        consumer = HistoryConsumer(source, HistorySink(store), None,
+                                   settings.sink_batch_size, settings.sink_batch_seconds)
+        source.on_assigned = consumer.on_assigned
+        task = asyncio.create_task(consumer.run(stopping))
         first = None
         deadline = time.monotonic() + 600
         while _Counter.n < events and time.monotonic() < deadline:
@@ -109,41 +105,11 @@ async def _one(way: str, events: int) -> dict:
         stop(tansu)
 
 
-async def _start_faust(settings, store):
-    """The history agent as it was: noack_take, insert, then ack each event."""
-    import faust
-
-    from mapservice.processors.app import HistorySink
-    from mapservice.processors.sink import split_events
-
-    sink = HistorySink(store)
-    app = faust.App("bench-sink", broker=f"kafka://{settings.kafka_bootstrap}",
-                    value_serializer="raw", key_serializer="raw", web_enabled=False,
-                    store="memory://", datadir=str(settings.data_dir / "faust"),
-                    topic_partitions=settings.kafka_partitions,
-                    consumer_auto_offset_reset="earliest", broker_commit_interval=1.0,
-                    broker_rebalance_timeout=settings.kafka_rebalance_timeout_s,
-                    broker_session_timeout=10, broker_heartbeat_interval=1.0)
-    topic = app.topic(settings.topic_pose_events, value_type=bytes, key_type=bytes)
-
-    async def history(stream):
-        async for events in stream.noack().noack_take(settings.sink_batch_size,
-                                                       within=settings.sink_batch_seconds):
-            good, _bad = split_events((e.value for e in events), 0)
-            await sink.insert_until_done(sink.store.append, good, "poses")
-            for e in events:
-                e.ack()
-
-    app.agent(topic, name="bench-history")(history)
-    await app.start()
-    return app
-
-
 def main(args) -> None:
     if args.one:
         result = asyncio.run(_one(args.one, args.events))
         print("RESULT " + json.dumps(result), flush=True)
-        os._exit(0)  # faust's and librdkafka's threads need not be waited for
+        os._exit(0)  # librdkafka's threads need not be waited for
     from .bench_ingest import machine_facts
 
     runs: dict[str, list[dict]] = {w: [] for w in WAYS}
@@ -162,9 +128,8 @@ def main(args) -> None:
     summary = {w: {"cpu_us_per_event_median": statistics.median(r["cpu_us_per_event"] for r in rs),
                    "events_per_s_median": statistics.median(r["events_per_s"] for r in rs)}
                for w, rs in runs.items()}
-    ratio = summary["faust"]["cpu_us_per_event_median"] / summary["batch"]["cpu_us_per_event_median"]
-    print(f"median CPU per event: faust {summary['faust']['cpu_us_per_event_median']} µs, "
-          f"batch {summary['batch']['cpu_us_per_event_median']} µs ({ratio:.1f}x less)")
+    print(f"median: {summary['batch']['cpu_us_per_event_median']} µs CPU per event, "
+          f"{summary['batch']['events_per_s_median']:,} events/s")
     if args.json:
         Path(args.json).write_text(json.dumps({"machine": machine_facts(), "events": args.events,
                                                "summary": summary, "runs": runs}, indent=2))
