@@ -12,11 +12,28 @@ from mapservice.live import LiveHub
 from mapservice.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
-from .routers import chunk_contents, chunk_events, health, live, map_state, poses, robots, stats
-from .routers import chunk_service, coordinate_service
-from .routers import conflicts
-from .routers import events, timeline, tracks
-from .routers import ui
+from .routers import (
+    chunk_contents,
+    chunk_events,
+    chunk_service,
+    client_config,
+    conflicts,
+    coordinate_service,
+    events,
+    health,
+    live,
+    map_state,
+    poses,
+    robots,
+    stats,
+    timeline,
+    tracks,
+    ui,
+)
+
+# Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
+ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_contents, events,
+           timeline, conflicts, stats, live, client_config, chunk_service, coordinate_service, ui)
 
 
 def create_app(settings: Settings, store: HistoryStore,
@@ -31,12 +48,6 @@ def create_app(settings: Settings, store: HistoryStore,
     app.state.clock = clock or SystemClock()
     app.state.live = live_hub
     app.state.publisher = publisher  # None: 2019 REST writes answer 503
-    for module in (health, map_state, robots, poses, chunk_events, chunk_contents, stats, live):
+    for module in ROUTERS:
         app.include_router(module.router)
-    for module in (chunk_service, coordinate_service):  # the 2019 REST contract
-        app.include_router(module.router)
-    app.include_router(conflicts.router)
-    for module in (events, timeline, tracks):  # time-travel replay reads
-        app.include_router(module.router)
-    app.include_router(ui.router)  # the replay UI at / and /controller
     return app

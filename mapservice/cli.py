@@ -72,7 +72,7 @@ def cmd_up(args) -> None:
         table = Table(title="mapservice is up", show_header=False)
         table.add_row("API", stack.api_url + "  (docs at /docs)")
         table.add_row("MQTT (robots)", stack.mqtt_url)
-        table.add_row("MQTT over WebSocket (browsers, /controller)", stack.mqtt_ws_url or "(none)")
+        table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/healthz")

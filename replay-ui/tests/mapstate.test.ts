@@ -81,6 +81,17 @@ describe("MapState", () => {
     }
   });
 
+  it("marks dirty on reset only the cells whose picture changed or went away", () => {
+    const s = new MapState();
+    s.reset([w(0, 0, 0, "a"), w(0, 0, 1, "b"), w(0, 0, 2, "c")]);
+    expect(s.dirty.size).toBe(3);
+    s.dirty.clear();
+    s.reset([w(5, 0, 0, "a"), w(5, 0, 1, "x"), w(5, 1, 1, "y")]);
+    expect([...s.dirty].sort((a, b) => a - b)).toEqual([cellKey(0, 1), cellKey(0, 2), cellKey(1, 1)]);
+    expect(s.get(cellKey(0, 0))!.ts_ms).toBe(5);
+    expect(s.get(cellKey(0, 2))).toBeNull();
+  });
+
   it("keeps a late, older write out of the current state but still logs it", () => {
     const s = new MapState();
     s.reset([w(100, 0, 0, "new")]);

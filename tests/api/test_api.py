@@ -30,6 +30,8 @@ EXPECTED_OPERATION_IDS = {
     # time-travel replay reads (api/routers/events.py, timeline.py, tracks.py)
     "listEvents", "getTimeline", "getRobotTrack",
     "listConflicts",
+    "getChunkContentsBatch",  # api/routers/chunk_contents.py (replay UI seeks)
+    "getClientConfig",  # api/routers/client_config.py (the /controller page)
 }
 
 

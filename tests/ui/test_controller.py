@@ -1,21 +1,34 @@
-"""The 2019 game page: drive a robot and paint the chunk under it through the 2019 REST API."""
+"""The 2019 game page: drive a robot and paint the chunk under it through the robots' API
+(pose over MQTT-over-WebSocket, chunks over REST or MQTT)."""
 
 from __future__ import annotations
 
+import json
+import re
 import time
 
 import httpx
 
+TIMEOUT_MS = 30_000
 
-def test_paint_black_reaches_the_map(page, history_stack) -> None:
-    """Driving and painting black stores an all-black chunk under the robot, by its id."""
-    stack = history_stack
+
+def _open(page, stack, robot_id: str) -> None:
     page.goto(f"{stack.api_url}/controller")
-    page.locator('[data-testid="right"]').click()
-    page.locator('[data-testid="right"]').click()
-    page.locator('[data-testid="up"]').click()
-    page.locator('[data-testid="paint-black"]').click()
-    page.wait_for_function("() => document.body.innerText.includes('painted chunk')", timeout=30_000)
+    page.locator("header input").fill(robot_id)
+    page.wait_for_function("() => document.querySelector('[data-testid=link]')"
+                           "?.innerText.startsWith('MQTT connected')", timeout=TIMEOUT_MS)
+
+
+def _shown_position(page) -> tuple[float, float]:
+    text = page.locator("header").inner_text()
+    x, y = re.search(r"x (-?[\d.]+) m · y (-?[\d.]+) m", text).groups()
+    return float(x), float(y)
+
+
+def _painted_chunk(page, stack, robot_id: str) -> tuple[int, int, bytes]:
+    """Waits for the page to report a painted chunk, then for the map to hold it by robot_id."""
+    page.wait_for_function("() => document.body.innerText.includes('painted chunk')",
+                           timeout=TIMEOUT_MS)
     text = page.locator("header").inner_text()
     row, column = (int(v) for v in text.split("painted chunk ")[1].split()[0].split(":"))
     deadline = time.monotonic() + 30
@@ -23,10 +36,86 @@ def test_paint_black_reaches_the_map(page, history_stack) -> None:
     while time.monotonic() < deadline and found is None:
         chunks = httpx.get(f"{stack.api_url}/api/v1/map", timeout=30).json()["chunks"]
         found = next((c for c in chunks if (c["row"], c["column"]) == (row, column)
-                      and c["robotId"] == "controller-1"), None)
+                      and c["robotId"] == robot_id), None)
         time.sleep(0.3)
     assert found is not None, "the painted chunk never reached the map"
     raw = httpx.get(f"{stack.api_url}/api/v1/chunk-contents/{found['content_hash']}",
                     params={"encoding": "raw"}).content
+    return row, column, raw
+
+
+def test_paint_black_reaches_the_map(page, history_stack) -> None:
+    """Driving and painting black (REST) stores an all-black chunk under the robot, by its id."""
+    stack = history_stack
+    _open(page, stack, "controller-1")
+    page.locator('[data-testid="right"]').click()
+    page.locator('[data-testid="right"]').click()
+    page.locator('[data-testid="up"]').click()
+    page.locator('[data-testid="paint-black"]').click()
+    _, _, raw = _painted_chunk(page, stack, "controller-1")
     assert set(raw) == {0}
+    assert not page.errors
+
+
+def test_paint_white_over_mqtt_reaches_the_map(page, history_stack) -> None:
+    """Painting white with 'via MQTT' publishes on iot/chunks/create and the chunk is stored."""
+    stack = history_stack
+    _open(page, stack, "controller-mqtt")
+    page.locator('[data-testid="left"]').click()
+    page.locator('[data-testid="paint-via"]').select_option("mqtt")
+    page.locator('[data-testid="paint-white"]').click()
+    _, _, raw = _painted_chunk(page, stack, "controller-mqtt")
+    assert set(raw) == {254}
+    assert not page.errors
+
+
+def test_driving_moves_the_stored_pose(page, history_stack) -> None:
+    """Arrow buttons move the robot, and its pose (MQTT iot/coordinates/{id}) is stored there."""
+    stack = history_stack
+    robot = "controller-drive"
+    _open(page, stack, robot)
+    x0, y0 = _shown_position(page)
+    for button in ("right", "right", "right", "up", "up"):
+        page.locator(f'[data-testid="{button}"]').click()
+    x, y = _shown_position(page)
+    assert (x, y) == (x0 + 1.5, y0 + 1.0)
+    deadline = time.monotonic() + 30
+    stored = None
+    while time.monotonic() < deadline:
+        robots = httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
+        stored = next((r for r in robots if r["robotId"] == robot), None)
+        if stored and stored["position"][:2] == [x, y]:
+            break
+        time.sleep(0.3)
+    assert stored is not None, "the controller's robot never appeared in /api/v1/robots"
+    assert stored["position"][:2] == [x, y]
+    assert stored["online"]
+    legacy = httpx.get(f"{stack.api_url}/api/coordinate-service/robots",
+                       params={"robotId": robot, "latest": "true"}, timeout=30).json()
+    assert legacy[0]["robotId"] == robot
+    assert legacy[0]["pose"]["position"] == {"x": x, "y": y, "z": 0}
+    # Standing still, the page keeps reporting once a second, like a robot.
+    later = stored
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline and later["ts_ms"] <= stored["ts_ms"]:
+        time.sleep(0.5)
+        robots = httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
+        later = next(r for r in robots if r["robotId"] == robot)
+    assert later["ts_ms"] > stored["ts_ms"], "no pose after the last move (no 1 Hz heartbeat)"
+    assert later["position"][:2] == [x, y]
+    assert not page.errors
+
+
+def test_without_websocket_url_the_page_says_so(page, history_stack) -> None:
+    """With no MAPSERVICE_MQTT_WS_URL the page shows that poses are not sent, and how to fix it."""
+    stack = history_stack
+    page.route("**/api/v1/client-config", lambda route: route.fulfill(
+        content_type="application/json",
+        body=json.dumps({"mqtt_ws_url": None, "coordinate_topic_prefix": "iot/coordinates/",
+                         "create_chunk_topic": "iot/chunks/create"})))
+    page.goto(f"{stack.api_url}/controller")
+    help_text = page.locator('[data-testid="link-help"]')
+    help_text.wait_for(timeout=TIMEOUT_MS)
+    assert "MAPSERVICE_MQTT_WS_URL" in help_text.inner_text()
+    assert page.locator('[data-testid="link"]').inner_text() == "MQTT not configured"
     assert not page.errors

@@ -3,6 +3,7 @@
  * missing (404 from an older server), the same data comes from the older endpoints.
  */
 import type { Source } from "./buffer";
+import { parseBatch, type ChunkBatch } from "./chunkdecode";
 import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline } from "./types";
 
 export class ApiError extends Error {
@@ -42,6 +43,14 @@ export class Api implements Source {
 
   chunkUrl(hash: string): string {
     return `${this.base}/api/v1/chunk-contents/${hash}?encoding=png`;
+  }
+
+  /** Many chunk pictures in one request (MessagePack); an ApiError 404/405 from an older server. */
+  async chunkBatch(hashes: string[]): Promise<ChunkBatch> {
+    const url = `${this.base}/api/v1/chunk-contents/batch`;
+    const r = await fetch(url, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ hashes }) });
+    if (!r.ok) throw new ApiError(r.status, `${url}: ${r.status} ${r.statusText}`);
+    return parseBatch(await r.arrayBuffer());
   }
 
   map(atMs: number): Promise<MapAt> {

@@ -61,7 +61,7 @@ export class ReplayEngine {
     this.clock = new PlaybackClock(now, now);
     this.clock.minMs = now - RETENTION_MS;
     this.playhead = now;
-    this.images = new ChunkImages((h) => this.api.chunkUrl(h));
+    this.images = new ChunkImages(this.api);
     this.buffer = new EventBuffer(this.api, now, 1);
     this.lastStepMs = poseStepMs(1);
     this.live = new LiveConnection(liveUrl(location), (m) => this.onLive(m), (reconnect) => {
@@ -92,6 +92,8 @@ export class ReplayEngine {
       this.seekApiTimes.push(performance.now() - this.seekStartedWall);
       this.meta = map.meta ?? this.meta;
       this.state.reset(map.chunks);
+      // Every picture the map at T lacks, asked for now (in a few batches), not tile by tile.
+      this.images.requestMany(map.chunks.map((c) => c.content_hash));
       this.buffer.reset(t, this.clock.speed, robots);
       this.lastStepMs = this.buffer.stepMs;
       this.robotInfo = new Map(robots.map((r) => [r.robotId, r]));
@@ -136,17 +138,21 @@ export class ReplayEngine {
     }
     let target = Math.round(this.clock.time(wall));
     const dir = this.clock.direction;
-    if (this.clock.playing && dir > 0 && target >= wall - 1000) {
-      // Caught up with now: live mode takes over (the WebSocket, not polling windows).
-      void this.goLive();
-      return;
-    }
     this.buffering = false;
     if (!this.buffer.covers(this.playhead, target)) {
       const edge = target > this.playhead ? this.buffer.to - 1 : this.buffer.from - 1;
       target = target > this.playhead ? Math.max(this.playhead, edge) : Math.min(this.playhead, edge);
       this.clock.hold(target, wall);
       this.buffering = true;
+    }
+    if (this.clock.playing && dir > 0 && target >= wall - 1000) {
+      // Caught up with now: live mode takes over (the WebSocket, not polling windows).
+      // Only once the buffered writes reach now: after a stalled frame at 86400x the
+      // clock alone may be past now while the writes in between are not applied yet.
+      this.state.move(this.buffer.chunks, this.playhead, target);
+      this.playhead = target;
+      void this.goLive();
+      return;
     }
     if (target !== this.playhead) {
       this.state.move(this.buffer.chunks, this.playhead, target);
@@ -159,7 +165,7 @@ export class ReplayEngine {
         this.buffer.normalise();
         // Prefetch the pictures of the writes just buffered, in playing order.
         const fresh = dir > 0 ? this.buffer.chunks.slice(before) : this.buffer.chunks.slice(0, this.buffer.chunks.length - before).reverse();
-        for (const c of fresh.slice(0, 5000)) this.images.request(c.content_hash);
+        this.images.requestMany(fresh.slice(0, 5000).map((c) => c.content_hash), false);
       }).catch((e) => (this.error = String(e)));
     }
     this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));

@@ -1,22 +1,61 @@
 /**
- * Chunk pictures by content hash: each distinct hash is fetched once (the API marks them
- * immutable, so the browser cache also keeps them across reloads), decoded once, and kept
- * in a bounded LRU of decoded bitmaps.
+ * Chunk pictures by content hash: each distinct hash is fetched once, decoded once, and
+ * kept in a bounded LRU of decoded bitmaps.
+ *
+ * Hashes asked for in the same task (a seek asks for every chunk of the map at once) are
+ * fetched together through the batch endpoint, in a few slices a few at a time, and
+ * inflated here: a seek costs a few requests and one database read per slice instead of
+ * one request and one read per picture. Against an older server without the batch
+ * endpoint, each hash is fetched alone as a PNG (cached by the browser: immutable).
  */
+import { ApiError } from "./api";
+import { greyToRgba, inflate, slicesFor, type ChunkBatch, type ChunkContent } from "./chunkdecode";
 
-export type ChunkImage = ImageBitmap | HTMLImageElement;
+export type ChunkImage = ImageBitmap | HTMLImageElement | HTMLCanvasElement | OffscreenCanvas;
+
+export interface ChunkSource {
+  chunkBatch(hashes: string[]): Promise<ChunkBatch>;
+  chunkUrl(hash: string): string;
+}
+
+export interface ChunkImagesOptions {
+  /** Batch requests in flight at once. */
+  parallel?: number;
+  /** Single PNG requests in flight at once (fallback). */
+  concurrency?: number;
+  capacity?: number;
+  decode?: (c: ChunkContent) => ChunkImage;
+  loadPng?: (url: string) => Promise<ChunkImage>;
+}
 
 export class ChunkImages {
   private ready = new Map<string, ChunkImage>();
   private requested = new Set<string>();
   private queue: string[] = [];
   private active = 0;
-  /** Downloads done (each distinct hash once). */
+  private scheduled = false;
+  /** The server has no batch endpoint: one PNG per hash. */
+  batchMissing = false;
+  /** Pictures downloaded (each distinct hash once). */
   fetched = 0;
+  /** HTTP requests made for pictures (batches and single PNGs). */
+  requests = 0;
   failed = new Set<string>();
-  onLoad: (hash: string) => void = () => {};
+  /** Hashes that just became available (one call per batch). */
+  onLoad: (hashes: string[]) => void = () => {};
+  readonly parallel: number;
+  readonly concurrency: number;
+  readonly capacity: number;
+  private decode: (c: ChunkContent) => ChunkImage;
+  private loadPng: (url: string) => Promise<ChunkImage>;
 
-  constructor(private url: (hash: string) => string, public concurrency = 8, public capacity = 6000) {}
+  constructor(private source: ChunkSource, opts: ChunkImagesOptions = {}) {
+    this.parallel = opts.parallel ?? 4;
+    this.concurrency = opts.concurrency ?? 8;
+    this.capacity = opts.capacity ?? 6000;
+    this.decode = opts.decode ?? decodeContent;
+    this.loadPng = opts.loadPng ?? loadPng;
+  }
 
   get(hash: string): ChunkImage | undefined {
     const img = this.ready.get(hash);
@@ -25,6 +64,10 @@ export class ChunkImages {
       this.ready.set(hash, img);
     }
     return img;
+  }
+
+  has(hash: string): boolean {
+    return this.ready.has(hash);
   }
 
   /** Asks for a hash (no-op if loaded or asked); `urgent` jumps the prefetch queue. */
@@ -40,44 +83,133 @@ export class ChunkImages {
     this.requested.add(hash);
     if (urgent) this.queue.unshift(hash);
     else this.queue.push(hash);
-    this.pump();
+    this.schedule();
+  }
+
+  /** Asks for many hashes, in this order: ahead of anything queued before, or after it. */
+  requestMany(hashes: Iterable<string>, front = true): void {
+    const fresh: string[] = [];
+    const again = new Set<string>();
+    for (const h of hashes) {
+      if (!h || this.ready.has(h) || this.failed.has(h)) continue;
+      if (this.requested.has(h)) again.add(h);
+      else {
+        this.requested.add(h);
+        fresh.push(h);
+      }
+    }
+    if (!front) this.queue.push(...fresh);
+    else {
+      const rest = again.size ? this.queue.filter((h) => !again.has(h)) : this.queue;
+      this.queue = [...fresh, ...this.queue.filter((h) => again.has(h)), ...rest];
+    }
+    if (this.queue.length) this.schedule();
   }
 
   get queued(): number {
     return this.queue.length + this.active;
   }
 
+  /** Pumps once the current task has asked for everything it needs (one batch, not N). */
+  private schedule(): void {
+    if (this.scheduled) return;
+    this.scheduled = true;
+    queueMicrotask(() => {
+      this.scheduled = false;
+      this.pump();
+    });
+  }
+
   private pump(): void {
-    while (this.active < this.concurrency && this.queue.length) {
-      const hash = this.queue.shift()!;
-      this.active++;
-      this.load(hash)
-        .then((img) => {
-          this.ready.set(hash, img);
-          this.fetched++;
-          while (this.ready.size > this.capacity) {
-            const old = this.ready.keys().next().value!;
-            this.ready.delete(old);
-            this.requested.delete(old);
-          }
-          this.onLoad(hash);
-        })
-        .catch(() => this.failed.add(hash))
-        .finally(() => {
-          this.active--;
-          this.pump();
-        });
+    if (this.batchMissing) {
+      while (this.active < this.concurrency && this.queue.length) this.start(this.loadOne(this.queue.shift()!));
+      return;
+    }
+    while (this.active < this.parallel && this.queue.length) {
+      const [slice] = slicesFor(this.queue, this.parallel - this.active);
+      this.queue.splice(0, slice.length);
+      this.start(this.loadBatch(slice));
     }
   }
 
-  private async load(hash: string): Promise<ChunkImage> {
-    const r = await fetch(this.url(hash));
-    if (!r.ok) throw new Error(`${r.status}`);
-    const blob = await r.blob();
-    if (typeof createImageBitmap === "function") return createImageBitmap(blob);
-    const img = new Image();
-    img.src = URL.createObjectURL(blob);
-    await img.decode();
-    return img;
+  private start(p: Promise<void>): void {
+    this.active++;
+    void p.finally(() => {
+      this.active--;
+      this.pump();
+    });
   }
+
+  private async loadBatch(hashes: string[]): Promise<void> {
+    let batch: ChunkBatch;
+    this.requests++;
+    try {
+      batch = await this.source.chunkBatch(hashes);
+    } catch (e) {
+      if (e instanceof ApiError && (e.status === 404 || e.status === 405)) {
+        this.batchMissing = true;
+        this.queue.unshift(...hashes);
+      } else {
+        for (const h of hashes) this.fail(h);
+      }
+      return;
+    }
+    for (const h of batch.missing) this.fail(h);
+    const done: string[] = [];
+    for (const c of batch.contents) {
+      try {
+        this.store(c.hash, this.decode(c));
+        done.push(c.hash);
+      } catch {
+        this.fail(c.hash);
+      }
+    }
+    // A hash asked for but neither returned nor listed missing would wait forever.
+    const answered = new Set([...done, ...batch.missing]);
+    for (const h of hashes) if (!answered.has(h) && !this.ready.has(h)) this.fail(h);
+    if (done.length) this.onLoad(done);
+  }
+
+  private async loadOne(hash: string): Promise<void> {
+    this.requests++;
+    try {
+      this.store(hash, await this.loadPng(this.source.chunkUrl(hash)));
+      this.onLoad([hash]);
+    } catch {
+      this.fail(hash);
+    }
+  }
+
+  private store(hash: string, img: ChunkImage): void {
+    this.ready.set(hash, img);
+    this.fetched++;
+    while (this.ready.size > this.capacity) {
+      const old = this.ready.keys().next().value!;
+      this.ready.delete(old);
+      this.requested.delete(old);
+    }
+  }
+
+  private fail(hash: string): void {
+    this.failed.add(hash);
+  }
+}
+
+/** zlib grey levels -> a small canvas the tiles can draw scaled (synchronous, see inflate). */
+export function decodeContent(c: ChunkContent): ChunkImage {
+  const pixels = new ImageData(greyToRgba(inflate(c.zlib), c.width, c.height), c.width, c.height);
+  const canvas = typeof OffscreenCanvas === "function" ? new OffscreenCanvas(c.width, c.height) : Object.assign(document.createElement("canvas"), { width: c.width, height: c.height });
+  (canvas.getContext("2d") as CanvasRenderingContext2D | OffscreenCanvasRenderingContext2D).putImageData(pixels, 0, 0);
+  return canvas;
+}
+
+async function loadPng(url: string): Promise<ChunkImage> {
+  const r = await fetch(url);
+  if (!r.ok) throw new Error(`${r.status}`);
+  const blob = await r.blob();
+  if (typeof createImageBitmap === "function") return createImageBitmap(blob);
+  const img = new Image();
+  img.src = URL.createObjectURL(blob);
+  await img.decode();
+  return img;
 }

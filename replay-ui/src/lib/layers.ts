@@ -63,8 +63,9 @@ export class ChunkLayer {
       bounds: L.latLngBounds(gridBounds(meta)), minZoom: -10, maxZoom: 10, minNativeZoom: -8, maxNativeZoom: 3,
     });
     (this.overlay as any).owner = this;
-    images.onLoad = (hash) => {
-      for (const [k, h] of this.waiting) if (h === hash) state.dirty.add(k);
+    images.onLoad = (hashes) => {
+      const loaded = new Set(hashes);
+      for (const [k, h] of this.waiting) if (loaded.has(h)) state.dirty.add(k);
     };
   }
 

@@ -16,12 +16,17 @@ export async function pgmB64compressed(pixels: Uint8Array): Promise<string> {
   return btoa(s);
 }
 
-export async function postChunk(meta: MapMeta, robotId: string, row: number, column: number, value: number, nowMs: number): Promise<Response> {
+/** Listing 14: one chunk filled with `value`, as POSTed or published on iot/chunks/create. */
+export async function chunkMessage(meta: MapMeta, robotId: string, row: number, column: number, value: number, nowMs: number) {
   const pixels = new Uint8Array(meta.CHUNK_WIDTH * meta.CHUNK_HEIGHT).fill(value);
+  return { pgmB64compressedData: await pgmB64compressed(pixels), row, column, timestamp: timestamp2019(nowMs), robotId };
+}
+
+export async function postChunk(message: object): Promise<Response> {
   return fetch("/api/chunk-service/chunks", {
     method: "POST",
     headers: { "Content-Type": "application/json" },
-    body: JSON.stringify({ pgmB64compressedData: await pgmB64compressed(pixels), row, column, timestamp: timestamp2019(nowMs), robotId }),
+    body: JSON.stringify(message),
   });
 }
 

@@ -65,13 +65,17 @@ export class MapState {
   logLimit = 500_000; // halved when reached: a week at 86400x would not fit
 
   reset(snapshot: ChunkCell[]): void {
-    for (const k of this.cells.keys()) this.dirty.add(k);
+    // Only cells whose picture changes need redrawing: a seek redraws what differs, not
+    // the whole grid (the first frame after a seek stays short).
+    const old = new Map(this.cells);
     this.cells.clear();
     for (const c of snapshot) {
       const k = cellKey(c.row, c.column);
       this.cells.set(k, strip(c));
-      this.dirty.add(k);
+      if (old.get(k)?.content_hash !== c.content_hash) this.dirty.add(k);
+      old.delete(k);
     }
+    for (const k of old.keys()) this.dirty.add(k);
   }
 
   get(key: number): ChunkCell | null {

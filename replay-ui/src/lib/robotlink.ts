@@ -1,0 +1,83 @@
+/**
+ * The controller page's MQTT connection, over WebSocket (browsers have no raw TCP): it
+ * publishes on the same 2019 topics as a robot, so the gateway cannot tell them apart.
+ * The broker's URL and the topics come from the API (`GET /api/v1/client-config`).
+ */
+import mqtt from "mqtt";
+import type { IClientOptions, MqttClient } from "mqtt";
+
+export interface ClientConfig {
+  mqtt_ws_url: string | null;
+  coordinate_topic_prefix: string;
+  create_chunk_topic: string;
+}
+
+export type LinkState = "unconfigured" | "connecting" | "connected" | "reconnecting" | "offline";
+
+export type Connect = (url: string, options: IClientOptions) => MqttClient;
+
+export async function getClientConfig(): Promise<ClientConfig | null> {
+  const r = await fetch("/api/v1/client-config").catch(() => null);
+  return r && r.ok ? ((await r.json()) as ClientConfig) : null;
+}
+
+export class RobotLink {
+  state: LinkState;
+  error = "";
+  published = 0;
+  private client: MqttClient | null = null;
+
+  constructor(
+    private config: ClientConfig,
+    private onChange: (link: RobotLink) => void = () => {},
+    private connect: Connect = mqtt.connect,
+  ) {
+    this.state = config.mqtt_ws_url ? "offline" : "unconfigured";
+  }
+
+  start(clientId: string): void {
+    if (!this.config.mqtt_ws_url || this.client) return;
+    this.set("connecting");
+    // mqtt.js reconnects on its own; 2 s keeps the page's pose flowing soon after a broker restart.
+    const c = this.connect(this.config.mqtt_ws_url, { clientId, reconnectPeriod: 2000, connectTimeout: 5000, clean: true });
+    this.client = c;
+    c.on("connect", () => this.set("connected", ""));
+    c.on("reconnect", () => this.set("reconnecting"));
+    c.on("offline", () => this.set("offline"));
+    c.on("close", () => {
+      if (this.state === "connected") this.set("offline");
+    });
+    c.on("error", (e: Error) => this.set(this.state, e.message));
+  }
+
+  stop(): void {
+    this.client?.end(true);
+    this.client = null;
+    if (this.state !== "unconfigured") this.set("offline");
+  }
+
+  /** iot/coordinates/{robotId}: dropped while disconnected (a stale pose is worth nothing). */
+  publishPose(robotId: string, message: object): boolean {
+    return this.publish(this.config.coordinate_topic_prefix + robotId, message);
+  }
+
+  /** iot/chunks/create, the body of POST /api/chunk-service/chunks. */
+  publishChunk(message: object): boolean {
+    return this.publish(this.config.create_chunk_topic, message);
+  }
+
+  private publish(topic: string, message: object): boolean {
+    if (!this.client || this.state !== "connected") return false;
+    // QoS 1 as the 2019 robots: the gateway acknowledges only once Kafka has the message.
+    this.client.publish(topic, JSON.stringify(message), { qos: 1 });
+    this.published++;
+    this.onChange(this);
+    return true;
+  }
+
+  private set(state: LinkState, error?: string): void {
+    this.state = state;
+    if (error !== undefined) this.error = error;
+    this.onChange(this);
+  }
+}
