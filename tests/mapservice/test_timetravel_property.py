@@ -10,8 +10,12 @@ import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
+from fastapi.testclient import TestClient
+
 from mapservice.adapters.clickhouse_store import ClickHouseStore
+from mapservice.api.app import create_app
 from mapservice.events import ChunkUpdated, PoseReported, make_envelope
+from mapservice.settings import Settings
 from mapservice.timetravel import ChunkState, fold_map, fold_robots
 from mapservice.wire2019 import content_hash
 
@@ -64,7 +68,8 @@ event_strategy = st.one_of(
          queries=[3 * EVERY_MS])
 def test_state_at_t_equals_brute_force_fold(chdb_path, events, batch_cuts, snapshot_points,
                                             duplicates, queries):
-    """For random T, map_at and robots_at equal a fold of every stored event with time <= T."""
+    """For random T, the API's map at T and robots at T (and the store's) equal a fold of
+    every stored event with time <= T."""
     base = (time.time_ns() // 1_000_000 // EVERY_MS) * EVERY_MS - 2 * 3_600_000
     store = ClickHouseStore(f"chdb://{chdb_path}", database=f"tt_{next(_db)}",
                             snapshot_every_ms=EVERY_MS)
@@ -91,16 +96,22 @@ def test_state_at_t_equals_brute_force_fold(chdb_path, events, batch_cuts, snaps
     for e in envs:
         if isinstance(e.payload, PoseReported):
             pose_times[(e.robot_id, e.event_time_ms)] = e
+    api = TestClient(create_app(Settings(), store))
     for q in queries:
         at = base + q
         expected = fold_map(rows, at)
         assert {(c.row, c.column): c for c in store.map_at(at)} == expected
+        served = api.get("/api/v1/map", params={"at": at}).json()["chunks"]
+        assert {(c["row"], c["column"]): ChunkState(c["row"], c["column"], c["ts_ms"], c["robotId"],
+                                                    c["content_hash"]) for c in served} == expected
         expected_robots = {}
         for (robot, ts), e in pose_times.items():
             if ts <= at and ts > expected_robots.get(robot, (-1, None))[0]:
                 expected_robots[robot] = (ts, e.payload.position[0])
         got = {p.robot_id: (p.ts_ms, p.x) for p in store.robots_at(at)}
         assert got == expected_robots
+        served_robots = api.get("/api/v1/robots", params={"at": at}).json()["robots"]
+        assert {r["robotId"]: (r["ts_ms"], r["position"][0]) for r in served_robots} == expected_robots
     store.close()
 
 
