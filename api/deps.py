@@ -81,3 +81,11 @@ def window_in_retention(
             400, f"'from' ({from_}) is older than the {settings.retention_days}-day retention; "
                  "nothing is kept before now minus the retention")
     return f, t
+
+
+def check_step(step_ms: int) -> int:
+    """A downsampling step: 0 (every pose) or a positive number of milliseconds."""
+    if step_ms < 0:
+        raise HTTPException(400, f"step_ms ({step_ms}) is negative; use 0 for every pose or "
+                                 "a positive step in milliseconds")
+    return step_ms

@@ -9,14 +9,14 @@ a day costs about as much as its frames); smaller odd steps from every pose. Bot
 from __future__ import annotations
 
 import msgspec
-from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
 from mapservice.ports import Clock, HistoryStore
 from mapservice.settings import Settings
 from mapservice.wire2019 import format_timestamp
 
-from ..deps import get_clock, get_settings, get_store, window_in_retention
+from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 from .chunk_events import ChunkEvent
 from .poses import Pose
 
@@ -65,9 +65,7 @@ def list_events(
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
 ) -> Response:
-    if step_ms < 0:
-        raise HTTPException(400, f"step_ms ({step_ms}) is negative; use 0 for every pose or "
-                                 "a positive step in milliseconds")
+    check_step(step_ms)
     f, t = window_in_retention(from_, to, MAX_SPAN_MS, settings, clock.now_ms())
     chunks = store.chunk_events(f, t, MAX_CHUNKS + 1)
     poses = (store.poses_downsampled(f, t, step_ms, limit=MAX_POSES + 1) if step_ms > 0

@@ -9,7 +9,7 @@ from mapservice.ports import Clock, HistoryStore
 from mapservice.settings import Settings
 from mapservice.timetravel import yaw
 
-from ..deps import get_clock, get_settings, get_store, window_in_retention
+from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
 MAX_POINTS = 100_000
@@ -44,9 +44,7 @@ def get_robot_track(
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
 ) -> Track:
-    if step_ms < 0:
-        raise HTTPException(400, f"step_ms ({step_ms}) is negative; use 0 for every pose or "
-                                 "a positive step in milliseconds")
+    check_step(step_ms)
     span = MAX_SPAN_EVERY_POSE_MS if step_ms == 0 else settings.retention_ms
     f, t = window_in_retention(from_, to, span, settings, clock.now_ms())
     if step_ms and (t - f) // step_ms > MAX_POINTS:
