@@ -3,9 +3,12 @@
 
 The rule: writes A and B to the same chunk conflict when different robots wrote them,
 their contents differ and their event times are at most the window apart. B is the
-later of the two in (event time, robot id) order; the conflict's time is B's. Per B and
-per other robot there is one conflict (the table's identity is (ts, row, column,
-robot_a, robot_b)): it names robot_a's latest write that conflicts with B.
+later of the two in (event time, robot id) order; the conflict's time is B's. Per B
+there is one conflict (the table's identity is B's: (ts, row, column, robot_b)): it names
+the latest write, in (event time, robot id) order, that conflicts with B. One row per
+later write bounds the table by the chunk events (the 2019 load test, where every write
+conflicts with several others, stored one row per pair at ~6 MB per robot-day); the other
+writes of the window, and the contents of both, are in `chunk_events`.
 
 The rule is monotonic: a late or re-delivered write can only add conflicts or move a
 conflict's A to a later write, never remove one. So recomputing the conflicts of every
@@ -27,8 +30,9 @@ def _order(w: ChunkRow) -> tuple[int, str]:
 
 
 def conflicts_of(b: ChunkRow, writes: Iterable[ChunkRow], window_ms: int) -> list[ConflictRow]:
-    """The conflicts whose later write is `b`, among `writes` (any chunks; others ignored)."""
-    best: dict[str, ChunkRow] = {}
+    """The conflict whose later write is `b`, among `writes` (any chunks; others
+    ignored): none, or one naming the latest conflicting write."""
+    best: ChunkRow | None = None
     for a in writes:
         if (a.row, a.column) != (b.row, b.column) or a.robot_id == b.robot_id:
             continue
@@ -36,12 +40,11 @@ def conflicts_of(b: ChunkRow, writes: Iterable[ChunkRow], window_ms: int) -> lis
             continue
         if b.ts_ms - a.ts_ms > window_ms:
             continue
-        current = best.get(a.robot_id)
-        if current is None or a.ts_ms > current.ts_ms:
-            best[a.robot_id] = a
-    return [ConflictRow(b.row, b.column, b.ts_ms, a.robot_id, a.ts_ms, a.content_hash,
-                        b.robot_id, b.content_hash)
-            for a in (best[r] for r in sorted(best))]
+        if best is None or _order(a) > _order(best):
+            best = a
+    if best is None:
+        return []
+    return [ConflictRow(b.row, b.column, b.ts_ms, best.robot_id, best.ts_ms, b.robot_id)]
 
 
 def all_conflicts(writes: Iterable[ChunkRow], window_ms: int) -> list[ConflictRow]:
@@ -165,9 +168,9 @@ def record_conflicts(store: HistoryStore, new: list[ChunkRow], window_ms: int,
     return len(rows)
 
 
-def conflict_key(c: ConflictRow) -> tuple[int, int, int, str, str]:
-    """The natural identity (and the order of the `conflicts` table)."""
-    return (c.ts_ms, c.row, c.column, c.robot_a, c.robot_b)
+def conflict_key(c: ConflictRow) -> tuple[int, int, int, str]:
+    """The natural identity, B's (and the order of the `conflicts` table)."""
+    return (c.ts_ms, c.row, c.column, c.robot_b)
 
 
 def _identity(w: ChunkRow) -> tuple[int, int, int, str]:

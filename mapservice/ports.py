@@ -89,16 +89,15 @@ class Counts(msgspec.Struct, frozen=True):
 
 class ConflictRow(msgspec.Struct, frozen=True, array_like=True):
     """Two robots wrote different content to one chunk within the conflict window:
-    `robot_a` at `ts_a_ms` first, `robot_b` at `ts_ms` (the later write's event time)."""
+    `robot_a` at `ts_a_ms` first, `robot_b` at `ts_ms` (the later write's event time).
+    Both writes, with their contents, are in the chunk history under these identities."""
 
     row: int
     column: int
     ts_ms: int
     robot_a: str
     ts_a_ms: int
-    hash_a: str  # hex
     robot_b: str
-    hash_b: str  # hex
 
 
 class TimelineBucket(msgspec.Struct, frozen=True, array_like=True):
@@ -161,10 +160,11 @@ class HistoryStore(Protocol):
         in event-time order (the neighbours a new write may conflict with)."""
 
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
-        """Idempotent on (ts, row, column, robot_a, robot_b); a repeat replaces the row."""
+        """Idempotent on B's identity (ts, row, column, robot_b): of two rows with one
+        identity the one naming the later A (by ts_a; on a tie the later append) stays."""
 
     def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
-        """Conflicts with from_ms <= ts < to_ms, ordered by ts, row, column, robot_a, robot_b."""
+        """Conflicts with from_ms <= ts < to_ms, ordered by ts, row, column, robot_b."""
 
     def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
         """Conflicts per bucket [from_ms + k*bucket_ms, ...) of from_ms <= ts < to_ms, keyed

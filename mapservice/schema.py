@@ -160,6 +160,11 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "poses sorted by (ts, robot_id); per-minute pose keyframes for downsampled reads",
             _poses_by_time(database, ttl_days),
         ),
+        Migration(
+            5,
+            "conflicts: one row per later write, without content hashes",
+            _conflicts_per_write(database, ttl_days),
+        ),
     ]
 
 
@@ -243,4 +248,38 @@ def _poses_by_time(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 4
+def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
+    """Schema v5 (BENCHMARKS.md, 1,000 robots): v3 kept one row per pair of conflicting
+    robots with both content hashes, 5.9 MB per robot-day on the 2019 load test, where
+    each write conflicts with several others. Now one row per later write (B's identity),
+    naming the latest conflicting write; contents are joined from `chunk_events` on read.
+    Version ts_a: the rule is monotonic (mapservice/conflicts.py), so of two rows with one
+    identity the one naming the later A is right, whatever order they were inserted in.
+
+    Safe to run twice, as v4: the copy goes to `conflicts_v5` (keeping per B the latest A
+    of the old rows), the swap is one RENAME, the old table is dropped after it. The copy
+    names its columns, so a re-run after the RENAME copies the new table onto itself.
+    """
+    return (
+        f"DROP TABLE IF EXISTS {db}.conflicts_v3 SYNC",
+        f"""CREATE TABLE IF NOT EXISTS {db}.conflicts_v5 (
+            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+            row UInt16 CODEC(ZSTD(3)),
+            col UInt16 CODEC(ZSTD(3)),
+            robot_b LowCardinality(String),
+            robot_a LowCardinality(String),
+            ts_a DateTime64(3, 'UTC') CODEC(Delta, ZSTD(3))
+        ) ENGINE = ReplacingMergeTree(ts_a)
+        PARTITION BY toDate(ts)
+        ORDER BY (ts, row, col, robot_b)
+        TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        f"""INSERT INTO {db}.conflicts_v5 (ts, row, col, robot_b, robot_a, ts_a)
+            SELECT ts, row, col, robot_b, argMax(robot_a, (ts_a, robot_a)), max(ts_a)
+            FROM {db}.conflicts FINAL GROUP BY ts, row, col, robot_b""",
+        f"RENAME TABLE {db}.conflicts TO {db}.conflicts_v3, {db}.conflicts_v5 TO {db}.conflicts",
+        f"DROP TABLE IF EXISTS {db}.conflicts_v3 SYNC",
+    )
+
+
+SCHEMA_VERSION = 5

@@ -1,12 +1,13 @@
 """Conflicts: two robots writing different content to one chunk within the conflict window
-(rule in mapservice/conflicts.py), in a time window, ordered by time."""
+(rule in mapservice/conflicts.py), in a time window, ordered by time. The store keeps who
+and when; both writes' content hashes come from the chunk history."""
 
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.ports import HistoryStore
+from mapservice.ports import ConflictRow, HistoryStore
 from mapservice.settings import Settings
 
 from ..deps import get_settings, get_store, parse_window
@@ -18,11 +19,11 @@ class Conflict(BaseModel):
     row: int
     column: int
     ts_ms: int  # event time of the later write (robot_b's)
-    robot_a: str
+    robot_a: str  # of the latest earlier write that conflicts with robot_b's
     ts_a_ms: int
-    hash_a: str
+    hash_a: str | None  # None only if the write left the history (DELETE) meanwhile
     robot_b: str
-    hash_b: str
+    hash_b: str | None
 
 
 class Conflicts(BaseModel):
@@ -43,6 +44,20 @@ def list_conflicts(
 ) -> Conflicts:
     f, t = parse_window(from_, to, settings.retention_ms)
     rows = store.conflicts(f, t, limit + 1)
+    hashes = _content_hashes(store, rows[:limit])
     return Conflicts(from_ms=f, to_ms=t, window_s=settings.conflict_window_s, truncated=len(rows) > limit,
-                     conflicts=[Conflict(**{k: getattr(r, k) for k in Conflict.model_fields})
+                     conflicts=[Conflict(row=r.row, column=r.column, ts_ms=r.ts_ms, robot_a=r.robot_a,
+                                         ts_a_ms=r.ts_a_ms, robot_b=r.robot_b,
+                                         hash_a=hashes.get((r.row, r.column, r.ts_a_ms, r.robot_a)),
+                                         hash_b=hashes.get((r.row, r.column, r.ts_ms, r.robot_b)))
                                 for r in rows[:limit]])
+
+
+def _content_hashes(store: HistoryStore, rows: list[ConflictRow]) -> dict[tuple[int, int, int, str], str]:
+    """(row, column, ts, robot) -> content hash of both writes of every conflict: one read
+    of the conflicts' chunks over the span from the earliest A to the latest B."""
+    if not rows:
+        return {}
+    writes = store.chunk_writes_near(sorted({(r.row, r.column) for r in rows}),
+                                     min(r.ts_a_ms for r in rows), max(r.ts_ms for r in rows))
+    return {(w.row, w.column, w.ts_ms, w.robot_id): w.content_hash for w in writes}

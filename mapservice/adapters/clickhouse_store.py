@@ -144,7 +144,7 @@ class ClickHouseStore:
                     c.command(statement)
                 c.insert(f"{db}.schema_migrations", [[m.version, m.description]],
                          column_names=["version", "description"])
-                version = m.version
+                version = max(version, m.version)
             return version
 
     # --- writes ---------------------------------------------------------------------
@@ -398,18 +398,17 @@ class ClickHouseStore:
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
         if not rows:
             return
-        data = [[c.ts_ms, c.row, c.column, c.robot_a, c.ts_a_ms, bytes.fromhex(c.hash_a),
-                 c.robot_b, bytes.fromhex(c.hash_b)] for c in rows]
+        data = [[c.ts_ms, c.row, c.column, c.robot_b, c.robot_a, c.ts_a_ms] for c in rows]
         with self._lock:
             self.client.insert(f"{self.database}.conflicts", data, column_names=[
-                "ts", "row", "col", "robot_a", "ts_a", "hash_a", "robot_b", "hash_b"])
+                "ts", "row", "col", "robot_b", "robot_a", "ts_a"])
 
     def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
         rows = self._rows(
             "SELECT row, col, toUnixTimestamp64Milli(ts), robot_a, toUnixTimestamp64Milli(ts_a), "
-            f"lower(hex(hash_a)), robot_b, lower(hex(hash_b)) FROM {self.database}.conflicts FINAL "
+            f"robot_b FROM {self.database}.conflicts FINAL "
             "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            f"ORDER BY ts, row, col, robot_a, robot_b LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            f"ORDER BY ts, row, col, robot_b LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
             {"f": from_ms, "t": to_ms, "n": limit},
         )
         return [ConflictRow(*r) for r in rows]
@@ -420,7 +419,7 @@ class ClickHouseStore:
         # Without FINAL: count distinct identities, the same number FINAL would give.
         rows = self._rows(
             "SELECT {f:Int64} + intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64}) * {b:Int64} "
-            "AS start, uniqExact(ts, row, col, robot_a, robot_b) "
+            "AS start, uniqExact(ts, row, col, robot_b) "
             f"FROM {self.database}.conflicts "
             "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
             "GROUP BY start ORDER BY start",

@@ -33,7 +33,7 @@ class MemoryStore:
         self._contents: dict[bytes, tuple[int, int, bytes]] = {}
         self._metas: dict[tuple[int, str], MapMetaSet] = {}
         self._dead: list[DeadLetter] = []
-        self._conflicts: dict[tuple[int, int, int, str, str], ConflictRow] = {}
+        self._conflicts: dict[tuple[int, int, int, str], ConflictRow] = {}
         self._lock = threading.Lock()
 
     def migrate(self) -> int:
@@ -119,7 +119,7 @@ class MemoryStore:
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
         with self._lock:
             for c in rows:
-                key = (c.ts_ms, c.row, c.column, c.robot_a, c.robot_b)
+                key = (c.ts_ms, c.row, c.column, c.robot_b)
                 current = self._conflicts.get(key)
                 # As ReplacingMergeTree(ts_a): the row naming the later A wins.
                 if current is None or c.ts_a_ms >= current.ts_a_ms:

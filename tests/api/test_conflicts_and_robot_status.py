@@ -10,9 +10,11 @@ from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.ports import ConflictRow
 from mapservice.settings import Settings
+from mapservice.wire2019 import content_hash
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
-HA, HB = "aa" * 16, "bb" * 16
+PA, PB = bytes(10_000), bytes([254]) * 10_000
+HA, HB = content_hash(PA).hex(), content_hash(PB).hex()
 
 
 @pytest.fixture
@@ -23,8 +25,11 @@ def store(ev) -> MemoryStore:
         ev.pose("skewed", NOW - 2_000, receive_lag_ms=-7_000),  # its clock runs 7 s ahead
         ev.pose("silent", NOW - 10_001, receive_lag_ms=5_000),
     ])
-    s.append_conflicts([ConflictRow(1, 2, NOW - 5_000, "a", NOW - 9_000, HA, "b", HB),
-                        ConflictRow(0, 0, NOW - 1_000, "b", NOW - 1_500, HB, "c", HA)])
+    s.append([ev.chunk("a", NOW - 9_000, 1, 2, PA), ev.chunk("b", NOW - 5_000, 1, 2, PB),
+              ev.chunk("b", NOW - 1_500, 0, 0, PB), ev.chunk("c", NOW - 1_000, 0, 0, PA),
+              ev.chunk("d", NOW - 1_200, 0, 0, PB)])
+    s.append_conflicts([ConflictRow(1, 2, NOW - 5_000, "a", NOW - 9_000, "b"),
+                        ConflictRow(0, 0, NOW - 1_000, "d", NOW - 1_200, "c")])
     return s
 
 
@@ -51,13 +56,14 @@ def test_robot_thresholds_come_from_settings(store) -> None:
 
 
 def test_conflicts_in_window_ordered(client) -> None:
-    """/api/v1/conflicts lists the conflicts with from <= ts < to, in time order."""
+    """/api/v1/conflicts lists the conflicts with from <= ts < to, in time order, with
+    both writes' content hashes from the chunk history."""
     body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW}).json()
     assert body["truncated"] is False and body["window_s"] == 60.0
     assert body["conflicts"] == [
         {"row": 1, "column": 2, "ts_ms": NOW - 5_000, "robot_a": "a", "ts_a_ms": NOW - 9_000,
          "hash_a": HA, "robot_b": "b", "hash_b": HB},
-        {"row": 0, "column": 0, "ts_ms": NOW - 1_000, "robot_a": "b", "ts_a_ms": NOW - 1_500,
+        {"row": 0, "column": 0, "ts_ms": NOW - 1_000, "robot_a": "d", "ts_a_ms": NOW - 1_200,
          "hash_a": HB, "robot_b": "c", "hash_b": HA}]
     body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW - 1_000}).json()
     assert len(body["conflicts"]) == 1

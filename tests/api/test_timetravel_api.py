@@ -38,8 +38,7 @@ def store(ev) -> MemoryStore:
               ev.chunk("r2", NOW - 1, 0, 0)])
     s.append([_heading("r3", NOW + 5 * MIN, 1.0, math.pi / 2, 40.0),
               _heading("r3", NOW + 5 * MIN + 1000, 2.0, -math.pi / 4, 39.5)])
-    s.append_conflicts([ConflictRow(1, 1, NOW + 61_000, "r2", NOW + 60_500, "aa" * 16, "r1",
-                                    "bb" * 16)])
+    s.append_conflicts([ConflictRow(1, 1, NOW + 61_000, "r2", NOW + 60_500, "r1")])
     return s
 
 

@@ -208,8 +208,13 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
         got_conflicts = api(stack, "/api/v1/conflicts", **{"from": base - minute,
                                                            "to": base + 14 * minute})["conflicts"]
         assert got_conflicts  # the workload has some, so the comparison means something
-        assert [tuple(c.values()) for c in got_conflicts] == \
+        fields = ("row", "column", "ts_ms", "robot_a", "ts_a_ms", "robot_b")
+        assert [tuple(c[f] for f in fields) for c in got_conflicts] == \
             [tuple(msgspec.structs.astuple(c)) for c in all_conflicts(chunk_rows, WINDOW_MS)]
+        hashes = {(w.row, w.column, w.ts_ms, w.robot_id): w.content_hash for w in chunk_rows}
+        assert [(c["hash_a"], c["hash_b"]) for c in got_conflicts] == [
+            (hashes[c["row"], c["column"], c["ts_a_ms"], c["robot_a"]],
+             hashes[c["row"], c["column"], c["ts_ms"], c["robot_b"]]) for c in got_conflicts]
 
         final = fold_map(chunk_rows, 2**62)
         want_last = {k: (s.ts_ms, s.robot_id) for k, s in final.items()}

@@ -28,7 +28,7 @@ def w(robot: str, ts: int, h: str = H1, row: int = 0, col: int = 0) -> ChunkRow:
 def test_different_robots_different_content_within_window_conflict() -> None:
     """a then b with different content within the window is one conflict at b's time."""
     a, b = w("a", 1000, H1), w("b", 5000, H2)
-    assert all_conflicts([a, b], W) == [ConflictRow(0, 0, 5000, "a", 1000, H1, "b", H2)]
+    assert all_conflicts([a, b], W) == [ConflictRow(0, 0, 5000, "a", 1000, "b")]
 
 
 def test_no_conflict_for_same_content_same_robot_other_chunk_or_outside_window() -> None:
@@ -42,15 +42,21 @@ def test_no_conflict_for_same_content_same_robot_other_chunk_or_outside_window()
 
 def test_equal_times_are_ordered_by_robot() -> None:
     """Two robots at one instant: the conflict's B is the greater robot id, once."""
-    assert all_conflicts([w("b", 7, H2), w("a", 7, H1)], W) == [
-        ConflictRow(0, 0, 7, "a", 7, H1, "b", H2)]
+    assert all_conflicts([w("b", 7, H2), w("a", 7, H1)], W) == [ConflictRow(0, 0, 7, "a", 7, "b")]
 
 
-def test_one_conflict_per_b_and_robot_naming_the_latest_conflicting_a() -> None:
-    """Several conflicting writes of one robot before B: the conflict names the latest."""
+def test_one_conflict_per_b_naming_the_latest_conflicting_a() -> None:
+    """Several conflicting writes before B, of several robots: one conflict, naming the
+    latest of them (a write with B's own content does not conflict)."""
     rows = conflicts_of(w("b", 100, H3), [w("a", 10, H1), w("a", 50, H2), w("a", 90, H3),
                                           w("c", 20, H1)], W)
-    assert [(c.robot_a, c.ts_a_ms, c.hash_a) for c in rows] == [("a", 50, H2), ("c", 20, H1)]
+    assert rows == [ConflictRow(0, 0, 100, "a", 50, "b")]
+
+
+def test_ties_in_time_pick_the_greater_robot_as_a() -> None:
+    """Two conflicting writes at one instant before B: A is the greater robot id."""
+    rows = conflicts_of(w("d", 100, H3), [w("c", 40, H1), w("a", 40, H2)], W)
+    assert rows == [ConflictRow(0, 0, 100, "c", 40, "d")]
 
 
 def test_late_write_as_a_creates_conflicts_with_later_writes() -> None:
@@ -60,6 +66,14 @@ def test_late_write_as_a_creates_conflicts_with_later_writes() -> None:
     late = w("a", 1000, H1)
     got = affected_conflicts([late], stored + [late], W)
     assert [(c.robot_a, c.robot_b, c.ts_ms) for c in got] == [("a", "b", 5000), ("b", "c", 9000)]
+
+
+def test_late_write_moves_a_conflicts_a_to_itself_when_later() -> None:
+    """A late write between B's current A and B becomes B's A (and has its own conflict)."""
+    stored = [w("a", 1000, H1), w("b", 5000, H2)]
+    late = w("c", 3000, H3)
+    assert affected_conflicts([late], stored + [late], W) == [
+        ConflictRow(0, 0, 3000, "a", 1000, "c"), ConflictRow(0, 0, 5000, "c", 3000, "b")]
 
 
 def test_neighbourhoods_cover_the_window_and_split_distant_writes() -> None:

@@ -115,9 +115,9 @@ def test_empty_appends_are_harmless(store) -> None:
 
 
 def _conflict(t0: int, dt: int, robot_a: str = "a", robot_b: str = "b", dt_a: int = 0,
-              row: int = 1, column: int = 2, ha: str = "11" * 16, hb: str = "22" * 16):
+              row: int = 1, column: int = 2):
     from mapservice.ports import ConflictRow
-    return ConflictRow(row, column, t0 + dt, robot_a, t0 + dt_a, ha, robot_b, hb)
+    return ConflictRow(row, column, t0 + dt, robot_a, t0 + dt_a, robot_b)
 
 
 def test_conflicts_window_order_and_idempotence(store, t0) -> None:
@@ -135,11 +135,14 @@ def test_conflicts_window_order_and_idempotence(store, t0) -> None:
 
 
 def test_conflict_identity_keeps_the_later_a(store, t0) -> None:
-    """Two rows with one identity keep the one naming the later A, whatever the insert order."""
-    later = _conflict(t0, 1000, dt_a=900, ha="33" * 16)
+    """Two rows with one identity (B's) keep the one naming the later A, whatever the
+    insert order; a row for another B of the same instant and chunk stays apart."""
+    later = _conflict(t0, 1000, robot_a="c", dt_a=900)
     store.append_conflicts([later])
     store.append_conflicts([_conflict(t0, 1000, dt_a=500)])
-    assert store.conflicts(t0, t0 + 2000) == [later]
+    other_b = _conflict(t0, 1000, robot_b="e", dt_a=100)
+    store.append_conflicts([other_b])
+    assert store.conflicts(t0, t0 + 2000) == [later, other_b]
 
 
 def test_conflict_counts_per_bucket(store, t0) -> None:
@@ -391,6 +394,40 @@ def test_clickhouse_store_reopens_with_its_data(chdb_dir, ev, t0) -> None:
     assert os.path.isdir(chdb_dir)
 
 
+def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb_dir, t0) -> None:
+    """A v4 database's pair-per-row conflicts become one row per B naming the latest A
+    (ties in time: the greater robot); re-running v5 after it completed changes nothing."""
+    from mapservice.ports import ConflictRow
+    from mapservice.schema import migrations
+
+    store = _clickhouse(chdb_dir)
+    db, c = store.database, store.client
+    try:
+        c.command(f"CREATE DATABASE IF NOT EXISTS {db}")
+        steps = migrations(db, store.retention_days)
+        for m in steps[:4]:
+            for statement in m.statements:
+                c.command(statement)
+        c.command(f"CREATE TABLE {db}.schema_migrations (version UInt32, description String, "
+                  "applied DateTime DEFAULT now()) ENGINE = ReplacingMergeTree ORDER BY version")
+        c.insert(f"{db}.schema_migrations", [[m.version, m.description] for m in steps[:4]],
+                 column_names=["version", "description"])
+        h = bytes(16)
+        c.insert(f"{db}.conflicts", [
+            [t0 + 5000, 1, 2, "a", t0 + 1000, h, "d", h], [t0 + 5000, 1, 2, "b", t0 + 3000, h, "d", h],
+            [t0 + 5000, 1, 2, "c", t0 + 3000, h, "d", h], [t0 + 6000, 0, 0, "a", t0 + 10, h, "b", h]],
+            column_names=["ts", "row", "col", "robot_a", "ts_a", "hash_a", "robot_b", "hash_b"])
+        assert store.migrate() == SCHEMA_VERSION
+        expected = [ConflictRow(1, 2, t0 + 5000, "c", t0 + 3000, "d"),
+                    ConflictRow(0, 0, t0 + 6000, "a", t0 + 10, "b")]
+        assert store.conflicts(t0, t0 + 10_000) == expected
+        for statement in steps[4].statements:
+            c.command(statement)
+        assert store.conflicts(t0, t0 + 10_000) == expected
+    finally:
+        store.close()
+
+
 # --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
 
 from mapservice.legacy_query import parse_chunk_query, parse_pose_query
@@ -501,7 +538,7 @@ def test_delete_chunks_empties_history_and_map(store, ev, t0) -> None:
     from mapservice.ports import ConflictRow
 
     store.append(_legacy_history(ev, t0))
-    store.append_conflicts([ConflictRow(0, 0, t0, "r2", t0, "00" * 16, "r1", "11" * 16)])
+    store.append_conflicts([ConflictRow(0, 0, t0, "r2", t0, "r1")])
     assert len(store.conflicts(t0 - 1, t0 + 1)) == 1
     store.build_snapshots(t0 + 10_000)
     assert len(store.map_at(t0 + 10_000)) == 5
@@ -540,7 +577,7 @@ def test_timeline_counts_chunks_conflicts_and_robots(store, ev, m0) -> None:
                   ev.chunk("r1", m0, 0, 0), ev.chunk("r2", m0 + 500, 0, 1),
                   ev.chunk("r1", m0 + 125_000, 0, 0), ev.chunk("r1", m0 + 180_000, 0, 0)])
     store.append([ev.pose("r1", m0 + 1000)])  # a duplicate counts once
-    store.append_conflicts([ConflictRow(0, 1, m0 + 500, "r1", m0, "00" * 16, "r2", "11" * 16)])
+    store.append_conflicts([ConflictRow(0, 1, m0 + 500, "r1", m0, "r2")])
     assert store.timeline(m0, m0 + 180_000, 3) == [
         TimelineBucket(m0, 2, 1, 2), TimelineBucket(m0 + 60_000, 0, 0, 1),
         TimelineBucket(m0 + 120_000, 1, 0, 1)]
