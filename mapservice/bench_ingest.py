@@ -218,6 +218,9 @@ class QueryablePoller(threading.Thread):
         self.published = published
         self.interval_s = interval_s
         self.first_seen: dict[Key, float] = {}
+        # The gateway's receive time of each event seen (same machine, same clock): splits
+        # publish -> queryable into MQTT + gateway, and Kafka + processors + store.
+        self.received_at: dict[Key, float] = {}
         # The start of the last poll of the same kind that did not return the key yet:
         # the event became queryable after that moment (a lower bound on its latency).
         self.not_seen_at: dict[Key, float] = {}
@@ -288,6 +291,7 @@ class QueryablePoller(threading.Thread):
                             in_this.add(key)
                             if key not in self.first_seen:
                                 self.first_seen[key] = seen_at
+                                self.received_at[key] = row["receive_time_ms"] / 1000
                                 self.pending.pop(key, None)
                         for key, ts in self.pending.items():
                             if key[0] == kind and ts < examined_to:
@@ -421,6 +425,21 @@ def _latencies(poller: QueryablePoller, keys: dict[Key, float]) -> tuple[list[fl
             lower.append(max(0.0, poller.not_seen_at.get(key, wall) - wall))
     return upper, lower
 
+
+def _stage_latencies(poller: QueryablePoller, keys: dict[Key, float]) -> dict:
+    """Where the time goes, per event seen: publish -> gateway receive (Mosquitto, the
+    gateway's MQTT client) and gateway receive -> queryable (Kafka produce, tansu, the
+    history consumer, the insert, the poll)."""
+    to_gateway, after_gateway = [], []
+    for key, wall in keys.items():
+        received = poller.received_at.get(key)
+        if received is not None:
+            to_gateway.append(received - wall)
+            after_gateway.append(poller.first_seen[key] - received)
+    return {"publish_to_gateway_p50_s": _pct(to_gateway, 50),
+            "publish_to_gateway_p99_s": _pct(to_gateway, 99),
+            "gateway_to_queryable_p50_s": _pct(after_gateway, 50),
+            "gateway_to_queryable_p99_s": _pct(after_gateway, 99)}
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -622,6 +641,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "pose_latency_p99_s": _pct(pose_upper, 99),
             "chunk_latency_p50_s": _pct(chunk_upper, 50),
             "chunk_latency_p99_s": _pct(chunk_upper, 99),
+            **_stage_latencies(poller, keys),
             "poller": {
                 "interval_target_s": args.poll_interval,
                 "polls": poller.polls,
@@ -741,13 +761,18 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
     row("  p50 / p99 lower bound (poll excluded)", "",
         f"{_s(med.get('latency_lower_bound_p50_s'))} / {_s(med.get('latency_lower_bound_p99_s'))}")
     row("publish -> queryable max", "", _s(med.get("latency_max_s")))
+    row("  publish -> gateway p50 / p99", "",
+        f"{_s(med.get('publish_to_gateway_p50_s'))} / {_s(med.get('publish_to_gateway_p99_s'))}")
+    row("  gateway -> queryable p50 / p99 (incl. poll)", "",
+        f"{_s(med.get('gateway_to_queryable_p50_s'))} / {_s(med.get('gateway_to_queryable_p99_s'))}")
     row("events unseen within 30 s window", "0", f"{med['latency_censored']:,.0f}",
         med["latency_censored"] == 0)
     row("drain: fleet stop -> all stored", "", _s(med.get("drain_s")) if "drain_s" in med
         else f"> {DRAIN_TIMEOUT_S:.0f} s")
     row("stored bytes per robot-day (all tables)", _mb(TARGETS["bytes_per_robot_day"]),
         _mb(med["bytes_per_robot_day"]), med["bytes_per_robot_day"] <= TARGETS["bytes_per_robot_day"])
-    for t in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters", "schema_migrations"):
+    for t in ("poses", "chunk_events", "chunk_contents", "pose_keyframes", "conflicts", "map_meta",
+              "dead_letters", "schema_migrations"):
         k = f"storage.bytes_per_robot_day_by_table.{t}"
         if k in med:
             row(f"  of which {t}", "", _mb(med[k]))
