@@ -65,6 +65,22 @@ def test_advertisement_has_the_2019_shape_and_resolvable_urls() -> None:
     assert image.size == (100, 100) and image.tobytes() == PIXELS
 
 
+def test_advertisements_render_each_content_once_and_never_mix_contents(monkeypatch) -> None:
+    """A content advertised again reuses its encoding; other contents get their own."""
+    import mapservice.liveview as liveview
+
+    rendered = []
+    real_png = liveview.png
+    monkeypatch.setattr(liveview, "png", lambda image: rendered.append(1) or real_png(image))
+    other = bytes([254]) * 10_000
+    ads = [advertisement(chunk_event(r, 1_545_348_873_000 + i, i, 0, px), "http://m/")
+           for i, (r, px) in enumerate([("a", PIXELS), ("b", other), ("c", PIXELS), ("d", other)])]
+    assert [zlib.decompress(base64.b64decode(ad["chunk"])) for ad in ads] == [PIXELS, other, PIXELS, other]
+    assert [Image.open(io.BytesIO(base64.b64decode(ad["png"]))).tobytes() for ad in ads] == \
+        [PIXELS, other, PIXELS, other]
+    assert len(rendered) <= 2
+
+
 def test_chunk_id_keeps_milliseconds() -> None:
     """A write with milliseconds keeps them in its id (as format_timestamp does)."""
     assert chunk_id_2019(0, 1, 1_545_348_873_250) == "row:0_column:1_2018-12-20T23:34:33.250"
