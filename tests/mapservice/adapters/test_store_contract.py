@@ -394,6 +394,25 @@ def test_clickhouse_store_reopens_with_its_data(chdb_dir, ev, t0) -> None:
     assert os.path.isdir(chdb_dir)
 
 
+def test_schema_v6_compresses_quaternions_with_fpc(chdb_dir, ev, t0) -> None:
+    """After migrate, the pose quaternion columns use FPC + ZSTD and still read back exactly."""
+    store = _clickhouse(chdb_dir)
+    try:
+        store.migrate()
+        codecs = dict(store.client.query(
+            "SELECT name, compression_codec FROM system.columns WHERE database = {d:String} "
+            "AND table = 'poses' AND name IN ('qx', 'qy', 'qz', 'qw')",
+            parameters={"d": store.database}).result_rows)
+        assert codecs == {q: "CODEC(FPC(20), ZSTD(3))" for q in ("qx", "qy", "qz", "qw")}
+        store.append([make_envelope("r1", t0, t0, PoseReported(
+            position=(1.0, 2.0, 0.0), orientation=(0.0, 0.0, 0.38268343, 0.92387953),
+            battery_level=None))])
+        (pose,) = store.poses(t0, t0 + 1)
+        assert (pose.qx, pose.qy, pose.qz, pose.qw) == pytest.approx((0.0, 0.0, 0.38268343, 0.92387953), rel=1e-7)
+    finally:
+        store.close()
+
+
 def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb_dir, t0) -> None:
     """A v4 database's pair-per-row conflicts become one row per B naming the latest A
     (ties in time: the greater robot); re-running v5 after it completed changes nothing."""
