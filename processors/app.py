@@ -20,6 +20,7 @@ from prometheus_client import Counter, Histogram
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.live import LiveHub
 from mapservice.ports import HistoryStore
+from mapservice.retry import until_done
 from mapservice.settings import Settings
 
 from .history_consumer import HistoryConsumer, HistoryConsumerService
@@ -51,20 +52,14 @@ class HistorySink:
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
     async def insert_until_done(self, fn, batch, topic: str) -> None:
-        delay = 0.2
-        while True:
-            started = time.monotonic()
-            try:
+        # Retried, never skipped: acknowledging a batch that is not stored would lose it.
+        async for attempt in until_done("history insert", 0.2, INSERT_FAILURES.inc,
+                                        topic=topic, batch=len(batch)):
+            with attempt:
+                started = time.monotonic()
                 await self.run(fn, batch)
-                INSERT_SECONDS.observe(time.monotonic() - started)
-                STORED.labels(topic).inc(len(batch))
-                return
-            except Exception as exc:  # retried: acknowledging now would lose the batch
-                INSERT_FAILURES.inc()
-                log.error("history insert failed, retrying", topic=topic, error=str(exc),
-                          batch=len(batch), retry_in=delay)
-                await asyncio.sleep(delay)
-                delay = min(delay * 2, 10)
+        INSERT_SECONDS.observe(time.monotonic() - started)
+        STORED.labels(topic).inc(len(batch))
 
 
 def build_app(settings: Settings, sink: HistorySink) -> faust.App:

@@ -18,6 +18,7 @@ import structlog
 from prometheus_client import Counter
 
 from mapservice.ports import EventSource, SourceRecord
+from mapservice.retry import until_done
 
 from .sink import split_events
 
@@ -87,19 +88,10 @@ class HistoryConsumer:
             await self.views.rebuild(self.sink)
         if not records:
             return 0
-        delay = 0.5
-        while True:
-            try:
+        # Moving on would let the next commit cover this batch: retry it instead.
+        async for attempt in until_done("history batch", 0.5, records=len(records)):
+            with attempt:
                 await self._store(records)
-                break
-            except asyncio.CancelledError:
-                raise
-            except Exception as exc:
-                # Moving on would let the next commit cover this batch: retry it instead.
-                log.error("history batch failed, retrying", error=str(exc), records=len(records),
-                          retry_in=delay)
-                await asyncio.sleep(delay)
-                delay = min(delay * 2, 10)
         if not await self._call(self.source.commit, records):
             COMMIT_FAILURES.inc()
         return len(records)

@@ -29,6 +29,7 @@ from mapservice.liveview import (
     online_robots,
 )
 from mapservice.ports import ChunkRow, HistoryStore
+from mapservice.retry import until_done
 from mapservice.settings import Settings
 
 if TYPE_CHECKING:
@@ -183,15 +184,10 @@ class LiveViews:
         return came, went
 
     async def _until_done(self, sink: "HistorySink", fn, batch) -> None:
-        delay = 0.2
-        while True:
-            try:
+        # Retried: acknowledging the batch without its conflicts and views would lose them.
+        async for attempt in until_done("live views update", 0.2):
+            with attempt:
                 await sink.run(fn, batch)
-                return
-            except Exception as exc:  # retried: acknowledging now would lose conflicts
-                log.error("live views update failed, retrying", error=str(exc), retry_in=delay)
-                await asyncio.sleep(delay)
-                delay = min(delay * 2, 10)
 
     async def rebuild(self, sink: "HistorySink") -> None:
         """After a partition assignment, before any event of it is applied: the views as the
