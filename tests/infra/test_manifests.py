@@ -489,21 +489,30 @@ def test_dockerfile_installs_the_project_as_a_non_root_mapservice_image():
 
 
 def test_mosquitto_conf_has_the_tuning_the_gateway_relies_on():
-    """mosquitto.conf sets nodelay, 1000 in flight, a large queue, persistence; compose mounts it."""
+    """mosquitto.conf sets nodelay, 1000 in flight, a large queue, persistence and a
+    WebSocket listener for browsers; compose mounts it and tells the API where it is."""
     options: dict[str, str] = {}
+    listeners: list[str] = []
     for line in MOSQUITTO_CONF.read_text().splitlines():
         if line.strip() and not line.lstrip().startswith("#"):
             key, _, value = line.strip().partition(" ")
             options[key] = value.strip()
+            if key == "listener":
+                listeners.append(value.strip())
+            elif key == "protocol":
+                listeners[-1] += f" {value.strip()}"
+    assert listeners == ["1883", "9001 websockets"]
     assert options["set_tcp_nodelay"] == "true"
     assert int(options["max_inflight_messages"]) == 1000
     assert int(options["max_queued_messages"]) >= 100_000
     assert options["persistence"] == "true"
-    assert options["listener"].split()[0] == "1883"
     services = compose()["services"]
     assert "/mosquitto/data" in " ".join(services["mosquitto"]["volumes"])
     assert "./mosquitto/mosquitto.conf:/mosquitto/config/mosquitto.conf:ro" in \
         services["mosquitto"]["volumes"]
+    # The /controller page reaches the WebSocket listener through the published port.
+    assert "9001:9001" in services["mosquitto"]["ports"]
+    assert services["api"]["environment"]["MAPSERVICE_MQTT_WS_URL"] == "ws://localhost:9001"
     assert compose_env(services["gateway"])["MAPSERVICE_MQTT_URL"] == "mqtt://mosquitto:1883"
 
 
@@ -528,6 +537,8 @@ def run_mosquitto(binary: str, tmp_path: Path) -> None:
     port = free_port()
     text, n_listener = re.subn(r"(?m)^listener 1883$", f"listener {port} 127.0.0.1",
                                MOSQUITTO_CONF.read_text())
+    ws_port = free_port()
+    text = re.sub(r"(?m)^listener 9001$", f"listener {ws_port} 127.0.0.1", text)
     text, n_data = re.subn(r"(?m)^persistence_location .*$", f"persistence_location {tmp_path}/",
                            text)
     assert n_listener == 1 and n_data == 1
@@ -541,7 +552,8 @@ def run_mosquitto(binary: str, tmp_path: Path) -> None:
             if proc.poll() is not None:
                 pytest.fail(f"mosquitto refused the config: {proc.stdout.read()}")
             try:
-                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                for p in (port, ws_port):
+                    socket.create_connection(("127.0.0.1", p), timeout=0.5).close()
                 break
             except OSError:
                 time.sleep(0.1)
