@@ -1,7 +1,10 @@
 """`mapservice bench ui`: the replay UI measured in headless Chromium (Debian's, via Playwright).
 
-Two histories are loaded with the bulk loader into embedded ClickHouse and served by the
-API in this process (uvicorn in a thread; no brokers needed for replay):
+Two histories are loaded with the bulk loader into embedded ClickHouse; each is then
+served by `mapservice api` in a process of its own, as in production (no brokers needed for
+replay). An API thread inside this process would share the GIL with Playwright's driver
+and slow every answer the page waits for (until 2026-11-22 it was such a thread: seek times
+measured before then include that contention).
 
 - seek: `--days` of `--robots` robots; the page seeks to `--seeks` random instants and the
   time from the seek to the first complete frame (map and robots at T loaded, every
@@ -15,10 +18,12 @@ API in this process (uvicorn in a thread; no brokers needed for replay):
 from __future__ import annotations
 
 import json
+import os
 import random
 import shutil
+import subprocess
+import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -33,47 +38,83 @@ def percentile(values: list[float], q: float) -> float:
     return s[min(len(s) - 1, max(0, round(q / 100 * (len(s) - 1))))]
 
 
-class ApiThread:
-    """The API over one store, on a free port, in a daemon thread."""
+def api_env(chdb_dir: Path, database: str, port: int) -> dict[str, str]:
+    """The environment of `mapservice api` over one chDB directory and database."""
+    return {
+        **os.environ,
+        "MAPSERVICE_DATA_DIR": str(chdb_dir.parent),
+        "MAPSERVICE_CLICKHOUSE_DSN": f"chdb://{chdb_dir.resolve()}",
+        "MAPSERVICE_CLICKHOUSE_DATABASE": database,
+        "MAPSERVICE_API_HOST": "127.0.0.1",
+        "MAPSERVICE_API_PORT": str(port),
+        "MAPSERVICE_LOG_LEVEL": "WARNING",
+        "PYTHONUNBUFFERED": "1",
+    }
 
-    def __init__(self, store, settings) -> None:
-        import uvicorn
 
-        from .api.app import create_app
+class ApiProcess:
+    """`mapservice api` on a free port in its own process; the caller has closed the chDB
+    directory first (one process may open it at a time). Stopped with SIGTERM on exit."""
+
+    def __init__(self, chdb_dir: Path, database: str, log_path: Path,
+                 timeout_s: float = 120) -> None:
         from .embedded import free_port
 
         self.port = free_port()
-        app = create_app(settings, store)
-        self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=self.port,
-                                                    log_level="warning"))
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        self.env = api_env(chdb_dir, database, self.port)
+        self.log_path = log_path
+        self.timeout_s = timeout_s
+        self.proc: subprocess.Popen | None = None
 
     @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def __enter__(self) -> ApiThread:
-        self.thread.start()
-        deadline = time.monotonic() + 30
-        while not self.server.started and time.monotonic() < deadline:
-            time.sleep(0.05)
-        return self
+    def __enter__(self) -> ApiProcess:
+        import httpx
+
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "ab") as log:
+            self.proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", "api"],
+                                         env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                                         start_new_session=True)
+        deadline = time.monotonic() + self.timeout_s
+        try:
+            while True:
+                if self.proc.poll() is not None:
+                    raise RuntimeError(f"the API exited ({self.proc.returncode}); see {self.log_path}")
+                try:
+                    if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                        return self
+                except httpx.HTTPError:
+                    pass
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the API was not ready within {self.timeout_s:.0f} s; "
+                                       f"see {self.log_path}")
+                time.sleep(0.1)
+        except BaseException:
+            self.__exit__()
+            raise
 
     def __exit__(self, *exc) -> None:
-        self.server.should_exit = True
-        self.thread.join(10)
+        from .embedded import stop
+
+        stop(self.proc)
+        self.proc = None
 
 
 def load(path: Path, database: str, days: float, robots: int, end_ms: int):
-    """One chDB path per process: both histories share it, in two databases."""
+    """Both histories share one chDB directory, in two databases; closed once loaded."""
     from .adapters.clickhouse_store import ClickHouseStore
     from .history_loader import DEFAULT_MAP, load_history
     from .mapfile import load_ros_map
 
     store = ClickHouseStore(f"chdb://{path}", database=database, snapshot_every_ms=600_000)
-    result = load_history(store, load_ros_map(DEFAULT_MAP), days=days, robots=robots,
-                          end_ms=end_ms, grid=(32, 48))
-    return store, result
+    try:
+        return load_history(store, load_ros_map(DEFAULT_MAP), days=days, robots=robots,
+                            end_ms=end_ms, grid=(32, 48))
+    finally:
+        store.close()  # the API process opens the directory next
 
 
 def browser_page(pw, url: str):
@@ -128,35 +169,27 @@ def frame_phase(pw, api_url: str, start_ms: int, play_seconds: float) -> dict:
 def main(args) -> None:
     from playwright.sync_api import sync_playwright
 
-    from .settings import Settings
-
     if not DIST.exists():
         raise SystemExit("bench ui: the UI is not built; run `make ui` first")
     tmp = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-ui-"))
     end = time.time_ns() // 1_000_000 - 600_000
     out: dict = {"days": args.days, "robots": args.robots, "frame_robots": args.frame_robots,
                  "frame_minutes": args.frame_minutes}
-    stores = []
     try:
         with sync_playwright() as pw:
             t0 = time.perf_counter()
-            store, result = load(tmp / "ch", "bench_seek", args.days, args.robots, end)
-            stores.append(store)
+            result = load(tmp / "ch", "bench_seek", args.days, args.robots, end)
             out["seek_history"] = {"poses": result.poses, "chunk_events": result.chunk_events,
                                    "load_s": round(time.perf_counter() - t0, 1)}
-            settings = Settings(data_dir=tmp)
-            with ApiThread(store, settings) as api:
+            with ApiProcess(tmp / "ch", "bench_seek", tmp / "logs" / "api-seek.log") as api:
                 out["seek"] = seek_phase(pw, api.url, result.start_ms, result.end_ms,
                                          args.seeks, args.seed)
             print(json.dumps(out, indent=2), flush=True)
-            store, result = load(tmp / "ch", "bench_frames", args.frame_minutes / 1440,
-                                 args.frame_robots, end)
-            stores.append(store)
-            with ApiThread(store, settings) as api:
+            result = load(tmp / "ch", "bench_frames", args.frame_minutes / 1440,
+                          args.frame_robots, end)
+            with ApiProcess(tmp / "ch", "bench_frames", tmp / "logs" / "api-frames.log") as api:
                 out["frames"] = frame_phase(pw, api.url, result.start_ms, args.play_seconds)
     finally:
-        for store in reversed(stores):
-            store.close()
         if not args.data_dir:
             shutil.rmtree(tmp, ignore_errors=True)
     print(json.dumps(out, indent=2))

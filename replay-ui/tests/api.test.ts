@@ -1,5 +1,5 @@
 import { afterEach, describe, expect, it, vi } from "vitest";
-import { Api, downsample } from "../src/lib/api";
+import { Api, downsample, mapFromWire } from "../src/lib/api";
 import type { Pose } from "../src/lib/types";
 
 function pose(robotId: string, ts: number): Pose {
@@ -30,6 +30,20 @@ describe("Api", () => {
     expect(w.truncated).toBe(false);
     await api.events(0, 100_000, 0);
     expect(calls.filter((c) => c.startsWith("/api/v1/events"))).toHaveLength(1);
+  });
+
+  it("asks for the map at T in the compact layout and reads either layout", async () => {
+    const chunk = { row: 1, column: 2, ts_ms: 5, robotId: "r", content_hash: "a".repeat(32) };
+    const calls = respond({ "/api/v1/map": {
+      at_ms: 9, meta: null, fields: ["row", "column", "ts_ms", "robotId", "content_hash"], cells: [[1, 2, 5, "r", "a".repeat(32)]],
+    } });
+    expect(await new Api().map(9)).toEqual({ at_ms: 9, meta: null, chunks: [chunk] });
+    expect(calls).toEqual(["/api/v1/map?at=9&layout=compact"]);
+    // An older server ignores the layout and answers with one object per chunk.
+    respond({ "/api/v1/map": { at_ms: 9, meta: null, chunks: [{ ...chunk, timestamp: "1970-01-01T00:00:00.005" }] } });
+    expect((await new Api().map(9)).chunks[0]).toMatchObject(chunk);
+    // Fields in another order are read by name.
+    expect(mapFromWire({ at_ms: 9, meta: null, fields: ["content_hash", "robotId", "ts_ms", "column", "row"], cells: [["a".repeat(32), "r", 5, 2, 1]] }).chunks).toEqual([chunk]);
   });
 
   it("uses /events when it is there", async () => {

@@ -28,6 +28,7 @@ from mapservice.wire2019 import (
     encode_chunk_create,
     encode_coordinates,
     format_timestamp,
+    format_timestamps,
     parse_timestamp,
 )
 
@@ -371,6 +372,13 @@ def test_format_timestamp_is_2019_style(ms: int, text: str) -> None:
     """format_timestamp writes the 2019 style (no zone, milliseconds only when needed)."""
     assert format_timestamp(ms) == text
     assert parse_timestamp(text) == ms
+
+
+@settings(max_examples=200, deadline=None, database=None)
+@given(ms=st.lists(st.integers(-10**12, 4 * 10**12) | st.integers(0, 10**6).map(lambda s: s * 1000)))
+def test_format_timestamps_equals_format_timestamp(ms: list[int]) -> None:
+    """format_timestamps (vectorised, for whole maps) writes exactly what format_timestamp does."""
+    assert format_timestamps(ms) == [format_timestamp(m) for m in ms]
 
 
 # --- nothing raises, whatever arrives -----------------------------------------------------

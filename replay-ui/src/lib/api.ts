@@ -35,6 +35,31 @@ export interface MapAt {
   chunks: ChunkCell[];
 }
 
+/** /api/v1/map as sent: `chunks` (layout=rows) or `fields` + `cells` (layout=compact). */
+export interface MapAtWire {
+  at_ms: number;
+  meta: MapMeta | null;
+  chunks?: ChunkCell[];
+  fields?: string[];
+  cells?: (string | number)[][];
+}
+
+/** Either layout of the map at T as ChunkCells. */
+export function mapFromWire(w: MapAtWire): MapAt {
+  if (!w.cells || !w.fields) return { at_ms: w.at_ms, meta: w.meta, chunks: w.chunks ?? [] };
+  const at = (name: string) => {
+    const i = w.fields!.indexOf(name);
+    if (i < 0) throw new Error(`/api/v1/map: the compact layout lacks the field ${name}`);
+    return i;
+  };
+  const [r, c, t, id, h] = ["row", "column", "ts_ms", "robotId", "content_hash"].map(at);
+  return {
+    at_ms: w.at_ms,
+    meta: w.meta,
+    chunks: w.cells.map((x) => ({ row: x[r] as number, column: x[c] as number, ts_ms: x[t] as number, robotId: x[id] as string, content_hash: x[h] as string })),
+  };
+}
+
 export class Api implements Source {
   /** Endpoints found missing, so the fallback is used without asking again. */
   missing = new Set<string>();
@@ -53,8 +78,9 @@ export class Api implements Source {
     return parseBatch(await r.arrayBuffer());
   }
 
-  map(atMs: number): Promise<MapAt> {
-    return getJson<MapAt>(`${this.base}/api/v1/map?at=${Math.round(atMs)}`);
+  /** The map at T, asked for in the compact layout (an older server answers with rows). */
+  async map(atMs: number): Promise<MapAt> {
+    return mapFromWire(await getJson<MapAtWire>(`${this.base}/api/v1/map?at=${Math.round(atMs)}&layout=compact`));
   }
 
   async mapAt(atMs: number): Promise<ChunkCell[]> {

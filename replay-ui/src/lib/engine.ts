@@ -16,6 +16,14 @@ import { INTERPOLATE_MAX_SPEED, OFFLINE_AFTER_MS, poseAt, type PlacedPose } from
 import type { MapMeta, Pose, RobotAt } from "./types";
 
 export const RETENTION_MS = 7 * 86_400_000;
+/**
+ * While paused, what only matters later (the look-ahead window, conflict marks, the
+ * timeline's density) is asked for once the playhead has stayed put this long after a
+ * seek's first complete frame: a user scrubbing through the timeline would otherwise queue
+ * those requests ahead of the next seek's map and robots on the server.
+ */
+export const SETTLE_MS = 300;
+export const FRAME_WAIT_MAX_MS = 2000;
 
 export interface RobotView extends PlacedPose {
   robotId: string;
@@ -45,6 +53,8 @@ export class ReplayEngine {
   live: LiveConnection;
   seekStartedWall = 0;
   seekPendingFrame = false;
+  /** performance.now() of the last seek's first complete frame (0: not drawn yet). */
+  seekDrawnAt = 0;
   /** Seek-to-first-complete-frame durations (ms), for the benchmark. */
   seekTimes: number[] = [];
   /** Of which: the map and robots at T from the API (the rest is chunk pictures and drawing). */
@@ -74,6 +84,27 @@ export class ReplayEngine {
     return Date.now();
   }
 
+  perfNow(): number {
+    return performance.now();
+  }
+
+  /** The view drew the seek's first complete frame: records the seek time. */
+  seekFrameDrawn(): void {
+    if (!this.seekPendingFrame) return;
+    this.seekPendingFrame = false;
+    this.seekDrawnAt = this.perfNow();
+    this.seekTimes.push(this.seekDrawnAt - this.seekStartedWall);
+  }
+
+  /** No seek under way, its frame drawn, and (unless playing) the playhead settled. */
+  settled(): boolean {
+    if (this.seeking) return false;
+    const now = this.perfNow();
+    // A frame that cannot complete (say, no tile in view) holds the rest back only so long.
+    if (this.seekPendingFrame) return now - this.seekStartedWall >= FRAME_WAIT_MAX_MS;
+    return this.clock.playing || this.clock.live || now - this.seekDrawnAt >= SETTLE_MS;
+  }
+
   /** Shows the whole map and all robots at T at once. */
   async seek(t: number, keepLive = false): Promise<void> {
     const wall = this.now();
@@ -81,19 +112,24 @@ export class ReplayEngine {
     t = Math.round(Math.min(wall, Math.max(this.clock.minMs, t)));
     const gen = ++this.seekGen;
     this.seeking = true;
-    this.seekStartedWall = performance.now();
+    this.seekStartedWall = this.perfNow();
+    this.seekDrawnAt = 0;
     if (!keepLive) {
       this.live.stop();
       this.clock.seek(t, wall);
     }
     try {
-      const [map, robots] = await Promise.all([this.api.map(t), this.api.robotsAt(t)]);
+      // Both at once; the pictures the map at T lacks are asked for (in a few batches, not
+      // tile by tile) as soon as the map is here, while the robots may still be on the way.
+      const map = this.api.map(t).then((m) => {
+        if (gen === this.seekGen) this.images.requestMany(m.chunks.map((c) => c.content_hash));
+        return m;
+      });
+      const [mapAt, robots] = await Promise.all([map, this.api.robotsAt(t)]);
       if (gen !== this.seekGen) return;
-      this.seekApiTimes.push(performance.now() - this.seekStartedWall);
-      this.meta = map.meta ?? this.meta;
-      this.state.reset(map.chunks);
-      // Every picture the map at T lacks, asked for now (in a few batches), not tile by tile.
-      this.images.requestMany(map.chunks.map((c) => c.content_hash));
+      this.seekApiTimes.push(this.perfNow() - this.seekStartedWall);
+      this.meta = mapAt.meta ?? this.meta;
+      this.state.reset(mapAt.chunks);
       this.buffer.reset(t, this.clock.speed, robots);
       this.lastStepMs = this.buffer.stepMs;
       this.robotInfo = new Map(robots.map((r) => [r.robotId, r]));
@@ -158,6 +194,8 @@ export class ReplayEngine {
       this.state.move(this.buffer.chunks, this.playhead, target);
       this.playhead = target;
     }
+    // The look-ahead waits for the seek's first frame (and, paused, for the playhead to settle).
+    if (!this.settled()) return;
     const before = this.buffer.chunks.length;
     const p = this.buffer.ensure(this.playhead, dir, this.clock.speed, wall, this.clock.minMs);
     if (p) {

@@ -116,7 +116,8 @@ export class ChunkLayer {
   draw(): boolean {
     const dirty = this.state.dirty;
     if (dirty.size) {
-      const tiles = this.tiles();
+      // One getContext per tile, not per chunk and tile: a seek can redraw a thousand chunks.
+      const tiles = this.tiles().map((t) => ({ coords: t.coords, ctx: t.el.getContext("2d")! }));
       const { CHUNK_WIDTH: cw, CHUNK_HEIGHT: ch } = this.meta;
       for (const k of dirty) {
         const row = Math.floor(k / 65536);
@@ -135,8 +136,7 @@ export class ChunkLayer {
           const col0 = (t.coords.x * TILE) / s;
           const row0 = (t.coords.y * TILE) / s;
           if ((col + 1) * cw <= col0 || col * cw >= col0 + span || (row + 1) * ch <= row0 || row * ch >= row0 + span) continue;
-          const ctx = t.el.getContext("2d")!;
-          this.drawChunkIn(ctx, t.coords, row, col);
+          this.drawChunkIn(t.ctx, t.coords, row, col);
         }
       }
       dirty.clear();

@@ -56,7 +56,11 @@ export class MapView {
   /** (Re)builds the map layers for a meta; keeps the view unless it is the first one. */
   setMeta(meta: MapMeta, toggles: LayerToggles, view?: { lat: number; lng: number; zoom: number } | null): void {
     const same = this.meta && JSON.stringify(this.meta) === JSON.stringify(meta);
-    if (same) return;
+    if (same) {
+      // Each seek parses a new but equal meta: adopt it, so the next frame skips this check.
+      this.meta = meta;
+      return;
+    }
     this.meta = meta;
     this.chunks?.overlay.remove();
     this.info?.overlay.remove();

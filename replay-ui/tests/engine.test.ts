@@ -1,0 +1,137 @@
+import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
+import type { MapAt } from "../src/lib/api";
+import { FRAME_WAIT_MAX_MS, ReplayEngine, SETTLE_MS } from "../src/lib/engine";
+import type { EventWindow, RobotAt } from "../src/lib/types";
+
+const NOW = Date.UTC(2026, 10, 21, 12, 0, 0);
+const T = NOW - 3_600_000;
+const hex = (i: number) => i.toString(16).padStart(32, "0");
+const settle = () => new Promise((r) => setTimeout(r, 0));
+
+function deferred<V>() {
+  let resolve!: (v: V) => void;
+  const promise = new Promise<V>((r) => (resolve = r));
+  return { promise, resolve };
+}
+
+const MAP: MapAt = {
+  at_ms: T,
+  meta: null,
+  chunks: [0, 1, 2].map((i) => ({ row: 0, column: i, ts_ms: T - 1000, robotId: "r1", content_hash: hex(i + 1) })),
+};
+const ROBOTS: RobotAt[] = [];
+const EMPTY: EventWindow = { from_ms: 0, to_ms: 0, step_ms: 0, chunks: [], poses: [], truncated: false };
+
+/** An engine over stubbed API calls, with its wall and performance clocks in the test's hand. */
+function makeEngine() {
+  const engine = new ReplayEngine("", NOW);
+  let perf = 1000;
+  engine.now = () => NOW;
+  engine.perfNow = () => perf;
+  const map = deferred<MapAt>();
+  const robots = deferred<RobotAt[]>();
+  const calls = {
+    map: vi.spyOn(engine.api, "map").mockImplementation(() => map.promise),
+    robots: vi.spyOn(engine.api, "robotsAt").mockImplementation(() => robots.promise),
+    events: vi.spyOn(engine.api, "events").mockResolvedValue(EMPTY),
+    pictures: vi.spyOn(engine.images, "requestMany").mockImplementation(() => {}),
+  };
+  return { engine, map, robots, calls, advance: (ms: number) => (perf += ms) };
+}
+
+beforeEach(() => {
+  vi.stubGlobal("location", { protocol: "http:", host: "127.0.0.1:8080" });
+});
+afterEach(() => {
+  vi.restoreAllMocks();
+  vi.unstubAllGlobals();
+});
+
+describe("seek", () => {
+  it("asks for the map and the robots at T at once, and for the pictures as soon as the map is here", async () => {
+    const { engine, map, robots, calls } = makeEngine();
+    const done = engine.seek(T);
+    expect(calls.map).toHaveBeenCalledWith(T);
+    expect(calls.robots).toHaveBeenCalledWith(T); // before the map answered
+    map.resolve(MAP);
+    await settle();
+    // The robots are still on the way; the pictures are asked for already.
+    expect(calls.pictures).toHaveBeenCalledWith(MAP.chunks.map((c) => c.content_hash));
+    expect(engine.seeking).toBe(true);
+    robots.resolve(ROBOTS);
+    await done;
+    expect(engine.seeking).toBe(false);
+    expect(engine.seekPendingFrame).toBe(true);
+    expect(engine.state.cells.size).toBe(3);
+  });
+
+  it("does not ask for the pictures of a seek already overtaken by another", async () => {
+    const { engine, map, robots, calls } = makeEngine();
+    const first = engine.seek(T);
+    calls.map.mockImplementation(() => new Promise(() => {}));
+    void engine.seek(T + 60_000);
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await first;
+    expect(calls.pictures).not.toHaveBeenCalled();
+  });
+
+  it("records the seek time once, at its first complete frame", async () => {
+    const { engine, map, robots, advance } = makeEngine();
+    const done = engine.seek(T);
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await done;
+    advance(120);
+    engine.seekFrameDrawn();
+    engine.seekFrameDrawn();
+    expect(engine.seekTimes).toEqual([120]);
+  });
+});
+
+describe("look-ahead after a seek", () => {
+  async function seeked() {
+    const e = makeEngine();
+    const done = e.engine.seek(T);
+    e.map.resolve(MAP);
+    e.robots.resolve(ROBOTS);
+    await done;
+    e.engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    return e;
+  }
+
+  it("paused: waits for the seek's first frame, then for the playhead to settle", async () => {
+    const { engine, calls, advance } = await seeked();
+    engine.frame();
+    expect(calls.events).not.toHaveBeenCalled(); // the frame is not drawn yet
+    engine.seekFrameDrawn();
+    engine.frame();
+    expect(calls.events).not.toHaveBeenCalled(); // a scrub may seek again right away
+    expect(engine.settled()).toBe(false);
+    advance(SETTLE_MS);
+    expect(engine.settled()).toBe(true);
+    engine.frame();
+    expect(calls.events).toHaveBeenCalledTimes(1);
+  });
+
+  it("playing: fetched as soon as the seek's first frame is drawn", async () => {
+    const { engine, calls } = await seeked();
+    engine.clock.play(NOW);
+    engine.frame();
+    expect(calls.events).not.toHaveBeenCalled();
+    engine.seekFrameDrawn();
+    engine.frame();
+    expect(calls.events).toHaveBeenCalledTimes(1);
+  });
+
+  it("a frame that never completes holds the look-ahead back only for a while", async () => {
+    const { engine, calls, advance } = await seeked();
+    engine.clock.play(NOW);
+    advance(FRAME_WAIT_MAX_MS - 1);
+    engine.frame();
+    expect(calls.events).not.toHaveBeenCalled();
+    advance(1);
+    engine.frame();
+    expect(calls.events).toHaveBeenCalledTimes(1);
+  });
+});
