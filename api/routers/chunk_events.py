@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.ports import HistoryStore
-from mapservice.wire2019 import format_timestamp
+from mapservice.wire2019 import format_timestamps
 
 from ..deps import get_store, parse_window
 
@@ -32,9 +32,10 @@ def list_chunk_events(
     store: HistoryStore = Depends(get_store),
 ) -> list[ChunkEvent]:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
+    rows = store.chunk_events(f, t, limit)
     return [
-        ChunkEvent(row=r.row, column=r.column, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
+        ChunkEvent(row=r.row, column=r.column, timestamp=ts, ts_ms=r.ts_ms,
                    receive_time_ms=r.receive_time_ms, robotId=r.robot_id,
                    content_hash=r.content_hash)
-        for r in store.chunk_events(f, t, limit)
+        for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
     ]

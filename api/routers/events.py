@@ -14,7 +14,7 @@ from pydantic import BaseModel
 
 from mapservice.ports import Clock, HistoryStore
 from mapservice.settings import Settings
-from mapservice.wire2019 import format_timestamp
+from mapservice.wire2019 import format_timestamps
 
 from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 from .chunk_events import ChunkEvent
@@ -36,14 +36,14 @@ class Events(BaseModel):
     truncated: bool
 
 
-def chunk_doc(r) -> dict:
-    return {"row": r.row, "column": r.column, "timestamp": format_timestamp(r.ts_ms),
+def chunk_doc(r, timestamp: str) -> dict:
+    return {"row": r.row, "column": r.column, "timestamp": timestamp,
             "ts_ms": r.ts_ms, "receive_time_ms": r.receive_time_ms, "robotId": r.robot_id,
             "content_hash": r.content_hash}
 
 
-def pose_doc(r) -> dict:
-    return {"robotId": r.robot_id, "timestamp": format_timestamp(r.ts_ms), "ts_ms": r.ts_ms,
+def pose_doc(r, timestamp: str) -> dict:
+    return {"robotId": r.robot_id, "timestamp": timestamp, "ts_ms": r.ts_ms,
             "receive_time_ms": r.receive_time_ms, "position": (r.x, r.y, r.z),
             "orientation": (r.qx, r.qy, r.qz, r.qw), "battery_level": r.battery_level,
             "charging": r.charging, "loaded": r.loaded, "path": r.path}
@@ -80,7 +80,12 @@ def list_events(
         poses = [r for r in poses if r.ts_ms < cut]
         t = cut
     body = {"from_ms": f, "to_ms": t, "step_ms": step_ms, "truncated": truncated,
-            "chunks": [chunk_doc(r) for r in chunks], "poses": [pose_doc(r) for r in poses]}
+            "chunks": [chunk_doc(r, ts) for r, ts in zip(chunks, _timestamps(chunks))],
+            "poses": [pose_doc(r, ts) for r, ts in zip(poses, _timestamps(poses))]}
     # Encoded directly: a day of a fleet is hundreds of thousands of objects, too many to
     # validate one by one (the response model documents the same shape).
     return Response(_encode(body), media_type="application/json")
+
+
+def _timestamps(rows) -> list[str]:
+    return format_timestamps([r.ts_ms for r in rows])

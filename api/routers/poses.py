@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.ports import HistoryStore
-from mapservice.wire2019 import format_timestamp
+from mapservice.wire2019 import format_timestamps
 
 from ..deps import get_store, parse_window
 
@@ -36,11 +36,12 @@ def list_poses(
     store: HistoryStore = Depends(get_store),
 ) -> list[Pose]:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
+    rows = store.poses(f, t, robot_id, limit)
     return [
-        Pose(robotId=r.robot_id, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
+        Pose(robotId=r.robot_id, timestamp=ts, ts_ms=r.ts_ms,
              receive_time_ms=r.receive_time_ms, position=(r.x, r.y, r.z),
              orientation=(r.qx, r.qy, r.qz, r.qw), battery_level=r.battery_level,
              charging=r.charging, loaded=r.loaded,
              path=list(r.path) if r.path is not None else None)
-        for r in store.poses(f, t, robot_id, limit)
+        for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
     ]

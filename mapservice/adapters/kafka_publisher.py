@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable
 
 from confluent_kafka import KafkaException, Producer
@@ -26,10 +28,26 @@ def producer_config(settings: Settings, client_id: str) -> dict:
 
 
 class KafkaPublisher:
-    """Created without I/O; librdkafka connects lazily on the first publish."""
+    """Created without I/O: librdkafka starts connecting as soon as a Producer exists, so
+    the Producer is made on the first publish (an API that never takes a 2019 POST never
+    dials Kafka, nor logs that it cannot reach it)."""
 
     def __init__(self, settings: Settings, client_id: str) -> None:
-        self._producer = Producer(producer_config(settings, client_id))
+        self._config = producer_config(settings, client_id)
+        self._producer: Producer | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def connected(self) -> bool:
+        """Whether a Producer exists yet (it does from the first publish on)."""
+        return self._producer is not None
+
+    def _get(self) -> Producer:
+        if self._producer is None:
+            with self._lock:
+                if self._producer is None:
+                    self._producer = Producer(self._config)
+        return self._producer
 
     def publish(
         self, topic: str, key: bytes, value: bytes, on_done: Callable[[Exception | None], None]
@@ -37,16 +55,20 @@ class KafkaPublisher:
         def delivered(err, _msg) -> None:
             on_done(None if err is None else KafkaException(err))
 
+        producer = self._get()
         while True:
             try:
-                self._producer.produce(topic, value=value, key=key, on_delivery=delivered)
+                producer.produce(topic, value=value, key=key, on_delivery=delivered)
                 return
             except BufferError:
                 # Local queue full: serve callbacks to make room instead of dropping.
-                self._producer.poll(0.05)
+                producer.poll(0.05)
 
     def poll(self, timeout: float) -> None:
-        self._producer.poll(timeout)
+        if self._producer is None:
+            time.sleep(timeout)  # nothing published yet: nothing to deliver
+        else:
+            self._producer.poll(timeout)
 
     def flush(self, timeout: float) -> int:
-        return self._producer.flush(timeout)
+        return 0 if self._producer is None else self._producer.flush(timeout)
