@@ -52,7 +52,10 @@ def cmd_up(args) -> None:
 
     configure("INFO", "console", "up")
     console = Console()
-    signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop children on SIGTERM too
+    # Ctrl-C stops everything even when started from a shell that ignores SIGINT for
+    # background jobs (Python then keeps it ignored); SIGTERM stops the children too.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     stack = Stack(Path(args.data_dir), mqtt=args.mqtt_url or "amqtt", api_port=args.api_port,
                   mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port)
     ros_map = load_ros_map(args.map)
