@@ -394,6 +394,26 @@ def test_clickhouse_store_reopens_with_its_data(chdb_dir, ev, t0) -> None:
     assert os.path.isdir(chdb_dir)
 
 
+def test_clickhouse_reads_do_not_wait_for_a_writer(chdb_dir, ev, t0) -> None:
+    """While a writer holds the write client (a long insert), reads still answer: they
+    have a client of their own."""
+    import threading
+
+    store = _clickhouse(chdb_dir)
+    try:
+        store.migrate()
+        store.append([ev.pose("r1", t0), ev.chunk("r1", t0, 0, 0)])
+        answers: list = []
+        with store._lock:  # what an insert holds for its whole duration
+            reader = threading.Thread(target=lambda: answers.append(
+                (len(store.poses(t0, t0 + 1)), len(store.map_at(t0)), len(store.robots_at(t0)))))
+            reader.start()
+            reader.join(60)
+            assert answers == [(1, 1, 1)], "a read waited for the write lock"
+    finally:
+        store.close()
+
+
 def test_schema_v6_compresses_quaternions_with_fpc(chdb_dir, ev, t0) -> None:
     """After migrate, the pose quaternion columns use FPC + ZSTD and still read back exactly."""
     store = _clickhouse(chdb_dir)
