@@ -250,11 +250,13 @@ def _path_metres(state: SimState, robot: Robot) -> tuple[tuple[float, float], ..
 
 
 def _protected(state: SimState) -> np.ndarray:
-    """Coarse cells a new obstacle must stay clear of: where robots are and go next."""
+    """Coarse cells a new obstacle must stay clear of: where robots are and the stretch
+    they drive next (a replan keeps its first waypoint, so that stretch must stay open)."""
     g = state.grid
     mask = np.zeros(g.shape, dtype=bool)
     for r in state.robots:
-        for p in (r.pos, *r.waypoints[:1]):
+        ahead = segment_pixels(r.pos, r.waypoints[0], step=g.cell_px / 2) if r.waypoints else ()
+        for p in (r.pos, *ahead):
             row, col = g.cell_at(*p)
             mask[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2] = True
     for cell in (*state.stations, *state.chargers):

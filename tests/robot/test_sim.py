@@ -16,7 +16,7 @@ from mapservice.mapfile import RosMap, drivable, load_ros_map
 from mapservice.robot.chunks import chunk_pixels, metres_to_pixel
 from mapservice.robot.faults import Faults, robot_skew_ms, to_messages
 from mapservice.robot.planning import build_grid, dilate, path_is_clear, plan, simplify
-from mapservice.robot.sim import SimConfig, new_state, step
+from mapservice.robot.sim import SimConfig, _protected, new_state, step
 from mapservice.wire2019 import Limits, Rejection, decode_chunk_create, decode_coordinates, parse_timestamp
 from tests.fixtures.paths import MAPS
 
@@ -159,6 +159,20 @@ def test_paths_fit_the_gateway_limit() -> None:
                       config=replace(SimConfig(), change_every_s=0))
     for state, out in run(state, 30):
         assert all(len(p.path) <= 1000 for p in out.poses)
+
+
+def test_new_obstacles_keep_off_the_stretch_a_robot_drives_next() -> None:
+    """The whole segment from a robot to its next waypoint is protected from map changes,
+    not only its two ends (a replan keeps that waypoint, so an obstacle there would stay
+    on the published path)."""
+    state = new_state(load_ros_map(MAPS / "warehouse.yaml"), 1, seed=3, t_ms=T0,
+                      config=replace(SimConfig(), change_every_s=0))
+    g = state.grid
+    a = g.centre_px((5, 5))
+    b = g.centre_px((5, 5 + 20))
+    robot = replace(state.robots[0], pos=a, waypoints=(b,))
+    mask = _protected(replace(state, robots=(robot,)))
+    assert all(mask[g.cell_at(*g.centre_px((5, col)))] for col in range(5, 26))
 
 
 @st.composite
