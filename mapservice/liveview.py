@@ -19,7 +19,7 @@ import threading
 from collections.abc import Iterable
 
 import msgspec
-from cachetools import LRUCache
+from cachetools import LRUCache, cached
 
 from .events import ChunkUpdated, Envelope, PoseReported
 from .legacy_query import chunk_id
@@ -64,19 +64,10 @@ def chunk_id_2019(row: int, column: int, ts_ms: int) -> str:
 # Base64 of the zlib data and of the PNG, by content hash: rendering a PNG is ~2 ms, and
 # maps repeat contents (a pallet moved back, a chunk re-sent unchanged by another robot).
 # ~1,000 entries of ~25 KB each.
-_ENCODED: LRUCache = LRUCache(maxsize=1024)
-_ENCODED_LOCK = threading.Lock()
-
-
+@cached(LRUCache(maxsize=1024), key=lambda p: p.content_hash, lock=threading.Lock())
 def _encoded(p: ChunkUpdated) -> tuple[str, str]:
-    with _ENCODED_LOCK:
-        hit = _ENCODED.get(p.content_hash)
-    if hit is None:
-        hit = (base64.b64encode(p.data).decode(),
-               base64.b64encode(png(chunk_pixels(p.width, p.height, p.data))).decode())
-        with _ENCODED_LOCK:
-            _ENCODED[p.content_hash] = hit
-    return hit
+    return (base64.b64encode(p.data).decode(),
+            base64.b64encode(png(chunk_pixels(p.width, p.height, p.data))).decode())
 
 
 def advertisement(e: Envelope, public_base_url: str) -> dict:

@@ -17,6 +17,7 @@ import faust
 import structlog
 from prometheus_client import Counter, Histogram
 
+from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.live import LiveHub
 from mapservice.ports import HistoryStore
@@ -85,7 +86,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
     # Live views (issue 3): latest map + advertisements, robots, conflicts.
     views = LiveViews.attach(app, settings, sink)
     batch, within = settings.sink_batch_size, settings.sink_batch_seconds
-    now_ms = lambda: time.time_ns() // 1_000_000  # noqa: E731
+    now_ms = SystemClock().now_ms
 
     # The event topics go to the history in batches below faust's per-record path
     # (history_consumer.py says why); faust runs it, the dead letters, and the timers.

@@ -8,7 +8,6 @@ re-delivers the batch, and the history's natural-identity keys absorb the repeat
 from __future__ import annotations
 
 import asyncio
-import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
@@ -17,6 +16,7 @@ import mode
 import structlog
 from prometheus_client import Counter
 
+from mapservice.adapters.clock import SystemClock
 from mapservice.ports import EventSource, SourceRecord
 from mapservice.retry import until_done
 
@@ -30,10 +30,6 @@ log = structlog.get_logger(__name__)
 
 COMMIT_FAILURES = Counter("mapservice_sink_commit_failures_total",
                           "Batches stored but not committed (they will be re-delivered)")
-
-
-def _now_ms() -> int:
-    return time.time_ns() // 1_000_000
 
 
 async def store_values(sink: "HistorySink", views: "LiveViews | None", values: Sequence[bytes],
@@ -56,7 +52,7 @@ class HistoryConsumer:
 
     def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
                  batch_size: int, batch_seconds: float,
-                 now_ms: Callable[[], int] = _now_ms) -> None:
+                 now_ms: Callable[[], int] = SystemClock().now_ms) -> None:
         self.source = source
         self.sink = sink
         self.views = views

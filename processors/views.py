@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import threading
-import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Protocol
@@ -19,6 +18,7 @@ from typing import TYPE_CHECKING, Protocol
 import structlog
 from prometheus_client import Counter, Gauge
 
+from mapservice.adapters.clock import SystemClock
 from mapservice.conflicts import RecentWrites, record_conflicts
 from mapservice.events import ChunkUpdated, Envelope, PoseReported
 from mapservice.liveview import (
@@ -60,13 +60,9 @@ class Advertiser(Protocol):
     def stop(self) -> None: ...
 
 
-def _now_ms() -> int:
-    return time.time_ns() // 1_000_000
-
-
 class LiveViews:
     def __init__(self, settings: Settings, store: HistoryStore, advertiser: Advertiser | None,
-                 now_ms: Callable[[], int] = _now_ms) -> None:
+                 now_ms: Callable[[], int] = SystemClock().now_ms) -> None:
         self.settings = settings
         self.store = store
         self.advertiser = advertiser

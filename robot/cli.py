@@ -81,17 +81,14 @@ def cmd_sim(args) -> None:
                      lost=s.lost, errors=s.errors, map_changes=s.map_changes,
                      rate_per_s=round(s.rate(), 1))
 
-    try:
+    def run() -> None:
         if console.is_terminal and not args.quiet:
             with Live(progress_table(runner), console=console, refresh_per_second=2) as live:
                 runner.run(args.seconds, on_tick=lambda r: live.update(progress_table(r)))
         else:
             runner.run(args.seconds, on_tick=log_progress)
-    except KeyboardInterrupt:
-        runner.stop()
-    except OSError as exc:
-        sys.exit(f"cannot reach the MQTT broker at {mqtt_url}: {exc}; "
-                 "start one (e.g. `make up`) or pass --mqtt-url")
+
+    _until_stopped(run, runner.stop, mqtt_url)
     s = runner.stats
     log.info("simulation stopped", robots=s.robots, poses=s.poses, chunks=s.chunks, bad=s.bad,
              lost=s.lost, errors=s.errors, map_changes=s.map_changes)
@@ -113,10 +110,15 @@ def _load_test(args, mqtt_url, ros_map, log) -> None:
                      chunks=stats.chunks,
                      rate_per_s=round((stats.poses + stats.chunks) / max(now - started, 1e-9), 1))
 
+    _until_stopped(lambda: fleet.run(args.seconds, on_tick=progress), fleet.stop, mqtt_url)
+
+
+def _until_stopped(run, stop, mqtt_url: str) -> None:
+    """Runs the robots until done or Ctrl-C; an unreachable broker ends with what to do."""
     try:
-        fleet.run(args.seconds, on_tick=progress)
+        run()
     except KeyboardInterrupt:
-        fleet.stop()
+        stop()
     except OSError as exc:
         sys.exit(f"cannot reach the MQTT broker at {mqtt_url}: {exc}; "
                  "start one (e.g. `make up`) or pass --mqtt-url")

@@ -22,9 +22,15 @@ def pytest_collection_modifyitems(items):
 
 def start_stack(tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = None) -> Stack:
     stack = Stack(tmp_path_factory.mktemp(f"stack-{mqtt}"), mqtt=mqtt, extra_env=extra_env or {})
+    return run_stack(stack, meta_for(load_ros_map(MAPS / "depot.yaml")))
+
+
+def run_stack(stack: Stack, meta) -> Stack:
+    """Brokers, the map meta, processors + API and gateway, ready to validate; all stopped
+    again if any part fails to start."""
     try:
         stack.start_brokers()
-        stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml")))
+        stack.publish_meta(meta)
         stack.start_server()
         stack.start_gateway()
         wait_for_meta(stack)

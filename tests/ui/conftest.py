@@ -18,7 +18,7 @@ from mapservice.history_loader import load_history
 from mapservice.mapfile import load_ros_map
 from mapservice.stack import Stack
 from tests.fixtures.paths import MAPS, ROOT
-from tests.integration.conftest import wait_for_meta
+from tests.integration.conftest import run_stack
 
 DIST = ROOT / "replay-ui" / "dist" / "index.html"
 ARTIFACTS = ROOT / "test-artifacts" / "ui"
@@ -49,15 +49,7 @@ def history_stack(tmp_path_factory):
                               change_prob=0.3)
     finally:
         store.close()
-    try:
-        stack.start_brokers()
-        stack.publish_meta(result.meta)
-        stack.start_server()
-        stack.start_gateway()
-        wait_for_meta(stack)
-    except BaseException:
-        stack.stop()
-        raise
+    run_stack(stack, result.meta)
     stack.history = result  # type: ignore[attr-defined]
     yield stack
     stack.stop()
