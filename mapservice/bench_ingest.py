@@ -434,7 +434,9 @@ def _stage_latencies(poller: QueryablePoller, keys: dict[Key, float]) -> dict:
     for key, wall in keys.items():
         received = poller.received_at.get(key)
         if received is not None:
-            to_gateway.append(received - wall)
+            # The gateway stamps whole milliseconds (floored); floor the publish time the
+            # same way, or a sub-millisecond hop comes out negative.
+            to_gateway.append(received - math.floor(wall * 1000) / 1000)
             after_gateway.append(poller.first_seen[key] - received)
     return {"publish_to_gateway_p50_s": _pct(to_gateway, 50),
             "publish_to_gateway_p99_s": _pct(to_gateway, 99),
