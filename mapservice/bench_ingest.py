@@ -274,7 +274,7 @@ class QueryablePoller(threading.Thread):
                         # chunk still on its way must not widen the (larger) pose window.
                         lower = min((ts for k, ts in self.pending.items() if k[0] == kind),
                                     default=now_ms - 1000)
-                        f, t = max(lower - 500, oldest_allowed), now_ms + 5000
+                        f, t = max(lower, oldest_allowed), now_ms + 5000
                         body, asked_at, seen_at = self._get(client, path, f, t)
                         rows += len(body)
                         # Rows come in event-time order: when the limit cut the answer, only
