@@ -89,3 +89,57 @@ def test_a_restart_before_the_commit_redelivers_without_duplicates(ev) -> None:
     drain(consumer_for(store, source))
     assert store.counts().poses == 10
     assert source.committed == {(POSES, 0): 10}
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class TimedStore(MemoryStore):
+    """Each append takes `seconds` of the given clock."""
+
+    def __init__(self, clock: Clock, seconds: float) -> None:
+        super().__init__()
+        self.clock, self.seconds = clock, seconds
+
+    def append(self, events) -> None:
+        self.clock.t += self.seconds
+        super().append(events)
+
+
+def timeouts_asked(ev, store_seconds: float, batches: int = 4) -> list[float]:
+    clock = Clock()
+    source, store = MemorySource(), TimedStore(clock, store_seconds)
+    asked: list[float] = []
+    original_poll = source.poll
+
+    def poll(n, timeout_s):
+        asked.append(round(timeout_s, 6))
+        clock.t += timeout_s  # a poll with nothing to return early waits out its timeout
+        return original_poll(1, timeout_s)
+
+    source.poll = poll
+    for i in range(batches):
+        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
+    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.2,
+                               now_ms=lambda: NOW, monotonic=clock)
+
+    async def go() -> None:
+        for _ in range(batches):
+            await consumer.run_once()
+    asyncio.run(go())
+    return asked
+
+
+def test_time_spent_storing_counts_toward_the_next_batch_wait(ev) -> None:
+    """After a 50 ms insert the next poll waits the remaining 150 ms of its 200 ms period."""
+    assert timeouts_asked(ev, store_seconds=0.05) == [0.0, 0.15, 0.15, 0.15]
+
+
+def test_after_an_insert_longer_than_the_period_the_next_poll_does_not_wait(ev) -> None:
+    """A 300 ms insert is followed at once by the records queued meanwhile, not by another wait."""
+    assert timeouts_asked(ev, store_seconds=0.3) == [0.0, 0.0, 0.0, 0.0]
