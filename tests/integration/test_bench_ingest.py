@@ -11,8 +11,8 @@ import pytest
 
 @pytest.mark.timeout(600)
 def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> None:
-    """Three robots for four seconds through Mosquitto: every event stored once, the
-    latency split at the gateway adds up, and storage is reported per table."""
+    """Three robots for four seconds through Mosquitto: every event stored once and pushed
+    live, the latency split at the gateway adds up, and storage is reported per table."""
     out = tmp_path / "bench.json"
     done = subprocess.run(
         [sys.executable, "-m", "mapservice.cli", "bench", "ingest", "--robots", "3", "--seconds", "4",
@@ -22,6 +22,8 @@ def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> 
     run = json.loads(out.read_text())["runs"][0]
     assert run["published_events"] >= 3 * 4 and run["stored_events"] == run["published_events"]
     assert (run["lost"], run["duplicated"], run["dead_letters"]) == (0, 0, 0)
+    assert run["live_errors"] == 0 and run["live_pushed_events"] == run["published_events"]
+    assert run["latency_p99_s"] <= run["latency_polled_p99_s"]
     assert 0 <= run["publish_to_gateway_p50_s"] <= run["latency_p50_s"]
     assert 0 < run["gateway_to_queryable_p50_s"] <= run["latency_p99_s"]
     tables = run["storage"]["bytes_per_robot_day_by_table"]
