@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import ssl
 import time
+from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 
 import faust
@@ -52,7 +53,10 @@ class HistorySink:
     async def run(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
-    async def insert_until_done(self, fn, batch, topic: str) -> None:
+    async def insert_until_done(self, fn, batch, topic: str,
+                                per_topic: Mapping[str, int] | None = None) -> None:
+        """Stores `batch` with `fn`, retrying until it is in; counts it under `topic`, or
+        under each topic of `per_topic` when a batch mixes topics."""
         # Retried, never skipped: acknowledging a batch that is not stored would lose it.
         async for attempt in until_done("history insert", 0.2, INSERT_FAILURES.inc,
                                         topic=topic, batch=len(batch)):
@@ -60,7 +64,8 @@ class HistorySink:
                 started = time.monotonic()
                 await self.run(fn, batch)
         INSERT_SECONDS.observe(time.monotonic() - started)
-        STORED.labels(topic).inc(len(batch))
+        for name, count in (per_topic or {topic: len(batch)}).items():
+            STORED.labels(name).inc(count)
 
 
 def build_app(settings: Settings, sink: HistorySink) -> faust.App:

@@ -143,3 +143,31 @@ def test_time_spent_storing_counts_toward_the_next_batch_wait(ev) -> None:
 def test_after_an_insert_longer_than_the_period_the_next_poll_does_not_wait(ev) -> None:
     """A 300 ms insert is followed at once by the records queued meanwhile, not by another wait."""
     assert timeouts_asked(ev, store_seconds=0.3) == [0.0, 0.0, 0.0, 0.0]
+
+
+class CountingStore(MemoryStore):
+    def __init__(self) -> None:
+        super().__init__()
+        self.appends: list[set[str]] = []
+
+    def append(self, events) -> None:
+        self.appends.append({type(e.payload).__name__ for e in events})
+        super().append(events)
+
+
+def test_a_batch_of_poses_and_chunks_is_stored_in_one_append_and_counted_per_topic(ev) -> None:
+    """Poses and chunks polled together go to the store in a single append; the stored-events
+    metric still counts each topic's events under its own label."""
+    from prometheus_client import REGISTRY
+
+    def stored(topic: str) -> float:
+        return REGISTRY.get_sample_value("mapservice_sink_events_total", {"topic": topic}) or 0.0
+
+    before = stored(POSES), stored(CHUNKS)
+    source, store = MemorySource(), CountingStore()
+    for i in range(3):
+        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
+    source.append(CHUNKS, encode(ev.chunk("r1", NOW, 1, 2)))
+    drain(consumer_for(store, source))
+    assert store.appends == [{"PoseReported", "ChunkUpdated"}]
+    assert (stored(POSES) - before[0], stored(CHUNKS) - before[1]) == (3, 1)
