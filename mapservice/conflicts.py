@@ -19,6 +19,7 @@ same rows again).
 
 from __future__ import annotations
 
+from bisect import bisect_left, bisect_right
 from collections import defaultdict
 from collections.abc import Iterable
 
@@ -63,20 +64,47 @@ def affected_conflicts(new: Iterable[ChunkRow], stored: Iterable[ChunkRow],
 
     A new write matters as B (its own conflicts) and as A (for later writes of other
     robots within the window, whose conflict with its robot it may create or move).
+    Per chunk the writes are sorted in (event time, robot id) order, so both lookups
+    scan only the window next to a write instead of every write of its chunk (the 2019
+    load test keeps ~130 writes per chunk within the window).
     """
     by_chunk: dict[tuple[int, int], list[ChunkRow]] = defaultdict(list)
     for w in _unique(stored):
         by_chunk[(w.row, w.column)].append(w)
-    news = list(_unique(new))
-    bs: dict[tuple, ChunkRow] = {}
-    for n in news:
-        bs[_identity(n)] = n
-        for w in by_chunk.get((n.row, n.column), ()):
-            if w.robot_id != n.robot_id and _order(w) > _order(n) and w.ts_ms - n.ts_ms <= window_ms:
-                bs[_identity(w)] = w
-    out = {conflict_key(c): c for b in bs.values()
-           for c in conflicts_of(b, by_chunk.get((b.row, b.column), ()), window_ms)}
+    new_by_chunk: dict[tuple[int, int], list[ChunkRow]] = defaultdict(list)
+    for n in _unique(new):
+        new_by_chunk[(n.row, n.column)].append(n)
+    out: dict[tuple, ConflictRow] = {}
+    for chunk, news in new_by_chunk.items():
+        writes = sorted(by_chunk.get(chunk, ()), key=_order)
+        keys = [_order(w) for w in writes]
+        bs: dict[tuple, ChunkRow] = {}
+        for n in news:
+            bs[_identity(n)] = n
+            for w in writes[bisect_right(keys, _order(n)):]:
+                if w.ts_ms - n.ts_ms > window_ms:
+                    break
+                if w.robot_id != n.robot_id:
+                    bs[_identity(w)] = w
+        for b in bs.values():
+            c = _latest_conflict(b, writes, keys, window_ms)
+            if c is not None:
+                out[conflict_key(c)] = c
     return [out[k] for k in sorted(out)]
+
+
+def _latest_conflict(b: ChunkRow, writes: list[ChunkRow], keys: list[tuple[int, str]],
+                     window_ms: int) -> ConflictRow | None:
+    """`conflicts_of(b, writes)` for one chunk's writes sorted by `_order` (keys)."""
+    i = bisect_left(keys, _order(b))
+    while i > 0:
+        i -= 1
+        a = writes[i]
+        if b.ts_ms - a.ts_ms > window_ms:
+            return None
+        if a.robot_id != b.robot_id and a.content_hash != b.content_hash:
+            return ConflictRow(b.row, b.column, b.ts_ms, a.robot_id, a.ts_ms, b.robot_id)
+    return None
 
 
 def neighbourhoods(new: Iterable[ChunkRow], window_ms: int) -> list[tuple[list[tuple[int, int]], int, int]]:
