@@ -21,8 +21,8 @@ async def live(websocket: WebSocket) -> None:
     try:
         while True:
             message = await queue.get()
-            message["sent_ms"] = time.time_ns() // 1_000_000
-            await websocket.send_json(message)
+            # A copy: every subscriber's queue holds the same dict, and each stamps its own send.
+            await websocket.send_json({**message, "sent_ms": time.time_ns() // 1_000_000})
     except WebSocketDisconnect:
         pass
     finally:

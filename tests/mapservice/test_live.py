@@ -41,10 +41,12 @@ def test_websocket_streams_published_events(ev):
             if hub.subscribers:
                 break
             asyncio.run(asyncio.sleep(0.01))
+        other = hub.subscribe()  # a second viewer that has not sent its copy yet
         # The hub lives on the app's loop; publish from it like the sink does.
         client.portal.call(lambda: hub.publish([ev.pose("r9", 5_000, x=2.0)]))
         message = ws.receive_json()
     assert message["type"] == "pose" and message["robotId"] == "r9" and "sent_ms" in message
+    assert "sent_ms" not in other.get_nowait()  # each viewer stamps its own send time
 
 
 def test_websocket_without_processors_closes_with_reason():
