@@ -53,19 +53,18 @@ class HistorySink:
     async def run(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
-    async def insert_until_done(self, fn, batch, topic: str,
-                                per_topic: Mapping[str, int] | None = None) -> None:
-        """Stores `batch` with `fn`, retrying until it is in; counts it under `topic`, or
-        under each topic of `per_topic` when a batch mixes topics."""
+    async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
+        """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,
+        per topic (`counts`: how many of the batch came from each topic)."""
         # Retried, never skipped: acknowledging a batch that is not stored would lose it.
         async for attempt in until_done("history insert", 0.2, INSERT_FAILURES.inc,
-                                        topic=topic, batch=len(batch)):
+                                        topics=sorted(counts), batch=len(batch)):
             with attempt:
                 started = time.monotonic()
                 await self.run(fn, batch)
         INSERT_SECONDS.observe(time.monotonic() - started)
-        for name, count in (per_topic or {topic: len(batch)}).items():
-            STORED.labels(name).inc(count)
+        for topic, count in counts.items():
+            STORED.labels(topic).inc(count)
 
 
 def build_app(settings: Settings, sink: HistorySink) -> faust.App:
@@ -109,7 +108,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         async for events in stream.noack().noack_take(batch, within=within):
             records = decode_dead_letters((e.value for e in events), now_ms())
             await sink.insert_until_done(sink.store.append_dead_letters, records,
-                                         settings.topic_dead_letter)
+                                         {settings.topic_dead_letter: len(records)})
             for e in events:
                 e.ack()
 

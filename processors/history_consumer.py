@@ -53,14 +53,14 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
         if bad:
             bad_by_topic[topic] = bad
     if good:
-        await sink.insert_until_done(sink.store.append, good, "events", per_topic)
+        await sink.insert_until_done(sink.store.append, good, per_topic)
         if sink.live is not None:
             sink.live.publish(good)
         if views is not None:
             await views.on_stored(sink, good)  # conflicts, latest map, robots
     for topic, bad in bad_by_topic.items():
         log.warning("undecodable records on an event topic", topic=topic, count=len(bad))
-        await sink.insert_until_done(sink.store.append_dead_letters, bad, topic)
+        await sink.insert_until_done(sink.store.append_dead_letters, bad, {topic: len(bad)})
 
 
 class HistoryConsumer:
