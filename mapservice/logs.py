@@ -35,8 +35,15 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
         if fmt == "json"
         else structlog.dev.ConsoleRenderer(colors=sys.stderr.isatty())
     )
+    def add_component(_logger, _name: str, event_dict: dict) -> dict:
+        # A processor, not only a context variable: threads (paho's, executors, uvicorn
+        # in a thread) start with an empty context.
+        event_dict.setdefault("component", component)
+        return event_dict
+
     shared = [
         structlog.contextvars.merge_contextvars,
+        add_component,
         structlog.processors.add_log_level,
         structlog.processors.TimeStamper(fmt="iso", utc=True),
     ]

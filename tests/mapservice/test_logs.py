@@ -74,3 +74,39 @@ def test_below_the_level_nothing_is_written(capsys) -> None:
     configure("WARNING", "json", "api")
     logging.getLogger("faust").info("chatty")
     assert lines(capsys) == []
+
+
+def test_the_api_server_writes_a_json_access_log(capfd) -> None:
+    """The API's uvicorn (as `serve` configures it) writes one JSON 'request' line per request."""
+    import socket
+    import threading
+    import time
+
+    import httpx
+    import uvicorn
+    from fastapi import FastAPI
+
+    from mapservice.server import api_server_config
+    from mapservice.settings import Settings
+
+    configure("INFO", "json", "api")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    app = FastAPI()
+    app.get("/ping")(lambda: {"ok": True})
+    server = uvicorn.Server(api_server_config(app, Settings(api_host="127.0.0.1", api_port=port)))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not server.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert httpx.get(f"http://127.0.0.1:{port}/ping").status_code == 200
+    finally:
+        server.should_exit = True
+        thread.join(10)
+    out = [json.loads(line) for line in capfd.readouterr().err.splitlines() if line.startswith("{")]
+    requests = [line for line in out if line.get("event") == "request"]
+    assert requests and requests[0]["path"] == "/ping" and requests[0]["status"] == 200
+    assert all(line["component"] == "api" for line in out)
