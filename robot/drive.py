@@ -179,10 +179,28 @@ def _loop(screen, state: DriveState, pub: Publisher) -> None:
             last_pose = time.monotonic()
 
 
+def check_map_size(api_url: str, meta: MapMetaSet) -> None:
+    """Raises ValueError when the service stores a map of another size: painting this map's
+    chunks into it would corrupt it (a service without a map accepts any)."""
+    import httpx
+
+    from mapservice.map_upload import mismatch_message, same_geometry, stored_meta
+
+    try:
+        with httpx.Client(base_url=api_url, timeout=10) as http:
+            stored = stored_meta(http)
+    except httpx.HTTPError as exc:
+        raise ValueError(f"cannot ask {api_url} for the service's map size ({exc}); "
+                         "pass the service's REST API with --api") from exc
+    if stored is not None and not same_geometry(stored, meta):
+        raise ValueError(mismatch_message(stored, meta, f"this map ({meta.width} x {meta.height})"))
+
+
 def main(args) -> None:
     try:
         ros_map = load_ros_map(args.map)
         state = start_state(ros_map, tuple(args.start) if args.start else None, args.step)
+        check_map_size(args.api, state.meta)
         pub = Publisher(args.mqtt, args.robot_id)
     except (OSError, ValueError) as exc:
         sys.exit(f"mapservice drive: {exc}")
