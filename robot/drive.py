@@ -179,7 +179,7 @@ def _loop(screen, state: DriveState, pub: Publisher) -> None:
             last_pose = time.monotonic()
 
 
-def check_map_size(api_url: str, meta: MapMetaSet) -> None:
+def check_map_size(api_url: str, meta: MapMetaSet, http=None) -> None:
     """Raises ValueError when the service stores a map of another size: painting this map's
     chunks into it would corrupt it (a service without a map accepts any)."""
     import httpx
@@ -187,8 +187,11 @@ def check_map_size(api_url: str, meta: MapMetaSet) -> None:
     from mapservice.map_upload import mismatch_message, same_geometry, stored_meta
 
     try:
-        with httpx.Client(base_url=api_url, timeout=10) as http:
+        if http is not None:
             stored = stored_meta(http)
+        else:
+            with httpx.Client(base_url=api_url, timeout=10) as client:
+                stored = stored_meta(client)
     except httpx.HTTPError as exc:
         raise ValueError(f"cannot ask {api_url} for the service's map size ({exc}); "
                          "pass the service's REST API with --api") from exc
