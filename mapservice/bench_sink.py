@@ -25,7 +25,8 @@ WAYS = ("batch",)
 
 def add_parser(kinds) -> None:
     p = kinds.add_parser("sink", help="CPU per event of the processors' history path")
-    p.add_argument("--events", type=int, default=60_000)
+    p.add_argument("--events", type=int, default=60_000,
+                   help="pose events published and then consumed per run")
     p.add_argument("--repeat", type=int, default=3, help="runs per way; medians are reported")
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
     p.add_argument("--one", choices=WAYS, help=argparse_hidden())
@@ -95,8 +96,15 @@ async def _one(way: str, events: int) -> dict:
             await asyncio.sleep(0.005)
             if first is None and _Counter.n:
                 first = (time.monotonic(), _cpu_s(), _Counter.n)
+        if first is None:
+            raise SystemExit(f"no event reached the sink within 600 s of {events:,} published")
         wall, cpu = time.monotonic() - first[0], _cpu_s() - first[1]
         counted = _Counter.n - first[2]
+        if counted <= 0 or wall <= 0:
+            # Timing starts at the first batch (the group join before it is not the sink's
+            # cost), so the events after it are what is measured.
+            raise SystemExit(f"all {events:,} events arrived in the first batch: nothing left "
+                             "to time; pass more --events (e.g. the default 60,000)")
         return {"way": way, "events": counted, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
                 "cpu_us_per_event": round(cpu / counted * 1e6, 1),
                 "events_per_s": round(counted / wall), "complete": _Counter.n >= events,
@@ -120,7 +128,7 @@ def main(args) -> None:
                                  capture_output=True, text=True, timeout=900)
             line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
             if line is None:
-                raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}")
+                raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}".rstrip())
             result = json.loads(line[7:])
             runs[way].append(result)
             print(f"run {i + 1}/{args.repeat} {way:5}: {result['cpu_us_per_event']:7.1f} µs CPU/event, "

@@ -121,7 +121,7 @@ def supervise(stack, console, base_s: float = 1.0) -> None:
         time.sleep(0.5)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mapservice", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -171,7 +171,11 @@ def main(argv: list[str] | None = None) -> None:
 
     add_load_history_parser(sub)
 
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     args.func(args)
 
 
