@@ -32,7 +32,7 @@ def cmd_map(args) -> None:
             meta = slice_to_dir(args.file, args.output_dir, args.chunk_width, args.chunk_height)
             print(f"{meta.chunk_rows * meta.chunk_cols} chunks ({meta.chunk_rows} rows x "
                   f"{meta.chunk_cols} columns of {meta.chunk_width} x {meta.chunk_height} px) "
-                  f"and meta.json in {args.output_dir}")
+                  f", meta.json and map.yaml in {args.output_dir}")
         elif args.map_command == "upload":
             return _map_upload(args)
         elif args.map_command == "stitch":
@@ -173,7 +173,8 @@ def add_parsers(sub) -> None:
     sl = msub.add_parser("slice", help="cut a map (ROS YAML or PGM) into chunk PGMs + meta.json")
     sl.add_argument("file", help="map YAML (or a bare P2/P5 PGM); relative paths are fine")
     sl.add_argument("--output-dir", "-o", required=True,
-                    help="directory for the chunk PGMs (row_column.pgm) and meta.json")
+                    help="directory for the chunk PGMs (chunk_<row>_<col>.pgm), meta.json "
+                         "and map.yaml (PGM flavour and ROS settings, for stitch)")
     sl.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
     sl.add_argument("--chunk-height", type=int, default=100, help="chunk height in pixels")
     st = msub.add_parser("stitch", help="put a sliced map back together (cropping the padding)")
