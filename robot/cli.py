@@ -246,6 +246,9 @@ def add_parsers(sub) -> None:
     dr.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="the service's MQTT broker")
     dr.add_argument("--api", default="http://127.0.0.1:8080",
                     help="the service's REST API, asked for its map size before driving")
+    dr.add_argument("--no-size-check", action="store_true",
+                    help="do not ask --api for the map size (a bare MQTT broker without the "
+                         "service); a map of another size then corrupts the service's map")
     dr.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"),
                     help="start position in metres (default: a free cell)")
     dr.add_argument("--step", type=int, default=10, help="pixels per key press and per screen cell")

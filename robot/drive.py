@@ -203,7 +203,8 @@ def main(args) -> None:
     try:
         ros_map = load_ros_map(args.map)
         state = start_state(ros_map, tuple(args.start) if args.start else None, args.step)
-        check_map_size(args.api, state.meta)
+        if not args.no_size_check:
+            check_map_size(args.api, state.meta)
         pub = Publisher(args.mqtt, args.robot_id)
     except (OSError, ValueError) as exc:
         sys.exit(f"mapservice drive: {exc}")

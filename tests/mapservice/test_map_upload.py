@@ -99,3 +99,15 @@ def test_up_uploads_once_per_data_dir(monkeypatch, tmp_path) -> None:
     assert (tmp_path / MARKER).exists()
     assert upload_map_if_fresh(Settings(), tmp_path, depot, NOW + 1) == 0
     assert calls == [NOW]
+
+
+def test_map_upload_cli_explains_what_to_do(monkeypatch) -> None:
+    """`map upload --replace` without an admin token and an unreachable --api both exit with
+    a message saying what to pass."""
+    from mapservice.cli import main
+
+    monkeypatch.delenv("MAPSERVICE_ADMIN_TOKEN", raising=False)
+    with pytest.raises(SystemExit, match="admin operation: pass --admin-token"):
+        main(["map", "upload", str(MAPS / "depot.yaml"), "--replace"])
+    with pytest.raises(SystemExit, match="is the service running"):
+        main(["map", "upload", str(MAPS / "depot.yaml"), "--api", "http://127.0.0.1:9"])
