@@ -44,6 +44,10 @@ def _cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
+class BenchError(Exception):
+    """A run that cannot measure anything; the message says what to change."""
+
+
 class _Counter:
     n = 0
 
@@ -97,13 +101,13 @@ async def _one(way: str, events: int) -> dict:
             if first is None and _Counter.n:
                 first = (time.monotonic(), _cpu_s(), _Counter.n)
         if first is None:
-            raise SystemExit(f"no event reached the sink within 600 s of {events:,} published")
+            raise BenchError(f"no event reached the sink within 600 s of {events:,} published")
         wall, cpu = time.monotonic() - first[0], _cpu_s() - first[1]
         counted = _Counter.n - first[2]
         if counted <= 0 or wall <= 0:
             # Timing starts at the first batch (the group join before it is not the sink's
             # cost), so the events after it are what is measured.
-            raise SystemExit(f"all {events:,} events arrived in the first batch: nothing left "
+            raise BenchError(f"all {events:,} events arrived in the first batch: nothing left "
                              "to time; pass more --events (e.g. the default 60,000)")
         return {"way": way, "events": counted, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
                 "cpu_us_per_event": round(cpu / counted * 1e6, 1),
@@ -115,7 +119,11 @@ async def _one(way: str, events: int) -> dict:
 
 def main(args) -> None:
     if args.one:
-        result = asyncio.run(_one(args.one, args.events))
+        try:
+            result = asyncio.run(_one(args.one, args.events))
+        except BenchError as exc:
+            print(f"ERROR {exc}", flush=True)
+            os._exit(2)
         print("RESULT " + json.dumps(result), flush=True)
         os._exit(0)  # librdkafka's threads need not be waited for
     from .bench_ingest import machine_facts
@@ -127,6 +135,9 @@ def main(args) -> None:
                                   "--one", way, "--events", str(args.events)],
                                  capture_output=True, text=True, timeout=900)
             line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
+            error = next((x for x in out.stdout.splitlines() if x.startswith("ERROR ")), None)
+            if error is not None:
+                raise SystemExit(f"mapservice bench sink: {error[6:]}")
             if line is None:
                 raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}".rstrip())
             result = json.loads(line[7:])
