@@ -49,7 +49,7 @@ def cmd_up(args) -> None:
 
     from .logs import configure
     from .adapters.clock import SystemClock
-    from .map_upload import upload_map_if_fresh
+    from .map_upload import check_data_dir_map, upload_map_if_fresh
     from .mapfile import load_ros_map, meta_for
     from .stack import Stack
 
@@ -65,6 +65,11 @@ def cmd_up(args) -> None:
                   mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port)
     ros_map = load_ros_map(args.map)
     try:
+        check_data_dir_map(stack.data_dir, ros_map)  # before the meta is published
+        had_history = (stack.data_dir / "clickhouse").exists()
+    except ValueError as exc:
+        sys.exit(f"mapservice up: {exc}")
+    try:
         with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
@@ -74,7 +79,7 @@ def cmd_up(args) -> None:
             stack.start_gateway()
         with console.status("publishing the map's chunks (fresh data dir only)..."):
             uploaded = upload_map_if_fresh(stack.settings(), stack.data_dir, ros_map,
-                                           SystemClock().now_ms())
+                                           SystemClock().now_ms(), had_history)
         if args.robots:
             # The shift simulator (robots on the map's free space, paths, batteries, pallets
             # and doors) unless the 2019 load test is asked for.

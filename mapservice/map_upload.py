@@ -67,15 +67,37 @@ def upload_map_events(settings: Settings, ros_map: RosMap, now_ms: int,
     return len(chunks)
 
 
-def upload_map_if_fresh(settings: Settings, data_dir: Path, ros_map: RosMap,
-                        now_ms: int) -> int:
-    """On a data dir that never had its map uploaded, publishes it; returns the chunk count
-    (0 when the data dir already had it: a resumed service keeps its later changes)."""
+def check_data_dir_map(data_dir: Path, ros_map: RosMap) -> bool:
+    """True when the data dir already had its map uploaded; raises MapSizeMismatch when that
+    map has another size (checked before anything is published)."""
     marker = Path(data_dir) / MARKER
-    if marker.exists():
+    if not marker.exists():
+        return False
+    stored = marker.read_text().split()[0]
+    if stored != f"{ros_map.width}x{ros_map.height}":
+        raise MapSizeMismatch(
+            f"{data_dir} holds a {stored.replace('x', ' x ')} px map, this one is "
+            f"{ros_map.width} x {ros_map.height} px; use another --data-dir for it")
+    return True
+
+
+def upload_map_if_fresh(settings: Settings, data_dir: Path, ros_map: RosMap,
+                        now_ms: int, had_history: bool = False) -> int:
+    """On a data dir that never had its map uploaded, publishes it; returns the chunk count
+    (0 when the data dir already had it: a resumed service keeps its later changes).
+    Raises MapSizeMismatch when the data dir holds a map of another size. `had_history`:
+    the data dir had ClickHouse data before this start (then nothing is uploaded)."""
+    if check_data_dir_map(data_dir, ros_map):
+        return 0
+    marker = Path(data_dir) / MARKER
+    marker.parent.mkdir(parents=True, exist_ok=True)
+    if had_history:
+        # A data dir from before uploads at start: its map is whatever robots wrote; an
+        # upload now would overwrite their later changes.
+        marker.write_text(f"{ros_map.width}x{ros_map.height} at {now_ms} (not uploaded)\n")
+        log.info("data dir has history from before map uploads; not uploading the map")
         return 0
     count = upload_map_events(settings, ros_map, now_ms)
-    marker.parent.mkdir(parents=True, exist_ok=True)
     marker.write_text(f"{ros_map.width}x{ros_map.height} at {now_ms}\n")
     log.info("uploaded the map", chunks=count, robot=UPLOADER_ID)
     return count

@@ -90,15 +90,22 @@ def test_drive_exits_before_publishing_on_a_size_mismatch(monkeypatch, tmp_path)
 
 def test_up_uploads_once_per_data_dir(monkeypatch, tmp_path) -> None:
     """The first `up` on a data dir publishes the map; a resumed one does not (it would
-    overwrite later changes)."""
+    overwrite later changes), nor does one with history from before uploads, and a map of
+    another size is refused."""
     calls = []
     monkeypatch.setattr("mapservice.map_upload.upload_map_events",
                         lambda settings, ros_map, now_ms: calls.append(now_ms) or 7)
+    legacy = tmp_path / "legacy"
+    depot0 = load_ros_map(MAPS / "depot.yaml")
+    assert upload_map_if_fresh(Settings(), legacy, depot0, NOW, had_history=True) == 0
+    assert calls == [] and (legacy / MARKER).exists()
     depot = load_ros_map(MAPS / "depot.yaml")
     assert upload_map_if_fresh(Settings(), tmp_path, depot, NOW) == 7
     assert (tmp_path / MARKER).exists()
     assert upload_map_if_fresh(Settings(), tmp_path, depot, NOW + 1) == 0
     assert calls == [NOW]
+    with pytest.raises(MapSizeMismatch, match="604 x 307 px map.*384 x 384.*--data-dir"):
+        upload_map_if_fresh(Settings(), tmp_path, load_ros_map(MAPS / "tb3_sandbox.yaml"), NOW)
 
 
 def test_map_upload_cli_explains_what_to_do(monkeypatch) -> None:
