@@ -25,7 +25,8 @@ WAYS = ("batch",)
 
 def add_parser(kinds) -> None:
     p = kinds.add_parser("sink", help="CPU per event of the processors' history path")
-    p.add_argument("--events", type=int, default=60_000)
+    p.add_argument("--events", type=int, default=60_000,
+                   help="pose events published and then consumed per run")
     p.add_argument("--repeat", type=int, default=3, help="runs per way; medians are reported")
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
     p.add_argument("--one", choices=WAYS, help=argparse_hidden())
@@ -41,6 +42,10 @@ def argparse_hidden():
 def _cpu_s() -> float:
     r = resource.getrusage(resource.RUSAGE_SELF)
     return r.ru_utime + r.ru_stime
+
+
+class BenchError(Exception):
+    """A run that cannot measure anything; the message says what to change."""
 
 
 class _Counter:
@@ -95,8 +100,15 @@ async def _one(way: str, events: int) -> dict:
             await asyncio.sleep(0.005)
             if first is None and _Counter.n:
                 first = (time.monotonic(), _cpu_s(), _Counter.n)
+        if first is None:
+            raise BenchError(f"no event reached the sink within 600 s of {events:,} published")
         wall, cpu = time.monotonic() - first[0], _cpu_s() - first[1]
         counted = _Counter.n - first[2]
+        if counted <= 0 or wall <= 0:
+            # Timing starts at the first batch (the group join before it is not the sink's
+            # cost), so the events after it are what is measured.
+            raise BenchError(f"all {events:,} events arrived in the first batch: nothing left "
+                             "to time; pass more --events (e.g. the default 60,000)")
         return {"way": way, "events": counted, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
                 "cpu_us_per_event": round(cpu / counted * 1e6, 1),
                 "events_per_s": round(counted / wall), "complete": _Counter.n >= events,
@@ -107,7 +119,11 @@ async def _one(way: str, events: int) -> dict:
 
 def main(args) -> None:
     if args.one:
-        result = asyncio.run(_one(args.one, args.events))
+        try:
+            result = asyncio.run(_one(args.one, args.events))
+        except BenchError as exc:
+            print(f"ERROR {exc}", flush=True)
+            os._exit(2)
         print("RESULT " + json.dumps(result), flush=True)
         os._exit(0)  # librdkafka's threads need not be waited for
     from .bench_ingest import machine_facts
@@ -119,8 +135,11 @@ def main(args) -> None:
                                   "--one", way, "--events", str(args.events)],
                                  capture_output=True, text=True, timeout=900)
             line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
+            error = next((x for x in out.stdout.splitlines() if x.startswith("ERROR ")), None)
+            if error is not None:
+                raise SystemExit(f"mapservice bench sink: {error[6:]}")
             if line is None:
-                raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}")
+                raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}".rstrip())
             result = json.loads(line[7:])
             runs[way].append(result)
             print(f"run {i + 1}/{args.repeat} {way:5}: {result['cpu_us_per_event']:7.1f} µs CPU/event, "

@@ -523,13 +523,13 @@ def main(args) -> None:
 
 def add_parser(kinds) -> None:
     tt = kinds.add_parser("timetravel", help="map/robots at T and replay windows over a week of history")
-    tt.add_argument("--days", type=float, default=7)
-    tt.add_argument("--robots", type=int, default=20)
+    tt.add_argument("--days", type=float, default=7, help="days of history loaded")
+    tt.add_argument("--robots", type=int, default=20, help="simulated robots in the history")
     tt.add_argument("--grid", default="32x48", help="ROWSxCOLS chunk grid of the map meta")
     tt.add_argument("--map", default=None, help="ROS map YAML (default: maps/warehouse.yaml)")
     tt.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
-    tt.add_argument("--clickhouse-dsn", default=None)
-    tt.add_argument("--database", default="mapservice")
+    tt.add_argument("--clickhouse-dsn", default=None, help="a ClickHouse server or chdb:// instead of the data dir")
+    tt.add_argument("--database", default="mapservice", help="ClickHouse database")
     tt.add_argument("--reuse", action="store_true", help="measure history loaded by an earlier run")
     tt.add_argument("--queries", type=int, default=200, help="random instants (plus half as many "
                     "in the last hour and half as many six days ago)")
@@ -538,7 +538,7 @@ def add_parser(kinds) -> None:
                     "keyframe path)")
     tt.add_argument("--one-by-one", type=int, default=12,
                     help="snapshots built one by one (timed) before the bulk build")
-    tt.add_argument("--seed", type=int, default=7)
+    tt.add_argument("--seed", type=int, default=7, help="random seed of the history and the instants")
     tt.add_argument("--wait-quiet", type=float, default=0,
                     help="before measuring, wait up to this many seconds for other benchmarks "
                     "(bench ingest, tansu, mosquitto) to end")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import asyncio
 import signal
 import sys
@@ -47,10 +48,14 @@ def cmd_up(args) -> None:
     from rich.table import Table
 
     from .logs import configure
+    from .adapters.clock import SystemClock
+    from .map_upload import check_data_dir_map, upload_map_if_fresh
     from .mapfile import load_ros_map, meta_for
     from .stack import Stack
 
     configure("INFO", "console", "up")
+    # httpx logs every readiness poll (~20 `GET /readyz 503` while the server starts).
+    logging.getLogger("httpx").setLevel(logging.WARNING)
     console = Console()
     # Ctrl-C stops everything even when started from a shell that ignores SIGINT for
     # background jobs (Python then keeps it ignored); SIGTERM stops the children too.
@@ -60,6 +65,11 @@ def cmd_up(args) -> None:
                   mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port)
     ros_map = load_ros_map(args.map)
     try:
+        check_data_dir_map(stack.data_dir, ros_map)  # before the meta is published
+        had_history = (stack.data_dir / "clickhouse").exists()
+    except ValueError as exc:
+        sys.exit(f"mapservice up: {exc}")
+    try:
         with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
@@ -67,11 +77,14 @@ def cmd_up(args) -> None:
             stack.start_server()
         with console.status("starting the MQTT-to-Kafka gateway..."):
             stack.start_gateway()
+        with console.status("publishing the map's chunks (fresh data dir only)..."):
+            uploaded = upload_map_if_fresh(stack.settings(), stack.data_dir, ros_map,
+                                           SystemClock().now_ms(), had_history)
         if args.robots:
             # The shift simulator (robots on the map's free space, paths, batteries, pallets
             # and doors) unless the 2019 load test is asked for.
-            stack._spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map),
-                         *(["--load-test"] if args.load_test else []))
+            stack.spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map),
+                        *(["--load-test"] if args.load_test else []))
         table = Table(title="mapservice is up", show_header=False)
         table.add_row("API", stack.api_url + "  (docs at /docs)")
         table.add_row("MQTT (robots)", stack.mqtt_url)
@@ -79,6 +92,8 @@ def cmd_up(args) -> None:
         table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/healthz")
+        table.add_row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
+                      + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
         table.add_row("Simulated robots", f"{args.robots} on {args.map}"
                       + (" (2019 load test)" if args.load_test else " (shift simulator)"))
         table.add_row("Logs", str(stack.log_dir))
@@ -87,11 +102,8 @@ def cmd_up(args) -> None:
         if args.open_browser:
             import webbrowser
 
-            webbrowser.open(stack.api_url + "/docs")
-        while all(p.poll() is None for p in stack.procs.values()):
-            time.sleep(0.5)
-        dead = [n for n, p in stack.procs.items() if p.poll() is not None]
-        console.print(f"[red]stopped because {', '.join(dead)} exited; see {stack.log_dir}[/red]")
+            webbrowser.open(stack.api_url + "/")
+        supervise(stack, console, args.restart_base_s)
     except KeyboardInterrupt:
         console.print("stopping...")
     except RuntimeError as exc:
@@ -101,29 +113,49 @@ def cmd_up(args) -> None:
         stack.stop()
 
 
-def main(argv: list[str] | None = None) -> None:
+def supervise(stack, console, base_s: float = 1.0) -> None:
+    """Runs until Ctrl-C: a component that exits is restarted with backoff, not the end."""
+    from .supervisor import Supervisor
+
+    supervisor = Supervisor(
+        stack.is_alive, {name: (lambda n=name: stack.restart(n)) for name in list(stack.procs)},
+        report=lambda message: console.print(f"[yellow]{message}; see {stack.log_dir}[/yellow]"),
+        base_s=base_s)
+    while True:
+        supervisor.check()
+        time.sleep(0.5)
+
+
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mapservice", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
     up = sub.add_parser("up", help="run everything on embedded defaults, with simulated robots")
-    up.add_argument("--data-dir", default=".mapservice-data")
+    up.add_argument("--data-dir", default=".mapservice-data",
+                    help="where ClickHouse data, broker data and logs live (resumed if present)")
     up.add_argument("--robots", type=int, default=5, help="simulated robots (0: none)")
     up.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML for the simulation")
     up.add_argument("--load-test", action="store_true",
                     help="simulate the 2019 load test (circles, re-sent chunks) instead of a shift")
     up.add_argument("--mqtt-url", help="use this MQTT broker instead of an embedded amqtt")
-    up.add_argument("--api-port", type=int, default=8080)
-    up.add_argument("--mqtt-port", type=int, default=1883)
+    up.add_argument("--api-port", type=int, default=8080, help="HTTP API and replay UI port")
+    up.add_argument("--mqtt-port", type=int, default=1883, help="MQTT port for robots")
     up.add_argument("--kafka-port", type=int, default=0, help="0: a free port")
-    up.add_argument("--open-browser", action="store_true")
+    up.add_argument("--restart-base-s", type=float, default=1.0, metavar="SECONDS",
+                    help="first wait before restarting a component that exited; doubles on "
+                         "each failure in a row, at most 60 s")
+    up.add_argument("--open-browser", action="store_true",
+                    help="open the replay UI in a browser once up")
     up.set_defaults(func=cmd_up)
 
     gw = sub.add_parser("gateway", help="MQTT-to-Kafka gateway (configured from MAPSERVICE_*)")
-    gw.add_argument("--health-port", type=int, default=None)
+    gw.add_argument("--health-port", type=int, default=None,
+                    help="serve /healthz and /metrics on this port (default: none)")
     gw.set_defaults(func=cmd_gateway)
 
     pr = sub.add_parser("processors", help="stream processors: history sink (needs a ClickHouse server)")
-    pr.add_argument("--health-port", type=int, default=None)
+    pr.add_argument("--health-port", type=int, default=None,
+                    help="serve /healthz and /metrics on this port (default: none)")
     pr.set_defaults(func=lambda a: cmd_serve(a, api=False, component="processors"))
 
     api = sub.add_parser("api", help="HTTP API only (needs a ClickHouse server)")
@@ -144,7 +176,11 @@ def main(argv: list[str] | None = None) -> None:
 
     add_load_history_parser(sub)
 
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
     args.func(args)
 
 

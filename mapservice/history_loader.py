@@ -449,7 +449,7 @@ def add_parser(sub) -> None:
     p = sub.add_parser("load-history",
                        help="write days of simulated 2019-workload history straight into ClickHouse")
     p.add_argument("--days", type=float, default=1.0, help="days of history (at most the retention)")
-    p.add_argument("--robots", type=int, default=20)
+    p.add_argument("--robots", type=int, default=20, help="simulated robots")
     p.add_argument("--map", default=None, help="ROS map YAML (default: maps/warehouse.yaml)")
     p.add_argument("--data-dir", default=".mapservice-data",
                    help="embedded chDB under DIR/clickhouse (as `mapservice up`)")
@@ -458,7 +458,7 @@ def add_parser(sub) -> None:
     p.add_argument("--end", default="now", help="`now`, epoch ms or ISO time (UTC) of the last event")
     p.add_argument("--grid", default=None,
                    help="ROWSxCOLS chunk grid (e.g. 32x48); default: the map's own chunks")
-    p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--seed", type=int, default=7, help="random seed (same seed, same history)")
     p.add_argument("--change-prob", type=float, default=0.01,
                    help="share of chunk writes with changed pixels")
     p.add_argument("--snapshot-every-s", type=float, default=None,

@@ -37,6 +37,8 @@ class Stack:
     health_port: int = 0
     extra_env: dict[str, str] = field(default_factory=dict)
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+    commands: dict[str, tuple[str, ...]] = field(default_factory=dict)  # how each was spawned
+    meta: MapMetaSet | None = None  # the last published map meta (re-published after a restart)
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -87,17 +89,13 @@ class Stack:
         return open(self.log_dir / f"{name}.log", "ab")
 
     def start_brokers(self) -> None:
-        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
-        if self.mqtt == "amqtt":
-            self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"),
-                                                      ws_port=self.mqtt_ws_port)
-        elif self.mqtt == "mosquitto":
-            self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
-                                                          self._log("mosquitto"),
-                                                          ws_port=self.mqtt_ws_port)
-        ensure_topics(self.settings())
+        self.start_kafka()
+        if self.mqtt in ("amqtt", "mosquitto"):
+            self.start_mqtt()
 
-    def _spawn(self, name: str, *args: str) -> subprocess.Popen:
+    def spawn(self, name: str, *args: str) -> subprocess.Popen:
+        """Runs `mapservice <args>` as component `name` (log in log_dir/<name>.log)."""
+        self.commands[name] = args
         proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args], env=self.env(),
                                 stdout=self._log(name), stderr=subprocess.STDOUT,
                                 start_new_session=True)
@@ -106,14 +104,14 @@ class Stack:
 
     def start_gateway(self) -> subprocess.Popen:
         embedded.ensure_port_free(self.health_port, "the gateway's health endpoint")
-        proc = self._spawn("gateway", "gateway", "--health-port", str(self.health_port))
+        proc = self.spawn("gateway", "gateway", "--health-port", str(self.health_port))
         embedded.wait_for_port(self.health_port, proc=proc, what="gateway")
         self.wait_healthy(f"http://127.0.0.1:{self.health_port}/healthz", "gateway", proc)
         return proc
 
     def start_server(self) -> subprocess.Popen:
         embedded.ensure_port_free(self.api_port, "the API")
-        proc = self._spawn("server", "serve")
+        proc = self.spawn("server", "serve")
         embedded.wait_for_port(self.api_port, timeout_s=120, proc=proc, what="server")
         self.wait_healthy(f"{self.api_url}/readyz", "server", proc)
         return proc
@@ -132,7 +130,49 @@ class Stack:
             time.sleep(0.2)
         raise RuntimeError(f"{what} not healthy at {url} after {timeout_s:.0f} s")
 
+    def start_kafka(self) -> subprocess.Popen:
+        """tansu keeps topics in memory: a new one gets the topics and the map meta again."""
+        embedded.stop(self.procs.pop("kafka", None))
+        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
+        ensure_topics(self.settings())
+        if self.meta is not None:
+            self.publish_meta(self.meta)
+        return self.procs["kafka"]
+
+    def start_mqtt(self) -> subprocess.Popen:
+        embedded.stop(self.procs.pop("mqtt", None))
+        if self.mqtt == "amqtt":
+            self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"),
+                                                      ws_port=self.mqtt_ws_port)
+        elif self.mqtt == "mosquitto":
+            self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
+                                                          self._log("mosquitto"),
+                                                          ws_port=self.mqtt_ws_port)
+        else:
+            raise RuntimeError(f"the MQTT broker at {self.mqtt} is not this stack's to start")
+        return self.procs["mqtt"]
+
+    def restart(self, name: str) -> subprocess.Popen:
+        """Starts component `name` again after it exited (the supervisor of `up` calls this)."""
+        if name == "kafka":
+            return self.start_kafka()
+        if name == "mqtt":
+            return self.start_mqtt()
+        embedded.stop(self.procs.pop(name, None))
+        if name == "server":
+            return self.start_server()
+        if name == "gateway":
+            return self.start_gateway()
+        if name not in self.commands:
+            raise KeyError(f"no component {name!r} was started")
+        return self.spawn(name, *self.commands[name])
+
+    def is_alive(self, name: str) -> bool:
+        proc = self.procs.get(name)
+        return proc is not None and proc.poll() is None
+
     def publish_meta(self, meta: MapMetaSet) -> None:
+        self.meta = meta
         settings = self.settings()
         publisher = KafkaPublisher(settings, client_id="mapservice-up")
         now = SystemClock().now_ms()

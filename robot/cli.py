@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import time
@@ -31,7 +32,9 @@ def cmd_map(args) -> None:
             meta = slice_to_dir(args.file, args.output_dir, args.chunk_width, args.chunk_height)
             print(f"{meta.chunk_rows * meta.chunk_cols} chunks ({meta.chunk_rows} rows x "
                   f"{meta.chunk_cols} columns of {meta.chunk_width} x {meta.chunk_height} px) "
-                  f"and meta.json in {args.output_dir}")
+                  f", meta.json and map.yaml in {args.output_dir}")
+        elif args.map_command == "upload":
+            return _map_upload(args)
         elif args.map_command == "stitch":
             out = stitch_dir(args.working_dir, args.output,
                              magic={"p2": "P2", "p5": "P5"}.get(args.format or ""))
@@ -40,6 +43,31 @@ def cmd_map(args) -> None:
             print(json.dumps(describe(args.file, args.chunk_width, args.chunk_height), indent=2))
     except (OSError, ValueError, KeyError) as exc:
         sys.exit(f"mapservice map {args.map_command}: {exc}")
+
+
+def _map_upload(args) -> None:
+    """`map upload`: the whole map through the 2019 REST API, as events like any robot's."""
+    import httpx
+
+    from mapservice.map_upload import MapSizeMismatch, upload_map_rest
+    from mapservice.mapfile import load_ros_map
+
+    if args.replace and not args.admin_token:
+        sys.exit("mapservice map upload: --replace replaces the service's map for every robot; "
+                 "it is an admin operation: pass --admin-token (or MAPSERVICE_ADMIN_TOKEN)")
+    ros_map = load_ros_map(args.file)
+    headers = {"Authorization": f"Bearer {args.admin_token}"} if args.admin_token else {}
+    try:
+        with httpx.Client(base_url=args.api, timeout=30, headers=headers) as http:
+            count = upload_map_rest(http, ros_map, time.time_ns() // 1_000_000,
+                                    replace=args.replace, robot_id=args.robot_id)
+    except MapSizeMismatch as exc:
+        sys.exit(f"mapservice map upload: {exc}")
+    except httpx.HTTPError as exc:
+        sys.exit(f"mapservice map upload: cannot upload to {args.api}: {exc}; is the service "
+                 "running (`make up`) and --api its address?")
+    print(f"uploaded {count} chunks of {args.file} ({ros_map.width} x {ros_map.height} px) "
+          f"to {args.api} as robot {args.robot_id}")
 
 
 # --- sim -----------------------------------------------------------------------------------
@@ -144,25 +172,40 @@ def add_parsers(sub) -> None:
     msub = m.add_subparsers(dest="map_command", required=True)
     sl = msub.add_parser("slice", help="cut a map (ROS YAML or PGM) into chunk PGMs + meta.json")
     sl.add_argument("file", help="map YAML (or a bare P2/P5 PGM); relative paths are fine")
-    sl.add_argument("--output-dir", "-o", required=True)
-    sl.add_argument("--chunk-width", type=int, default=100)
-    sl.add_argument("--chunk-height", type=int, default=100)
+    sl.add_argument("--output-dir", "-o", required=True,
+                    help="directory for the chunk PGMs (chunk_<row>_<col>.pgm), meta.json "
+                         "and map.yaml (PGM flavour and ROS settings, for stitch)")
+    sl.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
+    sl.add_argument("--chunk-height", type=int, default=100, help="chunk height in pixels")
     st = msub.add_parser("stitch", help="put a sliced map back together (cropping the padding)")
     st.add_argument("working_dir", help="directory with meta.json and the chunks")
     st.add_argument("--output", "-o", required=True, help="a .pgm, or a .yaml (with its .pgm)")
     st.add_argument("--format", choices=["p2", "p5"], help="PGM flavour (default: as sliced)")
+    up = msub.add_parser("upload", help="publish a whole map (meta and every chunk) to a running "
+                         "service through its 2019 REST API, as the 2019 fillDB did")
+    up.add_argument("file", help="map YAML (or a bare P2/P5 PGM)")
+    up.add_argument("--api", default="http://127.0.0.1:8080",
+                    help="base URL of the service's REST API (default: `make up`'s)")
+    up.add_argument("--robot-id", default="map-upload",
+                    help="robot id the uploaded chunks are attributed to")
+    up.add_argument("--replace", action="store_true",
+                    help="replace a stored map of another size (admin; needs --admin-token)")
+    up.add_argument("--admin-token", default=os.environ.get("MAPSERVICE_ADMIN_TOKEN"),
+                    help="the service's MAPSERVICE_ADMIN_TOKEN (default: from the environment)")
     info = msub.add_parser("info", help="size, geometry, chunk grid and pixel classes of a map")
-    info.add_argument("file")
-    info.add_argument("--chunk-width", type=int, default=100)
-    info.add_argument("--chunk-height", type=int, default=100)
+    info.add_argument("file", help="map YAML (or a bare P2/P5 PGM)")
+    info.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
+    info.add_argument("--chunk-height", type=int, default=100, help="chunk height in pixels")
     m.set_defaults(func=cmd_map)
 
     sim = sub.add_parser("sim", help="simulated robots on a real map, publishing over MQTT")
-    sim.add_argument("--robots", type=int, default=5)
-    sim.add_argument("--map", default=str(DEFAULT_MAP))
-    sim.add_argument("--mqtt-url", default=None)
+    sim.add_argument("--robots", type=int, default=5,
+                     help="how many robots (fewer when the map has no room for them)")
+    sim.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML the robots drive on")
+    sim.add_argument("--mqtt-url", default=None,
+                     help="MQTT broker (default: MAPSERVICE_MQTT_URL)")
     sim.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    sim.add_argument("--seed", type=int, default=7)
+    sim.add_argument("--seed", type=int, default=7, help="random seed (same seed, same shift)")
     sim.add_argument("--prefix", default="sim", help="robot ids are <prefix>-000, ...")
     sim.add_argument("--clock-skew", type=float, default=0.0, metavar="SECONDS",
                      help="each robot's clock is off by a fixed amount within +-SECONDS")
@@ -180,7 +223,7 @@ def add_parsers(sub) -> None:
 
     rb = sub.add_parser("robot", help="a robot agent: keeps its local map in sync with the service")
     rb.add_argument("--map", required=True, help="the robot's map YAML (its PGM is kept in sync)")
-    rb.add_argument("--robot-id", required=True)
+    rb.add_argument("--robot-id", required=True, help="this robot's id (1-64 of A-Z a-z 0-9 _ . : @ -)")
     rb.add_argument("--api", default="http://127.0.0.1:8080", help="base URL of the 2019 REST API")
     rb.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="cloud MQTT broker")
     rb.add_argument("--pose", choices=["sim", "odom"], default="sim",
@@ -191,15 +234,21 @@ def add_parsers(sub) -> None:
     rb.add_argument("--threshold", type=float, default=0.0,
                     help="publish a changed chunk when more than this fraction of it changed")
     rb.add_argument("--period", type=float, default=1.0, help="seconds between pose/map checks")
-    rb.add_argument("--chunk-width", type=int, default=100)
-    rb.add_argument("--chunk-height", type=int, default=100)
+    rb.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
+    rb.add_argument("--chunk-height", type=int, default=100, help="chunk height in pixels")
     rb.add_argument("--seconds", type=float, default=None, help="stop after this long")
     rb.set_defaults(func=cmd_robot)
 
     dr = sub.add_parser("drive", help="drive one robot with the arrow keys and paint its chunk")
-    dr.add_argument("--map", default=str(DEFAULT_MAP))
-    dr.add_argument("--robot-id", default="driver")
-    dr.add_argument("--mqtt", default="mqtt://127.0.0.1:1883")
+    dr.add_argument("--map", default=str(DEFAULT_MAP),
+                    help="ROS map YAML; must have the service's map size")
+    dr.add_argument("--robot-id", default="driver", help="the driven robot's id")
+    dr.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="the service's MQTT broker")
+    dr.add_argument("--api", default="http://127.0.0.1:8080",
+                    help="the service's REST API, asked for its map size before driving")
+    dr.add_argument("--no-size-check", action="store_true",
+                    help="do not ask --api for the map size (a bare MQTT broker without the "
+                         "service); a map of another size then corrupts the service's map")
     dr.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"),
                     help="start position in metres (default: a free cell)")
     dr.add_argument("--step", type=int, default=10, help="pixels per key press and per screen cell")

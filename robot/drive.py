@@ -179,10 +179,32 @@ def _loop(screen, state: DriveState, pub: Publisher) -> None:
             last_pose = time.monotonic()
 
 
+def check_map_size(api_url: str, meta: MapMetaSet, http=None) -> None:
+    """Raises ValueError when the service stores a map of another size: painting this map's
+    chunks into it would corrupt it (a service without a map accepts any)."""
+    import httpx
+
+    from mapservice.map_upload import mismatch_message, same_geometry, stored_meta
+
+    try:
+        if http is not None:
+            stored = stored_meta(http)
+        else:
+            with httpx.Client(base_url=api_url, timeout=10) as client:
+                stored = stored_meta(client)
+    except httpx.HTTPError as exc:
+        raise ValueError(f"cannot ask {api_url} for the service's map size ({exc}); "
+                         "pass the service's REST API with --api") from exc
+    if stored is not None and not same_geometry(stored, meta):
+        raise ValueError(mismatch_message(stored, meta, f"this map ({meta.width} x {meta.height})"))
+
+
 def main(args) -> None:
     try:
         ros_map = load_ros_map(args.map)
         state = start_state(ros_map, tuple(args.start) if args.start else None, args.step)
+        if not args.no_size_check:
+            check_map_size(args.api, state.meta)
         pub = Publisher(args.mqtt, args.robot_id)
     except (OSError, ValueError) as exc:
         sys.exit(f"mapservice drive: {exc}")

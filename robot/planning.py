@@ -88,6 +88,17 @@ def grid_for(drivable: np.ndarray, resolution: float, cell_m: float = 0.25,
     return build_grid(drivable, cell_px, inflate)
 
 
+def plan_cell_sizes(resolution: float, cell_m: float = 0.25,
+                    robot_radius_m: float = 0.3) -> list[int]:
+    """Candidate planning cell sizes in pixels, coarsest first: from `cell_m` down to a
+    quarter of the robot radius. Coarse cells plan fast on big maps; on a small map
+    (nav2's 384 x 384 px sandboxes) a 0.25 m cell inflated by a whole cell leaves no
+    corridor, while finer cells inflate by close to the real radius."""
+    coarsest = max(1, round(cell_m / resolution))
+    finest = max(1, min(coarsest, math.ceil(robot_radius_m / (4 * resolution))))
+    return list(range(coarsest, finest - 1, -1))
+
+
 def largest_component(ok: np.ndarray) -> np.ndarray:
     """The biggest 8-connected set of ok cells (stations go there so all are reachable)."""
     labels = np.zeros(ok.shape, dtype=np.int32)

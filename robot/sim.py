@@ -24,7 +24,8 @@ from mapservice.events import MapMetaSet
 from mapservice.mapfile import RosMap, drivable, meta_for
 
 from .chunks import chunk_pixels, pixel_to_metres
-from .planning import Cell, PlanGrid, dilate, grid_for, largest_component, plan, segment_pixels, simplify
+from .planning import (Cell, PlanGrid, dilate, grid_for, largest_component, plan, plan_cell_sizes,
+                       segment_pixels, simplify)
 
 Point = tuple[float, float]  # continuous image coordinates (u = column, v = row)
 
@@ -129,22 +130,48 @@ def new_state(ros_map: RosMap, robots: int, *, seed: int = 7, t_ms: int = 0,
               config: SimConfig = SimConfig(), prefix: str = "sim", chunk_width: int = 100,
               chunk_height: int = 100) -> SimState:
     free = drivable(ros_map)
-    grid = grid_for(free, ros_map.resolution, config.cell_m, config.robot_radius_m)
-    reachable = largest_component(grid.ok)
-    cells = list(zip(*(a.tolist() for a in np.nonzero(reachable))))
-    if len(cells) < config.stations + config.chargers + 1:
-        raise ValueError("the map has too little free space for the simulation")
+    config, grid, cells = _plan_grid(free, ros_map.resolution, config, robots)
     rng = _rng(seed, -1, "setup")
     picked = rng.sample(cells, config.stations + config.chargers)
     stations, chargers = tuple(picked[: config.stations]), tuple(picked[config.stations:])
     fleet = []
-    for i, cell in enumerate(rng.sample(cells, robots) if robots <= len(cells)
-                             else [rng.choice(cells) for _ in range(robots)]):
+    for i, cell in enumerate(rng.sample(cells, min(robots, capacity(len(cells))))):
         fleet.append(Robot(f"{prefix}-{i:03d}", grid.centre_px(cell), rng.uniform(-math.pi, math.pi),
                            battery=round(rng.uniform(40, 100), 1)))
     return SimState(ros_map, meta_for(ros_map, chunk_width, chunk_height), config, grid, free,
                     stations, chargers, tuple(fleet), t_ms, seed,
                     next_change_ms=t_ms + int(config.change_every_s * 1000))
+
+
+def capacity(reachable_cells: int) -> int:
+    """How many robots a connected free area of that many planning cells hosts: each
+    starts on a cell of its own and keeps room to move (a quarter of the cells)."""
+    return max(1, reachable_cells // 4)
+
+
+def _plan_grid(free: np.ndarray, resolution: float, config: SimConfig,
+               robots: int) -> tuple[SimConfig, PlanGrid, list[Cell]]:
+    """The coarsest planning grid (see `plan_cell_sizes`) whose largest connected free area
+    holds the stations, chargers and the robots; else the one holding the most. The chosen
+    cell size goes into the config so that map changes re-plan on the same grid."""
+    needed = config.stations + config.chargers + 1
+    best: tuple[SimConfig, PlanGrid, list[Cell]] | None = None
+    for cell_px in plan_cell_sizes(resolution, config.cell_m, config.robot_radius_m):
+        cfg = replace(config, cell_m=cell_px * resolution)
+        grid = grid_for(free, resolution, cfg.cell_m, cfg.robot_radius_m)
+        cells = list(zip(*(a.tolist() for a in np.nonzero(largest_component(grid.ok)))))
+        if best is None or len(cells) > len(best[2]):
+            best = (cfg, grid, cells)
+        if len(cells) >= needed and capacity(len(cells)) >= robots:
+            return cfg, grid, cells
+    assert best is not None
+    if len(best[2]) < needed:
+        raise ValueError(
+            f"the map has too little free space for the simulation: its largest connected "
+            f"free area holds {len(best[2])} planning cells of {best[0].cell_m:.2f} m for a "
+            f"{config.robot_radius_m} m robot, {needed} are needed (stations, chargers, a "
+            "robot); use a map with more free space")
+    return best
 
 
 # --- geometry ----------------------------------------------------------------------------

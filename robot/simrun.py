@@ -8,6 +8,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 import paho.mqtt.client as mqtt
+import structlog
 
 from mapservice.mapfile import RosMap
 from mapservice.mqtt import make_client, parse_mqtt_url
@@ -52,7 +53,12 @@ class SimRunner:
         now_ms = time.time_ns() // 1_000_000
         self.state: SimState = new_state(ros_map, robots, seed=seed, t_ms=now_ms, config=config,
                                          prefix=prefix)
-        self.stats = SimStats(robots=robots)
+        hosted = len(self.state.robots)
+        if hosted < robots:
+            structlog.get_logger("sim").warning(
+                "the map has room for fewer robots; running fewer", asked=robots, running=hosted,
+                planning_cell_m=round(self.state.config.cell_m, 3))
+        self.stats = SimStats(robots=hosted)
         self._stop = threading.Event()
 
     def stop(self) -> None:

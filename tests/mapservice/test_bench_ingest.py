@@ -35,3 +35,13 @@ def test_latency_bounds_and_unseen_events_count_as_infinite() -> None:
     upper, lower = _latencies({KEY: 10.4}, {KEY: 10.6}, {KEY: 10.0, unseen: 10.0})
     assert [round(v, 6) for v in upper[:1]] == [0.4] and upper[1] == INF
     assert [round(v, 6) for v in lower[:1]] == [0.4] and lower[1] == INF
+
+
+def test_storage_is_judged_only_on_runs_long_enough() -> None:
+    """A 20 s run's storage per robot-day is not judged (no red MISSED for fixed overhead);
+    a 2-minute run is, against the 1.5 MB target."""
+    from mapservice.bench_ingest import storage_verdict
+
+    assert storage_verdict(20, 9e6) is None
+    assert storage_verdict(120, 1.4e6) is True
+    assert storage_verdict(120, 9e6) is False

@@ -202,3 +202,18 @@ def test_integrating_keeps_unpublished_local_edits(tmp_path) -> None:
     b.tick()
     chunks = [msgspec.json.decode(p) for t, p in b.client.published if t == "iot/chunks/create"]
     assert [(c["row"], c["column"]) for c in chunks] == [(0, 5)]
+
+
+def test_a_robot_with_a_map_of_another_size_refuses_and_stores_nothing(tmp_path) -> None:
+    """The service stores the warehouse (1006 x 1674): a depot robot's start raises a message
+    naming both sizes, posts nothing, and leaves its own map file as it was."""
+    from mapservice.mapfile import meta_for
+    from mapservice.robot.chunks import meta_to_json
+
+    service = FakeChunkService(meta=meta_to_json(meta_for(load_ros_map(MAPS / "warehouse.yaml"))))
+    a = make_agent(tmp_path, "robot-a", service)
+    before = a.image_path.read_bytes()
+    with pytest.raises(RuntimeError, match="1006 x 1674.*604 x 307"):
+        a.start()
+    assert [m for m, _ in service.requests] == ["GET"] and service.chunks == []
+    assert a.image_path.read_bytes() == before

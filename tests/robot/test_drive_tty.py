@@ -84,7 +84,7 @@ def test_drive_and_paint_through_a_terminal(mosquitto) -> None:
     term = Tmux(f"mapservice-drive-{os.getpid()}",
                 [sys.executable, "-m", "mapservice.cli", "drive", "--map", str(MAPS / "depot.yaml"),
                  "--mqtt", f"mqtt://127.0.0.1:{mosquitto}", "--robot-id", "tui-1",
-                 "--start", "15.1", "7.6"], env)
+                 "--start", "15.1", "7.6", "--no-size-check"], env)
     try:
         screen = term.wait_screen("chunk (1, 3)")
         assert "x=15.12 y=7.62 m" in screen and "@" in screen

@@ -35,7 +35,8 @@ def run(state, steps):
         yield state, out
 
 
-@pytest.mark.parametrize("name,robots,steps", [("depot", 6, 600), ("warehouse", 4, 200)])
+@pytest.mark.parametrize("name,robots,steps", [("depot", 6, 600), ("warehouse", 4, 200),
+                                                ("tb3_sandbox", 5, 300), ("map_circular", 5, 300)])
 def test_robots_stay_on_free_cells_and_publish_clear_paths(name, robots, steps) -> None:
     """Over many steps with map changes, every pose is on a drivable pixel of the map as it
     is then, and every published path crosses only drivable pixels."""
@@ -55,6 +56,33 @@ def test_robots_stay_on_free_cells_and_publish_clear_paths(name, robots, steps) 
                 assert path_is_clear(pts, free), f"{pose.robot_id}'s path crosses an obstacle"
                 assert math.dist(pts[0], pixel_point(state, pose.x, pose.y)) < 0.5
     assert changes >= 3 and paths > steps
+
+
+def test_small_nav2_maps_plan_on_finer_cells_than_big_maps() -> None:
+    """nav2's 384 x 384 px sandbox gets a planning cell below 0.25 m; the warehouse keeps
+    the coarse one (fast planning)."""
+    small = new_state(load_ros_map(MAPS / "tb3_sandbox.yaml"), 5, seed=1, t_ms=T0)
+    big = new_state(load_ros_map(MAPS / "warehouse.yaml"), 5, seed=1, t_ms=T0)
+    assert small.config.cell_m < 0.25 and len(small.robots) == 5
+    assert big.config.cell_m == pytest.approx(0.24)
+
+
+def test_a_map_too_small_for_n_robots_runs_fewer() -> None:
+    """Asking for more robots than the sandbox's free area hosts runs as many as fit
+    (each on a cell of its own), not a crash and not robots stacked on one cell."""
+    state = new_state(load_ros_map(MAPS / "tb3_sandbox.yaml"), 500, seed=1, t_ms=T0)
+    assert 5 <= len(state.robots) < 500
+    starts = [r.pos for r in state.robots]
+    assert len(set(starts)) == len(starts)
+
+
+def test_a_map_without_room_says_so() -> None:
+    """A map with almost no free space raises a message naming what is missing."""
+    pixels = np.zeros((40, 40), dtype=np.uint8)
+    pixels[18:22, 18:22] = 254
+    tiny = RosMap(pixels=pixels, resolution=0.05, origin=(0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="too little free space.*planning cells"):
+        new_state(tiny, 1, seed=1, t_ms=T0)
 
 
 def test_map_changes_are_published_as_the_chunks_they_touched() -> None:

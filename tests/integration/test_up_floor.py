@@ -1,0 +1,141 @@
+"""`mapservice up` end to end: the real floor from the start, nav2's small maps, and a
+supervisor that restarts a killed component (each test runs one `up`, bounded to ~2 min)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import httpx
+import pytest
+
+from mapservice.embedded import free_port
+from mapservice.map_upload import MARKER, UPLOADER_ID
+from mapservice.mapfile import load_ros_map, slice_chunks
+from mapservice.wire2019 import content_hash, encode_coordinates, format_timestamp
+from tests.fixtures.paths import MAPS, ROOT
+
+pytestmark = pytest.mark.integration
+
+
+class Up:
+    """A running `mapservice up` whose console lines are collected in the background."""
+
+    def __init__(self, data_dir, *args: str) -> None:
+        self.api_port, self.mqtt_port = free_port(), free_port()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
+             "--api-port", str(self.api_port), "--mqtt-port", str(self.mqtt_port), *args],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            start_new_session=True, env={**os.environ, "COLUMNS": "200"})
+        self.lines: list[str] = []
+        threading.Thread(target=self._read, daemon=True).start()
+        self.wait_for("mapservice is up", 150)
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            self.lines.append(line)
+
+    @property
+    def output(self) -> str:
+        return "".join(self.lines)
+
+    def wait_for(self, text: str, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self.proc.poll() is None:
+            if text in self.output:
+                return
+            time.sleep(0.2)
+        raise AssertionError(f"no {text!r} from mapservice up:\n{self.output[-4000:]}")
+
+    def api(self, path: str, **params) -> httpx.Response:
+        return httpx.get(f"http://127.0.0.1:{self.api_port}{path}", params=params, timeout=30)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+
+
+def children(pid: int) -> dict[str, int]:
+    """Component name -> pid of the `mapservice.cli` children of `up` (gateway, serve, sim)."""
+    out = subprocess.run(["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True,
+                         text=True).stdout
+    found = {}
+    for line in out.splitlines():
+        child, _, cmd = line.strip().partition(" ")
+        parts = cmd.split()
+        if "mapservice.cli" in parts:
+            found[parts[parts.index("mapservice.cli") + 1]] = int(child)
+    return found
+
+
+def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):
+    """On a fresh data dir, the map at now equals the sliced map file within a minute of
+    ready, except chunks a simulated robot changed; a second `up` does not upload again."""
+    warehouse = load_ros_map(MAPS / "warehouse.yaml")
+    expected = {key: content_hash(px).hex() for key, px in slice_chunks(warehouse).items()}
+    up = Up(tmp_path / "data", "--robots", "2")
+    try:
+        deadline, chunks = time.monotonic() + 60, []
+        while time.monotonic() < deadline:
+            chunks = up.api("/api/v1/map").json()["chunks"]
+            if len(chunks) == len(expected):
+                break
+            time.sleep(1)
+        assert len(chunks) == len(expected), f"{len(chunks)} of {len(expected)} chunks at now"
+        changed = 0
+        for c in chunks:
+            if c["robotId"] == UPLOADER_ID:
+                assert c["content_hash"] == expected[(c["row"], c["column"])], c
+            else:
+                assert c["robotId"].startswith("sim-"), c
+                changed += 1
+        assert changed <= 12, f"{changed} chunks differ from the map file"
+    finally:
+        up.stop()
+    assert (tmp_path / "data" / MARKER).exists()
+    again = Up(tmp_path / "data", "--robots", "0")
+    try:
+        assert "as stored" in again.output and "chunks published" not in again.output
+    finally:
+        again.stop()
+
+
+def test_up_on_tb3_sandbox_runs_and_restarts_a_killed_gateway(tmp_path):
+    """`up --map tb3_sandbox` runs 5 simulated robots for a minute with no component
+    exiting; a SIGKILLed gateway is restarted, said on the console, and poses flow again."""
+    up = Up(tmp_path / "data", "--map", str(MAPS / "tb3_sandbox.yaml"), "--robots", "5",
+            "--restart-base-s", "0.5")
+    try:
+        time.sleep(60)
+        assert "exited" not in up.output, up.output[-4000:]
+        robots = up.api("/api/v1/robots").json()["robots"]
+        assert len([r for r in robots if r["robotId"].startswith("sim-") and r["online"]]) == 5, robots
+
+        os.kill(children(up.proc.pid)["gateway"], signal.SIGKILL)
+        up.wait_for("gateway exited", 10)
+        up.wait_for("gateway restarted", 60)
+
+        import paho.mqtt.publish as publish
+
+        now = int(time.time() * 1000)
+        publish.single("iot/coordinates/after-restart", encode_coordinates(
+            "after-restart", format_timestamp(now), 1.0, 2.0, (0, 0, 0, 1)), qos=1,
+            hostname="127.0.0.1", port=up.mqtt_port)
+        deadline, found = time.monotonic() + 20, []
+        while time.monotonic() < deadline and not found:
+            found = up.api("/api/v1/poses", robotId="after-restart",
+                           **{"from": format_timestamp(now - 60_000),
+                              "to": format_timestamp(now + 60_000)}).json()
+            time.sleep(0.5)
+        assert found, "no pose stored after the gateway restarted"
+    finally:
+        up.stop()
