@@ -6,6 +6,7 @@ import argparse
 import logging
 import asyncio
 import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -70,6 +71,15 @@ def cmd_up(args) -> None:
     except ValueError as exc:
         sys.exit(f"mapservice up: {exc}")
     try:
+        if not had_history and args.robots and args.history_days > 0:
+            # Its own process: chDB lets one process open a directory, and the engine is
+            # released only when the process that opened it ends.
+            done = subprocess.run([sys.executable, "-m", "mapservice.cli", "demo-history",
+                                   "--data-dir", str(stack.data_dir), "--days", str(args.history_days),
+                                   "--robots", str(args.robots), "--map", str(args.map)])
+            if done.returncode != 0:
+                raise RuntimeError("writing the demo history failed (see above); "
+                                   "`--history-days 0` starts without it")
         with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
@@ -113,6 +123,44 @@ def cmd_up(args) -> None:
         stack.stop()
 
 
+def cmd_demo_history(args) -> None:
+    """Days of the shift simulator, fast-forwarded into a data dir nothing else has open."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from .logs import configure
+    from .mapfile import load_ros_map
+
+    configure("WARNING", "console", "demo-history")
+    console = Console()
+    data_dir, days, robots = Path(args.data_dir), args.days, args.robots
+    try:
+        ros_map = load_ros_map(args.map)
+    except (OSError, ValueError) as exc:
+        sys.exit(f"mapservice demo-history: cannot read the map {args.map}: {exc}")
+    from .adapters.clickhouse_store import ClickHouseStore
+    from .adapters.clock import SystemClock
+    from .demo_history import backfill
+
+    settings = Settings(data_dir=data_dir)
+    store = ClickHouseStore.from_settings(settings)
+    try:
+        store.migrate()
+        if store.counts().poses:
+            sys.exit(f"mapservice demo-history: {data_dir} already has history; it writes only "
+                     "into a fresh data dir")
+        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f} %"),
+                      TimeElapsedColumn(), console=console, transient=True) as bar:
+            task = bar.add_task(f"simulating the last {days:g} days of {robots} robots", total=1.0)
+            result = backfill(store, ros_map, days=days, robots=robots, now_ms=SystemClock().now_ms(),
+                              conflict_window_ms=int(settings.conflict_window_s * 1000),
+                              progress=lambda done: bar.update(task, completed=done))
+    finally:
+        store.close()
+    console.print(f"wrote {days:g} days of demo history in {result.seconds:.0f} s: {result.poses:,} poses, "
+                  f"{result.chunk_writes:,} map changes, {result.conflicts} conflicts")
+
+
 def supervise(stack, console, base_s: float = 1.0) -> None:
     """Runs until Ctrl-C: a component that exits is restarted with backoff, not the end."""
     from .supervisor import Supervisor
@@ -135,6 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="where ClickHouse data, broker data and logs live (resumed if present)")
     up.add_argument("--robots", type=int, default=5, help="simulated robots (0: none)")
     up.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML for the simulation")
+    up.add_argument("--history-days", type=float, default=7.0,
+                    help="on a fresh data dir, first write this many days of simulated history "
+                         "(the shift simulator, fast-forwarded; about 11 s a day here); 0: none")
     up.add_argument("--load-test", action="store_true",
                     help="simulate the 2019 load test (circles, re-sent chunks) instead of a shift")
     up.add_argument("--mqtt-url", help="use this MQTT broker instead of an embedded amqtt")
@@ -160,6 +211,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     api = sub.add_parser("api", help="HTTP API only (needs a ClickHouse server)")
     api.set_defaults(func=lambda a: cmd_serve(a, processors=False, component="api"))
+
+    demo = sub.add_parser("demo-history", help="write days of simulated shift history into a data "
+                                               "dir (what `up` does on a fresh one)")
+    demo.add_argument("--data-dir", default=".mapservice-data", help="the embedded data dir (not in use)")
+    demo.add_argument("--days", type=float, default=7.0, help="how many days back from now")
+    demo.add_argument("--robots", type=int, default=5, help="simulated robots (ids sim-000, ...)")
+    demo.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML of the floor")
+    demo.set_defaults(func=cmd_demo_history)
 
     serve = sub.add_parser("serve", help="processors and API in one process (chdb needs this)")
     serve.set_defaults(func=cmd_serve)

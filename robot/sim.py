@@ -25,7 +25,7 @@ from mapservice.mapfile import RosMap, drivable, meta_for
 
 from .chunks import chunk_pixels, pixel_to_metres
 from .planning import (Cell, PlanGrid, dilate, grid_for, largest_component, plan, plan_cell_sizes,
-                       segment_pixels, simplify)
+                       route_clear, segment_pixels, simplify)
 
 Point = tuple[float, float]  # continuous image coordinates (u = column, v = row)
 
@@ -88,6 +88,10 @@ class SimState:
     tick: int = 0
     changes: tuple[MapChange, ...] = ()
     next_change_ms: int = 0
+    # (start cell, goal cell) -> planned cells, shared by every later state. Robots start
+    # most routes at a station, so a handful of routes recur all shift; A* is most of the
+    # simulator's CPU, and a route still clear on today's grid is reused.
+    routes: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -143,6 +147,9 @@ def new_state(ros_map: RosMap, robots: int, *, seed: int = 7, t_ms: int = 0,
                     next_change_ms=t_ms + int(config.change_every_s * 1000))
 
 
+MAX_CACHED_ROUTES = 4096
+
+
 def capacity(reachable_cells: int) -> int:
     """How many robots a connected free area of that many planning cells hosts: each
     starts on a cell of its own and keeps room to move (a quarter of the cells)."""
@@ -187,9 +194,14 @@ def _route(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | Non
     """Waypoints from the robot's next waypoint (or its cell) to the goal cell."""
     start_pt = robot.waypoints[0] if robot.waypoints else robot.pos
     start = state.grid.cell_at(*start_pt)
-    cells = plan(state.grid, start, goal)
-    if cells is None:
-        return None
+    cells = state.routes.get((start, goal))
+    if cells is None or not route_clear(state.grid, cells):
+        cells = plan(state.grid, start, goal)
+        if cells is None:
+            return None
+        if len(state.routes) > MAX_CACHED_ROUTES:
+            state.routes.clear()
+        state.routes[(start, goal)] = cells
     pts = [state.grid.centre_px(c) for c in simplify(cells)]
     if robot.waypoints:
         pts = [robot.waypoints[0]] + pts[1:]
@@ -269,8 +281,20 @@ def _robot_step(state: SimState, robot: Robot, rng: random.Random) -> Robot:
 def _path_metres(state: SimState, robot: Robot) -> tuple[tuple[float, float], ...]:
     if not robot.waypoints:
         return ()
-    pts = [robot.pos, *robot.waypoints][: state.config.max_path_points]
-    return tuple(to_metres(state, p) for p in pts)
+    wps = robot.waypoints[: state.config.max_path_points - 1]
+    key = (state.meta, wps)
+    tail = _WAYPOINTS_METRES.get(key)
+    if tail is None:
+        if len(_WAYPOINTS_METRES) > 4096:
+            _WAYPOINTS_METRES.clear()
+        tail = _WAYPOINTS_METRES[key] = tuple(to_metres(state, p) for p in wps)
+    return (to_metres(state, robot.pos), *tail)
+
+
+# Waypoints (image points) -> metres: a robot reports the same remaining route for many
+# seconds, and converting it point by point at every pose was a sixth of a step's CPU.
+# Keyed by the map's geometry too (several maps may be simulated in one process).
+_WAYPOINTS_METRES: dict[tuple, tuple] = {}
 
 
 # --- map changes -------------------------------------------------------------------------

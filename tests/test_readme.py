@@ -37,7 +37,7 @@ def start_up(data_dir, api_port: int, mqtt_port: int) -> subprocess.Popen:
          "--robots", "2", "--api-port", str(api_port), "--mqtt-port", str(mqtt_port)],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         start_new_session=True)
-    deadline = time.monotonic() + 150
+    deadline = time.monotonic() + 240  # a fresh data dir first gets its week of demo history
     seen = []
     while time.monotonic() < deadline:
         line = proc.stdout.readline()

@@ -33,7 +33,7 @@ from mapservice.render import chunk_pixels, png
 from mapservice.settings import Settings
 from mapservice.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
 
-from ..admin import require_admin
+from ..admin import check_admin, optional_bearer, require_admin
 from ..deps import get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 
@@ -140,11 +140,20 @@ async def post_meta(
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
     publisher: EventPublisher = Depends(get_publisher),
+    store: HistoryStore = Depends(get_store),
+    credentials=Depends(optional_bearer),
 ) -> dict:
     """Stores meta.json through the event path (a map.meta_set event on Kafka); the
-    gateway validates chunks against it as soon as it has read it."""
+    gateway validates chunks against it as soon as it has read it. The first meta needs
+    no credential (a 2019 robot posts it); changing the map's geometry once one is held
+    invalidates every chunk robots send, so it needs the administrator's bearer token."""
     meta = parse_meta(await _read_body(request, settings.max_message_bytes))
     now = clock.now_ms()
+    held = await run_in_threadpool(_meta_for_validation, request, store, now)
+    if held is not None and _geometry(held) != _geometry(meta):
+        check_admin(request, credentials, settings,
+                    what=f"changing the map from {held.width} x {held.height} px in "
+                         f"{held.chunk_width} x {held.chunk_height} chunks")
     envelope = make_envelope(META_ROBOT_ID, now, now, meta)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
     request.app.state.posted_meta = (now, meta)
@@ -168,6 +177,10 @@ def delete_meta(
 
 
 POSTED_META_GRACE_MS = 60_000
+
+
+def _geometry(meta: MapMetaSet) -> tuple[int, ...]:
+    return meta.width, meta.height, meta.chunk_width, meta.chunk_height
 
 
 def _meta_for_validation(request: Request, store: HistoryStore, now_ms: int) -> MapMetaSet | None:

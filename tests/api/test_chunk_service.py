@@ -26,6 +26,7 @@ from tests.fixtures.legacy import SpyStore, process
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 CLOCK_MS = NOW + 60_000
 TOKEN = "test-admin-token"
+ADMIN = {"Authorization": f"Bearer {TOKEN}"}
 BASE = "/api/chunk-service"
 
 
@@ -113,7 +114,7 @@ META_8 = {"comment": "# CREATOR: GIMP PNM Filter Version 1.1", "width": 4800, "h
 
 def test_post_meta_goes_through_the_meta_topic(client, store, publisher, settings) -> None:
     """POST /meta publishes a map.meta_set event on the meta topic; once stored, GET returns it."""
-    r = client.post(f"{BASE}/meta", json=META_8)
+    r = client.post(f"{BASE}/meta", json=META_8, headers=ADMIN)
     assert r.status_code == 200, r.text
     assert r.json()["result"] == "created" and r.json()["_index"] == "meta"
     publisher.poll()
@@ -128,9 +129,27 @@ def test_post_meta_goes_through_the_meta_topic(client, store, publisher, setting
 
 def test_put_meta_is_post_meta(client, store, publisher) -> None:
     """PUT /meta (section A.1.1: robots "POSTS/PUTS" it) stores the meta like POST."""
-    assert client.put(f"{BASE}/meta", json=META_8).status_code == 200
+    assert client.put(f"{BASE}/meta", json=META_8, headers=ADMIN).status_code == 200
     assert process(publisher, store) == 1
     assert client.get(f"{BASE}/meta").json() == META_8
+
+
+def test_changing_the_map_geometry_needs_the_admin_token(client, publisher) -> None:
+    """A meta of another size is 401 without a token and 403 with a wrong one, and publishes nothing."""
+    r = client.post(f"{BASE}/meta", json=META_8)
+    assert r.status_code == 401 and "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
+    assert "500 x 400 px" in r.json()["detail"]
+    assert client.put(f"{BASE}/meta", json=META_8, headers={"Authorization": "Bearer nope"}).status_code == 403
+    publisher.poll()
+    assert not publisher.records
+
+
+def test_same_geometry_and_first_meta_need_no_token(client, store, publisher, settings) -> None:
+    """Re-posting the held geometry (a 2019 robot's start-up) and the very first meta need no credential."""
+    same = {**META_8, "width": 500, "height": 400, "CHUNK_ROWS": 4, "CHUNK_COLS": 5}
+    assert client.post(f"{BASE}/meta", json=same).status_code == 200
+    empty = TestClient(create_app(settings, SpyStore(), {}, ManualClock(CLOCK_MS), publisher=publisher))
+    assert empty.post(f"{BASE}/meta", json=META_8).status_code == 200
 
 
 @pytest.mark.parametrize("body, fragment", [
@@ -160,7 +179,7 @@ def test_kafka_failure_is_503(store, settings, wire) -> None:
     """When the event log refuses the record the write is a 503, not a silent success."""
     publisher = MemoryPublisher(fail_with=RuntimeError("broker down"))
     client = TestClient(create_app(settings, store, {}, ManualClock(CLOCK_MS), publisher=publisher))
-    r = client.post(f"{BASE}/meta", json=META_8)
+    r = client.post(f"{BASE}/meta", json=META_8, headers=ADMIN)
     assert r.status_code == 503 and "broker down" in r.json()["detail"]
 
 
@@ -210,7 +229,7 @@ def test_chunks_right_after_meta_use_the_posted_grid(client, store, publisher, w
     """Chunks POSTed right after POST /meta (not stored yet) are checked against its grid."""
     wire.now_ms = CLOCK_MS
     meta = {**META_8, "CHUNK_WIDTH": 50, "CHUNK_HEIGHT": 50, "CHUNK_ROWS": 64, "CHUNK_COLS": 96}
-    assert client.post(f"{BASE}/meta", json=meta).status_code == 200
+    assert client.post(f"{BASE}/meta", json=meta, headers=ADMIN).status_code == 200
     small = wire.chunk_doc(row=60, pgmB64compressedData=wire.b64z(bytes(2500)))
     r = client.post(f"{BASE}/chunks", json=small)
     assert r.status_code == 200, r.text

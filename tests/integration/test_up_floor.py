@@ -78,12 +78,16 @@ def children(pid: int) -> dict[str, int]:
 
 
 def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):
-    """On a fresh data dir, the map at now equals the sliced map file within a minute of
-    ready, except chunks a simulated robot changed; a second `up` does not upload again."""
+    """On a fresh data dir, demo history is written first; the map at now equals the sliced
+    map file within a minute of ready, except chunks a simulated robot changed; a second
+    `up` neither writes history nor uploads again."""
     warehouse = load_ros_map(MAPS / "warehouse.yaml")
     expected = {key: content_hash(px).hex() for key, px in slice_chunks(warehouse).items()}
-    up = Up(tmp_path / "data", "--robots", "2")
+    up = Up(tmp_path / "data", "--robots", "2", "--history-days", "0.05")
     try:
+        assert "wrote 0.05 days of demo history" in up.output
+        history = up.api("/api/v1/stats").json()["poses"]
+        assert history >= 2 * 0.05 * 86_400 / 3 * 0.9, history  # poses every 3 s, before the live ones
         deadline, chunks = time.monotonic() + 60, []
         while time.monotonic() < deadline:
             chunks = up.api("/api/v1/map").json()["chunks"]
@@ -105,6 +109,7 @@ def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):
     again = Up(tmp_path / "data", "--robots", "0")
     try:
         assert "as stored" in again.output and "chunks published" not in again.output
+        assert "demo history" not in again.output
     finally:
         again.stop()
 
@@ -113,8 +118,9 @@ def test_up_on_tb3_sandbox_runs_and_restarts_a_killed_gateway(tmp_path):
     """`up --map tb3_sandbox` runs 5 simulated robots for a minute with no component
     exiting; a SIGKILLed gateway is restarted, said on the console, and poses flow again."""
     up = Up(tmp_path / "data", "--map", str(MAPS / "tb3_sandbox.yaml"), "--robots", "5",
-            "--restart-base-s", "0.5")
+            "--restart-base-s", "0.5", "--history-days", "0")
     try:
+        assert "demo history" not in up.output
         time.sleep(60)
         assert "exited" not in up.output, up.output[-4000:]
         robots = up.api("/api/v1/robots").json()["robots"]

@@ -3,6 +3,7 @@ events), the size check shared with `drive`, and the once-per-data-dir upload of
 
 from __future__ import annotations
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
@@ -46,7 +47,7 @@ def test_upload_stores_meta_and_every_chunk_as_the_map_file(service) -> None:
 
 def test_upload_of_another_size_is_refused_and_publishes_nothing(service) -> None:
     """A map whose size differs from the stored meta is refused with both sizes named; with
-    replace it goes through."""
+    replace the service still wants the admin token, and with it the map is replaced."""
     store, publisher, http = service
     upload_map_rest(http, load_ros_map(MAPS / "depot.yaml"), NOW - 2000)
     process(publisher, store)
@@ -54,6 +55,10 @@ def test_upload_of_another_size_is_refused_and_publishes_nothing(service) -> Non
     with pytest.raises(MapSizeMismatch, match="604 x 307 px.*384 x 384 px"):
         upload_map_rest(http, sandbox, NOW - 1000)
     assert process(publisher, store) == 0
+    with pytest.raises(httpx.HTTPStatusError) as refused:  # the service wants the admin token
+        upload_map_rest(http, sandbox, NOW - 1000, replace=True)
+    assert refused.value.response.status_code == 401
+    http.headers["Authorization"] = f"Bearer {Settings().admin_token.get_secret_value()}"
     upload_map_rest(http, sandbox, NOW - 1000, replace=True)
     process(publisher, store)
     assert store.latest_meta().width == 384
