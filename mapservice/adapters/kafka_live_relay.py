@@ -103,7 +103,11 @@ class KafkaLiveRelay:
             self.assigned.set()
             log.info("live relay reading", topic=self.topic, partitions=len(partitions))
             while not self._stopping.is_set():
-                self._relay(consumer.consume(1000, 0.5))
+                # Not consume(n, timeout): that waits for n records or the timeout. The
+                # first record is relayed at once, with whatever queued behind it.
+                first = consumer.poll(0.5)
+                if first is not None:
+                    self._relay([first, *consumer.consume(999, 0)])
         finally:
             consumer.close()
 
