@@ -54,7 +54,8 @@ class KafkaLiveRelay:
         self.assigned = threading.Event()  # set once it reads every partition of the topic
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
-        self._since_ms = 0  # records produced before this (wall clock, ms) are not relayed
+        self._since_ms = 0  # assignment time (wall clock, ms)
+        self._caught_up: set[int] = set()  # partitions past their records from before it
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="live-relay", daemon=True)
@@ -88,18 +89,23 @@ class KafkaLiveRelay:
         consumer = Consumer(self.config)
         try:
             partitions: set[int] = set()
+            waited = False
             while not self._stopping.is_set() and not partitions:
                 partitions = self._partitions(consumer)
                 if not partitions:
-                    log.info("waiting for the live topic", topic=self.topic)
+                    if not waited:  # the processors create it; once is enough to say so
+                        log.info("waiting for the live topic", topic=self.topic)
+                        waited = True
                     self._stopping.wait(1.0)
             if not partitions:
                 return
             consumer.assign([TopicPartition(self.topic, p, OFFSET_END) for p in sorted(partitions)])
             # tansu's "end" offset is the start of the partition's last record batch + 1,
-            # so the first fetch can repeat that batch's older records: they are skipped
-            # by their produce time (Apache Kafka starts at the true end anyway).
+            # so the first fetch can repeat that batch's older records: the first records
+            # of each partition are skipped while produced before now (Apache Kafka
+            # starts at the true end anyway).
             self._since_ms = time.time_ns() // 1_000_000
+            self._caught_up = set()
             self.assigned.set()
             log.info("live relay reading", topic=self.topic, partitions=len(partitions))
             while not self._stopping.is_set():
@@ -121,8 +127,10 @@ class KafkaLiveRelay:
                     log.warning("live relay consumer error", error=str(err))
                 continue
             _kind, produced_ms = m.timestamp()
-            if 0 < produced_ms < self._since_ms:
-                continue  # from before this relay started (see _follow)
+            if m.partition() not in self._caught_up:
+                if 0 < produced_ms < self._since_ms:
+                    continue  # from before this relay started (see _follow)
+                self._caught_up.add(m.partition())
             if produced_ms > 0:
                 RELAY_LAG.observe(max(0.0, now - produced_ms / 1000))
             try:
