@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from fastapi import FastAPI
+from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
 from mapservice.adapters.clock import SystemClock
@@ -50,4 +51,11 @@ def create_app(settings: Settings, store: HistoryStore,
     app.state.publisher = publisher  # None: 2019 REST writes answer 503
     for module in ROUTERS:
         app.include_router(module.router)
+    # Request rate, errors and duration per route template (mapservice_api_requests_total,
+    # mapservice_api_request_duration_seconds); probes and scrapes are not counted, and
+    # paths that match no route share one label instead of one series per URL.
+    app.add_middleware(PrometheusMiddleware, app_name="mapservice-api", prefix="mapservice_api",
+                       group_paths=True, filter_unhandled_paths=True,
+                       skip_paths=["/metrics", "/healthz", "/readyz"],
+                       buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
     return app

@@ -27,6 +27,13 @@ from .topics import ensure_topics
 log = structlog.get_logger(__name__)
 
 
+def api_server_config(app, settings: Settings) -> uvicorn.Config:
+    """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
+    through the process's logging setup (mapservice.logs: JSON lines in JSON mode)."""
+    return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
+                          log_config=None, log_level=None, access_log=True)
+
+
 async def serve(settings: Settings, *, processors: bool = True, api: bool = True,
                 health_port: int | None = None) -> None:
     from mapservice.api.app import create_app
@@ -62,8 +69,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             hub.ready = relay.assigned.is_set
             relay.start()
             app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher)
-            config = uvicorn.Config(app, host=settings.api_host,
-                                    port=settings.api_port, log_level="warning", access_log=False)
+            config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
             await server.serve()

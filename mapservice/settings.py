@@ -31,6 +31,9 @@ class Settings(BaseSettings):
     kafka_sasl_mechanism: str | None = None
     kafka_username: str | None = None
     kafka_password: SecretStr | None = None
+    kafka_ssl_ca_file: Path | None = Field(
+        None, description="CA bundle (PEM) that signs the brokers' certificates, for SSL/SASL_SSL "
+        "(e.g. Strimzi's <cluster>-cluster-ca-cert); empty: the system's CAs.")
     kafka_partitions: int = Field(6, ge=1, description="Partitions of topics the service creates.")
     kafka_replication: int = Field(1, ge=1)
     kafka_rebalance_timeout_s: float = Field(3.0, gt=0, description="Consumer-group rebalance timeout.")
@@ -137,6 +140,8 @@ class Settings(BaseSettings):
             conf["sasl.username"] = self.kafka_username
         if self.kafka_password:
             conf["sasl.password"] = self.kafka_password.get_secret_value()
+        if self.kafka_ssl_ca_file:
+            conf["ssl.ca.location"] = str(self.kafka_ssl_ca_file)
         return conf
 
     @property

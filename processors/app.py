@@ -130,7 +130,10 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
 def _faust_credentials(settings: Settings):
     """The same security settings the confluent-kafka clients use (librdkafka names)."""
     protocol = settings.kafka_security_protocol.upper()
-    ssl_context = ssl.create_default_context() if protocol in ("SSL", "SASL_SSL") else None
+    ssl_context = None
+    if protocol in ("SSL", "SASL_SSL"):
+        ca_file = str(settings.kafka_ssl_ca_file) if settings.kafka_ssl_ca_file else None
+        ssl_context = ssl.create_default_context(cafile=ca_file)
     if settings.kafka_username and settings.kafka_password:
         return faust.SASLCredentials(
             username=settings.kafka_username,

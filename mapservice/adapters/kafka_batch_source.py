@@ -10,15 +10,24 @@ and its commit.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Sequence
 
 import structlog
 from confluent_kafka import Consumer, KafkaError, KafkaException, TopicPartition
+from prometheus_client import Gauge
 
 from ..ports import SourceRecord
 from ..settings import Settings
 
 log = structlog.get_logger(__name__)
+
+LAG = Gauge("mapservice_consumer_lag_records",
+            "Records in a partition not yet consumed by this process (librdkafka's consumer_lag)",
+            ["group", "topic", "partition"])
+# librdkafka reports each partition's lag in its statistics (every STATS_INTERVAL_MS,
+# delivered from inside consume()): no extra broker requests.
+STATS_INTERVAL_MS = 5000
 
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
@@ -41,7 +50,19 @@ def consumer_config(settings: Settings, group_id: str) -> dict:
         # latency. Apache Kafka answers on arrival; there a short wait costs only idle
         # fetches.
         "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
+        "statistics.interval.ms": STATS_INTERVAL_MS,
     }
+
+
+def record_lag(group: str, stats_json: str) -> None:
+    """Sets the lag gauge from one librdkafka statistics report (partitions this consumer
+    fetches; librdkafka reports -1 until it knows, and the internal partition -1)."""
+    stats = json.loads(stats_json)
+    for topic, t in stats.get("topics", {}).items():
+        for partition, p in t.get("partitions", {}).items():
+            lag = p.get("consumer_lag", -1)
+            if int(partition) >= 0 and p.get("fetch_state") == "active" and lag >= 0:
+                LAG.labels(group, topic, partition).set(lag)
 
 
 class KafkaBatchSource:
@@ -49,19 +70,31 @@ class KafkaBatchSource:
 
     def __init__(self, settings: Settings, topics: Sequence[str], group_id: str,
                  on_assigned: Callable[[list[tuple[str, int]]], None] | None = None) -> None:
-        self.config = consumer_config(settings, group_id)
+        self.group_id = group_id
+        self.config = {**consumer_config(settings, group_id),
+                       "stats_cb": lambda stats: record_lag(group_id, stats)}
         self.topics = list(topics)
         self.on_assigned = on_assigned
         self.consumer: Consumer | None = None
 
     def start(self) -> None:
         self.consumer = Consumer(self.config)
-        self.consumer.subscribe(self.topics, on_assign=self._assigned)
+        self.consumer.subscribe(self.topics, on_assign=self._assigned, on_revoke=self._revoked)
 
     def _assigned(self, _consumer, partitions: list[TopicPartition]) -> None:
         log.info("history partitions assigned", count=len(partitions))
+        for p in partitions:  # a series per owned partition from the start (0 until measured)
+            LAG.labels(self.group_id, p.topic, str(p.partition)).set(0)
         if self.on_assigned is not None:
             self.on_assigned([(p.topic, p.partition) for p in partitions])
+
+    def _revoked(self, _consumer, partitions: list[TopicPartition]) -> None:
+        # Another replica owns them now and reports their lag.
+        for p in partitions:
+            try:
+                LAG.remove(self.group_id, p.topic, str(p.partition))
+            except KeyError:
+                pass
 
     def poll(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
         assert self.consumer is not None, "start() first"

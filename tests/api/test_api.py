@@ -90,6 +90,26 @@ def test_metrics_are_prometheus_text(client) -> None:
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
 
 
+def test_metrics_count_requests_per_route_template_and_status(client) -> None:
+    """Requests are counted per route template and status (not per URL); probes and scrapes are not counted."""
+    from prometheus_client import REGISTRY
+
+    def count(path: str, status: str) -> float:
+        return REGISTRY.get_sample_value("mapservice_api_requests_total", {
+            "app_name": "mapservice-api", "method": "GET", "path": path, "status_code": status}) or 0.0
+
+    template = "/api/v1/chunk-contents/{content_hash}"
+    before_ok, before_404 = count(template, "200"), count(template, "404")
+    healthz_before = count("/healthz", "200")
+    client.get("/api/v1/chunk-contents/" + "00" * 16)
+    client.get("/api/v1/chunk-contents/" + "11" * 16)
+    client.get("/healthz")
+    assert count(template, "404") == before_404 + 2 and count(template, "200") == before_ok
+    assert count("/healthz", "200") == healthz_before == 0
+    text = client.get("/metrics").text
+    assert "mapservice_api_request_duration_seconds_bucket" in text
+
+
 # --- poses ---------------------------------------------------------------------------------
 
 

@@ -103,3 +103,11 @@ def test_kafka_topics_lists_all_five() -> None:
     assert Settings(topic_meta_events="m").kafka_topics == [
         "mapservice.chunk-events.v1", "mapservice.pose-events.v1", "m",
         "mapservice.dead-letter.v1", "mapservice.live.v1"]
+
+
+def test_kafka_ca_file_reaches_librdkafka(tmp_path: Path) -> None:
+    """MAPSERVICE_KAFKA_SSL_CA_FILE becomes librdkafka's ssl.ca.location; unset, none is set."""
+    ca = tmp_path / "ca.crt"
+    assert "ssl.ca.location" not in Settings().kafka_config()
+    conf = Settings(kafka_security_protocol="SASL_SSL", kafka_ssl_ca_file=ca).kafka_config()
+    assert conf["ssl.ca.location"] == str(ca)

@@ -33,3 +33,14 @@ def test_broker_url_lists_every_bootstrap_server():
     """Each bootstrap server becomes a kafka:// URL for faust."""
     url = faust_broker_url(Settings(kafka_bootstrap="a:9092, b:9093"))
     assert url == "kafka://a:9092;kafka://b:9093"
+
+
+def test_ssl_ca_file_is_loaded_into_the_faust_context(tmp_path):
+    """MAPSERVICE_KAFKA_SSL_CA_FILE is the CA the processors' TLS context trusts; a missing file fails loudly."""
+    import certifi
+    import pytest
+
+    creds = _faust_credentials(Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=certifi.where()))
+    assert creds.context.get_ca_certs()
+    with pytest.raises(FileNotFoundError):
+        _faust_credentials(Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=tmp_path / "missing.pem"))

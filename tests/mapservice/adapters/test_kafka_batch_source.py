@@ -19,3 +19,39 @@ def test_constructing_the_source_opens_no_consumer() -> None:
     """No network I/O in the constructor: the consumer is created by start()."""
     source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t"], "g")
     assert source.consumer is None and source.config["group.id"] == "g"
+
+
+def lag(group: str, topic: str, partition: str) -> float | None:
+    from prometheus_client import REGISTRY
+
+    return REGISTRY.get_sample_value("mapservice_consumer_lag_records",
+                                     {"group": group, "topic": topic, "partition": partition})
+
+
+def test_statistics_set_the_lag_of_each_fetched_partition() -> None:
+    """A librdkafka statistics report sets the lag per active partition, skipping unknown (-1) lags and partition -1."""
+    import json
+
+    from mapservice.adapters.kafka_batch_source import record_lag
+
+    stats = {"topics": {"poses": {"partitions": {
+        "0": {"consumer_lag": 42, "fetch_state": "active"},
+        "1": {"consumer_lag": -1, "fetch_state": "active"},
+        "2": {"consumer_lag": 7, "fetch_state": "none"},
+        "-1": {"consumer_lag": 9, "fetch_state": "active"}}}}}
+    record_lag("lag-test", json.dumps(stats))
+    assert lag("lag-test", "poses", "0") == 42
+    assert lag("lag-test", "poses", "1") is None and lag("lag-test", "poses", "2") is None
+    assert lag("lag-test", "poses", "-1") is None
+
+
+def test_assignment_creates_and_revocation_removes_the_lag_series() -> None:
+    """An assigned partition reports lag 0 at once; a revoked one stops being reported by this process."""
+    from confluent_kafka import TopicPartition
+
+    source = KafkaBatchSource(Settings(), ["t"], "lag-assign")
+    assert source.config["statistics.interval.ms"] > 0 and callable(source.config["stats_cb"])
+    source._assigned(None, [TopicPartition("t", 3)])
+    assert lag("lag-assign", "t", "3") == 0
+    source._revoked(None, [TopicPartition("t", 3)])
+    assert lag("lag-assign", "t", "3") is None

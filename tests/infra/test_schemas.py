@@ -1,0 +1,280 @@
+"""Every Kubernetes manifest in infra/ validates offline, and the platform files agree with the code.
+
+Core kinds are checked with `kubernetes-validate` (the Kubernetes OpenAPI schemas it
+bundles, strict: an unknown field is an error). Operator kinds (Strimzi, EMQX Operator,
+Altinity ClickHouse Operator) are checked against the CRD schemas vendored in
+`tests/infra/crds/` (see its README for their source), made strict the same way: where a
+CRD schema lists an object's properties and neither preserves unknown fields nor allows
+additional ones, any other field is an error, as `kubectl apply --validate=strict` would say.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+import shutil
+import subprocess
+from functools import cache
+from pathlib import Path
+
+import jsonschema
+import kubernetes_validate
+import pytest
+import yaml
+
+from mapservice.settings import Settings
+from tests.fixtures.paths import ROOT
+
+K8S = ROOT / "infra" / "k8s"
+CRDS = Path(__file__).parent / "crds"
+KUBERNETES_VERSION = "1.33.0"
+PLATFORM = K8S / "platform"
+
+
+def manifests() -> list[tuple[Path, dict]]:
+    """Every Kubernetes object in infra/k8s (recursively), with its file."""
+    found = []
+    for path in sorted(K8S.rglob("*.yaml")):
+        for doc in yaml.safe_load_all(path.read_text()):
+            if doc and "kind" in doc and doc.get("apiVersion") != "kustomize.config.k8s.io/v1beta1":
+                found.append((path, doc))
+    return found
+
+
+def strict(schema: dict) -> dict:
+    """The CRD schema with unknown fields refused wherever the CRD itself does not allow them."""
+    schema = copy.deepcopy(schema)
+
+    def walk(node):
+        if isinstance(node, dict):
+            # Kubernetes evaluates patterns with Go's RE2; the few Python cannot compile
+            # (e.g. EMQX's `[a-zA-Z\\d-_]`) are left unchecked rather than misread.
+            if isinstance(node.get("pattern"), str):
+                try:
+                    re.compile(node["pattern"])
+                except re.error:
+                    del node["pattern"]
+            if ("properties" in node and "additionalProperties" not in node
+                    and not node.get("x-kubernetes-preserve-unknown-fields")):
+                node["additionalProperties"] = False
+            for value in node.values():
+                walk(value)
+        elif isinstance(node, list):
+            for value in node:
+                walk(value)
+
+    walk(schema)
+    # Every object carries these, which CRD schemas leave out or declare loosely.
+    schema.setdefault("properties", {})
+    for field in ("apiVersion", "kind", "metadata"):
+        schema["properties"].setdefault(field, {})
+    schema["properties"]["metadata"] = {"type": "object"}
+    return schema
+
+
+@cache
+def crd_schemas() -> dict[tuple[str, str], dict]:
+    """(apiVersion, kind) -> strict schema, from the vendored CRDs."""
+    out = {}
+    for path in CRDS.glob("*.json"):
+        crd = json.loads(path.read_text())
+        out[(crd["apiVersion"], crd["kind"])] = strict(crd["schema"])
+    return out
+
+
+def validate(doc: dict) -> None:
+    """Raises when `doc` does not validate against its kind's schema."""
+    key = (doc["apiVersion"], doc["kind"])
+    if key in crd_schemas():
+        jsonschema.Draft4Validator(crd_schemas()[key]).validate(doc)
+    else:
+        kubernetes_validate.validate(doc, KUBERNETES_VERSION, strict=True)
+
+
+@pytest.mark.parametrize(("path", "doc"), manifests(),
+                         ids=lambda v: v.name if isinstance(v, Path) else v.get("kind", "?") + "/" + v["metadata"]["name"] if isinstance(v, dict) else str(v))
+def test_manifest_validates_against_its_schema(path: Path, doc: dict) -> None:
+    """Each object validates strictly against the Kubernetes or operator CRD schema of its kind."""
+    validate(doc)
+
+
+def test_every_operator_kind_has_a_vendored_schema() -> None:
+    """Every non-core kind used in infra/k8s has a CRD schema in tests/infra/crds (none goes unchecked)."""
+    core_groups = ("v1", "apps/", "batch/", "policy/", "networking.k8s.io/", "autoscaling/",
+                   "rbac.authorization.k8s.io/")
+    used = {(d["apiVersion"], d["kind"]) for _, d in manifests()
+            if not d["apiVersion"].startswith(core_groups)}
+    assert used, "the platform files use operator kinds"
+    assert used <= set(crd_schemas()), used - set(crd_schemas())
+
+
+def test_the_validation_refuses_an_unknown_field() -> None:
+    """A misspelt field fails both validators (the checks above can fail)."""
+    deployment = next(d for _, d in manifests() if d["kind"] == "Deployment")
+    bad = copy.deepcopy(deployment)
+    bad["spec"]["replica"] = 2
+    with pytest.raises(kubernetes_validate.ValidationError):
+        validate(bad)
+    emqx = next(d for _, d in manifests() if d["kind"] == "EMQX")
+    bad = copy.deepcopy(emqx)
+    bad["spec"]["coreTemplate"]["spec"]["replica"] = 3
+    with pytest.raises(jsonschema.ValidationError):
+        validate(bad)
+
+
+def test_production_overlay_pins_the_image_by_digest() -> None:
+    """The production overlay names the image by sha256 digest, never by tag alone."""
+    overlay = yaml.safe_load((ROOT / "infra" / "overlays" / "production" / "kustomization.yaml").read_text())
+    (image,) = [i for i in overlay["images"] if i["name"] == "mapservice"]
+    assert re.fullmatch(r"sha256:[0-9a-f]{64}", image["digest"])
+    assert "newTag" not in image
+
+
+@pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl is not installed")
+def test_production_overlay_renders_with_the_digest() -> None:
+    """kubectl kustomize renders the overlay, and every mapservice container uses the digest."""
+    out = subprocess.run(["kubectl", "kustomize", str(ROOT / "infra" / "overlays" / "production")],
+                         capture_output=True, text=True, check=True).stdout
+    images = re.findall(r"image: (\S+)", out)
+    assert images and all("@sha256:" in i for i in images if "mapservice" in i)
+
+
+def test_pods_run_without_a_service_account_token() -> None:
+    """Every mapservice pod uses the mapservice ServiceAccount and mounts no API token."""
+    workloads = [d for _, d in manifests() if d["kind"] in ("Deployment", "StatefulSet", "Job")]
+    assert {w["metadata"]["name"] for w in workloads} >= {"mapservice-gateway", "mapservice-api",
+                                                          "mapservice-processors"}
+    for w in workloads:
+        spec = w["spec"]["template"]["spec"]
+        assert spec["serviceAccountName"] == "mapservice", w["metadata"]["name"]
+        assert spec["automountServiceAccountToken"] is False, w["metadata"]["name"]
+
+
+def test_network_policies_deny_by_default_and_allow_the_dependencies() -> None:
+    """A default-deny policy selects every pod; egress reaches each dependency's port from the ConfigMap."""
+    policies = [d for _, d in manifests() if d["kind"] == "NetworkPolicy"]
+    deny = [p for p in policies if p["spec"]["podSelector"] == {} and set(p["spec"]["policyTypes"]) == {"Ingress", "Egress"}
+            and not p["spec"].get("ingress") and not p["spec"].get("egress")]
+    assert deny
+    config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
+    ports = {int(config["MAPSERVICE_KAFKA_BOOTSTRAP"].rsplit(":", 1)[1]),
+             int(config["MAPSERVICE_CLICKHOUSE_DSN"].rsplit(":", 1)[1]),
+             int(config["MAPSERVICE_MQTT_URL"].rsplit(":", 1)[1]), 53}
+    allowed = {p["port"] for pol in policies for rule in pol["spec"].get("egress", []) for p in rule.get("ports", [])}
+    assert ports <= allowed, ports - allowed
+
+
+# ---------------------------------------------------------------------- the platform
+
+
+def platform(kind: str) -> dict:
+    (doc,) = [d for p, d in manifests() if d["kind"] == kind and p.parent == PLATFORM]
+    return doc
+
+
+def code_consumer_groups() -> set[str]:
+    """The consumer group ids the code uses (literal ids and the faust app id's derivatives)."""
+    groups = set()
+    for path in [*ROOT.glob("processors/*.py"), *ROOT.glob("ingest/*.py"), *ROOT.glob("api/**/*.py"),
+                 *ROOT.glob("mapservice/adapters/*.py"), *ROOT.glob("mapservice/*.py")]:
+        text = path.read_text()
+        groups |= set(re.findall(r'"group\.id":\s*"([^"]+)"', text))
+        groups |= set(re.findall(r'group_id\s*=\s*"([^"]+)"', text))
+        for app_id in re.findall(r'faust\.App\(\s*"([^"]+)"', text):
+            groups |= {app_id, f"{app_id}-history"}
+    return groups
+
+
+def acl_allows(acls: list[dict], kind: str, name: str, operation: str) -> bool:
+    for acl in acls:
+        r = acl["resource"]
+        if r["type"] != kind or acl.get("type", "allow") != "allow":
+            continue
+        matches = name == r["name"] if r.get("patternType", "literal") == "literal" else name.startswith(r["name"])
+        if matches and (operation in acl["operations"] or "All" in acl["operations"]):
+            return True
+    return False
+
+
+def test_kafka_user_acls_cover_what_the_code_does() -> None:
+    """The KafkaUser may write and read every topic in Settings and read with every consumer group the code uses."""
+    acls = platform("KafkaUser")["spec"]["authorization"]["acls"]
+    for topic in Settings().kafka_topics:
+        for op in ("Read", "Write", "Describe", "Create"):
+            assert acl_allows(acls, "topic", topic, op), (topic, op)
+    groups = code_consumer_groups()
+    assert {"mapservice-processors", "mapservice-processors-history", "mapservice-meta-watcher"} <= groups
+    for group in groups:
+        assert acl_allows(acls, "group", group, "Read"), group
+    assert any(acl["resource"]["type"] == "cluster" and "IdempotentWrite" in acl["operations"] for acl in acls)
+
+
+def test_strimzi_topics_and_kafka_cluster_agree() -> None:
+    """The topics name the Kafka cluster the platform file defines, and the bootstrap is its TLS listener."""
+    kafka = platform("Kafka")
+    name = kafka["metadata"]["name"]
+    topics = [d for p, d in manifests() if d["kind"] == "KafkaTopic"]
+    assert topics and all(t["metadata"]["labels"]["strimzi.io/cluster"] == name for t in topics)
+    config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
+    (tls,) = [lst for lst in kafka["spec"]["kafka"]["listeners"] if lst["tls"]]
+    assert config["MAPSERVICE_KAFKA_BOOTSTRAP"] == f"{name}-kafka-bootstrap.kafka.svc:{tls['port']}"
+    assert config["MAPSERVICE_KAFKA_SECURITY_PROTOCOL"] == "SASL_SSL"
+    assert tls["authentication"]["type"] == config["MAPSERVICE_KAFKA_SASL_MECHANISM"].lower()
+
+
+def emqx_config() -> str:
+    return platform("EMQX")["spec"]["config"]["data"]
+
+
+def acl_rules() -> list[str]:
+    cm = next(d for p, d in manifests() if d["kind"] == "ConfigMap" and p.parent == PLATFORM)
+    return [line for line in cm["data"]["acl.conf"].splitlines() if line.startswith("{")]
+
+
+def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
+    """Gateway subscribes through its share group, processors publish advertisements, a robot publishes as itself; the rest is denied."""
+    s = Settings(mqtt_share_group="mapservice")
+    rules = acl_rules()
+    gateway = next(r for r in rules if '"mapservice-gateway"' in r)
+    for topic in s.mqtt_subscriptions:
+        assert f'"{topic}"' in gateway, topic
+    assert any('"mapservice-processors"' in r and "publish" in r and f'"{s.advertisement_topic}"' in r for r in rules)
+    coordinate_prefix = s.coordinate_topic.removesuffix("#")
+    assert any(r.startswith("{allow, all, publish") and f'"{coordinate_prefix}${{username}}"' in r for r in rules)
+    assert rules[-1] == "{deny, all}."
+    assert "no_match = deny" in emqx_config()
+
+
+def test_emqx_internal_zone_holds_a_gateway_restart_at_plant_load() -> None:
+    """The gateways' zone queues at least 60 s of one gateway's share of 10,000 robots, and keeps sessions for hours."""
+    config = emqx_config()
+    zone = config[config.index("zones.internal"):]
+    queue = int(re.search(r"max_mqueue_len = (\d+)", zone).group(1))
+    inflight = int(re.search(r"max_inflight = (\d+)", zone).group(1))
+    expiry_h = int(re.search(r"session_expiry_interval = (\d+)h", zone).group(1))
+    gateways, robots, events_per_robot_s = 4, 10_000, 1.2  # BENCHMARKS.md: 1,000 robots -> 1,200 events/s
+    assert queue >= robots * events_per_robot_s / gateways * 60
+    assert inflight >= 1000 and expiry_h >= 1
+    assert re.search(r"listeners\.tcp\.internal \{[^}]*zone = internal", config)
+    config_map = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")
+    port = int(re.search(r'listeners\.tcp\.internal \{\s*bind = "0\.0\.0\.0:(\d+)"', config).group(1))
+    assert config_map["data"]["MAPSERVICE_MQTT_URL"].endswith(f":{port}")
+
+
+def test_clickhouse_installation_is_replicated_with_keeper_and_a_readonly_analyst() -> None:
+    """Two replicas, a Keeper ensemble it points at, and an analyst user whose profile is read-only with limits."""
+    chi, chk = platform("ClickHouseInstallation"), platform("ClickHouseKeeperInstallation")
+    (cluster,) = chi["spec"]["configuration"]["clusters"]
+    assert cluster["layout"]["replicasCount"] >= 2
+    assert chk["spec"]["configuration"]["clusters"][0]["layout"]["replicasCount"] == 3
+    keeper_host = chi["spec"]["configuration"]["zookeeper"]["nodes"][0]["host"]
+    assert keeper_host.startswith(chk["metadata"]["name"])
+    users, profiles = chi["spec"]["configuration"]["users"], chi["spec"]["configuration"]["profiles"]
+    profile = users["mapservice_analyst/profile"]
+    assert profiles[f"{profile}/readonly"] in ("1", "2")
+    assert int(profiles[f"{profile}/max_execution_time"]) > 0 and int(profiles[f"{profile}/max_result_rows"]) > 0
+    assert "mapservice_analyst/quota" in users
+    config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
+    assert config["MAPSERVICE_CLICKHOUSE_USERNAME"] in {u.split("/")[0] for u in users}
+    assert f"clickhouse-{chi['metadata']['name']}.clickhouse.svc" in config["MAPSERVICE_CLICKHOUSE_DSN"]
