@@ -127,13 +127,14 @@ class Stack:
         self.wait_healthy(f"http://127.0.0.1:{health_port}/healthz", "processors", proc)
         return proc
 
-    def start_api(self, port: int | None = None, name: str = "api") -> subprocess.Popen:
+    def start_api(self, port: int | None = None, name: str = "api",
+                  env: dict[str, str] | None = None) -> subprocess.Popen:
         """`mapservice api` alone on `port` (default: the stack's API port), ready when
-        /readyz says so; another port and name run another replica."""
+        /readyz says so; another port and name run another replica (`env` overrides)."""
         port = port or self.api_port
         embedded.ensure_port_free(port, f"the API ({name})")
         proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", "api"],
-                                env={**self.env(), "MAPSERVICE_API_PORT": str(port)},
+                                env={**self.env(), "MAPSERVICE_API_PORT": str(port), **(env or {})},
                                 stdout=self._log(name), stderr=subprocess.STDOUT,
                                 start_new_session=True)
         self.procs[name] = proc

@@ -42,6 +42,11 @@ from .test_pipeline import now_ms, publish_all
 TIMEOUT_MS = 60_000
 
 
+def has_clickhouse_server_command() -> bool:
+    return subprocess.run([sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--help"],
+                          capture_output=True, timeout=60).returncode == 0
+
+
 def start_clickhouse_server(stack: Stack, port: int) -> subprocess.Popen:
     """`mapservice clickhouse-server`: owns the stack's chDB directory, serves the
     ClickHouse HTTP interface read-write on 127.0.0.1:port."""
@@ -61,6 +66,12 @@ def stack(tmp_path_factory):
     each its own process; no map meta published (the 2019 start-up sequence runs first)."""
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
+    if not has_clickhouse_server_command():
+        # The only ClickHouse server the package registries offer is Debian's 18.16 (2018:
+        # no DateTime64, codecs or TTL); the chDB-backed HTTP server comes with the
+        # `chhttp` work (issue 13). Until it is merged this module cannot run.
+        pytest.skip("needs `mapservice clickhouse-server` (the ClickHouse HTTP interface over "
+                    "chDB, branch chhttp); not in this checkout")
     ch_port = embedded.free_port()
     stack = Stack(tmp_path_factory.mktemp("stack-split"), mqtt="mosquitto", extra_env={
         "MAPSERVICE_ADMIN_TOKEN": TOKEN,
