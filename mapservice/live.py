@@ -1,17 +1,26 @@
-"""In-process fan-out of accepted events to live subscribers (the API's WebSocket).
+"""Live stream of stored events: the messages, their Kafka records, the API's fan-out.
 
-The history sink publishes each batch once it is stored, so a live client sees exactly
-what a replay of that moment would show. Slow subscribers lose their oldest queued
-messages rather than slowing the sink.
+The processors, once a batch is stored (so queryable), publish its live messages on the
+live topic (`MAPSERVICE_TOPIC_LIVE`); every API process reads that topic from its end and
+fans the messages out to its WebSocket subscribers (`LiveHub`). One path whether the
+processors run in the API's process or elsewhere, and N API replicas each see it all.
+Slow subscribers lose their oldest queued messages rather than slowing anyone.
 """
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
+
+import msgspec
 
 from .events import ChunkUpdated, Envelope, PoseReported
 from .wire2019 import format_timestamp
+
+# A record holds a batch's messages as one JSON array; batches are cut so that a record
+# stays well below Kafka's default 1 MB message limit (a pose with a 1,000-point planned
+# path is ~40 kB of JSON).
+MAX_RECORD_BYTES = 256 * 1024
 
 
 def live_message(e: Envelope) -> dict | None:
@@ -29,10 +38,51 @@ def live_message(e: Envelope) -> dict | None:
     return None
 
 
+def live_records(events: Iterable[Envelope], max_bytes: int = MAX_RECORD_BYTES) -> list[bytes]:
+    """The live topic's records for a stored batch: JSON arrays of its live messages, in
+    the batch's order, each at most `max_bytes` unless a single message is larger."""
+    records: list[bytes] = []
+    parts: list[bytes] = []
+    size = 2
+    for e in events:
+        message = live_message(e)
+        if message is None:
+            continue
+        part = msgspec.json.encode(message)
+        if parts and size + len(part) + 1 > max_bytes:
+            records.append(b"[" + b",".join(parts) + b"]")
+            parts, size = [], 2
+        parts.append(part)
+        size += len(part) + 1
+    if parts:
+        records.append(b"[" + b",".join(parts) + b"]")
+    return records
+
+
+class BadLiveRecord(ValueError):
+    """A live-topic record that is not a JSON array of live messages."""
+
+
+def decode_live_record(value: bytes) -> list[dict]:
+    """The messages of one live-topic record; BadLiveRecord if it is not one."""
+    try:
+        messages = msgspec.json.decode(value)
+    except msgspec.DecodeError as exc:
+        raise BadLiveRecord(f"not JSON: {exc}") from exc
+    if not isinstance(messages, list) or not all(
+            isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages):
+        raise BadLiveRecord("not a JSON array of pose/chunk messages")
+    return messages
+
+
 class LiveHub:
-    def __init__(self, queue_size: int = 10_000) -> None:
+    """One API process's WebSocket subscribers; fed from its event loop."""
+
+    def __init__(self, queue_size: int = 10_000,
+                 ready: Callable[[], bool] = lambda: True) -> None:
         self._subscribers: set[asyncio.Queue] = set()
         self._queue_size = queue_size
+        self.ready = ready  # whether the feed reaches this process yet (the relay reads the topic)
 
     def subscribe(self) -> asyncio.Queue:
         queue: asyncio.Queue = asyncio.Queue(self._queue_size)
@@ -46,10 +96,7 @@ class LiveHub:
     def subscribers(self) -> int:
         return len(self._subscribers)
 
-    def publish(self, events: Sequence[Envelope]) -> None:
-        if not self._subscribers:
-            return
-        messages = [m for m in (live_message(e) for e in events) if m is not None]
+    def publish(self, messages: Sequence[dict]) -> None:
         for queue in self._subscribers:
             for m in messages:
                 if queue.full():

@@ -33,6 +33,13 @@ class EventPublisher(Protocol):
         """Waits for outstanding records; returns how many are still undelivered."""
 
 
+class LiveFeed(Protocol):
+    """Where stored batches go for live viewers (mapservice/live.py); never blocks."""
+
+    def publish(self, events: Sequence[Envelope]) -> None:
+        """Called after `events` are in the history, so queryable."""
+
+
 class PoseRow(msgspec.Struct, frozen=True, array_like=True):
     robot_id: str
     ts_ms: int

@@ -2,7 +2,9 @@
 
 With embedded ClickHouse (chdb) only one process may open the data directory, so
 `mapservice serve` runs both here; with a ClickHouse server they can run apart
-(`mapservice processors`, `mapservice api`) and scale separately.
+(`mapservice processors`, `mapservice api`) and scale separately. Either way the live
+stream goes through Kafka (mapservice/live.py): the processors publish each stored
+batch, the API's relay reads the live topic.
 """
 
 from __future__ import annotations
@@ -14,6 +16,8 @@ import structlog
 import uvicorn
 
 from .adapters.clickhouse_store import ClickHouseStore
+from .adapters.kafka_live_publisher import KafkaLivePublisher
+from .adapters.kafka_live_relay import KafkaLiveRelay
 from .adapters.kafka_publisher import KafkaPublisher
 from .health_server import serve_health
 from .live import LiveHub
@@ -36,13 +40,15 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     from mapservice.processors.app import HistorySink, build_app
 
     store = ClickHouseStore.from_settings(settings)
-    live = LiveHub() if processors and api else None
-    sink = HistorySink(store, live)
+    live_publisher = KafkaLivePublisher(settings) if processors else None
+    sink = HistorySink(store, live_publisher)
     version = await sink.run(store.migrate)
     log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
+    loop = asyncio.get_running_loop()
     faust_app = None
+    relay = None
     if processors:
-        await asyncio.get_running_loop().run_in_executor(None, ensure_topics, settings)
+        await loop.run_in_executor(None, ensure_topics, settings)
         faust_app = build_app(settings, sink)
         await faust_app.start()
         log.info("processors started", kafka=settings.kafka_bootstrap)
@@ -55,14 +61,20 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         if api:
             # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
             publisher = KafkaPublisher(settings, client_id="mapservice-api")
-            app = create_app(settings, store, readiness, live_hub=live, publisher=publisher)
+            # Not in the readiness checks: history reads need no Kafka; until the relay
+            # reads the live topic, /api/v1/live asks clients to come back (1013).
+            hub = LiveHub()
+            relay = KafkaLiveRelay(settings, lambda messages: loop.call_soon_threadsafe(
+                hub.publish, messages))
+            hub.ready = relay.assigned.is_set
+            relay.start()
+            app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher)
             config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
             await server.serve()
         else:
             stop = asyncio.Event()
-            loop = asyncio.get_running_loop()
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
             if health_port is not None:
@@ -70,8 +82,12 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
                     "ok": all(check() for check in readiness.values())})
             await stop.wait()
     finally:
+        if relay is not None:
+            await loop.run_in_executor(None, relay.stop)
         if faust_app is not None:
             await faust_app.stop()
+        if live_publisher is not None:
+            await loop.run_in_executor(None, live_publisher.close)
         sink.executor.shutdown(wait=True)
         store.close()
         log.info("stopped")

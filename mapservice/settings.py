@@ -43,6 +43,10 @@ class Settings(BaseSettings):
     topic_pose_events: str = "mapservice.pose-events.v1"
     topic_meta_events: str = "mapservice.meta-events.v1"
     topic_dead_letter: str = "mapservice.dead-letter.v1"
+    topic_live: str = Field("mapservice.live.v1", description="Stored events' live messages, "
+                            "processors -> every API process (WebSocket /api/v1/live).")
+    live_retention_s: int = Field(3600, ge=60, description="Retention of the live topic when the "
+                                  "service creates it (readers start at its end; short is fine).")
 
     # ClickHouse: chdb:///dir (embedded) or http(s)://host:8123
     clickhouse_dsn: str = Field("", description="Empty means chdb:///<data_dir>/clickhouse.")
@@ -147,4 +151,5 @@ class Settings(BaseSettings):
             self.topic_pose_events,
             self.topic_meta_events,
             self.topic_dead_letter,
+            self.topic_live,
         ]

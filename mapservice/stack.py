@@ -116,6 +116,30 @@ class Stack:
         self.wait_healthy(f"{self.api_url}/readyz", "server", proc)
         return proc
 
+    def start_processors(self, health_port: int) -> subprocess.Popen:
+        """`mapservice processors` alone (the split deployment: needs a ClickHouse server,
+        MAPSERVICE_CLICKHOUSE_DSN in extra_env); healthy once its consumer has partitions."""
+        embedded.ensure_port_free(health_port, "the processors' health endpoint")
+        proc = self._spawn("processors", "processors", "--health-port", str(health_port))
+        embedded.wait_for_port(health_port, timeout_s=120, proc=proc, what="processors")
+        self.wait_healthy(f"http://127.0.0.1:{health_port}/healthz", "processors", proc)
+        return proc
+
+    def start_api(self, port: int | None = None, name: str = "api",
+                  env: dict[str, str] | None = None) -> subprocess.Popen:
+        """`mapservice api` alone on `port` (default: the stack's API port), ready when
+        /readyz says so; another port and name run another replica (`env` overrides)."""
+        port = port or self.api_port
+        embedded.ensure_port_free(port, f"the API ({name})")
+        proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", "api"],
+                                env={**self.env(), "MAPSERVICE_API_PORT": str(port), **(env or {})},
+                                stdout=self._log(name), stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        self.procs[name] = proc
+        embedded.wait_for_port(port, timeout_s=120, proc=proc, what=name)
+        self.wait_healthy(f"http://127.0.0.1:{port}/readyz", name, proc)
+        return proc
+
     def wait_healthy(self, url: str, what: str, proc: subprocess.Popen,
                      timeout_s: float = 60) -> None:
         deadline = time.monotonic() + timeout_s
@@ -188,7 +212,7 @@ class Stack:
         self.start_gateway()
 
     def stop(self) -> None:
-        for name in ("sim", "gateway", "server", "mqtt", "kafka"):
+        for name in ("sim", "gateway", "server", "api", "processors", "mqtt", "kafka"):
             embedded.stop(self.procs.pop(name, None))
         for proc in self.procs.values():
             embedded.stop(proc)

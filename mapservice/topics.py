@@ -12,6 +12,23 @@ from .settings import Settings
 log = structlog.get_logger(__name__)
 
 
+def topic_partitions(settings: Settings, topic: str) -> int:
+    # The meta topic is one ordered stream; the live topic is one partition so that each
+    # processor's batches reach the API in the order they were stored (its volume is a
+    # few hundred small records a second at 1,000 robots).
+    if topic in (settings.topic_meta_events, settings.topic_live):
+        return 1
+    return settings.kafka_partitions
+
+
+def topic_config(settings: Settings, topic: str) -> dict[str, str]:
+    if topic == settings.topic_meta_events:
+        return {"cleanup.policy": "compact"}
+    if topic == settings.topic_live:
+        return {"retention.ms": str(settings.live_retention_s * 1000)}
+    return {}
+
+
 def ensure_topics(settings: Settings, timeout_s: float = 60.0) -> list[str]:
     """Idempotent; waits for the broker. Returns the topics it created."""
     admin = AdminClient(settings.kafka_config())
@@ -30,9 +47,8 @@ def ensure_topics(settings: Settings, timeout_s: float = 60.0) -> list[str]:
     if not wanted:
         return []
     futures = admin.create_topics([
-        NewTopic(t, num_partitions=1 if t == settings.topic_meta_events else settings.kafka_partitions,
-                 replication_factor=settings.kafka_replication,
-                 config={"cleanup.policy": "compact"} if t == settings.topic_meta_events else {})
+        NewTopic(t, num_partitions=topic_partitions(settings, t),
+                 replication_factor=settings.kafka_replication, config=topic_config(settings, t))
         for t in wanted
     ])
     created = []

@@ -20,8 +20,7 @@ from prometheus_client import Counter, Histogram
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
-from mapservice.live import LiveHub
-from mapservice.ports import HistoryStore
+from mapservice.ports import HistoryStore, LiveFeed
 from mapservice.retry import until_done
 from mapservice.settings import Settings
 
@@ -44,7 +43,7 @@ def faust_broker_url(settings: Settings) -> str:
 class HistorySink:
     """Owns the store and the one thread that talks to it."""
 
-    def __init__(self, store: HistoryStore, live: LiveHub | None = None) -> None:
+    def __init__(self, store: HistoryStore, live: LiveFeed | None = None) -> None:
         self.store = store
         self.live = live
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")

@@ -8,14 +8,22 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
 router = APIRouter(tags=["live"])
 
+# RFC 6455 close codes: 1011 the server cannot serve this at all, 1013 try again later.
+NO_FEED, FEED_NOT_READY = 1011, 1013
+
 
 @router.websocket("/api/v1/live")
 async def live(websocket: WebSocket) -> None:
-    """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`."""
+    """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`,
+    sent once the event is queryable through this API."""
     hub = websocket.app.state.live
     await websocket.accept()
     if hub is None:
-        await websocket.close(code=1011, reason="live stream needs the processors in this process")
+        await websocket.close(code=NO_FEED, reason="this API process has no live feed")
+        return
+    if not hub.ready():
+        await websocket.close(code=FEED_NOT_READY, reason="live feed not connected to Kafka yet; "
+                              "reconnect in a few seconds")
         return
     queue = hub.subscribe()
     try:

@@ -26,6 +26,7 @@ import yaml
 from pydantic import SecretStr
 
 from mapservice.settings import Settings
+from mapservice.topics import topic_partitions
 from tests.fixtures.paths import ROOT
 
 INFRA = ROOT / "infra"
@@ -432,7 +433,8 @@ def test_each_component_environment_gives_valid_production_settings():
 
 
 def test_strimzi_topics_match_the_settings():
-    """strimzi-topics.yaml has the four Settings topics, ConfigMap partitions/replicas, meta compacted x1."""
+    """strimzi-topics.yaml has the five Settings topics, ConfigMap partitions/replicas, meta
+    compacted x1, live x1 with the live retention."""
     settings = settings_from({**configmap("mapservice"), "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
                               "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET})
     docs = load_all(STRIMZI_TOPICS)
@@ -443,7 +445,9 @@ def test_strimzi_topics_match_the_settings():
     for name, doc in topics.items():
         spec = doc["spec"]
         meta = name == settings.topic_meta_events
-        assert spec["partitions"] == (1 if meta else settings.kafka_partitions), name
+        assert spec["partitions"] == topic_partitions(settings, name), name
+        if name == settings.topic_live:
+            assert spec["config"]["retention.ms"] == settings.live_retention_s * 1000
         assert spec["replicas"] == settings.kafka_replication, name
         assert spec.get("config", {}).get("cleanup.policy", "delete") == (
             "compact" if meta else "delete"), name

@@ -1,7 +1,12 @@
 /**
- * The API's live WebSocket with automatic reconnect (1 s doubling to 10 s) and latency:
- * the time from a robot's event to this page (clock skew included) and from the server's
- * send to this page.
+ * The API's live WebSocket with automatic reconnect and latency: the time from a robot's
+ * event to this page (clock skew included) and from the server's send to this page.
+ *
+ * Reconnects back off exponentially with jitter (1 s doubling to 30 s, each wait drawn
+ * from its upper half), and the backoff resets only once a connection proved itself
+ * (a message, or STABLE_MS open): a server that accepts and closes at once (1013 while
+ * its live feed starts, 1011 without one) is retried less and less often, so tabs
+ * neither hammer it nor re-seek the replay once a second, and many tabs spread out.
  */
 import type { ChunkChange, Pose } from "./types";
 
@@ -16,17 +21,30 @@ export interface LiveStatus {
   reconnects: number;
 }
 
+export const BACKOFF_BASE_MS = 1000;
+export const BACKOFF_CAP_MS = 30_000;
+export const STABLE_MS = 10_000;
+
+/** The wait before reconnect attempt `failures` (0 = the first after a good connection):
+ * min(cap, base * 2^failures), scaled into its upper half by `random()` in [0, 1). */
+export function backoffDelay(failures: number, random: () => number = Math.random): number {
+  const ceiling = Math.min(BACKOFF_CAP_MS, BACKOFF_BASE_MS * 2 ** Math.min(failures, 30));
+  return Math.round(ceiling / 2 + (ceiling / 2) * random());
+}
+
 export class LiveConnection {
   status: LiveStatus = { connected: false, latencyMs: null, messages: 0, reconnects: 0 };
   private ws: WebSocket | null = null;
   private stopped = true;
-  private backoff = 1000;
+  private failures = 0; // reconnects since the last connection that proved itself
   private timer: ReturnType<typeof setTimeout> | null = null;
+  private stableTimer: ReturnType<typeof setTimeout> | null = null;
 
   constructor(
     private url: string,
     private onMessage: (m: LiveMessage) => void,
     private onOpen: (reconnect: boolean) => void,
+    private random: () => number = Math.random,
   ) {}
 
   start(): void {
@@ -37,6 +55,7 @@ export class LiveConnection {
   stop(): void {
     this.stopped = true;
     if (this.timer) clearTimeout(this.timer);
+    if (this.stableTimer) clearTimeout(this.stableTimer);
     this.ws?.close();
     this.ws = null;
     this.status.connected = false;
@@ -46,11 +65,12 @@ export class LiveConnection {
     const ws = new WebSocket(this.url);
     this.ws = ws;
     ws.onopen = () => {
-      this.backoff = 1000;
       this.status.connected = true;
+      this.stableTimer = setTimeout(() => (this.failures = 0), STABLE_MS);
       this.onOpen(reconnect);
     };
     ws.onmessage = (e) => {
+      this.failures = 0;
       const m = JSON.parse(e.data) as LiveMessage;
       this.status.messages++;
       const lag = Date.now() - m.ts_ms;
@@ -59,10 +79,11 @@ export class LiveConnection {
     };
     ws.onclose = () => {
       this.status.connected = false;
+      if (this.stableTimer) clearTimeout(this.stableTimer);
       if (this.ws !== ws || this.stopped) return;
       this.status.reconnects++;
-      this.timer = setTimeout(() => this.connect(true), this.backoff);
-      this.backoff = Math.min(10_000, this.backoff * 2);
+      this.timer = setTimeout(() => this.connect(true), backoffDelay(this.failures, this.random));
+      this.failures++;
     };
   }
 }

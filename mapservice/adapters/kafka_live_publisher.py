@@ -1,0 +1,71 @@
+"""The processors' side of the live stream: stored batches' live messages onto Kafka.
+
+Best effort by design: the history is already stored when this runs and a viewer that
+missed something re-seeks from the store, so a record that cannot be delivered within a
+few seconds is counted and dropped, never retried, and a full local queue never blocks
+the history sink.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import structlog
+from confluent_kafka import Producer
+from prometheus_client import Counter
+
+from ..events import Envelope
+from ..live import live_records
+from ..settings import Settings
+
+log = structlog.get_logger(__name__)
+
+LIVE_RECORDS = Counter("mapservice_live_records_total", "Live-topic records published")
+LIVE_DROPPED = Counter("mapservice_live_records_dropped_total",
+                       "Live-topic records dropped (local queue full or not delivered in time)")
+
+
+def live_producer_config(settings: Settings, client_id: str) -> dict:
+    return {
+        **settings.kafka_config(),
+        "client.id": client_id,
+        # One partition per producer keeps a processor's batches in order; a live message
+        # older than a few seconds is worth nothing, so no long retries either.
+        "acks": "1",
+        "linger.ms": 5,
+        "message.timeout.ms": 5_000,
+        "queue.buffering.max.kbytes": 32 * 1024,
+        "compression.type": "none",
+    }
+
+
+class KafkaLivePublisher:
+    """`publish(events)` after each stored batch; created without I/O."""
+
+    def __init__(self, settings: Settings, client_id: str = "mapservice-processors-live") -> None:
+        self.topic = settings.topic_live
+        self._config = live_producer_config(settings, client_id)
+        self._producer: Producer | None = None
+
+    def publish(self, events: Sequence[Envelope]) -> None:
+        if self._producer is None:
+            self._producer = Producer(self._config)
+        producer = self._producer
+        for record in live_records(events):
+            try:
+                producer.produce(self.topic, value=record, on_delivery=self._delivered)
+                LIVE_RECORDS.inc()
+            except BufferError:
+                LIVE_DROPPED.inc()
+        producer.poll(0)  # serve earlier records' delivery callbacks
+
+    @staticmethod
+    def _delivered(err, _msg) -> None:
+        if err is not None:
+            LIVE_DROPPED.inc()
+            log.warning("live record not delivered", error=str(err))
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        if self._producer is not None:
+            self._producer.flush(timeout_s)
+            self._producer = None

@@ -1,0 +1,196 @@
+"""The split deployment, as compose and Kubernetes run it: gateway, processors and two API
+replicas as separate `mapservice <component>` processes, against tansu, Mosquitto and one
+ClickHouse reached over its HTTP interface (`mapservice clickhouse-server`: chDB behind
+the ClickHouse HTTP protocol, the one process that opens the data directory).
+
+Checks, on that topology: the whole 2019 contract suite (the same test functions the
+embedded-mode stack runs, imported from test_contract_2019), a replay seek through the API
+and in the browser (map and robots at T are what was published), and live mode: a pose
+published over MQTT reaches both API replicas' /api/v1/live and the UI's live map in
+headless Chromium.
+
+What this does not cover compared with a real ClickHouse server: the server here is chDB
+(the same ClickHouse engine and SQL) behind a small HTTP front end, so ClickHouse's own
+server-side parts are not exercised: users, quotas and settings profiles, the native TCP
+protocol, concurrent-session limits, and asynchronous inserts. Kafka is tansu, not Apache
+Kafka (one broker, memory storage). Bounded: each wait is seconds to a minute; the module
+takes about a minute on an idle machine.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import subprocess
+import sys
+import time
+import zlib
+
+import httpx
+import pytest
+from websockets.sync.client import connect
+
+from mapservice import embedded
+from mapservice.stack import Stack
+from mapservice.wire2019 import content_hash, format_timestamp
+from tests.ui.conftest import DIST, browser, page  # noqa: F401  (fixtures)
+
+from . import test_contract_2019 as contract
+from .test_contract_2019 import TOKEN, http, until  # noqa: F401  (http: a fixture)
+from .test_pipeline import now_ms, publish_all
+
+TIMEOUT_MS = 60_000
+
+
+def has_clickhouse_server_command() -> bool:
+    return subprocess.run([sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--help"],
+                          capture_output=True, timeout=60).returncode == 0
+
+
+def start_clickhouse_server(stack: Stack, port: int) -> subprocess.Popen:
+    """`mapservice clickhouse-server`: owns the stack's chDB directory, serves the
+    ClickHouse HTTP interface read-write on 127.0.0.1:port."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--port", str(port), "--read-write"],
+        env=stack.env(), stdout=stack._log("clickhouse"), stderr=subprocess.STDOUT,
+        start_new_session=True)
+    stack.procs["clickhouse"] = proc
+    embedded.wait_for_port(port, timeout_s=120, proc=proc, what="clickhouse-server")
+    stack.wait_healthy(f"http://127.0.0.1:{port}/ping", "clickhouse", proc)
+    return proc
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    """Brokers, the ClickHouse HTTP server, processors, two API replicas and the gateway,
+    each its own process; no map meta published (the 2019 start-up sequence runs first)."""
+    if not DIST.exists():
+        pytest.fail("replay-ui is not built: run `make ui` first")
+    if not has_clickhouse_server_command():
+        # The only ClickHouse server the package registries offer is Debian's 18.16 (2018:
+        # no DateTime64, codecs or TTL); the chDB-backed HTTP server comes with the
+        # `chhttp` work (issue 13). Until it is merged this module cannot run.
+        pytest.skip("needs `mapservice clickhouse-server` (the ClickHouse HTTP interface over "
+                    "chDB, branch chhttp); not in this checkout")
+    ch_port = embedded.free_port()
+    stack = Stack(tmp_path_factory.mktemp("stack-split"), mqtt="mosquitto", extra_env={
+        "MAPSERVICE_ADMIN_TOKEN": TOKEN,
+        "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
+    })
+    stack.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = stack.api_url
+    stack.second_api_url = f"http://127.0.0.1:{embedded.free_port()}"  # type: ignore[attr-defined]
+    try:
+        stack.start_brokers()
+        start_clickhouse_server(stack, ch_port)
+        stack.start_processors(embedded.free_port())
+        stack.start_api()
+        stack.start_api(int(stack.second_api_url.rsplit(":", 1)[1]), name="api-2")
+        stack.start_gateway()
+    except BaseException:
+        stack.stop()
+        raise
+    yield stack
+    stack.stop()
+
+
+# The 2019 contract suite, the same functions as in the embedded mode, in its file order
+# (each builds on the data of the ones before).
+test_robot_start_up_sequence = contract.test_robot_start_up_sequence
+test_listings_10_11_13_post_a_chunk_and_read_it_back = contract.test_listings_10_11_13_post_a_chunk_and_read_it_back
+test_post_chunk_is_validated_like_mqtt = contract.test_post_chunk_is_validated_like_mqtt
+test_listing_12_query_parameters = contract.test_listing_12_query_parameters
+test_bad_and_unknown_parameters = contract.test_bad_and_unknown_parameters
+test_listings_16_17_coordinates = contract.test_listings_16_17_coordinates
+
+
+def test_each_component_is_its_own_process_on_one_clickhouse_server(stack) -> None:
+    """Gateway, processors and both APIs run apart; the APIs read the server, not chDB files."""
+    assert {"gateway", "processors", "api", "api-2", "clickhouse"} <= set(stack.procs)
+    assert "server" not in stack.procs  # no `mapservice serve`: nothing shares a process
+    assert all(p.poll() is None for p in stack.procs.values())
+    for url in (stack.api_url, stack.second_api_url):
+        assert httpx.get(f"{url}/readyz", timeout=10).json()["ok"] is True
+
+
+def pixels_b64(shade: int) -> tuple[str, str]:
+    pixels = bytes([shade]) * 10_000
+    return base64.b64encode(zlib.compress(pixels)).decode(), content_hash(pixels).hex()
+
+
+def test_a_replay_seek_shows_what_was_published_at_t(stack, http, page) -> None:
+    """Map and robots at T, through the API and in the UI, are the writes published up to T."""
+    t0 = (now_ms() // 1000 - 30) * 1000
+    (a, hash_a), (b, hash_b) = pixels_b64(11), pixels_b64(222)
+    chunk = lambda data, ts, robot: ("iot/chunks/create", json.dumps({  # noqa: E731
+        "pgmB64compressedData": data, "row": 0, "column": 0, "timestamp": format_timestamp(ts),
+        "robotId": robot}).encode())
+    pose = lambda robot, ts, x: (f"iot/coordinates/{robot}", json.dumps({  # noqa: E731
+        "robotId": robot, "timestamp": format_timestamp(ts),
+        "pose": {"position": {"x": x, "y": 3.0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
+        "status": {"battery": {"battery_level": 50, "charging": False}, "loaded": False}}).encode())
+    publish_all(stack, [chunk(a, t0, "split-a"), chunk(b, t0 + 2000, "split-b"),
+                        pose("split-a", t0, 1.0), pose("split-a", t0 + 1000, 2.0),
+                        pose("split-b", t0 + 2000, 5.0)])
+
+    def at(t: int) -> tuple[dict, dict]:
+        m = http.get("/api/v1/map", params={"at": t}).json()
+        r = http.get("/api/v1/robots", params={"at": t}).json()
+        return ({(c["row"], c["column"]): (c["robotId"], c["content_hash"]) for c in m["chunks"]},
+                {p["robotId"]: (p["ts_ms"], p["position"][0]) for p in r["robots"]
+                 if p["robotId"].startswith("split-")})
+
+    until(lambda: at(t0 + 2000), lambda got: got[0].get((0, 0)) == ("split-b", hash_b)
+          and "split-b" in got[1], what="the published writes stored")
+    chunks, robots = at(t0 + 1000)
+    assert chunks[(0, 0)] == ("split-a", hash_a)
+    assert robots == {"split-a": (t0 + 1000, 2.0)}
+    assert at(t0 + 2000)[1] == {"split-a": (t0 + 1000, 2.0), "split-b": (t0 + 2000, 5.0)}
+
+    page.goto(f"{stack.api_url}/?t={t0 + 1000}")
+    page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+    assert page.evaluate("() => window.__replay.playhead") == t0 + 1000
+    shown = page.evaluate("() => Object.fromEntries([...window.__replay.engine.state.cells.values()]"
+                          ".map(c => [`${c.row}:${c.column}`, c.content_hash]))")
+    assert shown["0:0"] == hash_a
+    shown_robots = {r["robotId"]: (r["ts_ms"], r["x"]) for r in page.evaluate("() => window.__replay.robots()")
+                    if r["robotId"].startswith("split-")}
+    assert shown_robots == {"split-a": (t0 + 1000, 2.0)}
+    assert not page.errors
+
+
+def test_live_mode_reaches_every_api_replica_and_the_browser(stack, page) -> None:
+    """A pose published over MQTT arrives on both replicas' /api/v1/live and on the UI's live map."""
+    page.goto(f"{stack.api_url}/?live=1")
+    page.wait_for_function("() => window.__replay && window.__replay.liveStatus.connected",
+                           timeout=TIMEOUT_MS)
+    sockets = [connect(url.replace("http://", "ws://") + "/api/v1/live", open_timeout=10)
+               for url in (stack.api_url, stack.second_api_url)]
+    try:
+        time.sleep(0.5)
+        meta = page.evaluate("() => window.__replay.meta")
+        x, y = meta["origin"][0] + 10.0, meta["origin"][1] + 10.0
+        ts = now_ms() // 1000 * 1000
+        publish_all(stack, [("iot/coordinates/split-live", json.dumps({
+            "robotId": "split-live", "timestamp": format_timestamp(ts),
+            "pose": {"position": {"x": x, "y": y, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
+            "status": {"battery": {"battery_level": 80, "charging": False}, "loaded": True}}).encode())])
+        for ws in sockets:
+            deadline = time.monotonic() + 30
+            message: dict = {}
+            while time.monotonic() < deadline and message.get("robotId") != "split-live":
+                message = json.loads(ws.recv(timeout=30))
+            assert message["robotId"] == "split-live" and message["ts_ms"] == ts
+            assert message["position"][:2] == [x, y] and message["sent_ms"] >= message["receive_time_ms"]
+    finally:
+        for ws in sockets:
+            ws.close()
+    page.wait_for_function(
+        "() => window.__replay.drawnRobots().some(r => r.robotId === 'split-live')", timeout=TIMEOUT_MS)
+    shown = {r["robotId"]: r for r in page.evaluate("() => window.__replay.robots()")}
+    assert shown["split-live"]["x"] == pytest.approx(x) and shown["split-live"]["y"] == pytest.approx(y)
+    assert page.evaluate("() => window.__replay.liveStatus.reconnects") == 0
+    assert not page.errors
+
+
+# Last, as in the embedded suite: it wipes the data.
+test_deletes_need_the_admin_token = contract.test_deletes_need_the_admin_token
