@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
@@ -41,8 +42,10 @@ def create_app(settings: Settings, store: HistoryStore,
                readiness: dict[str, Callable[[], bool]] | None = None,
                clock: Clock | None = None, live_hub: LiveHub | None = None,
                publisher: EventPublisher | None = None) -> FastAPI:
-    app = FastAPI(title="mapservice", version=__version__,
-                  description="Map and fleet history for factory robots")
+    # /docs and /redoc with Swagger UI and ReDoc served from the installed package, not a
+    # CDN: a plant network often has no internet.
+    app = FastAPIOffline(title="mapservice", version=__version__,
+                         description="Map and fleet history for factory robots")
     app.state.settings = settings
     app.state.store = store
     app.state.readiness = readiness or {}

@@ -135,3 +135,60 @@ describe("look-ahead after a seek", () => {
     expect(calls.events).toHaveBeenCalledTimes(1);
   });
 });
+
+describe("robots at the playhead", () => {
+  const pose = (id: string, ts: number, x = 1): RobotAt => ({
+    robotId: id, ts_ms: ts, position: [x, 2, 0], orientation: [0, 0, 0, 1], battery_level: 50,
+    charging: false, loaded: false, path: null,
+  });
+
+  async function seekedWith(robots: RobotAt[]) {
+    const e = makeEngine();
+    const done = e.engine.seek(T);
+    e.map.resolve(MAP);
+    e.robots.resolve(robots);
+    await done;
+    e.engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    e.engine.seekFrameDrawn();
+    return e;
+  }
+
+  it("playing at 3600x, a robot sampled once a minute is online, one silent past the step is not", async () => {
+    const { engine } = await seekedWith([]);
+    engine.setSpeed(3600);
+    engine.buffer.stepMs = 60_000;
+    engine.clock.play(NOW);
+    engine.playhead = T;
+    engine.buffer.tracks.set("busy", [pose("busy", T - 50_000)]);
+    engine.buffer.tracks.set("gone", [pose("gone", T - 60_000 - 10_001)]);
+    const byId = new Map(engine.robots().map((r) => [r.robotId, r]));
+    expect(byId.get("busy")!.offline).toBe(false);
+    expect(byId.get("gone")!.offline).toBe(true);
+  });
+
+  it("after a seek, the robots are the history's robots at T, online as the server says", async () => {
+    const { engine } = await seekedWith([{ ...pose("a", T - 2000), online: true }, { ...pose("b", T - 40_000), online: false }]);
+    const byId = new Map(engine.robots().map((r) => [r.robotId, r]));
+    expect([byId.get("a")!.offline, byId.get("b")!.offline]).toEqual([false, true]);
+  });
+
+  it("pausing elsewhere loads the exact robots at the new playhead and shows them instead of samples", async () => {
+    const { engine, calls, advance } = await seekedWith([]);
+    const exact = deferred<RobotAt[]>();
+    calls.robots.mockImplementation(() => exact.promise);
+    engine.buffer.tracks.set("r1", [pose("r1", T + 60_000 - 45_000, 9)]); // a sample 45 s old
+    engine.buffer.from = T;
+    engine.buffer.to = T + 120_000;
+    engine.playhead = T + 60_000;
+    engine.clock.hold(T + 60_000, NOW);
+    advance(SETTLE_MS);
+    engine.frame();
+    expect(calls.robots).toHaveBeenLastCalledWith(T + 60_000);
+    exact.resolve([{ ...pose("r1", T + 60_000 - 1000, 3), online: true }]);
+    await settle();
+    const [r1] = engine.robots();
+    expect([r1.x, r1.pose.ts_ms, r1.offline]).toEqual([3, T + 60_000 - 1000, false]);
+    engine.frame();
+    expect(calls.robots).toHaveBeenCalledTimes(2); // once by the seek, once on pausing: not every frame
+  });
+});

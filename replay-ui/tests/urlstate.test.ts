@@ -1,11 +1,33 @@
 import { describe, expect, it } from "vitest";
-import { agoText, formatUrlState, fromInputValue, parseUrlState, toInputValue } from "../src/lib/urlstate";
+import { agoText, clampToRetention, formatUrlState, fromInputValue, parseUrlState, toInputValue } from "../src/lib/urlstate";
 
 describe("url state", () => {
   it("round-trips time, speed, direction, play and view", () => {
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10, 0, 5), speed: 3600 as const, dir: -1 as const,
       playing: true, view: { zoom: -1.5, lat: -100.5, lng: 200 }, follow: "r-1" };
-    expect(parseUrlState(formatUrlState(s))).toEqual(s);
+    expect(parseUrlState(formatUrlState(s))).toEqual({ ...s, tProblem: null });
+  });
+
+  it("live links carry no replay speed or direction", () => {
+    const url = formatUrlState({ live: true, t: 5, speed: 3600, dir: -1, playing: true, view: null, follow: null });
+    expect(url).toBe("?live=1");
+  });
+
+  it("says what is wrong with a time it cannot read, and opens live", () => {
+    const s = parseUrlState("?t=yesterday-ish");
+    expect(s.t).toBeNull();
+    expect(s.live).toBe(true);
+    expect(s.tProblem).toMatch(/t=yesterday-ish is not a time/);
+  });
+
+  it("brings a time outside the retention to the nearest kept instant and says so", () => {
+    const now = Date.UTC(2026, 10, 21, 12);
+    const week = 7 * 86_400_000;
+    expect(clampToRetention(now - 3_600_000, now, week)).toEqual({ t: now - 3_600_000, problem: null });
+    const old = clampToRetention(now - 30 * 86_400_000, now, week);
+    expect(old.t).toBe(now - week + 60_000);
+    expect(old.problem).toMatch(/older than the 7 days the history keeps/);
+    expect(clampToRetention(now + 86_400_000, now, week)).toEqual({ t: now, problem: expect.stringMatching(/in the future/) });
   });
 
   it("opens live when no time is given, and reads epoch ms or zone-less ISO as UTC", () => {
@@ -15,9 +37,13 @@ describe("url state", () => {
     expect(parseUrlState("?speed=7").speed).toBe(1);
   });
 
-  it("edits date-times to the second in UTC", () => {
-    const t = Date.UTC(2026, 10, 21, 10, 0, 5);
+  it("edits date-times to the second in 24-hour UTC, and refuses what is not one", () => {
+    const t = Date.UTC(2026, 10, 21, 22, 0, 5);
+    expect(toInputValue(t)).toBe("2026-11-21 22:00:05");
     expect(fromInputValue(toInputValue(t))).toBe(t);
+    expect(fromInputValue("2026-11-21T22:00")).toBe(Date.UTC(2026, 10, 21, 22));
+    expect(fromInputValue("21/11/2026 10:00 PM")).toBeNull();
+    expect(fromInputValue("2026-13-45 99:00:00")).toBeNull();
   });
 
   it("says how far from now", () => {

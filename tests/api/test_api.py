@@ -356,3 +356,18 @@ def test_chunk_content_as_png(client) -> None:
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     assert "immutable" in r.headers["cache-control"]
     assert _png_pixels(r.content).tobytes() == PIXELS
+
+
+def test_api_docs_need_no_internet(client) -> None:
+    """/docs and /redoc load Swagger UI and ReDoc from this server (no external host), and those files answer."""
+    import re
+
+    for page in ("/docs", "/redoc"):
+        r = client.get(page)
+        assert r.status_code == 200
+        urls = re.findall(r'(?:src|href)="([^"]+)"|url: *[\'"]([^\'"]+)[\'"]', r.text)
+        assets = [u for pair in urls for u in pair if u]
+        assert assets, page
+        assert not [u for u in assets if re.match(r"https?://", u)], assets
+        for asset in assets:
+            assert client.get(asset).status_code == 200, asset

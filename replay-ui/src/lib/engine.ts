@@ -46,6 +46,14 @@ export class ReplayEngine {
   error: string | null = null;
   /** Robot status from the last robots-at call (online, skew flags), by id. */
   robotInfo = new Map<string, RobotAt>();
+  /**
+   * The robots at the instant playback rests on, from the history itself (robots-at):
+   * above 60x the buffer holds one pose per robot per step, so a sampled pose can be a
+   * minute older than the robot's last report. Loaded by every seek and whenever the
+   * playhead stops somewhere else (pause, step, the end of a buffer).
+   */
+  exactAt: { t: number; robots: Map<string, RobotAt> } | null = null;
+  private exactLoading = -1;
   /** Live mode: latest pose per robot. */
   livePoses = new Map<string, Pose>();
   /** Bumped by every live pose (the view redraws robots only when something moved). */
@@ -133,6 +141,7 @@ export class ReplayEngine {
       this.buffer.reset(t, this.clock.speed, robots);
       this.lastStepMs = this.buffer.stepMs;
       this.robotInfo = new Map(robots.map((r) => [r.robotId, r]));
+      this.exactAt = { t, robots: new Map(this.robotInfo) };
       this.livePoses = new Map(robots.map((r) => [r.robotId, r]));
       this.liveVersion++;
       this.playhead = t;
@@ -170,6 +179,7 @@ export class ReplayEngine {
     const wall = this.now();
     if (this.clock.live) {
       this.playhead = wall;
+      this.buffering = false; // live follows the WebSocket, there is no buffer to wait for
       return;
     }
     let target = Math.round(this.clock.time(wall));
@@ -196,6 +206,7 @@ export class ReplayEngine {
     }
     // The look-ahead waits for the seek's first frame (and, paused, for the playhead to settle).
     if (!this.settled()) return;
+    if (!this.clock.playing) this.loadExactRobots();
     const before = this.buffer.chunks.length;
     const p = this.buffer.ensure(this.playhead, dir, this.clock.speed, wall, this.clock.minMs);
     if (p) {
@@ -209,6 +220,20 @@ export class ReplayEngine {
     this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));
   }
 
+  /** Asks the history for the robots at the resting playhead, unless it has them. */
+  private loadExactRobots(): void {
+    const t = this.playhead;
+    if (this.exactAt?.t === t || this.exactLoading === t) return;
+    this.exactLoading = t;
+    this.api.robotsAt(t).then((robots) => {
+      if (this.playhead !== t || this.clock.playing || this.clock.live) return;
+      this.exactAt = { t, robots: new Map(robots.map((r) => [r.robotId, r])) };
+      for (const r of robots) this.robotInfo.set(r.robotId, r);
+      this.liveVersion++; // the view redraws the robots
+    }).catch((e) => (this.error = String(e)))
+      .finally(() => { if (this.exactLoading === t) this.exactLoading = -1; });
+  }
+
   /** Every robot at the playhead. */
   robots(): RobotView[] {
     const out: RobotView[] = [];
@@ -220,6 +245,16 @@ export class ReplayEngine {
       return out;
     }
     const t = this.playhead;
+    const exact = !this.clock.playing && this.exactAt?.t === t ? this.exactAt.robots : null;
+    if (exact) {
+      for (const [id, r] of exact) {
+        const offline = r.online !== undefined ? !r.online : t - r.ts_ms > OFFLINE_AFTER_MS;
+        out.push({ robotId: id, status: r, pose: r, x: r.position[0], y: r.position[1], yaw: null, offline });
+      }
+      return out;
+    }
+    // Sampled tracks (one pose per step) only show a robot's silence beyond the step.
+    const silenceMs = OFFLINE_AFTER_MS + this.buffer.stepMs;
     const interpolate = this.clock.speed <= INTERPOLATE_MAX_SPEED;
     const ids = new Set([...this.buffer.base.keys(), ...this.buffer.tracks.keys()]);
     for (const id of ids) {
@@ -230,7 +265,7 @@ export class ReplayEngine {
         if (!b || b.ts_ms > t) continue;
         placed = { pose: b, x: b.position[0], y: b.position[1], yaw: null };
       }
-      out.push({ robotId: id, status: placed.pose, ...placed, offline: t - placed.pose.ts_ms > OFFLINE_AFTER_MS });
+      out.push({ robotId: id, status: placed.pose, ...placed, offline: t - placed.pose.ts_ms > silenceMs });
     }
     return out;
   }

@@ -9,6 +9,28 @@ import type { MapState } from "./mapstate";
 import type { MapMeta } from "./types";
 
 export const UNKNOWN_GREY = "rgb(205,205,205)";
+/** Where the history holds no chunk at all: stripes, so it cannot be mistaken for a chunk
+ * a robot painted grey ("unknown", 205) or one whose picture is still loading. */
+export const NO_DATA_STRIPE = "rgb(236,236,236)";
+export const NO_DATA_BACKGROUND = "rgb(250,250,250)";
+
+export function fillNoData(ctx: CanvasRenderingContext2D, x0: number, y0: number, w: number, h: number): void {
+  ctx.fillStyle = NO_DATA_BACKGROUND;
+  ctx.fillRect(x0, y0, w, h);
+  ctx.save();
+  ctx.beginPath();
+  ctx.rect(x0, y0, w, h);
+  ctx.clip();
+  ctx.strokeStyle = NO_DATA_STRIPE;
+  ctx.lineWidth = 3;
+  for (let d = -h; d < w; d += 10) {
+    ctx.beginPath();
+    ctx.moveTo(x0 + d, y0 + h);
+    ctx.lineTo(x0 + d + h, y0);
+    ctx.stroke();
+  }
+  ctx.restore();
+}
 
 /**
  * An ImageOverlay whose element is a canvas: Leaflet positions and zoom-animates it like
@@ -104,12 +126,14 @@ export class ChunkLayer {
       ctx.drawImage(img, x0, y0, x1 - x0, y1 - y0);
       return;
     }
-    ctx.fillStyle = UNKNOWN_GREY;
-    ctx.fillRect(x0, y0, x1 - x0, y1 - y0);
-    if (cell) {
-      this.waiting.set(k, cell.content_hash);
-      this.images.request(cell.content_hash, true);
+    if (!cell) {
+      fillNoData(ctx, x0, y0, x1 - x0, y1 - y0);
+      return;
     }
+    ctx.fillStyle = UNKNOWN_GREY; // its picture is on the way
+    ctx.fillRect(x0, y0, x1 - x0, y1 - y0);
+    this.waiting.set(k, cell.content_hash);
+    this.images.request(cell.content_hash, true);
   }
 
   /** Draws the cells changed since the last call; true when the picture is complete. */
@@ -189,6 +213,11 @@ export class InfoLayer {
     }
   }
 }
+
+/** The chunk-age legend: the ages at which `ageColour` is shown, and its colour there. */
+export const AGE_LEGEND: [string, number][] = [
+  ["1 min", 60_000], ["1 h", 3_600_000], ["1 day", 86_400_000], ["7 days", 7 * 86_400_000],
+];
 
 /** Fresh (seconds) -> hot red, an hour -> yellow, a day -> green, a week -> blue. */
 export function ageColour(ageMs: number): string {

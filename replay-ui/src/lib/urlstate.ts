@@ -9,15 +9,21 @@ export interface UrlState {
   playing: boolean;
   view: { lat: number; lng: number; zoom: number } | null;
   follow: string | null;
+  /** What was wrong with the address's `t`, to tell the user (null: nothing). */
+  tProblem: string | null;
 }
 
 export function parseUrlState(search: string): UrlState {
   const q = new URLSearchParams(search);
   const rawT = q.get("t");
   let t: number | null = null;
+  let tProblem: string | null = null;
   if (rawT) {
     t = /^-?\d+$/.test(rawT) ? Number(rawT) : Date.parse(/[zZ]|[+-]\d\d:?\d\d$/.test(rawT) ? rawT : `${rawT}Z`);
-    if (Number.isNaN(t)) t = null;
+    if (Number.isNaN(t)) {
+      t = null;
+      tProblem = `the link's time t=${rawT} is not a time (use UTC like 2026-11-21T10:00:00Z or epoch milliseconds); showing live`;
+    }
   }
   const s = Number(q.get("speed") ?? "1");
   let view: UrlState["view"] = null;
@@ -31,15 +37,30 @@ export function parseUrlState(search: string): UrlState {
     playing: q.get("play") === "1",
     view,
     follow: q.get("follow"),
+    tProblem,
   };
 }
 
-export function formatUrlState(s: UrlState): string {
+/**
+ * A `t` outside what the history keeps cannot be shown as asked: the nearest instant that
+ * can, and what to tell the user (null when `t` is fine).
+ */
+export function clampToRetention(t: number, now: number, retentionMs: number): { t: number; problem: string | null } {
+  const oldest = now - retentionMs + 60_000;
+  if (t < oldest) {
+    return { t: oldest, problem: `the link's time ${formatUtc(t)} is older than the ${Math.round(retentionMs / 86_400_000)} days the history keeps; showing the oldest instant kept` };
+  }
+  if (t > now) return { t: now, problem: `the link's time ${formatUtc(t)} is in the future; showing now` };
+  return { t, problem: null };
+}
+
+export function formatUrlState(s: Omit<UrlState, "tProblem">): string {
   const q = new URLSearchParams();
   if (s.live) q.set("live", "1");
   else if (s.t !== null) q.set("t", new Date(s.t).toISOString());
-  q.set("speed", String(s.speed));
-  if (s.dir < 0) q.set("dir", "-1");
+  // Live has no speed or direction: the link reopens live, not a replay speed.
+  if (!s.live) q.set("speed", String(s.speed));
+  if (s.dir < 0 && !s.live) q.set("dir", "-1");
   if (s.playing && !s.live) q.set("play", "1");
   if (s.view) q.set("view", `${s.view.zoom},${s.view.lat},${s.view.lng}`);
   if (s.follow) q.set("follow", s.follow);
@@ -63,12 +84,16 @@ export function agoText(ms: number, now: number): string {
   return `${parts.join(" ")} ago`;
 }
 
-/** The value of an <input type="datetime-local" step="1">, in UTC. */
+/** The picker's text: "2026-11-21 10:00:05", 24-hour UTC (a native date-time input would
+ * show the browser's locale, e.g. 12-hour AM/PM, beside the UTC clock). */
 export function toInputValue(ms: number): string {
-  return new Date(ms).toISOString().slice(0, 19);
+  return new Date(ms).toISOString().slice(0, 19).replace("T", " ");
 }
 
+/** The picker's text back to epoch ms (UTC); "YYYY-MM-DD HH:MM[:SS]" or with a "T"; null if not one. */
 export function fromInputValue(v: string): number | null {
-  const t = Date.parse(v.length === 16 ? `${v}:00Z` : `${v}Z`);
+  const m = /^\s*(\d{4}-\d\d-\d\d)[ T](\d\d:\d\d)(:\d\d)?\s*$/.exec(v);
+  if (!m) return null;
+  const t = Date.parse(`${m[1]}T${m[2]}${m[3] ?? ":00"}Z`);
   return Number.isNaN(t) ? null : t;
 }
