@@ -120,7 +120,7 @@ class Stack:
         """`mapservice processors` alone (the split deployment: needs a ClickHouse server,
         MAPSERVICE_CLICKHOUSE_DSN in extra_env); healthy once its consumer has partitions."""
         embedded.ensure_port_free(health_port, "the processors' health endpoint")
-        proc = self._spawn("processors", "processors", "--health-port", str(health_port))
+        proc = self.spawn("processors", "processors", "--health-port", str(health_port))
         embedded.wait_for_port(health_port, timeout_s=120, proc=proc, what="processors")
         self.wait_healthy(f"http://127.0.0.1:{health_port}/healthz", "processors", proc)
         return proc

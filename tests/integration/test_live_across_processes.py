@@ -26,10 +26,16 @@ from mapservice.settings import Settings
 from mapservice.stack import Stack
 from mapservice.wire2019 import encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS
-from tests.ui.conftest import DIST, browser, page  # noqa: F401  (fixtures)
+from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from .conftest import wait_for_meta
 from .test_pipeline import now_ms, publish_all
+
+
+@pytest.fixture(scope="module")
+def browser(module_browser):
+    """This module's browser ends with the module (see tests/ui/conftest.playwright_browser)."""
+    return module_browser
 
 
 @pytest.fixture(scope="module")

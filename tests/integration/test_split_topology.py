@@ -33,11 +33,17 @@ from websockets.sync.client import connect
 from mapservice import embedded
 from mapservice.stack import Stack
 from mapservice.wire2019 import content_hash, format_timestamp
-from tests.ui.conftest import DIST, browser, page  # noqa: F401  (fixtures)
+from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from . import test_contract_2019 as contract
 from .test_contract_2019 import TOKEN, http, until  # noqa: F401  (http: a fixture)
 from .test_pipeline import now_ms, publish_all
+
+
+@pytest.fixture(scope="module")
+def browser(module_browser):
+    """This module's browser ends with the module (see tests/ui/conftest.playwright_browser)."""
+    return module_browser
 
 TIMEOUT_MS = 60_000
 

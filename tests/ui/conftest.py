@@ -55,8 +55,12 @@ def history_stack(tmp_path_factory):
     stack.stop()
 
 
-@pytest.fixture(scope="session")
-def browser():
+def playwright_browser():
+    """Debian's Chromium through Playwright, for as long as the generator is open.
+
+    While it is, Playwright's sync API keeps an event loop running in the main thread, and
+    asyncio.run() fails there: a module outside tests/ui that needs a browser takes one of
+    module scope (`module_browser`), so the tests after it are not affected."""
     from playwright.sync_api import sync_playwright
 
     if chromium_path() is None:
@@ -65,6 +69,16 @@ def browser():
         b = launch(pw)
         yield b
         b.close()
+
+
+@pytest.fixture(scope="session")
+def browser():
+    yield from playwright_browser()
+
+
+@pytest.fixture(scope="module")
+def module_browser():
+    yield from playwright_browser()
 
 
 @pytest.fixture
