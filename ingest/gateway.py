@@ -108,10 +108,12 @@ class MqttGateway:
             return
         client.subscribe([(t, 1) for t in self.settings.mqtt_subscriptions])
         self._connected.set()
+        metrics.MQTT_CONNECTED.set(1)
         log.info("mqtt connected", subscriptions=self.settings.mqtt_subscriptions)
 
     def _on_disconnect(self, _client, _userdata, _flags, reason_code, _props) -> None:
         self._connected.clear()
+        metrics.MQTT_CONNECTED.set(0)
         if not self._stop.is_set():
             log.warning("mqtt disconnected, reconnecting", reason=str(reason_code))
 

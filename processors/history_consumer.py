@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import mode
 import structlog
-from prometheus_client import Counter
+from prometheus_client import Counter, Histogram
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.ports import EventSource, SourceRecord
@@ -32,6 +32,27 @@ log = structlog.get_logger(__name__)
 
 COMMIT_FAILURES = Counter("mapservice_sink_commit_failures_total",
                           "Batches stored but not committed (they will be re-delivered)")
+# End to end, per stored event: from the robot's timestamp (includes its clock's skew) and
+# from the gateway's receive time (the service's own latency) to the moment the insert
+# holding it returned, i.e. to queryable.
+_LATENCY_BUCKETS = (0.05, 0.1, 0.25, 0.5, 1, 2, 5, 10, 30, 60, 300, 3600)
+EVENT_TO_STORED = Histogram("mapservice_event_to_stored_seconds",
+                            "Robot event time to stored in the history, per event", ["topic"],
+                            buckets=_LATENCY_BUCKETS)
+RECEIVED_TO_STORED = Histogram("mapservice_received_to_stored_seconds",
+                               "Gateway receive time to stored in the history, per event", ["topic"],
+                               buckets=_LATENCY_BUCKETS)
+BATCH_EVENTS = Histogram("mapservice_sink_batch_events", "Events per stored batch",
+                         buckets=(1, 10, 50, 100, 250, 500, 1000, 2000, 5000))
+
+
+def observe_stored(topic: str, events: Sequence, now_ms: int) -> None:
+    """Records each stored event's end-to-end latencies (clock skew can make the first
+    negative: it is counted as 0)."""
+    event_hist, receive_hist = EVENT_TO_STORED.labels(topic), RECEIVED_TO_STORED.labels(topic)
+    for e in events:
+        event_hist.observe(max(0.0, (now_ms - e.event_time_ms) / 1000))
+        receive_hist.observe(max(0.0, (now_ms - e.receive_time_ms) / 1000))
 
 
 async def store_values(sink: "HistorySink", views: "LiveViews | None",
@@ -45,15 +66,21 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
     """
     good: list = []
     per_topic: dict[str, int] = {}
+    by_topic: dict[str, list] = {}
     bad_by_topic = {}
     for topic, values in values_by_topic.items():
         events, bad = split_events(values, now_ms)
         good.extend(events)
+        by_topic[topic] = events
         per_topic[topic] = len(events)
         if bad:
             bad_by_topic[topic] = bad
     if good:
         await sink.insert_until_done(sink.store.append, good, per_topic)
+        BATCH_EVENTS.observe(len(good))
+        stored_ms = SystemClock().now_ms()
+        for topic, events in by_topic.items():
+            observe_stored(topic, events, stored_ms)
         if sink.live is not None:
             sink.live.publish(good)
         if views is not None:

@@ -169,3 +169,34 @@ def test_apply_meta_sets_chunk_size_and_does_not_compound(ingestor, wire) -> Non
     assert ingestor.handle("iot/chunks/create", wire.chunk(row=7, column=7),
                            lambda: None).reason is None
     assert ingestor.limits.max_message_bytes == Settings().max_message_bytes
+
+
+def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
+    """The rejected counter exists at 0 for each reason before any message is rejected."""
+    from prometheus_client import REGISTRY
+
+    import mapservice.ingest.metrics  # noqa: F401
+    from mapservice.wire2019 import Reason
+
+    for reason in Reason:
+        assert REGISTRY.get_sample_value("mapservice_gateway_rejected_total", {"reason": reason.value}) is not None
+
+
+def test_the_mqtt_connected_gauge_follows_the_session() -> None:
+    """mapservice_gateway_mqtt_connected is 1 after a successful connect and 0 after a disconnect."""
+    from paho.mqtt.reasoncodes import ReasonCode
+    from paho.mqtt.packettypes import PacketTypes
+    from prometheus_client import REGISTRY
+
+    from mapservice.ingest.gateway import MqttGateway
+    from mapservice.settings import Settings
+
+    class Client:
+        def subscribe(self, topics):
+            self.topics = topics
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway._on_connect(Client(), None, None, ReasonCode(PacketTypes.CONNACK, "Success"), None)
+    assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 1
+    gateway._on_disconnect(Client(), None, None, ReasonCode(PacketTypes.DISCONNECT, "Normal disconnection"), None)
+    assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 0

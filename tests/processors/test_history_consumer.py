@@ -195,3 +195,29 @@ def test_the_live_feed_gets_each_batch_once_it_is_queryable(ev) -> None:
     drain(consumer)
     # Stored when pushed, pushed before the offsets moved on.
     assert Feed.batches == [([NOW, NOW + 1, NOW + 2], True, {})] and store.attempts == 2
+
+
+def test_stored_events_record_their_end_to_end_latency_and_batch_size(ev) -> None:
+    """Each stored event adds one observation from its event time and one from its receive time, per topic."""
+    from prometheus_client import REGISTRY
+
+    from mapservice.adapters.clock import SystemClock
+
+    def count(name: str, topic: str) -> float:
+        return REGISTRY.get_sample_value(f"{name}_count", {"topic": topic}) or 0.0
+
+    before = (count("mapservice_event_to_stored_seconds", "lat-poses"),
+              count("mapservice_received_to_stored_seconds", "lat-poses"))
+    batches_before = REGISTRY.get_sample_value("mapservice_sink_batch_events_count") or 0.0
+    source, store = MemorySource(), MemoryStore()
+    now = SystemClock().now_ms()
+    for i in range(5):
+        source.append("lat-poses", encode(ev.pose("r1", now - 3_000 + i)))
+    drain(consumer_for(store, source, batch=100))
+    assert count("mapservice_event_to_stored_seconds", "lat-poses") == before[0] + 5
+    assert count("mapservice_received_to_stored_seconds", "lat-poses") == before[1] + 5
+    assert (REGISTRY.get_sample_value("mapservice_sink_batch_events_count") or 0.0) == batches_before + 1
+    # Three seconds old when stored: in the (2, 5] s bucket of the event-time histogram.
+    le2 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "2.0"})
+    le5 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "5.0"})
+    assert le5 - le2 == 5
