@@ -16,12 +16,12 @@ import time
 import structlog
 
 from mapservice.adapters.clock import SystemClock
-from mapservice.adapters.kafka_publisher import KafkaPublisher
+from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
 from mapservice.health_server import serve_health
 from mapservice.mqtt import make_client, parse_mqtt_url
 from mapservice.ports import Clock, EventPublisher
 from mapservice.settings import Settings
-from mapservice.wire2019 import Limits
+from mapservice.wire2019 import Limits, Reason
 
 from . import metrics
 from .meta_watcher import MetaWatcher
@@ -59,6 +59,9 @@ class Ingestor:
         return self._in_flight
 
     def handle(self, mqtt_topic: str, payload: bytes, ack) -> Record:
+        """Routes, publishes and (once Kafka has the record) acknowledges one message. It
+        raises only if even its dead letter cannot be handed to the producer; the message
+        is then left unacknowledged, in the broker's session."""
         started = time.monotonic()
         record = self.router.route(mqtt_topic, payload, self.clock.now_ms(), self.limits)
         outcome = "accepted" if record.reason is None else "rejected"
@@ -84,8 +87,31 @@ class Ingestor:
             metrics.MESSAGES.labels(outcome).inc()
             metrics.ACK_LATENCY.observe(time.monotonic() - started)
 
-        self.publisher.publish(record.topic, record.key, record.value, done)
+        try:
+            self._publish(record, done)
+        except RecordTooLarge as exc:
+            # Valid, but too big for a Kafka record: it becomes a dead letter that fits.
+            record = self.router.dead_letter(mqtt_topic, payload, record.envelope.receive_time_ms
+                                             if record.envelope else self.clock.now_ms(),
+                                             Reason.RECORD_TOO_LARGE, str(exc))
+            outcome = "rejected"
+            metrics.REJECTED.labels(record.reason).inc()
+            log.info("message rejected", reason=record.reason, mqtt_topic=mqtt_topic[:200])
+            self._publish(record, done)
         return record
+
+    def _publish(self, record: Record, done) -> None:
+        """Hands the record to the producer; if that fails, the message no longer counts
+        as in flight (it was not taken) and the error goes to the caller."""
+        try:
+            self.publisher.publish(record.topic, record.key, record.value, done)
+        except RecordTooLarge:
+            raise  # handle() replaces it by a dead letter, still in flight
+        except BaseException:
+            with self._lock:
+                self._in_flight -= 1
+            metrics.IN_FLIGHT.dec()
+            raise
 
 
 class MqttGateway:
@@ -121,11 +147,22 @@ class MqttGateway:
         if self._stop.is_set():
             return  # not acknowledged: the persistent session redelivers it after restart
         mid, qos = msg.mid, msg.qos
-        self.ingestor.handle(msg.topic, msg.payload, lambda: client.ack(mid, qos))
+        try:
+            self.ingestor.handle(msg.topic, msg.payload, lambda: client.ack(mid, qos))
+        except Exception:  # noqa: BLE001 - an exception here would end paho's network thread
+            metrics.HANDLING_ERRORS.inc()
+            log.exception("message handling failed; left unacknowledged", mqtt_topic=msg.topic[:200],
+                          size=len(msg.payload))
+
+    def loop_alive(self) -> bool:
+        """Whether paho's network thread runs (it is what receives and acknowledges)."""
+        thread = getattr(self.client, "_thread", None)  # paho keeps loop_start()'s thread there
+        return thread is not None and thread.is_alive()
 
     def status(self) -> dict:
-        return {"ok": self._connected.is_set(), "mqtt_connected": self._connected.is_set(),
-                "in_flight": self.ingestor.in_flight, "gateway": self.gateway_id}
+        alive = self.loop_alive()
+        return {"ok": self._connected.is_set() and alive, "mqtt_connected": self._connected.is_set(),
+                "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight, "gateway": self.gateway_id}
 
     def run(self) -> None:
         host, port, tls = parse_mqtt_url(self.settings.mqtt_url)

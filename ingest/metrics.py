@@ -7,6 +7,8 @@ REJECTED = Counter("mapservice_gateway_rejected_total", "Messages sent to the de
                    ["reason"])
 DELIVERY_FAILURES = Counter("mapservice_gateway_delivery_failures_total",
                             "Kafka deliveries that failed and were retried")
+HANDLING_ERRORS = Counter("mapservice_gateway_handling_errors_total",
+                          "Messages whose handling failed unexpectedly (left unacknowledged)")
 IN_FLIGHT = Gauge("mapservice_gateway_in_flight", "MQTT messages awaiting Kafka confirmation")
 MQTT_CONNECTED = Gauge("mapservice_gateway_mqtt_connected", "1 while the gateway's MQTT session is up")
 ACK_LATENCY = Histogram("mapservice_gateway_ack_seconds", "MQTT receive to Kafka-confirmed ack",

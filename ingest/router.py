@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 from mapservice.events import (
@@ -15,6 +16,10 @@ from mapservice.events import (
 )
 from mapservice.settings import Settings
 from mapservice.wire2019 import Limits, Reason, Rejection, decode_chunk_create, decode_coordinates
+
+
+# Kafka's default record limit is 1 MB; a dead letter keeps at most this much of a message.
+DEAD_LETTER_PAYLOAD_MAX = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -40,25 +45,35 @@ class Router:
                                   else base.rstrip("/") + "/")
 
     def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
-        if mqtt_topic == self.chunk_topic:
-            result = decode_chunk_create(payload, receive_ms, limits)
-        elif mqtt_topic.startswith(self.coordinate_prefix):
-            robot_id = mqtt_topic[len(self.coordinate_prefix):]
-            result = decode_coordinates(robot_id, payload, receive_ms, limits)
-        else:
-            result = Rejection(Reason.UNKNOWN_TOPIC, f"no handler for MQTT topic {mqtt_topic!r}")
-        if isinstance(result, Rejection):
-            letter = DeadLetter(
-                reason=result.reason.value,
-                detail=result.detail,
-                mqtt_topic=mqtt_topic,
-                payload=payload,
-                receive_time_ms=receive_ms,
-                gateway=self.gateway_id,
-            )
-            return Record(self.settings.topic_dead_letter, mqtt_topic.encode(),
-                          encode_dead_letter(letter), result.reason.value)
-        return Record(self.topic_for(result), kafka_key(result), encode(result), None, result)
+        try:
+            if mqtt_topic == self.chunk_topic:
+                result = decode_chunk_create(payload, receive_ms, limits)
+            elif mqtt_topic.startswith(self.coordinate_prefix):
+                robot_id = mqtt_topic[len(self.coordinate_prefix):]
+                result = decode_coordinates(robot_id, payload, receive_ms, limits)
+            else:
+                result = Rejection(Reason.UNKNOWN_TOPIC, f"no handler for MQTT topic {mqtt_topic[:200]!r}")
+            if isinstance(result, Rejection):
+                return self.dead_letter(mqtt_topic, payload, receive_ms, result.reason, result.detail)
+            return Record(self.topic_for(result), kafka_key(result), encode(result), None, result)
+        except Exception as exc:  # noqa: BLE001 - no message may stop the gateway
+            return self.dead_letter(mqtt_topic, payload, receive_ms, Reason.INTERNAL_ERROR,
+                                    f"{type(exc).__name__}: {str(exc)[:500]}")
+
+    def dead_letter(self, mqtt_topic: str, payload: bytes, receive_ms: int, reason: Reason,
+                    detail: str) -> Record:
+        """The dead-letter record for a message: its bytes as they came, or, beyond
+        DEAD_LETTER_PAYLOAD_MAX, their start with the size and a hash of the whole (a
+        dead letter must itself fit in a Kafka record)."""
+        if len(payload) > DEAD_LETTER_PAYLOAD_MAX:
+            digest = hashlib.sha256(payload).hexdigest()
+            detail = (f"{detail} (payload truncated to its first {DEAD_LETTER_PAYLOAD_MAX} of "
+                      f"{len(payload)} bytes; sha256 of the whole: {digest})")
+            payload = payload[:DEAD_LETTER_PAYLOAD_MAX]
+        letter = DeadLetter(reason=reason.value, detail=detail[:2000], mqtt_topic=mqtt_topic[:500],
+                            payload=payload, receive_time_ms=receive_ms, gateway=self.gateway_id)
+        return Record(self.settings.topic_dead_letter, mqtt_topic[:500].encode(),
+                      encode_dead_letter(letter), reason.value)
 
     def topic_for(self, envelope: Envelope) -> str:
         if isinstance(envelope.payload, PoseReported):

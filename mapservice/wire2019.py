@@ -39,6 +39,9 @@ class Reason(str, Enum):
     TIMESTAMP_TOO_OLD = "timestamp_too_old"
     ROBOT_ID_MISMATCH = "robot_id_mismatch"
     UNKNOWN_TOPIC = "unknown_topic"
+    TOO_DEEP = "too_deep"  # JSON nested deeper than the decoder goes (msgspec: RecursionError)
+    INTERNAL_ERROR = "internal_error"  # anything else that went wrong with this message
+    RECORD_TOO_LARGE = "record_too_large"  # accepted, but Kafka refuses a record that large
 
 
 class Rejection(msgspec.Struct, frozen=True):
@@ -137,6 +140,9 @@ def _decode(decoder: msgspec.json.Decoder, data: bytes):
         return Rejection(Reason.NOT_JSON, f"payload is not JSON: {exc}")
     except UnicodeDecodeError as exc:  # msgspec raises it for invalid UTF-8 inside a string
         return Rejection(Reason.NOT_JSON, f"payload is not UTF-8 JSON: {exc}")
+    except RecursionError:
+        # A small message nested ~1,000 levels deep: msgspec gives up; so do we, politely.
+        return Rejection(Reason.TOO_DEEP, "JSON nested too deeply to decode")
 
 
 def parse_timestamp(text: str) -> int | None:

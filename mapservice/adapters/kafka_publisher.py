@@ -6,7 +6,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from confluent_kafka import KafkaException, Producer
+from confluent_kafka import KafkaError, KafkaException, Producer
 
 from ..settings import Settings
 
@@ -25,6 +25,10 @@ def producer_config(settings: Settings, client_id: str) -> dict:
         "partitioner": "murmur2_random",
         "message.timeout.ms": 30_000,
     }
+
+
+class RecordTooLarge(ValueError):
+    """Kafka refuses a record this large (librdkafka's message.max.bytes)."""
 
 
 class KafkaPublisher:
@@ -63,6 +67,10 @@ class KafkaPublisher:
             except BufferError:
                 # Local queue full: serve callbacks to make room instead of dropping.
                 producer.poll(0.05)
+            except KafkaException as exc:
+                if exc.args and exc.args[0].code() == KafkaError.MSG_SIZE_TOO_LARGE:
+                    raise RecordTooLarge(f"{len(value)} bytes: larger than Kafka takes") from None
+                raise
 
     def poll(self, timeout: float) -> None:
         if self._producer is None:

@@ -183,6 +183,9 @@ BAD_CASES = [
                _chunk(robotId="r", pgmB64compressedData="A" * (256 * 1024))),
     pose_case("pose-oversized-garbage-checked-first", Reason.OVERSIZED, b"\xff" * 2048,
               limits=Limits(max_message_bytes=1024)),
+    # a 2 KB message nested ~1,000 levels deep (msgspec raises RecursionError)
+    pose_case("pose-nested-1000-deep", Reason.TOO_DEEP, b'{"x":' + b"[" * 1000 + b"]" * 1000 + b"}"),
+    chunk_case("chunk-nested-5000-deep", Reason.TOO_DEEP, b'{"x":' + b"[" * 5000 + b"]" * 5000 + b"}"),
 ]
 
 
@@ -196,9 +199,10 @@ def test_bad_message_is_rejected_with_its_reason(case: Bad) -> None:
 
 
 def test_every_reason_code_has_a_bad_message() -> None:
-    """Every Reason except unknown_topic (the router's, see tests/ingest) has a case above."""
+    """Every Reason but the router's and the gateway's (unknown_topic, internal_error,
+    record_too_large: see tests/ingest) has a case above."""
     covered = {c.reason for c in BAD_CASES}
-    assert covered == set(Reason) - {Reason.UNKNOWN_TOPIC}
+    assert covered == set(Reason) - {Reason.UNKNOWN_TOPIC, Reason.INTERNAL_ERROR, Reason.RECORD_TOO_LARGE}
 
 
 def test_zlib_bomb_is_bounded_to_one_chunk() -> None:
