@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
+from starlette.types import ASGIApp
 from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
@@ -41,7 +42,7 @@ ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_content
 def create_app(settings: Settings, store: HistoryStore,
                readiness: dict[str, Callable[[], bool]] | None = None,
                clock: Clock | None = None, live_hub: LiveHub | None = None,
-               publisher: EventPublisher | None = None) -> FastAPI:
+               publisher: EventPublisher | None = None, sql_app: ASGIApp | None = None) -> FastAPI:
     # /docs and /redoc with Swagger UI and ReDoc served from the installed package, not a
     # CDN: a plant network often has no internet.
     app = FastAPIOffline(title="mapservice", version=__version__,
@@ -54,6 +55,10 @@ def create_app(settings: Settings, store: HistoryStore,
     app.state.publisher = publisher  # None: 2019 REST writes answer 503
     for module in ROUTERS:
         app.include_router(module.router)
+    if sql_app is not None:
+        # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
+        # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.
+        app.mount("/clickhouse", sql_app, name="clickhouse")
     # Request rate, errors and duration per route template (mapservice_api_requests_total,
     # mapservice_api_request_duration_seconds); probes and scrapes are not counted, and
     # paths that match no route share one label instead of one series per URL.

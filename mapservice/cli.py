@@ -44,6 +44,45 @@ def cmd_serve(args, processors: bool = True, api: bool = True, component: str = 
                       health_port=getattr(args, "health_port", None)))
 
 
+def cmd_clickhouse_server(args) -> None:
+    import uvicorn
+
+    from .sql.apps import server_app
+
+    settings = _settings("clickhouse-server")
+    app = server_app(settings, read_write=args.read_write)
+    log = logging.getLogger("mapservice.clickhouse-server")
+    log.info("ClickHouse HTTP interface over %s on http://%s:%d (%s)", settings.resolved_clickhouse_dsn,
+             args.host, args.port, "read-write" if args.read_write else "read-only")
+    uvicorn.run(app, host=args.host, port=args.port, log_config=None, log_level=None,
+                access_log=False)
+
+
+def cmd_sql(args) -> None:
+    import httpx
+
+    from .sql.credentials import analyst_password
+
+    settings = Settings(data_dir=Path(args.data_dir)) if args.data_dir else Settings()
+    password = args.password or analyst_password(settings)
+    if not password:
+        sys.exit("mapservice sql: no analyst password: pass --password or set "
+                 "MAPSERVICE_ANALYST_PASSWORD")
+    query = args.query if args.query != "-" else sys.stdin.read()
+    try:
+        with httpx.stream("POST", args.url.rstrip("/") + "/", content=query.encode(),
+                          params={"default_format": args.format},
+                          auth=(args.user or settings.analyst_username, password),
+                          timeout=settings.analyst_max_execution_s + 30) as reply:
+            if reply.status_code != 200:
+                sys.exit(reply.read().decode(errors="replace").strip())
+            for chunk in reply.iter_bytes():
+                sys.stdout.buffer.write(chunk)
+    except httpx.HTTPError as exc:
+        sys.exit(f"mapservice sql: cannot reach {args.url} ({exc}); is the service running "
+                 "(`make up`)? --url points elsewhere")
+
+
 def cmd_up(args) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -219,6 +258,31 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--robots", type=int, default=5, help="simulated robots (ids sim-000, ...)")
     demo.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML of the floor")
     demo.set_defaults(func=cmd_demo_history)
+
+    chs = sub.add_parser("clickhouse-server", help="the ClickHouse HTTP interface over the data "
+                         "dir's chDB, for processes that run apart (the split deployment on one "
+                         "machine); the one process that opens the directory")
+    chs.add_argument("--host", default="127.0.0.1", help="address to listen on")
+    chs.add_argument("--port", type=int, default=8123, help="port to listen on")
+    chs.add_argument("--read-write", action="store_true",
+                     help="let MAPSERVICE_CLICKHOUSE_USERNAME write (default: every user read-only)")
+    chs.set_defaults(func=cmd_clickhouse_server)
+
+    sql = sub.add_parser("sql", help="run one read-only SQL statement on the running service "
+                         "(the analyst's ClickHouse HTTP endpoint) and print the result")
+    sql.add_argument("query", help="the statement; - reads it from stdin")
+    sql.add_argument("--url", default="http://127.0.0.1:8080/clickhouse",
+                     help="the service's ClickHouse endpoint (the API's /clickhouse)")
+    sql.add_argument("--format", default="PrettyCompact",
+                     help="a ClickHouse output format: PrettyCompact, CSVWithNames, JSONEachRow, "
+                          "Parquet, ... (a FORMAT clause in the query wins)")
+    sql.add_argument("--user", default=None, help="default: MAPSERVICE_ANALYST_USERNAME (analyst)")
+    sql.add_argument("--password", default=None,
+                     help="default: MAPSERVICE_ANALYST_PASSWORD, else the one `up` generated in "
+                          "the data dir")
+    sql.add_argument("--data-dir", default=None,
+                     help="where to find the generated password (default: MAPSERVICE_DATA_DIR)")
+    sql.set_defaults(func=cmd_sql)
 
     serve = sub.add_parser("serve", help="processors and API in one process (chdb needs this)")
     serve.set_defaults(func=cmd_serve)

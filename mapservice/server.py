@@ -68,7 +68,10 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
                 hub.publish, messages))
             hub.ready = relay.assigned.is_set
             relay.start()
-            app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher)
+            from .sql.apps import analyst_app
+
+            app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher,
+                             sql_app=await loop.run_in_executor(None, analyst_app, settings))
             config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")

@@ -54,6 +54,16 @@ class Settings(BaseSettings):
     clickhouse_username: str = "default"
     clickhouse_password: SecretStr = SecretStr(DEFAULT_CLICKHOUSE_PASSWORD)
 
+    # Analysts: read-only SQL over the ClickHouse HTTP protocol at the API's /clickhouse
+    analyst_username: str = Field("analyst", description="The read-only SQL user.")
+    analyst_password: SecretStr = Field(SecretStr(""), description=(
+        "Its password. Empty: generated on first start in local mode (DATA_DIR/secrets/"
+        "analyst-password); analyst SQL is off in production mode."))
+    analyst_max_execution_s: int = Field(30, ge=1, le=3600, description="Time limit per statement.")
+    analyst_max_result_rows: int = Field(1_000_000, ge=1, description="Row limit per result.")
+    analyst_max_memory_bytes: int = Field(2 * 1024**3, ge=64 * 1024**2,
+                                          description="Memory limit per statement.")
+
     # MQTT (topic names as in the 2019 configuration, appendix A.3)
     mqtt_url: str = Field("mqtt://127.0.0.1:1883", description="MQTT broker the gateway reads.")
     mqtt_ws_url: str = Field("", description="The broker's MQTT-over-WebSocket URL as browsers "

@@ -1,0 +1,57 @@
+"""The ClickHouse HTTP interface as each process offers it.
+
+- the API's `/clickhouse` (every mode): the analyst only, read-only, on the service's own
+  ClickHouse (chDB in this process, or the server the service writes to);
+- `mapservice clickhouse-server` (embedded data dir, split deployment on one machine): the
+  process that owns the chDB directory, for the service's ClickHouse user (read-write with
+  `--read-write`) and the analyst.
+"""
+
+from __future__ import annotations
+
+from starlette.applications import Starlette
+
+from mapservice.settings import Settings
+
+from .chdb_engine import ChdbEngine
+from .credentials import analyst_limits, analyst_user
+from .engine import SqlEngine, SqlRequest
+from .http_protocol import SqlUser, clickhouse_http_app
+from .server_engine import ServerEngine
+
+
+def engine_for(settings: Settings) -> SqlEngine:
+    dsn = settings.resolved_clickhouse_dsn
+    limits = analyst_limits(settings).settings()
+    if dsn.startswith("chdb://"):
+        return ChdbEngine(dsn, read_only_settings=limits)
+    return ServerEngine(dsn, settings.clickhouse_username,
+                        settings.clickhouse_password.get_secret_value(), read_only_settings=limits)
+
+
+def engine_timezone(engine: SqlEngine) -> str:
+    return engine.execute(SqlRequest("SELECT timezone()", default_format="TSVRaw")).body.decode().strip() or "UTC"
+
+
+def analyst_app(settings: Settings) -> Starlette | None:
+    """The analyst's read-only endpoint, or None where no analyst credential is configured."""
+    user = analyst_user(settings)
+    if user is None:
+        return None
+    engine = engine_for(settings)
+    return clickhouse_http_app(engine, [user], timezone=engine_timezone(engine),
+                               display_name="mapservice-api")
+
+
+def server_app(settings: Settings, read_write: bool) -> Starlette:
+    """The standalone server over the data dir's chDB."""
+    engine = ChdbEngine(settings.resolved_clickhouse_dsn,
+                        read_only_settings=analyst_limits(settings).settings())
+    users = []
+    analyst = analyst_user(settings)
+    if analyst is not None:
+        users.append(analyst)
+    users.append(SqlUser(settings.clickhouse_username,
+                         settings.clickhouse_password.get_secret_value(), read_only=not read_write))
+    return clickhouse_http_app(engine, users, timezone=engine_timezone(engine),
+                               display_name="mapservice-clickhouse-server")

@@ -1,0 +1,174 @@
+"""The SQL engine over the embedded chDB of this process (the one process that may open
+the data directory: `mapservice serve` or `mapservice clickhouse-server`).
+
+Each statement runs on a chDB connection handle of its own kind:
+- read-write statements on a small pool of handles; a statement's settings are `SET` on
+  the handle first and reset to `DEFAULT` afterwards, so no request sees another's;
+- read-only statements on a fresh handle that is made read-only (`readonly = 1`, which the
+  engine enforces and nobody can lift on that handle) and closed afterwards (about 1 ms).
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import re
+import tempfile
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+
+import chdb
+
+from .engine import SqlError, SqlRequest, SqlResult, output_format
+
+_SETTING_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+# SET and USE only change the session, and the HTTP interface here has none (like a
+# server asked without session_id): they succeed and change nothing for later requests.
+_SESSION_ONLY = re.compile(r"^\s*(SET|USE)\s", re.IGNORECASE)
+
+
+def _quote(value: str) -> str:
+    return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def _identifier(name: str) -> str:
+    return "`" + name.replace("\\", "\\\\").replace("`", "\\`") + "`"
+
+
+def _setting_name(name: str) -> str:
+    if not _SETTING_NAME.match(name):
+        raise SqlError(f"Setting name {name!r} is not valid", 115)
+    return name
+
+
+class _Handle:
+    def __init__(self, path: str):
+        self.conn = chdb.connect(path)
+        self.database: str | None = None
+
+    def run(self, sql: str, fmt: str = "TabSeparated", params: dict[str, str] | None = None):
+        try:
+            return self.conn.query(sql, fmt, params=params or {})
+        except Exception as exc:  # chDB raises RuntimeError with the ClickHouse text
+            raise SqlError(str(exc).strip()) from exc
+
+    def use(self, database: str | None) -> None:
+        if database and database != self.database:
+            self.run(f"USE {_identifier(database)}")
+            self.database = database
+
+    def close(self) -> None:
+        try:
+            self.conn.close()
+        except Exception:  # closing twice or after an engine error: nothing left to free
+            pass
+
+
+class ChdbEngine:
+    """`SqlEngine` over chDB at `path`."""
+
+    def __init__(self, path: str | Path, pool_size: int = 4,
+                 read_only_settings: dict[str, str] | None = None):
+        self.path = str(Path(str(path).removeprefix("chdb://")).resolve())
+        self.read_only_settings = dict(read_only_settings or {})
+        self._pool: queue.Queue[_Handle] = queue.Queue()
+        self._size = pool_size
+        self._opened = 0
+        self._lock = threading.Lock()
+        self._tmp = Path(tempfile.mkdtemp(prefix="mapservice-sql-"))
+
+    # --- handles -----------------------------------------------------------------
+
+    @contextmanager
+    def _pooled(self):
+        try:
+            handle = self._pool.get_nowait()
+        except queue.Empty:
+            with self._lock:
+                grow = self._opened < self._size
+                if grow:
+                    self._opened += 1
+            handle = _Handle(self.path) if grow else self._pool.get()
+        try:
+            yield handle
+        finally:
+            self._pool.put(handle)
+
+    @contextmanager
+    def _read_only(self, settings: dict[str, str]):
+        """A fresh handle with the read-only limits, then `readonly = 1`: from here on the
+        engine refuses writes and any change of a setting on it."""
+        handle = _Handle(self.path)
+        try:
+            for name, value in {**self.read_only_settings}.items():
+                handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
+            handle.run("SET readonly = 1")
+            for name, value in settings.items():  # refused by the engine, as on a server
+                handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
+            yield handle
+        finally:
+            handle.close()
+
+    @contextmanager
+    def _handle_for(self, request: SqlRequest):
+        if request.read_only:
+            with self._read_only(request.settings) as handle:
+                handle.use(request.database)
+                yield handle
+            return
+        with self._pooled() as handle:
+            names = [_setting_name(n) for n in request.settings]
+            applied: list[str] = []
+            try:
+                for name in names:
+                    handle.run(f"SET {name} = {_quote(request.settings[name])}")
+                    applied.append(name)
+                handle.use(request.database)
+                yield handle
+            finally:
+                for name in applied:
+                    handle.run(f"SET {name} = DEFAULT")
+
+    # --- SqlEngine ------------------------------------------------------------------
+
+    def execute(self, request: SqlRequest) -> SqlResult:
+        fmt = output_format(request.sql, request.default_format)
+        with self._handle_for(request) as handle:
+            if _SESSION_ONLY.match(request.sql) and not request.read_only:
+                return SqlResult(b"", fmt)
+            result = handle.run(request.sql, request.default_format, request.params)
+            return SqlResult(result.bytes() or b"", fmt)
+
+    def insert(self, target: str, fmt: str, data: bytes, request: SqlRequest) -> SqlResult:
+        if request.read_only:
+            raise SqlError("Cannot execute query in readonly mode", 164)
+        # chDB has no request body: the rows go through a private file (as clickhouse-connect's
+        # own chDB backend does). `.bin` keeps chDB from guessing a compression by extension.
+        fd, name = tempfile.mkstemp(suffix=".bin", dir=self._tmp)
+        try:
+            with os.fdopen(fd, "wb") as file:
+                file.write(data)
+            with self._handle_for(request) as handle:
+                handle.run(f"INSERT INTO {target} FROM INFILE {_quote(name)} FORMAT {fmt}")
+            return SqlResult(b"", fmt)
+        finally:
+            os.unlink(name)
+
+    def ping(self) -> bool:
+        try:
+            with self._pooled() as handle:
+                return str(handle.run("SELECT 1")).strip() == "1"
+        except SqlError:
+            return False
+
+    def close(self) -> None:
+        while True:
+            try:
+                self._pool.get_nowait().close()
+            except queue.Empty:
+                break
+        try:
+            self._tmp.rmdir()
+        except OSError:
+            pass

@@ -1,0 +1,202 @@
+"""The ClickHouse HTTP interface in front of a `SqlEngine`.
+
+The part of the protocol that clickhouse-connect, Grafana's ClickHouse data source and curl
+use: `GET /ping`; `GET|POST /?query=...` (or the statement as the POST body); `database`,
+`default_format`, `query_id`, `param_<name>` and settings as URL parameters; credentials as
+`X-ClickHouse-User`/`X-ClickHouse-Key`, HTTP basic auth or `user`/`password` parameters;
+`INSERT ... FORMAT <fmt>` with the rows as the body (gzip, deflate, lz4 or zstd encoded);
+errors as `Code: N. DB::Exception: ...` with `X-ClickHouse-Exception-Code` and the status
+a server would send. Not here: sessions (`session_id` is accepted and ignored, so `SET`
+lasts one request, as on a server without a session), progress headers, compressed
+replies (replies are identity-encoded; every client handles that), the native TCP
+protocol (clickhouse-client speaks only that).
+"""
+
+from __future__ import annotations
+
+import base64
+import gzip
+import json
+import re
+import secrets
+import uuid
+import zlib
+from dataclasses import dataclass
+
+import structlog
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import Request
+from starlette.responses import PlainTextResponse, Response
+from starlette.routing import Route
+
+from .engine import AUTHENTICATION_FAILED, SqlEngine, SqlError, SqlRequest
+from .read_only import check_read_only
+
+log = structlog.get_logger(__name__)
+
+# URL parameters of the HTTP interface that are not settings of the statement.
+PROTOCOL_PARAMS = frozenset({
+    "query", "database", "default_format", "query_id", "session_id", "session_timeout",
+    "session_check", "user", "password", "quota_key", "compress", "decompress",
+    "enable_http_compression", "http_zlib_compression_level", "wait_end_of_query",
+    "buffer_size", "client_protocol_version", "send_progress_in_http_headers",
+    "http_headers_progress_interval_ms", "add_http_cors_header", "role",
+    "cancel_http_readonly_queries_on_client_close", "http_response_buffer_size",
+})
+MAX_QUERY_BYTES = 1024 * 1024
+MAX_INSERT_BYTES = 256 * 1024 * 1024
+_INSERT = re.compile(r"^\s*INSERT\s+INTO\s+(?P<target>.+?)\s+FORMAT\s+(?P<fmt>\w+)\s*$",
+                     re.IGNORECASE | re.DOTALL)
+# The statement at the head of the body, the rows after its line (clickhouse-connect's form).
+_INSERT_HEAD = re.compile(rb"^\s*INSERT\s+INTO\s+(?P<target>[^\n]+?)\s+FORMAT\s+(?P<fmt>\w+)[ \t]*\r?\n",
+                          re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class SqlUser:
+    name: str
+    password: str
+    read_only: bool
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def _decode_body(body: bytes, encoding: str) -> bytes:
+    try:
+        return _decompress(body, encoding.strip().lower())
+    except SqlError:
+        raise
+    except Exception as exc:  # gzip, zlib and lz4 each raise their own kind
+        raise SqlError(f"Cannot decode the {encoding} request body: {exc}", 432) from exc
+
+
+def _decompress(body: bytes, encoding: str) -> bytes:
+    if encoding in ("", "identity"):
+        return body
+    if encoding == "gzip":
+        return gzip.decompress(body)
+    if encoding == "deflate":
+        return zlib.decompress(body)
+    if encoding == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(body)
+    if encoding == "zstd":
+        try:
+            import zstandard
+        except ImportError as exc:
+            raise SqlError("Content-Encoding zstd is not supported here; send lz4 or gzip",
+                           48) from exc
+        return zstandard.ZstdDecompressor().decompress(body, max_output_size=MAX_INSERT_BYTES)
+    raise SqlError(f"Unknown Content-Encoding {encoding!r}; send gzip, deflate, lz4 or zstd", 48)
+
+
+async def _read_body(request: Request, limit: int) -> bytes:
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > limit:
+            raise _TooLarge()
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _credentials(request: Request) -> tuple[str, str]:
+    header = request.headers.get("authorization", "")
+    if header.lower().startswith("basic "):
+        try:
+            name, _, password = base64.b64decode(header[6:]).decode().partition(":")
+            return name, password
+        except ValueError:
+            return "", ""
+    name = request.headers.get("x-clickhouse-user") or request.query_params.get("user") or "default"
+    password = request.headers.get("x-clickhouse-key") or request.query_params.get("password") or ""
+    return name, password
+
+
+def _error(exc: SqlError, query_id: str) -> Response:
+    return PlainTextResponse(str(exc) + "\n", status_code=exc.http_status, headers={
+        "X-ClickHouse-Exception-Code": str(exc.code), "X-ClickHouse-Query-Id": query_id})
+
+
+def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: str = "UTC",
+                        display_name: str = "mapservice") -> Starlette:
+    """An ASGI app speaking the ClickHouse HTTP interface for `users` (read-only ones get
+    `check_read_only` and the engine's read-only handles)."""
+    by_name = {u.name: u for u in users}
+
+    def authenticate(request: Request) -> SqlUser:
+        name, password = _credentials(request)
+        user = by_name.get(name)
+        if user is None or not secrets.compare_digest(password.encode(), user.password.encode()):
+            raise SqlError(f"{name}: Authentication failed: password is incorrect, or there "
+                           "is no user with such name", AUTHENTICATION_FAILED)
+        return user
+
+    async def ping(request: Request) -> Response:
+        return PlainTextResponse("Ok.\n")
+
+    async def query(request: Request) -> Response:
+        query_id = request.query_params.get("query_id") or str(uuid.uuid4())
+        headers = {"X-ClickHouse-Query-Id": query_id, "X-ClickHouse-Timezone": timezone,
+                   "X-ClickHouse-Server-Display-Name": display_name}
+        try:
+            user = authenticate(request)
+            url_query = request.query_params.get("query", "")
+            limit = MAX_QUERY_BYTES if user.read_only else MAX_INSERT_BYTES
+            try:
+                body = await _read_body(request, limit)
+            except _TooLarge:
+                raise SqlError(f"The request body is larger than {limit} bytes", 131) from None
+            body = _decode_body(body, request.headers.get("content-encoding", ""))
+            params = request.query_params
+            sql_request = SqlRequest(
+                sql="",
+                database=params.get("database") or request.headers.get("x-clickhouse-database"),
+                default_format=params.get("default_format")
+                or request.headers.get("x-clickhouse-format") or "TabSeparated",
+                params={k[6:]: v for k, v in params.items() if k.startswith("param_")},
+                settings={k: v for k, v in params.items()
+                          if k not in PROTOCOL_PARAMS and not k.startswith("param_")},
+                read_only=user.read_only)
+            insert = _INSERT.match(url_query) if body else None
+            rows = body
+            if not url_query and not user.read_only:
+                insert = _INSERT_HEAD.match(body[:65536])
+                rows = body[insert.end():] if insert else body
+            if insert and not user.read_only:
+                target = insert["target"]
+                target = target.decode() if isinstance(target, bytes) else target
+                fmt = insert["fmt"].decode() if isinstance(insert["fmt"], bytes) else insert["fmt"]
+                result = await run_in_threadpool(engine.insert, target, fmt, rows, sql_request)
+            else:
+                sql = url_query + ("\n" if url_query and body else "") + body.decode("utf-8", "replace")
+                if not sql.strip():
+                    raise SqlError("Empty query: send it as ?query= or as the POST body", 62)
+                sql_request = _with_sql(sql_request, sql)
+                if user.read_only:
+                    checked = await run_in_threadpool(check_read_only, engine, sql_request)
+                    sql_request = _with_sql(sql_request, checked)
+                result = await run_in_threadpool(engine.execute, sql_request)
+        except SqlError as exc:
+            log.info("sql refused", code=exc.code, error=str(exc)[:300], query_id=query_id)
+            return _error(exc, query_id)
+        headers["X-ClickHouse-Format"] = result.format
+        headers["X-ClickHouse-Summary"] = json.dumps({"read_rows": "0", "written_rows": "0"})
+        return Response(result.body, headers=headers,
+                        media_type="text/plain; charset=UTF-8" if "JSON" not in result.format
+                        else "application/json; charset=UTF-8")
+
+    return Starlette(routes=[
+        Route("/ping", ping, methods=["GET", "HEAD"]),
+        Route("/", query, methods=["GET", "POST"]),
+    ])
+
+
+def _with_sql(request: SqlRequest, sql: str) -> SqlRequest:
+    from dataclasses import replace
+
+    return replace(request, sql=sql)

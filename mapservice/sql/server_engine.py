@@ -1,0 +1,69 @@
+"""The SQL engine over a ClickHouse server's HTTP interface (the split deployment).
+
+Statements go to the server as they came, with the service's ClickHouse credential; a
+read-only request carries `readonly=1` and its limits as settings of that one request,
+which the server enforces."""
+
+from __future__ import annotations
+
+from urllib.parse import urlsplit
+
+import httpx
+
+from .engine import SqlError, SqlRequest, SqlResult, output_format
+
+
+class ServerEngine:
+    """`SqlEngine` over `http(s)://host:port` (a path after the port is the server's proxy path)."""
+
+    def __init__(self, dsn: str, username: str = "default", password: str = "",
+                 read_only_settings: dict[str, str] | None = None, timeout_s: float = 300.0,
+                 verify: bool | str = True):
+        parts = urlsplit(dsn)
+        self.base_url = f"{parts.scheme}://{parts.hostname}:{parts.port or 8123}{parts.path}"
+        self.read_only_settings = dict(read_only_settings or {})
+        self._http = httpx.Client(
+            timeout=timeout_s, verify=verify,
+            headers={"X-ClickHouse-User": parts.username or username,
+                     "X-ClickHouse-Key": parts.password or password})
+
+    def _params(self, request: SqlRequest) -> dict[str, str]:
+        params = {f"param_{k}": v for k, v in request.params.items()}
+        if request.read_only:
+            params.update(self.read_only_settings)
+            params["readonly"] = "1"
+        params.update(request.settings)
+        if request.database:
+            params["database"] = request.database
+        params["default_format"] = request.default_format
+        return params
+
+    def _post(self, params: dict[str, str], body: bytes) -> httpx.Response:
+        try:
+            reply = self._http.post(self.base_url, params=params, content=body)
+        except httpx.HTTPError as exc:
+            raise SqlError(f"ClickHouse server {self.base_url} unreachable: {exc}", 210) from exc
+        if reply.status_code != 200:
+            code = reply.headers.get("X-ClickHouse-Exception-Code")
+            raise SqlError(reply.text.strip(), int(code) if code and code.isdigit() else None)
+        return reply
+
+    def execute(self, request: SqlRequest) -> SqlResult:
+        reply = self._post(self._params(request), request.sql.encode())
+        return SqlResult(reply.content, reply.headers.get(
+            "X-ClickHouse-Format", output_format(request.sql, request.default_format)))
+
+    def insert(self, target: str, fmt: str, data: bytes, request: SqlRequest) -> SqlResult:
+        params = self._params(request)
+        params["query"] = f"INSERT INTO {target} FORMAT {fmt}"
+        self._post(params, data)
+        return SqlResult(b"", fmt)
+
+    def ping(self) -> bool:
+        try:
+            return self._http.get(self.base_url.rstrip("/") + "/ping", timeout=5).status_code == 200
+        except httpx.HTTPError:
+            return False
+
+    def close(self) -> None:
+        self._http.close()
