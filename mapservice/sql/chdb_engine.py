@@ -96,15 +96,15 @@ class ChdbEngine:
             self._pool.put(handle)
 
     @contextmanager
-    def _read_only(self, settings: dict[str, str]):
-        """A fresh handle with the read-only limits, then `readonly = 1`: from here on the
-        engine refuses writes and any change of a setting on it."""
+    def _fresh(self, before: dict[str, str], readonly: str, after: dict[str, str]):
+        """A handle of its own: `before` set, then `readonly` (from then on the engine refuses
+        writes and any change of a setting on it), then `after`; closed at the end."""
         handle = _Handle(self.path)
         try:
-            for name, value in {**self.read_only_settings}.items():
+            for name, value in before.items():
                 handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
-            handle.run("SET readonly = 1")
-            for name, value in settings.items():  # refused by the engine, as on a server
+            handle.run(f"SET readonly = {_quote(readonly)}")
+            for name, value in after.items():  # refused by the engine, as on a server
                 handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
             yield handle
         finally:
@@ -112,17 +112,25 @@ class ChdbEngine:
 
     @contextmanager
     def _handle_for(self, request: SqlRequest):
-        if request.read_only:
-            with self._read_only(request.settings) as handle:
+        asked_readonly = request.settings.get("readonly", "0") not in ("", "0")
+        if request.read_only or asked_readonly:
+            # A read-only user gets the engine's limits and cannot change any setting; a
+            # writer asking for readonly (the API forwarding an analyst's statement to a
+            # server) sets its own limits first, as a server applies a request's settings.
+            others = {k: v for k, v in request.settings.items() if k != "readonly"}
+            if request.read_only:
+                context = self._fresh(self.read_only_settings, "1", request.settings)
+            else:
+                context = self._fresh(others, request.settings["readonly"], {})
+            with context as handle:
                 handle.use(request.database)
                 yield handle
             return
         with self._pooled() as handle:
-            names = [_setting_name(n) for n in request.settings]
             applied: list[str] = []
             try:
-                for name in names:
-                    handle.run(f"SET {name} = {_quote(request.settings[name])}")
+                for name, value in request.settings.items():
+                    handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
                     applied.append(name)
                 handle.use(request.database)
                 yield handle

@@ -70,7 +70,7 @@ def _decode_body(body: bytes, encoding: str) -> bytes:
     except SqlError:
         raise
     except Exception as exc:  # gzip, zlib and lz4 each raise their own kind
-        raise SqlError(f"Cannot decode the {encoding} request body: {exc}", 432) from exc
+        raise SqlError(f"Cannot decode the {encoding} request body: {exc}", 271) from exc
 
 
 def _decompress(body: bytes, encoding: str) -> bytes:

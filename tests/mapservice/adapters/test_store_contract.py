@@ -1,4 +1,6 @@
-"""One contract for every HistoryStore: MemoryStore and ClickHouseStore (embedded chDB).
+"""One contract for every HistoryStore: MemoryStore, ClickHouseStore on embedded chDB, and
+ClickHouseStore on a ClickHouse server's HTTP interface (the split deployment's path: here
+`mapservice clickhouse-server`'s app over the same chDB, served from this process).
 
 chDB runs one engine per process and per directory, so the module opens one engine (a
 root store kept open for the whole module) and gives each test its own database in it:
@@ -21,6 +23,9 @@ from mapservice.adapters.memory_store import MemoryStore
 from mapservice.events import PoseReported, make_envelope
 from mapservice.ports import ChunkRow, Counts, PoseRow
 from mapservice.schema import SCHEMA_VERSION
+from mapservice.sql.chdb_engine import ChdbEngine
+from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
+from tests.mapservice.sql.serving import ServedApp
 from mapservice.wire2019 import content_hash
 
 _databases = itertools.count()
@@ -36,15 +41,28 @@ def chdb_dir(tmp_path_factory):
     root.close()
 
 
+@pytest.fixture(scope="module")
+def clickhouse_http(chdb_dir):
+    """The ClickHouse HTTP interface over the module's chDB (read-write for `default`)."""
+    engine = ChdbEngine(chdb_dir)
+    app = clickhouse_http_app(engine, [SqlUser("default", "", read_only=False)])
+    with ServedApp(app) as served:
+        yield served.url
+    engine.close()
+
+
 def _clickhouse(chdb_dir) -> ClickHouseStore:
     return ClickHouseStore(f"chdb://{chdb_dir}", database=f"contract_{next(_databases)}")
 
 
-@pytest.fixture(params=["memory", "clickhouse"])
+@pytest.fixture(params=["memory", "clickhouse", "clickhouse-http"])
 def store(request):
     """An empty, migrated store of each kind."""
     if request.param == "memory":
         s = MemoryStore()
+    elif request.param == "clickhouse-http":
+        s = ClickHouseStore(request.getfixturevalue("clickhouse_http"),
+                            database=f"contract_{next(_databases)}")
     else:
         s = _clickhouse(request.getfixturevalue("chdb_dir"))
     s.migrate()
