@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from . import analyst_schema
+
 
 @dataclass(frozen=True)
 class Migration:
@@ -174,6 +176,11 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             tuple(f"ALTER TABLE {database}.poses MODIFY COLUMN {q} Float32 CODEC(FPC(20), ZSTD(3))"
                   for q in ("qx", "qy", "qz", "qw")),
         ),
+        Migration(
+            7,
+            "analysts: table and column comments; views in metres, degrees, booleans and UTC",
+            analyst_schema.statements(database),
+        ),
     ]
 
 
@@ -291,4 +298,4 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
