@@ -15,7 +15,8 @@ class ServedApp:
         self.port = embedded.free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=self.port,
-                                                    log_config=None, log_level="warning"))
+                                                    log_config=None, log_level=None,
+                                                    access_log=False))
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
     def __enter__(self) -> "ServedApp":
