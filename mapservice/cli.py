@@ -83,6 +83,31 @@ def cmd_sql(args) -> None:
                  "(`make up`)? --url points elsewhere")
 
 
+def cmd_export(args) -> None:
+    import httpx
+
+    if args.dataset == "replay":
+        url, params, ext = f"{args.api.rstrip('/')}/api/v1/exports/replay.mcap", {}, "mcap"
+    else:
+        url = f"{args.api.rstrip('/')}/api/v1/exports/tables/{args.dataset}"
+        params, ext = {"format": args.format}, args.format
+        if args.robot:
+            params["robotId"] = args.robot
+    params.update({"from": args.from_, "to": args.to})
+    out = Path(args.out or f"{args.dataset}.{ext}")
+    try:
+        with httpx.stream("GET", url, params=params, timeout=600) as reply:
+            if reply.status_code != 200:
+                sys.exit(f"mapservice export: {reply.status_code} {reply.read().decode(errors='replace')}")
+            with out.open("wb") as file:
+                for chunk in reply.iter_bytes():
+                    file.write(chunk)
+    except httpx.HTTPError as exc:
+        sys.exit(f"mapservice export: cannot reach {args.api} ({exc}); is the service running "
+                 "(`make up`)? --api points elsewhere")
+    print(f"wrote {out} ({out.stat().st_size:,} bytes)")
+
+
 def cmd_up(args) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -283,6 +308,23 @@ def build_parser() -> argparse.ArgumentParser:
     sql.add_argument("--data-dir", default=None,
                      help="where to find the generated password (default: MAPSERVICE_DATA_DIR)")
     sql.set_defaults(func=cmd_sql)
+
+    export = sub.add_parser("export", help="download a time window from the running service: "
+                            "the map and robots as MCAP (Foxglove, Lichtblick) or a table as "
+                            "CSV/Parquet")
+    export.add_argument("dataset", choices=["replay", "robot-poses", "chunk-changes",
+                                            "chunk-conflicts", "dead-letters"],
+                        help="replay: MCAP of map and robots (at most 24 h); else an analysts' "
+                             "view (docs/analysts.md; at most 7 days)")
+    export.add_argument("--from", dest="from_", required=True,
+                        help="start, ISO 8601 (2026-11-23T08:00:00Z) or epoch ms")
+    export.add_argument("--to", required=True, help="end (exclusive), ISO 8601 or epoch ms")
+    export.add_argument("--format", choices=["csv", "parquet"], default="csv",
+                        help="for tables (replay is always MCAP)")
+    export.add_argument("--robot", default=None, help="only this robot (tables)")
+    export.add_argument("--out", default=None, help="file to write (default: <dataset>.<ext>)")
+    export.add_argument("--api", default="http://127.0.0.1:8080", help="the service's API")
+    export.set_defaults(func=cmd_export)
 
     serve = sub.add_parser("serve", help="processors and API in one process (chdb needs this)")
     serve.set_defaults(func=cmd_serve)

@@ -783,6 +783,12 @@ class ClickHouseStore:
                           "pose_keyframes"):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
 
+    def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:
+        """A read's result as ClickHouse writes it in `fmt` (CSVWithNames, Parquet, ...);
+        mapservice/exports.py builds `sql` from fixed names, values go as parameters."""
+        with self._reader() as client:
+            return client.raw_query(sql, parameters=parameters, fmt=fmt)
+
     def close(self) -> None:
         with self._lock, self._read_lock:
             for client in (self._client, self._read_client):

@@ -1,0 +1,52 @@
+"""The export routes: MCAP of a window over any store, tables where ClickHouse writes them,
+clear 4xx for bad windows."""
+
+from __future__ import annotations
+
+import io
+
+from fastapi.testclient import TestClient
+from mcap.reader import make_reader
+
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.api.app import create_app
+from mapservice.settings import Settings
+from tests.conftest import chunk_event, meta_event, pose_event
+
+T0 = 1_795_255_200_000
+
+
+def client(store) -> TestClient:
+    return TestClient(create_app(Settings(), store))
+
+
+def test_replay_mcap_is_a_download_of_the_window() -> None:
+    """GET /api/v1/exports/replay.mcap: an attachment with the map and the window's poses."""
+    store = MemoryStore()
+    store.append([meta_event(T0 - 1000), chunk_event("a", T0 - 500)] +
+                 [pose_event("a", T0 + i * 1000) for i in range(10)])
+    reply = client(store).get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 5000})
+    assert reply.status_code == 200 and reply.headers["content-type"] == "application/x-mcap"
+    assert reply.headers["content-disposition"].endswith(f'replay-{T0}-{T0 + 5000}.mcap"')
+    summary = make_reader(io.BytesIO(reply.content)).get_summary()
+    by_topic = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
+    assert by_topic == {"/map": 1, "/robots/a/pose": 5}
+
+
+def test_replay_mcap_refuses_windows_it_cannot_serve() -> None:
+    """Longer than a day, reversed, or before a map exists: 4xx with a reason."""
+    c = client(MemoryStore())
+    assert c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 2 * 86_400_000}).status_code == 400
+    assert c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 - 1}).status_code == 400
+    no_map = c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 1000})
+    assert no_map.status_code == 409 and "no map geometry" in no_map.json()["detail"]
+
+
+def test_table_exports_name_what_they_need() -> None:
+    """Tables come from ClickHouse's views: on another store a 501 says so; unknown names 422."""
+    c = client(MemoryStore())
+    reply = c.get("/api/v1/exports/tables/robot-poses", params={"from": T0, "to": T0 + 1000})
+    assert reply.status_code == 501 and "ClickHouse" in reply.json()["detail"]
+    assert c.get("/api/v1/exports/tables/poses; DROP", params={"from": T0, "to": T0 + 1}).status_code == 422
+    assert c.get("/api/v1/exports/tables/robot-poses",
+                 params={"from": T0, "to": T0 + 1, "format": "xlsx"}).status_code == 422
