@@ -57,9 +57,7 @@ def create_app(settings: Settings, store: HistoryStore,
     for module in ROUTERS:
         app.include_router(module.router)
     if sql_app is not None:
-        # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
-        # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.
-        app.mount("/clickhouse", sql_app, name="clickhouse")
+        app.state.sql_app = sql_app
     # Request rate, errors and duration per route template (mapservice_api_requests_total,
     # mapservice_api_request_duration_seconds); probes and scrapes are not counted, and
     # paths that match no route share one label instead of one series per URL.
@@ -67,4 +65,30 @@ def create_app(settings: Settings, store: HistoryStore,
                        group_paths=True, filter_unhandled_paths=True,
                        skip_paths=["/metrics", "/healthz", "/readyz"],
                        buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
+    if sql_app is not None:
+        # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
+        # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.
+        app.add_middleware(PathPrefix, prefix=SQL_PATH, target=sql_app)
     return app
+
+
+SQL_PATH = "/clickhouse"
+
+
+class PathPrefix:
+    """Sends `prefix` and everything under it to `target`, the bare prefix included. Not a
+    Starlette Mount: a Mount answers the bare prefix with a redirect, and a client that
+    streams its body (clickhouse-connect's inserts) re-sends it empty after a redirect."""
+
+    def __init__(self, app: ASGIApp, prefix: str, target: ASGIApp):
+        self.app, self.prefix, self.target = app, prefix, target
+
+    async def __call__(self, scope, receive, send) -> None:
+        path = scope.get("path", "")
+        if scope["type"] == "http" and (path == self.prefix or path.startswith(self.prefix + "/")):
+            rest = path[len(self.prefix):] or "/"
+            scope = dict(scope, path=rest, raw_path=rest.encode(),
+                          root_path=scope.get("root_path", "") + self.prefix)
+            await self.target(scope, receive, send)
+            return
+        await self.app(scope, receive, send)

@@ -193,3 +193,23 @@ def statements(db: str) -> tuple[str, ...]:
         out.append(f"CREATE OR REPLACE VIEW {db}.{view} AS {select.format(db=db)} "
                    f"COMMENT {_quote(comment)}")
     return tuple(out)
+
+
+def reference_markdown() -> str:
+    """The reference part of docs/analysts.md (a test keeps the guide equal to it; after a
+    schema change: `python -m mapservice.analyst_schema` prints it)."""
+    out = ["### Views (start here)", ""]
+    for view, (comment, _select, columns) in VIEWS.items():
+        out += [f"#### `{view}`", "", comment, "", "| column | meaning |", "| --- | --- |"]
+        out += [f"| `{c}` | {text} |" for c, text in columns.items()]
+        out.append("")
+    out += ["### Tables (storage)", ""]
+    for table, (comment, columns) in TABLE_COMMENTS.items():
+        out += [f"#### `{table}`", "", comment, "", "| column | meaning |", "| --- | --- |"]
+        out += [f"| `{c}` | {text} |" for c, text in columns.items()]
+        out.append("")
+    return "\n".join(out).rstrip() + "\n"
+
+
+if __name__ == "__main__":
+    print(reference_markdown(), end="")

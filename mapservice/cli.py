@@ -165,6 +165,8 @@ def cmd_up(args) -> None:
         table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
+        table.add_row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
+                      f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
         table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/healthz")
         table.add_row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
                       + (f"{uploaded} chunks published)" if uploaded else "as stored)"))

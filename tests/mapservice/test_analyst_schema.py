@@ -130,3 +130,12 @@ def test_every_table_view_and_column_has_a_comment(loaded) -> None:
     for view, (_, _, columns) in VIEWS.items():
         described = [r["name"] for r in rows(store, f"DESCRIBE TABLE views.{view}")]
         assert described == list(columns), view
+
+
+def test_the_guide_holds_the_schemas_reference() -> None:
+    """docs/analysts.md's reference is what the schema says (regenerate: python -m mapservice.analyst_schema)."""
+    from mapservice.analyst_schema import reference_markdown
+    from tests.fixtures.paths import ROOT
+
+    guide = (ROOT / "docs" / "analysts.md").read_text()
+    assert reference_markdown() in guide

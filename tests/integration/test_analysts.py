@@ -1,0 +1,167 @@
+"""Analysts against the running embedded service (`mapservice serve` owning chDB, with a few
+hours of simulated history): the guide's examples, clickhouse-connect read-only at the
+API's /clickhouse, the guide's own snippets, `mapservice sql` and `mapservice export`.
+
+Bounded: writing the history takes ~10 s, the stack ~30 s, each query well under a second."""
+
+from __future__ import annotations
+
+import io
+import json
+import re
+import subprocess
+import sys
+import time
+
+import clickhouse_connect
+import httpx
+import pytest
+from mcap.reader import make_reader
+
+from mapservice.stack import Stack
+from mapservice.sql.credentials import analyst_password_file
+from tests.fixtures.paths import ROOT
+
+from .test_pipeline import publish_all
+
+GUIDE = ROOT / "docs" / "analysts.md"
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    """Six hours of three simulated robots, then brokers, `serve` and the gateway; one
+    message the gateway refuses (so the dead-letter example has a row)."""
+    data_dir = tmp_path_factory.mktemp("analysts") / ".mapservice-data"
+    subprocess.run([sys.executable, "-m", "mapservice.cli", "demo-history", "--data-dir",
+                    str(data_dir), "--days", "0.25", "--robots", "3"], check=True, timeout=300,
+                   capture_output=True)
+    stack = Stack(data_dir, mqtt="mosquitto")
+    try:
+        stack.start_brokers()
+        stack.start_server()
+        stack.start_gateway()
+        publish_all(stack, [("iot/coordinates/sim-000", b"{not json")])
+    except BaseException:
+        stack.stop()
+        raise
+    yield stack
+    stack.stop()
+
+
+@pytest.fixture(scope="module")
+def password(stack) -> str:
+    return analyst_password_file(stack.data_dir).read_text().strip()
+
+
+def analyst(stack, password: str, **kw):
+    port = int(stack.api_url.rsplit(":", 1)[1])
+    return clickhouse_connect.get_client(host="127.0.0.1", port=port, username="analyst",
+                                         password=password, proxy_path="/clickhouse", **kw)
+
+
+def guide_examples() -> list[tuple[str, str, list[str]]]:
+    """(title, sql, columns the guide says it returns) of each 'Common questions' example."""
+    text = GUIDE.read_text().split("## Common questions", 1)[1].split("## Reference", 1)[0]
+    examples = []
+    for section in text.split("\n### ")[1:]:
+        title = section.splitlines()[0]
+        sql = section.split("```sql\n", 1)[1].split("```", 1)[0]
+        returns = section.split("Returns ", 1)[1].split(":", 1)[0]
+        examples.append((title, sql, re.findall(r"`([a-z0-9_]+)`", returns)))
+    return examples
+
+
+def test_the_guide_has_an_example_per_common_question() -> None:
+    """Eight questions the issue names, each with its query and its columns."""
+    titles = [t for t, _, _ in guide_examples()]
+    assert len(titles) == 8 and all(columns for _, _, columns in guide_examples()), titles
+
+
+@pytest.mark.parametrize("title,sql,columns", guide_examples(), ids=lambda v: str(v)[:40])
+def test_every_guide_example_returns_what_the_guide_says(stack, password, title, sql, columns) -> None:
+    """Each example runs read-only on the live service and returns rows with the named columns."""
+    deadline = time.monotonic() + 60  # the refused message reaches dead_letters within seconds
+    while True:
+        result = analyst(stack, password).query(sql)
+        if result.result_rows or time.monotonic() > deadline:
+            break
+        time.sleep(1)
+    assert list(result.column_names) == columns, title
+    assert result.result_rows, f"{title}: no rows"
+
+
+def test_clickhouse_connect_reads_but_cannot_write(stack, password) -> None:
+    """The analyst reads through clickhouse-connect; inserts, DDL and settings changes are refused."""
+    client = analyst(stack, password)
+    assert client.query("SELECT count() FROM mapservice.robot_poses").result_rows[0][0] > 10_000
+    with pytest.raises(Exception, match="164"):
+        client.insert("mapservice.dead_letters", [["x"]], column_names=["reason"])
+    with pytest.raises(Exception, match="164"):
+        client.command("DROP TABLE mapservice.poses")
+    with pytest.raises(Exception, match="164"):
+        client.query("SELECT 1 SETTINGS max_execution_time = 100000")
+    assert client.query("SELECT count() FROM mapservice.poses").result_rows[0][0] > 10_000
+
+
+def test_without_the_credential_nothing_runs(stack, password) -> None:
+    """No password, a wrong one, or the service's own user: refused with 516."""
+    url = f"{stack.api_url}/clickhouse/"
+    assert httpx.post(url, content=b"SELECT 1").status_code == 403
+    assert httpx.post(url, content=b"SELECT 1", auth=("analyst", password + "x")).status_code == 403
+    assert httpx.post(url, content=b"SELECT 1", auth=("default", "")).status_code == 403
+    with pytest.raises(Exception, match="516"):
+        analyst(stack, "wrong")
+
+
+def guide_block(language: str, index: int) -> str:
+    return GUIDE.read_text().split(f"```{language}\n")[index + 1].split("```", 1)[0]
+
+
+def test_the_guides_python_and_curl_snippets_run(stack) -> None:
+    """The guide's Python and curl blocks, pointed at this stack's port, print results."""
+    port = stack.api_url.rsplit(":", 1)[1]
+    python = guide_block("python", 0).replace("port=8080", f"port={port}")
+    done = subprocess.run([sys.executable, "-c", python], cwd=stack.data_dir.parent,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "sim-000" in done.stdout
+    curl = guide_block("bash", 1).replace("127.0.0.1:8080", f"127.0.0.1:{port}")
+    done = subprocess.run(["bash", "-c", curl], cwd=stack.data_dir.parent, capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0 and int(done.stdout) > 10_000, done.stderr
+
+
+def test_mapservice_sql_prints_the_result(stack) -> None:
+    """`mapservice sql` finds the generated password in the data dir and prints the rows."""
+    done = subprocess.run(
+        [sys.executable, "-m", "mapservice.cli", "sql", "--url", f"{stack.api_url}/clickhouse",
+         "--data-dir", str(stack.data_dir), "--format", "JSONEachRow",
+         "SELECT robot_id, count() AS n FROM mapservice.robot_poses GROUP BY robot_id ORDER BY robot_id"],
+        capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    rows = [json.loads(line) for line in done.stdout.splitlines()]
+    assert [r["robot_id"] for r in rows] == ["sim-000", "sim-001", "sim-002"]
+    refused = subprocess.run(
+        [sys.executable, "-m", "mapservice.cli", "sql", "--url", f"{stack.api_url}/clickhouse",
+         "--data-dir", str(stack.data_dir), "TRUNCATE TABLE mapservice.poses"],
+        capture_output=True, text=True, timeout=60)
+    assert refused.returncode != 0 and "Code: 164" in refused.stderr and "reads" in refused.stderr
+
+
+def test_mapservice_export_writes_mcap_and_parquet(stack, tmp_path) -> None:
+    """`mapservice export`: an hour as MCAP (map and three robots) and as Parquet."""
+    now = int(time.time() * 1000)
+    window = ["--from", str(now - 2 * 3_600_000), "--to", str(now - 3_600_000), "--api", stack.api_url]
+    out = tmp_path / "hour.mcap"
+    subprocess.run([sys.executable, "-m", "mapservice.cli", "export", "replay", *window,
+                    "--out", str(out)], check=True, timeout=120, capture_output=True)
+    summary = make_reader(io.BytesIO(out.read_bytes())).get_summary()
+    topics = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
+    assert topics["/map"] >= 1
+    assert {t for t in topics if t.startswith("/robots/")} == {f"/robots/sim-00{i}/pose" for i in range(3)}
+    assert all(n >= 1000 for t, n in topics.items() if t != "/map")  # a report every 3 s
+    parquet = tmp_path / "poses.parquet"
+    subprocess.run([sys.executable, "-m", "mapservice.cli", "export", "robot-poses", *window,
+                    "--format", "parquet", "--robot", "sim-001", "--out", str(parquet)],
+                   check=True, timeout=120, capture_output=True)
+    assert parquet.read_bytes()[:4] == b"PAR1" and parquet.stat().st_size > 10_000
