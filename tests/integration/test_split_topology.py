@@ -200,3 +200,21 @@ def test_live_mode_reaches_every_api_replica_and_the_browser(stack, page) -> Non
 
 # Last, as in the embedded suite: it wipes the data.
 test_deletes_need_the_admin_token = contract.test_deletes_need_the_admin_token
+
+
+def test_an_api_replica_serves_analysts_read_only_from_the_server(stack) -> None:
+    """The API's /clickhouse forwards to the ClickHouse server with readonly=1: reads work,
+    writes are refused by the server, a wrong password by the API."""
+    import clickhouse_connect
+
+    from mapservice.sql.credentials import analyst_password_file
+
+    password = analyst_password_file(stack.data_dir).read_text().strip()
+    port = int(stack.second_api_url.rsplit(":", 1)[1])
+    client = clickhouse_connect.get_client(host="127.0.0.1", port=port, username="analyst",
+                                           password=password, proxy_path="/clickhouse")
+    assert client.query("SELECT count() FROM mapservice.robot_poses").result_rows[0][0] > 0
+    with pytest.raises(Exception, match="164"):
+        client.command("TRUNCATE TABLE mapservice.poses")
+    reply = httpx.post(f"{stack.second_api_url}/clickhouse/", content=b"SELECT 1", auth=("analyst", "x"))
+    assert reply.status_code == 403
