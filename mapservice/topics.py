@@ -22,11 +22,19 @@ def topic_partitions(settings: Settings, topic: str) -> int:
 
 
 def topic_config(settings: Settings, topic: str) -> dict[str, str]:
+    """What the service creates each topic with; infra/k8s/strimzi-topics.yaml declares the
+    same (tests/infra/test_manifests.py compares them). Events and dead letters are kept as
+    long as the ClickHouse history, the meta stream is compacted (the latest meta stays),
+    the live topic keeps an hour. With replicas, a write needs all but one of them."""
     if topic == settings.topic_meta_events:
-        return {"cleanup.policy": "compact"}
-    if topic == settings.topic_live:
-        return {"retention.ms": str(settings.live_retention_s * 1000)}
-    return {}
+        config = {"cleanup.policy": "compact"}
+    elif topic == settings.topic_live:
+        config = {"cleanup.policy": "delete", "retention.ms": str(settings.live_retention_s * 1000)}
+    else:
+        config = {"cleanup.policy": "delete", "retention.ms": str(settings.retention_ms)}
+    if settings.kafka_replication > 1:
+        config["min.insync.replicas"] = str(settings.kafka_replication - 1)
+    return config
 
 
 def ensure_topics(settings: Settings, timeout_s: float = 60.0) -> list[str]:

@@ -26,7 +26,7 @@ import yaml
 from pydantic import SecretStr
 
 from mapservice.settings import Settings
-from mapservice.topics import topic_partitions
+from mapservice.topics import topic_config, topic_partitions
 from tests.fixtures.paths import ROOT
 
 INFRA = ROOT / "infra"
@@ -433,8 +433,9 @@ def test_each_component_environment_gives_valid_production_settings():
 
 
 def test_strimzi_topics_match_the_settings():
-    """strimzi-topics.yaml has the five Settings topics, ConfigMap partitions/replicas, meta
-    compacted x1, live x1 with the live retention."""
+    """strimzi-topics.yaml has the five Settings topics, ConfigMap partitions/replicas, and
+    exactly the configs the service creates topics with (mapservice.topics.topic_config):
+    retention as the history's, meta compacted x1, live x1 with the live retention."""
     settings = settings_from({**configmap("mapservice"), "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
                               "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET})
     docs = load_all(STRIMZI_TOPICS)
@@ -451,6 +452,7 @@ def test_strimzi_topics_match_the_settings():
         assert spec["replicas"] == settings.kafka_replication, name
         assert spec.get("config", {}).get("cleanup.policy", "delete") == (
             "compact" if meta else "delete"), name
+        assert {k: str(v) for k, v in spec.get("config", {}).items()} == topic_config(settings, name), name
         cluster = doc["metadata"]["labels"]["strimzi.io/cluster"]
         assert settings.kafka_bootstrap.startswith(f"{cluster}-kafka-bootstrap."), name
 
