@@ -44,6 +44,26 @@ def cmd_serve(args, processors: bool = True, api: bool = True, component: str = 
                       health_port=getattr(args, "health_port", None)))
 
 
+def cmd_migrate(args) -> None:
+    from .adapters.clickhouse_store import ClickHouseStore, MigrationChanged, MigrationLocked
+    from .schema import SCHEMA_VERSION
+
+    settings = _settings("migrate")
+    store = ClickHouseStore.from_settings(settings)
+    log = logging.getLogger("mapservice.migrate")
+    try:
+        if args.break_lock:
+            log.info("migration lock %s", "dropped" if store.break_migration_lock() else "was not held")
+        before = store.schema_version()
+        version = store.migrate(lock_timeout_s=args.lock_timeout_s)
+    except (MigrationLocked, MigrationChanged) as exc:
+        sys.exit(f"mapservice migrate: {exc}")
+    finally:
+        store.close()
+    log.info("schema of %s at version %d (was %d; this release: %d)", settings.clickhouse_database,
+             version, before, SCHEMA_VERSION)
+
+
 def cmd_clickhouse_server(args) -> None:
     import uvicorn
 
@@ -285,6 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--robots", type=int, default=5, help="simulated robots (ids sim-000, ...)")
     demo.add_argument("--map", default=str(DEFAULT_MAP), help="ROS map YAML of the floor")
     demo.set_defaults(func=cmd_demo_history)
+
+    mig = sub.add_parser("migrate", help="apply the ClickHouse schema migrations of this release "
+                         "once (production runs it as a Job; components then find the schema)")
+    mig.add_argument("--lock-timeout-s", type=float, default=600.0,
+                     help="how long to wait for another running migration before giving up")
+    mig.add_argument("--break-lock", action="store_true",
+                     help="first drop a lock left by a migration that died (check none runs!)")
+    mig.set_defaults(func=cmd_migrate)
 
     chs = sub.add_parser("clickhouse-server", help="the ClickHouse HTTP interface over the data "
                          "dir's chDB, for processes that run apart (the split deployment on one "

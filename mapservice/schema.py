@@ -13,6 +13,7 @@ Choices, and why:
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 from . import analyst_schema
@@ -23,6 +24,13 @@ class Migration:
     version: int
     description: str
     statements: tuple[str, ...]
+
+    @property
+    def checksum(self) -> str:
+        """SHA-256 of the statements with whitespace collapsed (reformatting is no change).
+        Compare `checksums()`, which renders every migration with fixed parameters."""
+        text = "\n".join(" ".join(s.split()) for s in self.statements)
+        return hashlib.sha256(text.encode()).hexdigest()
 
 
 def migrations(database: str, retention_days: int) -> list[Migration]:
@@ -182,6 +190,12 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             analyst_schema.statements(database),
         ),
     ]
+
+
+def checksums() -> dict[int, str]:
+    """Each migration's checksum, rendered for a fixed database name and retention: a
+    migration's identity is its code, not the settings it was applied with."""
+    return {m.version: m.checksum for m in migrations("db", 7)}
 
 
 # The pose columns, in table order (the keyframe view and its backfill name them).

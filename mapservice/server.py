@@ -34,6 +34,27 @@ def api_server_config(app, settings: Settings) -> uvicorn.Config:
                           log_config=None, log_level=None, access_log=True)
 
 
+async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
+    """Waits until `mapservice migrate` has brought the schema to this release's version
+    (production: migrations run once per release, never from every pod at once)."""
+    from .schema import SCHEMA_VERSION
+
+    loop = asyncio.get_running_loop()
+    said = -1
+    while True:
+        version = await loop.run_in_executor(None, store.schema_version)
+        if version >= SCHEMA_VERSION:
+            if version > SCHEMA_VERSION:
+                log.warning("the schema is newer than this release", schema=version,
+                            release=SCHEMA_VERSION)
+            return version
+        if version != said:
+            log.warning("waiting for the schema migration: run `mapservice migrate` (the "
+                        "migrate Job in infra/k8s)", schema=version, needed=SCHEMA_VERSION)
+            said = version
+        await asyncio.sleep(every_s)
+
+
 async def serve(settings: Settings, *, processors: bool = True, api: bool = True,
                 health_port: int | None = None) -> None:
     from mapservice.api.app import create_app
@@ -42,7 +63,10 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     store = ClickHouseStore.from_settings(settings)
     live_publisher = KafkaLivePublisher(settings) if processors else None
     sink = HistorySink(store, live_publisher)
-    version = await sink.run(store.migrate)
+    if settings.migrates_on_start:
+        version = await sink.run(store.migrate)
+    else:
+        version = await wait_for_schema(store)
     log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
     loop = asyncio.get_running_loop()
     faust_app = None

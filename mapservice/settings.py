@@ -53,6 +53,10 @@ class Settings(BaseSettings):
     clickhouse_database: str = "mapservice"
     clickhouse_username: str = "default"
     clickhouse_password: SecretStr = SecretStr(DEFAULT_CLICKHOUSE_PASSWORD)
+    migrate_on_start: bool | None = Field(None, description=(
+        "Apply schema migrations when a component starts. Empty: yes in local mode; no in "
+        "production mode, where `mapservice migrate` runs once per release (a Job) and the "
+        "components wait for the schema."))
 
     # Analysts: read-only SQL over the ClickHouse HTTP protocol at the API's /clickhouse
     analyst_username: str = Field("analyst", description="The read-only SQL user.")
@@ -128,6 +132,10 @@ class Settings(BaseSettings):
         if self.clickhouse_dsn:
             return self.clickhouse_dsn
         return f"chdb://{(self.data_dir / 'clickhouse').resolve()}"
+
+    @property
+    def migrates_on_start(self) -> bool:
+        return self.migrate_on_start if self.migrate_on_start is not None else self.mode == "local"
 
     @property
     def retention_ms(self) -> int:

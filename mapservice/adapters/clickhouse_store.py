@@ -7,6 +7,8 @@ goes through one lock; callers in an event loop run these methods in an executor
 
 from __future__ import annotations
 
+import os
+import socket
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -14,14 +16,18 @@ from contextlib import contextmanager
 from datetime import datetime, timezone
 
 import clickhouse_connect
+import clickhouse_connect.driver.exceptions
 import msgspec
+import structlog
 
 from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
 from ..legacy_query import ChunkQuery, PoseQuery, sort_column
 from ..ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
 from ..timetravel import ChunkState, timeline_buckets
-from ..schema import KEYFRAME_MS, POSE_COLUMNS, migrations
+from ..schema import KEYFRAME_MS, POSE_COLUMNS, checksums, migrations
 from ..settings import Settings
+
+log = structlog.get_logger(__name__)
 
 _json = msgspec.json.Encoder()
 _BOOLISH = msgspec.json.Decoder(bool | str | None)
@@ -83,6 +89,17 @@ def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
         PoseRow, robot, ts, [v / 1000 for v in x], [v / 1000 for v in y], [v / 1000 for v in z],
         qx, qy, qz, qw, battery, unflag(charging), unflag(loaded), map(_path, has_path, path),
         [t + lag_ms for t, lag_ms in zip(ts, lag)]))
+
+
+MIGRATION_LOCK = "schema_migration_lock"
+
+
+class MigrationLocked(RuntimeError):
+    """Another migrator holds the lock past the timeout."""
+
+
+class MigrationChanged(RuntimeError):
+    """An applied migration's statements differ from this release's."""
 
 
 class ClickHouseStore:
@@ -156,8 +173,23 @@ class ClickHouseStore:
 
     # --- schema ---------------------------------------------------------------------
 
-    def migrate(self) -> int:
+    def schema_version(self) -> int:
+        """The highest applied migration (0 on an empty database)."""
+        try:
+            (version,), = self._rows(f"SELECT max(version) FROM {self.database}.schema_migrations", {})
+        except Exception:  # no database or table yet
+            return 0
+        return int(version or 0)
+
+    def migrate(self, lock_timeout_s: float = 600.0, holder: str | None = None) -> int:
+        """Applies the migrations not applied yet, under a lock, and returns the version.
+
+        The lock is a table that only one `CREATE TABLE` can create (ClickHouse refuses the
+        second with TABLE_ALREADY_EXISTS): two migrators never interleave statements, the
+        second waits and then finds everything applied. Each applied migration keeps a
+        checksum of its statements; a migration edited after it ran is an error."""
         db = self.database
+        holder = holder or f"{socket.gethostname()}:{os.getpid()}"
         with self._lock:
             c = self.client
             c.command(f"CREATE DATABASE IF NOT EXISTS {db}")
@@ -166,18 +198,65 @@ class ClickHouseStore:
                 "description String, applied DateTime DEFAULT now()) "
                 "ENGINE = ReplacingMergeTree ORDER BY version"
             )
-            applied = {r[0] for r in c.query(f"SELECT version FROM {db}.schema_migrations").result_rows}
-            version = max(applied, default=0)
-            for m in migrations(db, self.retention_days):
-                if m.version in applied:
-                    continue
-                for statement in m.statements:
-                    c.command(statement)
-                c.insert(f"{db}.schema_migrations", [[m.version, m.description]],
-                         column_names=["version", "description"])
-                version = max(version, m.version)
+            c.command(f"ALTER TABLE {db}.schema_migrations ADD COLUMN IF NOT EXISTS "
+                      "checksum String DEFAULT ''")
+            self._take_migration_lock(holder, lock_timeout_s)
+            try:
+                applied = dict(c.query(f"SELECT version, checksum FROM {db}.schema_migrations FINAL")
+                               .result_rows)
+                version = max(applied, default=0)
+                released = checksums()
+                for m in migrations(db, self.retention_days):
+                    if m.version in applied:
+                        if applied[m.version] and applied[m.version] != released[m.version]:
+                            raise MigrationChanged(
+                                f"schema migration {m.version} ({m.description}) differs from the "
+                                "one applied to this database; migrations must never change once "
+                                "released: add a new one instead")
+                        continue
+                    log.info("applying schema migration", version=m.version, description=m.description)
+                    for statement in m.statements:
+                        c.command(statement)
+                    c.insert(f"{db}.schema_migrations", [[m.version, m.description, released[m.version]]],
+                             column_names=["version", "description", "checksum"])
+                    version = max(version, m.version)
+            finally:
+                c.command(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
             self._insert_contexts.clear()  # column types may have changed
             return version
+
+    def _take_migration_lock(self, holder: str, timeout_s: float) -> None:
+        db, c = self.database, self.client
+        deadline = time.monotonic() + timeout_s
+        waited = False
+        while True:
+            try:
+                c.command(f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, since DateTime "
+                          "DEFAULT now()) ENGINE = Log")
+                c.insert(f"{db}.{MIGRATION_LOCK}", [[holder]], column_names=["holder"])
+                return
+            except clickhouse_connect.driver.exceptions.DatabaseError as exc:
+                if "already exists" not in str(exc).lower() and "(57)" not in str(exc) \
+                        and "code: 57" not in str(exc).lower():
+                    raise
+            rows = c.query(f"SELECT holder, since FROM {db}.{MIGRATION_LOCK}").result_rows
+            who = f"{rows[0][0]} since {rows[0][1]} UTC" if rows else "another migrator"
+            if time.monotonic() > deadline:
+                raise MigrationLocked(
+                    f"schema migrations are locked by {who}; if that process is gone, run "
+                    f"`mapservice migrate --break-lock` (drops {db}.{MIGRATION_LOCK})")
+            if not waited:
+                log.info("waiting for another schema migration", holder=who)
+                waited = True
+            time.sleep(0.5)
+
+    def break_migration_lock(self) -> bool:
+        """Drops a lock left by a migrator that died; True if there was one."""
+        with self._lock:
+            existed = bool(self.client.query(
+                f"EXISTS TABLE {self.database}.{MIGRATION_LOCK}").result_rows[0][0])
+            self.client.command(f"DROP TABLE IF EXISTS {self.database}.{MIGRATION_LOCK} SYNC")
+            return existed
 
     # --- writes ---------------------------------------------------------------------
 

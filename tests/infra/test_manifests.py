@@ -40,6 +40,7 @@ STRIMZI_TOPICS = K8S / "strimzi-topics.yaml"
 KUSTOMIZATION = K8S / "kustomization.yaml"
 
 COMPONENTS = {"gateway", "processors", "api"}
+ONE_SHOT = {"migrate"}  # runs to completion once per release
 SETTINGS_VARS = {f"MAPSERVICE_{name.upper()}" for name in Settings.model_fields}
 # Fields typed SecretStr: admin token and the passwords.
 SECRET_VARS = {
@@ -73,10 +74,15 @@ def compose() -> dict:
     return yaml.safe_load(COMPOSE.read_text())
 
 
-def compose_components() -> dict[str, dict]:
+def compose_mapservice() -> dict[str, dict]:
     """Compose services that run the mapservice image, by service name."""
     return {name: svc for name, svc in compose()["services"].items()
             if "build" in svc or str(svc.get("image", "")).startswith("mapservice")}
+
+
+def compose_components() -> dict[str, dict]:
+    """The long-running ones (not the one-shot migrate)."""
+    return {name: svc for name, svc in compose_mapservice().items() if name not in ONE_SHOT}
 
 
 def kustomize_resources() -> list[str]:
@@ -86,6 +92,12 @@ def kustomize_resources() -> list[str]:
 def k8s_docs() -> list[dict]:
     """Every document of the manifests kustomization.yaml deploys."""
     return [doc for name in kustomize_resources() for doc in load_all(K8S / name)]
+
+
+def jobs() -> list[tuple[dict, dict]]:
+    """(job, container) for every container of a Job."""
+    return [(doc, c) for doc in k8s_docs() if doc["kind"] == "Job"
+            for c in doc["spec"]["template"]["spec"]["containers"]]
 
 
 def workloads() -> list[tuple[dict, dict]]:
@@ -241,8 +253,8 @@ def test_compose_components_are_configured_only_through_mapservice_variables():
 
 def cli_invocations() -> list[tuple[str, list[str]]]:
     found = [(f"compose:{name}", [str(a) for a in svc["command"]])
-             for name, svc in compose_components().items()]
-    found += [(f"k8s:{w['metadata']['name']}", container_argv(c)) for w, c in workloads()]
+             for name, svc in compose_mapservice().items()]
+    found += [(f"k8s:{w['metadata']['name']}", container_argv(c)) for w, c in workloads() + jobs()]
     in_code = False
     for line in INFRA_README.read_text().splitlines():
         if line.lstrip().startswith("```"):
@@ -260,11 +272,11 @@ def test_every_mapservice_subcommand_is_accepted_by_the_cli(monkeypatch):
     from mapservice.robot import cli as robot_cli
 
     invocations = cli_invocations()
-    assert {argv[0] for where, argv in invocations if where.startswith("compose:")} == COMPONENTS
-    assert {argv[0] for where, argv in invocations if where.startswith("k8s:")} == COMPONENTS
+    assert {argv[0] for where, argv in invocations if where.startswith("compose:")} == COMPONENTS | ONE_SHOT
+    assert {argv[0] for where, argv in invocations if where.startswith("k8s:")} == COMPONENTS | ONE_SHOT
     calls: list[tuple[str, dict]] = []
     for module, handler in ((cli, "cmd_gateway"), (cli, "cmd_serve"), (robot_cli, "cmd_sim"),
-                            (cli, "cmd_up")):
+                            (cli, "cmd_up"), (cli, "cmd_migrate")):
         monkeypatch.setattr(module, handler,
                             lambda args, _h=handler, **kw: calls.append((_h, {"args": args, **kw})))
     for where, argv in invocations:
@@ -577,7 +589,8 @@ def test_compose_file_is_consistent():
     for name, svc in services.items():
         for dep in svc.get("depends_on", {}):
             assert dep in services, f"{name} depends on unknown {dep}"
-            if isinstance(svc["depends_on"], dict):
+            if isinstance(svc["depends_on"], dict) and \
+                    svc["depends_on"][dep].get("condition") != "service_completed_successfully":
                 assert "healthcheck" in services[dep], f"{name} waits for {dep}, which has none"
         for mount in svc.get("volumes", []):
             source = str(mount).split(":")[0]
@@ -623,3 +636,24 @@ def test_infra_readme_says_what_was_checked():
     assert re.search(r"^docker build -f infra/Dockerfile( -t \S+)? \.$", text, re.M)
     assert "strimzi-topics.yaml" in text
     assert re.search(r"no Docker engine", text, re.I)
+
+
+def test_migrations_run_once_per_release_before_the_components():
+    """A k8s Job named after the schema version and a compose one-shot run `mapservice migrate`
+    in production mode; compose's processors and API start only after it succeeded."""
+    from mapservice.schema import SCHEMA_VERSION
+
+    ((job, container),) = jobs()
+    assert job["metadata"]["name"] == f"mapservice-migrate-v{SCHEMA_VERSION}"
+    assert container_argv(container) == ["migrate"]
+    assert job["spec"]["template"]["spec"]["restartPolicy"] in ("OnFailure", "Never")
+    compose_migrate = compose()["services"]["migrate"]
+    assert compose_migrate["command"] == ["migrate"] and compose_migrate["restart"] == "no"
+    for where, env in (("k8s", k8s_env(job, container)), ("compose", compose_env(compose_migrate))):
+        settings = settings_from(env)
+        assert settings.mode == "production" and not settings.migrates_on_start, where
+    for name in ("processors", "api"):
+        assert compose()["services"][name]["depends_on"]["migrate"] == {
+            "condition": "service_completed_successfully"}, name
+    for workload, container in workloads():  # nobody else migrates in production mode
+        assert not settings_from(k8s_env(workload, container)).migrates_on_start
