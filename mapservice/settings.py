@@ -53,6 +53,9 @@ class Settings(BaseSettings):
     clickhouse_database: str = "mapservice"
     clickhouse_username: str = "default"
     clickhouse_password: SecretStr = SecretStr(DEFAULT_CLICKHOUSE_PASSWORD)
+    clickhouse_cluster: str = Field("", description=(
+        "A ClickHouse cluster name: schema statements run ON CLUSTER and tables are "
+        "Replicated*MergeTree (one shard, N replicas). Empty: one server or chDB."))
     migrate_on_start: bool | None = Field(None, description=(
         "Apply schema migrations when a component starts. Empty: yes in local mode; no in "
         "production mode, where `mapservice migrate` runs once per release (a Job) and the "

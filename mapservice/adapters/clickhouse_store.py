@@ -25,6 +25,7 @@ from ..legacy_query import ChunkQuery, PoseQuery, sort_column
 from ..ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
 from ..timetravel import ChunkState, timeline_buckets
 from ..schema import KEYFRAME_MS, POSE_COLUMNS, checksums, migrations
+from ..schema_cluster import for_cluster
 from ..settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -107,8 +108,9 @@ class ClickHouseStore:
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
                  username: str = "default", password: str = "",
-                 snapshot_every_ms: int = 600_000) -> None:
+                 snapshot_every_ms: int = 600_000, cluster: str = "") -> None:
         self.dsn = dsn
+        self.cluster = cluster  # non-empty: DDL ON CLUSTER, Replicated tables (schema_cluster)
         self.snapshot_every_ms = snapshot_every_ms
         self._last_snapshot_ms: int | None = None  # newest snapshot built, once known
         self._no_snapshot_until = 0.0  # monotonic time until which "no snapshot yet" holds
@@ -138,6 +140,7 @@ class ClickHouseStore:
             settings.clickhouse_username,
             settings.clickhouse_password.get_secret_value(),
             int(settings.snapshot_every_s * 1000),
+            settings.clickhouse_cluster,
         )
 
     def _connect(self):
@@ -192,14 +195,13 @@ class ClickHouseStore:
         holder = holder or f"{socket.gethostname()}:{os.getpid()}"
         with self._lock:
             c = self.client
-            c.command(f"CREATE DATABASE IF NOT EXISTS {db}")
-            c.command(
-                f"CREATE TABLE IF NOT EXISTS {db}.schema_migrations (version UInt32, "
+            ddl = self._ddl
+            ddl(f"CREATE DATABASE IF NOT EXISTS {db}")
+            ddl(f"CREATE TABLE IF NOT EXISTS {db}.schema_migrations (version UInt32, "
                 "description String, applied DateTime DEFAULT now()) "
-                "ENGINE = ReplacingMergeTree ORDER BY version"
-            )
-            c.command(f"ALTER TABLE {db}.schema_migrations ADD COLUMN IF NOT EXISTS "
-                      "checksum String DEFAULT ''")
+                "ENGINE = ReplacingMergeTree ORDER BY version")
+            ddl(f"ALTER TABLE {db}.schema_migrations ADD COLUMN IF NOT EXISTS "
+                "checksum String DEFAULT ''")
             self._take_migration_lock(holder, lock_timeout_s)
             try:
                 applied = dict(c.query(f"SELECT version, checksum FROM {db}.schema_migrations FINAL")
@@ -216,14 +218,18 @@ class ClickHouseStore:
                         continue
                     log.info("applying schema migration", version=m.version, description=m.description)
                     for statement in m.statements:
-                        c.command(statement)
+                        ddl(statement)
                     c.insert(f"{db}.schema_migrations", [[m.version, m.description, released[m.version]]],
                              column_names=["version", "description", "checksum"])
                     version = max(version, m.version)
             finally:
-                c.command(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
+                ddl(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
             self._insert_contexts.clear()  # column types may have changed
             return version
+
+    def _ddl(self, statement: str) -> None:
+        """A schema statement, ON CLUSTER with Replicated engines where a cluster is set."""
+        self.client.command(for_cluster(statement, self.cluster))
 
     def _take_migration_lock(self, holder: str, timeout_s: float) -> None:
         db, c = self.database, self.client
@@ -231,7 +237,9 @@ class ClickHouseStore:
         waited = False
         while True:
             try:
-                c.command(f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, since DateTime "
+                # Log, not MergeTree: on a cluster each replica has its own lock table,
+                # and ON CLUSTER DDL runs in one queue, so one CREATE still wins.
+                self._ddl(f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, since DateTime "
                           "DEFAULT now()) ENGINE = Log")
                 c.insert(f"{db}.{MIGRATION_LOCK}", [[holder]], column_names=["holder"])
                 return
@@ -255,7 +263,7 @@ class ClickHouseStore:
         with self._lock:
             existed = bool(self.client.query(
                 f"EXISTS TABLE {self.database}.{MIGRATION_LOCK}").result_rows[0][0])
-            self.client.command(f"DROP TABLE IF EXISTS {self.database}.{MIGRATION_LOCK} SYNC")
+            self._ddl(f"DROP TABLE IF EXISTS {self.database}.{MIGRATION_LOCK} SYNC")
             return existed
 
     # --- writes ---------------------------------------------------------------------

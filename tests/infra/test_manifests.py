@@ -657,3 +657,17 @@ def test_migrations_run_once_per_release_before_the_components():
             "condition": "service_completed_successfully"}, name
     for workload, container in workloads():  # nobody else migrates in production mode
         assert not settings_from(k8s_env(workload, container)).migrates_on_start
+
+
+def test_the_schema_cluster_is_the_installations_replicated_cluster():
+    """MAPSERVICE_CLICKHOUSE_CLUSTER names a cluster of the ClickHouseInstallation that has
+    two or more replicas and a Keeper (what Replicated tables ON CLUSTER need)."""
+    (chi,) = [d for d in load_all(K8S / "platform" / "clickhouse.yaml")
+              if d["kind"] == "ClickHouseInstallation"]
+    clusters = {c["name"]: c["layout"] for c in chi["spec"]["configuration"]["clusters"]}
+    name = configmap("mapservice")["MAPSERVICE_CLICKHOUSE_CLUSTER"]
+    assert name in clusters and clusters[name]["replicasCount"] >= 2
+    assert chi["spec"]["configuration"]["zookeeper"]["nodes"]
+    host = settings_from({**configmap("mapservice"), "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
+                          "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET}).resolved_clickhouse_dsn
+    assert f"clickhouse-{chi['metadata']['name']}." in host  # the operator's Service for the CHI
