@@ -79,8 +79,10 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     readiness = {"clickhouse": lambda: store.client is not None}
     if faust_app is not None:
         readiness["processors"] = lambda: not faust_app.should_stop
-        # Until the consumer group hands out partitions, nothing reaches the history.
-        readiness["history_consumer"] = lambda: bool(sink.consumer and sink.consumer.has_partitions)
+        # Ready once the consumer group took this replica in: with partitions it stores
+        # events, without (more replicas than partitions) it is a healthy standby that
+        # takes partitions over when another replica leaves.
+        readiness["history_consumer"] = lambda: bool(sink.consumer and sink.consumer.joined)
     try:
         if api:
             # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
@@ -105,8 +107,11 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
             if health_port is not None:
-                serve_health(settings.api_host, health_port, lambda: {
-                    "ok": all(check() for check in readiness.values())})
+                def status() -> dict:
+                    checks = {name: bool(check()) for name, check in readiness.items()}
+                    return {"ok": all(checks.values()), "checks": checks}
+
+                serve_health(settings.api_host, health_port, status)
             await stop.wait()
     finally:
         if relay is not None:

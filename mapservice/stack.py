@@ -116,13 +116,14 @@ class Stack:
         self.wait_healthy(f"{self.api_url}/readyz", "server", proc)
         return proc
 
-    def start_processors(self, health_port: int) -> subprocess.Popen:
+    def start_processors(self, health_port: int, name: str = "processors") -> subprocess.Popen:
         """`mapservice processors` alone (the split deployment: needs a ClickHouse server,
-        MAPSERVICE_CLICKHOUSE_DSN in extra_env); healthy once its consumer has partitions."""
+        MAPSERVICE_CLICKHOUSE_DSN in extra_env); healthy once its consumer group took it
+        in. Another `name` runs another replica (its own log)."""
         embedded.ensure_port_free(health_port, "the processors' health endpoint")
-        proc = self.spawn("processors", "processors", "--health-port", str(health_port))
-        embedded.wait_for_port(health_port, timeout_s=120, proc=proc, what="processors")
-        self.wait_healthy(f"http://127.0.0.1:{health_port}/healthz", "processors", proc)
+        proc = self.spawn(name, "processors", "--health-port", str(health_port))
+        embedded.wait_for_port(health_port, timeout_s=120, proc=proc, what=name)
+        self.wait_healthy(f"http://127.0.0.1:{health_port}/healthz", name, proc)
         return proc
 
     def start_api(self, port: int | None = None, name: str = "api",

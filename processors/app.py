@@ -33,6 +33,8 @@ log = structlog.get_logger(__name__)
 STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
 INSERT_SECONDS = Histogram("mapservice_sink_insert_seconds", "Duration of one history insert",
                            buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
+SNAPSHOT_RUNS = Counter("mapservice_snapshot_runs_total",
+                        "Snapshot timer runs on this replica (only the group leader runs it)")
 INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that failed and were retried")
 
 
@@ -116,6 +118,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
     every_s, grace_ms = settings.snapshot_every_s, int(settings.snapshot_grace_s * 1000)
 
     async def build_snapshots() -> None:
+        SNAPSHOT_RUNS.inc()
         try:
             built = await sink.run(sink.store.build_snapshots, now_ms() - grace_ms)
             if built:
@@ -123,7 +126,9 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         except Exception as exc:  # the next tick tries again; reads stay correct meanwhile
             log.error("snapshot build failed", error=str(exc))
 
-    app.timer(min(30.0, every_s / 4))(build_snapshots)
+    # on_leader: one replica builds the cluster's snapshots (faust's group leader; another
+    # takes over when it leaves), not every replica the same ones.
+    app.timer(min(30.0, every_s / 4), on_leader=True)(build_snapshots)
     return app
 
 

@@ -105,12 +105,14 @@ class HistoryConsumer:
         self.now_ms = now_ms
         self.monotonic = monotonic
         self._last_poll_returned = -math.inf  # monotonic; the first poll takes what is queued
-        self.assigned = False  # set by the source's assignment callback (in its thread)
-        self.has_partitions = False  # readiness: events flow only once the group assigned some
+        self.assigned = False  # set by the source's assignment callback: rebuild the views
+        self.has_partitions = False  # events flow only once the group assigned some
+        self.joined = False  # readiness: the group took this replica in (maybe as a standby)
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-consumer")
 
     def on_assigned(self, partitions: list[tuple[str, int]]) -> None:
         self.assigned = True
+        self.joined = True
         self.has_partitions = self.has_partitions or bool(partitions)
 
     async def _call(self, fn, *args):

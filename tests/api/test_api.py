@@ -32,6 +32,7 @@ EXPECTED_OPERATION_IDS = {
     "listConflicts",
     "getChunkContentsBatch",  # api/routers/chunk_contents.py (replay UI seeks)
     "getClientConfig",  # api/routers/client_config.py (the /controller page)
+    "exportTable", "exportReplayMcap",  # api/routers/exports.py
 }
 
 

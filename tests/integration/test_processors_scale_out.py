@@ -1,0 +1,85 @@
+"""Scale-out of the processors, as Kubernetes runs them: two `mapservice processors`
+replicas on a topic of one partition, against one ClickHouse server (`mapservice
+clickhouse-server`). The replica without partitions is a healthy standby; the snapshot
+timer runs on one replica only, and on the other once the first is killed.
+
+Bounded: each wait is at most 90 s; about a minute on an idle machine."""
+
+from __future__ import annotations
+
+import re
+import signal
+import time
+
+import httpx
+import pytest
+
+from mapservice import embedded
+from mapservice.stack import Stack
+
+from .test_split_topology import start_clickhouse_server
+
+
+REPLICAS = ("processors-1", "processors-2")
+
+
+def snapshot_runs(port: int) -> float:
+    text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+    found = re.search(r"^mapservice_snapshot_runs_total ([0-9.e+]+)$", text, re.M)
+    return float(found.group(1)) if found else 0.0
+
+
+def healthy(port: int) -> bool:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=5).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    ch_port = embedded.free_port()
+    stack = Stack(tmp_path_factory.mktemp("scale-out"), mqtt="mosquitto", extra_env={
+        "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
+        "MAPSERVICE_KAFKA_PARTITIONS": "1",  # one replica gets it, the other none
+        "MAPSERVICE_SNAPSHOT_EVERY_S": "4",  # the timer ticks every second
+    })
+    try:
+        stack.start_brokers()
+        start_clickhouse_server(stack, ch_port)
+        stack.ports = []  # type: ignore[attr-defined]
+        for name in REPLICAS:
+            port = embedded.free_port()
+            stack.start_processors(port, name)
+            stack.ports.append(port)
+    except BaseException:
+        stack.stop()
+        raise
+    yield stack
+    stack.stop()
+
+
+def test_a_replica_without_partitions_is_a_healthy_standby(stack) -> None:
+    """Both replicas answer /healthz 200 although only one owns the partition."""
+    deadline = time.monotonic() + 90
+    while not all(healthy(p) for p in stack.ports):
+        assert time.monotonic() < deadline, "a replica never became healthy"
+        time.sleep(1)
+
+
+def test_the_snapshot_timer_runs_on_one_replica_and_moves_when_it_dies(stack) -> None:
+    """Over ~10 s exactly one replica runs the timer; after SIGKILL of it the other does."""
+    time.sleep(10)
+    runs = [snapshot_runs(p) for p in stack.ports]
+    assert sorted(r > 0 for r in runs) == [False, True], runs
+    leader = runs.index(max(runs))
+    name = REPLICAS[leader]
+    stack.procs[name].send_signal(signal.SIGKILL)
+    stack.procs[name].wait(10)
+    other = stack.ports[1 - leader]
+    before = snapshot_runs(other)
+    deadline = time.monotonic() + 90
+    while snapshot_runs(other) <= before + 2:
+        assert time.monotonic() < deadline, "the standby never took the timer over"
+        time.sleep(1)
+    assert healthy(other)
