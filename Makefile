@@ -5,13 +5,25 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: up test test-unit bench system-deps clean ui test-ui
+.PHONY: up test test-unit bench system-deps clean ui test-ui lock
 
-$(STAMP): pyproject.toml
+# Pinned, hash-checked dependencies (requirements-dev.lock: the product, the embedded extra
+# and the test tools), then the project itself. Regenerate the locks after changing
+# pyproject.toml's dependencies: `make lock` (pip-tools).
+$(STAMP): pyproject.toml requirements-dev.lock
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet --require-hashes -r requirements-dev.lock
+	$(PY) -m pip install --quiet --no-deps -e '.[embedded,test]'
 	touch $(STAMP)
+
+# The production lock is constrained by the dev lock: the image runs the versions CI tested.
+lock:
+	$(PY) -m pip install --quiet pip-tools
+	$(PY) -m piptools compile --quiet --generate-hashes --strip-extras --allow-unsafe --no-emit-index-url \
+	  --no-emit-find-links --extra embedded --extra test -o requirements-dev.lock pyproject.toml
+	$(PY) -m piptools compile --quiet --generate-hashes --strip-extras --allow-unsafe --no-emit-index-url \
+	  --no-emit-find-links -c requirements-dev.lock -o requirements.lock pyproject.toml
 
 # Mosquitto is what the tests and benchmarks run against (the embedded mode uses amqtt).
 system-deps:

@@ -145,6 +145,12 @@ class ClickHouseStore:
 
     def _connect(self):
         if self.dsn.startswith("chdb://"):
+            try:
+                import chdb  # noqa: F401  (clickhouse-connect loads it; say what to do if absent)
+            except ImportError as exc:
+                raise RuntimeError(
+                    "embedded ClickHouse (chdb://) needs the embedded extra: pip install "
+                    "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server") from exc
             return clickhouse_connect.get_client(dsn=self.dsn)
         return clickhouse_connect.get_client(dsn=self.dsn, username=self._username,
                                              password=self._password)

@@ -13,7 +13,6 @@ from starlette.applications import Starlette
 
 from mapservice.settings import Settings
 
-from .chdb_engine import ChdbEngine
 from .credentials import analyst_limits, analyst_user
 from .engine import SqlEngine, SqlRequest
 from .http_protocol import SqlUser, clickhouse_http_app
@@ -24,6 +23,8 @@ def engine_for(settings: Settings) -> SqlEngine:
     dsn = settings.resolved_clickhouse_dsn
     limits = analyst_limits(settings).settings()
     if dsn.startswith("chdb://"):
+        from .chdb_engine import ChdbEngine
+
         return ChdbEngine(dsn, read_only_settings=limits)
     return ServerEngine(dsn, settings.clickhouse_username,
                         settings.clickhouse_password.get_secret_value(), read_only_settings=limits)
@@ -45,6 +46,8 @@ def analyst_app(settings: Settings) -> Starlette | None:
 
 def server_app(settings: Settings, read_write: bool) -> Starlette:
     """The standalone server over the data dir's chDB."""
+    from .chdb_engine import ChdbEngine
+
     engine = ChdbEngine(settings.resolved_clickhouse_dsn,
                         read_only_settings=analyst_limits(settings).settings())
     users = []

@@ -18,8 +18,6 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-import chdb
-
 from .engine import SqlError, SqlRequest, SqlResult, output_format
 
 _SETTING_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
@@ -44,6 +42,8 @@ def _setting_name(name: str) -> str:
 
 class _Handle:
     def __init__(self, path: str):
+        import chdb  # the embedded extra; a production process never opens chDB
+
         self.conn = chdb.connect(path)
         self.database: str | None = None
 
