@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from fastapi import FastAPI
+from fastapi.exceptions import RequestValidationError
 from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp
 from starlette_exporter import PrometheusMiddleware
@@ -15,6 +16,7 @@ from mapservice.live import LiveHub
 from mapservice.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
+from .limits import BodyLimit, validation_error
 from .routers import (
     chunk_contents,
     chunk_events,
@@ -65,6 +67,8 @@ def create_app(settings: Settings, store: HistoryStore,
                        group_paths=True, filter_unhandled_paths=True,
                        skip_paths=["/metrics", "/healthz", "/readyz"],
                        buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
+    app.add_exception_handler(RequestValidationError, validation_error)
+    app.add_middleware(BodyLimit, max_bytes=settings.api_max_body_bytes, exempt=(SQL_PATH,))
     if sql_app is not None:
         # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
         # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.

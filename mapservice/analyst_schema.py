@@ -78,6 +78,7 @@ TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
     }),
     "schema_migrations": ("Applied schema migrations.", {
         "version": "Migration number", "description": "What it did", "applied": "When",
+        "checksum": "SHA-256 of its statements (an edited migration is refused)",
     }),
 }
 

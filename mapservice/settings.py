@@ -112,6 +112,11 @@ class Settings(BaseSettings):
     api_port: int = 8080
     ui_dir: Path | None = Field(None, description="Built replay UI to serve; empty: replay-ui/dist of the checkout.")
     admin_token: SecretStr = SecretStr(DEFAULT_ADMIN_TOKEN)
+    api_max_body_bytes: int = Field(1024 * 1024, ge=1024, description=(
+        "Largest request body the API reads (413 beyond); /clickhouse has its own limits."))
+    api_allowed_origins: list[str] = Field(default_factory=list, description=(
+        "Origins (https://host:port) besides the API's own host whose pages may open "
+        "/api/v1/live; e.g. a dashboard served elsewhere."))
 
     @model_validator(mode="after")
     def _refuse_default_secrets(self) -> "Settings":

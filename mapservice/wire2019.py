@@ -16,9 +16,18 @@ from collections.abc import Sequence
 from datetime import datetime, timezone
 from enum import Enum
 
+from typing import Annotated
+
 import msgspec
 
 from .events import ChunkUpdated, Envelope, MapMetaSet, PoseReported, make_envelope
+
+
+# Bounds on free-text fields, checked while decoding: a 120 KB "charging" string is a
+# wrong_type dead letter, not a row. The 2019 contract sends short words or booleans.
+Flag = Annotated[str, msgspec.Meta(max_length=64)]
+TimestampText = Annotated[str, msgspec.Meta(max_length=64)]
+RobotIdText = Annotated[str, msgspec.Meta(max_length=256)]  # then 1-64 of a charset (below)
 
 
 class Reason(str, Enum):
@@ -77,8 +86,8 @@ class ChunkCreate(msgspec.Struct):
     pgmB64compressedData: str
     row: int
     column: int
-    timestamp: str
-    robotId: str
+    timestamp: TimestampText
+    robotId: RobotIdText
 
 
 class Vec3(msgspec.Struct):
@@ -101,12 +110,12 @@ class Pose(msgspec.Struct):
 
 class Battery(msgspec.Struct):
     battery_level: float | None = None
-    charging: bool | str | None = None
+    charging: bool | Flag | None = None
 
 
 class Status(msgspec.Struct):
     battery: Battery | None = None
-    loaded: bool | str | None = None
+    loaded: bool | Flag | None = None
 
 
 class Point(msgspec.Struct):
@@ -115,8 +124,8 @@ class Point(msgspec.Struct):
 
 
 class CoordinateUpdate(msgspec.Struct):
-    robotId: str
-    timestamp: str
+    robotId: RobotIdText
+    timestamp: TimestampText
     pose: Pose
     status: Status | None = None
     plannedPath: list[Point] | None = None

@@ -106,7 +106,7 @@ def get_chunk_contents_batch(
             400, f"{len(hashes)} hashes in one batch; send at most {BATCH_MAX} per request")
     bad = [h for h in hashes if not _HEX32.match(h)]
     if bad:
-        raise HTTPException(400, f"hashes must be 32 lowercase hex characters; bad: {bad[:5]!r}")
+        raise HTTPException(400, f"hashes must be 32 lowercase hex characters; bad: {[b[:40] for b in bad[:5]]!r}")
     wanted = list(dict.fromkeys(hashes))
     found = cache.get_many(store, [bytes.fromhex(h) for h in wanted])
     contents, missing = [], []

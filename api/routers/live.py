@@ -6,6 +6,8 @@ import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
+from ..limits import origin_allowed
+
 router = APIRouter(tags=["live"])
 
 # RFC 6455 close codes: 1011 the server cannot serve this at all, 1013 try again later.
@@ -17,6 +19,13 @@ async def live(websocket: WebSocket) -> None:
     """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`,
     sent once the event is queryable through this API."""
     hub = websocket.app.state.live
+    settings = websocket.app.state.settings
+    if not origin_allowed(websocket.headers.get("origin"), websocket.headers.get("host"),
+                          settings.api_allowed_origins):
+        # Before accept: the handshake is refused (HTTP 403), no data is sent.
+        await websocket.close(code=1008, reason="this origin may not open the live stream "
+                                                "(MAPSERVICE_API_ALLOWED_ORIGINS)")
+        return
     await websocket.accept()
     if hub is None:
         await websocket.close(code=NO_FEED, reason="this API process has no live feed")

@@ -49,7 +49,11 @@ def controller(request: Request) -> FileResponse | HTMLResponse:
 @router.get("/assets/{name}", operation_id="getUiAsset")
 def asset(name: str, request: Request) -> FileResponse:
     assets = _dist(request) / "assets"
-    path = (assets / name).resolve()
-    if path.parent != assets.resolve() or not path.is_file():
-        raise HTTPException(404, f"no UI asset {name!r}; rebuild the UI if the page is stale")
+    try:
+        path = (assets / name).resolve()
+        found = path.parent == assets.resolve() and path.is_file()
+    except (ValueError, OSError):  # an embedded NUL (/assets/%00), a name too long: no file
+        found = False
+    if not found:
+        raise HTTPException(404, f"no UI asset {name[:100]!r}; rebuild the UI if the page is stale")
     return FileResponse(path, headers={"Cache-Control": IMMUTABLE})

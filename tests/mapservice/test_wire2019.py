@@ -513,3 +513,22 @@ def test_pose_decoder_never_raises_on_near_valid_messages(doc: dict, same_robot:
     """Near-valid pose messages decode or reject; accepted ones are finite, bounded, same robot."""
     robot = doc.get("robotId") if same_robot and isinstance(doc.get("robotId"), str) else "r1"
     _check_pose(decode_coordinates(robot, _as_json(doc), NOW, SMALL), robot)
+
+
+@pytest.mark.parametrize("field,value", [
+    ("charging", "x" * 120_000), ("loaded", "y" * 65), ("timestamp", "2" * 65), ("robotId", "r" * 300)])
+def test_long_free_text_fields_are_refused_while_decoding(wire, field, value) -> None:
+    """charging/loaded over 64 characters, timestamps over 64 and robot ids over 256: wrong_type,
+    and the reason does not echo the long value."""
+    from mapservice.wire2019 import Limits, Reason, decode_coordinates
+
+    doc = wire.pose_doc()
+    if field == "charging":
+        doc["status"]["battery"]["charging"] = value
+    elif field == "loaded":
+        doc["status"]["loaded"] = value
+    else:
+        doc[field] = value
+    got = decode_coordinates(doc["robotId"], json.dumps(doc).encode(), wire.now_ms, Limits())
+    assert got.reason == Reason.WRONG_TYPE, got
+    assert len(got.detail) < 300

@@ -1,0 +1,91 @@
+"""Bounds on what a client may send: a body limit on every route, validation errors that
+never echo large input, and WebSocket connections only from the service's own pages."""
+
+from __future__ import annotations
+
+import json
+from urllib.parse import urlsplit
+
+from fastapi import Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+ECHO_MAX = 200  # characters of a rejected input a reply may repeat
+
+
+class BodyLimit:
+    """Reads at most `max_bytes` of a request body, then hands it to the app; a larger body
+    is answered 413 without reading the rest (Content-Length is checked before any byte).
+    Paths under `exempt` bring their own limits (the ClickHouse interface's inserts)."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int, exempt: tuple[str, ...] = ()):
+        self.app, self.max_bytes, self.exempt = app, max_bytes, exempt
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS") or \
+                any(scope["path"] == p or scope["path"].startswith(p + "/") for p in self.exempt):
+            await self.app(scope, receive, send)
+            return
+        declared = dict(scope["headers"]).get(b"content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
+            await self._too_large(send)
+            return
+        chunks, size = [], 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return
+            chunks.append(message.get("body", b""))
+            size += len(chunks[-1])
+            if size > self.max_bytes:
+                await self._too_large(send)
+                return
+            if not message.get("more_body"):
+                break
+        body, sent = b"".join(chunks), False
+
+        async def replay() -> dict:
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
+
+        await self.app(scope, replay, send)
+
+    async def _too_large(self, send: Send) -> None:
+        body = json.dumps({"detail": f"the request body is larger than {self.max_bytes} bytes "
+                                     "(MAPSERVICE_API_MAX_BODY_BYTES)"}).encode()
+        await send({"type": "http.response.start", "status": 413, "headers": [
+            (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+            (b"connection", b"close")]})
+        await send({"type": "http.response.body", "body": body})
+
+
+def _short(value):
+    text = value if isinstance(value, str) else json.dumps(jsonable_encoder(value), default=str)
+    return value if len(text) <= ECHO_MAX else text[:ECHO_MAX] + f"... ({len(text)} characters)"
+
+
+async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    """FastAPI's 422, with each rejected input cut to ECHO_MAX characters."""
+    errors = []
+    for error in exc.errors():
+        error = dict(error)
+        if "input" in error:
+            error["input"] = _short(error["input"])
+        errors.append(error)
+    return JSONResponse({"detail": jsonable_encoder(errors)}, status_code=422)
+
+
+def origin_allowed(origin: str | None, host: str | None, allowed: list[str]) -> bool:
+    """A browser's WebSocket from another site carries that site's Origin: only the
+    service's own pages (same host) and the configured origins may connect. Clients that
+    are not browsers send no Origin and are let through (they are not a CSRF vector)."""
+    if not origin:
+        return True
+    if origin in allowed:
+        return True
+    return bool(host) and urlsplit(origin).netloc == host
