@@ -17,6 +17,7 @@ import structlog
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
+from mapservice.health import kafka_check
 from mapservice.health_server import serve_health
 from mapservice.mqtt import make_client, parse_mqtt_url
 from mapservice.ports import Clock, EventPublisher
@@ -124,6 +125,7 @@ class MqttGateway:
         self.ingestor = Ingestor(settings, self.publisher, SystemClock(), self.gateway_id)
         self.meta_watcher = MetaWatcher(settings, self.ingestor.apply_meta)
         self.health_port = health_port
+        self.kafka_ready = kafka_check(settings)  # readiness: a broker answers metadata
         self._stop = threading.Event()
         self._connected = threading.Event()
         self.client = None
@@ -160,9 +162,17 @@ class MqttGateway:
         return thread is not None and thread.is_alive()
 
     def status(self) -> dict:
+        """Liveness: paho's network thread runs (it receives and acknowledges)."""
         alive = self.loop_alive()
-        return {"ok": self._connected.is_set() and alive, "mqtt_connected": self._connected.is_set(),
+        return {"ok": alive, "mqtt_connected": self._connected.is_set(),
                 "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight, "gateway": self.gateway_id}
+
+    def ready(self) -> dict:
+        """Readiness: connected to the MQTT broker and a Kafka broker answers metadata."""
+        alive, connected, kafka = self.loop_alive(), self._connected.is_set(), self.kafka_ready()
+        return {"ok": alive and connected and kafka, "mqtt_connected": connected,
+                "mqtt_loop_alive": alive, "kafka": kafka, "in_flight": self.ingestor.in_flight,
+                "gateway": self.gateway_id}
 
     def run(self) -> None:
         host, port, tls = parse_mqtt_url(self.settings.mqtt_url)
@@ -176,7 +186,7 @@ class MqttGateway:
         self.client.on_message = self._on_message
         self.client.reconnect_delay_set(0.2, 5)
         if self.health_port is not None:
-            serve_health(s.api_host, self.health_port, self.status)
+            serve_health(s.api_host, self.health_port, self.status, self.ready)
         self.meta_watcher.start()
         log.info("gateway starting", mqtt=f"{host}:{port}", kafka=s.kafka_bootstrap)
         while not self._stop.is_set():

@@ -1,4 +1,6 @@
-"""A small HTTP endpoint for components without an API: /healthz and /metrics."""
+"""A small HTTP endpoint for components without an API: /healthz (liveness), /readyz
+(readiness) and /metrics. It runs in threads of its own, so it answers (with the truth)
+even when the component's event loop is stuck."""
 
 from __future__ import annotations
 
@@ -10,19 +12,21 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 
-def serve_health(host: str, port: int, status: Callable[[], dict]) -> ThreadingHTTPServer:
-    """Starts a daemon thread; `status()` returns a dict with a boolean `ok`."""
+def serve_health(host: str, port: int, status: Callable[[], dict],
+                 ready: Callable[[], dict] | None = None) -> ThreadingHTTPServer:
+    """Starts a daemon thread; `status()` (liveness) and `ready()` (readiness, default:
+    the liveness) return a dict with a boolean `ok`."""
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - http.server's naming
             if self.path == "/metrics":
                 body, ctype, code = generate_latest(), CONTENT_TYPE_LATEST, 200
-            elif self.path == "/healthz":
-                doc = status()
+            elif self.path in ("/healthz", "/readyz"):
+                doc = (ready or status)() if self.path == "/readyz" else status()
                 body = json.dumps(doc).encode()
                 ctype, code = "application/json", 200 if doc.get("ok") else 503
             else:
-                body, ctype, code = b'{"detail":"use /healthz or /metrics"}', "application/json", 404
+                body, ctype, code = b'{"detail":"use /healthz, /readyz or /metrics"}', "application/json", 404
             self.send_response(code)
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))

@@ -19,6 +19,7 @@ from .adapters.clickhouse_store import ClickHouseStore
 from .adapters.kafka_live_publisher import KafkaLivePublisher
 from .adapters.kafka_live_relay import KafkaLiveRelay
 from .adapters.kafka_publisher import KafkaPublisher
+from .health import CachedCheck, Heartbeat, beat_forever, kafka_check
 from .health_server import serve_health
 from .live import LiveHub
 from .settings import Settings
@@ -76,13 +77,27 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         faust_app = build_app(settings, sink)
         await faust_app.start()
         log.info("processors started", kafka=settings.kafka_bootstrap)
-    readiness = {"clickhouse": lambda: store.client is not None}
+    # Readiness: a real call to each dependency (cached, bounded by a timeout). Liveness:
+    # heartbeats of the loops that do the work (mapservice/health.py).
+    kafka = kafka_check(settings)
+    readiness = {"clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)}
+    advisory: dict = {}  # reported by /readyz, not required
+    loop_beat = Heartbeat(max_age_s=15.0)
+    beating = asyncio.ensure_future(beat_forever(loop_beat))
+    liveness = {"event_loop": loop_beat.alive}
     if faust_app is not None:
+        readiness["kafka"] = kafka
         readiness["processors"] = lambda: not faust_app.should_stop
         # Ready once the consumer group took this replica in: with partitions it stores
         # events, without (more replicas than partitions) it is a healthy standby that
         # takes partitions over when another replica leaves.
         readiness["history_consumer"] = lambda: bool(sink.consumer and sink.consumer.joined)
+        liveness["processors"] = lambda: not faust_app.should_stop
+        liveness["history_consumer"] = lambda: bool(sink.consumer is None or sink.consumer.heartbeat.alive())
+    else:
+        # The API alone reads the history without Kafka; Kafka carries its REST writes and
+        # the live stream, so /readyz reports it without requiring it.
+        advisory["kafka"] = kafka
     try:
         if api:
             # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
@@ -98,6 +113,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
 
             app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher,
                              sql_app=await loop.run_in_executor(None, analyst_app, settings))
+            app.state.liveness = liveness
+            app.state.advisory = advisory
             config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
@@ -107,13 +124,15 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
             if health_port is not None:
-                def status() -> dict:
-                    checks = {name: bool(check()) for name, check in readiness.items()}
-                    return {"ok": all(checks.values()), "checks": checks}
+                def report(checks: dict) -> dict:
+                    results = {name: bool(check()) for name, check in checks.items()}
+                    return {"ok": all(results.values()), "checks": results}
 
-                serve_health(settings.api_host, health_port, status)
+                serve_health(settings.api_host, health_port, lambda: report(liveness),
+                             lambda: report(readiness))
             await stop.wait()
     finally:
+        beating.cancel()
         if relay is not None:
             await loop.run_in_executor(None, relay.stop)
         if faust_app is not None:

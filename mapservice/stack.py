@@ -123,7 +123,7 @@ class Stack:
         embedded.ensure_port_free(health_port, "the processors' health endpoint")
         proc = self.spawn(name, "processors", "--health-port", str(health_port))
         embedded.wait_for_port(health_port, timeout_s=120, proc=proc, what=name)
-        self.wait_healthy(f"http://127.0.0.1:{health_port}/healthz", name, proc)
+        self.wait_healthy(f"http://127.0.0.1:{health_port}/readyz", name, proc)
         return proc
 
     def start_api(self, port: int | None = None, name: str = "api",

@@ -19,6 +19,7 @@ import structlog
 from prometheus_client import Counter, Histogram
 
 from mapservice.adapters.clock import SystemClock
+from mapservice.health import Heartbeat
 from mapservice.ports import EventSource, SourceRecord
 from mapservice.retry import until_done
 
@@ -108,6 +109,9 @@ class HistoryConsumer:
         self.assigned = False  # set by the source's assignment callback: rebuild the views
         self.has_partitions = False  # events flow only once the group assigned some
         self.joined = False  # readiness: the group took this replica in (maybe as a standby)
+        # Liveness: a beat per turn and per store attempt (a retry during a ClickHouse
+        # outage still beats); two minutes without one means the loop is dead or stuck.
+        self.heartbeat = Heartbeat(max_age_s=120.0)
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-consumer")
 
     def on_assigned(self, partitions: list[tuple[str, int]]) -> None:
@@ -147,6 +151,7 @@ class HistoryConsumer:
         # Moving on would let the next commit cover this batch: retry it instead.
         async for attempt in until_done("history batch", 0.5, records=len(records)):
             with attempt:
+                self.heartbeat.beat()
                 await self._store(records)
         if not await self._call(self.source.commit, records):
             COMMIT_FAILURES.inc()
@@ -162,6 +167,7 @@ class HistoryConsumer:
         await self.start()
         try:
             while not stopping.is_set():
+                self.heartbeat.beat()
                 await self.run_once()
         finally:
             await self._call(self.source.close)

@@ -10,14 +10,23 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz", operation_id="getLiveness")
-def liveness() -> dict:
-    return {"ok": True}
+def liveness(request: Request) -> JSONResponse:
+    """Alive: this answer needs the event loop; with the processors in this process, also
+    their loops' heartbeats (mapservice/health.py)."""
+    checks = {name: bool(check()) for name, check in getattr(request.app.state, "liveness", {}).items()}
+    ok = all(checks.values())
+    body = {"ok": ok, "checks": checks} if checks else {"ok": True}
+    return JSONResponse(body, status_code=200 if ok else 503)
 
 
 @router.get("/readyz", operation_id="getReadiness")
 def readiness(request: Request) -> JSONResponse:
+    """Ready: a real call to each required dependency; advisory ones (Kafka for the API
+    alone) are reported in `checks` but do not make it unready."""
     checks = {name: bool(check()) for name, check in request.app.state.readiness.items()}
     ok = all(checks.values())
+    checks.update({name: bool(check()) for name, check in
+                   getattr(request.app.state, "advisory", {}).items()})
     return JSONResponse({"ok": ok, "checks": checks}, status_code=200 if ok else 503)
 
 

@@ -126,6 +126,7 @@ class ClickHouseStore:
         # take `_lock`, so a writer that reads while holding it cannot deadlock with them.
         self._read_client = None
         self._read_lock = threading.Lock()
+        self._ping_client = None
         self._known_contents: dict[bytes, int] = {}  # hash -> day already written
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
@@ -875,6 +876,18 @@ class ClickHouseStore:
             for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
                           "pose_keyframes"):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
+
+    def ping(self, timeout_s: float = 2.0) -> bool:
+        """A real round trip to ClickHouse on a client of its own (a hung server must not
+        hold the read or write client); readiness calls it through a CachedCheck."""
+        if self._ping_client is None:
+            if self.dsn.startswith("chdb://"):
+                self._ping_client = self._connect()
+            else:
+                self._ping_client = clickhouse_connect.get_client(
+                    dsn=self.dsn, username=self._username, password=self._password,
+                    connect_timeout=timeout_s, send_receive_timeout=timeout_s)
+        return self._ping_client.command("SELECT 1") == 1
 
     def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:
         """A read's result as ClickHouse writes it in `fmt` (CSVWithNames, Parquet, ...);

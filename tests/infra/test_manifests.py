@@ -392,9 +392,8 @@ def test_probes_point_at_paths_and_ports_the_components_serve(served):
             assert resolve_port(container, get["port"]) == port, (component, kind)
             assert served(component, get["path"]) == 200, (component, kind, get["path"])
             checked += 1
-        expected_ready = "/readyz" if component == "api" else "/healthz"
         assert found["livenessProbe"]["path"] == "/healthz"
-        assert found["readinessProbe"]["path"] == expected_ready
+        assert found["readinessProbe"]["path"] == "/readyz"
         notes = workload["spec"]["template"]["metadata"]["annotations"]
         assert notes["prometheus.io/scrape"] == "true"
         assert int(notes["prometheus.io/port"]) == port
@@ -407,12 +406,12 @@ def test_probes_point_at_paths_and_ports_the_components_serve(served):
         match = re.search(r"http://(?:127\.0\.0\.1|localhost):(\d+)(/[A-Za-z0-9_/-]*)", test)
         assert match, f"compose {name}: healthcheck is not an HTTP check: {test}"
         assert int(match.group(1)) == listen_port(argv[0], argv, compose_env(svc)), name
-        assert match.group(2) == ("/readyz" if argv[0] == "api" else "/healthz"), name
+        assert match.group(2) == "/readyz", name
         assert served(argv[0], match.group(2)) == 200
         checked += 1
     assert checked >= 3 * 3 + 3
     # The handlers really distinguish: a path they do not serve is not 200.
-    assert served("gateway", "/readyz") != 200
+    assert served("gateway", "/livez") != 200
     assert served("api", "/no-such-path") != 200
 
 

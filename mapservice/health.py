@@ -1,0 +1,86 @@
+"""Health that tells the truth: liveness from heartbeats of the loops that do the work,
+readiness from real calls to each dependency, each with a short timeout.
+
+- `Heartbeat`: a loop beats on every turn; it is alive while its last beat is recent.
+- `CachedCheck`: a dependency call (a `SELECT 1`, a Kafka metadata request) run at most
+  every `ttl_s` in a thread of its own; a call slower than `timeout_s` counts as down, and
+  a probe never waits longer than that, however the dependency hangs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections.abc import Callable
+
+import structlog
+
+log = structlog.get_logger(__name__)
+
+
+class Heartbeat:
+    def __init__(self, max_age_s: float, clock: Callable[[], float] = time.monotonic):
+        self.max_age_s, self.clock = max_age_s, clock
+        self.last: float | None = None
+
+    def beat(self) -> None:
+        self.last = self.clock()
+
+    def alive(self) -> bool:
+        """True before the first beat (still starting) and while beats are recent."""
+        return self.last is None or self.clock() - self.last <= self.max_age_s
+
+    def age_s(self) -> float | None:
+        return None if self.last is None else round(self.clock() - self.last, 3)
+
+
+async def beat_forever(heartbeat: Heartbeat, every_s: float = 1.0) -> None:
+    """Beats from the event loop: a loop blocked by a stuck call stops beating."""
+    while True:
+        heartbeat.beat()
+        await asyncio.sleep(every_s)
+
+
+class CachedCheck:
+    def __init__(self, name: str, call: Callable[[], object], ttl_s: float = 2.0,
+                 timeout_s: float = 2.0, clock: Callable[[], float] = time.monotonic):
+        self.name, self.call, self.ttl_s, self.timeout_s, self.clock = name, call, ttl_s, timeout_s, clock
+        self._ok = False
+        self._checked: float | None = None
+        self._running: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    def _run(self) -> None:
+        try:
+            ok = self.call() is not False
+        except Exception as exc:  # noqa: BLE001 (any failure of the dependency is "down")
+            ok = False
+            log.info("dependency check failed", check=self.name, error=str(exc)[:200])
+        with self._lock:
+            self._ok, self._checked, self._running = ok, self.clock(), None
+
+    def __call__(self) -> bool:
+        with self._lock:
+            fresh = self._checked is not None and self.clock() - self._checked < self.ttl_s
+            if fresh:
+                return self._ok
+            thread = self._running
+            if thread is None:
+                thread = self._running = threading.Thread(target=self._run, daemon=True,
+                                                          name=f"check-{self.name}")
+                thread.start()
+        thread.join(self.timeout_s)
+        with self._lock:
+            if thread.is_alive():  # hung: down until it answers
+                return False
+            return self._ok
+
+
+def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:
+    """A broker metadata request (the cheapest call that needs a working broker)."""
+    from confluent_kafka.admin import AdminClient
+
+    admin = AdminClient(settings.kafka_config())
+    return CachedCheck("kafka", lambda: bool(admin.list_topics(timeout=timeout_s).brokers),
+                       ttl_s=ttl_s, timeout_s=timeout_s)
