@@ -187,7 +187,7 @@ def cmd_up(args) -> None:
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         table.add_row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
                       f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
-        table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/healthz")
+        table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/readyz")
         table.add_row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
                       + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
         table.add_row("Simulated robots", f"{args.robots} on {args.map}"
@@ -287,12 +287,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     gw = sub.add_parser("gateway", help="MQTT-to-Kafka gateway (configured from MAPSERVICE_*)")
     gw.add_argument("--health-port", type=int, default=None,
-                    help="serve /healthz and /metrics on this port (default: none)")
+                    help="serve /healthz, /readyz and /metrics on this port (default: none)")
     gw.set_defaults(func=cmd_gateway)
 
     pr = sub.add_parser("processors", help="stream processors: history sink (needs a ClickHouse server)")
     pr.add_argument("--health-port", type=int, default=None,
-                    help="serve /healthz and /metrics on this port (default: none)")
+                    help="serve /healthz, /readyz and /metrics on this port (default: none)")
     pr.set_defaults(func=lambda a: cmd_serve(a, api=False, component="processors"))
 
     api = sub.add_parser("api", help="HTTP API only (needs a ClickHouse server)")

@@ -106,7 +106,7 @@ class Stack:
         embedded.ensure_port_free(self.health_port, "the gateway's health endpoint")
         proc = self.spawn("gateway", "gateway", "--health-port", str(self.health_port))
         embedded.wait_for_port(self.health_port, proc=proc, what="gateway")
-        self.wait_healthy(f"http://127.0.0.1:{self.health_port}/healthz", "gateway", proc)
+        self.wait_healthy(f"http://127.0.0.1:{self.health_port}/readyz", "gateway", proc)
         return proc
 
     def start_server(self) -> subprocess.Popen:
