@@ -82,6 +82,15 @@ TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
     }),
 }
 
+# Tables added after migration 7 (their comments come with their own migration).
+LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
+    "snapshot_repairs": ("Derived: snapshots a late event made wrong, from `from_ts` on; reads "
+                         "skip them until the snapshot timer has rebuilt them (schema v8).", {
+        "from_ts": "Snapshots at or after this instant are being rebuilt",
+        "noted": "When the late event (or a repair step) noted it",
+    }),
+}
+
 # Shared by the views: the latest map geometry, for chunk coordinates of a position.
 _META = """(SELECT meta FROM {db}.map_meta FINAL ORDER BY ts DESC LIMIT 1) AS _meta,
     JSONExtractFloat(_meta, 'resolution') AS _res,
@@ -184,12 +193,18 @@ def _quote(text: str) -> str:
     return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
 
-def statements(db: str) -> tuple[str, ...]:
+def comment_statements(db: str, tables: dict[str, tuple[str, dict[str, str]]]) -> list[str]:
     out: list[str] = []
-    for table, (comment, columns) in TABLE_COMMENTS.items():
+    for table, (comment, columns) in tables.items():
         out.append(f"ALTER TABLE {db}.{table} MODIFY COMMENT {_quote(comment)}")
         out.append(f"ALTER TABLE {db}.{table} " + ", ".join(
             f"COMMENT COLUMN {column} {_quote(text)}" for column, text in columns.items()))
+    return out
+
+
+def statements(db: str) -> tuple[str, ...]:
+    """Migration 7: the comments of the tables it knew, and the views."""
+    out = comment_statements(db, TABLE_COMMENTS)
     for view, (comment, select, _columns) in VIEWS.items():
         out.append(f"CREATE OR REPLACE VIEW {db}.{view} AS {select.format(db=db)} "
                    f"COMMENT {_quote(comment)}")
@@ -205,7 +220,7 @@ def reference_markdown() -> str:
         out += [f"| `{c}` | {text} |" for c, text in columns.items()]
         out.append("")
     out += ["### Tables (storage)", ""]
-    for table, (comment, columns) in TABLE_COMMENTS.items():
+    for table, (comment, columns) in {**TABLE_COMMENTS, **LATER_TABLE_COMMENTS}.items():
         out += [f"#### `{table}`", "", comment, "", "| column | meaning |", "| --- | --- |"]
         out += [f"| `{c}` | {text} |" for c, text in columns.items()]
         out.append("")

@@ -159,6 +159,10 @@ class HistoryStore(Protocol):
     def build_snapshots(self, up_to_ms: int) -> int:
         """Builds the snapshots due up to `up_to_ms`; returns how many were built."""
 
+    def repair_snapshots(self, max_snapshots: int = 144) -> int:
+        """Rebuilds at most `max_snapshots` snapshots a late event invalidated (reads skip
+        them meanwhile); returns how many. Bounded work, called by the snapshot timer."""
+
     # Conflicts (mapservice/conflicts.py has the rule).
 
     def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,

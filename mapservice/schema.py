@@ -189,6 +189,15 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "analysts: table and column comments; views in metres, degrees, booleans and UTC",
             analyst_schema.statements(database),
         ),
+        Migration(
+            8,
+            "snapshot repairs: a late event invalidates snapshots; the timer rebuilds them in steps",
+            (f"""CREATE TABLE IF NOT EXISTS {database}.snapshot_repairs (
+                    from_ts DateTime64(3, 'UTC'),
+                    noted DateTime64(3, 'UTC')
+                ) ENGINE = MergeTree ORDER BY from_ts""",
+             *analyst_schema.comment_statements(database, analyst_schema.LATER_TABLE_COMMENTS)),
+        ),
     ]
 
 
@@ -312,4 +321,4 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8

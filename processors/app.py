@@ -120,6 +120,10 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
     async def build_snapshots() -> None:
         SNAPSHOT_RUNS.inc()
         try:
+            # Late events first: snapshots they invalidated, a bounded step per tick.
+            repaired = await sink.run(sink.store.repair_snapshots)
+            if repaired:
+                log.info("snapshots repaired after a late event", count=repaired)
             built = await sink.run(sink.store.build_snapshots, now_ms() - grace_ms)
             if built:
                 log.info("snapshots built", count=built)

@@ -316,13 +316,15 @@ class ClickHouseStore:
                     "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"])
             if metas:
                 self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
-            # A late event (at or before the newest snapshot) makes those snapshots wrong:
-            # rebuild them now, before the batch is acknowledged.
+            # A late event (at or before the newest snapshot) makes the snapshots from its
+            # time on wrong. Noting that is all the batch waits for: reads stop using those
+            # snapshots at once (they fold events from the last good one: exact, slower),
+            # and the snapshot timer rebuilds them in bounded steps (repair_snapshots).
             times = [row[0] for row in chunks] + [row[1] for row in poses]
             if times:
                 last = self._newest_snapshot()
                 if last is not None and min(times) <= last:
-                    self._rebuild_from(min(times), last)
+                    self._note_repair(min(times))
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         if not records:
@@ -355,7 +357,8 @@ class ClickHouseStore:
     def _snapshot_at_or_before(self, at_ms: int, client=None) -> int | None:
         rows = (client or self.client).query(
             f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() FROM {self.database}.snapshot_log "
-            "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64})", parameters={"t": at_ms}).result_rows
+            f"WHERE snap_ts <= fromUnixTimestamp64Milli({{t:Int64}}) AND snap_ts < {self._valid_before()}",
+            parameters={"t": at_ms}).result_rows
         return rows[0][0] if rows and rows[0][1] else None
 
     def _build_one(self, snap_ms: int, prev_ms: int | None) -> None:
@@ -389,11 +392,52 @@ class ClickHouseStore:
             f"(SELECT count() FROM {db}.robot_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}}))",
             parameters=params)
 
-    def _rebuild_from(self, from_ms: int, last_ms: int) -> None:
-        every = self.snapshot_every_ms
-        first = -(-from_ms // every) * every  # the first snapshot that can contain from_ms
-        for snap in range(first, last_ms + 1, every):
-            self._build_one(snap, self._snapshot_at_or_before(snap - 1))
+    def _note_repair(self, from_ms: int) -> None:
+        self._insert("snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]],
+                     ["from_ts", "noted"])
+
+    def _valid_before(self) -> str:
+        """SQL for the first instant whose snapshots may be wrong (a pending repair's
+        start), or far in the future: reads use only snapshots before it."""
+        return (f"(SELECT ifNull(toDateTime64(min(from_ts), 3, 'UTC'), "
+                f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)")
+
+    def repair_snapshots(self, max_snapshots: int = 144) -> int:
+        """Rebuilds at most `max_snapshots` of the snapshots a late event invalidated,
+        oldest first, in one bulk statement per table; returns how many. The snapshot
+        timer calls it until nothing is pending, so a late event costs the consumer no
+        time and the repair is spread over ticks."""
+        db, every = self.database, self.snapshot_every_ms
+        with self._lock:
+            rows = self.client.query(
+                f"SELECT toUnixTimestamp64Milli(min(from_ts)), count(), "
+                f"toUnixTimestamp64Milli(max(noted)) FROM {db}.snapshot_repairs").result_rows
+            if not rows or not rows[0][1]:
+                return 0
+            from_ms, _, noted_ms = rows[0]
+            newest = self._newest_snapshot()
+            first = -(-from_ms // every) * every  # the first snapshot that can contain from_ms
+            if newest is None or first > newest:
+                self.client.command(f"DELETE FROM {db}.snapshot_repairs WHERE noted <= "
+                                    "fromUnixTimestamp64Milli({n:Int64})", parameters={"n": noted_ms})
+                return 0
+            last = min(newest, first + (max_snapshots - 1) * every)
+            prev = first - every
+            self._build_run(first, last, prev if self._has_snapshot(prev) else None)
+            # Done up to `last`: what was noted before this step now starts after it (a
+            # late event noted meanwhile keeps its own, earlier row).
+            if last < newest:
+                self._insert("snapshot_repairs", [[last + 1, noted_ms]], ["from_ts", "noted"])
+            self.client.command(
+                f"DELETE FROM {db}.snapshot_repairs WHERE noted <= fromUnixTimestamp64Milli({{n:Int64}}) "
+                "AND from_ts <= fromUnixTimestamp64Milli({l:Int64})",
+                parameters={"n": noted_ms, "l": last})
+            return (last - first) // every + 1
+
+    def _has_snapshot(self, snap_ms: int) -> bool:
+        return bool(self.client.query(
+            f"SELECT count() FROM {self.database}.snapshot_log WHERE snap_ts = "
+            "fromUnixTimestamp64Milli({s:Int64})", parameters={"s": snap_ms}).result_rows[0][0])
 
     def build_snapshots(self, up_to_ms: int) -> int:
         """Builds every grid snapshot up to `up_to_ms` not built yet; returns how many."""
@@ -647,7 +691,8 @@ class ClickHouseStore:
         with self._reader() as c:
             rows = c.query(
                 f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
-                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64})) AS snap "
+                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
+                f"AND snap_ts < {self._valid_before()}) AS snap "
                 "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
                 "lower(hex(argMax(content_hash, (ts, robot_id)))) "
                 f"FROM (SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "
@@ -670,7 +715,8 @@ class ClickHouseStore:
             # hold its older rows until merged).
             listed = c.query(
                 f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
-                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64})) AS snap "
+                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
+                f"AND snap_ts < {self._valid_before()}) AS snap "
                 "SELECT toUnixTimestamp64Milli(any(snap)), robot_id "
                 f"FROM {db}.robot_snapshots WHERE snap_ts = snap GROUP BY robot_id",
                 parameters={"t": at_ms}).result_rows

@@ -109,6 +109,9 @@ class MemoryStore:
     def build_snapshots(self, up_to_ms: int) -> int:
         return 0  # folds the whole history on every read: nothing to snapshot
 
+    def repair_snapshots(self, max_snapshots: int = 144) -> int:
+        return 0  # no snapshots, nothing a late event could invalidate
+
     def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
                           to_ms: int) -> list[ChunkRow]:
         wanted = set(chunks)

@@ -702,3 +702,37 @@ def test_clickhouse_migration_v4_runs_twice_and_sorts_poses_by_time(chdb_dir, ev
         assert all(store.robot_known(r) for r in ("r1", "r2", "r3"))
     finally:
         store.close()
+
+
+def test_a_late_event_is_noted_not_rebuilt_and_reads_stay_exact(store, ev, t0) -> None:
+    """A write 50 min late into 60 min of 10-min snapshots: append only notes the repair,
+    reads are exact at once, and repair_snapshots rebuilds in bounded steps until done."""
+    if isinstance(store, MemoryStore):
+        assert store.repair_snapshots() == 0
+        return
+    store.snapshot_every_ms = 600_000
+    base = t0 - 3_600_000
+    store.append([ev.chunk("a", base + i * 60_000, 0, 0, bytes([i]) * 10_000) for i in range(61)])
+    store.append([ev.pose("r", base + i * 60_000, x=float(i)) for i in range(61)])
+    assert store.build_snapshots(base + 3_600_000) > 0
+    snapshot_rows = store.client.query(f"SELECT count() FROM {store.database}.map_snapshots").result_rows[0][0]
+    late = base + 10 * 60_000 + 30_000  # between snapshot 1 and 2, later than everything there
+    store.append([ev.chunk("late", late, 0, 0, bytes([200]) * 10_000),
+                  ev.pose("r", late, x=99.0)])
+    # Noted only: no snapshot row was written by the append.
+    assert store.client.query(f"SELECT count() FROM {store.database}.map_snapshots").result_rows[0][0] == snapshot_rows
+    at = base + 10 * 60_000 + 45_000
+    (chunk,) = store.map_at(at)
+    assert (chunk.robot_id, chunk.ts_ms) == ("late", late)
+    assert store.robots_at(at)[0].x == 99.0
+    before_next = base + 20 * 60_000 - 1  # the write at 19 min wins again after the late one
+    assert store.map_at(before_next)[0].robot_id == "a"
+    steps = []
+    while (n := store.repair_snapshots(max_snapshots=2)) > 0:
+        steps.append(n)
+        assert len(steps) < 10
+    assert steps and max(steps) <= 2
+    assert store.client.query(f"SELECT count() FROM {store.database}.snapshot_repairs").result_rows[0][0] == 0
+    (chunk,) = store.map_at(at)  # now from a repaired snapshot: still the late write
+    assert (chunk.robot_id, chunk.ts_ms) == ("late", late)
+    assert store.robots_at(at)[0].x == 99.0
