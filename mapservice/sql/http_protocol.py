@@ -21,7 +21,7 @@ import re
 import secrets
 import uuid
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import structlog
 from starlette.applications import Starlette
@@ -197,6 +197,4 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
 
 
 def _with_sql(request: SqlRequest, sql: str) -> SqlRequest:
-    from dataclasses import replace
-
     return replace(request, sql=sql)

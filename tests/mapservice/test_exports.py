@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import io
 import time
-import zlib
 
 import numpy as np
 import pytest
