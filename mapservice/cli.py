@@ -72,7 +72,7 @@ def cmd_clickhouse_server(args) -> None:
     settings = _settings("clickhouse-server")
     app = server_app(settings, read_write=args.read_write)
     log = logging.getLogger("mapservice.clickhouse-server")
-    log.info("ClickHouse HTTP interface over %s on http://%s:%d (%s)", settings.resolved_clickhouse_dsn,
+    log.info("ClickHouse HTTP interface over %s on http://%s:%d (%s)", app.state.chdb_path,
              args.host, args.port, "read-write" if args.read_write else "read-only")
     uvicorn.run(app, host=args.host, port=args.port, log_config=None, log_level=None,
                 access_log=False)

@@ -45,10 +45,13 @@ def analyst_app(settings: Settings) -> Starlette | None:
 
 
 def server_app(settings: Settings, read_write: bool) -> Starlette:
-    """The standalone server over the data dir's chDB."""
+    """The standalone server over the data dir's chDB (MAPSERVICE_CLICKHOUSE_DSN, if it is
+    a chdb:// one; the processes it serves set theirs to this server's http:// address)."""
     from .chdb_engine import ChdbEngine
 
-    engine = ChdbEngine(settings.resolved_clickhouse_dsn,
+    dsn = settings.clickhouse_dsn if settings.clickhouse_dsn.startswith("chdb://") \
+        else f"chdb://{(settings.data_dir / 'clickhouse').resolve()}"
+    engine = ChdbEngine(dsn,
                         read_only_settings=analyst_limits(settings).settings())
     users = []
     analyst = analyst_user(settings)
@@ -56,5 +59,7 @@ def server_app(settings: Settings, read_write: bool) -> Starlette:
         users.append(analyst)
     users.append(SqlUser(settings.clickhouse_username,
                          settings.clickhouse_password.get_secret_value(), read_only=not read_write))
-    return clickhouse_http_app(engine, users, timezone=engine_timezone(engine),
-                               display_name="mapservice-clickhouse-server")
+    app = clickhouse_http_app(engine, users, timezone=engine_timezone(engine),
+                              display_name="mapservice-clickhouse-server")
+    app.state.chdb_path = engine.path
+    return app

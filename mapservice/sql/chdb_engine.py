@@ -70,6 +70,8 @@ class ChdbEngine:
 
     def __init__(self, path: str | Path, pool_size: int = 4,
                  read_only_settings: dict[str, str] | None = None):
+        if "://" in str(path) and not str(path).startswith("chdb://"):
+            raise ValueError(f"{path} is not a chDB directory (chdb:///dir or a path)")
         self.path = str(Path(str(path).removeprefix("chdb://")).resolve())
         self.read_only_settings = dict(read_only_settings or {})
         self._pool: queue.Queue[_Handle] = queue.Queue()

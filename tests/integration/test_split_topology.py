@@ -113,6 +113,8 @@ def test_each_component_is_its_own_process_on_one_clickhouse_server(stack) -> No
     """Gateway, processors and both APIs run apart; the APIs read the server, not chDB files."""
     assert {"gateway", "processors", "api", "api-2", "clickhouse"} <= set(stack.procs)
     assert "server" not in stack.procs  # no `mapservice serve`: nothing shares a process
+    # The server serves the data dir's chDB (not a directory named after its own URL).
+    assert (stack.data_dir / "clickhouse" / "metadata" / "mapservice").exists()
     assert all(p.poll() is None for p in stack.procs.values())
     for url in (stack.api_url, stack.second_api_url):
         assert httpx.get(f"{url}/readyz", timeout=10).json()["ok"] is True

@@ -108,3 +108,9 @@ def test_read_only_requests_run_under_the_limits(engine) -> None:
 def test_ping(engine) -> None:
     """ping() is True while the engine answers."""
     assert engine.ping() is True
+
+
+def test_a_server_address_is_not_a_chdb_directory() -> None:
+    """ChdbEngine refuses an http:// DSN instead of creating a directory named after it."""
+    with pytest.raises(ValueError, match="not a chDB directory"):
+        ChdbEngine("http://127.0.0.1:8123")

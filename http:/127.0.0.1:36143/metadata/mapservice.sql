@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID '81f6ee28-d023-4b28-a0cf-5dff34ce3fd6'
-ENGINE = Atomic

@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID 'c1356ff7-532c-41c2-acee-bdb76c029578'
-ENGINE = Atomic

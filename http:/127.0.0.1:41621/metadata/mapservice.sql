@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID '1e7cf895-19c0-4bab-aa9c-cad47776a981'
-ENGINE = Atomic

@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID 'cfebecf4-3cdd-487d-920e-aa1d467163a8'
-ENGINE = Atomic

@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID '824aa1df-1839-4a90-b362-eaf490f0fe8f'
-ENGINE = Atomic

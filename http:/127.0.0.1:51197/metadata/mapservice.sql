@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID 'd77248f2-6890-4b7a-b8eb-a1af13d80b9e'
-ENGINE = Atomic

@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID '492abc22-380b-4ccd-ac4c-17e398b5d49f'
-ENGINE = Atomic

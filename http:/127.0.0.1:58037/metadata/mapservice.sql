@@ -1,2 +1,0 @@
-ATTACH DATABASE _ UUID '689c3869-2aab-40eb-931d-ebc5aa8df11f'
-ENGINE = Atomic
