@@ -58,14 +58,18 @@ async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
 
 async def serve(settings: Settings, *, processors: bool = True, api: bool = True,
                 health_port: int | None = None) -> None:
-    from mapservice.api.app import create_app
-    from mapservice.processors.app import HistorySink, build_app
-
     store = ClickHouseStore.from_settings(settings)
-    live_publisher = KafkaLivePublisher(settings) if processors else None
-    sink = HistorySink(store, live_publisher)
+    sink = None
+    if processors:
+        # Imported only where they run: an API process alone registers (and exports) none
+        # of the processors' metrics.
+        from mapservice.processors.app import HistorySink, build_app
+
+        sink = HistorySink(store, KafkaLivePublisher(settings))
+    live_publisher = sink.live if sink is not None else None
     if settings.migrates_on_start:
-        version = await sink.run(store.migrate)
+        version = await (sink.run(store.migrate) if sink is not None
+                         else asyncio.get_running_loop().run_in_executor(None, store.migrate))
     else:
         version = await wait_for_schema(store)
     log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
@@ -109,6 +113,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
                 hub.publish, messages))
             hub.ready = relay.assigned.is_set
             relay.start()
+            from mapservice.api.app import create_app
+
             from .sql.apps import analyst_app
 
             app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher,
@@ -139,6 +145,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             await faust_app.stop()
         if live_publisher is not None:
             await loop.run_in_executor(None, live_publisher.close)
-        sink.executor.shutdown(wait=True)
+        if sink is not None:
+            sink.executor.shutdown(wait=True)
         store.close()
         log.info("stopped")

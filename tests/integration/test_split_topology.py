@@ -220,3 +220,12 @@ def test_an_api_replica_serves_analysts_read_only_from_the_server(stack) -> None
         client.command("TRUNCATE TABLE mapservice.poses")
     reply = httpx.post(f"{stack.second_api_url}/clickhouse/", content=b"SELECT 1", auth=("analyst", "x"))
     assert reply.status_code == 403
+
+
+def test_an_api_replica_exports_only_its_own_metrics(stack) -> None:
+    """`mapservice api` alone: API request metrics, none of the processors' counters."""
+    text = httpx.get(f"{stack.second_api_url}/metrics", timeout=10).text
+    assert "mapservice_api_requests_total" in text
+    for processors_metric in ("mapservice_sink_events_total", "mapservice_snapshot_runs_total",
+                              "mapservice_sink_insert_failures_total"):
+        assert processors_metric not in text, processors_metric
