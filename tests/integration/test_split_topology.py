@@ -224,6 +224,7 @@ def test_an_api_replica_serves_analysts_read_only_from_the_server(stack) -> None
 
 def test_an_api_replica_exports_only_its_own_metrics(stack) -> None:
     """`mapservice api` alone: API request metrics, none of the processors' counters."""
+    assert httpx.get(f"{stack.second_api_url}/api/v1/stats", timeout=10).status_code == 200
     text = httpx.get(f"{stack.second_api_url}/metrics", timeout=10).text
     assert "mapservice_api_requests_total" in text
     for processors_metric in ("mapservice_sink_events_total", "mapservice_snapshot_runs_total",
