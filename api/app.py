@@ -12,8 +12,8 @@ from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
 from mapservice.adapters.clock import SystemClock
-from mapservice.live import LiveHub
-from mapservice.ports import Clock, EventPublisher, HistoryStore
+from mapservice.api.live_hub import LiveHub
+from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
 from .limits import BodyLimit, validation_error

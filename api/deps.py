@@ -6,9 +6,9 @@ import re
 
 from fastapi import Depends, HTTPException, Query, Request
 
-from mapservice.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
-from mapservice.wire2019 import parse_timestamp
+from mapservice.core.wire2019 import parse_timestamp
 
 
 _EPOCH_MS = re.compile(r"-?[0-9]+")

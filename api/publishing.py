@@ -11,8 +11,8 @@ import time
 
 from fastapi import HTTPException, Request
 
-from mapservice.events import ChunkUpdated, Envelope, MapMetaSet, encode, kafka_key
-from mapservice.ports import EventPublisher
+from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, encode, kafka_key
+from mapservice.core.ports import EventPublisher
 from mapservice.settings import Settings
 
 PUBLISH_TIMEOUT_S = 10.0

@@ -17,12 +17,12 @@ import structlog
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
-from mapservice.health import kafka_check
-from mapservice.health_server import serve_health
-from mapservice.mqtt import make_client, parse_mqtt_url
-from mapservice.ports import Clock, EventPublisher
+from mapservice.runtime.health import kafka_check
+from mapservice.runtime.health_server import serve_health
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.core.ports import Clock, EventPublisher
 from mapservice.settings import Settings
-from mapservice.wire2019 import Limits, Reason
+from mapservice.core.wire2019 import Limits, Reason
 
 from . import metrics
 from .meta_watcher import MetaWatcher

@@ -7,7 +7,7 @@ import threading
 import structlog
 from confluent_kafka import OFFSET_BEGINNING, Consumer, TopicPartition
 
-from mapservice.events import MapMetaSet, decode
+from mapservice.core.events import MapMetaSet, decode
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)

@@ -18,7 +18,7 @@ ACK_LATENCY = Histogram("mapservice_gateway_ack_seconds", "MQTT receive to Kafka
 def _preinitialise() -> None:
     """A series for every dead-letter reason from the start: a rate() over a reason that
     has not happened yet is 0, not missing, and the dashboard lists every reason."""
-    from mapservice.wire2019 import Reason
+    from mapservice.core.wire2019 import Reason
 
     for reason in Reason:
         REJECTED.labels(reason.value)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
-from mapservice.events import (
+from mapservice.core.events import (
     ChunkUpdated,
     DeadLetter,
     Envelope,
@@ -15,7 +15,7 @@ from mapservice.events import (
     kafka_key,
 )
 from mapservice.settings import Settings
-from mapservice.wire2019 import Limits, Reason, Rejection, decode_chunk_create, decode_coordinates
+from mapservice.core.wire2019 import Limits, Reason, Rejection, decode_chunk_create, decode_coordinates
 
 
 # Kafka's default record limit is 1 MB; a dead letter keeps at most this much of a message.

@@ -11,45 +11,35 @@ import sys
 import time
 from pathlib import Path
 
-from .settings import Settings
+from mapservice.robot import DEFAULT_MAP
+from mapservice.settings import Settings
+from mapservice.runtime.startup import settings_for
 
-DEFAULT_MAP = Path(__file__).resolve().parent.parent / "maps" / "warehouse.yaml"
-
-
-def _settings(component: str) -> Settings:
-    from .logs import configure
-
-    try:
-        settings = Settings()
-    except ValueError as exc:
-        sys.exit(f"configuration error: {exc}")
-    configure(settings.log_level, settings.log_format, component)
-    return settings
 
 
 def cmd_gateway(args) -> None:
     from mapservice.ingest.gateway import run_gateway
-    from .topics import ensure_topics
+    from mapservice.adapters.kafka_topics import ensure_topics
 
-    settings = _settings("gateway")
+    settings = settings_for("gateway")
     ensure_topics(settings)
     run_gateway(settings, args.health_port)
 
 
 def cmd_serve(args, processors: bool = True, api: bool = True, component: str = "server") -> None:
-    from .server import serve
+    from mapservice.server import serve
 
-    settings = _settings(component)
+    settings = settings_for(component)
     asyncio.run(serve(settings, processors=processors, api=api,
                       health_port=getattr(args, "health_port", None)))
 
 
 def cmd_migrate(args) -> None:
-    from .adapters.clickhouse_store import ClickHouseStore, MigrationChanged, MigrationLocked
-    from .schema import SCHEMA_VERSION
+    from mapservice.adapters.clickhouse.store import ClickHouseStore, MigrationChanged, MigrationLocked
+    from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 
-    settings = _settings("migrate")
-    store = ClickHouseStore.from_settings(settings)
+    settings = settings_for("migrate")
+    store = ClickHouseStore.fromsettings_for(settings)
     log = logging.getLogger("mapservice.migrate")
     try:
         if args.break_lock:
@@ -67,9 +57,9 @@ def cmd_migrate(args) -> None:
 def cmd_clickhouse_server(args) -> None:
     import uvicorn
 
-    from .sql.apps import server_app
+    from mapservice.sql.apps import server_app
 
-    settings = _settings("clickhouse-server")
+    settings = settings_for("clickhouse-server")
     app = server_app(settings, read_write=args.read_write)
     log = logging.getLogger("mapservice.clickhouse-server")
     log.info("ClickHouse HTTP interface over %s on http://%s:%d (%s)", app.state.chdb_path,
@@ -81,7 +71,7 @@ def cmd_clickhouse_server(args) -> None:
 def cmd_sql(args) -> None:
     import httpx
 
-    from .sql.credentials import analyst_password
+    from mapservice.sql.credentials import analyst_password
 
     settings = Settings(data_dir=Path(args.data_dir)) if args.data_dir else Settings()
     password = args.password or analyst_password(settings)
@@ -132,11 +122,11 @@ def cmd_up(args) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from .logs import configure
-    from .adapters.clock import SystemClock
-    from .map_upload import check_data_dir_map, upload_map_if_fresh
-    from .mapfile import load_ros_map, meta_for
-    from .stack import Stack
+    from mapservice.runtime.logs import configure
+    from mapservice.adapters.clock import SystemClock
+    from mapservice.robot.map_upload import check_data_dir_map, upload_map_if_fresh
+    from mapservice.adapters.ros_map import load_ros_map, meta_for
+    from mapservice.local.stack import Stack
 
     configure("INFO", "console", "up")
     # httpx logs every readiness poll (~20 `GET /readyz 503` while the server starts).
@@ -214,8 +204,8 @@ def cmd_demo_history(args) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from .logs import configure
-    from .mapfile import load_ros_map
+    from mapservice.runtime.logs import configure
+    from mapservice.adapters.ros_map import load_ros_map
 
     configure("WARNING", "console", "demo-history")
     console = Console()
@@ -224,12 +214,12 @@ def cmd_demo_history(args) -> None:
         ros_map = load_ros_map(args.map)
     except (OSError, ValueError) as exc:
         sys.exit(f"mapservice demo-history: cannot read the map {args.map}: {exc}")
-    from .adapters.clickhouse_store import ClickHouseStore
-    from .adapters.clock import SystemClock
-    from .demo_history import backfill
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
+    from mapservice.adapters.clock import SystemClock
+    from mapservice.local.demo_history import backfill
 
     settings = Settings(data_dir=data_dir)
-    store = ClickHouseStore.from_settings(settings)
+    store = ClickHouseStore.fromsettings_for(settings)
     try:
         store.migrate()
         if store.counts().poses:
@@ -249,7 +239,7 @@ def cmd_demo_history(args) -> None:
 
 def supervise(stack, console, base_s: float = 1.0) -> None:
     """Runs until Ctrl-C: a component that exits is restarted with backoff, not the end."""
-    from .supervisor import Supervisor
+    from mapservice.local.supervisor import Supervisor
 
     supervisor = Supervisor(
         stack.is_alive, {name: (lambda n=name: stack.restart(n)) for name in list(stack.procs)},
@@ -363,11 +353,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_robot_parsers(sub)  # map, sim, robot, drive
 
-    from .bench import add_bench_parser
+    from mapservice.bench.cli import add_bench_parser
 
     add_bench_parser(sub)
 
-    from .history_loader import add_parser as add_load_history_parser
+    from mapservice.bench.history_loader import add_parser as add_load_history_parser
 
     add_load_history_parser(sub)
 

@@ -3,7 +3,7 @@
 With embedded ClickHouse (chdb) only one process may open the data directory, so
 `mapservice serve` runs both here; with a ClickHouse server they can run apart
 (`mapservice processors`, `mapservice api`) and scale separately. Either way the live
-stream goes through Kafka (mapservice/live.py): the processors publish each stored
+stream goes through Kafka (mapservice/core/live_messages.py): the processors publish each stored
 batch, the API's relay reads the live topic.
 """
 
@@ -15,22 +15,22 @@ import signal
 import structlog
 import uvicorn
 
-from .adapters.clickhouse_store import ClickHouseStore
-from .adapters.kafka_live_publisher import KafkaLivePublisher
-from .adapters.kafka_live_relay import KafkaLiveRelay
-from .adapters.kafka_publisher import KafkaPublisher
-from .health import CachedCheck, Heartbeat, beat_forever, kafka_check
-from .health_server import serve_health
-from .live import LiveHub
-from .settings import Settings
-from .topics import ensure_topics
+from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
+from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
+from mapservice.adapters.kafka_publisher import KafkaPublisher
+from mapservice.runtime.health import CachedCheck, Heartbeat, beat_forever, kafka_check
+from mapservice.runtime.health_server import serve_health
+from mapservice.api.live_hub import LiveHub
+from mapservice.settings import Settings
+from mapservice.adapters.kafka_topics import ensure_topics
 
 log = structlog.get_logger(__name__)
 
 
 def api_server_config(app, settings: Settings) -> uvicorn.Config:
     """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
-    through the process's logging setup (mapservice.logs: JSON lines in JSON mode)."""
+    through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode)."""
     return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
                           log_config=None, log_level=None, access_log=True)
 
@@ -38,7 +38,7 @@ def api_server_config(app, settings: Settings) -> uvicorn.Config:
 async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
     """Waits until `mapservice migrate` has brought the schema to this release's version
     (production: migrations run once per release, never from every pod at once)."""
-    from .schema import SCHEMA_VERSION
+    from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 
     loop = asyncio.get_running_loop()
     said = -1
@@ -82,7 +82,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         await faust_app.start()
         log.info("processors started", kafka=settings.kafka_bootstrap)
     # Readiness: a real call to each dependency (cached, bounded by a timeout). Liveness:
-    # heartbeats of the loops that do the work (mapservice/health.py).
+    # heartbeats of the loops that do the work (mapservice/runtime/health.py).
     kafka = kafka_check(settings)
     readiness = {"clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)}
     advisory: dict = {}  # reported by /readyz, not required
@@ -115,7 +115,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             relay.start()
             from mapservice.api.app import create_app
 
-            from .sql.apps import analyst_app
+            from mapservice.sql.apps import analyst_app
 
             app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher,
                              sql_app=await loop.run_in_executor(None, analyst_app, settings))

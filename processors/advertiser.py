@@ -18,7 +18,7 @@ import paho.mqtt.client as mqtt
 import structlog
 from prometheus_client import Counter
 
-from mapservice.mqtt import make_client, parse_mqtt_url
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)

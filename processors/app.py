@@ -8,64 +8,28 @@ natural-identity keys absorb the repeat.
 
 from __future__ import annotations
 
-import asyncio
 import ssl
-import time
-from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
 
 import faust
 import structlog
-from prometheus_client import Counter, Histogram
+from prometheus_client import Counter
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
-from mapservice.ports import HistoryStore, LiveFeed
-from mapservice.retry import until_done
 from mapservice.settings import Settings
 
 from .history_consumer import HistoryConsumer, HistoryConsumerService
-from .sink import decode_dead_letters
+from .sink import HistorySink, decode_dead_letters
 from .views import LiveViews
 
 log = structlog.get_logger(__name__)
 
-STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
-INSERT_SECONDS = Histogram("mapservice_sink_insert_seconds", "Duration of one history insert",
-                           buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
 SNAPSHOT_RUNS = Counter("mapservice_snapshot_runs_total",
                         "Snapshot timer runs on this replica (only the group leader runs it)")
-INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that failed and were retried")
 
 
 def faust_broker_url(settings: Settings) -> str:
     return ";".join(f"kafka://{h.strip()}" for h in settings.kafka_bootstrap.split(","))
-
-
-class HistorySink:
-    """Owns the store and the one thread that talks to it."""
-
-    def __init__(self, store: HistoryStore, live: LiveFeed | None = None) -> None:
-        self.store = store
-        self.live = live
-        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
-        self.consumer = None  # the HistoryConsumer feeding it, once build_app made one
-
-    async def run(self, fn, *args):
-        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
-
-    async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
-        """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,
-        per topic (`counts`: how many of the batch came from each topic)."""
-        # Retried, never skipped: acknowledging a batch that is not stored would lose it.
-        async for attempt in until_done("history insert", 0.2, INSERT_FAILURES.inc,
-                                        topics=sorted(counts), batch=len(batch)):
-            with attempt:
-                started = time.monotonic()
-                await self.run(fn, batch)
-        INSERT_SECONDS.observe(time.monotonic() - started)
-        for topic, count in counts.items():
-            STORED.labels(topic).inc(count)
 
 
 def build_app(settings: Settings, sink: HistorySink) -> faust.App:

@@ -19,14 +19,14 @@ import structlog
 from prometheus_client import Counter, Histogram
 
 from mapservice.adapters.clock import SystemClock
-from mapservice.health import Heartbeat
-from mapservice.ports import EventSource, SourceRecord
-from mapservice.retry import until_done
+from mapservice.runtime.health import Heartbeat
+from mapservice.core.ports import EventSource, SourceRecord
+from mapservice.runtime.retry import until_done
 
 from .sink import split_events
 
 if TYPE_CHECKING:
-    from .app import HistorySink
+    from .sink import HistorySink
     from .views import LiveViews
 
 log = structlog.get_logger(__name__)

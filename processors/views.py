@@ -4,7 +4,7 @@ Fed by the history sink after each insert (`on_stored`), so a view never shows, 
 advertisement never names, a write the API cannot serve yet. The views are rebuilt from
 ClickHouse whenever faust assigns partitions (start-up, restart, rebalance), before any
 event of those partitions is consumed: the history is the changelog. The rules are pure
-functions in `mapservice/liveview.py` and `mapservice/conflicts.py`.
+functions in `mapservice/core/liveview.py` and `mapservice/core/conflicts.py`.
 """
 
 from __future__ import annotations
@@ -19,23 +19,24 @@ import structlog
 from prometheus_client import Counter, Gauge
 
 from mapservice.adapters.clock import SystemClock
-from mapservice.conflicts import RecentWrites, record_conflicts
-from mapservice.events import ChunkUpdated, Envelope, PoseReported
-from mapservice.liveview import (
+from mapservice.core.conflicts import RecentWrites
+from mapservice.processors.conflict_recorder import record_conflicts
+from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
+from mapservice.core.liveview import (
     RobotState,
     advertisement,
     apply_chunks,
     apply_poses,
     online_robots,
 )
-from mapservice.ports import ChunkRow, HistoryStore
-from mapservice.retry import until_done
+from mapservice.core.ports import ChunkRow, HistoryStore
+from mapservice.runtime.retry import until_done
 from mapservice.settings import Settings
 
 if TYPE_CHECKING:
     import faust
 
-    from .app import HistorySink
+    from .sink import HistorySink
 
 log = structlog.get_logger(__name__)
 
@@ -44,7 +45,7 @@ VIEW_CHANGES = Counter("mapservice_latest_map_changes_total", "Changes of the li
 ADS_DROPPED = Counter("mapservice_advertisements_dropped_total",
                       "Advertisements dropped because too many were waiting to be encoded")
 MAX_PENDING_ADS = 10_000
-# Conflict neighbours of live batches come from memory (mapservice.conflicts.RecentWrites)
+# Conflict neighbours of live batches come from memory (mapservice.core.conflicts.RecentWrites)
 # when the window is short enough to keep its writes; older ones from the store.
 RECENT_MAX_WINDOW_MS = 600_000
 RECENT_SLACK_MS = 120_000

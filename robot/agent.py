@@ -33,10 +33,10 @@ import numpy as np
 import structlog
 import yaml
 
-from mapservice.events import MapMetaSet
-from mapservice.mapfile import RosMap, load_ros_map, meta_for, write_pgm
-from mapservice.mqtt import make_client, parse_mqtt_url
-from mapservice.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.core.events import MapMetaSet
+from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, write_pgm
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
 
 from .chunks import chunk_pixels, meta_from_json, meta_to_json, paste_chunk
 from .faults import yaw_quaternion
@@ -437,7 +437,7 @@ class RobotAgent:
 
 
 def main(args) -> None:
-    from mapservice.logs import configure
+    from mapservice.runtime.logs import configure
 
     configure("INFO", "console", "robot")
     source = None

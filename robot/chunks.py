@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from mapservice.events import MapMetaSet
-from mapservice.mapfile import RosMap, UNKNOWN, load_ros_map, meta_for, read_pgm, slice_chunks, write_pgm
+from mapservice.core.events import MapMetaSet
+from mapservice.adapters.ros_map import RosMap, UNKNOWN, load_ros_map, meta_for, read_pgm, slice_chunks, write_pgm
 
 META_FILE = "meta.json"
 ROS_FILE = "map.yaml"  # PGM flavour and ROS settings of the sliced map, for stitch to write back
@@ -169,7 +169,7 @@ def stitch_dir(work_dir: str | Path, out_path: str | Path, *, magic: str | None 
     if out.suffix.lower() in (".yaml", ".yml"):
         if meta.resolution is None:
             raise ValueError("meta.json has no resolution/origin: write a .pgm instead")
-        from mapservice.mapfile import save_ros_map
+        from mapservice.adapters.ros_map import save_ros_map
 
         save_ros_map(RosMap(pixels, meta.resolution, meta.origin, comment=meta.comment,  # type: ignore[arg-type]
                             negate=negate, occupied_thresh=float(ros.get("occupied_thresh", 0.65)),
@@ -183,7 +183,7 @@ def stitch_dir(work_dir: str | Path, out_path: str | Path, *, magic: str | None 
 
 def describe(map_path: str | Path, chunk_width: int = 100, chunk_height: int = 100) -> dict:
     """What `mapservice map info` prints: size, geometry, chunk grid, pixel classes."""
-    from mapservice.mapfile import FREE, OCCUPIED, classify
+    from mapservice.adapters.ros_map import FREE, OCCUPIED, classify
 
     ros_map = load_map_file(map_path)
     meta = _meta(ros_map, chunk_width, chunk_height)

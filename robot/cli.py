@@ -7,9 +7,8 @@ import os
 import signal
 import sys
 import time
-from pathlib import Path
 
-DEFAULT_MAP = Path(__file__).resolve().parent.parent / "maps" / "warehouse.yaml"
+from mapservice.robot import DEFAULT_MAP
 
 
 def _probability(text: str) -> float:
@@ -49,8 +48,8 @@ def _map_upload(args) -> None:
     """`map upload`: the whole map through the 2019 REST API, as events like any robot's."""
     import httpx
 
-    from mapservice.map_upload import MapSizeMismatch, upload_map_rest
-    from mapservice.mapfile import load_ros_map
+    from mapservice.robot.map_upload import MapSizeMismatch, upload_map_rest
+    from mapservice.adapters.ros_map import load_ros_map
 
     if args.replace and not args.admin_token:
         sys.exit("mapservice map upload: --replace replaces the service's map for every robot; "
@@ -76,10 +75,10 @@ def _map_upload(args) -> None:
 def cmd_sim(args) -> None:
     import structlog
 
-    from mapservice.cli import _settings
-    from mapservice.mapfile import load_ros_map
+    from mapservice.runtime.startup import settings_for
+    from mapservice.adapters.ros_map import load_ros_map
 
-    settings = _settings("sim")
+    settings = settings_for("sim")
     log = structlog.get_logger("sim")
     mqtt_url = args.mqtt_url or settings.mqtt_url
     ros_map = load_ros_map(args.map)
@@ -124,7 +123,7 @@ def cmd_sim(args) -> None:
 
 def _load_test(args, mqtt_url, ros_map, log) -> None:
     """The 2019 load test: one pose a second, the same chunks re-sent at new positions."""
-    from mapservice.loadgen import RobotFleet
+    from mapservice.robot.loadgen import RobotFleet
 
     fleet = RobotFleet(mqtt_url, ros_map, args.robots)
     signal.signal(signal.SIGTERM, lambda *_: fleet.stop())

@@ -15,10 +15,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mapservice.events import MapMetaSet
-from mapservice.mapfile import RosMap, drivable, load_ros_map, meta_for
-from mapservice.mqtt import make_client, parse_mqtt_url
-from mapservice.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.core.events import MapMetaSet
+from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map, meta_for
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .chunks import chunk_of_pixel, chunk_pixels, metres_to_pixel, paste_chunk, pixel_to_metres
 from .faults import yaw_quaternion
@@ -184,7 +184,7 @@ def check_map_size(api_url: str, meta: MapMetaSet, http=None) -> None:
     chunks into it would corrupt it (a service without a map accepts any)."""
     import httpx
 
-    from mapservice.map_upload import mismatch_message, same_geometry, stored_meta
+    from mapservice.robot.map_upload import mismatch_message, same_geometry, stored_meta
 
     try:
         if http is not None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import msgspec
 
-from mapservice.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .sim import ChunkOut, PoseOut, StepOut
 

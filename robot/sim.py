@@ -20,8 +20,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from mapservice.events import MapMetaSet
-from mapservice.mapfile import RosMap, drivable, meta_for
+from mapservice.core.events import MapMetaSet
+from mapservice.adapters.ros_map import RosMap, drivable, meta_for
 
 from .chunks import chunk_pixels, pixel_to_metres
 from .planning import (Cell, PlanGrid, dilate, grid_for, largest_component, plan, plan_cell_sizes,

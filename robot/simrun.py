@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 import paho.mqtt.client as mqtt
 import structlog
 
-from mapservice.mapfile import RosMap
-from mapservice.mqtt import make_client, parse_mqtt_url
+from mapservice.adapters.ros_map import RosMap
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 
 from .faults import Faults, to_messages
 from .sim import SimConfig, SimState, new_state, step

@@ -12,7 +12,7 @@ import msgspec
 import pytest
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.events import (
+from mapservice.core.events import (
     ChunkUpdated,
     DeadLetter,
     Envelope,
@@ -20,7 +20,7 @@ from mapservice.events import (
     PoseReported,
     make_envelope,
 )
-from mapservice.wire2019 import Limits, content_hash, format_timestamp
+from mapservice.core.wire2019 import Limits, content_hash, format_timestamp
 
 # 2026-11-21T10:00:00Z: a fixed "now" so every test sees the same gateway clock.
 NOW_MS = 1_795_255_200_000

@@ -13,7 +13,7 @@ import time
 import httpx
 import pytest
 
-from mapservice.embedded import ensure_port_free, free_port
+from mapservice.local.embedded import ensure_port_free, free_port
 from mapservice.settings import Settings
 from tests.fixtures.paths import README, ROOT
 

@@ -16,8 +16,8 @@ import msgspec
 from cachetools import LRUCache
 from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
 
-from mapservice.ports import HistoryStore
-from mapservice.render import chunk_pixels, png
+from mapservice.core.ports import HistoryStore
+from mapservice.core.render import chunk_pixels, png
 
 from ..deps import get_store
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.ports import HistoryStore
-from mapservice.wire2019 import format_timestamps
+from mapservice.core.ports import HistoryStore
+from mapservice.core.wire2019 import format_timestamps
 
 from ..deps import get_store, parse_window
 

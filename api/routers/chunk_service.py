@@ -2,7 +2,7 @@
 
 Writes become events on Kafka, validated by the same rules as MQTT (`wire2019`), and are
 readable once the processors stored them; reads come from the history. Semantics of
-every parameter: `mapservice/legacy_query.py` and docs/contract-2019.md.
+every parameter: `mapservice/core/legacy_query.py` and docs/contract-2019.md.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
-from mapservice.events import MapMetaSet, make_envelope
-from mapservice.legacy_query import (
+from mapservice.core.events import MapMetaSet, make_envelope
+from mapservice.core.legacy_query import (
     MAX_LIMIT,
     ChunkQuery,
     QueryError,
@@ -28,10 +28,10 @@ from mapservice.legacy_query import (
     parse_chunk_query,
     select,
 )
-from mapservice.ports import Clock, EventPublisher, HistoryStore
-from mapservice.render import chunk_pixels, png
+from mapservice.core.ports import Clock, EventPublisher, HistoryStore
+from mapservice.core.render import chunk_pixels, png
 from mapservice.settings import Settings
-from mapservice.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
+from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
 
 from ..admin import check_admin, optional_bearer, require_admin
 from ..deps import get_clock, get_settings, get_store

@@ -1,5 +1,5 @@
 """Conflicts: two robots writing different content to one chunk within the conflict window
-(rule in mapservice/conflicts.py), in a time window, ordered by time. The store keeps who
+(rule in mapservice/core/conflicts.py), in a time window, ordered by time. The store keeps who
 and when; both writes' content hashes come from the chunk history."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.ports import ConflictRow, HistoryStore
+from mapservice.core.ports import ConflictRow, HistoryStore
 from mapservice.settings import Settings
 
 from ..deps import get_settings, get_store, parse_window

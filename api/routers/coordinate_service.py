@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 
-from mapservice.legacy_query import (
+from mapservice.core.legacy_query import (
     MAX_LIMIT,
     QueryError,
     latest_instant,
@@ -14,9 +14,9 @@ from mapservice.legacy_query import (
     pose_id,
     select,
 )
-from mapservice.ports import Clock, HistoryStore, PoseRow
+from mapservice.core.ports import Clock, HistoryStore, PoseRow
 from mapservice.settings import Settings
-from mapservice.wire2019 import format_timestamp
+from mapservice.core.wire2019 import format_timestamp
 
 from ..deps import get_clock, get_settings, get_store
 

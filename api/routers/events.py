@@ -12,9 +12,9 @@ import msgspec
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
-from mapservice.wire2019 import format_timestamps
+from mapservice.core.wire2019 import format_timestamps
 
 from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 from .chunk_events import ChunkEvent

@@ -9,8 +9,8 @@ from typing import Literal
 from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import Response
 
-from mapservice.exports import TABLE_FORMATS, TABLES, export_mcap, export_table
-from mapservice.ports import HistoryStore
+from mapservice.adapters.exports import TABLE_FORMATS, TABLES, export_mcap, export_table
+from mapservice.core.ports import HistoryStore
 
 from ..deps import get_store, parse_window
 

@@ -12,7 +12,7 @@ router = APIRouter(tags=["health"])
 @router.get("/healthz", operation_id="getLiveness")
 def liveness(request: Request) -> JSONResponse:
     """Alive: this answer needs the event loop; with the processors in this process, also
-    their loops' heartbeats (mapservice/health.py)."""
+    their loops' heartbeats (mapservice/runtime/health.py)."""
     checks = {name: bool(check()) for name, check in getattr(request.app.state, "liveness", {}).items()}
     ok = all(checks.values())
     body = {"ok": ok, "checks": checks} if checks else {"ok": True}

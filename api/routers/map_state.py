@@ -8,9 +8,9 @@ import msgspec
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
 from pydantic import BaseModel
 
-from mapservice.ports import HistoryStore
-from mapservice.render import png, stitch
-from mapservice.wire2019 import format_timestamps
+from mapservice.core.ports import HistoryStore
+from mapservice.core.render import png, stitch
+from mapservice.core.wire2019 import format_timestamps
 
 from ..deps import at_instant, get_store
 

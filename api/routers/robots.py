@@ -5,10 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel
 
-from mapservice.liveview import clock_skew_ms, is_online, skew_flagged
-from mapservice.ports import HistoryStore
+from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
+from mapservice.core.ports import HistoryStore
 from mapservice.settings import Settings
-from mapservice.wire2019 import format_timestamp
+from mapservice.core.wire2019 import format_timestamp
 
 from ..deps import at_instant, get_settings, get_store
 from .poses import Pose

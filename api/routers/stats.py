@@ -5,7 +5,7 @@ from __future__ import annotations
 import msgspec
 from fastapi import APIRouter, Depends
 
-from mapservice.ports import HistoryStore
+from mapservice.core.ports import HistoryStore
 
 from ..deps import get_store
 

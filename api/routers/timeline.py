@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel
 
-from mapservice.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
-from mapservice.timetravel import timeline_buckets
+from mapservice.core.timetravel import timeline_buckets
 
 from ..deps import get_clock, get_settings, get_store, window_in_retention
 

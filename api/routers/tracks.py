@@ -5,9 +5,9 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
-from mapservice.timetravel import yaw
+from mapservice.core.timetravel import yaw
 
 from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 

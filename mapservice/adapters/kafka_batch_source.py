@@ -17,8 +17,8 @@ import structlog
 from confluent_kafka import Consumer, KafkaError, KafkaException, TopicPartition
 from prometheus_client import Gauge
 
-from ..ports import SourceRecord
-from ..settings import Settings
+from mapservice.core.ports import SourceRecord
+from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 

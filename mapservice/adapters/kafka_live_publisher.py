@@ -14,9 +14,9 @@ import structlog
 from confluent_kafka import Producer
 from prometheus_client import Counter
 
-from ..events import Envelope
-from ..live import live_records
-from ..settings import Settings
+from mapservice.core.events import Envelope
+from mapservice.core.live_messages import live_records
+from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 

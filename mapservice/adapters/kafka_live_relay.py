@@ -18,8 +18,8 @@ import structlog
 from confluent_kafka import OFFSET_END, Consumer, KafkaError, TopicPartition
 from prometheus_client import Counter, Histogram
 
-from ..live import BadLiveRecord, decode_live_record
-from ..settings import Settings
+from mapservice.core.live_messages import BadLiveRecord, decode_live_record
+from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 

@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 from confluent_kafka import KafkaError, KafkaException, Producer
 
-from ..settings import Settings
+from mapservice.settings import Settings
 
 
 def producer_config(settings: Settings, client_id: str) -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 
-from ..ports import SourceRecord
+from mapservice.core.ports import SourceRecord
 
 
 class MemorySource:

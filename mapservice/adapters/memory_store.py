@@ -11,11 +11,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
-from ..legacy_query import ChunkQuery, PoseQuery, select
-from ..ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
-from ..schema import SCHEMA_VERSION
-from ..timetravel import ChunkState, fold_map, fold_robots, timeline_buckets
+from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
+from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
+from mapservice.core.ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
+from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
+from mapservice.core.ports import ChunkState
+from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 
 
 def _mm(v: float) -> float:

@@ -13,17 +13,17 @@ from starlette.applications import Starlette
 
 from mapservice.settings import Settings
 
-from .credentials import analyst_limits, analyst_user
-from .engine import SqlEngine, SqlRequest
-from .http_protocol import SqlUser, clickhouse_http_app
-from .server_engine import ServerEngine
+from mapservice.sql.credentials import analyst_limits, analyst_user
+from mapservice.sql.engine import SqlEngine, SqlRequest
+from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
+from mapservice.sql.server_engine import ServerEngine
 
 
 def engine_for(settings: Settings) -> SqlEngine:
     dsn = settings.resolved_clickhouse_dsn
     limits = analyst_limits(settings).settings()
     if dsn.startswith("chdb://"):
-        from .chdb_engine import ChdbEngine
+        from mapservice.sql.chdb_engine import ChdbEngine
 
         return ChdbEngine(dsn, read_only_settings=limits)
     return ServerEngine(dsn, settings.clickhouse_username,
@@ -47,7 +47,7 @@ def analyst_app(settings: Settings) -> Starlette | None:
 def server_app(settings: Settings, read_write: bool) -> Starlette:
     """The standalone server over the data dir's chDB (MAPSERVICE_CLICKHOUSE_DSN, if it is
     a chdb:// one; the processes it serves set theirs to this server's http:// address)."""
-    from .chdb_engine import ChdbEngine
+    from mapservice.sql.chdb_engine import ChdbEngine
 
     dsn = settings.clickhouse_dsn if settings.clickhouse_dsn.startswith("chdb://") \
         else f"chdb://{(settings.data_dir / 'clickhouse').resolve()}"

@@ -18,7 +18,7 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
-from .engine import SqlError, SqlRequest, SqlResult, output_format
+from mapservice.sql.engine import SqlError, SqlRequest, SqlResult, output_format
 
 _SETTING_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 # SET and USE only change the session, and the HTTP interface here has none (like a

@@ -10,8 +10,8 @@ from pathlib import Path
 
 from mapservice.settings import Settings
 
-from .http_protocol import SqlUser
-from .read_only import ReadOnlyLimits
+from mapservice.sql.http_protocol import SqlUser
+from mapservice.sql.read_only import ReadOnlyLimits
 
 
 def analyst_password_file(data_dir: Path) -> Path:

@@ -30,8 +30,8 @@ from starlette.requests import Request
 from starlette.responses import PlainTextResponse, Response
 from starlette.routing import Route
 
-from .engine import AUTHENTICATION_FAILED, SqlEngine, SqlError, SqlRequest
-from .read_only import check_read_only
+from mapservice.sql.engine import AUTHENTICATION_FAILED, SqlEngine, SqlError, SqlRequest
+from mapservice.sql.read_only import check_read_only
 
 log = structlog.get_logger(__name__)
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, replace
 
-from .engine import READONLY, SqlEngine, SqlError, SqlRequest
+from mapservice.sql.engine import READONLY, SqlEngine, SqlError, SqlRequest
 
 # Root nodes of EXPLAIN AST for statements that only read.
 READ_STATEMENTS = frozenset({

@@ -10,7 +10,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-from .engine import SqlError, SqlRequest, SqlResult, output_format
+from mapservice.sql.engine import SqlError, SqlRequest, SqlResult, output_format
 
 
 class ServerEngine:

@@ -13,7 +13,7 @@ from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import IMMUTABLE
 from mapservice.settings import Settings
-from mapservice.wire2019 import content_hash
+from mapservice.core.wire2019 import content_hash
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 HOUR = 3_600_000
@@ -355,7 +355,7 @@ def test_map_png_without_meta_is_404(client) -> None:
 
 def test_chunk_content_as_png(client) -> None:
     """encoding=png returns the chunk as a 100 x 100 greyscale PNG, immutable."""
-    from mapservice.wire2019 import content_hash
+    from mapservice.core.wire2019 import content_hash
 
     r = client.get(f"/api/v1/chunk-contents/{content_hash(PIXELS).hex()}", params={"encoding": "png"})
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"

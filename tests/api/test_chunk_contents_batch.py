@@ -13,7 +13,7 @@ from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK, ContentCache
 from mapservice.settings import Settings
-from mapservice.wire2019 import content_hash
+from mapservice.core.wire2019 import content_hash
 
 NOW = 1_795_255_200_000
 URL = "/api/v1/chunk-contents/batch"

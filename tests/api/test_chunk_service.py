@@ -17,10 +17,10 @@ from structlog.testing import capture_logs
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.events import ChunkUpdated, MapMetaSet, decode
-from mapservice.legacy_query import MAX_LIMIT
+from mapservice.core.events import ChunkUpdated, MapMetaSet, decode
+from mapservice.core.legacy_query import MAX_LIMIT
 from mapservice.settings import Settings
-from mapservice.wire2019 import Limits
+from mapservice.core.wire2019 import Limits
 from tests.fixtures.legacy import SpyStore, process
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
@@ -77,7 +77,7 @@ def keys(body) -> list[tuple]:
 
 
 def _ms(ts: str) -> int:
-    from mapservice.wire2019 import parse_timestamp
+    from mapservice.core.wire2019 import parse_timestamp
 
     return parse_timestamp(ts)
 

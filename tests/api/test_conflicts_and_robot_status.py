@@ -8,9 +8,9 @@ from fastapi.testclient import TestClient
 from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
-from mapservice.ports import ConflictRow
+from mapservice.core.ports import ConflictRow
 from mapservice.settings import Settings
-from mapservice.wire2019 import content_hash
+from mapservice.core.wire2019 import content_hash
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 PA, PB = bytes(10_000), bytes([254]) * 10_000

@@ -7,9 +7,9 @@ from fastapi.testclient import TestClient
 from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.legacy_query import MAX_LIMIT
+from mapservice.core.legacy_query import MAX_LIMIT
 from mapservice.settings import Settings
-from mapservice.wire2019 import parse_timestamp
+from mapservice.core.wire2019 import parse_timestamp
 from tests.fixtures.legacy import SpyStore
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z

@@ -9,7 +9,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
-from mapservice.live import LiveHub
+from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 
 

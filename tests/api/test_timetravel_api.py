@@ -11,8 +11,8 @@ from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers import events as events_router
-from mapservice.events import PoseReported, make_envelope
-from mapservice.ports import ConflictRow
+from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.ports import ConflictRow
 from mapservice.settings import Settings
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z, a whole minute

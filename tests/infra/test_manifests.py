@@ -26,7 +26,7 @@ import yaml
 from pydantic import SecretStr
 
 from mapservice.settings import Settings
-from mapservice.topics import topic_config, topic_partitions
+from mapservice.adapters.kafka_topics import topic_config, topic_partitions
 from tests.fixtures.paths import ROOT
 
 INFRA = ROOT / "infra"
@@ -181,7 +181,7 @@ def served():
 
     from mapservice.adapters.memory_store import MemoryStore
     from mapservice.api.app import create_app
-    from mapservice.health_server import serve_health
+    from mapservice.runtime.health_server import serve_health
 
     health = serve_health("127.0.0.1", 0, lambda: {"ok": True})
     port = health.server_address[1]
@@ -445,7 +445,7 @@ def test_each_component_environment_gives_valid_production_settings():
 
 def test_strimzi_topics_match_the_settings():
     """strimzi-topics.yaml has the five Settings topics, ConfigMap partitions/replicas, and
-    exactly the configs the service creates topics with (mapservice.topics.topic_config):
+    exactly the configs the service creates topics with (mapservice.adapters.kafka_topics.topic_config):
     retention as the history's, meta compacted x1, live x1 with the live retention."""
     settings = settings_from({**configmap("mapservice"), "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
                               "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET})
@@ -640,7 +640,7 @@ def test_infra_readme_says_what_was_checked():
 def test_migrations_run_once_per_release_before_the_components():
     """A k8s Job named after the schema version and a compose one-shot run `mapservice migrate`
     in production mode; compose's processors and API start only after it succeeded."""
-    from mapservice.schema import SCHEMA_VERSION
+    from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 
     ((job, container),) = jobs()
     assert job["metadata"]["name"] == f"mapservice-migrate-v{SCHEMA_VERSION}"

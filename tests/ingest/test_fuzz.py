@@ -20,10 +20,10 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.events import decode, decode_dead_letter
+from mapservice.core.events import decode, decode_dead_letter
 from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
-from mapservice.wire2019 import _ROBOT_ID, Reason, format_timestamp
+from mapservice.core.wire2019 import _ROBOT_ID, Reason, format_timestamp
 
 NOW = 1_795_255_200_000
 BUDGET = settings(max_examples=10_000, deadline=None, derandomize=True,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.events import MapMetaSet, decode, decode_dead_letter
+from mapservice.core.events import MapMetaSet, decode, decode_dead_letter
 from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
 
@@ -176,7 +176,7 @@ def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
     from prometheus_client import REGISTRY
 
     import mapservice.ingest.metrics  # noqa: F401
-    from mapservice.wire2019 import Reason
+    from mapservice.core.wire2019 import Reason
 
     for reason in Reason:
         assert REGISTRY.get_sample_value("mapservice_gateway_rejected_total", {"reason": reason.value}) is not None

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from mapservice.events import ChunkUpdated, PoseReported, decode, decode_dead_letter
+from mapservice.core.events import ChunkUpdated, PoseReported, decode, decode_dead_letter
 from mapservice.ingest.router import Router
 from mapservice.settings import Settings
-from mapservice.wire2019 import Limits, Reason
+from mapservice.core.wire2019 import Limits, Reason
 
 
 @pytest.fixture

@@ -8,8 +8,8 @@ import httpx
 import pytest
 from confluent_kafka import OFFSET_BEGINNING, Consumer, TopicPartition
 
-from mapservice.mapfile import load_ros_map, meta_for
-from mapservice.stack import Stack
+from mapservice.adapters.ros_map import load_ros_map, meta_for
+from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS
 
 

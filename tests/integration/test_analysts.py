@@ -18,7 +18,7 @@ import httpx
 import pytest
 from mcap.reader import make_reader
 
-from mapservice.stack import Stack
+from mapservice.local.stack import Stack
 from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import ROOT
 

@@ -10,8 +10,8 @@ import time
 
 import httpx
 
-from mapservice.embedded import free_port, wait_for_port
-from mapservice.stack import Stack
+from mapservice.local.embedded import free_port, wait_for_port
+from mapservice.local.stack import Stack
 
 from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
 

@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mapservice.mapfile import load_ros_map, meta_for, slice_chunks
-from mapservice.mqtt import make_client, parse_mqtt_url
-from mapservice.stack import Stack
-from mapservice.wire2019 import format_timestamp, parse_timestamp
+from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.local.stack import Stack
+from mapservice.core.wire2019 import format_timestamp, parse_timestamp
 from tests.fixtures.paths import MAPS
 
 from .conftest import wait_for_meta

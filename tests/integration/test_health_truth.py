@@ -15,8 +15,8 @@ import time
 import httpx
 import pytest
 
-from mapservice import embedded
-from mapservice.stack import Stack
+from mapservice.local import embedded
+from mapservice.local.stack import Stack
 
 from .test_split_topology import start_clickhouse_server
 

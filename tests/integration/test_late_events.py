@@ -20,9 +20,9 @@ import time
 import httpx
 import pytest
 
-from mapservice.mqtt import make_client, parse_mqtt_url
-from mapservice.stack import Stack
-from mapservice.wire2019 import encode_coordinates, format_timestamp
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.local.stack import Stack
+from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 
 ROBOTS, SECONDS = 20, 30
 DAY_MS = 86_400_000

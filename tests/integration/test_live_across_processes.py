@@ -18,13 +18,13 @@ import time
 import pytest
 from websockets.sync.client import connect
 
-from mapservice import embedded
-from mapservice.adapters.clickhouse_store import ClickHouseStore
-from mapservice.events import make_envelope
-from mapservice.mapfile import load_ros_map, meta_for
+from mapservice.local import embedded
+from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.core.events import make_envelope
+from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.settings import Settings
-from mapservice.stack import Stack
-from mapservice.wire2019 import encode_coordinates, format_timestamp
+from mapservice.local.stack import Stack
+from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 

@@ -13,12 +13,12 @@ import pytest
 from confluent_kafka import Producer
 from confluent_kafka.admin import AdminClient, NewTopic
 
-from mapservice import embedded
+from mapservice.local import embedded
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
-from mapservice.live import live_records
+from mapservice.core.live_messages import live_records
 from mapservice.settings import Settings
-from mapservice.topics import ensure_topics
+from mapservice.adapters.kafka_topics import ensure_topics
 
 WAIT_S = 15
 

@@ -8,7 +8,7 @@ import queue
 import paho.mqtt.client as mqtt
 import pytest
 
-from mapservice import embedded
+from mapservice.local import embedded
 
 
 def _client(port: int, transport: str) -> mqtt.Client:

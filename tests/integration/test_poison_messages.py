@@ -13,8 +13,8 @@ import time
 import httpx
 import pytest
 
-from mapservice.events import decode_dead_letter
-from mapservice.wire2019 import encode_coordinates, format_timestamp
+from mapservice.core.events import decode_dead_letter
+from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 
 from .conftest import read_topic, wait_for_count
 from .test_pipeline import now_ms, publish_all

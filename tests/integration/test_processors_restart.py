@@ -15,16 +15,16 @@ import httpx
 import msgspec
 import pytest
 
-from mapservice.adapters.clickhouse_store import ClickHouseStore
+from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.kafka_publisher import KafkaPublisher
-from mapservice.conflicts import all_conflicts
-from mapservice.events import ChunkUpdated, Envelope, PoseReported, encode, kafka_key, make_envelope
-from mapservice.mapfile import load_ros_map, meta_for
-from mapservice.mqtt import make_client
-from mapservice.ports import ChunkRow
-from mapservice.stack import Stack
-from mapservice.timetravel import fold_map
-from mapservice.wire2019 import content_hash, parse_timestamp
+from mapservice.core.conflicts import all_conflicts
+from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, encode, kafka_key, make_envelope
+from mapservice.adapters.ros_map import load_ros_map, meta_for
+from mapservice.adapters.mqtt_client import make_client
+from mapservice.core.ports import ChunkRow
+from mapservice.local.stack import Stack
+from mapservice.core.timetravel import fold_map
+from mapservice.core.wire2019 import content_hash, parse_timestamp
 from tests.fixtures.paths import MAPS
 
 ROBOTS = ["r1", "r2", "r3", "r4"]

@@ -8,8 +8,8 @@ import sys
 
 import httpx
 
-from mapservice.embedded import free_port, wait_for_port
-from mapservice.stack import Stack
+from mapservice.local.embedded import free_port, wait_for_port
+from mapservice.local.stack import Stack
 
 from .conftest import start_stack, wait_for_count
 from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all

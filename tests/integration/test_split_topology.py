@@ -30,9 +30,9 @@ import httpx
 import pytest
 from websockets.sync.client import connect
 
-from mapservice import embedded
-from mapservice.stack import Stack
-from mapservice.wire2019 import content_hash, format_timestamp
+from mapservice.local import embedded
+from mapservice.local.stack import Stack
+from mapservice.core.wire2019 import content_hash, format_timestamp
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from . import test_contract_2019 as contract

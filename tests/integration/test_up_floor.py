@@ -13,10 +13,10 @@ import time
 import httpx
 import pytest
 
-from mapservice.embedded import free_port
-from mapservice.map_upload import MARKER, UPLOADER_ID
-from mapservice.mapfile import load_ros_map, slice_chunks
-from mapservice.wire2019 import content_hash, encode_coordinates, format_timestamp
+from mapservice.local.embedded import free_port
+from mapservice.robot.map_upload import MARKER, UPLOADER_ID
+from mapservice.adapters.ros_map import load_ros_map, slice_chunks
+from mapservice.core.wire2019 import content_hash, encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS, ROOT
 
 pytestmark = pytest.mark.integration

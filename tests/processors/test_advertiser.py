@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import socket
 
-from mapservice.embedded import free_port
+from mapservice.local.embedded import free_port
 from mapservice.processors.advertiser import MqttAdvertiser
 from mapservice.settings import Settings
 

@@ -6,8 +6,8 @@ import asyncio
 
 from mapservice.adapters.memory_source import MemorySource
 from mapservice.adapters.memory_store import MemoryStore
-from mapservice.events import encode
-from mapservice.processors.app import HistorySink
+from mapservice.core.events import encode
+from mapservice.processors.sink import HistorySink
 from mapservice.processors.history_consumer import HistoryConsumer
 
 NOW = 1_795_255_200_000

@@ -9,7 +9,7 @@ import pytest
 
 from mapservice.adapters.memory_source import MemorySource
 from mapservice.adapters.memory_store import MemoryStore
-from mapservice.processors.app import HistorySink
+from mapservice.processors.sink import HistorySink
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.views import LiveViews
 from mapservice.settings import Settings

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from mapservice import embedded
+from mapservice.local import embedded
 from tests.fixtures.paths import MAPS, ROOT
 
 SHARED_MAPS = ROOT.parent / "shared" / "maps"

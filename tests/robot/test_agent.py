@@ -15,7 +15,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from mapservice.mapfile import load_ros_map
+from mapservice.adapters.ros_map import load_ros_map
 from mapservice.robot.agent import LocalMap, RobotAgent, decode_chunk_doc, parse_odometry
 from tests.fixtures.paths import MAPS
 
@@ -86,7 +86,7 @@ def make_agent(tmp_path, name, service, **kw) -> RobotAgent:
 
 
 def edit_map(yaml_path, row0, col0, size, value) -> None:
-    from mapservice.mapfile import write_pgm
+    from mapservice.adapters.ros_map import write_pgm
 
     m = load_ros_map(yaml_path)
     pixels = m.pixels.copy()
@@ -207,7 +207,7 @@ def test_integrating_keeps_unpublished_local_edits(tmp_path) -> None:
 def test_a_robot_with_a_map_of_another_size_refuses_and_stores_nothing(tmp_path) -> None:
     """The service stores the warehouse (1006 x 1674): a depot robot's start raises a message
     naming both sizes, posts nothing, and leaves its own map file as it was."""
-    from mapservice.mapfile import meta_for
+    from mapservice.adapters.ros_map import meta_for
     from mapservice.robot.chunks import meta_to_json
 
     service = FakeChunkService(meta=meta_to_json(meta_for(load_ros_map(MAPS / "warehouse.yaml"))))

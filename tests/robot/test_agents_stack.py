@@ -13,9 +13,9 @@ import httpx
 import numpy as np
 import pytest
 
-from mapservice import embedded
-from mapservice.mapfile import load_ros_map, write_pgm
-from mapservice.stack import Stack
+from mapservice.local import embedded
+from mapservice.adapters.ros_map import load_ros_map, write_pgm
+from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS, ROOT
 
 pytestmark = pytest.mark.integration

@@ -15,8 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from mapservice.events import MapMetaSet
-from mapservice.mapfile import RosMap, load_ros_map, read_pgm, save_ros_map, slice_chunks, write_pgm
+from mapservice.core.events import MapMetaSet
+from mapservice.adapters.ros_map import RosMap, load_ros_map, read_pgm, save_ros_map, slice_chunks, write_pgm
 from mapservice.robot.chunks import (
     chunk_of_pixel,
     describe,

@@ -16,7 +16,7 @@ import base64
 import msgspec
 import pytest
 
-from mapservice.mqtt import make_client
+from mapservice.adapters.mqtt_client import make_client
 from tests.fixtures.paths import MAPS, ROOT
 
 pytestmark = [pytest.mark.integration,

@@ -8,9 +8,9 @@ import time
 import msgspec
 import pytest
 
-from mapservice.mqtt import make_client
+from mapservice.adapters.mqtt_client import make_client
 from mapservice.robot.agent import OdometryPose, RobotAgent
-from mapservice.wire2019 import parse_timestamp
+from mapservice.core.wire2019 import parse_timestamp
 from tests.fixtures.paths import MAPS
 
 pytestmark = pytest.mark.integration

@@ -12,12 +12,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapservice.mapfile import RosMap, drivable, load_ros_map
+from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map
 from mapservice.robot.chunks import chunk_pixels, metres_to_pixel
 from mapservice.robot.faults import Faults, robot_skew_ms, to_messages
 from mapservice.robot.planning import build_grid, dilate, path_is_clear, plan, simplify
 from mapservice.robot.sim import SimConfig, _protected, new_state, step
-from mapservice.wire2019 import Limits, Rejection, decode_chunk_create, decode_coordinates, parse_timestamp
+from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, decode_coordinates, parse_timestamp
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000

@@ -12,11 +12,11 @@ import time
 
 import pytest
 
-from mapservice.adapters.clickhouse_store import ClickHouseStore
-from mapservice.chromium import chromium_path, launch
-from mapservice.history_loader import load_history
-from mapservice.mapfile import load_ros_map
-from mapservice.stack import Stack
+from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.local.chromium import chromium_path, launch
+from mapservice.bench.history_loader import load_history
+from mapservice.adapters.ros_map import load_ros_map
+from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS, ROOT
 from tests.integration.conftest import run_stack
 

@@ -15,9 +15,9 @@ import httpx
 import numpy as np
 from PIL import Image
 
-from mapservice.mapfile import drivable, load_ros_map, slice_chunks
+from mapservice.adapters.ros_map import drivable, load_ros_map, slice_chunks
 from mapservice.robot.chunks import meta_from_json, metres_to_pixel
-from mapservice.wire2019 import content_hash
+from mapservice.core.wire2019 import content_hash
 from tests.fixtures.paths import MAPS, ROOT
 from tests.integration.test_up_floor import Up
 

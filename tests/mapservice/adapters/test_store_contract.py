@@ -18,15 +18,15 @@ import zlib
 import numpy as np
 import pytest
 
-from mapservice.adapters.clickhouse_store import ClickHouseStore
+from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.memory_store import MemoryStore
-from mapservice.events import PoseReported, make_envelope
-from mapservice.ports import ChunkRow, Counts, PoseRow
-from mapservice.schema import SCHEMA_VERSION
+from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.ports import ChunkRow, Counts, PoseRow
+from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.sql.chdb_engine import ChdbEngine
 from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
 from tests.mapservice.sql.serving import ServedApp
-from mapservice.wire2019 import content_hash
+from mapservice.core.wire2019 import content_hash
 
 _databases = itertools.count()
 
@@ -134,7 +134,7 @@ def test_empty_appends_are_harmless(store) -> None:
 
 def _conflict(t0: int, dt: int, robot_a: str = "a", robot_b: str = "b", dt_a: int = 0,
               row: int = 1, column: int = 2):
-    from mapservice.ports import ConflictRow
+    from mapservice.core.ports import ConflictRow
     return ConflictRow(row, column, t0 + dt, robot_a, t0 + dt_a, robot_b)
 
 
@@ -454,8 +454,8 @@ def test_schema_v6_compresses_quaternions_with_fpc(chdb_dir, ev, t0) -> None:
 def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb_dir, t0) -> None:
     """A v4 database's pair-per-row conflicts become one row per B naming the latest A
     (ties in time: the greater robot); re-running v5 after it completed changes nothing."""
-    from mapservice.ports import ConflictRow
-    from mapservice.schema import migrations
+    from mapservice.core.ports import ConflictRow
+    from mapservice.adapters.clickhouse.schema import migrations
 
     store = _clickhouse(chdb_dir)
     db, c = store.database, store.client
@@ -487,7 +487,7 @@ def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb
 
 # --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
 
-from mapservice.legacy_query import parse_chunk_query, parse_pose_query
+from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 
 
 def _legacy_history(ev, t0):
@@ -592,7 +592,7 @@ def test_adapters_agree_on_legacy_queries(chdb_dir, ev, t0, params) -> None:
 
 def test_delete_chunks_empties_history_and_map(store, ev, t0) -> None:
     """delete_chunks removes every write, snapshot and conflict, keeps poses, counts what went."""
-    from mapservice.ports import ConflictRow
+    from mapservice.core.ports import ConflictRow
 
     store.append(_legacy_history(ev, t0))
     store.append_conflicts([ConflictRow(0, 0, t0, "r2", t0, "r1")])
@@ -627,7 +627,7 @@ def m0(t0) -> int:
 
 def test_timeline_counts_chunks_conflicts_and_robots(store, ev, m0) -> None:
     """timeline() gives every bucket, empty ones too, for whole-minute and odd buckets alike."""
-    from mapservice.ports import ConflictRow, TimelineBucket
+    from mapservice.core.ports import ConflictRow, TimelineBucket
 
     store.append([ev.pose("r1", m0 + 1000), ev.pose("r2", m0 + 59_999), ev.pose("r1", m0 + 61_000),
                   ev.pose("r3", m0 + 179_000), ev.pose("r3", m0 + 181_000),

@@ -7,7 +7,7 @@ import time
 
 import uvicorn
 
-from mapservice import embedded
+from mapservice.local import embedded
 
 
 class ServedApp:

@@ -1,0 +1,39 @@
+"""One API process's WebSocket subscribers, fed with live messages from its event loop.
+
+The messages come from the live topic (`mapservice.core.live_messages` encodes and decodes
+them); a slow subscriber loses its oldest messages, never slows the others.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable, Sequence
+
+
+class LiveHub:
+    """One API process's WebSocket subscribers; fed from its event loop."""
+
+    def __init__(self, queue_size: int = 10_000,
+                 ready: Callable[[], bool] = lambda: True) -> None:
+        self._subscribers: set[asyncio.Queue] = set()
+        self._queue_size = queue_size
+        self.ready = ready  # whether the feed reaches this process yet (the relay reads the topic)
+
+    def subscribe(self) -> asyncio.Queue:
+        queue: asyncio.Queue = asyncio.Queue(self._queue_size)
+        self._subscribers.add(queue)
+        return queue
+
+    def unsubscribe(self, queue: asyncio.Queue) -> None:
+        self._subscribers.discard(queue)
+
+    @property
+    def subscribers(self) -> int:
+        return len(self._subscribers)
+
+    def publish(self, messages: Sequence[dict]) -> None:
+        for queue in self._subscribers:
+            for m in messages:
+                if queue.full():
+                    queue.get_nowait()  # drop the oldest: live means now
+                queue.put_nowait(m)

@@ -1,0 +1,231 @@
+"""What analysts see in the schema: table and column comments, and views with clean types
+and units (metres, degrees, booleans, UTC times), so nobody needs the storage codecs.
+
+Migration 7 applies it (mapservice/adapters/clickhouse/schema.py); docs/analysts.md documents every table,
+view and column named here, and a test holds the two together."""
+
+from __future__ import annotations
+
+TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
+    "poses": ("One row per robot pose report (MQTT iot/coordinates/<robot>). Identity "
+              "(robot_id, ts); read with FINAL. Analysts: use the view robot_poses.", {
+        "robot_id": "The robot's id as it reported it",
+        "ts": "Event time: the robot's own timestamp (UTC, ms)",
+        "x_mm": "Position x in millimetres in the map frame",
+        "y_mm": "Position y in millimetres in the map frame",
+        "z_mm": "Position z in millimetres",
+        "qx": "Orientation quaternion x", "qy": "Orientation quaternion y",
+        "qz": "Orientation quaternion z", "qw": "Orientation quaternion w",
+        "battery": "status.battery.battery_level as sent (the simulator: percent)",
+        "charging": "status.battery.charging as JSON text as sent ('' if absent)",
+        "loaded": "status.loaded as JSON text as sent ('' if absent)",
+        "has_path": "Whether the report carried a planned path",
+        "path_x_mm": "Planned path x coordinates in millimetres",
+        "path_y_mm": "Planned path y coordinates in millimetres",
+        "recv_lag_ms": "Receive time minus event time in ms (clock skew plus transport delay)",
+    }),
+    "chunk_events": ("One row per chunk write (MQTT iot/chunks/create or REST POST /chunks). "
+                     "Identity (ts, row, col, robot_id); read with FINAL. Analysts: use "
+                     "the view chunk_changes.", {
+        "ts": "Event time: the robot's timestamp of the write (UTC, ms)",
+        "row": "Chunk row in the map grid (0 is the top)",
+        "col": "Chunk column in the map grid (0 is the left)",
+        "robot_id": "The writing robot",
+        "content_hash": "BLAKE2b-128 of the chunk's raw pixels (16 bytes); joins chunk_contents",
+        "recv_lag_ms": "Receive time minus event time in ms",
+    }),
+    "chunk_contents": ("Chunk pixels, once per content hash and day.", {
+        "content_hash": "BLAKE2b-128 of the raw pixels (16 bytes)",
+        "day": "UTC day the content was (first) written that day",
+        "width": "Chunk width in pixels", "height": "Chunk height in pixels",
+        "zlib_pixels": "The pixels, zlib-compressed (8-bit grey, row-major, 0 = occupied)",
+    }),
+    "map_meta": ("Every map geometry ever set (the 2019 meta.json); the latest one holds.", {
+        "ts": "When it was set (UTC, ms)", "robot_id": "Who set it",
+        "meta": "The 2019 meta.json document plus ROS resolution and origin",
+    }),
+    "dead_letters": ("Messages the gateway refused, with the reason. Analysts: use the view "
+                     "dead_letter_messages.", {
+        "received": "When the gateway received it (UTC, ms)",
+        "reason": "Why it was refused (e.g. not_json, bad_timestamp, too_deep)",
+        "mqtt_topic": "The MQTT topic it came on",
+        "detail": "The validation error's text",
+        "payload": "The payload (the first 64 KB of larger ones)",
+        "gateway": "The gateway instance that refused it",
+    }),
+    "map_snapshots": ("Derived: the map at each snapshot instant (which write holds each "
+                      "chunk). The service's time-travel reads use it.", {
+        "snap_ts": "Snapshot instant", "row": "Chunk row", "col": "Chunk column",
+        "ts": "Time of the write that holds the chunk", "robot_id": "Its robot",
+        "content_hash": "Its content", "built": "When the snapshot was built",
+    }),
+    "robot_snapshots": ("Derived: each robot's latest pose time at each snapshot instant.", {
+        "snap_ts": "Snapshot instant", "robot_id": "The robot",
+        "ts": "Time of its latest pose at or before snap_ts", "built": "When built",
+    }),
+    "snapshot_log": ("Derived: which snapshots exist.", {
+        "snap_ts": "Snapshot instant", "built": "When built",
+        "chunks": "Chunks in it", "robots": "Robots in it",
+    }),
+    "conflicts": ("Two robots writing different content to one chunk within the conflict "
+                  "window: one row per later write. Analysts: use the view chunk_conflicts.", {
+        "ts": "Time of the later write (B)", "row": "Chunk row", "col": "Chunk column",
+        "robot_b": "The robot of the later write", "robot_a": "The robot of the earlier write",
+        "ts_a": "Time of the earlier write (A)",
+    }),
+    "pose_keyframes": ("Derived: each robot's first pose of every minute (downsampled reads).", {
+        "cell": "The minute", "rank": "Internal: keeps the minute's earliest pose",
+    }),
+    "schema_migrations": ("Applied schema migrations.", {
+        "version": "Migration number", "description": "What it did", "applied": "When",
+        "checksum": "SHA-256 of its statements (an edited migration is refused)",
+    }),
+}
+
+# Tables added after migration 7 (their comments come with their own migration).
+LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
+    "snapshot_repairs": ("Derived: snapshots a late event made wrong, from `from_ts` on; reads "
+                         "skip them until the snapshot timer has rebuilt them (schema v8).", {
+        "from_ts": "Snapshots at or after this instant are being rebuilt",
+        "noted": "When the late event (or a repair step) noted it",
+    }),
+}
+
+# Shared by the views: the latest map geometry, for chunk coordinates of a position.
+_META = """(SELECT meta FROM {db}.map_meta FINAL ORDER BY ts DESC LIMIT 1) AS _meta,
+    JSONExtractFloat(_meta, 'resolution') AS _res,
+    JSONExtractFloat(_meta, 'origin', 1) AS _ox,
+    JSONExtractFloat(_meta, 'origin', 2) AS _oy,
+    JSONExtractUInt(_meta, 'height') AS _map_h,
+    JSONExtractUInt(_meta, 'CHUNK_WIDTH') AS _cw,
+    JSONExtractUInt(_meta, 'CHUNK_HEIGHT') AS _ch"""
+
+
+def _flag(column: str) -> str:
+    """A 2019 flag sent as a JSON boolean, as Nullable(Bool); anything else is NULL."""
+    return f"CAST(multiIf({column} = 'true', 1, {column} = 'false', 0, NULL) AS Nullable(Bool))"
+
+
+VIEWS: dict[str, tuple[str, str, dict[str, str]]] = {
+    "robot_poses": ("Robot poses in metres, degrees and UTC, one row per report.", f"""
+        WITH {_META}
+        SELECT robot_id, ts AS at,
+            x_mm / 1000 AS x_m, y_mm / 1000 AS y_m, z_mm / 1000 AS z_m,
+            round(degrees(atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))), 3) AS heading_deg,
+            battery AS battery_level,
+            {_flag('charging')} AS charging, {_flag('loaded')} AS loaded,
+            charging AS charging_raw, loaded AS loaded_raw,
+            has_path, length(path_x_mm) AS path_points,
+            ts + toIntervalMillisecond(recv_lag_ms) AS received_at,
+            recv_lag_ms / 1000 AS receive_lag_s,
+            if(_res > 0, toInt32(floor((_map_h - (y_m - _oy) / _res) / _ch)), NULL) AS chunk_row,
+            if(_res > 0, toInt32(floor((x_m - _ox) / _res / _cw)), NULL) AS chunk_col
+        FROM {{db}}.poses FINAL""", {
+        "robot_id": "The robot", "at": "Event time (UTC, ms)",
+        "x_m": "x in metres (map frame)", "y_m": "y in metres", "z_m": "z in metres",
+        "heading_deg": "Yaw from the quaternion, degrees, -180..180, 0 = +x, 90 = +y",
+        "battery_level": "Battery level as sent (the simulator: percent); NULL if absent",
+        "charging": "true/false if the robot sent a JSON boolean, else NULL",
+        "loaded": "true/false if the robot sent a JSON boolean, else NULL",
+        "charging_raw": "charging as sent (JSON text; '' if absent)",
+        "loaded_raw": "loaded as sent (JSON text; '' if absent)",
+        "has_path": "Whether a planned path was sent", "path_points": "Its number of points",
+        "received_at": "When the gateway received the report (UTC, ms)",
+        "receive_lag_s": "received_at - at in seconds (clock skew plus transport delay)",
+        "chunk_row": "Map chunk row the position lies in (latest map geometry; NULL without "
+                     "resolution)",
+        "chunk_col": "Map chunk column the position lies in",
+    }),
+    "chunk_changes": ("Map chunk writes, one row per write.", """
+        SELECT ts AS at, row AS chunk_row, col AS chunk_col, robot_id,
+            lower(hex(content_hash)) AS content_hash,
+            ts + toIntervalMillisecond(recv_lag_ms) AS received_at,
+            recv_lag_ms / 1000 AS receive_lag_s
+        FROM {db}.chunk_events FINAL""", {
+        "at": "Event time of the write (UTC, ms)", "chunk_row": "Chunk row (0 = top)",
+        "chunk_col": "Chunk column (0 = left)", "robot_id": "The writing robot",
+        "content_hash": "BLAKE2b-128 of the raw pixels, hex",
+        "received_at": "When the gateway received it", "receive_lag_s": "received_at - at, s",
+    }),
+    "chunk_conflicts": ("Conflicting writes: a later write and the latest different write "
+                        "of another robot to the same chunk within the window.", """
+        SELECT ts AS at, row AS chunk_row, col AS chunk_col, robot_b AS robot_id,
+            robot_a AS other_robot_id, ts_a AS other_at,
+            dateDiff('millisecond', ts_a, ts) / 1000 AS seconds_apart
+        FROM {db}.conflicts FINAL""", {
+        "at": "Time of the later write", "chunk_row": "Chunk row", "chunk_col": "Chunk column",
+        "robot_id": "Robot of the later write", "other_robot_id": "Robot of the earlier write",
+        "other_at": "Time of the earlier write", "seconds_apart": "at - other_at in seconds",
+    }),
+    "dead_letter_messages": ("Refused messages with their reason.", """
+        SELECT received AS received_at, reason, mqtt_topic, detail, gateway,
+            length(payload) AS payload_bytes
+        FROM {db}.dead_letters""", {
+        "received_at": "When received (UTC, ms)", "reason": "Why refused",
+        "mqtt_topic": "The MQTT topic", "detail": "The validation error",
+        "gateway": "The refusing gateway instance",
+        "payload_bytes": "Bytes of payload stored (at most 64 KB)",
+    }),
+    "robot_minutes": ("Per robot and minute with reports: activity and battery.", """
+        SELECT robot_id, toStartOfMinute(at) AS minute, count() AS poses,
+            round(sum(step_m), 3) AS distance_m,
+            avg(battery_level) AS battery_level_avg, min(battery_level) AS battery_level_min,
+            max(charging) AS charging, max(loaded) AS loaded
+        FROM (
+            SELECT robot_id, at, battery_level, charging, loaded,
+                sqrt(pow(x_m - lagInFrame(x_m, 1, x_m) OVER w, 2)
+                     + pow(y_m - lagInFrame(y_m, 1, y_m) OVER w, 2)) AS step_m
+            FROM {db}.robot_poses
+            WINDOW w AS (PARTITION BY robot_id ORDER BY at ROWS BETWEEN 1 PRECEDING AND CURRENT ROW))
+        GROUP BY robot_id, minute""", {
+        "robot_id": "The robot", "minute": "Start of the minute (UTC)",
+        "poses": "Reports in the minute",
+        "distance_m": "Distance moved in the minute, metres (straight lines between reports; "
+                      "the step into the minute counts in it)",
+        "battery_level_avg": "Mean battery level", "battery_level_min": "Lowest battery level",
+        "charging": "Charging at any report in the minute (NULL: never sent as boolean)",
+        "loaded": "Loaded at any report in the minute",
+    }),
+}
+
+
+def _quote(text: str) -> str:
+    return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
+
+
+def comment_statements(db: str, tables: dict[str, tuple[str, dict[str, str]]]) -> list[str]:
+    out: list[str] = []
+    for table, (comment, columns) in tables.items():
+        out.append(f"ALTER TABLE {db}.{table} MODIFY COMMENT {_quote(comment)}")
+        out.append(f"ALTER TABLE {db}.{table} " + ", ".join(
+            f"COMMENT COLUMN {column} {_quote(text)}" for column, text in columns.items()))
+    return out
+
+
+def statements(db: str) -> tuple[str, ...]:
+    """Migration 7: the comments of the tables it knew, and the views."""
+    out = comment_statements(db, TABLE_COMMENTS)
+    for view, (comment, select, _columns) in VIEWS.items():
+        out.append(f"CREATE OR REPLACE VIEW {db}.{view} AS {select.format(db=db)} "
+                   f"COMMENT {_quote(comment)}")
+    return tuple(out)
+
+
+def reference_markdown() -> str:
+    """The reference part of docs/analysts.md (a test keeps the guide equal to it; after a
+    schema change: `python -m mapservice.adapters.clickhouse.analyst_schema` prints it)."""
+    out = ["### Views (start here)", ""]
+    for view, (comment, _select, columns) in VIEWS.items():
+        out += [f"#### `{view}`", "", comment, "", "| column | meaning |", "| --- | --- |"]
+        out += [f"| `{c}` | {text} |" for c, text in columns.items()]
+        out.append("")
+    out += ["### Tables (storage)", ""]
+    for table, (comment, columns) in {**TABLE_COMMENTS, **LATER_TABLE_COMMENTS}.items():
+        out += [f"#### `{table}`", "", comment, "", "| column | meaning |", "| --- | --- |"]
+        out += [f"| `{c}` | {text} |" for c, text in columns.items()]
+        out.append("")
+    return "\n".join(out).rstrip() + "\n"
+
+
+if __name__ == "__main__":
+    print(reference_markdown(), end="")

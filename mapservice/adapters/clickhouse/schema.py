@@ -1,0 +1,324 @@
+"""The history's ClickHouse schema, as numbered migrations the service applies on start.
+
+Choices, and why:
+- ReplacingMergeTree on each event's natural identity (ORDER BY): a re-delivered batch
+  leaves duplicates only until the next merge, and every read uses FINAL, so readers
+  never see them.
+- PARTITION BY day and TTL with ttl_only_drop_parts: expiry drops whole day-parts
+  instead of rewriting them.
+- Positions as Int32 millimetres with Delta+ZSTD, time as DoubleDelta: 1 Hz poses
+  shrink to a few bytes a row. Chunk pixels live once per content hash per day in
+  `chunk_contents`; chunk events reference them by a 16-byte hash.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+
+from mapservice.adapters.clickhouse import analyst_schema
+
+
+@dataclass(frozen=True)
+class Migration:
+    version: int
+    description: str
+    statements: tuple[str, ...]
+
+    @property
+    def checksum(self) -> str:
+        """SHA-256 of the statements with whitespace collapsed (reformatting is no change).
+        Compare `checksums()`, which renders every migration with fixed parameters."""
+        text = "\n".join(" ".join(s.split()) for s in self.statements)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+
+def migrations(database: str, retention_days: int) -> list[Migration]:
+    ttl_days = int(retention_days)
+    return [
+        Migration(
+            1,
+            "history tables: poses, chunk events, chunk contents, map meta, dead letters",
+            (
+                f"""CREATE TABLE IF NOT EXISTS {database}.poses (
+                    robot_id LowCardinality(String),
+                    ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+                    x_mm Int32 CODEC(Delta, ZSTD(3)),
+                    y_mm Int32 CODEC(Delta, ZSTD(3)),
+                    z_mm Int32 CODEC(Delta, ZSTD(3)),
+                    qx Float32 CODEC(Gorilla, ZSTD(3)),
+                    qy Float32 CODEC(Gorilla, ZSTD(3)),
+                    qz Float32 CODEC(Gorilla, ZSTD(3)),
+                    qw Float32 CODEC(Gorilla, ZSTD(3)),
+                    battery Nullable(Float32) CODEC(Gorilla, ZSTD(3)),
+                    charging LowCardinality(String),
+                    loaded LowCardinality(String),
+                    has_path Bool,
+                    path_x_mm Array(Int32) CODEC(ZSTD(3)),
+                    path_y_mm Array(Int32) CODEC(ZSTD(3)),
+                    recv_lag_ms Int32 CODEC(T64, ZSTD(3))
+                ) ENGINE = ReplacingMergeTree
+                PARTITION BY toDate(ts)
+                ORDER BY (robot_id, ts)
+                TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.chunk_events (
+                    ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+                    row UInt16 CODEC(ZSTD(3)),
+                    col UInt16 CODEC(ZSTD(3)),
+                    robot_id LowCardinality(String),
+                    content_hash FixedString(16) CODEC(ZSTD(3)),
+                    recv_lag_ms Int32 CODEC(T64, ZSTD(3))
+                ) ENGINE = ReplacingMergeTree
+                PARTITION BY toDate(ts)
+                ORDER BY (ts, row, col, robot_id)
+                TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.chunk_contents (
+                    content_hash FixedString(16),
+                    day Date,
+                    width UInt16,
+                    height UInt16,
+                    zlib_pixels String CODEC(NONE)
+                ) ENGINE = ReplacingMergeTree
+                PARTITION BY day
+                ORDER BY content_hash
+                TTL day + INTERVAL {ttl_days + 1} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.map_meta (
+                    ts DateTime64(3, 'UTC'),
+                    robot_id LowCardinality(String),
+                    meta String
+                ) ENGINE = ReplacingMergeTree
+                ORDER BY (ts, robot_id)""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.dead_letters (
+                    received DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+                    reason LowCardinality(String),
+                    mqtt_topic String CODEC(ZSTD(3)),
+                    detail String CODEC(ZSTD(3)),
+                    payload String CODEC(ZSTD(3)),
+                    gateway LowCardinality(String)
+                ) ENGINE = MergeTree
+                PARTITION BY toDate(received)
+                ORDER BY (received, reason)
+                TTL toDateTime(received) + INTERVAL {ttl_days} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+            ),
+        ),
+        Migration(
+            2,
+            "snapshots of the map and of each robot's latest pose, and their log",
+            (
+                f"""CREATE TABLE IF NOT EXISTS {database}.map_snapshots (
+                    snap_ts DateTime64(3, 'UTC'),
+                    row UInt16,
+                    col UInt16,
+                    ts DateTime64(3, 'UTC'),
+                    robot_id LowCardinality(String),
+                    content_hash FixedString(16),
+                    built DateTime64(3, 'UTC')
+                ) ENGINE = ReplacingMergeTree(built)
+                PARTITION BY toDate(snap_ts)
+                ORDER BY (snap_ts, row, col)
+                TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.robot_snapshots (
+                    snap_ts DateTime64(3, 'UTC'),
+                    robot_id LowCardinality(String),
+                    ts DateTime64(3, 'UTC'),
+                    built DateTime64(3, 'UTC')
+                ) ENGINE = ReplacingMergeTree(built)
+                PARTITION BY toDate(snap_ts)
+                ORDER BY (snap_ts, robot_id)
+                TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+                f"""CREATE TABLE IF NOT EXISTS {database}.snapshot_log (
+                    snap_ts DateTime64(3, 'UTC'),
+                    built DateTime64(3, 'UTC'),
+                    chunks UInt32,
+                    robots UInt32
+                ) ENGINE = ReplacingMergeTree(built)
+                ORDER BY snap_ts
+                TTL toDateTime(snap_ts) + INTERVAL {ttl_days + 1} DAY""",
+            ),
+        ),
+        Migration(
+            3,
+            "conflicts: two robots writing different content to one chunk within the window",
+            (
+                # Version ts_a: the rule is monotonic (mapservice/core/conflicts.py), so of two
+                # rows with one identity the one naming the later A is the right one,
+                # whatever order they were inserted in.
+                f"""CREATE TABLE IF NOT EXISTS {database}.conflicts (
+                    ts DateTime64(3, 'UTC'),
+                    row UInt16,
+                    col UInt16,
+                    robot_a LowCardinality(String),
+                    ts_a DateTime64(3, 'UTC'),
+                    hash_a FixedString(16),
+                    robot_b LowCardinality(String),
+                    hash_b FixedString(16)
+                ) ENGINE = ReplacingMergeTree(ts_a)
+                PARTITION BY toDate(ts)
+                ORDER BY (ts, row, col, robot_a, robot_b)
+                TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+                SETTINGS ttl_only_drop_parts = 1""",
+            ),
+        ),
+        Migration(
+            4,
+            "poses sorted by (ts, robot_id); per-minute pose keyframes for downsampled reads",
+            _poses_by_time(database, ttl_days),
+        ),
+        Migration(
+            5,
+            "conflicts: one row per later write, without content hashes",
+            _conflicts_per_write(database, ttl_days),
+        ),
+        Migration(
+            6,
+            "pose quaternions compressed with FPC before ZSTD",
+            # Measured on the 1,000-robot load test (BENCHMARKS.md): qz and qw were ~60 % of
+            # `poses` at ~3.6 bytes a value; FPC(20) + ZSTD stores them in ~2.95 (Gorilla:
+            # 4.0). Parts written before keep their codec until a merge rewrites them.
+            tuple(f"ALTER TABLE {database}.poses MODIFY COLUMN {q} Float32 CODEC(FPC(20), ZSTD(3))"
+                  for q in ("qx", "qy", "qz", "qw")),
+        ),
+        Migration(
+            7,
+            "analysts: table and column comments; views in metres, degrees, booleans and UTC",
+            analyst_schema.statements(database),
+        ),
+        Migration(
+            8,
+            "snapshot repairs: a late event invalidates snapshots; the timer rebuilds them in steps",
+            (f"""CREATE TABLE IF NOT EXISTS {database}.snapshot_repairs (
+                    from_ts DateTime64(3, 'UTC'),
+                    noted DateTime64(3, 'UTC')
+                ) ENGINE = MergeTree ORDER BY from_ts""",
+             *analyst_schema.comment_statements(database, analyst_schema.LATER_TABLE_COMMENTS)),
+        ),
+    ]
+
+
+def checksums() -> dict[int, str]:
+    """Each migration's checksum, rendered for a fixed database name and retention: a
+    migration's identity is its code, not the settings it was applied with."""
+    return {m.version: m.checksum for m in migrations("db", 7)}
+
+
+# The pose columns, in table order (the keyframe view and its backfill name them).
+POSE_COLUMNS = ("robot_id, ts, x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, charging, loaded, "
+                "has_path, path_x_mm, path_y_mm, recv_lag_ms")
+KEYFRAME_MS = 60_000  # one keyframe per robot per minute (pose_keyframes)
+
+
+def _poses_by_time(db: str, ttl_days: int) -> tuple[str, ...]:
+    """Schema v4 (bench timetravel, BENCHMARKS.md): every time-travel read of poses is a
+    time window across robots (robots at T, replay windows, snapshots), so `poses` is
+    re-sorted by (ts, robot_id): a window is one contiguous range of granules instead of
+    one range per robot. The identity (robot, ts) is unchanged, so is deduplication.
+    `pose_keyframes` holds each robot's first pose of every minute (a materialized view
+    fills it on every insert into `poses`): a downsampled read whose start and step are
+    whole minutes reads one row per robot per minute instead of every pose.
+
+    Safe to run twice: the copy goes to `poses_v4` (deduplicated on its identity), the swap
+    is one RENAME, the old table is dropped only once its rows are all in the new one.
+    Writers must be stopped while it runs (the service migrates before its processors
+    start); rows inserted into the old table during the copy would be lost.
+    """
+    return (
+        # A run interrupted after the RENAME left the old table behind: its rows are in `poses`.
+        f"DROP TABLE IF EXISTS {db}.poses_by_robot SYNC",
+        # On a second run the view is re-created below on the new table (its backfill
+        # covers whatever the view would have caught meanwhile).
+        f"DROP VIEW IF EXISTS {db}.pose_keyframes_mv SYNC",
+        f"""CREATE TABLE IF NOT EXISTS {db}.poses_v4 AS {db}.poses
+            ENGINE = ReplacingMergeTree
+            PARTITION BY toDate(ts)
+            ORDER BY (ts, robot_id)
+            TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+            SETTINGS ttl_only_drop_parts = 1""",
+        # Interleaved robots defeat Delta on positions; T64 (unused high bits cut per
+        # block) keeps them at ~2 bytes. Gorilla gains nothing on quaternions in any order
+        # and is the slowest codec to decode.
+        *(f"ALTER TABLE {db}.poses_v4 MODIFY COLUMN {column} {kind} CODEC({codec})"
+          for column, kind, codec in (
+              ("x_mm", "Int32", "T64, ZSTD(3)"), ("y_mm", "Int32", "T64, ZSTD(3)"),
+              ("z_mm", "Int32", "T64, ZSTD(3)"), ("qx", "Float32", "ZSTD(3)"),
+              ("qy", "Float32", "ZSTD(3)"), ("qz", "Float32", "ZSTD(3)"),
+              ("qw", "Float32", "ZSTD(3)"), ("battery", "Nullable(Float32)", "ZSTD(3)"))),
+        f"INSERT INTO {db}.poses_v4 SELECT * FROM {db}.poses",
+        f"RENAME TABLE {db}.poses TO {db}.poses_by_robot, {db}.poses_v4 TO {db}.poses",
+        f"DROP TABLE IF EXISTS {db}.poses_by_robot SYNC",
+        # ReplacingMergeTree(rank): of the rows of one (robot, minute) the earliest pose has
+        # the highest rank; two writes of that pose keep the later one, as `poses` does.
+        f"""CREATE TABLE IF NOT EXISTS {db}.pose_keyframes (
+            robot_id LowCardinality(String),
+            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+            x_mm Int32 CODEC(Delta, ZSTD(3)),
+            y_mm Int32 CODEC(Delta, ZSTD(3)),
+            z_mm Int32 CODEC(Delta, ZSTD(3)),
+            qx Float32 CODEC(ZSTD(3)),
+            qy Float32 CODEC(ZSTD(3)),
+            qz Float32 CODEC(ZSTD(3)),
+            qw Float32 CODEC(ZSTD(3)),
+            battery Nullable(Float32) CODEC(ZSTD(3)),
+            charging LowCardinality(String),
+            loaded LowCardinality(String),
+            has_path Bool,
+            path_x_mm Array(Int32) CODEC(ZSTD(3)),
+            path_y_mm Array(Int32) CODEC(ZSTD(3)),
+            recv_lag_ms Int32 CODEC(T64, ZSTD(3)),
+            cell DateTime('UTC') MATERIALIZED toStartOfMinute(ts),
+            rank UInt32 MATERIALIZED toUInt32({KEYFRAME_MS} - toUnixTimestamp64Milli(ts) % {KEYFRAME_MS})
+        ) ENGINE = ReplacingMergeTree(rank)
+        PARTITION BY toDate(cell)
+        ORDER BY (robot_id, cell)
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        # Per insert block only the first pose per robot and minute: the bulk loader's
+        # day-sized blocks shrink 60x before they are written.
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
+            AS SELECT {POSE_COLUMNS} FROM {db}.poses
+            ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
+        (f"INSERT INTO {db}.pose_keyframes ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} FROM {db}.poses "
+         "ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)"),
+    )
+
+
+def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
+    """Schema v5 (BENCHMARKS.md, 1,000 robots): v3 kept one row per pair of conflicting
+    robots with both content hashes, 5.9 MB per robot-day on the 2019 load test, where
+    each write conflicts with several others. Now one row per later write (B's identity),
+    naming the latest conflicting write; contents are joined from `chunk_events` on read.
+    Version ts_a: the rule is monotonic (mapservice/core/conflicts.py), so of two rows with one
+    identity the one naming the later A is right, whatever order they were inserted in.
+
+    Safe to run twice, as v4: the copy goes to `conflicts_v5` (keeping per B the latest A
+    of the old rows), the swap is one RENAME, the old table is dropped after it. The copy
+    names its columns, so a re-run after the RENAME copies the new table onto itself.
+    """
+    return (
+        f"DROP TABLE IF EXISTS {db}.conflicts_v3 SYNC",
+        f"""CREATE TABLE IF NOT EXISTS {db}.conflicts_v5 (
+            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+            row UInt16 CODEC(ZSTD(3)),
+            col UInt16 CODEC(ZSTD(3)),
+            robot_b LowCardinality(String),
+            robot_a LowCardinality(String),
+            ts_a DateTime64(3, 'UTC') CODEC(Delta, ZSTD(3))
+        ) ENGINE = ReplacingMergeTree(ts_a)
+        PARTITION BY toDate(ts)
+        ORDER BY (ts, row, col, robot_b)
+        TTL toDateTime(ts) + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        f"""INSERT INTO {db}.conflicts_v5 (ts, row, col, robot_b, robot_a, ts_a)
+            SELECT ts, row, col, robot_b, argMax(robot_a, (ts_a, robot_a)), max(ts_a)
+            FROM {db}.conflicts FINAL GROUP BY ts, row, col, robot_b""",
+        f"RENAME TABLE {db}.conflicts TO {db}.conflicts_v3, {db}.conflicts_v5 TO {db}.conflicts",
+        f"DROP TABLE IF EXISTS {db}.conflicts_v3 SYNC",
+    )
+
+
+SCHEMA_VERSION = 8

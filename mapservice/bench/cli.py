@@ -1,0 +1,36 @@
+"""`mapservice bench`: measured, repeatable runs (results go to BENCHMARKS.md)."""
+
+from __future__ import annotations
+
+
+def add_bench_parser(sub) -> None:
+    bench = sub.add_parser("bench", help="benchmarks")
+    kinds = bench.add_subparsers(dest="kind", required=True)
+    ingest = kinds.add_parser("ingest", help="the 2019 load test through the whole pipeline")
+    ingest.add_argument("--robots", type=int, default=20, help="simulated robots (each a pose a second)")
+    ingest.add_argument("--seconds", type=float, default=60, help="how long the fleet publishes per run")
+    ingest.add_argument("--mqtt", default="mosquitto", help="mosquitto, amqtt or an mqtt:// URL")
+    ingest.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    ingest.add_argument("--repeat", type=int, default=1, help="runs; medians are reported")
+    ingest.add_argument("--json", default=None, help="write the results as JSON to this file")
+    ingest.add_argument("--poll-interval", type=float, default=0.1,
+                        help="seconds between the latency poller's API reads")
+    ingest.set_defaults(func=_run_ingest)
+
+    from mapservice.bench.timetravel import add_parser as add_timetravel_parser
+
+    add_timetravel_parser(kinds)
+
+    from mapservice.bench.sink import add_parser as add_sink_parser
+
+    add_sink_parser(kinds)
+
+    from mapservice.bench.ui import add_parser as add_ui_parser
+
+    add_ui_parser(kinds)
+
+
+def _run_ingest(args) -> None:
+    from mapservice.bench.ingest import main
+
+    main(args)

@@ -1,0 +1,154 @@
+"""`mapservice bench sink`: CPU per event of the processors' history path.
+
+Each run is a fresh process: it fills a pose topic on an embedded tansu with N events,
+then drains it through the processors' HistoryConsumer (confluent-kafka KafkaBatchSource,
+decode, store, commit) into a store that only counts, and reports the CPU time (user +
+system of the whole process) and wall time from the first stored event to the last: the
+cost of the path itself, without ClickHouse's insert.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+WAYS = ("batch",)
+
+
+def add_parser(kinds) -> None:
+    p = kinds.add_parser("sink", help="CPU per event of the processors' history path")
+    p.add_argument("--events", type=int, default=60_000,
+                   help="pose events published and then consumed per run")
+    p.add_argument("--repeat", type=int, default=3, help="runs per way; medians are reported")
+    p.add_argument("--json", default=None, help="write the results as JSON to this file")
+    p.add_argument("--one", choices=WAYS, help=argparse_hidden())
+    p.set_defaults(func=main)
+
+
+def argparse_hidden():
+    import argparse
+
+    return argparse.SUPPRESS
+
+
+def _cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+class BenchError(Exception):
+    """A run that cannot measure anything; the message says what to change."""
+
+
+class _Counter:
+    n = 0
+
+
+async def _one(way: str, events: int) -> dict:
+    from mapservice.adapters.kafka_publisher import KafkaPublisher
+    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.local.embedded import free_port, start_tansu, stop, wait_for_port
+    from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
+    from mapservice.settings import Settings
+    from mapservice.adapters.kafka_topics import ensure_topics
+
+    class CountingStore(MemoryStore):
+        def append(self, batch) -> None:
+            _Counter.n += len(batch)
+
+    port = free_port()
+    tansu = start_tansu(port, log_file=open(os.environ.get('BENCH_SINK_TANSU_LOG', os.devnull), 'wb'))
+    try:
+        wait_for_port(port)
+        data = Path(tempfile.mkdtemp(prefix="bench-sink-"))
+        settings = Settings(kafka_bootstrap=f"127.0.0.1:{port}", data_dir=data)
+        ensure_topics(settings)
+        pub = KafkaPublisher(settings, "bench-sink")
+        t0 = 1_795_000_000_000
+        for i in range(events):
+            payload = PoseReported(position=(i % 50 * 0.1, 1.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0),
+                                   battery_level=80.0)
+            e = make_envelope(f"robot-{i % 1000:04d}", t0 + i // 1000 * 1000, t0 + i // 1000 * 1000 + 20,
+                              payload)
+            pub.publish(settings.topic_pose_events, kafka_key(e), encode(e), lambda err: None)
+            if i % 5000 == 0:
+                pub.poll(0)
+        if pub.flush(60):
+            raise RuntimeError("could not fill the topic")
+        store = CountingStore()
+        stopping = asyncio.Event()
+        from mapservice.adapters.kafka_batch_source import KafkaBatchSource
+        from mapservice.processors.app import HistorySink
+        from mapservice.processors.history_consumer import HistoryConsumer
+
+        source = KafkaBatchSource(settings, [settings.topic_pose_events], "bench-sink")
+        consumer = HistoryConsumer(source, HistorySink(store), None,
+                                   settings.sink_batch_size, settings.sink_batch_seconds)
+        source.on_assigned = consumer.on_assigned
+        task = asyncio.create_task(consumer.run(stopping))
+        first = None
+        deadline = time.monotonic() + 600
+        while _Counter.n < events and time.monotonic() < deadline:
+            await asyncio.sleep(0.005)
+            if first is None and _Counter.n:
+                first = (time.monotonic(), _cpu_s(), _Counter.n)
+        if first is None:
+            raise BenchError(f"no event reached the sink within 600 s of {events:,} published")
+        wall, cpu = time.monotonic() - first[0], _cpu_s() - first[1]
+        counted = _Counter.n - first[2]
+        if counted <= 0 or wall <= 0:
+            # Timing starts at the first batch (the group join before it is not the sink's
+            # cost), so the events after it are what is measured.
+            raise BenchError(f"all {events:,} events arrived in the first batch: nothing left "
+                             "to time; pass more --events (e.g. the default 60,000)")
+        return {"way": way, "events": counted, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
+                "cpu_us_per_event": round(cpu / counted * 1e6, 1),
+                "events_per_s": round(counted / wall), "complete": _Counter.n >= events,
+                "task": bool(task)}
+    finally:
+        stop(tansu)
+
+
+def main(args) -> None:
+    if args.one:
+        try:
+            result = asyncio.run(_one(args.one, args.events))
+        except BenchError as exc:
+            print(f"ERROR {exc}", flush=True)
+            os._exit(2)
+        print("RESULT " + json.dumps(result), flush=True)
+        os._exit(0)  # librdkafka's threads need not be waited for
+    from mapservice.bench.ingest import machine_facts
+
+    runs: dict[str, list[dict]] = {w: [] for w in WAYS}
+    for i in range(args.repeat):
+        for way in WAYS:
+            out = subprocess.run([sys.executable, "-m", "mapservice.cli", "bench", "sink",
+                                  "--one", way, "--events", str(args.events)],
+                                 capture_output=True, text=True, timeout=900)
+            line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
+            error = next((x for x in out.stdout.splitlines() if x.startswith("ERROR ")), None)
+            if error is not None:
+                raise SystemExit(f"mapservice bench sink: {error[6:]}")
+            if line is None:
+                raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}".rstrip())
+            result = json.loads(line[7:])
+            runs[way].append(result)
+            print(f"run {i + 1}/{args.repeat} {way:5}: {result['cpu_us_per_event']:7.1f} µs CPU/event, "
+                  f"{result['events_per_s']:,} events/s", flush=True)
+    summary = {w: {"cpu_us_per_event_median": statistics.median(r["cpu_us_per_event"] for r in rs),
+                   "events_per_s_median": statistics.median(r["events_per_s"] for r in rs)}
+               for w, rs in runs.items()}
+    print(f"median: {summary['batch']['cpu_us_per_event_median']} µs CPU per event, "
+          f"{summary['batch']['events_per_s_median']:,} events/s")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"machine": machine_facts(), "events": args.events,
+                                               "summary": summary, "runs": runs}, indent=2))

@@ -1,0 +1,74 @@
+"""Live stream of stored events: the messages, their Kafka records, the API's fan-out.
+
+The processors, once a batch is stored (so queryable), publish its live messages on the
+live topic (`MAPSERVICE_TOPIC_LIVE`); every API process reads that topic from its end and
+fans the messages out to its WebSocket subscribers (`LiveHub`). One path whether the
+processors run in the API's process or elsewhere, and N API replicas each see it all.
+Slow subscribers lose their oldest queued messages rather than slowing anyone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import msgspec
+
+from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
+from mapservice.core.wire2019 import format_timestamp
+
+# A record holds a batch's messages as one JSON array; batches are cut so that a record
+# stays well below Kafka's default 1 MB message limit (a pose with a 1,000-point planned
+# path is ~40 kB of JSON).
+MAX_RECORD_BYTES = 256 * 1024
+
+
+def live_message(e: Envelope) -> dict | None:
+    p = e.payload
+    base = {"robotId": e.robot_id, "ts_ms": e.event_time_ms, "timestamp": format_timestamp(e.event_time_ms),
+            "receive_time_ms": e.receive_time_ms}
+    if isinstance(p, PoseReported):
+        return {"type": "pose", **base, "position": list(p.position),
+                "orientation": list(p.orientation), "battery_level": p.battery_level,
+                "charging": p.charging, "loaded": p.loaded,
+                "path": [list(pt) for pt in p.path] if p.path is not None else None}
+    if isinstance(p, ChunkUpdated):
+        return {"type": "chunk", **base, "row": p.row, "column": p.column,
+                "content_hash": p.content_hash.hex()}
+    return None
+
+
+def live_records(events: Iterable[Envelope], max_bytes: int = MAX_RECORD_BYTES) -> list[bytes]:
+    """The live topic's records for a stored batch: JSON arrays of its live messages, in
+    the batch's order, each at most `max_bytes` unless a single message is larger."""
+    records: list[bytes] = []
+    parts: list[bytes] = []
+    size = 2
+    for e in events:
+        message = live_message(e)
+        if message is None:
+            continue
+        part = msgspec.json.encode(message)
+        if parts and size + len(part) + 1 > max_bytes:
+            records.append(b"[" + b",".join(parts) + b"]")
+            parts, size = [], 2
+        parts.append(part)
+        size += len(part) + 1
+    if parts:
+        records.append(b"[" + b",".join(parts) + b"]")
+    return records
+
+
+class BadLiveRecord(ValueError):
+    """A live-topic record that is not a JSON array of live messages."""
+
+
+def decode_live_record(value: bytes) -> list[dict]:
+    """The messages of one live-topic record; BadLiveRecord if it is not one."""
+    try:
+        messages = msgspec.json.decode(value)
+    except msgspec.DecodeError as exc:
+        raise BadLiveRecord(f"not JSON: {exc}") from exc
+    if not isinstance(messages, list) or not all(
+            isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages):
+        raise BadLiveRecord("not a JSON array of pose/chunk messages")
+    return messages

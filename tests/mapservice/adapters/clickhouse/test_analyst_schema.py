@@ -1,0 +1,141 @@
+"""The analysts' views against a brute-force computation on small data, and the schema's
+comments: every table, view and column an analyst sees is described."""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+
+import pytest
+
+from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.clickhouse.analyst_schema import LATER_TABLE_COMMENTS, TABLE_COMMENTS, VIEWS
+from mapservice.core.events import MapMetaSet, PoseReported, make_envelope
+from mapservice.core.ports import ConflictRow
+from mapservice.core.wire2019 import content_hash
+from robot.chunks import metres_to_pixel
+from tests.conftest import chunk_event, dead_letter, meta_event
+
+T0 = (time.time_ns() // 1_000_000 // 60_000) * 60_000 - 3_600_000  # a whole minute, an hour ago
+
+
+def yaw_quaternion(deg: float) -> tuple[float, float, float, float]:
+    half = math.radians(deg) / 2
+    return (0.0, 0.0, math.sin(half), math.cos(half))
+
+
+@pytest.fixture(scope="module")
+def loaded(tmp_path_factory):
+    """A store with 3 robots' random walks over 5 minutes, flags of every kind, chunk writes,
+    conflicts and dead letters; and the poses as written (the brute force's input)."""
+    store = ClickHouseStore(f"chdb://{tmp_path_factory.mktemp('views') / 'ch'}", database="views")
+    store.migrate()
+    rng = random.Random(7)
+    meta = meta_event(T0 - 1000)
+    poses = []
+    flags = [True, False, None, "yes"]
+    for robot in ("r1", "r2", "r3"):
+        x, y = 2.0, 4.0
+        for i in range(0, 300, 2):
+            x, y = x + rng.uniform(-0.4, 0.6), y + rng.uniform(-0.3, 0.3)
+            heading = rng.uniform(-179, 179)
+            payload = PoseReported(position=(x, y, 0.0), orientation=yaw_quaternion(heading),
+                                   battery_level=round(90 - i / 10, 1),
+                                   charging=flags[i % 4], loaded=flags[(i // 2) % 4])
+            lag = rng.randint(-2000, 8000)
+            poses.append((robot, T0 + i * 1000, x, y, heading, payload, lag))
+    store.append([meta] + [make_envelope(r, t, t + lag, p) for r, t, _, _, _, p, lag in poses])
+    store.append([chunk_event("r1", T0 + 5000, 1, 2), chunk_event("r2", T0 + 9000, 1, 2, bytes([9]) * 10_000),
+                  chunk_event("r3", T0 + 70_000, 0, 0)])
+    store.append_conflicts([ConflictRow(1, 2, T0 + 9000, "r1", T0 + 5000, "r2")])
+    store.append_dead_letters([dead_letter("too_deep", b"[" * 2048, T0), dead_letter("not_json")])
+    yield store, poses, meta.payload
+    store.close()
+
+
+def rows(store, sql: str) -> list[dict]:
+    result = store.client.query(sql)
+    return [dict(zip(result.column_names, row)) for row in result.result_rows]
+
+
+def test_robot_poses_are_metres_degrees_flags_and_chunks(loaded) -> None:
+    """robot_poses: positions in metres, yaw in degrees, JSON booleans as Bool, chunk cells."""
+    store, poses, meta = loaded
+    got = {(r["robot_id"], r["at"].timestamp() * 1000): r
+           for r in rows(store, "SELECT * FROM views.robot_poses")}
+    assert len(got) == len(poses)
+    as_bool = {True: True, False: False, None: None, "yes": None}
+    for robot, t, x, y, heading, payload, lag in poses:
+        row = got[(robot, float(t))]
+        assert row["x_m"] == pytest.approx(x, abs=0.0011) and row["y_m"] == pytest.approx(y, abs=0.0011)
+        assert row["heading_deg"] == pytest.approx(heading, abs=0.01)
+        assert row["charging"] is as_bool[payload.charging] and row["loaded"] is as_bool[payload.loaded]
+        assert row["receive_lag_s"] == pytest.approx(lag / 1000)
+        col, pixel_row = metres_to_pixel(row["x_m"], row["y_m"], meta)
+        assert (row["chunk_row"], row["chunk_col"]) == (pixel_row // meta.chunk_height, col // meta.chunk_width)
+
+
+def test_robot_minutes_match_brute_force(loaded) -> None:
+    """robot_minutes: reports, distance (steps between consecutive reports) and battery per minute."""
+    store, poses, _ = loaded
+    expected: dict[tuple[str, int], dict] = {}
+    last: dict[str, tuple[float, float]] = {}
+    for robot, t, x, y, _, payload, _ in sorted(poses, key=lambda p: (p[0], p[1])):
+        mm = round(x * 1000) / 1000, round(y * 1000) / 1000  # as stored
+        px, py = last.get(robot, mm)
+        last[robot] = mm
+        cell = expected.setdefault((robot, t // 60_000 * 60_000), {"poses": 0, "distance": 0.0, "battery": []})
+        cell["poses"] += 1
+        cell["distance"] += math.hypot(mm[0] - px, mm[1] - py)
+        cell["battery"].append(payload.battery_level)
+    got = rows(store, "SELECT * FROM views.robot_minutes")
+    assert len(got) == len(expected)
+    for row in got:
+        cell = expected[(row["robot_id"], int(row["minute"].timestamp()) * 1000)]
+        assert row["poses"] == cell["poses"]
+        assert row["distance_m"] == pytest.approx(cell["distance"], abs=0.002)
+        assert row["battery_level_min"] == pytest.approx(min(cell["battery"]), abs=1e-4)
+
+
+def test_chunk_changes_and_conflicts_read_cleanly(loaded) -> None:
+    """chunk_changes: one row per write with its MD5 in hex; chunk_conflicts: the pair and the gap."""
+    store, _, _ = loaded
+    changes = rows(store, "SELECT * FROM views.chunk_changes ORDER BY at")
+    assert [(c["robot_id"], c["chunk_row"], c["chunk_col"]) for c in changes] == [("r1", 1, 2), ("r2", 1, 2), ("r3", 0, 0)]
+    assert changes[0]["content_hash"] == content_hash(bytes(100 * 100)).hex()
+    (conflict,) = rows(store, "SELECT * FROM views.chunk_conflicts")
+    assert (conflict["robot_id"], conflict["other_robot_id"], conflict["seconds_apart"]) == ("r2", "r1", 4.0)
+
+
+def test_dead_letter_messages_have_reason_and_size(loaded) -> None:
+    """dead_letter_messages: the reason and the stored payload's size."""
+    store, _, _ = loaded
+    got = sorted((r["reason"], r["payload_bytes"]) for r in rows(store, "SELECT * FROM views.dead_letter_messages"))
+    assert got == [("not_json", 5), ("too_deep", 2048)]
+
+
+def test_every_table_view_and_column_has_a_comment(loaded) -> None:
+    """system.tables/system.columns: nothing the analyst sees is undescribed."""
+    store, _, _ = loaded
+    tables = rows(store, "SELECT name, comment FROM system.tables WHERE database = 'views' "
+                         "AND name NOT LIKE '%_mv' AND NOT is_temporary")
+    assert {t["name"] for t in tables} == set(TABLE_COMMENTS) | set(LATER_TABLE_COMMENTS) | set(VIEWS)
+    assert all(t["comment"] for t in tables)
+    undocumented = rows(store, "SELECT table, name FROM system.columns WHERE database = 'views' "
+                               "AND comment = '' AND table IN ({})".format(
+                                   ", ".join(f"'{t}'" for t in {**TABLE_COMMENTS, **LATER_TABLE_COMMENTS})))
+    # pose_keyframes repeats the poses columns (described there); only its own are commented.
+    assert {(r["table"], r["name"]) for r in undocumented if r["table"] != "pose_keyframes"} == set()
+    for view, (_, _, columns) in VIEWS.items():
+        described = [r["name"] for r in rows(store, f"DESCRIBE TABLE views.{view}")]
+        assert described == list(columns), view
+
+
+def test_the_guide_holds_the_schemas_reference() -> None:
+    """docs/analysts.md's reference is what the schema says (regenerate: python -m mapservice.adapters.clickhouse.analyst_schema)."""
+    from mapservice.adapters.clickhouse.analyst_schema import reference_markdown
+    from tests.fixtures.paths import ROOT
+
+    guide = (ROOT / "docs" / "analysts.md").read_text()
+    assert reference_markdown() in guide

@@ -1,0 +1,93 @@
+"""Schema migrations: once each under a lock, checksums that catch an edited migration, and
+a clear error while another migrator holds the lock."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from mapservice.adapters.clickhouse.store import (
+    MIGRATION_LOCK, ClickHouseStore, MigrationChanged, MigrationLocked)
+from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION, checksums
+
+
+@pytest.fixture(scope="module")
+def chdb_dir(tmp_path_factory):
+    path = tmp_path_factory.mktemp("migrations") / "ch"
+    root = ClickHouseStore(f"chdb://{path}", database="root")
+    root.migrate()
+    yield path
+    root.close()
+
+
+_n = iter(range(1000))
+
+
+@pytest.fixture
+def store(chdb_dir):
+    s = ClickHouseStore(f"chdb://{chdb_dir}", database=f"m{next(_n)}")
+    yield s
+    s.close()
+
+
+def test_migrate_records_each_version_once_with_its_checksum(store) -> None:
+    """Every migration is recorded once, with the released checksum; the lock is gone after."""
+    assert store.schema_version() == 0
+    assert store.migrate() == SCHEMA_VERSION == store.migrate()
+    rows = store.client.query(f"SELECT version, checksum FROM {store.database}.schema_migrations").result_rows
+    assert dict(rows) == checksums() and len(rows) == SCHEMA_VERSION
+    assert not store.client.query(f"EXISTS TABLE {store.database}.{MIGRATION_LOCK}").result_rows[0][0]
+
+
+def test_checksums_ignore_the_settings_a_migration_ran_with(store) -> None:
+    """Another database name or retention renders other text but the same checksums."""
+    other = ClickHouseStore(store.dsn, database=store.database, retention_days=3)
+    other.migrate()
+    assert ClickHouseStore(store.dsn, database=store.database, retention_days=7).migrate() == SCHEMA_VERSION
+
+
+def test_an_edited_migration_is_refused(store) -> None:
+    """A recorded checksum that differs from this release's stops the migration, naming it."""
+    store.migrate()
+    store.client.command(f"ALTER TABLE {store.database}.schema_migrations UPDATE checksum = 'x' "
+                         "WHERE version = 3 SETTINGS mutations_sync = 1")
+    with pytest.raises(MigrationChanged, match="migration 3"):
+        store.migrate()
+
+
+def test_a_held_lock_makes_a_second_migrator_wait_then_fail_clearly(store) -> None:
+    """While the lock is held another migrate waits; past its timeout it names the holder."""
+    store.migrate()
+    store.client.command(f"CREATE TABLE {store.database}.{MIGRATION_LOCK} (holder String, "
+                         "since DateTime DEFAULT now()) ENGINE = Log")
+    store.client.insert(f"{store.database}.{MIGRATION_LOCK}", [["job-7"]], column_names=["holder"])
+    with pytest.raises(MigrationLocked, match="job-7.*--break-lock"):
+        store.migrate(lock_timeout_s=1.0)
+    assert store.break_migration_lock() is True
+    assert store.migrate() == SCHEMA_VERSION
+
+
+def test_two_migrators_at_once_apply_each_migration_once(chdb_dir) -> None:
+    """Two stores migrating one empty database at the same moment: one waits for the other."""
+    database = f"m{next(_n)}"
+    stores = [ClickHouseStore(f"chdb://{chdb_dir}", database=database) for _ in range(2)]
+    results, errors = [], []
+
+    def run(s):
+        try:
+            results.append(s.migrate(lock_timeout_s=60))
+        except Exception as exc:  # noqa: BLE001 (reported below)
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(s,)) for s in stores]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert errors == [] and results == [SCHEMA_VERSION, SCHEMA_VERSION]
+    versions = [v for (v,) in stores[0].client.query(
+        f"SELECT version FROM {database}.schema_migrations").result_rows]
+    assert sorted(versions) == list(range(1, SCHEMA_VERSION + 1))
+    for s in stores:
+        s.close()

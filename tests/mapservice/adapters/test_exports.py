@@ -1,0 +1,114 @@
+"""Exports: MCAP read back with the mcap library holds the window's map and poses; CSV and
+Parquet come from the analysts' views, limited to the window."""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.adapters.exports import MAP_TOPIC, export_mcap, export_table, pose_topic
+from tests.conftest import chunk_event, meta_event, pose_event
+
+T0 = (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
+
+
+def history(store) -> None:
+    """Map 4 x 5 chunks of 100 px; chunk (0,0) before the window, (1,2) changed twice inside
+    it, two robots reporting every second from T0 to T0 + 60 s."""
+    store.append([meta_event(T0 - 10_000)])
+    store.append([chunk_event("a", T0 - 5000, 0, 0, bytes([0]) * 10_000),
+                  chunk_event("a", T0 + 20_000, 1, 2, bytes([100]) * 10_000),
+                  chunk_event("b", T0 + 45_000, 1, 2, bytes([254]) * 10_000)])
+    store.append([pose_event(robot, T0 + i * 1000, x=float(i), y=2.0 + (robot == "b"))
+                  for i in range(60) for robot in ("a", "b")])
+
+
+def read_mcap(data: bytes) -> list[tuple[str, int, object]]:
+    reader = make_reader(io.BytesIO(data), decoder_factories=[DecoderFactory()])
+    return [(channel.topic, message.log_time // 1_000_000, decoded)
+            for _, channel, message, decoded in reader.iter_decoded_messages()]
+
+
+def grid_pixels(grid) -> np.ndarray:
+    """The grid back as an image (row 0 at the top, as the map file)."""
+    rows = len(grid.data) // grid.row_stride
+    return np.flipud(np.frombuffer(grid.data, dtype=np.uint8).reshape(rows, grid.column_count))
+
+
+def test_mcap_holds_the_map_and_every_pose_of_the_window() -> None:
+    """Read back with `mcap`: grids at the start and after changes, poses for each robot."""
+    store = MemoryStore()
+    history(store)
+    out = io.BytesIO()
+    counts = export_mcap(store, T0 + 10_000, T0 + 50_000, out, grid_every_ms=10_000)
+    messages = read_mcap(out.getvalue())
+    grids = [(t, m) for topic, t, m in messages if topic == MAP_TOPIC]
+    poses = [(topic, t, m) for topic, t, m in messages if topic != MAP_TOPIC]
+    assert counts.poses == len(poses) == 2 * 40
+    assert {topic for topic, _, _ in poses} == {pose_topic("a"), pose_topic("b")}
+    first = next(m for topic, t, m in poses if topic == pose_topic("a") and t == T0 + 25_000)
+    assert (first.pose.position.x, first.pose.position.y, first.frame_id) == (25.0, 2.0, "map")
+    # The start: chunk (0,0) as written before the window, (1,2) still unknown (205).
+    start = grid_pixels(grids[0][1])
+    assert grids[0][0] == T0 + 10_000 and start.shape == (400, 500)
+    assert (start[0:100, 0:100] == 0).all() and (start[100:200, 200:300] == 205).all()
+    assert grids[0][1].cell_size.x == pytest.approx(0.05) and grids[0][1].pose.position.x == pytest.approx(-1.5)
+    # After the first change (T0+20 s) and at the end: the later content wins.
+    assert any((grid_pixels(m)[100:200, 200:300] == 100).all() for t, m in grids if t < T0 + 45_000)
+    assert (grid_pixels(grids[-1][1])[100:200, 200:300] == 254).all()
+    assert counts.chunk_changes == 2
+    times = [t for _, t, _ in messages]
+    assert times == sorted(times)  # log times in order, as players expect
+
+
+def test_mcap_without_a_map_geometry_is_refused() -> None:
+    """No meta yet: a clear error instead of an empty file."""
+    with pytest.raises(ValueError, match="no map geometry"):
+        export_mcap(MemoryStore(), T0, T0 + 1000, io.BytesIO())
+
+
+def test_mcap_pages_through_more_poses_than_a_page() -> None:
+    """Paging never drops or repeats a pose, even when a page ends mid-instant."""
+    store = MemoryStore()
+    history(store)
+    out = io.BytesIO()
+    counts = export_mcap(store, T0, T0 + 60_000, out, page=7)
+    assert counts.poses == 120
+    stamps = [(topic, t) for topic, t, _ in read_mcap(out.getvalue()) if topic != MAP_TOPIC]
+    assert len(set(stamps)) == 120
+
+
+@pytest.fixture(scope="module")
+def clickhouse(tmp_path_factory):
+    store = ClickHouseStore(f"chdb://{tmp_path_factory.mktemp('exports') / 'ch'}", database="exports")
+    store.migrate()
+    history(store)
+    yield store
+    store.close()
+
+
+def test_csv_is_the_view_in_the_window(clickhouse) -> None:
+    """CSV: the robot_poses header, only rows with from <= at < to, one robot if asked."""
+    body = export_table(clickhouse, "robot-poses", "csv", T0 + 10_000, T0 + 20_000, "b").decode()
+    rows = list(csv.DictReader(io.StringIO(body)))
+    assert len(rows) == 10 and {r["robot_id"] for r in rows} == {"b"}
+    assert list(rows[0])[:4] == ["robot_id", "at", "x_m", "y_m"] and float(rows[0]["y_m"]) == 3.0
+
+
+def test_parquet_reads_back(clickhouse, tmp_path) -> None:
+    """Parquet: a file ClickHouse (or pandas, Spark, DuckDB) reads back with the same rows."""
+    body = export_table(clickhouse, "chunk-changes", "parquet", T0 - 60_000, T0 + 60_000)
+    assert body[:4] == b"PAR1"
+    path = tmp_path / "changes.parquet"
+    path.write_bytes(body)
+    got = clickhouse.client.query(
+        f"SELECT robot_id, chunk_row, chunk_col FROM file('{path}', 'Parquet') ORDER BY at").result_rows
+    assert got == [("a", 0, 0), ("a", 1, 2), ("b", 1, 2)]

@@ -1,0 +1,57 @@
+"""Heartbeats and dependency checks: a stuck loop is not alive, a hung dependency is not
+ready, and a probe never waits longer than its timeout."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from mapservice.runtime.health import CachedCheck, Heartbeat
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_heartbeat_is_alive_while_recent() -> None:
+    """Alive before the first beat (starting) and within max_age after one; dead after."""
+    clock = Clock()
+    beat = Heartbeat(max_age_s=10, clock=clock)
+    assert beat.alive()
+    beat.beat()
+    clock.now += 9.9
+    assert beat.alive()
+    clock.now += 0.2
+    assert not beat.alive() and beat.age_s() == 10.1
+
+
+def test_a_hung_dependency_is_down_within_the_timeout() -> None:
+    """A call that never returns: the check answers False after timeout_s, not later."""
+    release = threading.Event()
+    check = CachedCheck("hung", lambda: release.wait(30), ttl_s=0.0, timeout_s=0.2)
+    started = time.monotonic()
+    assert check() is False
+    assert time.monotonic() - started < 1.0
+    release.set()
+
+
+def test_failures_and_false_are_down_successes_are_cached() -> None:
+    """An exception or False is down; a success is reused for ttl_s without calling again."""
+    calls = []
+
+    def flaky():
+        calls.append(1)
+        if len(calls) == 1:
+            raise ConnectionError("refused")
+        return True
+
+    clock = Clock()
+    check = CachedCheck("flaky", flaky, ttl_s=5.0, timeout_s=1.0, clock=clock)
+    assert check() is False
+    clock.now += 5.1
+    assert check() is True and check() is True and len(calls) == 2
+    assert CachedCheck("false", lambda: False, ttl_s=0, timeout_s=1)() is False

@@ -1,0 +1,125 @@
+"""Publishing a whole map: `map upload` through the 2019 REST API (meta + every chunk as
+events), the size check shared with `drive`, and the once-per-data-dir upload of `up`."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+
+from mapservice.adapters.clock import ManualClock
+from mapservice.adapters.memory_publisher import MemoryPublisher
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.api.app import create_app
+from mapservice.robot.map_upload import (MARKER, UPLOADER_ID, MapSizeMismatch, upload_map_if_fresh,
+                                   upload_map_rest)
+from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
+from mapservice.robot.drive import check_map_size
+from mapservice.settings import Settings
+from mapservice.core.wire2019 import content_hash
+from tests.fixtures.legacy import process
+from tests.fixtures.paths import MAPS
+
+NOW = 1_795_255_200_000
+
+
+@pytest.fixture
+def service():
+    store, publisher = MemoryStore(), MemoryPublisher()
+    app = create_app(Settings(), store, {}, ManualClock(NOW), publisher=publisher)
+    return store, publisher, TestClient(app, raise_server_exceptions=False)
+
+
+def test_upload_stores_meta_and_every_chunk_as_the_map_file(service) -> None:
+    """On an empty service, the map at now is the sliced map file, chunk by chunk, written by
+    robot `map-upload`."""
+    store, publisher, http = service
+    depot = load_ros_map(MAPS / "depot.yaml")
+    count = upload_map_rest(http, depot, NOW - 1000)
+    process(publisher, store)
+    expected = {k: content_hash(px).hex() for k, px in slice_chunks(depot).items()}
+    assert count == len(expected)
+    got = {(c.row, c.column): c.content_hash for c in store.map_at(NOW)}
+    assert got == expected
+    assert {c.robot_id for c in store.map_at(NOW)} == {UPLOADER_ID}
+    assert store.latest_meta().width == depot.width
+
+
+def test_upload_of_another_size_is_refused_and_publishes_nothing(service) -> None:
+    """A map whose size differs from the stored meta is refused with both sizes named; with
+    replace the service still wants the admin token, and with it the map is replaced."""
+    store, publisher, http = service
+    upload_map_rest(http, load_ros_map(MAPS / "depot.yaml"), NOW - 2000)
+    process(publisher, store)
+    sandbox = load_ros_map(MAPS / "tb3_sandbox.yaml")
+    with pytest.raises(MapSizeMismatch, match="604 x 307 px.*384 x 384 px"):
+        upload_map_rest(http, sandbox, NOW - 1000)
+    assert process(publisher, store) == 0
+    with pytest.raises(httpx.HTTPStatusError) as refused:  # the service wants the admin token
+        upload_map_rest(http, sandbox, NOW - 1000, replace=True)
+    assert refused.value.response.status_code == 401
+    http.headers["Authorization"] = f"Bearer {Settings().admin_token.get_secret_value()}"
+    upload_map_rest(http, sandbox, NOW - 1000, replace=True)
+    process(publisher, store)
+    assert store.latest_meta().width == 384
+
+
+def test_drive_refuses_a_map_of_another_size(service) -> None:
+    """`drive`'s check raises a clear message when the service stores another map size, and
+    passes for the same size or an empty service."""
+    store, publisher, http = service
+    depot = meta_for(load_ros_map(MAPS / "depot.yaml"))
+    check_map_size("http://test", depot, http)  # nothing stored yet: any map is fine
+    upload_map_rest(http, load_ros_map(MAPS / "depot.yaml"), NOW - 1000)
+    process(publisher, store)
+    check_map_size("http://test", depot, http)
+    warehouse = meta_for(load_ros_map(MAPS / "warehouse.yaml"))
+    with pytest.raises(ValueError, match="service's map is 604 x 307 px.*1006 x 1674"):
+        check_map_size("http://test", warehouse, http)
+
+
+def test_drive_exits_before_publishing_on_a_size_mismatch(monkeypatch, tmp_path) -> None:
+    """`mapservice drive` against a service of another map size exits with the message and
+    never connects to MQTT (it stores nothing)."""
+    import mapservice.robot.drive as drive
+
+    stored = meta_for(load_ros_map(MAPS / "warehouse.yaml"))
+    monkeypatch.setattr("mapservice.robot.map_upload.stored_meta", lambda http: stored)
+    monkeypatch.setattr(drive, "Publisher", lambda *a: pytest.fail("drive connected to MQTT"))
+    from mapservice.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["drive", "--map", str(MAPS / "depot.yaml"), "--api", "http://127.0.0.1:9"])
+    assert "1006 x 1674" in str(exc.value) and "604 x 307" in str(exc.value)
+
+
+def test_up_uploads_once_per_data_dir(monkeypatch, tmp_path) -> None:
+    """The first `up` on a data dir publishes the map; a resumed one does not (it would
+    overwrite later changes), nor does one with history from before uploads, and a map of
+    another size is refused."""
+    calls = []
+    monkeypatch.setattr("mapservice.robot.map_upload.upload_map_events",
+                        lambda settings, ros_map, now_ms: calls.append(now_ms) or 7)
+    legacy = tmp_path / "legacy"
+    depot0 = load_ros_map(MAPS / "depot.yaml")
+    assert upload_map_if_fresh(Settings(), legacy, depot0, NOW, had_history=True) == 0
+    assert calls == [] and (legacy / MARKER).exists()
+    depot = load_ros_map(MAPS / "depot.yaml")
+    assert upload_map_if_fresh(Settings(), tmp_path, depot, NOW) == 7
+    assert (tmp_path / MARKER).exists()
+    assert upload_map_if_fresh(Settings(), tmp_path, depot, NOW + 1) == 0
+    assert calls == [NOW]
+    with pytest.raises(MapSizeMismatch, match="604 x 307 px map.*384 x 384.*--data-dir"):
+        upload_map_if_fresh(Settings(), tmp_path, load_ros_map(MAPS / "tb3_sandbox.yaml"), NOW)
+
+
+def test_map_upload_cli_explains_what_to_do(monkeypatch) -> None:
+    """`map upload --replace` without an admin token and an unreachable --api both exit with
+    a message saying what to pass."""
+    from mapservice.cli import main
+
+    monkeypatch.delenv("MAPSERVICE_ADMIN_TOKEN", raising=False)
+    with pytest.raises(SystemExit, match="admin operation: pass --admin-token"):
+        main(["map", "upload", str(MAPS / "depot.yaml"), "--replace"])
+    with pytest.raises(SystemExit, match="is the service running"):
+        main(["map", "upload", str(MAPS / "depot.yaml"), "--api", "http://127.0.0.1:9"])
