@@ -39,7 +39,7 @@ def cmd_migrate(args) -> None:
     from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 
     settings = settings_for("migrate")
-    store = ClickHouseStore.fromsettings_for(settings)
+    store = ClickHouseStore.from_settings(settings)
     log = logging.getLogger("mapservice.migrate")
     try:
         if args.break_lock:
@@ -219,7 +219,7 @@ def cmd_demo_history(args) -> None:
     from mapservice.local.demo_history import backfill
 
     settings = Settings(data_dir=data_dir)
-    store = ClickHouseStore.fromsettings_for(settings)
+    store = ClickHouseStore.from_settings(settings)
     try:
         store.migrate()
         if store.counts().poses:

@@ -95,3 +95,12 @@ def test_io_in_the_core_breaks_the_contracts(staged: Path) -> None:
     assert result.returncode == 1
     assert "The core performs no I/O: no network, process, file or broker libraries BROKEN" in result.stdout
     assert "Layers: each part imports only what is below it BROKEN" in result.stdout
+
+
+def test_every_module_says_its_job(staged: Path) -> None:
+    """Every module of the installed tree opens with a docstring."""
+    import ast
+
+    missing = [str(module.relative_to(staged)) for module in sorted(staged.rglob("*.py"))
+               if not ast.get_docstring(ast.parse(module.read_text()))]
+    assert not missing, f"modules without a docstring: {missing}"
