@@ -1,0 +1,58 @@
+"""The API's live fan-out: the hub drops a slow subscriber's oldest messages, and the
+WebSocket streams what the hub publishes or says why it cannot."""
+
+from __future__ import annotations
+
+import asyncio
+
+from fastapi.testclient import TestClient
+
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.api.app import create_app
+from mapservice.api.live_hub import LiveHub
+from mapservice.core.live_messages import live_message
+from mapservice.settings import Settings
+
+
+def test_slow_subscriber_keeps_the_newest(ev):
+    """A full queue drops its oldest message, never blocks the publisher."""
+    hub = LiveHub(queue_size=2)
+    queue = hub.subscribe()
+    hub.publish([live_message(ev.pose("r1", t)) for t in (1, 2, 3)])
+    assert [queue.get_nowait()["ts_ms"] for _ in range(2)] == [2, 3]
+    hub.unsubscribe(queue)
+    assert hub.subscribers == 0
+
+
+def test_websocket_streams_published_messages(ev):
+    """/api/v1/live delivers what the relay hands the hub after the client connected."""
+    hub = LiveHub()
+    with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
+            client.websocket_connect("/api/v1/live") as ws:
+        for _ in range(100):
+            if hub.subscribers:
+                break
+            asyncio.run(asyncio.sleep(0.01))
+        other = hub.subscribe()  # a second viewer that has not sent its copy yet
+        # The hub lives on the app's loop; the relay hands it messages there too.
+        client.portal.call(lambda: hub.publish([live_message(ev.pose("r9", 5_000, x=2.0))]))
+        message = ws.receive_json()
+    assert message["type"] == "pose" and message["robotId"] == "r9" and "sent_ms" in message
+    assert "sent_ms" not in other.get_nowait()  # each viewer stamps its own send time
+
+
+def test_websocket_without_a_live_feed_closes_with_reason():
+    """An API built without a live feed says so (1011) instead of hanging."""
+    client = TestClient(create_app(Settings(), MemoryStore(), {}))
+    with client.websocket_connect("/api/v1/live") as ws:
+        closed = ws.receive()
+    assert closed["type"] == "websocket.close" and closed["code"] == 1011
+
+
+def test_websocket_before_the_feed_is_ready_asks_to_retry():
+    """Until the relay reads the live topic, /api/v1/live closes with 1013 (try again later)."""
+    client = TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=LiveHub(ready=lambda: False)))
+    with client.websocket_connect("/api/v1/live") as ws:
+        closed = ws.receive()
+    assert closed["type"] == "websocket.close" and closed["code"] == 1013
+    assert "Kafka" in closed["reason"]
