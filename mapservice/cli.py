@@ -35,7 +35,8 @@ def cmd_serve(args, processors: bool = True, api: bool = True, component: str = 
 
 
 def cmd_migrate(args) -> None:
-    from mapservice.adapters.clickhouse.store import ClickHouseStore, MigrationChanged, MigrationLocked
+    from mapservice.adapters.clickhouse.migrations import MigrationChanged, MigrationLocked
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
     from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 
     settings = settings_for("migrate")

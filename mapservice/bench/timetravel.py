@@ -122,7 +122,7 @@ def naive_robots_at(store, at_ms: int) -> list[tuple[str, int]]:
 
 def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> list:
     """poses_downsampled from every pose (the query before the keyframes of schema v4)."""
-    from mapservice.adapters.clickhouse.store import _FINAL_SETTINGS, _POSE_COLUMNS
+    from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
 
     return store._pose_query(
         f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {store.database}.poses FINAL "

@@ -7,8 +7,8 @@ import threading
 
 import pytest
 
-from mapservice.adapters.clickhouse.store import (
-    MIGRATION_LOCK, ClickHouseStore, MigrationChanged, MigrationLocked)
+from mapservice.adapters.clickhouse.migrations import MIGRATION_LOCK, MigrationChanged, MigrationLocked
+from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION, checksums
 
 

@@ -1,0 +1,86 @@
+"""The store's administration: deleting chunks and metadata, counts, bytes on disk,
+OPTIMIZE, a readiness ping on a client of its own, exports in ClickHouse formats, close.
+
+`AdminMixin` uses the clients of `connection.ClickHouseConnection` and depends on nothing
+else of the store.
+"""
+
+from __future__ import annotations
+
+import clickhouse_connect
+
+from mapservice.core.ports import Counts
+from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+
+
+class AdminMixin(ClickHouseConnection):
+    """Deletes, counts, storage, optimize, ping, export, close."""
+
+    _ping_client: object | None
+
+    def delete_chunks(self) -> int:
+        db = self.database
+        with self._lock:
+            (removed,), = self._rows(f"SELECT count() FROM {db}.chunk_events FINAL", {})
+            # TRUNCATE, not a lightweight DELETE: the whole table goes, at once and without
+            # a mutation. Snapshots go too, or map_at would still answer with deleted
+            # writes; their log stays, so the next snapshot builds on an empty map.
+            self.client.command(f"TRUNCATE TABLE {db}.chunk_events")
+            self.client.command(f"TRUNCATE TABLE {db}.map_snapshots")
+            self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.conflicts")  # derived from them
+        return int(removed)
+
+    def delete_meta(self) -> int:
+        db = self.database
+        with self._lock:
+            (removed,), = self._rows(f"SELECT count() FROM {db}.map_meta FINAL", {})
+            self.client.command(f"TRUNCATE TABLE {db}.map_meta")
+        return int(removed)
+
+    def counts(self) -> Counts:
+        db = self.database
+        (row,) = self._rows(
+            f"SELECT (SELECT count() FROM {db}.poses FINAL), "
+            f"(SELECT count() FROM {db}.chunk_events FINAL), "
+            f"(SELECT uniqExact(content_hash) FROM {db}.chunk_contents), "
+            f"(SELECT count() FROM {db}.dead_letters)", {})
+        return Counts(*row)
+
+    def storage_bytes(self) -> dict[str, int]:
+        """Bytes on disk per table (active parts), for benchmarks and operators."""
+        rows = self._rows(
+            "SELECT table, sum(bytes_on_disk) FROM system.parts WHERE database = {d:String} "
+            "AND active GROUP BY table", {"d": self.database})
+        return {t: int(b) for t, b in rows}
+
+    def optimize(self) -> None:
+        """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
+        with self._lock:
+            for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
+                          "pose_keyframes"):
+                self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
+
+    def ping(self, timeout_s: float = 2.0) -> bool:
+        """A real round trip to ClickHouse on a client of its own (a hung server must not
+        hold the read or write client); readiness calls it through a CachedCheck."""
+        if self._ping_client is None:
+            if self.dsn.startswith("chdb://"):
+                self._ping_client = self._connect()
+            else:
+                self._ping_client = clickhouse_connect.get_client(
+                    dsn=self.dsn, username=self._username, password=self._password,
+                    connect_timeout=timeout_s, send_receive_timeout=timeout_s)
+        return self._ping_client.command("SELECT 1") == 1
+
+    def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:
+        """A read's result as ClickHouse writes it in `fmt` (CSVWithNames, Parquet, ...);
+        mapservice/adapters/exports.py builds `sql` from fixed names, values go as parameters."""
+        with self._reader() as client:
+            return client.raw_query(sql, parameters=parameters, fmt=fmt)
+
+    def close(self) -> None:
+        with self._lock, self._read_lock:
+            for client in (self._client, self._read_client):
+                if client is not None:
+                    client.close()
+            self._client = self._read_client = None

@@ -1,0 +1,143 @@
+"""The store's connection to ClickHouse and the low-level helpers every part of it shares.
+
+`ClickHouseConnection` is the base of each of the store's mixins: the writer client (one
+at a time, under `_lock`), the read client (under `_read_lock`), reusable insert contexts,
+`_rows` and `_pose_query` for reads, and the pure helpers that turn values into columns and
+columns into PoseRows (`_flag`, `_unflag`, `_mm`, `_POSE_COLUMNS`, `_FINAL_SETTINGS`,
+`_pose_rows`, ...). It depends only on clickhouse-connect, msgspec and the core's records,
+never on another module of the store.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Sequence
+from contextlib import contextmanager
+from datetime import datetime, timezone
+
+import clickhouse_connect
+import msgspec
+
+from mapservice.core.ports import PoseRow
+
+_json = msgspec.json.Encoder()
+_BOOLISH = msgspec.json.Decoder(bool | str | None)
+
+
+def _flag(value: bool | str | None) -> str:
+    # Stored as JSON text so the 2019 API can answer with the type the robot sent.
+    return "" if value is None else _json.encode(value).decode()
+
+
+def _unflag(text: str) -> bool | str | None:
+    return None if text == "" else _BOOLISH.decode(text)
+
+
+def _ms(dt: datetime) -> int:
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return int(round(dt.timestamp() * 1000))
+
+
+def _mm(metres: float) -> int:
+    return int(round(metres * 1000))
+
+
+# A pose's columns as the reads select them. The path travels as one string ("x y,x y",
+# millimetres; empty when has_path is false): parsing two Array columns costs the client far
+# more than a String column, and most poses carry no path.
+_POSE_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, "
+                 "charging, loaded, has_path, if(has_path, arrayStringConcat(arrayMap((x, y) -> "
+                 "concat(toString(x), ' ', toString(y)), path_x_mm, path_y_mm), ','), ''), "
+                 "recv_lag_ms")
+# Every FINAL read of poses and chunk_events: both are partitioned by the day of `ts`, a
+# sorting-key column, so rows with one identity always share a partition and FINAL need
+# not merge across partitions (it then skips merging single-part partitions entirely).
+_FINAL_SETTINGS = "SETTINGS do_not_merge_across_partitions_select_final = 1"
+
+
+def _path(has_path: bool, text: str) -> tuple[tuple[float, float], ...] | None:
+    if not has_path:
+        return None
+    if not text:
+        return ()
+    return tuple((int(x) / 1000, int(y) / 1000)
+                 for x, y in (point.split(" ") for point in text.split(",")))
+
+
+def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
+    """PoseRows from the columns of a `_POSE_COLUMNS` query, column-wise (it is faster)."""
+    if not columns or not len(columns[0]):
+        return []
+    robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, lag = columns
+    flags: dict[str, bool | str | None] = {}
+
+    def unflag(texts: Sequence[str]) -> list:
+        return [flags[t] if t in flags else flags.setdefault(t, _unflag(t)) for t in texts]
+
+    return list(map(
+        PoseRow, robot, ts, [v / 1000 for v in x], [v / 1000 for v in y], [v / 1000 for v in z],
+        qx, qy, qz, qw, battery, unflag(charging), unflag(loaded), map(_path, has_path, path),
+        [t + lag_ms for t, lag_ms in zip(ts, lag)]))
+
+
+class ClickHouseConnection:
+    """The clients and locks the store's mixins share. ClickHouseStore.__init__ sets the
+    attributes below (construction does no I/O); the first call connects."""
+
+    dsn: str
+    database: str
+    retention_days: int
+    _username: str
+    _password: str
+    _client: object | None
+    _lock: threading.RLock
+    _read_client: object | None
+    _read_lock: threading.Lock
+    _insert_contexts: dict[tuple[str, tuple[str, ...]], object]
+
+    def _connect(self):
+        if self.dsn.startswith("chdb://"):
+            try:
+                import chdb  # noqa: F401  (clickhouse-connect loads it; say what to do if absent)
+            except ImportError as exc:
+                raise RuntimeError(
+                    "embedded ClickHouse (chdb://) needs the embedded extra: pip install "
+                    "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server") from exc
+            return clickhouse_connect.get_client(dsn=self.dsn)
+        return clickhouse_connect.get_client(dsn=self.dsn, username=self._username,
+                                             password=self._password)
+
+    @property
+    def client(self):
+        """The client for writes, schema changes and snapshot building (under `_lock`)."""
+        with self._lock:
+            if self._client is None:
+                self._client = self._connect()
+            return self._client
+
+    @contextmanager
+    def _reader(self):
+        """The read client, held for one read."""
+        with self._read_lock:
+            if self._read_client is None:
+                self._read_client = self._connect()
+            yield self._read_client
+
+    def _insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
+        """Inserts `rows` into `table` of the database with the writer client (under `_lock`)."""
+        key = (table, tuple(columns))
+        context = self._insert_contexts.get(key)
+        if context is None:
+            context = self.client.create_insert_context(f"{self.database}.{table}", list(columns))
+            self._insert_contexts[key] = context
+        self.client.insert(data=rows, context=context)
+
+    def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
+        with self._reader() as c:
+            return c.query(sql, parameters=params, **query_options).result_rows
+
+    def _pose_query(self, sql: str, params: dict) -> list[PoseRow]:
+        with self._reader() as c:
+            columns = c.query(sql, parameters=params).result_columns
+        return _pose_rows(columns)

@@ -1,0 +1,91 @@
+"""The store's appends: events (poses, chunk writes and their contents, map metadata),
+dead letters and conflicts, each batch through the writer client under its lock.
+
+`WritesMixin` builds on `snapshots.SnapshotsMixin` (and so on `connection`): a late event
+notes a snapshot repair. It depends on nothing else of the store.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
+from mapservice.core.ports import ConflictRow
+from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
+from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+
+
+class WritesMixin(SnapshotsMixin):
+    """append, append_dead_letters, append_conflicts."""
+
+    _known_contents: dict[bytes, int]  # hash -> day already written
+
+    # --- writes ---------------------------------------------------------------------
+
+    def append(self, events: Sequence[Envelope]) -> None:
+        poses, chunks, contents, metas = [], [], [], []
+        for e in events:
+            p = e.payload
+            if isinstance(p, PoseReported):
+                path = p.path or ()
+                poses.append([
+                    e.robot_id, e.event_time_ms,
+                    _mm(p.position[0]), _mm(p.position[1]), _mm(p.position[2]),
+                    *p.orientation,
+                    p.battery_level, _flag(p.charging), _flag(p.loaded),
+                    p.path is not None,
+                    [_mm(x) for x, _ in path], [_mm(y) for _, y in path],
+                    e.receive_time_ms - e.event_time_ms,
+                ])
+            elif isinstance(p, ChunkUpdated):
+                chunks.append([e.event_time_ms, p.row, p.column, e.robot_id, p.content_hash,
+                               e.receive_time_ms - e.event_time_ms])
+                day = e.event_time_ms // 86_400_000
+                if self._known_contents.get(p.content_hash) != day:
+                    contents.append((p.content_hash, day, p.width, p.height, p.data))
+            elif isinstance(p, MapMetaSet):
+                metas.append([e.event_time_ms, e.robot_id, _json.encode(p.to_2019()).decode()])
+        with self._lock:
+            if contents:
+                # Contents first: an event must never reference pixels that are not stored.
+                self._insert("chunk_contents", [list(x) for x in contents],
+                             ["content_hash", "day", "width", "height", "zlib_pixels"])
+                for h, day, *_ in contents:
+                    self._known_contents[h] = day
+                if len(self._known_contents) > 1_000_000:
+                    self._known_contents.clear()
+            if chunks:
+                self._insert("chunk_events", chunks,
+                             ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"])
+            if poses:
+                self._insert("poses", poses, [
+                    "robot_id", "ts", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "battery",
+                    "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"])
+            if metas:
+                self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
+            # A late event (at or before the newest snapshot) makes the snapshots from its
+            # time on wrong. Noting that is all the batch waits for: reads stop using those
+            # snapshots at once (they fold events from the last good one: exact, slower),
+            # and the snapshot timer rebuilds them in bounded steps (repair_snapshots).
+            times = [row[0] for row in chunks] + [row[1] for row in poses]
+            if times:
+                last = self._newest_snapshot()
+                if last is not None and min(times) <= last:
+                    self._note_repair(min(times))
+
+    def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
+        if not records:
+            return
+        rows = [[r.receive_time_ms, r.reason, r.mqtt_topic, r.detail, r.payload, r.gateway]
+                for r in records]
+        with self._lock:
+            self._insert("dead_letters", rows, [
+                "received", "reason", "mqtt_topic", "detail", "payload", "gateway"])
+
+    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        if not rows:
+            return
+        data = [[c.ts_ms, c.row, c.column, c.robot_b, c.robot_a, c.ts_a_ms] for c in rows]
+        with self._lock:
+            self._insert("conflicts", data, [
+                "ts", "row", "col", "robot_b", "robot_a", "ts_a"])
