@@ -29,6 +29,10 @@ def add_bench_parser(sub) -> None:
 
     add_ui_parser(kinds)
 
+    from mapservice.bench.soak import add_parser as add_soak_parser
+
+    add_soak_parser(kinds)
+
 
 def _run_ingest(args) -> None:
     from mapservice.bench.ingest import main

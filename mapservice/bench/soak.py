@@ -1,0 +1,249 @@
+"""`mapservice bench soak`: the embedded service under simulated robots for a long time, sampled.
+
+One run starts the whole stack as `mapservice up` does (tansu, the MQTT broker, `serve`,
+the gateway) on a fresh data directory, drives `--robots` robots with the 2019 workload
+(robot/loadgen.py) for `--minutes`, and every `--sample-s` records, per component process:
+resident memory and CPU share; for the pipeline: events published and stored, dead
+letters, and freshness (the age of the newest queryable pose: publish period plus the
+pipeline's latency). A component that exits ends the run as a failure, with its log named.
+
+The summary fits a line through each component's memory after the first tenth of the run
+(start-up and caches filling) and states its growth per hour. tansu keeps every record in
+memory (no retention, README "Embedded mode"), so its growth is expected: it is reported
+per stored event, with what a day and a week at this load would hold. Every other
+component's growth is checked against `--max-growth-mb-per-h`. A run shorter than an hour
+says that it is not representative.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import psutil
+
+HOUR_S = 3600.0
+EXPECTED_TO_GROW = {"kafka"}  # tansu: memory storage, every record kept (README "Embedded mode")
+
+
+def growth_per_hour(times_s: list[float], values: list[float]) -> float | None:
+    """Least-squares slope of `values` over `times_s`, per hour; None below three points."""
+    if len(times_s) < 3 or max(times_s) - min(times_s) <= 0:
+        return None
+    slope, _ = statistics.linear_regression(times_s, values)
+    return slope * HOUR_S
+
+
+def settle(samples: list[dict]) -> list[dict]:
+    """The samples after the first tenth of the run (start-up, caches and pools filling)."""
+    if not samples:
+        return []
+    end = samples[-1]["t_s"]
+    return [s for s in samples if s["t_s"] >= end / 10]
+
+
+def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -> dict:
+    """Per component: memory first/last/max and growth per hour; pipeline totals; verdicts."""
+    steady = settle(samples)
+    components = sorted({name for s in samples for name in s["rss_mb"]})
+    out: dict = {"components": {}, "representative": minutes >= 60}
+    for name in components:
+        points = [(s["t_s"], s["rss_mb"][name]) for s in steady if name in s["rss_mb"]]
+        rss = [s["rss_mb"][name] for s in samples if name in s["rss_mb"]]
+        cpu = [s["cpu_percent"][name] for s in steady if name in s.get("cpu_percent", {})]
+        growth = growth_per_hour([t for t, _ in points], [v for _, v in points])
+        bounded = None if growth is None or name in EXPECTED_TO_GROW else growth <= max_growth_mb_per_h
+        out["components"][name] = {
+            "rss_first_mb": rss[0] if rss else None, "rss_last_mb": rss[-1] if rss else None,
+            "rss_max_mb": max(rss) if rss else None, "growth_mb_per_h": growth,
+            "cpu_median_percent": statistics.median(cpu) if cpu else None,
+            "growth_bounded": bounded}
+    if samples:
+        last, first = samples[-1], steady[0] if steady else samples[0]
+        stored = last["stored"] - first["stored"]
+        out["stored_events"] = last["stored"]
+        out["published_events"] = last["published"]
+        out["dead_letters"] = last["dead_letters"]
+        out["events_per_s"] = stored / max(1e-9, last["t_s"] - first["t_s"])
+        fresh = [s["freshness_s"] for s in steady if s["freshness_s"] is not None]
+        out["freshness_median_s"] = statistics.median(fresh) if fresh else None
+        out["freshness_max_s"] = max(fresh) if fresh else None
+        kafka = out["components"].get("kafka", {})
+        if kafka.get("growth_mb_per_h") is not None and out["events_per_s"] > 0:
+            per_event = kafka["growth_mb_per_h"] * 1e6 / (out["events_per_s"] * HOUR_S)
+            out["kafka_bytes_per_event"] = per_event
+            out["kafka_mb_per_day"] = kafka["growth_mb_per_h"] * 24
+            out["kafka_mb_per_week"] = kafka["growth_mb_per_h"] * 24 * 7
+    out["bounded"] = all(c["growth_bounded"] is not False for c in out["components"].values())
+    return out
+
+
+class Sampler:
+    """CPU share and memory of each component process between two calls."""
+
+    def __init__(self, procs: dict) -> None:
+        self._procs = {name: psutil.Process(p.pid) for name, p in procs.items()}
+        self._cpu = {name: self._cpu_s(p) for name, p in self._procs.items()}
+        self._at = time.monotonic()
+
+    @staticmethod
+    def _cpu_s(proc: psutil.Process) -> float:
+        total = 0.0
+        for p in [proc, *proc.children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+            except psutil.Error:
+                pass
+        return total
+
+    @staticmethod
+    def _rss_mb(proc: psutil.Process) -> float:
+        total = 0
+        for p in [proc, *proc.children(recursive=True)]:
+            try:
+                total += p.memory_info().rss
+            except psutil.Error:
+                pass
+        return total / 1e6
+
+    def sample(self) -> tuple[dict[str, float], dict[str, float]]:
+        now = time.monotonic()
+        elapsed = max(1e-9, now - self._at)
+        rss, cpu = {}, {}
+        for name, proc in self._procs.items():
+            cpu_s = self._cpu_s(proc)
+            cpu[name] = 100 * (cpu_s - self._cpu[name]) / elapsed
+            self._cpu[name] = cpu_s
+            rss[name] = self._rss_mb(proc)
+        self._at = now
+        return rss, cpu
+
+
+def freshness_s(http: httpx.Client, api_url: str, robot_id: str) -> float | None:
+    """Seconds since the newest queryable pose of `robot_id` (None: none in the last minute)."""
+    now_ms = int(time.time() * 1000)
+    reply = http.get(f"{api_url}/api/v1/poses", params={
+        "robotId": robot_id, "from": now_ms - 60_000, "to": now_ms + 1000})
+    reply.raise_for_status()
+    times = [pose["ts_ms"] for pose in reply.json()]
+    return (now_ms - max(times)) / 1000 if times else None
+
+
+def run(args, console) -> dict:
+    from mapservice.adapters.ros_map import load_ros_map, meta_for
+    from mapservice.local.stack import Stack
+    from mapservice.robot import DEFAULT_MAP
+    from mapservice.robot.loadgen import RobotFleet
+
+    data_dir = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-soak-"))
+    ros_map = load_ros_map(DEFAULT_MAP)
+    stack = Stack(data_dir, mqtt=args.mqtt)
+    samples: list[dict] = []
+    result: dict = {"data_dir": str(data_dir), "robots": args.robots, "minutes": args.minutes,
+                    "mqtt": args.mqtt, "samples": samples}
+    fleet = None
+    try:
+        with console.status(f"starting tansu, {args.mqtt}, server, gateway in {data_dir}..."):
+            stack.start_brokers()
+            stack.publish_meta(meta_for(ros_map))
+            stack.start_server()
+            stack.start_gateway()
+        fleet = RobotFleet(stack.mqtt_url, ros_map, args.robots, prefix="soak")
+        driver = threading.Thread(target=fleet.run, args=(args.minutes * 60,), name="soak-fleet",
+                                  daemon=True)
+        sampler = Sampler(stack.procs)
+        bench_proc = psutil.Process()
+        http = httpx.Client(timeout=30)
+        t0 = time.monotonic()
+        driver.start()
+        while driver.is_alive():
+            driver.join(args.sample_s)
+            for name, proc in stack.procs.items():
+                if proc.poll() is not None:
+                    raise RuntimeError(f"{name} exited ({proc.returncode}) after "
+                                       f"{(time.monotonic() - t0) / 60:.1f} min; see {stack.log_dir}/")
+            rss, cpu = sampler.sample()
+            stats = http.get(f"{stack.api_url}/api/v1/stats").json()
+            sample = {
+                "t_s": round(time.monotonic() - t0, 1), "rss_mb": rss, "cpu_percent": cpu,
+                "bench_rss_mb": bench_proc.memory_info().rss / 1e6,
+                "published": fleet.stats.poses + fleet.stats.chunks,
+                "stored": stats["poses"] + stats["chunk_events"],
+                "dead_letters": stats["dead_letters"],
+                "freshness_s": freshness_s(http, stack.api_url, fleet.robots[0]),
+            }
+            samples.append(sample)
+            console.print(
+                f"{sample['t_s'] / 60:6.1f} min  stored {sample['stored']:>9,}  "
+                f"dead letters {sample['dead_letters']}  freshness {sample['freshness_s']}s  "
+                + "  ".join(f"{n} {rss[n]:.0f} MB {cpu[n]:.0f}%" for n in sorted(rss)))
+    finally:
+        if fleet is not None:
+            fleet.stop()
+        stack.stop()
+    result["summary"] = summarize(samples, args.minutes, args.max_growth_mb_per_h)
+    return result
+
+
+def print_summary(console, result: dict, max_growth: float) -> None:
+    s = result["summary"]
+    if not s["representative"]:
+        console.print(f"[yellow]A {result['minutes']:g}-minute run is not representative: a soak "
+                      "needs at least an hour; the figures below are indicative only.[/]")
+    console.print(f"{result['robots']} robots, {s.get('events_per_s', 0):.1f} events/s stored; "
+                  f"{s.get('stored_events', 0):,} stored of {s.get('published_events', 0):,} published; "
+                  f"dead letters {s.get('dead_letters', 0)}; freshness median "
+                  f"{s.get('freshness_median_s')} s, max {s.get('freshness_max_s')} s")
+    for name, c in s["components"].items():
+        growth = c["growth_mb_per_h"]
+        verdict = ("expected: keeps every record" if name in EXPECTED_TO_GROW else
+                   "bounded" if c["growth_bounded"] else f"over {max_growth:g} MB/h"
+                   if c["growth_bounded"] is False else "too few samples")
+        console.print(f"  {name:10s} RSS {c['rss_first_mb']:.0f} -> {c['rss_last_mb']:.0f} MB "
+                      f"(max {c['rss_max_mb']:.0f}), growth "
+                      f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'} ({verdict}), "
+                      f"CPU median {c['cpu_median_percent'] or 0:.0f}%")
+    if "kafka_bytes_per_event" in s:
+        console.print(f"  tansu holds ~{s['kafka_bytes_per_event']:.0f} bytes per event: "
+                      f"{s['kafka_mb_per_day']:.0f} MB a day, {s['kafka_mb_per_week']:.0f} MB a week "
+                      "at this load until `mapservice up` restarts")
+
+
+def add_parser(kinds) -> None:
+    soak = kinds.add_parser("soak", help="the embedded service under simulated robots for a long "
+                                         "time: memory, CPU, freshness and errors over time")
+    soak.add_argument("--minutes", type=float, default=60, help="how long the robots publish "
+                      "(under 60: reported as not representative)")
+    soak.add_argument("--robots", type=int, default=20, help="simulated robots (each a pose a "
+                      "second and a chunk every five)")
+    soak.add_argument("--mqtt", default="amqtt", help="amqtt (as `mapservice up`), mosquitto or an "
+                      "mqtt:// URL")
+    soak.add_argument("--sample-s", type=float, default=30, help="seconds between samples")
+    soak.add_argument("--max-growth-mb-per-h", type=float, default=20, help="memory growth per hour "
+                      "allowed to each component except tansu (which keeps every record)")
+    soak.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    soak.add_argument("--json", default=None, help="write samples and summary as JSON to this file")
+    soak.set_defaults(func=main)
+
+
+def main(args) -> None:
+    from rich.console import Console
+
+    from mapservice.bench.ingest import machine_facts
+
+    console = Console()
+    facts = machine_facts()
+    result = run(args, console)
+    result["machine"] = facts
+    print_summary(console, result, args.max_growth_mb_per_h)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+        console.print(f"wrote {args.json}")
+    if not result["summary"]["bounded"]:
+        raise SystemExit("memory grew faster than --max-growth-mb-per-h; see the summary above")

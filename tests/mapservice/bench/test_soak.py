@@ -1,0 +1,47 @@
+"""The soak's arithmetic: growth per hour by least squares after the start-up tenth, tansu's
+growth expected and reported per event, every other component's growth bounded."""
+
+from __future__ import annotations
+
+import pytest
+
+from mapservice.bench.soak import growth_per_hour, settle, summarize
+
+
+def sample(t_s: float, rss: dict[str, float], stored: int) -> dict:
+    return {"t_s": t_s, "rss_mb": rss, "cpu_percent": {n: 10.0 for n in rss}, "published": stored,
+            "stored": stored, "dead_letters": 0, "freshness_s": 1.0}
+
+
+def test_growth_per_hour_is_the_least_squares_slope() -> None:
+    """A line rising 1 MB per minute grows 60 MB per hour; two points are too few."""
+    assert growth_per_hour([0, 60, 120, 180], [100, 101, 102, 103]) == pytest.approx(60)
+    assert growth_per_hour([0, 60], [1, 2]) is None
+
+
+def test_settle_drops_the_first_tenth_of_the_run() -> None:
+    """Start-up samples (the first tenth of the run) do not count toward growth."""
+    samples = [sample(t, {"gateway": 1.0}, 0) for t in (0, 100, 500, 1000)]
+    assert [s["t_s"] for s in settle(samples)] == [100, 500, 1000]
+
+
+def test_summary_bounds_every_component_but_tansu_and_reports_tansu_per_event() -> None:
+    """A gateway growing 60 MB/h breaks a 20 MB/h bound; tansu's growth is expected and
+    priced per stored event (10 events/s, 36 MB/h -> 1,000 bytes per event)."""
+    samples = [sample(t, {"gateway": 50 + t / 60, "kafka": 100 + t / 100, "server": 200.0}, int(t * 10))
+               for t in range(0, 3601, 60)]
+    s = summarize(samples, minutes=60, max_growth_mb_per_h=20)
+    assert s["representative"] is True
+    assert s["components"]["gateway"]["growth_bounded"] is False
+    assert s["components"]["server"]["growth_bounded"] is True
+    assert s["components"]["kafka"]["growth_bounded"] is None
+    assert s["bounded"] is False
+    assert s["events_per_s"] == pytest.approx(10)
+    assert s["kafka_bytes_per_event"] == pytest.approx(1000)
+    assert s["kafka_mb_per_week"] == pytest.approx(36 * 24 * 7)
+
+
+def test_a_run_under_an_hour_is_not_representative() -> None:
+    """Ten minutes of samples are summarized but flagged as not representative."""
+    samples = [sample(t, {"gateway": 50.0}, t) for t in range(0, 601, 30)]
+    assert summarize(samples, minutes=10, max_growth_mb_per_h=20)["representative"] is False
