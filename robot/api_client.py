@@ -36,13 +36,16 @@ def admin_token(explicit: str | None = None) -> str | None:
         stored_secret(data_dir(), ADMIN_TOKEN_FILE)
 
 
-class RetryAfter(httpx.HTTPTransport):
+class RetryAfter(httpx.BaseTransport):
     """Sends a request again when the service answers 429, after the Retry-After it names
     (bounded): a robot uploading a whole map goes as fast as the rate limit lets it."""
 
+    def __init__(self, inner: httpx.BaseTransport | None = None) -> None:
+        self.inner = inner or httpx.HTTPTransport()
+
     def handle_request(self, request: httpx.Request) -> httpx.Response:
         for _ in range(MAX_RETRIES):
-            response = super().handle_request(request)
+            response = self.inner.handle_request(request)
             if response.status_code != 429:
                 return response
             try:
@@ -51,11 +54,15 @@ class RetryAfter(httpx.HTTPTransport):
                 wait = 1.0
             response.close()
             time.sleep(min(max(wait, 0.1), MAX_WAIT_S))
-        return super().handle_request(request)
+        return self.inner.handle_request(request)
+
+    def close(self) -> None:
+        self.inner.close()
 
 
-def api_client(base_url: str, token: str | None, timeout: float = 30.0) -> httpx.Client:
+def api_client(base_url: str, token: str | None, timeout: float = 30.0,
+               transport: httpx.BaseTransport | None = None) -> httpx.Client:
     """An httpx client for the service's API that sends `token` as a bearer credential."""
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     return httpx.Client(base_url=base_url.rstrip("/"), timeout=timeout, headers=headers,
-                        transport=RetryAfter())
+                        transport=RetryAfter(transport))
