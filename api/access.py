@@ -11,9 +11,9 @@ Credentials are bearer tokens (`Authorization: Bearer <token>`), each with a rol
 | admin   | everything: deletes, the map geometry | MAPSERVICE_ADMIN_TOKEN           |
 | metrics | /metrics only (the scraper)           | MAPSERVICE_API_METRICS_TOKEN     |
 
-Reads need no credential unless MAPSERVICE_API_READ_ACCESS=token. No credential is a 401,
-a token that is none of these a 401 too (RFC 6750 `invalid_token`), a valid token without
-the scope a 403. A state-changing request must carry a JSON body (415 otherwise): a
+Reads need no credential unless MAPSERVICE_API_READ_ACCESS=token; while they are open, a
+token that is none of these is ignored on reads. Elsewhere no credential is a 401, a token that is none of these
+a 401 too (RFC 6750 `invalid_token`), a valid token without the scope a 403. A state-changing request must carry a JSON body (415 otherwise): a
 browser sends `text/plain` and form bodies cross-site without asking first.
 """
 
@@ -144,11 +144,13 @@ def decide(credentials: Credentials, scope: Scope, token: str | None, address: s
             raise HTTPException(404, "metrics are off (MAPSERVICE_API_METRICS_ACCESS=off)")
         if settings.metrics_access == "open":
             return caller
+    if scope is Scope.READ and settings.api_read_access == "open":
+        # Open means open: a stale token (a browser's, a robot's after a rotation) does not
+        # turn away a read anyone may make; its writes still get the 401 that says so.
+        return caller
     if not valid:
         raise _denied(401, "the bearer token is not one of this service's credentials",
                       "invalid_token")
-    if scope is Scope.READ and settings.api_read_access == "open":
-        return caller
     if caller.role is None:
         raise _denied(401, f"{what} needs {WHO_MAY[scope]}: send 'Authorization: Bearer <token>'")
     if not caller.may(scope):
@@ -293,6 +295,9 @@ def document_scopes(app: FastAPI) -> None:
                 if scope is None:
                     continue
                 operation["x-mapservice-scope"] = scope.value
+                responses = operation.setdefault("responses", {})
+                for status, description in _refusals(scope, method, settings):
+                    responses.setdefault(status, {"description": description})
                 if scope is Scope.PUBLIC:
                     operation["security"] = []
                 elif scope is Scope.READ and settings.api_read_access == "open":
@@ -302,6 +307,19 @@ def document_scopes(app: FastAPI) -> None:
         return schema
 
     app.openapi = openapi
+
+
+def _refusals(scope: Scope, method: str, settings: Settings) -> list[tuple[str, str]]:
+    """The answers this module may give an operation, for its OpenAPI `responses`."""
+    out = []
+    if scope is not Scope.PUBLIC and not (scope is Scope.READ and settings.api_read_access == "open"):
+        out += [("401", "no credential, or a token that is none of this service's"),
+                ("403", f"the token lacks the `{scope.value}` scope: {WHO_MAY.get(scope, '')}")]
+    if method.upper() in ("POST", "PUT", "PATCH"):
+        out.append(("415", "the body is not sent as application/json"))
+    if scope is not Scope.PUBLIC:
+        out.append(("429", "over MAPSERVICE_API_RATE_LIMIT; Retry-After says when to try again"))
+    return out
 
 
 # --- what no route sees: the docs pages, rate limits -----------------------------------------
