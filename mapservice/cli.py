@@ -105,8 +105,14 @@ def cmd_export(args) -> None:
             params["robotId"] = args.robot
     params.update({"from": args.from_, "to": args.to})
     out = Path(args.out or f"{args.dataset}.{ext}")
+    from mapservice.robot.api_client import writer_token
+
+    # Exports are reads: open by default; where reads need a token, the robot-side one
+    # (MAPSERVICE_API_TOKEN, or the one `up` generated) is sent.
+    token = writer_token()
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
     try:
-        with httpx.stream("GET", url, params=params, timeout=600) as reply:
+        with httpx.stream("GET", url, params=params, timeout=600, headers=headers) as reply:
             if reply.status_code != 200:
                 sys.exit(f"mapservice export: {reply.status_code} {reply.read().decode(errors='replace')}")
             with out.open("wb") as file:
