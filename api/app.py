@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp
 from starlette_exporter import PrometheusMiddleware
@@ -16,6 +17,7 @@ from mapservice.api.live_hub import LiveHub
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
+from .access import AccessGuard, Credentials, check_routes, document_scopes
 from .limits import BodyLimit, validation_error
 from .routers import (
     chunk_contents,
@@ -56,8 +58,13 @@ def create_app(settings: Settings, store: HistoryStore,
     app.state.clock = clock or SystemClock()
     app.state.live = live_hub
     app.state.publisher = publisher  # None: 2019 REST writes answer 503
+    # The tokens as the settings hold them: local mode's generated ones are filled in by
+    # the process before (mapservice/runtime/secrets.py); an empty one opens nothing.
+    app.state.access = credentials = Credentials(settings)
     for module in ROUTERS:
         app.include_router(module.router)
+    check_routes(app)
+    document_scopes(app)
     if sql_app is not None:
         app.state.sql_app = sql_app
     # Request rate, errors and duration per route template (mapservice_api_requests_total,
@@ -68,7 +75,19 @@ def create_app(settings: Settings, store: HistoryStore,
                        skip_paths=["/metrics", "/healthz", "/readyz"],
                        buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
     app.add_exception_handler(RequestValidationError, validation_error)
-    app.add_middleware(BodyLimit, max_bytes=settings.api_max_body_bytes, exempt=(SQL_PATH,))
+    app.add_middleware(BodyLimit, max_bytes=settings.api_max_body_bytes, exempt=(SQL_PATH,),
+                       timeout_s=settings.api_body_timeout_s)
+    # Outside the body limit: a caller over its rate is refused before its body is read.
+    app.add_middleware(AccessGuard, credentials=credentials)
+    if settings.api_allowed_origins:
+        # Pages of these origins may call the API from a browser (preflights answered here,
+        # before any credential is asked for); none by default: same origin only. Tokens
+        # travel in the Authorization header, never in cookies, so no credentials mode.
+        app.add_middleware(CORSMiddleware, allow_origins=settings.api_allowed_origins,
+                           allow_methods=["GET", "POST", "PUT", "DELETE"],
+                           allow_headers=["Authorization", "Content-Type"],
+                           expose_headers=["Retry-After", "X-Map-At-Ms", "X-Chunk-Width",
+                                           "X-Chunk-Height"], max_age=600)
     if sql_app is not None:
         # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
         # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.

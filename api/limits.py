@@ -3,6 +3,7 @@ never echo large input, and WebSocket connections only from the service's own pa
 
 from __future__ import annotations
 
+import asyncio
 import json
 from urllib.parse import urlsplit
 
@@ -17,11 +18,14 @@ ECHO_MAX = 200  # characters of a rejected input a reply may repeat
 
 class BodyLimit:
     """Reads at most `max_bytes` of a request body, then hands it to the app; a larger body
-    is answered 413 without reading the rest (Content-Length is checked before any byte).
-    Paths under `exempt` bring their own limits (the ClickHouse interface's inserts)."""
+    is answered 413 without reading the rest (Content-Length is checked before any byte),
+    one that does not arrive within `timeout_s` 408 (a client trickling its body holds a
+    connection and a task). Paths under `exempt` bring their own limits (the ClickHouse
+    interface's inserts)."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int, exempt: tuple[str, ...] = ()):
-        self.app, self.max_bytes, self.exempt = app, max_bytes, exempt
+    def __init__(self, app: ASGIApp, max_bytes: int, exempt: tuple[str, ...] = (),
+                 timeout_s: float = 30.0):
+        self.app, self.max_bytes, self.exempt, self.timeout_s = app, max_bytes, exempt, timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS") or \
@@ -32,18 +36,18 @@ class BodyLimit:
         if declared is not None and (not declared.isdigit() or int(declared) > self.max_bytes):
             await self._too_large(send)
             return
-        chunks, size = [], 0
-        while True:
-            message = await receive()
-            if message["type"] == "http.disconnect":
-                return
-            chunks.append(message.get("body", b""))
-            size += len(chunks[-1])
-            if size > self.max_bytes:
-                await self._too_large(send)
-                return
-            if not message.get("more_body"):
-                break
+        try:
+            async with asyncio.timeout(self.timeout_s):
+                chunks = await self._read(receive)
+        except TimeoutError:
+            await self._reply(send, 408, f"the request body did not arrive within "
+                                         f"{self.timeout_s:g} s (MAPSERVICE_API_BODY_TIMEOUT_S)")
+            return
+        if chunks is None:  # the client left
+            return
+        if sum(map(len, chunks)) > self.max_bytes:
+            await self._too_large(send)
+            return
         body, sent = b"".join(chunks), False
 
         async def replay() -> dict:
@@ -55,10 +59,26 @@ class BodyLimit:
 
         await self.app(scope, replay, send)
 
+    async def _read(self, receive: Receive) -> list[bytes] | None:
+        """The body's parts, up to the first one past max_bytes; None when the client left."""
+        chunks, size = [], 0
+        while True:
+            message = await receive()
+            if message["type"] == "http.disconnect":
+                return None
+            chunks.append(message.get("body", b""))
+            size += len(chunks[-1])
+            if size > self.max_bytes or not message.get("more_body"):
+                return chunks
+
     async def _too_large(self, send: Send) -> None:
-        body = json.dumps({"detail": f"the request body is larger than {self.max_bytes} bytes "
-                                     "(MAPSERVICE_API_MAX_BODY_BYTES)"}).encode()
-        await send({"type": "http.response.start", "status": 413, "headers": [
+        await self._reply(send, 413, f"the request body is larger than {self.max_bytes} bytes "
+                                     "(MAPSERVICE_API_MAX_BODY_BYTES)")
+
+    @staticmethod
+    async def _reply(send: Send, status: int, detail: str) -> None:
+        body = json.dumps({"detail": detail}).encode()
+        await send({"type": "http.response.start", "status": status, "headers": [
             (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
             (b"connection", b"close")]})
         await send({"type": "http.response.body", "body": body})

@@ -106,8 +106,14 @@ def cmd_export(args) -> None:
             params["robotId"] = args.robot
     params.update({"from": args.from_, "to": args.to})
     out = Path(args.out or f"{args.dataset}.{ext}")
+    from mapservice.robot.api_client import writer_token
+
+    # Exports are reads: open by default; where reads need a token, the robot-side one
+    # (MAPSERVICE_API_TOKEN, or the one `up` generated) is sent.
+    token = writer_token()
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
     try:
-        with httpx.stream("GET", url, params=params, timeout=600) as reply:
+        with httpx.stream("GET", url, params=params, timeout=600, headers=headers) as reply:
             if reply.status_code != 200:
                 sys.exit(f"mapservice export: {reply.status_code} {reply.read().decode(errors='replace')}")
             with out.open("wb") as file:
@@ -178,6 +184,8 @@ def cmd_up(args) -> None:
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         table.add_row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
                       f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
+        for name, where in api_token_rows(stack.settings()):
+            table.add_row(name, where)
         table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/readyz")
         table.add_row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
                       + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
@@ -198,6 +206,35 @@ def cmd_up(args) -> None:
         sys.exit(1)
     finally:
         stack.stop()
+
+
+def api_token_rows(settings: Settings) -> list[tuple[str, str]]:
+    """`up`'s table rows saying where each API token is and what it opens; generates the
+    ones local mode makes (the server reads the same files)."""
+    from mapservice.runtime.secrets import (
+        ADMIN_TOKEN_FILE,
+        READER_TOKEN_FILE,
+        WRITER_TOKEN_FILE,
+        secrets_dir,
+        with_local_api_secrets,
+    )
+    from mapservice.settings import token_list
+
+    with_local_api_secrets(settings)
+    rows = []
+    for title, field, file, use in (
+            ("API writer token (robots)", "api_writer_tokens", WRITER_TOKEN_FILE,
+             "REST writes; `mapservice robot` and `map upload` read it from there"),
+            ("API admin token", "admin_token", ADMIN_TOKEN_FILE, "deletes, changing the map"),
+            ("API reader token", "api_reader_tokens", READER_TOKEN_FILE, "reads")):
+        if field == "api_reader_tokens" and settings.api_read_access == "open":
+            continue
+        where = (f"MAPSERVICE_{field.upper()}" if token_list(getattr(settings, field))
+                 else str(secrets_dir(settings.data_dir) / file))
+        rows.append((title, f"{where}  ({use}: 'Authorization: Bearer <token>')"))
+    rows.append(("API reads", "open (MAPSERVICE_API_READ_ACCESS=open)"
+                 if settings.api_read_access == "open" else "need a token"))
+    return rows
 
 
 def cmd_demo_history(args) -> None:

@@ -21,6 +21,7 @@ from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.runtime.health import CachedCheck, Heartbeat, beat_forever, kafka_check
 from mapservice.runtime.health_server import serve_health
+from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.adapters.kafka_topics import ensure_topics
@@ -30,9 +31,15 @@ log = structlog.get_logger(__name__)
 
 def api_server_config(app, settings: Settings) -> uvicorn.Config:
     """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
-    through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode)."""
+    through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
+    A request's head must arrive within api_header_timeout_s and an idle keep-alive
+    connection is closed after api_idle_timeout_s (slowloris; api/http_timeouts.py)."""
+    from mapservice.api.http_timeouts import header_deadline_protocol
+
     return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
-                          log_config=None, log_level=None, access_log=True)
+                          log_config=None, log_level=None, access_log=True,
+                          http=header_deadline_protocol(settings.api_header_timeout_s),
+                          timeout_keep_alive=settings.api_idle_timeout_s)
 
 
 async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
@@ -116,6 +123,10 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             from mapservice.api.app import create_app
 
             from mapservice.sql.apps import analyst_app
+
+            # Local mode: the API's tokens generated on first start, kept in the data dir
+            # (`mapservice up` prints where); production: as set, validated by Settings.
+            settings = with_local_api_secrets(settings)
 
             app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher,
                              sql_app=await loop.run_in_executor(None, analyst_app, settings))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
@@ -9,8 +10,16 @@ from typing import Literal
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+# The admin token the service had as its default until local mode generated one: a
+# publicly known value, refused wherever it is still set in production.
 DEFAULT_ADMIN_TOKEN = "local-admin-token"
 DEFAULT_CLICKHOUSE_PASSWORD = ""
+MIN_TOKEN_CHARS = 32  # `openssl rand -hex 32` gives 64; a 32-character hex token is 128 bits
+
+
+def token_list(secret: SecretStr) -> list[str]:
+    """The tokens of a comma- or whitespace-separated token setting (empty: none)."""
+    return [t for t in re.split(r"[\s,]+", secret.get_secret_value()) if t]
 
 
 class Settings(BaseSettings):
@@ -111,7 +120,42 @@ class Settings(BaseSettings):
     api_host: str = "127.0.0.1"
     api_port: int = 8080
     ui_dir: Path | None = Field(None, description="Built replay UI to serve; empty: replay-ui/dist of the checkout.")
-    admin_token: SecretStr = SecretStr(DEFAULT_ADMIN_TOKEN)
+    admin_token: SecretStr = Field(SecretStr(""), description=(
+        "Administrator credential (Authorization: Bearer ...): deletes, changing the map's "
+        "geometry, everything else. Empty: generated on first start in local mode "
+        "(DATA_DIR/secrets/admin-token); required (>= 32 characters) in production mode."))
+    api_read_access: Literal["open", "token"] = Field("open", description=(
+        "`open`: reads need no credential (2019 robots read anonymously); `token`: every "
+        "read needs a reader, writer or admin token."))
+    api_reader_tokens: SecretStr = Field(SecretStr(""), description=(
+        "Viewer credentials, comma-separated: read only. Empty: generated in local mode when "
+        "api_read_access is `token` (DATA_DIR/secrets/reader-token)."))
+    api_writer_tokens: SecretStr = Field(SecretStr(""), description=(
+        "Robot/writer credentials, comma-separated (one per robot or integration): the 2019 "
+        "REST writes (POST/PUT meta, POST chunks) and every read. Empty: generated in local "
+        "mode (DATA_DIR/secrets/writer-token); in production, no REST writes but the admin's."))
+    api_metrics_access: Literal["open", "token", "off"] | None = Field(None, description=(
+        "/metrics: `open`, `token` (the metrics or the admin token) or `off` (404). Empty: "
+        "open in local mode, token in production mode."))
+    api_metrics_token: SecretStr = Field(SecretStr(""), description=(
+        "The scraper's credential for /metrics (Prometheus `authorization`); it opens nothing else."))
+    api_docs_access: Literal["open", "token", "off"] | None = Field(None, description=(
+        "/docs, /redoc and /openapi.json: `open`, `token` (any valid token) or `off` (404). "
+        "Empty: open in local mode, token in production mode."))
+    api_rate_limit: str = Field("200/second;6000/minute", description=(
+        "Requests per credential (or per client address when anonymous) in the `limits` "
+        "notation, several separated by `;`; over it 429 with Retry-After. Empty: no limit. "
+        "Probes (/healthz, /readyz) are not counted."))
+    api_max_live_clients: int = Field(500, ge=0, description=(
+        "WebSocket clients of /api/v1/live per API process; one more is closed with 1013 "
+        "(try again later) and a reason naming this setting."))
+    api_header_timeout_s: float = Field(10.0, gt=0, description=(
+        "A connection must send a request's line and headers within this long (from "
+        "connecting, or from the previous response), else it is closed (slowloris)."))
+    api_idle_timeout_s: int = Field(5, ge=1, description=(
+        "An idle keep-alive connection is closed after this long (uvicorn timeout_keep_alive)."))
+    api_body_timeout_s: float = Field(30.0, gt=0, description=(
+        "A request body must arrive within this long once its headers did (408 otherwise)."))
     api_max_body_bytes: int = Field(1024 * 1024, ge=1024, description=(
         "Largest request body the API reads (413 beyond); /clickhouse has its own limits."))
     api_allowed_origins: list[str] = Field(default_factory=list, description=(
@@ -121,11 +165,20 @@ class Settings(BaseSettings):
     @model_validator(mode="after")
     def _refuse_default_secrets(self) -> "Settings":
         if self.mode == "production":
-            if self.admin_token.get_secret_value() == DEFAULT_ADMIN_TOKEN:
+            admin = self.admin_token.get_secret_value()
+            if not admin or admin == DEFAULT_ADMIN_TOKEN:
                 raise ValueError(
-                    "MAPSERVICE_ADMIN_TOKEN still has its local default; set a secret "
+                    f"MAPSERVICE_ADMIN_TOKEN is {'empty' if not admin else 'the old local default'}; "
+                    f"set a secret of at least {MIN_TOKEN_CHARS} characters (openssl rand -hex 32) "
                     "before running with MAPSERVICE_MODE=production"
                 )
+            for name in ("admin_token", "api_reader_tokens", "api_writer_tokens",
+                         "api_metrics_token"):
+                short = [t for t in token_list(getattr(self, name)) if len(t) < MIN_TOKEN_CHARS]
+                if short:
+                    raise ValueError(
+                        f"MAPSERVICE_{name.upper()} holds a token of {len(short[0])} characters; "
+                        f"production mode needs at least {MIN_TOKEN_CHARS} (openssl rand -hex 32)")
             if self.resolved_clickhouse_dsn.startswith("http") and (
                 self.clickhouse_password.get_secret_value() == DEFAULT_CLICKHOUSE_PASSWORD
             ):
@@ -134,6 +187,14 @@ class Settings(BaseSettings):
                     "with MAPSERVICE_MODE=production"
                 )
         return self
+
+    @property
+    def metrics_access(self) -> str:
+        return self.api_metrics_access or ("open" if self.mode == "local" else "token")
+
+    @property
+    def docs_access(self) -> str:
+        return self.api_docs_access or ("open" if self.mode == "local" else "token")
 
     @property
     def resolved_clickhouse_dsn(self) -> str:

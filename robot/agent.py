@@ -38,6 +38,7 @@ from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, write_pg
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
 
+from .api_client import api_client, writer_token
 from .chunks import chunk_pixels, meta_from_json, meta_to_json, paste_chunk
 from .faults import yaw_quaternion
 
@@ -223,7 +224,7 @@ class RobotAgent:
     def __init__(self, map_yaml: str | Path, robot_id: str, api_url: str, mqtt_url: str, *,
                  pose_source=None, threshold: float = 0.0, period_s: float = 1.0,
                  chunk_width: int = 100, chunk_height: int = 100,
-                 http: httpx.Client | None = None) -> None:
+                 http: httpx.Client | None = None, token: str | None = None) -> None:
         self.map_yaml = Path(map_yaml)
         self.ros_map = load_ros_map(self.map_yaml)
         doc = yaml.safe_load(self.map_yaml.read_text())
@@ -233,7 +234,8 @@ class RobotAgent:
         self.threshold = threshold
         self.period_s = period_s
         self.local = LocalMap.of(self.ros_map, chunk_width, chunk_height)
-        self.http = http or httpx.Client(base_url=api_url.rstrip("/"), timeout=30)
+        # The writer token is what a 2019 robot adds: its REST writes need it.
+        self.http = http or api_client(api_url, token)
         self.pose_source = pose_source
         self.adverts: queue.Queue[bytes] = queue.Queue()
         self.stats = {"published_chunks": 0, "integrated_chunks": 0, "poses": 0, "errors": 0}
@@ -449,7 +451,8 @@ def main(args) -> None:
             source = SimulatedPose(ros_map, args.robot_id)
         agent = RobotAgent(args.map, args.robot_id, args.api, args.mqtt, pose_source=source,
                            threshold=args.threshold, period_s=args.period,
-                           chunk_width=args.chunk_width, chunk_height=args.chunk_height)
+                           chunk_width=args.chunk_width, chunk_height=args.chunk_height,
+                           token=writer_token(args.token))
         signal.signal(signal.SIGTERM, lambda *_: agent.stop())
         how = agent.start()
         log.info("robot started", robot=args.robot_id, map=how, api=args.api, mqtt=args.mqtt)

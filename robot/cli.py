@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import time
@@ -51,13 +50,16 @@ def _map_upload(args) -> None:
     from mapservice.robot.map_upload import MapSizeMismatch, upload_map_rest
     from mapservice.adapters.ros_map import load_ros_map
 
-    if args.replace and not args.admin_token:
+    from .api_client import admin_token, api_client, writer_token
+
+    # Replacing the map is the admin's; uploading chunks is any writer's (a robot's).
+    token = admin_token(args.admin_token) if args.replace else writer_token(args.token)
+    if args.replace and not token:
         sys.exit("mapservice map upload: --replace replaces the service's map for every robot; "
                  "it is an admin operation: pass --admin-token (or MAPSERVICE_ADMIN_TOKEN)")
     ros_map = load_ros_map(args.file)
-    headers = {"Authorization": f"Bearer {args.admin_token}"} if args.admin_token else {}
     try:
-        with httpx.Client(base_url=args.api, timeout=30, headers=headers) as http:
+        with api_client(args.api, token) as http:
             count = upload_map_rest(http, ros_map, time.time_ns() // 1_000_000,
                                     replace=args.replace, robot_id=args.robot_id)
     except MapSizeMismatch as exc:
@@ -166,6 +168,11 @@ def cmd_drive(args) -> None:
     drive_main(args)
 
 
+TOKEN_HELP = ("the robot's writer token for the REST API, sent as 'Authorization: Bearer ...' "
+              "(default: MAPSERVICE_API_TOKEN, else the one `mapservice up` generated in "
+              "MAPSERVICE_DATA_DIR, .mapservice-data)")
+
+
 def add_parsers(sub) -> None:
     m = sub.add_parser("map", help="slice a ROS map into 2019 chunks, stitch it back, describe it")
     msub = m.add_subparsers(dest="map_command", required=True)
@@ -189,8 +196,11 @@ def add_parsers(sub) -> None:
                     help="robot id the uploaded chunks are attributed to")
     up.add_argument("--replace", action="store_true",
                     help="replace a stored map of another size (admin; needs --admin-token)")
-    up.add_argument("--admin-token", default=os.environ.get("MAPSERVICE_ADMIN_TOKEN"),
-                    help="the service's MAPSERVICE_ADMIN_TOKEN (default: from the environment)")
+    up.add_argument("--admin-token", default=None,
+                    help="the service's MAPSERVICE_ADMIN_TOKEN, for --replace (default: from the "
+                         "environment, else the one `mapservice up` generated in "
+                         "MAPSERVICE_DATA_DIR)")
+    up.add_argument("--token", default=None, help=TOKEN_HELP)
     info = msub.add_parser("info", help="size, geometry, chunk grid and pixel classes of a map")
     info.add_argument("file", help="map YAML (or a bare P2/P5 PGM)")
     info.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
@@ -224,6 +234,7 @@ def add_parsers(sub) -> None:
     rb.add_argument("--map", required=True, help="the robot's map YAML (its PGM is kept in sync)")
     rb.add_argument("--robot-id", required=True, help="this robot's id (1-64 of A-Z a-z 0-9 _ . : @ -)")
     rb.add_argument("--api", default="http://127.0.0.1:8080", help="base URL of the 2019 REST API")
+    rb.add_argument("--token", default=None, help=TOKEN_HELP)
     rb.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="cloud MQTT broker")
     rb.add_argument("--pose", choices=["sim", "odom"], default="sim",
                     help="sim: a simulated drive on the map; odom: JSON odometry from --odom-topic")
@@ -245,6 +256,8 @@ def add_parsers(sub) -> None:
     dr.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="the service's MQTT broker")
     dr.add_argument("--api", default="http://127.0.0.1:8080",
                     help="the service's REST API, asked for its map size before driving")
+    dr.add_argument("--token", default=None, help=TOKEN_HELP + "; only needed where reading "
+                    "needs a token (MAPSERVICE_API_READ_ACCESS=token)")
     dr.add_argument("--no-size-check", action="store_true",
                     help="do not ask --api for the map size (a bare MQTT broker without the "
                          "service); a map of another size then corrupts the service's map")

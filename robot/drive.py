@@ -179,7 +179,7 @@ def _loop(screen, state: DriveState, pub: Publisher) -> None:
             last_pose = time.monotonic()
 
 
-def check_map_size(api_url: str, meta: MapMetaSet, http=None) -> None:
+def check_map_size(api_url: str, meta: MapMetaSet, http=None, token: str | None = None) -> None:
     """Raises ValueError when the service stores a map of another size: painting this map's
     chunks into it would corrupt it (a service without a map accepts any)."""
     import httpx
@@ -190,7 +190,9 @@ def check_map_size(api_url: str, meta: MapMetaSet, http=None) -> None:
         if http is not None:
             stored = stored_meta(http)
         else:
-            with httpx.Client(base_url=api_url, timeout=10) as client:
+            from .api_client import api_client
+
+            with api_client(api_url, token, timeout=10) as client:
                 stored = stored_meta(client)
     except httpx.HTTPError as exc:
         raise ValueError(f"cannot ask {api_url} for the service's map size ({exc}); "
@@ -204,7 +206,9 @@ def main(args) -> None:
         ros_map = load_ros_map(args.map)
         state = start_state(ros_map, tuple(args.start) if args.start else None, args.step)
         if not args.no_size_check:
-            check_map_size(args.api, state.meta)
+            from .api_client import writer_token
+
+            check_map_size(args.api, state.meta, token=writer_token(args.token))
         pub = Publisher(args.mqtt, args.robot_id)
     except (OSError, ValueError) as exc:
         sys.exit(f"mapservice drive: {exc}")

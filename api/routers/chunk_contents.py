@@ -19,9 +19,11 @@ from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Res
 from mapservice.core.ports import HistoryStore
 from mapservice.core.render import chunk_pixels, png
 
+from ..access import READ
 from ..deps import get_store
 
-router = APIRouter(prefix="/api/v1/chunk-contents", tags=["chunk-contents"])
+router = APIRouter(prefix="/api/v1/chunk-contents", tags=["chunk-contents"],
+                   dependencies=[Depends(READ)])
 _HEX32 = re.compile(r"^[0-9a-f]{32}$")
 IMMUTABLE = "public, max-age=31536000, immutable"
 BATCH_MAX = 2000

@@ -33,7 +33,7 @@ from mapservice.core.render import chunk_pixels, png
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
 
-from ..admin import check_admin, optional_bearer, require_admin
+from ..access import ADMIN, READ, WRITE, Caller, Scope, require
 from ..deps import get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 
@@ -94,7 +94,7 @@ def _index_response(index: str, doc_type: str, doc_id: str) -> dict:
 # --- meta ------------------------------------------------------------------------------
 
 
-@router.get("/meta", operation_id="getLegacyMeta",
+@router.get("/meta", operation_id="getLegacyMeta", dependencies=[Depends(READ)],
             responses={404: {"description": "no meta stored yet: POST one"}})
 def get_meta(store: HistoryStore = Depends(get_store)) -> dict:
     """The stored meta.json (listing 9)."""
@@ -141,19 +141,19 @@ async def post_meta(
     clock: Clock = Depends(get_clock),
     publisher: EventPublisher = Depends(get_publisher),
     store: HistoryStore = Depends(get_store),
-    credentials=Depends(optional_bearer),
+    caller: Caller = Depends(WRITE),
 ) -> dict:
     """Stores meta.json through the event path (a map.meta_set event on Kafka); the
-    gateway validates chunks against it as soon as it has read it. The first meta needs
-    no credential (a 2019 robot posts it); changing the map's geometry once one is held
-    invalidates every chunk robots send, so it needs the administrator's bearer token."""
+    gateway validates chunks against it as soon as it has read it. A robot (writer token)
+    posts the first meta, as 2019 robots do; changing the map's geometry once one is held
+    invalidates every chunk robots send, so it needs the administrator's token."""
     meta = parse_meta(await _read_body(request, settings.max_message_bytes))
     now = clock.now_ms()
     held = await run_in_threadpool(_meta_for_validation, request, store, now)
     if held is not None and _geometry(held) != _geometry(meta):
-        check_admin(request, credentials, settings,
-                    what=f"changing the map from {held.width} x {held.height} px in "
-                         f"{held.chunk_width} x {held.chunk_height} chunks")
+        require(caller, Scope.ADMIN,
+                what=f"changing the map from {held.width} x {held.height} px in "
+                     f"{held.chunk_width} x {held.chunk_height} chunks")
     envelope = make_envelope(META_ROBOT_ID, now, now, meta)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
     request.app.state.posted_meta = (now, meta)
@@ -164,12 +164,14 @@ async def post_meta(
 
 @router.delete("/meta", operation_id="deleteLegacyMeta")
 def delete_meta(
-    caller: str = Depends(require_admin),
+    request: Request,
+    caller: Caller = Depends(ADMIN),
     store: HistoryStore = Depends(get_store),
 ) -> dict:
     """Administrative: deletes the stored meta (needs the admin bearer token)."""
     removed = store.delete_meta()
-    log.warning("map meta deleted by administrator", caller=caller, removed=removed)
+    log.warning("map meta deleted by administrator", caller=caller.name,
+                address=request.client.host if request.client else None, removed=removed)
     return {"acknowledged": True, "deleted": removed}
 
 
@@ -202,7 +204,7 @@ def _limits(settings: Settings, meta: MapMetaSet | None) -> Limits:
     return limits.with_meta(meta) if meta is not None else limits
 
 
-@router.post("/chunks", operation_id="postLegacyChunk",
+@router.post("/chunks", operation_id="postLegacyChunk", dependencies=[Depends(WRITE)],
              openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
                  "example": {"pgmB64compressedData": "eNrt1rERwyAQRUG36HLcjlukABzIAbKPSAcDmt...",
                              "row": 3, "column": 2, "timestamp": "2018-12-20T23:34:33",
@@ -254,7 +256,7 @@ def _query_params(request: Request) -> dict[str, str]:
     return dict(request.query_params)
 
 
-@router.get("/chunks", operation_id="listLegacyChunks",
+@router.get("/chunks", operation_id="listLegacyChunks", dependencies=[Depends(READ)],
             responses={200: {"model": list[LegacyChunk]}, 400: {"description": "malformed parameter"}})
 def list_chunks(
     request: Request,
@@ -292,12 +294,14 @@ def list_chunks(
 
 @router.delete("/chunks", operation_id="deleteLegacyChunks")
 def delete_chunks(
-    caller: str = Depends(require_admin),
+    request: Request,
+    caller: Caller = Depends(ADMIN),
     store: HistoryStore = Depends(get_store),
 ) -> dict:
     """Administrative: deletes every stored chunk write (needs the admin bearer token)."""
     removed = store.delete_chunks()
-    log.warning("chunk history deleted by administrator", caller=caller, removed=removed)
+    log.warning("chunk history deleted by administrator", caller=caller.name,
+                address=request.client.host if request.client else None, removed=removed)
     return {"acknowledged": True, "deleted": removed}
 
 
@@ -315,7 +319,7 @@ def _chunk_by_id(chunk_id_: str, store: HistoryStore):
     return found[0]
 
 
-@router.get("/chunks/id/{chunk_id}", operation_id="getLegacyChunk",
+@router.get("/chunks/id/{chunk_id}", operation_id="getLegacyChunk", dependencies=[Depends(READ)],
             responses={200: {"model": LegacyChunk}, 404: {"description": "no such chunk"}})
 def get_chunk(chunk_id: str, store: HistoryStore = Depends(get_store)) -> JSONResponse:
     """Listing 13: one chunk by the id POST /chunks answered with."""
@@ -324,6 +328,7 @@ def get_chunk(chunk_id: str, store: HistoryStore = Depends(get_store)) -> JSONRe
 
 
 @router.get("/chunks/id/{chunk_id}/png", operation_id="getLegacyChunkPng",
+            dependencies=[Depends(READ)],
             responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such chunk"}})
 def get_chunk_png(chunk_id: str, store: HistoryStore = Depends(get_store)) -> Response:
     """The chunk as a greyscale PNG."""

@@ -8,9 +8,11 @@ from pydantic import BaseModel
 
 from mapservice.settings import Settings
 
+from ..access import READ
 from ..deps import get_settings
 
-router = APIRouter(prefix="/api/v1/client-config", tags=["client-config"])
+router = APIRouter(prefix="/api/v1/client-config", tags=["client-config"],
+                   dependencies=[Depends(READ)])
 
 
 class ClientConfig(BaseModel):

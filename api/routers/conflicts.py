@@ -10,9 +10,11 @@ from pydantic import BaseModel
 from mapservice.core.ports import ConflictRow, HistoryStore
 from mapservice.settings import Settings
 
+from ..access import READ
 from ..deps import get_settings, get_store, parse_window
 
-router = APIRouter(prefix="/api/v1/conflicts", tags=["conflicts"])
+router = APIRouter(prefix="/api/v1/conflicts", tags=["conflicts"],
+                   dependencies=[Depends(READ)])
 
 
 class Conflict(BaseModel):

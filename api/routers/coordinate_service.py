@@ -18,9 +18,11 @@ from mapservice.core.ports import Clock, HistoryStore, PoseRow
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamp
 
+from ..access import READ
 from ..deps import get_clock, get_settings, get_store
 
-router = APIRouter(prefix="/api/coordinate-service", tags=["2019 coordinate service"])
+router = APIRouter(prefix="/api/coordinate-service", tags=["2019 coordinate service"],
+                   dependencies=[Depends(READ)])
 
 
 class LegacyRobot(BaseModel):

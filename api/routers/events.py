@@ -16,11 +16,13 @@ from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamps
 
+from ..access import READ
 from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 from .chunk_events import ChunkEvent
 from .poses import Pose
 
-router = APIRouter(prefix="/api/v1/events", tags=["events"])
+router = APIRouter(prefix="/api/v1/events", tags=["events"],
+                   dependencies=[Depends(READ)])
 MAX_SPAN_MS = 86_400_000
 MAX_CHUNKS = 1_000_000
 MAX_POSES = 200_000

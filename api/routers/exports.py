@@ -12,9 +12,11 @@ from fastapi.responses import Response
 from mapservice.adapters.exports import TABLE_FORMATS, TABLES, export_mcap, export_table
 from mapservice.core.ports import HistoryStore
 
+from ..access import READ
 from ..deps import get_store, parse_window
 
-router = APIRouter(prefix="/api/v1/exports", tags=["exports"])
+router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
+                   dependencies=[Depends(READ)])
 MAX_TABLE_SPAN_MS = 7 * 86_400_000
 MAX_MCAP_SPAN_MS = 86_400_000
 Dataset = Literal["robot-poses", "chunk-changes", "chunk-conflicts", "dead-letters"]

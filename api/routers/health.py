@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from ..access import METRICS, PUBLIC
 
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz", operation_id="getLiveness")
+# The probes are open: the kubelet sends no credential, and they tell nothing but up or down.
+@router.get("/healthz", operation_id="getLiveness", dependencies=[Depends(PUBLIC)])
 def liveness(request: Request) -> JSONResponse:
     """Alive: this answer needs the event loop; with the processors in this process, also
     their loops' heartbeats (mapservice/runtime/health.py)."""
@@ -19,7 +22,7 @@ def liveness(request: Request) -> JSONResponse:
     return JSONResponse(body, status_code=200 if ok else 503)
 
 
-@router.get("/readyz", operation_id="getReadiness")
+@router.get("/readyz", operation_id="getReadiness", dependencies=[Depends(PUBLIC)])
 def readiness(request: Request) -> JSONResponse:
     """Ready: a real call to each required dependency; advisory ones (Kafka for the API
     alone) are reported in `checks` but do not make it unready."""
@@ -30,6 +33,7 @@ def readiness(request: Request) -> JSONResponse:
     return JSONResponse({"ok": ok, "checks": checks}, status_code=200 if ok else 503)
 
 
-@router.get("/metrics", operation_id="getMetrics", include_in_schema=False)
+@router.get("/metrics", operation_id="getMetrics", include_in_schema=False,
+            dependencies=[Depends(METRICS)])
 def metrics() -> Response:
     return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import time
 
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
 
+from ..access import LIVE_SUBPROTOCOL, SOCKET_READ
 from ..limits import origin_allowed
 
 router = APIRouter(tags=["live"])
@@ -14,10 +15,11 @@ router = APIRouter(tags=["live"])
 NO_FEED, FEED_NOT_READY = 1011, 1013
 
 
-@router.websocket("/api/v1/live")
+@router.websocket("/api/v1/live", dependencies=[Depends(SOCKET_READ)])
 async def live(websocket: WebSocket) -> None:
     """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`,
-    sent once the event is queryable through this API."""
+    sent once the event is queryable through this API. With MAPSERVICE_API_READ_ACCESS=token
+    a browser sends its token as the subprotocol `bearer.<token>` next to `mapservice.live`."""
     hub = websocket.app.state.live
     settings = websocket.app.state.settings
     if not origin_allowed(websocket.headers.get("origin"), websocket.headers.get("host"),
@@ -26,13 +28,21 @@ async def live(websocket: WebSocket) -> None:
         await websocket.close(code=1008, reason="this origin may not open the live stream "
                                                 "(MAPSERVICE_API_ALLOWED_ORIGINS)")
         return
-    await websocket.accept()
+    offered = [p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",")]
+    await websocket.accept(subprotocol=LIVE_SUBPROTOCOL if LIVE_SUBPROTOCOL in offered else None)
     if hub is None:
         await websocket.close(code=NO_FEED, reason="this API process has no live feed")
         return
     if not hub.ready():
         await websocket.close(code=FEED_NOT_READY, reason="live feed not connected to Kafka yet; "
                               "reconnect in a few seconds")
+        return
+    # Each client costs a queue and a task: a bound per process, and a reason the client
+    # can show (the UI reconnects with backoff on 1013, as it does while the feed starts).
+    if hub.subscribers >= settings.api_max_live_clients:
+        await websocket.close(code=FEED_NOT_READY, reason=(
+            f"too many live clients ({settings.api_max_live_clients}, "
+            "MAPSERVICE_API_MAX_LIVE_CLIENTS); try again later"))
         return
     queue = hub.subscribe()
     try:

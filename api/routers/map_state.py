@@ -12,9 +12,11 @@ from mapservice.core.ports import HistoryStore
 from mapservice.core.render import png, stitch
 from mapservice.core.wire2019 import format_timestamps
 
+from ..access import READ
 from ..deps import at_instant, get_store
 
-router = APIRouter(prefix="/api/v1/map", tags=["map"])
+router = APIRouter(prefix="/api/v1/map", tags=["map"],
+                   dependencies=[Depends(READ)])
 _json = msgspec.json.Encoder()
 
 

@@ -8,9 +8,11 @@ from pydantic import BaseModel
 from mapservice.core.ports import HistoryStore
 from mapservice.core.wire2019 import format_timestamps
 
+from ..access import READ
 from ..deps import get_store, parse_window
 
-router = APIRouter(prefix="/api/v1/poses", tags=["poses"])
+router = APIRouter(prefix="/api/v1/poses", tags=["poses"],
+                   dependencies=[Depends(READ)])
 MAX_SPAN_MS = 86_400_000
 
 

@@ -10,10 +10,12 @@ from mapservice.core.ports import HistoryStore
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamp
 
+from ..access import READ
 from ..deps import at_instant, get_settings, get_store
 from .poses import Pose
 
-router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
+router = APIRouter(prefix="/api/v1/robots", tags=["robots"],
+                   dependencies=[Depends(READ)])
 
 
 class RobotAt(Pose):

@@ -7,9 +7,11 @@ from fastapi import APIRouter, Depends
 
 from mapservice.core.ports import HistoryStore
 
+from ..access import READ
 from ..deps import get_store
 
-router = APIRouter(prefix="/api/v1/stats", tags=["stats"])
+router = APIRouter(prefix="/api/v1/stats", tags=["stats"],
+                   dependencies=[Depends(READ)])
 
 
 @router.get("", operation_id="getHistoryStats")

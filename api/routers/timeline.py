@@ -9,9 +9,11 @@ from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
 from mapservice.core.timetravel import timeline_buckets
 
+from ..access import READ
 from ..deps import get_clock, get_settings, get_store, window_in_retention
 
-router = APIRouter(prefix="/api/v1/timeline", tags=["timeline"])
+router = APIRouter(prefix="/api/v1/timeline", tags=["timeline"],
+                   dependencies=[Depends(READ)])
 MAX_BUCKETS = 2000
 
 

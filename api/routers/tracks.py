@@ -9,9 +9,11 @@ from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
 from mapservice.core.timetravel import yaw
 
+from ..access import READ
 from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
 
-router = APIRouter(prefix="/api/v1/robots", tags=["robots"])
+router = APIRouter(prefix="/api/v1/robots", tags=["robots"],
+                   dependencies=[Depends(READ)])
 MAX_POINTS = 100_000
 MAX_SPAN_EVERY_POSE_MS = 86_400_000
 

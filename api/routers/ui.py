@@ -8,10 +8,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fastapi import APIRouter, HTTPException, Request
+from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import FileResponse, HTMLResponse
 
-router = APIRouter(tags=["ui"], include_in_schema=False)
+from ..access import PUBLIC
+
+# The pages and their assets hold no data (it comes from the API, with its own scopes).
+router = APIRouter(tags=["ui"], include_in_schema=False, dependencies=[Depends(PUBLIC)])
 DIST = Path(__file__).resolve().parents[2] / "replay-ui" / "dist"
 # Vite names every asset by its content hash, so a cached copy is never stale.
 IMMUTABLE = "public, max-age=31536000, immutable"

@@ -20,6 +20,7 @@ from mapservice.local import embedded
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.core.events import MapMetaSet, encode, kafka_key, make_envelope
+from mapservice.runtime.secrets import ApiSecrets, api_secrets, with_local_api_secrets
 from mapservice.settings import Settings
 from mapservice.adapters.kafka_topics import ensure_topics
 
@@ -83,6 +84,11 @@ class Stack:
                         **{"mqtt_ws_url": self.mqtt_ws_url,
                            **{k[len("MAPSERVICE_"):].lower(): v for k, v in self.extra_env.items()
                               if k.startswith("MAPSERVICE_")}})
+
+    def api_secrets(self) -> ApiSecrets:
+        """The API's tokens: as set in extra_env or the environment, else the ones local
+        mode generates into the data dir (the same files the server reads)."""
+        return api_secrets(with_local_api_secrets(self.settings()))
 
     def _log(self, name: str):
         self.log_dir.mkdir(parents=True, exist_ok=True)

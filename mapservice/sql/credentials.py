@@ -3,19 +3,20 @@ once and kept in the data dir, so `make up` needs no setup and no password is pu
 
 from __future__ import annotations
 
-import os
-import secrets
-import tempfile
 from pathlib import Path
 
+from mapservice.runtime.secrets import local_secret, secrets_dir
 from mapservice.settings import Settings
 
 from mapservice.sql.http_protocol import SqlUser
 from mapservice.sql.read_only import ReadOnlyLimits
 
 
+ANALYST_PASSWORD_FILE = "analyst-password"
+
+
 def analyst_password_file(data_dir: Path) -> Path:
-    return data_dir / "secrets" / "analyst-password"
+    return secrets_dir(data_dir) / ANALYST_PASSWORD_FILE
 
 
 def analyst_password(settings: Settings) -> str | None:
@@ -25,21 +26,7 @@ def analyst_password(settings: Settings) -> str | None:
         return configured
     if settings.mode != "local":
         return None
-    path = analyst_password_file(settings.data_dir)
-    if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # Written aside, then linked into place: two processes starting at once (`up` and
-        # `serve`) end with the same password, and nobody reads a half-written file.
-        fd, tmp = tempfile.mkstemp(dir=path.parent)  # mode 0600
-        with os.fdopen(fd, "w") as file:
-            file.write(secrets.token_urlsafe(18) + "\n")
-        try:
-            os.link(tmp, path)
-        except FileExistsError:
-            pass
-        finally:
-            os.unlink(tmp)
-    return path.read_text().strip()
+    return local_secret(settings.data_dir, ANALYST_PASSWORD_FILE, nbytes=18)
 
 
 def analyst_user(settings: Settings) -> SqlUser | None:

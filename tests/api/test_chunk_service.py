@@ -27,6 +27,9 @@ NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 CLOCK_MS = NOW + 60_000
 TOKEN = "test-admin-token"
 ADMIN = {"Authorization": f"Bearer {TOKEN}"}
+WRITER_TOKEN = "test-writer-token"  # a 2019 robot's: the header is all it adds
+WRITER = {"Authorization": f"Bearer {WRITER_TOKEN}"}
+JSON = {"Content-Type": "application/json"}
 BASE = "/api/chunk-service"
 
 
@@ -56,13 +59,18 @@ def publisher() -> MemoryPublisher:
 
 @pytest.fixture
 def settings() -> Settings:
-    return Settings(admin_token=TOKEN)
+    return Settings(admin_token=TOKEN, api_writer_tokens=WRITER_TOKEN)
 
 
 @pytest.fixture
 def client(store, publisher, settings) -> TestClient:
     app = create_app(settings, store, {}, ManualClock(CLOCK_MS), publisher=publisher)
-    return TestClient(app, raise_server_exceptions=False)
+    return TestClient(app, raise_server_exceptions=False, headers=WRITER)
+
+
+def anonymous(client: TestClient) -> TestClient:
+    """The same app, asked without a credential."""
+    return TestClient(client.app, raise_server_exceptions=False)
 
 
 def get(client, **params):
@@ -135,21 +143,36 @@ def test_put_meta_is_post_meta(client, store, publisher) -> None:
 
 
 def test_changing_the_map_geometry_needs_the_admin_token(client, publisher) -> None:
-    """A meta of another size is 401 without a token and 403 with a wrong one, and publishes nothing."""
+    """A meta of another size is 403 with a robot's token, 401 without or with a wrong one; nothing is published."""
     r = client.post(f"{BASE}/meta", json=META_8)
-    assert r.status_code == 401 and "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
+    assert r.status_code == 403 and "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
     assert "500 x 400 px" in r.json()["detail"]
-    assert client.put(f"{BASE}/meta", json=META_8, headers={"Authorization": "Bearer nope"}).status_code == 403
+    assert anonymous(client).put(f"{BASE}/meta", json=META_8).status_code == 401
+    assert client.put(f"{BASE}/meta", json=META_8, headers={"Authorization": "Bearer nope"}).status_code == 401
     publisher.poll()
     assert not publisher.records
 
 
-def test_same_geometry_and_first_meta_need_no_token(client, store, publisher, settings) -> None:
-    """Re-posting the held geometry (a 2019 robot's start-up) and the very first meta need no credential."""
+def test_same_geometry_and_first_meta_need_a_writer_token(client, store, publisher, settings) -> None:
+    """Re-posting the held geometry (a 2019 robot's start-up) and the very first meta need a writer token, not the admin's."""
     same = {**META_8, "width": 500, "height": 400, "CHUNK_ROWS": 4, "CHUNK_COLS": 5}
     assert client.post(f"{BASE}/meta", json=same).status_code == 200
-    empty = TestClient(create_app(settings, SpyStore(), {}, ManualClock(CLOCK_MS), publisher=publisher))
+    assert anonymous(client).post(f"{BASE}/meta", json=same).status_code == 401
+    empty = TestClient(create_app(settings, SpyStore(), {}, ManualClock(CLOCK_MS), publisher=publisher),
+                       headers=WRITER)
     assert empty.post(f"{BASE}/meta", json=META_8).status_code == 200
+
+
+@pytest.mark.parametrize("path, body", [("meta", json.dumps(META_8)), ("chunks", "{}")])
+@pytest.mark.parametrize("content_type", [
+    "text/plain", "application/x-www-form-urlencoded", "multipart/form-data; boundary=x", None])
+def test_writes_take_json_bodies_only(client, publisher, path, body, content_type) -> None:
+    """A write sent as text/plain or a form (what a page of another site may send without asking) is a 415; nothing is published."""
+    headers = {"Content-Type": content_type} if content_type else {}
+    r = client.post(f"{BASE}/{path}", content=body.encode(), headers=headers)
+    assert r.status_code == 415 and "application/json" in r.json()["detail"]
+    publisher.poll()
+    assert not publisher.records
 
 
 @pytest.mark.parametrize("body, fragment", [
@@ -161,7 +184,7 @@ def test_same_geometry_and_first_meta_need_no_token(client, store, publisher, se
 ])
 def test_malformed_meta_is_400_and_publishes_nothing(client, publisher, body, fragment) -> None:
     """A meta.json that is not JSON, lacks a field, has a wrong type or an impossible grid is a 400."""
-    r = client.post(f"{BASE}/meta", content=body)
+    r = client.post(f"{BASE}/meta", content=body, headers=JSON)
     assert r.status_code == 400 and fragment in r.json()["detail"]
     publisher.poll()
     assert not publisher.records
@@ -169,7 +192,7 @@ def test_malformed_meta_is_400_and_publishes_nothing(client, publisher, body, fr
 
 def test_writes_without_publisher_are_503(store, settings, wire) -> None:
     """With no event publisher configured, POST /meta and POST /chunks answer 503 saying why."""
-    client = TestClient(create_app(settings, store, {}, ManualClock(CLOCK_MS)))
+    client = TestClient(create_app(settings, store, {}, ManualClock(CLOCK_MS)), headers=WRITER)
     for path, body in (("meta", META_8), ("chunks", wire.chunk_doc())):
         r = client.post(f"{BASE}/{path}", json=body)
         assert r.status_code == 503 and "publisher" in r.json()["detail"]
@@ -241,7 +264,7 @@ def test_chunks_right_after_meta_use_the_posted_grid(client, store, publisher, w
 @pytest.mark.parametrize("path", ["chunks", "meta"])
 def test_oversized_body_is_413(client, publisher, settings, path) -> None:
     """A body over MAPSERVICE_MAX_MESSAGE_BYTES is refused (413) and nothing is published."""
-    r = client.post(f"{BASE}/{path}", content=b" " * (settings.max_message_bytes + 1))
+    r = client.post(f"{BASE}/{path}", content=b" " * (settings.max_message_bytes + 1), headers=JSON)
     assert r.status_code == 413 and "oversized" in r.json()["detail"]
     publisher.poll()
     assert not publisher.records
@@ -249,7 +272,7 @@ def test_oversized_body_is_413(client, publisher, settings, path) -> None:
 
 def test_post_chunk_not_json_or_missing_field_is_400(client) -> None:
     """A body that is not JSON, or lacks a listing-10 field, is a 400."""
-    assert client.post(f"{BASE}/chunks", content=b"{").json()["detail"].startswith("not_json")
+    assert client.post(f"{BASE}/chunks", content=b"{", headers=JSON).json()["detail"].startswith("not_json")
     r = client.post(f"{BASE}/chunks", json={"row": 1})
     assert r.status_code == 400 and r.json()["detail"].startswith("missing_field")
 
@@ -417,10 +440,12 @@ def test_png_by_id(client) -> None:
 
 @pytest.mark.parametrize("path", ["chunks", "meta"])
 def test_delete_needs_the_admin_token(client, store, path) -> None:
-    """DELETE without a token is 401, with a wrong one 403; nothing is deleted."""
-    assert client.delete(f"{BASE}/{path}").status_code == 401
+    """DELETE without a token or with a wrong one is 401, with a robot's (writer) token 403; nothing is deleted."""
+    assert anonymous(client).delete(f"{BASE}/{path}").status_code == 401
     r = client.delete(f"{BASE}/{path}", headers={"Authorization": "Bearer wrong"})
-    assert r.status_code == 403
+    assert r.status_code == 401
+    r = client.delete(f"{BASE}/{path}")
+    assert r.status_code == 403 and "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
     assert store.counts().chunk_events == len(WRITES) and store.latest_meta() is not None
 
 

@@ -415,6 +415,32 @@ def test_probes_point_at_paths_and_ports_the_components_serve(served):
     assert served("api", "/no-such-path") != 200
 
 
+def test_the_api_as_deployed_guards_metrics_and_docs_but_not_probes():
+    """With the k8s ConfigMap and Secret, the API's probes answer without a token, /metrics and
+    /openapi.json only with one, and the PodMonitor scrapes with the Secret's metrics token."""
+    from fastapi.testclient import TestClient
+
+    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.api.app import create_app
+
+    [(workload, container)] = [(w, c) for w, c in workloads() if container_argv(c)[:1] == ["api"]]
+    settings = settings_from(k8s_env(workload, container))
+    assert (settings.metrics_access, settings.docs_access, settings.api_read_access) == (
+        "token", "token", "open")
+    api = TestClient(create_app(settings, MemoryStore(), {"clickhouse": lambda: True}))
+    for kind, get in probes(container).items():
+        assert api.get(get["path"]).status_code == 200, kind
+    token = {"Authorization": f"Bearer {DUMMY_SECRET}"}  # every Secret key holds it here
+    for path in ("/metrics", "/openapi.json"):
+        assert api.get(path).status_code == 401, path
+        assert api.get(path, headers=token).status_code == 200, path
+    [monitor] = load_all(K8S / "monitoring" / "podmonitor.yaml")
+    [http] = [e for e in monitor["spec"]["podMetricsEndpoints"] if e["port"] == "http"]
+    assert http["authorization"] == {"type": "Bearer", "credentials": {
+        "name": "mapservice", "key": "MAPSERVICE_API_METRICS_TOKEN"}}
+    assert "MAPSERVICE_API_METRICS_TOKEN" in secret_keys_from_readme()
+
+
 def test_probed_components_listen_on_all_interfaces():
     """Everything probed binds 0.0.0.0 (MAPSERVICE_API_HOST also binds the health servers)."""
     for workload, container in workloads():

@@ -1,7 +1,10 @@
 """Appendix A of the 2019 documentation, listing by listing, against the real stack.
 
 Requests are sent as a 2019 client sends them: plain HTTP (httpx, JSON bodies as text, no
-mapservice code on the client side) and paho-mqtt for the MQTT topics. The stack starts
+mapservice code on the client side) and paho-mqtt for the MQTT topics. Reads go without a
+credential; writes carry the one change a 2019 robot needs, its writer token
+(`Authorization: Bearer`), here the one the stack generated into its data dir as `make up`
+does. The stack starts
 without a map meta, so the robot start-up sequence runs from the very beginning; the tests
 share that one stack and run in file order (each builds on the data of the ones before).
 """
@@ -55,7 +58,17 @@ def stack(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def http(stack):
+    """A 2019 client without a credential: reads are open."""
     with httpx.Client(base_url=stack.api_url, timeout=60) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def robot(stack):
+    """A 2019 robot with its writer token: the header is all it adds."""
+    token = stack.api_secrets().writers[0]
+    with httpx.Client(base_url=stack.api_url, timeout=60,
+                      headers={"Authorization": f"Bearer {token}"}) as client:
         yield client
 
 
@@ -144,12 +157,12 @@ def stitched(chunks: list[dict], meta: dict) -> np.ndarray:
 # --- the robot start-up sequence (section 5.2 with appendix A) -----------------------------
 
 
-def test_robot_start_up_sequence(stack, http) -> None:
+def test_robot_start_up_sequence(stack, http, robot) -> None:
     """GET meta (404), POST meta, empty map, MQTT upload, second robot downloads it, adverts."""
     # Robot A: no meta stored yet, so it posts its own meta.json (listing 8).
     assert http.get(META).status_code == 404
     meta = meta_for(DEPOT).to_2019()
-    r = http.post(META, content=json.dumps(meta), headers={"Content-Type": "application/json"})
+    r = robot.post(META, content=json.dumps(meta), headers={"Content-Type": "application/json"})
     assert r.status_code == 200, r.text
     check_listing_11(r.json())
     stored = until(lambda: http.get(META), lambda r: r.status_code == 200, what="meta stored")
@@ -212,13 +225,13 @@ def test_robot_start_up_sequence(stack, http) -> None:
 # --- A.1.2: listings 10 to 13 over REST --------------------------------------------------------
 
 
-def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http) -> None:
+def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http, robot) -> None:
     """POST /chunks with listing 10 answers listing 11; the _id then serves listing 13 and a PNG."""
     pixels = bytes(range(100)) * 100
     ts = format_timestamp(now_ms() - 2_000)
     body = {"pgmB64compressedData": b64zlib(pixels), "row": 3, "column": 2,
             "timestamp": ts, "robotId": "lkjlkj"}
-    r = http.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
+    r = robot.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
     assert r.status_code == 200, r.text
     check_listing_11(r.json())
     chunk_id = r.json()["_id"]
@@ -233,12 +246,28 @@ def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http) -> None:
     assert np.asarray(Image.open(io.BytesIO(png.content))).tobytes() == pixels
 
 
-def test_post_chunk_is_validated_like_mqtt(http) -> None:
+def test_post_chunk_is_validated_like_mqtt(robot) -> None:
     """A chunk outside the posted meta's grid is a 400 with the MQTT reason code."""
     body = {"pgmB64compressedData": b64zlib(bytes(10_000)), "row": 99, "column": 0,
             "timestamp": format_timestamp(now_ms()), "robotId": "lkjlkj"}
-    r = http.post(CHUNKS, content=json.dumps(body))
+    r = robot.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["detail"].startswith("out_of_map")
+
+
+def test_writes_need_the_robot_token_and_json(http, robot) -> None:
+    """Without a token a write is 401, with a wrong one 401, as text/plain (even with the token) 415; a meta of another size needs the admin."""
+    body = json.dumps({"pgmB64compressedData": b64zlib(bytes(10_000)), "row": 0, "column": 0,
+                       "timestamp": format_timestamp(now_ms()), "robotId": "intruder"})
+    json_type = {"Content-Type": "application/json"}
+    assert http.post(CHUNKS, content=body, headers=json_type).status_code == 401
+    r = http.post(CHUNKS, content=body, headers={**json_type, "Authorization": "Bearer guessed"})
+    assert r.status_code == 401
+    r = robot.post(CHUNKS, content=body, headers={"Content-Type": "text/plain"})
+    assert r.status_code == 415
+    small = {**meta_for(DEPOT).to_2019(), "CHUNK_WIDTH": 10, "CHUNK_HEIGHT": 10}
+    small.update(CHUNK_ROWS=-(-small["height"] // 10), CHUNK_COLS=-(-small["width"] // 10))
+    r = robot.post(META, content=json.dumps(small), headers=json_type)
+    assert r.status_code == 403 and "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
 
 
 def test_listing_12_query_parameters(http) -> None:
@@ -315,10 +344,11 @@ def test_listings_16_17_coordinates(stack, http) -> None:
 # --- administrative deletes (last: they wipe the data) ---------------------------------------
 
 
-def test_deletes_need_the_admin_token(http) -> None:
-    """DELETE /chunks and /meta refuse without the token and wipe with it."""
+def test_deletes_need_the_admin_token(http, robot) -> None:
+    """DELETE /chunks and /meta refuse without the token (401), with a robot's (403), and wipe with it."""
     assert http.delete(CHUNKS).status_code == 401
-    assert http.delete(META, headers={"Authorization": "Bearer nope"}).status_code == 403
+    assert http.delete(META, headers={"Authorization": "Bearer nope"}).status_code == 401
+    assert robot.delete(CHUNKS).status_code == 403
     auth = {"Authorization": f"Bearer {TOKEN}"}
     r = http.delete(CHUNKS, headers=auth)
     assert r.status_code == 200 and r.json()["deleted"] >= 29

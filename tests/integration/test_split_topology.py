@@ -36,7 +36,7 @@ from mapservice.core.wire2019 import content_hash, format_timestamp
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from . import test_contract_2019 as contract
-from .test_contract_2019 import TOKEN, http, until  # noqa: F401  (http: a fixture)
+from .test_contract_2019 import TOKEN, http, robot, until  # noqa: F401  (http, robot: fixtures)
 from .test_pipeline import now_ms, publish_all
 
 
@@ -104,6 +104,7 @@ def stack(tmp_path_factory):
 test_robot_start_up_sequence = contract.test_robot_start_up_sequence
 test_listings_10_11_13_post_a_chunk_and_read_it_back = contract.test_listings_10_11_13_post_a_chunk_and_read_it_back
 test_post_chunk_is_validated_like_mqtt = contract.test_post_chunk_is_validated_like_mqtt
+test_writes_need_the_robot_token_and_json = contract.test_writes_need_the_robot_token_and_json
 test_listing_12_query_parameters = contract.test_listing_12_query_parameters
 test_bad_and_unknown_parameters = contract.test_bad_and_unknown_parameters
 test_listings_16_17_coordinates = contract.test_listings_16_17_coordinates

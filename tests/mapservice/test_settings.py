@@ -10,20 +10,49 @@ from pydantic import SecretStr, ValidationError
 from mapservice.settings import DEFAULT_ADMIN_TOKEN, Settings
 
 
+TOKEN = "t" * 32
+
+
 def test_local_defaults() -> None:
-    """Without environment, the local defaults apply (2019 MQTT topics, 7-day retention)."""
+    """Without environment, the local defaults apply (2019 MQTT topics, 7-day retention, no built-in admin token)."""
     s = Settings()
     assert s.mode == "local"
-    assert s.admin_token.get_secret_value() == DEFAULT_ADMIN_TOKEN
+    # No publicly known default: local mode generates the API's tokens in the data dir.
+    assert s.admin_token.get_secret_value() == "" and s.api_writer_tokens.get_secret_value() == ""
+    assert s.api_read_access == "open"
     assert (s.create_chunk_topic, s.coordinate_topic) == ("iot/chunks/create", "iot/coordinates/#")
     assert s.retention_ms == 7 * 86_400_000
     assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#"]
 
 
 def test_production_refuses_default_admin_token() -> None:
-    """mode=production with the default admin token is refused, naming the variable to set."""
-    with pytest.raises(ValidationError, match="MAPSERVICE_ADMIN_TOKEN"):
+    """mode=production without an admin token, or with the old public default, is refused, naming the variable to set."""
+    with pytest.raises(ValidationError, match="MAPSERVICE_ADMIN_TOKEN is empty"):
         Settings(mode="production")
+    with pytest.raises(ValidationError, match="MAPSERVICE_ADMIN_TOKEN is the old local default"):
+        Settings(mode="production", admin_token=DEFAULT_ADMIN_TOKEN)
+
+
+@pytest.mark.parametrize("field", ["admin_token", "api_writer_tokens", "api_reader_tokens",
+                                   "api_metrics_token"])
+def test_production_refuses_short_tokens(field) -> None:
+    """A token under 32 characters (e.g. a 1-character admin token) is refused in production, naming its variable; local mode takes it."""
+    tokens = {"admin_token": TOKEN, field: f"{'u' * 40}, short"}
+    with pytest.raises(ValidationError, match=f"MAPSERVICE_{field.upper()} holds a token of 5 characters"):
+        Settings(mode="production", **tokens)
+    with pytest.raises(ValidationError, match="MAPSERVICE_ADMIN_TOKEN holds a token of 1 characters"):
+        Settings(mode="production", admin_token="t")
+    assert Settings(**tokens).mode == "local"
+
+
+def test_token_lists_are_comma_or_space_separated() -> None:
+    """MAPSERVICE_API_WRITER_TOKENS holds one token per robot, separated by commas or whitespace; empty is none."""
+    from mapservice.settings import token_list
+
+    s = Settings(api_writer_tokens=f" {'a' * 32},{'b' * 32}\n{'c' * 32} ")
+    assert token_list(s.api_writer_tokens) == ["a" * 32, "b" * 32, "c" * 32]
+    assert token_list(Settings().api_reader_tokens) == []
+    assert "a" * 32 not in repr(s)  # secrets stay out of logs
 
 
 def test_production_refuses_default_admin_token_from_env(monkeypatch) -> None:
@@ -31,20 +60,20 @@ def test_production_refuses_default_admin_token_from_env(monkeypatch) -> None:
     monkeypatch.setenv("MAPSERVICE_MODE", "production")
     with pytest.raises(ValidationError, match="MAPSERVICE_ADMIN_TOKEN"):
         Settings()
-    monkeypatch.setenv("MAPSERVICE_ADMIN_TOKEN", "s3cret-from-vault")
+    monkeypatch.setenv("MAPSERVICE_ADMIN_TOKEN", "s3cret-from-vault-" + "x" * 16)
     s = Settings()
-    assert s.mode == "production" and s.admin_token.get_secret_value() == "s3cret-from-vault"
+    assert s.mode == "production" and s.admin_token.get_secret_value() == "s3cret-from-vault-" + "x" * 16
 
 
 def test_production_refuses_empty_clickhouse_password_for_a_server() -> None:
     """Against a ClickHouse server, production needs a password; embedded chDB does not."""
     with pytest.raises(ValidationError, match="MAPSERVICE_CLICKHOUSE_PASSWORD"):
-        Settings(mode="production", admin_token=SecretStr("t"),
+        Settings(mode="production", admin_token=SecretStr(TOKEN),
                  clickhouse_dsn="http://clickhouse:8123")
-    ok = Settings(mode="production", admin_token=SecretStr("t"),
+    ok = Settings(mode="production", admin_token=SecretStr(TOKEN),
                   clickhouse_dsn="http://clickhouse:8123", clickhouse_password=SecretStr("pw"))
     assert ok.resolved_clickhouse_dsn == "http://clickhouse:8123"
-    assert Settings(mode="production", admin_token=SecretStr("t")).mode == "production"
+    assert Settings(mode="production", admin_token=SecretStr(TOKEN)).mode == "production"
 
 
 def test_env_vars_override(monkeypatch) -> None:

@@ -21,13 +21,17 @@ from tests.fixtures.legacy import process
 from tests.fixtures.paths import MAPS
 
 NOW = 1_795_255_200_000
+ADMIN_TOKEN, WRITER_TOKEN = "a" * 32, "w" * 32
 
 
 @pytest.fixture
 def service():
+    """A service and a client holding a writer token, as `map upload` sends it."""
     store, publisher = MemoryStore(), MemoryPublisher()
-    app = create_app(Settings(), store, {}, ManualClock(NOW), publisher=publisher)
-    return store, publisher, TestClient(app, raise_server_exceptions=False)
+    settings = Settings(admin_token=ADMIN_TOKEN, api_writer_tokens=WRITER_TOKEN)
+    app = create_app(settings, store, {}, ManualClock(NOW), publisher=publisher)
+    return store, publisher, TestClient(app, raise_server_exceptions=False,
+                                        headers={"Authorization": f"Bearer {WRITER_TOKEN}"})
 
 
 def test_upload_stores_meta_and_every_chunk_as_the_map_file(service) -> None:
@@ -57,8 +61,8 @@ def test_upload_of_another_size_is_refused_and_publishes_nothing(service) -> Non
     assert process(publisher, store) == 0
     with pytest.raises(httpx.HTTPStatusError) as refused:  # the service wants the admin token
         upload_map_rest(http, sandbox, NOW - 1000, replace=True)
-    assert refused.value.response.status_code == 401
-    http.headers["Authorization"] = f"Bearer {Settings().admin_token.get_secret_value()}"
+    assert refused.value.response.status_code == 403
+    http.headers["Authorization"] = f"Bearer {ADMIN_TOKEN}"
     upload_map_rest(http, sandbox, NOW - 1000, replace=True)
     process(publisher, store)
     assert store.latest_meta().width == 384
@@ -113,12 +117,23 @@ def test_up_uploads_once_per_data_dir(monkeypatch, tmp_path) -> None:
         upload_map_if_fresh(Settings(), tmp_path, load_ros_map(MAPS / "tb3_sandbox.yaml"), NOW)
 
 
-def test_map_upload_cli_explains_what_to_do(monkeypatch) -> None:
+def test_upload_without_a_token_is_refused(service) -> None:
+    """Without a writer token the service refuses the upload (401) and stores nothing."""
+    store, publisher, http = service
+    del http.headers["Authorization"]
+    with pytest.raises(httpx.HTTPStatusError) as refused:
+        upload_map_rest(http, load_ros_map(MAPS / "depot.yaml"), NOW - 1000)
+    assert refused.value.response.status_code == 401
+    assert process(publisher, store) == 0
+
+
+def test_map_upload_cli_explains_what_to_do(monkeypatch, tmp_path) -> None:
     """`map upload --replace` without an admin token and an unreachable --api both exit with
     a message saying what to pass."""
     from mapservice.cli import main
 
     monkeypatch.delenv("MAPSERVICE_ADMIN_TOKEN", raising=False)
+    monkeypatch.setenv("MAPSERVICE_DATA_DIR", str(tmp_path))  # no token `up` generated
     with pytest.raises(SystemExit, match="admin operation: pass --admin-token"):
         main(["map", "upload", str(MAPS / "depot.yaml"), "--replace"])
     with pytest.raises(SystemExit, match="is the service running"):

@@ -44,10 +44,31 @@ def _painted_chunk(page, stack, robot_id: str) -> tuple[int, int, bytes]:
     return row, column, raw
 
 
+def _give_token(page, stack) -> None:
+    """Pastes the stack's writer token into the page, as an operator does (README, API access)."""
+    field = page.locator('[data-testid="api-token"]')
+    field.fill(stack.api_secrets().writers[0])
+    field.dispatch_event("change")
+
+
+def test_paint_without_a_token_says_what_rest_writes_need(page, history_stack) -> None:
+    """Painting via REST without a writer token stores nothing and says where the token is."""
+    stack = history_stack
+    _open(page, stack, "controller-anonymous")
+    page.evaluate("() => localStorage.removeItem('mapservice.apiToken')")
+    page.locator('[data-testid="api-token"]').fill("")
+    page.locator('[data-testid="api-token"]').dispatch_event("change")
+    page.locator('[data-testid="paint-black"]').click()
+    page.wait_for_function("() => document.body.innerText.includes('need a writer token')",
+                           timeout=TIMEOUT_MS)
+    assert "writer-token" in page.locator("header").inner_text()
+
+
 def test_paint_black_reaches_the_map(page, history_stack) -> None:
-    """Driving and painting black (REST) stores an all-black chunk under the robot, by its id."""
+    """Driving and painting black (REST, with the writer token pasted) stores an all-black chunk under the robot, by its id."""
     stack = history_stack
     _open(page, stack, "controller-1")
+    _give_token(page, stack)
     page.locator('[data-testid="right"]').click()
     page.locator('[data-testid="right"]').click()
     page.locator('[data-testid="up"]').click()

@@ -5,6 +5,7 @@
 import type { Source } from "./buffer";
 import { parseBatch, type ChunkBatch } from "./chunkdecode";
 import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline } from "./types";
+import { authHeaders } from "./auth";
 
 export class ApiError extends Error {
   constructor(public status: number, message: string) {
@@ -13,7 +14,7 @@ export class ApiError extends Error {
 }
 
 async function getJson<T>(url: string): Promise<T> {
-  const r = await fetch(url);
+  const r = await fetch(url, { headers: authHeaders() });
   if (!r.ok) {
     let detail = r.statusText;
     try {
@@ -73,7 +74,7 @@ export class Api implements Source {
   /** Many chunk pictures in one request (MessagePack); an ApiError 404/405 from an older server. */
   async chunkBatch(hashes: string[]): Promise<ChunkBatch> {
     const url = `${this.base}/api/v1/chunk-contents/batch`;
-    const r = await fetch(url, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ hashes }) });
+    const r = await fetch(url, { method: "POST", headers: { "Content-Type": "application/json", ...authHeaders() }, body: JSON.stringify({ hashes }) });
     if (!r.ok) throw new ApiError(r.status, `${url}: ${r.status} ${r.statusText}`);
     return parseBatch(await r.arrayBuffer());
   }

@@ -10,6 +10,7 @@
  */
 import { ApiError } from "./api";
 import { greyToRgba, inflate, slicesFor, type ChunkBatch, type ChunkContent } from "./chunkdecode";
+import { authHeaders } from "./auth";
 
 export type ChunkImage = ImageBitmap | HTMLImageElement | HTMLCanvasElement | OffscreenCanvas;
 
@@ -204,7 +205,7 @@ export function decodeContent(c: ChunkContent): ChunkImage {
 }
 
 async function loadPng(url: string): Promise<ChunkImage> {
-  const r = await fetch(url);
+  const r = await fetch(url, { headers: authHeaders() });
   if (!r.ok) throw new Error(`${r.status}`);
   const blob = await r.blob();
   if (typeof createImageBitmap === "function") return createImageBitmap(blob);

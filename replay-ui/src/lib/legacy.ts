@@ -1,6 +1,7 @@
 /** The 2019 REST contract (appendix A) as the controller page speaks it, like a robot. */
 import { quaternionOfYaw } from "./geo";
 import type { MapMeta } from "./types";
+import { authHeaders } from "./auth";
 
 /** "2018-12-20T23:34:33": the 2019 timestamp format (UTC, seconds). */
 export function timestamp2019(ms: number): string {
@@ -25,7 +26,7 @@ export async function chunkMessage(meta: MapMeta, robotId: string, row: number, 
 export async function postChunk(message: object): Promise<Response> {
   return fetch("/api/chunk-service/chunks", {
     method: "POST",
-    headers: { "Content-Type": "application/json" },
+    headers: { "Content-Type": "application/json", ...authHeaders() },
     body: JSON.stringify(message),
   });
 }
@@ -42,11 +43,11 @@ export function poseMessage(robotId: string, x: number, y: number, yaw: number, 
 }
 
 export async function getMeta(): Promise<MapMeta | null> {
-  const r = await fetch("/api/chunk-service/meta");
+  const r = await fetch("/api/chunk-service/meta", { headers: authHeaders() });
   if (r.ok) {
     const m = await r.json();
     if (m && m.CHUNK_WIDTH) return m as MapMeta;
   }
-  const v1 = await fetch("/api/v1/map");
+  const v1 = await fetch("/api/v1/map", { headers: authHeaders() });
   return v1.ok ? ((await v1.json()).meta as MapMeta | null) : null;
 }

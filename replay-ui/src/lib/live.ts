@@ -9,6 +9,7 @@
  * neither hammer it nor re-seek the replay once a second, and many tabs spread out.
  */
 import type { ChunkChange, Pose } from "./types";
+import { liveProtocols } from "./auth";
 
 export type LiveMessage =
   | ({ type: "pose"; sent_ms?: number } & Pose)
@@ -62,7 +63,7 @@ export class LiveConnection {
   }
 
   private connect(reconnect: boolean): void {
-    const ws = new WebSocket(this.url);
+    const ws = new WebSocket(this.url, liveProtocols());
     this.ws = ws;
     ws.onopen = () => {
       this.status.connected = true;

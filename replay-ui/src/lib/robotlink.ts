@@ -5,6 +5,7 @@
  */
 import mqtt from "mqtt";
 import type { IClientOptions, MqttClient } from "mqtt";
+import { authHeaders } from "./auth";
 
 export interface ClientConfig {
   mqtt_ws_url: string | null;
@@ -17,7 +18,7 @@ export type LinkState = "unconfigured" | "connecting" | "connected" | "reconnect
 export type Connect = (url: string, options: IClientOptions) => MqttClient;
 
 export async function getClientConfig(): Promise<ClientConfig | null> {
-  const r = await fetch("/api/v1/client-config").catch(() => null);
+  const r = await fetch("/api/v1/client-config", { headers: authHeaders() }).catch(() => null);
   return r && r.ok ? ((await r.json()) as ClientConfig) : null;
 }
 
