@@ -128,6 +128,9 @@ class ClickHouseStore:
         self._read_client = None
         self._read_lock = threading.Lock()
         self._ping_client = None
+        # clickhouse-connect's TLS arguments (ca_cert, client_cert, client_cert_key) for an
+        # https:// server; from_settings fills them from MAPSERVICE_CLICKHOUSE_*_FILE.
+        self.tls: dict[str, str] = {}
         self._known_contents: dict[bytes, int] = {}  # hash -> day already written
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
@@ -135,7 +138,7 @@ class ClickHouseStore:
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "ClickHouseStore":
-        return cls(
+        store = cls(
             settings.resolved_clickhouse_dsn,
             settings.clickhouse_database,
             settings.retention_days,
@@ -144,6 +147,8 @@ class ClickHouseStore:
             int(settings.snapshot_every_s * 1000),
             settings.clickhouse_cluster,
         )
+        store.tls = settings.clickhouse_tls()
+        return store
 
     def _connect(self):
         if self.dsn.startswith("chdb://"):
@@ -155,7 +160,7 @@ class ClickHouseStore:
                     "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server") from exc
             return clickhouse_connect.get_client(dsn=self.dsn)
         return clickhouse_connect.get_client(dsn=self.dsn, username=self._username,
-                                             password=self._password)
+                                             password=self._password, **self.tls)
 
     @property
     def client(self):
@@ -933,7 +938,7 @@ class ClickHouseStore:
             else:
                 self._ping_client = clickhouse_connect.get_client(
                     dsn=self.dsn, username=self._username, password=self._password,
-                    connect_timeout=timeout_s, send_receive_timeout=timeout_s)
+                    connect_timeout=timeout_s, send_receive_timeout=timeout_s, **self.tls)
         return self._ping_client.command("SELECT 1") == 1
 
     def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:
