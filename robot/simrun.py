@@ -62,13 +62,16 @@ class SimRunner:
         self.stats = SimStats(robots=hosted)
         self.conn.check([r.robot_id for r in self.state.robots])
         self._stop = threading.Event()
+        self._closing = False
 
     def stop(self) -> None:
         self._stop.set()
 
     def _on_disconnect(self, client, userdata, flags, reason, properties=None) -> None:
-        if not self._stop.is_set():
+        if not self._stop.is_set() and not self._closing:
             self.stats.errors += 1
+            structlog.get_logger("sim").warning("disconnected from the MQTT broker",
+                                                reason=str(reason))
 
     def run(self, seconds: float | None = None, on_tick=None) -> SimStats:
         clients = RobotClients(self.conn, [r.robot_id for r in self.state.robots],
@@ -109,6 +112,7 @@ class SimRunner:
                 if on_tick is not None:
                     on_tick(self)
         finally:
+            self._closing = True  # our own disconnects are no errors
             clients.close()
         return self.stats
 
