@@ -212,7 +212,10 @@ def _reload_local_mosquitto(files) -> str:
                 "compose: `docker compose kill -s HUP mosquitto`)")
     if b"mosquitto" not in cmdline:
         return "no running Mosquitto of this data dir; it reads the files when it starts"
-    os.kill(pid, signal.SIGHUP)
+    try:
+        os.kill(pid, signal.SIGHUP)
+    except OSError as exc:
+        return f"could not tell Mosquitto (pid {pid}) to reload ({exc}): `kill -HUP {pid}`"
     return f"the local Mosquitto (pid {pid}) was told to read them again (SIGHUP)"
 
 
@@ -249,6 +252,7 @@ def _robot_identity(args) -> None:
                          indent=2))
         return
     legacy = files.topics.legacy_chunk_topic
+    saved = f"\nSaved to {args.save} (for mapservice sim/robot/drive --credentials)." if args.save else ""
     print(f"""robot {cred.robot_id}: MQTT credential {"rotated" if args.rotate else "created"} \
 (the password is shown only now; the broker keeps its hash)
 
@@ -264,8 +268,7 @@ def _robot_identity(args) -> None:
   and reads {cred.topics["advertisements"]}. Anything else the broker refuses; a payload
   whose robotId differs from the topic's is a dead letter (robot_id_mismatch).
 
-Written: {files.password_file} and {files.acl_file}; {reload}.
-{f"Saved to {args.save} (for mapservice sim/robot/drive --credentials)." if args.save else ""}
+Written: {files.password_file} and {files.acl_file}; {reload}.{saved}
 EMQX (Kubernetes): add the user through its REST API instead, e.g.
   curl -u KEY:SECRET -X POST http://EMQX:18083/api/v5/authentication/password_based:built_in_database/users \\
        -H 'Content-Type: application/json' -d '{{"user_id": "{cred.username}", "password": "..."}}'""")

@@ -154,11 +154,22 @@ def read_password_file(path: Path) -> dict[str, str]:
 
 
 def _write_atomically(path: Path, text: str, mode: int) -> None:
+    """Replaces `path` in one step; an existing file keeps its mode and owner (the broker's
+    user must still read it), a new one gets `mode`."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode), "w") as file:
+    with open(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as file:
         file.write(text)
-    os.chmod(tmp, mode)
+    try:
+        old = path.stat()
+    except FileNotFoundError:
+        os.chmod(tmp, mode)
+    else:
+        os.chmod(tmp, old.st_mode & 0o7777)
+        try:
+            os.chown(tmp, old.st_uid, old.st_gid)
+        except PermissionError:
+            pass  # not ours to give away: the mode still says who may read it
     os.replace(tmp, path)  # a broker reloading meanwhile reads the old or the new file
 
 

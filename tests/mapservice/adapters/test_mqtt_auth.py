@@ -117,3 +117,14 @@ def test_concurrent_adds_lose_nobody(tmp_path):
     with ThreadPoolExecutor(8) as pool:
         list(pool.map(lambda i: BrokerFiles.in_data_dir(tmp_path).add_robot(f"r{i}"), range(40)))
     assert sorted(files.robots()) == sorted(f"r{i}" for i in range(40))
+
+
+def test_rewritten_files_keep_their_mode(tmp_path):
+    """A password file the operator made readable for the broker's user (e.g. 0640) keeps that
+    mode when `robot add` rewrites it; a new one is 0600."""
+    files = BrokerFiles.in_data_dir(tmp_path)
+    files.add_robot("r1")
+    assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o600
+    files.password_file.chmod(0o640)
+    files.add_robot("r2")
+    assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o640
