@@ -139,6 +139,29 @@ def test_robot_own_pose_and_chunk_are_stored(stack, robots):
     assert chunks == [(a.robot_id, start)]
 
 
+def test_advertisements_reach_robots_under_auth(stack, robots):
+    """The processors publish advertisements as their service user and every robot may read
+    them: robot B, subscribed, hears of the chunk robot A wrote."""
+    a, b = robots["a"], robots["b"]
+    listener = Robot(stack.mqtt_url, b.username, b.password)
+    try:
+        listener.client.subscribe(b.topics["advertisements"], 1)
+        assert listener.subscribed.wait(5)
+        ts = now_ms() - 500
+        writer = Robot(stack.mqtt_url, a.username, a.password)
+        try:
+            writer.publish(a.topics["chunks"], chunk(a.robot_id, ts, row=2, column=2))
+        finally:
+            writer.close()
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not any(a.robot_id.encode() in p for _, p in listener.received):
+            time.sleep(0.1)
+        assert any(t == b.topics["advertisements"] and a.robot_id.encode() in p
+                   for t, p in listener.received)
+    finally:
+        listener.close()
+
+
 def test_robot_a_cannot_publish_as_robot_b(stack, robots):
     """Robot A publishing on robot B's topics: with MQTT 3.1.1 the broker acknowledges and
     drops it (the gateway never sees it: no row, no dead letter); with MQTT 5 its PUBACK says
