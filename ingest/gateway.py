@@ -19,7 +19,7 @@ from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
 from mapservice.runtime.health import kafka_check
 from mapservice.runtime.health_server import serve_health
-from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
 from mapservice.core.ports import Clock, EventPublisher
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Reason
@@ -175,12 +175,9 @@ class MqttGateway:
                 "gateway": self.gateway_id}
 
     def run(self) -> None:
-        host, port, tls = parse_mqtt_url(self.settings.mqtt_url)
+        host, port, _tls = parse_mqtt_url(self.settings.mqtt_url)
         s = self.settings
-        self.client = make_client(
-            self.gateway_id, clean_session=False, manual_ack=True,
-            username=s.mqtt_username,
-            password=s.mqtt_password.get_secret_value() if s.mqtt_password else None, tls=tls)
+        self.client = service_client(s, self.gateway_id, clean_session=False, manual_ack=True)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect
         self.client.on_message = self._on_message

@@ -31,23 +31,35 @@ class Record:
     envelope: Envelope | None = None
 
 
+def _prefix(topic_filter: str) -> str:
+    """The topic prefix a one-robot-per-level filter stands for: "a/b/#" or "a/b/+" -> "a/b/"."""
+    return (topic_filter[:-1] if topic_filter.endswith(("#", "+"))
+            else topic_filter.rstrip("/") + "/")
+
+
 class Router:
     """Knows the configured MQTT topics and the Kafka topics they feed."""
 
     def __init__(self, settings: Settings, gateway_id: str) -> None:
         self.settings = settings
         self.gateway_id = gateway_id
-        self.chunk_topic = settings.create_chunk_topic
-        base = settings.coordinate_topic
+        self.chunk_topic = settings.create_chunk_topic or None  # empty: not taken
         # "iot/coordinates/#" or ".../+" -> "iot/coordinates/"; robots publish on
         # iot/coordinates/<id>.
-        self.coordinate_prefix = (base[:-1] if base.endswith(("#", "+"))
-                                  else base.rstrip("/") + "/")
+        self.coordinate_prefix = _prefix(settings.coordinate_topic)
+        # "iot/chunks/create/+" -> "iot/chunks/create/": a robot's own chunk topic, which
+        # names it as the coordinate topic does (the broker's ACL ties it to the username).
+        self.robot_chunk_prefix = (_prefix(settings.robot_chunk_topic)
+                                   if settings.robot_chunk_topic else None)
 
     def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
         try:
             if mqtt_topic == self.chunk_topic:
                 result = decode_chunk_create(payload, receive_ms, limits)
+            elif (self.robot_chunk_prefix and mqtt_topic.startswith(self.robot_chunk_prefix)
+                  and "/" not in mqtt_topic[len(self.robot_chunk_prefix):]):  # one level: `+`
+                robot_id = mqtt_topic[len(self.robot_chunk_prefix):]
+                result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
             elif mqtt_topic.startswith(self.coordinate_prefix):
                 robot_id = mqtt_topic[len(self.coordinate_prefix):]
                 result = decode_coordinates(robot_id, payload, receive_ms, limits)

@@ -43,6 +43,11 @@ class Settings(BaseSettings):
     kafka_ssl_ca_file: Path | None = Field(
         None, description="CA bundle (PEM) that signs the brokers' certificates, for SSL/SASL_SSL "
         "(e.g. Strimzi's <cluster>-cluster-ca-cert); empty: the system's CAs.")
+    kafka_ssl_cert_file: Path | None = Field(None, description=(
+        "Client certificate (PEM) the service presents to the brokers with SSL/SASL_SSL (mutual "
+        "TLS, e.g. a Strimzi KafkaUser of type tls); needs MAPSERVICE_KAFKA_SSL_KEY_FILE."))
+    kafka_ssl_key_file: Path | None = Field(None, description=(
+        "Private key (PEM, unencrypted) of MAPSERVICE_KAFKA_SSL_CERT_FILE."))
     kafka_partitions: int = Field(6, ge=1, description="Partitions of topics the service creates.")
     kafka_replication: int = Field(1, ge=1)
     kafka_rebalance_timeout_s: float = Field(3.0, gt=0, description="Consumer-group rebalance timeout.")
@@ -62,6 +67,14 @@ class Settings(BaseSettings):
     clickhouse_database: str = "mapservice"
     clickhouse_username: str = "default"
     clickhouse_password: SecretStr = SecretStr(DEFAULT_CLICKHOUSE_PASSWORD)
+    clickhouse_ca_file: Path | None = Field(None, description=(
+        "CA bundle (PEM) that signs the ClickHouse server's certificate, for an https:// DSN; "
+        "empty: the system's CAs."))
+    clickhouse_cert_file: Path | None = Field(None, description=(
+        "Client certificate (PEM) presented to ClickHouse over https (mutual TLS); needs "
+        "MAPSERVICE_CLICKHOUSE_KEY_FILE."))
+    clickhouse_key_file: Path | None = Field(None, description=(
+        "Private key (PEM, unencrypted) of MAPSERVICE_CLICKHOUSE_CERT_FILE."))
     clickhouse_cluster: str = Field("", description=(
         "A ClickHouse cluster name: schema statements run ON CLUSTER and tables are "
         "Replicated*MergeTree (one shard, N replicas). Empty: one server or chDB."))
@@ -86,10 +99,24 @@ class Settings(BaseSettings):
                              "reach it (the /controller page); empty: the page cannot publish.")
     mqtt_username: str | None = None
     mqtt_password: SecretStr | None = None
+    mqtt_ca_file: Path | None = Field(None, description=(
+        "CA bundle (PEM) that signs the MQTT broker's certificate, with an mqtts:// URL; empty: "
+        "the system's CAs."))
+    mqtt_cert_file: Path | None = Field(None, description=(
+        "Client certificate (PEM) presented to the MQTT broker with mqtts:// (mutual TLS); "
+        "needs MAPSERVICE_MQTT_KEY_FILE."))
+    mqtt_key_file: Path | None = Field(None, description=(
+        "Private key (PEM, unencrypted) of MAPSERVICE_MQTT_CERT_FILE."))
     mqtt_client_id: str = Field("mapservice-gateway", description="Stable: keeps the QoS 1 session.")
     mqtt_share_group: str = Field("", description="Non-empty: subscribe via $share/<group>/.")
-    create_chunk_topic: str = "iot/chunks/create"
+    create_chunk_topic: str = Field("iot/chunks/create", description=(
+        "2019 CREATE_CHUNK_TOPIC (carries no robot id: under MQTT authentication the broker's "
+        "ACL decides who may publish there); empty: the gateway does not subscribe to it."))
     coordinate_topic: str = "iot/coordinates/#"
+    robot_chunk_topic: str = Field("iot/chunks/create/+", description=(
+        "Per-robot chunk topic filter: a robot publishes the 2019 chunk payload on "
+        "iot/chunks/create/<robotId>, the broker's ACL ties that level to its username and the "
+        "gateway checks the payload's robotId against it; empty: not subscribed."))
 
     # Validation
     chunk_width: int = Field(100, ge=1, le=4096, description="Used until a map meta is set.")
@@ -163,6 +190,30 @@ class Settings(BaseSettings):
         "/api/v1/live; e.g. a dashboard served elsewhere."))
 
     @model_validator(mode="after")
+    def _check_tls_and_topics(self) -> "Settings":
+        for hop, cert, key in (("MQTT", self.mqtt_cert_file, self.mqtt_key_file),
+                               ("KAFKA_SSL", self.kafka_ssl_cert_file, self.kafka_ssl_key_file),
+                               ("CLICKHOUSE", self.clickhouse_cert_file, self.clickhouse_key_file)):
+            if (cert is None) != (key is None):
+                raise ValueError(f"MAPSERVICE_{hop}_CERT_FILE and MAPSERVICE_{hop}_KEY_FILE go "
+                                 "together (a client certificate needs its key)")
+        if (self.mqtt_ca_file or self.mqtt_cert_file) and not self.mqtt_url.startswith(("mqtts:", "ssl:")):
+            raise ValueError("MAPSERVICE_MQTT_CA_FILE/CERT_FILE are for TLS: use an mqtts:// "
+                             f"MAPSERVICE_MQTT_URL (not {self.mqtt_url})")
+        if (self.clickhouse_ca_file or self.clickhouse_cert_file) and \
+                not self.resolved_clickhouse_dsn.startswith("https:"):
+            raise ValueError("MAPSERVICE_CLICKHOUSE_CA_FILE/CERT_FILE are for TLS: use an "
+                             "https:// MAPSERVICE_CLICKHOUSE_DSN")
+        if (self.kafka_ssl_ca_file or self.kafka_ssl_cert_file) and \
+                "SSL" not in self.kafka_security_protocol.upper():
+            raise ValueError("MAPSERVICE_KAFKA_SSL_* files are for TLS: set "
+                             "MAPSERVICE_KAFKA_SECURITY_PROTOCOL to SSL or SASL_SSL")
+        if self.robot_chunk_topic and not self.robot_chunk_topic.endswith("/+"):
+            raise ValueError("MAPSERVICE_ROBOT_CHUNK_TOPIC must end with /+ (its last level is "
+                             f"the robot id), not {self.robot_chunk_topic!r}")
+        return self
+
+    @model_validator(mode="after")
     def _refuse_default_secrets(self) -> "Settings":
         if self.mode == "production":
             admin = self.admin_token.get_secret_value()
@@ -213,7 +264,8 @@ class Settings(BaseSettings):
     @cached_property
     def mqtt_subscriptions(self) -> list[str]:
         prefix = f"$share/{self.mqtt_share_group}/" if self.mqtt_share_group else ""
-        return [prefix + self.create_chunk_topic, prefix + self.coordinate_topic]
+        return [prefix + topic for topic in (self.create_chunk_topic, self.coordinate_topic,
+                                             self.robot_chunk_topic) if topic]
 
     def kafka_config(self) -> dict[str, str]:
         """librdkafka settings shared by every confluent-kafka client of the service."""
@@ -229,6 +281,19 @@ class Settings(BaseSettings):
             conf["sasl.password"] = self.kafka_password.get_secret_value()
         if self.kafka_ssl_ca_file:
             conf["ssl.ca.location"] = str(self.kafka_ssl_ca_file)
+        if self.kafka_ssl_cert_file and self.kafka_ssl_key_file:
+            conf["ssl.certificate.location"] = str(self.kafka_ssl_cert_file)
+            conf["ssl.key.location"] = str(self.kafka_ssl_key_file)
+        return conf
+
+    def clickhouse_tls(self) -> dict[str, str]:
+        """clickhouse-connect's TLS arguments (`get_client(**...)`) for an https:// DSN."""
+        conf: dict[str, str] = {}
+        if self.clickhouse_ca_file:
+            conf["ca_cert"] = str(self.clickhouse_ca_file)
+        if self.clickhouse_cert_file and self.clickhouse_key_file:
+            conf["client_cert"] = str(self.clickhouse_cert_file)
+            conf["client_cert_key"] = str(self.clickhouse_key_file)
         return conf
 
     @property

@@ -18,7 +18,7 @@ import paho.mqtt.client as mqtt
 import structlog
 from prometheus_client import Counter
 
-from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -34,13 +34,11 @@ class MqttAdvertiser:
 
     def __init__(self, settings: Settings, *, qos: int = 1, max_queued: int = 10_000) -> None:
         self.topic = settings.advertisement_topic
-        self.host, self.port, tls = parse_mqtt_url(settings.mqtt_url)
+        self.host, self.port, _tls = parse_mqtt_url(settings.mqtt_url)
         self.qos = qos
-        self.client = make_client(
-            f"mapservice-advertiser-{socket.gethostname()}-{os.getpid()}", clean_session=True,
-            username=settings.mqtt_username,
-            password=settings.mqtt_password.get_secret_value() if settings.mqtt_password else None,
-            tls=tls)
+        self.client = service_client(
+            settings, f"mapservice-advertiser-{socket.gethostname()}-{os.getpid()}",
+            clean_session=True)
         self.client.max_queued_messages_set(max_queued)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect

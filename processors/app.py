@@ -107,6 +107,9 @@ def _faust_credentials(settings: Settings):
     if protocol in ("SSL", "SASL_SSL"):
         ca_file = str(settings.kafka_ssl_ca_file) if settings.kafka_ssl_ca_file else None
         ssl_context = ssl.create_default_context(cafile=ca_file)
+        if settings.kafka_ssl_cert_file and settings.kafka_ssl_key_file:  # mutual TLS
+            ssl_context.load_cert_chain(str(settings.kafka_ssl_cert_file),
+                                        str(settings.kafka_ssl_key_file))
     if settings.kafka_username and settings.kafka_password:
         return faust.SASLCredentials(
             username=settings.kafka_username,

@@ -39,6 +39,7 @@ from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
 
 from .api_client import api_client, writer_token
+from .connection import RobotMqtt, robot_mqtt_from_args
 from .chunks import chunk_pixels, meta_from_json, meta_to_json, paste_chunk
 from .faults import yaw_quaternion
 
@@ -224,13 +225,16 @@ class RobotAgent:
     def __init__(self, map_yaml: str | Path, robot_id: str, api_url: str, mqtt_url: str, *,
                  pose_source=None, threshold: float = 0.0, period_s: float = 1.0,
                  chunk_width: int = 100, chunk_height: int = 100,
-                 http: httpx.Client | None = None, token: str | None = None) -> None:
+                 http: httpx.Client | None = None, token: str | None = None,
+                 mqtt_conn: RobotMqtt | None = None) -> None:
         self.map_yaml = Path(map_yaml)
         self.ros_map = load_ros_map(self.map_yaml)
         doc = yaml.safe_load(self.map_yaml.read_text())
         self.image_path = (self.map_yaml.parent / doc["image"]).resolve()
         self.robot_id = robot_id
         self.mqtt_url = mqtt_url
+        self.conn = mqtt_conn or RobotMqtt(mqtt_url)  # its own credential, if it has one
+        self.conn.check([robot_id])
         self.threshold = threshold
         self.period_s = period_s
         self.local = LocalMap.of(self.ros_map, chunk_width, chunk_height)
@@ -331,12 +335,10 @@ class RobotAgent:
         self.adverts.put(msg.payload)
 
     def connect(self) -> None:
-        host, port, tls = parse_mqtt_url(self.mqtt_url)
-        self.client = make_client(f"robot-{self.robot_id}", tls=tls)
+        self.client = self.conn.client(f"robot-{self.robot_id}", self.robot_id)
         self.client.on_connect = self._on_connect
         self.client.on_message = self._on_message
-        self.client.connect(host, port, keepalive=30)
-        self.client.loop_start()
+        self.conn.connect(self.client, who=f"robot {self.robot_id}")
 
     def _refresh_from_disk(self) -> None:
         """Takes up edits of the map file; they stay pending until compared and published."""
@@ -395,7 +397,7 @@ class RobotAgent:
         now = time.time_ns() // 1_000_000
         changes = self.local.changes(self.local.pixels, self.threshold)
         for row, column, data in changes:
-            self.client.publish(CHUNK_TOPIC, encode_chunk_create(
+            self.client.publish(self.conn.chunk_topic(self.robot_id), encode_chunk_create(
                 row, column, data, format_timestamp(now), self.robot_id), qos=1)
         if changes:
             self.stats["published_chunks"] += len(changes)
@@ -452,7 +454,8 @@ def main(args) -> None:
         agent = RobotAgent(args.map, args.robot_id, args.api, args.mqtt, pose_source=source,
                            threshold=args.threshold, period_s=args.period,
                            chunk_width=args.chunk_width, chunk_height=args.chunk_height,
-                           token=writer_token(args.token))
+                           token=writer_token(args.token),
+                           mqtt_conn=robot_mqtt_from_args(args, args.mqtt))
         signal.signal(signal.SIGTERM, lambda *_: agent.stop())
         how = agent.start()
         log.info("robot started", robot=args.robot_id, map=how, api=args.api, mqtt=args.mqtt)

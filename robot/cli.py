@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import time
 
 from mapservice.robot import DEFAULT_MAP
+
+from .connection import add_mqtt_arguments
 
 
 def _probability(text: str) -> float:
@@ -80,12 +83,18 @@ def cmd_sim(args) -> None:
     from mapservice.runtime.startup import settings_for
     from mapservice.adapters.ros_map import load_ros_map
 
+    from .connection import robot_mqtt_from_args
+
     settings = settings_for("sim")
     log = structlog.get_logger("sim")
     mqtt_url = args.mqtt_url or settings.mqtt_url
     ros_map = load_ros_map(args.map)
+    try:
+        conn = robot_mqtt_from_args(args, mqtt_url, settings.mqtt_ca_file)
+    except ValueError as exc:
+        sys.exit(f"mapservice sim: {exc}")
     if args.load_test:
-        return _load_test(args, mqtt_url, ros_map, log)
+        return _load_test(args, mqtt_url, ros_map, log, conn)
     from rich.console import Console
     from rich.live import Live
 
@@ -93,9 +102,12 @@ def cmd_sim(args) -> None:
     from .sim import SimConfig
     from .simrun import SimRunner, progress_table
 
-    runner = SimRunner(mqtt_url, ros_map, args.robots, seed=args.seed, prefix=args.prefix,
-                       faults=Faults(args.clock_skew, args.loss, args.bad_rate),
-                       config=SimConfig(change_every_s=args.change_every))
+    try:
+        runner = SimRunner(mqtt_url, ros_map, args.robots, seed=args.seed, prefix=args.prefix,
+                           faults=Faults(args.clock_skew, args.loss, args.bad_rate),
+                           config=SimConfig(change_every_s=args.change_every), mqtt_conn=conn)
+    except ValueError as exc:
+        sys.exit(f"mapservice sim: {exc}")
     signal.signal(signal.SIGTERM, lambda *_: runner.stop())
     console = Console()
     log.info("simulated robots starting", robots=args.robots, map=str(args.map), mqtt=mqtt_url)
@@ -123,11 +135,14 @@ def cmd_sim(args) -> None:
              lost=s.lost, errors=s.errors, map_changes=s.map_changes)
 
 
-def _load_test(args, mqtt_url, ros_map, log) -> None:
+def _load_test(args, mqtt_url, ros_map, log, conn) -> None:
     """The 2019 load test: one pose a second, the same chunks re-sent at new positions."""
     from mapservice.robot.loadgen import RobotFleet
 
-    fleet = RobotFleet(mqtt_url, ros_map, args.robots)
+    try:
+        fleet = RobotFleet(mqtt_url, ros_map, args.robots, prefix=args.prefix, mqtt_conn=conn)
+    except ValueError as exc:
+        sys.exit(f"mapservice sim: {exc}")
     signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
     started, last = time.monotonic(), [0.0]
 
@@ -148,6 +163,8 @@ def _until_stopped(run, stop, mqtt_url: str) -> None:
         run()
     except KeyboardInterrupt:
         stop()
+    except PermissionError as exc:
+        sys.exit(f"{exc}; check the credentials file (`mapservice robot add <robotId> --save FILE`)")
     except OSError as exc:
         sys.exit(f"cannot reach the MQTT broker at {mqtt_url}: {exc}; "
                  "start one (e.g. `make up`) or pass --mqtt-url")
@@ -157,9 +174,107 @@ def _until_stopped(run, stop, mqtt_url: str) -> None:
 
 
 def cmd_robot(args) -> None:
+    if args.robot_command is not None:
+        return _robot_identity(args)
+    if not args.map or not args.robot_id:
+        sys.exit("mapservice robot: the agent needs --map and --robot-id "
+                 "(or `mapservice robot add|remove|list` to manage robots' MQTT credentials)")
     from .agent import main as agent_main
 
     agent_main(args)
+
+
+def _broker_files(args):
+    from pathlib import Path
+
+    from mapservice.adapters.mqtt_auth import AclTopics, BrokerFiles
+    from mapservice.settings import Settings
+
+    from pydantic import ValidationError
+
+    try:
+        settings = Settings(**({"data_dir": Path(args.data_dir)} if args.data_dir else {}))
+    except ValidationError as exc:
+        sys.exit(f"mapservice robot {args.robot_command}: the MAPSERVICE_* settings do not load "
+                 f"({exc.errors()[0]['msg']}); they name the topics the ACL is about")
+    embedded = BrokerFiles.in_data_dir(settings.data_dir, settings)
+    files = BrokerFiles(Path(args.password_file) if args.password_file else embedded.password_file,
+                        Path(args.acl_file) if args.acl_file else embedded.acl_file,
+                        AclTopics.from_settings(settings))
+    return settings, files
+
+
+def _reload_local_mosquitto(files) -> str:
+    """SIGHUPs the Mosquitto whose pid the local stack wrote next to the files, if it runs."""
+    pid_file = files.password_file.with_name("mosquitto.pid")
+    try:
+        pid = int(pid_file.read_text().strip())
+        cmdline = open(f"/proc/{pid}/cmdline", "rb").read()
+    except (OSError, ValueError):
+        return ("a running Mosquitto reads the files again on SIGHUP (`kill -HUP <pid>`; "
+                "compose: `docker compose kill -s HUP mosquitto`)")
+    if b"mosquitto" not in cmdline:
+        return "no running Mosquitto of this data dir; it reads the files when it starts"
+    try:
+        os.kill(pid, signal.SIGHUP)
+    except OSError as exc:
+        return f"could not tell Mosquitto (pid {pid}) to reload ({exc}): `kill -HUP {pid}`"
+    return f"the local Mosquitto (pid {pid}) was told to read them again (SIGHUP)"
+
+
+def _robot_identity(args) -> None:
+    """`robot add|remove|list`: the broker's password file and ACL, one user per robot."""
+    settings, files = _broker_files(args)
+    try:
+        if args.robot_command == "list":
+            legacy = set(files.legacy_robots())
+            for robot in files.robots():
+                print(robot + ("  (may also use the 2019 chunk topic)" if robot in legacy else ""))
+            return
+        if args.robot_command == "remove":
+            if not files.remove_robot(args.robot_id_arg):
+                sys.exit(f"mapservice robot remove: no robot {args.robot_id_arg!r} in {files.password_file}")
+            print(f"removed robot {args.robot_id_arg} from {files.password_file} and {files.acl_file}; "
+                  + _reload_local_mosquitto(files))
+            return
+        cred = files.add_robot(args.robot_id_arg, legacy_chunks=args.legacy_chunks,
+                               rotate=args.rotate)
+    except (OSError, ValueError) as exc:
+        sys.exit(f"mapservice robot {args.robot_command}: {exc}")
+    if args.save:
+        from .connection import save_credential
+
+        save_credential(args.save, cred.robot_id, cred.password)
+    reload = _reload_local_mosquitto(files)
+    broker = args.broker or settings.mqtt_url
+    if args.json:
+        print(json.dumps({"robotId": cred.robot_id, "username": cred.username,
+                          "password": cred.password, "broker": broker, "topics": cred.topics,
+                          "legacyChunkTopic": cred.legacy_chunks,
+                          "passwordFile": str(files.password_file), "aclFile": str(files.acl_file)},
+                         indent=2))
+        return
+    legacy = files.topics.legacy_chunk_topic
+    saved = f"\nSaved to {args.save} (for mapservice sim/robot/drive --credentials)." if args.save else ""
+    print(f"""robot {cred.robot_id}: MQTT credential {"rotated" if args.rotate else "created"} \
+(the password is shown only now; the broker keeps its hash)
+
+  username   {cred.username}
+  password   {cred.password}
+  broker     {broker}{"   (TLS: give the robot the broker's CA certificate)" if broker.startswith("mqtts") else ""}
+
+  The robot publishes, exactly as in 2019 but with this username and password:
+    {cred.topics["pose"]:<32} its pose (listing 16), payload robotId "{cred.robot_id}"
+    {cred.topics["chunks"]:<32} its chunks (listing 14 payload, robotId "{cred.robot_id}")
+    {legacy:<32} {"allowed for this robot (--legacy-chunks): any robotId" if cred.legacy_chunks
+                  else "refused by the broker (use the topic above)"}
+  and reads {cred.topics["advertisements"]}. Anything else the broker refuses; a payload
+  whose robotId differs from the topic's is a dead letter (robot_id_mismatch).
+
+Written: {files.password_file} and {files.acl_file}; {reload}.{saved}
+EMQX (Kubernetes): add the user through its REST API instead, e.g.
+  curl -u KEY:SECRET -X POST http://EMQX:18083/api/v5/authentication/password_based:built_in_database/users \\
+       -H 'Content-Type: application/json' -d '{{"user_id": "{cred.username}", "password": "..."}}'""")
 
 
 def cmd_drive(args) -> None:
@@ -228,11 +343,14 @@ def add_parsers(sub) -> None:
                      help="the 2019 load test instead: robots in circles, the same chunks "
                           "re-sent at new positions every 5 s")
     sim.add_argument("--quiet", action="store_true", help="log lines instead of a live table")
+    add_mqtt_arguments(sim, many=True)
     sim.set_defaults(func=cmd_sim)
 
-    rb = sub.add_parser("robot", help="a robot agent: keeps its local map in sync with the service")
-    rb.add_argument("--map", required=True, help="the robot's map YAML (its PGM is kept in sync)")
-    rb.add_argument("--robot-id", required=True, help="this robot's id (1-64 of A-Z a-z 0-9 _ . : @ -)")
+    rb = sub.add_parser("robot", help="a robot agent: keeps its local map in sync with the service; "
+                        "`robot add|remove|list`: robots' own MQTT credentials")
+    rb.add_argument("--map", help="the robot's map YAML (its PGM is kept in sync); needed by the agent")
+    rb.add_argument("--robot-id", help="this robot's id (1-64 of A-Z a-z 0-9 _ . : @ -); needed by "
+                    "the agent")
     rb.add_argument("--api", default="http://127.0.0.1:8080", help="base URL of the 2019 REST API")
     rb.add_argument("--token", default=None, help=TOKEN_HELP)
     rb.add_argument("--mqtt", default="mqtt://127.0.0.1:1883", help="cloud MQTT broker")
@@ -247,7 +365,44 @@ def add_parsers(sub) -> None:
     rb.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
     rb.add_argument("--chunk-height", type=int, default=100, help="chunk height in pixels")
     rb.add_argument("--seconds", type=float, default=None, help="stop after this long")
-    rb.set_defaults(func=cmd_robot)
+    add_mqtt_arguments(rb, many=False)
+    rb.set_defaults(func=cmd_robot, robot_command=None)
+    ids = rb.add_subparsers(dest="robot_command", metavar="{add,remove,list}",
+                            help="manage robots' MQTT credentials (Mosquitto password file and ACL)")
+    for name, text in (("add", "give a robot its own MQTT user (username = robotId) and print "
+                               "the credential and topics to configure on the robot"),
+                       ("remove", "take a robot's MQTT user away (it can no longer connect)"),
+                       ("list", "the robots that have an MQTT user")):
+        cmd = ids.add_parser(name, help=text, description=text)
+        if name != "list":
+            cmd.add_argument("robot_id_arg", metavar="robotId",
+                             help="the robot's id, its MQTT username (1-64 of A-Z a-z 0-9 _ . : @ -)")
+        cmd.add_argument("--data-dir", default=None,
+                         help="data dir whose mqtt/passwd and mqtt/acl the local Mosquitto reads "
+                              "(default: MAPSERVICE_DATA_DIR, else .mapservice-data)")
+        cmd.add_argument("--password-file", default=None,
+                         help="a Mosquitto password_file elsewhere (e.g. infra/mosquitto/passwd); "
+                              "default: DATA_DIR/mqtt/passwd")
+        cmd.add_argument("--acl-file", default=None,
+                         help="the Mosquitto acl_file that goes with it (rewritten); default: "
+                              "DATA_DIR/mqtt/acl")
+        if name == "add":
+            cmd.add_argument("--legacy-chunks", action="store_true",
+                             help="also allow the 2019 topic iot/chunks/create, which names no "
+                                  "robot (this robot may then write chunks as any robotId); "
+                                  "default: refused, the robot uses iot/chunks/create/<robotId>")
+            cmd.add_argument("--rotate", action="store_true",
+                             help="the robot exists already: give it a new password (the old one "
+                                  "stops working)")
+            cmd.add_argument("--broker", default=None,
+                             help="the broker's address as robots reach it, for the printout "
+                                  "(default: MAPSERVICE_MQTT_URL)")
+            cmd.add_argument("--save", default=None, metavar="FILE",
+                             help="also store the password in this credentials file (JSON, mode "
+                                  "0600) for `mapservice sim/robot/drive --credentials FILE`")
+            cmd.add_argument("--json", action="store_true",
+                             help="print the credential as JSON (for scripts)")
+        cmd.set_defaults(func=cmd_robot, robot_command=name)
 
     dr = sub.add_parser("drive", help="drive one robot with the arrow keys and paint its chunk")
     dr.add_argument("--map", default=str(DEFAULT_MAP),
@@ -264,4 +419,5 @@ def add_parsers(sub) -> None:
     dr.add_argument("--start", type=float, nargs=2, metavar=("X", "Y"),
                     help="start position in metres (default: a free cell)")
     dr.add_argument("--step", type=int, default=10, help="pixels per key press and per screen cell")
+    add_mqtt_arguments(dr, many=False)
     dr.set_defaults(func=cmd_drive)

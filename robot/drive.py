@@ -17,10 +17,10 @@ import numpy as np
 
 from mapservice.core.events import MapMetaSet
 from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map, meta_for
-from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .chunks import chunk_of_pixel, chunk_pixels, metres_to_pixel, paste_chunk, pixel_to_metres
+from .connection import RobotMqtt, robot_mqtt_from_args
 from .faults import yaw_quaternion
 
 MOVES = {"up": (0, -1), "down": (0, 1), "left": (-1, 0), "right": (1, 0)}
@@ -114,12 +114,11 @@ def render(state: DriveState, rows: int, cols: int) -> list[str]:
 
 
 class Publisher:
-    def __init__(self, mqtt_url: str, robot_id: str) -> None:
-        host, port, tls = parse_mqtt_url(mqtt_url)
+    def __init__(self, mqtt_url: str, robot_id: str, mqtt_conn: RobotMqtt | None = None) -> None:
         self.robot_id = robot_id
-        self.client = make_client(f"drive-{robot_id}", tls=tls)
-        self.client.connect(host, port, keepalive=30)
-        self.client.loop_start()
+        self.conn = mqtt_conn or RobotMqtt(mqtt_url)  # its own credential, if it has one
+        self.client = self.conn.client(f"drive-{robot_id}", robot_id)
+        self.conn.connect(self.client, who=f"robot {robot_id}")
         self.poses = self.chunks = 0
 
     def pose(self, state: DriveState) -> None:
@@ -131,7 +130,7 @@ class Publisher:
 
     def chunk(self, row: int, column: int, data: bytes) -> None:
         now = time.time_ns() // 1_000_000
-        self.client.publish("iot/chunks/create", encode_chunk_create(
+        self.client.publish(self.conn.chunk_topic(self.robot_id), encode_chunk_create(
             row, column, data, format_timestamp(now), self.robot_id), qos=1)
         self.chunks += 1
 
@@ -209,7 +208,7 @@ def main(args) -> None:
             from .api_client import writer_token
 
             check_map_size(args.api, state.meta, token=writer_token(args.token))
-        pub = Publisher(args.mqtt, args.robot_id)
+        pub = Publisher(args.mqtt, args.robot_id, robot_mqtt_from_args(args, args.mqtt))
     except (OSError, ValueError) as exc:
         sys.exit(f"mapservice drive: {exc}")
     try:

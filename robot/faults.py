@@ -24,6 +24,11 @@ def coordinate_topic(robot_id: str) -> str:
     return f"iot/coordinates/{robot_id}"
 
 
+def legacy_chunk_topic(_robot_id: str) -> str:
+    """The 2019 chunk topic, the same for every robot."""
+    return CHUNK_TOPIC
+
+
 @dataclass(frozen=True)
 class Faults:
     clock_skew_s: float = 0.0  # each robot's clock is off by a fixed amount in [-s, +s]
@@ -36,6 +41,7 @@ class Message:
     topic: str
     payload: bytes
     kind: str  # pose, chunk or bad:<what the gateway should say>
+    robot_id: str = ""  # who sends it (its connection, where robots have credentials)
 
 
 def robot_skew_ms(robot_id: str, faults: Faults, seed: int = 0) -> int:
@@ -61,7 +67,8 @@ def encode_chunk(c: ChunkOut, skew_ms: int = 0) -> bytes:
                                c.robot_id)
 
 
-def bad_message(rng: random.Random, robot_id: str, t_ms: int, pixels: int = 10_000) -> Message:
+def bad_message(rng: random.Random, robot_id: str, t_ms: int, pixels: int = 10_000,
+                chunk_topic=legacy_chunk_topic) -> Message:
     """One invalid message of a random class the gateway must dead-letter."""
     ts = format_timestamp(t_ms)
     good_chunk = {"pgmB64compressedData": base64.b64encode(zlib.compress(bytes(pixels))).decode(),
@@ -69,29 +76,36 @@ def bad_message(rng: random.Random, robot_id: str, t_ms: int, pixels: int = 10_0
     kind = rng.choice(["not_json", "bad_base64", "wrong_chunk_size", "out_of_map",
                        "bad_timestamp", "robot_id_mismatch", "missing_field"])
     if kind == "not_json":
-        return Message(coordinate_topic(robot_id), b'{"robotId": "' + robot_id.encode(), "bad:not_json")
+        return Message(coordinate_topic(robot_id), b'{"robotId": "' + robot_id.encode(), "bad:not_json",
+                       robot_id)
     if kind == "robot_id_mismatch":
         doc = msgspec.json.decode(encode_coordinates("someone-else", ts, 0.0, 0.0))
-        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:robot_id_mismatch")
+        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:robot_id_mismatch",
+                       robot_id)
     if kind == "bad_timestamp":
         doc = msgspec.json.decode(encode_coordinates(robot_id, "yesterday noon", 0.0, 0.0))
-        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:bad_timestamp")
+        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:bad_timestamp",
+                       robot_id)
     if kind == "missing_field":
         doc = msgspec.json.decode(encode_coordinates(robot_id, ts, 0.0, 0.0))
         del doc["pose"]
-        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:missing_field")
+        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:missing_field",
+                       robot_id)
     if kind == "bad_base64":
         good_chunk["pgmB64compressedData"] = "not*base64!"
     elif kind == "wrong_chunk_size":
         good_chunk["pgmB64compressedData"] = base64.b64encode(zlib.compress(bytes(pixels // 2))).decode()
     elif kind == "out_of_map":
         good_chunk["row"] = 999_999
-    return Message(CHUNK_TOPIC, msgspec.json.encode(good_chunk), f"bad:{kind}")
+    return Message(chunk_topic(robot_id), msgspec.json.encode(good_chunk), f"bad:{kind}", robot_id)
 
 
 def to_messages(out: StepOut, faults: Faults = Faults(), *, seed: int = 0, tick: int = 0,
-                chunk_pixels: int = 10_000) -> tuple[list[Message], int]:
-    """The MQTT messages of one step and how many were lost on purpose."""
+                chunk_pixels: int = 10_000,
+                chunk_topic=legacy_chunk_topic) -> tuple[list[Message], int]:
+    """The MQTT messages of one step and how many were lost on purpose; `chunk_topic(robotId)`
+    is where a robot's chunks go (the 2019 topic, or its own where the broker checks
+    identities)."""
     rng = random.Random(f"faults:{seed}:{tick}")
     messages: list[Message] = []
     lost = 0
@@ -101,11 +115,13 @@ def to_messages(out: StepOut, faults: Faults = Faults(), *, seed: int = 0, tick:
             lost += 1
             continue
         if faults.bad_rate and rng.random() < faults.bad_rate:
-            messages.append(bad_message(rng, item.robot_id, item.t_ms, chunk_pixels))
+            messages.append(bad_message(rng, item.robot_id, item.t_ms, chunk_pixels, chunk_topic))
             continue
         skew = robot_skew_ms(item.robot_id, faults, seed)
         if isinstance(item, PoseOut):
-            messages.append(Message(coordinate_topic(item.robot_id), encode_pose(item, skew), "pose"))
+            messages.append(Message(coordinate_topic(item.robot_id), encode_pose(item, skew), "pose",
+                                    item.robot_id))
         else:
-            messages.append(Message(CHUNK_TOPIC, encode_chunk(item, skew), "chunk"))
+            messages.append(Message(chunk_topic(item.robot_id), encode_chunk(item, skew), "chunk",
+                                    item.robot_id))
     return messages, lost

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mapservice.adapters.ros_map import RosMap, free_cells_metres, meta_for, slice_chunks
-from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
+
+from .connection import RobotClients, RobotMqtt
 
 
 @dataclass
@@ -35,11 +36,14 @@ class RobotFleet:
 
     def __init__(self, mqtt_url: str, ros_map: RosMap, robots: int, *, prefix: str = "robot",
                  pose_period_s: float = 1.0, chunk_period_s: float = 5.0, seed: int = 7,
-                 record: bool = False, qos: int = 1) -> None:
+                 record: bool = False, qos: int = 1, mqtt_conn: RobotMqtt | None = None) -> None:
         self.mqtt_url = mqtt_url
+        # Where robots have credentials, each connects as itself (one connection per robot).
+        self.conn = mqtt_conn or RobotMqtt(mqtt_url)
         self.meta = meta_for(ros_map)
         self.chunks = list(slice_chunks(ros_map).values())
         self.robots = [f"{prefix}-{i:04d}" for i in range(robots)]
+        self.conn.check(self.robots)
         self.pose_period_s = pose_period_s
         self.chunk_period_s = chunk_period_s
         self.record = record
@@ -67,10 +71,8 @@ class RobotFleet:
                                   loaded=(i + now_ms // 60000) % 2 == 0)
 
     def run(self, seconds: float | None, on_tick: Callable[[LoadStats], None] | None = None) -> LoadStats:
-        host, port, tls = parse_mqtt_url(self.mqtt_url)
-        client = make_client(f"loadgen-{self._rng.getrandbits(32):08x}", tls=tls)
-        client.connect(host, port, keepalive=30)
-        client.loop_start()
+        clients = RobotClients(self.conn, self.robots, f"loadgen-{self._rng.getrandbits(32):08x}")
+        clients.connect()
         n = len(self.robots)
         started = time.monotonic()
         # Robots are spread evenly over each second so the load is smooth. A heap of
@@ -93,8 +95,8 @@ class RobotFleet:
                 robot = self.robots[i]
                 now_ms = max(time.time_ns() // 1_000_000, last_ts[i] + 1)
                 last_ts[i] = now_ms
-                pending.append(client.publish(f"iot/coordinates/{robot}",
-                                              self._pose(i, robot, now_ms), qos=self.qos))
+                pending.append(clients.publish(robot, f"iot/coordinates/{robot}",
+                                               self._pose(i, robot, now_ms), qos=self.qos))
                 self.stats.poses += 1
                 if self.record:
                     self.stats.published.append(("pose", robot, now_ms, time.time()))
@@ -103,8 +105,8 @@ class RobotFleet:
                     row = self._rng.randrange(self.meta.chunk_rows)
                     col = self._rng.randrange(self.meta.chunk_cols)
                     pixels = self._rng.choice(self.chunks)
-                    pending.append(client.publish(
-                        self.chunk_topic,
+                    pending.append(clients.publish(
+                        robot, self.conn.chunk_topic(robot),
                         encode_chunk_create(row, col, pixels, format_timestamp(now_ms), robot),
                         qos=self.qos))
                     self.stats.chunks += 1
@@ -120,8 +122,5 @@ class RobotFleet:
             deadline = time.monotonic() + 30
             for info in pending:
                 info.wait_for_publish(max(0.0, deadline - time.monotonic()))
-            client.loop_stop()
-            client.disconnect()
+            clients.close()
         return self.stats
-
-    chunk_topic = "iot/chunks/create"

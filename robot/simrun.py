@@ -11,8 +11,7 @@ import paho.mqtt.client as mqtt
 import structlog
 
 from mapservice.adapters.ros_map import RosMap
-from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-
+from .connection import RobotClients, RobotMqtt
 from .faults import Faults, to_messages
 from .sim import SimConfig, SimState, new_state, step
 
@@ -45,8 +44,10 @@ class SimStats:
 class SimRunner:
     def __init__(self, mqtt_url: str, ros_map: RosMap, robots: int, *, faults: Faults = Faults(),
                  seed: int = 7, config: SimConfig = SimConfig(), prefix: str = "sim",
-                 qos: int = 1) -> None:
+                 qos: int = 1, mqtt_conn: RobotMqtt | None = None) -> None:
         self.mqtt_url = mqtt_url
+        # Where robots have credentials, each connects as itself (RobotClients).
+        self.conn = mqtt_conn or RobotMqtt(mqtt_url)
         self.faults = faults
         self.seed = seed
         self.qos = qos
@@ -59,21 +60,23 @@ class SimRunner:
                 "the map has room for fewer robots; running fewer", asked=robots, running=hosted,
                 planning_cell_m=round(self.state.config.cell_m, 3))
         self.stats = SimStats(robots=hosted)
+        self.conn.check([r.robot_id for r in self.state.robots])
         self._stop = threading.Event()
+        self._closing = False
 
     def stop(self) -> None:
         self._stop.set()
 
     def _on_disconnect(self, client, userdata, flags, reason, properties=None) -> None:
-        if not self._stop.is_set():
+        if not self._stop.is_set() and not self._closing:
             self.stats.errors += 1
+            structlog.get_logger("sim").warning("disconnected from the MQTT broker",
+                                                reason=str(reason))
 
     def run(self, seconds: float | None = None, on_tick=None) -> SimStats:
-        host, port, tls = parse_mqtt_url(self.mqtt_url)
-        client = make_client(f"sim-{self.seed}-{time.time_ns() % 10**9}", tls=tls)
-        client.on_disconnect = self._on_disconnect
-        client.connect(host, port, keepalive=30)
-        client.loop_start()
+        clients = RobotClients(self.conn, [r.robot_id for r in self.state.robots],
+                               f"sim-{self.seed}", on_disconnect=self._on_disconnect)
+        clients.connect()
         started = time.monotonic()
         dt = self.state.config.dt_s
         chunk_px = self.state.meta.chunk_width * self.state.meta.chunk_height
@@ -88,14 +91,15 @@ class SimRunner:
                     continue
                 self.state, out = step(self.state)
                 messages, lost = to_messages(out, self.faults, seed=self.seed,
-                                             tick=self.state.tick, chunk_pixels=chunk_px)
+                                             tick=self.state.tick, chunk_pixels=chunk_px,
+                                             chunk_topic=self.conn.chunk_topic)
                 s = self.stats
                 s.ticks += 1
                 s.lost += lost
                 s.map_changes += len(out.notes)
                 s.recent.extend(out.notes)
                 for msg in messages:
-                    info = client.publish(msg.topic, msg.payload, qos=self.qos)
+                    info = clients.publish(msg.robot_id, msg.topic, msg.payload, qos=self.qos)
                     if info.rc != mqtt.MQTT_ERR_SUCCESS:
                         s.errors += 1
                     elif msg.kind == "pose":
@@ -108,8 +112,8 @@ class SimRunner:
                 if on_tick is not None:
                     on_tick(self)
         finally:
-            client.loop_stop()
-            client.disconnect()
+            self._closing = True  # our own disconnects are no errors
+            clients.close()
         return self.stats
 
 

@@ -1,10 +1,28 @@
-"""paho-mqtt client construction shared by the gateway, the load generator and tests."""
+"""paho-mqtt client construction shared by the gateway, the processors, the robots and tests."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
 from urllib.parse import urlparse
 
 import paho.mqtt.client as mqtt
+
+from mapservice.settings import Settings
+
+
+@dataclass(frozen=True)
+class MqttTls:
+    """TLS files of one MQTT client: the CA that signs the broker's certificate (None: the
+    system's CAs) and, for mutual TLS, a client certificate with its key."""
+
+    ca_file: str | Path | None = None
+    cert_file: str | Path | None = None
+    key_file: str | Path | None = None
+
+    def __post_init__(self) -> None:
+        if (self.cert_file is None) != (self.key_file is None):
+            raise ValueError("an MQTT client certificate needs its key file (and the other way round)")
 
 
 def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
@@ -17,18 +35,39 @@ def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
 
 def make_client(client_id: str, *, clean_session: bool = True, manual_ack: bool = False,
                 username: str | None = None, password: str | None = None,
-                tls: bool = False) -> mqtt.Client:
+                tls: bool = False, tls_files: MqttTls | None = None,
+                protocol: int = mqtt.MQTTv311) -> mqtt.Client:
+    """A paho client; `tls` (the URL said mqtts://) turns TLS on, with `tls_files` if given."""
+    if tls_files is not None and not tls and (tls_files.ca_file or tls_files.cert_file):
+        raise ValueError("MQTT CA or client certificate given for a plain mqtt:// URL; use mqtts://")
     client = mqtt.Client(
         mqtt.CallbackAPIVersion.VERSION2,
         client_id=client_id,
-        clean_session=clean_session,
-        protocol=mqtt.MQTTv311,
+        clean_session=clean_session if protocol != mqtt.MQTTv5 else None,
+        protocol=protocol,
         manual_ack=manual_ack,
     )
     if username:
         client.username_pw_set(username, password)
     if tls:
-        client.tls_set()
+        files = tls_files or MqttTls()
+        client.tls_set(ca_certs=str(files.ca_file) if files.ca_file else None,
+                       certfile=str(files.cert_file) if files.cert_file else None,
+                       keyfile=str(files.key_file) if files.key_file else None)
     client.max_inflight_messages_set(1000)
     client.max_queued_messages_set(0)
     return client
+
+
+def settings_tls(settings: Settings) -> MqttTls:
+    """The service's MQTT TLS files (MAPSERVICE_MQTT_CA_FILE, _CERT_FILE, _KEY_FILE)."""
+    return MqttTls(settings.mqtt_ca_file, settings.mqtt_cert_file, settings.mqtt_key_file)
+
+
+def service_client(settings: Settings, client_id: str, **kwargs) -> mqtt.Client:
+    """A client of the service (gateway, advertiser) with its credential and TLS settings."""
+    _, _, tls = parse_mqtt_url(settings.mqtt_url)
+    return make_client(
+        client_id, username=settings.mqtt_username,
+        password=settings.mqtt_password.get_secret_value() if settings.mqtt_password else None,
+        tls=tls, tls_files=settings_tls(settings), **kwargs)

@@ -210,8 +210,19 @@ def _check_robot_id(robot_id: str) -> Rejection | None:
     return None
 
 
-def decode_chunk_create(data: bytes, receive_ms: int, limits: Limits) -> Envelope | Rejection:
-    """Validate an `iot/chunks/create` message (listing 14) into a ChunkUpdated event."""
+def _mismatch(topic_robot_id: str, payload_robot_id: str) -> Rejection:
+    return Rejection(
+        Reason.ROBOT_ID_MISMATCH,
+        f"topic names robot {topic_robot_id[:80]!r} but the payload says {payload_robot_id!r}",
+    )
+
+
+def decode_chunk_create(data: bytes, receive_ms: int, limits: Limits,
+                        topic_robot_id: str | None = None) -> Envelope | Rejection:
+    """Validate an `iot/chunks/create` message (listing 14) into a ChunkUpdated event.
+
+    `topic_robot_id` is the robot a per-robot chunk topic (`iot/chunks/create/{robotId}`)
+    names; the payload's robotId must be the same. None: the 2019 topic, which names none."""
     if len(data) > limits.max_message_bytes:
         return Rejection(
             Reason.OVERSIZED, f"{len(data)} bytes exceeds the {limits.max_message_bytes} limit"
@@ -221,6 +232,8 @@ def decode_chunk_create(data: bytes, receive_ms: int, limits: Limits) -> Envelop
         return msg
     if bad := _check_robot_id(msg.robotId):
         return bad
+    if topic_robot_id is not None and msg.robotId != topic_robot_id:
+        return _mismatch(topic_robot_id, msg.robotId)
     if not (0 <= msg.row < limits.chunk_rows and 0 <= msg.column < limits.chunk_cols):
         return Rejection(
             Reason.OUT_OF_MAP,
@@ -283,10 +296,7 @@ def decode_coordinates(
     if bad := _check_robot_id(msg.robotId):
         return bad
     if msg.robotId != topic_robot_id:
-        return Rejection(
-            Reason.ROBOT_ID_MISMATCH,
-            f"topic names robot {topic_robot_id[:80]!r} but the payload says {msg.robotId!r}",
-        )
+        return _mismatch(topic_robot_id, msg.robotId)
     event_ms = _check_time(msg.timestamp, receive_ms, limits)
     if isinstance(event_ms, Rejection):
         return event_ms

@@ -13,7 +13,10 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+from mapservice.local.certs import CertFiles
 
 
 def free_port() -> int:
@@ -89,7 +92,6 @@ def start_amqtt(port: int, log_file=None, ws_port: int | None = None) -> subproc
 
 MOSQUITTO_CONF = """\
 listener {port} 127.0.0.1
-allow_anonymous true
 persistence false
 set_tcp_nodelay true
 max_inflight_messages 1000
@@ -100,26 +102,82 @@ MOSQUITTO_WS_LISTENER = """\
 listener {ws_port} 127.0.0.1
 protocol websockets
 """
+# Robot identities (mapservice.adapters.mqtt_auth writes both files): no anonymous client,
+# each user publishes only where the ACL lets it, and a client's id is its username, so no
+# client can take over another's session (the gateway's persistent one above all).
+MOSQUITTO_AUTH = """\
+per_listener_settings false
+allow_anonymous false
+password_file {password_file}
+acl_file {acl_file}
+use_username_as_clientid true
+"""
+MOSQUITTO_TLS_LISTENER = """\
+listener {tls_port} 127.0.0.1
+cafile {ca_file}
+certfile {cert_file}
+keyfile {key_file}
+require_certificate {require_certificate}
+"""
 
 
-def start_mosquitto(port: int, workdir: Path, log_file=None,
-                    ws_port: int | None = None) -> subprocess.Popen:
-    """mosquitto on 127.0.0.1:port; with ws_port also MQTT over WebSocket there."""
+@dataclass(frozen=True)
+class MosquittoOptions:
+    """What a local Mosquitto adds to its plain listener: authentication (a password file and
+    an ACL file) and a TLS listener with the given server certificate."""
+
+    password_file: Path | None = None
+    acl_file: Path | None = None
+    tls_port: int | None = None
+    tls: CertFiles | None = None
+    require_client_certificate: bool = False
+
+
+def mosquitto_conf(port: int, ws_port: int | None = None,
+                   options: MosquittoOptions = MosquittoOptions()) -> str:
+    text = MOSQUITTO_CONF.format(port=port)
+    if options.password_file is not None:
+        text += MOSQUITTO_AUTH.format(password_file=options.password_file,
+                                      acl_file=options.acl_file)
+    else:
+        text += "allow_anonymous true\n"
+    if os.geteuid() == 0:
+        # As root Mosquitto drops to its own user, who cannot read a test's private files.
+        text += "user root\n"
+    if ws_port:
+        text += MOSQUITTO_WS_LISTENER.format(ws_port=ws_port)
+    if options.tls_port:
+        if options.tls is None:
+            raise ValueError("a TLS listener needs a server certificate")
+        text += MOSQUITTO_TLS_LISTENER.format(
+            tls_port=options.tls_port, ca_file=options.tls.ca_file, cert_file=options.tls.cert_file,
+            key_file=options.tls.key_file,
+            require_certificate="true" if options.require_client_certificate else "false")
+    return text
+
+
+def start_mosquitto(port: int, workdir: Path, log_file=None, ws_port: int | None = None,
+                    options: MosquittoOptions = MosquittoOptions()) -> subprocess.Popen:
+    """mosquitto on 127.0.0.1:port; with ws_port also MQTT over WebSocket there; `options`
+    add authentication and a TLS listener."""
     ensure_port_free(port, "MQTT (mosquitto)")
     if ws_port:
         ensure_port_free(ws_port, "MQTT over WebSocket (mosquitto)")
+    if options.tls_port:
+        ensure_port_free(options.tls_port, "MQTT over TLS (mosquitto)")
     binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     if not os.path.exists(binary):
         raise RuntimeError("mosquitto not installed: apt-get install mosquitto (make test does)")
     workdir.mkdir(parents=True, exist_ok=True)
     conf = workdir / f"mosquitto-{port}.conf"
-    conf.write_text(MOSQUITTO_CONF.format(port=port)
-                    + (MOSQUITTO_WS_LISTENER.format(ws_port=ws_port) if ws_port else ""))
+    conf.write_text(mosquitto_conf(port, ws_port, options))
     proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log_file or subprocess.DEVNULL,
                             stderr=subprocess.STDOUT, start_new_session=True)
     wait_for_port(port, proc=proc, what="mosquitto")
     if ws_port:
         wait_for_port(ws_port, proc=proc, what="mosquitto's WebSocket listener")
+    if options.tls_port:
+        wait_for_port(options.tls_port, proc=proc, what="mosquitto's TLS listener")
     return proc
 
 

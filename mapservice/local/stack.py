@@ -7,16 +7,22 @@ run exactly what production runs, only with local addresses.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import httpx
 import structlog
 
+from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, BrokerFiles,
+                                           RobotCredential, new_password)
+from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.local import embedded
+from mapservice.local.certs import make_server_cert
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.core.events import MapMetaSet, encode, kafka_key, make_envelope
@@ -25,6 +31,33 @@ from mapservice.settings import Settings
 from mapservice.adapters.kafka_topics import ensure_topics
 
 log = structlog.get_logger(__name__)
+
+
+def mqtt_accepts(mqtt_url: str, username: str | None, password: str | None,
+                 timeout_s: float = 5.0, **tls) -> bool:
+    """Whether the broker at `mqtt_url` accepts this credential (its CONNACK), for waiting
+    until a reloaded password file is in force and for tests."""
+    host, port, use_tls = parse_mqtt_url(mqtt_url)
+    client = make_client(f"probe-{username}-{time.time_ns()}", username=username,
+                         password=password, tls=use_tls, **tls)
+    answered, result = threading.Event(), []
+
+    def on_connect(_c, _u, _f, reason_code, _p) -> None:
+        result.append(not reason_code.is_failure)
+        answered.set()
+
+    client.on_connect = on_connect
+    try:
+        client.connect(host, port, keepalive=10)
+    except OSError:
+        return False
+    client.loop_start()
+    try:
+        answered.wait(timeout_s)
+        return bool(result and result[0])
+    finally:
+        client.disconnect()
+        client.loop_stop()
 
 
 @dataclass
@@ -40,6 +73,13 @@ class Stack:
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     commands: dict[str, tuple[str, ...]] = field(default_factory=dict)  # how each was spawned
     meta: MapMetaSet | None = None  # the last published map meta (re-published after a restart)
+    # Robot identities: Mosquitto with a password file and an ACL (DATA_DIR/mqtt/), no
+    # anonymous client; the gateway and the processors connect with service users whose
+    # generated passwords are kept in DATA_DIR/secrets/.
+    mqtt_auth: bool = False
+    # A TLS listener too (a local CA in DATA_DIR/tls/), which the components connect through.
+    mqtt_tls: bool = False
+    mqtt_tls_port: int = 0
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -57,12 +97,54 @@ class Stack:
             # A broker of its own: only the operator knows where browsers reach it.
             self.mqtt_ws_url = self.extra_env.get(
                 "MAPSERVICE_MQTT_WS_URL", os.environ.get("MAPSERVICE_MQTT_WS_URL", ""))
+        if (self.mqtt_auth or self.mqtt_tls) and self.mqtt != "mosquitto":
+            # amqtt checks topics per user, but deletes or takes over a client id's session
+            # before it checks the credential (amqtt 0.12 broker._client_connected): any
+            # anonymous client could wipe the gateway's session. Mosquitto does neither.
+            raise ValueError("robot identities (mqtt_auth) and MQTT TLS need the embedded "
+                             "Mosquitto (mqtt='mosquitto'), not " + repr(self.mqtt))
+        self.mqtts_url = ""
+        if self.mqtt_tls:
+            self.mqtt_tls_port = self.mqtt_tls_port or embedded.free_port()
+            self.mqtts_url = f"mqtts://127.0.0.1:{self.mqtt_tls_port}"
+        self.tls_dir = self.data_dir / "tls"
+        self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
 
     @property
     def api_url(self) -> str:
         return f"http://127.0.0.1:{self.api_port}"
 
-    def env(self) -> dict[str, str]:
+    @property
+    def ca_file(self) -> Path:
+        """The local CA's certificate (clients of the TLS listener trust it)."""
+        return self.tls_dir / "ca.crt"
+
+    def service_password(self, username: str) -> str:
+        """The generated MQTT password of a service user (kept in DATA_DIR/secrets/)."""
+        path = self.data_dir / "secrets" / f"mqtt-{username}-password"
+        if not path.exists():
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.parent.chmod(0o700)
+            path.write_text(new_password() + "\n")
+            path.chmod(0o600)
+        return path.read_text().strip()
+
+    def _mqtt_env(self, component: str | None) -> dict[str, str]:
+        """A component's MQTT address, TLS and credential: the gateway its service user, the
+        processors (advertisements) theirs; anything else (robots, tools) none."""
+        env: dict[str, str] = {}
+        if self.mqtt_tls:
+            env.update({"MAPSERVICE_MQTT_URL": self.mqtts_url,
+                        "MAPSERVICE_MQTT_CA_FILE": str(self.ca_file)})
+        if self.mqtt_auth and component is not None:
+            user = (GATEWAY_USER if component == "gateway" else
+                    PROCESSORS_USER if component.startswith(("server", "processors")) else None)
+            if user is not None:
+                env.update({"MAPSERVICE_MQTT_USERNAME": user,
+                            "MAPSERVICE_MQTT_PASSWORD": self.service_password(user)})
+        return env
+
+    def env(self, component: str | None = None) -> dict[str, str]:
         return {
             **os.environ,
             "MAPSERVICE_DATA_DIR": str(self.data_dir),
@@ -74,6 +156,7 @@ class Stack:
             # Advertisements' chunkUrl must name this API, whatever port it got.
             "MAPSERVICE_PUBLIC_BASE_URL": os.environ.get("MAPSERVICE_PUBLIC_BASE_URL", self.api_url),
             "PYTHONUNBUFFERED": "1",
+            **self._mqtt_env(component),
             **self.extra_env,
         }
 
@@ -102,7 +185,7 @@ class Stack:
     def spawn(self, name: str, *args: str) -> subprocess.Popen:
         """Runs `mapservice <args>` as component `name` (log in log_dir/<name>.log)."""
         self.commands[name] = args
-        proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args], env=self.env(),
+        proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args], env=self.env(name),
                                 stdout=self._log(name), stderr=subprocess.STDOUT,
                                 start_new_session=True)
         self.procs[name] = proc
@@ -178,10 +261,47 @@ class Stack:
         elif self.mqtt == "mosquitto":
             self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
                                                           self._log("mosquitto"),
-                                                          ws_port=self.mqtt_ws_port)
+                                                          ws_port=self.mqtt_ws_port,
+                                                          options=self._mosquitto_options())
+            if self.mqtt_auth:  # `mapservice robot add` tells this broker to reload (SIGHUP)
+                self.broker_files.password_file.with_name("mosquitto.pid").write_text(
+                    f"{self.procs['mqtt'].pid}\n")
         else:
             raise RuntimeError(f"the MQTT broker at {self.mqtt} is not this stack's to start")
         return self.procs["mqtt"]
+
+    def _mosquitto_options(self) -> embedded.MosquittoOptions:
+        """Password file and ACL (with the service users' passwords), and the TLS listener."""
+        options = embedded.MosquittoOptions()
+        if self.mqtt_auth:
+            for user in (GATEWAY_USER, PROCESSORS_USER):
+                self.broker_files.set_service_user(user, self.service_password(user))
+            options = replace(options, password_file=self.broker_files.password_file,
+                              acl_file=self.broker_files.acl_file)
+        if self.mqtt_tls:
+            options = replace(options, tls_port=self.mqtt_tls_port,
+                              tls=make_server_cert(self.tls_dir))
+        return options
+
+    def add_robot(self, robot_id: str, *, legacy_chunks: bool = False) -> RobotCredential:
+        """A robot's own MQTT credential, in force once this returns (the broker re-read its
+        files on SIGHUP and accepted the new user)."""
+        if not self.mqtt_auth:
+            raise RuntimeError("this stack runs without robot identities (mqtt_auth=False)")
+        credential = self.broker_files.add_robot(robot_id, legacy_chunks=legacy_chunks)
+        self.reload_mqtt()
+        deadline = time.monotonic() + 10
+        while not mqtt_accepts(self.mqtt_url, credential.username, credential.password):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the broker did not accept robot {robot_id}'s new credential")
+            time.sleep(0.1)
+        return credential
+
+    def reload_mqtt(self) -> None:
+        """Mosquitto reads its password file and ACL again (SIGHUP)."""
+        proc = self.procs.get("mqtt")
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGHUP)
 
     def restart(self, name: str) -> subprocess.Popen:
         """Starts component `name` again after it exited (the supervisor of `up` calls this)."""

@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+import ssl
+
 from starlette.applications import Starlette
 
 from mapservice.settings import Settings
@@ -27,7 +29,20 @@ def engine_for(settings: Settings) -> SqlEngine:
 
         return ChdbEngine(dsn, read_only_settings=limits)
     return ServerEngine(dsn, settings.clickhouse_username,
-                        settings.clickhouse_password.get_secret_value(), read_only_settings=limits)
+                        settings.clickhouse_password.get_secret_value(), read_only_settings=limits,
+                        verify=clickhouse_verify(settings))
+
+
+def clickhouse_verify(settings: Settings) -> bool | ssl.SSLContext:
+    """httpx's `verify` for the ClickHouse server: the configured CA and client certificate
+    (MAPSERVICE_CLICKHOUSE_*_FILE), or the system's CAs."""
+    tls = settings.clickhouse_tls()
+    if not tls:
+        return True
+    context = ssl.create_default_context(cafile=tls.get("ca_cert"))
+    if "client_cert" in tls:
+        context.load_cert_chain(tls["client_cert"], tls["client_cert_key"])
+    return context
 
 
 def engine_timezone(engine: SqlEngine) -> str:

@@ -232,18 +232,79 @@ def acl_rules() -> list[str]:
     return [line for line in cm["data"]["acl.conf"].splitlines() if line.startswith("{")]
 
 
+RULE = re.compile(r'^\{(?P<perm>allow|deny), (?P<who>all|\{(?:user|username), (?:"(?P<user>[^"]*)"|'
+                  r'\{re, "(?P<re>[^"]*)"\})\}), (?P<action>publish|subscribe|all), \[(?P<topics>.*)\]\}\.$')
+
+
+def topic_matches(topic_filter: str, topic: str) -> bool:
+    """MQTT matching of a topic (or, for a subscription, a filter taken literally) by a filter."""
+    f, t = topic_filter.split("/"), topic.split("/")
+    for i, level in enumerate(f):
+        if level == "#":
+            return True
+        if i >= len(t) or (level != "+" and level != t[i]):
+            return False
+    return len(f) == len(t)
+
+
+def emqx_allows(rules: list[str], username: str, action: str, topic: str) -> bool:
+    """What EMQX's file authorizer answers (first matching rule, `${username}` rendered;
+    no_match = deny), for the rule forms acl.conf uses."""
+    for rule in rules:
+        if rule == "{deny, all}.":
+            return False
+        m = RULE.match(rule)
+        assert m, f"acl.conf rule this check cannot read: {rule}"
+        if m["who"] != "all" and not (username == m["user"] or (m["re"] and re.search(m["re"], username))):
+            continue
+        if m["action"] not in ("all", action):
+            continue
+        topics = [t.replace("${username}", username) for t in re.findall(r'"([^"]*)"', m["topics"])]
+        if any(topic_matches(t, topic) for t in topics):
+            return m["perm"] == "allow"
+    return False
+
+
 def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
-    """Gateway subscribes through its share group, processors publish advertisements, a robot publishes as itself; the rest is denied."""
+    """Gateway subscribes through its share group, processors publish advertisements, a robot
+    publishes its own pose and chunks only (not another's, not the 2019 chunk topic, not as a
+    wildcard username) and reads advertisements; the rest is denied."""
     s = Settings(mqtt_share_group="mapservice")
     rules = acl_rules()
-    gateway = next(r for r in rules if '"mapservice-gateway"' in r)
     for topic in s.mqtt_subscriptions:
-        assert f'"{topic}"' in gateway, topic
-    assert any('"mapservice-processors"' in r and "publish" in r and f'"{s.advertisement_topic}"' in r for r in rules)
-    coordinate_prefix = s.coordinate_topic.removesuffix("#")
-    assert any(r.startswith("{allow, all, publish") and f'"{coordinate_prefix}${{username}}"' in r for r in rules)
+        assert emqx_allows(rules, "mapservice-gateway", "subscribe", topic), topic
+    assert emqx_allows(rules, "mapservice-processors", "publish", s.advertisement_topic)
+    coordinates, chunks = s.coordinate_topic.removesuffix("#"), s.robot_chunk_topic.removesuffix("+")
+    for robot in ("r1", "agv-7.hall_2@plant:1"):
+        assert emqx_allows(rules, robot, "publish", f"{coordinates}{robot}")
+        assert emqx_allows(rules, robot, "publish", f"{chunks}{robot}")
+        assert emqx_allows(rules, robot, "subscribe", s.advertisement_topic)
+        assert not emqx_allows(rules, robot, "publish", f"{coordinates}someone-else")
+        assert not emqx_allows(rules, robot, "publish", f"{chunks}someone-else")
+        assert not emqx_allows(rules, robot, "publish", s.create_chunk_topic)  # 2019 topic: closed
+        for spy in ("#", s.coordinate_topic, f"{chunks}+", f"$share/x/{s.coordinate_topic}"):
+            assert not emqx_allows(rules, robot, "subscribe", spy), spy
+        assert not emqx_allows(rules, robot, "publish", s.advertisement_topic)
+    # A username with wildcards or slashes renders no topic filter it could abuse.
+    for bad in ("#", "+", "a/b"):
+        assert not emqx_allows(rules, bad, "publish", f"{coordinates}someone-else")
+    assert not emqx_allows(rules, "mapservice-gateway", "subscribe", "#")
     assert rules[-1] == "{deny, all}."
     assert "no_match = deny" in emqx_config()
+    assert re.search(r"password_based[^}]*backend = built_in_database", emqx_config(), re.S)
+
+
+def test_emqx_has_a_tls_listener_for_robots() -> None:
+    """EMQX opens a TLS listener (8883) with a certificate from a mounted Secret."""
+    config = emqx_config()
+    listener = re.search(r"listeners\.ssl\.default \{(.*?)\n\}", config, re.S)
+    assert listener and 'bind = "0.0.0.0:8883"' in listener.group(1)
+    certfile = re.search(r'certfile = "([^"]+)"', listener.group(1)).group(1)
+    spec = platform("EMQX")["spec"]["coreTemplate"]["spec"]
+    mounts = {m["name"]: m["mountPath"] for m in spec["extraVolumeMounts"]}
+    volumes = {v["name"]: v for v in spec["extraVolumes"]}
+    (name,) = [n for n, path in mounts.items() if certfile.startswith(path + "/")]
+    assert "secret" in volumes[name]
 
 
 def test_emqx_internal_zone_holds_a_gateway_restart_at_plant_load() -> None:

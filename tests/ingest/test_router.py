@@ -42,7 +42,7 @@ def test_pose_goes_to_pose_topic_keyed_by_robot(router, settings, wire, now_ms) 
     assert isinstance(env.payload, PoseReported) and env.robot_id == "blabla"
 
 
-@pytest.mark.parametrize("topic", ["iot/chunks/delete", "iot/chunks/create/extra", "iot/coordinates",
+@pytest.mark.parametrize("topic", ["iot/chunks/delete", "iot/chunks/create/a/b", "iot/coordinates",
                                    "other/coordinates/blabla", ""])
 def test_unknown_topic_is_dead_lettered(router, settings, wire, now_ms, topic) -> None:
     """A topic without a handler gives an unknown_topic dead letter with the original bytes."""
@@ -94,6 +94,31 @@ def test_configured_topics_are_used(wire, now_ms) -> None:
     assert r.route("site1/chunks", wire.chunk(), now_ms, Limits()).topic == "c"
     assert r.route("site1/robots/blabla", wire.pose(), now_ms, Limits()).topic == "p"
     assert r.route("iot/chunks/create", wire.chunk(), now_ms, Limits()).topic == "d"
+
+
+def test_robot_chunk_topic_names_the_robot(router, settings, wire, now_ms) -> None:
+    """A chunk on iot/chunks/create/<robotId> is the same ChunkUpdated the 2019 topic gives,
+    attributed to that robot; a payload naming another robot is a robot_id_mismatch dead letter."""
+    legacy = router.route("iot/chunks/create", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits())
+    own = router.route("iot/chunks/create/r1", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits())
+    assert own.reason is None and (own.topic, own.key, own.value) == (legacy.topic, legacy.key, legacy.value)
+    assert own.envelope.robot_id == "r1"
+    other = router.route("iot/chunks/create/r1", wire.chunk(robotId="r2"), now_ms, Limits())
+    assert other.reason == "robot_id_mismatch" and other.topic == settings.topic_dead_letter
+    letter = decode_dead_letter(other.value)
+    assert "'r1'" in letter.detail and "'r2'" in letter.detail
+    assert letter.mqtt_topic == "iot/chunks/create/r1"
+
+
+def test_robot_chunk_topic_can_be_configured_or_turned_off(wire, now_ms) -> None:
+    """MAPSERVICE_ROBOT_CHUNK_TOPIC moves the per-robot chunk topic; empty turns it off (and
+    an empty MAPSERVICE_CREATE_CHUNK_TOPIC the 2019 one): such messages are unknown_topic."""
+    moved = Router(Settings(robot_chunk_topic="site1/chunks/+"), "gw")
+    assert moved.route("site1/chunks/r1", wire.chunk(robotId="r1"), now_ms, Limits()).reason is None
+    off = Router(Settings(robot_chunk_topic="", create_chunk_topic=""), "gw")
+    for topic in ("iot/chunks/create/r1", "iot/chunks/create"):
+        assert off.route(topic, wire.chunk(robotId="r1"), now_ms, Limits()).reason == "unknown_topic"
+    assert Settings(robot_chunk_topic="", create_chunk_topic="").mqtt_subscriptions == ["iot/coordinates/#"]
 
 
 @pytest.mark.parametrize("filter_", ["iot/coordinates/#", "iot/coordinates/+", "iot/coordinates/",

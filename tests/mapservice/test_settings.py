@@ -22,7 +22,7 @@ def test_local_defaults() -> None:
     assert s.api_read_access == "open"
     assert (s.create_chunk_topic, s.coordinate_topic) == ("iot/chunks/create", "iot/coordinates/#")
     assert s.retention_ms == 7 * 86_400_000
-    assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#"]
+    assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#", "iot/chunks/create/+"]
 
 
 def test_production_refuses_default_admin_token() -> None:
@@ -88,7 +88,8 @@ def test_env_vars_override(monkeypatch) -> None:
     assert s.kafka_bootstrap == "kafka-1:9093,kafka-2:9093"
     assert s.max_grid == 64 and s.max_future_skew_s == 2.5
     assert s.retention_ms == 3 * 86_400_000
-    assert s.mqtt_subscriptions == ["$share/gw/iot/chunks/create", "$share/gw/iot/coordinates/#"]
+    assert s.mqtt_subscriptions == ["$share/gw/iot/chunks/create", "$share/gw/iot/coordinates/#",
+                                    "$share/gw/iot/chunks/create/+"]
 
 
 def test_invalid_env_value_is_refused(monkeypatch) -> None:
@@ -140,3 +141,105 @@ def test_kafka_ca_file_reaches_librdkafka(tmp_path: Path) -> None:
     assert "ssl.ca.location" not in Settings().kafka_config()
     conf = Settings(kafka_security_protocol="SASL_SSL", kafka_ssl_ca_file=ca).kafka_config()
     assert conf["ssl.ca.location"] == str(ca)
+
+
+@pytest.fixture
+def cert_chains(monkeypatch) -> list[tuple]:
+    """Every client certificate an ssl.SSLContext loads (file names), recorded."""
+    import ssl
+
+    loaded: list[tuple] = []
+    original = ssl.SSLContext.load_cert_chain
+
+    def load_cert_chain(self, certfile, keyfile=None, password=None):
+        loaded.append((str(certfile), str(keyfile)))
+        return original(self, certfile, keyfile, password)
+
+    monkeypatch.setattr(ssl.SSLContext, "load_cert_chain", load_cert_chain)
+    return loaded
+
+
+def test_kafka_client_certificate_reaches_librdkafka_and_faust(tmp_path: Path, cert_chains) -> None:
+    """MAPSERVICE_KAFKA_SSL_CERT_FILE/KEY_FILE become librdkafka's ssl.certificate.location and
+    ssl.key.location (every confluent-kafka client) and the faust SSL context's cert chain."""
+    from mapservice.local.certs import make_client_cert
+    from mapservice.processors.app import _faust_credentials
+
+    files = make_client_cert(tmp_path, "mapservice")
+    s = Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=files.ca_file,
+                 kafka_ssl_cert_file=files.cert_file, kafka_ssl_key_file=files.key_file)
+    conf = s.kafka_config()
+    assert (conf["ssl.ca.location"], conf["ssl.certificate.location"], conf["ssl.key.location"]) == (
+        str(files.ca_file), str(files.cert_file), str(files.key_file))
+    assert "ssl.certificate.location" not in Settings().kafka_config()
+    creds = _faust_credentials(s)
+    assert creds.context.cert_store_stats()["x509_ca"] == 1
+    assert cert_chains == [(str(files.cert_file), str(files.key_file))]
+    with pytest.raises(ValueError, match="go together"):
+        Settings(kafka_security_protocol="SSL", kafka_ssl_cert_file=files.cert_file)
+    with pytest.raises(ValueError, match="SSL or SASL_SSL"):
+        Settings(kafka_ssl_cert_file=files.cert_file, kafka_ssl_key_file=files.key_file)
+
+
+def test_clickhouse_tls_files_reach_clickhouse_connect_and_the_sql_engine(
+        tmp_path: Path, monkeypatch, cert_chains) -> None:
+    """MAPSERVICE_CLICKHOUSE_CA_FILE/CERT_FILE/KEY_FILE are passed to clickhouse-connect's
+    get_client (ca_cert, client_cert, client_cert_key) by the store (writer, reader, ping) and
+    to the analysts' SQL engine's TLS context; only for an https:// DSN."""
+    import clickhouse_connect
+
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
+    from mapservice.local.certs import make_client_cert
+    from mapservice.sql.apps import engine_for
+
+    files = make_client_cert(tmp_path, "mapservice")
+    s = Settings(clickhouse_dsn="https://ch.example:8443", clickhouse_ca_file=files.ca_file,
+                 clickhouse_cert_file=files.cert_file, clickhouse_key_file=files.key_file)
+    expected = {"ca_cert": str(files.ca_file), "client_cert": str(files.cert_file),
+                "client_cert_key": str(files.key_file)}
+    assert s.clickhouse_tls() == expected
+    calls: list[dict] = []
+    monkeypatch.setattr(clickhouse_connect, "get_client", lambda **kw: calls.append(kw) or object())
+    store = ClickHouseStore.from_settings(s)
+    store._connect()
+    try:
+        store.ping()
+    except AttributeError:
+        pass  # the fake client has no command(); the arguments are what counts
+    assert len(calls) == 2 and all({k: c[k] for k in expected} == expected for c in calls)
+    engine = engine_for(s)
+    context = engine._http._transport._pool._ssl_context
+    assert context.cert_store_stats()["x509_ca"] == 1
+    assert cert_chains == [(str(files.cert_file), str(files.key_file))]
+    assert Settings().clickhouse_tls() == {}
+    with pytest.raises(ValueError, match="https://"):
+        Settings(clickhouse_dsn="http://ch:8123", clickhouse_ca_file=files.ca_file)
+
+
+def test_mqtt_tls_files_reach_paho(tmp_path: Path, cert_chains) -> None:
+    """MAPSERVICE_MQTT_CA_FILE/CERT_FILE/KEY_FILE become the gateway's and advertiser's paho
+    tls_set (CA and client certificate); they need an mqtts:// URL."""
+    from mapservice.adapters.mqtt_client import service_client
+    from mapservice.local.certs import make_client_cert
+
+    files = make_client_cert(tmp_path, "mapservice-gateway")
+    s = Settings(mqtt_url="mqtts://broker:8883", mqtt_ca_file=files.ca_file,
+                 mqtt_cert_file=files.cert_file, mqtt_key_file=files.key_file,
+                 mqtt_username="mapservice-gateway", mqtt_password="pw")
+    client = service_client(s, "gw")
+    context = client._ssl_context
+    assert context is not None and context.cert_store_stats()["x509_ca"] == 1
+    assert cert_chains == [(str(files.cert_file), str(files.key_file))]
+    assert client._username == b"mapservice-gateway"
+    assert service_client(Settings(), "gw")._ssl_context is None
+    with pytest.raises(ValueError, match="mqtts://"):
+        Settings(mqtt_ca_file=files.ca_file)
+    with pytest.raises(ValueError, match="go together"):
+        Settings(mqtt_url="mqtts://broker:8883", mqtt_cert_file=files.cert_file)
+
+
+def test_robot_chunk_topic_must_end_with_a_robot_level() -> None:
+    """MAPSERVICE_ROBOT_CHUNK_TOPIC ends with /+ (the robot id); anything else is refused."""
+    assert Settings(robot_chunk_topic="site/chunks/+").robot_chunk_topic == "site/chunks/+"
+    with pytest.raises(ValueError, match="/\\+"):
+        Settings(robot_chunk_topic="site/chunks/#")

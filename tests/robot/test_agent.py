@@ -217,3 +217,20 @@ def test_a_robot_with_a_map_of_another_size_refuses_and_stores_nothing(tmp_path)
         a.start()
     assert [m for m, _ in service.requests] == ["GET"] and service.chunks == []
     assert a.image_path.read_bytes() == before
+
+
+def test_agent_with_a_credential_publishes_chunks_on_its_own_topic(tmp_path) -> None:
+    """An agent given its own MQTT credential sends changed chunks to iot/chunks/create/<robotId>
+    (the only chunk topic the broker lets it use); one without a credential for its id refuses
+    to start."""
+    from mapservice.robot.connection import RobotMqtt
+
+    service = FakeChunkService()
+    a = make_agent(tmp_path, "robot-a", service,
+                   mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"}))
+    a.start()
+    edit_map(a.map_yaml, 150, 250, 40, 0)
+    assert a.publish_local_changes() == 1
+    assert a.client.published[-1][0] == "iot/chunks/create/robot-a"
+    with pytest.raises(ValueError, match="no credential"):
+        make_agent(tmp_path, "robot-b", service, mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"}))

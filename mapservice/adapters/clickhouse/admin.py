@@ -69,7 +69,7 @@ class AdminMixin(ClickHouseConnection):
             else:
                 self._ping_client = clickhouse_connect.get_client(
                     dsn=self.dsn, username=self._username, password=self._password,
-                    connect_timeout=timeout_s, send_receive_timeout=timeout_s)
+                    connect_timeout=timeout_s, send_receive_timeout=timeout_s, **self.tls)
         return self._ping_client.command("SELECT 1") == 1
 
     def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:

@@ -93,6 +93,7 @@ class ClickHouseConnection:
     _client: object | None
     _lock: threading.RLock
     _read_client: object | None
+    tls: dict[str, str]
     _read_lock: threading.Lock
     _insert_contexts: dict[tuple[str, tuple[str, ...]], object]
 
@@ -106,7 +107,7 @@ class ClickHouseConnection:
                     "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server") from exc
             return clickhouse_connect.get_client(dsn=self.dsn)
         return clickhouse_connect.get_client(dsn=self.dsn, username=self._username,
-                                             password=self._password)
+                                             password=self._password, **self.tls)
 
     @property
     def client(self):

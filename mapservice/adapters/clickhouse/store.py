@@ -50,6 +50,9 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, 
         self._read_client = None
         self._read_lock = threading.Lock()
         self._ping_client = None
+        # clickhouse-connect's TLS arguments (ca_cert, client_cert, client_cert_key) for an
+        # https:// server; from_settings fills them from MAPSERVICE_CLICKHOUSE_*_FILE.
+        self.tls: dict[str, str] = {}
         self._known_contents: dict[bytes, int] = {}  # hash -> day already written
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
@@ -57,7 +60,7 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, 
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "ClickHouseStore":
-        return cls(
+        store = cls(
             settings.resolved_clickhouse_dsn,
             settings.clickhouse_database,
             settings.retention_days,
@@ -66,3 +69,5 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, 
             int(settings.snapshot_every_s * 1000),
             settings.clickhouse_cluster,
         )
+        store.tls = settings.clickhouse_tls()
+        return store

@@ -1,0 +1,271 @@
+"""Robot identities at the MQTT broker: Mosquitto's password file and ACL file.
+
+Every robot has its own MQTT user, named by its robotId, with a generated password. The
+ACL lets a user publish only on topics that name it (`iot/coordinates/<username>`,
+`iot/chunks/create/<username>`) and read the advertisements; the service's users read
+what the gateway consumes and publish the advertisements. The 2019 chunk topic
+(`iot/chunks/create`) names no robot, so it is closed to robots unless an operator opens
+it for a named robot (`legacy_chunks`), which then may write chunks under any robotId,
+as in 2019.
+
+The files are Mosquitto's own formats (`password_file`, `acl_file`), written here without
+`mosquitto_passwd` so that the production image needs no Mosquitto: passwords are hashed
+as mosquitto_passwd 2.x does (`$7$`: PBKDF2-SHA512, 101 rounds, 12-byte salt; generated
+passwords carry 192 bits, so the low round count costs nothing). Mosquitto reads both files
+at start and on SIGHUP.
+"""
+
+from __future__ import annotations
+
+import base64
+import fcntl
+import hashlib
+import hmac
+import os
+import re
+import secrets
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mapservice.settings import Settings
+
+GATEWAY_USER = "mapservice-gateway"
+PROCESSORS_USER = "mapservice-processors"
+PBKDF2_ROUNDS = 101  # what mosquitto_passwd 2.0 writes
+_ROBOT_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")  # the gateway's robotId rule (wire2019)
+LEGACY_MARKER = "# --- robots allowed the 2019 chunk topic"
+
+
+def new_password() -> str:
+    """A generated MQTT password: 32 URL-safe characters (192 random bits)."""
+    return secrets.token_urlsafe(24)
+
+
+def hash_password(password: str, salt: bytes | None = None, rounds: int = PBKDF2_ROUNDS) -> str:
+    """Mosquitto's `$7$` hash (what `mosquitto_passwd` 2.x writes)."""
+    salt = salt if salt is not None else os.urandom(12)
+    digest = hashlib.pbkdf2_hmac("sha512", password.encode(), salt, rounds)
+    return f"$7${rounds}${base64.b64encode(salt).decode()}${base64.b64encode(digest).decode()}"
+
+
+def verify_password(password: str, hashed: str) -> bool:
+    """Checks a password against a `$7$` (PBKDF2) or `$6$` (Mosquitto 1.x SHA-512) hash."""
+    parts = hashed.split("$")
+    try:
+        if len(parts) == 5 and parts[1] == "7":
+            rounds, salt, digest = int(parts[2]), base64.b64decode(parts[3]), base64.b64decode(parts[4])
+            computed = hashlib.pbkdf2_hmac("sha512", password.encode(), salt, rounds)
+        elif len(parts) == 4 and parts[1] == "6":
+            salt, digest = base64.b64decode(parts[2]), base64.b64decode(parts[3])
+            computed = hashlib.sha512(password.encode() + salt).digest()
+        else:
+            return False
+    except (ValueError, TypeError):
+        return False
+    return hmac.compare_digest(computed, digest)
+
+
+def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
+    """A robot's MQTT username is its robotId: the gateway's rule, and no service user's name."""
+    if not _ROBOT_ID.fullmatch(robot_id):
+        raise ValueError(f"robot id {robot_id[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . : @ - "
+                         "(the 2019 robotId rule the gateway checks)")
+    if robot_id in service_users:
+        raise ValueError(f"{robot_id!r} is the service's own MQTT user, not a robot")
+
+
+@dataclass(frozen=True)
+class AclTopics:
+    """The topics the ACL is about, as the service is configured."""
+
+    coordinate_prefix: str = "iot/coordinates/"
+    robot_chunk_prefix: str = "iot/chunks/create/"
+    legacy_chunk_topic: str = "iot/chunks/create"
+    advertisement_topic: str = "iot/chunks/advertisement"
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> "AclTopics":
+        def prefix(topic_filter: str) -> str:
+            return topic_filter.rstrip("#+").rstrip("/") + "/"
+
+        return cls(prefix(settings.coordinate_topic),
+                   prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
+                   settings.create_chunk_topic or "iot/chunks/create",
+                   settings.advertisement_topic)
+
+    def robot_topics(self, robot_id: str) -> dict[str, str]:
+        """What a robot publishes to (and reads), for its configuration."""
+        return {"pose": f"{self.coordinate_prefix}{robot_id}",
+                "chunks": f"{self.robot_chunk_prefix}{robot_id}",
+                "advertisements": self.advertisement_topic}
+
+
+def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
+               gateway_user: str = GATEWAY_USER, processors_user: str = PROCESSORS_USER) -> str:
+    """Mosquitto's acl_file: `%u` patterns for every robot, the service's users, and the
+    robots an operator allowed on the 2019 chunk topic. Anything not listed is denied."""
+    lines = [
+        "# Mosquitto acl_file for mapservice, written by `mapservice robot add/remove`:",
+        "# edits between the markers are overwritten. Anything not allowed here is denied.",
+        "#",
+        "# Every robot (its MQTT username is its robotId) publishes only on topics naming itself",
+        "# and reads the map advertisements.",
+        f"pattern write {topics.coordinate_prefix}%u",
+        f"pattern write {topics.robot_chunk_prefix}%u",
+        f"pattern read {topics.advertisement_topic}",
+        "",
+        "# The gateway reads everything robots publish (also through $share/<group>/...).",
+        f"user {gateway_user}",
+        f"topic read {topics.coordinate_prefix}#",
+        f"topic read {topics.robot_chunk_prefix}#",
+        f"topic read {topics.legacy_chunk_topic}",
+        "",
+        "# The processors announce each change of the latest map.",
+        f"user {processors_user}",
+        f"topic write {topics.advertisement_topic}",
+        "",
+        f"{LEGACY_MARKER} ({topics.legacy_chunk_topic}, which names no robot: such a",
+        "# robot may write chunks under any robotId; `mapservice robot add --legacy-chunks`) ---",
+    ]
+    for robot in sorted(set(legacy_robots)):
+        lines += [f"user {robot}", f"topic write {topics.legacy_chunk_topic}"]
+    return "\n".join(lines) + "\n"
+
+
+def legacy_robots_in(acl_text: str) -> list[str]:
+    """The robots a rendered ACL allows on the 2019 chunk topic."""
+    if LEGACY_MARKER not in acl_text:
+        return []
+    section = acl_text.split(LEGACY_MARKER, 1)[1]
+    return [line.split(None, 1)[1].strip() for line in section.splitlines()
+            if line.startswith("user ")]
+
+
+def read_password_file(path: Path) -> dict[str, str]:
+    """username -> hash, in file order."""
+    users: dict[str, str] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            if line.strip() and not line.startswith("#") and ":" in line:
+                name, hashed = line.split(":", 1)
+                users[name] = hashed.strip()
+    return users
+
+
+def _write_atomically(path: Path, text: str, mode: int) -> None:
+    """Replaces `path` in one step; an existing file keeps its mode and owner (the broker's
+    user must still read it), a new one gets `mode`."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as file:
+        file.write(text)
+    try:
+        old = path.stat()
+    except FileNotFoundError:
+        os.chmod(tmp, mode)
+    else:
+        os.chmod(tmp, old.st_mode & 0o7777)
+        try:
+            os.chown(tmp, old.st_uid, old.st_gid)
+        except PermissionError:
+            pass  # not ours to give away: the mode still says who may read it
+    os.replace(tmp, path)  # a broker reloading meanwhile reads the old or the new file
+
+
+@dataclass(frozen=True)
+class RobotCredential:
+    robot_id: str
+    username: str
+    password: str
+    topics: dict[str, str]
+    legacy_chunks: bool = False
+
+
+@dataclass
+class BrokerFiles:
+    """A Mosquitto password file and ACL file, changed under a lock (two `robot add` at once
+    do not lose each other's users)."""
+
+    password_file: Path
+    acl_file: Path
+    topics: AclTopics = field(default_factory=AclTopics)
+    gateway_user: str = GATEWAY_USER
+    processors_user: str = PROCESSORS_USER
+
+    @classmethod
+    def in_data_dir(cls, data_dir: Path, settings: Settings | None = None) -> "BrokerFiles":
+        """The embedded mode's files: DATA_DIR/mqtt/passwd and DATA_DIR/mqtt/acl."""
+        topics = AclTopics.from_settings(settings) if settings else AclTopics()
+        return cls(Path(data_dir) / "mqtt" / "passwd", Path(data_dir) / "mqtt" / "acl", topics)
+
+    @property
+    def service_users(self) -> tuple[str, str]:
+        return self.gateway_user, self.processors_user
+
+    @contextmanager
+    def _locked(self):
+        self.password_file.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.password_file.with_name(f".{self.password_file.name}.lock"), "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            yield
+
+    def _write(self, users: dict[str, str], legacy: list[str]) -> None:
+        # 0600 when the file holds only hashes: Mosquitto warns about readable password files.
+        _write_atomically(self.password_file, "".join(f"{u}:{h}\n" for u, h in users.items()), 0o600)
+        _write_atomically(self.acl_file, render_acl(self.topics, legacy, self.gateway_user,
+                                                    self.processors_user), 0o644)
+
+    def _legacy(self) -> list[str]:
+        return legacy_robots_in(self.acl_file.read_text()) if self.acl_file.exists() else []
+
+    def robots(self) -> list[str]:
+        """Robot users (every user but the service's), in file order."""
+        return [u for u in read_password_file(self.password_file) if u not in self.service_users]
+
+    def legacy_robots(self) -> list[str]:
+        return self._legacy()
+
+    def ensure(self) -> None:
+        """Writes both files if missing (a broker needs them to start), keeping what is there."""
+        with self._locked():
+            self._write(read_password_file(self.password_file), self._legacy())
+
+    def set_service_user(self, username: str, password: str) -> None:
+        if username not in self.service_users:
+            raise ValueError(f"{username!r} is not one of the service users {self.service_users}")
+        with self._locked():
+            users = read_password_file(self.password_file)
+            users[username] = hash_password(password)
+            self._write(users, self._legacy())
+
+    def add_robot(self, robot_id: str, *, legacy_chunks: bool = False, rotate: bool = False,
+                  password: str | None = None) -> RobotCredential:
+        """Adds a robot user (or, with `rotate`, gives an existing one a new password) and
+        returns its credential; the password is not stored anywhere but as a hash."""
+        check_robot_id(robot_id, self.service_users)
+        password = password or new_password()
+        with self._locked():
+            users = read_password_file(self.password_file)
+            if robot_id in users and not rotate:
+                raise ValueError(f"robot {robot_id!r} already has an MQTT credential; "
+                                 "--rotate gives it a new password")
+            users[robot_id] = hash_password(password)
+            legacy = [r for r in self._legacy() if r != robot_id or legacy_chunks]
+            if legacy_chunks:
+                legacy.append(robot_id)
+            self._write(users, legacy)
+        return RobotCredential(robot_id, robot_id, password, self.topics.robot_topics(robot_id),
+                               legacy_chunks)
+
+    def remove_robot(self, robot_id: str) -> bool:
+        """Removes a robot's user (it can no longer connect once the broker reloaded)."""
+        check_robot_id(robot_id, self.service_users)
+        with self._locked():
+            users = read_password_file(self.password_file)
+            legacy = self._legacy()
+            if robot_id not in users and robot_id not in legacy:
+                return False
+            users.pop(robot_id, None)
+            self._write(users, [r for r in legacy if r != robot_id])
+        return True

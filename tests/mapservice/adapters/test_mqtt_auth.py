@@ -1,0 +1,130 @@
+"""Mosquitto's password file and ACL as `mapservice robot add/remove` write them."""
+
+from __future__ import annotations
+
+import shutil
+import stat
+import subprocess
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, AclTopics, BrokerFiles,
+                                           hash_password, legacy_robots_in, read_password_file,
+                                           render_acl, verify_password)
+from mapservice.settings import Settings
+
+
+def test_hash_is_what_mosquitto_passwd_writes_and_reads(tmp_path):
+    """Our $7$ hash verifies a password mosquitto_passwd hashed, and the other way round
+    (mosquitto_passwd -U is not needed: Mosquitto itself reads ours in the integration test)."""
+    ours = hash_password("s3cret")
+    assert ours.startswith("$7$101$") and verify_password("s3cret", ours)
+    assert not verify_password("wrong", ours) and not verify_password("s3cret", "garbage")
+    binary = shutil.which("mosquitto_passwd")
+    if binary is None:
+        pytest.skip("mosquitto_passwd is not installed (make test installs mosquitto)")
+    path = tmp_path / "passwd"
+    path.touch()
+    subprocess.run([binary, "-b", str(path), "alice", "s3cret"], check=True)
+    subprocess.run([binary, "-H", "sha512", "-b", str(path), "bob", "0ld"], check=True)
+    users = read_password_file(path)
+    assert verify_password("s3cret", users["alice"]) and not verify_password("other", users["alice"])
+    assert verify_password("0ld", users["bob"])  # Mosquitto 1.x's $6$
+
+
+def test_acl_lets_robots_publish_only_as_themselves():
+    """The ACL: %u patterns for the robots' pose and chunk topics, read on advertisements, the
+    gateway reading all robot topics, the processors writing advertisements, and the 2019
+    chunk topic only for the robots named in its section."""
+    topics = AclTopics.from_settings(Settings())
+    text = render_acl(topics, ["old-7", "old-3"])
+    lines = text.splitlines()
+    assert "pattern write iot/coordinates/%u" in lines
+    assert "pattern write iot/chunks/create/%u" in lines
+    assert "pattern read iot/chunks/advertisement" in lines
+    gateway = lines[lines.index(f"user {GATEWAY_USER}") + 1:lines.index(f"user {PROCESSORS_USER}")]
+    assert {"topic read iot/coordinates/#", "topic read iot/chunks/create/#",
+            "topic read iot/chunks/create"} <= set(gateway)
+    assert "topic write iot/chunks/advertisement" in lines
+    # Nothing but the named robots may write the 2019 topic, and no line grants write on a
+    # wildcard to everyone.
+    assert [line for line in lines if line.endswith(" iot/chunks/create") and "write" in line] == [
+        "topic write iot/chunks/create"] * 2
+    assert legacy_robots_in(text) == ["old-3", "old-7"]
+    assert not any(line.startswith("pattern write") and "#" in line for line in lines)
+
+
+def test_acl_follows_configured_topics():
+    """Custom topic settings are what the ACL talks about."""
+    topics = AclTopics.from_settings(Settings(coordinate_topic="site1/robots/#",
+                                              robot_chunk_topic="site1/chunks/+",
+                                              create_chunk_topic="site1/chunks",
+                                              advertisement_topic="site1/adverts"))
+    assert topics.robot_topics("r1") == {"pose": "site1/robots/r1", "chunks": "site1/chunks/r1",
+                                         "advertisements": "site1/adverts"}
+    text = render_acl(topics)
+    assert "pattern write site1/robots/%u" in text and "topic read site1/chunks" in text
+
+
+def test_add_rotate_remove_and_legacy(tmp_path):
+    """add gives a fresh password (hash stored, 0600), refuses a second add without rotate,
+    rotate changes the password, --legacy-chunks puts the robot in the ACL's 2019 section,
+    remove takes it out of both files."""
+    files = BrokerFiles.in_data_dir(tmp_path)
+    first = files.add_robot("r1")
+    assert first.username == first.robot_id == "r1" and len(first.password) >= 32
+    assert first.topics["chunks"] == "iot/chunks/create/r1"
+    hashed = read_password_file(files.password_file)["r1"]
+    assert verify_password(first.password, hashed) and first.password not in files.password_file.read_text()
+    assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o600
+    with pytest.raises(ValueError, match="--rotate"):
+        files.add_robot("r1")
+    second = files.add_robot("r1", rotate=True, legacy_chunks=True)
+    assert second.password != first.password
+    assert verify_password(second.password, read_password_file(files.password_file)["r1"])
+    assert files.legacy_robots() == ["r1"] and files.robots() == ["r1"]
+    files.add_robot("r1", rotate=True)  # rotating without the flag closes the 2019 topic again
+    assert files.legacy_robots() == []
+    files.add_robot("r2", legacy_chunks=True)
+    assert files.remove_robot("r2") and not files.remove_robot("r2")
+    assert files.robots() == ["r1"] and files.legacy_robots() == []
+
+
+@pytest.mark.parametrize("bad", ["", "a" * 65, "has space", "wild#card", "plus+", "a/b",
+                                 GATEWAY_USER, PROCESSORS_USER])
+def test_robot_ids_follow_the_gateway_rule(tmp_path, bad):
+    """A robot's username is a valid robotId (no MQTT wildcards or slashes for %u) and not a
+    service user's name."""
+    with pytest.raises(ValueError):
+        BrokerFiles.in_data_dir(tmp_path).add_robot(bad)
+
+
+def test_service_users_are_not_robots(tmp_path):
+    """Service users' passwords live in the same file but are not listed as robots."""
+    files = BrokerFiles.in_data_dir(tmp_path)
+    files.set_service_user(GATEWAY_USER, "gw")
+    files.add_robot("r1")
+    assert files.robots() == ["r1"]
+    assert verify_password("gw", read_password_file(files.password_file)[GATEWAY_USER])
+    with pytest.raises(ValueError):
+        files.set_service_user("r1", "x")
+
+
+def test_concurrent_adds_lose_nobody(tmp_path):
+    """Robots added at the same time (two operators, a script) all end up in the file."""
+    files = BrokerFiles.in_data_dir(tmp_path)
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(lambda i: BrokerFiles.in_data_dir(tmp_path).add_robot(f"r{i}"), range(40)))
+    assert sorted(files.robots()) == sorted(f"r{i}" for i in range(40))
+
+
+def test_rewritten_files_keep_their_mode(tmp_path):
+    """A password file the operator made readable for the broker's user (e.g. 0640) keeps that
+    mode when `robot add` rewrites it; a new one is 0600."""
+    files = BrokerFiles.in_data_dir(tmp_path)
+    files.add_robot("r1")
+    assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o600
+    files.password_file.chmod(0o640)
+    files.add_robot("r2")
+    assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o640
