@@ -143,8 +143,15 @@ def cmd_up(args) -> None:
     # background jobs (Python then keeps it ignored); SIGTERM stops the children too.
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
-    stack = Stack(Path(args.data_dir), mqtt=args.mqtt_url or "amqtt", api_port=args.api_port,
-                  mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port)
+    if args.auth and args.mqtt_url:
+        sys.exit("mapservice up: --auth runs its own Mosquitto with robot identities; a broker "
+                 "given by --mqtt-url has its own authentication (README \"Robot identities\")")
+    # With --auth the embedded broker is Mosquitto: amqtt drops a client id's session before
+    # it checks the credential, so it cannot keep robots' identities apart (README).
+    broker = args.mqtt_url or ("mosquitto" if args.auth else "amqtt")
+    stack = Stack(Path(args.data_dir), mqtt=broker, api_port=args.api_port,
+                  mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port,
+                  mqtt_auth=args.auth)
     ros_map = load_ros_map(args.map)
     try:
         check_data_dir_map(stack.data_dir, ros_map)  # before the meta is published
@@ -164,6 +171,10 @@ def cmd_up(args) -> None:
         with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
+        robot_credentials = None
+        if args.auth and args.robots:
+            with console.status("giving each simulated robot its MQTT credential..."):
+                robot_credentials = stack.robot_credentials(simulated_robot_ids(args))
         with console.status("starting processors + API (creating the ClickHouse schema)..."):
             stack.start_server()
         with console.status("starting the MQTT-to-Kafka gateway..."):
@@ -175,10 +186,15 @@ def cmd_up(args) -> None:
             # The shift simulator (robots on the map's free space, paths, batteries, pallets
             # and doors) unless the 2019 load test is asked for.
             stack.spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map),
-                        *(["--load-test"] if args.load_test else []))
+                        *(["--load-test"] if args.load_test else []),
+                        *(["--credentials", str(robot_credentials)] if robot_credentials else []))
         table = Table(title="mapservice is up", show_header=False)
         table.add_row("API", stack.api_url + "  (docs at /docs)")
-        table.add_row("MQTT (robots)", stack.mqtt_url)
+        table.add_row("MQTT (robots)", stack.mqtt_url + (
+            "  (robot identities: anonymous clients refused; add a robot with `mapservice robot "
+            f"add <robotId> --data-dir {stack.data_dir}`)" if args.auth else "  (anonymous)"))
+        if robot_credentials:
+            table.add_row("Simulated robots' MQTT credentials", str(robot_credentials))
         table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
@@ -275,6 +291,15 @@ def cmd_demo_history(args) -> None:
                   f"{result.chunk_writes:,} map changes, {result.conflicts} conflicts")
 
 
+def simulated_robot_ids(args) -> list[str]:
+    """The ids `mapservice sim` gives its robots (shift simulator or 2019 load test)."""
+    from mapservice.robot.loadgen import fleet_robot_id
+    from mapservice.robot.sim import sim_robot_id
+
+    robot_id = fleet_robot_id if args.load_test else sim_robot_id
+    return [robot_id("sim", i) for i in range(args.robots)]
+
+
 def supervise(stack, console, base_s: float = 1.0) -> None:
     """Runs until Ctrl-C: a component that exits is restarted with backoff, not the end."""
     from mapservice.local.supervisor import Supervisor
@@ -303,6 +328,11 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--load-test", action="store_true",
                     help="simulate the 2019 load test (circles, re-sent chunks) instead of a shift")
     up.add_argument("--mqtt-url", help="use this MQTT broker instead of an embedded amqtt")
+    up.add_argument("--auth", action="store_true",
+                    help="authentication on, as in production: the embedded broker is Mosquitto "
+                         "with a password file and ACL, each simulated robot gets its own MQTT "
+                         "credential (DATA_DIR/secrets/robots.json), anonymous MQTT clients are "
+                         "refused (REST writes always need a token)")
     up.add_argument("--api-port", type=int, default=8080, help="HTTP API and replay UI port")
     up.add_argument("--mqtt-port", type=int, default=1883, help="MQTT port for robots")
     up.add_argument("--kafka-port", type=int, default=0, help="0: a free port")

@@ -23,6 +23,11 @@ from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, fo
 from .connection import RobotClients, RobotMqtt
 
 
+def fleet_robot_id(prefix: str, i: int) -> str:
+    """The id of the load fleet's robot number `i` (`up --auth` gives each its credential)."""
+    return f"{prefix}-{i:04d}"
+
+
 @dataclass
 class LoadStats:
     poses: int = 0
@@ -42,7 +47,7 @@ class RobotFleet:
         self.conn = mqtt_conn or RobotMqtt(mqtt_url)
         self.meta = meta_for(ros_map)
         self.chunks = list(slice_chunks(ros_map).values())
-        self.robots = [f"{prefix}-{i:04d}" for i in range(robots)]
+        self.robots = [fleet_robot_id(prefix, i) for i in range(robots)]
         self.conn.check(self.robots)
         self.pose_period_s = pose_period_s
         self.chunk_period_s = chunk_period_s

@@ -30,6 +30,11 @@ from .planning import (Cell, PlanGrid, dilate, grid_for, largest_component, plan
 Point = tuple[float, float]  # continuous image coordinates (u = column, v = row)
 
 
+def sim_robot_id(prefix: str, i: int) -> str:
+    """The id of the shift simulator's robot number `i` (`up --auth` gives each its credential)."""
+    return f"{prefix}-{i:03d}"
+
+
 @dataclass(frozen=True)
 class SimConfig:
     dt_s: float = 1.0
@@ -140,7 +145,7 @@ def new_state(ros_map: RosMap, robots: int, *, seed: int = 7, t_ms: int = 0,
     stations, chargers = tuple(picked[: config.stations]), tuple(picked[config.stations:])
     fleet = []
     for i, cell in enumerate(rng.sample(cells, min(robots, capacity(len(cells))))):
-        fleet.append(Robot(f"{prefix}-{i:03d}", grid.centre_px(cell), rng.uniform(-math.pi, math.pi),
+        fleet.append(Robot(sim_robot_id(prefix, i), grid.centre_px(cell), rng.uniform(-math.pi, math.pi),
                            battery=round(rng.uniform(40, 100), 1)))
     return SimState(ros_map, meta_for(ros_map, chunk_width, chunk_height), config, grid, free,
                     stations, chargers, tuple(fleet), t_ms, seed,

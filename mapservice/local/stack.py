@@ -297,6 +297,23 @@ class Stack:
             time.sleep(0.1)
         return credential
 
+    def robot_credentials(self, robot_ids: list[str]) -> Path:
+        """Every robot in `robot_ids` with its own MQTT credential, kept (for the simulators'
+        `--credentials`) in DATA_DIR/secrets/robots.json; a robot that already has one in
+        both the broker's password file and that file keeps it. Returns the file."""
+        from mapservice.robot.connection import load_credentials, save_credential
+
+        path = self.data_dir / "secrets" / "robots.json"
+        saved = load_credentials(path) if path.exists() else {}
+        known = set(self.broker_files.robots())
+        for robot_id in robot_ids:
+            if robot_id in saved and robot_id in known:
+                continue
+            credential = self.broker_files.add_robot(robot_id, rotate=robot_id in known)
+            save_credential(path, robot_id, credential.password)
+        self.reload_mqtt()
+        return path
+
     def reload_mqtt(self) -> None:
         """Mosquitto reads its password file and ACL again (SIGHUP)."""
         proc = self.procs.get("mqtt")
