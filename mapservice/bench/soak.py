@@ -56,12 +56,17 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -
         points = [(s["t_s"], s["rss_mb"][name]) for s in steady if name in s["rss_mb"]]
         rss = [s["rss_mb"][name] for s in samples if name in s["rss_mb"]]
         cpu = [s["cpu_percent"][name] for s in steady if name in s.get("cpu_percent", {})]
+        # CPU at the start and at the end of the steady part: a component whose cost grows
+        # with what it holds (tansu scanning its memory) shows it here.
+        tenth = max(1, len(cpu) // 10)
         growth = growth_per_hour([t for t, _ in points], [v for _, v in points])
         bounded = None if growth is None or name in EXPECTED_TO_GROW else growth <= max_growth_mb_per_h
         out["components"][name] = {
             "rss_first_mb": rss[0] if rss else None, "rss_last_mb": rss[-1] if rss else None,
             "rss_max_mb": max(rss) if rss else None, "growth_mb_per_h": growth,
             "cpu_median_percent": statistics.median(cpu) if cpu else None,
+            "cpu_start_percent": statistics.median(cpu[:tenth]) if cpu else None,
+            "cpu_end_percent": statistics.median(cpu[-tenth:]) if cpu else None,
             "growth_bounded": bounded}
     if samples:
         last, first = samples[-1], steady[0] if steady else samples[0]
@@ -208,7 +213,8 @@ def print_summary(console, result: dict, max_growth: float) -> None:
         console.print(f"  {name:10s} RSS {c['rss_first_mb']:.0f} -> {c['rss_last_mb']:.0f} MB "
                       f"(max {c['rss_max_mb']:.0f}), growth "
                       f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'} ({verdict}), "
-                      f"CPU median {c['cpu_median_percent'] or 0:.0f}%")
+                      f"CPU median {c['cpu_median_percent'] or 0:.0f}% "
+                      f"({c['cpu_start_percent'] or 0:.0f}% at the start, {c['cpu_end_percent'] or 0:.0f}% at the end)")
     if "kafka_bytes_per_event" in s:
         console.print(f"  tansu holds ~{s['kafka_bytes_per_event']:.0f} bytes per event: "
                       f"{s['kafka_mb_per_day']:.0f} MB a day, {s['kafka_mb_per_week']:.0f} MB a week "

@@ -41,6 +41,15 @@ def test_summary_bounds_every_component_but_tansu_and_reports_tansu_per_event() 
     assert s["kafka_mb_per_week"] == pytest.approx(36 * 24 * 7)
 
 
+def test_summary_shows_cpu_at_the_start_and_at_the_end() -> None:
+    """A component whose CPU share rises from 10 % to 40 % over the run reports both ends."""
+    samples = [sample(t, {"kafka": 20.0}, t) for t in range(0, 3601, 60)]
+    for i, s in enumerate(samples):
+        s["cpu_percent"]["kafka"] = 10.0 + 30.0 * i / (len(samples) - 1)
+    c = summarize(samples, minutes=60, max_growth_mb_per_h=20)["components"]["kafka"]
+    assert c["cpu_start_percent"] < 15 and c["cpu_end_percent"] > 35
+
+
 def test_a_run_under_an_hour_is_not_representative() -> None:
     """Ten minutes of samples are summarized but flagged as not representative."""
     samples = [sample(t, {"gateway": 50.0}, t) for t in range(0, 601, 30)]
