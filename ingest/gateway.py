@@ -215,7 +215,8 @@ class MqttGateway:
         """Liveness: paho's network thread runs (it receives and acknowledges)."""
         alive = self.loop_alive()
         return {"ok": alive, "mqtt_connected": self._connected.is_set(),
-                "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight, "gateway": self.gateway_id}
+                "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight,
+                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id}
 
     def ready(self) -> dict:
         """Readiness: connected to the MQTT broker and a Kafka broker answers metadata."""

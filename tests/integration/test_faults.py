@@ -441,6 +441,52 @@ def assert_guarantees(report: dict, lossy: set[str]) -> None:
     assert checks.get("raw_duplicates_after_merge", 0) == 0, checks
 
 
+# ---- the Kafka producer across a tansu restart -------------------------------------------
+
+def test_a_publisher_delivers_again_after_tansu_restarted_empty(tmp_path) -> None:
+    """A restarted tansu has no producer state: the idempotent producer would get
+    UNKNOWN_PRODUCER_ID forever; the publisher renews it and failed records, produced
+    again, are delivered within the record timeout plus a little."""
+    from mapservice.adapters.kafka_publisher import MESSAGE_TIMEOUT_MS, KafkaPublisher
+    from mapservice.adapters.kafka_topics import ensure_topics
+    from mapservice.settings import Settings
+
+    port = embedded.free_port()
+    settings = Settings(kafka_bootstrap=f"127.0.0.1:{port}", data_dir=tmp_path)
+    tansu = embedded.start_tansu(port)
+    publisher = KafkaPublisher(settings, client_id="renewal-test")
+    delivered: list[int] = []
+
+    def publish(n: int) -> None:
+        def done(error) -> None:  # as the gateway does: never drop, produce again
+            if error is None:
+                delivered.append(n)
+            else:
+                publisher.publish(settings.topic_pose_events, b"k%d" % n, b"v", done)
+        publisher.publish(settings.topic_pose_events, b"k%d" % n, b"v", done)
+
+    try:
+        ensure_topics(settings)
+        for n in range(20):
+            publish(n)
+        assert publisher.flush(10) == 0 and sorted(delivered) == list(range(20))
+        os.killpg(tansu.pid, signal.SIGKILL)
+        tansu.wait(10)
+        tansu = embedded.start_tansu(port)
+        ensure_topics(settings)
+        started = time.monotonic()
+        for n in range(20, 40):
+            publish(n)
+        deadline = started + MESSAGE_TIMEOUT_MS / 1000 + 15
+        while len(set(delivered)) < 40 and time.monotonic() < deadline:
+            publisher.poll(0.1)
+        assert set(delivered) == set(range(40)), sorted(set(range(40)) - set(delivered))
+    finally:
+        publisher.flush(1)
+        os.killpg(tansu.pid, signal.SIGKILL)
+        tansu.wait(10)
+
+
 # ---- the split deployment: the test kills and restarts each part -------------------------
 
 def kill(stack: Stack, name: str) -> None:
@@ -507,6 +553,7 @@ def split_faults(stack: Stack) -> list[tuple[str, Callable[[], None]]]:
     ]
 
 
+@pytest.mark.timeout(480)
 def test_split_deployment_keeps_every_acknowledged_message_through_each_fault(split) -> None:
     """Gateway, processors, API, Mosquitto and tansu SIGKILLed and restarted, ClickHouse down
     30 s, under load: every acknowledged message stored once (tansu's memory loss measured),
@@ -601,6 +648,7 @@ class Up:
                 os.killpg(self.proc.pid, signal.SIGKILL)
 
 
+@pytest.mark.timeout(480)
 def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp_path) -> None:
     """Under `mapservice up` (embedded Mosquitto), gateway, serve, Mosquitto and tansu
     SIGKILLed: each restarted by the supervisor and said on the console; every acknowledged
