@@ -63,7 +63,7 @@ from .test_split_topology import start_clickhouse_server
 ROBOTS = 10
 POSE_PERIOD_S = 0.2  # per robot: 50 poses/s in all
 CHUNK_EVERY = 10  # a chunk every 10th pose of a robot: 5 chunks/s
-STEADY_S = 3.0  # load before each fault and after its recovery
+STEADY_S = 2.0  # load before each fault and after its recovery
 DOWN_S = 2.0  # how long a killed component stays down
 CLICKHOUSE_DOWN_S = 30.0
 RECOVERY_TIMEOUT_S = 120.0
@@ -435,7 +435,7 @@ def assert_guarantees(report: dict, lossy: set[str]) -> None:
         assert r["recovery_s"] is not None or r["fault"] in ("warmup", "after"), r
     checks = report["checks"]
     assert checks["latest_map_equals_fold"], checks
-    assert checks["snapshots"] >= 5 and not checks["wrong_snapshots"], checks
+    assert checks["snapshots"] >= 3 and not checks["wrong_snapshots"], checks
     assert not checks["map_reads_at_snapshots_wrong"], checks
     assert checks["snapshot_repairs_pending"] == 0, checks
     assert checks.get("raw_duplicates_after_merge", 0) == 0, checks
