@@ -199,11 +199,12 @@ def cmd_up(args) -> None:
                         *(["--credentials", str(robot_credentials)] if robot_credentials else []))
         table = Table(title="mapservice is up", show_header=False)
         table.add_row("API", stack.api_url + "  (docs at /docs)")
-        table.add_row("MQTT (robots)", stack.mqtt_url + {
-            "mosquitto": f"  (Mosquitto, store in {stack.data_dir / 'mosquitto'})",
-            "amqtt": "  (amqtt: no store)"}.get(broker, "") + (
-            "; robot identities: anonymous clients refused; add a robot with `mapservice robot "
-            f"add <robotId> --data-dir {stack.data_dir}`" if args.auth else "; anonymous"))
+        table.add_row("MQTT (robots)", stack.mqtt_url + (
+            "  (robot identities: anonymous clients refused; add a robot with `mapservice robot "
+            f"add <robotId> --data-dir {stack.data_dir}`)" if args.auth else "  (anonymous)"))
+        if broker in ("mosquitto", "amqtt"):
+            table.add_row("MQTT broker", f"Mosquitto, store in {stack.data_dir / 'mosquitto'}"
+                          if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
         if robot_credentials:
             table.add_row("Simulated robots' MQTT credentials", str(robot_credentials))
         table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
