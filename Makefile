@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: up test test-unit bench system-deps clean ui test-ui lock
+.PHONY: up test test-unit bench system-deps mosquitto clean ui test-ui lock
 
 # Pinned, hash-checked dependencies (requirements-dev.lock: the product, the embedded extra
 # and the test tools), then the project itself. Regenerate the locks after changing
@@ -25,7 +25,16 @@ lock:
 	$(PY) -m piptools compile --quiet --generate-hashes --strip-extras --allow-unsafe --no-emit-index-url \
 	  --no-emit-find-links -c requirements-dev.lock -o requirements.lock pyproject.toml
 
-# Mosquitto is what the tests and benchmarks run against (the embedded mode uses amqtt).
+# Mosquitto is what the tests and benchmarks run against, and the broker `make up` embeds
+# (it keeps a restarting gateway's QoS 1 messages; README, embedded mode). `make up`
+# installs it as root; otherwise it says so and runs on amqtt.
+mosquitto:
+	@if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto mosquitto-clients >/dev/null; \
+	  else echo "mosquitto is not installed (Debian: sudo apt-get install mosquitto mosquitto-clients): the embedded broker will be amqtt"; fi; \
+	fi
+
 system-deps:
 	@if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
@@ -62,7 +71,7 @@ ui: $(UI)/dist/index.html
 test-ui: $(UI)/node_modules/.installed
 	cd $(UI) && npx vitest run
 
-up: $(STAMP) ui
+up: $(STAMP) ui mosquitto
 	$(PY) -m mapservice.cli up $(ARGS)
 
 test: $(STAMP) system-deps ui test-ui

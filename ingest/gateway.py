@@ -12,6 +12,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from collections.abc import Callable
 
 import structlog
 
@@ -31,11 +32,21 @@ from .router import Record, Router
 log = structlog.get_logger(__name__)
 
 
+RETRY_DELAY_S = 0.2  # a record whose delivery failed is produced again this much later
+FAILURE_LOG_EVERY_S = 5.0  # in an outage every record fails: one warning per interval
+
+
 class Ingestor:
-    """Broker-free core: route a message, publish it, call `ack` once it is durable."""
+    """Broker-free core: route a message, publish it, call `ack` once it is durable.
+
+    A failed delivery is never dropped: the record waits RETRY_DELAY_S in a queue and
+    `retry_due()` (the gateway's loop calls it) produces it again; its MQTT ack waits.
+    (Sleeping in the delivery callback instead held up every other delivery report: after
+    a Kafka outage, a thousand timed-out records took minutes to be retried one by one.)"""
 
     def __init__(self, settings: Settings, publisher: EventPublisher, clock: Clock,
-                 gateway_id: str) -> None:
+                 gateway_id: str, retry_delay_s: float = RETRY_DELAY_S,
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
         self.router = Router(settings, gateway_id)
         self.publisher = publisher
         self.clock = clock
@@ -51,6 +62,11 @@ class Ingestor:
         self._base_limits = self.limits
         self._in_flight = 0
         self._lock = threading.Lock()
+        self.retry_delay_s = retry_delay_s
+        self.monotonic = monotonic
+        self._retries: list[tuple[float, Record, object]] = []  # (due, record, done), in order
+        self._failures_unlogged = 0
+        self._failure_logged_at = -FAILURE_LOG_EVERY_S
 
     def apply_meta(self, meta) -> None:
         self.limits = self._base_limits.with_meta(meta)
@@ -76,10 +92,7 @@ class Ingestor:
         def done(error: Exception | None) -> None:
             if error is not None:
                 # Never drop: produce again until Kafka has it (the MQTT ack waits).
-                metrics.DELIVERY_FAILURES.inc()
-                log.warning("kafka delivery failed, retrying", error=str(error), topic=record.topic)
-                time.sleep(0.2)
-                self.publisher.publish(record.topic, record.key, record.value, done)
+                self._delivery_failed(error, record, done)
                 return
             ack()
             with self._lock:
@@ -100,6 +113,43 @@ class Ingestor:
             log.info("message rejected", reason=record.reason, mqtt_topic=mqtt_topic[:200])
             self._publish(record, done)
         return record
+
+    def _delivery_failed(self, error: Exception, record: Record, done) -> None:
+        metrics.DELIVERY_FAILURES.inc()
+        now = self.monotonic()
+        with self._lock:
+            self._retries.append((now + self.retry_delay_s, record, done))
+            self._failures_unlogged += 1
+            if now - self._failure_logged_at < FAILURE_LOG_EVERY_S:
+                return
+            failures, self._failures_unlogged, self._failure_logged_at = self._failures_unlogged, 0, now
+        log.warning("kafka delivery failed, retrying", error=str(error), topic=record.topic,
+                    failures=failures, waiting=len(self._retries))
+
+    @property
+    def retries_waiting(self) -> int:
+        return len(self._retries)
+
+    def retry_due(self) -> int:
+        """Produces again every failed record whose delay has passed; returns how many."""
+        if not self._retries:
+            return 0
+        now = self.monotonic()
+        with self._lock:
+            due = [r for r in self._retries if r[0] <= now]
+            if not due:
+                return 0
+            self._retries = [r for r in self._retries if r[0] > now]
+        for n, (_, record, done) in enumerate(due):
+            try:
+                self.publisher.publish(record.topic, record.key, record.value, done)
+            except Exception as exc:  # noqa: BLE001 - keep it (and the rest) for the next try
+                with self._lock:
+                    later = self.monotonic() + self.retry_delay_s
+                    self._retries.extend((later, r, d) for _, r, d in due[n:])
+                log.warning("producing a failed record again failed", error=str(exc))
+                return n
+        return len(due)
 
     def _publish(self, record: Record, done) -> None:
         """Hands the record to the producer; if that fails, the message no longer counts
@@ -165,7 +215,8 @@ class MqttGateway:
         """Liveness: paho's network thread runs (it receives and acknowledges)."""
         alive = self.loop_alive()
         return {"ok": alive, "mqtt_connected": self._connected.is_set(),
-                "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight, "gateway": self.gateway_id}
+                "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight,
+                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id}
 
     def ready(self) -> dict:
         """Readiness: connected to the MQTT broker and a Kafka broker answers metadata."""
@@ -198,6 +249,7 @@ class MqttGateway:
         try:
             while not self._stop.is_set():
                 self.publisher.poll(0.05)
+                self.ingestor.retry_due()
         finally:
             # New messages are left unacknowledged (the subscription stays in the persistent
             # session); everything already taken is delivered to Kafka and acknowledged.
@@ -205,6 +257,7 @@ class MqttGateway:
             deadline = time.monotonic() + 2
             while self.ingestor.in_flight and time.monotonic() < deadline:
                 self.publisher.poll(0.05)
+                self.ingestor.retry_due()
             self.client.disconnect()
             self.client.loop_stop()
             self.meta_watcher.stop()

@@ -146,9 +146,18 @@ def cmd_up(args) -> None:
     if args.auth and args.mqtt_url:
         sys.exit("mapservice up: --auth runs its own Mosquitto with robot identities; a broker "
                  "given by --mqtt-url has its own authentication (README \"Robot identities\")")
-    # With --auth the embedded broker is Mosquitto: amqtt drops a client id's session before
-    # it checks the credential, so it cannot keep robots' identities apart (README).
-    broker = args.mqtt_url or ("mosquitto" if args.auth else "amqtt")
+    from mapservice.local.embedded import default_mqtt_broker, mosquitto_installed
+
+    # The embedded broker is Mosquitto when installed: it keeps a restarting gateway's QoS 1
+    # messages (amqtt does not), and with --auth it is required: amqtt drops a client id's
+    # session before it checks the credential, so it cannot keep robots' identities apart.
+    if args.auth and not args.mqtt_url and not mosquitto_installed():
+        sys.exit("mapservice up: --auth needs Mosquitto (`make system-deps` installs it)")
+    broker = args.mqtt_url or default_mqtt_broker()
+    if broker == "amqtt":
+        console.print("[yellow]Mosquitto is not installed: the embedded MQTT broker is amqtt, which "
+                      "does not keep QoS 1 messages for a restarting gateway (README, embedded "
+                      "mode). `make system-deps` installs Mosquitto.[/yellow]")
     stack = Stack(Path(args.data_dir), mqtt=broker, api_port=args.api_port,
                   mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port,
                   mqtt_auth=args.auth)
@@ -193,6 +202,9 @@ def cmd_up(args) -> None:
         table.add_row("MQTT (robots)", stack.mqtt_url + (
             "  (robot identities: anonymous clients refused; add a robot with `mapservice robot "
             f"add <robotId> --data-dir {stack.data_dir}`)" if args.auth else "  (anonymous)"))
+        if broker in ("mosquitto", "amqtt"):
+            table.add_row("MQTT broker", f"Mosquitto, store in {stack.data_dir / 'mosquitto'}"
+                          if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
         if robot_credentials:
             table.add_row("Simulated robots' MQTT credentials", str(robot_credentials))
         table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
@@ -327,7 +339,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "(the shift simulator, fast-forwarded; about 11 s a day here); 0: none")
     up.add_argument("--load-test", action="store_true",
                     help="simulate the 2019 load test (circles, re-sent chunks) instead of a shift")
-    up.add_argument("--mqtt-url", help="use this MQTT broker instead of an embedded amqtt")
+    up.add_argument("--mqtt-url", help="use this MQTT broker instead of the embedded one "
+                    "(Mosquitto when installed, else amqtt)")
     up.add_argument("--auth", action="store_true",
                     help="authentication on, as in production: the embedded broker is Mosquitto "
                          "with a password file and ACL, each simulated robot gets its own MQTT "

@@ -1,14 +1,38 @@
-"""confluent-kafka idempotent producer behind the EventPublisher port."""
+"""confluent-kafka idempotent producer behind the EventPublisher port.
+
+A producer can get stuck for good: after a fatal error (librdkafka refuses every later
+record), or against a broker that lost its producer state, as a restarted tansu (memory
+storage) does: it answers UNKNOWN_PRODUCER_ID to every produce, librdkafka bumps the
+epoch locally and tries again, forever, and every record times out. So a record that
+times out or fails fatally renews the producer (a new one, a new producer id from the
+broker); the old one's records are purged (each reported failed; one that had reached
+the broker may end up in Kafka twice, which the history's natural identity folds) and
+the caller produces them again, on the new one.
+"""
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable
 
+import structlog
 from confluent_kafka import KafkaError, KafkaException, Producer
+from prometheus_client import Counter
 
 from mapservice.settings import Settings
+
+log = structlog.get_logger(__name__)
+
+RENEWALS = Counter("mapservice_kafka_producer_renewals_total",
+                   "Kafka producers replaced after a record timed out or a fatal error")
+
+# A record not confirmed within this long is reported failed (and produced again by the
+# caller); it also bounds how long a stuck producer holds records before it is renewed.
+MESSAGE_TIMEOUT_MS = 10_000
+# Renewals at most this often: in a long outage every record times out, one renewal is enough.
+RENEW_INTERVAL_S = 10.0
 
 
 def producer_config(settings: Settings, client_id: str) -> dict:
@@ -23,7 +47,7 @@ def producer_config(settings: Settings, client_id: str) -> dict:
         "compression.type": "none",  # aiokafka (faust) lacks lz4 without extras; chunks are zlib already
         # Same partition for the same key as faust/aiokafka producers.
         "partitioner": "murmur2_random",
-        "message.timeout.ms": 30_000,
+        "message.timeout.ms": MESSAGE_TIMEOUT_MS,
     }
 
 
@@ -36,9 +60,14 @@ class KafkaPublisher:
     the Producer is made on the first publish (an API that never takes a 2019 POST never
     dials Kafka, nor logs that it cannot reach it)."""
 
-    def __init__(self, settings: Settings, client_id: str) -> None:
+    def __init__(self, settings: Settings, client_id: str,
+                 renew_interval_s: float = RENEW_INTERVAL_S) -> None:
         self._config = producer_config(settings, client_id)
         self._producer: Producer | None = None
+        self._retiring: list[Producer] = []  # renewed ones: purged, polled until they are empty
+        self._purged: set[int] = set()  # ids of retiring producers already purged
+        self._renew_interval_s = renew_interval_s
+        self._renewed_at = -math.inf
         self._lock = threading.Lock()
 
     @property
@@ -47,20 +76,44 @@ class KafkaPublisher:
         return self._producer is not None
 
     def _get(self) -> Producer:
-        if self._producer is None:
-            with self._lock:
-                if self._producer is None:
-                    self._producer = Producer(self._config)
-        return self._producer
+        with self._lock:
+            if self._producer is None:
+                made: list[Producer] = []
+                # Without an error_cb, librdkafka's fatal error is raised out of poll().
+                made.append(Producer({**self._config,
+                                      "error_cb": lambda err: self._on_error(made[0], err)}))
+                self._producer = made[0]
+            return self._producer
+
+    def _on_error(self, producer: Producer, err: KafkaError) -> None:
+        if _fatal(err):
+            self._renew(producer, str(err), at_once=True)
+
+    def _renew(self, stuck: Producer, reason: str, at_once: bool = False) -> None:
+        """Replaces `stuck` (if it is still the current producer) by a new one on the next
+        publish; not more often than every renew_interval_s unless `at_once` (fatal)."""
+        with self._lock:
+            now = time.monotonic()
+            if self._producer is not stuck or (
+                    not at_once and now - self._renewed_at < self._renew_interval_s):
+                return
+            self._retiring.append(stuck)
+            self._producer = None
+            self._renewed_at = now
+        RENEWALS.inc()
+        log.warning("kafka producer renewed; failed records are produced again", reason=reason)
 
     def publish(
         self, topic: str, key: bytes, value: bytes, on_done: Callable[[Exception | None], None]
     ) -> None:
-        def delivered(err, _msg) -> None:
-            on_done(None if err is None else KafkaException(err))
-
-        producer = self._get()
         while True:
+            producer = self._get()
+
+            def delivered(err, _msg, producer=producer) -> None:
+                if err is not None and (_fatal(err) or err.code() == KafkaError._MSG_TIMED_OUT):
+                    self._renew(producer, str(err), at_once=_fatal(err))
+                on_done(None if err is None else KafkaException(err))
+
             try:
                 producer.produce(topic, value=value, key=key, on_delivery=delivered)
                 return
@@ -68,15 +121,61 @@ class KafkaPublisher:
                 # Local queue full: serve callbacks to make room instead of dropping.
                 producer.poll(0.05)
             except KafkaException as exc:
-                if exc.args and exc.args[0].code() == KafkaError.MSG_SIZE_TOO_LARGE:
+                err = exc.args[0] if exc.args else None
+                if err is not None and err.code() == KafkaError.MSG_SIZE_TOO_LARGE:
                     raise RecordTooLarge(f"{len(value)} bytes: larger than Kafka takes") from None
+                if err is not None and _fatal(err):
+                    self._renew(producer, str(err), at_once=True)  # then produce on the new one
+                    continue
                 raise
 
+    def _poll_retiring(self) -> None:
+        for old in list(self._retiring):
+            if id(old) not in self._purged:
+                # Here, not in _renew: that may run inside this producer's own callback.
+                # A fatal producer would never report what it still holds; a stuck one only
+                # after its timeout. Purged, each is reported failed now and produced again.
+                self._purged.add(id(old))
+                old.purge(in_queue=True, in_flight=True, blocking=False)
+            _poll(old, 0)
+            if len(old) == 0:  # every delivery report served
+                with self._lock:
+                    self._retiring.remove(old)
+                    self._purged.discard(id(old))
+
     def poll(self, timeout: float) -> None:
-        if self._producer is None:
+        if self._retiring:
+            self._poll_retiring()
+        producer = self._producer
+        if producer is None:
             time.sleep(timeout)  # nothing published yet: nothing to deliver
-        else:
-            self._producer.poll(timeout)
+        elif _poll(producer, timeout) is not None:
+            self._renew(producer, "poll raised a fatal error", at_once=True)
 
     def flush(self, timeout: float) -> int:
-        return 0 if self._producer is None else self._producer.flush(timeout)
+        deadline = time.monotonic() + timeout
+        left = 0
+        for producer in [*self._retiring, self._producer]:
+            if producer is not None:
+                left += producer.flush(max(0.0, deadline - time.monotonic()))
+        self._poll_retiring()
+        return left
+
+
+def _fatal(err: KafkaError) -> bool:
+    """A fatal error: this producer accepts nothing any more. (produce() reports it as code
+    _FATAL without the fatal flag.)"""
+    return err.fatal() or err.code() == KafkaError._FATAL
+
+
+def _poll(producer: Producer, timeout: float) -> KafkaError | None:
+    """Serves delivery reports; returns the fatal error poll() raised, if it did."""
+    try:
+        producer.poll(timeout)
+    except KafkaException as exc:
+        err = exc.args[0] if exc.args else None
+        if isinstance(err, KafkaError) and _fatal(err):
+            log.warning("kafka producer failed fatally", error=str(err))
+            return err
+        raise
+    return None

@@ -271,8 +271,9 @@ class Stack:
         return self.procs["mqtt"]
 
     def _mosquitto_options(self) -> embedded.MosquittoOptions:
-        """Password file and ACL (with the service users' passwords), and the TLS listener."""
-        options = embedded.MosquittoOptions()
+        """The store in the data dir (sessions and queued QoS 1 messages survive a restart),
+        password file and ACL (with the service users' passwords), and the TLS listener."""
+        options = embedded.MosquittoOptions(store_dir=self.data_dir / "mosquitto")
         if self.mqtt_auth:
             for user in (GATEWAY_USER, PROCESSORS_USER):
                 self.broker_files.set_service_user(user, self.service_password(user))

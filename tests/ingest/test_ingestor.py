@@ -32,7 +32,7 @@ def settings() -> Settings:
 
 @pytest.fixture
 def ingestor(settings, publisher, clock) -> Ingestor:
-    return Ingestor(settings, publisher, clock, gateway_id="gw-test")
+    return Ingestor(settings, publisher, clock, gateway_id="gw-test", retry_delay_s=0)
 
 
 @pytest.fixture
@@ -90,8 +90,10 @@ def test_failed_delivery_is_retried_and_ack_waits(ingestor, publisher, settings,
     """A failed delivery is published again; ack waits until a delivery succeeds, once."""
     publisher.fail_with = RuntimeError("broker down")
     ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_("pose"))
-    publisher.poll()  # fails; the done-callback publishes again
+    publisher.poll()  # fails; the record waits for its retry
+    assert ingestor.retries_waiting == 1 and ingestor.retry_due() == 1
     publisher.poll()  # fails again
+    assert ingestor.retry_due() == 1
     assert acks.calls == []
     assert ingestor.in_flight == 1
     assert not publisher.records[settings.topic_pose_events]
@@ -107,13 +109,32 @@ def test_failed_delivery_is_retried_and_ack_waits(ingestor, publisher, settings,
 def test_publisher_failing_from_the_start(settings, clock, wire, acks) -> None:
     """MemoryPublisher(fail_with=...) never acks until the failure clears."""
     publisher = MemoryPublisher(fail_with=OSError("no route to broker"))
-    ingestor = Ingestor(settings, publisher, clock, "gw")
+    ingestor = Ingestor(settings, publisher, clock, "gw", retry_delay_s=0)
     ingestor.handle("iot/chunks/create", wire.chunk(), acks.for_("c"))
     publisher.poll()
     assert acks.calls == []
     publisher.fail_with = None
+    assert ingestor.retry_due() == 1
     assert publisher.flush() == 0
     assert acks.calls == ["c"]
+
+
+def test_a_failed_delivery_waits_its_delay_without_holding_up_other_reports(
+        settings, clock, wire, acks) -> None:
+    """A failed record is not produced again inside the delivery callback (which would
+    hold up every other report) but by retry_due() once its delay has passed."""
+    publisher = MemoryPublisher(fail_with=OSError("request timed out"))
+    now = [100.0]
+    ingestor = Ingestor(settings, publisher, clock, "gw", retry_delay_s=0.2, monotonic=lambda: now[0])
+    for n in range(3):
+        ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_(f"p{n}"))
+    publisher.poll()  # three failures, served at once
+    assert ingestor.retries_waiting == 3 and ingestor.retry_due() == 0
+    now[0] += 0.2
+    publisher.fail_with = None
+    assert ingestor.retry_due() == 3
+    publisher.poll()
+    assert acks.calls == ["p0", "p1", "p2"] and ingestor.in_flight == 0
 
 
 def test_returned_record_describes_the_outcome(ingestor, wire) -> None:
