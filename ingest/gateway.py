@@ -20,6 +20,7 @@ from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
 from mapservice.runtime.health import kafka_check
 from mapservice.runtime.health_server import serve_health
+from mapservice.runtime.metrics_gate import metrics_gate
 from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
 from mapservice.core.ports import Clock, EventPublisher
 from mapservice.settings import Settings
@@ -234,7 +235,7 @@ class MqttGateway:
         self.client.on_message = self._on_message
         self.client.reconnect_delay_set(0.2, 5)
         if self.health_port is not None:
-            serve_health(s.api_host, self.health_port, self.status, self.ready)
+            serve_health(s.api_host, self.health_port, self.status, self.ready, metrics_gate(s))
         self.meta_watcher.start()
         log.info("gateway starting", mqtt=f"{host}:{port}", kafka=s.kafka_bootstrap)
         while not self._stop.is_set():

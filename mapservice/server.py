@@ -21,6 +21,7 @@ from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.runtime.health import CachedCheck, Heartbeat, beat_forever, kafka_check
 from mapservice.runtime.health_server import serve_health
+from mapservice.runtime.metrics_gate import metrics_gate
 from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
@@ -146,7 +147,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
                     return {"ok": all(results.values()), "checks": results}
 
                 serve_health(settings.api_host, health_port, lambda: report(liveness),
-                             lambda: report(readiness))
+                             lambda: report(readiness), metrics_gate(settings))
             await stop.wait()
     finally:
         beating.cancel()

@@ -11,15 +11,24 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
+from .metrics_gate import Refusal
+
 
 def serve_health(host: str, port: int, status: Callable[[], dict],
-                 ready: Callable[[], dict] | None = None) -> ThreadingHTTPServer:
+                 ready: Callable[[], dict] | None = None,
+                 metrics_gate: Callable[[str | None], Refusal] = lambda _auth: None,
+                 ) -> ThreadingHTTPServer:
     """Starts a daemon thread; `status()` (liveness) and `ready()` (readiness, default:
-    the liveness) return a dict with a boolean `ok`."""
+    the liveness) return a dict with a boolean `ok`; `metrics_gate(authorization)` says
+    whether /metrics may be served (see metrics_gate.py)."""
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - http.server's naming
-            if self.path == "/metrics":
+            refusal = metrics_gate(self.headers.get("Authorization")) if self.path == "/metrics" else None
+            if refusal is not None:
+                code, reason = refusal
+                body, ctype = json.dumps({"detail": reason}).encode(), "application/json"
+            elif self.path == "/metrics":
                 body, ctype, code = generate_latest(), CONTENT_TYPE_LATEST, 200
             elif self.path in ("/healthz", "/readyz"):
                 doc = (ready or status)() if self.path == "/readyz" else status()
@@ -28,6 +37,8 @@ def serve_health(host: str, port: int, status: Callable[[], dict],
             else:
                 body, ctype, code = b'{"detail":"use /healthz, /readyz or /metrics"}', "application/json", 404
             self.send_response(code)
+            if code == 401:
+                self.send_header("WWW-Authenticate", 'Bearer realm="mapservice"')
             self.send_header("Content-Type", ctype)
             self.send_header("Content-Length", str(len(body)))
             self.end_headers()
