@@ -109,6 +109,11 @@ class Settings(BaseSettings):
         "Private key (PEM, unencrypted) of MAPSERVICE_MQTT_CERT_FILE."))
     mqtt_client_id: str = Field("mapservice-gateway", description="Stable: keeps the QoS 1 session.")
     mqtt_share_group: str = Field("", description="Non-empty: subscribe via $share/<group>/.")
+    emqx_api_url: str = Field("", description=(
+        "EMQX's REST API (the dashboard port, e.g. http://emqx-dashboard.emqx:18083) for "
+        "`mapservice robot add|remove|list --emqx`; only that command reads it."))
+    emqx_api_key: str = Field("", description="EMQX API key (dashboard: System -> API Key).")
+    emqx_api_secret: SecretStr = Field(SecretStr(""), description="Its secret.")
     create_chunk_topic: str = Field("iot/chunks/create", description=(
         "2019 CREATE_CHUNK_TOPIC (carries no robot id: under MQTT authentication the broker's "
         "ACL decides who may publish there); empty: the gateway does not subscribe to it."))

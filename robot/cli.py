@@ -197,6 +197,12 @@ def _broker_files(args):
     except ValidationError as exc:
         sys.exit(f"mapservice robot {args.robot_command}: the MAPSERVICE_* settings do not load "
                  f"({exc.errors()[0]['msg']}); they name the topics the ACL is about")
+    if args.emqx:
+        from mapservice.adapters.emqx_users import EmqxUsers
+
+        return settings, EmqxUsers(settings.emqx_api_url, settings.emqx_api_key,
+                                   settings.emqx_api_secret.get_secret_value(),
+                                   AclTopics.from_settings(settings))
     embedded = BrokerFiles.in_data_dir(settings.data_dir, settings)
     files = BrokerFiles(Path(args.password_file) if args.password_file else embedded.password_file,
                         Path(args.acl_file) if args.acl_file else embedded.acl_file,
@@ -204,8 +210,21 @@ def _broker_files(args):
     return settings, files
 
 
+def _where(files) -> str:
+    if _is_emqx(files):
+        return f"EMQX's built-in database ({files.api_url})"
+    return f"{files.password_file} and {files.acl_file}"
+
+
+def _is_emqx(files) -> bool:
+    return not hasattr(files, "password_file")
+
+
 def _reload_local_mosquitto(files) -> str:
     """SIGHUPs the Mosquitto whose pid the local stack wrote next to the files, if it runs."""
+    if _is_emqx(files):
+        return ("EMQX checks it at the robot's next connect (a connected client stays "
+                "connected: kick it from the dashboard's Clients page)")
     pid_file = files.password_file.with_name("mosquitto.pid")
     try:
         pid = int(pid_file.read_text().strip())
@@ -223,9 +242,12 @@ def _reload_local_mosquitto(files) -> str:
 
 
 def _robot_identity(args) -> None:
-    """`robot add|remove|list`: the broker's password file and ACL, one user per robot."""
-    settings, files = _broker_files(args)
+    """`robot add|remove|list`: the broker's password file and ACL (or EMQX's built-in
+    database with --emqx), one user per robot."""
+    from mapservice.adapters.emqx_users import EmqxError
+
     try:
+        settings, files = _broker_files(args)
         if args.robot_command == "list":
             legacy = set(files.legacy_robots())
             for robot in files.robots():
@@ -233,13 +255,13 @@ def _robot_identity(args) -> None:
             return
         if args.robot_command == "remove":
             if not files.remove_robot(args.robot_id_arg):
-                sys.exit(f"mapservice robot remove: no robot {args.robot_id_arg!r} in {files.password_file}")
-            print(f"removed robot {args.robot_id_arg} from {files.password_file} and {files.acl_file}; "
+                sys.exit(f"mapservice robot remove: no robot {args.robot_id_arg!r} in {_where(files)}")
+            print(f"removed robot {args.robot_id_arg} from {_where(files)}; "
                   + _reload_local_mosquitto(files))
             return
         cred = files.add_robot(args.robot_id_arg, legacy_chunks=args.legacy_chunks,
                                rotate=args.rotate)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EmqxError) as exc:
         sys.exit(f"mapservice robot {args.robot_command}: {exc}")
     if args.save:
         from .connection import save_credential
@@ -251,7 +273,7 @@ def _robot_identity(args) -> None:
         print(json.dumps({"robotId": cred.robot_id, "username": cred.username,
                           "password": cred.password, "broker": broker, "topics": cred.topics,
                           "legacyChunkTopic": cred.legacy_chunks,
-                          "passwordFile": str(files.password_file), "aclFile": str(files.acl_file)},
+                          "storedIn": _where(files)},
                          indent=2))
         return
     legacy = files.topics.legacy_chunk_topic
@@ -271,10 +293,9 @@ def _robot_identity(args) -> None:
   and reads {cred.topics["advertisements"]}. Anything else the broker refuses; a payload
   whose robotId differs from the topic's is a dead letter (robot_id_mismatch).
 
-Written: {files.password_file} and {files.acl_file}; {reload}.{saved}
-EMQX (Kubernetes): add the user through its REST API instead, e.g.
-  curl -u KEY:SECRET -X POST http://EMQX:18083/api/v5/authentication/password_based:built_in_database/users \\
-       -H 'Content-Type: application/json' -d '{{"user_id": "{cred.username}", "password": "..."}}'""")
+Written: {_where(files)}; {reload}.{saved}""" + ("" if args.emqx else """
+EMQX (Kubernetes): the same command with --emqx stores the user in EMQX's built-in database
+  (MAPSERVICE_EMQX_API_URL, MAPSERVICE_EMQX_API_KEY, MAPSERVICE_EMQX_API_SECRET)."""))
 
 
 def cmd_drive(args) -> None:
@@ -368,7 +389,8 @@ def add_parsers(sub) -> None:
     add_mqtt_arguments(rb, many=False)
     rb.set_defaults(func=cmd_robot, robot_command=None)
     ids = rb.add_subparsers(dest="robot_command", metavar="{add,remove,list}",
-                            help="manage robots' MQTT credentials (Mosquitto password file and ACL)")
+                            help="manage robots' MQTT credentials (Mosquitto password file and ACL, "
+                                 "or EMQX's built-in database)")
     for name, text in (("add", "give a robot its own MQTT user (username = robotId) and print "
                                "the credential and topics to configure on the robot"),
                        ("remove", "take a robot's MQTT user away (it can no longer connect)"),
@@ -380,6 +402,9 @@ def add_parsers(sub) -> None:
         cmd.add_argument("--data-dir", default=None,
                          help="data dir whose mqtt/passwd and mqtt/acl the local Mosquitto reads "
                               "(default: MAPSERVICE_DATA_DIR, else .mapservice-data)")
+        cmd.add_argument("--emqx", action="store_true",
+                         help="EMQX's built-in database through its REST API instead of "
+                              "Mosquitto's files (MAPSERVICE_EMQX_API_URL, _API_KEY, _API_SECRET)")
         cmd.add_argument("--password-file", default=None,
                          help="a Mosquitto password_file elsewhere (e.g. infra/mosquitto/passwd); "
                               "default: DATA_DIR/mqtt/passwd")

@@ -32,6 +32,7 @@ from mapservice.settings import Settings
 
 GATEWAY_USER = "mapservice-gateway"
 PROCESSORS_USER = "mapservice-processors"
+RESERVED_PREFIX = "mapservice-"
 PBKDF2_ROUNDS = 101  # what mosquitto_passwd 2.0 writes
 _ROBOT_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")  # the gateway's robotId rule (wire2019)
 LEGACY_MARKER = "# --- robots allowed the 2019 chunk topic"
@@ -73,6 +74,11 @@ def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER
                          "(the 2019 robotId rule the gateway checks)")
     if robot_id in service_users:
         raise ValueError(f"{robot_id!r} is the service's own MQTT user, not a robot")
+    if robot_id.startswith(RESERVED_PREFIX):
+        # Where a robot's client id is its username, a robot named like a gateway's client
+        # id (mapservice-gateway-0) could take over that gateway's session.
+        raise ValueError(f"robot ids starting with {RESERVED_PREFIX!r} are reserved for the "
+                         "service's own clients")
 
 
 @dataclass(frozen=True)

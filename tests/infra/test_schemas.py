@@ -294,6 +294,20 @@ def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
     assert re.search(r"password_based[^}]*backend = built_in_database", emqx_config(), re.S)
 
 
+def test_no_robot_can_take_another_clients_session_on_emqx() -> None:
+    """Robots' listeners force client id = username (no gateway or robot session takeover); the internal zone of the gateways does not."""
+    config = emqx_config()
+    top = re.search(r"^mqtt \{(.*?)^\}", config, re.S | re.M)
+    assert top and re.search(r"use_username_as_clientid = true", top[1])
+    internal = re.search(r"^zones\.internal \{(.*?)^\}", config, re.S | re.M)
+    assert internal and "use_username_as_clientid = false" in internal[1]
+    for name in ("tcp.default", "ssl.default"):
+        listener = re.search(rf"^listeners\.{re.escape(name)} \{{(.*?)^\}}", config, re.S | re.M)
+        assert listener and "zone" not in listener[1], name  # the default zone: forced ids
+    internal_listener = re.search(r"^listeners\.tcp\.internal \{(.*?)^\}", config, re.S | re.M)
+    assert internal_listener and "zone = internal" in internal_listener[1]
+
+
 def test_emqx_has_a_tls_listener_for_robots() -> None:
     """EMQX opens a TLS listener (8883) with a certificate from a mounted Secret."""
     config = emqx_config()
