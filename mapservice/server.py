@@ -10,10 +10,13 @@ batch, the API's relay reads the live topic.
 from __future__ import annotations
 
 import asyncio
+import math
 import signal
+import sys
 
 import structlog
 import uvicorn
+from prometheus_client import Gauge
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
@@ -30,6 +33,12 @@ from mapservice.adapters.kafka_topics import ensure_topics
 log = structlog.get_logger(__name__)
 
 
+CHDB_MEMORY = Gauge("mapservice_chdb_memory_tracked_bytes",
+                    "Memory ClickHouse's tracker counts inside this process (embedded chDB only)")
+PYTHON_BLOCKS = Gauge("mapservice_python_allocated_blocks",
+                      "Memory blocks Python's allocator holds (sys.getallocatedblocks)")
+
+
 def api_server_config(app, settings: Settings) -> uvicorn.Config:
     """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
     through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
@@ -41,6 +50,20 @@ def api_server_config(app, settings: Settings) -> uvicorn.Config:
                           log_config=None, log_level=None, access_log=True,
                           http=header_deadline_protocol(settings.api_header_timeout_s),
                           timeout_keep_alive=settings.api_idle_timeout_s)
+
+
+def export_process_memory(store: ClickHouseStore) -> None:
+    """With chDB, ClickHouse lives in this process: its tracked memory and Python's
+    allocations, side by side with the resident size, say which of the two a growth is in."""
+    CHDB_MEMORY.set_function(lambda: _or_nan(store.tracked_memory_bytes))
+    PYTHON_BLOCKS.set_function(sys.getallocatedblocks)
+
+
+def _or_nan(read) -> float:
+    try:
+        return float(read())
+    except Exception:  # a scrape must not fail because ClickHouse is busy or closing
+        return math.nan
 
 
 async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
@@ -93,6 +116,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     # heartbeats of the loops that do the work (mapservice/runtime/health.py).
     kafka = kafka_check(settings)
     readiness = {"clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)}
+    if store.dsn.startswith("chdb://"):
+        export_process_memory(store)
     advisory: dict = {}  # reported by /readyz, not required
     loop_beat = Heartbeat(max_age_s=15.0)
     beating = asyncio.ensure_future(beat_forever(loop_beat))

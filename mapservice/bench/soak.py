@@ -84,8 +84,36 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -
             out["kafka_bytes_per_event"] = per_event
             out["kafka_mb_per_day"] = kafka["growth_mb_per_h"] * 24
             out["kafka_mb_per_week"] = kafka["growth_mb_per_h"] * 24 * 7
+        inside = [(x["t_s"], x["serve_inside"]) for x in steady if x.get("serve_inside")]
+        if inside:
+            times = [t for t, _ in inside]
+            out["serve_inside"] = {
+                key: {"first": inside[0][1][key], "last": inside[-1][1][key],
+                      "growth_per_h": growth_per_hour(times, [v[key] for _, v in inside])}
+                for key in inside[0][1]}
     out["bounded"] = all(c["growth_bounded"] is not False for c in out["components"].values())
     return out
+
+
+INSIDE_SERVE = {"mapservice_chdb_memory_tracked_bytes": ("chdb_mb", 1e-6),
+                "mapservice_python_allocated_blocks": ("python_blocks_k", 1e-3)}
+
+
+def serve_inside(http: httpx.Client, api_url: str) -> dict[str, float] | None:
+    """Where serve's memory is: ClickHouse's tracker (chDB lives in serve) and Python's
+    allocator, from serve's /metrics; None if it does not answer."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    try:
+        text = http.get(f"{api_url}/metrics").text
+    except httpx.HTTPError:
+        return None
+    out = {}
+    for family in text_string_to_metric_families(text):
+        if family.name in INSIDE_SERVE and family.samples:
+            key, scale = INSIDE_SERVE[family.name]
+            out[key] = round(family.samples[0].value * scale, 3)
+    return out or None
 
 
 class Sampler:
@@ -182,6 +210,7 @@ def run(args, console) -> dict:
                 "stored": stats["poses"] + stats["chunk_events"],
                 "dead_letters": stats["dead_letters"],
                 "freshness_s": freshness_s(http, stack.api_url, fleet.robots[0]),
+                "serve_inside": serve_inside(http, stack.api_url),
             }
             samples.append(sample)
             console.print(
@@ -215,6 +244,12 @@ def print_summary(console, result: dict, max_growth: float) -> None:
                       f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'} ({verdict}), "
                       f"CPU median {c['cpu_median_percent'] or 0:.0f}% "
                       f"({c['cpu_start_percent'] or 0:.0f}% at the start, {c['cpu_end_percent'] or 0:.0f}% at the end)")
+    for key, label, unit in (("chdb_mb", "ClickHouse's tracked memory in serve", "MB"),
+                             ("python_blocks_k", "Python's allocated blocks in serve", "k")):
+        inside = s.get("serve_inside", {}).get(key)
+        if inside and inside["growth_per_h"] is not None:
+            console.print(f"  {label}: {inside['first']:.1f} -> {inside['last']:.1f} {unit}, "
+                          f"growth {inside['growth_per_h']:+.1f} {unit}/h")
     if "kafka_bytes_per_event" in s:
         console.print(f"  tansu holds ~{s['kafka_bytes_per_event']:.0f} bytes per event: "
                       f"{s['kafka_mb_per_day']:.0f} MB a day, {s['kafka_mb_per_week']:.0f} MB a week "

@@ -53,6 +53,12 @@ class AdminMixin(ClickHouseConnection):
             "AND active GROUP BY table", {"d": self.database})
         return {t: int(b) for t, b in rows}
 
+    def tracked_memory_bytes(self) -> int:
+        """What ClickHouse's own memory tracker counts (caches, merges, queries running):
+        for embedded chDB, the part of this process's memory that ClickHouse holds."""
+        (row,) = self._rows("SELECT value FROM system.metrics WHERE metric = 'MemoryTracking'", {})
+        return int(row[0])
+
     def optimize(self) -> None:
         """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
         with self._lock:

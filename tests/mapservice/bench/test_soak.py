@@ -54,3 +54,13 @@ def test_a_run_under_an_hour_is_not_representative() -> None:
     """Ten minutes of samples are summarized but flagged as not representative."""
     samples = [sample(t, {"gateway": 50.0}, t) for t in range(0, 601, 30)]
     assert summarize(samples, minutes=10, max_growth_mb_per_h=20)["representative"] is False
+
+
+def test_summary_splits_serves_memory_into_clickhouse_and_python() -> None:
+    """ClickHouse's tracked memory growing 6 MB/h and flat Python blocks are each reported with their growth."""
+    samples = [dict(sample(t, {"server": 500.0}, t), serve_inside={"chdb_mb": 100 + t / 600,
+                                                                    "python_blocks_k": 300.0})
+               for t in range(0, 3601, 60)]
+    inside = summarize(samples, minutes=60, max_growth_mb_per_h=20)["serve_inside"]
+    assert inside["chdb_mb"]["growth_per_h"] == pytest.approx(6)
+    assert inside["python_blocks_k"]["growth_per_h"] == pytest.approx(0)
