@@ -565,6 +565,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def test_the_shipped_mosquitto_saves_its_store_as_often_as_the_embedded_one():
+    """infra's Mosquitto persists sessions and queued messages and saves them every second, as the fault-tested embedded broker does."""
+    from mapservice.local.embedded import MOSQUITTO_STORE
+
+    lines = MOSQUITTO_CONF.read_text().splitlines()
+    assert "persistence true" in lines
+    (shipped,) = [line for line in lines if line.startswith("autosave_interval")]
+    assert shipped in MOSQUITTO_STORE.splitlines() and shipped == "autosave_interval 1"
+
+
 def test_mosquitto_starts_with_the_config():
     """The local mosquitto starts with infra/mosquitto/mosquitto.conf (port and data path changed only)."""
     binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
