@@ -181,9 +181,11 @@ def cmd_up(args) -> None:
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
         robot_credentials = None
-        if args.auth and args.robots:
+        if args.auth:
             with console.status("giving each simulated robot its MQTT credential..."):
-                robot_credentials = stack.robot_credentials(simulated_robot_ids(args))
+                # The /controller page drives a robot too: it needs one to publish as.
+                robot_credentials = stack.robot_credentials(
+                    simulated_robot_ids(args) + [CONTROLLER_ROBOT])
         with console.status("starting processors + API (creating the ClickHouse schema)..."):
             stack.start_server()
         with console.status("starting the MQTT-to-Kafka gateway..."):
@@ -206,7 +208,8 @@ def cmd_up(args) -> None:
             table.add_row("MQTT broker", f"Mosquitto, store in {stack.data_dir / 'mosquitto'}"
                           if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
         if robot_credentials:
-            table.add_row("Simulated robots' MQTT credentials", str(robot_credentials))
+            table.add_row("Robots' MQTT credentials", f"{robot_credentials} (the simulated robots' "
+                          f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
         table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
@@ -301,6 +304,10 @@ def cmd_demo_history(args) -> None:
         store.close()
     console.print(f"wrote {days:g} days of demo history in {result.seconds:.0f} s: {result.poses:,} poses, "
                   f"{result.chunk_writes:,} map changes, {result.conflicts} conflicts")
+
+
+# The robot id the /controller page drives by default (replay-ui/src/Controller.vue).
+CONTROLLER_ROBOT = "controller-1"
 
 
 def simulated_robot_ids(args) -> list[str]:

@@ -19,6 +19,9 @@ class ClientConfig(BaseModel):
     mqtt_ws_url: str | None  # None: no WebSocket listener configured (MAPSERVICE_MQTT_WS_URL)
     coordinate_topic_prefix: str  # a robot publishes its pose on <prefix><robotId>
     create_chunk_topic: str
+    # A robot publishes its chunks on <prefix><robotId>, the topic a broker's ACL ties to
+    # its username; None: the gateway does not read per-robot chunk topics.
+    robot_chunk_topic_prefix: str | None
 
 
 def coordinate_prefix(coordinate_topic: str) -> str:
@@ -30,7 +33,10 @@ def coordinate_prefix(coordinate_topic: str) -> str:
 
 @router.get("", operation_id="getClientConfig", response_model=ClientConfig)
 def get_client_config(settings: Settings = Depends(get_settings)) -> ClientConfig:
-    # Broker credentials stay on the server: browsers connect as anonymous robots do.
+    # The service's own broker credentials stay on the server: where the broker checks
+    # robot identities, the page connects with a robot's credential its user types in.
     return ClientConfig(mqtt_ws_url=settings.mqtt_ws_url or None,
                         coordinate_topic_prefix=coordinate_prefix(settings.coordinate_topic),
-                        create_chunk_topic=settings.create_chunk_topic)
+                        create_chunk_topic=settings.create_chunk_topic,
+                        robot_chunk_topic_prefix=(coordinate_prefix(settings.robot_chunk_topic)
+                                                  if settings.robot_chunk_topic else None))

@@ -2,10 +2,10 @@ import { EventEmitter } from "node:events";
 import { describe, expect, it } from "vitest";
 import type { MqttClient } from "mqtt";
 import { poseMessage } from "../src/lib/legacy";
-import { RobotLink } from "../src/lib/robotlink";
+import { RobotLink, refusedCredential } from "../src/lib/robotlink";
 import type { ClientConfig } from "../src/lib/robotlink";
 
-const CONFIG: ClientConfig = { mqtt_ws_url: "ws://127.0.0.1:9001/mqtt", coordinate_topic_prefix: "iot/coordinates/", create_chunk_topic: "iot/chunks/create" };
+const CONFIG: ClientConfig = { mqtt_ws_url: "ws://127.0.0.1:9001/mqtt", coordinate_topic_prefix: "iot/coordinates/", create_chunk_topic: "iot/chunks/create", robot_chunk_topic_prefix: "iot/chunks/create/" };
 
 class FakeClient extends EventEmitter {
   sent: [string, string, { qos: number }][] = [];
@@ -58,13 +58,36 @@ describe("RobotLink", () => {
     expect(link.state).toBe("offline");
     fake.emit("reconnect");
     expect(link.state).toBe("reconnecting");
-    expect(link.publishChunk({})).toBe(false);
+    expect(link.publishChunk("r7", {})).toBe(false);
     fake.emit("error", new Error("connection refused"));
     expect(link.error).toBe("connection refused");
     fake.emit("connect");
-    expect(link.publishChunk({ row: 1 })).toBe(true);
-    expect(fake.sent.map((m) => m[0])).toEqual(["iot/chunks/create"]);
+    expect(link.publishChunk("r7", { row: 1 })).toBe(true);
+    expect(fake.sent.map((m) => m[0])).toEqual(["iot/chunks/create/r7"]);
     expect(link.error).toBe("");
+  });
+
+  it("publishes chunks on the 2019 topic where the gateway reads no per-robot chunk topic", () => {
+    const { fake, link } = linked({ ...CONFIG, robot_chunk_topic_prefix: null });
+    link.start("page-1");
+    fake.emit("connect");
+    expect(link.publishChunk("r7", { row: 1 })).toBe(true);
+    expect(fake.sent.map((m) => m[0])).toEqual(["iot/chunks/create"]);
+  });
+
+  it("connects with a robot's credential when given one, anonymously otherwise", () => {
+    const anonymous = linked();
+    anonymous.link.start("page-1");
+    expect(anonymous.calls[0][1]).not.toHaveProperty("username");
+    const robot = linked();
+    robot.link.start("page-1", { username: "r7", password: "s3cret" });
+    expect(robot.calls[0][1]).toMatchObject({ username: "r7", password: "s3cret" });
+  });
+
+  it("recognises a broker refusing the credential", () => {
+    expect(refusedCredential("Connection refused: Not authorized")).toBe(true);
+    expect(refusedCredential("Connection refused: Bad User Name or Password")).toBe(true);
+    expect(refusedCredential("connection refused")).toBe(false);
   });
 
   it("without a WebSocket URL is unconfigured and never connects", () => {

@@ -21,7 +21,13 @@ def test_hands_out_the_configured_websocket_url_and_topics() -> None:
     body = _get(Settings(mqtt_ws_url="ws://127.0.0.1:9001/mqtt"))
     assert body == {"mqtt_ws_url": "ws://127.0.0.1:9001/mqtt",
                     "coordinate_topic_prefix": "iot/coordinates/",
-                    "create_chunk_topic": "iot/chunks/create"}
+                    "create_chunk_topic": "iot/chunks/create",
+                    "robot_chunk_topic_prefix": "iot/chunks/create/"}
+
+
+def test_no_per_robot_chunk_topic_is_null() -> None:
+    """With the per-robot chunk topic turned off the page is told to use the 2019 topic."""
+    assert _get(Settings(robot_chunk_topic=""))["robot_chunk_topic_prefix"] is None
 
 
 def test_no_websocket_url_is_null(monkeypatch) -> None:

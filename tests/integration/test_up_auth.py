@@ -43,7 +43,7 @@ def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients
     try:
         assert "anonymous clients refused" in up.output
         creds = json.loads((data / "secrets" / "robots.json").read_text())
-        assert sorted(creds) == ["sim-000", "sim-001"]
+        assert sorted(creds) == ["controller-1", "sim-000", "sim-001"]  # and the /controller page's
         assert {"sim-000", "sim-001"} <= set(read_password_file(data / "mqtt" / "passwd"))
         deadline = time.monotonic() + 90
         poses: list = []
@@ -56,6 +56,8 @@ def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients
         assert connect_code(up.mqtt_port) != 0
         assert connect_code(up.mqtt_port, "sim-001", "wrong-password") != 0
         assert connect_code(up.mqtt_port, "sim-001", creds["sim-001"]) == 0
+        assert connect_code(up.mqtt_port, "controller-1", creds["controller-1"]) == 0
+        assert "type its password on" in up.output
         write = httpx.post(f"http://127.0.0.1:{up.api_port}/api/chunk-service/chunks",
                            json={"robotId": "x"}, timeout=30)
         assert write.status_code == 401

@@ -8,6 +8,7 @@ import re
 import time
 
 import httpx
+import pytest
 
 TIMEOUT_MS = 30_000
 
@@ -79,7 +80,7 @@ def test_paint_black_reaches_the_map(page, history_stack) -> None:
 
 
 def test_paint_white_over_mqtt_reaches_the_map(page, history_stack) -> None:
-    """Painting white with 'via MQTT' publishes on iot/chunks/create and the chunk is stored."""
+    """Painting white with 'via MQTT' publishes on the robot's chunk topic (iot/chunks/create/<id>) and the chunk is stored."""
     stack = history_stack
     _open(page, stack, "controller-mqtt")
     page.locator('[data-testid="left"]').click()
@@ -139,4 +140,59 @@ def test_without_websocket_url_the_page_says_so(page, history_stack) -> None:
     help_text.wait_for(timeout=TIMEOUT_MS)
     assert "MAPSERVICE_MQTT_WS_URL" in help_text.inner_text()
     assert page.locator('[data-testid="link"]').inner_text() == "MQTT not configured"
+    assert not page.errors
+
+
+# ---- where the broker checks robot identities (mapservice up --auth, production) ---------
+
+@pytest.fixture(scope="module")
+def auth_stack(tmp_path_factory):
+    """The service with Mosquitto checking robot identities; controller-auth has a credential."""
+    from mapservice.adapters.ros_map import load_ros_map, meta_for
+    from mapservice.local.stack import Stack
+    from tests.fixtures.paths import MAPS
+    from tests.integration.conftest import run_stack
+
+    stack = Stack(tmp_path_factory.mktemp("ui-auth-stack"), mqtt="mosquitto", mqtt_auth=True)
+    run_stack(stack, meta_for(load_ros_map(MAPS / "warehouse.yaml")))
+    stack.controller_password = stack.add_robot("controller-auth").password  # type: ignore[attr-defined]
+    yield stack
+    stack.stop()
+
+
+def test_under_robot_identities_the_page_asks_for_the_robots_password(page, auth_stack) -> None:
+    """Anonymous, the broker refuses the page and it says to type the robot's MQTT password."""
+    page.goto(f"{auth_stack.api_url}/controller")
+    page.locator("header input").fill("controller-auth")
+    page.locator("header input").dispatch_event("change")
+    refused = page.locator('[data-testid="link-refused"]')
+    refused.wait_for(timeout=TIMEOUT_MS)
+    assert "MQTT password" in refused.inner_text() and "robot add controller-auth" in refused.inner_text()
+
+
+def test_with_the_robots_password_the_page_drives_and_paints_as_that_robot(page, auth_stack) -> None:
+    """With controller-auth's password the page connects, its pose is stored and a chunk painted over MQTT lands on its own topic."""
+    stack = auth_stack
+    page.goto(f"{stack.api_url}/controller")
+    page.locator("header input").fill("controller-auth")
+    page.locator("header input").dispatch_event("change")
+    password = page.locator('[data-testid="mqtt-password"]')
+    password.fill(stack.controller_password)
+    password.dispatch_event("change")
+    page.wait_for_function("() => document.querySelector('[data-testid=link]')"
+                           "?.innerText.startsWith('MQTT connected')", timeout=TIMEOUT_MS)
+    page.locator('[data-testid="right"]').click()
+    deadline = time.monotonic() + 30
+    stored = None
+    while time.monotonic() < deadline and stored is None:
+        robots = httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
+        stored = next((r for r in robots if r["robotId"] == "controller-auth"), None)
+        time.sleep(0.3)
+    assert stored is not None, "the page's pose never arrived under robot identities"
+    page.locator('[data-testid="paint-via"]').select_option("mqtt")
+    assert page.locator('[data-testid="paint-via"] option[value=mqtt]').get_attribute(
+        "title") == "iot/chunks/create/controller-auth"
+    page.locator('[data-testid="paint-grey"]').click()
+    _, _, raw = _painted_chunk(page, stack, "controller-auth")
+    assert set(raw) == {205}
     assert not page.errors

@@ -11,6 +11,18 @@ export interface ClientConfig {
   mqtt_ws_url: string | null;
   coordinate_topic_prefix: string;
   create_chunk_topic: string;
+  robot_chunk_topic_prefix: string | null;
+}
+
+/** A robot's MQTT credential (its username is its robotId), where the broker checks them. */
+export interface RobotCredential {
+  username: string;
+  password: string;
+}
+
+/** mqtt.js's words for a refused CONNECT (MQTT 3.1.1 codes 4 and 5, MQTT 5 0x86, 0x87). */
+export function refusedCredential(error: string): boolean {
+  return /not authori[sz]ed|bad user ?name or password/i.test(error);
 }
 
 export type LinkState = "unconfigured" | "connecting" | "connected" | "reconnecting" | "offline";
@@ -36,11 +48,13 @@ export class RobotLink {
     this.state = config.mqtt_ws_url ? "offline" : "unconfigured";
   }
 
-  start(clientId: string): void {
+  start(clientId: string, credential?: RobotCredential): void {
     if (!this.config.mqtt_ws_url || this.client) return;
-    this.set("connecting");
+    this.set("connecting", "");
     // mqtt.js reconnects on its own; 2 s keeps the page's pose flowing soon after a broker restart.
-    const c = this.connect(this.config.mqtt_ws_url, { clientId, reconnectPeriod: 2000, connectTimeout: 5000, clean: true });
+    const options: IClientOptions = { clientId, reconnectPeriod: 2000, connectTimeout: 5000, clean: true };
+    if (credential?.password) Object.assign(options, credential);
+    const c = this.connect(this.config.mqtt_ws_url, options);
     this.client = c;
     c.on("connect", () => this.set("connected", ""));
     c.on("reconnect", () => this.set("reconnecting"));
@@ -62,9 +76,12 @@ export class RobotLink {
     return this.publish(this.config.coordinate_topic_prefix + robotId, message);
   }
 
-  /** iot/chunks/create, the body of POST /api/chunk-service/chunks. */
-  publishChunk(message: object): boolean {
-    return this.publish(this.config.create_chunk_topic, message);
+  /** The body of POST /api/chunk-service/chunks, on the robot's own chunk topic
+   *  (iot/chunks/create/{robotId}, which a broker's ACL ties to its username) or, where the
+   *  gateway reads none, on the 2019 iot/chunks/create. */
+  publishChunk(robotId: string, message: object): boolean {
+    const prefix = this.config.robot_chunk_topic_prefix;
+    return this.publish(prefix ? prefix + robotId : this.config.create_chunk_topic, message);
   }
 
   private publish(topic: string, message: object): boolean {
