@@ -8,6 +8,8 @@ Credentials are bearer tokens (`Authorization: Bearer <token>`), each with a rol
 | ------- | ------------------------------------- | -------------------------------- |
 | reader  | read                                  | MAPSERVICE_API_READER_TOKENS     |
 | writer  | read, the 2019 REST writes (robots)   | MAPSERVICE_API_WRITER_TOKENS     |
+| robot   | a writer bound to one robotId: chunks | MAPSERVICE_API_ROBOT_TOKENS      |
+|         | only under its own id (the handler)   | (robotId=token pairs)            |
 | admin   | everything: deletes, the map geometry | MAPSERVICE_ADMIN_TOKEN           |
 | metrics | /metrics only (the scraper)           | MAPSERVICE_API_METRICS_TOKEN     |
 
@@ -35,7 +37,7 @@ from limits.storage import MemoryStorage
 from limits.strategies import SlidingWindowCounterRateLimiter
 from starlette.types import ASGIApp, Receive, Scope as AsgiScope, Send
 
-from mapservice.settings import Settings, token_list
+from mapservice.settings import Settings, robot_tokens, token_list
 
 
 class Scope(str, Enum):
@@ -49,14 +51,15 @@ class Scope(str, Enum):
 GRANTS: dict[str, frozenset[Scope]] = {
     "reader": frozenset({Scope.READ}),
     "writer": frozenset({Scope.READ, Scope.WRITE}),
+    "robot": frozenset({Scope.READ, Scope.WRITE}),  # and only as itself: Caller.robot_id
     "admin": frozenset({Scope.READ, Scope.WRITE, Scope.ADMIN, Scope.METRICS}),
     "metrics": frozenset({Scope.METRICS}),
 }
 WHO_MAY = {
     Scope.READ: "a reader, writer or admin token (MAPSERVICE_API_READER_TOKENS, "
                 "MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
-    Scope.WRITE: "a writer (robot) token or the admin token (MAPSERVICE_API_WRITER_TOKENS, "
-                 "MAPSERVICE_ADMIN_TOKEN)",
+    Scope.WRITE: "a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, "
+                 "MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
     Scope.ADMIN: "the administrator token (MAPSERVICE_ADMIN_TOKEN)",
     Scope.METRICS: "the metrics token or the admin token (MAPSERVICE_API_METRICS_TOKEN, "
                    "MAPSERVICE_ADMIN_TOKEN)",
@@ -78,6 +81,7 @@ class Caller:
 
     role: str | None
     name: str
+    robot_id: str | None = None  # a robot token's robot: it writes only as this robot
 
     def may(self, scope: Scope) -> bool:
         return self.role is not None and scope in GRANTS[self.role]
@@ -95,6 +99,8 @@ class Credentials:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self._roles: dict[bytes, str] = {}
+        self._robots = {_digest(token): robot for token, robot in
+                        robot_tokens(settings.api_robot_tokens).items()}
         # Later roles win when one token is listed twice: admin above all.
         for role, secret in (("metrics", settings.api_metrics_token),
                              ("reader", settings.api_reader_tokens),
@@ -110,6 +116,9 @@ class Credentials:
             return Caller(None, f"anonymous@{address}"), True
         digest = _digest(token)
         role = self._roles.get(digest)
+        if role is None and digest in self._robots:
+            robot = self._robots[digest]
+            return Caller("robot", f"robot:{robot}:{digest[:6].hex()}", robot), True
         if role is None:
             return Caller(None, f"anonymous@{address}"), False
         return Caller(role, f"{role}:{digest[:6].hex()}"), True
@@ -235,6 +244,13 @@ class NeedSocket:
 PUBLIC, READ, WRITE, ADMIN, METRICS = (Public(), Need(Scope.READ), Need(Scope.WRITE),
                                        Need(Scope.ADMIN), Need(Scope.METRICS))
 SOCKET_READ = NeedSocket(Scope.READ)
+
+
+def require_robot(caller: Caller, robot_id: str) -> None:
+    """Inside a write handler: a 403 when a robot token writes under another robot's id."""
+    if caller.robot_id is not None and caller.robot_id != robot_id:
+        raise _denied(403, f"this robot token belongs to robot {caller.robot_id!r} and writes "
+                           f"only as it, not as {robot_id[:80]!r}", "insufficient_scope")
 
 
 def require(caller: Caller, scope: Scope, what: str) -> None:

@@ -22,6 +22,18 @@ def token_list(secret: SecretStr) -> list[str]:
     return [t for t in re.split(r"[\s,]+", secret.get_secret_value()) if t]
 
 
+def robot_tokens(secret: SecretStr) -> dict[str, str]:
+    """`robotId=token` pairs of MAPSERVICE_API_ROBOT_TOKENS, token -> robotId."""
+    pairs = {}
+    for item in token_list(secret):
+        robot_id, sep, token = item.partition("=")
+        if not sep or not robot_id or not token:
+            raise ValueError("MAPSERVICE_API_ROBOT_TOKENS takes robotId=token pairs, "
+                             "comma-separated (e.g. agv-7=$(openssl rand -hex 32))")
+        pairs[token] = robot_id
+    return pairs
+
+
 class Settings(BaseSettings):
     """Everything a component needs to know; only addresses differ between modes."""
 
@@ -166,6 +178,10 @@ class Settings(BaseSettings):
         "Robot/writer credentials, comma-separated (one per robot or integration): the 2019 "
         "REST writes (POST/PUT meta, POST chunks) and every read. Empty: generated in local "
         "mode (DATA_DIR/secrets/writer-token); in production, no REST writes but the admin's."))
+    api_robot_tokens: SecretStr = Field(SecretStr(""), description=(
+        "Robots' own REST credentials, `robotId=token` pairs, comma-separated: a writer "
+        "token bound to one robot, which may POST chunks only under its own robotId (403 "
+        "otherwise), as its MQTT user may publish only on its own topics."))
     api_metrics_access: Literal["open", "token", "off"] | None = Field(None, description=(
         "/metrics: `open`, `token` (the metrics or the admin token) or `off` (404). Empty: "
         "open in local mode, token in production mode."))
@@ -220,6 +236,7 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _refuse_default_secrets(self) -> "Settings":
+        robot_tokens(self.api_robot_tokens)  # malformed pairs: refused in every mode
         if self.mode == "production":
             admin = self.admin_token.get_secret_value()
             if not admin or admin == DEFAULT_ADMIN_TOKEN:
@@ -229,8 +246,10 @@ class Settings(BaseSettings):
                     "before running with MAPSERVICE_MODE=production"
                 )
             for name in ("admin_token", "api_reader_tokens", "api_writer_tokens",
-                         "api_metrics_token"):
-                short = [t for t in token_list(getattr(self, name)) if len(t) < MIN_TOKEN_CHARS]
+                         "api_metrics_token", "api_robot_tokens"):
+                tokens = (list(robot_tokens(self.api_robot_tokens)) if name == "api_robot_tokens"
+                          else token_list(getattr(self, name)))
+                short = [t for t in tokens if len(t) < MIN_TOKEN_CHARS]
                 if short:
                     raise ValueError(
                         f"MAPSERVICE_{name.upper()} holds a token of {len(short[0])} characters; "

@@ -33,7 +33,7 @@ from mapservice.core.render import chunk_pixels, png
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
 
-from ..access import ADMIN, READ, WRITE, Caller, Scope, require
+from ..access import ADMIN, READ, WRITE, Caller, Scope, require, require_robot
 from ..deps import get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 
@@ -204,13 +204,14 @@ def _limits(settings: Settings, meta: MapMetaSet | None) -> Limits:
     return limits.with_meta(meta) if meta is not None else limits
 
 
-@router.post("/chunks", operation_id="postLegacyChunk", dependencies=[Depends(WRITE)],
+@router.post("/chunks", operation_id="postLegacyChunk",
              openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
                  "example": {"pgmB64compressedData": "eNrt1rERwyAQRUG36HLcjlukABzIAbKPSAcDmt...",
                              "row": 3, "column": 2, "timestamp": "2018-12-20T23:34:33",
                              "robotId": "lkjlkj"}}}}})
 async def post_chunk(
     request: Request,
+    caller: Caller = Depends(WRITE),
     settings: Settings = Depends(get_settings),
     store: HistoryStore = Depends(get_store),
     clock: Clock = Depends(get_clock),
@@ -224,6 +225,7 @@ async def post_chunk(
     result = decode_chunk_create(body, now, _limits(settings, meta))
     if isinstance(result, Rejection):
         raise HTTPException(400, f"{result.reason.value}: {result.detail}")
+    require_robot(caller, result.robot_id)
     await run_in_threadpool(publish_and_wait, publisher, settings, result)
     payload = result.payload
     return _index_response("chunks", "chunk", chunk_id(

@@ -24,6 +24,8 @@ ADMIN_TOKEN = "admin-" + "a" * 32
 WRITER_TOKENS = ("robot-7-" + "w" * 32, "robot-8-" + "v" * 32)
 READER_TOKEN = "viewer-" + "r" * 32
 METRICS_TOKEN = "scraper-" + "m" * 32
+# Bound to the robot of the 2019 spec's examples, which the generated requests write as.
+ROBOT_TOKENS = {"lkjlkj": "own-robot-" + "o" * 32, "agv-7": "agv-seven-" + "s" * 32}
 
 CREDENTIALS = {
     "none": None,
@@ -32,6 +34,7 @@ CREDENTIALS = {
     "writer": WRITER_TOKENS[1],
     "admin": ADMIN_TOKEN,
     "metrics": METRICS_TOKEN,
+    "robot": ROBOT_TOKENS["lkjlkj"],
 }
 
 # The scope every operation must declare. A new operation fails test_every_operation_*
@@ -57,20 +60,21 @@ EXPECTED = {
         "public": dict.fromkeys(CREDENTIALS, "ok"),
         # Open reads ignore a stale token (a browser's after a rotation); writes do not.
         "read": dict.fromkeys(CREDENTIALS, "ok"),
-        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403},
-        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403},
+        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok"},
+        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403},
     },
     "token": {
         "public": dict.fromkeys(CREDENTIALS, "ok"),
-        "read": {"none": 401, "wrong": 401, "reader": "ok", "writer": "ok", "admin": "ok", "metrics": 403},
-        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403},
-        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403},
+        "read": {"none": 401, "wrong": 401, "reader": "ok", "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok"},
+        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok"},
+        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403},
     },
 }
 
 
 def settings_for(read_access: str, **overrides) -> Settings:
     return Settings(admin_token=ADMIN_TOKEN, api_writer_tokens=",".join(WRITER_TOKENS),
+                    api_robot_tokens=",".join(f"{r}={t}" for r, t in ROBOT_TOKENS.items()),
                     api_reader_tokens=READER_TOKEN, api_metrics_token=METRICS_TOKEN,
                     api_read_access=read_access, api_rate_limit="", **overrides)
 
@@ -182,6 +186,33 @@ def test_the_writer_may_post_chunks_as_a_2019_robot(wire) -> None:
     assert sum(len(v) for v in publisher.records.values()) == 1
     # Reads stay open for robots that read anonymously (MAPSERVICE_API_READ_ACCESS=open).
     assert client.get("/api/chunk-service/chunks").status_code == 200
+
+
+def test_a_robot_token_writes_chunks_only_as_its_own_robot(wire) -> None:
+    """A robot token POSTs its own robot's chunk (200) and is refused another robot's (403, naming both); a writer token may write as any."""
+    publisher = MemoryPublisher()
+    client = TestClient(create_app(settings_for("open"), MemoryStore(), {}, ManualClock(wire.now_ms),
+                                   publisher=publisher))
+    own = client.post("/api/chunk-service/chunks", json={**wire.chunk_doc(), "robotId": "agv-7"},
+                      headers={"Authorization": f"Bearer {ROBOT_TOKENS['agv-7']}"})
+    assert own.status_code == 200, own.text
+    other = client.post("/api/chunk-service/chunks", json={**wire.chunk_doc(), "robotId": "agv-8"},
+                        headers={"Authorization": f"Bearer {ROBOT_TOKENS['agv-7']}"})
+    assert other.status_code == 403 and "agv-7" in other.json()["detail"] and "agv-8" in other.json()["detail"]
+    anyone = client.post("/api/chunk-service/chunks", json={**wire.chunk_doc(), "robotId": "agv-8"},
+                         headers={"Authorization": f"Bearer {WRITER_TOKENS[0]}"})
+    assert anyone.status_code == 200
+    publisher.poll()
+    assert sum(len(v) for v in publisher.records.values()) == 2  # the refused one never reached Kafka
+
+
+def test_robot_tokens_must_be_pairs_and_long_in_production() -> None:
+    """A token without its robotId is refused at start; production refuses a short robot token."""
+    with pytest.raises(ValueError, match="robotId=token"):
+        Settings(api_robot_tokens="just-a-token")
+    with pytest.raises(ValueError, match="API_ROBOT_TOKENS"):
+        Settings(mode="production", admin_token=ADMIN_TOKEN, clickhouse_dsn="chdb:///x",
+                 api_robot_tokens="agv-7=short")
 
 
 # --- docs and metrics --------------------------------------------------------------------------
