@@ -15,7 +15,7 @@ import uuid
 from collections.abc import Callable
 
 import structlog
-from confluent_kafka import OFFSET_END, Consumer, KafkaError, TopicPartition
+from confluent_kafka import Consumer, KafkaError, TopicPartition
 from prometheus_client import Counter, Histogram
 
 from mapservice.core.live_messages import BadLiveRecord, decode_live_record
@@ -76,6 +76,13 @@ class KafkaLiveRelay:
             return set()
         return set(topic.partitions)
 
+    def _end_offset(self, consumer: Consumer, partition: int) -> int:
+        """The partition's end as the broker reports it now (raises if it does not answer:
+        `_run` starts over)."""
+        _low, high = consumer.get_watermark_offsets(TopicPartition(self.topic, partition),
+                                                    timeout=5, cached=False)
+        return high
+
     def _run(self) -> None:
         while not self._stopping.is_set():
             try:
@@ -99,12 +106,16 @@ class KafkaLiveRelay:
                     self._stopping.wait(1.0)
             if not partitions:
                 return
-            consumer.assign([TopicPartition(self.topic, p, OFFSET_END) for p in sorted(partitions)])
-            # tansu's "end" offset is the start of the partition's last record batch + 1,
+            # Where to start is asked now, not left to OFFSET_END: that is resolved at the
+            # first fetch, after `assigned` is set, and a record produced in between was
+            # behind the end it resolved to, i.e. never relayed (seen under load in CI).
+            # tansu's end offset is the start of the partition's last record batch + 1,
             # so the first fetch can repeat that batch's older records: the first records
             # of each partition are skipped while produced before now (Apache Kafka
             # starts at the true end anyway).
             self._since_ms = time.time_ns() // 1_000_000
+            consumer.assign([TopicPartition(self.topic, p, self._end_offset(consumer, p))
+                             for p in sorted(partitions)])
             self._caught_up = set()
             self.assigned.set()
             log.info("live relay reading", topic=self.topic, partitions=len(partitions))
