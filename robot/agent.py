@@ -40,7 +40,8 @@ from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_c
 
 from .api_client import api_client, writer_token
 from .connection import RobotMqtt, robot_mqtt_from_args
-from .chunks import chunk_pixels, meta_from_json, meta_to_json, paste_chunk
+from .chunks import chunk_pixels, meta_to_json, paste_chunk
+from .map_upload import stored_meta
 from .faults import yaw_quaternion
 
 log = structlog.get_logger("robot")
@@ -279,14 +280,7 @@ class RobotAgent:
     # -- start-up (2019 sequence)
 
     def remote_meta(self) -> MapMetaSet | None:
-        resp = self.http.get(META_PATH)
-        if resp.status_code == 404:
-            return None
-        resp.raise_for_status()
-        doc = resp.json() if resp.content else None
-        if not doc or "CHUNK_WIDTH" not in doc:
-            return None
-        return meta_from_json(doc)
+        return stored_meta(self.http)
 
     def start(self) -> str:
         """Uploads the map or downloads it; returns which ("uploaded" / "downloaded")."""

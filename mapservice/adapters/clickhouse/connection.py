@@ -13,7 +13,6 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 from contextlib import contextmanager
-from datetime import datetime, timezone
 
 import clickhouse_connect
 import msgspec
@@ -32,11 +31,6 @@ def _flag(value: bool | str | None) -> str:
 def _unflag(text: str) -> bool | str | None:
     return None if text == "" else _BOOLISH.decode(text)
 
-
-def _ms(dt: datetime) -> int:
-    if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
-    return int(round(dt.timestamp() * 1000))
 
 
 def _mm(metres: float) -> int:

@@ -1,8 +1,10 @@
 """ClickHouse behind the HistoryStore port, through clickhouse-connect.
 
 The same code serves `chdb:///dir` (embedded chDB) and `http(s)://host:8123` (a server).
-chDB allows one opener per directory and its client is not thread-safe, so every call
-goes through one lock; callers in an event loop run these methods in an executor.
+chDB allows one opener per directory and a client is not thread-safe, so each client is
+used under its own lock (writes and snapshot building under one, reads under another, ping
+on a client of its own: connection.py); callers in an event loop run these methods in an
+executor.
 
 `ClickHouseStore` is composed of one mixin per concern, each over the clients and locks of
 `connection.ClickHouseConnection`: `migrations` (the schema and its lock), `writes`
