@@ -64,3 +64,15 @@ def test_summary_splits_serves_memory_into_clickhouse_and_python() -> None:
     inside = summarize(samples, minutes=60, max_growth_mb_per_h=20)["serve_inside"]
     assert inside["chdb_mb"]["growth_per_h"] == pytest.approx(6)
     assert inside["python_blocks_k"]["growth_per_h"] == pytest.approx(0)
+
+
+def test_growth_is_judged_on_anonymous_memory_where_it_was_sampled() -> None:
+    """Resident file pages growing 60 MB/h (a mapped library paging in) with flat anonymous memory is bounded; anonymous growth is not."""
+    def run(anon_slope: float) -> dict:
+        samples = [dict(sample(t, {"server": 500 + t / 60}, t), anon_mb={"server": 250 + anon_slope * t / 3600})
+                   for t in range(0, 3601, 60)]
+        return summarize(samples, minutes=60, max_growth_mb_per_h=20)["components"]["server"]
+    flat = run(0)
+    assert flat["growth_mb_per_h"] == pytest.approx(60) and flat["anon_growth_mb_per_h"] == pytest.approx(0)
+    assert flat["growth_bounded"] is True
+    assert run(30)["growth_bounded"] is False
