@@ -87,6 +87,10 @@ class Settings(BaseSettings):
         "MAPSERVICE_CLICKHOUSE_KEY_FILE."))
     clickhouse_key_file: Path | None = Field(None, description=(
         "Private key (PEM, unencrypted) of MAPSERVICE_CLICKHOUSE_CERT_FILE."))
+    clickhouse_timeout_s: float = Field(60.0, gt=0, description=(
+        "A request to a ClickHouse server that has not answered in this long fails and is "
+        "retried (clickhouse-connect's own default, 300 s, let one hung insert stall the "
+        "pipeline); not used by embedded chDB."))
     clickhouse_cluster: str = Field("", description=(
         "A ClickHouse cluster name: schema statements run ON CLUSTER and tables are "
         "Replicated*MergeTree (one shard, N replicas). Empty: one server or chDB."))

@@ -88,6 +88,7 @@ class ClickHouseConnection:
     _lock: threading.RLock
     _read_client: object | None
     tls: dict[str, str]
+    timeout_s: float
     _read_lock: threading.Lock
     _insert_contexts: dict[tuple[str, tuple[str, ...]], object]
 
@@ -101,7 +102,9 @@ class ClickHouseConnection:
                     "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server") from exc
             return clickhouse_connect.get_client(dsn=self.dsn)
         return clickhouse_connect.get_client(dsn=self.dsn, username=self._username,
-                                             password=self._password, **self.tls)
+                                             password=self._password,
+                                             connect_timeout=min(10.0, self.timeout_s),
+                                             send_receive_timeout=self.timeout_s, **self.tls)
 
     @property
     def client(self):

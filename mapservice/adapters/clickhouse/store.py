@@ -33,7 +33,8 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, 
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
                  username: str = "default", password: str = "",
-                 snapshot_every_ms: int = 600_000, cluster: str = "") -> None:
+                 snapshot_every_ms: int = 600_000, cluster: str = "",
+                 tls: dict[str, str] | None = None, timeout_s: float = 60.0) -> None:
         self.dsn = dsn
         self.cluster = cluster  # non-empty: DDL ON CLUSTER, Replicated tables (schema_cluster)
         self.snapshot_every_ms = snapshot_every_ms
@@ -53,8 +54,12 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, 
         self._read_lock = threading.Lock()
         self._ping_client = None
         # clickhouse-connect's TLS arguments (ca_cert, client_cert, client_cert_key) for an
-        # https:// server; from_settings fills them from MAPSERVICE_CLICKHOUSE_*_FILE.
-        self.tls: dict[str, str] = {}
+        # https:// server (from_settings: MAPSERVICE_CLICKHOUSE_*_FILE).
+        self.tls: dict[str, str] = dict(tls or {})
+        # A server request that has not answered in this long fails (and is retried by its
+        # caller): clickhouse-connect waits 300 s by default, and an insert hung on a server
+        # that was restarting held the whole pipeline that long (fault tests).
+        self.timeout_s = timeout_s
         self._known_contents: dict[bytes, int] = {}  # hash -> day already written
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
@@ -70,6 +75,7 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, 
             settings.clickhouse_password.get_secret_value(),
             int(settings.snapshot_every_s * 1000),
             settings.clickhouse_cluster,
+            tls=settings.clickhouse_tls(),
+            timeout_s=settings.clickhouse_timeout_s,
         )
-        store.tls = settings.clickhouse_tls()
         return store
