@@ -8,7 +8,6 @@ re-delivers the batch, and the history's natural-identity keys absorb the repeat
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -44,8 +43,6 @@ EVENT_TO_STORED = Histogram("mapservice_event_to_stored_seconds",
 RECEIVED_TO_STORED = Histogram("mapservice_received_to_stored_seconds",
                                "Gateway receive time to stored in the history, per event", ["topic"],
                                buckets=_LATENCY_BUCKETS)
-# Well inside the consumer's poll interval (at least 10 s, see kafka_batch_source).
-KEEP_ALIVE_S = 2.0
 BATCH_EVENTS = Histogram("mapservice_sink_batch_events", "Events per stored batch",
                          buckets=(1, 10, 50, 100, 250, 500, 1000, 2000, 5000))
 
@@ -100,10 +97,8 @@ class HistoryConsumer:
     def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
                  batch_size: int, batch_seconds: float,
                  now_ms: Callable[[], int] = SystemClock().now_ms,
-                 monotonic: Callable[[], float] = time.monotonic,
-                 keep_alive_s: float = KEEP_ALIVE_S) -> None:
+                 monotonic: Callable[[], float] = time.monotonic) -> None:
         self.source = source
-        self.keep_alive_s = keep_alive_s
         self.sink = sink
         self.views = views
         self.batch_size = batch_size
@@ -146,42 +141,21 @@ class HistoryConsumer:
         records: list[SourceRecord] = await self._call(
             self.source.poll, self.batch_size, self.poll_timeout())
         self._last_poll_returned = self.monotonic()
-        async with self._membership_kept():
-            if self.assigned and self.views is not None:
-                # New partitions: rebuild the views from the history before their events
-                # (which may repeat what is stored) are applied.
-                self.assigned = False
-                await self.views.rebuild(self.sink)
-            if not records:
-                return 0
-            # Moving on would let the next commit cover this batch: retry it instead.
-            async for attempt in until_done("history batch", 0.5, records=len(records)):
-                with attempt:
-                    self.heartbeat.beat()
-                    await self._store(records)
+        if self.assigned and self.views is not None:
+            # New partitions: rebuild the views from the history before their events
+            # (which may repeat what is stored) are applied.
+            self.assigned = False
+            await self.views.rebuild(self.sink)
+        if not records:
+            return 0
+        # Moving on would let the next commit cover this batch: retry it instead.
+        async for attempt in until_done("history batch", 0.5, records=len(records)):
+            with attempt:
+                self.heartbeat.beat()
+                await self._store(records)
         if not await self._call(self.source.commit, records):
             COMMIT_FAILURES.inc()
         return len(records)
-
-    @contextlib.asynccontextmanager
-    async def _membership_kept(self):
-        """While a batch is stored (or retried through an outage) the source is not
-        polled; past the poll interval the group would drop this member and the batch's
-        commit fail. A task keeps it alive meanwhile; a store that takes less than
-        KEEP_ALIVE_S never sees it."""
-
-        async def keep_alive() -> None:
-            while True:
-                await asyncio.sleep(self.keep_alive_s)
-                await self._call(self.source.keep_alive)
-
-        task = asyncio.create_task(keep_alive())
-        try:
-            yield
-        finally:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
 
     async def _store(self, records: list[SourceRecord]) -> None:
         by_topic: dict[str, list[bytes]] = {}

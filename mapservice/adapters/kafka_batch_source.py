@@ -76,8 +76,6 @@ class KafkaBatchSource:
         self.topics = list(topics)
         self.on_assigned = on_assigned
         self.consumer: Consumer | None = None
-        self._paused = False
-        self._held: list[SourceRecord] = []  # returned by a keep-alive poll: the next batch's
 
     def start(self) -> None:
         self.consumer = Consumer(self.config)
@@ -100,29 +98,6 @@ class KafkaBatchSource:
 
     def poll(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
         assert self.consumer is not None, "start() first"
-        if self._paused:
-            self.consumer.resume(self.consumer.assignment())
-            self._paused = False
-        out, self._held = self._held, []
-        if len(out) < max_records:
-            out += self._consume(max_records - len(out), 0 if out else timeout_s)
-        return out
-
-    def keep_alive(self) -> None:
-        """librdkafka drops a member that has not polled for max.poll.interval.ms (kept
-        short, since tansu makes every join wait that long), and a commit after that fails:
-        a batch whose insert is retried through a ClickHouse outage would be delivered
-        again and the group rebalanced. Polling with the partitions paused keeps the
-        membership and fetches nothing; whatever was already queued is held for the next
-        poll, so no record is skipped or reordered."""
-        assert self.consumer is not None, "start() first"
-        assignment = self.consumer.assignment()
-        if assignment:
-            self.consumer.pause(assignment)
-            self._paused = True
-        self._held += self._consume(1000, 0)
-
-    def _consume(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
         out = []
         for m in self.consumer.consume(max_records, timeout_s):
             err = m.error()

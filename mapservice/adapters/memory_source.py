@@ -15,7 +15,6 @@ class MemorySource:
         self.position = 0
         self.started = False
         self.fail_commits = False
-        self.keep_alives = 0
         self._lock = threading.Lock()
 
     def append(self, topic: str, value: bytes, partition: int = 0) -> SourceRecord:
@@ -42,9 +41,6 @@ class MemorySource:
                 key = (r.topic, r.partition)
                 self.committed[key] = max(self.committed.get(key, 0), r.offset + 1)
         return True
-
-    def keep_alive(self) -> None:
-        self.keep_alives += 1
 
     def restart(self) -> None:
         """As a new consumer would: resume from the committed offsets."""

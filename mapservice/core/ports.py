@@ -93,11 +93,6 @@ class EventSource(Protocol):
     def commit(self, records: Sequence[SourceRecord]) -> bool:
         """Marks the records consumed; False when they will be delivered again instead."""
 
-    def keep_alive(self) -> None:
-        """Keeps this reader's place (its group membership) while the caller cannot take
-        records, e.g. while it retries storing a batch; fetches nothing new: the next
-        poll returns what would have followed the last batch."""
-
     def close(self) -> None: ...
 
 

@@ -67,22 +67,6 @@ def test_a_failed_insert_is_retried_before_anything_is_committed(ev) -> None:
     assert commits_seen_at_attempt == [3]
 
 
-def test_the_source_is_kept_alive_while_an_insert_is_retried_and_not_otherwise(ev) -> None:
-    """Retrying through an outage keeps the group membership (keep_alive calls); a quick store makes none."""
-    source, store = MemorySource(), FlakyStore(failures=2)  # retried after 0.5 s and 1 s
-    source.append(POSES, encode(ev.pose("r1", NOW)))
-    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100,
-                               batch_seconds=0.01, now_ms=lambda: NOW, keep_alive_s=0.1)
-    drain(consumer)
-    assert store.counts().poses == 1 and source.committed == {(POSES, 0): 1}
-    assert source.keep_alives >= 5
-    quick = MemorySource()
-    quick.append(POSES, encode(ev.pose("r2", NOW)))
-    drain(HistoryConsumer(quick, HistorySink(MemoryStore()), None, batch_size=100,
-                          batch_seconds=0.01, now_ms=lambda: NOW, keep_alive_s=0.5))
-    assert quick.keep_alives == 0
-
-
 def test_undecodable_records_become_dead_letters_and_are_committed(ev) -> None:
     """Garbage on an event topic is stored as a dead letter; the good record beside it is stored."""
     source, store = MemorySource(), MemoryStore()
