@@ -110,6 +110,7 @@ class WorkerPlan:
     credentials: list[tuple[str, str]] | None = None
     nice: int = 0
     client_prefix: str = "rawfleet"
+    ack_wait_s: float = ACK_WAIT_S
 
 
 @dataclass
@@ -315,7 +316,7 @@ async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
         await asyncio.sleep(min(max(due - time.monotonic(), MIN_TICK_S), TICK_S))
     ended = time.monotonic()
     cpu_run = time.process_time() - cpu0
-    deadline = ended + ACK_WAIT_S
+    deadline = ended + plan.ack_wait_s
     while any(c.in_flight and not c.closed for c in conns) and time.monotonic() < deadline:
         await asyncio.sleep(0.01)
         if time.monotonic() - last_report >= REPORT_EVERY_S:
@@ -383,7 +384,7 @@ class RawFleet:
     def __init__(self, mqtt_url: str, ros_map, robots: int, *, prefix: str = "robot",
                  processes: int | None = None, connections: int = 2,
                  pose_period_s: float = 1.0, chunk_period_s: float = 5.0, seed: int = 7,
-                 mqtt_conn=None, nice: int = 0) -> None:
+                 mqtt_conn=None, nice: int = 0, ack_wait_s: float = ACK_WAIT_S) -> None:
         import numpy as np
 
         from mapservice.adapters.mqtt_client import parse_mqtt_url
@@ -416,6 +417,7 @@ class RawFleet:
                 chunk_b64=b64, chunk_rows=meta.chunk_rows, chunk_cols=meta.chunk_cols,
                 seconds=None, pose_period_s=pose_period_s, chunk_period_s=chunk_period_s,
                 seed=seed + w, connections=connections, credentials=creds, nice=nice,
+                ack_wait_s=ack_wait_s,
                 client_prefix=f"rawfleet-{random.Random(seed).getrandbits(32):08x}"))
         self.stats = FleetStats()
         self.pids: list[int] = []
