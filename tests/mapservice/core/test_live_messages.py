@@ -43,3 +43,17 @@ def test_bad_live_records_are_refused(value):
     """A live-topic record that is not an array of pose/chunk messages raises BadLiveRecord."""
     with pytest.raises(BadLiveRecord):
         decode_live_record(value)
+
+
+def test_live_records_are_byte_for_byte_the_json_of_live_message(ev):
+    """The struct encoding of a batch is exactly the JSON of `live_message`'s dicts, with
+    and without a planned path, for chunks too."""
+    import msgspec as ms
+
+    events = [ev.pose("r1", 1_000, x=1.5), ev.chunk("r2", 2_001, 3, 4), ev.pose("r3", 3_000)]
+    with_path = events[0].payload.__class__(**{**{f: getattr(events[0].payload, f)
+                                                 for f in events[0].payload.__struct_fields__},
+                                              "path": ((1.0, 2.0), (3.5, -4.0))})
+    events.append(ms.structs.replace(events[0], payload=with_path))
+    expected = b"[" + b",".join(ms.json.encode(live_message(e)) for e in events) + b"]"
+    assert live_records(events) == [expected]
