@@ -9,7 +9,7 @@ Slow subscribers lose their oldest queued messages rather than slowing anyone.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import msgspec
@@ -118,3 +118,60 @@ def decode_live_record(value: bytes) -> list[dict]:
             isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages):
         raise BadLiveRecord("not a JSON array of pose/chunk messages")
     return messages
+
+
+class LiveText(Mapping):
+    """One live message as the JSON text it came in: the API sends it on as it is (adding
+    `sent_ms`) instead of decoding it into a dict and encoding it again per viewer; read
+    as a mapping (tests, tools), it decodes itself on first use."""
+
+    __slots__ = ("text", "_doc")
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self._doc: dict | None = None
+
+    def _decoded(self) -> dict:
+        if self._doc is None:
+            self._doc = msgspec.json.decode(self.text)
+        return self._doc
+
+    def __getitem__(self, key: str):
+        return self._decoded()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._decoded())
+
+    def __len__(self) -> int:
+        return len(self._decoded())
+
+    def with_sent_ms(self, sent_ms: int) -> str:
+        """The text with `"sent_ms": sent_ms` added as its last field."""
+        return f'{self.text[:-1]},"sent_ms":{sent_ms}}}'
+
+
+class _Kind(msgspec.Struct):
+    type: str
+
+
+_decode_raw_list = msgspec.json.Decoder(list[msgspec.Raw]).decode
+_decode_kind = msgspec.json.Decoder(_Kind).decode
+
+
+def live_record_texts(value: bytes) -> list[LiveText]:
+    """The messages of one live-topic record, each kept as its JSON text (`LiveText`);
+    BadLiveRecord if it is not a JSON array of pose/chunk messages (as decode_live_record)."""
+    try:
+        raws = _decode_raw_list(value)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise BadLiveRecord(f"not a JSON array: {exc}") from exc
+    out = []
+    for raw in raws:
+        try:
+            kind = _decode_kind(raw).type
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            kind = None
+        if kind not in ("pose", "chunk"):
+            raise BadLiveRecord("not a JSON array of pose/chunk messages")
+        out.append(LiveText(bytes(raw).decode()))
+    return out
