@@ -98,7 +98,7 @@ class Ingestor:
             with self._lock:
                 self._in_flight -= 1
             metrics.IN_FLIGHT.dec()
-            metrics.MESSAGES.labels(outcome).inc()
+            metrics.OUTCOMES[outcome].inc()
             metrics.ACK_LATENCY.observe(time.monotonic() - started)
 
         try:

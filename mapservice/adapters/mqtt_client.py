@@ -63,6 +63,10 @@ class BufferedSocket:
             self._buffer, self._pos = b"", 0
         return out
 
+    def buffered(self) -> int:
+        """Bytes read from the socket and not handed out yet."""
+        return len(self._buffer) - self._pos
+
     def pending(self) -> int:
         inner = getattr(self._sock, "pending", None)
         return len(self._buffer) - self._pos + (inner() if inner is not None else 0)
@@ -77,6 +81,15 @@ class BufferedClient(mqtt.Client):
 
     def _create_socket(self):
         return BufferedSocket(super()._create_socket())
+
+    def loop_read(self, max_packets: int = 1) -> mqtt.MQTTErrorCode:
+        """Reads every whole packet already buffered, not one: paho reads one packet per
+        call (and per select()) unless it has messages of its own in flight."""
+        rc = super().loop_read(max_packets)
+        while rc == mqtt.MQTT_ERR_SUCCESS and isinstance(self._sock, BufferedSocket) \
+                and self._sock.buffered() > 0:
+            rc = super().loop_read(max_packets)
+        return rc
 
 
 def make_client(client_id: str, *, clean_session: bool = True, manual_ack: bool = False,
