@@ -39,7 +39,8 @@ def api_server_config(app, settings: Settings) -> uvicorn.Config:
     return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
                           log_config=None, log_level=None, access_log=True,
                           http=header_deadline_protocol(settings.api_header_timeout_s),
-                          timeout_keep_alive=settings.api_idle_timeout_s)
+                          timeout_keep_alive=settings.api_idle_timeout_s,
+                          ws_per_message_deflate=settings.api_live_compression)
 
 
 async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
