@@ -195,12 +195,15 @@ class CpuMeter:
         return snap
 
     @staticmethod
-    def percent(before: dict, after: dict) -> dict:
+    def percent(before: dict, after: dict, workers_cpu_s: float | None = None) -> dict:
+        """Shares of one core; `workers_cpu_s`: the load fleet's workers' own count of their
+        CPU time (they exit when the fleet is done, before `after` could sample them)."""
         wall = after["_wall"] - before["_wall"]
         pct = {k: 100.0 * (after[k] - before[k]) / wall for k in before if not k.startswith("_")}
         bench = 100.0 * (after["_bench_process"] - before["_bench_process"]) / wall
         poller = 100.0 * (after["_poller_thread"] - before["_poller_thread"]) / wall
-        workers = 100.0 * (after.get("_loadgen_workers", 0.0) - before.get("_loadgen_workers", 0.0)) / wall
+        workers = 100.0 * (workers_cpu_s if workers_cpu_s is not None else
+                           after.get("_loadgen_workers", 0.0) - before.get("_loadgen_workers", 0.0)) / wall
         pct["stack_total"] = sum(pct.values())
         # The load generator: its worker processes (RawFleet) and its part of this process
         # (paho's RobotFleet; or RawFleet collecting the acknowledged messages).
@@ -714,7 +717,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         pose_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_POSE]
         chunk_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_CHUNK]
         stored_events = len(unique & keys.keys())
-        cpu_pct = CpuMeter.percent(cpu_before, cpu_after)
+        cpu_pct = CpuMeter.percent(cpu_before, cpu_after,
+                                   fleet.stats.report.get("cpu_s") if loadgen == "raw" else None)
         scheduled = (fleet.stats.report.get("scheduled_events") if loadgen == "raw"
                      else args.robots * (int(args.seconds) + int(args.seconds) // 5))
         result.update({

@@ -127,3 +127,13 @@ def test_a_short_run_is_reported_not_judged(capsys) -> None:
     print_results(Console(width=200), args, facts, [med], med)
     out = capsys.readouterr().out
     assert "MISSED" not in out and "not judged" in out and "not representative" in out
+
+
+def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
+    """Workers that exited before the last sample report their CPU themselves: that counts."""
+    from mapservice.bench.ingest import CpuMeter
+
+    zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
+            "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
+    after = {**zero, "_loadgen_workers": -4.0, "_machine_processes": 1.0, "_wall": 10.0}
+    assert CpuMeter.percent(zero, after, workers_cpu_s=1.0)["loadgen_workers"] == 10.0
