@@ -99,7 +99,7 @@ class Ingestor:
             with self._lock:
                 self._in_flight -= 1
             metrics.IN_FLIGHT.dec()
-            metrics.MESSAGES.labels(outcome).inc()
+            metrics.OUTCOMES[outcome].inc()
             metrics.ACK_LATENCY.observe(time.monotonic() - started)
 
         try:
@@ -229,7 +229,8 @@ class MqttGateway:
     def run(self) -> None:
         host, port, _tls = parse_mqtt_url(self.settings.mqtt_url)
         s = self.settings
-        self.client = service_client(s, self.gateway_id, clean_session=False, manual_ack=True)
+        self.client = service_client(s, self.gateway_id, clean_session=False, manual_ack=True,
+                                     buffered_reads=True)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect
         self.client.on_message = self._on_message

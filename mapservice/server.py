@@ -49,7 +49,8 @@ def api_server_config(app, settings: Settings) -> uvicorn.Config:
     return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
                           log_config=None, log_level=None, access_log=True,
                           http=header_deadline_protocol(settings.api_header_timeout_s),
-                          timeout_keep_alive=settings.api_idle_timeout_s)
+                          timeout_keep_alive=settings.api_idle_timeout_s,
+                          ws_per_message_deflate=settings.api_live_compression)
 
 
 def export_process_memory(store: ClickHouseStore) -> None:

@@ -201,6 +201,10 @@ class Settings(BaseSettings):
     api_max_live_clients: int = Field(500, ge=0, description=(
         "WebSocket clients of /api/v1/live per API process; one more is closed with 1013 "
         "(try again later) and a reason naming this setting."))
+    api_live_compression: bool = Field(False, description=(
+        "Offer permessage-deflate on /api/v1/live. Off: compressing each message cost the "
+        "API ~5 µs of CPU per event and viewer at 6,000 events/s (BENCHMARKS.md); a live "
+        "message is ~300 bytes."))
     api_header_timeout_s: float = Field(10.0, gt=0, description=(
         "A connection must send a request's line and headers within this long (from "
         "connecting, or from the previous response), else it is closed (slowloris)."))

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Query
+import msgspec
+from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
 from mapservice.core.ports import HistoryStore
@@ -32,12 +33,26 @@ def list_chunk_events(
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
     limit: int = Query(10_000, ge=1, le=100_000),
     store: HistoryStore = Depends(get_store),
-) -> list[ChunkEvent]:
+) -> Response:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
     rows = store.chunk_events(f, t, limit)
-    return [
-        ChunkEvent(row=r.row, column=r.column, timestamp=ts, ts_ms=r.ts_ms,
-                   receive_time_ms=r.receive_time_ms, robotId=r.robot_id,
-                   content_hash=r.content_hash)
+    # `ChunkEvent`'s JSON, encoded by msgspec (as /api/v1/poses: no model per row).
+    return Response(_encode([
+        _ChunkEventJson(r.row, r.column, ts, r.ts_ms, r.receive_time_ms, r.robot_id, r.content_hash)
         for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
-    ]
+    ]), media_type="application/json")
+
+
+class _ChunkEventJson(msgspec.Struct):
+    """`ChunkEvent` as msgspec encodes it: the same fields in the same order."""
+
+    row: int
+    column: int
+    timestamp: str
+    ts_ms: int
+    receive_time_ms: int
+    robotId: str
+    content_hash: str
+
+
+_encode = msgspec.json.Encoder().encode

@@ -6,6 +6,8 @@ import time
 
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
 
+from mapservice.core.live_messages import LiveText
+
 from ..access import LIVE_SUBPROTOCOL, SOCKET_READ
 from ..limits import origin_allowed
 
@@ -48,8 +50,14 @@ async def live(websocket: WebSocket) -> None:
     try:
         while True:
             message = await queue.get()
-            # A copy: every subscriber's queue holds the same dict, and each stamps its own send.
-            await websocket.send_json({**message, "sent_ms": time.time_ns() // 1_000_000})
+            sent_ms = time.time_ns() // 1_000_000
+            if isinstance(message, LiveText):
+                # As it came from the live topic, with this send's time added: no decoding
+                # into a dict and encoding again, per message and viewer.
+                await websocket.send_text(message.with_sent_ms(sent_ms))
+            else:
+                # A copy: every subscriber's queue holds the same dict, and each stamps its own send.
+                await websocket.send_json({**message, "sent_ms": sent_ms})
     except WebSocketDisconnect:
         pass
     finally:

@@ -18,7 +18,7 @@ import structlog
 from confluent_kafka import Consumer, KafkaError, TopicPartition
 from prometheus_client import Counter, Histogram
 
-from mapservice.core.live_messages import BadLiveRecord, decode_live_record
+from mapservice.core.live_messages import BadLiveRecord, LiveText, live_record_texts
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -47,7 +47,7 @@ def live_consumer_config(settings: Settings) -> dict:
 class KafkaLiveRelay:
     """Calls `on_messages(list_of_live_messages)` from its own thread, per polled batch."""
 
-    def __init__(self, settings: Settings, on_messages: Callable[[list[dict]], None]) -> None:
+    def __init__(self, settings: Settings, on_messages: Callable[[list[LiveText]], None]) -> None:
         self.topic = settings.topic_live
         self.config = live_consumer_config(settings)
         self.on_messages = on_messages
@@ -129,7 +129,7 @@ class KafkaLiveRelay:
             consumer.close()
 
     def _relay(self, records) -> None:
-        messages: list[dict] = []
+        messages: list = []
         now = time.time()
         for m in records:
             err = m.error()
@@ -145,7 +145,8 @@ class KafkaLiveRelay:
             if produced_ms > 0:
                 RELAY_LAG.observe(max(0.0, now - produced_ms / 1000))
             try:
-                messages.extend(decode_live_record(m.value() or b""))
+                # Kept as JSON text: the API sends each on as it came (core/live_messages.py).
+                messages.extend(live_record_texts(m.value() or b""))
             except BadLiveRecord as exc:
                 RELAY_BAD.inc()
                 log.warning("live record skipped", partition=m.partition(), offset=m.offset(),

@@ -33,14 +33,74 @@ def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
     return parsed.hostname or "127.0.0.1", parsed.port or (8883 if tls else 1883), tls
 
 
+class BufferedSocket:
+    """paho's socket with a read buffer: one recv() of up to READ_SIZE bytes serves many
+    packets.
+
+    paho reads a packet's first byte, each byte of its length and its body with a recv()
+    apiece, and one packet per select(): 4-5 system calls per message, a large part of the
+    gateway's CPU at thousands of messages a second. paho's loop asks a socket for
+    `pending()` (meant for TLS's buffered bytes) and reads on without select() while it
+    has some, so buffered packets never wait for the socket to become readable again."""
+
+    READ_SIZE = 256 * 1024
+
+    def __init__(self, sock) -> None:
+        self._sock = sock
+        self._buffer = b""
+        self._pos = 0
+
+    def recv(self, size: int) -> bytes:
+        if self._pos >= len(self._buffer):
+            data = self._sock.recv(max(size, self.READ_SIZE))  # BlockingIOError, b"" at EOF
+            if len(data) <= size:
+                return data
+            self._buffer, self._pos = data, 0
+        end = self._pos + size
+        out = self._buffer[self._pos:end]
+        self._pos = end
+        if end >= len(self._buffer):
+            self._buffer, self._pos = b"", 0
+        return out
+
+    def buffered(self) -> int:
+        """Bytes read from the socket and not handed out yet."""
+        return len(self._buffer) - self._pos
+
+    def pending(self) -> int:
+        inner = getattr(self._sock, "pending", None)
+        return len(self._buffer) - self._pos + (inner() if inner is not None else 0)
+
+    def __getattr__(self, name: str):
+        return getattr(self._sock, name)
+
+
+class BufferedClient(mqtt.Client):
+    """A paho client reading through a `BufferedSocket` (the gateway's: it receives every
+    robot's messages)."""
+
+    def _create_socket(self):
+        return BufferedSocket(super()._create_socket())
+
+    def loop_read(self, max_packets: int = 1) -> mqtt.MQTTErrorCode:
+        """Reads every whole packet already buffered, not one: paho reads one packet per
+        call (and per select()) unless it has messages of its own in flight."""
+        rc = super().loop_read(max_packets)
+        while rc == mqtt.MQTT_ERR_SUCCESS and isinstance(self._sock, BufferedSocket) \
+                and self._sock.buffered() > 0:
+            rc = super().loop_read(max_packets)
+        return rc
+
+
 def make_client(client_id: str, *, clean_session: bool = True, manual_ack: bool = False,
                 username: str | None = None, password: str | None = None,
                 tls: bool = False, tls_files: MqttTls | None = None,
-                protocol: int = mqtt.MQTTv311) -> mqtt.Client:
-    """A paho client; `tls` (the URL said mqtts://) turns TLS on, with `tls_files` if given."""
+                protocol: int = mqtt.MQTTv311, buffered_reads: bool = False) -> mqtt.Client:
+    """A paho client; `tls` (the URL said mqtts://) turns TLS on, with `tls_files` if given;
+    `buffered_reads` for a client that receives many messages (`BufferedClient`)."""
     if tls_files is not None and not tls and (tls_files.ca_file or tls_files.cert_file):
         raise ValueError("MQTT CA or client certificate given for a plain mqtt:// URL; use mqtts://")
-    client = mqtt.Client(
+    client = (BufferedClient if buffered_reads else mqtt.Client)(
         mqtt.CallbackAPIVersion.VERSION2,
         client_id=client_id,
         clean_session=clean_session if protocol != mqtt.MQTTv5 else None,

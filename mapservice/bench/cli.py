@@ -15,6 +15,20 @@ def add_bench_parser(sub) -> None:
     ingest.add_argument("--json", default=None, help="write the results as JSON to this file")
     ingest.add_argument("--poll-interval", type=float, default=0.1,
                         help="seconds between the latency poller's API reads")
+    ingest.add_argument("--loadgen", choices=["raw", "paho"], default="raw",
+                        help="the load fleet: raw = pre-encoded MQTT packets from worker processes "
+                             "(robot/rawfleet.py), paho = one paho client (robot/loadgen.py, the "
+                             "generator before issue 16)")
+    ingest.add_argument("--loadgen-processes", type=int, default=None,
+                        help="raw load fleet: worker processes (default: one per 4,000 robots)")
+    ingest.add_argument("--find-ceiling", action="store_true",
+                        help="step the fleet up from --robots by --ceiling-step (each step --repeat "
+                             "runs, judged on their medians) until a step misses a bound; states the "
+                             "largest fleet that held them")
+    ingest.add_argument("--ceiling-step", type=int, default=1000,
+                        help="robots added per --find-ceiling step")
+    ingest.add_argument("--ceiling-max", type=int, default=10_000,
+                        help="--find-ceiling stops at this fleet even if it still holds")
     ingest.set_defaults(func=_run_ingest)
 
     from mapservice.bench.timetravel import add_parser as add_timetravel_parser

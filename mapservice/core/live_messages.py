@@ -9,7 +9,8 @@ Slow subscribers lose their oldest queued messages rather than slowing anyone.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any
 
 import msgspec
 
@@ -37,6 +38,51 @@ def live_message(e: Envelope) -> dict | None:
     return None
 
 
+class _LivePose(msgspec.Struct):
+    """`live_message`'s pose, as a struct: the same JSON (fields in the same order), encoded
+    without building a dict per event."""
+
+    type: str
+    robotId: str
+    ts_ms: int
+    timestamp: str
+    receive_time_ms: int
+    position: Any
+    orientation: Any
+    battery_level: Any
+    charging: Any
+    loaded: Any
+    path: Any
+
+
+class _LiveChunk(msgspec.Struct):
+    """`live_message`'s chunk, as a struct (see _LivePose)."""
+
+    type: str
+    robotId: str
+    ts_ms: int
+    timestamp: str
+    receive_time_ms: int
+    row: int
+    column: int
+    content_hash: str
+
+
+def _live_struct(e: Envelope) -> _LivePose | _LiveChunk | None:
+    p = e.payload
+    if isinstance(p, PoseReported):
+        return _LivePose("pose", e.robot_id, e.event_time_ms, format_timestamp(e.event_time_ms),
+                         e.receive_time_ms, p.position, p.orientation, p.battery_level,
+                         p.charging, p.loaded, p.path)
+    if isinstance(p, ChunkUpdated):
+        return _LiveChunk("chunk", e.robot_id, e.event_time_ms, format_timestamp(e.event_time_ms),
+                          e.receive_time_ms, p.row, p.column, p.content_hash.hex())
+    return None
+
+
+_encode = msgspec.json.Encoder().encode
+
+
 def live_records(events: Iterable[Envelope], max_bytes: int = MAX_RECORD_BYTES) -> list[bytes]:
     """The live topic's records for a stored batch: JSON arrays of its live messages, in
     the batch's order, each at most `max_bytes` unless a single message is larger."""
@@ -44,10 +90,10 @@ def live_records(events: Iterable[Envelope], max_bytes: int = MAX_RECORD_BYTES) 
     parts: list[bytes] = []
     size = 2
     for e in events:
-        message = live_message(e)
+        message = _live_struct(e)
         if message is None:
             continue
-        part = msgspec.json.encode(message)
+        part = _encode(message)
         if parts and size + len(part) + 1 > max_bytes:
             records.append(b"[" + b",".join(parts) + b"]")
             parts, size = [], 2
@@ -72,3 +118,60 @@ def decode_live_record(value: bytes) -> list[dict]:
             isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages):
         raise BadLiveRecord("not a JSON array of pose/chunk messages")
     return messages
+
+
+class LiveText(Mapping):
+    """One live message as the JSON text it came in: the API sends it on as it is (adding
+    `sent_ms`) instead of decoding it into a dict and encoding it again per viewer; read
+    as a mapping (tests, tools), it decodes itself on first use."""
+
+    __slots__ = ("text", "_doc")
+
+    def __init__(self, text: str) -> None:
+        self.text = text
+        self._doc: dict | None = None
+
+    def _decoded(self) -> dict:
+        if self._doc is None:
+            self._doc = msgspec.json.decode(self.text)
+        return self._doc
+
+    def __getitem__(self, key: str):
+        return self._decoded()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._decoded())
+
+    def __len__(self) -> int:
+        return len(self._decoded())
+
+    def with_sent_ms(self, sent_ms: int) -> str:
+        """The text with `"sent_ms": sent_ms` added as its last field."""
+        return f'{self.text[:-1]},"sent_ms":{sent_ms}}}'
+
+
+class _Kind(msgspec.Struct):
+    type: str
+
+
+_decode_raw_list = msgspec.json.Decoder(list[msgspec.Raw]).decode
+_decode_kind = msgspec.json.Decoder(_Kind).decode
+
+
+def live_record_texts(value: bytes) -> list[LiveText]:
+    """The messages of one live-topic record, each kept as its JSON text (`LiveText`);
+    BadLiveRecord if it is not a JSON array of pose/chunk messages (as decode_live_record)."""
+    try:
+        raws = _decode_raw_list(value)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise BadLiveRecord(f"not a JSON array: {exc}") from exc
+    out = []
+    for raw in raws:
+        try:
+            kind = _decode_kind(raw).type
+        except (msgspec.DecodeError, msgspec.ValidationError):
+            kind = None
+        if kind not in ("pose", "chunk"):
+            raise BadLiveRecord("not a JSON array of pose/chunk messages")
+        out.append(LiveText(bytes(raw).decode()))
+    return out

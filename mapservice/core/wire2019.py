@@ -165,8 +165,28 @@ def parse_timestamp(text: str) -> int | None:
     return int(round(parsed.timestamp() * 1000))
 
 
+_MINUTE_PREFIXES: dict[int, str] = {}  # epoch minute -> "2018-12-20T23:34:"
+
+
 def format_timestamp(ms: int) -> str:
-    """Epoch milliseconds to the 2019 style (`2018-12-20T23:34:33`, `.123` if needed)."""
+    """Epoch milliseconds to the 2019 style (`2018-12-20T23:34:33`, `.123` if needed).
+
+    Each minute's date and time prefix is computed once: every live message, API row and
+    load-fleet message is formatted here, and datetime took ~2 µs of that per call."""
+    if type(ms) is not int:
+        return _format_timestamp_datetime(ms)
+    minute, rest = divmod(ms, 60_000)
+    prefix = _MINUTE_PREFIXES.get(minute)
+    if prefix is None:
+        if len(_MINUTE_PREFIXES) >= 100_000:
+            _MINUTE_PREFIXES.clear()
+        prefix = _format_timestamp_datetime(minute * 60_000)[:-2]
+        _MINUTE_PREFIXES[minute] = prefix
+    second, milli = divmod(rest, 1000)
+    return f"{prefix}{second:02d}.{milli:03d}" if milli else f"{prefix}{second:02d}"
+
+
+def _format_timestamp_datetime(ms: int | float) -> str:
     dt = datetime.fromtimestamp(ms / 1000, tz=timezone.utc).replace(tzinfo=None)
     return dt.isoformat(timespec="milliseconds" if ms % 1000 else "seconds")
 

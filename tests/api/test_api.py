@@ -376,3 +376,34 @@ def test_api_docs_need_no_internet(client) -> None:
         assert not [u for u in assets if re.match(r"https?://", u)], assets
         for asset in assets:
             assert client.get(asset).status_code == 200, asset
+
+
+def test_poses_and_chunk_events_json_equals_their_pydantic_models() -> None:
+    """The msgspec-encoded rows of /api/v1/poses and /api/v1/chunk-events decode to what
+    the documented models (Pose, ChunkEvent) validate and dump, field for field and in order."""
+    import json
+
+    from fastapi.testclient import TestClient
+
+    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.api.app import create_app
+    from mapservice.api.routers.chunk_events import ChunkEvent
+    from mapservice.api.routers.poses import Pose
+    from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
+    from mapservice.settings import Settings
+
+    store = MemoryStore()
+    store.append([
+        make_envelope("r1", 1_000, 1_005, PoseReported((1.0, 2.5, 0.0), (0.0, 0.0, 0.5, 0.8660254),
+                                                       55.5, "yes", True, ((1.0, 2.0), (3.0, 4.5)))),
+        make_envelope("r2", 2_001, 2_010, PoseReported((-3.25, 1e-7, 0.0), (0.0, 0.0, 0.0, 1.0),
+                                                       None, None, None, None)),
+        make_envelope("r1", 3_000, 3_002, ChunkUpdated(2, 3, 100, 100, b"x", bytes(range(16)))),
+    ])
+    client = TestClient(create_app(Settings(), store, {}))
+    poses = client.get("/api/v1/poses", params={"from": 0, "to": 10_000}).json()
+    chunks = client.get("/api/v1/chunk-events", params={"from": 0, "to": 10_000}).json()
+    assert [json.loads(Pose(**p).model_dump_json()) for p in poses] == poses and len(poses) == 2
+    assert [list(p) for p in poses] == [list(Pose.model_fields)] * 2
+    assert [json.loads(ChunkEvent(**c).model_dump_json()) for c in chunks] == chunks and len(chunks) == 1
+    assert list(chunks[0]) == list(ChunkEvent.model_fields)

@@ -56,3 +56,27 @@ def test_websocket_before_the_feed_is_ready_asks_to_retry():
         closed = ws.receive()
     assert closed["type"] == "websocket.close" and closed["code"] == 1013
     assert "Kafka" in closed["reason"]
+
+
+def test_websocket_sends_a_live_text_as_it_came_with_its_send_time(ev):
+    """A message the relay kept as JSON text goes out as that text plus sent_ms."""
+    from mapservice.core.live_messages import live_record_texts, live_records
+
+    hub = LiveHub()
+    texts = live_record_texts(live_records([ev.pose("r7", 6_000, x=3.0)])[0])
+    with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
+            client.websocket_connect("/api/v1/live") as ws:
+        for _ in range(100):
+            if hub.subscribers:
+                break
+            asyncio.run(asyncio.sleep(0.01))
+        client.portal.call(lambda: hub.publish(texts))
+        raw = ws.receive_text()
+    assert raw.startswith(texts[0].text[:-1] + ',"sent_ms":')
+    assert ws_json(raw)["robotId"] == "r7" and isinstance(ws_json(raw)["sent_ms"], int)
+
+
+def ws_json(text: str) -> dict:
+    import json
+
+    return json.loads(text)

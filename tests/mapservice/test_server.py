@@ -45,3 +45,15 @@ def test_only_local_mode_migrates_on_start_by_default() -> None:
                       clickhouse_password="p" * 16)
     assert Settings(**production).migrates_on_start is False
     assert Settings(**production, migrate_on_start=True).migrates_on_start is True
+
+
+def test_live_stream_compression_is_off_unless_configured() -> None:
+    """uvicorn offers permessage-deflate on the live WebSocket only with api_live_compression."""
+    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.api.app import create_app
+    from mapservice.server import api_server_config
+    from mapservice.settings import Settings
+
+    for flag in (False, True):
+        settings = Settings(api_live_compression=flag)
+        assert api_server_config(create_app(settings, MemoryStore(), {}), settings).ws_per_message_deflate is flag

@@ -45,3 +45,95 @@ def test_storage_is_judged_only_on_runs_long_enough() -> None:
     assert storage_verdict(20, 9e6) is None
     assert storage_verdict(120, 1.4e6) is True
     assert storage_verdict(120, 9e6) is False
+
+
+def _fleet_figures(**overrides) -> dict:
+    figures = {"lost": 0, "duplicated": 0, "sustained_events_per_s": 6000.0,
+               "loadgen_schedule_percent": 99.9, "latency_pushed_p99_s": 0.8,
+               "latency_polled_p99_s": 1.9, "latency_p99_s": 0.8}
+    return {**figures, **overrides}
+
+
+def test_live_bounds_hold_and_each_one_can_miss() -> None:
+    """5,000 robots within every bound hold; each bound alone, missed, is named."""
+    from mapservice.bench.ingest import live_bounds
+
+    assert all(ok for *_, ok in live_bounds(5000, _fleet_figures()))
+    for key, bad in (("lost", 1), ("duplicated", 2), ("sustained_events_per_s", 5900.0),
+                     ("loadgen_schedule_percent", 99.4), ("latency_pushed_p99_s", 1.01),
+                     ("latency_polled_p99_s", 2.2), ("latency_pushed_p99_s", None)):
+        missed = [name for name, _, _, ok in live_bounds(5000, _fleet_figures(**{key: bad})) if not ok]
+        assert len(missed) == 1, (key, missed)
+
+
+def test_a_small_fleet_is_held_to_the_tighter_p99() -> None:
+    """Up to 1,000 robots, p99 (push or poll) must be <= 0.3 s; above, only push and poll bounds."""
+    from mapservice.bench.ingest import live_bounds
+
+    figures = _fleet_figures(sustained_events_per_s=1200.0, latency_p99_s=0.35)
+    assert [n for n, _, _, ok in live_bounds(1000, figures) if not ok] == ["p99 (push or poll)"]
+    assert all(ok for *_, ok in live_bounds(1001, _fleet_figures(latency_p99_s=0.35)))
+
+
+def test_cpu_per_event_divides_each_components_share_by_the_event_rate() -> None:
+    """50 % of a core at 5,000 events/s is 100 µs per event; machine-wide figures are left out."""
+    from mapservice.bench.ingest import cpu_us_per_event
+
+    per_event = cpu_us_per_event({"gateway": 50.0, "loadgen": 10.0, "other_processes": 80.0,
+                                  "wall_s": 60.0}, 300_000, 60.0)
+    assert per_event == {"gateway": 100.0, "loadgen": 20.0}
+    assert cpu_us_per_event({"gateway": 50.0}, 0, 60.0) == {}
+
+
+def test_cpu_meter_counts_load_fleet_workers_as_load_generator_not_stack() -> None:
+    """Worker processes' CPU goes to the load generator and stays out of the stack's total."""
+    from mapservice.bench.ingest import CpuMeter
+
+    zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
+            "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
+    after = {**zero, "gateway": 5.0, "_bench_process": 2.0, "_poller_thread": 1.0,
+             "_loadgen_workers": 3.0, "_machine_processes": 12.0, "_wall": 10.0}
+    pct = CpuMeter.percent(zero, after)
+    assert pct["stack_total"] == 50.0 and pct["loadgen"] == 40.0 and pct["loadgen_workers"] == 30.0
+    assert pct["latency_probes"] == 10.0 and pct["other_processes"] == 20.0
+
+
+def test_the_ceiling_is_the_last_step_of_an_unbroken_run_that_held() -> None:
+    """Steps 1,000 and 2,000 held, 3,000 missed: the ceiling is 2,000; none held: None."""
+    from mapservice.bench.ingest import ceiling_verdict
+
+    steps = [{"robots": 1000, "held": True}, {"robots": 2000, "held": True},
+             {"robots": 3000, "held": False}]
+    assert ceiling_verdict(steps) == 2000
+    assert ceiling_verdict([{"robots": 1000, "held": False}]) is None
+
+
+def test_a_short_run_is_reported_not_judged(capsys) -> None:
+    """A 10 s run prints "not judged" and says it is not representative, never MISSED."""
+    import argparse
+
+    from rich.console import Console
+
+    from mapservice.bench.ingest import print_results
+
+    med = {**_fleet_figures(lost=3, latency_pushed_p99_s=5.0), "offered_events_per_s": 6000.0,
+           "published_events_per_s": 5000.0, "stats_poses_minus_expected": 0,
+           "stats_chunk_events_minus_expected": 0, "dead_letters": 0, "latency_censored": 0,
+           "published_events": 50_000, "bytes_per_robot_day": 2e6,
+           "storage.bytes_per_robot_day_events_only": 1e6}
+    args = argparse.Namespace(robots=5000, seconds=10.0, mqtt="mosquitto", poll_interval=0.1)
+    facts = {"nproc": 2, "cpu_model": "x", "ram_bytes": 2**30, "python": "3", "tansu": "t",
+             "mosquitto": "m"}
+    print_results(Console(width=200), args, facts, [med], med)
+    out = capsys.readouterr().out
+    assert "MISSED" not in out and "not judged" in out and "not representative" in out
+
+
+def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
+    """Workers that exited before the last sample report their CPU themselves: that counts."""
+    from mapservice.bench.ingest import CpuMeter
+
+    zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
+            "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
+    after = {**zero, "_loadgen_workers": -4.0, "_machine_processes": 1.0, "_wall": 10.0}
+    assert CpuMeter.percent(zero, after, workers_cpu_s=1.0)["loadgen_workers"] == 10.0

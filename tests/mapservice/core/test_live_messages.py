@@ -43,3 +43,39 @@ def test_bad_live_records_are_refused(value):
     """A live-topic record that is not an array of pose/chunk messages raises BadLiveRecord."""
     with pytest.raises(BadLiveRecord):
         decode_live_record(value)
+
+
+def test_live_records_are_byte_for_byte_the_json_of_live_message(ev):
+    """The struct encoding of a batch is exactly the JSON of `live_message`'s dicts, with
+    and without a planned path, for chunks too."""
+    import msgspec as ms
+
+    events = [ev.pose("r1", 1_000, x=1.5), ev.chunk("r2", 2_001, 3, 4), ev.pose("r3", 3_000)]
+    with_path = events[0].payload.__class__(**{**{f: getattr(events[0].payload, f)
+                                                 for f in events[0].payload.__struct_fields__},
+                                              "path": ((1.0, 2.0), (3.5, -4.0))})
+    events.append(ms.structs.replace(events[0], payload=with_path))
+    expected = b"[" + b",".join(ms.json.encode(live_message(e)) for e in events) + b"]"
+    assert live_records(events) == [expected]
+
+
+def test_live_record_texts_read_as_the_decoded_messages_and_add_sent_ms(ev):
+    """Each message kept as text reads like decode_live_record's dict, and with_sent_ms is
+    that message's JSON plus sent_ms."""
+    from mapservice.core.live_messages import live_record_texts
+
+    record = live_records([ev.pose("r1", 1_000, x=2.5), ev.chunk("r2", 2_000, 3, 4)])[0]
+    texts = live_record_texts(record)
+    assert [dict(t) for t in texts] == decode_live_record(record)
+    assert msgspec.json.decode(texts[0].with_sent_ms(1234)) == {**decode_live_record(record)[0],
+                                                                 "sent_ms": 1234}
+
+
+@pytest.mark.parametrize("value", [b"", b"not json", b'{"type": "pose"}', b'[{"type": "meta"}]', b"[1]",
+                                   b'[{"type": 5}]'])
+def test_live_record_texts_refuse_what_decode_live_record_refuses(value):
+    """The text path refuses the same bad records with BadLiveRecord."""
+    from mapservice.core.live_messages import live_record_texts
+
+    with pytest.raises(BadLiveRecord):
+        live_record_texts(value)

@@ -532,3 +532,18 @@ def test_long_free_text_fields_are_refused_while_decoding(wire, field, value) ->
     got = decode_coordinates(doc["robotId"], json.dumps(doc).encode(), wire.now_ms, Limits())
     assert got.reason == Reason.WRONG_TYPE, got
     assert len(got.detail) < 300
+
+
+def test_format_timestamp_per_minute_cache_equals_datetime_everywhere() -> None:
+    """The cached-prefix formatter gives datetime's text for whole seconds, milliseconds,
+    minute edges, before 1970 and far ahead, and for a float."""
+    import random
+
+    from mapservice.core.wire2019 import _format_timestamp_datetime, format_timestamp
+
+    rng = random.Random(16)
+    samples = [0, -1, 59_999, 60_000, 1_763_911_229_435, 1_763_911_229_000, -62_135_596_800_000,
+               253_402_300_799_000] + [rng.randrange(-10**12, 4 * 10**12) for _ in range(5000)]
+    for ms in samples:
+        assert format_timestamp(ms) == _format_timestamp_datetime(ms), ms
+    assert format_timestamp(1_763_911_229_435.0) == "2025-11-23T15:20:29.435"
