@@ -111,7 +111,12 @@ class MigrationsMixin(ClickHouseConnection):
                 if "already exists" not in str(exc).lower() and "(57)" not in str(exc) \
                         and "code: 57" not in str(exc).lower():
                     raise
-            rows = c.query(f"SELECT holder, since FROM {db}.{MIGRATION_LOCK}").result_rows
+            try:
+                rows = c.query(f"SELECT holder, since FROM {db}.{MIGRATION_LOCK}").result_rows
+            except clickhouse_connect.driver.exceptions.DatabaseError as exc:
+                if "unknown_table" in str(exc).lower() or "code: 60" in str(exc).lower():
+                    continue  # released between our CREATE and this look: take it now
+                raise
             who = f"{rows[0][0]} since {rows[0][1]} UTC" if rows else "another migrator"
             if time.monotonic() > deadline:
                 raise MigrationLocked(

@@ -68,6 +68,26 @@ def test_a_held_lock_makes_a_second_migrator_wait_then_fail_clearly(store) -> No
     assert store.migrate() == SCHEMA_VERSION
 
 
+def test_a_lock_released_while_the_waiter_looks_at_it_is_taken(store) -> None:
+    """The holder drops the lock between the waiter's failed CREATE and its look at the holder (seen in CI): the waiter takes the lock instead of failing."""
+    store.migrate()
+    db = store.database
+    store.client.command(f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, "
+                         "since DateTime DEFAULT now()) ENGINE = Log")
+    real_ddl, released = store._ddl, []
+
+    def ddl(statement: str) -> None:
+        try:
+            real_ddl(statement)
+        finally:
+            if f"CREATE TABLE {db}.{MIGRATION_LOCK}" in statement and not released:
+                released.append(True)  # the other migrator finishes right now
+                store.client.command(f"DROP TABLE {db}.{MIGRATION_LOCK} SYNC")
+
+    store._ddl = ddl
+    assert store.migrate(lock_timeout_s=5) == SCHEMA_VERSION and released
+
+
 def test_two_migrators_at_once_apply_each_migration_once(chdb_dir) -> None:
     """Two stores migrating one empty database at the same moment: one waits for the other."""
     database = f"m{next(_n)}"
