@@ -86,7 +86,9 @@ class SnapshotsMixin(ClickHouseConnection):
     def _valid_before(self) -> str:
         """SQL for the first instant whose snapshots may be wrong (a pending repair's
         start), or far in the future: reads use only snapshots before it."""
-        return (f"(SELECT ifNull(toDateTime64(min(from_ts), 3, 'UTC'), "
+        # minOrNull: min() of no rows is the epoch, not NULL, which made every snapshot
+        # invalid while no repair was pending (every read folded the whole history).
+        return (f"(SELECT ifNull(minOrNull(from_ts), "
                 f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)")
 
     def repair_snapshots(self, max_snapshots: int = 144) -> int:
