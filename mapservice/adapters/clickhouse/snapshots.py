@@ -1,8 +1,11 @@
 """The store's snapshots: building them (one at a time or in bulk runs), finding the newest
-and the nearest valid one, and repairing those a late event made wrong.
+and the nearest valid one, and repairing those a late event made wrong. Each build also
+writes `chunk_seconds` (schema v9) for the seconds before its snapshot, so those rows are
+valid exactly where the snapshots are.
 
 `SnapshotsMixin` runs on the writer client of `connection.ClickHouseConnection` and
-depends on nothing else of the store; `writes` and `reads` build on it.
+depends on nothing else of the store but `schema` (the chunk_seconds query); `writes` and
+`reads` build on it.
 """
 
 from __future__ import annotations
