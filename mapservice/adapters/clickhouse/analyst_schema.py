@@ -101,6 +101,7 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
                       "chunk changes per bucket. Read with FINAL.", {
         "second": "The second (UTC)",
         "offsets": "Millisecond offsets in the second of its writes, sorted, one per write",
+        "changes": "The number of its writes (length of offsets)",
         "built": "When written (a repaired snapshot rewrites its seconds)",
     }),
 }

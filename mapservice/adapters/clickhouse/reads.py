@@ -64,8 +64,10 @@ class ReadsMixin(SnapshotsMixin):
                 "PREWHERE cell >= fromUnixTimestamp64Milli({f:Int64}) "
                 f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} "
                 "WHERE ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY cell, ts, robot_id "
-                "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
-                f"LIMIT {{n:UInt32}} {_FINAL_SETTINGS}", params)
+                # A step of one minute is one keyframe per robot already (FINAL).
+                + ("" if step_ms == KEYFRAME_MS else
+                   "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) ")
+                + f"LIMIT {{n:UInt32}} {_FINAL_SETTINGS}", params)
         if step_ms >= 10 * KEYFRAME_MS:
             return self._pose_query(
                 self._keyframe_sql(_step_heads(from_ms, to_ms, step_ms), robot_id), params)
@@ -194,7 +196,7 @@ class ReadsMixin(SnapshotsMixin):
                    "AND second < least(cov, toDateTime({t1:Int64}))")
         if from_ms % 1000 == 0 and to_ms % 1000 == 0 and bucket_ms % 1000 == 0:
             covered = (f"SELECT intDiv(toUnixTimestamp(second) * 1000 - {{f:Int64}}, {{b:Int64}}) AS k, "
-                       f"sum(length(offsets)) AS n FROM {seconds} GROUP BY k")
+                       f"sum(changes) AS n FROM {seconds} GROUP BY k")
         else:
             s = "toInt64(toUnixTimestamp(second)) * 1000"
             whole = (f"{s} >= {{f:Int64}} AND {s} + 1000 <= {{t:Int64}} AND "

@@ -380,7 +380,8 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
       it instead, for the seconds before each snapshot, and reads use it only before the
       newest valid snapshot (a late or re-delivered event notes a repair, as for the
       snapshots, and the repair rewrites it). Its rows hold the offsets, so timeline
-      buckets that do not fall on whole seconds are still counted exactly.
+      buckets that do not fall on whole seconds are still counted exactly, and their
+      number (`changes`), which is all whole-second buckets read.
     """
     return (
         # A run interrupted after the RENAME left the old table behind.
@@ -415,6 +416,7 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
         f"""CREATE TABLE IF NOT EXISTS {db}.chunk_seconds (
             second DateTime('UTC') CODEC(DoubleDelta, ZSTD(3)),
             offsets Array(UInt16) CODEC(ZSTD(3)),
+            changes UInt32 MATERIALIZED length(offsets) CODEC(T64, ZSTD(3)),
             built DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3))
         ) ENGINE = ReplacingMergeTree(built)
         PARTITION BY toDate(second)
