@@ -96,6 +96,11 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "first_ts": "Its first pose time in the minute (min over the rows)",
         "last_ts": "Its last pose time in the minute (max over the rows)",
     }),
+    "pose_ten_minutes": ("Derived: as pose_minutes, per ten minutes (schema v9).", {
+        "cell": "The start of the ten minutes (UTC)", "robot_id": "The robot",
+        "first_ts": "Its first pose time in them (min over the rows)",
+        "last_ts": "Its last pose time in them (max over the rows)",
+    }),
     "chunk_seconds": ("Derived: the chunk writes of every second before the newest snapshot, "
                       "deduplicated, written with the snapshots (schema v9); the timeline's "
                       "chunk changes per bucket. Read with FINAL.", {

@@ -221,30 +221,27 @@ class ReadsMixin(SnapshotsMixin):
         Buckets of a minute or more: a minute inside the window lies in at most two
         buckets, so a robot has a pose in a bucket iff its first or its last pose of one
         such minute lies there (`pose_minutes`; with whole-minute buckets the first alone
-        tells). The minutes the window's ends cut are read from `poses`, as are shorter
-        buckets. A duplicate pose names the same robot: no FINAL needed anywhere.
+        tells); the same holds for ten minutes and buckets of ten minutes or more
+        (`pose_ten_minutes`, whose cells cut by the window's ends are read per minute).
+        The minutes the window's ends cut are read from `poses`, as are shorter buckets.
+        A duplicate pose names the same robot: no FINAL needed anywhere.
         """
         db = self.database
         params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
         bucket = "intDiv(toUnixTimestamp64Milli({x}) - {{f:Int64}}, {{b:Int64}})"
-        lo = -(-from_ms // KEYFRAME_MS) * KEYFRAME_MS  # whole minutes [lo, hi) of the window
-        hi = to_ms // KEYFRAME_MS * KEYFRAME_MS
-        if bucket_ms < KEYFRAME_MS or hi <= lo:
-            raw = [(from_ms, to_ms)]
-            parts = []
-        else:
-            raw = [(a, b) for a, b in ((from_ms, lo), (hi, to_ms)) if b > a]
-            aligned = from_ms % KEYFRAME_MS == 0 and bucket_ms % KEYFRAME_MS == 0
+        parts = []
+        for table, lo, hi in _robot_cells(from_ms, to_ms, bucket_ms):
+            if table is None:
+                parts.append(f"SELECT robot_id, {bucket.format(x='ts')} AS k FROM {db}.poses "
+                             f"PREWHERE ts >= fromUnixTimestamp64Milli({lo}) "
+                             f"AND ts < fromUnixTimestamp64Milli({hi})")
+                continue
+            size = _CELL_MS[table]
+            aligned = from_ms % size == 0 and bucket_ms % size == 0  # a cell in one bucket
             times = "[first_ts]" if aligned else "[first_ts, last_ts]"
-            params.update(lo=lo, hi=hi)
-            parts = [f"SELECT robot_id, {bucket.format(x='x')} AS k FROM {db}.pose_minutes "
-                     f"ARRAY JOIN {times} AS x WHERE cell >= fromUnixTimestamp64Milli({{lo:Int64}}) "
-                     "AND cell < fromUnixTimestamp64Milli({hi:Int64})"]
-        if raw:
-            ranges = " OR ".join(f"(ts >= fromUnixTimestamp64Milli({a}) AND "
-                                 f"ts < fromUnixTimestamp64Milli({b}))" for a, b in raw)
-            parts.append(f"SELECT robot_id, {bucket.format(x='ts')} AS k FROM {db}.poses "
-                         f"PREWHERE {ranges}")
+            parts.append(f"SELECT robot_id, {bucket.format(x='x')} AS k FROM {db}.{table} "
+                         f"ARRAY JOIN {times} AS x WHERE cell >= fromUnixTimestamp64Milli({lo}) "
+                         f"AND cell < fromUnixTimestamp64Milli({hi})")
         rows = self._rows(f"SELECT k, uniqExact(robot_id) FROM ({' UNION ALL '.join(parts)}) "
                           "GROUP BY k", params)
         return {int(k): int(n) for k, n in rows}
@@ -342,3 +339,24 @@ def _step_heads(from_ms: int, to_ms: int, step_ms: int) -> list[tuple[int, int]]
         if end > b:
             heads.append((int(b), int(end)))
     return heads
+
+
+_CELL_MS = {"pose_ten_minutes": 600_000, "pose_minutes": KEYFRAME_MS}
+
+
+def _robot_cells(lo: int, hi: int, bucket_ms: int,
+                 levels: tuple[str, ...] = ("pose_ten_minutes", "pose_minutes")
+                 ) -> list[tuple[str | None, int, int]]:
+    """[lo, hi) as (table, start, end) pieces: whole cells of the coarsest level not
+    longer than a bucket, the rest of each end in finer levels, and `poses` (None) for
+    what no whole minute covers."""
+    if hi <= lo:
+        return []
+    for i, table in enumerate(levels):
+        size = _CELL_MS[table]
+        a, b = -(-lo // size) * size, hi // size * size
+        if bucket_ms >= size and b > a:
+            rest = levels[i + 1:]
+            return (_robot_cells(lo, a, bucket_ms, rest) + [(table, a, b)]
+                    + _robot_cells(b, hi, bucket_ms, rest))
+    return [(None, lo, hi)]

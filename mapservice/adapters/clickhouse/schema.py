@@ -373,7 +373,8 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
       materialized view on `poses` (min/max, so unmerged rows and re-deliveries need no
       FINAL). For timeline buckets of a minute or more a robot has a pose in a bucket iff
       the first or the last pose of one of its minutes lies there, so "robots active per
-      bucket" reads 2 values per robot-minute instead of every pose.
+      bucket" reads 2 values per robot-minute instead of every pose; `pose_ten_minutes`
+      the same per ten minutes, for buckets of ten minutes or more.
     - `chunk_seconds`: the millisecond offsets of the chunk changes of every second,
       deduplicated (chunk_events FINAL). A materialized view cannot write it: it sees
       insert blocks, so a re-delivered write would count twice. The snapshot builders write
@@ -413,6 +414,23 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
         (f"INSERT INTO {db}.pose_minutes (cell, robot_id, first_ts, last_ts) "
          f"SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts), max(ts) FROM {db}.poses "
          "GROUP BY cell, robot_id"),
+        # The same per ten minutes: a week's timeline reads a tenth of the rows.
+        f"""CREATE TABLE IF NOT EXISTS {db}.pose_ten_minutes (
+            cell DateTime('UTC'),
+            robot_id LowCardinality(String),
+            first_ts SimpleAggregateFunction(min, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3)),
+            last_ts SimpleAggregateFunction(max, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3))
+        ) ENGINE = AggregatingMergeTree
+        PARTITION BY toDate(cell)
+        ORDER BY (cell, robot_id)
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_ten_minutes_mv TO {db}.pose_ten_minutes
+            AS SELECT toStartOfTenMinutes(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
+            FROM {db}.poses GROUP BY cell, robot_id""",
+        (f"INSERT INTO {db}.pose_ten_minutes (cell, robot_id, first_ts, last_ts) "
+         f"SELECT toStartOfTenMinutes(cell) AS c, robot_id, min(first_ts), max(last_ts) "
+         f"FROM {db}.pose_minutes GROUP BY c, robot_id"),
         f"""CREATE TABLE IF NOT EXISTS {db}.chunk_seconds (
             second DateTime('UTC') CODEC(DoubleDelta, ZSTD(3)),
             offsets Array(UInt16) CODEC(ZSTD(3)),
@@ -429,7 +447,7 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
          f"FROM {db}.snapshot_log) GROUP BY second"),
         *analyst_schema.comment_statements(
             db, {**analyst_schema.TABLE_COMMENTS_V9_KEYFRAMES,
-                 **analyst_schema.comments_of("pose_minutes", "chunk_seconds")}),
+                 **analyst_schema.comments_of("pose_minutes", "pose_ten_minutes", "chunk_seconds")}),
     )
 
 

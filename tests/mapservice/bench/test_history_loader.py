@@ -159,18 +159,20 @@ def _snapshot_rows(store) -> tuple[list, list, list]:
     )
 
 
-def _derived_rows(store) -> tuple[list, list, list]:
+def _derived_rows(store) -> tuple[list, ...]:
     """What the materialized views and the snapshot builders derived from the events."""
     return (
         _q(store, "SELECT * FROM {db}.pose_keyframes FINAL ORDER BY robot_id, ts"),
         _q(store, "SELECT cell, robot_id, min(first_ts), max(last_ts) FROM {db}.pose_minutes "
+                  "GROUP BY ALL ORDER BY ALL"),
+        _q(store, "SELECT cell, robot_id, min(first_ts), max(last_ts) FROM {db}.pose_ten_minutes "
                   "GROUP BY ALL ORDER BY ALL"),
         _q(store, "SELECT second, offsets FROM {db}.chunk_seconds FINAL ORDER BY ALL"),
     )
 
 
 def test_loader_derives_the_rows_live_ingest_derives(loaded, chdb_path) -> None:
-    """The loader's day-sized inserts fill pose_keyframes, pose_minutes and chunk_seconds
+    """The loader's day-sized inserts fill pose_keyframes, pose_(ten_)minutes and chunk_seconds
     with exactly the rows the same events appended in the sink's small batches give."""
     store, result = loaded
     live = _store(chdb_path)

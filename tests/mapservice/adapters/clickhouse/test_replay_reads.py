@@ -78,6 +78,7 @@ def _history(ev, h0: int) -> tuple[list, list]:
 WINDOWS = [  # (from offset, to offset, buckets)
     (0, 40 * 60_000, 40), (0, 40 * 60_000, 4), (0, 30 * 60_000, 1000),  # whole minutes
     (12_345, 38 * 60_000 + 777, 25),  # off the minute: buckets of ~91 s
+    (12_345, 38 * 60_000 + 777, 3), (1, 40 * 60_000, 2),  # over ten minutes, off the minute
     (60_000, 36 * 60_000, 1000),  # 2,160 ms buckets: every edge inside a second
     (1000, 35 * 60_000 + 1000, 33),  # whole seconds, buckets of 63.6 s
     (59_999, 62_001, 3), (250_000, 350_000, 50),  # short: buckets under a minute
