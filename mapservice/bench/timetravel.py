@@ -24,8 +24,9 @@ One run:
      equal; and the 86400x step from a start off the minute (keyframes plus the first
      minute of each step from `poses`), checked equal every fourth round;
    - the timeline over the whole history in 10-minute buckets and over one day in 1,000
-     buckets of 86.4 s (GET /api/v1/timeline), and a robot's track over a day at the step
-     (GET /api/v1/robots/{id}/track).
+     buckets of 86.4 s (GET /api/v1/timeline), side by side with the same buckets counted
+     from every event (the pre-v9 query: chunk_events FINAL, every pose), checked equal;
+     and a robot's track over a day at the step (GET /api/v1/robots/{id}/track).
 
 Latencies are wall time around the store call, in this process (embedded chDB), from the
 call to the Python rows: what an API handler would wait. p99 is numpy's linear
@@ -49,7 +50,7 @@ import numpy as np
 DAY_MS = 86_400_000
 HOUR_MS = 3_600_000
 TARGETS_MS = {"map_at": 100.0, "robots_at": 50.0, "window_10s": 50.0, "day_downsampled": 200.0,
-              "timeline": None, "track": None}
+              "timeline": 150.0, "track": None}
 BUSY_PATTERNS = ("bench ingest", "exp.py", "tansu", "mosquitto")
 LOAD_FILE = "history-load.json"
 
@@ -131,6 +132,29 @@ def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> li
         "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
         f"ORDER BY ts, robot_id LIMIT 100000 {_FINAL_SETTINGS}",
         {"f": from_ms, "t": to_ms, "s": step_ms})
+
+
+def naive_timeline(store, from_ms: int, to_ms: int, buckets: int) -> list:
+    """The timeline from every event (the query before schema v9): chunk changes counted
+    with FINAL, robots from every pose, per bucket."""
+    from mapservice.core.ports import TimelineBucket
+    from mapservice.core.timetravel import timeline_buckets
+
+    bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
+    db = store.database
+    params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
+    window = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+    bucket = "intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64})"
+    with store._lock:
+        chunks = dict(store.client.query(
+            f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL WHERE {window} GROUP BY k",
+            parameters=params).result_rows)
+        robots = dict(store.client.query(
+            f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.poses WHERE {window} GROUP BY k",
+            parameters=params).result_rows)
+    conflicts = store.conflict_counts(from_ms, to_ms, bucket_ms)
+    return [TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
+            for k, start in enumerate(starts)]
 
 
 # --- measuring ------------------------------------------------------------------------------
@@ -242,11 +266,12 @@ def measure(store, args, start_ms: int, end_ms: int, console) -> dict:
         "map_at:6_days_ago", "naive_map:6_days_ago", "robots_at", "naive_robots",
         "window_10s", "day_downsampled", "naive_downsampled", "day_replay_86400x",
         "naive_replay_86400x", "replay_86400x_any_from", "timeline_week", "timeline_day",
-        "track_day")}
+        "naive_timeline_week", "naive_timeline_day", "track_day")}
     checks = {"map_at_compared": 0, "map_at_mismatches": 0, "robots_compared": 0,
               "robots_mismatches": 0, "window_rows": 0, "downsampled_rows_max": 0,
               "downsampled_compared": 0, "downsampled_mismatches": 0,
-              "chunks_per_map_min": None, "week_buckets": week_buckets}
+              "chunks_per_map_min": None, "week_buckets": week_buckets,
+              "timeline_compared": 0, "timeline_mismatches": 0}
 
     def window(at: int):
         return store.chunk_events(at, at + 10_000), store.poses(at, at + 10_000)
@@ -310,11 +335,16 @@ def measure(store, args, start_ms: int, end_ms: int, console) -> dict:
                         checks["downsampled_compared"] += 1
                         checks["downsampled_mismatches"] += frames != naive_poses_downsampled(
                             store, off, off + DAY_MS, replay_step_ms)
-                        ms, _ = timed(store.timeline, week_from,
-                                      week_from + week_buckets * 600_000, week_buckets)
-                        t["timeline_week"].append(ms)
-                        ms, _ = timed(store.timeline, f, to, 1000)
-                        t["timeline_day"].append(ms)
+                        for key, args in (
+                                ("timeline_week", (week_from, week_from + week_buckets * 600_000,
+                                                   week_buckets)),
+                                ("timeline_day", (f, to, 1000))):
+                            ms, got = timed(store.timeline, *args)
+                            t[key].append(ms)
+                            ms, want = timed(naive_timeline, store, *args)
+                            t[f"naive_{key}"].append(ms)
+                            checks["timeline_compared"] += 1
+                            checks["timeline_mismatches"] += got != want
                         if robot_ids:
                             ms, _ = timed(store.poses_downsampled, f, to, step_ms,
                                           robot_ids[i % len(robot_ids)])
@@ -350,8 +380,8 @@ ROWS = [
      "day_downsampled"),
     ("86400x, `from` off the minute (keyframes + heads)", "replay_86400x_any_from", None,
      "day_downsampled"),
-    ("timeline, whole history, 10-min buckets", "timeline_week", None, "timeline"),
-    ("timeline, one day, 1,000 buckets of 86.4 s", "timeline_day", None, "timeline"),
+    ("timeline, whole history, 10-min buckets", "timeline_week", "naive_timeline_week", "timeline"),
+    ("timeline, one day, 1,000 buckets of 86.4 s", "timeline_day", "naive_timeline_day", "timeline"),
     ("track, one robot, one day at --step-s", "track_day", None, "track"),
 ]
 
@@ -448,7 +478,9 @@ def markdown(results: dict) -> str:
         f"query for {checks['robots_compared']}, mismatches = {checks['robots_mismatches']}. "
         f"Downsampled days (from pose_keyframes) equal to the same answer from every pose "
         f"(the 'naive' column) for {checks.get('downsampled_compared', 0)} windows, "
-        f"mismatches = {checks.get('downsampled_mismatches', '?')}. "
+        f"mismatches = {checks.get('downsampled_mismatches', '?')}. Timelines equal to the "
+        f"same buckets counted from every event for {checks.get('timeline_compared', 0)}, "
+        f"mismatches = {checks.get('timeline_mismatches', '?')}. "
         f"Downsampled day: step {results['measure']['step_ms']} ms, at most "
         f"{checks['downsampled_rows_max']:,} poses returned; 10 s windows returned up to "
         f"{checks['window_rows']} rows; the whole-history timeline has "
@@ -509,7 +541,10 @@ def main(args) -> None:
     checks = results["measure"]["checks"]
     console.print(f"map_at == naive: {checks['map_at_compared']} instants, "
                   f"{checks['map_at_mismatches']} mismatches; robots_at == naive: "
-                  f"{checks['robots_compared']} instants, {checks['robots_mismatches']} mismatches")
+                  f"{checks['robots_compared']} instants, {checks['robots_mismatches']} mismatches; "
+                  f"downsampled == naive: {checks['downsampled_compared']} windows, "
+                  f"{checks['downsampled_mismatches']} mismatches; timeline == naive: "
+                  f"{checks['timeline_compared']}, {checks['timeline_mismatches']} mismatches")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))
     if args.benchmarks_md:

@@ -28,6 +28,7 @@ class AdminMixin(ClickHouseConnection):
             self.client.command(f"TRUNCATE TABLE {db}.chunk_events")
             self.client.command(f"TRUNCATE TABLE {db}.map_snapshots")
             self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.conflicts")  # derived from them
+            self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.chunk_seconds")  # so are these
         return int(removed)
 
     def delete_meta(self) -> int:
@@ -63,7 +64,7 @@ class AdminMixin(ClickHouseConnection):
         """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
         with self._lock:
             for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
-                          "pose_keyframes"):
+                          "pose_keyframes", "pose_minutes", "pose_ten_minutes", "chunk_seconds"):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
 
     def ping(self, timeout_s: float = 2.0) -> bool:

@@ -89,7 +89,36 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "from_ts": "Snapshots at or after this instant are being rebuilt",
         "noted": "When the late event (or a repair step) noted it",
     }),
+    "pose_minutes": ("Derived: each robot's first and last pose time of every minute, written "
+                     "by a materialized view on poses (schema v9); the timeline's robots "
+                     "per bucket. Rows of one minute may be unmerged: take min/max.", {
+        "cell": "The minute (UTC)", "robot_id": "The robot",
+        "first_ts": "Its first pose time in the minute (min over the rows)",
+        "last_ts": "Its last pose time in the minute (max over the rows)",
+    }),
+    "pose_ten_minutes": ("Derived: as pose_minutes, per ten minutes (schema v9).", {
+        "cell": "The start of the ten minutes (UTC)", "robot_id": "The robot",
+        "first_ts": "Its first pose time in them (min over the rows)",
+        "last_ts": "Its last pose time in them (max over the rows)",
+    }),
+    "chunk_seconds": ("Derived: the chunk writes of every second before the newest snapshot, "
+                      "deduplicated, written with the snapshots (schema v9); the timeline's "
+                      "chunk changes per bucket. Read with FINAL.", {
+        "second": "The second (UTC)",
+        "offsets": "Millisecond offsets in the second of its writes, sorted, one per write",
+        "changes": "The number of its writes (length of offsets)",
+        "built": "When written (a repaired snapshot rewrites its seconds)",
+    }),
 }
+
+
+def comments_of(*tables: str) -> dict[str, tuple[str, dict[str, str]]]:
+    """The comments of some later tables (each migration applies those of its own)."""
+    return {t: LATER_TABLE_COMMENTS[t] for t in tables}
+
+
+# Schema v9 re-creates pose_keyframes (sorted by time): its comments again.
+TABLE_COMMENTS_V9_KEYFRAMES = {"pose_keyframes": TABLE_COMMENTS["pose_keyframes"]}
 
 # Shared by the views: the latest map geometry, for chunk coordinates of a position.
 _META = """(SELECT meta FROM {db}.map_meta FINAL ORDER BY ts DESC LIMIT 1) AS _meta,

@@ -20,7 +20,7 @@ _AFTER_NAME = re.compile(
     rf"|TRUNCATE\s+TABLE(?:\s+IF\s+EXISTS)?)\s+{_NAME})",
     re.IGNORECASE)
 _RENAME = re.compile(r"^\s*RENAME\s+TABLE\s", re.IGNORECASE)
-_ENGINE = re.compile(r"ENGINE\s*=\s*(ReplacingMergeTree|MergeTree)\b(\(([^)]*)\))?")
+_ENGINE = re.compile(r"ENGINE\s*=\s*(ReplacingMergeTree|AggregatingMergeTree|MergeTree)\b(\(([^)]*)\))?")
 
 
 def replicated_engine(match: re.Match) -> str:

@@ -39,11 +39,13 @@ def _mm(metres: float) -> int:
 
 # A pose's columns as the reads select them. The path travels as one string ("x y,x y",
 # millimetres; empty when has_path is false): parsing two Array columns costs the client far
-# more than a String column, and most poses carry no path.
-_POSE_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, "
-                 "charging, loaded, has_path, if(has_path, arrayStringConcat(arrayMap((x, y) -> "
-                 "concat(toString(x), ' ', toString(y)), path_x_mm, path_y_mm), ','), ''), "
-                 "recv_lag_ms")
+# more than a String column, and most poses carry no path. Metres and the receive time are
+# computed by ClickHouse (the same IEEE division and sum Python would do), which spares the
+# client three passes over every row of a large read.
+_POSE_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
+                 "qx, qy, qz, qw, battery, charging, loaded, has_path, if(has_path, "
+                 "arrayStringConcat(arrayMap((x, y) -> concat(toString(x), ' ', toString(y)), "
+                 "path_x_mm, path_y_mm), ','), ''), toUnixTimestamp64Milli(ts) + recv_lag_ms")
 # Every FINAL read of poses and chunk_events: both are partitioned by the day of `ts`, a
 # sorting-key column, so rows with one identity always share a partition and FINAL need
 # not merge across partitions (it then skips merging single-part partitions entirely).
@@ -63,16 +65,15 @@ def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
     """PoseRows from the columns of a `_POSE_COLUMNS` query, column-wise (it is faster)."""
     if not columns or not len(columns[0]):
         return []
-    robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, lag = columns
+    robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, received = columns
     flags: dict[str, bool | str | None] = {}
 
     def unflag(texts: Sequence[str]) -> list:
         return [flags[t] if t in flags else flags.setdefault(t, _unflag(t)) for t in texts]
 
-    return list(map(
-        PoseRow, robot, ts, [v / 1000 for v in x], [v / 1000 for v in y], [v / 1000 for v in z],
-        qx, qy, qz, qw, battery, unflag(charging), unflag(loaded), map(_path, has_path, path),
-        [t + lag_ms for t, lag_ms in zip(ts, lag)]))
+    paths = [_path(True, text) if has else None for has, text in zip(has_path, path)]
+    return list(map(PoseRow, robot, ts, x, y, z, qx, qy, qz, qw, battery, unflag(charging),
+                    unflag(loaded), paths, received))
 
 
 class ClickHouseConnection:

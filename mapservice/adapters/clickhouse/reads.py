@@ -54,8 +54,23 @@ class ReadsMixin(SnapshotsMixin):
             where += " AND robot_id = {r:String}"
             params["r"] = robot_id
         aligned = from_ms % KEYFRAME_MS == 0 and step_ms % KEYFRAME_MS == 0
-        if aligned or step_ms >= 10 * KEYFRAME_MS:
-            return self._pose_query(self._keyframe_sql(aligned, robot_id), params)
+        if aligned:
+            # pose_keyframes is sorted by (cell, robot_id) (schema v9): read in that order,
+            # the first keyframe of each (robot, step) is the first one met, and reading
+            # stops at the LIMIT. (cell, ts, robot_id) is the (ts, robot_id) order.
+            robot = " AND robot_id = {r:String}" if robot_id is not None else ""
+            return self._pose_query(
+                f"SELECT {_POSE_COLUMNS} FROM {self.database}.pose_keyframes FINAL "
+                "PREWHERE cell >= fromUnixTimestamp64Milli({f:Int64}) "
+                f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} "
+                "WHERE ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY cell, ts, robot_id "
+                # A step of one minute is one keyframe per robot already (FINAL).
+                + ("" if step_ms == KEYFRAME_MS else
+                   "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) ")
+                + f"LIMIT {{n:UInt32}} {_FINAL_SETTINGS}", params)
+        if step_ms >= 10 * KEYFRAME_MS:
+            return self._pose_query(
+                self._keyframe_sql(_step_heads(from_ms, to_ms, step_ms), robot_id), params)
         return self._pose_query(
             f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {self.database}.poses FINAL WHERE {where} "
             "ORDER BY robot_id, ts "
@@ -64,7 +79,7 @@ class ReadsMixin(SnapshotsMixin):
             params,
         )
 
-    def _keyframe_sql(self, aligned: bool, robot_id: str | None) -> str:
+    def _keyframe_sql(self, heads: list[tuple[int, int]] | None, robot_id: str | None) -> str:
         """poses_downsampled from the per-minute keyframes (schema v4), exactly.
 
         A step [b, b + step) is a head [b, next whole minute), then minutes starting in it.
@@ -72,9 +87,10 @@ class ReadsMixin(SnapshotsMixin):
         minutes holding one in the step, i.e. that minute's keyframe (a minute cut by the
         step's end counts only if its keyframe is before the end). So the candidates are
         the keyframes in the window plus every pose in the heads, read from `poses`: none
-        when `from` and the step are whole minutes, a minute per step at most otherwise
-        (steps of 10 min or more, so at most a tenth of the window; only the time column
-        of the rest is read, to find them).
+        when `from` and the step are whole minutes (`heads` None), a minute per step at
+        most otherwise (steps of 10 min or more). The heads are given as explicit time
+        ranges, so the primary key reads only their granules (a condition computed from
+        `ts` alone would read the time column of the whole window to find them).
         """
         db = self.database
         robot = " AND robot_id = {r:String}" if robot_id is not None else ""
@@ -84,14 +100,12 @@ class ReadsMixin(SnapshotsMixin):
             f"SELECT {POSE_COLUMNS} FROM {db}.pose_keyframes FINAL "
             "PREWHERE cell >= toStartOfMinute(fromUnixTimestamp64Milli({f:Int64})) "
             f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} WHERE {window}")
-        if not aligned:
-            # The head of the step a pose falls in ends at the minute after the step's start.
-            start = ("({f:Int64} + intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
-                     "* {s:Int64})")
-            candidates += (
-                f" UNION ALL SELECT {POSE_COLUMNS} FROM {db}.poses FINAL PREWHERE {window}{robot} "
-                f"AND toUnixTimestamp64Milli(ts) < intDiv({start} + {KEYFRAME_MS - 1}, "
-                f"{KEYFRAME_MS}) * {KEYFRAME_MS}")
+        if heads:
+            ranges = " OR ".join(
+                f"(ts >= fromUnixTimestamp64Milli({lo}) AND ts < fromUnixTimestamp64Milli({hi}))"
+                for lo, hi in heads)
+            candidates += (f" UNION ALL SELECT {POSE_COLUMNS} FROM {db}.poses FINAL "
+                           f"PREWHERE ({ranges}){robot}")
         return (f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM ({candidates}) ORDER BY robot_id, ts "
                 "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
                 f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}")
@@ -121,47 +135,26 @@ class ReadsMixin(SnapshotsMixin):
     def robots_at(self, at_ms: int) -> list[PoseRow]:
         """Each robot's latest pose at or before `at_ms` (nearest snapshot + events).
 
-        A robot that reported in (snapshot, at_ms] is answered by one pass over those poses
-        (its latest there is its latest <= at_ms); only robots silent since the snapshot
-        need the snapshot's time of their last pose and a lookup of that row.
+        One statement in two passes over `poses`: the first finds each robot's latest time,
+        reading only (robot_id, ts) of the poses in (snapshot, at_ms] plus the snapshot's
+        time of each robot's last pose (robots silent since); the second reads the other
+        columns only for the granules holding those (robot, ts) keys, which the primary key
+        finds (`(ts, robot_id) in set`). Without a valid snapshot the first pass reads every
+        pose <= at_ms (two columns), still exact.
         """
         db = self.database
-        with self._reader() as c:
-            # The nearest snapshot and its robots (max(ts): a rebuilt snapshot may still
-            # hold its older rows until merged).
-            listed = c.query(
-                f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
-                "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
-                f"AND snap_ts < {self._valid_before()}) AS snap "
-                "SELECT toUnixTimestamp64Milli(any(snap)), robot_id "
-                f"FROM {db}.robot_snapshots WHERE snap_ts = snap GROUP BY robot_id",
-                parameters={"t": at_ms}).result_rows
-            snap = listed[0][0] if listed else self._snapshot_at_or_before(at_ms, c)
-            if snap is None:
-                columns = c.query(
-                    f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
-                    f"SELECT robot_id, max(ts) FROM {db}.poses "
-                    "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) GROUP BY robot_id) "
-                    f"ORDER BY robot_id {_FINAL_SETTINGS}", parameters={"t": at_ms}).result_columns
-                return _pose_rows(columns)
-            params: dict = {"t": at_ms, "p": snap}
-            recent = _pose_rows(c.query(
-                f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL "
-                "PREWHERE ts > fromUnixTimestamp64Milli({p:Int64}) "
-                "AND ts <= fromUnixTimestamp64Milli({t:Int64}) "
-                f"ORDER BY robot_id, ts DESC LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
-                parameters=params).result_columns)
-            seen = {r.robot_id for r in recent}
-            params["silent"] = [robot for _, robot in listed if robot not in seen]
-            if not params["silent"]:
-                return recent  # ordered by robot id
-            silent = _pose_rows(c.query(
-                f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL WHERE (robot_id, ts) IN ("
-                f"SELECT robot_id, max(ts) FROM {db}.robot_snapshots "
-                "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) "
-                "AND has({silent:Array(String)}, robot_id) GROUP BY robot_id) "
-                f"{_FINAL_SETTINGS}", parameters=params).result_columns)
-        return sorted(recent + silent, key=lambda r: r.robot_id)
+        return self._pose_query(
+            f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
+            "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
+            f"AND snap_ts < {self._valid_before()}) AS snap "
+            f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL "
+            "PREWHERE (robot_id, ts) IN (SELECT robot_id, max(ts) FROM ("
+            f"SELECT robot_id, ts FROM {db}.poses "
+            "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64}) UNION ALL "
+            # max(ts): a rebuilt snapshot may still hold its older rows until merged.
+            f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap) "
+            f"GROUP BY robot_id) ORDER BY robot_id {_FINAL_SETTINGS}",
+            {"t": at_ms})
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         # PREWHERE on the sorting key's `ts`: as in poses(), FINAL sees every duplicate.
@@ -178,33 +171,84 @@ class ReadsMixin(SnapshotsMixin):
         bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
         if not starts:
             return []
-        db = self.database
-        params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
-        window = ("ts >= fromUnixTimestamp64Milli({f:Int64}) "
-                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
-        bucket = "intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64})"
-        chunks = dict(self._rows(
-            f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL PREWHERE {window} "
-            f"GROUP BY k {_FINAL_SETTINGS}", params))
-        if from_ms % KEYFRAME_MS == 0 and bucket_ms % KEYFRAME_MS == 0:
-            # Buckets of whole minutes: a robot has a pose in a bucket iff it has a
-            # keyframe (its first pose of a minute) there.
-            robots = dict(self._rows(
-                f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.pose_keyframes FINAL "
-                "PREWHERE cell >= fromUnixTimestamp64Milli({f:Int64}) "
-                "AND cell < fromUnixTimestamp64Milli({t:Int64}) "
-                f"WHERE ts < fromUnixTimestamp64Milli({{t:Int64}}) GROUP BY k {_FINAL_SETTINGS}",
-                params))
-        else:  # a duplicate pose names the same robot: no FINAL needed
-            robots = dict(self._rows(
-                f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.poses PREWHERE {window} "
-                "GROUP BY k", params))
+        chunks = self._timeline_chunks(from_ms, to_ms, bucket_ms)
+        robots = self._timeline_robots(from_ms, to_ms, bucket_ms)
         conflicts = self.conflict_counts(from_ms, to_ms, bucket_ms)
         return [TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
                 for k, start in enumerate(starts)]
 
+    def _timeline_chunks(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        """Chunk changes per bucket (k: the bucket's index), as `count() FROM chunk_events
+        FINAL` gives them.
+
+        Seconds before the newest valid snapshot come from `chunk_seconds` (deduplicated,
+        written with the snapshots): a second inside the window and inside one bucket
+        counts its length; a second cut by a bucket edge or the window's ends counts its
+        millisecond offsets one by one. Events from that snapshot on (and all of them
+        without one) are counted from chunk_events FINAL, as before.
+        """
+        db = self.database
+        params = {"f": from_ms, "t": to_ms, "b": bucket_ms,
+                  "f0": from_ms // 1000, "t1": -(-to_ms // 1000)}
+        cov = (f"(SELECT toDateTime(max(snap_ts)) FROM {db}.snapshot_log "
+               f"WHERE snap_ts < {self._valid_before()})")
+        seconds = (f"{db}.chunk_seconds FINAL PREWHERE second >= toDateTime({{f0:Int64}}) "
+                   "AND second < least(cov, toDateTime({t1:Int64}))")
+        if from_ms % 1000 == 0 and to_ms % 1000 == 0 and bucket_ms % 1000 == 0:
+            covered = (f"SELECT intDiv(toUnixTimestamp(second) * 1000 - {{f:Int64}}, {{b:Int64}}) AS k, "
+                       f"sum(changes) AS n FROM {seconds} GROUP BY k")
+        else:
+            s = "toInt64(toUnixTimestamp(second)) * 1000"
+            whole = (f"{s} >= {{f:Int64}} AND {s} + 1000 <= {{t:Int64}} AND "
+                     f"intDiv({s} - {{f:Int64}}, {{b:Int64}}) = intDiv({s} + 999 - {{f:Int64}}, {{b:Int64}})")
+            covered = (
+                "SELECT tupleElement(kn, 1) AS k, sum(tupleElement(kn, 2)) AS n FROM ("
+                f"SELECT arrayJoin(if({whole}, [(intDiv({s} - {{f:Int64}}, {{b:Int64}}), length(offsets))], "
+                f"arrayMap(o -> (intDiv({s} + o - {{f:Int64}}, {{b:Int64}}), toUInt64(1)), "
+                f"arrayFilter(o -> {s} + o >= {{f:Int64}} AND {s} + o < {{t:Int64}}, offsets)))) AS kn "
+                f"FROM {seconds}) GROUP BY k")
+        rows = self._rows(
+            f"WITH {cov} AS cov SELECT k, sum(n) FROM ({covered} UNION ALL "
+            f"SELECT intDiv(toUnixTimestamp64Milli(ts) - {{f:Int64}}, {{b:Int64}}) AS k, count() AS n "
+            f"FROM {db}.chunk_events FINAL PREWHERE ts >= greatest(fromUnixTimestamp64Milli({{f:Int64}}), cov) "
+            "AND ts < fromUnixTimestamp64Milli({t:Int64}) GROUP BY k) GROUP BY k "
+            f"{_FINAL_SETTINGS}", params)
+        return {int(k): int(n) for k, n in rows}
+
+    def _timeline_robots(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        """Robots with a pose per bucket (k: the bucket's index).
+
+        Buckets of a minute or more: a minute inside the window lies in at most two
+        buckets, so a robot has a pose in a bucket iff its first or its last pose of one
+        such minute lies there (`pose_minutes`; with whole-minute buckets the first alone
+        tells); the same holds for ten minutes and buckets of ten minutes or more
+        (`pose_ten_minutes`, whose cells cut by the window's ends are read per minute).
+        The minutes the window's ends cut are read from `poses`, as are shorter buckets.
+        A duplicate pose names the same robot: no FINAL needed anywhere.
+        """
+        db = self.database
+        params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
+        bucket = "intDiv(toUnixTimestamp64Milli({x}) - {{f:Int64}}, {{b:Int64}})"
+        parts = []
+        for table, lo, hi in _robot_cells(from_ms, to_ms, bucket_ms):
+            if table is None:
+                parts.append(f"SELECT robot_id, {bucket.format(x='ts')} AS k FROM {db}.poses "
+                             f"PREWHERE ts >= fromUnixTimestamp64Milli({lo}) "
+                             f"AND ts < fromUnixTimestamp64Milli({hi})")
+                continue
+            size = _CELL_MS[table]
+            aligned = from_ms % size == 0 and bucket_ms % size == 0  # a cell in one bucket
+            times = "[first_ts]" if aligned else "[first_ts, last_ts]"
+            parts.append(f"SELECT robot_id, {bucket.format(x='x')} AS k FROM {db}.{table} "
+                         f"ARRAY JOIN {times} AS x WHERE cell >= fromUnixTimestamp64Milli({lo}) "
+                         f"AND cell < fromUnixTimestamp64Milli({hi})")
+        rows = self._rows(f"SELECT k, uniqExact(robot_id) FROM ({' UNION ALL '.join(parts)}) "
+                          "GROUP BY k", params)
+        return {int(k): int(n) for k, n in rows}
+
     def robot_known(self, robot_id: str) -> bool:
-        # pose_keyframes is sorted by robot: a primary-key lookup, not a scan of `poses`.
+        # pose_keyframes: a row per robot and minute, robot ids as LowCardinality (a part
+        # without the robot in its dictionary is skipped), not a scan of `poses`.
         return bool(self._rows(
             f"SELECT 1 FROM {self.database}.pose_keyframes WHERE robot_id = {{r:String}} LIMIT 1",
             {"r": robot_id}))
@@ -284,3 +328,35 @@ class ReadsMixin(SnapshotsMixin):
             {"f": from_ms, "t": to_ms, "b": bucket_ms},
         )
         return {int(start): int(n) for start, n in rows}
+
+
+def _step_heads(from_ms: int, to_ms: int, step_ms: int) -> list[tuple[int, int]]:
+    """Each step's head [b, the next whole minute), within the step and the window: the
+    poses a keyframe read cannot stand for (empty heads left out)."""
+    heads = []
+    for b in range(from_ms, to_ms, step_ms):
+        end = min(-(-b // KEYFRAME_MS) * KEYFRAME_MS, b + step_ms, to_ms)
+        if end > b:
+            heads.append((int(b), int(end)))
+    return heads
+
+
+_CELL_MS = {"pose_ten_minutes": 600_000, "pose_minutes": KEYFRAME_MS}
+
+
+def _robot_cells(lo: int, hi: int, bucket_ms: int,
+                 levels: tuple[str, ...] = ("pose_ten_minutes", "pose_minutes")
+                 ) -> list[tuple[str | None, int, int]]:
+    """[lo, hi) as (table, start, end) pieces: whole cells of the coarsest level not
+    longer than a bucket, the rest of each end in finer levels, and `poses` (None) for
+    what no whole minute covers."""
+    if hi <= lo:
+        return []
+    for i, table in enumerate(levels):
+        size = _CELL_MS[table]
+        a, b = -(-lo // size) * size, hi // size * size
+        if bucket_ms >= size and b > a:
+            rest = levels[i + 1:]
+            return (_robot_cells(lo, a, bucket_ms, rest) + [(table, a, b)]
+                    + _robot_cells(b, hi, bucket_ms, rest))
+    return [(None, lo, hi)]

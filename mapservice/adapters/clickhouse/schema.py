@@ -196,7 +196,13 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                     from_ts DateTime64(3, 'UTC'),
                     noted DateTime64(3, 'UTC')
                 ) ENGINE = MergeTree ORDER BY from_ts""",
-             *analyst_schema.comment_statements(database, analyst_schema.LATER_TABLE_COMMENTS)),
+             *analyst_schema.comment_statements(database, analyst_schema.comments_of("snapshot_repairs"))),
+        ),
+        Migration(
+            9,
+            "replay at plant scale: keyframes sorted by time; per-minute pose times; "
+            "per-second chunk changes",
+            _replay_at_scale(database, ttl_days),
         ),
     ]
 
@@ -321,4 +327,131 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
+
+
+def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:
+    """pose_keyframes' definition (schema v4), sorted by `order_by`.
+
+    ReplacingMergeTree(rank): of the rows of one (robot, minute) the earliest pose has the
+    highest rank; two writes of that pose keep the later one, as `poses` does."""
+    return f"""CREATE TABLE IF NOT EXISTS {db}.{name} (
+            robot_id LowCardinality(String),
+            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+            x_mm Int32 CODEC(Delta, ZSTD(3)),
+            y_mm Int32 CODEC(Delta, ZSTD(3)),
+            z_mm Int32 CODEC(Delta, ZSTD(3)),
+            qx Float32 CODEC(ZSTD(3)),
+            qy Float32 CODEC(ZSTD(3)),
+            qz Float32 CODEC(ZSTD(3)),
+            qw Float32 CODEC(ZSTD(3)),
+            battery Nullable(Float32) CODEC(ZSTD(3)),
+            charging LowCardinality(String),
+            loaded LowCardinality(String),
+            has_path Bool,
+            path_x_mm Array(Int32) CODEC(ZSTD(3)),
+            path_y_mm Array(Int32) CODEC(ZSTD(3)),
+            recv_lag_ms Int32 CODEC(T64, ZSTD(3)),
+            cell DateTime('UTC') MATERIALIZED toStartOfMinute(ts),
+            rank UInt32 MATERIALIZED toUInt32({KEYFRAME_MS} - toUnixTimestamp64Milli(ts) % {KEYFRAME_MS})
+        ) ENGINE = ReplacingMergeTree(rank)
+        PARTITION BY toDate(cell)
+        ORDER BY {order_by}
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1"""
+
+
+def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
+    """Schema v9 (issue 16, BENCHMARKS.md: time travel at 200 robots).
+
+    - `pose_keyframes` re-sorted by (cell, robot_id): every read of it is a time window
+      across robots (downsampled replay windows, the timeline), which sorted by robot
+      touched every granule of the table (each robot's week is about one granule), and can
+      now be read in time order and stop at the LIMIT. Copied into `pose_keyframes_v9` and
+      swapped in with one RENAME, as v4 did (safe to run twice; writers stopped).
+    - `pose_minutes`: each robot's first and last pose time of every minute, a
+      materialized view on `poses` (min/max, so unmerged rows and re-deliveries need no
+      FINAL). For timeline buckets of a minute or more a robot has a pose in a bucket iff
+      the first or the last pose of one of its minutes lies there, so "robots active per
+      bucket" reads 2 values per robot-minute instead of every pose; `pose_ten_minutes`
+      the same per ten minutes, for buckets of ten minutes or more.
+    - `chunk_seconds`: the millisecond offsets of the chunk changes of every second,
+      deduplicated (chunk_events FINAL). A materialized view cannot write it: it sees
+      insert blocks, so a re-delivered write would count twice. The snapshot builders write
+      it instead, for the seconds before each snapshot, and reads use it only before the
+      newest valid snapshot (a late or re-delivered event notes a repair, as for the
+      snapshots, and the repair rewrites it). Its rows hold the offsets, so timeline
+      buckets that do not fall on whole seconds are still counted exactly, and their
+      number (`changes`), which is all whole-second buckets read.
+    """
+    return (
+        # A run interrupted after the RENAME left the old table behind.
+        f"DROP TABLE IF EXISTS {db}.pose_keyframes_by_robot SYNC",
+        f"DROP VIEW IF EXISTS {db}.pose_keyframes_mv SYNC",
+        _keyframes_table(db, "pose_keyframes_v9", "(cell, robot_id)", ttl_days),
+        (f"INSERT INTO {db}.pose_keyframes_v9 ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} "
+         f"FROM {db}.pose_keyframes FINAL"),
+        f"RENAME TABLE {db}.pose_keyframes TO {db}.pose_keyframes_by_robot, "
+        f"{db}.pose_keyframes_v9 TO {db}.pose_keyframes",
+        f"DROP TABLE IF EXISTS {db}.pose_keyframes_by_robot SYNC",
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
+            AS SELECT {POSE_COLUMNS} FROM {db}.poses
+            ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
+        f"""CREATE TABLE IF NOT EXISTS {db}.pose_minutes (
+            cell DateTime('UTC'),
+            robot_id LowCardinality(String),
+            first_ts SimpleAggregateFunction(min, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3)),
+            last_ts SimpleAggregateFunction(max, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3))
+        ) ENGINE = AggregatingMergeTree
+        PARTITION BY toDate(cell)
+        ORDER BY (cell, robot_id)
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_minutes_mv TO {db}.pose_minutes
+            AS SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
+            FROM {db}.poses GROUP BY cell, robot_id""",
+        # Idempotent (min and max): a second run adds rows that change nothing.
+        (f"INSERT INTO {db}.pose_minutes (cell, robot_id, first_ts, last_ts) "
+         f"SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts), max(ts) FROM {db}.poses "
+         "GROUP BY cell, robot_id"),
+        # The same per ten minutes: a week's timeline reads a tenth of the rows.
+        f"""CREATE TABLE IF NOT EXISTS {db}.pose_ten_minutes (
+            cell DateTime('UTC'),
+            robot_id LowCardinality(String),
+            first_ts SimpleAggregateFunction(min, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3)),
+            last_ts SimpleAggregateFunction(max, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3))
+        ) ENGINE = AggregatingMergeTree
+        PARTITION BY toDate(cell)
+        ORDER BY (cell, robot_id)
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_ten_minutes_mv TO {db}.pose_ten_minutes
+            AS SELECT toStartOfTenMinutes(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
+            FROM {db}.poses GROUP BY cell, robot_id""",
+        (f"INSERT INTO {db}.pose_ten_minutes (cell, robot_id, first_ts, last_ts) "
+         f"SELECT toStartOfTenMinutes(cell) AS c, robot_id, min(first_ts), max(last_ts) "
+         f"FROM {db}.pose_minutes GROUP BY c, robot_id"),
+        f"""CREATE TABLE IF NOT EXISTS {db}.chunk_seconds (
+            second DateTime('UTC') CODEC(DoubleDelta, ZSTD(3)),
+            offsets Array(UInt16) CODEC(ZSTD(3)),
+            changes UInt32 MATERIALIZED length(offsets) CODEC(T64, ZSTD(3)),
+            built DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3))
+        ) ENGINE = ReplacingMergeTree(built)
+        PARTITION BY toDate(second)
+        ORDER BY second
+        TTL second + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        # The seconds the existing snapshots cover (before the newest one), as they build it.
+        (f"INSERT INTO {db}.chunk_seconds (second, offsets, built) {CHUNK_SECONDS_SELECT} "
+         f"FROM {db}.chunk_events FINAL WHERE ts < (SELECT toDateTime(max(snap_ts)) "
+         f"FROM {db}.snapshot_log) GROUP BY second"),
+        *analyst_schema.comment_statements(
+            db, {**analyst_schema.TABLE_COMMENTS_V9_KEYFRAMES,
+                 **analyst_schema.comments_of("pose_minutes", "pose_ten_minutes", "chunk_seconds")}),
+    )
+
+
+# One chunk_seconds row per second from chunk_events (FINAL): the sorted millisecond
+# offsets of its writes (one per write; two writes in one millisecond repeat it).
+CHUNK_SECONDS_SELECT = ("SELECT toDateTime(ts) AS second, "
+                        "arraySort(groupArray(toUInt16(toUnixTimestamp64Milli(ts) % 1000))), now64(3)")

@@ -1,8 +1,11 @@
 """The store's snapshots: building them (one at a time or in bulk runs), finding the newest
-and the nearest valid one, and repairing those a late event made wrong.
+and the nearest valid one, and repairing those a late event made wrong. Each build also
+writes `chunk_seconds` (schema v9) for the seconds before its snapshot, so those rows are
+valid exactly where the snapshots are.
 
 `SnapshotsMixin` runs on the writer client of `connection.ClickHouseConnection` and
-depends on nothing else of the store; `writes` and `reads` build on it.
+depends on nothing else of the store but `schema` (the chunk_seconds query); `writes` and
+`reads` build on it.
 """
 
 from __future__ import annotations
@@ -10,7 +13,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
+from mapservice.adapters.clickhouse.schema import CHUNK_SECONDS_SELECT
 
 NO_SNAPSHOT_RECHECK_S = 5.0
 
@@ -72,12 +76,25 @@ class SnapshotsMixin(ClickHouseConnection):
             f"FROM ({prev_robots}SELECT robot_id, ts FROM {db}.poses "
             f"WHERE {since}ts <= fromUnixTimestamp64Milli({{s:Int64}})) GROUP BY robot_id",
             parameters=params)
+        self._write_chunk_seconds(prev_ms, snap_ms)
         c.command(
             f"INSERT INTO {db}.snapshot_log (snap_ts, built, chunks, robots) "
             "SELECT fromUnixTimestamp64Milli({s:Int64}), now64(3), "
             f"(SELECT count() FROM {db}.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}})), "
             f"(SELECT count() FROM {db}.robot_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}}))",
             parameters=params)
+
+    def _write_chunk_seconds(self, prev_ms: int | None, snap_ms: int) -> None:
+        """chunk_seconds for the whole seconds in [prev, snap) (all before snap without a
+        previous snapshot), from chunk_events FINAL: the same rows whichever snapshots
+        are built together (one by one, in bulk runs, in repairs)."""
+        since = "ts >= fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
+        self.client.command(
+            f"INSERT INTO {self.database}.chunk_seconds (second, offsets, built) "
+            f"{CHUNK_SECONDS_SELECT} FROM {self.database}.chunk_events FINAL "
+            f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) GROUP BY second "
+            f"{_FINAL_SETTINGS}",
+            parameters={"p": (prev_ms or 0) // 1000 * 1000, "s": snap_ms // 1000 * 1000})
 
     def _note_repair(self, from_ms: int) -> None:
         self._insert("snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]],
@@ -86,7 +103,9 @@ class SnapshotsMixin(ClickHouseConnection):
     def _valid_before(self) -> str:
         """SQL for the first instant whose snapshots may be wrong (a pending repair's
         start), or far in the future: reads use only snapshots before it."""
-        return (f"(SELECT ifNull(toDateTime64(min(from_ts), 3, 'UTC'), "
+        # minOrNull: min() of no rows is the epoch, not NULL, which made every snapshot
+        # invalid while no repair was pending (every read folded the whole history).
+        return (f"(SELECT ifNull(minOrNull(from_ts), "
                 f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)")
 
     def repair_snapshots(self, max_snapshots: int = 144) -> int:
@@ -225,6 +244,7 @@ class SnapshotsMixin(ClickHouseConnection):
             f"FROM (SELECT {snap_times} AS snap, robot_id FROM (SELECT DISTINCT robot_id FROM w)) AS g "
             "ASOF JOIN w ON g.robot_id = w.robot_id AND g.snap >= w.bucket",
             parameters=params)
+        self._write_chunk_seconds(prev_ms, last_ms)
         window = ("snap_ts >= fromUnixTimestamp64Milli({a:Int64}) AND "
                   "snap_ts <= fromUnixTimestamp64Milli({b:Int64})")
         c.command(
