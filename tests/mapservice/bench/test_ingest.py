@@ -137,3 +137,25 @@ def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
             "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
     after = {**zero, "_loadgen_workers": -4.0, "_machine_processes": 1.0, "_wall": 10.0}
     assert CpuMeter.percent(zero, after, workers_cpu_s=1.0)["loadgen_workers"] == 10.0
+
+
+def test_a_backlog_still_being_stored_is_waited_for_not_counted_lost() -> None:
+    from mapservice.bench.ingest import DrainWatch
+    watch = DrainWatch({"poses": 100, "chunk_events": 10}, stall_s=20, max_s=600)
+    for t in range(0, 100, 5):  # the store keeps counting, slowly, for 100 s
+        watch.observe(t, {"poses": t, "chunk_events": 0})
+        assert not watch.given_up(t)
+    watch.observe(100, {"poses": 100, "chunk_events": 10})
+    assert watch.drained_s == 100 and not watch.given_up(110) and watch.given_up(121)
+
+
+def test_the_drain_gives_up_once_the_store_stops_counting_or_at_its_cap() -> None:
+    from mapservice.bench.ingest import DrainWatch
+    stalled = DrainWatch({"poses": 100}, stall_s=20, max_s=600)
+    stalled.observe(0, {"poses": 50})
+    stalled.observe(10, {"poses": 60})
+    assert not stalled.given_up(29) and stalled.given_up(30) and stalled.drained_s is None
+    capped = DrainWatch({"poses": 10**9}, stall_s=20, max_s=60)
+    for t in range(0, 61, 5):
+        capped.observe(t, {"poses": t})
+    assert capped.given_up(60) and not capped.given_up(59)
