@@ -257,32 +257,7 @@ def _poses_by_time(db: str, ttl_days: int) -> tuple[str, ...]:
         f"INSERT INTO {db}.poses_v4 SELECT * FROM {db}.poses",
         f"RENAME TABLE {db}.poses TO {db}.poses_by_robot, {db}.poses_v4 TO {db}.poses",
         f"DROP TABLE IF EXISTS {db}.poses_by_robot SYNC",
-        # ReplacingMergeTree(rank): of the rows of one (robot, minute) the earliest pose has
-        # the highest rank; two writes of that pose keep the later one, as `poses` does.
-        f"""CREATE TABLE IF NOT EXISTS {db}.pose_keyframes (
-            robot_id LowCardinality(String),
-            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
-            x_mm Int32 CODEC(Delta, ZSTD(3)),
-            y_mm Int32 CODEC(Delta, ZSTD(3)),
-            z_mm Int32 CODEC(Delta, ZSTD(3)),
-            qx Float32 CODEC(ZSTD(3)),
-            qy Float32 CODEC(ZSTD(3)),
-            qz Float32 CODEC(ZSTD(3)),
-            qw Float32 CODEC(ZSTD(3)),
-            battery Nullable(Float32) CODEC(ZSTD(3)),
-            charging LowCardinality(String),
-            loaded LowCardinality(String),
-            has_path Bool,
-            path_x_mm Array(Int32) CODEC(ZSTD(3)),
-            path_y_mm Array(Int32) CODEC(ZSTD(3)),
-            recv_lag_ms Int32 CODEC(T64, ZSTD(3)),
-            cell DateTime('UTC') MATERIALIZED toStartOfMinute(ts),
-            rank UInt32 MATERIALIZED toUInt32({KEYFRAME_MS} - toUnixTimestamp64Milli(ts) % {KEYFRAME_MS})
-        ) ENGINE = ReplacingMergeTree(rank)
-        PARTITION BY toDate(cell)
-        ORDER BY (robot_id, cell)
-        TTL cell + INTERVAL {ttl_days} DAY
-        SETTINGS ttl_only_drop_parts = 1""",
+        _keyframes_table(db, "pose_keyframes", "(robot_id, cell)", ttl_days),
         # Per insert block only the first pose per robot and minute: the bulk loader's
         # day-sized blocks shrink 60x before they are written.
         f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
@@ -361,6 +336,26 @@ def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:
         SETTINGS ttl_only_drop_parts = 1"""
 
 
+def _pose_cells(db: str, name: str, start_of: str, ttl_days: int) -> tuple[str, str]:
+    """A table of each robot's first and last pose time per cell (`start_of(ts)`: a minute,
+    ten minutes), and the materialized view on `poses` that fills it (schema v9)."""
+    return (
+        f"""CREATE TABLE IF NOT EXISTS {db}.{name} (
+            cell DateTime('UTC'),
+            robot_id LowCardinality(String),
+            first_ts SimpleAggregateFunction(min, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3)),
+            last_ts SimpleAggregateFunction(max, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3))
+        ) ENGINE = AggregatingMergeTree
+        PARTITION BY toDate(cell)
+        ORDER BY (cell, robot_id)
+        TTL cell + INTERVAL {ttl_days} DAY
+        SETTINGS ttl_only_drop_parts = 1""",
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.{name}_mv TO {db}.{name}
+            AS SELECT {start_of}(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
+            FROM {db}.poses GROUP BY cell, robot_id""",
+    )
+
+
 def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
     """Schema v9 (issue 16, BENCHMARKS.md: time travel at 200 robots).
 
@@ -397,37 +392,13 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
         f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
             AS SELECT {POSE_COLUMNS} FROM {db}.poses
             ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
-        f"""CREATE TABLE IF NOT EXISTS {db}.pose_minutes (
-            cell DateTime('UTC'),
-            robot_id LowCardinality(String),
-            first_ts SimpleAggregateFunction(min, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3)),
-            last_ts SimpleAggregateFunction(max, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3))
-        ) ENGINE = AggregatingMergeTree
-        PARTITION BY toDate(cell)
-        ORDER BY (cell, robot_id)
-        TTL cell + INTERVAL {ttl_days} DAY
-        SETTINGS ttl_only_drop_parts = 1""",
-        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_minutes_mv TO {db}.pose_minutes
-            AS SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
-            FROM {db}.poses GROUP BY cell, robot_id""",
+        *_pose_cells(db, "pose_minutes", "toStartOfMinute", ttl_days),
         # Idempotent (min and max): a second run adds rows that change nothing.
         (f"INSERT INTO {db}.pose_minutes (cell, robot_id, first_ts, last_ts) "
          f"SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts), max(ts) FROM {db}.poses "
          "GROUP BY cell, robot_id"),
         # The same per ten minutes: a week's timeline reads a tenth of the rows.
-        f"""CREATE TABLE IF NOT EXISTS {db}.pose_ten_minutes (
-            cell DateTime('UTC'),
-            robot_id LowCardinality(String),
-            first_ts SimpleAggregateFunction(min, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3)),
-            last_ts SimpleAggregateFunction(max, DateTime64(3, 'UTC')) CODEC(DoubleDelta, ZSTD(3))
-        ) ENGINE = AggregatingMergeTree
-        PARTITION BY toDate(cell)
-        ORDER BY (cell, robot_id)
-        TTL cell + INTERVAL {ttl_days} DAY
-        SETTINGS ttl_only_drop_parts = 1""",
-        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_ten_minutes_mv TO {db}.pose_ten_minutes
-            AS SELECT toStartOfTenMinutes(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
-            FROM {db}.poses GROUP BY cell, robot_id""",
+        *_pose_cells(db, "pose_ten_minutes", "toStartOfTenMinutes", ttl_days),
         (f"INSERT INTO {db}.pose_ten_minutes (cell, robot_id, first_ts, last_ts) "
          f"SELECT toStartOfTenMinutes(cell) AS c, robot_id, min(first_ts), max(last_ts) "
          f"FROM {db}.pose_minutes GROUP BY c, robot_id"),
