@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import msgspec
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
@@ -11,6 +10,7 @@ from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
 from ..deps import get_store, parse_window
+from ..json_rows import JsonRows
 
 router = APIRouter(prefix="/api/v1/chunk-events", tags=["chunk-events"],
                    dependencies=[Depends(READ)])
@@ -27,6 +27,9 @@ class ChunkEvent(BaseModel):
     content_hash: str
 
 
+_ROWS = JsonRows(ChunkEvent)
+
+
 @router.get("", operation_id="listChunkEvents", response_model=list[ChunkEvent])
 def list_chunk_events(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
@@ -36,23 +39,8 @@ def list_chunk_events(
 ) -> Response:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
     rows = store.chunk_events(f, t, limit)
-    # `ChunkEvent`'s JSON, encoded by msgspec (as /api/v1/poses: no model per row).
-    return Response(_encode([
-        _ChunkEventJson(r.row, r.column, ts, r.ts_ms, r.receive_time_ms, r.robot_id, r.content_hash)
+    # `ChunkEvent`'s JSON without a pydantic model per row (json_rows).
+    return _ROWS.response([
+        _ROWS.struct(r.row, r.column, ts, r.ts_ms, r.receive_time_ms, r.robot_id, r.content_hash)
         for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
-    ]), media_type="application/json")
-
-
-class _ChunkEventJson(msgspec.Struct):
-    """`ChunkEvent` as msgspec encodes it: the same fields in the same order."""
-
-    row: int
-    column: int
-    timestamp: str
-    ts_ms: int
-    receive_time_ms: int
-    robotId: str
-    content_hash: str
-
-
-_encode = msgspec.json.Encoder().encode
+    ])

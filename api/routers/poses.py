@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import msgspec
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
@@ -11,6 +10,7 @@ from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
 from ..deps import get_store, parse_window
+from ..json_rows import JsonRows
 
 router = APIRouter(prefix="/api/v1/poses", tags=["poses"],
                    dependencies=[Depends(READ)])
@@ -30,6 +30,9 @@ class Pose(BaseModel):
     path: list[tuple[float, float]] | None
 
 
+_ROWS = JsonRows(Pose)
+
+
 @router.get("", operation_id="listPoses", response_model=list[Pose])
 def list_poses(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
@@ -40,30 +43,11 @@ def list_poses(
 ) -> Response:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
     rows = store.poses(f, t, robot_id, limit)
-    # `Pose`'s JSON, encoded by msgspec without a pydantic model per row and FastAPI's
-    # validation of the list again (~30 µs a row: a busy window is thousands of rows).
-    return Response(_encode([
-        _PoseJson(r.robot_id, ts, r.ts_ms, r.receive_time_ms, (float(r.x), float(r.y), float(r.z)),
+    # `Pose`'s JSON without a pydantic model per row (json_rows).
+    return _ROWS.response([
+        _ROWS.struct(r.robot_id, ts, r.ts_ms, r.receive_time_ms, (float(r.x), float(r.y), float(r.z)),
                   (float(r.qx), float(r.qy), float(r.qz), float(r.qw)),
                   float(r.battery_level) if r.battery_level is not None else None,
                   r.charging, r.loaded, r.path)
         for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
-    ]), media_type="application/json")
-
-
-class _PoseJson(msgspec.Struct):
-    """`Pose` as msgspec encodes it: the same fields in the same order."""
-
-    robotId: str
-    timestamp: str
-    ts_ms: int
-    receive_time_ms: int
-    position: tuple[float, float, float]
-    orientation: tuple[float, float, float, float]
-    battery_level: float | None
-    charging: bool | str | None
-    loaded: bool | str | None
-    path: tuple[tuple[float, float], ...] | None
-
-
-_encode = msgspec.json.Encoder().encode
+    ])
