@@ -12,6 +12,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -351,10 +353,24 @@ class Stack:
         if publisher.flush(30) or any(errors):
             raise RuntimeError(f"could not publish the map meta to Kafka: {errors}")
 
-    def start(self) -> None:
-        self.start_brokers()
-        self.start_server()
-        self.start_gateway()
+    def start(self, *steps: Callable[[], object]) -> None:
+        """Runs `steps` in order (default: brokers, `serve`, the gateway); stops every
+        part already started when one fails."""
+        try:
+            for step in steps or (self.start_brokers, self.start_server, self.start_gateway):
+                step()
+        except BaseException:
+            self.stop()
+            raise
+
+    @contextmanager
+    def running(self, *steps: Callable[[], object]) -> Iterator[Stack]:
+        """The stack started as `start(*steps)`, stopped after use."""
+        self.start(*steps)
+        try:
+            yield self
+        finally:
+            self.stop()
 
     def stop(self) -> None:
         for name in ("sim", "gateway", "server", "api", "processors", "mqtt", "kafka"):
@@ -364,11 +380,7 @@ class Stack:
         self.procs.clear()
 
     def __enter__(self) -> "Stack":
-        try:
-            self.start()
-        except BaseException:
-            self.stop()
-            raise
+        self.start()
         return self
 
     def __exit__(self, *exc) -> None:

@@ -28,15 +28,8 @@ def start_stack(tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = 
 def run_stack(stack: Stack, meta) -> Stack:
     """Brokers, the map meta, processors + API and gateway, ready to validate; all stopped
     again if any part fails to start."""
-    try:
-        stack.start_brokers()
-        stack.publish_meta(meta)
-        stack.start_server()
-        stack.start_gateway()
-        wait_for_meta(stack)
-    except BaseException:
-        stack.stop()
-        raise
+    stack.start(stack.start_brokers, lambda: stack.publish_meta(meta), stack.start_server,
+                stack.start_gateway, lambda: wait_for_meta(stack))
     return stack
 
 

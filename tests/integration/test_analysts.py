@@ -36,16 +36,9 @@ def stack(tmp_path_factory):
                     str(data_dir), "--days", "0.25", "--robots", "3"], check=True, timeout=300,
                    capture_output=True)
     stack = Stack(data_dir, mqtt="mosquitto")
-    try:
-        stack.start_brokers()
-        stack.start_server()
-        stack.start_gateway()
+    with stack.running():
         publish_all(stack, [("iot/coordinates/sim-000", b"{not json")])
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+        yield stack
 
 
 @pytest.fixture(scope="module")

@@ -45,15 +45,8 @@ def stack(tmp_path_factory):
     stack = Stack(tmp_path_factory.mktemp("stack-2019"), mqtt="mosquitto",
                   extra_env={"MAPSERVICE_ADMIN_TOKEN": TOKEN})
     stack.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = stack.api_url
-    try:
-        stack.start_brokers()
-        stack.start_server()
-        stack.start_gateway()
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    with stack.running():
+        yield stack
 
 
 @pytest.fixture(scope="module")

@@ -43,17 +43,10 @@ def stack(tmp_path_factory):
         "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}"})
     stack.ch_port = ch_port  # type: ignore[attr-defined]
     stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]
-    try:
-        stack.start_brokers()
-        start_clickhouse_server(stack, ch_port)
-        stack.start_processors(stack.processors_port)
-        stack.start_api()
-        stack.start_gateway()
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    with stack.running(stack.start_brokers, lambda: start_clickhouse_server(stack, ch_port),
+                       lambda: stack.start_processors(stack.processors_port),
+                       stack.start_api, stack.start_gateway):
+        yield stack
 
 
 def urls(stack) -> dict[str, str]:

@@ -39,15 +39,8 @@ def stack(tmp_path_factory):
                     str(data_dir), "--days", "6.05", "--robots", "1"], check=True, timeout=600,
                    capture_output=True)
     stack = Stack(data_dir, mqtt="mosquitto")
-    try:
-        stack.start_brokers()
-        stack.start_server()
-        stack.start_gateway()
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    with stack.running():
+        yield stack
 
 
 def publish_load(stack, late: tuple[str, bytes], sent: list) -> None:

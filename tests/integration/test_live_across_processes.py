@@ -53,21 +53,14 @@ def stack(tmp_path_factory):
         store.close()
     stack = Stack(root / "processors", mqtt="mosquitto")
     stack.second_api_port = embedded.free_port()  # type: ignore[attr-defined]
-    try:
-        stack.start_brokers()
-        stack.publish_meta(meta)
-        stack.start_processors(embedded.free_port())
-        stack.start_api(env={"MAPSERVICE_DATA_DIR": str(root / "api-1")})
-        stack.start_api(stack.second_api_port, name="api-2",
-                        env={"MAPSERVICE_DATA_DIR": str(root / "api-2")})
-        stack.start_gateway()
-        wait_for_meta(stack)
-    except BaseException:
-        stack.stop()
-        raise
     stack.root = root  # type: ignore[attr-defined]
-    yield stack
-    stack.stop()
+    with stack.running(stack.start_brokers, lambda: stack.publish_meta(meta),
+                       lambda: stack.start_processors(embedded.free_port()),
+                       lambda: stack.start_api(env={"MAPSERVICE_DATA_DIR": str(root / "api-1")}),
+                       lambda: stack.start_api(stack.second_api_port, name="api-2",
+                                               env={"MAPSERVICE_DATA_DIR": str(root / "api-2")}),
+                       stack.start_gateway, lambda: wait_for_meta(stack)):
+        yield stack
 
 
 def live_url(port: int) -> str:

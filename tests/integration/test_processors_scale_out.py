@@ -44,19 +44,11 @@ def stack(tmp_path_factory):
         "MAPSERVICE_KAFKA_PARTITIONS": "1",  # one replica gets it, the other none
         "MAPSERVICE_SNAPSHOT_EVERY_S": "4",  # the timer ticks every second
     })
-    try:
-        stack.start_brokers()
-        start_clickhouse_server(stack, ch_port)
-        stack.ports = []  # type: ignore[attr-defined]
-        for name in REPLICAS:
-            port = embedded.free_port()
-            stack.start_processors(port, name)
-            stack.ports.append(port)
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    stack.ports = [embedded.free_port() for _ in REPLICAS]  # type: ignore[attr-defined]
+    with stack.running(stack.start_brokers, lambda: start_clickhouse_server(stack, ch_port),
+                       *(lambda p=port, n=name: stack.start_processors(p, n)
+                         for port, name in zip(stack.ports, REPLICAS))):
+        yield stack
 
 
 def test_a_replica_without_partitions_is_a_healthy_standby(stack) -> None:

@@ -85,18 +85,12 @@ def stack(tmp_path_factory):
     })
     stack.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = stack.api_url
     stack.second_api_url = f"http://127.0.0.1:{embedded.free_port()}"  # type: ignore[attr-defined]
-    try:
-        stack.start_brokers()
-        start_clickhouse_server(stack, ch_port)
-        stack.start_processors(embedded.free_port())
-        stack.start_api()
-        stack.start_api(int(stack.second_api_url.rsplit(":", 1)[1]), name="api-2")
-        stack.start_gateway()
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    with stack.running(stack.start_brokers, lambda: start_clickhouse_server(stack, ch_port),
+                       lambda: stack.start_processors(embedded.free_port()), stack.start_api,
+                       lambda: stack.start_api(int(stack.second_api_url.rsplit(":", 1)[1]),
+                                               name="api-2"),
+                       stack.start_gateway):
+        yield stack
 
 
 # The 2019 contract suite, the same functions as in the embedded mode, in its file order

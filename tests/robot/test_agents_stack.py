@@ -28,13 +28,8 @@ def empty_stack(tmp_path_factory):
     api_port = embedded.free_port()
     stack = Stack(tmp_path_factory.mktemp("robot-stack"), mqtt="mosquitto", api_port=api_port,
                   extra_env={"MAPSERVICE_PUBLIC_BASE_URL": f"http://127.0.0.1:{api_port}"})
-    try:
-        stack.start()
-    except BaseException:
-        stack.stop()
-        raise
-    yield stack
-    stack.stop()
+    with stack.running():
+        yield stack
 
 
 def robot_dir(tmp_path, name):
