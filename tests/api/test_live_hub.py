@@ -4,6 +4,7 @@ WebSocket streams what the hub publishes or says why it cannot."""
 from __future__ import annotations
 
 import asyncio
+from contextlib import contextmanager
 
 from fastapi.testclient import TestClient
 
@@ -27,12 +28,7 @@ def test_slow_subscriber_keeps_the_newest(ev):
 def test_websocket_streams_published_messages(ev):
     """/api/v1/live delivers what the relay hands the hub after the client connected."""
     hub = LiveHub()
-    with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
-            client.websocket_connect("/api/v1/live") as ws:
-        for _ in range(100):
-            if hub.subscribers:
-                break
-            asyncio.run(asyncio.sleep(0.01))
+    with viewer(hub) as (client, ws):
         other = hub.subscribe()  # a second viewer that has not sent its copy yet
         # The hub lives on the app's loop; the relay hands it messages there too.
         client.portal.call(lambda: hub.publish([live_message(ev.pose("r9", 5_000, x=2.0))]))
@@ -74,6 +70,18 @@ def test_websocket_sends_a_live_text_as_it_came_with_its_send_time(ev):
         raw = ws.receive_text()
     assert raw.startswith(texts[0].text[:-1] + ',"sent_ms":')
     assert ws_json(raw)["robotId"] == "r7" and isinstance(ws_json(raw)["sent_ms"], int)
+
+
+@contextmanager
+def viewer(hub: LiveHub):
+    """An app on `hub` and a WebSocket on /api/v1/live, once the hub counts it."""
+    with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
+            client.websocket_connect("/api/v1/live") as ws:
+        for _ in range(100):
+            if hub.subscribers:
+                break
+            asyncio.run(asyncio.sleep(0.01))
+        yield client, ws
 
 
 def ws_json(text: str) -> dict:
