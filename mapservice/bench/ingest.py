@@ -40,6 +40,8 @@ from pathlib import Path
 import httpx
 import psutil
 
+from mapservice.bench.procstat import cpu_seconds
+
 KEYS_PER_POSE = "pose"
 KEYS_PER_CHUNK = "chunk"
 WARMUP_PREFIX = "warmup"
@@ -143,23 +145,6 @@ def _git_state() -> dict:
 # --- CPU accounting -----------------------------------------------------------------
 
 
-def _cpu_seconds(proc: psutil.Process) -> float:
-    """CPU time of a process and its live children (user + system)."""
-    total = 0.0
-    try:
-        t = proc.cpu_times()
-        total += t.user + t.system + t.children_user + t.children_system
-        for child in proc.children(recursive=True):
-            try:
-                c = child.cpu_times()
-                total += c.user + c.system
-            except psutil.Error:
-                pass
-    except psutil.Error:
-        pass
-    return total
-
-
 def _thread_cpu_seconds(native_id: int | None) -> float:
     if native_id is None:
         return 0.0
@@ -183,11 +168,11 @@ class CpuMeter:
     def snapshot(self) -> dict:
         machine = psutil.cpu_times()
         field = lambda name: getattr(machine, name, 0.0)  # fields vary by OS
-        snap = {name: _cpu_seconds(p) for name, p in self.procs.items()}
+        snap = {name: cpu_seconds(p) for name, p in self.procs.items()}
         me = self.me.cpu_times()
         snap["_bench_process"] = me.user + me.system
         snap["_poller_thread"] = sum(_thread_cpu_seconds(i) for i in self.probe_native_ids)
-        snap["_loadgen_workers"] = sum(_cpu_seconds(p) for p in self.loadgen)
+        snap["_loadgen_workers"] = sum(cpu_seconds(p) for p in self.loadgen)
         # Linux counts guest time inside user time, so it is not added again.
         snap["_machine_processes"] = field("user") + field("nice") + field("system")
         snap["_machine_irq"] = field("irq") + field("softirq")

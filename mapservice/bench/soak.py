@@ -29,6 +29,8 @@ from pathlib import Path
 import httpx
 import psutil
 
+from mapservice.bench.procstat import cpu_seconds, resident_mb
+
 HOUR_S = 3600.0
 EXPECTED_TO_GROW = {"kafka"}  # tansu: memory storage, every record kept (README "Embedded mode")
 
@@ -131,33 +133,8 @@ class Sampler:
 
     def __init__(self, procs: dict) -> None:
         self._procs = {name: psutil.Process(p.pid) for name, p in procs.items()}
-        self._cpu = {name: self._cpu_s(p) for name, p in self._procs.items()}
+        self._cpu = {name: cpu_seconds(p) for name, p in self._procs.items()}
         self._at = time.monotonic()
-
-    @staticmethod
-    def _cpu_s(proc: psutil.Process) -> float:
-        total = 0.0
-        for p in [proc, *proc.children(recursive=True)]:
-            try:
-                t = p.cpu_times()
-                total += t.user + t.system
-            except psutil.Error:
-                pass
-        return total
-
-    @staticmethod
-    def _rss_mb(proc: psutil.Process) -> tuple[float, float]:
-        """Resident MB of the process and its children: all, and anonymous only (resident
-        minus file-backed and shared pages: heap, stacks, arenas)."""
-        total = anon = 0
-        for p in [proc, *proc.children(recursive=True)]:
-            try:
-                info = p.memory_info()
-                total += info.rss
-                anon += info.rss - info.shared
-            except psutil.Error:
-                pass
-        return total / 1e6, anon / 1e6
 
     def sample(self) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
         """(resident MB, anonymous resident MB, CPU %) per component since the last call."""
@@ -165,10 +142,10 @@ class Sampler:
         elapsed = max(1e-9, now - self._at)
         rss, anon, cpu = {}, {}, {}
         for name, proc in self._procs.items():
-            cpu_s = self._cpu_s(proc)
+            cpu_s = cpu_seconds(proc)
             cpu[name] = 100 * (cpu_s - self._cpu[name]) / elapsed
             self._cpu[name] = cpu_s
-            rss[name], anon[name] = self._rss_mb(proc)
+            rss[name], anon[name] = resident_mb(proc)
         self._at = now
         return rss, anon, cpu
 
