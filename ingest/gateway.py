@@ -12,6 +12,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 
 import structlog
@@ -180,6 +181,9 @@ class MqttGateway:
         self._stop = threading.Event()
         self._connected = threading.Event()
         self.client = None
+        # (mid, qos) of messages Kafka has: acknowledged together after each producer poll
+        # (its delivery reports come in batches), one wake-up of paho's thread per batch.
+        self._acks: deque[tuple[int, int]] = deque()
 
     def _on_connect(self, client, _userdata, _flags, reason_code, _props) -> None:
         if reason_code.is_failure:
@@ -201,7 +205,7 @@ class MqttGateway:
             return  # not acknowledged: the persistent session redelivers it after restart
         mid, qos = msg.mid, msg.qos
         try:
-            self.ingestor.handle(msg.topic, msg.payload, lambda: client.ack(mid, qos))
+            self.ingestor.handle(msg.topic, msg.payload, lambda: self._acks.append((mid, qos)))
         except Exception:  # noqa: BLE001 - an exception here would end paho's network thread
             metrics.HANDLING_ERRORS.inc()
             log.exception("message handling failed; left unacknowledged", mqtt_topic=msg.topic[:200],
@@ -250,20 +254,33 @@ class MqttGateway:
         self.client.loop_start()
         try:
             while not self._stop.is_set():
-                self.publisher.poll(0.05)
-                self.ingestor.retry_due()
+                self._poll()
         finally:
             # New messages are left unacknowledged (the subscription stays in the persistent
             # session); everything already taken is delivered to Kafka and acknowledged.
             remaining = self.publisher.flush(10)
             deadline = time.monotonic() + 2
             while self.ingestor.in_flight and time.monotonic() < deadline:
-                self.publisher.poll(0.05)
-                self.ingestor.retry_due()
+                self._poll()
+            self._send_acks()
             self.client.disconnect()
             self.client.loop_stop()
             self.meta_watcher.stop()
             log.info("gateway stopped", undelivered=remaining)
+
+    def _poll(self) -> None:
+        """Serves the producer's delivery reports, acknowledges what they confirmed, and
+        produces again what failed and is due."""
+        self.publisher.poll(0.05)
+        self._send_acks()
+        self.ingestor.retry_due()
+
+    def _send_acks(self) -> None:
+        acks = []
+        while self._acks:
+            acks.append(self._acks.popleft())
+        if acks:
+            self.client.ack_many(acks)
 
     def stop(self, *_args) -> None:
         self._stop.set()

@@ -324,8 +324,37 @@ def test_the_mqtt_callback_survives_a_failing_producer(settings, wire) -> None:
 
     client = Client()
     gateway._on_message(client, None, Msg())
-    assert client.acked == [] and gateway.ingestor.in_flight == 0
+    assert client.acked == [] and not gateway._acks and gateway.ingestor.in_flight == 0
     assert REGISTRY.get_sample_value("mapservice_gateway_handling_errors_total") == before + 1
+
+
+def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings, wire) -> None:
+    """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
+    confirmations in one ack_many call."""
+    from mapservice.adapters.clock import SystemClock
+    from mapservice.adapters.memory_publisher import MemoryPublisher
+    from mapservice.ingest.gateway import MqttGateway
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway.publisher = MemoryPublisher()
+    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+
+    class Client:
+        batches: list = []
+
+        def ack_many(self, acks):
+            self.batches.append(list(acks))
+
+    gateway.client = Client()
+    for mid in (1, 2, 3):
+        msg = type("Msg", (), {"topic": "iot/coordinates/blabla", "payload": wire.pose(),
+                               "mid": mid, "qos": 1})
+        gateway._on_message(gateway.client, None, msg)
+    assert gateway.client.batches == [] and gateway.ingestor.in_flight == 3  # not in Kafka yet
+    gateway._poll()
+    assert gateway.client.batches == [[(1, 1), (2, 1), (3, 1)]] and gateway.ingestor.in_flight == 0
+    gateway._poll()
+    assert len(gateway.client.batches) == 1  # nothing new: no empty ack_many
 
 
 def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:

@@ -37,3 +37,25 @@ def test_the_gateway_client_reads_through_a_buffered_socket() -> None:
 
     assert isinstance(make_client("gw", buffered_reads=True), BufferedClient)
     assert not isinstance(make_client("robot"), BufferedClient)
+
+
+def test_ack_many_queues_the_pubacks_ack_queues_and_wakes_the_loop_once() -> None:
+    """ack_many([(mid, 1), ...]) leaves paho the very packets ack() would, with one wake-up
+    byte for all of them (paho's internals changing would fail here, not in production)."""
+    import socket
+
+    from mapservice.adapters.mqtt_client import make_client
+
+    one_by_one = make_client("gw-a", manual_ack=True, buffered_reads=True)
+    for mid in (7, 8, 65535):
+        one_by_one.ack(mid, 1)
+    batched = make_client("gw-b", manual_ack=True, buffered_reads=True)
+    reader, batched._sockpairW = socket.socketpair()
+    try:
+        batched.ack_many([(7, 1), (8, 1), (9, 0), (65535, 1)])  # QoS 0 needs no ack
+        assert list(batched._out_packet) == list(one_by_one._out_packet)
+        reader.setblocking(False)
+        assert reader.recv(16) == b"0"
+    finally:
+        reader.close()
+        batched._sockpairW.close()
