@@ -1,6 +1,6 @@
 """The store's time-travel and replay reads: the map and the robots at an instant, poses
-(raw and downsampled), chunk writes, the timeline, conflicts, chunk contents and the latest
-map metadata, all on the read client.
+(raw and downsampled), chunk writes, the timeline, chunk contents and the latest map
+metadata, all on the read client (conflicts: `conflict_reads`).
 
 `ReadsMixin` builds on `snapshots.SnapshotsMixin` (reads use only valid snapshots) and so
 on `connection`; it also depends on `schema` for the keyframe columns, never on the
@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import msgspec
 
 from mapservice.core.events import MapMetaSet
-from mapservice.core.ports import ChunkRow, ChunkState, ConflictRow, PoseRow, TimelineBucket
+from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket
 from mapservice.core.timetravel import timeline_buckets
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS, _pose_rows
 from mapservice.adapters.clickhouse.schema import KEYFRAME_MS, POSE_COLUMNS
@@ -287,47 +287,6 @@ class ReadsMixin(SnapshotsMixin):
             return None
         doc = msgspec.json.decode(rows[0][0])
         return MapMetaSet.from_2019(doc)
-
-    # --- conflicts ------------------------------------------------------------------
-
-    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
-                          to_ms: int) -> list[ChunkRow]:
-        if not chunks:
-            return []
-        rows = self._rows(
-            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
-            f"recv_lag_ms FROM {self.database}.chunk_events FINAL "
-            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts <= fromUnixTimestamp64Milli({t:Int64}) "
-            "WHERE (row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
-            "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c)) "
-            f"ORDER BY ts, row, col, robot_id {_FINAL_SETTINGS}",
-            {"f": from_ms, "t": to_ms, "cs": [tuple(c) for c in set(chunks)]},
-        )
-        return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
-
-    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
-        rows = self._rows(
-            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_a, toUnixTimestamp64Milli(ts_a), "
-            f"robot_b FROM {self.database}.conflicts FINAL "
-            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            f"ORDER BY ts, row, col, robot_b LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
-            {"f": from_ms, "t": to_ms, "n": limit},
-        )
-        return [ConflictRow(*r) for r in rows]
-
-    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
-        if bucket_ms <= 0:
-            raise ValueError("bucket_ms must be positive")
-        # Without FINAL: count distinct identities, the same number FINAL would give.
-        rows = self._rows(
-            "SELECT {f:Int64} + intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64}) * {b:Int64} "
-            "AS start, uniqExact(ts, row, col, robot_b) "
-            f"FROM {self.database}.conflicts "
-            "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            "GROUP BY start ORDER BY start",
-            {"f": from_ms, "t": to_ms, "b": bucket_ms},
-        )
-        return {int(start): int(n) for start, n in rows}
 
 
 def _step_heads(from_ms: int, to_ms: int, step_ms: int) -> list[tuple[int, int]]:

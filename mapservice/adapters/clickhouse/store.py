@@ -9,7 +9,7 @@ executor.
 `ClickHouseStore` is composed of one mixin per concern, each over the clients and locks of
 `connection.ClickHouseConnection`: `migrations` (the schema and its lock), `writes`
 (events, dead letters, conflicts), `snapshots` (building and repairing them), `reads`
-(time travel and replay), `legacy` (the 2019 REST queries) and `admin` (deletes, counts,
+(time travel and replay), `conflict_reads` (conflicts and the writes near chunks), `legacy` (the 2019 REST queries) and `admin` (deletes, counts,
 optimize, ping, exports, close). This module only constructs it: the mixins never import
 it.
 """
@@ -19,6 +19,7 @@ from __future__ import annotations
 import threading
 
 from mapservice.adapters.clickhouse.admin import AdminMixin
+from mapservice.adapters.clickhouse.conflict_reads import ConflictReadsMixin
 from mapservice.adapters.clickhouse.legacy import LegacyMixin
 from mapservice.adapters.clickhouse.migrations import MigrationsMixin
 from mapservice.adapters.clickhouse.reads import ReadsMixin
@@ -27,8 +28,8 @@ from mapservice.adapters.clickhouse.writes import WritesMixin
 from mapservice.settings import Settings
 
 
-class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, SnapshotsMixin, LegacyMixin,
-                      AdminMixin):
+class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, SnapshotsMixin,
+                      LegacyMixin, AdminMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
