@@ -167,6 +167,29 @@ class ReadsMixin(SnapshotsMixin):
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
 
+    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
+                               limit: int = 100_000) -> list[ChunkRow]:
+        """Per chunk and absolute bucket [k*step, (k+1)*step) of from_ms <= event time <
+        to_ms, only the bucket's winning write: the greatest (event time, robot id), the
+        rule of map_at. Computed at query time (GROUP BY over `chunk_events`, no cache).
+
+        FINAL, as in chunk_events(): of two rows with one identity (a re-delivered write
+        with other contents) the one chunk_events() returns wins, not either of them.
+        """
+        if step_ms <= 0:
+            raise ValueError("step_ms must be positive")
+        key = "(ts, robot_id)"
+        rows = self._rows(
+            "SELECT row, col, toUnixTimestamp64Milli(max(ts)) AS t, "
+            f"argMax(robot_id, {key}) AS robot, lower(hex(argMax(content_hash, {key}))), "
+            f"argMax(recv_lag_ms, {key}) FROM {self.database}.chunk_events FINAL "
+            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
+            "GROUP BY row, col, intDiv(toUnixTimestamp64Milli(ts), {s:Int64}) "
+            f"ORDER BY t, row, col, robot LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            {"f": from_ms, "t": to_ms, "s": step_ms, "n": limit},
+        )
+        return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
+
     def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
         bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
         if not starts:
