@@ -136,6 +136,35 @@ describe("look-ahead after a seek", () => {
   });
 });
 
+describe("pausing above 60x", () => {
+  it("replaces the compacted map with the exact one at the resting playhead, once", async () => {
+    const { engine, map, robots, calls, advance } = makeEngine();
+    engine.clock.setSpeed(3600, NOW);
+    const done = engine.seek(T);
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await done;
+    engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    engine.seekFrameDrawn();
+    expect(engine.buffer.chunkStepMs).toBe(60_000);
+    // Compacted writes moved the map past the seek: only bucket boundaries are exact now.
+    engine.buffer.chunks = [{ row: 0, column: 0, ts_ms: T + 30_000, robotId: "r2", content_hash: hex(9) }];
+    engine.buffer.to = T + 120_000;
+    engine.clock.hold(T + 40_000, NOW);
+    advance(SETTLE_MS);
+    engine.frame();
+    expect(calls.map).toHaveBeenLastCalledWith(T + 40_000);
+    expect(engine.exactMapLoads).toBe(1);
+    await settle();
+    expect(engine.mapExactAt).toBe(T + 40_000);
+    expect(engine.seekTimes).toEqual([]); // not a user's seek: not in the benchmark's seek times
+    engine.seekFrameDrawn();
+    advance(SETTLE_MS);
+    engine.frame();
+    expect(engine.exactMapLoads).toBe(1);
+  });
+});
+
 describe("robots at the playhead", () => {
   const pose = (id: string, ts: number, x = 1): RobotAt => ({
     robotId: id, ts_ms: ts, position: [x, 2, 0], orientation: [0, 0, 0, 1], battery_level: 50,
