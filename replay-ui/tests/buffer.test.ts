@@ -163,9 +163,10 @@ describe("EventBuffer above 60x (compacted writes)", () => {
     expect(b.chunkStepMs).toBe(20 * MIN);
     const s = new MapState();
     s.reset(await src.mapAt(start));
-    await fill(b, start, 1, 86400, 10 * 3_600_000);
+    await fill(b, start, 1, 86400, 3 * 86_400_000);
     expect(src.chunkSteps.every((x) => x === 20 * MIN)).toBe(true);
     expect(src.calls.every(([, t]) => t % (20 * MIN) === 0)).toBe(true);
+    expect(src.calls.every(([f, t]) => t - f <= 86_400_000)).toBe(true); // the API's longest window
     expect(b.chunks.length).toBeLessThan(all.length / 3);
     let at = start;
     for (let edge = 20 * MIN; edge <= 6 * 3_600_000; edge += 20 * MIN) {

@@ -64,6 +64,8 @@ export function poseStepMs(speed: number): number {
 }
 
 const MINUTE = 60_000;
+/** The longest window /api/v1/events answers. */
+const MAX_WINDOW_MS = 86_400_000;
 
 export class EventBuffer {
   from: number;
@@ -123,14 +125,18 @@ export class EventBuffer {
     if (direction > 0 && this.to < Math.min(playhead + ahead, nowMs + 1)) {
       const f = this.to;
       // Ends on a whole minute, so every later request starts on one (the API's fast path).
-      const t = Math.min(Math.ceil((f + span) / align) * align, nowMs + 1);
+      let t = Math.ceil((f + span) / align) * align;
+      if (t - f > MAX_WINDOW_MS) t = Math.floor((f + MAX_WINDOW_MS) / align) * align;
+      t = Math.min(t, nowMs + 1);
       // Near now the windows get short: wait for two seconds of news unless the playhead
       // is about to run out, instead of asking once per round trip.
       const starving = this.to <= playhead + 1000;
       if (t > f && (starving || t - f >= Math.min(span, 2000))) task = () => this.extendForward(f, t);
     } else if (direction < 0 && this.from > Math.max(playhead - ahead, minMs)) {
       const t = this.from;
-      const f = Math.max(Math.floor((t - span) / align) * align, minMs);
+      let f = Math.floor((t - span) / align) * align;
+      if (t - f > MAX_WINDOW_MS) f = Math.ceil((t - MAX_WINDOW_MS) / align) * align;
+      f = Math.max(f, minMs);
       if (t > f) task = () => this.extendBackward(f, t);
     }
     if (!task) return null;
