@@ -245,6 +245,11 @@ export class ReplayEngine {
     this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));
   }
 
+  /** How long the current wait for the buffer has lasted (0: not waiting). */
+  currentStallMs(): number {
+    return this.stallStarted ? this.perfNow() - this.stallStarted : 0;
+  }
+
   /** Times each wait for the buffer while playing (`stalls`, ms). */
   private countStall(waiting: boolean): void {
     const now = this.perfNow();
