@@ -104,6 +104,16 @@ describe("EventBuffer", () => {
       new Map(expected.map((c) => [cellKey(c.row, c.column), c.content_hash])));
   });
 
+  it("takes a window of 200,000 writes (more than a function call's arguments)", async () => {
+    const all = history(200_000, 7_200_000);
+    const b = new EventBuffer(fakeSource(all), 0, 3600);
+    b.compact = false;
+    b.reset(0, 3600, []);
+    await b.extendForward(1, 7_200_001);
+    expect(b.chunks.length).toBe(all.length - 1); // all but the write at 0, before the window
+    expect(b.to).toBe(7_200_001);
+  });
+
   it("trims behind the playhead", async () => {
     const all = history(500, 100_000);
     const b = new EventBuffer(fakeSource(all), 0, 8);

@@ -162,9 +162,11 @@ export class EventBuffer {
     const w = await this.source.events(f, t, this.stepMs, this.chunkStepMs);
     if (gen !== this.generation || f !== this.to) return;
     const { chunks, poses, to } = complete(w, f, t);
-    this.logWindow(f, to);
     chunks.sort(compareChanges);
-    this.chunks.push(...chunks);
+    // One by one: spreading a window's writes as arguments overflows the stack past ~120 k
+    // (a 2 h window at 3600x holds 145 k compacted writes at 200 robots, 288 k in all).
+    for (const c of chunks) this.chunks.push(c);
+    this.logWindow(f, to);
     for (const p of poses) this.addPose(p, false);
     this.to = to;
   }
