@@ -213,6 +213,8 @@ describe("EventBuffer above 60x (compacted writes)", () => {
     await b.ensure(0, 1, 86400, 10 * 3_600_000, 0);
     expect(b.chunkStepMs).toBe(0);
     expect(src.chunkSteps).toEqual([0]);
+    // Every write: windows of 6 h (to the next whole minute), as before compaction.
+    expect(src.calls[0][1]).toBe(6 * 3_600_000 + 60_000);
   });
 });
 

@@ -22,8 +22,8 @@ export interface Source {
  * (the API's longest window) when the writes are compacted (a day of 20 min buckets is at
  * most 72 writes per chunk).
  */
-export function fetchSpanMs(speed: number): number {
-  const cap = chunkStepMs(speed) > 0 ? 86_400_000 : 21_600_000;
+export function fetchSpanMs(speed: number, compacted = chunkStepMs(speed) > 0): number {
+  const cap = compacted ? 86_400_000 : 21_600_000;
   return Math.min(cap, Math.max(10_000, speed * 2_000));
 }
 
@@ -34,8 +34,8 @@ export function keepBehindMs(speed: number): number {
 
 /** How far ahead of the playhead the buffer keeps: about four seconds of playback (at most
  * a day; two when compacted, so that a whole next window is always on the way). */
-export function lookaheadMs(speed: number): number {
-  const cap = chunkStepMs(speed) > 0 ? 2 * 86_400_000 : 86_400_000;
+export function lookaheadMs(speed: number, compacted = chunkStepMs(speed) > 0): number {
+  const cap = compacted ? 2 * 86_400_000 : 86_400_000;
   return Math.min(cap, Math.max(20_000, speed * 4_000));
 }
 
@@ -116,8 +116,8 @@ export class EventBuffer {
   /** Fetches the next span needed ahead of the playhead, if any; one fetch at a time. */
   ensure(playhead: number, direction: 1 | -1, speed: number, nowMs: number, minMs: number): Promise<void> | null {
     if (this.inflight) return this.inflight;
-    const ahead = lookaheadMs(speed);
-    const span = fetchSpanMs(speed);
+    const ahead = lookaheadMs(speed, this.chunkStepMs > 0);
+    const span = fetchSpanMs(speed, this.chunkStepMs > 0);
     // Window ends on whole buckets: no bucket is split between two windows (whose pieces
     // would each have a winner).
     const align = Math.max(MINUTE, this.chunkStepMs);
