@@ -165,6 +165,28 @@ describe("pausing above 60x", () => {
   });
 });
 
+describe("pausing above 60x, the server failing", () => {
+  it("does not ask again every frame for the exact map at the same playhead", async () => {
+    const { engine, map, robots, calls, advance } = makeEngine();
+    engine.clock.setSpeed(3600, NOW);
+    const done = engine.seek(T);
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await done;
+    engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    engine.seekFrameDrawn();
+    engine.buffer.to = T + 120_000;
+    engine.clock.hold(T + 40_000, NOW);
+    calls.map.mockRejectedValue(new Error("503"));
+    advance(SETTLE_MS);
+    engine.frame();
+    await settle();
+    expect(engine.error).toContain("503");
+    for (let i = 0; i < 5; i++) engine.frame();
+    expect(calls.map).toHaveBeenCalledTimes(2); // the seek, then one seek in place
+  });
+});
+
 describe("robots at the playhead", () => {
   const pose = (id: string, ts: number, x = 1): RobotAt => ({
     robotId: id, ts_ms: ts, position: [x, 2, 0], orientation: [0, 0, 0, 1], battery_level: 50,

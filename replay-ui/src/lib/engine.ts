@@ -79,6 +79,8 @@ export class ReplayEngine {
   exactMapLoads = 0;
   /** The instant the map state is known exact at (a seek's; -1 once compacted writes moved it). */
   mapExactAt = -1;
+  /** The last playhead a seek in place was started for (a failed one is not retried per frame). */
+  private exactMapTried = -1;
   private recordSeek = true;
   private seekGen = 0;
   private lastStepMs: number;
@@ -223,7 +225,8 @@ export class ReplayEngine {
     // The look-ahead waits for the seek's first frame (and, paused, for the playhead to settle).
     if (!this.settled()) return;
     if (!this.clock.playing) {
-      if (this.buffer.chunkStepMs > 0 && this.mapExactAt !== this.playhead) {
+      if (this.buffer.chunkStepMs > 0 && this.mapExactAt !== this.playhead && this.exactMapTried !== this.playhead) {
+        this.exactMapTried = this.playhead;
         // Compacted writes are exact only at bucket boundaries: a seek in place loads the
         // map (and robots) at the resting playhead and a fresh buffer.
         this.exactMapLoads++;
