@@ -82,6 +82,17 @@ class MemoryStore:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
 
+    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
+                               limit: int = 100_000) -> list[ChunkRow]:
+        if step_ms <= 0:
+            raise ValueError("step_ms must be positive")
+        won: dict[tuple[int, int, int], ChunkRow] = {}
+        for r in self.chunk_events(from_ms, to_ms, limit=len(self._chunks)):
+            k = (r.row, r.column, r.ts_ms // step_ms)
+            if k not in won or (r.ts_ms, r.robot_id) > (won[k].ts_ms, won[k].robot_id):
+                won[k] = r
+        return sorted(won.values(), key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
+
     def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
         bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
         chunks = [0] * len(starts)

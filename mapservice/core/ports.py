@@ -152,6 +152,13 @@ class HistoryStore(Protocol):
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
 
+    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
+                               limit: int = 100_000) -> list[ChunkRow]:
+        """Per chunk and absolute step bucket [k*step_ms, (k+1)*step_ms) within the
+        window, only its winning write (greatest (event time, robot id), map_at's rule),
+        ordered as chunk_events(): folding them gives the map exactly at every bucket
+        boundary and at the window's end (a fast replay's chunk changes)."""
+
     def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
         """[from_ms, to_ms) cut into `timetravel.timeline_buckets(...)`: one TimelineBucket
         per bucket, empty ones included, in time order."""

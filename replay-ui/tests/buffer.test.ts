@@ -1,5 +1,5 @@
 import { describe, expect, it } from "vitest";
-import { EventBuffer, complete, fetchSpanMs, lookaheadMs, poseStepMs, type Source } from "../src/lib/buffer";
+import { EventBuffer, chunkStepMs, complete, fetchSpanMs, lookaheadMs, poseStepMs, type Source } from "../src/lib/buffer";
 import { SPEEDS } from "../src/lib/clock";
 import { cellKey, compareChanges, MapState } from "../src/lib/mapstate";
 import type { ChunkCell, ChunkChange, EventWindow, Pose } from "../src/lib/types";
@@ -12,8 +12,20 @@ function history(n: number, span: number): ChunkChange[] {
   return out.sort(compareChanges);
 }
 
-function fakeSource(all: ChunkChange[], limit = Infinity): Source & { calls: [number, number][] } {
+/** The server's compaction: per cell and absolute bucket, the greatest (ts, robot) write. */
+function compactWrites(writes: ChunkChange[], step: number): ChunkChange[] {
+  const won = new Map<string, ChunkChange>();
+  for (const c of writes) {
+    const k = `${c.row}:${c.column}:${Math.floor(c.ts_ms / step)}`;
+    const cur = won.get(k);
+    if (!cur || compareChanges(c, cur) >= 0) won.set(k, c);
+  }
+  return [...won.values()].sort(compareChanges);
+}
+
+function fakeSource(all: ChunkChange[], limit = Infinity): Source & { calls: [number, number][]; chunkSteps: number[] } {
   const calls: [number, number][] = [];
+  const chunkSteps: number[] = [];
   const mapAt = async (t: number): Promise<ChunkCell[]> => {
     const best = new Map<number, ChunkCell>();
     for (const c of all) if (c.ts_ms <= t) best.set(cellKey(c.row, c.column), c);
@@ -21,9 +33,12 @@ function fakeSource(all: ChunkChange[], limit = Infinity): Source & { calls: [nu
   };
   return {
     calls,
-    async events(f: number, t: number, step: number): Promise<EventWindow> {
+    chunkSteps,
+    async events(f: number, t: number, step: number, chunkStep = 0): Promise<EventWindow> {
       calls.push([f, t]);
-      const inside = all.filter((c) => c.ts_ms >= f && c.ts_ms < t).map((c) => ({ ...c }));
+      chunkSteps.push(chunkStep);
+      let inside = all.filter((c) => c.ts_ms >= f && c.ts_ms < t).map((c) => ({ ...c }));
+      if (chunkStep > 0) inside = compactWrites(inside, chunkStep);
       const poses: Pose[] = [];
       return { from_ms: f, to_ms: t, step_ms: step, chunks: inside.slice(0, limit), poses, truncated: inside.length > limit };
     },
@@ -89,6 +104,16 @@ describe("EventBuffer", () => {
       new Map(expected.map((c) => [cellKey(c.row, c.column), c.content_hash])));
   });
 
+  it("takes a window of 200,000 writes (more than a function call's arguments)", async () => {
+    const all = history(200_000, 7_200_000);
+    const b = new EventBuffer(fakeSource(all), 0, 3600);
+    b.compact = false;
+    b.reset(0, 3600, []);
+    await b.extendForward(1, 7_200_001);
+    expect(b.chunks.length).toBe(all.length - 1); // all but the write at 0, before the window
+    expect(b.to).toBe(7_200_001);
+  });
+
   it("trims behind the playhead", async () => {
     const all = history(500, 100_000);
     const b = new EventBuffer(fakeSource(all), 0, 8);
@@ -119,6 +144,77 @@ describe("EventBuffer", () => {
     b.reset(12_345, 3600, []);
     await fill(b, 12_345, 1, 3600, 10_000_000);
     expect(src.calls.slice(1).every(([f]) => f % 60_000 === 0)).toBe(true);
+  });
+});
+
+describe("EventBuffer above 60x (compacted writes)", () => {
+  const MIN = 60_000;
+  const hashes = (s: MapState) => new Map([...s.cells].map(([k, c]) => [k, c.content_hash]));
+  const exact = async (src: Source, t: number) =>
+    new Map((await src.mapAt(t)).map((c) => [cellKey(c.row, c.column), c.content_hash]));
+
+  it("compacts only above 60x, in buckets of whole minutes no longer than a frame's worth of data", () => {
+    expect([1, 8, 60].map(chunkStepMs)).toEqual([0, 0, 0]);
+    expect(chunkStepMs(3600)).toBe(MIN);
+    expect(chunkStepMs(86400)).toBe(20 * MIN);
+    for (const speed of [3600, 86400]) {
+      expect(chunkStepMs(speed)).toBeLessThanOrEqual(Math.max(MIN, (speed * 1000) / 60));
+      expect(86_400_000 % chunkStepMs(speed)).toBe(0);
+    }
+    expect(fetchSpanMs(86400)).toBe(86_400_000); // the API's longest window
+  });
+
+  it("ends windows on whole buckets and shows the exact map at every bucket boundary", async () => {
+    const all = history(3000, 6 * 3_600_000);
+    const src = fakeSource(all);
+    const start = 12_345;
+    const b = new EventBuffer(src, start, 86400);
+    b.reset(start, 86400, []);
+    expect(b.chunkStepMs).toBe(20 * MIN);
+    const s = new MapState();
+    s.reset(await src.mapAt(start));
+    await fill(b, start, 1, 86400, 3 * 86_400_000);
+    expect(src.chunkSteps.every((x) => x === 20 * MIN)).toBe(true);
+    expect(src.calls.every(([, t]) => t % (20 * MIN) === 0)).toBe(true);
+    expect(src.calls.every(([f, t]) => t - f <= 86_400_000)).toBe(true); // the API's longest window
+    expect(b.chunks.length).toBeLessThan(all.length / 3);
+    let at = start;
+    for (let edge = 20 * MIN; edge <= 6 * 3_600_000; edge += 20 * MIN) {
+      s.move(b.chunks, at, edge - 1);
+      at = edge - 1;
+      expect(hashes(s)).toEqual(await exact(src, edge - 1));
+    }
+    expect(s.applied).toBe(b.chunks.filter((c) => c.ts_ms <= at).length);
+  });
+
+  it("plays backwards through compacted windows, exact at every bucket boundary", async () => {
+    const all = history(3000, 6 * 3_600_000);
+    const src = fakeSource(all);
+    const start = 5 * 3_600_000 + 777;
+    const b = new EventBuffer(src, start, 3600);
+    b.reset(start, 3600, []);
+    const s = new MapState();
+    s.reset(await src.mapAt(start));
+    await fill(b, start, -1, 3600, 10 * 3_600_000);
+    expect(b.from).toBeLessThanOrEqual(start - lookaheadMs(3600));
+    let at = start;
+    for (let edge = Math.floor(start / MIN) * MIN; edge > b.from; edge -= 7 * MIN) {
+      s.move(b.chunks, at, edge - 1);
+      at = edge - 1;
+      expect(hashes(s)).toEqual(await exact(src, edge - 1));
+    }
+  });
+
+  it("asks for every write at any speed once compaction is switched off", async () => {
+    const src = fakeSource(history(100, 3_600_000));
+    const b = new EventBuffer(src, 0, 86400);
+    b.compact = false;
+    b.reset(0, 86400, []);
+    await b.ensure(0, 1, 86400, 10 * 3_600_000, 0);
+    expect(b.chunkStepMs).toBe(0);
+    expect(src.chunkSteps).toEqual([0]);
+    // Every write: windows of 6 h (to the next whole minute), as before compaction.
+    expect(src.calls[0][1]).toBe(6 * 3_600_000 + 60_000);
   });
 });
 

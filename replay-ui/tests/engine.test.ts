@@ -136,6 +136,57 @@ describe("look-ahead after a seek", () => {
   });
 });
 
+describe("pausing above 60x", () => {
+  it("replaces the compacted map with the exact one at the resting playhead, once", async () => {
+    const { engine, map, robots, calls, advance } = makeEngine();
+    engine.clock.setSpeed(3600, NOW);
+    const done = engine.seek(T);
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await done;
+    engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    engine.seekFrameDrawn();
+    expect(engine.buffer.chunkStepMs).toBe(60_000);
+    // Compacted writes moved the map past the seek: only bucket boundaries are exact now.
+    engine.buffer.chunks = [{ row: 0, column: 0, ts_ms: T + 30_000, robotId: "r2", content_hash: hex(9) }];
+    engine.buffer.to = T + 120_000;
+    engine.clock.hold(T + 40_000, NOW);
+    advance(SETTLE_MS);
+    engine.frame();
+    expect(calls.map).toHaveBeenLastCalledWith(T + 40_000);
+    expect(engine.exactMapLoads).toBe(1);
+    await settle();
+    expect(engine.mapExactAt).toBe(T + 40_000);
+    engine.seekFrameDrawn();
+    expect(engine.seekTimes).toHaveLength(1); // the user's seek only, not the one in place
+    advance(SETTLE_MS);
+    engine.frame();
+    expect(engine.exactMapLoads).toBe(1);
+  });
+});
+
+describe("pausing above 60x, the server failing", () => {
+  it("does not ask again every frame for the exact map at the same playhead", async () => {
+    const { engine, map, robots, calls, advance } = makeEngine();
+    engine.clock.setSpeed(3600, NOW);
+    const done = engine.seek(T);
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await done;
+    engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    engine.seekFrameDrawn();
+    engine.buffer.to = T + 120_000;
+    engine.clock.hold(T + 40_000, NOW);
+    calls.map.mockRejectedValue(new Error("503"));
+    advance(SETTLE_MS);
+    engine.frame();
+    await settle();
+    expect(engine.error).toContain("503");
+    for (let i = 0; i < 5; i++) engine.frame();
+    expect(calls.map).toHaveBeenCalledTimes(2); // the seek, then one seek in place
+  });
+});
+
 describe("robots at the playhead", () => {
   const pose = (id: string, ts: number, x = 1): RobotAt => ({
     robotId: id, ts_ms: ts, position: [x, 2, 0], orientation: [0, 0, 0, 1], battery_level: 50,

@@ -92,6 +92,25 @@ def test_events_cut_at_a_cap_are_complete_up_to_the_returned_to(client, monkeypa
     assert [c["ts_ms"] for c in body["chunks"]] == [NOW + 500, NOW + 500]
 
 
+def test_events_chunk_step_keeps_each_chunks_last_change_per_bucket(client, ev, store) -> None:
+    """chunk_step_ms > 0: per chunk and absolute bucket only its winner; poses unchanged."""
+    store.append([ev.chunk("r2", NOW + 30_000, 1, 1, bytes([3]) * 10_000)])
+    every = _get(client, "/api/v1/events", NOW, NOW + 2 * MIN).json()
+    body = _get(client, "/api/v1/events", NOW, NOW + 2 * MIN, chunk_step_ms=MIN).json()
+    assert [(c["row"], c["column"], c["robotId"], c["ts_ms"] - NOW) for c in body["chunks"]] == [
+        (0, 2, "r2", 500), (1, 1, "r2", 30_000), (1, 1, "r1", 61_000)]
+    assert len(every["chunks"]) == 4 and every["chunk_step_ms"] == 0
+    assert body["chunk_step_ms"] == MIN and body["poses"] == every["poses"]
+
+
+@pytest.mark.parametrize("value", ["-1", "1.5", "soon"])
+def test_events_bad_chunk_step_is_422_naming_the_parameter(client, value) -> None:
+    """A negative or non-integer chunk_step_ms is refused with a 422 naming it."""
+    r = _get(client, "/api/v1/events", NOW, NOW + 1000, chunk_step_ms=value)
+    assert r.status_code == 422, r.text
+    assert "chunk_step_ms" in r.text
+
+
 @pytest.mark.parametrize("params, fragment", [
     ({"from": NOW + 1000, "to": NOW}, "swap"),
     ({"from": NOW, "to": NOW + DAY + 1}, "split"),

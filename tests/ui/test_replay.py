@@ -10,6 +10,8 @@ import httpx
 import pytest
 from PIL import Image
 
+from mapservice.bench.ui import expected_at
+
 from .conftest import ARTIFACTS
 
 TIMEOUT_MS = 60_000
@@ -29,6 +31,16 @@ def open_at(page, stack, query: str) -> None:
 def expected_writes(stack, a: int, b: int) -> list[list]:
     """Every write with a < ts <= b in the order the UI applies them (time, robot, cell)."""
     rows = api(stack, "/api/v1/chunk-events", **{"from": a + 1, "to": b + 1, "limit": 100000})
+    rows.sort(key=lambda r: (r["ts_ms"], r["robotId"], r["row"], r["column"]))
+    return [[r["ts_ms"], r["robotId"], r["row"], r["column"]] for r in rows]
+
+
+def crossed_writes(stack, page, a: int, b: int) -> list[list]:
+    """The writes the page must apply (a < b) or undo (a > b) between a and b at the
+    compaction it uses (every write up to 60x, the server's bucket winners above), in the
+    order the UI applies them."""
+    step = page.evaluate("() => window.__replay.chunkStepMs")
+    _, rows = expected_at(stack.api_url, a, b, step)
     rows.sort(key=lambda r: (r["ts_ms"], r["robotId"], r["row"], r["column"]))
     return [[r["ts_ms"], r["robotId"], r["row"], r["column"]] for r in rows]
 
@@ -133,7 +145,8 @@ def test_seek_shows_known_chunk_pixels_and_robot_positions(page, history_stack) 
 
 @pytest.mark.parametrize("speed", [8, 86400])
 def test_play_applies_every_change_in_order(page, history_stack, speed) -> None:
-    """Playing forwards applies each stored write between frames, in order, none skipped."""
+    """Playing forwards applies each write between frames in order, none skipped: every
+    stored write at 8x, each 20 min bucket's winners (chunk_step_ms) at 86400x."""
     stack = history_stack
     # At 86400x a frame is ~25 min of history: stop well before now (the history ends
     # 10 min before the fixture started), or the playhead hands over to live mode.
@@ -141,22 +154,30 @@ def test_play_applies_every_change_in_order(page, history_stack, speed) -> None:
     until = start + (60_000 if speed == 8 else 60 * 60_000)
     open_at(page, stack, f"?t={start}&speed={speed}")
     stopped = play_until(page, speed, 1, until)
-    expected = expected_writes(stack, start, stopped)
-    assert len(expected) > (10 if speed == 8 else 1000)
+    expected = crossed_writes(stack, page, start, stopped)
+    if speed == 8:
+        assert expected == expected_writes(stack, start, stopped)
+    assert len(expected) > (10 if speed == 8 else 100)
     assert applied_forward(page) == expected
+    # Paused between two bucket boundaries the page reloads the exact map at the playhead.
+    page.wait_for_function(f"() => !window.__replay.seeking && (window.__replay.chunkStepMs === 0"
+                           f" || window.__replay.mapExactAt === {stopped})", timeout=TIMEOUT_MS)
     assert shown_hashes(page) == map_hashes(stack, stopped)
     assert not page.errors
 
 
 def test_play_backwards_restores_each_earlier_state(page, history_stack) -> None:
-    """Playing backwards at 3600x across fetched spans ends on exactly the map at that T."""
+    """Playing backwards at 3600x across fetched spans undoes each minute's winning writes
+    and ends on exactly the map at that T."""
     stack = history_stack
     start = stack.history.start_ms + 150 * 60_000
     open_at(page, stack, f"?t={start}&speed=3600&dir=-1")
     stopped = play_until(page, 3600, -1, start - 3_600_000)
-    assert shown_hashes(page) == map_hashes(stack, stopped)
     undone = page.evaluate("() => window.__replay.log.filter(l => l.dir === -1).length")
-    assert undone == len(expected_writes(stack, stopped, start))
+    assert undone == len(crossed_writes(stack, page, start, stopped)) > 0
+    page.wait_for_function(f"() => !window.__replay.seeking && window.__replay.mapExactAt === {stopped}",
+                           timeout=TIMEOUT_MS)
+    assert shown_hashes(page) == map_hashes(stack, stopped)
     assert not page.errors
 
 

@@ -167,6 +167,34 @@ class ReadsMixin(SnapshotsMixin):
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
 
+    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
+                               limit: int = 100_000) -> list[ChunkRow]:
+        """Per chunk and absolute bucket [k*step, (k+1)*step) of from_ms <= event time <
+        to_ms, only the bucket's winning write: the greatest (event time, robot id), the
+        rule of map_at. Computed at query time from `chunk_events`, no cache.
+
+        Two passes: each (chunk, bucket)'s latest time from the sorting-key columns alone
+        (no FINAL needed: a duplicate has the same time), then the writes at those
+        (row, col, ts) keys, FINAL (of two rows with one identity, the one chunk_events()
+        returns), the greatest robot id winning a tie. One pass of argMax over (ts,
+        robot_id) tuples took 2-4 s for a day of 200 robots (3.5 M writes), this ~0.7 s.
+        """
+        if step_ms <= 0:
+            raise ValueError("step_ms must be positive")
+        db = self.database
+        window = ("ts >= fromUnixTimestamp64Milli({f:Int64}) "
+                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
+        rows = self._rows(
+            "SELECT row, col, toUnixTimestamp64Milli(ts) AS t, max(robot_id) AS robot, "
+            "lower(hex(argMax(content_hash, robot_id))), argMax(recv_lag_ms, robot_id) "
+            f"FROM {db}.chunk_events FINAL PREWHERE {window} AND (row, col, ts) IN ("
+            f"SELECT row, col, max(ts) FROM {db}.chunk_events PREWHERE {window} "
+            "GROUP BY row, col, intDiv(toUnixTimestamp64Milli(ts), {s:Int64})) "
+            f"GROUP BY row, col, ts ORDER BY t, row, col, robot LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            {"f": from_ms, "t": to_ms, "s": step_ms, "n": limit},
+        )
+        return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
+
     def timeline(self, from_ms: int, to_ms: int, buckets: int) -> list[TimelineBucket]:
         bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
         if not starts:

@@ -92,10 +92,13 @@ export class Api implements Source {
     return (await getJson<{ robots: RobotAt[] }>(`${this.base}/api/v1/robots?at=${Math.round(atMs)}`)).robots;
   }
 
-  async events(fromMs: number, toMs: number, stepMs: number): Promise<EventWindow> {
+  /** A replay window; `chunkStepMs` > 0 asks the server to compact chunk writes per bucket
+   * (the fallback endpoints return every write, which is exact too). */
+  async events(fromMs: number, toMs: number, stepMs: number, chunkStepMs = 0): Promise<EventWindow> {
     if (!this.missing.has("events")) {
       try {
-        return await getJson<EventWindow>(`${this.base}/api/v1/events?from=${fromMs}&to=${toMs}&step_ms=${stepMs}`);
+        const compact = chunkStepMs > 0 ? `&chunk_step_ms=${chunkStepMs}` : "";
+        return await getJson<EventWindow>(`${this.base}/api/v1/events?from=${fromMs}&to=${toMs}&step_ms=${stepMs}${compact}`);
       } catch (e) {
         if (!(e instanceof ApiError && e.status === 404 && this.isRouteMissing(e))) throw e;
         this.missing.add("events");

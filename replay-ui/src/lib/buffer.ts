@@ -1,8 +1,10 @@
 /**
  * The prefetch buffer: one contiguous span [from, to) of history around the playhead.
  *
- * It holds every chunk write in the span (sorted, never downsampled) and the poses (one per
- * robot per `stepMs` at high speed). The span grows ahead of the playhead by a look-ahead
+ * It holds every chunk write in the span (sorted) and the poses (one per robot per `stepMs`
+ * at high speed). Above 60x the writes are compacted by the server (`chunkStepMs`): per
+ * chunk and absolute bucket only the bucket's winner, so the map is exact at every bucket
+ * boundary; no write is ever skipped at the client. The span grows ahead of the playhead by a look-ahead
  * sized to the speed and is trimmed behind it. Growing backwards fetches the map and robots
  * just before the new start, so every write in the buffer knows the cell it replaced.
  */
@@ -10,14 +12,19 @@ import { annotatePrev, cellKey, compareChanges } from "./mapstate";
 import type { ChunkCell, ChunkChange, EventWindow, Pose, RobotAt } from "./types";
 
 export interface Source {
-  events(fromMs: number, toMs: number, stepMs: number): Promise<EventWindow>;
+  events(fromMs: number, toMs: number, stepMs: number, chunkStepMs?: number): Promise<EventWindow>;
   mapAt(atMs: number): Promise<ChunkCell[]>;
   robotsAt(atMs: number): Promise<RobotAt[]>;
 }
 
-/** Data time covered by one fetch: about two seconds of playback, 10 s to 6 h. */
-export function fetchSpanMs(speed: number): number {
-  return Math.min(21_600_000, Math.max(10_000, speed * 2_000));
+/**
+ * Data time covered by one fetch: about two seconds of playback, 10 s to 6 h; up to a day
+ * (the API's longest window) when the writes are compacted (a day of 20 min buckets is at
+ * most 72 writes per chunk).
+ */
+export function fetchSpanMs(speed: number, compacted = chunkStepMs(speed) > 0): number {
+  const cap = compacted ? 86_400_000 : 21_600_000;
+  return Math.min(cap, Math.max(10_000, speed * 2_000));
 }
 
 /** What is kept behind the playhead: about two seconds of playback, 1 min to 6 h. */
@@ -25,9 +32,28 @@ export function keepBehindMs(speed: number): number {
   return Math.min(21_600_000, Math.max(60_000, speed * 2_000));
 }
 
-/** How far ahead of the playhead the buffer keeps: about four seconds of playback. */
-export function lookaheadMs(speed: number): number {
-  return Math.min(86_400_000, Math.max(20_000, speed * 4_000));
+/** How far ahead of the playhead the buffer keeps: about four seconds of playback (at most
+ * a day; two when compacted, so that a whole next window is always on the way). */
+export function lookaheadMs(speed: number, compacted = chunkStepMs(speed) > 0): number {
+  const cap = compacted ? 2 * 86_400_000 : 86_400_000;
+  return Math.min(cap, Math.max(20_000, speed * 4_000));
+}
+
+/** Bucket sizes the compaction uses: whole minutes that divide an hour or a day. */
+const CHUNK_STEPS = [60_000, 120_000, 300_000, 600_000, 1_200_000, 1_800_000];
+
+/**
+ * Chunk-write compaction for a speed: 0 (every write) up to 60x; above, the longest bucket
+ * in CHUNK_STEPS not longer than the data one frame at 60 frames/s spans (3600x: 1 min,
+ * 86400x: 20 min). A frame then never lands more than one bucket past an exact map, and
+ * every change that could be seen for a frame is fetched.
+ */
+export function chunkStepMs(speed: number): number {
+  if (speed <= 60) return 0;
+  const perFrame = (speed * 1000) / 60;
+  let step = CHUNK_STEPS[0];
+  for (const s of CHUNK_STEPS) if (s <= perFrame) step = s;
+  return step;
 }
 
 /** Pose downsampling for a speed: all poses up to 60x, about one per frame above. */
@@ -38,6 +64,8 @@ export function poseStepMs(speed: number): number {
 }
 
 const MINUTE = 60_000;
+/** The longest window /api/v1/events answers. */
+const MAX_WINDOW_MS = 86_400_000;
 
 export class EventBuffer {
   from: number;
@@ -47,6 +75,12 @@ export class EventBuffer {
   /** Each robot's latest pose before `from` (from the robots-at snapshot). */
   base = new Map<string, RobotAt>();
   stepMs: number;
+  /** 0: every chunk write is buffered; > 0: the server's compaction bucket (ms). */
+  chunkStepMs: number;
+  /** When false, chunk writes are never compacted (the benchmark's "every write" run). */
+  compact = true;
+  /** Every window fetched since the last reset: [from, to, chunkStepMs] (to: as far as complete). */
+  windows: [number, number, number][] = [];
   private inflight: Promise<void> | null = null;
   private generation = 0;
   maxChunks = 400_000;
@@ -55,6 +89,7 @@ export class EventBuffer {
     this.from = atMs + 1;
     this.to = atMs + 1;
     this.stepMs = poseStepMs(speed);
+    this.chunkStepMs = chunkStepMs(speed);
   }
 
   /** Starts over at a seek: the caller has applied the map and robots at `atMs`. */
@@ -67,6 +102,8 @@ export class EventBuffer {
     this.tracks = new Map();
     this.base = new Map(robots.map((r) => [r.robotId, r]));
     this.stepMs = poseStepMs(speed);
+    this.chunkStepMs = this.compact ? chunkStepMs(speed) : 0;
+    this.windows = [];
   }
 
   /** True when every write with a < ts <= b (or b < ts <= a) is in the buffer. */
@@ -79,20 +116,27 @@ export class EventBuffer {
   /** Fetches the next span needed ahead of the playhead, if any; one fetch at a time. */
   ensure(playhead: number, direction: 1 | -1, speed: number, nowMs: number, minMs: number): Promise<void> | null {
     if (this.inflight) return this.inflight;
-    const ahead = lookaheadMs(speed);
-    const span = fetchSpanMs(speed);
+    const ahead = lookaheadMs(speed, this.chunkStepMs > 0);
+    const span = fetchSpanMs(speed, this.chunkStepMs > 0);
+    // Window ends on whole buckets: no bucket is split between two windows (whose pieces
+    // would each have a winner).
+    const align = Math.max(MINUTE, this.chunkStepMs);
     let task: (() => Promise<void>) | null = null;
     if (direction > 0 && this.to < Math.min(playhead + ahead, nowMs + 1)) {
       const f = this.to;
       // Ends on a whole minute, so every later request starts on one (the API's fast path).
-      const t = Math.min(Math.ceil((f + span) / MINUTE) * MINUTE, nowMs + 1);
+      let t = Math.ceil((f + span) / align) * align;
+      if (t - f > MAX_WINDOW_MS) t = Math.floor((f + MAX_WINDOW_MS) / align) * align;
+      t = Math.min(t, nowMs + 1);
       // Near now the windows get short: wait for two seconds of news unless the playhead
       // is about to run out, instead of asking once per round trip.
       const starving = this.to <= playhead + 1000;
       if (t > f && (starving || t - f >= Math.min(span, 2000))) task = () => this.extendForward(f, t);
     } else if (direction < 0 && this.from > Math.max(playhead - ahead, minMs)) {
       const t = this.from;
-      const f = Math.max(Math.floor((t - span) / MINUTE) * MINUTE, minMs);
+      let f = Math.floor((t - span) / align) * align;
+      if (t - f > MAX_WINDOW_MS) f = Math.ceil((t - MAX_WINDOW_MS) / align) * align;
+      f = Math.max(f, minMs);
       if (t > f) task = () => this.extendBackward(f, t);
     }
     if (!task) return null;
@@ -115,11 +159,14 @@ export class EventBuffer {
 
   async extendForward(f: number, t: number): Promise<void> {
     const gen = this.generation;
-    const w = await this.source.events(f, t, this.stepMs);
+    const w = await this.source.events(f, t, this.stepMs, this.chunkStepMs);
     if (gen !== this.generation || f !== this.to) return;
     const { chunks, poses, to } = complete(w, f, t);
     chunks.sort(compareChanges);
-    this.chunks.push(...chunks);
+    // One by one: spreading a window's writes as arguments overflows the stack past ~120 k
+    // (a 2 h window at 3600x holds 145 k compacted writes at 200 robots, 288 k in all).
+    for (const c of chunks) this.chunks.push(c);
+    this.logWindow(f, to);
     for (const p of poses) this.addPose(p, false);
     this.to = to;
   }
@@ -128,7 +175,7 @@ export class EventBuffer {
     const gen = this.generation;
     // The cells and robots as they were just before f, the base for the new writes' `prev`.
     const [w, before, robots] = await Promise.all([
-      this.source.events(f, t, this.stepMs),
+      this.source.events(f, t, this.stepMs, this.chunkStepMs),
       this.source.mapAt(f - 1),
       this.source.robotsAt(f - 1),
     ]);
@@ -138,6 +185,7 @@ export class EventBuffer {
       // Truncated: keep only what was returned up to `to`, and fetch less next time.
       return this.extendBackward(f + Math.max(1, Math.floor((t - f) / 2)), t);
     }
+    this.logWindow(f, to);
     chunks.sort(compareChanges);
     const baseCells = new Map(before.map((c) => [cellKey(c.row, c.column), c]));
     annotatePrev((k) => baseCells.get(k) ?? null, chunks);
@@ -145,6 +193,11 @@ export class EventBuffer {
     for (const p of poses) this.addPose(p, true);
     this.base = new Map(robots.map((r) => [r.robotId, r]));
     this.from = f;
+  }
+
+  private logWindow(f: number, to: number): void {
+    if (this.windows.length >= 10_000) this.windows.splice(0, 5_000);
+    this.windows.push([f, to, this.chunkStepMs]);
   }
 
   private addPose(p: Pose, prepend: boolean): void {

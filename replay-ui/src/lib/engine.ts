@@ -4,10 +4,12 @@
  * A seek loads the map and robots at T in one go; then each frame moves the map from the
  * last shown instant to the clock's, applying (or undoing) every buffered write in between.
  * When the buffer does not reach the clock's instant yet, the playhead waits at the
- * buffer's edge ("buffering") instead of skipping writes.
+ * buffer's edge ("buffering") instead of skipping writes. Above 60x the buffer holds the
+ * server's per-bucket winners (exact at every bucket boundary); once the playhead rests
+ * between two boundaries, the exact map at the playhead is loaded (a seek in place).
  */
 import { Api } from "./api";
-import { EventBuffer, keepBehindMs, poseStepMs } from "./buffer";
+import { chunkStepMs, EventBuffer, keepBehindMs, poseStepMs } from "./buffer";
 import { PlaybackClock, type Speed } from "./clock";
 import { ChunkImages } from "./images";
 import { LiveConnection, liveUrl, type LiveMessage } from "./live";
@@ -70,6 +72,16 @@ export class ReplayEngine {
   /** Script time of each animation frame (ms) and the time between frames. */
   frameTimes: number[] = [];
   frameIntervals: number[] = [];
+  /** Playing, how long the playhead waited for the buffer each time it did (ms). */
+  stalls: number[] = [];
+  private stallStarted = 0;
+  /** Seeks in place that replaced a compacted map with the exact one at a resting playhead. */
+  exactMapLoads = 0;
+  /** The instant the map state is known exact at (a seek's; -1 once compacted writes moved it). */
+  mapExactAt = -1;
+  /** The last playhead a seek in place was started for (a failed one is not retried per frame). */
+  private exactMapTried = -1;
+  private recordSeek = true;
   private seekGen = 0;
   private lastStepMs: number;
   onSeeked: () => void = () => {};
@@ -101,7 +113,7 @@ export class ReplayEngine {
     if (!this.seekPendingFrame) return;
     this.seekPendingFrame = false;
     this.seekDrawnAt = this.perfNow();
-    this.seekTimes.push(this.seekDrawnAt - this.seekStartedWall);
+    if (this.recordSeek) this.seekTimes.push(this.seekDrawnAt - this.seekStartedWall);
   }
 
   /** No seek under way, its frame drawn, and (unless playing) the playhead settled. */
@@ -114,8 +126,9 @@ export class ReplayEngine {
   }
 
   /** Shows the whole map and all robots at T at once. */
-  async seek(t: number, keepLive = false): Promise<void> {
+  async seek(t: number, keepLive = false, record = true): Promise<void> {
     const wall = this.now();
+    this.recordSeek = record;
     this.clock.minMs = wall - RETENTION_MS + 60_000;
     t = Math.round(Math.min(wall, Math.max(this.clock.minMs, t)));
     const gen = ++this.seekGen;
@@ -135,9 +148,10 @@ export class ReplayEngine {
       });
       const [mapAt, robots] = await Promise.all([map, this.api.robotsAt(t)]);
       if (gen !== this.seekGen) return;
-      this.seekApiTimes.push(this.perfNow() - this.seekStartedWall);
+      if (record) this.seekApiTimes.push(this.perfNow() - this.seekStartedWall);
       this.meta = mapAt.meta ?? this.meta;
       this.state.reset(mapAt.chunks);
+      this.mapExactAt = t;
       this.buffer.reset(t, this.clock.speed, robots);
       this.lastStepMs = this.buffer.stepMs;
       this.robotInfo = new Map(robots.map((r) => [r.robotId, r]));
@@ -169,8 +183,11 @@ export class ReplayEngine {
 
   setSpeed(speed: Speed): void {
     this.clock.setSpeed(speed, this.now());
-    // Coarser or finer pose sampling needs a fresh buffer; writes are the same either way.
-    if (poseStepMs(speed) !== this.lastStepMs && !this.clock.live) void this.seek(this.playhead);
+    // Coarser or finer pose sampling or write compaction needs a fresh buffer.
+    const compaction = this.buffer.compact ? chunkStepMs(speed) : 0;
+    if ((poseStepMs(speed) !== this.lastStepMs || compaction !== this.buffer.chunkStepMs) && !this.clock.live) {
+      void this.seek(this.playhead, false, false);
+    }
   }
 
   /** Advances to the clock's instant; called once per animation frame. */
@@ -191,6 +208,7 @@ export class ReplayEngine {
       this.clock.hold(target, wall);
       this.buffering = true;
     }
+    this.countStall(this.buffering && this.clock.playing);
     if (this.clock.playing && dir > 0 && target >= wall - 1000) {
       // Caught up with now: live mode takes over (the WebSocket, not polling windows).
       // Only once the buffered writes reach now: after a stalled frame at 86400x the
@@ -206,7 +224,17 @@ export class ReplayEngine {
     }
     // The look-ahead waits for the seek's first frame (and, paused, for the playhead to settle).
     if (!this.settled()) return;
-    if (!this.clock.playing) this.loadExactRobots();
+    if (!this.clock.playing) {
+      if (this.buffer.chunkStepMs > 0 && this.mapExactAt !== this.playhead && this.exactMapTried !== this.playhead) {
+        this.exactMapTried = this.playhead;
+        // Compacted writes are exact only at bucket boundaries: a seek in place loads the
+        // map (and robots) at the resting playhead and a fresh buffer.
+        this.exactMapLoads++;
+        void this.seek(this.playhead, false, false);
+        return;
+      }
+      this.loadExactRobots();
+    }
     const before = this.buffer.chunks.length;
     const p = this.buffer.ensure(this.playhead, dir, this.clock.speed, wall, this.clock.minMs);
     if (p) {
@@ -218,6 +246,21 @@ export class ReplayEngine {
       }).catch((e) => (this.error = String(e)));
     }
     this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));
+  }
+
+  /** How long the current wait for the buffer has lasted (0: not waiting). */
+  currentStallMs(): number {
+    return this.stallStarted ? this.perfNow() - this.stallStarted : 0;
+  }
+
+  /** Times each wait for the buffer while playing (`stalls`, ms). */
+  private countStall(waiting: boolean): void {
+    const now = this.perfNow();
+    if (waiting && !this.stallStarted) this.stallStarted = now;
+    else if (!waiting && this.stallStarted) {
+      this.stalls.push(now - this.stallStarted);
+      this.stallStarted = 0;
+    }
   }
 
   /** Asks the history for the robots at the resting playhead, unless it has them. */

@@ -63,6 +63,14 @@ export class MapState {
   /** Every applied write, in application order (read by the browser tests). */
   log: AppliedChange[] = [];
   logLimit = 500_000; // halved when reached: a week at 86400x would not fit
+  /** Writes applied forwards and undone since the last `clearCounts` (never cut like the log). */
+  applied = 0;
+  undone = 0;
+
+  clearCounts(): void {
+    this.applied = 0;
+    this.undone = 0;
+  }
 
   reset(snapshot: ChunkCell[]): void {
     // Only cells whose picture changes need redrawing: a seek redraws what differs, not
@@ -91,6 +99,7 @@ export class MapState {
       // A late write older than what the cell shows is history, not the current state.
       if (cur === null || compareChanges(c, cur) >= 0) this.cells.set(k, strip(c));
       this.dirty.add(k);
+      this.applied++;
       this.record(1, c, this.cells.get(k)!.content_hash);
     }
   }
@@ -104,6 +113,7 @@ export class MapState {
       if (c.prev === null) this.cells.delete(k);
       else this.cells.set(k, strip(c.prev));
       this.dirty.add(k);
+      this.undone++;
       this.record(-1, c, c.prev?.content_hash ?? "");
     }
   }

@@ -1,14 +1,18 @@
-"""`bench ui`'s API in a process of its own (`mapservice api` over one chDB directory)."""
+"""`bench ui`: its API in a process of its own (`mapservice api` over one chDB directory),
+the reuse of a loaded history, and the skipped-change checks of its high-speed phase."""
 
 from __future__ import annotations
 
+import json
+import random
 import time
 
 import httpx
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.bench.ui import ApiProcess, api_env
+from mapservice.bench import ui
+from mapservice.bench.ui import ApiProcess, api_env, expected_at, fold, load_or_reuse, mismatches
 
 
 def test_api_env_points_the_api_at_one_chdb_directory_and_database(tmp_path) -> None:
@@ -44,3 +48,69 @@ def test_api_process_that_exits_early_raises_naming_its_log(tmp_path, monkeypatc
         with ApiProcess(tmp_path / "ch", "bench_test", log, timeout_s=300):
             pass
     assert "configuration error" in log.read_text()
+
+
+def test_fold_keeps_the_later_write_and_mismatches_count_cells_that_differ() -> None:
+    """fold applies the page's rule (a late, older write loses); mismatches counts each differing cell."""
+    base = {(0, 0): (10, "a", "h0")}
+    writes = [{"row": 0, "column": 0, "ts_ms": 20, "robotId": "a", "content_hash": "h1"},
+              {"row": 0, "column": 1, "ts_ms": 5, "robotId": "b", "content_hash": "h2"},
+              {"row": 0, "column": 0, "ts_ms": 20, "robotId": "b", "content_hash": "h3"}]
+    state = fold(base, writes)
+    assert state == {(0, 0): (20, "b", "h3"), (0, 1): (5, "b", "h2")}
+    assert mismatches([[0, 0, 20, "b", "h3"], [0, 1, 5, "b", "h2"]], state) == 0
+    assert mismatches([[0, 0, 20, "a", "h1"], [1, 1, 5, "b", "h2"]], state) == 3
+
+
+def test_reuse_reads_back_the_loaded_history_and_refuses_another_size(tmp_path) -> None:
+    """--reuse takes a matching history from its marker without loading; another size is refused."""
+    marker = {"days": 7.0, "robots": 200, "poses": 5, "chunk_events": 3, "start_ms": 1, "end_ms": 2}
+    (tmp_path / "loaded-bench_seek.json").write_text(json.dumps(marker))
+    loaded, reused = load_or_reuse(tmp_path, "bench_seek", 7.0, 200, 99, reuse=True)
+    assert reused and (loaded.start_ms, loaded.end_ms, loaded.chunk_events) == (1, 2, 3)
+    with pytest.raises(SystemExit, match="7.0 days of 200 robots, not 7.0 of 20"):
+        load_or_reuse(tmp_path, "bench_seek", 7.0, 20, 99, reuse=True)
+
+
+@pytest.fixture
+def served_history(ev, monkeypatch):
+    """An API over a MemoryStore with random chunk writes; the bench's reads go to it."""
+    from fastapi.testclient import TestClient
+
+    from mapservice.adapters.clock import ManualClock
+    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.api.app import create_app
+    from mapservice.settings import Settings
+
+    t0 = 1_795_255_200_000
+    rng = random.Random(3)
+    store = MemoryStore()
+    store.append([ev.chunk(rng.choice("abc"), t0 + rng.randrange(0, 3_600_000, 100),
+                           rng.randrange(3), rng.randrange(3), bytes([rng.randrange(256)]) * 10_000)
+                  for _ in range(600)])
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(t0 + 7_200_000)))
+
+    def get(api_url, path, **params):
+        r = client.get(path, params=params)
+        r.raise_for_status()
+        return r.json()
+
+    monkeypatch.setattr(ui, "_get", get)
+    return store, t0
+
+
+def test_expected_state_at_a_bucket_boundary_is_the_exact_map_both_ways(served_history) -> None:
+    """Played to just before a bucket boundary, forwards or backwards, the page must show
+    map_at there, having crossed each bucket's winners in between."""
+    store, t0 = served_history
+    step = 300_000
+    p0, p1 = t0 + 123_456, t0 + 10 * step - 1
+    exact = {(c.row, c.column): (c.ts_ms, c.robot_id, c.content_hash) for c in store.map_at(p1)}
+    state, crossed = expected_at("", p0, p1, step)
+    assert state == exact
+    assert len(crossed) == len(store.chunk_events_compacted(p0 + 1, p1 + 1, step)) > 0
+    state, crossed = expected_at("", t0 + 3_400_000, p1, step)
+    assert state == exact
+    assert len(crossed) == len(store.chunk_events_compacted(p1 + 1, t0 + 3_400_001, step)) > 0
+    state, crossed = expected_at("", p0, p1, 0)
+    assert state == exact and len(crossed) == len(store.chunk_events(p0 + 1, p1 + 1))
