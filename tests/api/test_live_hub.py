@@ -60,12 +60,7 @@ def test_websocket_sends_a_live_text_as_it_came_with_its_send_time(ev):
 
     hub = LiveHub()
     texts = live_record_texts(live_records([ev.pose("r7", 6_000, x=3.0)])[0])
-    with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
-            client.websocket_connect("/api/v1/live") as ws:
-        for _ in range(100):
-            if hub.subscribers:
-                break
-            asyncio.run(asyncio.sleep(0.01))
+    with viewer(hub) as (client, ws):
         client.portal.call(lambda: hub.publish(texts))
         raw = ws.receive_text()
     assert raw.startswith(texts[0].text[:-1] + ',"sent_ms":')

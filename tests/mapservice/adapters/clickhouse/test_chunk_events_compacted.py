@@ -7,41 +7,14 @@ against a naive fold of the raw events, with duplicates and late events.
 
 from __future__ import annotations
 
-import itertools
 import random
 import time
 
 import pytest
 
-from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
 from mapservice.core.timetravel import fold_map
 
-_databases = itertools.count()
 MIN = 60_000
-
-
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    """One chDB engine for the module, closed at its end so other modules may open theirs."""
-    path = tmp_path_factory.mktemp("chdb") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="compacted_root")
-    root.migrate()
-    yield path
-    root.close()
-
-
-@pytest.fixture(params=["memory", "clickhouse"])
-def store(request):
-    """An empty, migrated store of each kind."""
-    if request.param == "memory":
-        s = MemoryStore()
-    else:
-        path = request.getfixturevalue("chdb_dir")
-        s = ClickHouseStore(f"chdb://{path}", database=f"compacted_{next(_databases)}")
-    s.migrate()
-    yield s
-    s.close()
 
 
 @pytest.fixture

@@ -6,7 +6,6 @@ ordered by time then robot, as both adapters must answer it.
 
 from __future__ import annotations
 
-import itertools
 import time
 
 import pytest
@@ -14,30 +13,6 @@ import pytest
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.memory_store import MemoryStore
 
-_databases = itertools.count()
-
-
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    """One chDB engine for the module, closed at its end so other modules may open theirs."""
-    path = tmp_path_factory.mktemp("chdb") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="downsample_root")
-    root.migrate()
-    yield path
-    root.close()
-
-
-@pytest.fixture(params=["memory", "clickhouse"])
-def store(request):
-    """An empty, migrated store of each kind."""
-    if request.param == "memory":
-        s = MemoryStore()
-    else:
-        path = request.getfixturevalue("chdb_dir")
-        s = ClickHouseStore(f"chdb://{path}", database=f"downsample_{next(_databases)}")
-    s.migrate()
-    yield s
-    s.close()
 
 
 @pytest.fixture
@@ -96,7 +71,7 @@ def test_adapters_agree_on_a_fleet(chdb_dir, ev, t0) -> None:
     events = [ev.pose(f"r{r}", t0 + 137 * i + r * 11, x=i * 0.001, battery_level=None if i % 3 else 50.0)
               for r in range(3) for i in range(200)]
     memory = MemoryStore()
-    ch = ClickHouseStore(f"chdb://{chdb_dir}", database=f"downsample_{next(_databases)}")
+    ch = ClickHouseStore(f"chdb://{chdb_dir}", database="downsample_fleet")
     try:
         for s in (memory, ch):
             s.migrate()
