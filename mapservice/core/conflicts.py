@@ -68,29 +68,40 @@ def affected_conflicts(new: Iterable[ChunkRow], stored: Iterable[ChunkRow],
     scan only the window next to a write instead of every write of its chunk (the 2019
     load test keeps ~130 writes per chunk within the window).
     """
-    by_chunk: dict[tuple[int, int], list[ChunkRow]] = defaultdict(list)
-    for w in _unique(stored):
-        by_chunk[(w.row, w.column)].append(w)
-    new_by_chunk: dict[tuple[int, int], list[ChunkRow]] = defaultdict(list)
-    for n in _unique(new):
-        new_by_chunk[(n.row, n.column)].append(n)
+    by_chunk = _by_chunk(stored)
     out: dict[tuple, ConflictRow] = {}
-    for chunk, news in new_by_chunk.items():
+    for chunk, news in _by_chunk(new).items():
         writes = sorted(by_chunk.get(chunk, ()), key=_order)
-        keys = [_order(w) for w in writes]
-        bs: dict[tuple, ChunkRow] = {}
-        for n in news:
-            bs[_identity(n)] = n
-            for w in writes[bisect_right(keys, _order(n)):]:
-                if w.ts_ms - n.ts_ms > window_ms:
-                    break
-                if w.robot_id != n.robot_id:
-                    bs[_identity(w)] = w
-        for b in bs.values():
-            c = _latest_conflict(b, writes, keys, window_ms)
-            if c is not None:
-                out[conflict_key(c)] = c
+        _affected_in_chunk(news, writes, [_order(w) for w in writes], window_ms, out)
     return [out[k] for k in sorted(out)]
+
+
+def _by_chunk(writes: Iterable[ChunkRow]) -> dict[tuple[int, int], list[ChunkRow]]:
+    out: dict[tuple[int, int], list[ChunkRow]] = defaultdict(list)
+    for w in _unique(writes):
+        out[(w.row, w.column)].append(w)
+    return out
+
+
+def _affected_in_chunk(news: list[ChunkRow], writes: list[ChunkRow], keys: list[tuple[int, str]],
+                       window_ms: int, out: dict[tuple, ConflictRow]) -> None:
+    """`affected_conflicts` for one chunk: `writes` (sorted by `_order`, whose keys are
+    `keys`) hold the new writes and their neighbours; the conflicts go into `out`."""
+    bs: dict[tuple, ChunkRow] = {}
+    for n in news:
+        bs[_identity(n)] = n
+        i = bisect_right(keys, _order(n))
+        while i < len(writes):
+            w = writes[i]
+            if w.ts_ms - n.ts_ms > window_ms:
+                break
+            if w.robot_id != n.robot_id:
+                bs[_identity(w)] = w
+            i += 1
+    for b in bs.values():
+        c = _latest_conflict(b, writes, keys, window_ms)
+        if c is not None:
+            out[conflict_key(c)] = c
 
 
 def _latest_conflict(b: ChunkRow, writes: list[ChunkRow], keys: list[tuple[int, str]],
@@ -122,6 +133,34 @@ def neighbourhoods(new: Iterable[ChunkRow], window_ms: int) -> list[tuple[list[t
             for c in clusters]
 
 
+class _ChunkWrites:
+    """One chunk's writes sorted in (event time, robot id) order, one per identity (within a
+    chunk that order is the identity): what `_affected_in_chunk` scans, kept sorted as
+    writes arrive instead of sorted again for every batch."""
+
+    __slots__ = ("keys", "writes")
+
+    def __init__(self) -> None:
+        self.keys: list[tuple[int, str]] = []
+        self.writes: list[ChunkRow] = []
+
+    def put(self, w: ChunkRow) -> None:
+        key = _order(w)
+        i = bisect_left(self.keys, key)
+        if i < len(self.keys) and self.keys[i] == key:
+            self.writes[i] = w  # the same write again: the last one counts, as in the history
+        else:
+            self.keys.insert(i, key)
+            self.writes.insert(i, w)
+
+    def between(self, from_ms: int, to_ms: int) -> list[ChunkRow]:
+        return self.writes[bisect_left(self.keys, (from_ms,)):bisect_left(self.keys, (to_ms + 1,))]
+
+    def forget_before(self, ts_ms: int) -> None:
+        i = bisect_left(self.keys, (ts_ms,))
+        del self.keys[:i], self.writes[:i]
+
+
 class RecentWrites:
     """The writes this processor stored with event time >= `covered_from_ms`, per chunk:
     a live batch (event times near now) finds its neighbours here instead of querying the
@@ -130,7 +169,7 @@ class RecentWrites:
 
     def __init__(self, covered_from_ms: int, rows: Iterable[ChunkRow] = ()) -> None:
         self.covered_from_ms = covered_from_ms
-        self._by_chunk: dict[tuple[int, int], dict[tuple, ChunkRow]] = defaultdict(dict)
+        self._by_chunk: dict[tuple[int, int], _ChunkWrites] = defaultdict(_ChunkWrites)
         # Conflict rows this processor wrote: recomputed unchanged, they are not written again.
         self._recorded: dict[tuple, ConflictRow] = {}
         self.add(rows)
@@ -145,14 +184,24 @@ class RecentWrites:
     def add(self, rows: Iterable[ChunkRow]) -> None:
         for w in rows:
             if w.ts_ms >= self.covered_from_ms:
-                self._by_chunk[(w.row, w.column)][_identity(w)] = w
+                self._by_chunk[(w.row, w.column)].put(w)
 
     def covers(self, from_ms: int) -> bool:
         return from_ms >= self.covered_from_ms
 
     def near(self, chunks: Iterable[tuple[int, int]], from_ms: int, to_ms: int) -> list[ChunkRow]:
-        return [w for c in chunks for w in self._by_chunk.get(c, {}).values()
-                if from_ms <= w.ts_ms <= to_ms]
+        return [w for c in chunks if c in self._by_chunk
+                for w in self._by_chunk[c].between(from_ms, to_ms)]
+
+    def affected(self, new: Iterable[ChunkRow], window_ms: int) -> list[ConflictRow]:
+        """`affected_conflicts(new, <every write of their chunks>)` from the sorted index,
+        for a batch already `add`ed whose writes it covers to the window before the first:
+        a live batch costs its own writes' scans, not a sort of every write of the window."""
+        out: dict[tuple, ConflictRow] = {}
+        for chunk, news in _by_chunk(new).items():
+            writes = self._by_chunk[chunk]
+            _affected_in_chunk(news, writes.writes, writes.keys, window_ms, out)
+        return [out[k] for k in sorted(out)]
 
     def forget_before(self, ts_ms: int) -> None:
         """Drops writes older than `ts_ms` (the index then covers only from there)."""
@@ -160,15 +209,14 @@ class RecentWrites:
             return
         self.covered_from_ms = ts_ms
         for chunk in list(self._by_chunk):
-            kept = {k: w for k, w in self._by_chunk[chunk].items() if w.ts_ms >= ts_ms}
-            if kept:
-                self._by_chunk[chunk] = kept
-            else:
+            writes = self._by_chunk[chunk]
+            writes.forget_before(ts_ms)
+            if not writes.writes:
                 del self._by_chunk[chunk]
         self._recorded = {k: c for k, c in self._recorded.items() if c.ts_ms >= ts_ms}
 
     def __len__(self) -> int:
-        return sum(len(v) for v in self._by_chunk.values())
+        return sum(len(v.writes) for v in self._by_chunk.values())
 
 
 def conflict_key(c: ConflictRow) -> tuple[int, int, int, str]:

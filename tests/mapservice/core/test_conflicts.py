@@ -3,6 +3,9 @@ batch must be compared with, the in-memory index of recent writes."""
 
 from __future__ import annotations
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from mapservice.core.conflicts import (
     affected_conflicts,
     all_conflicts,
@@ -84,3 +87,18 @@ def test_recent_writes_cover_only_from_their_start() -> None:
     assert [x.ts_ms for x in recent.near([(0, 0), (1, 0)], 0, 5000)] == [1000, 2000]
     recent.forget_before(1500)
     assert len(recent) == 1 and not recent.covers(1499)
+
+
+_write = st.builds(w, st.sampled_from(["a", "b", "c"]), st.integers(0, 3 * W),
+                   st.sampled_from([H1, H2, H3]), st.integers(0, 1))
+
+
+@settings(max_examples=200, deadline=None)
+@given(old=st.lists(_write, max_size=40), new=st.lists(_write, min_size=1, max_size=10),
+       window=st.sampled_from([0, W // 2, W]))
+def test_the_sorted_index_finds_what_the_pure_rule_finds(old, new, window) -> None:
+    """RecentWrites.affected (its chunks kept sorted, repeats kept once) equals
+    affected_conflicts over the same writes, repeats and all."""
+    recent = RecentWrites(0, old + new[:1])
+    recent.add(new)
+    assert recent.affected(new, window) == affected_conflicts(new, old + new[:1] + new, window)
