@@ -18,7 +18,7 @@ from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.settings import Settings
 
-from .history_consumer import HistoryConsumer, HistoryConsumerService
+from .history_consumer import COMMIT_FAILURES, HistoryConsumer, HistoryConsumerService
 from .sink import HistorySink, decode_dead_letters
 from .views import LiveViews
 
@@ -64,6 +64,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
                    settings.topic_meta_events], group_id=f"{app.conf.id}-history")
     consumer = HistoryConsumer(source, sink, views, batch, within)
     source.on_assigned = consumer.on_assigned
+    source.on_commit_failed = COMMIT_FAILURES.inc
     sink.consumer = consumer
     app.service(HistoryConsumerService(consumer))
 

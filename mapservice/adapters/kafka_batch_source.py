@@ -72,9 +72,11 @@ class KafkaBatchSource:
                  on_assigned: Callable[[list[tuple[str, int]]], None] | None = None) -> None:
         self.group_id = group_id
         self.config = {**consumer_config(settings, group_id),
-                       "stats_cb": lambda stats: record_lag(group_id, stats)}
+                       "stats_cb": lambda stats: record_lag(group_id, stats),
+                       "on_commit": self._committed}
         self.topics = list(topics)
         self.on_assigned = on_assigned
+        self.on_commit_failed: Callable[[], None] | None = None  # an asynchronous commit failed
         self.consumer: Consumer | None = None
 
     def start(self) -> None:
@@ -109,8 +111,11 @@ class KafkaBatchSource:
         return out
 
     def commit(self, records: Sequence[SourceRecord]) -> bool:
-        """Commits past the highest offset per partition; False if the group moved on (the
-        records will be delivered again to whoever owns their partitions now)."""
+        """Commits past the highest offset per partition, asynchronously: the next batch
+        need not wait for the broker's answer (up to ~0.1 s under load). False if the
+        consumer refused at once; a commit the broker refuses later (the group moved on)
+        reaches `on_commit_failed`. Either way the records are delivered again to whoever
+        owns their partitions, and the history's identities absorb the repeat."""
         assert self.consumer is not None, "start() first"
         last: dict[tuple[str, int], int] = {}
         for r in records:
@@ -121,11 +126,21 @@ class KafkaBatchSource:
             return True
         try:
             self.consumer.commit(offsets=[TopicPartition(t, p, o + 1) for (t, p), o in last.items()],
-                                 asynchronous=False)
+                                 asynchronous=True)
             return True
         except KafkaException as exc:
             log.warning("offset commit failed; the batch will be re-delivered", error=str(exc))
             return False
+
+    def _committed(self, error, partitions: list[TopicPartition]) -> None:
+        """librdkafka's answer to a commit, from inside `consume` or `close`."""
+        failed = [p for p in partitions if p.error is not None]
+        if error is None and not failed:
+            return
+        log.warning("offset commit failed; those records will be delivered again",
+                    error=str(error or failed[0].error), partitions=len(failed) or len(partitions))
+        if self.on_commit_failed is not None:
+            self.on_commit_failed()
 
     def close(self) -> None:
         if self.consumer is not None:

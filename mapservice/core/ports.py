@@ -91,7 +91,8 @@ class EventSource(Protocol):
         """Up to `max_records` records, waiting at most `timeout_s` for the first."""
 
     def commit(self, records: Sequence[SourceRecord]) -> bool:
-        """Marks the records consumed; False when they will be delivered again instead."""
+        """Marks the records consumed; False when they will be delivered again instead
+        (a source that commits asynchronously may also learn that only later)."""
 
     def close(self) -> None: ...
 

@@ -55,3 +55,17 @@ def test_assignment_creates_and_revocation_removes_the_lag_series() -> None:
     assert lag("lag-assign", "t", "3") == 0
     source._revoked(None, [TopicPartition("t", 3)])
     assert lag("lag-assign", "t", "3") is None
+
+
+def test_a_commit_the_broker_refuses_later_is_reported() -> None:
+    """Commits are asynchronous; librdkafka's later refusal reaches on_commit_failed, a success does not."""
+    from confluent_kafka import KafkaError, TopicPartition
+
+    source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t"], "g")
+    failures = []
+    source.on_commit_failed = lambda: failures.append(1)
+    assert source.config["on_commit"] == source._committed
+    source.config["on_commit"](None, [TopicPartition("t", 0, 5)])
+    assert failures == []
+    source.config["on_commit"](KafkaError(KafkaError.REBALANCE_IN_PROGRESS), [TopicPartition("t", 0, 5)])
+    assert failures == [1]
