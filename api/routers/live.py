@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import time
 
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
+from pydantic import TypeAdapter, ValidationError
 
 from mapservice.core.live_messages import LiveText
 
@@ -13,15 +16,27 @@ from ..limits import origin_allowed
 
 router = APIRouter(tags=["live"])
 
-# RFC 6455 close codes: 1011 the server cannot serve this at all, 1013 try again later.
-NO_FEED, FEED_NOT_READY = 1011, 1013
+# RFC 6455 close codes: 1008 the request breaks this endpoint's rules, 1011 the server
+# cannot serve this at all, 1013 try again later.
+BAD_REQUEST, NO_FEED, FEED_NOT_READY = 1008, 1011, 1013
+
+# Events per batched frame: a viewer that fell behind catches up in frames of this many
+# instead of one frame of its whole queue (up to the hub's 10,000, some MB of JSON).
+MAX_FRAME_EVENTS = 1000
+
+_BOOL = TypeAdapter(bool)
 
 
 @router.websocket("/api/v1/live", dependencies=[Depends(SOCKET_READ)])
-async def live(websocket: WebSocket) -> None:
+async def live(websocket: WebSocket, batch: str = "false") -> None:
     """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`,
-    sent once the event is queryable through this API. With MAPSERVICE_API_READ_ACCESS=token
-    a browser sends its token as the subprotocol `bearer.<token>` next to `mapservice.live`."""
+    sent once the event is queryable through this API. With `?batch=true` each message is
+    instead a JSON array of one or more such events, in order, each exactly as sent alone
+    (its own `sent_ms`, the frame's send time): what had queued up for this viewer, at most
+    1,000 per message, so a busy floor costs one send per batch rather than per event. A
+    `batch` that is not a boolean (true/false, 1/0, yes/no, on/off) closes the socket
+    with 1008 and a reason. With MAPSERVICE_API_READ_ACCESS=token a browser sends its
+    token as the subprotocol `bearer.<token>` next to `mapservice.live`."""
     hub = websocket.app.state.live
     settings = websocket.app.state.settings
     if not origin_allowed(websocket.headers.get("origin"), websocket.headers.get("host"),
@@ -32,6 +47,13 @@ async def live(websocket: WebSocket) -> None:
         return
     offered = [p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",")]
     await websocket.accept(subprotocol=LIVE_SUBPROTOCOL if LIVE_SUBPROTOCOL in offered else None)
+    batched = _parse_bool(batch)
+    if batched is None:
+        # Parsed here, not as a `bool` parameter: FastAPI refuses a bad query value on a
+        # WebSocket before accept, which a client sees as a bare HTTP 403 without reason.
+        await websocket.close(code=BAD_REQUEST, reason=(
+            f"query parameter batch must be true or false, not {ascii(batch)[:40]}"))
+        return
     if hub is None:
         await websocket.close(code=NO_FEED, reason="this API process has no live feed")
         return
@@ -48,17 +70,50 @@ async def live(websocket: WebSocket) -> None:
         return
     queue = hub.subscribe()
     try:
-        while True:
-            message = await queue.get()
-            sent_ms = time.time_ns() // 1_000_000
-            if isinstance(message, LiveText):
-                # As it came from the live topic, with this send's time added: no decoding
-                # into a dict and encoding again, per message and viewer.
-                await websocket.send_text(message.with_sent_ms(sent_ms))
-            else:
-                # A copy: every subscriber's queue holds the same dict, and each stamps its own send.
-                await websocket.send_json({**message, "sent_ms": sent_ms})
+        await (_send_batches if batched else _send_each)(websocket, queue)
     except WebSocketDisconnect:
         pass
     finally:
         hub.unsubscribe(queue)
+
+
+def _parse_bool(value: str) -> bool | None:
+    """`value` as FastAPI reads a boolean query parameter (pydantic's rules), or None."""
+    try:
+        return _BOOL.validate_python(value)
+    except ValidationError:
+        return None
+
+
+async def _send_each(websocket: WebSocket, queue: asyncio.Queue) -> None:
+    """One message per event, as every client before `batch` expects."""
+    while True:
+        message = await queue.get()
+        await websocket.send_text(_event_text(message, _now_ms()))
+
+
+async def _send_batches(websocket: WebSocket, queue: asyncio.Queue) -> None:
+    """One message per batch: the next event and whatever queued up behind it, so at
+    thousands of events per second a send (a socket write) carries many of them."""
+    while True:
+        messages = [await queue.get()]
+        while len(messages) < MAX_FRAME_EVENTS and not queue.empty():
+            messages.append(queue.get_nowait())
+        sent_ms = _now_ms()
+        # Joined as text: each event's JSON is already there, no array to encode.
+        await websocket.send_text("[" + ",".join(_event_text(m, sent_ms) for m in messages) + "]")
+
+
+def _event_text(message: LiveText | dict, sent_ms: int) -> str:
+    """One event's JSON with `sent_ms` added."""
+    if isinstance(message, LiveText):
+        # As it came from the live topic, with this send's time added: no decoding
+        # into a dict and encoding again, per message and viewer.
+        return message.with_sent_ms(sent_ms)
+    # A copy: every subscriber's queue holds the same dict, and each stamps its own send.
+    # Encoded as WebSocket.send_json does, so the text is what it sent before.
+    return json.dumps({**message, "sent_ms": sent_ms}, separators=(",", ":"), ensure_ascii=False)
+
+
+def _now_ms() -> int:
+    return time.time_ns() // 1_000_000

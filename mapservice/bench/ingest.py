@@ -327,6 +327,9 @@ class QueryablePoller(threading.Thread):
                 self._halt.wait(max(self.interval_s - took, took))
 
 
+_LIVE_KINDS = {"pose": KEYS_PER_POSE, "chunk": KEYS_PER_CHUNK}
+
+
 class LiveListener(threading.Thread):
     """Notes when the API sent each event on its live WebSocket (`/api/v1/live`).
 
@@ -336,12 +339,13 @@ class LiveListener(threading.Thread):
     poll adds up to a poll cycle and its own duration. The server's stamp, not this
     thread's receive time, because this process also runs the load generator's 1,000
     robots and a thread here waits its turn for the GIL. It also stands for a live UI
-    watching the floor, which production has anyway.
+    watching the floor, which production has anyway, and asks for batched frames as the
+    UI does (`?batch=true`: a JSON array of events per message, each with its `sent_ms`).
     """
 
     def __init__(self, api_url: str) -> None:
         super().__init__(name="latency-live-listener", daemon=True)
-        self.ws_url = "ws" + api_url.removeprefix("http") + "/api/v1/live"
+        self.ws_url = "ws" + api_url.removeprefix("http") + "/api/v1/live?batch=true"
         self.pushed_at: dict[Key, float] = {}
         self.messages = 0
         self.errors = 0
@@ -355,7 +359,6 @@ class LiveListener(threading.Thread):
     def run(self) -> None:
         from websockets.sync.client import connect
 
-        kinds = {"pose": KEYS_PER_POSE, "chunk": KEYS_PER_CHUNK}
         try:
             with connect(self.ws_url, max_size=None, open_timeout=10, close_timeout=1) as ws:
                 self.connected.set()
@@ -364,16 +367,22 @@ class LiveListener(threading.Thread):
                         raw = ws.recv(timeout=0.5)
                     except TimeoutError:
                         continue
-                    self.messages += 1
-                    m = json.loads(raw)
-                    kind = kinds.get(m.get("type"))
-                    if kind is not None:
-                        self.pushed_at.setdefault((kind, m["robotId"], m["ts_ms"]), m["sent_ms"] / 1000)
+                    self.note(raw)
         except Exception as exc:  # noqa: BLE001 - reported with the results, the poll still counts
             self.errors += 1
             self.last_error = str(exc)[:200]
         finally:
             self.connected.set()  # never leave a waiter hanging
+
+    def note(self, raw: str | bytes) -> None:
+        """Notes the send time of each event in one message: a batched frame (a JSON
+        array) or a single event (a server from before batching)."""
+        data = json.loads(raw)
+        for m in data if isinstance(data, list) else [data]:
+            self.messages += 1  # events, whichever way they were framed
+            kind = _LIVE_KINDS.get(m.get("type"))
+            if kind is not None:
+                self.pushed_at.setdefault((kind, m["robotId"], m["ts_ms"]), m["sent_ms"] / 1000)
 
 
 class DrainWatch:

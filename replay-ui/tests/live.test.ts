@@ -1,5 +1,5 @@
 import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
-import { BACKOFF_CAP_MS, LiveConnection, STABLE_MS, backoffDelay } from "../src/lib/live";
+import { BACKOFF_CAP_MS, LiveConnection, STABLE_MS, backoffDelay, liveUrl } from "../src/lib/live";
 
 class FakeSocket {
   static all: FakeSocket[] = [];
@@ -111,5 +111,26 @@ describe("LiveConnection", () => {
     c.stop();
     vi.advanceTimersByTime(60_000);
     expect(FakeSocket.all).toHaveLength(1);
+  });
+
+  it("hands on each event of a batched frame in order, counts each, takes latency from the last", () => {
+    const got: { ts_ms: number }[] = [];
+    const c = new LiveConnection("ws://x", (m) => got.push(m), () => {});
+    c.start();
+    vi.setSystemTime(10_000);
+    const frame = [9_000, 9_500, 9_900].map((ts_ms) => ({ type: "pose", ts_ms, robotId: "r", sent_ms: 9_950 }));
+    FakeSocket.all[0].onmessage!({ data: JSON.stringify(frame) });
+    expect(got.map((m) => m.ts_ms)).toEqual([9_000, 9_500, 9_900]);
+    expect(c.status.messages).toBe(3);
+    expect(c.status.latencyMs).toBe(100);
+    // A server from before batching sends one object per message.
+    FakeSocket.all[0].onmessage!({ data: JSON.stringify({ type: "chunk", ts_ms: 9_950, robotId: "r" }) });
+    expect(got).toHaveLength(4);
+    expect(c.status.messages).toBe(4);
+  });
+
+  it("asks the page's own server for batched frames", () => {
+    expect(liveUrl({ protocol: "https:", host: "maps.example:8443" })).toBe("wss://maps.example:8443/api/v1/live?batch=true");
+    expect(liveUrl({ protocol: "http:", host: "localhost:8000" })).toBe("ws://localhost:8000/api/v1/live?batch=true");
   });
 });

@@ -67,11 +67,62 @@ def test_websocket_sends_a_live_text_as_it_came_with_its_send_time(ev):
     assert ws_json(raw)["robotId"] == "r7" and isinstance(ws_json(raw)["sent_ms"], int)
 
 
+def test_batched_frames_carry_several_events_in_order_each_with_sent_ms(ev):
+    """With ?batch=true what queued up arrives as one JSON array, in order, each event with its sent_ms."""
+    from mapservice.core.live_messages import live_record_texts, live_records
+
+    hub = LiveHub()
+    texts = live_record_texts(live_records([ev.pose("r1", 1_000), ev.chunk("r1", 2_000)])[0])
+    queued = [texts[0], live_message(ev.pose("r2", 3_000)), texts[1]]  # relayed texts and dicts
+    with viewer(hub, "?batch=true") as (client, ws):
+        client.portal.call(lambda: hub.publish(queued))
+        frame = ws.receive_json()
+    assert isinstance(frame, list) and len(frame) == 3
+    assert [(m["type"], m["robotId"], m["ts_ms"]) for m in frame] == [
+        ("pose", "r1", 1_000), ("pose", "r2", 3_000), ("chunk", "r1", 2_000)]
+    assert all(isinstance(m["sent_ms"], int) for m in frame)
+    assert {k: v for k, v in frame[1].items() if k != "sent_ms"} == queued[1]  # each event as sent alone
+
+
+def test_batched_frames_hold_at_most_1000_events(ev):
+    """1,500 events queued while the client is not reading arrive in frames of at most 1,000, all in order."""
+    hub = LiveHub()
+    messages = [live_message(ev.pose("r1", t)) for t in range(1, 1_501)]
+    with viewer(hub, "?batch=true") as (client, ws):
+        client.portal.call(lambda: hub.publish(messages))
+        frames = [ws.receive_json()]
+        while sum(map(len, frames)) < 1_500:
+            frames.append(ws.receive_json())
+    assert max(map(len, frames)) == 1_000
+    assert [m["ts_ms"] for frame in frames for m in frame] == list(range(1, 1_501))
+
+
+def test_unbatched_stream_sends_one_event_per_message(ev):
+    """Without batch (and with batch=false) each message is one JSON object, as before batching existed."""
+    hub = LiveHub()
+    for query in ("", "?batch=false"):
+        with viewer(hub, query) as (client, ws):
+            client.portal.call(lambda: hub.publish([live_message(ev.pose("r1", t)) for t in (1, 2)]))
+            got = [ws.receive_json(), ws.receive_json()]
+        assert [(type(m), m["ts_ms"]) for m in got] == [(dict, 1), (dict, 2)]
+        assert all("sent_ms" in m for m in got)
+
+
+def test_a_bad_batch_value_is_refused_with_a_reason():
+    """?batch=maybe is accepted, then closed with 1008 and a reason naming the parameter."""
+    client = TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=LiveHub()))
+    # Accepted first: a close before accept reaches a real client as a bare HTTP 403.
+    with client.websocket_connect("/api/v1/live?batch=maybe") as ws:
+        closed = ws.receive()
+    assert closed["type"] == "websocket.close" and closed["code"] == 1008
+    assert closed["reason"] == "query parameter batch must be true or false, not 'maybe'"
+
+
 @contextmanager
-def viewer(hub: LiveHub):
-    """An app on `hub` and a WebSocket on /api/v1/live, once the hub counts it."""
+def viewer(hub: LiveHub, query: str = ""):
+    """An app on `hub` and a WebSocket on /api/v1/live (plus `query`), once the hub counts it."""
     with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
-            client.websocket_connect("/api/v1/live") as ws:
+            client.websocket_connect("/api/v1/live" + query) as ws:
         for _ in range(100):
             if hub.subscribers:
                 break

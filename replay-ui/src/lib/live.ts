@@ -1,6 +1,7 @@
 /**
  * The API's live WebSocket with automatic reconnect and latency: the time from a robot's
  * event to this page (clock skew included) and from the server's send to this page.
+ * Events come in batched frames (a JSON array each); a single object is still understood.
  *
  * Reconnects back off exponentially with jitter (1 s doubling to 30 s, each wait drawn
  * from its upper half), and the backoff resets only once a connection proved itself
@@ -72,11 +73,16 @@ export class LiveConnection {
     };
     ws.onmessage = (e) => {
       this.failures = 0;
-      const m = JSON.parse(e.data) as LiveMessage;
-      this.status.messages++;
-      const lag = Date.now() - m.ts_ms;
+      const data = JSON.parse(e.data) as LiveMessage | LiveMessage[];
+      // A batch (we ask for ?batch=true) or one event (servers from before batching).
+      const events = Array.isArray(data) ? data : [data];
+      if (events.length === 0) return;
+      this.status.messages += events.length;
+      // One latency sample per frame, from its newest event: the smoothing stays per
+      // arrival rather than being swamped by a catch-up frame of a thousand old events.
+      const lag = Date.now() - events[events.length - 1].ts_ms;
       this.status.latencyMs = this.status.latencyMs === null ? lag : Math.round(0.8 * this.status.latencyMs + 0.2 * lag);
-      this.onMessage(m);
+      for (const m of events) this.onMessage(m);
     };
     ws.onclose = () => {
       this.status.connected = false;
@@ -89,6 +95,8 @@ export class LiveConnection {
   }
 }
 
-export function liveUrl(loc: Location): string {
-  return `${loc.protocol === "https:" ? "wss" : "ws"}://${loc.host}/api/v1/live`;
+/** The live stream of the page's own server, in batched frames: at thousands of events
+ * a second one message (and one onmessage) per batch rather than per event. */
+export function liveUrl(loc: Pick<Location, "protocol" | "host">): string {
+  return `${loc.protocol === "https:" ? "wss" : "ws"}://${loc.host}/api/v1/live?batch=true`;
 }

@@ -1,5 +1,7 @@
 """Unit tests of the ingest benchmark's latency arithmetic (no brokers)."""
-from mapservice.bench.ingest import INF, _latencies, _stage_latencies, queryable_times
+import json
+
+from mapservice.bench.ingest import INF, LiveListener, _latencies, _stage_latencies, queryable_times
 
 KEY = ("pose", "r1", 1_700_000_000_000)
 
@@ -26,6 +28,19 @@ def test_an_event_is_queryable_at_the_earlier_of_its_push_and_its_first_poll() -
     other, pushed_only = ("chunk", "r2", 5), ("pose", "r3", 7)
     at = queryable_times({KEY: 10.0, other: 20.0}, {KEY: 9.5, other: 20.5, pushed_only: 30.0})
     assert at == {KEY: 9.5, other: 20.0, pushed_only: 30.0}
+
+
+def test_the_live_listener_notes_each_event_of_a_batched_frame_and_of_a_single_message() -> None:
+    """It asks for batched frames; each event of an array counts, as does a lone object
+    (a server from before batching); the first send of an event is the one kept."""
+    listener = LiveListener("http://127.0.0.1:8000")
+    assert listener.ws_url == "ws://127.0.0.1:8000/api/v1/live?batch=true"
+    pose = {"type": "pose", "robotId": "r1", "ts_ms": 1_000, "sent_ms": 1_500}
+    chunk = {"type": "chunk", "robotId": "r1", "ts_ms": 2_000, "sent_ms": 2_500}
+    listener.note(json.dumps([pose, chunk]))
+    listener.note(json.dumps({**pose, "sent_ms": 9_000}))
+    assert listener.pushed_at == {("pose", "r1", 1_000): 1.5, ("chunk", "r1", 2_000): 2.5}
+    assert listener.messages == 3
 
 
 def test_latency_bounds_and_unseen_events_count_as_infinite() -> None:
