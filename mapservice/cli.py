@@ -13,6 +13,7 @@ from pathlib import Path
 
 from mapservice.robot import DEFAULT_MAP
 from mapservice.settings import Settings
+from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.startup import settings_for
 
 
@@ -23,6 +24,7 @@ def cmd_gateway(args) -> None:
 
     settings = settings_for("gateway")
     ensure_topics(settings)
+    freeze_startup_heap()
     run_gateway(settings, args.health_port)
 
 

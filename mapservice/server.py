@@ -24,6 +24,7 @@ from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.runtime.health import CachedCheck, Heartbeat, beat_forever, kafka_check
 from mapservice.runtime.health_server import serve_health
+from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
 from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.api.live_hub import LiveHub
@@ -162,6 +163,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
+            freeze_startup_heap()  # everything is built: the app, the processors, their clients
             await server.serve()
         else:
             stop = asyncio.Event()
@@ -174,6 +176,7 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
 
                 serve_health(settings.api_host, health_port, lambda: report(liveness),
                              lambda: report(readiness), metrics_gate(settings))
+            freeze_startup_heap()
             await stop.wait()
     finally:
         beating.cancel()

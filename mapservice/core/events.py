@@ -15,8 +15,12 @@ import msgspec
 
 SCHEMA_VERSION = 1
 
+# Every record below is frozen and holds only immutable values, so it cannot be part of a
+# reference cycle: `gc=False` keeps the many alive at once out of the cyclic collector's
+# full collections (mapservice/runtime/heap.py says what those cost).
 
-class ChunkUpdated(msgspec.Struct, frozen=True, tag="chunk.updated", array_like=True):
+
+class ChunkUpdated(msgspec.Struct, frozen=True, gc=False, tag="chunk.updated", array_like=True):
     """A robot wrote one chunk of the shared map."""
 
     row: int
@@ -27,7 +31,7 @@ class ChunkUpdated(msgspec.Struct, frozen=True, tag="chunk.updated", array_like=
     content_hash: bytes  # blake2b-128 of the decompressed pixels
 
 
-class PoseReported(msgspec.Struct, frozen=True, tag="pose.reported", array_like=True):
+class PoseReported(msgspec.Struct, frozen=True, gc=False, tag="pose.reported", array_like=True):
     """A robot's pose and status at one instant (positions in metres)."""
 
     position: tuple[float, float, float]
@@ -39,7 +43,7 @@ class PoseReported(msgspec.Struct, frozen=True, tag="pose.reported", array_like=
     path: tuple[tuple[float, float], ...] | None = None
 
 
-class MapMetaSet(msgspec.Struct, frozen=True, tag="map.meta_set", array_like=True):
+class MapMetaSet(msgspec.Struct, frozen=True, gc=False, tag="map.meta_set", array_like=True):
     """The map's geometry: the 2019 meta.json plus ROS `resolution` and `origin`."""
 
     width: int
@@ -90,7 +94,7 @@ class MapMetaSet(msgspec.Struct, frozen=True, tag="map.meta_set", array_like=Tru
 Payload = Union[ChunkUpdated, PoseReported, MapMetaSet]
 
 
-class Envelope(msgspec.Struct, frozen=True, array_like=True):
+class Envelope(msgspec.Struct, frozen=True, gc=False, array_like=True):
     """What travels on Kafka: an immutable event with its identity and two clocks."""
 
     event_id: str
@@ -164,7 +168,7 @@ def decode(data: bytes) -> Envelope:
     return _decoder.decode(data)
 
 
-class DeadLetter(msgspec.Struct, frozen=True):
+class DeadLetter(msgspec.Struct, frozen=True, gc=False):
     """A rejected MQTT message: the original bytes, where it came from and why."""
 
     reason: str

@@ -94,7 +94,7 @@ def advertisement(e: Envelope, public_base_url: str) -> dict:
 # --- robots ------------------------------------------------------------------------------
 
 
-class RobotState(msgspec.Struct, frozen=True):
+class RobotState(msgspec.Struct, frozen=True, gc=False):  # gc=False: core/ports.py says why
     robot_id: str
     ts_ms: int  # event time of its latest pose
     receive_time_ms: int  # that pose's receive time

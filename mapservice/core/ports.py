@@ -39,7 +39,9 @@ class LiveFeed(Protocol):
         """Called after `events` are in the history, so queryable."""
 
 
-class PoseRow(msgspec.Struct, frozen=True, array_like=True):
+# The records are frozen and hold only immutable values, so none can be part of a reference
+# cycle: `gc=False` keeps them out of the cyclic collector (mapservice/runtime/heap.py).
+class PoseRow(msgspec.Struct, frozen=True, gc=False, array_like=True):
     robot_id: str
     ts_ms: int
     x: float
@@ -56,7 +58,7 @@ class PoseRow(msgspec.Struct, frozen=True, array_like=True):
     receive_time_ms: int
 
 
-class ChunkRow(msgspec.Struct, frozen=True, array_like=True):
+class ChunkRow(msgspec.Struct, frozen=True, gc=False, array_like=True):
     row: int
     column: int
     ts_ms: int
@@ -65,7 +67,7 @@ class ChunkRow(msgspec.Struct, frozen=True, array_like=True):
     receive_time_ms: int
 
 
-class ChunkState(msgspec.Struct, frozen=True, array_like=True):
+class ChunkState(msgspec.Struct, frozen=True, gc=False, array_like=True):
     """A chunk's current version in a map at an instant: which write, not its pixels."""
 
     row: int
@@ -75,7 +77,7 @@ class ChunkState(msgspec.Struct, frozen=True, array_like=True):
     content_hash: str  # hex
 
 
-class SourceRecord(msgspec.Struct, frozen=True):
+class SourceRecord(msgspec.Struct, frozen=True, gc=False):
     topic: str
     partition: int
     offset: int
@@ -97,14 +99,14 @@ class EventSource(Protocol):
     def close(self) -> None: ...
 
 
-class Counts(msgspec.Struct, frozen=True):
+class Counts(msgspec.Struct, frozen=True, gc=False):
     poses: int
     chunk_events: int
     chunk_contents: int
     dead_letters: int
 
 
-class ConflictRow(msgspec.Struct, frozen=True, array_like=True):
+class ConflictRow(msgspec.Struct, frozen=True, gc=False, array_like=True):
     """Two robots wrote different content to one chunk within the conflict window:
     `robot_a` at `ts_a_ms` first, `robot_b` at `ts_ms` (the later write's event time).
     Both writes, with their contents, are in the chunk history under these identities."""
@@ -117,7 +119,7 @@ class ConflictRow(msgspec.Struct, frozen=True, array_like=True):
     robot_b: str
 
 
-class TimelineBucket(msgspec.Struct, frozen=True, array_like=True):
+class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     """Activity in [start_ms, start_ms + bucket_ms): chunk writes, conflicts (by their
     `ts`) and robots with at least one pose."""
 
