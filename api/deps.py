@@ -83,9 +83,10 @@ def window_in_retention(
     return f, t
 
 
-def check_step(step_ms: int) -> int:
-    """A downsampling step: 0 (every pose) or a positive number of milliseconds."""
+def check_step(step_ms: int, name: str = "step_ms", every: str = "every pose") -> int:
+    """A downsampling step: 0 (`every` row) or a positive number of milliseconds; a
+    negative one is a 400 naming the parameter `name`, as every bad value's meaning is."""
     if step_ms < 0:
-        raise HTTPException(400, f"step_ms ({step_ms}) is negative; use 0 for every pose or "
+        raise HTTPException(400, f"{name} ({step_ms}) is negative; use 0 for {every} or "
                                  "a positive step in milliseconds")
     return step_ms

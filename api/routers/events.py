@@ -14,7 +14,7 @@ at query time; the map folded from them is exact at every bucket boundary.
 from __future__ import annotations
 
 import msgspec
-from fastapi import APIRouter, Depends, HTTPException, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
 from mapservice.core.ports import Clock, HistoryStore
@@ -79,9 +79,7 @@ def list_events(
     clock: Clock = Depends(get_clock),
 ) -> Response:
     check_step(step_ms)
-    if chunk_step_ms < 0:
-        raise HTTPException(422, f"chunk_step_ms ({chunk_step_ms}) is negative; use 0 for every "
-                                 "chunk change or a positive bucket in milliseconds")
+    check_step(chunk_step_ms, "chunk_step_ms", "every chunk change")
     f, t = window_in_retention(from_, to, MAX_SPAN_MS, settings, clock.now_ms())
     chunks = (store.chunk_events_compacted(f, t, chunk_step_ms, MAX_CHUNKS + 1)
               if chunk_step_ms > 0 else store.chunk_events(f, t, MAX_CHUNKS + 1))

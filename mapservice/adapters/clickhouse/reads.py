@@ -16,7 +16,7 @@ import msgspec
 from mapservice.core.events import MapMetaSet
 from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket
 from mapservice.core.timetravel import timeline_buckets
-from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS, _pose_rows
+from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
 from mapservice.adapters.clickhouse.schema import KEYFRAME_MS, POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 

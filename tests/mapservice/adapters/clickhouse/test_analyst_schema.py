@@ -11,7 +11,7 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clickhouse.analyst_schema import LATER_TABLE_COMMENTS, TABLE_COMMENTS, VIEWS
-from mapservice.core.events import MapMetaSet, PoseReported, make_envelope
+from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.ports import ConflictRow
 from mapservice.core.wire2019 import content_hash
 from robot.chunks import metres_to_pixel
