@@ -1,5 +1,6 @@
 import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
 import type { MapAt } from "../src/lib/api";
+import type { Speed } from "../src/lib/clock";
 import { FRAME_WAIT_MAX_MS, ReplayEngine, SETTLE_MS } from "../src/lib/engine";
 import type { EventWindow, RobotAt } from "../src/lib/types";
 
@@ -37,6 +38,19 @@ function makeEngine() {
     pictures: vi.spyOn(engine.images, "requestMany").mockImplementation(() => {}),
   };
   return { engine, map, robots, calls, advance: (ms: number) => (perf += ms) };
+}
+
+/** An engine seeked to T (at `speed`, if given, before the seek) with the map and `robots`
+ * answered and a 1 x 3 chunk grid known. */
+async function seekedEngine(opts: { speed?: Speed; robots?: RobotAt[] } = {}) {
+  const e = makeEngine();
+  if (opts.speed !== undefined) e.engine.clock.setSpeed(opts.speed, NOW);
+  const done = e.engine.seek(T);
+  e.map.resolve(MAP);
+  e.robots.resolve(opts.robots ?? ROBOTS);
+  await done;
+  e.engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+  return e;
 }
 
 beforeEach(() => {
@@ -90,18 +104,8 @@ describe("seek", () => {
 });
 
 describe("look-ahead after a seek", () => {
-  async function seeked() {
-    const e = makeEngine();
-    const done = e.engine.seek(T);
-    e.map.resolve(MAP);
-    e.robots.resolve(ROBOTS);
-    await done;
-    e.engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
-    return e;
-  }
-
   it("paused: waits for the seek's first frame, then for the playhead to settle", async () => {
-    const { engine, calls, advance } = await seeked();
+    const { engine, calls, advance } = await seekedEngine();
     engine.frame();
     expect(calls.events).not.toHaveBeenCalled(); // the frame is not drawn yet
     engine.seekFrameDrawn();
@@ -115,7 +119,7 @@ describe("look-ahead after a seek", () => {
   });
 
   it("playing: fetched as soon as the seek's first frame is drawn", async () => {
-    const { engine, calls } = await seeked();
+    const { engine, calls } = await seekedEngine();
     engine.clock.play(NOW);
     engine.frame();
     expect(calls.events).not.toHaveBeenCalled();
@@ -125,7 +129,7 @@ describe("look-ahead after a seek", () => {
   });
 
   it("a frame that never completes holds the look-ahead back only for a while", async () => {
-    const { engine, calls, advance } = await seeked();
+    const { engine, calls, advance } = await seekedEngine();
     engine.clock.play(NOW);
     advance(FRAME_WAIT_MAX_MS - 1);
     engine.frame();
@@ -138,13 +142,7 @@ describe("look-ahead after a seek", () => {
 
 describe("pausing above 60x", () => {
   it("replaces the compacted map with the exact one at the resting playhead, once", async () => {
-    const { engine, map, robots, calls, advance } = makeEngine();
-    engine.clock.setSpeed(3600, NOW);
-    const done = engine.seek(T);
-    map.resolve(MAP);
-    robots.resolve(ROBOTS);
-    await done;
-    engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    const { engine, calls, advance } = await seekedEngine({ speed: 3600 });
     engine.seekFrameDrawn();
     expect(engine.buffer.chunkStepMs).toBe(60_000);
     // Compacted writes moved the map past the seek: only bucket boundaries are exact now.
@@ -167,13 +165,7 @@ describe("pausing above 60x", () => {
 
 describe("pausing above 60x, the server failing", () => {
   it("does not ask again every frame for the exact map at the same playhead", async () => {
-    const { engine, map, robots, calls, advance } = makeEngine();
-    engine.clock.setSpeed(3600, NOW);
-    const done = engine.seek(T);
-    map.resolve(MAP);
-    robots.resolve(ROBOTS);
-    await done;
-    engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    const { engine, calls, advance } = await seekedEngine({ speed: 3600 });
     engine.seekFrameDrawn();
     engine.buffer.to = T + 120_000;
     engine.clock.hold(T + 40_000, NOW);
@@ -194,12 +186,7 @@ describe("robots at the playhead", () => {
   });
 
   async function seekedWith(robots: RobotAt[]) {
-    const e = makeEngine();
-    const done = e.engine.seek(T);
-    e.map.resolve(MAP);
-    e.robots.resolve(robots);
-    await done;
-    e.engine.meta = { CHUNK_ROWS: 1, CHUNK_COLS: 3, CHUNK_WIDTH: 100, CHUNK_HEIGHT: 100 } as never;
+    const e = await seekedEngine({ robots });
     e.engine.seekFrameDrawn();
     return e;
   }
