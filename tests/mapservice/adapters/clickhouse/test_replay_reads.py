@@ -15,20 +15,10 @@ from mapservice.adapters.memory_store import MemoryStore
 _db = itertools.count()
 
 
-@pytest.fixture(scope="module")
-def chdb_path(tmp_path_factory):
-    """One chDB engine for the module, one database per test."""
-    path = tmp_path_factory.mktemp("replay") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="replay_root")
-    root.migrate()
-    yield path
-    root.close()
-
-
 @pytest.fixture
-def store(chdb_path):
+def store(chdb_dir):
     """An empty, migrated ClickHouseStore with 10-minute snapshots."""
-    s = ClickHouseStore(f"chdb://{chdb_path}", database=f"replay_{next(_db)}",
+    s = ClickHouseStore(f"chdb://{chdb_dir}", database=f"replay_{next(_db)}",
                         snapshot_every_ms=600_000)
     s.migrate()
     yield s
@@ -86,9 +76,9 @@ WINDOWS = [  # (from offset, to offset, buckets)
 ]
 
 
-def _stores(chdb_path, ev, h0):
+def _stores(chdb_dir, ev, h0):
     memory = MemoryStore()
-    ch = ClickHouseStore(f"chdb://{chdb_path}", database=f"replay_{next(_db)}",
+    ch = ClickHouseStore(f"chdb://{chdb_dir}", database=f"replay_{next(_db)}",
                          snapshot_every_ms=600_000)
     ch.migrate()
     events, late = _history(ev, h0)
@@ -98,11 +88,11 @@ def _stores(chdb_path, ev, h0):
     return memory, ch, late
 
 
-def test_timeline_equals_the_fold_before_and_after_snapshots_and_repairs(chdb_path, ev, h0) -> None:
+def test_timeline_equals_the_fold_before_and_after_snapshots_and_repairs(chdb_dir, ev, h0) -> None:
     """The timeline equals MemoryStore's (every event) for whole-minute, off-minute and
     off-second buckets, short ones, windows past the newest snapshot, with a late pose, a
     late write and a re-delivered write pending repair, and once repaired."""
-    memory, ch, late = _stores(chdb_path, ev, h0)
+    memory, ch, late = _stores(chdb_dir, ev, h0)
     try:
         def check():
             for lo, hi, n in WINDOWS:
@@ -122,11 +112,11 @@ def test_timeline_equals_the_fold_before_and_after_snapshots_and_repairs(chdb_pa
         ch.close()
 
 
-def test_timeline_reads_chunk_seconds_and_pose_minutes(chdb_path, ev, h0) -> None:
+def test_timeline_reads_chunk_seconds_and_pose_minutes(chdb_dir, ev, h0) -> None:
     """Covered seconds are counted from chunk_seconds and whole minutes' robots from
     pose_minutes: with those events deleted from chunk_events and poses, the timeline of
     buckets of a minute or more is unchanged."""
-    memory, ch, _ = _stores(chdb_path, ev, h0)
+    memory, ch, _ = _stores(chdb_dir, ev, h0)
     try:
         ch.build_snapshots(h0 + 30 * 60_000)
         def read():  # chunk changes of every window, robots of those with buckets >= 1 min
@@ -144,11 +134,11 @@ def test_timeline_reads_chunk_seconds_and_pose_minutes(chdb_path, ev, h0) -> Non
         ch.close()
 
 
-def test_robots_at_equals_the_fold(chdb_path, ev, h0) -> None:
+def test_robots_at_equals_the_fold(chdb_dir, ev, h0) -> None:
     """robots_at equals the fold of every pose at instants before, at and between
     snapshots, at minute edges, for a robot silent since long before T, with a late pose
     pending repair and once repaired."""
-    memory, ch, late = _stores(chdb_path, ev, h0)
+    memory, ch, late = _stores(chdb_dir, ev, h0)
     try:
         instants = [h0 - 1, h0 + 500, h0 + 600_000, h0 + 600_001, h0 + 1_260_000, h0 + 1_799_999,
                     h0 + 2_400_000 + 59_999, h0 + 3_600_000, h0 + 301_600]
@@ -164,10 +154,10 @@ def test_robots_at_equals_the_fold(chdb_path, ev, h0) -> None:
         ch.close()
 
 
-def test_whole_minute_downsampling_stops_at_the_limit_in_time_order(chdb_path, ev, h0) -> None:
+def test_whole_minute_downsampling_stops_at_the_limit_in_time_order(chdb_dir, ev, h0) -> None:
     """Keyframe reads in (cell, robot) order give the first pose per robot and step and
     the earliest `limit` of them, as the fold does, for steps of one and several minutes."""
-    memory, ch, _ = _stores(chdb_path, ev, h0)
+    memory, ch, _ = _stores(chdb_dir, ev, h0)
     try:
         for f, t, step, limit in [(h0, h0 + 2_400_000, 60_000, 50), (h0 + 60_000, h0 + 2_000_000, 180_000, 7),
                                   (h0, h0 + 2_400_000, 600_000, 100_000)]:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import itertools
 import time
 
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -17,16 +16,6 @@ from mapservice.core.wire2019 import content_hash
 EVERY_MS = 60_000
 SPAN_MS = 10 * EVERY_MS
 _db = itertools.count()
-
-
-@pytest.fixture(scope="module")
-def chdb_path(tmp_path_factory):
-    """One chDB engine for the module (two databases per example)."""
-    path = tmp_path_factory.mktemp("bulk") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="bulk_root")
-    root.migrate()
-    yield path
-    root.close()
 
 
 def _event(e, base: int):
@@ -57,12 +46,12 @@ def _rows(store) -> tuple:
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(first=events, late=events, middle=st.integers(-1, SPAN_MS // EVERY_MS),
        per_query=st.integers(1, 12), redeliver=st.booleans())
-def test_bulk_equals_one_by_one(chdb_path, first, late, middle, per_query, redeliver):
+def test_bulk_equals_one_by_one(chdb_dir, first, late, middle, per_query, redeliver):
     """Same history and earlier snapshots: bulk and one-by-one give identical snapshot rows."""
     base = (time.time_ns() // 1_000_000 // EVERY_MS) * EVERY_MS - 2 * 3_600_000
-    one = ClickHouseStore(f"chdb://{chdb_path}", database=f"bulk_{next(_db)}",
+    one = ClickHouseStore(f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}",
                           snapshot_every_ms=EVERY_MS)
-    bulk = ClickHouseStore(f"chdb://{chdb_path}", database=f"bulk_{next(_db)}",
+    bulk = ClickHouseStore(f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}",
                            snapshot_every_ms=EVERY_MS)
     batch1 = list({e.event_id: e for e in (_event(e, base) for e in first)}.values())
     batch2 = [e for e in (_event(e, base) for e in late) if e.event_id not in
@@ -84,10 +73,10 @@ def test_bulk_equals_one_by_one(chdb_path, first, late, middle, per_query, redel
         bulk.close()
 
 
-def test_robots_at_mixes_recent_and_silent_robots(chdb_path):
+def test_robots_at_mixes_recent_and_silent_robots(chdb_dir):
     """robots_at after a snapshot: robots that reported since it and robots silent since."""
     base = (time.time_ns() // 1_000_000 // EVERY_MS) * EVERY_MS - 2 * 3_600_000
-    store = ClickHouseStore(f"chdb://{chdb_path}", database=f"bulk_{next(_db)}",
+    store = ClickHouseStore(f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}",
                             snapshot_every_ms=EVERY_MS)
     try:
         store.migrate()
