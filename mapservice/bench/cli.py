@@ -21,6 +21,10 @@ def add_bench_parser(sub) -> None:
                              "generator before issue 16)")
     ingest.add_argument("--loadgen-processes", type=int, default=None,
                         help="raw load fleet: worker processes (default: one per 4,000 robots)")
+    ingest.add_argument("--gateways", type=int, default=1,
+                        help="gateway processes; more than one share the robots' topics through "
+                             "an MQTT shared subscription (as the gateway Deployment's replicas "
+                             "do); their CPU is reported together as the gateway's")
     ingest.add_argument("--find-ceiling", action="store_true",
                         help="step the fleet up from --robots by --ceiling-step (each step --repeat "
                              "runs, judged on their medians) until a step misses a bound; states the "

@@ -186,6 +186,8 @@ class CpuMeter:
         CPU time (they exit when the fleet is done, before `after` could sample them)."""
         wall = after["_wall"] - before["_wall"]
         pct = {k: 100.0 * (after[k] - before[k]) / wall for k in before if not k.startswith("_")}
+        for name in [k for k in pct if k.startswith("gateway-")]:  # replicas count as the gateway
+            pct["gateway"] += pct.pop(name)
         bench = 100.0 * (after["_bench_process"] - before["_bench_process"]) / wall
         poller = 100.0 * (after["_poller_thread"] - before["_poller_thread"]) / wall
         workers = 100.0 * (workers_cpu_s if workers_cpu_s is not None else
@@ -411,6 +413,21 @@ class DrainWatch:
         return elapsed_s >= self.max_s or elapsed_s - self._last_growth_s >= self.stall_s
 
 
+def gateway_acks(health_ports: list[int]) -> list[float]:
+    """Each gateway's messages handled and confirmed by Kafka so far (accepted and rejected,
+    `mapservice_gateway_messages_total` on its health port's /metrics)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    counts = []
+    for port in health_ports:
+        text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+        counts.append(sum(sample.value for family in text_string_to_metric_families(text)
+                          if family.name == "mapservice_gateway_messages"
+                          for sample in family.samples
+                          if sample.name == "mapservice_gateway_messages_total"))
+    return counts
+
+
 def queryable_times(first_polled: dict[Key, float], pushed: dict[Key, float]) -> dict[Key, float]:
     """Per event, the earliest moment it is known to be queryable: the end of the first
     poll that returned it or the sending of its live push, whichever came first."""
@@ -591,17 +608,19 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
     data_dir.mkdir(parents=True, exist_ok=True)
     ros_map = load_ros_map(DEFAULT_MAP)
-    stack = Stack(data_dir, mqtt=args.mqtt)
-    result: dict = {"data_dir": str(data_dir)}
+    gateways = getattr(args, "gateways", 1)
+    stack = Stack(data_dir, mqtt=args.mqtt, gateways=gateways)
+    result: dict = {"data_dir": str(data_dir), "gateways": gateways}
     poller: QueryablePoller | None = None
     listener: LiveListener | None = None
     try:
         t_start = time.monotonic()
-        with console.status(f"run {run}/{runs}: starting tansu, {args.mqtt}, server, gateway..."):
+        with console.status(f"run {run}/{runs}: starting tansu, {args.mqtt}, server, "
+                            f"{gateways} gateway(s)..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
             stack.start_server()
-            stack.start_gateway()
+            stack.start_gateways()
         result["stack_start_s"] = time.monotonic() - t_start
 
         # Warm-up: proves MQTT -> gateway -> Kafka -> processors -> ClickHouse -> API is live.
@@ -657,6 +676,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 fleet_error.append(exc)
 
         driver = threading.Thread(target=drive, name="loadgen", daemon=True)
+        acked_before = gateway_acks(stack.gateway_health_ports)
         cpu_before = meter.snapshot()
         started_wall = time.time()
         fleet_t0 = time.monotonic()
@@ -714,6 +734,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             drain_s = drain.drained_s
             drain_waited_s = time.monotonic() - drain_t0
             stats_client.close()
+            acked = [after - before for before, after in
+                     zip(acked_before, gateway_acks(stack.gateway_health_ports))]
         console.print(_status_line(run, runs, "done", time.monotonic() - fleet_t0, args.seconds,
                                    fleet, poller, started_wall))
         poller.stop()
@@ -777,6 +799,11 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "drain_s": drain_s,
             "drain_waited_s": drain_waited_s,
             "drained": drain_s is not None,
+            # What the gateways had Kafka confirm (and so acknowledged to the broker) during
+            # the run, against what the robots had acknowledged: 0 if the broker passed on
+            # every message. With events lost, it says on which side of the gateways.
+            "gateway_acked_by_replica": acked,
+            "gateway_acked_minus_published": sum(acked) - len(keys),
             "latency_samples": len(upper),
             "latency_censored": sum(1 for v in upper if v == INF),
             "latency_p50_s": _pct(upper, 50),
@@ -1047,7 +1074,19 @@ def run_series(args, base: Path, console) -> tuple[list[dict], dict]:
                       f"{result['sustained_events_per_s']:,.0f}/s, "
                       f"{_mb(result['bytes_per_robot_day'])}/robot-day, CPU {cpu['stack_total']:.0f} % "
                       f"stack + {cpu['loadgen']:.0f} % loadgen, load {result['loadavg_1min_after_fleet']:.2f}")
+        if result["lost"]:
+            console.print(f"[red]{loss_side(result['gateway_acked_minus_published'])}[/red]")
     return runs, medians(runs)
+
+
+def loss_side(acked_minus_published: float) -> str:
+    """Where lost events went missing, from what the gateways had Kafka confirm."""
+    if acked_minus_published < 0:
+        return (f"the gateways had {-acked_minus_published:.0f} fewer messages confirmed than the "
+                "robots had acknowledged: the MQTT broker did not pass them on (or a gateway "
+                "still holds them); see the broker's and the gateways' logs")
+    return ("the gateways had every published message confirmed by Kafka: the events were lost "
+            "after them (Kafka, the history consumer or the store); see the server's log")
 
 
 def ceiling_verdict(steps: list[dict]) -> int | None:

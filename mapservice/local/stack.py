@@ -82,6 +82,11 @@ class Stack:
     # A TLS listener too (a local CA in DATA_DIR/tls/), which the components connect through.
     mqtt_tls: bool = False
     mqtt_tls_port: int = 0
+    # Gateway replicas: more than one share the robots' topics through an MQTT shared
+    # subscription (as the gateway Deployment's replicas do), each with its own client id
+    # (so its own persistent session) and health port.
+    gateways: int = 1
+    gateway_health_ports: list[int] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -89,6 +94,10 @@ class Stack:
         self.api_port = self.api_port or embedded.free_port()
         self.kafka_port = self.kafka_port or embedded.free_port()
         self.health_port = self.health_port or embedded.free_port()
+        if self.gateways < 1:
+            raise ValueError(f"gateways must be at least 1, not {self.gateways}")
+        self.gateway_health_ports = [self.health_port] + [
+            embedded.free_port() for _ in range(self.gateways - 1)]
         if self.mqtt in ("amqtt", "mosquitto"):
             self.mqtt_port = self.mqtt_port or embedded.free_port()
             self.mqtt_url = f"mqtt://127.0.0.1:{self.mqtt_port}"
@@ -139,7 +148,7 @@ class Stack:
             env.update({"MAPSERVICE_MQTT_URL": self.mqtts_url,
                         "MAPSERVICE_MQTT_CA_FILE": str(self.ca_file)})
         if self.mqtt_auth and component is not None:
-            user = (GATEWAY_USER if component == "gateway" else
+            user = (GATEWAY_USER if component.startswith("gateway") else
                     PROCESSORS_USER if component.startswith(("server", "processors")) else None)
             if user is not None:
                 env.update({"MAPSERVICE_MQTT_USERNAME": user,
@@ -160,7 +169,20 @@ class Stack:
             "PYTHONUNBUFFERED": "1",
             **self._mqtt_env(component),
             **self.extra_env,
+            **self._gateway_replica_env(component),
         }
+
+    def _gateway_replica_env(self, component: str | None) -> dict[str, str]:
+        """With several gateways: each replica's client id, and the shared subscription's
+        group (MAPSERVICE_MQTT_SHARE_GROUP if set, else `mapservice-gateways`)."""
+        if self.gateways == 1 or component is None or not component.startswith("gateway"):
+            return {}
+        replica = 1 if component == "gateway" else int(component.rsplit("-", 1)[1])
+        settings_env = {**os.environ, **self.extra_env}
+        base = settings_env.get("MAPSERVICE_MQTT_CLIENT_ID", "mapservice-gateway")
+        return {"MAPSERVICE_MQTT_CLIENT_ID": f"{base}-{replica}",
+                "MAPSERVICE_MQTT_SHARE_GROUP": settings_env.get("MAPSERVICE_MQTT_SHARE_GROUP")
+                or "mapservice-gateways"}
 
     def settings(self) -> Settings:
         env = self.env()
@@ -193,12 +215,21 @@ class Stack:
         self.procs[name] = proc
         return proc
 
-    def start_gateway(self) -> subprocess.Popen:
-        embedded.ensure_port_free(self.health_port, "the gateway's health endpoint")
-        proc = self.spawn("gateway", "gateway", "--health-port", str(self.health_port))
-        embedded.wait_for_port(self.health_port, proc=proc, what="gateway")
-        self.wait_healthy(f"http://127.0.0.1:{self.health_port}/readyz", "gateway", proc)
+    def start_gateway(self, replica: int = 1) -> subprocess.Popen:
+        """Starts gateway replica `replica` (1: the component named "gateway", then
+        "gateway-2", ...) and waits until it is ready."""
+        name = "gateway" if replica == 1 else f"gateway-{replica}"
+        port = self.gateway_health_ports[replica - 1]
+        embedded.ensure_port_free(port, f"the {name}'s health endpoint")
+        proc = self.spawn(name, "gateway", "--health-port", str(port))
+        embedded.wait_for_port(port, proc=proc, what=name)
+        self.wait_healthy(f"http://127.0.0.1:{port}/readyz", name, proc)
         return proc
+
+    def start_gateways(self) -> None:
+        """Starts every gateway replica (`gateways` of them)."""
+        for replica in range(1, self.gateways + 1):
+            self.start_gateway(replica)
 
     def start_server(self) -> subprocess.Popen:
         embedded.ensure_port_free(self.api_port, "the API")
@@ -354,10 +385,10 @@ class Stack:
             raise RuntimeError(f"could not publish the map meta to Kafka: {errors}")
 
     def start(self, *steps: Callable[[], object]) -> None:
-        """Runs `steps` in order (default: brokers, `serve`, the gateway); stops every
+        """Runs `steps` in order (default: brokers, `serve`, the gateways); stops every
         part already started when one fails."""
         try:
-            for step in steps or (self.start_brokers, self.start_server, self.start_gateway):
+            for step in steps or (self.start_brokers, self.start_server, self.start_gateways):
                 step()
         except BaseException:
             self.stop()

@@ -28,3 +28,21 @@ def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> 
     assert 0 < run["gateway_to_queryable_p50_s"] <= run["latency_p99_s"]
     tables = run["storage"]["bytes_per_robot_day_by_table"]
     assert tables["poses"] > 0 and tables["chunk_events"] > 0 and tables["pose_keyframes"] > 0
+
+
+@pytest.mark.timeout(600)
+def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_message(tmp_path) -> None:
+    """`--gateways 2`: both replicas take part through the shared subscription, their
+    confirmed messages add up to exactly what the robots published, and nothing is lost."""
+    out = tmp_path / "bench.json"
+    done = subprocess.run(
+        [sys.executable, "-m", "mapservice.cli", "bench", "ingest", "--robots", "3", "--seconds", "4",
+         "--gateways", "2", "--mqtt", "mosquitto", "--data-dir", str(tmp_path / "data"),
+         "--json", str(out)],
+        capture_output=True, text=True, timeout=540)
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = json.loads(out.read_text())["runs"][0]
+    assert run["gateways"] == 2 and (run["lost"], run["duplicated"]) == (0, 0)
+    assert all(n > 0 for n in run["gateway_acked_by_replica"]), run["gateway_acked_by_replica"]
+    assert run["gateway_acked_minus_published"] == 0
+    assert "gateway-2" not in run["cpu_percent_of_one_core"]

@@ -174,3 +174,38 @@ def test_the_drain_gives_up_once_the_store_stops_counting_or_at_its_cap() -> Non
     for t in range(0, 61, 5):
         capped.observe(t, {"poses": t})
     assert capped.given_up(60) and not capped.given_up(59)
+
+
+def test_cpu_meter_counts_gateway_replicas_as_the_gateway() -> None:
+    """A second gateway process's CPU is added to the gateway's, once."""
+    from mapservice.bench.ingest import CpuMeter
+
+    zero = {"gateway": 0.0, "gateway-2": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0,
+            "_loadgen_workers": 0.0, "_machine_processes": 0.0, "_machine_irq": 0.0,
+            "_machine_steal": 0.0, "_wall": 0.0}
+    after = {**zero, "gateway": 2.0, "gateway-2": 3.0, "_machine_processes": 5.0, "_wall": 10.0}
+    pct = CpuMeter.percent(zero, after)
+    assert pct["gateway"] == 50.0 and "gateway-2" not in pct and pct["stack_total"] == 50.0
+
+
+def test_a_loss_is_placed_before_or_after_the_gateways() -> None:
+    """Fewer messages confirmed than published: the broker; all of them: after the gateways."""
+    from mapservice.bench.ingest import loss_side
+
+    assert "broker did not pass them on" in loss_side(-23)
+    assert "lost after them" in loss_side(0)
+
+
+def test_gateway_acks_sum_each_gateways_accepted_and_rejected(monkeypatch) -> None:
+    """Each gateway's count is its accepted plus rejected messages from its /metrics."""
+    import httpx
+
+    from mapservice.bench import ingest
+
+    text = ('# TYPE mapservice_gateway_messages_total counter\n'
+            'mapservice_gateway_messages_total{outcome="accepted"} 100.0\n'
+            'mapservice_gateway_messages_total{outcome="rejected"} 2.0\n'
+            '# TYPE mapservice_gateway_messages_created gauge\n'
+            'mapservice_gateway_messages_created{outcome="accepted"} 1.7e9\n')
+    monkeypatch.setattr(ingest.httpx, "get", lambda url, timeout: httpx.Response(200, text=text))
+    assert ingest.gateway_acks([1, 2]) == [102.0, 102.0]

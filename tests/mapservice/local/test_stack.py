@@ -1,0 +1,48 @@
+"""The local stack's gateway replicas: their client ids, shared subscription and ports."""
+
+from __future__ import annotations
+
+import pytest
+
+from mapservice.local.stack import Stack
+
+
+@pytest.fixture(autouse=True)
+def _no_mqtt_identity_in_env(monkeypatch):
+    for name in ("MAPSERVICE_MQTT_CLIENT_ID", "MAPSERVICE_MQTT_SHARE_GROUP"):
+        monkeypatch.delenv(name, raising=False)
+
+
+def test_one_gateway_keeps_the_default_client_id_and_subscribes_alone(tmp_path):
+    """A single gateway: no replica client id, no shared subscription, one health port."""
+    stack = Stack(tmp_path, mqtt="mosquitto")
+    env = stack.env("gateway")
+    assert "MAPSERVICE_MQTT_CLIENT_ID" not in env and "MAPSERVICE_MQTT_SHARE_GROUP" not in env
+    assert stack.gateway_health_ports == [stack.health_port]
+
+
+def test_gateway_replicas_share_the_subscription_each_with_its_own_session_and_port(tmp_path):
+    """Two replicas: client ids -1 and -2 (two persistent sessions), one share group, two
+    health ports; other components get neither."""
+    stack = Stack(tmp_path, mqtt="mosquitto", gateways=2)
+    first, second = stack.env("gateway"), stack.env("gateway-2")
+    assert first["MAPSERVICE_MQTT_CLIENT_ID"] == "mapservice-gateway-1"
+    assert second["MAPSERVICE_MQTT_CLIENT_ID"] == "mapservice-gateway-2"
+    assert first["MAPSERVICE_MQTT_SHARE_GROUP"] == second["MAPSERVICE_MQTT_SHARE_GROUP"] == "mapservice-gateways"
+    assert "MAPSERVICE_MQTT_SHARE_GROUP" not in stack.env("server")
+    assert len(set(stack.gateway_health_ports)) == 2 and stack.gateway_health_ports[0] == stack.health_port
+
+
+def test_replicas_keep_a_configured_client_id_base_and_share_group(tmp_path):
+    """MAPSERVICE_MQTT_CLIENT_ID and MAPSERVICE_MQTT_SHARE_GROUP, when set, are the base and
+    the group."""
+    stack = Stack(tmp_path, mqtt="mosquitto", gateways=2, extra_env={
+        "MAPSERVICE_MQTT_CLIENT_ID": "plant-gw", "MAPSERVICE_MQTT_SHARE_GROUP": "plant"})
+    env = stack.env("gateway-2")
+    assert (env["MAPSERVICE_MQTT_CLIENT_ID"], env["MAPSERVICE_MQTT_SHARE_GROUP"]) == ("plant-gw-2", "plant")
+
+
+def test_no_gateway_is_refused(tmp_path):
+    """gateways=0 is an error naming the value."""
+    with pytest.raises(ValueError, match="at least 1"):
+        Stack(tmp_path, mqtt="mosquitto", gateways=0)
