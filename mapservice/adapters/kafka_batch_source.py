@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 
 import structlog
 from confluent_kafka import Consumer, KafkaError, KafkaException, TopicPartition
-from prometheus_client import Gauge
+from prometheus_client import Counter, Gauge
 
 from mapservice.core.ports import SourceRecord
 from mapservice.settings import Settings
@@ -28,6 +28,16 @@ LAG = Gauge("mapservice_consumer_lag_records",
 # librdkafka reports each partition's lag in its statistics (every STATS_INTERVAL_MS,
 # delivered from inside consume()): no extra broker requests.
 STATS_INTERVAL_MS = 5000
+# An event topic's offsets are contiguous (no compaction, no transactions), so a record
+# past the next expected offset means records this consumer has not seen. tansu makes that
+# happen: with two producers writing one partition, a batch can become readable after a
+# later one, and a reader already past it never gets it (README, "Embedded mode"). The
+# partition is read again from the first missing offset, up to GAP_REREADS times in a row;
+# a gap still there after that is taken as real (records deleted under the reader) and logged.
+GAP_REREADS = 5
+OFFSET_GAPS = Counter("mapservice_consumer_offset_gaps_total",
+                      "Jumps past unseen offsets: read again, or accepted after GAP_REREADS tries",
+                      ["outcome"])
 
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
@@ -78,6 +88,8 @@ class KafkaBatchSource:
         self.on_assigned = on_assigned
         self.on_commit_failed: Callable[[], None] | None = None  # an asynchronous commit failed
         self.consumer: Consumer | None = None
+        self._next_offset: dict[tuple[str, int], int] = {}  # per partition, once one was read
+        self._rereads: dict[tuple[str, int], int] = {}  # rereads in a row of a partition's gap
 
     def start(self) -> None:
         self.consumer = Consumer(self.config)
@@ -85,6 +97,7 @@ class KafkaBatchSource:
 
     def _assigned(self, _consumer, partitions: list[TopicPartition]) -> None:
         log.info("history partitions assigned", count=len(partitions))
+        self._forget(partitions)  # reading starts wherever the group's offsets say
         for p in partitions:  # a series per owned partition from the start (0 until measured)
             LAG.labels(self.group_id, p.topic, str(p.partition)).set(0)
         if self.on_assigned is not None:
@@ -92,23 +105,59 @@ class KafkaBatchSource:
 
     def _revoked(self, _consumer, partitions: list[TopicPartition]) -> None:
         # Another replica owns them now and reports their lag.
+        self._forget(partitions)
         for p in partitions:
             try:
                 LAG.remove(self.group_id, p.topic, str(p.partition))
             except KeyError:
                 pass
 
+    def _forget(self, partitions: list[TopicPartition]) -> None:
+        for p in partitions:
+            self._next_offset.pop((p.topic, p.partition), None)
+            self._rereads.pop((p.topic, p.partition), None)
+
     def poll(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
         assert self.consumer is not None, "start() first"
         out = []
+        rewound: set[tuple[str, int]] = set()  # partitions read again: the rest comes again too
         for m in self.consumer.consume(max_records, timeout_s):
             err = m.error()
             if err is not None:
                 if err.code() != KafkaError._PARTITION_EOF:
                     log.warning("kafka consumer error", error=str(err))
                 continue
+            key = (m.topic(), m.partition())
+            if key in rewound:
+                continue
+            expected = self._next_offset.get(key)
+            if expected is not None and m.offset() > expected and self._reread(key, expected, m.offset()):
+                rewound.add(key)
+                continue
+            if self._rereads and m.offset() == expected:
+                self._rereads.pop(key, None)  # the gap is filled: a later one starts afresh
+            self._next_offset[key] = m.offset() + 1
             out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b""))
         return out
+
+    def _reread(self, key: tuple[str, int], expected: int, got: int) -> bool:
+        """Seeks a partition back to its first unseen offset; False once the same gap was
+        read again GAP_REREADS times (or the seek fails): then it is accepted."""
+        rereads = self._rereads.get(key, 0)
+        if rereads < GAP_REREADS:
+            try:
+                self.consumer.seek(TopicPartition(key[0], key[1], expected))
+                self._rereads[key] = rereads + 1
+                OFFSET_GAPS.labels("reread").inc()
+                return True
+            except KafkaException as exc:
+                log.warning("could not read an offset gap again", topic=key[0], partition=key[1],
+                            error=str(exc))
+        self._rereads.pop(key, None)
+        OFFSET_GAPS.labels("accepted").inc()
+        log.warning("offset gap accepted: records before it were not read", topic=key[0],
+                    partition=key[1], expected=expected, got=got, missing=got - expected)
+        return False
 
     def commit(self, records: Sequence[SourceRecord]) -> bool:
         """Commits past the highest offset per partition, asynchronously: the next batch

@@ -69,3 +69,89 @@ def test_a_commit_the_broker_refuses_later_is_reported() -> None:
     assert failures == []
     source.config["on_commit"](KafkaError(KafkaError.REBALANCE_IN_PROGRESS), [TopicPartition("t", 0, 5)])
     assert failures == [1]
+
+
+class _Message:
+    def __init__(self, partition: int, offset: int, topic: str = "t") -> None:
+        self._p, self._o, self._t = partition, offset, topic
+
+    def error(self):
+        return None
+
+    def topic(self) -> str:
+        return self._t
+
+    def partition(self) -> int:
+        return self._p
+
+    def offset(self) -> int:
+        return self._o
+
+    def value(self) -> bytes:
+        return b"%d:%d" % (self._p, self._o)
+
+
+class _ScriptedConsumer:
+    """consume() hands out the next scripted batch; seek() is recorded."""
+
+    def __init__(self, batches: list[list[tuple[int, int]]]) -> None:
+        self.batches = [[_Message(p, o) for p, o in b] for b in batches]
+        self.seeks: list[tuple[int, int]] = []
+
+    def consume(self, _n, _timeout):
+        return self.batches.pop(0) if self.batches else []
+
+    def seek(self, tp) -> None:
+        self.seeks.append((tp.partition, tp.offset))
+
+
+def _source(batches) -> KafkaBatchSource:
+    source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t"], "g")
+    source.consumer = _ScriptedConsumer(batches)
+    return source
+
+
+def offsets(records) -> list[tuple[int, int]]:
+    return [(r.partition, r.offset) for r in records]
+
+
+def test_an_offset_gap_is_read_again_and_each_record_handed_out_once_in_order() -> None:
+    """Partition 0 jumps from 11 to 14 (a batch tansu showed late): the source seeks back to 12,
+    drops what followed the gap, keeps partition 1, and the next poll brings 12 to 15."""
+    source = _source([[(0, 10), (0, 11), (1, 5), (0, 14), (0, 15), (1, 6)],
+                      [(0, 12), (0, 13), (0, 14), (0, 15)]])
+    first = source.poll(100, 0.1)
+    assert offsets(first) == [(0, 10), (0, 11), (1, 5), (1, 6)]
+    assert source.consumer.seeks == [(0, 12)]
+    assert offsets(source.poll(100, 0.1)) == [(0, 12), (0, 13), (0, 14), (0, 15)]
+
+
+def test_a_gap_that_stays_is_accepted_after_the_rereads_and_logged(caplog) -> None:
+    """Offsets 12-13 never come: after GAP_REREADS seeks the records after the gap are handed out."""
+    from mapservice.adapters.kafka_batch_source import GAP_REREADS
+
+    source = _source([[(0, 11)]] + [[(0, 14)]] * (GAP_REREADS + 1))
+    assert offsets(source.poll(100, 0.1)) == [(0, 11)]
+    for _ in range(GAP_REREADS):
+        assert source.poll(100, 0.1) == []
+    assert offsets(source.poll(100, 0.1)) == [(0, 14)]
+    assert source.consumer.seeks == [(0, 12)] * GAP_REREADS
+
+
+def test_a_filled_gap_does_not_count_toward_the_next_one() -> None:
+    """Two gaps, each filled after one reread: neither is accepted, both are read again."""
+    source = _source([[(0, 1), (0, 3)], [(0, 2), (0, 3), (0, 5)], [(0, 4), (0, 5)]])
+    assert offsets(source.poll(100, 0.1)) == [(0, 1)]
+    assert offsets(source.poll(100, 0.1)) == [(0, 2), (0, 3)]
+    assert offsets(source.poll(100, 0.1)) == [(0, 4), (0, 5)]
+    assert source.consumer.seeks == [(0, 2), (0, 4)]
+
+
+def test_a_newly_assigned_partition_starts_wherever_the_group_left_it() -> None:
+    """After a reassignment the first record sets the expectation again: no seek for a jump."""
+    from confluent_kafka import TopicPartition
+
+    source = _source([[(0, 1)], [(0, 40)]])
+    assert offsets(source.poll(100, 0.1)) == [(0, 1)]
+    source._assigned(None, [TopicPartition("t", 0)])
+    assert offsets(source.poll(100, 0.1)) == [(0, 40)] and source.consumer.seeks == []
