@@ -61,7 +61,8 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
     # (history_consumer.py says why); faust runs it, the dead letters, and the timers.
     source = KafkaBatchSource(
         settings, [settings.topic_chunk_events, settings.topic_pose_events,
-                   settings.topic_meta_events], group_id=f"{app.conf.id}-history")
+                   settings.topic_meta_events], group_id=f"{app.conf.id}-history",
+        contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
     consumer = HistoryConsumer(source, sink, views, batch, within)
     source.on_assigned = consumer.on_assigned
     source.on_commit_failed = COMMIT_FAILURES.inc

@@ -28,8 +28,9 @@ LAG = Gauge("mapservice_consumer_lag_records",
 # librdkafka reports each partition's lag in its statistics (every STATS_INTERVAL_MS,
 # delivered from inside consume()): no extra broker requests.
 STATS_INTERVAL_MS = 5000
-# An event topic's offsets are contiguous (no compaction, no transactions), so a record
-# past the next expected offset means records this consumer has not seen. tansu makes that
+# An event topic's offsets are contiguous (no compaction, no transactions), so there a record
+# past the next expected offset means records this consumer has not seen (a compacted topic,
+# such as the map meta's, has gaps by design and is not checked). tansu makes that
 # happen: with two producers writing one partition, a batch can become readable after a
 # later one, and a reader already past it never gets it (README, "Embedded mode"). The
 # partition is read again from the first missing offset, up to GAP_REREADS times in a row;
@@ -79,7 +80,8 @@ class KafkaBatchSource:
     """Created without I/O; `start()` subscribes."""
 
     def __init__(self, settings: Settings, topics: Sequence[str], group_id: str,
-                 on_assigned: Callable[[list[tuple[str, int]]], None] | None = None) -> None:
+                 on_assigned: Callable[[list[tuple[str, int]]], None] | None = None,
+                 contiguous_topics: Sequence[str] | None = None) -> None:
         self.group_id = group_id
         self.config = {**consumer_config(settings, group_id),
                        "stats_cb": lambda stats: record_lag(group_id, stats),
@@ -88,6 +90,8 @@ class KafkaBatchSource:
         self.on_assigned = on_assigned
         self.on_commit_failed: Callable[[], None] | None = None  # an asynchronous commit failed
         self.consumer: Consumer | None = None
+        # Topics whose offset gaps are read again (default: all of `topics`).
+        self.contiguous_topics = set(topics if contiguous_topics is None else contiguous_topics)
         self._next_offset: dict[tuple[str, int], int] = {}  # per partition, once one was read
         self._rereads: dict[tuple[str, int], int] = {}  # rereads in a row of a partition's gap
 
@@ -126,6 +130,9 @@ class KafkaBatchSource:
             if err is not None:
                 if err.code() != KafkaError._PARTITION_EOF:
                     log.warning("kafka consumer error", error=str(err))
+                continue
+            if m.topic() not in self.contiguous_topics:
+                out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b""))
                 continue
             key = (m.topic(), m.partition())
             if key in rewound:

@@ -155,3 +155,14 @@ def test_a_newly_assigned_partition_starts_wherever_the_group_left_it() -> None:
     assert offsets(source.poll(100, 0.1)) == [(0, 1)]
     source._assigned(None, [TopicPartition("t", 0)])
     assert offsets(source.poll(100, 0.1)) == [(0, 40)] and source.consumer.seeks == []
+
+
+def test_a_compacted_topics_gaps_are_not_read_again() -> None:
+    """A topic left out of contiguous_topics (the compacted map meta) jumps without a seek."""
+    source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t", "meta"], "g",
+                              contiguous_topics=["t"])
+    consumer = _ScriptedConsumer([])
+    consumer.batches = [[_Message(0, 3, "meta"), _Message(0, 9, "meta"), _Message(0, 1, "t")]]
+    source.consumer = consumer
+    assert [(r.topic, r.offset) for r in source.poll(100, 0.1)] == [("meta", 3), ("meta", 9), ("t", 1)]
+    assert consumer.seeks == []
