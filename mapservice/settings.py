@@ -152,7 +152,12 @@ class Settings(BaseSettings):
     # Large enough that a backlog (after a slow insert) is caught up in one or two inserts:
     # each insert and its views cost a fixed ~30 ms, and 2,000 made 5,000 robots lag.
     sink_batch_size: int = Field(10000, ge=1)
-    sink_batch_seconds: float = Field(0.2, gt=0)
+    sink_batch_seconds: float = Field(0.2, gt=0, description="Longest wait to fill a history batch.")
+    # A short window costs each insert's fixed cost more often; it is taken only while
+    # stores are quick, i.e. while there is CPU to spare (processors/batch_window.py).
+    sink_batch_min_seconds: float = Field(0.1, gt=0, description=(
+        "Shortest wait to fill a history batch, taken while batches are stored quickly; the "
+        "wait grows toward sink_batch_seconds as storing slows down."))
 
     snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
     snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")

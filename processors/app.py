@@ -63,7 +63,8 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         settings, [settings.topic_chunk_events, settings.topic_pose_events,
                    settings.topic_meta_events], group_id=f"{app.conf.id}-history",
         contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
-    consumer = HistoryConsumer(source, sink, views, batch, within)
+    consumer = HistoryConsumer(source, sink, views, batch, within,
+                               min_batch_seconds=settings.sink_batch_min_seconds)
     source.on_assigned = consumer.on_assigned
     source.on_commit_failed = COMMIT_FAILURES.inc
     sink.consumer = consumer

@@ -16,13 +16,14 @@ from typing import TYPE_CHECKING
 
 import mode
 import structlog
-from prometheus_client import Counter, Histogram
+from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.runtime.health import Heartbeat
 from mapservice.core.ports import EventSource, SourceRecord
 from mapservice.runtime.retry import until_done
 
+from .batch_window import batch_window, smoothed
 from .sink import split_events
 
 if TYPE_CHECKING:
@@ -43,6 +44,8 @@ EVENT_TO_STORED = Histogram("mapservice_event_to_stored_seconds",
 RECEIVED_TO_STORED = Histogram("mapservice_received_to_stored_seconds",
                                "Gateway receive time to stored in the history, per event", ["topic"],
                                buckets=_LATENCY_BUCKETS)
+BATCH_WINDOW = Gauge("mapservice_sink_batch_window_seconds",
+                     "How long the history consumer now collects a batch (batch_window.py)")
 BATCH_EVENTS = Histogram("mapservice_sink_batch_events", "Events per stored batch",
                          buckets=(1, 10, 50, 100, 250, 500, 1000, 2000, 5000))
 
@@ -95,14 +98,19 @@ class HistoryConsumer:
     """Owns one EventSource; every call to it runs on one thread of its own."""
 
     def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
-                 batch_size: int, batch_seconds: float,
+                 batch_size: int, batch_seconds: float, min_batch_seconds: float | None = None,
                  now_ms: Callable[[], int] = SystemClock().now_ms,
                  monotonic: Callable[[], float] = time.monotonic) -> None:
         self.source = source
         self.sink = sink
         self.views = views
         self.batch_size = batch_size
-        self.batch_seconds = batch_seconds
+        self.batch_seconds = batch_seconds  # the longest window
+        # The shortest window, taken while batches are stored quickly (batch_window.py);
+        # None: always the longest.
+        self.min_batch_seconds = batch_seconds if min_batch_seconds is None else min_batch_seconds
+        self.window_s = batch_seconds  # until stores were timed
+        self._store_s: float | None = None  # running store time per batch (smoothed)
         self.now_ms = now_ms
         self.monotonic = monotonic
         self._last_poll_returned = -math.inf  # monotonic; the first poll takes what is queued
@@ -128,13 +136,22 @@ class HistoryConsumer:
     def poll_timeout(self) -> float:
         """How long the next poll may wait for records to fill a batch.
 
-        A batch collects for `batch_seconds` from the return of the previous poll, and
-        the time spent storing the previous batch counts toward it: its records waited in
-        the consumer's queue meanwhile. So a slow insert is followed at once by the records
+        A batch collects for the current window (`window_s`, between `min_batch_seconds`
+        and `batch_seconds`: batch_window.py) from the return of the previous poll, and the
+        time spent storing the previous batch counts toward it: its records waited in the
+        consumer's queue meanwhile. So a slow insert is followed at once by the records
         that queued behind it instead of by another full wait, while fast inserts still
-        make at most one batch per period (each insert has a fixed cost, ~15 ms on chDB).
+        make at most one batch per window (each insert has a fixed cost).
         """
-        return max(0.0, self._last_poll_returned + self.batch_seconds - self.monotonic())
+        return max(0.0, self._last_poll_returned + self.window_s - self.monotonic())
+
+    def _timed_store(self, store_s: float) -> None:
+        """Sizes the next windows after a batch that took `store_s` to store (0 for an
+        empty poll: when idle the window shrinks, so the first events after a pause wait
+        least)."""
+        self._store_s = smoothed(self._store_s, store_s)
+        self.window_s = batch_window(self._store_s, self.min_batch_seconds, self.batch_seconds)
+        BATCH_WINDOW.set(self.window_s)
 
     async def run_once(self) -> int:
         """One batch: poll, store, commit. Returns how many records it handled."""
@@ -147,6 +164,7 @@ class HistoryConsumer:
             self.assigned = False
             await self.views.rebuild(self.sink)
         if not records:
+            self._timed_store(0.0)
             return 0
         # Moving on would let the next commit cover this batch: retry it instead.
         async for attempt in until_done("history batch", 0.5, records=len(records)):
@@ -155,6 +173,7 @@ class HistoryConsumer:
                 await self._store(records)
         if not await self._call(self.source.commit, records):
             COMMIT_FAILURES.inc()
+        self._timed_store(self.monotonic() - self._last_poll_returned)
         return len(records)
 
     async def _store(self, records: list[SourceRecord]) -> None:

@@ -221,3 +221,38 @@ def test_stored_events_record_their_end_to_end_latency_and_batch_size(ev) -> Non
     le2 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "2.0"})
     le5 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "5.0"})
     assert le5 - le2 == 5
+
+
+def adaptive_timeouts_asked(ev, store_seconds: float, batches: int = 6) -> list[float]:
+    """The poll timeouts of a consumer whose window runs from 100 to 200 ms."""
+    clock = Clock()
+    source, store = MemorySource(), TimedStore(clock, store_seconds)
+    asked: list[float] = []
+    original_poll = source.poll
+
+    def poll(n, timeout_s):
+        asked.append(round(timeout_s, 6))
+        clock.t += timeout_s
+        return original_poll(1, timeout_s)
+
+    source.poll = poll
+    for i in range(batches):
+        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
+    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.2,
+                               min_batch_seconds=0.1, now_ms=lambda: NOW, monotonic=clock)
+
+    async def go() -> None:
+        for _ in range(batches):
+            await consumer.run_once()
+    asyncio.run(go())
+    return asked
+
+
+def test_quick_stores_shorten_the_batch_window_to_its_shortest(ev) -> None:
+    """With 10 ms stores the polls after the first wait 100 - 10 ms, not 200 - 10 ms."""
+    assert adaptive_timeouts_asked(ev, store_seconds=0.01)[1:] == [0.09] * 5
+
+
+def test_slow_stores_keep_the_longest_batch_window(ev) -> None:
+    """With 90 ms stores (2.5 x 90 > 200 ms) every poll waits out the 200 ms window."""
+    assert adaptive_timeouts_asked(ev, store_seconds=0.09)[1:] == [0.11] * 5

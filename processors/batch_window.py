@@ -1,0 +1,31 @@
+"""How long the history consumer collects a batch before storing it: a pure rule.
+
+Every store of a batch has a fixed cost (on chDB ~25-45 ms: an insert per table and the
+pose table's materialized views), whatever its size. Long windows amortise it; short
+windows cut every event's wait. Which matters depends on the load, and the store's own
+duration says which: at 1,000 robots a batch is stored in ~45 ms and a 100 ms window
+costs ~15 % of a core more but takes ~0.1 s off the p99 latency; at 5,000 robots it takes
+~100 ms and more, and there the CPU is what the whole stack lacks (BENCHMARKS.md, issue
+16). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
+stores are quick, growing to the longest window as they slow down (a busier machine makes
+them slower too, so the loop backs off exactly when CPU gets scarce).
+"""
+
+from __future__ import annotations
+
+STORE_SHARE = 0.4  # storing (insert, views, commit) takes at most this share of the loop
+SMOOTHING = 0.3  # weight of the newest batch in the running store time
+
+
+def batch_window(store_s: float, shortest_s: float, longest_s: float) -> float:
+    """The window that keeps a store of `store_s` at STORE_SHARE of the loop, within
+    [shortest_s, longest_s] (a shortest beyond the longest is the longest)."""
+    return min(longest_s, max(min(shortest_s, longest_s), store_s / STORE_SHARE))
+
+
+def smoothed(previous_s: float | None, sample_s: float) -> float:
+    """The running store time after one more batch: one slow insert widens the window
+    a little, a run of them widens it all the way."""
+    if previous_s is None:
+        return sample_s
+    return previous_s + SMOOTHING * (sample_s - previous_s)
