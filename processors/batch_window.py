@@ -3,10 +3,10 @@
 Every store of a batch has a fixed cost (on chDB ~25-45 ms: an insert per table and the
 pose table's materialized views), whatever its size. Long windows amortise it; short
 windows cut every event's wait. Which matters depends on the load, and the store's own
-duration says which: at 1,000 robots a batch is stored in ~45 ms and a 100 ms window
-costs ~15 % of a core more but takes ~0.1 s off the p99 latency; at 5,000 robots it takes
-~100 ms and more, and there the CPU is what the whole stack lacks (BENCHMARKS.md, issue
-16). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
+duration says which: at 1,000 robots a batch is stored in ~45 ms, and this rule took
+~50 ms off the median latency and ~30 ms off the p99 for 14 % of a core; at 5,000 robots
+a store takes ~100 ms and more, and there CPU is what the whole stack lacks (BENCHMARKS.md,
+issue 16). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
 stores are quick, growing to the longest window as they slow down (a busier machine makes
 them slower too, so the loop backs off exactly when CPU gets scarce).
 """
