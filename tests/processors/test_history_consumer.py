@@ -111,7 +111,10 @@ class TimedStore(MemoryStore):
         super().append(events)
 
 
-def timeouts_asked(ev, store_seconds: float, batches: int = 4) -> list[float]:
+def timeouts_asked(ev, store_seconds: float, batches: int = 4,
+                   min_batch_seconds: float | None = None) -> list[float]:
+    """The poll timeouts of a consumer whose window is at most 200 ms (at least
+    `min_batch_seconds`; None: always 200 ms)."""
     clock = Clock()
     source, store = MemorySource(), TimedStore(clock, store_seconds)
     asked: list[float] = []
@@ -126,7 +129,7 @@ def timeouts_asked(ev, store_seconds: float, batches: int = 4) -> list[float]:
     for i in range(batches):
         source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
     consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.2,
-                               now_ms=lambda: NOW, monotonic=clock)
+                               min_batch_seconds=min_batch_seconds, now_ms=lambda: NOW, monotonic=clock)
 
     async def go() -> None:
         for _ in range(batches):
@@ -223,36 +226,11 @@ def test_stored_events_record_their_end_to_end_latency_and_batch_size(ev) -> Non
     assert le5 - le2 == 5
 
 
-def adaptive_timeouts_asked(ev, store_seconds: float, batches: int = 6) -> list[float]:
-    """The poll timeouts of a consumer whose window runs from 100 to 200 ms."""
-    clock = Clock()
-    source, store = MemorySource(), TimedStore(clock, store_seconds)
-    asked: list[float] = []
-    original_poll = source.poll
-
-    def poll(n, timeout_s):
-        asked.append(round(timeout_s, 6))
-        clock.t += timeout_s
-        return original_poll(1, timeout_s)
-
-    source.poll = poll
-    for i in range(batches):
-        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
-    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.2,
-                               min_batch_seconds=0.1, now_ms=lambda: NOW, monotonic=clock)
-
-    async def go() -> None:
-        for _ in range(batches):
-            await consumer.run_once()
-    asyncio.run(go())
-    return asked
-
-
 def test_quick_stores_shorten_the_batch_window_to_its_shortest(ev) -> None:
     """With 10 ms stores the polls after the first wait 100 - 10 ms, not 200 - 10 ms."""
-    assert adaptive_timeouts_asked(ev, store_seconds=0.01)[1:] == [0.09] * 5
+    assert timeouts_asked(ev, 0.01, batches=6, min_batch_seconds=0.1)[1:] == [0.09] * 5
 
 
 def test_slow_stores_keep_the_longest_batch_window(ev) -> None:
     """With 90 ms stores (2.5 x 90 > 200 ms) every poll waits out the 200 ms window."""
-    assert adaptive_timeouts_asked(ev, store_seconds=0.09)[1:] == [0.11] * 5
+    assert timeouts_asked(ev, 0.09, batches=6, min_batch_seconds=0.1)[1:] == [0.11] * 5
