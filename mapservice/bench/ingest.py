@@ -413,19 +413,38 @@ class DrainWatch:
         return elapsed_s >= self.max_s or elapsed_s - self._last_growth_s >= self.stall_s
 
 
+def counter_by_label(text: str, counter: str, label: str) -> dict[str, float]:
+    """A Prometheus counter's `<counter>_total` samples in a /metrics text, summed per value
+    of one label (an unlabelled sample counts under "")."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out: dict[str, float] = {}
+    for family in text_string_to_metric_families(text):
+        if family.name != counter:
+            continue
+        for sample in family.samples:
+            if sample.name == f"{counter}_total":
+                key = sample.labels.get(label, "")
+                out[key] = out.get(key, 0.0) + sample.value
+    return out
+
+
 def gateway_acks(health_ports: list[int]) -> list[float]:
     """Each gateway's messages handled and confirmed by Kafka so far (accepted and rejected,
     `mapservice_gateway_messages_total` on its health port's /metrics)."""
-    from prometheus_client.parser import text_string_to_metric_families
-
     counts = []
     for port in health_ports:
         text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
-        counts.append(sum(sample.value for family in text_string_to_metric_families(text)
-                          if family.name == "mapservice_gateway_messages"
-                          for sample in family.samples
-                          if sample.name == "mapservice_gateway_messages_total"))
+        counts.append(sum(counter_by_label(text, "mapservice_gateway_messages", "outcome").values()))
     return counts
+
+
+def history_offset_gaps(api_url: str) -> dict[str, float]:
+    """The history consumer's offset gaps so far (`mapservice_consumer_offset_gaps_total` on
+    the server's /metrics): read again, or accepted as lost after its rereads ran out."""
+    text = httpx.get(f"{api_url}/metrics", timeout=10).text
+    gaps = counter_by_label(text, "mapservice_consumer_offset_gaps", "outcome")
+    return {"reread": gaps.get("reread", 0.0), "accepted": gaps.get("accepted", 0.0)}
 
 
 def queryable_times(first_polled: dict[Key, float], pushed: dict[Key, float]) -> dict[Key, float]:
@@ -736,6 +755,9 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             stats_client.close()
             acked = [after - before for before, after in
                      zip(acked_before, gateway_acks(stack.gateway_health_ports))]
+            # Per run (each has a fresh server): gaps the guard read again, and gaps it
+            # gave up on (records it never read: they show up as lost).
+            gaps = history_offset_gaps(stack.api_url)
         console.print(_status_line(run, runs, "done", time.monotonic() - fleet_t0, args.seconds,
                                    fleet, poller, started_wall))
         poller.stop()
@@ -804,6 +826,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             # every message. With events lost, it says on which side of the gateways.
             "gateway_acked_by_replica": acked,
             "gateway_acked_minus_published": sum(acked) - len(keys),
+            "history_offset_gaps_reread": gaps["reread"],
+            "history_offset_gaps_accepted": gaps["accepted"],
             "latency_samples": len(upper),
             "latency_censored": sum(1 for v in upper if v == INF),
             "latency_p50_s": _pct(upper, 50),
@@ -1012,6 +1036,9 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
         f"{_s(med.get('publish_to_gateway_p50_s'))} / {_s(med.get('publish_to_gateway_p99_s'))}")
     row("  gateway -> queryable p50 / p99", "",
         f"{_s(med.get('gateway_to_queryable_p50_s'))} / {_s(med.get('gateway_to_queryable_p99_s'))}")
+    row("history offset gaps read again / given up", "given up: 0",
+        f"{med.get('history_offset_gaps_reread', 0):,.0f} / {med.get('history_offset_gaps_accepted', 0):,.0f}",
+        med.get("history_offset_gaps_accepted", 0) == 0)
     row("events unseen within 30 s window", "0", f"{med['latency_censored']:,.0f}",
         med["latency_censored"] == 0)
     row("drain: fleet stop -> all stored", "", _s(med.get("drain_s")) if "drain_s" in med

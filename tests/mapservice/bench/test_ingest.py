@@ -209,3 +209,33 @@ def test_gateway_acks_sum_each_gateways_accepted_and_rejected(monkeypatch) -> No
             'mapservice_gateway_messages_created{outcome="accepted"} 1.7e9\n')
     monkeypatch.setattr(ingest.httpx, "get", lambda url, timeout: httpx.Response(200, text=text))
     assert ingest.gateway_acks([1, 2]) == [102.0, 102.0]
+
+
+def test_history_offset_gaps_reads_reread_and_accepted_from_the_servers_metrics(monkeypatch) -> None:
+    """The guard's gap counts come from the server's /metrics, per outcome, 0 when absent."""
+    import httpx
+
+    from mapservice.bench import ingest
+
+    text = ('# TYPE mapservice_consumer_offset_gaps_total counter\n'
+            'mapservice_consumer_offset_gaps_total{outcome="reread"} 3.0\n'
+            '# TYPE mapservice_consumer_offset_gaps_created gauge\n'
+            'mapservice_consumer_offset_gaps_created{outcome="reread"} 1.7e9\n')
+    asked = []
+    monkeypatch.setattr(ingest.httpx, "get",
+                        lambda url, timeout: asked.append(url) or httpx.Response(200, text=text))
+    assert ingest.history_offset_gaps("http://127.0.0.1:9") == {"reread": 3.0, "accepted": 0.0}
+    assert asked == ["http://127.0.0.1:9/metrics"]
+
+
+def test_counter_by_label_sums_one_counters_samples_per_label_value() -> None:
+    """Only the named counter's _total samples count, summed per value of the label."""
+    from mapservice.bench.ingest import counter_by_label
+
+    text = ('# TYPE a_total counter\n'
+            'a_total{outcome="x",topic="p"} 1.0\n'
+            'a_total{outcome="x",topic="c"} 2.0\n'
+            'a_total{outcome="y",topic="c"} 4.0\n'
+            '# TYPE b_total counter\n'
+            'b_total{outcome="x"} 100.0\n')
+    assert counter_by_label(text, "a", "outcome") == {"x": 3.0, "y": 4.0}
