@@ -110,6 +110,7 @@ class HistoryConsumer:
         # None: always the longest.
         self.min_batch_seconds = batch_seconds if min_batch_seconds is None else min_batch_seconds
         self.window_s = batch_seconds  # until stores were timed
+        BATCH_WINDOW.set(self.window_s)
         self._store_s: float | None = None  # running store time per batch (smoothed)
         self.now_ms = now_ms
         self.monotonic = monotonic

@@ -112,9 +112,10 @@ class TimedStore(MemoryStore):
 
 
 def timeouts_asked(ev, store_seconds: float, batches: int = 4,
-                   min_batch_seconds: float | None = None) -> list[float]:
+                   min_batch_seconds: float | None = None, idle_polls: int = 0) -> list[float]:
     """The poll timeouts of a consumer whose window is at most 200 ms (at least
-    `min_batch_seconds`; None: always 200 ms)."""
+    `min_batch_seconds`; None: always 200 ms), over `batches` stores and then `idle_polls`
+    polls that find nothing."""
     clock = Clock()
     source, store = MemorySource(), TimedStore(clock, store_seconds)
     asked: list[float] = []
@@ -132,7 +133,7 @@ def timeouts_asked(ev, store_seconds: float, batches: int = 4,
                                min_batch_seconds=min_batch_seconds, now_ms=lambda: NOW, monotonic=clock)
 
     async def go() -> None:
-        for _ in range(batches):
+        for _ in range(batches + idle_polls):
             await consumer.run_once()
     asyncio.run(go())
     return asked
@@ -234,3 +235,18 @@ def test_quick_stores_shorten_the_batch_window_to_its_shortest(ev) -> None:
 def test_slow_stores_keep_the_longest_batch_window(ev) -> None:
     """With 90 ms stores (2.5 x 90 > 200 ms) every poll waits out the 200 ms window."""
     assert timeouts_asked(ev, 0.09, batches=6, min_batch_seconds=0.1)[1:] == [0.11] * 5
+
+
+def test_an_idle_spell_shrinks_the_batch_window_back_to_its_shortest(ev) -> None:
+    """After 90 ms stores (200 ms window) empty polls count as 0 s stores: 157, 110, then 100 ms."""
+    asked = timeouts_asked(ev, 0.09, batches=6, min_batch_seconds=0.1, idle_polls=5)
+    assert [round(t, 4) for t in asked[6:]] == [0.11, 0.1575, 0.1103, 0.1, 0.1]
+
+
+def test_the_batch_window_gauge_reads_the_window_before_the_first_poll() -> None:
+    """A new consumer exports its starting window (the longest), not 0."""
+    from prometheus_client import REGISTRY
+
+    HistoryConsumer(MemorySource(), HistorySink(MemoryStore()), None, batch_size=10,
+                    batch_seconds=0.25, min_batch_seconds=0.1)
+    assert REGISTRY.get_sample_value("mapservice_sink_batch_window_seconds") == 0.25
