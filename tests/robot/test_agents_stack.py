@@ -104,9 +104,11 @@ def test_robot_b_converges_to_robot_a(empty_stack, tmp_path) -> None:
         write_pgm(a_yaml.with_suffix(".pgm"), edited)
         wait_until(lambda: np.array_equal(pixels(b_yaml), edited),
                    "A's pallet to reach B's map file", logs=logs)
+        # B writes its map file first and logs the integration after it: wait for the line.
+        wait_until(lambda: "integrated chunks of other robots" in logs[1].read_text(),
+                   "B to log the integration", logs=logs)
         a_log, b_log = logs[0].read_text(), logs[1].read_text()
         assert "published local changes" in a_log, a_log
-        assert "integrated chunks of other robots" in b_log, b_log
         assert "chunkUrl unreadable" not in b_log, b_log  # fetched through chunkUrl
     finally:
         for proc in (a, b):
