@@ -63,6 +63,9 @@ class Settings(BaseSettings):
     kafka_partitions: int = Field(6, ge=1, description="Partitions of topics the service creates.")
     kafka_replication: int = Field(1, ge=1)
     kafka_rebalance_timeout_s: float = Field(3.0, gt=0, description="Consumer-group rebalance timeout.")
+    kafka_linger_ms: int = Field(50, ge=0, le=1_000, description="How long the gateway's and "
+                                 "the 2019 API's producer collects records into one batch per "
+                                 "partition (librdkafka linger.ms).")
     kafka_fetch_wait_ms: int = Field(50, ge=1, le=10_000, description="Longest a history fetch waits "
                                      "for new records (librdkafka fetch.wait.max.ms).")
     topic_chunk_events: str = "mapservice.chunk-events.v1"

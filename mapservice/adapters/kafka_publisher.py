@@ -41,9 +41,10 @@ def producer_config(settings: Settings, client_id: str) -> dict:
         "client.id": client_id,
         "enable.idempotence": True,
         "acks": "all",
-        # 50 ms batches several events per partition: at 1,000 robots this cut the CPU
-        # per event of tansu by ~2/3 and of the gateway by ~1/5 (BENCHMARKS.md).
-        "linger.ms": 50,
+        # 50 ms (the default) batches several events per partition: at 1,000 robots this
+        # cut the CPU per event of tansu by ~2/3 and of the gateway by ~1/5; 20 ms doubled
+        # tansu's again and took nothing off the end-to-end latency (BENCHMARKS.md).
+        "linger.ms": settings.kafka_linger_ms,
         "compression.type": "none",  # aiokafka (faust) lacks lz4 without extras; chunks are zlib already
         # Same partition for the same key as faust/aiokafka producers.
         "partitioner": "murmur2_random",

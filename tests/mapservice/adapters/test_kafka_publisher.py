@@ -28,3 +28,10 @@ def test_producer_config_keeps_keys_on_faust_partitions() -> None:
     config = producer_config(UNREACHABLE, "c")
     assert (config["enable.idempotence"], config["acks"], config["partitioner"]) == \
         (True, "all", "murmur2_random")
+
+
+def test_producer_linger_comes_from_the_kafka_linger_setting() -> None:
+    """MAPSERVICE_KAFKA_LINGER_MS sets librdkafka's linger.ms (50 ms unless set)."""
+    assert producer_config(UNREACHABLE, "c")["linger.ms"] == 50
+    tuned = Settings(kafka_bootstrap="127.0.0.1:9", kafka_linger_ms=5)
+    assert producer_config(tuned, "c")["linger.ms"] == 5
