@@ -66,7 +66,9 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
 
     One append for the whole batch, poses and chunks together: each append has a fixed
     cost (an insert per table, a snapshot check), and poses no longer wait behind the
-    chunks' conflict detection to be stored.
+    chunks' conflict detection to be stored. The derived pose views are brought up to the
+    batch after its live push (schema v10): most of a store's cost, they no longer delay
+    the push, and the batch is committed only after them.
     """
     good: list = []
     per_topic: dict[str, int] = {}
@@ -80,13 +82,14 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
         if bad:
             bad_by_topic[topic] = bad
     if good:
-        await sink.insert_until_done(sink.store.append, good, per_topic)
+        await sink.insert_until_done(sink.store.append_events, good, per_topic)
         BATCH_EVENTS.observe(len(good))
         stored_ms = SystemClock().now_ms()
         for topic, events in by_topic.items():
             observe_stored(topic, events, stored_ms)
         if sink.live is not None:
             sink.live.publish(good)
+        await sink.derive_until_done(good)
         if views is not None:
             await views.on_stored(sink, good)  # conflicts, latest map, robots
     for topic, bad in bad_by_topic.items():

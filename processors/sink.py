@@ -46,6 +46,14 @@ class HistorySink:
         for topic, count in counts.items():
             STORED.labels(topic).inc(count)
 
+    async def derive_until_done(self, batch) -> None:
+        """Brings the derived pose views up to a stored `batch`, retrying until it is done
+        (its offsets are committed after this: a batch whose views are missing is never
+        acknowledged)."""
+        async for attempt in until_done("history views", 0.2, INSERT_FAILURES.inc, batch=len(batch)):
+            with attempt:
+                await self.run(self.store.derive_views, batch)
+
 
 def split_events(values: Iterable[bytes], now_ms: int) -> tuple[list[Envelope], list[DeadLetter]]:
     """Decodes envelopes; a record that is not one becomes a dead letter, not a crash."""

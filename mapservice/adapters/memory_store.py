@@ -41,6 +41,13 @@ class MemoryStore:
         return SCHEMA_VERSION
 
     def append(self, events: Sequence[Envelope]) -> None:
+        self.append_events(events)
+        self.derive_views(events)
+
+    def derive_views(self, events: Sequence[Envelope]) -> None:
+        """Nothing to do: this store's downsampled and timeline reads fold the poses."""
+
+    def append_events(self, events: Sequence[Envelope]) -> None:
         with self._lock:
             for e in events:
                 p = e.payload

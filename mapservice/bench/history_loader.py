@@ -9,8 +9,8 @@ map's own chunks.
 Nothing goes through envelopes, Kafka or `ClickHouseStore.append`: the rows are generated
 as numpy columns, one UTC day at a time (one part per day partition, bounded memory), and
 inserted column-oriented into the same tables `append` writes (`chunk_contents` first,
-then `chunk_events`, then `poses`), with the values `append` would store for the same
-events. The snapshots are then built by `ClickHouseStore.build_snapshots_bulk`, which
+then `chunk_events`, then `poses` and `pose_derivations`, which feeds the pose views),
+with the values `append` would store for the same events. The snapshots are then built by `ClickHouseStore.build_snapshots_bulk`, which
 produces the rows `build_snapshots` would.
 
 Every circle lies on free pixels: a robot's centre is a free cell of
@@ -356,6 +356,10 @@ def load_history(store, ros_map: RosMap, *, days: float, robots: int, end_ms: in
             client.insert(f"{db}.chunk_events", data=block.chunks,
                           column_names=CHUNK_COLUMNS, column_oriented=True)
             client.insert(f"{db}.poses", data=block.poses,
+                          column_names=POSE_COLUMNS, column_oriented=True)
+            # The pose views read the Null table pose_derivations (schema v10), as
+            # `derive_views` feeds them.
+            client.insert(f"{db}.pose_derivations", data=block.poses,
                           column_names=POSE_COLUMNS, column_oriented=True)
         t2 = time.perf_counter()
         result.generate_s += t1 - t0

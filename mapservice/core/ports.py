@@ -135,7 +135,16 @@ class HistoryStore(Protocol):
     def migrate(self) -> int:
         """Creates or upgrades the schema; returns the schema version. Safe to repeat."""
 
-    def append(self, events: Sequence[Envelope]) -> None: ...
+    def append(self, events: Sequence[Envelope]) -> None:
+        """Stores `events`: `append_events`, then `derive_views`."""
+
+    def append_events(self, events: Sequence[Envelope]) -> None:
+        """Stores `events` where the event reads (poses, chunk events, map meta) find them;
+        the derived pose views may lag until `derive_views` of the same events."""
+
+    def derive_views(self, events: Sequence[Envelope]) -> None:
+        """Brings the derived pose views (downsampled replay, timeline) up to `events`,
+        already stored by `append_events`; repeating it changes nothing."""
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None: ...
 

@@ -22,12 +22,12 @@ class FlakyStore(MemoryStore):
         self.failures = failures
         self.attempts = 0
 
-    def append(self, events) -> None:
+    def append_events(self, events) -> None:
         self.attempts += 1
         if self.failures:
             self.failures -= 1
             raise ConnectionError("clickhouse away")
-        super().append(events)
+        super().append_events(events)
 
 
 def consumer_for(store: MemoryStore, source: MemorySource, batch: int = 100) -> HistoryConsumer:
@@ -106,9 +106,9 @@ class TimedStore(MemoryStore):
         super().__init__()
         self.clock, self.seconds = clock, seconds
 
-    def append(self, events) -> None:
+    def append_events(self, events) -> None:
         self.clock.t += self.seconds
-        super().append(events)
+        super().append_events(events)
 
 
 def timeouts_asked(ev, store_seconds: float, batches: int = 4,
@@ -154,9 +154,9 @@ class CountingStore(MemoryStore):
         super().__init__()
         self.appends: list[set[str]] = []
 
-    def append(self, events) -> None:
+    def append_events(self, events) -> None:
         self.appends.append({type(e.payload).__name__ for e in events})
-        super().append(events)
+        super().append_events(events)
 
 
 def test_a_batch_of_poses_and_chunks_is_stored_in_one_append_and_counted_per_topic(ev) -> None:
@@ -250,3 +250,33 @@ def test_the_batch_window_gauge_reads_the_window_before_the_first_poll() -> None
     HistoryConsumer(MemorySource(), HistorySink(MemoryStore()), None, batch_size=10,
                     batch_seconds=0.25, min_batch_seconds=0.1)
     assert REGISTRY.get_sample_value("mapservice_sink_batch_window_seconds") == 0.25
+
+
+def test_pose_views_are_derived_after_the_live_push_and_before_the_commit(ev) -> None:
+    """append_events, push, derive_views (a failure retried), then commit: the views never delay the push."""
+    calls: list[str] = []
+
+    class OrderedStore(MemoryStore):
+        derive_failures = 1
+
+        def append_events(self, events) -> None:
+            calls.append("append_events")
+            super().append_events(events)
+
+        def derive_views(self, events) -> None:
+            calls.append("derive_views")
+            if self.derive_failures:
+                self.derive_failures -= 1
+                raise ConnectionError("clickhouse away")
+
+    class Feed:
+        def publish(self, events) -> None:
+            calls.append("publish")
+
+    source = MemorySource()
+    source.append(POSES, encode(ev.pose("r1", NOW)))
+    original_commit = source.commit
+    source.commit = lambda records: (calls.append("commit"), original_commit(records))[1]
+    drain(HistoryConsumer(source, HistorySink(OrderedStore(), Feed()), None, batch_size=100,
+                          batch_seconds=0.01, now_ms=lambda: NOW))
+    assert calls == ["append_events", "publish", "derive_views", "derive_views", "commit"]

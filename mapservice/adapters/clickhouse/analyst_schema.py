@@ -101,6 +101,11 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "first_ts": "Its first pose time in them (min over the rows)",
         "last_ts": "Its last pose time in them (max over the rows)",
     }),
+    "pose_derivations": ("Not storage: a Null table (it keeps nothing). The history consumer "
+                         "writes each batch's poses into it after the batch is stored in poses "
+                         "and pushed live; the materialized views on it fill pose_keyframes, "
+                         "pose_minutes and pose_ten_minutes (schema v10). Its columns are "
+                         "those of poses. Always empty when read.", {}),
     "chunk_seconds": ("Derived: the chunk writes of every second before the newest snapshot, "
                       "deduplicated, written with the snapshots (schema v9); the timeline's "
                       "chunk changes per bucket. Read with FINAL.", {
@@ -226,6 +231,8 @@ def comment_statements(db: str, tables: dict[str, tuple[str, dict[str, str]]]) -
     out: list[str] = []
     for table, (comment, columns) in tables.items():
         out.append(f"ALTER TABLE {db}.{table} MODIFY COMMENT {_quote(comment)}")
+        if not columns:  # a table whose columns are another's (described there)
+            continue
         out.append(f"ALTER TABLE {db}.{table} " + ", ".join(
             f"COMMENT COLUMN {column} {_quote(text)}" for column, text in columns.items()))
     return out

@@ -204,6 +204,12 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "per-second chunk changes",
             _replay_at_scale(database, ttl_days),
         ),
+        Migration(
+            10,
+            "pose views after the live push: the pose views read pose_derivations, written "
+            "after a batch is stored and pushed",
+            _pose_views_after_push(database, ttl_days),
+        ),
     ]
 
 
@@ -302,7 +308,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 9
+SCHEMA_VERSION = 10
 
 
 def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:
@@ -336,9 +342,11 @@ def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:
         SETTINGS ttl_only_drop_parts = 1"""
 
 
-def _pose_cells(db: str, name: str, start_of: str, ttl_days: int) -> tuple[str, str]:
+def _pose_cells(db: str, name: str, start_of: str, ttl_days: int,
+                source: str = "poses") -> tuple[str, str]:
     """A table of each robot's first and last pose time per cell (`start_of(ts)`: a minute,
-    ten minutes), and the materialized view on `poses` that fills it (schema v9)."""
+    ten minutes), and the materialized view on `source` that fills it (schema v9: on
+    `poses`; v10: on `pose_derivations`)."""
     return (
         f"""CREATE TABLE IF NOT EXISTS {db}.{name} (
             cell DateTime('UTC'),
@@ -352,7 +360,7 @@ def _pose_cells(db: str, name: str, start_of: str, ttl_days: int) -> tuple[str, 
         SETTINGS ttl_only_drop_parts = 1""",
         f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.{name}_mv TO {db}.{name}
             AS SELECT {start_of}(ts) AS cell, robot_id, min(ts) AS first_ts, max(ts) AS last_ts
-            FROM {db}.poses GROUP BY cell, robot_id""",
+            FROM {db}.{source} GROUP BY cell, robot_id""",
     )
 
 
@@ -419,6 +427,34 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
         *analyst_schema.comment_statements(
             db, {**analyst_schema.TABLE_COMMENTS_V9_KEYFRAMES,
                  **analyst_schema.comments_of("pose_minutes", "pose_ten_minutes", "chunk_seconds")}),
+    )
+
+
+def _pose_views_after_push(db: str, ttl_days: int) -> tuple[str, ...]:
+    """Schema v10 (issue 16, BENCHMARKS.md: live latency at 1,000 robots).
+
+    The three pose views (pose_keyframes, pose_minutes, pose_ten_minutes) were materialized
+    views on `poses`: every insert into it ran them, and they were most of its cost (a
+    batch of poses took ~7 ms to insert without them, ~20-26 ms with them). A batch is
+    pushed live once it is queryable, i.e. once `poses` holds it, so the views delayed every
+    push. Now they read `pose_derivations`, a Null table (it keeps nothing) that the history
+    consumer writes the same rows into after the push (`derive_views`), before it commits
+    the batch's offsets: a crash in between re-delivers the batch, and the views' tables
+    absorb the repeat as they did before (ReplacingMergeTree, min/max).
+
+    The views' tables are complete when this runs (writers are stopped), so nothing is
+    copied; safe to run twice (IF NOT EXISTS, and the views are dropped before each create).
+    """
+    return (
+        f"CREATE TABLE IF NOT EXISTS {db}.pose_derivations AS {db}.poses ENGINE = Null",
+        *(f"DROP VIEW IF EXISTS {db}.{view} SYNC"
+          for view in ("pose_keyframes_mv", "pose_minutes_mv", "pose_ten_minutes_mv")),
+        f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
+            AS SELECT {POSE_COLUMNS} FROM {db}.pose_derivations
+            ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
+        _pose_cells(db, "pose_minutes", "toStartOfMinute", ttl_days, "pose_derivations")[1],
+        _pose_cells(db, "pose_ten_minutes", "toStartOfTenMinutes", ttl_days, "pose_derivations")[1],
+        *analyst_schema.comment_statements(db, analyst_schema.comments_of("pose_derivations")),
     )
 
 

@@ -15,28 +15,41 @@ from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 
 
+_POSE_INSERT_COLUMNS = ["robot_id", "ts", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "battery",
+                        "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"]
+
+
 class WritesMixin(SnapshotsMixin):
-    """append, append_dead_letters, append_conflicts."""
+    """append (append_events, then derive_views), append_dead_letters, append_conflicts."""
 
     _known_contents: dict[bytes, int]  # hash -> day already written
+    # The pose rows of the last append_events, for derive_views of the same batch (the
+    # history consumer calls the two in a row): they are not built twice.
+    _last_pose_rows: tuple[Sequence[Envelope], list] | None = None
 
     # --- writes ---------------------------------------------------------------------
 
     def append(self, events: Sequence[Envelope]) -> None:
+        self.append_events(events)
+        self.derive_views(events)
+
+    def derive_views(self, events: Sequence[Envelope]) -> None:
+        """Feeds the batch's poses to the pose views (schema v10: through the Null table
+        `pose_derivations`); repeating it for a batch changes nothing."""
+        last = self._last_pose_rows
+        poses = last[1] if last is not None and last[0] is events else [
+            _pose_row(e) for e in events if isinstance(e.payload, PoseReported)]
+        self._last_pose_rows = None
+        if poses:
+            with self._lock:
+                self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS)
+
+    def append_events(self, events: Sequence[Envelope]) -> None:
         poses, chunks, contents, metas = [], [], [], []
         for e in events:
             p = e.payload
             if isinstance(p, PoseReported):
-                path = p.path or ()
-                poses.append([
-                    e.robot_id, e.event_time_ms,
-                    _mm(p.position[0]), _mm(p.position[1]), _mm(p.position[2]),
-                    *p.orientation,
-                    p.battery_level, _flag(p.charging), _flag(p.loaded),
-                    p.path is not None,
-                    [_mm(x) for x, _ in path], [_mm(y) for _, y in path],
-                    e.receive_time_ms - e.event_time_ms,
-                ])
+                poses.append(_pose_row(e))
             elif isinstance(p, ChunkUpdated):
                 chunks.append([e.event_time_ms, p.row, p.column, e.robot_id, p.content_hash,
                                e.receive_time_ms - e.event_time_ms])
@@ -58,9 +71,8 @@ class WritesMixin(SnapshotsMixin):
                 self._insert("chunk_events", chunks,
                              ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"])
             if poses:
-                self._insert("poses", poses, [
-                    "robot_id", "ts", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "battery",
-                    "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"])
+                self._insert("poses", poses, _POSE_INSERT_COLUMNS)
+            self._last_pose_rows = (events, poses)
             if metas:
                 self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
             # A late event (at or before the newest snapshot) makes the snapshots from its
@@ -89,3 +101,18 @@ class WritesMixin(SnapshotsMixin):
         with self._lock:
             self._insert("conflicts", data, [
                 "ts", "row", "col", "robot_b", "robot_a", "ts_a"])
+
+
+def _pose_row(e: Envelope) -> list:
+    """A pose event as the row `poses` (and `pose_derivations`) store, in _POSE_INSERT_COLUMNS order."""
+    p = e.payload
+    path = p.path or ()
+    return [
+        e.robot_id, e.event_time_ms,
+        _mm(p.position[0]), _mm(p.position[1]), _mm(p.position[2]),
+        *p.orientation,
+        p.battery_level, _flag(p.charging), _flag(p.loaded),
+        p.path is not None,
+        [_mm(x) for x, _ in path], [_mm(y) for _, y in path],
+        e.receive_time_ms - e.event_time_ms,
+    ]

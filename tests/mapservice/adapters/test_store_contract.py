@@ -645,6 +645,18 @@ def test_timeline_counts_chunks_conflicts_and_robots(store, ev, m0) -> None:
     assert store.timeline(m0, m0, 5) == []
 
 
+def test_append_events_then_derive_views_reads_as_append(store, ev, m0) -> None:
+    """The history consumer's two steps (store, push, then derive) leave the store as one append does."""
+    batch = [ev.pose("r1", m0 + 1000), ev.pose("r2", m0 + 61_000), ev.pose("r1", m0 + 125_000),
+             ev.chunk("r1", m0 + 500, 0, 0)]
+    store.append_events(batch)
+    assert store.poses(m0, m0 + 180_000) and store.chunk_events(m0, m0 + 180_000)  # queryable
+    store.derive_views(batch)
+    assert [(p.robot_id, p.ts_ms) for p in store.poses_downsampled(m0, m0 + 180_000, 60_000)] == [
+        ("r1", m0 + 1000), ("r2", m0 + 61_000), ("r1", m0 + 125_000)]
+    assert [b.robots_active for b in store.timeline(m0, m0 + 180_000, 3)] == [1, 1, 1]
+
+
 def test_robot_known(store, ev, t0) -> None:
     """robot_known() is true once a robot has a pose, false for one that never reported."""
     assert not store.robot_known("r1")

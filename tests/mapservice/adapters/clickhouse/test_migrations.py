@@ -4,6 +4,7 @@ a clear error while another migrator holds the lock."""
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -115,3 +116,32 @@ def test_two_migrators_at_once_apply_each_migration_once(chdb_dir) -> None:
     finally:
         for s in stores:  # closed even on failure: a leaked chDB handle breaks later modules
             s.close()
+
+
+def test_v10_moves_the_pose_views_behind_derive_views_and_keeps_what_v9_derived(store, monkeypatch) -> None:
+    """A v9 database keeps its keyframes through v10; after it, poses reach the views only through derive_views."""
+    from mapservice.adapters.clickhouse import migrations as migrations_module
+    from tests.conftest import pose_event
+
+    released = migrations_module.migrations
+    monkeypatch.setattr(migrations_module, "migrations",
+                        lambda db, days: [m for m in released(db, days) if m.version <= 9])
+    assert store.migrate() == 9
+    hour_ago = int(time.time() * 1000) - 3_600_000  # inside the retention
+    t0 = hour_ago - hour_ago % 60_000  # a whole minute
+    store.append_events([pose_event("r1", t0 + s * 1000) for s in range(0, 120, 10)])
+
+    def derived() -> tuple[int, int]:
+        return tuple(store.client.query(f"SELECT count() FROM {store.database}.{t} FINAL").result_rows[0][0]
+                     for t in ("pose_keyframes", "pose_minutes"))
+
+    assert derived() == (2, 2)  # v9: the views on poses fill them on insert
+    monkeypatch.setattr(migrations_module, "migrations", released)
+    assert store.migrate() == SCHEMA_VERSION == 10
+    assert derived() == (2, 2)
+    later = [pose_event("r1", t0 + 120_000 + s * 1000) for s in range(0, 60, 10)]
+    store.append_events(later)
+    assert derived() == (2, 2)  # stored, not derived yet
+    store.derive_views(later)
+    store.derive_views(later)  # a re-delivered batch changes nothing
+    assert derived() == (3, 3)
