@@ -61,7 +61,7 @@ async def _one(way: str, events: int) -> dict:
     from mapservice.adapters.kafka_topics import ensure_topics
 
     class CountingStore(MemoryStore):
-        def append(self, batch) -> None:
+        def append_events(self, batch) -> None:
             _Counter.n += len(batch)
 
     port = free_port()
