@@ -161,6 +161,12 @@ class Settings(BaseSettings):
     sink_batch_min_seconds: float = Field(0.1, gt=0, description=(
         "Shortest wait to fill a history batch, taken while batches are stored quickly; the "
         "wait grows toward sink_batch_seconds as storing slows down."))
+    # Feeding the pose views costs a fixed ~30 ms per insert: paid once a second, not per
+    # batch (processors/history_consumer.py).
+    sink_views_seconds: float = Field(1.0, gt=0, description=(
+        "Longest the derived pose views (downsampled replay, timeline) and the offset commits "
+        "lag behind the stored history: the views are fed once per this interval (at once "
+        "when idle)."))
 
     snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
     snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")

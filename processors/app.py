@@ -64,7 +64,8 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
                    settings.topic_meta_events], group_id=f"{app.conf.id}-history",
         contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
     consumer = HistoryConsumer(source, sink, views, batch, within,
-                               min_batch_seconds=settings.sink_batch_min_seconds)
+                               min_batch_seconds=settings.sink_batch_min_seconds,
+                               views_seconds=settings.sink_views_seconds)
     source.on_assigned = consumer.on_assigned
     source.on_commit_failed = COMMIT_FAILURES.inc
     sink.consumer = consumer

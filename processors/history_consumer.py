@@ -1,8 +1,10 @@
-"""Moves the event topics into the history in batches, committing offsets after each insert.
+"""Moves the event topics into the history in batches, committing offsets once they are
+stored and the derived pose views brought up to them.
 
-At-least-once: a batch's offsets are committed only after its events are in the history
-(and the live views and conflicts derived from them); a crash or rebalance before that
-re-delivers the batch, and the history's natural-identity keys absorb the repeat.
+At-least-once: offsets are committed only after their events are in the history (with
+the live views, conflicts and derived pose views that come from them); a crash or
+rebalance before that re-delivers them, and the history's natural-identity keys absorb
+the repeat.
 """
 
 from __future__ import annotations
@@ -60,15 +62,16 @@ def observe_stored(topic: str, events: Sequence, now_ms: int) -> None:
 
 
 async def store_values(sink: "HistorySink", views: "LiveViews | None",
-                       values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int) -> None:
+                       values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int) -> list:
     """Decodes a batch, stores its events in one append, then feeds the live stream and
-    the views; bad records become dead letters.
+    the views; bad records become dead letters. Returns the stored events, whose derived
+    pose views the caller brings up (`HistorySink.derive_until_done`) before committing.
 
     One append for the whole batch, poses and chunks together: each append has a fixed
     cost (an insert per table, a snapshot check), and poses no longer wait behind the
-    chunks' conflict detection to be stored. The derived pose views are brought up to the
-    batch after its live push (schema v10): most of a store's cost, they no longer delay
-    the push, and the batch is committed only after them.
+    chunks' conflict detection to be stored. The derived pose views (schema v10) are left
+    to the caller: they never delay the push, and feeding them several batches at once
+    costs a fraction of feeding each batch (HistoryConsumer.views_seconds).
     """
     good: list = []
     per_topic: dict[str, int] = {}
@@ -89,21 +92,31 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
             observe_stored(topic, events, stored_ms)
         if sink.live is not None:
             sink.live.publish(good)
-        await sink.derive_until_done(good)
         if views is not None:
             await views.on_stored(sink, good)  # conflicts, latest map, robots
     for topic, bad in bad_by_topic.items():
         log.warning("undecodable records on an event topic", topic=topic, count=len(bad))
         await sink.insert_until_done(sink.store.append_dead_letters, bad, {topic: len(bad)})
+    return good
 
 
 class HistoryConsumer:
-    """Owns one EventSource; every call to it runs on one thread of its own."""
+    """Owns one EventSource; every call to it runs on one thread of its own.
+
+    The derived pose views are fed, and offsets committed, once per `views_seconds` of
+    stored batches (at the latest; at once when a poll finds nothing, when `batch_size`
+    events wait, on a rebalance and on stop): one insert into the pose views has a fixed
+    cost several times a batch's own (BENCHMARKS.md, "pose views once a second"), which
+    5,000 robots cannot pay every 100 ms. What that costs: the views (downsampled replay,
+    timeline) may lag the history by `views_seconds`, and a crash re-delivers up to that
+    much more (stored once: the history's identities absorb it).
+    """
 
     def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
                  batch_size: int, batch_seconds: float, min_batch_seconds: float | None = None,
                  now_ms: Callable[[], int] = SystemClock().now_ms,
-                 monotonic: Callable[[], float] = time.monotonic) -> None:
+                 monotonic: Callable[[], float] = time.monotonic,
+                 views_seconds: float = 1.0) -> None:
         self.source = source
         self.sink = sink
         self.views = views
@@ -125,6 +138,11 @@ class HistoryConsumer:
         # outage still beats); two minutes without one means the loop is dead or stuck.
         self.heartbeat = Heartbeat(max_age_s=120.0)
         self._thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-consumer")
+        self.views_seconds = views_seconds
+        self._underived: list = []  # stored events whose pose views are not derived yet
+        self._underived_since: float | None = None  # monotonic, when the first of them was stored
+        # Per partition, its latest stored record not yet committed.
+        self._uncommitted: dict[tuple[str, int], SourceRecord] = {}
 
     def on_assigned(self, partitions: list[tuple[str, int]]) -> None:
         self.assigned = True
@@ -158,33 +176,71 @@ class HistoryConsumer:
         BATCH_WINDOW.set(self.window_s)
 
     async def run_once(self) -> int:
-        """One batch: poll, store, commit. Returns how many records it handled."""
+        """One batch: poll, store, and (when due) derive the pose views and commit.
+        Returns how many records it handled."""
         records: list[SourceRecord] = await self._call(
             self.source.poll, self.batch_size, self.poll_timeout())
         self._last_poll_returned = self.monotonic()
+        if self.assigned:
+            # The group changed: what this replica stored is settled first (its partitions
+            # may be another's now; a refused commit only re-delivers).
+            await self.settle()
         if self.assigned and self.views is not None:
             # New partitions: rebuild the views from the history before their events
             # (which may repeat what is stored) are applied.
             self.assigned = False
             await self.views.rebuild(self.sink)
+        self.assigned = False
         if not records:
+            await self.settle()  # idle: the views catch up at once
             self._timed_store(0.0)
             return 0
         # Moving on would let the next commit cover this batch: retry it instead.
         async for attempt in until_done("history batch", 0.5, records=len(records)):
             with attempt:
                 self.heartbeat.beat()
-                await self._store(records)
-        if not await self._call(self.source.commit, records):
-            COMMIT_FAILURES.inc()
+                stored = await self._store(records)
+        # The window is sized by the batch's own store time; the views' insert, once per
+        # views_seconds, would make it jump.
         self._timed_store(self.monotonic() - self._last_poll_returned)
+        self._underived.extend(stored)
+        for r in records:
+            self._uncommitted[(r.topic, r.partition)] = r
+        if self._underived_since is None:
+            self._underived_since = self.monotonic()
+        if (self.monotonic() - self._underived_since >= self.views_seconds
+                or len(self._underived) >= self.batch_size):
+            await self.settle()
         return len(records)
 
-    async def _store(self, records: list[SourceRecord]) -> None:
+    async def settle(self) -> None:
+        """Derives the pose views of the stored events, then commits their offsets."""
+        if self._underived:
+            await self.sink.derive_until_done(self._underived)
+            self._underived = []
+        self._underived_since = None
+        if self._uncommitted:
+            records, self._uncommitted = list(self._uncommitted.values()), {}
+            if not await self._call(self.source.commit, records):
+                COMMIT_FAILURES.inc()
+
+    async def _store(self, records: list[SourceRecord]) -> list:
         by_topic: dict[str, list[bytes]] = {}
         for r in records:
             by_topic.setdefault(r.topic, []).append(r.value)
-        await store_values(self.sink, self.views, by_topic, self.now_ms())
+        return await store_values(self.sink, self.views, by_topic, self.now_ms())
+
+    async def _settle_once(self) -> None:
+        """On stop: one try, no retries (an unreachable store must not hold the stop up;
+        what is not committed is delivered again)."""
+        try:
+            if self._underived:
+                await self.sink.run(self.sink.store.derive_views, self._underived)
+                self._underived = []
+            await self.settle()
+        except Exception as exc:  # noqa: BLE001 - anything the store raises; logged, re-delivered
+            log.warning("could not derive the pose views on stop; their events will be "
+                        "delivered again", events=len(self._underived), error=str(exc))
 
     async def run(self, stopping: asyncio.Event) -> None:
         await self.start()
@@ -192,6 +248,7 @@ class HistoryConsumer:
             while not stopping.is_set():
                 self.heartbeat.beat()
                 await self.run_once()
+            await self._settle_once()
         finally:
             await self._call(self.source.close)
             self._thread.shutdown(wait=False)

@@ -41,6 +41,7 @@ import httpx
 import psutil
 
 from mapservice.bench.procstat import cpu_seconds
+from mapservice.bench.yardstick import yardstick_ms
 
 KEYS_PER_POSE = "pose"
 KEYS_PER_CHUNK = "chunk"
@@ -633,6 +634,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
     poller: QueryablePoller | None = None
     listener: LiveListener | None = None
     try:
+        # Before the stack starts: the machine's speed right now, to compare runs by.
+        result["yardstick_ms"] = yardstick_ms()
         t_start = time.monotonic()
         with console.status(f"run {run}/{runs}: starting tansu, {args.mqtt}, server, "
                             f"{gateways} gateway(s)..."):
@@ -1064,6 +1067,9 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
             per_event = med.get(f"cpu_us_per_event.{k}")
             row(f"CPU {k} (% of one core" + (", µs per event)" if per_event is not None else ")"),
                 "", f"{med[key]:.1f} %" + (f", {per_event:.0f} µs" if per_event is not None else ""))
+    if "yardstick_ms" in med:
+        row("machine yardstick before the run (ms, lower = faster machine)", "",
+            f"{med['yardstick_ms']:.1f}")
     console.print(table)
     if not judge:
         console.print(f"[yellow]A {args.seconds:.0f} s run is not representative (start-up noise "

@@ -92,7 +92,8 @@ async def _one(way: str, events: int) -> dict:
         source = KafkaBatchSource(settings, [settings.topic_pose_events], "bench-sink")
         consumer = HistoryConsumer(source, HistorySink(store), None,
                                    settings.sink_batch_size, settings.sink_batch_seconds,
-                                   min_batch_seconds=settings.sink_batch_min_seconds)
+                                   min_batch_seconds=settings.sink_batch_min_seconds,
+                                   views_seconds=settings.sink_views_seconds)
         source.on_assigned = consumer.on_assigned
         task = asyncio.create_task(consumer.run(stopping))
         first = None

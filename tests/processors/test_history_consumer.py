@@ -280,3 +280,107 @@ def test_pose_views_are_derived_after_the_live_push_and_before_the_commit(ev) ->
     drain(HistoryConsumer(source, HistorySink(OrderedStore(), Feed()), None, batch_size=100,
                           batch_seconds=0.01, now_ms=lambda: NOW))
     assert calls == ["append_events", "publish", "derive_views", "derive_views", "commit"]
+
+
+class DeriveLog(MemoryStore):
+    """Notes each derive_views call's event times, and what was committed when it ran."""
+
+    def __init__(self, source: MemorySource) -> None:
+        super().__init__()
+        self.source = source
+        self.derived: list[tuple[list[int], dict]] = []
+
+    def derive_views(self, events) -> None:
+        self.derived.append(([e.event_time_ms for e in events], dict(self.source.committed)))
+
+
+def deferring_consumer(ev, views_seconds: float, batch_size: int = 100):
+    """A consumer on a hand-driven clock, its store noting derivations, and a way to add a
+    one-pose batch that takes 0.3 s to poll and store."""
+    clock, source = Clock(), MemorySource()
+    store = DeriveLog(source)
+    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=batch_size,
+                               batch_seconds=0.2, now_ms=lambda: NOW, monotonic=clock,
+                               views_seconds=views_seconds)
+
+    def batch(i: int) -> int:
+        source.append(POSES, encode(ev.pose("r1", NOW + i)))
+        clock.t += 0.3
+        return asyncio.run(consumer.run_once())
+    return consumer, source, store, batch
+
+
+def test_pose_views_are_derived_once_per_interval_for_every_batch_stored_in_it(ev) -> None:
+    """With a 1 s interval and a batch every 0.3 s, one derive_views takes batches 0-4 and
+    the commit waits for it: nothing is committed before."""
+    consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
+    for i in range(4):  # the last 0.9 s after the first was stored
+        batch(i)
+        assert store.derived == [] and source.committed == {}
+    batch(4)  # 1.2 s after
+    assert store.derived == [([NOW, NOW + 1, NOW + 2, NOW + 3, NOW + 4], {})]
+    assert source.committed == {(POSES, 0): 5}
+
+
+def test_an_empty_poll_derives_and_commits_what_waits_at_once(ev) -> None:
+    """Idle, nothing waits for the interval: the poll that finds nothing settles the batch before it."""
+    consumer, source, store, batch = deferring_consumer(ev, views_seconds=60.0)
+    batch(0)
+    assert store.derived == [] and source.committed == {}
+    assert asyncio.run(consumer.run_once()) == 0
+    assert store.derived == [([NOW], {})] and source.committed == {(POSES, 0): 1}
+
+
+def test_batch_size_events_waiting_are_derived_before_the_interval_ends(ev) -> None:
+    """Memory is bounded: two batches of a batch_size of 2 settle without waiting for the interval."""
+    consumer, source, store, batch = deferring_consumer(ev, views_seconds=60.0, batch_size=2)
+    batch(0)
+    assert store.derived == []
+    batch(1)
+    assert store.derived == [([NOW, NOW + 1], {})] and source.committed == {(POSES, 0): 2}
+
+
+def test_a_stopping_consumer_derives_and_commits_what_it_stored(ev) -> None:
+    """Stop between intervals: the waiting batch is derived and committed before the source closes."""
+    source, stopping = MemorySource(), asyncio.Event()
+    store = DeriveLog(source)
+    source.append(POSES, encode(ev.pose("r1", NOW)))
+    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100,
+                               batch_seconds=0.01, now_ms=lambda: NOW, views_seconds=60.0)
+    original_poll = source.poll
+
+    def poll(n, timeout_s):
+        stopping.set()  # the first poll is the last
+        return original_poll(n, timeout_s)
+    source.poll = poll
+    asyncio.run(consumer.run(stopping))
+    assert store.derived == [([NOW], {})] and source.committed == {(POSES, 0): 1}
+
+
+def test_a_stop_with_the_store_away_gives_up_the_views_and_leaves_the_batch_uncommitted(ev) -> None:
+    """One try on stop, no retry loop: the source closes, nothing is committed, and the batch comes again."""
+    class AwayOnDerive(MemoryStore):
+        def derive_views(self, events) -> None:
+            raise ConnectionError("clickhouse away")
+
+    source, stopping = MemorySource(), asyncio.Event()
+    source.append(POSES, encode(ev.pose("r1", NOW)))
+    consumer = HistoryConsumer(source, HistorySink(AwayOnDerive()), None, batch_size=100,
+                               batch_seconds=0.01, now_ms=lambda: NOW, views_seconds=60.0)
+    original_poll = source.poll
+
+    def poll(n, timeout_s):
+        stopping.set()
+        return original_poll(n, timeout_s)
+    source.poll = poll
+    asyncio.run(asyncio.wait_for(consumer.run(stopping), 5))
+    assert source.committed == {} and source.started is False
+
+
+def test_a_rebalance_settles_what_was_stored_before_the_new_partitions_events(ev) -> None:
+    """An assignment in a poll derives and commits the earlier batch before the poll's own records are stored."""
+    consumer, source, store, batch = deferring_consumer(ev, views_seconds=60.0)
+    batch(0)
+    consumer.on_assigned([(POSES, 0)])
+    batch(1)
+    assert store.derived == [([NOW], {})] and source.committed == {(POSES, 0): 1}

@@ -23,9 +23,6 @@ class WritesMixin(SnapshotsMixin):
     """append (append_events, then derive_views), append_dead_letters, append_conflicts."""
 
     _known_contents: dict[bytes, int]  # hash -> day already written
-    # The pose rows of the last append_events, for derive_views of the same batch (the
-    # history consumer calls the two in a row): they are not built twice.
-    _last_pose_rows: tuple[Sequence[Envelope], list] | None = None
 
     # --- writes ---------------------------------------------------------------------
 
@@ -36,10 +33,7 @@ class WritesMixin(SnapshotsMixin):
     def derive_views(self, events: Sequence[Envelope]) -> None:
         """Feeds the batch's poses to the pose views (schema v10: through the Null table
         `pose_derivations`); repeating it for a batch changes nothing."""
-        last = self._last_pose_rows
-        poses = last[1] if last is not None and last[0] is events else [
-            _pose_row(e) for e in events if isinstance(e.payload, PoseReported)]
-        self._last_pose_rows = None
+        poses = [_pose_row(e) for e in events if isinstance(e.payload, PoseReported)]
         if poses:
             with self._lock:
                 self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS)
@@ -72,7 +66,6 @@ class WritesMixin(SnapshotsMixin):
                              ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"])
             if poses:
                 self._insert("poses", poses, _POSE_INSERT_COLUMNS)
-            self._last_pose_rows = (events, poses)
             if metas:
                 self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
             # A late event (at or before the newest snapshot) makes the snapshots from its
