@@ -123,25 +123,36 @@ def test_the_ceiling_is_the_last_step_of_an_unbroken_run_that_held() -> None:
     assert ceiling_verdict([{"robots": 1000, "held": False}]) is None
 
 
-def test_a_short_run_is_reported_not_judged(capsys) -> None:
-    """A 10 s run prints "not judged" and says it is not representative, never MISSED."""
+def printed_results(capsys, robots: int, seconds: float, **figures) -> str:
+    """What print_results prints for one run of `robots` robots over `seconds` with these figures."""
     import argparse
 
     from rich.console import Console
 
     from mapservice.bench.ingest import print_results
 
-    med = {**_fleet_figures(lost=3, latency_pushed_p99_s=5.0), "offered_events_per_s": 6000.0,
-           "published_events_per_s": 5000.0, "stats_poses_minus_expected": 0,
+    med = {**_fleet_figures(**figures), "offered_events_per_s": robots * 1.2,
+           "published_events_per_s": robots * 1.2, "stats_poses_minus_expected": 0,
            "stats_chunk_events_minus_expected": 0, "dead_letters": 0, "latency_censored": 0,
-           "published_events": 50_000, "bytes_per_robot_day": 2e6,
+           "published_events": int(robots * 1.2 * seconds), "bytes_per_robot_day": 2e6,
            "storage.bytes_per_robot_day_events_only": 1e6}
-    args = argparse.Namespace(robots=5000, seconds=10.0, mqtt="mosquitto", poll_interval=0.1)
+    args = argparse.Namespace(robots=robots, seconds=seconds, mqtt="mosquitto", poll_interval=0.1)
     facts = {"nproc": 2, "cpu_model": "x", "ram_bytes": 2**30, "python": "3", "tansu": "t",
              "mosquitto": "m"}
     print_results(Console(width=200), args, facts, [med], med)
-    out = capsys.readouterr().out
+    return capsys.readouterr().out
+
+
+def test_a_short_run_is_reported_not_judged(capsys) -> None:
+    """A 10 s run prints "not judged" and says it is not representative, never MISSED."""
+    out = printed_results(capsys, 5000, 10.0, lost=3, latency_pushed_p99_s=5.0)
     assert "MISSED" not in out and "not judged" in out and "not representative" in out
+
+
+def test_the_results_show_the_yardstick_measured_before_the_run(capsys) -> None:
+    """A run's yardstick appears in the result table, so two runs' machines can be compared."""
+    out = printed_results(capsys, 1000, 60.0, yardstick_ms=18.25)
+    assert "18.2" in next(line for line in out.splitlines() if "machine yardstick" in line)
 
 
 def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
