@@ -182,15 +182,14 @@ class HistoryConsumer:
             self.source.poll, self.batch_size, self.poll_timeout())
         self._last_poll_returned = self.monotonic()
         if self.assigned:
+            self.assigned = False
             # The group changed: what this replica stored is settled first (its partitions
             # may be another's now; a refused commit only re-delivers).
             await self.settle()
-        if self.assigned and self.views is not None:
-            # New partitions: rebuild the views from the history before their events
-            # (which may repeat what is stored) are applied.
-            self.assigned = False
-            await self.views.rebuild(self.sink)
-        self.assigned = False
+            if self.views is not None:
+                # New partitions: rebuild the views from the history before their events
+                # (which may repeat what is stored) are applied.
+                await self.views.rebuild(self.sink)
         if not records:
             await self.settle()  # idle: the views catch up at once
             self._timed_store(0.0)
