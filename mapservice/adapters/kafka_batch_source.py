@@ -4,8 +4,7 @@ Why not a faust agent for the history: faust hands records to agents one at a ti
 (a task pair per record, the conductor, the stream, the Monitor sensor): ~250 µs of CPU
 per event here, against ~5 µs for `Consumer.consume(n)` (BENCHMARKS.md, "sink path").
 At-least-once: offsets are committed only by `commit(records)`, after the caller stored
-them; rebalance callbacks run inside `poll`, so they never fall between a batch's insert
-and its commit.
+them, and only for records this member was handed since the group last changed (below).
 """
 
 from __future__ import annotations
@@ -39,6 +38,17 @@ GAP_REREADS = 5
 OFFSET_GAPS = Counter("mapservice_consumer_offset_gaps_total",
                       "Jumps past unseen offsets: read again, or accepted after GAP_REREADS tries",
                       ["outcome"])
+# A commit is made only for records delivered in the current group membership, and only
+# while librdkafka still holds the member id that membership began with. The caller may
+# commit a batch long after it was polled (a ClickHouse outage; the pose views' interval),
+# and by then the group may have moved on. Apache Kafka would refuse such a commit from a
+# stale member, but a member that left the group (a missed poll interval, a broker that
+# forgot it) commits as a plain consumer, and every broker takes that. Against a tansu
+# restarted empty (memory storage) those offsets point past the new log's records: the
+# group's next assignment would start there and skip them (test_faults.py).
+STALE_COMMITS = Counter("mapservice_consumer_stale_commits_total",
+                        "Commits not made: their records were delivered before the group "
+                        "changed (they will be delivered again)")
 
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
@@ -94,13 +104,17 @@ class KafkaBatchSource:
         self.contiguous_topics = set(topics if contiguous_topics is None else contiguous_topics)
         self._next_offset: dict[tuple[str, int], int] = {}  # per partition, once one was read
         self._rereads: dict[tuple[str, int], int] = {}  # rereads in a row of a partition's gap
+        self.membership = 0  # counts assignments and revocations (SourceRecord.membership)
+        self._member_id: str | None = None  # librdkafka's, when the partitions were assigned
 
     def start(self) -> None:
         self.consumer = Consumer(self.config)
         self.consumer.subscribe(self.topics, on_assign=self._assigned, on_revoke=self._revoked)
 
-    def _assigned(self, _consumer, partitions: list[TopicPartition]) -> None:
+    def _assigned(self, consumer, partitions: list[TopicPartition]) -> None:
         log.info("history partitions assigned", count=len(partitions))
+        self.membership += 1
+        self._member_id = consumer.memberid()
         self._forget(partitions)  # reading starts wherever the group's offsets say
         for p in partitions:  # a series per owned partition from the start (0 until measured)
             LAG.labels(self.group_id, p.topic, str(p.partition)).set(0)
@@ -109,6 +123,7 @@ class KafkaBatchSource:
 
     def _revoked(self, _consumer, partitions: list[TopicPartition]) -> None:
         # Another replica owns them now and reports their lag.
+        self.membership += 1
         self._forget(partitions)
         for p in partitions:
             try:
@@ -132,7 +147,8 @@ class KafkaBatchSource:
                     log.warning("kafka consumer error", error=str(err))
                 continue
             if m.topic() not in self.contiguous_topics:
-                out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b""))
+                out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"",
+                                        self.membership))
                 continue
             key = (m.topic(), m.partition())
             if key in rewound:
@@ -144,7 +160,8 @@ class KafkaBatchSource:
             if self._rereads and m.offset() == expected:
                 self._rereads.pop(key, None)  # the gap is filled: a later one starts afresh
             self._next_offset[key] = m.offset() + 1
-            out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b""))
+            out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"",
+                                    self.membership))
         return out
 
     def _reread(self, key: tuple[str, int], expected: int, got: int) -> bool:
@@ -169,10 +186,21 @@ class KafkaBatchSource:
     def commit(self, records: Sequence[SourceRecord]) -> bool:
         """Commits past the highest offset per partition, asynchronously: the next batch
         need not wait for the broker's answer (up to ~0.1 s under load). False if the
-        consumer refused at once; a commit the broker refuses later (the group moved on)
-        reaches `on_commit_failed`. Either way the records are delivered again to whoever
-        owns their partitions, and the history's identities absorb the repeat."""
+        group changed since the records were delivered (STALE_COMMITS) or the consumer
+        refused at once; a commit the broker refuses later (the group moved on) reaches
+        `on_commit_failed`. Either way the records are delivered again to whoever owns
+        their partitions, and the history's identities absorb the repeat."""
         assert self.consumer is not None, "start() first"
+        left_group = self.consumer.memberid() != self._member_id
+        current = [] if left_group else [r for r in records if r.membership == self.membership]
+        if len(current) < len(records):
+            STALE_COMMITS.inc()
+            log.warning("not committing offsets delivered before the consumer group changed; "
+                        "those records will be delivered again", left_group=left_group,
+                        records=len(records) - len(current))
+        return self._commit(current) and len(current) == len(records)
+
+    def _commit(self, records: Sequence[SourceRecord]) -> bool:
         last: dict[tuple[str, int], int] = {}
         for r in records:
             key = (r.topic, r.partition)

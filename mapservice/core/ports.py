@@ -82,6 +82,9 @@ class SourceRecord(msgspec.Struct, frozen=True, gc=False):
     partition: int
     offset: int
     value: bytes
+    # Which of the source's memberships in its consumer group delivered it. A source whose
+    # partitions can move (Kafka) counts them and never commits a past one's records.
+    membership: int = 0
 
 
 class EventSource(Protocol):

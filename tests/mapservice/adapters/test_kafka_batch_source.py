@@ -51,9 +51,9 @@ def test_assignment_creates_and_revocation_removes_the_lag_series() -> None:
 
     source = KafkaBatchSource(Settings(), ["t"], "lag-assign")
     assert source.config["statistics.interval.ms"] > 0 and callable(source.config["stats_cb"])
-    source._assigned(None, [TopicPartition("t", 3)])
+    source._assigned(_ScriptedConsumer([]), [TopicPartition("t", 3)])
     assert lag("lag-assign", "t", "3") == 0
-    source._revoked(None, [TopicPartition("t", 3)])
+    source._revoked(_ScriptedConsumer([]), [TopicPartition("t", 3)])
     assert lag("lag-assign", "t", "3") is None
 
 
@@ -92,11 +92,14 @@ class _Message:
 
 
 class _ScriptedConsumer:
-    """consume() hands out the next scripted batch; seek() is recorded."""
+    """consume() hands out the next scripted batch; seek() and commit() are recorded;
+    memberid() is librdkafka's member id, set by the test."""
 
     def __init__(self, batches: list[list[tuple[int, int]]]) -> None:
         self.batches = [[_Message(p, o) for p, o in b] for b in batches]
         self.seeks: list[tuple[int, int]] = []
+        self.commits: list[list[tuple[int, int]]] = []
+        self.member_id = "member-1"
 
     def consume(self, _n, _timeout):
         return self.batches.pop(0) if self.batches else []
@@ -104,10 +107,25 @@ class _ScriptedConsumer:
     def seek(self, tp) -> None:
         self.seeks.append((tp.partition, tp.offset))
 
+    def memberid(self) -> str:
+        return self.member_id
+
+    def commit(self, offsets, asynchronous: bool) -> None:
+        self.commits.append([(tp.partition, tp.offset) for tp in offsets])
+
 
 def _source(batches) -> KafkaBatchSource:
     source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t"], "g")
     source.consumer = _ScriptedConsumer(batches)
+    return source
+
+
+def _assigned_source(batches) -> KafkaBatchSource:
+    """A source the group has assigned its partitions (as member-1)."""
+    from confluent_kafka import TopicPartition
+
+    source = _source(batches)
+    source._assigned(source.consumer, [TopicPartition("t", 0), TopicPartition("t", 1)])
     return source
 
 
@@ -153,7 +171,7 @@ def test_a_newly_assigned_partition_starts_wherever_the_group_left_it() -> None:
 
     source = _source([[(0, 1)], [(0, 40)]])
     assert offsets(source.poll(100, 0.1)) == [(0, 1)]
-    source._assigned(None, [TopicPartition("t", 0)])
+    source._assigned(source.consumer, [TopicPartition("t", 0)])
     assert offsets(source.poll(100, 0.1)) == [(0, 40)] and source.consumer.seeks == []
 
 
@@ -166,3 +184,35 @@ def test_a_compacted_topics_gaps_are_not_read_again() -> None:
     source.consumer = consumer
     assert [(r.topic, r.offset) for r in source.poll(100, 0.1)] == [("meta", 3), ("meta", 9), ("t", 1)]
     assert consumer.seeks == []
+
+
+def test_a_commit_covers_the_highest_offset_of_each_partition_delivered_in_this_membership() -> None:
+    """Records polled since the last assignment are committed past each partition's highest offset."""
+    source = _assigned_source([[(0, 4), (1, 9), (0, 5)]])
+    assert source.commit(source.poll(100, 0.1)) is True
+    assert source.consumer.commits == [[(0, 6), (1, 10)]]
+
+
+def test_records_delivered_before_a_reassignment_are_not_committed_after_it() -> None:
+    """A rebalance between poll and commit: the earlier records' offsets are dropped (they
+    may be another member's now, or point into a log the broker lost), the later ones committed."""
+    from confluent_kafka import TopicPartition
+
+    source = _assigned_source([[(0, 700), (1, 800)], [(0, 3)]])
+    before = source.poll(100, 0.1)
+    source._revoked(source.consumer, [TopicPartition("t", 0), TopicPartition("t", 1)])
+    source._assigned(source.consumer, [TopicPartition("t", 0)])
+    after = source.poll(100, 0.1)
+    assert source.commit(before + after) is False
+    assert source.consumer.commits == [[(0, 4)]]
+    assert source.commit(before) is False and source.consumer.commits == [[(0, 4)]]
+
+
+def test_nothing_is_committed_once_the_consumer_has_left_its_group() -> None:
+    """librdkafka dropped the member id (a missed poll interval, a broker that forgot the
+    member) before the rebalance callbacks ran: no commit, since it would be taken as a
+    plain consumer's."""
+    source = _assigned_source([[(0, 7)]])
+    records = source.poll(100, 0.1)
+    source.consumer.member_id = ""
+    assert source.commit(records) is False and source.consumer.commits == []
