@@ -183,8 +183,9 @@ class HistoryConsumer:
         self._last_poll_returned = self.monotonic()
         if self.assigned:
             self.assigned = False
-            # The group changed: what this replica stored is settled first (its partitions
-            # may be another's now; a refused commit only re-delivers).
+            # The group changed: the pose views of what this replica stored are derived
+            # first. The source commits no offset read before the change (its partition
+            # may be another's now), so those records are delivered again: stored once.
             await self.settle()
             if self.views is not None:
                 # New partitions: rebuild the views from the history before their events

@@ -46,6 +46,7 @@ OFFSET_GAPS = Counter("mapservice_consumer_offset_gaps_total",
 # forgot it) commits as a plain consumer, and every broker takes that. Against a tansu
 # restarted empty (memory storage) those offsets point past the new log's records: the
 # group's next assignment would start there and skip them (test_faults.py).
+NEVER_COMMITTED = -1  # the membership of records polled while the group changed
 STALE_COMMITS = Counter("mapservice_consumer_stale_commits_total",
                         "Commits not made: their records were delivered before the group "
                         "changed (they will be delivered again)")
@@ -140,7 +141,13 @@ class KafkaBatchSource:
         assert self.consumer is not None, "start() first"
         out = []
         rewound: set[tuple[str, int]] = set()  # partitions read again: the rest comes again too
-        for m in self.consumer.consume(max_records, timeout_s):
+        before = self.membership
+        messages = self.consumer.consume(max_records, timeout_s)
+        # Rebalance callbacks run inside consume(), and the batch may hold records fetched
+        # on either side of them: such a batch is stored but never committed (later
+        # commits cover it, or its records are delivered again).
+        membership = self.membership if self.membership == before else NEVER_COMMITTED
+        for m in messages:
             err = m.error()
             if err is not None:
                 if err.code() != KafkaError._PARTITION_EOF:
@@ -148,7 +155,7 @@ class KafkaBatchSource:
                 continue
             if m.topic() not in self.contiguous_topics:
                 out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"",
-                                        self.membership))
+                                        membership))
                 continue
             key = (m.topic(), m.partition())
             if key in rewound:
@@ -161,7 +168,7 @@ class KafkaBatchSource:
                 self._rereads.pop(key, None)  # the gap is filled: a later one starts afresh
             self._next_offset[key] = m.offset() + 1
             out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"",
-                                    self.membership))
+                                    membership))
         return out
 
     def _reread(self, key: tuple[str, int], expected: int, got: int) -> bool:

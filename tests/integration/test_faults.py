@@ -538,9 +538,10 @@ def poll_until(source, count: int, timeout_s: float) -> list:
 def test_offsets_read_before_tansu_restarted_empty_are_not_committed_to_the_new_one(tmp_path) -> None:
     """Offsets polled from a tansu that then restarted empty are not committed with the new log's: the group resumes where the new log was read to."""
     # As in the split deployment's Kafka-while-ClickHouse-down fault: the history consumer
-    # stores a batch polled from the old tansu only once ClickHouse is back, by when it was
-    # assigned the new, empty tansu's partitions; it commits both together. Committed
-    # there, the old (higher) offsets are where the group next starts: past the new log's.
+    # stores a batch polled from the old tansu only once ClickHouse is back, by when it may
+    # have been assigned the new, empty tansu's partitions; it commits both together.
+    # Committed there, the old (higher) offsets are where the group next starts: past the
+    # new log's records.
     from confluent_kafka import Producer
 
     from mapservice.adapters.kafka_batch_source import KafkaBatchSource
@@ -574,13 +575,15 @@ def test_offsets_read_before_tansu_restarted_empty_are_not_committed_to_the_new_
         ensure_topics(settings)
         produce(10)
         after = poll_until(sources[0], 10, 60)  # the new group's assignment: offsets from 0
-        assert offsets(after) == list(range(10))
+        produce(10)
+        after += poll_until(sources[0], 10, 30)
+        assert offsets(after) == list(range(20))
         assert sources[0].commit(before + after) is False  # only the new log's offsets
         produce(10)
         sources[0].close()
         sources.append(KafkaBatchSource(settings, [topic], "restart-commit-test"))
         sources[1].start()
-        assert offsets(poll_until(sources[1], 10, 40)) == list(range(10, 20))
+        assert offsets(poll_until(sources[1], 10, 40)) == list(range(20, 30))
     finally:
         for source in sources:
             source.close()

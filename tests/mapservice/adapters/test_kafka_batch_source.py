@@ -216,3 +216,22 @@ def test_nothing_is_committed_once_the_consumer_has_left_its_group() -> None:
     records = source.poll(100, 0.1)
     source.consumer.member_id = ""
     assert source.commit(records) is False and source.consumer.commits == []
+
+
+def test_a_batch_polled_while_the_group_changed_is_not_committed() -> None:
+    """The assignment callback ran inside consume(): that batch may hold records from before it, so only the next batch is committed."""
+    from confluent_kafka import TopicPartition
+
+    source = _assigned_source([[(0, 900)], [(0, 2)]])
+    consume = source.consumer.consume
+
+    def consume_with_a_rebalance(n, timeout):
+        source._assigned(source.consumer, [TopicPartition("t", 0)])
+        return consume(n, timeout)
+
+    source.consumer.consume = consume_with_a_rebalance
+    mixed = source.poll(100, 0.1)
+    source.consumer.consume = consume
+    assert source.commit(mixed) is False and source.consumer.commits == []
+    assert source.commit(source.poll(100, 0.1)) is True
+    assert source.consumer.commits == [[(0, 3)]]
