@@ -105,7 +105,7 @@ class KafkaBatchSource:
         self.contiguous_topics = set(topics if contiguous_topics is None else contiguous_topics)
         self._next_offset: dict[tuple[str, int], int] = {}  # per partition, once one was read
         self._rereads: dict[tuple[str, int], int] = {}  # rereads in a row of a partition's gap
-        self.membership = 0  # counts assignments and revocations (SourceRecord.membership)
+        self._membership = 0  # counts assignments and revocations (SourceRecord.membership)
         self._member_id: str | None = None  # librdkafka's, when the partitions were assigned
 
     def start(self) -> None:
@@ -114,7 +114,7 @@ class KafkaBatchSource:
 
     def _assigned(self, consumer, partitions: list[TopicPartition]) -> None:
         log.info("history partitions assigned", count=len(partitions))
-        self.membership += 1
+        self._membership += 1
         self._member_id = consumer.memberid()
         self._forget(partitions)  # reading starts wherever the group's offsets say
         for p in partitions:  # a series per owned partition from the start (0 until measured)
@@ -124,7 +124,7 @@ class KafkaBatchSource:
 
     def _revoked(self, _consumer, partitions: list[TopicPartition]) -> None:
         # Another replica owns them now and reports their lag.
-        self.membership += 1
+        self._membership += 1
         self._forget(partitions)
         for p in partitions:
             try:
@@ -141,12 +141,12 @@ class KafkaBatchSource:
         assert self.consumer is not None, "start() first"
         out = []
         rewound: set[tuple[str, int]] = set()  # partitions read again: the rest comes again too
-        before = self.membership
+        before = self._membership
         messages = self.consumer.consume(max_records, timeout_s)
         # Rebalance callbacks run inside consume(), and the batch may hold records fetched
         # on either side of them: such a batch is stored but never committed (later
         # commits cover it, or its records are delivered again).
-        membership = self.membership if self.membership == before else NEVER_COMMITTED
+        membership = self._membership if self._membership == before else NEVER_COMMITTED
         for m in messages:
             err = m.error()
             if err is not None:
@@ -193,13 +193,14 @@ class KafkaBatchSource:
     def commit(self, records: Sequence[SourceRecord]) -> bool:
         """Commits past the highest offset per partition, asynchronously: the next batch
         need not wait for the broker's answer (up to ~0.1 s under load). False if the
-        group changed since the records were delivered (STALE_COMMITS) or the consumer
-        refused at once; a commit the broker refuses later (the group moved on) reaches
-        `on_commit_failed`. Either way the records are delivered again to whoever owns
-        their partitions, and the history's identities absorb the repeat."""
+        group changed since some of the records were delivered (STALE_COMMITS: only the
+        others are committed) or the consumer refused at once; a commit the broker refuses
+        later (the group moved on) reaches `on_commit_failed`. What is not committed is
+        covered by a later commit of its partition or delivered again to whoever owns it,
+        and the history's identities absorb the repeat."""
         assert self.consumer is not None, "start() first"
         left_group = self.consumer.memberid() != self._member_id
-        current = [] if left_group else [r for r in records if r.membership == self.membership]
+        current = [] if left_group else [r for r in records if r.membership == self._membership]
         if len(current) < len(records):
             STALE_COMMITS.inc()
             log.warning("not committing offsets delivered before the consumer group changed; "
