@@ -82,24 +82,29 @@ class BufferedClient(mqtt.Client):
     robot's messages) and acknowledging many messages at once (`ack_many`)."""
 
     def ack_many(self, acks: Iterable[tuple[int, int]]) -> None:
-        """Acknowledges (mid, qos) pairs like `ack()`, waking the network thread once.
+        """Acknowledges (mid, qos) pairs like `ack()`, in one write and one wake-up.
 
-        `ack()` queues a PUBACK and writes a wake-up byte to paho's socket pair for each
-        message: at thousands of messages a second the gateway's network thread then
-        wakes once per acknowledgement. Here the QoS 1 PUBACKs are queued as paho's
-        `_packet_queue` queues them (a test compares the two) and one byte wakes it.
+        `ack()` queues one 4-byte PUBACK per message, which paho then writes with a send()
+        of its own, after a wake-up byte on its socket pair: at thousands of messages a
+        second that is a system call, a TCP segment and a read in the broker per message.
+        Here the QoS 1 PUBACKs (the bytes `ack()` would queue, back to back: a test
+        compares them) go into one queued write, and one byte wakes paho's thread.
         """
-        queued = False
+        pubacks = bytearray()
+        first_mid = None
         for mid, qos in acks:
             if qos == 1 and self._manual_ack:
-                self._out_packet.append({
-                    "command": mqtt.PUBACK, "mid": mid, "qos": 1, "pos": 0, "to_process": 4,
-                    "packet": struct.pack("!BBH", mqtt.PUBACK, 2, mid), "info": None})
-                queued = True
+                pubacks += struct.pack("!BBH", mqtt.PUBACK, 2, mid)
+                first_mid = mid if first_mid is None else first_mid
             else:
                 self.ack(mid, qos)
-        if not queued:
+        if not pubacks:
             return
+        # paho writes a queued packet until `to_process` bytes are out and acts on nothing
+        # of a PUBACK's but its bytes (_packet_write), so one entry can hold many.
+        self._out_packet.append({
+            "command": mqtt.PUBACK, "mid": first_mid, "qos": 1, "pos": 0,
+            "to_process": len(pubacks), "packet": bytes(pubacks), "info": None})
         if self._sockpairW is not None:
             try:
                 self._sockpairW.send(b"0")
@@ -109,6 +114,28 @@ class BufferedClient(mqtt.Client):
 
     def _create_socket(self):
         return BufferedSocket(super()._create_socket())
+
+    def _handle_on_message(self, message: mqtt.MQTTMessage) -> None:
+        """Calls `on_message` without paho's topic matcher when no per-topic callback is
+        registered (`message_callback_add`; the gateway registers none).
+
+        paho matches every message against those callbacks first; its matcher is a
+        recursive closure, a reference cycle per message that only the cyclic garbage
+        collector frees (6 objects a message: BENCHMARKS.md).
+        """
+        if self._on_message_filtered._root._children:
+            super()._handle_on_message(message)
+            return
+        on_message = self.on_message
+        if on_message is None:
+            return
+        with self._in_callback_mutex:
+            try:
+                on_message(self, self._userdata, message)
+            except Exception as err:
+                self._easy_log(mqtt.MQTT_LOG_ERR, "Caught exception in on_message: %s", err)
+                if not self.suppress_exceptions:
+                    raise
 
     def loop_read(self, max_packets: int = 1) -> mqtt.MQTTErrorCode:
         """Reads every whole packet already buffered, not one: paho reads one packet per

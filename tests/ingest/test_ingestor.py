@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import pytest
 
 from mapservice.adapters.memory_publisher import MemoryPublisher
@@ -374,3 +376,43 @@ def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
     Client._thread.join()
     status = gateway.status()
     assert status["ok"] is False and status["mqtt_loop_alive"] is False
+
+
+def test_a_handled_and_delivered_message_leaves_nothing_for_the_cyclic_collector(
+        ingestor, publisher, wire) -> None:
+    """Routing, publishing, a failed delivery's retry and the ack free every object by
+    reference counting: a cycle per message made the gateway spend ~14 % of its CPU in gc."""
+    import gc
+
+    acked = []
+    gc.collect()
+    gc.disable()
+    try:
+        publisher.fail_with = RuntimeError("broker down")
+        for mid in range(200):
+            ingestor.handle("iot/coordinates/blabla", wire.pose(), partial(acked.append, mid))
+        publisher.poll()  # every delivery fails: each record waits for its retry
+        publisher.fail_with = None
+        assert ingestor.retry_due() == 200
+        publisher.poll()
+        assert len(acked) == 200 and ingestor.in_flight == 0
+        assert gc.collect() < 10  # 200 messages with a cycle each left ~2,000
+    finally:
+        gc.enable()
+
+
+def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wire) -> None:
+    """mapservice_gateway_in_flight is the ingestor's count of messages Kafka has not confirmed."""
+    from prometheus_client import REGISTRY
+
+    from mapservice.adapters.clock import SystemClock
+    from mapservice.ingest.gateway import MqttGateway
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway.publisher = MemoryPublisher()
+    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+    for mid in (1, 2):
+        gateway.ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None)
+    assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 2
+    gateway.publisher.poll()
+    assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 0

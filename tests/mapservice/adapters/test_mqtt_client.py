@@ -39,9 +39,10 @@ def test_the_gateway_client_reads_through_a_buffered_socket() -> None:
     assert not isinstance(make_client("robot"), BufferedClient)
 
 
-def test_ack_many_queues_the_pubacks_ack_queues_and_wakes_the_loop_once() -> None:
-    """ack_many([(mid, 1), ...]) leaves paho the very packets ack() would, with one wake-up
-    byte for all of them (paho's internals changing would fail here, not in production)."""
+def test_ack_many_queues_the_pubacks_ack_would_as_one_write_and_wakes_the_loop_once() -> None:
+    """ack_many([(mid, 1), ...]) queues the bytes ack() would, back to back in one packet
+    entry, with one wake-up byte for all of them (paho's internals changing would fail
+    here, not in production)."""
     import socket
 
     from mapservice.adapters.mqtt_client import make_client
@@ -53,9 +54,109 @@ def test_ack_many_queues_the_pubacks_ack_queues_and_wakes_the_loop_once() -> Non
     reader, batched._sockpairW = socket.socketpair()
     try:
         batched.ack_many([(7, 1), (8, 1), (9, 0), (65535, 1)])  # QoS 0 needs no ack
-        assert list(batched._out_packet) == list(one_by_one._out_packet)
+        (entry,) = batched._out_packet
+        assert entry["packet"] == b"".join(p["packet"] for p in one_by_one._out_packet)
+        assert {k: v for k, v in entry.items() if k not in ("packet", "to_process", "mid")} == \
+            {k: v for k, v in one_by_one._out_packet[0].items() if k not in ("packet", "to_process", "mid")}
+        assert entry["to_process"] == 12
         reader.setblocking(False)
         assert reader.recv(16) == b"0"
     finally:
         reader.close()
         batched._sockpairW.close()
+
+
+def test_paho_writes_the_batched_pubacks_whole_in_one_send() -> None:
+    """paho's own writer sends the one entry ack_many queued with a single send() and
+    leaves nothing queued: the broker reads the three PUBACKs."""
+    import socket
+
+    from mapservice.adapters.mqtt_client import make_client
+
+    client = make_client("gw", manual_ack=True, buffered_reads=True)
+    ours, broker = socket.socketpair()
+    sends = []
+
+    class Sock:
+        def send(self, data):
+            sends.append(bytes(data))
+            return ours.send(data)
+
+    client._sock = Sock()
+    try:
+        client.ack_many([(1, 1), (2, 1), (3, 1)])
+        client._packet_write()
+        assert len(sends) == 1 and not client._out_packet
+        broker.setblocking(False)
+        assert broker.recv(64) == b"\x40\x02\x00\x01\x40\x02\x00\x02\x40\x02\x00\x03"
+    finally:
+        client._sock = None
+        ours.close()
+        broker.close()
+
+
+def _publish_packet(topic: bytes, mid: int, payload: bytes) -> bytes:
+    import struct
+
+    body = struct.pack("!H", len(topic)) + topic + struct.pack("!H", mid) + payload
+    assert len(body) < 128
+    return bytes([0x32, len(body)]) + body
+
+
+def _read_all(client, packets: bytes, expected: int, got: list) -> None:
+    """Feeds `packets` to `client` through a socket pair until `expected` messages came."""
+    import select
+    import socket
+
+    import paho.mqtt.client as mqtt
+
+    from mapservice.adapters.mqtt_client import BufferedSocket
+
+    ours, broker = socket.socketpair()
+    client._sock = BufferedSocket(ours)
+    client._state = mqtt._ConnectionState.MQTT_CS_CONNECTED
+    try:
+        broker.sendall(packets)
+        while len(got) < expected:
+            assert select.select([ours], [], [], 5)[0], "the client read nothing for 5 s"
+            assert client.loop_read() == mqtt.MQTT_ERR_SUCCESS
+    finally:
+        client._sock = None
+        ours.close()
+        broker.close()
+
+
+def test_the_gateway_client_hands_messages_on_without_leaving_cycles_for_the_collector() -> None:
+    """200 QoS 1 messages reach on_message with their topic, payload and mid, and leave no
+    reference cycle behind (paho's topic matcher left one per message)."""
+    import gc
+
+    from mapservice.adapters.mqtt_client import make_client
+
+    client = make_client("gw", manual_ack=True, buffered_reads=True, clean_session=False)
+    got = []
+    client.on_message = lambda _c, _u, m: got.append((m.topic, m.payload, m.mid, m.qos))
+    packets = b"".join(_publish_packet(b"iot/coordinates/r1", mid, b"{}") for mid in range(1, 201))
+    gc.collect()
+    gc.disable()
+    try:
+        _read_all(client, packets, 200, got)
+        got_first = got[0]
+        got.clear()
+        assert gc.collect() < 10  # with the matcher's cycle: ~1,200
+    finally:
+        gc.enable()
+    assert got_first == ("iot/coordinates/r1", b"{}", 1, 1)
+
+
+def test_the_gateway_client_still_serves_per_topic_callbacks() -> None:
+    """A callback added with message_callback_add gets its topic's messages, on_message the rest."""
+    from mapservice.adapters.mqtt_client import make_client
+
+    client = make_client("gw", manual_ack=True, buffered_reads=True, clean_session=False)
+    routed, rest = [], []
+    client.message_callback_add("iot/chunks/#", lambda _c, _u, m: routed.append(m.mid))
+    client.on_message = lambda _c, _u, m: rest.append(m.mid)
+    _read_all(client, _publish_packet(b"iot/chunks/create", 1, b"{}")
+              + _publish_packet(b"iot/coordinates/r1", 2, b"{}"), 1, rest)
+    assert routed == [1] and rest == [2]

@@ -27,8 +27,21 @@ def test_the_records_held_by_the_thousand_are_not_tracked_by_the_collector() -> 
 
 def test_what_start_up_built_is_frozen_out_of_later_collections() -> None:
     """freeze_startup_heap moves every live object to the permanent generation."""
+    thresholds = gc.get_threshold()
     try:
         frozen = freeze_startup_heap()
         assert frozen == gc.get_freeze_count() > 10_000
     finally:
         gc.unfreeze()
+        gc.set_threshold(*thresholds)
+
+
+def test_after_start_up_a_young_collection_waits_for_10000_more_objects() -> None:
+    """freeze_startup_heap raises the young generation's threshold from 700 to 10,000."""
+    thresholds = gc.get_threshold()
+    try:
+        freeze_startup_heap()
+        assert gc.get_threshold() == (10_000, 10, 10)
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*thresholds)
