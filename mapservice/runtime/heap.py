@@ -10,9 +10,9 @@ collector's sight once, here, since it lives as long as the process anyway.
 
 And collections run less often (`COLLECT_AFTER`). With Python's default of one young
 collection per 700 more allocations than frees, the server, which holds a second of
-events between batches, ran ~90 young, 8 middle and one full collection a second at
-5,000 robots: 6-10 % of a core, and a 25-50 ms pause each second. With 10,000 it runs
-two young collections a second and no full one in a minute (BENCHMARKS.md, session 16).
+events between batches, ran ~90 young, 8 middle and nearly one full collection a second
+at 5,000 robots: 4-6 % of a core, each full one a 25-32 ms pause of every thread. With
+10,000: three young collections a second and one full one a minute (BENCHMARKS.md).
 """
 
 from __future__ import annotations
