@@ -167,7 +167,7 @@ class _Delivery:
 
     An object rather than a closure: a closure that passes itself on (for the retry) is a
     reference cycle, which only the cyclic garbage collector frees; at thousands of
-    messages a second those collections took ~14 % of the gateway's CPU (BENCHMARKS.md).
+    messages a second those collections were ~12 % of the gateway's CPU (BENCHMARKS.md).
     """
 
     __slots__ = ("ingestor", "ack", "started", "record", "outcome")

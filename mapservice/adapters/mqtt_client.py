@@ -86,7 +86,7 @@ class BufferedClient(mqtt.Client):
 
         `ack()` queues one 4-byte PUBACK per message, which paho then writes with a send()
         of its own, after a wake-up byte on its socket pair: at thousands of messages a
-        second that is a system call, a TCP segment and a read in the broker per message.
+        second, a system call per message.
         Here the QoS 1 PUBACKs (the bytes `ack()` would queue, back to back: a test
         compares them) go into one queued write, and one byte wakes paho's thread.
         """
