@@ -91,19 +91,18 @@ class BufferedClient(mqtt.Client):
         compares them) go into one queued write, and one byte wakes paho's thread.
         """
         pubacks = bytearray()
-        first_mid = None
         for mid, qos in acks:
             if qos == 1 and self._manual_ack:
                 pubacks += struct.pack("!BBH", mqtt.PUBACK, 2, mid)
-                first_mid = mid if first_mid is None else first_mid
             else:
                 self.ack(mid, qos)
         if not pubacks:
             return
         # paho writes a queued packet until `to_process` bytes are out and acts on nothing
-        # of a PUBACK's but its bytes (_packet_write), so one entry can hold many.
+        # of a PUBACK's but its bytes (_packet_write), so one entry can hold many (its
+        # "mid" is read only for PUBLISH).
         self._out_packet.append({
-            "command": mqtt.PUBACK, "mid": first_mid, "qos": 1, "pos": 0,
+            "command": mqtt.PUBACK, "mid": 0, "qos": 1, "pos": 0,
             "to_process": len(pubacks), "packet": bytes(pubacks), "info": None})
         if self._sockpairW is not None:
             try:

@@ -381,7 +381,7 @@ def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
 def test_a_handled_and_delivered_message_leaves_nothing_for_the_cyclic_collector(
         ingestor, publisher, wire) -> None:
     """Routing, publishing, a failed delivery's retry and the ack free every object by
-    reference counting: a cycle per message made the gateway spend ~14 % of its CPU in gc."""
+    reference counting: a cycle per message made gc ~12 % of the gateway's CPU."""
     import gc
 
     acked = []

@@ -95,14 +95,6 @@ def test_paho_writes_the_batched_pubacks_whole_in_one_send() -> None:
         broker.close()
 
 
-def _publish_packet(topic: bytes, mid: int, payload: bytes) -> bytes:
-    import struct
-
-    body = struct.pack("!H", len(topic)) + topic + struct.pack("!H", mid) + payload
-    assert len(body) < 128
-    return bytes([0x32, len(body)]) + body
-
-
 def _read_all(client, packets: bytes, expected: int, got: list) -> None:
     """Feeds `packets` to `client` through a socket pair until `expected` messages came."""
     import select
@@ -132,11 +124,12 @@ def test_the_gateway_client_hands_messages_on_without_leaving_cycles_for_the_col
     import gc
 
     from mapservice.adapters.mqtt_client import make_client
+    from mapservice.robot.mqtt_packets import publish_packet
 
     client = make_client("gw", manual_ack=True, buffered_reads=True, clean_session=False)
     got = []
     client.on_message = lambda _c, _u, m: got.append((m.topic, m.payload, m.mid, m.qos))
-    packets = b"".join(_publish_packet(b"iot/coordinates/r1", mid, b"{}") for mid in range(1, 201))
+    packets = b"".join(publish_packet("iot/coordinates/r1", b"{}", mid) for mid in range(1, 201))
     gc.collect()
     gc.disable()
     try:
@@ -152,11 +145,12 @@ def test_the_gateway_client_hands_messages_on_without_leaving_cycles_for_the_col
 def test_the_gateway_client_still_serves_per_topic_callbacks() -> None:
     """A callback added with message_callback_add gets its topic's messages, on_message the rest."""
     from mapservice.adapters.mqtt_client import make_client
+    from mapservice.robot.mqtt_packets import publish_packet
 
     client = make_client("gw", manual_ack=True, buffered_reads=True, clean_session=False)
     routed, rest = [], []
     client.message_callback_add("iot/chunks/#", lambda _c, _u, m: routed.append(m.mid))
     client.on_message = lambda _c, _u, m: rest.append(m.mid)
-    _read_all(client, _publish_packet(b"iot/chunks/create", 1, b"{}")
-              + _publish_packet(b"iot/coordinates/r1", 2, b"{}"), 1, rest)
+    _read_all(client, publish_packet("iot/chunks/create", b"{}", 1)
+              + publish_packet("iot/coordinates/r1", b"{}", 2), 1, rest)
     assert routed == [1] and rest == [2]
