@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Iterable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import msgspec
 from prometheus_client import Counter, Histogram
@@ -18,20 +18,35 @@ from mapservice.runtime.retry import until_done
 STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
 INSERT_SECONDS = Histogram("mapservice_sink_insert_seconds", "Duration of one history insert",
                            buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
+DERIVE_SECONDS = Histogram("mapservice_sink_derive_views_seconds",
+                           "Duration of one insert into the derived pose views (many batches)",
+                           buckets=(0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
 INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that failed and were retried")
 
 
 class HistorySink:
-    """Owns the store and the one thread that talks to it."""
+    """Owns the store, the thread that appends to it, and the thread that derives its pose
+    views (they run side by side: HistoryConsumer.start_deriving)."""
 
     def __init__(self, store: HistoryStore, live: LiveFeed | None = None) -> None:
         self.store = store
         self.live = live
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
+        self.views_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-views")
         self.consumer = None  # the HistoryConsumer feeding it, once build_app made one
 
     async def run(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+
+    def start_deriving(self, batch) -> Future:
+        """One attempt at the pose views of a stored `batch`, on the views thread, beside
+        whatever the store thread does meanwhile; the caller collects its outcome."""
+        return self.views_executor.submit(self._timed_derive, batch)
+
+    def _timed_derive(self, batch) -> None:
+        started = time.monotonic()
+        self.store.derive_views(batch)
+        DERIVE_SECONDS.observe(time.monotonic() - started)
 
     async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
         """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,
@@ -52,7 +67,7 @@ class HistorySink:
         acknowledged)."""
         async for attempt in until_done("history views", 0.2, INSERT_FAILURES.inc, batch=len(batch)):
             with attempt:
-                await self.run(self.store.derive_views, batch)
+                await asyncio.wrap_future(self.start_deriving(batch))
 
 
 def split_events(values: Iterable[bytes], now_ms: int) -> tuple[list[Envelope], list[DeadLetter]]:
