@@ -21,6 +21,7 @@ from mapservice.adapters.ros_map import RosMap, free_cells_metres, meta_for, sli
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .connection import RobotClients, RobotMqtt
+from .schedule import chunk_follows, chunk_phase
 
 
 def fleet_robot_id(prefix: str, i: int) -> str:
@@ -41,7 +42,8 @@ class RobotFleet:
 
     def __init__(self, mqtt_url: str, ros_map: RosMap, robots: int, *, prefix: str = "robot",
                  pose_period_s: float = 1.0, chunk_period_s: float = 5.0, seed: int = 7,
-                 record: bool = False, qos: int = 1, mqtt_conn: RobotMqtt | None = None) -> None:
+                 record: bool = False, qos: int = 1, mqtt_conn: RobotMqtt | None = None,
+                 aligned_chunks: bool = False) -> None:
         self.mqtt_url = mqtt_url
         # Where robots have credentials, each connects as itself (one connection per robot).
         self.conn = mqtt_conn or RobotMqtt(mqtt_url)
@@ -51,6 +53,7 @@ class RobotFleet:
         self.conn.check(self.robots)
         self.pose_period_s = pose_period_s
         self.chunk_period_s = chunk_period_s
+        self.aligned_chunks = aligned_chunks  # every robot's chunk after the same pose (schedule.py)
         self.record = record
         self.qos = qos
         self.stats = LoadStats()
@@ -85,6 +88,8 @@ class RobotFleet:
         due_heap = [(started + (i / max(n, 1)) * self.pose_period_s, i) for i in range(n)]
         heapq.heapify(due_heap)
         pose_count = [0] * n
+        per_chunk = round(self.chunk_period_s / self.pose_period_s)
+        phases = [chunk_phase(i, per_chunk, self.aligned_chunks) for i in range(n)]
         last_ts = [0] * n
         pending: list = []
         try:
@@ -106,7 +111,7 @@ class RobotFleet:
                 if self.record:
                     self.stats.published.append(("pose", robot, now_ms, time.time()))
                 pose_count[i] += 1
-                if pose_count[i] % round(self.chunk_period_s / self.pose_period_s) == 0:
+                if chunk_follows(pose_count[i], phases[i], per_chunk):
                     row = self._rng.randrange(self.meta.chunk_rows)
                     col = self._rng.randrange(self.meta.chunk_cols)
                     pixels = self._rng.choice(self.chunks)

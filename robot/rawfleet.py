@@ -42,6 +42,7 @@ from .mqtt_packets import (
     PublishTemplate,
     connect_packet,
 )
+from .schedule import chunk_follows, chunk_phase, chunks_after
 
 POSE, CHUNK = 0, 1
 KINDS = ("pose", "chunk")
@@ -104,6 +105,7 @@ class WorkerPlan:
     seconds: float | None
     pose_period_s: float = 1.0
     chunk_period_s: float = 5.0
+    aligned_chunks: bool = False  # every robot's chunk after the same pose (schedule.py)
     seed: int = 7
     connections: int = 2
     # Per robot (username, password) when robots have credentials: one connection each.
@@ -199,14 +201,14 @@ def _percentile(values: list[float], q: float) -> float | None:
 def scheduled_messages(plan: WorkerPlan, seconds: float) -> tuple[int, int]:
     """(poses, chunks) a worker's schedule asks for in `seconds`: robot i's k-th pose is
     due at k periods plus its offset (i / fleet size of a period), every fifth is followed
-    by a chunk."""
+    by a chunk (robot i's cycle offset by i poses: schedule.py)."""
     per_chunk = round(plan.chunk_period_s / plan.pose_period_s)
     poses = chunks = 0
     for i in plan.indices:
         offset = i / max(plan.fleet_size, 1) * plan.pose_period_s
         n = max(0, math.ceil((seconds - offset) / plan.pose_period_s))
         poses += n
-        chunks += n // per_chunk
+        chunks += chunks_after(n, chunk_phase(i, per_chunk, plan.aligned_chunks), per_chunk)
     return poses, chunks
 
 
@@ -220,6 +222,7 @@ async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
     robot_bytes = [r.encode() for r in plan.robot_ids]
     rng = random.Random(plan.seed * 1_000_003 + (plan.indices[0] if plan.indices else 0))
     per_chunk = round(plan.chunk_period_s / plan.pose_period_s)
+    phases = [chunk_phase(i, per_chunk, plan.aligned_chunks) for i in plan.indices]
     acked: list = []
     errors: list[str] = []
     conns: list[_Connection] = []
@@ -280,7 +283,7 @@ async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
                     conn.in_flight[pid] = (plan.indices[j], POSE, ts, wall)
                     written[POSE] += 1
                     lags.append(now - due)
-                    if (k + 1) % per_chunk == 0:
+                    if chunk_follows(k + 1, phases[j], per_chunk):
                         pid = conn.next_pid()
                         if pid is None:
                             no_pid += 1
@@ -384,7 +387,8 @@ class RawFleet:
     def __init__(self, mqtt_url: str, ros_map, robots: int, *, prefix: str = "robot",
                  processes: int | None = None, connections: int = 2,
                  pose_period_s: float = 1.0, chunk_period_s: float = 5.0, seed: int = 7,
-                 mqtt_conn=None, nice: int = 0, ack_wait_s: float = ACK_WAIT_S) -> None:
+                 mqtt_conn=None, nice: int = 0, ack_wait_s: float = ACK_WAIT_S,
+                 aligned_chunks: bool = False) -> None:
         import numpy as np
 
         from mapservice.adapters.mqtt_client import parse_mqtt_url
@@ -416,7 +420,7 @@ class RawFleet:
                 centres=[centres[i] for i in idx], chunk_topics=[self.conn.chunk_topic(r) for r in ids],
                 chunk_b64=b64, chunk_rows=meta.chunk_rows, chunk_cols=meta.chunk_cols,
                 seconds=None, pose_period_s=pose_period_s, chunk_period_s=chunk_period_s,
-                seed=seed + w, connections=connections, credentials=creds, nice=nice,
+                aligned_chunks=aligned_chunks, seed=seed + w, connections=connections, credentials=creds, nice=nice,
                 ack_wait_s=ack_wait_s,
                 client_prefix=f"rawfleet-{random.Random(seed).getrandbits(32):08x}"))
         self.stats = FleetStats()

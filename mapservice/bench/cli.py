@@ -19,6 +19,10 @@ def add_bench_parser(sub) -> None:
                         help="the load fleet: raw = pre-encoded MQTT packets from worker processes "
                              "(robot/rawfleet.py), paho = one paho client (robot/loadgen.py, the "
                              "generator before issue 16)")
+    ingest.add_argument("--aligned-chunks", action="store_true",
+                        help="every robot sends its chunk (one per five poses) after the same pose: "
+                             "the fleet's chunks burst in one second of five (the schedule before "
+                             "session 17); default: spread evenly, robot i's cycle offset by i poses")
     ingest.add_argument("--loadgen-processes", type=int, default=None,
                         help="raw load fleet: worker processes (default: one per 4,000 robots)")
     ingest.add_argument("--gateways", type=int, default=1,

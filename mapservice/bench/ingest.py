@@ -623,6 +623,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
     from mapservice.robot import DEFAULT_MAP
     from mapservice.robot.loadgen import RobotFleet
+    from mapservice.robot.schedule import chunk_phase, chunks_after
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local.stack import Stack
 
@@ -668,11 +669,13 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
             # Worker processes at a lower priority: they stand for robots on other machines.
             fleet = RawFleet(stack.mqtt_url, ros_map, args.robots,
-                             processes=getattr(args, "loadgen_processes", None), nice=LOADGEN_NICE)
+                             processes=getattr(args, "loadgen_processes", None), nice=LOADGEN_NICE,
+                             aligned_chunks=getattr(args, "aligned_chunks", False))
             with console.status(f"run {run}/{runs}: starting the load fleet's workers..."):
                 fleet.start(args.seconds)
         else:
-            fleet = RobotFleet(stack.mqtt_url, ros_map, args.robots, record=True)
+            fleet = RobotFleet(stack.mqtt_url, ros_map, args.robots, record=True,
+                               aligned_chunks=getattr(args, "aligned_chunks", False))
         poller = QueryablePoller(stack.api_url, fleet.stats.published, args.poll_interval)
         poller.start()
         poller._ready.wait(5)
@@ -790,8 +793,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         stored_events = len(unique & keys.keys())
         cpu_pct = CpuMeter.percent(cpu_before, cpu_after,
                                    fleet.stats.report.get("cpu_s") if loadgen == "raw" else None)
+        aligned = getattr(args, "aligned_chunks", False)
         scheduled = (fleet.stats.report.get("scheduled_events") if loadgen == "raw"
-                     else args.robots * (int(args.seconds) + int(args.seconds) // 5))
+                     else sum(int(args.seconds) + chunks_after(int(args.seconds), chunk_phase(i, 5, aligned), 5)
+                              for i in range(args.robots)))
         result.update({
             "robots": args.robots,
             "seconds": args.seconds,
@@ -802,6 +807,9 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "published_events": len(keys),
             "scheduled_events": scheduled,
             "loadgen": loadgen,
+            # spread: robot i's chunk cycle offset by i poses; aligned: the whole fleet's
+            # chunks in one second of five (robot/schedule.py)
+            "chunk_schedule": "aligned" if aligned else "spread",
             "loadgen_schedule_percent": 100.0 * len(keys) / scheduled if scheduled else None,
             "loadgen_report": getattr(fleet.stats, "report", {}),
             "published_events_per_s": len(keys) / args.seconds,

@@ -24,6 +24,7 @@ from mapservice.core.wire2019 import (
 from mapservice.robot import DEFAULT_MAP
 from mapservice.robot.mqtt_packets import varint
 from mapservice.robot.rawfleet import RawFleet, WorkerPlan, chunk_payload, pose_templates, scheduled_messages
+from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
 
 
 def _payload(template, timestamp: bytes) -> bytes:
@@ -64,6 +65,23 @@ def test_schedule_counts_each_robots_poses_from_its_offset_and_every_fifth_chunk
     assert scheduled_messages(plan, 9.4) == (19, 3)
 
 
+def test_the_fleets_chunks_spread_over_the_chunk_period_unless_aligned() -> None:
+    """Robots 0-9 over 5 s send chunks after poses 5, 4, 3, 2, 1, 5, ... (two per second);
+    aligned, all ten after their fifth pose."""
+    plan = WorkerPlan(host="h", port=1, robot_ids=[f"r{i}" for i in range(10)], indices=list(range(10)),
+                      fleet_size=10, centres=[(0, 0)] * 10, chunk_topics=["t"] * 10, chunk_b64=[b""],
+                      chunk_rows=1, chunk_cols=1, seconds=10)
+    per_second = [scheduled_messages(plan, s)[1] for s in (1, 2, 3, 4, 5)]
+    assert per_second == [2, 4, 6, 8, 10]
+    aligned = WorkerPlan(**{**plan.__dict__, "aligned_chunks": True})
+    assert [scheduled_messages(aligned, s)[1] for s in (1, 2, 3, 4, 5)] == [0, 0, 0, 0, 10]
+    phases = [chunk_phase(i, 5) for i in range(10)]
+    firsts = [next(k for k in range(1, 6) if chunk_follows(k, p, 5)) for p in phases]
+    assert firsts == [5, 4, 3, 2, 1, 5, 4, 3, 2, 1]
+    assert all(chunks_after(n, p, 5) == sum(chunk_follows(k, p, 5) for k in range(1, n + 1))
+               for p in range(5) for n in range(12))
+
+
 def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) -> None:
     """20 robots for 3 s from two workers: a paho subscriber receives exactly the messages
     the fleet counts as published, each a valid 2019 message, and the schedule is kept."""
@@ -87,7 +105,8 @@ def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) 
         sub.disconnect()
     report = stats.report
     assert report["errors"] == [] and report["unacknowledged_events"] == 0
-    assert report["acknowledged_events"] == report["scheduled_events"] == len(stats.published) == 60
+    # 60 poses; chunks spread (schedule.py): in 3 s, those of the 12 robots whose cycle is 2-4 poses ahead
+    assert report["acknowledged_events"] == report["scheduled_events"] == len(stats.published) == 72
     assert report["workers"] == 2 and report["cpu_s"] > 0
     limits = Limits(chunk_rows=100, chunk_cols=100)
     got = set()
@@ -100,7 +119,7 @@ def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) 
             got.add(("pose", event.robot_id, event.event_time_ms))
     assert len(received) == len(got) == len(stats.published)
     assert got == {(kind, robot, ts) for kind, robot, ts, _ in stats.published}
-    assert stats.poses == 60 and stats.chunks == 0  # 3 s: no robot reached its fifth pose
+    assert stats.poses == 60 and stats.chunks == 12
 
 
 class HalfAckBroker(threading.Thread):
@@ -153,6 +172,7 @@ def test_only_acknowledged_messages_count_as_published() -> None:
                      processes=1, connections=1, ack_wait_s=0.5)
     stats = fleet.run(2)
     report = stats.report
-    assert report["written_events"] == broker.publishes == 20
-    assert report["acknowledged_events"] == len(stats.published) == 10
-    assert report["unacknowledged_events"] == 10 and report["schedule_percent"] == 50.0
+    # 20 poses and the chunks of robots 3, 4, 8 and 9 (their cycles are 3-4 poses ahead)
+    assert report["written_events"] == broker.publishes == 24
+    assert report["acknowledged_events"] == len(stats.published) == 12
+    assert report["unacknowledged_events"] == 12 and report["schedule_percent"] == 50.0
