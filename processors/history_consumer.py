@@ -13,8 +13,8 @@ import asyncio
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
-from typing import TYPE_CHECKING, NamedTuple
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING
 
 import mode
 import structlog
@@ -26,7 +26,7 @@ from mapservice.core.ports import EventSource, SourceRecord
 from mapservice.runtime.retry import until_done
 
 from .batch_window import batch_window, smoothed
-from .sink import INSERT_FAILURES, split_events
+from .sink import split_events
 
 if TYPE_CHECKING:
     from .sink import HistorySink
@@ -110,12 +110,6 @@ class HistoryConsumer:
     5,000 robots cannot pay every 100 ms. What that costs: the views (downsampled replay,
     timeline) may lag the history by `views_seconds`, and a crash re-delivers up to that
     much more (stored once: the history's identities absorb it).
-
-    An interval's views are derived on the sink's views thread while the next batches are
-    polled, stored and pushed (`start_deriving`); their offsets are committed by the first
-    turn after that insert returned. At 5,000 robots it took 135-376 ms, and every batch
-    behind it waited that long to be stored (BENCHMARKS.md, issue 16). One runs at a time:
-    a views insert slower than the interval slows the batches instead of piling events up.
     """
 
     def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
@@ -149,7 +143,6 @@ class HistoryConsumer:
         self._underived_since: float | None = None  # monotonic, when the first of them was stored
         # Per partition, its latest stored record not yet committed.
         self._uncommitted: dict[tuple[str, int], SourceRecord] = {}
-        self._deriving: _Deriving | None = None  # the views insert on the views thread, if any
 
     def on_assigned(self, partitions: list[tuple[str, int]]) -> None:
         self.assigned = True
@@ -215,49 +208,21 @@ class HistoryConsumer:
             self._uncommitted[(r.topic, r.partition)] = r
         if self._underived_since is None:
             self._underived_since = self.monotonic()
-        if self._deriving is not None and self._deriving.future.done():
-            await self._finish_deriving()
         if (self.monotonic() - self._underived_since >= self.views_seconds
                 or len(self._underived) >= self.batch_size):
-            await self.start_deriving()
+            await self.settle()
         return len(records)
 
-    async def start_deriving(self) -> None:
-        """Starts the views insert of the events stored so far on the views thread, to
-        commit their offsets once it is done (after the one still running, if any)."""
-        await self._finish_deriving()
-        records, self._uncommitted = list(self._uncommitted.values()), {}
-        events, self._underived, self._underived_since = self._underived, [], None
-        self._deriving = _Deriving(self.sink.start_deriving(events) if events else _done(),
-                                   events, records)
-
-    async def _finish_deriving(self) -> None:
-        """Waits for the running views insert; a failed one is retried until it is done
-        (as a batch's insert is); then commits its offsets."""
-        deriving, self._deriving = self._deriving, None
-        if deriving is None:
-            return
-        try:
-            await asyncio.wrap_future(deriving.future)
-        except Exception as exc:  # noqa: BLE001 - anything the store raises: retried below
-            INSERT_FAILURES.inc()
-            log.error("history views failed, retrying", error=str(exc), batch=len(deriving.events))
-            await self.sink.derive_until_done(deriving.events)
-        await self._commit(deriving.records)
-
-    async def _commit(self, records: list[SourceRecord]) -> None:
-        if records and not await self._call(self.source.commit, records):
-            COMMIT_FAILURES.inc()
-
     async def settle(self) -> None:
-        """Derives the pose views of every stored event, then commits their offsets."""
-        await self._finish_deriving()
+        """Derives the pose views of the stored events, then commits their offsets."""
         if self._underived:
             await self.sink.derive_until_done(self._underived)
             self._underived = []
         self._underived_since = None
-        records, self._uncommitted = list(self._uncommitted.values()), {}
-        await self._commit(records)
+        if self._uncommitted:
+            records, self._uncommitted = list(self._uncommitted.values()), {}
+            if not await self._call(self.source.commit, records):
+                COMMIT_FAILURES.inc()
 
     async def _store(self, records: list[SourceRecord]) -> list:
         by_topic: dict[str, list[bytes]] = {}
@@ -269,12 +234,8 @@ class HistoryConsumer:
         """On stop: one try, no retries (an unreachable store must not hold the stop up;
         what is not committed is delivered again)."""
         try:
-            deriving, self._deriving = self._deriving, None
-            if deriving is not None:
-                await asyncio.wrap_future(deriving.future)
-                await self._commit(deriving.records)
             if self._underived:
-                await asyncio.wrap_future(self.sink.start_deriving(self._underived))
+                await self.sink.run(self.sink.store.derive_views, self._underived)
                 self._underived = []
             await self.settle()
         except Exception as exc:  # noqa: BLE001 - anything the store raises; logged, re-delivered
@@ -291,20 +252,6 @@ class HistoryConsumer:
         finally:
             await self._call(self.source.close)
             self._thread.shutdown(wait=False)
-
-
-class _Deriving(NamedTuple):
-    """A views insert started on the views thread, and what its end lets the consumer commit."""
-
-    future: Future
-    events: list
-    records: list[SourceRecord]
-
-
-def _done() -> Future:
-    future: Future = Future()
-    future.set_result(None)
-    return future
 
 
 class HistoryConsumerService(mode.Service):

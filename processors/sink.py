@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import Iterable, Mapping
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 
 import msgspec
 from prometheus_client import Counter, Histogram
@@ -25,28 +25,16 @@ INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that
 
 
 class HistorySink:
-    """Owns the store, the thread that appends to it, and the thread that derives its pose
-    views (they run side by side: HistoryConsumer.start_deriving)."""
+    """Owns the store and the one thread that talks to it."""
 
     def __init__(self, store: HistoryStore, live: LiveFeed | None = None) -> None:
         self.store = store
         self.live = live
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
-        self.views_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history-views")
         self.consumer = None  # the HistoryConsumer feeding it, once build_app made one
 
     async def run(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
-
-    def start_deriving(self, batch) -> Future:
-        """One attempt at the pose views of a stored `batch`, on the views thread, beside
-        whatever the store thread does meanwhile; the caller collects its outcome."""
-        return self.views_executor.submit(self._timed_derive, batch)
-
-    def _timed_derive(self, batch) -> None:
-        started = time.monotonic()
-        self.store.derive_views(batch)
-        DERIVE_SECONDS.observe(time.monotonic() - started)
 
     async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
         """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,
@@ -67,7 +55,9 @@ class HistorySink:
         acknowledged)."""
         async for attempt in until_done("history views", 0.2, INSERT_FAILURES.inc, batch=len(batch)):
             with attempt:
-                await asyncio.wrap_future(self.start_deriving(batch))
+                started = time.monotonic()
+                await self.run(self.store.derive_views, batch)
+        DERIVE_SECONDS.observe(time.monotonic() - started)
 
 
 def split_events(values: Iterable[bytes], now_ms: int) -> tuple[list[Envelope], list[DeadLetter]]:

@@ -147,8 +147,7 @@ class HistoryStore(Protocol):
 
     def derive_views(self, events: Sequence[Envelope]) -> None:
         """Brings the derived pose views (downsampled replay, timeline) up to `events`,
-        already stored by `append_events`; repeating it changes nothing. It may run on
-        another thread at the same time as `append_events` of later events."""
+        already stored by `append_events`; repeating it changes nothing."""
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None: ...
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import threading
 
 from mapservice.adapters.memory_source import MemorySource
 from mapservice.adapters.memory_store import MemoryStore
@@ -311,110 +310,16 @@ def deferring_consumer(ev, views_seconds: float, batch_size: int = 100):
     return consumer, source, store, batch
 
 
-def views_thread_idle(consumer: HistoryConsumer) -> None:
-    """Returns once the views thread finished what it was given (it runs one task at a time)."""
-    consumer.sink.views_executor.submit(lambda: None).result(timeout=10)
-
-
 def test_pose_views_are_derived_once_per_interval_for_every_batch_stored_in_it(ev) -> None:
     """With a 1 s interval and a batch every 0.3 s, one derive_views takes batches 0-4 and
-    their commit waits for it: nothing is committed before the turn after it."""
+    the commit waits for it: nothing is committed before."""
     consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
     for i in range(4):  # the last 0.9 s after the first was stored
         batch(i)
         assert store.derived == [] and source.committed == {}
-    batch(4)  # 1.2 s after: the views insert starts beside the next batch
-    views_thread_idle(consumer)
+    batch(4)  # 1.2 s after
     assert store.derived == [([NOW, NOW + 1, NOW + 2, NOW + 3, NOW + 4], {})]
-    assert source.committed == {}
-    batch(5)
     assert source.committed == {(POSES, 0): 5}
-
-
-class HeldDerive(DeriveLog):
-    """derive_views waits until `release` is set; the first `failures` calls then fail."""
-
-    def __init__(self, source: MemorySource, failures: int = 0) -> None:
-        super().__init__(source)
-        self.release = threading.Event()
-        self.failures = failures
-
-    def derive_views(self, events) -> None:
-        assert self.release.wait(10), "never released"
-        super().derive_views(events)
-        if self.failures:
-            self.failures -= 1
-            raise ConnectionError("clickhouse away")
-
-
-def held_consumer(ev, failures: int = 0):
-    consumer, source, _, batch = deferring_consumer(ev, views_seconds=1.0)
-    store = HeldDerive(source, failures)
-    consumer.sink.store = store
-    return consumer, source, store, batch
-
-
-def test_batches_are_stored_and_pushed_while_the_views_insert_runs(ev) -> None:
-    """A views insert that has not returned holds no batch up, only its own commit."""
-    consumer, source, store, batch = held_consumer(ev)
-    for i in range(5):
-        batch(i)  # the fifth starts the views insert of batches 0-4; it waits for `release`
-    for i in range(5, 8):
-        assert batch(i) == 1
-    assert store.counts().poses == 8 and store.derived == [] and source.committed == {}
-    store.release.set()
-    views_thread_idle(consumer)
-    batch(8)
-    assert store.derived == [([NOW + i for i in range(5)], {})]
-    assert source.committed == {(POSES, 0): 5}
-
-
-def test_a_failed_views_insert_beside_the_batches_is_retried_before_its_commit(ev) -> None:
-    """The views insert fails once on its thread: the next turn retries it, then commits."""
-    from prometheus_client import REGISTRY
-
-    failures = REGISTRY.get_sample_value("mapservice_sink_insert_failures_total") or 0
-    consumer, source, store, batch = held_consumer(ev, failures=1)
-    store.release.set()
-    for i in range(5):
-        batch(i)
-    views_thread_idle(consumer)
-    assert source.committed == {}
-    batch(5)
-    assert [times for times, _ in store.derived] == [[NOW + i for i in range(5)]] * 2
-    assert source.committed == {(POSES, 0): 5}
-    assert REGISTRY.get_sample_value("mapservice_sink_insert_failures_total") == failures + 1
-
-
-def test_an_interval_due_while_the_last_views_insert_runs_waits_for_it(ev) -> None:
-    """One views insert at a time: the next interval's starts after the first returned and
-    was committed, so every offset is committed in order."""
-    consumer, source, store, batch = held_consumer(ev)
-    for i in range(5):
-        batch(i)
-    releaser = threading.Timer(0.2, store.release.set)
-    releaser.start()
-    for i in range(5, 10):
-        batch(i)  # the fifth is due: it waits for the held insert, then starts its own
-    views_thread_idle(consumer)
-    releaser.join()
-    assert [times for times, _ in store.derived] == [[NOW + i for i in range(5)],
-                                                     [NOW + i for i in range(5, 10)]]
-    assert store.derived[1][1] == {(POSES, 0): 5}  # the first was committed before the second
-    asyncio.run(consumer.run_once())  # idle
-    assert source.committed == {(POSES, 0): 10}
-
-
-def test_the_views_insert_is_timed(ev) -> None:
-    """Each views insert is observed in mapservice_sink_derive_views_seconds."""
-    from prometheus_client import REGISTRY
-
-    before = REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") or 0
-    consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
-    for i in range(5):
-        batch(i)
-    views_thread_idle(consumer)
-    assert REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") == before + 1
 
 
 def test_an_empty_poll_derives_and_commits_what_waits_at_once(ev) -> None:
@@ -432,10 +337,7 @@ def test_batch_size_events_waiting_are_derived_before_the_interval_ends(ev) -> N
     batch(0)
     assert store.derived == []
     batch(1)
-    views_thread_idle(consumer)
-    assert store.derived == [([NOW, NOW + 1], {})] and source.committed == {}
-    batch(2)
-    assert source.committed == {(POSES, 0): 2}
+    assert store.derived == [([NOW, NOW + 1], {})] and source.committed == {(POSES, 0): 2}
 
 
 def test_a_stopping_consumer_derives_and_commits_what_it_stored(ev) -> None:
@@ -482,3 +384,14 @@ def test_a_rebalance_settles_what_was_stored_before_the_new_partitions_events(ev
     consumer.on_assigned([(POSES, 0)])
     batch(1)
     assert store.derived == [([NOW], {})] and source.committed == {(POSES, 0): 1}
+
+
+def test_the_views_insert_is_timed(ev) -> None:
+    """Each views insert is observed in mapservice_sink_derive_views_seconds."""
+    from prometheus_client import REGISTRY
+
+    before = REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") or 0
+    consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
+    for i in range(5):
+        batch(i)
+    assert store.derived and REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") == before + 1

@@ -86,9 +86,8 @@ class AdminMixin(ClickHouseConnection):
             return client.raw_query(sql, parameters=parameters, fmt=fmt)
 
     def close(self) -> None:
-        with self._lock, self._views_lock, self._read_lock:
-            for client in (self._client, self._views_client, self._read_client):
+        with self._lock, self._read_lock:
+            for client in (self._client, self._read_client):
                 if client is not None:
                     client.close()
-            self._client = self._views_client = self._read_client = None
-            self._insert_contexts.clear()
+            self._client = self._read_client = None

@@ -1,8 +1,7 @@
 """The store's connection to ClickHouse and the low-level helpers every part of it shares.
 
 `ClickHouseConnection` is the base of each of the store's mixins: the writer client (one
-at a time, under `_lock`), the views client (under `_views_lock`), the read client (under
-`_read_lock`), reusable insert contexts,
+at a time, under `_lock`), the read client (under `_read_lock`), reusable insert contexts,
 `_rows` and `_pose_query` for reads, and the pure helpers that turn values into columns and
 columns into PoseRows (`_flag`, `_unflag`, `_mm`, `_POSE_COLUMNS`, `_FINAL_SETTINGS`,
 `_pose_rows`, ...). It depends only on clickhouse-connect, msgspec and the core's records,
@@ -92,9 +91,7 @@ class ClickHouseConnection:
     tls: dict[str, str]
     timeout_s: float
     _read_lock: threading.Lock
-    _views_client: object | None
-    _views_lock: threading.RLock
-    _insert_contexts: dict[tuple[bool, str, tuple[str, ...]], object]
+    _insert_contexts: dict[tuple[str, tuple[str, ...]], object]
 
     def _connect(self):
         if self.dsn.startswith("chdb://"):
@@ -118,16 +115,6 @@ class ClickHouseConnection:
                 self._client = self._connect()
             return self._client
 
-    @property
-    def views_client(self):
-        """The client that feeds the derived pose views (under `_views_lock`). The history
-        consumer derives an interval's views beside the next batches' inserts, so they need
-        a client of their own: on the writer client every batch queued behind them."""
-        with self._views_lock:
-            if self._views_client is None:
-                self._views_client = self._connect()
-            return self._views_client
-
     @contextmanager
     def _reader(self):
         """The read client, held for one read."""
@@ -136,18 +123,14 @@ class ClickHouseConnection:
                 self._read_client = self._connect()
             yield self._read_client
 
-    def _insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str],
-                views: bool = False) -> None:
-        """Inserts `rows` into `table` of the database with the writer client (the caller
-        holds `_lock`), or with the views client (`views`; the caller holds `_views_lock`).
-        Each client has its own insert contexts: a context holds the data of its insert."""
-        client = self.views_client if views else self.client
-        key = (views, table, tuple(columns))
+    def _insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
+        """Inserts `rows` into `table` of the database with the writer client (under `_lock`)."""
+        key = (table, tuple(columns))
         context = self._insert_contexts.get(key)
         if context is None:
-            context = client.create_insert_context(f"{self.database}.{table}", list(columns))
+            context = self.client.create_insert_context(f"{self.database}.{table}", list(columns))
             self._insert_contexts[key] = context
-        client.insert(data=rows, context=context)
+        self.client.insert(data=rows, context=context)
 
     def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
         with self._reader() as c:

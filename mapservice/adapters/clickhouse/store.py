@@ -53,9 +53,6 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMix
         # take `_lock`, so a writer that reads while holding it cannot deadlock with them.
         self._read_client = None
         self._read_lock = threading.Lock()
-        # The derived pose views get a writer of their own (connection.views_client).
-        self._views_client = None
-        self._views_lock = threading.RLock()
         self._ping_client = None
         # clickhouse-connect's TLS arguments (ca_cert, client_cert, client_cert_key) for an
         # https:// server (from_settings: MAPSERVICE_CLICKHOUSE_*_FILE).
@@ -67,7 +64,7 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMix
         self._known_contents: dict[bytes, int] = {}  # hash -> day already written
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
-        self._insert_contexts: dict[tuple[bool, str, tuple[str, ...]], object] = {}
+        self._insert_contexts: dict[tuple[str, tuple[str, ...]], object] = {}
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "ClickHouseStore":

@@ -32,12 +32,11 @@ class WritesMixin(SnapshotsMixin):
 
     def derive_views(self, events: Sequence[Envelope]) -> None:
         """Feeds the batch's poses to the pose views (schema v10: through the Null table
-        `pose_derivations`); repeating it for a batch changes nothing. On the views client,
-        so it runs beside `append_events` of later batches instead of ahead of them."""
+        `pose_derivations`); repeating it for a batch changes nothing."""
         poses = [_pose_row(e) for e in events if isinstance(e.payload, PoseReported)]
         if poses:
-            with self._views_lock:
-                self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS, views=True)
+            with self._lock:
+                self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS)
 
     def append_events(self, events: Sequence[Envelope]) -> None:
         poses, chunks, contents, metas = [], [], [], []

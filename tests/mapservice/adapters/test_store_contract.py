@@ -11,7 +11,6 @@ ago), because the ClickHouse tables drop parts older than the retention.
 from __future__ import annotations
 
 import itertools
-from concurrent.futures import ThreadPoolExecutor, wait
 import os
 import time
 import zlib
@@ -656,28 +655,6 @@ def test_append_events_then_derive_views_reads_as_append(store, ev, m0) -> None:
     assert [(p.robot_id, p.ts_ms) for p in store.poses_downsampled(m0, m0 + 180_000, 60_000)] == [
         ("r1", m0 + 1000), ("r2", m0 + 61_000), ("r1", m0 + 125_000)]
     assert [b.robots_active for b in store.timeline(m0, m0 + 180_000, 3)] == [1, 1, 1]
-
-
-def test_derive_views_runs_beside_a_held_writer_and_a_later_append(store, ev, m0) -> None:
-    """derive_views on another thread finishes while the writer is held and later events are
-    appended: the history consumer derives an interval's views beside the next batches."""
-    first = [ev.pose(f"r{i}", m0 + 1000 + i) for i in range(50)]
-    later = [ev.pose(f"r{i}", m0 + 61_000 + i) for i in range(50)] + [ev.chunk("r1", m0 + 61_500, 0, 0)]
-    store.append_events(first)
-    writer_lock = getattr(store, "_lock")  # both stores have one; appends take it
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        with writer_lock:
-            deriving = pool.submit(store.derive_views, first)
-            finished = wait([deriving], timeout=30).done
-        assert finished, "derive_views waited for the writer's lock"
-        deriving.result()
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        appending = pool.submit(store.append_events, later)
-        deriving = pool.submit(store.derive_views, later)
-        appending.result(timeout=30), deriving.result(timeout=30)
-    assert [(p.robot_id, p.ts_ms) for p in store.poses_downsampled(m0, m0 + 120_000, 60_000)
-            if p.robot_id == "r0"] == [("r0", m0 + 1000), ("r0", m0 + 61_000)]
-    assert store.counts().poses == 100 and store.counts().chunk_events == 1
 
 
 def test_robot_known(store, ev, t0) -> None:
