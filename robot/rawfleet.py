@@ -420,8 +420,8 @@ class RawFleet:
                 centres=[centres[i] for i in idx], chunk_topics=[self.conn.chunk_topic(r) for r in ids],
                 chunk_b64=b64, chunk_rows=meta.chunk_rows, chunk_cols=meta.chunk_cols,
                 seconds=None, pose_period_s=pose_period_s, chunk_period_s=chunk_period_s,
-                aligned_chunks=aligned_chunks, seed=seed + w, connections=connections, credentials=creds, nice=nice,
-                ack_wait_s=ack_wait_s,
+                aligned_chunks=aligned_chunks, seed=seed + w, connections=connections,
+                credentials=creds, nice=nice, ack_wait_s=ack_wait_s,
                 client_prefix=f"rawfleet-{random.Random(seed).getrandbits(32):08x}"))
         self.stats = FleetStats()
         self.pids: list[int] = []

@@ -795,7 +795,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                                    fleet.stats.report.get("cpu_s") if loadgen == "raw" else None)
         aligned = getattr(args, "aligned_chunks", False)
         scheduled = (fleet.stats.report.get("scheduled_events") if loadgen == "raw"
-                     else sum(int(args.seconds) + chunks_after(int(args.seconds), chunk_phase(i, 5, aligned), 5)
+                     else sum(int(args.seconds)
+                              + chunks_after(int(args.seconds), chunk_phase(i, 5, aligned), 5)
                               for i in range(args.robots)))
         result.update({
             "robots": args.robots,
