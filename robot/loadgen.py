@@ -21,7 +21,7 @@ from mapservice.adapters.ros_map import RosMap, free_cells_metres, meta_for, sli
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .connection import RobotClients, RobotMqtt
-from .schedule import chunk_follows, chunk_phase
+from .schedule import chunk_follows, chunk_phase, chunks_after
 
 
 def fleet_robot_id(prefix: str, i: int) -> str:
@@ -66,6 +66,14 @@ class RobotFleet:
 
     def stop(self) -> None:
         self._stop.set()
+
+    def scheduled_events(self, seconds: float) -> int:
+        """Poses and chunks the schedule asks for in `seconds`, counting whole pose periods
+        per robot (an estimate: the run's last period may be cut short)."""
+        per_chunk = round(self.chunk_period_s / self.pose_period_s)
+        poses = int(seconds / self.pose_period_s)
+        return sum(poses + chunks_after(poses, chunk_phase(i, per_chunk, self.aligned_chunks), per_chunk)
+                   for i in range(len(self.robots)))
 
     def _pose(self, i: int, robot: str, now_ms: int) -> bytes:
         cx, cy = self._centres[i]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 def chunk_phase(index: int, per_chunk: int, aligned: bool = False) -> int:
     """How many poses robot `index`'s chunk cycle is ahead of robot 0's (0 when aligned)."""
-    return 0 if aligned or per_chunk <= 1 else index % per_chunk
+    return 0 if aligned else index % per_chunk
 
 
 def chunk_follows(pose_number: int, phase: int, per_chunk: int) -> bool:

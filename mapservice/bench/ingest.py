@@ -623,7 +623,6 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
     from mapservice.robot import DEFAULT_MAP
     from mapservice.robot.loadgen import RobotFleet
-    from mapservice.robot.schedule import chunk_phase, chunks_after
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local.stack import Stack
 
@@ -795,9 +794,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                                    fleet.stats.report.get("cpu_s") if loadgen == "raw" else None)
         aligned = getattr(args, "aligned_chunks", False)
         scheduled = (fleet.stats.report.get("scheduled_events") if loadgen == "raw"
-                     else sum(int(args.seconds)
-                              + chunks_after(int(args.seconds), chunk_phase(i, 5, aligned), 5)
-                              for i in range(args.robots)))
+                     else fleet.scheduled_events(int(args.seconds)))
         result.update({
             "robots": args.robots,
             "seconds": args.seconds,

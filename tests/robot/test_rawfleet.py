@@ -176,3 +176,15 @@ def test_only_acknowledged_messages_count_as_published() -> None:
     assert report["written_events"] == broker.publishes == 24
     assert report["acknowledged_events"] == len(stats.published) == 12
     assert report["unacknowledged_events"] == 12 and report["schedule_percent"] == 50.0
+
+
+def test_the_paho_fleet_schedules_as_many_chunks_as_the_raw_one() -> None:
+    """RobotFleet's estimate for 10 robots over 5 s: 50 poses and 10 chunks, spread or aligned;
+    over 3 s, 6 chunks spread (robots 2-4 and 7-9) and none aligned."""
+    from mapservice.robot.loadgen import RobotFleet
+
+    ros_map = load_ros_map(DEFAULT_MAP)
+    spread = RobotFleet("mqtt://127.0.0.1:9", ros_map, 10)
+    aligned = RobotFleet("mqtt://127.0.0.1:9", ros_map, 10, aligned_chunks=True)
+    assert spread.scheduled_events(5) == aligned.scheduled_events(5) == 60
+    assert (spread.scheduled_events(3), aligned.scheduled_events(3)) == (36, 30)
