@@ -164,9 +164,9 @@ class Settings(BaseSettings):
     # Feeding the pose views costs a fixed ~30 ms per insert: paid once a second, not per
     # batch (processors/history_consumer.py).
     sink_views_seconds: float = Field(1.0, gt=0, description=(
-        "Longest the derived pose views (downsampled replay, timeline) and the offset commits "
-        "lag behind the stored history: the views are fed once per this interval (at once "
-        "when idle)."))
+        "Longest the derived pose views (downsampled replay, timeline), the conflicts and the "
+        "offset commits lag behind the stored history: the views are fed and the conflicts "
+        "written once per this interval (at once when idle)."))
 
     snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
     snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")

@@ -1,5 +1,5 @@
 """Moves the event topics into the history in batches, committing offsets once they are
-stored and the derived pose views brought up to them.
+stored and the derived pose views and conflicts brought up to them.
 
 At-least-once: offsets are committed only after their events are in the history (with
 the live views, conflicts and derived pose views that come from them); a crash or
@@ -65,7 +65,8 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
                        values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int) -> list:
     """Decodes a batch, stores its events in one append, then feeds the live stream and
     the views; bad records become dead letters. Returns the stored events, whose derived
-    pose views the caller brings up (`HistorySink.derive_until_done`) before committing.
+    pose views (`HistorySink.derive_until_done`) and conflicts (`LiveViews.write_conflicts`)
+    the caller writes before committing.
 
     One append for the whole batch, poses and chunks together: each append has a fixed
     cost (an insert per table, a snapshot check), and poses no longer wait behind the
@@ -103,13 +104,15 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
 class HistoryConsumer:
     """Owns one EventSource; every call to it runs on one thread of its own.
 
-    The derived pose views are fed, and offsets committed, once per `views_seconds` of
+    The derived pose views are fed, the conflicts found written, and offsets committed,
+    once per `views_seconds` of
     stored batches (at the latest; at once when a poll finds nothing, when `batch_size`
     events wait, on a rebalance and on stop): one insert into the pose views has a fixed
     cost several times a batch's own (BENCHMARKS.md, "pose views once a second"), which
-    5,000 robots cannot pay every 100 ms. What that costs: the views (downsampled replay,
-    timeline) may lag the history by `views_seconds`, and a crash re-delivers up to that
-    much more (stored once: the history's identities absorb it).
+    5,000 robots cannot pay every 100 ms; so has the conflicts' insert (~10 ms, which cost
+    every batch with chunks before). What that costs: the views (downsampled replay,
+    timeline) and the conflicts may lag the history by `views_seconds`, and a crash
+    re-delivers up to that much more (stored once: the history's identities absorb it).
     """
 
     def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
@@ -214,10 +217,13 @@ class HistoryConsumer:
         return len(records)
 
     async def settle(self) -> None:
-        """Derives the pose views of the stored events, then commits their offsets."""
+        """Derives the pose views of the stored events and writes the conflicts found in
+        them, then commits their offsets."""
         if self._underived:
             await self.sink.derive_until_done(self._underived)
             self._underived = []
+        if self.views is not None:
+            await self.views.write_conflicts_until_done(self.sink)
         self._underived_since = None
         if self._uncommitted:
             records, self._uncommitted = list(self._uncommitted.values()), {}
@@ -237,10 +243,13 @@ class HistoryConsumer:
             if self._underived:
                 await self.sink.run(self.sink.store.derive_views, self._underived)
                 self._underived = []
+            if self.views is not None:
+                await self.sink.run(self.views.write_conflicts)
             await self.settle()
         except Exception as exc:  # noqa: BLE001 - anything the store raises; logged, re-delivered
-            log.warning("could not derive the pose views on stop; their events will be "
-                        "delivered again", events=len(self._underived), error=str(exc))
+            log.warning("could not derive the pose views or write the conflicts on stop; "
+                        "their events will be delivered again", events=len(self._underived),
+                        error=str(exc))
 
     async def run(self, stopping: asyncio.Event) -> None:
         await self.start()

@@ -5,6 +5,10 @@ advertisement never names, a write the API cannot serve yet. The views are rebui
 ClickHouse whenever faust assigns partitions (start-up, restart, rebalance), before any
 event of those partitions is consumed: the history is the changelog. The rules are pure
 functions in `mapservice/core/liveview.py` and `mapservice/core/conflicts.py`.
+
+Each batch's conflicts are found after its insert (`find_conflicts`) and written together
+with the pose views (`write_conflicts`, from `HistoryConsumer.settle`), before its offsets
+are committed: like those views, the conflicts lag the history by up to sink_views_seconds.
 """
 
 from __future__ import annotations
@@ -16,11 +20,11 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Protocol
 
 import structlog
-from prometheus_client import Counter, Gauge
+from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.core.conflicts import RecentWrites
-from mapservice.processors.conflict_recorder import record_conflicts
+from mapservice.processors.conflict_recorder import UnwrittenConflicts, find_conflicts, write_conflicts
 from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
 from mapservice.core.liveview import (
     RobotState,
@@ -41,6 +45,13 @@ if TYPE_CHECKING:
 log = structlog.get_logger(__name__)
 
 CONFLICTS = Counter("mapservice_conflicts_recorded_total", "Conflict rows written to the history")
+# Both on the store thread, where the next batch waits for them.
+CONFLICT_CHECK_SECONDS = Histogram("mapservice_conflicts_check_seconds",
+                                   "Duration of finding one stored batch's conflicts",
+                                   buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1))
+CONFLICT_WRITE_SECONDS = Histogram("mapservice_conflicts_write_seconds",
+                                   "Duration of one insert of the conflicts found since the last",
+                                   buckets=(0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1))
 VIEW_CHANGES = Counter("mapservice_latest_map_changes_total", "Changes of the live latest map")
 ADS_DROPPED = Counter("mapservice_advertisements_dropped_total",
                       "Advertisements dropped because too many were waiting to be encoded")
@@ -73,6 +84,7 @@ class LiveViews:
         self.online: set[str] = set()
         self.loaded = False
         self.recent: RecentWrites | None = None  # touched only in the store thread
+        self.unwritten = UnwrittenConflicts()  # likewise
         self._recent_pruned_ms = 0
         self.window_ms = int(settings.conflict_window_s * 1000)
         # Encoding an advertisement (base64 + PNG) takes ~2 ms: one thread of its own keeps
@@ -110,8 +122,9 @@ class LiveViews:
         self._recent_pruned_ms = now
         return RecentWrites(since, rows)
 
-    def record_conflicts(self, events: Sequence[Envelope]) -> int:
-        """Writes every conflict the stored batch creates or changes; returns how many rows."""
+    def find_conflicts(self, events: Sequence[Envelope]) -> int:
+        """Finds every conflict the stored batch creates or changes, for `write_conflicts`;
+        returns how many rows now wait to be written."""
         new = [ChunkRow(e.payload.row, e.payload.column, e.event_time_ms, e.robot_id,
                         e.payload.content_hash.hex(), e.receive_time_ms)
                for e in events if isinstance(e.payload, ChunkUpdated)]
@@ -119,9 +132,23 @@ class LiveViews:
         if self.recent is not None and now - self._recent_pruned_ms > 10_000:
             self.recent.forget_before(now - self._recent_span_ms())
             self._recent_pruned_ms = now
-        count = record_conflicts(self.store, new, self.window_ms, self.recent)
-        CONFLICTS.inc(count)
-        return count
+        with CONFLICT_CHECK_SECONDS.time():
+            self.unwritten.add(find_conflicts(self.store, new, self.window_ms, self.recent))
+        return len(self.unwritten)
+
+    def write_conflicts(self) -> int:
+        """Stores the conflicts found since the last call; returns how many rows. Called
+        with the pose views, before offsets are committed (HistoryConsumer.settle): one
+        insert per several batches instead of one per batch (each insert has a fixed cost
+        of ~10 ms on chDB)."""
+        if not self.unwritten:
+            return 0
+        rows = self.unwritten.rows()
+        with CONFLICT_WRITE_SECONDS.time():
+            write_conflicts(self.store, rows, self.recent)
+        self.unwritten.clear()
+        CONFLICTS.inc(len(rows))
+        return len(rows)
 
     # --- in the event loop ----------------------------------------------------------------
 
@@ -132,7 +159,7 @@ class LiveViews:
             # so its changes go unadvertised) rather than let older writes win.
             await self._until_done(sink, lambda _: self.load(), None)
         if any(isinstance(e.payload, ChunkUpdated) for e in events):
-            await self._until_done(sink, self.record_conflicts, events)
+            await self._until_done(sink, self.find_conflicts, events)
             for e in apply_chunks(self.latest, events):
                 VIEW_CHANGES.inc()
                 self.advertise(e)
@@ -179,6 +206,11 @@ class LiveViews:
         self.online = online
         ROBOTS_ONLINE.set(len(online))
         return came, went
+
+    async def write_conflicts_until_done(self, sink: "HistorySink") -> None:
+        """`write_conflicts` on the store thread, retried until it succeeds."""
+        if len(self.unwritten):  # nothing to hand to the store thread
+            await self._until_done(sink, lambda _: self.write_conflicts(), None)
 
     async def _until_done(self, sink: "HistorySink", fn, batch) -> None:
         # Retried: acknowledging the batch without its conflicts and views would lose them.

@@ -440,6 +440,49 @@ def gateway_acks(health_ports: list[int]) -> list[float]:
     return counts
 
 
+# The server's store thread, stage by stage: (histogram, what one observation is).
+STORE_STAGES = {"insert": "mapservice_sink_insert_seconds",
+                "conflicts_check": "mapservice_conflicts_check_seconds",
+                "conflicts_write": "mapservice_conflicts_write_seconds",
+                "derive_views": "mapservice_sink_derive_views_seconds",
+                "batch_events": "mapservice_sink_batch_events"}
+
+
+def histogram_totals(text: str) -> dict[str, tuple[float, float]]:
+    """The STORE_STAGES histograms' (count, sum) in a /metrics text (absent ones: 0, 0)."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    wanted = set(STORE_STAGES.values())
+    out = {name: (0.0, 0.0) for name in wanted}
+    for family in text_string_to_metric_families(text):
+        if family.name in wanted:
+            count = sum(s.value for s in family.samples if s.name == f"{family.name}_count")
+            total = sum(s.value for s in family.samples if s.name == f"{family.name}_sum")
+            out[family.name] = (count, total)
+    return out
+
+
+def store_stages(before: dict[str, tuple[float, float]], after: dict[str, tuple[float, float]],
+                 wall_s: float) -> dict:
+    """What the store thread spent between two scrapes, per stage: calls, mean ms per call
+    and its share of the wall time; and the batches' mean size in events."""
+    out: dict = {}
+    for stage, metric in STORE_STAGES.items():
+        calls = after[metric][0] - before[metric][0]
+        total = after[metric][1] - before[metric][1]
+        if stage == "batch_events":
+            out["batches"] = calls
+            out["events_per_batch"] = total / calls if calls else None
+        else:
+            out[stage] = {"calls": calls, "mean_ms": 1000 * total / calls if calls else None,
+                          "busy_percent": 100 * total / wall_s if wall_s > 0 else None}
+    return out
+
+
+def server_histograms(api_url: str) -> dict[str, tuple[float, float]]:
+    return histogram_totals(httpx.get(f"{api_url}/metrics", timeout=10).text)
+
+
 def history_offset_gaps(api_url: str) -> dict[str, float]:
     """The history consumer's offset gaps so far (`mapservice_consumer_offset_gaps_total` on
     the server's /metrics): read again, or accepted as lost after its rereads ran out."""
@@ -701,6 +744,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
         driver = threading.Thread(target=drive, name="loadgen", daemon=True)
         acked_before = gateway_acks(stack.gateway_health_ports)
+        stages_before, stages_t0 = server_histograms(stack.api_url), time.monotonic()
         cpu_before = meter.snapshot()
         started_wall = time.time()
         fleet_t0 = time.monotonic()
@@ -763,6 +807,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             # Per run (each has a fresh server): gaps the guard read again, and gaps it
             # gave up on (records it never read: they show up as lost).
             gaps = history_offset_gaps(stack.api_url)
+            stages = store_stages(stages_before, server_histograms(stack.api_url),
+                                  time.monotonic() - stages_t0)
         console.print(_status_line(run, runs, "done", time.monotonic() - fleet_t0, args.seconds,
                                    fleet, poller, started_wall))
         poller.stop()
@@ -837,6 +883,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "gateway_acked_minus_published": sum(acked) - len(keys),
             "history_offset_gaps_reread": gaps["reread"],
             "history_offset_gaps_accepted": gaps["accepted"],
+            # From the fleet's start to the drain: what each batch cost the store thread.
+            "store_stages": stages,
             "latency_samples": len(upper),
             "latency_censored": sum(1 for v in upper if v == INF),
             "latency_p50_s": _pct(upper, 50),

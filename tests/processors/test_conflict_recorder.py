@@ -9,7 +9,12 @@ from hypothesis import strategies as st
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.core.conflicts import RecentWrites, all_conflicts
 from mapservice.core.ports import ChunkRow
-from mapservice.processors.conflict_recorder import record_conflicts
+from mapservice.processors.conflict_recorder import (
+    UnwrittenConflicts,
+    find_conflicts,
+    record_conflicts,
+    write_conflicts,
+)
 
 W = 60_000
 H1, H2, H3 = "11" * 16, "22" * 16, "33" * 16
@@ -45,3 +50,35 @@ def test_batches_in_any_order_with_repeats_equal_the_brute_force(writes, cuts, r
             recent.forget_before(forget[i])
         record_conflicts(store, batch, window, recent)
     assert store.conflicts(-10**12, 10**12) == all_conflicts(unique, window)
+
+
+@settings(max_examples=150, deadline=None)
+@given(writes=st.lists(write, min_size=1, max_size=30), cuts=st.lists(st.integers(0, 30), max_size=5),
+       repeats=st.lists(st.integers(0, 29), max_size=5), window=st.sampled_from([0, W // 2, W]),
+       covered_from=st.none() | st.integers(-W, 5 * W), written_after=st.sets(st.integers(0, 6)))
+def test_conflicts_found_per_batch_and_written_later_equal_the_brute_force(
+        writes, cuts, repeats, window, covered_from, written_after) -> None:
+    """find_conflicts per batch, the rows written only after some batches (as the processors
+    write them with the pose views) and once at the end, equals all_conflicts, and no
+    conflict is stored twice."""
+    unique = list({(x.ts_ms, x.row, x.column, x.robot_id): x for x in writes}.values())
+    stream = unique + [unique[i % len(unique)] for i in repeats]
+    bounds = sorted({0, len(stream), *(c % (len(stream) + 1) for c in cuts)})
+    store = MemoryStore()
+    appended: list = []
+    original = store.append_conflicts
+    store.append_conflicts = lambda rows: (appended.extend(rows), original(rows))[1]
+    recent = None if covered_from is None else RecentWrites(covered_from)
+    unwritten = UnwrittenConflicts()
+    for i, (lo, hi) in enumerate(zip(bounds, bounds[1:])):
+        batch = stream[lo:hi]
+        for x in batch:
+            store._chunks[(x.ts_ms, x.row, x.column, x.robot_id)] = x
+        unwritten.add(find_conflicts(store, batch, window, recent))
+        if i in written_after:
+            write_conflicts(store, unwritten.rows(), recent)
+            unwritten.clear()
+    write_conflicts(store, unwritten.rows(), recent)
+    assert store.conflicts(-10**12, 10**12) == all_conflicts(unique, window)
+    if recent is not None:  # rows it saw written unchanged are never written again
+        assert len(appended) == len(set(appended))

@@ -395,3 +395,65 @@ def test_the_views_insert_is_timed(ev) -> None:
     for i in range(5):
         batch(i)
     assert store.derived and REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") == before + 1
+
+
+class ConflictLog(DeriveLog):
+    """DeriveLog that also notes each conflicts insert (with what was committed when it
+    ran) and fails the first `failures` of them."""
+
+    def __init__(self, source: MemorySource, failures: int = 0) -> None:
+        super().__init__(source)
+        self.failures = failures
+        self.conflict_writes: list[tuple[list[str], dict]] = []
+
+    def append_conflicts(self, rows) -> None:
+        if self.failures:
+            self.failures -= 1
+            raise ConnectionError("clickhouse away")
+        self.conflict_writes.append(([c.robot_b for c in rows], dict(self.source.committed)))
+        super().append_conflicts(rows)
+
+
+def conflicting_consumer(ev, views_seconds: float, failures: int = 0):
+    """A consumer with live views (conflict window 60 s) on a hand-driven clock, and a way
+    to add a one-chunk batch of a robot, each robot's pixels its own, taking 0.3 s."""
+    from mapservice.processors.views import LiveViews
+    from mapservice.settings import Settings
+
+    clock, source = Clock(), MemorySource()
+    store = ConflictLog(source, failures)
+    views = LiveViews(Settings(conflict_window_s=60), store, None, now_ms=lambda: NOW)
+    views.load()
+    consumer = HistoryConsumer(source, HistorySink(store), views, batch_size=100,
+                               batch_seconds=0.2, now_ms=lambda: NOW, monotonic=clock,
+                               views_seconds=views_seconds)
+
+    def batch(i: int, robot: str) -> int:
+        source.append(CHUNKS, encode(ev.chunk(robot, NOW + i, 4, 4, bytes([ord(robot)]) * 10_000)))
+        clock.t += 0.3
+        return asyncio.run(consumer.run_once())
+    return consumer, source, store, batch
+
+
+def test_conflicts_are_written_once_per_interval_before_the_commit(ev) -> None:
+    """Conflicts of batches 1-4 wait for the interval; one insert (a failure retried) takes them, then the commit."""
+    consumer, source, store, batch = conflicting_consumer(ev, views_seconds=1.0, failures=1)
+    for i, robot in enumerate("abcde"):  # each after the first conflicts with the write before
+        batch(i, robot)
+        if i < 4:  # the fifth batch is stored 1.2 s after the first
+            assert store.conflict_writes == [] and source.committed == {}
+    assert store.conflict_writes == [(["b", "c", "d", "e"], {})]
+    assert source.committed == {(CHUNKS, 0): 5}
+    assert [c.robot_a for c in store.conflicts(NOW, NOW + 10)] == ["a", "b", "c", "d"]
+
+
+def test_a_stopping_consumer_writes_the_conflicts_it_found(ev) -> None:
+    """Stop between intervals: the conflicts found are stored and the batches committed."""
+    consumer, source, store, batch = conflicting_consumer(ev, views_seconds=60.0)
+    batch(0, "a")
+    batch(1, "b")
+    assert store.conflict_writes == []
+    stopping = asyncio.Event()
+    stopping.set()
+    asyncio.run(consumer.run(stopping))
+    assert store.conflict_writes == [(["b"], {})] and source.committed == {(CHUNKS, 0): 2}

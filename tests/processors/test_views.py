@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 
 import pytest
+from prometheus_client import REGISTRY
 
 from mapservice.adapters.memory_source import MemorySource
 from mapservice.adapters.memory_store import MemoryStore
@@ -80,15 +81,46 @@ def test_rebuilt_views_continue_where_the_history_is(sink) -> None:
     assert [a["robotId"] for a in ads.sent] == ["b"]
 
 
-def test_conflicts_are_recorded_with_the_batch(sink) -> None:
-    """Different content from two robots within the window becomes a conflict row."""
+def test_conflicts_found_per_batch_are_written_together(sink) -> None:
+    """Different content from two robots within the window becomes a conflict row, stored
+    by write_conflicts (not by the batch), which then has nothing left to write."""
     views = _views(sink, None, conflict_window_s=10)
     views.load()
     _store_and_view(views, sink, [chunk_event("a", NOW_MS, 4, 4)])
     _store_and_view(views, sink, [chunk_event("b", NOW_MS + 9_000, 4, 4, bytes([1]) * 10_000),
                                   chunk_event("c", NOW_MS + 30_000, 4, 4, bytes([2]) * 10_000)])
+    assert sink.store.conflicts(NOW_MS, NOW_MS + 60_000) == []
+    assert views.write_conflicts() == 1
     rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
     assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [("a", "b", 9_000)]
+    assert views.write_conflicts() == 0
+
+
+def test_a_conflict_found_again_with_a_later_a_is_written_once_with_it(sink) -> None:
+    """Two batches move one conflict's A to a later write before the write: one row, the later A."""
+    views = _views(sink, None, conflict_window_s=10)
+    views.load()
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 4, 4),
+                                  chunk_event("c", NOW_MS + 5_000, 4, 4, bytes([2]) * 10_000)])
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS + 2_000, 4, 4, bytes([1]) * 10_000)])
+    assert views.write_conflicts() == 2
+    rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
+    assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [("a", "b", 2_000), ("b", "c", 5_000)]
+
+
+def test_each_batch_conflict_check_and_each_write_are_timed(sink) -> None:
+    """A batch with chunks is observed in the check histogram; only a write with rows in the write one."""
+    views = _views(sink, None)
+    views.load()
+    checks = REGISTRY.get_sample_value("mapservice_conflicts_check_seconds_count") or 0
+    writes = REGISTRY.get_sample_value("mapservice_conflicts_write_seconds_count") or 0
+    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 4, 4)])
+    _store_and_view(views, sink, [pose_event("r1", NOW_MS)])
+    _store_and_view(views, sink, [chunk_event("b", NOW_MS + 1, 4, 4, bytes([1]) * 10_000)])
+    views.write_conflicts()
+    views.write_conflicts()
+    assert REGISTRY.get_sample_value("mapservice_conflicts_check_seconds_count") == checks + 2
+    assert REGISTRY.get_sample_value("mapservice_conflicts_write_seconds_count") == writes + 1
 
 
 def test_a_failing_advertiser_does_not_stop_the_sink(sink) -> None:

@@ -250,3 +250,24 @@ def test_counter_by_label_sums_one_counters_samples_per_label_value() -> None:
             '# TYPE b_total counter\n'
             'b_total{outcome="x"} 100.0\n')
     assert counter_by_label(text, "a", "outcome") == {"x": 3.0, "y": 4.0}
+
+
+def test_store_stages_are_the_histograms_growth_between_two_scrapes() -> None:
+    """Per stage: calls and mean ms from the histograms' count and sum deltas; absent ones are 0 calls."""
+    from mapservice.bench.ingest import histogram_totals, store_stages
+
+    def scrape(inserts: int, insert_s: float, batches: int, events: int) -> str:
+        return ('# TYPE mapservice_sink_insert_seconds histogram\n'
+                f'mapservice_sink_insert_seconds_bucket{{le="+Inf"}} {inserts}\n'
+                f'mapservice_sink_insert_seconds_count {inserts}\n'
+                f'mapservice_sink_insert_seconds_sum {insert_s}\n'
+                '# TYPE mapservice_sink_batch_events histogram\n'
+                f'mapservice_sink_batch_events_bucket{{le="+Inf"}} {batches}\n'
+                f'mapservice_sink_batch_events_count {batches}\n'
+                f'mapservice_sink_batch_events_sum {events}\n')
+
+    stages = store_stages(histogram_totals(scrape(10, 1.0, 10, 100)),
+                          histogram_totals(scrape(30, 3.0, 30, 700)), wall_s=4.0)
+    assert stages["insert"] == {"calls": 20, "mean_ms": 100.0, "busy_percent": 50.0}
+    assert stages["conflicts_check"] == {"calls": 0, "mean_ms": None, "busy_percent": 0.0}
+    assert (stages["batches"], stages["events_per_batch"]) == (20, 30.0)
