@@ -1,5 +1,5 @@
-"""Conflicts (the 2019 document's idea I.4): the rule as pure functions, and
-`record_conflicts`, which the processors run against the store after each stored batch.
+"""Conflicts (the 2019 document's idea I.4): the rule as pure functions, which the
+processors apply after each stored batch (`processors/conflict_recorder.py`).
 
 The rule: writes A and B to the same chunk conflict when different robots wrote them,
 their contents differ and their event times are at most the window apart. B is the
