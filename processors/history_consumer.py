@@ -105,12 +105,11 @@ class HistoryConsumer:
     """Owns one EventSource; every call to it runs on one thread of its own.
 
     The derived pose views are fed, the conflicts found written, and offsets committed,
-    once per `views_seconds` of
-    stored batches (at the latest; at once when a poll finds nothing, when `batch_size`
-    events wait, on a rebalance and on stop): one insert into the pose views has a fixed
-    cost several times a batch's own (BENCHMARKS.md, "pose views once a second"), which
-    5,000 robots cannot pay every 100 ms; so has the conflicts' insert (~10 ms, which cost
-    every batch with chunks before). What that costs: the views (downsampled replay,
+    once per `views_seconds` of stored batches (at the latest; at once when a poll finds
+    nothing, when `batch_size` events wait, on a rebalance and on stop): one insert into
+    the pose views has a fixed cost several times a batch's own (BENCHMARKS.md, "pose
+    views once a second"), which 5,000 robots cannot pay every 100 ms; the conflicts'
+    insert has a fixed cost too (~10 ms, BENCHMARKS.md, "conflicts written once a second"). What that costs: the views (downsampled replay,
     timeline) and the conflicts may lag the history by `views_seconds`, and a crash
     re-delivers up to that much more (stored once: the history's identities absorb it).
     """
