@@ -161,6 +161,17 @@ class Ingestor:
             raise
 
 
+def mqtt_topic(msg) -> str:
+    """A paho message's topic. MQTT topics are UTF-8 and brokers refuse others, but paho
+    raises on reading one that is not (which would end its network thread): such a topic
+    keeps its bytes as escapes behind a prefix no route matches, so the message becomes an
+    unknown-topic dead letter instead."""
+    try:
+        return msg.topic
+    except UnicodeDecodeError:
+        return "not-utf8:" + msg._topic.decode("utf-8", "backslashreplace")
+
+
 class _Delivery:
     """The delivery report callback of one message's record: acknowledges the message once
     Kafka has the record, or hands the record back for another try.
@@ -225,11 +236,12 @@ class MqttGateway:
     def _on_message(self, client, _userdata, msg) -> None:
         if self._stop.is_set():
             return  # not acknowledged: the persistent session redelivers it after restart
+        topic = mqtt_topic(msg)
         try:
-            self.ingestor.handle(msg.topic, msg.payload, partial(self._acks.append, (msg.mid, msg.qos)))
+            self.ingestor.handle(topic, msg.payload, partial(self._acks.append, (msg.mid, msg.qos)))
         except Exception:  # noqa: BLE001 - an exception here would end paho's network thread
             metrics.HANDLING_ERRORS.inc()
-            log.exception("message handling failed; left unacknowledged", mqtt_topic=msg.topic[:200],
+            log.exception("message handling failed; left unacknowledged", mqtt_topic=topic[:200],
                           size=len(msg.payload))
 
     def loop_alive(self) -> bool:

@@ -416,3 +416,34 @@ def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wir
     assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 2
     gateway.publisher.poll()
     assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 0
+
+
+def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings, wire) -> None:
+    """paho raises on reading such a topic; the gateway dead-letters the message (acked) and goes on."""
+    import paho.mqtt.client as mqtt
+
+    from mapservice.adapters.clock import SystemClock
+    from mapservice.adapters.memory_publisher import MemoryPublisher
+    from mapservice.ingest.gateway import MqttGateway
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway.publisher = MemoryPublisher()
+    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+
+    class Client:
+        batches: list = []
+
+        def ack_many(self, acks):
+            self.batches.append(list(acks))
+
+    gateway.client = Client()
+    bad = mqtt.MQTTMessage(mid=4, topic=b"iot/coordinates/\xff")
+    bad.payload, bad.qos = wire.pose(), 1
+    good = mqtt.MQTTMessage(mid=5, topic=b"iot/coordinates/blabla")
+    good.payload, good.qos = wire.pose(), 1
+    gateway._on_message(gateway.client, None, bad)
+    gateway._on_message(gateway.client, None, good)
+    gateway._poll()
+    assert gateway.client.batches == [[(4, 1), (5, 1)]]
+    letters = [value for _, value in gateway.publisher.records[settings.topic_dead_letter]]
+    assert len(letters) == 1 and b"unknown_topic" in letters[0] and b"not-utf8:" in letters[0]
