@@ -330,9 +330,18 @@ def test_the_mqtt_callback_survives_a_failing_producer(settings, wire) -> None:
     assert REGISTRY.get_sample_value("mapservice_gateway_handling_errors_total") == before + 1
 
 
-def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings, wire) -> None:
-    """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
-    confirmations in one ack_many call."""
+class AckLog:
+    """paho's client as the gateway acknowledges through it: each ack_many call's acks."""
+
+    def __init__(self) -> None:
+        self.batches: list = []
+
+    def ack_many(self, acks) -> None:
+        self.batches.append(list(acks))
+
+
+def memory_gateway(settings):
+    """An MqttGateway producing into memory, its MQTT client an AckLog."""
     from mapservice.adapters.clock import SystemClock
     from mapservice.adapters.memory_publisher import MemoryPublisher
     from mapservice.ingest.gateway import MqttGateway
@@ -340,14 +349,14 @@ def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings,
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.publisher = MemoryPublisher()
     gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+    gateway.client = AckLog()
+    return gateway
 
-    class Client:
-        batches: list = []
 
-        def ack_many(self, acks):
-            self.batches.append(list(acks))
-
-    gateway.client = Client()
+def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings, wire) -> None:
+    """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
+    confirmations in one ack_many call."""
+    gateway = memory_gateway(settings)
     for mid in (1, 2, 3):
         msg = type("Msg", (), {"topic": "iot/coordinates/blabla", "payload": wire.pose(),
                                "mid": mid, "qos": 1})
@@ -422,21 +431,7 @@ def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings,
     """paho raises on reading such a topic; the gateway dead-letters the message (acked) and goes on."""
     import paho.mqtt.client as mqtt
 
-    from mapservice.adapters.clock import SystemClock
-    from mapservice.adapters.memory_publisher import MemoryPublisher
-    from mapservice.ingest.gateway import MqttGateway
-
-    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
-    gateway.publisher = MemoryPublisher()
-    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
-
-    class Client:
-        batches: list = []
-
-        def ack_many(self, acks):
-            self.batches.append(list(acks))
-
-    gateway.client = Client()
+    gateway = memory_gateway(settings)
     bad = mqtt.MQTTMessage(mid=4, topic=b"iot/coordinates/\xff")
     bad.payload, bad.qos = wire.pose(), 1
     good = mqtt.MQTTMessage(mid=5, topic=b"iot/coordinates/blabla")
