@@ -24,7 +24,11 @@ from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.core.conflicts import RecentWrites
-from mapservice.processors.conflict_recorder import UnwrittenConflicts, find_conflicts, write_conflicts
+from mapservice.processors.conflict_recorder import (
+    UnwrittenConflicts,
+    find_conflicts,
+    write_conflicts,
+)
 from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
 from mapservice.core.liveview import (
     RobotState,

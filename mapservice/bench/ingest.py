@@ -440,7 +440,8 @@ def gateway_acks(health_ports: list[int]) -> list[float]:
     return counts
 
 
-# The server's store thread, stage by stage: (histogram, what one observation is).
+# The server's store thread, stage by stage: each stage's histogram (one observation per
+# call; batch_events observes each batch's size).
 STORE_STAGES = {"insert": "mapservice_sink_insert_seconds",
                 "conflicts_check": "mapservice_conflicts_check_seconds",
                 "conflicts_write": "mapservice_conflicts_write_seconds",

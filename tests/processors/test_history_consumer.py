@@ -457,3 +457,14 @@ def test_a_stopping_consumer_writes_the_conflicts_it_found(ev) -> None:
     stopping.set()
     asyncio.run(consumer.run(stopping))
     assert store.conflict_writes == [(["b"], {})] and source.committed == {(CHUNKS, 0): 2}
+
+
+def test_a_stop_with_the_conflicts_insert_failing_leaves_the_batches_uncommitted(ev) -> None:
+    """One try on stop: a failing conflicts insert leaves nothing committed, so the batches come again."""
+    consumer, source, store, batch = conflicting_consumer(ev, views_seconds=60.0, failures=1)
+    batch(0, "a")
+    batch(1, "b")
+    stopping = asyncio.Event()
+    stopping.set()
+    asyncio.run(asyncio.wait_for(consumer.run(stopping), 5))
+    assert store.conflict_writes == [] and source.committed == {} and source.started is False
