@@ -24,6 +24,7 @@ process used while the fleet ran, divided by the fleet's wall time: 100 % is one
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -251,6 +252,8 @@ class QueryablePoller(threading.Thread):
         self._consumed = 0
         self.polls = 0
         self.poll_seconds: list[float] = []
+        self.cycle_seconds: list[float] = []  # start to start: how late a poll can see an event
+        self._last_start: float | None = None
         self.window_rows: list[int] = []
         self.in_response_duplicates = 0
         self.truncated_polls = 0
@@ -288,6 +291,10 @@ class QueryablePoller(threading.Thread):
                 for key in [k for k, ts in self.pending.items() if ts < oldest_allowed]:
                     del self.pending[key]  # left the window unseen; the final scan decides
                     self.censored.add(key)
+                if self._last_start is not None:
+                    self.cycle_seconds.append(started - self._last_start)
+                self._last_start = started
+                truncated = False
                 try:
                     rows = 0
                     for kind, path in ((KEYS_PER_POSE, "/api/v1/poses"),
@@ -304,6 +311,7 @@ class QueryablePoller(threading.Thread):
                         examined_to = t
                         if len(body) >= POLL_LIMIT:
                             self.truncated_polls += 1
+                            truncated = True
                             examined_to = body[-1]["ts_ms"]
                         in_this: set[Key] = set()
                         for row in body:
@@ -324,10 +332,14 @@ class QueryablePoller(threading.Thread):
                 except (httpx.HTTPError, ValueError) as exc:
                     self.errors += 1
                     self.last_error = str(exc)[:200]
-                # Every ~100 ms, but never busier than half the time: a slow poll (a wide
-                # window while the pipeline lags) must not turn into a read load of its own.
+                # Every ~100 ms from the start of the last poll: the gap between polls is
+                # this instrument's resolution, so a slow poll is not followed by a wait as
+                # long again (that once stretched the cycle to 1 s and put the poll p99 2 s
+                # behind the push). Only a poll cut at the row limit (a backlog wider than
+                # one read) backs off to half the time, so a lagging pipeline does not get
+                # a read load of its own.
                 took = time.monotonic() - started
-                self._halt.wait(max(self.interval_s - took, took))
+                self._halt.wait(max(self.interval_s - took, took if truncated else 0.0))
 
 
 _LIVE_KINDS = {"pose": KEYS_PER_POSE, "chunk": KEYS_PER_CHUNK}
@@ -719,6 +731,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         else:
             fleet = RobotFleet(stack.mqtt_url, ros_map, args.robots, record=True,
                                aligned_chunks=getattr(args, "aligned_chunks", False))
+        # The run's bookkeeping (a few hundred thousand keys and times, no cycles) made the
+        # cyclic collector stop this process for 0.2-0.4 s every ~2 s late in a 5,000-robot
+        # run, and the poller with it: the poll figure then measured those pauses.
+        gc.disable()
         poller = QueryablePoller(stack.api_url, fleet.stats.published, args.poll_interval)
         poller.start()
         poller._ready.wait(5)
@@ -834,6 +850,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         upper, lower = _latencies(queryable_at, poller.not_seen_at, keys)
         polled, _ = _latencies(poller.first_seen, poller.not_seen_at, keys)
         pushed = [at - keys[k] for k, at in listener.pushed_at.items() if k in keys]
+        # What the poll adds to the push: the push is sent once the insert returned, so an
+        # event seen by a poll long after its push was queryable and waited for the poller.
+        poll_after_push = [poller.first_seen[k] - at for k, at in listener.pushed_at.items()
+                           if k in keys and k in poller.first_seen]
         pose_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_POSE]
         chunk_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_CHUNK]
         stored_events = len(unique & keys.keys())
@@ -911,6 +931,11 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 "polls": poller.polls,
                 "poll_p50_s": _pct(poller.poll_seconds, 50),
                 "poll_p99_s": _pct(poller.poll_seconds, 99),
+                "cycle_p50_s": _pct(poller.cycle_seconds, 50),
+                "cycle_p99_s": _pct(poller.cycle_seconds, 99),
+                "cycle_max_s": max(poller.cycle_seconds, default=None),
+                "seen_after_push_p50_s": _pct(poll_after_push, 50),
+                "seen_after_push_p99_s": _pct(poll_after_push, 99),
                 "rows_per_poll_p50": _pct(poller.window_rows, 50),
                 "errors": poller.errors,
                 "last_error": poller.last_error,
@@ -926,6 +951,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "loadavg_1min_after_fleet": os.getloadavg()[0],
         })
     finally:
+        gc.enable()
         if poller is not None:
             poller.stop()
         if listener is not None:

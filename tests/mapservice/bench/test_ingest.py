@@ -271,3 +271,56 @@ def test_store_stages_are_the_histograms_growth_between_two_scrapes() -> None:
     assert stages["insert"] == {"calls": 20, "mean_ms": 100.0, "busy_percent": 50.0}
     assert stages["conflicts_check"] == {"calls": 0, "mean_ms": None, "busy_percent": 0.0}
     assert (stages["batches"], stages["events_per_batch"]) == (20, 30.0)
+
+
+class _RecordedWaits:
+    """Stands in for the poller's halt event: records each wait and halts after `cycles`."""
+
+    def __init__(self, cycles: int) -> None:
+        self.waits: list[float] = []
+        self.cycles = cycles
+
+    def is_set(self) -> bool:
+        return len(self.waits) >= self.cycles
+
+    def wait(self, seconds: float) -> bool:
+        self.waits.append(seconds)
+        return self.is_set()
+
+
+def _slow_poller(monkeypatch, rows: int):
+    """A poller whose every read takes 30 ms and returns `rows` rows, at a 10 ms cadence."""
+    import time as time_module
+
+    from mapservice.bench import ingest
+
+    poller = ingest.QueryablePoller("http://unused", [], interval_s=0.01)
+    poller._halt = _RecordedWaits(cycles=3)
+
+    def slow_get(client, path, f, t):
+        asked = time_module.time()
+        time_module.sleep(0.03)
+        body = [{"robotId": "r1", "ts_ms": f + i, "receive_time_ms": f + i} for i in range(rows)]
+        return body, asked, time_module.time()
+
+    monkeypatch.setattr(poller, "_get", slow_get)
+    monkeypatch.setattr(ingest, "POLL_LIMIT", 5)
+    poller.run()
+    return poller
+
+
+def test_a_slow_complete_poll_is_followed_by_the_next_at_once_not_by_an_equal_wait(monkeypatch) -> None:
+    """The gap between polls is the poll figure's resolution: a poll slower than the
+    cadence that returned its whole window is followed by the next without a wait."""
+    poller = _slow_poller(monkeypatch, rows=2)
+    assert poller.truncated_polls == 0 and poller.polls == 3
+    assert poller._halt.waits == [0.0, 0.0, 0.0]
+    assert len(poller.cycle_seconds) == 2 and all(c >= 0.06 for c in poller.cycle_seconds)
+
+
+def test_a_poll_cut_at_the_row_limit_backs_off_as_long_as_it_took(monkeypatch) -> None:
+    """A backlog wider than one read must not become a read load of its own: after a
+    truncated poll the poller waits as long as the poll took."""
+    poller = _slow_poller(monkeypatch, rows=5)
+    assert poller.truncated_polls == 6
+    assert all(w >= 0.06 for w in poller._halt.waits)
