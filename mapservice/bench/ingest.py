@@ -492,14 +492,14 @@ def store_stages(before: dict[str, tuple[float, float]], after: dict[str, tuple[
     return out
 
 
-def server_histograms(api_url: str) -> dict[str, tuple[float, float]]:
-    return histogram_totals(httpx.get(f"{api_url}/metrics", timeout=10).text)
+def server_metrics(api_url: str) -> str:
+    """The server's /metrics text: one scrape serves the store stages and the offset gaps."""
+    return httpx.get(f"{api_url}/metrics", timeout=10).text
 
 
-def history_offset_gaps(api_url: str) -> dict[str, float]:
-    """The history consumer's offset gaps so far (`mapservice_consumer_offset_gaps_total` on
-    the server's /metrics): read again, or accepted as lost after its rereads ran out."""
-    text = httpx.get(f"{api_url}/metrics", timeout=10).text
+def history_offset_gaps(text: str) -> dict[str, float]:
+    """The history consumer's offset gaps so far (`mapservice_consumer_offset_gaps_total` in
+    the server's /metrics text): read again, or accepted as lost after its rereads ran out."""
     gaps = counter_by_label(text, "mapservice_consumer_offset_gaps", "outcome")
     return {"reread": gaps.get("reread", 0.0), "accepted": gaps.get("accepted", 0.0)}
 
@@ -761,7 +761,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
         driver = threading.Thread(target=drive, name="loadgen", daemon=True)
         acked_before = gateway_acks(stack.gateway_health_ports)
-        stages_before, stages_t0 = server_histograms(stack.api_url), time.monotonic()
+        stages_before = histogram_totals(server_metrics(stack.api_url))
+        stages_t0 = time.monotonic()
         cpu_before = meter.snapshot()
         started_wall = time.time()
         fleet_t0 = time.monotonic()
@@ -823,8 +824,9 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                      zip(acked_before, gateway_acks(stack.gateway_health_ports))]
             # Per run (each has a fresh server): gaps the guard read again, and gaps it
             # gave up on (records it never read: they show up as lost).
-            gaps = history_offset_gaps(stack.api_url)
-            stages = store_stages(stages_before, server_histograms(stack.api_url),
+            metrics_after = server_metrics(stack.api_url)
+            gaps = history_offset_gaps(metrics_after)
+            stages = store_stages(stages_before, histogram_totals(metrics_after),
                                   time.monotonic() - stages_t0)
         console.print(_status_line(run, runs, "done", time.monotonic() - fleet_t0, args.seconds,
                                    fleet, poller, started_wall))

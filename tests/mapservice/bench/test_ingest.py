@@ -235,7 +235,8 @@ def test_history_offset_gaps_reads_reread_and_accepted_from_the_servers_metrics(
     asked = []
     monkeypatch.setattr(ingest.httpx, "get",
                         lambda url, timeout: asked.append(url) or httpx.Response(200, text=text))
-    assert ingest.history_offset_gaps("http://127.0.0.1:9") == {"reread": 3.0, "accepted": 0.0}
+    assert ingest.history_offset_gaps(ingest.server_metrics("http://127.0.0.1:9")) == {
+        "reread": 3.0, "accepted": 0.0}
     assert asked == ["http://127.0.0.1:9/metrics"]
 
 
