@@ -224,13 +224,15 @@ def test_live_mode_shows_a_pose_published_with_mosquitto_pub(page, history_stack
 
 
 def test_timeline_density_click_to_seek_and_keyboard(page, history_stack) -> None:
-    """Presets show the change density; a click seeks there; arrows step, L goes live."""
+    """Presets show the change density and where robots reported; a click seeks there;
+    arrows step, L goes live."""
     stack = history_stack
     t = stack.history.start_ms + 60 * 60_000
     open_at(page, stack, f"?t={t}")
     page.locator('[data-preset="6h"]').click()
     page.wait_for_function("() => document.querySelectorAll('.strip .bar').length > 10",
                            timeout=TIMEOUT_MS)
+    assert page.locator(".strip .active").count() > 10
     box = page.locator('[data-testid="timeline-strip"]').bounding_box()
     page.mouse.click(box["x"] + box["width"] * 0.25, box["y"] + box["height"] / 2)
     page.wait_for_function(f"() => window.__replay.playhead !== {t} && window.__replay.complete",
