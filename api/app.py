@@ -34,6 +34,7 @@ from .routers import (
     poses,
     robots,
     stats,
+    status,
     timeline,
     tracks,
     ui,
@@ -41,7 +42,7 @@ from .routers import (
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
 ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, exports, stats, live, client_config, chunk_service, coordinate_service, ui)
+           timeline, conflicts, exports, stats, status, live, client_config, chunk_service, coordinate_service, ui)
 
 
 def create_app(settings: Settings, store: HistoryStore,

@@ -22,7 +22,8 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
-from mapservice.runtime.health import CachedCheck, Heartbeat, beat_forever, kafka_check
+from mapservice.runtime.health import (CachedCheck, Heartbeat, beat_forever, failing_reasons,
+                                       kafka_check)
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
@@ -131,6 +132,9 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         # events, without (more replicas than partitions) it is a healthy standby that
         # takes partitions over when another replica leaves.
         readiness["history_consumer"] = lambda: bool(sink.consumer and sink.consumer.joined)
+        # ClickHouse answers `SELECT 1` with a full disk: whether inserts succeed is its own
+        # check, and it says why not (mapservice/runtime/insert_health.py).
+        readiness["history_store"] = sink.health
         liveness["processors"] = lambda: not faust_app.should_stop
         liveness["history_consumer"] = lambda: bool(sink.consumer is None or sink.consumer.heartbeat.alive())
     else:
@@ -160,6 +164,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
                              sql_app=await loop.run_in_executor(None, analyst_app, settings))
             app.state.liveness = liveness
             app.state.advisory = advisory
+            # /api/v1/status (the UI's banner) reads the inserts' state where they happen.
+            app.state.history_status = sink.health.status if sink is not None else None
             config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
@@ -172,7 +178,9 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             if health_port is not None:
                 def report(checks: dict) -> dict:
                     results = {name: bool(check()) for name, check in checks.items()}
-                    return {"ok": all(results.values()), "checks": results}
+                    reasons = failing_reasons(checks, results)
+                    return {"ok": all(results.values()), "checks": results,
+                            **({"reasons": reasons} if reasons else {})}
 
                 serve_health(settings.api_host, health_port, lambda: report(liveness),
                              lambda: report(readiness), metrics_gate(settings))

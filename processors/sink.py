@@ -9,10 +9,11 @@ from collections.abc import Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 
 import msgspec
-from prometheus_client import Counter, Histogram
+from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.core.events import DeadLetter, Envelope, decode, decode_dead_letter
 from mapservice.core.ports import HistoryStore, LiveFeed
+from mapservice.runtime.insert_health import InsertHealth
 from mapservice.runtime.retry import until_done
 
 STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
@@ -22,19 +23,44 @@ DERIVE_SECONDS = Histogram("mapservice_sink_derive_views_seconds",
                            "Duration of one insert into the derived pose views (many batches)",
                            buckets=(0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
 INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that failed and were retried")
+# The state behind readiness's `history_store` (mapservice/runtime/insert_health.py): a
+# counter of failures cannot say whether the history is being stored now.
+INSERT_FAILING = Gauge("mapservice_history_insert_failing",
+                       "1 while history inserts fail and are retried (nothing new is stored), "
+                       "0 once one succeeds")
+INSERT_FAILING_SINCE = Gauge("mapservice_history_insert_failing_since_timestamp_seconds",
+                             "Unix time of the first failed history insert of the current "
+                             "failure; 0 while inserts succeed")
+LAST_INSERT = Gauge("mapservice_history_last_insert_timestamp_seconds",
+                    "Unix time of the last successful history insert (0: none yet)")
 
 
 class HistorySink:
     """Owns the store and the one thread that talks to it."""
 
-    def __init__(self, store: HistoryStore, live: LiveFeed | None = None) -> None:
+    def __init__(self, store: HistoryStore, live: LiveFeed | None = None,
+                 health: InsertHealth | None = None) -> None:
         self.store = store
         self.live = live
         self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
         self.consumer = None  # the HistoryConsumer feeding it, once build_app made one
+        # Whether the inserts succeed: readiness, the metrics below, the UI's banner.
+        self.health = health = health or InsertHealth()
+        INSERT_FAILING.set_function(lambda: float(health.failing))
+        INSERT_FAILING_SINCE.set_function(lambda: health.failing_since_s or 0.0)
+        LAST_INSERT.set_function(lambda: health.last_stored_s or 0.0)
 
     async def run(self, fn, *args):
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+
+    async def _insert(self, fn, batch) -> None:
+        """One insert attempt, its outcome recorded in `health`."""
+        try:
+            await self.run(fn, batch)
+        except Exception as exc:  # noqa: BLE001 - whatever the store raises; the caller retries
+            self.health.failed(exc)
+            raise
+        self.health.stored()
 
     async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
         """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,
@@ -44,7 +70,7 @@ class HistorySink:
                                         topics=sorted(counts), batch=len(batch)):
             with attempt:
                 started = time.monotonic()
-                await self.run(fn, batch)
+                await self._insert(fn, batch)
         INSERT_SECONDS.observe(time.monotonic() - started)
         for topic, count in counts.items():
             STORED.labels(topic).inc(count)
@@ -56,7 +82,7 @@ class HistorySink:
         async for attempt in until_done("history views", 0.2, INSERT_FAILURES.inc, batch=len(batch)):
             with attempt:
                 started = time.monotonic()
-                await self.run(self.store.derive_views, batch)
+                await self._insert(self.store.derive_views, batch)
         DERIVE_SECONDS.observe(time.monotonic() - started)
 
 

@@ -6,6 +6,8 @@ from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
+from mapservice.runtime.health import failing_reasons
+
 from ..access import METRICS, PUBLIC
 
 router = APIRouter(tags=["health"])
@@ -26,11 +28,15 @@ def liveness(request: Request) -> JSONResponse:
 def readiness(request: Request) -> JSONResponse:
     """Ready: a real call to each required dependency; advisory ones (Kafka for the API
     alone) are reported in `checks` but do not make it unready."""
-    checks = {name: bool(check()) for name, check in request.app.state.readiness.items()}
+    required = request.app.state.readiness
+    checks = {name: bool(check()) for name, check in required.items()}
     ok = all(checks.values())
+    # Why a failed check failed, where it can say (the history store's inserts: since when, the error).
+    reasons = failing_reasons(required, checks)
     checks.update({name: bool(check()) for name, check in
                    getattr(request.app.state, "advisory", {}).items()})
-    return JSONResponse({"ok": ok, "checks": checks}, status_code=200 if ok else 503)
+    return JSONResponse({"ok": ok, "checks": checks, **({"reasons": reasons} if reasons else {})},
+                        status_code=200 if ok else 503)
 
 
 @router.get("/metrics", operation_id="getMetrics", include_in_schema=False,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import structlog
 
@@ -84,3 +84,16 @@ def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedC
     admin = AdminClient(settings.kafka_config())
     return CachedCheck("kafka", lambda: bool(admin.list_topics(timeout=timeout_s).brokers),
                        ttl_s=ttl_s, timeout_s=timeout_s)
+
+
+def failing_reasons(checks: Mapping[str, Callable[[], object]],
+                    results: Mapping[str, bool]) -> dict[str, str]:
+    """Why each failed check failed, from the checks that can say so (a `reason()`
+    method returning text, as insert_health.InsertHealth has): a probe's answer names
+    the cause, not only the dependency."""
+    out = {}
+    for name, ok in results.items():
+        explain = getattr(checks.get(name), "reason", None)
+        if not ok and callable(explain) and (why := explain()):
+            out[name] = str(why)
+    return out

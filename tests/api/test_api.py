@@ -32,6 +32,7 @@ EXPECTED_OPERATION_IDS = {
     "listConflicts",
     "getChunkContentsBatch",  # api/routers/chunk_contents.py (replay UI seeks)
     "getClientConfig",  # api/routers/client_config.py (the /controller page)
+    "getServiceStatus",  # api/routers/status.py (the replay UI's "history not stored" banner)
     "exportTable", "exportReplayMcap",  # api/routers/exports.py
 }
 

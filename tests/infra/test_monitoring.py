@@ -88,12 +88,14 @@ def test_queries_name_only_exported_metrics(source: str) -> None:
 
 
 def test_the_alerts_cover_what_operators_need() -> None:
-    """Alerts exist for lag, dead-letter rate, insert failures, stuck in-flight messages and readiness."""
+    """Alerts exist for lag, dead-letter rate, insert failures, a history not stored now,
+    stuck in-flight messages and readiness."""
     (rules,) = [d for d in yaml.safe_load_all((MONITORING / "prometheus-rules.yaml").read_text())
                 if d and d["kind"] == "PrometheusRule"]
     alerts = {r["alert"]: r["expr"] for g in rules["spec"]["groups"] for r in g["rules"]}
     needed = {"mapservice_consumer_lag_records", "mapservice_gateway_rejected_total",
-              "mapservice_sink_insert_failures_total", "mapservice_gateway_in_flight",
+              "mapservice_sink_insert_failures_total", "mapservice_history_insert_failing",
+              "mapservice_gateway_in_flight",
               "kube_pod_status_ready"}
     assert needed <= set().union(*(metric_names(e) for e in alerts.values()))
     for rule in (r for g in rules["spec"]["groups"] for r in g["rules"]):

@@ -468,3 +468,55 @@ def test_a_stop_with_the_conflicts_insert_failing_leaves_the_batches_uncommitted
     stopping.set()
     asyncio.run(asyncio.wait_for(consumer.run(stopping), 5))
     assert store.conflict_writes == [] and source.committed == {} and source.started is False
+
+
+class FullDiskStore(MemoryStore):
+    """Refuses every append as ClickHouse does on a full disk, until `full` is cleared."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.full = True
+        self.attempts = 0
+
+    def append_events(self, events) -> None:
+        self.attempts += 1
+        if self.full:
+            raise RuntimeError("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough "
+                               "space. (NOT_ENOUGH_SPACE)")
+        super().append_events(events)
+
+
+def test_failing_inserts_are_reported_and_commit_nothing_until_they_succeed(ev) -> None:
+    """While inserts fail: the sink's health is unready with the error, the failing gauge
+    reads 1, and no offset is committed; once they succeed it recovers by itself, stores
+    the batch once and commits it."""
+    from prometheus_client import REGISTRY
+
+    def gauge(name: str) -> float:
+        return REGISTRY.get_sample_value(name)
+
+    source, store = MemorySource(), FullDiskStore()
+    for i in range(5):
+        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
+    consumer = consumer_for(store, source)
+    health = consumer.sink.health
+
+    async def go() -> None:
+        await consumer.start()
+        storing = asyncio.ensure_future(consumer.run_once())
+        while store.attempts < 3:
+            await asyncio.sleep(0.05)
+        assert not health() and "NOT_ENOUGH_SPACE" in health.reason()
+        assert gauge("mapservice_history_insert_failing") == 1.0
+        assert gauge("mapservice_history_insert_failing_since_timestamp_seconds") > 0
+        assert source.committed == {} and store.counts().poses == 0
+        store.full = False
+        assert await storing == 5
+        await consumer.settle()
+
+    asyncio.run(go())
+    assert health() and health.reason() is None
+    assert gauge("mapservice_history_insert_failing") == 0.0
+    assert gauge("mapservice_history_insert_failing_since_timestamp_seconds") == 0.0
+    assert gauge("mapservice_history_last_insert_timestamp_seconds") > 0
+    assert store.counts().poses == 5 and source.committed == {(POSES, 0): 5}

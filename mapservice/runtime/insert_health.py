@@ -1,0 +1,112 @@
+"""Whether the history takes what the processors store: the truth about inserts.
+
+A full disk (or ClickHouse refusing inserts for any other reason) leaves every read and
+`SELECT 1` working while nothing new is stored; the processors retry (nothing is
+acknowledged before it is stored) and recover by themselves once the inserts succeed
+again. `InsertHealth` records that state for readiness (`history_store`: false with the
+reason), the metrics and the replay UI's banner ("history not stored since ...").
+
+The state is one flag's worth: failing since the first failed insert after a success,
+storing again at the next success. A retry loop keeps trying for as long as it fails, so
+the state cannot go stale while events wait.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from collections.abc import Callable
+from datetime import datetime, timezone
+
+# ClickHouse ends an exception's message with its error code's name: "... (NOT_ENOUGH_SPACE)".
+_ERROR_CODE = re.compile(r"\(([A-Z][A-Z0-9_]{2,})\)\s*$")
+# What an operator does about the usual refusals (ClickHouse's error code names).
+HINTS = {
+    "NOT_ENOUGH_SPACE": "free disk space where ClickHouse keeps its data",
+    "CANNOT_WRITE_TO_FILE_DESCRIPTOR": "check the disk ClickHouse writes to (full or read-only?)",
+    "TOO_MANY_PARTS": "ClickHouse merges fall behind the inserts; check its merges and disk",
+    "MEMORY_LIMIT_EXCEEDED": "ClickHouse ran out of memory; raise its limit or lower the load",
+    "READONLY": "the ClickHouse user or table is read-only",
+    "TABLE_IS_READ_ONLY": "the table is read-only (a replica lost its keeper, or the disk failed)",
+}
+_MAX_ERROR_CHARS = 300
+
+
+def error_code(error: str) -> str | None:
+    """The ClickHouse error code's name at the end of `error`'s first line, if any."""
+    match = _ERROR_CODE.search(error.strip().splitlines()[0] if error.strip() else "")
+    return match.group(1) if match else None
+
+
+def describe(exc: BaseException) -> str:
+    """One line about a failed insert: its ClickHouse error code first (when it has one),
+    then the message, cut short."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    code = error_code(str(exc))
+    text = text if len(text) <= _MAX_ERROR_CHARS else text[:_MAX_ERROR_CHARS - 3] + "..."
+    return f"{code}: {text}" if code else f"{type(exc).__name__}: {text}"
+
+
+class InsertHealth:
+    """The state of the history's inserts in this process; thread-safe (the store thread
+    writes it, probes and the API read it).
+
+    Callable as a readiness check (True while inserts succeed); `reason()` says why not.
+    """
+
+    def __init__(self, wall_s: Callable[[], float] = time.time) -> None:
+        self.wall_s = wall_s
+        self._lock = threading.Lock()
+        self.failing_since_s: float | None = None  # the first failure since the last success
+        self.failures = 0  # failed attempts since the last success
+        self.last_error: str | None = None
+        self.last_error_code: str | None = None
+        self.last_stored_s: float | None = None  # the last successful insert
+
+    def stored(self) -> None:
+        with self._lock:
+            self.failing_since_s, self.failures = None, 0
+            self.last_error = self.last_error_code = None
+            self.last_stored_s = self.wall_s()
+
+    def failed(self, exc: BaseException) -> None:
+        with self._lock:
+            if self.failing_since_s is None:
+                self.failing_since_s = self.wall_s()
+            self.failures += 1
+            self.last_error, self.last_error_code = describe(exc), error_code(str(exc))
+
+    @property
+    def failing(self) -> bool:
+        return self.failing_since_s is not None
+
+    def __call__(self) -> bool:
+        """Readiness: the history takes inserts (or none was tried yet)."""
+        return not self.failing
+
+    def reason(self) -> str | None:
+        """Why the history is not ready, with what to do; None while inserts succeed."""
+        with self._lock:
+            if self.failing_since_s is None:
+                return None
+            since = _utc_hms(self.failing_since_s)
+            hint = HINTS.get(self.last_error_code or "")
+            return (f"inserts failing since {since}Z ({self.failures} attempts): {self.last_error}"
+                    + (f"; {hint}" if hint else "")
+                    + "; the processors keep retrying and commit nothing unstored")
+
+    def status(self) -> dict:
+        """For the API and the UI: storing or not, since when, why."""
+        with self._lock:
+            failing_since, last_stored = self.failing_since_s, self.last_stored_s
+        return {
+            "storing": failing_since is None,
+            "failing_since_ms": None if failing_since is None else int(failing_since * 1000),
+            "last_stored_ms": None if last_stored is None else int(last_stored * 1000),
+            "reason": self.reason(),
+        }
+
+
+def _utc_hms(wall_s: float) -> str:
+    return datetime.fromtimestamp(wall_s, timezone.utc).strftime("%H:%M:%S")

@@ -1,0 +1,85 @@
+"""The history's insert state: failing since the first failure after a success, storing
+again at the next success, and a reason an operator can act on."""
+
+from __future__ import annotations
+
+from datetime import datetime, timezone
+
+from mapservice.runtime.health import failing_reasons
+from mapservice.runtime.insert_health import InsertHealth, describe, error_code
+
+FULL = ("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. "
+        "(NOT_ENOUGH_SPACE)")
+T0 = datetime(2026, 11, 25, 22, 15, 3, tzinfo=timezone.utc).timestamp()
+
+
+class Wall:
+    def __init__(self, t: float) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_before_any_insert_the_history_is_ready_with_no_reason() -> None:
+    """Nothing tried yet: ready, nothing to explain, no last insert."""
+    health = InsertHealth(Wall(T0))
+    assert health() and not health.failing and health.reason() is None
+    assert health.status() == {"storing": True, "failing_since_ms": None, "last_stored_ms": None,
+                               "reason": None}
+
+
+def test_a_failed_insert_makes_it_unready_naming_since_when_and_the_error() -> None:
+    """The first failure sets the time; later failures keep it and count; the reason names
+    the time (UTC), the ClickHouse error code, the message and what to do."""
+    wall = Wall(T0)
+    health = InsertHealth(wall)
+    health.failed(RuntimeError(FULL))
+    wall.t += 12
+    health.failed(RuntimeError(FULL))
+    assert not health() and health.failing and health.failures == 2
+    reason = health.reason()
+    assert reason.startswith("inserts failing since 22:15:03Z (2 attempts): NOT_ENOUGH_SPACE: Code: 243.")
+    assert "free disk space where ClickHouse keeps its data" in reason
+    status = health.status()
+    assert status["storing"] is False and status["failing_since_ms"] == int(T0 * 1000)
+    assert status["reason"] == reason
+
+
+def test_a_successful_insert_clears_the_failure_and_records_when() -> None:
+    """Recovery is automatic: the next success is ready again, with its time kept."""
+    wall = Wall(T0)
+    health = InsertHealth(wall)
+    health.failed(RuntimeError(FULL))
+    wall.t += 30
+    health.stored()
+    assert health() and health.reason() is None and health.failures == 0
+    assert health.status()["last_stored_ms"] == int((T0 + 30) * 1000)
+    wall.t += 5
+    health.failed(ConnectionError("connection refused"))
+    assert health.status()["failing_since_ms"] == int((T0 + 35) * 1000)  # a new failure, a new start
+
+
+def test_errors_without_a_clickhouse_code_name_their_type_and_are_cut_short() -> None:
+    """Any refusal counts (not only a full disk); a long message is cut to one short line."""
+    assert error_code("connection refused") is None
+    assert error_code(FULL) == "NOT_ENOUGH_SPACE"
+    assert describe(ConnectionError("connection refused")) == "ConnectionError: connection refused"
+    long = describe(RuntimeError("x" * 5000 + "\nsecond line"))
+    assert long.startswith("RuntimeError: xxx") and long.endswith("...") and len(long) < 330
+    health = InsertHealth(Wall(T0))
+    health.failed(ConnectionError("connection refused"))
+    assert health.reason().endswith("ConnectionError: connection refused; the processors keep "
+                                    "retrying and commit nothing unstored")
+
+
+def test_failing_reasons_come_from_failed_checks_that_can_explain() -> None:
+    """Readiness names the cause for a check with a reason(); a plain check gives none."""
+    health = InsertHealth(Wall(T0))
+    health.failed(RuntimeError(FULL))
+    checks = {"clickhouse": lambda: True, "kafka": lambda: False, "history_store": health}
+    results = {name: bool(check()) for name, check in checks.items()}
+    reasons = failing_reasons(checks, results)
+    assert list(reasons) == ["history_store"] and "NOT_ENOUGH_SPACE" in reasons["history_store"]
+    health.stored()
+    assert failing_reasons(checks, {name: bool(check()) for name, check in checks.items()}) == {}
