@@ -1,0 +1,214 @@
+"""ClickHouse's disk fills up while events flow: the service says so and loses nothing.
+
+The real pipeline (tansu, `mapservice serve`: the processors and the API over embedded
+ClickHouse) with ClickHouse's data directory on a small tmpfs of its own; poses are
+published to Kafka all along (what Kafka acknowledged is what the gateway would have
+acknowledged to a robot). A filler file takes the rest of the disk: ClickHouse answers
+reads and `SELECT 1` but refuses every insert (NOT_ENOUGH_SPACE). Then:
+
+- /readyz answers 503 with `history_store` false and the reason (since when, the error),
+  /metrics has mapservice_history_insert_failing 1, /api/v1/status (the replay UI's
+  banner) says the history is not stored since when;
+- the filler removed, the processors recover by themselves (ready again, gauge 0), and
+  every pose Kafka acknowledged, before, during and after the full disk, is stored once.
+
+Mounting needs root (CAP_SYS_ADMIN); without it the test is skipped and says why. Only
+the ClickHouse directory is on the tmpfs, so the logs and the other components' files
+stay writable and what fails is what a full ClickHouse volume fails. Bounded: each wait
+is at most 60 s; about a minute on an idle machine.
+"""
+
+from __future__ import annotations
+
+import collections
+import errno
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from mapservice.adapters.kafka_publisher import KafkaPublisher
+from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
+from mapservice.local.stack import Stack
+
+from .conftest import stored_keys
+
+DISK_MB = 96
+ROBOTS = [f"df-r{i}" for i in range(5)]
+RATE_HZ = 10  # per robot: 50 poses a second in all
+
+
+def mount_tmpfs(path: Path, size_mb: int) -> None:
+    path.mkdir(parents=True, exist_ok=True)
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(path)],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        pytest.skip(f"cannot mount a {size_mb} MB tmpfs as ClickHouse's data dir (needs root "
+                    f"and CAP_SYS_ADMIN): {done.stderr.strip() or done.returncode}")
+
+
+def unmount(path: Path) -> None:
+    for args in (["umount", str(path)], ["umount", "-l", str(path)]):  # -l: still busy
+        if subprocess.run(args, capture_output=True).returncode == 0:
+            return
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    data_dir = tmp_path_factory.mktemp("disk-full")
+    clickhouse_dir = data_dir / "clickhouse"  # where `serve` keeps embedded ClickHouse
+    mount_tmpfs(clickhouse_dir, DISK_MB)
+    stack = Stack(data_dir, mqtt="amqtt")
+    try:
+        with stack.running(stack.start_brokers, stack.start_server):
+            yield stack
+    finally:
+        unmount(clickhouse_dir)
+
+
+class Poses:
+    """Publishes RATE_HZ poses a second per robot to Kafka from a thread; keeps the
+    identity (robot, event time) of every pose Kafka acknowledged, and when."""
+
+    def __init__(self, stack: Stack) -> None:
+        self.settings = stack.settings()
+        self.publisher = KafkaPublisher(self.settings, client_id="disk-full-test")
+        self.acked: list[tuple[str, int, float]] = []  # robot, event time, acknowledged (monotonic)
+        self.errors: list[Exception] = []
+        self.first_ms = int(time.time() * 1000)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="disk-full-poses", daemon=True)
+
+    def _run(self) -> None:
+        step_ms, tick = 1000 // RATE_HZ, 0
+        while not self._stop.is_set():
+            ts = self.first_ms + tick * step_ms
+            for robot in ROBOTS:
+                event = make_envelope(robot, ts, ts + 5, PoseReported(
+                    (tick % 100 / 10, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0), 50.0))
+
+                def done(err, key=(robot, ts)) -> None:
+                    if err is None:
+                        self.acked.append((*key, time.monotonic()))
+                    else:
+                        self.errors.append(err)
+
+                self.publisher.publish(self.settings.topic_pose_events, kafka_key(event),
+                                       encode(event), done)
+            self.publisher.poll(0)
+            tick += 1
+            time.sleep(step_ms / 1000)
+
+    def __enter__(self) -> "Poses":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join(10)
+        assert self.publisher.flush(30) == 0
+
+    def acked_between(self, start: float, end: float) -> int:
+        return sum(1 for *_, at in self.acked if start <= at <= end)
+
+
+def get(url: str) -> tuple[int, dict]:
+    reply = httpx.get(url, timeout=10)
+    return reply.status_code, reply.json()
+
+
+def until(what: str, predicate, timeout_s: float = 60, last=lambda: None):
+    """Waits for `predicate()` to be truthy and returns it; on timeout the message has
+    `last()` (what there was instead)."""
+    deadline = time.monotonic() + timeout_s
+    while not (result := predicate()):
+        assert time.monotonic() < deadline, \
+            f"timed out after {timeout_s:.0f} s waiting for: {what}; last: {last()}"
+        time.sleep(0.5)
+    return result
+
+
+def gauge(stack: Stack, name: str) -> float:
+    text = httpx.get(f"{stack.api_url}/metrics", timeout=10).text
+    (line,) = [ln for ln in text.splitlines() if ln.startswith(name + " ")]
+    return float(line.split()[1])
+
+
+def fill(directory: Path) -> Path:
+    """Writes a file until the disk under `directory` has no byte left."""
+    filler = directory / "filler"
+    block = b"\0" * (1 << 20)
+    with open(filler, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(block)
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC, exc
+    with open(filler, "ab", buffering=0) as f:  # what is left, byte by byte in small steps
+        for size in (4096, 1):
+            try:
+                while True:
+                    f.write(b"\0" * size)
+            except OSError as exc:
+                assert exc.errno == errno.ENOSPC, exc
+    return filler
+
+
+def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_nothing(stack) -> None:
+    """Readiness false naming NOT_ENOUGH_SPACE, the failing gauge and the status while the
+    disk is full; ready again once space is freed; every acknowledged pose stored once."""
+    api = stack.api_url
+    until("ready", lambda: get(f"{api}/readyz")[0] == 200)
+    with Poses(stack) as poses:
+        until("poses stored", lambda: len(stored_keys(stack, "pose", "df-", poses.first_ms,
+                                                       poses.first_ms + 600_000)) >= 50)
+        assert get(f"{api}/readyz")[0] == 200
+        filler = fill(stack.data_dir / "clickhouse")
+        full_at = time.monotonic()
+
+        code, body = until("/readyz to say the history is not stored",
+                           lambda: (r := get(f"{api}/readyz"))[0] == 503 and r, timeout_s=30,
+                           last=lambda: get(f"{api}/readyz"))
+        assert body["checks"]["history_store"] is False, body
+        assert body["checks"]["clickhouse"] is True  # reads and SELECT 1 still work
+        reason = body["reasons"]["history_store"]
+        assert reason.startswith("inserts failing since ") and "NOT_ENOUGH_SPACE" in reason, reason
+        assert "free disk space" in reason
+        assert gauge(stack, "mapservice_history_insert_failing") == 1.0
+        since = gauge(stack, "mapservice_history_insert_failing_since_timestamp_seconds")
+        assert abs(since - time.time()) < 120
+        status = get(f"{api}/api/v1/status")[1]["history"]
+        assert status["storing"] is False and status["failing_since_ms"] == int(since * 1000)
+        assert "NOT_ENOUGH_SPACE" in status["reason"]
+        time.sleep(3)  # robots go on publishing: acknowledged, waiting in Kafka
+        # Still refused after a while, not a single failure's blip.
+        assert get(f"{api}/readyz")[0] == 503
+
+        filler.unlink()
+        freed_at = time.monotonic()
+        until("ready again after the space was freed",
+              lambda: get(f"{api}/readyz")[0] == 200, timeout_s=60)
+        recovered_s = time.monotonic() - freed_at
+        assert gauge(stack, "mapservice_history_insert_failing") == 0.0
+        assert get(f"{api}/api/v1/status")[1]["history"]["storing"] is True
+        time.sleep(1)  # some poses after the recovery too
+    during = poses.acked_between(full_at, freed_at)
+    assert during > 50, f"only {during} poses acknowledged while the disk was full"
+    assert not poses.errors
+    expected = collections.Counter((robot, ts) for robot, ts, _ in poses.acked)
+    window = (poses.first_ms, max(ts for _, ts, _ in poses.acked) + 1)
+
+    def all_stored():
+        keys = stored_keys(stack, "pose", "df-", *window)
+        return len(keys) >= len(expected) and keys
+
+    stored = collections.Counter(until("every acknowledged pose stored", all_stored))
+    duplicated = sorted(k for k, n in stored.items() if n > 1)
+    lost = sorted(set(expected) - set(stored))
+    assert not lost and not duplicated, (len(lost), lost[:5], len(duplicated), duplicated[:5])
+    assert set(stored) == set(expected)
+    print(f"acknowledged {len(expected)} ({during} while full), stored once {len(stored)}, "
+          f"ready {recovered_s:.1f} s after the space was freed")
