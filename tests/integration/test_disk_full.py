@@ -7,10 +7,12 @@ acknowledged to a robot). A filler file takes the rest of the disk: ClickHouse a
 reads and `SELECT 1` but refuses every insert (NOT_ENOUGH_SPACE). Then:
 
 - /readyz answers 503 with `history_store` false and the reason (since when, the error),
-  /metrics has mapservice_history_insert_failing 1, /api/v1/status (the replay UI's
-  banner) says the history is not stored since when;
-- the filler removed, the processors recover by themselves (ready again, gauge 0), and
-  every pose Kafka acknowledged, before, during and after the full disk, is stored once.
+  /metrics has mapservice_history_insert_failing 1, /api/v1/status says the history is
+  not stored since when, and the replay UI (Chromium) shows "history not stored since
+  HH:MM:SS UTC";
+- the filler removed, the processors recover by themselves (ready again, gauge 0, the
+  banner gone), and every pose Kafka acknowledged, before, during and after the full
+  disk, is stored once.
 
 Mounting needs root (CAP_SYS_ADMIN); without it the test is skipped and says why. Only
 the ClickHouse directory is on the tmpfs, so the logs and the other components' files
@@ -33,6 +35,7 @@ import pytest
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
 from mapservice.local.stack import Stack
+from tests.ui.conftest import ARTIFACTS, DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from .conftest import stored_keys
 
@@ -57,7 +60,15 @@ def unmount(path: Path) -> None:
 
 
 @pytest.fixture(scope="module")
+def browser(module_browser):
+    """This module's browser ends with the module (see tests/ui/conftest.playwright_browser)."""
+    return module_browser
+
+
+@pytest.fixture(scope="module")
 def stack(tmp_path_factory):
+    if not DIST.exists():
+        pytest.fail("replay-ui is not built: run `make ui` first")
     data_dir = tmp_path_factory.mktemp("disk-full")
     clickhouse_dir = data_dir / "clickhouse"  # where `serve` keeps embedded ClickHouse
     mount_tmpfs(clickhouse_dir, DISK_MB)
@@ -157,11 +168,14 @@ def fill(directory: Path) -> Path:
     return filler
 
 
-def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_nothing(stack) -> None:
-    """Readiness false naming NOT_ENOUGH_SPACE, the failing gauge and the status while the
-    disk is full; ready again once space is freed; every acknowledged pose stored once."""
+def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_nothing(stack, page) -> None:
+    """Readiness false naming NOT_ENOUGH_SPACE, the failing gauge, the status and the UI's
+    banner while the disk is full; ready again once space is freed, the banner gone; every
+    acknowledged pose stored once."""
     api = stack.api_url
     until("ready", lambda: get(f"{api}/readyz")[0] == 200)
+    page.goto(f"{api}/?live=1")
+    banner = page.locator('[data-testid="history-banner"]')
     with Poses(stack) as poses:
         until("poses stored", lambda: len(stored_keys(stack, "pose", "df-", poses.first_ms,
                                                        poses.first_ms + 600_000)) >= 50)
@@ -183,7 +197,13 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         status = get(f"{api}/api/v1/status")[1]["history"]
         assert status["storing"] is False and status["failing_since_ms"] == int(since * 1000)
         assert "NOT_ENOUGH_SPACE" in status["reason"]
-        time.sleep(3)  # robots go on publishing: acknowledged, waiting in Kafka
+        banner.wait_for(timeout=30_000)  # the page polls every 5 s
+        since_utc = time.strftime("%H:%M:%S", time.gmtime(since))
+        assert banner.inner_text().strip() == f"⚠ history not stored since {since_utc} UTC"
+        assert "NOT_ENOUGH_SPACE" in banner.get_attribute("title")
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "disk-full-banner.png"))
+        time.sleep(2)  # robots go on publishing: acknowledged, waiting in Kafka
         # Still refused after a while, not a single failure's blip.
         assert get(f"{api}/readyz")[0] == 503
 
@@ -194,6 +214,8 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         recovered_s = time.monotonic() - freed_at
         assert gauge(stack, "mapservice_history_insert_failing") == 0.0
         assert get(f"{api}/api/v1/status")[1]["history"]["storing"] is True
+        banner.wait_for(state="detached", timeout=30_000)
+        assert not page.errors  # type: ignore[attr-defined]
         time.sleep(1)  # some poses after the recovery too
     during = poses.acked_between(full_at, freed_at)
     assert during > 50, f"only {during} poses acknowledged while the disk was full"

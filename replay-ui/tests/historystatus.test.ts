@@ -1,0 +1,63 @@
+import { describe, expect, it } from "vitest";
+import { bannerFor, pollStatus, utcClock, type HistoryStatus } from "../src/lib/historystatus";
+
+const SINCE = Date.UTC(2026, 10, 25, 22, 15, 3, 400);
+const failing: HistoryStatus = {
+  storing: false, failing_since_ms: SINCE, last_stored_ms: SINCE - 200,
+  reason: "inserts failing since 22:15:03Z (3 attempts): NOT_ENOUGH_SPACE: Code: 243. ...",
+};
+
+describe("bannerFor", () => {
+  it("says since when the history is not stored, in UTC, with the server's reason", () => {
+    const b = bannerFor(failing)!;
+    expect(b.text).toBe("history not stored since 22:15:03 UTC");
+    expect(b.title).toContain("NOT_ENOUGH_SPACE");
+    expect(b.title).toContain("Nothing acknowledged is lost");
+  });
+
+  it("shows nothing while the history is stored, or where the API cannot know", () => {
+    expect(bannerFor({ ...failing, storing: true, failing_since_ms: null, reason: null })).toBeNull();
+    expect(bannerFor(null)).toBeNull();
+    expect(bannerFor(undefined)).toBeNull();
+  });
+
+  it("falls back to the last stored insert, then to no time at all", () => {
+    expect(bannerFor({ ...failing, failing_since_ms: null })!.text).toBe("history not stored since 22:15:03 UTC");
+    expect(bannerFor({ ...failing, failing_since_ms: null, last_stored_ms: null, reason: null })).toEqual({
+      text: "history not stored",
+      title: "the server refuses to store new events. Nothing acknowledged is lost: the events wait and are stored once the server recovers.",
+    });
+  });
+
+  it("formats a clock time in UTC whatever the browser's zone", () => {
+    expect(utcClock(Date.UTC(2026, 0, 1, 3, 4, 5))).toBe("03:04:05 UTC");
+  });
+});
+
+describe("pollStatus", () => {
+  const reply = (status: number, body: unknown) =>
+    (async () => new Response(JSON.stringify(body), { status })) as unknown as typeof fetch;
+
+  it("reads the history's status from /api/v1/status", async () => {
+    const urls: string[] = [];
+    const fetchFn = (async (url: string) => {
+      urls.push(url);
+      return new Response(JSON.stringify({ history: failing }), { status: 200 });
+    }) as unknown as typeof fetch;
+    expect(await pollStatus(fetchFn, "http://h")).toEqual({ history: failing });
+    expect(urls).toEqual(["http://h/api/v1/status"]);
+  });
+
+  it("an API apart from the processors answers null: no banner", async () => {
+    const got = await pollStatus(reply(200, { history: null }));
+    expect(got).toEqual({ history: null });
+    expect(bannerFor((got as { history: HistoryStatus | null }).history)).toBeNull();
+  });
+
+  it("stops asking an older server without the endpoint, and learns nothing from failures", async () => {
+    expect(await pollStatus(reply(404, { detail: "Not Found" }))).toBe("stop");
+    expect(await pollStatus(reply(503, { detail: "starting" }))).toBe("unknown");
+    const down = (async () => { throw new TypeError("Failed to fetch"); }) as unknown as typeof fetch;
+    expect(await pollStatus(down)).toBe("unknown");
+  });
+});
