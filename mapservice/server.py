@@ -22,8 +22,8 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
-from mapservice.runtime.health import (CachedCheck, Heartbeat, beat_forever, failing_reasons,
-                                       kafka_check)
+from mapservice.runtime.health import (CachedCheck, Heartbeat, beat_forever, kafka_check,
+                                       probe_report)
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
@@ -176,14 +176,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
             if health_port is not None:
-                def report(checks: dict) -> dict:
-                    results = {name: bool(check()) for name, check in checks.items()}
-                    reasons = failing_reasons(checks, results)
-                    return {"ok": all(results.values()), "checks": results,
-                            **({"reasons": reasons} if reasons else {})}
-
-                serve_health(settings.api_host, health_port, lambda: report(liveness),
-                             lambda: report(readiness), metrics_gate(settings))
+                serve_health(settings.api_host, health_port, lambda: probe_report(liveness),
+                             lambda: probe_report(readiness), metrics_gate(settings))
             freeze_startup_heap()
             await stop.wait()
     finally:

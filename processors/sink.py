@@ -54,13 +54,15 @@ class HistorySink:
         return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
 
     async def _insert(self, fn, batch) -> None:
-        """One insert attempt, its outcome recorded in `health`."""
+        """One insert attempt, its outcome recorded in `health` (per store method: one
+        table's refusal is not cleared by another's success)."""
+        what = getattr(fn, "__name__", "insert")
         try:
             await self.run(fn, batch)
         except Exception as exc:  # noqa: BLE001 - whatever the store raises; the caller retries
-            self.health.failed(exc)
+            self.health.failed(exc, what)
             raise
-        self.health.stored()
+        self.health.stored(what)
 
     async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
         """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,

@@ -97,3 +97,11 @@ def failing_reasons(checks: Mapping[str, Callable[[], object]],
         if not ok and callable(explain) and (why := explain()):
             out[name] = str(why)
     return out
+
+
+def probe_report(checks: Mapping[str, Callable[[], object]]) -> dict:
+    """A probe's answer: `ok`, each check's result and, for those that failed and can say
+    why, `reasons`."""
+    results = {name: bool(check()) for name, check in checks.items()}
+    reasons = failing_reasons(checks, results)
+    return {"ok": all(results.values()), "checks": results, **({"reasons": reasons} if reasons else {})}

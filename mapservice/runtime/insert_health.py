@@ -52,28 +52,40 @@ class InsertHealth:
     """The state of the history's inserts in this process; thread-safe (the store thread
     writes it, probes and the API read it).
 
+    Kept per kind of insert (`what`: the events, the dead letters, the derived views): a
+    refusal of one table (TOO_MANY_PARTS on one, say) is not hidden by another's inserts
+    succeeding in between. Failing while any kind fails, since the earliest of them.
     Callable as a readiness check (True while inserts succeed); `reason()` says why not.
     """
 
     def __init__(self, wall_s: Callable[[], float] = time.time) -> None:
         self.wall_s = wall_s
         self._lock = threading.Lock()
-        self.failing_since_s: float | None = None  # the first failure since the last success
-        self.failures = 0  # failed attempts since the last success
+        self._failing_since: dict[str, float] = {}  # per kind: its first failure since its last success
+        self.failures = 0  # failed attempts since every kind last succeeded
         self.last_error: str | None = None
         self.last_error_code: str | None = None
         self.last_stored_s: float | None = None  # the last successful insert
 
-    def stored(self) -> None:
+    @property
+    def failing_since_s(self) -> float | None:
+        """The first failure of the current failure (None: nothing failing)."""
         with self._lock:
-            self.failing_since_s, self.failures = None, 0
-            self.last_error = self.last_error_code = None
+            return self._since()
+
+    def _since(self) -> float | None:  # with the lock held
+        return min(self._failing_since.values(), default=None)
+
+    def stored(self, what: str = "events") -> None:
+        with self._lock:
+            self._failing_since.pop(what, None)
+            if not self._failing_since:
+                self.failures, self.last_error, self.last_error_code = 0, None, None
             self.last_stored_s = self.wall_s()
 
-    def failed(self, exc: BaseException) -> None:
+    def failed(self, exc: BaseException, what: str = "events") -> None:
         with self._lock:
-            if self.failing_since_s is None:
-                self.failing_since_s = self.wall_s()
+            self._failing_since.setdefault(what, self.wall_s())
             self.failures += 1
             self.last_error, self.last_error_code = describe(exc), error_code(str(exc))
 
@@ -88,9 +100,9 @@ class InsertHealth:
     def reason(self) -> str | None:
         """Why the history is not ready, with what to do; None while inserts succeed."""
         with self._lock:
-            if self.failing_since_s is None:
+            if (first := self._since()) is None:
                 return None
-            since = _utc_hms(self.failing_since_s)
+            since = _utc_hms(first)
             hint = HINTS.get(self.last_error_code or "")
             return (f"inserts failing since {since}Z ({self.failures} attempts): {self.last_error}"
                     + (f"; {hint}" if hint else "")
@@ -99,7 +111,7 @@ class InsertHealth:
     def status(self) -> dict:
         """For the API and the UI: storing or not, since when, why."""
         with self._lock:
-            failing_since, last_stored = self.failing_since_s, self.last_stored_s
+            failing_since, last_stored = self._since(), self.last_stored_s
         return {
             "storing": failing_since is None,
             "failing_since_ms": None if failing_since is None else int(failing_since * 1000),

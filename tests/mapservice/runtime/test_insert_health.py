@@ -83,3 +83,48 @@ def test_failing_reasons_come_from_failed_checks_that_can_explain() -> None:
     assert list(reasons) == ["history_store"] and "NOT_ENOUGH_SPACE" in reasons["history_store"]
     health.stored()
     assert failing_reasons(checks, {name: bool(check()) for name, check in checks.items()}) == {}
+
+
+def test_one_kind_of_insert_succeeding_does_not_hide_another_failing() -> None:
+    """Dead letters stored while the events are refused: still failing, since the events'
+    first failure; ready only once every kind that failed succeeded."""
+    wall = Wall(T0)
+    health = InsertHealth(wall)
+    health.failed(RuntimeError(FULL), "append_events")
+    wall.t += 4
+    health.failed(RuntimeError("Code: 252. DB::Exception: Too many parts. (TOO_MANY_PARTS)"),
+                  "append_dead_letters")
+    health.stored("derive_views")
+    assert not health() and health.failing_since_s == T0
+    health.stored("append_events")
+    assert not health() and health.failing_since_s == T0 + 4
+    assert "TOO_MANY_PARTS" in health.reason() and "merges fall behind" in health.reason()
+    health.stored("append_dead_letters")
+    assert health() and health.reason() is None and health.failures == 0
+
+
+def test_a_health_port_probe_names_the_failing_inserts() -> None:
+    """The processors' own /readyz (mapservice processors --health-port) carries the reason
+    too, served as it is to the kubelet."""
+    import json
+    import httpx
+
+    from mapservice.local.embedded import free_port
+    from mapservice.runtime.health import probe_report
+    from mapservice.runtime.health_server import serve_health
+
+    health = InsertHealth(Wall(T0))
+    readiness = {"clickhouse": lambda: True, "history_store": health}
+    server = serve_health("127.0.0.1", free_port(), lambda: probe_report({}),
+                          lambda: probe_report(readiness))
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/readyz"
+        assert httpx.get(url).json() == {"ok": True, "checks": {"clickhouse": True, "history_store": True}}
+        health.failed(RuntimeError(FULL))
+        reply = httpx.get(url)
+        body = json.loads(reply.text)
+        assert reply.status_code == 503 and body["checks"]["history_store"] is False
+        assert body["reasons"]["history_store"].startswith("inserts failing since 22:15:03Z")
+    finally:
+        server.shutdown()
+        server.server_close()
