@@ -9,12 +9,15 @@ from collections.abc import Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 
 import msgspec
+import structlog
 from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.core.events import DeadLetter, Envelope, decode, decode_dead_letter
 from mapservice.core.ports import HistoryStore, LiveFeed
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.runtime.retry import until_done
+
+log = structlog.get_logger(__name__)
 
 STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
 INSERT_SECONDS = Histogram("mapservice_sink_insert_seconds", "Duration of one history insert",
@@ -60,9 +63,12 @@ class HistorySink:
         try:
             await self.run(fn, batch)
         except Exception as exc:  # noqa: BLE001 - whatever the store raises; the caller retries
-            self.health.failed(exc, what)
+            if self.health.failed(exc, what):
+                log.error("history not stored: inserts fail; retried until they succeed, "
+                          "nothing unstored is committed", reason=self.health.reason())
             raise
-        self.health.stored(what)
+        if (failed_s := self.health.stored(what)) is not None:
+            log.warning("history stored again: inserts succeed", failed_s=round(failed_s, 1))
 
     async def insert_until_done(self, fn, batch, counts: Mapping[str, int]) -> None:
         """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,

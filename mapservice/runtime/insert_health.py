@@ -76,18 +76,26 @@ class InsertHealth:
     def _since(self) -> float | None:  # with the lock held
         return min(self._failing_since.values(), default=None)
 
-    def stored(self, what: str = "events") -> None:
+    def stored(self, what: str = "events") -> float | None:
+        """Records a successful insert; returns how long the history was not stored when
+        this success ended that (None otherwise)."""
         with self._lock:
+            since = self._since()
             self._failing_since.pop(what, None)
-            if not self._failing_since:
-                self.failures, self.last_error, self.last_error_code = 0, None, None
-            self.last_stored_s = self.wall_s()
+            self.last_stored_s = now = self.wall_s()
+            if self._failing_since:
+                return None
+            self.failures, self.last_error, self.last_error_code = 0, None, None
+            return None if since is None else now - since
 
-    def failed(self, exc: BaseException, what: str = "events") -> None:
+    def failed(self, exc: BaseException, what: str = "events") -> bool:
+        """Records a failed insert; returns whether it started a failure."""
         with self._lock:
+            started = not self._failing_since
             self._failing_since.setdefault(what, self.wall_s())
             self.failures += 1
             self.last_error, self.last_error_code = describe(exc), error_code(str(exc))
+            return started
 
     @property
     def failing(self) -> bool:
@@ -104,7 +112,8 @@ class InsertHealth:
                 return None
             since = _utc_hms(first)
             hint = HINTS.get(self.last_error_code or "")
-            return (f"inserts failing since {since}Z ({self.failures} attempts): {self.last_error}"
+            attempts = f"{self.failures} attempt" + ("s" if self.failures != 1 else "")
+            return (f"inserts failing since {since}Z ({attempts}): {self.last_error}"
                     + (f"; {hint}" if hint else "")
                     + "; the processors keep retrying and commit nothing unstored")
 

@@ -215,6 +215,9 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         assert gauge(stack, "mapservice_history_insert_failing") == 0.0
         assert get(f"{api}/api/v1/status")[1]["history"]["storing"] is True
         banner.wait_for(state="detached", timeout=30_000)
+        server_log = (stack.log_dir / "server.log").read_text()
+        assert "history not stored: inserts fail" in server_log  # once, when it began
+        assert "history stored again" in server_log
         assert not page.errors  # type: ignore[attr-defined]
         time.sleep(1)  # some poses after the recovery too
     during = poses.acked_between(full_at, freed_at)

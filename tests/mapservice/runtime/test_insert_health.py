@@ -128,3 +128,15 @@ def test_a_health_port_probe_names_the_failing_inserts() -> None:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_the_transitions_are_reported_for_the_log() -> None:
+    """failed() says whether it started a failure, stored() how long one lasted if it ended it."""
+    wall = Wall(T0)
+    health = InsertHealth(wall)
+    assert health.stored() is None
+    assert health.failed(RuntimeError(FULL)) is True
+    assert health.failed(RuntimeError(FULL)) is False
+    wall.t += 15
+    assert health.stored() == 15
+    assert health.stored() is None
