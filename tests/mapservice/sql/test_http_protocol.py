@@ -29,7 +29,8 @@ def url(tmp_path_factory):
     engine.execute(SqlRequest("CREATE TABLE IF NOT EXISTS h.t (n UInt32, s String, "
                               "at DateTime64(3, 'UTC')) ENGINE = MergeTree ORDER BY n"))
     app = clickhouse_http_app(engine, [SqlUser("writer", "w-pw", read_only=False),
-                                       SqlUser("analyst", "a-pw", read_only=True)])
+                                       SqlUser("analyst", "a-pw", read_only=True)],
+                              read_only_database="h")
     with ServedApp(app) as served:
         yield served.url
     engine.close()
@@ -82,9 +83,9 @@ def test_the_analyst_reads_with_clickhouse_connect_but_cannot_write(url) -> None
     ("SELECT 1; DROP TABLE h.t", "Multi-statements"),
     ("SELECT 1 INTO OUTFILE '/tmp/mapservice-outfile'", "INTO OUTFILE"),
     ("KILL QUERY WHERE 1", "KillQueryQuery"),
-    ("SELECT * FROM python(x)", "python"),
-    ("SELECT * FROM file('/etc/hostname', 'LineAsString')", "readonly"),
-    ("SELECT * FROM url('http://127.0.0.1:9/x', 'CSV')", "readonly"),
+    ("SELECT * FROM python(x)", "Table function python is not allowed"),
+    ("SELECT * FROM file('/etc/hostname', 'LineAsString')", "Table function file is not allowed"),
+    ("SELECT * FROM url('http://127.0.0.1:9/x', 'CSV')", "Table function url is not allowed"),
     ("SELECT 1 SETTINGS max_result_rows = 100000000", "readonly"),
     ("SELECT number FROM system.numbers LIMIT 100000", "TOO_MANY_ROWS"),
 ])
