@@ -4,7 +4,7 @@ The part of the protocol that clickhouse-connect, Grafana's ClickHouse data sour
 use: `GET /ping`; `GET|POST /?query=...` (or the statement as the POST body); `database`,
 `default_format`, `query_id`, `param_<name>` and settings as URL parameters; credentials as
 `X-ClickHouse-User`/`X-ClickHouse-Key`, HTTP basic auth or `user`/`password` parameters;
-the statement and `param_<name>` as fields of a multipart/form-data (or urlencoded) body,
+the statement and `param_<name>` as fields of a multipart/form-data body,
 as clickhouse-connect sends bound parameters over 4 KB;
 `INSERT ... FORMAT <fmt>` with the rows as the body (gzip, deflate, lz4 or zstd encoded);
 errors as `Code: N. DB::Exception: ...` with `X-ClickHouse-Exception-Code` and the status
@@ -29,7 +29,6 @@ import zlib
 from dataclasses import dataclass, replace
 from email.parser import BytesParser
 from email.policy import HTTP
-from urllib.parse import parse_qsl
 
 import structlog
 from starlette.applications import Starlette
@@ -114,14 +113,11 @@ async def _read_body(request: Request, limit: int) -> bytes:
 
 
 def _form_fields(content_type: str, body: bytes) -> dict[str, str] | None:
-    """The fields of a form body (the statement as `query`, parameters as `param_<name>`),
-    or None where the body is not a form (it is then the statement, or an INSERT's rows)."""
+    """The fields of a multipart/form-data body (the statement as `query`, parameters as
+    `param_<name>`), or None for any other body (the statement, or an INSERT's rows)."""
+    # Only multipart: curl --data-binary labels a plain statement
+    # application/x-www-form-urlencoded, and a ClickHouse server reads that as the statement.
     kind = content_type.split(";", 1)[0].strip().lower()
-    if kind == "application/x-www-form-urlencoded":
-        try:
-            return dict(parse_qsl(body.decode(), keep_blank_values=True, strict_parsing=False))
-        except UnicodeDecodeError as exc:
-            raise SqlError(f"The form body is not UTF-8: {exc}", 27) from exc
     if kind != "multipart/form-data":
         return None
     message = BytesParser(policy=HTTP).parsebytes(

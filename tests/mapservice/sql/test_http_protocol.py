@@ -162,13 +162,15 @@ def test_bound_parameters_over_4_kb_come_as_multipart_and_work(url) -> None:
 
 
 def test_a_form_body_is_read_as_fields(url) -> None:
-    """multipart/form-data and urlencoded bodies: `query` and `param_*` fields; a file part
-    (external data) or a broken body is a clear 4xx."""
+    """multipart/form-data bodies: `query` and `param_*` fields; a file part (external
+    data) or a broken body is a clear 4xx. A urlencoded body is the statement (what curl
+    --data-binary sends), as on a server."""
     auth = ("analyst", "a-pw")
     sql = "SELECT {a:UInt32} + {b:UInt32}"
     assert httpx.post(url, files={"query": (None, sql), "param_a": (None, "40"),
                                   "param_b": (None, "2")}, auth=auth).text == "42\n"
-    assert httpx.post(url, data={"query": sql, "param_a": "1", "param_b": "2"}, auth=auth).text == "3\n"
+    assert httpx.post(url, content=b"SELECT 5", auth=auth, headers={
+        "Content-Type": "application/x-www-form-urlencoded"}).text == "5\n"
     external = httpx.post(url, files={"query": (None, "SELECT 1"), "t": ("t.tsv", b"1\n")}, auth=auth)
     assert external.status_code == 400 and "External data" in external.text
     broken = httpx.post(url, content=b"--nope\r\n", auth=auth,
