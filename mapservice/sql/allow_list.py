@@ -168,11 +168,38 @@ class Node:
 _DECORATION = re.compile(r"\s*\((alias [^)]*|children \d+)\)")
 
 
+def quoted_identifiers(canonical: str) -> list[str]:
+    """The backquoted identifiers of a statement as formatQuerySingleLine writes it (string
+    literals skipped), their escapes as written."""
+    found, i = [], 0
+    while i < len(canonical):
+        quote = canonical[i]
+        if quote in "'`":
+            j = i + 1
+            while j < len(canonical) and canonical[j] != quote:
+                j += 2 if canonical[j] == "\\" else 1
+            if quote == "`":
+                found.append(canonical[i + 1:j])
+            i = j + 1
+        else:
+            i += 1
+    return found
+
+
+def check_identifiers(canonical: str) -> None:
+    """EXPLAIN AST prints identifiers raw: one with a line break would start lines of the
+    dump that are not nodes (and could move real nodes under them). Refused."""
+    for name in quoted_identifiers(canonical):
+        if "\\n" in name or "\\r" in name or "\n" in name or "\r" in name:
+            raise NotAllowed(f"Identifier `{name}` has a line break; rename it without one")
+
+
 def parse_ast(text: str) -> Node:
-    """`EXPLAIN AST` output (one node a line, one space of indent a level) as a tree."""
+    """`EXPLAIN AST` output (one node a line, one space of indent a level) as a tree: its
+    root, or a node holding every top-level node if there is more than one."""
     root = Node("", [], [])
     stack: list[tuple[int, Node]] = [(-1, root)]
-    for line in text.splitlines():
+    for line in text.split("\n"):
         if not line.strip():
             continue
         depth = len(line) - len(line.lstrip(" "))
@@ -183,7 +210,7 @@ def parse_ast(text: str) -> Node:
             stack.pop()
         stack[-1][1].children.append(node)
         stack.append((depth, node))
-    return root.children[0] if root.children else root
+    return root.children[0] if len(root.children) == 1 else root
 
 
 def _refuse_function(name: str) -> NotAllowed:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, replace
 
-from mapservice.sql.allow_list import NotAllowed, check_tree, parse_ast
+from mapservice.sql.allow_list import NotAllowed, check_identifiers, check_tree, parse_ast
 from mapservice.sql.engine import ACCESS_DENIED, READONLY, SqlEngine, SqlError, SqlRequest
 
 # Root nodes of EXPLAIN AST for statements that only read.
@@ -84,6 +84,7 @@ def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> st
         raise SqlError(f"Only reads are allowed for this user; this statement is {kind}{hint}",
                        READONLY)
     try:
+        check_identifiers(canonical)
         check_tree(parse_ast(ast), database)
     except NotAllowed as exc:
         raise SqlError(str(exc), ACCESS_DENIED) from exc

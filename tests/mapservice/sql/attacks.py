@@ -57,4 +57,8 @@ ATTACKS += [
     ("user(), an alias of currentUser", "SELECT user()"),
     ("hostname(), an alias of hostName", "SELECT hostname()"),
     ("filesystemAvailable", "SELECT filesystemAvailable()"),
+    # EXPLAIN AST prints identifiers raw: a line break in one starts lines that are no node.
+    ("a line break in an alias before file()", "SELECT 1 AS `a\nb`, file('{secret}')"),
+    ("a line break in a column name before file()",
+     "SELECT `x\n TableExpression` FROM (SELECT 1 AS `x\n TableExpression`) WHERE file('{secret}') != ''"),
 ]

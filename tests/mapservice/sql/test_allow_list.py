@@ -9,7 +9,8 @@ import sys
 import pytest
 
 from mapservice.sql.allow_list import (_CATALOGUE, NotAllowed, catalogue, catalogue_lines,
-                                       check_tree, parse_ast)
+                                       check_identifiers, check_tree, parse_ast,
+                                       quoted_identifiers)
 from tests.fixtures.paths import ROOT
 
 
@@ -53,4 +54,22 @@ def test_the_tree_is_read_by_indentation() -> None:
     assert [c.kind for c in select.children] == ["ExpressionList", "TablesInSelectQuery"]
     assert select.children[0].children[0].words == ["plus"]
     with pytest.raises(NotAllowed, match="Function file is not allowed"):
+        check_tree(tree, "mapservice")
+
+
+def test_identifiers_with_line_breaks_are_found_outside_string_literals() -> None:
+    """EXPLAIN AST prints identifiers raw, so a line break in one is refused; the same
+    characters inside a string literal are data."""
+    canonical = "SELECT 1 AS `a\\nb`, 'it''s `x\\ny`', `c\\`d` FROM `t`"
+    assert quoted_identifiers(canonical) == ["a\\nb", "c\\`d", "t"]
+    with pytest.raises(NotAllowed, match="line break"):
+        check_identifiers(canonical)
+    check_identifiers("SELECT 'a`\\n`b' AS s FROM `t`")
+
+
+def test_every_top_level_line_of_the_dump_is_checked() -> None:
+    """Lines after a stray top-level line are still nodes of the tree that is checked."""
+    tree = parse_ast("SelectWithUnionQuery (children 1)\n Literal UInt64_1 (alias a\nb)\n"
+                     "    Function file (children 1)\n")
+    with pytest.raises(NotAllowed, match="Function file"):
         check_tree(tree, "mapservice")
