@@ -57,7 +57,10 @@ class QueryGate:
         self._admitted += 1
         slots = self._slots
         try:
-            await asyncio.wait_for(slots.acquire(), self.queue_timeout_s)
+            # asyncio.timeout, not wait_for: on 3.11 wait_for can lose a slot acquired just
+            # as it times out.
+            async with asyncio.timeout(self.queue_timeout_s):
+                await slots.acquire()
         except TimeoutError:
             self._admitted -= 1
             raise self._refuse(f"waited {self.queue_timeout_s:g} s for a slot") from None
@@ -66,11 +69,13 @@ class QueryGate:
             raise
         future = asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
 
-        def release(_: asyncio.Future) -> None:
+        def release(done: asyncio.Future) -> None:
             # When the statement ends, not when its caller gives up: an abandoned statement
             # keeps its engine thread until it finishes (or hits max_execution_time).
             self._admitted -= 1
             slots.release()
+            if not done.cancelled():
+                done.exception()  # an abandoned statement's error is not "never retrieved"
 
         future.add_done_callback(release)
         return await asyncio.shield(future)
