@@ -122,6 +122,9 @@ class Settings(BaseSettings):
         "queries' with Retry-After."))
     analyst_queue_timeout_s: float = Field(5.0, gt=0, le=600, description=(
         "How long a waiting analyst statement waits for a thread before its 503."))
+    analyst_max_threads: int = Field(1, ge=1, le=64, description=(
+        "Threads one analyst statement may use (ClickHouse max_threads): analysts together "
+        "use at most ANALYST_MAX_CONCURRENT_QUERIES x this many cores."))
 
     # MQTT (topic names as in the 2019 configuration, appendix A.3)
     mqtt_url: str = Field("mqtt://127.0.0.1:1883", description="MQTT broker the gateway reads.")

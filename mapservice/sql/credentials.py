@@ -40,7 +40,8 @@ def analyst_limits(settings: Settings) -> ReadOnlyLimits:
     ANALYST_MAX_CONCURRENT_QUERIES statements together stay within it."""
     share = settings.analyst_max_memory_total_bytes // settings.analyst_max_concurrent_queries
     return ReadOnlyLimits(settings.analyst_max_execution_s, settings.analyst_max_result_rows,
-                          min(settings.analyst_max_memory_bytes, share))
+                          min(settings.analyst_max_memory_bytes, share),
+                          settings.analyst_max_threads)
 
 
 def analyst_gate(settings: Settings) -> QueryGate:

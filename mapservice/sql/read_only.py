@@ -39,6 +39,7 @@ class ReadOnlyLimits:
     max_execution_time_s: int = 30
     max_result_rows: int = 1_000_000
     max_memory_bytes: int = 2 * 1024**3
+    max_threads: int = 1
 
     def settings(self) -> dict[str, str]:
         return {
@@ -46,6 +47,7 @@ class ReadOnlyLimits:
             "max_result_rows": str(self.max_result_rows),
             "result_overflow_mode": "throw",
             "max_memory_usage": str(self.max_memory_bytes),
+            "max_threads": str(self.max_threads),
         }
 
 

@@ -9,6 +9,7 @@ checker before the allow-list: there they return the secret."""
 
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import replace
 
@@ -176,3 +177,16 @@ def test_the_check_is_on_the_statement_that_runs(engine) -> None:
     request = SqlRequest("SELECT   1 /* file('/etc/passwd') */", database="mapservice", read_only=True)
     assert check_read_only(engine, request, "mapservice") == "SELECT 1"
     assert check_read_only(engine, replace(request, sql="SELECT 'file(x)'"), "mapservice") == "SELECT 'file(x)'"
+
+
+def test_an_analyst_statement_runs_under_the_limits(url) -> None:
+    """The read-only handle carries the limits (time, rows, memory, threads); analysts can
+    see them in system.settings and cannot change them."""
+    sql = ("SELECT name, value FROM system.settings WHERE name IN ('readonly', 'max_threads', "
+           "'max_execution_time', 'max_memory_usage') ORDER BY name FORMAT JSONEachRow")
+    reply = httpx.post(url, content=sql.encode(), auth=("analyst", "a-pw"))
+    got = {row["name"]: row["value"] for row in map(json.loads, reply.text.splitlines())}
+    assert got == {"readonly": "1", "max_threads": "1", "max_execution_time": "30",
+                   "max_memory_usage": str(2 * 1024**3)}
+    again = httpx.post(url, content=b"SELECT 1 SETTINGS max_threads = 8", auth=("analyst", "a-pw"))
+    assert again.status_code == 403 and "readonly" in again.text.lower()

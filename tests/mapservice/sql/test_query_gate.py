@@ -131,3 +131,18 @@ def test_beyond_the_pool_and_queue_analysts_get_503_too_many_queries(served) -> 
         assert "Too many queries" in reply.text and "TOO_MANY_SIMULTANEOUS_QUERIES" in reply.text
         assert seconds < 2.5  # refused at once, not after the 3 s the first one runs
     assert recording.threads and all(t.startswith("analyst-sql") for t in recording.threads)
+
+
+def test_each_statement_gets_its_share_of_the_analysts_memory(tmp_path) -> None:
+    """max_memory_usage per statement = min(per statement, total / concurrent), so the
+    statements that may run at once stay within the total."""
+    from mapservice.settings import Settings
+    from mapservice.sql.credentials import analyst_limits
+
+    def memory(**kw) -> int:
+        return int(analyst_limits(Settings(data_dir=tmp_path, **kw)).settings()["max_memory_usage"])
+
+    assert memory() == 1024**3  # 2 GiB total, 2 at a time
+    assert memory(analyst_max_concurrent_queries=4) == 512 * 1024**2
+    assert memory(analyst_max_memory_bytes=256 * 1024**2) == 256 * 1024**2
+    assert memory(analyst_max_memory_total_bytes=8 * 1024**3) == 2 * 1024**3
