@@ -30,6 +30,9 @@ READ_STATEMENTS = frozenset({
     "ShowCreateDatabaseQuery", "Explain",
 })
 _INTO_OUTFILE = re.compile(r"\bINTO\s+OUTFILE\b", re.IGNORECASE)
+# EXPLAIN AST names SHOW TABLES, SHOW MERGES, SHOW CLUSTERS, SHOW FILESYSTEM CACHES alike
+# (ShowTables); the formatted statement tells them apart. These read allowed tables only.
+_SHOW_LISTS = re.compile(r"^SHOW (FULL )?(TEMPORARY )?(TABLES|DATABASES|DICTIONARIES|SETTINGS)\b")
 
 
 @dataclass(frozen=True)
@@ -85,6 +88,9 @@ def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> st
         hint = " (DESCRIBE TABLE shows a table's columns)" if kind == "ShowColumns" else ""
         raise SqlError(f"Only reads are allowed for this user; this statement is {kind}{hint}",
                        READONLY)
+    if kind == "ShowTables" and not _SHOW_LISTS.match(canonical):
+        raise SqlError(f"{canonical.split(' FROM ')[0][:40]} is not allowed for analysts: "
+                       "SHOW TABLES, DATABASES, DICTIONARIES and SETTINGS are", ACCESS_DENIED)
     try:
         check_identifiers(canonical)
         check_tree(parse_ast(ast), database)

@@ -51,6 +51,9 @@ ATTACKS: list[tuple[str, str]] = [
     ("a system table outside the list", "SELECT * FROM system.users"),
     ("IN a system table", "SELECT 1 IN system.users"),
     ("SHOW CREATE of a system table", "SHOW CREATE TABLE system.processes"),
+    ("SHOW CLUSTERS (system.clusters)", "SHOW CLUSTERS"),
+    ("SHOW MERGES (system.merges)", "show merges"),
+    ("SHOW FILESYSTEM CACHES", "SHOW FILESYSTEM CACHES"),
     ("another database", "SELECT * FROM information_schema.tables"),
 ]
 ATTACKS += [
