@@ -3,8 +3,8 @@
 the secret came back or what refused it. Evidence that the attacks worked before the
 allow-list, and do not after:
 
-    .venv/bin/python -m tests.mapservice.sql.attacks_on_old_checker 33efe9d  # 13 of 44 leak
-    .venv/bin/python -m tests.mapservice.sql.attacks_on_old_checker HEAD     # 0, each 497
+    .venv/bin/python -m tests.mapservice.sql.attacks_on_old_checker 33efe9d  # 13 of 47 leak, 15 more run
+    .venv/bin/python -m tests.mapservice.sql.attacks_on_old_checker HEAD     # 0 of 47, each 497
 """
 
 from __future__ import annotations
