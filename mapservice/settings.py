@@ -109,8 +109,22 @@ class Settings(BaseSettings):
         "analyst-password); analyst SQL is off in production mode."))
     analyst_max_execution_s: int = Field(30, ge=1, le=3600, description="Time limit per statement.")
     analyst_max_result_rows: int = Field(1_000_000, ge=1, description="Row limit per result.")
-    analyst_max_memory_bytes: int = Field(2 * 1024**3, ge=64 * 1024**2,
-                                          description="Memory limit per statement.")
+    analyst_max_memory_bytes: int = Field(2 * 1024**3, ge=64 * 1024**2, description=(
+        "Memory limit per statement (at most ANALYST_MAX_MEMORY_TOTAL_BYTES / "
+        "ANALYST_MAX_CONCURRENT_QUERIES)."))
+    analyst_max_memory_total_bytes: int = Field(2 * 1024**3, ge=64 * 1024**2, description=(
+        "Memory of all analysts' statements together: each runs with at most this divided "
+        "by ANALYST_MAX_CONCURRENT_QUERIES."))
+    analyst_max_concurrent_queries: int = Field(2, ge=1, le=64, description=(
+        "Analysts' statements running at once, on threads of their own (not the API's)."))
+    analyst_max_queued_queries: int = Field(8, ge=0, le=1000, description=(
+        "Analysts' statements waiting for a thread; beyond them: HTTP 503 'too many "
+        "queries' with Retry-After."))
+    analyst_queue_timeout_s: float = Field(5.0, gt=0, le=600, description=(
+        "How long a waiting analyst statement waits for a thread before its 503."))
+    analyst_max_threads: int = Field(1, ge=1, le=64, description=(
+        "Threads one analyst statement may use (ClickHouse max_threads): analysts together "
+        "use at most ANALYST_MAX_CONCURRENT_QUERIES x this many cores."))
 
     # MQTT (topic names as in the 2019 configuration, appendix A.3)
     mqtt_url: str = Field("mqtt://127.0.0.1:1883", description="MQTT broker the gateway reads.")

@@ -15,7 +15,7 @@ from starlette.applications import Starlette
 
 from mapservice.settings import Settings
 
-from mapservice.sql.credentials import analyst_limits, analyst_user
+from mapservice.sql.credentials import analyst_gate, analyst_limits, analyst_user
 from mapservice.sql.engine import SqlEngine, SqlRequest
 from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
 from mapservice.sql.server_engine import ServerEngine
@@ -56,7 +56,9 @@ def analyst_app(settings: Settings) -> Starlette | None:
         return None
     engine = engine_for(settings)
     return clickhouse_http_app(engine, [user], timezone=engine_timezone(engine),
-                               display_name="mapservice-api")
+                               display_name="mapservice-api",
+                               read_only_database=settings.clickhouse_database,
+                               read_only_gate=analyst_gate(settings))
 
 
 def server_app(settings: Settings, read_write: bool) -> Starlette:
@@ -75,6 +77,8 @@ def server_app(settings: Settings, read_write: bool) -> Starlette:
     users.append(SqlUser(settings.clickhouse_username,
                          settings.clickhouse_password.get_secret_value(), read_only=not read_write))
     app = clickhouse_http_app(engine, users, timezone=engine_timezone(engine),
-                              display_name="mapservice-clickhouse-server")
+                              display_name="mapservice-clickhouse-server",
+                              read_only_database=settings.clickhouse_database,
+                              read_only_gate=analyst_gate(settings))
     app.state.chdb_path = engine.path
     return app

@@ -17,6 +17,8 @@ READONLY = 164
 AUTHENTICATION_FAILED = 516
 UNKNOWN_SETTING = 115
 NOT_IMPLEMENTED = 48
+ACCESS_DENIED = 497
+TOO_MANY_SIMULTANEOUS_QUERIES = 202
 
 _CODE = re.compile(r"Code: (\d+)\.")
 
@@ -56,8 +58,10 @@ class SqlError(Exception):
         """The status a ClickHouse server answers this error with over HTTP."""
         if self.code in (SYNTAX_ERROR, UNKNOWN_SETTING, NOT_IMPLEMENTED, 27, 36, 47, 53, 130, 131, 271, 457):
             return 400
-        if self.code in (READONLY, AUTHENTICATION_FAILED, 497):
+        if self.code in (READONLY, AUTHENTICATION_FAILED, ACCESS_DENIED):
             return 403
+        if self.code == TOO_MANY_SIMULTANEOUS_QUERIES:
+            return 503
         if self.code in (UNKNOWN_TABLE, UNKNOWN_DATABASE):
             return 404
         return 500

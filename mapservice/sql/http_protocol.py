@@ -4,12 +4,17 @@ The part of the protocol that clickhouse-connect, Grafana's ClickHouse data sour
 use: `GET /ping`; `GET|POST /?query=...` (or the statement as the POST body); `database`,
 `default_format`, `query_id`, `param_<name>` and settings as URL parameters; credentials as
 `X-ClickHouse-User`/`X-ClickHouse-Key`, HTTP basic auth or `user`/`password` parameters;
+the statement and `param_<name>` as fields of a multipart/form-data body,
+as clickhouse-connect sends bound parameters over 4 KB;
 `INSERT ... FORMAT <fmt>` with the rows as the body (gzip, deflate, lz4 or zstd encoded);
 errors as `Code: N. DB::Exception: ...` with `X-ClickHouse-Exception-Code` and the status
 a server would send. Not here: sessions (`session_id` is accepted and ignored, so `SET`
 lasts one request, as on a server without a session), progress headers, compressed
-replies (replies are identity-encoded; every client handles that), the native TCP
-protocol (clickhouse-client speaks only that).
+replies (replies are identity-encoded; every client handles that), external data (files
+in the multipart body), the native TCP protocol (clickhouse-client speaks only that).
+
+Read-only users (the analysts) run on their own bounded pool (`QueryGate`), never on the
+anyio threads the rest of the process shares.
 """
 
 from __future__ import annotations
@@ -22,6 +27,8 @@ import secrets
 import uuid
 import zlib
 from dataclasses import dataclass, replace
+from email.parser import BytesParser
+from email.policy import HTTP
 
 import structlog
 from starlette.applications import Starlette
@@ -31,6 +38,7 @@ from starlette.responses import PlainTextResponse, Response
 from starlette.routing import Route
 
 from mapservice.sql.engine import AUTHENTICATION_FAILED, SqlEngine, SqlError, SqlRequest
+from mapservice.sql.query_gate import QueryGate, TooManyQueries
 from mapservice.sql.read_only import check_read_only
 
 log = structlog.get_logger(__name__)
@@ -104,6 +112,36 @@ async def _read_body(request: Request, limit: int) -> bytes:
     return b"".join(chunks)
 
 
+def _form_fields(content_type: str, body: bytes) -> dict[str, str] | None:
+    """The fields of a multipart/form-data body (the statement as `query`, parameters as
+    `param_<name>`), or None for any other body (the statement, or an INSERT's rows)."""
+    # Only multipart: curl --data-binary labels a plain statement
+    # application/x-www-form-urlencoded, and a ClickHouse server reads that as the statement.
+    kind = content_type.split(";", 1)[0].strip().lower()
+    if kind != "multipart/form-data":
+        return None
+    message = BytesParser(policy=HTTP).parsebytes(
+        b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n" + body)
+    if not message.is_multipart() or message.defects:
+        raise SqlError("Cannot parse the multipart/form-data body: "
+                       f"{[type(d).__name__ for d in message.defects] or 'no parts'}", 27)
+    fields = {}
+    for part in message.iter_parts():
+        name = part.get_param("name", header="content-disposition")
+        if not name:
+            raise SqlError("A multipart/form-data part has no name", 27)
+        if part.get_filename():
+            raise SqlError(f"External data ({name}: a file in the form) is not supported "
+                           "here; send the rows as a table in the statement", 48)
+        payload = part.get_payload(decode=True) or b""
+        charset = part.get_content_charset() or "utf-8"
+        try:
+            fields[name] = payload.decode(charset)
+        except (LookupError, UnicodeDecodeError) as exc:
+            raise SqlError(f"Form field {name} is not {charset} text: {exc}", 27) from exc
+    return fields
+
+
 def _credentials(request: Request) -> tuple[str, str]:
     header = request.headers.get("authorization", "")
     if header.lower().startswith("basic "):
@@ -118,15 +156,24 @@ def _credentials(request: Request) -> tuple[str, str]:
 
 
 def _error(exc: SqlError, query_id: str) -> Response:
-    return PlainTextResponse(str(exc) + "\n", status_code=exc.http_status, headers={
-        "X-ClickHouse-Exception-Code": str(exc.code), "X-ClickHouse-Query-Id": query_id})
+    headers = {"X-ClickHouse-Exception-Code": str(exc.code), "X-ClickHouse-Query-Id": query_id}
+    if isinstance(exc, TooManyQueries):
+        headers["Retry-After"] = str(exc.retry_after_s)
+    return PlainTextResponse(str(exc) + "\n", status_code=exc.http_status, headers=headers)
 
 
 def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: str = "UTC",
-                        display_name: str = "mapservice") -> Starlette:
-    """An ASGI app speaking the ClickHouse HTTP interface for `users` (read-only ones get
-    `check_read_only` and the engine's read-only handles)."""
+                        display_name: str = "mapservice", read_only_database: str = "default",
+                        read_only_gate: QueryGate | None = None) -> Starlette:
+    """An ASGI app speaking the ClickHouse HTTP interface for `users`. Read-only ones get
+    `check_read_only` (the allow-list; tables of `read_only_database`, also their default
+    database), the engine's read-only handles and `read_only_gate`'s threads."""
     by_name = {u.name: u for u in users}
+    gate = read_only_gate or QueryGate(concurrent=2, queued=8, queue_timeout_s=5)
+
+    def checked_and_run(sql_request: SqlRequest):
+        checked = check_read_only(engine, sql_request, read_only_database)
+        return engine.execute(_with_sql(sql_request, checked))
 
     def authenticate(request: Request) -> SqlUser:
         name, password = _credentials(request)
@@ -152,10 +199,19 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
             except _TooLarge:
                 raise SqlError(f"The request body is larger than {limit} bytes", 131) from None
             body = _decode_body(body, request.headers.get("content-encoding", ""))
-            params = request.query_params
+            params = dict(request.query_params)
+            form = _form_fields(request.headers.get("content-type", ""), body)
+            if form is not None:
+                # The statement and its parameters in the body; the URL's still count.
+                url_query = form.pop("query", "") or url_query
+                params.update(form)
+                body = b""
+            database = params.get("database") or request.headers.get("x-clickhouse-database")
+            if user.read_only:
+                database = database or read_only_database
             sql_request = SqlRequest(
                 sql="",
-                database=params.get("database") or request.headers.get("x-clickhouse-database"),
+                database=database,
                 default_format=params.get("default_format")
                 or request.headers.get("x-clickhouse-format") or "TabSeparated",
                 params={k[6:]: v for k, v in params.items() if k.startswith("param_")},
@@ -178,9 +234,9 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
                     raise SqlError("Empty query: send it as ?query= or as the POST body", 62)
                 sql_request = _with_sql(sql_request, sql)
                 if user.read_only:
-                    checked = await run_in_threadpool(check_read_only, engine, sql_request)
-                    sql_request = _with_sql(sql_request, checked)
-                result = await run_in_threadpool(engine.execute, sql_request)
+                    result = await gate.run(checked_and_run, sql_request)
+                else:
+                    result = await run_in_threadpool(engine.execute, sql_request)
         except SqlError as exc:
             log.info("sql refused", code=exc.code, error=str(exc)[:300], query_id=query_id)
             return _error(exc, query_id)

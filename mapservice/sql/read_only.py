@@ -6,8 +6,12 @@ Two things it still allows are refused here, from ClickHouse's own parse of the 
 (`formatQuerySingleLine`, `EXPLAIN AST`), never from a regular expression over raw text:
 
 - more than one statement (chDB runs `a; b`; a ClickHouse server over HTTP does not);
-- a statement that is not a read (e.g. `KILL QUERY`), `INTO OUTFILE` (chDB writes the file
-  on the service's disk) and the `python()` table function (reads this process's objects).
+- a statement that is not a read (e.g. `KILL QUERY`) and `INTO OUTFILE` (chDB writes the
+  file on the service's disk);
+- under `readonly = 1` chDB (clickhouse-local) still runs the scalar `file()` (any path the
+  process can read), `python()` and the other functions and table functions that reach
+  outside the statement: every function, table function and table must be on the
+  analysts' allow-list (mapservice/sql/allow_list.py).
 """
 
 from __future__ import annotations
@@ -15,17 +19,20 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, replace
 
-from mapservice.sql.engine import READONLY, SqlEngine, SqlError, SqlRequest
+from mapservice.sql.allow_list import NotAllowed, check_identifiers, check_tree, parse_ast
+from mapservice.sql.engine import ACCESS_DENIED, READONLY, SqlEngine, SqlError, SqlRequest
 
 # Root nodes of EXPLAIN AST for statements that only read.
 READ_STATEMENTS = frozenset({
     "SelectWithUnionQuery", "SelectIntersectExceptQuery", "ShowTables", "ShowDatabases",
-    "ShowColumns", "DescribeQuery", "ExistsTableQuery", "ExistsDatabaseQuery",
+    "DescribeQuery", "ExistsTableQuery", "ExistsDatabaseQuery",
     "ExistsViewQuery", "ShowCreateTableQuery", "ShowCreateViewQuery",
     "ShowCreateDatabaseQuery", "Explain",
 })
-FORBIDDEN_FUNCTIONS = frozenset({"python"})
 _INTO_OUTFILE = re.compile(r"\bINTO\s+OUTFILE\b", re.IGNORECASE)
+# EXPLAIN AST names SHOW TABLES, SHOW MERGES, SHOW CLUSTERS, SHOW FILESYSTEM CACHES alike
+# (ShowTables); the formatted statement tells them apart. These read allowed tables only.
+_SHOW_LISTS = re.compile(r"^SHOW (FULL )?(TEMPORARY )?(TABLES|DATABASES|DICTIONARIES|SETTINGS)\b")
 
 
 @dataclass(frozen=True)
@@ -35,6 +42,7 @@ class ReadOnlyLimits:
     max_execution_time_s: int = 30
     max_result_rows: int = 1_000_000
     max_memory_bytes: int = 2 * 1024**3
+    max_threads: int = 1
 
     def settings(self) -> dict[str, str]:
         return {
@@ -42,6 +50,7 @@ class ReadOnlyLimits:
             "max_result_rows": str(self.max_result_rows),
             "result_overflow_mode": "throw",
             "max_memory_usage": str(self.max_memory_bytes),
+            "max_threads": str(self.max_threads),
         }
 
 
@@ -58,14 +67,14 @@ def statement_kind(ast_text: str) -> str:
     return first.split(" ", 1)[0]
 
 
-def functions_in(ast_text: str) -> set[str]:
-    return {line.split()[1] for line in ast_text.splitlines()
-            if line.strip().startswith("Function ") and len(line.split()) > 1}
-
-
-def check_read_only(engine: SqlEngine, request: SqlRequest) -> str:
+def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> str:
     """The statement as ClickHouse formats it (what then runs, so what was checked is what
-    runs); raises SqlError (READONLY, or the parser's SYNTAX_ERROR) unless it is one read."""
+    runs); raises SqlError (READONLY, ACCESS_DENIED, or the parser's SYNTAX_ERROR) unless it
+    is one read of the allow-list's functions and of `database`'s tables. `request` must
+    carry `database` (unqualified names resolve there, as do the statement's CTE names)."""
+    if request.database != database:
+        raise SqlError(f"Database {request.database} is not readable for analysts: only "
+                       f"{database} is", ACCESS_DENIED)
     probe = replace(request, read_only=True, settings={}, default_format="TSVRaw")
     canonical = engine.execute(replace(
         probe, sql="SELECT formatQuerySingleLine({statement:String})",
@@ -76,8 +85,15 @@ def check_read_only(engine: SqlEngine, request: SqlRequest) -> str:
     ast = engine.execute(replace(probe, sql=f"EXPLAIN AST {canonical}")).body.decode()
     kind = statement_kind(ast)
     if kind not in READ_STATEMENTS:
-        raise SqlError(f"Only reads are allowed for this user; this statement is {kind}", READONLY)
-    forbidden = functions_in(ast) & FORBIDDEN_FUNCTIONS
-    if forbidden:
-        raise SqlError(f"Function {sorted(forbidden)[0]} is not allowed for this user", READONLY)
+        hint = " (DESCRIBE TABLE shows a table's columns)" if kind == "ShowColumns" else ""
+        raise SqlError(f"Only reads are allowed for this user; this statement is {kind}{hint}",
+                       READONLY)
+    if kind == "ShowTables" and not _SHOW_LISTS.match(canonical):
+        raise SqlError(f"{canonical.split(' FROM ')[0][:40]} is not allowed for analysts: "
+                       "SHOW TABLES, DATABASES, DICTIONARIES and SETTINGS are", ACCESS_DENIED)
+    try:
+        check_identifiers(canonical)
+        check_tree(parse_ast(ast), database)
+    except NotAllowed as exc:
+        raise SqlError(str(exc), ACCESS_DENIED) from exc
     return canonical

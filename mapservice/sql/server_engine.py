@@ -13,6 +13,9 @@ import httpx
 from mapservice.sql.engine import SqlError, SqlRequest, SqlResult, output_format
 
 
+MAX_URL_PARAMS_BYTES = 4096
+
+
 class ServerEngine:
     """`SqlEngine` over `http(s)://host:port` (a path after the port is the server's proxy path)."""
 
@@ -38,9 +41,14 @@ class ServerEngine:
         params["default_format"] = request.default_format
         return params
 
-    def _post(self, params: dict[str, str], body: bytes) -> httpx.Response:
+    def _post(self, params: dict[str, str], body: bytes | None,
+              form: dict[str, str] | None = None) -> httpx.Response:
         try:
-            reply = self._http.post(self.base_url, params=params, content=body)
+            if form is not None:
+                reply = self._http.post(self.base_url, params=params,
+                                        files={k: (None, v) for k, v in form.items()})
+            else:
+                reply = self._http.post(self.base_url, params=params, content=body)
         except httpx.HTTPError as exc:
             raise SqlError(f"ClickHouse server {self.base_url} unreachable: {exc}", 210) from exc
         if reply.status_code != 200:
@@ -49,7 +57,14 @@ class ServerEngine:
         return reply
 
     def execute(self, request: SqlRequest) -> SqlResult:
-        reply = self._post(self._params(request), request.sql.encode())
+        params = self._params(request)
+        bound = {k: params.pop(k) for k in list(params) if k.startswith("param_")}
+        if sum(len(k) + len(v) for k, v in bound.items()) > MAX_URL_PARAMS_BYTES:
+            # Long parameters as multipart fields, as clickhouse-connect sends them: a URL
+            # has a limit (uvicorn's request line: 16 KB, 1 MB on a ClickHouse server).
+            reply = self._post(params, None, form={"query": request.sql, **bound})
+        else:
+            reply = self._post({**params, **bound}, request.sql.encode())
         return SqlResult(reply.content, reply.headers.get(
             "X-ClickHouse-Format", output_format(request.sql, request.default_format)))
 

@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import clickhouse_connect
 import httpx
@@ -21,6 +22,7 @@ from mcap.reader import make_reader
 from mapservice.local.stack import Stack
 from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import ROOT
+from tests.mapservice.sql.attacks import ATTACKS
 
 from .test_pipeline import publish_all
 
@@ -158,3 +160,39 @@ def test_mapservice_export_writes_mcap_and_parquet(stack, tmp_path) -> None:
                     "--format", "parquet", "--robot", "sim-001", "--out", str(parquet)],
                    check=True, timeout=120, capture_output=True)
     assert parquet.read_bytes()[:4] == b"PAR1" and parquet.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("name,template", ATTACKS, ids=[a[0] for a in ATTACKS])
+def test_no_attack_reads_a_secret_of_the_running_service(stack, password, name, template) -> None:
+    """The attack suite against `serve`'s /clickhouse with the data dir's real secrets (the
+    generated admin token among them): each refused with 497 naming what, none leaks."""
+    secret = stack.data_dir / "secrets" / "admin-token"
+    token = secret.read_text().strip()
+    sql = template.format(data=stack.data_dir, secret=secret)
+    reply = httpx.post(f"{stack.api_url}/clickhouse/", content=sql.encode(),
+                       auth=("analyst", password), timeout=30)
+    assert reply.status_code == 403 and reply.headers["X-ClickHouse-Exception-Code"] == "497", reply.text
+    assert re.search(r"is not (allowed|readable)|has a line break", reply.text), reply.text
+    assert token not in reply.text and password not in reply.text
+
+
+def test_sleeping_analysts_get_too_many_queries_and_the_api_does_not_wait(stack, password) -> None:
+    """30 concurrent `SELECT sleep(3)` (the issue: 60 stalled every sync route for a minute):
+    at most the pool and its queue (2 + 8) are taken in, the others get 503 with
+    Retry-After at once, and the API's own routes answer meanwhile (generous bound: 2 s)."""
+    url = f"{stack.api_url}/clickhouse/"
+
+    def sleep_query(_):
+        return httpx.post(url, content=b"SELECT sleep(3)", auth=("analyst", password), timeout=60)
+
+    with ThreadPoolExecutor(30) as pool:
+        sleeping = [pool.submit(sleep_query, i) for i in range(30)]
+        time.sleep(0.5)
+        started = time.monotonic()
+        robots = httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30)
+        robots_s = time.monotonic() - started
+        replies = [f.result() for f in sleeping]
+    assert robots.status_code == 200 and robots_s < 2.0, robots_s
+    busy = [r for r in replies if r.status_code == 503]
+    assert len(busy) >= 30 - 10 and all(r.status_code in (200, 503) for r in replies)
+    assert all("Too many queries" in r.text and r.headers.get("Retry-After") for r in busy)

@@ -20,6 +20,7 @@ takes about a minute on an idle machine.
 from __future__ import annotations
 
 import base64
+import io
 import json
 import subprocess
 import sys
@@ -27,7 +28,9 @@ import time
 import zlib
 
 import httpx
+import msgspec
 import pytest
+from mcap.reader import make_reader
 from websockets.sync.client import connect
 
 from mapservice.local import embedded
@@ -193,6 +196,65 @@ def test_live_mode_reaches_every_api_replica_and_the_browser(stack, page) -> Non
     assert shown["split-live"]["x"] == pytest.approx(x) and shown["split-live"]["y"] == pytest.approx(y)
     assert page.evaluate("() => window.__replay.liveStatus.reconnects") == 0
     assert not page.errors
+
+
+def test_a_batch_of_2000_chunk_contents_through_the_clickhouse_server(stack, http) -> None:
+    """The UI's largest batch: the store's IN list of 2,000 hashes goes to the server as
+    multipart parameters (clickhouse-connect, over 4 KB), which the server reads."""
+    seen = http.get("/api/v1/map").json()["chunks"]
+    known = sorted({c["content_hash"] for c in seen})
+    assert known, "no chunk stored yet"
+    hashes = known + [f"{n:032x}" for n in range(2000 - len(known))]
+    reply = http.post("/api/v1/chunk-contents/batch", json={"hashes": hashes})
+    assert reply.status_code == 200, reply.text[:500]
+    answer = msgspec.msgpack.decode(reply.content)
+    assert sorted(c[0] for c in answer["contents"]) == known
+    assert len(answer["missing"]) == 2000 - len(known)
+
+
+def test_export_replay_through_the_clickhouse_server(stack, tmp_path) -> None:
+    """`mapservice export replay` of the last ten minutes: an MCAP with the map and the
+    robots the replay test published, after 150 chunk writes of distinct contents (the
+    export asks for their contents at once: over clickhouse-connect's 4 KB threshold)."""
+    t0 = (now_ms() // 1000 - 20) * 1000
+    writes = []
+    for n in range(150):
+        pixels = bytes([n]) * 9_999 + bytes([n // 2])
+        writes.append(("iot/chunks/create", json.dumps({
+            "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(), "row": 0,
+            "column": 0, "timestamp": format_timestamp(t0 + 10 * n), "robotId": "split-many"}).encode()))
+    publish_all(stack, writes)
+    last = content_hash(bytes([149]) * 9_999 + bytes([74])).hex()
+    until(lambda: httpx.get(f"{stack.api_url}/api/v1/map", params={"at": t0 + 1490}, timeout=30).json(),
+          lambda m: any(c["content_hash"] == last for c in m["chunks"]), what="150 writes stored")
+    now = now_ms()
+    out = tmp_path / "split.mcap"
+    done = subprocess.run([sys.executable, "-m", "mapservice.cli", "export", "replay",
+                           "--from", str(now - 600_000), "--to", str(now), "--api", stack.api_url,
+                           "--out", str(out)], env=stack.env(), capture_output=True, text=True,
+                          timeout=180)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = make_reader(io.BytesIO(out.read_bytes())).get_summary()
+    topics = {summary.channels[c].topic for c in summary.statistics.channel_message_counts}
+    assert "/map" in topics and {"/robots/split-a/pose", "/robots/split-b/pose"} <= topics
+
+
+def test_no_analyst_reads_a_secret_through_either_front_end(stack) -> None:
+    """The attack suite on the API replica's /clickhouse (forwarded to the server) and on
+    the ClickHouse server's own analyst user: each refused with 497, no secret in a reply."""
+    from mapservice.sql.credentials import analyst_password_file
+    from tests.mapservice.sql.attacks import ATTACKS
+
+    password = analyst_password_file(stack.data_dir).read_text().strip()
+    secret = stack.data_dir / "secrets" / "analyst-password"
+    ch_url = stack.extra_env["MAPSERVICE_CLICKHOUSE_DSN"]
+    for url in (f"{stack.second_api_url}/clickhouse/", ch_url + "/"):
+        for name, template in ATTACKS:
+            sql = template.format(data=stack.data_dir, secret=secret)
+            reply = httpx.post(url, content=sql.encode(), auth=("analyst", password), timeout=30)
+            assert reply.status_code == 403, (url, name, reply.text)
+            assert reply.headers["X-ClickHouse-Exception-Code"] == "497", (url, name, reply.text)
+            assert password not in reply.text
 
 
 # Last, as in the embedded suite: it wipes the data.

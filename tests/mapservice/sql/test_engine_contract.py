@@ -58,6 +58,12 @@ def test_binds_parameters_by_name_never_into_the_text(engine) -> None:
     assert rows(engine, "SELECT {s:String}, {n:UInt8} + 1", params={"s": "a'b", "n": "41"}) == ["a\\'b\t42"]
 
 
+def test_binds_parameters_far_larger_than_a_url(engine) -> None:
+    """A 2,000-value array parameter (70 KB; the server engine sends it as multipart)."""
+    values = "[" + ",".join(f"'{n:032x}'" for n in range(2000)) + "]"
+    assert rows(engine, "SELECT length({v:Array(String)})", params={"v": values}) == ["2000"]
+
+
 def test_inserts_rows_in_a_format_and_reads_them_back(engine) -> None:
     """insert(target, fmt, data) stores the rows."""
     engine.insert("contract.t (n, s)", "TSV", b"1\tone\n2\ttwo\n", SqlRequest(""))
