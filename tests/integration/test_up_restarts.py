@@ -21,6 +21,7 @@ from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from mapservice.local import embedded
 from mapservice.local.embedded import free_port
 from tests.fixtures.paths import ROOT
+from tests.integration.test_up_auth import connect_code
 from tests.integration.test_up_floor import Up
 
 pytestmark = [pytest.mark.integration,
@@ -115,8 +116,8 @@ def restarted(up: Up, how: str, data_dir, *args: str) -> Up:
 @pytest.mark.parametrize("auth", [False, True], ids=["anonymous", "auth"])
 def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, auth):
     """A robot publishes 50 poses/s while `up` is stopped with Ctrl-C, killed with its process
-    group and killed alone, each time started again: every pose the broker acknowledged is
-    stored, none twice. (Before: with --auth `up`'s SIGHUP to the restarted Mosquitto lost
+    group and killed alone, each time started again, and (with --auth) while a robot is added:
+    every pose the broker acknowledged is stored, none twice. (Before: with --auth `up`'s SIGHUP to the restarted Mosquitto lost
     what was queued for the gateway; after a kill -9 the next `up` failed on its own
     orphans' ports.)"""
     data = tmp_path / "data"
@@ -134,6 +135,17 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
         for how in ("SIGINT", "kill -9 of its process group", "kill -9 of up alone"):
             outputs.append(up.output)
             up = restarted(up, how, data, *args)
+            time.sleep(4)
+        if auth:
+            # A robot added while `up` runs: `up` restarts its broker to read the new
+            # credential (a SIGHUP here would lose what is queued for the gateway).
+            added = subprocess.run([sys.executable, "-m", "mapservice.cli", "robot", "add",
+                                    "added-while-up-runs", "--data-dir", str(data), "--json"],
+                                   cwd=ROOT, capture_output=True, text=True, timeout=60)
+            assert added.returncode == 0, added.stderr
+            up.wait_for("Mosquitto restarted to read them", 20)
+            new_password = json.loads(added.stdout)["password"]
+            assert connect_code(up.mqtt_port, "added-while-up-runs", new_password) == 0
             time.sleep(4)
         robot.stop()
         acked = set(robot.acked)
