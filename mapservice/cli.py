@@ -12,14 +12,10 @@ import sys
 import time
 from pathlib import Path
 
-import structlog
-
 from mapservice.robot import DEFAULT_MAP
 from mapservice.settings import Settings
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.startup import settings_for
-
-log = structlog.get_logger("mapservice.cli")
 
 
 def cmd_gateway(args) -> None:
@@ -135,6 +131,7 @@ def cmd_up(args) -> None:
     from rich.console import Console
 
     from mapservice.local import lifetime
+    from mapservice.local.up_output import log, print_addresses, step
     from mapservice.runtime.logs import configure
     from mapservice.adapters.clock import SystemClock
     from mapservice.robot.map_upload import check_data_dir_map, upload_map_if_fresh
@@ -264,35 +261,6 @@ def cmd_up(args) -> None:
         stack.stop()
 
 
-def step(console, what: str):
-    """A start-up step: a spinner on a terminal; else (output to a file or a pipe, where the
-    spinner prints nothing) a log line when it begins."""
-    from contextlib import nullcontext
-
-    if console.is_terminal:
-        return console.status(what + "...")
-    log.info(what)
-    return nullcontext()
-
-
-def print_addresses(console, title: str, rows: list[tuple[str, str]]) -> None:
-    """`up`'s address table, never cut: on a terminal a table whose values wrap (fold) at its
-    width; else one plain `name  value` line per row, as long as it needs to be."""
-    if not console.is_terminal:
-        width = max(len(name) for name, _ in rows)
-        sys.stdout.write(title + "\n" + "".join(f"  {name:<{width}}  {value}\n" for name, value in rows))
-        sys.stdout.flush()
-        return
-    from rich.table import Table
-
-    table = Table(title=title, show_header=False)
-    table.add_column(no_wrap=True)
-    table.add_column(overflow="fold")
-    for name, value in rows:
-        table.add_row(name, value)
-    console.print(table)
-
-
 def api_token_rows(settings: Settings) -> list[tuple[str, str]]:
     """`up`'s table rows saying where each API token is and what it opens; generates the
     ones local mode makes (the server reads the same files)."""
@@ -329,6 +297,7 @@ def cmd_demo_history(args) -> None:
 
     from mapservice.runtime.logs import configure
     from mapservice.adapters.ros_map import load_ros_map
+    from mapservice.local.up_output import PROGRESS_LOG_S, ProgressLog
 
     console = Console()
     # On a terminal a progress bar; else (a file, a pipe: the bar prints nothing there) a
@@ -369,24 +338,6 @@ def cmd_demo_history(args) -> None:
         store.close()
     console.print(f"wrote {days:g} days of demo history in {result.seconds:.0f} s: {result.poses:,} poses, "
                   f"{result.chunk_writes:,} map changes, {result.conflicts} conflicts")
-
-
-PROGRESS_LOG_S = 5.0
-
-
-class ProgressLog:
-    """Logs `what` and how far it got (0..1) at most every `every_s`, and once at the start."""
-
-    def __init__(self, what: str, every_s: float, clock=time.monotonic) -> None:
-        self.what, self.every_s, self.clock = what, every_s, clock
-        self.started = clock()
-        self.last: float | None = None
-
-    def update(self, done: float) -> None:
-        now = self.clock()
-        if self.last is None or now - self.last >= self.every_s:
-            self.last = now
-            log.info(self.what, done_percent=round(100 * done), elapsed_s=round(now - self.started))
 
 
 # The robot id the /controller page drives by default (replay-ui/src/Controller.vue).
