@@ -130,12 +130,14 @@ class PidFile:
 
 
 def end(leftovers: list[Recorded], timeout_s: float = 15.0) -> None:
-    """SIGTERM to each leftover's process group (each component leads its own session), then
-    SIGKILL to whatever still runs after `timeout_s`."""
+    """SIGTERM to each leftover's process group (each component leads its own session; a
+    stopped one is continued, to act on it), then SIGKILL to whatever still runs after
+    `timeout_s`."""
     for sig in (signal.SIGTERM, signal.SIGKILL):
         for process in leftovers:
             if process.still_running():
                 _signal_group(process, sig)
+                _signal_group(process, signal.SIGCONT)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and any(p.still_running() for p in leftovers):
             time.sleep(0.1)

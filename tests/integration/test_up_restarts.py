@@ -18,11 +18,11 @@ import paho.mqtt.client as mqtt
 import pytest
 
 from mapservice.core.wire2019 import encode_coordinates, format_timestamp
-from mapservice.local import embedded
+from mapservice.local import embedded, lifetime
 from mapservice.local.embedded import free_port
 from tests.fixtures.paths import ROOT
 from tests.integration.test_up_auth import connect_code
-from tests.integration.test_up_floor import Up
+from tests.integration.test_up_floor import Up, children
 
 pytestmark = [pytest.mark.integration,
               pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto")]
@@ -167,3 +167,28 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
     finally:
         robot.running = False
         up.stop()
+
+
+@pytest.mark.timeout(240)
+def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
+    """The server is stopped (SIGSTOP: it cannot act on the SIGTERM it gets when `up` dies)
+    and `up` is killed with kill -9: the server still holds the API port. The next `up`
+    finds it in the pid file, says so, ends it and comes up on the same ports."""
+    data = tmp_path / "data"
+    up = UpOn(data, free_port(), free_port())
+    server = children(up.proc.pid)["serve"]
+    try:
+        os.kill(server, signal.SIGSTOP)
+        up.proc.kill()
+        up.proc.wait(30)
+        time.sleep(1)
+        assert lifetime.start_time(server) is not None, "the stopped server did not outlive up"
+        up = UpOn(data, up.api_port, up.mqtt_port)
+        assert "ended without stopping its components" in up.output
+        assert f"server (pid {server})" in up.output
+        assert lifetime.start_time(server) is None
+        assert up.api("/readyz").status_code == 200
+    finally:
+        up.stop()
+        if lifetime.start_time(server) is not None:  # not ended: do not leave it behind
+            os.kill(server, signal.SIGKILL)
