@@ -220,30 +220,33 @@ def cmd_up(args) -> None:
             stack.spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map),
                         *(["--load-test"] if args.load_test else []),
                         *(["--credentials", str(robot_credentials)] if robot_credentials else []))
-        rows: list[tuple[str, str]] = []
-        row = lambda name, value: rows.append((name, value))  # noqa: E731
+        rows: list[tuple[str, str]] = []  # the address table: (what, where)
+
+        def row(name: str, value: str) -> None:
+            rows.append((name, value))
+
         row("API", stack.api_url + "  (docs at /docs)")
         row("MQTT (robots)", stack.mqtt_url + (
             "  (robot identities: anonymous clients refused; add a robot with `mapservice robot "
             f"add <robotId> --data-dir {stack.data_dir}`)" if args.auth else "  (anonymous)"))
         if broker in ("mosquitto", "amqtt"):
             row("MQTT broker", f"Mosquitto, store in {stack.data_dir / 'mosquitto'}"
-                          if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
+                if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
         if robot_credentials:
             row("Robots' MQTT credentials", f"{robot_credentials} (the simulated robots' "
-                          f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
+                f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
         row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
         row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
-                      f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
+            f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
         for name, where in api_token_rows(stack.settings()):
             row(name, where)
         row("Gateway health", f"http://127.0.0.1:{stack.health_port}/readyz")
         row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
-                      + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
+            + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
         row("Simulated robots", f"{args.robots} on {args.map}"
-                      + (" (2019 load test)" if args.load_test else " (shift simulator)"))
+            + (" (2019 load test)" if args.load_test else " (shift simulator)"))
         row("Logs", str(stack.log_dir))
         print_addresses(console, "mapservice is up", rows)
         console.print("Ctrl-C stops everything; `make up` again resumes on the same data.")
