@@ -117,9 +117,9 @@ def restarted(up: Up, how: str, data_dir, *args: str) -> Up:
 def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, auth):
     """A robot publishes 50 poses/s while `up` is stopped with Ctrl-C, killed with its process
     group and killed alone, each time started again, and (with --auth) while a robot is added:
-    every pose the broker acknowledged is stored, none twice. (Before: with --auth `up`'s SIGHUP to the restarted Mosquitto lost
-    what was queued for the gateway; after a kill -9 the next `up` failed on its own
-    orphans' ports.)"""
+    every pose the broker acknowledged is stored, none twice. (Before: with --auth, `up`'s
+    SIGHUP to the restarted Mosquitto lost what was queued for the gateway; after a kill -9
+    the next `up` failed on its own orphans' ports.)"""
     data = tmp_path / "data"
     args = ("--auth",) if auth else ()
     up = UpOn(data, free_port(), free_port(), *args)
@@ -129,11 +129,9 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
         password = json.loads((data / "secrets" / "robots.json").read_text())[robot_id]
     started_ms = int(time.time() * 1000) - 1_000
     robot = Robot(up.mqtt_port, robot_id, password)
-    outputs = []
     try:
         time.sleep(4)
         for how in ("SIGINT", "kill -9 of its process group", "kill -9 of up alone"):
-            outputs.append(up.output)
             up = restarted(up, how, data, *args)
             time.sleep(4)
         if auth:
