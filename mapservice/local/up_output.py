@@ -6,20 +6,25 @@ from __future__ import annotations
 
 import sys
 import time
-from contextlib import nullcontext
+from contextlib import contextmanager
 
 import structlog
 
 log = structlog.get_logger("mapservice.up")
 
 
+@contextmanager
 def step(console, what: str):
     """A start-up step: a spinner on a terminal; else (output to a file or a pipe, where the
-    spinner prints nothing) a log line when it begins."""
+    spinner prints nothing) a log line when it begins and one when it is done."""
     if console.is_terminal:
-        return console.status(what + "...")
+        with console.status(what + "..."):
+            yield
+        return
+    started = time.monotonic()
     log.info(what)
-    return nullcontext()
+    yield
+    log.info(what + ": done", seconds=round(time.monotonic() - started, 1))
 
 
 def print_addresses(console, title: str, rows: list[tuple[str, str]]) -> None:

@@ -7,7 +7,7 @@ import io
 import structlog
 from rich.console import Console
 
-from mapservice.local.up_output import ProgressLog, print_addresses
+from mapservice.local.up_output import ProgressLog, print_addresses, step
 
 
 def test_the_address_table_to_a_file_is_never_cut(capsys):
@@ -42,3 +42,10 @@ def test_progress_is_logged_at_the_start_and_then_at_most_every_period():
             progress.update(second / 12)
     assert [(e["event"], e["elapsed_s"], e["done_percent"]) for e in logs] == [
         ("simulating", 0, 0), ("simulating", 5, 42), ("simulating", 10, 83)]
+
+
+def test_a_start_step_not_on_a_terminal_logs_its_start_and_end():
+    with structlog.testing.capture_logs() as logs:
+        with step(Console(file=io.StringIO()), "starting the gateway"):
+            pass
+    assert [e["event"] for e in logs] == ["starting the gateway", "starting the gateway: done"]
