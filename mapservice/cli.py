@@ -179,6 +179,7 @@ def cmd_up(args) -> None:
                     pid_file=str(stack.pid_file.path))
         lifetime.end(leftovers)
     stack.protect_data_dir()
+    stack.start_guard()
     ros_map = load_ros_map(args.map)
     try:
         check_data_dir_map(stack.data_dir, ros_map)  # before the meta is published

@@ -3,13 +3,17 @@
 Each component runs in a session of its own (Ctrl-C in a terminal reaches `up` alone, which
 then stops them in order). So that a `kill -9` of `up` does not leave them running:
 
-- a component is started with the parent-death signal set (Linux `PR_SET_PDEATHSIG`): when
-  `up` dies, for any reason, each component gets SIGTERM and stops as on Ctrl-C;
 - `up` records itself and every component (pid, start time, command) in a pid file in the
-  data dir. The next `up` on that data dir ends whatever the record names that still runs
-  (a kill -9 of everything but one component, a machine where the signal cannot be set), by
-  recorded process group only, and only a process whose start time and command line are
-  still the recorded ones (a reused pid is someone else's).
+  data dir;
+- a guard process, in a session of its own, is started with the parent-death signal set
+  (Linux `PR_SET_PDEATHSIG`): when `up` dies, for any reason, the guard gets SIGTERM and
+  stops the recorded components in `up`'s own order (the gateway before the processors,
+  the brokers last: all at once, tansu's memory went before the processors had read the
+  last messages from it, and acknowledged messages were lost);
+- the next `up` on that data dir ends whatever the record names that still runs (the guard
+  killed too, a machine where the signal cannot be set), in the same order, by recorded
+  process group only, and only a process whose start time and command line are still the
+  recorded ones (a reused pid is someone else's).
 """
 
 from __future__ import annotations
@@ -18,12 +22,17 @@ import ctypes
 import json
 import os
 import signal
+import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 PID_FILE = "up.pids.json"
+GUARD = "guard"
+# Stack.stop's order: who feeds a broker stops before it, the brokers last.
+STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "mqtt", "kafka")
 
 
 def _prctl():
@@ -36,9 +45,15 @@ def _prctl():
 _PRCTL = _prctl()
 
 
+def private_files() -> None:
+    """A `preexec_fn`: the child creates files no one else may read (umask 077: secrets,
+    logs, the broker's store, the history)."""
+    os.umask(0o077)
+
+
 def die_with_parent() -> None:
-    """A `preexec_fn`: the child gets SIGTERM when the process that started it dies, and
-    creates files no one else may read (umask 077: secrets, logs, the broker's store)."""
+    """A `preexec_fn`: as private_files, and the child gets SIGTERM when the process that
+    started it dies."""
     os.umask(0o077)
     if _PRCTL is not None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
@@ -126,23 +141,47 @@ class PidFile:
         """Recorded components still running although their `up` does not."""
         if self.running_up() is not None:
             return []
-        return [r for r in self._read()[1] if r.still_running()]
+        return self.running_components()
+
+    def running_components(self) -> list[Recorded]:
+        return [r for r in self._read()[1] if r.still_running() and r.pid != os.getpid()]
 
 
-def end(leftovers: list[Recorded], timeout_s: float = 15.0) -> None:
-    """SIGTERM to each leftover's process group (each component leads its own session; a
-    stopped one is continued, to act on it), then SIGKILL to whatever still runs after
-    `timeout_s`."""
-    for sig in (signal.SIGTERM, signal.SIGKILL):
-        for process in leftovers:
-            if process.still_running():
-                _signal_group(process, sig)
-                _signal_group(process, signal.SIGCONT)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and any(p.still_running() for p in leftovers):
-            time.sleep(0.1)
-        if not any(p.still_running() for p in leftovers):
-            return
+def end(leftovers: list[Recorded], timeout_s: float = 10.0) -> None:
+    """Ends the leftovers one by one in STOP_ORDER (a guard still at work is given the time
+    to finish first): SIGTERM to its process group (each component leads its own session; a
+    stopped one is continued, to act on it), SIGKILL if it still runs after `timeout_s`."""
+    def order(process: Recorded) -> int:
+        return STOP_ORDER.index(process.name) if process.name in STOP_ORDER else len(STOP_ORDER)
+
+    for process in sorted(leftovers, key=order):
+        if process.name == GUARD:
+            _wait_gone(process, timeout_s * len(leftovers))
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            if not process.still_running():
+                break
+            _signal_group(process, sig)
+            _signal_group(process, signal.SIGCONT)
+            _wait_gone(process, timeout_s)
+
+
+def _wait_gone(process: Recorded, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while process.still_running() and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def guard(pid_file: Path, parent: int) -> None:
+    """The guard's life: wait for SIGTERM (its parent `up` died: the parent-death signal),
+    then end what the pid file names, in order. `up` itself ends the guard with SIGKILL
+    when it stops its components itself."""
+    died = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: died.set())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is `up`'s to act on
+    while not died.wait(1.0):
+        if os.getppid() != parent:  # `up` died before the signal was set
+            break
+    end(PidFile(pid_file).running_components())
 
 
 def _signal_group(process: Recorded, sig: int) -> None:
@@ -161,3 +200,9 @@ def _as_json(r: Recorded) -> dict:
 
 def _from_json(d: dict) -> Recorded:
     return Recorded(str(d["name"]), int(d["pid"]), d["start"], tuple(d["command"]))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 4 or sys.argv[1] != GUARD:
+        sys.exit("usage: python -m mapservice.local.lifetime guard PID_FILE PARENT_PID")
+    guard(Path(sys.argv[2]), int(sys.argv[3]))

@@ -86,10 +86,12 @@ class Stack:
     # (so its own persistent session) and health port.
     gateways: int = 1
     gateway_health_ports: list[int] = field(default_factory=list)
-    # `mapservice up`: every process it starts gets SIGTERM when `up` dies (even by kill -9)
-    # and creates files only its user reads; `up` and its components are recorded in the
-    # data dir's pid file, where the next `up` finds what a dead one left running.
+    # `mapservice up`: its processes create files only its user reads; `up` and its
+    # components are recorded in the data dir's pid file, a guard stops them in order when
+    # `up` dies (even by kill -9), and the next `up` finds what a dead one left running
+    # (mapservice.local.lifetime).
     tied_to_parent: bool = False
+    guard: subprocess.Popen | None = None
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -131,13 +133,26 @@ class Stack:
 
     @property
     def _preexec(self):
-        return lifetime.die_with_parent if self.tied_to_parent else None
+        # Not the parent-death signal: all at once, tansu's memory went before the
+        # processors had read the last messages from it. The guard stops them in order.
+        return lifetime.private_files if self.tied_to_parent else None
+
+    def start_guard(self) -> None:
+        """The guard that stops the components in order when this process dies."""
+        self.guard = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.local.lifetime", lifetime.GUARD,
+             str(self.pid_file.path), str(os.getpid())],
+            stdout=self._log("guard"), stderr=subprocess.STDOUT, start_new_session=True,
+            preexec_fn=lifetime.die_with_parent)
+        self._record()
 
     def _record(self) -> None:
         """The pid file names `up` and every component running now."""
         if self.tied_to_parent:
-            self.pid_file.write({name: proc.pid for name, proc in self.procs.items()
-                                 if proc.poll() is None})
+            running = {name: proc.pid for name, proc in self.procs.items() if proc.poll() is None}
+            if self.guard is not None and self.guard.poll() is None:
+                running[lifetime.GUARD] = self.guard.pid
+            self.pid_file.write(running)
 
     def protect_data_dir(self) -> None:
         """The data dir 0700 and nothing in it readable by others (it holds the secrets, the
@@ -477,6 +492,10 @@ class Stack:
             self.stop()
 
     def stop(self) -> None:
+        if self.guard is not None:  # this process stops them itself, in the same order
+            self.guard.kill()
+            self.guard.wait()
+            self.guard = None
         for name in ("sim", "gateway", "server", "api", "processors", "mqtt", "kafka"):
             embedded.stop(self.procs.pop(name, None))
             self._record()

@@ -169,13 +169,15 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
 
 @pytest.mark.timeout(240)
 def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
-    """The server is stopped (SIGSTOP: it cannot act on the SIGTERM it gets when `up` dies)
-    and `up` is killed with kill -9: the server still holds the API port. The next `up`
-    finds it in the pid file, says so, ends it and comes up on the same ports."""
+    """The guard that stops the components when `up` dies is killed, the server stopped
+    (SIGSTOP) and `up` killed with kill -9: the server still holds the API port. The next
+    `up` finds it in the pid file, says so, ends it and comes up on the same ports."""
     data = tmp_path / "data"
     up = UpOn(data, free_port(), free_port())
     server = children(up.proc.pid)["serve"]
     try:
+        guard = json.loads((data / "up.pids.json").read_text())["components"]
+        os.kill(next(c["pid"] for c in guard if c["name"] == "guard"), signal.SIGKILL)
         os.kill(server, signal.SIGSTOP)
         up.proc.kill()
         up.proc.wait(30)

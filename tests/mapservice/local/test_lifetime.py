@@ -104,3 +104,46 @@ def test_a_running_up_is_found_and_its_components_are_not_leftovers(tmp_path):
         up.kill()
         up.wait()
     assert lifetime.PidFile.in_data_dir(tmp_path).running_up() is None
+
+
+def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
+    """`up` (here a stand-in) records a guard and two components, then is killed with
+    SIGKILL: the guard stops the gateway first, and only once it has exited the broker
+    (all at once, the broker quit first: it has nothing to finish)."""
+    log = tmp_path / "stopped"
+    component = ("import signal, sys, time\n"
+                 "def stop(*_):\n"
+                 "    time.sleep(float(sys.argv[2]))\n"
+                 f"    open({str(log)!r}, 'a').write(sys.argv[1] + chr(10)); sys.exit(0)\n"
+                 "signal.signal(signal.SIGTERM, stop)\n"
+                 "print('ready', flush=True)\n"
+                 "while True: time.sleep(1)\n")
+    up_code = ("import subprocess, sys, time, os\n"
+               "from pathlib import Path\n"
+               "from mapservice.local import lifetime\n"
+               f"pid_file = lifetime.PidFile.in_data_dir({str(tmp_path)!r})\n"
+               f"component = {component!r}\n"
+               "procs = {name: subprocess.Popen([sys.executable, '-c', component, name, delay],"
+               " start_new_session=True, stdout=subprocess.PIPE, text=True)"
+               " for name, delay in (('kafka', '0'), ('gateway', '1'))}\n"
+               "for proc in procs.values(): proc.stdout.readline()\n"
+               "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
+               " str(pid_file.path), str(os.getpid())], start_new_session=True,"
+               " preexec_fn=lifetime.die_with_parent)\n"
+               "pids = {name: p.pid for name, p in procs.items()}\n"
+               "pids['guard'] = guard.pid\n"
+               "pid_file.write(pids)\n"
+               "print(' '.join(str(p) for p in pids.values()), flush=True)\n"
+               "time.sleep(120)\n")
+    up = subprocess.Popen([sys.executable, "-c", up_code], stdout=subprocess.PIPE, text=True)
+    pids = [int(p) for p in up.stdout.readline().split()]
+    try:
+        time.sleep(1.5)  # the guard has installed its signal handler
+        up.kill()
+        up.wait()
+        assert all(wait_gone(pid, 20) for pid in pids), "the guard did not end them"
+        assert log.read_text().split() == ["gateway", "kafka"]
+    finally:
+        for pid in pids:
+            if lifetime.start_time(pid) is not None:
+                os.kill(pid, signal.SIGKILL)
