@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import asyncio
+import os
 import signal
 import subprocess
 import sys
@@ -15,7 +16,6 @@ from mapservice.robot import DEFAULT_MAP
 from mapservice.settings import Settings
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.startup import settings_for
-
 
 
 def cmd_gateway(args) -> None:
@@ -129,14 +129,18 @@ def cmd_export(args) -> None:
 
 def cmd_up(args) -> None:
     from rich.console import Console
-    from rich.table import Table
 
+    from mapservice.local import lifetime
+    from mapservice.local.up_output import log, print_addresses, step
     from mapservice.runtime.logs import configure
     from mapservice.adapters.clock import SystemClock
     from mapservice.robot.map_upload import check_data_dir_map, upload_map_if_fresh
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local.stack import Stack
 
+    # Nothing `up` or its components write (secrets, logs, the broker's store, the history)
+    # is readable by other users.
+    os.umask(0o077)
     configure("INFO", "console", "up")
     # httpx logs every readiness poll (~20 `GET /readyz 503` while the server starts).
     logging.getLogger("httpx").setLevel(logging.WARNING)
@@ -162,7 +166,20 @@ def cmd_up(args) -> None:
                       "mode). `make system-deps` installs Mosquitto.[/yellow]")
     stack = Stack(Path(args.data_dir), mqtt=broker, api_port=args.api_port,
                   mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port,
-                  mqtt_auth=args.auth)
+                  mqtt_auth=args.auth, tied_to_parent=True)
+    other = stack.pid_file.running_up()
+    if other is not None:
+        sys.exit(f"mapservice up: another `mapservice up` (pid {other.pid}) runs on "
+                 f"{stack.data_dir}; stop it (Ctrl-C there, or `kill {other.pid}`) or pass "
+                 "another --data-dir")
+    leftovers = stack.pid_file.leftovers()
+    if leftovers:
+        log.warning("the last `mapservice up` on this data dir ended without stopping its "
+                    "components; ending them", components=[f"{p.name} (pid {p.pid})" for p in leftovers],
+                    pid_file=str(stack.pid_file.path))
+        lifetime.end(leftovers)
+    stack.protect_data_dir()
+    stack.start_guard()
     ros_map = load_ros_map(args.map)
     try:
         check_data_dir_map(stack.data_dir, ros_map)  # before the meta is published
@@ -175,24 +192,27 @@ def cmd_up(args) -> None:
             # released only when the process that opened it ends.
             done = subprocess.run([sys.executable, "-m", "mapservice.cli", "demo-history",
                                    "--data-dir", str(stack.data_dir), "--days", str(args.history_days),
-                                   "--robots", str(args.robots), "--map", str(args.map)])
+                                   "--robots", str(args.robots), "--map", str(args.map)],
+                                  preexec_fn=lifetime.die_with_parent)
             if done.returncode != 0:
                 raise RuntimeError("writing the demo history failed (see above); "
                                    "`--history-days 0` starts without it")
-        with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
-            stack.start_brokers()
-            stack.publish_meta(meta_for(ros_map))
         robot_credentials = None
         if args.auth:
-            with console.status("giving each simulated robot its MQTT credential..."):
+            # Before the broker starts, which reads them then: a running Mosquitto would have
+            # to be restarted to read them (Stack.reload_mqtt says why never by SIGHUP).
+            with step(console, "giving each simulated robot its MQTT credential"):
                 # The /controller page drives a robot too: it needs one to publish as.
                 robot_credentials = stack.robot_credentials(
                     simulated_robot_ids(args) + [CONTROLLER_ROBOT])
-        with console.status("starting processors + API (creating the ClickHouse schema)..."):
+        with step(console, "starting Kafka-protocol broker (tansu) and MQTT broker"):
+            stack.start_brokers()
+            stack.publish_meta(meta_for(ros_map))
+        with step(console, "starting processors + API (creating the ClickHouse schema)"):
             stack.start_server()
-        with console.status("starting the MQTT-to-Kafka gateway..."):
+        with step(console, "starting the MQTT-to-Kafka gateway"):
             stack.start_gateway()
-        with console.status("publishing the map's chunks (fresh data dir only)..."):
+        with step(console, "publishing the map's chunks (fresh data dir only)"):
             uploaded = upload_map_if_fresh(stack.settings(), stack.data_dir, ros_map,
                                            SystemClock().now_ms(), had_history)
         if args.robots:
@@ -201,31 +221,35 @@ def cmd_up(args) -> None:
             stack.spawn("sim", "sim", "--robots", str(args.robots), "--map", str(args.map),
                         *(["--load-test"] if args.load_test else []),
                         *(["--credentials", str(robot_credentials)] if robot_credentials else []))
-        table = Table(title="mapservice is up", show_header=False)
-        table.add_row("API", stack.api_url + "  (docs at /docs)")
-        table.add_row("MQTT (robots)", stack.mqtt_url + (
+        rows: list[tuple[str, str]] = []  # the address table: (what, where)
+
+        def row(name: str, value: str) -> None:
+            rows.append((name, value))
+
+        row("API", stack.api_url + "  (docs at /docs)")
+        row("MQTT (robots)", stack.mqtt_url + (
             "  (robot identities: anonymous clients refused; add a robot with `mapservice robot "
             f"add <robotId> --data-dir {stack.data_dir}`)" if args.auth else "  (anonymous)"))
         if broker in ("mosquitto", "amqtt"):
-            table.add_row("MQTT broker", f"Mosquitto, store in {stack.data_dir / 'mosquitto'}"
-                          if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
+            row("MQTT broker", f"Mosquitto, store in {stack.data_dir / 'mosquitto'}"
+                if broker == "mosquitto" else "amqtt, no store (Mosquitto is not installed)")
         if robot_credentials:
-            table.add_row("Robots' MQTT credentials", f"{robot_credentials} (the simulated robots' "
-                          f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
-        table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
-        table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
-        table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
-        table.add_row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
-                      f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
+            row("Robots' MQTT credentials", f"{robot_credentials} (the simulated robots' "
+                f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
+        row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
+        row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
+        row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
+        row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
+            f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
         for name, where in api_token_rows(stack.settings()):
-            table.add_row(name, where)
-        table.add_row("Gateway health", f"http://127.0.0.1:{stack.health_port}/readyz")
-        table.add_row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
-                      + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
-        table.add_row("Simulated robots", f"{args.robots} on {args.map}"
-                      + (" (2019 load test)" if args.load_test else " (shift simulator)"))
-        table.add_row("Logs", str(stack.log_dir))
-        console.print(table)
+            row(name, where)
+        row("Gateway health", f"http://127.0.0.1:{stack.health_port}/readyz")
+        row("Map", f"{args.map} ({ros_map.width} x {ros_map.height} px; "
+            + (f"{uploaded} chunks published)" if uploaded else "as stored)"))
+        row("Simulated robots", f"{args.robots} on {args.map}"
+            + (" (2019 load test)" if args.load_test else " (shift simulator)"))
+        row("Logs", str(stack.log_dir))
+        print_addresses(console, "mapservice is up", rows)
         console.print("Ctrl-C stops everything; `make up` again resumes on the same data.")
         if args.open_browser:
             import webbrowser
@@ -277,9 +301,12 @@ def cmd_demo_history(args) -> None:
 
     from mapservice.runtime.logs import configure
     from mapservice.adapters.ros_map import load_ros_map
+    from mapservice.local.up_output import PROGRESS_LOG_S, ProgressLog
 
-    configure("WARNING", "console", "demo-history")
     console = Console()
+    # On a terminal a progress bar; else (a file, a pipe: the bar prints nothing there) a
+    # log line every PROGRESS_LOG_S, so a logged first run shows it is getting on.
+    configure("WARNING" if console.is_terminal else "INFO", "console", "demo-history")
     data_dir, days, robots = Path(args.data_dir), args.days, args.robots
     try:
         ros_map = load_ros_map(args.map)
@@ -296,12 +323,21 @@ def cmd_demo_history(args) -> None:
         if store.counts().poses:
             sys.exit(f"mapservice demo-history: {data_dir} already has history; it writes only "
                      "into a fresh data dir")
+        what = f"simulating the last {days:g} days of {robots} robots"
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f} %"),
-                      TimeElapsedColumn(), console=console, transient=True) as bar:
-            task = bar.add_task(f"simulating the last {days:g} days of {robots} robots", total=1.0)
+                      TimeElapsedColumn(), console=console, transient=True,
+                      disable=not console.is_terminal) as bar:
+            task = bar.add_task(what, total=1.0)
+            logged = ProgressLog(what, PROGRESS_LOG_S)
+
+            def progress(done: float) -> None:
+                bar.update(task, completed=done)
+                if not console.is_terminal:
+                    logged.update(done)
+
             result = backfill(store, ros_map, days=days, robots=robots, now_ms=SystemClock().now_ms(),
                               conflict_window_ms=int(settings.conflict_window_s * 1000),
-                              progress=lambda done: bar.update(task, completed=done))
+                              progress=progress)
     finally:
         store.close()
     console.print(f"wrote {days:g} days of demo history in {result.seconds:.0f} s: {result.poses:,} poses, "
@@ -331,6 +367,9 @@ def supervise(stack, console, base_s: float = 1.0) -> None:
         base_s=base_s)
     while True:
         supervisor.check()
+        if stack.reload_mqtt_if_files_changed():
+            console.print("robots' MQTT credentials changed: Mosquitto restarted to read them "
+                          "(its queued messages kept)")
         time.sleep(0.5)
 
 

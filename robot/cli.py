@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import time
@@ -221,24 +220,18 @@ def _is_emqx(files) -> bool:
 
 
 def _reload_local_mosquitto(files) -> str:
-    """SIGHUPs the Mosquitto whose pid the local stack wrote next to the files, if it runs."""
+    """How the change reaches the broker. Never a SIGHUP: Mosquitto 2.0.11 that started from
+    its store and then got SIGHUP (with an ACL) no longer delivers to the persistent sessions
+    it restored (the gateway's), losing what robots publish meanwhile; a restart keeps them."""
     if _is_emqx(files):
         return ("EMQX checks it at the robot's next connect (a connected client stays "
                 "connected: kick it from the dashboard's Clients page)")
-    pid_file = files.password_file.with_name("mosquitto.pid")
-    try:
-        pid = int(pid_file.read_text().strip())
-        cmdline = open(f"/proc/{pid}/cmdline", "rb").read()
-    except (OSError, ValueError):
-        return ("a running Mosquitto reads the files again on SIGHUP (`kill -HUP <pid>`; "
-                "compose: `docker compose kill -s HUP mosquitto`)")
-    if b"mosquitto" not in cmdline:
-        return "no running Mosquitto of this data dir; it reads the files when it starts"
-    try:
-        os.kill(pid, signal.SIGHUP)
-    except OSError as exc:
-        return f"could not tell Mosquitto (pid {pid}) to reload ({exc}): `kill -HUP {pid}`"
-    return f"the local Mosquitto (pid {pid}) was told to read them again (SIGHUP)"
+    if (files.password_file.parent.parent / "up.pids.json").exists():
+        return ("the running `mapservice up` restarts its Mosquitto within a second or two to "
+                "read them (queued messages are kept; clients reconnect)")
+    return ("Mosquitto reads them when it starts: restart a running one (compose: `docker "
+            "compose restart mosquitto`; not SIGHUP, which on Mosquitto 2.0.11 can stop "
+            "delivery to the gateway's persistent session)")
 
 
 def _robot_identity(args) -> None:

@@ -60,20 +60,21 @@ def tansu_binary() -> Path:
     return path
 
 
-def start_tansu(port: int, log_file=None) -> subprocess.Popen:
+def start_tansu(port: int, log_file=None, preexec_fn=None) -> subprocess.Popen:
     ensure_port_free(port, "Kafka (tansu)")
     url = f"tcp://127.0.0.1:{port}"
     proc = subprocess.Popen(
         [str(tansu_binary()), "broker", "--listener-url", url, "--advertised-listener-url", url,
          "--storage-engine", "memory://tansu/"],
         stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=preexec_fn,
     )
     wait_for_port(port, proc=proc, what="tansu")
     return proc
 
 
-def start_amqtt(port: int, log_file=None, ws_port: int | None = None) -> subprocess.Popen:
+def start_amqtt(port: int, log_file=None, ws_port: int | None = None,
+                preexec_fn=None) -> subprocess.Popen:
     """amqtt on 127.0.0.1:port; with ws_port also MQTT over WebSocket there (for browsers)."""
     ensure_port_free(port, "MQTT (amqtt)")
     if ws_port:
@@ -82,7 +83,7 @@ def start_amqtt(port: int, log_file=None, ws_port: int | None = None) -> subproc
         [sys.executable, "-m", "mapservice.local.embedded", "amqtt", str(port),
          *([str(ws_port)] if ws_port else [])],
         stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=preexec_fn,
     )
     wait_for_port(port, proc=proc, what="amqtt")
     if ws_port:
@@ -153,11 +154,16 @@ class MosquittoOptions:
     require_client_certificate: bool = False
     # Sessions and queued QoS 1 messages kept here across restarts (None: in memory only).
     store_dir: Path | None = None
+    # The largest payload the broker takes (bytes); a larger PUBLISH is dropped (MQTT 3.1.1)
+    # or refused (MQTT 5) before it is queued or stored. None: Mosquitto's own (256 MB).
+    message_size_limit: int | None = None
 
 
 def mosquitto_conf(port: int, ws_port: int | None = None,
                    options: MosquittoOptions = MosquittoOptions()) -> str:
     text = MOSQUITTO_CONF.format(port=port)
+    if options.message_size_limit is not None:
+        text += f"message_size_limit {options.message_size_limit}\n"
     if options.password_file is not None:
         text += MOSQUITTO_AUTH.format(password_file=options.password_file,
                                       acl_file=options.acl_file)
@@ -182,9 +188,12 @@ def mosquitto_conf(port: int, ws_port: int | None = None,
 
 
 def start_mosquitto(port: int, workdir: Path, log_file=None, ws_port: int | None = None,
-                    options: MosquittoOptions = MosquittoOptions()) -> subprocess.Popen:
+                    options: MosquittoOptions = MosquittoOptions(),
+                    preexec_fn=None) -> subprocess.Popen:
     """mosquitto on 127.0.0.1:port; with ws_port also MQTT over WebSocket there; `options`
-    add authentication, a TLS listener and a store."""
+    add authentication, a TLS listener and a store. Its password file and ACL are read at
+    start: to change them, restart it (a SIGHUP after a start from the store stops
+    delivery to the restored sessions on Mosquitto 2.0.11; Stack.reload_mqtt)."""
     ensure_port_free(port, "MQTT (mosquitto)")
     if ws_port:
         ensure_port_free(ws_port, "MQTT over WebSocket (mosquitto)")
@@ -199,7 +208,8 @@ def start_mosquitto(port: int, workdir: Path, log_file=None, ws_port: int | None
         options.store_dir.mkdir(parents=True, exist_ok=True)
     conf.write_text(mosquitto_conf(port, ws_port, options))
     proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log_file or subprocess.DEVNULL,
-                            stderr=subprocess.STDOUT, start_new_session=True)
+                            stderr=subprocess.STDOUT, start_new_session=True,
+                            preexec_fn=preexec_fn)
     wait_for_port(port, proc=proc, what="mosquitto")
     if ws_port:
         wait_for_port(ws_port, proc=proc, what="mosquitto's WebSocket listener")

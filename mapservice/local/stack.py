@@ -7,7 +7,6 @@ run exactly what production runs, only with local addresses.
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -23,7 +22,7 @@ import structlog
 from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, BrokerFiles,
                                            RobotCredential, new_password)
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.local import embedded
+from mapservice.local import embedded, lifetime
 from mapservice.local.certs import make_server_cert
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
@@ -87,6 +86,12 @@ class Stack:
     # (so its own persistent session) and health port.
     gateways: int = 1
     gateway_health_ports: list[int] = field(default_factory=list)
+    # `mapservice up`: its processes create files only its user reads; `up` and its
+    # components are recorded in the data dir's pid file, a guard stops them in order when
+    # `up` dies (even by kill -9), and the next `up` finds what a dead one left running
+    # (mapservice.local.lifetime).
+    tied_to_parent: bool = False
+    guard: subprocess.Popen | None = None
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -120,6 +125,47 @@ class Stack:
             self.mqtts_url = f"mqtts://127.0.0.1:{self.mqtt_tls_port}"
         self.tls_dir = self.data_dir / "tls"
         self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
+        self.pid_file = lifetime.PidFile.in_data_dir(self.data_dir)
+        # The broker files as the running Mosquitto read them, and a change seen once
+        # (applied when it holds still: `robot add` replaces the two files one by one).
+        self._broker_files_read: tuple = ()
+        self._broker_files_seen: tuple = ()
+
+    @property
+    def _preexec(self):
+        # Not the parent-death signal: all at once, tansu's memory went before the
+        # processors had read the last messages from it. The guard stops them in order.
+        return lifetime.private_files if self.tied_to_parent else None
+
+    def start_guard(self) -> None:
+        """The guard that stops the components in order when this process dies."""
+        self.guard = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.local.lifetime", lifetime.GUARD,
+             str(self.pid_file.path), str(os.getpid())],
+            stdout=self._log("guard"), stderr=subprocess.STDOUT, start_new_session=True,
+            preexec_fn=lifetime.die_with_parent)
+        self._record()
+
+    def _record(self) -> None:
+        """The pid file names `up` and every component running now."""
+        if self.tied_to_parent:
+            running = {name: proc.pid for name, proc in self.procs.items() if proc.poll() is None}
+            if self.guard is not None and self.guard.poll() is None:
+                running[lifetime.GUARD] = self.guard.pid
+            self.pid_file.write(running)
+
+    def protect_data_dir(self) -> None:
+        """The data dir 0700 and nothing in it readable by others (it holds the secrets, the
+        broker's store and password file, the logs and the history): also a data dir made by
+        an older release, whose files were group and world readable."""
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        self.data_dir.chmod(0o700)
+        for root, dirs, files in os.walk(self.data_dir):
+            for name in dirs + files:
+                path = Path(root, name)
+                mode = path.lstat().st_mode
+                if not path.is_symlink() and mode & 0o077:
+                    path.chmod(mode & 0o7700)
 
     @property
     def api_url(self) -> str:
@@ -211,8 +257,9 @@ class Stack:
         self.commands[name] = args
         proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args], env=self.env(name),
                                 stdout=self._log(name), stderr=subprocess.STDOUT,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=self._preexec)
         self.procs[name] = proc
+        self._record()
         return proc
 
     def start_gateway(self, replica: int = 1) -> subprocess.Popen:
@@ -257,8 +304,9 @@ class Stack:
         proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", "api"],
                                 env={**self.env(), "MAPSERVICE_API_PORT": str(port), **(env or {})},
                                 stdout=self._log(name), stderr=subprocess.STDOUT,
-                                start_new_session=True)
+                                start_new_session=True, preexec_fn=self._preexec)
         self.procs[name] = proc
+        self._record()
         embedded.wait_for_port(port, timeout_s=120, proc=proc, what=name)
         self.wait_healthy(f"http://127.0.0.1:{port}/readyz", name, proc)
         return proc
@@ -280,7 +328,9 @@ class Stack:
     def start_kafka(self) -> subprocess.Popen:
         """tansu keeps topics in memory: a new one gets the topics and the map meta again."""
         embedded.stop(self.procs.pop("kafka", None))
-        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
+        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"),
+                                                   preexec_fn=self._preexec)
+        self._record()
         ensure_topics(self.settings())
         if self.meta is not None:
             self.publish_meta(self.meta)
@@ -290,26 +340,58 @@ class Stack:
         embedded.stop(self.procs.pop("mqtt", None))
         if self.mqtt == "amqtt":
             self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"),
-                                                      ws_port=self.mqtt_ws_port)
+                                                      ws_port=self.mqtt_ws_port,
+                                                      preexec_fn=self._preexec)
         elif self.mqtt == "mosquitto":
             self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
                                                           self._log("mosquitto"),
                                                           ws_port=self.mqtt_ws_port,
-                                                          options=self._mosquitto_options())
-            if self.mqtt_auth:  # `mapservice robot add` tells this broker to reload (SIGHUP)
-                self.broker_files.password_file.with_name("mosquitto.pid").write_text(
-                    f"{self.procs['mqtt'].pid}\n")
+                                                          options=self._mosquitto_options(),
+                                                          preexec_fn=self._preexec)
         else:
             raise RuntimeError(f"the MQTT broker at {self.mqtt} is not this stack's to start")
+        self._record()
+        self._broker_files_read = self._broker_files_seen = self._broker_files_state()
         return self.procs["mqtt"]
+
+    def _broker_files_state(self) -> tuple:
+        state = []
+        for path in (self.broker_files.password_file, self.broker_files.acl_file):
+            try:
+                info = path.stat()
+                state.append((info.st_mtime_ns, info.st_size, info.st_ino))
+            except FileNotFoundError:
+                state.append(None)
+        return tuple(state)
+
+    def reload_mqtt_if_files_changed(self) -> bool:
+        """Restarts Mosquitto (reload_mqtt) when its password file or ACL changed since it
+        read them (`mapservice robot add/remove` while `up` runs) and the change held still
+        since the last call; whether it did."""
+        if not self.mqtt_auth or not self.is_alive("mqtt"):
+            return False
+        state = self._broker_files_state()
+        if state == self._broker_files_read:
+            return False
+        if state != self._broker_files_seen:
+            self._broker_files_seen = state
+            return False
+        self.reload_mqtt()
+        return True
 
     def _mosquitto_options(self) -> embedded.MosquittoOptions:
         """The store in the data dir (sessions and queued QoS 1 messages survive a restart),
         password file and ACL (with the service users' passwords), and the TLS listener."""
-        options = embedded.MosquittoOptions(store_dir=self.data_dir / "mosquitto")
+        # The gateway dead-letters a larger message; the broker refuses it before it is
+        # stored (four 50 MB messages for an offline session made a 200 MB store that was
+        # rewritten every second).
+        options = embedded.MosquittoOptions(store_dir=self.data_dir / "mosquitto",
+                                            message_size_limit=self.settings().max_message_bytes)
         if self.mqtt_auth:
             for user in (GATEWAY_USER, PROCESSORS_USER):
                 self.broker_files.set_service_user(user, self.service_password(user))
+            for path in (self.broker_files.password_file, self.broker_files.acl_file):
+                path.chmod(0o600)  # the broker runs as this user (or as root): it reads them
             options = replace(options, password_file=self.broker_files.password_file,
                               acl_file=self.broker_files.acl_file)
         if self.mqtt_tls:
@@ -318,8 +400,8 @@ class Stack:
         return options
 
     def add_robot(self, robot_id: str, *, legacy_chunks: bool = False) -> RobotCredential:
-        """A robot's own MQTT credential, in force once this returns (the broker re-read its
-        files on SIGHUP and accepted the new user)."""
+        """A robot's own MQTT credential, in force once this returns (the broker restarted
+        to read its files and accepted the new user)."""
         if not self.mqtt_auth:
             raise RuntimeError("this stack runs without robot identities (mqtt_auth=False)")
         credential = self.broker_files.add_robot(robot_id, legacy_chunks=legacy_chunks)
@@ -349,10 +431,16 @@ class Stack:
         return path
 
     def reload_mqtt(self) -> None:
-        """Mosquitto reads its password file and ACL again (SIGHUP)."""
+        """A running Mosquitto reads its password file and ACL again: stopped (it saves its
+        store: sessions and queued messages) and started again from that store; clients
+        reconnect and resend what was not acknowledged. Never SIGHUP: Mosquitto 2.0.11 that
+        started from its store and then got SIGHUP (with an ACL) no longer delivers to the
+        persistent sessions it restored, the gateway's among them, so every message robots
+        publish until the gateway reconnects is lost (tests/mapservice/local/
+        test_mosquitto_reload.py)."""
         proc = self.procs.get("mqtt")
-        if proc is not None and proc.poll() is None:
-            proc.send_signal(signal.SIGHUP)
+        if self.mqtt == "mosquitto" and proc is not None and proc.poll() is None:
+            self.start_mqtt()
 
     def restart(self, name: str) -> subprocess.Popen:
         """Starts component `name` again after it exited (the supervisor of `up` calls this)."""
@@ -404,11 +492,18 @@ class Stack:
             self.stop()
 
     def stop(self) -> None:
+        if self.guard is not None:  # this process stops them itself, in the same order
+            self.guard.kill()
+            self.guard.wait()
+            self.guard = None
         for name in ("sim", "gateway", "server", "api", "processors", "mqtt", "kafka"):
             embedded.stop(self.procs.pop(name, None))
+            self._record()
         for proc in self.procs.values():
             embedded.stop(proc)
         self.procs.clear()
+        if self.tied_to_parent:
+            self.pid_file.remove()
 
     def __enter__(self) -> "Stack":
         self.start()

@@ -1,0 +1,208 @@
+"""The processes of `mapservice up` live no longer than `up` itself.
+
+Each component runs in a session of its own (Ctrl-C in a terminal reaches `up` alone, which
+then stops them in order). So that a `kill -9` of `up` does not leave them running:
+
+- `up` records itself and every component (pid, start time, command) in a pid file in the
+  data dir;
+- a guard process, in a session of its own, is started with the parent-death signal set
+  (Linux `PR_SET_PDEATHSIG`): when `up` dies, for any reason, the guard gets SIGTERM and
+  stops the recorded components in `up`'s own order (the gateway before the processors,
+  the brokers last: all at once, tansu's memory went before the processors had read the
+  last messages from it, and acknowledged messages were lost);
+- the next `up` on that data dir ends whatever the record names that still runs (the guard
+  killed too, a machine where the signal cannot be set), in the same order, by recorded
+  process group only, and only a process whose start time and command line are still the
+  recorded ones (a reused pid is someone else's).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
+PID_FILE = "up.pids.json"
+GUARD = "guard"
+# Stack.stop's order: who feeds a broker stops before it, the brokers last.
+STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "mqtt", "kafka")
+
+
+def _prctl():
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # not Linux: the pid file still covers it
+        return None
+
+
+_PRCTL = _prctl()
+
+
+def private_files() -> None:
+    """A `preexec_fn`: the child creates files no one else may read (umask 077: secrets,
+    logs, the broker's store, the history)."""
+    os.umask(0o077)
+
+
+def die_with_parent() -> None:
+    """A `preexec_fn`: as private_files, and the child gets SIGTERM when the process that
+    started it dies."""
+    os.umask(0o077)
+    if _PRCTL is not None:
+        _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
+def start_time(pid: int) -> int | None:
+    """The process's start time in clock ticks since boot (/proc/<pid>/stat field 22), None
+    when it does not run (or is a zombie: it runs nothing any more)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    if fields[0] == "Z":
+        return None
+    return int(fields[19])
+
+
+def command_line(pid: int) -> list[str]:
+    try:
+        raw = Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return []
+    return [part.decode(errors="replace") for part in raw.split(b"\0") if part]
+
+
+@dataclass(frozen=True)
+class Recorded:
+    """A process as the pid file saw it started."""
+
+    name: str
+    pid: int
+    start: int | None
+    command: tuple[str, ...]
+
+    @classmethod
+    def of(cls, name: str, pid: int) -> "Recorded":
+        return cls(name, pid, start_time(pid), tuple(command_line(pid)))
+
+    def still_running(self) -> bool:
+        """Whether this very process still runs: same pid, start time and command line."""
+        return (self.start is not None and start_time(self.pid) == self.start
+                and tuple(command_line(self.pid)) == self.command)
+
+
+@dataclass
+class PidFile:
+    """DATA_DIR/up.pids.json: the `up` that runs on this data dir and its components."""
+
+    path: Path
+
+    @classmethod
+    def in_data_dir(cls, data_dir: Path) -> "PidFile":
+        return cls(Path(data_dir) / PID_FILE)
+
+    def write(self, pids: dict[str, int]) -> None:
+        """Records this process as `up` and `pids` (component name -> pid) as its components;
+        a component's start time is read now (it was just started, by this process)."""
+        known = {r.name: r for r in self._read()[1] if r.name in pids and r.pid == pids[r.name]}
+        components = [known.get(name) or Recorded.of(name, pid) for name, pid in pids.items()]
+        record = {"up": _as_json(Recorded.of("up", os.getpid())),
+                  "components": [_as_json(r) for r in components if r.start is not None]}
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        tmp.parent.mkdir(parents=True, exist_ok=True)
+        with open(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as file:
+            json.dump(record, file)
+        os.replace(tmp, self.path)
+
+    def remove(self) -> None:
+        self.path.unlink(missing_ok=True)
+
+    def _read(self) -> tuple[Recorded | None, list[Recorded]]:
+        try:
+            record = json.loads(self.path.read_text())
+            return (_from_json(record["up"]), [_from_json(r) for r in record["components"]])
+        except (OSError, ValueError, KeyError, TypeError):
+            return None, []  # none, or unreadable: nothing to trust in it
+
+    def running_up(self) -> Recorded | None:
+        """The recorded `up`, if it still runs (another `up` on this data dir)."""
+        up, _ = self._read()
+        return up if up is not None and up.pid != os.getpid() and up.still_running() else None
+
+    def leftovers(self) -> list[Recorded]:
+        """Recorded components still running although their `up` does not."""
+        if self.running_up() is not None:
+            return []
+        return self.running_components()
+
+    def running_components(self) -> list[Recorded]:
+        return [r for r in self._read()[1] if r.still_running() and r.pid != os.getpid()]
+
+
+def end(leftovers: list[Recorded], timeout_s: float = 10.0) -> None:
+    """Ends the leftovers one by one in STOP_ORDER (a guard still at work is given the time
+    to finish first): SIGTERM to its process group (each component leads its own session; a
+    stopped one is continued, to act on it), SIGKILL if it still runs after `timeout_s`."""
+    def order(process: Recorded) -> int:
+        return STOP_ORDER.index(process.name) if process.name in STOP_ORDER else len(STOP_ORDER)
+
+    for process in sorted(leftovers, key=order):
+        if process.name == GUARD:
+            _wait_gone(process, timeout_s * len(leftovers))
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            if not process.still_running():
+                break
+            _signal_group(process, sig)
+            _signal_group(process, signal.SIGCONT)
+            _wait_gone(process, timeout_s)
+
+
+def _wait_gone(process: Recorded, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while process.still_running() and time.monotonic() < deadline:
+        time.sleep(0.05)
+
+
+def guard(pid_file: Path, parent: int) -> None:
+    """The guard's life: wait for SIGTERM (its parent `up` died: the parent-death signal),
+    then end what the pid file names, in order. `up` itself ends the guard with SIGKILL
+    when it stops its components itself."""
+    died = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: died.set())
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is `up`'s to act on
+    while not died.wait(1.0):
+        if os.getppid() != parent:  # `up` died before the signal was set
+            break
+    end(PidFile(pid_file).running_components())
+
+
+def _signal_group(process: Recorded, sig: int) -> None:
+    try:
+        if os.getpgid(process.pid) == process.pid:
+            os.killpg(process.pid, sig)
+        else:  # not a group leader (not started by a stack): that process alone
+            os.kill(process.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def _as_json(r: Recorded) -> dict:
+    return {"name": r.name, "pid": r.pid, "start": r.start, "command": list(r.command)}
+
+
+def _from_json(d: dict) -> Recorded:
+    return Recorded(str(d["name"]), int(d["pid"]), d["start"], tuple(d["command"]))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 4 or sys.argv[1] != GUARD:
+        sys.exit("usage: python -m mapservice.local.lifetime guard PID_FILE PARENT_PID")
+    guard(Path(sys.argv[2]), int(sys.argv[3]))

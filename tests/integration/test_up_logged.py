@@ -1,0 +1,72 @@
+"""`mapservice up` with its output to a pipe (a log file, a CI job): its first run says how
+far it got, its address table is whole, and nothing it writes is readable by other users."""
+
+from __future__ import annotations
+
+import os
+import stat
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from mapservice.local.embedded import free_port
+from tests.fixtures.paths import ROOT
+from tests.integration.test_up_floor import Up
+
+pytestmark = pytest.mark.integration
+
+
+class PipedUp(Up):
+    """`up` whose stdout and stderr are a pipe, with no COLUMNS to widen its console."""
+
+    def __init__(self, data_dir, *args: str) -> None:
+        self.api_port, self.mqtt_port = free_port(), free_port()
+        env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
+             "--api-port", str(self.api_port), "--mqtt-port", str(self.mqtt_port), *args],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            start_new_session=True, env=env)
+        self.lines = []
+        threading.Thread(target=self._read, daemon=True).start()
+        self.wait_for("mapservice is up", 200)
+
+
+@pytest.mark.timeout(300)
+def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_private(tmp_path):
+    """To a pipe: the demo history logs its progress, each start-up step logs a line, the
+    table's long values (the analyst password's path, deep in a long data dir) are whole;
+    the data dir is 0700 and no file or directory in it is open to group or others, also
+    what was there before (a file 0644 from an older release)."""
+    data = tmp_path / ("a-data-dir-with-a-long-name-" * 3) / "data"
+    data.mkdir(parents=True)
+    old = data / "left-by-an-older-release.txt"
+    old.write_text("x")
+    old.chmod(0o644)
+    data.chmod(0o755)
+    up = PipedUp(data, "--auth", "--robots", "1", "--history-days", "0.3")
+    try:
+        out = up.output
+        assert "simulating the last 0.3 days of 1 robots" in out and "done_percent=" in out
+        for step in ("starting Kafka-protocol broker", "starting processors + API",
+                     "starting the MQTT-to-Kafka gateway"):
+            assert step in out
+        password_path = str(data / "secrets" / "analyst-password")
+        assert any(password_path in line for line in out.splitlines()), out[-3000:]
+        assert "…" not in out.split("mapservice is up", 1)[1]
+        assert stat.S_IMODE(data.stat().st_mode) == 0o700
+        exposed = []
+        for root, dirs, files in os.walk(data):
+            for name in dirs + files:
+                path = os.path.join(root, name)
+                mode = os.lstat(path).st_mode
+                if not stat.S_ISLNK(mode) and mode & 0o077:
+                    exposed.append(f"{oct(stat.S_IMODE(mode))} {os.path.relpath(path, data)}")
+        assert not exposed, exposed
+        for must in ("secrets/robots.json", "logs/server.log", "logs/mosquitto.log",
+                     "mqtt/passwd", "mqtt/acl"):
+            assert (data / must).exists(), must
+    finally:
+        up.stop()

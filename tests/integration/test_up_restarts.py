@@ -1,0 +1,194 @@
+"""`mapservice up` restarted while a robot publishes at QoS 1 loses nothing it acknowledged:
+Ctrl-C (SIGINT), kill -9 of its process group and kill -9 of `up` alone, with and without
+`--auth`. The robot is a paho client with a persistent session that counts PUBACKs; the
+gateway's persistent session holds what arrives while it is down. Each restart must also
+find the ports free (no component outlives its `up`). Bounded: about two minutes a test."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import paho.mqtt.client as mqtt
+import pytest
+
+from mapservice.core.wire2019 import encode_coordinates, format_timestamp
+from mapservice.local import embedded, lifetime
+from mapservice.local.embedded import free_port
+from tests.fixtures.paths import ROOT
+from tests.integration.test_up_auth import connect_code
+from tests.integration.test_up_floor import Up, children
+
+pytestmark = [pytest.mark.integration,
+              pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto")]
+
+
+class UpOn(Up):
+    """`mapservice up` on given ports (the robot reconnects to the same broker address)."""
+
+    def __init__(self, data_dir, api_port: int, mqtt_port: int, *args: str) -> None:
+        self.api_port, self.mqtt_port = api_port, mqtt_port
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
+             "--api-port", str(api_port), "--mqtt-port", str(mqtt_port), "--robots", "0",
+             "--history-days", "0", *args],
+            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            start_new_session=True)
+        self.lines = []
+        threading.Thread(target=self._read, daemon=True).start()
+        self.wait_for("mapservice is up", 150)
+
+
+class Robot:
+    """Publishes a pose every 20 ms at QoS 1 (persistent session, reconnecting); a pose
+    counts as acknowledged when its PUBACK arrives."""
+
+    def __init__(self, port: int, robot_id: str, password: str | None = None) -> None:
+        self.robot_id = robot_id
+        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=robot_id,
+                                  clean_session=False)
+        if password:
+            self.client.username_pw_set(robot_id, password)
+        self.client.reconnect_delay_set(0.2, 1)
+        self.client.max_queued_messages_set(0)
+        self.client.max_inflight_messages_set(100)
+        self.sent: dict[int, int] = {}  # mid -> the pose's timestamp (ms)
+        self.acked: set[int] = set()
+        self.lock = threading.Lock()
+        self.client.on_publish = self._on_publish
+        self.client.connect("127.0.0.1", port, keepalive=5)
+        self.client.loop_start()
+        self.running = True
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _on_publish(self, _c, _u, mid, reason_code, _p) -> None:
+        with self.lock:
+            if mid in self.sent and not reason_code.is_failure:
+                self.acked.add(self.sent[mid])
+
+    def _run(self) -> None:
+        ts = int(time.time() * 1000)
+        while self.running:
+            ts = max(ts + 1, int(time.time() * 1000))
+            with self.lock:  # the PUBACK may arrive before publish() returns its mid
+                info = self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
+                    self.robot_id, format_timestamp(ts), 1.0, 2.0), qos=1)
+                self.sent[info.mid] = ts
+            time.sleep(0.02)
+
+    def stop(self, timeout_s: float = 30) -> None:
+        """Stops publishing and waits for the PUBACKs of what is in flight."""
+        self.running = False
+        self.thread.join()
+        deadline = time.monotonic() + timeout_s
+        while len(self.acked) < len(self.sent) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        self.client.disconnect()
+        self.client.loop_stop()
+
+
+def stored_timestamps(up: Up, robot_id: str, from_ms: int) -> list[int]:
+    rows = up.api("/api/v1/poses", robotId=robot_id, limit=100_000,
+                  **{"from": from_ms, "to": int(time.time() * 1000) + 60_000}).json()
+    return [row["ts_ms"] for row in rows]
+
+
+def restarted(up: Up, how: str, data_dir, *args: str) -> Up:
+    """Ends `up` as `how` says and starts it again on the same ports and data dir."""
+    if how == "SIGINT":
+        up.proc.send_signal(signal.SIGINT)
+    elif how == "kill -9 of its process group":
+        os.killpg(up.proc.pid, signal.SIGKILL)
+    elif how == "kill -9 of up alone":
+        up.proc.kill()
+    up.proc.wait(60)
+    time.sleep(3)  # the robot publishes on into a broker that is down: its session queues
+    return UpOn(data_dir, up.api_port, up.mqtt_port, *args)
+
+
+@pytest.mark.timeout(420)
+@pytest.mark.parametrize("auth", [False, True], ids=["anonymous", "auth"])
+def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, auth):
+    """A robot publishes 50 poses/s while `up` is stopped with Ctrl-C, killed with its process
+    group and killed alone, each time started again, and (with --auth) while a robot is added:
+    every pose the broker acknowledged is stored, none twice. (Before: with --auth, `up`'s
+    SIGHUP to the restarted Mosquitto lost what was queued for the gateway; after a kill -9
+    the next `up` failed on its own orphans' ports.)"""
+    data = tmp_path / "data"
+    args = ("--auth",) if auth else ()
+    up = UpOn(data, free_port(), free_port(), *args)
+    robot_id, password = "restart-robot", None
+    if auth:
+        robot_id = "controller-1"  # `up --auth` gives the /controller page's robot a credential
+        password = json.loads((data / "secrets" / "robots.json").read_text())[robot_id]
+    started_ms = int(time.time() * 1000) - 1_000
+    robot = Robot(up.mqtt_port, robot_id, password)
+    try:
+        time.sleep(4)
+        for how in ("SIGINT", "kill -9 of its process group", "kill -9 of up alone"):
+            up = restarted(up, how, data, *args)
+            time.sleep(4)
+        if auth:
+            # A robot added while `up` runs: `up` restarts its broker to read the new
+            # credential (a SIGHUP here would lose what is queued for the gateway).
+            added = subprocess.run([sys.executable, "-m", "mapservice.cli", "robot", "add",
+                                    "added-while-up-runs", "--data-dir", str(data), "--json"],
+                                   cwd=ROOT, capture_output=True, text=True, timeout=60)
+            assert added.returncode == 0, added.stderr
+            up.wait_for("Mosquitto restarted to read them", 20)
+            new_password = json.loads(added.stdout)["password"]
+            assert connect_code(up.mqtt_port, "added-while-up-runs", new_password) == 0
+            time.sleep(4)
+        robot.stop()
+        acked = set(robot.acked)
+        deadline = time.monotonic() + 60
+        stored = stored_timestamps(up, robot_id, started_ms)
+        while not acked <= set(stored) and time.monotonic() < deadline:
+            time.sleep(1)
+            stored = stored_timestamps(up, robot_id, started_ms)
+        time.sleep(2)  # a duplicate would show up now
+        stored = stored_timestamps(up, robot_id, started_ms)
+        lost = acked - set(stored)
+        twice = len(stored) - len(set(stored))
+        print(f"\n{'--auth' if auth else 'anonymous'}: published {len(robot.sent)}, "
+              f"acknowledged {len(acked)}, stored {len(set(stored))}, lost {len(lost)}, "
+              f"stored twice {twice}")
+        assert len(acked) > 500
+        assert not lost, f"{len(lost)} of {len(acked)} acknowledged poses lost"
+        assert twice == 0
+    finally:
+        robot.running = False
+        up.stop()
+
+
+@pytest.mark.timeout(240)
+def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
+    """The guard that stops the components when `up` dies is killed, the server stopped
+    (SIGSTOP) and `up` killed with kill -9: the server still holds the API port. The next
+    `up` finds it in the pid file, says so, ends it and comes up on the same ports."""
+    data = tmp_path / "data"
+    up = UpOn(data, free_port(), free_port())
+    server = children(up.proc.pid)["serve"]
+    try:
+        guard = json.loads((data / "up.pids.json").read_text())["components"]
+        os.kill(next(c["pid"] for c in guard if c["name"] == "guard"), signal.SIGKILL)
+        os.kill(server, signal.SIGSTOP)
+        up.proc.kill()
+        up.proc.wait(30)
+        time.sleep(1)
+        assert lifetime.start_time(server) is not None, "the stopped server did not outlive up"
+        up = UpOn(data, up.api_port, up.mqtt_port)
+        assert "ended without stopping its components" in up.output
+        assert f"server (pid {server})" in up.output
+        assert lifetime.start_time(server) is None
+        assert up.api("/readyz").status_code == 200
+    finally:
+        up.stop()
+        if lifetime.start_time(server) is not None:  # not ended: do not leave it behind
+            os.kill(server, signal.SIGKILL)

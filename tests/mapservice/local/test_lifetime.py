@@ -1,0 +1,149 @@
+"""What `up` starts dies with it, or the next `up` finds it in the pid file and ends it, never
+touching a process that is not the recorded one."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from mapservice.local import lifetime
+
+SLEEPER = [sys.executable, "-c", "import time; time.sleep(120)"]
+
+
+def wait_gone(pid: int, timeout_s: float = 10) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if lifetime.start_time(pid) is None:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_a_child_started_with_die_with_parent_ends_when_its_parent_is_killed(tmp_path):
+    """The parent (as `up`) starts a child in a session of its own with the preexec, then is
+    killed with SIGKILL: the child gets SIGTERM and ends. Its files are 0600 (umask 077)."""
+    child_code = "import sys, time; open(sys.argv[1], 'w').close(); time.sleep(120)"
+    code = ("import subprocess, sys, time\n"
+            "from mapservice.local.lifetime import die_with_parent\n"
+            f"child = subprocess.Popen([sys.executable, '-c', {child_code!r}, sys.argv[1]],"
+            " start_new_session=True, preexec_fn=die_with_parent)\n"
+            "print(child.pid, flush=True)\n"
+            "time.sleep(120)\n")
+    made = tmp_path / "made-by-child"
+    parent = subprocess.Popen([sys.executable, "-c", code, str(made)], stdout=subprocess.PIPE,
+                              text=True)
+    child = int(parent.stdout.readline())
+    try:
+        deadline = time.monotonic() + 10
+        while not made.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert made.stat().st_mode & 0o777 == 0o600
+        assert lifetime.start_time(child) is not None
+        parent.kill()
+        parent.wait()
+        assert wait_gone(child), "the child outlived its killed parent"
+    finally:
+        if lifetime.start_time(child) is not None:
+            os.kill(child, signal.SIGKILL)
+
+
+def test_the_next_up_ends_what_the_last_one_left_and_only_that(tmp_path):
+    """A pid file written by an `up` that no longer runs names two components still running:
+    both are found and ended (their process groups). A recorded pid whose process is not the
+    recorded one (its start time or command differs: the pid was reused) is left alone."""
+    pid_file = lifetime.PidFile.in_data_dir(tmp_path)
+    left = [subprocess.Popen(SLEEPER, start_new_session=True) for _ in range(2)]
+    stranger = subprocess.Popen(SLEEPER, start_new_session=True)
+    try:
+        pid_file.write({"gateway": left[0].pid, "server": left[1].pid})
+        assert oct(pid_file.path.stat().st_mode & 0o777) == oct(0o600)
+        record = pid_file.path.read_text()
+        # As if `up` had been another, dead process, and `mqtt` a process since replaced by
+        # the stranger under the same pid.
+        dead = subprocess.Popen([sys.executable, "-c", "pass"])
+        dead.wait()
+        import json
+
+        data = json.loads(record)
+        data["up"]["pid"] = dead.pid
+        data["components"].append({"name": "mqtt", "pid": stranger.pid, "start": 1,
+                                   "command": ["/usr/sbin/mosquitto"]})
+        pid_file.path.write_text(json.dumps(data))
+        assert pid_file.running_up() is None
+        found = pid_file.leftovers()
+        assert sorted(p.name for p in found) == ["gateway", "server"]
+        lifetime.end(found)
+        assert all(p.wait(10) == -signal.SIGTERM for p in left)
+        assert stranger.poll() is None, "a process that only has a recorded pid was ended"
+    finally:
+        for proc in (*left, stranger):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def test_a_running_up_is_found_and_its_components_are_not_leftovers(tmp_path):
+    """While the `up` that wrote the pid file runs, another `up` is told so and ends nothing."""
+    up = subprocess.Popen([sys.executable, "-c",
+                           "import sys, time\n"
+                           "from mapservice.local.lifetime import PidFile\n"
+                           f"PidFile.in_data_dir({str(tmp_path)!r}).write({{}})\n"
+                           "print('written', flush=True); time.sleep(120)"],
+                          stdout=subprocess.PIPE, text=True)
+    try:
+        assert up.stdout.readline().strip() == "written"
+        pid_file = lifetime.PidFile.in_data_dir(tmp_path)
+        running = pid_file.running_up()
+        assert running is not None and running.pid == up.pid
+        assert pid_file.leftovers() == []
+    finally:
+        up.kill()
+        up.wait()
+    assert lifetime.PidFile.in_data_dir(tmp_path).running_up() is None
+
+
+def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
+    """`up` (here a stand-in) records a guard and two components, then is killed with
+    SIGKILL: the guard stops the gateway first, and only once it has exited the broker
+    (all at once, the broker quit first: it has nothing to finish)."""
+    log = tmp_path / "stopped"
+    component = ("import signal, sys, time\n"
+                 "def stop(*_):\n"
+                 "    time.sleep(float(sys.argv[2]))\n"
+                 f"    open({str(log)!r}, 'a').write(sys.argv[1] + chr(10)); sys.exit(0)\n"
+                 "signal.signal(signal.SIGTERM, stop)\n"
+                 "print('ready', flush=True)\n"
+                 "while True: time.sleep(1)\n")
+    up_code = ("import subprocess, sys, time, os\n"
+               "from pathlib import Path\n"
+               "from mapservice.local import lifetime\n"
+               f"pid_file = lifetime.PidFile.in_data_dir({str(tmp_path)!r})\n"
+               f"component = {component!r}\n"
+               "procs = {name: subprocess.Popen([sys.executable, '-c', component, name, delay],"
+               " start_new_session=True, stdout=subprocess.PIPE, text=True)"
+               " for name, delay in (('kafka', '0'), ('gateway', '1'))}\n"
+               "for proc in procs.values(): proc.stdout.readline()\n"
+               "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
+               " str(pid_file.path), str(os.getpid())], start_new_session=True,"
+               " preexec_fn=lifetime.die_with_parent)\n"
+               "pids = {name: p.pid for name, p in procs.items()}\n"
+               "pids['guard'] = guard.pid\n"
+               "pid_file.write(pids)\n"
+               "print(' '.join(str(p) for p in pids.values()), flush=True)\n"
+               "time.sleep(120)\n")
+    up = subprocess.Popen([sys.executable, "-c", up_code], stdout=subprocess.PIPE, text=True)
+    pids = [int(p) for p in up.stdout.readline().split()]
+    try:
+        time.sleep(1.5)  # the guard has installed its signal handler
+        up.kill()
+        up.wait()
+        assert all(wait_gone(pid, 20) for pid in pids), "the guard did not end them"
+        assert log.read_text().split() == ["gateway", "kafka"]
+    finally:
+        for pid in pids:
+            if lifetime.start_time(pid) is not None:
+                os.kill(pid, signal.SIGKILL)
