@@ -122,19 +122,17 @@ class RetentionMixin(SnapshotsMixin):
         return int(count)
 
     def _carry_poses(self, anchor_ms: int, cut: dt.date) -> None:
-        """Keeps in `carried_poses` exactly the poses the anchor snapshot names that are
-        older than the cut: each robot's last pose, however long it has been silent."""
+        """Carries the poses the anchor snapshot names that are older than the cut: each
+        robot's last pose, however long it has been silent (one row per robot: the newer
+        carried pose replaces the older, merged at once, the table holding a row a robot)."""
         db = self.database
-        named = (f"SELECT robot_id, ts FROM {db}.robot_snapshots "
-                 "WHERE snap_ts = fromUnixTimestamp64Milli({a:Int64})")
-        params = {"a": anchor_ms, "c": cut}
         self.client.command(
             f"INSERT INTO {db}.carried_poses SELECT * FROM {db}.poses FINAL "
-            f"WHERE ts < toDateTime64({{c:Date}}, 3, 'UTC') AND (robot_id, ts) IN ({named})",
-            parameters=params)
-        self.client.command(
-            f"DELETE FROM {db}.carried_poses WHERE (robot_id, ts) NOT IN ({named})",
-            parameters=params)
+            "WHERE ts < toDateTime64({c:Date}, 3, 'UTC') AND (robot_id, ts) IN "
+            f"(SELECT robot_id, ts FROM {db}.robot_snapshots "
+            "WHERE snap_ts = fromUnixTimestamp64Milli({a:Int64}))",
+            parameters={"a": anchor_ms, "c": cut})
+        self.client.command(f"OPTIMIZE TABLE {db}.carried_poses FINAL")
 
     def _drop_superseded_meta(self, boundary_ms: int) -> None:
         """Map metadata replaced before the boundary: the one in force at the boundary stays."""

@@ -337,10 +337,10 @@ def _service_retention(db: str) -> tuple[str, ...]:
     service's clock (a simulated one in tests: the same code). Safe to run twice."""
     return (
         *(f"ALTER TABLE {db}.{table} REMOVE TTL" for table in (*DAY_PARTITIONED, "snapshot_log")),
-        # Each robot's pose the anchor snapshot names whose day went with the retention (a
-        # robot silent since): robots_at reads it beside `poses`.
+        # Each robot's last pose older than the kept days (a robot silent since), one row
+        # per robot (the latest carried wins): robots_at reads it beside `poses`.
         f"""CREATE TABLE IF NOT EXISTS {db}.carried_poses AS {db}.poses
-            ENGINE = ReplacingMergeTree ORDER BY (robot_id, ts)""",
+            ENGINE = ReplacingMergeTree(ts) ORDER BY robot_id""",
     )
 
 
