@@ -341,6 +341,7 @@ def _service_retention(db: str) -> tuple[str, ...]:
         # per robot (the latest carried wins): robots_at reads it beside `poses`.
         f"""CREATE TABLE IF NOT EXISTS {db}.carried_poses AS {db}.poses
             ENGINE = ReplacingMergeTree(ts) ORDER BY robot_id""",
+        *analyst_schema.comment_statements(db, analyst_schema.comments_of("carried_poses")),
     )
 
 
