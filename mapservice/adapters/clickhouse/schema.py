@@ -338,9 +338,11 @@ def _service_retention(db: str) -> tuple[str, ...]:
     return (
         *(f"ALTER TABLE {db}.{table} REMOVE TTL" for table in (*DAY_PARTITIONED, "snapshot_log")),
         # Each robot's last pose older than the kept days (a robot silent since), one row
-        # per robot (the latest carried wins): robots_at reads it beside `poses`.
+        # per robot (the latest carried wins): robots_at reads it beside `poses`. One
+        # partition (AS would copy the day partitions of `poses`, and rows of two days
+        # never replace each other).
         f"""CREATE TABLE IF NOT EXISTS {db}.carried_poses AS {db}.poses
-            ENGINE = ReplacingMergeTree(ts) ORDER BY robot_id""",
+            ENGINE = ReplacingMergeTree(ts) PARTITION BY tuple() ORDER BY robot_id""",
         *analyst_schema.comment_statements(db, analyst_schema.comments_of("carried_poses")),
     )
 
