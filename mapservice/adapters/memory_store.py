@@ -147,21 +147,23 @@ class MemoryStore:
     def apply_retention(self, now_ms: int) -> RetentionResult:
         """As ClickHouse's retention step, with the boundary itself as the anchor: the
         floor at the boundary is carried, the days before the boundary's day go, contents
-        stay while a kept write or the carried floor names them."""
+        stay while a kept write or the carried floor names them, and so does each robot's
+        last pose at the boundary."""
         boundary = now_ms - self.retention_days * DAY_MS
         cut = boundary // DAY_MS * DAY_MS
         with self._lock:
-            if not any(k[0] < cut for k in self._chunks) and not any(
-                    ts < cut for _, ts in self._poses):
+            carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
+                list(self._poses.values()), boundary).values()}
+            old_chunks = [k for k in self._chunks if k[0] < cut]
+            old_poses = [k for k in self._poses if k[1] < cut and k not in carried_poses]
+            if not old_chunks and not old_poses:
                 return RetentionResult(boundary, _iso_day(cut), 0, 0)
+            dropped_days = {k[0] // DAY_MS for k in old_chunks} | {k[1] // DAY_MS for k in old_poses}
             self._carried = fold_map([*self._carried.values(), *self._chunks.values()], boundary)
-            dropped_days = {k[0] // DAY_MS for k in self._chunks if k[0] < cut} | {
-                ts // DAY_MS for _, ts in self._poses if ts < cut}
-            self._chunks = {k: v for k, v in self._chunks.items() if k[0] >= cut}
-            # Each robot's last pose at the boundary stays (a robot silent since).
-            carried = {(p.robot_id, p.ts_ms) for p in fold_robots(list(self._poses.values()),
-                                                                   boundary).values()}
-            self._poses = {k: v for k, v in self._poses.items() if k[1] >= cut or k in carried}
+            for k in old_chunks:
+                del self._chunks[k]
+            for k in old_poses:
+                del self._poses[k]
             self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
             self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
             named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
