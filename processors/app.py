@@ -96,7 +96,7 @@ def snapshot_tick_s(settings: Settings) -> float:
     """The snapshot timer's period in real seconds: a quarter of the snapshot interval (at
     most 30 s of the service's clock), shortened by a simulated clock's rate so snapshots
     and retention keep pace with the time they are built for."""
-    return max(0.05, min(30.0, settings.snapshot_every_s / 4) / settings.clock_rate)
+    return max(0.2, min(30.0, settings.snapshot_every_s / 4) / settings.clock_rate)
 
 
 def snapshot_timer(sink: HistorySink, now_ms: Callable[[], int], grace_ms: int
