@@ -248,7 +248,8 @@ class HistoryStore(Protocol):
 
     def delete_chunks(self) -> int:
         """Removes every chunk write and map snapshot (2019 DELETE /chunks); returns how
-        many writes were removed. Pixels stay until their TTL (nothing references them)."""
+        many writes were removed. Pixels stay until the retention drops their day (nothing
+        references them)."""
 
     def delete_meta(self) -> int:
         """Removes every stored map meta (2019 DELETE /meta); returns how many."""
