@@ -819,3 +819,20 @@ def test_retention_twice_and_a_late_write_after_it_keep_the_floor(store, ev) -> 
     assert got == _fold(written, later)
     named = [bytes.fromhex(h) for h in got.values()]
     assert set(store.chunk_contents(named)) == set(named)
+
+
+def test_a_late_write_at_the_retention_boundary_is_folded_into_the_carried_floor(store, ev) -> None:
+    """The snapshot that carries the floor has no events before it any more: a late write at
+    its instant is folded in (ClickHouse refolds that snapshot from its own rows) and the
+    rest of the floor stays."""
+    written = _retention_history(store, ev)
+    now = RET_T0 + 10 * DAY_MS
+    store.build_snapshots(now)
+    store.apply_retention(now)
+    late = ev.chunk("late", now - 7 * DAY_MS, 1, 0, bytes([77]) * 10_000)
+    store.append([late])
+    written.append(late)
+    while store.repair_snapshots():
+        pass
+    for t in (now - 7 * DAY_MS, now - DAY_MS, now):
+        assert {(c.row, c.column): c.content_hash for c in store.map_at(t)} == _fold(written, t)
