@@ -18,7 +18,7 @@ from functools import partial
 
 import structlog
 
-from mapservice.adapters.clock import SystemClock
+from mapservice.adapters.clock import clock_from_settings
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
 from mapservice.runtime.health import kafka_check
 from mapservice.runtime.health_server import serve_health
@@ -205,7 +205,7 @@ class MqttGateway:
         self.settings = settings
         self.gateway_id = settings.mqtt_client_id
         self.publisher = KafkaPublisher(settings, client_id=self.gateway_id)
-        self.ingestor = Ingestor(settings, self.publisher, SystemClock(), self.gateway_id)
+        self.ingestor = Ingestor(settings, self.publisher, clock_from_settings(settings), self.gateway_id)
         self.meta_watcher = MetaWatcher(settings, self.ingestor.apply_meta)
         self.health_port = health_port
         self.kafka_ready = kafka_check(settings)  # readiness: a broker answers metadata

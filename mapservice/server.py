@@ -160,7 +160,10 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             # (`mapservice up` prints where); production: as set, validated by Settings.
             settings = with_local_api_secrets(settings)
 
-            app = create_app(settings, store, readiness, live_hub=hub, publisher=publisher,
+            from mapservice.adapters.clock import clock_from_settings
+
+            app = create_app(settings, store, readiness, clock=clock_from_settings(settings),
+                             live_hub=hub, publisher=publisher,
                              sql_app=await loop.run_in_executor(None, analyst_app, settings))
             app.state.liveness = liveness
             app.state.advisory = advisory

@@ -163,7 +163,21 @@ class Settings(BaseSettings):
     max_message_bytes: int = Field(256 * 1024, ge=1024)
     max_future_skew_s: float = Field(300.0, ge=0)
     # At most 24: receive-minus-event lag is stored in Int32 milliseconds.
-    retention_days: int = Field(7, ge=1, le=24)
+    retention_days: int = Field(7, ge=1, le=24, description=(
+        "History kept, in days of the service's clock; the processors' retention step drops "
+        "older days and carries the floor forward."))
+    # The service's clock (mapservice/adapters/clock.py): the wall clock by default; a
+    # start instant and a rate run it simulated (tests drive weeks of history in minutes
+    # through the same code production runs).
+    clock_start: str = Field("", description=(
+        "Simulated clock: the instant (ISO 8601 UTC or epoch ms) the service's clock reads at "
+        "MAPSERVICE_CLOCK_ORIGIN; empty: the wall clock."))
+    clock_rate: float = Field(1.0, gt=0, le=1_000_000, description=(
+        "Simulated clock: simulated seconds per real second (with MAPSERVICE_CLOCK_START)."))
+    clock_origin: str = Field("", description=(
+        "Simulated clock: the real instant (ISO 8601 UTC or epoch ms) at which it reads "
+        "MAPSERVICE_CLOCK_START; set the same on every process of a stack so their clocks "
+        "agree; empty: when the process starts."))
 
     # Processors
     # Large enough that a backlog (after a slow insert) is caught up in one or two inserts:

@@ -9,12 +9,13 @@ natural-identity keys absorb the repeat.
 from __future__ import annotations
 
 import ssl
+from collections.abc import Awaitable, Callable
 
 import faust
 import structlog
 from prometheus_client import Counter
 
-from mapservice.adapters.clock import SystemClock
+from mapservice.adapters.clock import clock_from_settings
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.settings import Settings
 
@@ -25,7 +26,8 @@ from .views import LiveViews
 log = structlog.get_logger(__name__)
 
 SNAPSHOT_RUNS = Counter("mapservice_snapshot_runs_total",
-                        "Snapshot timer runs on this replica (only the group leader runs it)")
+                        "Snapshot and retention timer runs on this replica (only the group "
+                        "leader runs it)")
 
 
 def faust_broker_url(settings: Settings) -> str:
@@ -53,9 +55,11 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         topic_replication_factor=settings.kafka_replication,
     )
     # Live views (issue 3): latest map + advertisements, robots, conflicts.
-    views = LiveViews.attach(app, settings, sink)
+    # The service's clock (the wall clock unless settings simulate one): the timers, the
+    # retention step and the views all read it.
+    now_ms = clock_from_settings(settings).now_ms
+    views = LiveViews.attach(app, settings, sink, now_ms=now_ms)
     batch, within = settings.sink_batch_size, settings.sink_batch_seconds
-    now_ms = SystemClock().now_ms
 
     # The event topics go to the history in batches below faust's per-record path
     # (history_consumer.py says why); faust runs it, the dead letters, and the timers.
@@ -65,7 +69,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
     consumer = HistoryConsumer(source, sink, views, batch, within,
                                min_batch_seconds=settings.sink_batch_min_seconds,
-                               views_seconds=settings.sink_views_seconds)
+                               views_seconds=settings.sink_views_seconds, now_ms=now_ms)
     source.on_assigned = consumer.on_assigned
     source.on_commit_failed = COMMIT_FAILURES.inc
     sink.consumer = consumer
@@ -83,7 +87,23 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
 
     app.agent(dl_topic, name="history-dead-letters")(sink_dead_letters)
 
-    every_s, grace_ms = settings.snapshot_every_s, int(settings.snapshot_grace_s * 1000)
+    app.timer(snapshot_tick_s(settings), on_leader=True)(
+        snapshot_timer(sink, now_ms, int(settings.snapshot_grace_s * 1000)))
+    return app
+
+
+def snapshot_tick_s(settings: Settings) -> float:
+    """The snapshot timer's period in real seconds: a quarter of the snapshot interval (at
+    most 30 s of the service's clock), shortened by a simulated clock's rate so snapshots
+    and retention keep pace with the time they are built for."""
+    return max(0.2, min(30.0, settings.snapshot_every_s / 4) / settings.clock_rate)
+
+
+def snapshot_timer(sink: HistorySink, now_ms: Callable[[], int], grace_ms: int
+                   ) -> Callable[[], Awaitable[None]]:
+    """One tick: repair what late events invalidated (a bounded step), build the snapshots
+    due by the service's clock, then the retention step (the anchor snapshot first, so the
+    floor crosses the boundary; partitions older than its day dropped)."""
 
     async def build_snapshots() -> None:
         SNAPSHOT_RUNS.inc()
@@ -92,16 +112,15 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
             repaired = await sink.run(sink.store.repair_snapshots)
             if repaired:
                 log.info("snapshots repaired after a late event", count=repaired)
-            built = await sink.run(sink.store.build_snapshots, now_ms() - grace_ms)
+            now = now_ms()
+            built = await sink.run(sink.store.build_snapshots, now - grace_ms)
             if built:
                 log.info("snapshots built", count=built)
+            await sink.run(sink.store.apply_retention, now)
         except Exception as exc:  # the next tick tries again; reads stay correct meanwhile
-            log.error("snapshot build failed", error=str(exc))
+            log.error("snapshot build or retention failed", error=str(exc))
 
-    # on_leader: one replica builds the cluster's snapshots (faust's group leader; another
-    # takes over when it leaves), not every replica the same ones.
-    app.timer(min(30.0, every_s / 4), on_leader=True)(build_snapshots)
-    return app
+    return build_snapshots
 
 
 def _faust_credentials(settings: Settings):

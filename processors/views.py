@@ -239,13 +239,14 @@ class LiveViews:
 
     @classmethod
     def attach(cls, app: "faust.App", settings: Settings, sink: "HistorySink",
-               advertiser: Advertiser | None = None) -> "LiveViews":
+               advertiser: Advertiser | None = None,
+               now_ms: Callable[[], int] = SystemClock().now_ms) -> "LiveViews":
         """Views for a faust app: the history consumer rebuilds them on every partition
         assignment (`rebuild`), the advertiser stops with the app, presence is checked each second."""
         if advertiser is None:
             from .advertiser import MqttAdvertiser
             advertiser = MqttAdvertiser(settings)
-        views = cls(settings, sink.store, advertiser)
+        views = cls(settings, sink.store, advertiser, now_ms)
 
         async def stop(sender, *args, **kwargs) -> None:
             await asyncio.get_running_loop().run_in_executor(None, views.close)

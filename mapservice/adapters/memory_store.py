@@ -6,6 +6,7 @@ It keeps what ClickHouse keeps: positions to the millimetre, quaternions and bat
 
 from __future__ import annotations
 
+import datetime
 import threading
 from collections.abc import Sequence
 
@@ -13,10 +14,15 @@ import numpy as np
 
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
-from mapservice.core.ports import ChunkRow, ConflictRow, Counts, PoseRow, TimelineBucket
+from mapservice.core.ports import (ChunkRow, ConflictRow, Counts, PoseRow, RetentionResult,
+                                   TimelineBucket)
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core.ports import ChunkState
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
+
+
+def _iso_day(ms: int) -> str:
+    return datetime.datetime.fromtimestamp(ms / 1000, datetime.timezone.utc).date().isoformat()
 
 
 def _mm(v: float) -> float:
@@ -27,8 +33,15 @@ def _f32(v: float | None) -> float | None:
     return None if v is None else float(np.float32(v))
 
 
+DAY_MS = 86_400_000
+
+
 class MemoryStore:
-    def __init__(self) -> None:
+    def __init__(self, retention_days: int = 7) -> None:
+        self.retention_days = retention_days
+        # The floor carried across the retention boundary: per chunk, the winning write at
+        # the last boundary applied (ClickHouse: the anchor snapshot's rows).
+        self._carried: dict[tuple[int, int], ChunkState] = {}
         self._poses: dict[tuple[str, int], PoseRow] = {}
         self._chunks: dict[tuple[int, int, int, str], ChunkRow] = {}
         self._contents: dict[bytes, tuple[int, int, bytes]] = {}
@@ -118,7 +131,7 @@ class MemoryStore:
         return any(r == robot_id for r, _ in self._poses)
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
-        state = fold_map(list(self._chunks.values()), at_ms)
+        state = fold_map([*self._carried.values(), *self._chunks.values()], at_ms)
         return [state[k] for k in sorted(state)]
 
     def robots_at(self, at_ms: int) -> list[PoseRow]:
@@ -130,6 +143,37 @@ class MemoryStore:
 
     def repair_snapshots(self, max_snapshots: int = 144) -> int:
         return 0  # no snapshots, nothing a late event could invalidate
+
+    def apply_retention(self, now_ms: int) -> RetentionResult:
+        """As ClickHouse's retention step, with the boundary itself as the anchor: the
+        floor at the boundary is carried, the days before the boundary's day go, contents
+        stay while a kept write or the carried floor names them, and so does each robot's
+        last pose at the boundary."""
+        boundary = now_ms - self.retention_days * DAY_MS
+        cut = boundary // DAY_MS * DAY_MS
+        with self._lock:
+            carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
+                list(self._poses.values()), boundary).values()}
+            old_chunks = [k for k in self._chunks if k[0] < cut]
+            old_poses = [k for k in self._poses if k[1] < cut and k not in carried_poses]
+            if not old_chunks and not old_poses:
+                return RetentionResult(boundary, _iso_day(cut), 0, 0)
+            dropped_days = {k[0] // DAY_MS for k in old_chunks} | {k[1] // DAY_MS for k in old_poses}
+            self._carried = fold_map([*self._carried.values(), *self._chunks.values()], boundary)
+            for k in old_chunks:
+                del self._chunks[k]
+            for k in old_poses:
+                del self._poses[k]
+            self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
+            self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
+            named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
+                bytes.fromhex(c.content_hash) for c in self._chunks.values()}
+            self._contents = {h: v for h, v in self._contents.items() if h in named}
+            in_force = [k for k in self._metas if k[0] <= boundary]
+            if in_force:
+                keep = max(in_force)
+                self._metas = {k: v for k, v in self._metas.items() if k >= keep}
+            return RetentionResult(boundary, _iso_day(cut), len(dropped_days), 0)
 
     def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
                           to_ms: int) -> list[ChunkRow]:
@@ -180,6 +224,7 @@ class MemoryStore:
         with self._lock:
             removed = len(self._chunks)
             self._chunks.clear()
+            self._carried.clear()  # as ClickHouse truncates its snapshots
             self._conflicts.clear()  # derived from the writes just deleted
         return removed
 

@@ -39,8 +39,9 @@ POSE_PERIOD_MS = 1000
 CHUNK_EVERY = 5  # poses per chunk, as in the 2019 load test
 RADIUS_M = 1.0  # the circle each robot drives (loadgen.py)
 ANGULAR_SPEED = 0.2  # rad/s (loadgen.py)
-# A time-to-live guard: rows within this much of the retention edge would be dropped by
-# the TTL while a benchmark still reads them, so the loader never writes them.
+# A retention guard: rows within this much of the retention edge would be dropped by the
+# processors' retention step while a benchmark still reads them, so the loader never
+# writes them.
 TTL_GUARD_MS = 3_600_000
 LOADER_ROBOT = "history-loader"
 
@@ -293,7 +294,7 @@ def parse_end(text: str | None) -> int:
 
 def plan_window(days: float, end_ms: int, retention_days: int,
                 now_ms: int | None = None) -> tuple[int, int, list[str]]:
-    """[start, end) of whole seconds, inside the retention (less the TTL guard)."""
+    """[start, end) of whole seconds, inside the retention (less the guard)."""
     now_ms = time.time_ns() // 1_000_000 if now_ms is None else now_ms
     notes: list[str] = []
     if days <= 0:
@@ -307,7 +308,7 @@ def plan_window(days: float, end_ms: int, retention_days: int,
         notes.append(
             f"the window starts {(earliest - start) / 60_000:.0f} min later than asked: rows "
             f"older than {retention_days} days (less a {TTL_GUARD_MS // 60_000} min guard) "
-            "would be dropped by the TTL")
+            "would be dropped by the retention step")
         start = earliest
     if start >= end:
         raise ValueError(f"nothing to load: the window lies outside the {retention_days}-day retention")

@@ -122,6 +122,17 @@ class ConflictRow(msgspec.Struct, frozen=True, gc=False, array_like=True):
     robot_b: str
 
 
+class RetentionResult(msgspec.Struct, frozen=True):
+    """What one retention step did: the snapshot instant that carries the floor across the
+    boundary (None: none yet, nothing dropped), the first day kept (ISO date), the day
+    partitions dropped and the chunk contents renewed (pixels a retained row still names)."""
+
+    anchor_ms: int | None
+    first_day_kept: str | None
+    partitions_dropped: int
+    contents_renewed: int
+
+
 class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     """Activity in [start_ms, start_ms + bucket_ms): chunk writes, conflicts (by their
     `ts`) and robots with at least one pose."""
@@ -194,6 +205,11 @@ class HistoryStore(Protocol):
         """Rebuilds at most `max_snapshots` snapshots a late event invalidated (reads skip
         them meanwhile); returns how many. Bounded work, called by the snapshot timer."""
 
+    def apply_retention(self, now_ms: int) -> RetentionResult:
+        """Forgets the history older than the retention at `now_ms` (the service's clock)
+        while the state at every instant from `now_ms - retention` on stays exact: the map,
+        the 2019 latest listings, every named chunk's pixels, the map metadata in force."""
+
     # Conflicts (mapservice/core/conflicts.py has the rule).
 
     def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
@@ -232,7 +248,8 @@ class HistoryStore(Protocol):
 
     def delete_chunks(self) -> int:
         """Removes every chunk write and map snapshot (2019 DELETE /chunks); returns how
-        many writes were removed. Pixels stay until their TTL (nothing references them)."""
+        many writes were removed. Pixels stay until the retention drops their day (nothing
+        references them)."""
 
     def delete_meta(self) -> int:
         """Removes every stored map meta (2019 DELETE /meta); returns how many."""

@@ -9,7 +9,7 @@ conflicts, snapshots as the processors' timer builds them. History starts with t
 file itself at the first instant (what `mapservice map upload` writes), so the map at any
 T is the real floor with that day's pallets and doors.
 
-Fast-forward, and what it changes (so the whole week takes about a minute here):
+Fast-forward, and what it changes (so the whole week takes under a minute of CPU here):
 - the simulation steps STEP_S seconds at a time; between steps each moving robot is
   advanced along its planned path, so poses lie on the path (on free pixels) every
   POSE_EVERY_S seconds instead of every second;
@@ -38,7 +38,7 @@ from mapservice.core.wire2019 import content_hash
 
 log = structlog.get_logger(__name__)
 
-STEP_S = 6
+STEP_S = 12
 POSE_EVERY_S = 3
 CHANGE_EVERY_S = 1800.0
 CONFLICT_EVERY = 4  # the 1st, 5th, 9th ... changed chunk is also reported, differently, by another robot
@@ -159,7 +159,12 @@ def backfill(store: HistoryStore, ros_map: RosMap, *, days: float, robots: int, 
 
     def write(events: list[Envelope]) -> None:
         events.sort(key=lambda e: e.event_time_ms)
-        store.append(events)
+        if hasattr(store, "derive_views_between"):
+            # The pose views from the stored rows, inside the engine: half the insert time.
+            store.append_events(events)
+            store.derive_views_between(events[0].event_time_ms, events[-1].event_time_ms)
+        else:
+            store.append(events)
         writes = [ChunkRow(e.payload.row, e.payload.column, e.event_time_ms, e.robot_id,
                            e.payload.content_hash.hex(), e.receive_time_ms)
                   for e in events if isinstance(e.payload, ChunkUpdated)]

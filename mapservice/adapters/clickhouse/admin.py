@@ -64,7 +64,8 @@ class AdminMixin(ClickHouseConnection):
         """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
         with self._lock:
             for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
-                          "pose_keyframes", "pose_minutes", "pose_ten_minutes", "chunk_seconds"):
+                          "pose_keyframes", "pose_minutes", "pose_ten_minutes", "chunk_seconds",
+                          "carried_poses"):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
 
     def ping(self, timeout_s: float = 2.0) -> bool:

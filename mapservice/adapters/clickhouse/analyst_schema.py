@@ -106,6 +106,10 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
                          "and pushed live; the materialized views on it fill pose_keyframes, "
                          "pose_minutes and pose_ten_minutes (schema v10). Its columns are "
                          "those of poses. Always empty when read.", {}),
+    "carried_poses": ("Each robot's last pose older than the days kept (a robot silent "
+                      "since then), one row per robot, carried by the retention step so the "
+                      "robots at any instant of the retention stay whole (schema v11). Its "
+                      "columns are those of poses. Read with FINAL.", {}),
     "chunk_seconds": ("Derived: the chunk writes of every second before the newest snapshot, "
                       "deduplicated, written with the snapshots (schema v9); the timeline's "
                       "chunk changes per bucket. Read with FINAL.", {

@@ -143,17 +143,21 @@ class ReadsMixin(SnapshotsMixin):
         pose <= at_ms (two columns), still exact.
         """
         db = self.database
+        latest = ("(SELECT robot_id, max(ts) FROM ("
+                  f"SELECT robot_id, ts FROM {db}.poses "
+                  "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64}) UNION ALL "
+                  # max(ts): a rebuilt snapshot may still hold its older rows until merged.
+                  f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap) "
+                  "GROUP BY robot_id)")
         return self._pose_query(
             f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
             "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
             f"AND snap_ts < {self._valid_before()}) AS snap "
-            f"SELECT {_POSE_COLUMNS} FROM {db}.poses FINAL "
-            "PREWHERE (robot_id, ts) IN (SELECT robot_id, max(ts) FROM ("
-            f"SELECT robot_id, ts FROM {db}.poses "
-            "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64}) UNION ALL "
-            # max(ts): a rebuilt snapshot may still hold its older rows until merged.
-            f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap) "
-            f"GROUP BY robot_id) ORDER BY robot_id {_FINAL_SETTINGS}",
+            f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {db}.poses FINAL "
+            f"PREWHERE (robot_id, ts) IN {latest} UNION ALL "
+            # A robot silent since before the retention: its last pose, carried (retention.py).
+            f"SELECT * FROM {db}.carried_poses FINAL WHERE (robot_id, ts) IN {latest}) "
+            f"ORDER BY robot_id LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
             {"t": at_ms})
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:

@@ -55,7 +55,10 @@ class SnapshotsMixin(ClickHouseConnection):
     def _build_one(self, snap_ms: int, prev_ms: int | None) -> None:
         db = self.database
         params = {"s": snap_ms, "p": prev_ms if prev_ms is not None else -1}
-        since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
+        # prev == snap refolds a snapshot: its own rows plus every event up to it (a late
+        # event older than the oldest snapshot, whose base is gone with the retention).
+        since = ("ts > fromUnixTimestamp64Milli({p:Int64}) AND "
+                 if prev_ms is not None and prev_ms != snap_ms else "")
         prev_map = (f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
                     "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
                     if prev_ms is not None else "")
@@ -123,10 +126,18 @@ class SnapshotsMixin(ClickHouseConnection):
             from_ms, _, noted_ms = rows[0]
             newest = self._newest_snapshot()
             first = -(-from_ms // every) * every  # the first snapshot that can contain from_ms
-            if newest is None or first > newest:
+            # The oldest snapshot carries the floor from before the retention (whose events
+            # are gone): never rebuilt from events alone, it is the base of every rebuild.
+            (oldest, known), = self.client.query(
+                f"SELECT toUnixTimestamp64Milli(min(snap_ts)), count() FROM {db}.snapshot_log").result_rows
+            refolded = 0
+            if known and first <= oldest:
+                self._build_one(oldest, oldest)
+                first, refolded = oldest + every, 1
+            if newest is None or first > newest:  # nothing (more) to rebuild
                 self.client.command(f"DELETE FROM {db}.snapshot_repairs WHERE noted <= "
                                     "fromUnixTimestamp64Milli({n:Int64})", parameters={"n": noted_ms})
-                return 0
+                return refolded
             last = min(newest, first + (max_snapshots - 1) * every)
             prev = first - every
             self._build_run(first, last, prev if self._has_snapshot(prev) else None)
@@ -138,7 +149,7 @@ class SnapshotsMixin(ClickHouseConnection):
                 f"DELETE FROM {db}.snapshot_repairs WHERE noted <= fromUnixTimestamp64Milli({{n:Int64}}) "
                 "AND from_ts <= fromUnixTimestamp64Milli({l:Int64})",
                 parameters={"n": noted_ms, "l": last})
-            return (last - first) // every + 1
+            return (last - first) // every + 1 + refolded
 
     def _has_snapshot(self, snap_ms: int) -> bool:
         return bool(self.client.query(

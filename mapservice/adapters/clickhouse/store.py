@@ -9,7 +9,7 @@ executor.
 `ClickHouseStore` is composed of one mixin per concern, each over the clients and locks of
 `connection.ClickHouseConnection`: `migrations` (the schema and its lock), `writes`
 (events, dead letters, conflicts), `snapshots` (building and repairing them), `reads`
-(time travel and replay), `conflict_reads` (conflicts and the writes near chunks), `legacy` (the 2019 REST queries) and `admin` (deletes, counts,
+(time travel and replay), `conflict_reads` (conflicts and the writes near chunks), `legacy` (the 2019 REST queries), `retention` (expiry that keeps the floor) and `admin` (deletes, counts,
 optimize, ping, exports, close). This module only constructs it: the mixins never import
 it.
 """
@@ -23,13 +23,14 @@ from mapservice.adapters.clickhouse.conflict_reads import ConflictReadsMixin
 from mapservice.adapters.clickhouse.legacy import LegacyMixin
 from mapservice.adapters.clickhouse.migrations import MigrationsMixin
 from mapservice.adapters.clickhouse.reads import ReadsMixin
+from mapservice.adapters.clickhouse.retention import RetentionMixin
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 from mapservice.adapters.clickhouse.writes import WritesMixin
 from mapservice.settings import Settings
 
 
-class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, SnapshotsMixin,
-                      LegacyMixin, AdminMixin):
+class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
+                      SnapshotsMixin, LegacyMixin, AdminMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
 from mapservice.core.ports import ConflictRow
 from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
+from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 
 
@@ -37,6 +38,19 @@ class WritesMixin(SnapshotsMixin):
         if poses:
             with self._lock:
                 self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS)
+
+    def derive_views_between(self, from_ms: int, to_ms: int) -> None:
+        """derive_views for every pose stored with from_ms <= event time <= to_ms, read
+        back inside ClickHouse: a bulk writer (the demo history) spares re-sending a batch
+        it just stored (about as long as storing it). A pose derived twice changes nothing,
+        so windows may overlap."""
+        db = self.database
+        with self._lock:
+            self.client.command(
+                f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} "
+                f"FROM {db}.poses WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
+                "AND ts <= fromUnixTimestamp64Milli({t:Int64})",
+                parameters={"f": from_ms, "t": to_ms})
 
     def append_events(self, events: Sequence[Envelope]) -> None:
         poses, chunks, contents, metas = [], [], [], []

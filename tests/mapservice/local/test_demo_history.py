@@ -109,3 +109,23 @@ def test_every_robot_stands_on_a_free_pixel_of_the_map_at_its_time(history) -> N
         for p in store.robots_at(at):
             col, row = metres_to_pixel(p.x, p.y, meta)
             assert free[row, col], f"{p.robot_id} on a blocked pixel at {p.x}, {p.y} ({at})"
+
+
+def test_the_pose_views_hold_every_robot_the_poses_hold(history) -> None:
+    """The demo derives the pose views from the stored rows (derive_views_between): the
+    timeline's robots per bucket and the downsampled replay match the poses themselves."""
+    store, _, result = history
+    buckets = store.timeline(result.start_ms, result.end_ms, 18)
+    poses = store.poses(result.start_ms, result.end_ms, limit=10_000_000)
+    span = buckets[1].start_ms - buckets[0].start_ms
+    want = [set() for _ in buckets]
+    for p in poses:
+        want[(p.ts_ms - result.start_ms) // span].add(p.robot_id)
+    assert [b.robots_active for b in buckets] == [len(w) for w in want]
+    minute = 60_000
+    lo = -(-result.start_ms // minute) * minute
+    frames = store.poses_downsampled(lo, lo + 30 * minute, minute)
+    firsts = {}
+    for p in store.poses(lo, lo + 30 * minute, limit=10_000_000):
+        firsts.setdefault((p.robot_id, (p.ts_ms - lo) // minute), p.ts_ms)
+    assert sorted((p.robot_id, p.ts_ms) for p in frames) == sorted((r, t) for (r, _), t in firsts.items())

@@ -137,7 +137,7 @@ def test_v10_moves_the_pose_views_behind_derive_views_and_keeps_what_v9_derived(
 
     assert derived() == (2, 2)  # v9: the views on poses fill them on insert
     monkeypatch.setattr(migrations_module, "migrations", released)
-    assert store.migrate() == SCHEMA_VERSION == 10
+    assert store.migrate() == SCHEMA_VERSION
     assert derived() == (2, 2)
     later = [pose_event("r1", t0 + 120_000 + s * 1000) for s in range(0, 60, 10)]
     store.append_events(later)
@@ -145,3 +145,29 @@ def test_v10_moves_the_pose_views_behind_derive_views_and_keeps_what_v9_derived(
     store.derive_views(later)
     store.derive_views(later)  # a re-delivered batch changes nothing
     assert derived() == (3, 3)
+
+
+def test_v11_removes_every_ttl_and_keeps_the_rows(store, monkeypatch) -> None:
+    """ClickHouse's TTL follows the real clock and dropped a floor written once; from v11
+    on no table expires by itself (the service's retention step owns expiry)."""
+    from mapservice.adapters.clickhouse import migrations as migrations_module
+    from tests.conftest import chunk_event
+
+    released = migrations_module.migrations
+    monkeypatch.setattr(migrations_module, "migrations",
+                        lambda db, days: [m for m in released(db, days) if m.version <= 10])
+    assert store.migrate() == 10
+
+    def with_ttl() -> list[str]:
+        return [name for name, ddl in store.client.query(
+            "SELECT name, create_table_query FROM system.tables WHERE database = {d:String}",
+            parameters={"d": store.database}).result_rows if " TTL " in ddl]
+
+    assert "chunk_events" in with_ttl()
+    hour_ago = int(time.time() * 1000) - 3_600_000
+    store.append_events([chunk_event("r1", hour_ago)])
+    monkeypatch.setattr(migrations_module, "migrations", released)
+    assert store.migrate() == SCHEMA_VERSION == 11
+    assert with_ttl() == []
+    assert store.counts().chunk_events == 1
+    assert store.migrate() == 11  # repeatable
