@@ -748,3 +748,71 @@ def test_a_late_event_is_noted_not_rebuilt_and_reads_stay_exact(store, ev, t0) -
     (chunk,) = store.map_at(at)  # now from a repaired snapshot: still the late write
     assert (chunk.robot_id, chunk.ts_ms) == ("late", late)
     assert store.robots_at(at)[0].x == 99.0
+
+
+# --- the change feed (rule: mapservice/core/change_feed.py) -------------------------------
+
+
+def _feed(store, t0, **kw):
+    from mapservice.core.change_feed import ChangeQuery
+    return store.change_feed(ChangeQuery(kw.pop("f", t0), kw.pop("t", t0 + 3_600_000), **kw))
+
+
+def _upload(ev, robot: str, t0: int, n: int = 25, cols: int = 10) -> list:
+    """A floor upload: n chunks by one writer, 100 ms apart."""
+    return [ev.chunk(robot, t0 + 100 * i, i // cols, i % cols, bytes([i]) * 10_000)
+            for i in range(n)]
+
+
+def test_change_feed_is_newest_first_with_previous_content(store, ev, t0) -> None:
+    """Floor changes come newest first, each with the chunk's content before it (also from
+    a write before the window), and a map upload is one entry, never a floor change."""
+    from mapservice.core.change_feed import UPLOAD_MIN_CHUNKS
+    base = t0 - 1_200_000  # the upload: 20 minutes before the window's start
+    store.append(_upload(ev, "uploader", base, UPLOAD_MIN_CHUNKS + 5))
+    a, b, c = (bytes([200 + i]) * 10_000 for i in range(3))
+    store.append([ev.chunk("r1", t0 + 60_000, 0, 1, a), ev.chunk("r2", t0 + 120_000, 0, 1, b),
+                  ev.chunk("r1", t0 + 180_000, 2, 3, c)])
+    entries = _feed(store, t0)
+    assert [(e.kind, e.ts_ms - t0, e.row, e.column, e.robot_id) for e in entries] == [
+        ("change", 180_000, 2, 3, "r1"), ("change", 120_000, 0, 1, "r2"),
+        ("change", 60_000, 0, 1, "r1")]
+    assert entries[0].content_hash == content_hash(c).hex()
+    assert entries[0].previous_hash == content_hash(bytes([23]) * 10_000).hex()
+    assert entries[1].previous_hash == content_hash(a).hex()
+    assert entries[2].previous_hash == content_hash(bytes([1]) * 10_000).hex()
+    uploads = _feed(store, t0, f=base)
+    assert [(e.kind, e.robot_id, e.chunks, e.ts_ms - base, e.end_ms - base) for e in uploads
+            if e.kind == "upload"] == [("upload", "uploader", UPLOAD_MIN_CHUNKS + 5, 0,
+                                        100 * (UPLOAD_MIN_CHUNKS + 4))]
+    assert sum(e.kind == "change" for e in uploads) == 3
+
+
+def test_change_feed_filters_area_and_robot_and_pages(store, ev, t0) -> None:
+    """A chunk box, a robot and a cursor narrow the feed; pages follow one another without
+    gaps or repeats; a short burst (fewer writes than an upload) stays floor changes."""
+    from mapservice.core.change_feed import ChangeCursor, ChunkBox
+    store.append([ev.chunk(f"r{i % 3}", t0 + 1000 * i, i % 4, i % 5, bytes([i]) * 10_000)
+                  for i in range(12)])
+    everything = _feed(store, t0)
+    assert len(everything) == 12 and all(e.kind == "change" for e in everything)
+    box = ChunkBox(0, 1, 0, 1)
+    assert [(e.row, e.column) for e in _feed(store, t0, box=box)] == [
+        (r, c) for r, c in ((e.row, e.column) for e in everything) if r <= 1 and c <= 1]
+    assert {e.robot_id for e in _feed(store, t0, robot_id="r1")} == {"r1"}
+    assert len(_feed(store, t0, robot_id="r1")) == 4
+    first = _feed(store, t0, limit=5)
+    cursor = ChangeCursor(*first[-1].key())
+    assert ChangeCursor.decode(cursor.encode()) == cursor
+    second = _feed(store, t0, limit=5, before=cursor)
+    third = _feed(store, t0, limit=5, before=ChangeCursor(*second[-1].key()))
+    assert first + second + third == everything
+    assert _feed(store, t0, f=t0 + 12_000) == []
+
+
+def test_change_feed_upload_shows_in_an_area_it_touched(store, ev, t0) -> None:
+    """An upload is listed for an area when any of its writes is in it, once."""
+    from mapservice.core.change_feed import ChunkBox
+    store.append(_upload(ev, "up", t0 + 1000, 30, cols=10))  # rows 0-2, columns 0-9
+    assert [(e.kind, e.chunks) for e in _feed(store, t0, box=ChunkBox(2, 2, 5, 5))] == [("upload", 30)]
+    assert _feed(store, t0, box=ChunkBox(5, 6, 0, 9)) == []
