@@ -6,8 +6,13 @@ The upload rule: a writer's *run* is its chunk writes with no gap longer than
 A run of at least `UPLOAD_MIN_CHUNKS` writes is a map upload (the start-up upload of the
 whole floor, a robot re-sending its map): it is one `upload` entry at the run's first
 write, carrying how many chunks it wrote, and none of its writes is a floor change. Every
-other write is a `change` entry with the chunk's previous content hash (the write before it
-by (event time, robot id), map_at's order), for before/after thumbnails.
+other write that changes the chunk's content is a `change` entry with the chunk's previous
+content hash (the write before it by (event time, robot id), map_at's order), for
+before/after thumbnails; a write that leaves the content as it was (a robot re-sending the
+chunk it sees) is no change and is left out. The floor upload `mapservice up` publishes
+carries one timestamp for every chunk, a 2019 robot re-sending its map sends them in a
+loop: both are far inside the gap, while robots reporting changes (or re-sending a chunk
+every few seconds, as the 2019 load test did) are not.
 
 Because a run is decided on its whole extent, the stores fetch the writes from
 `UPLOAD_GAP_MS * UPLOAD_MIN_CHUNKS` before the window to as long after it: any run reaching
@@ -32,7 +37,7 @@ class ChunkRow(Protocol):
     robot_id: str
     content_hash: str
 
-UPLOAD_GAP_MS = 5_000
+UPLOAD_GAP_MS = 1_000
 UPLOAD_MIN_CHUNKS = 20
 MARGIN_MS = UPLOAD_GAP_MS * UPLOAD_MIN_CHUNKS
 
@@ -131,6 +136,8 @@ def page(writes: Iterable[ChunkRow], query: ChangeQuery,
             seen_uploads.add(id(first))
             entries.append(ChangeEntry("upload", first.ts_ms, first.row, first.column,
                                        first.robot_id, first.content_hash, None, n, last.ts_ms))
+        elif previous.get(id(r)) == r.content_hash:
+            continue
         elif query.from_ms <= r.ts_ms < query.to_ms and (
                 query.box is None or query.box.holds(r.row, r.column)):
             entries.append(ChangeEntry("change", r.ts_ms, r.row, r.column, r.robot_id,

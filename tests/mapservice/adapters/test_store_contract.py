@@ -766,26 +766,30 @@ def _upload(ev, robot: str, t0: int, n: int = 25, cols: int = 10) -> list:
 
 def test_change_feed_is_newest_first_with_previous_content(store, ev, t0) -> None:
     """Floor changes come newest first, each with the chunk's content before it (also from
-    a write before the window), and a map upload is one entry, never a floor change."""
+    a write before the window); a map upload is one entry, never a floor change; a write
+    that leaves a chunk as it was is none."""
     from mapservice.core.change_feed import UPLOAD_MIN_CHUNKS
     base = t0 - 1_200_000  # the upload: 20 minutes before the window's start
     store.append(_upload(ev, "uploader", base, UPLOAD_MIN_CHUNKS + 5))
     a, b, c = (bytes([200 + i]) * 10_000 for i in range(3))
     store.append([ev.chunk("r1", t0 + 60_000, 0, 1, a), ev.chunk("r2", t0 + 120_000, 0, 1, b),
-                  ev.chunk("r1", t0 + 180_000, 2, 3, c)])
+                  ev.chunk("r1", t0 + 180_000, 2, 3, c),
+                  # The same content again: no change of the floor.
+                  ev.chunk("r3", t0 + 200_000, 0, 1, b), ev.chunk("r3", t0 + 201_000, 4, 4, bytes([44]) * 10_000)])
     entries = _feed(store, t0)
     assert [(e.kind, e.ts_ms - t0, e.row, e.column, e.robot_id) for e in entries] == [
-        ("change", 180_000, 2, 3, "r1"), ("change", 120_000, 0, 1, "r2"),
+        ("change", 201_000, 4, 4, "r3"), ("change", 180_000, 2, 3, "r1"), ("change", 120_000, 0, 1, "r2"),
         ("change", 60_000, 0, 1, "r1")]
-    assert entries[0].content_hash == content_hash(c).hex()
-    assert entries[0].previous_hash == content_hash(bytes([23]) * 10_000).hex()
-    assert entries[1].previous_hash == content_hash(a).hex()
-    assert entries[2].previous_hash == content_hash(bytes([1]) * 10_000).hex()
+    assert entries[0].previous_hash is None
+    assert entries[1].content_hash == content_hash(c).hex()
+    assert entries[1].previous_hash == content_hash(bytes([23]) * 10_000).hex()
+    assert entries[2].previous_hash == content_hash(a).hex()
+    assert entries[3].previous_hash == content_hash(bytes([1]) * 10_000).hex()
     uploads = _feed(store, t0, f=base)
     assert [(e.kind, e.robot_id, e.chunks, e.ts_ms - base, e.end_ms - base) for e in uploads
             if e.kind == "upload"] == [("upload", "uploader", UPLOAD_MIN_CHUNKS + 5, 0,
                                         100 * (UPLOAD_MIN_CHUNKS + 4))]
-    assert sum(e.kind == "change" for e in uploads) == 3
+    assert sum(e.kind == "change" for e in uploads) == 4
 
 
 def test_change_feed_filters_area_and_robot_and_pages(store, ev, t0) -> None:
