@@ -47,3 +47,10 @@ describe("fleet", () => {
     expect(boxes[4]).toBeNull();
   });
 });
+
+describe("robot colours", () => {
+  it("sets similar ids apart", () => {
+    const ids = ["robot-0000", "robot-0001", "robot-0002"];
+    expect(new Set(ids.map(robotColour)).size).toBe(3);
+  });
+});

@@ -3,7 +3,26 @@
  * list), battery in %, speed from the track, the planned path's goal, and label placement
  * that never overlaps (a label that fits nowhere is left out; the list still names it).
  */
+import { authHeaders } from "./auth";
 import type { Pose } from "./types";
+
+/** How far back the fleet panel reads poses for the speeds: two samples of a 1 Hz robot and slack. */
+export const SPEED_WINDOW_MS = 10_000;
+
+/** Every robot's poses of the SPEED_WINDOW_MS up to `t`, by robot (one request for the fleet). */
+export async function recentTracks(base: string, t: number): Promise<Map<string, Pose[]>> {
+  const url = `${base}/api/v1/poses?from=${Math.floor(t) - SPEED_WINDOW_MS}&to=${Math.floor(t) + 1}&limit=100000`;
+  const r = await fetch(url, { headers: authHeaders() });
+  if (!r.ok) throw new Error(`${url}: ${r.status} ${r.statusText}`);
+  const tracks = new Map<string, Pose[]>();
+  for (const p of (await r.json()) as Pose[]) {
+    let track = tracks.get(p.robotId);
+    if (!track) tracks.set(p.robotId, (track = []));
+    track.push(p);
+  }
+  for (const track of tracks.values()) track.sort((a, b) => a.ts_ms - b.ts_ms);
+  return tracks;
+}
 
 /** Battery level as a percentage: 2019 robots report 0..100, some 0..1 or 0..5. */
 export function batteryPercent(level: number | null | undefined): number | null {
@@ -12,12 +31,20 @@ export function batteryPercent(level: number | null | undefined): number | null 
   return Math.round(Math.min(100, Math.max(0, pct)));
 }
 
-/** A stable, well spread colour per robot id (golden-angle hues of a hash). */
+/** 24 colours apart enough to tell on a map: 12 hues 30 degrees apart, dark and light. */
+const PALETTE = Array.from({ length: 24 }, (_, i) => `hsl(${((i * 7) % 12) * 30 + 5}, 75%, ${i < 12 ? 38 : 55}%)`);
+
+/** A stable colour per robot id: a well mixed hash of the id picks one of PALETTE (ids
+ * differing in one digit land far apart; more than 24 robots share colours). */
 export function robotColour(id: string): string {
   let h = 2166136261;
-  for (let i = 0; i < id.length; i++) h = Math.imul(h ^ id.charCodeAt(i), 16777619) >>> 0;
-  const hue = Math.round(((h % 360) + (h >>> 9) * 137.508) % 360);
-  return `hsl(${hue}, 70%, 42%)`;
+  for (let i = 0; i < id.length; i++) h = Math.imul(h ^ id.charCodeAt(i), 16777619);
+  h ^= h >>> 16;
+  h = Math.imul(h, 0x85ebca6b);
+  h ^= h >>> 13;
+  h = Math.imul(h, 0xc2b2ae35);
+  h ^= h >>> 16;
+  return PALETTE[(h >>> 0) % PALETTE.length];
 }
 
 /** m/s between the latest sample at or before `t` and the one before it (null: no pair within 10 s). */
