@@ -6,6 +6,7 @@ MAPSERVICE_UPDATE_SCREENSHOTS=1, to docs/ (the README's UI section shows them)."
 
 from __future__ import annotations
 
+import math
 import os
 import re
 
@@ -84,10 +85,11 @@ def test_last_change_in_a_drawn_area_with_its_robot_and_time(page, history_stack
     page.mouse.up()
     page.wait_for_selector('[data-testid="change-area"]')
     assert page.inner_text('[data-testid="change-area"]') == "area: chunk rows 1–2, columns 1–3"
-    assert "area=1%2C2%2C1%2C3" in page.url or "area=1,2,1,3" in page.url
+    page.wait_for_function("() => new URLSearchParams(location.search).get('area') === '1,2,1,3'")
     box = {"rowMin": 1, "rowMax": 2, "colMin": 1, "colMax": 3}
     page.wait_for_function("() => !document.querySelector('[data-testid=change-count]').innerText.includes('loading')"
                            " && document.querySelectorAll('[data-testid=change-row]').length > 0", timeout=TIMEOUT_MS)
+    assert all(1 <= r["row"] <= 2 and 1 <= r["col"] <= 3 for r in rows_shown(page))
     span = tuple(page.evaluate("() => window.__replay.span()"))
     expected = floor_changes(stack, (int(span[0]), int(span[1]) + 1), box)
     assert len(expected) >= 2, "the span holds too few changes in the area to test"
@@ -135,7 +137,8 @@ def test_fleet_panel_lists_every_robot_with_battery_percent(page, history_stack)
     poses = api(stack, "/api/v1/poses", **{"from": t - 10_000, "to": t + 1})
     for rid, battery, speed, text in rows:
         level = robots[rid]["battery_level"]
-        pct = round(level * 100 if level <= 1 else level * 20 if level <= 5 else level)
+        # Rounded half up, as the page does (Python's round() goes to even).
+        pct = math.floor((level * 100 if level <= 1 else level * 20 if level <= 5 else level) + 0.5)
         assert battery == f"{pct} %", (rid, battery, level)
         a, b = [p for p in poses if p["robotId"] == rid][-2:]
         metres = ((b["position"][0] - a["position"][0]) ** 2 + (b["position"][1] - a["position"][1]) ** 2) ** 0.5
