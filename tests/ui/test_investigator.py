@@ -102,7 +102,6 @@ def test_last_change_in_a_drawn_area_with_its_robot_and_time(page, history_stack
     assert last["robotId"] in shown[0]["text"] and f"row {last['row']}, column {last['column']}" in shown[0]["text"]
     assert [(s["ts"], s["row"], s["col"]) for s in shown[:10]] == [
         (e["ts_ms"], e["row"], e["column"]) for e in expected[:10]]
-    screenshot(page, "ui-change-feed.png")
 
     # Click: just after the change, its content on the map, its chunk outlined.
     page.locator('[data-testid="change-row"]').first.click()
@@ -112,6 +111,7 @@ def test_last_change_in_a_drawn_area_with_its_robot_and_time(page, history_stack
         == last["content_hash"]
     top, left = last["row"] * ch, last["column"] * cw
     assert page.evaluate("() => window.__replay.outlined()") == [[top, left], [top + ch, left + cw]]
+    screenshot(page, "ui-change-feed.png")
     # Shift+←: the change before it.
     page.locator('[data-testid="map"]').click(position={"x": 5, "y": 5})
     page.keyboard.press("Shift+ArrowLeft")
