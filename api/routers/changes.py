@@ -18,6 +18,7 @@ from mapservice.core.change_feed import (
     ChangeCursor,
     ChangeQuery,
     ChunkBox,
+    WindowTooBusy,
 )
 from mapservice.core.ports import HistoryStore
 from mapservice.settings import Settings
@@ -112,7 +113,10 @@ def list_changes(
         except ValueError:
             raise HTTPException(400, f"'before' ({before!r}) is not a page cursor; pass the "
                                      "`next` of the previous page unchanged") from None
-    entries = store.change_feed(ChangeQuery(f, t, robot, box, cursor, limit + 1))
+    try:
+        entries = store.change_feed(ChangeQuery(f, t, robot, box, cursor, limit + 1))
+    except WindowTooBusy as e:
+        raise HTTPException(422, str(e)) from None
     page = entries[:limit]
     return ChangePage(
         from_ms=f, to_ms=t,

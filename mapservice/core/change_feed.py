@@ -40,6 +40,20 @@ class ChunkRow(Protocol):
 UPLOAD_GAP_MS = 1_000
 UPLOAD_MIN_CHUNKS = 20
 MARGIN_MS = UPLOAD_GAP_MS * UPLOAD_MIN_CHUNKS
+# The most writes a store hands to `page` for one request: the rule runs here, over every
+# write of the window, so a window holding more (a week of a large fleet re-sending chunks)
+# is refused with what to do instead of holding a read client for minutes.
+MAX_WRITES = 300_000
+
+
+class WindowTooBusy(ValueError):
+    """The window holds more than MAX_WRITES chunk writes."""
+
+    def __init__(self, query: "ChangeQuery") -> None:
+        hours = (query.to_ms - query.from_ms) / 3_600_000
+        super().__init__(
+            f"the {hours:.1f} h window holds more than {MAX_WRITES:,} chunk writes, more than "
+            "the change feed reads at once; choose a shorter span (zoom the timeline in)")
 
 
 class ChunkBox(msgspec.Struct, frozen=True):
@@ -117,6 +131,8 @@ def page(writes: Iterable[ChunkRow], query: ChangeQuery,
     content hash of its latest write before that window (only the chunks the caller knows
     to need it: `chunks_needing_earlier`)."""
     rows = sorted(writes, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))
+    if len(rows) > MAX_WRITES:
+        raise WindowTooBusy(query)
     upload_of = _uploads(rows)
     previous = _previous_hashes(rows, earlier or {})
     # An upload shows when any of its writes is in the area.

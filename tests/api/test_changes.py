@@ -82,3 +82,11 @@ def test_changes_robot_filter_and_paging(client) -> None:
 def test_changes_bad_input_says_what_to_send(client, params, says) -> None:
     r = _get(client, **params)
     assert r.status_code == 400 and says in r.json()["detail"], r.text
+
+
+def test_a_window_with_too_many_writes_is_refused_with_what_to_do(client, monkeypatch) -> None:
+    from mapservice.core import change_feed
+    monkeypatch.setattr(change_feed, "MAX_WRITES", 10)
+    r = _get(client)
+    assert r.status_code == 422 and "choose a shorter span" in r.json()["detail"], r.text
+    assert _get(client, **{"from": NOW - 15 * 60_000}).status_code == 200

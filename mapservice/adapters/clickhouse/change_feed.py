@@ -23,8 +23,8 @@ class ChangeFeedMixin(ClickHouseConnection):
             "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)) "
             f"FROM {self.database}.chunk_events FINAL "
             "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            f"ORDER BY ts, row, col, robot_id {_FINAL_SETTINGS}",
-            {"f": lo, "t": hi},
+            f"ORDER BY ts, row, col, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            {"f": lo, "t": hi, "n": change_feed.MAX_WRITES + 1},
         )
         writes = [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2]) for r in rows]
         return change_feed.page(writes, query, self._hashes_before(

@@ -820,3 +820,12 @@ def test_change_feed_upload_shows_in_an_area_it_touched(store, ev, t0) -> None:
     store.append(_upload(ev, "up", t0 + 1000, 30, cols=10))  # rows 0-2, columns 0-9
     assert [(e.kind, e.chunks) for e in _feed(store, t0, box=ChunkBox(2, 2, 5, 5))] == [("upload", 30)]
     assert _feed(store, t0, box=ChunkBox(5, 6, 0, 9)) == []
+
+
+def test_change_feed_refuses_a_window_with_too_many_writes(store, ev, t0, monkeypatch) -> None:
+    """More writes than the feed reads at once: WindowTooBusy, not minutes of work."""
+    from mapservice.core import change_feed
+    monkeypatch.setattr(change_feed, "MAX_WRITES", 5)
+    store.append([ev.chunk("r1", t0 + 2000 * i, 0, i % 3, bytes([i]) * 10_000) for i in range(6)])
+    with pytest.raises(change_feed.WindowTooBusy, match="shorter span"):
+        _feed(store, t0)
