@@ -20,6 +20,7 @@ from mapservice.settings import Settings
 from .access import AccessGuard, Credentials, check_routes, document_scopes
 from .limits import BodyLimit, validation_error
 from .routers import (
+    changes,
     chunk_contents,
     chunk_events,
     chunk_service,
@@ -42,7 +43,7 @@ from .routers import (
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
 ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, exports, stats, status, live, client_config, chunk_service, coordinate_service, ui)
+           timeline, conflicts, changes, exports, stats, status, live, client_config, chunk_service, coordinate_service, ui)
 
 
 def create_app(settings: Settings, store: HistoryStore,

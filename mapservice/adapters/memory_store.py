@@ -12,6 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mapservice.core import change_feed
+from mapservice.core.change_feed import ChangeEntry, ChangeQuery
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
 from mapservice.core.ports import (ChunkRow, ConflictRow, Counts, PoseRow, RetentionResult,
@@ -202,6 +204,17 @@ class MemoryStore:
             start = from_ms + (ts - from_ms) // bucket_ms * bucket_ms
             counts[start] = counts.get(start, 0) + 1
         return dict(sorted(counts.items()))
+
+    def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
+        lo, hi = change_feed.fetch_window(query)
+        writes = [r for r in self._chunks.values() if lo <= r.ts_ms < hi]
+        wanted = change_feed.chunks_needing_earlier(writes, query)
+        earlier: dict[tuple[int, int], tuple[int, str, str]] = {}
+        for r in self._chunks.values():
+            k = (r.row, r.column)
+            if r.ts_ms < lo and k in wanted and (r.ts_ms, r.robot_id) > earlier.get(k, (-1, "", ""))[:2]:
+                earlier[k] = (r.ts_ms, r.robot_id, r.content_hash)
+        return change_feed.page(writes, query, {k: v[2] for k, v in earlier.items()})
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         return self._contents.get(content_hash)

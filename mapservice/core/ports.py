@@ -10,6 +10,7 @@ import msgspec
 from mapservice.core.events import DeadLetter, Envelope, MapMetaSet
 
 if TYPE_CHECKING:
+    from mapservice.core.change_feed import ChangeEntry, ChangeQuery
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
 
 
@@ -141,6 +142,13 @@ class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     chunk_changes: int
     conflicts: int
     robots_active: int
+
+
+class ChangeFeed(Protocol):
+    """The map's changes page by page (mapservice/core/change_feed.py has the rule)."""
+
+    def change_feed(self, query: "ChangeQuery") -> list["ChangeEntry"]:
+        """The query's page: floor changes and map uploads (one entry each), newest first."""
 
 
 class HistoryStore(Protocol):

@@ -4,12 +4,28 @@ import { agoText, clampToRetention, formatUrlState, fromInputValue, parseUrlStat
 describe("url state", () => {
   it("round-trips time, speed, direction, play and view", () => {
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10, 0, 5), speed: 3600 as const, dir: -1 as const,
-      playing: true, view: { zoom: -1.5, lat: -100.5, lng: 200 }, follow: "r-1" };
+      playing: true, view: { zoom: -1.5, lat: -100.5, lng: 200 }, follow: "r-1",
+      layers: null, selected: null, panels: [], area: null, changeRobot: null };
     expect(parseUrlState(formatUrlState(s))).toEqual({ ...s, tProblem: null });
   });
 
+  it("round-trips layers, the selected robot, open panels and the change feed's filter", () => {
+    const s = { live: false, t: Date.UTC(2026, 10, 21, 10), speed: 60 as const, dir: 1 as const, playing: false,
+      view: null, follow: "sim-001",
+      layers: { names: false, battery: true, paths: true, borders: true, info: true, infoMode: "writer" as const, conflicts: false },
+      selected: "sim-001", panels: ["changes", "fleet"], area: [1, 2, 3, 4] as [number, number, number, number], changeRobot: "sim-002" };
+    const url = formatUrlState(s);
+    expect(url).toContain("layers=battery%2Cpaths%2Cborders%2Cinfo-writer");
+    expect(parseUrlState(url)).toEqual({ ...s, tProblem: null });
+    // No layer on is not the defaults: an empty list stays empty.
+    expect(parseUrlState("?layers=").layers).toEqual({ names: false, battery: false, paths: false, borders: false, info: false, infoMode: "age", conflicts: false });
+    expect(parseUrlState("?area=3,1,0,0&panels=changes,bogus").area).toBeNull();
+    expect(parseUrlState("?panels=changes,bogus").panels).toEqual(["changes"]);
+  });
+
   it("live links carry no replay speed or direction", () => {
-    const url = formatUrlState({ live: true, t: 5, speed: 3600, dir: -1, playing: true, view: null, follow: null });
+    const url = formatUrlState({ live: true, t: 5, speed: 3600, dir: -1, playing: true, view: null, follow: null,
+      layers: null, selected: null, panels: [], area: null, changeRobot: null });
     expect(url).toBe("?live=1");
   });
 
@@ -43,6 +59,10 @@ describe("url state", () => {
     expect(fromInputValue(toInputValue(t))).toBe(t);
     expect(fromInputValue("2026-11-21T22:00")).toBe(Date.UTC(2026, 10, 21, 22));
     expect(fromInputValue("21/11/2026 10:00 PM")).toBeNull();
+    // The address's own format, as copied from a link.
+    expect(fromInputValue("2026-11-24T14:00:00Z")).toBe(Date.UTC(2026, 10, 24, 14));
+    expect(fromInputValue("2026-11-24T14:00:00.250Z")).toBe(Date.UTC(2026, 10, 24, 14, 0, 0, 250));
+    expect(fromInputValue("2026-11-24T14:00:00+02:00")).toBeNull();
     expect(fromInputValue("2026-13-45 99:00:00")).toBeNull();
   });
 

@@ -46,7 +46,7 @@ SCOPES = {
     "getChunkContentsBatch": "read",  # a read that POSTs its list of hashes
     "listEvents": "read", "getTimeline": "read", "listConflicts": "read",
     "exportTable": "read", "exportReplayMcap": "read", "getHistoryStats": "read",
-    "getClientConfig": "read", "getServiceStatus": "read",
+    "getClientConfig": "read", "getServiceStatus": "read", "listChanges": "read",
     "getLegacyMeta": "read", "listLegacyChunks": "read", "getLegacyChunk": "read",
     "getLegacyChunkPng": "read", "listLegacyRobots": "read",
     "postLegacyMeta": "write", "putLegacyMeta": "write", "postLegacyChunk": "write",

@@ -34,6 +34,7 @@ EXPECTED_OPERATION_IDS = {
     "getClientConfig",  # api/routers/client_config.py (the /controller page)
     "getServiceStatus",  # api/routers/status.py (the replay UI's "history not stored" banner)
     "exportTable", "exportReplayMcap",  # api/routers/exports.py
+    "listChanges",  # api/routers/changes.py (the replay UI's change feed)
 }
 
 

@@ -9,7 +9,9 @@ executor.
 `ClickHouseStore` is composed of one mixin per concern, each over the clients and locks of
 `connection.ClickHouseConnection`: `migrations` (the schema and its lock), `writes`
 (events, dead letters, conflicts), `snapshots` (building and repairing them), `reads`
-(time travel and replay), `conflict_reads` (conflicts and the writes near chunks), `legacy` (the 2019 REST queries), `retention` (expiry that keeps the floor) and `admin` (deletes, counts,
+(time travel and replay), `conflict_reads` (conflicts and the writes near chunks),
+`change_feed` (map changes page by page), `legacy` (the 2019 REST queries), `retention`
+(expiry that keeps the floor) and `admin` (deletes, counts,
 optimize, ping, exports, close). This module only constructs it: the mixins never import
 it.
 """
@@ -19,6 +21,7 @@ from __future__ import annotations
 import threading
 
 from mapservice.adapters.clickhouse.admin import AdminMixin
+from mapservice.adapters.clickhouse.change_feed import ChangeFeedMixin
 from mapservice.adapters.clickhouse.conflict_reads import ConflictReadsMixin
 from mapservice.adapters.clickhouse.legacy import LegacyMixin
 from mapservice.adapters.clickhouse.migrations import MigrationsMixin
@@ -30,7 +33,7 @@ from mapservice.settings import Settings
 
 
 class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
-                      SnapshotsMixin, LegacyMixin, AdminMixin):
+                      SnapshotsMixin, LegacyMixin, AdminMixin, ChangeFeedMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,

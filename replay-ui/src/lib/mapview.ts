@@ -4,7 +4,7 @@
  */
 import L from "leaflet";
 import type { RobotView } from "./engine";
-import { chunkBounds, gridBounds, metresToLatLng, metresToPixel, pixelToLatLng } from "./geo";
+import { chunkBounds, gridBounds, latLngToPixel, metresToLatLng, metresToPixel, pixelToLatLng, type Pixel } from "./geo";
 import type { ChunkImages } from "./images";
 import { ChunkLayer, gridLines, InfoLayer, type InfoMode } from "./layers";
 import type { MapState } from "./mapstate";
@@ -35,7 +35,11 @@ export class MapView {
   meta: MapMeta | null = null;
   follow: string | null = null;
   onRobotClick: (id: string) => void = () => {};
+  /** The change the feed's panel points at, and the area it is filtered by. */
+  changeOutline = L.rectangle([[0, 0], [0, 0]], { color: "#ff8c00", weight: 4, fill: false, interactive: false });
+  areaRect = L.rectangle([[0, 0], [0, 0]], { color: "#6f42c1", weight: 2, dashArray: "6 4", fillOpacity: 0.06, interactive: false });
   private fitted = false;
+  private drawing: { done: (a: Pixel, b: Pixel) => void; start: L.LatLng | null } | null = null;
 
   constructor(el: HTMLElement, private state: MapState, private images: ChunkImages) {
     this.map = L.map(el, { crs: L.CRS.Simple, minZoom: -6, maxZoom: 5, zoomSnap: 0.25, attributionControl: false, preferCanvas: true,
@@ -124,6 +128,54 @@ export class MapView {
         .bindTooltip(`conflict ${c.robot_a} / ${c.robot_b} at ${new Date(c.ts_ms).toISOString()}`)
         .addTo(this.conflictLayer);
     }
+  }
+
+  /** Outlines a chunk (null: none). */
+  outlineChunk(chunk: { row: number; column: number } | null): void {
+    if (!chunk || !this.meta) {
+      this.changeOutline.remove();
+      return;
+    }
+    this.changeOutline.setBounds(L.latLngBounds(chunkBounds(this.meta, chunk.row, chunk.column)));
+    if (!this.map.hasLayer(this.changeOutline)) this.changeOutline.addTo(this.map);
+  }
+
+  /** Shows the area (a chunk box) the change feed is filtered by (null: none). */
+  showArea(box: { rowMin: number; rowMax: number; colMin: number; colMax: number } | null): void {
+    if (!box || !this.meta) {
+      this.areaRect.remove();
+      return;
+    }
+    const a = chunkBounds(this.meta, box.rowMin, box.colMin)[0];
+    const b = chunkBounds(this.meta, box.rowMax, box.colMax)[1];
+    this.areaRect.setBounds(L.latLngBounds([a, b]));
+    if (!this.map.hasLayer(this.areaRect)) this.areaRect.addTo(this.map);
+  }
+
+  /** The next drag on the map draws a rectangle instead of panning; `done` gets its corners (map pixels). */
+  drawArea(done: (a: Pixel, b: Pixel) => void): void {
+    this.drawing = { done, start: null };
+    this.map.dragging.disable();
+    this.map.getContainer().style.cursor = "crosshair";
+    this.map.once("mousedown", (e: L.LeafletMouseEvent) => {
+      if (!this.drawing) return;
+      this.drawing.start = e.latlng;
+      this.areaRect.setBounds(L.latLngBounds(e.latlng, e.latlng));
+      if (!this.map.hasLayer(this.areaRect)) this.areaRect.addTo(this.map);
+      this.map.on("mousemove", this.drawMove, this);
+      this.map.once("mouseup", (u: L.LeafletMouseEvent) => {
+        const d = this.drawing;
+        this.map.off("mousemove", this.drawMove, this);
+        this.map.dragging.enable();
+        this.map.getContainer().style.cursor = "";
+        this.drawing = null;
+        if (d?.start) d.done(latLngToPixel(d.start.lat, d.start.lng), latLngToPixel(u.latlng.lat, u.latlng.lng));
+      });
+    });
+  }
+
+  private drawMove(e: L.LeafletMouseEvent): void {
+    if (this.drawing?.start) this.areaRect.setBounds(L.latLngBounds(this.drawing.start, e.latlng));
   }
 
   fitGrid(): void {

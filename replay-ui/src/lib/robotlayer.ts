@@ -6,6 +6,7 @@
 import L from "leaflet";
 import type { RobotView } from "./engine";
 import { metresToLatLng } from "./geo";
+import { placeLabels, robotColour } from "./fleet";
 import { batteryColour, yawOfPose } from "./poses";
 import type { MapMeta } from "./types";
 
@@ -30,6 +31,8 @@ export class RobotLayer extends L.Layer {
   private robots: RobotView[] = [];
   /** Where each robot was drawn last (container coordinates), for clicks and tests. */
   drawn: DrawnRobot[] = [];
+  /** Where each name label was drawn last (container px); robots whose label fits nowhere are absent. */
+  labels: { robotId: string; x: number; y: number; w: number; h: number }[] = [];
   onClick: (id: string) => void = () => {};
 
   constructor(private meta: () => MapMeta | null, private style: () => RobotStyle) {
@@ -90,12 +93,16 @@ export class RobotLayer extends L.Layer {
     const size = map.getSize();
     const drawn: DrawnRobot[] = [];
     if (style.paths) {
-      ctx.strokeStyle = "#7b2cbf";
-      ctx.lineWidth = 2;
-      ctx.setLineDash([4, 4]);
-      for (const r of this.robots) {
+      // Each robot's path in its own colour; the selected robot's last, solid and wide.
+      const order = [...this.robots].sort((a, b) => Number(a.robotId === style.selected) - Number(b.robotId === style.selected));
+      for (const r of order) {
         const path = r.pose.path;
         if (!path || !path.length) continue;
+        const chosen = r.robotId === style.selected;
+        ctx.strokeStyle = robotColour(r.robotId);
+        ctx.lineWidth = chosen ? 5 : 2;
+        ctx.globalAlpha = style.selected && !chosen ? 0.45 : 1;
+        ctx.setLineDash(chosen ? [] : [4, 4]);
         ctx.beginPath();
         const start = map.latLngToContainerPoint(metresToLatLng(meta, r.x, r.y));
         ctx.moveTo(start.x, start.y);
@@ -106,6 +113,7 @@ export class RobotLayer extends L.Layer {
         ctx.stroke();
       }
       ctx.setLineDash([]);
+      ctx.globalAlpha = 1;
     }
     ctx.font = "11px system-ui, sans-serif";
     for (const r of this.robots) {
@@ -127,8 +135,9 @@ export class RobotLayer extends L.Layer {
       ctx.arc(0, 0, RADIUS, 0, 2 * Math.PI);
       ctx.fillStyle = style.battery ? batteryColour(r.pose.battery_level) : NEUTRAL;
       ctx.fill();
-      ctx.lineWidth = 1.5;
-      ctx.strokeStyle = "#222";
+      // The ring in the robot's own colour: the same as its path and its fleet-list swatch.
+      ctx.lineWidth = 3;
+      ctx.strokeStyle = robotColour(r.robotId);
       ctx.stroke();
       // Heading: counter-clockwise in the world is clockwise on a y-down screen.
       ctx.rotate(-yaw);
@@ -140,15 +149,26 @@ export class RobotLayer extends L.Layer {
       ctx.fillStyle = "#222";
       ctx.fill();
       ctx.restore();
-      if (style.names) {
-        const w = ctx.measureText(r.robotId).width;
-        ctx.fillStyle = "rgba(255,255,255,0.8)";
-        ctx.fillRect(p.x + RADIUS + 4, p.y - 7, w + 4, 14);
-        ctx.fillStyle = "#222";
-        ctx.fillText(r.robotId, p.x + RADIUS + 6, p.y + 4);
-      }
     }
+    if (style.names) this.drawLabels(ctx, drawn, style.selected, size);
     this.drawn = drawn;
+  }
+
+  /** Names beside the markers, never overlapping (fleet.placeLabels); the selected robot's first. */
+  private drawLabels(ctx: CanvasRenderingContext2D, drawn: DrawnRobot[], selected: string | null, size: L.Point): void {
+    const visible = drawn.filter((d) => d.x > -50 && d.y > -50 && d.x < size.x + 200 && d.y < size.y + 50)
+      .sort((a, b) => Number(b.robotId === selected) - Number(a.robotId === selected));
+    const boxes = placeLabels(visible.map((d) => ({ x: d.x, y: d.y, w: ctx.measureText(d.robotId).width + 4, h: 14 })), RADIUS + 2);
+    this.labels = [];
+    visible.forEach((d, i) => {
+      const b = boxes[i];
+      if (!b) return;
+      this.labels.push({ robotId: d.robotId, ...b });
+      ctx.fillStyle = "rgba(255,255,255,0.85)";
+      ctx.fillRect(b.x, b.y, b.w, b.h);
+      ctx.fillStyle = "#222";
+      ctx.fillText(d.robotId, b.x + 2, b.y + 11);
+    });
   }
 
   /** The robot under a container point, if any (the topmost, i.e. drawn last). */

@@ -9,8 +9,41 @@ export interface UrlState {
   playing: boolean;
   view: { lat: number; lng: number; zoom: number } | null;
   follow: string | null;
+  /** The layers shown (null: the defaults), the selected robot, the open side panels, and
+   * the change feed's area (chunk rows/columns) and robot. */
+  layers: LayerState | null;
+  selected: string | null;
+  panels: string[];
+  area: [number, number, number, number] | null;
+  changeRobot: string | null;
   /** What was wrong with the address's `t`, to tell the user (null: nothing). */
   tProblem: string | null;
+}
+
+export interface LayerState {
+  names: boolean;
+  battery: boolean;
+  paths: boolean;
+  borders: boolean;
+  info: boolean;
+  infoMode: "age" | "writer";
+  conflicts: boolean;
+}
+
+const LAYER_NAMES = ["names", "battery", "paths", "borders", "info", "conflicts"] as const;
+
+/** "names,paths,info-writer": the layers that are on (the chunk info layer with its mode). */
+export function formatLayers(l: LayerState): string {
+  return LAYER_NAMES.filter((n) => l[n]).map((n) => (n === "info" ? `info-${l.infoMode}` : n)).join(",");
+}
+
+export function parseLayers(v: string): LayerState {
+  const on = new Set(v.split(",").filter(Boolean));
+  const info = on.has("info-age") || on.has("info-writer") || on.has("info");
+  return {
+    names: on.has("names"), battery: on.has("battery"), paths: on.has("paths"), borders: on.has("borders"),
+    info, infoMode: on.has("info-writer") ? "writer" : "age", conflicts: on.has("conflicts"),
+  };
 }
 
 export function parseUrlState(search: string): UrlState {
@@ -37,8 +70,19 @@ export function parseUrlState(search: string): UrlState {
     playing: q.get("play") === "1",
     view,
     follow: q.get("follow"),
+    layers: q.has("layers") ? parseLayers(q.get("layers") ?? "") : null,
+    selected: q.get("sel"),
+    panels: (q.get("panels") ?? "").split(",").filter((p) => p === "changes" || p === "fleet"),
+    area: parseArea(q.get("area")),
+    changeRobot: q.get("crobot"),
     tProblem,
   };
+}
+
+function parseArea(v: string | null): [number, number, number, number] | null {
+  const a = v?.split(",").map(Number);
+  return a && a.length === 4 && a.every((n) => Number.isInteger(n) && n >= 0) && a[0] <= a[1] && a[2] <= a[3]
+    ? (a as [number, number, number, number]) : null;
 }
 
 /**
@@ -64,6 +108,11 @@ export function formatUrlState(s: Omit<UrlState, "tProblem">): string {
   if (s.playing && !s.live) q.set("play", "1");
   if (s.view) q.set("view", `${s.view.zoom},${s.view.lat},${s.view.lng}`);
   if (s.follow) q.set("follow", s.follow);
+  if (s.layers) q.set("layers", formatLayers(s.layers));
+  if (s.selected) q.set("sel", s.selected);
+  if (s.panels.length) q.set("panels", s.panels.join(","));
+  if (s.area) q.set("area", s.area.join(","));
+  if (s.changeRobot) q.set("crobot", s.changeRobot);
   return `?${q.toString()}`;
 }
 
@@ -90,9 +139,13 @@ export function toInputValue(ms: number): string {
   return new Date(ms).toISOString().slice(0, 19).replace("T", " ");
 }
 
-/** The picker's text back to epoch ms (UTC); "YYYY-MM-DD HH:MM[:SS]" or with a "T"; null if not one. */
+/** What the picker accepts, said where it refuses something. */
+export const PICKER_FORMATS = "a UTC time as 2026-11-24 14:00:00, 2026-11-24T14:00:00Z (the link's format, milliseconds allowed) or 2026-11-24 14:00";
+
+/** The picker's text back to epoch ms (UTC): "YYYY-MM-DD HH:MM[:SS[.sss]]" with a space or
+ * a "T", optionally ending in "Z" (the address's own format); null if not one. */
 export function fromInputValue(v: string): number | null {
-  const m = /^\s*(\d{4}-\d\d-\d\d)[ T](\d\d:\d\d)(:\d\d)?\s*$/.exec(v);
+  const m = /^\s*(\d{4}-\d\d-\d\d)[ T](\d\d:\d\d)(:\d\d(?:\.\d{1,3})?)?\s*[zZ]?\s*$/.exec(v);
   if (!m) return null;
   const t = Date.parse(`${m[1]}T${m[2]}${m[3] ?? ":00"}Z`);
   return Number.isNaN(t) ? null : t;
