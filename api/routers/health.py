@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
+from concurrent.futures import ThreadPoolExecutor
+
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -12,24 +15,36 @@ router = APIRouter(tags=["health"])
 
 
 # The probes are open: the kubelet sends no credential, and they tell nothing but up or down.
+# They are async and evaluate their checks in a thread of their own (PROBES): the reads'
+# threads may all be busy, and a probe must still answer within a second. The checks read
+# cached state (mapservice/runtime/health.py CachedCheck) and never run a query themselves.
+PROBES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="probes")
+
+
+async def _evaluate(checks: dict) -> dict[str, bool]:
+    def run() -> dict[str, bool]:
+        return {name: bool(check()) for name, check in checks.items()}
+
+    return await asyncio.get_running_loop().run_in_executor(PROBES, run) if checks else {}
+
+
 @router.get("/healthz", operation_id="getLiveness", dependencies=[Depends(PUBLIC)])
-def liveness(request: Request) -> JSONResponse:
+async def liveness(request: Request) -> JSONResponse:
     """Alive: this answer needs the event loop; with the processors in this process, also
     their loops' heartbeats (mapservice/runtime/health.py)."""
-    checks = {name: bool(check()) for name, check in getattr(request.app.state, "liveness", {}).items()}
+    checks = await _evaluate(getattr(request.app.state, "liveness", {}))
     ok = all(checks.values())
     body = {"ok": ok, "checks": checks} if checks else {"ok": True}
     return JSONResponse(body, status_code=200 if ok else 503)
 
 
 @router.get("/readyz", operation_id="getReadiness", dependencies=[Depends(PUBLIC)])
-def readiness(request: Request) -> JSONResponse:
+async def readiness(request: Request) -> JSONResponse:
     """Ready: a real call to each required dependency; advisory ones (Kafka for the API
     alone) are reported in `checks` but do not make it unready."""
-    checks = {name: bool(check()) for name, check in request.app.state.readiness.items()}
+    checks = await _evaluate(request.app.state.readiness)
     ok = all(checks.values())
-    checks.update({name: bool(check()) for name, check in
-                   getattr(request.app.state, "advisory", {}).items()})
+    checks.update(await _evaluate(getattr(request.app.state, "advisory", {})))
     return JSONResponse({"ok": ok, "checks": checks}, status_code=200 if ok else 503)
 
 
