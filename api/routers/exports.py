@@ -13,7 +13,7 @@ from mapservice.core.ports import HistoryStore
 
 from ..access import READ
 from ..deps import parse_window
-from ..streaming import produce
+from ..streaming import BoundedPipe, produce
 
 router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
                    dependencies=[Depends(READ)])
@@ -99,4 +99,19 @@ async def _stream(request: Request, producer, media_type: str, headers: dict) ->
     """The producer run in the exports' pool, its bytes sent as the client reads them
     (api/streaming.py); the whole within MAPSERVICE_API_EXPORT_DEADLINE_S (api/admission.py)."""
     pipe, first = await produce(request.app.state.export_executor, producer)
-    return StreamingResponse(pipe.chunks(first), media_type=media_type, headers=headers)
+    return _PipeResponse(pipe, first, media_type=media_type, headers=headers)
+
+
+class _PipeResponse(StreamingResponse):
+    """Streams a pipe; however the response ends (sent, client gone, cancelled at the
+    deadline), the pipe is aborted so its producer stops and frees its worker."""
+
+    def __init__(self, pipe: BoundedPipe, first: bytes | None, **options) -> None:
+        super().__init__(pipe.chunks(first), **options)
+        self.pipe = pipe
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self.pipe.abort()
