@@ -242,11 +242,13 @@ class Settings(BaseSettings):
         "Host names (the Host header, without port) besides 127.0.0.1, localhost, ::1, the "
         "host of public_base_url and of api_allowed_origins under which /api/v1/live may be "
         "opened (a page of another site whose name resolves to this address: DNS rebinding)."))
-    api_read_workers: int = Field(8, ge=1, description=(
-        "Reads (/api/...) served at once per API process; more wait in a queue."))
+    api_read_workers: int = Field(3, ge=1, description=(
+        "Reads (/api/...) served at once per API process; more wait in a queue. Few: embedded "
+        "ClickHouse runs one read at a time anyway, and each read's Python work competes "
+        "with the processors for the interpreter (BENCHMARKS.md, the hostile-read test)."))
     api_read_queue: int = Field(32, ge=0, description=(
         "Reads waiting for one of api_read_workers; one more is 503 with Retry-After."))
-    api_export_workers: int = Field(2, ge=1, description=(
+    api_export_workers: int = Field(1, ge=1, description=(
         "Exports (/api/v1/exports/...) produced at once per API process, each in a thread "
         "of the exports' own pool; more wait in a queue."))
     api_export_queue: int = Field(4, ge=0, description=(
