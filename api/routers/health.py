@@ -15,17 +15,32 @@ router = APIRouter(tags=["health"])
 
 
 # The probes are open: the kubelet sends no credential, and they tell nothing but up or down.
-# They are async and evaluate their checks in a thread of their own (PROBES): the reads'
-# threads may all be busy, and a probe must still answer within a second. The checks read
-# cached state (mapservice/runtime/health.py CachedCheck) and never run a query themselves.
+# They are async and never take a thread of the reads' pool: the reads' threads may all be
+# busy, and a probe must still answer within a second. The checks read cached state
+# (mapservice/runtime/health.py CachedCheck) and never run a query themselves.
 PROBES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="probes")
 
 
 async def _evaluate(checks: dict) -> dict[str, bool]:
+    """Each check's answer: on the event loop when every check can answer without waiting
+    (a CachedCheck with an answer, a heartbeat), else in the probes' thread (a
+    CachedCheck's very first call waits for the dependency)."""
+    answers = {name: _nowait(check) for name, check in checks.items()}
+    if all(answer is not None for answer in answers.values()):
+        return answers  # type: ignore[return-value]
+
     def run() -> dict[str, bool]:
         return {name: bool(check()) for name, check in checks.items()}
 
-    return await asyncio.get_running_loop().run_in_executor(PROBES, run) if checks else {}
+    return await asyncio.get_running_loop().run_in_executor(PROBES, run)
+
+
+def _nowait(check) -> bool | None:
+    nowait = getattr(check, "nowait", None)
+    if nowait is not None:
+        answer = nowait()
+        return None if answer is None else bool(answer)
+    return bool(check())  # the process's own state (heartbeats, flags): never waits
 
 
 @router.get("/healthz", operation_id="getLiveness", dependencies=[Depends(PUBLIC)])

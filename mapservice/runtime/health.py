@@ -64,17 +64,33 @@ class CachedCheck:
         with self._lock:
             self._ok, self._checked, self._running = ok, self.clock(), None
 
+    def nowait(self) -> bool | None:
+        """The answer without waiting at all (an event loop may call this), a refresh
+        started when one is due; None before the first answer (then call it in a thread)."""
+        with self._lock:
+            now = self.clock()
+            if self._checked is None:
+                return None
+            if now - self._checked < self.ttl_s:
+                return self._ok
+            self._refresh(now)
+            return self._ok and now - self._started < self.timeout_s
+
+    def _refresh(self, now: float) -> threading.Thread:
+        """The running refresh, started if none runs (called under _lock)."""
+        if self._running is None:
+            self._running = threading.Thread(target=self._run, daemon=True,
+                                             name=f"check-{self.name}")
+            self._started = now
+            self._running.start()
+        return self._running
+
     def __call__(self) -> bool:
         with self._lock:
             now = self.clock()
             if self._checked is not None and now - self._checked < self.ttl_s:
                 return self._ok
-            thread = self._running
-            if thread is None:
-                thread = self._running = threading.Thread(target=self._run, daemon=True,
-                                                          name=f"check-{self.name}")
-                self._started = now
-                thread.start()
+            thread = self._refresh(now)
             known = self._checked is not None
         # With an earlier answer a probe waits only briefly for the refresh: a busy
         # dependency keeps its last answer until the refresh is older than timeout_s.

@@ -77,3 +77,27 @@ def test_a_slow_refresh_keeps_the_last_answer_without_waiting() -> None:
     time.sleep(1.6)
     assert check() is False  # the refresh is older than timeout_s: down
     release.set()
+
+
+def test_nowait_never_blocks_and_refreshes_in_the_background() -> None:
+    """nowait(): None before any answer; then the last answer at once, a due refresh
+    started in its own thread (what the API's async probes call on the event loop)."""
+    release = threading.Event()
+    calls = []
+
+    def call():
+        calls.append(1)
+        if len(calls) > 1:
+            release.wait(30)
+        return True
+
+    check = CachedCheck("bg", call, ttl_s=0.0, timeout_s=5.0)
+    assert check.nowait() is None
+    assert check() is True
+    started = time.monotonic()
+    assert check.nowait() is True and time.monotonic() - started < 0.05
+    deadline = time.monotonic() + 2
+    while len(calls) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(calls) == 2  # the refresh runs, in the background
+    release.set()
