@@ -242,7 +242,7 @@ class Settings(BaseSettings):
         "Host names (the Host header, without port) besides 127.0.0.1, localhost, ::1, the "
         "host of public_base_url and of api_allowed_origins under which /api/v1/live may be "
         "opened (a page of another site whose name resolves to this address: DNS rebinding)."))
-    api_read_workers: int = Field(3, ge=1, description=(
+    api_read_workers: int = Field(2, ge=1, description=(
         "Reads (/api/...) served at once per API process; more wait in a queue. Few: embedded "
         "ClickHouse runs one read at a time anyway, and each read's Python work competes "
         "with the processors for the interpreter (BENCHMARKS.md, the hostile-read test)."))
