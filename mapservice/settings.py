@@ -260,9 +260,10 @@ class Settings(BaseSettings):
     api_queue_wait_s: float = Field(10.0, gt=0, description=(
         "Longest a request waits in a queue (reads, exports, analysts) before it is answered "
         "503 with Retry-After."))
-    api_caller_concurrency: int = Field(4, ge=1, description=(
+    api_caller_concurrency: int = Field(8, ge=1, description=(
         "Reads, exports and analysts' queries one credential (or one client address when "
-        "anonymous) may have running or queued at once; one more is 429."))
+        "anonymous) may have running or queued at once; one more is 429. At least a "
+        "browser's 6 connections per host, so one replay UI page is never refused."))
     api_export_deadline_s: float = Field(300.0, gt=0, description=(
         "An export must be sent whole within this long; then it is aborted (the connection "
         "closed): a client that stops reading holds a worker and a buffer at most this long."))
