@@ -190,6 +190,9 @@ def run_phase(stack: Stack, with_readers: bool) -> dict:
 
 
 def test_readers_do_not_starve_probes_or_ingest(stack) -> None:
+    # The consumer's assignment is logged (kafka_batch_source.py): once at start, again
+    # whenever it left its group and rejoined; a log without it would prove nothing.
+    assert (stack.log_dir / "server.log").read_text().count(ASSIGNED) == 1
     calm = run_phase(stack, with_readers=False)
     hostile = run_phase(stack, with_readers=True)
     for figures in (calm, hostile):
