@@ -39,6 +39,8 @@ from starlette.types import ASGIApp, Receive, Scope as AsgiScope, Send
 
 from mapservice.settings import Settings, robot_tokens, token_list
 
+from .admission import CALLER_KEY, deny_socket
+
 
 class Scope(str, Enum):
     PUBLIC = "public"  # probes and the UI's static pages: no data
@@ -131,6 +133,15 @@ def _bearer_token(authorization: str | None) -> str | None:
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
+def _subprotocol_token(offered: str) -> str | None:
+    """A browser's token on a WebSocket: the subprotocol `bearer.<token>`."""
+    for protocol in offered.split(","):
+        protocol = protocol.strip()
+        if protocol.startswith(TOKEN_SUBPROTOCOL):
+            return protocol[len(TOKEN_SUBPROTOCOL):] or None
+    return None
+
+
 def _address(client) -> str:
     """The client's host from an ASGI (host, port) pair or Starlette's Address."""
     return client[0] if client else "unknown"
@@ -212,11 +223,13 @@ class Need:
 
 
 class Public:
-    """The scope of routes that serve no data (probes, the UI's pages): no credential."""
+    """The scope of routes that serve no data (probes, the UI's pages): no credential.
+    Async: a sync dependency would take a thread of the pool the reads use, and the probes
+    must answer while every one of those is busy."""
 
     scope = Scope.PUBLIC
 
-    def __call__(self) -> None:
+    async def __call__(self) -> None:
         return None
 
 
@@ -334,7 +347,11 @@ def _refusals(scope: Scope, method: str, settings: Settings) -> list[tuple[str, 
     if method.upper() in ("POST", "PUT", "PATCH"):
         out.append(("415", "the body is not sent as application/json"))
     if scope is not Scope.PUBLIC:
-        out.append(("429", "over MAPSERVICE_API_RATE_LIMIT; Retry-After says when to try again"))
+        out.append(("429", "over MAPSERVICE_API_RATE_LIMIT, or this caller has "
+                           "MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After "
+                           "says when to try again"))
+        out.append(("503", "the API's pool for this kind of request is full (api/admission.py); "
+                           "Retry-After says when to try again"))
     return out
 
 
@@ -357,29 +374,35 @@ class AccessGuard:
         self.limiter = SlidingWindowCounterRateLimiter(MemoryStorage())
 
     async def __call__(self, scope: AsgiScope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
+        if scope["type"] not in ("http", "websocket"):
             await self.app(scope, receive, send)
             return
         path = scope["path"]
         headers = dict(scope["headers"])
         token = _bearer_token(headers.get(b"authorization", b"").decode("latin-1"))
+        if token is None and scope["type"] == "websocket":
+            token = _subprotocol_token(headers.get(b"sec-websocket-protocol", b"").decode("latin-1"))
         address = _address(scope.get("client"))
         caller, valid = self.credentials.identify(token, address)
-        if path in DOCS_PATHS and self.docs != "open":
+        key = caller.name if valid and caller.role else f"address:{address}"
+        scope[CALLER_KEY] = key  # for the pools' per-caller caps (api/admission.py)
+        if path in DOCS_PATHS and self.docs != "open" and scope["type"] == "http":
             denied = self._docs_denied(caller, valid)
             if denied is not None:
                 await _reply(send, denied.status_code, denied.detail, denied.headers or {})
                 return
         if self.limits and path not in UNLIMITED_PATHS:
-            key = caller.name if valid and caller.role else f"address:{address}"
             for item in self.limits:
                 if not self.limiter.hit(item, key):
                     reset = self.limiter.get_window_stats(item, key).reset_time
                     wait = max(1, math.ceil(reset - time.time()))
-                    await _reply(send, 429, f"more than {item} requests from this "
-                                 f"{'credential' if caller.role else 'address'}; retry in "
-                                 f"{wait} s (MAPSERVICE_API_RATE_LIMIT)",
-                                 {"Retry-After": str(wait)})
+                    detail = (f"more than {item} requests from this "
+                              f"{'credential' if caller.role else 'address'}; retry in "
+                              f"{wait} s (MAPSERVICE_API_RATE_LIMIT)")
+                    if scope["type"] == "websocket":
+                        await deny_socket(scope, send, 429, detail, retry_after=wait)
+                    else:
+                        await _reply(send, 429, detail, {"Retry-After": str(wait)})
                     return
         await self.app(scope, receive, send)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
@@ -17,6 +18,7 @@ from mapservice.api.live_hub import LiveHub
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
+from .admission import AdmissionControl, default_pool_of
 from .access import AccessGuard, Credentials, check_routes, document_scopes
 from .limits import BodyLimit, validation_error
 from .routers import (
@@ -49,7 +51,10 @@ ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_content
 def create_app(settings: Settings, store: HistoryStore,
                readiness: dict[str, Callable[[], bool]] | None = None,
                clock: Clock | None = None, live_hub: LiveHub | None = None,
-               publisher: EventPublisher | None = None, sql_app: ASGIApp | None = None) -> FastAPI:
+               publisher: EventPublisher | None = None, sql_app: ASGIApp | None = None,
+               pool_of: Callable[[str], str | None] = default_pool_of) -> FastAPI:
+    """`pool_of` names the admission pool of a path (api/admission.py); an analysts'
+    engine that bounds its own queries can be left out of the "analyst" pool with it."""
     # /docs and /redoc with Swagger UI and ReDoc served from the installed package, not a
     # CDN: a plant network often has no internet.
     app = FastAPIOffline(title="mapservice", version=__version__,
@@ -60,6 +65,10 @@ def create_app(settings: Settings, store: HistoryStore,
     app.state.clock = clock or SystemClock()
     app.state.live = live_hub
     app.state.publisher = publisher  # None: 2019 REST writes answer 503
+    # Exports are produced in threads of their own, as many as the exports' pool admits
+    # (api/admission.py, api/streaming.py): they never take the reads' threads.
+    app.state.export_executor = ThreadPoolExecutor(settings.api_export_workers,
+                                                   thread_name_prefix="exports")
     # The tokens as the settings hold them: local mode's generated ones are filled in by
     # the process before (mapservice/runtime/secrets.py); an empty one opens nothing.
     app.state.access = credentials = Credentials(settings)
@@ -79,6 +88,14 @@ def create_app(settings: Settings, store: HistoryStore,
     app.add_exception_handler(RequestValidationError, validation_error)
     app.add_middleware(BodyLimit, max_bytes=settings.api_max_body_bytes, exempt=(SQL_PATH,),
                        timeout_s=settings.api_body_timeout_s)
+    if sql_app is not None:
+        # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
+        # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.
+        # Inside the rate limits and the pools: analysts are callers like any other.
+        app.add_middleware(PathPrefix, prefix=SQL_PATH, target=sql_app)
+    # Pools and per-caller caps (api/admission.py): a costly request waits or is refused
+    # before it takes a thread; inside the guard, which names the caller.
+    app.add_middleware(AdmissionControl, settings=settings, pool_of=pool_of)
     # Outside the body limit: a caller over its rate is refused before its body is read.
     app.add_middleware(AccessGuard, credentials=credentials)
     if settings.api_allowed_origins:
@@ -90,10 +107,6 @@ def create_app(settings: Settings, store: HistoryStore,
                            allow_headers=["Authorization", "Content-Type"],
                            expose_headers=["Retry-After", "X-Map-At-Ms", "X-Chunk-Width",
                                            "X-Chunk-Height"], max_age=600)
-    if sql_app is not None:
-        # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
-        # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.
-        app.add_middleware(PathPrefix, prefix=SQL_PATH, target=sql_app)
     return app
 
 

@@ -100,6 +100,37 @@ async def validation_error(request: Request, exc: RequestValidationError) -> JSO
     return JSONResponse({"detail": jsonable_encoder(errors)}, status_code=422)
 
 
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def _host_name(netloc: str) -> str:
+    """`host[:port]` or `[v6]:port` -> the host name, lower case."""
+    netloc = netloc.strip().lower()
+    if netloc.startswith("["):
+        return netloc[1:netloc.find("]")] if "]" in netloc else netloc
+    return netloc.rsplit(":", 1)[0] if netloc.count(":") == 1 else netloc
+
+
+def allowed_hosts(settings) -> frozenset[str]:
+    """The host names a live connection may be addressed to: this machine's loopback names,
+    the bind address, the public base URL's host, the allowed origins' hosts and
+    MAPSERVICE_API_ALLOWED_HOSTS."""
+    names = {*LOCAL_HOSTS, settings.api_host.lower(), *(h.lower() for h in settings.api_allowed_hosts)}
+    for url in (settings.public_base_url, *settings.api_allowed_origins):
+        host = urlsplit(url).hostname
+        if host:
+            names.add(host.lower())
+    names.discard("0.0.0.0")
+    names.discard("::")
+    return frozenset(names)
+
+
+def host_allowed(host: str | None, allowed: frozenset[str]) -> bool:
+    """A page of another site whose name an attacker points at this address (DNS
+    rebinding) reaches the service under that name: its Host is not one of ours."""
+    return bool(host) and _host_name(host) in allowed
+
+
 def origin_allowed(origin: str | None, host: str | None, allowed: list[str]) -> bool:
     """A browser's WebSocket from another site carries that site's Origin: only the
     service's own pages (same host) and the configured origins may connect. Clients that

@@ -30,6 +30,7 @@ from mapservice.core.wire2019 import Limits, Reason
 
 from . import metrics
 from .meta_watcher import MetaWatcher
+from .new_robots import NewRobots
 from .router import Record, Router
 
 log = structlog.get_logger(__name__)
@@ -63,6 +64,7 @@ class Ingestor:
             retention_ms=settings.retention_ms,
         )
         self._base_limits = self.limits
+        self.new_robots = NewRobots(settings.ingest_new_robots_limit)
         self._in_flight = 0
         self._lock = threading.Lock()
         self.retry_delay_s = retry_delay_s
@@ -85,6 +87,12 @@ class Ingestor:
         delivery = _Delivery(self, ack, time.monotonic())
         record = delivery.record = self.router.route(mqtt_topic, payload, self.clock.now_ms(),
                                                      self.limits)
+        if record.envelope is not None:
+            refusal = self.new_robots.refusal(record.envelope.robot_id)
+            if refusal is not None:
+                record = delivery.record = self.router.dead_letter(
+                    mqtt_topic, payload, record.envelope.receive_time_ms,
+                    Reason.TOO_MANY_NEW_ROBOTS, refusal)
         if record.reason is not None:
             delivery.outcome = "rejected"
             metrics.REJECTED.labels(record.reason).inc()

@@ -162,6 +162,11 @@ class Settings(BaseSettings):
     max_grid: int = Field(1000, ge=1, description="Row/column bound until a map meta is set.")
     max_message_bytes: int = Field(256 * 1024, ge=1024)
     max_future_skew_s: float = Field(300.0, ge=0)
+    ingest_new_robots_limit: str = Field("10000/minute", description=(
+        "Distinct robot ids the gateway has not seen before that it admits, in the `limits` "
+        "notation (`;` between limits); beyond it a message of a new robot is dead-lettered "
+        "`too_many_new_robots` (robots already seen pass). Bounds a flood of made-up ids "
+        "where the broker does not authenticate robots. Empty: no limit."))
     # At most 24: receive-minus-event lag is stored in Int32 milliseconds.
     retention_days: int = Field(7, ge=1, le=24, description=(
         "History kept, in days of the service's clock; the processors' retention step drops "
@@ -261,6 +266,41 @@ class Settings(BaseSettings):
     api_allowed_origins: list[str] = Field(default_factory=list, description=(
         "Origins (https://host:port) besides the API's own host whose pages may open "
         "/api/v1/live; e.g. a dashboard served elsewhere."))
+    api_allowed_hosts: list[str] = Field(default_factory=list, description=(
+        "Host names (the Host header, without port) besides 127.0.0.1, localhost, ::1, the "
+        "host of public_base_url and of api_allowed_origins under which /api/v1/live may be "
+        "opened (a page of another site whose name resolves to this address: DNS rebinding)."))
+    api_read_workers: int = Field(2, ge=1, description=(
+        "Reads (/api/...) served at once per API process; more wait in a queue. Few: embedded "
+        "ClickHouse runs one read at a time anyway, and each read's Python work competes "
+        "with the processors for the interpreter (BENCHMARKS.md, the hostile-read test)."))
+    api_read_queue: int = Field(32, ge=0, description=(
+        "Reads waiting for one of api_read_workers; one more is 503 with Retry-After."))
+    api_export_workers: int = Field(1, ge=1, description=(
+        "Exports (/api/v1/exports/...) produced at once per API process, each in a thread "
+        "of the exports' own pool; more wait in a queue."))
+    api_export_queue: int = Field(4, ge=0, description=(
+        "Exports waiting for one of api_export_workers; one more is 503 with Retry-After."))
+    api_analyst_workers: int = Field(4, ge=1, description=(
+        "Analysts' queries (/clickhouse) admitted at once per API process; more wait in a queue."))
+    api_analyst_queue: int = Field(8, ge=0, description=(
+        "Analysts' queries waiting for one of api_analyst_workers; one more is 503 with Retry-After."))
+    api_queue_wait_s: float = Field(10.0, gt=0, description=(
+        "Longest a request waits in a queue (reads, exports, analysts) before it is answered "
+        "503 with Retry-After."))
+    api_caller_concurrency: int = Field(8, ge=1, description=(
+        "Reads, exports and analysts' queries one credential (or one client address when "
+        "anonymous) may have running or queued at once; one more is 429. At least a "
+        "browser's 6 connections per host, so one replay UI page is never refused."))
+    api_export_deadline_s: float = Field(300.0, gt=0, description=(
+        "An export must be sent whole within this long; then it is aborted (the connection "
+        "closed): a client that stops reading holds a worker and a buffer at most this long."))
+    api_live_clients_per_caller: int = Field(20, ge=1, description=(
+        "/api/v1/live connections per credential (or client address when anonymous); one "
+        "more is refused with 429."))
+    api_live_send_timeout_s: float = Field(10.0, gt=0, description=(
+        "A live client whose connection takes no message for this long (it does not read) is "
+        "closed with 1008 and a reason."))
 
     @model_validator(mode="after")
     def _check_tls_and_topics(self) -> "Settings":

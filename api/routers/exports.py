@@ -3,17 +3,17 @@ as an MCAP file that Foxglove or Lichtblick replays."""
 
 from __future__ import annotations
 
-import io
 from typing import Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Query
-from fastapi.responses import Response
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.responses import Response, StreamingResponse
 
 from mapservice.adapters.exports import TABLE_FORMATS, TABLES, export_mcap, export_table
 from mapservice.core.ports import HistoryStore
 
 from ..access import READ
-from ..deps import get_store, parse_window
+from ..deps import parse_window
+from ..streaming import BoundedPipe, produce
 
 router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
                    dependencies=[Depends(READ)])
@@ -28,38 +28,90 @@ def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
 
 @router.get("/tables/{dataset}", operation_id="exportTable", response_class=Response,
             responses={200: {"content": {"text/csv": {}, "application/vnd.apache.parquet": {}}}})
-def export_table_route(
+async def export_table_route(
+    request: Request,
     dataset: Dataset,
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms; at most 7 days after from"),
     format: Literal["csv", "parquet"] = Query("csv", description="csv (with a header) or parquet"),
     robot_id: str | None = Query(None, alias="robotId", max_length=64,
                                  description="Only this robot (not for dead-letters)"),
-    store: HistoryStore = Depends(get_store),
 ) -> Response:
-    """Rows of an analysts' view (docs/analysts.md) in the window, as ClickHouse writes them."""
+    """Rows of an analysts' view (docs/analysts.md) in the window, as ClickHouse writes them.
+    CSV is streamed slice by slice of the window as the client reads it."""
+    store: HistoryStore = request.app.state.store
     f, t = parse_window(from_, to, MAX_TABLE_SPAN_MS)
     if not hasattr(store, "export_query"):
         raise HTTPException(501, "table exports need the ClickHouse store")
-    body = export_table(store, dataset, format, f, t, robot_id)
-    return Response(body, media_type=TABLE_FORMATS[format][1],
-                    headers=_filename(TABLES[dataset][0], f, t, format))
+
+    def producer(out) -> None:
+        if format == "parquet":  # one file: Parquet cannot be cut into slices and joined
+            out.write(export_table(store, dataset, format, f, t, robot_id))
+        else:
+            write_csv_slices(store, dataset, f, t, robot_id, out)
+
+    return await _stream(request, producer, TABLE_FORMATS[format][1],
+                         _filename(TABLES[dataset][0], f, t, format))
+
+
+def write_csv_slices(store, dataset: str, from_ms: int, to_ms: int, robot_id: str | None,
+                     out, target_bytes: int = 4 * 1024 * 1024) -> None:
+    """The window's CSV as consecutive time slices (each in time order, so the whole is
+    too), the header once; a slice's length adapts so one holds about `target_bytes`."""
+    step, cursor, header = 3_600_000, from_ms, True
+    while cursor < to_ms:
+        end = min(to_ms, cursor + step)
+        body = export_table(store, dataset, "csv", cursor, end, robot_id)
+        if not header:  # CSVWithNames: the column names are the first line
+            body = body.split(b"\n", 1)[1] if b"\n" in body else b""
+        if body:
+            out.write(body)
+            header = False
+        cursor = end
+        if len(body) > target_bytes:
+            step = max(60_000, step // 2)
+        elif len(body) < target_bytes // 8:
+            step = min(6 * 3_600_000, step * 2)
+    if header:  # nothing at all: still the header, as one query over the window writes it
+        out.write(export_table(store, dataset, "csv", from_ms, from_ms, robot_id))
 
 
 @router.get("/replay.mcap", operation_id="exportReplayMcap", response_class=Response,
             responses={200: {"content": {"application/x-mcap": {}}}})
-def export_replay_mcap(
+async def export_replay_mcap(
+    request: Request,
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive); at most 24 hours after from"),
-    store: HistoryStore = Depends(get_store),
 ) -> Response:
     """The map (`/map`, foxglove.Grid) and every robot (`/robots/<id>/pose`,
-    foxglove.PoseInFrame) in the window, as MCAP for Foxglove or Lichtblick."""
+    foxglove.PoseInFrame) in the window, as MCAP for Foxglove or Lichtblick; streamed as
+    it is written."""
+    store: HistoryStore = request.app.state.store
     f, t = parse_window(from_, to, MAX_MCAP_SPAN_MS)
-    out = io.BytesIO()
     try:
-        export_mcap(store, f, t, out)
+        return await _stream(request, lambda out: export_mcap(store, f, t, out),
+                             "application/x-mcap", _filename("replay", f, t, "mcap"))
     except ValueError as exc:
         raise HTTPException(409, str(exc)) from exc
-    return Response(out.getvalue(), media_type="application/x-mcap",
-                    headers=_filename("replay", f, t, "mcap"))
+
+
+async def _stream(request: Request, producer, media_type: str, headers: dict) -> Response:
+    """The producer run in the exports' pool, its bytes sent as the client reads them
+    (api/streaming.py); the whole within MAPSERVICE_API_EXPORT_DEADLINE_S (api/admission.py)."""
+    pipe, first = await produce(request.app.state.export_executor, producer)
+    return _PipeResponse(pipe, first, media_type=media_type, headers=headers)
+
+
+class _PipeResponse(StreamingResponse):
+    """Streams a pipe; however the response ends (sent, client gone, cancelled at the
+    deadline), the pipe is aborted so its producer stops and frees its worker."""
+
+    def __init__(self, pipe: BoundedPipe, first: bytes | None, **options) -> None:
+        super().__init__(pipe.chunks(first), **options)
+        self.pipe = pipe
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self.pipe.abort()

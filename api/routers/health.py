@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
+from concurrent.futures import ThreadPoolExecutor
+
 from fastapi import APIRouter, Depends, Request, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -14,27 +17,55 @@ router = APIRouter(tags=["health"])
 
 
 # The probes are open: the kubelet sends no credential, and they tell nothing but up or down.
+# They are async and never take a thread of the reads' pool: the reads' threads may all be
+# busy, and a probe must still answer within a second. The checks read cached state
+# (mapservice/runtime/health.py CachedCheck) and never run a query themselves.
+PROBES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="probes")
+
+
+async def _evaluate(checks: dict) -> dict[str, bool]:
+    """Each check's answer: on the event loop when every check can answer without waiting
+    (a CachedCheck with an answer, a heartbeat), else in the probes' thread (a
+    CachedCheck's very first call waits for the dependency)."""
+    answers = {name: _nowait(check) for name, check in checks.items()}
+    if all(answer is not None for answer in answers.values()):
+        return answers  # type: ignore[return-value]
+
+    def run() -> dict[str, bool]:
+        return {name: bool(check()) for name, check in checks.items()}
+
+    return await asyncio.get_running_loop().run_in_executor(PROBES, run)
+
+
+def _nowait(check) -> bool | None:
+    nowait = getattr(check, "nowait", None)
+    if nowait is not None:
+        answer = nowait()
+        return None if answer is None else bool(answer)
+    return bool(check())  # the process's own state (heartbeats, flags): never waits
+
+
 @router.get("/healthz", operation_id="getLiveness", dependencies=[Depends(PUBLIC)])
-def liveness(request: Request) -> JSONResponse:
+async def liveness(request: Request) -> JSONResponse:
     """Alive: this answer needs the event loop; with the processors in this process, also
     their loops' heartbeats (mapservice/runtime/health.py)."""
-    checks = {name: bool(check()) for name, check in getattr(request.app.state, "liveness", {}).items()}
+    checks = await _evaluate(getattr(request.app.state, "liveness", {}))
     ok = all(checks.values())
     body = {"ok": ok, "checks": checks} if checks else {"ok": True}
     return JSONResponse(body, status_code=200 if ok else 503)
 
 
 @router.get("/readyz", operation_id="getReadiness", dependencies=[Depends(PUBLIC)])
-def readiness(request: Request) -> JSONResponse:
+async def readiness(request: Request) -> JSONResponse:
     """Ready: a real call to each required dependency; advisory ones (Kafka for the API
     alone) are reported in `checks` but do not make it unready."""
     required = request.app.state.readiness
-    checks = {name: bool(check()) for name, check in required.items()}
+    checks = await _evaluate(required)
     ok = all(checks.values())
-    # Why a failed check failed, where it can say (the history store's inserts: since when, the error).
+    # Why a failed check failed, where it can say (the history store's inserts: since when,
+    # the error); a reason is the check's in-memory state, so it never waits either.
     reasons = failing_reasons(required, checks)
-    checks.update({name: bool(check()) for name, check in
-                   getattr(request.app.state, "advisory", {}).items()})
+    checks.update(await _evaluate(getattr(request.app.state, "advisory", {})))
     return JSONResponse({"ok": ok, "checks": checks, **({"reasons": reasons} if reasons else {})},
                         status_code=200 if ok else 503)
 

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
+
+import structlog
 
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
 from pydantic import TypeAdapter, ValidationError
@@ -12,9 +15,10 @@ from pydantic import TypeAdapter, ValidationError
 from mapservice.core.live_messages import LiveText
 
 from ..access import LIVE_SUBPROTOCOL, SOCKET_READ
-from ..limits import origin_allowed
+from ..limits import allowed_hosts, host_allowed, origin_allowed
 
 router = APIRouter(tags=["live"])
+log = structlog.get_logger(__name__)
 
 # RFC 6455 close codes: 1008 the request breaks this endpoint's rules, 1011 the server
 # cannot serve this at all, 1013 try again later.
@@ -39,6 +43,11 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
     token as the subprotocol `bearer.<token>` next to `mapservice.live`."""
     hub = websocket.app.state.live
     settings = websocket.app.state.settings
+    if not host_allowed(websocket.headers.get("host"), allowed_hosts(settings)):
+        # Before accept: the handshake is refused (HTTP 403), no data is sent.
+        await websocket.close(code=1008, reason="this host name may not open the live stream "
+                                                "(MAPSERVICE_API_ALLOWED_HOSTS)")
+        return
     if not origin_allowed(websocket.headers.get("origin"), websocket.headers.get("host"),
                           settings.api_allowed_origins):
         # Before accept: the handshake is refused (HTTP 403), no data is sent.
@@ -69,12 +78,34 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
             "MAPSERVICE_API_MAX_LIVE_CLIENTS); try again later"))
         return
     queue = hub.subscribe()
+    timeout_s = settings.api_live_send_timeout_s
     try:
-        await (_send_batches if batched else _send_each)(websocket, queue)
+        await (_send_batches if batched else _send_each)(_Sender(websocket, timeout_s), queue)
     except WebSocketDisconnect:
         pass
+    except TimeoutError:
+        # The client does not read: its socket and the server's buffer for it are full. Its
+        # queue stops growing (the hub drops the oldest), but the connection is closed so a
+        # thousand such clients hold nothing.
+        log.info("live client dropped: it does not read", timeout_s=timeout_s)
+        with contextlib.suppress(Exception):
+            async with asyncio.timeout(1.0):
+                await websocket.close(code=BAD_REQUEST, reason=(
+                    f"this client took no message for {timeout_s:g} s "
+                    "(MAPSERVICE_API_LIVE_SEND_TIMEOUT_S); read the stream, then reconnect"))
     finally:
         hub.unsubscribe(queue)
+
+
+class _Sender:
+    """The socket's send_text, each send within `timeout_s` (TimeoutError otherwise)."""
+
+    def __init__(self, websocket: WebSocket, timeout_s: float) -> None:
+        self.websocket, self.timeout_s = websocket, timeout_s
+
+    async def send_text(self, text: str) -> None:
+        async with asyncio.timeout(self.timeout_s):
+            await self.websocket.send_text(text)
 
 
 def _parse_bool(value: str) -> bool | None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
@@ -28,15 +28,29 @@ class RobotAt(Pose):
 class RobotsAt(BaseModel):
     at_ms: int
     robots: list[RobotAt]
+    # The robotId to pass as `after` for the next page; null on the last page.
+    next_after: str | None = None
+
+
+MAX_PAGE = 10_000
 
 
 @router.get("", operation_id="getRobotsAt", response_model=RobotsAt)
 def get_robots_at(
     at_ms: int = Depends(at_instant),
+    limit: int = Query(MAX_PAGE, ge=1, le=MAX_PAGE, description=(
+        "Robots per page, in robotId order; the answer's `next_after` names the next page")),
+    after: str | None = Query(None, max_length=64, description=(
+        "Only robots whose robotId sorts after this one: the previous page's `next_after`")),
     store: HistoryStore = Depends(get_store),
     settings: Settings = Depends(get_settings),
 ) -> RobotsAt:
-    return RobotsAt(at_ms=at_ms, robots=[
+    """Every robot's latest pose at `at`, a page of at most `limit` robots in robotId
+    order (one page holds every robot of a fleet up to 10,000, as before pages existed)."""
+    rows = [r for r in store.robots_at(at_ms) if after is None or r.robot_id > after]
+    page = rows[:limit]
+    return RobotsAt(at_ms=at_ms, next_after=page[-1].robot_id if len(rows) > limit else None,
+                    robots=[
         RobotAt(robotId=r.robot_id, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
                 receive_time_ms=r.receive_time_ms, position=(r.x, r.y, r.z),
                 orientation=(r.qx, r.qy, r.qz, r.qw), battery_level=r.battery_level,
@@ -46,4 +60,4 @@ def get_robots_at(
                 clock_skew_ms=clock_skew_ms(r.receive_time_ms, r.ts_ms),
                 clock_skew_flag=skew_flagged(clock_skew_ms(r.receive_time_ms, r.ts_ms),
                                              settings.clock_skew_threshold_s))
-        for r in store.robots_at(at_ms)])
+        for r in page])

@@ -51,6 +51,7 @@ class Reason(str, Enum):
     TOO_DEEP = "too_deep"  # JSON nested deeper than the decoder goes (msgspec: RecursionError)
     INTERNAL_ERROR = "internal_error"  # anything else that went wrong with this message
     RECORD_TOO_LARGE = "record_too_large"  # accepted, but Kafka refuses a record that large
+    TOO_MANY_NEW_ROBOTS = "too_many_new_robots"  # valid, but over the gateway's new-robot limit
 
 
 class Rejection(msgspec.Struct, frozen=True):

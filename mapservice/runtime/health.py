@@ -4,7 +4,8 @@ readiness from real calls to each dependency, each with a short timeout.
 - `Heartbeat`: a loop beats on every turn; it is alive while its last beat is recent.
 - `CachedCheck`: a dependency call (a `SELECT 1`, a Kafka metadata request) run at most
   every `ttl_s` in a thread of its own; a call slower than `timeout_s` counts as down, and
-  a probe never waits longer than that, however the dependency hangs.
+  a probe never waits longer than that, however the dependency hangs. Once it has an
+  answer, a probe gets the last one at once while a refresh runs.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from collections.abc import Callable, Mapping
 import structlog
 
 log = structlog.get_logger(__name__)
+
+REFRESH_WAIT_S = 0.1  # how long a probe with an earlier answer waits for a refresh
 
 
 class Heartbeat:
@@ -49,6 +52,7 @@ class CachedCheck:
         self._ok = False
         self._checked: float | None = None
         self._running: threading.Thread | None = None
+        self._started = 0.0  # when the running refresh began
         self._lock = threading.Lock()
 
     def _run(self) -> None:
@@ -60,21 +64,43 @@ class CachedCheck:
         with self._lock:
             self._ok, self._checked, self._running = ok, self.clock(), None
 
+    def nowait(self) -> bool | None:
+        """The answer without waiting at all (an event loop may call this), a refresh
+        started when one is due; None before the first answer (then call it in a thread)."""
+        with self._lock:
+            now = self.clock()
+            if self._checked is None:
+                return None
+            if now - self._checked < self.ttl_s:
+                return self._ok
+            self._refresh(now)
+            return self._ok and now - self._started < self.timeout_s
+
+    def _refresh(self, now: float) -> threading.Thread:
+        """The running refresh, started if none runs (called under _lock)."""
+        if self._running is None:
+            self._running = threading.Thread(target=self._run, daemon=True,
+                                             name=f"check-{self.name}")
+            self._started = now
+            self._running.start()
+        return self._running
+
     def __call__(self) -> bool:
         with self._lock:
-            fresh = self._checked is not None and self.clock() - self._checked < self.ttl_s
-            if fresh:
+            now = self.clock()
+            if self._checked is not None and now - self._checked < self.ttl_s:
                 return self._ok
-            thread = self._running
-            if thread is None:
-                thread = self._running = threading.Thread(target=self._run, daemon=True,
-                                                          name=f"check-{self.name}")
-                thread.start()
-        thread.join(self.timeout_s)
+            thread = self._refresh(now)
+            known = self._checked is not None
+        # With an earlier answer a probe waits only briefly for the refresh: a busy
+        # dependency keeps its last answer until the refresh is older than timeout_s.
+        thread.join(min(self.timeout_s, REFRESH_WAIT_S) if known else self.timeout_s)
         with self._lock:
-            if thread.is_alive():  # hung: down until it answers
-                return False
-            return self._ok
+            if not thread.is_alive():
+                return self._ok
+            if known and self.clock() - self._started < self.timeout_s:
+                return self._ok
+            return False  # hung: down until it answers
 
 
 def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:

@@ -1,5 +1,5 @@
 import { afterEach, describe, expect, it, vi } from "vitest";
-import { Api, downsample, mapFromWire } from "../src/lib/api";
+import { Api, downsample, fetchRetrying, mapFromWire } from "../src/lib/api";
 import type { Pose } from "../src/lib/types";
 
 function pose(robotId: string, ts: number): Pose {
@@ -64,5 +64,28 @@ describe("downsample", () => {
   it("keeps each robot's first pose per step", () => {
     const got = downsample([pose("a", 0), pose("b", 10), pose("a", 500), pose("a", 1000), pose("b", 1999)], 1000);
     expect(got.map((p) => `${p.robotId}${p.ts_ms}`)).toEqual(["a0", "b10", "a1000", "b1999"]);
+  });
+});
+
+describe("fetchRetrying", () => {
+  it("retries a 503 or 429 after its Retry-After, then returns the answer", async () => {
+    const answers = [
+      new Response(JSON.stringify({ detail: "busy" }), { status: 503, headers: { "Retry-After": "2" } }),
+      new Response(JSON.stringify({ detail: "slow down" }), { status: 429, headers: { "Retry-After": "60" } }),
+      new Response(JSON.stringify({ ok: 1 }), { status: 200 }),
+    ];
+    vi.stubGlobal("fetch", async () => answers.shift());
+    const waits: number[] = [];
+    const r = await fetchRetrying("/api/v1/robots", async (ms) => { waits.push(ms); });
+    expect(r.status).toBe(200);
+    expect(waits).toEqual([2000, 5000]); // Retry-After, capped at 5 s
+  });
+
+  it("gives up after three retries with the last refusal", async () => {
+    vi.stubGlobal("fetch", async () => new Response("{}", { status: 503 }));
+    const waits: number[] = [];
+    const r = await fetchRetrying("/x", async (ms) => { waits.push(ms); });
+    expect(r.status).toBe(503);
+    expect(waits).toEqual([1000, 1000, 1000]);
   });
 });

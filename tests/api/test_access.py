@@ -19,6 +19,10 @@ from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 
+# The live stream answers only the service's own host names; the test client's default
+# Host, "testserver", is not one.
+LIVE_URL = "ws://localhost/api/v1/live"
+
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 ADMIN_TOKEN = "admin-" + "a" * 32
 WRITER_TOKENS = ("robot-7-" + "w" * 32, "robot-8-" + "v" * 32)
@@ -260,17 +264,17 @@ def test_live_stream_needs_a_token_where_reads_do() -> None:
     """With reads by token, /api/v1/live refuses a handshake without one (1008) and accepts a token in the header or as a subprotocol."""
     client = TestClient(app_for(settings_for("token"), live_hub=LiveHub()))
     with pytest.raises(WebSocketDisconnect) as refused:
-        with client.websocket_connect("/api/v1/live") as ws:
+        with client.websocket_connect(LIVE_URL) as ws:
             ws.receive_json()
     assert refused.value.code == 1008
-    with client.websocket_connect("/api/v1/live", headers=auth("reader")) as ws:
+    with client.websocket_connect(LIVE_URL, headers=auth("reader")) as ws:
         ws.close()
-    with client.websocket_connect("/api/v1/live",
+    with client.websocket_connect(LIVE_URL,
                                   subprotocols=["mapservice.live", f"bearer.{READER_TOKEN}"]) as ws:
         assert ws.accepted_subprotocol == "mapservice.live"
         ws.close()
     open_client = TestClient(app_for(settings_for("open"), live_hub=LiveHub()))
-    with open_client.websocket_connect("/api/v1/live") as ws:
+    with open_client.websocket_connect(LIVE_URL) as ws:
         ws.close()
 
 
@@ -278,12 +282,12 @@ def test_live_clients_are_bounded() -> None:
     """One client more than MAPSERVICE_API_MAX_LIVE_CLIENTS is closed with 1013 and a reason naming the setting; a place frees when one leaves."""
     hub = LiveHub()
     client = TestClient(app_for(settings_for("open", api_max_live_clients=1), live_hub=hub))
-    with client.websocket_connect("/api/v1/live") as first:
+    with client.websocket_connect(LIVE_URL) as first:
         for _ in range(200):
             if hub.subscribers:
                 break
             client.portal.call(lambda: None)
-        with client.websocket_connect("/api/v1/live") as second:
+        with client.websocket_connect(LIVE_URL) as second:
             closed = second.receive()
         assert closed["code"] == 1013 and "MAPSERVICE_API_MAX_LIVE_CLIENTS" in closed["reason"]
         first.close()
@@ -291,7 +295,7 @@ def test_live_clients_are_bounded() -> None:
         if not hub.subscribers:
             break
         client.portal.call(lambda: None)
-    with client.websocket_connect("/api/v1/live") as again:
+    with client.websocket_connect(LIVE_URL) as again:
         again.close()
 
 

@@ -12,6 +12,10 @@ from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 
+# The live stream answers only the service's own host names; the test client's default
+# Host, "testserver", is not one.
+LIVE_URL = "ws://localhost/api/v1/live"
+
 
 @pytest.fixture
 def client() -> TestClient:
@@ -64,9 +68,33 @@ def test_live_refuses_pages_of_other_sites(client) -> None:
     """A browser page from another origin cannot open /api/v1/live; our host, a configured
     origin and non-browser clients (no Origin) can."""
     with pytest.raises(WebSocketDisconnect) as refused:
-        with client.websocket_connect("/api/v1/live", headers={"origin": "https://evil.example"}) as ws:
+        with client.websocket_connect(LIVE_URL, headers={"origin": "https://evil.example"}) as ws:
             ws.receive_json()
     assert refused.value.code == 1008
-    for headers in ({"origin": "http://testserver"}, {"origin": "https://dash.example.com"}, {}):
-        with client.websocket_connect("/api/v1/live", headers=headers) as ws:
+    for headers in ({"origin": "http://localhost"}, {"origin": "https://dash.example.com"}, {}):
+        with client.websocket_connect(LIVE_URL, headers=headers) as ws:
             ws.close()
+
+
+@pytest.mark.parametrize("host", ["evil.example", "evil.example:8080", "127.0.0.1.nip.io"])
+def test_the_live_stream_refuses_other_host_names(host) -> None:
+    """DNS rebinding: a page of evil.example whose name resolves to this address sends
+    Host and Origin of evil.example, which agree; the Host is not one of the service's, so
+    the handshake is refused with a reason naming the setting (before anything else: this
+    app has no live feed, which would close with 1011 after accepting)."""
+    client = TestClient(create_app(Settings(), MemoryStore()))
+    with pytest.raises(WebSocketDisconnect) as refused:
+        with client.websocket_connect(LIVE_URL, headers={
+                "host": host, "origin": f"http://{host}"}) as ws:
+            ws.receive_json()
+    assert refused.value.code == 1008 and "MAPSERVICE_API_ALLOWED_HOSTS" in refused.value.reason
+
+
+@pytest.mark.parametrize("host", ["localhost:8080", "127.0.0.1", "[::1]:8080", "maps.plant.example"])
+def test_the_live_stream_takes_loopback_and_configured_host_names(host) -> None:
+    """The loopback names and MAPSERVICE_API_ALLOWED_HOSTS are the service's own."""
+    hub = LiveHub()
+    client = TestClient(create_app(Settings(api_allowed_hosts=["maps.plant.example"]),
+                                   MemoryStore(), live_hub=hub))
+    with client.websocket_connect(LIVE_URL, headers={"host": host}) as ws:
+        ws.close()

@@ -14,6 +14,10 @@ from mapservice.api.live_hub import LiveHub
 from mapservice.core.live_messages import live_message
 from mapservice.settings import Settings
 
+# The live stream answers only the service's own host names; the test client's default
+# Host, "testserver", is not one.
+LIVE_URL = "ws://localhost/api/v1/live"
+
 
 def test_slow_subscriber_keeps_the_newest(ev):
     """A full queue drops its oldest message, never blocks the publisher."""
@@ -40,7 +44,7 @@ def test_websocket_streams_published_messages(ev):
 def test_websocket_without_a_live_feed_closes_with_reason():
     """An API built without a live feed says so (1011) instead of hanging."""
     client = TestClient(create_app(Settings(), MemoryStore(), {}))
-    with client.websocket_connect("/api/v1/live") as ws:
+    with client.websocket_connect(LIVE_URL) as ws:
         closed = ws.receive()
     assert closed["type"] == "websocket.close" and closed["code"] == 1011
 
@@ -48,7 +52,7 @@ def test_websocket_without_a_live_feed_closes_with_reason():
 def test_websocket_before_the_feed_is_ready_asks_to_retry():
     """Until the relay reads the live topic, /api/v1/live closes with 1013 (try again later)."""
     client = TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=LiveHub(ready=lambda: False)))
-    with client.websocket_connect("/api/v1/live") as ws:
+    with client.websocket_connect(LIVE_URL) as ws:
         closed = ws.receive()
     assert closed["type"] == "websocket.close" and closed["code"] == 1013
     assert "Kafka" in closed["reason"]
@@ -112,7 +116,7 @@ def test_a_bad_batch_value_is_refused_with_a_reason():
     """?batch=maybe is accepted, then closed with 1008 and a reason naming the parameter."""
     client = TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=LiveHub()))
     # Accepted first: a close before accept reaches a real client as a bare HTTP 403.
-    with client.websocket_connect("/api/v1/live?batch=maybe") as ws:
+    with client.websocket_connect(LIVE_URL + "?batch=maybe") as ws:
         closed = ws.receive()
     assert closed["type"] == "websocket.close" and closed["code"] == 1008
     assert closed["reason"] == "query parameter batch must be true or false, not 'maybe'"
@@ -122,7 +126,7 @@ def test_a_bad_batch_value_is_refused_with_a_reason():
 def viewer(hub: LiveHub, query: str = ""):
     """An app on `hub` and a WebSocket on /api/v1/live (plus `query`), once the hub counts it."""
     with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
-            client.websocket_connect("/api/v1/live" + query) as ws:
+            client.websocket_connect(LIVE_URL + query) as ws:
         for _ in range(100):
             if hub.subscribers:
                 break

@@ -442,3 +442,30 @@ def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings,
     assert gateway.client.batches == [[(4, 1), (5, 1)]]
     letters = [value for _, value in gateway.publisher.records[settings.topic_dead_letter]]
     assert len(letters) == 1 and b"unknown_topic" in letters[0] and b"not-utf8:" in letters[0]
+
+
+def test_new_robot_ids_beyond_the_limit_are_dead_lettered(publisher, clock, wire, acks) -> None:
+    """Open mode: three new robot ids a minute pass, a fourth new one is a dead letter
+    `too_many_new_robots` whose detail names the setting, and robots already seen still pass."""
+    ingestor = Ingestor(Settings(ingest_new_robots_limit="3/minute"), publisher, clock, "gw",
+                        retry_delay_s=0)
+    for robot in ("a", "b", "c", "d", "a"):
+        ingestor.handle(f"iot/coordinates/{robot}", wire.pose(robotId=robot), acks.for_(robot))
+    publisher.poll()
+    settings = Settings()
+    stored = [decode(v).robot_id for _, v in publisher.records[settings.topic_pose_events]]
+    assert stored == ["a", "b", "c", "a"]
+    ((_, value),) = publisher.records[settings.topic_dead_letter]
+    letter = decode_dead_letter(value)
+    assert letter.reason == "too_many_new_robots" and "'d'" in letter.detail
+    assert "MAPSERVICE_INGEST_NEW_ROBOTS_LIMIT" in letter.detail
+    assert acks.calls == ["a", "b", "c", "d", "a"]  # the refused one is acknowledged too
+
+
+def test_no_new_robot_limit_when_empty(publisher, clock, wire, acks) -> None:
+    ingestor = Ingestor(Settings(ingest_new_robots_limit=""), publisher, clock, "gw",
+                        retry_delay_s=0)
+    for n in range(50):
+        ingestor.handle(f"iot/coordinates/r{n}", wire.pose(robotId=f"r{n}"), acks.for_("x"))
+    publisher.poll()
+    assert len(publisher.records[Settings().topic_pose_events]) == 50

@@ -13,8 +13,23 @@ export class ApiError extends Error {
   }
 }
 
+/** Answers that say "busy, come back" (the server's pools and per-client caps); retried
+ * after their Retry-After (at most RETRY_CAP_MS), RETRIES times at most. */
+const BUSY = new Set([429, 503]);
+const RETRIES = 3;
+const RETRY_CAP_MS = 5_000;
+
+export async function fetchRetrying(url: string, sleep = (ms: number) => new Promise((r) => setTimeout(r, ms))): Promise<Response> {
+  for (let attempt = 0; ; attempt++) {
+    const r = await fetch(url, { headers: authHeaders() });
+    if (!BUSY.has(r.status) || attempt >= RETRIES) return r;
+    const seconds = Number(r.headers.get("Retry-After"));
+    await sleep(Math.min(RETRY_CAP_MS, Number.isFinite(seconds) && seconds > 0 ? seconds * 1000 : 1000));
+  }
+}
+
 async function getJson<T>(url: string): Promise<T> {
-  const r = await fetch(url, { headers: authHeaders() });
+  const r = await fetchRetrying(url);
   if (!r.ok) {
     let detail = r.statusText;
     try {

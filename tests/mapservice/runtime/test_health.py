@@ -55,3 +55,49 @@ def test_failures_and_false_are_down_successes_are_cached() -> None:
     clock.now += 5.1
     assert check() is True and check() is True and len(calls) == 2
     assert CachedCheck("false", lambda: False, ttl_s=0, timeout_s=1)() is False
+
+
+def test_a_slow_refresh_keeps_the_last_answer_without_waiting() -> None:
+    """Once a check has answered, a probe does not wait for a slow refresh (a busy
+    ClickHouse): it gets the last answer at once, until the refresh is older than timeout_s."""
+    release = threading.Event()
+    calls = []
+
+    def slow_after_first():
+        calls.append(1)
+        if len(calls) > 1:
+            release.wait(30)
+        return True
+
+    check = CachedCheck("slow", slow_after_first, ttl_s=0.0, timeout_s=1.5)
+    assert check() is True
+    started = time.monotonic()
+    assert check() is True  # the refresh hangs: the last answer, at once
+    assert time.monotonic() - started < 0.5
+    time.sleep(1.6)
+    assert check() is False  # the refresh is older than timeout_s: down
+    release.set()
+
+
+def test_nowait_never_blocks_and_refreshes_in_the_background() -> None:
+    """nowait(): None before any answer; then the last answer at once, a due refresh
+    started in its own thread (what the API's async probes call on the event loop)."""
+    release = threading.Event()
+    calls = []
+
+    def call():
+        calls.append(1)
+        if len(calls) > 1:
+            release.wait(30)
+        return True
+
+    check = CachedCheck("bg", call, ttl_s=0.0, timeout_s=5.0)
+    assert check.nowait() is None
+    assert check() is True
+    started = time.monotonic()
+    assert check.nowait() is True and time.monotonic() - started < 0.05
+    deadline = time.monotonic() + 2
+    while len(calls) < 2 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(calls) == 2  # the refresh runs, in the background
+    release.set()

@@ -1,0 +1,198 @@
+"""Admission control (api/admission.py): the probes answer while every read is stuck, each
+pool refuses beyond its workers and queue with 503 and Retry-After, one caller cannot take
+a pool alone (429), and /clickhouse and the WebSocket are rate-limited like every route."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import httpx
+import pytest
+from fastapi.testclient import TestClient
+from starlette.testclient import WebSocketDenialResponse
+
+from mapservice.adapters.memory_store import MemoryStore
+from mapservice.api.app import create_app
+from mapservice.api.live_hub import LiveHub
+from mapservice.settings import Settings
+
+LIVE_URL = "ws://localhost/api/v1/live"
+
+
+class StuckStore(MemoryStore):
+    """robots_at waits until released: a read as slow as a costly one, without the CPU."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.release = threading.Event()
+        self.entered = 0
+
+    def robots_at(self, at_ms: int):
+        self.entered += 1
+        self.release.wait(30)
+        return super().robots_at(at_ms)
+
+
+def client_at(app, address: str) -> httpx.AsyncClient:
+    """A client from its own address: anonymous callers are told apart by address."""
+    return httpx.AsyncClient(transport=httpx.ASGITransport(app=app, client=(address, 40000)),
+                             base_url="http://127.0.0.1")
+
+
+async def _get(app, address: str, path: str) -> httpx.Response:
+    async with client_at(app, address) as client:
+        return await client.get(path, timeout=60)
+
+
+def test_probes_answer_within_a_second_under_60_stuck_reads() -> None:
+    """60 readers (each from its own address) on a read that does not return: the reads'
+    pool serves 8 and queues 32, the other 20 get 503 with Retry-After at once, and
+    /healthz and /readyz answer within a second all along. Without the pools the 60 reads
+    took anyio's 40 threads and the (then sync) probes waited behind them."""
+    store = StuckStore()
+    settings = Settings(api_read_workers=8, api_read_queue=32, api_queue_wait_s=30)
+    app = create_app(settings, store, {"clickhouse": lambda: True})
+
+    async def scenario():
+        reads = [asyncio.create_task(_get(app, f"10.0.{i // 200}.{i % 200 + 1}", "/api/v1/robots"))
+                 for i in range(60)]
+        await asyncio.sleep(1.0)
+        probe_times = []
+        for path in ("/healthz", "/readyz", "/healthz", "/readyz"):
+            started = time.monotonic()
+            reply = await asyncio.wait_for(_get(app, "10.9.9.9", path), timeout=5)
+            probe_times.append(time.monotonic() - started)
+            assert reply.status_code == 200, reply.text
+        refused = [r for r in [t.result() for t in reads if t.done()]]
+        store.release.set()
+        done = await asyncio.gather(*reads)
+        return probe_times, refused, done
+
+    probe_times, refused, done = asyncio.run(scenario())
+    assert max(probe_times) < 1.0, probe_times
+    assert len(refused) == 20 and {r.status_code for r in refused} == {503}
+    for reply in refused:
+        assert reply.headers["retry-after"].isdigit()
+        assert "MAPSERVICE_API_READ_WORKERS" in reply.json()["detail"]
+    assert sum(r.status_code == 200 for r in done) == 40
+    assert store.entered == 40  # never more than the pool at once, the queue after them
+
+
+def test_a_queued_read_is_refused_after_the_queue_wait() -> None:
+    """One worker busy, one request queued: after MAPSERVICE_API_QUEUE_WAIT_S a 503 says so."""
+    store = StuckStore()
+    app = create_app(Settings(api_read_workers=1, api_read_queue=1, api_queue_wait_s=0.3),
+                     store)
+
+    async def scenario():
+        stuck = asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots"))
+        await asyncio.sleep(0.2)
+        queued = await _get(app, "10.0.0.2", "/api/v1/robots")
+        store.release.set()
+        await stuck
+        return queued
+
+    queued = asyncio.run(scenario())
+    assert queued.status_code == 503 and "MAPSERVICE_API_QUEUE_WAIT_S" in queued.json()["detail"]
+    assert "retry-after" in queued.headers
+
+
+def test_one_caller_cannot_take_the_pool_alone() -> None:
+    """An address with MAPSERVICE_API_CALLER_CONCURRENCY reads under way gets 429 for one
+    more; another address is still served."""
+    store = StuckStore()
+    app = create_app(Settings(api_caller_concurrency=2, api_read_workers=8), store)
+
+    async def scenario():
+        mine = [asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots")) for _ in range(2)]
+        await asyncio.sleep(0.3)
+        third = await _get(app, "10.0.0.1", "/api/v1/robots")
+        other = asyncio.create_task(_get(app, "10.0.0.2", "/api/v1/robots"))
+        await asyncio.sleep(0.3)
+        store.release.set()
+        return third, await other, await asyncio.gather(*mine)
+
+    third, other, mine = asyncio.run(scenario())
+    assert third.status_code == 429 and "MAPSERVICE_API_CALLER_CONCURRENCY" in third.json()["detail"]
+    assert third.headers["retry-after"] == "1"
+    assert other.status_code == 200 and all(r.status_code == 200 for r in mine)
+
+
+def _sql_app(release: threading.Event):
+    """An analysts' engine stand-in whose every query waits for `release`."""
+    async def app(scope, receive, send):
+        await asyncio.get_running_loop().run_in_executor(None, release.wait, 30)
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"1\n"})
+    return app
+
+
+def test_analysts_queries_are_rate_limited_and_pooled() -> None:
+    """/clickhouse no longer bypasses the rate limit, and its pool refuses with 503."""
+    release = threading.Event()
+    release.set()
+    limited = TestClient(create_app(Settings(api_rate_limit="2/minute"), MemoryStore(),
+                                    sql_app=_sql_app(release)))
+    assert [limited.get("/clickhouse/?query=SELECT+1").status_code for _ in range(3)] == [200, 200, 429]
+
+    release.clear()
+    app = create_app(Settings(api_analyst_workers=1, api_analyst_queue=0), MemoryStore(),
+                     sql_app=_sql_app(release))
+
+    async def scenario():
+        first = asyncio.create_task(_get(app, "10.0.0.1", "/clickhouse/?query=SELECT+1"))
+        await asyncio.sleep(0.3)
+        second = await _get(app, "10.0.0.2", "/clickhouse/?query=SELECT+1")
+        release.set()
+        return await first, second
+
+    first, second = asyncio.run(scenario())
+    assert first.status_code == 200
+    assert second.status_code == 503 and "MAPSERVICE_API_ANALYST_WORKERS" in second.json()["detail"]
+
+
+def test_the_live_stream_is_rate_limited_and_capped_per_caller() -> None:
+    """Opening /api/v1/live counts against MAPSERVICE_API_RATE_LIMIT (it used to bypass it),
+    and one caller holds at most MAPSERVICE_API_LIVE_CLIENTS_PER_CALLER connections: both
+    refused with 429 and a JSON reason."""
+    client = TestClient(create_app(Settings(api_rate_limit="2/minute"), MemoryStore(),
+                                   live_hub=LiveHub()))
+    for _ in range(2):
+        with client.websocket_connect(LIVE_URL) as ws:
+            ws.close()
+    with pytest.raises(WebSocketDenialResponse) as over:
+        with client.websocket_connect(LIVE_URL):
+            pass
+    assert over.value.status_code == 429 and "MAPSERVICE_API_RATE_LIMIT" in over.value.json()["detail"]
+
+    capped = TestClient(create_app(Settings(api_live_clients_per_caller=1), MemoryStore(),
+                                   live_hub=LiveHub()))
+    with capped.websocket_connect(LIVE_URL):
+        with pytest.raises(WebSocketDenialResponse) as second:
+            with capped.websocket_connect(LIVE_URL):
+                pass
+    assert second.value.status_code == 429
+    assert "MAPSERVICE_API_LIVE_CLIENTS_PER_CALLER" in second.value.json()["detail"]
+    with capped.websocket_connect(LIVE_URL) as again:  # the first one closed: a place again
+        again.close()
+
+
+def test_probes_and_pages_belong_to_no_pool() -> None:
+    """With the reads' pool taken and its queue full, the probes and the UI's pages still
+    answer: only /api/..., exports and /clickhouse are pooled."""
+    store = StuckStore()
+    app = create_app(Settings(api_read_workers=1, api_read_queue=0), store)
+
+    async def scenario():
+        stuck = asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots"))
+        await asyncio.sleep(0.2)
+        replies = [await _get(app, "10.0.0.2", p) for p in ("/api/v1/robots", "/healthz", "/readyz")]
+        store.release.set()
+        await stuck
+        return replies
+
+    pooled, health, ready = asyncio.run(scenario())
+    assert pooled.status_code == 503
+    assert health.status_code == 200 and ready.status_code == 200

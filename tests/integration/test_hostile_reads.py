@@ -1,0 +1,205 @@
+"""Readers never starve the probes or the ingest: the real stack (`serve`: processors and
+API in one process, embedded ClickHouse, tansu, Mosquitto) over hours of history, a robot
+fleet publishing, first alone, then with 20 anonymous readers (each from its own address)
+on the costliest reads there are: 24 h MCAP exports, 7-day CSV exports, large pose and
+event windows and map PNGs, asked again as soon as answered (or refused).
+
+Asserted while the readers run: the probes answer within a second, publish-to-queryable
+(publish to the live stream's copy, which is sent once the event is stored) has a p99 of
+at most 2 s, the history consumer never left its group (no second partition assignment
+in the server's log), and the server's resident memory stays under MEMORY_BOUND. The
+figures of both phases are printed (run with -s) for BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+import time
+
+import httpx
+import pytest
+from websockets.sync.client import connect
+
+from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.ros_map import load_ros_map
+from mapservice.bench.history_loader import load_history
+from mapservice.local.stack import Stack
+from mapservice.robot.loadgen import RobotFleet
+from tests.fixtures.paths import MAPS
+
+from .conftest import run_stack
+
+HISTORY_HOURS = 6
+HISTORY_ROBOTS = 20
+FLEET = 100  # robots publishing a pose a second (and a chunk every five)
+PHASE_S = 35
+READERS = 20
+MEMORY_BOUND = 3 * 1024 ** 3  # the serve process's RSS: chDB, processors and API together
+ASSIGNED = "history partitions assigned"
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    stack = Stack(tmp_path_factory.mktemp("hostile"), mqtt="mosquitto")
+    settings = stack.settings()
+    ros_map = load_ros_map(MAPS / "warehouse.yaml")
+    store = ClickHouseStore(settings.resolved_clickhouse_dsn, settings.clickhouse_database,
+                            settings.retention_days)
+    try:
+        result = load_history(store, ros_map, days=HISTORY_HOURS / 24, robots=HISTORY_ROBOTS,
+                              end_ms=time.time_ns() // 1_000_000 - 120_000)
+    finally:
+        store.close()
+    run_stack(stack, result.meta)
+    stack.ros_map = ros_map  # type: ignore[attr-defined]
+    yield stack
+    stack.stop()
+
+
+class Probes(threading.Thread):
+    """/healthz and /readyz four times a second; the slowest answer and any failure."""
+
+    def __init__(self, api: str) -> None:
+        super().__init__(daemon=True)
+        self.api, self.stop = api, threading.Event()
+        self.slowest, self.failures = 0.0, []
+
+    def run(self) -> None:
+        with httpx.Client(base_url=self.api, timeout=10) as client:
+            while not self.stop.is_set():
+                for path in ("/healthz", "/readyz"):
+                    started = time.monotonic()
+                    try:
+                        status = client.get(path).status_code
+                    except httpx.HTTPError as exc:
+                        status = repr(exc)
+                    self.slowest = max(self.slowest, time.monotonic() - started)
+                    if status != 200:
+                        self.failures.append((path, status))
+                self.stop.wait(0.25)
+
+
+class Memory(threading.Thread):
+    """The largest resident size of a process, sampled every half second."""
+
+    def __init__(self, pid: int) -> None:
+        super().__init__(daemon=True)
+        self.pid, self.stop, self.peak = pid, threading.Event(), 0
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            status = open(f"/proc/{self.pid}/status").read()
+            self.peak = max(self.peak, int(re.search(r"VmRSS:\s+(\d+)", status).group(1)) * 1024)
+            self.stop.wait(0.5)
+
+
+class Live(threading.Thread):
+    """The live stream: when each of the fleet's poses arrived (its copy is sent once the
+    event is queryable)."""
+
+    def __init__(self, url: str) -> None:
+        super().__init__(daemon=True)
+        self.url, self.stop, self.arrived = url, threading.Event(), {}
+
+    def run(self) -> None:
+        with connect(self.url + "/api/v1/live?batch=true", max_size=None) as ws:
+            while not self.stop.is_set():
+                try:
+                    frame = ws.recv(timeout=0.5)
+                except TimeoutError:
+                    continue
+                now = time.time()
+                for event in json.loads(frame):
+                    if event.get("type") == "pose":
+                        self.arrived.setdefault((event["robotId"], event["ts_ms"]), now)
+
+
+def readers(api: str, stop: threading.Event, tally: dict) -> list[threading.Thread]:
+    """READERS anonymous clients, each from its own loopback address, on costly reads."""
+    now = time.time_ns() // 1_000_000
+    paths = [
+        f"/api/v1/exports/replay.mcap?from={now - 86_400_000}&to={now}",
+        f"/api/v1/exports/tables/robot-poses?from={now - 7 * 86_400_000 + 120_000}&to={now}",
+        f"/api/v1/poses?from={now - 86_400_000}&to={now}&limit=100000",
+        f"/api/v1/events?from={now - 6 * 3_600_000}&to={now}",
+        f"/api/v1/map/png?at={now - 3_600_000}&scale=4",
+    ]
+    lock = threading.Lock()
+
+    def read(n: int) -> None:
+        transport = httpx.HTTPTransport(local_address=f"127.0.0.{n + 10}")
+        with httpx.Client(base_url=api, transport=transport, timeout=120) as client:
+            k = n
+            while not stop.is_set():
+                path = paths[k % len(paths)]
+                k += 1
+                try:
+                    with client.stream("GET", path) as reply:
+                        for _ in reply.iter_bytes():
+                            if stop.is_set():
+                                break
+                        status = reply.status_code
+                except httpx.HTTPError as exc:
+                    status = type(exc).__name__
+                with lock:
+                    tally[status] = tally.get(status, 0) + 1
+                if status != 200:
+                    stop.wait(0.1)  # hostile, not a busy loop: the refusal is cheap either way
+
+    return [threading.Thread(target=read, args=(n,), daemon=True) for n in range(READERS)]
+
+
+def run_phase(stack: Stack, with_readers: bool) -> dict:
+    server_log = stack.log_dir / "server.log"
+    assignments_before = server_log.read_text().count(ASSIGNED)
+    probes, memory, live = Probes(stack.api_url), Memory(stack.procs["server"].pid), \
+        Live(stack.api_url.replace("http://", "ws://"))
+    for t in (probes, memory, live):
+        t.start()
+    time.sleep(1.0)
+    stop, tally = threading.Event(), {}
+    crowd = readers(stack.api_url, stop, tally) if with_readers else []
+    for t in crowd:
+        t.start()
+    fleet = RobotFleet(stack.mqtt_url, stack.ros_map, FLEET, prefix="hostile" if with_readers
+                       else "calm", record=True)
+    stats = fleet.run(PHASE_S)
+    time.sleep(5.0)  # the last poses' way through
+    stop.set()
+    for t in (probes, memory, live):
+        t.stop.set()
+    for t in (*crowd, probes, memory, live):
+        t.join(30)
+    latencies = sorted(live.arrived[(robot, ts)] - at for kind, robot, ts, at in stats.published
+                       if kind == "pose" and (robot, ts) in live.arrived)
+    poses = sum(1 for kind, *_ in stats.published if kind == "pose")
+    figures = {
+        "readers": READERS if with_readers else 0, "fleet": FLEET, "seconds": PHASE_S,
+        "poses_published": poses, "poses_seen_live": len(latencies),
+        "publish_to_queryable_p50_s": round(latencies[len(latencies) // 2], 3) if latencies else None,
+        "publish_to_queryable_p99_s": round(latencies[int(len(latencies) * 0.99)], 3) if latencies else None,
+        "slowest_probe_s": round(probes.slowest, 3), "probe_failures": probes.failures[:5],
+        "server_peak_rss_mb": memory.peak // 2 ** 20,
+        "consumer_assignments": server_log.read_text().count(ASSIGNED) - assignments_before,
+        "reader_answers": tally,
+    }
+    print(f"\nhostile-read figures: {json.dumps(figures)}")
+    return figures
+
+
+def test_readers_do_not_starve_probes_or_ingest(stack) -> None:
+    # The consumer's assignment is logged (kafka_batch_source.py): once at start, again
+    # whenever it left its group and rejoined; a log without it would prove nothing.
+    assert (stack.log_dir / "server.log").read_text().count(ASSIGNED) == 1
+    calm = run_phase(stack, with_readers=False)
+    hostile = run_phase(stack, with_readers=True)
+    for figures in (calm, hostile):
+        assert figures["poses_seen_live"] >= 0.99 * figures["poses_published"], figures
+        assert figures["slowest_probe_s"] < 1.0 and not figures["probe_failures"], figures
+        assert figures["publish_to_queryable_p99_s"] <= 2.0, figures
+        assert figures["consumer_assignments"] == 0, figures  # never left its group
+        assert figures["server_peak_rss_mb"] * 2 ** 20 < MEMORY_BOUND, figures
+    # The readers did read (and were refused when the pools were full), not just fail.
+    assert hostile["reader_answers"].get(200, 0) > 0, hostile
