@@ -50,7 +50,7 @@ class EndlessCsvStore(MemoryStore):
 @contextmanager
 def served(app) -> Iterator[tuple[int, asyncio.AbstractEventLoop]]:
     """`app` on a real uvicorn in a thread: its port and its event loop."""
-    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", lifespan="off")
+    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_config=None, lifespan="off")
     server = uvicorn.Server(config)
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
