@@ -179,7 +179,8 @@ def cmd_up(args) -> None:
             if done.returncode != 0:
                 raise RuntimeError("writing the demo history failed (see above); "
                                    "`--history-days 0` starts without it")
-        with console.status("starting Kafka-protocol broker (tansu) and MQTT broker..."):
+        kafka_name = embedded_kafka_intro(stack, console)
+        with console.status(f"starting Kafka ({kafka_name}) and the MQTT broker..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
         robot_credentials = None
@@ -213,7 +214,8 @@ def cmd_up(args) -> None:
             table.add_row("Robots' MQTT credentials", f"{robot_credentials} (the simulated robots' "
                           f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
         table.add_row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
-        table.add_row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
+        table.add_row(f"Kafka ({kafka_name})", f"127.0.0.1:{stack.kafka_port}  ("
+                      + kafka_keeps(stack) + ")")
         table.add_row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         table.add_row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
                       f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
@@ -239,6 +241,36 @@ def cmd_up(args) -> None:
         sys.exit(1)
     finally:
         stack.stop()
+
+
+def embedded_kafka_intro(stack, console) -> str:
+    """Which Kafka `up` runs (said on the console, with what the tansu fallback costs);
+    fetches the Apache Kafka jars first, with progress, when they are not cached yet."""
+    from mapservice.local import kafka_broker
+
+    if stack.kafka == "tansu":
+        why = ("no Java runtime found (`make up` installs it as root)"
+               if kafka_broker.java_binary() is None else "MAPSERVICE_EMBEDDED_KAFKA=tansu")
+        console.print(f"[yellow]Kafka is tansu: {why}. {kafka_broker.TANSU_COST}; use Apache "
+                      "Kafka for anything longer than a working session (README, embedded "
+                      "mode).[/yellow]")
+        return "tansu, in memory"
+    version = kafka_broker.kafka_version()
+    settings = stack.settings()
+    jars = settings.kafka_jars_dir or kafka_broker.default_jars_dir()
+    if not (jars / ".complete").exists():
+        console.print(f"fetching Apache Kafka {version}'s jars with Maven into {jars} (once)...")
+        kafka_broker.ensure_jars(jars, progress=lambda line: console.print(f"  {line}",
+                                                                           highlight=False))
+    return f"Apache Kafka {version}"
+
+
+def kafka_keeps(stack) -> str:
+    if stack.kafka == "tansu":
+        return "no retention; a restart loses what it held"
+    settings = stack.settings()
+    return (f"log in {stack.data_dir / 'kafka'}, kept {settings.embedded_kafka_retention_hours} h "
+            f"and at most {settings.embedded_kafka_retention_bytes // 1024**2} MB a partition")
 
 
 def api_token_rows(settings: Settings) -> list[tuple[str, str]]:

@@ -23,7 +23,7 @@ import structlog
 from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, BrokerFiles,
                                            RobotCredential, new_password)
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.local import embedded
+from mapservice.local import embedded, kafka_broker
 from mapservice.local.certs import make_server_cert
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
@@ -70,6 +70,9 @@ class Stack:
     mqtt_port: int = 0
     mqtt_ws_port: int = 0  # the embedded broker's MQTT-over-WebSocket listener (browsers)
     kafka_port: int = 0
+    # "apache" (a KRaft node, log in DATA_DIR/kafka/) or "tansu" (in memory); empty:
+    # MAPSERVICE_EMBEDDED_KAFKA (auto: apache where Java is installed).
+    kafka: str = ""
     health_port: int = 0
     extra_env: dict[str, str] = field(default_factory=dict)
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
@@ -120,6 +123,9 @@ class Stack:
             self.mqtts_url = f"mqtts://127.0.0.1:{self.mqtt_tls_port}"
         self.tls_dir = self.data_dir / "tls"
         self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
+        self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
+        if self.kafka not in ("apache", "tansu"):
+            raise ValueError(f"kafka must be 'apache' or 'tansu', not {self.kafka!r}")
 
     @property
     def api_url(self) -> str:
@@ -278,11 +284,21 @@ class Stack:
         raise RuntimeError(f"{what} not healthy at {url} after {timeout_s:.0f} s")
 
     def start_kafka(self) -> subprocess.Popen:
-        """tansu keeps topics in memory: a new one gets the topics and the map meta again."""
+        """Apache Kafka resumes on its log in DATA_DIR/kafka/; tansu keeps topics in memory,
+        so a new one gets the topics and the map meta again."""
         embedded.stop(self.procs.pop("kafka", None))
-        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
-        ensure_topics(self.settings())
-        if self.meta is not None:
+        settings = self.settings()
+        if self.kafka == "apache":
+            node = kafka_broker.node_for(
+                self.data_dir, self.kafka_port, heap_mb=settings.embedded_kafka_heap_mb,
+                retention_hours=settings.embedded_kafka_retention_hours,
+                retention_bytes=settings.embedded_kafka_retention_bytes)
+            self.procs["kafka"] = kafka_broker.start_kafka(node, self._log("kafka"),
+                                                           jars_dir=settings.kafka_jars_dir)
+        else:
+            self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"))
+        ensure_topics(settings)
+        if self.meta is not None and self.kafka == "tansu":
             self.publish_meta(self.meta)
         return self.procs["kafka"]
 
