@@ -130,7 +130,8 @@ def ensure_jars(jars_dir: Path | None = None,
 
 @dataclass(frozen=True)
 class KafkaNodeConfig:
-    """One KRaft node on 127.0.0.1: where it listens and keeps its log, what it keeps."""
+    """One KRaft node on 127.0.0.1: where it listens and keeps its log, what it keeps. Alone
+    by default; with `voters` and `replication` one of a cluster (the fault tests')."""
 
     log_dir: Path
     port: int
@@ -139,15 +140,20 @@ class KafkaNodeConfig:
     retention_hours: int = 24
     # Per partition; log segments of a sixteenth of it, so retention frees space in steps.
     retention_bytes: int = 256 * 1024**2
+    node_id: int = NODE_ID
+    voters: str = ""  # id@host:port,...; empty: this node alone
+    replication: int = 1  # of internal and new topics
+    min_insync_replicas: int = 1
 
     def properties(self) -> str:
         segment = max(1024**2, self.retention_bytes // 16)
         return "\n".join([
             "process.roles=broker,controller",
-            f"node.id={NODE_ID}",
+            f"node.id={self.node_id}",
             # A static voter set: the controller's port is not written into the metadata
-            # log, so a restart may pick another free port.
-            f"controller.quorum.voters={NODE_ID}@127.0.0.1:{self.controller_port}",
+            # log, so a lone node's restart may pick another free port.
+            "controller.quorum.voters="
+            + (self.voters or f"{self.node_id}@127.0.0.1:{self.controller_port}"),
             f"listeners=PLAINTEXT://127.0.0.1:{self.port},CONTROLLER://127.0.0.1:{self.controller_port}",
             f"advertised.listeners=PLAINTEXT://127.0.0.1:{self.port}",
             "controller.listener.names=CONTROLLER",
@@ -155,12 +161,14 @@ class KafkaNodeConfig:
             "listener.security.protocol.map=CONTROLLER:PLAINTEXT,PLAINTEXT:PLAINTEXT",
             f"log.dirs={self.log_dir}",
             "num.partitions=1",
-            "offsets.topic.replication.factor=1",
+            f"default.replication.factor={self.replication}",
+            f"min.insync.replicas={self.min_insync_replicas}",
+            f"offsets.topic.replication.factor={self.replication}",
             "offsets.topic.num.partitions=6",
-            "transaction.state.log.replication.factor=1",
-            "transaction.state.log.min.isr=1",
-            "share.coordinator.state.topic.replication.factor=1",
-            "share.coordinator.state.topic.min.isr=1",
+            f"transaction.state.log.replication.factor={self.replication}",
+            f"transaction.state.log.min.isr={self.min_insync_replicas}",
+            f"share.coordinator.state.topic.replication.factor={self.replication}",
+            f"share.coordinator.state.topic.min.isr={self.min_insync_replicas}",
             "group.initial.rebalance.delay.ms=0",
             # The service creates its own topics (the meta topic compacted).
             "auto.create.topics.enable=false",
@@ -183,7 +191,8 @@ class KafkaNodeConfig:
         ])
 
 
-def format_once(java: str, libs: Path, config_file: Path, log_dir: Path) -> bool:
+def format_once(java: str, libs: Path, config_file: Path, log_dir: Path,
+                cluster: str | None = None) -> bool:
     """Formats the node's log directory unless it already is (then its records and
     offsets are kept); True if it formatted."""
     if (log_dir / "meta.properties").exists():
@@ -192,7 +201,7 @@ def format_once(java: str, libs: Path, config_file: Path, log_dir: Path) -> bool
     done = subprocess.run(
         [java, *JVM_FLAGS, "-Xmx128m", "-cp", f"{libs}/*",
          f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
-         "kafka.tools.StorageTool", "format", "--cluster-id", cluster_id(),
+         "kafka.tools.StorageTool", "format", "--cluster-id", cluster or cluster_id(),
          "--config", str(config_file), "--ignore-formatted"],
         capture_output=True, text=True)
     if done.returncode != 0:
@@ -212,6 +221,20 @@ def start_kafka(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = 
                 timeout_s: float = 90.0) -> subprocess.Popen:
     """Starts the node (formatting its log directory the first time) and returns once it
     answers a metadata request; its own process group, so it stops with `embedded.stop`."""
+    proc = launch(config, log_file, jars_dir)
+    try:
+        wait_for_port(config.port, timeout_s=timeout_s, proc=proc, what="Apache Kafka")
+        wait_until_serving(f"127.0.0.1:{config.port}", proc, timeout_s)
+    except BaseException:
+        stop_process_group(proc)
+        raise
+    return proc
+
+
+def launch(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = None,
+           cluster: str | None = None) -> subprocess.Popen:
+    """Starts the node's JVM without waiting (the nodes of a cluster form their quorum only
+    together); formats its log directory first if it is new, with `cluster` as its id."""
     java = java_binary()
     if java is None:
         raise RuntimeError("no Java runtime for Apache Kafka (Debian: apt-get install "
@@ -224,20 +247,13 @@ def start_kafka(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = 
     config_file = config_dir / "server.properties"
     config_file.write_text(config.properties())
     (config_dir / "log4j2.yaml").write_text(LOG4J2_YAML)
-    format_once(java, libs, config_file, config.log_dir)
-    proc = subprocess.Popen(
+    format_once(java, libs, config_file, config.log_dir, cluster)
+    return subprocess.Popen(
         [java, *JVM_FLAGS, f"-Xms{min(64, config.heap_mb)}m", f"-Xmx{config.heap_mb}m",
          f"-Dlog4j2.configurationFile={config_dir / 'log4j2.yaml'}",
          "-cp", f"{libs}/*", "kafka.Kafka", str(config_file)],
         stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
         start_new_session=True)
-    try:
-        wait_for_port(config.port, timeout_s=timeout_s, proc=proc, what="Apache Kafka")
-        wait_until_serving(f"127.0.0.1:{config.port}", proc, timeout_s)
-    except BaseException:
-        stop_process_group(proc)
-        raise
-    return proc
 
 
 def wait_until_serving(bootstrap: str, proc: subprocess.Popen, timeout_s: float) -> None:

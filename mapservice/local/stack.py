@@ -71,7 +71,8 @@ class Stack:
     mqtt_ws_port: int = 0  # the embedded broker's MQTT-over-WebSocket listener (browsers)
     kafka_port: int = 0
     # "apache" (a KRaft node, log in DATA_DIR/kafka/) or "tansu" (in memory); empty:
-    # MAPSERVICE_EMBEDDED_KAFKA (auto: apache where Java is installed).
+    # MAPSERVICE_EMBEDDED_KAFKA (auto: apache where Java is installed); else the bootstrap
+    # servers of a running Kafka (not this stack's to start).
     kafka: str = ""
     health_port: int = 0
     extra_env: dict[str, str] = field(default_factory=dict)
@@ -124,8 +125,14 @@ class Stack:
         self.tls_dir = self.data_dir / "tls"
         self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
         self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
-        if self.kafka not in ("apache", "tansu"):
-            raise ValueError(f"kafka must be 'apache' or 'tansu', not {self.kafka!r}")
+
+    @property
+    def embeds_kafka(self) -> bool:
+        return self.kafka in ("apache", "tansu")
+
+    @property
+    def kafka_bootstrap(self) -> str:
+        return f"127.0.0.1:{self.kafka_port}" if self.embeds_kafka else self.kafka
 
     @property
     def api_url(self) -> str:
@@ -165,7 +172,7 @@ class Stack:
         return {
             **os.environ,
             "MAPSERVICE_DATA_DIR": str(self.data_dir),
-            "MAPSERVICE_KAFKA_BOOTSTRAP": f"127.0.0.1:{self.kafka_port}",
+            "MAPSERVICE_KAFKA_BOOTSTRAP": self.kafka_bootstrap,
             "MAPSERVICE_MQTT_URL": self.mqtt_url,
             "MAPSERVICE_MQTT_WS_URL": self.mqtt_ws_url,
             "MAPSERVICE_API_HOST": "127.0.0.1",
@@ -208,7 +215,10 @@ class Stack:
         return open(self.log_dir / f"{name}.log", "ab")
 
     def start_brokers(self) -> None:
-        self.start_kafka()
+        if self.embeds_kafka:
+            self.start_kafka()
+        else:
+            ensure_topics(self.settings())
         if self.mqtt in ("amqtt", "mosquitto"):
             self.start_mqtt()
 
@@ -286,6 +296,8 @@ class Stack:
     def start_kafka(self) -> subprocess.Popen:
         """Apache Kafka resumes on its log in DATA_DIR/kafka/; tansu keeps topics in memory,
         so a new one gets the topics and the map meta again."""
+        if not self.embeds_kafka:
+            raise RuntimeError(f"the Kafka at {self.kafka} is not this stack's to start")
         embedded.stop(self.procs.pop("kafka", None))
         settings = self.settings()
         if self.kafka == "apache":
