@@ -221,7 +221,13 @@ def start_kafka(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = 
                 timeout_s: float = 90.0) -> subprocess.Popen:
     """Starts the node (formatting its log directory the first time) and returns once it
     answers a metadata request; its own process group, so it stops with `embedded.stop`."""
+    earlier = running_pid(config)
+    if earlier is not None:
+        raise RuntimeError(
+            f"an Apache Kafka from an earlier run still holds {config.log_dir} (pid {earlier}, "
+            f"left behind by a killed `mapservice up`?): stop it with `kill {earlier}`")
     proc = launch(config, log_file, jars_dir)
+    (config.log_dir.parent / "kafka.pid").write_text(f"{proc.pid}\n")
     try:
         wait_for_port(config.port, timeout_s=timeout_s, proc=proc, what="Apache Kafka")
         wait_until_serving(f"127.0.0.1:{config.port}", proc, timeout_s)
@@ -229,6 +235,18 @@ def start_kafka(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = 
         stop_process_group(proc)
         raise
     return proc
+
+
+def running_pid(config: KafkaNodeConfig) -> int | None:
+    """The pid of a broker still running on this node's config (its pid file and its
+    command line agree), else None."""
+    try:
+        pid = int((config.log_dir.parent / "kafka.pid").read_text())
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+    except (OSError, ValueError):
+        return None
+    config_file = str(config.log_dir.parent / "server.properties").encode()
+    return pid if b"kafka.Kafka" in cmdline and config_file in cmdline else None
 
 
 def launch(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = None,

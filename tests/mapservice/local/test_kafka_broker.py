@@ -159,3 +159,12 @@ def test_a_sigkilled_node_restarts_on_its_log_with_every_acknowledged_record(nod
     configs = admin.describe_configs([resource])[resource].result(30)
     assert configs["log.retention.hours"].value == "48"
     assert configs["log.retention.bytes"].value == str(32 * 1024**2)
+
+
+def test_a_broker_left_running_on_the_data_dir_is_named_not_started_twice(node) -> None:
+    """A second start on a directory whose broker still runs (an orphan of a killed `up`)
+    fails at once, naming its pid and how to stop it."""
+    config, procs, log = node
+    with pytest.raises(RuntimeError, match=f"still holds .*pid {procs[0].pid}.*kill {procs[0].pid}"):
+        kafka_broker.start_kafka(kafka_broker.node_for(config.log_dir.parent.parent,
+                                                       embedded.free_port()), log)
