@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: up test test-unit bench system-deps mosquitto clean ui test-ui lock
+.PHONY: up test test-unit bench system-deps mosquitto java clean ui test-ui lock
 
 # Pinned, hash-checked dependencies (requirements-dev.lock: the product, the embedded extra
 # and the test tools), then the project itself. Regenerate the locks after changing
@@ -35,7 +35,24 @@ mosquitto:
 	  else echo "mosquitto is not installed (Debian: sudo apt-get install mosquitto mosquitto-clients): the embedded broker will be amqtt"; fi; \
 	fi
 
+# Java and Maven run the embedded Apache Kafka (its jars fetched once by Maven from
+# mapservice/local/kafka/pom.xml); without Java `make up` falls back to tansu (in memory, no
+# retention: README, embedded mode). `make up` installs them as root; otherwise it says so.
+JAVA_PKGS := default-jre-headless maven
+java:
+	@if ! command -v java >/dev/null 2>&1 || ! command -v mvn >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Java and Maven for the embedded Apache Kafka (apt-get install $(JAVA_PKGS))"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(JAVA_PKGS) >/dev/null; \
+	  else echo "Java or Maven is not installed (Debian: sudo apt-get install $(JAVA_PKGS)): the embedded Kafka will be tansu, in memory"; fi; \
+	fi
+
 system-deps:
+	@if ! command -v java >/dev/null 2>&1 || ! command -v mvn >/dev/null 2>&1; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $(JAVA_PKGS) >/dev/null; \
+	  else echo "please install Java and Maven (Debian: sudo apt-get install $(JAVA_PKGS)): the Kafka tests run on Apache Kafka"; exit 1; fi; \
+	fi
 	@if ! command -v mosquitto >/dev/null 2>&1 && [ ! -x /usr/sbin/mosquitto ]; then \
 	  if [ "$$(id -u)" = 0 ]; then \
 	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mosquitto mosquitto-clients >/dev/null; \
@@ -71,10 +88,12 @@ ui: $(UI)/dist/index.html
 test-ui: $(UI)/node_modules/.installed
 	cd $(UI) && npx vitest run
 
-up: $(STAMP) ui mosquitto
+up: $(STAMP) ui mosquitto java
 	$(PY) -m mapservice.cli up $(ARGS)
 
 test: $(STAMP) system-deps ui test-ui
+	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
+	$(PY) -m mapservice.local.kafka_broker fetch
 	$(PY) -m pytest $(ARGS)
 
 test-unit: $(STAMP)

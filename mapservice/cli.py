@@ -197,6 +197,7 @@ def cmd_up(args) -> None:
             if done.returncode != 0:
                 raise RuntimeError("writing the demo history failed (see above); "
                                    "`--history-days 0` starts without it")
+        kafka_name = embedded_kafka_intro(stack, console)
         robot_credentials = None
         if args.auth:
             # Before the broker starts, which reads them then: a running Mosquitto would have
@@ -205,7 +206,7 @@ def cmd_up(args) -> None:
                 # The /controller page drives a robot too: it needs one to publish as.
                 robot_credentials = stack.robot_credentials(
                     simulated_robot_ids(args) + [CONTROLLER_ROBOT])
-        with step(console, "starting Kafka-protocol broker (tansu) and MQTT broker"):
+        with step(console, f"starting Kafka ({kafka_name}) and the MQTT broker"):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
         with step(console, "starting processors + API (creating the ClickHouse schema)"):
@@ -237,7 +238,7 @@ def cmd_up(args) -> None:
             row("Robots' MQTT credentials", f"{robot_credentials} (the simulated robots' "
                 f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
         row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
-        row("Kafka (tansu)", f"127.0.0.1:{stack.kafka_port}")
+        row(f"Kafka ({kafka_name})", f"127.0.0.1:{stack.kafka_port}  (" + kafka_keeps(stack) + ")")
         row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
         row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
             f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
@@ -263,6 +264,36 @@ def cmd_up(args) -> None:
         sys.exit(1)
     finally:
         stack.stop()
+
+
+def embedded_kafka_intro(stack, console) -> str:
+    """Which Kafka `up` runs (said on the console, with what the tansu fallback costs);
+    fetches the Apache Kafka jars first, with progress, when they are not cached yet."""
+    from mapservice.local import kafka_broker
+
+    if stack.kafka == "tansu":
+        why = ("no Java runtime found (`make up` installs it as root)"
+               if kafka_broker.java_binary() is None else "MAPSERVICE_EMBEDDED_KAFKA=tansu")
+        console.print(f"[yellow]Kafka is tansu: {why}. {kafka_broker.TANSU_COST}; use Apache "
+                      "Kafka for anything longer than a working session (README, embedded "
+                      "mode).[/yellow]")
+        return "tansu, in memory"
+    version = kafka_broker.kafka_version()
+    settings = stack.settings()
+    jars = settings.kafka_jars_dir or kafka_broker.default_jars_dir()
+    if not (jars / ".complete").exists():
+        console.print(f"fetching Apache Kafka {version}'s jars with Maven into {jars} (once)...")
+        kafka_broker.ensure_jars(jars, progress=lambda line: console.print(f"  {line}",
+                                                                           highlight=False))
+    return f"Apache Kafka {version}"
+
+
+def kafka_keeps(stack) -> str:
+    if stack.kafka == "tansu":
+        return "no retention; a restart loses what it held"
+    settings = stack.settings()
+    return (f"log in {stack.data_dir / 'kafka'}, kept {settings.embedded_kafka_retention_hours} h "
+            f"and at most {settings.embedded_kafka_retention_bytes // 1024**2} MB a partition")
 
 
 def api_token_rows(settings: Settings) -> list[tuple[str, str]]:

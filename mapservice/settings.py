@@ -68,6 +68,21 @@ class Settings(BaseSettings):
                                  "partition (librdkafka linger.ms).")
     kafka_fetch_wait_ms: int = Field(50, ge=1, le=10_000, description="Longest a history fetch waits "
                                      "for new records (librdkafka fetch.wait.max.ms).")
+    # The broker `mapservice up` and the test stacks embed (mapservice/local/kafka_broker.py).
+    embedded_kafka: Literal["auto", "apache", "tansu"] = Field("auto", description=(
+        "Kafka broker `mapservice up` embeds: `apache` (one KRaft node from the Apache Kafka "
+        "jars, log on disk in DATA_DIR/kafka/), `tansu` (in memory: no retention, a restart "
+        "loses every record), `auto`: apache where Java is installed, else tansu."))
+    embedded_kafka_heap_mb: int = Field(256, ge=128, le=8192, description=(
+        "Java heap of the embedded Apache Kafka (-Xmx)."))
+    embedded_kafka_retention_hours: int = Field(24, ge=1, le=24 * 24, description=(
+        "How long the embedded Apache Kafka keeps records (log.retention.hours); everything is "
+        "in ClickHouse within seconds."))
+    embedded_kafka_retention_bytes: int = Field(256 * 1024**2, ge=16 * 1024**2, description=(
+        "Most bytes the embedded Apache Kafka keeps per partition (log.retention.bytes)."))
+    kafka_jars_dir: Path | None = Field(None, description=(
+        "Where Maven puts the embedded Apache Kafka's jars; empty: "
+        "~/.cache/mapservice/kafka-<version>/ (XDG_CACHE_HOME respected)."))
     topic_chunk_events: str = "mapservice.chunk-events.v1"
     topic_pose_events: str = "mapservice.pose-events.v1"
     topic_meta_events: str = "mapservice.meta-events.v1"

@@ -98,6 +98,16 @@ def cpu_model() -> str:
     return "unknown"
 
 
+def embedded_kafka_fact() -> str:
+    """Which Kafka the runs' stacks embed (MAPSERVICE_EMBEDDED_KAFKA)."""
+    from mapservice.local import kafka_broker
+    from mapservice.settings import Settings
+
+    if kafka_broker.embedded_choice(Settings().embedded_kafka) == "apache":
+        return f"Apache Kafka {kafka_broker.kafka_version()} (one KRaft node)"
+    return "tansu (memory)"
+
+
 def machine_facts() -> dict:
     model = cpu_model()
     try:
@@ -124,6 +134,7 @@ def machine_facts() -> dict:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "tansu": tansu,
+        "kafka": embedded_kafka_fact(),
         "mosquitto": mosquitto,
         "packages": versions,
         "loadavg_at_start": os.getloadavg(),
@@ -693,7 +704,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         # Before the stack starts: the machine's speed right now, to compare runs by.
         result["yardstick_ms"] = yardstick_ms()
         t_start = time.monotonic()
-        with console.status(f"run {run}/{runs}: starting tansu, {args.mqtt}, server, "
+        with console.status(f"run {run}/{runs}: starting Kafka ({stack.kafka}), {args.mqtt}, server, "
                             f"{gateways} gateway(s)..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
@@ -1163,7 +1174,7 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
                   + (" (a shared machine: development numbers)" if other > 15 else ""))
     console.print(f"machine: {facts['nproc']} CPUs ({facts['cpu_model']}), "
                   f"{facts['ram_bytes'] / 2**30:.1f} GiB RAM, Python {facts['python']}, "
-                  f"{facts['tansu']}, {facts['mosquitto']}")
+                  f"Kafka: {facts.get('kafka', facts['tansu'])}, {facts['mosquitto']}")
     console.print("latency = the first moment the event was known queryable minus the load "
                   "generator's publish time: the server's send time of its push on the live "
                   "WebSocket (sent after its insert returned) or the end of the first poll of the API "

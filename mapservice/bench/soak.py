@@ -174,7 +174,7 @@ def run(args, console) -> dict:
                     "mqtt": args.mqtt, "samples": samples}
     fleet = None
     try:
-        with console.status(f"starting tansu, {args.mqtt}, server, gateway in {data_dir}..."):
+        with console.status(f"starting Kafka ({stack.kafka}), {args.mqtt}, server, gateway in {data_dir}..."):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
             stack.start_server()

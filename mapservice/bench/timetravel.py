@@ -51,7 +51,7 @@ DAY_MS = 86_400_000
 HOUR_MS = 3_600_000
 TARGETS_MS = {"map_at": 100.0, "robots_at": 50.0, "window_10s": 50.0, "day_downsampled": 200.0,
               "timeline": 150.0, "track": None}
-BUSY_PATTERNS = ("bench ingest", "exp.py", "tansu", "mosquitto")
+BUSY_PATTERNS = ("bench ingest", "exp.py", "tansu", "kafka.Kafka", "mosquitto")
 LOAD_FILE = "history-load.json"
 
 

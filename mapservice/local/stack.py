@@ -22,7 +22,7 @@ import structlog
 from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, BrokerFiles,
                                            RobotCredential, new_password)
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.local import embedded, lifetime
+from mapservice.local import embedded, kafka_broker, lifetime
 from mapservice.local.certs import make_server_cert
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
@@ -69,6 +69,10 @@ class Stack:
     mqtt_port: int = 0
     mqtt_ws_port: int = 0  # the embedded broker's MQTT-over-WebSocket listener (browsers)
     kafka_port: int = 0
+    # "apache" (a KRaft node, log in DATA_DIR/kafka/) or "tansu" (in memory); empty:
+    # MAPSERVICE_EMBEDDED_KAFKA (auto: apache where Java is installed); else the bootstrap
+    # servers of a running Kafka (not this stack's to start).
+    kafka: str = ""
     health_port: int = 0
     extra_env: dict[str, str] = field(default_factory=dict)
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
@@ -125,11 +129,20 @@ class Stack:
             self.mqtts_url = f"mqtts://127.0.0.1:{self.mqtt_tls_port}"
         self.tls_dir = self.data_dir / "tls"
         self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
+        self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
         self.pid_file = lifetime.PidFile.in_data_dir(self.data_dir)
         # The broker files as the running Mosquitto read them, and a change seen once
         # (applied when it holds still: `robot add` replaces the two files one by one).
         self._broker_files_read: tuple = ()
         self._broker_files_seen: tuple = ()
+
+    @property
+    def embeds_kafka(self) -> bool:
+        return self.kafka in ("apache", "tansu")
+
+    @property
+    def kafka_bootstrap(self) -> str:
+        return f"127.0.0.1:{self.kafka_port}" if self.embeds_kafka else self.kafka
 
     @property
     def _preexec(self):
@@ -205,7 +218,7 @@ class Stack:
         return {
             **os.environ,
             "MAPSERVICE_DATA_DIR": str(self.data_dir),
-            "MAPSERVICE_KAFKA_BOOTSTRAP": f"127.0.0.1:{self.kafka_port}",
+            "MAPSERVICE_KAFKA_BOOTSTRAP": self.kafka_bootstrap,
             "MAPSERVICE_MQTT_URL": self.mqtt_url,
             "MAPSERVICE_MQTT_WS_URL": self.mqtt_ws_url,
             "MAPSERVICE_API_HOST": "127.0.0.1",
@@ -248,7 +261,10 @@ class Stack:
         return open(self.log_dir / f"{name}.log", "ab")
 
     def start_brokers(self) -> None:
-        self.start_kafka()
+        if self.embeds_kafka:
+            self.start_kafka()
+        else:
+            ensure_topics(self.settings())
         if self.mqtt in ("amqtt", "mosquitto"):
             self.start_mqtt()
 
@@ -326,13 +342,26 @@ class Stack:
         raise RuntimeError(f"{what} not healthy at {url} after {timeout_s:.0f} s")
 
     def start_kafka(self) -> subprocess.Popen:
-        """tansu keeps topics in memory: a new one gets the topics and the map meta again."""
+        """Apache Kafka resumes on its log in DATA_DIR/kafka/; tansu keeps topics in memory,
+        so a new one gets the topics and the map meta again."""
+        if not self.embeds_kafka:
+            raise RuntimeError(f"the Kafka at {self.kafka} is not this stack's to start")
         embedded.stop(self.procs.pop("kafka", None))
-        self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"),
-                                                   preexec_fn=self._preexec)
+        settings = self.settings()
+        if self.kafka == "apache":
+            node = kafka_broker.node_for(
+                self.data_dir, self.kafka_port, heap_mb=settings.embedded_kafka_heap_mb,
+                retention_hours=settings.embedded_kafka_retention_hours,
+                retention_bytes=settings.embedded_kafka_retention_bytes)
+            self.procs["kafka"] = kafka_broker.start_kafka(node, self._log("kafka"),
+                                                           jars_dir=settings.kafka_jars_dir,
+                                                           preexec_fn=self._preexec)
+        else:
+            self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"),
+                                                       preexec_fn=self._preexec)
         self._record()
-        ensure_topics(self.settings())
-        if self.meta is not None:
+        ensure_topics(settings)
+        if self.meta is not None and self.kafka == "tansu":
             self.publish_meta(self.meta)
         return self.procs["kafka"]
 

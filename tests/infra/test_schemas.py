@@ -353,3 +353,14 @@ def test_clickhouse_installation_is_replicated_with_keeper_and_a_readonly_analys
     config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
     assert config["MAPSERVICE_CLICKHOUSE_USERNAME"] in {u.split("/")[0] for u in users}
     assert f"clickhouse-{chi['metadata']['name']}.clickhouse.svc" in config["MAPSERVICE_CLICKHOUSE_DSN"]
+
+
+def test_compose_strimzi_and_the_embedded_broker_run_one_kafka_version() -> None:
+    """The pom the embedded broker's jars come from, the compose image and the Strimzi
+    Kafka name the same Apache Kafka version."""
+    from mapservice.local.kafka_broker import kafka_version
+
+    compose = yaml.safe_load((ROOT / "infra" / "compose.yaml").read_text())
+    image = compose["services"]["kafka"]["image"]
+    assert image == f"apache/kafka:{kafka_version()}"
+    assert str(platform("Kafka")["spec"]["kafka"]["version"]) == kafka_version()

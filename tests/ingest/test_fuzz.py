@@ -7,7 +7,7 @@ acknowledged, and leave the handler working (a good message after it is accepted
 
 What this does not cover: the MQTT broker and Kafka themselves (the message handler runs
 in-process with the in-memory publisher); tests/integration/test_poison_messages.py sends
-the nastiest cases through Mosquitto, the gateway process and tansu."""
+the nastiest cases through Mosquitto, the gateway process and Apache Kafka."""
 
 from __future__ import annotations
 

@@ -1,9 +1,8 @@
 """Health that tells the truth, tested by killing each dependency of the split deployment
-(gateway, processors and API as separate processes; Mosquitto, tansu and the ClickHouse
-HTTP interface over chDB): the components stay alive (/healthz 200) but say they are not
-ready (/readyz 503, naming the dependency) while it is gone, and ready again once it is
-back. Kafka comes last and is not brought back: tansu keeps topics in memory, so a restart
-is a different broker (README, embedded mode).
+(gateway, processors and API as separate processes; Mosquitto, Apache Kafka and the
+ClickHouse HTTP interface over chDB): the components stay alive (/healthz 200) but say they
+are not ready (/readyz 503, naming the dependency) while it is gone, and ready again once it
+is back. Kafka comes last: the embedded Apache Kafka restarts on its log.
 
 Bounded: each wait is at most 60 s; about two minutes on an idle machine."""
 
@@ -99,8 +98,9 @@ def test_without_clickhouse_processors_and_api_are_not_ready(stack) -> None:
 
 
 def test_without_kafka_the_writers_are_not_ready_and_the_api_says_so(stack) -> None:
-    """tansu killed: gateway and processors /readyz 503 (kafka false); the API stays ready
-    for reads and reports kafka false; all stay alive."""
+    """Kafka killed: gateway and processors /readyz 503 (kafka false); the API stays ready
+    for reads and reports kafka false; all stay alive, and are ready again once Kafka is
+    back on its log."""
     kill(stack, "kafka")
     for name in ("gateway", "processors"):
         url = urls(stack)[name]
@@ -111,3 +111,5 @@ def test_without_kafka_the_writers_are_not_ready_and_the_api_says_so(stack) -> N
     until("api reports kafka down", lambda: get(f"{api}/readyz")[1]["checks"].get("kafka") is False)
     assert get(f"{api}/readyz")[0] == 200
     assert all_alive(stack)
+    stack.start_kafka()
+    until("all ready again", lambda: all_ready(stack), timeout_s=90)

@@ -1,5 +1,5 @@
-"""Live mode with the processors and two API replicas in separate processes (tansu,
-Mosquitto): every replica's /api/v1/live gets what the processors stored, and a
+"""Live mode with the processors and two API replicas in separate processes (Apache
+Kafka, Mosquitto): every replica's /api/v1/live gets what the processors stored, and a
 restarted replica serves live again, from now.
 
 No ClickHouse server is needed for this: each API process opens a chDB directory of its

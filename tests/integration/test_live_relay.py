@@ -1,4 +1,4 @@
-"""The live stream across processes on a real Kafka-protocol broker (tansu): what the
+"""The live stream across processes on Apache Kafka (the session's shared node): what the
 processors' KafkaLivePublisher publishes reaches every API replica's KafkaLiveRelay.
 
 Bounded: each test waits seconds at most (a relay follows new messages within its
@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import threading
 import time
+import uuid
 
 import pytest
 from confluent_kafka import Producer
 from confluent_kafka.admin import AdminClient, NewTopic
 
-from mapservice.local import embedded
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.core.live_messages import live_records
@@ -24,14 +24,15 @@ WAIT_S = 15
 
 
 @pytest.fixture(scope="module")
-def kafka(tmp_path_factory):
-    port = embedded.free_port()
-    log = open(tmp_path_factory.mktemp("tansu") / "tansu.log", "ab")
-    proc = embedded.start_tansu(port, log)
-    settings = Settings(kafka_bootstrap=f"127.0.0.1:{port}")
+def kafka(apache_kafka):
+    """Settings on the shared broker, with topic names of this module's own."""
+    prefix = f"test-live-relay-{uuid.uuid4().hex[:8]}"
+    settings = Settings(kafka_bootstrap=apache_kafka, **{
+        field: f"{prefix}.{field}" for field in (
+            "topic_chunk_events", "topic_pose_events", "topic_meta_events",
+            "topic_dead_letter", "topic_live")})
     ensure_topics(settings)
-    yield settings
-    embedded.stop(proc)
+    return settings
 
 
 class Collector:
@@ -103,7 +104,7 @@ def test_a_bad_record_is_skipped_and_the_relay_goes_on(kafka, ev):
 
 def test_the_relay_reads_every_partition(kafka, ev):
     """On a multi-partition live topic (e.g. created by an operator) the relay reads all partitions."""
-    settings = kafka.model_copy(update={"topic_live": "test.live.partitioned"})
+    settings = kafka.model_copy(update={"topic_live": kafka.topic_live + ".partitioned"})
     admin = AdminClient(settings.kafka_config())
     admin.create_topics([NewTopic(settings.topic_live, num_partitions=2)])[settings.topic_live].result(10)
     relay, got = started(settings)
@@ -119,7 +120,7 @@ def test_the_relay_reads_every_partition(kafka, ev):
 
 def test_the_relay_waits_for_a_live_topic_that_does_not_exist_yet(kafka, ev):
     """An API started before the processors created the live topic starts relaying once it exists."""
-    settings = kafka.model_copy(update={"topic_live": "test.live.later"})
+    settings = kafka.model_copy(update={"topic_live": kafka.topic_live + ".later"})
     got = Collector()
     relay = KafkaLiveRelay(settings, got)
     relay.start()

@@ -1,4 +1,4 @@
-"""Killing the processors mid-stream and restarting them (tansu, Mosquitto, chDB): no
+"""Killing the processors mid-stream and restarting them (Apache Kafka, Mosquitto, chDB): no
 duplicate history, correct snapshots and conflicts, and the latest-map view rebuilt so
 advertisements resume without letting older writes win."""
 

@@ -1,5 +1,5 @@
 """The split deployment, as compose and Kubernetes run it: gateway, processors and two API
-replicas as separate `mapservice <component>` processes, against tansu, Mosquitto and one
+replicas as separate `mapservice <component>` processes, against Apache Kafka, Mosquitto and one
 ClickHouse reached over its HTTP interface (`mapservice clickhouse-server`: chDB behind
 the ClickHouse HTTP protocol, the one process that opens the data directory).
 
@@ -12,8 +12,8 @@ headless Chromium.
 What this does not cover compared with a real ClickHouse server: the server here is chDB
 (the same ClickHouse engine and SQL) behind a small HTTP front end, so ClickHouse's own
 server-side parts are not exercised: users, quotas and settings profiles, the native TCP
-protocol, concurrent-session limits, and asynchronous inserts. Kafka is tansu, not Apache
-Kafka (one broker, memory storage). Bounded: each wait is seconds to a minute; the module
+protocol, concurrent-session limits, and asynchronous inserts. Kafka is the embedded Apache Kafka:
+one node, so no replication. Bounded: each wait is seconds to a minute; the module
 takes about a minute on an idle machine.
 """
 

@@ -1,4 +1,4 @@
-"""Two robot agents (`mapservice robot`) share one real service (tansu, Mosquitto, chDB,
+"""Two robot agents (`mapservice robot`) share one real service (Apache Kafka, Mosquitto, chDB,
 processors, API): A uploads its map, B downloads it, A's map edit reaches B's map file."""
 
 from __future__ import annotations

@@ -1,0 +1,170 @@
+"""The embedded Apache Kafka: its jars fetched once (clear errors without Maven or Maven
+Central), one KRaft node formatted once whose log survives a SIGKILL, retention and heap
+in force, and tansu only as the fallback where no Java is found (said with its cost)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import stat
+import time
+from pathlib import Path
+
+import pytest
+from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
+from confluent_kafka.admin import AdminClient, ConfigResource, NewTopic
+from rich.console import Console
+
+from mapservice.cli import embedded_kafka_intro, kafka_keeps
+from mapservice.local import embedded, kafka_broker
+from mapservice.local.stack import Stack
+
+
+def fake_mvn(tmp_path: Path, script: str) -> Path:
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    mvn = bin_dir / "mvn"
+    mvn.write_text("#!/bin/sh\n" + script)
+    mvn.chmod(mvn.stat().st_mode | stat.S_IXUSR)
+    return bin_dir
+
+
+def test_the_pom_pins_a_kafka_4_version() -> None:
+    """The pom names kafka_2.13 at the pinned version (Kafka 4: KRaft only, Java 17)."""
+    version = kafka_broker.kafka_version()
+    assert version.split(".")[0] == "4"
+    assert "<artifactId>kafka_2.13</artifactId>" in kafka_broker.POM.read_text()
+
+
+def test_without_maven_the_error_says_how_to_install_it_or_use_tansu(tmp_path, monkeypatch) -> None:
+    """No `mvn` on PATH: a RuntimeError naming the Debian package and the tansu fallback."""
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with pytest.raises(RuntimeError, match="apt-get install maven.*MAPSERVICE_EMBEDDED_KAFKA=tansu"):
+        kafka_broker.ensure_jars(tmp_path / "jars")
+
+
+def test_an_unreachable_maven_central_is_a_clear_error(tmp_path, monkeypatch) -> None:
+    """Maven failing to resolve: the error names Maven Central, the fallback and Maven's own
+    [ERROR] lines, and leaves no half-filled cache behind."""
+    bin_dir = fake_mvn(tmp_path, 'echo "[ERROR] Failed to execute goal: Could not transfer '
+                                 'artifact org.apache.kafka:kafka_2.13: Connection refused"\nexit 1\n')
+    monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
+    with pytest.raises(RuntimeError, match="Maven Central") as caught:
+        kafka_broker.ensure_jars(tmp_path / "jars")
+    assert "Connection refused" in str(caught.value)
+    assert "MAPSERVICE_EMBEDDED_KAFKA=tansu" in str(caught.value)
+    assert not (tmp_path / "jars" / ".complete").exists()
+
+
+def test_jars_are_fetched_once_with_progress(tmp_path, monkeypatch) -> None:
+    """The first call runs Maven (its downloads reported as progress); later calls use the cache."""
+    calls = tmp_path / "calls"
+    bin_dir = fake_mvn(tmp_path, f'echo run >> {calls}\nfor a in "$@"; do case "$a" in '
+                                 '-DoutputDirectory=*) d="${a#-DoutputDirectory=}";; esac; done\n'
+                                 'mkdir -p "$d" && touch "$d/kafka_2.13.jar"\n'
+                                 'echo "Downloaded from central: https://repo/kafka_2.13.jar (7 MB)"\n')
+    monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
+    seen: list[str] = []
+    libs = kafka_broker.ensure_jars(tmp_path / "jars", progress=seen.append)
+    assert (libs / "kafka_2.13.jar").exists()
+    assert seen == ["Downloaded from central: https://repo/kafka_2.13.jar (7 MB)"]
+    assert kafka_broker.ensure_jars(tmp_path / "jars") == libs
+    assert calls.read_text().count("run") == 1
+
+
+def test_the_node_keeps_by_time_and_size_with_a_bounded_heap(tmp_path) -> None:
+    """The server properties carry the retention settings, segments a sixteenth of it, one
+    static voter on the controller port, and listeners on 127.0.0.1 only."""
+    node = kafka_broker.KafkaNodeConfig(log_dir=tmp_path / "log", port=1234, controller_port=1235,
+                                        retention_hours=5, retention_bytes=64 * 1024**2)
+    props = dict(line.split("=", 1) for line in node.properties().splitlines() if line)
+    assert props["log.retention.hours"] == "5"
+    assert props["log.retention.bytes"] == str(64 * 1024**2)
+    assert props["log.segment.bytes"] == str(4 * 1024**2)
+    assert props["controller.quorum.voters"] == "1@127.0.0.1:1235"
+    assert props["listeners"] == "PLAINTEXT://127.0.0.1:1234,CONTROLLER://127.0.0.1:1235"
+    assert props["log.dirs"] == str(tmp_path / "log")
+
+
+def test_auto_is_tansu_only_where_no_java_is_found(monkeypatch, tmp_path) -> None:
+    """MAPSERVICE_EMBEDDED_KAFKA=auto: apache with Java, tansu without; the stack follows."""
+    monkeypatch.delenv("JAVA_HOME", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert kafka_broker.embedded_choice("auto") == "tansu"
+    assert Stack(tmp_path / "data").kafka == "tansu"
+    assert kafka_broker.embedded_choice("apache") == "apache"
+    monkeypatch.setenv("MAPSERVICE_EMBEDDED_KAFKA", "apache")
+    assert Stack(tmp_path / "data").kafka == "apache"
+
+
+def test_up_says_when_kafka_is_tansu_and_what_that_costs(monkeypatch, tmp_path) -> None:
+    """Without Java, `up` says Kafka is tansu, why, and that it keeps no record across a restart."""
+    monkeypatch.delenv("JAVA_HOME", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    console = Console(record=True, width=300)
+    stack = Stack(tmp_path / "data")
+    assert embedded_kafka_intro(stack, console) == "tansu, in memory"
+    said = console.export_text()
+    assert "Kafka is tansu: no Java runtime found" in said
+    assert "a restart of it loses every record it held" in said
+    assert "no retention" in kafka_keeps(stack)
+
+
+@pytest.fixture
+def node(tmp_path):
+    if kafka_broker.java_binary() is None:
+        pytest.fail("no Java runtime for Apache Kafka (`make system-deps` installs it)")
+    config = kafka_broker.node_for(tmp_path / "data", embedded.free_port(),
+                                   retention_hours=48, retention_bytes=32 * 1024**2)
+    log = open(tmp_path / "kafka.log", "ab")
+    procs = [kafka_broker.start_kafka(config, log)]
+    yield config, procs, log
+    for proc in procs:
+        kafka_broker.stop_process_group(proc)
+
+
+def test_a_sigkilled_node_restarts_on_its_log_with_every_acknowledged_record(node) -> None:
+    """1,000 records acknowledged (acks=all), the JVM SIGKILLed, the node started again on the
+    same directory (not formatted again): all 1,000 there, and the broker runs with the
+    retention it was given."""
+    config, procs, log = node
+    bootstrap = f"127.0.0.1:{config.port}"
+    admin = AdminClient({"bootstrap.servers": bootstrap})
+    admin.create_topics([NewTopic("kept", 3, 1)])["kept"].result(30)
+    producer = Producer({"bootstrap.servers": bootstrap, "enable.idempotence": True, "acks": "all"})
+    for i in range(1000):
+        producer.produce("kept", str(i).encode())
+    assert producer.flush(30) == 0
+    meta = (config.log_dir / "meta.properties").read_text()
+
+    os.killpg(procs[0].pid, signal.SIGKILL)
+    procs[0].wait(10)
+    procs.append(kafka_broker.start_kafka(
+        kafka_broker.node_for(config.log_dir.parent.parent, config.port, retention_hours=48,
+                              retention_bytes=32 * 1024**2), log))
+    assert (config.log_dir / "meta.properties").read_text() == meta  # not formatted again
+
+    consumer = Consumer({"bootstrap.servers": bootstrap, "group.id": "reader",
+                         "enable.auto.commit": False})
+    consumer.assign([TopicPartition("kept", p, OFFSET_BEGINNING) for p in range(3)])
+    values, deadline = set(), time.monotonic() + 30
+    while len(values) < 1000 and time.monotonic() < deadline:
+        msg = consumer.poll(0.5)
+        if msg is not None and not msg.error():
+            values.add(int(msg.value()))
+    consumer.close()
+    assert values == set(range(1000))
+
+    resource = ConfigResource(ConfigResource.Type.BROKER, str(kafka_broker.NODE_ID))
+    configs = admin.describe_configs([resource])[resource].result(30)
+    assert configs["log.retention.hours"].value == "48"
+    assert configs["log.retention.bytes"].value == str(32 * 1024**2)
+
+
+def test_a_broker_left_running_on_the_data_dir_is_named_not_started_twice(node) -> None:
+    """A second start on a directory whose broker still runs (an orphan of a killed `up`)
+    fails at once, naming its pid and how to stop it."""
+    config, procs, log = node
+    with pytest.raises(RuntimeError, match=f"still holds .*pid {procs[0].pid}.*kill {procs[0].pid}"):
+        kafka_broker.start_kafka(kafka_broker.node_for(config.log_dir.parent.parent,
+                                                       embedded.free_port()), log)
