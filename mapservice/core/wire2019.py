@@ -51,6 +51,9 @@ class Reason(str, Enum):
     TOO_DEEP = "too_deep"  # JSON nested deeper than the decoder goes (msgspec: RecursionError)
     INTERNAL_ERROR = "internal_error"  # anything else that went wrong with this message
     RECORD_TOO_LARGE = "record_too_large"  # accepted, but Kafka refuses a record that large
+    VDA_SCHEMA = "vda_schema"  # not valid against the official VDA 5050 schema of its version
+    VDA_UNSUPPORTED_VERSION = "vda_unsupported_version"  # no vendored schema for its version
+    VDA_NO_POSITION = "vda_no_position"  # a visualization without a position: nothing to store
 
 
 class Rejection(msgspec.Struct, frozen=True):
@@ -219,6 +222,9 @@ def _check_time(text: str, now_ms: int, limits: Limits) -> int | Rejection:
             "retention",
         )
     return ms
+
+
+check_time = _check_time  # the VDA 5050 ingest checks its timestamps the same way
 
 
 def _check_robot_id(robot_id: str) -> Rejection | None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
-from mapservice.adapters.clickhouse import analyst_schema
+from mapservice.adapters.clickhouse import analyst_schema, vda_schema
 
 
 @dataclass(frozen=True)
@@ -216,6 +216,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "dropped the floor's only writes); the retention step drops day partitions",
             _service_retention(database),
         ),
+        Migration(12, "VDA 5050 vehicles: states, errors, connections, factsheets",
+                  vda_schema.statements(database)),
     ]
 
 
