@@ -316,7 +316,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 11
+SCHEMA_VERSION = 12
 
 # Every table whose rows expire with the retention, all partitioned by day (toDate of their
 # time column): the retention step (retention.py) drops their partitions older than the

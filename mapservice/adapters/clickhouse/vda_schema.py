@@ -9,28 +9,6 @@ from __future__ import annotations
 
 from mapservice.adapters.clickhouse import analyst_schema
 
-TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
-    "vda_states": ("VDA 5050 vehicle states (and visualizations off the known maps): status "
-                   "and position as reported, in the vehicle's map frame", {
-        "map_id": "the vehicle's mapId; NULL when it reported no position",
-        "on_known_map": "true when mapId has a transform (its pose is in `poses`); false: "
-                        "flagged, not drawn",
-        "x": "metres in the vehicle's mapId frame, as reported",
-        "theta": "radians in the vehicle's mapId frame, as reported",
-        "operating_mode": "AUTOMATIC, SEMIAUTOMATIC, MANUAL, SERVICE, TEACHIN",
-    }),
-    "vda_errors": ("VDA 5050 errors and warnings, one row per error active in a state", {
-        "level": "WARNING or FATAL (3.0: also URGENT, CRITICAL)",
-    }),
-    "vda_connections": ("VDA 5050 connection states: exact online/offline instants", {
-        "ts": "when the state holds: the message time, or for CONNECTIONBROKEN (the last "
-              "will, composed at connect time) when the gateway received it",
-        "sent_ts": "the message's own timestamp",
-    }),
-    "vda_factsheets": ("VDA 5050 factsheets, as the vehicle sent them (JSON)", {}),
-}
-
-
 def statements(db: str) -> tuple[str, ...]:
     return (
         f"""CREATE TABLE IF NOT EXISTS {db}.vda_states (
@@ -70,5 +48,6 @@ def statements(db: str) -> tuple[str, ...]:
             vda_version LowCardinality(String),
             factsheet String CODEC(ZSTD(3))
         ) ENGINE = ReplacingMergeTree ORDER BY (robot_id, ts)""",
-        *analyst_schema.comment_statements(db, TABLE_COMMENTS),
+        *analyst_schema.comment_statements(db, analyst_schema.comments_of(
+            "vda_states", "vda_errors", "vda_connections", "vda_factsheets")),
     )
