@@ -37,10 +37,11 @@ from .routers import (
     timeline,
     tracks,
     ui,
+    vda5050,
 )
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
-ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_contents, events,
+ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
            timeline, conflicts, exports, stats, live, client_config, chunk_service, coordinate_service, ui)
 
 

@@ -12,10 +12,8 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from functools import lru_cache
 from pathlib import Path
-from urllib.parse import unquote_to_bytes
 
 import msgspec
 from cachetools import LRUCache
@@ -31,42 +29,13 @@ from mapservice.core.events import (
     VdaStateReported,
     make_envelope,
 )
+from mapservice.core.vda_ids import robot_id_for
 from mapservice.core.wire2019 import Limits, Reason, Rejection, check_time
 
 SCHEMA_DIR = Path(__file__).with_name("vda5050_schemas")
 SUBTOPICS = ("state", "visualization", "connection", "factsheet")
 CONNECTION_STATES = ("ONLINE", "OFFLINE", "CONNECTIONBROKEN")
 MAX_VEHICLES = 100_000  # vehicles whose last state is held for their visualization poses
-
-# Robot ids are 1-64 of A-Z a-z 0-9 _ . : @ - . A vehicle's id is
-# `<manufacturer>:<serialNumber>`, each escaped: every byte of its UTF-8 outside
-# A-Z a-z 0-9 _ . - becomes `@` and two upper-case hex digits (so ':' and '@' in a name are
-# escaped and the one ':' separates the two names).
-_PLAIN = re.compile(rb"[A-Za-z0-9_.-]")
-_ESCAPE = re.compile(r"@([0-9A-F]{2})")
-
-
-def _escape(name: str) -> str:
-    return "".join(chr(b) if _PLAIN.fullmatch(bytes([b])) else f"@{b:02X}"
-                   for b in name.encode())
-
-
-def robot_id_for(manufacturer: str, serial_number: str) -> str:
-    return f"{_escape(manufacturer)}:{_escape(serial_number)}"
-
-
-def vehicle_of(robot_id: str) -> tuple[str, str] | None:
-    """(manufacturer, serialNumber) of a VDA vehicle's robot id; None for other ids."""
-    parts = robot_id.split(":")
-    if len(parts) != 2 or not all(parts):
-        return None
-    try:
-        names = [_ESCAPE.sub(lambda m: "%" + m.group(1), p) for p in parts]
-        decoded = tuple(unquote_to_bytes(n).decode() for n in names)
-    except UnicodeDecodeError:
-        return None
-    return decoded if robot_id_for(*decoded) == robot_id else None  # type: ignore[return-value]
-
 
 @lru_cache(maxsize=None)
 def validator(version: str, subtopic: str) -> Draft202012Validator:

@@ -79,12 +79,12 @@ class MemoryStore:
             for e in events:
                 p = e.payload
                 self._append_vda(e)
-                if (p := pose_of(p)) is not None:
+                if (pose := pose_of(p)) is not None:
                     self._poses[(e.robot_id, e.event_time_ms)] = PoseRow(
-                        e.robot_id, e.event_time_ms, *(_mm(v) for v in p.position),
-                        *(_f32(v) for v in p.orientation), _f32(p.battery_level),
-                        p.charging, p.loaded,
-                        tuple((_mm(x), _mm(y)) for x, y in p.path) if p.path is not None else None,
+                        e.robot_id, e.event_time_ms, *(_mm(v) for v in pose.position),
+                        *(_f32(v) for v in pose.orientation), _f32(pose.battery_level),
+                        pose.charging, pose.loaded,
+                        tuple((_mm(x), _mm(y)) for x, y in pose.path) if pose.path is not None else None,
                         e.receive_time_ms)
                 elif isinstance(p, ChunkUpdated):
                     self._contents.setdefault(p.content_hash, (p.width, p.height, p.data))

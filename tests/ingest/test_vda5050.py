@@ -20,7 +20,8 @@ from mapservice.core.events import (
 )
 from mapservice.core.wire2019 import Limits, Reason
 from mapservice.ingest.router import Router
-from mapservice.ingest.vda5050 import SUBTOPICS, robot_id_for, validator, vehicle_of
+from mapservice.core.vda_ids import robot_id_for, vehicle_of
+from mapservice.ingest.vda5050 import SUBTOPICS, validator
 from mapservice.settings import Settings
 from tests.fixtures import vda5050 as vda
 
