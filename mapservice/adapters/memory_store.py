@@ -189,6 +189,9 @@ class MemoryStore:
         with self._lock:
             carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
                 list(self._poses.values()), boundary).values()}
+            for facts in (self._vda_errors, self._vda_connections):  # keyed (robot, ts, ...)
+                for k in [k for k in facts if k[1] < cut]:
+                    del facts[k]
             old_chunks = [k for k in self._chunks if k[0] < cut]
             old_poses = [k for k in self._poses if k[1] < cut and k not in carried_poses]
             if not old_chunks and not old_poses:

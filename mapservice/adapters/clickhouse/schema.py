@@ -325,6 +325,9 @@ SCHEMA_VERSION = 12
 DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
                    "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
                    "pose_ten_minutes", "chunk_seconds")
+# What the retention step drops by day: the above (whose TTL schema v11 removed) and the
+# VDA 5050 facts of schema v12 (factsheets are kept: one a vehicle, its latest matters).
+RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections")
 
 
 def _service_retention(db: str) -> tuple[str, ...]:

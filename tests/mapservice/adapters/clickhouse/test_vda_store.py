@@ -15,12 +15,12 @@ from tests.fixtures import vda5050 as vda
 NOW = 1_795_255_200_000
 
 
-def events(settings: Settings, messages: list[tuple[str, dict, int]]):
+def events(settings: Settings, messages: list[tuple[str, dict, int]], limits: Limits = Limits()):
     router = Router(settings, "gw")
     out = []
     for subtopic, msg, receive_ms in messages:
         record = router.route(f"uagv/v2/{msg['manufacturer']}/{msg['serialNumber']}/{subtopic}",
-                              vda.encode(msg), receive_ms, Limits())
+                              vda.encode(msg), receive_ms, limits)
         assert record.reason is None, record.value
         out.append(decode(record.value))
     return out
@@ -57,3 +57,21 @@ def test_vda_facts_are_stored_and_read_back(store) -> None:
     assert facts.factsheet is not None and facts.factsheet.vda_version == "2.1.0"
     assert '"serialNumber":"001"' in facts.factsheet.factsheet
     assert store.vda_facts("Other:1", NOW - 60_000, NOW).connections == []
+
+
+def test_vda_facts_expire_with_the_retention(store, ev) -> None:
+    """Errors and connection states older than the retention's first day are dropped with
+    the other day partitions; the latest factsheet stays."""
+    old = NOW - 9 * 86_400_000
+    v, m, s = "2.0.0", "Acme", "001"
+    store.append(events(Settings(), [
+        ("connection", vda.connection(v, m, s, old, "ONLINE"), old),
+        ("factsheet", vda.factsheet(v, m, s, old), old),
+        ("state", vda.state(v, m, s, old, errors=(("FATAL", "bumper", ""),)), old),
+    ], Limits(retention_ms=30 * 86_400_000)))
+    store.append([ev.chunk("r1", old, 1, 2, bytes(10_000)), ev.chunk("r1", NOW - 3_600_000, 1, 2, bytes(10_000))])
+    store.build_snapshots(NOW - 60_000)
+    store.apply_retention(NOW)
+    facts = store.vda_facts("Acme:001", old - 1, NOW)
+    assert (facts.errors, facts.connections) == ([], [])
+    assert facts.factsheet is not None and facts.factsheet.ts_ms == old
