@@ -41,11 +41,13 @@ from .routers import (
     timeline,
     tracks,
     ui,
+    vda5050,
 )
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
-ROUTERS = (health, map_state, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, changes, exports, stats, status, live, client_config, chunk_service, coordinate_service, ui)
+ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
+           timeline, conflicts, changes, exports, stats, status, live, client_config, chunk_service,
+           coordinate_service, ui)
 
 
 def create_app(settings: Settings, store: HistoryStore,

@@ -10,12 +10,15 @@ from mapservice.core.events import (
     DeadLetter,
     Envelope,
     PoseReported,
+    VdaStateReported,
     encode,
     encode_dead_letter,
     kafka_key,
 )
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Reason, Rejection, decode_chunk_create, decode_coordinates
+
+from .vda5050 import VdaIngest
 
 
 # Kafka's default record limit is 1 MB; a dead letter keeps at most this much of a message.
@@ -51,6 +54,7 @@ class Router:
         # names it as the coordinate topic does (the broker's ACL ties it to the username).
         self.robot_chunk_prefix = (_prefix(settings.robot_chunk_topic)
                                    if settings.robot_chunk_topic else None)
+        self.vda = VdaIngest(settings.vda5050_interface, settings.vda5050_map_transforms)
 
     def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
         try:
@@ -60,6 +64,8 @@ class Router:
                   and "/" not in mqtt_topic[len(self.robot_chunk_prefix):]):  # one level: `+`
                 robot_id = mqtt_topic[len(self.robot_chunk_prefix):]
                 result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
+            elif self.vda.handles(mqtt_topic):
+                result = self.vda.decode(mqtt_topic, payload, receive_ms, limits)
             elif mqtt_topic.startswith(self.coordinate_prefix):
                 robot_id = mqtt_topic[len(self.coordinate_prefix):]
                 result = decode_coordinates(robot_id, payload, receive_ms, limits)
@@ -88,7 +94,7 @@ class Router:
                       encode_dead_letter(letter), reason.value)
 
     def topic_for(self, envelope: Envelope) -> str:
-        if isinstance(envelope.payload, PoseReported):
+        if isinstance(envelope.payload, (PoseReported, VdaStateReported)):
             return self.settings.topic_pose_events
         if isinstance(envelope.payload, ChunkUpdated):
             return self.settings.topic_chunk_events

@@ -171,6 +171,18 @@ class Settings(BaseSettings):
         "iot/chunks/create/<robotId>, the broker's ACL ties that level to its username and the "
         "gateway checks the payload's robotId against it; empty: not subscribed."))
 
+    # VDA 5050 vehicles
+    vda5050_interface: str = Field("uagv", pattern=r"^[^/#+]*$", description=(
+        "Interface name, the first level of VDA 5050 topics "
+        "(<interface>/<major>/<manufacturer>/<serialNumber>/<subtopic>); the gateway "
+        "subscribes to <interface>/+/+/+/+; empty: VDA 5050 vehicles are not taken."))
+    vda5050_map_transforms: dict[str, tuple[float, float, float]] = Field(
+        default_factory=dict, description=(
+            "Per VDA 5050 mapId, [dx, dy, rotation] (metres, metres, radians) taking a "
+            "vehicle's map frame into the map's, as JSON, e.g. {\"hall1\": [10, 0, 0]}. "
+            "Empty: every mapId is the map's frame; otherwise a vehicle on an unlisted mapId "
+            "is stored and flagged, not drawn."))
+
     # Validation
     chunk_width: int = Field(100, ge=1, le=4096, description="Used until a map meta is set.")
     chunk_height: int = Field(100, ge=1, le=4096)
@@ -395,8 +407,9 @@ class Settings(BaseSettings):
     @cached_property
     def mqtt_subscriptions(self) -> list[str]:
         prefix = f"$share/{self.mqtt_share_group}/" if self.mqtt_share_group else ""
+        vda = f"{self.vda5050_interface}/+/+/+/+" if self.vda5050_interface else ""
         return [prefix + topic for topic in (self.create_chunk_topic, self.coordinate_topic,
-                                             self.robot_chunk_topic) if topic]
+                                             self.robot_chunk_topic, vda) if topic]
 
     def kafka_config(self) -> dict[str, str]:
         """librdkafka settings shared by every confluent-kafka client of the service."""

@@ -29,7 +29,7 @@ from mapservice.processors.conflict_recorder import (
     find_conflicts,
     write_conflicts,
 )
-from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
+from mapservice.core.events import ChunkUpdated, Envelope, pose_of
 from mapservice.core.liveview import (
     RobotState,
     advertisement,
@@ -167,7 +167,7 @@ class LiveViews:
             for e in apply_chunks(self.latest, events):
                 VIEW_CHANGES.inc()
                 self.advertise(e)
-        if any(isinstance(e.payload, PoseReported) for e in events):
+        if any(pose_of(e.payload) is not None for e in events):
             apply_poses(self.robots, events)
 
     def advertise(self, e: Envelope) -> None:

@@ -14,10 +14,20 @@ import numpy as np
 
 from mapservice.core import change_feed
 from mapservice.core.change_feed import ChangeEntry, ChangeQuery
-from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
+from mapservice.core.events import (
+    ChunkUpdated,
+    DeadLetter,
+    Envelope,
+    MapMetaSet,
+    VdaConnectionReported,
+    VdaFactsheetReported,
+    VdaStateReported,
+    pose_of,
+)
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
 from mapservice.core.ports import (ChunkRow, ConflictRow, Counts, PoseRow, RetentionResult,
-                                   TimelineBucket)
+                                   TimelineBucket, VdaConnectionRow, VdaErrorRow, VdaFacts,
+                                   VdaFactsheetRow)
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core.ports import ChunkState
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
@@ -50,6 +60,10 @@ class MemoryStore:
         self._metas: dict[tuple[int, str], MapMetaSet] = {}
         self._dead: list[DeadLetter] = []
         self._conflicts: dict[tuple[int, int, int, str], ConflictRow] = {}
+        # VDA 5050 facts, on their natural identities (as the tables' sort keys).
+        self._vda_errors: dict[tuple, VdaErrorRow] = {}
+        self._vda_connections: dict[tuple, VdaConnectionRow] = {}
+        self._vda_factsheets: dict[tuple, VdaFactsheetRow] = {}
         self._lock = threading.Lock()
 
     def migrate(self) -> int:
@@ -66,12 +80,13 @@ class MemoryStore:
         with self._lock:
             for e in events:
                 p = e.payload
-                if isinstance(p, PoseReported):
+                self._append_vda(e)
+                if (pose := pose_of(p)) is not None:
                     self._poses[(e.robot_id, e.event_time_ms)] = PoseRow(
-                        e.robot_id, e.event_time_ms, *(_mm(v) for v in p.position),
-                        *(_f32(v) for v in p.orientation), _f32(p.battery_level),
-                        p.charging, p.loaded,
-                        tuple((_mm(x), _mm(y)) for x, y in p.path) if p.path is not None else None,
+                        e.robot_id, e.event_time_ms, *(_mm(v) for v in pose.position),
+                        *(_f32(v) for v in pose.orientation), _f32(pose.battery_level),
+                        pose.charging, pose.loaded,
+                        tuple((_mm(x), _mm(y)) for x, y in pose.path) if pose.path is not None else None,
                         e.receive_time_ms)
                 elif isinstance(p, ChunkUpdated):
                     self._contents.setdefault(p.content_hash, (p.width, p.height, p.data))
@@ -80,6 +95,26 @@ class MemoryStore:
                                                  p.content_hash.hex(), e.receive_time_ms)
                 elif isinstance(p, MapMetaSet):
                     self._metas[(e.event_time_ms, e.robot_id)] = p
+
+    def _append_vda(self, e: Envelope) -> None:
+        p, at, robot = e.payload, e.event_time_ms, e.robot_id
+        if isinstance(p, VdaStateReported):
+            for err in p.errors:
+                self._vda_errors[(robot, at, err.level, err.type, err.description)] = VdaErrorRow(
+                    at, err.level, err.type, err.description)
+        elif isinstance(p, VdaConnectionReported):
+            self._vda_connections[(robot, at, p.state)] = VdaConnectionRow(at, p.state, p.sent_time_ms)
+        elif isinstance(p, VdaFactsheetReported):
+            self._vda_factsheets[(robot, at)] = VdaFactsheetRow(at, p.vda_version, p.factsheet_json)
+
+    def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
+        def within(rows: dict) -> list:
+            return [v for k, v in sorted(rows.items()) if k[0] == robot_id and from_ms <= k[1] < to_ms]
+        sheets = [v for k, v in sorted(self._vda_factsheets.items())
+                  if k[0] == robot_id and k[1] < to_ms]
+        return VdaFacts(errors=within(self._vda_errors)[:limit],
+                        connections=within(self._vda_connections)[:limit],
+                        factsheet=sheets[-1] if sheets else None)
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         with self._lock:
@@ -156,6 +191,9 @@ class MemoryStore:
         with self._lock:
             carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
                 list(self._poses.values()), boundary).values()}
+            for facts in (self._vda_errors, self._vda_connections):  # keyed (robot, ts, ...)
+                for k in [k for k in facts if k[1] < cut]:
+                    del facts[k]
             old_chunks = [k for k in self._chunks if k[0] < cut]
             old_poses = [k for k in self._poses if k[1] < cut and k not in carried_poses]
             if not old_chunks and not old_poses:

@@ -91,7 +91,70 @@ class MapMetaSet(msgspec.Struct, frozen=True, gc=False, tag="map.meta_set", arra
         )
 
 
-Payload = Union[ChunkUpdated, PoseReported, MapMetaSet]
+class VdaError(msgspec.Struct, frozen=True, gc=False, array_like=True):
+    """One active error or warning a VDA 5050 vehicle reports in its `state`."""
+
+    level: str  # WARNING or FATAL (3.0 adds URGENT, CRITICAL)
+    type: str
+    description: str = ""
+
+
+class VdaStateReported(msgspec.Struct, frozen=True, gc=False, tag="vda.state", array_like=True):
+    """A VDA 5050 `state` (or a `visualization` off the known maps): what the vehicle
+    reported beyond a pose. `pose` is in the map's frame and set only when the vehicle is
+    localized on a map id the service has a transform for; x, y, theta are as reported,
+    in the vehicle's `map_id` frame, so a vehicle on an unknown map is kept, flagged."""
+
+    manufacturer: str
+    serial_number: str
+    vda_version: str
+    pose: PoseReported | None
+    map_id: str | None
+    on_known_map: bool
+    x: float | None
+    y: float | None
+    theta: float | None
+    driving: bool | None
+    paused: bool | None
+    operating_mode: str
+    order_id: str
+    errors: tuple[VdaError, ...] = ()
+
+
+class VdaConnectionReported(msgspec.Struct, frozen=True, gc=False, tag="vda.connection",
+                            array_like=True):
+    """A vehicle's `connection` state: ONLINE, OFFLINE or CONNECTIONBROKEN. The event
+    time of a CONNECTIONBROKEN is when the broker published the last will (its `timestamp`
+    is the connect time, kept in sent_time_ms)."""
+
+    manufacturer: str
+    serial_number: str
+    vda_version: str
+    state: str
+    sent_time_ms: int
+
+
+class VdaFactsheetReported(msgspec.Struct, frozen=True, gc=False, tag="vda.factsheet",
+                           array_like=True):
+    """A vehicle's `factsheet`, as the JSON it sent (schema-validated)."""
+
+    manufacturer: str
+    serial_number: str
+    vda_version: str
+    factsheet_json: str
+
+
+Payload = Union[ChunkUpdated, PoseReported, MapMetaSet, VdaStateReported, VdaConnectionReported,
+                VdaFactsheetReported]
+
+
+def pose_of(payload: Payload) -> PoseReported | None:
+    """The drawable pose an event carries: a PoseReported, or a VDA state's pose."""
+    if isinstance(payload, PoseReported):
+        return payload
+    if isinstance(payload, VdaStateReported):
+        return payload.pose
+    return None
 
 
 class Envelope(msgspec.Struct, frozen=True, gc=False, array_like=True):
@@ -125,6 +188,8 @@ def event_id_for(robot_id: str, event_time_ms: int, payload: Payload) -> str:
         return _digest("pose", robot_id, event_time_ms)
     if isinstance(payload, ChunkUpdated):
         return _digest("chunk", payload.row, payload.column, robot_id, event_time_ms)
+    if isinstance(payload, VdaStateReported):
+        return _digest("vda.state", robot_id, event_time_ms)
     return _digest("meta", robot_id, event_time_ms, msgspec.msgpack.encode(payload))
 
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import msgspec
 
-from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
+from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, pose_of
 from mapservice.core.wire2019 import format_timestamp
 
 # A record holds a batch's messages as one JSON array; batches are cut so that a record
@@ -24,7 +24,7 @@ MAX_RECORD_BYTES = 256 * 1024
 
 
 def live_message(e: Envelope) -> dict | None:
-    p = e.payload
+    p = pose_of(e.payload) or e.payload
     base = {"robotId": e.robot_id, "ts_ms": e.event_time_ms, "timestamp": format_timestamp(e.event_time_ms),
             "receive_time_ms": e.receive_time_ms}
     if isinstance(p, PoseReported):
@@ -69,7 +69,7 @@ class _LiveChunk(msgspec.Struct):
 
 
 def _live_struct(e: Envelope) -> _LivePose | _LiveChunk | None:
-    p = e.payload
+    p = pose_of(e.payload) or e.payload
     if isinstance(p, PoseReported):
         return _LivePose("pose", e.robot_id, e.event_time_ms, format_timestamp(e.event_time_ms),
                          e.receive_time_ms, p.position, p.orientation, p.battery_level,

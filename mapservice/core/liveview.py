@@ -21,7 +21,7 @@ from collections.abc import Iterable
 import msgspec
 from cachetools import LRUCache, cached
 
-from mapservice.core.events import ChunkUpdated, Envelope, PoseReported
+from mapservice.core.events import ChunkUpdated, Envelope, pose_of
 from mapservice.core.legacy_query import chunk_id
 from mapservice.core.render import chunk_pixels, png
 from mapservice.core.ports import ChunkState
@@ -121,8 +121,8 @@ def apply_poses(view: dict[str, RobotState], events: Iterable[Envelope]) -> list
     """Folds poses into `view` (in place); returns the robots whose latest pose changed."""
     changed: dict[str, None] = {}
     for e in events:
-        p = e.payload
-        if not isinstance(p, PoseReported):
+        p = pose_of(e.payload)
+        if p is None:
             continue
         current = view.get(e.robot_id)
         last_seen = max(e.receive_time_ms, current.last_seen_ms if current else e.receive_time_ms)

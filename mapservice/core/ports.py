@@ -151,6 +151,33 @@ class ChangeFeed(Protocol):
         """The query's page: floor changes and map uploads (one entry each), newest first."""
 
 
+class VdaErrorRow(msgspec.Struct, frozen=True, gc=False):
+    ts_ms: int
+    level: str
+    type: str
+    description: str
+
+
+class VdaConnectionRow(msgspec.Struct, frozen=True, gc=False):
+    ts_ms: int  # when the state holds (a CONNECTIONBROKEN: when it was received)
+    state: str  # ONLINE, OFFLINE, CONNECTIONBROKEN
+    sent_ms: int  # the message's own timestamp
+
+
+class VdaFactsheetRow(msgspec.Struct, frozen=True, gc=False):
+    ts_ms: int
+    vda_version: str
+    factsheet: str  # the JSON the vehicle sent
+
+
+class VdaFacts(msgspec.Struct, frozen=True, gc=False):
+    """A VDA 5050 vehicle's facts beyond its poses, in [from, to), oldest first."""
+
+    errors: list[VdaErrorRow]
+    connections: list[VdaConnectionRow]
+    factsheet: VdaFactsheetRow | None  # the latest before `to`
+
+
 class HistoryStore(Protocol):
     """The seven-day history. Appends are idempotent on each event's natural identity."""
 
@@ -199,6 +226,9 @@ class HistoryStore(Protocol):
 
     def robot_known(self, robot_id: str) -> bool:
         """Whether the robot has any pose in the history."""
+
+    def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
+        """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
 
     def map_at(self, at_ms: int) -> list["ChunkState"]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""

@@ -52,6 +52,9 @@ class Reason(str, Enum):
     INTERNAL_ERROR = "internal_error"  # anything else that went wrong with this message
     RECORD_TOO_LARGE = "record_too_large"  # accepted, but Kafka refuses a record that large
     TOO_MANY_NEW_ROBOTS = "too_many_new_robots"  # valid, but over the gateway's new-robot limit
+    VDA_SCHEMA = "vda_schema"  # not valid against the official VDA 5050 schema of its version
+    VDA_UNSUPPORTED_VERSION = "vda_unsupported_version"  # no vendored schema for its version
+    VDA_NO_POSITION = "vda_no_position"  # a visualization without a position: nothing to store
 
 
 class Rejection(msgspec.Struct, frozen=True):
@@ -220,6 +223,9 @@ def _check_time(text: str, now_ms: int, limits: Limits) -> int | Rejection:
             "retention",
         )
     return ms
+
+
+check_time = _check_time  # the VDA 5050 ingest checks its timestamps the same way
 
 
 def _check_robot_id(robot_id: str) -> Rejection | None:

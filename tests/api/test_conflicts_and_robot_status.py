@@ -86,3 +86,36 @@ def test_conflicts_need_from_and_to(client) -> None:
     """Missing parameters are a 422 naming them."""
     r = client.get("/api/v1/conflicts")
     assert r.status_code == 422 and "from" in r.text
+
+
+def test_a_vda_vehicles_facts(ev) -> None:
+    """/api/v1/robots/{id}/vda5050: errors, connection states (offline at the last will's
+    receipt), the factsheet, and both names; a robot id that is no vehicle's is a 404."""
+    from mapservice.core.events import decode
+    from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
+    from tests.fixtures import vda5050 as vda
+
+    router, store = Router(Settings(), "gw"), MemoryStore()
+    m, s = "Acme Co", "7:1"
+    for subtopic, msg, received in [
+            ("connection", vda.connection("2.0.0", m, s, NOW - 9_000, "ONLINE"), NOW - 9_000),
+            ("factsheet", vda.factsheet("2.0.0", m, s, NOW - 8_000), NOW - 8_000),
+            ("state", vda.state("2.0.0", m, s, NOW - 7_000, errors=(("FATAL", "bumper", "hit"),)),
+             NOW - 7_000),
+            ("connection", vda.connection("2.0.0", m, s, NOW - 9_000, "CONNECTIONBROKEN"),
+             NOW - 2_000)]:
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
+        store.append([decode(record.value)])
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW)))
+    body = client.get("/api/v1/robots/Acme@20Co:7@3A1/vda5050").json()
+    assert (body["manufacturer"], body["serialNumber"], body["online"]) == (m, s, False)
+    assert [(c["state"], c["ts_ms"]) for c in body["connections"]] == [
+        ("ONLINE", NOW - 9_000), ("CONNECTIONBROKEN", NOW - 2_000)]
+    assert [(e["level"], e["type"], e["description"]) for e in body["errors"]] == [
+        ("FATAL", "bumper", "hit")]
+    assert body["factsheet"]["factsheet"]["serialNumber"] == s
+    early = client.get("/api/v1/robots/Acme@20Co:7@3A1/vda5050", params={"to": NOW - 7_500}).json()
+    assert early["online"] is True and early["errors"] == []
+    missing = client.get("/api/v1/robots/plain-robot/vda5050")
+    assert missing.status_code == 404 and "manufacturer" in missing.json()["detail"]

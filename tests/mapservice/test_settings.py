@@ -22,7 +22,8 @@ def test_local_defaults() -> None:
     assert s.api_read_access == "open"
     assert (s.create_chunk_topic, s.coordinate_topic) == ("iot/chunks/create", "iot/coordinates/#")
     assert s.retention_ms == 7 * 86_400_000
-    assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#", "iot/chunks/create/+"]
+    assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#", "iot/chunks/create/+",
+                                    "uagv/+/+/+/+"]
 
 
 def test_production_refuses_default_admin_token() -> None:
@@ -89,7 +90,7 @@ def test_env_vars_override(monkeypatch) -> None:
     assert s.max_grid == 64 and s.max_future_skew_s == 2.5
     assert s.retention_ms == 3 * 86_400_000
     assert s.mqtt_subscriptions == ["$share/gw/iot/chunks/create", "$share/gw/iot/coordinates/#",
-                                    "$share/gw/iot/chunks/create/+"]
+                                    "$share/gw/iot/chunks/create/+", "$share/gw/uagv/+/+/+/+"]
 
 
 def test_invalid_env_value_is_refused(monkeypatch) -> None:

@@ -118,6 +118,41 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "changes": "The number of its writes (length of offsets)",
         "built": "When written (a repaired snapshot rewrites its seconds)",
     }),
+    # Schema v12: VDA 5050 vehicles (robot id `<manufacturer>:<serialNumber>`, escaped).
+    "vda_states": ("VDA 5050 vehicle states (and visualizations off the known maps): status "
+                   "and position as reported, in the vehicle's map frame (schema v12)", {
+        "robot_id": "The vehicle's robot id: manufacturer and serial number, escaped",
+        "ts": "The state's timestamp (UTC)",
+        "manufacturer": "As the vehicle sent it", "serial_number": "As the vehicle sent it",
+        "vda_version": "The VDA 5050 schema it was validated against",
+        "map_id": "The vehicle's mapId; NULL when it reported no position",
+        "on_known_map": "true: mapId has a transform and the pose is in `poses`; false: "
+                        "flagged, not drawn",
+        "x": "Metres in the vehicle's mapId frame, as reported",
+        "y": "Metres in the vehicle's mapId frame, as reported",
+        "theta": "Radians in the vehicle's mapId frame, as reported",
+        "driving": "Whether it was driving", "paused": "Whether it was paused",
+        "operating_mode": "AUTOMATIC, SEMIAUTOMATIC, MANUAL, SERVICE or TEACHIN",
+        "order_id": "The order it was executing (empty: none)",
+        "error_count": "Its active errors and warnings (rows of vda_errors)",
+    }),
+    "vda_errors": ("VDA 5050 errors and warnings: one row per error active in a state (schema v12)", {
+        "robot_id": "The vehicle's robot id", "ts": "The state's timestamp (UTC)",
+        "level": "WARNING or FATAL (3.0: also URGENT, CRITICAL)",
+        "type": "The vehicle's errorType", "description": "The vehicle's errorDescription",
+    }),
+    "vda_connections": ("VDA 5050 connection states: exact online/offline instants (schema v12)", {
+        "robot_id": "The vehicle's robot id",
+        "ts": "When the state holds: the message time, or for CONNECTIONBROKEN (the last "
+              "will, composed at connect time) when the gateway received it",
+        "state": "ONLINE, OFFLINE or CONNECTIONBROKEN",
+        "sent_ts": "The message's own timestamp",
+    }),
+    "vda_factsheets": ("VDA 5050 factsheets, as the vehicle sent them (schema v12)", {
+        "robot_id": "The vehicle's robot id", "ts": "The factsheet's timestamp (UTC)",
+        "vda_version": "The VDA 5050 schema it was validated against",
+        "factsheet": "The factsheet's JSON",
+    }),
 }
 
 

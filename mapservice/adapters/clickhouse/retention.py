@@ -31,7 +31,7 @@ import structlog
 
 from mapservice.core.ports import RetentionResult
 from mapservice.adapters.clickhouse.cluster import for_cluster
-from mapservice.adapters.clickhouse.schema import DAY_PARTITIONED
+from mapservice.adapters.clickhouse.schema import RETAINED_BY_DAY
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 
 log = structlog.get_logger(__name__)
@@ -62,7 +62,7 @@ class RetentionMixin(SnapshotsMixin):
                 "SELECT table, partition_id FROM system.parts WHERE database = {d:String} "
                 "AND active AND has(splitByChar(',', {t:String}), table) "
                 "AND partition_id < {c:String} GROUP BY table, partition_id ORDER BY table, partition_id",
-                {"d": db, "t": ",".join(DAY_PARTITIONED), "c": cut_id})
+                {"d": db, "t": ",".join(RETAINED_BY_DAY), "c": cut_id})
             renewed = 0
             if any(table == "chunk_contents" for table, _ in old):
                 renewed = self._renew_contents(cut, now_ms)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
-from mapservice.adapters.clickhouse import analyst_schema
+from mapservice.adapters.clickhouse import analyst_schema, vda_schema
 
 
 @dataclass(frozen=True)
@@ -216,6 +216,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "dropped the floor's only writes); the retention step drops day partitions",
             _service_retention(database),
         ),
+        Migration(12, "VDA 5050 vehicles: states, errors, connections, factsheets",
+                  vda_schema.statements(database)),
     ]
 
 
@@ -314,7 +316,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 11
+SCHEMA_VERSION = 12
 
 # Every table whose rows expire with the retention, all partitioned by day (toDate of their
 # time column): the retention step (retention.py) drops their partitions older than the
@@ -323,6 +325,9 @@ SCHEMA_VERSION = 11
 DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
                    "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
                    "pose_ten_minutes", "chunk_seconds")
+# What the retention step drops by day: the above (whose TTL schema v11 removed) and the
+# VDA 5050 facts of schema v12 (factsheets are kept: one a vehicle, its latest matters).
+RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections")
 
 
 def _service_retention(db: str) -> tuple[str, ...]:

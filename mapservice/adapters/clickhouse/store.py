@@ -28,12 +28,13 @@ from mapservice.adapters.clickhouse.migrations import MigrationsMixin
 from mapservice.adapters.clickhouse.reads import ReadsMixin
 from mapservice.adapters.clickhouse.retention import RetentionMixin
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.adapters.clickhouse.vda_reads import VdaReadsMixin
 from mapservice.adapters.clickhouse.writes import WritesMixin
 from mapservice.settings import Settings
 
 
 class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
-                      SnapshotsMixin, LegacyMixin, AdminMixin, ChangeFeedMixin):
+                      SnapshotsMixin, LegacyMixin, VdaReadsMixin, AdminMixin, ChangeFeedMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,

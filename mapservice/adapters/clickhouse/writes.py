@@ -9,7 +9,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, PoseReported
+from mapservice.core.events import (
+    ChunkUpdated,
+    DeadLetter,
+    Envelope,
+    MapMetaSet,
+    VdaConnectionReported,
+    VdaFactsheetReported,
+    VdaStateReported,
+    pose_of,
+)
 from mapservice.core.ports import ConflictRow
 from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
 from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
@@ -34,7 +43,7 @@ class WritesMixin(SnapshotsMixin):
     def derive_views(self, events: Sequence[Envelope]) -> None:
         """Feeds the batch's poses to the pose views (schema v10: through the Null table
         `pose_derivations`); repeating it for a batch changes nothing."""
-        poses = [_pose_row(e) for e in events if isinstance(e.payload, PoseReported)]
+        poses = [_pose_row(e) for e in events if pose_of(e.payload) is not None]
         if poses:
             with self._lock:
                 self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS)
@@ -54,10 +63,14 @@ class WritesMixin(SnapshotsMixin):
 
     def append_events(self, events: Sequence[Envelope]) -> None:
         poses, chunks, contents, metas = [], [], [], []
+        vda: dict[str, list] = {"vda_states": [], "vda_errors": [], "vda_connections": [],
+                                "vda_factsheets": []}
         for e in events:
             p = e.payload
-            if isinstance(p, PoseReported):
+            if pose_of(p) is not None:
                 poses.append(_pose_row(e))
+            if isinstance(p, (VdaStateReported, VdaConnectionReported, VdaFactsheetReported)):
+                _vda_rows(e, vda)
             elif isinstance(p, ChunkUpdated):
                 chunks.append([e.event_time_ms, p.row, p.column, e.robot_id, p.content_hash,
                                e.receive_time_ms - e.event_time_ms])
@@ -82,6 +95,9 @@ class WritesMixin(SnapshotsMixin):
                 self._insert("poses", poses, _POSE_INSERT_COLUMNS)
             if metas:
                 self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
+            for table, rows in vda.items():
+                if rows:
+                    self._insert(table, rows, _VDA_COLUMNS[table])
             # A late event (at or before the newest snapshot) makes the snapshots from its
             # time on wrong. Noting that is all the batch waits for: reads stop using those
             # snapshots at once (they fold events from the last good one: exact, slower),
@@ -110,9 +126,36 @@ class WritesMixin(SnapshotsMixin):
                 "ts", "row", "col", "robot_b", "robot_a", "ts_a"])
 
 
+_VDA_COLUMNS = {
+    "vda_states": ["robot_id", "ts", "manufacturer", "serial_number", "vda_version", "map_id",
+                   "on_known_map", "x", "y", "theta", "driving", "paused", "operating_mode",
+                   "order_id", "error_count"],
+    "vda_errors": ["robot_id", "ts", "level", "type", "description"],
+    "vda_connections": ["robot_id", "ts", "state", "sent_ts"],
+    "vda_factsheets": ["robot_id", "ts", "vda_version", "factsheet"],
+}
+
+
+def _vda_rows(e: Envelope, out: dict[str, list]) -> None:
+    """A VDA 5050 event's rows, by table (schema v12)."""
+    p, at = e.payload, e.event_time_ms
+    if isinstance(p, VdaStateReported):
+        out["vda_states"].append([
+            e.robot_id, at, p.manufacturer, p.serial_number, p.vda_version, p.map_id,
+            p.on_known_map, p.x, p.y, p.theta, p.driving, p.paused, p.operating_mode,
+            p.order_id, len(p.errors)])
+        out["vda_errors"].extend([e.robot_id, at, err.level, err.type, err.description]
+                                 for err in p.errors)
+    elif isinstance(p, VdaConnectionReported):
+        out["vda_connections"].append([e.robot_id, at, p.state, p.sent_time_ms])
+    elif isinstance(p, VdaFactsheetReported):
+        out["vda_factsheets"].append([e.robot_id, at, p.vda_version, p.factsheet_json])
+
+
 def _pose_row(e: Envelope) -> list:
-    """A pose event as the row `poses` (and `pose_derivations`) store, in _POSE_INSERT_COLUMNS order."""
-    p = e.payload
+    """A pose event (or a VDA state's pose) as the row `poses` (and `pose_derivations`)
+    store, in _POSE_INSERT_COLUMNS order."""
+    p = pose_of(e.payload)
     path = p.path or ()
     return [
         e.robot_id, e.event_time_ms,
