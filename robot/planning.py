@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,13 +36,16 @@ class PlanGrid:
     def cell_at(self, u: float, v: float) -> Cell:
         return (int(v // self.cell_px), int(u // self.cell_px))
 
-    def ok_flat(self) -> list[bool]:
-        """`ok` as one flat Python list (row-major), built once: list indexing is what the
-        search does most."""
-        flat = self._pf.get("flat")
-        if flat is None:
-            flat = self._pf["flat"] = self.ok.ravel().tolist()
-        return flat
+    def ok_padded(self) -> tuple[list[bool], int]:
+        """`ok` framed by a border of not-ok cells, as one flat Python list (row-major), and
+        its row length; built once. List indexing is what the searches do most, and the
+        frame lets them step to a neighbour by adding an offset, without bounds checks.
+        Flat indices grow with (row, col) as on the bare grid, so ties break the same."""
+        padded = self._pf.get("padded")
+        if padded is None:
+            framed = np.pad(self.ok, 1, constant_values=False)
+            padded = self._pf["padded"] = (framed.ravel().tolist(), framed.shape[1])
+        return padded
 
     def is_ok(self, cell: Cell) -> bool:
         r, c = cell
@@ -97,27 +99,34 @@ def plan_cell_sizes(resolution: float, cell_m: float = 0.25,
 
 
 def largest_component(ok: np.ndarray) -> np.ndarray:
-    """The biggest 8-connected set of ok cells (stations go there so all are reachable)."""
-    labels = np.zeros(ok.shape, dtype=np.int32)
-    best, best_size, label = 0, 0, 0
+    """The biggest 4-connected set of ok cells (stations go there so all are reachable).
+    Components are found in row-major order of their first cell; on a tie in size the
+    first found wins. A breadth-first search over a framed flat list (see `ok_padded`)."""
     h, w = ok.shape
-    for r0, c0 in zip(*np.nonzero(ok)):
-        if labels[r0, c0]:
+    pw = w + 2
+    free = np.pad(ok, 1, constant_values=False).ravel().tolist()
+    seen = [False] * len(free)
+    best: list[int] = []
+    steps = (pw, -pw, 1, -1)
+    for r0, c0 in zip(*(a.tolist() for a in np.nonzero(ok))):
+        first = (r0 + 1) * pw + c0 + 1
+        if seen[first]:
             continue
-        label += 1
-        labels[r0, c0] = label
-        size, queue = 0, deque([(r0, c0)])
-        while queue:
-            r, c = queue.popleft()
-            size += 1
-            for dr, dc in ((1, 0), (-1, 0), (0, 1), (0, -1)):
-                nr, nc = r + dr, c + dc
-                if 0 <= nr < h and 0 <= nc < w and ok[nr, nc] and not labels[nr, nc]:
-                    labels[nr, nc] = label
-                    queue.append((nr, nc))
-        if size > best_size:
-            best, best_size = label, size
-    return labels == best if best else np.zeros_like(ok)
+        seen[first] = True
+        component = [first]
+        for node in component:  # the list grows while it is walked: a FIFO queue
+            for d in steps:
+                nxt = node + d
+                if free[nxt] and not seen[nxt]:
+                    seen[nxt] = True
+                    component.append(nxt)
+        if len(component) > len(best):
+            best = component
+    out = np.zeros(ok.shape, dtype=bool)
+    if best:
+        rows, cols = np.divmod(np.asarray(best), pw)
+        out[rows - 1, cols - 1] = True
+    return out
 
 
 _SQRT2 = math.sqrt(2.0)
@@ -129,59 +138,67 @@ def plan(grid: PlanGrid, start: Cell, goal: Cell) -> list[Cell] | None:
     """Shortest 8-connected path of ok cells from start to goal (both included), or None.
 
     A* with the octile heuristic; a diagonal step only where both cells beside it are ok
-    (no corner cutting). Written over the grid's flat boolean list with heapq rather than
-    the `pathfinding` package's node objects: the same search at ~5x less CPU, which is
-    what lets the demo history simulate a week in about a minute.
+    (no corner cutting). Written over the grid's framed flat boolean list (`ok_padded`)
+    with heapq rather than the `pathfinding` package's node objects: the same search at a
+    fraction of the CPU, which is what lets the demo history simulate a week in a minute.
     """
     if not (grid.is_ok(start) and grid.is_ok(goal)):
         return None
     if start == goal:
         return [start]
-    rows, cols = grid.shape
-    ok = grid.ok_flat()
+    ok, pw = grid.ok_padded()
     gr, gc = goal
-    target = gr * cols + gc
-    origin = start[0] * cols + start[1]
-    best = {origin: 0.0}
+    target = (gr + 1) * pw + gc + 1
+    origin = (start[0] + 1) * pw + start[1] + 1
+    # (offset, cost, row step, col step, the two side offsets a diagonal must find ok)
+    moves = [(dr * pw + dc, step, dr, dc, dc, dr * pw) for dr, dc, step in _STEPS]
+    inf = math.inf
+    best = [inf] * len(ok)
+    best[origin] = 0.0
     came: dict[int, int] = {}
     frontier = [(0.0, 0.0, origin)]
+    push, pop, sqrt2_2 = heapq.heappush, heapq.heappop, _SQRT2 - 2
     while frontier:
-        _, cost, node = heapq.heappop(frontier)
+        _, cost, node = pop(frontier)
         if node == target:
             path = [node]
             while node in came:
                 node = came[node]
                 path.append(node)
-            return [divmod(n, cols) for n in reversed(path)]
-        if cost > best.get(node, math.inf):
+            return [(n // pw - 1, n % pw - 1) for n in reversed(path)]
+        if cost > best[node]:
             continue
-        r, c = divmod(node, cols)
-        for dr, dc, step in _STEPS:
-            nr, nc = r + dr, c + dc
-            if not (0 <= nr < rows and 0 <= nc < cols):
-                continue
-            nxt = nr * cols + nc
-            if not ok[nxt] or (dr and dc and not (ok[r * cols + nc] and ok[nr * cols + c])):
+        r, c = divmod(node, pw)
+        for offset, step, dr, dc, side_a, side_b in moves:
+            nxt = node + offset
+            if not ok[nxt] or (dr and dc and not (ok[node + side_a] and ok[node + side_b])):
                 continue
             new_cost = cost + step
-            if new_cost < best.get(nxt, math.inf):
+            if new_cost < best[nxt]:
                 best[nxt] = new_cost
                 came[nxt] = node
-                ddr, ddc = abs(nr - gr), abs(nc - gc)
-                heuristic = (ddr + ddc) + (_SQRT2 - 2) * min(ddr, ddc)
-                heapq.heappush(frontier, (new_cost + heuristic, new_cost, nxt))
+                ddr, ddc = abs(r + dr - gr - 1), abs(c + dc - gc - 1)
+                heuristic = (ddr + ddc) + sqrt2_2 * (ddr if ddr < ddc else ddc)
+                push(frontier, (new_cost + heuristic, new_cost, nxt))
     return None
 
 
 def route_clear(grid: PlanGrid, cells: list[Cell]) -> bool:
     """Whether a planned route is still drivable on `grid`: every cell ok, and no diagonal
     step cuts a corner (both cells beside it ok), as `plan` itself requires."""
-    for (r0, c0), (r1, c1) in zip(cells, cells[1:]):
-        if not grid.is_ok((r1, c1)):
-            return False
-        if r0 != r1 and c0 != c1 and not (grid.is_ok((r0, c1)) and grid.is_ok((r1, c0))):
-            return False
-    return bool(cells) and grid.is_ok(cells[0])
+    if not cells:
+        return False
+    at = np.asarray(cells)
+    rows, cols = at[:, 0], at[:, 1]
+    h, w = grid.shape
+    if rows.min() < 0 or cols.min() < 0 or rows.max() >= h or cols.max() >= w:
+        return False
+    ok = grid.ok
+    if not ok[rows, cols].all():
+        return False
+    # A diagonal step from (r0, c0) to (r1, c1) needs (r0, c1) and (r1, c0) ok too; on a
+    # straight step those are the two cells themselves, already checked.
+    return bool(ok[rows[:-1], cols[1:]].all() and ok[rows[1:], cols[:-1]].all())
 
 
 def simplify(cells: list[Cell]) -> list[Cell]:

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import math
 import random
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import numpy as np
 
@@ -93,10 +95,20 @@ class SimState:
     tick: int = 0
     changes: tuple[MapChange, ...] = ()
     next_change_ms: int = 0
-    # (start cell, goal cell) -> planned cells, shared by every later state. Robots start
+    # (start cell, goal cell) -> RouteEntry, shared by every later state. Robots start
     # most routes at a station, so a handful of routes recur all shift; A* is most of the
     # simulator's CPU, and a route still clear on today's grid is reused.
     routes: dict = field(default_factory=dict, compare=False, repr=False)
+
+
+@dataclass
+class RouteEntry:
+    """A planned route in the cache: its cells, their simplified waypoints, and the grid
+    it was last found clear on. The grid is replaced whenever the floor changes, so an
+    entry checked against the current grid object needs no check again until then."""
+    cells: list[Cell]
+    waypoints: tuple[Point, ...]
+    checked_on: PlanGrid
 
 
 @dataclass(frozen=True)
@@ -198,35 +210,51 @@ def to_metres(state: SimState, p: Point) -> tuple[float, float]:
 def _route(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | None:
     """Waypoints from the robot's next waypoint (or its cell) to the goal cell."""
     start_pt = robot.waypoints[0] if robot.waypoints else robot.pos
-    start = state.grid.cell_at(*start_pt)
-    cells = state.routes.get((start, goal))
-    if cells is None or not route_clear(state.grid, cells):
-        cells = plan(state.grid, start, goal)
+    grid = state.grid
+    start = grid.cell_at(*start_pt)
+    entry = state.routes.get((start, goal))
+    if entry is not None and entry.checked_on is not grid:
+        # The floor changed since: keep the route only if it is still drivable.
+        if route_clear(grid, entry.cells):
+            entry.checked_on = grid
+        else:
+            entry = None
+    if entry is None:
+        cells = plan(grid, start, goal)
         if cells is None:
             return None
         if len(state.routes) > MAX_CACHED_ROUTES:
             state.routes.clear()
-        state.routes[(start, goal)] = cells
-    pts = [state.grid.centre_px(c) for c in simplify(cells)]
+        entry = state.routes[(start, goal)] = RouteEntry(
+            cells, tuple(grid.centre_px(c) for c in simplify(cells)), grid)
     if robot.waypoints:
-        pts = [robot.waypoints[0]] + pts[1:]
-    return tuple(pts)
+        return (robot.waypoints[0],) + entry.waypoints[1:]
+    return entry.waypoints
 
 
-def _advance(robot: Robot, distance_px: float) -> Robot:
-    pos, wps, yaw = robot.pos, list(robot.waypoints), robot.yaw
-    while wps and distance_px > 1e-9:
-        tx, ty = wps[0]
+def advance_along(pos: Point, yaw: float, waypoints: tuple[Point, ...],
+                  distance_px: float) -> tuple[Point, float, int]:
+    """Where driving `distance_px` along the waypoints from `pos` ends: the position, the
+    heading, and how many waypoints it reached. Plain values, no Robot: the demo history
+    interpolates poses between steps with it millions of times."""
+    passed, n = 0, len(waypoints)
+    while passed < n and distance_px > 1e-9:
+        tx, ty = waypoints[passed]
         d = math.hypot(tx - pos[0], ty - pos[1])
         if d > 1e-9:
             yaw = math.atan2(-(ty - pos[1]), tx - pos[0])  # image rows grow downwards
         if d <= distance_px:
             pos, distance_px = (tx, ty), distance_px - d
-            wps.pop(0)
+            passed += 1
         else:
             f = distance_px / d
             pos, distance_px = (pos[0] + (tx - pos[0]) * f, pos[1] + (ty - pos[1]) * f), 0.0
-    return replace(robot, pos=pos, waypoints=tuple(wps), yaw=yaw)
+    return pos, yaw, passed
+
+
+def _advance(robot: Robot, distance_px: float) -> Robot:
+    pos, yaw, passed = advance_along(robot.pos, robot.yaw, robot.waypoints, distance_px)
+    return replace(robot, pos=pos, waypoints=robot.waypoints[passed:], yaw=yaw)
 
 
 # --- behaviour ---------------------------------------------------------------------------
@@ -262,17 +290,19 @@ def _arrive(state: SimState, robot: Robot) -> Robot:
     return robot
 
 
-def _robot_step(state: SimState, robot: Robot, rng: random.Random) -> Robot:
+def _robot_step(state: SimState, robot: Robot, make_rng: Callable[[], random.Random]) -> Robot:
+    """One tick of one robot. `make_rng` gives the robot's generator for this tick, made
+    only when it picks a new task (seeding one per robot per tick was a tenth of the CPU)."""
     c = state.config
     if robot.task == "charging":
         battery = min(100.0, robot.battery + c.charge_per_s * c.dt_s)
         if battery >= c.full_battery:
-            return _next_task(state, replace(robot, battery=battery, charging=False, task="idle"), rng)
+            return _next_task(state, replace(robot, battery=battery, charging=False, task="idle"), make_rng())
         return replace(robot, battery=battery)
     if robot.task in ("dwell", "idle"):
         robot = replace(robot, battery=max(0.0, robot.battery - c.idle_drain_per_s * c.dt_s),
                         wait_s=robot.wait_s - c.dt_s)
-        return _next_task(state, robot, rng) if robot.wait_s <= 0 else robot
+        return _next_task(state, robot, make_rng()) if robot.wait_s <= 0 else robot
     if not robot.waypoints:
         return _arrive(state, robot)
     speed_px = c.speed_m_s * c.dt_s / state.ros_map.resolution
@@ -436,7 +466,7 @@ def _change_map(state: SimState, rng: random.Random) -> tuple[SimState, list[Chu
     return new, _touched_chunks(new, box, _nearest_robot(new, box)), [f"{what} at ({x:.1f}, {y:.1f}) m"]
 
 
-def _replan_blocked(state: SimState, robot: Robot, rng: random.Random) -> Robot:
+def _replan_blocked(state: SimState, robot: Robot) -> Robot:
     """A robot whose route crosses a cell that is no longer ok plans again."""
     g = state.grid
     pts = [robot.pos, *robot.waypoints]
@@ -475,11 +505,11 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
         state = replace(state, next_change_ms=nxt)
         if state.grid is not old_grid:
             state = replace(state, robots=tuple(
-                _replan_blocked(state, r, _rng(state.seed, state.tick, r.robot_id))
+                _replan_blocked(state, r)
                 if r.waypoints else r for r in state.robots))
     robots = []
     for robot in state.robots:
-        robot = _robot_step(state, robot, _rng(state.seed, state.tick, robot.robot_id))
+        robot = _robot_step(state, robot, partial(_rng, state.seed, state.tick, robot.robot_id))
         robots.append(robot)
         x, y = to_metres(state, robot.pos)
         out.poses.append(PoseOut(robot.robot_id, t_ms, x, y, round(robot.yaw, 4),

@@ -104,17 +104,17 @@ def simulate(ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: 
     tails: dict[str, tuple[tuple, tuple]] = {}  # robot -> (waypoints, them in metres)
     changed = 0
 
-    def path(s, robot) -> tuple:
+    def path(s, robot_id: str, pos, waypoints) -> tuple:
         """The robot's path in metres (its position, then its waypoints), converting each
         planned route once rather than at every pose."""
-        wps = robot.waypoints[: config.max_path_points - 1]
+        wps = waypoints[: config.max_path_points - 1]
         if not wps:
             return ()
         # Driving only drops waypoints from the front: the current ones end the route.
-        known = tails.get(robot.robot_id)
+        known = tails.get(robot_id)
         if known is None or len(wps) > len(known[0]) or known[0][len(known[0]) - len(wps):] != wps:
-            known = tails[robot.robot_id] = (wps, tuple(sim.to_metres(s, p) for p in wps))
-        return (sim.to_metres(s, robot.pos), *known[1][len(known[1]) - len(wps):])
+            known = tails[robot_id] = (wps, tuple(sim.to_metres(s, p) for p in wps))
+        return (sim.to_metres(s, pos), *known[1][len(known[1]) - len(wps):])
 
     while state.t_ms < end_ms:
         before = state
@@ -122,10 +122,11 @@ def simulate(ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: 
         # Poses between the steps: each robot advanced along its own path.
         for robot in before.robots:
             for k in range(POSE_EVERY_S, STEP_S, POSE_EVERY_S):
-                moved = sim._advance(robot, speed_px * k) if robot.waypoints else robot
+                pos, yaw, passed = sim.advance_along(robot.pos, robot.yaw, robot.waypoints, speed_px * k)
+                wps = robot.waypoints[passed:]
                 batch.append(_pose_event(
-                    robot.robot_id, before.t_ms + k * 1000, sim.to_metres(before, moved.pos), moved.yaw,
-                    robot.battery, robot.charging, robot.loaded, path(before, moved),
+                    robot.robot_id, before.t_ms + k * 1000, sim.to_metres(before, pos), yaw,
+                    robot.battery, robot.charging, robot.loaded, path(before, robot.robot_id, pos, wps),
                     rng.randrange(15, 90)))
         for p in out.poses:
             batch.append(_pose_event(p.robot_id, p.t_ms, (p.x, p.y), p.yaw, p.battery, p.charging,

@@ -16,6 +16,7 @@ from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map
 from mapservice.robot.chunks import chunk_pixels, metres_to_pixel
 from mapservice.robot.faults import Faults, robot_skew_ms, to_messages
 from mapservice.robot.planning import build_grid, dilate, path_is_clear, plan, simplify
+from mapservice.robot import sim
 from mapservice.robot.sim import SimConfig, _protected, new_state, step
 from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, decode_coordinates, parse_timestamp
 from tests.fixtures.paths import MAPS
@@ -233,3 +234,34 @@ def test_generated_floors_keep_robots_off_obstacles(case) -> None:
             assert free[row, col]
             if pose.path:
                 assert path_is_clear([pixel_point(state, x, y) for x, y in pose.path], free)
+
+
+def test_a_floor_change_across_a_cached_route_makes_the_robot_replan() -> None:
+    """Routes are cached per (start, goal) and reused without a check while the floor stays
+    as it is; after a change that blocks a cached route, the same trip plans around the new
+    obstacle, while a cached route the change left clear is still reused."""
+    state = new_state(load_ros_map(MAPS / "warehouse.yaml"), 1, seed=3, t_ms=T0,
+                      config=replace(SimConfig(), change_every_s=0))
+    g = state.grid
+    robot = replace(state.robots[0], pos=g.centre_px(state.stations[0]), waypoints=())
+    far, near = state.stations[1], state.stations[2]
+    first = sim._route(state, robot, far)
+    other = sim._route(state, robot, near)
+    assert first is not None and other is not None
+    assert sim._route(state, robot, far) is first  # reused as it was
+
+    # A pallet on a cell in the middle of the cached route, away from the other route.
+    cells = state.routes[(g.cell_at(*robot.pos), far)].cells
+    other_cells = set(state.routes[(g.cell_at(*robot.pos), near)].cells)
+    row, col = next(c for c in cells[len(cells) // 3:] if all(
+        abs(c[0] - o[0]) > 4 or abs(c[1] - o[1]) > 4 for o in other_cells))
+    pixels = state.ros_map.pixels.copy()
+    pixels[row * g.cell_px:(row + 1) * g.cell_px, col * g.cell_px:(col + 1) * g.cell_px] = 0
+    changed = sim._with_pixels(state, pixels)
+    free = drivable(changed.ros_map)
+    assert not path_is_clear(list(first), free)
+
+    again = sim._route(changed, robot, far)
+    assert again is not None and again != first
+    assert path_is_clear(list(again), free)
+    assert sim._route(changed, robot, near) is other  # still clear: kept, not planned again
