@@ -84,10 +84,14 @@ class Write:
 
 def kafka_keeps_records(stack: Stack) -> bool:
     """Whether a restart of the stack's Kafka broker keeps the topics' records: a stack
-    that says so (`kafka_keeps_records`), else every broker but tansu's in-memory one."""
+    that says so (`kafka_keeps_records`, or `kafka` naming its broker: Apache Kafka keeps
+    its log in the data dir), else every broker but tansu's in-memory one."""
     said = getattr(stack, "kafka_keeps_records", None)
     if said is not None:
         return bool(said)
+    broker = getattr(stack, "kafka", None)
+    if broker in ("apache", "tansu"):
+        return broker == "apache"
     proc = stack.procs.get("kafka")
     return proc is not None and "tansu" not in " ".join(map(str, proc.args))
 
