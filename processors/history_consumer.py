@@ -62,7 +62,8 @@ def observe_stored(topic: str, events: Sequence, now_ms: int) -> None:
 
 
 async def store_values(sink: "HistorySink", views: "LiveViews | None",
-                       values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int) -> list:
+                       values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int,
+                       clock_ms: Callable[[], int] = SystemClock().now_ms) -> list:
     """Decodes a batch, stores its events in one append, then feeds the live stream and
     the views; bad records become dead letters. Returns the stored events, whose derived
     pose views (`HistorySink.derive_until_done`) and conflicts (`LiveViews.write_conflicts`)
@@ -73,6 +74,10 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
     chunks' conflict detection to be stored. The derived pose views (schema v10) are left
     to the caller: they never delay the push, and feeding them several batches at once
     costs a fraction of feeding each batch (HistoryConsumer.views_seconds).
+
+    `clock_ms` is the service's clock, read again once the insert returned: the events'
+    times are on that clock, so on a simulated one the wall clock would make every
+    latency metric wrong by the simulated offset.
     """
     good: list = []
     per_topic: dict[str, int] = {}
@@ -88,7 +93,7 @@ async def store_values(sink: "HistorySink", views: "LiveViews | None",
     if good:
         await sink.insert_until_done(sink.store.append_events, good, per_topic)
         BATCH_EVENTS.observe(len(good))
-        stored_ms = SystemClock().now_ms()
+        stored_ms = clock_ms()
         for topic, events in by_topic.items():
             observe_stored(topic, events, stored_ms)
         if sink.live is not None:
@@ -233,7 +238,7 @@ class HistoryConsumer:
         by_topic: dict[str, list[bytes]] = {}
         for r in records:
             by_topic.setdefault(r.topic, []).append(r.value)
-        return await store_values(self.sink, self.views, by_topic, self.now_ms())
+        return await store_values(self.sink, self.views, by_topic, self.now_ms(), self.now_ms)
 
     async def _settle_once(self) -> None:
         """On stop: one try, no retries (an unreachable store must not hold the stop up;

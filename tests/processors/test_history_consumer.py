@@ -217,7 +217,8 @@ def test_stored_events_record_their_end_to_end_latency_and_batch_size(ev) -> Non
     now = SystemClock().now_ms()
     for i in range(5):
         source.append("lat-poses", encode(ev.pose("r1", now - 3_000 + i)))
-    drain(consumer_for(store, source, batch=100))
+    drain(HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.01,
+                          now_ms=SystemClock().now_ms))
     assert count("mapservice_event_to_stored_seconds", "lat-poses") == before[0] + 5
     assert count("mapservice_received_to_stored_seconds", "lat-poses") == before[1] + 5
     assert (REGISTRY.get_sample_value("mapservice_sink_batch_events_count") or 0.0) == batches_before + 1
@@ -225,6 +226,26 @@ def test_stored_events_record_their_end_to_end_latency_and_batch_size(ev) -> Non
     le2 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "2.0"})
     le5 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "5.0"})
     assert le5 - le2 == 5
+
+
+def test_stored_latency_is_measured_on_the_service_clock(ev) -> None:
+    """On a simulated clock (events stamped by it, the wall clock 30 days later) an event
+    stored 3 s after its time counts 3 s, not 30 days."""
+    from prometheus_client import REGISTRY
+
+    def bucket(le: str) -> float:
+        return REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket",
+                                         {"topic": "sim-poses", "le": le}) or 0.0
+
+    before = bucket("5.0") - bucket("2.0")
+    source, store = MemorySource(), MemoryStore()
+    simulated_now = NOW - 30 * 86_400_000  # the wall clock is later still
+    for i in range(4):
+        source.append("sim-poses", encode(ev.pose("r1", simulated_now - 3_000 + i)))
+    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100,
+                               batch_seconds=0.01, now_ms=lambda: simulated_now)
+    drain(consumer)
+    assert bucket("5.0") - bucket("2.0") == before + 4
 
 
 def test_quick_stores_shorten_the_batch_window_to_its_shortest(ev) -> None:

@@ -7,7 +7,6 @@ of the store.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, sort_column
@@ -18,6 +17,8 @@ from mapservice.adapters.clickhouse.connection import (
 
 class LegacyMixin(ClickHouseConnection):
     """list_chunks, list_poses."""
+
+    clock_ms: Callable[[], int]  # the service's clock (ClickHouseStore sets it)
 
     # --- the 2019 REST contract ----------------------------------------------------------
 
@@ -64,7 +65,7 @@ class LegacyMixin(ClickHouseConnection):
 
         if (query.limit and query.order[0] == ("timestamp", "desc")
                 and query.updated_since_ms is None and query.timestamp_ms is None):
-            upper = query.updated_before_ms or time.time_ns() // 1_000_000
+            upper = query.updated_before_ms or self.clock_ms()
             for span_ms in (3_600_000, 86_400_000):
                 rows = run(sql(["ts >= fromUnixTimestamp64Milli({lower:Int64})"]),
                            {**params, "lower": upper - span_ms})

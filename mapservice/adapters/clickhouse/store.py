@@ -19,6 +19,7 @@ it.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 from mapservice.adapters.clickhouse.admin import AdminMixin
 from mapservice.adapters.clickhouse.change_feed import ChangeFeedMixin
@@ -30,6 +31,7 @@ from mapservice.adapters.clickhouse.retention import RetentionMixin
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 from mapservice.adapters.clickhouse.vda_reads import VdaReadsMixin
 from mapservice.adapters.clickhouse.writes import WritesMixin
+from mapservice.adapters.clock import SystemClock, clock_from_settings
 from mapservice.settings import Settings
 
 
@@ -70,6 +72,9 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMix
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
         self._insert_contexts: dict[tuple[str, tuple[str, ...]], object] = {}
+        # The service's clock (from_settings: a simulated one when settings ask for it);
+        # the newest-first 2019 listing looks for its rows just before "now" on it.
+        self.clock_ms: Callable[[], int] = SystemClock().now_ms
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "ClickHouseStore":
@@ -84,4 +89,5 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMix
             tls=settings.clickhouse_tls(),
             timeout_s=settings.clickhouse_timeout_s,
         )
+        store.clock_ms = clock_from_settings(settings).now_ms
         return store
