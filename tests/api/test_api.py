@@ -35,6 +35,7 @@ EXPECTED_OPERATION_IDS = {
     "getServiceStatus",  # api/routers/status.py (the replay UI's "history not stored" banner)
     "exportTable", "exportReplayMcap",  # api/routers/exports.py
     "listChanges",  # api/routers/changes.py (the replay UI's change feed)
+    "getVdaVehicle",  # api/routers/vda5050.py (a VDA 5050 vehicle's errors, connection, factsheet)
 }
 
 
