@@ -1,8 +1,10 @@
 """Admission: how much work the API takes on at once, so readers never starve the probes,
 the live stream or (in one `serve` process) the processors.
 
-Every costly request belongs to a pool: reads (`/api/...`), exports (`/api/v1/exports/...`)
-and analysts' queries (`/clickhouse`). A pool serves `workers` requests at once and keeps
+Every costly request belongs to a pool: reads (`/api/...`) and exports
+(`/api/v1/exports/...`). Analysts' queries (`/clickhouse`) are bounded by the analysts'
+own query gate (mapservice/sql/query_gate.py: its threads, queue and "too many queries"
+503), not here: a second pool in front of it would only hide its answer. A pool serves `workers` requests at once and keeps
 at most `queue` more waiting, each for at most `api_queue_wait_s`; beyond that the answer is
 503 with Retry-After, before any work is done. On top of the pools, one credential (or
 one client address when anonymous) may have at most `api_caller_concurrency` costly
@@ -93,15 +95,11 @@ def pool_specs(settings: Settings) -> dict[str, PoolSpec]:
                          "MAPSERVICE_API_READ_WORKERS, MAPSERVICE_API_READ_QUEUE"),
         "export": PoolSpec("export", settings.api_export_workers, settings.api_export_queue,
                            "MAPSERVICE_API_EXPORT_WORKERS, MAPSERVICE_API_EXPORT_QUEUE"),
-        "analyst": PoolSpec("analyst", settings.api_analyst_workers, settings.api_analyst_queue,
-                            "MAPSERVICE_API_ANALYST_WORKERS, MAPSERVICE_API_ANALYST_QUEUE"),
     }
 
 
 def default_pool_of(path: str) -> str | None:
     """The pool a path's requests take (None: none, e.g. the probes and the UI's pages)."""
-    if path == "/clickhouse" or path.startswith("/clickhouse/"):
-        return "analyst"
     if path.startswith("/api/v1/exports/"):
         return "export"
     if path.startswith("/api/"):
@@ -112,8 +110,8 @@ def default_pool_of(path: str) -> str | None:
 class AdmissionControl:
     """The pools, the per-caller caps and the exports' deadline (module docstring).
 
-    `pool_of` maps a path to a pool name; a component that brings its own bounds (an
-    analysts' engine with a pool of its own) can be left out by returning None for it."""
+    `pool_of` maps a path to a pool name; None leaves a path out (it brings its own bounds
+    or costs nothing)."""
 
     def __init__(self, app: ASGIApp, settings: Settings,
                  pool_of: Callable[[str], str | None] = default_pool_of) -> None:
@@ -136,8 +134,8 @@ class AdmissionControl:
         if self.per_caller[key] >= cap:
             REFUSED.labels(name, "caller").inc()
             who = "credential" if not key.startswith("address:") else "client address"
-            await reply(send, 429, f"this {who} already has {cap} reads, exports or analysts' "
-                        "queries running or queued; wait for one to finish "
+            await reply(send, 429, f"this {who} already has {cap} reads or exports running "
+                        "or queued; wait for one to finish "
                         "(MAPSERVICE_API_CALLER_CONCURRENCY)", retry_after=1)
             return
         self.per_caller[key] += 1

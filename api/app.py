@@ -55,8 +55,7 @@ def create_app(settings: Settings, store: HistoryStore,
                clock: Clock | None = None, live_hub: LiveHub | None = None,
                publisher: EventPublisher | None = None, sql_app: ASGIApp | None = None,
                pool_of: Callable[[str], str | None] = default_pool_of) -> FastAPI:
-    """`pool_of` names the admission pool of a path (api/admission.py); an analysts'
-    engine that bounds its own queries can be left out of the "analyst" pool with it."""
+    """`pool_of` names the admission pool of a path (api/admission.py)."""
     # /docs and /redoc with Swagger UI and ReDoc served from the installed package, not a
     # CDN: a plant network often has no internet.
     app = FastAPIOffline(title="mapservice", version=__version__,

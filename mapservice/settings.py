@@ -308,12 +308,8 @@ class Settings(BaseSettings):
         "of the exports' own pool; more wait in a queue."))
     api_export_queue: int = Field(4, ge=0, description=(
         "Exports waiting for one of api_export_workers; one more is 503 with Retry-After."))
-    api_analyst_workers: int = Field(4, ge=1, description=(
-        "Analysts' queries (/clickhouse) admitted at once per API process; more wait in a queue."))
-    api_analyst_queue: int = Field(8, ge=0, description=(
-        "Analysts' queries waiting for one of api_analyst_workers; one more is 503 with Retry-After."))
     api_queue_wait_s: float = Field(10.0, gt=0, description=(
-        "Longest a request waits in a queue (reads, exports, analysts) before it is answered "
+        "Longest a request waits in a queue (reads, exports) before it is answered "
         "503 with Retry-After."))
     api_caller_concurrency: int = Field(8, ge=1, description=(
         "Reads, exports and analysts' queries one credential (or one client address when "
