@@ -89,6 +89,7 @@ class AclTopics:
     robot_chunk_prefix: str = "iot/chunks/create/"
     legacy_chunk_topic: str = "iot/chunks/create"
     advertisement_topic: str = "iot/chunks/advertisement"
+    vda_interface: str = "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "AclTopics":
@@ -98,7 +99,7 @@ class AclTopics:
         return cls(prefix(settings.coordinate_topic),
                    prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
                    settings.create_chunk_topic or "iot/chunks/create",
-                   settings.advertisement_topic)
+                   settings.advertisement_topic, settings.vda5050_interface)
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
@@ -126,6 +127,7 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"topic read {topics.coordinate_prefix}#",
         f"topic read {topics.robot_chunk_prefix}#",
         f"topic read {topics.legacy_chunk_topic}",
+        *([f"topic read {topics.vda_interface}/#"] if topics.vda_interface else []),
         "",
         "# The processors announce each change of the latest map.",
         f"user {processors_user}",

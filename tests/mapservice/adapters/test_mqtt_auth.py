@@ -45,7 +45,7 @@ def test_acl_lets_robots_publish_only_as_themselves():
     assert "pattern read iot/chunks/advertisement" in lines
     gateway = lines[lines.index(f"user {GATEWAY_USER}") + 1:lines.index(f"user {PROCESSORS_USER}")]
     assert {"topic read iot/coordinates/#", "topic read iot/chunks/create/#",
-            "topic read iot/chunks/create"} <= set(gateway)
+            "topic read iot/chunks/create", "topic read uagv/#"} <= set(gateway)
     assert "topic write iot/chunks/advertisement" in lines
     # Nothing but the named robots may write the 2019 topic, and no line grants write on a
     # wildcard to everyone.
