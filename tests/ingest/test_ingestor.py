@@ -390,24 +390,33 @@ def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
 def test_a_handled_and_delivered_message_leaves_nothing_for_the_cyclic_collector(
         ingestor, publisher, wire) -> None:
     """Routing, publishing, a failed delivery's retry and the ack free every object by
-    reference counting: a cycle per message made gc ~12 % of the gateway's CPU."""
+    reference counting: a cycle per message made gc ~12 % of the gateway's CPU.
+
+    The collector counts every unreachable object of the process, also what a thread left
+    by an earlier test drops meanwhile; the ingestor's cycles would come back in every
+    round (200 messages with a cycle each left ~2,000), such noise does not: the quietest
+    of three rounds is asserted."""
     import gc
 
-    acked = []
-    gc.collect()
-    gc.disable()
-    try:
-        publisher.fail_with = RuntimeError("broker down")
-        for mid in range(200):
-            ingestor.handle("iot/coordinates/blabla", wire.pose(), partial(acked.append, mid))
-        publisher.poll()  # every delivery fails: each record waits for its retry
-        publisher.fail_with = None
-        assert ingestor.retry_due() == 200
-        publisher.poll()
-        assert len(acked) == 200 and ingestor.in_flight == 0
-        assert gc.collect() < 10  # 200 messages with a cycle each left ~2,000
-    finally:
-        gc.enable()
+    def one_round(first_mid: int) -> int:
+        acked = []
+        gc.collect()
+        gc.disable()
+        try:
+            publisher.fail_with = RuntimeError("broker down")
+            for mid in range(first_mid, first_mid + 200):
+                ingestor.handle("iot/coordinates/blabla", wire.pose(), partial(acked.append, mid))
+            publisher.poll()  # every delivery fails: each record waits for its retry
+            publisher.fail_with = None
+            assert ingestor.retry_due() == 200
+            publisher.poll()
+            assert len(acked) == 200 and ingestor.in_flight == 0
+            return gc.collect()
+        finally:
+            gc.enable()
+
+    counts = [one_round(1000 * r) for r in range(3)]
+    assert min(counts) < 10, counts
 
 
 def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wire) -> None:
