@@ -201,7 +201,9 @@ def format_once(java: str, libs: Path, config_file: Path, log_dir: Path,
     done = subprocess.run(
         [java, *JVM_FLAGS, "-Xmx128m", "-cp", f"{libs}/*",
          f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
-         "kafka.tools.StorageTool", "format", "--cluster-id", cluster or cluster_id(),
+         # `--cluster-id=<id>` in one argument: an id that starts with "-" (one in 32 of
+         # the URL-safe ids) is otherwise read by the tool as an option of its own.
+         "kafka.tools.StorageTool", "format", f"--cluster-id={cluster or cluster_id()}",
          "--config", str(config_file), "--ignore-formatted"],
         capture_output=True, text=True)
     if done.returncode != 0:

@@ -168,3 +168,19 @@ def test_a_broker_left_running_on_the_data_dir_is_named_not_started_twice(node) 
     with pytest.raises(RuntimeError, match=f"still holds .*pid {procs[0].pid}.*kill {procs[0].pid}"):
         kafka_broker.start_kafka(kafka_broker.node_for(config.log_dir.parent.parent,
                                                        embedded.free_port()), log)
+
+
+def test_a_cluster_id_that_starts_with_a_dash_formats_the_log(tmp_path) -> None:
+    """One URL-safe cluster id in 32 starts with "-"; the storage tool read such an id as an
+    option of its own ("--cluster-id: expected one argument") and the stack did not start."""
+    java = kafka_broker.java_binary()
+    if java is None:
+        pytest.skip("no Java runtime (make test installs it as root)")
+    libs = kafka_broker.ensure_jars(None)
+    config = kafka_broker.node_for(tmp_path, embedded.free_port())
+    config_file = tmp_path / "server.properties"
+    config_file.write_text(config.properties())
+    (tmp_path / "log4j2.yaml").write_text(kafka_broker.LOG4J2_YAML)
+    dashed = "-" + kafka_broker.cluster_id()[1:]
+    assert kafka_broker.format_once(java, libs, config_file, config.log_dir, dashed)
+    assert f"cluster.id={dashed}" in (config.log_dir / "meta.properties").read_text()
