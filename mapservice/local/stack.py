@@ -33,6 +33,8 @@ from mapservice.adapters.kafka_topics import ensure_topics
 
 log = structlog.get_logger(__name__)
 
+BROKER_SIZE_HEADROOM = 8  # Mosquitto's message_size_limit over MAPSERVICE_MAX_MESSAGE_BYTES
+
 
 def mqtt_accepts(mqtt_url: str, username: str | None, password: str | None,
                  timeout_s: float = 5.0, **tls) -> bool:
@@ -411,11 +413,14 @@ class Stack:
     def _mosquitto_options(self) -> embedded.MosquittoOptions:
         """The store in the data dir (sessions and queued QoS 1 messages survive a restart),
         password file and ACL (with the service users' passwords), and the TLS listener."""
-        # The gateway dead-letters a larger message; the broker refuses it before it is
-        # stored (four 50 MB messages for an offline session made a 200 MB store that was
-        # rewritten every second).
-        options = embedded.MosquittoOptions(store_dir=self.data_dir / "mosquitto",
-                                            message_size_limit=self.settings().max_message_bytes)
+        # The broker refuses a message far over the gateway's maximum before it is stored
+        # (four 50 MB messages for an offline session made a 200 MB store that was rewritten
+        # every second); one up to BROKER_SIZE_HEADROOM times over still reaches the gateway,
+        # which dead-letters it as `oversized` with its size: the sender's only trace, as a
+        # 2019 robot (MQTT 3.1.1) learns nothing from a broker that drops its message.
+        options = embedded.MosquittoOptions(
+            store_dir=self.data_dir / "mosquitto",
+            message_size_limit=BROKER_SIZE_HEADROOM * self.settings().max_message_bytes)
         if self.mqtt_auth:
             for user in (GATEWAY_USER, PROCESSORS_USER):
                 self.broker_files.set_service_user(user, self.service_password(user))

@@ -95,22 +95,27 @@ def test_a_robot_added_while_the_restarted_broker_runs_loses_no_queued_message(t
         stack.stop()
 
 
-def test_the_brokers_message_size_limit_is_the_gateways_maximum(tmp_path):
-    """`max_message_bytes` (the gateway's limit) is Mosquitto's `message_size_limit`: a payload
-    of exactly that size reaches the gateway's session, one byte more is dropped by the broker
-    (it is not queued or stored)."""
+def test_the_brokers_message_size_limit_follows_the_gateways_maximum(tmp_path):
+    """Mosquitto's `message_size_limit` is BROKER_SIZE_HEADROOM x `max_message_bytes` (the
+    gateway's limit): a payload over the gateway's limit but within that reaches the
+    gateway's session (which dead-letters it as oversized), one byte more is dropped by the
+    broker (it is not queued or stored)."""
+    from mapservice.local.stack import BROKER_SIZE_HEADROOM
+
+    limit = BROKER_SIZE_HEADROOM * 4096
     stack = Stack(tmp_path, mqtt="mosquitto", extra_env={"MAPSERVICE_MAX_MESSAGE_BYTES": "4096"})
     try:
         stack.start_mqtt()
-        assert "message_size_limit 4096" in (tmp_path / f"mosquitto-{stack.mqtt_port}.conf").read_text()
+        assert f"message_size_limit {limit}" in (tmp_path / f"mosquitto-{stack.mqtt_port}.conf").read_text()
         gateway = Session(stack.mqtt_port, "mapservice-gateway")
         gateway.connect()
         gateway.client.subscribe("iot/coordinates/#", qos=1)
         time.sleep(0.3)
-        publish_acknowledged(stack.mqtt_port, "iot/coordinates/r1", [b"x" * 4097])
-        publish_acknowledged(stack.mqtt_port, "iot/coordinates/r1", [b"y" * 4096])
-        assert gateway.wait_for(1) == 1
-        assert gateway.received == [b"y" * 4096]
+        publish_acknowledged(stack.mqtt_port, "iot/coordinates/r1", [b"x" * (limit + 1)])
+        publish_acknowledged(stack.mqtt_port, "iot/coordinates/r1", [b"y" * limit])
+        publish_acknowledged(stack.mqtt_port, "iot/coordinates/r1", [b"z" * 4097])
+        assert gateway.wait_for(2) == 2
+        assert gateway.received == [b"y" * limit, b"z" * 4097]
         gateway.disconnect()
     finally:
         stack.stop()
