@@ -50,7 +50,7 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
     try:
         out = up.output
         assert "simulating the last 0.3 days of 1 robots" in out and "done_percent=" in out
-        for step in ("starting Kafka-protocol broker", "starting processors + API",
+        for step in ("starting Kafka (Apache Kafka", "starting processors + API",
                      "starting the MQTT-to-Kafka gateway"):
             assert step in out
         password_path = str(data / "secrets" / "analyst-password")
