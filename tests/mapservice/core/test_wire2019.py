@@ -199,10 +199,14 @@ def test_bad_message_is_rejected_with_its_reason(case: Bad) -> None:
 
 
 def test_every_reason_code_has_a_bad_message() -> None:
-    """Every Reason but the router's and the gateway's (unknown_topic, internal_error,
-    record_too_large: see tests/ingest) has a case above."""
+    """Every Reason of the 2019 codec has a case above; the router's and the gateway's
+    (unknown_topic, internal_error, record_too_large, too_many_new_robots) and the VDA 5050
+    ingest's (vda_*) are tested in tests/ingest (test_ingestor.py, test_vda5050.py)."""
     covered = {c.reason for c in BAD_CASES}
-    assert covered == set(Reason) - {Reason.UNKNOWN_TOPIC, Reason.INTERNAL_ERROR, Reason.RECORD_TOO_LARGE}
+    elsewhere = {Reason.UNKNOWN_TOPIC, Reason.INTERNAL_ERROR, Reason.RECORD_TOO_LARGE,
+                 Reason.TOO_MANY_NEW_ROBOTS, Reason.VDA_SCHEMA, Reason.VDA_UNSUPPORTED_VERSION,
+                 Reason.VDA_NO_POSITION}
+    assert covered == set(Reason) - elsewhere
 
 
 def test_zlib_bomb_is_bounded_to_one_chunk() -> None:
