@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-import re
-
 from fastapi import Depends, HTTPException, Query, Request
 
 from mapservice.core.ports import Clock, HistoryStore
 from mapservice.settings import Settings
-from mapservice.core.wire2019 import parse_timestamp
+from mapservice.core.wire2019 import parse_query_instant
 
-
-_EPOCH_MS = re.compile(r"-?[0-9]+")
 
 
 def get_store(request: Request) -> HistoryStore:
@@ -27,14 +23,12 @@ def get_clock(request: Request) -> Clock:
 
 
 def parse_time_param(name: str, value: str) -> int:
-    """ISO 8601 (UTC when no zone is given) or epoch milliseconds."""
-    if _EPOCH_MS.fullmatch(value):  # not str.isdigit(): "--5" and "²" would reach int()
-        return int(value)
-    ms = parse_timestamp(value)
+    """ISO 8601 (UTC when no zone is given) or epoch milliseconds, 1970 to 2262."""
+    ms = parse_query_instant(value)
     if ms is None:
         raise HTTPException(
             400, f"query parameter {name!r}: {value!r} is neither ISO 8601 "
-                 "(e.g. 2026-11-21T10:00:00Z) nor epoch milliseconds")
+                 "(e.g. 2026-11-21T10:00:00Z) nor epoch milliseconds between 1970 and 2262")
     return ms
 
 

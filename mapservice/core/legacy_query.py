@@ -26,7 +26,7 @@ from typing import Literal, TypeVar
 
 import msgspec
 
-from mapservice.core.wire2019 import parse_timestamp
+from mapservice.core.wire2019 import parse_query_instant, parse_timestamp
 
 DEFAULT_LIMIT = 10
 MAX_LIMIT = 10_000
@@ -41,7 +41,6 @@ CHUNK_IDENTITY: tuple[tuple[str, str], ...] = (
     ("timestamp", "desc"), ("row", "asc"), ("column", "asc"), ("robotId", "asc"))
 POSE_IDENTITY: tuple[tuple[str, str], ...] = (("timestamp", "desc"), ("robotId", "asc"))
 
-_EPOCH_MS = re.compile(r"-?[0-9]+")
 _INT = re.compile(r"[0-9]+")
 _TRUE, _FALSE = {"true", "1"}, {"false", "0", ""}
 
@@ -97,14 +96,12 @@ def _with_identity(sort: Sequence[SortKey], identity: Sequence[SortKey]) -> tupl
 
 
 def parse_time(name: str, value: str) -> int:
-    """ISO 8601 (UTC when no zone is given) or epoch milliseconds."""
-    if _EPOCH_MS.fullmatch(value):
-        return int(value)
-    ms = parse_timestamp(value)
+    """ISO 8601 (UTC when no zone is given) or epoch milliseconds, 1970 to 2262."""
+    ms = parse_query_instant(value)
     if ms is None:
         raise QueryError(f"query parameter {name!r}: {value!r} is neither ISO 8601 "
                          "(e.g. 2018-12-20T23:34:33, UTC when no zone is given) nor epoch "
-                         "milliseconds")
+                         "milliseconds between 1970 and 2262")
     return ms
 
 

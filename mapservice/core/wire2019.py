@@ -158,6 +158,25 @@ def _decode(decoder: msgspec.json.Decoder, data: bytes):
         return Rejection(Reason.TOO_DEEP, "JSON nested too deeply to decode")
 
 
+# Instants a query may name: the Unix epoch to 2262-04-11, the last instant whose
+# nanoseconds fit a signed 64-bit integer (MCAP's log times, foxglove's Timestamp,
+# numpy's datetime64[ns]); later ones overflow the exports and mean nothing here.
+LATEST_INSTANT_MS = 9_223_372_036_854
+_EPOCH_MS = re.compile(r"-?[0-9]+")
+
+
+def parse_query_instant(text: str) -> int | None:
+    """A query's instant, ISO 8601 (UTC when no zone is given) or epoch milliseconds;
+    None when it is neither or falls outside 1970..2262."""
+    if len(text) > 64:  # int() of thousands of digits is slow, then refused
+        return None
+    # fullmatch, not str.isdigit(): "--5" and "²" would reach int()
+    ms = int(text) if _EPOCH_MS.fullmatch(text) else parse_timestamp(text)
+    if ms is None or not 0 <= ms <= LATEST_INSTANT_MS:
+        return None
+    return ms
+
+
 def parse_timestamp(text: str) -> int | None:
     """ISO 8601 to epoch milliseconds; a timestamp without a zone is UTC (as in 2019)."""
     try:

@@ -50,3 +50,16 @@ def test_table_exports_name_what_they_need() -> None:
     assert c.get("/api/v1/exports/tables/poses; DROP", params={"from": T0, "to": T0 + 1}).status_code == 422
     assert c.get("/api/v1/exports/tables/robot-poses",
                  params={"from": T0, "to": T0 + 1, "format": "xlsx"}).status_code == 422
+
+
+def test_replay_mcap_refuses_instants_past_2262() -> None:
+    """Instants whose nanoseconds overflow MCAP's fields are a 400 before any byte is sent
+    (the fuzzer found a 500 mid-stream for 2e13 and 3e14 ms)."""
+    store = MemoryStore()
+    store.append([meta_event(T0 - 1000), pose_event("a", T0)])
+    c = client(store)
+    for instant in (20_000_000_000_000, 300_000_000_000_000, -1):
+        reply = c.get("/api/v1/exports/replay.mcap", params={"from": instant, "to": instant})
+        assert reply.status_code == 400, (instant, reply.status_code)
+        assert "between 1970 and 2262" in reply.json()["detail"]
+    assert c.get("/api/v1/exports/replay.mcap", params={"from": "9" * 5000, "to": T0}).status_code == 400
