@@ -326,7 +326,7 @@ class Settings(BaseSettings):
         "closed with 1008 and a reason."))
 
     @model_validator(mode="after")
-    def _check_tls_and_topics(self) -> "Settings":
+    def _check_tls_and_topics(self) -> Settings:
         for hop, cert, key in (("MQTT", self.mqtt_cert_file, self.mqtt_key_file),
                                ("KAFKA_SSL", self.kafka_ssl_cert_file, self.kafka_ssl_key_file),
                                ("CLICKHOUSE", self.clickhouse_cert_file, self.clickhouse_key_file)):
@@ -350,7 +350,7 @@ class Settings(BaseSettings):
         return self
 
     @model_validator(mode="after")
-    def _refuse_default_secrets(self) -> "Settings":
+    def _refuse_default_secrets(self) -> Settings:
         robot_tokens(self.api_robot_tokens)  # malformed pairs: refused in every mode
         if self.mode == "production":
             admin = self.admin_token.get_secret_value()

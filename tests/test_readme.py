@@ -52,7 +52,7 @@ def start_up(data_dir, api_port: int, mqtt_port: int) -> subprocess.Popen:
 
 def stop_up(proc: subprocess.Popen) -> int:
     proc.send_signal(signal.SIGINT)
-    out, _ = proc.communicate(timeout=60)
+    _out, _ = proc.communicate(timeout=60)
     return proc.returncode
 
 
