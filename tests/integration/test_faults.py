@@ -25,7 +25,7 @@ Where the stacks fall back to tansu (no Java; MAPSERVICE_EMBEDDED_KAFKA=tansu), 
 storage loses what it held at a SIGKILL: messages it had acknowledged to the gateway but
 the processors had not yet stored. Those losses are then measured and reported, and what
 can be promised is asserted: nothing duplicated, nothing lost that was published after
-the new broker was up. README ("Delivery guarantees", "Embedded mode") states the limit.
+the new broker was up. docs/delivery.md and docs/embedded.md state the limit.
 
 Bounded: every wait has a timeout and every process is stopped in a finally block; the
 module takes about 4.5 minutes on the project's 2-core machine shared with other work.
