@@ -231,7 +231,7 @@ class Settings(BaseSettings):
     snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
     snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")
 
-    # Live views, advertisements, conflicts, clock skew (issue 3)
+    # Live views, advertisements, conflicts, clock skew (the 2019 document's ideas I.3, I.4)
     advertisement_topic: str = Field("iot/chunks/advertisement",
                                      description="2019 NEW_CHUNK_ADVERTISEMENT_TOPIC.")
     public_base_url: str = Field("http://127.0.0.1:8080",
