@@ -580,5 +580,6 @@ def add_parser(kinds) -> None:
                     "(bench ingest, tansu, mosquitto) to end")
     tt.add_argument("--json", default=None, help="write the results as JSON to this file")
     tt.add_argument("--benchmarks-md", default=None,
-                    help="append a section to this file (e.g. BENCHMARKS.md)")
+                    help="append a section to this file (e.g. docs/benchmarks-journal.md; "
+                         "BENCHMARKS.md quotes the latest run)")
     tt.set_defaults(func=main, command_line=None)
