@@ -11,10 +11,12 @@ import base64
 import csv
 import io
 import json
+import subprocess
 import time
 import zlib
 
 import httpx
+import pytest
 from mcap.reader import make_reader
 
 from mapservice.core.wire2019 import content_hash, format_timestamp
@@ -43,8 +45,12 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
     stack = history_stack
     meta = httpx.get(f"{stack.api_url}/api/chunk-service/meta", timeout=30).json()
     size = (meta["CHUNK_WIDTH"], meta["CHUNK_HEIGHT"])
-    row, col = meta["CHUNK_ROWS"] - 1, meta["CHUNK_COLS"] - 1
     t = stack.history.start_ms + 20 * 60_000
+    # A chunk no loaded robot wrote within two conflict windows of the test's writes.
+    near = {(w["row"], w["column"]) for w in api(stack, "/api/v1/chunk-events", **{
+        "from": t - 130_000, "to": t + 130_000, "limit": 100_000})}
+    row, col = next((r, c) for r in range(meta["CHUNK_ROWS"] - 1, -1, -1)
+                    for c in range(meta["CHUNK_COLS"] - 1, -1, -1) if (r, c) not in near)
     post_chunk(stack, "map-upload", t - 10_000, row, col, 205, size)
     hash_a = post_chunk(stack, CONFLICT_ROBOTS[0], t, row, col, 0, size)
     hash_b = post_chunk(stack, CONFLICT_ROBOTS[1], t + 5_000, row, col, 254, size)
@@ -76,15 +82,17 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
     assert CONFLICT_ROBOTS[0] in a.inner_text() and format_timestamp(t)[11:19] in a.inner_text()
     assert CONFLICT_ROBOTS[1] in b.inner_text() and format_timestamp(t + 5_000)[11:19] in b.inner_text()
     assert "5.0 s apart" in item.inner_text() and f"row {row}, column {col}" in item.inner_text()
-    assert "map-upload" not in page.inner_text('[data-testid="conflict-inspector"]').split("never part")[0]
+    listed = page.evaluate("() => [...document.querySelectorAll('[data-testid=conflict-row]')]"
+                           ".flatMap(e => [e.dataset.robotA, e.dataset.robotB])")
+    assert listed and "map-upload" not in listed
     item.click()
     page.wait_for_function(f"() => window.__replay.playhead === {t + 5_001} && window.__replay.complete",
                            timeout=TIMEOUT_MS)
     assert page.evaluate("([r, c]) => window.__replay.cell(r, c).content_hash", [row, col]) == hash_b
     ch, cw = size[1], size[0]
     assert page.evaluate("() => window.__replay.outlined()") == [[row * ch, col * cw], [(row + 1) * ch, (col + 1) * cw]]
-    page.evaluate("([r, c]) => window.__replay.centerOnPixel(r, c, -1)", [(row + 0.5) * ch, (col + 0.5) * cw])
-    page.wait_for_timeout(500)
+    page.evaluate("() => window.__replay.fitGrid()")
+    page.wait_for_function("() => window.__replay.complete", timeout=TIMEOUT_MS)
     screenshot(page, "ui-conflicts.png")
     assert page.errors == []
 
@@ -106,6 +114,18 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
     changes holds the span's writes."""
     stack = history_stack
     t = stack.history.end_ms - 30 * 60_000
+    # A robot reporting a planned path (the loaded history has none), as a 2019 robot does.
+    for i, path in enumerate(([(1.0, 2.0), (3.0, 4.0)], [(3.0, 4.0), (5.0, 1.5)])):
+        body = {"robotId": "insp-path", "timestamp": format_timestamp(t - 300_000 + i * 60_000),
+                "pose": {"position": {"x": 1.0 + i, "y": 2.0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
+                "status": {"battery": {"battery_level": 0.42, "charging": True}, "loaded": False},
+                "plannedPath": [{"x": x, "y": y} for x, y in path]}
+        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(stack.mqtt_port), "-q", "1",
+                        "-t", "iot/coordinates/insp-path", "-m", json.dumps(body)], check=True, timeout=30)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and len(api(stack, "/api/v1/poses", robotId="insp-path", **{
+            "from": t - 600_000, "to": t})) < 2:
+        time.sleep(0.5)
     open_at(page, stack, f"?t={t}")
     span = page.evaluate("() => { const [f, t] = window.__replay.span(); return [Math.floor(f), Math.ceil(t)]; }")
     assert "UTC" in page.inner_text('[data-testid="export-span"]')
@@ -134,10 +154,12 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
         assert [ts for ts, _ in states] == [ts for ts, _ in stored]
         for (_, s), (_, p) in zip(states, stored):
             assert (s["battery_level"], s["charging"], s["loaded"]) == (p["battery_level"], p["charging"], p["loaded"])
-    with_path = {p["robotId"] for p in poses if p.get("path")}
-    assert with_path, "the span holds no planned path to export"
-    for rid in with_path:
-        assert channels[f"/robots/{rid}/planned_path"][1] == "foxglove.PosesInFrame"
+    assert {p["robotId"] for p in poses if p.get("path")} == {"insp-path"}
+    assert channels["/robots/insp-path/planned_path"][1] == "foxglove.PosesInFrame"
+    assert len([m for m in messages if m[0] == "/robots/insp-path/planned_path"]) == 2
+    state = [json.loads(d) for topic, _, d in messages if topic == "/robots/insp-path/state"][0]
+    assert state["battery_level"] == pytest.approx(0.42) and state["battery_percent"] == 42.0
+    assert (state["charging"], state["loaded"]) == (True, False)
 
     page.select_option('[data-testid="export-kind"]', "chunk-changes")
     with page.expect_download(timeout=TIMEOUT_MS) as info:

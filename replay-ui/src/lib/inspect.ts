@@ -55,10 +55,13 @@ export function gapText(c: ConflictEntry): string {
   return `${((c.ts_ms - c.ts_a_ms) / 1000).toFixed(1)} s`;
 }
 
+/** What the MCAP holds, for the button's title. */
+export const MCAP_CONTENTS = "the map (foxglove.Grid), each robot's pose, battery in %, charging, loaded and planned path";
+
 export type ExportKind = "mcap" | "robot-poses" | "chunk-changes" | "chunk-conflicts";
 
 export const EXPORTS: { kind: ExportKind; label: string; maxSpanMs: number }[] = [
-  { kind: "mcap", label: "MCAP (Foxglove): map, poses, battery, paths", maxSpanMs: 86_400_000 },
+  { kind: "mcap", label: "MCAP (Foxglove)", maxSpanMs: 86_400_000 },
   { kind: "robot-poses", label: "CSV: robot poses", maxSpanMs: 7 * 86_400_000 },
   { kind: "chunk-changes", label: "CSV: chunk changes", maxSpanMs: 7 * 86_400_000 },
   { kind: "chunk-conflicts", label: "CSV: conflicts", maxSpanMs: 7 * 86_400_000 },
