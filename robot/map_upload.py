@@ -18,6 +18,9 @@ from pathlib import Path
 import httpx
 import structlog
 
+# UPLOADER_ID: the robot id the uploaded chunks are attributed to; the conflict rule and the
+# change feed know its writes as a map upload.
+from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.events import ChunkUpdated, MapMetaSet, encode, kafka_key, make_envelope
 from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
 from mapservice.settings import Settings
@@ -25,7 +28,6 @@ from mapservice.core.wire2019 import content_hash, format_timestamp
 
 log = structlog.get_logger(__name__)
 
-UPLOADER_ID = "map-upload"  # the robot id the uploaded chunks are attributed to
 MARKER = "map-uploaded"  # in the data dir: this data dir's map was uploaded once
 
 

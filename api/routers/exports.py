@@ -83,9 +83,11 @@ async def export_replay_mcap(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive); at most 24 hours after from"),
 ) -> Response:
-    """The map (`/map`, foxglove.Grid) and every robot (`/robots/<id>/pose`,
-    foxglove.PoseInFrame) in the window, as MCAP for Foxglove or Lichtblick; streamed as
-    it is written."""
+    """The map (`/map`, foxglove.Grid) and every robot in the window, as MCAP for Foxglove
+    or Lichtblick: its pose (`/robots/<id>/pose`, foxglove.PoseInFrame), battery in %,
+    charging and loaded (`/robots/<id>/state`, JSON with its JSON schema) and planned path
+    (`/robots/<id>/planned_path`, foxglove.PosesInFrame, when it changes); streamed as it
+    is written."""
     store: HistoryStore = request.app.state.store
     f, t = parse_window(from_, to, MAX_MCAP_SPAN_MS)
     try:

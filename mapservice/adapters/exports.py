@@ -1,11 +1,14 @@
 """Exports people open elsewhere: a time window of the history as CSV or Parquet (written
 by ClickHouse itself from the analysts' views) and as MCAP (Foxglove and Lichtblick replay
-it: the map as a `foxglove.Grid`, each robot as `foxglove.PoseInFrame`).
+it: the map as a `foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned
+path as `foxglove.PosesInFrame` and its battery, charging and loaded flags as a JSON channel
+whose JSON schema states the units).
 
 May depend on: the ports and the analyst schema; the store's ClickHouse client for tables."""
 
 from __future__ import annotations
 
+import json
 import zlib
 from dataclasses import dataclass
 from typing import BinaryIO
@@ -32,6 +35,45 @@ def pose_topic(robot_id: str) -> str:
     return f"/robots/{robot_id}/pose"
 
 
+def state_topic(robot_id: str) -> str:
+    return f"/robots/{robot_id}/state"
+
+
+def path_topic(robot_id: str) -> str:
+    return f"/robots/{robot_id}/planned_path"
+
+
+STATE_SCHEMA_NAME = "mapservice.RobotState"
+# The state channel's JSON schema (JSON Schema draft 2020-12, as Foxglove reads it).
+STATE_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": STATE_SCHEMA_NAME,
+    "description": "A robot's reported state with each pose",
+    "type": "object",
+    "properties": {
+        "battery_level": {"type": ["number", "null"],
+                          "description": "battery as the robot reported it (a 0-1 fraction, "
+                                         "0-5 V-like scale or %: see battery_percent)"},
+        "battery_percent": {"type": ["number", "null"], "minimum": 0, "maximum": 100,
+                            "description": "battery in % (unit: %): level <= 1 times 100, "
+                                           "<= 5 times 20, else as reported; clamped to 0-100"},
+        "charging": {"type": ["boolean", "string", "null"],
+                     "description": "on a charger (a 2019 robot may send a word)"},
+        "loaded": {"type": ["boolean", "string", "null"],
+                   "description": "carrying a load (a 2019 robot may send a word)"},
+    },
+    "required": ["battery_level", "battery_percent", "charging", "loaded"],
+}
+
+
+def battery_percent(level: float | None) -> float | None:
+    """The reported battery in %, by the rule the replay UI shows it with."""
+    if level is None or level != level:
+        return None
+    pct = level * 100 if level <= 1 else level * 20 if level <= 5 else level
+    return round(min(100.0, max(0.0, pct)), 1)
+
+
 def export_table(store, dataset: str, fmt: str, from_ms: int, to_ms: int,
                  robot_id: str | None = None) -> bytes:
     """`dataset` rows with from <= time < to, in ClickHouse's CSVWithNames or Parquet."""
@@ -51,6 +93,50 @@ class McapCounts:
     grids: int = 0
     poses: int = 0
     chunk_changes: int = 0
+    states: int = 0
+    paths: int = 0
+
+
+class _McapOut:
+    """One MCAP file with protobuf channels (Foxglove's schemas) and JSON channels (with
+    their JSON schema), one channel per topic."""
+
+    def __init__(self, out: BinaryIO):
+        from mcap.writer import CompressionType, Writer
+
+        self.writer = Writer(out, compression=CompressionType.LZ4)
+        self.writer.start(profile="", library="mapservice")
+        self._channels: dict[str, int] = {}
+        self._schemas: dict[str, int] = {}
+
+    def _channel(self, topic: str, schema: str, register) -> int:
+        channel = self._channels.get(topic)
+        if channel is None:
+            if schema not in self._schemas:
+                self._schemas[schema] = register()
+            channel = self._channels[topic] = self.writer.register_channel(
+                topic=topic, message_encoding="json" if schema == STATE_SCHEMA_NAME else "protobuf",
+                schema_id=self._schemas[schema])
+        return channel
+
+    def protobuf(self, topic: str, message, ts_ms: int) -> None:
+        from mcap_protobuf.schema import register_schema
+
+        channel = self._channel(topic, type(message).DESCRIPTOR.full_name,
+                                lambda: register_schema(self.writer, type(message)))
+        self._add(channel, message.SerializeToString(), ts_ms)
+
+    def state(self, topic: str, doc: dict, ts_ms: int) -> None:
+        channel = self._channel(topic, STATE_SCHEMA_NAME, lambda: self.writer.register_schema(
+            name=STATE_SCHEMA_NAME, encoding="jsonschema", data=json.dumps(STATE_SCHEMA).encode()))
+        self._add(channel, json.dumps(doc, separators=(",", ":")).encode(), ts_ms)
+
+    def _add(self, channel: int, data: bytes, ts_ms: int) -> None:
+        self.writer.add_message(channel_id=channel, log_time=ts_ms * 1_000_000, data=data,
+                                publish_time=ts_ms * 1_000_000)
+
+    def finish(self) -> None:
+        self.writer.finish()
 
 
 class _Floor:
@@ -104,6 +190,24 @@ def _pose_message(row: PoseRow):
     return message
 
 
+def _path_message(row: PoseRow):
+    """The planned path as foxglove.PosesInFrame (what Foxglove's 3D panel draws as a line)."""
+    from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+
+    message = PosesInFrame(frame_id=MAP_FRAME)
+    message.timestamp.FromMilliseconds(row.ts_ms)
+    for x, y in row.path or ():
+        pose = message.poses.add()
+        pose.position.x, pose.position.y = x, y
+        pose.orientation.w = 1.0
+    return message
+
+
+def _state_doc(row: PoseRow) -> dict:
+    return {"battery_level": row.battery_level, "battery_percent": battery_percent(row.battery_level),
+            "charging": row.charging, "loaded": row.loaded}
+
+
 def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
     """Every pose of the window, page by page (a page never splits one instant's robots)."""
     cursor = from_ms
@@ -124,22 +228,34 @@ def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
 def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
                 grid_every_ms: int = 10_000, page: int = 50_000) -> McapCounts:
     """Writes the window as MCAP: the map at `from_ms`, again after chunk changes (at most
-    one grid per `grid_every_ms`, and the last state), and every pose. Returns the counts."""
-    from mcap.writer import CompressionType
-    from mcap_protobuf.writer import Writer
-
+    one grid per `grid_every_ms`, and the last state), every pose with its state (battery,
+    charging, loaded), and each robot's planned path when it changes (an empty path when
+    the robot drops it). Returns the counts."""
     meta = store.latest_meta()
     if meta is None:
         raise ValueError("no map geometry is set yet (the 2019 meta); nothing to export")
     counts = McapCounts()
     floor = _Floor(meta, store)
     floor.apply([(c.row, c.column, c.content_hash) for c in store.map_at(from_ms)])
-    writer = Writer(out, compression=CompressionType.LZ4, profile="")
+    writer = _McapOut(out)
+    paths: dict[str, tuple | None] = {}
 
     def write_grid(ts_ms: int) -> None:
-        writer.write_message(MAP_TOPIC, floor.grid(ts_ms), log_time=ts_ms * 1_000_000,
-                             publish_time=ts_ms * 1_000_000)
+        writer.protobuf(MAP_TOPIC, floor.grid(ts_ms), ts_ms)
         counts.grids += 1
+
+    def write_pose(row: PoseRow) -> None:
+        writer.protobuf(pose_topic(row.robot_id), _pose_message(row), row.ts_ms)
+        writer.state(state_topic(row.robot_id), _state_doc(row), row.ts_ms)
+        counts.poses += 1
+        counts.states += 1
+        path = tuple(row.path) if row.path else None
+        if row.robot_id not in paths and path is None:
+            paths[row.robot_id] = None  # no path yet: nothing to draw
+        elif paths.get(row.robot_id, ()) != path:
+            paths[row.robot_id] = path
+            writer.protobuf(path_topic(row.robot_id), _path_message(row), row.ts_ms)
+            counts.paths += 1
 
     write_grid(from_ms)
     changes = store.chunk_events(from_ms, to_ms, limit=1_000_000)
@@ -156,10 +272,7 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
                 pending = []
                 last_grid_ms = next_pose.ts_ms
                 write_grid(last_grid_ms)
-            writer.write_message(pose_topic(next_pose.robot_id), _pose_message(next_pose),
-                                 log_time=next_pose.ts_ms * 1_000_000,
-                                 publish_time=next_pose.ts_ms * 1_000_000)
-            counts.poses += 1
+            write_pose(next_pose)
             next_pose = next(poses, None)
         if change is None:
             break

@@ -12,7 +12,9 @@ before/after thumbnails; a write that leaves the content as it was (a robot re-s
 chunk it sees) is no change and is left out. The floor upload `mapservice up` publishes
 carries one timestamp for every chunk, a 2019 robot re-sending its map sends them in a
 loop: both are far inside the gap, while robots reporting changes (or re-sending a chunk
-every few seconds, as the 2019 load test did) are not.
+every few seconds, as the 2019 load test did) are not. The map uploader's writes
+(`UPLOADER_ID`, what `mapservice up` and `mapservice map upload` write as) are an
+upload whatever their number: a one-chunk map is still an upload, and never a conflict.
 
 Because a run is decided on its whole extent, the stores fetch the writes from
 `UPLOAD_GAP_MS * UPLOAD_MIN_CHUNKS` before the window to as long after it: any run reaching
@@ -37,6 +39,9 @@ class ChunkRow(Protocol):
     robot_id: str
     content_hash: str
 
+# The robot id map uploads write as (`mapservice up`, `mapservice map upload`, the 2019 REST
+# upload through them); the conflict rule leaves its writes out.
+UPLOADER_ID = "map-upload"
 UPLOAD_GAP_MS = 1_000
 UPLOAD_MIN_CHUNKS = 20
 MARGIN_MS = UPLOAD_GAP_MS * UPLOAD_MIN_CHUNKS
@@ -190,7 +195,7 @@ def _uploads(rows: Sequence[ChunkRow]) -> dict[int, tuple[ChunkRow, ChunkRow, in
             if r is not None and (not run or r.ts_ms - run[-1].ts_ms <= UPLOAD_GAP_MS):
                 run.append(r)
                 continue
-            if len(run) >= UPLOAD_MIN_CHUNKS:
+            if run and (len(run) >= UPLOAD_MIN_CHUNKS or run[0].robot_id == UPLOADER_ID):
                 info = (run[0], run[-1], len(run))
                 out.update((id(w), info) for w in run)
             run = [r] if r is not None else []

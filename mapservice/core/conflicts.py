@@ -10,6 +10,14 @@ later write bounds the table by the chunk events (the 2019 load test, where ever
 conflicts with several others, stored one row per pair at ~6 MB per robot-day); the other
 writes of the window, and the contents of both, are in `chunk_events`.
 
+A map upload is no conflict: a write by the map uploader (`UPLOADER_ID`, the robot id that
+`mapservice up`'s start-up upload, `mapservice map upload` and the 2019 REST map upload write
+as) is never A or B. The upload writes the whole map at one instant to seed the floor, so
+it disagrees with every robot that saw the floor within the window (the simulator at
+start-up) without anyone having changed anything; the change feed shows it as one `upload`
+entry (mapservice/core/change_feed.py). Robots' writes around it conflict among themselves
+as before, the upload's writes skipped.
+
 The rule is monotonic: a late or re-delivered write can only add conflicts or move a
 conflict's A to a later write, never remove one. So recomputing the conflicts of every
 write a batch touches, from everything stored so far, converges on exactly the answer a
@@ -23,10 +31,17 @@ from bisect import bisect_left, bisect_right
 from collections import defaultdict
 from collections.abc import Iterable
 
+from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.ports import ChunkRow, ConflictRow
 
 # A write's identity: (event time, row, column, robot id).
 Identity = tuple[int, int, int, str]
+
+
+
+def is_upload(w: ChunkRow) -> bool:
+    """Whether the write is part of a map upload (the map uploader's), never in a conflict."""
+    return w.robot_id == UPLOADER_ID
 
 
 def _order(w: ChunkRow) -> tuple[int, str]:
@@ -37,8 +52,10 @@ def conflicts_of(b: ChunkRow, writes: Iterable[ChunkRow], window_ms: int) -> lis
     """The conflict whose later write is `b`, among `writes` (any chunks; others
     ignored): none, or one naming the latest conflicting write."""
     best: ChunkRow | None = None
+    if is_upload(b):
+        return []
     for a in writes:
-        if (a.row, a.column) != (b.row, b.column) or a.robot_id == b.robot_id:
+        if (a.row, a.column) != (b.row, b.column) or a.robot_id == b.robot_id or is_upload(a):
             continue
         if a.content_hash == b.content_hash or _order(a) >= _order(b):
             continue
@@ -110,13 +127,15 @@ def _affected_in_chunk(news: list[ChunkRow], writes: list[ChunkRow], keys: list[
 def _latest_conflict(b: ChunkRow, writes: list[ChunkRow], keys: list[tuple[int, str]],
                      window_ms: int) -> ConflictRow | None:
     """`conflicts_of(b, writes)` for one chunk's writes sorted by `_order` (keys)."""
+    if is_upload(b):
+        return None
     i = bisect_left(keys, _order(b))
     while i > 0:
         i -= 1
         a = writes[i]
         if b.ts_ms - a.ts_ms > window_ms:
             return None
-        if a.robot_id != b.robot_id and a.content_hash != b.content_hash:
+        if a.robot_id != b.robot_id and a.content_hash != b.content_hash and not is_upload(a):
             return ConflictRow(b.row, b.column, b.ts_ms, a.robot_id, a.ts_ms, b.robot_id)
     return None
 

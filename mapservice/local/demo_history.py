@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import structlog
 
+from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.processors.conflict_recorder import record_conflicts
 from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, make_envelope
 from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
@@ -42,7 +43,7 @@ STEP_S = 12
 POSE_EVERY_S = 3
 CHANGE_EVERY_S = 1800.0
 CONFLICT_EVERY = 4  # the 1st, 5th, 9th ... changed chunk is also reported, differently, by another robot
-UPLOAD_ROBOT_ID = "map-upload"  # as `mapservice map upload` writes the map
+UPLOAD_ROBOT_ID = UPLOADER_ID  # as `mapservice map upload` writes the map
 DAY_MS = 86_400_000
 BATCH_POSES = 100_000
 

@@ -90,3 +90,15 @@ def test_a_window_with_too_many_writes_is_refused_with_what_to_do(client, monkey
     r = _get(client)
     assert r.status_code == 422 and "choose a shorter span" in r.json()["detail"], r.text
     assert _get(client, **{"from": NOW - 15 * 60_000}).status_code == 200
+
+
+def test_a_single_chunk_written_by_the_map_uploader_is_an_upload(ev) -> None:
+    """The map uploader's writes are an upload however few: a one-chunk map upload is one
+    `upload` entry, never a floor change."""
+    s = MemoryStore()
+    s.append([ev.meta(NOW - 2 * HOUR)])
+    s.append([ev.chunk("r1", NOW - HOUR, 0, 0, _px(1)), ev.chunk("map-upload", NOW - HOUR + 5_000, 0, 0, _px(2))])
+    client = TestClient(create_app(Settings(), s, {}, ManualClock(NOW)))
+    body = _get(client).json()
+    assert [(c["kind"], c["robot_id"], c["chunks"]) for c in body["changes"]] == [
+        ("upload", "map-upload", 1), ("change", "r1", 1)]

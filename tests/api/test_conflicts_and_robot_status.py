@@ -62,13 +62,32 @@ def test_conflicts_in_window_ordered(client) -> None:
     assert body["truncated"] is False and body["window_s"] == 60.0
     assert body["conflicts"] == [
         {"row": 1, "column": 2, "ts_ms": NOW - 5_000, "robot_a": "a", "ts_a_ms": NOW - 9_000,
-         "hash_a": HA, "robot_b": "b", "hash_b": HB},
+         "hash_a": HA, "robot_b": "b", "hash_b": HB, "seek_ms": NOW - 4_999},
         {"row": 0, "column": 0, "ts_ms": NOW - 1_000, "robot_a": "d", "ts_a_ms": NOW - 1_200,
-         "hash_a": HB, "robot_b": "c", "hash_b": HA}]
+         "hash_a": HB, "robot_b": "c", "hash_b": HA, "seek_ms": NOW - 999}]
     body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW - 1_000}).json()
     assert len(body["conflicts"]) == 1
     body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW, "limit": 1}).json()
     assert body["truncated"] is True and len(body["conflicts"]) == 1
+
+
+def test_the_inspector_gets_both_writes_and_lands_after_the_later_one(store) -> None:
+    """One call gives what the conflict inspector shows: both writes' robots, times and
+    pixels (a PNG per content hash), and a seek time at which the map holds the later
+    write. A row naming the map uploader (recorded before uploads were left out) is not
+    listed."""
+    store.append_conflicts([ConflictRow(1, 2, NOW - 8_000, "map-upload", NOW - 8_500, "a")])
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW)))
+    body = client.get("/api/v1/conflicts", params={"from": NOW - 60_000, "to": NOW}).json()
+    assert "map upload" in body["rule"] and "60 s" in body["rule"]
+    assert [(c["robot_a"], c["robot_b"]) for c in body["conflicts"]] == [("a", "b"), ("d", "c")]
+    first = body["conflicts"][0]
+    for h in (first["hash_a"], first["hash_b"]):
+        png = client.get(f"/api/v1/chunk-contents/{h}", params={"encoding": "png"})
+        assert png.status_code == 200 and png.content[:4] == b"\x89PNG"
+    seen = {(c.row, c.column): c.content_hash for c in store.map_at(first["seek_ms"])}
+    assert seen[(1, 2)] == first["hash_b"]
+    assert {(c.row, c.column): c.content_hash for c in store.map_at(first["ts_ms"] - 1)}[(1, 2)] == first["hash_a"]
 
 
 @pytest.mark.parametrize("params, fragment", [

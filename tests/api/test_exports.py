@@ -30,7 +30,7 @@ def test_replay_mcap_is_a_download_of_the_window() -> None:
     assert reply.headers["content-disposition"].endswith(f'replay-{T0}-{T0 + 5000}.mcap"')
     summary = make_reader(io.BytesIO(reply.content)).get_summary()
     by_topic = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
-    assert by_topic == {"/map": 1, "/robots/a/pose": 5}
+    assert by_topic == {"/map": 1, "/robots/a/pose": 5, "/robots/a/state": 5}
 
 
 def test_replay_mcap_refuses_windows_it_cannot_serve() -> None:

@@ -153,8 +153,9 @@ def test_mapservice_export_writes_mcap_and_parquet(stack, tmp_path) -> None:
     summary = make_reader(io.BytesIO(out.read_bytes())).get_summary()
     topics = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
     assert topics["/map"] >= 1
-    assert {t for t in topics if t.startswith("/robots/")} == {f"/robots/sim-00{i}/pose" for i in range(3)}
-    assert all(n >= 1000 for t, n in topics.items() if t != "/map")  # a report every 3 s
+    assert {t for t in topics if t.endswith("/pose")} == {f"/robots/sim-00{i}/pose" for i in range(3)}
+    assert {t for t in topics if t.endswith("/state")} == {f"/robots/sim-00{i}/state" for i in range(3)}
+    assert all(n >= 1000 for t, n in topics.items() if t.endswith(("/pose", "/state")))  # a report every 3 s
     parquet = tmp_path / "poses.parquet"
     subprocess.run([sys.executable, "-m", "mapservice.cli", "export", "robot-poses", *window,
                     "--format", "parquet", "--robot", "sim-001", "--out", str(parquet)],

@@ -24,7 +24,7 @@ def w(robot: str, ts: int, h: str = H1, row: int = 0, col: int = 0) -> ChunkRow:
     return ChunkRow(row, col, ts, robot, h, ts)
 
 
-write = st.builds(w, st.sampled_from(["a", "b", "c"]), st.integers(0, 4 * W),
+write = st.builds(w, st.sampled_from(["a", "b", "c", "map-upload"]), st.integers(0, 4 * W),
                   st.sampled_from([H1, H2, H3]), st.integers(0, 1), st.just(0))
 
 

@@ -92,15 +92,25 @@ def test_paint_white_over_mqtt_reaches_the_map(page, history_stack) -> None:
 
 
 def test_driving_moves_the_stored_pose(page, history_stack) -> None:
-    """Arrow buttons move the robot, and its pose (MQTT iot/coordinates/{id}) is stored there."""
+    """Arrow buttons move the robot (where the floor is free), and its pose (MQTT
+    iot/coordinates/{id}) is stored there."""
     stack = history_stack
     robot = "controller-drive"
     _open(page, stack, robot)
-    x0, y0 = _shown_position(page)
-    for button in ("right", "right", "right", "up", "up"):
-        page.locator(f'[data-testid="{button}"]').click()
+    # Each press moves 0.5 m, or the robot stays and says why (a rack or the map's edge).
     x, y = _shown_position(page)
-    assert (x, y) == (x0 + 1.5, y0 + 1.0)
+    steps = {"right": (0.5, 0.0), "left": (-0.5, 0.0), "up": (0.0, 0.5), "down": (0.0, -0.5)}
+    moved = 0
+    for button in ("right", "right", "right", "up", "up", "left", "down"):
+        page.locator(f'[data-testid="{button}"]').click()
+        nx, ny = _shown_position(page)
+        if page.locator('[data-testid="message"]').inner_text().startswith("stopped:"):
+            assert (nx, ny) == (x, y)
+        else:
+            assert (nx, ny) == (x + steps[button][0], y + steps[button][1])
+            moved += 1
+        x, y = nx, ny
+    assert moved >= 2, "the robot could hardly move from its start"
     deadline = time.monotonic() + 30
     stored = None
     while time.monotonic() < deadline:
@@ -195,4 +205,52 @@ def test_with_the_robots_password_the_page_drives_and_paints_as_that_robot(page,
     page.locator('[data-testid="paint-grey"]').click()
     _, _, raw = _painted_chunk(page, stack, "controller-auth")
     assert set(raw) == {205}
+    assert not page.errors
+
+
+def test_racks_and_the_map_edge_stop_the_robot(page, history_stack) -> None:
+    """Driving right across the floor, the robot stops where the map picture has an occupied
+    pixel (or at the map's edge) and says so; its stored pose is where it stopped, never
+    inside the rack or off the map."""
+    import io
+
+    from PIL import Image
+
+    stack = history_stack
+    robot = "controller-walls"
+    _open(page, stack, robot)
+    x0, y0 = _shown_position(page)
+    for _ in range(80):  # 40 m: the warehouse is 30 m wide
+        page.locator('[data-testid="right"]').click()
+        if page.locator('[data-testid="message"]').inner_text().startswith("stopped:"):
+            break
+    message = page.locator('[data-testid="message"]').inner_text()
+    assert message.startswith("stopped:"), f"drove 40 m right from x {x0} m without stopping"
+    x, y = _shown_position(page)
+    assert y == y0 and x >= x0
+    meta = httpx.get(f"{stack.api_url}/api/chunk-service/meta", timeout=30).json()
+    res, (ox, oy) = meta["resolution"], meta["origin"][:2]
+    picture = Image.open(io.BytesIO(httpx.get(f"{stack.api_url}/api/v1/map/png", timeout=30).content)).convert("L")
+    if "occupied" in message:
+        bx, by = (float(v) for v in re.search(r"x (-?[\d.]+) m, y (-?[\d.]+) m", message).groups())
+        col, row = int((bx - ox) / res), int(meta["height"] - (by - oy) / res)
+        assert picture.getpixel((col, row)) < 90, "the named pixel is not occupied"
+        assert x + 0.25 < bx <= x + 0.5 + 0.25 + res  # within the next step, not yet touched
+    else:
+        assert message == "stopped: the map's edge"
+        assert x + 0.5 + 0.25 > ox + meta["width"] * res
+    deadline = time.monotonic() + 30
+    stored = None
+    while time.monotonic() < deadline:
+        stored = next((r for r in httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
+                       if r["robotId"] == robot), None)
+        if stored and stored["position"][:2] == [x, y]:
+            break
+        time.sleep(0.3)
+    assert stored is not None and stored["position"][:2] == [x, y]
+    now = int(time.time() * 1000)
+    poses = httpx.get(f"{stack.api_url}/api/v1/poses", params={"from": now - 300_000, "to": now + 1000},
+                      timeout=30).json()
+    xs = [p["position"][0] for p in poses if p["robotId"] == robot]
+    assert xs and max(xs) == x  # no pose was sent past the stop
     assert not page.errors

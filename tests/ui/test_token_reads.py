@@ -64,3 +64,28 @@ def test_the_replay_asks_for_a_token_and_then_reads_with_it(page, token_api) -> 
         time.sleep(0.2)
     assert hub.subscribers >= 1, "the live stream did not connect with the token"
     assert not page.errors
+
+
+def test_the_export_button_follows_the_read_rules(page, token_api) -> None:
+    """Where reads need a token, the export button sends the one the page holds: with a
+    wrong one the page says the export was refused (401) and what to do; with the reader
+    token the visible span is saved as MCAP."""
+    url, _ = token_api
+    page.goto(f"{url}/")
+    page.evaluate("() => localStorage.setItem('mapservice.apiToken', 'viewer-wrong')")
+    page.reload()
+    page.locator('[data-testid="export-button"]').wait_for(timeout=TIMEOUT_MS)
+    page.select_option('[data-testid="export-kind"]', "mcap")
+    page.click('[data-testid="export-button"]')
+    status = page.locator('[data-testid="export-status"]')
+    page.wait_for_function("() => document.querySelector('[data-testid=export-status]')?.innerText.includes('401')",
+                           timeout=TIMEOUT_MS)
+    assert "token" in status.inner_text()
+    page.evaluate(f"() => localStorage.setItem('mapservice.apiToken', '{READER}')")
+    page.reload()
+    page.locator('[data-testid="export-button"]').wait_for(timeout=TIMEOUT_MS)
+    with page.expect_download(timeout=TIMEOUT_MS) as info:
+        page.click('[data-testid="export-button"]')
+    data = open(info.value.path(), "rb").read()
+    assert data[:8] == b"\x89MCAP0\r\n"
+    assert not page.errors

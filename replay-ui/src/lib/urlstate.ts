@@ -72,7 +72,7 @@ export function parseUrlState(search: string): UrlState {
     follow: q.get("follow"),
     layers: q.has("layers") ? parseLayers(q.get("layers") ?? "") : null,
     selected: q.get("sel"),
-    panels: (q.get("panels") ?? "").split(",").filter((p) => p === "changes" || p === "fleet"),
+    panels: (q.get("panels") ?? "").split(",").filter((p) => p === "changes" || p === "fleet" || p === "conflicts"),
     area: parseArea(q.get("area")),
     changeRobot: q.get("crobot"),
     tProblem,

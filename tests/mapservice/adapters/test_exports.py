@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 import time
 
 import numpy as np
@@ -14,7 +15,15 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.memory_store import MemoryStore
-from mapservice.adapters.exports import MAP_TOPIC, export_mcap, export_table, pose_topic
+from mapservice.adapters.exports import (
+    MAP_TOPIC,
+    STATE_SCHEMA,
+    export_mcap,
+    export_table,
+    path_topic,
+    pose_topic,
+    state_topic,
+)
 from tests.conftest import chunk_event, meta_event, pose_event
 
 T0 = (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
@@ -32,9 +41,16 @@ def history(store) -> None:
 
 
 def read_mcap(data: bytes) -> list[tuple[str, int, object]]:
-    reader = make_reader(io.BytesIO(data), decoder_factories=[DecoderFactory()])
-    return [(channel.topic, message.log_time // 1_000_000, decoded)
-            for _, channel, message, decoded in reader.iter_decoded_messages()]
+    """(topic, log time in ms, message): protobuf decoded with its schema, JSON parsed."""
+    protobuf = DecoderFactory()
+    out = []
+    for schema, channel, message in make_reader(io.BytesIO(data)).iter_messages():
+        if channel.message_encoding == "json":
+            decoded = json.loads(message.data)
+        else:
+            decoded = protobuf.decoder_for(channel.message_encoding, schema)(message.data)
+        out.append((channel.topic, message.log_time // 1_000_000, decoded))
+    return out
 
 
 def grid_pixels(grid) -> np.ndarray:
@@ -51,7 +67,7 @@ def test_mcap_holds_the_map_and_every_pose_of_the_window() -> None:
     counts = export_mcap(store, T0 + 10_000, T0 + 50_000, out, grid_every_ms=10_000)
     messages = read_mcap(out.getvalue())
     grids = [(t, m) for topic, t, m in messages if topic == MAP_TOPIC]
-    poses = [(topic, t, m) for topic, t, m in messages if topic != MAP_TOPIC]
+    poses = [(topic, t, m) for topic, t, m in messages if topic.endswith("/pose")]
     assert counts.poses == len(poses) == 2 * 40
     assert {topic for topic, _, _ in poses} == {pose_topic("a"), pose_topic("b")}
     first = next(m for topic, t, m in poses if topic == pose_topic("a") and t == T0 + 25_000)
@@ -69,6 +85,37 @@ def test_mcap_holds_the_map_and_every_pose_of_the_window() -> None:
     assert times == sorted(times)  # log times in order, as players expect
 
 
+def test_mcap_holds_battery_charging_loaded_and_planned_paths() -> None:
+    """Per robot a JSON state channel (its JSON schema in the file) with battery in % and
+    the charging and loaded flags of every pose, and its planned path as
+    foxglove.PosesInFrame each time the path changes."""
+    store = MemoryStore()
+    store.append([meta_event(T0 - 10_000)])
+    store.append([pose_event("a", T0 + i * 1000, x=float(i), battery_level=0.5 - i / 100,
+                             charging=i >= 3, loaded="unknown" if i == 1 else i % 2 == 0,
+                             path=((1.0, 2.0), (3.0, 4.5)) if i < 3 else ((3.0, 4.5), (6.0, 1.0)))
+                  for i in range(5)])
+    out = io.BytesIO()
+    counts = export_mcap(store, T0, T0 + 5_000, out)
+    summary = make_reader(io.BytesIO(out.getvalue())).get_summary()
+    channels = {c.topic: c for c in summary.channels.values()}
+    state = channels[state_topic("a")]
+    assert state.message_encoding == "json"
+    schema = summary.schemas[state.schema_id]
+    assert schema.encoding == "jsonschema" and json.loads(schema.data) == STATE_SCHEMA
+    assert "%" in STATE_SCHEMA["properties"]["battery_percent"]["description"]
+    assert summary.schemas[channels[path_topic("a")].schema_id].name == "foxglove.PosesInFrame"
+    messages = read_mcap(out.getvalue())
+    states = [m for topic, _, m in messages if topic == state_topic("a")]
+    assert [s["battery_percent"] for s in states] == [50.0, 49.0, 48.0, 47.0, 46.0]
+    assert [s["charging"] for s in states] == [False, False, False, True, True]
+    assert [s["loaded"] for s in states] == [True, "unknown", True, False, True]
+    paths = [(t, [(p.position.x, p.position.y) for p in m.poses]) for topic, t, m in messages
+             if topic == path_topic("a")]
+    assert paths == [(T0, [(1.0, 2.0), (3.0, 4.5)]), (T0 + 3000, [(3.0, 4.5), (6.0, 1.0)])]
+    assert (counts.states, counts.paths) == (5, 2)
+
+
 def test_mcap_without_a_map_geometry_is_refused() -> None:
     """No meta yet: a clear error instead of an empty file."""
     with pytest.raises(ValueError, match="no map geometry"):
@@ -82,7 +129,7 @@ def test_mcap_pages_through_more_poses_than_a_page() -> None:
     out = io.BytesIO()
     counts = export_mcap(store, T0, T0 + 60_000, out, page=7)
     assert counts.poses == 120
-    stamps = [(topic, t) for topic, t, _ in read_mcap(out.getvalue()) if topic != MAP_TOPIC]
+    stamps = [(topic, t) for topic, t, _ in read_mcap(out.getvalue()) if topic.endswith("/pose")]
     assert len(set(stamps)) == 120
 
 

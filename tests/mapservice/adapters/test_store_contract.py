@@ -22,7 +22,7 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
-from mapservice.core.ports import ChunkRow, Counts, PoseRow
+from mapservice.core.ports import ChunkRow, ConflictRow, Counts, PoseRow
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.sql.chdb_engine import ChdbEngine
 from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
@@ -917,3 +917,30 @@ def test_change_feed_refuses_a_window_with_too_many_writes(store, ev, t0, monkey
     store.append([ev.chunk("r1", t0 + 2000 * i, 0, i % 3, bytes([i]) * 10_000) for i in range(6)])
     with pytest.raises(change_feed.WindowTooBusy, match="shorter span"):
         _feed(store, t0)
+
+
+def test_the_conflict_inspectors_one_call_over_every_store(store, ev, t0) -> None:
+    """GET /api/v1/conflicts over each store, the conflicts recorded as the processors do:
+    both writes' robots, times and content hashes and the seek time just after the later
+    write, where the map holds it; the map uploader's write under them is in no conflict."""
+    from fastapi.testclient import TestClient
+
+    from mapservice.adapters.clock import ManualClock
+    from mapservice.api.app import create_app
+    from mapservice.processors.conflict_recorder import record_conflicts
+    from mapservice.settings import Settings
+
+    black, white, grey = bytes(10_000), bytes([254]) * 10_000, bytes([205]) * 10_000
+    writes = [ev.chunk("map-upload", t0 - 10_000, 1, 2, grey), ev.chunk("a", t0, 1, 2, black),
+              ev.chunk("b", t0 + 5_000, 1, 2, white)]
+    store.append(writes)
+    record_conflicts(store, store.chunk_writes_near([(1, 2)], t0 - 20_000, t0 + 20_000), 60_000)
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(t0 + 60_000)))
+    body = client.get("/api/v1/conflicts", params={"from": t0 - 60_000, "to": t0 + 60_000}).json()
+    assert body["conflicts"] == [{
+        "row": 1, "column": 2, "ts_ms": t0 + 5_000, "robot_a": "a", "ts_a_ms": t0,
+        "hash_a": content_hash(black).hex(), "robot_b": "b", "hash_b": content_hash(white).hex(),
+        "seek_ms": t0 + 5_001}]
+    assert store.conflicts(t0 - 60_000, t0 + 60_000) == [ConflictRow(1, 2, t0 + 5_000, "a", t0, "b")]
+    at_seek = {(c.row, c.column): c.content_hash for c in store.map_at(t0 + 5_001)}
+    assert at_seek[(1, 2)] == content_hash(white).hex()

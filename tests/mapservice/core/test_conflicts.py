@@ -102,3 +102,21 @@ def test_the_sorted_index_finds_what_the_pure_rule_finds(old, new, window) -> No
     recent = RecentWrites(0, old + new[:1])
     recent.add(new)
     assert recent.affected(new, window) == affected_conflicts(new, old + new[:1] + new, window)
+
+
+def test_a_map_upload_is_never_a_conflict() -> None:
+    """The map uploader's writes (the start-up upload against the simulator) are neither A
+    nor B; the robots' writes around it still conflict among themselves, skipping it."""
+    from mapservice.core.conflicts import UPLOADER_ID
+
+    sim = w("sim-001", 1000, H1)
+    upload = w(UPLOADER_ID, 2000, H2)
+    after = w("sim-002", 3000, H3)
+    assert conflicts_of(upload, [sim], W) == []
+    assert conflicts_of(w("sim-001", 4000, H1), [upload], W) == []
+    # sim-002's write conflicts with sim-001's, not with the later upload between them.
+    assert all_conflicts([sim, upload, after], W) == [ConflictRow(0, 0, 3000, "sim-001", 1000, "sim-002")]
+    assert affected_conflicts([upload], [sim, upload, after], W) == [
+        ConflictRow(0, 0, 3000, "sim-001", 1000, "sim-002")]
+    index = RecentWrites(0, [sim, upload])
+    assert index.affected([upload], W) == []
