@@ -9,7 +9,6 @@ from __future__ import annotations
 import threading
 import time
 
-import paho.mqtt.client as mqtt
 import pytest
 
 from mapservice.adapters.mqtt_auth import GATEWAY_USER, BrokerFiles
