@@ -883,7 +883,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "robots": args.robots,
             "seconds": args.seconds,
             "fleet_wall_s": fleet_wall,
-            "offered_events_per_s": args.robots * 1.2,
+            "offered_events_per_s": args.robots * getattr(fleet, "events_per_robot_s", 1.2),
             "published_poses": n_poses,
             "published_chunks": n_chunks,
             "published_events": len(keys),

@@ -105,6 +105,17 @@ class VdaFleet:
         self.stats = VdaFleetStats()
         self._stop = threading.Event()
 
+    # What each vehicle offers: five visualizations and a state a second.
+    events_per_robot_s = (1 + 1 / STATE_EVERY) / VISUALIZATION_PERIOD_S
+
+    def scheduled_events(self, seconds: float) -> int:
+        """Messages the schedule asks for in `seconds` (whole visualization periods)."""
+        slots = math.ceil(seconds / VISUALIZATION_PERIOD_S - 1e-9)
+        per_vehicle = [slots + sum(1 for slot in range(slots) if (slot + k) % STATE_EVERY == 0)
+                       for group in range(self.connections)
+                       for k in range(len(self.vehicles[group::self.connections]))]
+        return sum(per_vehicle)
+
     def stop(self) -> None:
         self._stop.set()
 

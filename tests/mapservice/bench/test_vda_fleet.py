@@ -52,4 +52,5 @@ def test_each_vehicle_sends_a_state_a_second_and_five_visualizations(tmp_path) -
     assert {robot for robot, _ in keys} == {f"VdaBench:v{i:05d}" for i in range(10)}
     # 2 s: ten visualizations and two states per vehicle
     assert seen.count("visualization") == 100 and seen.count("state") == 20
-    assert stats.poses == 120
+    assert stats.poses == 120 == fleet.scheduled_events(2.0)
+    assert fleet.events_per_robot_s == pytest.approx(6.0)
