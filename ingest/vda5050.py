@@ -31,15 +31,23 @@ from mapservice.core.events import (
 )
 from mapservice.core.vda_ids import robot_id_for
 from mapservice.core.wire2019 import Limits, Reason, Rejection, check_time
+from mapservice.settings import VDA5050_SUBTOPICS
 
 SCHEMA_DIR = Path(__file__).with_name("vda5050_schemas")
-SUBTOPICS = ("state", "visualization", "connection", "factsheet")
+SUBTOPICS = VDA5050_SUBTOPICS
 CONNECTION_STATES = ("ONLINE", "OFFLINE", "CONNECTIONBROKEN")
 MAX_VEHICLES = 100_000  # vehicles whose last state is held for their visualization poses
 
 @cache
 def validator(version: str, subtopic: str) -> Draft202012Validator:
     schema = json.loads((SCHEMA_DIR / version / f"{subtopic}.schema").read_text())
+    if (version, subtopic) == ("2.0.0", "state"):
+        # Erratum: 2.0.0's state schema requires theta in a nodeState's nodePosition,
+        # where the order's nodePosition (which the vehicle echoes) has it optional, and
+        # 2.1.0's schema requires only x, y and mapId; vehicles written against 2.0 omit
+        # it (npm vda-5050-lib does), so their states during an order would all be refused.
+        node_position = schema["properties"]["nodeStates"]["items"]["properties"]["nodePosition"]
+        node_position["required"] = [k for k in node_position["required"] if k != "theta"]
     return Draft202012Validator(schema)
 
 

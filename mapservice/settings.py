@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import re
 from functools import cached_property
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, model_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+# The subtopics a VDA 5050 vehicle publishes (master control publishes order and instantActions).
+VDA5050_SUBTOPICS = ("state", "visualization", "connection", "factsheet")
 
 # The admin token the service had as its default until local mode generated one: a
 # publicly known value, refused wherever it is still set in production.
@@ -175,7 +179,8 @@ class Settings(BaseSettings):
     vda5050_interface: str = Field("uagv", pattern=r"^[^/#+]*$", description=(
         "Interface name, the first level of VDA 5050 topics "
         "(<interface>/<major>/<manufacturer>/<serialNumber>/<subtopic>); the gateway "
-        "subscribes to <interface>/+/+/+/+; empty: VDA 5050 vehicles are not taken."))
+        "subscribes to <interface>/+/+/+/<state|visualization|connection|factsheet>; "
+        "empty: VDA 5050 vehicles are not taken."))
     vda5050_map_transforms: dict[str, tuple[float, float, float]] = Field(
         default_factory=dict, description=(
             "Per VDA 5050 mapId, [dx, dy, rotation] (metres, metres, radians) taking a "
@@ -325,6 +330,13 @@ class Settings(BaseSettings):
         "A live client whose connection takes no message for this long (it does not read) is "
         "closed with 1008 and a reason."))
 
+    @field_validator("vda5050_map_transforms", mode="before")
+    @classmethod
+    def _transforms_as_json(cls, value: object) -> object:
+        # The environment's JSON is decoded by pydantic-settings; the same text given as a
+        # keyword (a stack's extra_env, a CLI option) is decoded here.
+        return json.loads(value or "{}") if isinstance(value, str) else value
+
     @model_validator(mode="after")
     def _check_tls_and_topics(self) -> Settings:
         for hop, cert, key in (("MQTT", self.mqtt_cert_file, self.mqtt_key_file),
@@ -403,9 +415,12 @@ class Settings(BaseSettings):
     @cached_property
     def mqtt_subscriptions(self) -> list[str]:
         prefix = f"$share/{self.mqtt_share_group}/" if self.mqtt_share_group else ""
-        vda = f"{self.vda5050_interface}/+/+/+/+" if self.vda5050_interface else ""
+        # Only what vehicles publish: a master control's `order` and `instantActions` go
+        # to the vehicles through the same subtree and are none of the gateway's business.
+        vda = [f"{self.vda5050_interface}/+/+/+/{subtopic}" for subtopic in VDA5050_SUBTOPICS
+               if self.vda5050_interface]
         return [prefix + topic for topic in (self.create_chunk_topic, self.coordinate_topic,
-                                             self.robot_chunk_topic, vda) if topic]
+                                             self.robot_chunk_topic, *vda) if topic]
 
     def kafka_config(self) -> dict[str, str]:
         """librdkafka settings shared by every confluent-kafka client of the service."""

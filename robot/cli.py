@@ -269,6 +269,20 @@ def _robot_identity(args) -> None:
                           "storedIn": _where(files)},
                          indent=2))
         return
+    if "publishes" in cred.topics:  # a VDA 5050 vehicle
+        print(f"""VDA 5050 vehicle {cred.username} (robot {cred.topics["robotId"]}): MQTT credential \
+{"rotated" if args.rotate else "created"} (the password is shown only now)
+
+  username   {cred.username}
+  password   {cred.password}
+  broker     {broker}
+
+  It publishes {cred.topics["publishes"]}
+  and reads    {cred.topics["reads"]}; anything else the broker refuses, and a payload
+  naming another manufacturer or serialNumber is a dead letter (robot_id_mismatch).
+
+Written: {_where(files)}; {reload}.""")
+        return
     legacy = files.topics.legacy_chunk_topic
     saved = f"\nSaved to {args.save} (for mapservice sim/robot/drive --credentials)." if args.save else ""
     print(f"""robot {cred.robot_id}: MQTT credential {"rotated" if args.rotate else "created"} \
@@ -391,7 +405,8 @@ def add_parsers(sub) -> None:
         cmd = ids.add_parser(name, help=text, description=text)
         if name != "list":
             cmd.add_argument("robot_id_arg", metavar="robotId",
-                             help="the robot's id, its MQTT username (1-64 of A-Z a-z 0-9 _ . : @ -)")
+                             help="the robot's id, its MQTT username (1-64 of A-Z a-z 0-9 _ . : @ -); "
+                                  "a VDA 5050 vehicle's is <manufacturer>/<serialNumber>")
         cmd.add_argument("--data-dir", default=None,
                          help="data dir whose mqtt/passwd and mqtt/acl the local Mosquitto reads "
                               "(default: MAPSERVICE_DATA_DIR, else .mapservice-data)")

@@ -19,7 +19,8 @@ router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
                    dependencies=[Depends(READ)])
 MAX_TABLE_SPAN_MS = 7 * 86_400_000
 MAX_MCAP_SPAN_MS = 86_400_000
-Dataset = Literal["robot-poses", "chunk-changes", "chunk-conflicts", "dead-letters"]
+Dataset = Literal["robot-poses", "chunk-changes", "chunk-conflicts", "dead-letters",
+                  "vehicle-states", "vehicle-errors", "vehicle-connections"]
 
 
 def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:

@@ -24,7 +24,13 @@ TABLES: dict[str, tuple[str, str]] = {
     "chunk-changes": ("chunk_changes", "at"),
     "chunk-conflicts": ("chunk_conflicts", "at"),
     "dead-letters": ("dead_letter_messages", "received_at"),
+    # VDA 5050 vehicles' facts beyond their poses: their tables are already in analysts'
+    # units (metres, radians, UTC times), read with FINAL (a redelivery is stored once).
+    "vehicle-states": ("vda_states", "ts"),
+    "vehicle-errors": ("vda_errors", "ts"),
+    "vehicle-connections": ("vda_connections", "ts"),
 }
+_READ_FINAL = {"vda_states", "vda_errors", "vda_connections"}  # tables, not views
 TABLE_FORMATS = {"csv": ("CSVWithNames", "text/csv"),
                  "parquet": ("Parquet", "application/vnd.apache.parquet")}
 MAP_TOPIC = "/map"
@@ -80,7 +86,8 @@ def export_table(store, dataset: str, fmt: str, from_ms: int, to_ms: int,
     view, time_column = TABLES[dataset]
     clickhouse_format, _ = TABLE_FORMATS[fmt]
     robot_filter = " AND robot_id = {robot:String}" if robot_id and dataset != "dead-letters" else ""
-    sql = (f"SELECT * FROM {store.database}.{view} WHERE {time_column} >= "
+    final = " FINAL" if view in _READ_FINAL else ""
+    sql = (f"SELECT * FROM {store.database}.{view}{final} WHERE {time_column} >= "
            "fromUnixTimestamp64Milli({from_ms:Int64}, 'UTC') AND "
            f"{time_column} < fromUnixTimestamp64Milli({{to_ms:Int64}}, 'UTC'){robot_filter} "
            f"ORDER BY {time_column}")

@@ -28,13 +28,16 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mapservice.settings import Settings
+from mapservice.core.vda_ids import robot_id_for
+from mapservice.settings import VDA5050_SUBTOPICS, Settings
 
 GATEWAY_USER = "mapservice-gateway"
 PROCESSORS_USER = "mapservice-processors"
 RESERVED_PREFIX = "mapservice-"
 PBKDF2_ROUNDS = 101  # what mosquitto_passwd 2.0 writes
 _ROBOT_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")  # the gateway's robotId rule (wire2019)
+# A VDA 5050 manufacturer or serial number as a level of a vehicle's username and topics.
+_VEHICLE_NAME = re.compile(r"[^/+#:\x00-\x1f\x7f]{1,64}")
 LEGACY_MARKER = "# --- robots allowed the 2019 chunk topic"
 
 
@@ -67,8 +70,31 @@ def verify_password(password: str, hashed: str) -> bool:
     return hmac.compare_digest(computed, digest)
 
 
+def vehicle_of_username(username: str) -> tuple[str, str] | None:
+    """(manufacturer, serialNumber) of a VDA 5050 vehicle's MQTT username
+    `<manufacturer>/<serialNumber>`; None for a 2019 robot's (a robotId has no slash)."""
+    if username.count("/") != 1:
+        return None
+    manufacturer, serial = username.split("/")
+    return (manufacturer, serial) if _VEHICLE_NAME.fullmatch(manufacturer) and \
+        _VEHICLE_NAME.fullmatch(serial) else None
+
+
 def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
-    """A robot's MQTT username is its robotId: the gateway's rule, and no service user's name."""
+    """A robot's MQTT username is its robotId: the gateway's rule, and no service user's name;
+    a VDA 5050 vehicle's is `<manufacturer>/<serialNumber>`, its topics' two levels."""
+    if "/" in robot_id:
+        names = vehicle_of_username(robot_id)
+        if names is None:
+            raise ValueError(
+                f"VDA 5050 vehicle {robot_id[:80]!r}: the username is <manufacturer>/"
+                "<serialNumber> as in its topics, each without / + # : or control characters "
+                "(':' ends a name in Mosquitto's password file)")
+        if len(robot_id_for(*names)) > 64:
+            raise ValueError(f"VDA 5050 vehicle {robot_id[:80]!r}: its robot id "
+                             f"{robot_id_for(*names)!r} is longer than 64 characters, so the "
+                             "gateway refuses its messages (bad_robot_id)")
+        return
     if not _ROBOT_ID.fullmatch(robot_id):
         raise ValueError(f"robot id {robot_id[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . : @ - "
                          "(the 2019 robotId rule the gateway checks)")
@@ -103,6 +129,10 @@ class AclTopics:
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
+        if (names := vehicle_of_username(robot_id)) is not None:
+            base = f"{self.vda_interface}/<v2|v3>/{names[0]}/{names[1]}/"
+            return {"publishes": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
+                    "reads": base + "{order,instantActions}", "robotId": robot_id_for(*names)}
         return {"pose": f"{self.coordinate_prefix}{robot_id}",
                 "chunks": f"{self.robot_chunk_prefix}{robot_id}",
                 "advertisements": self.advertisement_topic}
@@ -121,6 +151,13 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"pattern write {topics.coordinate_prefix}%u",
         f"pattern write {topics.robot_chunk_prefix}%u",
         f"pattern read {topics.advertisement_topic}",
+        *([
+            "",
+            "# Every VDA 5050 vehicle (its username is <manufacturer>/<serialNumber>, the two",
+            "# levels of its topics) publishes only in its own subtree and reads its orders.",
+            *(f"pattern write {topics.vda_interface}/+/%u/{sub}" for sub in VDA5050_SUBTOPICS),
+            *(f"pattern read {topics.vda_interface}/+/%u/{sub}" for sub in ("order", "instantActions")),
+        ] if topics.vda_interface else []),
         "",
         "# The gateway reads everything robots publish (also through $share/<group>/...).",
         f"user {gateway_user}",
@@ -252,6 +289,8 @@ class BrokerFiles:
         """Adds a robot user (or, with `rotate`, gives an existing one a new password) and
         returns its credential; the password is not stored anywhere but as a hash."""
         check_robot_id(robot_id, self.service_users)
+        if legacy_chunks and vehicle_of_username(robot_id):
+            raise ValueError("--legacy-chunks is for 2019 robots, not VDA 5050 vehicles")
         password = password or new_password()
         with self._locked():
             users = read_password_file(self.password_file)

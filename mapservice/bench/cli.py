@@ -38,6 +38,10 @@ def add_bench_parser(sub) -> None:
                         help="robots added per --find-ceiling step")
     ingest.add_argument("--ceiling-max", type=int, default=10_000,
                         help="--find-ceiling stops at this fleet even if it still holds")
+    ingest.add_argument("--workload", choices=["2019", "vda5050"], default="2019",
+                        help="2019: each robot a pose a second and a chunk every 5 s; vda5050: "
+                             "each --robots a VDA 5050 vehicle, a state a second and a "
+                             "visualization at 5 Hz (mapservice/bench/vda_fleet.py)")
     ingest.set_defaults(func=_run_ingest)
 
     from mapservice.bench.timetravel import add_parser as add_timetravel_parser

@@ -730,7 +730,11 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         result["warmup_s"] = time.monotonic() - t_start - result["stack_start_s"]
 
         loadgen = getattr(args, "loadgen", "raw")
-        if loadgen == "raw":
+        if getattr(args, "workload", "2019") == "vda5050":  # VDA 5050 vehicles (vda_fleet.py)
+            from mapservice.bench.vda_fleet import VdaFleet
+
+            loadgen, fleet = "vda5050", VdaFleet(stack.mqtt_url, ros_map, args.robots)
+        elif loadgen == "raw":
             from mapservice.robot.rawfleet import RawFleet
 
             # Worker processes at a lower priority: they stand for robots on other machines.
@@ -879,7 +883,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "robots": args.robots,
             "seconds": args.seconds,
             "fleet_wall_s": fleet_wall,
-            "offered_events_per_s": args.robots * 1.2,
+            "offered_events_per_s": args.robots * getattr(fleet, "events_per_robot_s", 1.2),
             "published_poses": n_poses,
             "published_chunks": n_chunks,
             "published_events": len(keys),

@@ -285,6 +285,18 @@ def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
         for spy in ("#", s.coordinate_topic, f"{chunks}+", f"$share/x/{s.coordinate_topic}"):
             assert not emqx_allows(rules, robot, "subscribe", spy), spy
         assert not emqx_allows(rules, robot, "publish", s.advertisement_topic)
+    # A VDA 5050 vehicle (username <manufacturer>/<serialNumber>) publishes in its own
+    # subtree only, and reads its own orders and instant actions.
+    for sub in ("state", "visualization", "connection", "factsheet"):
+        assert emqx_allows(rules, "Acme/001", "publish", f"uagv/v2/Acme/001/{sub}")
+        assert not emqx_allows(rules, "Acme/001", "publish", f"uagv/v2/Acme/002/{sub}")
+    assert not emqx_allows(rules, "Acme/001", "publish", "uagv/v2/Acme/001/order")
+    assert emqx_allows(rules, "Acme/001", "subscribe", "uagv/v2/Acme/001/order")
+    assert emqx_allows(rules, "Acme/001", "subscribe", "uagv/v2/Acme/001/instantActions")
+    assert not emqx_allows(rules, "Acme/001", "subscribe", "uagv/v2/Acme/002/order")
+    assert not emqx_allows(rules, "Acme/001", "subscribe", "uagv/#")
+    for bad in ("Acme/+", "#/1", "a/b/c"):
+        assert not emqx_allows(rules, bad, "publish", "uagv/v2/Acme/001/state"), bad
     # A username with wildcards or slashes renders no topic filter it could abuse.
     for bad in ("#", "+", "a/b"):
         assert not emqx_allows(rules, bad, "publish", f"{coordinates}someone-else")

@@ -119,7 +119,8 @@ def test_robot_chunk_topic_can_be_configured_or_turned_off(wire, now_ms) -> None
     for topic in ("iot/chunks/create/r1", "iot/chunks/create"):
         assert off.route(topic, wire.chunk(robotId="r1"), now_ms, Limits()).reason == "unknown_topic"
     assert Settings(robot_chunk_topic="", create_chunk_topic="").mqtt_subscriptions == [
-        "iot/coordinates/#", "uagv/+/+/+/+"]
+        "iot/coordinates/#", "uagv/+/+/+/state", "uagv/+/+/+/visualization",
+        "uagv/+/+/+/connection", "uagv/+/+/+/factsheet"]
 
 
 @pytest.mark.parametrize("filter_", ["iot/coordinates/#", "iot/coordinates/+", "iot/coordinates/",

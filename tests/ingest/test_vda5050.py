@@ -221,7 +221,12 @@ def test_robot_ids_are_reversible_and_within_the_rules(manufacturer, serial) -> 
 
 def test_the_interface_name_is_a_setting(now_ms) -> None:
     settings = Settings(vda5050_interface="agv")
-    assert "agv/+/+/+/+" in settings.mqtt_subscriptions
+    assert {"agv/+/+/+/state", "agv/+/+/+/visualization", "agv/+/+/+/connection",
+            "agv/+/+/+/factsheet"} <= set(settings.mqtt_subscriptions)
+    # master control's orders and instant actions share the subtree: not subscribed
+    assert not any(t.startswith("agv/") and not t.endswith(
+        ("/state", "/visualization", "/connection", "/factsheet"))
+        for t in settings.mqtt_subscriptions)
     router = Router(settings, "gw")
     msg = vda.state("2.0.0", "Acme", "001", now_ms)
     assert route(router, "2.0.0", "state", msg, now_ms, interface="agv").reason is None
@@ -229,3 +234,16 @@ def test_the_interface_name_is_a_setting(now_ms) -> None:
     off = Router(Settings(vda5050_interface=""), "gw")
     assert not any(t.startswith("uagv") for t in Settings(vda5050_interface="").mqtt_subscriptions)
     assert dead_letter(route(off, "2.0.0", "state", msg, now_ms, interface="agv"))[0] == "unknown_topic"
+
+
+@pytest.mark.parametrize("version", ["2.0.0", "2.1.0"])
+def test_a_node_state_without_theta_is_accepted(router, now_ms, version) -> None:
+    """An order's nodePosition may omit theta and a vehicle echoes it in its nodeStates
+    (npm vda-5050-lib does); 2.0.0's state schema alone requires it there (an erratum
+    fixed in 2.1.0). Anything else missing from a nodePosition is still refused."""
+    msg = vda.state(version, "Acme", "001", now_ms)
+    del msg["nodeStates"][0]["nodePosition"]["theta"]
+    assert route(router, version, "state", msg, now_ms).reason is None
+    del msg["nodeStates"][0]["nodePosition"]["mapId"]
+    reason, detail = dead_letter(route(router, version, "state", msg, now_ms))
+    assert reason == "vda_schema" and "nodeStates/0/nodePosition" in detail

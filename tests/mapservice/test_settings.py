@@ -9,6 +9,8 @@ from pydantic import SecretStr, ValidationError
 
 from mapservice.settings import DEFAULT_ADMIN_TOKEN, Settings
 
+VDA = ("state", "visualization", "connection", "factsheet")  # what VDA 5050 vehicles publish
+
 
 TOKEN = "t" * 32
 
@@ -23,7 +25,7 @@ def test_local_defaults() -> None:
     assert (s.create_chunk_topic, s.coordinate_topic) == ("iot/chunks/create", "iot/coordinates/#")
     assert s.retention_ms == 7 * 86_400_000
     assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#", "iot/chunks/create/+",
-                                    "uagv/+/+/+/+"]
+                                    *(f"uagv/+/+/+/{t}" for t in VDA)]
 
 
 def test_production_refuses_default_admin_token() -> None:
@@ -90,7 +92,8 @@ def test_env_vars_override(monkeypatch) -> None:
     assert s.max_grid == 64 and s.max_future_skew_s == 2.5
     assert s.retention_ms == 3 * 86_400_000
     assert s.mqtt_subscriptions == ["$share/gw/iot/chunks/create", "$share/gw/iot/coordinates/#",
-                                    "$share/gw/iot/chunks/create/+", "$share/gw/uagv/+/+/+/+"]
+                                    "$share/gw/iot/chunks/create/+",
+                                    *(f"$share/gw/uagv/+/+/+/{t}" for t in VDA)]
 
 
 def test_invalid_env_value_is_refused(monkeypatch) -> None:
@@ -244,3 +247,12 @@ def test_robot_chunk_topic_must_end_with_a_robot_level() -> None:
     assert Settings(robot_chunk_topic="site/chunks/+").robot_chunk_topic == "site/chunks/+"
     with pytest.raises(ValueError, match="/\\+"):
         Settings(robot_chunk_topic="site/chunks/#")
+
+
+def test_map_transforms_as_json_text_in_the_environment_or_a_keyword(monkeypatch) -> None:
+    text = '{"hall": [3, 2, 0.5]}'
+    assert Settings(vda5050_map_transforms=text).vda5050_map_transforms == {"hall": (3, 2, 0.5)}
+    monkeypatch.setenv("MAPSERVICE_VDA5050_MAP_TRANSFORMS", text)
+    assert Settings().vda5050_map_transforms == {"hall": (3, 2, 0.5)}
+    with pytest.raises(ValidationError):
+        Settings(vda5050_map_transforms='{"hall": [3, 2]}')

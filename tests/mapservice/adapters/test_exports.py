@@ -159,3 +159,34 @@ def test_parquet_reads_back(clickhouse, tmp_path) -> None:
     got = clickhouse.client.query(
         f"SELECT robot_id, chunk_row, chunk_col FROM file('{path}', 'Parquet') ORDER BY at").result_rows
     assert got == [("a", 0, 0), ("a", 1, 2), ("b", 1, 2)]
+
+
+def test_vda_5050_facts_export_as_tables(clickhouse) -> None:
+    """A vehicle's states, errors and connection states, each in its own dataset, once per
+    fact although the message came twice (a QoS 1 redelivery)."""
+    from mapservice.core.events import decode
+    from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
+    from mapservice.settings import Settings
+    from tests.fixtures import vda5050 as vda
+
+    router = Router(Settings(), gateway_id="export-test")
+    ts = T0 + 30_000
+    for subtopic, msg in (
+            ("state", vda.state("2.1.0", "Acme", "001", ts, x=4.5, y=-2.0, errors=(
+                ("WARNING", "lowBattery", "charge me"),))),
+            ("connection", vda.connection("2.1.0", "Acme", "001", ts + 1000, "OFFLINE"))):
+        record = router.route(f"uagv/v2/Acme/001/{subtopic}", vda.encode(msg), ts + 2000, Limits())
+        assert record.reason is None
+        for _ in range(2):  # two inserts: two parts, folded by FINAL
+            clickhouse.append([decode(record.value)])
+    window = (T0, T0 + 60_000, "Acme:001")
+    states = list(csv.DictReader(io.StringIO(export_table(clickhouse, "vehicle-states", "csv", *window).decode())))
+    assert [(r["manufacturer"], r["serial_number"], float(r["x"]), float(r["y"]), r["error_count"])
+            for r in states] == [("Acme", "001", 4.5, -2.0, "1")]
+    errors = list(csv.DictReader(io.StringIO(export_table(clickhouse, "vehicle-errors", "csv", *window).decode())))
+    assert [(r["level"], r["type"], r["description"]) for r in errors] == [("WARNING", "lowBattery", "charge me")]
+    connections = list(csv.DictReader(io.StringIO(
+        export_table(clickhouse, "vehicle-connections", "csv", *window).decode())))
+    assert [r["state"] for r in connections] == ["OFFLINE"]
+    assert export_table(clickhouse, "vehicle-errors", "parquet", *window)[:4] == b"PAR1"

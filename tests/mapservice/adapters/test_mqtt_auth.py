@@ -91,11 +91,11 @@ def test_add_rotate_remove_and_legacy(tmp_path):
     assert files.robots() == ["r1"] and files.legacy_robots() == []
 
 
-@pytest.mark.parametrize("bad", ["", "a" * 65, "has space", "wild#card", "plus+", "a/b",
-                                 GATEWAY_USER, PROCESSORS_USER])
+@pytest.mark.parametrize("bad", ["", "a" * 65, "has space", "wild#card", "plus+", "a/b/c",
+                                 "a/", GATEWAY_USER, PROCESSORS_USER])
 def test_robot_ids_follow_the_gateway_rule(tmp_path, bad):
     """A robot's username is a valid robotId (no MQTT wildcards or slashes for %u) and not a
-    service user's name."""
+    service user's name; one slash only between a VDA 5050 vehicle's two names."""
     with pytest.raises(ValueError):
         BrokerFiles.in_data_dir(tmp_path).add_robot(bad)
 
@@ -128,3 +128,22 @@ def test_rewritten_files_keep_their_mode(tmp_path):
     files.password_file.chmod(0o640)
     files.add_robot("r2")
     assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o640
+
+
+def test_vda_5050_vehicles_are_users_named_by_their_topic_levels(tmp_path):
+    files = BrokerFiles(tmp_path / "passwd", tmp_path / "acl")
+    cred = files.add_robot("Robo Co/7-2")
+    assert cred.topics["robotId"] == "Robo@20Co:7-2"
+    assert cred.topics["publishes"].startswith("uagv/<v2|v3>/Robo Co/7-2/")
+    acl = files.acl_file.read_text()
+    for sub in ("state", "visualization", "connection", "factsheet"):
+        assert f"pattern write uagv/+/%u/{sub}\n" in acl
+    assert "pattern read uagv/+/%u/order\n" in acl and "pattern write uagv/+/%u/order" not in acl
+    assert files.robots() == ["Robo Co/7-2"]
+    # A level that is no single topic level, a ':' (the password file's separator), a
+    # wildcard, or a robot id over 64 characters: refused, saying why.
+    for bad in ("Acme/7:2", "a/b/c", "Acme/+", "#/1", "/001", "M" * 40 + "/" + "S" * 30):
+        with pytest.raises(ValueError, match="VDA 5050 vehicle"):
+            files.add_robot(bad)
+    with pytest.raises(ValueError, match="legacy-chunks"):
+        files.add_robot("Acme/001", legacy_chunks=True)

@@ -110,7 +110,7 @@ def test_remove_says_whether_there_was_a_robot(registry) -> None:
     assert registry.store.robots() == ["b"]
 
 
-@pytest.mark.parametrize("bad", ["mapservice-gateway", "mapservice-gateway-0", "mapservice-x", "a/b", "#", ""])
+@pytest.mark.parametrize("bad", ["mapservice-gateway", "mapservice-gateway-0", "mapservice-x", "a/b/c", "#", ""])
 def test_service_names_and_bad_ids_are_refused(registry, bad) -> None:
     """The service's users, the reserved mapservice- prefix (gateways' client ids) and ids outside the robotId rule are never robots."""
     with pytest.raises(ValueError):
