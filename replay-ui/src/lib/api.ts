@@ -6,6 +6,7 @@ import type { Source } from "./buffer";
 import { parseBatch, type ChunkBatch } from "./chunkdecode";
 import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline } from "./types";
 import { authHeaders } from "./auth";
+import type { TrackSample } from "./plots";
 
 export class ApiError extends Error {
   constructor(public status: number, message: string) {
@@ -188,6 +189,13 @@ export class Api implements Source {
     }
     return downsample(await getJson<Pose[]>(
       `${this.base}/api/v1/poses?from=${f}&to=${t}&robotId=${encodeURIComponent(robotId)}&limit=${LIMIT}`), stepMs);
+  }
+
+  /** The robot's track with battery, the first pose of every `stepMs` in [from, to) (the plots). */
+  async trackSamples(robotId: string, fromMs: number, toMs: number, stepMs: number): Promise<TrackSample[]> {
+    const r = await getJson<{ points: TrackSample[] }>(`${this.base}/api/v1/robots/${encodeURIComponent(robotId)}`
+      + `/track?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&step_ms=${stepMs}`);
+    return r.points;
   }
 
   private isRouteMissing(e: ApiError): boolean {
