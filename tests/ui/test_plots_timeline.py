@@ -203,3 +203,38 @@ def test_timeline_reads_counts_and_zooms_back(page, history_stack) -> None:
     assert page.evaluate("() => window.__replay.span()") == list(span)
     assert page.is_disabled('[data-testid="zoom-back"]')
     assert page.errors == []
+
+
+def test_timeline_marks_a_map_upload_where_the_api_lists_it(page, history_stack) -> None:
+    """The timeline asks the change feed for the span's map uploads and draws each as one
+    mark over its writes, named on hover. The loaded history holds no upload (and the
+    session's service is shared by the other UI tests), so the browser is handed one: the
+    API's own answer for the span with one upload entry added."""
+    import json
+
+    stack = history_stack
+    h = stack.history
+    span = (h.end_ms - 60 * 60_000, h.end_ms)
+    up = {"kind": "upload", "ts_ms": span[0] + 20 * 60_000, "row": 0, "column": 0, "robot_id": "floor-uploader",
+          "content_hash": "00" * 32, "previous_hash": None, "chunks": 187, "end_ms": span[0] + 20 * 60_000 + 2_000}
+    asked: list[str] = []
+
+    def with_upload(route):
+        asked.append(route.request.url)
+        body = route.fetch().json()
+        body["changes"] = [up] + body["changes"]
+        route.fulfill(status=200, content_type="application/json", body=json.dumps(body))
+
+    page.route("**/api/v1/changes?kind=upload*", with_upload)
+    open_at(page, stack, f"?t={span[0] + 30 * 60_000}&span={iso(span[0])},{iso(span[1])}")
+    page.wait_for_selector('[data-testid="upload-mark"]', timeout=TIMEOUT_MS)
+    assert any(f"from={span[0]}&to={span[1]}" in u for u in asked), asked
+    mark = page.locator('[data-testid="upload-mark"]')
+    assert mark.count() == 1 and mark.get_attribute("data-ts") == str(up["ts_ms"])
+    width = page.evaluate("() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value")
+    x = (up["ts_ms"] - span[0]) / (span[1] - span[0]) * width
+    assert abs(float(mark.get_attribute("x")) + 1 - x) < 0.01
+    strip = page.locator('[data-testid="timeline-strip"]').bounding_box()
+    page.mouse.move(strip["x"] + x + 0.5, strip["y"] + 20)
+    assert "map upload by floor-uploader: 187 chunks" in page.inner_text('[data-testid="timeline-hover"]')
+    assert page.errors == []
