@@ -238,3 +238,55 @@ def test_timeline_marks_a_map_upload_where_the_api_lists_it(page, history_stack)
     page.mouse.move(strip["x"] + x + 0.5, strip["y"] + 20)
     assert "map upload by floor-uploader: 187 chunks" in page.inner_text('[data-testid="timeline-hover"]')
     assert page.errors == []
+
+
+def test_who_is_who_labels_apart_and_the_selected_robot_in_its_colour(page, history_stack) -> None:
+    """With the map zoomed far out the robots crowd together: no name label overlaps
+    another or another robot's marker, and the selected robot's name is among those
+    shown; its trail is drawn wide in its own colour, the colour of its fleet-list swatch."""
+    stack = history_stack
+    t = stack.history.end_ms - 25 * 60_000
+    robots = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])
+    chosen = robots[-1]
+    open_at(page, stack, f"?t={t}&sel={chosen}&panels=fleet")
+    page.evaluate("() => window.__replay.fitGrid()")
+    zoom = page.evaluate("() => window.__replay.view().zoom")
+    # Zoom out until the markers are within a label's width of one another.
+    for _ in range(8):
+        drawn = page.evaluate("() => window.__replay.drawnRobots()")
+        xs = [d["x"] for d in drawn]
+        ys = [d["y"] for d in drawn]
+        if max(xs) - min(xs) < 40 and max(ys) - min(ys) < 40:
+            break
+        zoom -= 1
+        centre = page.evaluate("() => window.__replay.view()")
+        page.evaluate(f"() => window.__replay.centerOnPixel({-centre['lat']}, {centre['lng']}, {zoom})")
+        page.wait_for_timeout(300)
+    page.wait_for_function("() => window.__replay.drawnLabels().length > 0")
+    labels = page.evaluate("() => window.__replay.drawnLabels()")
+    # drawnRobots() is in page coordinates, the labels in the map's.
+    box = page.locator('[data-testid="map"]').bounding_box()
+    drawn = {d["robotId"]: {"x": d["x"] - box["x"], "y": d["y"] - box["y"]}
+             for d in page.evaluate("() => window.__replay.drawnRobots()")}
+    assert chosen in [lb["robotId"] for lb in labels]
+
+    def overlap(a, b) -> bool:
+        return a["x"] < b["x"] + b["w"] and b["x"] < a["x"] + a["w"] and a["y"] < b["y"] + b["h"] and b["y"] < a["y"] + a["h"]
+
+    for i, a in enumerate(labels):
+        for b in labels[i + 1:]:
+            assert not overlap(a, b), (a, b)
+        for rid, d in drawn.items():
+            if rid != a["robotId"]:
+                marker = {"x": d["x"] - 8, "y": d["y"] - 8, "w": 16, "h": 16}
+                assert not overlap(a, marker), (a, rid)
+    page.wait_for_function("() => { const t = window.__replay.trail(); return t && t.points > 1; }", timeout=TIMEOUT_MS)
+    trail = page.evaluate("() => window.__replay.trail()")
+    swatch = page.evaluate("""([c, id]) => {
+      const d = document.createElement('div'); d.style.color = c; document.body.append(d);
+      const v = getComputedStyle(d).color; d.remove();
+      return [v, getComputedStyle(document.querySelector(`[data-testid=fleet-row][data-robot="${id}"] .dot`)).backgroundColor];
+    }""", [trail["colour"], chosen])
+    assert swatch[0] == swatch[1] and trail["weight"] >= 4
+    screenshot(page, "ui-who-is-who.png")
+    assert page.errors == []
