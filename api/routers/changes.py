@@ -102,6 +102,8 @@ def list_changes(
     x_max: float | None = None, y_min: float | None = None, y_max: float | None = None,
     before: str | None = Query(None, description="The previous page's `next`"),
     limit: int = Query(100, ge=1, le=1000),
+    kind: Literal["change", "upload"] | None = Query(
+        None, description="Only floor changes or only map uploads (the timeline marks uploads)"),
 ) -> ChangePage:
     f, t = parse_window(from_, to, settings.retention_ms)
     box = _chunk_box(store.latest_meta, (row_min, row_max), (col_min, col_max),
@@ -114,7 +116,7 @@ def list_changes(
             raise HTTPException(400, f"'before' ({before!r}) is not a page cursor; pass the "
                                      "`next` of the previous page unchanged") from None
     try:
-        entries = store.change_feed(ChangeQuery(f, t, robot, box, cursor, limit + 1))
+        entries = store.change_feed(ChangeQuery(f, t, robot, box, cursor, limit + 1, kind))
     except WindowTooBusy as e:
         raise HTTPException(422, str(e)) from None
     page = entries[:limit]

@@ -10,6 +10,8 @@ measured before then include that contention).
   time from the seek to the first complete frame (map and robots at T loaded, every
   chunk picture of the map drawn) is read from the page (`window.__replay.seekTimes`).
   The first seek (cold picture cache) is reported apart.
+- panel reads (`--panel-reads`): the plots' track request, the timeline's upload marks and
+  the change feed's first page over 1 h, 1 d and 7 d spans (mapservice/bench/ui_reads.py).
 - frames: `--frame-minutes` of `--frame-robots` robots; the page plays at 8x for
   `--play-seconds` and reports the script time of each animation frame (engine step,
   chunk drawing, robot markers) and the interval between frames.
@@ -366,6 +368,11 @@ def main(args) -> None:
                     out["seek"] = seek_phase(pw, api.url, result.start_ms, result.end_ms,
                                              args.seeks, args.seed)
                     print(json.dumps(out, indent=2), flush=True)
+                if args.panel_reads:
+                    from mapservice.bench.ui_reads import panel_reads_phase
+                    out["panel_reads"] = panel_reads_phase(api.url, result.start_ms, result.end_ms,
+                                                           args.panel_reads, args.seed)
+                    print(json.dumps(out["panel_reads"], indent=2), flush=True)
                 if speeds:
                     out["speeds"] = speeds_phase(pw, api.url, result.start_ms, result.end_ms,
                                                  speeds, args.high_seconds, args.every_write,
@@ -388,6 +395,9 @@ def add_parser(kinds) -> None:
     p.add_argument("--days", type=float, default=7.0, help="history for the seek measurement")
     p.add_argument("--robots", type=int, default=20, help="simulated robots in the history")
     p.add_argument("--seeks", type=int, default=50, help="random seeks timed")
+    p.add_argument("--panel-reads", type=int, default=40,
+                   help="instants per span (1 h, 1 d, 7 d) at which the plots' track request, the timeline's "
+                        "upload marks and the change feed's first page are timed (0: none)")
     p.add_argument("--frame-robots", type=int, default=200, help="robots on the map for the frame-time measurement")
     p.add_argument("--frame-minutes", type=float, default=30.0, help="history minutes played for the frame-time measurement")
     p.add_argument("--play-seconds", type=float, default=10.0, help="seconds of playback timed")

@@ -100,6 +100,7 @@ class ChangeQuery(msgspec.Struct, frozen=True):
     box: ChunkBox | None = None
     before: ChangeCursor | None = None
     limit: int = 100
+    kind: str | None = None  # "change" or "upload": only entries of that kind (the timeline's upload marks)
 
 
 class ChangeEntry(msgspec.Struct, frozen=True, gc=False):
@@ -163,6 +164,8 @@ def page(writes: Iterable[ChunkRow], query: ChangeQuery,
                 query.box is None or query.box.holds(r.row, r.column)):
             entries.append(ChangeEntry("change", r.ts_ms, r.row, r.column, r.robot_id,
                                        r.content_hash, previous.get(id(r)), 1, r.ts_ms))
+    if query.kind is not None:
+        entries = [e for e in entries if e.kind == query.kind]
     entries.sort(key=ChangeEntry.key, reverse=True)
     if query.before is not None:
         b = query.before

@@ -5,7 +5,7 @@ describe("url state", () => {
   it("round-trips time, speed, direction, play and view", () => {
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10, 0, 5), speed: 3600 as const, dir: -1 as const,
       playing: true, view: { zoom: -1.5, lat: -100.5, lng: 200 }, follow: "r-1",
-      layers: null, selected: null, panels: [], area: null, changeRobot: null };
+      layers: null, selected: null, panels: [], area: null, changeRobot: null, span: null, plot: [] };
     expect(parseUrlState(formatUrlState(s))).toEqual({ ...s, tProblem: null });
   });
 
@@ -13,7 +13,8 @@ describe("url state", () => {
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10), speed: 60 as const, dir: 1 as const, playing: false,
       view: null, follow: "sim-001",
       layers: { names: false, battery: true, paths: true, borders: true, info: true, infoMode: "writer" as const, conflicts: false },
-      selected: "sim-001", panels: ["changes", "fleet"], area: [1, 2, 3, 4] as [number, number, number, number], changeRobot: "sim-002" };
+      selected: "sim-001", panels: ["changes", "fleet"], area: [1, 2, 3, 4] as [number, number, number, number], changeRobot: "sim-002",
+      span: null, plot: [] };
     const url = formatUrlState(s);
     expect(url).toContain("layers=battery%2Cpaths%2Cborders%2Cinfo-writer");
     expect(parseUrlState(url)).toEqual({ ...s, tProblem: null });
@@ -23,9 +24,24 @@ describe("url state", () => {
     expect(parseUrlState("?panels=changes,bogus").panels).toEqual(["changes"]);
   });
 
+  it("round-trips the timeline's span, the plots panel and the plotted robots", () => {
+    const span: [number, number] = [Date.UTC(2026, 10, 21, 9, 30), Date.UTC(2026, 10, 21, 10, 15, 30)];
+    const s = { live: false, t: Date.UTC(2026, 10, 21, 10), speed: 1 as const, dir: 1 as const, playing: false,
+      view: null, follow: null, layers: null, selected: "sim-001", panels: ["fleet", "plots"], area: null,
+      changeRobot: null, span, plot: ["sim-002", "sim-003"] };
+    const url = formatUrlState(s);
+    expect(url).toContain("span=2026-11-21T09%3A30%3A00.000Z%2C2026-11-21T10%3A15%3A30.000Z");
+    expect(parseUrlState(url)).toEqual({ ...s, tProblem: null });
+    expect(parseUrlState(`?span=${span[0]},${span[1]}`).span).toEqual(span);
+    // Backwards, under a second, or not times: the default span.
+    expect(parseUrlState(`?span=${span[1]},${span[0]}`).span).toBeNull();
+    expect(parseUrlState("?span=1000,1500").span).toBeNull();
+    expect(parseUrlState("?span=soon,later").span).toBeNull();
+  });
+
   it("live links carry no replay speed or direction", () => {
     const url = formatUrlState({ live: true, t: 5, speed: 3600, dir: -1, playing: true, view: null, follow: null,
-      layers: null, selected: null, panels: [], area: null, changeRobot: null });
+      layers: null, selected: null, panels: [], area: null, changeRobot: null, span: null, plot: [] });
     expect(url).toBe("?live=1");
   });
 

@@ -53,6 +53,14 @@ def test_changes_newest_first_with_before_and_after_and_one_upload(client) -> No
     assert "20 or more chunk writes" in body["upload_rule"]
 
 
+def test_changes_of_one_kind(client) -> None:
+    uploads = _get(client, kind="upload").json()["changes"]
+    assert [(c["kind"], c["robot_id"], c["chunks"]) for c in uploads] == [("upload", "boot", 20)]
+    assert [c["kind"] for c in _get(client, kind="change").json()["changes"]] == ["change"] * 3
+    r = _get(client, kind="floor")
+    assert r.status_code in (400, 422) and "upload" in r.text
+
+
 def test_changes_area_in_chunks_and_in_metres_agree(client) -> None:
     by_chunks = _get(client, row_min=0, row_max=0, col_min=1, col_max=1).json()["changes"]
     assert [(c["kind"], c["robot_id"]) for c in by_chunks] == [

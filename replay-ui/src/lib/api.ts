@@ -6,6 +6,8 @@ import type { Source } from "./buffer";
 import { parseBatch, type ChunkBatch } from "./chunkdecode";
 import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline } from "./types";
 import { authHeaders } from "./auth";
+import type { TrackSample } from "./plots";
+import type { Change } from "./changefeed";
 
 export class ApiError extends Error {
   constructor(public status: number, message: string) {
@@ -188,6 +190,20 @@ export class Api implements Source {
     }
     return downsample(await getJson<Pose[]>(
       `${this.base}/api/v1/poses?from=${f}&to=${t}&robotId=${encodeURIComponent(robotId)}&limit=${LIMIT}`), stepMs);
+  }
+
+  /** The map uploads in [from, to) (newest first, at most 1000), for the timeline's marks. */
+  async uploads(fromMs: number, toMs: number): Promise<Change[]> {
+    const r = await getJson<{ changes: Change[] }>(
+      `${this.base}/api/v1/changes?kind=upload&limit=1000&from=${Math.round(fromMs)}&to=${Math.round(toMs)}`);
+    return r.changes;
+  }
+
+  /** The robot's track with battery, the first pose of every `stepMs` in [from, to) (the plots). */
+  async trackSamples(robotId: string, fromMs: number, toMs: number, stepMs: number): Promise<TrackSample[]> {
+    const r = await getJson<{ points: TrackSample[] }>(`${this.base}/api/v1/robots/${encodeURIComponent(robotId)}`
+      + `/track?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&step_ms=${stepMs}`);
+    return r.points;
   }
 
   private isRouteMissing(e: ApiError): boolean {

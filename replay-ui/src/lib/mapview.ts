@@ -113,8 +113,10 @@ export class MapView {
     this.robots.update(robots);
   }
 
-  showTrail(points: { x: number; y: number }[]): void {
+  /** The selected robot's recent track, wide and in the robot's own colour (its marker ring and path's). */
+  showTrail(points: { x: number; y: number }[], colour = "#1f6feb"): void {
     const meta = this.meta;
+    this.trail.setStyle({ color: colour, weight: 4, opacity: 0.85 });
     this.trail.setLatLngs(meta ? points.map((p) => metresToLatLng(meta, p.x, p.y)) : []);
   }
 

@@ -1,14 +1,19 @@
 /**
  * What the timeline strip draws for each bucket of /api/v1/timeline: a bar for its chunk
- * changes (scaled to the busiest bucket), a conflict mark, and a thin band where robots
- * reported. Without the band an hour of robots driving but no map change looked like an
- * hour without history.
+ * changes, a conflict mark, and a thin band where robots reported (without the band an hour
+ * of robots driving but no map change looked like an hour without history); and the
+ * labelled time axis under it.
+ *
+ * Bars are on a square-root scale with a floor: a 187-chunk map upload next to buckets of
+ * one or two changes left those under 1.5 px on a linear scale, invisible. Here a bucket
+ * with one change is at least MIN_BAR_PX tall and its height still grows with its count.
  *
  * Pure: the strip passes its time-to-pixel mapping in.
  */
-import type { Timeline } from "./types";
+import type { Timeline, TimelineBucket } from "./types";
 
 export const BAR_MAX_PX = 36;
+export const MIN_BAR_PX = 3;
 
 export interface StripMark {
   x: number;
@@ -18,13 +23,63 @@ export interface StripMark {
   active: boolean; // at least one robot reported a pose in the bucket
 }
 
+export function barHeight(count: number, max: number): number {
+  if (count <= 0) return 0;
+  return MIN_BAR_PX + (BAR_MAX_PX - MIN_BAR_PX) * Math.sqrt(count / Math.max(1, max));
+}
+
 export function stripMarks(tl: Timeline, xOf: (t: number) => number): StripMark[] {
   const max = Math.max(1, ...tl.buckets.map((b) => b.chunk_changes));
   return tl.buckets.map((b) => ({
     x: xOf(b.start_ms),
     w: Math.max(1, xOf(b.start_ms + tl.bucket_ms) - xOf(b.start_ms) - 0.5),
-    h: (b.chunk_changes / max) * BAR_MAX_PX,
+    h: barHeight(b.chunk_changes, max),
     conflicts: b.conflicts,
     active: b.robots_active > 0,
   }));
+}
+
+/** The bucket holding `t`, or null outside the loaded timeline. */
+export function bucketAt(tl: Timeline, t: number): TimelineBucket | null {
+  const i = Math.floor((t - tl.from_ms) / tl.bucket_ms);
+  const b = tl.buckets[i];
+  return b && b.start_ms <= t && t < b.start_ms + tl.bucket_ms ? b : null;
+}
+
+/** "3 chunk changes · 1 conflict · 2 robots active" for the hover read-out. */
+export function bucketText(b: TimelineBucket): string {
+  const n = (k: number, one: string, many: string) => `${k} ${k === 1 ? one : many}`;
+  return [n(b.chunk_changes, "chunk change", "chunk changes"), n(b.conflicts, "conflict", "conflicts"),
+    n(b.robots_active, "robot active", "robots active")].join(" · ");
+}
+
+const SECOND = 1000;
+const MINUTE = 60 * SECOND;
+const HOUR = 60 * MINUTE;
+const DAY = 24 * HOUR;
+const STEPS = [SECOND, 5 * SECOND, 10 * SECOND, 30 * SECOND, MINUTE, 5 * MINUTE, 10 * MINUTE, 15 * MINUTE,
+  30 * MINUTE, HOUR, 2 * HOUR, 3 * HOUR, 6 * HOUR, 12 * HOUR, DAY];
+
+export interface Tick {
+  t: number;
+  label: string;
+}
+
+/**
+ * Axis ticks on round UTC instants, at least `minGapPx` apart: "14:05" within a day,
+ * "11-24 14:00" where the span crosses days, "14:05:30" below a minute; a tick at
+ * midnight names its day.
+ */
+export function timeTicks(from: number, to: number, widthPx: number, minGapPx = 90): Tick[] {
+  const span = Math.max(1, to - from);
+  const step = STEPS.find((s) => (s / span) * widthPx >= minGapPx) ?? DAY * Math.ceil((span / widthPx) * minGapPx / DAY);
+  const ticks: Tick[] = [];
+  for (let t = Math.ceil(from / step) * step; t <= to; t += step) {
+    const iso = new Date(t).toISOString();
+    const day = iso.slice(5, 10);
+    const time = step < MINUTE ? iso.slice(11, 19) : iso.slice(11, 16);
+    const label = step >= DAY || (t % DAY === 0) ? `${day} ${time}` : span > DAY ? `${day} ${time}` : time;
+    ticks.push({ t, label });
+  }
+  return ticks;
 }

@@ -16,6 +16,10 @@ export interface UrlState {
   panels: string[];
   area: [number, number, number, number] | null;
   changeRobot: string | null;
+  /** The timeline's span [from, to) in epoch ms (null: the last hour), which the change feed
+   * lists and the plots show; and the robots plotted. */
+  span: [number, number] | null;
+  plot: string[];
   /** What was wrong with the address's `t`, to tell the user (null: nothing). */
   tProblem: string | null;
 }
@@ -72,11 +76,23 @@ export function parseUrlState(search: string): UrlState {
     follow: q.get("follow"),
     layers: q.has("layers") ? parseLayers(q.get("layers") ?? "") : null,
     selected: q.get("sel"),
-    panels: (q.get("panels") ?? "").split(",").filter((p) => p === "changes" || p === "fleet" || p === "conflicts"),
+    panels: (q.get("panels") ?? "").split(",").filter((p) => (PANELS as readonly string[]).includes(p)),
     area: parseArea(q.get("area")),
     changeRobot: q.get("crobot"),
+    span: parseSpan(q.get("span")),
+    plot: (q.get("plot") ?? "").split(",").filter(Boolean),
     tProblem,
   };
+}
+
+/** The side panels a link can open. */
+export const PANELS = ["changes", "fleet", "conflicts", "plots"] as const;
+
+/** "2026-11-24T13:00:00Z,2026-11-24T14:00:00Z" (or epoch ms): a span of at least a second. */
+function parseSpan(v: string | null): [number, number] | null {
+  const ends = v?.split(",").map((x) => (/^\d+$/.test(x) ? Number(x) : Date.parse(x)));
+  return ends && ends.length === 2 && ends.every(Number.isFinite) && ends[1] - ends[0] >= 1000
+    ? (ends as [number, number]) : null;
 }
 
 function parseArea(v: string | null): [number, number, number, number] | null {
@@ -113,6 +129,8 @@ export function formatUrlState(s: Omit<UrlState, "tProblem">): string {
   if (s.panels.length) q.set("panels", s.panels.join(","));
   if (s.area) q.set("area", s.area.join(","));
   if (s.changeRobot) q.set("crobot", s.changeRobot);
+  if (s.span) q.set("span", s.span.map((t) => new Date(Math.round(t)).toISOString()).join(","));
+  if (s.plot.length) q.set("plot", s.plot.join(","));
   return `?${q.toString()}`;
 }
 

@@ -910,6 +910,19 @@ def test_change_feed_upload_shows_in_an_area_it_touched(store, ev, t0) -> None:
     assert _feed(store, t0, box=ChunkBox(5, 6, 0, 9)) == []
 
 
+def test_change_feed_lists_one_kind_when_asked(store, ev, t0) -> None:
+    """kind="upload" lists the uploads alone (the timeline's marks), kind="change" the floor
+    changes alone; paging works within a kind."""
+    from mapservice.core.change_feed import ChangeCursor
+    store.append(_upload(ev, "up-a", t0 + 1000, 25) + _upload(ev, "up-b", t0 + 600_000, 22))
+    store.append([ev.chunk("r1", t0 + 300_000 + 1000 * i, 7, i, bytes([90 + i]) * 10_000) for i in range(3)])
+    assert [(e.kind, e.robot_id, e.chunks) for e in _feed(store, t0, kind="upload")] == [
+        ("upload", "up-b", 22), ("upload", "up-a", 25)]
+    assert [(e.kind, e.column) for e in _feed(store, t0, kind="change")] == [("change", 2), ("change", 1), ("change", 0)]
+    first = _feed(store, t0, kind="upload", limit=1)
+    assert [e.robot_id for e in _feed(store, t0, kind="upload", before=ChangeCursor(*first[0].key()))] == ["up-a"]
+
+
 def test_change_feed_refuses_a_window_with_too_many_writes(store, ev, t0, monkeypatch) -> None:
     """More writes than the feed reads at once: WindowTooBusy, not minutes of work."""
     from mapservice.core import change_feed

@@ -114,3 +114,16 @@ def test_expected_state_at_a_bucket_boundary_is_the_exact_map_both_ways(served_h
     assert len(crossed) == len(store.chunk_events_compacted(p1 + 1, t0 + 3_400_001, step)) > 0
     state, crossed = expected_at("", p0, p1, 0)
     assert state == exact and len(crossed) == len(store.chunk_events(p0 + 1, p1 + 1))
+
+
+def test_panel_reads_ask_for_the_track_as_the_plot_panel_does() -> None:
+    """The benchmark's track request is the page's (replay-ui/tests/plots.test.ts has the
+    same cases): about a sample every two pixels, whole seconds, and whole minutes from a
+    whole minute over long spans."""
+    from mapservice.bench.ui_reads import plot_window
+
+    assert plot_window(0, 3_600_000, 1200) == (0, 6000)
+    assert plot_window(0, 60_000, 1200) == (0, 1000)
+    start = 1_795_255_242_005  # 2026-11-21T10:00:42.005Z
+    assert plot_window(start, start + 7 * 86_400_000, 1000) == (start // 60_000 * 60_000, 1_260_000)
+    assert plot_window(start, start + 3_600_000, 1200) == (start, 6000)
