@@ -61,6 +61,10 @@ class ProcessorsStatus:
     def __call__(self) -> bool:
         return self._check()
 
+    def nowait(self) -> bool | None:
+        """The answer without waiting (the API's probes call it on the event loop)."""
+        return self._check.nowait()
+
     def status(self) -> dict:
         """storing, failing_since_ms, last_stored_ms, reason (insert_health's shape)."""
         self._check()

@@ -39,8 +39,13 @@ def test_the_api_apart_reports_a_full_disk_as_the_processors_see_it() -> None:
     server, url = processors_health(health)
     try:
         status = ProcessorsStatus(url, ttl_s=0.0)
+        assert status.nowait() is None  # no answer yet: the probe asks in its own thread
         assert status() is True and status.status()["storing"] is True
+        assert status.nowait() is True  # then at once, from the event loop
         health.failed(RuntimeError("Cannot reserve 1.00 MiB, not enough space. (NOT_ENOUGH_SPACE)"))
+        deadline = time.monotonic() + 10  # a probe keeps the last answer while a refresh runs
+        while status() and time.monotonic() < deadline:
+            time.sleep(0.05)
         report = probe_report({"history_store": status})
         assert report["ok"] is False
         assert "NOT_ENOUGH_SPACE" in report["reasons"]["history_store"]
