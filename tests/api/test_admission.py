@@ -30,10 +30,10 @@ class StuckStore(MemoryStore):
         self.release = threading.Event()
         self.entered = 0
 
-    def robots_at(self, at_ms: int):
+    def robots_at(self, at_ms: int, after=None, limit=None):
         self.entered += 1
         self.release.wait(30)
-        return super().robots_at(at_ms)
+        return super().robots_at(at_ms, after=after, limit=limit)
 
 
 def client_at(app, address: str) -> httpx.AsyncClient:
