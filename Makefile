@@ -5,23 +5,23 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: up test test-unit bench system-deps mosquitto java clean ui test-ui lock
+.PHONY: up test test-unit lint bench system-deps mosquitto java clean ui test-ui lock
 
-# Pinned, hash-checked dependencies (requirements-dev.lock: the product, the embedded extra
-# and the test tools), then the project itself. Regenerate the locks after changing
+# Pinned, hash-checked dependencies (requirements-dev.lock: the product, the embedded extra,
+# the test tools and the linters), then the project itself. Regenerate the locks after changing
 # pyproject.toml's dependencies: `make lock` (pip-tools).
 $(STAMP): pyproject.toml requirements-dev.lock
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet --require-hashes -r requirements-dev.lock
-	$(PY) -m pip install --quiet --no-deps -e '.[embedded,test]'
+	$(PY) -m pip install --quiet --no-deps -e '.[embedded,test,lint]'
 	touch $(STAMP)
 
 # The production lock is constrained by the dev lock: the image runs the versions CI tested.
 lock:
 	$(PY) -m pip install --quiet pip-tools
 	$(PY) -m piptools compile --quiet --generate-hashes --strip-extras --allow-unsafe --no-emit-index-url \
-	  --no-emit-find-links --extra embedded --extra test -o requirements-dev.lock pyproject.toml
+	  --no-emit-find-links --extra embedded --extra test --extra lint -o requirements-dev.lock pyproject.toml
 	$(PY) -m piptools compile --quiet --generate-hashes --strip-extras --allow-unsafe --no-emit-index-url \
 	  --no-emit-find-links -c requirements-dev.lock -o requirements.lock pyproject.toml
 
@@ -95,6 +95,12 @@ test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
 	$(PY) -m pytest $(ARGS)
+
+# ruff's lint rules over the Python tree and mypy (strict on mapservice/core/), as configured
+# in pyproject.toml; `.ci/run` runs it before the tests.
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 test-unit: $(STAMP)
 	$(PY) -m pytest -m "not integration" $(ARGS)

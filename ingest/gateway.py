@@ -112,7 +112,7 @@ class Ingestor:
             self._publish(record, delivery)
         return record
 
-    def _delivered(self, delivery: "_Delivery") -> None:
+    def _delivered(self, delivery: _Delivery) -> None:
         delivery.ack()
         with self._lock:
             self._in_flight -= 1
@@ -189,7 +189,7 @@ class _Delivery:
     messages a second those collections were ~12 % of the gateway's CPU (BENCHMARKS.md).
     """
 
-    __slots__ = ("ingestor", "ack", "started", "record", "outcome")
+    __slots__ = ("ack", "ingestor", "outcome", "record", "started")
 
     def __init__(self, ingestor: Ingestor, ack: Callable[[], object], started: float) -> None:
         self.ingestor = ingestor

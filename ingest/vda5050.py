@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import math
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import msgspec
@@ -37,7 +37,7 @@ SUBTOPICS = ("state", "visualization", "connection", "factsheet")
 CONNECTION_STATES = ("ONLINE", "OFFLINE", "CONNECTIONBROKEN")
 MAX_VEHICLES = 100_000  # vehicles whose last state is held for their visualization poses
 
-@lru_cache(maxsize=None)
+@cache
 def validator(version: str, subtopic: str) -> Draft202012Validator:
     schema = json.loads((SCHEMA_DIR / version / f"{subtopic}.schema").read_text())
     return Draft202012Validator(schema)

@@ -231,7 +231,7 @@ class Settings(BaseSettings):
     snapshot_every_s: float = Field(600.0, ge=1, description="Snapshot interval of map and robots.")
     snapshot_grace_s: float = Field(60.0, ge=0, description="Snapshot S is built once now > S + grace.")
 
-    # Live views, advertisements, conflicts, clock skew (issue 3)
+    # Live views, advertisements, conflicts, clock skew (the 2019 document's ideas I.3, I.4)
     advertisement_topic: str = Field("iot/chunks/advertisement",
                                      description="2019 NEW_CHUNK_ADVERTISEMENT_TOPIC.")
     public_base_url: str = Field("http://127.0.0.1:8080",
@@ -331,7 +331,7 @@ class Settings(BaseSettings):
         "closed with 1008 and a reason."))
 
     @model_validator(mode="after")
-    def _check_tls_and_topics(self) -> "Settings":
+    def _check_tls_and_topics(self) -> Settings:
         for hop, cert, key in (("MQTT", self.mqtt_cert_file, self.mqtt_key_file),
                                ("KAFKA_SSL", self.kafka_ssl_cert_file, self.kafka_ssl_key_file),
                                ("CLICKHOUSE", self.clickhouse_cert_file, self.clickhouse_key_file)):
@@ -355,7 +355,7 @@ class Settings(BaseSettings):
         return self
 
     @model_validator(mode="after")
-    def _refuse_default_secrets(self) -> "Settings":
+    def _refuse_default_secrets(self) -> Settings:
         robot_tokens(self.api_robot_tokens)  # malformed pairs: refused in every mode
         if self.mode == "production":
             admin = self.admin_token.get_secret_value()

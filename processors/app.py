@@ -54,7 +54,7 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         producer_partitioner=None,
         topic_replication_factor=settings.kafka_replication,
     )
-    # Live views (issue 3): latest map + advertisements, robots, conflicts.
+    # Live views: latest map + advertisements, robots, conflicts.
     # The service's clock (the wall clock unless settings simulate one): the timers, the
     # retention step and the views all read it.
     now_ms = clock_from_settings(settings).now_ms

@@ -6,7 +6,7 @@ windows cut every event's wait. Which matters depends on the load, and the store
 duration says which: at 1,000 robots a batch is stored in ~45 ms, and this rule took
 ~50 ms off the median latency and ~30 ms off the p99 for 14 % of a core; at 5,000 robots
 a store takes ~100 ms and more, and there CPU is what the whole stack lacks (BENCHMARKS.md,
-issue 16). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
+live ingest). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
 stores are quick, growing to the longest window as they slow down (a busier machine makes
 them slower too, so the loop backs off exactly when CPU gets scarce).
 """

@@ -61,7 +61,7 @@ def observe_stored(topic: str, events: Sequence, now_ms: int) -> None:
         receive_hist.observe(max(0.0, (now_ms - e.receive_time_ms) / 1000))
 
 
-async def store_values(sink: "HistorySink", views: "LiveViews | None",
+async def store_values(sink: HistorySink, views: LiveViews | None,
                        values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int,
                        clock_ms: Callable[[], int] = SystemClock().now_ms) -> list:
     """Decodes a batch, stores its events in one append, then feeds the live stream and
@@ -119,7 +119,7 @@ class HistoryConsumer:
     re-delivers up to that much more (stored once: the history's identities absorb it).
     """
 
-    def __init__(self, source: EventSource, sink: "HistorySink", views: "LiveViews | None",
+    def __init__(self, source: EventSource, sink: HistorySink, views: LiveViews | None,
                  batch_size: int, batch_seconds: float, min_batch_seconds: float | None = None,
                  now_ms: Callable[[], int] = SystemClock().now_ms,
                  monotonic: Callable[[], float] = time.monotonic,

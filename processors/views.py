@@ -156,7 +156,7 @@ class LiveViews:
 
     # --- in the event loop ----------------------------------------------------------------
 
-    async def on_stored(self, sink: "HistorySink", events: Sequence[Envelope]) -> None:
+    async def on_stored(self, sink: HistorySink, events: Sequence[Envelope]) -> None:
         """After a batch is in the history, before it is acknowledged."""
         if not self.loaded:
             # The rebuild at assignment failed: rebuild now (this batch is in it already,
@@ -211,18 +211,18 @@ class LiveViews:
         ROBOTS_ONLINE.set(len(online))
         return came, went
 
-    async def write_conflicts_until_done(self, sink: "HistorySink") -> None:
+    async def write_conflicts_until_done(self, sink: HistorySink) -> None:
         """`write_conflicts` on the store thread, retried until it succeeds."""
         if len(self.unwritten):  # nothing to hand to the store thread
             await self._until_done(sink, lambda _: self.write_conflicts(), None)
 
-    async def _until_done(self, sink: "HistorySink", fn, batch) -> None:
+    async def _until_done(self, sink: HistorySink, fn, batch) -> None:
         # Retried: acknowledging the batch without its conflicts and views would lose them.
         async for attempt in until_done("live views update", 0.2):
             with attempt:
                 await sink.run(fn, batch)
 
-    async def rebuild(self, sink: "HistorySink") -> None:
+    async def rebuild(self, sink: HistorySink) -> None:
         """After a partition assignment, before any event of it is applied: the views as the
         history holds them, and the advertiser running."""
         # Submitted to the store thread before any batch of the new assignment is inserted
@@ -238,9 +238,9 @@ class LiveViews:
     # --- wiring ---------------------------------------------------------------------------
 
     @classmethod
-    def attach(cls, app: "faust.App", settings: Settings, sink: "HistorySink",
+    def attach(cls, app: faust.App, settings: Settings, sink: HistorySink,
                advertiser: Advertiser | None = None,
-               now_ms: Callable[[], int] = SystemClock().now_ms) -> "LiveViews":
+               now_ms: Callable[[], int] = SystemClock().now_ms) -> LiveViews:
         """Views for a faust app: the history consumer rebuilds them on every partition
         assignment (`rebuild`), the advertiser stops with the app, presence is checked each second."""
         if advertiser is None:

@@ -65,7 +65,7 @@ class LocalMap:
     known: dict[tuple[int, int], tuple[bytes, bytes]] = field(default_factory=dict)  # hash, pixels
 
     @classmethod
-    def of(cls, ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100) -> "LocalMap":
+    def of(cls, ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100) -> LocalMap:
         local = cls(ros_map.pixels.copy(), meta_for(ros_map, chunk_width, chunk_height),
                     ros_map.unknown_value)
         local.mark_all_known()

@@ -59,7 +59,7 @@ class PublishTemplate:
     """QoS 1 PUBLISHes of `prefix + field + suffix` on one topic, the field (a timestamp)
     filled per message: the topic, payload and header are encoded once."""
 
-    __slots__ = ("_topic", "prefix", "suffix", "_headers")
+    __slots__ = ("_headers", "_topic", "prefix", "suffix")
 
     def __init__(self, topic: str, prefix: bytes, suffix: bytes) -> None:
         self._topic = _string(topic)

@@ -102,7 +102,7 @@ def largest_component(ok: np.ndarray) -> np.ndarray:
     """The biggest 4-connected set of ok cells (stations go there so all are reachable).
     Components are found in row-major order of their first cell; on a tie in size the
     first found wins. A breadth-first search over a framed flat list (see `ok_padded`)."""
-    h, w = ok.shape
+    _h, w = ok.shape
     pw = w + 2
     free = np.pad(ok, 1, constant_values=False).ravel().tolist()
     seen = [False] * len(free)

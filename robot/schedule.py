@@ -1,11 +1,11 @@
 """When a simulated robot sends its chunk: the 2019 workload's one chunk every five poses.
 
 Each robot's chunks are offset by its index in the fleet, so a fleet's chunks spread evenly
-over the chunk period, as those of robots started at different moments do. Until session
-17 every robot sent its chunk after the same pose: the whole fleet's chunks fell into one
-second of every five, at 5,000 robots 10,000 events/s in that second and 5,000 in the four
-after it, not a steady 6,000 (BENCHMARKS.md, issue 16). `aligned` keeps that burst
-schedule for stress runs.
+over the chunk period, as those of robots started at different moments do. Were every robot
+to send its chunk after the same pose, the whole fleet's chunks would fall into one second
+of every five: at 5,000 robots 10,000 events/s in that second and 5,000 in the four after
+it, not a steady 6,000 (the load fleet did so once, and its latency figures measured the
+burst: docs/benchmarks-journal.md). `aligned` keeps that burst schedule for stress runs.
 """
 
 from __future__ import annotations

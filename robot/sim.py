@@ -269,7 +269,7 @@ def _next_task(state: SimState, robot: Robot, rng: random.Random) -> Robot:
     else:
         options = [("to_pick", i, c) for i, c in enumerate(state.stations) if i != robot.target]
     rng.shuffle(options)
-    if robot.task == "to_charger" or options and options[0][0] == "to_charger":
+    if robot.task == "to_charger" or (options and options[0][0] == "to_charger"):
         here = robot.pos
         options.sort(key=lambda o: math.dist(here, state.grid.centre_px(o[2])))
     for task, index, cell in options[:3]:

@@ -102,7 +102,7 @@ def get_chunk_contents_batch(
     cache: ContentCache = Depends(get_cache),
 ) -> Response:
     if not hashes:
-        raise HTTPException(400, "hashes is empty; send 1 to %d content hashes" % BATCH_MAX)
+        raise HTTPException(400, f"hashes is empty; send 1 to {BATCH_MAX} content hashes")
     if len(hashes) > BATCH_MAX:
         raise HTTPException(
             400, f"{len(hashes)} hashes in one batch; send at most {BATCH_MAX} per request")

@@ -55,7 +55,7 @@ def parse_instant_ms(text: str, name: str) -> int:
         raise ValueError(f"{name}={text!r} is neither epoch milliseconds nor an ISO 8601 instant "
                          "(e.g. 2026-01-01T00:00:00Z)") from None
     if parsed.tzinfo is None:
-        parsed = parsed.replace(tzinfo=dt.timezone.utc)
+        parsed = parsed.replace(tzinfo=dt.UTC)
     return int(parsed.timestamp() * 1000)
 
 

@@ -31,7 +31,7 @@ STATS_INTERVAL_MS = 5000
 # past the next expected offset means records this consumer has not seen (a compacted topic,
 # such as the map meta's, has gaps by design and is not checked). tansu makes that
 # happen: with two producers writing one partition, a batch can become readable after a
-# later one, and a reader already past it never gets it (README, "Embedded mode"). The
+# later one, and a reader already past it never gets it (docs/embedded.md). The
 # partition is read again from the first missing offset, up to GAP_REREADS times in a row;
 # a gap still there after that is taken as real (records deleted under the reader) and logged.
 GAP_REREADS = 5

@@ -34,7 +34,7 @@ from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 
 
 def _iso_day(ms: int) -> str:
-    return datetime.datetime.fromtimestamp(ms / 1000, datetime.timezone.utc).date().isoformat()
+    return datetime.datetime.fromtimestamp(ms / 1000, datetime.UTC).date().isoformat()
 
 
 def _mm(v: float) -> float:

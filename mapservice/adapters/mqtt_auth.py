@@ -92,7 +92,7 @@ class AclTopics:
     vda_interface: str = "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> "AclTopics":
+    def from_settings(cls, settings: Settings) -> AclTopics:
         def prefix(topic_filter: str) -> str:
             return topic_filter.rstrip("#+").rstrip("/") + "/"
 
@@ -202,7 +202,7 @@ class BrokerFiles:
     processors_user: str = PROCESSORS_USER
 
     @classmethod
-    def in_data_dir(cls, data_dir: Path, settings: Settings | None = None) -> "BrokerFiles":
+    def in_data_dir(cls, data_dir: Path, settings: Settings | None = None) -> BrokerFiles:
         """The embedded mode's files: DATA_DIR/mqtt/passwd and DATA_DIR/mqtt/acl."""
         topics = AclTopics.from_settings(settings) if settings else AclTopics()
         return cls(Path(data_dir) / "mqtt" / "passwd", Path(data_dir) / "mqtt" / "acl", topics)

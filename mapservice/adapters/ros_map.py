@@ -47,7 +47,7 @@ class RosMap:
         """The pixel value map_saver writes for 'unknown' under this map's negate flag."""
         return UNKNOWN if not self.negate else 255 - UNKNOWN
 
-    def with_pixels(self, pixels: np.ndarray) -> "RosMap":
+    def with_pixels(self, pixels: np.ndarray) -> RosMap:
         return replace(self, pixels=pixels)
 
 

@@ -17,12 +17,13 @@ def add_bench_parser(sub) -> None:
                         help="seconds between the latency poller's API reads")
     ingest.add_argument("--loadgen", choices=["raw", "paho"], default="raw",
                         help="the load fleet: raw = pre-encoded MQTT packets from worker processes "
-                             "(robot/rawfleet.py), paho = one paho client (robot/loadgen.py, the "
-                             "generator before issue 16)")
+                             "(robot/rawfleet.py), paho = one paho client (robot/loadgen.py: its own "
+                             "CPU limits the fleet long before the stack's)")
     ingest.add_argument("--aligned-chunks", action="store_true",
                         help="every robot sends its chunk (one per five poses) after the same pose: "
-                             "the fleet's chunks burst in one second of five (the schedule before "
-                             "session 17); default: spread evenly, robot i's cycle offset by i poses")
+                             "the fleet's chunks burst in one second of five (a stress schedule; real "
+                             "robots start at different moments); default: spread evenly, robot "
+                             "i's cycle offset by i poses")
     ingest.add_argument("--loadgen-processes", type=int, default=None,
                         help="raw load fleet: worker processes (default: one per 4,000 robots)")
     ingest.add_argument("--gateways", type=int, default=1,

@@ -25,7 +25,7 @@ import time
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from datetime import date, datetime, timezone
+from datetime import date, datetime, UTC
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +65,7 @@ def circle_centres(ros_map: RosMap, radius_m: float = RADIUS_M) -> np.ndarray:
     py = np.floor(ros_map.height - (free[:, 1] - oy) / res).astype(np.int64)
     r = radius_m / res
     slack = math.sqrt(0.5) + 0.001 / res + 0.01
-    reach = int(math.ceil(r + slack))
+    reach = math.ceil(r + slack)
     dy, dx = np.mgrid[-reach:reach + 1, -reach:reach + 1]
     ring = np.abs(np.hypot(dx, dy) - r) <= slack
     ys = py[:, None] + dy[ring][None, :]
@@ -288,7 +288,7 @@ def parse_end(text: str | None) -> int:
         return int(text)
     dt = datetime.fromisoformat(text)
     if dt.tzinfo is None:
-        dt = dt.replace(tzinfo=timezone.utc)
+        dt = dt.replace(tzinfo=UTC)
     return int(dt.timestamp() * 1000)
 
 
@@ -302,7 +302,7 @@ def plan_window(days: float, end_ms: int, retention_days: int,
     if end_ms > now_ms + 1000:
         raise ValueError("--end lies in the future; history ends at the latest now")
     end = end_ms // 1000 * 1000
-    start = end - int(round(days * DAY_MS)) // 1000 * 1000
+    start = end - round(days * DAY_MS) // 1000 * 1000
     earliest = -(-(now_ms - retention_days * DAY_MS + TTL_GUARD_MS) // 1000) * 1000
     if start < earliest:
         notes.append(
@@ -436,7 +436,8 @@ def main(args) -> None:
         raise SystemExit(f"load-history: {exc}") from None
     finally:
         store.close()
-    fmt = lambda ms: datetime.fromtimestamp(ms / 1000, timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
+    def fmt(ms):
+        return datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%d %H:%M:%S")
     for note in result.notes:
         console.print(f"[yellow]note:[/yellow] {note}")
     console.print(

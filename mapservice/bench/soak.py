@@ -9,7 +9,7 @@ pipeline's latency). A component that exits ends the run as a failure, with its 
 
 The summary fits a line through each component's memory after the first tenth of the run
 (start-up and caches filling) and states its growth per hour. tansu keeps every record in
-memory (no retention, README "Embedded mode"), so its growth is expected: it is reported
+memory (no retention, docs/embedded.md), so its growth is expected: it is reported
 per stored event, with what a day and a week at this load would hold. Every other
 component's growth of anonymous memory (resident minus file-backed pages, which are mapped
 code such as chDB's library: bounded and reclaimable) is checked against
@@ -32,7 +32,7 @@ import psutil
 from mapservice.bench.procstat import cpu_seconds, resident_mb
 
 HOUR_S = 3600.0
-EXPECTED_TO_GROW = {"kafka"}  # tansu: memory storage, every record kept (README "Embedded mode")
+EXPECTED_TO_GROW = {"kafka"}  # tansu: memory storage, every record kept (docs/embedded.md)
 
 
 def growth_per_hour(times_s: list[float], values: list[float]) -> float | None:

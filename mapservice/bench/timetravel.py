@@ -42,7 +42,7 @@ import random
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 from pathlib import Path
 
 import numpy as np
@@ -233,7 +233,7 @@ def load(store, args, data_dir: Path, console, busy_at_start: list[str]) -> dict
         "generate_s": result.generate_s, "insert_s": result.insert_s, "load_s": result.load_s,
         "snapshots_one_by_one": one_by_one, "one_by_one_s": one_by_one_s,
         "snapshots_bulk": bulk, "bulk_s": bulk_s, "optimize_s": optimize_s,
-        "notes": result.notes, "loaded_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "notes": result.notes, "loaded_at": datetime.now(UTC).isoformat(timespec="seconds"),
         "busy_during_load": sorted(set(busy_at_start) | set(busy_processes())),
     }
     info_path.write_text(json.dumps(info, indent=2))
@@ -529,7 +529,7 @@ def main(args) -> None:
         results["storage"] = store.storage_bytes()
     finally:
         store.close()
-    results["finished"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    results["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
 
     table = Table(title=f"time travel: {results['load'].get('days')} days x "
                         f"{results['load'].get('robots')} robots")
@@ -580,5 +580,6 @@ def add_parser(kinds) -> None:
                     "(bench ingest, tansu, mosquitto) to end")
     tt.add_argument("--json", default=None, help="write the results as JSON to this file")
     tt.add_argument("--benchmarks-md", default=None,
-                    help="append a section to this file (e.g. BENCHMARKS.md)")
+                    help="append a section to this file (e.g. docs/benchmarks-journal.md; "
+                         "BENCHMARKS.md quotes the latest run)")
     tt.set_defaults(func=main, command_line=None)

@@ -49,7 +49,7 @@ MAX_WRITES = 300_000
 class WindowTooBusy(ValueError):
     """The window holds more than MAX_WRITES chunk writes."""
 
-    def __init__(self, query: "ChangeQuery") -> None:
+    def __init__(self, query: ChangeQuery) -> None:
         hours = (query.to_ms - query.from_ms) / 3_600_000
         super().__init__(
             f"the {hours:.1f} h window holds more than {MAX_WRITES:,} chunk writes, more than "
@@ -80,7 +80,7 @@ class ChangeCursor(msgspec.Struct, frozen=True):
         return f"{self.ts_ms}:{self.row}:{self.column}:{self.robot_id}"
 
     @classmethod
-    def decode(cls, text: str) -> "ChangeCursor":
+    def decode(cls, text: str) -> ChangeCursor:
         """Raises ValueError on anything `encode` did not write."""
         ts, row, column, robot = text.split(":", 3)
         if not robot:
@@ -180,12 +180,13 @@ def chunks_needing_earlier(writes: Sequence[ChunkRow], query: ChangeQuery) -> se
 def _uploads(rows: Sequence[ChunkRow]) -> dict[int, tuple[ChunkRow, ChunkRow, int]]:
     """id(write) -> (first, last, size) of its run, for the writes in runs that are uploads."""
     by_robot: dict[str, list[ChunkRow]] = {}
-    for r in rows:
-        by_robot.setdefault(r.robot_id, []).append(r)
+    for row in rows:
+        by_robot.setdefault(row.robot_id, []).append(row)
     out: dict[int, tuple[ChunkRow, ChunkRow, int]] = {}
     for writes in by_robot.values():
         run: list[ChunkRow] = []
-        for r in writes + [None]:  # type: ignore[list-item]
+        ends: list[ChunkRow | None] = [*writes, None]  # None closes the last run
+        for r in ends:
             if r is not None and (not run or r.ts_ms - run[-1].ts_ms <= UPLOAD_GAP_MS):
                 run.append(r)
                 continue

@@ -25,6 +25,9 @@ from collections.abc import Iterable
 
 from mapservice.core.ports import ChunkRow, ConflictRow
 
+# A write's identity: (event time, row, column, robot id).
+Identity = tuple[int, int, int, str]
+
 
 def _order(w: ChunkRow) -> tuple[int, str]:
     return (w.ts_ms, w.robot_id)
@@ -69,7 +72,7 @@ def affected_conflicts(new: Iterable[ChunkRow], stored: Iterable[ChunkRow],
     load test keeps ~130 writes per chunk within the window).
     """
     by_chunk = _by_chunk(stored)
-    out: dict[tuple, ConflictRow] = {}
+    out: dict[Identity, ConflictRow] = {}
     for chunk, news in _by_chunk(new).items():
         writes = sorted(by_chunk.get(chunk, ()), key=_order)
         _affected_in_chunk(news, writes, [_order(w) for w in writes], window_ms, out)
@@ -84,10 +87,10 @@ def _by_chunk(writes: Iterable[ChunkRow]) -> dict[tuple[int, int], list[ChunkRow
 
 
 def _affected_in_chunk(news: list[ChunkRow], writes: list[ChunkRow], keys: list[tuple[int, str]],
-                       window_ms: int, out: dict[tuple, ConflictRow]) -> None:
+                       window_ms: int, out: dict[Identity, ConflictRow]) -> None:
     """`affected_conflicts` for one chunk: `writes` (sorted by `_order`, whose keys are
     `keys`) hold the new writes and their neighbours; the conflicts go into `out`."""
-    bs: dict[tuple, ChunkRow] = {}
+    bs: dict[Identity, ChunkRow] = {}
     for n in news:
         bs[_identity(n)] = n
         i = bisect_right(keys, _order(n))
@@ -171,7 +174,7 @@ class RecentWrites:
         self.covered_from_ms = covered_from_ms
         self._by_chunk: dict[tuple[int, int], _ChunkWrites] = defaultdict(_ChunkWrites)
         # Conflict rows this processor wrote: recomputed unchanged, they are not written again.
-        self._recorded: dict[tuple, ConflictRow] = {}
+        self._recorded: dict[Identity, ConflictRow] = {}
         self.add(rows)
 
     def unrecorded(self, rows: Iterable[ConflictRow]) -> list[ConflictRow]:
@@ -197,7 +200,7 @@ class RecentWrites:
         """`affected_conflicts(new, <every write of their chunks>)` from the sorted index,
         for a batch already `add`ed whose writes it covers to the window before the first:
         a live batch costs its own writes' scans, not a sort of every write of the window."""
-        out: dict[tuple, ConflictRow] = {}
+        out: dict[Identity, ConflictRow] = {}
         for chunk, news in _by_chunk(new).items():
             writes = self._by_chunk[chunk]
             _affected_in_chunk(news, writes.writes, writes.keys, window_ms, out)
@@ -224,7 +227,7 @@ def conflict_key(c: ConflictRow) -> tuple[int, int, int, str]:
     return (c.ts_ms, c.row, c.column, c.robot_b)
 
 
-def _identity(w: ChunkRow) -> tuple[int, int, int, str]:
+def _identity(w: ChunkRow) -> Identity:
     return (w.ts_ms, w.row, w.column, w.robot_id)
 
 

@@ -9,7 +9,7 @@ instead of a 16-byte id per row.
 from __future__ import annotations
 
 import hashlib
-from typing import Union
+from typing import Any
 
 import msgspec
 
@@ -57,8 +57,8 @@ class MapMetaSet(msgspec.Struct, frozen=True, gc=False, tag="map.meta_set", arra
     resolution: float | None = None
     origin: tuple[float, float, float] | None = None
 
-    def to_2019(self) -> dict:
-        doc: dict = {
+    def to_2019(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {
             "comment": self.comment,
             "width": self.width,
             "height": self.height,
@@ -75,7 +75,7 @@ class MapMetaSet(msgspec.Struct, frozen=True, gc=False, tag="map.meta_set", arra
         return doc
 
     @classmethod
-    def from_2019(cls, doc: dict) -> "MapMetaSet":
+    def from_2019(cls, doc: dict[str, Any]) -> MapMetaSet:
         origin = doc.get("origin")
         return cls(
             width=int(doc["width"]),
@@ -87,8 +87,14 @@ class MapMetaSet(msgspec.Struct, frozen=True, gc=False, tag="map.meta_set", arra
             comment=str(doc.get("comment", "")),
             max_brightness=str(doc.get("max_brightness", "255")),
             resolution=float(doc["resolution"]) if doc.get("resolution") is not None else None,
-            origin=tuple(float(v) for v in origin) if origin is not None else None,
+            origin=_origin(origin) if origin is not None else None,
         )
+
+
+def _origin(values: list[float]) -> tuple[float, float, float]:
+    """A ROS map origin [x, y, yaw]; anything but three numbers is a ValueError."""
+    x, y, yaw = (float(v) for v in values)
+    return (x, y, yaw)
 
 
 class VdaError(msgspec.Struct, frozen=True, gc=False, array_like=True):
@@ -144,8 +150,8 @@ class VdaFactsheetReported(msgspec.Struct, frozen=True, gc=False, tag="vda.facts
     factsheet_json: str
 
 
-Payload = Union[ChunkUpdated, PoseReported, MapMetaSet, VdaStateReported, VdaConnectionReported,
-                VdaFactsheetReported]
+Payload = (ChunkUpdated | PoseReported | MapMetaSet | VdaStateReported | VdaConnectionReported
+           | VdaFactsheetReported)
 
 
 def pose_of(payload: Payload) -> PoseReported | None:

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from typing import Literal, TypeVar
+from operator import attrgetter
+from typing import Any, Literal, TypeVar
 
 import msgspec
 
@@ -37,9 +38,10 @@ CHUNK_TYPES = ("pgm_base64_compressed", "png")
 # 2019 sort field -> attribute of ChunkRow / PoseRow. The store maps these to columns.
 CHUNK_SORT_FIELDS = {"timestamp": "ts_ms", "row": "row", "column": "column", "robotId": "robot_id"}
 POSE_SORT_FIELDS = {"timestamp": "ts_ms", "robotId": "robot_id"}
-CHUNK_IDENTITY: tuple[tuple[str, str], ...] = (
+SortKey = tuple[str, Literal["asc", "desc"]]
+CHUNK_IDENTITY: tuple[SortKey, ...] = (
     ("timestamp", "desc"), ("row", "asc"), ("column", "asc"), ("robotId", "asc"))
-POSE_IDENTITY: tuple[tuple[str, str], ...] = (("timestamp", "desc"), ("robotId", "asc"))
+POSE_IDENTITY: tuple[SortKey, ...] = (("timestamp", "desc"), ("robotId", "asc"))
 
 _INT = re.compile(r"[0-9]+")
 _TRUE, _FALSE = {"true", "1"}, {"false", "0", ""}
@@ -48,8 +50,6 @@ _TRUE, _FALSE = {"true", "1"}, {"false", "0", ""}
 class QueryError(ValueError):
     """A malformed query parameter; the message names it and says what is accepted."""
 
-
-SortKey = tuple[str, Literal["asc", "desc"]]
 
 
 class ChunkQuery(msgspec.Struct, frozen=True):
@@ -149,7 +149,7 @@ def _page(params: Mapping[str, str]) -> tuple[int, int]:
     return limit, skip
 
 
-def _times(params: Mapping[str, str]) -> dict:
+def _times(params: Mapping[str, str]) -> dict[str, Any]:
     out = {}
     for name, attr in (("timestamp", "timestamp_ms"), ("updatedSince", "updated_since_ms"),
                        ("updatedBefore", "updated_before_ms")):
@@ -158,7 +158,7 @@ def _times(params: Mapping[str, str]) -> dict:
     return out
 
 
-def _robot_id(params: Mapping[str, str]) -> dict:
+def _robot_id(params: Mapping[str, str]) -> dict[str, Any]:
     if "robotId" not in params:
         return {}
     robot = params["robotId"]
@@ -169,7 +169,7 @@ def _robot_id(params: Mapping[str, str]) -> dict:
 
 def parse_chunk_query(params: Mapping[str, str]) -> ChunkQuery:
     """GET /api/chunk-service/chunks parameters (unknown ones are ignored)."""
-    fields: dict = {**_times(params), **_robot_id(params)}
+    fields: dict[str, Any] = {**_times(params), **_robot_id(params)}
     for name in ("row", "column"):
         if name in params:
             fields[name] = _int(name, params[name], 0, 65_535)
@@ -189,7 +189,7 @@ def parse_chunk_query(params: Mapping[str, str]) -> ChunkQuery:
 
 def parse_pose_query(params: Mapping[str, str]) -> PoseQuery:
     """GET /api/coordinate-service/robots parameters (unknown ones are ignored)."""
-    fields: dict = {**_times(params), **_robot_id(params)}
+    fields: dict[str, Any] = {**_times(params), **_robot_id(params)}
     if "sort" in params:
         fields["sort"] = _sort(params["sort"], POSE_SORT_FIELDS)
     if "latest" in params:
@@ -211,7 +211,7 @@ def latest_instant(query: ChunkQuery | PoseQuery, now_ms: int) -> int:
 Row = TypeVar("Row")
 
 
-def matches(row, query: ChunkQuery | PoseQuery) -> bool:
+def matches(row: Any, query: ChunkQuery | PoseQuery) -> bool:
     """Whether a ChunkRow/ChunkState (PoseRow) passes the query's filters."""
     ts = row.ts_ms
     if query.timestamp_ms is not None and ts != query.timestamp_ms:
@@ -234,7 +234,7 @@ def _sorted(rows: list[Row], order: Sequence[SortKey], fields: Mapping[str, str]
     # Stable sorts from the last key to the first give the combined order.
     for field, direction in reversed(order):
         attr = fields[field]
-        rows.sort(key=lambda r, a=attr: getattr(r, a), reverse=direction == "desc")
+        rows.sort(key=attrgetter(attr), reverse=direction == "desc")
     return rows
 
 

@@ -23,7 +23,7 @@ from mapservice.core.wire2019 import format_timestamp
 MAX_RECORD_BYTES = 256 * 1024
 
 
-def live_message(e: Envelope) -> dict | None:
+def live_message(e: Envelope) -> dict[str, Any] | None:
     p = pose_of(e.payload) or e.payload
     base = {"robotId": e.robot_id, "ts_ms": e.event_time_ms, "timestamp": format_timestamp(e.event_time_ms),
             "receive_time_ms": e.receive_time_ms}
@@ -108,7 +108,7 @@ class BadLiveRecord(ValueError):
     """A live-topic record that is not a JSON array of live messages."""
 
 
-def decode_live_record(value: bytes) -> list[dict]:
+def decode_live_record(value: bytes) -> list[dict[str, Any]]:
     """The messages of one live-topic record; BadLiveRecord if it is not one."""
     try:
         messages = msgspec.json.decode(value)
@@ -120,23 +120,23 @@ def decode_live_record(value: bytes) -> list[dict]:
     return messages
 
 
-class LiveText(Mapping):
+class LiveText(Mapping[str, Any]):
     """One live message as the JSON text it came in: the API sends it on as it is (adding
     `sent_ms`) instead of decoding it into a dict and encoding it again per viewer; read
     as a mapping (tests, tools), it decodes itself on first use."""
 
-    __slots__ = ("text", "_doc")
+    __slots__ = ("_doc", "text")
 
     def __init__(self, text: str) -> None:
         self.text = text
-        self._doc: dict | None = None
+        self._doc: dict[str, Any] | None = None
 
-    def _decoded(self) -> dict:
+    def _decoded(self) -> dict[str, Any]:
         if self._doc is None:
             self._doc = msgspec.json.decode(self.text)
         return self._doc
 
-    def __getitem__(self, key: str):
+    def __getitem__(self, key: str) -> Any:
         return self._decoded()[key]
 
     def __iter__(self) -> Iterator[str]:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import base64
 import threading
 from collections.abc import Iterable
+from typing import Any
 
 import msgspec
 from cachetools import LRUCache, cached
@@ -71,7 +72,7 @@ def _encoded(p: ChunkUpdated) -> tuple[str, str]:
             base64.b64encode(png(chunk_pixels(p.width, p.height, p.data))).decode())
 
 
-def advertisement(e: Envelope, public_base_url: str) -> dict:
+def advertisement(e: Envelope, public_base_url: str) -> dict[str, Any]:
     """The 2019 advertisement (appendix A.1.3, listing 15) of a chunk write."""
     p = e.payload
     assert isinstance(p, ChunkUpdated)

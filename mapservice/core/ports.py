@@ -147,7 +147,7 @@ class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
 class ChangeFeed(Protocol):
     """The map's changes page by page (mapservice/core/change_feed.py has the rule)."""
 
-    def change_feed(self, query: "ChangeQuery") -> list["ChangeEntry"]:
+    def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
         """The query's page: floor changes and map uploads (one entry each), newest first."""
 
 
@@ -230,7 +230,7 @@ class HistoryStore(Protocol):
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
 
-    def map_at(self, at_ms: int) -> list["ChunkState"]:
+    def map_at(self, at_ms: int) -> list[ChunkState]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
 
     def robots_at(self, at_ms: int, after: str | None = None,
@@ -278,11 +278,11 @@ class HistoryStore(Protocol):
 
     # The 2019 REST contract (mapservice/core/legacy_query.py has the query semantics).
 
-    def list_chunks(self, query: "ChunkQuery") -> list[ChunkRow]:
+    def list_chunks(self, query: ChunkQuery) -> list[ChunkRow]:
         """Chunk writes passing the query's filters, in `query.order`, `skip` then `limit`
         (the non-`latest` GET /api/chunk-service/chunks)."""
 
-    def list_poses(self, query: "PoseQuery") -> list[PoseRow]:
+    def list_poses(self, query: PoseQuery) -> list[PoseRow]:
         """Poses passing the query's filters, in `query.order`, `skip` then `limit`
         (the non-`latest` GET /api/coordinate-service/robots)."""
 

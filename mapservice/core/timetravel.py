@@ -44,12 +44,6 @@ def fold_robots(poses: Iterable[PoseRow], at_ms: int) -> dict[str, PoseRow]:
     return state
 
 
-def snapshot_times(from_ms: int, to_ms: int, every_ms: int) -> list[int]:
-    """Grid-aligned snapshot instants in (from_ms, to_ms]."""
-    first = (from_ms // every_ms + 1) * every_ms
-    return list(range(first, to_ms + 1, every_ms))
-
-
 def timeline_buckets(from_ms: int, to_ms: int, buckets: int) -> tuple[int, list[int]]:
     """(bucket_ms, the buckets' starts) for [from_ms, to_ms) in at most `buckets` buckets
     of equal whole milliseconds (the last one may end past `to_ms`; nothing there counts)."""

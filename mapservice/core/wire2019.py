@@ -13,14 +13,16 @@ import math
 import re
 import zlib
 from collections.abc import Sequence
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 from enum import Enum
 
-from typing import Annotated
+from typing import Annotated, Any, TypeVar
 
 import msgspec
 
 from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, PoseReported, make_envelope
+
+_T = TypeVar("_T")
 
 
 # Bounds on free-text fields, checked while decoding: a 120 KB "charging" string is a
@@ -73,7 +75,7 @@ class Limits(msgspec.Struct, frozen=True):
     max_future_skew_ms: int = 300_000
     retention_ms: int = 7 * 86_400_000
 
-    def with_meta(self, meta: MapMetaSet) -> "Limits":
+    def with_meta(self, meta: MapMetaSet) -> Limits:
         return msgspec.structs.replace(
             self,
             chunk_width=meta.chunk_width,
@@ -142,7 +144,7 @@ MAX_PATH_POINTS = 1000
 MAX_ABS_METRES = 1e6
 
 
-def _decode(decoder: msgspec.json.Decoder, data: bytes):
+def _decode(decoder: msgspec.json.Decoder[_T], data: bytes) -> _T | Rejection:
     try:
         return decoder.decode(data)
     except msgspec.ValidationError as exc:
@@ -184,8 +186,8 @@ def parse_timestamp(text: str) -> int | None:
     except ValueError:
         return None
     if parsed.tzinfo is None:
-        parsed = parsed.replace(tzinfo=timezone.utc)
-    return int(round(parsed.timestamp() * 1000))
+        parsed = parsed.replace(tzinfo=UTC)
+    return round(parsed.timestamp() * 1000)
 
 
 _MINUTE_PREFIXES: dict[int, str] = {}  # epoch minute -> "2018-12-20T23:34:"
@@ -210,7 +212,7 @@ def format_timestamp(ms: int) -> str:
 
 
 def _format_timestamp_datetime(ms: int | float) -> str:
-    dt = datetime.fromtimestamp(ms / 1000, tz=timezone.utc).replace(tzinfo=None)
+    dt = datetime.fromtimestamp(ms / 1000, tz=UTC).replace(tzinfo=None)
     return dt.isoformat(timespec="milliseconds" if ms % 1000 else "seconds")
 
 
@@ -398,7 +400,7 @@ def encode_coordinates(
 ) -> bytes:
     """A 2019 `iot/coordinates/{robotId}` message (listing 16), plus the optional path."""
     qx, qy, qz, qw = yaw_quaternion
-    doc: dict = {
+    doc: dict[str, Any] = {
         "robotId": robot_id,
         "timestamp": timestamp,
         "pose": {

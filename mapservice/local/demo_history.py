@@ -191,5 +191,5 @@ def backfill(store: HistoryStore, ros_map: RosMap, *, days: float, robots: int, 
         else store.build_snapshots(now_ms)
     result = BackfillResult(start_ms, now_ms, poses, chunk_writes, conflicts, snapshots,
                             round(time.monotonic() - started, 1))
-    log.info("demo history written", **{k: v for k, v in vars(result).items()})
+    log.info("demo history written", **dict(vars(result).items()))
     return result

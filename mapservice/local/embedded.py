@@ -101,7 +101,7 @@ max_queued_messages 1000000
 # for them survive a broker restart, even a SIGKILL: saved once a second (a save writes
 # the whole store, so saving on every change cost ~3 ms a message: 350 messages/s at
 # most, measured). What a SIGKILL can still lose: a message the broker acknowledged and
-# had not passed on to the gateway within the last second (README, delivery guarantees).
+# had not passed on to the gateway within the last second (docs/delivery.md).
 MOSQUITTO_STORE = """\
 persistence true
 persistence_location {store_dir}/
@@ -138,7 +138,7 @@ def mosquitto_installed() -> bool:
 def default_mqtt_broker() -> str:
     """What `mapservice up` embeds: Mosquitto when it is installed (it keeps a restarting
     gateway's QoS 1 messages, on disk), else amqtt (pure Python, in the `embedded` extra;
-    it does not keep them: README, embedded mode)."""
+    it does not keep them: docs/embedded.md)."""
     return "mosquitto" if mosquitto_installed() else "amqtt"
 
 

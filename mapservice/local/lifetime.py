@@ -91,7 +91,7 @@ class Recorded:
     command: tuple[str, ...]
 
     @classmethod
-    def of(cls, name: str, pid: int) -> "Recorded":
+    def of(cls, name: str, pid: int) -> Recorded:
         return cls(name, pid, start_time(pid), tuple(command_line(pid)))
 
     def still_running(self) -> bool:
@@ -107,7 +107,7 @@ class PidFile:
     path: Path
 
     @classmethod
-    def in_data_dir(cls, data_dir: Path) -> "PidFile":
+    def in_data_dir(cls, data_dir: Path) -> PidFile:
         return cls(Path(data_dir) / PID_FILE)
 
     def write(self, pids: dict[str, int]) -> None:

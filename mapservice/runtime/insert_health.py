@@ -17,7 +17,7 @@ import re
 import threading
 import time
 from collections.abc import Callable
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 
 # ClickHouse ends an exception's message with its error code's name: "... (NOT_ENOUGH_SPACE)".
 _ERROR_CODE = re.compile(r"\(([A-Z][A-Z0-9_]{2,})\)\s*$")
@@ -130,4 +130,4 @@ class InsertHealth:
 
 
 def _utc_hms(wall_s: float) -> str:
-    return datetime.fromtimestamp(wall_s, timezone.utc).strftime("%H:%M:%S")
+    return datetime.fromtimestamp(wall_s, UTC).strftime("%H:%M:%S")

@@ -13,7 +13,8 @@ from __future__ import annotations
 import asyncio
 import math
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, TypeVar
+from typing import TypeVar
+from collections.abc import Callable
 
 from mapservice.sql.engine import TOO_MANY_SIMULTANEOUS_QUERIES, SqlError
 

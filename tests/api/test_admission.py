@@ -66,7 +66,7 @@ def test_probes_answer_within_a_second_under_60_stuck_reads() -> None:
             reply = await asyncio.wait_for(_get(app, "10.9.9.9", path), timeout=5)
             probe_times.append(time.monotonic() - started)
             assert reply.status_code == 200, reply.text
-        refused = [r for r in [t.result() for t in reads if t.done()]]
+        refused = [t.result() for t in reads if t.done()]
         store.release.set()
         done = await asyncio.gather(*reads)
         return probe_times, refused, done

@@ -51,7 +51,7 @@ def closed_within(sock: socket.socket, seconds: float, trickle: bytes = b"") -> 
         try:
             if sock.recv(4096) == b"":
                 return time.monotonic() - started
-        except socket.timeout:
+        except TimeoutError:
             pass
         except ConnectionResetError:
             return time.monotonic() - started

@@ -429,7 +429,7 @@ def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wir
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.publisher = MemoryPublisher()
     gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
-    for mid in (1, 2):
+    for _mid in (1, 2):
         gateway.ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None)
     assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 2
     gateway.publisher.poll()

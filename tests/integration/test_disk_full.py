@@ -113,7 +113,7 @@ class Poses:
             tick += 1
             time.sleep(step_ms / 1000)
 
-    def __enter__(self) -> "Poses":
+    def __enter__(self) -> Poses:
         self._thread.start()
         return self
 
@@ -183,7 +183,7 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         filler = fill(stack.data_dir / "clickhouse")
         full_at = time.monotonic()
 
-        code, body = until("/readyz to say the history is not stored",
+        _code, body = until("/readyz to say the history is not stored",
                            lambda: (r := get(f"{api}/readyz"))[0] == 503 and r, timeout_s=30,
                            last=lambda: get(f"{api}/readyz"))
         assert body["checks"]["history_store"] is False, body

@@ -25,7 +25,7 @@ Where the stacks fall back to tansu (no Java; MAPSERVICE_EMBEDDED_KAFKA=tansu), 
 storage loses what it held at a SIGKILL: messages it had acknowledged to the gateway but
 the processors had not yet stored. Those losses are then measured and reported, and what
 can be promised is asserted: nothing duplicated, nothing lost that was published after
-the new broker was up. README ("Delivery guarantees", "Embedded mode") states the limit.
+the new broker was up. docs/delivery.md and docs/embedded.md state the limit.
 
 Bounded: every wait has a timeout and every process is stopped in a finally block; the
 module takes about 4.5 minutes on the project's 2-core machine shared with other work.
@@ -190,7 +190,7 @@ class FaultRun:
     caught_up_ms: int | None = None  # every acknowledged message of the fault's robots stored
 
 
-def run_fault(name: str, load: Load, api_url: str, sql: "Sql", fault: Callable[[], None]) -> FaultRun:
+def run_fault(name: str, load: Load, api_url: str, sql: Sql, fault: Callable[[], None]) -> FaultRun:
     """Load on this fault's own robots, then `fault()` (kill, stay down, restart: it returns
     once the part is back), then wait until a message published after the kill is
     queryable, and until the backlog is stored (so the next fault starts clean: a Kafka
@@ -216,7 +216,7 @@ def run_fault(name: str, load: Load, api_url: str, sql: "Sql", fault: Callable[[
     return run
 
 
-def wait_caught_up(sql: "Sql", load: Load, segment: str, timeout_s: float = 90,
+def wait_caught_up(sql: Sql, load: Load, segment: str, timeout_s: float = 90,
                    stalled_s: float = 10) -> int | None:
     """Until every acknowledged message of `segment` published over a second ago is stored
     (when; None if none of the missing ones got stored for `stalled_s`: lost, or timeout)."""
@@ -453,8 +453,8 @@ def write_report(section: str, report: dict) -> None:
           f"{'lost':>6}{'back s':>8}{'recovery s':>11}{'caught up s':>12}")
     for r in report["faults"]:
         print(f"{r['fault']:<28}{r['published']:>10}{r['acknowledged']:>8}{r['stored']:>8}"
-              f"{r['duplicated']:>5}{r['raw_duplicate_rows']:>8}{r['lost']:>6}{str(r['down_s']):>8}"
-              f"{str(r['recovery_s']):>11}{str(r['caught_up_s']):>12}")
+              f"{r['duplicated']:>5}{r['raw_duplicate_rows']:>8}{r['lost']:>6}{r['down_s']!s:>8}"
+              f"{r['recovery_s']!s:>11}{r['caught_up_s']!s:>12}")
     print(json.dumps(report["checks"]), flush=True)
 
 

@@ -213,7 +213,7 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
                 if component == "kafka" and not kafka_keeps_records(stack):
                     skipped.append("the Kafka broker's restart: tansu keeps its records in memory "
                                    "and loses them on a restart")
-                    warnings.warn(f"endurance: skipped {skipped[-1]}")
+                    warnings.warn(f"endurance: skipped {skipped[-1]}", stacklevel=2)
                     continue
                 stack.restart(component)
                 if component == "mqtt":  # the robots' client reconnects, then publishes again

@@ -6,12 +6,10 @@ drops its connection so the broker sends its CONNECTIONBROKEN last will."""
 
 from __future__ import annotations
 
-import json
 import math
 import time
 
 import httpx
-import paho.mqtt.client as mqtt
 import pytest
 
 from mapservice.adapters.mqtt_client import make_client
@@ -54,7 +52,7 @@ def test_vehicles_drive_charge_fail_and_drop_their_connection(stack) -> None:
     a = Vehicle(port, "2.0.0", "Acme", "001")
     b = Vehicle(port, "2.1.0", "Robo Co", "7:2")
     reported: dict[str, list[tuple[int, float, float, float]]] = {"Acme:001": [], "Robo@20Co:7@3A2": []}
-    for v, robot in ((a, "Acme:001"), (b, "Robo@20Co:7@3A2")):
+    for v in (a, b):
         v.publish("connection", vda.connection(v.version, v.m, v.s, now_ms(), "ONLINE"), retain=True)
         v.publish("factsheet", vda.factsheet(v.version, v.m, v.s, now_ms()), retain=True)
     for step in range(6):  # drive along x; a state every third message, visualizations between

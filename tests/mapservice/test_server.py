@@ -41,8 +41,8 @@ def test_a_newer_schema_does_not_block() -> None:
 def test_only_local_mode_migrates_on_start_by_default() -> None:
     """local: migrate on start; production: not, unless MAPSERVICE_MIGRATE_ON_START says so."""
     assert Settings(mode="local").migrates_on_start is True
-    production = dict(mode="production", admin_token="t" * 32, clickhouse_dsn="http://ch:8123",
-                      clickhouse_password="p" * 16)
+    production = {"mode": "production", "admin_token": "t" * 32, "clickhouse_dsn": "http://ch:8123",
+                      "clickhouse_password": "p" * 16}
     assert Settings(**production).migrates_on_start is False
     assert Settings(**production, migrate_on_start=True).migrates_on_start is True
 

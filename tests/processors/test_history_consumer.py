@@ -334,7 +334,7 @@ def deferring_consumer(ev, views_seconds: float, batch_size: int = 100):
 def test_pose_views_are_derived_once_per_interval_for_every_batch_stored_in_it(ev) -> None:
     """With a 1 s interval and a batch every 0.3 s, one derive_views takes batches 0-4 and
     the commit waits for it: nothing is committed before."""
-    consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
+    _consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
     for i in range(4):  # the last 0.9 s after the first was stored
         batch(i)
         assert store.derived == [] and source.committed == {}
@@ -354,7 +354,7 @@ def test_an_empty_poll_derives_and_commits_what_waits_at_once(ev) -> None:
 
 def test_batch_size_events_waiting_are_derived_before_the_interval_ends(ev) -> None:
     """Memory is bounded: two batches of a batch_size of 2 settle without waiting for the interval."""
-    consumer, source, store, batch = deferring_consumer(ev, views_seconds=60.0, batch_size=2)
+    _consumer, source, store, batch = deferring_consumer(ev, views_seconds=60.0, batch_size=2)
     batch(0)
     assert store.derived == []
     batch(1)
@@ -412,7 +412,7 @@ def test_the_views_insert_is_timed(ev) -> None:
     from prometheus_client import REGISTRY
 
     before = REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") or 0
-    consumer, source, store, batch = deferring_consumer(ev, views_seconds=1.0)
+    _consumer, _source, store, batch = deferring_consumer(ev, views_seconds=1.0)
     for i in range(5):
         batch(i)
     assert store.derived and REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") == before + 1
@@ -458,7 +458,7 @@ def conflicting_consumer(ev, views_seconds: float, failures: int = 0):
 
 def test_conflicts_are_written_once_per_interval_before_the_commit(ev) -> None:
     """Conflicts of batches 1-4 wait for the interval; one insert (a failure retried) takes them, then the commit."""
-    consumer, source, store, batch = conflicting_consumer(ev, views_seconds=1.0, failures=1)
+    _consumer, source, store, batch = conflicting_consumer(ev, views_seconds=1.0, failures=1)
     for i, robot in enumerate("abcde"):  # each after the first conflicts with the write before
         batch(i, robot)
         if i < 4:  # the fifth batch is stored 1.2 s after the first

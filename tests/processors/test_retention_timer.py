@@ -21,7 +21,7 @@ from mapservice.settings import Settings
 from tests.conftest import chunk_event, pose_event
 
 DAY = 86_400_000
-T0 = int(dt.datetime(2026, 3, 1, tzinfo=dt.timezone.utc).timestamp() * 1000)
+T0 = int(dt.datetime(2026, 3, 1, tzinfo=dt.UTC).timestamp() * 1000)
 
 
 def _store(kind: str, tmp_path):

@@ -213,7 +213,7 @@ def test_a_robot_with_a_map_of_another_size_refuses_and_stores_nothing(tmp_path)
     service = FakeChunkService(meta=meta_to_json(meta_for(load_ros_map(MAPS / "warehouse.yaml"))))
     a = make_agent(tmp_path, "robot-a", service)
     before = a.image_path.read_bytes()
-    with pytest.raises(RuntimeError, match="1006 x 1674.*604 x 307"):
+    with pytest.raises(RuntimeError, match=r"1006 x 1674.*604 x 307"):
         a.start()
     assert [m for m, _ in service.requests] == ["GET"] and service.chunks == []
     assert a.image_path.read_bytes() == before

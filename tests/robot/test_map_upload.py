@@ -56,7 +56,7 @@ def test_upload_of_another_size_is_refused_and_publishes_nothing(service) -> Non
     upload_map_rest(http, load_ros_map(MAPS / "depot.yaml"), NOW - 2000)
     process(publisher, store)
     sandbox = load_ros_map(MAPS / "tb3_sandbox.yaml")
-    with pytest.raises(MapSizeMismatch, match="604 x 307 px.*384 x 384 px"):
+    with pytest.raises(MapSizeMismatch, match=r"604 x 307 px.*384 x 384 px"):
         upload_map_rest(http, sandbox, NOW - 1000)
     assert process(publisher, store) == 0
     with pytest.raises(httpx.HTTPStatusError) as refused:  # the service wants the admin token
@@ -78,7 +78,7 @@ def test_drive_refuses_a_map_of_another_size(service) -> None:
     process(publisher, store)
     check_map_size("http://test", depot, http)
     warehouse = meta_for(load_ros_map(MAPS / "warehouse.yaml"))
-    with pytest.raises(ValueError, match="service's map is 604 x 307 px.*1006 x 1674"):
+    with pytest.raises(ValueError, match=r"service's map is 604 x 307 px.*1006 x 1674"):
         check_map_size("http://test", warehouse, http)
 
 
@@ -113,7 +113,7 @@ def test_up_uploads_once_per_data_dir(monkeypatch, tmp_path) -> None:
     assert (tmp_path / MARKER).exists()
     assert upload_map_if_fresh(Settings(), tmp_path, depot, NOW + 1) == 0
     assert calls == [NOW]
-    with pytest.raises(MapSizeMismatch, match="604 x 307 px map.*384 x 384.*--data-dir"):
+    with pytest.raises(MapSizeMismatch, match=r"604 x 307 px map.*384 x 384.*--data-dir"):
         upload_map_if_fresh(Settings(), tmp_path, load_ros_map(MAPS / "tb3_sandbox.yaml"), NOW)
 
 

@@ -82,7 +82,7 @@ def test_a_map_without_room_says_so() -> None:
     pixels = np.zeros((40, 40), dtype=np.uint8)
     pixels[18:22, 18:22] = 254
     tiny = RosMap(pixels=pixels, resolution=0.05, origin=(0.0, 0.0, 0.0))
-    with pytest.raises(ValueError, match="too little free space.*planning cells"):
+    with pytest.raises(ValueError, match=r"too little free space.*planning cells"):
         new_state(tiny, 1, seed=1, t_ms=T0)
 
 
@@ -186,7 +186,7 @@ def test_paths_fit_the_gateway_limit() -> None:
     """A published path never exceeds the gateway's 1,000-point limit."""
     state = new_state(load_ros_map(MAPS / "warehouse.yaml"), 3, seed=2, t_ms=T0,
                       config=replace(SimConfig(), change_every_s=0))
-    for state, out in run(state, 30):
+    for _state, out in run(state, 30):
         assert all(len(p.path) <= 1000 for p in out.poses)
 
 

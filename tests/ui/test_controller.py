@@ -46,7 +46,7 @@ def _painted_chunk(page, stack, robot_id: str) -> tuple[int, int, bytes]:
 
 
 def _give_token(page, stack) -> None:
-    """Pastes the stack's writer token into the page, as an operator does (README, API access)."""
+    """Pastes the stack's writer token into the page, as an operator does (docs/access.md)."""
     field = page.locator('[data-testid="api-token"]')
     field.fill(stack.api_secrets().writers[0])
     field.dispatch_event("change")

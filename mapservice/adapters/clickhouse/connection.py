@@ -34,7 +34,7 @@ def _unflag(text: str) -> bool | str | None:
 
 
 def _mm(metres: float) -> int:
-    return int(round(metres * 1000))
+    return round(metres * 1000)
 
 
 # A pose's columns as the reads select them. The path travels as one string ("x y,x y",

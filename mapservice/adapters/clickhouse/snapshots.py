@@ -45,13 +45,6 @@ class SnapshotsMixin(ClickHouseConnection):
                 self._no_snapshot_until = time.monotonic() + NO_SNAPSHOT_RECHECK_S
         return self._last_snapshot_ms
 
-    def _snapshot_at_or_before(self, at_ms: int, client=None) -> int | None:
-        rows = (client or self.client).query(
-            f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() FROM {self.database}.snapshot_log "
-            f"WHERE snap_ts <= fromUnixTimestamp64Milli({{t:Int64}}) AND snap_ts < {self._valid_before()}",
-            parameters={"t": at_ms}).result_rows
-        return rows[0][0] if rows and rows[0][1] else None
-
     def _build_one(self, snap_ms: int, prev_ms: int | None) -> None:
         db = self.database
         params = {"s": snap_ms, "p": prev_ms if prev_ms is not None else -1}

@@ -77,7 +77,7 @@ class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMix
         self.clock_ms: Callable[[], int] = SystemClock().now_ms
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> "ClickHouseStore":
+    def from_settings(cls, settings: Settings) -> ClickHouseStore:
         store = cls(
             settings.resolved_clickhouse_dsn,
             settings.clickhouse_database,

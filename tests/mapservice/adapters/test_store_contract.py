@@ -21,6 +21,7 @@ import pytest
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 from mapservice.core.ports import ChunkRow, Counts, PoseRow
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.sql.chdb_engine import ChdbEngine
@@ -441,7 +442,7 @@ def test_schema_v6_compresses_quaternions_with_fpc(chdb_dir, ev, t0) -> None:
             "SELECT name, compression_codec FROM system.columns WHERE database = {d:String} "
             "AND table = 'poses' AND name IN ('qx', 'qy', 'qz', 'qw')",
             parameters={"d": store.database}).result_rows)
-        assert codecs == {q: "CODEC(FPC(20), ZSTD(3))" for q in ("qx", "qy", "qz", "qw")}
+        assert codecs == dict.fromkeys(("qx", "qy", "qz", "qw"), "CODEC(FPC(20), ZSTD(3))")
         store.append([make_envelope("r1", t0, t0, PoseReported(
             position=(1.0, 2.0, 0.0), orientation=(0.0, 0.0, 0.38268343, 0.92387953),
             battery_level=None))])
@@ -487,7 +488,6 @@ def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb
 
 # --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
 
-from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 
 
 def _legacy_history(ev, t0):

@@ -33,7 +33,7 @@ STEP = 6 * HOUR
 RETENTION_DAYS = 7
 DAYS = 25
 # A fixed start long before the wall clock's retention: only the service's clock decides.
-T0 = int(dt.datetime(2026, 1, 1, tzinfo=dt.timezone.utc).timestamp() * 1000)
+T0 = int(dt.datetime(2026, 1, 1, tzinfo=dt.UTC).timestamp() * 1000)
 ROWS, COLS = 4, 5
 ROBOTS = ("amr-1", "amr-2", "amr-3")
 
@@ -101,7 +101,7 @@ class World:
 
 
 class _Row:
-    __slots__ = ("row", "column", "ts_ms", "robot_id", "content_hash")
+    __slots__ = ("column", "content_hash", "robot_id", "row", "ts_ms")
 
     def __init__(self, row, column, ts_ms, robot_id, content_hash) -> None:
         self.row, self.column, self.ts_ms, self.robot_id, self.content_hash = (

@@ -9,7 +9,7 @@ from mapservice.bench.soak import growth_per_hour, settle, summarize
 
 
 def sample(t_s: float, rss: dict[str, float], stored: int) -> dict:
-    return {"t_s": t_s, "rss_mb": rss, "cpu_percent": {n: 10.0 for n in rss}, "published": stored,
+    return {"t_s": t_s, "rss_mb": rss, "cpu_percent": dict.fromkeys(rss, 10.0), "published": stored,
             "stored": stored, "dead_letters": 0, "freshness_s": 1.0}
 
 

@@ -68,7 +68,7 @@ def test_reuse_reads_back_the_loaded_history_and_refuses_another_size(tmp_path) 
     (tmp_path / "loaded-bench_seek.json").write_text(json.dumps(marker))
     loaded, reused = load_or_reuse(tmp_path, "bench_seek", 7.0, 200, 99, reuse=True)
     assert reused and (loaded.start_ms, loaded.end_ms, loaded.chunk_events) == (1, 2, 3)
-    with pytest.raises(SystemExit, match="7.0 days of 200 robots, not 7.0 of 20"):
+    with pytest.raises(SystemExit, match=r"7.0 days of 200 robots, not 7.0 of 20"):
         load_or_reuse(tmp_path, "bench_seek", 7.0, 20, 99, reuse=True)
 
 

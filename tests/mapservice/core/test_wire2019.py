@@ -9,7 +9,7 @@ import tracemalloc
 import zlib
 from dataclasses import dataclass
 from datetime import timedelta, timezone
-from typing import Callable
+from collections.abc import Callable
 
 import msgspec
 import pytest

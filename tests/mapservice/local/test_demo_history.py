@@ -58,7 +58,7 @@ def test_history_starts_with_the_map_file(history) -> None:
 
 def test_it_holds_a_shift_poses_changes_and_conflicts(history) -> None:
     """Three robots report every 3 s for three hours; the floor changed; conflicts were recorded."""
-    store, _, result = history
+    _store, _, result = history
     assert result.poses == pytest.approx(3 * HOURS * 3600 / 3, rel=0.01)
     assert result.chunk_writes > 0 and result.snapshots >= HOURS * 6
     assert result.conflicts > 0
@@ -73,9 +73,9 @@ def test_map_and_robots_at_t_equal_the_fold_of_the_history(history) -> None:
     for at in [result.start_ms + rng.randrange(NOW - result.start_ms) for _ in range(8)]:
         fold: dict = {}
         for w in writes:
-            if w.ts_ms <= at and (w.row, w.column) not in fold or \
-                    w.ts_ms <= at and (w.ts_ms, w.robot_id) > (fold[(w.row, w.column)].ts_ms,
-                                                              fold[(w.row, w.column)].robot_id):
+            if (w.ts_ms <= at and (w.row, w.column) not in fold) or \
+                    (w.ts_ms <= at and (w.ts_ms, w.robot_id) > (fold[(w.row, w.column)].ts_ms,
+                                                              fold[(w.row, w.column)].robot_id)):
                 fold[(w.row, w.column)] = w
         got = {(c.row, c.column): (c.ts_ms, c.robot_id, c.content_hash) for c in store.map_at(at)}
         assert got == {k: (w.ts_ms, w.robot_id, w.content_hash) for k, w in fold.items()}

@@ -39,7 +39,7 @@ def test_the_pom_pins_a_kafka_4_version() -> None:
 def test_without_maven_the_error_says_how_to_install_it_or_use_tansu(tmp_path, monkeypatch) -> None:
     """No `mvn` on PATH: a RuntimeError naming the Debian package and the tansu fallback."""
     monkeypatch.setenv("PATH", str(tmp_path))
-    with pytest.raises(RuntimeError, match="apt-get install maven.*MAPSERVICE_EMBEDDED_KAFKA=tansu"):
+    with pytest.raises(RuntimeError, match=r"apt-get install maven.*MAPSERVICE_EMBEDDED_KAFKA=tansu"):
         kafka_broker.ensure_jars(tmp_path / "jars")
 
 

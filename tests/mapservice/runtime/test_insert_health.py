@@ -3,14 +3,14 @@ again at the next success, and a reason an operator can act on."""
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 
 from mapservice.runtime.health import failing_reasons
 from mapservice.runtime.insert_health import InsertHealth, describe, error_code
 
 FULL = ("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. "
         "(NOT_ENOUGH_SPACE)")
-T0 = datetime(2026, 11, 25, 22, 15, 3, tzinfo=timezone.utc).timestamp()
+T0 = datetime(2026, 11, 25, 22, 15, 3, tzinfo=UTC).timestamp()
 
 
 class Wall:

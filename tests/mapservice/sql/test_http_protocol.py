@@ -18,7 +18,7 @@ from mapservice.sql.read_only import ReadOnlyLimits
 
 from .serving import ServedApp
 
-UTC = dt.timezone.utc
+UTC = dt.UTC
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,6 @@ import httpx
 import pytest
 
 from mapservice.sql.chdb_engine import ChdbEngine
-from mapservice.sql.engine import SqlRequest
 from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
 from mapservice.sql.query_gate import QueryGate, TooManyQueries
 from mapservice.sql.read_only import ReadOnlyLimits
@@ -53,7 +52,7 @@ def test_a_waiting_statement_gives_up_after_the_queue_timeout() -> None:
     async def scenario():
         first = asyncio.create_task(gate.run(release.wait, 10))
         await asyncio.sleep(0.1)
-        with pytest.raises(TooManyQueries, match="waited 0.3 s"):
+        with pytest.raises(TooManyQueries, match=r"waited 0.3 s"):
             await gate.run(time.sleep, 0)
         release.set()
         assert await first is True

@@ -63,7 +63,7 @@ def test_a_held_lock_makes_a_second_migrator_wait_then_fail_clearly(store) -> No
     store.client.command(f"CREATE TABLE {store.database}.{MIGRATION_LOCK} (holder String, "
                          "since DateTime DEFAULT now()) ENGINE = Log")
     store.client.insert(f"{store.database}.{MIGRATION_LOCK}", [["job-7"]], column_names=["holder"])
-    with pytest.raises(MigrationLocked, match="job-7.*--break-lock"):
+    with pytest.raises(MigrationLocked, match=r"job-7.*--break-lock"):
         store.migrate(lock_timeout_s=1.0)
     assert store.break_migration_lock() is True
     assert store.migrate() == SCHEMA_VERSION

@@ -36,7 +36,8 @@ events = st.lists(st.one_of(
 
 
 def _rows(store) -> tuple:
-    q = lambda sql: store.client.query(sql.format(db=store.database)).result_rows
+    def q(sql):
+        return store.client.query(sql.format(db=store.database)).result_rows
     return (q("SELECT snap_ts, row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
               "ORDER BY ALL"),
             q("SELECT snap_ts, robot_id, ts FROM {db}.robot_snapshots FINAL ORDER BY ALL"),
