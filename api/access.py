@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 
@@ -363,8 +364,13 @@ class AccessGuard:
     limits per credential (per client address for anonymous callers and wrong tokens, so
     guessing tokens does not open new buckets): 429 with Retry-After."""
 
-    def __init__(self, app: ASGIApp, credentials: Credentials) -> None:
+    def __init__(self, app: ASGIApp, credentials: Credentials, sql_path: str = "",
+                 sql_identify: Callable[[Request], str | None] | None = None) -> None:
         self.app, self.credentials = app, credentials
+        # The analysts' ClickHouse interface authenticates with its own credential (HTTP
+        # Basic, X-ClickHouse-User/-Key): its limits count per analyst credential, not per
+        # address (an analyst on several machines would get the limit on each).
+        self.sql_path, self.sql_identify = sql_path, sql_identify
         settings = credentials.settings
         self.docs = settings.docs_access
         self.limits: list[RateLimitItem] = parse_many(settings.api_rate_limit) \
@@ -385,6 +391,9 @@ class AccessGuard:
         address = _address(scope.get("client"))
         caller, valid = self.credentials.identify(token, address)
         key = caller.name if valid and caller.role else f"address:{address}"
+        if self.sql_identify is not None and scope["type"] == "http" and (
+                path == self.sql_path or path.startswith(self.sql_path + "/")):
+            key = self.sql_identify(Request(scope)) or key
         scope[CALLER_KEY] = key  # for the pools' per-caller caps (api/admission.py)
         if path in DOCS_PATHS and self.docs != "open" and scope["type"] == "http":
             denied = self._docs_denied(caller, valid)
@@ -397,7 +406,7 @@ class AccessGuard:
                     reset = self.limiter.get_window_stats(item, key).reset_time
                     wait = max(1, math.ceil(reset - time.time()))
                     detail = (f"more than {item} requests from this "
-                              f"{'credential' if caller.role else 'address'}; retry in "
+                              f"{'address' if key.startswith('address:') else 'credential'}; retry in "
                               f"{wait} s (MAPSERVICE_API_RATE_LIMIT)")
                     if scope["type"] == "websocket":
                         await deny_socket(scope, send, 429, detail, retry_after=wait)

@@ -98,7 +98,8 @@ def create_app(settings: Settings, store: HistoryStore,
     # before it takes a thread; inside the guard, which names the caller.
     app.add_middleware(AdmissionControl, settings=settings, pool_of=pool_of)
     # Outside the body limit: a caller over its rate is refused before its body is read.
-    app.add_middleware(AccessGuard, credentials=credentials)
+    app.add_middleware(AccessGuard, credentials=credentials, sql_path=SQL_PATH,
+                       sql_identify=getattr(getattr(sql_app, "state", None), "identify", None))
     if settings.api_allowed_origins:
         # Pages of these origins may call the API from a browser (preflights answered here,
         # before any credential is asked for); none by default: same origin only. Tokens

@@ -166,7 +166,7 @@ def cmd_up(args) -> None:
                       "mode). `make system-deps` installs Mosquitto.[/yellow]")
     stack = Stack(Path(args.data_dir), mqtt=broker, api_port=args.api_port,
                   mqtt_port=args.mqtt_port if not args.mqtt_url else 0, kafka_port=args.kafka_port,
-                  mqtt_auth=args.auth, tied_to_parent=True)
+                  mqtt_auth=args.auth, tied_to_parent=True, apart=True)
     other = stack.pid_file.running_up()
     if other is not None:
         sys.exit(f"mapservice up: another `mapservice up` (pid {other.pid}) runs on "
@@ -209,8 +209,11 @@ def cmd_up(args) -> None:
         with step(console, f"starting Kafka ({kafka_name}) and the MQTT broker"):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
-        with step(console, "starting processors + API (creating the ClickHouse schema)"):
-            stack.start_server()
+        # Three processes, as the split deployment runs them: the history consumer never
+        # shares a process (its CPU, memory, threads) with API reads and exports.
+        with step(console, "starting the ClickHouse server, the processors (creating the "
+                  "ClickHouse schema) and the API, each its own process"):
+            stack.start_apart()
         with step(console, "starting the MQTT-to-Kafka gateway"):
             stack.start_gateway()
         with step(console, "publishing the map's chunks (fresh data dir only)"):
@@ -239,7 +242,10 @@ def cmd_up(args) -> None:
                 f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)")
         row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         row(f"Kafka ({kafka_name})", f"127.0.0.1:{stack.kafka_port}  (" + kafka_keeps(stack) + ")")
-        row("ClickHouse", Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn)
+        row("ClickHouse", f"{stack.clickhouse_url}  (`mapservice clickhouse-server` over "
+            f"{Settings(data_dir=stack.data_dir).resolved_clickhouse_dsn}; user default, password "
+            f"in {stack.data_dir / 'secrets' / 'clickhouse-password'})")
+        row("Processors health", f"http://127.0.0.1:{stack.processors_health_port}/readyz")
         row("SQL (analysts, read-only)", f"{stack.api_url}/clickhouse  user analyst, password "
             f"in {stack.data_dir / 'secrets' / 'analyst-password'} (docs/analysts.md)")
         for name, where in api_token_rows(stack.settings()):

@@ -141,6 +141,14 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         # The API alone reads the history without Kafka; Kafka carries its REST writes and
         # the live stream, so /readyz reports it without requiring it.
         advisory["kafka"] = kafka
+    processors_apart = None
+    if api and sink is None and settings.processors_status_url:
+        # The processors in a process of their own (`mapservice up`): whether the history
+        # is stored, as their health endpoint says, required as in one process.
+        from mapservice.adapters.processors_status import ProcessorsStatus
+
+        processors_apart = ProcessorsStatus(settings.processors_status_url)
+        readiness["history_store"] = processors_apart
     try:
         if api:
             # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
@@ -168,7 +176,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             app.state.liveness = liveness
             app.state.advisory = advisory
             # /api/v1/status (the UI's banner) reads the inserts' state where they happen.
-            app.state.history_status = sink.health.status if sink is not None else None
+            app.state.history_status = (sink.health.status if sink is not None else
+                                        processors_apart.status if processors_apart else None)
             config = api_server_config(app, settings)
             server = uvicorn.Server(config)
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
@@ -180,7 +189,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
                 loop.add_signal_handler(sig, stop.set)
             if health_port is not None:
                 serve_health(settings.api_host, health_port, lambda: probe_report(liveness),
-                             lambda: probe_report(readiness), metrics_gate(settings))
+                             lambda: probe_report(readiness), metrics_gate(settings),
+                             documents={"/history-status": sink.health.status} if sink else None)
             freeze_startup_heap()
             await stop.wait()
     finally:

@@ -302,6 +302,11 @@ class Settings(BaseSettings):
         "Host names (the Host header, without port) besides 127.0.0.1, localhost, ::1, the "
         "host of public_base_url and of api_allowed_origins under which /api/v1/live may be "
         "opened (a page of another site whose name resolves to this address: DNS rebinding)."))
+    processors_status_url: str = Field("", description=(
+        "An API running apart from the processors: their health endpoint "
+        "(http://host:port), whose /history-status gives /readyz's history_store and "
+        "/api/v1/status (the replay UI's banner); empty: the API does not report whether "
+        "the history is stored (`mapservice up` sets it)."))
     api_read_workers: int = Field(2, ge=1, description=(
         "Reads (/api/...) served at once per API process; more wait in a queue. Few: embedded "
         "ClickHouse runs one read at a time anyway, and each read's Python work competes "

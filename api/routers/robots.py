@@ -47,7 +47,8 @@ def get_robots_at(
 ) -> RobotsAt:
     """Every robot's latest pose at `at`, a page of at most `limit` robots in robotId
     order (one page holds every robot of a fleet up to 10,000, as before pages existed)."""
-    rows = [r for r in store.robots_at(at_ms) if after is None or r.robot_id > after]
+    # One more than the page: whether a next page exists, without reading every robot.
+    rows = store.robots_at(at_ms, after=after, limit=limit + 1)
     page = rows[:limit]
     return RobotsAt(at_ms=at_ms, next_after=page[-1].robot_id if len(rows) > limit else None,
                     robots=[

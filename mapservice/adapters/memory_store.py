@@ -171,9 +171,11 @@ class MemoryStore:
         state = fold_map([*self._carried.values(), *self._chunks.values()], at_ms)
         return [state[k] for k in sorted(state)]
 
-    def robots_at(self, at_ms: int) -> list[PoseRow]:
+    def robots_at(self, at_ms: int, after: str | None = None,
+                  limit: int | None = None) -> list[PoseRow]:
         state = fold_robots(list(self._poses.values()), at_ms)
-        return [state[k] for k in sorted(state)]
+        page = [state[k] for k in sorted(state) if after is None or k > after]
+        return page if limit is None else page[:limit]
 
     def build_snapshots(self, up_to_ms: int) -> int:
         return 0  # folds the whole history on every read: nothing to snapshot

@@ -47,13 +47,13 @@ def panel_reads_phase(api_url: str, start_ms: int, end_ms: int, n: int, seed: in
             if span > end_ms - start_ms:
                 continue
             times: dict[str, list[float]] = {"plot_track": [], "uploads": [], "changes_first_page": []}
-            refused = {k: 0 for k in times}
+            refused = dict.fromkeys(times, 0)
             points: list[int] = []
             for _ in range(n):
                 to = rng.randint(start_ms + span, end_ms)
                 f = to - span
                 p_from, step = plot_window(f, to)
-                asks = {
+                asks: dict[str, tuple[str, dict[str, int | str]]] = {
                     "plot_track": (f"/api/v1/robots/{rng.choice(robots)}/track",
                                    {"from": p_from, "to": to + 1, "step_ms": step}),
                     "uploads": ("/api/v1/changes", {"from": f, "to": to, "kind": "upload", "limit": 1000}),

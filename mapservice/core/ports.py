@@ -233,8 +233,10 @@ class HistoryStore(Protocol):
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
 
-    def robots_at(self, at_ms: int) -> list[PoseRow]:
-        """Per robot, its pose with the greatest event time at or before `at_ms`."""
+    def robots_at(self, at_ms: int, after: str | None = None,
+                  limit: int | None = None) -> list[PoseRow]:
+        """Per robot, its pose with the greatest event time at or before `at_ms`, in robot id
+        order: only robots whose id sorts after `after`, at most `limit` of them (a page)."""
 
     def build_snapshots(self, up_to_ms: int) -> int:
         """Builds the snapshots due up to `up_to_ms`; returns how many were built."""

@@ -32,7 +32,8 @@ PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 PID_FILE = "up.pids.json"
 GUARD = "guard"
 # Stack.stop's order: who feeds a broker stops before it, the brokers last.
-STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "mqtt", "kafka")
+STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt",
+              "kafka")
 
 
 def _prctl():

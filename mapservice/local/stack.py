@@ -98,6 +98,13 @@ class Stack:
     # (mapservice.local.lifetime).
     tied_to_parent: bool = False
     guard: subprocess.Popen | None = None
+    # `mapservice up`: the API apart from the processors (start_apart), as in the split
+    # deployment: `mapservice clickhouse-server` owns the chDB directory (chDB allows one
+    # process per directory) and serves ClickHouse HTTP to `mapservice processors` and
+    # `mapservice api`, so no API work runs in the history consumer's process.
+    apart: bool = False
+    clickhouse_port: int = 0
+    processors_health_port: int = 0
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -133,6 +140,9 @@ class Stack:
         self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
         self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
         self.pid_file = lifetime.PidFile.in_data_dir(self.data_dir)
+        if self.apart:
+            self.clickhouse_port = self.clickhouse_port or embedded.free_port()
+            self.processors_health_port = self.processors_health_port or embedded.free_port()
         # The broker files as the running Mosquitto read them, and a change seen once
         # (applied when it holds still: `robot add` replaces the two files one by one).
         self._broker_files_read: tuple = ()
@@ -192,8 +202,10 @@ class Stack:
         return self.tls_dir / "ca.crt"
 
     def service_password(self, username: str) -> str:
-        """The generated MQTT password of a service user (kept in DATA_DIR/secrets/)."""
-        path = self.data_dir / "secrets" / f"mqtt-{username}-password"
+        """The generated password of a service user (kept in DATA_DIR/secrets/): an MQTT
+        one, or "clickhouse" (the service's user on `mapservice clickhouse-server`)."""
+        name = "clickhouse-password" if username == "clickhouse" else f"mqtt-{username}-password"
+        path = self.data_dir / "secrets" / name
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
             path.parent.chmod(0o700)
@@ -216,9 +228,26 @@ class Stack:
                             "MAPSERVICE_MQTT_PASSWORD": self.service_password(user)})
         return env
 
+    @property
+    def clickhouse_url(self) -> str:
+        """The ClickHouse HTTP interface of `mapservice clickhouse-server` (apart only)."""
+        return f"http://127.0.0.1:{self.clickhouse_port}"
+
+    def _apart_env(self) -> dict[str, str]:
+        """Apart: every component reaches the history through the ClickHouse server, as the
+        service's ClickHouse user with a generated password (DATA_DIR/secrets/: the port is
+        open to every local user); the API asks the processors whether it is stored."""
+        if not self.apart:
+            return {}
+        return {"MAPSERVICE_CLICKHOUSE_DSN": self.clickhouse_url,
+                "MAPSERVICE_CLICKHOUSE_PASSWORD": self.service_password("clickhouse"),
+                "MAPSERVICE_PROCESSORS_STATUS_URL":
+                    f"http://127.0.0.1:{self.processors_health_port}"}
+
     def env(self, component: str | None = None) -> dict[str, str]:
         return {
             **os.environ,
+            **self._apart_env(),
             "MAPSERVICE_DATA_DIR": str(self.data_dir),
             "MAPSERVICE_KAFKA_BOOTSTRAP": self.kafka_bootstrap,
             "MAPSERVICE_MQTT_URL": self.mqtt_url,
@@ -328,6 +357,25 @@ class Stack:
         embedded.wait_for_port(port, timeout_s=120, proc=proc, what=name)
         self.wait_healthy(f"http://127.0.0.1:{port}/readyz", name, proc)
         return proc
+
+    def start_clickhouse_server(self) -> subprocess.Popen:
+        """`mapservice clickhouse-server` (apart): the one process that opens the data dir's
+        chDB, serving ClickHouse HTTP read-write to the service's user."""
+        embedded.ensure_port_free(self.clickhouse_port, "the ClickHouse server")
+        proc = self.spawn("clickhouse", "clickhouse-server", "--port", str(self.clickhouse_port),
+                          "--read-write")
+        embedded.wait_for_port(self.clickhouse_port, timeout_s=120, proc=proc, what="clickhouse")
+        self.wait_healthy(f"{self.clickhouse_url}/ping", "clickhouse", proc)
+        return proc
+
+    def start_apart(self) -> None:
+        """What `serve` runs, in three processes (apart=True): the ClickHouse server, the
+        processors (creating the schema) and the API on the stack's API port."""
+        if not self.apart:
+            raise RuntimeError("this stack runs processors and API in one process (apart=False)")
+        self.start_clickhouse_server()
+        self.start_processors(self.processors_health_port)
+        self.start_api()
 
     def wait_healthy(self, url: str, what: str, proc: subprocess.Popen,
                      timeout_s: float = 60) -> None:
@@ -485,6 +533,12 @@ class Stack:
         embedded.stop(self.procs.pop(name, None))
         if name == "server":
             return self.start_server()
+        if name == "clickhouse":
+            return self.start_clickhouse_server()
+        if name == "processors" and self.apart:
+            return self.start_processors(self.processors_health_port)
+        if name == "api":
+            return self.start_api()
         if name == "gateway":
             return self.start_gateway()
         if name not in self.commands:
@@ -530,7 +584,7 @@ class Stack:
             self.guard.kill()
             self.guard.wait()
             self.guard = None
-        for name in ("sim", "gateway", "server", "api", "processors", "mqtt", "kafka"):
+        for name in ("sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt", "kafka"):
             embedded.stop(self.procs.pop(name, None))
             self._record()
         for proc in self.procs.values():

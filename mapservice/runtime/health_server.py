@@ -17,10 +17,13 @@ from .metrics_gate import Refusal
 def serve_health(host: str, port: int, status: Callable[[], dict],
                  ready: Callable[[], dict] | None = None,
                  metrics_gate: Callable[[str | None], Refusal] = lambda _auth: None,
+                 documents: dict[str, Callable[[], dict]] | None = None,
                  ) -> ThreadingHTTPServer:
     """Starts a daemon thread; `status()` (liveness) and `ready()` (readiness, default:
     the liveness) return a dict with a boolean `ok`; `metrics_gate(authorization)` says
-    whether /metrics may be served (see metrics_gate.py)."""
+    whether /metrics may be served (see metrics_gate.py); `documents` maps further paths
+    to what they answer as JSON (the processors' /history-status, for an API apart)."""
+    paths = dict(documents or {})
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - http.server's naming
@@ -34,6 +37,8 @@ def serve_health(host: str, port: int, status: Callable[[], dict],
                 doc = (ready or status)() if self.path == "/readyz" else status()
                 body = json.dumps(doc).encode()
                 ctype, code = "application/json", 200 if doc.get("ok") else 503
+            elif self.path in paths:
+                body, ctype, code = json.dumps(paths[self.path]()).encode(), "application/json", 200
             else:
                 body, ctype, code = b'{"detail":"use /healthz, /readyz or /metrics"}', "application/json", 404
             self.send_response(code)

@@ -4,6 +4,9 @@ the data directory: `mapservice serve` or `mapservice clickhouse-server`).
 Each statement runs on a chDB connection handle of its own kind:
 - read-write statements on a small pool of handles; a statement's settings are `SET` on
   the handle first and reset to `DEFAULT` afterwards, so no request sees another's;
+- inserts (the processors storing the history) and `SELECT 1` (readiness) on pools of
+  their own: a few long reads (the API's exports, run by the service's user) hold every
+  handle of the first pool, and the history would wait behind them;
 - read-only statements on a fresh handle that is made read-only (`readonly = 1`, which the
   engine enforces and nobody can lift on that handle) and closed afterwards (about 1 ms).
 """
@@ -65,6 +68,29 @@ class _Handle:
             pass
 
 
+INSERT_HANDLES = 2
+_PING = re.compile(r"^\s*SELECT\s+1\s*;?\s*$", re.IGNORECASE)
+
+
+class _Lane:
+    """Up to `size` handles, opened when first needed; a caller beyond waits for one."""
+
+    def __init__(self, size: int) -> None:
+        self.size, self.opened = size, 0
+        self.queue: queue.Queue[_Handle] = queue.Queue()
+        self._lock = threading.Lock()
+
+    def take(self, path: str) -> _Handle:
+        try:
+            return self.queue.get_nowait()
+        except queue.Empty:
+            with self._lock:
+                grow = self.opened < self.size
+                if grow:
+                    self.opened += 1
+            return _Handle(path) if grow else self.queue.get()
+
+
 class ChdbEngine:
     """`SqlEngine` over chDB at `path`."""
 
@@ -74,28 +100,20 @@ class ChdbEngine:
             raise ValueError(f"{path} is not a chDB directory (chdb:///dir or a path)")
         self.path = str(Path(str(path).removeprefix("chdb://")).resolve())
         self.read_only_settings = dict(read_only_settings or {})
-        self._pool: queue.Queue[_Handle] = queue.Queue()
-        self._size = pool_size
-        self._opened = 0
-        self._lock = threading.Lock()
+        self._lanes = {"statements": _Lane(pool_size), "inserts": _Lane(INSERT_HANDLES),
+                       "ping": _Lane(1)}
         self._tmp = Path(tempfile.mkdtemp(prefix="mapservice-sql-"))
 
     # --- handles -----------------------------------------------------------------
 
     @contextmanager
-    def _pooled(self):
-        try:
-            handle = self._pool.get_nowait()
-        except queue.Empty:
-            with self._lock:
-                grow = self._opened < self._size
-                if grow:
-                    self._opened += 1
-            handle = _Handle(self.path) if grow else self._pool.get()
+    def _pooled(self, lane: str = "statements"):
+        pool = self._lanes[lane]
+        handle = pool.take(self.path)
         try:
             yield handle
         finally:
-            self._pool.put(handle)
+            pool.queue.put(handle)
 
     @contextmanager
     def _fresh(self, before: dict[str, str], readonly: str, after: dict[str, str]):
@@ -113,7 +131,7 @@ class ChdbEngine:
             handle.close()
 
     @contextmanager
-    def _handle_for(self, request: SqlRequest):
+    def _handle_for(self, request: SqlRequest, lane: str = "statements"):
         asked_readonly = request.settings.get("readonly", "0") not in ("", "0")
         if request.read_only or asked_readonly:
             # A read-only user gets the engine's limits and cannot change any setting; a
@@ -128,7 +146,7 @@ class ChdbEngine:
                 handle.use(request.database)
                 yield handle
             return
-        with self._pooled() as handle:
+        with self._pooled(lane) as handle:
             applied: list[str] = []
             try:
                 for name, value in request.settings.items():
@@ -144,7 +162,8 @@ class ChdbEngine:
 
     def execute(self, request: SqlRequest) -> SqlResult:
         fmt = output_format(request.sql, request.default_format)
-        with self._handle_for(request) as handle:
+        lane = "ping" if _PING.match(request.sql) and not request.settings else "statements"
+        with self._handle_for(request, lane) as handle:
             if _SESSION_ONLY.match(request.sql) and not request.read_only:
                 return SqlResult(b"", fmt)
             result = handle.run(request.sql, request.default_format, request.params)
@@ -159,7 +178,7 @@ class ChdbEngine:
         try:
             with os.fdopen(fd, "wb") as file:
                 file.write(data)
-            with self._handle_for(request) as handle:
+            with self._handle_for(request, "inserts") as handle:
                 handle.run(f"INSERT INTO {target} FROM INFILE {_quote(name)} FORMAT {fmt}")
             return SqlResult(b"", fmt)
         finally:
@@ -167,17 +186,18 @@ class ChdbEngine:
 
     def ping(self) -> bool:
         try:
-            with self._pooled() as handle:
+            with self._pooled("ping") as handle:
                 return str(handle.run("SELECT 1")).strip() == "1"
         except SqlError:
             return False
 
     def close(self) -> None:
-        while True:
-            try:
-                self._pool.get_nowait().close()
-            except queue.Empty:
-                break
+        for pool in self._lanes.values():
+            while True:
+                try:
+                    pool.queue.get_nowait().close()
+                except queue.Empty:
+                    break
         try:
             self._tmp.rmdir()
         except OSError:

@@ -183,6 +183,14 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
                            "is no user with such name", AUTHENTICATION_FAILED)
         return user
 
+    def identify(request: Request) -> str | None:
+        """The caller's name for rate limits ("sql:<user>"), None without valid credentials
+        (the API's AccessGuard then counts the client's address)."""
+        try:
+            return f"sql:{authenticate(request).name}"
+        except SqlError:
+            return None
+
     async def ping(request: Request) -> Response:
         return PlainTextResponse("Ok.\n")
 
@@ -246,10 +254,12 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
                         media_type="text/plain; charset=UTF-8" if "JSON" not in result.format
                         else "application/json; charset=UTF-8")
 
-    return Starlette(routes=[
+    app = Starlette(routes=[
         Route("/ping", ping, methods=["GET", "HEAD"]),
         Route("/", query, methods=["GET", "POST"]),
     ])
+    app.state.identify = identify
+    return app
 
 
 def _with_sql(request: SqlRequest, sql: str) -> SqlRequest:

@@ -5,6 +5,7 @@ a pool alone (429), and /clickhouse and the WebSocket are rate-limited like ever
 from __future__ import annotations
 
 import asyncio
+import base64
 import threading
 import time
 
@@ -29,10 +30,10 @@ class StuckStore(MemoryStore):
         self.release = threading.Event()
         self.entered = 0
 
-    def robots_at(self, at_ms: int):
+    def robots_at(self, at_ms: int, after=None, limit=None):
         self.entered += 1
         self.release.wait(30)
-        return super().robots_at(at_ms)
+        return super().robots_at(at_ms, after=after, limit=limit)
 
 
 def client_at(app, address: str) -> httpx.AsyncClient:
@@ -199,3 +200,27 @@ def test_probes_and_pages_belong_to_no_pool() -> None:
     pooled, health, ready = asyncio.run(scenario())
     assert pooled.status_code == 503
     assert health.status_code == 200 and ready.status_code == 200
+
+
+def test_analysts_are_rate_limited_per_credential_not_per_address() -> None:
+    """/clickhouse's callers authenticate with the analyst credential (HTTP Basic or
+    X-ClickHouse-User/-Key): its rate limit counts per credential, so an analyst on several
+    machines has one budget; a wrong password counts against the client's address."""
+    from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
+
+    sql_app = clickhouse_http_app(object(), [SqlUser("analyst", "s3cret", read_only=True)])  # type: ignore[arg-type]
+    app = create_app(Settings(api_rate_limit="2/minute"), MemoryStore(), sql_app=sql_app)
+
+    async def get(address: str, **headers) -> int:
+        async with client_at(app, address) as client:
+            return (await client.get("/clickhouse/ping", headers=headers, timeout=30)).status_code
+
+    async def scenario():
+        basic = {"Authorization": "Basic " + base64.b64encode(b"analyst:s3cret").decode()}
+        keyed = {"X-ClickHouse-User": "analyst", "X-ClickHouse-Key": "s3cret"}
+        wrong = {"X-ClickHouse-User": "analyst", "X-ClickHouse-Key": "guess"}
+        return [await get("10.0.0.1", **basic), await get("10.0.0.2", **keyed),
+                await get("10.0.0.3", **basic), await get("10.0.0.3", **wrong),
+                await get("10.0.0.3", **wrong)]
+
+    assert asyncio.run(scenario()) == [200, 200, 429, 200, 200]

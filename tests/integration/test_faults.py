@@ -733,8 +733,12 @@ class Up:
             pid, _, cmd = line.strip().partition(" ")
             if "mapservice.cli gateway" in cmd:
                 found["gateway"] = int(pid)
-            elif "mapservice.cli serve" in cmd:
-                found["server"] = int(pid)
+            elif "mapservice.cli processors" in cmd:
+                found["processors"] = int(pid)
+            elif "mapservice.cli api" in cmd:
+                found["api"] = int(pid)
+            elif "mapservice.cli clickhouse-server" in cmd:
+                found["clickhouse"] = int(pid)
             elif "tansu" in cmd or "kafka.Kafka" in cmd:
                 found["kafka"] = int(pid)
             elif "mosquitto" in cmd:
@@ -750,10 +754,10 @@ class Up:
                 os.killpg(self.proc.pid, signal.SIGKILL)
 
 
-@pytest.mark.timeout(480)
+@pytest.mark.timeout(600)
 def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp_path) -> None:
     """`mapservice up` restarts each SIGKILLed part and says so; acknowledged messages stored once, map and snapshots exact."""
-    # Gateway, serve, the embedded Mosquitto and Kafka, one after the other; losses are
+    # Gateway, processors, API, ClickHouse server, the embedded Mosquitto and Kafka, one after the other; losses are
     # allowed only through tansu's memory storage (where it is the fallback), and are measured.
     if not embedded.mosquitto_installed():
         pytest.fail("mosquitto is not installed (`make system-deps`)")
@@ -780,7 +784,7 @@ def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp
                   proxy_path="/clickhouse")
         load = Load(f"mqtt://127.0.0.1:{up.mqtt_port}", meta_for(load_ros_map(MAPS / "depot.yaml")))
         time.sleep(2)
-        for name in ("gateway", "server", "mqtt", "kafka"):
+        for name in ("gateway", "processors", "api", "clickhouse", "mqtt", "kafka"):
             runs.append(run_fault(f"up-{name}", load, up.api_url, sql, kill_and_wait_restart(name)))
         load.segment = "after"
         time.sleep(STEADY_S)
@@ -788,7 +792,8 @@ def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp
         assert "did not start again" not in up.output, up.output[-4000:]
         kafka = "apache" if "Kafka (Apache Kafka" in up.output else "tansu"
         report = {"topology": f"mapservice up: {KAFKA_KIND[kafka]}, embedded Mosquitto (store in the "
-                              "data dir), serve (processors + API on chDB), gateway; restarted "
+                              "data dir), processors, API and the ClickHouse server over chDB, each "
+                              "its own process, gateway; restarted "
                               "by up's supervisor",
                   **verify(sql, up.api_url, load, runs, merge=False),
                   "seconds": round(time.monotonic() - started, 1)}

@@ -65,7 +65,8 @@ class Up:
 
 
 def children(pid: int) -> dict[str, int]:
-    """Component name -> pid of the `mapservice.cli` children of `up` (gateway, serve, sim)."""
+    """Subcommand -> pid of the `mapservice.cli` children of `up` (gateway, processors, api,
+    clickhouse-server, sim)."""
     out = subprocess.run(["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True,
                          text=True).stdout
     found = {}

@@ -3,6 +3,7 @@ far it got, its address table is whole, and nothing it writes is readable by oth
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 import subprocess
@@ -50,7 +51,7 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
     try:
         out = up.output
         assert "simulating the last 0.3 days of 1 robots" in out and "done_percent=" in out
-        for step in ("starting Kafka (Apache Kafka", "starting processors + API",
+        for step in ("starting Kafka (Apache Kafka", "starting the ClickHouse server, the processors",
                      "starting the MQTT-to-Kafka gateway"):
             assert step in out
         password_path = str(data / "secrets" / "analyst-password")
@@ -65,8 +66,19 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
                 if not stat.S_ISLNK(mode) and mode & 0o077:
                     exposed.append(f"{oct(stat.S_IMODE(mode))} {os.path.relpath(path, data)}")
         assert not exposed, exposed
-        for must in ("secrets/robots.json", "logs/server.log", "logs/mosquitto.log",
+        for must in ("secrets/robots.json", "logs/processors.log", "logs/api.log",
+                     "logs/clickhouse.log", "secrets/clickhouse-password", "logs/mosquitto.log",
                      "mqtt/passwd", "mqtt/acl"):
             assert (data / must).exists(), must
+        # The API in a process of its own, apart from the history consumer's; the ClickHouse
+        # server the one process that opens the chDB directory (no `serve`).
+        recorded = {c["name"]: c for c in
+                    json.loads((data / "up.pids.json").read_text())["components"]}
+        assert {"clickhouse", "processors", "api"} <= set(recorded) and "server" not in recorded
+        assert recorded["api"]["command"][-1] == "api"
+        assert recorded["processors"]["command"][3] == "processors"
+        # Still told whether the history is stored (the processors' own truth).
+        assert up.api("/readyz").json()["checks"]["history_store"] is True
+        assert up.api("/api/v1/status").json()["history"]["storing"] is True
     finally:
         up.stop()

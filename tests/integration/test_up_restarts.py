@@ -169,12 +169,12 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
 
 @pytest.mark.timeout(240)
 def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
-    """The guard that stops the components when `up` dies is killed, the server stopped
-    (SIGSTOP) and `up` killed with kill -9: the server still holds the API port. The next
-    `up` finds it in the pid file, says so, ends it and comes up on the same ports."""
+    """The guard that stops the components when `up` dies is killed, the API stopped
+    (SIGSTOP) and `up` killed with kill -9: the API still holds its port. The next `up`
+    finds it in the pid file, says so, ends it and comes up on the same ports."""
     data = tmp_path / "data"
     up = UpOn(data, free_port(), free_port())
-    server = children(up.proc.pid)["serve"]
+    server = children(up.proc.pid)["api"]
     try:
         guard = json.loads((data / "up.pids.json").read_text())["components"]
         os.kill(next(c["pid"] for c in guard if c["name"] == "guard"), signal.SIGKILL)
@@ -182,10 +182,10 @@ def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
         up.proc.kill()
         up.proc.wait(30)
         time.sleep(1)
-        assert lifetime.start_time(server) is not None, "the stopped server did not outlive up"
+        assert lifetime.start_time(server) is not None, "the stopped API did not outlive up"
         up = UpOn(data, up.api_port, up.mqtt_port)
         assert "ended without stopping its components" in up.output
-        assert f"server (pid {server})" in up.output
+        assert f"api (pid {server})" in up.output
         assert lifetime.start_time(server) is None
         assert up.api("/readyz").status_code == 200
     finally:

@@ -8,7 +8,7 @@ test-artifacts/ui/ and, with MAPSERVICE_UPDATE_SCREENSHOTS=1, to docs/."""
 from __future__ import annotations
 
 import math
-from datetime import datetime, timezone
+from datetime import datetime, UTC
 
 from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
 
@@ -16,7 +16,7 @@ MIN_BAR_PX = 3  # replay-ui/src/lib/timeline.ts
 
 
 def iso(ms: int) -> str:
-    return datetime.fromtimestamp(ms / 1000, timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+    return datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
 def battery_pct(level: float | None) -> int | None:
@@ -152,7 +152,7 @@ def test_timeline_reads_counts_and_zooms_back(page, history_stack) -> None:
                           ".map(e => [+e.dataset.t, e.textContent, +e.getAttribute('x')])")
     assert len(ticks) >= 4
     for ms, label, x in ticks:
-        at = datetime.fromtimestamp(ms / 1000, timezone.utc)
+        at = datetime.fromtimestamp(ms / 1000, UTC)
         # A tick at midnight names its day.
         assert label == at.strftime("%m-%d %H:%M" if ms % 86_400_000 == 0 else "%H:%M")
         assert abs(x - x_of(ms)) < 0.5 and span[0] <= ms <= span[1]

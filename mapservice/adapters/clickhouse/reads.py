@@ -132,7 +132,8 @@ class ReadsMixin(SnapshotsMixin):
                 "GROUP BY row, col ORDER BY row, col", parameters={"t": at_ms}).result_rows
         return [ChunkState(*r) for r in rows]
 
-    def robots_at(self, at_ms: int) -> list[PoseRow]:
+    def robots_at(self, at_ms: int, after: str | None = None,
+                  limit: int | None = None) -> list[PoseRow]:
         """Each robot's latest pose at or before `at_ms` (nearest snapshot + events).
 
         One statement in two passes over `poses`: the first finds each robot's latest time,
@@ -141,14 +142,25 @@ class ReadsMixin(SnapshotsMixin):
         columns only for the granules holding those (robot, ts) keys, which the primary key
         finds (`(ts, robot_id) in set`). Without a valid snapshot the first pass reads every
         pose <= at_ms (two columns), still exact.
+
+        A page (`after`, `limit`) is cut in the first pass, so a fleet of 100,000 robot ids
+        sends one page's rows, not every robot's, and the second pass reads only the page's.
         """
         db = self.database
+        params: dict = {"t": at_ms}
+        page = ""
+        if after is not None:
+            page, params["after"] = " AND robot_id > {after:String}", after
+        cut = ""
+        if limit is not None:
+            cut, params["n"] = " ORDER BY robot_id LIMIT {n:UInt32}", limit
         latest = ("(SELECT robot_id, max(ts) FROM ("
                   f"SELECT robot_id, ts FROM {db}.poses "
-                  "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64}) UNION ALL "
+                  "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64})" + page
+                  + " UNION ALL "
                   # max(ts): a rebuilt snapshot may still hold its older rows until merged.
-                  f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap) "
-                  "GROUP BY robot_id)")
+                  f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap{page}) "
+                  f"GROUP BY robot_id{cut})")
         return self._pose_query(
             f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
             "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
@@ -158,7 +170,7 @@ class ReadsMixin(SnapshotsMixin):
             # A robot silent since before the retention: its last pose, carried (retention.py).
             f"SELECT * FROM {db}.carried_poses FINAL WHERE (robot_id, ts) IN {latest}) "
             f"ORDER BY robot_id LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
-            {"t": at_ms})
+            params)
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         # PREWHERE on the sorting key's `ts`: as in poses(), FINAL sees every duplicate.

@@ -957,3 +957,33 @@ def test_the_conflict_inspectors_one_call_over_every_store(store, ev, t0) -> Non
     assert store.conflicts(t0 - 60_000, t0 + 60_000) == [ConflictRow(1, 2, t0 + 5_000, "a", t0, "b")]
     at_seek = {(c.row, c.column): c.content_hash for c in store.map_at(t0 + 5_001)}
     assert at_seek[(1, 2)] == content_hash(white).hex()
+
+
+def test_robots_at_pages_in_robot_id_order_across_a_snapshot(store, ev, t0) -> None:
+    """robots_at(after=, limit=) is a page of the whole answer, cut in the store (so a
+    fleet of 100,000 ids is never read whole for /api/v1/robots): robots silent since a
+    snapshot and robots that moved after it alike."""
+    if hasattr(store, "snapshot_every_ms"):
+        store.snapshot_every_ms = 600_000
+    base = t0 - 3_600_000
+    quiet = [f"q{i:02d}" for i in range(6)]  # only before the snapshot
+    busy = [f"b{i:02d}" for i in range(5)]  # before and after it
+    store.append([ev.pose(r, base + 1_000 + i) for i, r in enumerate(quiet + busy)])
+    store.build_snapshots(base + 1_200_000)
+    store.append([ev.pose(r, base + 1_500_000 + i, x=7.0) for i, r in enumerate(busy)])
+    at = base + 1_800_000
+    whole = store.robots_at(at)
+    assert [p.robot_id for p in whole] == sorted(quiet + busy)
+    pages, after = [], None
+    while True:
+        page = store.robots_at(at, after=after, limit=4)
+        assert len(page) <= 4
+        if not page:
+            break
+        pages.append(page)
+        after = page[-1].robot_id
+    assert [len(p) for p in pages] == [4, 4, 3]
+    assert [(p.robot_id, p.ts_ms, p.x) for page in pages for p in page] == \
+        [(p.robot_id, p.ts_ms, p.x) for p in whole]
+    assert store.robots_at(at, after="b02", limit=2)[0].x == 7.0
+    assert store.robots_at(at, after="zzz") == []
