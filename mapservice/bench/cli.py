@@ -37,6 +37,12 @@ def add_bench_parser(sub) -> None:
                         help="robots added per --find-ceiling step")
     ingest.add_argument("--ceiling-max", type=int, default=10_000,
                         help="--find-ceiling stops at this fleet even if it still holds")
+    ingest.add_argument("--kafka", choices=["auto", "apache", "tansu", "both"], default="auto",
+                        help="the embedded Kafka: apache (a KRaft node from the Apache Kafka "
+                             "jars), tansu (in memory), auto (MAPSERVICE_EMBEDDED_KAFKA: apache "
+                             "where Java is), or both: each --repeat round runs the workload on "
+                             "Apache Kafka and on tansu and prints them side by side (CPU per "
+                             "event per component, latency, memory; bench/brokers.py)")
     ingest.set_defaults(func=_run_ingest)
 
     from mapservice.bench.timetravel import add_parser as add_timetravel_parser
@@ -57,6 +63,10 @@ def add_bench_parser(sub) -> None:
 
 
 def _run_ingest(args) -> None:
-    from mapservice.bench.ingest import main
-
+    if args.kafka == "both":
+        from mapservice.bench.brokers import main
+    else:
+        from mapservice.bench.ingest import main
+    if args.kafka == "auto":
+        args.kafka = ""  # the stacks follow MAPSERVICE_EMBEDDED_KAFKA
     main(args)
