@@ -61,6 +61,10 @@ def add_bench_parser(sub) -> None:
 
     add_soak_parser(kinds)
 
+    from mapservice.bench.group_protocol import add_parser as add_group_protocol_parser
+
+    add_group_protocol_parser(kinds)
+
 
 def _run_ingest(args) -> None:
     if args.kafka == "both":

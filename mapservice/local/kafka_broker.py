@@ -170,6 +170,14 @@ class KafkaNodeConfig:
             f"share.coordinator.state.topic.replication.factor={self.replication}",
             f"share.coordinator.state.topic.min.isr={self.min_insync_replicas}",
             "group.initial.rebalance.delay.ms=0",
+            # Consumer groups of Kafka 4's protocol (KIP-848, MAPSERVICE_KAFKA_GROUP_PROTOCOL):
+            # the broker holds the members' session and heartbeat; the same 10 s and 1 s the
+            # classic protocol's members ask for (kafka_batch_source.py), under Kafka's
+            # defaults' floors of 45 s and 5 s.
+            "group.consumer.min.session.timeout.ms=10000",
+            "group.consumer.session.timeout.ms=10000",
+            "group.consumer.min.heartbeat.interval.ms=1000",
+            "group.consumer.heartbeat.interval.ms=1000",
             # The service creates its own topics (the meta topic compacted).
             "auto.create.topics.enable=false",
             # Everything is in ClickHouse within a second: Kafka keeps a day, and at most
