@@ -67,6 +67,11 @@ class Settings(BaseSettings):
     kafka_partitions: int = Field(6, ge=1, description="Partitions of topics the service creates.")
     kafka_replication: int = Field(1, ge=1)
     kafka_rebalance_timeout_s: float = Field(3.0, gt=0, description="Consumer-group rebalance timeout.")
+    kafka_group_protocol: Literal["classic", "consumer"] = Field("classic", description=(
+        "Consumer group protocol of the history consumer (librdkafka group.protocol): "
+        "`classic` (join/sync rebalances; every Kafka, tansu too) or `consumer` (Kafka 4's "
+        "KIP-848: the broker assigns partitions and holds the members' session timeout and "
+        "heartbeat as group.consumer.* broker configs; Apache Kafka 4 only)."))
     kafka_linger_ms: int = Field(50, ge=0, le=1_000, description="How long the gateway's and "
                                  "the 2019 API's producer collects records into one batch per "
                                  "partition (librdkafka linger.ms).")

@@ -54,6 +54,24 @@ STALE_COMMITS = Counter("mapservice_consumer_stale_commits_total",
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
     session_ms = max(int(settings.kafka_rebalance_timeout_s * 1000), 10_000)
+    if settings.kafka_group_protocol == "consumer":
+        # KIP-848: the broker assigns and holds the session timeout and the heartbeat
+        # interval (group.consumer.session.timeout.ms, ...heartbeat.interval.ms; the
+        # embedded broker sets them as below), and librdkafka refuses both settings here.
+        return {**_common_config(settings, group_id), "group.protocol": "consumer",
+                "max.poll.interval.ms": session_ms}
+    return {
+        **_common_config(settings, group_id),
+        # Same partition assignment story as faust's consumers: a join waits up to this
+        # long, and tansu always waits the whole of it, so it is kept short. An insert
+        # that stalls longer costs a rejoin and a re-delivery, never a loss.
+        "session.timeout.ms": session_ms,
+        "max.poll.interval.ms": session_ms,
+        "heartbeat.interval.ms": 1000,
+    }
+
+
+def _common_config(settings: Settings, group_id: str) -> dict:
     return {
         **settings.kafka_config(),
         "group.id": group_id,
@@ -61,12 +79,6 @@ def consumer_config(settings: Settings, group_id: str) -> dict:
         "auto.offset.reset": "earliest",
         "enable.auto.commit": False,
         "enable.auto.offset.store": False,
-        # Same partition assignment story as faust's consumers: a join waits up to this
-        # long, and tansu always waits the whole of it, so it is kept short. An insert
-        # that stalls longer costs a rejoin and a re-delivery, never a loss.
-        "session.timeout.ms": session_ms,
-        "max.poll.interval.ms": session_ms,
-        "heartbeat.interval.ms": 1000,
         # tansu answers an empty fetch only when this wait runs out, not when records
         # arrive, so librdkafka's 500 ms default added ~0.1-0.2 s to every event's
         # latency. Apache Kafka answers on arrival; there a short wait costs only idle

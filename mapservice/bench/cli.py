@@ -42,6 +42,12 @@ def add_bench_parser(sub) -> None:
                         help="2019: each robot a pose a second and a chunk every 5 s; vda5050: "
                              "each --robots a VDA 5050 vehicle, a state a second and a "
                              "visualization at 5 Hz (mapservice/bench/vda_fleet.py)")
+    ingest.add_argument("--kafka", choices=["auto", "apache", "tansu", "both"], default="auto",
+                        help="the embedded Kafka: apache (a KRaft node from the Apache Kafka "
+                             "jars), tansu (in memory), auto (MAPSERVICE_EMBEDDED_KAFKA: apache "
+                             "where Java is), or both: each --repeat round runs the workload on "
+                             "Apache Kafka and on tansu and prints them side by side (CPU per "
+                             "event per component, latency, memory; bench/brokers.py)")
     ingest.set_defaults(func=_run_ingest)
 
     from mapservice.bench.timetravel import add_parser as add_timetravel_parser
@@ -60,8 +66,16 @@ def add_bench_parser(sub) -> None:
 
     add_soak_parser(kinds)
 
+    from mapservice.bench.group_protocol import add_parser as add_group_protocol_parser
+
+    add_group_protocol_parser(kinds)
+
 
 def _run_ingest(args) -> None:
-    from mapservice.bench.ingest import main
-
+    if args.kafka == "both":
+        from mapservice.bench.brokers import main
+    else:
+        from mapservice.bench.ingest import main
+    if args.kafka == "auto":
+        args.kafka = ""  # the stacks follow MAPSERVICE_EMBEDDED_KAFKA
     main(args)

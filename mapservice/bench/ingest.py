@@ -41,7 +41,7 @@ from pathlib import Path
 import httpx
 import psutil
 
-from mapservice.bench.procstat import cpu_seconds
+from mapservice.bench.procstat import resident_by_component, cpu_seconds
 from mapservice.bench.yardstick import yardstick_ms
 
 KEYS_PER_POSE = "pose"
@@ -696,7 +696,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
     data_dir.mkdir(parents=True, exist_ok=True)
     ros_map = load_ros_map(DEFAULT_MAP)
     gateways = getattr(args, "gateways", 1)
-    stack = Stack(data_dir, mqtt=args.mqtt, gateways=gateways)
+    # `kafka`: "apache" or "tansu" (bench/brokers.py runs both); unset: the setting's choice.
+    stack = Stack(data_dir, mqtt=args.mqtt, gateways=gateways, kafka=getattr(args, "kafka", ""))
     result: dict = {"data_dir": str(data_dir), "gateways": gateways}
     poller: QueryablePoller | None = None
     listener: LiveListener | None = None
@@ -802,6 +803,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 driver.join(0.25)
             cpu_after = meter.snapshot()
             fleet_wall = time.monotonic() - fleet_t0
+            result["rss_mb_after_fleet"] = resident_by_component(stack.procs)
             ended_wall = time.time()
             if fleet_error:
                 raise fleet_error[0]

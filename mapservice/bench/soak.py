@@ -1,16 +1,19 @@
 """`mapservice bench soak`: the embedded service under simulated robots for a long time, sampled.
 
-One run starts the whole stack as `mapservice up` does (tansu, the MQTT broker, `serve`,
-the gateway) on a fresh data directory, drives `--robots` robots with the 2019 workload
+One run starts the whole stack as `mapservice up` does (the embedded Kafka: Apache Kafka, or
+tansu with `--kafka tansu`; the MQTT broker, `serve`, the gateway) on a fresh data directory, drives `--robots` robots with the 2019 workload
 (robot/loadgen.py) for `--minutes`, and every `--sample-s` records, per component process:
-resident memory and CPU share; for the pipeline: events published and stored, dead
+resident memory and CPU share; the bytes on disk of the embedded Apache Kafka's log
+and of ClickHouse's data; for the pipeline: events published and stored, dead
 letters, and freshness (the age of the newest queryable pose: publish period plus the
 pipeline's latency). A component that exits ends the run as a failure, with its log named.
 
 The summary fits a line through each component's memory after the first tenth of the run
 (start-up and caches filling) and states its growth per hour. tansu keeps every record in
 memory (no retention, docs/embedded.md), so its growth is expected: it is reported
-per stored event, with what a day and a week at this load would hold. Every other
+per stored event, with what a day and a week at this load would hold. Apache Kafka (a JVM
+with a bounded heap) is judged like every other component; its log's growth on disk is
+priced per stored event, up to what its retention lets it keep. Every other
 component's growth of anonymous memory (resident minus file-backed pages, which are mapped
 code such as chDB's library: bounded and reclaimable) is checked against
 `--max-growth-mb-per-h` (the command fails when one exceeds it); serve's is also split into
@@ -20,6 +23,7 @@ ClickHouse's tracked memory and Python's allocated blocks. A run shorter than an
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import tempfile
 import threading
@@ -32,7 +36,8 @@ import psutil
 from mapservice.bench.procstat import cpu_seconds, resident_mb
 
 HOUR_S = 3600.0
-EXPECTED_TO_GROW = {"kafka"}  # tansu: memory storage, every record kept (docs/embedded.md)
+# tansu: memory storage, every record kept (docs/embedded.md); Apache Kafka is bounded.
+EXPECTED_TO_GROW = {"tansu": {"kafka"}, "apache": set()}
 
 
 def growth_per_hour(times_s: list[float], values: list[float]) -> float | None:
@@ -51,11 +56,14 @@ def settle(samples: list[dict]) -> list[dict]:
     return [s for s in samples if s["t_s"] >= end / 10]
 
 
-def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -> dict:
-    """Per component: memory first/last/max and growth per hour; pipeline totals; verdicts."""
+def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float,
+              kafka: str = "tansu") -> dict:
+    """Per component: memory first/last/max and growth per hour; pipeline totals; disk;
+    verdicts. `kafka`: the embedded broker ("tansu" grows by design, "apache" is judged)."""
+    expected = EXPECTED_TO_GROW.get(kafka, set())
     steady = settle(samples)
     components = sorted({name for s in samples for name in s["rss_mb"]})
-    out: dict = {"components": {}, "representative": minutes >= 60}
+    out: dict = {"components": {}, "representative": minutes >= 60, "kafka": kafka}
     for name in components:
         points = [(s["t_s"], s["rss_mb"][name]) for s in steady if name in s["rss_mb"]]
         rss = [s["rss_mb"][name] for s in samples if name in s["rss_mb"]]
@@ -70,7 +78,7 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -
         anon = [(s["t_s"], s["anon_mb"][name]) for s in steady if name in s.get("anon_mb", {})]
         anon_growth = growth_per_hour([t for t, _ in anon], [v for _, v in anon])
         judged = anon_growth if anon_growth is not None else growth
-        bounded = None if judged is None or name in EXPECTED_TO_GROW else judged <= max_growth_mb_per_h
+        bounded = None if judged is None or name in expected else judged <= max_growth_mb_per_h
         out["components"][name] = {
             "rss_first_mb": rss[0] if rss else None, "rss_last_mb": rss[-1] if rss else None,
             "rss_max_mb": max(rss) if rss else None, "growth_mb_per_h": growth,
@@ -90,12 +98,13 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -
         fresh = [s["freshness_s"] for s in steady if s["freshness_s"] is not None]
         out["freshness_median_s"] = statistics.median(fresh) if fresh else None
         out["freshness_max_s"] = max(fresh) if fresh else None
-        kafka = out["components"].get("kafka", {})
-        if kafka.get("growth_mb_per_h") is not None and out["events_per_s"] > 0:
-            per_event = kafka["growth_mb_per_h"] * 1e6 / (out["events_per_s"] * HOUR_S)
+        kafka_mem = out["components"].get("kafka", {})
+        if kafka == "tansu" and kafka_mem.get("growth_mb_per_h") is not None and out["events_per_s"] > 0:
+            per_event = kafka_mem["growth_mb_per_h"] * 1e6 / (out["events_per_s"] * HOUR_S)
             out["kafka_bytes_per_event"] = per_event
-            out["kafka_mb_per_day"] = kafka["growth_mb_per_h"] * 24
-            out["kafka_mb_per_week"] = kafka["growth_mb_per_h"] * 24 * 7
+            out["kafka_mb_per_day"] = kafka_mem["growth_mb_per_h"] * 24
+            out["kafka_mb_per_week"] = kafka_mem["growth_mb_per_h"] * 24 * 7
+        out["disk"] = disk_summary(steady, out["events_per_s"])
         inside = [(x["t_s"], x["serve_inside"]) for x in steady if x.get("serve_inside")]
         if inside:
             times = [t for t, _ in inside]
@@ -105,6 +114,39 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float) -
                 for key in inside[0][1]}
     out["bounded"] = all(c["growth_bounded"] is not False for c in out["components"].values())
     return out
+
+
+def disk_summary(steady: list[dict], events_per_s: float) -> dict:
+    """Per directory sampled (`disk_mb`): first, last, growth per hour and, while events
+    are stored, bytes per stored event."""
+    out = {}
+    for name in sorted({n for s in steady for n in s.get("disk_mb", {})}):
+        points = [(s["t_s"], s["disk_mb"][name]) for s in steady if name in s.get("disk_mb", {})]
+        growth = growth_per_hour([t for t, _ in points], [v for _, v in points])
+        out[name] = {"first_mb": points[0][1], "last_mb": points[-1][1], "growth_mb_per_h": growth,
+                     "bytes_per_event": (growth * 1e6 / (events_per_s * HOUR_S)
+                                         if growth is not None and events_per_s > 0 else None)}
+    return out
+
+
+def dir_mb(path: Path) -> float:
+    """Bytes of the files under `path` (0 where it does not exist), in MB."""
+    total = 0
+    for root, _dirs, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.stat(os.path.join(root, name)).st_blocks * 512
+            except OSError:  # a segment deleted by retention while we walk
+                pass
+    return total / 1e6
+
+
+def disk_dirs(data_dir: Path, kafka: str) -> dict[str, Path]:
+    """The directories whose size on disk the soak samples."""
+    dirs = {"clickhouse": data_dir / "clickhouse"}
+    if kafka == "apache":
+        dirs["kafka_log"] = data_dir / "kafka" / "log"
+    return dirs
 
 
 INSIDE_SERVE = {"mapservice_chdb_memory_tracked_bytes": ("chdb_mb", 1e-6),
@@ -168,10 +210,19 @@ def run(args, console) -> dict:
 
     data_dir = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-soak-"))
     ros_map = load_ros_map(DEFAULT_MAP)
-    stack = Stack(data_dir, mqtt=args.mqtt)
+    stack = Stack(data_dir, mqtt=args.mqtt, kafka="" if args.kafka == "auto" else args.kafka)
+    settings = stack.settings()
     samples: list[dict] = []
     result: dict = {"data_dir": str(data_dir), "robots": args.robots, "minutes": args.minutes,
-                    "mqtt": args.mqtt, "samples": samples}
+                    "mqtt": args.mqtt, "kafka": stack.kafka, "samples": samples}
+    if stack.kafka == "apache":
+        from mapservice.local.kafka_broker import kafka_version
+
+        result["kafka_broker"] = {
+            "version": kafka_version(), "heap_mb": settings.embedded_kafka_heap_mb,
+            "retention_hours": settings.embedded_kafka_retention_hours,
+            "retention_bytes_per_partition": settings.embedded_kafka_retention_bytes}
+    disks = disk_dirs(data_dir, stack.kafka)
     fleet = None
     try:
         with console.status(f"starting Kafka ({stack.kafka}), {args.mqtt}, server, gateway in {data_dir}..."):
@@ -198,6 +249,7 @@ def run(args, console) -> dict:
             sample = {
                 "t_s": round(time.monotonic() - t0, 1), "rss_mb": rss, "anon_mb": anon,
                 "cpu_percent": cpu,
+                "disk_mb": {name: round(dir_mb(path), 2) for name, path in disks.items()},
                 "bench_rss_mb": bench_proc.memory_info().rss / 1e6,
                 "published": fleet.stats.poses + fleet.stats.chunks,
                 "stored": stats["poses"] + stats["chunk_events"],
@@ -209,12 +261,13 @@ def run(args, console) -> dict:
             console.print(
                 f"{sample['t_s'] / 60:6.1f} min  stored {sample['stored']:>9,}  "
                 f"dead letters {sample['dead_letters']}  freshness {sample['freshness_s']}s  "
-                + "  ".join(f"{n} {rss[n]:.0f} MB {cpu[n]:.0f}%" for n in sorted(rss)))
+                + "  ".join(f"{n} {rss[n]:.0f} MB {cpu[n]:.0f}%" for n in sorted(rss))
+                + "  disk " + "  ".join(f"{n} {v:.0f} MB" for n, v in sample["disk_mb"].items()))
     finally:
         if fleet is not None:
             fleet.stop()
         stack.stop()
-    result["summary"] = summarize(samples, args.minutes, args.max_growth_mb_per_h)
+    result["summary"] = summarize(samples, args.minutes, args.max_growth_mb_per_h, stack.kafka)
     return result
 
 
@@ -229,7 +282,7 @@ def print_summary(console, result: dict, max_growth: float) -> None:
                   f"{s.get('freshness_median_s')} s, max {s.get('freshness_max_s')} s")
     for name, c in s["components"].items():
         growth = c["growth_mb_per_h"]
-        verdict = ("expected: keeps every record" if name in EXPECTED_TO_GROW else
+        verdict = ("expected: keeps every record" if name in EXPECTED_TO_GROW.get(s["kafka"], ()) else
                    "bounded" if c["growth_bounded"] else f"over {max_growth:g} MB/h"
                    if c["growth_bounded"] is False else "too few samples")
         console.print(f"  {name:10s} RSS {c['rss_first_mb']:.0f} -> {c['rss_last_mb']:.0f} MB "
@@ -246,6 +299,17 @@ def print_summary(console, result: dict, max_growth: float) -> None:
         if inside and inside["growth_per_h"] is not None:
             console.print(f"  {label}: {inside['first']:.1f} -> {inside['last']:.1f} {unit}, "
                           f"growth {inside['growth_per_h']:+.1f} {unit}/h")
+    for name, d in s.get("disk", {}).items():
+        growth = d["growth_mb_per_h"]
+        console.print(f"  disk {name:10s} {d['first_mb']:.1f} -> {d['last_mb']:.1f} MB, growth "
+                      f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'}"
+                      + (f", ~{d['bytes_per_event']:.0f} bytes per stored event"
+                         if d.get("bytes_per_event") is not None else ""))
+    broker = result.get("kafka_broker")
+    if broker:
+        console.print(f"  Apache Kafka {broker['version']}: heap at most {broker['heap_mb']} MB; "
+                      f"its log kept {broker['retention_hours']} h and at most "
+                      f"{broker['retention_bytes_per_partition'] / 1024**2:.0f} MiB per partition")
     if "kafka_bytes_per_event" in s:
         console.print(f"  tansu holds ~{s['kafka_bytes_per_event']:.0f} bytes per event: "
                       f"{s['kafka_mb_per_day']:.0f} MB a day, {s['kafka_mb_per_week']:.0f} MB a week "
@@ -261,9 +325,13 @@ def add_parser(kinds) -> None:
                       "second and a chunk every five)")
     soak.add_argument("--mqtt", default="amqtt", help="amqtt (as `mapservice up`), mosquitto or an "
                       "mqtt:// URL")
+    soak.add_argument("--kafka", choices=("auto", "apache", "tansu"), default="auto",
+                      help="the embedded Kafka: apache (a KRaft node, log on disk, bounded heap), "
+                      "tansu (in memory) or auto (MAPSERVICE_EMBEDDED_KAFKA: apache where Java is)")
     soak.add_argument("--sample-s", type=float, default=30, help="seconds between samples")
     soak.add_argument("--max-growth-mb-per-h", type=float, default=20, help="memory growth per hour "
-                      "allowed to each component except tansu (which keeps every record)")
+                      "allowed to each component except tansu (which keeps every record); Apache Kafka's "
+                      "JVM is judged too")
     soak.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
     soak.add_argument("--json", default=None, help="write samples and summary as JSON to this file")
     soak.set_defaults(func=main)

@@ -31,6 +31,10 @@ def test_a_short_soak_samples_every_component_and_says_it_is_not_representative(
     assert summary["stored_events"] > 3 * 10 and summary["dead_letters"] == 0
     assert summary["freshness_median_s"] is not None and summary["freshness_median_s"] < 5
     assert summary["representative"] is False
+    # The embedded Apache Kafka's log on disk is sampled beside the components' memory.
+    if result["kafka"] == "apache":
+        assert samples[-1]["disk_mb"]["kafka_log"] > 0
+        assert result["kafka_broker"]["heap_mb"] >= 128
     # serve's memory split: ClickHouse's tracker (chDB lives in serve) and Python's allocator.
     inside = samples[-1]["serve_inside"]
     assert inside["chdb_mb"] > 0 and inside["python_blocks_k"] > 10

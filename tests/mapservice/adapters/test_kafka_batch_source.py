@@ -15,6 +15,23 @@ def test_consumer_commits_by_hand_and_fetches_with_the_configured_short_wait() -
     assert consumer_config(Settings(), "history")["fetch.wait.max.ms"] == 50
 
 
+def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker() -> None:
+    """Classic (the default) sets the member's session timeout and heartbeat; with Kafka 4's
+    consumer protocol (KIP-848) the broker holds both, and librdkafka refuses a consumer
+    that sets them: the configuration must create a consumer."""
+    from confluent_kafka import Consumer
+
+    classic = consumer_config(Settings(kafka_bootstrap="127.0.0.1:1"), "history")
+    assert Settings().kafka_group_protocol == "classic"
+    assert "group.protocol" not in classic and classic["session.timeout.ms"] == 10_000
+    new = consumer_config(Settings(kafka_bootstrap="127.0.0.1:1", kafka_group_protocol="consumer"),
+                          "history")
+    assert new["group.protocol"] == "consumer"
+    assert "session.timeout.ms" not in new and "heartbeat.interval.ms" not in new
+    assert new["enable.auto.commit"] is False and new["fetch.wait.max.ms"] == 50
+    Consumer(new).close()
+
+
 def test_constructing_the_source_opens_no_consumer() -> None:
     """No network I/O in the constructor: the consumer is created by start()."""
     source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t"], "g")

@@ -76,3 +76,21 @@ def test_growth_is_judged_on_anonymous_memory_where_it_was_sampled() -> None:
     assert flat["growth_mb_per_h"] == pytest.approx(60) and flat["anon_growth_mb_per_h"] == pytest.approx(0)
     assert flat["growth_bounded"] is True
     assert run(30)["growth_bounded"] is False
+
+
+def test_apache_kafkas_memory_is_judged_and_its_log_priced_per_event() -> None:
+    """On Apache Kafka (a bounded heap) the broker's growth is judged like any component's,
+    not excused as tansu's is, and its log's growth on disk is priced per stored event
+    (10 events/s, 18 MB/h on disk -> 500 bytes per event)."""
+    samples = [dict(sample(t, {"kafka": 300 + t / 60, "server": 200.0}, int(t * 10)),
+                    disk_mb={"kafka_log": 1 + t / 200})
+               for t in range(0, 3601, 60)]
+    apache = summarize(samples, minutes=60, max_growth_mb_per_h=20, kafka="apache")
+    assert apache["components"]["kafka"]["growth_bounded"] is False
+    assert apache["bounded"] is False
+    assert "kafka_bytes_per_event" not in apache  # memory is not where Apache Kafka keeps records
+    assert apache["disk"]["kafka_log"]["growth_mb_per_h"] == pytest.approx(18)
+    assert apache["disk"]["kafka_log"]["bytes_per_event"] == pytest.approx(500)
+    tansu = summarize(samples, minutes=60, max_growth_mb_per_h=20, kafka="tansu")
+    assert tansu["components"]["kafka"]["growth_bounded"] is None
+    assert tansu["kafka_bytes_per_event"] == pytest.approx(1000 * 60 / 36)

@@ -62,7 +62,9 @@ def test_jars_are_fetched_once_with_progress(tmp_path, monkeypatch) -> None:
     bin_dir = fake_mvn(tmp_path, f'echo run >> {calls}\nfor a in "$@"; do case "$a" in '
                                  '-DoutputDirectory=*) d="${a#-DoutputDirectory=}";; esac; done\n'
                                  'mkdir -p "$d" && touch "$d/kafka_2.13.jar"\n'
-                                 'echo "Downloaded from central: https://repo/kafka_2.13.jar (7 MB)"\n')
+                                 # As Maven 3.8 prints them in batch mode (-B).
+                                 'echo "[INFO] Downloaded from central: https://repo/kafka_2.13.pom (2 kB)"\n'
+                                 'echo "[INFO] Downloaded from central: https://repo/kafka_2.13.jar (7 MB)"\n')
     monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
     seen: list[str] = []
     libs = kafka_broker.ensure_jars(tmp_path / "jars", progress=seen.append)
