@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import msgspec
 
+from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation
 from mapservice.core.events import DeadLetter, Envelope, MapMetaSet
 
 if TYPE_CHECKING:
@@ -229,6 +230,12 @@ class HistoryStore(Protocol):
 
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
+
+    def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
+        """The operators' annotations standing at `at_ms` (inclusive), by id."""
+
+    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+        """The annotation edits with from_ms <= time < to_ms, oldest first."""
 
     def map_at(self, at_ms: int) -> list["ChunkState"]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""

@@ -19,6 +19,9 @@ the processors' snapshot timer on the service's clock (`adapters/clock.py`):
 4. The day partitions before the cut are dropped from every day-partitioned table; the
    snapshot log forgets the snapshots whose rows went; map metadata superseded before the
    boundary goes, the one in force at the boundary stays.
+5. Operators' annotations are state: of their edits before the boundary only those that
+   make the annotations standing at the boundary stay (each one's latest edit and its
+   creation); a removed annotation's edits go. The edits after the boundary are history.
 
 Storage is then flat per day after the first retention period: the kept days, plus the
 renewed floor. `RetentionMixin` builds on `snapshots.SnapshotsMixin`.
@@ -53,6 +56,7 @@ class RetentionMixin(SnapshotsMixin):
         boundary = now_ms - self.retention_days * DAY_MS
         db = self.database
         with self._lock:
+            self._prune_annotation_edits(boundary)
             anchor = self._retention_anchor(boundary)
             if anchor is None:
                 return RetentionResult(None, None, 0, 0)
@@ -133,6 +137,25 @@ class RetentionMixin(SnapshotsMixin):
             "WHERE snap_ts = fromUnixTimestamp64Milli({a:Int64}))",
             parameters={"a": anchor_ms, "c": cut})
         self.client.command(f"OPTIMIZE TABLE {db}.carried_poses FINAL")
+
+    def _prune_annotation_edits(self, boundary_ms: int) -> None:
+        """Deletes the annotation edits before the boundary that no annotation standing at
+        the boundary needs (its latest edit, and its creation, stay however old)."""
+        db = self.database
+        standing = (
+            f"SELECT annotation_id, argMax(event_id, (ts, event_id)) FROM {db}.annotation_events "
+            "FINAL WHERE ts <= fromUnixTimestamp64Milli({b:Int64}) GROUP BY annotation_id "
+            "HAVING argMax(change, (ts, event_id)) != 'removed' "
+            f"UNION ALL SELECT annotation_id, argMaxIf(event_id, (ts, event_id), change = 'created') "
+            f"FROM {db}.annotation_events FINAL WHERE ts <= fromUnixTimestamp64Milli({{b:Int64}}) "
+            "GROUP BY annotation_id HAVING argMax(change, (ts, event_id)) != 'removed'")
+        where = (f"ts < fromUnixTimestamp64Milli({{b:Int64}}) AND (annotation_id, event_id) NOT IN ({standing})")
+        (count,), = self._rows_w(f"SELECT count() FROM {db}.annotation_events FINAL WHERE {where}",
+                                 {"b": boundary_ms})
+        if count:
+            self.client.command(f"DELETE FROM {db}.annotation_events WHERE {where}",
+                                parameters={"b": boundary_ms})
+            log.info("annotation edits before the retention pruned", edits=int(count))
 
     def _drop_superseded_meta(self, boundary_ms: int) -> None:
         """Map metadata replaced before the boundary: the one in force at the boundary stays."""
