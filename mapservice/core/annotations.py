@@ -197,10 +197,10 @@ def validate(annotation: Shape) -> None:
         raise AnnotationError(f"a zone has at most {MAX_RINGS} rings, not {len(annotation.holes) + 1}")
     # Large traced rings (a mask's import) are checked for crossings only when small: the
     # check is quadratic, and a traced boundary cannot cross itself.
-    small = len(annotation.polygon) <= 1000
+    small = len(annotation.polygon) <= 500
     check_ring("polygon", annotation.polygon, small)
     for k, hole in enumerate(annotation.holes):
-        check_ring(f"hole {k}", hole, len(hole) <= 1000)
+        check_ring(f"hole {k}", hole, len(hole) <= 500)
     if annotation.kind == "speed_limit":
         limit, unit = annotation.speed_limit, annotation.speed_unit
         if limit is None or unit is None:
