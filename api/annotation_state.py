@@ -27,6 +27,15 @@ class _Recent:
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.edits: list[AnnotationEdit] = []
+        self.last_ms = 0
+
+    def stamp(self, now_ms: int, after_ms: int = 0) -> int:
+        """The time of a new edit: now, but after this process's previous edit and after
+        `after_ms` (the edited annotation's last change): edits of one annotation are
+        ordered by time, and two in one millisecond would be ordered by their ids."""
+        with self.lock:
+            self.last_ms = max(now_ms, self.last_ms + 1, after_ms + 1)
+            return self.last_ms
 
     def add(self, edit: AnnotationEdit) -> None:
         with self.lock:

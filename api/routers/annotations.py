@@ -136,7 +136,8 @@ def _shape(body: AnnotationIn):
 
 
 async def _publish(request: Request, publisher: EventPublisher, settings: Settings, caller: Caller,
-                   now_ms: int, event) -> AnnotationEdit:
+                   now_ms: int, event, after_ms: int = 0) -> AnnotationEdit:
+    now_ms = recent_edits(request).stamp(now_ms, after_ms)
     envelope = make_envelope(caller.name, now_ms, now_ms, event)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
     edit = AnnotationEdit(now_ms, envelope.event_id, event)
@@ -187,10 +188,10 @@ async def create_annotation(request: Request, body: AnnotationCreate, caller: Op
     if annotation_id in await run_in_threadpool(standing, request, store, now):
         raise HTTPException(409, f"annotation {annotation_id!r} exists; change it with PUT "
                                  f"/api/v1/annotations/{annotation_id} or choose another id")
-    await _publish(request, publisher, settings, caller, now,
-                   AnnotationCreated(annotation_id, caller.name, shape))
-    return AnnotationOut(id=annotation_id, annotation=to_doc(shape), created_ms=now,
-                         created_by=caller.name, changed_ms=now, changed_by=caller.name)
+    edit = await _publish(request, publisher, settings, caller, now,
+                          AnnotationCreated(annotation_id, caller.name, shape))
+    return AnnotationOut(id=annotation_id, annotation=to_doc(shape), created_ms=edit.ts_ms,
+                         created_by=caller.name, changed_ms=edit.ts_ms, changed_by=caller.name)
 
 
 async def _existing(request: Request, store: HistoryStore, annotation_id: str,
@@ -211,10 +212,10 @@ async def change_annotation(request: Request, annotation_id: IdPath, body: Annot
     shape = _shape(body)
     now = clock.now_ms()
     before = await _existing(request, store, annotation_id, now)
-    await _publish(request, publisher, settings, caller, now,
-                   AnnotationChanged(annotation_id, caller.name, shape))
+    edit = await _publish(request, publisher, settings, caller, now,
+                          AnnotationChanged(annotation_id, caller.name, shape), before.changed_ms)
     return AnnotationOut(id=annotation_id, annotation=to_doc(shape), created_ms=before.created_ms,
-                         created_by=before.created_by, changed_ms=now, changed_by=caller.name)
+                         created_by=before.created_by, changed_ms=edit.ts_ms, changed_by=caller.name)
 
 
 @router.delete("/{annotation_id}", operation_id="removeAnnotation", status_code=204)
@@ -223,9 +224,9 @@ async def remove_annotation(request: Request, annotation_id: IdPath, caller: Ope
                             publisher: PublisherDep) -> None:
     """Removes an annotation from now on (its history stays)."""
     now = clock.now_ms()
-    await _existing(request, store, annotation_id, now)
+    before = await _existing(request, store, annotation_id, now)
     await _publish(request, publisher, settings, caller, now,
-                   AnnotationRemoved(annotation_id, caller.name))
+                   AnnotationRemoved(annotation_id, caller.name), before.changed_ms)
 
 
 @router.post("/import-mask", operation_id="importKeepOutMask", response_model=Imported,
@@ -253,7 +254,8 @@ async def import_keep_out_mask(request: Request, body: MaskImport, caller: Opera
     ids = []
     for zone in zones:
         annotation_id = f"z-{secrets.token_hex(8)}"
-        await _publish(request, publisher, settings, caller, now,
-                       AnnotationCreated(annotation_id, caller.name, zone))
+        edit = await _publish(request, publisher, settings, caller, now,
+                              AnnotationCreated(annotation_id, caller.name, zone))
         ids.append(annotation_id)
+        now = edit.ts_ms
     return Imported(ids=ids, at_ms=now)

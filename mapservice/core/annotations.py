@@ -285,6 +285,7 @@ def _ring(value: object, name: str) -> Ring:
 
 def from_doc(doc: dict) -> Shape:
     """An annotation from its JSON form, validated; AnnotationError says what is wrong."""
+    doc = {k: v for k, v in doc.items() if v is not None}  # null is a field left out
     try:
         if doc.get("shape") == "poi":
             heading = doc.get("heading")

@@ -55,29 +55,51 @@ def _edges_in_pixels(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, 4))
 
 
-def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
-    """Boolean (height, width), row 0 at the top: the pixels whose centre is inside the
-    rings (even-odd). Each non-horizontal edge toggles, on every pixel row whose centre
-    line it crosses, the pixels left of the crossing; the parity of toggles is inside."""
+def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.ndarray]:
+    """(first row, first column, boolean window): the pixels whose centre is inside the
+    rings (even-odd), within the rings' bounding box clipped to the grid. Each
+    non-horizontal edge toggles, on every pixel row whose centre line it crosses, the
+    pixels left of the crossing; the parity of the toggles is inside."""
     edges = _edges_in_pixels(grid, rings)
-    counts = np.zeros((grid.height, grid.width + 1), dtype=np.int32)
+    if not len(edges):
+        return 0, 0, np.zeros((0, 0), dtype=bool)
+    xs, ys = edges[:, [0, 2]], edges[:, [1, 3]]
+    r0 = int(min(max(math.floor(ys.min()), 0), grid.height))
+    r1 = int(min(max(math.ceil(ys.max()), 0), grid.height))
+    c0 = int(min(max(math.floor(xs.min()), 0), grid.width))
+    c1 = int(min(max(math.ceil(xs.max()), 0), grid.width))
+    counts = np.zeros((r1 - r0, c1 - c0 + 1), dtype=np.int32)
     for x0, y0, x1, y1 in edges:
         if y0 == y1:
             continue
         lo, hi = min(y0, y1), max(y0, y1)
         # Rows r whose centre line r + 0.5 lies in [lo, hi).
-        first = max(math.ceil(lo - 0.5), 0)
-        last = min(math.ceil(hi - 0.5) - 1, grid.height - 1)
+        first = max(math.ceil(lo - 0.5), r0)
+        last = min(math.ceil(hi - 0.5) - 1, r1 - 1)
         if last < first:
             continue
         rows = np.arange(first, last + 1)
-        yc = rows + 0.5
-        xi = x0 + (yc - y0) * (x1 - x0) / (y1 - y0)
-        # Centres c + 0.5 < xi: columns 0 .. ceil(xi - 0.5) - 1.
-        n = np.clip(np.ceil(xi - 0.5), 0, grid.width).astype(np.int64)
-        counts[rows, 0] += 1
-        np.subtract.at(counts, (rows, n), 1)
-    return (np.cumsum(counts[:, :grid.width], axis=1) & 1).astype(bool)
+        xi = x0 + (rows + 0.5 - y0) * (x1 - x0) / (y1 - y0)
+        # Centres c + 0.5 < xi: columns up to ceil(xi - 0.5) - 1. Columns left of the
+        # window toggle nothing inside it, but the parity they carry does: counted at c0.
+        n = np.clip(np.ceil(xi - 0.5), c0, c1).astype(np.int64) - c0
+        counts[rows - r0, 0] += 1
+        np.subtract.at(counts, (rows - r0, n), 1)
+    return r0, c0, (np.cumsum(counts[:, :c1 - c0], axis=1) & 1).astype(bool)
+
+
+def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
+    """Boolean (height, width), row 0 at the top: the pixels whose centre is inside the
+    rings (even-odd rule, pixel centres; the module's docstring has the exact rule)."""
+    out = np.zeros((grid.height, grid.width), dtype=bool)
+    r0, c0, window = rasterise_window(grid, rings)
+    out[r0:r0 + window.shape[0], c0:c0 + window.shape[1]] = window
+    return out
+
+
+def _paint(mask: np.ndarray, grid: Grid, zone: Zone) -> tuple[slice, slice, np.ndarray]:
+    r0, c0, window = rasterise_window(grid, (zone.polygon, *zone.holes))
+    return slice(r0, r0 + window.shape[0]), slice(c0, c0 + window.shape[1]), window
 
 
 def zone_pixels(grid: Grid, zone: Zone) -> np.ndarray:
@@ -89,7 +111,8 @@ def keep_out_mask(grid: Grid, zones: Sequence[Zone]) -> np.ndarray:
     mask = np.zeros((grid.height, grid.width), dtype=bool)
     for zone in zones:
         if zone.kind == "keep_out":
-            mask |= zone_pixels(grid, zone)
+            rows, cols, window = _paint(mask, grid, zone)
+            mask[rows, cols] |= window
     return np.where(mask, MASK_KEEP_OUT, MASK_FREE).astype(np.uint8)
 
 
@@ -113,9 +136,9 @@ def speed_mask(grid: Grid, zones: Sequence[Zone], unit: str) -> tuple[np.ndarray
         if zone.kind != "speed_limit" or zone.speed_unit != unit or zone.speed_limit is None:
             continue
         value = int(min(max(math.floor((zone.speed_limit - info.base) / info.multiplier + 1e-9), 1), 100))
-        inside = zone_pixels(grid, zone)
-        current = mask[inside]
-        mask[inside] = np.where((current == 0) | (current > value), value, current)
+        rows, cols, inside = _paint(mask, grid, zone)
+        region = mask[rows, cols]
+        region[inside] = np.where((region[inside] == 0) | (region[inside] > value), value, region[inside])
     return mask, info
 
 
