@@ -283,8 +283,10 @@ def _ring(value: object, name: str) -> Ring:
     return tuple(out)
 
 
-def from_doc(doc: dict) -> Shape:
-    """An annotation from its JSON form, validated; AnnotationError says what is wrong."""
+def from_doc(doc: dict, check: bool = True) -> Shape:
+    """An annotation from its JSON form, validated unless `check` is False (a stored one
+    was validated when it was made; reads must not refuse it under later rules, nor pay
+    for the check again); AnnotationError says what is wrong."""
     doc = {k: v for k, v in doc.items() if v is not None}  # null is a field left out
     try:
         if doc.get("shape") == "poi":
@@ -308,7 +310,8 @@ def from_doc(doc: dict) -> Shape:
         if isinstance(exc, AnnotationError):
             raise
         raise AnnotationError(f"a field has the wrong type: {str(exc)[:200]}") from None
-    validate(shape)
+    if check:
+        validate(shape)
     return shape
 
 

@@ -24,7 +24,7 @@ def edit_of(row) -> AnnotationEdit:
     if change == "removed":
         return AnnotationEdit(int(ts), event_id, AnnotationRemoved(annotation_id, author))
     kind = AnnotationCreated if change == "created" else AnnotationChanged
-    return AnnotationEdit(int(ts), event_id, kind(annotation_id, author, from_doc(json.loads(body))))
+    return AnnotationEdit(int(ts), event_id, kind(annotation_id, author, from_doc(json.loads(body), check=False)))
 
 
 class AnnotationReadsMixin(ClickHouseConnection):
