@@ -321,18 +321,20 @@ def prune_before(edits: Iterable[AnnotationEdit], boundary_ms: int) -> list[Anno
     at the boundary is folded from). ClickHouse's retention step applies the same rule."""
     ordered = sorted(edits, key=lambda e: (e.ts_ms, e.event_id))
     latest: dict[str, AnnotationEdit] = {}
-    created: dict[str, AnnotationEdit] = {}
+    started: dict[str, AnnotationEdit] = {}  # the edit that began the current life (fold's created_ms)
     for edit in ordered:
-        if edit.ts_ms <= boundary_ms:
-            latest[edit.event.annotation_id] = edit
-            if isinstance(edit.event, AnnotationCreated):
-                created[edit.event.annotation_id] = edit
+        if edit.ts_ms > boundary_ms:
+            break
+        aid = edit.event.annotation_id
+        if isinstance(edit.event, AnnotationRemoved):
+            started.pop(aid, None)
+        elif isinstance(edit.event, AnnotationCreated) or aid not in started:
+            started[aid] = edit
+        latest[aid] = edit
     keep = set()
     for annotation_id, edit in latest.items():
         if not isinstance(edit.event, AnnotationRemoved):
-            keep.add(edit.event_id)
-            if annotation_id in created:
-                keep.add(created[annotation_id].event_id)
+            keep.update((edit.event_id, started[annotation_id].event_id))
     return [e for e in ordered if e.ts_ms >= boundary_ms or e.event_id in keep]
 
 

@@ -19,12 +19,13 @@ from mapservice.core.annotations import (
 _COLUMNS = "toUnixTimestamp64Milli(ts), event_id, change, annotation_id, author, body"
 
 
-def edit_of(row) -> AnnotationEdit:
+def edit_of(row, check: bool = False) -> AnnotationEdit:
+    """A stored row as the edit it records (not validated again unless `check`)."""
     ts, event_id, change, annotation_id, author, body = row
     if change == "removed":
         return AnnotationEdit(int(ts), event_id, AnnotationRemoved(annotation_id, author))
     kind = AnnotationCreated if change == "created" else AnnotationChanged
-    return AnnotationEdit(int(ts), event_id, kind(annotation_id, author, from_doc(json.loads(body), check=False)))
+    return AnnotationEdit(int(ts), event_id, kind(annotation_id, author, from_doc(json.loads(body), check=check)))
 
 
 class AnnotationReadsMixin(ClickHouseConnection):

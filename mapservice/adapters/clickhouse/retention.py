@@ -32,7 +32,9 @@ from __future__ import annotations
 import datetime as dt
 import structlog
 
+from mapservice.core.annotations import prune_before
 from mapservice.core.ports import RetentionResult
+from mapservice.adapters.clickhouse.annotation_reads import edit_of
 from mapservice.adapters.clickhouse.cluster import for_cluster
 from mapservice.adapters.clickhouse.schema import RETAINED_BY_DAY
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
@@ -142,20 +144,20 @@ class RetentionMixin(SnapshotsMixin):
         """Deletes the annotation edits before the boundary that no annotation standing at
         the boundary needs (its latest edit, and its creation, stay however old)."""
         db = self.database
-        standing = (
-            f"SELECT annotation_id, argMax(event_id, (ts, event_id)) FROM {db}.annotation_events "
-            "FINAL WHERE ts <= fromUnixTimestamp64Milli({b:Int64}) GROUP BY annotation_id "
-            "HAVING argMax(change, (ts, event_id)) != 'removed' "
-            f"UNION ALL SELECT annotation_id, argMaxIf(event_id, (ts, event_id), change = 'created') "
-            f"FROM {db}.annotation_events FINAL WHERE ts <= fromUnixTimestamp64Milli({{b:Int64}}) "
-            "GROUP BY annotation_id HAVING argMax(change, (ts, event_id)) != 'removed'")
-        where = (f"ts < fromUnixTimestamp64Milli({{b:Int64}}) AND (annotation_id, event_id) NOT IN ({standing})")
-        (count,), = self._rows_w(f"SELECT count() FROM {db}.annotation_events FINAL WHERE {where}",
-                                 {"b": boundary_ms})
-        if count:
-            self.client.command(f"DELETE FROM {db}.annotation_events WHERE {where}",
-                                parameters={"b": boundary_ms})
-            log.info("annotation edits before the retention pruned", edits=int(count))
+        # The same rule as the memory store's (core `prune_before`), on the edits up to the
+        # boundary: a few per annotation once pruned, so reading them is cheap.
+        rows = self._rows_w(
+            f"SELECT toUnixTimestamp64Milli(ts), event_id, change, annotation_id, author, body "
+            f"FROM {db}.annotation_events FINAL WHERE ts <= fromUnixTimestamp64Milli({{b:Int64}})",
+            {"b": boundary_ms})
+        edits = [edit_of(r, check=False) for r in rows]
+        kept = {e.event_id for e in prune_before(edits, boundary_ms)}
+        gone = sorted({e.event_id for e in edits if e.ts_ms < boundary_ms} - kept)
+        if gone:
+            self.client.command(
+                f"DELETE FROM {db}.annotation_events WHERE ts < fromUnixTimestamp64Milli({{b:Int64}}) "
+                "AND has({ids:Array(String)}, event_id)", parameters={"b": boundary_ms, "ids": gone})
+            log.info("annotation edits before the retention pruned", edits=len(gone))
 
     def _drop_superseded_meta(self, boundary_ms: int) -> None:
         """Map metadata replaced before the boundary: the one in force at the boundary stays."""
