@@ -12,14 +12,13 @@ from __future__ import annotations
 import base64
 import binascii
 import secrets
-import threading
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
-from mapservice.adapters.costmap_filters import MaskFileError, grid_of, keep_out_pixels, read_mask
+from mapservice.adapters.costmap_filters import grid_of, keep_out_pixels, read_mask
 from mapservice.core.annotations import (
     AnnotationChanged,
     AnnotationCreated,
@@ -28,7 +27,6 @@ from mapservice.core.annotations import (
     AnnotationRemoved,
     CurrentAnnotation,
     check_id,
-    fold_annotations,
     from_doc,
     to_doc,
 )
@@ -53,6 +51,7 @@ AtDep = Annotated[int, Depends(at_instant)]
 IdPath = Annotated[str, Path(description="The annotation's id", max_length=100)]
 
 MAX_IMPORTED_ZONES = 5_000
+CHANGES = {AnnotationCreated: "created", AnnotationChanged: "changed", AnnotationRemoved: "removed"}
 
 
 class AnnotationIn(BaseModel):
@@ -167,7 +166,7 @@ def list_annotation_edits(
     rows = store.annotation_edits(f, t, limit + 1)
     return Edits(from_ms=f, to_ms=t, truncated=len(rows) > limit, edits=[
         Edit(ts_ms=e.ts_ms, event_id=e.event_id, id=e.event.annotation_id,
-             change=type(e.event).__struct_config__.tag.removeprefix("annotation."),
+             change=CHANGES[type(e.event)],
              by=e.event.author,
              annotation=None if isinstance(e.event, AnnotationRemoved) else to_doc(e.event.annotation))
         for e in rows[:limit]])

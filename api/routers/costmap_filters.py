@@ -11,7 +11,7 @@ mask.pgm) and a costmap_filter_info_server at filter-info.yaml.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
@@ -40,8 +40,10 @@ UnitQuery = Annotated[Literal["percent", "m/s"], Query(description=(
     "speed only: the unit of the limits in the mask (zones in the other unit are left out)"))]
 PGM = "image/x-portable-graymap"
 YAML = "application/yaml"
-_PGM_RESPONSE = {200: {"content": {PGM: {}}, "description": "The mask image (binary PGM)"}}
-_YAML_RESPONSE = {200: {"content": {YAML: {}}, "description": "map_server / filter info YAML"}}
+_PGM_RESPONSE: dict[int | str, dict[str, Any]] = {
+    200: {"content": {PGM: {}}, "description": "The mask image (binary PGM)"}}
+_YAML_RESPONSE: dict[int | str, dict[str, Any]] = {
+    200: {"content": {YAML: {}}, "description": "map_server / filter info YAML"}}
 
 
 def _zones(request: Request, store: HistoryStore, at: int) -> tuple[Grid, list[Zone]]:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from typing import Union
+from typing import Any
 
 import msgspec
 
@@ -57,7 +57,7 @@ class Zone(msgspec.Struct, frozen=True, gc=False, tag="zone", array_like=True):
     note: str = ""
 
 
-Shape = Union[PointOfInterest, Zone]
+Shape = PointOfInterest | Zone
 
 
 class AnnotationCreated(msgspec.Struct, frozen=True, gc=False, tag="annotation.created",
@@ -84,7 +84,7 @@ class AnnotationRemoved(msgspec.Struct, frozen=True, gc=False, tag="annotation.r
     author: str
 
 
-AnnotationEvent = Union[AnnotationCreated, AnnotationChanged, AnnotationRemoved]
+AnnotationEvent = AnnotationCreated | AnnotationChanged | AnnotationRemoved
 ANNOTATION_EVENTS = (AnnotationCreated, AnnotationChanged, AnnotationRemoved)
 
 
@@ -260,7 +260,7 @@ def zones_of(current: Iterable[CurrentAnnotation]) -> list[tuple[str, Zone]]:
 # --- the JSON form (API bodies, the stored `body` column) -------------------------------
 
 
-def to_doc(shape: Shape) -> dict:
+def to_doc(shape: Shape) -> dict[str, Any]:
     """An annotation as JSON-ready builtins (the API's and the stored form)."""
     if isinstance(shape, PointOfInterest):
         return {"shape": "poi", "name": shape.name, "kind": shape.kind, "x": shape.x,
@@ -283,7 +283,7 @@ def _ring(value: object, name: str) -> Ring:
     return tuple(out)
 
 
-def from_doc(doc: dict, check: bool = True) -> Shape:
+def from_doc(doc: dict[str, Any], check: bool = True) -> Shape:
     """An annotation from its JSON form, validated unless `check` is False (a stored one
     was validated when it was made; reads must not refuse it under later rules, nor pay
     for the check again); AnnotationError says what is wrong."""
@@ -331,7 +331,7 @@ def prune_before(edits: Iterable[AnnotationEdit], boundary_ms: int) -> list[Anno
         elif isinstance(edit.event, AnnotationCreated) or aid not in started:
             started[aid] = edit
         latest[aid] = edit
-    keep = set()
+    keep: set[str] = set()
     for annotation_id, edit in latest.items():
         if not isinstance(edit.event, AnnotationRemoved):
             keep.update((edit.event_id, started[annotation_id].event_id))
@@ -339,7 +339,7 @@ def prune_before(edits: Iterable[AnnotationEdit], boundary_ms: int) -> list[Anno
 
 
 def zone_advertisement(annotation_id: str, change: str, ts_ms: int, author: str,
-                       public_base_url: str) -> dict:
+                       public_base_url: str) -> dict[str, Any]:
     """What robots get on the zone advertisement topic when a zone is created, changed or
     removed: which, when, by whom, and where the masks as of that edit are (nav2's
     map_server files and the CostmapFilterInfo parameters)."""

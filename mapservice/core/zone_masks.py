@@ -198,8 +198,8 @@ def trace_rings(mask: np.ndarray) -> list[list[tuple[int, int]]]:
     return rings
 
 
-def _collinear(a, b, c) -> bool:
-    return (b[0] - a[0]) * (c[1] - a[1]) == (b[1] - a[1]) * (c[0] - a[0])
+def _collinear(a: tuple[int, int], b: tuple[int, int], c: tuple[int, int]) -> bool:
+    return bool((b[0] - a[0]) * (c[1] - a[1]) == (b[1] - a[1]) * (c[0] - a[0]))
 
 
 def _inside(point: tuple[float, float], ring: Ring) -> bool:
@@ -220,7 +220,8 @@ def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out
         return tuple((grid.origin_x + x * grid.resolution,
                       grid.origin_y + (grid.height - y) * grid.resolution) for x, y in ring)
 
-    outers, holes = [], []
+    outers: list[Ring] = []
+    holes: list[Ring] = []
     for ring in trace_rings(mask):
         m = metres(ring)
         # Outer rings run clockwise (negative area in the map frame), holes the other way.

@@ -68,7 +68,7 @@ def test_zone_edits_are_advertised_on_the_zone_topic_and_points_of_interest_are_
     _stored(views, sink, _edit(NOW_MS + 2000, AnnotationRemoved("p1", "operator:ab12")))
     assert [(t, p["annotationId"], p["change"]) for t, p in ads.sent] == [
         ("iot/zones/advertisement", "z1", "created")]
-    topic, ad = ads.sent[0]
+    _, ad = ads.sent[0]
     assert ad["by"] == "operator:ab12" and ad["ts_ms"] == NOW_MS
     assert ad["keepOutMaskUrl"] == f"http://api:8080/api/v1/costmap-filters/keepout/mask.yaml?at={NOW_MS}"
     assert ad["speedFilterInfoUrl"].startswith("http://api:8080/api/v1/costmap-filters/speed/filter-info.yaml")
