@@ -44,11 +44,12 @@ from .routers import (
     tracks,
     ui,
     vda5050,
+    zone_violations,
 )
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
 ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, changes, annotations, costmap_filters, exports, stats, status, live,
+           timeline, conflicts, changes, annotations, costmap_filters, zone_violations, exports, stats, status, live,
            client_config, chunk_service, coordinate_service, ui)
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from mapservice.core import change_feed
 from mapservice.core.annotations import (ANNOTATION_EVENTS, AnnotationEdit, CurrentAnnotation,
-                                         fold_annotations, prune_before)
+                                         ZoneViolation, fold_annotations, prune_before)
 from mapservice.core.change_feed import ChangeEntry, ChangeQuery
 from mapservice.core.events import (
     ChunkUpdated,
@@ -67,6 +67,7 @@ class MemoryStore:
         self._vda_connections: dict[tuple, VdaConnectionRow] = {}
         self._vda_factsheets: dict[tuple, VdaFactsheetRow] = {}
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
+        self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
         self._lock = threading.Lock()
 
     def migrate(self) -> int:
@@ -106,6 +107,16 @@ class MemoryStore:
         with self._lock:
             current = fold_annotations(list(self._annotation_edits.values()), at_ms)
         return [current[k] for k in sorted(current)]
+
+    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
+        with self._lock:
+            for v in rows:
+                self._zone_violations[(v.ts_ms, v.robot_id, v.annotation_id)] = v
+
+    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+        with self._lock:
+            return [self._zone_violations[k] for k in sorted(self._zone_violations)
+                    if from_ms <= k[0] < to_ms][:limit]
 
     def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
         with self._lock:
@@ -223,6 +234,7 @@ class MemoryStore:
             for k in old_poses:
                 del self._poses[k]
             self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
+            self._zone_violations = {k: v for k, v in self._zone_violations.items() if k[0] >= cut}
             self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
             named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
                 bytes.fromhex(c.content_hash) for c in self._chunks.values()}

@@ -99,6 +99,16 @@ class CurrentAnnotation(msgspec.Struct, frozen=True, gc=False):
     changed_by: str
 
 
+class ZoneViolation(msgspec.Struct, frozen=True, gc=False, array_like=True):
+    """A robot's stored pose lay inside a keep-out zone (its pixel, by the masks' rule)."""
+
+    ts_ms: int
+    robot_id: str
+    annotation_id: str
+    x: float
+    y: float
+
+
 class AnnotationEdit(msgspec.Struct, frozen=True, gc=False):
     """One stored annotation event (the history of edits)."""
 

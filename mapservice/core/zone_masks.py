@@ -116,6 +116,31 @@ def keep_out_mask(grid: Grid, zones: Sequence[Zone]) -> np.ndarray:
     return np.where(mask, MASK_KEEP_OUT, MASK_FREE).astype(np.uint8)
 
 
+def keep_out_labels(grid: Grid, zones: Sequence[tuple[str, Zone]]) -> tuple[np.ndarray, list[str]]:
+    """Per pixel 0 (free) or 1 + the index into the returned ids of a keep-out zone that
+    covers it (where zones overlap, the later one): which zone a pose lies in, by the same
+    pixel rule as the keep-out mask."""
+    labels = np.zeros((grid.height, grid.width), dtype=np.int32)
+    ids: list[str] = []
+    for annotation_id, zone in zones:
+        if zone.kind != "keep_out":
+            continue
+        ids.append(annotation_id)
+        r0, c0, window = rasterise_window(grid, (zone.polygon, *zone.holes))
+        region = labels[r0:r0 + window.shape[0], c0:c0 + window.shape[1]]
+        region[window] = len(ids)
+    return labels, ids
+
+
+def pixel_of(grid: Grid, x: float, y: float) -> tuple[int, int] | None:
+    """(row, column) of the pixel holding map point (x, y), row 0 at the top; None outside."""
+    c = math.floor((x - grid.origin_x) / grid.resolution)
+    r = grid.height - 1 - math.floor((y - grid.origin_y) / grid.resolution)
+    if 0 <= r < grid.height and 0 <= c < grid.width:
+        return r, c
+    return None
+
+
 def speed_filter_info(zones: Sequence[Zone], unit: str) -> FilterInfo:
     """Percent: the mask value is the percentage (1..100). m/s: the mask value times
     `multiplier` = the limit, the multiplier the fastest limit / 100, so that limit is

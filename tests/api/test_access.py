@@ -61,7 +61,7 @@ SCOPES = {
     "listAnnotations": "read", "listAnnotationEdits": "read", "getCostmapFilterMask": "read",
     "getCostmapFilterMaskYaml": "read", "getCostmapFilterInfo": "read",
     "createAnnotation": "operator", "changeAnnotation": "operator", "removeAnnotation": "operator",
-    "importKeepOutMask": "operator",
+    "importKeepOutMask": "operator", "listZoneViolations": "read",
 }
 
 # What each credential gets per scope: a status, or "ok" (anything the operation answers

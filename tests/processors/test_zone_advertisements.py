@@ -89,3 +89,36 @@ def test_a_zone_known_from_the_history_is_advertised_when_removed(sink) -> None:
     views.load()
     _stored(views, sink, _edit(NOW_MS + 60_000, AnnotationRemoved("z1", "operator:ab12")))
     assert [(t, p["change"]) for t, p in ads.sent] == [("iot/zones/advertisement", "removed")]
+
+
+def test_a_pose_inside_a_keep_out_zone_is_a_zone_violation(sink) -> None:
+    """After a keep-out zone is stored, a robot's pose on one of its pixels is a violation
+    (stored, listed by the API); poses outside it, poses before it existed, and poses in a
+    speed zone are not; once the zone is removed, none."""
+    from fastapi.testclient import TestClient
+
+    from mapservice.adapters.clock import ManualClock
+    from mapservice.api.app import create_app
+    from tests.conftest import meta_event, pose_event
+
+    sink.store.append([meta_event(NOW_MS - 10_000)])  # 500 x 400 px at 0.05 m from (-1.5, 2.0)
+    views = LiveViews(Settings(), sink.store, TopicAdvertiser(), now_ms=lambda: NOW_MS + 100_000)
+    views.load()
+    keep_out = Zone("pit", "keep_out", ((0.0, 3.0), (2.0, 3.0), (2.0, 5.0), (0.0, 5.0)))
+    slow = Zone("slow", "speed_limit", ((5.0, 3.0), (7.0, 3.0), (7.0, 5.0)),
+                speed_limit=50.0, speed_unit="percent")
+    _stored(views, sink, _edit(NOW_MS, AnnotationCreated("pit", "operator:ab12", keep_out)),
+            _edit(NOW_MS, AnnotationCreated("slow", "operator:ab12", slow)))
+    _stored(views, sink, pose_event("amr-1", NOW_MS + 1000, x=1.0, y=4.0),  # inside
+            pose_event("amr-2", NOW_MS + 1000, x=3.0, y=4.0),  # outside
+            pose_event("amr-3", NOW_MS + 1000, x=6.5, y=3.5),  # in the speed zone
+            pose_event("amr-4", NOW_MS - 5000, x=1.0, y=4.0))  # before the zone existed
+    _stored(views, sink, _edit(NOW_MS + 2000, AnnotationRemoved("pit", "operator:ab12")))
+    _stored(views, sink, pose_event("amr-1", NOW_MS + 3000, x=1.0, y=4.0))
+    found = sink.store.zone_violations(NOW_MS - 60_000, NOW_MS + 60_000)
+    assert [(v.robot_id, v.annotation_id, v.ts_ms) for v in found] == [("amr-1", "pit", NOW_MS + 1000)]
+    client = TestClient(create_app(Settings(), sink.store, {}, ManualClock(NOW_MS + 100_000)))
+    body = client.get("/api/v1/zone-violations", params={
+        "from": str(NOW_MS - 60_000), "to": str(NOW_MS + 60_000)}).json()
+    assert [(v["robotId"], v["zoneId"], v["x"], v["y"]) for v in body["violations"]] == [
+        ("amr-1", "pit", 1.0, 4.0)]

@@ -164,6 +164,12 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "name": "The annotation's name",
         "body": "The annotation as JSON, as the API returns it ('' for a removal)",
     }),
+    "zone_violations": ("A robot's stored pose inside a keep-out zone, found by the processors "
+                        "(schema v13)", {
+        "ts": "The pose's event time (UTC)", "robot_id": "The robot",
+        "annotation_id": "The keep-out zone (annotation_events.annotation_id)",
+        "x": "The pose's x in metres", "y": "The pose's y in metres",
+    }),
 }
 
 

@@ -12,6 +12,7 @@ from mapservice.core.annotations import (
     AnnotationEdit,
     AnnotationRemoved,
     CurrentAnnotation,
+    ZoneViolation,
     fold_annotations,
     from_doc,
 )
@@ -46,3 +47,11 @@ class AnnotationReadsMixin(ClickHouseConnection):
             "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
             "ORDER BY ts, event_id LIMIT {n:UInt32}", {"f": from_ms, "t": to_ms, "n": limit})
         return [edit_of(r) for r in rows]
+
+    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+        rows = self._rows(
+            f"SELECT toUnixTimestamp64Milli(ts), robot_id, annotation_id, x, y FROM "
+            f"{self.database}.zone_violations FINAL WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
+            "AND ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY ts, robot_id, annotation_id "
+            "LIMIT {n:UInt32}", {"f": from_ms, "t": to_ms, "n": limit})
+        return [ZoneViolation(int(t), r, a, float(x), float(y)) for t, r, a, x, y in rows]

@@ -25,5 +25,13 @@ def statements(db: str) -> tuple[str, ...]:
             name String,
             body String CODEC(ZSTD(3))
         ) ENGINE = ReplacingMergeTree ORDER BY (annotation_id, ts, event_id)""",
-        *analyst_schema.comment_statements(db, analyst_schema.comments_of("annotation_events")),
+        f"""CREATE TABLE IF NOT EXISTS {db}.zone_violations (
+            ts DateTime64(3, 'UTC') CODEC(DoubleDelta, ZSTD(3)),
+            robot_id LowCardinality(String),
+            annotation_id String,
+            x Float64,
+            y Float64
+        ) ENGINE = ReplacingMergeTree PARTITION BY toDate(ts) ORDER BY (ts, robot_id, annotation_id)""",
+        *analyst_schema.comment_statements(db, analyst_schema.comments_of(
+            "annotation_events", "zone_violations")),
     )

@@ -329,7 +329,8 @@ DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "m
                    "pose_ten_minutes", "chunk_seconds")
 # What the retention step drops by day: the above (whose TTL schema v11 removed) and the
 # VDA 5050 facts of schema v12 (factsheets are kept: one a vehicle, its latest matters).
-RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections")
+RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections",
+                   "zone_violations")
 
 
 def _service_retention(db: str) -> tuple[str, ...]:

@@ -19,7 +19,7 @@ from mapservice.core.events import (
     VdaStateReported,
     pose_of,
 )
-from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, to_doc
+from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
 from mapservice.core.ports import ConflictRow
 from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
 from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
@@ -123,6 +123,13 @@ class WritesMixin(SnapshotsMixin):
         with self._lock:
             self._insert("dead_letters", rows, [
                 "received", "reason", "mqtt_topic", "detail", "payload", "gateway"])
+
+    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
+        if rows:
+            with self._lock:
+                self._insert("zone_violations", [[v.ts_ms, v.robot_id, v.annotation_id, v.x, v.y]
+                                                 for v in rows],
+                             ["ts", "robot_id", "annotation_id", "x", "y"])
 
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
         if not rows:
