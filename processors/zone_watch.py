@@ -32,14 +32,16 @@ class KeepOutWatch:
         """The keep-out zones standing at `at_ms`, rasterised on the map (blocking: run in
         the store's thread)."""
         self.grid = grid_of(store.latest_meta())
-        current = [c for c in store.annotations_at(at_ms) if isinstance(c.annotation, Zone)
-                   and c.annotation.kind == "keep_out"]
-        self.since = {c.annotation_id: c.created_ms for c in current}
-        if self.grid is None or not current:
+        zones: list[tuple[str, Zone]] = []
+        self.since = {}
+        for c in store.annotations_at(at_ms):
+            if isinstance(c.annotation, Zone) and c.annotation.kind == "keep_out":
+                zones.append((c.annotation_id, c.annotation))
+                self.since[c.annotation_id] = c.created_ms
+        if self.grid is None or not zones:
             self.labels, self.ids = np.zeros((0, 0), dtype=np.int32), []
             return
-        self.labels, self.ids = keep_out_labels(
-            self.grid, [(c.annotation_id, c.annotation) for c in current])
+        self.labels, self.ids = keep_out_labels(self.grid, zones)
 
     def violations(self, events: Sequence[Envelope]) -> list[ZoneViolation]:
         if self.grid is None or not self.ids:
