@@ -10,6 +10,7 @@ Credentials are bearer tokens (`Authorization: Bearer <token>`), each with a rol
 | writer  | read, the 2019 REST writes (robots)   | MAPSERVICE_API_WRITER_TOKENS     |
 | robot   | a writer bound to one robotId: chunks | MAPSERVICE_API_ROBOT_TOKENS      |
 |         | only under its own id (the handler)   | (robotId=token pairs)            |
+| operator| read, edit annotations (POIs, zones)  | MAPSERVICE_API_OPERATOR_TOKENS   |
 | admin   | everything: deletes, the map geometry | MAPSERVICE_ADMIN_TOKEN           |
 | metrics | /metrics only (the scraper)           | MAPSERVICE_API_METRICS_TOKEN     |
 
@@ -48,6 +49,7 @@ class Scope(str, Enum):
     READ = "read"  # history and map reads: open or token (MAPSERVICE_API_READ_ACCESS)
     WRITE = "write"  # the 2019 REST writes: a writer (robot) token or the admin token
     ADMIN = "admin"  # deletes, changing the map's geometry: the admin token
+    OPERATE = "operator"  # shaping the floor (annotations): an operator token or the admin's
     METRICS = "metrics"  # /metrics (MAPSERVICE_API_METRICS_ACCESS)
 
 
@@ -55,7 +57,8 @@ GRANTS: dict[str, frozenset[Scope]] = {
     "reader": frozenset({Scope.READ}),
     "writer": frozenset({Scope.READ, Scope.WRITE}),
     "robot": frozenset({Scope.READ, Scope.WRITE}),  # and only as itself: Caller.robot_id
-    "admin": frozenset({Scope.READ, Scope.WRITE, Scope.ADMIN, Scope.METRICS}),
+    "operator": frozenset({Scope.READ, Scope.OPERATE}),
+    "admin": frozenset({Scope.READ, Scope.WRITE, Scope.ADMIN, Scope.OPERATE, Scope.METRICS}),
     "metrics": frozenset({Scope.METRICS}),
 }
 WHO_MAY = {
@@ -64,6 +67,8 @@ WHO_MAY = {
     Scope.WRITE: "a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, "
                  "MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
     Scope.ADMIN: "the administrator token (MAPSERVICE_ADMIN_TOKEN)",
+    Scope.OPERATE: "an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, "
+                   "MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor",
     Scope.METRICS: "the metrics token or the admin token (MAPSERVICE_API_METRICS_TOKEN, "
                    "MAPSERVICE_ADMIN_TOKEN)",
 }
@@ -108,6 +113,7 @@ class Credentials:
         for role, secret in (("metrics", settings.api_metrics_token),
                              ("reader", settings.api_reader_tokens),
                              ("writer", settings.api_writer_tokens),
+                             ("operator", settings.api_operator_tokens),
                              ("admin", settings.admin_token)):
             for token in token_list(secret):
                 self._roles[_digest(token)] = role
@@ -184,6 +190,7 @@ _bearer = HTTPBearer(auto_error=False, scheme_name="bearer", description=(
     "A reader, writer (robot) or admin token: `Authorization: Bearer <token>`. Which one an "
     "operation needs is its `x-mapservice-scope`."))
 _WHAT = {Scope.READ: "reading", Scope.WRITE: "writing", Scope.ADMIN: "this administrative operation",
+         Scope.OPERATE: "editing the annotations (points of interest, zones)",
          Scope.METRICS: "reading the metrics"}
 
 
@@ -257,6 +264,7 @@ class NeedSocket:
 
 PUBLIC, READ, WRITE, ADMIN, METRICS = (Public(), Need(Scope.READ), Need(Scope.WRITE),
                                        Need(Scope.ADMIN), Need(Scope.METRICS))
+OPERATE = Need(Scope.OPERATE)
 SOCKET_READ = NeedSocket(Scope.READ)
 
 

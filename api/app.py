@@ -22,12 +22,14 @@ from .admission import AdmissionControl, default_pool_of
 from .access import AccessGuard, Credentials, check_routes, document_scopes
 from .limits import BodyLimit, validation_error
 from .routers import (
+    annotations as annotation_routes,
     changes,
     chunk_contents,
     chunk_events,
     chunk_service,
     client_config,
     conflicts,
+    costmap_filters,
     coordinate_service,
     events,
     exports,
@@ -42,12 +44,13 @@ from .routers import (
     tracks,
     ui,
     vda5050,
+    zone_violations,
 )
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
 ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, changes, exports, stats, status, live, client_config, chunk_service,
-           coordinate_service, ui)
+           timeline, conflicts, changes, annotation_routes, costmap_filters, zone_violations, exports, stats, status, live,
+           client_config, chunk_service, coordinate_service, ui)
 
 
 def create_app(settings: Settings, store: HistoryStore,

@@ -11,6 +11,7 @@ import time
 
 from fastapi import HTTPException, Request
 
+from mapservice.core.annotations import ANNOTATION_EVENTS
 from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, encode, kafka_key
 from mapservice.core.ports import EventPublisher
 from mapservice.settings import Settings
@@ -33,6 +34,8 @@ def topic_for(settings: Settings, envelope: Envelope) -> str:
         return settings.topic_chunk_events
     if isinstance(envelope.payload, MapMetaSet):
         return settings.topic_meta_events
+    if isinstance(envelope.payload, ANNOTATION_EVENTS):
+        return settings.topic_annotation_events
     return settings.topic_pose_events
 
 

@@ -307,6 +307,7 @@ def api_token_rows(settings: Settings) -> list[tuple[str, str]]:
     ones local mode makes (the server reads the same files)."""
     from mapservice.runtime.secrets import (
         ADMIN_TOKEN_FILE,
+        OPERATOR_TOKEN_FILE,
         READER_TOKEN_FILE,
         WRITER_TOKEN_FILE,
         secrets_dir,
@@ -320,6 +321,8 @@ def api_token_rows(settings: Settings) -> list[tuple[str, str]]:
             ("API writer token (robots)", "api_writer_tokens", WRITER_TOKEN_FILE,
              "REST writes; `mapservice robot` and `map upload` read it from there"),
             ("API admin token", "admin_token", ADMIN_TOKEN_FILE, "deletes, changing the map"),
+            ("API operator token", "api_operator_tokens", OPERATOR_TOKEN_FILE,
+             "editing points of interest and zones"),
             ("API reader token", "api_reader_tokens", READER_TOKEN_FILE, "reads")):
         if field == "api_reader_tokens" and settings.api_read_access == "open":
             continue

@@ -96,6 +96,9 @@ class Settings(BaseSettings):
     topic_pose_events: str = "mapservice.pose-events.v1"
     topic_meta_events: str = "mapservice.meta-events.v1"
     topic_dead_letter: str = "mapservice.dead-letter.v1"
+    topic_annotation_events: str = Field("mapservice.annotation-events.v1", description=(
+        "Operators' annotation edits (points of interest, zones), keyed by annotation and "
+        "compacted: each annotation's latest edit stays."))
     topic_live: str = Field("mapservice.live.v1", description="Stored events' live messages, "
                             "processors -> every API process (WebSocket /api/v1/live).")
     live_retention_s: int = Field(3600, ge=60, description="Retention of the live topic when the "
@@ -244,6 +247,9 @@ class Settings(BaseSettings):
     # Live views, advertisements, conflicts, clock skew (the 2019 document's ideas I.3, I.4)
     advertisement_topic: str = Field("iot/chunks/advertisement",
                                      description="2019 NEW_CHUNK_ADVERTISEMENT_TOPIC.")
+    zone_advertisement_topic: str = Field("iot/zones/advertisement", description=(
+        "MQTT topic where robots learn that the zones changed (next to the chunk "
+        "advertisements): the change, and where to GET the keep-out and speed masks."))
     public_base_url: str = Field("http://127.0.0.1:8080",
                                  description="Base of the chunkUrl in advertisements.")
     conflict_window_s: float = Field(60.0, ge=0, description="Different writes closer than this conflict.")
@@ -268,6 +274,10 @@ class Settings(BaseSettings):
         "Robot/writer credentials, comma-separated (one per robot or integration): the 2019 "
         "REST writes (POST/PUT meta, POST chunks) and every read. Empty: generated in local "
         "mode (DATA_DIR/secrets/writer-token); in production, no REST writes but the admin's."))
+    api_operator_tokens: SecretStr = Field(SecretStr(""), description=(
+        "Operator credentials, comma-separated: every read, and editing the annotations "
+        "(points of interest, zones). Empty: generated in local mode "
+        "(DATA_DIR/secrets/operator-token)."))
     api_robot_tokens: SecretStr = Field(SecretStr(""), description=(
         "Robots' own REST credentials, `robotId=token` pairs, comma-separated: a writer "
         "token bound to one robot, which may POST chunks only under its own robotId (403 "
@@ -383,7 +393,7 @@ class Settings(BaseSettings):
                     "before running with MAPSERVICE_MODE=production"
                 )
             for name in ("admin_token", "api_reader_tokens", "api_writer_tokens",
-                         "api_metrics_token", "api_robot_tokens"):
+                         "api_operator_tokens", "api_metrics_token", "api_robot_tokens"):
                 tokens = (list(robot_tokens(self.api_robot_tokens)) if name == "api_robot_tokens"
                           else token_list(getattr(self, name)))
                 short = [t for t in tokens if len(t) < MIN_TOKEN_CHARS]
@@ -469,4 +479,5 @@ class Settings(BaseSettings):
             self.topic_meta_events,
             self.topic_dead_letter,
             self.topic_live,
+            self.topic_annotation_events,
         ]

@@ -58,9 +58,13 @@ class MqttAdvertiser:
             log.error("advertiser could not start", error=str(exc), broker=f"{self.host}:{self.port}")
 
     def publish(self, payload: dict) -> bool:
-        """Queues one advertisement; False (logged, counted) if it could not be queued."""
+        """Queues one chunk advertisement; False (logged, counted) if it could not be queued."""
+        return self.publish_to(self.topic, payload)
+
+    def publish_to(self, topic: str, payload: dict) -> bool:
+        """Queues one advertisement on `topic` (chunks', zones'); as `publish`."""
         try:
-            rc = self.client.publish(self.topic, _json.encode(payload), qos=self.qos).rc
+            rc = self.client.publish(topic, _json.encode(payload), qos=self.qos).rc
             error = mqtt.error_string(rc)
         except Exception as exc:  # never let MQTT trouble reach the sink
             rc, error = -1, str(exc)
@@ -73,7 +77,7 @@ class MqttAdvertiser:
             now = time.monotonic()
             if now - self._last_warning > 10:  # a broker outage must not flood the log
                 self._last_warning = now
-                log.warning("advertisement not published", error=error, topic=self.topic,
+                log.warning("advertisement not published", error=error, topic=topic,
                             failures=self.failures)
         return ok
 

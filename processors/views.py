@@ -29,6 +29,7 @@ from mapservice.processors.conflict_recorder import (
     find_conflicts,
     write_conflicts,
 )
+from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, Zone, zone_advertisement
 from mapservice.core.events import ChunkUpdated, Envelope, pose_of
 from mapservice.core.liveview import (
     RobotState,
@@ -38,6 +39,7 @@ from mapservice.core.liveview import (
     online_robots,
 )
 from mapservice.core.ports import ChunkRow, HistoryStore
+from mapservice.processors.zone_watch import KeepOutWatch
 from mapservice.runtime.retry import until_done
 from mapservice.settings import Settings
 
@@ -65,6 +67,8 @@ MAX_PENDING_ADS = 10_000
 RECENT_MAX_WINDOW_MS = 600_000
 RECENT_SLACK_MS = 120_000
 RECENT_MAX_ROWS = 200_000
+ZONE_VIOLATIONS = Counter("mapservice_zone_violations_total",
+                          "Stored poses found inside a keep-out zone")
 ROBOTS_ONLINE = Gauge("mapservice_robots_online", "Robots heard from within robot_offline_after_s")
 
 
@@ -72,6 +76,8 @@ class Advertiser(Protocol):
     def start(self) -> None: ...
 
     def publish(self, payload: dict) -> bool: ...
+
+    def publish_to(self, topic: str, payload: dict) -> bool: ...
 
     def stop(self) -> None: ...
 
@@ -85,6 +91,8 @@ class LiveViews:
         self.now_ms = now_ms
         self.latest: dict = {}  # (row, column) -> ChunkState
         self.robots: dict[str, RobotState] = {}
+        self.zone_ids: set[str] = set()  # the zones standing now: a removal of one is advertised
+        self.keep_out = KeepOutWatch()  # touched only in the store thread
         self.online: set[str] = set()
         self.loaded = False
         self.recent: RecentWrites | None = None  # touched only in the store thread
@@ -107,6 +115,9 @@ class LiveViews:
                                          (p.x, p.y, p.z), p.battery_level, p.charging, p.loaded)
                   for p in self.store.robots_at(horizon)}
         self.latest, self.robots = latest, robots
+        self.zone_ids = {c.annotation_id for c in self.store.annotations_at(horizon)
+                         if isinstance(c.annotation, Zone)}
+        self.keep_out.rebuild(self.store, horizon)
         self.recent = self._load_recent()
         self.loaded = True
         log.info("live views rebuilt from the history", chunks=len(latest), robots=len(robots))
@@ -169,6 +180,40 @@ class LiveViews:
                 self.advertise(e)
         if any(pose_of(e.payload) is not None for e in events):
             apply_poses(self.robots, events)
+        zones_changed = False
+        for e in events:
+            if isinstance(e.payload, ANNOTATION_EVENTS):
+                zones_changed |= self.zone_edited(e)
+        if zones_changed:
+            horizon = self.now_ms() + int(self.settings.max_future_skew_s * 1000) + 86_400_000
+            await self._until_done(sink, lambda _: self.keep_out.rebuild(self.store, horizon), None)
+        if self.keep_out.ids and any(pose_of(e.payload) is not None for e in events):
+            found = self.keep_out.violations(events)
+            if found:
+                await self._until_done(sink, self.store.append_zone_violations, found)
+                ZONE_VIOLATIONS.inc(len(found))
+
+    def zone_edited(self, e: Envelope) -> bool:
+        """Advertises an edit that creates, changes or removes a zone (robots then fetch
+        the masks); edits of points of interest are not the robots' business."""
+        p = e.payload
+        was_zone = p.annotation_id in self.zone_ids
+        is_zone = not isinstance(p, AnnotationRemoved) and isinstance(p.annotation, Zone)
+        if is_zone:
+            self.zone_ids.add(p.annotation_id)
+        else:
+            self.zone_ids.discard(p.annotation_id)
+        if (was_zone or is_zone) and self.advertiser is not None:
+            ad = zone_advertisement(p.annotation_id, e.type.removeprefix("annotation."),
+                                    e.event_time_ms, p.author, self.settings.public_base_url)
+            self._ad_thread.submit(self._publish_zone, ad)
+        return was_zone or is_zone
+
+    def _publish_zone(self, ad: dict) -> None:
+        try:
+            self.advertiser.publish_to(self.settings.zone_advertisement_topic, ad)
+        except Exception as exc:  # best effort, as chunk advertisements
+            log.warning("zone advertisement failed", error=str(exc))
 
     def advertise(self, e: Envelope) -> None:
         """Hands the advertisement to the advertiser thread; never waits for it."""

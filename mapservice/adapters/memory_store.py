@@ -13,6 +13,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from mapservice.core import change_feed
+from mapservice.core.annotations import (ANNOTATION_EVENTS, AnnotationEdit, CurrentAnnotation,
+                                         ZoneViolation, fold_annotations, prune_before)
 from mapservice.core.change_feed import ChangeEntry, ChangeQuery
 from mapservice.core.events import (
     ChunkUpdated,
@@ -64,6 +66,8 @@ class MemoryStore:
         self._vda_errors: dict[tuple, VdaErrorRow] = {}
         self._vda_connections: dict[tuple, VdaConnectionRow] = {}
         self._vda_factsheets: dict[tuple, VdaFactsheetRow] = {}
+        self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
+        self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
         self._lock = threading.Lock()
 
     def migrate(self) -> int:
@@ -95,6 +99,29 @@ class MemoryStore:
                                                  p.content_hash.hex(), e.receive_time_ms)
                 elif isinstance(p, MapMetaSet):
                     self._metas[(e.event_time_ms, e.robot_id)] = p
+                elif isinstance(p, ANNOTATION_EVENTS):
+                    self._annotation_edits[(p.annotation_id, e.event_time_ms, e.event_id)] = \
+                        AnnotationEdit(e.event_time_ms, e.event_id, p)
+
+    def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
+        with self._lock:
+            current = fold_annotations(list(self._annotation_edits.values()), at_ms)
+        return [current[k] for k in sorted(current)]
+
+    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
+        with self._lock:
+            for v in rows:
+                self._zone_violations[(v.ts_ms, v.robot_id, v.annotation_id)] = v
+
+    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+        with self._lock:
+            return [self._zone_violations[k] for k in sorted(self._zone_violations)
+                    if from_ms <= k[0] < to_ms][:limit]
+
+    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+        with self._lock:
+            edits = [e for e in self._annotation_edits.values() if from_ms <= e.ts_ms < to_ms]
+        return sorted(edits, key=lambda e: (e.ts_ms, e.event_id))[:limit]
 
     def _append_vda(self, e: Envelope) -> None:
         p, at, robot = e.payload, e.event_time_ms, e.robot_id
@@ -191,6 +218,8 @@ class MemoryStore:
         boundary = now_ms - self.retention_days * DAY_MS
         cut = boundary // DAY_MS * DAY_MS
         with self._lock:
+            self._annotation_edits = {(e.event.annotation_id, e.ts_ms, e.event_id): e
+                                      for e in prune_before(self._annotation_edits.values(), boundary)}
             carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
                 list(self._poses.values()), boundary).values()}
             for facts in (self._vda_errors, self._vda_connections):  # keyed (robot, ts, ...)
@@ -207,6 +236,7 @@ class MemoryStore:
             for k in old_poses:
                 del self._poses[k]
             self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
+            self._zone_violations = {k: v for k, v in self._zone_violations.items() if k[0] >= cut}
             self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
             named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
                 bytes.fromhex(c.content_hash) for c in self._chunks.values()}

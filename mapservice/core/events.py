@@ -13,6 +13,13 @@ from typing import Any
 
 import msgspec
 
+from mapservice.core.annotations import (
+    ANNOTATION_EVENTS,
+    AnnotationChanged,
+    AnnotationCreated,
+    AnnotationRemoved,
+)
+
 SCHEMA_VERSION = 1
 
 # Every record below is frozen and holds only immutable values, so it cannot be part of a
@@ -151,7 +158,7 @@ class VdaFactsheetReported(msgspec.Struct, frozen=True, gc=False, tag="vda.facts
 
 
 Payload = (ChunkUpdated | PoseReported | MapMetaSet | VdaStateReported | VdaConnectionReported
-           | VdaFactsheetReported)
+           | VdaFactsheetReported | AnnotationCreated | AnnotationChanged | AnnotationRemoved)
 
 
 def pose_of(payload: Payload) -> PoseReported | None:
@@ -196,6 +203,11 @@ def event_id_for(robot_id: str, event_time_ms: int, payload: Payload) -> str:
         return _digest("chunk", payload.row, payload.column, robot_id, event_time_ms)
     if isinstance(payload, VdaStateReported):
         return _digest("vda.state", robot_id, event_time_ms)
+    if isinstance(payload, ANNOTATION_EVENTS):
+        # An operator's edit: the annotation, the instant and the whole content (two
+        # different edits of one annotation in one millisecond both stay).
+        return _digest("annotation", payload.annotation_id, event_time_ms,
+                       msgspec.msgpack.encode(payload))
     return _digest("meta", robot_id, event_time_ms, msgspec.msgpack.encode(payload))
 
 
@@ -218,12 +230,15 @@ def make_envelope(
 
 
 def kafka_key(envelope: Envelope) -> bytes:
-    """Chunk events are keyed by `row:column`, poses by robot id, so order per key holds."""
+    """Chunk events are keyed by `row:column`, poses by robot id, annotation edits by the
+    annotation (its topic is compacted: the latest edit of each stays), so order per key holds."""
     payload = envelope.payload
     if isinstance(payload, ChunkUpdated):
         return f"{payload.row}:{payload.column}".encode()
     if isinstance(payload, MapMetaSet):
         return b"map"
+    if isinstance(payload, ANNOTATION_EVENTS):
+        return f"annotation:{payload.annotation_id}".encode()
     return envelope.robot_id.encode()
 
 

@@ -7,6 +7,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import msgspec
 
+from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneViolation
 from mapservice.core.events import DeadLetter, Envelope, MapMetaSet
 
 if TYPE_CHECKING:
@@ -229,6 +230,18 @@ class HistoryStore(Protocol):
 
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
+
+    def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
+        """The operators' annotations standing at `at_ms` (inclusive), by id."""
+
+    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+        """The annotation edits with from_ms <= time < to_ms, oldest first."""
+
+    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
+        """Stores robots' poses found inside keep-out zones (one per pose and zone)."""
+
+    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+        """The zone violations with from_ms <= time < to_ms, by time."""
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""

@@ -19,6 +19,7 @@ from mapservice.settings import Settings, token_list
 ADMIN_TOKEN_FILE = "admin-token"
 WRITER_TOKEN_FILE = "writer-token"
 READER_TOKEN_FILE = "reader-token"
+OPERATOR_TOKEN_FILE = "operator-token"
 
 
 def secrets_dir(data_dir: Path) -> Path:
@@ -73,6 +74,8 @@ def with_local_api_secrets(settings: Settings) -> Settings:
         update["admin_token"] = SecretStr(local_secret(settings.data_dir, ADMIN_TOKEN_FILE))
     if not token_list(settings.api_writer_tokens):
         update["api_writer_tokens"] = SecretStr(local_secret(settings.data_dir, WRITER_TOKEN_FILE))
+    if not token_list(settings.api_operator_tokens):
+        update["api_operator_tokens"] = SecretStr(local_secret(settings.data_dir, OPERATOR_TOKEN_FILE))
     if settings.api_read_access == "token" and not token_list(settings.api_reader_tokens):
         update["api_reader_tokens"] = SecretStr(local_secret(settings.data_dir, READER_TOKEN_FILE))
     return settings.model_copy(update=update) if update else settings

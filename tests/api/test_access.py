@@ -28,6 +28,7 @@ ADMIN_TOKEN = "admin-" + "a" * 32
 WRITER_TOKENS = ("robot-7-" + "w" * 32, "robot-8-" + "v" * 32)
 READER_TOKEN = "viewer-" + "r" * 32
 METRICS_TOKEN = "scraper-" + "m" * 32
+OPERATOR_TOKEN = "operator-" + "p" * 32
 # Bound to the robot of the 2019 spec's examples, which the generated requests write as.
 ROBOT_TOKENS = {"lkjlkj": "own-robot-" + "o" * 32, "agv-7": "agv-seven-" + "s" * 32}
 
@@ -39,6 +40,7 @@ CREDENTIALS = {
     "admin": ADMIN_TOKEN,
     "metrics": METRICS_TOKEN,
     "robot": ROBOT_TOKENS["lkjlkj"],
+    "operator": OPERATOR_TOKEN,
 }
 
 # The scope every operation must declare. A new operation fails test_every_operation_*
@@ -56,6 +58,10 @@ SCOPES = {
     "getLegacyChunkPng": "read", "listLegacyRobots": "read",
     "postLegacyMeta": "write", "putLegacyMeta": "write", "postLegacyChunk": "write",
     "deleteLegacyMeta": "admin", "deleteLegacyChunks": "admin",
+    "listAnnotations": "read", "listAnnotationEdits": "read", "getCostmapFilterMask": "read",
+    "getCostmapFilterMaskYaml": "read", "getCostmapFilterInfo": "read",
+    "createAnnotation": "operator", "changeAnnotation": "operator", "removeAnnotation": "operator",
+    "importKeepOutMask": "operator", "listZoneViolations": "read",
 }
 
 # What each credential gets per scope: a status, or "ok" (anything the operation answers
@@ -65,14 +71,17 @@ EXPECTED = {
         "public": dict.fromkeys(CREDENTIALS, "ok"),
         # Open reads ignore a stale token (a browser's after a rotation); writes do not.
         "read": dict.fromkeys(CREDENTIALS, "ok"),
-        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok"},
-        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403},
+        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok", "operator": 403},
+        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": 403},
+        # Shaping the floor: operators and the admin; readers, robots and writers may not.
+        "operator": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": "ok"},
     },
     "token": {
         "public": dict.fromkeys(CREDENTIALS, "ok"),
-        "read": {"none": 401, "wrong": 401, "reader": "ok", "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok"},
-        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok"},
-        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403},
+        "read": {"none": 401, "wrong": 401, "reader": "ok", "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok", "operator": "ok"},
+        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok", "operator": 403},
+        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": 403},
+        "operator": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": "ok"},
     },
 }
 
@@ -81,7 +90,7 @@ def settings_for(read_access: str, **overrides) -> Settings:
     return Settings(admin_token=ADMIN_TOKEN, api_writer_tokens=",".join(WRITER_TOKENS),
                     api_robot_tokens=",".join(f"{r}={t}" for r, t in ROBOT_TOKENS.items()),
                     api_reader_tokens=READER_TOKEN, api_metrics_token=METRICS_TOKEN,
-                    api_read_access=read_access, api_rate_limit="", **overrides)
+                    api_operator_tokens=OPERATOR_TOKEN, api_read_access=read_access, api_rate_limit="", **overrides)
 
 
 def app_for(settings: Settings, **kwargs) -> FastAPI:
@@ -131,7 +140,7 @@ def test_every_operation_declares_the_expected_scope() -> None:
         assert op["security"] == expected, op["operationId"]
         # The refusals are documented (a client generator, schemathesis' status check).
         documented = set(op["responses"])
-        assert ({"401", "403"} <= documented) == (scope in ("write", "admin")), op["operationId"]
+        assert ({"401", "403"} <= documented) == (scope in ("write", "admin", "operator")), op["operationId"]
         assert ("429" in documented) == (scope != "public"), op["operationId"]
         assert ("415" in documented) == (method in ("POST", "PUT")), op["operationId"]
 

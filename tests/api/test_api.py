@@ -36,6 +36,10 @@ EXPECTED_OPERATION_IDS = {
     "exportTable", "exportReplayMcap",  # api/routers/exports.py
     "listChanges",  # api/routers/changes.py (the replay UI's change feed)
     "getVdaVehicle",  # api/routers/vda5050.py (a VDA 5050 vehicle's errors, connection, factsheet)
+    # operators' annotations (api/routers/annotations.py, costmap_filters.py, zone_violations.py)
+    "listAnnotations", "listAnnotationEdits", "createAnnotation", "changeAnnotation",
+    "removeAnnotation", "importKeepOutMask", "getCostmapFilterMask", "getCostmapFilterMaskYaml",
+    "getCostmapFilterInfo", "listZoneViolations",
 }
 
 

@@ -489,7 +489,7 @@ def test_strimzi_topics_match_the_settings():
     assert sorted(topics) == sorted(settings.kafka_topics)
     for name, doc in topics.items():
         spec = doc["spec"]
-        meta = name == settings.topic_meta_events
+        meta = name in (settings.topic_meta_events, settings.topic_annotation_events)
         assert spec["partitions"] == topic_partitions(settings, name), name
         if name == settings.topic_live:
             assert spec["config"]["retention.ms"] == settings.live_retention_s * 1000

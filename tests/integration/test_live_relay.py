@@ -30,7 +30,7 @@ def kafka(apache_kafka):
     settings = Settings(kafka_bootstrap=apache_kafka, **{
         field: f"{prefix}.{field}" for field in (
             "topic_chunk_events", "topic_pose_events", "topic_meta_events",
-            "topic_dead_letter", "topic_live")})
+            "topic_dead_letter", "topic_live", "topic_annotation_events")})
     ensure_topics(settings)
     return settings
 

@@ -132,11 +132,11 @@ def test_kafka_config_includes_sasl_credentials(monkeypatch) -> None:
     assert "kafka-pw" not in repr(s)  # the secret does not leak into logs
 
 
-def test_kafka_topics_lists_all_five() -> None:
-    """kafka_topics lists the chunk, pose, meta, dead-letter and live topics."""
+def test_kafka_topics_lists_all_six() -> None:
+    """kafka_topics lists the chunk, pose, meta, dead-letter, live and annotation topics."""
     assert Settings(topic_meta_events="m").kafka_topics == [
         "mapservice.chunk-events.v1", "mapservice.pose-events.v1", "m",
-        "mapservice.dead-letter.v1", "mapservice.live.v1"]
+        "mapservice.dead-letter.v1", "mapservice.live.v1", "mapservice.annotation-events.v1"]
 
 
 def test_kafka_ca_file_reaches_librdkafka(tmp_path: Path) -> None:

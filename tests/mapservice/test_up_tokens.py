@@ -26,3 +26,17 @@ def test_up_names_configured_tokens_by_their_variable(tmp_path) -> None:
     assert rows["API writer token (robots)"].startswith("MAPSERVICE_API_WRITER_TOKENS")
     assert str(tmp_path / "secrets" / "reader-token") in rows["API reader token"]
     assert rows["API reads"] == "need a token"
+
+
+def test_up_generates_and_names_an_operator_token(tmp_path) -> None:
+    """Operators edit zones with a token of their own: `up` generates it (DATA_DIR/secrets/
+    operator-token), names its file, and the API process reads the same one."""
+    from mapservice.runtime.secrets import with_local_api_secrets
+    from mapservice.settings import token_list
+
+    rows = dict(api_token_rows(Settings(data_dir=tmp_path)))
+    operator = stored_secret(tmp_path, "operator-token")
+    assert operator and str(tmp_path / "secrets" / "operator-token") in rows["API operator token"]
+    assert all(operator not in v for v in rows.values())
+    served = with_local_api_secrets(Settings(data_dir=tmp_path))
+    assert token_list(served.api_operator_tokens) == [operator]

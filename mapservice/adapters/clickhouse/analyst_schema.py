@@ -153,6 +153,23 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "vda_version": "The VDA 5050 schema it was validated against",
         "factsheet": "The factsheet's JSON",
     }),
+    "annotation_events": ("Operators' annotations (points of interest, zones): every create, "
+                          "change and removal with who and when (schema v13); the annotations "
+                          "at T are each id's latest event at or before T, unless a removal", {
+        "annotation_id": "The annotation's id", "ts": "When the edit was made (UTC)",
+        "event_id": "The edit's event id", "change": "created, changed or removed",
+        "author": "The credential that made the edit (a name, never the token)",
+        "shape": "poi or zone ('' for a removal)",
+        "kind": "station, charger, door, note (poi); keep_out, speed_limit, note (zone)",
+        "name": "The annotation's name",
+        "body": "The annotation as JSON, as the API returns it ('' for a removal)",
+    }),
+    "zone_violations": ("A robot's stored pose inside a keep-out zone, found by the processors "
+                        "(schema v13)", {
+        "ts": "The pose's event time (UTC)", "robot_id": "The robot",
+        "annotation_id": "The keep-out zone (annotation_events.annotation_id)",
+        "x": "The pose's x in metres", "y": "The pose's y in metres",
+    }),
 }
 
 

@@ -19,6 +19,9 @@ the processors' snapshot timer on the service's clock (`adapters/clock.py`):
 4. The day partitions before the cut are dropped from every day-partitioned table; the
    snapshot log forgets the snapshots whose rows went; map metadata superseded before the
    boundary goes, the one in force at the boundary stays.
+5. Operators' annotations are state: of their edits before the boundary only those that
+   make the annotations standing at the boundary stay (each one's latest edit and its
+   creation); a removed annotation's edits go. The edits after the boundary are history.
 
 Storage is then flat per day after the first retention period: the kept days, plus the
 renewed floor. `RetentionMixin` builds on `snapshots.SnapshotsMixin`.
@@ -29,7 +32,9 @@ from __future__ import annotations
 import datetime as dt
 import structlog
 
+from mapservice.core.annotations import prune_before
 from mapservice.core.ports import RetentionResult
+from mapservice.adapters.clickhouse.annotation_reads import edit_of
 from mapservice.adapters.clickhouse.cluster import for_cluster
 from mapservice.adapters.clickhouse.schema import RETAINED_BY_DAY
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
@@ -53,6 +58,7 @@ class RetentionMixin(SnapshotsMixin):
         boundary = now_ms - self.retention_days * DAY_MS
         db = self.database
         with self._lock:
+            self._prune_annotation_edits(boundary)
             anchor = self._retention_anchor(boundary)
             if anchor is None:
                 return RetentionResult(None, None, 0, 0)
@@ -133,6 +139,25 @@ class RetentionMixin(SnapshotsMixin):
             "WHERE snap_ts = fromUnixTimestamp64Milli({a:Int64}))",
             parameters={"a": anchor_ms, "c": cut})
         self.client.command(f"OPTIMIZE TABLE {db}.carried_poses FINAL")
+
+    def _prune_annotation_edits(self, boundary_ms: int) -> None:
+        """Deletes the annotation edits before the boundary that no annotation standing at
+        the boundary needs (its latest edit, and its creation, stay however old)."""
+        db = self.database
+        # The same rule as the memory store's (core `prune_before`), on the edits up to the
+        # boundary: a few per annotation once pruned, so reading them is cheap.
+        rows = self._rows_w(
+            f"SELECT toUnixTimestamp64Milli(ts), event_id, change, annotation_id, author, body "
+            f"FROM {db}.annotation_events FINAL WHERE ts <= fromUnixTimestamp64Milli({{b:Int64}})",
+            {"b": boundary_ms})
+        edits = [edit_of(r, check=False) for r in rows]
+        kept = {e.event_id for e in prune_before(edits, boundary_ms)}
+        gone = sorted({e.event_id for e in edits if e.ts_ms < boundary_ms} - kept)
+        if gone:
+            self.client.command(
+                f"DELETE FROM {db}.annotation_events WHERE ts < fromUnixTimestamp64Milli({{b:Int64}}) "
+                "AND has({ids:Array(String)}, event_id)", parameters={"b": boundary_ms, "ids": gone})
+            log.info("annotation edits before the retention pruned", edits=len(gone))
 
     def _drop_superseded_meta(self, boundary_ms: int) -> None:
         """Map metadata replaced before the boundary: the one in force at the boundary stays."""

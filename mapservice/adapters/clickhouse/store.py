@@ -10,7 +10,7 @@ executor.
 `connection.ClickHouseConnection`: `migrations` (the schema and its lock), `writes`
 (events, dead letters, conflicts), `snapshots` (building and repairing them), `reads`
 (time travel and replay), `conflict_reads` (conflicts and the writes near chunks),
-`change_feed` (map changes page by page), `legacy` (the 2019 REST queries), `retention`
+`change_feed` (map changes page by page), `annotation_reads` (operators' annotations), `legacy` (the 2019 REST queries), `retention`
 (expiry that keeps the floor) and `admin` (deletes, counts,
 optimize, ping, exports, close). This module only constructs it: the mixins never import
 it.
@@ -22,6 +22,7 @@ import threading
 from collections.abc import Callable
 
 from mapservice.adapters.clickhouse.admin import AdminMixin
+from mapservice.adapters.clickhouse.annotation_reads import AnnotationReadsMixin
 from mapservice.adapters.clickhouse.change_feed import ChangeFeedMixin
 from mapservice.adapters.clickhouse.conflict_reads import ConflictReadsMixin
 from mapservice.adapters.clickhouse.legacy import LegacyMixin
@@ -36,7 +37,8 @@ from mapservice.settings import Settings
 
 
 class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
-                      SnapshotsMixin, LegacyMixin, VdaReadsMixin, AdminMixin, ChangeFeedMixin):
+                      SnapshotsMixin, LegacyMixin, VdaReadsMixin, AnnotationReadsMixin, AdminMixin,
+                      ChangeFeedMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,

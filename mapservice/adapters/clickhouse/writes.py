@@ -19,6 +19,7 @@ from mapservice.core.events import (
     VdaStateReported,
     pose_of,
 )
+from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
 from mapservice.core.ports import ConflictRow
 from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
 from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
@@ -62,7 +63,7 @@ class WritesMixin(SnapshotsMixin):
                 parameters={"f": from_ms, "t": to_ms})
 
     def append_events(self, events: Sequence[Envelope]) -> None:
-        poses, chunks, contents, metas = [], [], [], []
+        poses, chunks, contents, metas, annotations = [], [], [], [], []
         vda: dict[str, list] = {"vda_states": [], "vda_errors": [], "vda_connections": [],
                                 "vda_factsheets": []}
         for e in events:
@@ -79,6 +80,8 @@ class WritesMixin(SnapshotsMixin):
                     contents.append((p.content_hash, day, p.width, p.height, p.data))
             elif isinstance(p, MapMetaSet):
                 metas.append([e.event_time_ms, e.robot_id, _json.encode(p.to_2019()).decode()])
+            elif isinstance(p, ANNOTATION_EVENTS):
+                annotations.append(_annotation_row(e))
         with self._lock:
             if contents:
                 # Contents first: an event must never reference pixels that are not stored.
@@ -98,6 +101,10 @@ class WritesMixin(SnapshotsMixin):
             for table, rows in vda.items():
                 if rows:
                     self._insert(table, rows, _VDA_COLUMNS[table])
+            if annotations:
+                self._insert("annotation_events", annotations, [
+                    "annotation_id", "ts", "event_id", "change", "author", "shape", "kind",
+                    "name", "body"])
             # A late event (at or before the newest snapshot) makes the snapshots from its
             # time on wrong. Noting that is all the batch waits for: reads stop using those
             # snapshots at once (they fold events from the last good one: exact, slower),
@@ -117,6 +124,13 @@ class WritesMixin(SnapshotsMixin):
             self._insert("dead_letters", rows, [
                 "received", "reason", "mqtt_topic", "detail", "payload", "gateway"])
 
+    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
+        if rows:
+            with self._lock:
+                self._insert("zone_violations", [[v.ts_ms, v.robot_id, v.annotation_id, v.x, v.y]
+                                                 for v in rows],
+                             ["ts", "robot_id", "annotation_id", "x", "y"])
+
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
         if not rows:
             return
@@ -134,6 +148,17 @@ _VDA_COLUMNS = {
     "vda_connections": ["robot_id", "ts", "state", "sent_ts"],
     "vda_factsheets": ["robot_id", "ts", "vda_version", "factsheet"],
 }
+
+
+def _annotation_row(e: Envelope) -> list:
+    """An annotation edit as its `annotation_events` row (schema v13)."""
+    p = e.payload
+    change = e.type.removeprefix("annotation.")
+    if isinstance(p, AnnotationRemoved):
+        return [p.annotation_id, e.event_time_ms, e.event_id, change, p.author, "", "", "", ""]
+    doc = to_doc(p.annotation)
+    return [p.annotation_id, e.event_time_ms, e.event_id, change, p.author, doc["shape"],
+            doc["kind"], doc["name"], _json.encode(doc).decode()]
 
 
 def _vda_rows(e: Envelope, out: dict[str, list]) -> None:

@@ -21,6 +21,9 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.memory_store import MemoryStore
 from mapservice.api.app import create_app
+from mapservice.core.annotations import (AnnotationChanged, AnnotationCreated, AnnotationEdit,
+                                         AnnotationRemoved, PointOfInterest, Zone, fold_annotations)
+from mapservice.core.events import make_envelope
 from mapservice.core.ports import ConflictRow
 from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash, format_timestamp
@@ -85,6 +88,15 @@ class World:
         self.poses = []
         self.conflicts: list[ConflictRow] = []
         self.versions = {(r, c): 0 for r in range(ROWS) for c in range(COLS)}
+        self.annotation_edits: list[AnnotationEdit] = []
+
+    def annotate(self, t: int, event):
+        e = make_envelope("operator:t", t, t, event)
+        self.annotation_edits.append(AnnotationEdit(t, e.event_id, event))
+        return e
+
+    def annotations_at(self, t: int) -> dict:
+        return fold_annotations(self.annotation_edits, t)
 
     def chunk(self, robot: str, t: int, row: int, col: int):
         raw = _pixels(row, col, self.versions[(row, col)])
@@ -129,6 +141,21 @@ def _write_step(store, world: World, start: int, step_no: int) -> None:
                                ROBOTS[(step_no + 1) % 3])
         world.conflicts.append(conflict)
         store.append_conflicts([conflict])
+    # The operators' week: zones and points of interest drawn in the first days, some
+    # changed or removed later; most never touched again (the floor's state).
+    if step_no < 7 * 4 and step_no % 3 == 0:
+        n = step_no // 3
+        shape = (Zone(f"zone {n}", "keep_out", ((n, 0.0), (n + 1.0, 0.0), (n + 1.0, 1.0)))
+                 if n % 2 else PointOfInterest(f"poi {n}", "station", float(n), 2.0))
+        events.append(world.annotate(start + HOUR + n, AnnotationCreated(f"a{n}", "operator:t", shape)))
+    if step_no % 11 == 5:
+        n = (step_no // 11) % 9
+        if f"a{n}" in world.annotations_at(start + 2 * HOUR):
+            shape = PointOfInterest(f"poi {n} moved at {step_no}", "door", float(step_no), 1.0)
+            events.append(world.annotate(start + 2 * HOUR, AnnotationChanged(f"a{n}", "operator:t", shape)))
+    if step_no in (13, 40):
+        removed = {13: "a4", 40: "a9"}[step_no]
+        events.append(world.annotate(start + 2 * HOUR + 1, AnnotationRemoved(removed, "operator:t")))
     if step_no % 7 == 3 and start - 2 * DAY > T0:
         late_row, late_col = 2, 4
         world.versions[(late_row, late_col)] += 1
@@ -157,6 +184,8 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
             assert zlib.decompress(contents[bytes.fromhex(h)][2]) == world.pixels[h]
         robots = {p.robot_id: p.ts_ms for p in store.robots_at(t)}
         assert robots == world.robots_at(t), f"robots at {format_timestamp(t)}"
+        annotations = {a.annotation_id: a for a in store.annotations_at(t)}
+        assert annotations == world.annotations_at(t), f"annotations at {format_timestamp(t)}"
     # The 2019 listing a robot downloads: latest=true&updatedBefore=T, with pixels.
     for t in (lo + 1, now - DAY):
         body = client.get("/api/chunk-service/chunks", params={
@@ -225,6 +254,17 @@ def test_three_retention_periods_keep_the_floor_exact(kind, chdb_dir) -> None:
         client = TestClient(create_app(Settings(retention_days=RETENTION_DAYS), s.store, {}, clock))
         _check(s.store, world, now, client)
         assert s.store.latest_meta().chunk_rows == ROWS
+        if day >= 8:
+            # The week's annotations outlive every retention period; their edits older
+            # than the retention are gone but for those the standing ones are folded from.
+            standing = world.annotations_at(now)
+            assert {"a0", "a1", "a2", "a3"} <= set(standing) and "a4" not in standing
+            assert ("a9" in standing) == (day <= 10)  # removed on day 10
+            boundary = now - RETENTION_DAYS * DAY
+            at_boundary = world.annotations_at(boundary)
+            old = [e for e in s.store.annotation_edits(T0, now + 1, 100_000) if e.ts_ms < boundary]
+            assert all(e.event.annotation_id in at_boundary for e in old)
+            assert len(old) <= 2 * len(at_boundary)
         if kind == "clickhouse":
             assert _unnamed_snapshot_pixels(s.store) == 0, f"day {day}: a snapshot names missing pixels"
             s.store.optimize()

@@ -42,7 +42,8 @@ def test_reader_token_only_where_reads_need_one(tmp_path) -> None:
 
 def test_configured_tokens_win_and_production_never_generates(tmp_path) -> None:
     """A token that is set is used as it is; production mode writes nothing to the data dir."""
-    set_ = Settings(data_dir=tmp_path, admin_token="a" * 32, api_writer_tokens="w" * 32)
+    set_ = Settings(data_dir=tmp_path, admin_token="a" * 32, api_writer_tokens="w" * 32,
+                    api_operator_tokens="o" * 32)
     assert api_secrets(with_local_api_secrets(set_)).admin == "a" * 32
     assert not secrets_dir(tmp_path).exists()
     prod = Settings(data_dir=tmp_path, mode="production", admin_token="a" * 32)

@@ -1,0 +1,51 @@
+"""Zone violations: robots' stored poses inside a keep-out zone, found by the processors
+(processors/zone_watch.py), in a time window, ordered by time."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query
+from pydantic import BaseModel
+
+from mapservice.core.ports import Clock, HistoryStore
+from mapservice.settings import Settings
+
+from ..access import READ
+from ..deps import get_clock, get_settings, get_store, window_in_retention
+
+router = APIRouter(prefix="/api/v1/zone-violations", tags=["annotations"], dependencies=[Depends(READ)])
+
+StoreDep = Annotated[HistoryStore, Depends(get_store)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+ClockDep = Annotated[Clock, Depends(get_clock)]
+
+
+class Violation(BaseModel):
+    ts_ms: int
+    robotId: str
+    zoneId: str  # the keep-out zone's annotation id
+    x: float
+    y: float
+
+
+class Violations(BaseModel):
+    from_ms: int
+    to_ms: int
+    violations: list[Violation]
+    truncated: bool
+
+
+@router.get("", operation_id="listZoneViolations", response_model=Violations)
+def list_zone_violations(
+    store: StoreDep, settings: SettingsDep, clock: ClockDep,
+    from_: Annotated[str, Query(alias="from", description="Start (inclusive), ISO 8601 or epoch ms")],
+    to: Annotated[str, Query(description="End (exclusive), ISO 8601 or epoch ms")],
+    limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
+) -> Violations:
+    """Each stored pose that lay inside a keep-out zone (on one of its mask's pixels)."""
+    f, t = window_in_retention(from_, to, settings.retention_ms, settings, clock.now_ms())
+    rows = store.zone_violations(f, t, limit + 1)
+    return Violations(from_ms=f, to_ms=t, truncated=len(rows) > limit, violations=[
+        Violation(ts_ms=v.ts_ms, robotId=v.robot_id, zoneId=v.annotation_id, x=v.x, y=v.y)
+        for v in rows[:limit]])

@@ -1,0 +1,271 @@
+"""Zones as nav2 costmap filter masks, and masks back into zones.
+
+A mask is an occupancy grid aligned with the map (same origin, resolution and size):
+nav2's map_server serves it, a CostmapFilterInfo names how to read it (type 0 keep-out,
+1 speed in % of the maximum, 2 speed in m/s; filter value = base + multiplier x mask value).
+
+The rule, exact and documented so anyone can check a mask: a pixel belongs to a zone when
+its centre lies inside the zone's rings under the even-odd rule, a centre on a horizontal
+edge's row counting as above it (half-open rows), one on a vertical edge's column as
+right of it (a ray cast to the right). A zone imported from a mask has its edges on pixel
+edges, so no centre lies on one and import then export gives back the same pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import msgspec
+import numpy as np
+
+from mapservice.core.annotations import Ring, Zone, signed_area
+
+KEEP_OUT, SPEED_PERCENT, SPEED_MPS = 0, 1, 2  # CostmapFilterInfo.type
+MASK_FREE, MASK_KEEP_OUT = 0, 100  # OccupancyGrid values
+
+
+class Grid(msgspec.Struct, frozen=True):
+    """The map's raster: width x height pixels of `resolution` metres, the lower-left
+    pixel's corner at `origin` (x, y) in the map frame (the map's YAML)."""
+
+    width: int
+    height: int
+    resolution: float
+    origin_x: float
+    origin_y: float
+
+
+class FilterInfo(msgspec.Struct, frozen=True):
+    """The CostmapFilterInfo parameters that read a mask (nav2 costmap_filter_info_server)."""
+
+    type: int
+    base: float
+    multiplier: float
+
+
+def _edges_in_pixels(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
+    """Every edge of every ring as (x0, y0, x1, y1) in pixel units, y down from the top."""
+    parts = []
+    for ring in rings:
+        pts = np.asarray(ring, dtype=np.float64)
+        px = (pts[:, 0] - grid.origin_x) / grid.resolution
+        py = grid.height - (pts[:, 1] - grid.origin_y) / grid.resolution
+        parts.append(np.stack([px, py, np.roll(px, -1), np.roll(py, -1)], axis=1))
+    return np.concatenate(parts) if parts else np.zeros((0, 4))
+
+
+def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.ndarray]:
+    """(first row, first column, boolean window): the pixels whose centre is inside the
+    rings (even-odd), within the rings' bounding box clipped to the grid. Each
+    non-horizontal edge toggles, on every pixel row whose centre line it crosses, the
+    pixels left of the crossing; the parity of the toggles is inside."""
+    edges = _edges_in_pixels(grid, rings)
+    if not len(edges):
+        return 0, 0, np.zeros((0, 0), dtype=bool)
+    xs, ys = edges[:, [0, 2]], edges[:, [1, 3]]
+    r0 = int(min(max(math.floor(ys.min()), 0), grid.height))
+    r1 = int(min(max(math.ceil(ys.max()), 0), grid.height))
+    c0 = int(min(max(math.floor(xs.min()), 0), grid.width))
+    c1 = int(min(max(math.ceil(xs.max()), 0), grid.width))
+    counts = np.zeros((r1 - r0, c1 - c0 + 1), dtype=np.int32)
+    for x0, y0, x1, y1 in edges:
+        if y0 == y1:
+            continue
+        lo, hi = min(y0, y1), max(y0, y1)
+        # Rows r whose centre line r + 0.5 lies in [lo, hi).
+        first = max(math.ceil(lo - 0.5), r0)
+        last = min(math.ceil(hi - 0.5) - 1, r1 - 1)
+        if last < first:
+            continue
+        rows = np.arange(first, last + 1)
+        xi = x0 + (rows + 0.5 - y0) * (x1 - x0) / (y1 - y0)
+        # Centres c + 0.5 < xi: columns up to ceil(xi - 0.5) - 1. Columns left of the
+        # window toggle nothing inside it, but the parity they carry does: counted at c0.
+        n = np.clip(np.ceil(xi - 0.5), c0, c1).astype(np.int64) - c0
+        counts[rows - r0, 0] += 1
+        np.subtract.at(counts, (rows - r0, n), 1)
+    return r0, c0, (np.cumsum(counts[:, :c1 - c0], axis=1) & 1).astype(bool)
+
+
+def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
+    """Boolean (height, width), row 0 at the top: the pixels whose centre is inside the
+    rings (even-odd rule, pixel centres; the module's docstring has the exact rule)."""
+    out = np.zeros((grid.height, grid.width), dtype=bool)
+    r0, c0, window = rasterise_window(grid, rings)
+    out[r0:r0 + window.shape[0], c0:c0 + window.shape[1]] = window
+    return out
+
+
+def _paint(mask: np.ndarray, grid: Grid, zone: Zone) -> tuple[slice, slice, np.ndarray]:
+    r0, c0, window = rasterise_window(grid, (zone.polygon, *zone.holes))
+    return slice(r0, r0 + window.shape[0]), slice(c0, c0 + window.shape[1]), window
+
+
+def zone_pixels(grid: Grid, zone: Zone) -> np.ndarray:
+    return rasterise(grid, (zone.polygon, *zone.holes))
+
+
+def keep_out_mask(grid: Grid, zones: Sequence[Zone]) -> np.ndarray:
+    """OccupancyGrid values (uint8): 100 inside any keep-out zone, 0 elsewhere."""
+    mask = np.zeros((grid.height, grid.width), dtype=bool)
+    for zone in zones:
+        if zone.kind == "keep_out":
+            rows, cols, window = _paint(mask, grid, zone)
+            mask[rows, cols] |= window
+    return np.where(mask, MASK_KEEP_OUT, MASK_FREE).astype(np.uint8)
+
+
+def keep_out_labels(grid: Grid, zones: Sequence[tuple[str, Zone]]) -> tuple[np.ndarray, list[str]]:
+    """Per pixel 0 (free) or 1 + the index into the returned ids of a keep-out zone that
+    covers it (where zones overlap, the later one): which zone a pose lies in, by the same
+    pixel rule as the keep-out mask."""
+    labels = np.zeros((grid.height, grid.width), dtype=np.int32)
+    ids: list[str] = []
+    for annotation_id, zone in zones:
+        if zone.kind != "keep_out":
+            continue
+        ids.append(annotation_id)
+        r0, c0, window = rasterise_window(grid, (zone.polygon, *zone.holes))
+        region = labels[r0:r0 + window.shape[0], c0:c0 + window.shape[1]]
+        region[window] = len(ids)
+    return labels, ids
+
+
+def pixel_of(grid: Grid, x: float, y: float) -> tuple[int, int] | None:
+    """(row, column) of the pixel holding map point (x, y), row 0 at the top; None outside."""
+    c = math.floor((x - grid.origin_x) / grid.resolution)
+    r = grid.height - 1 - math.floor((y - grid.origin_y) / grid.resolution)
+    if 0 <= r < grid.height and 0 <= c < grid.width:
+        return r, c
+    return None
+
+
+def speed_filter_info(zones: Sequence[Zone], unit: str) -> FilterInfo:
+    """Percent: the mask value is the percentage (1..100). m/s: the mask value times
+    `multiplier` = the limit, the multiplier the fastest limit / 100, so that limit is
+    exact and the others within half a multiplier (rounded down: never faster)."""
+    if unit == "percent":
+        return FilterInfo(SPEED_PERCENT, 0.0, 1.0)
+    limits = [z.speed_limit for z in zones if z.kind == "speed_limit" and z.speed_unit == unit]
+    top = max((v for v in limits if v is not None), default=1.0)
+    return FilterInfo(SPEED_MPS, 0.0, top / 100.0)
+
+
+def speed_mask(grid: Grid, zones: Sequence[Zone], unit: str) -> tuple[np.ndarray, FilterInfo]:
+    """OccupancyGrid values (uint8, 0 = no limit) of the speed zones in `unit` (overlapping
+    zones: the lowest limit wins) and the FilterInfo that turns them back into limits."""
+    info = speed_filter_info(zones, unit)
+    mask = np.zeros((grid.height, grid.width), dtype=np.uint8)
+    for zone in zones:
+        if zone.kind != "speed_limit" or zone.speed_unit != unit or zone.speed_limit is None:
+            continue
+        value = int(min(max(math.floor((zone.speed_limit - info.base) / info.multiplier + 1e-9), 1), 100))
+        rows, cols, inside = _paint(mask, grid, zone)
+        region = mask[rows, cols]
+        region[inside] = np.where((region[inside] == 0) | (region[inside] > value), value, region[inside])
+    return mask, info
+
+
+# --- masks into zones ------------------------------------------------------------------
+
+# Directions in pixel-corner space (x right, y down): right, down, left, up.
+_STEPS = ((1, 0), (0, 1), (-1, 0), (0, -1))
+
+
+def trace_rings(mask: np.ndarray) -> list[list[tuple[int, int]]]:
+    """The boundary of the True pixels as closed rings of pixel corners (x, y down), each
+    running clockwise on screen around the inside (holes the other way), collinear
+    vertices merged. Where two pixels touch only at a corner the ring turns towards the
+    inside, so rings never cross (they may touch at that corner)."""
+    h, w = mask.shape
+    padded = np.zeros((h + 2, w + 2), dtype=bool)
+    padded[1:-1, 1:-1] = mask
+    inside = padded[1:-1, 1:-1]
+    out: dict[tuple[int, int], list[int]] = {}  # corner -> directions of unused edges
+
+    def add(cells: np.ndarray, dx: int, dy: int, direction: int) -> None:
+        for r, c in zip(*np.nonzero(cells)):
+            out.setdefault((int(c) + dx, int(r) + dy), []).append(direction)
+
+    add(inside & ~padded[:-2, 1:-1], 0, 0, 0)  # top edge, going right
+    add(inside & ~padded[1:-1, 2:], 1, 0, 1)  # right edge, going down
+    add(inside & ~padded[2:, 1:-1], 1, 1, 2)  # bottom edge, going left
+    add(inside & ~padded[1:-1, :-2], 0, 1, 3)  # left edge, going up
+    rings = []
+    for start in sorted(out):
+        while out.get(start):
+            direction = out[start].pop()
+            ring = [start]
+            x, y = start
+            while True:
+                x, y = x + _STEPS[direction][0], y + _STEPS[direction][1]
+                choices = out.get((x, y))
+                if not choices:
+                    break  # back at the start: its edges are all used
+                # Prefer a right turn (towards the inside), then straight, then left.
+                for turn in (1, 0, 3):
+                    nxt = (direction + turn) % 4
+                    if nxt in choices:
+                        break
+                else:
+                    nxt = choices[0]
+                choices.remove(nxt)
+                if nxt != direction:
+                    ring.append((x, y))
+                direction = nxt
+            if ring[0] == ring[-1]:
+                ring.pop()
+            # The start may lie mid-edge of the ring: drop it when collinear.
+            if len(ring) > 2 and _collinear(ring[-1], ring[0], ring[1]):
+                ring.pop(0)
+            rings.append(ring)
+    return rings
+
+
+def _collinear(a: tuple[int, int], b: tuple[int, int], c: tuple[int, int]) -> bool:
+    return bool((b[0] - a[0]) * (c[1] - a[1]) == (b[1] - a[1]) * (c[0] - a[0]))
+
+
+def _inside(point: tuple[float, float], ring: Ring) -> bool:
+    x, y = point
+    result = False
+    n = len(ring)
+    for i in range(n):
+        (x0, y0), (x1, y1) = ring[i], ring[(i + 1) % n]
+        if (y0 > y) != (y1 > y) and x < x0 + (y - y0) * (x1 - x0) / (y1 - y0):
+            result = not result
+    return result
+
+
+def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out") -> list[Zone]:
+    """The True pixels of `mask` (height, width; row 0 at the top) as zones: one per
+    outer boundary with the holes inside it, vertices on pixel edges in map metres."""
+    def metres(ring: list[tuple[int, int]]) -> Ring:
+        return tuple((grid.origin_x + x * grid.resolution,
+                      grid.origin_y + (grid.height - y) * grid.resolution) for x, y in ring)
+
+    outers: list[Ring] = []
+    holes: list[Ring] = []
+    for ring in trace_rings(mask):
+        m = metres(ring)
+        # Outer rings run clockwise (negative area in the map frame), holes the other way.
+        (outers if signed_area(m) < 0 else holes).append(m)
+    owned: list[list[Ring]] = [[] for _ in outers]
+    areas = [-signed_area(o) for o in outers]
+    for hole in holes:
+        # A point just inside a masked pixel next to the hole's first edge lies in the
+        # component around the hole: the smallest outer ring containing it owns the hole.
+        (ax, ay), (bx, by) = hole[0], hole[1]
+        mx, my = (ax + bx) / 2, (ay + by) / 2
+        # Every ring has the masked pixels on its right-hand side.
+        dx, dy = bx - ax, by - ay
+        length = math.hypot(dx, dy)
+        probe = (mx + dy / length * grid.resolution / 4, my - dx / length * grid.resolution / 4)
+        best = min((i for i, o in enumerate(outers) if _inside(probe, o)),
+                   key=lambda i: areas[i], default=None)
+        if best is not None:
+            owned[best].append(hole)
+    return [Zone(name=f"{name} {k + 1}" if len(outers) > 1 else name, kind=kind,
+                 polygon=outer, holes=tuple(owned[k]))
+            for k, outer in enumerate(outers)]
