@@ -113,7 +113,9 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
     to the stored poses) and its planned path (foxglove.PosesInFrame); the CSV of chunk
     changes holds the span's writes."""
     stack = history_stack
-    t = stack.history.end_ms - 30 * 60_000
+    # After the loaded history's end (it ends ten minutes before the stack started): the
+    # other browser tests look at instants before it, where this robot does not exist yet.
+    t = stack.history.end_ms + 5 * 60_000
     # A robot reporting a planned path (the loaded history has none), as a 2019 robot does.
     for i, path in enumerate(([(1.0, 2.0), (3.0, 4.0)], [(3.0, 4.0), (5.0, 1.5)])):
         body = {"robotId": "insp-path", "timestamp": format_timestamp(t - 300_000 + i * 60_000),
