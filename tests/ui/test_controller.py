@@ -253,4 +253,7 @@ def test_racks_and_the_map_edge_stop_the_robot(page, history_stack) -> None:
                       timeout=30).json()
     xs = [p["position"][0] for p in poses if p["robotId"] == robot]
     assert xs and max(xs) == x  # no pose was sent past the stop
+    from .test_investigator import screenshot
+
+    screenshot(page, "ui-controller-stopped.png")
     assert not page.errors
