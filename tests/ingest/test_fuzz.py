@@ -115,17 +115,8 @@ def pose_payloads(draw) -> bytes:
     return draw(raw_nasties(good_pose()))
 
 
-@pytest.fixture(scope="module", autouse=True)
-def quiet_rejections():
-    """10,000s of 'message rejected' info lines would cost more than the handling."""
-    import logging
-
-    import structlog
-
-    before = structlog.get_config()
-    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
-    yield
-    structlog.configure(**before)
+# Thousands of "message rejected" info lines would cost more than the handling.
+pytestmark = pytest.mark.usefixtures("quiet_rejection_logs")
 
 
 @pytest.fixture(scope="module")

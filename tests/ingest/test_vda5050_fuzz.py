@@ -53,17 +53,8 @@ def message(version: str, subtopic: str, ms: int = NOW - 1000) -> dict:
     return getattr(vda, subtopic)(version, "Acme", "001", ms)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def quiet_logs():
-    """Thousands of 'message rejected' info lines would cost more than the handling."""
-    import logging
-
-    import structlog
-
-    before = structlog.get_config()
-    structlog.configure(wrapper_class=structlog.make_filtering_bound_logger(logging.WARNING))
-    yield
-    structlog.configure(**before)
+# Thousands of "message rejected" info lines would cost more than the handling.
+pytestmark = pytest.mark.usefixtures("quiet_rejection_logs")
 
 
 @pytest.fixture(scope="module")
