@@ -75,7 +75,7 @@ def _run_ingest(args) -> None:
     if args.kafka == "both":
         from mapservice.bench.brokers import main
     else:
-        from mapservice.bench.ingest import main
+        from mapservice.bench.ingest.command import main
     if args.kafka == "auto":
         args.kafka = ""  # the stacks follow MAPSERVICE_EMBEDDED_KAFKA
     main(args)

@@ -59,7 +59,7 @@ LOAD_FILE = "history-load.json"
 
 
 def machine_facts() -> dict:
-    from mapservice.bench.ingest import cpu_model
+    from mapservice.bench.machine import cpu_model
 
     model = cpu_model()
     import clickhouse_connect
