@@ -9,6 +9,7 @@ import os
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 
@@ -101,12 +102,13 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         result["warmup_s"] = time.monotonic() - t_start - result["stack_start_s"]
 
         loadgen = getattr(args, "loadgen", "raw")
+        fleet: Any  # VdaFleet, RawFleet or RobotFleet: each has stats, run() and stop()
         if getattr(args, "workload", "2019") == "vda5050":  # VDA 5050 vehicles (vda_fleet.py)
             from mapservice.bench.vda_fleet import VdaFleet
 
             loadgen, fleet = "vda5050", VdaFleet(stack.mqtt_url, ros_map, args.robots)
         elif loadgen == "raw":
-            from mapservice.robot.rawfleet import RawFleet
+            from mapservice.bench.fleet.rawfleet import RawFleet
 
             # Worker processes at a lower priority: they stand for robots on other machines.
             fleet = RawFleet(stack.mqtt_url, ros_map, args.robots,
