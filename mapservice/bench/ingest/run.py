@@ -27,6 +27,7 @@ from mapservice.bench.ingest.probes import (
     KEYS_PER_CHUNK,
     KEYS_PER_POSE,
     DrainWatch,
+    Key,
     LiveListener,
     QueryablePoller,
 )
@@ -60,7 +61,6 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
     from rich.live import Live
 
     from mapservice.robot import DEFAULT_MAP
-    from mapservice.robot.loadgen import RobotFleet
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local.stack import Stack
 
@@ -86,39 +86,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
         # Warm-up: proves MQTT -> gateway -> Kafka -> processors -> ClickHouse -> API is live.
         with console.status(f"run {run}/{runs}: warm-up (waiting for the pipeline to consume)..."):
-            warm = RobotFleet(stack.mqtt_url, ros_map, 1, prefix=WARMUP_PREFIX, record=True, seed=1)
-            warm.run(5.5)  # five poses and one chunk
-            warm_keys = {(k, r, ts) for k, r, ts, _ in warm.stats.published}
-            warm_poller = QueryablePoller(stack.api_url, warm.stats.published, interval_s=0.25)
-            warm_poller.start()
-            deadline = time.monotonic() + 120
-            while not warm_keys <= warm_poller.first_seen.keys():
-                if time.monotonic() > deadline:
-                    warm_poller.stop()
-                    raise RuntimeError(f"warm-up events not queryable after 120 s; see {stack.log_dir}")
-                time.sleep(0.2)
-            warm_poller.stop()
-            warm_poller.join()
+            warm_keys = _warm_up(stack, ros_map)
         result["warmup_s"] = time.monotonic() - t_start - result["stack_start_s"]
 
-        loadgen = getattr(args, "loadgen", "raw")
-        fleet: Any  # VdaFleet, RawFleet or RobotFleet: each has stats, run() and stop()
-        if getattr(args, "workload", "2019") == "vda5050":  # VDA 5050 vehicles (vda_fleet.py)
-            from mapservice.bench.vda_fleet import VdaFleet
-
-            loadgen, fleet = "vda5050", VdaFleet(stack.mqtt_url, ros_map, args.robots)
-        elif loadgen == "raw":
-            from mapservice.bench.fleet.rawfleet import RawFleet
-
-            # Worker processes at a lower priority: they stand for robots on other machines.
-            fleet = RawFleet(stack.mqtt_url, ros_map, args.robots,
-                             processes=getattr(args, "loadgen_processes", None), nice=LOADGEN_NICE,
-                             aligned_chunks=getattr(args, "aligned_chunks", False))
-            with console.status(f"run {run}/{runs}: starting the load fleet's workers..."):
-                fleet.start(args.seconds)
-        else:
-            fleet = RobotFleet(stack.mqtt_url, ros_map, args.robots, record=True,
-                               aligned_chunks=getattr(args, "aligned_chunks", False))
+        loadgen, fleet = _load_fleet(args, stack, ros_map, console, f"run {run}/{runs}")
         # The run's bookkeeping (a few hundred thousand keys and times, no cycles) made the
         # cyclic collector stop this process for 0.2-0.4 s every ~2 s late in a 5,000-robot
         # run, and the poller with it: the poll figure then measured those pauses.
@@ -237,16 +208,6 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         unique = set(fleet_rows)
         lost = [k for k in keys if k not in unique]
         unexpected = [k for k in unique if k not in keys]
-        queryable_at = queryable_times(poller.first_seen, listener.pushed_at)
-        upper, lower = _latencies(queryable_at, poller.not_seen_at, keys)
-        polled, _ = _latencies(poller.first_seen, poller.not_seen_at, keys)
-        pushed = [at - keys[k] for k, at in listener.pushed_at.items() if k in keys]
-        # What the poll adds to the push: the push is sent once the insert returned, so an
-        # event seen by a poll long after its push was queryable and waited for the poller.
-        poll_after_push = [poller.first_seen[k] - at for k, at in listener.pushed_at.items()
-                           if k in keys and k in poller.first_seen]
-        pose_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_POSE]
-        chunk_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_CHUNK]
         stored_events = len(unique & keys.keys())
         cpu_pct = CpuMeter.percent(cpu_before, cpu_after,
                                    fleet.stats.report.get("cpu_s") if loadgen == "raw" else None)
@@ -297,42 +258,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             "history_offset_gaps_accepted": gaps["accepted"],
             # From the fleet's start to the drain: what each batch cost the store thread.
             "store_stages": stages,
-            "latency_samples": len(upper),
-            "latency_censored": sum(1 for v in upper if v == INF),
-            "latency_p50_s": _pct(upper, 50),
-            "latency_p90_s": _pct(upper, 90),
-            "latency_p99_s": _pct(upper, 99),
-            "latency_max_s": max(upper) if upper else None,
-            "latency_polled_p50_s": _pct(polled, 50),
-            "latency_polled_p99_s": _pct(polled, 99),
-            "latency_pushed_p50_s": _pct(pushed, 50),
-            "latency_pushed_p99_s": _pct(pushed, 99),
-            "live_pushed_events": len(pushed),
-            "live_errors": listener.errors,
-            "live_last_error": listener.last_error,
-            "latency_lower_bound_p50_s": _pct(lower, 50),
-            "latency_lower_bound_p99_s": _pct(lower, 99),
-            "pose_latency_p50_s": _pct(pose_upper, 50),
-            "pose_latency_p99_s": _pct(pose_upper, 99),
-            "chunk_latency_p50_s": _pct(chunk_upper, 50),
-            "chunk_latency_p99_s": _pct(chunk_upper, 99),
-            **_stage_latencies(poller.received_at, queryable_at, keys),
-            "poller": {
-                "interval_target_s": args.poll_interval,
-                "polls": poller.polls,
-                "poll_p50_s": _pct(poller.poll_seconds, 50),
-                "poll_p99_s": _pct(poller.poll_seconds, 99),
-                "cycle_p50_s": _pct(poller.cycle_seconds, 50),
-                "cycle_p99_s": _pct(poller.cycle_seconds, 99),
-                "cycle_max_s": max(poller.cycle_seconds, default=None),
-                "seen_after_push_p50_s": _pct(poll_after_push, 50),
-                "seen_after_push_p99_s": _pct(poll_after_push, 99),
-                "rows_per_poll_p50": _pct(poller.window_rows, 50),
-                "errors": poller.errors,
-                "last_error": poller.last_error,
-                "truncated_polls": poller.truncated_polls,
-                "in_response_duplicates": poller.in_response_duplicates,
-            },
+            **_latency_figures(args, keys, poller, listener),
             "cpu_percent_of_one_core": cpu_pct,
             "cpu_us_per_event": cpu_us_per_event(cpu_pct, len(keys), fleet_wall),
             "loadgen_nice": LOADGEN_NICE,
@@ -351,11 +277,118 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
     with console.status(f"run {run}/{runs}: OPTIMIZE FINAL and measuring bytes on disk..."):
         storage = measure_storage(data_dir)
+    result["storage"] = _storage_figures(storage, args.robots, args.seconds, result)
+    result["bytes_per_robot_day"] = result["storage"]["bytes_per_robot_day"]
+    return result
+
+
+def _warm_up(stack, ros_map) -> set[Key]:
+    """One extra robot publishes for a few seconds; returns its events once all are queryable
+    (the pipeline MQTT -> gateway -> Kafka -> processors -> ClickHouse -> API is live)."""
+    from mapservice.robot.loadgen import RobotFleet
+
+    warm = RobotFleet(stack.mqtt_url, ros_map, 1, prefix=WARMUP_PREFIX, record=True, seed=1)
+    warm.run(5.5)  # five poses and one chunk
+    warm_keys = {(k, r, ts) for k, r, ts, _ in warm.stats.published}
+    warm_poller = QueryablePoller(stack.api_url, warm.stats.published, interval_s=0.25)
+    warm_poller.start()
+    deadline = time.monotonic() + 120
+    while not warm_keys <= warm_poller.first_seen.keys():
+        if time.monotonic() > deadline:
+            warm_poller.stop()
+            raise RuntimeError(f"warm-up events not queryable after 120 s; see {stack.log_dir}")
+        time.sleep(0.2)
+    warm_poller.stop()
+    warm_poller.join()
+    return warm_keys
+
+
+def _load_fleet(args, stack, ros_map, console, label: str) -> tuple[str, Any]:
+    """(its name, the fleet) for `--workload` and `--loadgen`: VdaFleet, RawFleet (its
+    workers started) or RobotFleet; each has stats, run() and stop()."""
+    from mapservice.robot.loadgen import RobotFleet
+
+    loadgen = getattr(args, "loadgen", "raw")
+    if getattr(args, "workload", "2019") == "vda5050":  # VDA 5050 vehicles (vda_fleet.py)
+        from mapservice.bench.vda_fleet import VdaFleet
+
+        return "vda5050", VdaFleet(stack.mqtt_url, ros_map, args.robots)
+    if loadgen == "raw":
+        from mapservice.bench.fleet.rawfleet import RawFleet
+
+        # Worker processes at a lower priority: they stand for robots on other machines.
+        fleet = RawFleet(stack.mqtt_url, ros_map, args.robots,
+                         processes=getattr(args, "loadgen_processes", None), nice=LOADGEN_NICE,
+                         aligned_chunks=getattr(args, "aligned_chunks", False))
+        with console.status(f"{label}: starting the load fleet's workers..."):
+            fleet.start(args.seconds)
+        return loadgen, fleet
+    return loadgen, RobotFleet(stack.mqtt_url, ros_map, args.robots, record=True,
+                               aligned_chunks=getattr(args, "aligned_chunks", False))
+
+
+def _latency_figures(args, keys: dict[Key, float], poller: QueryablePoller,
+                     listener: LiveListener) -> dict:
+    """Publish -> queryable of the run's events (push or poll, each alone, per kind, the
+    lower bound, the split at the gateway) and how the poller itself kept up."""
+    queryable_at = queryable_times(poller.first_seen, listener.pushed_at)
+    upper, lower = _latencies(queryable_at, poller.not_seen_at, keys)
+    polled, _ = _latencies(poller.first_seen, poller.not_seen_at, keys)
+    pushed = [at - keys[k] for k, at in listener.pushed_at.items() if k in keys]
+    # What the poll adds to the push: the push is sent once the insert returned, so an
+    # event seen by a poll long after its push was queryable and waited for the poller.
+    poll_after_push = [poller.first_seen[k] - at for k, at in listener.pushed_at.items()
+                       if k in keys and k in poller.first_seen]
+    pose_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_POSE]
+    chunk_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_CHUNK]
+    return {
+        "latency_samples": len(upper),
+        "latency_censored": sum(1 for v in upper if v == INF),
+        "latency_p50_s": _pct(upper, 50),
+        "latency_p90_s": _pct(upper, 90),
+        "latency_p99_s": _pct(upper, 99),
+        "latency_max_s": max(upper) if upper else None,
+        "latency_polled_p50_s": _pct(polled, 50),
+        "latency_polled_p99_s": _pct(polled, 99),
+        "latency_pushed_p50_s": _pct(pushed, 50),
+        "latency_pushed_p99_s": _pct(pushed, 99),
+        "live_pushed_events": len(pushed),
+        "live_errors": listener.errors,
+        "live_last_error": listener.last_error,
+        "latency_lower_bound_p50_s": _pct(lower, 50),
+        "latency_lower_bound_p99_s": _pct(lower, 99),
+        "pose_latency_p50_s": _pct(pose_upper, 50),
+        "pose_latency_p99_s": _pct(pose_upper, 99),
+        "chunk_latency_p50_s": _pct(chunk_upper, 50),
+        "chunk_latency_p99_s": _pct(chunk_upper, 99),
+        **_stage_latencies(poller.received_at, queryable_at, keys),
+        "poller": {
+            "interval_target_s": args.poll_interval,
+            "polls": poller.polls,
+            "poll_p50_s": _pct(poller.poll_seconds, 50),
+            "poll_p99_s": _pct(poller.poll_seconds, 99),
+            "cycle_p50_s": _pct(poller.cycle_seconds, 50),
+            "cycle_p99_s": _pct(poller.cycle_seconds, 99),
+            "cycle_max_s": max(poller.cycle_seconds, default=None),
+            "seen_after_push_p50_s": _pct(poll_after_push, 50),
+            "seen_after_push_p99_s": _pct(poll_after_push, 99),
+            "rows_per_poll_p50": _pct(poller.window_rows, 50),
+            "errors": poller.errors,
+            "last_error": poller.last_error,
+            "truncated_polls": poller.truncated_polls,
+            "in_response_duplicates": poller.in_response_duplicates,
+        },
+    }
+
+
+def _storage_figures(storage: dict, robots: int, seconds: float, result: dict) -> dict:
+    """The bytes on disk after the merge, per robot-day (all tables, each table, the events
+    alone) and per event."""
     total = sum(storage["table_bytes"].values())
-    robot_days = args.robots * args.seconds / 86_400
+    robot_days = robots * seconds / 86_400
     per_table = {t: b / robot_days for t, b in storage["table_bytes"].items()}
     events_only = sum(storage["table_bytes"].get(t, 0) for t in ("poses", "chunk_events"))
-    result["storage"] = {
+    return {
         **storage,
         "total_bytes": total,
         "robot_days": robot_days,
@@ -366,5 +399,3 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         "bytes_per_chunk_event": storage["table_bytes"].get("chunk_events", 0)
         / max(result["published_chunks"], 1),
     }
-    result["bytes_per_robot_day"] = total / robot_days
-    return result
