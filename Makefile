@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: up test test-unit lint bench system-deps mosquitto java clean ui test-ui lock
+.PHONY: up test test-unit lint bench system-deps mosquitto java clean ui test-ui lock api-types
 
 # Pinned, hash-checked dependencies (requirements-dev.lock: the product, the embedded extra,
 # the test tools and the linters), then the project itself. Regenerate the locks after changing
@@ -87,6 +87,12 @@ ui: $(UI)/dist/index.html
 
 test-ui: $(UI)/node_modules/.installed
 	cd $(UI) && npx vitest run
+
+# The UI's API types (replay-ui/src/lib/api-schema.d.ts, by openapi-typescript) from the API's
+# OpenAPI document: run after changing what a route takes or returns, and commit the result
+# (tests/api/test_ui_api_types.py fails while they differ).
+api-types: $(STAMP) $(UI)/node_modules/.installed
+	$(PY) -m mapservice.api.openapi_document | (cd $(UI) && npm run --silent api-types)
 
 up: $(STAMP) ui mosquitto java
 	$(PY) -m mapservice.cli up $(ARGS)

@@ -1,7 +1,7 @@
 """`mapservice bench ingest --kafka both`: one workload on the embedded Apache Kafka and on
 tansu in one run, side by side.
 
-Each of `--repeat` rounds runs the ingest benchmark (bench/ingest.py's `run_once`: a fresh
+Each of `--repeat` rounds runs the ingest benchmark (bench/ingest/run.py's `run_once`: a fresh
 stack, the robots, the drain) once on each broker, alternating which goes first, so both
 see the same machine: this machine is shared, and what another user runs meanwhile moves
 both brokers' figures. The ratio between the brokers in one run is what to read; the load
@@ -98,7 +98,9 @@ def print_table(console, args, rows) -> None:
 def main(args) -> None:
     from rich.console import Console
 
-    from mapservice.bench.ingest import _json_safe, machine_facts, medians, run_once
+    from mapservice.bench.ingest.report import _json_safe, medians
+    from mapservice.bench.ingest.run import run_once
+    from mapservice.bench.machine import machine_facts
     from mapservice.runtime.logs import configure
 
     configure("WARNING", "console", "bench")

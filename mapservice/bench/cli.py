@@ -17,7 +17,7 @@ def add_bench_parser(sub) -> None:
                         help="seconds between the latency poller's API reads")
     ingest.add_argument("--loadgen", choices=["raw", "paho"], default="raw",
                         help="the load fleet: raw = pre-encoded MQTT packets from worker processes "
-                             "(robot/rawfleet.py), paho = one paho client (robot/loadgen.py: its own "
+                             "(bench/fleet/rawfleet.py), paho = one paho client (robot/loadgen.py: its own "
                              "CPU limits the fleet long before the stack's)")
     ingest.add_argument("--aligned-chunks", action="store_true",
                         help="every robot sends its chunk (one per five poses) after the same pose: "
@@ -75,7 +75,7 @@ def _run_ingest(args) -> None:
     if args.kafka == "both":
         from mapservice.bench.brokers import main
     else:
-        from mapservice.bench.ingest import main
+        from mapservice.bench.ingest.command import main
     if args.kafka == "auto":
         args.kafka = ""  # the stacks follow MAPSERVICE_EMBEDDED_KAFKA
     main(args)

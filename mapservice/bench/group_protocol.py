@@ -206,7 +206,7 @@ def run(rounds: int, console, work_dir: Path) -> dict:
 def main(args) -> None:
     from rich.console import Console
 
-    from mapservice.bench.ingest import machine_facts
+    from mapservice.bench.machine import machine_facts
 
     console = Console()
     if args.rounds < 1:

@@ -128,7 +128,7 @@ def main(args) -> None:
             os._exit(2)
         print("RESULT " + json.dumps(result), flush=True)
         os._exit(0)  # librdkafka's threads need not be waited for
-    from mapservice.bench.ingest import machine_facts
+    from mapservice.bench.machine import machine_facts
 
     runs: dict[str, list[dict]] = {w: [] for w in WAYS}
     for i in range(args.repeat):

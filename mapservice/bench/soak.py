@@ -340,7 +340,7 @@ def add_parser(kinds) -> None:
 def main(args) -> None:
     from rich.console import Console
 
-    from mapservice.bench.ingest import machine_facts
+    from mapservice.bench.machine import machine_facts
 
     console = Console()
     facts = machine_facts()

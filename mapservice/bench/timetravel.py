@@ -47,10 +47,16 @@ from pathlib import Path
 
 import numpy as np
 
+from mapservice.bench.timetravel_naive import (
+    naive_map_at,
+    naive_poses_downsampled,
+    naive_robots_at,
+    naive_timeline,
+)
+from mapservice.bench.timetravel_report import HEADER, markdown, table_rows
+
 DAY_MS = 86_400_000
 HOUR_MS = 3_600_000
-TARGETS_MS = {"map_at": 100.0, "robots_at": 50.0, "window_10s": 50.0, "day_downsampled": 200.0,
-              "timeline": 150.0, "track": None}
 BUSY_PATTERNS = ("bench ingest", "exp.py", "tansu", "kafka.Kafka", "mosquitto")
 LOAD_FILE = "history-load.json"
 
@@ -59,7 +65,7 @@ LOAD_FILE = "history-load.json"
 
 
 def machine_facts() -> dict:
-    from mapservice.bench.ingest import cpu_model
+    from mapservice.bench.machine import cpu_model
 
     model = cpu_model()
     import clickhouse_connect
@@ -92,69 +98,6 @@ def busy_processes() -> list[str]:
         if any(pat in cmd for pat in BUSY_PATTERNS):
             found.append(f"{p.info['pid']} {cmd[:80]}")
     return found
-
-
-# --- the naive queries ----------------------------------------------------------------------
-
-
-def naive_map_at(store, at_ms: int) -> list:
-    """Latest write per chunk over all history <= T: no snapshot, one GROUP BY."""
-    from mapservice.core.ports import ChunkState
-
-    db = store.database
-    with store._lock:
-        rows = store.client.query(
-            "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
-            "lower(hex(argMax(content_hash, (ts, robot_id)))) "
-            f"FROM {db}.chunk_events WHERE ts <= fromUnixTimestamp64Milli({{t:Int64}}) "
-            "GROUP BY row, col ORDER BY row, col", parameters={"t": at_ms}).result_rows
-    return [ChunkState(*r) for r in rows]
-
-
-def naive_robots_at(store, at_ms: int) -> list[tuple[str, int]]:
-    """(robot, time of its latest pose <= T) over all poses: no snapshot."""
-    db = store.database
-    with store._lock:
-        return [tuple(r) for r in store.client.query(
-            f"SELECT robot_id, toUnixTimestamp64Milli(max(ts)) FROM {db}.poses "
-            "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) GROUP BY robot_id ORDER BY robot_id",
-            parameters={"t": at_ms}).result_rows]
-
-
-def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> list:
-    """poses_downsampled from every pose (the query before the keyframes of schema v4)."""
-    from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
-
-    return store._pose_query(
-        f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {store.database}.poses FINAL "
-        "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-        "ORDER BY robot_id, ts "
-        "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
-        f"ORDER BY ts, robot_id LIMIT 100000 {_FINAL_SETTINGS}",
-        {"f": from_ms, "t": to_ms, "s": step_ms})
-
-
-def naive_timeline(store, from_ms: int, to_ms: int, buckets: int) -> list:
-    """The timeline from every event (the query before schema v9): chunk changes counted
-    with FINAL, robots from every pose, per bucket."""
-    from mapservice.core.ports import TimelineBucket
-    from mapservice.core.timetravel import timeline_buckets
-
-    bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
-    db = store.database
-    params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
-    window = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
-    bucket = "intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64})"
-    with store._lock:
-        chunks = dict(store.client.query(
-            f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL WHERE {window} GROUP BY k",
-            parameters=params).result_rows)
-        robots = dict(store.client.query(
-            f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.poses WHERE {window} GROUP BY k",
-            parameters=params).result_rows)
-    conflicts = store.conflict_counts(from_ms, to_ms, bucket_ms)
-    return [TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
-            for k, start in enumerate(starts)]
 
 
 # --- measuring ------------------------------------------------------------------------------
@@ -364,135 +307,6 @@ def wait_quiet(seconds: float, console) -> float:
                       f"{busy[0][:60]})")
         time.sleep(min(30.0, max(0.0, seconds - (time.monotonic() - t0))))
     return time.monotonic() - t0
-
-
-# --- report ---------------------------------------------------------------------------------
-
-ROWS = [
-    ("map_at(T), random T", "map_at:random", "naive_map:random", "map_at"),
-    ("map_at(T), T in the last hour", "map_at:last_hour", "naive_map:last_hour", "map_at"),
-    ("map_at(T), T ~6 days ago", "map_at:6_days_ago", "naive_map:6_days_ago", "map_at"),
-    ("robots_at(T), random T", "robots_at", "naive_robots", "robots_at"),
-    ("10 s window (chunk events + poses)", "window_10s", None, "window_10s"),
-    ("one day, poses 1 per robot per --step-s", "day_downsampled", "naive_downsampled",
-     "day_downsampled"),
-    ("one day for 86400x (1 per robot per 8,640 s)", "day_replay_86400x", "naive_replay_86400x",
-     "day_downsampled"),
-    ("86400x, `from` off the minute (keyframes + heads)", "replay_86400x_any_from", None,
-     "day_downsampled"),
-    ("timeline, whole history, 10-min buckets", "timeline_week", "naive_timeline_week", "timeline"),
-    ("timeline, one day, 1,000 buckets of 86.4 s", "timeline_day", "naive_timeline_day", "timeline"),
-    ("track, one robot, one day at --step-s", "track_day", None, "track"),
-]
-
-
-def _fmt(v: float | None) -> str:
-    return "-" if v is None else (f"{v:.0f}" if v >= 100 else f"{v:.1f}")
-
-
-def table_rows(results: dict) -> list[list[str]]:
-    lat = results["latency_ms"]
-    out = []
-    for label, key, naive, target in ROWS:
-        s = lat[key]
-        ns = lat[naive] if naive else {}
-        goal = TARGETS_MS[target]
-        if not s["n"]:
-            continue
-        out.append([label, str(s["n"]), _fmt(s["p50"]), _fmt(s["p99"]), _fmt(s["max"]),
-                    _fmt(ns.get("p50")), _fmt(ns.get("p99")),
-                    "-" if goal is None else f"<= {goal:.0f}",
-                    "-" if goal is None else ("yes" if s["p99"] <= goal else "NO")])
-    return out
-
-
-HEADER = ["query", "n", "p50 ms", "p99 ms", "max ms", "naive p50", "naive p99", "target p99",
-          "met"]
-
-
-def markdown(results: dict) -> str:
-    info, m, checks = results["load"], results["machine"], results["measure"]["checks"]
-    lat = results["measure"]["latency_ms"]
-    lines = [
-        "",
-        f"## Time travel over a week of history ({results['finished'][:10]})",
-        "",
-        f"Command: `{results['command']}`",
-        "",
-        f"Machine: {m['cpu']}, {m['cores']} cores, {m['ram_gib']} GiB; Python {m['python']}, "
-        f"chDB {m['chdb']} (embedded, in the benchmark's process) through clickhouse-connect "
-        f"{m['clickhouse_connect']}.",
-        "",
-    ]
-    meas = results["measure"]
-    busy = results["busy_before"] + results["busy_after"] + meas.get("busy_seen", [])
-    if busy:
-        lines += [f"**The machine was not quiet**: another benchmark was running during "
-                  f"{meas.get('busy_rounds', '?')} of {meas.get('rounds', '?')} query rounds "
-                  f"(e.g. `{busy[0][:70]}`), so those latencies are pessimistic "
-                  f"(load average {results['loadavg_before']:.2f} before, "
-                  f"{results['loadavg_after']:.2f} after).", ""]
-    else:
-        lines += ["No other benchmark ran during the measurement (checked every 10 query "
-                  f"rounds; load average {results['loadavg_before']:.2f} before, "
-                  f"{results['loadavg_after']:.2f} after).", ""]
-    if info.get("reused"):
-        lines += ["The history was loaded by an earlier run (`--reuse`).", ""]
-    lines += [
-        f"History: {info.get('days')} days x {info.get('robots')} robots, one pose a second and "
-        f"one chunk every five seconds each: {info.get('poses', 0):,} poses and "
-        f"{info.get('chunk_events', 0):,} chunk events on a {info.get('grid', ['?'])[0]} x {info.get('grid', ['', '?'])[1]} "
-        f"grid ({info.get('chunks', 0):,} chunks), {info.get('chunk_content_rows', 0):,} chunk "
-        f"content rows ({info.get('distinct_contents', 0):,} distinct contents). "
-        "maps/warehouse.yaml has 17 x 11 = 187 chunks; its chunks are re-sent at random cells "
-        "of the 32 x 48 grid (as the 2019 load test re-sent chunks), and 1 % of the writes "
-        "carry changed pixels. Robots drive 1 m circles around free cells of the map.",
-        "",
-        f"Load (`mapservice load-history`'s code): {info.get('load_s', 0):.1f} s to generate and "
-        f"insert ({info.get('generate_s', 0):.1f} s numpy, {info.get('insert_s', 0):.1f} s "
-        f"inserts), {(info.get('poses', 0) + info.get('chunk_events', 0)) / max(info.get('load_s', 1e-9), 1e-9):,.0f} "
-        f"rows/s; snapshots every 10 min: {info.get('snapshots_one_by_one')} one by one in "
-        f"{info.get('one_by_one_s', 0):.1f} s "
-        f"({info.get('one_by_one_s', 0) / max(info.get('snapshots_one_by_one') or 1, 1) * 1000:.0f} ms "
-        f"each, `build_snapshots`), the other {info.get('snapshots_bulk')} in "
-        f"{info.get('bulk_s', 0):.1f} s (`build_snapshots_bulk`, one day per statement); "
-        f"OPTIMIZE FINAL {info.get('optimize_s', 0):.1f} s"
-        + (" (another benchmark was running during the load)." if info.get("busy_during_load")
-           else " (no other benchmark ran during the load)."),
-        "",
-        "| " + " | ".join(HEADER) + " |",
-        "|" + "|".join(["---"] + ["---:"] * (len(HEADER) - 1)) + "|",
-    ]
-    for row in table_rows(results["measure"]):
-        lines.append("| " + " | ".join(row) + " |")
-    flat = lat["map_at:6_days_ago"]["p50"] / max(lat["map_at:last_hour"]["p50"], 1e-9)
-    naive_flat = lat["naive_map:6_days_ago"]["p50"] / max(lat["naive_map:last_hour"]["p50"], 1e-9)
-    lines += [
-        "",
-        f"Naive map: `SELECT row, col, argMax(content_hash, (ts, robot_id)) ... FROM chunk_events "
-        f"WHERE ts <= T GROUP BY row, col`; naive robots: `SELECT robot_id, max(ts) FROM poses "
-        f"WHERE ts <= T GROUP BY robot_id`. map_at p50 six days ago / in the last hour: "
-        f"{flat:.2f} (naive: {naive_flat:.2f}).",
-        f"Correctness: map_at(T) equal to the naive query for {checks['map_at_compared']} "
-        f"instants, mismatches = {checks['map_at_mismatches']}; robots_at(T) equal to the naive "
-        f"query for {checks['robots_compared']}, mismatches = {checks['robots_mismatches']}. "
-        f"Downsampled days (from pose_keyframes) equal to the same answer from every pose "
-        f"(the 'naive' column) for {checks.get('downsampled_compared', 0)} windows, "
-        f"mismatches = {checks.get('downsampled_mismatches', '?')}. Timelines equal to the "
-        f"same buckets counted from every event for {checks.get('timeline_compared', 0)}, "
-        f"mismatches = {checks.get('timeline_mismatches', '?')}. "
-        f"Downsampled day: step {results['measure']['step_ms']} ms, at most "
-        f"{checks['downsampled_rows_max']:,} poses returned; 10 s windows returned up to "
-        f"{checks['window_rows']} rows; the whole-history timeline has "
-        f"{checks.get('week_buckets', '?')} buckets.",
-    ]
-    if results.get("storage"):
-        parts = ", ".join(f"{k} {v / 2**20:.1f} MiB" for k, v in sorted(results["storage"].items())
-                          if v > 2**20)
-        lines += [f"On disk after merging: {parts}."]
-    if results.get("remarks"):
-        lines += ["", *results["remarks"]]
-    return "\n".join(lines) + "\n"
 
 
 def main(args) -> None:

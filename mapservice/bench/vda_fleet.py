@@ -2,7 +2,7 @@
 `state` a second and a `visualization` five times a second (VDA 5050 2.0.0, schema-valid),
 on `<interface>/v2/<manufacturer>/<serial>/...`, QoS 1.
 
-Like RawFleet (robot/rawfleet.py) it is not the limit: pre-encoded PUBLISH packets
+Like RawFleet (bench/fleet/rawfleet.py) it is not the limit: pre-encoded PUBLISH packets
 (`mqtt_packets.PublishTemplate`, only the timestamp and packet id filled in) written on a
 few raw connections from one asyncio loop. A message counts as published when its PUBACK
 arrived. A vehicle's state goes out 100 ms after a visualization, so no two of its messages
@@ -21,7 +21,7 @@ from datetime import UTC, datetime
 from urllib.parse import urlparse
 
 from mapservice.core.vda_ids import robot_id_for
-from mapservice.robot.mqtt_packets import (
+from mapservice.bench.fleet.mqtt_packets import (
     DISCONNECT_PACKET,
     PacketReader,
     PublishTemplate,

@@ -18,7 +18,8 @@ from mapservice.adapters.mqtt_client import MqttTls, make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
-from mapservice.local.stack import Stack, mqtt_accepts
+from mapservice.local.stack import Stack
+from mapservice.local.stack_mqtt import mqtt_accepts
 from mapservice.robot.connection import RobotMqtt, load_credentials
 from mapservice.robot.loadgen import RobotFleet
 from mapservice.robot.simrun import SimRunner

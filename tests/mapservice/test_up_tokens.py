@@ -3,7 +3,7 @@ it opens (the values stay in the files)."""
 
 from __future__ import annotations
 
-from mapservice.cli import api_token_rows
+from mapservice.local.up import api_token_rows
 from mapservice.runtime.secrets import stored_secret
 from mapservice.settings import Settings
 

@@ -1,12 +1,12 @@
-"""Maps for the robot tests: the repository's and, when present, every map in ../shared/maps."""
+"""Maps for the robot tests (the repository's and, when present, every map in ../shared/maps)
+and a real Mosquitto."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import pytest
 
-from mapservice.local import embedded
+from tests.fixtures.mosquitto import mosquitto  # noqa: F401 (a fixture)
 from tests.fixtures.paths import MAPS, ROOT
 
 SHARED_MAPS = ROOT.parent / "shared" / "maps"
@@ -19,11 +19,3 @@ def all_map_yamls() -> list[Path]:
         found.update({p.name: p for p in sorted(SHARED_MAPS.glob("*.yaml"))})
     return [found[k] for k in sorted(found)]
 
-
-@pytest.fixture
-def mosquitto(tmp_path):
-    """A real Mosquitto on a free port; yields the port."""
-    port = embedded.free_port()
-    proc = embedded.start_mosquitto(port, tmp_path / "mosquitto")
-    yield port
-    embedded.stop(proc)

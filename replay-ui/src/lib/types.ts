@@ -1,5 +1,18 @@
-/** Shapes of the mapservice API (/api/v1) as the UI consumes them. */
+/**
+ * Shapes of the mapservice API (/api/v1) as the UI consumes them.
+ *
+ * The response shapes come from the API's OpenAPI document: api-schema.d.ts is generated from
+ * it (`make api-types`; tests/api/test_ui_api_types.py fails when it is out of date), so a
+ * route that changes a field changes these types and the build shows every use it breaks.
+ * Written here by hand: what the API does not describe (the map meta, a free-form object in
+ * its document) and what only the UI adds (a chunk change's previous state).
+ */
 
+import type { components } from "./api-schema";
+
+type Schemas = components["schemas"];
+
+/** The map meta (meta.json of the 2019 contract): the API serves it as a free-form object. */
 export interface MapMeta {
   width: number;
   height: number;
@@ -13,67 +26,37 @@ export interface MapMeta {
   origin?: [number, number, number];
 }
 
-export interface ChunkCell {
-  row: number;
-  column: number;
-  ts_ms: number;
-  robotId: string;
-  content_hash: string;
-}
+/** A chunk cell's last write (GET /api/v1/map's chunks); the UI never reads the ISO time. */
+export type ChunkCell = Omit<Schemas["ChunkAt"], "timestamp">;
 
-/** One chunk write; `prev` is the cell's state just before it (null: never written). */
+/** One chunk write; `prev` is the cell's state just before it (null: never written), which
+ * the UI works out itself (buffer.ts) to step backwards. */
 export interface ChunkChange extends ChunkCell {
   prev?: ChunkCell | null;
 }
 
-export interface Pose {
-  robotId: string;
-  ts_ms: number;
-  receive_time_ms?: number;
-  position: [number, number, number];
-  orientation: [number, number, number, number];
-  battery_level: number | null;
-  charging: boolean | string | null;
-  loaded: boolean | string | null;
-  path: [number, number][] | null;
-}
+/** A pose (GET /api/v1/events, the live WebSocket); the UI never reads the ISO time, and a
+ * live frame may come without the gateway's receive time. */
+export type Pose = Omit<Schemas["Pose"], "timestamp" | "receive_time_ms"> &
+  Partial<Pick<Schemas["Pose"], "receive_time_ms">>;
 
-export interface RobotAt extends Pose {
-  age_ms?: number;
-  online?: boolean;
-  clock_skew_ms?: number;
-  clock_skew_flag?: boolean;
-}
+/** A robot at an instant (GET /api/v1/robots); the UI also makes one from a live pose, which
+ * has no age, online flag or clock skew. */
+export type RobotAt = Pose &
+  Partial<Pick<Schemas["RobotAt"], "age_ms" | "online" | "clock_skew_ms" | "clock_skew_flag">>;
 
-export interface EventWindow {
-  from_ms: number;
-  to_ms: number;
-  step_ms: number;
-  chunks: ChunkChange[];
-  poses: Pose[];
-  truncated: boolean;
-}
+/** An event window (GET /api/v1/events), its chunks as the UI keeps them. */
+export type EventWindow = Omit<Schemas["Events"], "chunks" | "poses" | "chunk_step_ms"> &
+  Partial<Pick<Schemas["Events"], "chunk_step_ms">> & {
+    chunks: ChunkChange[];
+    poses: Pose[];
+  };
 
-export interface TimelineBucket {
-  start_ms: number;
-  chunk_changes: number;
-  conflicts: number;
-  robots_active: number;
-}
+/** One bucket of GET /api/v1/timeline. */
+export type TimelineBucket = Schemas["Bucket"];
 
-export interface Timeline {
-  from_ms: number;
-  to_ms: number;
-  bucket_ms: number;
-  buckets: TimelineBucket[];
-}
+/** GET /api/v1/timeline. */
+export type Timeline = Schemas["Timeline"];
 
-export interface Conflict {
-  row: number;
-  column: number;
-  ts_ms: number;
-  robot_a: string;
-  robot_b: string;
-  hash_a?: string;
-  hash_b?: string;
-}
+/** A conflict (GET /api/v1/conflicts). */
+export type Conflict = Schemas["Conflict"];

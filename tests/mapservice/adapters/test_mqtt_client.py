@@ -124,7 +124,7 @@ def test_the_gateway_client_hands_messages_on_without_leaving_cycles_for_the_col
     import gc
 
     from mapservice.adapters.mqtt_client import make_client
-    from mapservice.robot.mqtt_packets import publish_packet
+    from mapservice.bench.fleet.mqtt_packets import publish_packet
 
     client = make_client("gw", manual_ack=True, buffered_reads=True, clean_session=False)
     got = []
@@ -145,7 +145,7 @@ def test_the_gateway_client_hands_messages_on_without_leaving_cycles_for_the_col
 def test_the_gateway_client_still_serves_per_topic_callbacks() -> None:
     """A callback added with message_callback_add gets its topic's messages, on_message the rest."""
     from mapservice.adapters.mqtt_client import make_client
-    from mapservice.robot.mqtt_packets import publish_packet
+    from mapservice.bench.fleet.mqtt_packets import publish_packet
 
     client = make_client("gw", manual_ack=True, buffered_reads=True, clean_session=False)
     routed, rest = [], []

@@ -1,7 +1,8 @@
 """Unit tests of the ingest benchmark's latency arithmetic (no brokers)."""
 import json
 
-from mapservice.bench.ingest import INF, LiveListener, _latencies, _stage_latencies, queryable_times
+from mapservice.bench.ingest.latency import INF, _latencies, _stage_latencies, queryable_times
+from mapservice.bench.ingest.probes import LiveListener
 
 KEY = ("pose", "r1", 1_700_000_000_000)
 
@@ -55,7 +56,7 @@ def test_latency_bounds_and_unseen_events_count_as_infinite() -> None:
 def test_storage_is_judged_only_on_runs_long_enough() -> None:
     """A 20 s run's storage per robot-day is not judged (no red MISSED for fixed overhead);
     a 2-minute run is, against the 1.5 MB target."""
-    from mapservice.bench.ingest import storage_verdict
+    from mapservice.bench.ingest.report import storage_verdict
 
     assert storage_verdict(20, 9e6) is None
     assert storage_verdict(120, 1.4e6) is True
@@ -71,7 +72,7 @@ def _fleet_figures(**overrides) -> dict:
 
 def test_live_bounds_hold_and_each_one_can_miss() -> None:
     """5,000 robots within every bound hold; each bound alone, missed, is named."""
-    from mapservice.bench.ingest import live_bounds
+    from mapservice.bench.ingest.report import live_bounds
 
     assert all(ok for *_, ok in live_bounds(5000, _fleet_figures()))
     for key, bad in (("lost", 1), ("duplicated", 2), ("sustained_events_per_s", 5900.0),
@@ -83,7 +84,7 @@ def test_live_bounds_hold_and_each_one_can_miss() -> None:
 
 def test_a_small_fleet_is_held_to_the_tighter_p99() -> None:
     """Up to 1,000 robots, p99 (push or poll) must be <= 0.3 s; above, only push and poll bounds."""
-    from mapservice.bench.ingest import live_bounds
+    from mapservice.bench.ingest.report import live_bounds
 
     figures = _fleet_figures(sustained_events_per_s=1200.0, latency_p99_s=0.35)
     assert [n for n, _, _, ok in live_bounds(1000, figures) if not ok] == ["p99 (push or poll)"]
@@ -92,7 +93,7 @@ def test_a_small_fleet_is_held_to_the_tighter_p99() -> None:
 
 def test_cpu_per_event_divides_each_components_share_by_the_event_rate() -> None:
     """50 % of a core at 5,000 events/s is 100 µs per event; machine-wide figures are left out."""
-    from mapservice.bench.ingest import cpu_us_per_event
+    from mapservice.bench.ingest.cpu import cpu_us_per_event
 
     per_event = cpu_us_per_event({"gateway": 50.0, "loadgen": 10.0, "other_processes": 80.0,
                                   "wall_s": 60.0}, 300_000, 60.0)
@@ -102,7 +103,7 @@ def test_cpu_per_event_divides_each_components_share_by_the_event_rate() -> None
 
 def test_cpu_meter_counts_load_fleet_workers_as_load_generator_not_stack() -> None:
     """Worker processes' CPU goes to the load generator and stays out of the stack's total."""
-    from mapservice.bench.ingest import CpuMeter
+    from mapservice.bench.ingest.cpu import CpuMeter
 
     zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
             "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
@@ -115,7 +116,7 @@ def test_cpu_meter_counts_load_fleet_workers_as_load_generator_not_stack() -> No
 
 def test_the_ceiling_is_the_last_step_of_an_unbroken_run_that_held() -> None:
     """Steps 1,000 and 2,000 held, 3,000 missed: the ceiling is 2,000; none held: None."""
-    from mapservice.bench.ingest import ceiling_verdict
+    from mapservice.bench.ingest.command import ceiling_verdict
 
     steps = [{"robots": 1000, "held": True}, {"robots": 2000, "held": True},
              {"robots": 3000, "held": False}]
@@ -129,7 +130,7 @@ def printed_results(capsys, robots: int, seconds: float, **figures) -> str:
 
     from rich.console import Console
 
-    from mapservice.bench.ingest import print_results
+    from mapservice.bench.ingest.report import print_results
 
     med = {**_fleet_figures(**figures), "offered_events_per_s": robots * 1.2,
            "published_events_per_s": robots * 1.2, "stats_poses_minus_expected": 0,
@@ -157,7 +158,7 @@ def test_the_results_show_the_yardstick_measured_before_the_run(capsys) -> None:
 
 def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
     """Workers that exited before the last sample report their CPU themselves: that counts."""
-    from mapservice.bench.ingest import CpuMeter
+    from mapservice.bench.ingest.cpu import CpuMeter
 
     zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
             "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
@@ -166,7 +167,7 @@ def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
 
 
 def test_a_backlog_still_being_stored_is_waited_for_not_counted_lost() -> None:
-    from mapservice.bench.ingest import DrainWatch
+    from mapservice.bench.ingest.probes import DrainWatch
     watch = DrainWatch({"poses": 100, "chunk_events": 10}, stall_s=20, max_s=600)
     for t in range(0, 100, 5):  # the store keeps counting, slowly, for 100 s
         watch.observe(t, {"poses": t, "chunk_events": 0})
@@ -176,7 +177,7 @@ def test_a_backlog_still_being_stored_is_waited_for_not_counted_lost() -> None:
 
 
 def test_the_drain_gives_up_once_the_store_stops_counting_or_at_its_cap() -> None:
-    from mapservice.bench.ingest import DrainWatch
+    from mapservice.bench.ingest.probes import DrainWatch
     stalled = DrainWatch({"poses": 100}, stall_s=20, max_s=600)
     stalled.observe(0, {"poses": 50})
     stalled.observe(10, {"poses": 60})
@@ -189,7 +190,7 @@ def test_the_drain_gives_up_once_the_store_stops_counting_or_at_its_cap() -> Non
 
 def test_cpu_meter_counts_gateway_replicas_as_the_gateway() -> None:
     """A second gateway process's CPU is added to the gateway's, once."""
-    from mapservice.bench.ingest import CpuMeter
+    from mapservice.bench.ingest.cpu import CpuMeter
 
     zero = {"gateway": 0.0, "gateway-2": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0,
             "_loadgen_workers": 0.0, "_machine_processes": 0.0, "_machine_irq": 0.0,
@@ -201,7 +202,7 @@ def test_cpu_meter_counts_gateway_replicas_as_the_gateway() -> None:
 
 def test_a_loss_is_placed_before_or_after_the_gateways() -> None:
     """Fewer messages confirmed than published: the broker; all of them: after the gateways."""
-    from mapservice.bench.ingest import loss_side
+    from mapservice.bench.ingest.report import loss_side
 
     assert "broker did not pass them on" in loss_side(-23)
     assert "lost after them" in loss_side(0)
@@ -211,38 +212,38 @@ def test_gateway_acks_sum_each_gateways_accepted_and_rejected(monkeypatch) -> No
     """Each gateway's count is its accepted plus rejected messages from its /metrics."""
     import httpx
 
-    from mapservice.bench import ingest
+    from mapservice.bench.ingest import metrics
 
     text = ('# TYPE mapservice_gateway_messages_total counter\n'
             'mapservice_gateway_messages_total{outcome="accepted"} 100.0\n'
             'mapservice_gateway_messages_total{outcome="rejected"} 2.0\n'
             '# TYPE mapservice_gateway_messages_created gauge\n'
             'mapservice_gateway_messages_created{outcome="accepted"} 1.7e9\n')
-    monkeypatch.setattr(ingest.httpx, "get", lambda url, timeout: httpx.Response(200, text=text))
-    assert ingest.gateway_acks([1, 2]) == [102.0, 102.0]
+    monkeypatch.setattr(metrics.httpx, "get", lambda url, timeout: httpx.Response(200, text=text))
+    assert metrics.gateway_acks([1, 2]) == [102.0, 102.0]
 
 
 def test_history_offset_gaps_reads_reread_and_accepted_from_the_servers_metrics(monkeypatch) -> None:
     """The guard's gap counts come from the server's /metrics, per outcome, 0 when absent."""
     import httpx
 
-    from mapservice.bench import ingest
+    from mapservice.bench.ingest import metrics
 
     text = ('# TYPE mapservice_consumer_offset_gaps_total counter\n'
             'mapservice_consumer_offset_gaps_total{outcome="reread"} 3.0\n'
             '# TYPE mapservice_consumer_offset_gaps_created gauge\n'
             'mapservice_consumer_offset_gaps_created{outcome="reread"} 1.7e9\n')
     asked = []
-    monkeypatch.setattr(ingest.httpx, "get",
+    monkeypatch.setattr(metrics.httpx, "get",
                         lambda url, timeout: asked.append(url) or httpx.Response(200, text=text))
-    assert ingest.history_offset_gaps(ingest.server_metrics("http://127.0.0.1:9")) == {
+    assert metrics.history_offset_gaps(metrics.server_metrics("http://127.0.0.1:9")) == {
         "reread": 3.0, "accepted": 0.0}
     assert asked == ["http://127.0.0.1:9/metrics"]
 
 
 def test_counter_by_label_sums_one_counters_samples_per_label_value() -> None:
     """Only the named counter's _total samples count, summed per value of the label."""
-    from mapservice.bench.ingest import counter_by_label
+    from mapservice.bench.ingest.metrics import counter_by_label
 
     text = ('# TYPE a_total counter\n'
             'a_total{outcome="x",topic="p"} 1.0\n'
@@ -255,7 +256,7 @@ def test_counter_by_label_sums_one_counters_samples_per_label_value() -> None:
 
 def test_store_stages_are_the_histograms_growth_between_two_scrapes() -> None:
     """Per stage: calls and mean ms from the histograms' count and sum deltas; absent ones are 0 calls."""
-    from mapservice.bench.ingest import histogram_totals, store_stages
+    from mapservice.bench.ingest.metrics import histogram_totals, store_stages
 
     def scrape(inserts: int, insert_s: float, batches: int, events: int) -> str:
         return ('# TYPE mapservice_sink_insert_seconds histogram\n'
@@ -293,9 +294,9 @@ def _slow_poller(monkeypatch, rows: int):
     """A poller whose every read takes 30 ms and returns `rows` rows, at a 10 ms cadence."""
     import time as time_module
 
-    from mapservice.bench import ingest
+    from mapservice.bench.ingest import probes
 
-    poller = ingest.QueryablePoller("http://unused", [], interval_s=0.01)
+    poller = probes.QueryablePoller("http://unused", [], interval_s=0.01)
     poller._halt = _RecordedWaits(cycles=3)
 
     def slow_get(client, path, f, t):
@@ -305,7 +306,7 @@ def _slow_poller(monkeypatch, rows: int):
         return body, asked, time_module.time()
 
     monkeypatch.setattr(poller, "_get", slow_get)
-    monkeypatch.setattr(ingest, "POLL_LIMIT", 5)
+    monkeypatch.setattr(probes, "POLL_LIMIT", 5)
     poller.run()
     return poller
 

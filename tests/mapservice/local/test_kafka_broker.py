@@ -15,7 +15,7 @@ from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
 from confluent_kafka.admin import AdminClient, ConfigResource, NewTopic
 from rich.console import Console
 
-from mapservice.cli import embedded_kafka_intro, kafka_keeps
+from mapservice.local.up import embedded_kafka_intro, kafka_keeps
 from mapservice.local import embedded, kafka_broker
 from mapservice.local.stack import Stack
 

@@ -100,7 +100,7 @@ def test_the_brokers_message_size_limit_follows_the_gateways_maximum(tmp_path):
     gateway's limit): a payload over the gateway's limit but within that reaches the
     gateway's session (which dead-letters it as oversized), one byte more is dropped by the
     broker (it is not queued or stored)."""
-    from mapservice.local.stack import BROKER_SIZE_HEADROOM
+    from mapservice.local.stack_mqtt import BROKER_SIZE_HEADROOM
 
     limit = BROKER_SIZE_HEADROOM * 4096
     stack = Stack(tmp_path, mqtt="mosquitto", extra_env={"MAPSERVICE_MAX_MESSAGE_BYTES": "4096"})

@@ -5,7 +5,7 @@ than half a core at 4,000 robots). A robot's messages differ only in their times
 the packet id, so `PublishTemplate` encodes a message once and patches those per message.
 Only what a QoS 1 publisher needs: CONNECT, PUBLISH (QoS 1), PINGREQ, DISCONNECT out;
 CONNACK, PUBACK, PINGRESP in (`PacketReader`). Tested against amqtt's packet decoder and
-through Mosquitto to a paho subscriber (tests/robot/test_mqtt_packets.py).
+through Mosquitto to a paho subscriber (tests/mapservice/bench/test_mqtt_packets.py).
 """
 
 from __future__ import annotations

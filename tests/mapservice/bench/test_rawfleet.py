@@ -22,8 +22,9 @@ from mapservice.core.wire2019 import (
     parse_timestamp,
 )
 from mapservice.robot import DEFAULT_MAP
-from mapservice.robot.mqtt_packets import varint
-from mapservice.robot.rawfleet import RawFleet, WorkerPlan, chunk_payload, pose_templates, scheduled_messages
+from mapservice.bench.fleet.mqtt_packets import varint
+from mapservice.bench.fleet.rawfleet import RawFleet
+from mapservice.bench.fleet.rawfleet_plan import WorkerPlan, chunk_payload, pose_templates, scheduled_messages
 from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
 
 

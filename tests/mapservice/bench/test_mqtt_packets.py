@@ -6,7 +6,7 @@ import asyncio
 
 import pytest
 
-from mapservice.robot.mqtt_packets import (
+from mapservice.bench.fleet.mqtt_packets import (
     PacketReader,
     ProtocolError,
     PublishTemplate,
