@@ -116,8 +116,11 @@ class CommandRelay:
                 msg = consumer.poll(0.2)
                 if msg is None or msg.error():
                     continue
+                value = msg.value()
+                if value is None:
+                    continue  # a tombstone: nothing to deliver
                 try:
-                    self.handle(msg.value())
+                    self.handle(value)
                 except Exception:  # noqa: BLE001 - one bad record must not stop deliveries
                     log.exception("command delivery failed; going on")
         except Exception:

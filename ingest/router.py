@@ -83,11 +83,11 @@ class Router:
                 result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
             elif self.vda.handles(mqtt_topic):
                 result = self.vda.decode(mqtt_topic, payload, receive_ms, limits)
-            elif (robot_id := self._command_robot(mqtt_topic)) is not None:
-                answer = decode_response(payload, robot_id, receive_ms, limits,
+            elif (answering := self._command_robot(mqtt_topic)) is not None:
+                answer = decode_response(payload, answering, receive_ms, limits,
                                          self.commands.robot_of)
                 result = answer if isinstance(answer, Rejection) else make_envelope(
-                    robot_id, answer[0], receive_ms, answer[1])
+                    answering, answer[0], receive_ms, answer[1])
             elif mqtt_topic.startswith(self.coordinate_prefix):
                 robot_id = mqtt_topic[len(self.coordinate_prefix):]
                 result = decode_coordinates(robot_id, payload, receive_ms, limits)

@@ -17,6 +17,7 @@ import time
 from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import msgspec
 import paho.mqtt.client as mqtt
@@ -75,7 +76,7 @@ class CommandInbox:
         """Subscribes `client` to these robots' command topics, now and on each reconnect."""
         topics = [(command_topic(r, self.root), 1) for r in robot_ids]
         client.on_message = self.on_message
-        previous = client.on_connect
+        previous: Any = client.on_connect
 
         def on_connect(c, userdata, flags, reason_code, properties=None) -> None:
             if previous is not None:
@@ -94,7 +95,7 @@ class CommandInbox:
 
     def take(self) -> list[CommandIssued]:
         """The new commands received since the last call, in arrival order."""
-        out = []
+        out: list[CommandIssued] = []
         while True:
             try:
                 data = self._queue.get_nowait()

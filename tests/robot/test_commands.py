@@ -127,5 +127,5 @@ def test_commands_for_other_robots_or_unreadable_are_ignored() -> None:
     state, inbox, commands = fleet(1)
     deliver(inbox, command("x-1", "someone-else", "pause"))
     inbox.on_message(None, None, SimpleNamespace(topic="t", payload=b"{not json"))
-    state, out = tick(state, commands)
+    tick(state, commands)
     assert answers(commands) == [] and not commands.paused

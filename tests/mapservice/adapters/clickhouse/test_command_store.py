@@ -29,7 +29,7 @@ def test_commands_and_answers_by_window_and_robot(store) -> None:
         (NOW_MS, "CommandIssued"), (NOW_MS + 10, "CommandIssued"),
         (NOW_MS + 300, "CommandAcknowledged"), (NOW_MS + 900, "CommandFinished")]
     assert [s.event for s in got] == [events[0].payload, GOTO, events[1].payload, events[2].payload]
-    assert [s.event_id for s in got][0] == events[0].event_id
+    assert got[0].event_id == events[0].event_id
     assert store.command_events(NOW_MS + 1, NOW_MS + 900) == got[1:3]
     assert [s.event.command_id for s in store.command_events(NOW_MS, NOW_MS + 1_000, "amr-2")] == ["c-2"]
     assert store.command_events(NOW_MS, NOW_MS + 1_000, limit=2) == got[:2]
