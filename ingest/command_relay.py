@@ -30,6 +30,7 @@ log = structlog.get_logger(__name__)
 
 COMMAND_MEMORY_S = 3600  # answers to commands older than this are unknown_command
 MAX_REMEMBERED = 200_000  # commands remembered at most (the oldest are forgotten first)
+RETRY_S = 2.0  # after a failure, the relay reads again this much later
 
 
 class CommandBook:
@@ -62,6 +63,7 @@ class CommandRelay:
         self.now_ms = now_ms
         self.book = book or CommandBook()
         self.delivered = 0
+        self.failures = 0  # times the reading failed and started again
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -98,6 +100,18 @@ class CommandRelay:
             self._thread.join(timeout=5)
 
     def _run(self) -> None:
+        """Reads until stopped; a failure (Kafka away at start, a lost assignment) is
+        logged and the reading starts again a little later: deliveries never just stop."""
+        while not self._stop.is_set():
+            try:
+                self._read()
+            except Exception:  # noqa: BLE001 - logged; the loop starts reading again
+                self.failures += 1
+                log.exception("command relay failed; reading the command topic again shortly",
+                              hint="is Kafka reachable at MAPSERVICE_KAFKA_BOOTSTRAP?")
+                self._stop.wait(RETRY_S)
+
+    def _read(self) -> None:
         topic = self.settings.topic_command_events
         consumer = Consumer({**self.settings.kafka_config(),
                              "group.id": "mapservice-gateway-commands",
@@ -123,8 +137,5 @@ class CommandRelay:
                     self.handle(value)
                 except Exception:  # noqa: BLE001 - one bad record must not stop deliveries
                     log.exception("command delivery failed; going on")
-        except Exception:
-            log.exception("command relay failed: commands are not delivered by this gateway; "
-                          "restart it once Kafka answers")
         finally:
             consumer.close()

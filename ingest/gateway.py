@@ -272,7 +272,9 @@ class MqttGateway:
         alive = self.loop_alive()
         return {"ok": alive, "mqtt_connected": self._connected.is_set(),
                 "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight,
-                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id}
+                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id,
+                "commands_delivered": self.command_relay.delivered,
+                "command_relay_failures": self.command_relay.failures}
 
     def ready(self) -> dict:
         """Readiness: connected to the MQTT broker and a Kafka broker answers metadata."""

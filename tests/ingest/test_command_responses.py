@@ -163,3 +163,22 @@ def test_the_relays_book_forgets_the_oldest_beyond_its_limit() -> None:
     for cid in ("a", "b", "c"):
         book.remember(cid, "r")
     assert book.robot_of("a") is None and book.robot_of("c") == "r"
+
+
+def test_the_relay_reads_again_after_a_failure(gw, monkeypatch) -> None:
+    """Kafka away when the relay starts (or any failure while reading): it logs, waits and
+    reads again; deliveries never just stop."""
+    import mapservice.ingest.command_relay as relay_module
+
+    calls = []
+
+    def read() -> None:
+        calls.append(1)
+        if len(calls) < 3:
+            raise OSError("Kafka unreachable")
+        gw.relay._stop.set()
+
+    monkeypatch.setattr(relay_module, "RETRY_S", 0.01)
+    monkeypatch.setattr(gw.relay, "_read", read)
+    gw.relay._run()
+    assert len(calls) == 3 and gw.relay.failures == 2
