@@ -220,8 +220,7 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                   vda_schema.statements(database)),
         Migration(13, "operators' annotations: points of interest and zones, as edit events",
                   annotation_schema.statements(database)),
-        Migration(14, "operators' commands to robots and the robots' acks and outcomes",
-                  command_schema.statements(database)),
+        Migration(14, "commands to robots and their answers", command_schema.statements(database)),
     ]
 
 
