@@ -223,7 +223,9 @@ class SimCommands:
                    out: StepOut) -> tuple[SimState, StepOut]:
         """Holds the paused robots where they were before the tick (each reports its last
         pose again, at the tick's time) and reports the gotos that arrived or were given up."""
-        held = {r.robot_id: r for r in before.robots if r.robot_id in self.paused}
+        # A robot paused before its first report is held from its first reported pose on.
+        held = {r.robot_id: r for r in before.robots
+                if r.robot_id in self.paused and r.robot_id in self.last_pose}
         robots = []
         for robot in after.robots:
             rid = robot.robot_id
@@ -243,7 +245,7 @@ class SimCommands:
         poses = []
         for pose in out.poses:
             last = self.last_pose.get(pose.robot_id)
-            if pose.robot_id in held and last is not None:
+            if pose.robot_id in held and last is not None:  # last is set for every held robot
                 pose = replace(last, t_ms=pose.t_ms)
             self.last_pose[pose.robot_id] = pose
             poses.append(pose)
