@@ -208,16 +208,31 @@ class SimCommands:
         if command.x is None or command.y is None:
             return None
         col, row = metres_to_pixel(command.x, command.y, state.meta)
-        grid = state.grid
         rows, cols = state.drivable.shape
         if not (0 <= row < rows and 0 <= col < cols):
             return None
+        return self._plan(state, robot, (col + 0.5, row + 0.5))
+
+    @staticmethod
+    def _plan(state: SimState, robot: Robot,
+              goal: tuple[float, float]) -> tuple[tuple[float, float], ...] | None:
+        """Waypoints from the robot's next waypoint (or its place) to `goal` (an image
+        point) on the simulator's planning grid as it is now; None when none reach it."""
+        grid = state.grid
         start_pt = robot.waypoints[0] if robot.waypoints else robot.pos
-        cells = plan(grid, grid.cell_at(*start_pt), grid.cell_at(col + 0.5, row + 0.5))
+        cells = plan(grid, grid.cell_at(*start_pt), grid.cell_at(*goal))
         if cells is None:
             return None
         tail = tuple(grid.centre_px(c) for c in simplify(cells))
         return ((robot.waypoints[0],) + tail[1:]) if robot.waypoints else tail
+
+    def _still_held(self, before: SimState, after: SimState, robot: Robot) -> Robot:
+        """A held robot as before the tick; if the floor changed meanwhile, with its route
+        planned again on the new floor (the simulator replanned only the moved copy)."""
+        if after.grid is before.grid or not robot.waypoints:
+            return robot
+        route = self._plan(after, robot, robot.waypoints[-1])
+        return replace(robot, waypoints=route if route is not None else robot.waypoints[:1])
 
     def after_step(self, before: SimState, after: SimState,
                    out: StepOut) -> tuple[SimState, StepOut]:
@@ -230,7 +245,7 @@ class SimCommands:
         for robot in after.robots:
             rid = robot.robot_id
             if rid in held:
-                robots.append(held[rid])
+                robots.append(self._still_held(before, after, held[rid]))
                 continue
             goal = self.goals.get(rid)
             if goal is not None and robot.task != self.GOTO_TASK:

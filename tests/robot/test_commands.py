@@ -129,3 +129,30 @@ def test_commands_for_other_robots_or_unreadable_are_ignored() -> None:
     inbox.on_message(None, None, SimpleNamespace(topic="t", payload=b"{not json"))
     tick(state, commands)
     assert answers(commands) == [] and not commands.paused
+
+
+def test_a_paused_robots_route_is_planned_again_when_the_floor_changes() -> None:
+    """A pallet put across a held robot's route while it is paused: its route is planned
+    on the new floor, so on resume it does not drive through the pallet."""
+    from mapservice.adapters.ros_map import drivable
+    from mapservice.robot.planning import path_is_clear
+    from mapservice.robot.sim import StepOut, _occupied_value, _with_pixels
+
+    state, inbox, commands = fleet(3)
+    for _ in range(8):
+        state, _out = tick(state, commands)
+    robot = max(state.robots, key=lambda r: len(r.waypoints))
+    assert len(robot.waypoints) >= 3, "a robot with a route of several stretches"
+    deliver(inbox, command("p-1", robot.robot_id, "pause"))
+    state, _out = tick(state, commands)
+    held = next(r for r in state.robots if r.robot_id == robot.robot_id)
+    (ax, ay), (bx, by) = held.waypoints[1], held.waypoints[2]  # beyond the stretch driven next
+    col, row = int((ax + bx) / 2), int((ay + by) / 2)
+    pixels = state.ros_map.pixels.copy()
+    pixels[row - 8:row + 8, col - 8:col + 8] = _occupied_value(state.ros_map)
+    changed = _with_pixels(state, pixels)
+    assert not path_is_clear([held.pos, *held.waypoints], changed.drivable)
+    after, _ = commands.after_step(state, changed, StepOut())
+    moved = next(r for r in after.robots if r.robot_id == robot.robot_id)
+    assert moved.pos == held.pos
+    assert path_is_clear([moved.pos, *moved.waypoints], drivable(after.ros_map))
