@@ -10,7 +10,7 @@ Credentials are bearer tokens (`Authorization: Bearer <token>`), each with a rol
 | writer  | read, the 2019 REST writes (robots)   | MAPSERVICE_API_WRITER_TOKENS     |
 | robot   | a writer bound to one robotId: chunks | MAPSERVICE_API_ROBOT_TOKENS      |
 |         | only under its own id (the handler)   | (robotId=token pairs)            |
-| operator| read, edit annotations (POIs, zones)  | MAPSERVICE_API_OPERATOR_TOKENS   |
+| operator| read, edit annotations, command robots| MAPSERVICE_API_OPERATOR_TOKENS   |
 | admin   | everything: deletes, the map geometry | MAPSERVICE_ADMIN_TOKEN           |
 | metrics | /metrics only (the scraper)           | MAPSERVICE_API_METRICS_TOKEN     |
 
@@ -49,7 +49,7 @@ class Scope(str, Enum):
     READ = "read"  # history and map reads: open or token (MAPSERVICE_API_READ_ACCESS)
     WRITE = "write"  # the 2019 REST writes: a writer (robot) token or the admin token
     ADMIN = "admin"  # deletes, changing the map's geometry: the admin token
-    OPERATE = "operator"  # shaping the floor (annotations): an operator token or the admin's
+    OPERATE = "operator"  # shaping the floor (annotations), commanding robots: an operator token or the admin's
     METRICS = "metrics"  # /metrics (MAPSERVICE_API_METRICS_ACCESS)
 
 
@@ -68,7 +68,8 @@ WHO_MAY = {
                  "MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
     Scope.ADMIN: "the administrator token (MAPSERVICE_ADMIN_TOKEN)",
     Scope.OPERATE: "an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, "
-                   "MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor",
+                   "MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor "
+                   "nor command robots",
     Scope.METRICS: "the metrics token or the admin token (MAPSERVICE_API_METRICS_TOKEN, "
                    "MAPSERVICE_ADMIN_TOKEN)",
 }
@@ -190,7 +191,7 @@ _bearer = HTTPBearer(auto_error=False, scheme_name="bearer", description=(
     "A reader, writer (robot) or admin token: `Authorization: Bearer <token>`. Which one an "
     "operation needs is its `x-mapservice-scope`."))
 _WHAT = {Scope.READ: "reading", Scope.WRITE: "writing", Scope.ADMIN: "this administrative operation",
-         Scope.OPERATE: "editing the annotations (points of interest, zones)",
+         Scope.OPERATE: "editing the annotations (points of interest, zones) or commanding robots",
          Scope.METRICS: "reading the metrics"}
 
 

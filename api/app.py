@@ -28,6 +28,7 @@ from .routers import (
     chunk_events,
     chunk_service,
     client_config,
+    commands,
     conflicts,
     costmap_filters,
     coordinate_service,
@@ -49,7 +50,7 @@ from .routers import (
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
 ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, changes, annotation_routes, costmap_filters, zone_violations, exports, stats, status, live,
+           timeline, conflicts, changes, annotation_routes, commands, costmap_filters, zone_violations, exports, stats, status, live,
            client_config, chunk_service, coordinate_service, ui)
 
 

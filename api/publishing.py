@@ -12,6 +12,7 @@ import time
 from fastapi import HTTPException, Request
 
 from mapservice.core.annotations import ANNOTATION_EVENTS
+from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, encode, kafka_key
 from mapservice.core.ports import EventPublisher
 from mapservice.settings import Settings
@@ -36,6 +37,8 @@ def topic_for(settings: Settings, envelope: Envelope) -> str:
         return settings.topic_meta_events
     if isinstance(envelope.payload, ANNOTATION_EVENTS):
         return settings.topic_annotation_events
+    if isinstance(envelope.payload, COMMAND_EVENTS):
+        return settings.topic_command_events
     return settings.topic_pose_events
 
 

@@ -29,6 +29,7 @@ from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Reason
 
 from . import metrics
+from .command_relay import CommandRelay
 from .meta_watcher import MetaWatcher
 from .new_robots import NewRobots
 from .router import Record, Router
@@ -215,6 +216,10 @@ class MqttGateway:
         self.publisher = KafkaPublisher(settings, client_id=self.gateway_id)
         self.ingestor = Ingestor(settings, self.publisher, clock_from_settings(settings), self.gateway_id)
         self.meta_watcher = MetaWatcher(settings, self.ingestor.apply_meta)
+        # Operators' commands, from Kafka to each robot's command topic (QoS 1); the relay's
+        # book is what the router judges the robots' answers by.
+        self.command_relay = CommandRelay(settings, self._publish_command,
+                                          self.ingestor.clock.now_ms, self.ingestor.router.commands)
         self.health_port = health_port
         self.kafka_ready = kafka_check(settings)  # readiness: a broker answers metadata
         self._stop = threading.Event()
@@ -252,6 +257,11 @@ class MqttGateway:
             log.exception("message handling failed; left unacknowledged", mqtt_topic=topic[:200],
                           size=len(msg.payload))
 
+    def _publish_command(self, topic: str, payload: bytes) -> None:
+        if self.client is None:
+            raise RuntimeError("the gateway's MQTT client is not started yet")
+        self.client.publish(topic, payload, qos=1)
+
     def loop_alive(self) -> bool:
         """Whether paho's network thread runs (it is what receives and acknowledges)."""
         thread = getattr(self.client, "_thread", None)  # paho keeps loop_start()'s thread there
@@ -262,7 +272,9 @@ class MqttGateway:
         alive = self.loop_alive()
         return {"ok": alive, "mqtt_connected": self._connected.is_set(),
                 "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight,
-                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id}
+                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id,
+                "commands_delivered": self.command_relay.delivered,
+                "command_relay_failures": self.command_relay.failures}
 
     def ready(self) -> dict:
         """Readiness: connected to the MQTT broker and a Kafka broker answers metadata."""
@@ -293,6 +305,7 @@ class MqttGateway:
                             hint=f"is an MQTT broker listening on {host}:{port}?")
                 time.sleep(1)
         self.client.loop_start()
+        self.command_relay.start()
         try:
             while not self._stop.is_set():
                 self._poll()
@@ -307,6 +320,7 @@ class MqttGateway:
             self.client.disconnect()
             self.client.loop_stop()
             self.meta_watcher.stop()
+            self.command_relay.stop()
             log.info("gateway stopped", undelivered=remaining)
 
     def _poll(self) -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
+from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.events import (
     ChunkUpdated,
     DeadLetter,
@@ -14,10 +15,13 @@ from mapservice.core.events import (
     encode,
     encode_dead_letter,
     kafka_key,
+    make_envelope,
 )
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Reason, Rejection, decode_chunk_create, decode_coordinates
 
+from .command_relay import CommandBook
+from .command_responses import decode_response
 from .vda5050 import VdaIngest
 
 
@@ -43,7 +47,8 @@ def _prefix(topic_filter: str) -> str:
 class Router:
     """Knows the configured MQTT topics and the Kafka topics they feed."""
 
-    def __init__(self, settings: Settings, gateway_id: str) -> None:
+    def __init__(self, settings: Settings, gateway_id: str,
+                 commands: CommandBook | None = None) -> None:
         self.settings = settings
         self.gateway_id = gateway_id
         self.chunk_topic = settings.create_chunk_topic or None  # empty: not taken
@@ -55,6 +60,18 @@ class Router:
         self.robot_chunk_prefix = (_prefix(settings.robot_chunk_topic)
                                    if settings.robot_chunk_topic else None)
         self.vda = VdaIngest(settings.vda5050_interface, settings.vda5050_map_transforms)
+        # "iot/robots/" + <robotId> + "/command-events": a robot's answers to its commands,
+        # judged against the commands the gateway delivered (`commands`, the relay's book).
+        self.robot_root = (settings.robot_topic_root.rstrip("/") + "/"
+                           if settings.robot_topic_root else None)
+        self.commands = commands or CommandBook()
+
+    def _command_robot(self, mqtt_topic: str) -> str | None:
+        """The robot of a `<root><robotId>/command-events` topic, else None."""
+        if not self.robot_root or not mqtt_topic.startswith(self.robot_root):
+            return None
+        robot_id, _, rest = mqtt_topic[len(self.robot_root):].partition("/")
+        return robot_id if rest == "command-events" and robot_id else None
 
     def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
         try:
@@ -66,6 +83,11 @@ class Router:
                 result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
             elif self.vda.handles(mqtt_topic):
                 result = self.vda.decode(mqtt_topic, payload, receive_ms, limits)
+            elif (answering := self._command_robot(mqtt_topic)) is not None:
+                answer = decode_response(payload, answering, receive_ms, limits,
+                                         self.commands.robot_of)
+                result = answer if isinstance(answer, Rejection) else make_envelope(
+                    answering, answer[0], receive_ms, answer[1])
             elif mqtt_topic.startswith(self.coordinate_prefix):
                 robot_id = mqtt_topic[len(self.coordinate_prefix):]
                 result = decode_coordinates(robot_id, payload, receive_ms, limits)
@@ -98,4 +120,6 @@ class Router:
             return self.settings.topic_pose_events
         if isinstance(envelope.payload, ChunkUpdated):
             return self.settings.topic_chunk_events
+        if isinstance(envelope.payload, COMMAND_EVENTS):
+            return self.settings.topic_command_events
         return self.settings.topic_meta_events

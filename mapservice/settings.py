@@ -99,6 +99,9 @@ class Settings(BaseSettings):
     topic_annotation_events: str = Field("mapservice.annotation-events.v1", description=(
         "Operators' annotation edits (points of interest, zones), keyed by annotation and "
         "compacted: each annotation's latest edit stays."))
+    topic_command_events: str = Field("mapservice.command-events.v1", description=(
+        "Operators' commands to robots and the robots' acks and outcomes, keyed by robot "
+        "(history: kept as long as the ClickHouse history)."))
     topic_live: str = Field("mapservice.live.v1", description="Stored events' live messages, "
                             "processors -> every API process (WebSocket /api/v1/live).")
     live_retention_s: int = Field(3600, ge=60, description="Retention of the live topic when the "
@@ -250,6 +253,13 @@ class Settings(BaseSettings):
     zone_advertisement_topic: str = Field("iot/zones/advertisement", description=(
         "MQTT topic where robots learn that the zones changed (next to the chunk "
         "advertisements): the change, and where to GET the keep-out and speed masks."))
+    robot_topic_root: str = Field("iot/robots/", description=(
+        "Root of each robot's own topics: the gateway delivers its commands on "
+        "<root><robotId>/commands and reads its acks and outcomes from "
+        "<root><robotId>/command-events (the broker's ACL lets only that robot use them)."))
+    command_delivery_ttl_s: float = Field(30.0, gt=0, description=(
+        "A command older than this when the gateway reads it (after an outage, a restart) "
+        "is not delivered: a pause meant for minutes ago must not stop a robot now."))
     public_base_url: str = Field("http://127.0.0.1:8080",
                                  description="Base of the chunkUrl in advertisements.")
     conflict_window_s: float = Field(60.0, ge=0, description="Different writes closer than this conflict.")
@@ -275,8 +285,8 @@ class Settings(BaseSettings):
         "REST writes (POST/PUT meta, POST chunks) and every read. Empty: generated in local "
         "mode (DATA_DIR/secrets/writer-token); in production, no REST writes but the admin's."))
     api_operator_tokens: SecretStr = Field(SecretStr(""), description=(
-        "Operator credentials, comma-separated: every read, and editing the annotations "
-        "(points of interest, zones). Empty: generated in local mode "
+        "Operator credentials, comma-separated: every read, editing the annotations "
+        "(points of interest, zones) and commanding robots. Empty: generated in local mode "
         "(DATA_DIR/secrets/operator-token)."))
     api_robot_tokens: SecretStr = Field(SecretStr(""), description=(
         "Robots' own REST credentials, `robotId=token` pairs, comma-separated: a writer "
@@ -440,7 +450,17 @@ class Settings(BaseSettings):
         vda = [f"{self.vda5050_interface}/+/+/+/{subtopic}" for subtopic in VDA5050_SUBTOPICS
                if self.vda5050_interface]
         return [prefix + topic for topic in (self.create_chunk_topic, self.coordinate_topic,
-                                             self.robot_chunk_topic, *vda) if topic]
+                                             self.robot_chunk_topic, *vda,
+                                             self.command_response_filter) if topic]
+
+    @property
+    def command_response_filter(self) -> str:
+        """The MQTT filter of every robot's acks and outcomes: <root>+/command-events."""
+        return f"{self.robot_topic_root.rstrip('/')}/+/command-events" if self.robot_topic_root else ""
+
+    def command_topic(self, robot_id: str) -> str:
+        """Where one robot reads its commands."""
+        return f"{self.robot_topic_root.rstrip('/')}/{robot_id}/commands"
 
     def kafka_config(self) -> dict[str, str]:
         """librdkafka settings shared by every confluent-kafka client of the service."""
@@ -480,4 +500,5 @@ class Settings(BaseSettings):
             self.topic_dead_letter,
             self.topic_live,
             self.topic_annotation_events,
+            self.topic_command_events,
         ]

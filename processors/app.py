@@ -65,7 +65,8 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
     # (history_consumer.py says why); faust runs it, the dead letters, and the timers.
     source = KafkaBatchSource(
         settings, [settings.topic_chunk_events, settings.topic_pose_events,
-                   settings.topic_meta_events, settings.topic_annotation_events],
+                   settings.topic_meta_events, settings.topic_annotation_events,
+                   settings.topic_command_events],
         group_id=f"{app.conf.id}-history",
         contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
     consumer = HistoryConsumer(source, sink, views, batch, within,

@@ -40,6 +40,7 @@ from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_c
 
 from .api_client import api_client, writer_token
 from .connection import RobotMqtt, robot_mqtt_from_args
+from .commands import CommandInbox, SimCommands, command_topic, refusals
 from .chunks import chunk_pixels, meta_to_json, paste_chunk
 from .map_upload import stored_meta
 from .faults import yaw_quaternion
@@ -161,11 +162,16 @@ class SimulatedPose:
         seed = seed or sum(robot_id.encode())
         state = new_state(ros_map, 1, seed=seed, config=SimConfig(change_every_s=0))
         self.state = replace(state, robots=(replace(state.robots[0], robot_id=robot_id),))
+        self.commands: SimCommands | None = None  # the agent's, once it reads commands
 
     def read(self) -> PoseReading | None:
         from .sim import step
 
-        self.state, out = step(self.state)
+        if self.commands is None:
+            self.state, out = step(self.state)
+        else:
+            before = self.commands.before_step(self.state)
+            self.state, out = self.commands.after_step(before, *step(before))
         p = out.poses[0]
         return PoseReading(p.x, p.y, yaw_quaternion(p.yaw), p.battery, p.charging, p.loaded,
                            p.path)
@@ -243,6 +249,10 @@ class RobotAgent:
         self.http = http or api_client(api_url, token)
         self.pose_source = pose_source
         self.adverts: queue.Queue[bytes] = queue.Queue()
+        # Operators' commands: the simulated pose source obeys them; another refuses them.
+        self.inbox = CommandInbox([robot_id])
+        if isinstance(pose_source, SimulatedPose):
+            pose_source.commands = SimCommands(self.inbox)
         self.stats = {"published_chunks": 0, "integrated_chunks": 0, "poses": 0, "errors": 0}
         self._stop = threading.Event()
         self._file_sig = self._signature()
@@ -323,10 +333,23 @@ class RobotAgent:
     # -- the loop
 
     def _on_connect(self, client, userdata, flags, reason, properties=None) -> None:
-        client.subscribe(ADVERTISEMENT_TOPIC, qos=1)
+        client.subscribe([(ADVERTISEMENT_TOPIC, 1), (command_topic(self.robot_id), 1)])
 
     def _on_message(self, client, userdata, msg) -> None:
-        self.adverts.put(msg.payload)
+        if msg.topic == command_topic(self.robot_id):
+            self.inbox.on_message(client, userdata, msg)
+        else:
+            self.adverts.put(msg.payload)
+
+    def answer_commands(self) -> int:
+        """Publishes the acks and outcomes of the commands taken since the last tick."""
+        commands = getattr(self.pose_source, "commands", None)
+        answers = (commands.drain() if commands is not None else
+                   refusals(self.inbox, "this robot's pose comes from its odometry; the agent "
+                                        "cannot drive it"))
+        for answer in answers:
+            self.client.publish(answer.topic, answer.payload, qos=1)
+        return len(answers)
 
     def connect(self) -> None:
         self.client = self.conn.client(f"robot-{self.robot_id}", self.robot_id)
@@ -415,6 +438,7 @@ class RobotAgent:
         if not self.integrate_adverts():
             self.publish_local_changes()
         self.publish_pose()
+        self.answer_commands()
 
     def stop(self) -> None:
         self._stop.set()

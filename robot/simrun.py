@@ -11,6 +11,7 @@ import paho.mqtt.client as mqtt
 import structlog
 
 from mapservice.adapters.ros_map import RosMap
+from .commands import CommandInbox, SimCommands
 from .connection import RobotClients, RobotMqtt
 from .faults import Faults, to_messages
 from .sim import SimConfig, SimState, new_state, step
@@ -60,6 +61,8 @@ class SimRunner:
                 "the map has room for fewer robots; running fewer", asked=robots, running=hosted,
                 planning_cell_m=round(self.state.config.cell_m, 3))
         self.stats = SimStats(robots=hosted)
+        # Operators' commands, each robot's on its own topic, applied between ticks.
+        self.commands = SimCommands(CommandInbox(r.robot_id for r in self.state.robots))
         self.conn.check([r.robot_id for r in self.state.robots])
         self._stop = threading.Event()
         self._closing = False
@@ -77,6 +80,7 @@ class SimRunner:
         clients = RobotClients(self.conn, [r.robot_id for r in self.state.robots],
                                f"sim-{self.seed}", on_disconnect=self._on_disconnect)
         clients.connect()
+        self.commands.inbox.attach_fleet(clients)
         started = time.monotonic()
         dt = self.state.config.dt_s
         chunk_px = self.state.meta.chunk_width * self.state.meta.chunk_height
@@ -89,7 +93,8 @@ class SimRunner:
                 if wait > 0:
                     self._stop.wait(wait)
                     continue
-                self.state, out = step(self.state)
+                before = self.commands.before_step(self.state)
+                self.state, out = self.commands.after_step(before, *step(before))
                 messages, lost = to_messages(out, self.faults, seed=self.seed,
                                              tick=self.state.tick, chunk_pixels=chunk_px,
                                              chunk_topic=self.conn.chunk_topic)
@@ -108,6 +113,9 @@ class SimRunner:
                         s.chunks += 1
                     else:
                         s.bad += 1
+                for answer in self.commands.drain():
+                    if clients.publish(answer.robot_id, answer.topic, answer.payload).rc != mqtt.MQTT_ERR_SUCCESS:
+                        s.errors += 1
                 s.window.append((time.monotonic(), s.sent))
                 if on_tick is not None:
                     on_tick(self)

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from mapservice.core import change_feed
+from mapservice.core.commands import COMMAND_EVENTS, StoredCommandEvent
 from mapservice.core.annotations import (ANNOTATION_EVENTS, AnnotationEdit, CurrentAnnotation,
                                          ZoneViolation, fold_annotations, prune_before)
 from mapservice.core.change_feed import ChangeEntry, ChangeQuery
@@ -68,6 +69,7 @@ class MemoryStore:
         self._vda_factsheets: dict[tuple, VdaFactsheetRow] = {}
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
         self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
+        self._commands: dict[tuple[int, str], StoredCommandEvent] = {}  # (time, event id)
         self._lock = threading.Lock()
 
     def migrate(self) -> int:
@@ -102,6 +104,15 @@ class MemoryStore:
                 elif isinstance(p, ANNOTATION_EVENTS):
                     self._annotation_edits[(p.annotation_id, e.event_time_ms, e.event_id)] = \
                         AnnotationEdit(e.event_time_ms, e.event_id, p)
+                elif isinstance(p, COMMAND_EVENTS):
+                    self._commands[(e.event_time_ms, e.event_id)] = StoredCommandEvent(
+                        e.event_time_ms, e.event_id, p)
+
+    def command_events(self, from_ms: int, to_ms: int, robot_id: str | None = None,
+                       limit: int = 10_000) -> list[StoredCommandEvent]:
+        with self._lock:
+            return [self._commands[k] for k in sorted(self._commands) if from_ms <= k[0] < to_ms
+                    and robot_id in (None, self._commands[k].event.robot_id)][:limit]
 
     def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
         with self._lock:
@@ -222,6 +233,7 @@ class MemoryStore:
                                       for e in prune_before(self._annotation_edits.values(), boundary)}
             carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
                 list(self._poses.values()), boundary).values()}
+            self._commands = {k: v for k, v in self._commands.items() if k[0] >= cut}
             for facts in (self._vda_errors, self._vda_connections):  # keyed (robot, ts, ...)
                 for k in [k for k in facts if k[1] < cut]:
                     del facts[k]

@@ -116,6 +116,7 @@ class AclTopics:
     legacy_chunk_topic: str = "iot/chunks/create"
     advertisement_topic: str = "iot/chunks/advertisement"
     vda_interface: str = "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
+    robot_root: str = "iot/robots/"  # <root><robotId>/commands (read), .../command-events (write)
 
     @classmethod
     def from_settings(cls, settings: Settings) -> AclTopics:
@@ -125,7 +126,8 @@ class AclTopics:
         return cls(prefix(settings.coordinate_topic),
                    prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
                    settings.create_chunk_topic or "iot/chunks/create",
-                   settings.advertisement_topic, settings.vda5050_interface)
+                   settings.advertisement_topic, settings.vda5050_interface,
+                   settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "")
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
@@ -135,7 +137,10 @@ class AclTopics:
                     "reads": base + "{order,instantActions}", "robotId": robot_id_for(*names)}
         return {"pose": f"{self.coordinate_prefix}{robot_id}",
                 "chunks": f"{self.robot_chunk_prefix}{robot_id}",
-                "advertisements": self.advertisement_topic}
+                "advertisements": self.advertisement_topic,
+                **({"commands": f"{self.robot_root}{robot_id}/commands",
+                    "commandEvents": f"{self.robot_root}{robot_id}/command-events"}
+                   if self.robot_root else {})}
 
 
 def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
@@ -152,6 +157,11 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"pattern write {topics.robot_chunk_prefix}%u",
         f"pattern read {topics.advertisement_topic}",
         *([
+            "# Only the robot itself reads its commands and answers them (acks, outcomes).",
+            f"pattern read {topics.robot_root}%u/commands",
+            f"pattern write {topics.robot_root}%u/command-events",
+        ] if topics.robot_root else []),
+        *([
             "",
             "# Every VDA 5050 vehicle (its username is <manufacturer>/<serialNumber>, the two",
             "# levels of its topics) publishes only in its own subtree and reads its orders.",
@@ -165,6 +175,9 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"topic read {topics.robot_chunk_prefix}#",
         f"topic read {topics.legacy_chunk_topic}",
         *([f"topic read {topics.vda_interface}/#"] if topics.vda_interface else []),
+        *([f"topic read {topics.robot_root}+/command-events",
+           "# ... and delivers the operators' commands, each on its robot's command topic.",
+           f"topic write {topics.robot_root}+/commands"] if topics.robot_root else []),
         "",
         "# The processors announce each change of the latest map.",
         f"user {processors_user}",

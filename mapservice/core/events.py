@@ -19,6 +19,12 @@ from mapservice.core.annotations import (
     AnnotationCreated,
     AnnotationRemoved,
 )
+from mapservice.core.commands import (
+    COMMAND_EVENTS,
+    CommandAcknowledged,
+    CommandFinished,
+    CommandIssued,
+)
 
 SCHEMA_VERSION = 1
 
@@ -158,7 +164,8 @@ class VdaFactsheetReported(msgspec.Struct, frozen=True, gc=False, tag="vda.facts
 
 
 Payload = (ChunkUpdated | PoseReported | MapMetaSet | VdaStateReported | VdaConnectionReported
-           | VdaFactsheetReported | AnnotationCreated | AnnotationChanged | AnnotationRemoved)
+           | VdaFactsheetReported | AnnotationCreated | AnnotationChanged | AnnotationRemoved
+           | CommandIssued | CommandAcknowledged | CommandFinished)
 
 
 def pose_of(payload: Payload) -> PoseReported | None:
@@ -208,6 +215,12 @@ def event_id_for(robot_id: str, event_time_ms: int, payload: Payload) -> str:
         # different edits of one annotation in one millisecond both stay).
         return _digest("annotation", payload.annotation_id, event_time_ms,
                        msgspec.msgpack.encode(payload))
+    if isinstance(payload, CommandIssued):
+        return _digest("command", payload.command_id)  # issued once, whatever re-sends it
+    if isinstance(payload, COMMAND_EVENTS):
+        # A robot's answer, by its own time: a QoS 1 redelivery is the same event.
+        return _digest("command", payload.command_id, type_of(payload), payload.robot_id,
+                       event_time_ms)
     return _digest("meta", robot_id, event_time_ms, msgspec.msgpack.encode(payload))
 
 
@@ -230,8 +243,9 @@ def make_envelope(
 
 
 def kafka_key(envelope: Envelope) -> bytes:
-    """Chunk events are keyed by `row:column`, poses by robot id, annotation edits by the
-    annotation (its topic is compacted: the latest edit of each stays), so order per key holds."""
+    """Chunk events are keyed by `row:column`, poses and commands by robot id, annotation
+    edits by the annotation (its topic is compacted: the latest edit of each stays), so
+    order per key holds."""
     payload = envelope.payload
     if isinstance(payload, ChunkUpdated):
         return f"{payload.row}:{payload.column}".encode()

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Protocol
 import msgspec
 
 from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneViolation
+from mapservice.core.commands import StoredCommandEvent
 from mapservice.core.events import DeadLetter, Envelope, MapMetaSet
 
 if TYPE_CHECKING:
@@ -236,6 +237,11 @@ class HistoryStore(Protocol):
 
     def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
         """The annotation edits with from_ms <= time < to_ms, oldest first."""
+
+    def command_events(self, from_ms: int, to_ms: int, robot_id: str | None = None,
+                       limit: int = 10_000) -> list[StoredCommandEvent]:
+        """Operators' commands and the robots' answers with from_ms <= time < to_ms (of
+        one robot, if named), oldest first."""
 
     def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
         """Stores robots' poses found inside keep-out zones (one per pose and zone)."""

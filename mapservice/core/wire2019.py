@@ -57,6 +57,9 @@ class Reason(str, Enum):
     VDA_SCHEMA = "vda_schema"  # not valid against the official VDA 5050 schema of its version
     VDA_UNSUPPORTED_VERSION = "vda_unsupported_version"  # no vendored schema for its version
     VDA_NO_POSITION = "vda_no_position"  # a visualization without a position: nothing to store
+    BAD_COMMAND_RESPONSE = "bad_command_response"  # a robot's ack/outcome of no known type or value
+    UNKNOWN_COMMAND = "unknown_command"  # an answer to a command the gateway never delivered
+    NOT_ITS_COMMAND = "not_its_command"  # an answer to a command sent to another robot
 
 
 class Rejection(msgspec.Struct, frozen=True):

@@ -62,6 +62,7 @@ SCOPES = {
     "getCostmapFilterMaskYaml": "read", "getCostmapFilterInfo": "read",
     "createAnnotation": "operator", "changeAnnotation": "operator", "removeAnnotation": "operator",
     "importKeepOutMask": "operator", "listZoneViolations": "read",
+    "sendCommand": "operator", "listCommands": "read",
 }
 
 # What each credential gets per scope: a status, or "ok" (anything the operation answers

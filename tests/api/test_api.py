@@ -40,6 +40,7 @@ EXPECTED_OPERATION_IDS = {
     "listAnnotations", "listAnnotationEdits", "createAnnotation", "changeAnnotation",
     "removeAnnotation", "importKeepOutMask", "getCostmapFilterMask", "getCostmapFilterMaskYaml",
     "getCostmapFilterInfo", "listZoneViolations",
+    "sendCommand", "listCommands",  # api/routers/commands.py (operators' commands to robots)
 }
 
 

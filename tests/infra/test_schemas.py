@@ -306,6 +306,27 @@ def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
     assert re.search(r"password_based[^}]*backend = built_in_database", emqx_config(), re.S)
 
 
+def test_emqx_acl_lets_only_the_robot_read_its_commands() -> None:
+    """A robot reads its own command topic and answers on its own command-events topic;
+    another robot can neither read those commands (not even by a wildcard) nor answer
+    them; the gateway delivers every robot's commands and reads every robot's answers."""
+    s = Settings(mqtt_share_group="mapservice")
+    rules = acl_rules()
+    assert emqx_allows(rules, "mapservice-gateway", "publish", s.command_topic("r1"))
+    assert emqx_allows(rules, "mapservice-gateway", "subscribe",
+                       f"$share/mapservice/{s.command_response_filter}")
+    for robot, other in (("r1", "r2"), ("agv-7.hall_2@plant:1", "r1")):
+        assert emqx_allows(rules, robot, "subscribe", s.command_topic(robot))
+        assert emqx_allows(rules, robot, "publish", f"iot/robots/{robot}/command-events")
+        assert not emqx_allows(rules, robot, "subscribe", s.command_topic(other))
+        assert not emqx_allows(rules, robot, "publish", f"iot/robots/{other}/command-events")
+        assert not emqx_allows(rules, robot, "publish", s.command_topic(robot))  # no forged commands
+        for spy in ("iot/robots/+/commands", "iot/robots/#", f"$share/x/{s.command_topic(other)}"):
+            assert not emqx_allows(rules, robot, "subscribe", spy), spy
+    for bad in ("+", "#", "a/b"):
+        assert not emqx_allows(rules, bad, "subscribe", s.command_topic("r1")), bad
+
+
 def test_no_robot_can_take_another_clients_session_on_emqx() -> None:
     """Robots' listeners force client id = username (no gateway or robot session takeover); the internal zone of the gateways does not."""
     config = emqx_config()

@@ -120,7 +120,7 @@ def test_robot_chunk_topic_can_be_configured_or_turned_off(wire, now_ms) -> None
         assert off.route(topic, wire.chunk(robotId="r1"), now_ms, Limits()).reason == "unknown_topic"
     assert Settings(robot_chunk_topic="", create_chunk_topic="").mqtt_subscriptions == [
         "iot/coordinates/#", "uagv/+/+/+/state", "uagv/+/+/+/visualization",
-        "uagv/+/+/+/connection", "uagv/+/+/+/factsheet"]
+        "uagv/+/+/+/connection", "uagv/+/+/+/factsheet", "iot/robots/+/command-events"]
 
 
 @pytest.mark.parametrize("filter_", ["iot/coordinates/#", "iot/coordinates/+", "iot/coordinates/",

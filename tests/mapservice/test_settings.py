@@ -25,7 +25,7 @@ def test_local_defaults() -> None:
     assert (s.create_chunk_topic, s.coordinate_topic) == ("iot/chunks/create", "iot/coordinates/#")
     assert s.retention_ms == 7 * 86_400_000
     assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#", "iot/chunks/create/+",
-                                    *(f"uagv/+/+/+/{t}" for t in VDA)]
+                                    *(f"uagv/+/+/+/{t}" for t in VDA), "iot/robots/+/command-events"]
 
 
 def test_production_refuses_default_admin_token() -> None:
@@ -93,7 +93,8 @@ def test_env_vars_override(monkeypatch) -> None:
     assert s.retention_ms == 3 * 86_400_000
     assert s.mqtt_subscriptions == ["$share/gw/iot/chunks/create", "$share/gw/iot/coordinates/#",
                                     "$share/gw/iot/chunks/create/+",
-                                    *(f"$share/gw/uagv/+/+/+/{t}" for t in VDA)]
+                                    *(f"$share/gw/uagv/+/+/+/{t}" for t in VDA),
+                                    "$share/gw/iot/robots/+/command-events"]
 
 
 def test_invalid_env_value_is_refused(monkeypatch) -> None:
@@ -132,11 +133,12 @@ def test_kafka_config_includes_sasl_credentials(monkeypatch) -> None:
     assert "kafka-pw" not in repr(s)  # the secret does not leak into logs
 
 
-def test_kafka_topics_lists_all_six() -> None:
-    """kafka_topics lists the chunk, pose, meta, dead-letter, live and annotation topics."""
+def test_kafka_topics_lists_all_seven() -> None:
+    """kafka_topics lists the chunk, pose, meta, dead-letter, live, annotation and command topics."""
     assert Settings(topic_meta_events="m").kafka_topics == [
         "mapservice.chunk-events.v1", "mapservice.pose-events.v1", "m",
-        "mapservice.dead-letter.v1", "mapservice.live.v1", "mapservice.annotation-events.v1"]
+        "mapservice.dead-letter.v1", "mapservice.live.v1", "mapservice.annotation-events.v1",
+        "mapservice.command-events.v1"]
 
 
 def test_kafka_ca_file_reaches_librdkafka(tmp_path: Path) -> None:

@@ -234,3 +234,42 @@ def test_agent_with_a_credential_publishes_chunks_on_its_own_topic(tmp_path) -> 
     assert a.client.published[-1][0] == "iot/chunks/create/robot-a"
     with pytest.raises(ValueError, match="no credential"):
         make_agent(tmp_path, "robot-b", service, mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"}))
+
+
+def test_the_agent_obeys_commands_with_its_simulated_pose_and_refuses_with_odometry(tmp_path) -> None:
+    """`mapservice robot` with the simulated pose: a pause on its own command topic holds its
+    reported position from the next tick on, acked and done on its answer topic; with an
+    odometry source it cannot drive the robot, so it rejects the command, saying why."""
+    from types import SimpleNamespace
+
+    from mapservice.core.commands import CommandIssued, command_message
+    from mapservice.robot.agent import SimulatedPose
+    from mapservice.robot.commands import command_topic, response_topic
+
+    def command(robot: str, cid: str) -> SimpleNamespace:
+        issued = CommandIssued(cid, robot, "pause", "operator:x", 0)
+        return SimpleNamespace(topic=command_topic(robot),
+                               payload=msgspec.json.encode(command_message(issued)))
+
+    source = SimulatedPose(load_ros_map(MAPS / "depot.yaml"), "agv-9")
+    agent = make_agent(tmp_path, "agv-9", FakeChunkService(), pose_source=source)
+    agent._on_message(None, None, command("agv-9", "c-1"))
+    assert agent.adverts.empty()  # a command is no advertisement
+    agent.tick()
+    held = [json.loads(p)["pose"]["position"] for t, p in agent.client.published
+            if t == "iot/coordinates/agv-9"][-1]
+    answers = [json.loads(p) for t, p in agent.client.published if t == response_topic("agv-9")]
+    assert [(a["type"], a.get("status") or a.get("outcome")) for a in answers] == [
+        ("ack", "accepted"), ("outcome", "done")]
+    for _ in range(5):
+        agent.tick()
+    positions = [json.loads(p)["pose"]["position"] for t, p in agent.client.published
+                 if t == "iot/coordinates/agv-9"]
+    assert positions[-5:] == [held] * 5
+
+    odometry = make_agent(tmp_path, "agv-8", FakeChunkService())  # no simulated pose
+    odometry._on_message(None, None, command("agv-8", "c-2"))
+    assert odometry.answer_commands() == 1
+    ((topic, payload),) = odometry.client.published
+    assert topic == response_topic("agv-8")
+    assert json.loads(payload)["status"] == "rejected" and "odometry" in json.loads(payload)["reason"]

@@ -164,6 +164,23 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "name": "The annotation's name",
         "body": "The annotation as JSON, as the API returns it ('' for a removal)",
     }),
+    "command_events": ("Operators' commands to robots and the robots' answers (schema v14): "
+                       "event 'issued' (who sent what to which robot), 'ack' and 'outcome' "
+                       "(the robot's, at its own time); a command's answers share its "
+                       "command_id and robot_id", {
+        "ts": "When the command was issued, or the robot's time of its answer (UTC)",
+        "robot_id": "The robot the command was sent to (and that answered)",
+        "command_id": "The command's id", "event": "issued, ack or outcome",
+        "event_id": "The event's id",
+        "kind": "pause, resume, goto_poi or cancel ('' for an answer)",
+        "status": "accepted or rejected (ack); done, failed or cancelled (outcome); '' (issued)",
+        "by": "The credential that issued the command (a name, never the token); the robot "
+              "for an answer",
+        "poi_id": "A goto_poi's point of interest (annotation_events.annotation_id)",
+        "x": "A goto_poi's target x in metres", "y": "A goto_poi's target y in metres",
+        "heading": "A goto_poi's target heading in radians, if the point has one",
+        "reason": "Why a robot rejected a command or failed it",
+    }),
     "zone_violations": ("A robot's stored pose inside a keep-out zone, found by the processors "
                         "(schema v13)", {
         "ts": "The pose's event time (UTC)", "robot_id": "The robot",

@@ -16,7 +16,7 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
-from mapservice.adapters.clickhouse import analyst_schema, annotation_schema, vda_schema
+from mapservice.adapters.clickhouse import analyst_schema, annotation_schema, command_schema, vda_schema
 
 
 @dataclass(frozen=True)
@@ -220,6 +220,7 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                   vda_schema.statements(database)),
         Migration(13, "operators' annotations: points of interest and zones, as edit events",
                   annotation_schema.statements(database)),
+        Migration(14, "commands to robots and their answers", command_schema.statements(database)),
     ]
 
 
@@ -318,7 +319,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 
 # Every table whose rows expire with the retention, all partitioned by day (toDate of their
 # time column): the retention step (retention.py) drops their partitions older than the
@@ -330,7 +331,7 @@ DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "m
 # What the retention step drops by day: the above (whose TTL schema v11 removed) and the
 # VDA 5050 facts of schema v12 (factsheets are kept: one a vehicle, its latest matters).
 RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections",
-                   "zone_violations")
+                   "zone_violations", "command_events")
 
 
 def _service_retention(db: str) -> tuple[str, ...]:

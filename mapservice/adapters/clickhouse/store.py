@@ -24,6 +24,7 @@ from collections.abc import Callable
 from mapservice.adapters.clickhouse.admin import AdminMixin
 from mapservice.adapters.clickhouse.annotation_reads import AnnotationReadsMixin
 from mapservice.adapters.clickhouse.change_feed import ChangeFeedMixin
+from mapservice.adapters.clickhouse.command_reads import CommandReadsMixin
 from mapservice.adapters.clickhouse.conflict_reads import ConflictReadsMixin
 from mapservice.adapters.clickhouse.legacy import LegacyMixin
 from mapservice.adapters.clickhouse.migrations import MigrationsMixin
@@ -38,7 +39,7 @@ from mapservice.settings import Settings
 
 class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
                       SnapshotsMixin, LegacyMixin, VdaReadsMixin, AnnotationReadsMixin, AdminMixin,
-                      ChangeFeedMixin):
+                      ChangeFeedMixin, CommandReadsMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,

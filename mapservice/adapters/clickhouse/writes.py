@@ -20,7 +20,10 @@ from mapservice.core.events import (
     pose_of,
 )
 from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
+from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.ports import ConflictRow
+from mapservice.adapters.clickhouse import command_schema
+from mapservice.adapters.clickhouse.command_reads import command_row
 from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
 from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
@@ -63,7 +66,7 @@ class WritesMixin(SnapshotsMixin):
                 parameters={"f": from_ms, "t": to_ms})
 
     def append_events(self, events: Sequence[Envelope]) -> None:
-        poses, chunks, contents, metas, annotations = [], [], [], [], []
+        poses, chunks, contents, metas, annotations, commands = [], [], [], [], [], []
         vda: dict[str, list] = {"vda_states": [], "vda_errors": [], "vda_connections": [],
                                 "vda_factsheets": []}
         for e in events:
@@ -82,6 +85,8 @@ class WritesMixin(SnapshotsMixin):
                 metas.append([e.event_time_ms, e.robot_id, _json.encode(p.to_2019()).decode()])
             elif isinstance(p, ANNOTATION_EVENTS):
                 annotations.append(_annotation_row(e))
+            elif isinstance(p, COMMAND_EVENTS):
+                commands.append(command_row(e))
         with self._lock:
             if contents:
                 # Contents first: an event must never reference pixels that are not stored.
@@ -105,6 +110,8 @@ class WritesMixin(SnapshotsMixin):
                 self._insert("annotation_events", annotations, [
                     "annotation_id", "ts", "event_id", "change", "author", "shape", "kind",
                     "name", "body"])
+            if commands:
+                self._insert("command_events", commands, list(command_schema.COLUMNS))
             # A late event (at or before the newest snapshot) makes the snapshots from its
             # time on wrong. Noting that is all the batch waits for: reads stop using those
             # snapshots at once (they fold events from the last good one: exact, slower),

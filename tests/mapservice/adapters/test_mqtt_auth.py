@@ -60,11 +60,17 @@ def test_acl_follows_configured_topics():
     topics = AclTopics.from_settings(Settings(coordinate_topic="site1/robots/#",
                                               robot_chunk_topic="site1/chunks/+",
                                               create_chunk_topic="site1/chunks",
-                                              advertisement_topic="site1/adverts"))
+                                              advertisement_topic="site1/adverts",
+                                              robot_topic_root="site1/own"))
     assert topics.robot_topics("r1") == {"pose": "site1/robots/r1", "chunks": "site1/chunks/r1",
-                                         "advertisements": "site1/adverts"}
+                                         "advertisements": "site1/adverts",
+                                         "commands": "site1/own/r1/commands",
+                                         "commandEvents": "site1/own/r1/command-events"}
     text = render_acl(topics)
     assert "pattern write site1/robots/%u" in text and "topic read site1/chunks" in text
+    assert "pattern read site1/own/%u/commands" in text
+    assert "pattern write site1/own/%u/command-events" in text
+    assert "topic write site1/own/+/commands" in text and "topic read site1/own/+/command-events" in text
 
 
 def test_add_rotate_remove_and_legacy(tmp_path):

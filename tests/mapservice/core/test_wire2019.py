@@ -201,11 +201,13 @@ def test_bad_message_is_rejected_with_its_reason(case: Bad) -> None:
 def test_every_reason_code_has_a_bad_message() -> None:
     """Every Reason of the 2019 codec has a case above; the router's and the gateway's
     (unknown_topic, internal_error, record_too_large, too_many_new_robots) and the VDA 5050
-    ingest's (vda_*) are tested in tests/ingest (test_ingestor.py, test_vda5050.py)."""
+    ingest's (vda_*) and the command answers' are tested in tests/ingest (test_ingestor.py,
+    test_vda5050.py, test_command_responses.py)."""
     covered = {c.reason for c in BAD_CASES}
     elsewhere = {Reason.UNKNOWN_TOPIC, Reason.INTERNAL_ERROR, Reason.RECORD_TOO_LARGE,
                  Reason.TOO_MANY_NEW_ROBOTS, Reason.VDA_SCHEMA, Reason.VDA_UNSUPPORTED_VERSION,
-                 Reason.VDA_NO_POSITION}
+                 Reason.VDA_NO_POSITION, Reason.BAD_COMMAND_RESPONSE, Reason.UNKNOWN_COMMAND,
+                 Reason.NOT_ITS_COMMAND}
     assert covered == set(Reason) - elsewhere
 
 
