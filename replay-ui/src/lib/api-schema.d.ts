@@ -311,6 +311,32 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/commands": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * List Commands
+         * @description The commands issued in the window, oldest first, each with the robot's ack and
+         *     outcome as far as they came before the window's end (what the replay shows at its end).
+         */
+        get: operations["listCommands"];
+        put?: never;
+        /**
+         * Send Command
+         * @description Sends a command to a robot (202: Kafka has it; the gateway delivers it at once on
+         *     the robot's command topic). Its ack and outcome appear in GET /api/v1/commands.
+         */
+        post: operations["sendCommand"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/conflicts": {
         parameters: {
             query?: never;
@@ -796,6 +822,15 @@ export interface components {
             /** At Ms */
             at_ms: number;
         };
+        /** Answer */
+        Answer: {
+            /** Reason */
+            reason: string;
+            /** Status */
+            status: string;
+            /** Ts Ms */
+            ts_ms: number;
+        };
         /** Body_getChunkContentsBatch */
         Body_getChunkContentsBatch: {
             /** Hashes */
@@ -891,6 +926,60 @@ export interface components {
             mqtt_ws_url: string | null;
             /** Robot Chunk Topic Prefix */
             robot_chunk_topic_prefix: string | null;
+        };
+        /**
+         * CommandIn
+         * @description A command for one robot: `pause` (it stops where it is and keeps reporting there),
+         *     `resume`, `goto_poi` (it plans to the point of interest `poiId`) or `cancel` (it drops
+         *     its goal).
+         */
+        CommandIn: {
+            /**
+             * Id
+             * @description The command's id (letters, digits, '-_.:'); generated when left out. Sending the same id again is one command: the robot acts on it once.
+             */
+            id?: string | null;
+            /**
+             * Kind
+             * @enum {string}
+             */
+            kind: "pause" | "resume" | "goto_poi" | "cancel";
+            /**
+             * Poiid
+             * @description goto_poi only: the point of interest
+             */
+            poiId?: string | null;
+            /** Robotid */
+            robotId: string;
+        };
+        /** CommandOut */
+        CommandOut: {
+            ack?: components["schemas"]["Answer"] | null;
+            /** Commandid */
+            commandId: string;
+            /** Issuedby */
+            issuedBy: string;
+            /** Issued Ms */
+            issued_ms: number;
+            /** Kind */
+            kind: string;
+            outcome?: components["schemas"]["Answer"] | null;
+            /** Poiid */
+            poiId: string | null;
+            /** Robotid */
+            robotId: string;
+            target: components["schemas"]["Target"] | null;
+        };
+        /** Commands */
+        Commands: {
+            /** Commands */
+            commands: components["schemas"]["CommandOut"][];
+            /** From Ms */
+            from_ms: number;
+            /** To Ms */
+            to_ms: number;
+            /** Truncated */
+            truncated: boolean;
         };
         /** Conflict */
         Conflict: {
@@ -1159,6 +1248,15 @@ export interface components {
         /** ServiceStatus */
         ServiceStatus: {
             history: components["schemas"]["HistoryStatus"] | null;
+        };
+        /** Target */
+        Target: {
+            /** Heading */
+            heading: number | null;
+            /** X */
+            x: number;
+            /** Y */
+            y: number;
         };
         /** Timeline */
         Timeline: {
@@ -1971,7 +2069,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor */
+            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2088,7 +2186,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor */
+            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2159,7 +2257,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor */
+            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2224,7 +2322,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor */
+            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2497,6 +2595,125 @@ export interface operations {
                 };
                 content: {
                     "application/json": components["schemas"]["ClientConfig"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    listCommands: {
+        parameters: {
+            query: {
+                /** @description Start (inclusive), ISO 8601 or epoch ms */
+                from: string;
+                /** @description End (exclusive), ISO 8601 or epoch ms */
+                to: string;
+                /** @description Only this robot's */
+                robot?: string | null;
+                limit?: number;
+            };
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["Commands"];
+                };
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    sendCommand: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody: {
+            content: {
+                "application/json": components["schemas"]["CommandIn"];
+            };
+        };
+        responses: {
+            /** @description Successful Response */
+            202: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CommandOut"];
+                };
+            };
+            /** @description no credential, or a token that is none of this service's */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the body is not sent as application/json */
+            415: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
             /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
