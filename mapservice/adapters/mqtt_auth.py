@@ -116,6 +116,7 @@ class AclTopics:
     legacy_chunk_topic: str = "iot/chunks/create"
     advertisement_topic: str = "iot/chunks/advertisement"
     vda_interface: str = "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
+    zone_advertisement_topic: str = "iot/zones/advertisement"
 
     @classmethod
     def from_settings(cls, settings: Settings) -> AclTopics:
@@ -125,7 +126,8 @@ class AclTopics:
         return cls(prefix(settings.coordinate_topic),
                    prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
                    settings.create_chunk_topic or "iot/chunks/create",
-                   settings.advertisement_topic, settings.vda5050_interface)
+                   settings.advertisement_topic, settings.vda5050_interface,
+                   settings.zone_advertisement_topic)
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
@@ -147,10 +149,11 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         "# edits between the markers are overwritten. Anything not allowed here is denied.",
         "#",
         "# Every robot (its MQTT username is its robotId) publishes only on topics naming itself",
-        "# and reads the map advertisements.",
+        "# and reads the map's and the operators' zones' advertisements.",
         f"pattern write {topics.coordinate_prefix}%u",
         f"pattern write {topics.robot_chunk_prefix}%u",
         f"pattern read {topics.advertisement_topic}",
+        f"pattern read {topics.zone_advertisement_topic}",
         *([
             "",
             "# Every VDA 5050 vehicle (its username is <manufacturer>/<serialNumber>, the two",
@@ -166,9 +169,10 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"topic read {topics.legacy_chunk_topic}",
         *([f"topic read {topics.vda_interface}/#"] if topics.vda_interface else []),
         "",
-        "# The processors announce each change of the latest map.",
+        "# The processors announce each change of the latest map and of the zones.",
         f"user {processors_user}",
         f"topic write {topics.advertisement_topic}",
+        f"topic write {topics.zone_advertisement_topic}",
         "",
         f"{LEGACY_MARKER} ({topics.legacy_chunk_topic}, which names no robot: such a",
         "# robot may write chunks under any robotId; `mapservice robot add --legacy-chunks`) ---",
