@@ -220,6 +220,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                   vda_schema.statements(database)),
         Migration(13, "operators' annotations: points of interest and zones, as edit events",
                   annotation_schema.statements(database)),
+        Migration(14, "analysts: keep-out violations with the zone's name (view)",
+                  tuple(analyst_schema.later_view_statements(database, "keep_out_violations"))),
     ]
 
 
@@ -318,7 +320,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 
 # Every table whose rows expire with the retention, all partitioned by day (toDate of their
 # time column): the retention step (retention.py) drops their partitions older than the
