@@ -468,3 +468,6 @@ def add_parsers(sub) -> None:
     dr.add_argument("--step", type=int, default=10, help="pixels per key press and per screen cell")
     add_mqtt_arguments(dr, many=False)
     dr.set_defaults(func=cmd_drive)
+    from .zones_cli import add_parser as add_zones_parser
+
+    add_zones_parser(sub)
