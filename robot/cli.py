@@ -97,14 +97,20 @@ def cmd_sim(args) -> None:
     from rich.console import Console
     from rich.live import Live
 
+    from .api_client import writer_token
     from .faults import Faults
     from .sim import SimConfig
     from .simrun import SimRunner, progress_table
+    from .zone_feed import ZoneFeed
 
+    # The operators' zones: read from the API (`up` names its own in the environment).
+    feed = None if args.no_zones else ZoneFeed(args.api or settings.public_base_url,
+                                               writer_token(args.token))
     try:
         runner = SimRunner(mqtt_url, ros_map, args.robots, seed=args.seed, prefix=args.prefix,
                            faults=Faults(args.clock_skew, args.loss, args.bad_rate),
-                           config=SimConfig(change_every_s=args.change_every), mqtt_conn=conn)
+                           config=SimConfig(change_every_s=args.change_every), mqtt_conn=conn,
+                           zone_feed=feed, zone_topic=settings.zone_advertisement_topic)
     except ValueError as exc:
         sys.exit(f"mapservice sim: {exc}")
     signal.signal(signal.SIGTERM, lambda *_: runner.stop())
@@ -371,6 +377,14 @@ def add_parsers(sub) -> None:
                      help="the 2019 load test instead: robots in circles, the same chunks "
                           "re-sent at new positions every 5 s")
     sim.add_argument("--quiet", action="store_true", help="log lines instead of a live table")
+    sim.add_argument("--api", default=None,
+                     help="the service's REST API, where robots read the operators' keep-out and "
+                          "speed zones (on start and after each zone advertisement) (default: "
+                          "MAPSERVICE_PUBLIC_BASE_URL, which `up` sets to its API)")
+    sim.add_argument("--token", default=None, help=TOKEN_HELP)
+    sim.add_argument("--no-zones", action="store_true",
+                     help="ignore the operators' zones: robots drive through keep-out zones "
+                          "at full speed (the 2019 behaviour)")
     add_mqtt_arguments(sim, many=True)
     sim.set_defaults(func=cmd_sim)
 
@@ -454,3 +468,6 @@ def add_parsers(sub) -> None:
     dr.add_argument("--step", type=int, default=10, help="pixels per key press and per screen cell")
     add_mqtt_arguments(dr, many=False)
     dr.set_defaults(func=cmd_drive)
+    from .zones_cli import add_parser as add_zones_parser
+
+    add_zones_parser(sub)

@@ -14,7 +14,8 @@ from mapservice.adapters.ros_map import RosMap
 from .commands import CommandInbox, SimCommands
 from .connection import RobotClients, RobotMqtt
 from .faults import Faults, to_messages
-from .sim import SimConfig, SimState, new_state, step
+from .sim import SimConfig, SimState, new_state, step, with_zones
+from .zone_feed import ZoneFeed
 
 
 @dataclass
@@ -27,6 +28,7 @@ class SimStats:
     lost: int = 0
     errors: int = 0  # publishes the client or broker refused, disconnects
     map_changes: int = 0
+    zone_changes: int = 0  # new sets of operators' zones the robots took on
     started: float = field(default_factory=time.monotonic)
     recent: deque = field(default_factory=lambda: deque(maxlen=5))
     window: deque = field(default_factory=lambda: deque(maxlen=20))  # (monotonic, sent so far)
@@ -45,7 +47,8 @@ class SimStats:
 class SimRunner:
     def __init__(self, mqtt_url: str, ros_map: RosMap, robots: int, *, faults: Faults = Faults(),
                  seed: int = 7, config: SimConfig = SimConfig(), prefix: str = "sim",
-                 qos: int = 1, mqtt_conn: RobotMqtt | None = None) -> None:
+                 qos: int = 1, mqtt_conn: RobotMqtt | None = None, zone_feed: ZoneFeed | None = None,
+                 zone_topic: str = "iot/zones/advertisement") -> None:
         self.mqtt_url = mqtt_url
         # Where robots have credentials, each connects as itself (RobotClients).
         self.conn = mqtt_conn or RobotMqtt(mqtt_url)
@@ -64,6 +67,8 @@ class SimRunner:
         # Operators' commands, each robot's on its own topic, applied between ticks.
         self.commands = SimCommands(CommandInbox(r.robot_id for r in self.state.robots))
         self.conn.check([r.robot_id for r in self.state.robots])
+        self.zone_feed = zone_feed
+        self.zone_topic = zone_topic
         self._stop = threading.Event()
         self._closing = False
 
@@ -76,11 +81,46 @@ class SimRunner:
             structlog.get_logger("sim").warning("disconnected from the MQTT broker",
                                                 reason=str(reason))
 
+    def _listen_for_zones(self) -> mqtt.Client:
+        """A connection of its own (as the first robot, where robots have credentials) that
+        hands each zone advertisement to the feed, subscribed again on every reconnect."""
+        assert self.zone_feed is not None
+        feed, topic = self.zone_feed, self.zone_topic
+        first = self.state.robots[0].robot_id if self.conn.authenticated and self.state.robots else None
+        client = self.conn.client(f"sim-{self.seed}-zones-{time.time_ns() % 10**9}", first)
+        client.on_connect = lambda c, *_: c.subscribe(topic, qos=1)
+        client.on_message = lambda _c, _u, msg: feed.advertised(msg.payload)
+        self.conn.connect(client, who=f"the zone listener ({first or 'anonymous'})")
+        return client
+
+    def apply_zones(self) -> None:
+        """Takes on the zones the feed fetched since the last step, if any."""
+        zones = self.zone_feed.take() if self.zone_feed is not None else None
+        if zones is None:
+            return
+        self.state, notes = with_zones(self.state, zones)
+        self.stats.zone_changes += 1
+        self.stats.recent.extend(notes)
+        structlog.get_logger("sim").info(
+            "robots take on the operators' zones", zones=len(zones),
+            keep_out=sum(z.kind == "keep_out" for _, z in zones),
+            speed=sum(z.kind == "speed_limit" for _, z in zones), robots=notes)
+
     def run(self, seconds: float | None = None, on_tick=None) -> SimStats:
         clients = RobotClients(self.conn, [r.robot_id for r in self.state.robots],
                                f"sim-{self.seed}", on_disconnect=self._on_disconnect)
         clients.connect()
         self.commands.inbox.attach_fleet(clients)
+        listener = None
+        if self.zone_feed is not None:
+            try:
+                listener = self._listen_for_zones()
+            except BaseException:
+                clients.close()
+                raise
+            self.zone_feed.refresh()  # the zones standing before the first step
+            self.apply_zones()
+            self.zone_feed.start()
         started = time.monotonic()
         dt = self.state.config.dt_s
         chunk_px = self.state.meta.chunk_width * self.state.meta.chunk_height
@@ -93,6 +133,7 @@ class SimRunner:
                 if wait > 0:
                     self._stop.wait(wait)
                     continue
+                self.apply_zones()
                 before = self.commands.before_step(self.state)
                 self.state, out = self.commands.after_step(before, *step(before))
                 messages, lost = to_messages(out, self.faults, seed=self.seed,
@@ -121,6 +162,11 @@ class SimRunner:
                     on_tick(self)
         finally:
             self._closing = True  # our own disconnects are no errors
+            if self.zone_feed is not None:
+                self.zone_feed.stop()
+            if listener is not None:
+                listener.loop_stop()
+                listener.disconnect()
             clients.close()
         return self.stats
 
@@ -145,4 +191,7 @@ def progress_table(runner: SimRunner):
         table.add_row("battery", f"min {min(r.battery for r in robots):.0f} %, "
                                  f"{sum(r.loaded for r in robots)} loaded")
     table.add_row("map changes", f"{s.map_changes}" + (f": {s.recent[-1]}" if s.recent else ""))
+    if runner.zone_feed is not None:
+        table.add_row("operators' zones", f"{len(runner.state.zones.zones)} standing, "
+                                          f"{s.zone_changes} changes taken on")
     return table

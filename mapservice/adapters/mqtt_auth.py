@@ -117,6 +117,7 @@ class AclTopics:
     advertisement_topic: str = "iot/chunks/advertisement"
     vda_interface: str = "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
     robot_root: str = "iot/robots/"  # <root><robotId>/commands (read), .../command-events (write)
+    zone_advertisement_topic: str = "iot/zones/advertisement"
 
     @classmethod
     def from_settings(cls, settings: Settings) -> AclTopics:
@@ -127,7 +128,8 @@ class AclTopics:
                    prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
                    settings.create_chunk_topic or "iot/chunks/create",
                    settings.advertisement_topic, settings.vda5050_interface,
-                   settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "")
+                   settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "",
+                   settings.zone_advertisement_topic)
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
@@ -152,10 +154,11 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         "# edits between the markers are overwritten. Anything not allowed here is denied.",
         "#",
         "# Every robot (its MQTT username is its robotId) publishes only on topics naming itself",
-        "# and reads the map advertisements.",
+        "# and reads the map's and the operators' zones' advertisements.",
         f"pattern write {topics.coordinate_prefix}%u",
         f"pattern write {topics.robot_chunk_prefix}%u",
         f"pattern read {topics.advertisement_topic}",
+        f"pattern read {topics.zone_advertisement_topic}",
         *([
             "# Only the robot itself reads its commands and answers them (acks, outcomes).",
             f"pattern read {topics.robot_root}%u/commands",
@@ -179,9 +182,10 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
            "# ... and delivers the operators' commands, each on its robot's command topic.",
            f"topic write {topics.robot_root}+/commands"] if topics.robot_root else []),
         "",
-        "# The processors announce each change of the latest map.",
+        "# The processors announce each change of the latest map and of the zones.",
         f"user {processors_user}",
         f"topic write {topics.advertisement_topic}",
+        f"topic write {topics.zone_advertisement_topic}",
         "",
         f"{LEGACY_MARKER} ({topics.legacy_chunk_topic}, which names no robot: such a",
         "# robot may write chunks under any robotId; `mapservice robot add --legacy-chunks`) ---",

@@ -19,7 +19,9 @@ import httpx
 import pytest
 from mcap.reader import make_reader
 
+from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from mapservice.local.stack import Stack
+from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import ROOT
 from tests.mapservice.sql.attacks import ATTACKS
@@ -32,7 +34,8 @@ GUIDE = ROOT / "docs" / "analysts.md"
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     """Six hours of three simulated robots, then brokers, `serve` and the gateway; one
-    message the gateway refuses (so the dead-letter example has a row)."""
+    message the gateway refuses (so the dead-letter example has a row), and a pose inside a
+    keep-out zone drawn through the API (so the keep-out example has one)."""
     data_dir = tmp_path_factory.mktemp("analysts") / ".mapservice-data"
     subprocess.run([sys.executable, "-m", "mapservice.cli", "demo-history", "--data-dir",
                     str(data_dir), "--days", "0.25", "--robots", "3"], check=True, timeout=300,
@@ -40,7 +43,28 @@ def stack(tmp_path_factory):
     stack = Stack(data_dir, mqtt="mosquitto")
     with stack.running():
         publish_all(stack, [("iot/coordinates/sim-000", b"{not json")])
+        stand_in_a_keep_out_zone(stack)
         yield stack
+
+
+def stand_in_a_keep_out_zone(stack) -> None:
+    """A keep-out zone drawn with the operator's token; once the store holds it, a pose
+    inside it (the processors check poses against the zones they have stored)."""
+    token = stored_secret(stack.data_dir, OPERATOR_TOKEN_FILE)
+    square = [[0.5, 0.5], [2.5, 0.5], [2.5, 2.5], [0.5, 2.5]]
+    r = httpx.post(f"{stack.api_url}/api/v1/annotations", timeout=30,
+                   headers={"Authorization": f"Bearer {token}"},
+                   json={"shape": "zone", "name": "spill", "kind": "keep_out", "polygon": square})
+    assert r.status_code == 201, r.text
+    created = r.json()["created_ms"]
+    deadline = time.monotonic() + 60
+    while not httpx.get(f"{stack.api_url}/api/v1/annotations/edits", timeout=30, params={
+            "from": created, "to": created + 1}).json()["edits"]:
+        assert time.monotonic() < deadline, "the zone was not stored within 60 s"
+        time.sleep(0.5)
+    stamp = format_timestamp(max(created + 1000, int(time.time() * 1000)))
+    publish_all(stack, [("iot/coordinates/sim-001",
+                         encode_coordinates("sim-001", stamp, 1.5, 1.5, (0.0, 0.0, 0.0, 1.0)))])
 
 
 @pytest.fixture(scope="module")
@@ -67,9 +91,10 @@ def guide_examples() -> list[tuple[str, str, list[str]]]:
 
 
 def test_the_guide_has_an_example_per_common_question() -> None:
-    """Eight questions the issue names, each with its query and its columns."""
+    """Eight questions the issue names and the robots inside keep-out zones, each with its
+    query and its columns."""
     titles = [t for t, _, _ in guide_examples()]
-    assert len(titles) == 8 and all(columns for _, _, columns in guide_examples()), titles
+    assert len(titles) == 9 and all(columns for _, _, columns in guide_examples()), titles
 
 
 @pytest.mark.parametrize("title,sql,columns", guide_examples(), ids=lambda v: str(v)[:40])

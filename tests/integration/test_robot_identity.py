@@ -23,6 +23,7 @@ from mapservice.local.stack_mqtt import mqtt_accepts
 from mapservice.robot.connection import RobotMqtt, load_credentials
 from mapservice.robot.loadgen import RobotFleet
 from mapservice.robot.simrun import SimRunner
+from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from tests.fixtures.paths import MAPS, ROOT
 
 from .conftest import read_topic, run_stack, stored_keys, wait_for_count
@@ -159,6 +160,29 @@ def test_advertisements_reach_robots_under_auth(stack, robots):
             time.sleep(0.1)
         assert any(t == b.topics["advertisements"] and a.robot_id.encode() in p
                    for t, p in listener.received)
+    finally:
+        listener.close()
+
+
+def test_zone_advertisements_reach_robots_under_auth(stack, robots):
+    """An operator draws a zone; the processors advertise it as their service user on the
+    zone topic and every robot may read it (how the simulated robots learn zones)."""
+    b = robots["b"]
+    topic = "iot/zones/advertisement"
+    listener = Robot(stack.mqtt_url, b.username, b.password)
+    try:
+        listener.client.subscribe(topic, 1)
+        assert listener.subscribed.wait(5)
+        token = stored_secret(stack.data_dir, OPERATOR_TOKEN_FILE)
+        r = httpx.post(f"{stack.api_url}/api/v1/annotations", timeout=30,
+                       headers={"Authorization": f"Bearer {token}"},
+                       json={"id": "zone-under-auth", "shape": "zone", "name": "spill",
+                             "kind": "keep_out", "polygon": [[1, 1], [2, 1], [2, 2]]})
+        assert r.status_code == 201, r.text
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not any(b"zone-under-auth" in p for _, p in listener.received):
+            time.sleep(0.1)
+        assert any(t == topic and b"zone-under-auth" in p for t, p in listener.received)
     finally:
         listener.close()
 

@@ -296,6 +296,34 @@ VIEWS: dict[str, tuple[str, str, dict[str, str]]] = {
 }
 
 
+# Views of later schemas (each migration creates its own: migration 7's text, and so its
+# checksum, stays as it was applied).
+LATER_VIEWS: dict[str, tuple[str, str, dict[str, str]]] = {
+    "keep_out_violations": ("A robot's stored pose inside a keep-out zone, with the zone as it "
+                            "stood then (its name, who last drew it and when; schema v14).", """
+        SELECT v.ts AS at, v.robot_id AS robot_id, v.annotation_id AS zone_id,
+            e.name AS zone_name, e.ts AS zone_drawn_at, e.author AS zone_drawn_by,
+            v.x AS x_m, v.y AS y_m
+        FROM (SELECT ts, robot_id, annotation_id, x, y FROM {db}.zone_violations FINAL) AS v
+        ASOF LEFT JOIN (
+            SELECT annotation_id, ts, name, author FROM {db}.annotation_events FINAL
+            WHERE change != 'removed') AS e
+        ON v.annotation_id = e.annotation_id AND v.ts >= e.ts""", {
+        "at": "The pose's event time (UTC, ms)", "robot_id": "The robot",
+        "zone_id": "The keep-out zone's id (annotation_events.annotation_id)",
+        "zone_name": "The zone's name at that time",
+        "zone_drawn_at": "When the zone got the shape it had then (its create or last change)",
+        "zone_drawn_by": "Who made that edit (an operator credential's name)",
+        "x_m": "The pose's x in metres (map frame)", "y_m": "The pose's y in metres",
+    }),
+}
+
+
+def later_view_statements(db: str, *views: str) -> list[str]:
+    return [f"CREATE OR REPLACE VIEW {db}.{view} AS {LATER_VIEWS[view][1].format(db=db)} "
+            f"COMMENT {_quote(LATER_VIEWS[view][0])}" for view in views]
+
+
 def _quote(text: str) -> str:
     return "'" + text.replace("\\", "\\\\").replace("'", "\\'") + "'"
 
@@ -324,7 +352,7 @@ def reference_markdown() -> str:
     """The reference part of docs/analysts.md (a test keeps the guide equal to it; after a
     schema change: `python -m mapservice.adapters.clickhouse.analyst_schema` prints it)."""
     out = ["### Views (start here)", ""]
-    for view, (comment, _select, columns) in VIEWS.items():
+    for view, (comment, _select, columns) in {**VIEWS, **LATER_VIEWS}.items():
         out += [f"#### `{view}`", "", comment, "", "| column | meaning |", "| --- | --- |"]
         out += [f"| `{c}` | {text} |" for c, text in columns.items()]
         out.append("")

@@ -221,6 +221,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
         Migration(13, "operators' annotations: points of interest and zones, as edit events",
                   annotation_schema.statements(database)),
         Migration(14, "commands to robots and their answers", command_schema.statements(database)),
+        Migration(15, "analysts: keep-out violations with the zone's name (view)",
+                  tuple(analyst_schema.later_view_statements(database, "keep_out_violations"))),
     ]
 
 
@@ -319,7 +321,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 14
+SCHEMA_VERSION = 15
 
 # Every table whose rows expire with the retention, all partitioned by day (toDate of their
 # time column): the retention step (retention.py) drops their partitions older than the

@@ -43,10 +43,12 @@ def test_acl_lets_robots_publish_only_as_themselves():
     assert "pattern write iot/coordinates/%u" in lines
     assert "pattern write iot/chunks/create/%u" in lines
     assert "pattern read iot/chunks/advertisement" in lines
+    assert "pattern read iot/zones/advertisement" in lines  # robots learn the operators' zones
     gateway = lines[lines.index(f"user {GATEWAY_USER}") + 1:lines.index(f"user {PROCESSORS_USER}")]
     assert {"topic read iot/coordinates/#", "topic read iot/chunks/create/#",
             "topic read iot/chunks/create", "topic read uagv/#"} <= set(gateway)
-    assert "topic write iot/chunks/advertisement" in lines
+    processors = lines[lines.index(f"user {PROCESSORS_USER}") + 1:]
+    assert {"topic write iot/chunks/advertisement", "topic write iot/zones/advertisement"} <= set(processors)
     # Nothing but the named robots may write the 2019 topic, and no line grants write on a
     # wildcard to everyone.
     assert [line for line in lines if line.endswith(" iot/chunks/create") and "write" in line] == [
@@ -61,7 +63,8 @@ def test_acl_follows_configured_topics():
                                               robot_chunk_topic="site1/chunks/+",
                                               create_chunk_topic="site1/chunks",
                                               advertisement_topic="site1/adverts",
-                                              robot_topic_root="site1/own"))
+                                              robot_topic_root="site1/own",
+                                              zone_advertisement_topic="site1/zones"))
     assert topics.robot_topics("r1") == {"pose": "site1/robots/r1", "chunks": "site1/chunks/r1",
                                          "advertisements": "site1/adverts",
                                          "commands": "site1/own/r1/commands",
@@ -71,6 +74,7 @@ def test_acl_follows_configured_topics():
     assert "pattern read site1/own/%u/commands" in text
     assert "pattern write site1/own/%u/command-events" in text
     assert "topic write site1/own/+/commands" in text and "topic read site1/own/+/command-events" in text
+    assert "pattern read site1/zones" in text and "topic write site1/zones" in text
 
 
 def test_add_rotate_remove_and_legacy(tmp_path):

@@ -10,7 +10,8 @@ import time
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.clickhouse.analyst_schema import LATER_TABLE_COMMENTS, TABLE_COMMENTS, VIEWS
+from mapservice.adapters.clickhouse.analyst_schema import LATER_TABLE_COMMENTS, LATER_VIEWS, TABLE_COMMENTS, VIEWS
+from mapservice.core.annotations import AnnotationChanged, AnnotationCreated, AnnotationRemoved, Zone, ZoneViolation
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.ports import ConflictRow
 from mapservice.core.wire2019 import content_hash
@@ -115,12 +116,32 @@ def test_dead_letter_messages_have_reason_and_size(loaded) -> None:
     assert got == [("not_json", 5), ("too_deep", 2048)]
 
 
+def test_keep_out_violations_name_the_zone_as_it_stood(loaded) -> None:
+    """keep_out_violations: each stored violation with the zone's name and who drew it as it
+    stood at the pose's time (a renamed zone: the old name before, the new one after)."""
+    store, _, _ = loaded
+    square = ((0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (0.0, 2.0))
+    store.append([
+        make_envelope("op", T0, T0, AnnotationCreated("z1", "op-anna", Zone("dock", "keep_out", square))),
+        make_envelope("op", T0 + 60_000, T0 + 60_000,
+                      AnnotationChanged("z1", "op-ben", Zone("dock (wet floor)", "keep_out", square))),
+        make_envelope("op", T0 + 90_000, T0 + 90_000, AnnotationRemoved("z1", "op-ben"))])
+    store.append_zone_violations([ZoneViolation(T0 + 10_000, "r1", "z1", 1.0, 1.5),
+                                  ZoneViolation(T0 + 70_000, "r2", "z1", 0.5, 0.5)])
+    got = rows(store, "SELECT * FROM views.keep_out_violations ORDER BY at")
+    assert [(r["robot_id"], r["zone_id"], r["zone_name"], r["zone_drawn_by"], r["x_m"], r["y_m"])
+            for r in got] == [("r1", "z1", "dock", "op-anna", 1.0, 1.5),
+                              ("r2", "z1", "dock (wet floor)", "op-ben", 0.5, 0.5)]
+    assert int(got[1]["zone_drawn_at"].timestamp() * 1000) == T0 + 60_000
+
+
 def test_every_table_view_and_column_has_a_comment(loaded) -> None:
     """system.tables/system.columns: nothing the analyst sees is undescribed."""
     store, _, _ = loaded
     tables = rows(store, "SELECT name, comment FROM system.tables WHERE database = 'views' "
                          "AND name NOT LIKE '%_mv' AND NOT is_temporary")
-    assert {t["name"] for t in tables} == set(TABLE_COMMENTS) | set(LATER_TABLE_COMMENTS) | set(VIEWS)
+    assert {t["name"] for t in tables} == (set(TABLE_COMMENTS) | set(LATER_TABLE_COMMENTS) | set(VIEWS)
+                                           | set(LATER_VIEWS))
     assert all(t["comment"] for t in tables)
     undocumented = rows(store, "SELECT table, name FROM system.columns WHERE database = 'views' "
                                "AND comment = '' AND table IN ({})".format(
@@ -129,7 +150,7 @@ def test_every_table_view_and_column_has_a_comment(loaded) -> None:
     # pose_keyframes' own are commented.
     assert {(r["table"], r["name"]) for r in undocumented
             if r["table"] not in ("pose_keyframes", "pose_derivations")} == set()
-    for view, (_, _, columns) in VIEWS.items():
+    for view, (_, _, columns) in {**VIEWS, **LATER_VIEWS}.items():
         described = [r["name"] for r in rows(store, f"DESCRIBE TABLE views.{view}")]
         assert described == list(columns), view
 
