@@ -136,7 +136,8 @@ def test_a_paused_robots_route_is_planned_again_when_the_floor_changes() -> None
     on the new floor, so on resume it does not drive through the pallet."""
     from mapservice.adapters.ros_map import drivable
     from mapservice.robot.planning import path_is_clear
-    from mapservice.robot.sim import StepOut, _occupied_value, _with_pixels
+    from mapservice.robot.floor_changes import _occupied_value
+    from mapservice.robot.sim import StepOut, _with_pixels
 
     state, inbox, commands = fleet(3)
     for _ in range(8):

@@ -300,7 +300,7 @@ VIEWS: dict[str, tuple[str, str, dict[str, str]]] = {
 # checksum, stays as it was applied).
 LATER_VIEWS: dict[str, tuple[str, str, dict[str, str]]] = {
     "keep_out_violations": ("A robot's stored pose inside a keep-out zone, with the zone as it "
-                            "stood then (its name, who last drew it and when; schema v14).", """
+                            "stood then (its name, who last drew it and when; schema v15).", """
         SELECT v.ts AS at, v.robot_id AS robot_id, v.annotation_id AS zone_id,
             e.name AS zone_name, e.ts AS zone_drawn_at, e.author AS zone_drawn_by,
             v.x AS x_m, v.y AS y_m
