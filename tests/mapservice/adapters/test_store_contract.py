@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 from mapservice.core.ports import ChunkRow, ConflictRow, Counts, PoseRow

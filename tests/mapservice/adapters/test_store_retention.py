@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.core.annotations import (AnnotationChanged, AnnotationCreated, AnnotationEdit,
                                          AnnotationRemoved, PointOfInterest, Zone, fold_annotations)

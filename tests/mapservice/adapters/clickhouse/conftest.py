@@ -9,7 +9,7 @@ import itertools
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 
 _databases = itertools.count()
 
