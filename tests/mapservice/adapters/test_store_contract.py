@@ -2,9 +2,9 @@
 ClickHouseStore on a ClickHouse server's HTTP interface (the split deployment's path: here
 `mapservice clickhouse-server`'s app over the same chDB, served from this process).
 
-chDB runs one engine per process and per directory, so the module opens one engine (a
-root store kept open for the whole module) and gives each test its own database in it:
-every test starts from an empty history. Times are taken from the wall clock (an hour
+The `store` fixture (tests/conftest.py) gives each test an empty, migrated store of each
+kind; the ClickHouse kinds are databases of their own in the module's one chDB engine
+(`chdb_dir`), which the chDB-only tests below open directly. Times are taken from the wall clock (an hour
 ago), because the ClickHouse tables drop parts older than the retention.
 """
 
@@ -24,51 +24,13 @@ from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 from mapservice.core.ports import ChunkRow, ConflictRow, Counts, PoseRow
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
-from mapservice.sql.chdb_engine import ChdbEngine
-from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
-from tests.mapservice.sql.serving import ServedApp
 from mapservice.core.wire2019 import content_hash
 
 _databases = itertools.count()
 
 
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    """One chDB engine for the module, closed at its end so other modules may open theirs."""
-    path = tmp_path_factory.mktemp("chdb") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="contract_root")
-    assert root.migrate() == SCHEMA_VERSION
-    yield path
-    root.close()
-
-
-@pytest.fixture(scope="module")
-def clickhouse_http(chdb_dir):
-    """The ClickHouse HTTP interface over the module's chDB (read-write for `default`)."""
-    engine = ChdbEngine(chdb_dir)
-    app = clickhouse_http_app(engine, [SqlUser("default", "", read_only=False)])
-    with ServedApp(app) as served:
-        yield served.url
-    engine.close()
-
-
 def _clickhouse(chdb_dir) -> ClickHouseStore:
     return ClickHouseStore(f"chdb://{chdb_dir}", database=f"contract_{next(_databases)}")
-
-
-@pytest.fixture(params=["memory", "clickhouse", "clickhouse-http"])
-def store(request):
-    """An empty, migrated store of each kind."""
-    if request.param == "memory":
-        s = MemoryStore()
-    elif request.param == "clickhouse-http":
-        s = ClickHouseStore(request.getfixturevalue("clickhouse_http"),
-                            database=f"contract_{next(_databases)}")
-    else:
-        s = _clickhouse(request.getfixturevalue("chdb_dir"))
-    s.migrate()
-    yield s
-    s.close()
 
 
 @pytest.fixture

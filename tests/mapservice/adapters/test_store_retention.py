@@ -70,15 +70,6 @@ class Store:
         self.store.migrate()
 
 
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("chdb") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="retention_root")
-    root.migrate()
-    yield path
-    root.close()
-
-
 class World:
     """Everything ever written, and the brute-force answers."""
 
