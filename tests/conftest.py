@@ -219,6 +219,14 @@ def open_store(request: pytest.FixtureRequest) -> Callable[..., HistoryStore]:
     return open_
 
 
+@pytest.fixture
+def t0() -> int:
+    """A whole second an hour ago: inside the retention, so no ClickHouse TTL drops the rows."""
+    import time
+
+    return (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
+
+
 @pytest.fixture(params=STORE_KINDS)
 def store(request: pytest.FixtureRequest, open_store: Callable[..., HistoryStore]) -> Iterator[HistoryStore]:
     """An empty, migrated store of each kind (a module's own `store` fixture overrides it)."""
