@@ -14,7 +14,7 @@ from mapservice.core.annotations import (
     CurrentAnnotation,
     fold_annotations,
 )
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import AnnotationReader
 
 # How long this process answers from its own published edits besides the store's: well
 # beyond the second or two the processors take to store them.
@@ -57,7 +57,7 @@ def recent_edits(request: Request) -> _Recent:
     return state.annotation_edits
 
 
-def standing(request: Request, store: HistoryStore, at_ms: int) -> dict[str, CurrentAnnotation]:
+def standing(request: Request, store: AnnotationReader, at_ms: int) -> dict[str, CurrentAnnotation]:
     """The annotations at `at_ms`: the store's, with this process's recent edits applied."""
     current = {c.annotation_id: c for c in store.annotations_at(at_ms)}
     recent = recent_edits(request).up_to(at_ms)

@@ -5,19 +5,24 @@ written to the store (`write_conflicts`), at once or several batches' worth toge
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Protocol
 
 from mapservice.core.conflicts import RecentWrites, affected_conflicts, conflict_key, neighbourhoods
-from mapservice.core.ports import ChunkRow, ConflictRow, HistoryStore
+from mapservice.core.ports import ChunkRow, ConflictReader, ConflictRow, HistoryWriter
 
 
-def record_conflicts(store: HistoryStore, new: list[ChunkRow], window_ms: int,
+class ConflictStore(ConflictReader, HistoryWriter, Protocol):
+    """What recording conflicts needs: the stored neighbours and the conflicts' writer."""
+
+
+def record_conflicts(store: ConflictStore, new: list[ChunkRow], window_ms: int,
                      recent: RecentWrites | None = None) -> int:
     """After `new` writes are stored: writes every conflict they create or change;
     returns how many rows it wrote. Blocking: call from the store's thread."""
     return write_conflicts(store, find_conflicts(store, new, window_ms, recent), recent)
 
 
-def find_conflicts(store: HistoryStore, new: list[ChunkRow], window_ms: int,
+def find_conflicts(store: ConflictReader, new: list[ChunkRow], window_ms: int,
                    recent: RecentWrites | None = None) -> list[ConflictRow]:
     """After `new` writes are stored: every conflict they create or change, except rows
     `recent` saw written unchanged. Neighbours come from `recent` where it covers them,
@@ -39,7 +44,7 @@ def find_conflicts(store: HistoryStore, new: list[ChunkRow], window_ms: int,
     return rows if recent is None else recent.unrecorded(rows)
 
 
-def write_conflicts(store: HistoryStore, rows: list[ConflictRow],
+def write_conflicts(store: HistoryWriter, rows: list[ConflictRow],
                     recent: RecentWrites | None = None) -> int:
     """Stores `rows` (found by `find_conflicts`) and tells `recent` they are written;
     returns how many."""

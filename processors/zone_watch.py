@@ -11,14 +11,19 @@ the zone it lies in (a late one) is not a violation.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Protocol
 
 import numpy as np
 
 from mapservice.adapters.costmap_filters import grid_of
 from mapservice.core.annotations import Zone, ZoneViolation
 from mapservice.core.events import Envelope, pose_of
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import AnnotationReader, TimeTravelReader
 from mapservice.core.zone_masks import Grid, keep_out_labels, pixel_of
+
+
+class ZoneSource(AnnotationReader, TimeTravelReader, Protocol):
+    """The standing zones and the map meta they are rasterised on."""
 
 
 class KeepOutWatch:
@@ -28,7 +33,7 @@ class KeepOutWatch:
         self.ids: list[str] = []
         self.since: dict[str, int] = {}  # zone id -> when it began (its current life)
 
-    def rebuild(self, store: HistoryStore, at_ms: int) -> None:
+    def rebuild(self, store: ZoneSource, at_ms: int) -> None:
         """The keep-out zones standing at `at_ms`, rasterised on the map (blocking: run in
         the store's thread)."""
         self.grid = grid_of(store.latest_meta())

@@ -1,12 +1,17 @@
 """Shared fixtures for the fast (broker-free) tests: a fixed clock, 2019 wire messages
-(`wire`) and event envelopes (`ev`)."""
+(`wire`), event envelopes (`ev`), and the history stores: every adapter of the store port
+behind one parametrized fixture (`store`), over one chDB engine per module (`chdb_dir`)."""
 
 from __future__ import annotations
 
 import base64
+import itertools
 import os
 import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import msgspec
 import pytest
@@ -21,6 +26,9 @@ from mapservice.core.events import (
     make_envelope,
 )
 from mapservice.core.wire2019 import Limits, content_hash, format_timestamp
+
+if TYPE_CHECKING:
+    from mapservice.core.ports import HistoryStore
 
 # 2026-11-21T10:00:00Z: a fixed "now" so every test sees the same gateway clock.
 NOW_MS = 1_795_255_200_000
@@ -147,3 +155,101 @@ class EventFactory:
 def ev() -> EventFactory:
     """Builders of envelopes and dead letters (`ev.pose(...)`, `ev.chunk(...)`, ...)."""
     return EventFactory()
+
+
+# --- the history stores ---------------------------------------------------------------
+# Every adapter of the HistoryStore port, as the `store` fixture's parameters: the memory
+# twin, ClickHouseStore on embedded chDB, and ClickHouseStore over ClickHouse's HTTP
+# interface (the split deployment's path: `mapservice clickhouse-server`'s app over the
+# module's chDB, served from this process). A module's contract tests take `store` and run
+# over all three; a module needing a store of one kind calls `open_store(kind, ...)`.
+STORE_KINDS = ("memory", "clickhouse", "clickhouse-http")
+_store_databases = itertools.count()
+
+
+@pytest.fixture(scope="module")
+def chdb_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """One chDB engine for the module, kept open by a root store and closed at the module's
+    end: chDB runs one engine per process, so the next module may then open its own. Each
+    store the module opens is a database of its own in it (an empty history)."""
+    from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
+
+    path = tmp_path_factory.mktemp("chdb") / "ch"
+    root = ClickHouseStore(f"chdb://{path}", database="root")
+    assert root.migrate() == SCHEMA_VERSION
+    yield path
+    root.close()
+
+
+@pytest.fixture(scope="module")
+def clickhouse_http(chdb_dir: Path) -> Iterator[str]:
+    """The ClickHouse HTTP interface over the module's chDB (read-write for `default`): its URL."""
+    from mapservice.sql.chdb_engine import ChdbEngine
+    from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
+    from tests.mapservice.sql.serving import ServedApp
+
+    engine = ChdbEngine(chdb_dir)
+    app = clickhouse_http_app(engine, [SqlUser("default", "", read_only=False)])
+    with ServedApp(app) as served:
+        yield served.url
+    engine.close()
+
+
+@pytest.fixture
+def open_store(request: pytest.FixtureRequest) -> Callable[..., HistoryStore]:
+    """`open_store(kind, database=None, **options)`: a new store of `kind` (STORE_KINDS), not
+    yet migrated. ClickHouse kinds open `database` (default: a new one) in the module's
+    chDB with ClickHouseStore's `options`; the memory twin takes `retention_days` only."""
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
+    from mapservice.testing.memory_store import MemoryStore
+
+    def open_(kind: str, database: str | None = None, **options: int) -> HistoryStore:
+        if kind == "memory":
+            return MemoryStore(**{k: v for k, v in options.items() if k == "retention_days"})
+        database = database or f"store_{next(_store_databases)}"
+        if kind == "clickhouse":
+            dsn = f"chdb://{request.getfixturevalue('chdb_dir')}"
+        elif kind == "clickhouse-http":
+            dsn = request.getfixturevalue("clickhouse_http")
+        else:
+            raise ValueError(f"unknown store kind {kind!r}; one of {STORE_KINDS}")
+        return ClickHouseStore(dsn, database=database, **options)
+
+    return open_
+
+
+@pytest.fixture
+def t0() -> int:
+    """A whole second an hour ago: inside the retention, so no ClickHouse TTL drops the rows."""
+    import time
+
+    return (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
+
+
+@pytest.fixture(params=STORE_KINDS)
+def store(request: pytest.FixtureRequest, open_store: Callable[..., HistoryStore]) -> Iterator[HistoryStore]:
+    """An empty, migrated store of each kind (a module's own `store` fixture overrides it)."""
+    s = open_store(request.param)
+    s.migrate()
+    yield s
+    s.close()
+
+
+# --- a broker -----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def apache_kafka(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """One Apache Kafka node (from the Maven jars, as `mapservice up` runs it) for the
+    session's tests that need a broker and nothing else (each uses topic names of its own);
+    its bootstrap address. A stack starts its own."""
+    from mapservice.local import embedded, kafka_broker
+
+    if kafka_broker.java_binary() is None:
+        pytest.fail("no Java runtime for Apache Kafka (`make system-deps` installs it)")
+    root = tmp_path_factory.mktemp("apache-kafka")
+    node = kafka_broker.node_for(root, embedded.free_port())
+    proc = kafka_broker.start_kafka(node, open(root / "kafka.log", "ab"))
+    yield f"127.0.0.1:{node.port}"
+    kafka_broker.stop_process_group(proc)

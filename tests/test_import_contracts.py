@@ -83,8 +83,22 @@ def test_a_product_module_importing_the_benchmarks_breaks_the_contracts(staged: 
     write(staged, "mapservice.api.uses_bench", "from mapservice.bench import ingest\n")
     result = lint_imports(staged)
     assert result.returncode == 1
-    assert "The product never imports the local stack or the benchmarks BROKEN" in result.stdout
+    assert "The product never imports the local stack, the benchmarks or the test twins BROKEN" in result.stdout
     assert "Layers: each part imports only what is below it BROKEN" in result.stdout
+
+
+@pytest.mark.parametrize("importer", ["mapservice.processors.uses_twin", "mapservice.local.uses_twin"])
+def test_the_product_or_the_local_stack_importing_a_test_twin_breaks_the_contracts(
+        staged: Path, importer: str) -> None:
+    """The memory twins stand in for adapters only in tests and benchmarks: a processors
+    module (the product) or the local stack (`up`) that imports one is refused."""
+    write(staged, importer, "from mapservice.testing import memory_store\n")
+    result = lint_imports(staged)
+    assert result.returncode == 1
+    assert "Layers: each part imports only what is below it BROKEN" in result.stdout
+    if importer.startswith("mapservice.processors"):
+        assert ("The product never imports the local stack, the benchmarks or the test twins BROKEN"
+                in result.stdout)
 
 
 def test_io_in_the_core_breaks_the_contracts(staged: Path) -> None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import base64
 import binascii
 import secrets
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Protocol
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -31,7 +31,7 @@ from mapservice.core.annotations import (
     to_doc,
 )
 from mapservice.core.events import make_envelope
-from mapservice.core.ports import Clock, EventPublisher, HistoryStore
+from mapservice.core.ports import AnnotationReader, Clock, EventPublisher, TimeTravelReader
 from mapservice.core.zone_masks import mask_to_zones
 from mapservice.settings import Settings
 
@@ -42,7 +42,11 @@ from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/v1/annotations", tags=["annotations"])
 
-StoreDep = Annotated[HistoryStore, Depends(get_store)]
+class AnnotationStore(AnnotationReader, TimeTravelReader, Protocol):
+    """The annotations and their edits, and the map meta that bounds them."""
+
+
+StoreDep = Annotated[AnnotationStore, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ClockDep = Annotated[Clock, Depends(get_clock)]
 PublisherDep = Annotated[EventPublisher, Depends(get_publisher)]
@@ -193,7 +197,7 @@ async def create_annotation(request: Request, body: AnnotationCreate, caller: Op
                          created_by=caller.name, changed_ms=edit.ts_ms, changed_by=caller.name)
 
 
-async def _existing(request: Request, store: HistoryStore, annotation_id: str,
+async def _existing(request: Request, store: AnnotationStore, annotation_id: str,
                     now: int) -> CurrentAnnotation:
     current = await run_in_threadpool(standing, request, store, now)
     if annotation_id not in current:

@@ -7,7 +7,7 @@ entry and never counts as a floor change."""
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Protocol
 
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel
@@ -20,7 +20,7 @@ from mapservice.core.change_feed import (
     ChunkBox,
     WindowTooBusy,
 )
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import ChangeFeed, TimeTravelReader
 from mapservice.settings import Settings
 
 from ..access import READ
@@ -28,7 +28,11 @@ from ..deps import get_settings, get_store, parse_window
 
 router = APIRouter(prefix="/api/v1/changes", tags=["changes"], dependencies=[Depends(READ)])
 
-Store = Annotated[HistoryStore, Depends(get_store)]
+class ChangesStore(ChangeFeed, TimeTravelReader, Protocol):
+    """The change feed and the map meta its chunk box is checked against."""
+
+
+Store = Annotated[ChangesStore, Depends(get_store)]
 AppSettings = Annotated[Settings, Depends(get_settings)]
 
 

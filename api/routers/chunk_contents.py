@@ -16,7 +16,7 @@ import msgspec
 from cachetools import LRUCache
 from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
 
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import TimeTravelReader
 from mapservice.core.render import chunk_pixels, png
 
 from ..access import READ
@@ -41,7 +41,7 @@ class ContentCache:
         self._lru: LRUCache[bytes, Content] = LRUCache(max_bytes, getsizeof=lambda c: len(c[2]) + 64)
         self._lock = threading.Lock()  # the endpoints run in the threadpool
 
-    def get_many(self, store: HistoryStore, hashes: Sequence[bytes]) -> dict[bytes, Content]:
+    def get_many(self, store: TimeTravelReader, hashes: Sequence[bytes]) -> dict[bytes, Content]:
         found: dict[bytes, Content] = {}
         with self._lock:
             for h in hashes:
@@ -59,7 +59,7 @@ class ContentCache:
         return found
 
 
-def _one(store: HistoryStore, h: bytes) -> dict[bytes, Content]:
+def _one(store: TimeTravelReader, h: bytes) -> dict[bytes, Content]:
     c = store.chunk_content(h)
     return {} if c is None else {h: c}
 
@@ -98,7 +98,7 @@ _encoder = msgspec.msgpack.Encoder()
 )
 def get_chunk_contents_batch(
     hashes: list[str] = Body(..., embed=True),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
     cache: ContentCache = Depends(get_cache),
 ) -> Response:
     if not hashes:
@@ -128,7 +128,7 @@ def get_chunk_content(
     content_hash: str,
     encoding: str = Query("zlib", pattern="^(zlib|raw|png)$",
                           description="zlib: as the robot sent it; raw: width x height bytes; png"),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
     cache: ContentCache = Depends(get_cache),
 ) -> Response:
     if not _HEX32.match(content_hash):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import TimeTravelReader
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
@@ -35,7 +35,7 @@ def list_chunk_events(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
     limit: int = Query(10_000, ge=1, le=100_000),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
 ) -> Response:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
     rows = store.chunk_events(f, t, limit)

@@ -13,7 +13,7 @@ from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.core.change_feed import UPLOADER_ID
-from mapservice.core.ports import ConflictRow, HistoryStore
+from mapservice.core.ports import ConflictRow, ConflictReader
 from mapservice.settings import Settings
 
 from ..access import READ
@@ -54,7 +54,7 @@ def list_conflicts(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
     limit: int = Query(10_000, ge=1, le=100_000),
-    store: HistoryStore = Depends(get_store),
+    store: ConflictReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
 ) -> Conflicts:
     f, t = parse_window(from_, to, settings.retention_ms)
@@ -71,7 +71,7 @@ def list_conflicts(
                                 for r in rows[:limit]])
 
 
-def _content_hashes(store: HistoryStore, rows: list[ConflictRow]) -> dict[tuple[int, int, int, str], str]:
+def _content_hashes(store: ConflictReader, rows: list[ConflictRow]) -> dict[tuple[int, int, int, str], str]:
     """(row, column, ts, robot) -> content hash of both writes of every conflict: one read
     of the conflicts' chunks over the span from the earliest A to the latest B."""
     if not rows:

@@ -11,7 +11,7 @@ mask.pgm) and a costmap_filter_info_server at filter-info.yaml.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Protocol
 
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
@@ -24,7 +24,7 @@ from mapservice.adapters.costmap_filters import (
     speed_pgm,
 )
 from mapservice.core.annotations import Zone
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import AnnotationReader, TimeTravelReader
 from mapservice.core.zone_masks import KEEP_OUT, FilterInfo, Grid, keep_out_mask, speed_filter_info, speed_mask
 
 from ..access import READ
@@ -33,7 +33,11 @@ from ..annotation_state import standing
 
 router = APIRouter(prefix="/api/v1/costmap-filters", tags=["annotations"], dependencies=[Depends(READ)])
 
-StoreDep = Annotated[HistoryStore, Depends(get_store)]
+class ZoneStore(AnnotationReader, TimeTravelReader, Protocol):
+    """The standing zones and the map meta they are drawn on."""
+
+
+StoreDep = Annotated[ZoneStore, Depends(get_store)]
 AtDep = Annotated[int, Depends(at_instant)]
 FilterPath = Annotated[Literal["keepout", "speed"], Path(description="keepout or speed")]
 UnitQuery = Annotated[Literal["percent", "m/s"], Query(description=(
@@ -46,7 +50,7 @@ _YAML_RESPONSE: dict[int | str, dict[str, Any]] = {
     200: {"content": {YAML: {}}, "description": "map_server / filter info YAML"}}
 
 
-def _zones(request: Request, store: HistoryStore, at: int) -> tuple[Grid, list[Zone]]:
+def _zones(request: Request, store: ZoneStore, at: int) -> tuple[Grid, list[Zone]]:
     grid = grid_of(store.latest_meta())
     if grid is None:
         raise HTTPException(409, "the map has no resolution and origin yet, so a mask cannot be "

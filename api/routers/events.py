@@ -17,7 +17,7 @@ import msgspec
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, TimeTravelReader
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamps
 
@@ -74,7 +74,7 @@ def list_events(
                                               "absolute bucket [k*chunk_step_ms, "
                                               "(k+1)*chunk_step_ms) only its winning change "
                                               "(the map stays exact at every bucket boundary)"),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
 ) -> Response:

@@ -8,7 +8,7 @@ import msgspec
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import TimeTravelReader
 from mapservice.core.render import png, stitch
 from mapservice.core.wire2019 import format_timestamps
 
@@ -47,7 +47,7 @@ COMPACT_FIELDS = ("row", "column", "ts_ms", "robotId", "content_hash")
 def get_map_at(
     at_ms: int = Depends(at_instant),
     layout: Literal["rows", "compact"] = Query("rows", description="rows or compact"),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
 ) -> Response:
     meta = store.latest_meta()
     chunks = store.map_at(at_ms)
@@ -70,7 +70,7 @@ def get_map_at(
 def get_map_png_at(
     at_ms: int = Depends(at_instant),
     scale: float = Query(1.0, gt=0, le=4, description="Image scale (nearest neighbour)"),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
 ) -> Response:
     meta = store.latest_meta()
     if meta is None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import TimeTravelReader
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
@@ -39,7 +39,7 @@ def list_poses(
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
     robot_id: str | None = Query(None, alias="robotId", max_length=64),
     limit: int = Query(10_000, ge=1, le=100_000),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
 ) -> Response:
     f, t = parse_window(from_, to, MAX_SPAN_MS)
     rows = store.poses(f, t, robot_id, limit)

@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import TimeTravelReader
 from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamp
 
@@ -42,7 +42,7 @@ def get_robots_at(
         "Robots per page, in robotId order; the answer's `next_after` names the next page")),
     after: str | None = Query(None, max_length=64, description=(
         "Only robots whose robotId sorts after this one: the previous page's `next_after`")),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
 ) -> RobotsAt:
     """Every robot's latest pose at `at`, a page of at most `limit` robots in robotId

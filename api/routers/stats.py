@@ -5,7 +5,7 @@ from __future__ import annotations
 import msgspec
 from fastapi import APIRouter, Depends
 
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import StoreAdmin
 
 from ..access import READ
 from ..deps import get_store
@@ -15,5 +15,5 @@ router = APIRouter(prefix="/api/v1/stats", tags=["stats"],
 
 
 @router.get("", operation_id="getHistoryStats")
-def get_stats(store: HistoryStore = Depends(get_store)) -> dict:
+def get_stats(store: StoreAdmin = Depends(get_store)) -> dict:
     return msgspec.structs.asdict(store.counts())

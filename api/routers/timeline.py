@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, TimeTravelReader
 from mapservice.settings import Settings
 from mapservice.core.timetravel import timeline_buckets
 
@@ -39,7 +39,7 @@ def get_timeline(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
     buckets: int = Query(200, description=f"Number of buckets, 1 to {MAX_BUCKETS}"),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
 ) -> Timeline:

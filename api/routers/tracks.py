@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, TimeTravelReader
 from mapservice.settings import Settings
 from mapservice.core.timetravel import yaw
 
@@ -42,7 +42,7 @@ def get_robot_track(
     from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
     step_ms: int = Query(0, description="0: every pose; > 0: at most one point per step"),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
 ) -> Track:

@@ -9,7 +9,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, VdaReader
 from mapservice.core.vda_ids import vehicle_of
 from mapservice.core.wire2019 import format_timestamp
 from mapservice.settings import Settings
@@ -19,7 +19,7 @@ from ..deps import get_clock, get_settings, get_store, window_in_retention
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
 
-StoreDep = Annotated[HistoryStore, Depends(get_store)]
+StoreDep = Annotated[VdaReader, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ClockDep = Annotated[Clock, Depends(get_clock)]
 

@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, HistoryStore
+from mapservice.core.ports import Clock, AnnotationReader
 from mapservice.settings import Settings
 
 from ..access import READ
@@ -16,7 +16,7 @@ from ..deps import get_clock, get_settings, get_store, window_in_retention
 
 router = APIRouter(prefix="/api/v1/zone-violations", tags=["annotations"], dependencies=[Depends(READ)])
 
-StoreDep = Annotated[HistoryStore, Depends(get_store)]
+StoreDep = Annotated[AnnotationReader, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ClockDep = Annotated[Clock, Depends(get_clock)]
 

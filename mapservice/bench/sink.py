@@ -54,7 +54,7 @@ class _Counter:
 
 async def _one(way: str, events: int) -> dict:
     from mapservice.adapters.kafka_publisher import KafkaPublisher
-    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.testing.memory_store import MemoryStore
     from mapservice.local.embedded import free_port, start_tansu, stop, wait_for_port
     from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
     from mapservice.settings import Settings

@@ -165,7 +165,7 @@ def load(path: Path, database: str, days: float, robots: int, end_ms: int):
 
 
 def browser_page(pw, url: str):
-    from mapservice.local.chromium import launch
+    from mapservice.testing.chromium import launch
 
     browser = launch(pw)
     page = browser.new_context(viewport={"width": 1280, "height": 800}).new_page()

@@ -146,13 +146,6 @@ class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     robots_active: int
 
 
-class ChangeFeed(Protocol):
-    """The map's changes page by page (mapservice/core/change_feed.py has the rule)."""
-
-    def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
-        """The query's page: floor changes and map uploads (one entry each), newest first."""
-
-
 class VdaErrorRow(msgspec.Struct, frozen=True, gc=False):
     ts_ms: int
     level: str
@@ -180,11 +173,23 @@ class VdaFacts(msgspec.Struct, frozen=True, gc=False):
     factsheet: VdaFactsheetRow | None  # the latest before `to`
 
 
-class HistoryStore(Protocol):
-    """The seven-day history. Appends are idempotent on each event's natural identity."""
+class ChangeFeed(Protocol):
+    """The map's changes page by page (mapservice/core/change_feed.py has the rule)."""
+
+    def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
+        """The query's page: floor changes and map uploads (one entry each), newest first."""
+
+
+class StoreSchema(Protocol):
+    """The store's schema (ClickHouse: `migrations`)."""
 
     def migrate(self) -> int:
         """Creates or upgrades the schema; returns the schema version. Safe to repeat."""
+
+
+class HistoryWriter(Protocol):
+    """Appends to the history, idempotent on each event's natural identity (ClickHouse:
+    `writes`). The processors' history sink, the conflict recorder and the backfill write here."""
 
     def append(self, events: Sequence[Envelope]) -> None:
         """Stores `events`: `append_events`, then `derive_views`."""
@@ -198,6 +203,18 @@ class HistoryStore(Protocol):
         already stored by `append_events`; repeating it changes nothing."""
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None: ...
+
+    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
+        """Stores robots' poses found inside keep-out zones (one per pose and zone)."""
+
+    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        """Idempotent on B's identity (ts, row, column, robot_b): of two rows with one
+        identity the one naming the later A (by ts_a; on a tie the later append) stays."""
+
+
+class TimeTravelReader(Protocol):
+    """The history at an instant and over a window: poses, chunk writes, the map and the
+    robots at a time, the timeline, chunk pixels and the map meta in force (ClickHouse: `reads`)."""
 
     def poses(
         self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 100_000
@@ -229,26 +246,6 @@ class HistoryStore(Protocol):
     def robot_known(self, robot_id: str) -> bool:
         """Whether the robot has any pose in the history."""
 
-    def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
-        """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
-
-    def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
-        """The operators' annotations standing at `at_ms` (inclusive), by id."""
-
-    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
-        """The annotation edits with from_ms <= time < to_ms, oldest first."""
-
-    def command_events(self, from_ms: int, to_ms: int, robot_id: str | None = None,
-                       limit: int = 10_000) -> list[StoredCommandEvent]:
-        """Operators' commands and the robots' answers with from_ms <= time < to_ms (of
-        one robot, if named), oldest first."""
-
-    def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
-        """Stores robots' poses found inside keep-out zones (one per pose and zone)."""
-
-    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
-        """The zone violations with from_ms <= time < to_ms, by time."""
-
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
 
@@ -256,36 +253,6 @@ class HistoryStore(Protocol):
                   limit: int | None = None) -> list[PoseRow]:
         """Per robot, its pose with the greatest event time at or before `at_ms`, in robot id
         order: only robots whose id sorts after `after`, at most `limit` of them (a page)."""
-
-    def build_snapshots(self, up_to_ms: int) -> int:
-        """Builds the snapshots due up to `up_to_ms`; returns how many were built."""
-
-    def repair_snapshots(self, max_snapshots: int = 144) -> int:
-        """Rebuilds at most `max_snapshots` snapshots a late event invalidated (reads skip
-        them meanwhile); returns how many. Bounded work, called by the snapshot timer."""
-
-    def apply_retention(self, now_ms: int) -> RetentionResult:
-        """Forgets the history older than the retention at `now_ms` (the service's clock)
-        while the state at every instant from `now_ms - retention` on stays exact: the map,
-        the 2019 latest listings, every named chunk's pixels, the map metadata in force."""
-
-    # Conflicts (mapservice/core/conflicts.py has the rule).
-
-    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
-                          to_ms: int) -> list[ChunkRow]:
-        """Writes on the given (row, column) chunks with from_ms <= event time <= to_ms,
-        in event-time order (the neighbours a new write may conflict with)."""
-
-    def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
-        """Idempotent on B's identity (ts, row, column, robot_b): of two rows with one
-        identity the one naming the later A (by ts_a; on a tie the later append) stays."""
-
-    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
-        """Conflicts with from_ms <= ts < to_ms, ordered by ts, row, column, robot_b."""
-
-    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
-        """Conflicts per bucket [from_ms + k*bucket_ms, ...) of from_ms <= ts < to_ms, keyed
-        by the bucket's start; empty buckets are left out."""
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         """(width, height, zlib pixels) of a content hash, if stored."""
@@ -295,7 +262,79 @@ class HistoryStore(Protocol):
 
     def latest_meta(self) -> MapMetaSet | None: ...
 
-    # The 2019 REST contract (mapservice/core/legacy_query.py has the query semantics).
+
+class SnapshotKeeper(Protocol):
+    """The map snapshots the time-travel reads start from (ClickHouse: `snapshots`);
+    driven by the snapshot timer."""
+
+    def build_snapshots(self, up_to_ms: int) -> int:
+        """Builds the snapshots due up to `up_to_ms`; returns how many were built."""
+
+    def repair_snapshots(self, max_snapshots: int = 144) -> int:
+        """Rebuilds at most `max_snapshots` snapshots a late event invalidated (reads skip
+        them meanwhile); returns how many. Bounded work, called by the snapshot timer."""
+
+
+class RetentionKeeper(Protocol):
+    """Forgets the history past the retention without changing any state inside it
+    (ClickHouse: `retention`); driven by the retention timer."""
+
+    def apply_retention(self, now_ms: int) -> RetentionResult:
+        """Forgets the history older than the retention at `now_ms` (the service's clock)
+        while the state at every instant from `now_ms - retention` on stays exact: the map,
+        the 2019 latest listings, every named chunk's pixels, the map metadata in force."""
+
+
+class ConflictReader(Protocol):
+    """Conflicts and the writes they are found among (mapservice/core/conflicts.py has the
+    rule; ClickHouse: `conflict_reads`). Conflicts are written through `HistoryWriter`."""
+
+    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
+                          to_ms: int) -> list[ChunkRow]:
+        """Writes on the given (row, column) chunks with from_ms <= event time <= to_ms,
+        in event-time order (the neighbours a new write may conflict with)."""
+
+    def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
+        """Conflicts with from_ms <= ts < to_ms, ordered by ts, row, column, robot_b."""
+
+    def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
+        """Conflicts per bucket [from_ms + k*bucket_ms, ...) of from_ms <= ts < to_ms, keyed
+        by the bucket's start; empty buckets are left out."""
+
+
+class AnnotationReader(Protocol):
+    """The operators' annotations and the zone violations found against them
+    (ClickHouse: `annotation_reads`)."""
+
+    def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
+        """The operators' annotations standing at `at_ms` (inclusive), by id."""
+
+    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+        """The annotation edits with from_ms <= time < to_ms, oldest first."""
+
+    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+        """The zone violations with from_ms <= time < to_ms, by time."""
+
+
+class CommandReader(Protocol):
+    """Operators' commands to robots and the robots' answers (ClickHouse mixin: command_reads)."""
+
+    def command_events(self, from_ms: int, to_ms: int, robot_id: str | None = None,
+                       limit: int = 10_000) -> list[StoredCommandEvent]:
+        """Operators' commands and the robots' answers with from_ms <= time < to_ms (of
+        one robot, if named), oldest first."""
+
+
+class VdaReader(Protocol):
+    """VDA 5050 vehicles' facts beyond their poses (ClickHouse: `vda_reads`)."""
+
+    def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
+        """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
+
+
+class LegacyQueries(Protocol):
+    """The 2019 REST contract's listings (mapservice/core/legacy_query.py has the query
+    semantics; ClickHouse: `legacy`)."""
 
     def list_chunks(self, query: ChunkQuery) -> list[ChunkRow]:
         """Chunk writes passing the query's filters, in `query.order`, `skip` then `limit`
@@ -304,6 +343,10 @@ class HistoryStore(Protocol):
     def list_poses(self, query: PoseQuery) -> list[PoseRow]:
         """Poses passing the query's filters, in `query.order`, `skip` then `limit`
         (the non-`latest` GET /api/coordinate-service/robots)."""
+
+
+class StoreAdmin(Protocol):
+    """The 2019 deletes, counts and closing (ClickHouse: `admin`)."""
 
     def delete_chunks(self) -> int:
         """Removes every chunk write and map snapshot (2019 DELETE /chunks); returns how
@@ -316,3 +359,15 @@ class HistoryStore(Protocol):
     def counts(self) -> Counts: ...
 
     def close(self) -> None: ...
+
+
+# `HistoryStore` is the whole store: what a composition root (server.py, the CLI's commands,
+# the benchmarks' loaders) constructs and hands on. A component depends on the roles it uses.
+# A new store method goes into the role whose ClickHouse mixin implements it, and is then
+# part of HistoryStore too; a new concern gets a role protocol of its own beside these (and a
+# mixin in adapters/clickhouse/), added to the bases below.
+class HistoryStore(StoreSchema, HistoryWriter, TimeTravelReader, SnapshotKeeper, RetentionKeeper,
+                   ConflictReader, AnnotationReader, CommandReader, VdaReader, ChangeFeed, LegacyQueries,
+                   StoreAdmin, Protocol):
+    """The seven-day history, every role at once. Appends are idempotent on each event's
+    natural identity."""

@@ -12,8 +12,8 @@ from fastapi.testclient import TestClient
 from starlette.websockets import WebSocketDisconnect
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.access import READ, Scope, check_routes
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub

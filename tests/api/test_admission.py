@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings

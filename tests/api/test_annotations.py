@@ -18,8 +18,8 @@ from fastapi.testclient import TestClient
 from PIL import Image
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.adapters.ros_map import classify, load_ros_map, meta_for
 from mapservice.api.app import create_app
 from mapservice.core.annotations import AnnotationCreated, AnnotationRemoved

@@ -9,7 +9,7 @@ from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import IMMUTABLE
 from mapservice.settings import Settings
@@ -393,7 +393,7 @@ def test_poses_and_chunk_events_json_equals_their_pydantic_models() -> None:
 
     from fastapi.testclient import TestClient
 
-    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
     from mapservice.api.routers.chunk_events import ChunkEvent
     from mapservice.api.routers.poses import Pose

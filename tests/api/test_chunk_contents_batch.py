@@ -9,7 +9,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK, ContentCache
 from mapservice.settings import Settings

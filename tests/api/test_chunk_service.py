@@ -16,7 +16,7 @@ from PIL import Image
 from structlog.testing import capture_logs
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.core.events import ChunkUpdated, MapMetaSet, decode
 from mapservice.core.legacy_query import MAX_LIMIT
 from mapservice.settings import Settings

@@ -8,8 +8,8 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.core.commands import CommandAcknowledged, CommandFinished, CommandIssued
 from mapservice.core.events import PoseReported, decode, make_envelope

@@ -8,7 +8,7 @@ import io
 from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from tests.conftest import chunk_event, meta_event, pose_event

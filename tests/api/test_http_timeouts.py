@@ -12,7 +12,7 @@ import httpx
 import pytest
 import uvicorn
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.local.embedded import free_port
 from mapservice.server import api_server_config

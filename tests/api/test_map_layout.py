@@ -6,7 +6,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.settings import Settings
 

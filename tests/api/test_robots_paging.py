@@ -6,7 +6,7 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from tests.conftest import pose_event

@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from tests.conftest import EventFactory

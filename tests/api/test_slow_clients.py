@@ -16,7 +16,7 @@ from contextlib import contextmanager
 import uvicorn
 from fastapi.testclient import TestClient
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.api.routers.exports import write_csv_slices

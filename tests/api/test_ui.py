@@ -7,7 +7,7 @@ from fastapi.testclient import TestClient
 from mapservice.api.app import create_app
 from mapservice.api.routers import ui
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.settings import Settings
 
 

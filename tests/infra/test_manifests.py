@@ -184,7 +184,7 @@ def served():
     """served(component, path) -> HTTP status from the handler the component really runs."""
     from fastapi.testclient import TestClient
 
-    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
     from mapservice.runtime.health_server import serve_health
 
@@ -427,7 +427,7 @@ def test_the_api_as_deployed_guards_metrics_and_docs_but_not_probes():
     /openapi.json only with one, and the PodMonitor scrapes with the Secret's metrics token."""
     from fastapi.testclient import TestClient
 
-    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
 
     [(workload, container)] = [(w, c) for w, c in workloads() if container_argv(c)[:1] == ["api"]]

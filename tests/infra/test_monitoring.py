@@ -29,7 +29,7 @@ def exported_metric_names() -> set[str]:
     import mapservice.processors.app  # noqa: F401
     import mapservice.processors.history_consumer  # noqa: F401
     import mapservice.processors.views  # noqa: F401
-    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
     from mapservice.settings import Settings
 

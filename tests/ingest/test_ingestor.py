@@ -6,7 +6,7 @@ from functools import partial
 
 import pytest
 
-from mapservice.adapters.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.core.events import MapMetaSet, decode, decode_dead_letter
 from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
@@ -343,7 +343,7 @@ class AckLog:
 def memory_gateway(settings):
     """An MqttGateway producing into memory, its MQTT client an AckLog."""
     from mapservice.adapters.clock import SystemClock
-    from mapservice.adapters.memory_publisher import MemoryPublisher
+    from mapservice.testing.memory_publisher import MemoryPublisher
     from mapservice.ingest.gateway import MqttGateway
 
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))

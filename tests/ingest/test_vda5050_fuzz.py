@@ -24,7 +24,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.core.events import decode, decode_dead_letter
 from mapservice.core.wire2019 import Reason, format_timestamp
 from mapservice.ingest.gateway import Ingestor

@@ -9,7 +9,6 @@ import pytest
 from confluent_kafka import OFFSET_BEGINNING, Consumer, TopicPartition
 
 from mapservice.adapters.ros_map import load_ros_map, meta_for
-from mapservice.local import embedded, kafka_broker
 from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS
 
@@ -18,19 +17,6 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if "/integration/" in str(item.fspath):
             item.add_marker(pytest.mark.integration)
-
-
-@pytest.fixture(scope="session")
-def apache_kafka(tmp_path_factory) -> str:
-    """One Apache Kafka node for the session's tests that need a broker and nothing else
-    (each uses topic names of its own); its bootstrap address. A stack starts its own."""
-    if kafka_broker.java_binary() is None:
-        pytest.fail("no Java runtime for Apache Kafka (`make system-deps` installs it)")
-    root = tmp_path_factory.mktemp("apache-kafka")
-    node = kafka_broker.node_for(root, embedded.free_port())
-    proc = kafka_broker.start_kafka(node, open(root / "kafka.log", "ab"))
-    yield f"127.0.0.1:{node.port}"
-    kafka_broker.stop_process_group(proc)
 
 
 def start_stack(tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = None) -> Stack:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.conflicts import RecentWrites, all_conflicts
 from mapservice.core.ports import ChunkRow
 from mapservice.processors.conflict_recorder import (

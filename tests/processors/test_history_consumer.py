@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import asyncio
 
-from mapservice.adapters.memory_source import MemorySource
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_source import MemorySource
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.events import encode
 from mapservice.processors.sink import HistorySink
 from mapservice.processors.history_consumer import HistoryConsumer

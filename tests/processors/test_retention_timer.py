@@ -13,7 +13,7 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock, SimulatedClock, clock_from_settings
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.timetravel import fold_map
 from mapservice.processors.app import snapshot_tick_s, snapshot_timer
 from mapservice.processors.sink import HistorySink

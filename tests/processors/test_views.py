@@ -8,8 +8,8 @@ import asyncio
 import pytest
 from prometheus_client import REGISTRY
 
-from mapservice.adapters.memory_source import MemorySource
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_source import MemorySource
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.processors.sink import HistorySink
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.views import LiveViews

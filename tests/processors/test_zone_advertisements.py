@@ -9,7 +9,7 @@ import asyncio
 
 import pytest
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.annotations import (AnnotationChanged, AnnotationCreated, AnnotationRemoved,
                                          PointOfInterest, Zone)
 from mapservice.core.events import make_envelope

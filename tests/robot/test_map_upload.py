@@ -8,8 +8,8 @@ import pytest
 from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_publisher import MemoryPublisher
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.robot.map_upload import (MARKER, UPLOADER_ID, MapSizeMismatch, upload_map_if_fresh,
                                    upload_map_rest)

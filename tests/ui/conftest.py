@@ -13,7 +13,7 @@ import time
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.local.chromium import chromium_path, launch
+from mapservice.testing.chromium import chromium_path, launch
 from mapservice.bench.history_loader import load_history
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.local.stack import Stack

@@ -11,7 +11,7 @@ import time
 import pytest
 import uvicorn
 
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.local.embedded import free_port
 from mapservice.runtime.insert_health import InsertHealth

@@ -10,7 +10,7 @@ import pytest
 import uvicorn
 
 from mapservice.adapters.clock import SystemClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.core.events import MapMetaSet, make_envelope

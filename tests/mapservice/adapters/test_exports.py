@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.adapters.exports import (
     MAP_TOPIC,
     STATE_SCHEMA,

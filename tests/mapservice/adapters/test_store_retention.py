@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.core.annotations import (AnnotationChanged, AnnotationCreated, AnnotationEdit,
                                          AnnotationRemoved, PointOfInterest, Zone, fold_annotations)
@@ -68,15 +68,6 @@ class Store:
         self.store.close()
         self.store = self._open()
         self.store.migrate()
-
-
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("chdb") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="retention_root")
-    root.migrate()
-    yield path
-    root.close()
 
 
 class World:

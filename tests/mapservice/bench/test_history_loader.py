@@ -41,16 +41,6 @@ def ros_map():
 
 
 @pytest.fixture(scope="module")
-def chdb_path(tmp_path_factory):
-    """One chDB engine for the module, closed at its end."""
-    path = tmp_path_factory.mktemp("loader") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="loader_root")
-    root.migrate()
-    yield path
-    root.close()
-
-
-@pytest.fixture(scope="module")
 def end_ms() -> int:
     """The end of every load in the module: five minutes ago, so the loads are identical."""
     return time.time_ns() // 1_000_000 - 300_000
@@ -69,9 +59,9 @@ def _load(path, ros_map, end_ms, **kw):
 
 
 @pytest.fixture(scope="module")
-def loaded(chdb_path, ros_map, end_ms):
+def loaded(chdb_dir, ros_map, end_ms):
     """2 robots x 10 minutes on a 4 x 6 grid, snapshots every minute (bulk)."""
-    store, result = _load(chdb_path, ros_map, end_ms)
+    store, result = _load(chdb_dir, ros_map, end_ms)
     yield store, result
     store.close()
 
@@ -171,11 +161,11 @@ def _derived_rows(store) -> tuple[list, ...]:
     )
 
 
-def test_loader_derives_the_rows_live_ingest_derives(loaded, chdb_path) -> None:
+def test_loader_derives_the_rows_live_ingest_derives(loaded, chdb_dir) -> None:
     """The loader's day-sized inserts fill pose_keyframes, pose_(ten_)minutes and chunk_seconds
     with exactly the rows the same events appended in the sink's small batches give."""
     store, result = loaded
-    live = _store(chdb_path)
+    live = _store(chdb_dir)
     try:
         live.migrate()
         events = [make_envelope(p.robot_id, p.ts_ms, p.receive_time_ms, PoseReported(
@@ -195,10 +185,10 @@ def test_loader_derives_the_rows_live_ingest_derives(loaded, chdb_path) -> None:
         live.close()
 
 
-def test_bulk_snapshots_equal_build_snapshots(loaded, chdb_path, ros_map, end_ms) -> None:
+def test_bulk_snapshots_equal_build_snapshots(loaded, chdb_dir, ros_map, end_ms) -> None:
     """The loader's bulk snapshots are the rows build_snapshots builds for the same history."""
     store, result = loaded
-    other, again = _load(chdb_path, ros_map, end_ms, bulk_snapshots=False)
+    other, again = _load(chdb_dir, ros_map, end_ms, bulk_snapshots=False)
     try:
         assert (again.poses, again.chunk_events) == (result.poses, result.chunk_events)
         assert again.snapshots == result.snapshots == SECONDS // 60 + 1
@@ -209,10 +199,10 @@ def test_bulk_snapshots_equal_build_snapshots(loaded, chdb_path, ros_map, end_ms
         other.close()
 
 
-def test_bulk_snapshots_continue_existing_ones_in_runs(chdb_path, ros_map, end_ms) -> None:
+def test_bulk_snapshots_continue_existing_ones_in_runs(chdb_dir, ros_map, end_ms) -> None:
     """After snapshots built one by one, bulk runs of 3 give the rows a one-by-one build does."""
-    a, result = _load(chdb_path, ros_map, end_ms, snapshots=False)
-    b, _ = _load(chdb_path, ros_map, end_ms, snapshots=False)
+    a, result = _load(chdb_dir, ros_map, end_ms, snapshots=False)
+    b, _ = _load(chdb_dir, ros_map, end_ms, snapshots=False)
     try:
         middle = result.start_ms + 4 * EVERY_MS
         assert a.build_snapshots(middle) == b.build_snapshots(middle) > 0
@@ -255,16 +245,16 @@ def test_window_stays_inside_the_retention() -> None:
         plan_window(1, now + 60_000, 7, now_ms=now)
 
 
-def test_cli_load_history(chdb_path, capsys) -> None:
+def test_cli_load_history(chdb_dir, capsys) -> None:
     """`mapservice load-history` loads through the CLI and reports what it wrote."""
     from mapservice.cli import main
 
     main(["load-history", "--days", "0.002", "--robots", "3", "--map", MAP, "--data-dir",
-          str(chdb_path.parent), "--clickhouse-dsn", f"chdb://{chdb_path}", "--database",
+          str(chdb_dir.parent), "--clickhouse-dsn", f"chdb://{chdb_dir}", "--database",
           "loader_cli", "--snapshot-every-s", "60"])
     out = capsys.readouterr().out
     assert "loaded 516 poses" in out
-    store = ClickHouseStore(f"chdb://{chdb_path}", database="loader_cli")
+    store = ClickHouseStore(f"chdb://{chdb_dir}", database="loader_cli")
     try:
         assert store.counts().poses == 3 * 172
         assert _q(store, "SELECT count() FROM {db}.snapshot_log")[0][0] >= 2

@@ -78,7 +78,7 @@ def served_history(ev, monkeypatch):
     from fastapi.testclient import TestClient
 
     from mapservice.adapters.clock import ManualClock
-    from mapservice.adapters.memory_store import MemoryStore
+    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
     from mapservice.settings import Settings
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import itertools
 import time
 
-import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
@@ -23,16 +22,6 @@ from mapservice.core.wire2019 import content_hash
 EVERY_MS = 60_000
 SPAN_MS = 10 * EVERY_MS
 _db = itertools.count()
-
-
-@pytest.fixture(scope="module")
-def chdb_path(tmp_path_factory):
-    """One chDB engine for the module (one database per example)."""
-    path = tmp_path_factory.mktemp("tt") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="tt_root")
-    root.migrate()
-    yield path
-    root.close()
 
 
 def chunk(robot: str, ts: int, row: int, col: int, shade: int):
@@ -67,12 +56,12 @@ event_strategy = st.one_of(
                  ("chunk", "a", 2000, 0, 0, 2), ("pose", "b", 2000, 2)],
          batch_cuts=[2], snapshot_points=[5 * EVERY_MS], duplicates=[],
          queries=[3 * EVERY_MS])
-def test_state_at_t_equals_brute_force_fold(chdb_path, events, batch_cuts, snapshot_points,
+def test_state_at_t_equals_brute_force_fold(chdb_dir, events, batch_cuts, snapshot_points,
                                             duplicates, queries):
     """For random T, the API's map at T and robots at T (and the store's) equal a fold of
     every stored event with time <= T."""
     base = (time.time_ns() // 1_000_000 // EVERY_MS) * EVERY_MS - 2 * 3_600_000
-    store = ClickHouseStore(f"chdb://{chdb_path}", database=f"tt_{next(_db)}",
+    store = ClickHouseStore(f"chdb://{chdb_dir}", database=f"tt_{next(_db)}",
                             snapshot_every_ms=EVERY_MS)
     store.migrate()
     envs = [chunk(e[1], base + e[2], e[3], e[4], e[5]) if e[0] == "chunk"

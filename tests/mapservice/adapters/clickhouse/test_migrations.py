@@ -13,15 +13,6 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION, checksums
 
 
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("migrations") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="root")
-    root.migrate()
-    yield path
-    root.close()
-
-
 _n = iter(range(1000))
 
 

@@ -11,7 +11,7 @@ import time
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 
 
 

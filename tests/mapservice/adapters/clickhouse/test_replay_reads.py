@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 
 _db = itertools.count()
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 
+import pytest
+
 from mapservice.core.events import decode
 from mapservice.core.wire2019 import Limits
 from mapservice.ingest.router import Router
@@ -59,6 +61,10 @@ def test_vda_facts_are_stored_and_read_back(store) -> None:
     assert store.vda_facts("Other:1", NOW - 60_000, NOW).connections == []
 
 
+# The store contract's kinds but ClickHouse over HTTP: there this test's apply_retention
+# took minutes (the served chDB's query, not the client, was busy), beyond a fast test;
+# the retention tests of test_store_retention_contract.py do run over HTTP.
+@pytest.mark.parametrize("store", ["memory", "clickhouse"], indirect=True)
 def test_vda_facts_expire_with_the_retention(store, ev) -> None:
     """Errors and connection states older than the retention's first day are dropped with
     the other day partitions; the latest factsheet stays."""
