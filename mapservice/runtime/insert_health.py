@@ -19,8 +19,9 @@ import time
 from collections.abc import Callable
 from datetime import datetime, UTC
 
-# ClickHouse ends an exception's message with its error code's name: "... (NOT_ENOUGH_SPACE)".
-_ERROR_CODE = re.compile(r"\(([A-Z][A-Z0-9_]{2,})\)\s*$")
+# ClickHouse ends an exception's message with its error code's name: "... (NOT_ENOUGH_SPACE)";
+# over HTTP (`mapservice up`'s ClickHouse server) clickhouse-connect adds "(for url ...)".
+_ERROR_CODE = re.compile(r"\(([A-Z][A-Z0-9_]{2,})\)(?:\s*\(for url [^)]*\))?\s*$")
 # What an operator does about the usual refusals (ClickHouse's error code names).
 HINTS = {
     "NOT_ENOUGH_SPACE": "free disk space where ClickHouse keeps its data",
@@ -39,11 +40,20 @@ def error_code(error: str) -> str | None:
     return match.group(1) if match else None
 
 
+def code_of(exc: BaseException) -> str | None:
+    """The ClickHouse error code's name of a failed insert: as clickhouse-connect parsed it
+    from an HTTP error's body (its `name`), else from the message's end."""
+    name = getattr(exc, "name", None)
+    if isinstance(name, str) and _ERROR_CODE.fullmatch(f"({name})"):
+        return name
+    return error_code(str(exc))
+
+
 def describe(exc: BaseException) -> str:
     """One line about a failed insert: its ClickHouse error code first (when it has one),
     then the message, cut short."""
     text = " ".join(str(exc).split()) or type(exc).__name__
-    code = error_code(str(exc))
+    code = code_of(exc)
     text = text if len(text) <= _MAX_ERROR_CHARS else text[:_MAX_ERROR_CHARS - 3] + "..."
     return f"{code}: {text}" if code else f"{type(exc).__name__}: {text}"
 
@@ -94,7 +104,7 @@ class InsertHealth:
             started = not self._failing_since
             self._failing_since.setdefault(what, self.wall_s())
             self.failures += 1
-            self.last_error, self.last_error_code = describe(exc), error_code(str(exc))
+            self.last_error, self.last_error_code = describe(exc), code_of(exc)
             return started
 
     @property

@@ -292,7 +292,9 @@ class MemoryStore:
         writes = [r for r in self._chunks.values() if lo <= r.ts_ms < hi]
         wanted = change_feed.chunks_needing_earlier(writes, query)
         earlier: dict[tuple[int, int], tuple[int, str, str]] = {}
-        for r in self._chunks.values():
+        # The floor the retention carried (writes from days it dropped) and the kept writes.
+        kept: list[ChunkState | ChunkRow] = [*self._carried.values(), *self._chunks.values()]
+        for r in kept:
             k = (r.row, r.column)
             if r.ts_ms < lo and k in wanted and (r.ts_ms, r.robot_id) > earlier.get(k, (-1, "", ""))[:2]:
                 earlier[k] = (r.ts_ms, r.robot_id, r.content_hash)

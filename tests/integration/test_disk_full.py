@@ -1,15 +1,18 @@
 """ClickHouse's disk fills up while events flow: the service says so and loses nothing.
 
-The real pipeline (tansu, `mapservice serve`: the processors and the API over embedded
-ClickHouse) with ClickHouse's data directory on a small tmpfs of its own; poses are
+The real pipeline in both of the service's topologies over the data dir's chDB: `up`'s
+three processes (`mapservice clickhouse-server --read-write` owning the chDB directory,
+`mapservice processors`, `mapservice api` asking the processors' /history-status), and
+`serve` (processors and API in one process, as docs/production.md runs chDB). Tansu and
+amqtt as brokers; ClickHouse's data directory on a small tmpfs of its own; poses are
 published to Kafka all along (what Kafka acknowledged is what the gateway would have
 acknowledged to a robot). A filler file takes the rest of the disk: ClickHouse answers
 reads and `SELECT 1` but refuses every insert (NOT_ENOUGH_SPACE). Then:
 
-- /readyz answers 503 with `history_store` false and the reason (since when, the error),
-  /metrics has mapservice_history_insert_failing 1, /api/v1/status says the history is
-  not stored since when, and the replay UI (Chromium) shows "history not stored since
-  HH:MM:SS UTC";
+- the API's /readyz answers 503 with `history_store` false and the reason (since when,
+  the error), the processors' /metrics has mapservice_history_insert_failing 1 (the
+  alert's expression), /api/v1/status says the history is not stored since when, and the
+  replay UI (Chromium) shows "history not stored since HH:MM:SS UTC";
 - the filler removed, the processors recover by themselves (ready again, gauge 0, the
   banner gone), and every pose Kafka acknowledged, before, during and after the full
   disk, is stored once.
@@ -17,7 +20,7 @@ reads and `SELECT 1` but refuses every insert (NOT_ENOUGH_SPACE). Then:
 Mounting needs root (CAP_SYS_ADMIN); without it the test is skipped and says why. Only
 the ClickHouse directory is on the tmpfs, so the logs and the other components' files
 stay writable and what fails is what a full ClickHouse volume fails. Bounded: each wait
-is at most 60 s; about a minute on an idle machine.
+is at most 60 s; about a minute a topology on an idle machine.
 """
 
 from __future__ import annotations
@@ -65,19 +68,32 @@ def browser(module_browser):
     return module_browser
 
 
-@pytest.fixture(scope="module")
-def stack(tmp_path_factory):
+@pytest.fixture(scope="module", params=["up", "serve"])
+def stack(request, tmp_path_factory):
+    """`up`: the ClickHouse server, the processors and the API apart (as `mapservice up`
+    runs them); `serve`: processors and API in one process."""
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
-    data_dir = tmp_path_factory.mktemp("disk-full")
-    clickhouse_dir = data_dir / "clickhouse"  # where `serve` keeps embedded ClickHouse
+    data_dir = tmp_path_factory.mktemp(f"disk-full-{request.param}")
+    clickhouse_dir = data_dir / "clickhouse"  # the chDB directory, in both topologies
     mount_tmpfs(clickhouse_dir, DISK_MB)
-    stack = Stack(data_dir, mqtt="amqtt")
+    apart = request.param == "up"
+    stack = Stack(data_dir, mqtt="amqtt", apart=apart)
     try:
-        with stack.running(stack.start_brokers, stack.start_server):
+        with stack.running(stack.start_brokers, stack.start_apart if apart else stack.start_server):
             yield stack
     finally:
         unmount(clickhouse_dir)
+
+
+def processors_url(stack: Stack) -> str:
+    """Where the processors' health endpoint (/readyz, /metrics) answers: their own port
+    apart, the API's in one process."""
+    return f"http://127.0.0.1:{stack.processors_health_port}" if stack.apart else stack.api_url
+
+
+def processors_log(stack: Stack) -> str:
+    return (stack.log_dir / ("processors.log" if stack.apart else "server.log")).read_text()
 
 
 class Poses:
@@ -143,7 +159,8 @@ def until(what: str, predicate, timeout_s: float = 60, last=lambda: None):
 
 
 def gauge(stack: Stack, name: str) -> float:
-    text = httpx.get(f"{stack.api_url}/metrics", timeout=10).text
+    """The processors' gauge `name`, where the alert rule reads it (their /metrics)."""
+    text = httpx.get(f"{processors_url(stack)}/metrics", timeout=10).text
     (line,) = [ln for ln in text.splitlines() if ln.startswith(name + " ")]
     return float(line.split()[1])
 
@@ -193,6 +210,10 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         assert "free disk space" in reason
         assert gauge(stack, "mapservice_history_insert_failing") == 1.0
         since = gauge(stack, "mapservice_history_insert_failing_since_timestamp_seconds")
+        if stack.apart:  # the processors' own probe says it too; the server lives on
+            code, own = get(f"{processors_url(stack)}/readyz")
+            assert code == 503 and "NOT_ENOUGH_SPACE" in str(own), own
+            assert stack.is_alive("clickhouse"), "the ClickHouse server died of the full disk"
         assert abs(since - time.time()) < 120
         status = get(f"{api}/api/v1/status")[1]["history"]
         assert status["storing"] is False and status["failing_since_ms"] == int(since * 1000)
@@ -215,10 +236,11 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         assert gauge(stack, "mapservice_history_insert_failing") == 0.0
         assert get(f"{api}/api/v1/status")[1]["history"]["storing"] is True
         banner.wait_for(state="detached", timeout=30_000)
-        server_log = (stack.log_dir / "server.log").read_text()
+        server_log = processors_log(stack)
         assert "history not stored: inserts fail" in server_log  # once, when it began
         assert "history stored again" in server_log
         assert not page.errors  # type: ignore[attr-defined]
+        assert all(proc.poll() is None for proc in stack.procs.values()), stack.procs
         time.sleep(1)  # some poses after the recovery too
     during = poses.acked_between(full_at, freed_at)
     assert during > 50, f"only {during} poses acknowledged while the disk was full"

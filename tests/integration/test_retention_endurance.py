@@ -1,14 +1,18 @@
-"""Endurance on a simulated clock through the real pipeline (Mosquitto, gateway, Kafka,
-processors with their snapshot, repair and retention timers, API, chDB): 25 simulated days
-with the default retention of seven (three retention periods and more) in about five real
-minutes.
+"""Endurance on a simulated clock through the real pipeline as `mapservice up` runs it
+(Mosquitto, gateway, Kafka, `mapservice clickhouse-server` owning the chDB directory,
+processors with their snapshot, repair and retention timers, the API apart): 25 simulated
+days with the default retention of seven (three retention periods and more) in about five
+real minutes.
 
 Robots publish poses over MQTT at QoS 1, the floor is published once at the start and a
 pallet moves every six simulated hours, every second time rewritten 20 s later by another
-robot (a conflict). Each component is restarted along the way: the processors and API,
-the gateway, the MQTT broker and, where the stack's Kafka keeps its records across a
-restart, the Kafka broker (tansu keeps them in memory: that step is skipped with a
-warning that says so). Once a simulated day the bytes of the history's active parts are
+robot (a conflict). An operator annotates the floor through the API (a keep-out zone the
+first robot drives through, points of interest; one moved, one removed, the zone renamed
+late): the annotations are state and stand through every retention, the zone's violations
+are history and go with it. Each component is restarted along the way: the processors,
+the API, the ClickHouse server, the gateway, the MQTT broker and, where the stack's Kafka
+keeps its records across a restart, the Kafka broker (tansu keeps them in memory: that
+step is skipped with a warning that says so). Once a simulated day the bytes of the history's active parts are
 read through the API's /clickhouse (analyst SQL on system.tables): after the first
 retention period they stay flat.
 
@@ -16,8 +20,10 @@ At the end the processors and API are restarted once more with their clock slowe
 time (so the checks do not race the retention), and many instants of the retention are
 read through the API and checked against a brute-force fold of everything acknowledged:
 the map at T, the 2019 `latest=true&updatedBefore=T` listing with its pixels, the robots
-at T, the timeline and the conflicts; then, with the stack stopped, no snapshot names
-missing pixels and the days before the retention are gone.
+at T and the annotations at T; the timeline, the conflicts, the change feed and the zone
+violations of the whole retention; then, with the stack stopped, no snapshot names
+missing pixels, and the days before the retention are gone (chunk writes, zone
+violations, the removed annotation's edits) while the standing annotations' are kept.
 """
 
 from __future__ import annotations
@@ -40,7 +46,7 @@ from mapservice.settings import Settings
 from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import MAPS
 
-from .conftest import start_stack
+from .conftest import wait_for_meta
 
 DAY = 86_400_000
 HOUR = 3_600_000
@@ -52,7 +58,17 @@ POSES_PER_TURN = 6  # per robot and turn of the drive loop (~0.2 real s, ~30 sim
 CONFLICT_GAP_MS = 20_000  # within the 60 s conflict window
 # Restarts along the way (simulated day: component). "kafka" only where its broker keeps
 # its records across a restart (kafka_keeps_records).
-RESTARTS = {4.3: "server", 9.4: "gateway", 14.2: "mqtt", 19.3: "kafka"}
+RESTARTS = {4.3: "processors", 6.8: "api", 9.4: "gateway", 11.6: "clickhouse", 14.2: "mqtt",
+            19.3: "kafka"}
+# The operator's annotations (simulated day: edit), away from the API's restart. The first
+# robot drives at x 1.0-1.5 m, y 2 m (the others further right): inside the zone.
+KEEP_OUT = {"shape": "zone", "name": "wash bay", "kind": "keep_out",
+            "polygon": [[0.8, 1.7], [1.7, 1.7], [1.7, 2.3], [0.8, 2.3]]}
+DOCK = {"shape": "poi", "name": "dock", "kind": "station", "x": 5.0, "y": 3.0, "heading": 0.0}
+NOTE = {"shape": "poi", "name": "spill", "kind": "note", "x": 7.0, "y": 4.0}
+EDITS = {1.0: ("create", "zone-wash", KEEP_OUT), 1.1: ("create", "poi-dock", DOCK),
+         2.0: ("create", "poi-spill", NOTE), 3.5: ("change", "poi-dock", {**DOCK, "x": 6.0}),
+         5.5: ("remove", "poi-spill", None), 21.0: ("change", "zone-wash", {**KEEP_OUT, "name": "wash bay 2"})}
 # Storage per simulated day. After the first retention period (days RETENTION_DAYS + 2 on)
 # within FLAT_BOUND of its smallest day; once the floor was also renewed the first time (a
 # copy of its contents a week, dropped with the week: days 2 * RETENTION_DAYS + 1 on) within
@@ -104,7 +120,9 @@ def sim_stack(tmp_path_factory):
     clock = SimClock(real_now - 40 * DAY, real_now + 20_000)
     env = {**clock.env(), "MAPSERVICE_SNAPSHOT_EVERY_S": "10800",
            "MAPSERVICE_SNAPSHOT_GRACE_S": "600", "MAPSERVICE_MAX_FUTURE_SKEW_S": "7200"}
-    stack = start_stack(tmp_path_factory, "mosquitto", env)
+    stack = Stack(tmp_path_factory.mktemp("endurance"), mqtt="mosquitto", extra_env=env, apart=True)
+    stack.start(stack.start_brokers, lambda: stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml"))),
+                stack.start_apart, stack.start_gateway, lambda: wait_for_meta(stack))
     yield stack, clock
     stack.stop()
 
@@ -167,6 +185,47 @@ class Drive:
         self.client.disconnect()
 
 
+class Operator:
+    """Annotates the floor through the API as the admin (an operator may edit), remembering
+    each edit at the instant the API gave it."""
+
+    def __init__(self, stack: Stack) -> None:
+        self.url = f"{stack.api_url}/api/v1/annotations"
+        self.headers = {"Authorization": f"Bearer {stack.api_secrets().admin}"}
+        self.edits: list[tuple[int, str, str, dict | None]] = []  # ts, id, change, annotation
+
+    def edit(self, change: str, annotation_id: str, body: dict | None, clock: SimClock) -> None:
+        if change == "create":
+            r = httpx.post(self.url, json={**(body or {}), "id": annotation_id}, headers=self.headers, timeout=30)
+        elif change == "change":
+            r = httpx.put(f"{self.url}/{annotation_id}", json=body, headers=self.headers, timeout=30)
+        else:
+            r = httpx.delete(f"{self.url}/{annotation_id}", headers=self.headers, timeout=30)
+        assert r.status_code in (200, 201, 204), f"{change} {annotation_id}: {r.status_code} {r.text}"
+        if change == "remove":
+            # No body: the removal's instant is at most now. Every instant checked is days
+            # later, where that is the same fold.
+            self.edits.append((clock.now_ms(), annotation_id, change, None))
+        else:
+            doc = r.json()
+            self.edits.append((doc["changed_ms"], annotation_id, change, doc["annotation"]))
+
+    def standing_at(self, t: int) -> dict[str, tuple[dict | None, int, int]]:
+        """The brute-force fold: each annotation standing at t, with when it was created
+        and last changed."""
+        current: dict[str, tuple[dict | None, int, int]] = {}
+        for ts, annotation_id, change, doc in sorted(self.edits, key=lambda e: e[0]):
+            if ts > t:
+                break
+            if change == "create":
+                current[annotation_id] = (doc, ts, ts)
+            elif change == "change":
+                current[annotation_id] = (doc, current[annotation_id][1], ts)
+            else:
+                del current[annotation_id]
+        return current
+
+
 @pytest.mark.timeout(600)  # the issue's bound: at most ten minutes
 def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     stack, clock = sim_stack
@@ -176,6 +235,8 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     floor = slice_chunks(depot)
     meta = meta_for(depot)
     drive = Drive(stack)
+    operator = Operator(stack)
+    edits_due = dict(EDITS)
     started = time.monotonic()
     t0 = clock.now_ms()
     for (row, column), pixels in sorted(floor.items()):
@@ -206,6 +267,10 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
             day = (now - t0) / DAY
             if int(day) not in bytes_per_day and (measured := history_bytes(stack)) is not None:
                 bytes_per_day[int(day)] = measured
+            for at, (change, annotation_id, body) in list(edits_due.items()):
+                if day >= at:
+                    del edits_due[at]
+                    operator.edit(change, annotation_id, body, clock)
             for at, component in list(restarts_due.items()):
                 if day < at:
                     continue
@@ -229,7 +294,8 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     # checks below read a retention that does not move under them.
     clock = SimClock(clock.now_ms(), time.time_ns() // 1_000_000, rate=1)
     stack.extra_env.update(clock.env())
-    stack.restart("server")
+    stack.restart("processors")
+    stack.restart("api")
     api = httpx.Client(base_url=stack.api_url, timeout=30)
 
     def get(path: str, **params):
@@ -267,6 +333,12 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
         robots = {r["robotId"]: r["ts_ms"] for r in get("/api/v1/robots", at=str(t))["robots"]}
         want_robots = {r: max(ts for rr, ts in drive.poses if rr == r and ts <= t) for r in ROBOTS}
         assert {r: robots.get(r) for r in ROBOTS} == want_robots, f"robots at {format_timestamp(t)}"
+        annotations = {a["id"]: (a["annotation"], a["created_ms"], a["changed_ms"])
+                       for a in get("/api/v1/annotations", at=str(t))["annotations"]}
+        assert annotations == operator.standing_at(t), f"annotations at {format_timestamp(t)}"
+    # Created a retention and more ago: the zone and the dock stand, the dock moved.
+    assert set(operator.standing_at(lo)) == {"zone-wash", "poi-dock"}
+    assert not edits_due, f"edits not made: {edits_due}"
 
     # The timeline and the conflicts of the whole retention, against the brute force.
     buckets = RETENTION_DAYS * 4
@@ -291,6 +363,27 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     assert {(c["row"], c["column"], c["ts_ms"], c["robot_a"], c["ts_a_ms"], c["robot_b"])
             for c in conflicts["conflicts"]} == {c for c in drive.conflicts if lo <= c[2] < now}
     assert sum(want_conflicts) >= RETENTION_DAYS  # two a day: the check means something
+
+    # The change feed and the zone's violations: the history of the retention, exactly.
+    changes = get("/api/v1/changes", **{"from": str(lo), "to": str(now), "limit": "1000"})
+    assert changes["next"] is None
+    # A write that leaves its chunk's content as it was is no change (a move's first write
+    # often restores what the last conflict's second write put there).
+    want_feed, content = set(), {}
+    for w in sorted(drive.written, key=lambda w: (w.ts_ms, w.robot_id)):
+        before = content.get((w.row, w.column))
+        if lo <= w.ts_ms < now and before != w.content_hash:
+            want_feed.add((w.ts_ms, w.row, w.column, w.robot_id, w.content_hash, before))
+        content[(w.row, w.column)] = w.content_hash
+    assert {(c["ts_ms"], c["row"], c["column"], c["robot_id"], c["content_hash"], c["previous_hash"])
+            for c in changes["changes"]} == want_feed
+    assert len(want_feed) >= RETENTION_DAYS * 2  # a few a day: the check means something
+    assert all(c["kind"] == "change" for c in changes["changes"])
+    violations = get("/api/v1/zone-violations", **{"from": str(lo), "to": str(now), "limit": "100000"})
+    assert not violations["truncated"]
+    want_violations = {(ROBOTS[0], ts) for robot, ts in drive.poses if robot == ROBOTS[0] and lo <= ts < now}
+    assert {(v["robotId"], v["ts_ms"]) for v in violations["violations"]} == want_violations
+    assert {v["zoneId"] for v in violations["violations"]} == {"zone-wash"}
     api.close()
     stack.stop()
 
@@ -302,6 +395,16 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
         assert missing == 0, "a snapshot names pixels that are gone"
         (oldest,), = store._rows(f"SELECT toUnixTimestamp64Milli(min(ts)) FROM {db}.chunk_events", {})
         assert oldest >= end - (RETENTION_DAYS + 1) * DAY, "days before the retention were kept"
+        (oldest_violation, violations_kept), = store._rows(
+            f"SELECT toUnixTimestamp64Milli(min(ts)), count() FROM {db}.zone_violations", {})
+        assert violations_kept and oldest_violation >= end - (RETENTION_DAYS + 1) * DAY, (
+            "zone violations before the retention were kept")
+        kept_edits = store._rows(f"SELECT annotation_id, change FROM {db}.annotation_events FINAL "
+                                 "ORDER BY ts", {})
+        # The standing annotations keep their creation and latest edit however old; the
+        # removed one's edits went with the retention.
+        assert kept_edits == [("zone-wash", "created"), ("poi-dock", "created"),
+                              ("poi-dock", "changed"), ("zone-wash", "changed")], kept_edits
     finally:
         store.close()
 

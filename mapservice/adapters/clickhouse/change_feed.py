@@ -31,15 +31,27 @@ class ChangeFeedMixin(ClickHouseConnection):
             change_feed.chunks_needing_earlier(writes, query), lo))
 
     def _hashes_before(self, chunks: set[tuple[int, int]], before_ms: int) -> dict[tuple[int, int], str]:
-        """Per chunk, the content of its latest write (by event time, robot id) before `before_ms`."""
+        """Per chunk, the content of its latest write (by event time, robot id) before
+        `before_ms`: the kept writes, and the snapshot rows older than it of the nearest
+        valid snapshot at or before it, or else of the oldest one. The retention drops the
+        days before its anchor snapshot (at most the boundary, the window's margin may
+        start before it): a chunk last written then has its content in the snapshots only
+        (the floor carried forward)."""
         if not chunks:
             return {}
+        db = self.database
+        wanted = ("(row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
+                  "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c))")
         rows = self._rows(
+            f"WITH ifNull((SELECT maxOrNull(snap_ts) FROM {db}.snapshot_log "
+            "WHERE snap_ts <= fromUnixTimestamp64Milli({b:Int64}) "
+            f"AND snap_ts < {self._valid_before()}), (SELECT minOrNull(snap_ts) "
+            f"FROM {db}.snapshot_log WHERE snap_ts < {self._valid_before()})) AS snap "
             "SELECT row, col, lower(hex(argMax(content_hash, (ts, robot_id)))) "
-            f"FROM {self.database}.chunk_events FINAL "
-            "PREWHERE ts < fromUnixTimestamp64Milli({b:Int64}) "
-            "WHERE (row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
-            "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c)) "
+            f"FROM (SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "
+            f"WHERE snap_ts = snap AND ts < fromUnixTimestamp64Milli({{b:Int64}}) AND {wanted} "
+            f"UNION ALL SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events FINAL "
+            f"WHERE ts < fromUnixTimestamp64Milli({{b:Int64}}) AND {wanted}) "
             f"GROUP BY row, col {_FINAL_SETTINGS}",
             {"b": before_ms, "cs": sorted(chunks)},
         )

@@ -136,6 +136,15 @@ class ClickHouseConnection:
         with self._reader() as c:
             return c.query(sql, parameters=params, **query_options).result_rows
 
+    def _valid_before(self) -> str:
+        """SQL for the first instant whose snapshots may be wrong (a pending repair's
+        start), or far in the future: reads (the snapshots' own and the change feed's) use only
+        snapshots before it."""
+        # minOrNull: min() of no rows is the epoch, not NULL, which made every snapshot
+        # invalid while no repair was pending (every read folded the whole history).
+        return (f"(SELECT ifNull(minOrNull(from_ts), "
+                f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)")
+
     def _pose_query(self, sql: str, params: dict) -> list[PoseRow]:
         with self._reader() as c:
             columns = c.query(sql, parameters=params).result_columns

@@ -96,14 +96,6 @@ class SnapshotsMixin(ClickHouseConnection):
         self._insert("snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]],
                      ["from_ts", "noted"])
 
-    def _valid_before(self) -> str:
-        """SQL for the first instant whose snapshots may be wrong (a pending repair's
-        start), or far in the future: reads use only snapshots before it."""
-        # minOrNull: min() of no rows is the epoch, not NULL, which made every snapshot
-        # invalid while no repair was pending (every read folded the whole history).
-        return (f"(SELECT ifNull(minOrNull(from_ts), "
-                f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)")
-
     def repair_snapshots(self, max_snapshots: int = 144) -> int:
         """Rebuilds at most `max_snapshots` of the snapshots a late event invalidated,
         oldest first, in one bulk statement per table; returns how many. The snapshot

@@ -21,6 +21,7 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock
 from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
+from mapservice.core.change_feed import ChangeQuery
 from mapservice.core.annotations import (AnnotationChanged, AnnotationCreated, AnnotationEdit,
                                          AnnotationRemoved, PointOfInterest, Zone, fold_annotations)
 from mapservice.core.events import make_envelope
@@ -209,6 +210,20 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
     assert store.conflicts(lo, now) == sorted(
         (c for c in world.conflicts if lo <= c.ts_ms < now),
         key=lambda c: (c.ts_ms, c.row, c.column, c.robot_b))
+    # The change feed of the whole retention, each change with the chunk's content before
+    # it: for a chunk's first change in the retention, what a write now expired put there.
+    # (The mapper's floor on day 0 is an upload, one entry of its own.)
+    want_feed, content = [], {}
+    for c in sorted(world.chunks, key=lambda c: (c.ts_ms, c.robot_id)):
+        before = content.get((c.row, c.column))
+        if lo <= c.ts_ms < now and before != c.content_hash and c.robot_id != "mapper":
+            want_feed.append((c.ts_ms, c.row, c.column, c.robot_id, c.content_hash, before))
+        content[(c.row, c.column)] = c.content_hash
+    feed = store.change_feed(ChangeQuery(lo, now, limit=10_000, kind="change"))
+    got_feed = sorted((e.ts_ms, e.row, e.column, e.robot_id, e.content_hash, e.previous_hash) for e in feed)
+    assert got_feed == sorted(want_feed), (
+        f"change feed at {format_timestamp(now)}: "
+        f"{[g for g in got_feed if g not in want_feed][:3]} instead of {[w for w in want_feed if w not in got_feed][:3]}")
 
 
 def _unnamed_snapshot_pixels(store: ClickHouseStore) -> int:

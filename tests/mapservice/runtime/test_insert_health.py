@@ -6,7 +6,9 @@ from __future__ import annotations
 from datetime import datetime, UTC
 
 from mapservice.runtime.health import failing_reasons
-from mapservice.runtime.insert_health import InsertHealth, describe, error_code
+from clickhouse_connect.driver.exceptions import DatabaseError
+
+from mapservice.runtime.insert_health import InsertHealth, code_of, describe, error_code
 
 FULL = ("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. "
         "(NOT_ENOUGH_SPACE)")
@@ -71,6 +73,25 @@ def test_errors_without_a_clickhouse_code_name_their_type_and_are_cut_short() ->
     health.failed(ConnectionError("connection refused"))
     assert health.reason().endswith("ConnectionError: connection refused; the processors keep "
                                     "retrying and commit nothing unstored")
+
+
+def test_a_full_disk_over_clickhouse_http_says_what_to_do_like_embedded() -> None:
+    """`mapservice up` inserts through the ClickHouse server: clickhouse-connect's error
+    carries the code's name and ends its message with "(for url ...)". The reason still
+    names NOT_ENOUGH_SPACE first and says to free disk space."""
+    body = ("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space: While "
+            "executing SinkToStorage. (NOT_ENOUGH_SPACE) (version 25.8.2.1)")
+    url = "http://127.0.0.1:50837?query=INSERT+INTO+mapservice.poses"
+    over_http = DatabaseError(f"Received ClickHouse exception, code: 243, server response: {body} "
+                              f"(for url {url})", code=243, name="NOT_ENOUGH_SPACE")
+    as_text = RuntimeError(f"server response: {FULL} (for url {url})")
+    for exc in (over_http, as_text):
+        assert code_of(exc) == "NOT_ENOUGH_SPACE"
+        assert describe(exc).startswith("NOT_ENOUGH_SPACE: ")
+        health = InsertHealth(Wall(T0))
+        health.failed(exc)
+        assert "; free disk space where ClickHouse keeps its data; " in health.reason()
+    assert code_of(DatabaseError("HTTP driver received HTTP status 502", name=None)) is None
 
 
 def test_failing_reasons_come_from_failed_checks_that_can_explain() -> None:
