@@ -60,7 +60,9 @@ export function errorMarks(vehicles: VdaVehicle[]): ErrorMark[] {
       active = new Set(errs.map(errorKey));
     }
   }
-  return marks.sort((a, b) => a.ts_ms - b.ts_ms || a.robotId.localeCompare(b.robotId));
+  // Warnings first at one instant: a fatal error's mark is drawn over them.
+  const rank = (m: ErrorMark) => (m.level === "WARNING" ? 0 : 1);
+  return marks.sort((a, b) => a.ts_ms - b.ts_ms || rank(a) - rank(b) || a.robotId.localeCompare(b.robotId));
 }
 
 /** The vehicle's errors and warnings active at `t` (fatal ones first). */
