@@ -9,6 +9,9 @@ import type { FleetRow } from "../lib/fleet";
 import { connectionAt, errorMarks, errorsAt, fleetFacts, isVehicleId, vehicleFacts, type ErrorMark, type VdaVehicle } from "../lib/vda";
 
 const FLEET_WINDOW_MS = 3_600_000;
+/** Marks only for spans up to this long: a longer one would read every vehicle state of
+ * days (the clears) on each zoom; zoom in to see them. */
+export const MARKS_MAX_SPAN_MS = 6 * 3_600_000;
 const REREAD_MS = 2_000;
 
 export function useVdaFacts(base: () => string) {
@@ -25,6 +28,10 @@ export function useVdaFacts(base: () => string) {
     const key = `${Math.floor(from / REREAD_MS)}:${Math.floor(to / REREAD_MS)}`;
     if (key === marksFor) return;
     marksFor = key;
+    if (to - from > MARKS_MAX_SPAN_MS) {
+      marks.value = [];
+      return;
+    }
     try {
       marks.value = errorMarks(await fleetFacts(base(), from, to));
     } catch {
