@@ -244,13 +244,15 @@ def _robot_identity(args) -> None:
     """`robot add|remove|list`: the broker's password file and ACL (or EMQX's built-in
     database with --emqx), one user per robot."""
     from mapservice.adapters.emqx_users import EmqxError
+    from mapservice.adapters.mqtt_auth import is_master_control
 
     try:
         settings, files = _broker_files(args)
         if args.robot_command == "list":
             legacy = set(files.legacy_robots())
             for robot in files.robots():
-                print(robot + ("  (may also use the 2019 chunk topic)" if robot in legacy else ""))
+                print(robot + ("  (may also use the 2019 chunk topic)" if robot in legacy else
+                               "  (VDA 5050 master control)" if is_master_control(robot) else ""))
             return
         if args.robot_command == "remove":
             if not files.remove_robot(args.robot_id_arg):
@@ -274,6 +276,19 @@ def _robot_identity(args) -> None:
                           "legacyChunkTopic": cred.legacy_chunks,
                           "storedIn": _where(files)},
                          indent=2))
+        return
+    if "masterControl" in cred.topics:
+        print(f"""VDA 5050 master control {cred.username}: MQTT credential \
+{"rotated" if args.rotate else "created"} (the password is shown only now)
+
+  username   {cred.username}
+  password   {cred.password}
+  broker     {broker}
+
+  It publishes {cred.topics["publishes"]} (to every vehicle)
+  and reads    {cred.topics["reads"]}; anything else the broker refuses.
+
+Written: {_where(files)}; {reload}.""")
         return
     if "publishes" in cred.topics:  # a VDA 5050 vehicle
         print(f"""VDA 5050 vehicle {cred.username} (robot {cred.topics["robotId"]}): MQTT credential \
@@ -420,7 +435,8 @@ def add_parsers(sub) -> None:
         if name != "list":
             cmd.add_argument("robot_id_arg", metavar="robotId",
                              help="the robot's id, its MQTT username (1-64 of A-Z a-z 0-9 _ . : @ -); "
-                                  "a VDA 5050 vehicle's is <manufacturer>/<serialNumber>")
+                                  "a VDA 5050 vehicle's is <manufacturer>/<serialNumber>, a VDA 5050 "
+                                  "master control's mapservice-master-<name> (it may order every vehicle)")
         cmd.add_argument("--data-dir", default=None,
                          help="data dir whose mqtt/passwd and mqtt/acl the local Mosquitto reads "
                               "(default: MAPSERVICE_DATA_DIR, else .mapservice-data)")

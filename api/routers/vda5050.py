@@ -1,5 +1,6 @@
-"""A VDA 5050 vehicle's facts beyond its poses: errors and warnings, connection states
-(exact online/offline instants) and its latest factsheet."""
+"""A VDA 5050 vehicle's facts beyond its poses: errors and warnings (and the states that
+cleared them), connection states (exact online/offline instants) and its latest factsheet;
+one vehicle's, or the fleet's of a window (the replay UI's timeline marks and fleet panel)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, VdaReader
+from mapservice.core.ports import Clock, VdaFacts, VdaReader
 from mapservice.core.vda_ids import vehicle_of
 from mapservice.core.wire2019 import format_timestamp
 from mapservice.settings import Settings
@@ -22,6 +23,9 @@ router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depen
 StoreDep = Annotated[VdaReader, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ClockDep = Annotated[Clock, Depends(get_clock)]
+FromQuery = Annotated[str | None, Query(alias="from", description=(
+    "Window start (ISO 8601 or epoch ms); default: the retention's start"))]
+ToQuery = Annotated[str | None, Query(description="Window end; default now")]
 
 
 class VdaErrorOut(BaseModel):
@@ -53,6 +57,8 @@ class VdaVehicle(BaseModel):
     errors: list[VdaErrorOut]
     connections: list[VdaConnectionOut]
     factsheet: VdaFactsheetOut | None
+    # States without errors after a state with some: the errors end there.
+    errorClears: list[int] = []
 
 
 @router.get("/{robot_id}/vda5050", operation_id="getVdaVehicle", response_model=VdaVehicle)
@@ -62,9 +68,8 @@ def get_vda_vehicle(
     clock: ClockDep,
     robot_id: Annotated[str, Path(max_length=64, description=(
         "A VDA 5050 vehicle's robot id: <manufacturer>:<serialNumber>, escaped"))],
-    from_: Annotated[str | None, Query(alias="from", description=(
-        "Window start (ISO 8601 or epoch ms); default: the retention's start"))] = None,
-    to: Annotated[str | None, Query(description="Window end; default now")] = None,
+    from_: FromQuery = None,
+    to: ToQuery = None,
 ) -> VdaVehicle:
     names = vehicle_of(robot_id)
     if names is None:
@@ -73,7 +78,33 @@ def get_vda_vehicle(
     now = clock.now_ms()
     f, t = window_in_retention(from_ or str(now - settings.retention_ms + 60_000),
                                to or str(now + 1), settings.retention_ms + 120_000, settings, now)
-    facts = store.vda_facts(robot_id, f, t)
+    return _vehicle(robot_id, names, store.vda_facts(robot_id, f, t))
+
+
+
+@router.get("/vda5050", operation_id="getVdaFleet", response_model=list[VdaVehicle])
+def get_vda_fleet(
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+    from_: FromQuery = None,
+    to: ToQuery = None,
+    limit: Annotated[int, Query(ge=1, le=10_000, description=(
+        "At most this many errors, clears and connection states per vehicle"))] = 2_000,
+) -> list[VdaVehicle]:
+    """Every VDA 5050 vehicle with an error, a clear or a connection state in the window."""
+    now = clock.now_ms()
+    f, t = window_in_retention(from_ or str(now - settings.retention_ms + 60_000),
+                               to or str(now + 1), settings.retention_ms + 120_000, settings, now)
+    out = []
+    for robot_id, facts in store.vda_fleet_facts(f, t, limit).items():
+        names = vehicle_of(robot_id)
+        if names is not None:
+            out.append(_vehicle(robot_id, names, facts))
+    return out
+
+
+def _vehicle(robot_id: str, names: tuple[str, str], facts: VdaFacts) -> VdaVehicle:
     sheet = facts.factsheet
     return VdaVehicle(
         robotId=robot_id, manufacturer=names[0], serialNumber=names[1],
@@ -83,4 +114,5 @@ def get_vda_vehicle(
         connections=[VdaConnectionOut(timestamp=format_timestamp(c.ts_ms), ts_ms=c.ts_ms,
                                       state=c.state, sent_ms=c.sent_ms) for c in facts.connections],
         factsheet=VdaFactsheetOut(ts_ms=sheet.ts_ms, vda_version=sheet.vda_version,
-                                  factsheet=json.loads(sheet.factsheet)) if sheet else None)
+                                  factsheet=json.loads(sheet.factsheet)) if sheet else None,
+        errorClears=facts.error_clears)

@@ -11,7 +11,7 @@ from urllib.parse import quote
 
 import httpx
 
-from .mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, AclTopics, RobotCredential, check_robot_id,
+from .mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, AclTopics, RobotCredential, check_identity,
                         new_password)
 
 AUTHENTICATOR = "password_based:built_in_database"
@@ -59,7 +59,7 @@ class EmqxUsers:
     def add_robot(self, robot_id: str, *, legacy_chunks: bool = False, rotate: bool = False,
                   password: str | None = None) -> RobotCredential:
         """Creates the robot's user (or, with `rotate`, gives it a new password)."""
-        check_robot_id(robot_id, self.service_users)
+        check_identity(robot_id, self.service_users)
         if legacy_chunks:
             raise EmqxError("EMQX's ACL is a file in the ConfigMap mapservice-emqx-acl: allow a "
                             "robot the 2019 chunk topic there (the file says how)")
@@ -82,7 +82,7 @@ class EmqxUsers:
     def remove_robot(self, robot_id: str) -> bool:
         """Deletes the robot's user; False when it had none. EMQX keeps a connected
         client connected: kick it from the dashboard (Clients) if it must go at once."""
-        check_robot_id(robot_id, self.service_users)
+        check_identity(robot_id, self.service_users)
         resp = self._call("DELETE", f"{self._users}/{quote(robot_id, safe='')}")
         if resp.status_code == 404:
             return False

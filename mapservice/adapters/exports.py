@@ -2,7 +2,8 @@
 by ClickHouse itself from the analysts' views) and as MCAP (Foxglove and Lichtblick replay
 it: the map as a `foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned
 path as `foxglove.PosesInFrame` and its battery, charging and loaded flags as a JSON channel
-whose JSON schema states the units).
+whose JSON schema states the units; a VDA 5050 vehicle's errors and warnings and its
+connection state as JSON channels too).
 
 May depend on: the ports and the analyst schema; the store's ClickHouse client for tables."""
 
@@ -49,6 +50,14 @@ def path_topic(robot_id: str) -> str:
     return f"/robots/{robot_id}/planned_path"
 
 
+def errors_topic(robot_id: str) -> str:
+    return f"/robots/{robot_id}/errors"
+
+
+def connection_topic(robot_id: str) -> str:
+    return f"/robots/{robot_id}/connection"
+
+
 STATE_SCHEMA_NAME = "mapservice.RobotState"
 # The state channel's JSON schema (JSON Schema draft 2020-12, as Foxglove reads it).
 STATE_SCHEMA = {
@@ -70,6 +79,47 @@ STATE_SCHEMA = {
     },
     "required": ["battery_level", "battery_percent", "charging", "loaded"],
 }
+
+
+ERRORS_SCHEMA_NAME = "mapservice.VdaErrors"
+# A VDA 5050 vehicle's active errors and warnings, sent with each state that has some and
+# with the first state without (an empty list): the latest message is what is active.
+ERRORS_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": ERRORS_SCHEMA_NAME,
+    "description": "A VDA 5050 vehicle's active errors and warnings (state.errors) from this "
+                   "instant until the next message",
+    "type": "object",
+    "properties": {
+        "count": {"type": "integer", "minimum": 0, "description": "number of active errors"},
+        "fatal": {"type": "integer", "minimum": 0, "description": "those not WARNING"},
+        "errors": {"type": "array", "items": {"type": "object", "properties": {
+            "level": {"type": "string", "description": "WARNING or FATAL (3.0: also URGENT, CRITICAL)"},
+            "type": {"type": "string", "description": "the vehicle's errorType"},
+            "description": {"type": "string", "description": "the vehicle's errorDescription"},
+        }, "required": ["level", "type", "description"]}},
+    },
+    "required": ["count", "fatal", "errors"],
+}
+
+CONNECTION_SCHEMA_NAME = "mapservice.VdaConnection"
+CONNECTION_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": CONNECTION_SCHEMA_NAME,
+    "description": "A VDA 5050 vehicle's connection state from this instant on (log time: "
+                   "the message's timestamp; for CONNECTIONBROKEN, the broker's last will, "
+                   "when the gateway received it)",
+    "type": "object",
+    "properties": {
+        "state": {"type": "string", "enum": ["ONLINE", "OFFLINE", "CONNECTIONBROKEN"]},
+        "online": {"type": "boolean", "description": "state is ONLINE"},
+        "sent_ms": {"type": "integer", "description": "the message's own timestamp, ms since "
+                                                     "the epoch (the last will's: connect time)"},
+    },
+    "required": ["state", "online", "sent_ms"],
+}
+_JSON_SCHEMAS = {STATE_SCHEMA_NAME: STATE_SCHEMA, ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
+                 CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA}
 
 
 def battery_percent(level: float | None) -> float | None:
@@ -102,6 +152,8 @@ class McapCounts:
     chunk_changes: int = 0
     states: int = 0
     paths: int = 0
+    vda_errors: int = 0  # messages on the errors channels (a clear is one)
+    vda_connections: int = 0
 
 
 class _McapOut:
@@ -122,7 +174,7 @@ class _McapOut:
             if schema not in self._schemas:
                 self._schemas[schema] = register()
             channel = self._channels[topic] = self.writer.register_channel(
-                topic=topic, message_encoding="json" if schema == STATE_SCHEMA_NAME else "protobuf",
+                topic=topic, message_encoding="json" if schema in _JSON_SCHEMAS else "protobuf",
                 schema_id=self._schemas[schema])
         return channel
 
@@ -133,9 +185,9 @@ class _McapOut:
                                 lambda: register_schema(self.writer, type(message)))
         self._add(channel, message.SerializeToString(), ts_ms)
 
-    def state(self, topic: str, doc: dict, ts_ms: int) -> None:
-        channel = self._channel(topic, STATE_SCHEMA_NAME, lambda: self.writer.register_schema(
-            name=STATE_SCHEMA_NAME, encoding="jsonschema", data=json.dumps(STATE_SCHEMA).encode()))
+    def json(self, topic: str, schema: str, doc: dict, ts_ms: int) -> None:
+        channel = self._channel(topic, schema, lambda: self.writer.register_schema(
+            name=schema, encoding="jsonschema", data=json.dumps(_JSON_SCHEMAS[schema]).encode()))
         self._add(channel, json.dumps(doc, separators=(",", ":")).encode(), ts_ms)
 
     def _add(self, channel: int, data: bytes, ts_ms: int) -> None:
@@ -215,6 +267,24 @@ def _state_doc(row: PoseRow) -> dict:
             "charging": row.charging, "loaded": row.loaded}
 
 
+def _vda_messages(store: HistoryStore, from_ms: int, to_ms: int) -> list[tuple[int, str, str, dict]]:
+    """The window's VDA 5050 errors (one message per error instant and per clear) and
+    connection states, as (log time, topic, schema name, document), in time order."""
+    out: list[tuple[int, str, str, dict]] = []
+    for robot_id, facts in store.vda_fleet_facts(from_ms, to_ms, limit=1_000_000).items():
+        instants: dict[int, list[dict]] = {t: [] for t in facts.error_clears}
+        for e in facts.errors:
+            instants.setdefault(e.ts_ms, []).append(
+                {"level": e.level, "type": e.type, "description": e.description})
+        out += [(t, errors_topic(robot_id), ERRORS_SCHEMA_NAME, {
+            "count": len(errs), "fatal": sum(e["level"] != "WARNING" for e in errs), "errors": errs})
+            for t, errs in instants.items()]
+        out += [(c.ts_ms, connection_topic(robot_id), CONNECTION_SCHEMA_NAME,
+                 {"state": c.state, "online": c.state == "ONLINE", "sent_ms": c.sent_ms})
+                for c in facts.connections]
+    return sorted(out, key=lambda m: (m[0], m[1]))
+
+
 def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
     """Every pose of the window, page by page (a page never splits one instant's robots)."""
     cursor = from_ms
@@ -237,7 +307,8 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
     """Writes the window as MCAP: the map at `from_ms`, again after chunk changes (at most
     one grid per `grid_every_ms`, and the last state), every pose with its state (battery,
     charging, loaded), and each robot's planned path when it changes (an empty path when
-    the robot drops it). Returns the counts."""
+    the robot drops it), and VDA 5050 vehicles' errors and connection states. Returns the
+    counts."""
     meta = store.latest_meta()
     if meta is None:
         raise ValueError("no map geometry is set yet (the 2019 meta); nothing to export")
@@ -246,14 +317,30 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
     floor.apply([(c.row, c.column, c.content_hash) for c in store.map_at(from_ms)])
     writer = _McapOut(out)
     paths: dict[str, tuple | None] = {}
+    vda = _vda_messages(store, from_ms, to_ms)
+    vda_next = 0
+
+    def write_vda(until_ms: int) -> None:
+        """The VDA messages before `until_ms` not yet written (log times stay in order)."""
+        nonlocal vda_next
+        while vda_next < len(vda) and vda[vda_next][0] < until_ms:
+            ts_ms, topic, schema, doc = vda[vda_next]
+            writer.json(topic, schema, doc, ts_ms)
+            if schema == ERRORS_SCHEMA_NAME:
+                counts.vda_errors += 1
+            else:
+                counts.vda_connections += 1
+            vda_next += 1
 
     def write_grid(ts_ms: int) -> None:
+        write_vda(ts_ms)
         writer.protobuf(MAP_TOPIC, floor.grid(ts_ms), ts_ms)
         counts.grids += 1
 
     def write_pose(row: PoseRow) -> None:
+        write_vda(row.ts_ms)
         writer.protobuf(pose_topic(row.robot_id), _pose_message(row), row.ts_ms)
-        writer.state(state_topic(row.robot_id), _state_doc(row), row.ts_ms)
+        writer.json(state_topic(row.robot_id), STATE_SCHEMA_NAME, _state_doc(row), row.ts_ms)
         counts.poses += 1
         counts.states += 1
         path = tuple(row.path) if row.path else None
@@ -293,5 +380,6 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
     if pending:
         floor.apply(pending)
         write_grid(max(last_grid_ms, to_ms - 1))
+    write_vda(to_ms)
     writer.finish()
     return counts

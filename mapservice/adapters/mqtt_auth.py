@@ -6,7 +6,9 @@ ACL lets a user publish only on topics that name it (`iot/coordinates/<username>
 what the gateway consumes and publish the advertisements. The 2019 chunk topic
 (`iot/chunks/create`) names no robot, so it is closed to robots unless an operator opens
 it for a named robot (`legacy_chunks`), which then may write chunks under any robotId,
-as in 2019.
+as in 2019. A master control (a username `mapservice-master-<name>`) publishes `order` and
+`instantActions` to every VDA 5050 vehicle and reads all their state, visualization,
+connection and factsheet messages; vehicles still read only their own orders.
 
 The files are Mosquitto's own formats (`password_file`, `acl_file`), written here without
 `mosquitto_passwd` so that the production image needs no Mosquitto: passwords are hashed
@@ -39,6 +41,12 @@ _ROBOT_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")  # the gateway's robotId rule 
 # A VDA 5050 manufacturer or serial number as a level of a vehicle's username and topics.
 _VEHICLE_NAME = re.compile(r"[^/+#:\x00-\x1f\x7f]{1,64}")
 LEGACY_MARKER = "# --- robots allowed the 2019 chunk topic"
+MASTER_MARKER = "# --- VDA 5050 master controls"
+# A master control's username: under the service's reserved prefix, which no robot or
+# vehicle may use (check_robot_id), so it never names a robot's topics.
+MASTER_PREFIX = "mapservice-master-"
+_MASTER = re.compile(re.escape(MASTER_PREFIX) + r"[A-Za-z0-9_.-]{1,40}")
+MASTER_WRITES = ("order", "instantActions")
 
 
 def new_password() -> str:
@@ -80,6 +88,16 @@ def vehicle_of_username(username: str) -> tuple[str, str] | None:
         _VEHICLE_NAME.fullmatch(serial) else None
 
 
+def is_master_control(username: str) -> bool:
+    return username.startswith(MASTER_PREFIX)
+
+
+def check_master_control(username: str) -> None:
+    if not _MASTER.fullmatch(username):
+        raise ValueError(f"master control {username[:80]!r}: the username is {MASTER_PREFIX}<name>, "
+                         "the name 1-40 characters of A-Z a-z 0-9 _ . -")
+
+
 def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
     """A robot's MQTT username is its robotId: the gateway's rule, and no service user's name;
     a VDA 5050 vehicle's is `<manufacturer>/<serialNumber>`, its topics' two levels."""
@@ -105,6 +123,14 @@ def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER
         # id (mapservice-gateway-0) could take over that gateway's session.
         raise ValueError(f"robot ids starting with {RESERVED_PREFIX!r} are reserved for the "
                          "service's own clients")
+
+
+def check_identity(username: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
+    """A robot's, a vehicle's or a master control's MQTT username (robot add/remove)."""
+    if is_master_control(username):
+        check_master_control(username)
+    else:
+        check_robot_id(username, service_users)
 
 
 @dataclass(frozen=True)
@@ -133,6 +159,10 @@ class AclTopics:
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
+        if is_master_control(robot_id):
+            base = f"{self.vda_interface}/+/+/+/"
+            return {"publishes": base + "{" + ",".join(MASTER_WRITES) + "}",
+                    "reads": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}", "masterControl": "yes"}
         if (names := vehicle_of_username(robot_id)) is not None:
             base = f"{self.vda_interface}/<v2|v3>/{names[0]}/{names[1]}/"
             return {"publishes": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
@@ -146,9 +176,11 @@ class AclTopics:
 
 
 def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
-               gateway_user: str = GATEWAY_USER, processors_user: str = PROCESSORS_USER) -> str:
-    """Mosquitto's acl_file: `%u` patterns for every robot, the service's users, and the
-    robots an operator allowed on the 2019 chunk topic. Anything not listed is denied."""
+               gateway_user: str = GATEWAY_USER, processors_user: str = PROCESSORS_USER,
+               master_controls: list[str] = ()) -> str:
+    """Mosquitto's acl_file: `%u` patterns for every robot, the service's users, the VDA
+    5050 master controls, and the robots an operator allowed on the 2019 chunk topic.
+    Anything not listed is denied."""
     lines = [
         "# Mosquitto acl_file for mapservice, written by `mapservice robot add/remove`:",
         "# edits between the markers are overwritten. Anything not allowed here is denied.",
@@ -187,12 +219,30 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"topic write {topics.advertisement_topic}",
         f"topic write {topics.zone_advertisement_topic}",
         "",
+        f"{MASTER_MARKER} (each orders every vehicle and reads all their messages;",
+        "# `mapservice robot add mapservice-master-<name>`) ---",
+    ]
+    for master in sorted(set(master_controls)) if topics.vda_interface else ():
+        lines += [f"user {master}",
+                  *(f"topic write {topics.vda_interface}/+/+/+/{sub}" for sub in MASTER_WRITES),
+                  *(f"topic read {topics.vda_interface}/+/+/+/{sub}" for sub in VDA5050_SUBTOPICS)]
+    lines += [
+        "",
         f"{LEGACY_MARKER} ({topics.legacy_chunk_topic}, which names no robot: such a",
         "# robot may write chunks under any robotId; `mapservice robot add --legacy-chunks`) ---",
     ]
     for robot in sorted(set(legacy_robots)):
         lines += [f"user {robot}", f"topic write {topics.legacy_chunk_topic}"]
     return "\n".join(lines) + "\n"
+
+
+def master_controls_in(acl_text: str) -> list[str]:
+    """The master controls a rendered ACL names."""
+    if MASTER_MARKER not in acl_text:
+        return []
+    section = acl_text.split(MASTER_MARKER, 1)[1].split(LEGACY_MARKER, 1)[0]
+    return [line.split(None, 1)[1].strip() for line in section.splitlines()
+            if line.startswith("user ")]
 
 
 def legacy_robots_in(acl_text: str) -> list[str]:
@@ -275,15 +325,21 @@ class BrokerFiles:
     def _write(self, users: dict[str, str], legacy: list[str]) -> None:
         # 0600 when the file holds only hashes: Mosquitto warns about readable password files.
         _write_atomically(self.password_file, "".join(f"{u}:{h}\n" for u, h in users.items()), 0o600)
+        # The master controls are the users under their prefix: the ACL follows the users.
+        masters = [u for u in users if is_master_control(u)]
         _write_atomically(self.acl_file, render_acl(self.topics, legacy, self.gateway_user,
-                                                    self.processors_user), 0o644)
+                                                    self.processors_user, masters), 0o644)
 
     def _legacy(self) -> list[str]:
         return legacy_robots_in(self.acl_file.read_text()) if self.acl_file.exists() else []
 
     def robots(self) -> list[str]:
-        """Robot users (every user but the service's), in file order."""
+        """Robot users (every user but the service's), in file order; master controls too
+        (`master_controls()` says which)."""
         return [u for u in read_password_file(self.password_file) if u not in self.service_users]
+
+    def master_controls(self) -> list[str]:
+        return master_controls_in(self.acl_file.read_text()) if self.acl_file.exists() else []
 
     def legacy_robots(self) -> list[str]:
         return self._legacy()
@@ -304,10 +360,11 @@ class BrokerFiles:
     def add_robot(self, robot_id: str, *, legacy_chunks: bool = False, rotate: bool = False,
                   password: str | None = None) -> RobotCredential:
         """Adds a robot user (or, with `rotate`, gives an existing one a new password) and
-        returns its credential; the password is not stored anywhere but as a hash."""
-        check_robot_id(robot_id, self.service_users)
-        if legacy_chunks and vehicle_of_username(robot_id):
-            raise ValueError("--legacy-chunks is for 2019 robots, not VDA 5050 vehicles")
+        returns its credential; the password is not stored anywhere but as a hash. A
+        username `mapservice-master-<name>` is a VDA 5050 master control's."""
+        check_identity(robot_id, self.service_users)
+        if legacy_chunks and (vehicle_of_username(robot_id) or is_master_control(robot_id)):
+            raise ValueError("--legacy-chunks is for 2019 robots, not VDA 5050 vehicles or master controls")
         password = password or new_password()
         with self._locked():
             users = read_password_file(self.password_file)
@@ -324,7 +381,7 @@ class BrokerFiles:
 
     def remove_robot(self, robot_id: str) -> bool:
         """Removes a robot's user (it can no longer connect once the broker reloaded)."""
-        check_robot_id(robot_id, self.service_users)
+        check_identity(robot_id, self.service_users)
         with self._locked():
             users = read_password_file(self.password_file)
             legacy = self._legacy()

@@ -171,6 +171,10 @@ class VdaFacts(msgspec.Struct, frozen=True, gc=False):
     errors: list[VdaErrorRow]
     connections: list[VdaConnectionRow]
     factsheet: VdaFactsheetRow | None  # the latest before `to`
+    # States without errors right after a state with some: the errors of a state hold
+    # until the next state, so these end them (the errors at T are those of the latest
+    # error instant or clear at or before T).
+    error_clears: list[int] = []
 
 
 class ChangeFeed(Protocol):
@@ -330,6 +334,10 @@ class VdaReader(Protocol):
 
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         """A VDA 5050 vehicle's errors, connection states and latest factsheet."""
+
+    def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
+        """Every VDA 5050 vehicle's facts of the window (each at most `limit` rows a kind),
+        by robot id: those with an error, clear or connection state in it."""
 
 
 class LegacyQueries(Protocol):

@@ -67,6 +67,7 @@ class MemoryStore:
         self._vda_errors: dict[tuple, VdaErrorRow] = {}
         self._vda_connections: dict[tuple, VdaConnectionRow] = {}
         self._vda_factsheets: dict[tuple, VdaFactsheetRow] = {}
+        self._vda_error_counts: dict[tuple[str, int], int] = {}  # per state (vda_states)
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
         self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
         self._commands: dict[tuple[int, str], StoredCommandEvent] = {}  # (time, event id)
@@ -137,6 +138,7 @@ class MemoryStore:
     def _append_vda(self, e: Envelope) -> None:
         p, at, robot = e.payload, e.event_time_ms, e.robot_id
         if isinstance(p, VdaStateReported):
+            self._vda_error_counts[(robot, at)] = len(p.errors)
             for err in p.errors:
                 self._vda_errors[(robot, at, err.level, err.type, err.description)] = VdaErrorRow(
                     at, err.level, err.type, err.description)
@@ -150,9 +152,18 @@ class MemoryStore:
             return [v for k, v in sorted(rows.items()) if k[0] == robot_id and from_ms <= k[1] < to_ms]
         sheets = [v for k, v in sorted(self._vda_factsheets.items())
                   if k[0] == robot_id and k[1] < to_ms]
+        counts = sorted((k[1], n) for k, n in self._vda_error_counts.items() if k[0] == robot_id)
+        clears = [t for (_, before), (t, n) in zip(counts, counts[1:], strict=False)
+                  if n == 0 and before > 0 and from_ms <= t < to_ms]
         return VdaFacts(errors=within(self._vda_errors)[:limit],
                         connections=within(self._vda_connections)[:limit],
-                        factsheet=sheets[-1] if sheets else None)
+                        factsheet=sheets[-1] if sheets else None, error_clears=clears[:limit])
+
+    def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
+        robots = {k[0] for rows in (self._vda_errors, self._vda_connections, self._vda_error_counts)
+                  for k in rows if from_ms <= k[1] < to_ms}
+        facts = {r: self.vda_facts(r, from_ms, to_ms, limit) for r in sorted(robots)}
+        return {r: f for r, f in facts.items() if f.errors or f.connections or f.error_clears}
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         with self._lock:

@@ -138,3 +138,31 @@ def test_a_vda_vehicles_facts(ev) -> None:
     assert early["online"] is True and early["errors"] == []
     missing = client.get("/api/v1/robots/plain-robot/vda5050")
     assert missing.status_code == 404 and "manufacturer" in missing.json()["detail"]
+
+
+def test_the_vda_fleets_facts() -> None:
+    """/api/v1/robots/vda5050: every vehicle with facts in the window, its errors and the
+    state that cleared them, its online state and factsheet; 2019 robots are not in it."""
+    from mapservice.core.events import decode
+    from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
+    from tests.fixtures import vda5050 as vda
+
+    router, store = Router(Settings(), "gw"), MemoryStore()
+    for m, s, subtopic, msg in [
+            ("Acme", "1", "state", vda.state("2.0.0", "Acme", "1", NOW - 7_000,
+                                             errors=(("WARNING", "lowBattery", "charge me"),))),
+            ("Acme", "1", "state", vda.state("2.0.0", "Acme", "1", NOW - 6_000)),
+            ("Beta", "2", "factsheet", vda.factsheet("2.0.0", "Beta", "2", NOW - 6_000)),
+            ("Beta", "2", "connection", vda.connection("2.0.0", "Beta", "2", NOW - 5_000, "OFFLINE"))]:
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), NOW - 5_000, Limits())
+        store.append([decode(record.value)])
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW)))
+    body = {v["robotId"]: v for v in client.get("/api/v1/robots/vda5050").json()}
+    assert sorted(body) == ["Acme:1", "Beta:2"]
+    assert [(e["level"], e["type"], e["description"], e["ts_ms"]) for e in body["Acme:1"]["errors"]] == [
+        ("WARNING", "lowBattery", "charge me", NOW - 7_000)]
+    assert body["Acme:1"]["errorClears"] == [NOW - 6_000] and body["Acme:1"]["online"] is None
+    assert body["Beta:2"]["online"] is False and body["Beta:2"]["factsheet"]["factsheet"]["manufacturer"] == "Beta"
+    assert client.get("/api/v1/robots/vda5050", params={"to": NOW - 6_500}).json()[0]["errorClears"] == []
+    assert client.get("/api/v1/robots/vda5050", params={"limit": 0}).status_code == 422

@@ -297,6 +297,18 @@ def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
     assert not emqx_allows(rules, "Acme/001", "subscribe", "uagv/#")
     for bad in ("Acme/+", "#/1", "a/b/c"):
         assert not emqx_allows(rules, bad, "publish", "uagv/v2/Acme/001/state"), bad
+    # A master control orders every vehicle and reads their messages, and nothing else.
+    master = "mapservice-master-plant"
+    for serial in ("001", "002"):
+        for sub in ("order", "instantActions"):
+            assert emqx_allows(rules, master, "publish", f"uagv/v2/Acme/{serial}/{sub}")
+        assert not emqx_allows(rules, master, "publish", f"uagv/v2/Acme/{serial}/state")
+    for sub in ("state", "visualization", "connection", "factsheet"):
+        assert emqx_allows(rules, master, "subscribe", f"uagv/+/+/+/{sub}")
+    assert not emqx_allows(rules, master, "subscribe", "uagv/#")
+    assert not emqx_allows(rules, master, "subscribe", "uagv/+/+/+/order")
+    assert not emqx_allows(rules, master, "publish", f"{coordinates}{master}")
+    assert not emqx_allows(rules, "mapservice-master-a/b", "publish", "uagv/v2/Acme/001/order")
     # A username with wildcards or slashes renders no topic filter it could abuse.
     for bad in ("#", "+", "a/b"):
         assert not emqx_allows(rules, bad, "publish", f"{coordinates}someone-else")

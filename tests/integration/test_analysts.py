@@ -24,6 +24,7 @@ from mapservice.local.stack import Stack
 from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import ROOT
+from tests.fixtures import vda5050 as vda
 from tests.mapservice.sql.attacks import ATTACKS
 
 from .test_pipeline import publish_all
@@ -34,15 +35,17 @@ GUIDE = ROOT / "docs" / "analysts.md"
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     """Six hours of three simulated robots, then brokers, `serve` and the gateway; one
-    message the gateway refuses (so the dead-letter example has a row), and a pose inside a
-    keep-out zone drawn through the API (so the keep-out example has one)."""
+    message the gateway refuses (so the dead-letter example has a row), a pose inside a
+    keep-out zone drawn through the API (so the keep-out example has one), and a VDA 5050
+    vehicle that comes online, sends its factsheet, reports an error and loses its
+    connection (the vehicle examples)."""
     data_dir = tmp_path_factory.mktemp("analysts") / ".mapservice-data"
     subprocess.run([sys.executable, "-m", "mapservice.cli", "demo-history", "--data-dir",
                     str(data_dir), "--days", "0.25", "--robots", "3"], check=True, timeout=300,
                    capture_output=True)
     stack = Stack(data_dir, mqtt="mosquitto")
     with stack.running():
-        publish_all(stack, [("iot/coordinates/sim-000", b"{not json")])
+        publish_all(stack, [("iot/coordinates/sim-000", b"{not json")] + vda_vehicle_messages())
         stand_in_a_keep_out_zone(stack)
         yield stack
 
@@ -65,6 +68,19 @@ def stand_in_a_keep_out_zone(stack) -> None:
     stamp = format_timestamp(max(created + 1000, int(time.time() * 1000)))
     publish_all(stack, [("iot/coordinates/sim-001",
                          encode_coordinates("sim-001", stamp, 1.5, 1.5, (0.0, 0.0, 0.0, 1.0)))])
+
+
+def vda_vehicle_messages() -> list[tuple[str, bytes]]:
+    now = int(time.time() * 1000)
+    v, m, s = "2.1.0", "Acme", "an-1"
+    sheet = vda.factsheet(v, m, s, now - 60_000)
+    sheet["typeSpecification"]["seriesName"] = "Tugger 3"
+    return [(f"uagv/v2/{m}/{s}/{sub}", vda.encode(msg)) for sub, msg in (
+        ("connection", vda.connection(v, m, s, now - 60_000, "ONLINE")),
+        ("factsheet", sheet),
+        ("state", vda.state(v, m, s, now - 50_000, errors=(("WARNING", "lowBattery", "charge me"),))),
+        ("state", vda.state(v, m, s, now - 49_000, errors=(("WARNING", "lowBattery", "charge me"),))),
+        ("connection", vda.connection(v, m, s, now - 45_000, "OFFLINE")))]
 
 
 @pytest.fixture(scope="module")
@@ -91,10 +107,10 @@ def guide_examples() -> list[tuple[str, str, list[str]]]:
 
 
 def test_the_guide_has_an_example_per_common_question() -> None:
-    """Eight questions the issue names and the robots inside keep-out zones, each with its
-    query and its columns."""
+    """Eight questions the issue names, the robots inside keep-out zones and two of VDA 5050
+    vehicles, each with its query and its columns."""
     titles = [t for t, _, _ in guide_examples()]
-    assert len(titles) == 9 and all(columns for _, _, columns in guide_examples()), titles
+    assert len(titles) == 11 and all(columns for _, _, columns in guide_examples()), titles
 
 
 @pytest.mark.parametrize("title,sql,columns", guide_examples(), ids=lambda v: str(v)[:40])
@@ -108,6 +124,24 @@ def test_every_guide_example_returns_what_the_guide_says(stack, password, title,
         time.sleep(1)
     assert list(result.column_names) == columns, title
     assert result.result_rows, f"{title}: no rows"
+
+
+def test_the_vehicle_examples_hold_the_vehicles_facts(stack, password) -> None:
+    """The VDA 5050 examples: the vehicle's warning (two states), its one offline span with
+    its factsheet's series, counted from its OFFLINE message's instant."""
+    examples = {title: sql for title, sql, _ in guide_examples()}
+    client = analyst(stack, password)
+    deadline = time.monotonic() + 60
+    while not (errors := client.query(examples["Errors and warnings of VDA 5050 vehicles"]).result_rows):
+        assert time.monotonic() < deadline, "the vehicle's errors were never stored"
+        time.sleep(1)
+    assert [r[:4] + r[6:] for r in errors] == [("Acme:an-1", "WARNING", "lowBattery", "charge me", 2)]
+    assert (errors[0][5] - errors[0][4]).total_seconds() == 1.0
+    offline = client.query(examples["Time VDA 5050 vehicles were offline"]).result_rows
+    assert [r[:3] for r in offline] == [("Acme:an-1", "Tugger 3", 1)]
+    since = client.query("SELECT dateDiff('millisecond', at, now64(3)) / 1000 FROM "
+                         "mapservice.vehicle_connections WHERE state = 'OFFLINE'").result_rows[0][0]
+    assert 45 <= since and abs(offline[0][3] - since) < 5
 
 
 def test_clickhouse_connect_reads_but_cannot_write(stack, password) -> None:

@@ -6,6 +6,8 @@ view and column named here, and a test holds the two together."""
 
 from __future__ import annotations
 
+from mapservice.adapters.clickhouse import vda_views
+
 TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
     "poses": ("One row per robot pose report (MQTT iot/coordinates/<robot>). Identity "
               "(robot_id, ts); read with FINAL. Analysts: use the view robot_poses.", {
@@ -341,11 +343,17 @@ def comment_statements(db: str, tables: dict[str, tuple[str, dict[str, str]]]) -
 
 def statements(db: str) -> tuple[str, ...]:
     """Migration 7: the comments of the tables it knew, and the views."""
-    out = comment_statements(db, TABLE_COMMENTS)
-    for view, (comment, select, _columns) in VIEWS.items():
-        out.append(f"CREATE OR REPLACE VIEW {db}.{view} AS {select.format(db=db)} "
-                   f"COMMENT {_quote(comment)}")
-    return tuple(out)
+    return (*comment_statements(db, TABLE_COMMENTS), *view_statements(db, VIEWS))
+
+
+def view_statements(db: str, views: dict[str, tuple[str, str, dict[str, str]]]) -> tuple[str, ...]:
+    """The views (re)created, each with its comment (migration 7's; later ones add theirs)."""
+    return tuple(f"CREATE OR REPLACE VIEW {db}.{view} AS {select.format(db=db)} "
+                 f"COMMENT {_quote(comment)}" for view, (comment, select, _columns) in views.items())
+
+
+# Views added after migration 7, each by its own migration (vda_views: schema v16).
+LATER_VIEWS = vda_views.VIEWS
 
 
 def reference_markdown() -> str:

@@ -16,7 +16,14 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
-from mapservice.adapters.clickhouse import analyst_schema, annotation_schema, command_schema, vda_schema
+from mapservice.adapters.clickhouse import (
+    analyst_schema,
+    annotation_schema,
+    command_schema,
+    retention_schema,
+    vda_schema,
+    vda_views,
+)
 
 
 @dataclass(frozen=True)
@@ -214,7 +221,7 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             11,
             "retention owned by the service: no ClickHouse TTL (it follows the real clock and "
             "dropped the floor's only writes); the retention step drops day partitions",
-            _service_retention(database),
+            retention_schema.statements(database, DAY_PARTITIONED),
         ),
         Migration(12, "VDA 5050 vehicles: states, errors, connections, factsheets",
                   vda_schema.statements(database)),
@@ -223,6 +230,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
         Migration(14, "commands to robots and their answers", command_schema.statements(database)),
         Migration(15, "analysts: keep-out violations with the zone's name (view)",
                   tuple(analyst_schema.later_view_statements(database, "keep_out_violations"))),
+        Migration(16, "analysts: views of VDA 5050 vehicles' states, errors, connections, factsheets",
+                  analyst_schema.view_statements(database, vda_views.VIEWS)),
     ]
 
 
@@ -321,7 +330,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 15
+SCHEMA_VERSION = 16
 
 # Every table whose rows expire with the retention, all partitioned by day (toDate of their
 # time column): the retention step (retention.py) drops their partitions older than the
@@ -330,32 +339,11 @@ SCHEMA_VERSION = 15
 DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
                    "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
                    "pose_ten_minutes", "chunk_seconds")
-# What the retention step drops by day: the above (whose TTL schema v11 removed) and the
-# VDA 5050 facts of schema v12 (factsheets are kept: one a vehicle, its latest matters).
-RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections",
-                   "zone_violations", "command_events")
-
-
-def _service_retention(db: str) -> tuple[str, ...]:
-    """Schema v11: every TTL removed; the service's retention step owns expiry.
-
-    ClickHouse's TTL follows the server's real clock and knows nothing of what a row means:
-    it dropped the day partition holding a map written once (the demo's floor, a wall
-    unchanged for a week) before any snapshot carried it forward, and the pixels of
-    contents every snapshot still named. The retention step (retention.py) first makes sure
-    a snapshot at or before the retention boundary holds the floor, renews the contents any
-    retained row names, then drops the day partitions older than that snapshot, by the
-    service's clock (a simulated one in tests: the same code). Safe to run twice."""
-    return (
-        *(f"ALTER TABLE {db}.{table} REMOVE TTL" for table in (*DAY_PARTITIONED, "snapshot_log")),
-        # Each robot's last pose older than the kept days (a robot silent since), one row
-        # per robot (the latest carried wins): robots_at reads it beside `poses`. One
-        # partition (AS would copy the day partitions of `poses`, and rows of two days
-        # never replace each other).
-        f"""CREATE TABLE IF NOT EXISTS {db}.carried_poses AS {db}.poses
-            ENGINE = ReplacingMergeTree(ts) PARTITION BY tuple() ORDER BY robot_id""",
-        *analyst_schema.comment_statements(db, analyst_schema.comments_of("carried_poses")),
-    )
+# What the retention step drops by day: the above (whose TTL schema v11 removed), the VDA
+# 5050 facts of schema v12 the zone violations of v13 and
+# the commands of v14.
+RETAINED_BY_DAY = (*DAY_PARTITIONED, *vda_schema.RETAINED_BY_DAY, "zone_violations",
+                   "command_events")
 
 
 def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:

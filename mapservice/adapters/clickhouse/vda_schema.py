@@ -9,6 +9,10 @@ from __future__ import annotations
 
 from mapservice.adapters.clickhouse import analyst_schema
 
+# Dropped by day with the retention (factsheets are kept: one a vehicle, its latest matters).
+RETAINED_BY_DAY = ("vda_states", "vda_errors", "vda_connections")
+
+
 def statements(db: str) -> tuple[str, ...]:
     return (
         f"""CREATE TABLE IF NOT EXISTS {db}.vda_states (

@@ -80,6 +80,10 @@ export interface FleetRow {
   lastSeenMs: number;
   speed: number | null;
   goal: [number, number] | null;
+  /** A VDA 5050 vehicle's errors and warnings at the playhead (composables/useVdaFacts). */
+  errors?: { level: string; type: string; description: string }[];
+  /** Its exact connection state (ONLINE, OFFLINE, CONNECTIONBROKEN), where one is known. */
+  connection?: string;
 }
 
 export interface FleetRobot {

@@ -16,8 +16,12 @@ from mcap_protobuf.decoder import DecoderFactory
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.testing.memory_store import MemoryStore
 from mapservice.adapters.exports import (
+    CONNECTION_SCHEMA,
+    ERRORS_SCHEMA,
     MAP_TOPIC,
     STATE_SCHEMA,
+    connection_topic,
+    errors_topic,
     export_mcap,
     export_table,
     path_topic,
@@ -114,6 +118,56 @@ def test_mcap_holds_battery_charging_loaded_and_planned_paths() -> None:
              if topic == path_topic("a")]
     assert paths == [(T0, [(1.0, 2.0), (3.0, 4.5)]), (T0 + 3000, [(3.0, 4.5), (6.0, 1.0)])]
     assert (counts.states, counts.paths) == (5, 2)
+
+
+def test_mcap_holds_vda_vehicles_errors_and_connection_states() -> None:
+    """A VDA 5050 vehicle's errors and warnings (each state's active list, an empty list
+    when a state clears them) and its connection states (offline when the last will was
+    received) as JSON channels with their JSON schemas, read back with `mcap`."""
+    from mapservice.core.events import decode
+    from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
+    from mapservice.settings import Settings
+    from tests.fixtures import vda5050 as vda
+
+    store, router = MemoryStore(), Router(Settings(), "gw")
+    store.append([meta_event(T0 - 10_000)])
+    v, m, s = "2.0.0", "Acme", "7"
+    for subtopic, msg, received in [
+            ("connection", vda.connection(v, m, s, T0 + 500, "ONLINE"), T0 + 500),
+            ("state", vda.state(v, m, s, T0 + 1000), T0 + 1000),
+            ("state", vda.state(v, m, s, T0 + 2000, errors=(("WARNING", "lowBattery", "charge me"),
+                                                             ("FATAL", "bumper", "hit"))), T0 + 2000),
+            ("state", vda.state(v, m, s, T0 + 3000, errors=(("WARNING", "lowBattery", "charge me"),)),
+             T0 + 3000),
+            ("state", vda.state(v, m, s, T0 + 4000), T0 + 4000),
+            ("connection", vda.connection(v, m, s, T0 + 500, "CONNECTIONBROKEN"), T0 + 4500)]:
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
+        store.append([decode(record.value)])
+    out = io.BytesIO()
+    counts = export_mcap(store, T0, T0 + 5_000, out)
+    summary = make_reader(io.BytesIO(out.getvalue())).get_summary()
+    channels = {c.topic: c for c in summary.channels.values()}
+    for topic, schema in ((errors_topic("Acme:7"), ERRORS_SCHEMA),
+                          (connection_topic("Acme:7"), CONNECTION_SCHEMA)):
+        assert channels[topic].message_encoding == "json"
+        stored = summary.schemas[channels[topic].schema_id]
+        assert stored.encoding == "jsonschema" and json.loads(stored.data) == schema
+    messages = read_mcap(out.getvalue())
+    errors = [(t, m) for topic, t, m in messages if topic == errors_topic("Acme:7")]
+    assert errors == [
+        (T0 + 2000, {"count": 2, "fatal": 1, "errors": [
+            {"level": "FATAL", "type": "bumper", "description": "hit"},
+            {"level": "WARNING", "type": "lowBattery", "description": "charge me"}]}),
+        (T0 + 3000, {"count": 1, "fatal": 0, "errors": [
+            {"level": "WARNING", "type": "lowBattery", "description": "charge me"}]}),
+        (T0 + 4000, {"count": 0, "fatal": 0, "errors": []})]
+    connection = [(t, m) for topic, t, m in messages if topic == connection_topic("Acme:7")]
+    assert connection == [(T0 + 500, {"state": "ONLINE", "online": True, "sent_ms": T0 + 500}),
+                          (T0 + 4500, {"state": "CONNECTIONBROKEN", "online": False, "sent_ms": T0 + 500})]
+    assert (counts.vda_errors, counts.vda_connections, counts.poses) == (3, 2, 4)
+    times = [t for _, t, _ in messages]
+    assert times == sorted(times)
 
 
 def test_mcap_without_a_map_geometry_is_refused() -> None:

@@ -162,3 +162,57 @@ def test_the_guide_holds_the_schemas_reference() -> None:
 
     guide = (ROOT / "docs" / "analysts.md").read_text()
     assert reference_markdown() in guide
+
+
+def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
+    """vehicle_states, vehicle_errors, vehicle_connections (spans until the next state) and
+    vehicle_factsheets (the main facts as columns) over VDA 5050 messages as ingested. The
+    vehicle is on a map id without a transform: its facts are stored, no pose is drawn (the
+    other tests' robots stay the only ones in robot_poses)."""
+    from mapservice.core.events import decode
+    from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
+    from mapservice.settings import Settings
+    from tests.fixtures import vda5050 as vda
+
+    store, _, _ = loaded
+    router = Router(Settings(vda5050_map_transforms={"hall": (0.0, 0.0, 0.0)}), "gw")
+    v, m, s = "2.1.0", "Acme Co", "7"  # (2.0.0's official factsheet schema nests nothing)
+    sheet = vda.factsheet(v, m, s, T0)
+    sheet["typeSpecification"].update(seriesName="Tugger 3", agvClass="TUGGER", maxLoadMass=450)
+    sheet["physicalParameters"].update(speedMax=1.8, length=1.2, width=0.6)
+    messages = [
+        ("connection", vda.connection(v, m, s, T0, "ONLINE"), T0),
+        ("factsheet", sheet, T0),
+        ("state", vda.state(v, m, s, T0 + 1000, x=1.5, y=2.5, theta=math.pi / 2, map_id="cellar",
+                            paused=True, driving=False,
+                            errors=(("WARNING", "lowBattery", "charge me"), ("FATAL", "bumper", "hit"))),
+         T0 + 1000),
+        ("connection", vda.connection(v, m, s, T0, "CONNECTIONBROKEN"), T0 + 5000),
+    ]
+    events = []
+    for subtopic, msg, received in messages:
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
+        assert record.reason is None, record.value
+        events.append(decode(record.value))
+    store.append(events)
+    robot = "Acme@20Co:7"
+    state, = rows(store, f"SELECT * FROM views.vehicle_states WHERE robot_id = '{robot}'")
+    assert (state["manufacturer"], state["serial_number"], state["map_id"], state["on_known_map"]) == (
+        m, s, "cellar", False)
+    assert (state["x_m"], state["y_m"], state["heading_deg"]) == (1.5, 2.5, 90.0)
+    assert (state["driving"], state["paused"], state["operating_mode"], state["error_count"]) == (
+        False, True, "AUTOMATIC", 2)
+    errors = rows(store, "SELECT error_type, level, description, is_warning, toUnixTimestamp64Milli(at) AS t "
+                         f"FROM views.vehicle_errors WHERE robot_id = '{robot}' ORDER BY error_type")
+    assert [tuple(e.values()) for e in errors] == [("bumper", "FATAL", "hit", False, T0 + 1000),
+                                                   ("lowBattery", "WARNING", "charge me", True, T0 + 1000)]
+    spans = rows(store, "SELECT state, online, toUnixTimestamp64Milli(at) AS a, toUnixTimestamp64Milli(until) "
+                        f"AS u, duration_s FROM views.vehicle_connections WHERE robot_id = '{robot}' ORDER BY at")
+    assert [tuple(r.values()) for r in spans] == [("ONLINE", True, T0, T0 + 5000, 5.0),
+                                                  ("CONNECTIONBROKEN", False, T0 + 5000, None, None)]
+    fact, = rows(store, f"SELECT * FROM views.vehicle_factsheets WHERE robot_id = '{robot}'")
+    assert (fact["manufacturer"], fact["serial_number"], fact["series_name"], fact["vehicle_class"]) == (
+        m, s, "Tugger 3", "TUGGER")
+    assert (fact["speed_max_m_s"], fact["max_load_kg"], fact["length_m"], fact["width_m"]) == (1.8, 450.0, 1.2, 0.6)
+    assert rows(store, f"SELECT count() AS n FROM views.robot_poses WHERE robot_id = '{robot}'") == [{"n": 0}]

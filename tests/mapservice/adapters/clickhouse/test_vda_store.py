@@ -81,3 +81,30 @@ def test_vda_facts_expire_with_the_retention(store, ev) -> None:
     facts = store.vda_facts("Acme:001", old - 1, NOW)
     assert (facts.errors, facts.connections) == ([], [])
     assert facts.factsheet is not None and facts.factsheet.ts_ms == old
+
+
+def test_the_fleets_facts_and_the_states_that_clear_errors(store) -> None:
+    """vda_fleet_facts: every vehicle with facts in the window; a state without errors after
+    one with errors ends them (error_clears), a second error-free state does not."""
+    v = "2.0.0"
+    store.append(events(Settings(), [
+        ("state", vda.state(v, "Acme", "001", NOW - 9_000), NOW - 9_000),
+        ("state", vda.state(v, "Acme", "001", NOW - 8_000, errors=(("FATAL", "bumper", "hit"),)),
+         NOW - 8_000),
+        ("state", vda.state(v, "Acme", "001", NOW - 7_000, errors=(("FATAL", "bumper", "hit"),)),
+         NOW - 7_000),
+        ("state", vda.state(v, "Acme", "001", NOW - 6_000), NOW - 6_000),
+        ("state", vda.state(v, "Acme", "001", NOW - 5_000), NOW - 5_000),
+        ("connection", vda.connection(v, "Beta", "7", NOW - 4_000, "ONLINE"), NOW - 4_000),
+        ("factsheet", vda.factsheet(v, "Gamma", "9", NOW - 4_000), NOW - 4_000),
+    ]))
+    fleet = store.vda_fleet_facts(NOW - 60_000, NOW)
+    assert sorted(fleet) == ["Acme:001", "Beta:7"]  # a factsheet alone is no fact of the window
+    acme = fleet["Acme:001"]
+    assert [e.ts_ms for e in acme.errors] == [NOW - 8_000, NOW - 7_000]
+    assert acme.error_clears == [NOW - 6_000]
+    assert [c.state for c in fleet["Beta:7"].connections] == ["ONLINE"]
+    assert store.vda_facts("Acme:001", NOW - 60_000, NOW).error_clears == [NOW - 6_000]
+    # A window starting at the clear still sees it (the state before counts).
+    assert store.vda_fleet_facts(NOW - 6_000, NOW)["Acme:001"].error_clears == [NOW - 6_000]
+    assert store.vda_fleet_facts(NOW - 60_000, NOW - 8_500) == {}

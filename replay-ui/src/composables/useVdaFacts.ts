@@ -1,0 +1,86 @@
+/**
+ * The replay page's VDA 5050 facts: the timeline span's error onsets (marks), the fleet's
+ * facts of the hour before the playhead (each row's current errors; online/offline from
+ * the exact connection states where one is in that hour, else the pose silence), and the
+ * selected vehicle's facts with its factsheet. Each read at most every 2 s of playhead.
+ */
+import { ref, shallowRef } from "vue";
+import type { FleetRow } from "../lib/fleet";
+import { connectionAt, errorMarks, errorsAt, fleetFacts, isVehicleId, vehicleFacts, type ErrorMark, type VdaVehicle } from "../lib/vda";
+
+const FLEET_WINDOW_MS = 3_600_000;
+/** Marks only for spans up to this long: a longer one would read every vehicle state of
+ * days (the clears) on each zoom; zoom in to see them. */
+export const MARKS_MAX_SPAN_MS = 6 * 3_600_000;
+const REREAD_MS = 2_000;
+
+export function useVdaFacts(base: () => string) {
+  const marks = shallowRef<ErrorMark[]>([]);
+  const fleet = shallowRef(new Map<string, VdaVehicle>());
+  const selected = ref<VdaVehicle | null>(null);
+  let marksFor = "";
+  let fleetFor = -Infinity;
+  let fleetLoading = false;
+  let selectedFor = { id: "", t: -Infinity };
+
+  async function loadMarks(from: number | undefined, to: number | undefined) {
+    if (from === undefined || to === undefined) return;
+    const key = `${Math.floor(from / REREAD_MS)}:${Math.floor(to / REREAD_MS)}`;
+    if (key === marksFor) return;
+    marksFor = key;
+    if (to - from > MARKS_MAX_SPAN_MS) {
+      marks.value = [];
+      return;
+    }
+    try {
+      marks.value = errorMarks(await fleetFacts(base(), from, to));
+    } catch {
+      marks.value = [];
+    }
+  }
+
+  async function loadFleet(t: number) {
+    if (fleetLoading || Math.abs(t - fleetFor) <= REREAD_MS) return;
+    fleetLoading = true;
+    fleetFor = t;
+    try {
+      fleet.value = new Map((await fleetFacts(base(), t - FLEET_WINDOW_MS, t + 1)).map((v) => [v.robotId, v]));
+    } catch {
+      fleet.value = new Map();
+    } finally {
+      fleetLoading = false;
+    }
+  }
+
+  async function loadSelected(id: string | null, t: number) {
+    if (!id || !isVehicleId(id)) {
+      selected.value = null;
+      selectedFor = { id: "", t: -Infinity };
+      return;
+    }
+    if (id === selectedFor.id && Math.abs(t - selectedFor.t) <= REREAD_MS) return;
+    selectedFor = { id, t };
+    try {
+      selected.value = await vehicleFacts(base(), id, t - FLEET_WINDOW_MS, t + 1);
+    } catch {
+      selected.value = null;
+    }
+  }
+
+  /** The fleet rows with each vehicle's errors at `t` and its exact connection state. */
+  function decorate(rows: FleetRow[], t: number): FleetRow[] {
+    void loadFleet(t);
+    for (const row of rows) {
+      const v = fleet.value.get(row.robotId);
+      row.errors = errorsAt(v, t);
+      const c = connectionAt(v, t);
+      if (c) {
+        row.online = c.state === "ONLINE";
+        row.connection = c.state;
+      }
+    }
+    return rows;
+  }
+
+  return { marks, selected, loadMarks, loadSelected, decorate };
+}
