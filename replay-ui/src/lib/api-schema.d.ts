@@ -556,6 +556,26 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/robots/vda5050": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Vda Fleet
+         * @description Every VDA 5050 vehicle with an error, a clear or a connection state in the window.
+         */
+        get: operations["getVdaFleet"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/robots/{robot_id}/track": {
         parameters: {
             query?: never;
@@ -1345,6 +1365,11 @@ export interface components {
         VdaVehicle: {
             /** Connections */
             connections: components["schemas"]["VdaConnectionOut"][];
+            /**
+             * Errorclears
+             * @default []
+             */
+            errorClears: number[];
             /** Errors */
             errors: components["schemas"]["VdaErrorOut"][];
             factsheet: components["schemas"]["VdaFactsheetOut"] | null;
@@ -3257,6 +3282,56 @@ export interface operations {
                 };
                 content: {
                     "application/json": components["schemas"]["RobotsAt"];
+                };
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    getVdaFleet: {
+        parameters: {
+            query?: {
+                /** @description Window start (ISO 8601 or epoch ms); default: the retention's start */
+                from?: string | null;
+                /** @description Window end; default now */
+                to?: string | null;
+                /** @description At most this many errors, clears and connection states per vehicle */
+                limit?: number;
+            };
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["VdaVehicle"][];
                 };
             };
             /** @description Validation Error */
