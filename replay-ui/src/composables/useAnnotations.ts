@@ -29,6 +29,15 @@ export interface AnnotationDeps {
 /** How long a violation stays marked on the map after the pose that made it. */
 export const VIOLATION_SHOWN_MS = 30_000;
 
+/** How long this page's own edit is kept while the store's edits do not hold it yet. */
+const PENDING_MS = 120_000;
+
+/** The store's record of an edit this page made (a removal's instant is known only roughly: the server's clock). */
+export function sameEdit(stored: AnnotationEdit, mine: AnnotationEdit): boolean {
+  return stored.id === mine.id && stored.change === mine.change
+    && (stored.ts_ms === mine.ts_ms || (mine.change === "removed" && Math.abs(stored.ts_ms - mine.ts_ms) < 5_000));
+}
+
 export function useAnnotations(d: AnnotationDeps) {
   const api = new AnnotationApi(d.base);
   const list = shallowRef<Annotation[]>([]);
@@ -54,6 +63,9 @@ export function useAnnotations(d: AnnotationDeps) {
   let win = { from: 0, to: 0, at: 0 };
   let winLoading = false;
   let drawnKey = "";
+  /** This page's own edits, until the store's edits hold them (a second or two): the
+   * playhead crossing one must read the annotations again before the store has it. */
+  let pending: AnnotationEdit[] = [];
 
   async function loadList(t: number) {
     listLoading = true;
@@ -61,7 +73,6 @@ export function useAnnotations(d: AnnotationDeps) {
     try {
       list.value = await api.at(t);
       loadedAt = t;
-      if (selected.value && !list.value.some((a) => a.id === selected.value)) selected.value = null;
     } catch (e) {
       error.value = `annotations at the playhead could not be read: ${(e as Error).message}`;
       loadedAt = t; // not again every frame: the next edit crossed or seek asks again
@@ -75,7 +86,8 @@ export function useAnnotations(d: AnnotationDeps) {
     win = { from, to, at: Date.now() };
     try {
       const [e, v] = await Promise.all([api.edits(from, to), api.violations(from, to)]);
-      edits.value = e.items;
+      pending = pending.filter((p) => Date.now() - p.ts_ms < PENDING_MS && !e.items.some((x) => sameEdit(x, p)));
+      edits.value = [...e.items, ...pending];
       violations.value = v.items;
       truncated.value = v.truncated;
     } catch {
@@ -91,11 +103,13 @@ export function useAnnotations(d: AnnotationDeps) {
   function tick(t: number) {
     const [from, to] = d.span();
     const slack = (to - from) / 50;
-    const stale = d.live() && Date.now() - win.at > 5_000;
+    // A span reaching the last minute gains edits and violations as they are stored: read it again every 5 s.
+    const stale = (d.live() || to > Date.now() - 60_000) && Date.now() - win.at > 5_000;
     if (!winLoading && (Math.abs(from - win.from) > slack || Math.abs(to - win.to) > slack || stale)) void loadWindow(from, to);
-    const known = t >= win.from && t < win.to;
-    if (!listLoading && (dirty || Number.isNaN(loadedAt)
-        || (known ? crossesEdit(edits.value, loadedAt, t) : Math.abs(t - loadedAt) > 10_000))) void loadList(t);
+    // Outside the span the edits were read for, an edit may be unknown: read again every 10 s of playhead.
+    const unknown = !(t >= win.from && t < win.to && loadedAt >= win.from && loadedAt < win.to);
+    if (!listLoading && (dirty || Number.isNaN(loadedAt) || crossesEdit(edits.value, loadedAt, t)
+        || (unknown && Math.abs(t - loadedAt) > 10_000))) void loadList(t);
     redraw(t);
   }
 
@@ -131,8 +145,10 @@ export function useAnnotations(d: AnnotationDeps) {
       const r = await send();
       const at = r ? r.changed_ms : Date.now();
       // Known at once (the store has it a second later): the playhead crossing it reads again.
-      edits.value = [...edits.value, { ts_ms: at, event_id: `local:${at}:${what}`, id: r?.id ?? selected.value ?? "",
-        change: kind, by: "you", annotation: r?.annotation ?? null }];
+      const mine: AnnotationEdit = { ts_ms: at, event_id: `local:${at}:${what}`, id: r?.id ?? selected.value ?? "",
+        change: kind, by: "you", annotation: r?.annotation ?? null };
+      pending.push(mine);
+      edits.value = [...edits.value, mine];
       status.value = `${what}: stored at ${new Date(at).toISOString().replace("T", " ").slice(0, 19)} UTC`;
       if (r) select(r.id);
       dirty = true;
