@@ -7,7 +7,7 @@ operator scope gets no edit controls, and its direct write is refused.
 
 Where others do not look: everything here happens now (an edit is stamped by the server's
 clock), after the loaded history the other tests seek into, in an aisle band (y -12.6 to
--11.4 m) none of the live tests' robots drive through. The screenshot goes to
+-9.4 m) none of the live tests' robots drive through. The screenshot goes to
 test-artifacts/ui/ and, with MAPSERVICE_UPDATE_SCREENSHOTS=1, to docs/ui-zones.png."""
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
 # from x -8.4 to -2.6 m the band overlaps both racks' edges.
 ZONE = [(-8.4, -12.6), (-2.6, -12.6), (-2.6, -11.4), (-8.4, -11.4)]
 ZONE_NAME = "ui-test aisle block"
+SLOW = [(-7.8, -10.9), (-3.2, -10.9), (-3.2, -10.3), (-7.8, -10.3)]
 POI_AT = (-5.5, -9.6)
 VIOLATOR = "ui-zone-bot"
 
@@ -82,6 +83,14 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     col = (cx - meta["origin"][0]) / meta["resolution"]
     page.evaluate("([r, c]) => window.__replay.centerOnPixel(r, c, 0)", [row, col])
 
+    # Esc drops a zone half drawn: nothing is stored.
+    page.click('[data-testid="draw-zone"]')
+    for x, y in ZONE[:2]:
+        page.mouse.click(*screen(page, x, y))
+    page.keyboard.press("Escape")
+    assert drawn(page)["tool"] is None and page.locator('[data-testid="edit-hint"]').count() == 0
+    assert ZONE_NAME not in standing(stack)
+
     # The zone, by mouse: four corners, a double-click on the last closes it.
     page.fill('[data-testid="zone-name"]', ZONE_NAME)
     page.select_option('[data-testid="zone-kind"]', "keep_out")
@@ -105,6 +114,21 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     assert zone["id"] not in seek_and_read(page, created - 60_000)["drawn"]["zones"]
     assert zone["id"] in seek_and_read(page, created + 1_000)["drawn"]["zones"]
     page.wait_for_selector(f'[data-testid="annotation-edit-mark"][data-ts="{created}"]', timeout=TIMEOUT_MS)
+
+    # A speed zone next to it, closed with Enter: stored with its limit, labelled with it.
+    page.fill('[data-testid="zone-name"]', "ui-test slow lane")
+    page.select_option('[data-testid="zone-kind"]', "speed_limit")
+    page.fill('[data-testid="zone-speed"]', "0.3")
+    page.click('[data-testid="draw-zone"]')
+    for x, y in SLOW:
+        page.mouse.click(*screen(page, x, y))
+    page.keyboard.press("Enter")
+    page.wait_for_function("() => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes('ui-test slow lane')",
+                           timeout=TIMEOUT_MS)
+    slow = standing(stack)["ui-test slow lane"]["annotation"]
+    assert (slow["kind"], slow["speed_limit"], slow["speed_unit"], len(slow["polygon"])) == ("speed_limit", 0.3, "m/s", 4)
+    page.wait_for_function("() => [...document.querySelectorAll('.zone-label span')].some(e => e.innerText.includes('≤ 0.3 m/s'))",
+                           timeout=TIMEOUT_MS)
 
     # A point of interest: placed by a click, renamed, dragged.
     page.fill('[data-testid="poi-name"]', "ui-test dock")
@@ -152,7 +176,7 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     # A robot inside the zone: a violation on the map, in the list, on the timeline.
     t = int(time.time() * 1000)
     body = {"robotId": VIOLATOR, "timestamp": format_timestamp(t),
-            "pose": {"position": {"x": -5.0, "y": -12.0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
+            "pose": {"position": {"x": -7.4, "y": -12.2, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
             "status": {"battery": {"battery_level": 0.5, "charging": False}, "loaded": False}}
     subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(stack.mqtt_port), "-q", "1",
                     "-t", f"iot/coordinates/{VIOLATOR}", "-m", json.dumps(body)], check=True, timeout=30)
@@ -172,7 +196,14 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     page.wait_for_selector(f'.violation[data-robot="{VIOLATOR}"]', timeout=TIMEOUT_MS)
     assert VIOLATOR in drawn(page)["drawn"]["violations"]
     page.locator(f'[data-testid="annotation-row"][data-id="{zone["id"]}"]').click()
-    page.wait_for_timeout(500)
+    # The timeline zoomed to the last minutes (a drag across its right end): the marks apart.
+    strip = page.locator('[data-testid="timeline-strip"]').bounding_box()
+    page.mouse.move(strip["x"] + strip["width"] * 0.93, strip["y"] + 20)
+    page.mouse.down()
+    page.mouse.move(strip["x"] + strip["width"] * 0.97, strip["y"] + 20)
+    page.mouse.move(strip["x"] + strip["width"] - 1, strip["y"] + 20)
+    page.mouse.up()
+    page.wait_for_timeout(1000)
     screenshot(page, "ui-zones.png")
     assert page.errors == []
 

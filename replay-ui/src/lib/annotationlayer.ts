@@ -133,7 +133,7 @@ export class AnnotationLayer {
     for (const v of vs) {
       L.marker(this.toLatLng([v.x, v.y]), {
         keyboard: false,
-        icon: L.divIcon({ className: "violation-icon", html: `<span class="violation" data-robot="${escapeHtml(v.robotId)}">✕</span>`, iconSize: [18, 18], iconAnchor: [9, 9] }),
+        icon: L.divIcon({ className: "violation-icon", html: `<span class="violation" data-robot="${escapeHtml(v.robotId)}"></span>`, iconSize: [30, 30], iconAnchor: [15, 15] }),
       }).bindTooltip(`${v.robotId} inside keep-out zone ${v.zoneId} at ${new Date(v.ts_ms).toISOString()}`).addTo(this.violationGroup);
       this.drawn.violations.push(v.robotId);
     }
