@@ -195,6 +195,13 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     page.wait_for_function(f"() => window.__replay.playhead === {t} && window.__replay.complete", timeout=TIMEOUT_MS)
     page.wait_for_selector(f'.violation[data-robot="{VIOLATOR}"]', timeout=TIMEOUT_MS)
     assert VIOLATOR in drawn(page)["drawn"]["violations"]
+    # The layer switch hides them, the address keeps it.
+    assert drawn(page)["shown"] is True
+    page.click('input[data-layer="annotations"]')
+    page.wait_for_function("() => !(new URLSearchParams(location.search).get('layers') ?? '').includes('annotations')")
+    assert drawn(page)["shown"] is False and page.locator(".poi").count() == 0
+    page.click('input[data-layer="annotations"]')
+    page.wait_for_function("() => window.__replay.annotations().shown")
     page.locator(f'[data-testid="annotation-row"][data-id="{zone["id"]}"]').click()
     # The timeline zoomed to the last minutes (a drag across its right end): the marks apart.
     strip = page.locator('[data-testid="timeline-strip"]').bounding_box()

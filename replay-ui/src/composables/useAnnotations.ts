@@ -259,7 +259,8 @@ export function useAnnotations(d: AnnotationDeps) {
   function hook() {
     const layer = d.view.value?.annotations;
     return { loadedAt, ids: list.value.map((a) => a.id), drawn: layer?.drawn ?? null, tool: layer?.active ?? null,
-      vertices: layer?.vertices ?? 0, operator: operator.value, marks: marks.value.map((m) => [m.kind, m.ts_ms]) };
+      vertices: layer?.vertices ?? 0, operator: operator.value,
+      shown: !!layer && !!d.view.value?.map.hasLayer(layer.group), marks: marks.value.map((m) => [m.kind, m.ts_ms]) };
   }
 
   return reactive({
