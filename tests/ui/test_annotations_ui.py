@@ -130,6 +130,20 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     page.wait_for_function("() => [...document.querySelectorAll('.zone-label span')].some(e => e.innerText.includes('≤ 0.3 m/s'))",
                            timeout=TIMEOUT_MS)
 
+    # Selected once made: dragged 30 screen pixels (0.9 m) to the left, it is stored there.
+    x0, y0 = screen(page, -6.5, -10.6)
+    page.mouse.move(x0, y0)
+    page.mouse.down()
+    for k in range(1, 4):
+        page.mouse.move(x0 - 10 * k, y0)
+    page.mouse.up()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and standing(stack)["ui-test slow lane"]["annotation"]["polygon"] == slow["polygon"]:
+        time.sleep(0.3)
+    dragged = standing(stack)["ui-test slow lane"]["annotation"]["polygon"]
+    for (x, y), (sx, sy) in zip(dragged, slow["polygon"]):
+        assert (x, y) == (pytest.approx(sx - 0.9, abs=0.06), pytest.approx(sy, abs=0.06))
+
     # A point of interest: placed by a click, renamed, dragged.
     page.fill('[data-testid="poi-name"]', "ui-test dock")
     page.select_option('[data-testid="poi-kind"]', "charger")
