@@ -1,6 +1,6 @@
 import { describe, expect, it } from "vitest";
 import {
-  bodyOf, closeRing, crossesEdit, describe as describeAnnotation, hatchSegments, insideRing, insideZone,
+  bodyOf, closeRing, movedZone, sameEdit, speedTint, timelineMarks, type AnnotationEdit, crossesEdit, describe as describeAnnotation, hatchSegments, insideRing, insideZone,
   signedArea, translate, violationEpisodes, violationsAt, type Point, type ZoneDoc, type ZoneViolation,
 } from "../src/lib/annotations";
 
@@ -109,5 +109,32 @@ describe("documents", () => {
   });
   it("leaves null fields out of a body sent back", () => {
     expect(bodyOf({ shape: "poi", name: "a", kind: "door", x: 1, y: 2, heading: null })).toEqual({ shape: "poi", name: "a", kind: "door", x: 1, y: 2 });
+  });
+});
+
+describe("edits", () => {
+  const created: AnnotationEdit = { ts_ms: 1_000, event_id: "e1", id: "z1", change: "created", by: "operator:ab", annotation: keepOut };
+  it("marks edits and violation episodes on the timeline, naming the zone", () => {
+    const marks = timelineMarks([created], violationEpisodes([{ ts_ms: 2_000, robotId: "r1", zoneId: "z1", x: 0, y: 0 }]));
+    expect(marks.map((m) => [m.kind, m.ts_ms, m.title])).toEqual([
+      ["annotation-edit", 1_000, "aisle created by operator:ab"],
+      ["zone-violation", 2_000, "r1 inside keep-out zone aisle (1 pose)"],
+    ]);
+  });
+  it("knows the store's record of this page's own edit", () => {
+    expect(sameEdit(created, { ...created, event_id: "local" })).toBe(true);
+    expect(sameEdit({ ...created, ts_ms: 1_001 }, created)).toBe(false);
+    const removed: AnnotationEdit = { ...created, change: "removed", annotation: null };
+    expect(sameEdit({ ...removed, ts_ms: 3_000 }, removed)).toBe(true); // a removal's instant is the server's
+    expect(sameEdit(removed, created)).toBe(false);
+  });
+  it("moves a zone with its holes, and tints slower zones more", () => {
+    const z = movedZone({ ...keepOut, holes: [[[1, 1], [2, 1], [2, 2]]] }, 1, 2);
+    expect(z.polygon[0]).toEqual([1, 2]);
+    expect(z.holes![0][2]).toEqual([3, 4]);
+    const slow = speedTint({ ...keepOut, kind: "speed_limit", speed_limit: 0.2, speed_unit: "m/s" });
+    const fast = speedTint({ ...keepOut, kind: "speed_limit", speed_limit: 1.5, speed_unit: "m/s" });
+    expect(slow).toBeGreaterThan(fast);
+    expect(speedTint({ ...keepOut, kind: "speed_limit", speed_limit: 100, speed_unit: "percent" })).toBeCloseTo(0.12, 9);
   });
 });

@@ -10,7 +10,7 @@
 import { computed, onBeforeUnmount, onMounted, reactive, ref, shallowRef, type ShallowRef } from "vue";
 import { AnnotationApi } from "../lib/annotationapi";
 import {
-  closeRing, crossesEdit, movedZone, timelineMarks, violationEpisodes, violationsAt,
+  closeRing, crossesEdit, movedZone, sameEdit, timelineMarks, violationEpisodes, violationsAt,
   type Annotation, type AnnotationDoc, type AnnotationEdit, type Point, type PoiKind, type ZoneDoc, type ZoneKind, type ZoneViolation,
 } from "../lib/annotations";
 import { setApiToken } from "../lib/auth";
@@ -31,12 +31,6 @@ export const VIOLATION_SHOWN_MS = 30_000;
 
 /** How long this page's own edit is kept while the store's edits do not hold it yet. */
 const PENDING_MS = 120_000;
-
-/** The store's record of an edit this page made (a removal's instant is known only roughly: the server's clock). */
-export function sameEdit(stored: AnnotationEdit, mine: AnnotationEdit): boolean {
-  return stored.id === mine.id && stored.change === mine.change
-    && (stored.ts_ms === mine.ts_ms || (mine.change === "removed" && Math.abs(stored.ts_ms - mine.ts_ms) < 5_000));
-}
 
 export function useAnnotations(d: AnnotationDeps) {
   const api = new AnnotationApi(d.base);

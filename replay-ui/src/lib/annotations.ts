@@ -207,6 +207,12 @@ export function bodyOf(a: AnnotationDoc): Record<string, unknown> {
   return Object.fromEntries(Object.entries(a).filter(([, v]) => v !== null && v !== undefined));
 }
 
+/** The store's record of an edit this page made (a removal's instant is known only roughly: the server's clock). */
+export function sameEdit(stored: AnnotationEdit, mine: AnnotationEdit): boolean {
+  return stored.id === mine.id && stored.change === mine.change
+    && (stored.ts_ms === mine.ts_ms || (mine.change === "removed" && Math.abs(stored.ts_ms - mine.ts_ms) < 5_000));
+}
+
 /** A robot's stay inside one keep-out zone: its stored poses there, no more than `gapMs` apart. */
 export interface ViolationEpisode {
   robotId: string;
@@ -268,7 +274,7 @@ export function timelineMarks(edits: readonly AnnotationEdit[], episodes: readon
     })),
     ...episodes.map((v): TimelineMark => ({
       key: `v:${v.robotId}:${v.zoneId}:${v.from_ms}`, ts_ms: v.from_ms, kind: "zone-violation",
-      title: `${v.robotId} inside keep-out zone ${names.get(v.zoneId) ?? v.zoneId} (${v.poses} poses)`,
+      title: `${v.robotId} inside keep-out zone ${names.get(v.zoneId) ?? v.zoneId} (${v.poses} pose${v.poses === 1 ? "" : "s"})`,
     })),
   ];
 }
