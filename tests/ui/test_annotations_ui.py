@@ -1,7 +1,8 @@
 """Operators shape the floor in Chromium, against the shared stack: with an operator token a
 keep-out zone is drawn by mouse across an aisle, stored, drawn at instants after its
-creation and not before; a point of interest is placed, renamed (an empty name is refused
-with the server's message) and dragged; a robot's pose inside the zone shows as a
+creation and not before; a speed zone is closed with Enter and dragged; a point of
+interest is placed, renamed (an empty name is refused with the server's message), dragged
+and deleted; a robot's pose inside the zone shows as a
 violation on the map, in the panel's list and on the timeline. A token without the
 operator scope gets no edit controls, and its direct write is refused.
 
@@ -226,6 +227,16 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     page.mouse.up()
     page.wait_for_timeout(1000)
     screenshot(page, "ui-zones.png")
+
+    # Deleted: gone from now on, still there before.
+    removed_before = int(time.time() * 1000)
+    page.locator(f'[data-testid="annotation-row"][data-id="{poi["id"]}"]').click()
+    page.click('[data-testid="delete"]')
+    page.wait_for_function("(id) => !document.querySelector(`.poi[data-id='${id}']`)", arg=poi["id"], timeout=TIMEOUT_MS)
+    assert "ui-test dock 2" not in standing(stack)
+    assert "ui-test dock 2" in standing(stack, removed_before)
+    assert poi["id"] in seek_and_read(page, removed_before)["drawn"]["points"]
+    assert page.locator('[data-testid="annotation-error"]').count() == 0
     assert page.errors == []
 
 
