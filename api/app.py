@@ -27,6 +27,7 @@ from .routers import (
     chunk_contents,
     chunk_events,
     chunk_service,
+    caller,
     client_config,
     commands,
     conflicts,
@@ -51,7 +52,7 @@ from .routers import (
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
 ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
            timeline, conflicts, changes, annotation_routes, commands, costmap_filters, zone_violations, exports, stats, status, live,
-           client_config, chunk_service, coordinate_service, ui)
+           caller, client_config, chunk_service, coordinate_service, ui)
 
 
 def create_app(settings: Settings, store: HistoryStore,

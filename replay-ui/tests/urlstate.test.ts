@@ -12,14 +12,14 @@ describe("url state", () => {
   it("round-trips layers, the selected robot, open panels and the change feed's filter", () => {
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10), speed: 60 as const, dir: 1 as const, playing: false,
       view: null, follow: "sim-001",
-      layers: { names: false, battery: true, paths: true, borders: true, info: true, infoMode: "writer" as const, conflicts: false },
-      selected: "sim-001", panels: ["changes", "fleet"], area: [1, 2, 3, 4] as [number, number, number, number], changeRobot: "sim-002",
+      layers: { names: false, battery: true, paths: true, borders: true, info: true, infoMode: "writer" as const, conflicts: false, annotations: true },
+      selected: "sim-001", panels: ["changes", "fleet", "annotations"], area: [1, 2, 3, 4] as [number, number, number, number], changeRobot: "sim-002",
       span: null, plot: [] };
     const url = formatUrlState(s);
-    expect(url).toContain("layers=battery%2Cpaths%2Cborders%2Cinfo-writer");
+    expect(url).toContain("layers=battery%2Cpaths%2Cborders%2Cinfo-writer%2Cannotations");
     expect(parseUrlState(url)).toEqual({ ...s, tProblem: null });
     // No layer on is not the defaults: an empty list stays empty.
-    expect(parseUrlState("?layers=").layers).toEqual({ names: false, battery: false, paths: false, borders: false, info: false, infoMode: "age", conflicts: false });
+    expect(parseUrlState("?layers=").layers).toEqual({ names: false, battery: false, paths: false, borders: false, info: false, infoMode: "age", conflicts: false, annotations: false });
     expect(parseUrlState("?area=3,1,0,0&panels=changes,bogus").area).toBeNull();
     expect(parseUrlState("?panels=changes,bogus").panels).toEqual(["changes"]);
   });

@@ -62,7 +62,7 @@ SCOPES = {
     "getCostmapFilterMaskYaml": "read", "getCostmapFilterInfo": "read",
     "createAnnotation": "operator", "changeAnnotation": "operator", "removeAnnotation": "operator",
     "importKeepOutMask": "operator", "listZoneViolations": "read",
-    "sendCommand": "operator", "listCommands": "read",
+    "sendCommand": "operator", "listCommands": "read", "getCallerAccess": "read",
 }
 
 # What each credential gets per scope: a status, or "ok" (anything the operation answers
@@ -354,3 +354,20 @@ def test_the_default_rate_limit_is_parsed() -> None:
     items = parse_many(Settings().api_rate_limit)
     assert items and items[0].amount >= 100
     assert Scope.READ.value == "read"
+
+
+@pytest.mark.parametrize("credential, role, scopes", [
+    ("operator", "operator", ["operator", "read"]),
+    ("reader", "reader", ["read"]),
+    ("writer", "writer", ["read", "write"]),
+    ("none", None, []),
+    ("wrong", None, []),  # reads are open: a stale token is no one, not a refusal
+])
+def test_the_caller_learns_its_role_and_scopes(credential, role, scopes) -> None:
+    """GET /api/v1/caller names the token's role and scopes (the replay page offers editing
+    only to the operator scope), never the token."""
+    client = TestClient(app_for(settings_for("open")))
+    r = client.get("/api/v1/caller", headers=auth(credential))
+    assert r.status_code == 200, r.text
+    assert r.json() == {"role": role, "scopes": scopes}
+    assert CREDENTIALS[credential] is None or CREDENTIALS[credential] not in r.text

@@ -165,6 +165,7 @@ def test_a_shared_address_reopens_layers_selection_and_panels(page, browser, his
     open_at(page, stack, f"?t={t}")
     page.click('input[data-layer="names"]')
     page.click('input[data-layer="borders"]')
+    page.click('input[data-layer="annotations"]')  # on by default: the address says it is off
     page.keyboard.press(" ")
     page.wait_for_function("() => window.__replay.playing()")
     assert page.is_checked('input[data-layer="borders"]')  # space did not toggle it back
@@ -194,7 +195,7 @@ def test_a_shared_address_reopens_layers_selection_and_panels(page, browser, his
         layers = other.evaluate("() => Object.fromEntries([...document.querySelectorAll('input[data-layer]')]"
                                 ".map(e => [e.dataset.layer, e.checked]))")
         assert layers == {"names": False, "battery": True, "paths": True, "borders": True, "info": False,
-                          "conflicts": True}
+                          "conflicts": True, "annotations": False}
         assert other.evaluate("() => window.__replay.selected()") == robot
         assert other.inner_text('[data-testid="robot-details"] h3') == robot
         assert other.is_visible('[data-testid="fleet-panel"]') and other.is_visible('[data-testid="change-feed"]')

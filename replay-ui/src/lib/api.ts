@@ -30,7 +30,7 @@ export async function fetchRetrying(url: string, sleep = (ms: number) => new Pro
   }
 }
 
-async function getJson<T>(url: string): Promise<T> {
+export async function getJson<T>(url: string): Promise<T> {
   const r = await fetchRetrying(url);
   if (!r.ok) {
     let detail = r.statusText;

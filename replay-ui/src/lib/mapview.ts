@@ -3,6 +3,7 @@
  * chunk tiles, info overlay, grid, conflicts, and the robots' canvas.
  */
 import L from "leaflet";
+import { AnnotationLayer } from "./annotationlayer";
 import type { RobotView } from "./engine";
 import { chunkBounds, gridBounds, latLngToPixel, metresToLatLng, metresToPixel, pixelToLatLng, type Pixel } from "./geo";
 import type { ChunkImages } from "./images";
@@ -19,6 +20,7 @@ export interface LayerToggles {
   info: boolean;
   infoMode: InfoMode;
   conflicts: boolean;
+  annotations: boolean;
 }
 
 export class MapView {
@@ -30,6 +32,8 @@ export class MapView {
   /** The selected robot's recent track (from /api/v1/robots/{id}/track). */
   trail = L.polyline([], { color: "#1f6feb", weight: 2, opacity: 0.7, interactive: false });
   robots: RobotLayer;
+  /** Points of interest, zones and zone violations at the playhead, and the editing tools. */
+  annotations: AnnotationLayer;
   toggles: LayerToggles | null = null;
   selected: string | null = null;
   meta: MapMeta | null = null;
@@ -55,6 +59,7 @@ export class MapView {
     this.robots.onClick = (id) => this.onRobotClick(id);
     this.robots.addTo(this.map);
     this.trail.addTo(this.map);
+    this.annotations = new AnnotationLayer(this.map, () => this.meta);
   }
 
   /** (Re)builds the map layers for a meta; keeps the view unless it is the first one. */
@@ -88,6 +93,8 @@ export class MapView {
     if (this.grid) this.toggle(this.grid, t.borders);
     if (this.info) this.toggle(this.info.overlay, t.info);
     this.toggle(this.conflictLayer, t.conflicts);
+    this.toggle(this.annotations.group, t.annotations);
+    this.toggle(this.annotations.violationGroup, t.annotations);
   }
 
   private toggle(layer: L.Layer, on: boolean): void {

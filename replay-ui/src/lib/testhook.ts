@@ -24,6 +24,8 @@ export interface ReplayHookContext {
   /** The x of an instant on the plots, css px from the left edge of their plotting area, or null. */
   plotX: (t: number) => number | null;
   timeline: () => unknown;
+  /** The annotations read at the playhead, what the map draws of them, the edit tool. */
+  annotations: () => unknown;
 }
 
 export function exposeReplay(c: ReplayHookContext): void {
@@ -100,5 +102,6 @@ export function exposeReplay(c: ReplayHookContext): void {
       return t ? { colour: t.options.color, weight: t.options.weight, points: (t.getLatLngs() as unknown[]).length } : null;
     },
     timeline: c.timeline,
+    annotations: c.annotations,
   };
 }

@@ -32,9 +32,10 @@ export interface LayerState {
   info: boolean;
   infoMode: "age" | "writer";
   conflicts: boolean;
+  annotations: boolean;
 }
 
-const LAYER_NAMES = ["names", "battery", "paths", "borders", "info", "conflicts"] as const;
+const LAYER_NAMES = ["names", "battery", "paths", "borders", "info", "conflicts", "annotations"] as const;
 
 /** "names,paths,info-writer": the layers that are on (the chunk info layer with its mode). */
 export function formatLayers(l: LayerState): string {
@@ -47,6 +48,7 @@ export function parseLayers(v: string): LayerState {
   return {
     names: on.has("names"), battery: on.has("battery"), paths: on.has("paths"), borders: on.has("borders"),
     info, infoMode: on.has("info-writer") ? "writer" : "age", conflicts: on.has("conflicts"),
+    annotations: on.has("annotations"),
   };
 }
 
@@ -86,7 +88,7 @@ export function parseUrlState(search: string): UrlState {
 }
 
 /** The side panels a link can open. */
-export const PANELS = ["changes", "fleet", "conflicts", "plots"] as const;
+export const PANELS = ["changes", "fleet", "conflicts", "plots", "annotations"] as const;
 
 /** "2026-11-24T13:00:00Z,2026-11-24T14:00:00Z" (or epoch ms): a span of at least a second. */
 function parseSpan(v: string | null): [number, number] | null {
