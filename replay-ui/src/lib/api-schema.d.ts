@@ -223,6 +223,26 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/caller": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Caller Access
+         * @description The role and scopes of the bearer token sent (nothing of the token itself).
+         */
+        get: operations["getCallerAccess"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/changes": {
         parameters: {
             query?: never;
@@ -866,6 +886,13 @@ export interface components {
             robots_active: number;
             /** Start Ms */
             start_ms: number;
+        };
+        /** CallerAccess */
+        CallerAccess: {
+            /** Role */
+            role: string | null;
+            /** Scopes */
+            scopes: string[];
         };
         /** Change */
         Change: {
@@ -2361,6 +2388,40 @@ export interface operations {
                 };
                 content: {
                     "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    getCallerAccess: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["CallerAccess"];
                 };
             };
             /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
