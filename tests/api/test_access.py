@@ -53,7 +53,7 @@ SCOPES = {
     "listEvents": "read", "getTimeline": "read", "listConflicts": "read",
     "exportTable": "read", "exportReplayMcap": "read", "getHistoryStats": "read",
     "getClientConfig": "read", "getServiceStatus": "read", "listChanges": "read",
-    "getVdaVehicle": "read",
+    "getVdaVehicle": "read", "getVdaFleet": "read",
     "getLegacyMeta": "read", "listLegacyChunks": "read", "getLegacyChunk": "read",
     "getLegacyChunkPng": "read", "listLegacyRobots": "read",
     "postLegacyMeta": "write", "putLegacyMeta": "write", "postLegacyChunk": "write",

@@ -36,11 +36,13 @@ EXPECTED_OPERATION_IDS = {
     "exportTable", "exportReplayMcap",  # api/routers/exports.py
     "listChanges",  # api/routers/changes.py (the replay UI's change feed)
     "getVdaVehicle",  # api/routers/vda5050.py (a VDA 5050 vehicle's errors, connection, factsheet)
+    "getVdaFleet",  # api/routers/vda5050.py (every VDA 5050 vehicle's facts of a window)
     # operators' annotations (api/routers/annotations.py, costmap_filters.py, zone_violations.py)
     "listAnnotations", "listAnnotationEdits", "createAnnotation", "changeAnnotation",
     "removeAnnotation", "importKeepOutMask", "getCostmapFilterMask", "getCostmapFilterMaskYaml",
     "getCostmapFilterInfo", "listZoneViolations",
     "sendCommand", "listCommands",  # api/routers/commands.py (operators' commands to robots)
+    "getCallerAccess",  # api/routers/caller.py (the replay page offers editing to operators)
 }
 
 
