@@ -10,6 +10,7 @@ import datetime
 import threading
 from collections.abc import Sequence
 
+import msgspec
 import numpy as np
 
 from mapservice.core import change_feed
@@ -161,6 +162,14 @@ class MemoryStore:
         for r in self.poses(from_ms, to_ms, robot_id, limit=len(self._poses)):
             first.setdefault((r.robot_id, (r.ts_ms - from_ms) // step_ms), r)
         return sorted(first.values(), key=lambda r: (r.ts_ms, r.robot_id))[:limit]
+
+    def robot_track(self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0,
+                    limit: int = 100_000) -> list[PoseRow]:
+        if step_ms < 0:
+            raise ValueError("step_ms must not be negative")
+        rows = (self.poses_downsampled(from_ms, to_ms, step_ms, robot_id, limit) if step_ms
+                else self.poses(from_ms, to_ms, robot_id, limit))
+        return [msgspec.structs.replace(r, path=None) for r in rows]
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]

@@ -4,8 +4,7 @@ Choices, and why:
 - ReplacingMergeTree on each event's natural identity (ORDER BY): a re-delivered batch
   leaves duplicates only until the next merge, and every read uses FINAL, so readers
   never see them.
-- PARTITION BY day and TTL with ttl_only_drop_parts: expiry drops whole day-parts
-  instead of rewriting them.
+- PARTITION BY day: expiry drops whole day-parts instead of rewriting them.
 - Positions as Int32 millimetres with Delta+ZSTD, time as DoubleDelta: 1 Hz poses
   shrink to a few bytes a row. Chunk pixels live once per content hash per day in
   `chunk_contents`; chunk events reference them by a 16-byte hash.
@@ -16,7 +15,8 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass
 
-from mapservice.adapters.clickhouse import analyst_schema, annotation_schema, vda_schema
+from mapservice.adapters.clickhouse import (analyst_schema, annotation_schema, track_schema,
+                                            vda_schema)
 
 
 @dataclass(frozen=True)
@@ -220,6 +220,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                   vda_schema.statements(database)),
         Migration(13, "operators' annotations: points of interest and zones, as edit events",
                   annotation_schema.statements(database)),
+        Migration(14, "pose_tracks: every pose sorted by robot, for one robot's plots and track",
+                  track_schema.statements(database, POSE_COLUMNS)),
     ]
 
 
@@ -318,19 +320,17 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 13
+SCHEMA_VERSION = 14
 
-# Every table whose rows expire with the retention, all partitioned by day (toDate of their
-# time column): the retention step (retention.py) drops their partitions older than the
-# day of the snapshot that carries the floor. map_meta, snapshot_log and snapshot_repairs
-# are not partitioned; the retention step deletes their old rows itself.
+# Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
+# map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
 DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
                    "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
                    "pose_ten_minutes", "chunk_seconds")
-# What the retention step drops by day: the above (whose TTL schema v11 removed) and the
-# VDA 5050 facts of schema v12 (factsheets are kept: one a vehicle, its latest matters).
+# What the retention step drops by day, older than the snapshot carrying the floor: those,
+# the VDA 5050 facts of v12 (not factsheets: one a vehicle), zone violations, pose_tracks.
 RETAINED_BY_DAY = (*DAY_PARTITIONED, "vda_states", "vda_errors", "vda_connections",
-                   "zone_violations")
+                   "zone_violations", track_schema.TABLE)
 
 
 def _service_retention(db: str) -> tuple[str, ...]:
