@@ -38,8 +38,8 @@ from mapservice.settings import Settings
 
 
 class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
-                      SnapshotsMixin, LegacyMixin, VdaReadsMixin, AnnotationReadsMixin, AdminMixin,
-                      ChangeFeedMixin, TrackReadsMixin):
+                      ChangeFeedMixin, SnapshotsMixin, LegacyMixin, VdaReadsMixin,
+                      AnnotationReadsMixin, AdminMixin, TrackReadsMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
