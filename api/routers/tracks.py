@@ -52,8 +52,7 @@ def get_robot_track(
     if step_ms and (t - f) // step_ms > MAX_POINTS:
         raise HTTPException(400, f"{(t - f) // step_ms:,} steps of {step_ms} ms is more than "
                                  f"{MAX_POINTS:,}; use step_ms >= {-(-(t - f) // MAX_POINTS)}")
-    rows = (store.poses_downsampled(f, t, step_ms, robot_id, limit=MAX_POINTS + 1) if step_ms
-            else store.poses(f, t, robot_id, limit=MAX_POINTS + 1))
+    rows = store.robot_track(robot_id, f, t, step_ms, limit=MAX_POINTS + 1)
     if not rows and not store.robot_known(robot_id):
         raise HTTPException(404, f"robot {robot_id!r} has no pose in the history; "
                                  "GET /api/v1/robots lists the robots")

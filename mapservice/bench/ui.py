@@ -27,8 +27,13 @@ measured before then include that contention).
   granularity, and after the seek in place the paused page does, the map must equal
   `map_at(playhead)` exactly.
 
-`--data-dir DIR --reuse` loads each history once into DIR (a 200-robot week takes minutes)
-and later runs reuse it while `DIR/loaded-<database>.json` matches the arguments.
+`--data-dir DIR --reuse` loads each history once into DIR (a 200-robot week takes minutes,
+its progress printed to stderr) and later runs reuse it while `DIR/loaded-<database>.json`
+matches the arguments; a reused directory is migrated to this release's schema first (so
+one history measures two releases back to back). The `summary` puts the seek p95 beside
+the panel reads' p95 per span; `--baseline FILE` (an earlier run's `--json`) adds each
+figure's ratio to that run's (this / baseline: under 1 is faster), the comparison that
+holds on a shared machine where absolute times do not.
 """
 
 from __future__ import annotations
@@ -139,6 +144,7 @@ def load_or_reuse(data: Path, database: str, days: float, robots: int, end_ms: i
     if reuse and marker.exists():
         doc = json.loads(marker.read_text())
         if doc["days"] == days and doc["robots"] == robots:
+            migrate(data / "ch", database)
             return Loaded(doc["poses"], doc["chunk_events"], doc["start_ms"], doc["end_ms"]), True
         raise SystemExit(f"bench ui: {marker} holds {doc['days']} days of {doc['robots']} "
                          f"robots, not {days} of {robots}; use another --data-dir")
@@ -147,6 +153,34 @@ def load_or_reuse(data: Path, database: str, days: float, robots: int, end_ms: i
     if reuse:
         marker.write_text(json.dumps({"days": days, "robots": robots, **vars(loaded)}))
     return loaded, False
+
+
+def migrate(path: Path, database: str) -> None:
+    """Brings a reused history to this release's schema (the API process only waits for it)."""
+    from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
+
+    store = ClickHouseStore(f"chdb://{path}", database=database)
+    try:
+        if store.schema_version() < SCHEMA_VERSION:
+            t0 = time.perf_counter()
+            print(f"bench ui: migrating {database} to schema {SCHEMA_VERSION}...", file=sys.stderr, flush=True)
+            store.migrate()
+            print(f"bench ui: migrated in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    finally:
+        store.close()
+
+
+_printed: dict[str, int] = {}
+
+
+def _progress(phase: str, done: int, total: int, info: dict) -> None:
+    """The loader's progress on stderr, about every 5 %."""
+    twentieth = done * 20 // max(1, total)
+    if _printed.get(phase) != twentieth:
+        _printed[phase] = twentieth
+        extra = "".join(f" {k}={v:,}" for k, v in info.items() if isinstance(v, int))
+        print(f"bench ui: {phase} {done:,}/{total:,}{extra}", file=sys.stderr, flush=True)
 
 
 def load(path: Path, database: str, days: float, robots: int, end_ms: int):
@@ -159,7 +193,7 @@ def load(path: Path, database: str, days: float, robots: int, end_ms: int):
     store = ClickHouseStore(f"chdb://{path}", database=database, snapshot_every_ms=600_000)
     try:
         return load_history(store, load_ros_map(DEFAULT_MAP), days=days, robots=robots,
-                            end_ms=end_ms, grid=(32, 48))
+                            end_ms=end_ms, grid=(32, 48), on_progress=_progress)
     finally:
         store.close()  # the API process opens the directory next
 
@@ -385,9 +419,31 @@ def main(args) -> None:
     finally:
         if not args.data_dir:
             shutil.rmtree(tmp, ignore_errors=True)
+    out["summary"] = summary(out)
+    if args.baseline:
+        out["ratio_to_baseline"] = ratios(out["summary"], summary(json.loads(Path(args.baseline).read_text())))
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2))
+
+
+def summary(out: dict) -> dict:
+    """Seek p95 beside the panel reads' p95 per span (the acceptance: plots and the change
+    feed's first page within 300 ms p95 on a 200-robot week, seek within its target)."""
+    doc: dict = {"seek_p95_ms": out.get("seek", {}).get("p95_ms")}
+    for span, reads in out.get("panel_reads", {}).items():
+        for key in ("plot_track", "changes_first_page", "uploads"):
+            if key in reads:
+                doc[f"{key}_{span}_p95_ms"] = reads[key]["p95_ms"]
+                doc[f"{key}_{span}_refused"] = reads[key]["refused_422"]
+    return doc
+
+
+def ratios(now: dict, before: dict) -> dict:
+    """Each p95 of `now` over the same figure of `before` (both measured on one history)."""
+    return {k: round(v / before[k], 3) for k, v in now.items()
+            if k.endswith("_ms") and isinstance(v, (int, float)) and isinstance(before.get(k), (int, float))
+            and before[k] > 0}
 
 
 def add_parser(kinds) -> None:
@@ -412,4 +468,6 @@ def add_parser(kinds) -> None:
     p.add_argument("--reuse", action="store_true",
                    help="with --data-dir: load each history once, reuse it on later runs")
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
+    p.add_argument("--baseline", default=None,
+                   help="an earlier run's --json on the same history: report each p95's ratio to it")
     p.set_defaults(func=main)

@@ -185,6 +185,11 @@ def chunks_needing_earlier(writes: Sequence[ChunkRow], query: ChangeQuery) -> se
             if ts >= query.from_ms and (query.box is None or query.box.holds(*k))}
 
 
+def upload_runs(rows: Sequence[ChunkRow]) -> list[tuple[ChunkRow, ChunkRow, int]]:
+    """The (first, last, size) of each upload among `rows` (sorted by time)."""
+    return list({id(run[0]): run for run in _uploads(rows).values()}.values())
+
+
 def _uploads(rows: Sequence[ChunkRow]) -> dict[int, tuple[ChunkRow, ChunkRow, int]]:
     """id(write) -> (first, last, size) of its run, for the writes in runs that are uploads."""
     by_robot: dict[str, list[ChunkRow]] = {}

@@ -233,6 +233,13 @@ class TimeTravelReader(Protocol):
         of from_ms <= event time < to_ms: at most one frame per robot per step, ordered by
         time then robot (a replay's poses at a coarser rate)."""
 
+    def robot_track(self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0,
+                    limit: int = 100_000) -> list[PoseRow]:
+        """One robot's poses with from_ms <= event time < to_ms in time order (with step_ms
+        > 0, its first in each step [from_ms + k*step_ms, ...)), without planned paths
+        (`path` None): a plot's read. A derived view: it may lag `poses` until
+        `derive_views` of the same events."""
+
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
 

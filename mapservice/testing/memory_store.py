@@ -10,9 +10,10 @@ import datetime
 import threading
 from collections.abc import Sequence
 
+import msgspec
 import numpy as np
 
-from mapservice.core import change_feed
+from mapservice.core import change_scan
 from mapservice.core.commands import COMMAND_EVENTS, StoredCommandEvent
 from mapservice.core.annotations import (ANNOTATION_EVENTS, AnnotationEdit, CurrentAnnotation,
                                          ZoneViolation, fold_annotations, prune_before)
@@ -184,6 +185,14 @@ class MemoryStore:
             first.setdefault((r.robot_id, (r.ts_ms - from_ms) // step_ms), r)
         return sorted(first.values(), key=lambda r: (r.ts_ms, r.robot_id))[:limit]
 
+    def robot_track(self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0,
+                    limit: int = 100_000) -> list[PoseRow]:
+        if step_ms < 0:
+            raise ValueError("step_ms must not be negative")
+        rows = (self.poses_downsampled(from_ms, to_ms, step_ms, robot_id, limit) if step_ms
+                else self.poses(from_ms, to_ms, robot_id, limit))
+        return [msgspec.structs.replace(r, path=None) for r in rows]
+
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
@@ -299,17 +308,22 @@ class MemoryStore:
         return dict(sorted(counts.items()))
 
     def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
-        lo, hi = change_feed.fetch_window(query)
-        writes = [r for r in self._chunks.values() if lo <= r.ts_ms < hi]
-        wanted = change_feed.chunks_needing_earlier(writes, query)
+        return change_scan.newest_first(query, self._chunk_writes, self._hashes_before)
+
+    def _chunk_writes(self, from_ms: int, to_ms: int, robots=None) -> list[ChunkRow]:
+        return sorted((r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms
+                       and (robots is None or r.robot_id in robots)),
+                      key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))
+
+    def _hashes_before(self, wanted: set[tuple[int, int]], before_ms: int) -> dict[tuple[int, int], str]:
         earlier: dict[tuple[int, int], tuple[int, str, str]] = {}
         # The floor the retention carried (writes from days it dropped) and the kept writes.
         kept: list[ChunkState | ChunkRow] = [*self._carried.values(), *self._chunks.values()]
         for r in kept:
             k = (r.row, r.column)
-            if r.ts_ms < lo and k in wanted and (r.ts_ms, r.robot_id) > earlier.get(k, (-1, "", ""))[:2]:
+            if r.ts_ms < before_ms and k in wanted and (r.ts_ms, r.robot_id) > earlier.get(k, (-1, "", ""))[:2]:
                 earlier[k] = (r.ts_ms, r.robot_id, r.content_hash)
-        return change_feed.page(writes, query, {k: v[2] for k, v in earlier.items()})
+        return {k: v[2] for k, v in earlier.items()}
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         return self._contents.get(content_hash)

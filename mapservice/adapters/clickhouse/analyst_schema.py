@@ -150,6 +150,12 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "state": "ONLINE, OFFLINE or CONNECTIONBROKEN",
         "sent_ts": "The message's own timestamp",
     }),
+    "pose_tracks": ("Derived: every pose of poses again, sorted by (robot_id, ts), for "
+                    "reads of one robot over a window (its plots and track), written by a "
+                    "materialized view on pose_derivations (schema v17). Columns as poses; "
+                    "duplicates until merged: read with FINAL.", {
+        "robot_id": "The robot", "ts": "The pose's event time (UTC)",
+    }),
     "vda_factsheets": ("VDA 5050 factsheets, as the vehicle sent them (schema v12)", {
         "robot_id": "The vehicle's robot id", "ts": "The factsheet's timestamp (UTC)",
         "vda_version": "The VDA 5050 schema it was validated against",

@@ -4,8 +4,7 @@ Choices, and why:
 - ReplacingMergeTree on each event's natural identity (ORDER BY): a re-delivered batch
   leaves duplicates only until the next merge, and every read uses FINAL, so readers
   never see them.
-- PARTITION BY day and TTL with ttl_only_drop_parts: expiry drops whole day-parts
-  instead of rewriting them.
+- PARTITION BY day: expiry drops whole day-parts instead of rewriting them.
 - Positions as Int32 millimetres with Delta+ZSTD, time as DoubleDelta: 1 Hz poses
   shrink to a few bytes a row. Chunk pixels live once per content hash per day in
   `chunk_contents`; chunk events reference them by a 16-byte hash.
@@ -21,6 +20,7 @@ from mapservice.adapters.clickhouse import (
     annotation_schema,
     command_schema,
     retention_schema,
+    track_schema,
     vda_schema,
     vda_views,
 )
@@ -232,6 +232,8 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                   tuple(analyst_schema.later_view_statements(database, "keep_out_violations"))),
         Migration(16, "analysts: views of VDA 5050 vehicles' states, errors, connections, factsheets",
                   analyst_schema.view_statements(database, vda_views.VIEWS)),
+        Migration(17, "pose_tracks: every pose sorted by robot, for one robot's plots and track",
+                  track_schema.statements(database, POSE_COLUMNS)),
     ]
 
 
@@ -330,20 +332,18 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 16
+SCHEMA_VERSION = 17
 
-# Every table whose rows expire with the retention, all partitioned by day (toDate of their
-# time column): the retention step (retention.py) drops their partitions older than the
-# day of the snapshot that carries the floor. map_meta, snapshot_log and snapshot_repairs
-# are not partitioned; the retention step deletes their old rows itself.
+# Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
+# map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
 DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
                    "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
                    "pose_ten_minutes", "chunk_seconds")
-# What the retention step drops by day: the above (whose TTL schema v11 removed), the VDA
-# 5050 facts of schema v12 the zone violations of v13 and
-# the commands of v14.
+# What the retention step drops by day, older than the snapshot carrying the floor: those,
+# the VDA 5050 facts of v12 (not factsheets: one a vehicle), zone violations, the
+# commands of v14 and pose_tracks of v17.
 RETAINED_BY_DAY = (*DAY_PARTITIONED, *vda_schema.RETAINED_BY_DAY, "zone_violations",
-                   "command_events")
+                   "command_events", track_schema.TABLE)
 
 
 def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:

@@ -31,6 +31,7 @@ from mapservice.adapters.clickhouse.migrations import MigrationsMixin
 from mapservice.adapters.clickhouse.reads import ReadsMixin
 from mapservice.adapters.clickhouse.retention import RetentionMixin
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.adapters.clickhouse.track_reads import TrackReadsMixin
 from mapservice.adapters.clickhouse.vda_reads import VdaReadsMixin
 from mapservice.adapters.clickhouse.writes import WritesMixin
 from mapservice.adapters.clock import SystemClock, clock_from_settings
@@ -38,8 +39,9 @@ from mapservice.settings import Settings
 
 
 class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
-                      SnapshotsMixin, LegacyMixin, VdaReadsMixin, AnnotationReadsMixin, AdminMixin,
-                      ChangeFeedMixin, CommandReadsMixin):
+                      ChangeFeedMixin, SnapshotsMixin, LegacyMixin, VdaReadsMixin,
+                      AnnotationReadsMixin, AdminMixin, TrackReadsMixin,
+                      CommandReadsMixin):
     """Construction does no I/O; the first call connects."""
 
     def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,

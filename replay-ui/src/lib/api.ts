@@ -192,6 +192,13 @@ export class Api implements Source {
       `${this.base}/api/v1/poses?from=${f}&to=${t}&robotId=${encodeURIComponent(robotId)}&limit=${LIMIT}`), stepMs);
   }
 
+  /** Chunk writes in [from, to) (at most 100,000): the write times of an upload crossing
+   * timeline buckets, so its writes leave the change bars where they are. */
+  async chunkEvents(fromMs: number, toMs: number): Promise<{ ts_ms: number; robotId: string }[]> {
+    return getJson<{ ts_ms: number; robotId: string }[]>(
+      `${this.base}/api/v1/chunk-events?from=${Math.floor(fromMs)}&to=${Math.ceil(toMs)}&limit=100000`);
+  }
+
   /** The map uploads in [from, to) (newest first, at most 1000), for the timeline's marks. */
   async uploads(fromMs: number, toMs: number): Promise<Change[]> {
     const r = await getJson<{ changes: Change[] }>(

@@ -83,3 +83,51 @@ export function timeTicks(from: number, to: number, widthPx: number, minGapPx = 
   }
   return ticks;
 }
+
+/** A map upload as the timeline knows it (a `kind: "upload"` entry of the change feed). */
+export interface UploadMark {
+  ts_ms: number; // its first write
+  end_ms: number; // its last write
+  chunks: number;
+  robot_id: string;
+}
+
+/**
+ * Per bucket index, how many of the uploads' writes it holds: an upload inside one bucket
+ * puts all its `chunks` there; one crossing buckets is counted from its writes' times,
+ * `writeTimes(upload)` (its writer's writes from its first to its last: a run has no
+ * other), which the strip reads only for such uploads.
+ */
+export async function uploadWritesPerBucket(tl: Timeline, uploads: UploadMark[],
+  writeTimes: (u: UploadMark) => Promise<number[]>): Promise<Map<number, number>> {
+  const out = new Map<number, number>();
+  const add = (t: number, n: number) => {
+    const i = Math.floor((t - tl.from_ms) / tl.bucket_ms);
+    if (i >= 0 && i < tl.buckets.length) out.set(i, (out.get(i) ?? 0) + n);
+  };
+  for (const u of uploads) {
+    if (Math.floor((u.ts_ms - tl.from_ms) / tl.bucket_ms) === Math.floor((u.end_ms - tl.from_ms) / tl.bucket_ms)) {
+      add(u.ts_ms, u.chunks);
+    } else {
+      for (const t of await writeTimes(u)) add(t, 1);
+    }
+  }
+  return out;
+}
+
+/** The timeline with the uploads' writes taken out of `chunk_changes`: an upload is its own
+ * mark, never floor changes (nor the spike every other bar is scaled against). */
+export function withoutUploads(tl: Timeline, perBucket: Map<number, number>): Timeline {
+  if (!perBucket.size) return tl;
+  return { ...tl, buckets: tl.buckets.map((b, i) => (perBucket.has(i)
+    ? { ...b, chunk_changes: Math.max(0, b.chunk_changes - perBucket.get(i)!) } : b)) };
+}
+
+/** Where a click on a bucket's conflict mark seeks: just after the later write of the
+ * bucket's first conflict (where the map holds it and the conflict box shows), or null. */
+export function conflictSeek(conflicts: { ts_ms: number; seek_ms: number }[], startMs: number,
+  bucketMs: number): number | null {
+  const inBucket = conflicts.filter((c) => c.ts_ms >= startMs && c.ts_ms < startMs + bucketMs);
+  if (!inBucket.length) return null;
+  return inBucket.reduce((a, c) => (c.ts_ms < a.ts_ms ? c : a)).seek_ms;
+}

@@ -127,3 +127,22 @@ def test_panel_reads_ask_for_the_track_as_the_plot_panel_does() -> None:
     start = 1_795_255_242_005  # 2026-11-21T10:00:42.005Z
     assert plot_window(start, start + 7 * 86_400_000, 1000) == (start // 60_000 * 60_000, 1_260_000)
     assert plot_window(start, start + 3_600_000, 1200) == (start, 6000)
+
+
+def test_summary_puts_panel_p95_beside_seek_and_ratios_compare_two_runs(capsys) -> None:
+    from mapservice.bench import ui
+
+    def run(seek: float, plot: float, feed: float) -> dict:
+        return {"seek": {"p95_ms": seek}, "panel_reads": {"1h": {
+            "plot_track": {"p95_ms": plot, "refused_422": 0},
+            "changes_first_page": {"p95_ms": feed, "refused_422": 1}}}}
+
+    after, before = ui.summary(run(180.0, 50.0, 100.0)), ui.summary(run(200.0, 2500.0, None))
+    assert after == {"seek_p95_ms": 180.0, "plot_track_1h_p95_ms": 50.0, "plot_track_1h_refused": 0,
+                     "changes_first_page_1h_p95_ms": 100.0, "changes_first_page_1h_refused": 1}
+    # A figure the baseline lacks (every request refused) has no ratio.
+    assert ui.ratios(after, before) == {"seek_p95_ms": 0.9, "plot_track_1h_p95_ms": 0.02}
+    for done in range(101):
+        ui._progress("load", done, 100, {"poses": done})
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 21 and lines[-1] == "bench ui: load 100/100 poses=100"
