@@ -7,7 +7,7 @@ from __future__ import annotations
 import time
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.change_feed import ChangeQuery
 from mapservice.core.wire2019 import content_hash
 from tests.conftest import chunk_event

@@ -14,28 +14,19 @@ import pytest
 
 from mapservice.adapters.clickhouse.retention import RETAINED_BY_DAY
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
-from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.memory_store import MemoryStore
+from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import pose_event
 
 
-@pytest.fixture(scope="module")
-def chdb_dir(tmp_path_factory):
-    path = tmp_path_factory.mktemp("tracks") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="root")
-    root.migrate()
-    yield path
-    root.close()
-
-
-_n = iter(range(1000))
-
-
 @pytest.fixture
-def store(chdb_dir):
-    s = ClickHouseStore(f"chdb://{chdb_dir}", database=f"t{next(_n)}")
+def store(open_store):
+    """A new database in the module's chDB (tests/conftest.py), not yet migrated."""
+    s = open_store("clickhouse")
     yield s
     s.close()
+
+
+TRACKS_VERSION = 17  # the migration that adds pose_tracks
 
 
 def _m0() -> int:
@@ -78,13 +69,13 @@ def test_robot_track_equals_the_memory_fold_for_every_step(store) -> None:
         store.robot_track("r1", m0, m0 + 1, -1)
 
 
-def test_v14_backfills_an_existing_database_then_follows_derive_views(store, monkeypatch) -> None:
+def test_v17_backfills_an_existing_database_then_follows_derive_views(store, monkeypatch) -> None:
     from mapservice.adapters.clickhouse import migrations as migrations_module
 
     released = migrations_module.migrations
     monkeypatch.setattr(migrations_module, "migrations",
-                        lambda db, days: [m for m in released(db, days) if m.version <= 13])
-    assert store.migrate() == 13
+                        lambda db, days: [m for m in released(db, days) if m.version < TRACKS_VERSION])
+    assert store.migrate() == TRACKS_VERSION - 1
     m0 = _m0()
     store.append([pose_event("r1", m0 + s * 1000, x=float(s)) for s in range(30)]
                  + [pose_event("r2", m0 + 500, x=7.0)])
