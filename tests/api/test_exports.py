@@ -48,6 +48,8 @@ def test_table_exports_name_what_they_need() -> None:
     reply = c.get("/api/v1/exports/tables/robot-poses", params={"from": T0, "to": T0 + 1000})
     assert reply.status_code == 501 and "ClickHouse" in reply.json()["detail"]
     assert c.get("/api/v1/exports/tables/poses; DROP", params={"from": T0, "to": T0 + 1}).status_code == 422
+    for dataset in ("annotation-edits", "commands"):  # the operators' events are datasets too
+        assert c.get(f"/api/v1/exports/tables/{dataset}", params={"from": T0, "to": T0 + 1000}).status_code == 501
     assert c.get("/api/v1/exports/tables/robot-poses",
                  params={"from": T0, "to": T0 + 1, "format": "xlsx"}).status_code == 422
 
