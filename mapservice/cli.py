@@ -265,10 +265,12 @@ def build_parser() -> argparse.ArgumentParser:
                             "CSV/Parquet")
     export.add_argument("dataset", choices=["replay", "robot-poses", "chunk-changes",
                                             "chunk-conflicts", "dead-letters", "vehicle-states",
-                                            "vehicle-errors", "vehicle-connections"],
+                                            "vehicle-errors", "vehicle-connections",
+                                            "annotation-edits", "commands"],
                         help="replay: MCAP of map and robots (at most 24 h); else an analysts' "
                              "view (docs/analysts.md; at most 7 days); vehicle-*: the VDA 5050 "
-                             "tables vda_states, vda_errors, vda_connections")
+                             "tables vda_states, vda_errors, vda_connections; annotation-edits, "
+                             "commands: the operators' annotation and command events")
     export.add_argument("--from", dest="from_", required=True,
                         help="start, ISO 8601 (2026-11-23T08:00:00Z) or epoch ms")
     export.add_argument("--to", required=True, help="end (exclusive), ISO 8601 or epoch ms")

@@ -20,7 +20,8 @@ router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
 MAX_TABLE_SPAN_MS = 7 * 86_400_000
 MAX_MCAP_SPAN_MS = 86_400_000
 Dataset = Literal["robot-poses", "chunk-changes", "chunk-conflicts", "dead-letters",
-                  "vehicle-states", "vehicle-errors", "vehicle-connections"]
+                  "vehicle-states", "vehicle-errors", "vehicle-connections",
+                  "annotation-edits", "commands"]
 
 
 def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
@@ -36,7 +37,8 @@ async def export_table_route(
     to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms; at most 7 days after from"),
     format: Literal["csv", "parquet"] = Query("csv", description="csv (with a header) or parquet"),
     robot_id: str | None = Query(None, alias="robotId", max_length=64,
-                                 description="Only this robot (not for dead-letters)"),
+                                 description="Only this robot (not for dead-letters "
+                                             "or annotation-edits)"),
 ) -> Response:
     """Rows of an analysts' view (docs/analysts.md) in the window, as ClickHouse writes them.
     CSV is streamed slice by slice of the window as the client reads it."""
@@ -87,8 +89,10 @@ async def export_replay_mcap(
     """The map (`/map`, foxglove.Grid) and every robot in the window, as MCAP for Foxglove
     or Lichtblick: its pose (`/robots/<id>/pose`, foxglove.PoseInFrame), battery in %,
     charging and loaded (`/robots/<id>/state`, JSON with its JSON schema) and planned path
-    (`/robots/<id>/planned_path`, foxglove.PosesInFrame, when it changes); streamed as it
-    is written."""
+    (`/robots/<id>/planned_path`, foxglove.PosesInFrame, when it changes); the operators'
+    annotations standing at the start and after each edit (`/annotations`,
+    foxglove.SceneUpdate) and their commands with the robots' answers (`/commands`, JSON);
+    streamed as it is written."""
     store: HistoryStore = request.app.state.store
     f, t = parse_window(from_, to, MAX_MCAP_SPAN_MS)
     try:

@@ -3,7 +3,9 @@ by ClickHouse itself from the analysts' views) and as MCAP (Foxglove and Lichtbl
 it: the map as a `foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned
 path as `foxglove.PosesInFrame` and its battery, charging and loaded flags as a JSON channel
 whose JSON schema states the units; a VDA 5050 vehicle's errors and warnings and its
-connection state as JSON channels too).
+connection state as JSON channels too; the operators' annotations standing as
+`foxglove.SceneUpdate` on `/annotations` and their commands with the robots' answers as
+JSON on `/commands`: mcap_annotations).
 
 May depend on: the ports and the analyst schema; the store's ClickHouse client for tables."""
 
@@ -16,6 +18,15 @@ from typing import BinaryIO
 
 import numpy as np
 
+from mapservice.adapters.mcap_annotations import (
+    ANNOTATIONS_TOPIC,
+    COMMANDS_SCHEMA,
+    COMMANDS_SCHEMA_NAME,
+    COMMANDS_TOPIC,
+    annotation_states,
+    command_messages,
+    scene_update,
+)
 from mapservice.core.events import MapMetaSet
 from mapservice.core.ports import HistoryStore, PoseRow
 
@@ -30,8 +41,14 @@ TABLES: dict[str, tuple[str, str]] = {
     "vehicle-states": ("vda_states", "ts"),
     "vehicle-errors": ("vda_errors", "ts"),
     "vehicle-connections": ("vda_connections", "ts"),
+    # Operators' annotation edits (who, when, the annotation as JSON) and their commands
+    # with the robots' answers: event tables, read with FINAL like the VDA ones.
+    "annotation-edits": ("annotation_events", "ts"),
+    "commands": ("command_events", "ts"),
 }
-_READ_FINAL = {"vda_states", "vda_errors", "vda_connections"}  # tables, not views
+_READ_FINAL = {"vda_states", "vda_errors", "vda_connections", "annotation_events",
+               "command_events"}  # tables, not views
+_NO_ROBOT = {"dead-letters", "annotation-edits"}  # datasets without a robot_id column
 TABLE_FORMATS = {"csv": ("CSVWithNames", "text/csv"),
                  "parquet": ("Parquet", "application/vnd.apache.parquet")}
 MAP_TOPIC = "/map"
@@ -119,7 +136,7 @@ CONNECTION_SCHEMA = {
     "required": ["state", "online", "sent_ms"],
 }
 _JSON_SCHEMAS = {STATE_SCHEMA_NAME: STATE_SCHEMA, ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
-                 CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA}
+                 CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA, COMMANDS_SCHEMA_NAME: COMMANDS_SCHEMA}
 
 
 def battery_percent(level: float | None) -> float | None:
@@ -135,7 +152,7 @@ def export_table(store, dataset: str, fmt: str, from_ms: int, to_ms: int,
     """`dataset` rows with from <= time < to, in ClickHouse's CSVWithNames or Parquet."""
     view, time_column = TABLES[dataset]
     clickhouse_format, _ = TABLE_FORMATS[fmt]
-    robot_filter = " AND robot_id = {robot:String}" if robot_id and dataset != "dead-letters" else ""
+    robot_filter = " AND robot_id = {robot:String}" if robot_id and dataset not in _NO_ROBOT else ""
     final = " FINAL" if view in _READ_FINAL else ""
     sql = (f"SELECT * FROM {store.database}.{view}{final} WHERE {time_column} >= "
            "fromUnixTimestamp64Milli({from_ms:Int64}, 'UTC') AND "
@@ -154,6 +171,8 @@ class McapCounts:
     paths: int = 0
     vda_errors: int = 0  # messages on the errors channels (a clear is one)
     vda_connections: int = 0
+    annotation_updates: int = 0  # SceneUpdates on /annotations (the start's state is one)
+    commands: int = 0
 
 
 class _McapOut:
@@ -285,6 +304,18 @@ def _vda_messages(store: HistoryStore, from_ms: int, to_ms: int) -> list[tuple[i
     return sorted(out, key=lambda m: (m[0], m[1]))
 
 
+def _side_messages(store: HistoryStore, from_ms: int, to_ms: int) -> list[tuple[int, str, str | None, object]]:
+    """Everything besides the map and poses, as (log time, topic, JSON schema name or None
+    for a protobuf message, message), in time order: VDA 5050 facts, the annotations standing
+    at `from_ms` and after each edit, and the commands with the robots' answers."""
+    out: list[tuple[int, str, str | None, object]] = list(_vda_messages(store, from_ms, to_ms))
+    out += [(t, ANNOTATIONS_TOPIC, None, scene_update(t, standing))
+            for t, standing in annotation_states(store, from_ms, to_ms)]
+    out += [(t, COMMANDS_TOPIC, COMMANDS_SCHEMA_NAME, doc)
+            for t, doc in command_messages(store, from_ms, to_ms)]
+    return sorted(out, key=lambda m: (m[0], m[1]))
+
+
 def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
     """Every pose of the window, page by page (a page never splits one instant's robots)."""
     cursor = from_ms
@@ -307,8 +338,8 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
     """Writes the window as MCAP: the map at `from_ms`, again after chunk changes (at most
     one grid per `grid_every_ms`, and the last state), every pose with its state (battery,
     charging, loaded), and each robot's planned path when it changes (an empty path when
-    the robot drops it), and VDA 5050 vehicles' errors and connection states. Returns the
-    counts."""
+    the robot drops it), VDA 5050 vehicles' errors and connection states, the annotations
+    standing at `from_ms` and after each edit, and the commands. Returns the counts."""
     meta = store.latest_meta()
     if meta is None:
         raise ValueError("no map geometry is set yet (the 2019 meta); nothing to export")
@@ -317,28 +348,36 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
     floor.apply([(c.row, c.column, c.content_hash) for c in store.map_at(from_ms)])
     writer = _McapOut(out)
     paths: dict[str, tuple | None] = {}
-    vda = _vda_messages(store, from_ms, to_ms)
-    vda_next = 0
+    side = _side_messages(store, from_ms, to_ms)
+    side_next = 0
 
-    def write_vda(until_ms: int) -> None:
-        """The VDA messages before `until_ms` not yet written (log times stay in order)."""
-        nonlocal vda_next
-        while vda_next < len(vda) and vda[vda_next][0] < until_ms:
-            ts_ms, topic, schema, doc = vda[vda_next]
-            writer.json(topic, schema, doc, ts_ms)
+    def write_side(until_ms: int) -> None:
+        """The VDA, annotation and command messages before `until_ms` not yet written (log
+        times stay in order)."""
+        nonlocal side_next
+        while side_next < len(side) and side[side_next][0] < until_ms:
+            ts_ms, topic, schema, payload = side[side_next]
+            if isinstance(payload, dict) and schema is not None:
+                writer.json(topic, schema, payload, ts_ms)
+            else:
+                writer.protobuf(topic, payload, ts_ms)
             if schema == ERRORS_SCHEMA_NAME:
                 counts.vda_errors += 1
-            else:
+            elif schema == CONNECTION_SCHEMA_NAME:
                 counts.vda_connections += 1
-            vda_next += 1
+            elif schema == COMMANDS_SCHEMA_NAME:
+                counts.commands += 1
+            else:
+                counts.annotation_updates += 1
+            side_next += 1
 
     def write_grid(ts_ms: int) -> None:
-        write_vda(ts_ms)
+        write_side(ts_ms)
         writer.protobuf(MAP_TOPIC, floor.grid(ts_ms), ts_ms)
         counts.grids += 1
 
     def write_pose(row: PoseRow) -> None:
-        write_vda(row.ts_ms)
+        write_side(row.ts_ms)
         writer.protobuf(pose_topic(row.robot_id), _pose_message(row), row.ts_ms)
         writer.json(state_topic(row.robot_id), STATE_SCHEMA_NAME, _state_doc(row), row.ts_ms)
         counts.poses += 1
@@ -380,6 +419,6 @@ def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
     if pending:
         floor.apply(pending)
         write_grid(max(last_grid_ms, to_ms - 1))
-    write_vda(to_ms)
+    write_side(max(to_ms, from_ms + 1))  # the rest (the annotations at from_ms, when from == to)
     writer.finish()
     return counts

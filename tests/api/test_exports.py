@@ -48,6 +48,8 @@ def test_table_exports_name_what_they_need() -> None:
     reply = c.get("/api/v1/exports/tables/robot-poses", params={"from": T0, "to": T0 + 1000})
     assert reply.status_code == 501 and "ClickHouse" in reply.json()["detail"]
     assert c.get("/api/v1/exports/tables/poses; DROP", params={"from": T0, "to": T0 + 1}).status_code == 422
+    for dataset in ("annotation-edits", "commands"):  # the operators' events are datasets too
+        assert c.get(f"/api/v1/exports/tables/{dataset}", params={"from": T0, "to": T0 + 1000}).status_code == 501
     assert c.get("/api/v1/exports/tables/robot-poses",
                  params={"from": T0, "to": T0 + 1, "format": "xlsx"}).status_code == 422
 
@@ -63,3 +65,22 @@ def test_replay_mcap_refuses_instants_past_2262() -> None:
         assert reply.status_code == 400, (instant, reply.status_code)
         assert "between 1970 and 2262" in reply.json()["detail"]
     assert c.get("/api/v1/exports/replay.mcap", params={"from": "9" * 5000, "to": T0}).status_code == 400
+
+
+def test_replay_mcap_carries_the_operators_annotations_and_commands() -> None:
+    """The download holds /annotations (the zone standing at the start) and /commands."""
+    from mapservice.core.annotations import AnnotationCreated, Zone
+    from mapservice.core.commands import CommandIssued
+    from mapservice.core.events import make_envelope
+
+    zone = Zone("pit", "keep_out", ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0)))
+    store = MemoryStore()
+    store.append([meta_event(T0 - 1000), pose_event("a", T0),
+                  make_envelope("operator:x", T0 - 500, T0 - 500, AnnotationCreated("z1", "operator:x", zone)),
+                  make_envelope("a", T0 + 100, T0 + 100, CommandIssued("c1", "a", "pause", "operator:x", T0 + 100))])
+    reply = client(store).get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 1000})
+    summary = make_reader(io.BytesIO(reply.content)).get_summary()
+    by_topic = {summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()}
+    assert by_topic["/annotations"] == 1 and by_topic["/commands"] == 1
+    assert {summary.schemas[c.schema_id].name for c in summary.channels.values()
+            if c.topic == "/annotations"} == {"foxglove.SceneUpdate"}

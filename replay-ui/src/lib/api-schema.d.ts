@@ -468,8 +468,10 @@ export interface paths {
          * @description The map (`/map`, foxglove.Grid) and every robot in the window, as MCAP for Foxglove
          *     or Lichtblick: its pose (`/robots/<id>/pose`, foxglove.PoseInFrame), battery in %,
          *     charging and loaded (`/robots/<id>/state`, JSON with its JSON schema) and planned path
-         *     (`/robots/<id>/planned_path`, foxglove.PosesInFrame, when it changes); streamed as it
-         *     is written.
+         *     (`/robots/<id>/planned_path`, foxglove.PosesInFrame, when it changes); the operators'
+         *     annotations standing at the start and after each edit (`/annotations`,
+         *     foxglove.SceneUpdate) and their commands with the robots' answers (`/commands`, JSON);
+         *     streamed as it is written.
          */
         get: operations["exportReplayMcap"];
         put?: never;
@@ -3127,12 +3129,12 @@ export interface operations {
                 to: string;
                 /** @description csv (with a header) or parquet */
                 format?: "csv" | "parquet";
-                /** @description Only this robot (not for dead-letters) */
+                /** @description Only this robot (not for dead-letters or annotation-edits) */
                 robotId?: string | null;
             };
             header?: never;
             path: {
-                dataset: "robot-poses" | "chunk-changes" | "chunk-conflicts" | "dead-letters" | "vehicle-states" | "vehicle-errors" | "vehicle-connections";
+                dataset: "robot-poses" | "chunk-changes" | "chunk-conflicts" | "dead-letters" | "vehicle-states" | "vehicle-errors" | "vehicle-connections" | "annotation-edits" | "commands";
             };
             cookie?: never;
         };

@@ -56,7 +56,7 @@ export function gapText(c: ConflictEntry): string {
 }
 
 /** What the MCAP holds, for the button's title. */
-export const MCAP_CONTENTS = "the map (foxglove.Grid), each robot's pose, battery in %, charging, loaded and planned path";
+export const MCAP_CONTENTS = "the map (foxglove.Grid), each robot's pose, battery in %, charging, loaded and planned path, the annotations (foxglove.SceneUpdate) and the commands";
 
 export type ExportKind = "mcap" | "robot-poses" | "chunk-changes" | "chunk-conflicts";
 
