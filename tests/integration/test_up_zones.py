@@ -1,8 +1,11 @@
 """Robots respect the operators' zones, end to end on a fresh `mapservice up` (its own
-simulated robots, the real embedded stack): a keep-out zone created through the API across
-an aisle robots use, and a speed zone. From the zone's creation plus the advertisement's
-latency, over two minutes of stored poses none lies inside the keep-out zone and no zone
-violation is recorded, and the stored speed inside the speed zone is the limit's.
+simulated robots, the real embedded stack): an operator draws a keep-out zone by mouse in
+the replay UI (Chromium) across an aisle a robot is about to drive, and a speed zone is
+created through the API. From the zone's creation plus the advertisement's latency, over
+two minutes of stored poses none lies inside the keep-out zone, no zone violation is
+recorded and no planned path crosses it, and the stored speed inside the speed zone is the
+limit's. Back in the browser, a seek to before the zone's creation does not draw it, a seek
+after does; the screenshot goes to test-artifacts/ui/up-keep-out-zone.png.
 
 Bounded: `up` takes a minute or so, then 20 s of driving, then the two minutes."""
 
@@ -21,12 +24,22 @@ from mapservice.core.zone_masks import pixel_of, zone_pixels
 from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from tests.fixtures.paths import MAPS
 from tests.integration.test_up_floor import Up
+from tests.ui.annotation_drawing import (TIMEOUT_MS, center_on_metres, draw_zone_by_mouse,
+                                         give_token, seek_and_read)
+from tests.ui.conftest import ARTIFACTS, DIST, module_browser, page  # noqa: F401  (fixtures)
 
 pytestmark = pytest.mark.integration
 
 WATCH_S = 120  # the acceptance's two minutes of poses
 GRACE_S = 10  # the zone reaches the robots (store, advertisement, API read) and they act
 SPEED_PERCENT = 25
+KEEP_OUT_NAME = "aisle closed"
+
+
+@pytest.fixture(scope="module")
+def browser(module_browser):
+    """This module's browser ends with the module (see tests/ui/conftest.playwright_browser)."""
+    return module_browser
 
 
 def box(x0: float, y0: float, x1: float, y1: float) -> list[list[float]]:
@@ -54,7 +67,9 @@ def aisle_crossing(latest: list[dict]) -> tuple[list[list[float]], str]:
     raise AssertionError("no robot drives a straight stretch away from the others")
 
 
-def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_zone(tmp_path):
+def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_zone(tmp_path, page):
+    if not DIST.exists():
+        pytest.fail("replay-ui is not built: run `make ui` first")
     data = tmp_path / "data"
     up = Up(data, "--robots", "5", "--history-days", "0")
     try:
@@ -70,10 +85,34 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
                 break
             time.sleep(2)
         assert len(latest) == 5, f"no poses of 5 robots stored: {latest}"
-        time.sleep(15)  # a shift under way: robots on the aisles between stations
+        # While a shift gets under way (robots on the aisles between stations), the operator
+        # opens the replay UI with the operator token, ready to draw a keep-out zone.
+        ready = time.monotonic() + 15
+        page.goto(f"http://127.0.0.1:{up.api_port}/?panels=annotations")
+        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+        give_token(page, token)
+        page.wait_for_selector('[data-testid="edit-panel"]', timeout=TIMEOUT_MS)
+        page.fill('[data-testid="zone-name"]', KEEP_OUT_NAME)
+        page.select_option('[data-testid="zone-kind"]', "keep_out")
+        meta = up.api("/api/chunk-service/meta").json()
+        time.sleep(max(0.0, ready - time.monotonic()))
         now = int(time.time() * 1000)
         latest = list({p["robotId"]: p for p in poses(up, now - 3_000, now)}.values())
-        keep_out, crossing = aisle_crossing(latest)
+        band, crossing = aisle_crossing(latest)
+        (x0, y0), (x1, y1) = band[0], band[2]
+        center_on_metres(page, meta, (x0 + x1) / 2, (y0 + y1) / 2)
+        draw_zone_by_mouse(page, [(x, y) for x, y in band])
+        page.wait_for_selector('[data-testid="edit-status"]', timeout=TIMEOUT_MS)
+        assert page.locator('[data-testid="annotation-error"]').count() == 0
+        standing = {a["annotation"]["name"]: a
+                    for a in up.api("/api/v1/annotations").json()["annotations"]}
+        drawn_zone = standing[KEEP_OUT_NAME]
+        assert drawn_zone["created_by"].startswith("operator:")
+        assert drawn_zone["annotation"]["kind"] == "keep_out"
+        keep_out = drawn_zone["annotation"]["polygon"]  # as stored: the mouse's corners
+        assert len(keep_out) == 4
+        for (x, y), (bx, by) in zip(keep_out, band):
+            assert (x, y) == (pytest.approx(bx, abs=0.06), pytest.approx(by, abs=0.06))
 
         ros_map = load_ros_map(MAPS / "warehouse.yaml")
         grid = grid_of(meta_for(ros_map))
@@ -84,14 +123,11 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
                     grid.origin_y + grid.height * grid.resolution + 1)
         auth = {"Authorization": f"Bearer {token}"}
         url = f"http://127.0.0.1:{up.api_port}/api/v1/annotations"
-        created = []
-        for body in ({"shape": "zone", "name": "aisle closed", "kind": "keep_out", "polygon": keep_out},
-                     {"shape": "zone", "name": "slow", "kind": "speed_limit", "polygon": speed,
-                      "speed_limit": SPEED_PERCENT, "speed_unit": "percent"}):
-            r = httpx.post(url, json=body, headers=auth, timeout=30)
-            assert r.status_code == 201, r.text
-            created.append(r.json())
-        t0 = max(c["created_ms"] for c in created)
+        r = httpx.post(url, json={"shape": "zone", "name": "slow", "kind": "speed_limit", "polygon": speed,
+                                  "speed_limit": SPEED_PERCENT, "speed_unit": "percent"},
+                       headers=auth, timeout=30)
+        assert r.status_code == 201, r.text
+        t0 = max(drawn_zone["created_ms"], r.json()["created_ms"])
         start, end = t0 + GRACE_S * 1000, t0 + (GRACE_S + WATCH_S) * 1000
         while time.time() * 1000 < end + 5_000:  # the last poses stored, a few seconds on
             time.sleep(5)
@@ -140,6 +176,15 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
         assert fast_outside >= 5
         sim_log = (data / "logs" / "sim.log").read_text()
         assert "robots take on the operators' zones" in sim_log, sim_log[-3000:]
+
+        # Replayed as it was: not drawn before its creation, drawn after it.
+        created, zone_id = drawn_zone["created_ms"], drawn_zone["id"]
+        assert zone_id not in seek_and_read(page, created - 10_000)["drawn"]["zones"]
+        assert zone_id in seek_and_read(page, created + 1_000)["drawn"]["zones"]
+        assert zone_id in seek_and_read(page, end)["drawn"]["zones"]
+        assert page.errors == []
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "up-keep-out-zone.png"))
         print(f"zone across the aisle of {crossing}; {len(watched)} poses watched, "
               f"{len(inside_moves)} moves in the speed zone")
     finally:

@@ -24,7 +24,8 @@ from mapservice.core.wire2019 import format_timestamp
 from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.settings import token_list
 
-from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
+from .annotation_drawing import TIMEOUT_MS, center_on_metres, draw_zone_by_mouse, drawn, give_token, screen, seek_and_read
+from .test_investigator import api, open_at, screenshot
 
 # Across the aisle between the first two racks of the warehouse's lower half (maps/warehouse.*):
 # from x -8.4 to -2.6 m the band overlaps both racks' edges.
@@ -39,34 +40,9 @@ def operator_token(stack) -> str:
     return token_list(with_local_api_secrets(stack.settings()).api_operator_tokens)[0]
 
 
-def give_token(page, token: str) -> None:
-    field = page.locator('[data-testid="operator-token"]')
-    field.fill(token)
-    field.dispatch_event("change")
-
-
 def standing(stack, at: int | None = None) -> dict[str, dict]:
     params = {"at": at} if at is not None else {}
     return {a["annotation"]["name"]: a for a in api(stack, "/api/v1/annotations", **params)["annotations"]}
-
-
-def drawn(page) -> dict:
-    return page.evaluate("() => window.__replay.annotations()")
-
-
-def screen(page, x: float, y: float) -> tuple[float, float]:
-    p = page.evaluate("([x, y]) => window.__replay.screenPointOfMetres(x, y)", [x, y])
-    return p["x"], p["y"]
-
-
-def seek_and_read(page, t: int) -> dict:
-    """Seeks to t and waits until the annotations at t are read and drawn."""
-    page.evaluate("(t) => window.__replay.seek(t)", t)
-    page.wait_for_function(
-        "(t) => window.__replay.playhead === t && window.__replay.complete && window.__replay.annotations().loadedAt === t",
-        arg=t, timeout=TIMEOUT_MS)
-    page.wait_for_timeout(400)  # the next summary redraws what was read
-    return drawn(page)
 
 
 def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack) -> None:
@@ -79,10 +55,7 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     give_token(page, operator_token(stack))
     page.wait_for_selector('[data-testid="edit-panel"]', timeout=TIMEOUT_MS)
     # Zoomed in on the aisle: one screen pixel is one map pixel (3 cm).
-    cx, cy = -5.5, -11.0
-    row = meta["height"] - (cy - meta["origin"][1]) / meta["resolution"]
-    col = (cx - meta["origin"][0]) / meta["resolution"]
-    page.evaluate("([r, c]) => window.__replay.centerOnPixel(r, c, 0)", [row, col])
+    center_on_metres(page, meta, -5.5, -11.0)
 
     # Esc drops a zone half drawn: nothing is stored.
     page.click('[data-testid="draw-zone"]')
@@ -95,11 +68,7 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     # The zone, by mouse: four corners, a double-click on the last closes it.
     page.fill('[data-testid="zone-name"]', ZONE_NAME)
     page.select_option('[data-testid="zone-kind"]', "keep_out")
-    page.click('[data-testid="draw-zone"]')
-    for x, y in ZONE[:-1]:
-        page.mouse.click(*screen(page, x, y))
-    assert drawn(page)["vertices"] == 3
-    page.mouse.dblclick(*screen(page, *ZONE[-1]))
+    draw_zone_by_mouse(page, ZONE)
     page.wait_for_selector('[data-testid="edit-status"]', timeout=TIMEOUT_MS)
     assert page.locator('[data-testid="annotation-error"]').count() == 0
     zone = standing(stack)[ZONE_NAME]
