@@ -156,3 +156,15 @@ def test_header_ids_keep_increasing_per_vehicle_across_a_restart() -> None:
     restarted = VdaCommands("uagv", lambda cid: VEHICLE, lambda: wall[0] + 5)
     after = restarted.delivery(CommandIssued("c-9", VEHICLE, "pause", "op", NOW), NOW)[1]
     assert ids == sorted(set(ids)) and after["headerId"] > ids[-1]
+
+
+def test_an_answer_whose_delivery_failed_is_produced_again(gw) -> None:
+    """A command event made from a state is retried like the state's own record."""
+    gw.issue("c-1", "pause")
+    gw.publisher.fail_with = RuntimeError("kafka away")
+    gw.state("2.0.0", [action_state("c-1", "RUNNING")])
+    assert gw.command_events() == [] and gw.ingestor.retries_waiting == 2
+    gw.publisher.fail_with = None
+    gw.ingestor.monotonic = lambda: 1e12  # every retry is due
+    assert gw.ingestor.retry_due() == 2
+    assert gw.command_events() == [CommandAcknowledged("c-1", VEHICLE, "accepted")]
