@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import threading
 import time
+from datetime import UTC, datetime
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -32,7 +33,6 @@ from mapservice.core.commands import (
     vda_refusal as refusal,
 )
 from mapservice.core.vda_ids import vehicle_of
-from mapservice.core.wire2019 import format_timestamp
 
 DEFAULT_VERSION = "2.0.0"  # a vehicle not heard from yet: the oldest version taken
 MAX_VEHICLES = 100_000  # vehicles whose version and last headerId are held
@@ -56,6 +56,12 @@ def instant_actions_message(command: CommandIssued, manufacturer: str, serial_nu
     return {"headerId": header_id, "timestamp": timestamp, "version": version,
             "manufacturer": manufacturer, "serialNumber": serial_number,
             "instantActions" if version.startswith("2.0.") else "actions": [action]}
+
+
+def vda_timestamp(ms: int) -> str:
+    """ISO 8601 in UTC with its `Z` (the schemas' date-time; vehicles refuse a time without
+    a zone)."""
+    return datetime.fromtimestamp(ms / 1000, UTC).isoformat(timespec="milliseconds")[:-6] + "Z"
 
 
 class VdaCommands:
@@ -103,7 +109,7 @@ class VdaCommands:
         manufacturer, serial = names
         message = instant_actions_message(command, manufacturer, serial, version,
                                           self._next_header_id(command.robot_id),
-                                          format_timestamp(now_ms))
+                                          vda_timestamp(now_ms))
         topic = f"{self.interface}/v{version.split('.')[0]}/{manufacturer}/{serial}/instantActions"
         return topic, message
 

@@ -99,6 +99,7 @@ def test_the_relay_sends_a_vehicle_instant_actions_in_its_version(gw) -> None:
         "actionId": "c-2", "actionType": "stopPause", "blockingType": "HARD"}
     assert (m1["manufacturer"], m1["serialNumber"]) == ("acme", "agv 7")
     assert m2["headerId"] > m1["headerId"]
+    assert m1["timestamp"] == "2026-11-21T10:00:00.000Z"  # RFC 3339, as vehicles demand
     assert not list(validator("2.1.0", "instantActions").iter_errors(m2))
     assert not any(t.startswith("iot/robots/") for t, _ in gw.sent)
 
