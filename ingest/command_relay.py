@@ -26,6 +26,8 @@ from mapservice.core.commands import CommandIssued, command_message
 from mapservice.core.events import decode
 from mapservice.settings import Settings
 
+from .vda_commands import VdaCommandRefused, VdaCommands
+
 log = structlog.get_logger(__name__)
 
 COMMAND_MEMORY_S = 3600  # answers to commands older than this are unknown_command
@@ -57,8 +59,10 @@ class CommandRelay:
     `publish(mqtt_topic, payload)` (the gateway's MQTT client, QoS 1)."""
 
     def __init__(self, settings: Settings, publish: Callable[[str, bytes], object],
-                 now_ms: Callable[[], int], book: CommandBook | None = None) -> None:
+                 now_ms: Callable[[], int], book: CommandBook | None = None,
+                 vda: VdaCommands | None = None) -> None:
         self.settings = settings
+        self.vda = vda  # commands to VDA 5050 vehicles go out as their instantActions
         self.publish = publish
         self.now_ms = now_ms
         self.book = book or CommandBook()
@@ -83,8 +87,17 @@ class CommandRelay:
             log.info("command too old to deliver", command_id=command.command_id,
                      robot_id=command.robot_id, age_s=round(age_ms / 1000, 1))
             return False
-        self.publish(self.settings.command_topic(command.robot_id),
-                     msgspec.json.encode(command_message(command)))
+        if self.vda is not None and self.vda.is_vehicle(command.robot_id):
+            try:
+                topic, message = self.vda.delivery(command, self.now_ms())
+            except VdaCommandRefused as exc:
+                log.warning("command not delivered to a VDA 5050 vehicle", reason=str(exc),
+                            command_id=command.command_id, robot_id=command.robot_id)
+                return False
+            self.publish(topic, msgspec.json.encode(message))
+        else:
+            self.publish(self.settings.command_topic(command.robot_id),
+                         msgspec.json.encode(command_message(command)))
         self.delivered += 1
         log.info("command delivered", command_id=command.command_id, robot_id=command.robot_id,
                  kind=command.kind, issued_by=command.issued_by)

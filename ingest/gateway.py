@@ -98,6 +98,10 @@ class Ingestor:
             delivery.outcome = "rejected"
             metrics.REJECTED.labels(record.reason).inc()
             log.info("message rejected", reason=record.reason, mqtt_topic=mqtt_topic[:200])
+        for extra in record.extra:
+            # Best effort beside the message's own record: retried on a failed delivery
+            # like it, but its MQTT ack does not wait for them.
+            self.publisher.publish(extra.topic, extra.key, extra.value, _Extra(self, extra))
         with self._lock:
             self._in_flight += 1
         try:
@@ -207,6 +211,21 @@ class _Delivery:
         self.ingestor._delivered(self)
 
 
+class _Extra:
+    """The delivery report callback of a further record a message made: produced again
+    until Kafka has it."""
+
+    __slots__ = ("ingestor", "record")
+
+    def __init__(self, ingestor: Ingestor, record: Record) -> None:
+        self.ingestor = ingestor
+        self.record = record
+
+    def __call__(self, error: Exception | None) -> None:
+        if error is not None:
+            self.ingestor._delivery_failed(error, self.record, self)
+
+
 class MqttGateway:
     """Wires paho-mqtt (manual acks) to an Ingestor and a Kafka publisher."""
 
@@ -219,7 +238,8 @@ class MqttGateway:
         # Operators' commands, from Kafka to each robot's command topic (QoS 1); the relay's
         # book is what the router judges the robots' answers by.
         self.command_relay = CommandRelay(settings, self._publish_command,
-                                          self.ingestor.clock.now_ms, self.ingestor.router.commands)
+                                          self.ingestor.clock.now_ms, self.ingestor.router.commands,
+                                          self.ingestor.router.vda_commands)
         self.health_port = health_port
         self.kafka_ready = kafka_check(settings)  # readiness: a broker answers metadata
         self._stop = threading.Event()

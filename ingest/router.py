@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import dataclass
 
 from mapservice.core.commands import COMMAND_EVENTS
@@ -11,6 +12,8 @@ from mapservice.core.events import (
     DeadLetter,
     Envelope,
     PoseReported,
+    VdaConnectionReported,
+    VdaFactsheetReported,
     VdaStateReported,
     encode,
     encode_dead_letter,
@@ -23,6 +26,7 @@ from mapservice.core.wire2019 import Limits, Reason, Rejection, decode_chunk_cre
 from .command_relay import CommandBook
 from .command_responses import decode_response
 from .vda5050 import VdaIngest
+from .vda_commands import VdaCommands
 
 
 # Kafka's default record limit is 1 MB; a dead letter keeps at most this much of a message.
@@ -36,6 +40,8 @@ class Record:
     value: bytes
     reason: str | None  # None for an accepted event
     envelope: Envelope | None = None
+    # Further events the message made (a VDA state's answers to commands), published too.
+    extra: tuple[Record, ...] = ()
 
 
 def _prefix(topic_filter: str) -> str:
@@ -65,6 +71,7 @@ class Router:
         self.robot_root = (settings.robot_topic_root.rstrip("/") + "/"
                            if settings.robot_topic_root else None)
         self.commands = commands or CommandBook()
+        self.vda_commands = VdaCommands(settings.vda5050_interface, self.commands.robot_of)
 
     def _command_robot(self, mqtt_topic: str) -> str | None:
         """The robot of a `<root><robotId>/command-events` topic, else None."""
@@ -83,6 +90,8 @@ class Router:
                 result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
             elif self.vda.handles(mqtt_topic):
                 result = self.vda.decode(mqtt_topic, payload, receive_ms, limits)
+                if not isinstance(result, Rejection):
+                    return self._vda_record(mqtt_topic, payload, result, receive_ms)
             elif (answering := self._command_robot(mqtt_topic)) is not None:
                 answer = decode_response(payload, answering, receive_ms, limits,
                                          self.commands.robot_of)
@@ -99,6 +108,24 @@ class Router:
         except Exception as exc:  # noqa: BLE001 - no message may stop the gateway
             return self.dead_letter(mqtt_topic, payload, receive_ms, Reason.INTERNAL_ERROR,
                                     f"{type(exc).__name__}: {str(exc)[:500]}")
+
+    def _vda_record(self, mqtt_topic: str, payload: bytes, envelope: Envelope,
+                    receive_ms: int) -> Record:
+        """A vehicle's event; its version is remembered (its commands are sent in it) and
+        a `state`'s actionStates naming commands become those commands' answers."""
+        event = envelope.payload
+        if isinstance(event, (VdaStateReported, VdaConnectionReported, VdaFactsheetReported)):
+            self.vda_commands.heard(envelope.robot_id, event.vda_version)
+        extra: list[Record] = []
+        if mqtt_topic.endswith("/state"):
+            msg = json.loads(payload)  # valid: the schema held
+            # 3.0 reports instant actions apart from the order's actions.
+            states = [*msg.get("actionStates", ()), *msg.get("instantActionStates", ())]
+            for answer in self.vda_commands.answers(envelope.robot_id, states):
+                made = make_envelope(envelope.robot_id, envelope.event_time_ms, receive_ms, answer)
+                extra.append(Record(self.topic_for(made), kafka_key(made), encode(made), None, made))
+        return Record(self.topic_for(envelope), kafka_key(envelope), encode(envelope), None,
+                      envelope, tuple(extra))
 
     def dead_letter(self, mqtt_topic: str, payload: bytes, receive_ms: int, reason: Reason,
                     detail: str) -> Record:

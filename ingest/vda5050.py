@@ -48,6 +48,18 @@ def validator(version: str, subtopic: str) -> Draft202012Validator:
         # it (npm vda-5050-lib does), so their states during an order would all be refused.
         node_position = schema["properties"]["nodeStates"]["items"]["properties"]["nodePosition"]
         node_position["required"] = [k for k in node_position["required"] if k != "theta"]
+    if (version, subtopic) == ("2.0.0", "instantActions"):
+        # Erratum: 2.0.0's schema names the list `actions` and its entries' `actionName`,
+        # and requires no header; the 2.0 specification (and npm vda-5050-lib's 2.0
+        # vehicles) has `instantActions` with `actionType`, and 2.1.0's schema requires
+        # the header. Checked as the specification says, with the schema's action object.
+        props = schema["properties"]
+        props["instantActions"] = props.pop("actions")
+        action = props["instantActions"]["items"]
+        action["properties"]["actionType"] = action["properties"].pop("actionName")
+        action["required"] = ["actionId", "actionType", "blockingType"]
+        schema["required"] = ["headerId", "timestamp", "version", "manufacturer",
+                              "serialNumber", "instantActions"]
     return Draft202012Validator(schema)
 
 

@@ -25,9 +25,11 @@ from mapservice.core.commands import (
     CommandRecord,
     check_issue,
     command_records,
+    vda_refusal,
 )
 from mapservice.core.events import make_envelope
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
+from mapservice.core.vda_ids import vehicle_of
 from mapservice.settings import Settings
 
 from ..access import OPERATE, READ, Caller
@@ -127,6 +129,10 @@ async def send_command(body: CommandIn, caller: OperatorDep, store: StoreDep,
         raise HTTPException(422, "a goto_poi command needs poiId, the point of interest to go to")
     if body.kind != "goto_poi" and body.poiId is not None:
         raise HTTPException(422, f"only goto_poi takes a poiId, not {body.kind}")
+    if settings.vda5050_interface and vehicle_of(body.robotId) is not None:
+        refused = vda_refusal(body.kind)
+        if refused is not None:
+            raise HTTPException(422, f"robot {body.robotId!r} is a VDA 5050 vehicle: {refused}")
     now = clock.now_ms()
     poi = await run_in_threadpool(_poi, store, body.poiId, now) if body.poiId else None
     command = CommandIssued(

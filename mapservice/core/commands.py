@@ -101,6 +101,19 @@ def check_issue(command: CommandIssued) -> None:
         raise CommandError(f"only goto_poi names a point of interest, not {command.kind}")
 
 
+# A VDA 5050 vehicle takes these commands as instant actions (ingest/vda_commands.py).
+VDA_ACTION_TYPES = {"pause": "startPause", "resume": "stopPause", "cancel": "cancelOrder"}
+
+
+def vda_refusal(kind: str) -> str | None:
+    """Why a command of this kind cannot go to a VDA 5050 vehicle (None: it can)."""
+    if kind in VDA_ACTION_TYPES:
+        return None
+    return (f"a VDA 5050 vehicle takes {', '.join(VDA_ACTION_TYPES)} (as instant actions); "
+            f"{kind} would need an order, which mapservice does not send: send the vehicle "
+            "an order from its master control")
+
+
 # --- the wire: what a robot receives and what it answers --------------------------------
 
 

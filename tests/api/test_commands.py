@@ -126,3 +126,19 @@ def test_commands_with_their_acks_and_outcomes_over_a_window() -> None:
     r = w.client.get("/api/v1/commands", params={"from": str(NOW - 1000), "to": str(NOW + 5000),
                                                  "robot": "agv-2"})
     assert r.json()["commands"] == []
+
+
+def test_a_vda_vehicle_is_refused_goto_poi_saying_why_and_may_be_paused() -> None:
+    w = World()
+    vehicle = "acme:agv-7"  # robot_id_for("acme", "agv-7")
+    w.store.append([make_envelope(vehicle, NOW - 5_000, NOW - 5_000,
+                                  PoseReported((1.0, 2.0, 0.0), (0.0, 0.0, 0.0, 1.0)))])
+    w.client.post("/api/v1/annotations", json={"id": "dock-1", "shape": "poi", "name": "dock",
+                                               "kind": "station", "x": 3.5, "y": 4.0},
+                  headers={"Authorization": f"Bearer {OPERATOR}"})
+    w.store.append([decode(v) for _, v in w.publisher.records[w.settings.topic_annotation_events]])
+    r = w.send({"robotId": vehicle, "kind": "goto_poi", "poiId": "dock-1"})
+    assert r.status_code == 422, r.text
+    assert "VDA 5050 vehicle" in r.json()["detail"] and "master control" in r.json()["detail"]
+    assert w.published() == []
+    assert w.send({"robotId": vehicle, "kind": "pause"}).status_code == 202

@@ -339,6 +339,15 @@ def test_emqx_acl_lets_only_the_robot_read_its_commands() -> None:
         assert not emqx_allows(rules, bad, "subscribe", s.command_topic("r1")), bad
 
 
+def test_emqx_acl_lets_the_gateway_send_vda_vehicles_instant_actions_only() -> None:
+    """Operators' commands reach a VDA 5050 vehicle as instantActions from the gateway; the
+    gateway sends no orders and a vehicle cannot send itself instant actions."""
+    rules = acl_rules()
+    assert emqx_allows(rules, "mapservice-gateway", "publish", "uagv/v2/acme/agv-1/instantActions")
+    assert not emqx_allows(rules, "mapservice-gateway", "publish", "uagv/v2/acme/agv-1/order")
+    assert not emqx_allows(rules, "acme/agv-1", "publish", "uagv/v2/acme/agv-1/instantActions")
+
+
 def test_no_robot_can_take_another_clients_session_on_emqx() -> None:
     """Robots' listeners force client id = username (no gateway or robot session takeover); the internal zone of the gateways does not."""
     config = emqx_config()

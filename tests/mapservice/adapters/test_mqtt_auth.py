@@ -77,6 +77,14 @@ def test_acl_follows_configured_topics():
     assert "pattern read site1/zones" in text and "topic write site1/zones" in text
 
 
+def test_gateway_may_send_vda_vehicles_instant_actions():
+    """The gateway delivers operators' commands to VDA 5050 vehicles as instantActions."""
+    text = render_acl(AclTopics.from_settings(Settings(vda5050_interface="site1agv")))
+    gateway = text.split("user mapservice-gateway\n")[1].split("\n\n")[0]
+    assert "topic write site1agv/+/+/+/instantActions" in gateway.splitlines()
+    assert "topic write site1agv/+/+/+/order" not in gateway
+
+
 def test_add_rotate_remove_and_legacy(tmp_path):
     """add gives a fresh password (hash stored, 0600), refuses a second add without rotate,
     rotate changes the password, --legacy-chunks puts the robot in the ACL's 2019 section,
