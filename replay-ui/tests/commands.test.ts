@@ -24,6 +24,7 @@ describe("a command's state at an instant", () => {
     expect(commandState(r, 2000)).toEqual({ state: "rejected", reason: "already paused", ts_ms: 1100 });
     expect(commandText(r)).toBe("pause r1 by operator:ops: rejected (already paused)");
     expect(commandText(c, 1200)).toBe("go to dock r1 by operator:ops: sent");
+    expect(commandText(c, 1600, new Map([["dock", "dock 7"]]))).toBe("go to dock 7 r1 by operator:ops: accepted");
   });
   it("awaits an ack, then an accepted command's outcome", () => {
     expect(awaiting(cmd("x", "pause", 1))).toBe(true);

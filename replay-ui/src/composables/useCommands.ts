@@ -34,8 +34,10 @@ export function useCommands(d: CommandDeps) {
   const playhead = ref(0);
   const error = ref<string | null>(null);
   const busy = ref(false);
+  /** The points of interest's names, for the texts (those standing now, as the select offers them). */
+  const names = computed(() => new Map(pois.value.map((p) => [p.id, p.name])));
   const marks = computed(() => commandMarks(mergeCommands(spanCommands.value, robotCommands.value)
-    .filter((c) => c.issued_ms >= d.span()[0] && c.issued_ms < d.span()[1])));
+    .filter((c) => c.issued_ms >= d.span()[0] && c.issued_ms < d.span()[1]), names.value));
   const paused = computed(() => !!d.selected.value && pausedAt(robotCommands.value, d.selected.value, playhead.value));
   /** The selected robot's latest commands, newest first. */
   const recent = computed(() => [...robotCommands.value].reverse().slice(0, 5));
@@ -116,7 +118,7 @@ export function useCommands(d: CommandDeps) {
     }
   }
 
-  return reactive({ marks, paused, recent, pois, error, busy, operator: computed(d.operator), tick, send });
+  return reactive({ marks, names, paused, recent, pois, error, busy, operator: computed(d.operator), tick, send });
 }
 
 export type CommandsState = ReturnType<typeof useCommands>;

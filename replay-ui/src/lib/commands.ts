@@ -37,10 +37,11 @@ export function commandState(c: Command, at: number): { state: CommandState; rea
   return { state: "sent", reason: "", ts_ms: c.issued_ms };
 }
 
-/** How the command reads in a list or a mark's title: "pause robot-1 by operator:ops: accepted". */
-export function commandText(c: Command, at = Infinity): string {
+/** How the command reads in a list or a mark's title: "pause robot-1 by operator:ops: accepted"
+ * (a point of interest by its name in `names` when known, else by its id). */
+export function commandText(c: Command, at = Infinity, names?: ReadonlyMap<string, string>): string {
   const s = commandState(c, at);
-  const what = c.kind === "goto_poi" ? `go to ${c.poiId ?? "?"}` : c.kind;
+  const what = c.kind === "goto_poi" ? `go to ${(c.poiId && names?.get(c.poiId)) ?? c.poiId ?? "?"}` : c.kind;
   const state = s ? `${s.state}${s.reason ? ` (${s.reason})` : ""}` : "not issued yet";
   return `${what} ${c.robotId} by ${c.issuedBy}: ${state}`;
 }
@@ -64,8 +65,8 @@ export function awaiting(c: Command): boolean {
 }
 
 /** The timeline's marks: one per command, at its issue, titled with its answers. */
-export function commandMarks(commands: readonly Command[]): TimelineMark[] {
-  return commands.map((c) => ({ key: `c:${c.commandId}`, ts_ms: c.issued_ms, kind: "command", title: commandText(c) }));
+export function commandMarks(commands: readonly Command[], names?: ReadonlyMap<string, string>): TimelineMark[] {
+  return commands.map((c) => ({ key: `c:${c.commandId}`, ts_ms: c.issued_ms, kind: "command", title: commandText(c, Infinity, names) }));
 }
 
 /** The commands of two lists, one per id (the later read wins), oldest first. */
