@@ -1,7 +1,8 @@
 /**
  * The annotation endpoints as the replay uses them: the annotations standing at an instant,
  * their edits and the zone violations over a window, and an operator's edits. Every refusal
- * is an ApiError carrying the server's own message (why, and what to do).
+ * is an ApiError carrying the server's own message (why, and what to do); `send` is the
+ * operators' writes' one request (the commands use it too).
  */
 import { ApiError, getJson } from "./api";
 import { authHeaders } from "./auth";
@@ -15,7 +16,7 @@ export interface Window<T> {
   truncated: boolean;
 }
 
-async function send<T>(method: string, url: string, body?: unknown): Promise<T | null> {
+export async function send<T>(method: string, url: string, body?: unknown): Promise<T | null> {
   const r = await fetch(url, {
     method,
     headers: { ...authHeaders(), ...(body === undefined ? {} : { "Content-Type": "application/json" }) },

@@ -259,7 +259,7 @@ export function violationsAt(vs: readonly ZoneViolation[], t: number, windowMs: 
 export interface TimelineMark {
   key: string;
   ts_ms: number;
-  kind: "annotation-edit" | "zone-violation";
+  kind: "annotation-edit" | "zone-violation" | "command";
   title: string;
 }
 
