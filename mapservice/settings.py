@@ -493,12 +493,6 @@ class Settings(BaseSettings):
 
     @property
     def kafka_topics(self) -> list[str]:
-        return [
-            self.topic_chunk_events,
-            self.topic_pose_events,
-            self.topic_meta_events,
-            self.topic_dead_letter,
-            self.topic_live,
-            self.topic_annotation_events,
-            self.topic_command_events,
-        ]
+        return [self.topic_chunk_events, self.topic_pose_events, self.topic_meta_events,
+                self.topic_dead_letter, self.topic_live, self.topic_annotation_events,
+                self.topic_command_events]
