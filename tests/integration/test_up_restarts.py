@@ -59,6 +59,7 @@ class Robot:
         self.client.max_inflight_messages_set(100)
         self.sent: dict[int, int] = {}  # mid -> the pose's timestamp (ms)
         self.acked: set[int] = set()
+        self.early: set[int] = set()  # mids whose PUBACK came before publish() returned
         self.lock = threading.Lock()
         self.client.on_publish = self._on_publish
         self.client.connect("127.0.0.1", port, keepalive=5)
@@ -68,18 +69,28 @@ class Robot:
         self.thread.start()
 
     def _on_publish(self, _c, _u, mid, reason_code, _p) -> None:
+        if reason_code.is_failure:
+            return
         with self.lock:
-            if mid in self.sent and not reason_code.is_failure:
+            if mid in self.sent:
                 self.acked.add(self.sent[mid])
+            else:
+                self.early.add(mid)
 
     def _run(self) -> None:
         ts = int(time.time() * 1000)
         while self.running:
             ts = max(ts + 1, int(time.time() * 1000))
-            with self.lock:  # the PUBACK may arrive before publish() returns its mid
-                info = self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
-                    self.robot_id, format_timestamp(ts), 1.0, 2.0), qos=1)
+            # Never hold our lock while calling paho: its network thread calls _on_publish
+            # holding paho's own message lock, and publish() takes that lock too (holding
+            # ours across it deadlocked the robot after a reconnect's burst of PUBACKs).
+            info = self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
+                self.robot_id, format_timestamp(ts), 1.0, 2.0), qos=1)
+            with self.lock:  # the PUBACK may have arrived before publish() returned its mid
                 self.sent[info.mid] = ts
+                if info.mid in self.early:
+                    self.early.discard(info.mid)
+                    self.acked.add(ts)
             time.sleep(0.02)
 
     def stop(self, timeout_s: float = 30) -> None:
