@@ -194,7 +194,8 @@ def test_mapservice_sql_prints_the_result(stack) -> None:
         capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     rows = [json.loads(line) for line in done.stdout.splitlines()]
-    assert [r["robot_id"] for r in rows] == ["sim-000", "sim-001", "sim-002"]
+    # The three simulated robots and the fixture's VDA 5050 vehicle (its states carry a pose).
+    assert [r["robot_id"] for r in rows] == ["Acme:an-1", "sim-000", "sim-001", "sim-002"]
     refused = subprocess.run(
         [sys.executable, "-m", "mapservice.cli", "sql", "--url", f"{stack.api_url}/clickhouse",
          "--data-dir", str(stack.data_dir), "TRUNCATE TABLE mapservice.poses"],
