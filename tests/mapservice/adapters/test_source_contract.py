@@ -157,10 +157,15 @@ def test_what_is_not_committed_is_delivered_again_to_the_next_member(kit) -> Non
 
 
 def test_a_new_member_resumes_after_the_committed_records(kit) -> None:
-    kit.produce([b"a", b"b", b"c"])
+    # The batch that carries a member's first assignment is never committed (Kafka may
+    # hand out records fetched on either side of the rebalance in it): commit later ones.
     member = kit.member()
-    got = poll_until([member], 3)
-    assert member.commit(got[:2]) is True
+    kit.produce([b"a"])
+    poll_until([member], 1)
+    kit.produce([b"b", b"c"])
+    got = poll_until([member], 2)
+    assert values(got) == [b"b", b"c"]
+    assert member.commit(got[:1]) is True
     again = kit.restart(member)
     kit.produce([b"d"])
     assert values(poll_until([again], 2)) == [b"c", b"d"]
