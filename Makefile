@@ -100,7 +100,7 @@ up: $(STAMP) ui mosquitto java
 test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
-	$(PY) -m pytest $(ARGS)
+	$(PY) -m pytest --durations=30 $(ARGS)
 
 # ruff's lint rules over the Python tree and mypy (strict on mapservice/core/), as configured
 # in pyproject.toml; `.ci/run` runs it before the tests.

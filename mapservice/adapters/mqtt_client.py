@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import select
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -77,7 +78,58 @@ class BufferedSocket:
         return getattr(self._sock, name)
 
 
-class BufferedClient(mqtt.Client):
+class PollingClient(mqtt.Client):
+    """A paho client that waits on its socket with poll(), not select().
+
+    paho's network loop calls select(), which takes no file descriptor numbered 1024 or
+    above, and paho turns the resulting ValueError into "connection lost": in a process
+    holding a thousand files or sockets (an API with many WebSocket clients, a long test
+    run) every connection attempt fails silently and forever (paho.mqtt.python issue 819).
+    This is paho's `_loop`, step for step, with poll() in select()'s place."""
+
+    def _loop(self, timeout: float = 1.0) -> mqtt.MQTTErrorCode:
+        sock = self._sock
+        if sock is None or timeout < 0.0 or not hasattr(select, "poll"):
+            return super()._loop(timeout)  # paho's own answer (and Windows, which lacks poll)
+        pending_bytes = sock.pending() if hasattr(sock, "pending") else 0
+        wake = self._sockpairR
+        poller = select.poll()
+        try:
+            sock_fd = sock.fileno()
+            poller.register(sock_fd, select.POLLIN | (select.POLLOUT if self.want_write() else 0))
+            if wake is not None:
+                poller.register(wake, select.POLLIN)
+            ready = dict(poller.poll(0 if pending_bytes > 0 else timeout * 1000))
+        except (TypeError, ValueError, OSError):
+            # A socket closed under the loop (disconnect() from another thread): paho's
+            # loop reports the connection lost and leaves a disconnect in progress be.
+            if self._state not in (mqtt._ConnectionState.MQTT_CS_DISCONNECTING,
+                                   mqtt._ConnectionState.MQTT_CS_DISCONNECTED):
+                self._state = mqtt._ConnectionState.MQTT_CS_CONNECTION_LOST
+            return mqtt.MQTTErrorCode.MQTT_ERR_CONN_LOST
+
+        sock_events = ready.get(sock_fd, 0)
+        # A hang-up or error reads as EOF, which is how paho learns the connection is gone.
+        if sock_events & ~select.POLLOUT or pending_bytes > 0:
+            rc = self.loop_read()
+            if rc or self._sock is None:
+                return rc
+        write = bool(sock_events & select.POLLOUT)
+        if wake is not None and ready.get(wake.fileno(), 0):
+            # publish() and friends wrote a byte to wake the loop: write what they queued.
+            write = True
+            try:
+                wake.recv(10000)
+            except BlockingIOError:
+                pass
+        if write:
+            rc = self.loop_write()
+            if rc or self._sock is None:
+                return rc
+        return self.loop_misc()
+
+
+class BufferedClient(PollingClient):
     """A paho client reading through a `BufferedSocket` (the gateway's: it receives every
     robot's messages) and acknowledging many messages at once (`ack_many`)."""
 
@@ -154,7 +206,7 @@ def make_client(client_id: str, *, clean_session: bool = True, manual_ack: bool 
     `buffered_reads` for a client that receives many messages (`BufferedClient`)."""
     if tls_files is not None and not tls and (tls_files.ca_file or tls_files.cert_file):
         raise ValueError("MQTT CA or client certificate given for a plain mqtt:// URL; use mqtts://")
-    client = (BufferedClient if buffered_reads else mqtt.Client)(
+    client = (BufferedClient if buffered_reads else PollingClient)(
         mqtt.CallbackAPIVersion.VERSION2,
         client_id=client_id,
         clean_session=clean_session if protocol != mqtt.MQTTv5 else None,

@@ -12,6 +12,7 @@ import paho.mqtt.client as mqtt
 import pytest
 
 from mapservice.adapters.mqtt_auth import read_password_file
+from mapservice.adapters.mqtt_client import PollingClient
 from tests.integration.test_up_floor import Up
 
 pytestmark = pytest.mark.integration
@@ -19,7 +20,7 @@ pytestmark = pytest.mark.integration
 
 def connect_code(port: int, username: str | None = None, password: str | None = None) -> int:
     """The CONNACK reason of a connection attempt (0: accepted)."""
-    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=f"probe-{time.monotonic_ns()}")
+    client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=f"probe-{time.monotonic_ns()}")
     if username is not None:
         client.username_pw_set(username, password)
     codes: list[int] = []

@@ -20,6 +20,7 @@ import pytest
 from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from mapservice.local import embedded, lifetime
 from mapservice.local.embedded import free_port
+from mapservice.adapters.mqtt_client import PollingClient
 from tests.fixtures.paths import ROOT
 from tests.integration.test_up_auth import connect_code
 from tests.integration.test_up_floor import Up, children
@@ -50,7 +51,7 @@ class Robot:
 
     def __init__(self, port: int, robot_id: str, password: str | None = None) -> None:
         self.robot_id = robot_id
-        self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=robot_id,
+        self.client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=robot_id,
                                   clean_session=False)
         if password:
             self.client.username_pw_set(robot_id, password)

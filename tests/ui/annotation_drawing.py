@@ -42,8 +42,18 @@ def draw_zone_by_mouse(page, corners: Sequence[tuple[float, float]]) -> None:
 def seek_and_read(page, t: int) -> dict:
     """Seeks to t and waits until the annotations at t are read and drawn."""
     page.evaluate("(t) => window.__replay.seek(t)", t)
+    # The page reads the annotations again only when the seek crosses an edit (or leaves the
+    # span whose edits it knows): the list read at an earlier instant with no edit between
+    # is the list at t.
     page.wait_for_function(
-        "(t) => window.__replay.playhead === t && window.__replay.complete && window.__replay.annotations().loadedAt === t",
+        """(t) => {
+            const r = window.__replay;
+            if (r.playhead !== t || !r.complete) return false;
+            const a = r.annotations();
+            if (a.loadedAt === t) return true;
+            const lo = Math.min(a.loadedAt, t), hi = Math.max(a.loadedAt, t);
+            return Number.isFinite(a.loadedAt) && !a.marks.some(([, ts]) => ts > lo && ts <= hi);
+        }""",
         arg=t, timeout=TIMEOUT_MS)
     page.wait_for_timeout(400)  # the next summary redraws what was read
     return drawn(page)

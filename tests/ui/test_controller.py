@@ -164,10 +164,12 @@ def auth_stack(tmp_path_factory):
     from tests.integration.conftest import run_stack
 
     stack = Stack(tmp_path_factory.mktemp("ui-auth-stack"), mqtt="mosquitto", mqtt_auth=True)
-    run_stack(stack, meta_for(load_ros_map(MAPS / "warehouse.yaml")))
-    stack.controller_password = stack.add_robot("controller-auth").password  # type: ignore[attr-defined]
-    yield stack
-    stack.stop()
+    try:  # a failed start stops what it had started, not only a finished module
+        run_stack(stack, meta_for(load_ros_map(MAPS / "warehouse.yaml")))
+        stack.controller_password = stack.add_robot("controller-auth").password  # type: ignore[attr-defined]
+        yield stack
+    finally:
+        stack.stop()
 
 
 def test_under_robot_identities_the_page_asks_for_the_robots_password(page, auth_stack) -> None:

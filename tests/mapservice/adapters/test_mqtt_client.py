@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 
 def test_buffered_socket_serves_small_reads_from_one_recv_and_reports_pending() -> None:
     """Reads of 1, 1 and n bytes come from one recv; pending() says what is buffered; a
@@ -154,3 +156,50 @@ def test_the_gateway_client_still_serves_per_topic_callbacks() -> None:
     _read_all(client, publish_packet("iot/chunks/create", b"{}", 1)
               + publish_packet("iot/coordinates/r1", b"{}", 2), 1, rest)
     assert routed == [1] and rest == [2]
+
+
+@pytest.mark.parametrize("buffered_reads", [False, True], ids=["robot", "gateway"])
+def test_a_client_in_a_process_holding_over_a_thousand_files_connects_and_gets_its_messages(
+        tmp_path, buffered_reads) -> None:
+    """paho's own loop waits with select(), which takes no descriptor numbered 1024 or more,
+    and reports that as a lost connection: in a process with a thousand open files a plain
+    paho client never connects (nor says why). Ours polls: it connects, subscribes and gets
+    its own QoS 1 message on a socket numbered above 1024."""
+    import os
+    import resource
+    import threading
+
+    from mapservice.adapters.mqtt_client import make_client
+    from mapservice.local.stack import Stack
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < 2048:
+        pytest.skip(f"this machine allows {hard} open files; the test needs 2048")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, 2048), hard))
+    stack = Stack(tmp_path, mqtt="mosquitto")
+    held: list[int] = []
+    client = None
+    try:
+        stack.start_mqtt()
+        held.append(os.open(os.devnull, os.O_RDONLY))
+        while held[-1] < 1100:
+            held.append(os.dup(held[0]))
+        client = make_client("many-files", buffered_reads=buffered_reads)
+        connected, got = threading.Event(), threading.Event()
+        client.on_connect = lambda *_: connected.set()
+        client.on_message = lambda _c, _u, message: got.set() if message.payload == b"ping" else None
+        client.connect("127.0.0.1", stack.mqtt_port)
+        client.loop_start()
+        assert connected.wait(10), "no CONNACK"
+        assert client.socket().fileno() >= 1024
+        client.subscribe("many-files/echo", qos=1)
+        client.publish("many-files/echo", b"ping", qos=1)
+        assert got.wait(10), "the client's own message never came back"
+    finally:
+        if client is not None:
+            client.disconnect()
+            client.loop_stop()
+        for fd in held:
+            os.close(fd)
+        stack.stop()
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))

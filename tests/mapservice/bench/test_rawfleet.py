@@ -26,6 +26,7 @@ from mapservice.bench.fleet.mqtt_packets import varint
 from mapservice.bench.fleet.rawfleet import RawFleet
 from mapservice.bench.fleet.rawfleet_plan import WorkerPlan, chunk_payload, pose_templates, scheduled_messages
 from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
+from mapservice.adapters.mqtt_client import PollingClient
 
 
 def _payload(template, timestamp: bytes) -> bytes:
@@ -87,7 +88,7 @@ def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) 
     """20 robots for 3 s from two workers: a paho subscriber receives exactly the messages
     the fleet counts as published, each a valid 2019 message, and the schedule is kept."""
     received: list[tuple[str, bytes]] = []
-    sub = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id="rawfleet-test-sub")
+    sub = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id="rawfleet-test-sub")
     subscribed = threading.Event()
     sub.on_message = lambda _c, _u, m: received.append((m.topic, m.payload))
     sub.on_subscribe = lambda *_a: subscribed.set()

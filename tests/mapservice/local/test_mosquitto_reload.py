@@ -12,6 +12,7 @@ import pytest
 from mapservice.adapters.mqtt_auth import GATEWAY_USER
 from mapservice.local import embedded
 from mapservice.local.stack import Stack
+from mapservice.adapters.mqtt_client import PollingClient
 
 pytestmark = pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto")
 
@@ -28,7 +29,7 @@ class Session:
 
     def connect(self) -> None:
         connected = threading.Event()
-        client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id,
+        client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id,
                              clean_session=False)
         if self.username:
             client.username_pw_set(self.username, self.password)
@@ -55,7 +56,7 @@ class Session:
 
 def publish_acknowledged(port: int, topic: str, payloads: list[bytes], username=None,
                          password=None, client_id="publisher") -> None:
-    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
+    client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
     if username:
         client.username_pw_set(username, password)
     client.connect("127.0.0.1", port)

@@ -30,7 +30,11 @@ def test_what_start_up_built_is_frozen_out_of_later_collections() -> None:
     thresholds = gc.get_threshold()
     try:
         frozen = freeze_startup_heap()
-        assert frozen == gc.get_freeze_count() > 10_000
+        assert frozen > 10_000
+        # The collector's generations are empty but for what other threads (a test run's
+        # clients and brokers' readers) allocated since; the count of frozen objects itself
+        # moves when those threads free one of them.
+        assert len(gc.get_objects()) < frozen // 100
     finally:
         gc.unfreeze()
         gc.set_threshold(*thresholds)
