@@ -20,8 +20,8 @@ from mapservice.core.wire2019 import (
     decode_chunk_create,
     decode_coordinates,
 )
-from tests.mapservice.core.wire2019_messages import (DROP, META_4x5, NOW, RETENTION, SKEW,
-                                                     at_pose, b64z, chunk_json, pose_json, stamp)
+from tests.mapservice.core.wire2019_messages import (DROP, META_4x5, NOW, RETENTION, SKEW, at_pose,
+                                                     b64z, chunk_json, pose_json, stamp)
 
 
 # --- one concrete bad message per reason code -----------------------------------------

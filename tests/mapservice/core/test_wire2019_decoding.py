@@ -25,8 +25,8 @@ from mapservice.core.wire2019 import (
     format_timestamps,
     parse_timestamp,
 )
-from tests.mapservice.core.wire2019_messages import (DROP, META_4x5, NOW, RETENTION, SKEW,
-                                                     b64z, chunk_json, pose_json, stamp)
+from tests.mapservice.core.wire2019_messages import (DROP, META_4x5, NOW, RETENTION, SKEW, b64z,
+                                                     chunk_json, pose_json, stamp)
 
 
 # --- boundaries that must still be accepted -------------------------------------------
