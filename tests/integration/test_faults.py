@@ -11,13 +11,10 @@ embedded Mosquitto, `serve`, gateway) is killed piece by piece and its own super
 restarts each. Mosquitto runs as the stack runs it for `up`: its store (sessions and queued
 QoS 1 messages) in the data dir.
 
-The load: ROBOTS robots publish a pose every POSE_PERIOD_S and a chunk every CHUNK_EVERY
-poses through one paho client, at QoS 1; each message's natural identity (robot and
-timestamp; row, column, robot and timestamp for a chunk) is recorded with whether the
-broker acknowledged it (PUBACK). Each fault gets robots of its own (`<fault>-<n>`), so its
-messages are counted apart: published, acknowledged, stored, duplicated, lost, and the
-time from the fault to the first message published after it being queryable through the
-API. The report is printed and written to test-artifacts/faults.json.
+The load (fault_load.py): robots publishing poses and chunks at QoS 1, each message's
+identity recorded with whether the broker acknowledged it, counted apart per fault:
+published, acknowledged, stored, duplicated, lost, and the time until queryable again. The
+report is printed and written to test-artifacts/faults.json.
 
 Kafka is the embedded Apache Kafka node (its log on disk): a SIGKILLed broker restarts on
 its log, so a Kafka kill, alone or while ClickHouse is down, must lose nothing either.
