@@ -10,6 +10,7 @@ from types import SimpleNamespace
 
 import pytest
 from confluent_kafka import OFFSET_BEGINNING, OFFSET_END, TopicPartition
+from structlog.testing import capture_logs
 
 import mapservice.ingest.topic_follower as topic_follower
 from mapservice.core.commands import CommandIssued
@@ -87,7 +88,10 @@ def test_the_meta_watcher_reads_from_the_beginning_and_applies_the_newest_meta(c
     consumer.records = [b"\xc1 foreign", None, encode(newer), encode(older)]
     applied: list = []
     watcher = MetaWatcher(settings, applied.append)
-    run_until(watcher, lambda: consumer.made and not consumer.made[0].queue)
+    with capture_logs() as logs:
+        run_until(watcher, lambda: consumer.made and not consumer.made[0].queue)
+    assert [e["event"] for e in logs if e["log_level"] == "warning"] == [
+        "meta record undecodable"] * 2  # the foreign record and the tombstone
     (made,) = consumer.made
     topic = settings.topic_meta_events
     assert made.assigned == [(topic, 0, OFFSET_BEGINNING), (topic, 1, OFFSET_BEGINNING)]
@@ -101,7 +105,11 @@ def test_the_command_relay_reads_the_recent_commands_and_skips_tombstones(consum
     consumer.records = [None, b"\x00garbage", encode(make_envelope("agv-1", NOW, NOW, command))]
     sent: list = []
     relay = CommandRelay(settings, lambda topic, payload: sent.append(topic), lambda: NOW)
-    run_until(relay, lambda: bool(sent))
+    with capture_logs() as logs:
+        run_until(relay, lambda: bool(sent))
+    # The tombstone is passed over; the garbage is refused by the relay, not a failure.
+    assert [e["event"] for e in logs if e["log_level"] in ("warning", "error")] == [
+        "command record undecodable; skipped"]
     (made,) = consumer.made
     topic = settings.topic_command_events
     assert made.asked_since == {NOW - COMMAND_MEMORY_S * 1000}
