@@ -1,7 +1,7 @@
-"""Runs the processors and/or the API in one asyncio loop around one HistoryStore. The
-processors are composed in processors/composition.py; here the store is made, the schema
-awaited, the health checks of what runs in this process gathered, and the parts started
-and stopped in order.
+"""The process entry: runs the processors and/or the API in one asyncio loop around one
+HistoryStore. Each is composed in its own package (processors/composition.py,
+api/composition.py); here the store is made, the schema awaited, the health checks of what
+runs in this process gathered, and the parts started and stopped in order.
 
 With embedded ClickHouse (chdb) only one process may open the data directory, so
 `mapservice serve` runs both here; with a ClickHouse server they can run apart
@@ -19,19 +19,14 @@ import sys
 from collections.abc import Callable
 
 import structlog
-import uvicorn
 from prometheus_client import Gauge
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
-from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.runtime.health import (CachedCheck, Heartbeat, beat_forever, kafka_check,
                                        probe_report)
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
-from mapservice.runtime.secrets import with_local_api_secrets
-from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.adapters.kafka_topics import ensure_topics
 
@@ -42,20 +37,6 @@ CHDB_MEMORY = Gauge("mapservice_chdb_memory_tracked_bytes",
                     "Memory ClickHouse's tracker counts inside this process (embedded chDB only)")
 PYTHON_BLOCKS = Gauge("mapservice_python_allocated_blocks",
                       "Memory blocks Python's allocator holds (sys.getallocatedblocks)")
-
-
-def api_server_config(app, settings: Settings) -> uvicorn.Config:
-    """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
-    through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
-    A request's head must arrive within api_header_timeout_s and an idle keep-alive
-    connection is closed after api_idle_timeout_s (slowloris; api/http_timeouts.py)."""
-    from mapservice.api.http_timeouts import header_deadline_protocol
-
-    return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
-                          log_config=None, log_level=None, access_log=True,
-                          http=header_deadline_protocol(settings.api_header_timeout_s),
-                          timeout_keep_alive=settings.api_idle_timeout_s,
-                          ws_per_message_deflate=settings.api_live_compression)
 
 
 def export_process_memory(store: ClickHouseStore) -> None:
@@ -145,40 +126,18 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             processors_apart = ProcessorsStatus(settings.processors_status_url)
             readiness["history_store"] = processors_apart
             history_status = processors_apart.status
-    relay = None
+    api_parts = None
     try:
         if api:
-            # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
-            publisher = KafkaPublisher(settings, client_id="mapservice-api")
-            # Not in the readiness checks: history reads need no Kafka; until the relay
-            # reads the live topic, /api/v1/live asks clients to come back (1013).
-            hub = LiveHub()
-            relay = KafkaLiveRelay(settings, lambda messages: loop.call_soon_threadsafe(
-                hub.publish, messages))
-            hub.ready = relay.assigned.is_set
-            relay.start()
-            from mapservice.api.app import create_app
+            from mapservice.api.composition import compose_api
 
-            from mapservice.sql.apps import analyst_app
-
-            # Local mode: the API's tokens generated on first start, kept in the data dir
-            # (`mapservice up` prints where); production: as set, validated by Settings.
-            settings = with_local_api_secrets(settings)
-
-            from mapservice.adapters.clock import clock_from_settings
-
-            app = create_app(settings, store, readiness, clock=clock_from_settings(settings),
-                             live_hub=hub, publisher=publisher,
-                             sql_app=await loop.run_in_executor(None, analyst_app, settings))
-            app.state.liveness = liveness
-            app.state.advisory = advisory
-            # /api/v1/status (the UI's banner) reads the inserts' state where they happen.
-            app.state.history_status = history_status
-            config = api_server_config(app, settings)
-            server = uvicorn.Server(config)
+            api_parts = await compose_api(settings, store, readiness=readiness,
+                                          liveness=liveness, advisory=advisory,
+                                          history_status=history_status)
+            api_parts.start()
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
             freeze_startup_heap()  # everything is built: the app, the processors, their clients
-            await server.serve()
+            await api_parts.serve()
         else:
             stop = asyncio.Event()
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -192,8 +151,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             await stop.wait()
     finally:
         beating.cancel()
-        if relay is not None:
-            await loop.run_in_executor(None, relay.stop)
+        if api_parts is not None:
+            await api_parts.stop()
         if parts is not None:
             await parts.stop()
         store.close()
