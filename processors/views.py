@@ -1,11 +1,12 @@
 """The processors' live views: the latest map (advertised on MQTT), the robots, conflicts.
 
 Fed by the history consumer after each insert (`on_stored`), so a view never shows, and an
-advertisement never names, a write the API cannot serve yet. Their store calls run on the
-processors' one store thread, handed to them once at construction (store_thread.py). The views are rebuilt from
+advertisement never names, a write the API cannot serve yet. The views are rebuilt from
 ClickHouse whenever faust assigns partitions (start-up, restart, rebalance), before any
 event of those partitions is consumed: the history is the changelog. The rules are pure
-functions in `mapservice/core/liveview.py` and `mapservice/core/conflicts.py`.
+functions in `mapservice/core/liveview.py` and `mapservice/core/conflicts.py`. Their store
+calls run on the processors' one store thread, handed to them at construction
+(store_thread.py).
 
 Each batch's conflicts are found after its insert (`find_conflicts`) and written together
 with the pose views (`write_conflicts`, from `HistoryConsumer.settle`), before its offsets
