@@ -72,7 +72,9 @@ system-deps:
 	fi
 
 # The replay UI (replay-ui/, Node >= 20.19): npm ci when the lock file changes, a build
-# only when a source is newer than dist/.
+# only when a source is newer than it. Two builds: dist/, the production page `make up` and
+# the image serve, and dist-test/, the same page with window.__replay (src/lib/testhook.ts),
+# which the browser tests and `mapservice bench ui` serve and drive.
 UI := replay-ui
 UI_SOURCES := $(shell find $(UI)/src -type f 2>/dev/null) $(wildcard $(UI)/*.html $(UI)/*.ts $(UI)/tsconfig.json)
 
@@ -83,7 +85,10 @@ $(UI)/node_modules/.installed: $(UI)/package.json $(UI)/package-lock.json
 $(UI)/dist/index.html: $(UI)/node_modules/.installed $(UI_SOURCES)
 	cd $(UI) && npm run build
 
-ui: $(UI)/dist/index.html
+$(UI)/dist-test/index.html: $(UI)/node_modules/.installed $(UI_SOURCES)
+	cd $(UI) && npm run build:test
+
+ui: $(UI)/dist/index.html $(UI)/dist-test/index.html
 
 test-ui: $(UI)/node_modules/.installed
 	cd $(UI) && npx vitest run

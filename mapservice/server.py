@@ -1,4 +1,7 @@
-"""Runs the processors and/or the API in one asyncio loop around one HistoryStore.
+"""The process entry: runs the processors and/or the API in one asyncio loop around one
+HistoryStore. Each is composed in its own package (processors/composition.py,
+api/composition.py); here the store is made, the schema awaited, the health checks of what
+runs in this process gathered, and the parts started and stopped in order.
 
 With embedded ClickHouse (chdb) only one process may open the data directory, so
 `mapservice serve` runs both here; with a ClickHouse server they can run apart
@@ -13,22 +16,17 @@ import asyncio
 import math
 import signal
 import sys
+from collections.abc import Callable
 
 import structlog
-import uvicorn
 from prometheus_client import Gauge
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
-from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
-from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.runtime.health import (CachedCheck, Heartbeat, beat_forever, kafka_check,
                                        probe_report)
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
-from mapservice.runtime.secrets import with_local_api_secrets
-from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.adapters.kafka_topics import ensure_topics
 
@@ -39,20 +37,6 @@ CHDB_MEMORY = Gauge("mapservice_chdb_memory_tracked_bytes",
                     "Memory ClickHouse's tracker counts inside this process (embedded chDB only)")
 PYTHON_BLOCKS = Gauge("mapservice_python_allocated_blocks",
                       "Memory blocks Python's allocator holds (sys.getallocatedblocks)")
-
-
-def api_server_config(app, settings: Settings) -> uvicorn.Config:
-    """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
-    through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
-    A request's head must arrive within api_header_timeout_s and an idle keep-alive
-    connection is closed after api_idle_timeout_s (slowloris; api/http_timeouts.py)."""
-    from mapservice.api.http_timeouts import header_deadline_protocol
-
-    return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
-                          log_config=None, log_level=None, access_log=True,
-                          http=header_deadline_protocol(settings.api_header_timeout_s),
-                          timeout_keep_alive=settings.api_idle_timeout_s,
-                          ws_per_message_deflate=settings.api_live_compression)
 
 
 def export_process_memory(store: ClickHouseStore) -> None:
@@ -93,96 +77,67 @@ async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
 async def serve(settings: Settings, *, processors: bool = True, api: bool = True,
                 health_port: int | None = None) -> None:
     store = ClickHouseStore.from_settings(settings)
-    sink = None
+    parts = None
     if processors:
         # Imported only where they run: an API process alone registers (and exports) none
         # of the processors' metrics.
-        from mapservice.processors.app import HistorySink, build_app
+        from mapservice.processors.composition import compose_processors
 
-        sink = HistorySink(store, KafkaLivePublisher(settings))
-    live_publisher = sink.live if sink is not None else None
+        parts = compose_processors(settings, store)
+    loop = asyncio.get_running_loop()
     if settings.migrates_on_start:
-        version = await (sink.run(store.migrate) if sink is not None
-                         else asyncio.get_running_loop().run_in_executor(None, store.migrate))
+        # With the processors here, on their store thread: the one that talks to the store.
+        version = await (parts.store_thread.run(store.migrate) if parts is not None
+                         else loop.run_in_executor(None, store.migrate))
     else:
         version = await wait_for_schema(store)
     log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
-    loop = asyncio.get_running_loop()
-    faust_app = None
-    relay = None
-    if processors:
+    if parts is not None:
         await loop.run_in_executor(None, ensure_topics, settings)
-        faust_app = build_app(settings, sink)
-        await faust_app.start()
+        await parts.start()
         log.info("processors started", kafka=settings.kafka_bootstrap)
     # Readiness: a real call to each dependency (cached, bounded by a timeout). Liveness:
     # heartbeats of the loops that do the work (mapservice/runtime/health.py).
     kafka = kafka_check(settings)
-    readiness = {"clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)}
+    readiness: dict[str, Callable[[], bool]] = {
+        "clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)}
     if store.dsn.startswith("chdb://"):
         export_process_memory(store)
     advisory: dict = {}  # reported by /readyz, not required
     loop_beat = Heartbeat(max_age_s=15.0)
     beating = asyncio.ensure_future(beat_forever(loop_beat))
     liveness = {"event_loop": loop_beat.alive}
-    if faust_app is not None:
+    # Whether the history is being stored, where that is known.
+    history_status: Callable[[], dict] | None = None
+    if parts is not None:
         readiness["kafka"] = kafka
-        readiness["processors"] = lambda: not faust_app.should_stop
-        # Ready once the consumer group took this replica in: with partitions it stores
-        # events, without (more replicas than partitions) it is a healthy standby that
-        # takes partitions over when another replica leaves.
-        readiness["history_consumer"] = lambda: bool(sink.consumer and sink.consumer.joined)
-        # ClickHouse answers `SELECT 1` with a full disk: whether inserts succeed is its own
-        # check, and it says why not (mapservice/runtime/insert_health.py).
-        readiness["history_store"] = sink.health
-        liveness["processors"] = lambda: not faust_app.should_stop
-        liveness["history_consumer"] = lambda: bool(sink.consumer is None or sink.consumer.heartbeat.alive())
+        readiness.update(parts.readiness())
+        liveness.update(parts.liveness())
+        history_status = parts.history_status
     else:
         # The API alone reads the history without Kafka; Kafka carries its REST writes and
         # the live stream, so /readyz reports it without requiring it.
         advisory["kafka"] = kafka
-    processors_apart = None
-    if api and sink is None and settings.processors_status_url:
-        # The processors in a process of their own (`mapservice up`): whether the history
-        # is stored, as their health endpoint says, required as in one process.
-        from mapservice.adapters.processors_status import ProcessorsStatus
+        if api and settings.processors_status_url:
+            # The processors in a process of their own (`mapservice up`): whether the history
+            # is stored, as their health endpoint says, required as in one process.
+            from mapservice.adapters.processors_status import ProcessorsStatus
 
-        processors_apart = ProcessorsStatus(settings.processors_status_url)
-        readiness["history_store"] = processors_apart
+            processors_apart = ProcessorsStatus(settings.processors_status_url)
+            readiness["history_store"] = processors_apart
+            history_status = processors_apart.status
+    api_parts = None
     try:
         if api:
-            # 2019 REST writes (POST /chunks, /meta) go to Kafka like MQTT writes do.
-            publisher = KafkaPublisher(settings, client_id="mapservice-api")
-            # Not in the readiness checks: history reads need no Kafka; until the relay
-            # reads the live topic, /api/v1/live asks clients to come back (1013).
-            hub = LiveHub()
-            relay = KafkaLiveRelay(settings, lambda messages: loop.call_soon_threadsafe(
-                hub.publish, messages))
-            hub.ready = relay.assigned.is_set
-            relay.start()
-            from mapservice.api.app import create_app
+            from mapservice.api.composition import compose_api
 
-            from mapservice.sql.apps import analyst_app
-
-            # Local mode: the API's tokens generated on first start, kept in the data dir
-            # (`mapservice up` prints where); production: as set, validated by Settings.
-            settings = with_local_api_secrets(settings)
-
-            from mapservice.adapters.clock import clock_from_settings
-
-            app = create_app(settings, store, readiness, clock=clock_from_settings(settings),
-                             live_hub=hub, publisher=publisher,
-                             sql_app=await loop.run_in_executor(None, analyst_app, settings))
-            app.state.liveness = liveness
-            app.state.advisory = advisory
-            # /api/v1/status (the UI's banner) reads the inserts' state where they happen.
-            app.state.history_status = (sink.health.status if sink is not None else
-                                        processors_apart.status if processors_apart else None)
-            config = api_server_config(app, settings)
-            server = uvicorn.Server(config)
+            api_parts = await compose_api(settings, store, readiness=readiness,
+                                          liveness=liveness, advisory=advisory,
+                                          history_status=history_status)
+            api_parts.start()
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
             freeze_startup_heap()  # everything is built: the app, the processors, their clients
-            await server.serve()
+            await api_parts.serve()
         else:
             stop = asyncio.Event()
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -190,18 +145,15 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             if health_port is not None:
                 serve_health(settings.api_host, health_port, lambda: probe_report(liveness),
                              lambda: probe_report(readiness), metrics_gate(settings),
-                             documents={"/history-status": sink.health.status} if sink else None)
+                             documents={"/history-status": parts.history_status}
+                             if parts is not None else None)
             freeze_startup_heap()
             await stop.wait()
     finally:
         beating.cancel()
-        if relay is not None:
-            await loop.run_in_executor(None, relay.stop)
-        if faust_app is not None:
-            await faust_app.stop()
-        if live_publisher is not None:
-            await loop.run_in_executor(None, live_publisher.close)
-        if sink is not None:
-            sink.executor.shutdown(wait=True)
+        if api_parts is not None:
+            await api_parts.stop()
+        if parts is not None:
+            await parts.stop()
         store.close()
         log.info("stopped")

@@ -1,5 +1,5 @@
-"""The processors: a faust app that sinks the event topics into the ClickHouse history,
-keeps the live views, and builds snapshots.
+"""The processors' faust app: its configuration, the dead letters' agent and the snapshot
+timer (composition.py builds the app and wires the parts into it).
 
 At-least-once: offsets are committed (faust: events acknowledged) only after the insert
 that holds them succeeded; a crash before that re-delivers the batch, and the history's
@@ -10,18 +10,15 @@ from __future__ import annotations
 
 import ssl
 from collections.abc import Awaitable, Callable
+from typing import Any
 
 import faust
 import structlog
 from prometheus_client import Counter
 
-from mapservice.adapters.clock import clock_from_settings
-from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.settings import Settings
 
-from .history_consumer import COMMIT_FAILURES, HistoryConsumer, HistoryConsumerService
 from .sink import HistorySink, decode_dead_letters
-from .views import LiveViews
 
 log = structlog.get_logger(__name__)
 
@@ -34,8 +31,10 @@ def faust_broker_url(settings: Settings) -> str:
     return ";".join(f"kafka://{h.strip()}" for h in settings.kafka_bootstrap.split(","))
 
 
-def build_app(settings: Settings, sink: HistorySink) -> faust.App:
-    app = faust.App(
+def faust_app(settings: Settings) -> faust.App:
+    """The faust app the processors run in (its agents, timers and services are added by
+    the composition, composition.py)."""
+    return faust.App(
         "mapservice-processors",
         broker=faust_broker_url(settings),
         broker_credentials=_faust_credentials(settings),
@@ -54,44 +53,21 @@ def build_app(settings: Settings, sink: HistorySink) -> faust.App:
         producer_partitioner=None,
         topic_replication_factor=settings.kafka_replication,
     )
-    # Live views: latest map + advertisements, robots, conflicts.
-    # The service's clock (the wall clock unless settings simulate one): the timers, the
-    # retention step and the views all read it.
-    now_ms = clock_from_settings(settings).now_ms
-    views = LiveViews.attach(app, settings, sink, now_ms=now_ms)
-    batch, within = settings.sink_batch_size, settings.sink_batch_seconds
 
-    # The event topics go to the history in batches below faust's per-record path
-    # (history_consumer.py says why); faust runs it, the dead letters, and the timers.
-    source = KafkaBatchSource(
-        settings, [settings.topic_chunk_events, settings.topic_pose_events,
-                   settings.topic_meta_events, settings.topic_annotation_events,
-                   settings.topic_command_events],
-        group_id=f"{app.conf.id}-history",
-        contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
-    consumer = HistoryConsumer(source, sink, views, batch, within,
-                               min_batch_seconds=settings.sink_batch_min_seconds,
-                               views_seconds=settings.sink_views_seconds, now_ms=now_ms)
-    source.on_assigned = consumer.on_assigned
-    source.on_commit_failed = COMMIT_FAILURES.inc
-    sink.consumer = consumer
-    app.service(HistoryConsumerService(consumer))
 
-    dl_topic = app.topic(settings.topic_dead_letter, value_type=bytes, key_type=bytes)
+def dead_letter_agent(sink: HistorySink, topic: str, batch: int, within: float,
+                      now_ms: Callable[[], int]) -> Callable[[Any], Awaitable[None]]:
+    """The dead letters' agent: stored in batches, acknowledged once they are in."""
 
-    async def sink_dead_letters(stream):
+    async def sink_dead_letters(stream) -> None:
         async for events in stream.noack().noack_take(batch, within=within):
             records = decode_dead_letters((e.value for e in events), now_ms())
             await sink.insert_until_done(sink.store.append_dead_letters, records,
-                                         {settings.topic_dead_letter: len(records)})
+                                         {topic: len(records)})
             for e in events:
                 e.ack()
 
-    app.agent(dl_topic, name="history-dead-letters")(sink_dead_letters)
-
-    app.timer(snapshot_tick_s(settings), on_leader=True)(
-        snapshot_timer(sink, now_ms, int(settings.snapshot_grace_s * 1000)))
-    return app
+    return sink_dead_letters
 
 
 def snapshot_tick_s(settings: Settings) -> float:

@@ -99,7 +99,7 @@ async def store_values(sink: HistorySink, views: LiveViews | None,
         if sink.live is not None:
             sink.live.publish(good)
         if views is not None:
-            await views.on_stored(sink, good)  # conflicts, latest map, robots
+            await views.on_stored(good)  # conflicts, latest map, robots
     for topic, bad in bad_by_topic.items():
         log.warning("undecodable records on an event topic", topic=topic, count=len(bad))
         await sink.insert_until_done(sink.store.append_dead_letters, bad, {topic: len(bad)})
@@ -197,7 +197,7 @@ class HistoryConsumer:
             if self.views is not None:
                 # New partitions: rebuild the views from the history before their events
                 # (which may repeat what is stored) are applied.
-                await self.views.rebuild(self.sink)
+                await self.views.rebuild()
         if not records:
             await self.settle()  # idle: the views catch up at once
             self._timed_store(0.0)
@@ -227,7 +227,7 @@ class HistoryConsumer:
             await self.sink.derive_until_done(self._underived)
             self._underived = []
         if self.views is not None:
-            await self.views.write_conflicts_until_done(self.sink)
+            await self.views.write_conflicts_until_done()
         self._underived_since = None
         if self._uncommitted:
             records, self._uncommitted = list(self._uncommitted.values()), {}
@@ -248,7 +248,7 @@ class HistoryConsumer:
                 await self.sink.run(self.sink.store.derive_views, self._underived)
                 self._underived = []
             if self.views is not None:
-                await self.sink.run(self.views.write_conflicts)
+                await self.views.store_thread.run(self.views.write_conflicts)
             await self.settle()
         except Exception as exc:  # noqa: BLE001 - anything the store raises; logged, re-delivered
             log.warning("could not derive the pose views or write the conflicts on stop; "

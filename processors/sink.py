@@ -1,12 +1,10 @@
-"""The history sink: the one thread that talks to the store, and the pure part (raw Kafka
-values to what the store appends)."""
+"""The history sink: stores batches on the store thread until they are in, and the pure
+part (raw Kafka values to what the store appends)."""
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Iterable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 
 import msgspec
 import structlog
@@ -16,6 +14,8 @@ from mapservice.core.events import DeadLetter, Envelope, decode, decode_dead_let
 from mapservice.core.ports import HistoryStore, LiveFeed
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.runtime.retry import until_done
+
+from .store_thread import StoreThread
 
 log = structlog.get_logger(__name__)
 
@@ -39,14 +39,14 @@ LAST_INSERT = Gauge("mapservice_history_last_insert_timestamp_seconds",
 
 
 class HistorySink:
-    """Owns the store and the one thread that talks to it."""
+    """Stores on `thread`, the one that talks to the store (store_thread.py; a thread of
+    its own when none is given), and records whether the inserts succeed."""
 
     def __init__(self, store: HistoryStore, live: LiveFeed | None = None,
-                 health: InsertHealth | None = None) -> None:
+                 health: InsertHealth | None = None, thread: StoreThread | None = None) -> None:
         self.store = store
         self.live = live
-        self.executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="history")
-        self.consumer = None  # the HistoryConsumer feeding it, once build_app made one
+        self.thread = thread or StoreThread()
         # Whether the inserts succeed: readiness, the metrics below, the UI's banner.
         self.health = health = health or InsertHealth()
         INSERT_FAILING.set_function(lambda: float(health.failing))
@@ -54,7 +54,7 @@ class HistorySink:
         LAST_INSERT.set_function(lambda: health.last_stored_s or 0.0)
 
     async def run(self, fn, *args):
-        return await asyncio.get_running_loop().run_in_executor(self.executor, fn, *args)
+        return await self.thread.run(fn, *args)
 
     async def _insert(self, fn, batch) -> None:
         """One insert attempt, its outcome recorded in `health` (per store method: one

@@ -1,10 +1,12 @@
 """The processors' live views: the latest map (advertised on MQTT), the robots, conflicts.
 
-Fed by the history sink after each insert (`on_stored`), so a view never shows, and an
+Fed by the history consumer after each insert (`on_stored`), so a view never shows, and an
 advertisement never names, a write the API cannot serve yet. The views are rebuilt from
 ClickHouse whenever faust assigns partitions (start-up, restart, rebalance), before any
 event of those partitions is consumed: the history is the changelog. The rules are pure
-functions in `mapservice/core/liveview.py` and `mapservice/core/conflicts.py`.
+functions in `mapservice/core/liveview.py` and `mapservice/core/conflicts.py`. Their store
+calls run on the processors' one store thread, handed to them at construction
+(store_thread.py).
 
 Each batch's conflicts are found after its insert (`find_conflicts`) and written together
 with the pose views (`write_conflicts`, from `HistoryConsumer.settle`), before its offsets
@@ -13,11 +15,10 @@ are committed: like those views, the conflicts lag the history by up to sink_vie
 
 from __future__ import annotations
 
-import asyncio
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 import structlog
 from prometheus_client import Counter, Gauge, Histogram
@@ -43,10 +44,7 @@ from mapservice.processors.zone_watch import KeepOutWatch
 from mapservice.runtime.retry import until_done
 from mapservice.settings import Settings
 
-if TYPE_CHECKING:
-    import faust
-
-    from .sink import HistorySink
+from .store_thread import StoreThread
 
 log = structlog.get_logger(__name__)
 
@@ -84,9 +82,13 @@ class Advertiser(Protocol):
 
 class LiveViews:
     def __init__(self, settings: Settings, store: HistoryStore, advertiser: Advertiser | None,
+                 store_thread: StoreThread,
                  now_ms: Callable[[], int] = SystemClock().now_ms) -> None:
         self.settings = settings
         self.store = store
+        # The processors' one thread for store calls: the history's inserts go through it
+        # too, so a load or conflict check sees exactly the batches stored before it.
+        self.store_thread = store_thread
         self.advertiser = advertiser
         self.now_ms = now_ms
         self.latest: dict = {}  # (row, column) -> ChunkState
@@ -105,7 +107,7 @@ class LiveViews:
         self._pending = 0
         self._pending_lock = threading.Lock()
 
-    # --- blocking parts: run in the sink's store thread -----------------------------------
+    # --- blocking parts: run in the store thread ------------------------------------------
 
     def load(self) -> None:
         """Rebuilds both views from the history (latest over all stored event times)."""
@@ -167,14 +169,14 @@ class LiveViews:
 
     # --- in the event loop ----------------------------------------------------------------
 
-    async def on_stored(self, sink: HistorySink, events: Sequence[Envelope]) -> None:
+    async def on_stored(self, events: Sequence[Envelope]) -> None:
         """After a batch is in the history, before it is acknowledged."""
         if not self.loaded:
             # The rebuild at assignment failed: rebuild now (this batch is in it already,
             # so its changes go unadvertised) rather than let older writes win.
-            await self._until_done(sink, lambda _: self.load(), None)
+            await self._until_done(lambda _: self.load(), None)
         if any(isinstance(e.payload, ChunkUpdated) for e in events):
-            await self._until_done(sink, self.find_conflicts, events)
+            await self._until_done(self.find_conflicts, events)
             for e in apply_chunks(self.latest, events):
                 VIEW_CHANGES.inc()
                 self.advertise(e)
@@ -186,11 +188,11 @@ class LiveViews:
                 zones_changed |= self.zone_edited(e)
         if zones_changed:
             horizon = self.now_ms() + int(self.settings.max_future_skew_s * 1000) + 86_400_000
-            await self._until_done(sink, lambda _: self.keep_out.rebuild(self.store, horizon), None)
+            await self._until_done(lambda _: self.keep_out.rebuild(self.store, horizon), None)
         if self.keep_out.ids and any(pose_of(e.payload) is not None for e in events):
             found = self.keep_out.violations(events)
             if found:
-                await self._until_done(sink, self.store.append_zone_violations, found)
+                await self._until_done(self.store.append_zone_violations, found)
                 ZONE_VIOLATIONS.inc(len(found))
 
     def zone_edited(self, e: Envelope) -> bool:
@@ -256,51 +258,26 @@ class LiveViews:
         ROBOTS_ONLINE.set(len(online))
         return came, went
 
-    async def write_conflicts_until_done(self, sink: HistorySink) -> None:
+    async def write_conflicts_until_done(self) -> None:
         """`write_conflicts` on the store thread, retried until it succeeds."""
         if len(self.unwritten):  # nothing to hand to the store thread
-            await self._until_done(sink, lambda _: self.write_conflicts(), None)
+            await self._until_done(lambda _: self.write_conflicts(), None)
 
-    async def _until_done(self, sink: HistorySink, fn, batch) -> None:
+    async def _until_done(self, fn, batch) -> None:
         # Retried: acknowledging the batch without its conflicts and views would lose them.
         async for attempt in until_done("live views update", 0.2):
             with attempt:
-                await sink.run(fn, batch)
+                await self.store_thread.run(fn, batch)
 
-    async def rebuild(self, sink: HistorySink) -> None:
+    async def rebuild(self) -> None:
         """After a partition assignment, before any event of it is applied: the views as the
         history holds them, and the advertiser running."""
         # Submitted to the store thread before any batch of the new assignment is inserted
         # there, so the rebuilt views hold exactly what was stored before.
         self.loaded = False
         try:
-            await sink.run(self.load)
+            await self.store_thread.run(self.load)
         except Exception as exc:  # raising here would stop the consumer; retried in on_stored
             log.error("live views rebuild failed; retried with the next batch", error=str(exc))
         if self.advertiser is not None:
             self.advertiser.start()
-
-    # --- wiring ---------------------------------------------------------------------------
-
-    @classmethod
-    def attach(cls, app: faust.App, settings: Settings, sink: HistorySink,
-               advertiser: Advertiser | None = None,
-               now_ms: Callable[[], int] = SystemClock().now_ms) -> LiveViews:
-        """Views for a faust app: the history consumer rebuilds them on every partition
-        assignment (`rebuild`), the advertiser stops with the app, presence is checked each second."""
-        if advertiser is None:
-            from .advertiser import MqttAdvertiser
-            advertiser = MqttAdvertiser(settings)
-        views = cls(settings, sink.store, advertiser, now_ms)
-
-        async def stop(sender, *args, **kwargs) -> None:
-            await asyncio.get_running_loop().run_in_executor(None, views.close)
-            advertiser.stop()
-
-        app.on_before_shutdown.connect(stop, weak=False)
-
-        async def presence() -> None:
-            views.check_presence()
-
-        app.timer(1.0)(presence)
-        return views

@@ -86,7 +86,7 @@ async def _one(way: str, events: int) -> dict:
         store = CountingStore()
         stopping = asyncio.Event()
         from mapservice.adapters.kafka_batch_source import KafkaBatchSource
-        from mapservice.processors.app import HistorySink
+        from mapservice.processors.sink import HistorySink
         from mapservice.processors.history_consumer import HistoryConsumer
 
         source = KafkaBatchSource(settings, [settings.topic_pose_events], "bench-sink")

@@ -2,7 +2,8 @@
 
 Two histories are loaded with the bulk loader into embedded ClickHouse; each is then
 served by `mapservice api` in a process of its own, as in production (no brokers needed for
-replay). An API thread inside this process would share the GIL with Playwright's driver
+replay), with the UI's test build (replay-ui/dist-test: the production page plus the
+`window.__replay` hook the benchmark reads and drives). An API thread inside this process would share the GIL with Playwright's driver
 and slow every answer the page waits for (until 2026-11-22 it was such a thread: seek times
 measured before then include that contention).
 
@@ -48,7 +49,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from mapservice.local.checkout import UI_INDEX
+from mapservice.local.checkout import TEST_UI_DIR, TEST_UI_ENV
 
 DAY_MS = 86_400_000
 
@@ -74,6 +75,7 @@ def api_env(chdb_dir: Path, database: str, port: int) -> dict[str, str]:
         # seeking and playing at full speed is one client).
         "MAPSERVICE_API_RATE_LIMIT": "",
         "PYTHONUNBUFFERED": "1",
+        **TEST_UI_ENV,
     }
 
 
@@ -381,8 +383,8 @@ def speeds_phase(pw, api_url: str, start_ms: int, end_ms: int, speeds: list[int]
 def main(args) -> None:
     from playwright.sync_api import sync_playwright
 
-    if not UI_INDEX.exists():
-        raise SystemExit("bench ui: the UI is not built; run `make ui` first")
+    if not (TEST_UI_DIR / "index.html").exists():
+        raise SystemExit(f"bench ui: the UI's test build ({TEST_UI_DIR}) is missing; run `make ui` first")
     if args.reuse and not args.data_dir:
         raise SystemExit("bench ui: --reuse needs --data-dir")
     tmp = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-ui-"))

@@ -15,7 +15,7 @@ import uvicorn
 from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.local.embedded import free_port
-from mapservice.server import api_server_config
+from mapservice.api.composition import api_server_config
 from mapservice.settings import Settings
 
 HEADER_S, IDLE_S, BODY_S = 1.0, 1, 1.0

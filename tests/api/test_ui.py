@@ -1,4 +1,5 @@
-"""The replay UI pages: served from replay-ui/dist, a clear message when it is not built."""
+"""The replay UI pages: served from replay-ui/dist, a clear message when it is not built;
+the test hook only in the test build (replay-ui/dist-test)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from fastapi.testclient import TestClient
 from mapservice.api.app import create_app
 from mapservice.api.routers import ui
 
+from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.testing.memory_store import MemoryStore
 from mapservice.settings import Settings
 
@@ -64,3 +66,20 @@ def test_ui_dir_setting_serves_an_installed_build(tmp_path) -> None:
     client = TestClient(create_app(Settings(ui_dir=tmp_path), MemoryStore()))
     assert "installed replay" in client.get("/").text
     assert client.get("/assets/app-1.js").status_code == 200
+
+
+def _scripts(build) -> str:
+    if not (build / "index.html").is_file():
+        pytest.fail(f"{build} is not built: run `make ui` first")
+    return "".join(p.read_text() for p in sorted((build / "assets").glob("*.js")))
+
+
+def test_the_test_hook_is_only_in_the_test_build(client) -> None:
+    """The page `/` serves by default (replay-ui/dist, what `make up` and the image serve) holds
+    no trace of window.__replay (src/lib/testhook.ts); the test build the browser tests and
+    `mapservice bench ui` serve holds it."""
+    assert client.get("/").text == (ui.DIST / "index.html").read_text()
+    production, test_build = _scripts(ui.DIST), _scripts(TEST_UI_DIR)
+    for trace in ("__replay", "resetFrameStats", "setCompaction"):
+        assert trace not in production, f"{trace!r} is in the production build"
+        assert trace in test_build, f"{trace!r} is missing from the test build"

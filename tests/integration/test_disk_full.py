@@ -37,6 +37,7 @@ import pytest
 
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
+from mapservice.local.checkout import TEST_UI_ENV
 from mapservice.local.stack import Stack
 from tests.ui.conftest import ARTIFACTS, DIST, module_browser, page  # noqa: F401  (fixtures)
 
@@ -78,7 +79,7 @@ def stack(request, tmp_path_factory):
     clickhouse_dir = data_dir / "clickhouse"  # the chDB directory, in both topologies
     mount_tmpfs(clickhouse_dir, DISK_MB)
     apart = request.param == "up"
-    stack = Stack(data_dir, mqtt="amqtt", apart=apart)
+    stack = Stack(data_dir, mqtt="amqtt", apart=apart, extra_env=dict(TEST_UI_ENV))
     try:
         with stack.running(stack.start_brokers, stack.start_apart if apart else stack.start_server):
             yield stack

@@ -23,6 +23,7 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.core.events import make_envelope
 from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.settings import Settings
+from mapservice.local.checkout import TEST_UI_ENV
 from mapservice.local.stack import Stack
 from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS
@@ -51,7 +52,7 @@ def stack(tmp_path_factory):
         store.append([make_envelope("mapservice", now_ms(), now_ms(), meta)])
     finally:
         store.close()
-    stack = Stack(root / "processors", mqtt="mosquitto")
+    stack = Stack(root / "processors", mqtt="mosquitto", extra_env=dict(TEST_UI_ENV))
     stack.second_api_port = embedded.free_port()  # type: ignore[attr-defined]
     stack.root = root  # type: ignore[attr-defined]
     with stack.running(stack.start_brokers, lambda: stack.publish_meta(meta),

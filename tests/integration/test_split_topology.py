@@ -34,6 +34,7 @@ from mcap.reader import make_reader
 from websockets.sync.client import connect
 
 from mapservice.local import embedded
+from mapservice.local.checkout import TEST_UI_ENV
 from mapservice.local.stack import Stack
 from mapservice.core.wire2019 import content_hash, format_timestamp
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
@@ -83,6 +84,7 @@ def stack(tmp_path_factory):
                     "chDB, branch chhttp); not in this checkout")
     ch_port = embedded.free_port()
     stack = Stack(tmp_path_factory.mktemp("stack-split"), mqtt="mosquitto", extra_env={
+        **TEST_UI_ENV,
         "MAPSERVICE_ADMIN_TOKEN": TOKEN,
         "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
     })

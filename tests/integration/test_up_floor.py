@@ -13,6 +13,7 @@ import time
 import httpx
 import pytest
 
+from mapservice.local.checkout import TEST_UI_ENV
 from mapservice.local.embedded import free_port
 from mapservice.robot.map_upload import MARKER, UPLOADER_ID
 from mapservice.adapters.ros_map import load_ros_map, slice_chunks
@@ -23,7 +24,8 @@ pytestmark = pytest.mark.integration
 
 
 class Up:
-    """A running `mapservice up` whose console lines are collected in the background."""
+    """A running `mapservice up` whose console lines are collected in the background; it
+    serves the UI's test build, which the browser tests drive through window.__replay."""
 
     def __init__(self, data_dir, *args: str) -> None:
         self.api_port, self.mqtt_port = free_port(), free_port()
@@ -31,7 +33,7 @@ class Up:
             [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
              "--api-port", str(self.api_port), "--mqtt-port", str(self.mqtt_port), *args],
             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            start_new_session=True, env={**os.environ, "COLUMNS": "200"})
+            start_new_session=True, env={**os.environ, **TEST_UI_ENV, "COLUMNS": "200"})
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
         self.wait_for("mapservice is up", 150)

@@ -51,7 +51,7 @@ def test_live_stream_compression_is_off_unless_configured() -> None:
     """uvicorn offers permessage-deflate on the live WebSocket only with api_live_compression."""
     from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
-    from mapservice.server import api_server_config
+    from mapservice.api.composition import api_server_config
     from mapservice.settings import Settings
 
     for flag in (False, True):

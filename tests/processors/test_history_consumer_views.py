@@ -184,9 +184,10 @@ def conflicting_consumer(ev, views_seconds: float, failures: int = 0):
 
     clock, source = Clock(), MemorySource()
     store = ConflictLog(source, failures)
-    views = LiveViews(Settings(conflict_window_s=60), store, None, now_ms=lambda: NOW)
+    sink = HistorySink(store)
+    views = LiveViews(Settings(conflict_window_s=60), store, None, sink.thread, now_ms=lambda: NOW)
     views.load()
-    consumer = HistoryConsumer(source, HistorySink(store), views, batch_size=100,
+    consumer = HistoryConsumer(source, sink, views, batch_size=100,
                                batch_seconds=0.2, now_ms=lambda: NOW, monotonic=clock,
                                views_seconds=views_seconds)
 

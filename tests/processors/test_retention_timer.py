@@ -53,7 +53,7 @@ def test_the_snapshot_timer_keeps_the_floor_through_three_retention_periods(kind
             await tick()
 
     asyncio.run(run())
-    sink.executor.shutdown()
+    sink.thread.close()
     now = clock.now_ms()
     rows = [type("W", (), {"row": e.payload.row, "column": e.payload.column, "ts_ms": e.event_time_ms,
                            "robot_id": e.robot_id, "content_hash": e.payload.content_hash.hex()})()

@@ -39,17 +39,17 @@ class FakeAdvertiser:
 def sink():
     s = HistorySink(MemoryStore())
     yield s
-    s.executor.shutdown(wait=True)
+    s.thread.close()
 
 
 def _views(sink, advertiser, now=NOW_MS, **settings) -> LiveViews:
     return LiveViews(Settings(public_base_url="http://api:8080", **settings), sink.store,
-                     advertiser, now_ms=lambda: now)
+                     advertiser, sink.thread, now_ms=lambda: now)
 
 
 def _store_and_view(views: LiveViews, sink: HistorySink, events) -> None:
     sink.store.append(events)
-    asyncio.run(views.on_stored(sink, events))
+    asyncio.run(views.on_stored(events))
     views.flush()
 
 
@@ -134,17 +134,17 @@ def test_a_failing_advertiser_does_not_stop_the_sink(sink) -> None:
 def test_presence_transitions(sink) -> None:
     """Robots go online when heard from and offline after robot_offline_after_s of silence."""
     now = [NOW_MS]
-    views = LiveViews(Settings(robot_offline_after_s=10), sink.store, None, now_ms=lambda: now[0])
-    asyncio.run(views.on_stored(sink, [pose_event("r1", NOW_MS, receive_lag_ms=0)]))
+    views = LiveViews(Settings(robot_offline_after_s=10), sink.store, None, sink.thread,
+                      now_ms=lambda: now[0])
+    asyncio.run(views.on_stored([pose_event("r1", NOW_MS, receive_lag_ms=0)]))
     assert views.check_presence() == ({"r1"}, set())
     now[0] += 10_001
     assert views.check_presence() == (set(), {"r1"})
 
 
-def test_attach_rebuilds_on_assignment_and_stops_the_advertiser(sink) -> None:
-    """A partition assignment to the history consumer rebuilds the views and starts the
-    advertiser; the faust app's shutdown stops it."""
-    import faust
+def test_an_assignment_rebuilds_the_views_and_starts_the_advertiser(sink) -> None:
+    """A partition assignment to the history consumer rebuilds the views on the store thread
+    and starts the advertiser (the faust app's shutdown stopping it: test_composition.py)."""
 
     class Recorder(FakeAdvertiser):
         calls: list[str] = []
@@ -152,13 +152,9 @@ def test_attach_rebuilds_on_assignment_and_stops_the_advertiser(sink) -> None:
         def start(self) -> None:
             self.calls.append("start")
 
-        def stop(self) -> None:
-            self.calls.append("stop")
-
     sink.store.append([chunk_event("a", NOW_MS, 2, 3)])
-    app = faust.App("views-test", broker="kafka://127.0.0.1:1", web_enabled=False, store="memory://")
     adv = Recorder()
-    views = LiveViews.attach(app, Settings(), sink, adv)
+    views = LiveViews(Settings(), sink.store, adv, sink.thread)
     assert views.latest == {}
 
     consumer = HistoryConsumer(MemorySource(), sink, views, batch_size=10, batch_seconds=0.01)
@@ -167,10 +163,9 @@ def test_attach_rebuilds_on_assignment_and_stops_the_advertiser(sink) -> None:
         await consumer.start()
         consumer.on_assigned([("mapservice.chunk-events.v1", 0)])
         await consumer.run_once()
-        await app.on_before_shutdown.send()
 
     asyncio.run(lifecycle())
-    assert set(views.latest) == {(2, 3)} and adv.calls == ["start", "stop"]
+    assert set(views.latest) == {(2, 3)} and adv.calls == ["start"]
 
 
 def test_advertisements_beyond_the_backlog_bound_are_dropped(sink, monkeypatch) -> None:
@@ -187,12 +182,9 @@ def test_advertisements_beyond_the_backlog_bound_are_dropped(sink, monkeypatch) 
 def test_a_failed_rebuild_is_retried_before_the_next_batch_is_applied(sink, monkeypatch) -> None:
     """If rebuilding at assignment fails, the app keeps running and the next stored batch
     rebuilds first, so an older write still cannot win."""
-    import faust
-
     sink.store.append([chunk_event("a", NOW_MS, 0, 0)])
-    app = faust.App("views-fail", broker="kafka://127.0.0.1:1", web_enabled=False, store="memory://")
     ads = FakeAdvertiser()
-    views = LiveViews.attach(app, Settings(), sink, ads)
+    views = LiveViews(Settings(), sink.store, ads, sink.thread)
     real_map_at = sink.store.map_at
     monkeypatch.setattr(sink.store, "map_at", lambda at: (_ for _ in ()).throw(OSError("down")))
     consumer = HistoryConsumer(MemorySource(), sink, views, batch_size=10, batch_seconds=0.01)

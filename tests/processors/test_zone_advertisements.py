@@ -44,7 +44,7 @@ class TopicAdvertiser:
 def sink():
     s = HistorySink(MemoryStore())
     yield s
-    s.executor.shutdown(wait=True)
+    s.thread.close()
 
 
 def _edit(t: int, event):
@@ -53,14 +53,14 @@ def _edit(t: int, event):
 
 def _stored(views: LiveViews, sink: HistorySink, *events) -> None:
     sink.store.append(list(events))
-    asyncio.run(views.on_stored(sink, list(events)))
+    asyncio.run(views.on_stored(list(events)))
     views.flush()
 
 
 def test_zone_edits_are_advertised_on_the_zone_topic_and_points_of_interest_are_not(sink) -> None:
     ads = TopicAdvertiser()
     settings = Settings(public_base_url="http://api:8080", zone_advertisement_topic="iot/zones/advertisement")
-    views = LiveViews(settings, sink.store, ads, now_ms=lambda: NOW_MS)
+    views = LiveViews(settings, sink.store, ads, sink.thread, now_ms=lambda: NOW_MS)
     views.load()
     _stored(views, sink, _edit(NOW_MS, AnnotationCreated("z1", "operator:ab12", ZONE)),
             _edit(NOW_MS, AnnotationCreated("p1", "operator:ab12", POI)))
@@ -85,7 +85,7 @@ def test_a_zone_known_from_the_history_is_advertised_when_removed(sink) -> None:
     advertised although this process never saw it created."""
     sink.store.append([_edit(NOW_MS, AnnotationCreated("z1", "operator:ab12", ZONE))])
     ads = TopicAdvertiser()
-    views = LiveViews(Settings(), sink.store, ads, now_ms=lambda: NOW_MS + 60_000)
+    views = LiveViews(Settings(), sink.store, ads, sink.thread, now_ms=lambda: NOW_MS + 60_000)
     views.load()
     _stored(views, sink, _edit(NOW_MS + 60_000, AnnotationRemoved("z1", "operator:ab12")))
     assert [(t, p["change"]) for t, p in ads.sent] == [("iot/zones/advertisement", "removed")]
@@ -102,7 +102,8 @@ def test_a_pose_inside_a_keep_out_zone_is_a_zone_violation(sink) -> None:
     from tests.conftest import meta_event, pose_event
 
     sink.store.append([meta_event(NOW_MS - 10_000)])  # 500 x 400 px at 0.05 m from (-1.5, 2.0)
-    views = LiveViews(Settings(), sink.store, TopicAdvertiser(), now_ms=lambda: NOW_MS + 100_000)
+    views = LiveViews(Settings(), sink.store, TopicAdvertiser(), sink.thread,
+                      now_ms=lambda: NOW_MS + 100_000)
     views.load()
     keep_out = Zone("pit", "keep_out", ((0.0, 3.0), (2.0, 3.0), (2.0, 5.0), (0.0, 5.0)))
     slow = Zone("slow", "speed_limit", ((5.0, 3.0), (7.0, 3.0), (7.0, 5.0)),

@@ -16,11 +16,13 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.testing.chromium import chromium_path, launch
 from mapservice.bench.history_loader import load_history
 from mapservice.adapters.ros_map import load_ros_map
+from mapservice.local.checkout import TEST_UI_DIR, TEST_UI_ENV
 from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS, ROOT
 from tests.integration.conftest import run_stack
 
-DIST = ROOT / "replay-ui" / "dist" / "index.html"
+# Every browser test serves the UI's test build, which holds window.__replay.
+DIST = TEST_UI_DIR / "index.html"
 ARTIFACTS = ROOT / "test-artifacts" / "ui"
 HOURS = 3
 ROBOTS = 3
@@ -38,7 +40,7 @@ def history_stack(tmp_path_factory):
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
     stack = Stack(tmp_path_factory.mktemp("ui-stack"), mqtt="mosquitto",
-                  extra_env={"MAPSERVICE_SNAPSHOT_EVERY_S": "600"})
+                  extra_env={**TEST_UI_ENV, "MAPSERVICE_SNAPSHOT_EVERY_S": "600"})
     settings = stack.settings()
     ros_map = load_ros_map(MAPS / "warehouse.yaml")
     store = ClickHouseStore(settings.resolved_clickhouse_dsn, settings.clickhouse_database,

@@ -159,11 +159,13 @@ def test_without_websocket_url_the_page_says_so(page, history_stack) -> None:
 def auth_stack(tmp_path_factory):
     """The service with Mosquitto checking robot identities; controller-auth has a credential."""
     from mapservice.adapters.ros_map import load_ros_map, meta_for
+    from mapservice.local.checkout import TEST_UI_ENV
     from mapservice.local.stack import Stack
     from tests.fixtures.paths import MAPS
     from tests.integration.conftest import run_stack
 
-    stack = Stack(tmp_path_factory.mktemp("ui-auth-stack"), mqtt="mosquitto", mqtt_auth=True)
+    stack = Stack(tmp_path_factory.mktemp("ui-auth-stack"), mqtt="mosquitto", mqtt_auth=True,
+                  extra_env=dict(TEST_UI_ENV))
     try:  # a failed start stops what it had started, not only a finished module
         run_stack(stack, meta_for(load_ros_map(MAPS / "warehouse.yaml")))
         stack.controller_password = stack.add_robot("controller-auth").password  # type: ignore[attr-defined]

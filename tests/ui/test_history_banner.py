@@ -13,6 +13,7 @@ import uvicorn
 
 from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
+from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.settings import Settings
@@ -28,7 +29,7 @@ def status_api():
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
     health = InsertHealth()
-    settings = Settings(api_port=free_port())
+    settings = Settings(api_port=free_port(), ui_dir=TEST_UI_DIR)
     app = create_app(settings, MemoryStore(), {"history_store": health})
     app.state.history_status = health.status
     uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=settings.api_port,

@@ -14,6 +14,7 @@ from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.core.events import MapMetaSet, make_envelope
+from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port
 from mapservice.settings import Settings
 from tests.ui.conftest import DIST
@@ -32,7 +33,7 @@ def token_api():
     store.append([make_envelope("api", now - 60_000, now - 60_000,
                                 MapMetaSet(400, 300, 100, 100, 3, 4))])
     settings = Settings(api_port=free_port(), api_read_access="token", api_reader_tokens=READER,
-                        admin_token="a" * 32, api_writer_tokens="w" * 32)
+                        admin_token="a" * 32, api_writer_tokens="w" * 32, ui_dir=TEST_UI_DIR)
     hub = LiveHub()
     uv = uvicorn.Server(uvicorn.Config(create_app(settings, store, {}, live_hub=hub),
                                        host="127.0.0.1", port=settings.api_port, log_level="warning"))

@@ -1,8 +1,8 @@
 /**
- * window.__replay: what the browser tests and `mapservice bench ui` read and drive. It is
- * in the production build because both run against the built page a user gets (the
- * benchmark measures that page, not a test build); it only reads state and calls what the
- * buttons call.
+ * window.__replay: what the browser tests and `mapservice bench ui` read and drive. Only
+ * the test build holds it (`npm run build:test`, VITE_TEST_HOOK=1, into dist-test/, which
+ * they serve): App.vue imports this module behind that build-time flag, so the production
+ * bundle in dist/ has none of it. It only reads state and calls what the buttons call.
  */
 import type { Ref, ShallowRef } from "vue";
 import type { Speed } from "./clock";

@@ -13,11 +13,14 @@ import pytest
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.bench import ui
 from mapservice.bench.ui import ApiProcess, api_env, expected_at, fold, load_or_reuse, mismatches
+from mapservice.local.checkout import TEST_UI_DIR
 
 
 def test_api_env_points_the_api_at_one_chdb_directory_and_database(tmp_path) -> None:
-    """The environment names the chDB directory, the database and the port, on 127.0.0.1."""
+    """The environment names the chDB directory, the database and the port, on 127.0.0.1, and
+    the UI's test build (the page with window.__replay, which the benchmark drives)."""
     env = api_env(tmp_path / "ch", "bench_seek", 18080)
+    assert env["MAPSERVICE_UI_DIR"] == str(TEST_UI_DIR)
     assert env["MAPSERVICE_CLICKHOUSE_DSN"] == f"chdb://{(tmp_path / 'ch').resolve()}"
     assert env["MAPSERVICE_CLICKHOUSE_DATABASE"] == "bench_seek"
     assert (env["MAPSERVICE_API_HOST"], env["MAPSERVICE_API_PORT"]) == ("127.0.0.1", "18080")

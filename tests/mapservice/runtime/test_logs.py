@@ -86,7 +86,7 @@ def test_the_api_server_writes_a_json_access_log(capfd) -> None:
     import uvicorn
     from fastapi import FastAPI
 
-    from mapservice.server import api_server_config
+    from mapservice.api.composition import api_server_config
     from mapservice.settings import Settings
 
     configure("INFO", "json", "api")

@@ -1,0 +1,81 @@
+/**
+ * The change feed's filter (a robot, an area drawn on the map as a chunk box) and the
+ * changes and conflicts picked from the feed and the conflict inspector: a pick pauses
+ * just after it and outlines its chunk on the map.
+ */
+import { ref, type Ref, type ShallowRef } from "vue";
+import { boxOfPixels, neighbourChange, seekTargetOf, type Change, type ChunkBox } from "../lib/changefeed";
+import type { ReplayEngine } from "../lib/engine";
+import { conflictKey, type ConflictEntry } from "../lib/inspect";
+import type { MapView } from "../lib/mapview";
+import type { UrlState } from "../lib/urlstate";
+
+export interface ChangePickDeps {
+  engine: ReplayEngine;
+  view: ShallowRef<MapView | null>;
+  initial: UrlState;
+  /** The changes the feed lists (none while it is closed). */
+  listed: () => Change[];
+  /** Leaves live mode, pauses and seeks to an instant. */
+  pauseAt: (t: number) => void;
+  notice: Ref<string | null>;
+}
+
+export function useChangePicks(d: ChangePickDeps) {
+  const { engine, view, initial } = d;
+  const changeRobot = ref<string | null>(initial.changeRobot);
+  const changeBox = ref<ChunkBox | null>(initial.area ? { rowMin: initial.area[0], rowMax: initial.area[1], colMin: initial.area[2], colMax: initial.area[3] } : null);
+  const drawing = ref(false);
+  /** The key of the change or conflict picked last (its list highlights it). */
+  const activeChange = ref<string | null>(null);
+
+  /** Seeks just after a change of the feed and outlines its chunk. */
+  function pickChange(c: Change) {
+    activeChange.value = `${c.ts_ms}:${c.row}:${c.column}:${c.robot_id}`;
+    view.value?.outlineChunk(c.kind === "change" ? { row: c.row, column: c.column } : null);
+    d.pauseAt(seekTargetOf(c));
+  }
+
+  /** Seeks just after a conflict's later write (the map shows it and its box) and outlines its chunk. */
+  function pickConflict(c: ConflictEntry) {
+    activeChange.value = conflictKey(c);
+    view.value?.outlineChunk(c);
+    d.pauseAt(c.seek_ms);
+  }
+
+  /** Shift+←/→: to the previous/next change of the feed (the listed ones) from the playhead. */
+  function stepChange(dir: 1 | -1) {
+    const c = neighbourChange(d.listed(), engine.playhead, dir);
+    if (c) pickChange(c);
+    else d.notice.value = `no ${dir > 0 ? "later" : "earlier"} change in the change feed's list (the timeline's span and its filters)`;
+  }
+
+  function drawArea() {
+    if (!view.value) return;
+    drawing.value = true;
+    view.value.drawArea((a, b) => {
+      drawing.value = false;
+      const box = engine.meta ? boxOfPixels(engine.meta, a, b) : null;
+      changeBox.value = box;
+      view.value?.showArea(box);
+    });
+  }
+
+  function clearArea() {
+    changeBox.value = null;
+    view.value?.showArea(null);
+  }
+
+  /** The area as the address keeps it: [rowMin, rowMax, colMin, colMax]. */
+  function area(): [number, number, number, number] | null {
+    const b = changeBox.value;
+    return b ? [b.rowMin, b.rowMax, b.colMin, b.colMax] : null;
+  }
+
+  /** Once the map is there: the area the address named. */
+  function attach(v: MapView) {
+    if (changeBox.value) v.showArea(changeBox.value);
+  }
+
+  return { changeRobot, changeBox, drawing, activeChange, pickChange, pickConflict, stepChange, drawArea, clearArea, area, attach };
+}
