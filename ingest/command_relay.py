@@ -26,6 +26,7 @@ from mapservice.core.commands import CommandIssued, command_message
 from mapservice.core.events import decode
 from mapservice.settings import Settings
 
+from .topic_follower import TopicFollower
 from .vda_commands import VdaCommandRefused, VdaCommands
 
 log = structlog.get_logger(__name__)
@@ -54,22 +55,24 @@ class CommandBook:
             return self._robots.get(command_id)
 
 
-class CommandRelay:
+class CommandRelay(TopicFollower):
     """Reads the command topic; remembers each command and delivers the fresh ones with
     `publish(mqtt_topic, payload)` (the gateway's MQTT client, QoS 1)."""
+
+    thread_name = "command-relay"
+    group_id = "mapservice-gateway-commands"
+    poll_s = 0.2
 
     def __init__(self, settings: Settings, publish: Callable[[str, bytes], object],
                  now_ms: Callable[[], int], book: CommandBook | None = None,
                  vda: VdaCommands | None = None) -> None:
-        self.settings = settings
+        super().__init__(settings, settings.topic_command_events)
         self.vda = vda  # commands to VDA 5050 vehicles go out as their instantActions
         self.publish = publish
         self.now_ms = now_ms
         self.book = book or CommandBook()
         self.delivered = 0
         self.failures = 0  # times the reading failed and started again
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def handle(self, value: bytes) -> bool:
         """One record of the command topic; True when it was delivered to its robot."""
@@ -103,15 +106,6 @@ class CommandRelay:
                  kind=command.kind, issued_by=command.issued_by)
         return True
 
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="command-relay", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread:
-            self._thread.join(timeout=5)
-
     def _run(self) -> None:
         """Reads until stopped; a failure (Kafka away at start, a lost assignment) is
         logged and the reading starts again a little later: deliveries never just stop."""
@@ -124,31 +118,20 @@ class CommandRelay:
                               hint="is Kafka reachable at MAPSERVICE_KAFKA_BOOTSTRAP?")
                 self._stop.wait(RETRY_S)
 
-    def _read(self) -> None:
-        topic = self.settings.topic_command_events
-        consumer = Consumer({**self.settings.kafka_config(),
-                             "group.id": "mapservice-gateway-commands",
-                             "enable.auto.commit": False})
+    def _start_offsets(self, consumer: Consumer, partitions: list[int]) -> list[TopicPartition]:
+        """Each partition from its first record of the last COMMAND_MEMORY_S."""
+        since = self.now_ms() - COMMAND_MEMORY_S * 1000
+        starts = consumer.offsets_for_times(
+            [TopicPartition(self.topic, p, since) for p in partitions], timeout=30)
+        log.info("command relay reading", topic=self.topic, partitions=len(partitions))
+        # No record at or after `since` in a partition: its offset is -1, read from its end.
+        return [TopicPartition(self.topic, tp.partition, tp.offset if tp.offset >= 0
+                               else OFFSET_END) for tp in starts]
+
+    def _on_record(self, value: bytes | None) -> None:
+        if value is None:
+            return  # a tombstone: nothing to deliver
         try:
-            md = consumer.list_topics(topic, timeout=30)
-            parts = sorted(md.topics[topic].partitions) if topic in md.topics else [0]
-            since = self.now_ms() - COMMAND_MEMORY_S * 1000
-            starts = consumer.offsets_for_times([TopicPartition(topic, p, since) for p in parts],
-                                                timeout=30)
-            # No record at or after `since` in a partition: its offset is -1, read from its end.
-            consumer.assign([TopicPartition(topic, tp.partition, tp.offset if tp.offset >= 0
-                                            else OFFSET_END) for tp in starts])
-            log.info("command relay reading", topic=topic, partitions=len(parts))
-            while not self._stop.is_set():
-                msg = consumer.poll(0.2)
-                if msg is None or msg.error():
-                    continue
-                value = msg.value()
-                if value is None:
-                    continue  # a tombstone: nothing to deliver
-                try:
-                    self.handle(value)
-                except Exception:  # noqa: BLE001 - one bad record must not stop deliveries
-                    log.exception("command delivery failed; going on")
-        finally:
-            consumer.close()
+            self.handle(value)
+        except Exception:  # noqa: BLE001 - one bad record must not stop deliveries
+            log.exception("command delivery failed; going on")

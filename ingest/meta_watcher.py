@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import threading
+from collections.abc import Callable
 
 import structlog
 from confluent_kafka import OFFSET_BEGINNING, Consumer, TopicPartition
@@ -10,51 +10,44 @@ from confluent_kafka import OFFSET_BEGINNING, Consumer, TopicPartition
 from mapservice.core.events import MapMetaSet, decode
 from mapservice.settings import Settings
 
+from .topic_follower import TopicFollower
+
 log = structlog.get_logger(__name__)
 
 
-class MetaWatcher:
+class MetaWatcher(TopicFollower):
     """Reads the whole meta topic from the beginning (assign, no consumer group)."""
 
-    def __init__(self, settings: Settings, on_meta) -> None:
-        self.settings = settings
+    thread_name = "meta-watcher"
+    group_id = "mapservice-meta-watcher"
+    poll_s = 0.5
+
+    def __init__(self, settings: Settings, on_meta: Callable[[MapMetaSet], object]) -> None:
+        super().__init__(settings, settings.topic_meta_events)
         self.on_meta = on_meta
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.newest_ms = -1
 
-    def start(self) -> None:
-        self._thread = threading.Thread(target=self._run, name="meta-watcher", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread:
-            self._thread.join(timeout=5)
-
     def _run(self) -> None:
-        topic = self.settings.topic_meta_events
-        consumer = Consumer({**self.settings.kafka_config(), "group.id": "mapservice-meta-watcher",
-                             "enable.auto.commit": False})
+        """One read: a failure leaves the gateway validating with the grid it has."""
         try:
-            md = consumer.list_topics(topic, timeout=30)
-            parts = sorted(md.topics[topic].partitions) if topic in md.topics else [0]
-            consumer.assign([TopicPartition(topic, p, OFFSET_BEGINNING) for p in parts])
-            while not self._stop.is_set():
-                msg = consumer.poll(0.5)
-                if msg is None or msg.error():
-                    continue
-                try:
-                    env = decode(msg.value())
-                except Exception as exc:  # a foreign record must not stop the watcher
-                    log.warning("meta record undecodable", error=str(exc))
-                    continue
-                if isinstance(env.payload, MapMetaSet) and env.event_time_ms >= self.newest_ms:
-                    self.newest_ms = env.event_time_ms
-                    self.on_meta(env.payload)
-                    log.info("map meta applied", rows=env.payload.chunk_rows,
-                             cols=env.payload.chunk_cols, chunk_width=env.payload.chunk_width)
+            self._read()
         except Exception:
             log.exception("meta watcher failed; validating with the default grid")
-        finally:
-            consumer.close()
+
+    def _start_offsets(self, consumer: Consumer, partitions: list[int]) -> list[TopicPartition]:
+        return [TopicPartition(self.topic, p, OFFSET_BEGINNING) for p in partitions]
+
+    def _on_record(self, value: bytes | None) -> None:
+        if value is None:
+            log.warning("meta record undecodable", error="a tombstone (no value)")
+            return
+        try:
+            env = decode(value)
+        except Exception as exc:  # a foreign record must not stop the watcher
+            log.warning("meta record undecodable", error=str(exc))
+            return
+        if isinstance(env.payload, MapMetaSet) and env.event_time_ms >= self.newest_ms:
+            self.newest_ms = env.event_time_ms
+            self.on_meta(env.payload)
+            log.info("map meta applied", rows=env.payload.chunk_rows,
+                     cols=env.payload.chunk_cols, chunk_width=env.payload.chunk_width)

@@ -37,7 +37,7 @@ from mapservice.settings import Settings
 
 from ..access import OPERATE, READ, Caller
 from ..annotation_state import recent_edits, standing
-from ..deps import at_instant, get_clock, get_settings, get_store, window_in_retention
+from ..deps import WindowQuery, at_instant, get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/v1/annotations", tags=["annotations"])
@@ -161,12 +161,11 @@ def list_annotations(request: Request, store: StoreDep, at: AtDep) -> Annotation
             dependencies=[Depends(READ)])
 def list_annotation_edits(
     store: StoreDep, settings: SettingsDep, clock: ClockDep,
-    from_: Annotated[str, Query(alias="from", description="Start (inclusive), ISO 8601 or epoch ms")],
-    to: Annotated[str, Query(description="End (exclusive), ISO 8601 or epoch ms")],
+    window: WindowQuery,
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
 ) -> Edits:
     """Every create, change and removal in the window, oldest first: the annotations' history."""
-    f, t = window_in_retention(from_, to, settings.retention_ms, settings, clock.now_ms())
+    f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     rows = store.annotation_edits(f, t, limit + 1)
     return Edits(from_ms=f, to_ms=t, truncated=len(rows) > limit, edits=[
         Edit(ts_ms=e.ts_ms, event_id=e.event_id, id=e.event.annotation_id,

@@ -24,7 +24,7 @@ from mapservice.core.ports import ChangeFeed, TimeTravelReader
 from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import get_settings, get_store, parse_window
+from ..deps import WindowQuery, get_settings, get_store
 
 router = APIRouter(prefix="/api/v1/changes", tags=["changes"], dependencies=[Depends(READ)])
 
@@ -97,8 +97,7 @@ def _metres_to_chunks(meta, x_min: float, x_max: float, y_min: float, y_max: flo
 def list_changes(
     store: Store,
     settings: AppSettings,
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    window: WindowQuery,
     robot: str | None = Query(None, description="Only this robot's writes"),
     row_min: int | None = Query(None, ge=0), row_max: int | None = Query(None, ge=0),
     col_min: int | None = Query(None, ge=0), col_max: int | None = Query(None, ge=0),
@@ -109,7 +108,7 @@ def list_changes(
     kind: Literal["change", "upload"] | None = Query(
         None, description="Only floor changes or only map uploads (the timeline marks uploads)"),
 ) -> ChangePage:
-    f, t = parse_window(from_, to, settings.retention_ms)
+    f, t = window.parse(settings.retention_ms)
     box = _chunk_box(store.latest_meta, (row_min, row_max), (col_min, col_max),
                      (x_min, x_max, y_min, y_max))
     cursor = None

@@ -9,7 +9,7 @@ from mapservice.core.ports import TimeTravelReader
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
-from ..deps import get_store, parse_window
+from ..deps import WindowQuery, get_store
 from ..json_rows import JsonRows
 
 router = APIRouter(prefix="/api/v1/chunk-events", tags=["chunk-events"],
@@ -32,12 +32,11 @@ _ROWS = JsonRows(ChunkEvent)
 
 @router.get("", operation_id="listChunkEvents", response_model=list[ChunkEvent])
 def list_chunk_events(
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    window: WindowQuery,
     limit: int = Query(10_000, ge=1, le=100_000),
     store: TimeTravelReader = Depends(get_store),
 ) -> Response:
-    f, t = parse_window(from_, to, MAX_SPAN_MS)
+    f, t = window.parse(MAX_SPAN_MS)
     rows = store.chunk_events(f, t, limit)
     # `ChunkEvent`'s JSON without a pydantic model per row (json_rows).
     return _ROWS.response([

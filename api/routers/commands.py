@@ -33,7 +33,7 @@ from mapservice.core.vda_ids import vehicle_of
 from mapservice.settings import Settings
 
 from ..access import OPERATE, READ, Caller
-from ..deps import get_clock, get_settings, get_store, window_in_retention
+from ..deps import WindowQuery, get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/v1/commands", tags=["commands"])
@@ -151,14 +151,13 @@ async def send_command(body: CommandIn, caller: OperatorDep, store: StoreDep,
 @router.get("", operation_id="listCommands", response_model=Commands, dependencies=[Depends(READ)])
 def list_commands(
     store: StoreDep, settings: SettingsDep, clock: ClockDep,
-    from_: Annotated[str, Query(alias="from", description="Start (inclusive), ISO 8601 or epoch ms")],
-    to: Annotated[str, Query(description="End (exclusive), ISO 8601 or epoch ms")],
+    window: WindowQuery,
     robot: Annotated[str | None, Query(pattern=ROBOT_ID, description="Only this robot's")] = None,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1_000,
 ) -> Commands:
     """The commands issued in the window, oldest first, each with the robot's ack and
     outcome as far as they came before the window's end (what the replay shows at its end)."""
-    f, t = window_in_retention(from_, to, settings.retention_ms, settings, clock.now_ms())
+    f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     # Three events at most per command; a window holding more is cut at the limit.
     events = store.command_events(f, t, robot, 3 * limit + 1)
     records = command_records(events)

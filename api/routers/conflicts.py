@@ -17,7 +17,7 @@ from mapservice.core.ports import ConflictRow, ConflictReader
 from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import get_settings, get_store, parse_window
+from ..deps import WindowQuery, get_settings, get_store
 
 router = APIRouter(prefix="/api/v1/conflicts", tags=["conflicts"],
                    dependencies=[Depends(READ)])
@@ -51,13 +51,12 @@ def rule_text(window_s: float) -> str:
 
 @router.get("", operation_id="listConflicts", response_model=Conflicts)
 def list_conflicts(
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    window: WindowQuery,
     limit: int = Query(10_000, ge=1, le=100_000),
     store: ConflictReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
 ) -> Conflicts:
-    f, t = parse_window(from_, to, settings.retention_ms)
+    f, t = window.parse(settings.retention_ms)
     stored = store.conflicts(f, t, limit + 1)
     rows = [r for r in stored if UPLOADER_ID not in (r.robot_a, r.robot_b)]
     hashes = _content_hashes(store, rows[:limit])

@@ -22,7 +22,7 @@ from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
-from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
+from ..deps import WindowQuery, check_step, get_clock, get_settings, get_store
 from .chunk_events import ChunkEvent
 from .poses import Pose
 
@@ -65,8 +65,7 @@ def pose_doc(r, timestamp: str) -> dict:
     f"{MAX_CHUNKS:,} chunk changes or {MAX_POSES:,} poses: the answer then covers "
     "[from, to_ms) completely; ask again from to_ms. At most 24 h per request."))
 def list_events(
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    window: WindowQuery,
     step_ms: int = Query(0, description="0: every pose; > 0: at most one pose per robot per "
                                         "step (whole minutes from a whole-minute 'from', or "
                                         ">= 600000 from any 'from', are fastest)"),
@@ -80,7 +79,7 @@ def list_events(
 ) -> Response:
     check_step(step_ms)
     check_step(chunk_step_ms, "chunk_step_ms", "every chunk change")
-    f, t = window_in_retention(from_, to, MAX_SPAN_MS, settings, clock.now_ms())
+    f, t = window.in_retention(MAX_SPAN_MS, settings, clock.now_ms())
     chunks = (store.chunk_events_compacted(f, t, chunk_step_ms, MAX_CHUNKS + 1)
               if chunk_step_ms > 0 else store.chunk_events(f, t, MAX_CHUNKS + 1))
     poses = (store.poses_downsampled(f, t, step_ms, limit=MAX_POSES + 1) if step_ms > 0

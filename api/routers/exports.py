@@ -3,16 +3,17 @@ as an MCAP file that Foxglove or Lichtblick replays."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import Response, StreamingResponse
+from pydantic import Field
 
 from mapservice.adapters.exports import TABLE_FORMATS, TABLES, export_mcap, export_table
 from mapservice.core.ports import HistoryStore
 
 from ..access import READ
-from ..deps import parse_window
+from ..deps import TimeWindow
 from ..streaming import BoundedPipe, produce
 
 router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
@@ -24,6 +25,14 @@ Dataset = Literal["robot-poses", "chunk-changes", "chunk-conflicts", "dead-lette
                   "annotation-edits", "commands"]
 
 
+class TableWindow(TimeWindow):
+    to: str = Field(description="End (exclusive), ISO 8601 or epoch ms; at most 7 days after from")
+
+
+class McapWindow(TimeWindow):
+    to: str = Field(description="End (exclusive); at most 24 hours after from")
+
+
 def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
     return {"Content-Disposition": f'attachment; filename="{stem}-{from_ms}-{to_ms}.{ext}"'}
 
@@ -33,8 +42,7 @@ def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
 async def export_table_route(
     request: Request,
     dataset: Dataset,
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms; at most 7 days after from"),
+    window: Annotated[TableWindow, Query()],
     format: Literal["csv", "parquet"] = Query("csv", description="csv (with a header) or parquet"),
     robot_id: str | None = Query(None, alias="robotId", max_length=64,
                                  description="Only this robot (not for dead-letters "
@@ -43,7 +51,7 @@ async def export_table_route(
     """Rows of an analysts' view (docs/analysts.md) in the window, as ClickHouse writes them.
     CSV is streamed slice by slice of the window as the client reads it."""
     store: HistoryStore = request.app.state.store
-    f, t = parse_window(from_, to, MAX_TABLE_SPAN_MS)
+    f, t = window.parse(MAX_TABLE_SPAN_MS)
     if not hasattr(store, "export_query"):
         raise HTTPException(501, "table exports need the ClickHouse store")
 
@@ -83,8 +91,7 @@ def write_csv_slices(store, dataset: str, from_ms: int, to_ms: int, robot_id: st
             responses={200: {"content": {"application/x-mcap": {}}}})
 async def export_replay_mcap(
     request: Request,
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive); at most 24 hours after from"),
+    window: Annotated[McapWindow, Query()],
 ) -> Response:
     """The map (`/map`, foxglove.Grid) and every robot in the window, as MCAP for Foxglove
     or Lichtblick: its pose (`/robots/<id>/pose`, foxglove.PoseInFrame), battery in %,
@@ -94,7 +101,7 @@ async def export_replay_mcap(
     foxglove.SceneUpdate) and their commands with the robots' answers (`/commands`, JSON);
     streamed as it is written."""
     store: HistoryStore = request.app.state.store
-    f, t = parse_window(from_, to, MAX_MCAP_SPAN_MS)
+    f, t = window.parse(MAX_MCAP_SPAN_MS)
     try:
         return await _stream(request, lambda out: export_mcap(store, f, t, out),
                              "application/x-mcap", _filename("replay", f, t, "mcap"))

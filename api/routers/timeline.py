@@ -10,7 +10,7 @@ from mapservice.settings import Settings
 from mapservice.core.timetravel import timeline_buckets
 
 from ..access import READ
-from ..deps import get_clock, get_settings, get_store, window_in_retention
+from ..deps import WindowQuery, get_clock, get_settings, get_store
 
 router = APIRouter(prefix="/api/v1/timeline", tags=["timeline"],
                    dependencies=[Depends(READ)])
@@ -36,8 +36,7 @@ class Timeline(BaseModel):
     "one may end after `to`, nothing after `to` counts). Per bucket: chunk changes, "
     "conflicts (by the later write's time) and robots with at least one pose."))
 def get_timeline(
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    window: WindowQuery,
     buckets: int = Query(200, description=f"Number of buckets, 1 to {MAX_BUCKETS}"),
     store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
@@ -46,7 +45,7 @@ def get_timeline(
     if not 1 <= buckets <= MAX_BUCKETS:
         raise HTTPException(400, f"buckets ({buckets}) must be between 1 and {MAX_BUCKETS}; "
                                  "a timeline needs no more buckets than it has pixels")
-    f, t = window_in_retention(from_, to, settings.retention_ms, settings, clock.now_ms())
+    f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     bucket_ms, _ = timeline_buckets(f, t, buckets)
     return Timeline(from_ms=f, to_ms=t, bucket_ms=bucket_ms, buckets=[
         Bucket(start_ms=b.start_ms, chunk_changes=b.chunk_changes, conflicts=b.conflicts,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
@@ -10,7 +12,7 @@ from mapservice.settings import Settings
 from mapservice.core.timetravel import yaw
 
 from ..access import READ
-from ..deps import check_step, get_clock, get_settings, get_store, window_in_retention
+from ..deps import WindowQuery, check_step, get_clock, get_settings, get_store
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"],
                    dependencies=[Depends(READ)])
@@ -38,9 +40,8 @@ class Track(BaseModel):
                         f"with step_ms > 0 its first in every step (at most {MAX_POINTS:,} points, "
                         "windows up to the retention). 404 if the robot never reported.")
 def get_robot_track(
-    robot_id: str = Path(..., max_length=64),
-    from_: str = Query(..., alias="from", description="Start (inclusive), ISO 8601 or epoch ms"),
-    to: str = Query(..., description="End (exclusive), ISO 8601 or epoch ms"),
+    robot_id: Annotated[str, Path(max_length=64)],
+    window: WindowQuery,
     step_ms: int = Query(0, description="0: every pose; > 0: at most one point per step"),
     store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
@@ -48,7 +49,7 @@ def get_robot_track(
 ) -> Track:
     check_step(step_ms)
     span = MAX_SPAN_EVERY_POSE_MS if step_ms == 0 else settings.retention_ms
-    f, t = window_in_retention(from_, to, span, settings, clock.now_ms())
+    f, t = window.in_retention(span, settings, clock.now_ms())
     if step_ms and (t - f) // step_ms > MAX_POINTS:
         raise HTTPException(400, f"{(t - f) // step_ms:,} steps of {step_ms} ms is more than "
                                  f"{MAX_POINTS:,}; use step_ms >= {-(-(t - f) // MAX_POINTS)}")

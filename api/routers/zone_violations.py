@@ -12,7 +12,7 @@ from mapservice.core.ports import Clock, AnnotationReader
 from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import get_clock, get_settings, get_store, window_in_retention
+from ..deps import WindowQuery, get_clock, get_settings, get_store
 
 router = APIRouter(prefix="/api/v1/zone-violations", tags=["annotations"], dependencies=[Depends(READ)])
 
@@ -39,12 +39,11 @@ class Violations(BaseModel):
 @router.get("", operation_id="listZoneViolations", response_model=Violations)
 def list_zone_violations(
     store: StoreDep, settings: SettingsDep, clock: ClockDep,
-    from_: Annotated[str, Query(alias="from", description="Start (inclusive), ISO 8601 or epoch ms")],
-    to: Annotated[str, Query(description="End (exclusive), ISO 8601 or epoch ms")],
+    window: WindowQuery,
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
 ) -> Violations:
     """Each stored pose that lay inside a keep-out zone (on one of its mask's pixels)."""
-    f, t = window_in_retention(from_, to, settings.retention_ms, settings, clock.now_ms())
+    f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     rows = store.zone_violations(f, t, limit + 1)
     return Violations(from_ms=f, to_ms=t, truncated=len(rows) > limit, violations=[
         Violation(ts_ms=v.ts_ms, robotId=v.robot_id, zoneId=v.annotation_id, x=v.x, y=v.y)

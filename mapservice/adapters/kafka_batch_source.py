@@ -45,7 +45,8 @@ OFFSET_GAPS = Counter("mapservice_consumer_offset_gaps_total",
 # stale member, but a member that left the group (a missed poll interval, a broker that
 # forgot it) commits as a plain consumer, and every broker takes that. Against a tansu
 # restarted empty (memory storage) those offsets point past the new log's records: the
-# group's next assignment would start there and skip them (test_faults.py).
+# group's next assignment would start there and skip them
+# (tests/integration/test_tansu_restart.py).
 NEVER_COMMITTED = -1  # the membership of records polled while the group changed
 STALE_COMMITS = Counter("mapservice_consumer_stale_commits_total",
                         "Commits not made: their records were delivered before the group "

@@ -23,10 +23,10 @@ def topic_partitions(settings: Settings, topic: str) -> int:
 
 def topic_config(settings: Settings, topic: str) -> dict[str, str]:
     """What the service creates each topic with; infra/k8s/strimzi-topics.yaml declares the
-    same (tests/infra/test_manifests.py compares them). Events and dead letters are kept as
-    long as the ClickHouse history, the meta stream is compacted (the latest meta stays),
-    the live topic keeps an hour, the annotation edits are compacted by annotation (the
-    floor's zones outlive any retention). With replicas, a write needs all but one of them."""
+    same (tests/infra/test_manifest_components.py compares them). Events and dead letters
+    are kept as long as the ClickHouse history, the meta stream is compacted (the latest
+    meta stays), the live topic keeps an hour, the annotation edits are compacted by
+    annotation (the floor's zones outlive any retention). With replicas, a write needs all but one of them."""
     if topic in (settings.topic_meta_events, settings.topic_annotation_events):
         config = {"cleanup.policy": "compact"}
     elif topic == settings.topic_live:

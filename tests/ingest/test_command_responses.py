@@ -11,35 +11,19 @@ import json
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_publisher import MemoryPublisher
-from mapservice.core.commands import CommandAcknowledged, CommandFinished, CommandIssued
+from mapservice.core.commands import CommandAcknowledged, CommandFinished
 from mapservice.core.events import decode, decode_dead_letter, encode, make_envelope
 from mapservice.core.wire2019 import Reason, format_timestamp
-from mapservice.ingest.command_relay import CommandRelay
-from mapservice.ingest.gateway import Ingestor
-from mapservice.settings import Settings
+from tests.ingest import gateway_kit
+from tests.ingest.gateway_kit import NOW
 from tests.ingest.test_fuzz import mutate, raw_nasties
 
-NOW = 1_795_255_200_000
 REASONS = {r.value for r in Reason}
 
 
-class Gateway:
-    def __init__(self) -> None:
-        self.settings = Settings()
-        self.publisher = MemoryPublisher()
-        self.clock = ManualClock(NOW)
-        self.ingestor = Ingestor(self.settings, self.publisher, self.clock, gateway_id="gw")
-        self.sent: list[tuple[str, bytes]] = []
-        self.relay = CommandRelay(self.settings, lambda t, p: self.sent.append((t, p)),
-                                  self.clock.now_ms, self.ingestor.router.commands)
-
-    def issue(self, cid: str, robot: str, at_ms: int = NOW) -> bool:
-        command = CommandIssued(cid, robot, "pause", "operator:ab12", at_ms)
-        return self.relay.handle(encode(make_envelope(robot, at_ms, at_ms, command)))
-
+class Gateway(gateway_kit.Gateway):
     def answer(self, robot: str, doc: dict | bytes, topic_robot: str | None = None):
+        """A 2019 robot's answer on its command-events topic (`topic_robot`: another robot's)."""
         payload = doc if isinstance(doc, bytes) else json.dumps(doc).encode()
         return self.ingestor.handle(f"iot/robots/{topic_robot or robot}/command-events",
                                     payload, lambda: None)
@@ -59,9 +43,9 @@ def test_a_fresh_command_goes_to_its_robots_topic_a_stale_one_does_not(gw) -> No
     assert gw.issue("c-1", "agv-1")
     ((topic, payload),) = gw.sent
     assert topic == "iot/robots/agv-1/commands"
-    assert json.loads(payload) == {"commandId": "c-1", "robotId": "agv-1", "kind": "pause",
-                                   "issuedBy": "operator:ab12", "issuedAt": NOW}
-    assert not gw.issue("c-old", "agv-1", NOW - 31_000)  # older than the delivery TTL (30 s)
+    assert payload == {"commandId": "c-1", "robotId": "agv-1", "kind": "pause",
+                       "issuedBy": "operator:ab12", "issuedAt": NOW}
+    assert not gw.issue("c-old", "agv-1", at_ms=NOW - 31_000)  # older than the delivery TTL (30 s)
     assert len(gw.sent) == 1
     assert gw.ingestor.router.commands.robot_of("c-old") == "agv-1"  # still known for answers
     answer = encode(make_envelope("agv-1", NOW, NOW, CommandAcknowledged("c-1", "agv-1", "accepted")))

@@ -5,51 +5,26 @@ become its ack and outcome, once each."""
 
 from __future__ import annotations
 
-import json
-
 import pytest
 
-from mapservice.adapters.clock import ManualClock
 from mapservice.core.commands import CommandAcknowledged, CommandFinished, CommandIssued
-from mapservice.core.events import decode, encode, make_envelope
 from mapservice.core.vda_ids import robot_id_for
-from mapservice.ingest.command_relay import CommandRelay
-from mapservice.ingest.gateway import Ingestor
 from mapservice.ingest.vda5050 import validator
 from mapservice.ingest.vda_commands import VdaCommandRefused, VdaCommands, instant_actions_message
-from mapservice.settings import Settings
-from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.fixtures import vda5050 as vda
+from tests.ingest import gateway_kit
+from tests.ingest.gateway_kit import NOW
 
-NOW = 1_795_255_200_000
 VEHICLE = robot_id_for("acme", "agv 7")  # a space: escaped in the id, plain on the topic
 
 
-class Gateway:
-    def __init__(self) -> None:
-        self.settings = Settings()
-        self.publisher = MemoryPublisher()
-        self.clock = ManualClock(NOW)
-        self.ingestor = Ingestor(self.settings, self.publisher, self.clock, gateway_id="gw")
-        self.sent: list[tuple[str, dict]] = []
-        router = self.ingestor.router
-        self.relay = CommandRelay(self.settings, lambda t, p: self.sent.append((t, json.loads(p))),
-                                  self.clock.now_ms, router.commands, router.vda_commands)
-
-    def issue(self, cid: str, kind: str, robot: str = VEHICLE) -> bool:
-        command = CommandIssued(cid, robot, kind, "operator:ab12", NOW)
-        return self.relay.handle(encode(make_envelope(robot, NOW, NOW, command)))
-
+class Gateway(gateway_kit.Gateway):
     def state(self, version: str, action_states: list[dict], serial: str = "agv 7"):
+        """The vehicle's state message (VDA 5050 `version`) with these action states."""
         msg = vda.state(version, "acme", serial, NOW + 50)
         msg["instantActionStates" if version.startswith("3") else "actionStates"] = action_states
         return self.ingestor.handle(f"uagv/v{version[0]}/acme/{serial}/state", vda.encode(msg),
                                     lambda: None)
-
-    def command_events(self) -> list:
-        self.publisher.flush()
-        return [decode(v).payload for _, v in
-                self.publisher.records[self.settings.topic_command_events]]
 
 
 @pytest.fixture
@@ -89,9 +64,9 @@ def test_the_schemas_check_what_the_versions_name_differently() -> None:
 
 
 def test_the_relay_sends_a_vehicle_instant_actions_in_its_version(gw) -> None:
-    assert gw.issue("c-1", "pause")  # not heard from yet: 2.0.0
+    assert gw.issue("c-1", VEHICLE, "pause")  # not heard from yet: 2.0.0
     gw.state("2.1.0", [])  # now it speaks 2.1
-    assert gw.issue("c-2", "resume")
+    assert gw.issue("c-2", VEHICLE, "resume")
     (t1, m1), (t2, m2) = gw.sent
     assert t1 == "uagv/v2/acme/agv 7/instantActions" == t2
     assert m1["version"] == "2.0.0" and m1["instantActions"][0]["actionType"] == "startPause"
@@ -105,18 +80,18 @@ def test_the_relay_sends_a_vehicle_instant_actions_in_its_version(gw) -> None:
 
 
 def test_goto_poi_is_not_sent_to_a_vehicle_and_2019_robots_are_unchanged(gw) -> None:
-    assert not gw.issue("c-1", "goto_poi")
+    assert not gw.issue("c-1", VEHICLE, "goto_poi")
     assert gw.sent == []
     with pytest.raises(VdaCommandRefused, match="order"):
         gw.ingestor.router.vda_commands.delivery(
             CommandIssued("c-1", VEHICLE, "goto_poi", "op", NOW, "p1", 1.0, 2.0), NOW)
-    assert gw.issue("c-2", "pause", robot="agv-1")
+    assert gw.issue("c-2", "agv-1", "pause")
     assert gw.sent[0][0] == "iot/robots/agv-1/commands"
 
 
 def test_action_states_become_the_commands_ack_and_outcome_once(gw) -> None:
-    gw.issue("c-1", "pause")
-    gw.issue("c-2", "cancel")
+    gw.issue("c-1", VEHICLE, "pause")
+    gw.issue("c-2", VEHICLE, "cancel")
     gw.state("2.0.0", [action_state("c-1", "WAITING"), action_state("order-action", "RUNNING")])
     assert gw.command_events() == []  # nothing yet; an order's action is no command
     gw.state("2.0.0", [action_state("c-1", "RUNNING")])
@@ -132,19 +107,19 @@ def test_action_states_become_the_commands_ack_and_outcome_once(gw) -> None:
 
 
 def test_a_finished_action_acks_and_finishes_at_once_in_3_0(gw) -> None:
-    gw.issue("c-1", "pause")
+    gw.issue("c-1", VEHICLE, "pause")
     record = gw.state("3.0.0", [action_state("c-1", "FINISHED")])
     assert record.reason is None
     assert gw.command_events() == [CommandAcknowledged("c-1", VEHICLE, "accepted"),
                                    CommandFinished("c-1", VEHICLE, "done")]
     assert gw.sent[0][1]["version"] == "2.0.0"  # sent before the vehicle said 3.0
-    gw.issue("c-2", "resume")
+    gw.issue("c-2", VEHICLE, "resume")
     assert gw.sent[1][0] == "uagv/v3/acme/agv 7/instantActions"
     assert not list(validator("3.0.0", "instantActions").iter_errors(gw.sent[1][1]))
 
 
 def test_another_vehicle_cannot_answer_a_command(gw) -> None:
-    gw.issue("c-1", "pause")
+    gw.issue("c-1", VEHICLE, "pause")
     gw.state("2.0.0", [action_state("c-1", "FINISHED")], serial="agv 8")
     assert gw.command_events() == []
 
@@ -161,7 +136,7 @@ def test_header_ids_keep_increasing_per_vehicle_across_a_restart() -> None:
 
 def test_an_answer_whose_delivery_failed_is_produced_again(gw) -> None:
     """A command event made from a state is retried like the state's own record."""
-    gw.issue("c-1", "pause")
+    gw.issue("c-1", VEHICLE, "pause")
     gw.publisher.fail_with = RuntimeError("kafka away")
     gw.state("2.0.0", [action_state("c-1", "RUNNING")])
     assert gw.command_events() == [] and gw.ingestor.retries_waiting == 2

@@ -30,8 +30,8 @@ from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import MAPS
 
 from .conftest import wait_for_meta
-from .test_faults import (DOWN_S, ROBOTS, SNAPSHOT_ENV, STEADY_S, Load, Sql, now_ms,
-                          queryable, run_fault, verify, write_report)
+from .fault_load import (DOWN_S, ROBOTS, SNAPSHOT_ENV, STEADY_S, Load, Sql, now_ms,
+                         queryable, run_fault, verify, write_report)
 
 NODES = (1, 2, 3)
 
