@@ -2,6 +2,8 @@
 each slice's chunk writes (with the margin the upload rule needs) and, for chunks first
 written inside a slice, the content they had before; the rule itself (uploads, previous
 hashes, order, paging) is mapservice/core/change_feed.py, shared with the memory twin.
+The uploads alone (the timeline's marks) are found from per-writer write counts
+(mapservice/core/upload_scan.py), so a week of a large fleet is not read write by write.
 On the read client.
 
 `ChangeFeedMixin` builds on `snapshots` (the previous contents come from the nearest valid
@@ -15,8 +17,8 @@ from collections.abc import Collection
 
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
-from mapservice.core import change_scan
-from mapservice.core.change_feed import ChangeEntry, ChangeQuery
+from mapservice.core import change_scan, upload_scan
+from mapservice.core.change_feed import UPLOADER_ID, ChangeEntry, ChangeQuery
 from mapservice.core.ports import ChunkRow
 
 
@@ -24,7 +26,24 @@ class ChangeFeedMixin(SnapshotsMixin):
     """Map changes and uploads of a window, page by page."""
 
     def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
+        if query.kind == "upload":
+            return upload_scan.newest_first(query, self._write_bursts, self._feed_writes)
         return change_scan.newest_first(query, self._feed_writes, self._hashes_before)
+
+    def _write_bursts(self, from_ms: int, to_ms: int, robot: str | None) -> list[tuple[str, int]]:
+        # Counted without FINAL: a write stored twice until a merge can only add a bucket,
+        # which the writes read for it (FINAL) then settle. Two columns of the span, one
+        # row per dense bucket back.
+        only = "" if robot is None else " WHERE robot_id = {r:String}"
+        rows = self._rows(
+            "SELECT robot_id, intDiv(toUnixTimestamp64Milli(ts), {b:Int64}) * {b:Int64} AS bucket "
+            f"FROM {self.database}.chunk_events "
+            "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+            f"{only} GROUP BY robot_id, bucket HAVING count() >= {{n:UInt32}} OR robot_id = {{up:String}}",
+            {"f": from_ms, "t": to_ms, "r": robot or "", "b": upload_scan.BURST_BUCKET_MS,
+             "n": upload_scan.BURST_MIN_WRITES, "up": UPLOADER_ID},
+        )
+        return [(r[0], int(r[1])) for r in rows]
 
     def _feed_writes(self, from_ms: int, to_ms: int,
                      robots: Collection[str] | None) -> list[ChunkRow]:
