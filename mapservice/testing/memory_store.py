@@ -13,11 +13,11 @@ from collections.abc import Sequence
 import msgspec
 import numpy as np
 
-from mapservice.core import change_scan
+from mapservice.core import change_scan, upload_scan
 from mapservice.core.commands import COMMAND_EVENTS, StoredCommandEvent
 from mapservice.core.annotations import (ANNOTATION_EVENTS, AnnotationEdit, CurrentAnnotation,
                                          ZoneViolation, fold_annotations, prune_before)
-from mapservice.core.change_feed import ChangeEntry, ChangeQuery
+from mapservice.core.change_feed import UPLOADER_ID, ChangeEntry, ChangeQuery
 from mapservice.core.events import (
     ChunkUpdated,
     DeadLetter,
@@ -308,7 +308,17 @@ class MemoryStore:
         return dict(sorted(counts.items()))
 
     def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
+        if query.kind == "upload":
+            return upload_scan.newest_first(query, self._write_bursts, self._chunk_writes)
         return change_scan.newest_first(query, self._chunk_writes, self._hashes_before)
+
+    def _write_bursts(self, from_ms: int, to_ms: int, robot: str | None) -> list[tuple[str, int]]:
+        counts: dict[tuple[str, int], int] = {}
+        for r in self._chunks.values():
+            if from_ms <= r.ts_ms < to_ms and (robot is None or r.robot_id == robot):
+                k = (r.robot_id, r.ts_ms // upload_scan.BURST_BUCKET_MS * upload_scan.BURST_BUCKET_MS)
+                counts[k] = counts.get(k, 0) + 1
+        return [k for k, n in counts.items() if n >= upload_scan.BURST_MIN_WRITES or k[0] == UPLOADER_ID]
 
     def _chunk_writes(self, from_ms: int, to_ms: int, robots=None) -> list[ChunkRow]:
         return sorted((r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms

@@ -110,3 +110,23 @@ def test_a_single_chunk_written_by_the_map_uploader_is_an_upload(ev) -> None:
     body = _get(client).json()
     assert [(c["kind"], c["robot_id"], c["chunks"]) for c in body["changes"]] == [
         ("upload", "map-upload", 1), ("change", "r1", 1)]
+
+
+def test_a_weeks_uploads_are_served_though_the_week_is_too_busy_to_list(ev, monkeypatch) -> None:
+    """The timeline's 7 d span: `kind=upload` answers with the week's uploads (newest first)
+    where the whole feed of that week is refused, as a week of a large fleet is."""
+    from mapservice.core import change_feed
+    monkeypatch.setattr(change_feed, "MAX_WRITES", 100)
+    s = MemoryStore()
+    s.append([ev.meta(NOW - 7 * 24 * HOUR)])
+    # A write a minute by each of three robots for the last 2 h: 360 writes, and two uploads.
+    s.append([ev.chunk(f"r{i % 3}", NOW - 2 * HOUR + 20_000 * i, i % 4, i % 5, _px(i % 7)) for i in range(360)])
+    s.append([ev.chunk("map-upload", NOW - 6 * 24 * HOUR + 50 * i, i // 5, i % 5, _px(i)) for i in range(20)])
+    s.append([ev.chunk("r1", NOW - HOUR + 30_500 + 500 * i, 3, i % 5, _px(50 + i)) for i in range(30)])
+    client = TestClient(create_app(Settings(), s, {}, ManualClock(NOW)))
+    week = {"from": NOW - 7 * 24 * HOUR, "to": NOW}
+    assert client.get("/api/v1/changes", params=week).status_code == 422
+    r = client.get("/api/v1/changes", params={**week, "kind": "upload", "limit": 1000})
+    assert r.status_code == 200, r.text
+    assert [(c["robot_id"], c["chunks"], c["ts_ms"]) for c in r.json()["changes"]] == [
+        ("r1", 30, NOW - HOUR + 30_500), ("map-upload", 20, NOW - 6 * 24 * HOUR)]

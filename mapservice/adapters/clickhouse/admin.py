@@ -29,6 +29,7 @@ class AdminMixin(ClickHouseConnection):
             self.client.command(f"TRUNCATE TABLE {db}.map_snapshots")
             self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.conflicts")  # derived from them
             self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.chunk_seconds")  # so are these
+            self.client.command(f"TRUNCATE TABLE IF EXISTS {db}.chunk_bursts")
         return int(removed)
 
     def delete_meta(self) -> int:
@@ -65,7 +66,7 @@ class AdminMixin(ClickHouseConnection):
         with self._lock:
             for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
                           "pose_keyframes", "pose_minutes", "pose_ten_minutes", "chunk_seconds",
-                          "carried_poses"):
+                          "chunk_bursts", "carried_poses"):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
 
     def ping(self, timeout_s: float = 2.0) -> bool:

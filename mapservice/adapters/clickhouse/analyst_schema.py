@@ -150,6 +150,13 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
         "state": "ONLINE, OFFLINE or CONNECTIONBROKEN",
         "sent_ts": "The message's own timestamp",
     }),
+    "chunk_bursts": ("Derived: per writer and 20 s bucket its number of chunk writes, kept "
+                     "where a map upload may be (10 or more; every bucket of map-upload), for "
+                     "the buckets before the newest snapshot, written by the snapshot builds "
+                     "(schema v18). Duplicates until merged: read with FINAL.", {
+        "bucket": "The bucket's start (UTC)", "robot_id": "The writer",
+        "writes": "Its chunk writes in the bucket", "built": "When the row was written",
+    }),
     "pose_tracks": ("Derived: every pose of poses again, sorted by (robot_id, ts), for "
                     "reads of one robot over a window (its plots and track), written by a "
                     "materialized view on pose_derivations (schema v17). Columns as poses; "

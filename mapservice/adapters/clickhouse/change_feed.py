@@ -2,6 +2,9 @@
 each slice's chunk writes (with the margin the upload rule needs) and, for chunks first
 written inside a slice, the content they had before; the rule itself (uploads, previous
 hashes, order, paging) is mapservice/core/change_feed.py, shared with the memory twin.
+The uploads alone (the timeline's marks) are found from per-writer write counts
+(mapservice/core/upload_scan.py; before the newest snapshot kept in `chunk_bursts`,
+schema v18), so a week of a large fleet is not read write by write.
 On the read client.
 
 `ChangeFeedMixin` builds on `snapshots` (the previous contents come from the nearest valid
@@ -13,10 +16,11 @@ from __future__ import annotations
 
 from collections.abc import Collection
 
+from mapservice.adapters.clickhouse import burst_schema
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
-from mapservice.core import change_scan
-from mapservice.core.change_feed import ChangeEntry, ChangeQuery
+from mapservice.core import change_scan, upload_scan
+from mapservice.core.change_feed import UPLOADER_ID, ChangeEntry, ChangeQuery
 from mapservice.core.ports import ChunkRow
 
 
@@ -24,7 +28,36 @@ class ChangeFeedMixin(SnapshotsMixin):
     """Map changes and uploads of a window, page by page."""
 
     def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
+        if query.kind == "upload":
+            return upload_scan.newest_first(query, self._write_bursts, self._feed_writes)
         return change_scan.newest_first(query, self._feed_writes, self._hashes_before)
+
+    def _write_bursts(self, from_ms: int, to_ms: int, robot: str | None) -> list[tuple[str, int]]:
+        # Whole buckets before the newest valid snapshot from chunk_bursts (written by its
+        # builds: a few rows a day), the rest (at most a snapshot interval) counted from
+        # chunk_events. A whole bucket's count is at least its count within the span, and
+        # chunk_events is counted without FINAL (a write stored twice until a merge): both
+        # can only add a bucket, which the writes read for it (FINAL) then settle.
+        db, b = self.database, upload_scan.BURST_BUCKET_MS
+        (snap,), = self._rows(f"SELECT toUnixTimestamp64Milli(maxOrNull(snap_ts)) FROM {db}.snapshot_log "
+                              f"WHERE snap_ts < {self._valid_before()}", {})
+        cut = from_ms if snap is None else max(from_ms, min(to_ms, snap // b * b))
+        only = "" if robot is None else " AND robot_id = {r:String}"
+        params = {"f": from_ms, "t": to_ms, "c": cut, "fb": from_ms // b * b // 1000, "cs": -(-cut // 1000),
+                  "r": robot or "", "b": b, "n": upload_scan.BURST_MIN_WRITES, "up": UPLOADER_ID}
+        rows = self._rows(
+            "SELECT robot_id, toInt64(toUnixTimestamp(bucket)) * 1000 "
+            f"FROM {db}.{burst_schema.TABLE} FINAL "
+            "WHERE bucket >= toDateTime({fb:Int64}) AND bucket < toDateTime({cs:Int64})"
+            f"{only} {_FINAL_SETTINGS}", params) if cut > from_ms else []
+        if cut < to_ms:
+            rows += self._rows(
+                "SELECT robot_id, intDiv(toUnixTimestamp64Milli(ts), {b:Int64}) * {b:Int64} AS bucket "
+                f"FROM {db}.chunk_events "
+                "PREWHERE ts >= fromUnixTimestamp64Milli({c:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+                f"{only.replace(' AND', ' WHERE', 1)} GROUP BY robot_id, bucket "
+                "HAVING count() >= {n:UInt32} OR robot_id = {up:String}", params)
+        return [(r[0], int(r[1])) for r in rows]
 
     def _feed_writes(self, from_ms: int, to_ms: int,
                      robots: Collection[str] | None) -> list[ChunkRow]:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from mapservice.adapters.clickhouse import (
     analyst_schema,
     annotation_schema,
+    burst_schema,
     command_schema,
     retention_schema,
     track_schema,
@@ -234,6 +235,7 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
                   analyst_schema.view_statements(database, vda_views.VIEWS)),
         Migration(17, "pose_tracks: every pose sorted by robot, for one robot's plots and track",
                   track_schema.statements(database, POSE_COLUMNS)),
+        Migration(18, "chunk_bursts: writers' dense 20 s, for uploads", burst_schema.statements(database)),
     ]
 
 
@@ -332,7 +334,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 17
+SCHEMA_VERSION = 18
 
 # Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
 # map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
@@ -341,9 +343,9 @@ DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "m
                    "pose_ten_minutes", "chunk_seconds")
 # What the retention step drops by day, older than the snapshot carrying the floor: those,
 # the VDA 5050 facts of v12 (not factsheets: one a vehicle), zone violations, the
-# commands of v14 and pose_tracks of v17.
+# commands of v14, pose_tracks of v17 and chunk_bursts of v18.
 RETAINED_BY_DAY = (*DAY_PARTITIONED, *vda_schema.RETAINED_BY_DAY, "zone_violations",
-                   "command_events", track_schema.TABLE)
+                   "command_events", track_schema.TABLE, burst_schema.TABLE)
 
 
 def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:

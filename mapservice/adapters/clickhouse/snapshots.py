@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
+from mapservice.adapters.clickhouse import burst_schema
 from mapservice.adapters.clickhouse.schema import CHUNK_SECONDS_SELECT
 
 NO_SNAPSHOT_RECHECK_S = 5.0
@@ -73,6 +74,7 @@ class SnapshotsMixin(ClickHouseConnection):
             f"WHERE {since}ts <= fromUnixTimestamp64Milli({{s:Int64}})) GROUP BY robot_id",
             parameters=params)
         self._write_chunk_seconds(prev_ms, snap_ms)
+        self._write_chunk_bursts(prev_ms, snap_ms)
         c.command(
             f"INSERT INTO {db}.snapshot_log (snap_ts, built, chunks, robots) "
             "SELECT fromUnixTimestamp64Milli({s:Int64}), now64(3), "
@@ -91,6 +93,18 @@ class SnapshotsMixin(ClickHouseConnection):
             f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) GROUP BY second "
             f"{_FINAL_SETTINGS}",
             parameters={"p": (prev_ms or 0) // 1000 * 1000, "s": snap_ms // 1000 * 1000})
+
+    def _write_chunk_bursts(self, prev_ms: int | None, snap_ms: int) -> None:
+        """chunk_bursts for the whole buckets in [prev, snap) (all before snap without a
+        previous snapshot): consecutive builds tile the buckets, whichever way they run."""
+        b = burst_schema.BUCKET_S * 1000
+        since = "ts >= fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
+        self.client.command(
+            f"INSERT INTO {self.database}.{burst_schema.TABLE} (bucket, robot_id, writes, built) "
+            f"{burst_schema.BURSTS_SELECT} FROM {self.database}.chunk_events FINAL "
+            f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) {burst_schema.BURSTS_KEPT} "
+            f"{_FINAL_SETTINGS}",
+            parameters={"p": (prev_ms or 0) // b * b, "s": snap_ms // b * b})
 
     def _note_repair(self, from_ms: int) -> None:
         self._insert("snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]],
@@ -241,6 +255,7 @@ class SnapshotsMixin(ClickHouseConnection):
             "ASOF JOIN w ON g.robot_id = w.robot_id AND g.snap >= w.bucket",
             parameters=params)
         self._write_chunk_seconds(prev_ms, last_ms)
+        self._write_chunk_bursts(prev_ms, last_ms)
         window = ("snap_ts >= fromUnixTimestamp64Milli({a:Int64}) AND "
                   "snap_ts <= fromUnixTimestamp64Milli({b:Int64})")
         c.command(

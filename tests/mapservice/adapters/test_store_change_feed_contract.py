@@ -105,3 +105,40 @@ def test_change_feed_refuses_a_window_with_too_many_writes(store, ev, t0, monkey
     store.append([ev.chunk("r1", t0 + 2000 * i, 0, i % 3, bytes([i]) * 10_000) for i in range(6)])
     with pytest.raises(change_feed.WindowTooBusy, match="shorter span"):
         _feed(store, t0)
+
+
+def test_change_feed_finds_a_weeks_uploads_without_reading_every_write(store, ev, t0, monkeypatch) -> None:
+    """kind="upload" over a week answers though the week holds more writes than the feed
+    reads at once (the timeline's 7 d marks): the uploads alone are read (found where one
+    writer's writes bunch up: mapservice/core/upload_scan.py), the same on every store,
+    with the map uploader's single write and the area and robot filters as the feed has them."""
+    from mapservice.core import change_feed
+    from mapservice.core.change_feed import UPLOADER_ID, ChunkBox, WindowTooBusy
+    monkeypatch.setattr(change_feed, "MAX_WRITES", 100)
+    week_from = t0 - 6 * 86_400_000
+    # Robots' writes every 30 s (more than MAX_WRITES in all), two uploads, one map-upload write.
+    store.append([ev.chunk(f"r{i % 3}", t0 - 3_600_000 + 30_000 * i, i % 4, i % 5, bytes([i % 9]) * 10_000)
+                  for i in range(240)])
+    store.append(_upload(ev, "up-a", t0 - 1_800_000 + 5, 25))
+    store.append([ev.chunk("r2", t0 + 605_000 + 900 * i, 5, i % 8, bytes([60 + i]) * 10_000) for i in range(21)])
+    store.append([ev.chunk(UPLOADER_ID, t0 + 1_200_000 + 7, 6, 6, bytes([77]) * 10_000)])
+    with pytest.raises(WindowTooBusy):
+        _feed(store, t0, f=week_from)
+    want = [("upload", UPLOADER_ID, 1, 1_200_007, 1_200_007), ("upload", "r2", 21, 605_000, 605_000 + 900 * 20),
+            ("upload", "up-a", 25, -1_799_995, -1_799_995 + 2_400)]
+
+    def uploads(**kw) -> list:
+        return [(e.kind, e.robot_id, e.chunks, e.ts_ms - t0, e.end_ms - t0)
+                for e in _feed(store, t0, f=week_from, kind="upload", **kw)]
+
+    # Before any snapshot, with the snapshots built (ClickHouse keeps the counts of the
+    # buckets before them), and after a late upload's repair.
+    assert uploads() == want
+    store.build_snapshots(t0 + 1_000_000)
+    assert uploads() == want
+    assert uploads(robot_id="r2") == want[1:2]
+    assert uploads(box=ChunkBox(5, 5, 7, 7)) == want[1:2]
+    store.append([ev.chunk("late", t0 + 1000 * i, 7, i % 5, bytes([120 + i]) * 10_000) for i in range(20)])
+    assert uploads() == [*want[:2], ("upload", "late", 20, 0, 19_000), want[2]]
+    store.repair_snapshots()
+    assert uploads() == [*want[:2], ("upload", "late", 20, 0, 19_000), want[2]]

@@ -44,3 +44,29 @@ def test_previous_contents_from_the_snapshot_and_the_writes_after_it(tmp_path) -
         assert entries[0].previous_hash == content_hash(d).hex()
     finally:
         store.close()
+
+
+def test_uploads_before_the_snapshot_are_found_from_chunk_bursts(tmp_path) -> None:
+    """The snapshot builds keep, per writer and 20 s, the counts that may be an upload
+    (chunk_bursts); the upload scan reads them before the newest valid snapshot instead of
+    counting chunk_events there: a bucket missing from them is not found, one there is."""
+    from mapservice.core.change_feed import UPLOADER_ID
+    hour_ago = int(time.time() * 1000) - 3_600_000
+    t0 = hour_ago - hour_ago % 600_000
+    upload = [chunk_event("up", t0 + 100 * i, 0, i % 5, bytes([i]) * 10_000) for i in range(25)]
+    alone = [chunk_event("r1", t0 + 60_000 * i, 1, 1, bytes([50 + i]) * 10_000) for i in range(9)]
+    floor = [chunk_event(UPLOADER_ID, t0 + 300_007, 2, 2, bytes([99]) * 10_000)]
+    store = ClickHouseStore(f"chdb://{tmp_path / 'ch'}", database="bursts", snapshot_every_ms=600_000)
+    try:
+        store.migrate()
+        store.append(upload + alone + floor)
+        store.build_snapshots(t0 + 600_000)
+        kept = store.client.query("SELECT toUnixTimestamp64Milli(toDateTime64(bucket, 3)), robot_id, writes "
+                                  "FROM bursts.chunk_bursts FINAL ORDER BY ALL").result_rows
+        assert kept == [(t0, "up", 25), (t0 + 300_000, UPLOADER_ID, 1)]
+        q = ChangeQuery(t0 - 600_000, t0 + 600_000, kind="upload")
+        assert [(e.robot_id, e.chunks) for e in store.change_feed(q)] == [(UPLOADER_ID, 1), ("up", 25)]
+        store.client.command("TRUNCATE TABLE bursts.chunk_bursts")
+        assert store.change_feed(q) == []  # read from chunk_bursts, not counted again
+    finally:
+        store.close()
