@@ -1,4 +1,4 @@
-"""Fault tests (issue 12): under a steady QoS 1 load, each part of the service is killed
+"""Fault tests: under a steady QoS 1 load, each part of the service is killed
 with SIGKILL and restarted, and ClickHouse refuses inserts for 30 s. Afterwards every
 message the MQTT broker acknowledged to its publisher must be in ClickHouse exactly once,
 the latest map must equal the fold of the stored chunk history, and every snapshot must

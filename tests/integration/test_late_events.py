@@ -1,4 +1,4 @@
-"""A pose six days late under load (issue 12): the embedded service with six days of
+"""A pose six days late under load: the embedded service with six days of
 history and its snapshots (one every 10 minutes: ~880), twenty robots reporting every
 second over MQTT, and in the middle one pose stamped six days ago. Before schema v8 the
 sink rebuilt every snapshot since then before committing; that outlasted the consumer's

@@ -1,4 +1,4 @@
-"""No message stops ingest (issue 12): a 2 KB message nested 1,000 deep and a 1.2 MB message,
+"""No message stops ingest: a 2 KB message nested 1,000 deep and a 1.2 MB message,
 then a good one, through Mosquitto, the gateway, Apache Kafka and the processors. The good one is
 stored within seconds, the bad ones are dead letters with their reasons, the gateway's
 health stays truthful; and with Mosquitto's persistent session the same holds when the

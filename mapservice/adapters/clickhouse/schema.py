@@ -341,9 +341,8 @@ SCHEMA_VERSION = 18
 DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
                    "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
                    "pose_ten_minutes", "chunk_seconds")
-# What the retention step drops by day, older than the snapshot carrying the floor: those,
-# the VDA 5050 facts of v12 (not factsheets: one a vehicle), zone violations, the
-# commands of v14, pose_tracks of v17 and chunk_bursts of v18.
+# Dropped by day by the retention step, older than the snapshot carrying the floor: those, and
+# later tables (VDA 5050 facts but factsheets, zone violations, commands, tracks, bursts).
 RETAINED_BY_DAY = (*DAY_PARTITIONED, *vda_schema.RETAINED_BY_DAY, "zone_violations",
                    "command_events", track_schema.TABLE, burst_schema.TABLE)
 
@@ -402,7 +401,7 @@ def _pose_cells(db: str, name: str, start_of: str, ttl_days: int,
 
 
 def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
-    """Schema v9 (issue 16, BENCHMARKS.md: time travel at 200 robots).
+    """Schema v9 (time travel at 200 robots: BENCHMARKS.md).
 
     - `pose_keyframes` re-sorted by (cell, robot_id): every read of it is a time window
       across robots (downsampled replay windows, the timeline), which sorted by robot
@@ -468,7 +467,7 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
 
 
 def _pose_views_after_push(db: str, ttl_days: int) -> tuple[str, ...]:
-    """Schema v10 (issue 16, BENCHMARKS.md: live latency at 1,000 robots).
+    """Schema v10 (live latency at 1,000 robots: BENCHMARKS.md).
 
     The three pose views (pose_keyframes, pose_minutes, pose_ten_minutes) were materialized
     views on `poses`: every insert into it ran them, and they were most of its cost (a

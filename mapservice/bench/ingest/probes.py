@@ -135,8 +135,7 @@ class QueryablePoller(threading.Thread):
                     self.last_error = str(exc)[:200]
                 # Every ~100 ms from the start of the last poll: the gap between polls is
                 # this instrument's resolution, so a slow poll is not followed by a wait as
-                # long again (that stretched the cycle up to 1 s at 5,000 robots; BENCHMARKS.md,
-                # session 19). Only a poll cut at the row limit (a backlog wider than one
+                # long again (that stretched the cycle up to 1 s at 5,000 robots). Only a poll cut at the row limit (a backlog wider than one
                 # read) backs off to half the time, so a lagging pipeline does not get a
                 # read load of its own.
                 took = time.monotonic() - started

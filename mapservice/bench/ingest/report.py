@@ -18,7 +18,7 @@ TARGETS = {
     "p99_latency_s": 2.0,
     "bytes_per_robot_day": 1.5e6,
 }
-# Issue 16's live bounds: what a fleet must hold (`live_bounds`); --find-ceiling steps the
+# The live bounds: what a fleet must hold (`live_bounds`); --find-ceiling steps the
 # fleet up until a step misses one.
 SCHEDULE_MIN_PERCENT = 99.5  # the load generator kept its schedule (else it was the limit)
 SUSTAINED_MIN_FRACTION = 0.99
@@ -81,7 +81,7 @@ def storage_verdict(seconds: float, bytes_per_robot_day: float) -> bool | None:
 
 
 def live_bounds(robots: int, med: dict) -> list[tuple[str, str, float | None, bool]]:
-    """(what, target, measured, held) for each of issue 16's bounds, on a run's (or the
+    """(what, target, measured, held) for each of the live bounds, on a run's (or the
     runs' medians') figures."""
     offered = robots * 1.2
     get = med.get

@@ -1,4 +1,4 @@
-"""The replay reads at plant scale (issue 16): they use the snapshots and the per-minute
+"""The replay reads at plant scale: they use the snapshots and the per-minute
 tables, and give what the naive queries over every event give, edge cases included."""
 
 from __future__ import annotations
