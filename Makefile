@@ -111,6 +111,7 @@ test: $(STAMP) system-deps ui test-ui
 # in pyproject.toml; `.ci/run` runs it before the tests.
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
 test-unit: $(STAMP)

@@ -37,7 +37,8 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from limits import RateLimitItem, parse_many
 from limits.storage import MemoryStorage
 from limits.strategies import SlidingWindowCounterRateLimiter
-from starlette.types import ASGIApp, Receive, Scope as AsgiScope, Send
+from starlette.types import ASGIApp, Receive, Send
+from starlette.types import Scope as AsgiScope
 
 from mapservice.settings import Settings, robot_tokens, token_list
 
@@ -63,15 +64,15 @@ GRANTS: dict[str, frozenset[Scope]] = {
 }
 WHO_MAY = {
     Scope.READ: "a reader, writer or admin token (MAPSERVICE_API_READER_TOKENS, "
-                "MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
+    "MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
     Scope.WRITE: "a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, "
-                 "MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
+    "MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
     Scope.ADMIN: "the administrator token (MAPSERVICE_ADMIN_TOKEN)",
     Scope.OPERATE: "an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, "
-                   "MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor "
-                   "nor command robots",
+    "MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor "
+    "nor command robots",
     Scope.METRICS: "the metrics token or the admin token (MAPSERVICE_API_METRICS_TOKEN, "
-                   "MAPSERVICE_ADMIN_TOKEN)",
+    "MAPSERVICE_ADMIN_TOKEN)",
 }
 DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 # Not rate-limited: the kubelet's probes must never be refused for being frequent.
@@ -108,14 +109,18 @@ class Credentials:
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self._roles: dict[bytes, str] = {}
-        self._robots = {_digest(token): robot for token, robot in
-                        robot_tokens(settings.api_robot_tokens).items()}
+        self._robots = {
+            _digest(token): robot
+            for token, robot in robot_tokens(settings.api_robot_tokens).items()
+        }
         # Later roles win when one token is listed twice: admin above all.
-        for role, secret in (("metrics", settings.api_metrics_token),
-                             ("reader", settings.api_reader_tokens),
-                             ("writer", settings.api_writer_tokens),
-                             ("operator", settings.api_operator_tokens),
-                             ("admin", settings.admin_token)):
+        for role, secret in (
+            ("metrics", settings.api_metrics_token),
+            ("reader", settings.api_reader_tokens),
+            ("writer", settings.api_writer_tokens),
+            ("operator", settings.api_operator_tokens),
+            ("admin", settings.admin_token),
+        ):
             for token in token_list(secret):
                 self._roles[_digest(token)] = role
 
@@ -146,7 +151,7 @@ def _subprotocol_token(offered: str) -> str | None:
     for protocol in offered.split(","):
         protocol = protocol.strip()
         if protocol.startswith(TOKEN_SUBPROTOCOL):
-            return protocol[len(TOKEN_SUBPROTOCOL):] or None
+            return protocol[len(TOKEN_SUBPROTOCOL) :] or None
     return None
 
 
@@ -160,8 +165,9 @@ def _denied(status: int, detail: str, error: str | None = None) -> HTTPException
     return HTTPException(status, detail, headers={"WWW-Authenticate": challenge})
 
 
-def decide(credentials: Credentials, scope: Scope, token: str | None, address: str,
-           what: str) -> Caller:
+def decide(
+    credentials: Credentials, scope: Scope, token: str | None, address: str, what: str
+) -> Caller:
     """The caller if `token` opens `scope`; else the HTTPException to answer (401, 403, 404)."""
     settings = credentials.settings
     caller, valid = credentials.identify(token, address)
@@ -177,35 +183,53 @@ def decide(credentials: Credentials, scope: Scope, token: str | None, address: s
         # turn away a read anyone may make; its writes still get the 401 that says so.
         return caller
     if not valid:
-        raise _denied(401, "the bearer token is not one of this service's credentials",
-                      "invalid_token")
+        raise _denied(
+            401, "the bearer token is not one of this service's credentials", "invalid_token"
+        )
     if caller.role is None:
         raise _denied(401, f"{what} needs {WHO_MAY[scope]}: send 'Authorization: Bearer <token>'")
     if not caller.may(scope):
-        raise _denied(403, f"this {caller.role} token may not: {what} needs {WHO_MAY[scope]}",
-                      "insufficient_scope")
+        raise _denied(
+            403,
+            f"this {caller.role} token may not: {what} needs {WHO_MAY[scope]}",
+            "insufficient_scope",
+        )
     return caller
 
 
-_bearer = HTTPBearer(auto_error=False, scheme_name="bearer", description=(
-    "A reader, writer (robot) or admin token: `Authorization: Bearer <token>`. Which one an "
-    "operation needs is its `x-mapservice-scope`."))
-_WHAT = {Scope.READ: "reading", Scope.WRITE: "writing", Scope.ADMIN: "this administrative operation",
-         Scope.OPERATE: "editing the annotations (points of interest, zones) or commanding robots",
-         Scope.METRICS: "reading the metrics"}
+_bearer = HTTPBearer(
+    auto_error=False,
+    scheme_name="bearer",
+    description=(
+        "A reader, writer (robot) or admin token: `Authorization: Bearer <token>`. Which one an "
+        "operation needs is its `x-mapservice-scope`."
+    ),
+)
+_WHAT = {
+    Scope.READ: "reading",
+    Scope.WRITE: "writing",
+    Scope.ADMIN: "this administrative operation",
+    Scope.OPERATE: "editing the annotations (points of interest, zones) or commanding robots",
+    Scope.METRICS: "reading the metrics",
+}
 
 
 def _is_json(content_type: str | None) -> bool:
     media = (content_type or "").split(";", 1)[0].strip().lower()
-    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))
+    return media == "application/json" or (
+        media.startswith("application/") and media.endswith("+json")
+    )
 
 
 def _changes_state_without_json(method: str, headers) -> bool:
     """POST, PUT and PATCH must say JSON; a DELETE only when it carries a body."""
     if method not in STATE_CHANGING:
         return False
-    if method == "DELETE" and headers.get("content-length", "0") == "0" \
-            and "transfer-encoding" not in headers:
+    if (
+        method == "DELETE"
+        and headers.get("content-length", "0") == "0"
+        and "transfer-encoding" not in headers
+    ):
         return False
     return not _is_json(headers.get("content-type"))
 
@@ -217,14 +241,22 @@ class Need:
     def __init__(self, scope: Scope) -> None:
         self.scope = scope
 
-    def __call__(self, request: Request,
-                 credentials: HTTPAuthorizationCredentials | None = Security(_bearer)) -> Caller:
-        caller = decide(request.app.state.access, self.scope,
-                        credentials.credentials if credentials else None,
-                        _address(request.client), _WHAT[self.scope])
+    def __call__(
+        self, request: Request, credentials: HTTPAuthorizationCredentials | None = Security(_bearer)
+    ) -> Caller:
+        caller = decide(
+            request.app.state.access,
+            self.scope,
+            credentials.credentials if credentials else None,
+            _address(request.client),
+            _WHAT[self.scope],
+        )
         if _changes_state_without_json(request.method, request.headers):
-            raise HTTPException(415, f"{request.method} takes a JSON body: send it with "
-                                     "'Content-Type: application/json'")
+            raise HTTPException(
+                415,
+                f"{request.method} takes a JSON body: send it with "
+                "'Content-Type: application/json'",
+            )
         return caller
 
     def __repr__(self) -> str:
@@ -251,20 +283,32 @@ class NeedSocket:
 
     def __call__(self, websocket: WebSocket) -> Caller:
         token = _bearer_token(websocket.headers.get("authorization"))
-        offered = [p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",")]
+        offered = [
+            p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",")
+        ]
         for protocol in offered:
             if token is None and protocol.startswith(TOKEN_SUBPROTOCOL):
-                token = protocol[len(TOKEN_SUBPROTOCOL):]
+                token = protocol[len(TOKEN_SUBPROTOCOL) :]
         try:
-            return decide(websocket.app.state.access, self.scope, token,
-                          _address(websocket.client), "the live stream")
+            return decide(
+                websocket.app.state.access,
+                self.scope,
+                token,
+                _address(websocket.client),
+                "the live stream",
+            )
         except HTTPException as exc:
             # Before accept: the handshake is refused (HTTP 403 to the client).
             raise WebSocketException(code=1008, reason=str(exc.detail)[:120]) from None
 
 
-PUBLIC, READ, WRITE, ADMIN, METRICS = (Public(), Need(Scope.READ), Need(Scope.WRITE),
-                                       Need(Scope.ADMIN), Need(Scope.METRICS))
+PUBLIC, READ, WRITE, ADMIN, METRICS = (
+    Public(),
+    Need(Scope.READ),
+    Need(Scope.WRITE),
+    Need(Scope.ADMIN),
+    Need(Scope.METRICS),
+)
 OPERATE = Need(Scope.OPERATE)
 SOCKET_READ = NeedSocket(Scope.READ)
 
@@ -272,8 +316,12 @@ SOCKET_READ = NeedSocket(Scope.READ)
 def require_robot(caller: Caller, robot_id: str) -> None:
     """Inside a write handler: a 403 when a robot token writes under another robot's id."""
     if caller.robot_id is not None and caller.robot_id != robot_id:
-        raise _denied(403, f"this robot token belongs to robot {caller.robot_id!r} and writes "
-                           f"only as it, not as {robot_id[:80]!r}", "insufficient_scope")
+        raise _denied(
+            403,
+            f"this robot token belongs to robot {caller.robot_id!r} and writes "
+            f"only as it, not as {robot_id[:80]!r}",
+            "insufficient_scope",
+        )
 
 
 def require(caller: Caller, scope: Scope, what: str) -> None:
@@ -309,9 +357,13 @@ def route_scope(route) -> Scope | None:
 def check_routes(app: FastAPI) -> None:
     """Refuses an app with a route that declares no scope: a new endpoint is never open by
     omission. The docs pages are guarded by path (AccessGuard)."""
-    missing = [f"{sorted(getattr(r, 'methods', None) or ['WS'])} {r.path}" for r in all_routes(app)
-               if isinstance(r, (APIRoute, APIWebSocketRoute)) and r.path not in DOCS_PATHS
-               and route_scope(r) is None]
+    missing = [
+        f"{sorted(getattr(r, 'methods', None) or ['WS'])} {r.path}"
+        for r in all_routes(app)
+        if isinstance(r, (APIRoute, APIWebSocketRoute))
+        and r.path not in DOCS_PATHS
+        and route_scope(r) is None
+    ]
     if missing:
         raise RuntimeError(f"routes without an access scope (api/access.py): {missing}")
 
@@ -326,8 +378,12 @@ def document_scopes(app: FastAPI) -> None:
             return app.openapi_schema
         schema = build()
         settings: Settings = app.state.settings
-        scopes = {(method.lower(), r.path): route_scope(r) for r in all_routes(app)
-                  if isinstance(r, APIRoute) for method in r.methods}
+        scopes = {
+            (method.lower(), r.path): route_scope(r)
+            for r in all_routes(app)
+            if isinstance(r, APIRoute)
+            for method in r.methods
+        }
         for path, operations in schema.get("paths", {}).items():
             for method, operation in operations.items():
                 scope = scopes.get((method, path))
@@ -351,17 +407,31 @@ def document_scopes(app: FastAPI) -> None:
 def _refusals(scope: Scope, method: str, settings: Settings) -> list[tuple[str, str]]:
     """The answers this module may give an operation, for its OpenAPI `responses`."""
     out = []
-    if scope is not Scope.PUBLIC and not (scope is Scope.READ and settings.api_read_access == "open"):
-        out += [("401", "no credential, or a token that is none of this service's"),
-                ("403", f"the token lacks the `{scope.value}` scope: {WHO_MAY.get(scope, '')}")]
+    if scope is not Scope.PUBLIC and not (
+        scope is Scope.READ and settings.api_read_access == "open"
+    ):
+        out += [
+            ("401", "no credential, or a token that is none of this service's"),
+            ("403", f"the token lacks the `{scope.value}` scope: {WHO_MAY.get(scope, '')}"),
+        ]
     if method.upper() in ("POST", "PUT", "PATCH"):
         out.append(("415", "the body is not sent as application/json"))
     if scope is not Scope.PUBLIC:
-        out.append(("429", "over MAPSERVICE_API_RATE_LIMIT, or this caller has "
-                           "MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After "
-                           "says when to try again"))
-        out.append(("503", "the API's pool for this kind of request is full (api/admission.py); "
-                           "Retry-After says when to try again"))
+        out.append(
+            (
+                "429",
+                "over MAPSERVICE_API_RATE_LIMIT, or this caller has "
+                "MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After "
+                "says when to try again",
+            )
+        )
+        out.append(
+            (
+                "503",
+                "the API's pool for this kind of request is full (api/admission.py); "
+                "Retry-After says when to try again",
+            )
+        )
     return out
 
 
@@ -373,8 +443,13 @@ class AccessGuard:
     limits per credential (per client address for anonymous callers and wrong tokens, so
     guessing tokens does not open new buckets): 429 with Retry-After."""
 
-    def __init__(self, app: ASGIApp, credentials: Credentials, sql_path: str = "",
-                 sql_identify: Callable[[Request], str | None] | None = None) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        credentials: Credentials,
+        sql_path: str = "",
+        sql_identify: Callable[[Request], str | None] | None = None,
+    ) -> None:
         self.app, self.credentials = app, credentials
         # The analysts' ClickHouse interface authenticates with its own credential (HTTP
         # Basic, X-ClickHouse-User/-Key): its limits count per analyst credential, not per
@@ -382,8 +457,9 @@ class AccessGuard:
         self.sql_path, self.sql_identify = sql_path, sql_identify
         settings = credentials.settings
         self.docs = settings.docs_access
-        self.limits: list[RateLimitItem] = parse_many(settings.api_rate_limit) \
-            if settings.api_rate_limit.strip() else []
+        self.limits: list[RateLimitItem] = (
+            parse_many(settings.api_rate_limit) if settings.api_rate_limit.strip() else []
+        )
         # In this process's memory: with N API replicas behind a balancer a client gets up
         # to N times the limit (a shared storage would be one more moving part).
         self.limiter = SlidingWindowCounterRateLimiter(MemoryStorage())
@@ -396,12 +472,17 @@ class AccessGuard:
         headers = dict(scope["headers"])
         token = _bearer_token(headers.get(b"authorization", b"").decode("latin-1"))
         if token is None and scope["type"] == "websocket":
-            token = _subprotocol_token(headers.get(b"sec-websocket-protocol", b"").decode("latin-1"))
+            token = _subprotocol_token(
+                headers.get(b"sec-websocket-protocol", b"").decode("latin-1")
+            )
         address = _address(scope.get("client"))
         caller, valid = self.credentials.identify(token, address)
         key = caller.name if valid and caller.role else f"address:{address}"
-        if self.sql_identify is not None and scope["type"] == "http" and (
-                path == self.sql_path or path.startswith(self.sql_path + "/")):
+        if (
+            self.sql_identify is not None
+            and scope["type"] == "http"
+            and (path == self.sql_path or path.startswith(self.sql_path + "/"))
+        ):
             key = self.sql_identify(Request(scope)) or key
         scope[CALLER_KEY] = key  # for the pools' per-caller caps (api/admission.py)
         if path in DOCS_PATHS and self.docs != "open" and scope["type"] == "http":
@@ -414,9 +495,11 @@ class AccessGuard:
                 if not self.limiter.hit(item, key):
                     reset = self.limiter.get_window_stats(item, key).reset_time
                     wait = max(1, math.ceil(reset - time.time()))
-                    detail = (f"more than {item} requests from this "
-                              f"{'address' if key.startswith('address:') else 'credential'}; retry in "
-                              f"{wait} s (MAPSERVICE_API_RATE_LIMIT)")
+                    detail = (
+                        f"more than {item} requests from this "
+                        f"{'address' if key.startswith('address:') else 'credential'}; retry in "
+                        f"{wait} s (MAPSERVICE_API_RATE_LIMIT)"
+                    )
                     if scope["type"] == "websocket":
                         await deny_socket(scope, send, 429, detail, retry_after=wait)
                     else:
@@ -426,19 +509,32 @@ class AccessGuard:
 
     def _docs_denied(self, caller: Caller, valid: bool) -> HTTPException | None:
         if self.docs == "off":
-            return HTTPException(404, "the API documentation is off (MAPSERVICE_API_DOCS_ACCESS=off)")
+            return HTTPException(
+                404, "the API documentation is off (MAPSERVICE_API_DOCS_ACCESS=off)"
+            )
         if not valid:
-            return _denied(401, "the bearer token is not one of this service's credentials",
-                           "invalid_token")
+            return _denied(
+                401, "the bearer token is not one of this service's credentials", "invalid_token"
+            )
         if caller.role in ("reader", "writer", "admin"):
             return None
-        return _denied(401 if caller.role is None else 403, "the API documentation needs "
-                       f"{WHO_MAY[Scope.READ]} (MAPSERVICE_API_DOCS_ACCESS=token)")
+        return _denied(
+            401 if caller.role is None else 403,
+            f"the API documentation needs {WHO_MAY[Scope.READ]} (MAPSERVICE_API_DOCS_ACCESS=token)",
+        )
 
 
 async def _reply(send: Send, status: int, detail: str, headers: dict[str, str]) -> None:
     body = json.dumps({"detail": detail}).encode()
-    await send({"type": "http.response.start", "status": status, "headers": [
-        (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-        *((k.lower().encode(), v.encode()) for k, v in headers.items())]})
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                *((k.lower().encode(), v.encode()) for k, v in headers.items()),
+            ],
+        }
+    )
     await send({"type": "http.response.body", "body": body})

@@ -39,8 +39,11 @@ LIVE_PATH = "/api/v1/live"
 
 ACTIVE = Gauge("mapservice_api_pool_active", "Requests a pool is serving", ["pool"])
 WAITING = Gauge("mapservice_api_pool_waiting", "Requests waiting in a pool's queue", ["pool"])
-REFUSED = Counter("mapservice_api_refused_total",
-                  "Requests refused by admission control, by pool and why", ["pool", "why"])
+REFUSED = Counter(
+    "mapservice_api_refused_total",
+    "Requests refused by admission control, by pool and why",
+    ["pool", "why"],
+)
 
 
 @dataclass(frozen=True)
@@ -91,10 +94,18 @@ class Pool:
 
 def pool_specs(settings: Settings) -> dict[str, PoolSpec]:
     return {
-        "read": PoolSpec("read", settings.api_read_workers, settings.api_read_queue,
-                         "MAPSERVICE_API_READ_WORKERS, MAPSERVICE_API_READ_QUEUE"),
-        "export": PoolSpec("export", settings.api_export_workers, settings.api_export_queue,
-                           "MAPSERVICE_API_EXPORT_WORKERS, MAPSERVICE_API_EXPORT_QUEUE"),
+        "read": PoolSpec(
+            "read",
+            settings.api_read_workers,
+            settings.api_read_queue,
+            "MAPSERVICE_API_READ_WORKERS, MAPSERVICE_API_READ_QUEUE",
+        ),
+        "export": PoolSpec(
+            "export",
+            settings.api_export_workers,
+            settings.api_export_queue,
+            "MAPSERVICE_API_EXPORT_WORKERS, MAPSERVICE_API_EXPORT_QUEUE",
+        ),
     }
 
 
@@ -113,11 +124,17 @@ class AdmissionControl:
     `pool_of` maps a path to a pool name; None leaves a path out (it brings its own bounds
     or costs nothing)."""
 
-    def __init__(self, app: ASGIApp, settings: Settings,
-                 pool_of: Callable[[str], str | None] = default_pool_of) -> None:
+    def __init__(
+        self,
+        app: ASGIApp,
+        settings: Settings,
+        pool_of: Callable[[str], str | None] = default_pool_of,
+    ) -> None:
         self.app, self.settings, self.pool_of = app, settings, pool_of
-        self.pools = {name: Pool(spec, settings.api_queue_wait_s)
-                      for name, spec in pool_specs(settings).items()}
+        self.pools = {
+            name: Pool(spec, settings.api_queue_wait_s)
+            for name, spec in pool_specs(settings).items()
+        }
         self.per_caller: Tally[str] = Tally()
         self.live_per_caller: Tally[str] = Tally()
 
@@ -134,9 +151,14 @@ class AdmissionControl:
         if self.per_caller[key] >= cap:
             REFUSED.labels(name, "caller").inc()
             who = "credential" if not key.startswith("address:") else "client address"
-            await reply(send, 429, f"this {who} already has {cap} reads or exports running "
-                        "or queued; wait for one to finish "
-                        "(MAPSERVICE_API_CALLER_CONCURRENCY)", retry_after=1)
+            await reply(
+                send,
+                429,
+                f"this {who} already has {cap} reads or exports running "
+                "or queued; wait for one to finish "
+                "(MAPSERVICE_API_CALLER_CONCURRENCY)",
+                retry_after=1,
+            )
             return
         self.per_caller[key] += 1
         try:
@@ -144,11 +166,18 @@ class AdmissionControl:
             why = await pool.acquire()
             if why is not None:
                 REFUSED.labels(name, why).inc()
-                busy = (f"{pool.spec.workers} running and {pool.spec.queue} waiting" if why == "full"
-                        else f"none free within {pool.wait_s:g} s (MAPSERVICE_API_QUEUE_WAIT_S)")
-                await reply(send, 503, f"the API's {name} pool is busy ({busy}); retry after "
-                            f"the Retry-After seconds ({pool.spec.settings})",
-                            retry_after=max(1, math.ceil(pool.wait_s / 5)))
+                busy = (
+                    f"{pool.spec.workers} running and {pool.spec.queue} waiting"
+                    if why == "full"
+                    else f"none free within {pool.wait_s:g} s (MAPSERVICE_API_QUEUE_WAIT_S)"
+                )
+                await reply(
+                    send,
+                    503,
+                    f"the API's {name} pool is busy ({busy}); retry after "
+                    f"the Retry-After seconds ({pool.spec.settings})",
+                    retry_after=max(1, math.ceil(pool.wait_s / 5)),
+                )
                 return
             try:
                 if name == "export":
@@ -180,12 +209,20 @@ class AdmissionControl:
                 await self.app(scope, receive, tracking)
         except TimeoutError:
             REFUSED.labels("export", "deadline").inc()
-            log.warning("export aborted at its deadline", path=scope["path"],
-                        deadline_s=deadline, started=started)
+            log.warning(
+                "export aborted at its deadline",
+                path=scope["path"],
+                deadline_s=deadline,
+                started=started,
+            )
             if not started:
-                await reply(send, 503, f"the export did not finish within {deadline:g} s "
-                            "(MAPSERVICE_API_EXPORT_DEADLINE_S); ask for a shorter window",
-                            retry_after=1)
+                await reply(
+                    send,
+                    503,
+                    f"the export did not finish within {deadline:g} s "
+                    "(MAPSERVICE_API_EXPORT_DEADLINE_S); ask for a shorter window",
+                    retry_after=1,
+                )
             # Started: returning without the body's end makes the server close the connection.
 
     async def _live(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -193,9 +230,15 @@ class AdmissionControl:
         cap = self.settings.api_live_clients_per_caller
         if self.live_per_caller[key] >= cap:
             REFUSED.labels("live", "caller").inc()
-            await deny_socket(scope, send, 429, f"this client already has {cap} live "
-                              "connections (MAPSERVICE_API_LIVE_CLIENTS_PER_CALLER); close one "
-                              "or retry later", retry_after=5)
+            await deny_socket(
+                scope,
+                send,
+                429,
+                f"this client already has {cap} live "
+                "connections (MAPSERVICE_API_LIVE_CLIENTS_PER_CALLER); close one "
+                "or retry later",
+                retry_after=5,
+            )
             return
         self.live_per_caller[key] += 1
         try:
@@ -207,8 +250,7 @@ class AdmissionControl:
 
 
 def _headers(body: bytes, retry_after: int | None) -> list[tuple[bytes, bytes]]:
-    headers = [(b"content-type", b"application/json"),
-               (b"content-length", str(len(body)).encode())]
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     if retry_after is not None:
         headers.append((b"retry-after", str(retry_after).encode()))
     return headers
@@ -217,20 +259,27 @@ def _headers(body: bytes, retry_after: int | None) -> list[tuple[bytes, bytes]]:
 async def reply(send: Send, status: int, detail: str, retry_after: int | None = None) -> None:
     """A JSON refusal `{"detail": ...}`, with Retry-After when given."""
     body = json.dumps({"detail": detail}).encode()
-    await send({"type": "http.response.start", "status": status,
-                "headers": _headers(body, retry_after)})
+    await send(
+        {"type": "http.response.start", "status": status, "headers": _headers(body, retry_after)}
+    )
     await send({"type": "http.response.body", "body": body})
 
 
-async def deny_socket(scope: Scope, send: Send, status: int, detail: str,
-                      retry_after: int | None = None) -> None:
+async def deny_socket(
+    scope: Scope, send: Send, status: int, detail: str, retry_after: int | None = None
+) -> None:
     """Refuses a WebSocket handshake with an HTTP answer and a JSON reason where the server
     can send one (the ASGI denial-response extension: uvicorn, Starlette's TestClient);
     else with a close before accept (HTTP 403 to the client)."""
     if "websocket.http.response" in (scope.get("extensions") or {}):
         body = json.dumps({"detail": detail}).encode()
-        await send({"type": "websocket.http.response.start", "status": status,
-                    "headers": _headers(body, retry_after)})
+        await send(
+            {
+                "type": "websocket.http.response.start",
+                "status": status,
+                "headers": _headers(body, retry_after),
+            }
+        )
         await send({"type": "websocket.http.response.body", "body": body})
     else:
         await send({"type": "websocket.close", "code": 1008, "reason": detail[:120]})

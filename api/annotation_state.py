@@ -66,10 +66,13 @@ def standing(request: Request, store: AnnotationReader, at_ms: int) -> dict[str,
     # The recent edits are the latest of their ids: re-applied on the stored state of those
     # ids (an edit already stored changes nothing when applied again).
     touched = {e.event.annotation_id for e in recent}
-    seeds = [AnnotationEdit(c.created_ms, "", AnnotationCreated(c.annotation_id, c.created_by, c.annotation))
-             for c in current.values() if c.annotation_id in touched]
+    seeds = [
+        AnnotationEdit(
+            c.created_ms, "", AnnotationCreated(c.annotation_id, c.created_by, c.annotation)
+        )
+        for c in current.values()
+        if c.annotation_id in touched
+    ]
     out = {k: v for k, v in current.items() if k not in touched}
     out.update(fold_annotations([*seeds, *recent], at_ms))
     return out
-
-

@@ -9,30 +9,32 @@ from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
+from mapservice.api.live_hub import LiveHub
 from starlette.types import ASGIApp
 from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
 from mapservice.adapters.clock import SystemClock
-from mapservice.api.live_hub import LiveHub
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
-from .admission import AdmissionControl, default_pool_of
 from .access import AccessGuard, Credentials, check_routes, document_scopes
+from .admission import AdmissionControl, default_pool_of
 from .limits import BodyLimit, validation_error
 from .routers import (
     annotations as annotation_routes,
+)
+from .routers import (
+    caller,
     changes,
     chunk_contents,
     chunk_events,
     chunk_service,
-    caller,
     client_config,
     commands,
     conflicts,
-    costmap_filters,
     coordinate_service,
+    costmap_filters,
     events,
     exports,
     health,
@@ -50,21 +52,53 @@ from .routers import (
 )
 
 # Resources of the API, then the 2019 contract, then the pages (ui last: it owns `/`).
-ROUTERS = (health, map_state, vda5050, robots, tracks, poses, chunk_events, chunk_contents, events,
-           timeline, conflicts, changes, annotation_routes, commands, costmap_filters, zone_violations, exports, stats, status, live,
-           caller, client_config, chunk_service, coordinate_service, ui)
+ROUTERS = (
+    health,
+    map_state,
+    vda5050,
+    robots,
+    tracks,
+    poses,
+    chunk_events,
+    chunk_contents,
+    events,
+    timeline,
+    conflicts,
+    changes,
+    annotation_routes,
+    commands,
+    costmap_filters,
+    zone_violations,
+    exports,
+    stats,
+    status,
+    live,
+    caller,
+    client_config,
+    chunk_service,
+    coordinate_service,
+    ui,
+)
 
 
-def create_app(settings: Settings, store: HistoryStore,
-               readiness: dict[str, Callable[[], bool]] | None = None,
-               clock: Clock | None = None, live_hub: LiveHub | None = None,
-               publisher: EventPublisher | None = None, sql_app: ASGIApp | None = None,
-               pool_of: Callable[[str], str | None] = default_pool_of) -> FastAPI:
+def create_app(
+    settings: Settings,
+    store: HistoryStore,
+    readiness: dict[str, Callable[[], bool]] | None = None,
+    clock: Clock | None = None,
+    live_hub: LiveHub | None = None,
+    publisher: EventPublisher | None = None,
+    sql_app: ASGIApp | None = None,
+    pool_of: Callable[[str], str | None] = default_pool_of,
+) -> FastAPI:
     """`pool_of` names the admission pool of a path (api/admission.py)."""
     # /docs and /redoc with Swagger UI and ReDoc served from the installed package, not a
     # CDN: a plant network often has no internet.
-    app = FastAPIOffline(title="mapservice", version=__version__,
-                         description="Map and fleet history for factory robots")
+    app = FastAPIOffline(
+        title="mapservice",
+        version=__version__,
+        description="Map and fleet history for factory robots",
+    )
     app.state.settings = settings
     app.state.store = store
     app.state.readiness = readiness or {}
@@ -73,8 +107,9 @@ def create_app(settings: Settings, store: HistoryStore,
     app.state.publisher = publisher  # None: 2019 REST writes answer 503
     # Exports are produced in threads of their own, as many as the exports' pool admits
     # (api/admission.py, api/streaming.py): they never take the reads' threads.
-    app.state.export_executor = ThreadPoolExecutor(settings.api_export_workers,
-                                                   thread_name_prefix="exports")
+    app.state.export_executor = ThreadPoolExecutor(
+        settings.api_export_workers, thread_name_prefix="exports"
+    )
     # The tokens as the settings hold them: local mode's generated ones are filled in by
     # the process before (mapservice/runtime/secrets.py); an empty one opens nothing.
     app.state.access = credentials = Credentials(settings)
@@ -87,13 +122,22 @@ def create_app(settings: Settings, store: HistoryStore,
     # Request rate, errors and duration per route template (mapservice_api_requests_total,
     # mapservice_api_request_duration_seconds); probes and scrapes are not counted, and
     # paths that match no route share one label instead of one series per URL.
-    app.add_middleware(PrometheusMiddleware, app_name="mapservice-api", prefix="mapservice_api",
-                       group_paths=True, filter_unhandled_paths=True,
-                       skip_paths=["/metrics", "/healthz", "/readyz"],
-                       buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10))
+    app.add_middleware(
+        PrometheusMiddleware,
+        app_name="mapservice-api",
+        prefix="mapservice_api",
+        group_paths=True,
+        filter_unhandled_paths=True,
+        skip_paths=["/metrics", "/healthz", "/readyz"],
+        buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
+    )
     app.add_exception_handler(RequestValidationError, validation_error)
-    app.add_middleware(BodyLimit, max_bytes=settings.api_max_body_bytes, exempt=(SQL_PATH,),
-                       timeout_s=settings.api_body_timeout_s)
+    app.add_middleware(
+        BodyLimit,
+        max_bytes=settings.api_max_body_bytes,
+        exempt=(SQL_PATH,),
+        timeout_s=settings.api_body_timeout_s,
+    )
     if sql_app is not None:
         # Analysts' read-only SQL, as a ClickHouse server speaks it over HTTP (mapservice/sql):
         # clickhouse-connect, Grafana's ClickHouse data source and curl point at it unchanged.
@@ -103,17 +147,24 @@ def create_app(settings: Settings, store: HistoryStore,
     # before it takes a thread; inside the guard, which names the caller.
     app.add_middleware(AdmissionControl, settings=settings, pool_of=pool_of)
     # Outside the body limit: a caller over its rate is refused before its body is read.
-    app.add_middleware(AccessGuard, credentials=credentials, sql_path=SQL_PATH,
-                       sql_identify=getattr(getattr(sql_app, "state", None), "identify", None))
+    app.add_middleware(
+        AccessGuard,
+        credentials=credentials,
+        sql_path=SQL_PATH,
+        sql_identify=getattr(getattr(sql_app, "state", None), "identify", None),
+    )
     if settings.api_allowed_origins:
         # Pages of these origins may call the API from a browser (preflights answered here,
         # before any credential is asked for); none by default: same origin only. Tokens
         # travel in the Authorization header, never in cookies, so no credentials mode.
-        app.add_middleware(CORSMiddleware, allow_origins=settings.api_allowed_origins,
-                           allow_methods=["GET", "POST", "PUT", "DELETE"],
-                           allow_headers=["Authorization", "Content-Type"],
-                           expose_headers=["Retry-After", "X-Map-At-Ms", "X-Chunk-Width",
-                                           "X-Chunk-Height"], max_age=600)
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.api_allowed_origins,
+            allow_methods=["GET", "POST", "PUT", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+            expose_headers=["Retry-After", "X-Map-At-Ms", "X-Chunk-Width", "X-Chunk-Height"],
+            max_age=600,
+        )
     return app
 
 
@@ -131,9 +182,13 @@ class PathPrefix:
     async def __call__(self, scope, receive, send) -> None:
         path = scope.get("path", "")
         if scope["type"] == "http" and (path == self.prefix or path.startswith(self.prefix + "/")):
-            rest = path[len(self.prefix):] or "/"
-            scope = dict(scope, path=rest, raw_path=rest.encode(),
-                          root_path=scope.get("root_path", "") + self.prefix)
+            rest = path[len(self.prefix) :] or "/"
+            scope = dict(
+                scope,
+                path=rest,
+                raw_path=rest.encode(),
+                root_path=scope.get("root_path", "") + self.prefix,
+            )
             await self.target(scope, receive, send)
             return
         await self.app(scope, receive, send)

@@ -37,11 +37,17 @@ def api_server_config(app, settings: Settings) -> uvicorn.Config:
     through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
     A request's head must arrive within api_header_timeout_s and an idle keep-alive
     connection is closed after api_idle_timeout_s (slowloris; api/http_timeouts.py)."""
-    return uvicorn.Config(app, host=settings.api_host, port=settings.api_port,
-                          log_config=None, log_level=None, access_log=True,
-                          http=header_deadline_protocol(settings.api_header_timeout_s),
-                          timeout_keep_alive=settings.api_idle_timeout_s,
-                          ws_per_message_deflate=settings.api_live_compression)
+    return uvicorn.Config(
+        app,
+        host=settings.api_host,
+        port=settings.api_port,
+        log_config=None,
+        log_level=None,
+        access_log=True,
+        http=header_deadline_protocol(settings.api_header_timeout_s),
+        timeout_keep_alive=settings.api_idle_timeout_s,
+        ws_per_message_deflate=settings.api_live_compression,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,10 +73,15 @@ class Api:
         await asyncio.get_running_loop().run_in_executor(None, self.relay.stop)
 
 
-async def compose_api(settings: Settings, store: HistoryStore, *,
-                      readiness: Mapping[str, Check], liveness: Mapping[str, Check],
-                      advisory: Mapping[str, Check],
-                      history_status: Callable[[], dict] | None) -> Api:
+async def compose_api(
+    settings: Settings,
+    store: HistoryStore,
+    *,
+    readiness: Mapping[str, Check],
+    liveness: Mapping[str, Check],
+    advisory: Mapping[str, Check],
+    history_status: Callable[[], dict] | None,
+) -> Api:
     """Builds the API around `store`; nothing is served or read until `Api.start`/`serve`.
 
     `readiness` (required) and `advisory` (reported) are the checks /readyz answers with,
@@ -91,9 +102,15 @@ async def compose_api(settings: Settings, store: HistoryStore, *,
     # Local mode: the API's tokens generated on first start, kept in the data dir
     # (`mapservice up` prints where); production: as set, validated by Settings.
     settings = with_local_api_secrets(settings)
-    app = create_app(settings, store, dict(readiness), clock=clock_from_settings(settings),
-                     live_hub=hub, publisher=publisher,
-                     sql_app=await loop.run_in_executor(None, analyst_app, settings))
+    app = create_app(
+        settings,
+        store,
+        dict(readiness),
+        clock=clock_from_settings(settings),
+        live_hub=hub,
+        publisher=publisher,
+        sql_app=await loop.run_in_executor(None, analyst_app, settings),
+    )
     app.state.liveness = dict(liveness)
     app.state.advisory = dict(advisory)
     # /api/v1/status (the UI's banner) reads the inserts' state where they happen.

@@ -8,8 +8,8 @@ from fastapi import Depends, HTTPException, Query, Request
 from pydantic import BaseModel, Field
 
 from mapservice.core.ports import Clock, HistoryStore
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import parse_query_instant
+from mapservice.settings import Settings
 
 
 def get_store(request: Request) -> HistoryStore:
@@ -29,8 +29,10 @@ def parse_time_param(name: str, value: str) -> int:
     ms = parse_query_instant(value)
     if ms is None:
         raise HTTPException(
-            400, f"query parameter {name!r}: {value!r} is neither ISO 8601 "
-                 "(e.g. 2026-11-21T10:00:00Z) nor epoch milliseconds between 1970 and 2262")
+            400,
+            f"query parameter {name!r}: {value!r} is neither ISO 8601 "
+            "(e.g. 2026-11-21T10:00:00Z) nor epoch milliseconds between 1970 and 2262",
+        )
     return ms
 
 
@@ -40,8 +42,10 @@ def parse_window(from_: str, to: str, max_span_ms: int) -> tuple[int, int]:
         raise HTTPException(400, f"'from' ({from_}) is after 'to' ({to}); swap them")
     if t - f > max_span_ms:
         raise HTTPException(
-            400, f"window of {(t - f) / 3_600_000:.1f} h is longer than the "
-                 f"{max_span_ms / 3_600_000:.0f} h allowed; split it")
+            400,
+            f"window of {(t - f) / 3_600_000:.1f} h is longer than the "
+            f"{max_span_ms / 3_600_000:.0f} h allowed; split it",
+        )
     return f, t
 
 
@@ -52,7 +56,8 @@ def parse_instant(value: str, settings: Settings, now_ms: int) -> int:
         raise HTTPException(400, f"'at' ({value}) is in the future; the latest instant is now")
     if at < now_ms - settings.retention_ms:
         raise HTTPException(
-            400, f"'at' ({value}) is older than the {settings.retention_days}-day retention")
+            400, f"'at' ({value}) is older than the {settings.retention_days}-day retention"
+        )
     return at
 
 
@@ -74,8 +79,10 @@ def window_in_retention(
     f, t = parse_window(from_, to, max_span_ms)
     if f < now_ms - settings.retention_ms - 60_000:
         raise HTTPException(
-            400, f"'from' ({from_}) is older than the {settings.retention_days}-day retention; "
-                 "nothing is kept before now minus the retention")
+            400,
+            f"'from' ({from_}) is older than the {settings.retention_days}-day retention; "
+            "nothing is kept before now minus the retention",
+        )
     return f, t
 
 
@@ -105,6 +112,8 @@ def check_step(step_ms: int, name: str = "step_ms", every: str = "every pose") -
     """A downsampling step: 0 (`every` row) or a positive number of milliseconds; a
     negative one is a 400 naming the parameter `name`, as every bad value's meaning is."""
     if step_ms < 0:
-        raise HTTPException(400, f"{name} ({step_ms}) is negative; use 0 for {every} or "
-                                 "a positive step in milliseconds")
+        raise HTTPException(
+            400,
+            f"{name} ({step_ms}) is negative; use 0 for {every} or a positive step in milliseconds",
+        )
     return step_ms

@@ -18,9 +18,11 @@ import h11
 from prometheus_client import Counter
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
-HEADER_TIMEOUTS = Counter("mapservice_api_header_timeouts_total",
-                          "Connections closed because a request's head did not arrive in "
-                          "time (MAPSERVICE_API_HEADER_TIMEOUT_S)")
+HEADER_TIMEOUTS = Counter(
+    "mapservice_api_header_timeouts_total",
+    "Connections closed because a request's head did not arrive in "
+    "time (MAPSERVICE_API_HEADER_TIMEOUT_S)",
+)
 
 
 class HeaderDeadlineProtocol(H11Protocol):
@@ -67,4 +69,6 @@ class HeaderDeadlineProtocol(H11Protocol):
 
 def header_deadline_protocol(timeout_s: float) -> type[HeaderDeadlineProtocol]:
     """The protocol class for uvicorn.Config(http=...) with this deadline."""
-    return type("HeaderDeadlineProtocol", (HeaderDeadlineProtocol,), {"header_timeout_s": timeout_s})
+    return type(
+        "HeaderDeadlineProtocol", (HeaderDeadlineProtocol,), {"header_timeout_s": timeout_s}
+    )

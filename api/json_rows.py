@@ -20,7 +20,8 @@ class JsonRows:
     def __init__(self, model: type[BaseModel]) -> None:
         self.struct = msgspec.defstruct(
             f"{model.__name__}Json",
-            [(name, field.annotation) for name, field in model.model_fields.items()])
+            [(name, field.annotation) for name, field in model.model_fields.items()],
+        )
         self._encode = msgspec.json.Encoder().encode
 
     def response(self, rows: list) -> Response:

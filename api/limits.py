@@ -23,13 +23,17 @@ class BodyLimit:
     connection and a task). Paths under `exempt` bring their own limits (the ClickHouse
     interface's inserts)."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int, exempt: tuple[str, ...] = (),
-                 timeout_s: float = 30.0):
+    def __init__(
+        self, app: ASGIApp, max_bytes: int, exempt: tuple[str, ...] = (), timeout_s: float = 30.0
+    ):
         self.app, self.max_bytes, self.exempt, self.timeout_s = app, max_bytes, exempt, timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS") or \
-                any(scope["path"] == p or scope["path"].startswith(p + "/") for p in self.exempt):
+        if (
+            scope["type"] != "http"
+            or scope["method"] in ("GET", "HEAD", "OPTIONS")
+            or any(scope["path"] == p or scope["path"].startswith(p + "/") for p in self.exempt)
+        ):
             await self.app(scope, receive, send)
             return
         declared = dict(scope["headers"]).get(b"content-length")
@@ -40,8 +44,12 @@ class BodyLimit:
             async with asyncio.timeout(self.timeout_s):
                 chunks = await self._read(receive)
         except TimeoutError:
-            await self._reply(send, 408, f"the request body did not arrive within "
-                                         f"{self.timeout_s:g} s (MAPSERVICE_API_BODY_TIMEOUT_S)")
+            await self._reply(
+                send,
+                408,
+                f"the request body did not arrive within "
+                f"{self.timeout_s:g} s (MAPSERVICE_API_BODY_TIMEOUT_S)",
+            )
             return
         if chunks is None:  # the client left
             return
@@ -72,15 +80,27 @@ class BodyLimit:
                 return chunks
 
     async def _too_large(self, send: Send) -> None:
-        await self._reply(send, 413, f"the request body is larger than {self.max_bytes} bytes "
-                                     "(MAPSERVICE_API_MAX_BODY_BYTES)")
+        await self._reply(
+            send,
+            413,
+            f"the request body is larger than {self.max_bytes} bytes "
+            "(MAPSERVICE_API_MAX_BODY_BYTES)",
+        )
 
     @staticmethod
     async def _reply(send: Send, status: int, detail: str) -> None:
         body = json.dumps({"detail": detail}).encode()
-        await send({"type": "http.response.start", "status": status, "headers": [
-            (b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-            (b"connection", b"close")]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": status,
+                "headers": [
+                    (b"content-type", b"application/json"),
+                    (b"content-length", str(len(body)).encode()),
+                    (b"connection", b"close"),
+                ],
+            }
+        )
         await send({"type": "http.response.body", "body": body})
 
 
@@ -107,7 +127,7 @@ def _host_name(netloc: str) -> str:
     """`host[:port]` or `[v6]:port` -> the host name, lower case."""
     netloc = netloc.strip().lower()
     if netloc.startswith("["):
-        return netloc[1:netloc.find("]")] if "]" in netloc else netloc
+        return netloc[1 : netloc.find("]")] if "]" in netloc else netloc
     return netloc.rsplit(":", 1)[0] if netloc.count(":") == 1 else netloc
 
 
@@ -115,7 +135,11 @@ def allowed_hosts(settings) -> frozenset[str]:
     """The host names a live connection may be addressed to: this machine's loopback names,
     the bind address, the public base URL's host, the allowed origins' hosts and
     MAPSERVICE_API_ALLOWED_HOSTS."""
-    names = {*LOCAL_HOSTS, settings.api_host.lower(), *(h.lower() for h in settings.api_allowed_hosts)}
+    names = {
+        *LOCAL_HOSTS,
+        settings.api_host.lower(),
+        *(h.lower() for h in settings.api_allowed_hosts),
+    }
     for url in (settings.public_base_url, *settings.api_allowed_origins):
         host = urlsplit(url).hostname
         if host:

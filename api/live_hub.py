@@ -14,8 +14,7 @@ from typing import Any
 class LiveHub:
     """One API process's WebSocket subscribers; fed from its event loop."""
 
-    def __init__(self, queue_size: int = 10_000,
-                 ready: Callable[[], bool] = lambda: True) -> None:
+    def __init__(self, queue_size: int = 10_000, ready: Callable[[], bool] = lambda: True) -> None:
         self._subscribers: set[asyncio.Queue] = set()
         self._queue_size = queue_size
         self.ready = ready  # whether the feed reaches this process yet (the relay reads the topic)

@@ -13,6 +13,7 @@ import sys
 from typing import Any
 
 from mapservice.api.app import create_app
+
 from mapservice.settings import Settings
 
 

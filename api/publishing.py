@@ -24,9 +24,12 @@ def get_publisher(request: Request) -> EventPublisher:
     """The app's publisher, or a 503 saying how to configure one."""
     publisher = getattr(request.app.state, "publisher", None)
     if publisher is None:
-        raise HTTPException(503, "this API instance has no event publisher (Kafka) configured, "
-                                 "so it cannot accept writes; run it with MAPSERVICE_KAFKA_BOOTSTRAP "
-                                 "set (`mapservice api` / `mapservice serve`) or write via MQTT")
+        raise HTTPException(
+            503,
+            "this API instance has no event publisher (Kafka) configured, "
+            "so it cannot accept writes; run it with MAPSERVICE_KAFKA_BOOTSTRAP "
+            "set (`mapservice api` / `mapservice serve`) or write via MQTT",
+        )
     return publisher
 
 
@@ -42,8 +45,12 @@ def topic_for(settings: Settings, envelope: Envelope) -> str:
     return settings.topic_pose_events
 
 
-def publish_and_wait(publisher: EventPublisher, settings: Settings, envelope: Envelope,
-                     timeout_s: float = PUBLISH_TIMEOUT_S) -> None:
+def publish_and_wait(
+    publisher: EventPublisher,
+    settings: Settings,
+    envelope: Envelope,
+    timeout_s: float = PUBLISH_TIMEOUT_S,
+) -> None:
     """Publishes the event and waits for Kafka's confirmation; a 503 if it does not come."""
     done = threading.Event()
     errors: list[Exception] = []
@@ -59,5 +66,8 @@ def publish_and_wait(publisher: EventPublisher, settings: Settings, envelope: En
         publisher.poll(0.05)  # serves delivery callbacks (ours or another request's)
     if errors or not done.is_set():
         reason = str(errors[0]) if errors else f"no confirmation within {timeout_s:.0f} s"
-        raise HTTPException(503, f"the event log (Kafka) did not take the write: {reason}; "
-                                 "nothing was stored, retry later")
+        raise HTTPException(
+            503,
+            f"the event log (Kafka) did not take the write: {reason}; "
+            "nothing was stored, retry later",
+        )

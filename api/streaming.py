@@ -28,8 +28,12 @@ class ExportAborted(Exception):
 class BoundedPipe:
     """A write-only file for the producer thread; `chunks()` for the response."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, chunk_bytes: int = CHUNK_BYTES,
-                 max_chunks: int = MAX_CHUNKS) -> None:
+    def __init__(
+        self,
+        loop: asyncio.AbstractEventLoop,
+        chunk_bytes: int = CHUNK_BYTES,
+        max_chunks: int = MAX_CHUNKS,
+    ) -> None:
         self.loop, self.chunk_bytes = loop, chunk_bytes
         self._slots = threading.Semaphore(max_chunks)
         self._queue: asyncio.Queue = asyncio.Queue()
@@ -71,7 +75,9 @@ class BoundedPipe:
                 self._buffer.clear()
         except ExportAborted:
             return
-        self.loop.call_soon_threadsafe(self._queue.put_nowait, error if error is not None else _DONE)
+        self.loop.call_soon_threadsafe(
+            self._queue.put_nowait, error if error is not None else _DONE
+        )
 
     # --- the response's side (the event loop) -------------------------------------------
 
@@ -103,8 +109,9 @@ class BoundedPipe:
         self._aborted.set()
 
 
-async def produce(executor: Executor, producer: Callable[[BoundedPipe], object],
-                  **pipe_options) -> tuple[BoundedPipe, bytes | None]:
+async def produce(
+    executor: Executor, producer: Callable[[BoundedPipe], object], **pipe_options
+) -> tuple[BoundedPipe, bytes | None]:
     """Starts `producer(pipe)` in `executor`; returns the pipe and its first chunk (what
     the producer raised before its first byte is raised here)."""
     loop = asyncio.get_running_loop()

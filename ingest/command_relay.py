@@ -63,9 +63,14 @@ class CommandRelay(TopicFollower):
     group_id = "mapservice-gateway-commands"
     poll_s = 0.2
 
-    def __init__(self, settings: Settings, publish: Callable[[str, bytes], object],
-                 now_ms: Callable[[], int], book: CommandBook | None = None,
-                 vda: VdaCommands | None = None) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        publish: Callable[[str, bytes], object],
+        now_ms: Callable[[], int],
+        book: CommandBook | None = None,
+        vda: VdaCommands | None = None,
+    ) -> None:
         super().__init__(settings, settings.topic_command_events)
         self.vda = vda  # commands to VDA 5050 vehicles go out as their instantActions
         self.publish = publish
@@ -87,23 +92,38 @@ class CommandRelay(TopicFollower):
         self.book.remember(command.command_id, command.robot_id)
         age_ms = self.now_ms() - command.issued_at_ms
         if age_ms > self.settings.command_delivery_ttl_s * 1000:
-            log.info("command too old to deliver", command_id=command.command_id,
-                     robot_id=command.robot_id, age_s=round(age_ms / 1000, 1))
+            log.info(
+                "command too old to deliver",
+                command_id=command.command_id,
+                robot_id=command.robot_id,
+                age_s=round(age_ms / 1000, 1),
+            )
             return False
         if self.vda is not None and self.vda.is_vehicle(command.robot_id):
             try:
                 topic, message = self.vda.delivery(command, self.now_ms())
             except VdaCommandRefused as exc:
-                log.warning("command not delivered to a VDA 5050 vehicle", reason=str(exc),
-                            command_id=command.command_id, robot_id=command.robot_id)
+                log.warning(
+                    "command not delivered to a VDA 5050 vehicle",
+                    reason=str(exc),
+                    command_id=command.command_id,
+                    robot_id=command.robot_id,
+                )
                 return False
             self.publish(topic, msgspec.json.encode(message))
         else:
-            self.publish(self.settings.command_topic(command.robot_id),
-                         msgspec.json.encode(command_message(command)))
+            self.publish(
+                self.settings.command_topic(command.robot_id),
+                msgspec.json.encode(command_message(command)),
+            )
         self.delivered += 1
-        log.info("command delivered", command_id=command.command_id, robot_id=command.robot_id,
-                 kind=command.kind, issued_by=command.issued_by)
+        log.info(
+            "command delivered",
+            command_id=command.command_id,
+            robot_id=command.robot_id,
+            kind=command.kind,
+            issued_by=command.issued_by,
+        )
         return True
 
     def _run(self) -> None:
@@ -114,19 +134,24 @@ class CommandRelay(TopicFollower):
                 self._read()
             except Exception:  # noqa: BLE001 - logged; the loop starts reading again
                 self.failures += 1
-                log.exception("command relay failed; reading the command topic again shortly",
-                              hint="is Kafka reachable at MAPSERVICE_KAFKA_BOOTSTRAP?")
+                log.exception(
+                    "command relay failed; reading the command topic again shortly",
+                    hint="is Kafka reachable at MAPSERVICE_KAFKA_BOOTSTRAP?",
+                )
                 self._stop.wait(RETRY_S)
 
     def _start_offsets(self, consumer: Consumer, partitions: list[int]) -> list[TopicPartition]:
         """Each partition from its first record of the last COMMAND_MEMORY_S."""
         since = self.now_ms() - COMMAND_MEMORY_S * 1000
         starts = consumer.offsets_for_times(
-            [TopicPartition(self.topic, p, since) for p in partitions], timeout=30)
+            [TopicPartition(self.topic, p, since) for p in partitions], timeout=30
+        )
         log.info("command relay reading", topic=self.topic, partitions=len(partitions))
         # No record at or after `since` in a partition: its offset is -1, read from its end.
-        return [TopicPartition(self.topic, tp.partition, tp.offset if tp.offset >= 0
-                               else OFFSET_END) for tp in starts]
+        return [
+            TopicPartition(self.topic, tp.partition, tp.offset if tp.offset >= 0 else OFFSET_END)
+            for tp in starts
+        ]
 
     def _on_record(self, value: bytes | None) -> None:
         if value is None:

@@ -40,9 +40,13 @@ class ResponseMessage(msgspec.Struct, forbid_unknown_fields=False):
 _response_decoder = msgspec.json.Decoder(ResponseMessage)
 
 
-def decode_response(data: bytes, topic_robot_id: str, receive_ms: int, limits: Limits,
-                    command_robot: Callable[[str], str | None]
-                    ) -> tuple[int, CommandResponse] | Rejection:
+def decode_response(
+    data: bytes,
+    topic_robot_id: str,
+    receive_ms: int,
+    limits: Limits,
+    command_robot: Callable[[str], str | None],
+) -> tuple[int, CommandResponse] | Rejection:
     """A robot's ack or outcome and its time, or why not. `command_robot(id)` is the robot
     the command was sent to (None: no such command is known): a robot answers only its
     own commands."""
@@ -52,43 +56,64 @@ def decode_response(data: bytes, topic_robot_id: str, receive_ms: int, limits: L
         msg = _response_decoder.decode(data)
     except msgspec.ValidationError as exc:
         reason = Reason.MISSING_FIELD if "missing required field" in str(exc) else Reason.WRONG_TYPE
-        return Rejection(reason, f"{exc}; a command response is {{robotId, commandId, type: "
-                                 "ack|outcome, timestamp, status or outcome, reason}")
+        return Rejection(
+            reason,
+            f"{exc}; a command response is {{robotId, commandId, type: "
+            "ack|outcome, timestamp, status or outcome, reason}",
+        )
     except (msgspec.DecodeError, UnicodeDecodeError) as exc:
         return Rejection(Reason.NOT_JSON, f"payload is not JSON: {exc}")
     except RecursionError:
         return Rejection(Reason.TOO_DEEP, "JSON nested too deeply to decode")
     if msg.robotId != topic_robot_id:
-        return Rejection(Reason.ROBOT_ID_MISMATCH, f"topic names robot {topic_robot_id[:80]!r} "
-                                                   f"but the payload says {msg.robotId[:80]!r}")
+        return Rejection(
+            Reason.ROBOT_ID_MISMATCH,
+            f"topic names robot {topic_robot_id[:80]!r} but the payload says {msg.robotId[:80]!r}",
+        )
     if not COMMAND_ID.fullmatch(msg.commandId):
-        return Rejection(Reason.WRONG_TYPE, f"commandId {msg.commandId[:120]!r} is not a command id")
+        return Rejection(
+            Reason.WRONG_TYPE, f"commandId {msg.commandId[:120]!r} is not a command id"
+        )
     if len(msg.reason) > MAX_REASON_CHARS:
-        return Rejection(Reason.OUT_OF_RANGE, f"reason has {len(msg.reason)} characters; "
-                                              f"at most {MAX_REASON_CHARS}")
+        return Rejection(
+            Reason.OUT_OF_RANGE,
+            f"reason has {len(msg.reason)} characters; at most {MAX_REASON_CHARS}",
+        )
     response: CommandResponse
     if msg.type == "ack":
         if msg.status not in ACK_STATUSES:
-            return Rejection(Reason.BAD_COMMAND_RESPONSE, f"an ack's status is one of "
-                             f"{', '.join(ACK_STATUSES)}, not {str(msg.status)[:40]!r}")
+            return Rejection(
+                Reason.BAD_COMMAND_RESPONSE,
+                f"an ack's status is one of "
+                f"{', '.join(ACK_STATUSES)}, not {str(msg.status)[:40]!r}",
+            )
         response = CommandAcknowledged(msg.commandId, topic_robot_id, msg.status, msg.reason)
     elif msg.type == "outcome":
         if msg.outcome not in OUTCOMES:
-            return Rejection(Reason.BAD_COMMAND_RESPONSE, f"an outcome is one of "
-                             f"{', '.join(OUTCOMES)}, not {str(msg.outcome)[:40]!r}")
+            return Rejection(
+                Reason.BAD_COMMAND_RESPONSE,
+                f"an outcome is one of {', '.join(OUTCOMES)}, not {str(msg.outcome)[:40]!r}",
+            )
         response = CommandFinished(msg.commandId, topic_robot_id, msg.outcome, msg.reason)
     else:
-        return Rejection(Reason.BAD_COMMAND_RESPONSE,
-                         f"type is 'ack' or 'outcome', not {msg.type[:40]!r}")
+        return Rejection(
+            Reason.BAD_COMMAND_RESPONSE, f"type is 'ack' or 'outcome', not {msg.type[:40]!r}"
+        )
     ts = check_time(msg.timestamp, receive_ms, limits)
     if isinstance(ts, Rejection):
         return ts
     owner = command_robot(msg.commandId)
     if owner is None:
-        return Rejection(Reason.UNKNOWN_COMMAND, f"no command {msg.commandId!r} was sent (or it "
-                         "is older than the gateway remembers); answer only commands received "
-                         "on your command topic")
+        return Rejection(
+            Reason.UNKNOWN_COMMAND,
+            f"no command {msg.commandId!r} was sent (or it "
+            "is older than the gateway remembers); answer only commands received "
+            "on your command topic",
+        )
     if owner != topic_robot_id:
-        return Rejection(Reason.NOT_ITS_COMMAND, f"command {msg.commandId!r} was sent to another "
-                         f"robot, not {topic_robot_id[:80]!r}; a robot answers only its own commands")
+        return Rejection(
+            Reason.NOT_ITS_COMMAND,
+            f"command {msg.commandId!r} was sent to another "
+            f"robot, not {topic_robot_id[:80]!r}; a robot answers only its own commands",
+        )
     return ts, response

@@ -20,13 +20,13 @@ import structlog
 
 from mapservice.adapters.clock import clock_from_settings
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
+from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
+from mapservice.core.ports import Clock, EventPublisher
+from mapservice.core.wire2019 import Limits, Reason
 from mapservice.runtime.health import kafka_check
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.metrics_gate import metrics_gate
-from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
-from mapservice.core.ports import Clock, EventPublisher
 from mapservice.settings import Settings
-from mapservice.core.wire2019 import Limits, Reason
 
 from . import metrics
 from .command_relay import CommandRelay
@@ -49,9 +49,15 @@ class Ingestor:
     (Sleeping in the delivery callback instead held up every other delivery report: after
     a Kafka outage, a thousand timed-out records took minutes to be retried one by one.)"""
 
-    def __init__(self, settings: Settings, publisher: EventPublisher, clock: Clock,
-                 gateway_id: str, retry_delay_s: float = RETRY_DELAY_S,
-                 monotonic: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        publisher: EventPublisher,
+        clock: Clock,
+        gateway_id: str,
+        retry_delay_s: float = RETRY_DELAY_S,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.router = Router(settings, gateway_id)
         self.publisher = publisher
         self.clock = clock
@@ -86,14 +92,19 @@ class Ingestor:
         raises only if even its dead letter cannot be handed to the producer; the message
         is then left unacknowledged, in the broker's session."""
         delivery = _Delivery(self, ack, time.monotonic())
-        record = delivery.record = self.router.route(mqtt_topic, payload, self.clock.now_ms(),
-                                                     self.limits)
+        record = delivery.record = self.router.route(
+            mqtt_topic, payload, self.clock.now_ms(), self.limits
+        )
         if record.envelope is not None:
             refusal = self.new_robots.refusal(record.envelope.robot_id)
             if refusal is not None:
                 record = delivery.record = self.router.dead_letter(
-                    mqtt_topic, payload, record.envelope.receive_time_ms,
-                    Reason.TOO_MANY_NEW_ROBOTS, refusal)
+                    mqtt_topic,
+                    payload,
+                    record.envelope.receive_time_ms,
+                    Reason.TOO_MANY_NEW_ROBOTS,
+                    refusal,
+                )
         if record.reason is not None:
             delivery.outcome = "rejected"
             metrics.REJECTED.labels(record.reason).inc()
@@ -109,8 +120,12 @@ class Ingestor:
         except RecordTooLarge as exc:
             # Valid, but too big for a Kafka record: it becomes a dead letter that fits.
             record = delivery.record = self.router.dead_letter(
-                mqtt_topic, payload, record.envelope.receive_time_ms
-                if record.envelope else self.clock.now_ms(), Reason.RECORD_TOO_LARGE, str(exc))
+                mqtt_topic,
+                payload,
+                record.envelope.receive_time_ms if record.envelope else self.clock.now_ms(),
+                Reason.RECORD_TOO_LARGE,
+                str(exc),
+            )
             delivery.outcome = "rejected"
             metrics.REJECTED.labels(record.reason).inc()
             log.info("message rejected", reason=record.reason, mqtt_topic=mqtt_topic[:200])
@@ -132,9 +147,18 @@ class Ingestor:
             self._failures_unlogged += 1
             if now - self._failure_logged_at < FAILURE_LOG_EVERY_S:
                 return
-            failures, self._failures_unlogged, self._failure_logged_at = self._failures_unlogged, 0, now
-        log.warning("kafka delivery failed, retrying", error=str(error), topic=record.topic,
-                    failures=failures, waiting=len(self._retries))
+            failures, self._failures_unlogged, self._failure_logged_at = (
+                self._failures_unlogged,
+                0,
+                now,
+            )
+        log.warning(
+            "kafka delivery failed, retrying",
+            error=str(error),
+            topic=record.topic,
+            failures=failures,
+            waiting=len(self._retries),
+        )
 
     @property
     def retries_waiting(self) -> int:
@@ -233,13 +257,19 @@ class MqttGateway:
         self.settings = settings
         self.gateway_id = settings.mqtt_client_id
         self.publisher = KafkaPublisher(settings, client_id=self.gateway_id)
-        self.ingestor = Ingestor(settings, self.publisher, clock_from_settings(settings), self.gateway_id)
+        self.ingestor = Ingestor(
+            settings, self.publisher, clock_from_settings(settings), self.gateway_id
+        )
         self.meta_watcher = MetaWatcher(settings, self.ingestor.apply_meta)
         # Operators' commands, from Kafka to each robot's command topic (QoS 1); the relay's
         # book is what the router judges the robots' answers by.
-        self.command_relay = CommandRelay(settings, self._publish_command,
-                                          self.ingestor.clock.now_ms, self.ingestor.router.commands,
-                                          self.ingestor.router.vda_commands)
+        self.command_relay = CommandRelay(
+            settings,
+            self._publish_command,
+            self.ingestor.clock.now_ms,
+            self.ingestor.router.commands,
+            self.ingestor.router.vda_commands,
+        )
         self.health_port = health_port
         self.kafka_ready = kafka_check(settings)  # readiness: a broker answers metadata
         self._stop = threading.Event()
@@ -274,8 +304,11 @@ class MqttGateway:
             self.ingestor.handle(topic, msg.payload, partial(self._acks.append, (msg.mid, msg.qos)))
         except Exception:  # noqa: BLE001 - an exception here would end paho's network thread
             metrics.HANDLING_ERRORS.inc()
-            log.exception("message handling failed; left unacknowledged", mqtt_topic=topic[:200],
-                          size=len(msg.payload))
+            log.exception(
+                "message handling failed; left unacknowledged",
+                mqtt_topic=topic[:200],
+                size=len(msg.payload),
+            )
 
     def _publish_command(self, topic: str, payload: bytes) -> None:
         if self.client is None:
@@ -290,24 +323,35 @@ class MqttGateway:
     def status(self) -> dict:
         """Liveness: paho's network thread runs (it receives and acknowledges)."""
         alive = self.loop_alive()
-        return {"ok": alive, "mqtt_connected": self._connected.is_set(),
-                "mqtt_loop_alive": alive, "in_flight": self.ingestor.in_flight,
-                "retries_waiting": self.ingestor.retries_waiting, "gateway": self.gateway_id,
-                "commands_delivered": self.command_relay.delivered,
-                "command_relay_failures": self.command_relay.failures}
+        return {
+            "ok": alive,
+            "mqtt_connected": self._connected.is_set(),
+            "mqtt_loop_alive": alive,
+            "in_flight": self.ingestor.in_flight,
+            "retries_waiting": self.ingestor.retries_waiting,
+            "gateway": self.gateway_id,
+            "commands_delivered": self.command_relay.delivered,
+            "command_relay_failures": self.command_relay.failures,
+        }
 
     def ready(self) -> dict:
         """Readiness: connected to the MQTT broker and a Kafka broker answers metadata."""
         alive, connected, kafka = self.loop_alive(), self._connected.is_set(), self.kafka_ready()
-        return {"ok": alive and connected and kafka, "mqtt_connected": connected,
-                "mqtt_loop_alive": alive, "kafka": kafka, "in_flight": self.ingestor.in_flight,
-                "gateway": self.gateway_id}
+        return {
+            "ok": alive and connected and kafka,
+            "mqtt_connected": connected,
+            "mqtt_loop_alive": alive,
+            "kafka": kafka,
+            "in_flight": self.ingestor.in_flight,
+            "gateway": self.gateway_id,
+        }
 
     def run(self) -> None:
         host, port, _tls = parse_mqtt_url(self.settings.mqtt_url)
         s = self.settings
-        self.client = service_client(s, self.gateway_id, clean_session=False, manual_ack=True,
-                                     buffered_reads=True)
+        self.client = service_client(
+            s, self.gateway_id, clean_session=False, manual_ack=True, buffered_reads=True
+        )
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect
         self.client.on_message = self._on_message
@@ -321,8 +365,11 @@ class MqttGateway:
                 self.client.connect(host, port, keepalive=30)
                 break
             except OSError as exc:
-                log.warning("mqtt broker unreachable, retrying", error=str(exc),
-                            hint=f"is an MQTT broker listening on {host}:{port}?")
+                log.warning(
+                    "mqtt broker unreachable, retrying",
+                    error=str(exc),
+                    hint=f"is an MQTT broker listening on {host}:{port}?",
+                )
                 time.sleep(1)
         self.client.loop_start()
         self.command_relay.start()

@@ -49,5 +49,9 @@ class MetaWatcher(TopicFollower):
         if isinstance(env.payload, MapMetaSet) and env.event_time_ms >= self.newest_ms:
             self.newest_ms = env.event_time_ms
             self.on_meta(env.payload)
-            log.info("map meta applied", rows=env.payload.chunk_rows,
-                     cols=env.payload.chunk_cols, chunk_width=env.payload.chunk_width)
+            log.info(
+                "map meta applied",
+                rows=env.payload.chunk_rows,
+                cols=env.payload.chunk_cols,
+                chunk_width=env.payload.chunk_width,
+            )

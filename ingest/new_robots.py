@@ -41,10 +41,12 @@ class NewRobots:
                 return None
             over = next((item for item in self.items if not self.limiter.test(item, _KEY)), None)
             if over is not None:
-                return (f"robot {robot_id[:64]!r} is new to this gateway and more than {over} "
-                        "new robot ids arrived (MAPSERVICE_INGEST_NEW_ROBOTS_LIMIT); robots "
-                        "already seen are unaffected. A real fleet growing faster: raise the "
-                        "limit; otherwise give robots broker credentials (`mapservice robot add`)")
+                return (
+                    f"robot {robot_id[:64]!r} is new to this gateway and more than {over} "
+                    "new robot ids arrived (MAPSERVICE_INGEST_NEW_ROBOTS_LIMIT); robots "
+                    "already seen are unaffected. A real fleet growing faster: raise the "
+                    "limit; otherwise give robots broker credentials (`mapservice robot add`)"
+                )
             for item in self.items:
                 self.limiter.hit(item, _KEY)
             self._known[robot_id] = None

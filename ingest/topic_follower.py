@@ -47,8 +47,9 @@ class TopicFollower:
 
     def _read(self) -> None:
         """Reads the topic until stopped; raises what the consumer raises (Kafka away)."""
-        consumer = Consumer({**self.settings.kafka_config(), "group.id": self.group_id,
-                             "enable.auto.commit": False})
+        consumer = Consumer(
+            {**self.settings.kafka_config(), "group.id": self.group_id, "enable.auto.commit": False}
+        )
         try:
             md = consumer.list_topics(self.topic, timeout=30)
             parts = sorted(md.topics[self.topic].partitions) if self.topic in md.topics else [0]

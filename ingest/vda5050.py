@@ -38,6 +38,7 @@ SUBTOPICS = VDA5050_SUBTOPICS
 CONNECTION_STATES = ("ONLINE", "OFFLINE", "CONNECTIONBROKEN")
 MAX_VEHICLES = 100_000  # vehicles whose last state is held for their visualization poses
 
+
 @cache
 def validator(version: str, subtopic: str) -> Draft202012Validator:
     schema = json.loads((SCHEMA_DIR / version / f"{subtopic}.schema").read_text())
@@ -58,8 +59,14 @@ def validator(version: str, subtopic: str) -> Draft202012Validator:
         action = props["instantActions"]["items"]
         action["properties"]["actionType"] = action["properties"].pop("actionName")
         action["required"] = ["actionId", "actionType", "blockingType"]
-        schema["required"] = ["headerId", "timestamp", "version", "manufacturer",
-                              "serialNumber", "instantActions"]
+        schema["required"] = [
+            "headerId",
+            "timestamp",
+            "version",
+            "manufacturer",
+            "serialNumber",
+            "instantActions",
+        ]
     return Draft202012Validator(schema)
 
 
@@ -102,17 +109,24 @@ class VdaIngest:
     def handles(self, mqtt_topic: str) -> bool:
         return bool(self.interface) and mqtt_topic.startswith(self.prefix)
 
-    def decode(self, mqtt_topic: str, payload: bytes, receive_ms: int,
-               limits: Limits) -> Envelope | Rejection:
+    def decode(
+        self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits
+    ) -> Envelope | Rejection:
         levels = mqtt_topic.split("/")
         if len(levels) != 5 or levels[4] not in SUBTOPICS or not all(levels):
-            return Rejection(Reason.UNKNOWN_TOPIC, (
-                f"VDA 5050 topics are {self.interface}/<major>/<manufacturer>/<serialNumber>/"
-                f"<{'|'.join(SUBTOPICS)}>, not {mqtt_topic[:200]!r}"))
+            return Rejection(
+                Reason.UNKNOWN_TOPIC,
+                (
+                    f"VDA 5050 topics are {self.interface}/<major>/<manufacturer>/<serialNumber>/"
+                    f"<{'|'.join(SUBTOPICS)}>, not {mqtt_topic[:200]!r}"
+                ),
+            )
         _, major, manufacturer, serial, subtopic = levels
         if len(payload) > limits.max_message_bytes:
-            return Rejection(Reason.OVERSIZED, f"{len(payload)} bytes; at most "
-                                               f"{limits.max_message_bytes} are accepted")
+            return Rejection(
+                Reason.OVERSIZED,
+                f"{len(payload)} bytes; at most {limits.max_message_bytes} are accepted",
+            )
         try:
             msg = json.loads(payload)
         except (ValueError, RecursionError) as exc:
@@ -121,27 +135,41 @@ class VdaIngest:
             return Rejection(Reason.WRONG_TYPE, "a VDA 5050 message is a JSON object")
         version = schema_version_for(msg.get("version"), major)
         if version is None:
-            return Rejection(Reason.VDA_UNSUPPORTED_VERSION, (
-                f"version {str(msg.get('version'))[:40]!r} on topic major {major[:20]!r}: "
-                "2.0.x, 2.1.x (topic v2) and 3.0.x (topic v3) are accepted"))
+            return Rejection(
+                Reason.VDA_UNSUPPORTED_VERSION,
+                (
+                    f"version {str(msg.get('version'))[:40]!r} on topic major {major[:20]!r}: "
+                    "2.0.x, 2.1.x (topic v2) and 3.0.x (topic v3) are accepted"
+                ),
+            )
         error = best_match(validator(version, subtopic).iter_errors(msg))
         if error is not None:
             where = "/".join(str(p) for p in error.absolute_path) or "(message)"
-            return Rejection(Reason.VDA_SCHEMA, (
-                f"not a valid VDA 5050 {version} {subtopic}: at {where}: {error.message[:300]}"))
+            return Rejection(
+                Reason.VDA_SCHEMA,
+                (f"not a valid VDA 5050 {version} {subtopic}: at {where}: {error.message[:300]}"),
+            )
         for key in ("manufacturer", "serialNumber", "timestamp"):
             # 2.0.0's visualization schema requires none of its header.
             if not isinstance(msg.get(key), str):
                 return Rejection(Reason.MISSING_FIELD, f"{key} (a string) is required")
         if msg["manufacturer"] != manufacturer or msg["serialNumber"] != serial:
-            return Rejection(Reason.ROBOT_ID_MISMATCH, (
-                f"payload names {msg['manufacturer'][:60]!r}/{msg['serialNumber'][:60]!r}, its "
-                f"topic {manufacturer[:60]!r}/{serial[:60]!r}: a vehicle publishes only its own"))
+            return Rejection(
+                Reason.ROBOT_ID_MISMATCH,
+                (
+                    f"payload names {msg['manufacturer'][:60]!r}/{msg['serialNumber'][:60]!r}, its "
+                    f"topic {manufacturer[:60]!r}/{serial[:60]!r}: a vehicle publishes only its own"
+                ),
+            )
         robot_id = robot_id_for(manufacturer, serial)
         if len(robot_id) > 64:
-            return Rejection(Reason.BAD_ROBOT_ID, (
-                f"manufacturer and serial number make the robot id {robot_id[:80]!r}, longer "
-                "than 64 characters (escaped: see README, VDA 5050 vehicles)"))
+            return Rejection(
+                Reason.BAD_ROBOT_ID,
+                (
+                    f"manufacturer and serial number make the robot id {robot_id[:80]!r}, longer "
+                    "than 64 characters (escaped: see README, VDA 5050 vehicles)"
+                ),
+            )
         sent_ms = check_time(msg["timestamp"], receive_ms, limits)
         if isinstance(sent_ms, Rejection):
             return sent_ms
@@ -149,47 +177,73 @@ class VdaIngest:
             state = msg["connectionState"]
             # The last will was composed at connect time: it went offline when published.
             at = receive_ms if state == "CONNECTIONBROKEN" else sent_ms
-            return make_envelope(robot_id, at, receive_ms, VdaConnectionReported(
-                manufacturer, serial, version, state, sent_ms))
+            return make_envelope(
+                robot_id,
+                at,
+                receive_ms,
+                VdaConnectionReported(manufacturer, serial, version, state, sent_ms),
+            )
         if subtopic == "factsheet":
-            return make_envelope(robot_id, sent_ms, receive_ms, VdaFactsheetReported(
-                manufacturer, serial, version, json.dumps(msg, separators=(",", ":"))))
+            return make_envelope(
+                robot_id,
+                sent_ms,
+                receive_ms,
+                VdaFactsheetReported(
+                    manufacturer, serial, version, json.dumps(msg, separators=(",", ":"))
+                ),
+            )
         if subtopic == "state":
             return self._state(robot_id, version, msg, sent_ms, receive_ms)
         return self._visualization(robot_id, version, msg, sent_ms, receive_ms)
 
-    def _state(self, robot_id: str, version: str, msg: dict, sent_ms: int,
-               receive_ms: int) -> Envelope:
+    def _state(
+        self, robot_id: str, version: str, msg: dict, sent_ms: int, receive_ms: int
+    ) -> Envelope:
         power = msg.get("powerSupply") or msg.get("batteryState") or {}
         loads = msg.get("loads")
         status = _Status(
             battery=float(power["batteryCharge" if "batteryCharge" in power else "stateOfCharge"])
-            if power else None,
+            if power
+            else None,
             charging=power.get("charging"),
             loaded=None if loads is None else bool(loads),
             path=self._path(msg),
-            driving=msg.get("driving"), paused=msg.get("paused"),
-            operating_mode=msg.get("operatingMode", ""), order_id=msg.get("orderId", ""))
+            driving=msg.get("driving"),
+            paused=msg.get("paused"),
+            operating_mode=msg.get("operatingMode", ""),
+            order_id=msg.get("orderId", ""),
+        )
         self.last_status[robot_id] = status
-        errors = tuple(VdaError(e.get("errorLevel", ""), e.get("errorType", ""),
-                                e.get("errorDescription", "")) for e in msg.get("errors", ()))
-        return make_envelope(robot_id, sent_ms, receive_ms,
-                             self._state_event(robot_id, version, msg, status, errors))
+        errors = tuple(
+            VdaError(e.get("errorLevel", ""), e.get("errorType", ""), e.get("errorDescription", ""))
+            for e in msg.get("errors", ())
+        )
+        return make_envelope(
+            robot_id, sent_ms, receive_ms, self._state_event(robot_id, version, msg, status, errors)
+        )
 
-    def _visualization(self, robot_id: str, version: str, msg: dict, sent_ms: int,
-                       receive_ms: int) -> Envelope | Rejection:
-        status = self.last_status.get(robot_id) or _Status(None, None, None, None, None, None, "", "")
+    def _visualization(
+        self, robot_id: str, version: str, msg: dict, sent_ms: int, receive_ms: int
+    ) -> Envelope | Rejection:
+        status = self.last_status.get(robot_id) or _Status(
+            None, None, None, None, None, None, "", ""
+        )
         event = self._state_event(robot_id, version, msg, status, ())
         if event.pose is not None:
             return make_envelope(robot_id, sent_ms, receive_ms, event.pose)
         if event.map_id is None:
-            return Rejection(Reason.VDA_NO_POSITION, (
-                "a visualization without agvPosition (mobileRobotPosition) has nothing to "
-                "store; send it once the vehicle is localized"))
+            return Rejection(
+                Reason.VDA_NO_POSITION,
+                (
+                    "a visualization without agvPosition (mobileRobotPosition) has nothing to "
+                    "store; send it once the vehicle is localized"
+                ),
+            )
         return make_envelope(robot_id, sent_ms, receive_ms, event)  # stored, flagged
 
-    def _state_event(self, robot_id: str, version: str, msg: dict, status: _Status,
-                     errors: tuple[VdaError, ...]) -> VdaStateReported:
+    def _state_event(
+        self, robot_id: str, version: str, msg: dict, status: _Status, errors: tuple[VdaError, ...]
+    ) -> VdaStateReported:
         position = msg.get("agvPosition") or msg.get("mobileRobotPosition")
         pose = map_id = x = y = theta = None
         known = False
@@ -200,11 +254,30 @@ class VdaIngest:
             localized = position.get("positionInitialized", position.get("localized", True))
             if transform is not None and localized:
                 mx, my, mtheta = apply_transform(transform, x, y, theta)
-                pose = PoseReported((mx, my, 0.0), quaternion_z(mtheta), status.battery,
-                                    status.charging, status.loaded, status.path)
+                pose = PoseReported(
+                    (mx, my, 0.0),
+                    quaternion_z(mtheta),
+                    status.battery,
+                    status.charging,
+                    status.loaded,
+                    status.path,
+                )
         return VdaStateReported(
-            msg["manufacturer"], msg["serialNumber"], version, pose, map_id, known, x, y, theta,
-            status.driving, status.paused, status.operating_mode, status.order_id, errors)
+            msg["manufacturer"],
+            msg["serialNumber"],
+            version,
+            pose,
+            map_id,
+            known,
+            x,
+            y,
+            theta,
+            status.driving,
+            status.paused,
+            status.operating_mode,
+            status.order_id,
+            errors,
+        )
 
     def transform_for(self, map_id: str) -> Transform | None:
         """The map id's transform into the map's frame: identity while none is configured;
@@ -220,12 +293,18 @@ class VdaIngest:
         if planned:
             points = [(p["x"], p["y"], None) for p in planned["trajectory"]["controlPoints"]]
         else:
-            points = [(n["nodePosition"]["x"], n["nodePosition"]["y"], n["nodePosition"]["mapId"])
-                      for n in msg.get("nodeStates", ()) if "nodePosition" in n]
+            points = [
+                (n["nodePosition"]["x"], n["nodePosition"]["y"], n["nodePosition"]["mapId"])
+                for n in msg.get("nodeStates", ())
+                if "nodePosition" in n
+            ]
         path = []
         for x, y, map_id in points:
-            transform = self.transform_for(map_id) if map_id is not None else (
-                self.transform_for((msg.get("mobileRobotPosition") or {}).get("mapId", "")))
+            transform = (
+                self.transform_for(map_id)
+                if map_id is not None
+                else (self.transform_for((msg.get("mobileRobotPosition") or {}).get("mapId", "")))
+            )
             if transform is None:
                 continue  # not drawn on a map it is not on
             mx, my, _ = apply_transform(transform, x, y, 0.0)
@@ -233,8 +312,9 @@ class VdaIngest:
         return tuple(path) if path else None
 
 
-def apply_transform(transform: Transform, x: float, y: float, theta: float
-                    ) -> tuple[float, float, float]:
+def apply_transform(
+    transform: Transform, x: float, y: float, theta: float
+) -> tuple[float, float, float]:
     dx, dy, rotation = transform
     c, s = math.cos(rotation), math.sin(rotation)
     return c * x - s * y + dx, s * x + c * y + dy, theta + rotation

@@ -17,19 +17,23 @@ from __future__ import annotations
 
 import threading
 import time
-from datetime import UTC, datetime
 from collections.abc import Callable, Iterable
+from datetime import UTC, datetime
 from typing import Any
 
 from cachetools import LRUCache
 
 from mapservice.core.commands import (
     MAX_REASON_CHARS,
-    VDA_ACTION_TYPES as ACTION_TYPES,
     CommandAcknowledged,
     CommandFinished,
     CommandIssued,
     CommandResponse,
+)
+from mapservice.core.commands import (
+    VDA_ACTION_TYPES as ACTION_TYPES,
+)
+from mapservice.core.commands import (
     vda_refusal as refusal,
 )
 from mapservice.core.vda_ids import vehicle_of
@@ -43,19 +47,33 @@ class VdaCommandRefused(ValueError):
     """A command a VDA 5050 vehicle cannot be sent; the message says why."""
 
 
-def instant_actions_message(command: CommandIssued, manufacturer: str, serial_number: str,
-                            version: str, header_id: int, timestamp: str) -> dict[str, Any]:
+def instant_actions_message(
+    command: CommandIssued,
+    manufacturer: str,
+    serial_number: str,
+    version: str,
+    header_id: int,
+    timestamp: str,
+) -> dict[str, Any]:
     """The `instantActions` message carrying one command, in the schema of `version`
     (2.0.x names the list `instantActions`, 2.1 and later `actions`; 3.0 allows only the
     blocking type NONE for an instant action)."""
     why = refusal(command.kind)
     if why is not None:
         raise VdaCommandRefused(why)
-    action = {"actionId": command.command_id, "actionType": ACTION_TYPES[command.kind],
-              "blockingType": "NONE" if version.startswith("3.") else "HARD"}
-    return {"headerId": header_id, "timestamp": timestamp, "version": version,
-            "manufacturer": manufacturer, "serialNumber": serial_number,
-            "instantActions" if version.startswith("2.0.") else "actions": [action]}
+    action = {
+        "actionId": command.command_id,
+        "actionType": ACTION_TYPES[command.kind],
+        "blockingType": "NONE" if version.startswith("3.") else "HARD",
+    }
+    return {
+        "headerId": header_id,
+        "timestamp": timestamp,
+        "version": version,
+        "manufacturer": manufacturer,
+        "serialNumber": serial_number,
+        "instantActions" if version.startswith("2.0.") else "actions": [action],
+    }
 
 
 def vda_timestamp(ms: int) -> str:
@@ -69,8 +87,12 @@ class VdaCommands:
     command: which answers were already made. Thread-safe (the relay's thread sends,
     paho's thread reads states)."""
 
-    def __init__(self, interface: str, command_robot: Callable[[str], str | None],
-                 wall_s: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self,
+        interface: str,
+        command_robot: Callable[[str], str | None],
+        wall_s: Callable[[], float] = time.time,
+    ) -> None:
         self.interface = interface
         self.command_robot = command_robot
         self.wall_s = wall_s
@@ -107,9 +129,14 @@ class VdaCommands:
         with self._lock:
             version = self.versions.get(command.robot_id, DEFAULT_VERSION)
         manufacturer, serial = names
-        message = instant_actions_message(command, manufacturer, serial, version,
-                                          self._next_header_id(command.robot_id),
-                                          vda_timestamp(now_ms))
+        message = instant_actions_message(
+            command,
+            manufacturer,
+            serial,
+            version,
+            self._next_header_id(command.robot_id),
+            vda_timestamp(now_ms),
+        )
         topic = f"{self.interface}/v{version.split('.')[0]}/{manufacturer}/{serial}/instantActions"
         return topic, message
 
@@ -131,12 +158,15 @@ class VdaCommands:
                 found.append(CommandFinished(command_id, robot_id, "done"))
             elif status == "FAILED":
                 reason = str(state.get("resultDescription") or "the vehicle reports FAILED")
-                found.append(CommandFinished(command_id, robot_id, "failed",
-                                             reason[:MAX_REASON_CHARS]))
+                found.append(
+                    CommandFinished(command_id, robot_id, "failed", reason[:MAX_REASON_CHARS])
+                )
             with self._lock:
                 for response in found:
-                    key = (command_id, "ack" if isinstance(response, CommandAcknowledged)
-                           else "outcome")
+                    key = (
+                        command_id,
+                        "ack" if isinstance(response, CommandAcknowledged) else "outcome",
+                    )
                     if key not in self._answered:
                         self._answered[key] = True
                         made.append(response)

@@ -22,21 +22,30 @@ import structlog
 from prometheus_client import Gauge
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.runtime.health import (CachedCheck, Heartbeat, beat_forever, kafka_check,
-                                       probe_report)
+from mapservice.adapters.kafka_topics import ensure_topics
+from mapservice.runtime.health import (
+    CachedCheck,
+    Heartbeat,
+    beat_forever,
+    kafka_check,
+    probe_report,
+)
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
 from mapservice.settings import Settings
-from mapservice.adapters.kafka_topics import ensure_topics
 
 log = structlog.get_logger(__name__)
 
 
-CHDB_MEMORY = Gauge("mapservice_chdb_memory_tracked_bytes",
-                    "Memory ClickHouse's tracker counts inside this process (embedded chDB only)")
-PYTHON_BLOCKS = Gauge("mapservice_python_allocated_blocks",
-                      "Memory blocks Python's allocator holds (sys.getallocatedblocks)")
+CHDB_MEMORY = Gauge(
+    "mapservice_chdb_memory_tracked_bytes",
+    "Memory ClickHouse's tracker counts inside this process (embedded chDB only)",
+)
+PYTHON_BLOCKS = Gauge(
+    "mapservice_python_allocated_blocks",
+    "Memory blocks Python's allocator holds (sys.getallocatedblocks)",
+)
 
 
 def export_process_memory(store: ClickHouseStore) -> None:
@@ -64,18 +73,24 @@ async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
         version = await loop.run_in_executor(None, store.schema_version)
         if version >= SCHEMA_VERSION:
             if version > SCHEMA_VERSION:
-                log.warning("the schema is newer than this release", schema=version,
-                            release=SCHEMA_VERSION)
+                log.warning(
+                    "the schema is newer than this release", schema=version, release=SCHEMA_VERSION
+                )
             return version
         if version != said:
-            log.warning("waiting for the schema migration: run `mapservice migrate` (the "
-                        "migrate Job in infra/k8s)", schema=version, needed=SCHEMA_VERSION)
+            log.warning(
+                "waiting for the schema migration: run `mapservice migrate` (the "
+                "migrate Job in infra/k8s)",
+                schema=version,
+                needed=SCHEMA_VERSION,
+            )
             said = version
         await asyncio.sleep(every_s)
 
 
-async def serve(settings: Settings, *, processors: bool = True, api: bool = True,
-                health_port: int | None = None) -> None:
+async def serve(
+    settings: Settings, *, processors: bool = True, api: bool = True, health_port: int | None = None
+) -> None:
     store = ClickHouseStore.from_settings(settings)
     parts = None
     if processors:
@@ -87,8 +102,11 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     loop = asyncio.get_running_loop()
     if settings.migrates_on_start:
         # With the processors here, on their store thread: the one that talks to the store.
-        version = await (parts.store_thread.run(store.migrate) if parts is not None
-                         else loop.run_in_executor(None, store.migrate))
+        version = await (
+            parts.store_thread.run(store.migrate)
+            if parts is not None
+            else loop.run_in_executor(None, store.migrate)
+        )
     else:
         version = await wait_for_schema(store)
     log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
@@ -100,7 +118,8 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
     # heartbeats of the loops that do the work (mapservice/runtime/health.py).
     kafka = kafka_check(settings)
     readiness: dict[str, Callable[[], bool]] = {
-        "clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)}
+        "clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)
+    }
     if store.dsn.startswith("chdb://"):
         export_process_memory(store)
     advisory: dict = {}  # reported by /readyz, not required
@@ -131,9 +150,14 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
         if api:
             from mapservice.api.composition import compose_api
 
-            api_parts = await compose_api(settings, store, readiness=readiness,
-                                          liveness=liveness, advisory=advisory,
-                                          history_status=history_status)
+            api_parts = await compose_api(
+                settings,
+                store,
+                readiness=readiness,
+                liveness=liveness,
+                advisory=advisory,
+                history_status=history_status,
+            )
             api_parts.start()
             log.info("api listening", url=f"http://{settings.api_host}:{settings.api_port}")
             freeze_startup_heap()  # everything is built: the app, the processors, their clients
@@ -143,10 +167,16 @@ async def serve(settings: Settings, *, processors: bool = True, api: bool = True
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.add_signal_handler(sig, stop.set)
             if health_port is not None:
-                serve_health(settings.api_host, health_port, lambda: probe_report(liveness),
-                             lambda: probe_report(readiness), metrics_gate(settings),
-                             documents={"/history-status": parts.history_status}
-                             if parts is not None else None)
+                serve_health(
+                    settings.api_host,
+                    health_port,
+                    lambda: probe_report(liveness),
+                    lambda: probe_report(readiness),
+                    metrics_gate(settings),
+                    documents={"/history-status": parts.history_status}
+                    if parts is not None
+                    else None,
+                )
             freeze_startup_heap()
             await stop.wait()
     finally:

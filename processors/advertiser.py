@@ -23,8 +23,9 @@ from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
-ADVERTISED = Counter("mapservice_advertisements_total",
-                     "Chunk advertisements handed to the MQTT client", ["result"])
+ADVERTISED = Counter(
+    "mapservice_advertisements_total", "Chunk advertisements handed to the MQTT client", ["result"]
+)
 
 _json = msgspec.json.Encoder()
 
@@ -37,8 +38,10 @@ class MqttAdvertiser:
         self.host, self.port, _tls = parse_mqtt_url(settings.mqtt_url)
         self.qos = qos
         self.client = service_client(
-            settings, f"mapservice-advertiser-{socket.gethostname()}-{os.getpid()}",
-            clean_session=True)
+            settings,
+            f"mapservice-advertiser-{socket.gethostname()}-{os.getpid()}",
+            clean_session=True,
+        )
         self.client.max_queued_messages_set(max_queued)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect
@@ -55,7 +58,9 @@ class MqttAdvertiser:
             self.client.connect_async(self.host, self.port, keepalive=30)
             self.client.loop_start()  # reconnects by itself
         except Exception as exc:  # a bad address must not stop the processors
-            log.error("advertiser could not start", error=str(exc), broker=f"{self.host}:{self.port}")
+            log.error(
+                "advertiser could not start", error=str(exc), broker=f"{self.host}:{self.port}"
+            )
 
     def publish(self, payload: dict) -> bool:
         """Queues one chunk advertisement; False (logged, counted) if it could not be queued."""
@@ -77,8 +82,9 @@ class MqttAdvertiser:
             now = time.monotonic()
             if now - self._last_warning > 10:  # a broker outage must not flood the log
                 self._last_warning = now
-                log.warning("advertisement not published", error=error, topic=topic,
-                            failures=self.failures)
+                log.warning(
+                    "advertisement not published", error=error, topic=topic, failures=self.failures
+                )
         return ok
 
     def stop(self) -> None:

@@ -22,9 +22,10 @@ from .sink import HistorySink, decode_dead_letters
 
 log = structlog.get_logger(__name__)
 
-SNAPSHOT_RUNS = Counter("mapservice_snapshot_runs_total",
-                        "Snapshot and retention timer runs on this replica (only the group "
-                        "leader runs it)")
+SNAPSHOT_RUNS = Counter(
+    "mapservice_snapshot_runs_total",
+    "Snapshot and retention timer runs on this replica (only the group leader runs it)",
+)
 
 
 def faust_broker_url(settings: Settings) -> str:
@@ -55,15 +56,17 @@ def faust_app(settings: Settings) -> faust.App:
     )
 
 
-def dead_letter_agent(sink: HistorySink, topic: str, batch: int, within: float,
-                      now_ms: Callable[[], int]) -> Callable[[Any], Awaitable[None]]:
+def dead_letter_agent(
+    sink: HistorySink, topic: str, batch: int, within: float, now_ms: Callable[[], int]
+) -> Callable[[Any], Awaitable[None]]:
     """The dead letters' agent: stored in batches, acknowledged once they are in."""
 
     async def sink_dead_letters(stream) -> None:
         async for events in stream.noack().noack_take(batch, within=within):
             records = decode_dead_letters((e.value for e in events), now_ms())
-            await sink.insert_until_done(sink.store.append_dead_letters, records,
-                                         {topic: len(records)})
+            await sink.insert_until_done(
+                sink.store.append_dead_letters, records, {topic: len(records)}
+            )
             for e in events:
                 e.ack()
 
@@ -77,8 +80,9 @@ def snapshot_tick_s(settings: Settings) -> float:
     return max(0.2, min(30.0, settings.snapshot_every_s / 4) / settings.clock_rate)
 
 
-def snapshot_timer(sink: HistorySink, now_ms: Callable[[], int], grace_ms: int
-                   ) -> Callable[[], Awaitable[None]]:
+def snapshot_timer(
+    sink: HistorySink, now_ms: Callable[[], int], grace_ms: int
+) -> Callable[[], Awaitable[None]]:
     """One tick: repair what late events invalidated (a bounded step), build the snapshots
     due by the service's clock, then the retention step (the anchor snapshot first, so the
     floor crosses the boundary; partitions older than its day dropped)."""
@@ -109,8 +113,9 @@ def _faust_credentials(settings: Settings):
         ca_file = str(settings.kafka_ssl_ca_file) if settings.kafka_ssl_ca_file else None
         ssl_context = ssl.create_default_context(cafile=ca_file)
         if settings.kafka_ssl_cert_file and settings.kafka_ssl_key_file:  # mutual TLS
-            ssl_context.load_cert_chain(str(settings.kafka_ssl_cert_file),
-                                        str(settings.kafka_ssl_key_file))
+            ssl_context.load_cert_chain(
+                str(settings.kafka_ssl_cert_file), str(settings.kafka_ssl_key_file)
+            )
     if settings.kafka_username and settings.kafka_password:
         return faust.SASLCredentials(
             username=settings.kafka_username,

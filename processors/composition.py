@@ -110,14 +110,27 @@ def compose_processors(settings: Settings, store: HistoryStore) -> Processors:
     # (history_consumer.py says why); faust runs it, the dead letters, and the timers.
     batch, within = settings.sink_batch_size, settings.sink_batch_seconds
     source = KafkaBatchSource(
-        settings, [settings.topic_chunk_events, settings.topic_pose_events,
-                   settings.topic_meta_events, settings.topic_annotation_events,
-                   settings.topic_command_events],
+        settings,
+        [
+            settings.topic_chunk_events,
+            settings.topic_pose_events,
+            settings.topic_meta_events,
+            settings.topic_annotation_events,
+            settings.topic_command_events,
+        ],
         group_id=f"{app.conf.id}-history",
-        contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events])
-    consumer = HistoryConsumer(source, sink, views, batch, within,
-                               min_batch_seconds=settings.sink_batch_min_seconds,
-                               views_seconds=settings.sink_views_seconds, now_ms=now_ms)
+        contiguous_topics=[settings.topic_chunk_events, settings.topic_pose_events],
+    )
+    consumer = HistoryConsumer(
+        source,
+        sink,
+        views,
+        batch,
+        within,
+        min_batch_seconds=settings.sink_batch_min_seconds,
+        views_seconds=settings.sink_views_seconds,
+        now_ms=now_ms,
+    )
     source.on_assigned = consumer.on_assigned
     source.on_commit_failed = COMMIT_FAILURES.inc
     # faust's hint names a Service class; an instance is run as it is.
@@ -125,8 +138,10 @@ def compose_processors(settings: Settings, store: HistoryStore) -> Processors:
 
     dl_topic = app.topic(settings.topic_dead_letter, value_type=bytes, key_type=bytes)
     app.agent(dl_topic, name="history-dead-letters")(
-        dead_letter_agent(sink, settings.topic_dead_letter, batch, within, now_ms))
+        dead_letter_agent(sink, settings.topic_dead_letter, batch, within, now_ms)
+    )
 
     app.timer(snapshot_tick_s(settings), on_leader=True)(
-        snapshot_timer(sink, now_ms, int(settings.snapshot_grace_s * 1000)))
+        snapshot_timer(sink, now_ms, int(settings.snapshot_grace_s * 1000))
+    )
     return Processors(app, store_thread, sink, views, consumer, live)

@@ -15,15 +15,17 @@ class ConflictStore(ConflictReader, HistoryWriter, Protocol):
     """What recording conflicts needs: the stored neighbours and the conflicts' writer."""
 
 
-def record_conflicts(store: ConflictStore, new: list[ChunkRow], window_ms: int,
-                     recent: RecentWrites | None = None) -> int:
+def record_conflicts(
+    store: ConflictStore, new: list[ChunkRow], window_ms: int, recent: RecentWrites | None = None
+) -> int:
     """After `new` writes are stored: writes every conflict they create or change;
     returns how many rows it wrote. Blocking: call from the store's thread."""
     return write_conflicts(store, find_conflicts(store, new, window_ms, recent), recent)
 
 
-def find_conflicts(store: ConflictReader, new: list[ChunkRow], window_ms: int,
-                   recent: RecentWrites | None = None) -> list[ConflictRow]:
+def find_conflicts(
+    store: ConflictReader, new: list[ChunkRow], window_ms: int, recent: RecentWrites | None = None
+) -> list[ConflictRow]:
     """After `new` writes are stored: every conflict they create or change, except rows
     `recent` saw written unchanged. Neighbours come from `recent` where it covers them,
     else from the store (blocking: call from the store's thread)."""
@@ -44,8 +46,9 @@ def find_conflicts(store: ConflictReader, new: list[ChunkRow], window_ms: int,
     return rows if recent is None else recent.unrecorded(rows)
 
 
-def write_conflicts(store: HistoryWriter, rows: list[ConflictRow],
-                    recent: RecentWrites | None = None) -> int:
+def write_conflicts(
+    store: HistoryWriter, rows: list[ConflictRow], recent: RecentWrites | None = None
+) -> int:
     """Stores `rows` (found by `find_conflicts`) and tells `recent` they are written;
     returns how many."""
     store.append_conflicts(rows)

@@ -21,8 +21,8 @@ import structlog
 from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.adapters.clock import SystemClock
-from mapservice.runtime.health import Heartbeat
 from mapservice.core.ports import EventSource, SourceRecord
+from mapservice.runtime.health import Heartbeat
 from mapservice.runtime.retry import until_done
 
 from .batch_window import batch_window, smoothed
@@ -34,22 +34,35 @@ if TYPE_CHECKING:
 
 log = structlog.get_logger(__name__)
 
-COMMIT_FAILURES = Counter("mapservice_sink_commit_failures_total",
-                          "Batches stored but not committed (they will be re-delivered)")
+COMMIT_FAILURES = Counter(
+    "mapservice_sink_commit_failures_total",
+    "Batches stored but not committed (they will be re-delivered)",
+)
 # End to end, per stored event: from the robot's timestamp (includes its clock's skew) and
 # from the gateway's receive time (the service's own latency) to the moment the insert
 # holding it returned, i.e. to queryable.
 _LATENCY_BUCKETS = (0.05, 0.1, 0.25, 0.5, 1, 2, 5, 10, 30, 60, 300, 3600)
-EVENT_TO_STORED = Histogram("mapservice_event_to_stored_seconds",
-                            "Robot event time to stored in the history, per event", ["topic"],
-                            buckets=_LATENCY_BUCKETS)
-RECEIVED_TO_STORED = Histogram("mapservice_received_to_stored_seconds",
-                               "Gateway receive time to stored in the history, per event", ["topic"],
-                               buckets=_LATENCY_BUCKETS)
-BATCH_WINDOW = Gauge("mapservice_sink_batch_window_seconds",
-                     "How long the history consumer now collects a batch (batch_window.py)")
-BATCH_EVENTS = Histogram("mapservice_sink_batch_events", "Events per stored batch",
-                         buckets=(1, 10, 50, 100, 250, 500, 1000, 2000, 5000))
+EVENT_TO_STORED = Histogram(
+    "mapservice_event_to_stored_seconds",
+    "Robot event time to stored in the history, per event",
+    ["topic"],
+    buckets=_LATENCY_BUCKETS,
+)
+RECEIVED_TO_STORED = Histogram(
+    "mapservice_received_to_stored_seconds",
+    "Gateway receive time to stored in the history, per event",
+    ["topic"],
+    buckets=_LATENCY_BUCKETS,
+)
+BATCH_WINDOW = Gauge(
+    "mapservice_sink_batch_window_seconds",
+    "How long the history consumer now collects a batch (batch_window.py)",
+)
+BATCH_EVENTS = Histogram(
+    "mapservice_sink_batch_events",
+    "Events per stored batch",
+    buckets=(1, 10, 50, 100, 250, 500, 1000, 2000, 5000),
+)
 
 
 def observe_stored(topic: str, events: Sequence, now_ms: int) -> None:
@@ -61,9 +74,13 @@ def observe_stored(topic: str, events: Sequence, now_ms: int) -> None:
         receive_hist.observe(max(0.0, (now_ms - e.receive_time_ms) / 1000))
 
 
-async def store_values(sink: HistorySink, views: LiveViews | None,
-                       values_by_topic: Mapping[str, Sequence[bytes]], now_ms: int,
-                       clock_ms: Callable[[], int] = SystemClock().now_ms) -> list:
+async def store_values(
+    sink: HistorySink,
+    views: LiveViews | None,
+    values_by_topic: Mapping[str, Sequence[bytes]],
+    now_ms: int,
+    clock_ms: Callable[[], int] = SystemClock().now_ms,
+) -> list:
     """Decodes a batch, stores its events in one append, then feeds the live stream and
     the views; bad records become dead letters. Returns the stored events, whose derived
     pose views (`HistorySink.derive_until_done`) and conflicts (`LiveViews.write_conflicts`)
@@ -119,11 +136,18 @@ class HistoryConsumer:
     re-delivers up to that much more (stored once: the history's identities absorb it).
     """
 
-    def __init__(self, source: EventSource, sink: HistorySink, views: LiveViews | None,
-                 batch_size: int, batch_seconds: float, min_batch_seconds: float | None = None,
-                 now_ms: Callable[[], int] = SystemClock().now_ms,
-                 monotonic: Callable[[], float] = time.monotonic,
-                 views_seconds: float = 1.0) -> None:
+    def __init__(
+        self,
+        source: EventSource,
+        sink: HistorySink,
+        views: LiveViews | None,
+        batch_size: int,
+        batch_seconds: float,
+        min_batch_seconds: float | None = None,
+        now_ms: Callable[[], int] = SystemClock().now_ms,
+        monotonic: Callable[[], float] = time.monotonic,
+        views_seconds: float = 1.0,
+    ) -> None:
         self.source = source
         self.sink = sink
         self.views = views
@@ -186,7 +210,8 @@ class HistoryConsumer:
         """One batch: poll, store, and (when due) derive the pose views and commit.
         Returns how many records it handled."""
         records: list[SourceRecord] = await self._call(
-            self.source.poll, self.batch_size, self.poll_timeout())
+            self.source.poll, self.batch_size, self.poll_timeout()
+        )
         self._last_poll_returned = self.monotonic()
         if self.assigned:
             self.assigned = False
@@ -215,8 +240,10 @@ class HistoryConsumer:
             self._uncommitted[(r.topic, r.partition)] = r
         if self._underived_since is None:
             self._underived_since = self.monotonic()
-        if (self.monotonic() - self._underived_since >= self.views_seconds
-                or len(self._underived) >= self.batch_size):
+        if (
+            self.monotonic() - self._underived_since >= self.views_seconds
+            or len(self._underived) >= self.batch_size
+        ):
             await self.settle()
         return len(records)
 
@@ -251,9 +278,12 @@ class HistoryConsumer:
                 await self.views.store_thread.run(self.views.write_conflicts)
             await self.settle()
         except Exception as exc:  # noqa: BLE001 - anything the store raises; logged, re-delivered
-            log.warning("could not derive the pose views or write the conflicts on stop; "
-                        "their events will be delivered again", events=len(self._underived),
-                        error=str(exc))
+            log.warning(
+                "could not derive the pose views or write the conflicts on stop; "
+                "their events will be delivered again",
+                events=len(self._underived),
+                error=str(exc),
+            )
 
     async def run(self, stopping: asyncio.Event) -> None:
         await self.start()

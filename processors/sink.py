@@ -20,30 +20,46 @@ from .store_thread import StoreThread
 log = structlog.get_logger(__name__)
 
 STORED = Counter("mapservice_sink_events_total", "Events appended to the history", ["topic"])
-INSERT_SECONDS = Histogram("mapservice_sink_insert_seconds", "Duration of one history insert",
-                           buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
-DERIVE_SECONDS = Histogram("mapservice_sink_derive_views_seconds",
-                           "Duration of one insert into the derived pose views (many batches)",
-                           buckets=(0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
-INSERT_FAILURES = Counter("mapservice_sink_insert_failures_total", "Inserts that failed and were retried")
+INSERT_SECONDS = Histogram(
+    "mapservice_sink_insert_seconds",
+    "Duration of one history insert",
+    buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5),
+)
+DERIVE_SECONDS = Histogram(
+    "mapservice_sink_derive_views_seconds",
+    "Duration of one insert into the derived pose views (many batches)",
+    buckets=(0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5),
+)
+INSERT_FAILURES = Counter(
+    "mapservice_sink_insert_failures_total", "Inserts that failed and were retried"
+)
 # The state behind readiness's `history_store` (mapservice/runtime/insert_health.py): a
 # counter of failures cannot say whether the history is being stored now.
-INSERT_FAILING = Gauge("mapservice_history_insert_failing",
-                       "1 while history inserts fail and are retried (nothing new is stored), "
-                       "0 once one succeeds")
-INSERT_FAILING_SINCE = Gauge("mapservice_history_insert_failing_since_timestamp_seconds",
-                             "Unix time of the first failed history insert of the current "
-                             "failure; 0 while inserts succeed")
-LAST_INSERT = Gauge("mapservice_history_last_insert_timestamp_seconds",
-                    "Unix time of the last successful history insert (0: none yet)")
+INSERT_FAILING = Gauge(
+    "mapservice_history_insert_failing",
+    "1 while history inserts fail and are retried (nothing new is stored), 0 once one succeeds",
+)
+INSERT_FAILING_SINCE = Gauge(
+    "mapservice_history_insert_failing_since_timestamp_seconds",
+    "Unix time of the first failed history insert of the current failure; 0 while inserts succeed",
+)
+LAST_INSERT = Gauge(
+    "mapservice_history_last_insert_timestamp_seconds",
+    "Unix time of the last successful history insert (0: none yet)",
+)
 
 
 class HistorySink:
     """Stores on `thread`, the one that talks to the store (store_thread.py; a thread of
     its own when none is given), and records whether the inserts succeed."""
 
-    def __init__(self, store: HistoryStore, live: LiveFeed | None = None,
-                 health: InsertHealth | None = None, thread: StoreThread | None = None) -> None:
+    def __init__(
+        self,
+        store: HistoryStore,
+        live: LiveFeed | None = None,
+        health: InsertHealth | None = None,
+        thread: StoreThread | None = None,
+    ) -> None:
         self.store = store
         self.live = live
         self.thread = thread or StoreThread()
@@ -64,8 +80,11 @@ class HistorySink:
             await self.run(fn, batch)
         except Exception as exc:  # noqa: BLE001 - whatever the store raises; the caller retries
             if self.health.failed(exc, what):
-                log.error("history not stored: inserts fail; retried until they succeed, "
-                          "nothing unstored is committed", reason=self.health.reason())
+                log.error(
+                    "history not stored: inserts fail; retried until they succeed, "
+                    "nothing unstored is committed",
+                    reason=self.health.reason(),
+                )
             raise
         if (failed_s := self.health.stored(what)) is not None:
             log.warning("history stored again: inserts succeed", failed_s=round(failed_s, 1))
@@ -74,8 +93,9 @@ class HistorySink:
         """Stores `batch` with `fn`, retrying until it is in; then counts it as stored,
         per topic (`counts`: how many of the batch came from each topic)."""
         # Retried, never skipped: acknowledging a batch that is not stored would lose it.
-        async for attempt in until_done("history insert", 0.2, INSERT_FAILURES.inc,
-                                        topics=sorted(counts), batch=len(batch)):
+        async for attempt in until_done(
+            "history insert", 0.2, INSERT_FAILURES.inc, topics=sorted(counts), batch=len(batch)
+        ):
             with attempt:
                 started = time.monotonic()
                 await self._insert(fn, batch)
@@ -87,7 +107,9 @@ class HistorySink:
         """Brings the derived pose views up to a stored `batch`, retrying until it is done
         (its offsets are committed after this: a batch whose views are missing is never
         acknowledged)."""
-        async for attempt in until_done("history views", 0.2, INSERT_FAILURES.inc, batch=len(batch)):
+        async for attempt in until_done(
+            "history views", 0.2, INSERT_FAILURES.inc, batch=len(batch)
+        ):
             with attempt:
                 started = time.monotonic()
                 await self._insert(self.store.derive_views, batch)
@@ -102,9 +124,16 @@ def split_events(values: Iterable[bytes], now_ms: int) -> tuple[list[Envelope], 
         try:
             events.append(decode(value))
         except (msgspec.DecodeError, TypeError, UnicodeDecodeError) as exc:
-            bad.append(DeadLetter(reason="undecodable_event", detail=str(exc)[:500],
-                                  mqtt_topic="", payload=value or b"", receive_time_ms=now_ms,
-                                  gateway="processors"))
+            bad.append(
+                DeadLetter(
+                    reason="undecodable_event",
+                    detail=str(exc)[:500],
+                    mqtt_topic="",
+                    payload=value or b"",
+                    receive_time_ms=now_ms,
+                    gateway="processors",
+                )
+            )
     return events, bad
 
 
@@ -114,7 +143,14 @@ def decode_dead_letters(values: Iterable[bytes], now_ms: int) -> list[DeadLetter
         try:
             out.append(decode_dead_letter(value))
         except (msgspec.DecodeError, TypeError, UnicodeDecodeError) as exc:
-            out.append(DeadLetter(reason="undecodable_dead_letter", detail=str(exc)[:500],
-                                  mqtt_topic="", payload=value or b"", receive_time_ms=now_ms,
-                                  gateway="processors"))
+            out.append(
+                DeadLetter(
+                    reason="undecodable_dead_letter",
+                    detail=str(exc)[:500],
+                    mqtt_topic="",
+                    payload=value or b"",
+                    receive_time_ms=now_ms,
+                    gateway="processors",
+                )
+            )
     return out

@@ -21,16 +21,22 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Protocol
 
 import structlog
-from prometheus_client import Counter, Gauge, Histogram
-
-from mapservice.adapters.clock import SystemClock
-from mapservice.core.conflicts import RecentWrites
 from mapservice.processors.conflict_recorder import (
     UnwrittenConflicts,
     find_conflicts,
     write_conflicts,
 )
-from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, Zone, zone_advertisement
+from mapservice.processors.zone_watch import KeepOutWatch
+from prometheus_client import Counter, Gauge, Histogram
+
+from mapservice.adapters.clock import SystemClock
+from mapservice.core.annotations import (
+    ANNOTATION_EVENTS,
+    AnnotationRemoved,
+    Zone,
+    zone_advertisement,
+)
+from mapservice.core.conflicts import RecentWrites
 from mapservice.core.events import ChunkUpdated, Envelope, pose_of
 from mapservice.core.liveview import (
     RobotState,
@@ -40,7 +46,6 @@ from mapservice.core.liveview import (
     online_robots,
 )
 from mapservice.core.ports import ChunkRow, HistoryStore
-from mapservice.processors.zone_watch import KeepOutWatch
 from mapservice.runtime.retry import until_done
 from mapservice.settings import Settings
 
@@ -50,23 +55,30 @@ log = structlog.get_logger(__name__)
 
 CONFLICTS = Counter("mapservice_conflicts_recorded_total", "Conflict rows written to the history")
 # Both on the store thread, where the next batch waits for them.
-CONFLICT_CHECK_SECONDS = Histogram("mapservice_conflicts_check_seconds",
-                                   "Duration of finding one stored batch's conflicts",
-                                   buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1))
-CONFLICT_WRITE_SECONDS = Histogram("mapservice_conflicts_write_seconds",
-                                   "Duration of one insert of the conflicts found since the last",
-                                   buckets=(0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1))
+CONFLICT_CHECK_SECONDS = Histogram(
+    "mapservice_conflicts_check_seconds",
+    "Duration of finding one stored batch's conflicts",
+    buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1),
+)
+CONFLICT_WRITE_SECONDS = Histogram(
+    "mapservice_conflicts_write_seconds",
+    "Duration of one insert of the conflicts found since the last",
+    buckets=(0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1),
+)
 VIEW_CHANGES = Counter("mapservice_latest_map_changes_total", "Changes of the live latest map")
-ADS_DROPPED = Counter("mapservice_advertisements_dropped_total",
-                      "Advertisements dropped because too many were waiting to be encoded")
+ADS_DROPPED = Counter(
+    "mapservice_advertisements_dropped_total",
+    "Advertisements dropped because too many were waiting to be encoded",
+)
 MAX_PENDING_ADS = 10_000
 # Conflict neighbours of live batches come from memory (mapservice.core.conflicts.RecentWrites)
 # when the window is short enough to keep its writes; older ones from the store.
 RECENT_MAX_WINDOW_MS = 600_000
 RECENT_SLACK_MS = 120_000
 RECENT_MAX_ROWS = 200_000
-ZONE_VIOLATIONS = Counter("mapservice_zone_violations_total",
-                          "Stored poses found inside a keep-out zone")
+ZONE_VIOLATIONS = Counter(
+    "mapservice_zone_violations_total", "Stored poses found inside a keep-out zone"
+)
 ROBOTS_ONLINE = Gauge("mapservice_robots_online", "Robots heard from within robot_offline_after_s")
 
 
@@ -81,9 +93,14 @@ class Advertiser(Protocol):
 
 
 class LiveViews:
-    def __init__(self, settings: Settings, store: HistoryStore, advertiser: Advertiser | None,
-                 store_thread: StoreThread,
-                 now_ms: Callable[[], int] = SystemClock().now_ms) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        store: HistoryStore,
+        advertiser: Advertiser | None,
+        store_thread: StoreThread,
+        now_ms: Callable[[], int] = SystemClock().now_ms,
+    ) -> None:
         self.settings = settings
         self.store = store
         # The processors' one thread for store calls: the history's inserts go through it
@@ -113,12 +130,25 @@ class LiveViews:
         """Rebuilds both views from the history (latest over all stored event times)."""
         horizon = self.now_ms() + int(self.settings.max_future_skew_s * 1000) + 86_400_000
         latest = {(c.row, c.column): c for c in self.store.map_at(horizon)}
-        robots = {p.robot_id: RobotState(p.robot_id, p.ts_ms, p.receive_time_ms, p.receive_time_ms,
-                                         (p.x, p.y, p.z), p.battery_level, p.charging, p.loaded)
-                  for p in self.store.robots_at(horizon)}
+        robots = {
+            p.robot_id: RobotState(
+                p.robot_id,
+                p.ts_ms,
+                p.receive_time_ms,
+                p.receive_time_ms,
+                (p.x, p.y, p.z),
+                p.battery_level,
+                p.charging,
+                p.loaded,
+            )
+            for p in self.store.robots_at(horizon)
+        }
         self.latest, self.robots = latest, robots
-        self.zone_ids = {c.annotation_id for c in self.store.annotations_at(horizon)
-                         if isinstance(c.annotation, Zone)}
+        self.zone_ids = {
+            c.annotation_id
+            for c in self.store.annotations_at(horizon)
+            if isinstance(c.annotation, Zone)
+        }
         self.keep_out.rebuild(self.store, horizon)
         self.recent = self._load_recent()
         self.loaded = True
@@ -132,8 +162,11 @@ class LiveViews:
             return None
         now = self.now_ms()
         since = now - self._recent_span_ms()
-        rows = self.store.chunk_events(since, now + int(self.settings.max_future_skew_s * 1000) + 86_400_000,
-                                       limit=RECENT_MAX_ROWS)
+        rows = self.store.chunk_events(
+            since,
+            now + int(self.settings.max_future_skew_s * 1000) + 86_400_000,
+            limit=RECENT_MAX_ROWS,
+        )
         if len(rows) >= RECENT_MAX_ROWS:
             return None  # too busy to hold in memory: every batch asks the store
         self._recent_pruned_ms = now
@@ -142,9 +175,18 @@ class LiveViews:
     def find_conflicts(self, events: Sequence[Envelope]) -> int:
         """Finds every conflict the stored batch creates or changes, for `write_conflicts`;
         returns how many rows now wait to be written."""
-        new = [ChunkRow(e.payload.row, e.payload.column, e.event_time_ms, e.robot_id,
-                        e.payload.content_hash.hex(), e.receive_time_ms)
-               for e in events if isinstance(e.payload, ChunkUpdated)]
+        new = [
+            ChunkRow(
+                e.payload.row,
+                e.payload.column,
+                e.event_time_ms,
+                e.robot_id,
+                e.payload.content_hash.hex(),
+                e.receive_time_ms,
+            )
+            for e in events
+            if isinstance(e.payload, ChunkUpdated)
+        ]
         now = self.now_ms()
         if self.recent is not None and now - self._recent_pruned_ms > 10_000:
             self.recent.forget_before(now - self._recent_span_ms())
@@ -206,8 +248,13 @@ class LiveViews:
         else:
             self.zone_ids.discard(p.annotation_id)
         if (was_zone or is_zone) and self.advertiser is not None:
-            ad = zone_advertisement(p.annotation_id, e.type.removeprefix("annotation."),
-                                    e.event_time_ms, p.author, self.settings.public_base_url)
+            ad = zone_advertisement(
+                p.annotation_id,
+                e.type.removeprefix("annotation."),
+                e.event_time_ms,
+                p.author,
+                self.settings.public_base_url,
+            )
             self._ad_thread.submit(self._publish_zone, ad)
         return was_zone or is_zone
 
@@ -252,8 +299,13 @@ class LiveViews:
             log.info("robot online", robot=robot)
         for robot in sorted(went):
             state = self.robots.get(robot)  # gone from a rebuilt view if its history is
-            log.info("robot offline", robot=robot, silent_s=None if state is None else
-                     round((self.now_ms() - state.last_seen_ms) / 1000, 1))
+            log.info(
+                "robot offline",
+                robot=robot,
+                silent_s=None
+                if state is None
+                else round((self.now_ms() - state.last_seen_ms) / 1000, 1),
+            )
         self.online = online
         ROBOTS_ONLINE.set(len(online))
         return came, went

@@ -33,17 +33,22 @@ import numpy as np
 import structlog
 import yaml
 
-from mapservice.core.events import MapMetaSet
-from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, write_pgm
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, write_pgm
+from mapservice.core.events import MapMetaSet
+from mapservice.core.wire2019 import (
+    content_hash,
+    encode_chunk_create,
+    encode_coordinates,
+    format_timestamp,
+)
 
 from .api_client import api_client, writer_token
-from .connection import RobotMqtt, robot_mqtt_from_args
-from .commands import CommandInbox, SimCommands, command_topic, refusals
 from .chunks import chunk_pixels, meta_to_json, paste_chunk
-from .map_upload import stored_meta
+from .commands import CommandInbox, SimCommands, command_topic, refusals
+from .connection import RobotMqtt, robot_mqtt_from_args
 from .faults import yaw_quaternion
+from .map_upload import stored_meta
 
 log = structlog.get_logger("robot")
 
@@ -67,8 +72,11 @@ class LocalMap:
 
     @classmethod
     def of(cls, ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100) -> LocalMap:
-        local = cls(ros_map.pixels.copy(), meta_for(ros_map, chunk_width, chunk_height),
-                    ros_map.unknown_value)
+        local = cls(
+            ros_map.pixels.copy(),
+            meta_for(ros_map, chunk_width, chunk_height),
+            ros_map.unknown_value,
+        )
         local.mark_all_known()
         return local
 
@@ -95,7 +103,9 @@ class LocalMap:
             if digest == known_hash:
                 continue
             if known and len(known) == len(data):
-                changed = np.count_nonzero(np.frombuffer(data, np.uint8) != np.frombuffer(known, np.uint8))
+                changed = np.count_nonzero(
+                    np.frombuffer(data, np.uint8) != np.frombuffer(known, np.uint8)
+                )
                 if changed <= threshold * len(data):
                     continue  # small noise: keep comparing against what the service holds
             self.known[rc] = (digest, data)
@@ -131,12 +141,18 @@ def decode_chunk_doc(doc: dict) -> tuple[int, int, bytes]:
 
 def chunk_body(row: int, column: int, data: bytes, robot_id: str, t_ms: int) -> dict:
     """Listing 10: the JSON a robot POSTs to /api/chunk-service/chunks."""
-    return msgspec.json.decode(encode_chunk_create(row, column, data, format_timestamp(t_ms), robot_id))
+    return msgspec.json.decode(
+        encode_chunk_create(row, column, data, format_timestamp(t_ms), robot_id)
+    )
 
 
 def compatible(local: MapMetaSet, remote: MapMetaSet) -> bool:
     return (local.width, local.height, local.chunk_width, local.chunk_height) == (
-        remote.width, remote.height, remote.chunk_width, remote.chunk_height)
+        remote.width,
+        remote.height,
+        remote.chunk_width,
+        remote.chunk_height,
+    )
 
 
 # --- pose sources ----------------------------------------------------------------------------
@@ -173,8 +189,7 @@ class SimulatedPose:
             before = self.commands.before_step(self.state)
             self.state, out = self.commands.after_step(before, *step(before))
         p = out.poses[0]
-        return PoseReading(p.x, p.y, yaw_quaternion(p.yaw), p.battery, p.charging, p.loaded,
-                           p.path)
+        return PoseReading(p.x, p.y, yaw_quaternion(p.yaw), p.battery, p.charging, p.loaded, p.path)
 
 
 def parse_odometry(data: bytes) -> PoseReading | None:
@@ -188,11 +203,14 @@ def parse_odometry(data: bytes) -> PoseReading | None:
         pos, ori = pose["position"], pose.get("orientation") or {"x": 0, "y": 0, "z": 0, "w": 1}
         status = doc.get("status") or {}
         battery = (status.get("battery") or {}) if isinstance(status, dict) else {}
-        return PoseReading(float(pos["x"]), float(pos["y"]),
-                           (float(ori["x"]), float(ori["y"]), float(ori["z"]), float(ori["w"])),
-                           float(battery.get("battery_level", doc.get("battery", 100.0))),
-                           bool(battery.get("charging", doc.get("charging", False))),
-                           bool(status.get("loaded", doc.get("loaded", False))))
+        return PoseReading(
+            float(pos["x"]),
+            float(pos["y"]),
+            (float(ori["x"]), float(ori["y"]), float(ori["z"]), float(ori["w"])),
+            float(battery.get("battery_level", doc.get("battery", 100.0))),
+            bool(battery.get("charging", doc.get("charging", False))),
+            bool(status.get("loaded", doc.get("loaded", False))),
+        )
     except (msgspec.DecodeError, KeyError, TypeError, ValueError, AttributeError):
         return None
 
@@ -229,11 +247,22 @@ class OdometryPose:
 
 
 class RobotAgent:
-    def __init__(self, map_yaml: str | Path, robot_id: str, api_url: str, mqtt_url: str, *,
-                 pose_source=None, threshold: float = 0.0, period_s: float = 1.0,
-                 chunk_width: int = 100, chunk_height: int = 100,
-                 http: httpx.Client | None = None, token: str | None = None,
-                 mqtt_conn: RobotMqtt | None = None) -> None:
+    def __init__(
+        self,
+        map_yaml: str | Path,
+        robot_id: str,
+        api_url: str,
+        mqtt_url: str,
+        *,
+        pose_source=None,
+        threshold: float = 0.0,
+        period_s: float = 1.0,
+        chunk_width: int = 100,
+        chunk_height: int = 100,
+        http: httpx.Client | None = None,
+        token: str | None = None,
+        mqtt_conn: RobotMqtt | None = None,
+    ) -> None:
         self.map_yaml = Path(map_yaml)
         self.ros_map = load_ros_map(self.map_yaml)
         doc = yaml.safe_load(self.map_yaml.read_text())
@@ -267,8 +296,13 @@ class RobotAgent:
 
     def _write_map(self) -> None:
         tmp = self.image_path.with_name(f".{self.image_path.name}.{os.getpid()}.tmp")
-        write_pgm(tmp, self.local.pixels, magic=self.ros_map.magic, comment=self.ros_map.comment,
-                  maxval=self.ros_map.max_brightness)
+        write_pgm(
+            tmp,
+            self.local.pixels,
+            magic=self.ros_map.magic,
+            comment=self.ros_map.comment,
+            maxval=self.ros_map.max_brightness,
+        )
         os.replace(tmp, self.image_path)  # readers never see half a map
         self._file_sig = self._signature()
 
@@ -301,23 +335,34 @@ class RobotAgent:
             for row, column in self.local.cells():
                 body = chunk_body(row, column, self.local.chunk(row, column), self.robot_id, now)
                 self.http.post(CHUNKS_PATH, json=body).raise_for_status()
-            log.info("uploaded map", robot=self.robot_id,
-                     chunks=self.local.meta.chunk_rows * self.local.meta.chunk_cols)
+            log.info(
+                "uploaded map",
+                robot=self.robot_id,
+                chunks=self.local.meta.chunk_rows * self.local.meta.chunk_cols,
+            )
             return "uploaded"
         if not compatible(self.local.meta, remote):
             raise RuntimeError(
                 f"the service's map is {remote.width} x {remote.height} px in {remote.chunk_width}"
                 f" x {remote.chunk_height} chunks, this robot's is {self.local.meta.width} x "
                 f"{self.local.meta.height} in {self.local.meta.chunk_width} x "
-                f"{self.local.meta.chunk_height}; use the same map")
+                f"{self.local.meta.chunk_height}; use the same map"
+            )
         self.download_map()
         return "downloaded"
 
     def download_map(self) -> int:
         page, skip, count = 1000, 0, 0
         while True:
-            resp = self.http.get(CHUNKS_PATH, params={"latest": "true", "limit": page, "skip": skip,
-                                                      "type": "pgm_base64_compressed"})
+            resp = self.http.get(
+                CHUNKS_PATH,
+                params={
+                    "latest": "true",
+                    "limit": page,
+                    "skip": skip,
+                    "type": "pgm_base64_compressed",
+                },
+            )
             resp.raise_for_status()
             docs = resp.json()
             for doc in docs:
@@ -344,9 +389,13 @@ class RobotAgent:
     def answer_commands(self) -> int:
         """Publishes the acks and outcomes of the commands taken since the last tick."""
         commands = getattr(self.pose_source, "commands", None)
-        answers = (commands.drain() if commands is not None else
-                   refusals(self.inbox, "this robot's pose comes from its odometry; the agent "
-                                        "cannot drive it"))
+        answers = (
+            commands.drain()
+            if commands is not None
+            else refusals(
+                self.inbox, "this robot's pose comes from its odometry; the agent cannot drive it"
+            )
+        )
         for answer in answers:
             self.client.publish(answer.topic, answer.payload, qos=1)
         return len(answers)
@@ -383,8 +432,15 @@ class RobotAgent:
                 if advert.get("robotId") == self.robot_id:
                     continue
                 changed += self.local.integrate(*self._fetch_advertised(advert))
-            except (msgspec.DecodeError, KeyError, TypeError, ValueError, AttributeError,
-                    zlib.error, httpx.HTTPError) as exc:
+            except (
+                msgspec.DecodeError,
+                KeyError,
+                TypeError,
+                ValueError,
+                AttributeError,
+                zlib.error,
+                httpx.HTTPError,
+            ) as exc:
                 self.stats["errors"] += 1
                 log.warning("advertisement not integrated", error=str(exc))
         if changed:
@@ -403,7 +459,9 @@ class RobotAgent:
         except httpx.HTTPError:
             if "chunk" not in advert:
                 raise
-            log.warning("chunkUrl unreadable; using the advertisement's copy", url=advert["chunkUrl"])
+            log.warning(
+                "chunkUrl unreadable; using the advertisement's copy", url=advert["chunkUrl"]
+            )
             return decode_chunk_doc(advert)
 
     def publish_local_changes(self) -> int:
@@ -414,8 +472,11 @@ class RobotAgent:
         now = time.time_ns() // 1_000_000
         changes = self.local.changes(self.local.pixels, self.threshold)
         for row, column, data in changes:
-            self.client.publish(self.conn.chunk_topic(self.robot_id), encode_chunk_create(
-                row, column, data, format_timestamp(now), self.robot_id), qos=1)
+            self.client.publish(
+                self.conn.chunk_topic(self.robot_id),
+                encode_chunk_create(row, column, data, format_timestamp(now), self.robot_id),
+                qos=1,
+            )
         if changes:
             self.stats["published_chunks"] += len(changes)
             log.info("published local changes", robot=self.robot_id, chunks=len(changes))
@@ -426,10 +487,21 @@ class RobotAgent:
         if reading is None:
             return False
         now = time.time_ns() // 1_000_000
-        self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
-            self.robot_id, format_timestamp(now), reading.x, reading.y, reading.yaw_q,
-            battery_level=reading.battery, charging=reading.charging, loaded=reading.loaded,
-            path=list(reading.path) if reading.path else None), qos=1)
+        self.client.publish(
+            f"iot/coordinates/{self.robot_id}",
+            encode_coordinates(
+                self.robot_id,
+                format_timestamp(now),
+                reading.x,
+                reading.y,
+                reading.yaw_q,
+                battery_level=reading.battery,
+                charging=reading.charging,
+                loaded=reading.loaded,
+                path=list(reading.path) if reading.path else None,
+            ),
+            qos=1,
+        )
         self.stats["poses"] += 1
         return True
 
@@ -469,11 +541,19 @@ def main(args) -> None:
             source = OdometryPose(args.odom_mqtt or args.mqtt, args.odom_topic)
         else:
             source = SimulatedPose(ros_map, args.robot_id)
-        agent = RobotAgent(args.map, args.robot_id, args.api, args.mqtt, pose_source=source,
-                           threshold=args.threshold, period_s=args.period,
-                           chunk_width=args.chunk_width, chunk_height=args.chunk_height,
-                           token=writer_token(args.token),
-                           mqtt_conn=robot_mqtt_from_args(args, args.mqtt))
+        agent = RobotAgent(
+            args.map,
+            args.robot_id,
+            args.api,
+            args.mqtt,
+            pose_source=source,
+            threshold=args.threshold,
+            period_s=args.period,
+            chunk_width=args.chunk_width,
+            chunk_height=args.chunk_height,
+            token=writer_token(args.token),
+            mqtt_conn=robot_mqtt_from_args(args, args.mqtt),
+        )
         signal.signal(signal.SIGTERM, lambda *_: agent.stop())
         how = agent.start()
         log.info("robot started", robot=args.robot_id, map=how, api=args.api, mqtt=args.mqtt)

@@ -32,8 +32,11 @@ def writer_token(explicit: str | None = None) -> str | None:
 
 def admin_token(explicit: str | None = None) -> str | None:
     """The admin token to send, or None."""
-    return explicit or os.environ.get("MAPSERVICE_ADMIN_TOKEN") or \
-        stored_secret(data_dir(), ADMIN_TOKEN_FILE)
+    return (
+        explicit
+        or os.environ.get("MAPSERVICE_ADMIN_TOKEN")
+        or stored_secret(data_dir(), ADMIN_TOKEN_FILE)
+    )
 
 
 class RetryAfter(httpx.BaseTransport):
@@ -60,9 +63,17 @@ class RetryAfter(httpx.BaseTransport):
         self.inner.close()
 
 
-def api_client(base_url: str, token: str | None, timeout: float = 30.0,
-               transport: httpx.BaseTransport | None = None) -> httpx.Client:
+def api_client(
+    base_url: str,
+    token: str | None,
+    timeout: float = 30.0,
+    transport: httpx.BaseTransport | None = None,
+) -> httpx.Client:
     """An httpx client for the service's API that sends `token` as a bearer credential."""
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    return httpx.Client(base_url=base_url.rstrip("/"), timeout=timeout, headers=headers,
-                        transport=RetryAfter(transport))
+    return httpx.Client(
+        base_url=base_url.rstrip("/"),
+        timeout=timeout,
+        headers=headers,
+        transport=RetryAfter(transport),
+    )

@@ -14,8 +14,16 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from mapservice.adapters.ros_map import (
+    UNKNOWN,
+    RosMap,
+    load_ros_map,
+    meta_for,
+    read_pgm,
+    slice_chunks,
+    write_pgm,
+)
 from mapservice.core.events import MapMetaSet
-from mapservice.adapters.ros_map import RosMap, UNKNOWN, load_ros_map, meta_for, read_pgm, slice_chunks, write_pgm
 
 META_FILE = "meta.json"
 ROS_FILE = "map.yaml"  # PGM flavour and ROS settings of the sliced map, for stitch to write back
@@ -33,10 +41,14 @@ def meta_from_json(doc: dict) -> MapMetaSet:
     """Reads a 2019 meta.json (with or without resolution/origin)."""
     origin = doc.get("origin")
     return MapMetaSet(
-        width=int(doc["width"]), height=int(doc["height"]),
-        chunk_width=int(doc["CHUNK_WIDTH"]), chunk_height=int(doc["CHUNK_HEIGHT"]),
-        chunk_rows=int(doc["CHUNK_ROWS"]), chunk_cols=int(doc["CHUNK_COLS"]),
-        comment=str(doc.get("comment", "")), max_brightness=str(doc.get("max_brightness", "255")),
+        width=int(doc["width"]),
+        height=int(doc["height"]),
+        chunk_width=int(doc["CHUNK_WIDTH"]),
+        chunk_height=int(doc["CHUNK_HEIGHT"]),
+        chunk_rows=int(doc["CHUNK_ROWS"]),
+        chunk_cols=int(doc["CHUNK_COLS"]),
+        comment=str(doc.get("comment", "")),
+        max_brightness=str(doc.get("max_brightness", "255")),
         resolution=float(doc["resolution"]) if doc.get("resolution") is not None else None,
         origin=tuple(float(v) for v in origin) if origin is not None else None,  # type: ignore[arg-type]
     )
@@ -71,12 +83,13 @@ def chunk_of_pixel(col: int, row: int, meta: MapMetaSet) -> tuple[int, int]:
     return row // meta.chunk_height, col // meta.chunk_width
 
 
-def chunk_pixels(pixels: np.ndarray, meta: MapMetaSet, row: int, column: int,
-                 fill: int = UNKNOWN) -> bytes:
+def chunk_pixels(
+    pixels: np.ndarray, meta: MapMetaSet, row: int, column: int, fill: int = UNKNOWN
+) -> bytes:
     """One chunk of an image (padded with `fill` beyond its edges), as chunk bytes."""
     ch, cw = meta.chunk_height, meta.chunk_width
     out = np.full((ch, cw), fill, dtype=np.uint8)
-    part = pixels[row * ch:(row + 1) * ch, column * cw:(column + 1) * cw]
+    part = pixels[row * ch : (row + 1) * ch, column * cw : (column + 1) * cw]
     out[: part.shape[0], : part.shape[1]] = part
     return out.tobytes()
 
@@ -85,11 +98,13 @@ def paste_chunk(pixels: np.ndarray, meta: MapMetaSet, row: int, column: int, dat
     """Writes chunk bytes into an image in place, dropping the padding beyond its edges."""
     ch, cw = meta.chunk_height, meta.chunk_width
     tile = np.frombuffer(data, dtype=np.uint8).reshape(ch, cw)
-    target = pixels[row * ch:(row + 1) * ch, column * cw:(column + 1) * cw]
+    target = pixels[row * ch : (row + 1) * ch, column * cw : (column + 1) * cw]
     target[...] = tile[: target.shape[0], : target.shape[1]]
 
 
-def stitch(chunks: dict[tuple[int, int], bytes], meta: MapMetaSet, fill: int = UNKNOWN) -> np.ndarray:
+def stitch(
+    chunks: dict[tuple[int, int], bytes], meta: MapMetaSet, fill: int = UNKNOWN
+) -> np.ndarray:
     """The image from its chunks, cropped to the meta's width x height; a missing chunk is
     'unknown'."""
     pixels = np.full((meta.height, meta.width), fill, dtype=np.uint8)
@@ -112,9 +127,14 @@ def load_map_file(path: str | Path) -> RosMap:
     if path.suffix.lower() in (".yaml", ".yml"):
         return load_ros_map(path)
     pixels, header = read_pgm(path)
-    return RosMap(pixels, float("nan"), (float("nan"),) * 3,  # type: ignore[arg-type]
-                  comment="\n".join(header.comments), magic=header.magic,
-                  max_brightness=header.maxval)
+    return RosMap(
+        pixels,
+        float("nan"),
+        (float("nan"),) * 3,  # type: ignore[arg-type]
+        comment="\n".join(header.comments),
+        magic=header.magic,
+        max_brightness=header.maxval,
+    )
 
 
 def _meta(ros_map: RosMap, chunk_width: int, chunk_height: int) -> MapMetaSet:
@@ -126,8 +146,9 @@ def _meta(ros_map: RosMap, chunk_width: int, chunk_height: int) -> MapMetaSet:
     return meta
 
 
-def slice_to_dir(map_path: str | Path, out_dir: str | Path, chunk_width: int = 100,
-                 chunk_height: int = 100) -> MapMetaSet:
+def slice_to_dir(
+    map_path: str | Path, out_dir: str | Path, chunk_width: int = 100, chunk_height: int = 100
+) -> MapMetaSet:
     """Writes meta.json, one PGM per chunk and map.yaml (PGM flavour, ROS thresholds)."""
     if chunk_width < 1 or chunk_height < 1:
         raise ValueError("chunk width and height must be at least 1 pixel")
@@ -136,14 +157,22 @@ def slice_to_dir(map_path: str | Path, out_dir: str | Path, chunk_width: int = 1
     out.mkdir(parents=True, exist_ok=True)
     meta = _meta(ros_map, chunk_width, chunk_height)
     for (row, column), data in slice_chunks(ros_map, chunk_width, chunk_height).items():
-        write_pgm(out / chunk_file(row, column),
-                  np.frombuffer(data, np.uint8).reshape(chunk_height, chunk_width),
-                  maxval=ros_map.max_brightness)
+        write_pgm(
+            out / chunk_file(row, column),
+            np.frombuffer(data, np.uint8).reshape(chunk_height, chunk_width),
+            maxval=ros_map.max_brightness,
+        )
     (out / META_FILE).write_text(json.dumps(meta_to_json(meta), indent=2) + "\n")
     ros = {"pgm_format": ros_map.magic}
     if not math.isnan(ros_map.resolution):
-        ros.update({"mode": ros_map.mode, "negate": ros_map.negate,
-                    "occupied_thresh": ros_map.occupied_thresh, "free_thresh": ros_map.free_thresh})
+        ros.update(
+            {
+                "mode": ros_map.mode,
+                "negate": ros_map.negate,
+                "occupied_thresh": ros_map.occupied_thresh,
+                "free_thresh": ros_map.free_thresh,
+            }
+        )
     (out / ROS_FILE).write_text(yaml.safe_dump(ros, sort_keys=False))
     return meta
 
@@ -171,11 +200,21 @@ def stitch_dir(work_dir: str | Path, out_path: str | Path, *, magic: str | None 
             raise ValueError("meta.json has no resolution/origin: write a .pgm instead")
         from mapservice.adapters.ros_map import save_ros_map
 
-        save_ros_map(RosMap(pixels, meta.resolution, meta.origin, comment=meta.comment,  # type: ignore[arg-type]
-                            negate=negate, occupied_thresh=float(ros.get("occupied_thresh", 0.65)),
-                            free_thresh=float(ros.get("free_thresh", 0.196)),
-                            mode=str(ros.get("mode", "trinary")), magic=magic,
-                            max_brightness=int(meta.max_brightness)), out)
+        save_ros_map(
+            RosMap(
+                pixels,
+                meta.resolution,
+                meta.origin,  # type: ignore[arg-type]
+                comment=meta.comment,
+                negate=negate,
+                occupied_thresh=float(ros.get("occupied_thresh", 0.65)),
+                free_thresh=float(ros.get("free_thresh", 0.196)),
+                mode=str(ros.get("mode", "trinary")),
+                magic=magic,
+                max_brightness=int(meta.max_brightness),
+            ),
+            out,
+        )
     else:
         write_pgm(out, pixels, magic=magic, comment=meta.comment, maxval=int(meta.max_brightness))
     return out
@@ -190,16 +229,23 @@ def describe(map_path: str | Path, chunk_width: int = 100, chunk_height: int = 1
     info = {"file": str(map_path), "pgm_format": ros_map.magic, **meta_to_json(meta)}
     if meta.resolution is not None:
         classes = classify(ros_map)
-        info.update({
-            "mode": ros_map.mode, "negate": ros_map.negate,
-            "occupied_thresh": ros_map.occupied_thresh, "free_thresh": ros_map.free_thresh,
-            "size_m": [round(ros_map.width * ros_map.resolution, 3),
-                       round(ros_map.height * ros_map.resolution, 3)],
-            "free_px": int((classes == FREE).sum()), "occupied_px": int((classes == OCCUPIED).sum()),
-            "unknown_px": int((classes < 0).sum()),
-            # map_saver's 'unknown' value; a YAML's free_thresh may count it as free
-            "unknown_value_px": int((ros_map.pixels == ros_map.unknown_value).sum()),
-            "padding_px": meta.chunk_rows * chunk_height * meta.chunk_cols * chunk_width
-            - ros_map.width * ros_map.height,
-        })
+        info.update(
+            {
+                "mode": ros_map.mode,
+                "negate": ros_map.negate,
+                "occupied_thresh": ros_map.occupied_thresh,
+                "free_thresh": ros_map.free_thresh,
+                "size_m": [
+                    round(ros_map.width * ros_map.resolution, 3),
+                    round(ros_map.height * ros_map.resolution, 3),
+                ],
+                "free_px": int((classes == FREE).sum()),
+                "occupied_px": int((classes == OCCUPIED).sum()),
+                "unknown_px": int((classes < 0).sum()),
+                # map_saver's 'unknown' value; a YAML's free_thresh may count it as free
+                "unknown_value_px": int((ros_map.pixels == ros_map.unknown_value).sum()),
+                "padding_px": meta.chunk_rows * chunk_height * meta.chunk_cols * chunk_width
+                - ros_map.width * ros_map.height,
+            }
+        )
     return info

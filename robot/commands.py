@@ -116,13 +116,17 @@ class CommandInbox:
     def answer(self, response: CommandResponse) -> Outgoing:
         """The message of an ack or outcome, stamped now."""
         ts = format_timestamp(time.time_ns() // 1_000_000)
-        return Outgoing(response.robot_id, response_topic(response.robot_id, self.root),
-                        msgspec.json.encode(response_message(response, ts)))
+        return Outgoing(
+            response.robot_id,
+            response_topic(response.robot_id, self.root),
+            msgspec.json.encode(response_message(response, ts)),
+        )
 
 
 def ack(command: CommandIssued, reason: str = "") -> CommandAcknowledged:
-    return CommandAcknowledged(command.command_id, command.robot_id,
-                               "rejected" if reason else "accepted", reason)
+    return CommandAcknowledged(
+        command.command_id, command.robot_id, "rejected" if reason else "accepted", reason
+    )
 
 
 def finished(command: CommandIssued, outcome: str, reason: str = "") -> CommandFinished:
@@ -188,8 +192,9 @@ class SimCommands:
             robot = self._drop_goal(state, robot, "replaced by another goto")
             self.goals[rid] = command
             self._say(ack(command))
-            return replace(robot, task=self.GOTO_TASK, target=-1, waypoints=route, wait_s=0.0,
-                           charging=False)
+            return replace(
+                robot, task=self.GOTO_TASK, target=-1, waypoints=route, wait_s=0.0, charging=False
+            )
         else:
             self._say(ack(command, f"unknown command kind {kind[:40]!r}"))
         return robot
@@ -200,11 +205,17 @@ class SimCommands:
         goal = self.goals.pop(robot.robot_id, None)
         if goal is not None:
             self._say(finished(goal, "cancelled", why))
-        return replace(robot, waypoints=robot.waypoints[:1], task="idle",
-                       wait_s=state.config.dwell_s, charging=False)
+        return replace(
+            robot,
+            waypoints=robot.waypoints[:1],
+            task="idle",
+            wait_s=state.config.dwell_s,
+            charging=False,
+        )
 
-    def _route(self, state: SimState, robot: Robot,
-               command: CommandIssued) -> tuple[tuple[float, float], ...] | None:
+    def _route(
+        self, state: SimState, robot: Robot, command: CommandIssued
+    ) -> tuple[tuple[float, float], ...] | None:
         if command.x is None or command.y is None:
             return None
         col, row = metres_to_pixel(command.x, command.y, state.meta)
@@ -214,8 +225,9 @@ class SimCommands:
         return self._plan(state, robot, (col + 0.5, row + 0.5))
 
     @staticmethod
-    def _plan(state: SimState, robot: Robot,
-              goal: tuple[float, float]) -> tuple[tuple[float, float], ...] | None:
+    def _plan(
+        state: SimState, robot: Robot, goal: tuple[float, float]
+    ) -> tuple[tuple[float, float], ...] | None:
         """Waypoints from the robot's next waypoint (or its place) to `goal` (an image
         point) on the simulator's planning grid as it is now; None when none reach it."""
         grid = state.grid
@@ -234,13 +246,17 @@ class SimCommands:
         route = self._plan(after, robot, robot.waypoints[-1])
         return replace(robot, waypoints=route if route is not None else robot.waypoints[:1])
 
-    def after_step(self, before: SimState, after: SimState,
-                   out: StepOut) -> tuple[SimState, StepOut]:
+    def after_step(
+        self, before: SimState, after: SimState, out: StepOut
+    ) -> tuple[SimState, StepOut]:
         """Holds the paused robots where they were before the tick (each reports its last
         pose again, at the tick's time) and reports the gotos that arrived or were given up."""
         # A robot paused before its first report is held from its first reported pose on.
-        held = {r.robot_id: r for r in before.robots
-                if r.robot_id in self.paused and r.robot_id in self.last_pose}
+        held = {
+            r.robot_id: r
+            for r in before.robots
+            if r.robot_id in self.paused and r.robot_id in self.last_pose
+        }
         robots = []
         for robot in after.robots:
             rid = robot.robot_id
@@ -264,5 +280,7 @@ class SimCommands:
                 pose = replace(last, t_ms=pose.t_ms)
             self.last_pose[pose.robot_id] = pose
             poses.append(pose)
-        return (replace(after, robots=tuple(robots)),
-                StepOut(poses=poses, chunks=out.chunks, notes=out.notes))
+        return (
+            replace(after, robots=tuple(robots)),
+            StepOut(poses=poses, chunks=out.chunks, notes=out.notes),
+        )

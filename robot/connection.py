@@ -31,8 +31,9 @@ def load_credentials(path: str | Path) -> dict[str, str]:
         doc = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:
         raise ValueError(f"cannot read the robot credentials file {path}: {exc}") from exc
-    if not isinstance(doc, dict) or not all(isinstance(k, str) and isinstance(v, str)
-                                            for k, v in doc.items()):
+    if not isinstance(doc, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in doc.items()
+    ):
         raise ValueError(f"{path}: a robot credentials file is a JSON object robotId -> password")
     return doc
 
@@ -65,13 +66,17 @@ class RobotMqtt:
         return self.credentials is not None
 
     def chunk_topic(self, robot_id: str) -> str:
-        own = self.authenticated if self.per_robot_chunk_topic is None else self.per_robot_chunk_topic
+        own = (
+            self.authenticated if self.per_robot_chunk_topic is None else self.per_robot_chunk_topic
+        )
         return f"{ROBOT_CHUNK_PREFIX}{robot_id}" if own else LEGACY_CHUNK_TOPIC
 
     def password(self, robot_id: str) -> str:
         if self.credentials is None or robot_id not in self.credentials:
-            raise ValueError(f"robot {robot_id!r} has no credential in the credentials file; "
-                             f"add it with `mapservice robot add {robot_id} --save FILE`")
+            raise ValueError(
+                f"robot {robot_id!r} has no credential in the credentials file; "
+                f"add it with `mapservice robot add {robot_id} --save FILE`"
+            )
         return self.credentials[robot_id]
 
     def check(self, robot_ids: list[str]) -> None:
@@ -79,9 +84,11 @@ class RobotMqtt:
         if self.credentials is not None:
             missing = [r for r in robot_ids if r not in self.credentials]
             if missing:
-                raise ValueError(f"{len(missing)} robots have no credential in the credentials "
-                                 f"file (e.g. {', '.join(missing[:3])}); add each with "
-                                 "`mapservice robot add <robotId> --save FILE`")
+                raise ValueError(
+                    f"{len(missing)} robots have no credential in the credentials "
+                    f"file (e.g. {', '.join(missing[:3])}); add each with "
+                    "`mapservice robot add <robotId> --save FILE`"
+                )
 
     def client(self, client_id: str, robot_id: str | None = None, **kwargs) -> mqtt.Client:
         """A paho client for one robot (its credential, if any) or, without robot_id, an
@@ -90,8 +97,9 @@ class RobotMqtt:
         username = password = None
         if self.authenticated and robot_id is not None:
             username, password = robot_id, self.password(robot_id)
-        return make_client(client_id, username=username, password=password, tls=tls,
-                           tls_files=self.tls, **kwargs)
+        return make_client(
+            client_id, username=username, password=password, tls=tls, tls_files=self.tls, **kwargs
+        )
 
     def connect(self, client: mqtt.Client, timeout_s: float = 10.0, who: str = "robot") -> None:
         """Connects and starts the client's network thread; waits for the broker's answer when
@@ -118,16 +126,18 @@ class RobotMqtt:
         if refused:
             client.loop_stop()
             client.disconnect()
-            raise PermissionError(f"the MQTT broker at {self.url} refused {who}'s credential: "
-                                  f"{refused[0]}")
+            raise PermissionError(
+                f"the MQTT broker at {self.url} refused {who}'s credential: {refused[0]}"
+            )
 
 
 class RobotClients:
     """The connections of a fleet: one per robot when robots have credentials (the broker
     then checks each robot's topics), one shared anonymous connection otherwise."""
 
-    def __init__(self, conn: RobotMqtt, robot_ids: list[str], client_prefix: str,
-                 on_disconnect=None) -> None:
+    def __init__(
+        self, conn: RobotMqtt, robot_ids: list[str], client_prefix: str, on_disconnect=None
+    ) -> None:
         conn.check(robot_ids)
         self.conn = conn
         self.robot_ids = list(robot_ids)
@@ -139,8 +149,9 @@ class RobotClients:
         keys: list[str | None] = self.robot_ids if self.conn.authenticated else [None]
         try:
             for robot_id in keys:
-                client = self.conn.client(f"{self.client_prefix}-{robot_id or 'fleet'}-"
-                                          f"{time.time_ns() % 10**9}", robot_id)
+                client = self.conn.client(
+                    f"{self.client_prefix}-{robot_id or 'fleet'}-{time.time_ns() % 10**9}", robot_id
+                )
                 if self.on_disconnect is not None:
                     client.on_disconnect = self.on_disconnect
                 self.conn.connect(client, who=robot_id or "the fleet")
@@ -149,7 +160,9 @@ class RobotClients:
             self.close()
             raise
 
-    def publish(self, robot_id: str, topic: str, payload: bytes, qos: int = 1) -> mqtt.MQTTMessageInfo:
+    def publish(
+        self, robot_id: str, topic: str, payload: bytes, qos: int = 1
+    ) -> mqtt.MQTTMessageInfo:
         client = self.clients[robot_id if self.conn.authenticated else None]
         return client.publish(topic, payload, qos=qos)
 
@@ -165,30 +178,50 @@ class RobotClients:
 
 def add_mqtt_arguments(parser, *, many: bool) -> None:
     """The robot tools' flags for identities and TLS (sim, robot, drive)."""
-    parser.add_argument("--credentials", default=None, metavar="FILE",
-                        help="JSON file robotId -> MQTT password (`mapservice robot add ID --save "
-                             "FILE` writes it): " + ("each robot connects as itself"
-                                                     if many else "the robot connects as itself")
-                             + "; default: anonymous, as in 2019")
-    parser.add_argument("--chunk-topic", choices=["auto", "legacy", "per-robot"], default="auto",
-                        help="where chunks go: the 2019 iot/chunks/create (legacy) or the robot's "
-                             "own iot/chunks/create/<robotId> (per-robot); auto: per-robot with "
-                             "--credentials, else legacy")
-    parser.add_argument("--mqtt-ca-file", default=None, metavar="PEM",
-                        help="CA certificate that signs the broker's (with an mqtts:// URL); "
-                             "default: MAPSERVICE_MQTT_CA_FILE, else the system's CAs")
-    parser.add_argument("--mqtt-cert-file", default=None, metavar="PEM",
-                        help="client certificate for mutual TLS (with --mqtt-key-file)")
-    parser.add_argument("--mqtt-key-file", default=None, metavar="PEM",
-                        help="private key of --mqtt-cert-file")
+    parser.add_argument(
+        "--credentials",
+        default=None,
+        metavar="FILE",
+        help="JSON file robotId -> MQTT password (`mapservice robot add ID --save "
+        "FILE` writes it): "
+        + ("each robot connects as itself" if many else "the robot connects as itself")
+        + "; default: anonymous, as in 2019",
+    )
+    parser.add_argument(
+        "--chunk-topic",
+        choices=["auto", "legacy", "per-robot"],
+        default="auto",
+        help="where chunks go: the 2019 iot/chunks/create (legacy) or the robot's "
+        "own iot/chunks/create/<robotId> (per-robot); auto: per-robot with "
+        "--credentials, else legacy",
+    )
+    parser.add_argument(
+        "--mqtt-ca-file",
+        default=None,
+        metavar="PEM",
+        help="CA certificate that signs the broker's (with an mqtts:// URL); "
+        "default: MAPSERVICE_MQTT_CA_FILE, else the system's CAs",
+    )
+    parser.add_argument(
+        "--mqtt-cert-file",
+        default=None,
+        metavar="PEM",
+        help="client certificate for mutual TLS (with --mqtt-key-file)",
+    )
+    parser.add_argument(
+        "--mqtt-key-file", default=None, metavar="PEM", help="private key of --mqtt-cert-file"
+    )
 
 
 def robot_mqtt_from_args(args, url: str, default_ca_file=None) -> RobotMqtt:
     """The RobotMqtt the flags of add_mqtt_arguments describe."""
     _, _, tls_url = parse_mqtt_url(url)
     ca_file = args.mqtt_ca_file or (default_ca_file if tls_url else None)
-    tls = MqttTls(ca_file, args.mqtt_cert_file, args.mqtt_key_file) \
-        if (ca_file or args.mqtt_cert_file or args.mqtt_key_file) else None
+    tls = (
+        MqttTls(ca_file, args.mqtt_cert_file, args.mqtt_key_file)
+        if (ca_file or args.mqtt_cert_file or args.mqtt_key_file)
+        else None
+    )
     credentials = load_credentials(args.credentials) if args.credentials else None
     per_robot = {"auto": None, "legacy": False, "per-robot": True}[args.chunk_topic]
     return RobotMqtt(url, credentials, tls, per_robot)

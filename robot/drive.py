@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mapservice.core.events import MapMetaSet
 from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map, meta_for
+from mapservice.core.events import MapMetaSet
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .chunks import chunk_of_pixel, chunk_pixels, metres_to_pixel, paste_chunk, pixel_to_metres
@@ -45,7 +45,9 @@ class DriveState:
         return chunk_of_pixel(self.col, self.row, self.meta)
 
 
-def start_state(ros_map: RosMap, start: tuple[float, float] | None = None, step: int = 10) -> DriveState:
+def start_state(
+    ros_map: RosMap, start: tuple[float, float] | None = None, step: int = 10
+) -> DriveState:
     meta = meta_for(ros_map)
     if start is not None:
         col, row = metres_to_pixel(*start, meta)
@@ -67,7 +69,7 @@ def move(state: DriveState, direction: str) -> DriveState:
         return replace(state, yaw=YAWS[direction], note="edge of the map")
     lo_r, hi_r = sorted((state.row, row))
     lo_c, hi_c = sorted((state.col, col))
-    if not drivable(replace(m, pixels=m.pixels[lo_r:hi_r + 1, lo_c:hi_c + 1])).all():
+    if not drivable(replace(m, pixels=m.pixels[lo_r : hi_r + 1, lo_c : hi_c + 1])).all():
         return replace(state, yaw=YAWS[direction], note="blocked")
     return replace(state, col=col, row=row, yaw=YAWS[direction], note="")
 
@@ -75,13 +77,18 @@ def move(state: DriveState, direction: str) -> DriveState:
 def paint(state: DriveState, colour: str) -> tuple[DriveState, int, int, bytes]:
     """Fills the chunk under the robot; returns the new state and the chunk to publish."""
     m = state.ros_map
-    value = {"black": 255 if m.negate else 0, "white": 0 if m.negate else 254,
-             "grey": m.unknown_value}[colour]
+    value = {
+        "black": 255 if m.negate else 0,
+        "white": 0 if m.negate else 254,
+        "grey": m.unknown_value,
+    }[colour]
     row, column = state.chunk()
     data = bytes([value]) * (state.meta.chunk_width * state.meta.chunk_height)
     pixels = m.pixels.copy()
     paste_chunk(pixels, state.meta, row, column, data)
-    new = replace(state, ros_map=m.with_pixels(pixels), note=f"painted chunk ({row}, {column}) {colour}")
+    new = replace(
+        state, ros_map=m.with_pixels(pixels), note=f"painted chunk ({row}, {column}) {colour}"
+    )
     return new, row, column, chunk_pixels(pixels, state.meta, row, column, m.unknown_value)
 
 
@@ -102,9 +109,9 @@ def render(state: DriveState, rows: int, cols: int) -> list[str]:
                 continue
             if i == rows // 2 and j == cols // 2:
                 chars.append("@")
-            elif occupied[r0:r0 + s, c0:c0 + s].any():
+            elif occupied[r0 : r0 + s, c0 : c0 + s].any():
                 chars.append("#")
-            elif free[r0:r0 + s, c0:c0 + s].all():
+            elif free[r0 : r0 + s, c0 : c0 + s].all():
                 on_corner = r0 % state.meta.chunk_height < s and c0 % state.meta.chunk_width < s
                 chars.append("+" if on_corner else " ")
             else:
@@ -124,14 +131,22 @@ class Publisher:
     def pose(self, state: DriveState) -> None:
         x, y = state.metres()
         now = time.time_ns() // 1_000_000
-        self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
-            self.robot_id, format_timestamp(now), x, y, yaw_quaternion(state.yaw)), qos=1)
+        self.client.publish(
+            f"iot/coordinates/{self.robot_id}",
+            encode_coordinates(
+                self.robot_id, format_timestamp(now), x, y, yaw_quaternion(state.yaw)
+            ),
+            qos=1,
+        )
         self.poses += 1
 
     def chunk(self, row: int, column: int, data: bytes) -> None:
         now = time.time_ns() // 1_000_000
-        self.client.publish(self.conn.chunk_topic(self.robot_id), encode_chunk_create(
-            row, column, data, format_timestamp(now), self.robot_id), qos=1)
+        self.client.publish(
+            self.conn.chunk_topic(self.robot_id),
+            encode_chunk_create(row, column, data, format_timestamp(now), self.robot_id),
+            qos=1,
+        )
         self.chunks += 1
 
     def close(self) -> None:
@@ -139,8 +154,12 @@ class Publisher:
         self.client.disconnect()
 
 
-KEYS = {curses.KEY_UP: "up", curses.KEY_DOWN: "down", curses.KEY_LEFT: "left",
-        curses.KEY_RIGHT: "right"}
+KEYS = {
+    curses.KEY_UP: "up",
+    curses.KEY_DOWN: "down",
+    curses.KEY_LEFT: "left",
+    curses.KEY_RIGHT: "right",
+}
 PAINT = {ord("b"): "black", ord("g"): "grey", ord("w"): "white"}
 
 
@@ -156,12 +175,17 @@ def _loop(screen, state: DriveState, pub: Publisher) -> None:
             screen.addstr(i, 0, line)
         x, y = state.metres()
         row, column = state.chunk()
-        status = (f"{pub.robot_id}  x={x:.2f} y={y:.2f} m  chunk ({row}, {column})  "
-                  f"sent {pub.poses} poses {pub.chunks} chunks")
+        status = (
+            f"{pub.robot_id}  x={x:.2f} y={y:.2f} m  chunk ({row}, {column})  "
+            f"sent {pub.poses} poses {pub.chunks} chunks"
+        )
         help_line = "arrows: drive  b/g/w: paint chunk black/grey/white  q: quit"
         screen.addstr(max(height - 2, 0), 0, status[: width - 1], curses.A_BOLD)
-        screen.addstr(max(height - 1, 0), 0, (f"{state.note}  |  {help_line}" if state.note
-                                              else help_line)[: width - 1])
+        screen.addstr(
+            max(height - 1, 0),
+            0,
+            (f"{state.note}  |  {help_line}" if state.note else help_line)[: width - 1],
+        )
         screen.refresh()
         key = screen.getch()
         if key in (ord("q"), 27):
@@ -182,7 +206,6 @@ def check_map_size(api_url: str, meta: MapMetaSet, http=None, token: str | None 
     """Raises ValueError when the service stores a map of another size: painting this map's
     chunks into it would corrupt it (a service without a map accepts any)."""
     import httpx
-
     from mapservice.robot.map_upload import mismatch_message, same_geometry, stored_meta
 
     try:
@@ -194,8 +217,10 @@ def check_map_size(api_url: str, meta: MapMetaSet, http=None, token: str | None 
             with api_client(api_url, token, timeout=10) as client:
                 stored = stored_meta(client)
     except httpx.HTTPError as exc:
-        raise ValueError(f"cannot ask {api_url} for the service's map size ({exc}); "
-                         "pass the service's REST API with --api") from exc
+        raise ValueError(
+            f"cannot ask {api_url} for the service's map size ({exc}); "
+            "pass the service's REST API with --api"
+        ) from exc
     if stored is not None and not same_geometry(stored, meta):
         raise ValueError(mismatch_message(stored, meta, f"this map ({meta.width} x {meta.height})"))
 

@@ -57,52 +57,95 @@ def yaw_quaternion(yaw: float) -> tuple[float, float, float, float]:
 
 
 def encode_pose(p: PoseOut, skew_ms: int = 0) -> bytes:
-    return encode_coordinates(p.robot_id, format_timestamp(p.t_ms + skew_ms), p.x, p.y,
-                              yaw_quaternion(p.yaw), battery_level=p.battery,
-                              charging=p.charging, loaded=p.loaded, path=list(p.path))
+    return encode_coordinates(
+        p.robot_id,
+        format_timestamp(p.t_ms + skew_ms),
+        p.x,
+        p.y,
+        yaw_quaternion(p.yaw),
+        battery_level=p.battery,
+        charging=p.charging,
+        loaded=p.loaded,
+        path=list(p.path),
+    )
 
 
 def encode_chunk(c: ChunkOut, skew_ms: int = 0) -> bytes:
-    return encode_chunk_create(c.row, c.column, c.pixels, format_timestamp(c.t_ms + skew_ms),
-                               c.robot_id)
+    return encode_chunk_create(
+        c.row, c.column, c.pixels, format_timestamp(c.t_ms + skew_ms), c.robot_id
+    )
 
 
-def bad_message(rng: random.Random, robot_id: str, t_ms: int, pixels: int = 10_000,
-                chunk_topic=legacy_chunk_topic) -> Message:
+def bad_message(
+    rng: random.Random,
+    robot_id: str,
+    t_ms: int,
+    pixels: int = 10_000,
+    chunk_topic=legacy_chunk_topic,
+) -> Message:
     """One invalid message of a random class the gateway must dead-letter."""
     ts = format_timestamp(t_ms)
-    good_chunk = {"pgmB64compressedData": base64.b64encode(zlib.compress(bytes(pixels))).decode(),
-                  "row": 0, "column": 0, "timestamp": ts, "robotId": robot_id}
-    kind = rng.choice(["not_json", "bad_base64", "wrong_chunk_size", "out_of_map",
-                       "bad_timestamp", "robot_id_mismatch", "missing_field"])
+    good_chunk = {
+        "pgmB64compressedData": base64.b64encode(zlib.compress(bytes(pixels))).decode(),
+        "row": 0,
+        "column": 0,
+        "timestamp": ts,
+        "robotId": robot_id,
+    }
+    kind = rng.choice(
+        [
+            "not_json",
+            "bad_base64",
+            "wrong_chunk_size",
+            "out_of_map",
+            "bad_timestamp",
+            "robot_id_mismatch",
+            "missing_field",
+        ]
+    )
     if kind == "not_json":
-        return Message(coordinate_topic(robot_id), b'{"robotId": "' + robot_id.encode(), "bad:not_json",
-                       robot_id)
+        return Message(
+            coordinate_topic(robot_id),
+            b'{"robotId": "' + robot_id.encode(),
+            "bad:not_json",
+            robot_id,
+        )
     if kind == "robot_id_mismatch":
         doc = msgspec.json.decode(encode_coordinates("someone-else", ts, 0.0, 0.0))
-        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:robot_id_mismatch",
-                       robot_id)
+        return Message(
+            coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:robot_id_mismatch", robot_id
+        )
     if kind == "bad_timestamp":
         doc = msgspec.json.decode(encode_coordinates(robot_id, "yesterday noon", 0.0, 0.0))
-        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:bad_timestamp",
-                       robot_id)
+        return Message(
+            coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:bad_timestamp", robot_id
+        )
     if kind == "missing_field":
         doc = msgspec.json.decode(encode_coordinates(robot_id, ts, 0.0, 0.0))
         del doc["pose"]
-        return Message(coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:missing_field",
-                       robot_id)
+        return Message(
+            coordinate_topic(robot_id), msgspec.json.encode(doc), "bad:missing_field", robot_id
+        )
     if kind == "bad_base64":
         good_chunk["pgmB64compressedData"] = "not*base64!"
     elif kind == "wrong_chunk_size":
-        good_chunk["pgmB64compressedData"] = base64.b64encode(zlib.compress(bytes(pixels // 2))).decode()
+        good_chunk["pgmB64compressedData"] = base64.b64encode(
+            zlib.compress(bytes(pixels // 2))
+        ).decode()
     elif kind == "out_of_map":
         good_chunk["row"] = 999_999
     return Message(chunk_topic(robot_id), msgspec.json.encode(good_chunk), f"bad:{kind}", robot_id)
 
 
-def to_messages(out: StepOut, faults: Faults = Faults(), *, seed: int = 0, tick: int = 0,
-                chunk_pixels: int = 10_000,
-                chunk_topic=legacy_chunk_topic) -> tuple[list[Message], int]:
+def to_messages(
+    out: StepOut,
+    faults: Faults = Faults(),
+    *,
+    seed: int = 0,
+    tick: int = 0,
+    chunk_pixels: int = 10_000,
+    chunk_topic=legacy_chunk_topic,
+) -> tuple[list[Message], int]:
     """The MQTT messages of one step and how many were lost on purpose; `chunk_topic(robotId)`
     is where a robot's chunks go (the 2019 topic, or its own where the broker checks
     identities)."""
@@ -119,9 +162,15 @@ def to_messages(out: StepOut, faults: Faults = Faults(), *, seed: int = 0, tick:
             continue
         skew = robot_skew_ms(item.robot_id, faults, seed)
         if isinstance(item, PoseOut):
-            messages.append(Message(coordinate_topic(item.robot_id), encode_pose(item, skew), "pose",
-                                    item.robot_id))
+            messages.append(
+                Message(
+                    coordinate_topic(item.robot_id), encode_pose(item, skew), "pose", item.robot_id
+                )
+            )
         else:
-            messages.append(Message(chunk_topic(item.robot_id), encode_chunk(item, skew), "chunk",
-                                    item.robot_id))
+            messages.append(
+                Message(
+                    chunk_topic(item.robot_id), encode_chunk(item, skew), "chunk", item.robot_id
+                )
+            )
     return messages, lost

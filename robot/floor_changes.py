@@ -18,6 +18,7 @@ from .planning import dilate, largest_component, segment_pixels
 from .sim_model import ChunkOut, MapChange, Robot, SimState, route_to, to_metres
 from .sim_zones import plan_grids
 
+
 def _protected(state: SimState) -> np.ndarray:
     """Coarse cells a new obstacle must stay clear of: where robots are and the stretch
     they drive next (a replan keeps its first waypoint, so that stretch must stay open)."""
@@ -27,10 +28,12 @@ def _protected(state: SimState) -> np.ndarray:
         ahead = segment_pixels(r.pos, r.waypoints[0], step=g.cell_px / 2) if r.waypoints else ()
         for p in (r.pos, *ahead):
             row, col = g.cell_at(*p)
-            mask[max(row - 1, 0):row + 2, max(col - 1, 0):col + 2] = True
+            mask[max(row - 1, 0) : row + 2, max(col - 1, 0) : col + 2] = True
     for cell in (*state.stations, *state.chargers):
         mask[cell] = True
-    inflate = max(1, math.ceil(state.config.robot_radius_m / (g.cell_px * state.ros_map.resolution)))
+    inflate = max(
+        1, math.ceil(state.config.robot_radius_m / (g.cell_px * state.ros_map.resolution))
+    )
     return dilate(mask, inflate + 1)
 
 
@@ -50,8 +53,13 @@ def _pallet(state: SimState, rng: random.Random) -> tuple[int, int, int, int] | 
         u, v = g.centre_px((int(r), int(c)))
         row0, col0 = int(v) - h // 2, int(u) - w // 2
         box = (row0, col0, row0 + h, col0 + w)
-        if row0 >= 0 and col0 >= 0 and box[2] <= m.height and box[3] <= m.width \
-                and state.drivable[row0:box[2], col0:box[3]].all():
+        if (
+            row0 >= 0
+            and col0 >= 0
+            and box[2] <= m.height
+            and box[3] <= m.width
+            and state.drivable[row0 : box[2], col0 : box[3]].all()
+        ):
             return box
     return None
 
@@ -91,15 +99,24 @@ def _with_pixels(state: SimState, pixels: np.ndarray) -> SimState:
     return replace(state, ros_map=m, drivable=free, grid=grid, floor_grid=floor_grid)
 
 
-def _touched_chunks(state: SimState, box: tuple[int, int, int, int], robot_id: str) -> list[ChunkOut]:
+def _touched_chunks(
+    state: SimState, box: tuple[int, int, int, int], robot_id: str
+) -> list[ChunkOut]:
     meta = state.meta
     r0, c0, r1, c1 = box
     fill = state.ros_map.unknown_value
     out = []
     for row in range(r0 // meta.chunk_height, (r1 - 1) // meta.chunk_height + 1):
         for col in range(c0 // meta.chunk_width, (c1 - 1) // meta.chunk_width + 1):
-            out.append(ChunkOut(robot_id, state.t_ms, row, col,
-                                chunk_pixels(state.ros_map.pixels, meta, row, col, fill)))
+            out.append(
+                ChunkOut(
+                    robot_id,
+                    state.t_ms,
+                    row,
+                    col,
+                    chunk_pixels(state.ros_map.pixels, meta, row, col, fill),
+                )
+            )
     return out
 
 
@@ -118,10 +135,15 @@ def change_map(state: SimState, rng: random.Random) -> tuple[SimState, list[Chun
         r0, c0, r1, c1 = change.pixels
         pixels = state.ros_map.pixels.copy()
         pixels[r0:r1, c0:c1] = np.frombuffer(change.before, np.uint8).reshape(r1 - r0, c1 - c0)
-        state = _with_pixels(replace(state, changes=tuple(x for x in state.changes if x is not change)),
-                             pixels)
+        state = _with_pixels(
+            replace(state, changes=tuple(x for x in state.changes if x is not change)), pixels
+        )
         what = "pallet taken away" if change.kind == "pallet" else "door opened"
-        return state, _touched_chunks(state, change.pixels, _nearest_robot(state, change.pixels)), [what]
+        return (
+            state,
+            _touched_chunks(state, change.pixels, _nearest_robot(state, change.pixels)),
+            [what],
+        )
     if len(state.changes) >= c.max_changes:
         return state, [], []
     kind = "pallet" if rng.random() < 0.6 else "door"
@@ -148,7 +170,11 @@ def change_map(state: SimState, rng: random.Random) -> tuple[SimState, list[Chun
         return state, [], []  # it would cut a station off from the others: not there
     x, y = to_metres(state, ((c0 + c1) / 2, (r0 + r1) / 2))
     what = "pallet appeared" if kind == "pallet" else "door closed"
-    return new, _touched_chunks(new, box, _nearest_robot(new, box)), [f"{what} at ({x:.1f}, {y:.1f}) m"]
+    return (
+        new,
+        _touched_chunks(new, box, _nearest_robot(new, box)),
+        [f"{what} at ({x:.1f}, {y:.1f}) m"],
+    )
 
 
 def replan_blocked(state: SimState, robot: Robot) -> Robot:
@@ -171,5 +197,6 @@ def replan_blocked(state: SimState, robot: Robot) -> Robot:
     if route is not None:
         return replace(robot, waypoints=route)
     # The goal is walled off: stop at the next waypoint and choose again from there.
-    return replace(robot, waypoints=robot.waypoints[:1], task="idle" if not robot.loaded else robot.task)
-
+    return replace(
+        robot, waypoints=robot.waypoints[:1], task="idle" if not robot.loaded else robot.task
+    )

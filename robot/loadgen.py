@@ -40,10 +40,21 @@ class LoadStats:
 class RobotFleet:
     """Publishes the 2019 workload for `robots` robots through one MQTT connection."""
 
-    def __init__(self, mqtt_url: str, ros_map: RosMap, robots: int, *, prefix: str = "robot",
-                 pose_period_s: float = 1.0, chunk_period_s: float = 5.0, seed: int = 7,
-                 record: bool = False, qos: int = 1, mqtt_conn: RobotMqtt | None = None,
-                 aligned_chunks: bool = False) -> None:
+    def __init__(
+        self,
+        mqtt_url: str,
+        ros_map: RosMap,
+        robots: int,
+        *,
+        prefix: str = "robot",
+        pose_period_s: float = 1.0,
+        chunk_period_s: float = 5.0,
+        seed: int = 7,
+        record: bool = False,
+        qos: int = 1,
+        mqtt_conn: RobotMqtt | None = None,
+        aligned_chunks: bool = False,
+    ) -> None:
         self.mqtt_url = mqtt_url
         # Where robots have credentials, each connects as itself (one connection per robot).
         self.conn = mqtt_conn or RobotMqtt(mqtt_url)
@@ -53,7 +64,9 @@ class RobotFleet:
         self.conn.check(self.robots)
         self.pose_period_s = pose_period_s
         self.chunk_period_s = chunk_period_s
-        self.aligned_chunks = aligned_chunks  # every robot's chunk after the same pose (schedule.py)
+        self.aligned_chunks = (
+            aligned_chunks  # every robot's chunk after the same pose (schedule.py)
+        )
         self.record = record
         self.qos = qos
         self.stats = LoadStats()
@@ -72,8 +85,10 @@ class RobotFleet:
         per robot (an estimate: the run's last period may be cut short)."""
         per_chunk = round(self.chunk_period_s / self.pose_period_s)
         poses = int(seconds / self.pose_period_s)
-        return sum(poses + chunks_after(poses, chunk_phase(i, per_chunk, self.aligned_chunks), per_chunk)
-                   for i in range(len(self.robots)))
+        return sum(
+            poses + chunks_after(poses, chunk_phase(i, per_chunk, self.aligned_chunks), per_chunk)
+            for i in range(len(self.robots))
+        )
 
     def _pose(self, i: int, robot: str, now_ms: int) -> bytes:
         cx, cy = self._centres[i]
@@ -81,12 +96,20 @@ class RobotFleet:
         x, y = cx + 1.0 * math.cos(angle), cy + 1.0 * math.sin(angle)
         yaw = angle + math.pi / 2
         battery = 100.0 - ((now_ms / 1000.0 / 60.0 + i) % 100.0)
-        return encode_coordinates(robot, format_timestamp(now_ms), round(x, 3), round(y, 3),
-                                  (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)),
-                                  battery_level=round(battery, 1), charging=battery < 20,
-                                  loaded=(i + now_ms // 60000) % 2 == 0)
+        return encode_coordinates(
+            robot,
+            format_timestamp(now_ms),
+            round(x, 3),
+            round(y, 3),
+            (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)),
+            battery_level=round(battery, 1),
+            charging=battery < 20,
+            loaded=(i + now_ms // 60000) % 2 == 0,
+        )
 
-    def run(self, seconds: float | None, on_tick: Callable[[LoadStats], None] | None = None) -> LoadStats:
+    def run(
+        self, seconds: float | None, on_tick: Callable[[LoadStats], None] | None = None
+    ) -> LoadStats:
         clients = RobotClients(self.conn, self.robots, f"loadgen-{self._rng.getrandbits(32):08x}")
         clients.connect()
         n = len(self.robots)
@@ -113,8 +136,14 @@ class RobotFleet:
                 robot = self.robots[i]
                 now_ms = max(time.time_ns() // 1_000_000, last_ts[i] + 1)
                 last_ts[i] = now_ms
-                pending.append(clients.publish(robot, f"iot/coordinates/{robot}",
-                                               self._pose(i, robot, now_ms), qos=self.qos))
+                pending.append(
+                    clients.publish(
+                        robot,
+                        f"iot/coordinates/{robot}",
+                        self._pose(i, robot, now_ms),
+                        qos=self.qos,
+                    )
+                )
                 self.stats.poses += 1
                 if self.record:
                     self.stats.published.append(("pose", robot, now_ms, time.time()))
@@ -123,10 +152,14 @@ class RobotFleet:
                     row = self._rng.randrange(self.meta.chunk_rows)
                     col = self._rng.randrange(self.meta.chunk_cols)
                     pixels = self._rng.choice(self.chunks)
-                    pending.append(clients.publish(
-                        robot, self.conn.chunk_topic(robot),
-                        encode_chunk_create(row, col, pixels, format_timestamp(now_ms), robot),
-                        qos=self.qos))
+                    pending.append(
+                        clients.publish(
+                            robot,
+                            self.conn.chunk_topic(robot),
+                            encode_chunk_create(row, col, pixels, format_timestamp(now_ms), robot),
+                            qos=self.qos,
+                        )
+                    )
                     self.stats.chunks += 1
                     if self.record:
                         self.stats.published.append(("chunk", robot, now_ms, time.time()))

@@ -18,13 +18,14 @@ from pathlib import Path
 import httpx
 import structlog
 
+from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
+
 # UPLOADER_ID: the robot id the uploaded chunks are attributed to; the conflict rule and the
 # change feed know its writes as a map upload.
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.events import ChunkUpdated, MapMetaSet, encode, kafka_key, make_envelope
-from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import content_hash, format_timestamp
+from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
@@ -37,18 +38,25 @@ class MapSizeMismatch(ValueError):
 
 def same_geometry(a: MapMetaSet, b: MapMetaSet) -> bool:
     return (a.width, a.height, a.chunk_width, a.chunk_height) == (
-        b.width, b.height, b.chunk_width, b.chunk_height)
+        b.width,
+        b.height,
+        b.chunk_width,
+        b.chunk_height,
+    )
 
 
 def mismatch_message(stored: MapMetaSet, offered: MapMetaSet, what: str) -> str:
-    return (f"the service's map is {stored.width} x {stored.height} px in {stored.chunk_width}"
-            f" x {stored.chunk_height} chunks, {what} is {offered.width} x {offered.height} px"
-            f" in {offered.chunk_width} x {offered.chunk_height}; use the service's map "
-            "(GET /api/chunk-service/meta) or start the service with this one")
+    return (
+        f"the service's map is {stored.width} x {stored.height} px in {stored.chunk_width}"
+        f" x {stored.chunk_height} chunks, {what} is {offered.width} x {offered.height} px"
+        f" in {offered.chunk_width} x {offered.chunk_height}; use the service's map "
+        "(GET /api/chunk-service/meta) or start the service with this one"
+    )
 
 
-def upload_map_events(settings: Settings, ros_map: RosMap, now_ms: int,
-                      robot_id: str = UPLOADER_ID) -> int:
+def upload_map_events(
+    settings: Settings, ros_map: RosMap, now_ms: int, robot_id: str = UPLOADER_ID
+) -> int:
     """Publishes the map's meta and all its chunks to Kafka; returns the chunk count."""
     from mapservice.adapters.kafka_publisher import KafkaPublisher
 
@@ -56,13 +64,24 @@ def upload_map_events(settings: Settings, ros_map: RosMap, now_ms: int,
     publisher = KafkaPublisher(settings, client_id="mapservice-map-upload")
     errors: list = []
     meta_env = make_envelope(robot_id, now_ms, now_ms, meta)
-    publisher.publish(settings.topic_meta_events, kafka_key(meta_env), encode(meta_env),
-                      errors.append)
+    publisher.publish(
+        settings.topic_meta_events, kafka_key(meta_env), encode(meta_env), errors.append
+    )
     chunks = slice_chunks(ros_map, meta.chunk_width, meta.chunk_height)
     for (row, column), pixels in chunks.items():
-        env = make_envelope(robot_id, now_ms, now_ms, ChunkUpdated(
-            row, column, meta.chunk_width, meta.chunk_height, zlib.compress(pixels),
-            content_hash(pixels)))
+        env = make_envelope(
+            robot_id,
+            now_ms,
+            now_ms,
+            ChunkUpdated(
+                row,
+                column,
+                meta.chunk_width,
+                meta.chunk_height,
+                zlib.compress(pixels),
+                content_hash(pixels),
+            ),
+        )
         publisher.publish(settings.topic_chunk_events, kafka_key(env), encode(env), errors.append)
     if publisher.flush(60) or any(errors):
         raise RuntimeError(f"could not publish the map to Kafka: {[e for e in errors if e]}")
@@ -79,12 +98,14 @@ def check_data_dir_map(data_dir: Path, ros_map: RosMap) -> bool:
     if stored != f"{ros_map.width}x{ros_map.height}":
         raise MapSizeMismatch(
             f"{data_dir} holds a {stored.replace('x', ' x ')} px map, this one is "
-            f"{ros_map.width} x {ros_map.height} px; use another --data-dir for it")
+            f"{ros_map.width} x {ros_map.height} px; use another --data-dir for it"
+        )
     return True
 
 
-def upload_map_if_fresh(settings: Settings, data_dir: Path, ros_map: RosMap,
-                        now_ms: int, had_history: bool = False) -> int:
+def upload_map_if_fresh(
+    settings: Settings, data_dir: Path, ros_map: RosMap, now_ms: int, had_history: bool = False
+) -> int:
     """On a data dir that never had its map uploaded, publishes it; returns the chunk count
     (0 when the data dir already had it: a resumed service keeps its later changes).
     Raises MapSizeMismatch when the data dir holds a map of another size. `had_history`:
@@ -119,8 +140,13 @@ def stored_meta(http: httpx.Client) -> MapMetaSet | None:
     return meta_from_json(doc)
 
 
-def upload_map_rest(http: httpx.Client, ros_map: RosMap, now_ms: int, replace: bool = False,
-                    robot_id: str = UPLOADER_ID) -> int:
+def upload_map_rest(
+    http: httpx.Client,
+    ros_map: RosMap,
+    now_ms: int,
+    replace: bool = False,
+    robot_id: str = UPLOADER_ID,
+) -> int:
     """Posts the map's meta and chunks to the 2019 REST API; returns the chunk count.
     Raises MapSizeMismatch when the stored map has another size and `replace` is not set."""
     from mapservice.robot.chunks import meta_to_json
@@ -128,14 +154,21 @@ def upload_map_rest(http: httpx.Client, ros_map: RosMap, now_ms: int, replace: b
     meta = meta_for(ros_map)
     stored = stored_meta(http)
     if stored is not None and not same_geometry(stored, meta) and not replace:
-        raise MapSizeMismatch(mismatch_message(stored, meta, "this map")
-                              + "; --replace (admin) replaces the service's map")
+        raise MapSizeMismatch(
+            mismatch_message(stored, meta, "this map")
+            + "; --replace (admin) replaces the service's map"
+        )
     if stored is None or not same_geometry(stored, meta):
         http.post("/api/chunk-service/meta", json=meta_to_json(meta)).raise_for_status()
     chunks = slice_chunks(ros_map, meta.chunk_width, meta.chunk_height)
     stamp = format_timestamp(now_ms)
     for (row, column), pixels in chunks.items():
-        body = {"row": row, "column": column, "robotId": robot_id, "timestamp": stamp,
-                "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode()}
+        body = {
+            "row": row,
+            "column": column,
+            "robotId": robot_id,
+            "timestamp": stamp,
+            "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
+        }
         http.post("/api/chunk-service/chunks", json=body).raise_for_status()
     return len(chunks)

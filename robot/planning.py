@@ -53,8 +53,12 @@ class PlanGrid:
 
 
 def disc(radius: int) -> list[tuple[int, int]]:
-    return [(dr, dc) for dr in range(-radius, radius + 1) for dc in range(-radius, radius + 1)
-            if dr * dr + dc * dc <= radius * radius + radius]
+    return [
+        (dr, dc)
+        for dr in range(-radius, radius + 1)
+        for dc in range(-radius, radius + 1)
+        if dr * dr + dc * dc <= radius * radius + radius
+    ]
 
 
 def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
@@ -65,7 +69,7 @@ def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     out = np.zeros_like(mask)
     h, w = mask.shape
     for dr, dc in disc(radius):
-        out |= padded[radius + dr:radius + dr + h, radius + dc:radius + dc + w]
+        out |= padded[radius + dr : radius + dr + h, radius + dc : radius + dc + w]
     return out
 
 
@@ -80,15 +84,17 @@ def build_grid(drivable: np.ndarray, cell_px: int, inflate: int) -> PlanGrid:
     return PlanGrid(cell_px, ~dilate(~clear, inflate))
 
 
-def grid_for(drivable: np.ndarray, resolution: float, cell_m: float = 0.25,
-             robot_radius_m: float = 0.3) -> PlanGrid:
+def grid_for(
+    drivable: np.ndarray, resolution: float, cell_m: float = 0.25, robot_radius_m: float = 0.3
+) -> PlanGrid:
     cell_px = max(1, round(cell_m / resolution))
     inflate = max(1, math.ceil(robot_radius_m / (cell_px * resolution)))
     return build_grid(drivable, cell_px, inflate)
 
 
-def plan_cell_sizes(resolution: float, cell_m: float = 0.25,
-                    robot_radius_m: float = 0.3) -> list[int]:
+def plan_cell_sizes(
+    resolution: float, cell_m: float = 0.25, robot_radius_m: float = 0.3
+) -> list[int]:
     """Candidate planning cell sizes in pixels, coarsest first: from `cell_m` down to a
     quarter of the robot radius. Coarse cells plan fast on big maps; on a small map
     (nav2's 384 x 384 px sandboxes) a 0.25 m cell inflated by a whole cell leaves no
@@ -130,8 +136,16 @@ def largest_component(ok: np.ndarray) -> np.ndarray:
 
 
 _SQRT2 = math.sqrt(2.0)
-_STEPS = ((-1, 0, 1.0), (1, 0, 1.0), (0, -1, 1.0), (0, 1, 1.0),
-          (-1, -1, _SQRT2), (-1, 1, _SQRT2), (1, -1, _SQRT2), (1, 1, _SQRT2))
+_STEPS = (
+    (-1, 0, 1.0),
+    (1, 0, 1.0),
+    (0, -1, 1.0),
+    (0, 1, 1.0),
+    (-1, -1, _SQRT2),
+    (-1, 1, _SQRT2),
+    (1, -1, _SQRT2),
+    (1, 1, _SQRT2),
+)
 
 
 def plan(grid: PlanGrid, start: Cell, goal: Cell) -> list[Cell] | None:

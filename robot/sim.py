@@ -28,16 +28,48 @@ from mapservice.adapters.ros_map import RosMap, drivable, meta_for
 
 from .floor_changes import _protected, _with_pixels, change_map, replan_blocked
 from .planning import Cell, PlanGrid, grid_for, largest_component, plan_cell_sizes
-from .sim_model import (MAX_CACHED_ROUTES, ChunkOut, MapChange, Point, PoseOut, Robot, RouteEntry,
-                        SimConfig, SimState, StepOut, route_to, sim_robot_id, to_metres)
+from .sim_model import (
+    MAX_CACHED_ROUTES,
+    ChunkOut,
+    MapChange,
+    Point,
+    PoseOut,
+    Robot,
+    RouteEntry,
+    SimConfig,
+    SimState,
+    StepOut,
+    route_to,
+    sim_robot_id,
+    to_metres,
+)
 from .sim_zones import speed_at, with_zones
 from .zones import FloorZones
 
 # The names other modules and tests know the simulator by, wherever they now live.
-__all__ = ["MAX_CACHED_ROUTES", "ChunkOut", "FloorZones", "MapChange", "Point", "PoseOut", "Robot",
-           "RouteEntry", "SimConfig", "SimState", "StepOut", "_protected", "_route",
-           "_with_pixels", "advance_along", "capacity", "new_state", "sim_robot_id", "step",
-           "to_metres", "with_zones"]
+__all__ = [
+    "MAX_CACHED_ROUTES",
+    "ChunkOut",
+    "FloorZones",
+    "MapChange",
+    "Point",
+    "PoseOut",
+    "Robot",
+    "RouteEntry",
+    "SimConfig",
+    "SimState",
+    "StepOut",
+    "_protected",
+    "_route",
+    "_with_pixels",
+    "advance_along",
+    "capacity",
+    "new_state",
+    "sim_robot_id",
+    "step",
+    "to_metres",
+    "with_zones",
+]
 _route = route_to
 
 
@@ -48,21 +80,45 @@ def _rng(seed: int, tick: int, salt: str = "") -> random.Random:
     return random.Random(f"{seed}:{tick}:{salt}")
 
 
-def new_state(ros_map: RosMap, robots: int, *, seed: int = 7, t_ms: int = 0,
-              config: SimConfig = SimConfig(), prefix: str = "sim", chunk_width: int = 100,
-              chunk_height: int = 100) -> SimState:
+def new_state(
+    ros_map: RosMap,
+    robots: int,
+    *,
+    seed: int = 7,
+    t_ms: int = 0,
+    config: SimConfig = SimConfig(),
+    prefix: str = "sim",
+    chunk_width: int = 100,
+    chunk_height: int = 100,
+) -> SimState:
     free = drivable(ros_map)
     config, grid, cells = _plan_grid(free, ros_map.resolution, config, robots)
     rng = _rng(seed, -1, "setup")
     picked = rng.sample(cells, config.stations + config.chargers)
-    stations, chargers = tuple(picked[: config.stations]), tuple(picked[config.stations:])
+    stations, chargers = tuple(picked[: config.stations]), tuple(picked[config.stations :])
     fleet = []
     for i, cell in enumerate(rng.sample(cells, min(robots, capacity(len(cells))))):
-        fleet.append(Robot(sim_robot_id(prefix, i), grid.centre_px(cell), rng.uniform(-math.pi, math.pi),
-                           battery=round(rng.uniform(40, 100), 1)))
-    return SimState(ros_map, meta_for(ros_map, chunk_width, chunk_height), config, grid, free,
-                    stations, chargers, tuple(fleet), t_ms, seed,
-                    next_change_ms=t_ms + int(config.change_every_s * 1000))
+        fleet.append(
+            Robot(
+                sim_robot_id(prefix, i),
+                grid.centre_px(cell),
+                rng.uniform(-math.pi, math.pi),
+                battery=round(rng.uniform(40, 100), 1),
+            )
+        )
+    return SimState(
+        ros_map,
+        meta_for(ros_map, chunk_width, chunk_height),
+        config,
+        grid,
+        free,
+        stations,
+        chargers,
+        tuple(fleet),
+        t_ms,
+        seed,
+        next_change_ms=t_ms + int(config.change_every_s * 1000),
+    )
 
 
 def capacity(reachable_cells: int) -> int:
@@ -71,8 +127,9 @@ def capacity(reachable_cells: int) -> int:
     return max(1, reachable_cells // 4)
 
 
-def _plan_grid(free: np.ndarray, resolution: float, config: SimConfig,
-               robots: int) -> tuple[SimConfig, PlanGrid, list[Cell]]:
+def _plan_grid(
+    free: np.ndarray, resolution: float, config: SimConfig, robots: int
+) -> tuple[SimConfig, PlanGrid, list[Cell]]:
     """The coarsest planning grid (see `plan_cell_sizes`) whose largest connected free area
     holds the stations, chargers and the robots; else the one holding the most. The chosen
     cell size goes into the config so that map changes re-plan on the same grid."""
@@ -92,13 +149,14 @@ def _plan_grid(free: np.ndarray, resolution: float, config: SimConfig,
             f"the map has too little free space for the simulation: its largest connected "
             f"free area holds {len(best[2])} planning cells of {best[0].cell_m:.2f} m for a "
             f"{config.robot_radius_m} m robot, {needed} are needed (stations, chargers, a "
-            "robot); use a map with more free space")
+            "robot); use a map with more free space"
+        )
     return best
 
 
-
-def advance_along(pos: Point, yaw: float, waypoints: tuple[Point, ...],
-                  distance_px: float) -> tuple[Point, float, int]:
+def advance_along(
+    pos: Point, yaw: float, waypoints: tuple[Point, ...], distance_px: float
+) -> tuple[Point, float, int]:
     """Where driving `distance_px` along the waypoints from `pos` ends: the position, the
     heading, and how many waypoints it reached. Plain values, no Robot: the demo history
     interpolates poses between steps with it millions of times."""
@@ -164,11 +222,16 @@ def _robot_step(state: SimState, robot: Robot, make_rng: Callable[[], random.Ran
     if robot.task == "charging":
         battery = min(100.0, robot.battery + c.charge_per_s * c.dt_s)
         if battery >= c.full_battery:
-            return _next_task(state, replace(robot, battery=battery, charging=False, task="idle"), make_rng())
+            return _next_task(
+                state, replace(robot, battery=battery, charging=False, task="idle"), make_rng()
+            )
         return replace(robot, battery=battery)
     if robot.task in ("dwell", "idle"):
-        robot = replace(robot, battery=max(0.0, robot.battery - c.idle_drain_per_s * c.dt_s),
-                        wait_s=robot.wait_s - c.dt_s)
+        robot = replace(
+            robot,
+            battery=max(0.0, robot.battery - c.idle_drain_per_s * c.dt_s),
+            wait_s=robot.wait_s - c.dt_s,
+        )
         return _next_task(state, robot, make_rng()) if robot.wait_s <= 0 else robot
     if not robot.waypoints:
         return _arrive(state, robot)
@@ -217,15 +280,26 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
         nxt = t_ms + int(rng.expovariate(1.0 / c.change_every_s) * 1000) + 1000
         state = replace(state, next_change_ms=nxt)
         if state.grid is not old_grid:
-            state = replace(state, robots=tuple(
-                replan_blocked(state, r)
-                if r.waypoints else r for r in state.robots))
+            state = replace(
+                state,
+                robots=tuple(replan_blocked(state, r) if r.waypoints else r for r in state.robots),
+            )
     robots = []
     for robot in state.robots:
         robot = _robot_step(state, robot, partial(_rng, state.seed, state.tick, robot.robot_id))
         robots.append(robot)
         x, y = to_metres(state, robot.pos)
-        out.poses.append(PoseOut(robot.robot_id, t_ms, x, y, round(robot.yaw, 4),
-                                 round(robot.battery, 1), robot.charging, robot.loaded,
-                                 _path_metres(state, robot)))
+        out.poses.append(
+            PoseOut(
+                robot.robot_id,
+                t_ms,
+                x,
+                y,
+                round(robot.yaw, 4),
+                round(robot.battery, 1),
+                robot.charging,
+                robot.loaded,
+                _path_metres(state, robot),
+            )
+        )
     return replace(state, robots=tuple(robots)), out

@@ -9,8 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapservice.core.events import MapMetaSet
 from mapservice.adapters.ros_map import RosMap
+from mapservice.core.events import MapMetaSet
 
 from .chunks import pixel_to_metres
 from .planning import Cell, PlanGrid, plan, route_clear, simplify
@@ -102,6 +102,7 @@ class RouteEntry:
     """A planned route in the cache: its cells, their simplified waypoints, and the grid
     it was last found clear on. The grid is replaced whenever the floor changes, so an
     entry checked against the current grid object needs no check again until then."""
+
     cells: list[Cell]
     waypoints: tuple[Point, ...]
     checked_on: PlanGrid
@@ -167,8 +168,8 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
         if len(state.routes) > MAX_CACHED_ROUTES:
             state.routes.clear()
         entry = state.routes[(start, goal)] = RouteEntry(
-            cells, tuple(grid.centre_px(c) for c in simplify(cells)), grid)
+            cells, tuple(grid.centre_px(c) for c in simplify(cells)), grid
+        )
     if robot.waypoints:
         return (robot.waypoints[0],) + entry.waypoints[1:]
     return entry.waypoints
-

@@ -29,13 +29,16 @@ from .sim_model import Point, Robot, SimConfig, SimState, to_metres
 from .zones import NO_ZONES, FloorZones, blocked_grid, floor_zones
 
 
-def plan_grids(free: np.ndarray, zones: FloorZones, resolution: float,
-               config: SimConfig) -> tuple[PlanGrid, PlanGrid | None]:
+def plan_grids(
+    free: np.ndarray, zones: FloorZones, resolution: float, config: SimConfig
+) -> tuple[PlanGrid, PlanGrid | None]:
     """(the grid robots plan on, the floor's own grid or None when they are the same)."""
     floor = grid_for(free, resolution, config.cell_m, config.robot_radius_m)
     if zones.keep_out is None:
         return floor, None
-    return blocked_grid(free, zones.keep_out, resolution, config.cell_m, config.robot_radius_m), floor
+    return blocked_grid(
+        free, zones.keep_out, resolution, config.cell_m, config.robot_radius_m
+    ), floor
 
 
 def speed_at(state: SimState, pos: Point) -> float:
@@ -54,7 +57,9 @@ def with_zones(state: SimState, zones: Sequence[tuple[str, Zone]]) -> tuple[SimS
     """The state with these zones (all that stand now, by id) in force, and what robots
     did about them (human-readable notes)."""
     grid = grid_of(state.meta)
-    fz = floor_zones(zones, grid, state.config.speed_m_s) if grid is not None and zones else NO_ZONES
+    fz = (
+        floor_zones(zones, grid, state.config.speed_m_s) if grid is not None and zones else NO_ZONES
+    )
     planned, floor = plan_grids(state.drivable, fz, state.ros_map.resolution, state.config)
     state = replace(state, zones=fz, grid=planned, floor_grid=floor)
     state.routes.clear()  # routes planned around other zones, or through the new ones
@@ -109,19 +114,30 @@ def _respect(state: SimState, robot: Robot) -> tuple[Robot, str | None]:
     if not g.is_ok(here):
         out = way_out(state.floor, g, here)
         if out is None:
-            return (replace(robot, waypoints=(), task="idle", wait_s=state.config.dwell_s,
-                            charging=False),
-                    f"{robot.robot_id} stands in a keep-out zone at ({x:.1f}, {y:.1f}) m with "
-                    "no way out over the floor: it stops there")
+            return (
+                replace(
+                    robot, waypoints=(), task="idle", wait_s=state.config.dwell_s, charging=False
+                ),
+                f"{robot.robot_id} stands in a keep-out zone at ({x:.1f}, {y:.1f}) m with "
+                "no way out over the floor: it stops there",
+            )
         metres = (len(out) - 1) * g.cell_px * state.ros_map.resolution
-        return (replace(robot, waypoints=tuple(g.centre_px(c) for c in simplify(out)),
-                        task="leave_zone", charging=False),
-                f"{robot.robot_id} leaves a keep-out zone at ({x:.1f}, {y:.1f}) m, "
-                f"{metres:.1f} m to its edge")
+        return (
+            replace(
+                robot,
+                waypoints=tuple(g.centre_px(c) for c in simplify(out)),
+                task="leave_zone",
+                charging=False,
+            ),
+            f"{robot.robot_id} leaves a keep-out zone at ({x:.1f}, {y:.1f}) m, "
+            f"{metres:.1f} m to its edge",
+        )
     if not robot.waypoints or route_clear(g, route_cells(g, (robot.pos, *robot.waypoints))):
         return robot, None
     cells = plan(g, here, g.cell_at(*robot.waypoints[-1]))
     if cells is None:
-        return (replace(robot, waypoints=(g.centre_px(here),), task="leave_zone"),
-                f"{robot.robot_id}'s goal is cut off by a keep-out zone: it chooses another job")
+        return (
+            replace(robot, waypoints=(g.centre_px(here),), task="leave_zone"),
+            f"{robot.robot_id}'s goal is cut off by a keep-out zone: it chooses another job",
+        )
     return replace(robot, waypoints=tuple(g.centre_px(c) for c in simplify(cells))), None

@@ -11,6 +11,7 @@ import paho.mqtt.client as mqtt
 import structlog
 
 from mapservice.adapters.ros_map import RosMap
+
 from .commands import CommandInbox, SimCommands
 from .connection import RobotClients, RobotMqtt
 from .faults import Faults, to_messages
@@ -45,10 +46,21 @@ class SimStats:
 
 
 class SimRunner:
-    def __init__(self, mqtt_url: str, ros_map: RosMap, robots: int, *, faults: Faults = Faults(),
-                 seed: int = 7, config: SimConfig = SimConfig(), prefix: str = "sim",
-                 qos: int = 1, mqtt_conn: RobotMqtt | None = None, zone_feed: ZoneFeed | None = None,
-                 zone_topic: str = "iot/zones/advertisement") -> None:
+    def __init__(
+        self,
+        mqtt_url: str,
+        ros_map: RosMap,
+        robots: int,
+        *,
+        faults: Faults = Faults(),
+        seed: int = 7,
+        config: SimConfig = SimConfig(),
+        prefix: str = "sim",
+        qos: int = 1,
+        mqtt_conn: RobotMqtt | None = None,
+        zone_feed: ZoneFeed | None = None,
+        zone_topic: str = "iot/zones/advertisement",
+    ) -> None:
         self.mqtt_url = mqtt_url
         # Where robots have credentials, each connects as itself (RobotClients).
         self.conn = mqtt_conn or RobotMqtt(mqtt_url)
@@ -56,13 +68,17 @@ class SimRunner:
         self.seed = seed
         self.qos = qos
         now_ms = time.time_ns() // 1_000_000
-        self.state: SimState = new_state(ros_map, robots, seed=seed, t_ms=now_ms, config=config,
-                                         prefix=prefix)
+        self.state: SimState = new_state(
+            ros_map, robots, seed=seed, t_ms=now_ms, config=config, prefix=prefix
+        )
         hosted = len(self.state.robots)
         if hosted < robots:
             structlog.get_logger("sim").warning(
-                "the map has room for fewer robots; running fewer", asked=robots, running=hosted,
-                planning_cell_m=round(self.state.config.cell_m, 3))
+                "the map has room for fewer robots; running fewer",
+                asked=robots,
+                running=hosted,
+                planning_cell_m=round(self.state.config.cell_m, 3),
+            )
         self.stats = SimStats(robots=hosted)
         # Operators' commands, each robot's on its own topic, applied between ticks.
         self.commands = SimCommands(CommandInbox(r.robot_id for r in self.state.robots))
@@ -78,15 +94,18 @@ class SimRunner:
     def _on_disconnect(self, client, userdata, flags, reason, properties=None) -> None:
         if not self._stop.is_set() and not self._closing:
             self.stats.errors += 1
-            structlog.get_logger("sim").warning("disconnected from the MQTT broker",
-                                                reason=str(reason))
+            structlog.get_logger("sim").warning(
+                "disconnected from the MQTT broker", reason=str(reason)
+            )
 
     def _listen_for_zones(self) -> mqtt.Client:
         """A connection of its own (as the first robot, where robots have credentials) that
         hands each zone advertisement to the feed, subscribed again on every reconnect."""
         assert self.zone_feed is not None
         feed, topic = self.zone_feed, self.zone_topic
-        first = self.state.robots[0].robot_id if self.conn.authenticated and self.state.robots else None
+        first = (
+            self.state.robots[0].robot_id if self.conn.authenticated and self.state.robots else None
+        )
         client = self.conn.client(f"sim-{self.seed}-zones-{time.time_ns() % 10**9}", first)
         client.on_connect = lambda c, *_: c.subscribe(topic, qos=1)
         client.on_message = lambda _c, _u, msg: feed.advertised(msg.payload)
@@ -102,13 +121,20 @@ class SimRunner:
         self.stats.zone_changes += 1
         self.stats.recent.extend(notes)
         structlog.get_logger("sim").info(
-            "robots take on the operators' zones", zones=len(zones),
+            "robots take on the operators' zones",
+            zones=len(zones),
             keep_out=sum(z.kind == "keep_out" for _, z in zones),
-            speed=sum(z.kind == "speed_limit" for _, z in zones), robots=notes)
+            speed=sum(z.kind == "speed_limit" for _, z in zones),
+            robots=notes,
+        )
 
     def run(self, seconds: float | None = None, on_tick=None) -> SimStats:
-        clients = RobotClients(self.conn, [r.robot_id for r in self.state.robots],
-                               f"sim-{self.seed}", on_disconnect=self._on_disconnect)
+        clients = RobotClients(
+            self.conn,
+            [r.robot_id for r in self.state.robots],
+            f"sim-{self.seed}",
+            on_disconnect=self._on_disconnect,
+        )
         clients.connect()
         self.commands.inbox.attach_fleet(clients)
         listener = None
@@ -136,9 +162,14 @@ class SimRunner:
                 self.apply_zones()
                 before = self.commands.before_step(self.state)
                 self.state, out = self.commands.after_step(before, *step(before))
-                messages, lost = to_messages(out, self.faults, seed=self.seed,
-                                             tick=self.state.tick, chunk_pixels=chunk_px,
-                                             chunk_topic=self.conn.chunk_topic)
+                messages, lost = to_messages(
+                    out,
+                    self.faults,
+                    seed=self.seed,
+                    tick=self.state.tick,
+                    chunk_pixels=chunk_px,
+                    chunk_topic=self.conn.chunk_topic,
+                )
                 s = self.stats
                 s.ticks += 1
                 s.lost += lost
@@ -155,7 +186,10 @@ class SimRunner:
                     else:
                         s.bad += 1
                 for answer in self.commands.drain():
-                    if clients.publish(answer.robot_id, answer.topic, answer.payload).rc != mqtt.MQTT_ERR_SUCCESS:
+                    if (
+                        clients.publish(answer.robot_id, answer.topic, answer.payload).rc
+                        != mqtt.MQTT_ERR_SUCCESS
+                    ):
                         s.errors += 1
                 s.window.append((time.monotonic(), s.sent))
                 if on_tick is not None:
@@ -188,10 +222,14 @@ def progress_table(runner: SimRunner):
         tasks[r.task] = tasks.get(r.task, 0) + 1
     table.add_row("doing", ", ".join(f"{n} {t}" for t, n in sorted(tasks.items())))
     if robots:
-        table.add_row("battery", f"min {min(r.battery for r in robots):.0f} %, "
-                                 f"{sum(r.loaded for r in robots)} loaded")
+        table.add_row(
+            "battery",
+            f"min {min(r.battery for r in robots):.0f} %, {sum(r.loaded for r in robots)} loaded",
+        )
     table.add_row("map changes", f"{s.map_changes}" + (f": {s.recent[-1]}" if s.recent else ""))
     if runner.zone_feed is not None:
-        table.add_row("operators' zones", f"{len(runner.state.zones.zones)} standing, "
-                                          f"{s.zone_changes} changes taken on")
+        table.add_row(
+            "operators' zones",
+            f"{len(runner.state.zones.zones)} standing, {s.zone_changes} changes taken on",
+        )
     return table

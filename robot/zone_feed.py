@@ -46,8 +46,13 @@ class ZoneFeed:
     """Fetches the zones when told to (`advertised`, the periodic resync); the simulator's
     loop `take`s each new set of zones once, between two steps."""
 
-    def __init__(self, api_url: str, token: str | None, resync_s: float = 60.0,
-                 fetch: Callable[[], Zones] | None = None) -> None:
+    def __init__(
+        self,
+        api_url: str,
+        token: str | None,
+        resync_s: float = 60.0,
+        fetch: Callable[[], Zones] | None = None,
+    ) -> None:
         self.api_url = api_url
         self.token = token
         self.resync_s = resync_s
@@ -77,9 +82,12 @@ class ZoneFeed:
                 zones = self._fetch()
             except (httpx.HTTPError, ValueError) as exc:
                 self.failures += 1
-                log.warning("cannot read the zones; robots keep the ones they know",
-                            api=self.api_url, error=str(exc)[:300],
-                            fix="check that the service's API is up at --api and the token reads")
+                log.warning(
+                    "cannot read the zones; robots keep the ones they know",
+                    api=self.api_url,
+                    error=str(exc)[:300],
+                    fix="check that the service's API is up at --api and the token reads",
+                )
                 return False
             self.fetches += 1
             if all(shows(zones, ad) for ad in adverts) or attempt == STALE_RETRIES - 1:
@@ -97,7 +105,9 @@ class ZoneFeed:
             if not isinstance(advert, dict):
                 raise ValueError("not a JSON object")
         except ValueError as exc:
-            log.warning("zone advertisement not understood; reading the zones anyway", error=str(exc))
+            log.warning(
+                "zone advertisement not understood; reading the zones anyway", error=str(exc)
+            )
             advert = {}
         with self._lock:
             if advert:

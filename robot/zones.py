@@ -63,8 +63,9 @@ def floor_zones(zones: Sequence[tuple[str, Zone]], grid: Grid, full_speed_m_s: f
     return FloorZones(keep_out, speed, tuple(zones))
 
 
-def blocked_grid(free: np.ndarray, keep_out: np.ndarray, resolution: float, cell_m: float,
-                 robot_radius_m: float) -> PlanGrid:
+def blocked_grid(
+    free: np.ndarray, keep_out: np.ndarray, resolution: float, cell_m: float, robot_radius_m: float
+) -> PlanGrid:
     """The planning grid with the keep-out pixels as not drivable: a cell holding one is
     blocked, and the inflation by the robot's radius keeps the robot's body off the zone
     as it keeps it off a rack."""
@@ -75,8 +76,10 @@ def zones_from_listing(doc: Any) -> list[tuple[str, Zone]]:
     """The zones in the API's listAnnotations answer ({"annotations": [{"id", "annotation"}]}),
     by id; points of interest are left out. Raises ValueError on an answer of another shape."""
     if not isinstance(doc, dict) or not isinstance(doc.get("annotations"), list):
-        raise ValueError("the annotations listing has no 'annotations' list; is the URL the "
-                         "service's API (GET /api/v1/annotations)?")
+        raise ValueError(
+            "the annotations listing has no 'annotations' list; is the URL the "
+            "service's API (GET /api/v1/annotations)?"
+        )
     out: list[tuple[str, Zone]] = []
     for item in doc["annotations"]:
         body = item.get("annotation") if isinstance(item, dict) else None
@@ -86,7 +89,9 @@ def zones_from_listing(doc: Any) -> list[tuple[str, Zone]]:
             zone = from_doc(body, check=False)
             annotation_id = str(item["id"])
         except (AnnotationError, KeyError) as exc:
-            raise ValueError(f"the annotations listing holds a zone that cannot be read: {exc}") from None
+            raise ValueError(
+                f"the annotations listing holds a zone that cannot be read: {exc}"
+            ) from None
         if isinstance(zone, Zone):
             out.append((annotation_id, zone))
     return sorted(out, key=lambda z: z[0])

@@ -115,32 +115,68 @@ def wire(now_ms: int) -> Wire:
 # --- events for store and API tests ---------------------------------------------------
 
 
-def pose_event(robot_id: str, t_ms: int, x: float = 1.0, y: float = 2.0, *,
-               receive_lag_ms: int = 40, **fields) -> Envelope:
-    payload = PoseReported(position=(x, y, 0.0), orientation=(0.0, 0.0, 0.0, 1.0),
-                           battery_level=fields.pop("battery_level", 80.0), **fields)
+def pose_event(
+    robot_id: str, t_ms: int, x: float = 1.0, y: float = 2.0, *, receive_lag_ms: int = 40, **fields
+) -> Envelope:
+    payload = PoseReported(
+        position=(x, y, 0.0),
+        orientation=(0.0, 0.0, 0.0, 1.0),
+        battery_level=fields.pop("battery_level", 80.0),
+        **fields,
+    )
     return make_envelope(robot_id, t_ms, t_ms + receive_lag_ms, payload)
 
 
-def chunk_event(robot_id: str, t_ms: int, row: int = 0, column: int = 0,
-                pixels: bytes = bytes(100 * 100), *, width: int = 100, height: int = 100,
-                receive_lag_ms: int = 25) -> Envelope:
-    payload = ChunkUpdated(row=row, column=column, width=width, height=height,
-                           data=zlib.compress(pixels), content_hash=content_hash(pixels))
+def chunk_event(
+    robot_id: str,
+    t_ms: int,
+    row: int = 0,
+    column: int = 0,
+    pixels: bytes = bytes(100 * 100),
+    *,
+    width: int = 100,
+    height: int = 100,
+    receive_lag_ms: int = 25,
+) -> Envelope:
+    payload = ChunkUpdated(
+        row=row,
+        column=column,
+        width=width,
+        height=height,
+        data=zlib.compress(pixels),
+        content_hash=content_hash(pixels),
+    )
     return make_envelope(robot_id, t_ms, t_ms + receive_lag_ms, payload)
 
 
-def meta_event(t_ms: int, chunk_rows: int = 4, chunk_cols: int = 5,
-               robot_id: str = "admin") -> Envelope:
-    payload = MapMetaSet(width=chunk_cols * 100, height=chunk_rows * 100, chunk_width=100,
-                         chunk_height=100, chunk_rows=chunk_rows, chunk_cols=chunk_cols,
-                         comment=f"meta at {t_ms}", resolution=0.05, origin=(-1.5, 2.0, 0.0))
+def meta_event(
+    t_ms: int, chunk_rows: int = 4, chunk_cols: int = 5, robot_id: str = "admin"
+) -> Envelope:
+    payload = MapMetaSet(
+        width=chunk_cols * 100,
+        height=chunk_rows * 100,
+        chunk_width=100,
+        chunk_height=100,
+        chunk_rows=chunk_rows,
+        chunk_cols=chunk_cols,
+        comment=f"meta at {t_ms}",
+        resolution=0.05,
+        origin=(-1.5, 2.0, 0.0),
+    )
     return make_envelope(robot_id, t_ms, t_ms, payload)
 
 
-def dead_letter(reason: str = "not_json", payload: bytes = b"{oops", t_ms: int = NOW_MS) -> DeadLetter:
-    return DeadLetter(reason=reason, detail="test", mqtt_topic="iot/chunks/create",
-                      payload=payload, receive_time_ms=t_ms, gateway="test-gw")
+def dead_letter(
+    reason: str = "not_json", payload: bytes = b"{oops", t_ms: int = NOW_MS
+) -> DeadLetter:
+    return DeadLetter(
+        reason=reason,
+        detail="test",
+        mqtt_topic="iot/chunks/create",
+        payload=payload,
+        receive_time_ms=t_ms,
+        gateway="test-gw",
+    )
 
 
 @dataclass(frozen=True)
@@ -228,7 +264,9 @@ def t0() -> int:
 
 
 @pytest.fixture(params=STORE_KINDS)
-def store(request: pytest.FixtureRequest, open_store: Callable[..., HistoryStore]) -> Iterator[HistoryStore]:
+def store(
+    request: pytest.FixtureRequest, open_store: Callable[..., HistoryStore]
+) -> Iterator[HistoryStore]:
     """An empty, migrated store of each kind (a module's own `store` fixture overrides it)."""
     s = open_store(request.param)
     s.migrate()

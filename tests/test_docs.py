@@ -63,4 +63,5 @@ def test_the_readme_links_every_reference_page():
 def test_the_readme_stays_a_newcomers_page():
     lines = README.read_text().count("\n")
     assert lines <= README_MAX_LINES, (
-        f"README.md has {lines} lines: move reference material to a page in docs/ and link it")
+        f"README.md has {lines} lines: move reference material to a page in docs/ and link it"
+    )

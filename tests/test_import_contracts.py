@@ -41,8 +41,14 @@ def stage(tmp: Path) -> Path:
 
 def lint_imports(staged: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(staged)}
-    return subprocess.run([str(LINT_IMPORTS), "--config", str(PYPROJECT), "--no-cache"], cwd=staged,
-                          env=env, capture_output=True, text=True, timeout=120)
+    return subprocess.run(
+        [str(LINT_IMPORTS), "--config", str(PYPROJECT), "--no-cache"],
+        cwd=staged,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
 
 
 def write(staged: Path, module: str, source: str) -> None:
@@ -63,16 +69,24 @@ def test_every_import_contract_holds(staged: Path) -> None:
 
 def test_the_stage_holds_every_component(staged: Path) -> None:
     """The staged tree has the mapped subpackages, so the contracts see the whole service."""
-    for module in ("mapservice/api/app.py", "mapservice/processors/app.py",
-                   "mapservice/ingest/gateway.py", "mapservice/robot/sim.py", "mapservice/core/events.py"):
+    for module in (
+        "mapservice/api/app.py",
+        "mapservice/processors/app.py",
+        "mapservice/ingest/gateway.py",
+        "mapservice/robot/sim.py",
+        "mapservice/core/events.py",
+    ):
         assert (staged / module).is_file(), module
 
 
 def test_an_import_circle_breaks_the_contracts(staged: Path) -> None:
     """Two processors modules importing each other (even for type hints only) are refused."""
     write(staged, "mapservice.processors.circle_a", "from mapservice.processors import circle_b\n")
-    write(staged, "mapservice.processors.circle_b",
-          "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from mapservice.processors import circle_a\n")
+    write(
+        staged,
+        "mapservice.processors.circle_b",
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from mapservice.processors import circle_a\n",
+    )
     result = lint_imports(staged)
     assert result.returncode == 1
     assert "No import circles between modules or packages BROKEN" in result.stdout
@@ -83,13 +97,19 @@ def test_a_product_module_importing_the_benchmarks_breaks_the_contracts(staged: 
     write(staged, "mapservice.api.uses_bench", "from mapservice.bench import ingest\n")
     result = lint_imports(staged)
     assert result.returncode == 1
-    assert "The product never imports the local stack, the benchmarks or the test twins BROKEN" in result.stdout
+    assert (
+        "The product never imports the local stack, the benchmarks or the test twins BROKEN"
+        in result.stdout
+    )
     assert "Layers: each part imports only what is below it BROKEN" in result.stdout
 
 
-@pytest.mark.parametrize("importer", ["mapservice.processors.uses_twin", "mapservice.local.uses_twin"])
+@pytest.mark.parametrize(
+    "importer", ["mapservice.processors.uses_twin", "mapservice.local.uses_twin"]
+)
 def test_the_product_or_the_local_stack_importing_a_test_twin_breaks_the_contracts(
-        staged: Path, importer: str) -> None:
+    staged: Path, importer: str
+) -> None:
     """The memory twins stand in for adapters only in tests and benchmarks: a processors
     module (the product) or the local stack (`up`) that imports one is refused."""
     write(staged, importer, "from mapservice.testing import memory_store\n")
@@ -97,17 +117,25 @@ def test_the_product_or_the_local_stack_importing_a_test_twin_breaks_the_contrac
     assert result.returncode == 1
     assert "Layers: each part imports only what is below it BROKEN" in result.stdout
     if importer.startswith("mapservice.processors"):
-        assert ("The product never imports the local stack, the benchmarks or the test twins BROKEN"
-                in result.stdout)
+        assert (
+            "The product never imports the local stack, the benchmarks or the test twins BROKEN"
+            in result.stdout
+        )
 
 
 def test_io_in_the_core_breaks_the_contracts(staged: Path) -> None:
     """A core module that opens files or imports an adapter is refused."""
-    write(staged, "mapservice.core.reads_files",
-          "from pathlib import Path\nfrom mapservice.adapters import clock\n")
+    write(
+        staged,
+        "mapservice.core.reads_files",
+        "from pathlib import Path\nfrom mapservice.adapters import clock\n",
+    )
     result = lint_imports(staged)
     assert result.returncode == 1
-    assert "The core performs no I/O: no network, process, file or broker libraries BROKEN" in result.stdout
+    assert (
+        "The core performs no I/O: no network, process, file or broker libraries BROKEN"
+        in result.stdout
+    )
     assert "Layers: each part imports only what is below it BROKEN" in result.stdout
 
 
@@ -115,6 +143,9 @@ def test_every_module_says_its_job(staged: Path) -> None:
     """Every module of the installed tree opens with a docstring."""
     import ast
 
-    missing = [str(module.relative_to(staged)) for module in sorted(staged.rglob("*.py"))
-               if not ast.get_docstring(ast.parse(module.read_text()))]
+    missing = [
+        str(module.relative_to(staged))
+        for module in sorted(staged.rglob("*.py"))
+        if not ast.get_docstring(ast.parse(module.read_text()))
+    ]
     assert not missing, f"modules without a docstring: {missing}"

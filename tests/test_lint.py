@@ -13,15 +13,29 @@ from tests.fixtures.paths import ROOT
 BIN = Path(sys.executable).parent
 
 # What `mypy --strict` turns on beyond the baseline (mypy 1.x/2.x); the core sets each one.
-STRICT_FLAGS = {"disallow_any_generics", "disallow_subclassing_any", "disallow_untyped_calls",
-                "disallow_untyped_defs", "disallow_incomplete_defs", "check_untyped_defs",
-                "disallow_untyped_decorators", "warn_return_any", "no_implicit_reexport",
-                "extra_checks"}
+STRICT_FLAGS = {
+    "disallow_any_generics",
+    "disallow_subclassing_any",
+    "disallow_untyped_calls",
+    "disallow_untyped_defs",
+    "disallow_incomplete_defs",
+    "check_untyped_defs",
+    "disallow_untyped_decorators",
+    "warn_return_any",
+    "no_implicit_reexport",
+    "extra_checks",
+}
 
 
 def run(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(BIN / args[0]), *args[1:]], cwd=ROOT, capture_output=True,
-                          text=True, timeout=240, check=False)
+    return subprocess.run(
+        [str(BIN / args[0]), *args[1:]],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=240,
+        check=False,
+    )
 
 
 def test_ruff_finds_nothing():
@@ -43,6 +57,9 @@ def test_the_core_is_typed_strictly():
 
 
 def test_ci_lints_before_it_tests():
-    steps = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()
-             if line.strip().startswith("make ")]
+    steps = [
+        line.strip()
+        for line in (ROOT / ".ci" / "run").read_text().splitlines()
+        if line.strip().startswith("make ")
+    ]
     assert steps[:2] == ["make lint", "make test"]

@@ -24,10 +24,26 @@ def try_it_block() -> str:
 
 def start_up(data_dir, api_port: int, mqtt_port: int) -> subprocess.Popen:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
-         "--robots", "2", "--api-port", str(api_port), "--mqtt-port", str(mqtt_port)],
-        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "up",
+            "--data-dir",
+            str(data_dir),
+            "--robots",
+            "2",
+            "--api-port",
+            str(api_port),
+            "--mqtt-port",
+            str(mqtt_port),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
     deadline = time.monotonic() + 240  # a fresh data dir first gets its week of demo history
     seen = []
     while time.monotonic() < deadline:
@@ -55,15 +71,21 @@ def test_try_it_block_against_mapservice_up(tmp_path):
     data_dir = tmp_path / "data"
     proc = start_up(data_dir, api_port, mqtt_port)
     try:
-        script = try_it_block().replace("-p 1883", f"-p {mqtt_port}").replace(
-            "127.0.0.1:8080", f"127.0.0.1:{api_port}")
+        script = (
+            try_it_block()
+            .replace("-p 1883", f"-p {mqtt_port}")
+            .replace("127.0.0.1:8080", f"127.0.0.1:{api_port}")
+        )
         publish, rest = script.split("sleep 1", 1)
         started = time.monotonic()
         subprocess.run(["bash", "-euc", publish], check=True, timeout=30)
         found = []
         while time.monotonic() - started < 2.0 and not found:
-            found = json.loads(subprocess.run(["bash", "-euc", rest], check=True, timeout=30,
-                                              capture_output=True, text=True).stdout)
+            found = json.loads(
+                subprocess.run(
+                    ["bash", "-euc", rest], check=True, timeout=30, capture_output=True, text=True
+                ).stdout
+            )
         assert found, "the README's pose was not queryable within 2 s"
         assert found[0]["robotId"] == "demo-robot"
         assert found[0]["position"] == [10.0, 20.0, 0.0]
@@ -81,8 +103,10 @@ def test_try_it_block_against_mapservice_up(tmp_path):
     proc = start_up(data_dir, api_port, mqtt_port)
     try:
         now = time.time_ns() // 1_000_000
-        rows = httpx.get(f"http://127.0.0.1:{api_port}/api/v1/poses",
-                         params={"robotId": "demo-robot", "from": now - 3_600_000, "to": now}).json()
+        rows = httpx.get(
+            f"http://127.0.0.1:{api_port}/api/v1/poses",
+            params={"robotId": "demo-robot", "from": now - 3_600_000, "to": now},
+        ).json()
         assert len(rows) == 1
     finally:
         assert stop_up(proc) == 0

@@ -42,6 +42,7 @@ from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/v1/annotations", tags=["annotations"])
 
+
 class AnnotationStore(AnnotationReader, TimeTravelReader, Protocol):
     """The annotations and their edits, and the map meta that bounds them."""
 
@@ -78,8 +79,11 @@ class AnnotationIn(BaseModel):
 
 
 class AnnotationCreate(AnnotationIn):
-    id: str | None = Field(None, max_length=100, description=(
-        "The new annotation's id (letters, digits, '-_.:'); generated when left out"))
+    id: str | None = Field(
+        None,
+        max_length=100,
+        description=("The new annotation's id (letters, digits, '-_.:'); generated when left out"),
+    )
 
 
 class AnnotationOut(BaseModel):
@@ -127,8 +131,14 @@ class Imported(BaseModel):
 
 
 def _out(c: CurrentAnnotation) -> AnnotationOut:
-    return AnnotationOut(id=c.annotation_id, annotation=to_doc(c.annotation), created_ms=c.created_ms,
-                         created_by=c.created_by, changed_ms=c.changed_ms, changed_by=c.changed_by)
+    return AnnotationOut(
+        id=c.annotation_id,
+        annotation=to_doc(c.annotation),
+        created_ms=c.created_ms,
+        created_by=c.created_by,
+        changed_ms=c.changed_ms,
+        changed_by=c.changed_by,
+    )
 
 
 def _shape(body: AnnotationIn):
@@ -138,8 +148,15 @@ def _shape(body: AnnotationIn):
         raise HTTPException(422, f"the annotation is not valid: {exc}") from None
 
 
-async def _publish(request: Request, publisher: EventPublisher, settings: Settings, caller: Caller,
-                   now_ms: int, event, after_ms: int = 0) -> AnnotationEdit:
+async def _publish(
+    request: Request,
+    publisher: EventPublisher,
+    settings: Settings,
+    caller: Caller,
+    now_ms: int,
+    event,
+    after_ms: int = 0,
+) -> AnnotationEdit:
     now_ms = recent_edits(request).stamp(now_ms, after_ms)
     envelope = make_envelope(caller.name, now_ms, now_ms, event)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
@@ -148,8 +165,9 @@ async def _publish(request: Request, publisher: EventPublisher, settings: Settin
     return edit
 
 
-@router.get("", operation_id="listAnnotations", response_model=Annotations,
-            dependencies=[Depends(READ)])
+@router.get(
+    "", operation_id="listAnnotations", response_model=Annotations, dependencies=[Depends(READ)]
+)
 def list_annotations(request: Request, store: StoreDep, at: AtDep) -> Annotations:
     """The points of interest and zones standing at `at` (default now), with who created
     and last changed each, and when."""
@@ -157,28 +175,49 @@ def list_annotations(request: Request, store: StoreDep, at: AtDep) -> Annotation
     return Annotations(at_ms=at, annotations=[_out(current[k]) for k in sorted(current)])
 
 
-@router.get("/edits", operation_id="listAnnotationEdits", response_model=Edits,
-            dependencies=[Depends(READ)])
+@router.get(
+    "/edits", operation_id="listAnnotationEdits", response_model=Edits, dependencies=[Depends(READ)]
+)
 def list_annotation_edits(
-    store: StoreDep, settings: SettingsDep, clock: ClockDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
     window: WindowQuery,
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
 ) -> Edits:
     """Every create, change and removal in the window, oldest first: the annotations' history."""
     f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     rows = store.annotation_edits(f, t, limit + 1)
-    return Edits(from_ms=f, to_ms=t, truncated=len(rows) > limit, edits=[
-        Edit(ts_ms=e.ts_ms, event_id=e.event_id, id=e.event.annotation_id,
-             change=CHANGES[type(e.event)],
-             by=e.event.author,
-             annotation=None if isinstance(e.event, AnnotationRemoved) else to_doc(e.event.annotation))
-        for e in rows[:limit]])
+    return Edits(
+        from_ms=f,
+        to_ms=t,
+        truncated=len(rows) > limit,
+        edits=[
+            Edit(
+                ts_ms=e.ts_ms,
+                event_id=e.event_id,
+                id=e.event.annotation_id,
+                change=CHANGES[type(e.event)],
+                by=e.event.author,
+                annotation=None
+                if isinstance(e.event, AnnotationRemoved)
+                else to_doc(e.event.annotation),
+            )
+            for e in rows[:limit]
+        ],
+    )
 
 
 @router.post("", operation_id="createAnnotation", response_model=AnnotationOut, status_code=201)
-async def create_annotation(request: Request, body: AnnotationCreate, caller: OperatorDep,
-                            store: StoreDep, settings: SettingsDep, clock: ClockDep,
-                            publisher: PublisherDep) -> AnnotationOut:
+async def create_annotation(
+    request: Request,
+    body: AnnotationCreate,
+    caller: OperatorDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
+) -> AnnotationOut:
     """Creates a point of interest or a zone (409 if the id is taken)."""
     shape = _shape(body)
     annotation_id = body.id or f"a-{secrets.token_hex(8)}"
@@ -188,60 +227,122 @@ async def create_annotation(request: Request, body: AnnotationCreate, caller: Op
         raise HTTPException(422, str(exc)) from None
     now = clock.now_ms()
     if annotation_id in await run_in_threadpool(standing, request, store, now):
-        raise HTTPException(409, f"annotation {annotation_id!r} exists; change it with PUT "
-                                 f"/api/v1/annotations/{annotation_id} or choose another id")
-    edit = await _publish(request, publisher, settings, caller, now,
-                          AnnotationCreated(annotation_id, caller.name, shape))
-    return AnnotationOut(id=annotation_id, annotation=to_doc(shape), created_ms=edit.ts_ms,
-                         created_by=caller.name, changed_ms=edit.ts_ms, changed_by=caller.name)
+        raise HTTPException(
+            409,
+            f"annotation {annotation_id!r} exists; change it with PUT "
+            f"/api/v1/annotations/{annotation_id} or choose another id",
+        )
+    edit = await _publish(
+        request,
+        publisher,
+        settings,
+        caller,
+        now,
+        AnnotationCreated(annotation_id, caller.name, shape),
+    )
+    return AnnotationOut(
+        id=annotation_id,
+        annotation=to_doc(shape),
+        created_ms=edit.ts_ms,
+        created_by=caller.name,
+        changed_ms=edit.ts_ms,
+        changed_by=caller.name,
+    )
 
 
-async def _existing(request: Request, store: AnnotationStore, annotation_id: str,
-                    now: int) -> CurrentAnnotation:
+async def _existing(
+    request: Request, store: AnnotationStore, annotation_id: str, now: int
+) -> CurrentAnnotation:
     current = await run_in_threadpool(standing, request, store, now)
     if annotation_id not in current:
-        raise HTTPException(404, f"no annotation {annotation_id[:100]!r} stands now (list them "
-                                 "with GET /api/v1/annotations; one created by another API "
-                                 "process is there once stored, within seconds)")
+        raise HTTPException(
+            404,
+            f"no annotation {annotation_id[:100]!r} stands now (list them "
+            "with GET /api/v1/annotations; one created by another API "
+            "process is there once stored, within seconds)",
+        )
     return current[annotation_id]
 
 
 @router.put("/{annotation_id}", operation_id="changeAnnotation", response_model=AnnotationOut)
-async def change_annotation(request: Request, annotation_id: IdPath, body: AnnotationIn,
-                            caller: OperatorDep, store: StoreDep, settings: SettingsDep,
-                            clock: ClockDep, publisher: PublisherDep) -> AnnotationOut:
+async def change_annotation(
+    request: Request,
+    annotation_id: IdPath,
+    body: AnnotationIn,
+    caller: OperatorDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
+) -> AnnotationOut:
     """Replaces an annotation's content (move, rename, reshape, another limit)."""
     shape = _shape(body)
     now = clock.now_ms()
     before = await _existing(request, store, annotation_id, now)
-    edit = await _publish(request, publisher, settings, caller, now,
-                          AnnotationChanged(annotation_id, caller.name, shape), before.changed_ms)
-    return AnnotationOut(id=annotation_id, annotation=to_doc(shape), created_ms=before.created_ms,
-                         created_by=before.created_by, changed_ms=edit.ts_ms, changed_by=caller.name)
+    edit = await _publish(
+        request,
+        publisher,
+        settings,
+        caller,
+        now,
+        AnnotationChanged(annotation_id, caller.name, shape),
+        before.changed_ms,
+    )
+    return AnnotationOut(
+        id=annotation_id,
+        annotation=to_doc(shape),
+        created_ms=before.created_ms,
+        created_by=before.created_by,
+        changed_ms=edit.ts_ms,
+        changed_by=caller.name,
+    )
 
 
 @router.delete("/{annotation_id}", operation_id="removeAnnotation", status_code=204)
-async def remove_annotation(request: Request, annotation_id: IdPath, caller: OperatorDep,
-                            store: StoreDep, settings: SettingsDep, clock: ClockDep,
-                            publisher: PublisherDep) -> None:
+async def remove_annotation(
+    request: Request,
+    annotation_id: IdPath,
+    caller: OperatorDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
+) -> None:
     """Removes an annotation from now on (its history stays)."""
     now = clock.now_ms()
     before = await _existing(request, store, annotation_id, now)
-    await _publish(request, publisher, settings, caller, now,
-                   AnnotationRemoved(annotation_id, caller.name), before.changed_ms)
+    await _publish(
+        request,
+        publisher,
+        settings,
+        caller,
+        now,
+        AnnotationRemoved(annotation_id, caller.name),
+        before.changed_ms,
+    )
 
 
-@router.post("/import-mask", operation_id="importKeepOutMask", response_model=Imported,
-             status_code=201)
-async def import_keep_out_mask(request: Request, body: MaskImport, caller: OperatorDep,
-                               store: StoreDep, settings: SettingsDep, clock: ClockDep,
-                               publisher: PublisherDep) -> Imported:
+@router.post(
+    "/import-mask", operation_id="importKeepOutMask", response_model=Imported, status_code=201
+)
+async def import_keep_out_mask(
+    request: Request,
+    body: MaskImport,
+    caller: OperatorDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
+) -> Imported:
     """A nav2 keep-out mask as keep-out zones, one per connected area (with its holes),
     their edges on pixel edges: exporting the keep-out mask gives back its pixels."""
     grid = grid_of(await run_in_threadpool(store.latest_meta))
     if grid is None:
-        raise HTTPException(409, "the map has no resolution and origin yet; upload the map "
-                                 "(`mapservice map upload`) before importing a mask")
+        raise HTTPException(
+            409,
+            "the map has no resolution and origin yet; upload the map "
+            "(`mapservice map upload`) before importing a mask",
+        )
     try:
         image = base64.b64decode(body.image_base64, validate=True)
         mask = read_mask(body.yaml, image)
@@ -250,14 +351,23 @@ async def import_keep_out_mask(request: Request, body: MaskImport, caller: Opera
         raise HTTPException(422, f"the mask cannot be imported: {exc}") from None
     zones = await run_in_threadpool(mask_to_zones, grid, pixels, body.name)
     if len(zones) > MAX_IMPORTED_ZONES:
-        raise HTTPException(422, f"the mask has {len(zones)} separate areas; at most "
-                                 f"{MAX_IMPORTED_ZONES} are imported as zones")
+        raise HTTPException(
+            422,
+            f"the mask has {len(zones)} separate areas; at most "
+            f"{MAX_IMPORTED_ZONES} are imported as zones",
+        )
     now = clock.now_ms()
     ids = []
     for zone in zones:
         annotation_id = f"z-{secrets.token_hex(8)}"
-        edit = await _publish(request, publisher, settings, caller, now,
-                              AnnotationCreated(annotation_id, caller.name, zone))
+        edit = await _publish(
+            request,
+            publisher,
+            settings,
+            caller,
+            now,
+            AnnotationCreated(annotation_id, caller.name, zone),
+        )
         ids.append(annotation_id)
         now = edit.ts_ms
     return Imported(ids=ids, at_ms=now)

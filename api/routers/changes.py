@@ -28,6 +28,7 @@ from ..deps import WindowQuery, get_settings, get_store
 
 router = APIRouter(prefix="/api/v1/changes", tags=["changes"], dependencies=[Depends(READ)])
 
+
 class ChangesStore(ChangeFeed, TimeTravelReader, Protocol):
     """The change feed and the map meta its chunk box is checked against."""
 
@@ -56,13 +57,20 @@ class ChangePage(BaseModel):
     next: str | None  # pass as `before` for the next (older) page; null: this is the last
 
 
-def _chunk_box(settings_meta, rows: tuple[int | None, int | None], cols: tuple[int | None, int | None],
-               metres: tuple[float | None, float | None, float | None, float | None]) -> ChunkBox | None:
+def _chunk_box(
+    settings_meta,
+    rows: tuple[int | None, int | None],
+    cols: tuple[int | None, int | None],
+    metres: tuple[float | None, float | None, float | None, float | None],
+) -> ChunkBox | None:
     given_rc = [v is not None for v in (*rows, *cols)]
     given_m = [v is not None for v in metres]
     if any(given_rc) and any(given_m):
-        raise HTTPException(400, "give the area either as rows/columns (row_min, row_max, "
-                                 "col_min, col_max) or in metres (x_min, x_max, y_min, y_max), not both")
+        raise HTTPException(
+            400,
+            "give the area either as rows/columns (row_min, row_max, "
+            "col_min, col_max) or in metres (x_min, x_max, y_min, y_max), not both",
+        )
     if any(given_rc):
         if not all(given_rc):
             raise HTTPException(400, "a chunk area needs all of row_min, row_max, col_min, col_max")
@@ -72,8 +80,11 @@ def _chunk_box(settings_meta, rows: tuple[int | None, int | None], cols: tuple[i
             raise HTTPException(400, "an area in metres needs all of x_min, x_max, y_min, y_max")
         meta = settings_meta()
         if meta is None:
-            raise HTTPException(409, "no map meta is stored yet, so metres cannot be placed on "
-                                     "chunks; give the area as rows/columns")
+            raise HTTPException(
+                409,
+                "no map meta is stored yet, so metres cannot be placed on "
+                "chunks; give the area as rows/columns",
+            )
         box = _metres_to_chunks(meta, *metres)  # type: ignore[arg-type]
     else:
         return None
@@ -89,8 +100,12 @@ def _metres_to_chunks(meta, x_min: float, x_max: float, y_min: float, y_max: flo
     ox, oy = (meta.origin[0], meta.origin[1]) if meta.origin else (0.0, 0.0)
     col_lo, col_hi = (x_min - ox) / res, (x_max - ox) / res
     row_lo, row_hi = meta.height - (y_max - oy) / res, meta.height - (y_min - oy) / res
-    return ChunkBox(math.floor(row_lo / meta.chunk_height), math.floor(row_hi / meta.chunk_height),
-                    math.floor(col_lo / meta.chunk_width), math.floor(col_hi / meta.chunk_width))
+    return ChunkBox(
+        math.floor(row_lo / meta.chunk_height),
+        math.floor(row_hi / meta.chunk_height),
+        math.floor(col_lo / meta.chunk_width),
+        math.floor(col_hi / meta.chunk_width),
+    )
 
 
 @router.get("", operation_id="listChanges", response_model=ChangePage)
@@ -99,33 +114,46 @@ def list_changes(
     settings: AppSettings,
     window: WindowQuery,
     robot: str | None = Query(None, description="Only this robot's writes"),
-    row_min: int | None = Query(None, ge=0), row_max: int | None = Query(None, ge=0),
-    col_min: int | None = Query(None, ge=0), col_max: int | None = Query(None, ge=0),
+    row_min: int | None = Query(None, ge=0),
+    row_max: int | None = Query(None, ge=0),
+    col_min: int | None = Query(None, ge=0),
+    col_max: int | None = Query(None, ge=0),
     x_min: float | None = Query(None, description="Area in map metres (with x_max, y_min, y_max)"),
-    x_max: float | None = None, y_min: float | None = None, y_max: float | None = None,
+    x_max: float | None = None,
+    y_min: float | None = None,
+    y_max: float | None = None,
     before: str | None = Query(None, description="The previous page's `next`"),
     limit: int = Query(100, ge=1, le=1000),
     kind: Literal["change", "upload"] | None = Query(
-        None, description="Only floor changes or only map uploads (the timeline marks uploads)"),
+        None, description="Only floor changes or only map uploads (the timeline marks uploads)"
+    ),
 ) -> ChangePage:
     f, t = window.parse(settings.retention_ms)
-    box = _chunk_box(store.latest_meta, (row_min, row_max), (col_min, col_max),
-                     (x_min, x_max, y_min, y_max))
+    box = _chunk_box(
+        store.latest_meta, (row_min, row_max), (col_min, col_max), (x_min, x_max, y_min, y_max)
+    )
     cursor = None
     if before is not None:
         try:
             cursor = ChangeCursor.decode(before)
         except ValueError:
-            raise HTTPException(400, f"'before' ({before!r}) is not a page cursor; pass the "
-                                     "`next` of the previous page unchanged") from None
+            raise HTTPException(
+                400,
+                f"'before' ({before!r}) is not a page cursor; pass the "
+                "`next` of the previous page unchanged",
+            ) from None
     try:
         entries = store.change_feed(ChangeQuery(f, t, robot, box, cursor, limit + 1, kind))
     except WindowTooBusy as e:
         raise HTTPException(422, str(e)) from None
     page = entries[:limit]
     return ChangePage(
-        from_ms=f, to_ms=t,
-        upload_rule=(f"{UPLOAD_MIN_CHUNKS} or more chunk writes by one robot with no gap over "
-                     f"{UPLOAD_GAP_MS / 1000:g} s are one map upload"),
+        from_ms=f,
+        to_ms=t,
+        upload_rule=(
+            f"{UPLOAD_MIN_CHUNKS} or more chunk writes by one robot with no gap over "
+            f"{UPLOAD_GAP_MS / 1000:g} s are one map upload"
+        ),
         changes=[Change(**{k: getattr(e, k) for k in Change.model_fields}) for e in page],
-        next=ChangeCursor(*page[-1].key()).encode() if len(entries) > limit else None)
+        next=ChangeCursor(*page[-1].key()).encode() if len(entries) > limit else None,
+    )

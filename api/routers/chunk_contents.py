@@ -22,8 +22,9 @@ from mapservice.core.render import chunk_pixels, png
 from ..access import READ
 from ..deps import get_store
 
-router = APIRouter(prefix="/api/v1/chunk-contents", tags=["chunk-contents"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(
+    prefix="/api/v1/chunk-contents", tags=["chunk-contents"], dependencies=[Depends(READ)]
+)
 _HEX32 = re.compile(r"^[0-9a-f]{32}$")
 IMMUTABLE = "public, max-age=31536000, immutable"
 BATCH_MAX = 2000
@@ -38,7 +39,9 @@ class ContentCache:
     """Content is immutable per hash, so a hit never goes stale; bounded by bytes held."""
 
     def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
-        self._lru: LRUCache[bytes, Content] = LRUCache(max_bytes, getsizeof=lambda c: len(c[2]) + 64)
+        self._lru: LRUCache[bytes, Content] = LRUCache(
+            max_bytes, getsizeof=lambda c: len(c[2]) + 64
+        )
         self._lock = threading.Lock()  # the endpoints run in the threadpool
 
     def get_many(self, store: TimeTravelReader, hashes: Sequence[bytes]) -> dict[bytes, Content]:
@@ -86,15 +89,20 @@ _encoder = msgspec.msgpack.Encoder()
 
 
 @router.post(
-    "/batch", operation_id="getChunkContentsBatch",
+    "/batch",
+    operation_id="getChunkContentsBatch",
     summary=f"Many chunk contents in one MessagePack response (at most {BATCH_MAX} hashes)",
     description=(
-        f"Body: `{{\"hashes\": [...]}}`, 1 to {BATCH_MAX} content hashes (32 lowercase hex "
+        f'Body: `{{"hashes": [...]}}`, 1 to {BATCH_MAX} content hashes (32 lowercase hex '
         "characters each; duplicates are answered once). Answer (`application/vnd.msgpack`): "
-        "a map `{\"contents\": [[hash, width, height, zlib pixels (bin)], ...], "
-        "\"missing\": [hash, ...]}`; the pixels are as the robot sent them (PGM grey levels: "
-        "0 occupied, 205 unknown, 254/255 free). Contents are immutable per hash."),
-    responses={200: {"content": {MSGPACK: {}}}, 400: {"description": "malformed or too many hashes"}},
+        'a map `{"contents": [[hash, width, height, zlib pixels (bin)], ...], '
+        '"missing": [hash, ...]}`; the pixels are as the robot sent them (PGM grey levels: '
+        "0 occupied, 205 unknown, 254/255 free). Contents are immutable per hash."
+    ),
+    responses={
+        200: {"content": {MSGPACK: {}}},
+        400: {"description": "malformed or too many hashes"},
+    },
 )
 def get_chunk_contents_batch(
     hashes: list[str] = Body(..., embed=True),
@@ -105,10 +113,13 @@ def get_chunk_contents_batch(
         raise HTTPException(400, f"hashes is empty; send 1 to {BATCH_MAX} content hashes")
     if len(hashes) > BATCH_MAX:
         raise HTTPException(
-            400, f"{len(hashes)} hashes in one batch; send at most {BATCH_MAX} per request")
+            400, f"{len(hashes)} hashes in one batch; send at most {BATCH_MAX} per request"
+        )
     bad = [h for h in hashes if not _HEX32.match(h)]
     if bad:
-        raise HTTPException(400, f"hashes must be 32 lowercase hex characters; bad: {[b[:40] for b in bad[:5]]!r}")
+        raise HTTPException(
+            400, f"hashes must be 32 lowercase hex characters; bad: {[b[:40] for b in bad[:5]]!r}"
+        )
     wanted = list(dict.fromkeys(hashes))
     found = cache.get_many(store, [bytes.fromhex(h) for h in wanted])
     contents, missing = [], []
@@ -122,12 +133,18 @@ def get_chunk_contents_batch(
     return Response(body, media_type=MSGPACK)
 
 
-@router.get("/{content_hash}", operation_id="getChunkContent",
-            responses={200: {"content": {"application/octet-stream": {}, "image/png": {}}}})
+@router.get(
+    "/{content_hash}",
+    operation_id="getChunkContent",
+    responses={200: {"content": {"application/octet-stream": {}, "image/png": {}}}},
+)
 def get_chunk_content(
     content_hash: str,
-    encoding: str = Query("zlib", pattern="^(zlib|raw|png)$",
-                          description="zlib: as the robot sent it; raw: width x height bytes; png"),
+    encoding: str = Query(
+        "zlib",
+        pattern="^(zlib|raw|png)$",
+        description="zlib: as the robot sent it; raw: width x height bytes; png",
+    ),
     store: TimeTravelReader = Depends(get_store),
     cache: ContentCache = Depends(get_cache),
 ) -> Response:
@@ -143,6 +160,13 @@ def get_chunk_content(
     else:
         body = data if encoding == "zlib" else zlib.decompress(data)
         media = "application/octet-stream"
-    return Response(body, media_type=media, headers={
-        "Cache-Control": IMMUTABLE, "ETag": f'"{content_hash}"',
-        "X-Chunk-Width": str(width), "X-Chunk-Height": str(height)})
+    return Response(
+        body,
+        media_type=media,
+        headers={
+            "Cache-Control": IMMUTABLE,
+            "ETag": f'"{content_hash}"',
+            "X-Chunk-Width": str(width),
+            "X-Chunk-Height": str(height),
+        },
+    )

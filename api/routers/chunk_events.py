@@ -12,8 +12,9 @@ from ..access import READ
 from ..deps import WindowQuery, get_store
 from ..json_rows import JsonRows
 
-router = APIRouter(prefix="/api/v1/chunk-events", tags=["chunk-events"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(
+    prefix="/api/v1/chunk-events", tags=["chunk-events"], dependencies=[Depends(READ)]
+)
 MAX_SPAN_MS = 86_400_000
 
 
@@ -39,7 +40,11 @@ def list_chunk_events(
     f, t = window.parse(MAX_SPAN_MS)
     rows = store.chunk_events(f, t, limit)
     # `ChunkEvent`'s JSON without a pydantic model per row (json_rows).
-    return _ROWS.response([
-        _ROWS.struct(r.row, r.column, ts, r.ts_ms, r.receive_time_ms, r.robot_id, r.content_hash)
-        for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
-    ])
+    return _ROWS.response(
+        [
+            _ROWS.struct(
+                r.row, r.column, ts, r.ts_ms, r.receive_time_ms, r.robot_id, r.content_hash
+            )
+            for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
+        ]
+    )

@@ -30,8 +30,8 @@ from mapservice.core.legacy_query import (
 )
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.core.render import chunk_pixels, png
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
+from mapservice.settings import Settings
 
 from ..access import ADMIN, READ, WRITE, Caller, Scope, require, require_robot
 from ..deps import get_clock, get_settings, get_store
@@ -78,24 +78,38 @@ async def _read_body(request: Request, limit: int) -> bytes:
     async for part in request.stream():
         body += part
         if len(body) > limit:
-            raise HTTPException(413, f"oversized: the body exceeds the {limit}-byte limit "
-                                     "(MAPSERVICE_MAX_MESSAGE_BYTES)")
+            raise HTTPException(
+                413,
+                f"oversized: the body exceeds the {limit}-byte limit "
+                "(MAPSERVICE_MAX_MESSAGE_BYTES)",
+            )
     return bytes(body)
 
 
 def _index_response(index: str, doc_type: str, doc_id: str) -> dict:
     # forced_refresh is false: the write is durable on Kafka, readable once stored.
-    return {"_index": index, "_type": doc_type, "_id": doc_id, "_version": 1,
-            "result": "created", "forced_refresh": False,
-            "_shards": {"total": 2, "successful": 1, "failed": 0},
-            "_seq_no": 0, "_primary_term": 1}
+    return {
+        "_index": index,
+        "_type": doc_type,
+        "_id": doc_id,
+        "_version": 1,
+        "result": "created",
+        "forced_refresh": False,
+        "_shards": {"total": 2, "successful": 1, "failed": 0},
+        "_seq_no": 0,
+        "_primary_term": 1,
+    }
 
 
 # --- meta ------------------------------------------------------------------------------
 
 
-@router.get("/meta", operation_id="getLegacyMeta", dependencies=[Depends(READ)],
-            responses={404: {"description": "no meta stored yet: POST one"}})
+@router.get(
+    "/meta",
+    operation_id="getLegacyMeta",
+    dependencies=[Depends(READ)],
+    responses={404: {"description": "no meta stored yet: POST one"}},
+)
 def get_meta(store: HistoryStore = Depends(get_store)) -> dict:
     """The stored meta.json (listing 9)."""
     meta = store.latest_meta()
@@ -110,26 +124,52 @@ def parse_meta(body: bytes) -> MapMetaSet:
         doc = _meta_decoder.decode(body)
     except (msgspec.DecodeError, UnicodeDecodeError) as exc:
         raise HTTPException(400, f"meta.json: {exc}") from None
-    sizes = {"width": doc.width, "height": doc.height, "CHUNK_WIDTH": doc.CHUNK_WIDTH,
-             "CHUNK_HEIGHT": doc.CHUNK_HEIGHT, "CHUNK_ROWS": doc.CHUNK_ROWS,
-             "CHUNK_COLS": doc.CHUNK_COLS}
+    sizes = {
+        "width": doc.width,
+        "height": doc.height,
+        "CHUNK_WIDTH": doc.CHUNK_WIDTH,
+        "CHUNK_HEIGHT": doc.CHUNK_HEIGHT,
+        "CHUNK_ROWS": doc.CHUNK_ROWS,
+        "CHUNK_COLS": doc.CHUNK_COLS,
+    }
     for name, value in sizes.items():
         high = 4096 if name in ("CHUNK_WIDTH", "CHUNK_HEIGHT") else 65_535
         if not 1 <= value <= high:
             raise HTTPException(400, f"meta.json: {name} = {value} is outside 1..{high}")
-    if doc.CHUNK_COLS * doc.CHUNK_WIDTH < doc.width or doc.CHUNK_ROWS * doc.CHUNK_HEIGHT < doc.height:
-        raise HTTPException(400, f"meta.json: {doc.CHUNK_ROWS} x {doc.CHUNK_COLS} chunks of "
-                                 f"{doc.CHUNK_WIDTH} x {doc.CHUNK_HEIGHT} do not cover "
-                                 f"{doc.width} x {doc.height} pixels")
+    if (
+        doc.CHUNK_COLS * doc.CHUNK_WIDTH < doc.width
+        or doc.CHUNK_ROWS * doc.CHUNK_HEIGHT < doc.height
+    ):
+        raise HTTPException(
+            400,
+            f"meta.json: {doc.CHUNK_ROWS} x {doc.CHUNK_COLS} chunks of "
+            f"{doc.CHUNK_WIDTH} x {doc.CHUNK_HEIGHT} do not cover "
+            f"{doc.width} x {doc.height} pixels",
+        )
     if doc.origin is not None and len(doc.origin) != 3:
         raise HTTPException(400, "meta.json: origin must be [x, y, yaw]")
     return MapMetaSet.from_2019(msgspec.to_builtins(doc))
 
 
-_META_BODY = {"requestBody": {"required": True, "content": {"application/json": {
-    "example": {"comment": "# CREATOR: GIMP PNM Filter Version 1.1", "width": 4800,
-                "height": 3200, "max_brightness": "255", "CHUNK_WIDTH": 100,
-                "CHUNK_HEIGHT": 100, "CHUNK_ROWS": 32, "CHUNK_COLS": 48}}}}}
+_META_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {
+                "example": {
+                    "comment": "# CREATOR: GIMP PNM Filter Version 1.1",
+                    "width": 4800,
+                    "height": 3200,
+                    "max_brightness": "255",
+                    "CHUNK_WIDTH": 100,
+                    "CHUNK_HEIGHT": 100,
+                    "CHUNK_ROWS": 32,
+                    "CHUNK_COLS": 48,
+                }
+            }
+        },
+    }
+}
 
 
 # Section A.1.1 says robots "POSTS/PUTS" their meta.json: both are accepted.
@@ -151,14 +191,22 @@ async def post_meta(
     now = clock.now_ms()
     held = await run_in_threadpool(_meta_for_validation, request, store, now)
     if held is not None and _geometry(held) != _geometry(meta):
-        require(caller, Scope.ADMIN,
-                what=f"changing the map from {held.width} x {held.height} px in "
-                     f"{held.chunk_width} x {held.chunk_height} chunks")
+        require(
+            caller,
+            Scope.ADMIN,
+            what=f"changing the map from {held.width} x {held.height} px in "
+            f"{held.chunk_width} x {held.chunk_height} chunks",
+        )
     envelope = make_envelope(META_ROBOT_ID, now, now, meta)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
     request.app.state.posted_meta = (now, meta)
-    log.info("map meta posted", rows=meta.chunk_rows, cols=meta.chunk_cols,
-             chunk_width=meta.chunk_width, chunk_height=meta.chunk_height)
+    log.info(
+        "map meta posted",
+        rows=meta.chunk_rows,
+        cols=meta.chunk_cols,
+        chunk_width=meta.chunk_width,
+        chunk_height=meta.chunk_height,
+    )
     return _index_response("meta", "meta", "meta")
 
 
@@ -170,8 +218,12 @@ def delete_meta(
 ) -> dict:
     """Administrative: deletes the stored meta (needs the admin bearer token)."""
     removed = store.delete_meta()
-    log.warning("map meta deleted by administrator", caller=caller.name,
-                address=request.client.host if request.client else None, removed=removed)
+    log.warning(
+        "map meta deleted by administrator",
+        caller=caller.name,
+        address=request.client.host if request.client else None,
+        removed=removed,
+    )
     return {"acknowledged": True, "deleted": removed}
 
 
@@ -196,19 +248,38 @@ def _meta_for_validation(request: Request, store: HistoryStore, now_ms: int) -> 
 
 
 def _limits(settings: Settings, meta: MapMetaSet | None) -> Limits:
-    limits = Limits(chunk_width=settings.chunk_width, chunk_height=settings.chunk_height,
-                    chunk_rows=settings.max_grid, chunk_cols=settings.max_grid,
-                    max_message_bytes=settings.max_message_bytes,
-                    max_future_skew_ms=int(settings.max_future_skew_s * 1000),
-                    retention_ms=settings.retention_ms)
+    limits = Limits(
+        chunk_width=settings.chunk_width,
+        chunk_height=settings.chunk_height,
+        chunk_rows=settings.max_grid,
+        chunk_cols=settings.max_grid,
+        max_message_bytes=settings.max_message_bytes,
+        max_future_skew_ms=int(settings.max_future_skew_s * 1000),
+        retention_ms=settings.retention_ms,
+    )
     return limits.with_meta(meta) if meta is not None else limits
 
 
-@router.post("/chunks", operation_id="postLegacyChunk",
-             openapi_extra={"requestBody": {"required": True, "content": {"application/json": {
-                 "example": {"pgmB64compressedData": "eNrt1rERwyAQRUG36HLcjlukABzIAbKPSAcDmt...",
-                             "row": 3, "column": 2, "timestamp": "2018-12-20T23:34:33",
-                             "robotId": "lkjlkj"}}}}})
+@router.post(
+    "/chunks",
+    operation_id="postLegacyChunk",
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "application/json": {
+                    "example": {
+                        "pgmB64compressedData": "eNrt1rERwyAQRUG36HLcjlukABzIAbKPSAcDmt...",
+                        "row": 3,
+                        "column": 2,
+                        "timestamp": "2018-12-20T23:34:33",
+                        "robotId": "lkjlkj",
+                    }
+                }
+            },
+        }
+    },
+)
 async def post_chunk(
     request: Request,
     caller: Caller = Depends(WRITE),
@@ -228,13 +299,17 @@ async def post_chunk(
     require_robot(caller, result.robot_id)
     await run_in_threadpool(publish_and_wait, publisher, settings, result)
     payload = result.payload
-    return _index_response("chunks", "chunk", chunk_id(
-        payload.row, payload.column, format_timestamp(result.event_time_ms)))
+    return _index_response(
+        "chunks",
+        "chunk",
+        chunk_id(payload.row, payload.column, format_timestamp(result.event_time_ms)),
+    )
 
 
 def _render(rows: Sequence, query: ChunkQuery, store: HistoryStore) -> list[dict]:
-    contents = {} if query.reduced else store.chunk_contents(
-        [bytes.fromhex(r.content_hash) for r in rows])
+    contents = (
+        {} if query.reduced else store.chunk_contents([bytes.fromhex(r.content_hash) for r in rows])
+    )
     out = []
     for r in rows:
         ts = format_timestamp(r.ts_ms)
@@ -258,18 +333,26 @@ def _query_params(request: Request) -> dict[str, str]:
     return dict(request.query_params)
 
 
-@router.get("/chunks", operation_id="listLegacyChunks", dependencies=[Depends(READ)],
-            responses={200: {"model": list[LegacyChunk]}, 400: {"description": "malformed parameter"}})
+@router.get(
+    "/chunks",
+    operation_id="listLegacyChunks",
+    dependencies=[Depends(READ)],
+    responses={200: {"model": list[LegacyChunk]}, 400: {"description": "malformed parameter"}},
+)
 def list_chunks(
     request: Request,
     row: str | None = Query(None, description="chunk row (number)"),
     column: str | None = Query(None, description="chunk column (number)"),
     timestamp: str | None = Query(None, description="exact write time (UTC ISO or epoch ms)"),
     updatedSince: str | None = Query(None, description="writes at or after this time"),
-    updatedBefore: str | None = Query(None, description="writes before this time; with "
-                                      "latest=true: the complete map at this time"),
-    sort: str | None = Query(None, description="field:asc|desc[,...] of timestamp, row, "
-                             "column, robotId; default timestamp:desc"),
+    updatedBefore: str | None = Query(
+        None, description="writes before this time; with latest=true: the complete map at this time"
+    ),
+    sort: str | None = Query(
+        None,
+        description="field:asc|desc[,...] of timestamp, row, "
+        "column, robotId; default timestamp:desc",
+    ),
     latest: str | None = Query(None, description="only each chunk's newest write (default false)"),
     reduced: str | None = Query(None, description="leave out chunk and type (default false)"),
     type: str | None = Query(None, description="pgm_base64_compressed (default) or png"),
@@ -302,8 +385,12 @@ def delete_chunks(
 ) -> dict:
     """Administrative: deletes every stored chunk write (needs the admin bearer token)."""
     removed = store.delete_chunks()
-    log.warning("chunk history deleted by administrator", caller=caller.name,
-                address=request.client.host if request.client else None, removed=removed)
+    log.warning(
+        "chunk history deleted by administrator",
+        caller=caller.name,
+        address=request.client.host if request.client else None,
+        removed=removed,
+    )
     return {"acknowledged": True, "deleted": removed}
 
 
@@ -314,24 +401,32 @@ def _chunk_by_id(chunk_id_: str, store: HistoryStore):
         raise HTTPException(404, f"no chunk with id {chunk_id_[:120]!r}: {exc}") from None
     # Two robots writing one chunk at one instant: the 2019 id names both; the map's rule
     # (greatest robot id wins) picks the one to return.
-    found = store.list_chunks(ChunkQuery(row=row, column=column, timestamp_ms=ts_ms,
-                                         sort=(("robotId", "desc"),), limit=1))
+    found = store.list_chunks(
+        ChunkQuery(row=row, column=column, timestamp_ms=ts_ms, sort=(("robotId", "desc"),), limit=1)
+    )
     if not found:
         raise HTTPException(404, f"no chunk with id {chunk_id_[:120]!r}")
     return found[0]
 
 
-@router.get("/chunks/id/{chunk_id}", operation_id="getLegacyChunk", dependencies=[Depends(READ)],
-            responses={200: {"model": LegacyChunk}, 404: {"description": "no such chunk"}})
+@router.get(
+    "/chunks/id/{chunk_id}",
+    operation_id="getLegacyChunk",
+    dependencies=[Depends(READ)],
+    responses={200: {"model": LegacyChunk}, 404: {"description": "no such chunk"}},
+)
 def get_chunk(chunk_id: str, store: HistoryStore = Depends(get_store)) -> JSONResponse:
     """Listing 13: one chunk by the id POST /chunks answered with."""
     row = _chunk_by_id(chunk_id, store)
     return JSONResponse(_render([row], ChunkQuery(), store)[0])
 
 
-@router.get("/chunks/id/{chunk_id}/png", operation_id="getLegacyChunkPng",
-            dependencies=[Depends(READ)],
-            responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such chunk"}})
+@router.get(
+    "/chunks/id/{chunk_id}/png",
+    operation_id="getLegacyChunkPng",
+    dependencies=[Depends(READ)],
+    responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such chunk"}},
+)
 def get_chunk_png(chunk_id: str, store: HistoryStore = Depends(get_store)) -> Response:
     """The chunk as a greyscale PNG."""
     row = _chunk_by_id(chunk_id, store)

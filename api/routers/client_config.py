@@ -11,8 +11,9 @@ from mapservice.settings import Settings
 from ..access import READ
 from ..deps import get_settings
 
-router = APIRouter(prefix="/api/v1/client-config", tags=["client-config"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(
+    prefix="/api/v1/client-config", tags=["client-config"], dependencies=[Depends(READ)]
+)
 
 
 class ClientConfig(BaseModel):
@@ -35,8 +36,11 @@ def coordinate_prefix(coordinate_topic: str) -> str:
 def get_client_config(settings: Settings = Depends(get_settings)) -> ClientConfig:
     # The service's own broker credentials stay on the server: where the broker checks
     # robot identities, the page connects with a robot's credential its user types in.
-    return ClientConfig(mqtt_ws_url=settings.mqtt_ws_url or None,
-                        coordinate_topic_prefix=coordinate_prefix(settings.coordinate_topic),
-                        create_chunk_topic=settings.create_chunk_topic,
-                        robot_chunk_topic_prefix=(coordinate_prefix(settings.robot_chunk_topic)
-                                                  if settings.robot_chunk_topic else None))
+    return ClientConfig(
+        mqtt_ws_url=settings.mqtt_ws_url or None,
+        coordinate_topic_prefix=coordinate_prefix(settings.coordinate_topic),
+        create_chunk_topic=settings.create_chunk_topic,
+        robot_chunk_topic_prefix=(
+            coordinate_prefix(settings.robot_chunk_topic) if settings.robot_chunk_topic else None
+        ),
+    )

@@ -53,10 +53,17 @@ class CommandIn(BaseModel):
 
     robotId: str = Field(pattern=ROBOT_ID)
     kind: Literal["pause", "resume", "goto_poi", "cancel"]
-    poiId: str | None = Field(None, max_length=100, description="goto_poi only: the point of interest")
-    id: str | None = Field(None, max_length=100, description=(
-        "The command's id (letters, digits, '-_.:'); generated when left out. Sending the "
-        "same id again is one command: the robot acts on it once."))
+    poiId: str | None = Field(
+        None, max_length=100, description="goto_poi only: the point of interest"
+    )
+    id: str | None = Field(
+        None,
+        max_length=100,
+        description=(
+            "The command's id (letters, digits, '-_.:'); generated when left out. Sending the "
+            "same id again is one command: the robot acts on it once."
+        ),
+    )
 
 
 class Target(BaseModel):
@@ -91,40 +98,66 @@ class Commands(BaseModel):
 
 
 def _out(command: CommandIssued, ts_ms: int, record: CommandRecord | None = None) -> CommandOut:
-    target = (Target(x=command.x, y=command.y, heading=command.heading)
-              if command.x is not None and command.y is not None else None)
+    target = (
+        Target(x=command.x, y=command.y, heading=command.heading)
+        if command.x is not None and command.y is not None
+        else None
+    )
     ack = outcome = None
     if record is not None and record.ack is not None:
         ack = Answer(ts_ms=record.ack[0], status=record.ack[1].status, reason=record.ack[1].reason)
     if record is not None and record.outcome is not None:
-        outcome = Answer(ts_ms=record.outcome[0], status=record.outcome[1].outcome,
-                         reason=record.outcome[1].reason)
-    return CommandOut(commandId=command.command_id, robotId=command.robot_id, kind=command.kind,
-                      poiId=command.poi_id, target=target, issuedBy=command.issued_by,
-                      issued_ms=ts_ms, ack=ack, outcome=outcome)
+        outcome = Answer(
+            ts_ms=record.outcome[0],
+            status=record.outcome[1].outcome,
+            reason=record.outcome[1].reason,
+        )
+    return CommandOut(
+        commandId=command.command_id,
+        robotId=command.robot_id,
+        kind=command.kind,
+        poiId=command.poi_id,
+        target=target,
+        issuedBy=command.issued_by,
+        issued_ms=ts_ms,
+        ack=ack,
+        outcome=outcome,
+    )
 
 
 def _poi(store: HistoryStore, poi_id: str, now_ms: int) -> PointOfInterest:
     current = {c.annotation_id: c.annotation for c in store.annotations_at(now_ms)}
     found: Any = current.get(poi_id)
     if found is None:
-        raise HTTPException(404, f"no point of interest {poi_id[:100]!r} stands now (list them "
-                                 "with GET /api/v1/annotations)")
+        raise HTTPException(
+            404,
+            f"no point of interest {poi_id[:100]!r} stands now (list them "
+            "with GET /api/v1/annotations)",
+        )
     if not isinstance(found, PointOfInterest):
-        raise HTTPException(422, f"annotation {poi_id[:100]!r} is a zone; goto_poi needs a "
-                                 "point of interest")
+        raise HTTPException(
+            422, f"annotation {poi_id[:100]!r} is a zone; goto_poi needs a point of interest"
+        )
     return found
 
 
 @router.post("", operation_id="sendCommand", response_model=CommandOut, status_code=202)
-async def send_command(body: CommandIn, caller: OperatorDep, store: StoreDep,
-                       settings: SettingsDep, clock: ClockDep,
-                       publisher: PublisherDep) -> CommandOut:
+async def send_command(
+    body: CommandIn,
+    caller: OperatorDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
+) -> CommandOut:
     """Sends a command to a robot (202: Kafka has it; the gateway delivers it at once on
     the robot's command topic). Its ack and outcome appear in GET /api/v1/commands."""
     if not await run_in_threadpool(store.robot_known, body.robotId):
-        raise HTTPException(404, f"robot {body.robotId!r} has reported no pose within the "
-                                 "retention; list the robots with GET /api/v1/robots")
+        raise HTTPException(
+            404,
+            f"robot {body.robotId!r} has reported no pose within the "
+            "retention; list the robots with GET /api/v1/robots",
+        )
     if body.kind == "goto_poi" and not body.poiId:
         raise HTTPException(422, "a goto_poi command needs poiId, the point of interest to go to")
     if body.kind != "goto_poi" and body.poiId is not None:
@@ -136,9 +169,16 @@ async def send_command(body: CommandIn, caller: OperatorDep, store: StoreDep,
     now = clock.now_ms()
     poi = await run_in_threadpool(_poi, store, body.poiId, now) if body.poiId else None
     command = CommandIssued(
-        command_id=body.id or f"c-{secrets.token_hex(8)}", robot_id=body.robotId, kind=body.kind,
-        issued_by=caller.name, issued_at_ms=now, poi_id=body.poiId,
-        x=poi.x if poi else None, y=poi.y if poi else None, heading=poi.heading if poi else None)
+        command_id=body.id or f"c-{secrets.token_hex(8)}",
+        robot_id=body.robotId,
+        kind=body.kind,
+        issued_by=caller.name,
+        issued_at_ms=now,
+        poi_id=body.poiId,
+        x=poi.x if poi else None,
+        y=poi.y if poi else None,
+        heading=poi.heading if poi else None,
+    )
     try:
         check_issue(command)
     except CommandError as exc:
@@ -150,7 +190,9 @@ async def send_command(body: CommandIn, caller: OperatorDep, store: StoreDep,
 
 @router.get("", operation_id="listCommands", response_model=Commands, dependencies=[Depends(READ)])
 def list_commands(
-    store: StoreDep, settings: SettingsDep, clock: ClockDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
     window: WindowQuery,
     robot: Annotated[str | None, Query(pattern=ROBOT_ID, description="Only this robot's")] = None,
     limit: Annotated[int, Query(ge=1, le=10_000)] = 1_000,
@@ -161,5 +203,9 @@ def list_commands(
     # Three events at most per command; a window holding more is cut at the limit.
     events = store.command_events(f, t, robot, 3 * limit + 1)
     records = command_records(events)
-    return Commands(from_ms=f, to_ms=t, truncated=len(records) > limit or len(events) > 3 * limit,
-                    commands=[_out(r.command, r.ts_ms, r) for r in records[:limit]])
+    return Commands(
+        from_ms=f,
+        to_ms=t,
+        truncated=len(records) > limit or len(events) > 3 * limit,
+        commands=[_out(r.command, r.ts_ms, r) for r in records[:limit]],
+    )

@@ -13,14 +13,13 @@ from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.core.change_feed import UPLOADER_ID
-from mapservice.core.ports import ConflictRow, ConflictReader
+from mapservice.core.ports import ConflictReader, ConflictRow
 from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import WindowQuery, get_settings, get_store
 
-router = APIRouter(prefix="/api/v1/conflicts", tags=["conflicts"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/conflicts", tags=["conflicts"], dependencies=[Depends(READ)])
 
 
 class Conflict(BaseModel):
@@ -45,8 +44,10 @@ class Conflicts(BaseModel):
 
 
 def rule_text(window_s: float) -> str:
-    return (f"two robots wrote different pixels to one chunk at most {window_s:g} s apart; "
-            f"the map upload ('{UPLOADER_ID}') is never part of a conflict")
+    return (
+        f"two robots wrote different pixels to one chunk at most {window_s:g} s apart; "
+        f"the map upload ('{UPLOADER_ID}') is never part of a conflict"
+    )
 
 
 @router.get("", operation_id="listConflicts", response_model=Conflicts)
@@ -60,21 +61,39 @@ def list_conflicts(
     stored = store.conflicts(f, t, limit + 1)
     rows = [r for r in stored if UPLOADER_ID not in (r.robot_a, r.robot_b)]
     hashes = _content_hashes(store, rows[:limit])
-    return Conflicts(from_ms=f, to_ms=t, window_s=settings.conflict_window_s,
-                     rule=rule_text(settings.conflict_window_s), truncated=len(stored) > limit,
-                     conflicts=[Conflict(row=r.row, column=r.column, ts_ms=r.ts_ms, robot_a=r.robot_a,
-                                         ts_a_ms=r.ts_a_ms, robot_b=r.robot_b,
-                                         hash_a=hashes.get((r.row, r.column, r.ts_a_ms, r.robot_a)),
-                                         hash_b=hashes.get((r.row, r.column, r.ts_ms, r.robot_b)),
-                                         seek_ms=r.ts_ms + 1)
-                                for r in rows[:limit]])
+    return Conflicts(
+        from_ms=f,
+        to_ms=t,
+        window_s=settings.conflict_window_s,
+        rule=rule_text(settings.conflict_window_s),
+        truncated=len(stored) > limit,
+        conflicts=[
+            Conflict(
+                row=r.row,
+                column=r.column,
+                ts_ms=r.ts_ms,
+                robot_a=r.robot_a,
+                ts_a_ms=r.ts_a_ms,
+                robot_b=r.robot_b,
+                hash_a=hashes.get((r.row, r.column, r.ts_a_ms, r.robot_a)),
+                hash_b=hashes.get((r.row, r.column, r.ts_ms, r.robot_b)),
+                seek_ms=r.ts_ms + 1,
+            )
+            for r in rows[:limit]
+        ],
+    )
 
 
-def _content_hashes(store: ConflictReader, rows: list[ConflictRow]) -> dict[tuple[int, int, int, str], str]:
+def _content_hashes(
+    store: ConflictReader, rows: list[ConflictRow]
+) -> dict[tuple[int, int, int, str], str]:
     """(row, column, ts, robot) -> content hash of both writes of every conflict: one read
     of the conflicts' chunks over the span from the earliest A to the latest B."""
     if not rows:
         return {}
-    writes = store.chunk_writes_near(sorted({(r.row, r.column) for r in rows}),
-                                     min(r.ts_a_ms for r in rows), max(r.ts_ms for r in rows))
+    writes = store.chunk_writes_near(
+        sorted({(r.row, r.column) for r in rows}),
+        min(r.ts_a_ms for r in rows),
+        max(r.ts_ms for r in rows),
+    )
     return {(w.row, w.column, w.ts_ms, w.robot_id): w.content_hash for w in writes}

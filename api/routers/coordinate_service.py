@@ -15,14 +15,15 @@ from mapservice.core.legacy_query import (
     select,
 )
 from mapservice.core.ports import Clock, HistoryStore, PoseRow
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamp
+from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import get_clock, get_settings, get_store
 
-router = APIRouter(prefix="/api/coordinate-service", tags=["2019 coordinate service"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(
+    prefix="/api/coordinate-service", tags=["2019 coordinate service"], dependencies=[Depends(READ)]
+)
 
 
 class LegacyRobot(BaseModel):
@@ -41,10 +42,14 @@ def legacy_pose(r: PoseRow) -> dict:
     doc: dict = {
         "robotId": r.robot_id,
         "timestamp": ts,
-        "pose": {"position": {"x": r.x, "y": r.y, "z": r.z},
-                 "orientation": {"x": r.qx, "y": r.qy, "z": r.qz, "w": r.qw}},
-        "status": {"battery": {"battery_level": r.battery_level, "charging": r.charging},
-                   "loaded": r.loaded},
+        "pose": {
+            "position": {"x": r.x, "y": r.y, "z": r.z},
+            "orientation": {"x": r.qx, "y": r.qy, "z": r.qz, "w": r.qw},
+        },
+        "status": {
+            "battery": {"battery_level": r.battery_level, "charging": r.charging},
+            "loaded": r.loaded,
+        },
     }
     if r.path is not None:
         doc["plannedPath"] = [{"x": x, "y": y} for x, y in r.path]
@@ -52,17 +57,23 @@ def legacy_pose(r: PoseRow) -> dict:
     return doc
 
 
-@router.get("/robots", operation_id="listLegacyRobots",
-            responses={200: {"model": list[LegacyRobot]}, 400: {"description": "malformed parameter"}})
+@router.get(
+    "/robots",
+    operation_id="listLegacyRobots",
+    responses={200: {"model": list[LegacyRobot]}, 400: {"description": "malformed parameter"}},
+)
 def list_robots(
     request: Request,
     robotId: str | None = Query(None),
     timestamp: str | None = Query(None, description="exact pose time (UTC ISO or epoch ms)"),
     updatedSince: str | None = Query(None, description="poses at or after this time"),
-    updatedBefore: str | None = Query(None, description="poses before this time; with "
-                                      "latest=true: every robot's position at this time"),
-    sort: str | None = Query(None, description="field:asc|desc[,...] of timestamp, robotId; "
-                             "default timestamp:desc"),
+    updatedBefore: str | None = Query(
+        None,
+        description="poses before this time; with latest=true: every robot's position at this time",
+    ),
+    sort: str | None = Query(
+        None, description="field:asc|desc[,...] of timestamp, robotId; default timestamp:desc"
+    ),
     latest: str | None = Query(None, description="only each robot's newest pose (default false)"),
     limit: str | None = Query(None, description=f"default 10, at most {MAX_LIMIT}"),
     skip: str | None = Query(None, description="default 0; skip + limit at most 10000"),

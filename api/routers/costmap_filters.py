@@ -25,13 +25,23 @@ from mapservice.adapters.costmap_filters import (
 )
 from mapservice.core.annotations import Zone
 from mapservice.core.ports import AnnotationReader, TimeTravelReader
-from mapservice.core.zone_masks import KEEP_OUT, FilterInfo, Grid, keep_out_mask, speed_filter_info, speed_mask
+from mapservice.core.zone_masks import (
+    KEEP_OUT,
+    FilterInfo,
+    Grid,
+    keep_out_mask,
+    speed_filter_info,
+    speed_mask,
+)
 
 from ..access import READ
-from ..deps import at_instant, get_store
 from ..annotation_state import standing
+from ..deps import at_instant, get_store
 
-router = APIRouter(prefix="/api/v1/costmap-filters", tags=["annotations"], dependencies=[Depends(READ)])
+router = APIRouter(
+    prefix="/api/v1/costmap-filters", tags=["annotations"], dependencies=[Depends(READ)]
+)
+
 
 class ZoneStore(AnnotationReader, TimeTravelReader, Protocol):
     """The standing zones and the map meta they are drawn on."""
@@ -40,57 +50,95 @@ class ZoneStore(AnnotationReader, TimeTravelReader, Protocol):
 StoreDep = Annotated[ZoneStore, Depends(get_store)]
 AtDep = Annotated[int, Depends(at_instant)]
 FilterPath = Annotated[Literal["keepout", "speed"], Path(description="keepout or speed")]
-UnitQuery = Annotated[Literal["percent", "m/s"], Query(description=(
-    "speed only: the unit of the limits in the mask (zones in the other unit are left out)"))]
+UnitQuery = Annotated[
+    Literal["percent", "m/s"],
+    Query(
+        description=(
+            "speed only: the unit of the limits in the mask (zones in the other unit are left out)"
+        )
+    ),
+]
 PGM = "image/x-portable-graymap"
 YAML = "application/yaml"
 _PGM_RESPONSE: dict[int | str, dict[str, Any]] = {
-    200: {"content": {PGM: {}}, "description": "The mask image (binary PGM)"}}
+    200: {"content": {PGM: {}}, "description": "The mask image (binary PGM)"}
+}
 _YAML_RESPONSE: dict[int | str, dict[str, Any]] = {
-    200: {"content": {YAML: {}}, "description": "map_server / filter info YAML"}}
+    200: {"content": {YAML: {}}, "description": "map_server / filter info YAML"}
+}
 
 
 def _zones(request: Request, store: ZoneStore, at: int) -> tuple[Grid, list[Zone]]:
     grid = grid_of(store.latest_meta())
     if grid is None:
-        raise HTTPException(409, "the map has no resolution and origin yet, so a mask cannot be "
-                                 "aligned with it; upload the map (`mapservice map upload`) first")
-    zones = [c.annotation for c in standing(request, store, at).values() if isinstance(c.annotation, Zone)]
+        raise HTTPException(
+            409,
+            "the map has no resolution and origin yet, so a mask cannot be "
+            "aligned with it; upload the map (`mapservice map upload`) first",
+        )
+    zones = [
+        c.annotation
+        for c in standing(request, store, at).values()
+        if isinstance(c.annotation, Zone)
+    ]
     return grid, zones
 
 
 def _info(filter_: str, zones: list[Zone], unit: str) -> FilterInfo:
-    return FilterInfo(KEEP_OUT, 0.0, 1.0) if filter_ == "keepout" else speed_filter_info(zones, unit)
+    return (
+        FilterInfo(KEEP_OUT, 0.0, 1.0) if filter_ == "keepout" else speed_filter_info(zones, unit)
+    )
 
 
-@router.get("/{filter_}/mask.pgm", operation_id="getCostmapFilterMask", response_class=Response,
-            responses=_PGM_RESPONSE)
-def get_mask(request: Request, filter_: FilterPath, store: StoreDep, at: AtDep,
-             unit: UnitQuery = "percent") -> Response:
+@router.get(
+    "/{filter_}/mask.pgm",
+    operation_id="getCostmapFilterMask",
+    response_class=Response,
+    responses=_PGM_RESPONSE,
+)
+def get_mask(
+    request: Request, filter_: FilterPath, store: StoreDep, at: AtDep, unit: UnitQuery = "percent"
+) -> Response:
     """The mask at `at` (default now): one pixel per map pixel, row 0 at the top."""
     grid, zones = _zones(request, store, at)
     if filter_ == "keepout":
         body = keep_out_pgm(keep_out_mask(grid, zones))
     else:
         body = speed_pgm(speed_mask(grid, zones, unit)[0])
-    return Response(body, media_type=PGM, headers={
-        "Content-Disposition": f'attachment; filename="{filter_}.pgm"', "X-Mask-At-Ms": str(at)})
+    return Response(
+        body,
+        media_type=PGM,
+        headers={
+            "Content-Disposition": f'attachment; filename="{filter_}.pgm"',
+            "X-Mask-At-Ms": str(at),
+        },
+    )
 
 
-@router.get("/{filter_}/mask.yaml", operation_id="getCostmapFilterMaskYaml", response_class=Response,
-            responses=_YAML_RESPONSE)
+@router.get(
+    "/{filter_}/mask.yaml",
+    operation_id="getCostmapFilterMaskYaml",
+    response_class=Response,
+    responses=_YAML_RESPONSE,
+)
 def get_mask_yaml(request: Request, filter_: FilterPath, store: StoreDep, at: AtDep) -> Response:
     """The map_server YAML of the mask: the map's resolution and origin; `image: mask.pgm`
     (save both files side by side)."""
     grid, _ = _zones(request, store, at)
-    return Response(mask_yaml(grid, "mask.pgm", "trinary" if filter_ == "keepout" else "raw"),
-                    media_type=YAML)
+    return Response(
+        mask_yaml(grid, "mask.pgm", "trinary" if filter_ == "keepout" else "raw"), media_type=YAML
+    )
 
 
-@router.get("/{filter_}/filter-info.yaml", operation_id="getCostmapFilterInfo",
-            response_class=Response, responses=_YAML_RESPONSE)
-def get_filter_info(request: Request, filter_: FilterPath, store: StoreDep, at: AtDep,
-                    unit: UnitQuery = "percent") -> Response:
+@router.get(
+    "/{filter_}/filter-info.yaml",
+    operation_id="getCostmapFilterInfo",
+    response_class=Response,
+    responses=_YAML_RESPONSE,
+)
+def get_filter_info(
+    request: Request, filter_: FilterPath, store: StoreDep, at: AtDep, unit: UnitQuery = "percent"
+) -> Response:
     """The costmap_filter_info_server parameters for the mask: type (0 keep-out, 1 speed %,
     2 speed m/s), base and multiplier (filter value = base + multiplier x mask value)."""
     _, zones = _zones(request, store, at)

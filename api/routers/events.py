@@ -18,16 +18,15 @@ from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
 from mapservice.core.ports import Clock, TimeTravelReader
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamps
+from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import WindowQuery, check_step, get_clock, get_settings, get_store
 from .chunk_events import ChunkEvent
 from .poses import Pose
 
-router = APIRouter(prefix="/api/v1/events", tags=["events"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/events", tags=["events"], dependencies=[Depends(READ)])
 MAX_SPAN_MS = 86_400_000
 MAX_CHUNKS = 1_000_000
 MAX_POSES = 200_000
@@ -45,34 +44,60 @@ class Events(BaseModel):
 
 
 def chunk_doc(r, timestamp: str) -> dict:
-    return {"row": r.row, "column": r.column, "timestamp": timestamp,
-            "ts_ms": r.ts_ms, "receive_time_ms": r.receive_time_ms, "robotId": r.robot_id,
-            "content_hash": r.content_hash}
+    return {
+        "row": r.row,
+        "column": r.column,
+        "timestamp": timestamp,
+        "ts_ms": r.ts_ms,
+        "receive_time_ms": r.receive_time_ms,
+        "robotId": r.robot_id,
+        "content_hash": r.content_hash,
+    }
 
 
 def pose_doc(r, timestamp: str) -> dict:
-    return {"robotId": r.robot_id, "timestamp": timestamp, "ts_ms": r.ts_ms,
-            "receive_time_ms": r.receive_time_ms, "position": (r.x, r.y, r.z),
-            "orientation": (r.qx, r.qy, r.qz, r.qw), "battery_level": r.battery_level,
-            "charging": r.charging, "loaded": r.loaded, "path": r.path}
+    return {
+        "robotId": r.robot_id,
+        "timestamp": timestamp,
+        "ts_ms": r.ts_ms,
+        "receive_time_ms": r.receive_time_ms,
+        "position": (r.x, r.y, r.z),
+        "orientation": (r.qx, r.qy, r.qz, r.qw),
+        "battery_level": r.battery_level,
+        "charging": r.charging,
+        "loaded": r.loaded,
+        "path": r.path,
+    }
 
 
-@router.get("", operation_id="listEvents", response_model=Events, description=(
-    "Chunk changes in [from, to) in event-time order, all of them, and poses: every pose, "
-    "or with step_ms > 0 each robot's first pose in every step [from + k*step_ms, ...); "
-    "with chunk_step_ms > 0 only each chunk's last change per bucket (fast replays). "
-    "`truncated` is true when the window held more than "
-    f"{MAX_CHUNKS:,} chunk changes or {MAX_POSES:,} poses: the answer then covers "
-    "[from, to_ms) completely; ask again from to_ms. At most 24 h per request."))
+@router.get(
+    "",
+    operation_id="listEvents",
+    response_model=Events,
+    description=(
+        "Chunk changes in [from, to) in event-time order, all of them, and poses: every pose, "
+        "or with step_ms > 0 each robot's first pose in every step [from + k*step_ms, ...); "
+        "with chunk_step_ms > 0 only each chunk's last change per bucket (fast replays). "
+        "`truncated` is true when the window held more than "
+        f"{MAX_CHUNKS:,} chunk changes or {MAX_POSES:,} poses: the answer then covers "
+        "[from, to_ms) completely; ask again from to_ms. At most 24 h per request."
+    ),
+)
 def list_events(
     window: WindowQuery,
-    step_ms: int = Query(0, description="0: every pose; > 0: at most one pose per robot per "
-                                        "step (whole minutes from a whole-minute 'from', or "
-                                        ">= 600000 from any 'from', are fastest)"),
-    chunk_step_ms: int = Query(0, description="0: every chunk change; > 0: per chunk and "
-                                              "absolute bucket [k*chunk_step_ms, "
-                                              "(k+1)*chunk_step_ms) only its winning change "
-                                              "(the map stays exact at every bucket boundary)"),
+    step_ms: int = Query(
+        0,
+        description="0: every pose; > 0: at most one pose per robot per "
+        "step (whole minutes from a whole-minute 'from', or "
+        ">= 600000 from any 'from', are fastest)",
+    ),
+    chunk_step_ms: int = Query(
+        0,
+        description="0: every chunk change; > 0: per chunk and "
+        "absolute bucket [k*chunk_step_ms, "
+        "(k+1)*chunk_step_ms) only its winning change "
+        "(the map stays exact at every bucket boundary)",
+    ),
     store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
@@ -80,23 +105,37 @@ def list_events(
     check_step(step_ms)
     check_step(chunk_step_ms, "chunk_step_ms", "every chunk change")
     f, t = window.in_retention(MAX_SPAN_MS, settings, clock.now_ms())
-    chunks = (store.chunk_events_compacted(f, t, chunk_step_ms, MAX_CHUNKS + 1)
-              if chunk_step_ms > 0 else store.chunk_events(f, t, MAX_CHUNKS + 1))
-    poses = (store.poses_downsampled(f, t, step_ms, limit=MAX_POSES + 1) if step_ms > 0
-             else store.poses(f, t, limit=MAX_POSES + 1))
+    chunks = (
+        store.chunk_events_compacted(f, t, chunk_step_ms, MAX_CHUNKS + 1)
+        if chunk_step_ms > 0
+        else store.chunk_events(f, t, MAX_CHUNKS + 1)
+    )
+    poses = (
+        store.poses_downsampled(f, t, step_ms, limit=MAX_POSES + 1)
+        if step_ms > 0
+        else store.poses(f, t, limit=MAX_POSES + 1)
+    )
     truncated = len(chunks) > MAX_CHUNKS or len(poses) > MAX_POSES
     if truncated:
         # Cut both before the first instant a list may hold only part of, so that
         # [from, cut) is complete and the next request (from = cut) repeats nothing.
-        cut = min(rows[-1].ts_ms for rows, cap in ((chunks, MAX_CHUNKS), (poses, MAX_POSES))
-                  if len(rows) > cap)
+        cut = min(
+            rows[-1].ts_ms
+            for rows, cap in ((chunks, MAX_CHUNKS), (poses, MAX_POSES))
+            if len(rows) > cap
+        )
         chunks = [r for r in chunks if r.ts_ms < cut]
         poses = [r for r in poses if r.ts_ms < cut]
         t = cut
-    body = {"from_ms": f, "to_ms": t, "step_ms": step_ms, "chunk_step_ms": chunk_step_ms,
-            "truncated": truncated,
-            "chunks": [chunk_doc(r, ts) for r, ts in zip(chunks, _timestamps(chunks))],
-            "poses": [pose_doc(r, ts) for r, ts in zip(poses, _timestamps(poses))]}
+    body = {
+        "from_ms": f,
+        "to_ms": t,
+        "step_ms": step_ms,
+        "chunk_step_ms": chunk_step_ms,
+        "truncated": truncated,
+        "chunks": [chunk_doc(r, ts) for r, ts in zip(chunks, _timestamps(chunks))],
+        "poses": [pose_doc(r, ts) for r, ts in zip(poses, _timestamps(poses))],
+    }
     # Encoded directly: a day of a fleet is hundreds of thousands of objects, too many to
     # validate one by one (the response model documents the same shape).
     return Response(_encode(body), media_type="application/json")

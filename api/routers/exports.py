@@ -16,13 +16,20 @@ from ..access import READ
 from ..deps import TimeWindow
 from ..streaming import BoundedPipe, produce
 
-router = APIRouter(prefix="/api/v1/exports", tags=["exports"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/exports", tags=["exports"], dependencies=[Depends(READ)])
 MAX_TABLE_SPAN_MS = 7 * 86_400_000
 MAX_MCAP_SPAN_MS = 86_400_000
-Dataset = Literal["robot-poses", "chunk-changes", "chunk-conflicts", "dead-letters",
-                  "vehicle-states", "vehicle-errors", "vehicle-connections",
-                  "annotation-edits", "commands"]
+Dataset = Literal[
+    "robot-poses",
+    "chunk-changes",
+    "chunk-conflicts",
+    "dead-letters",
+    "vehicle-states",
+    "vehicle-errors",
+    "vehicle-connections",
+    "annotation-edits",
+    "commands",
+]
 
 
 class TableWindow(TimeWindow):
@@ -37,16 +44,23 @@ def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
     return {"Content-Disposition": f'attachment; filename="{stem}-{from_ms}-{to_ms}.{ext}"'}
 
 
-@router.get("/tables/{dataset}", operation_id="exportTable", response_class=Response,
-            responses={200: {"content": {"text/csv": {}, "application/vnd.apache.parquet": {}}}})
+@router.get(
+    "/tables/{dataset}",
+    operation_id="exportTable",
+    response_class=Response,
+    responses={200: {"content": {"text/csv": {}, "application/vnd.apache.parquet": {}}}},
+)
 async def export_table_route(
     request: Request,
     dataset: Dataset,
     window: Annotated[TableWindow, Query()],
     format: Literal["csv", "parquet"] = Query("csv", description="csv (with a header) or parquet"),
-    robot_id: str | None = Query(None, alias="robotId", max_length=64,
-                                 description="Only this robot (not for dead-letters "
-                                             "or annotation-edits)"),
+    robot_id: str | None = Query(
+        None,
+        alias="robotId",
+        max_length=64,
+        description="Only this robot (not for dead-letters or annotation-edits)",
+    ),
 ) -> Response:
     """Rows of an analysts' view (docs/analysts.md) in the window, as ClickHouse writes them.
     CSV is streamed slice by slice of the window as the client reads it."""
@@ -61,12 +75,20 @@ async def export_table_route(
         else:
             write_csv_slices(store, dataset, f, t, robot_id, out)
 
-    return await _stream(request, producer, TABLE_FORMATS[format][1],
-                         _filename(TABLES[dataset][0], f, t, format))
+    return await _stream(
+        request, producer, TABLE_FORMATS[format][1], _filename(TABLES[dataset][0], f, t, format)
+    )
 
 
-def write_csv_slices(store, dataset: str, from_ms: int, to_ms: int, robot_id: str | None,
-                     out, target_bytes: int = 4 * 1024 * 1024) -> None:
+def write_csv_slices(
+    store,
+    dataset: str,
+    from_ms: int,
+    to_ms: int,
+    robot_id: str | None,
+    out,
+    target_bytes: int = 4 * 1024 * 1024,
+) -> None:
     """The window's CSV as consecutive time slices (each in time order, so the whole is
     too), the header once; a slice's length adapts so one holds about `target_bytes`."""
     step, cursor, header = 3_600_000, from_ms, True
@@ -87,8 +109,12 @@ def write_csv_slices(store, dataset: str, from_ms: int, to_ms: int, robot_id: st
         out.write(export_table(store, dataset, "csv", from_ms, from_ms, robot_id))
 
 
-@router.get("/replay.mcap", operation_id="exportReplayMcap", response_class=Response,
-            responses={200: {"content": {"application/x-mcap": {}}}})
+@router.get(
+    "/replay.mcap",
+    operation_id="exportReplayMcap",
+    response_class=Response,
+    responses={200: {"content": {"application/x-mcap": {}}}},
+)
 async def export_replay_mcap(
     request: Request,
     window: Annotated[McapWindow, Query()],
@@ -103,8 +129,12 @@ async def export_replay_mcap(
     store: HistoryStore = request.app.state.store
     f, t = window.parse(MAX_MCAP_SPAN_MS)
     try:
-        return await _stream(request, lambda out: export_mcap(store, f, t, out),
-                             "application/x-mcap", _filename("replay", f, t, "mcap"))
+        return await _stream(
+            request,
+            lambda out: export_mcap(store, f, t, out),
+            "application/x-mcap",
+            _filename("replay", f, t, "mcap"),
+        )
     except ValueError as exc:
         raise HTTPException(409, str(exc)) from exc
 

@@ -66,11 +66,14 @@ async def readiness(request: Request) -> JSONResponse:
     # the error); a reason is the check's in-memory state, so it never waits either.
     reasons = failing_reasons(required, checks)
     checks.update(await _evaluate(getattr(request.app.state, "advisory", {})))
-    return JSONResponse({"ok": ok, "checks": checks, **({"reasons": reasons} if reasons else {})},
-                        status_code=200 if ok else 503)
+    return JSONResponse(
+        {"ok": ok, "checks": checks, **({"reasons": reasons} if reasons else {})},
+        status_code=200 if ok else 503,
+    )
 
 
-@router.get("/metrics", operation_id="getMetrics", include_in_schema=False,
-            dependencies=[Depends(METRICS)])
+@router.get(
+    "/metrics", operation_id="getMetrics", include_in_schema=False, dependencies=[Depends(METRICS)]
+)
 def metrics() -> Response:
     return Response(generate_latest(), media_type=CONTENT_TYPE_LATEST)

@@ -8,7 +8,6 @@ import json
 import time
 
 import structlog
-
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
 from pydantic import TypeAdapter, ValidationError
 
@@ -45,14 +44,19 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
     settings = websocket.app.state.settings
     if not host_allowed(websocket.headers.get("host"), allowed_hosts(settings)):
         # Before accept: the handshake is refused (HTTP 403), no data is sent.
-        await websocket.close(code=1008, reason="this host name may not open the live stream "
-                                                "(MAPSERVICE_API_ALLOWED_HOSTS)")
+        await websocket.close(
+            code=1008,
+            reason="this host name may not open the live stream (MAPSERVICE_API_ALLOWED_HOSTS)",
+        )
         return
-    if not origin_allowed(websocket.headers.get("origin"), websocket.headers.get("host"),
-                          settings.api_allowed_origins):
+    if not origin_allowed(
+        websocket.headers.get("origin"), websocket.headers.get("host"), settings.api_allowed_origins
+    ):
         # Before accept: the handshake is refused (HTTP 403), no data is sent.
-        await websocket.close(code=1008, reason="this origin may not open the live stream "
-                                                "(MAPSERVICE_API_ALLOWED_ORIGINS)")
+        await websocket.close(
+            code=1008,
+            reason="this origin may not open the live stream (MAPSERVICE_API_ALLOWED_ORIGINS)",
+        )
         return
     offered = [p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",")]
     await websocket.accept(subprotocol=LIVE_SUBPROTOCOL if LIVE_SUBPROTOCOL in offered else None)
@@ -60,22 +64,30 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
     if batched is None:
         # Parsed here, not as a `bool` parameter: FastAPI refuses a bad query value on a
         # WebSocket before accept, which a client sees as a bare HTTP 403 without reason.
-        await websocket.close(code=BAD_REQUEST, reason=(
-            f"query parameter batch must be true or false, not {ascii(batch)[:40]}"))
+        await websocket.close(
+            code=BAD_REQUEST,
+            reason=(f"query parameter batch must be true or false, not {ascii(batch)[:40]}"),
+        )
         return
     if hub is None:
         await websocket.close(code=NO_FEED, reason="this API process has no live feed")
         return
     if not hub.ready():
-        await websocket.close(code=FEED_NOT_READY, reason="live feed not connected to Kafka yet; "
-                              "reconnect in a few seconds")
+        await websocket.close(
+            code=FEED_NOT_READY,
+            reason="live feed not connected to Kafka yet; reconnect in a few seconds",
+        )
         return
     # Each client costs a queue and a task: a bound per process, and a reason the client
     # can show (the UI reconnects with backoff on 1013, as it does while the feed starts).
     if hub.subscribers >= settings.api_max_live_clients:
-        await websocket.close(code=FEED_NOT_READY, reason=(
-            f"too many live clients ({settings.api_max_live_clients}, "
-            "MAPSERVICE_API_MAX_LIVE_CLIENTS); try again later"))
+        await websocket.close(
+            code=FEED_NOT_READY,
+            reason=(
+                f"too many live clients ({settings.api_max_live_clients}, "
+                "MAPSERVICE_API_MAX_LIVE_CLIENTS); try again later"
+            ),
+        )
         return
     queue = hub.subscribe()
     timeout_s = settings.api_live_send_timeout_s
@@ -90,9 +102,13 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
         log.info("live client dropped: it does not read", timeout_s=timeout_s)
         with contextlib.suppress(Exception):
             async with asyncio.timeout(1.0):
-                await websocket.close(code=BAD_REQUEST, reason=(
-                    f"this client took no message for {timeout_s:g} s "
-                    "(MAPSERVICE_API_LIVE_SEND_TIMEOUT_S); read the stream, then reconnect"))
+                await websocket.close(
+                    code=BAD_REQUEST,
+                    reason=(
+                        f"this client took no message for {timeout_s:g} s "
+                        "(MAPSERVICE_API_LIVE_SEND_TIMEOUT_S); read the stream, then reconnect"
+                    ),
+                )
     finally:
         hub.unsubscribe(queue)
 

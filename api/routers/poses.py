@@ -12,8 +12,7 @@ from ..access import READ
 from ..deps import WindowQuery, get_store
 from ..json_rows import JsonRows
 
-router = APIRouter(prefix="/api/v1/poses", tags=["poses"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/poses", tags=["poses"], dependencies=[Depends(READ)])
 MAX_SPAN_MS = 86_400_000
 
 
@@ -43,10 +42,20 @@ def list_poses(
     f, t = window.parse(MAX_SPAN_MS)
     rows = store.poses(f, t, robot_id, limit)
     # `Pose`'s JSON without a pydantic model per row (json_rows).
-    return _ROWS.response([
-        _ROWS.struct(r.robot_id, ts, r.ts_ms, r.receive_time_ms, (float(r.x), float(r.y), float(r.z)),
-                  (float(r.qx), float(r.qy), float(r.qz), float(r.qw)),
-                  float(r.battery_level) if r.battery_level is not None else None,
-                  r.charging, r.loaded, r.path)
-        for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
-    ])
+    return _ROWS.response(
+        [
+            _ROWS.struct(
+                r.robot_id,
+                ts,
+                r.ts_ms,
+                r.receive_time_ms,
+                (float(r.x), float(r.y), float(r.z)),
+                (float(r.qx), float(r.qy), float(r.qz), float(r.qw)),
+                float(r.battery_level) if r.battery_level is not None else None,
+                r.charging,
+                r.loaded,
+                r.path,
+            )
+            for r, ts in zip(rows, format_timestamps([r.ts_ms for r in rows]))
+        ]
+    )

@@ -7,15 +7,14 @@ from pydantic import BaseModel
 
 from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
 from mapservice.core.ports import TimeTravelReader
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import format_timestamp
+from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import at_instant, get_settings, get_store
 from .poses import Pose
 
-router = APIRouter(prefix="/api/v1/robots", tags=["robots"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
 
 
 class RobotAt(Pose):
@@ -38,10 +37,21 @@ MAX_PAGE = 10_000
 @router.get("", operation_id="getRobotsAt", response_model=RobotsAt)
 def get_robots_at(
     at_ms: int = Depends(at_instant),
-    limit: int = Query(MAX_PAGE, ge=1, le=MAX_PAGE, description=(
-        "Robots per page, in robotId order; the answer's `next_after` names the next page")),
-    after: str | None = Query(None, max_length=64, description=(
-        "Only robots whose robotId sorts after this one: the previous page's `next_after`")),
+    limit: int = Query(
+        MAX_PAGE,
+        ge=1,
+        le=MAX_PAGE,
+        description=(
+            "Robots per page, in robotId order; the answer's `next_after` names the next page"
+        ),
+    ),
+    after: str | None = Query(
+        None,
+        max_length=64,
+        description=(
+            "Only robots whose robotId sorts after this one: the previous page's `next_after`"
+        ),
+    ),
     store: TimeTravelReader = Depends(get_store),
     settings: Settings = Depends(get_settings),
 ) -> RobotsAt:
@@ -50,15 +60,28 @@ def get_robots_at(
     # One more than the page: whether a next page exists, without reading every robot.
     rows = store.robots_at(at_ms, after=after, limit=limit + 1)
     page = rows[:limit]
-    return RobotsAt(at_ms=at_ms, next_after=page[-1].robot_id if len(rows) > limit else None,
-                    robots=[
-        RobotAt(robotId=r.robot_id, timestamp=format_timestamp(r.ts_ms), ts_ms=r.ts_ms,
-                receive_time_ms=r.receive_time_ms, position=(r.x, r.y, r.z),
-                orientation=(r.qx, r.qy, r.qz, r.qw), battery_level=r.battery_level,
-                charging=r.charging, loaded=r.loaded,
-                path=list(r.path) if r.path is not None else None, age_ms=at_ms - r.ts_ms,
+    return RobotsAt(
+        at_ms=at_ms,
+        next_after=page[-1].robot_id if len(rows) > limit else None,
+        robots=[
+            RobotAt(
+                robotId=r.robot_id,
+                timestamp=format_timestamp(r.ts_ms),
+                ts_ms=r.ts_ms,
+                receive_time_ms=r.receive_time_ms,
+                position=(r.x, r.y, r.z),
+                orientation=(r.qx, r.qy, r.qz, r.qw),
+                battery_level=r.battery_level,
+                charging=r.charging,
+                loaded=r.loaded,
+                path=list(r.path) if r.path is not None else None,
+                age_ms=at_ms - r.ts_ms,
                 online=is_online(at_ms - r.ts_ms, settings.robot_offline_after_s),
                 clock_skew_ms=clock_skew_ms(r.receive_time_ms, r.ts_ms),
-                clock_skew_flag=skew_flagged(clock_skew_ms(r.receive_time_ms, r.ts_ms),
-                                             settings.clock_skew_threshold_s))
-        for r in page])
+                clock_skew_flag=skew_flagged(
+                    clock_skew_ms(r.receive_time_ms, r.ts_ms), settings.clock_skew_threshold_s
+                ),
+            )
+            for r in page
+        ],
+    )

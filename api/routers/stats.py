@@ -10,8 +10,7 @@ from mapservice.core.ports import StoreAdmin
 from ..access import READ
 from ..deps import get_store
 
-router = APIRouter(prefix="/api/v1/stats", tags=["stats"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/stats", tags=["stats"], dependencies=[Depends(READ)])
 
 
 @router.get("", operation_id="getHistoryStats")

@@ -6,14 +6,13 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel
 
 from mapservice.core.ports import Clock, TimeTravelReader
-from mapservice.settings import Settings
 from mapservice.core.timetravel import timeline_buckets
+from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import WindowQuery, get_clock, get_settings, get_store
 
-router = APIRouter(prefix="/api/v1/timeline", tags=["timeline"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/timeline", tags=["timeline"], dependencies=[Depends(READ)])
 MAX_BUCKETS = 2000
 
 
@@ -31,10 +30,16 @@ class Timeline(BaseModel):
     buckets: list[Bucket]
 
 
-@router.get("", operation_id="getTimeline", response_model=Timeline, description=(
-    "[from, to) cut into at most `buckets` equal buckets of bucket_ms (whole ms; the last "
-    "one may end after `to`, nothing after `to` counts). Per bucket: chunk changes, "
-    "conflicts (by the later write's time) and robots with at least one pose."))
+@router.get(
+    "",
+    operation_id="getTimeline",
+    response_model=Timeline,
+    description=(
+        "[from, to) cut into at most `buckets` equal buckets of bucket_ms (whole ms; the last "
+        "one may end after `to`, nothing after `to` counts). Per bucket: chunk changes, "
+        "conflicts (by the later write's time) and robots with at least one pose."
+    ),
+)
 def get_timeline(
     window: WindowQuery,
     buckets: int = Query(200, description=f"Number of buckets, 1 to {MAX_BUCKETS}"),
@@ -43,10 +48,24 @@ def get_timeline(
     clock: Clock = Depends(get_clock),
 ) -> Timeline:
     if not 1 <= buckets <= MAX_BUCKETS:
-        raise HTTPException(400, f"buckets ({buckets}) must be between 1 and {MAX_BUCKETS}; "
-                                 "a timeline needs no more buckets than it has pixels")
+        raise HTTPException(
+            400,
+            f"buckets ({buckets}) must be between 1 and {MAX_BUCKETS}; "
+            "a timeline needs no more buckets than it has pixels",
+        )
     f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     bucket_ms, _ = timeline_buckets(f, t, buckets)
-    return Timeline(from_ms=f, to_ms=t, bucket_ms=bucket_ms, buckets=[
-        Bucket(start_ms=b.start_ms, chunk_changes=b.chunk_changes, conflicts=b.conflicts,
-               robots_active=b.robots_active) for b in store.timeline(f, t, buckets)])
+    return Timeline(
+        from_ms=f,
+        to_ms=t,
+        bucket_ms=bucket_ms,
+        buckets=[
+            Bucket(
+                start_ms=b.start_ms,
+                chunk_changes=b.chunk_changes,
+                conflicts=b.conflicts,
+                robots_active=b.robots_active,
+            )
+            for b in store.timeline(f, t, buckets)
+        ],
+    )

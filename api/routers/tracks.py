@@ -8,14 +8,13 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
 from mapservice.core.ports import Clock, TimeTravelReader
-from mapservice.settings import Settings
 from mapservice.core.timetravel import yaw
+from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import WindowQuery, check_step, get_clock, get_settings, get_store
 
-router = APIRouter(prefix="/api/v1/robots", tags=["robots"],
-                   dependencies=[Depends(READ)])
+router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
 MAX_POINTS = 100_000
 MAX_SPAN_EVERY_POSE_MS = 86_400_000
 
@@ -35,10 +34,14 @@ class Track(BaseModel):
     points: list[TrackPoint]
 
 
-@router.get("/{robot_id}/track", operation_id="getRobotTrack", response_model=Track,
-            description="The robot's poses in [from, to): every one (windows up to 24 h), or "
-                        f"with step_ms > 0 its first in every step (at most {MAX_POINTS:,} points, "
-                        "windows up to the retention). 404 if the robot never reported.")
+@router.get(
+    "/{robot_id}/track",
+    operation_id="getRobotTrack",
+    response_model=Track,
+    description="The robot's poses in [from, to): every one (windows up to 24 h), or "
+    f"with step_ms > 0 its first in every step (at most {MAX_POINTS:,} points, "
+    "windows up to the retention). 404 if the robot never reported.",
+)
 def get_robot_track(
     robot_id: Annotated[str, Path(max_length=64)],
     window: WindowQuery,
@@ -51,12 +54,29 @@ def get_robot_track(
     span = MAX_SPAN_EVERY_POSE_MS if step_ms == 0 else settings.retention_ms
     f, t = window.in_retention(span, settings, clock.now_ms())
     if step_ms and (t - f) // step_ms > MAX_POINTS:
-        raise HTTPException(400, f"{(t - f) // step_ms:,} steps of {step_ms} ms is more than "
-                                 f"{MAX_POINTS:,}; use step_ms >= {-(-(t - f) // MAX_POINTS)}")
+        raise HTTPException(
+            400,
+            f"{(t - f) // step_ms:,} steps of {step_ms} ms is more than "
+            f"{MAX_POINTS:,}; use step_ms >= {-(-(t - f) // MAX_POINTS)}",
+        )
     rows = store.robot_track(robot_id, f, t, step_ms, limit=MAX_POINTS + 1)
     if not rows and not store.robot_known(robot_id):
-        raise HTTPException(404, f"robot {robot_id!r} has no pose in the history; "
-                                 "GET /api/v1/robots lists the robots")
-    return Track(robotId=robot_id, from_ms=f, to_ms=t, points=[
-        TrackPoint(ts_ms=r.ts_ms, x=r.x, y=r.y, yaw=yaw(r.qx, r.qy, r.qz, r.qw),
-                   battery_level=r.battery_level) for r in rows[:MAX_POINTS]])
+        raise HTTPException(
+            404,
+            f"robot {robot_id!r} has no pose in the history; GET /api/v1/robots lists the robots",
+        )
+    return Track(
+        robotId=robot_id,
+        from_ms=f,
+        to_ms=t,
+        points=[
+            TrackPoint(
+                ts_ms=r.ts_ms,
+                x=r.x,
+                y=r.y,
+                yaw=yaw(r.qx, r.qy, r.qz, r.qw),
+                battery_level=r.battery_level,
+            )
+            for r in rows[:MAX_POINTS]
+        ],
+    )

@@ -8,13 +8,15 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, AnnotationReader
+from mapservice.core.ports import AnnotationReader, Clock
 from mapservice.settings import Settings
 
 from ..access import READ
 from ..deps import WindowQuery, get_clock, get_settings, get_store
 
-router = APIRouter(prefix="/api/v1/zone-violations", tags=["annotations"], dependencies=[Depends(READ)])
+router = APIRouter(
+    prefix="/api/v1/zone-violations", tags=["annotations"], dependencies=[Depends(READ)]
+)
 
 StoreDep = Annotated[AnnotationReader, Depends(get_store)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
@@ -38,13 +40,21 @@ class Violations(BaseModel):
 
 @router.get("", operation_id="listZoneViolations", response_model=Violations)
 def list_zone_violations(
-    store: StoreDep, settings: SettingsDep, clock: ClockDep,
+    store: StoreDep,
+    settings: SettingsDep,
+    clock: ClockDep,
     window: WindowQuery,
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
 ) -> Violations:
     """Each stored pose that lay inside a keep-out zone (on one of its mask's pixels)."""
     f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     rows = store.zone_violations(f, t, limit + 1)
-    return Violations(from_ms=f, to_ms=t, truncated=len(rows) > limit, violations=[
-        Violation(ts_ms=v.ts_ms, robotId=v.robot_id, zoneId=v.annotation_id, x=v.x, y=v.y)
-        for v in rows[:limit]])
+    return Violations(
+        from_ms=f,
+        to_ms=t,
+        truncated=len(rows) > limit,
+        violations=[
+            Violation(ts_ms=v.ts_ms, robotId=v.robot_id, zoneId=v.annotation_id, x=v.x, y=v.y)
+            for v in rows[:limit]
+        ],
+    )

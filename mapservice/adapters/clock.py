@@ -52,8 +52,10 @@ def parse_instant_ms(text: str, name: str) -> int:
     try:
         parsed = dt.datetime.fromisoformat(text.replace("Z", "+00:00"))
     except ValueError:
-        raise ValueError(f"{name}={text!r} is neither epoch milliseconds nor an ISO 8601 instant "
-                         "(e.g. 2026-01-01T00:00:00Z)") from None
+        raise ValueError(
+            f"{name}={text!r} is neither epoch milliseconds nor an ISO 8601 instant "
+            "(e.g. 2026-01-01T00:00:00Z)"
+        ) from None
     if parsed.tzinfo is None:
         parsed = parsed.replace(tzinfo=dt.UTC)
     return int(parsed.timestamp() * 1000)
@@ -64,8 +66,14 @@ def clock_from_settings(settings: Settings) -> SystemClock | SimulatedClock:
     simulated one."""
     if not settings.clock_start and settings.clock_rate == 1.0:
         return SystemClock()
-    start = (parse_instant_ms(settings.clock_start, "MAPSERVICE_CLOCK_START")
-             if settings.clock_start else time.time_ns() // 1_000_000)
-    origin = (parse_instant_ms(settings.clock_origin, "MAPSERVICE_CLOCK_ORIGIN")
-              if settings.clock_origin else None)
+    start = (
+        parse_instant_ms(settings.clock_start, "MAPSERVICE_CLOCK_START")
+        if settings.clock_start
+        else time.time_ns() // 1_000_000
+    )
+    origin = (
+        parse_instant_ms(settings.clock_origin, "MAPSERVICE_CLOCK_ORIGIN")
+        if settings.clock_origin
+        else None
+    )
     return SimulatedClock(start, settings.clock_rate, origin)

@@ -14,9 +14,9 @@ import numpy as np
 import yaml
 from PIL import Image
 
+from mapservice.adapters.ros_map import OCCUPIED, RosMap, classify, read_pgm_header
 from mapservice.core.events import MapMetaSet
 from mapservice.core.zone_masks import MASK_KEEP_OUT, FilterInfo, Grid
-from mapservice.adapters.ros_map import OCCUPIED, RosMap, classify, read_pgm_header
 
 FREE_PIXEL, OCCUPIED_PIXEL = 254, 0  # what map_saver writes for free and occupied
 
@@ -29,14 +29,21 @@ def grid_of(meta: MapMetaSet | None) -> Grid | None:
     """The map's raster, or None while the map has no geometry (resolution and origin)."""
     if meta is None or meta.resolution is None or meta.origin is None:
         return None
-    return Grid(meta.width, meta.height, float(meta.resolution),
-                float(meta.origin[0]), float(meta.origin[1]))
+    return Grid(
+        meta.width,
+        meta.height,
+        float(meta.resolution),
+        float(meta.origin[0]),
+        float(meta.origin[1]),
+    )
 
 
 def pgm_bytes(pixels: np.ndarray) -> bytes:
     pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
     height, width = pixels.shape
-    return f"P5\n# mapservice costmap filter mask\n{width} {height}\n255\n".encode() + pixels.tobytes()
+    return (
+        f"P5\n# mapservice costmap filter mask\n{width} {height}\n255\n".encode() + pixels.tobytes()
+    )
 
 
 def keep_out_pgm(mask: np.ndarray) -> bytes:
@@ -52,17 +59,32 @@ def speed_pgm(mask: np.ndarray) -> bytes:
 def mask_yaml(grid: Grid, image: str, mode: str) -> str:
     """The map_server YAML of a mask: the map's resolution and origin, so nav2 lays the
     mask exactly over the map."""
-    doc = {"image": image, "mode": mode, "resolution": grid.resolution,
-           "origin": [grid.origin_x, grid.origin_y, 0.0], "negate": 0,
-           "occupied_thresh": 0.65, "free_thresh": 0.196}
+    doc = {
+        "image": image,
+        "mode": mode,
+        "resolution": grid.resolution,
+        "origin": [grid.origin_x, grid.origin_y, 0.0],
+        "negate": 0,
+        "occupied_thresh": 0.65,
+        "free_thresh": 0.196,
+    }
     return yaml.safe_dump(doc, sort_keys=False)
 
 
 def filter_info_yaml(info: FilterInfo, node: str, mask_topic: str) -> str:
     """Parameters of nav2's costmap_filter_info_server node for this mask."""
-    doc = {node: {"ros__parameters": {
-        "use_sim_time": False, "type": info.type, "filter_info_topic": f"/{node}/filter_info",
-        "mask_topic": mask_topic, "base": info.base, "multiplier": info.multiplier}}}
+    doc = {
+        node: {
+            "ros__parameters": {
+                "use_sim_time": False,
+                "type": info.type,
+                "filter_info_topic": f"/{node}/filter_info",
+                "mask_topic": mask_topic,
+                "base": info.base,
+                "multiplier": info.multiplier,
+            }
+        }
+    }
     return yaml.safe_dump(doc, sort_keys=False)
 
 
@@ -73,7 +95,9 @@ def read_mask(yaml_text: str, image: bytes) -> RosMap:
     except yaml.YAMLError as exc:
         raise MaskFileError(f"the mask YAML does not parse: {str(exc)[:200]}") from None
     if not isinstance(doc, dict) or "resolution" not in doc:
-        raise MaskFileError("the mask YAML needs at least 'resolution' and 'origin' (map_server format)")
+        raise MaskFileError(
+            "the mask YAML needs at least 'resolution' and 'origin' (map_server format)"
+        )
     try:
         resolution = float(doc["resolution"])
         origin = tuple(float(v) for v in doc.get("origin", (0.0, 0.0, 0.0)))
@@ -97,21 +121,34 @@ def read_mask(yaml_text: str, image: bytes) -> RosMap:
         raise MaskFileError(f"the mask image does not decode: {str(exc)[:200]}") from None
     if maxval != 255:
         pixels = np.rint(pixels.astype(np.float64) * maxval / 255).astype(np.uint8)
-    return RosMap(pixels, resolution, origin, negate=negate,  # type: ignore[arg-type]
-                  occupied_thresh=occupied, free_thresh=free,
-                  mode=str(doc.get("mode", "trinary")), max_brightness=maxval)
+    return RosMap(
+        pixels,
+        resolution,
+        origin,
+        negate=negate,  # type: ignore[arg-type]
+        occupied_thresh=occupied,
+        free_thresh=free,
+        mode=str(doc.get("mode", "trinary")),
+        max_brightness=maxval,
+    )
 
 
 def keep_out_pixels(mask: RosMap, grid: Grid) -> np.ndarray:
     """The pixels a keep-out mask marks (occupied as map_server reads it), checked to lie
     exactly over the map."""
     if (mask.width, mask.height) != (grid.width, grid.height):
-        raise MaskFileError(f"the mask is {mask.width} x {mask.height} px but the map is "
-                            f"{grid.width} x {grid.height} px; a mask covers the map exactly")
-    if abs(mask.resolution - grid.resolution) > 1e-9 or abs(mask.origin[0] - grid.origin_x) > 1e-6 \
-            or abs(mask.origin[1] - grid.origin_y) > 1e-6:
+        raise MaskFileError(
+            f"the mask is {mask.width} x {mask.height} px but the map is "
+            f"{grid.width} x {grid.height} px; a mask covers the map exactly"
+        )
+    if (
+        abs(mask.resolution - grid.resolution) > 1e-9
+        or abs(mask.origin[0] - grid.origin_x) > 1e-6
+        or abs(mask.origin[1] - grid.origin_y) > 1e-6
+    ):
         raise MaskFileError(
             f"the mask's resolution {mask.resolution} and origin {list(mask.origin[:2])} differ "
             f"from the map's ({grid.resolution}, [{grid.origin_x}, {grid.origin_y}]); a mask "
-            "must be aligned with the map")
+            "must be aligned with the map"
+        )
     return classify(mask) == OCCUPIED

@@ -11,8 +11,14 @@ from urllib.parse import quote
 
 import httpx
 
-from .mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, AclTopics, RobotCredential, check_identity,
-                        new_password)
+from .mqtt_auth import (
+    GATEWAY_USER,
+    PROCESSORS_USER,
+    AclTopics,
+    RobotCredential,
+    check_identity,
+    new_password,
+)
 
 AUTHENTICATOR = "password_based:built_in_database"
 PAGE = 1000
@@ -23,14 +29,22 @@ class EmqxError(RuntimeError):
 
 
 class EmqxUsers:
-    def __init__(self, api_url: str, api_key: str, api_secret: str,
-                 topics: AclTopics | None = None, authenticator: str = AUTHENTICATOR,
-                 client: httpx.Client | None = None,
-                 service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
+    def __init__(
+        self,
+        api_url: str,
+        api_key: str,
+        api_secret: str,
+        topics: AclTopics | None = None,
+        authenticator: str = AUTHENTICATOR,
+        client: httpx.Client | None = None,
+        service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER),
+    ) -> None:
         if not api_url or not api_key or not api_secret:
-            raise EmqxError("EMQX's REST API needs MAPSERVICE_EMQX_API_URL, MAPSERVICE_EMQX_API_KEY "
-                            "and MAPSERVICE_EMQX_API_SECRET (an API key from the dashboard: "
-                            "System -> API Key)")
+            raise EmqxError(
+                "EMQX's REST API needs MAPSERVICE_EMQX_API_URL, MAPSERVICE_EMQX_API_KEY "
+                "and MAPSERVICE_EMQX_API_SECRET (an API key from the dashboard: "
+                "System -> API Key)"
+            )
         self.api_url = api_url
         self.topics = topics or AclTopics()
         self.service_users = service_users
@@ -42,10 +56,14 @@ class EmqxUsers:
         try:
             resp = self._client.request(method, path, **kwargs)
         except httpx.HTTPError as exc:
-            raise EmqxError(f"EMQX's REST API at {self._client.base_url} did not answer ({exc}); "
-                            "check MAPSERVICE_EMQX_API_URL (the dashboard port, 18083)") from exc
+            raise EmqxError(
+                f"EMQX's REST API at {self._client.base_url} did not answer ({exc}); "
+                "check MAPSERVICE_EMQX_API_URL (the dashboard port, 18083)"
+            ) from exc
         if resp.status_code == 401:
-            raise EmqxError("EMQX refused the API key (401): check MAPSERVICE_EMQX_API_KEY and _SECRET")
+            raise EmqxError(
+                "EMQX refused the API key (401): check MAPSERVICE_EMQX_API_KEY and _SECRET"
+            )
         return resp
 
     @staticmethod
@@ -56,28 +74,46 @@ class EmqxUsers:
             detail = resp.text
         return EmqxError(f"EMQX refused to {what} ({resp.status_code}): {detail[:200]}")
 
-    def add_robot(self, robot_id: str, *, legacy_chunks: bool = False, rotate: bool = False,
-                  password: str | None = None) -> RobotCredential:
+    def add_robot(
+        self,
+        robot_id: str,
+        *,
+        legacy_chunks: bool = False,
+        rotate: bool = False,
+        password: str | None = None,
+    ) -> RobotCredential:
         """Creates the robot's user (or, with `rotate`, gives it a new password)."""
         check_identity(robot_id, self.service_users)
         if legacy_chunks:
-            raise EmqxError("EMQX's ACL is a file in the ConfigMap mapservice-emqx-acl: allow a "
-                            "robot the 2019 chunk topic there (the file says how)")
+            raise EmqxError(
+                "EMQX's ACL is a file in the ConfigMap mapservice-emqx-acl: allow a "
+                "robot the 2019 chunk topic there (the file says how)"
+            )
         password = password or new_password()
         if rotate:
-            resp = self._call("PUT", f"{self._users}/{quote(robot_id, safe='')}",
-                              json={"password": password, "is_superuser": False})
+            resp = self._call(
+                "PUT",
+                f"{self._users}/{quote(robot_id, safe='')}",
+                json={"password": password, "is_superuser": False},
+            )
             if resp.status_code == 404:
                 raise EmqxError(f"robot {robot_id!r} has no EMQX user to rotate; add it first")
         else:
-            resp = self._call("POST", self._users, json={"user_id": robot_id, "password": password,
-                                                         "is_superuser": False})
+            resp = self._call(
+                "POST",
+                self._users,
+                json={"user_id": robot_id, "password": password, "is_superuser": False},
+            )
             if resp.status_code == 409:
-                raise EmqxError(f"robot {robot_id!r} already has an MQTT credential; "
-                                "--rotate gives it a new password")
+                raise EmqxError(
+                    f"robot {robot_id!r} already has an MQTT credential; "
+                    "--rotate gives it a new password"
+                )
         if resp.status_code not in (200, 201):
             raise self._refused(resp, f"store robot {robot_id!r}")
-        return RobotCredential(robot_id, robot_id, password, self.topics.robot_topics(robot_id), False)
+        return RobotCredential(
+            robot_id, robot_id, password, self.topics.robot_topics(robot_id), False
+        )
 
     def remove_robot(self, robot_id: str) -> bool:
         """Deletes the robot's user; False when it had none. EMQX keeps a connected

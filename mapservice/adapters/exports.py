@@ -46,11 +46,18 @@ TABLES: dict[str, tuple[str, str]] = {
     "annotation-edits": ("annotation_events", "ts"),
     "commands": ("command_events", "ts"),
 }
-_READ_FINAL = {"vda_states", "vda_errors", "vda_connections", "annotation_events",
-               "command_events"}  # tables, not views
+_READ_FINAL = {
+    "vda_states",
+    "vda_errors",
+    "vda_connections",
+    "annotation_events",
+    "command_events",
+}  # tables, not views
 _NO_ROBOT = {"dead-letters", "annotation-edits"}  # datasets without a robot_id column
-TABLE_FORMATS = {"csv": ("CSVWithNames", "text/csv"),
-                 "parquet": ("Parquet", "application/vnd.apache.parquet")}
+TABLE_FORMATS = {
+    "csv": ("CSVWithNames", "text/csv"),
+    "parquet": ("Parquet", "application/vnd.apache.parquet"),
+}
 MAP_TOPIC = "/map"
 MAP_FRAME = "map"
 
@@ -83,16 +90,26 @@ STATE_SCHEMA = {
     "description": "A robot's reported state with each pose",
     "type": "object",
     "properties": {
-        "battery_level": {"type": ["number", "null"],
-                          "description": "battery as the robot reported it (a 0-1 fraction, "
-                                         "0-5 V-like scale or %: see battery_percent)"},
-        "battery_percent": {"type": ["number", "null"], "minimum": 0, "maximum": 100,
-                            "description": "battery in % (unit: %): level <= 1 times 100, "
-                                           "<= 5 times 20, else as reported; clamped to 0-100"},
-        "charging": {"type": ["boolean", "string", "null"],
-                     "description": "on a charger (a 2019 robot may send a word)"},
-        "loaded": {"type": ["boolean", "string", "null"],
-                   "description": "carrying a load (a 2019 robot may send a word)"},
+        "battery_level": {
+            "type": ["number", "null"],
+            "description": "battery as the robot reported it (a 0-1 fraction, "
+            "0-5 V-like scale or %: see battery_percent)",
+        },
+        "battery_percent": {
+            "type": ["number", "null"],
+            "minimum": 0,
+            "maximum": 100,
+            "description": "battery in % (unit: %): level <= 1 times 100, "
+            "<= 5 times 20, else as reported; clamped to 0-100",
+        },
+        "charging": {
+            "type": ["boolean", "string", "null"],
+            "description": "on a charger (a 2019 robot may send a word)",
+        },
+        "loaded": {
+            "type": ["boolean", "string", "null"],
+            "description": "carrying a load (a 2019 robot may send a word)",
+        },
     },
     "required": ["battery_level", "battery_percent", "charging", "loaded"],
 }
@@ -105,16 +122,29 @@ ERRORS_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": ERRORS_SCHEMA_NAME,
     "description": "A VDA 5050 vehicle's active errors and warnings (state.errors) from this "
-                   "instant until the next message",
+    "instant until the next message",
     "type": "object",
     "properties": {
         "count": {"type": "integer", "minimum": 0, "description": "number of active errors"},
         "fatal": {"type": "integer", "minimum": 0, "description": "those not WARNING"},
-        "errors": {"type": "array", "items": {"type": "object", "properties": {
-            "level": {"type": "string", "description": "WARNING or FATAL (3.0: also URGENT, CRITICAL)"},
-            "type": {"type": "string", "description": "the vehicle's errorType"},
-            "description": {"type": "string", "description": "the vehicle's errorDescription"},
-        }, "required": ["level", "type", "description"]}},
+        "errors": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "level": {
+                        "type": "string",
+                        "description": "WARNING or FATAL (3.0: also URGENT, CRITICAL)",
+                    },
+                    "type": {"type": "string", "description": "the vehicle's errorType"},
+                    "description": {
+                        "type": "string",
+                        "description": "the vehicle's errorDescription",
+                    },
+                },
+                "required": ["level", "type", "description"],
+            },
+        },
     },
     "required": ["count", "fatal", "errors"],
 }
@@ -124,19 +154,26 @@ CONNECTION_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": CONNECTION_SCHEMA_NAME,
     "description": "A VDA 5050 vehicle's connection state from this instant on (log time: "
-                   "the message's timestamp; for CONNECTIONBROKEN, the broker's last will, "
-                   "when the gateway received it)",
+    "the message's timestamp; for CONNECTIONBROKEN, the broker's last will, "
+    "when the gateway received it)",
     "type": "object",
     "properties": {
         "state": {"type": "string", "enum": ["ONLINE", "OFFLINE", "CONNECTIONBROKEN"]},
         "online": {"type": "boolean", "description": "state is ONLINE"},
-        "sent_ms": {"type": "integer", "description": "the message's own timestamp, ms since "
-                                                     "the epoch (the last will's: connect time)"},
+        "sent_ms": {
+            "type": "integer",
+            "description": "the message's own timestamp, ms since "
+            "the epoch (the last will's: connect time)",
+        },
     },
     "required": ["state", "online", "sent_ms"],
 }
-_JSON_SCHEMAS = {STATE_SCHEMA_NAME: STATE_SCHEMA, ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
-                 CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA, COMMANDS_SCHEMA_NAME: COMMANDS_SCHEMA}
+_JSON_SCHEMAS = {
+    STATE_SCHEMA_NAME: STATE_SCHEMA,
+    ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
+    CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA,
+    COMMANDS_SCHEMA_NAME: COMMANDS_SCHEMA,
+}
 
 
 def battery_percent(level: float | None) -> float | None:
@@ -147,19 +184,23 @@ def battery_percent(level: float | None) -> float | None:
     return round(min(100.0, max(0.0, pct)), 1)
 
 
-def export_table(store, dataset: str, fmt: str, from_ms: int, to_ms: int,
-                 robot_id: str | None = None) -> bytes:
+def export_table(
+    store, dataset: str, fmt: str, from_ms: int, to_ms: int, robot_id: str | None = None
+) -> bytes:
     """`dataset` rows with from <= time < to, in ClickHouse's CSVWithNames or Parquet."""
     view, time_column = TABLES[dataset]
     clickhouse_format, _ = TABLE_FORMATS[fmt]
     robot_filter = " AND robot_id = {robot:String}" if robot_id and dataset not in _NO_ROBOT else ""
     final = " FINAL" if view in _READ_FINAL else ""
-    sql = (f"SELECT * FROM {store.database}.{view}{final} WHERE {time_column} >= "
-           "fromUnixTimestamp64Milli({from_ms:Int64}, 'UTC') AND "
-           f"{time_column} < fromUnixTimestamp64Milli({{to_ms:Int64}}, 'UTC'){robot_filter} "
-           f"ORDER BY {time_column}")
-    return store.export_query(sql, {"from_ms": from_ms, "to_ms": to_ms, "robot": robot_id or ""},
-                              clickhouse_format)
+    sql = (
+        f"SELECT * FROM {store.database}.{view}{final} WHERE {time_column} >= "
+        "fromUnixTimestamp64Milli({from_ms:Int64}, 'UTC') AND "
+        f"{time_column} < fromUnixTimestamp64Milli({{to_ms:Int64}}, 'UTC'){robot_filter} "
+        f"ORDER BY {time_column}"
+    )
+    return store.export_query(
+        sql, {"from_ms": from_ms, "to_ms": to_ms, "robot": robot_id or ""}, clickhouse_format
+    )
 
 
 @dataclass
@@ -193,25 +234,39 @@ class _McapOut:
             if schema not in self._schemas:
                 self._schemas[schema] = register()
             channel = self._channels[topic] = self.writer.register_channel(
-                topic=topic, message_encoding="json" if schema in _JSON_SCHEMAS else "protobuf",
-                schema_id=self._schemas[schema])
+                topic=topic,
+                message_encoding="json" if schema in _JSON_SCHEMAS else "protobuf",
+                schema_id=self._schemas[schema],
+            )
         return channel
 
     def protobuf(self, topic: str, message, ts_ms: int) -> None:
         from mcap_protobuf.schema import register_schema
 
-        channel = self._channel(topic, type(message).DESCRIPTOR.full_name,
-                                lambda: register_schema(self.writer, type(message)))
+        channel = self._channel(
+            topic,
+            type(message).DESCRIPTOR.full_name,
+            lambda: register_schema(self.writer, type(message)),
+        )
         self._add(channel, message.SerializeToString(), ts_ms)
 
     def json(self, topic: str, schema: str, doc: dict, ts_ms: int) -> None:
-        channel = self._channel(topic, schema, lambda: self.writer.register_schema(
-            name=schema, encoding="jsonschema", data=json.dumps(_JSON_SCHEMAS[schema]).encode()))
+        channel = self._channel(
+            topic,
+            schema,
+            lambda: self.writer.register_schema(
+                name=schema, encoding="jsonschema", data=json.dumps(_JSON_SCHEMAS[schema]).encode()
+            ),
+        )
         self._add(channel, json.dumps(doc, separators=(",", ":")).encode(), ts_ms)
 
     def _add(self, channel: int, data: bytes, ts_ms: int) -> None:
-        self.writer.add_message(channel_id=channel, log_time=ts_ms * 1_000_000, data=data,
-                                publish_time=ts_ms * 1_000_000)
+        self.writer.add_message(
+            channel_id=channel,
+            log_time=ts_ms * 1_000_000,
+            data=data,
+            publish_time=ts_ms * 1_000_000,
+        )
 
     def finish(self) -> None:
         self.writer.finish()
@@ -237,8 +292,9 @@ class _Floor:
                 continue  # contents older than the retention: the chunk stays as it was
             width, height, data = content
             tile = np.frombuffer(zlib.decompress(data), dtype=np.uint8).reshape(height, width)
-            self.pixels[row * ch:row * ch + height, col * cw:col * cw + width] = \
-                tile[:self.meta.height - row * ch, :self.meta.width - col * cw]
+            self.pixels[row * ch : row * ch + height, col * cw : col * cw + width] = tile[
+                : self.meta.height - row * ch, : self.meta.width - col * cw
+            ]
 
     def grid(self, ts_ms: int):
         from foxglove_schemas_protobuf.Grid_pb2 import Grid
@@ -246,10 +302,18 @@ class _Floor:
 
         resolution = self.meta.resolution or 1.0
         ox, oy, _ = self.meta.origin or (0.0, 0.0, 0.0)
-        grid = Grid(frame_id=MAP_FRAME, column_count=self.meta.width, row_stride=self.meta.width,
-                    cell_stride=1, data=np.flipud(self.pixels).tobytes(),  # row 0 = bottom (+y up)
-                    fields=[PackedElementField(name="value", offset=0,
-                                               type=PackedElementField.NumericType.UINT8)])
+        grid = Grid(
+            frame_id=MAP_FRAME,
+            column_count=self.meta.width,
+            row_stride=self.meta.width,
+            cell_stride=1,
+            data=np.flipud(self.pixels).tobytes(),  # row 0 = bottom (+y up)
+            fields=[
+                PackedElementField(
+                    name="value", offset=0, type=PackedElementField.NumericType.UINT8
+                )
+            ],
+        )
         grid.timestamp.FromMilliseconds(ts_ms)
         grid.cell_size.x = grid.cell_size.y = resolution
         grid.pose.position.x, grid.pose.position.y = ox, oy
@@ -282,11 +346,17 @@ def _path_message(row: PoseRow):
 
 
 def _state_doc(row: PoseRow) -> dict:
-    return {"battery_level": row.battery_level, "battery_percent": battery_percent(row.battery_level),
-            "charging": row.charging, "loaded": row.loaded}
+    return {
+        "battery_level": row.battery_level,
+        "battery_percent": battery_percent(row.battery_level),
+        "charging": row.charging,
+        "loaded": row.loaded,
+    }
 
 
-def _vda_messages(store: HistoryStore, from_ms: int, to_ms: int) -> list[tuple[int, str, str, dict]]:
+def _vda_messages(
+    store: HistoryStore, from_ms: int, to_ms: int
+) -> list[tuple[int, str, str, dict]]:
     """The window's VDA 5050 errors (one message per error instant and per clear) and
     connection states, as (log time, topic, schema name, document), in time order."""
     out: list[tuple[int, str, str, dict]] = []
@@ -294,25 +364,48 @@ def _vda_messages(store: HistoryStore, from_ms: int, to_ms: int) -> list[tuple[i
         instants: dict[int, list[dict]] = {t: [] for t in facts.error_clears}
         for e in facts.errors:
             instants.setdefault(e.ts_ms, []).append(
-                {"level": e.level, "type": e.type, "description": e.description})
-        out += [(t, errors_topic(robot_id), ERRORS_SCHEMA_NAME, {
-            "count": len(errs), "fatal": sum(e["level"] != "WARNING" for e in errs), "errors": errs})
-            for t, errs in instants.items()]
-        out += [(c.ts_ms, connection_topic(robot_id), CONNECTION_SCHEMA_NAME,
-                 {"state": c.state, "online": c.state == "ONLINE", "sent_ms": c.sent_ms})
-                for c in facts.connections]
+                {"level": e.level, "type": e.type, "description": e.description}
+            )
+        out += [
+            (
+                t,
+                errors_topic(robot_id),
+                ERRORS_SCHEMA_NAME,
+                {
+                    "count": len(errs),
+                    "fatal": sum(e["level"] != "WARNING" for e in errs),
+                    "errors": errs,
+                },
+            )
+            for t, errs in instants.items()
+        ]
+        out += [
+            (
+                c.ts_ms,
+                connection_topic(robot_id),
+                CONNECTION_SCHEMA_NAME,
+                {"state": c.state, "online": c.state == "ONLINE", "sent_ms": c.sent_ms},
+            )
+            for c in facts.connections
+        ]
     return sorted(out, key=lambda m: (m[0], m[1]))
 
 
-def _side_messages(store: HistoryStore, from_ms: int, to_ms: int) -> list[tuple[int, str, str | None, object]]:
+def _side_messages(
+    store: HistoryStore, from_ms: int, to_ms: int
+) -> list[tuple[int, str, str | None, object]]:
     """Everything besides the map and poses, as (log time, topic, JSON schema name or None
     for a protobuf message, message), in time order: VDA 5050 facts, the annotations standing
     at `from_ms` and after each edit, and the commands with the robots' answers."""
     out: list[tuple[int, str, str | None, object]] = list(_vda_messages(store, from_ms, to_ms))
-    out += [(t, ANNOTATIONS_TOPIC, None, scene_update(t, standing))
-            for t, standing in annotation_states(store, from_ms, to_ms)]
-    out += [(t, COMMANDS_TOPIC, COMMANDS_SCHEMA_NAME, doc)
-            for t, doc in command_messages(store, from_ms, to_ms)]
+    out += [
+        (t, ANNOTATIONS_TOPIC, None, scene_update(t, standing))
+        for t, standing in annotation_states(store, from_ms, to_ms)
+    ]
+    out += [
+        (t, COMMANDS_TOPIC, COMMANDS_SCHEMA_NAME, doc)
+        for t, doc in command_messages(store, from_ms, to_ms)
+    ]
     return sorted(out, key=lambda m: (m[0], m[1]))
 
 
@@ -333,8 +426,15 @@ def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
         cursor = last
 
 
-def export_mcap(store: HistoryStore, from_ms: int, to_ms: int, out: BinaryIO, *,
-                grid_every_ms: int = 10_000, page: int = 50_000) -> McapCounts:
+def export_mcap(
+    store: HistoryStore,
+    from_ms: int,
+    to_ms: int,
+    out: BinaryIO,
+    *,
+    grid_every_ms: int = 10_000,
+    page: int = 50_000,
+) -> McapCounts:
     """Writes the window as MCAP: the map at `from_ms`, again after chunk changes (at most
     one grid per `grid_every_ms`, and the last state), every pose with its state (battery,
     charging, loaded), and each robot's planned path when it changes (an empty path when

@@ -21,9 +21,11 @@ from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
-LAG = Gauge("mapservice_consumer_lag_records",
-            "Records in a partition not yet consumed by this process (librdkafka's consumer_lag)",
-            ["group", "topic", "partition"])
+LAG = Gauge(
+    "mapservice_consumer_lag_records",
+    "Records in a partition not yet consumed by this process (librdkafka's consumer_lag)",
+    ["group", "topic", "partition"],
+)
 # librdkafka reports each partition's lag in its statistics (every STATS_INTERVAL_MS,
 # delivered from inside consume()): no extra broker requests.
 STATS_INTERVAL_MS = 5000
@@ -35,9 +37,11 @@ STATS_INTERVAL_MS = 5000
 # partition is read again from the first missing offset, up to GAP_REREADS times in a row;
 # a gap still there after that is taken as real (records deleted under the reader) and logged.
 GAP_REREADS = 5
-OFFSET_GAPS = Counter("mapservice_consumer_offset_gaps_total",
-                      "Jumps past unseen offsets: read again, or accepted after GAP_REREADS tries",
-                      ["outcome"])
+OFFSET_GAPS = Counter(
+    "mapservice_consumer_offset_gaps_total",
+    "Jumps past unseen offsets: read again, or accepted after GAP_REREADS tries",
+    ["outcome"],
+)
 # A commit is made only for records delivered in the current group membership, and only
 # while librdkafka still holds the member id that membership began with. The caller may
 # commit a batch long after it was polled (a ClickHouse outage; the pose views' interval),
@@ -48,9 +52,11 @@ OFFSET_GAPS = Counter("mapservice_consumer_offset_gaps_total",
 # group's next assignment would start there and skip them
 # (tests/integration/test_tansu_restart.py).
 NEVER_COMMITTED = -1  # the membership of records polled while the group changed
-STALE_COMMITS = Counter("mapservice_consumer_stale_commits_total",
-                        "Commits not made: their records were delivered before the group "
-                        "changed (they will be delivered again)")
+STALE_COMMITS = Counter(
+    "mapservice_consumer_stale_commits_total",
+    "Commits not made: their records were delivered before the group "
+    "changed (they will be delivered again)",
+)
 
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
@@ -59,8 +65,11 @@ def consumer_config(settings: Settings, group_id: str) -> dict:
         # KIP-848: the broker assigns and holds the session timeout and the heartbeat
         # interval (group.consumer.session.timeout.ms, ...heartbeat.interval.ms; the
         # embedded broker sets them as below), and librdkafka refuses both settings here.
-        return {**_common_config(settings, group_id), "group.protocol": "consumer",
-                "max.poll.interval.ms": session_ms}
+        return {
+            **_common_config(settings, group_id),
+            "group.protocol": "consumer",
+            "max.poll.interval.ms": session_ms,
+        }
     return {
         **_common_config(settings, group_id),
         # Same partition assignment story as faust's consumers: a join waits up to this
@@ -103,13 +112,20 @@ def record_lag(group: str, stats_json: str) -> None:
 class KafkaBatchSource:
     """Created without I/O; `start()` subscribes."""
 
-    def __init__(self, settings: Settings, topics: Sequence[str], group_id: str,
-                 on_assigned: Callable[[list[tuple[str, int]]], None] | None = None,
-                 contiguous_topics: Sequence[str] | None = None) -> None:
+    def __init__(
+        self,
+        settings: Settings,
+        topics: Sequence[str],
+        group_id: str,
+        on_assigned: Callable[[list[tuple[str, int]]], None] | None = None,
+        contiguous_topics: Sequence[str] | None = None,
+    ) -> None:
         self.group_id = group_id
-        self.config = {**consumer_config(settings, group_id),
-                       "stats_cb": lambda stats: record_lag(group_id, stats),
-                       "on_commit": self._committed}
+        self.config = {
+            **consumer_config(settings, group_id),
+            "stats_cb": lambda stats: record_lag(group_id, stats),
+            "on_commit": self._committed,
+        }
         self.topics = list(topics)
         self.on_assigned = on_assigned
         self.on_commit_failed: Callable[[], None] | None = None  # an asynchronous commit failed
@@ -167,21 +183,27 @@ class KafkaBatchSource:
                     log.warning("kafka consumer error", error=str(err))
                 continue
             if m.topic() not in self.contiguous_topics:
-                out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"",
-                                        membership))
+                out.append(
+                    SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"", membership)
+                )
                 continue
             key = (m.topic(), m.partition())
             if key in rewound:
                 continue
             expected = self._next_offset.get(key)
-            if expected is not None and m.offset() > expected and self._reread(key, expected, m.offset()):
+            if (
+                expected is not None
+                and m.offset() > expected
+                and self._reread(key, expected, m.offset())
+            ):
                 rewound.add(key)
                 continue
             if self._rereads and m.offset() == expected:
                 self._rereads.pop(key, None)  # the gap is filled: a later one starts afresh
             self._next_offset[key] = m.offset() + 1
-            out.append(SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"",
-                                    membership))
+            out.append(
+                SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"", membership)
+            )
         return out
 
     def _reread(self, key: tuple[str, int], expected: int, got: int) -> bool:
@@ -195,12 +217,22 @@ class KafkaBatchSource:
                 OFFSET_GAPS.labels("reread").inc()
                 return True
             except KafkaException as exc:
-                log.warning("could not read an offset gap again", topic=key[0], partition=key[1],
-                            error=str(exc))
+                log.warning(
+                    "could not read an offset gap again",
+                    topic=key[0],
+                    partition=key[1],
+                    error=str(exc),
+                )
         self._rereads.pop(key, None)
         OFFSET_GAPS.labels("accepted").inc()
-        log.warning("offset gap accepted: records before it were not read", topic=key[0],
-                    partition=key[1], expected=expected, got=got, missing=got - expected)
+        log.warning(
+            "offset gap accepted: records before it were not read",
+            topic=key[0],
+            partition=key[1],
+            expected=expected,
+            got=got,
+            missing=got - expected,
+        )
         return False
 
     def commit(self, records: Sequence[SourceRecord]) -> bool:
@@ -216,9 +248,12 @@ class KafkaBatchSource:
         current = [] if left_group else [r for r in records if r.membership == self._membership]
         if len(current) < len(records):
             STALE_COMMITS.inc()
-            log.warning("not committing offsets delivered before the consumer group changed; "
-                        "those records will be delivered again", left_group=left_group,
-                        records=len(records) - len(current))
+            log.warning(
+                "not committing offsets delivered before the consumer group changed; "
+                "those records will be delivered again",
+                left_group=left_group,
+                records=len(records) - len(current),
+            )
         return self._commit(current) and len(current) == len(records)
 
     def _commit(self, records: Sequence[SourceRecord]) -> bool:
@@ -230,8 +265,10 @@ class KafkaBatchSource:
         if not last:
             return True
         try:
-            self.consumer.commit(offsets=[TopicPartition(t, p, o + 1) for (t, p), o in last.items()],
-                                 asynchronous=True)
+            self.consumer.commit(
+                offsets=[TopicPartition(t, p, o + 1) for (t, p), o in last.items()],
+                asynchronous=True,
+            )
             return True
         except KafkaException as exc:
             log.warning("offset commit failed; the batch will be re-delivered", error=str(exc))
@@ -242,8 +279,11 @@ class KafkaBatchSource:
         failed = [p for p in partitions if p.error is not None]
         if error is None and not failed:
             return
-        log.warning("offset commit failed; those records will be delivered again",
-                    error=str(error or failed[0].error), partitions=len(failed) or len(partitions))
+        log.warning(
+            "offset commit failed; those records will be delivered again",
+            error=str(error or failed[0].error),
+            partitions=len(failed) or len(partitions),
+        )
         if self.on_commit_failed is not None:
             self.on_commit_failed()
 

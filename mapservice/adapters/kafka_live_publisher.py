@@ -21,8 +21,10 @@ from mapservice.settings import Settings
 log = structlog.get_logger(__name__)
 
 LIVE_RECORDS = Counter("mapservice_live_records_total", "Live-topic records published")
-LIVE_DROPPED = Counter("mapservice_live_records_dropped_total",
-                       "Live-topic records dropped (local queue full or not delivered in time)")
+LIVE_DROPPED = Counter(
+    "mapservice_live_records_dropped_total",
+    "Live-topic records dropped (local queue full or not delivered in time)",
+)
 
 
 def live_producer_config(settings: Settings, client_id: str) -> dict:

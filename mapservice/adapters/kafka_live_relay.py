@@ -23,10 +23,14 @@ from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
-RELAY_LAG = Histogram("mapservice_live_relay_lag_seconds",
-                      "From the processors' produce of a live record to this API reading it",
-                      buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5))
-RELAY_BAD = Counter("mapservice_live_relay_bad_records_total", "Live-topic records that were skipped")
+RELAY_LAG = Histogram(
+    "mapservice_live_relay_lag_seconds",
+    "From the processors' produce of a live record to this API reading it",
+    buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5),
+)
+RELAY_BAD = Counter(
+    "mapservice_live_relay_bad_records_total", "Live-topic records that were skipped"
+)
 
 
 def live_consumer_config(settings: Settings) -> dict:
@@ -79,8 +83,9 @@ class KafkaLiveRelay:
     def _end_offset(self, consumer: Consumer, partition: int) -> int:
         """The partition's end as the broker reports it now (raises if it does not answer:
         `_run` starts over)."""
-        _low, high = consumer.get_watermark_offsets(TopicPartition(self.topic, partition),
-                                                    timeout=5, cached=False)
+        _low, high = consumer.get_watermark_offsets(
+            TopicPartition(self.topic, partition), timeout=5, cached=False
+        )
         return high
 
     def _run(self) -> None:
@@ -114,8 +119,12 @@ class KafkaLiveRelay:
             # of each partition are skipped while produced before now (Apache Kafka
             # starts at the true end anyway).
             self._since_ms = time.time_ns() // 1_000_000
-            consumer.assign([TopicPartition(self.topic, p, self._end_offset(consumer, p))
-                             for p in sorted(partitions)])
+            consumer.assign(
+                [
+                    TopicPartition(self.topic, p, self._end_offset(consumer, p))
+                    for p in sorted(partitions)
+                ]
+            )
             self._caught_up = set()
             self.assigned.set()
             log.info("live relay reading", topic=self.topic, partitions=len(partitions))
@@ -149,7 +158,11 @@ class KafkaLiveRelay:
                 messages.extend(live_record_texts(m.value() or b""))
             except BadLiveRecord as exc:
                 RELAY_BAD.inc()
-                log.warning("live record skipped", partition=m.partition(), offset=m.offset(),
-                            reason=str(exc))
+                log.warning(
+                    "live record skipped",
+                    partition=m.partition(),
+                    offset=m.offset(),
+                    reason=str(exc),
+                )
         if messages:
             self.on_messages(messages)

@@ -25,8 +25,10 @@ from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
-RENEWALS = Counter("mapservice_kafka_producer_renewals_total",
-                   "Kafka producers replaced after a record timed out or a fatal error")
+RENEWALS = Counter(
+    "mapservice_kafka_producer_renewals_total",
+    "Kafka producers replaced after a record timed out or a fatal error",
+)
 
 # A record not confirmed within this long is reported failed (and produced again by the
 # caller); it also bounds how long a stuck producer holds records before it is renewed.
@@ -61,8 +63,9 @@ class KafkaPublisher:
     the Producer is made on the first publish (an API that never takes a 2019 POST never
     dials Kafka, nor logs that it cannot reach it)."""
 
-    def __init__(self, settings: Settings, client_id: str,
-                 renew_interval_s: float = RENEW_INTERVAL_S) -> None:
+    def __init__(
+        self, settings: Settings, client_id: str, renew_interval_s: float = RENEW_INTERVAL_S
+    ) -> None:
         self._config = producer_config(settings, client_id)
         self._producer: Producer | None = None
         self._retiring: list[Producer] = []  # renewed ones: purged, polled until they are empty
@@ -81,8 +84,9 @@ class KafkaPublisher:
             if self._producer is None:
                 made: list[Producer] = []
                 # Without an error_cb, librdkafka's fatal error is raised out of poll().
-                made.append(Producer({**self._config,
-                                      "error_cb": lambda err: self._on_error(made[0], err)}))
+                made.append(
+                    Producer({**self._config, "error_cb": lambda err: self._on_error(made[0], err)})
+                )
                 self._producer = made[0]
             return self._producer
 
@@ -96,7 +100,8 @@ class KafkaPublisher:
         with self._lock:
             now = time.monotonic()
             if self._producer is not stuck or (
-                    not at_once and now - self._renewed_at < self._renew_interval_s):
+                not at_once and now - self._renewed_at < self._renew_interval_s
+            ):
                 return
             self._retiring.append(stuck)
             self._producer = None

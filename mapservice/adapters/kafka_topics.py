@@ -50,16 +50,23 @@ def ensure_topics(settings: Settings, timeout_s: float = 60.0) -> list[str]:
             if time.monotonic() > deadline:
                 raise RuntimeError(
                     f"Kafka at {settings.kafka_bootstrap} did not answer in {timeout_s:.0f} s; "
-                    "check MAPSERVICE_KAFKA_BOOTSTRAP") from exc
+                    "check MAPSERVICE_KAFKA_BOOTSTRAP"
+                ) from exc
             time.sleep(0.5)
     wanted = [t for t in settings.kafka_topics if t not in existing]
     if not wanted:
         return []
-    futures = admin.create_topics([
-        NewTopic(t, num_partitions=topic_partitions(settings, t),
-                 replication_factor=settings.kafka_replication, config=topic_config(settings, t))
-        for t in wanted
-    ])
+    futures = admin.create_topics(
+        [
+            NewTopic(
+                t,
+                num_partitions=topic_partitions(settings, t),
+                replication_factor=settings.kafka_replication,
+                config=topic_config(settings, t),
+            )
+            for t in wanted
+        ]
+    )
     created = []
     for topic, fut in futures.items():
         try:

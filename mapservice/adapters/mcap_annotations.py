@@ -24,8 +24,11 @@ from mapservice.core.ports import HistoryStore
 ANNOTATIONS_TOPIC = "/annotations"
 COMMANDS_TOPIC = "/commands"
 _MAP_FRAME = "map"
-_RGBA = {"keep_out": (0.9, 0.1, 0.1, 1.0), "speed_limit": (1.0, 0.65, 0.0, 1.0),
-         "note": (0.2, 0.45, 0.95, 1.0)}
+_RGBA = {
+    "keep_out": (0.9, 0.1, 0.1, 1.0),
+    "speed_limit": (1.0, 0.65, 0.0, 1.0),
+    "note": (0.2, 0.45, 0.95, 1.0),
+}
 _POI_RGBA = (0.1, 0.7, 0.3, 1.0)
 
 COMMANDS_SCHEMA_NAME = "mapservice.CommandEvent"
@@ -33,18 +36,26 @@ COMMANDS_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": COMMANDS_SCHEMA_NAME,
     "description": "An operator's command to a robot (issued) or the robot's answer (ack, "
-                   "outcome), at the issue time or the robot's time of its answer",
+    "outcome), at the issue time or the robot's time of its answer",
     "type": "object",
     "properties": {
         "event": {"type": "string", "enum": ["issued", "ack", "outcome"]},
         "command_id": {"type": "string", "description": "shared by a command and its answers"},
         "robot_id": {"type": "string", "description": "the robot commanded (and answering)"},
-        "by": {"type": "string", "description": "who: the operator's credential name (issued) "
-                                                "or the robot (ack, outcome)"},
-        "kind": {"type": ["string", "null"], "enum": ["pause", "resume", "goto_poi", "cancel", None],
-                 "description": "what was commanded (an answer's, when its command is known)"},
-        "status": {"type": "string", "description": "issued; ack: accepted or rejected; "
-                                                    "outcome: done, failed or cancelled"},
+        "by": {
+            "type": "string",
+            "description": "who: the operator's credential name (issued) "
+            "or the robot (ack, outcome)",
+        },
+        "kind": {
+            "type": ["string", "null"],
+            "enum": ["pause", "resume", "goto_poi", "cancel", None],
+            "description": "what was commanded (an answer's, when its command is known)",
+        },
+        "status": {
+            "type": "string",
+            "description": "issued; ack: accepted or rejected; outcome: done, failed or cancelled",
+        },
         "poi_id": {"type": ["string", "null"], "description": "a goto_poi's point of interest"},
         "x": {"type": ["number", "null"], "description": "a goto_poi's goal x (metres, map)"},
         "y": {"type": ["number", "null"], "description": "a goto_poi's goal y (metres, map)"},
@@ -60,25 +71,46 @@ def command_doc(stored: StoredCommandEvent, kinds: dict[str, str]) -> dict:
     e = stored.event
     if isinstance(e, CommandIssued):
         kinds[e.command_id] = e.kind
-        return {"event": "issued", "command_id": e.command_id, "robot_id": e.robot_id,
-                "by": e.issued_by, "kind": e.kind, "status": "issued", "poi_id": e.poi_id,
-                "x": e.x, "y": e.y, "reason": ""}
+        return {
+            "event": "issued",
+            "command_id": e.command_id,
+            "robot_id": e.robot_id,
+            "by": e.issued_by,
+            "kind": e.kind,
+            "status": "issued",
+            "poi_id": e.poi_id,
+            "x": e.x,
+            "y": e.y,
+            "reason": "",
+        }
     is_ack = isinstance(e, CommandAcknowledged)
-    return {"event": "ack" if is_ack else "outcome", "command_id": e.command_id,
-            "robot_id": e.robot_id, "by": e.robot_id, "kind": kinds.get(e.command_id),
-            "status": e.status if isinstance(e, CommandAcknowledged) else e.outcome,
-            "poi_id": None, "x": None, "y": None, "reason": e.reason}
+    return {
+        "event": "ack" if is_ack else "outcome",
+        "command_id": e.command_id,
+        "robot_id": e.robot_id,
+        "by": e.robot_id,
+        "kind": kinds.get(e.command_id),
+        "status": e.status if isinstance(e, CommandAcknowledged) else e.outcome,
+        "poi_id": None,
+        "x": None,
+        "y": None,
+        "reason": e.reason,
+    }
 
 
-def command_messages(store: HistoryStore, from_ms: int, to_ms: int,
-                     limit: int = 1_000_000) -> list[tuple[int, dict]]:
+def command_messages(
+    store: HistoryStore, from_ms: int, to_ms: int, limit: int = 1_000_000
+) -> list[tuple[int, dict]]:
     """The window's command events as (log time, `/commands` document), in time order."""
     kinds: dict[str, str] = {}
-    return [(s.ts_ms, command_doc(s, kinds)) for s in store.command_events(from_ms, to_ms, limit=limit)]
+    return [
+        (s.ts_ms, command_doc(s, kinds)) for s in store.command_events(from_ms, to_ms, limit=limit)
+    ]
 
 
-def annotation_states(store: HistoryStore, from_ms: int, to_ms: int,
-                      limit: int = 1_000_000) -> list[tuple[int, dict[str, Shape]]]:
+def annotation_states(
+    store: HistoryStore, from_ms: int, to_ms: int, limit: int = 1_000_000
+) -> list[tuple[int, dict[str, Shape]]]:
     """The annotations standing at `from_ms` (left out when none stand: an empty scene is
     what a reader shows before any message), then after each instant of the window with an
     edit, as (instant, id -> annotation); edits at `from_ms` are already in the first."""
@@ -120,8 +152,11 @@ def scene_update(ts_ms: int, annotations: dict[str, Shape]):
         entity = update.entities.add()
         entity.timestamp.FromMilliseconds(ts_ms)
         entity.frame_id, entity.id = _MAP_FRAME, annotation_id
-        for key, value in (("shape", "zone" if isinstance(shape, Zone) else "poi"),
-                           ("kind", shape.kind), ("name", shape.name)):
+        for key, value in (
+            ("shape", "zone" if isinstance(shape, Zone) else "poi"),
+            ("kind", shape.kind),
+            ("name", shape.name),
+        ):
             pair = entity.metadata.add()
             pair.key, pair.value = key, value
         if isinstance(shape, Zone):

@@ -66,7 +66,11 @@ def verify_password(password: str, hashed: str) -> bool:
     parts = hashed.split("$")
     try:
         if len(parts) == 5 and parts[1] == "7":
-            rounds, salt, digest = int(parts[2]), base64.b64decode(parts[3]), base64.b64decode(parts[4])
+            rounds, salt, digest = (
+                int(parts[2]),
+                base64.b64decode(parts[3]),
+                base64.b64decode(parts[4]),
+            )
             computed = hashlib.pbkdf2_hmac("sha512", password.encode(), salt, rounds)
         elif len(parts) == 4 and parts[1] == "6":
             salt, digest = base64.b64decode(parts[2]), base64.b64decode(parts[3])
@@ -84,8 +88,11 @@ def vehicle_of_username(username: str) -> tuple[str, str] | None:
     if username.count("/") != 1:
         return None
     manufacturer, serial = username.split("/")
-    return (manufacturer, serial) if _VEHICLE_NAME.fullmatch(manufacturer) and \
-        _VEHICLE_NAME.fullmatch(serial) else None
+    return (
+        (manufacturer, serial)
+        if _VEHICLE_NAME.fullmatch(manufacturer) and _VEHICLE_NAME.fullmatch(serial)
+        else None
+    )
 
 
 def is_master_control(username: str) -> bool:
@@ -94,11 +101,15 @@ def is_master_control(username: str) -> bool:
 
 def check_master_control(username: str) -> None:
     if not _MASTER.fullmatch(username):
-        raise ValueError(f"master control {username[:80]!r}: the username is {MASTER_PREFIX}<name>, "
-                         "the name 1-40 characters of A-Z a-z 0-9 _ . -")
+        raise ValueError(
+            f"master control {username[:80]!r}: the username is {MASTER_PREFIX}<name>, "
+            "the name 1-40 characters of A-Z a-z 0-9 _ . -"
+        )
 
 
-def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
+def check_robot_id(
+    robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)
+) -> None:
     """A robot's MQTT username is its robotId: the gateway's rule, and no service user's name;
     a VDA 5050 vehicle's is `<manufacturer>/<serialNumber>`, its topics' two levels."""
     if "/" in robot_id:
@@ -107,25 +118,34 @@ def check_robot_id(robot_id: str, service_users: tuple[str, ...] = (GATEWAY_USER
             raise ValueError(
                 f"VDA 5050 vehicle {robot_id[:80]!r}: the username is <manufacturer>/"
                 "<serialNumber> as in its topics, each without / + # : or control characters "
-                "(':' ends a name in Mosquitto's password file)")
+                "(':' ends a name in Mosquitto's password file)"
+            )
         if len(robot_id_for(*names)) > 64:
-            raise ValueError(f"VDA 5050 vehicle {robot_id[:80]!r}: its robot id "
-                             f"{robot_id_for(*names)!r} is longer than 64 characters, so the "
-                             "gateway refuses its messages (bad_robot_id)")
+            raise ValueError(
+                f"VDA 5050 vehicle {robot_id[:80]!r}: its robot id "
+                f"{robot_id_for(*names)!r} is longer than 64 characters, so the "
+                "gateway refuses its messages (bad_robot_id)"
+            )
         return
     if not _ROBOT_ID.fullmatch(robot_id):
-        raise ValueError(f"robot id {robot_id[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . : @ - "
-                         "(the 2019 robotId rule the gateway checks)")
+        raise ValueError(
+            f"robot id {robot_id[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . : @ - "
+            "(the 2019 robotId rule the gateway checks)"
+        )
     if robot_id in service_users:
         raise ValueError(f"{robot_id!r} is the service's own MQTT user, not a robot")
     if robot_id.startswith(RESERVED_PREFIX):
         # Where a robot's client id is its username, a robot named like a gateway's client
         # id (mapservice-gateway-0) could take over that gateway's session.
-        raise ValueError(f"robot ids starting with {RESERVED_PREFIX!r} are reserved for the "
-                         "service's own clients")
+        raise ValueError(
+            f"robot ids starting with {RESERVED_PREFIX!r} are reserved for the "
+            "service's own clients"
+        )
 
 
-def check_identity(username: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)) -> None:
+def check_identity(
+    username: str, service_users: tuple[str, ...] = (GATEWAY_USER, PROCESSORS_USER)
+) -> None:
     """A robot's, a vehicle's or a master control's MQTT username (robot add/remove)."""
     if is_master_control(username):
         check_master_control(username)
@@ -141,7 +161,9 @@ class AclTopics:
     robot_chunk_prefix: str = "iot/chunks/create/"
     legacy_chunk_topic: str = "iot/chunks/create"
     advertisement_topic: str = "iot/chunks/advertisement"
-    vda_interface: str = "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
+    vda_interface: str = (
+        "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
+    )
     robot_root: str = "iot/robots/"  # <root><robotId>/commands (read), .../command-events (write)
     zone_advertisement_topic: str = "iot/zones/advertisement"
 
@@ -150,34 +172,54 @@ class AclTopics:
         def prefix(topic_filter: str) -> str:
             return topic_filter.rstrip("#+").rstrip("/") + "/"
 
-        return cls(prefix(settings.coordinate_topic),
-                   prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
-                   settings.create_chunk_topic or "iot/chunks/create",
-                   settings.advertisement_topic, settings.vda5050_interface,
-                   settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "",
-                   settings.zone_advertisement_topic)
+        return cls(
+            prefix(settings.coordinate_topic),
+            prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
+            settings.create_chunk_topic or "iot/chunks/create",
+            settings.advertisement_topic,
+            settings.vda5050_interface,
+            settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "",
+            settings.zone_advertisement_topic,
+        )
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
         """What a robot publishes to (and reads), for its configuration."""
         if is_master_control(robot_id):
             base = f"{self.vda_interface}/+/+/+/"
-            return {"publishes": base + "{" + ",".join(MASTER_WRITES) + "}",
-                    "reads": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}", "masterControl": "yes"}
+            return {
+                "publishes": base + "{" + ",".join(MASTER_WRITES) + "}",
+                "reads": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
+                "masterControl": "yes",
+            }
         if (names := vehicle_of_username(robot_id)) is not None:
             base = f"{self.vda_interface}/<v2|v3>/{names[0]}/{names[1]}/"
-            return {"publishes": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
-                    "reads": base + "{order,instantActions}", "robotId": robot_id_for(*names)}
-        return {"pose": f"{self.coordinate_prefix}{robot_id}",
-                "chunks": f"{self.robot_chunk_prefix}{robot_id}",
-                "advertisements": self.advertisement_topic,
-                **({"commands": f"{self.robot_root}{robot_id}/commands",
-                    "commandEvents": f"{self.robot_root}{robot_id}/command-events"}
-                   if self.robot_root else {})}
+            return {
+                "publishes": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
+                "reads": base + "{order,instantActions}",
+                "robotId": robot_id_for(*names),
+            }
+        return {
+            "pose": f"{self.coordinate_prefix}{robot_id}",
+            "chunks": f"{self.robot_chunk_prefix}{robot_id}",
+            "advertisements": self.advertisement_topic,
+            **(
+                {
+                    "commands": f"{self.robot_root}{robot_id}/commands",
+                    "commandEvents": f"{self.robot_root}{robot_id}/command-events",
+                }
+                if self.robot_root
+                else {}
+            ),
+        }
 
 
-def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
-               gateway_user: str = GATEWAY_USER, processors_user: str = PROCESSORS_USER,
-               master_controls: list[str] = ()) -> str:
+def render_acl(
+    topics: AclTopics,
+    legacy_robots: list[str] = (),
+    gateway_user: str = GATEWAY_USER,
+    processors_user: str = PROCESSORS_USER,
+    master_controls: list[str] = (),
+) -> str:
     """Mosquitto's acl_file: `%u` patterns for every robot, the service's users, the VDA
     5050 master controls, and the robots an operator allowed on the 2019 chunk topic.
     Anything not listed is denied."""
@@ -191,31 +233,53 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         f"pattern write {topics.robot_chunk_prefix}%u",
         f"pattern read {topics.advertisement_topic}",
         f"pattern read {topics.zone_advertisement_topic}",
-        *([
-            "# Only the robot itself reads its commands and answers them (acks, outcomes).",
-            f"pattern read {topics.robot_root}%u/commands",
-            f"pattern write {topics.robot_root}%u/command-events",
-        ] if topics.robot_root else []),
-        *([
-            "",
-            "# Every VDA 5050 vehicle (its username is <manufacturer>/<serialNumber>, the two",
-            "# levels of its topics) publishes only in its own subtree and reads its orders.",
-            *(f"pattern write {topics.vda_interface}/+/%u/{sub}" for sub in VDA5050_SUBTOPICS),
-            *(f"pattern read {topics.vda_interface}/+/%u/{sub}" for sub in ("order", "instantActions")),
-        ] if topics.vda_interface else []),
+        *(
+            [
+                "# Only the robot itself reads its commands and answers them (acks, outcomes).",
+                f"pattern read {topics.robot_root}%u/commands",
+                f"pattern write {topics.robot_root}%u/command-events",
+            ]
+            if topics.robot_root
+            else []
+        ),
+        *(
+            [
+                "",
+                "# Every VDA 5050 vehicle (its username is <manufacturer>/<serialNumber>, the two",
+                "# levels of its topics) publishes only in its own subtree and reads its orders.",
+                *(f"pattern write {topics.vda_interface}/+/%u/{sub}" for sub in VDA5050_SUBTOPICS),
+                *(
+                    f"pattern read {topics.vda_interface}/+/%u/{sub}"
+                    for sub in ("order", "instantActions")
+                ),
+            ]
+            if topics.vda_interface
+            else []
+        ),
         "",
         "# The gateway reads everything robots publish (also through $share/<group>/...).",
         f"user {gateway_user}",
         f"topic read {topics.coordinate_prefix}#",
         f"topic read {topics.robot_chunk_prefix}#",
         f"topic read {topics.legacy_chunk_topic}",
-        *([f"topic read {topics.vda_interface}/#",
-           "# ... and sends a VDA 5050 vehicle its operators' commands as instant actions.",
-           f"topic write {topics.vda_interface}/+/+/+/instantActions"]
-          if topics.vda_interface else []),
-        *([f"topic read {topics.robot_root}+/command-events",
-           "# ... and delivers the operators' commands, each on its robot's command topic.",
-           f"topic write {topics.robot_root}+/commands"] if topics.robot_root else []),
+        *(
+            [
+                f"topic read {topics.vda_interface}/#",
+                "# ... and sends a VDA 5050 vehicle its operators' commands as instant actions.",
+                f"topic write {topics.vda_interface}/+/+/+/instantActions",
+            ]
+            if topics.vda_interface
+            else []
+        ),
+        *(
+            [
+                f"topic read {topics.robot_root}+/command-events",
+                "# ... and delivers the operators' commands, each on its robot's command topic.",
+                f"topic write {topics.robot_root}+/commands",
+            ]
+            if topics.robot_root
+            else []
+        ),
         "",
         "# The processors announce each change of the latest map and of the zones.",
         f"user {processors_user}",
@@ -226,9 +290,11 @@ def render_acl(topics: AclTopics, legacy_robots: list[str] = (),
         "# `mapservice robot add mapservice-master-<name>`) ---",
     ]
     for master in sorted(set(master_controls)) if topics.vda_interface else ():
-        lines += [f"user {master}",
-                  *(f"topic write {topics.vda_interface}/+/+/+/{sub}" for sub in MASTER_WRITES),
-                  *(f"topic read {topics.vda_interface}/+/+/+/{sub}" for sub in VDA5050_SUBTOPICS)]
+        lines += [
+            f"user {master}",
+            *(f"topic write {topics.vda_interface}/+/+/+/{sub}" for sub in MASTER_WRITES),
+            *(f"topic read {topics.vda_interface}/+/+/+/{sub}" for sub in VDA5050_SUBTOPICS),
+        ]
     lines += [
         "",
         f"{LEGACY_MARKER} ({topics.legacy_chunk_topic}, which names no robot: such a",
@@ -244,8 +310,9 @@ def master_controls_in(acl_text: str) -> list[str]:
     if MASTER_MARKER not in acl_text:
         return []
     section = acl_text.split(MASTER_MARKER, 1)[1].split(LEGACY_MARKER, 1)[0]
-    return [line.split(None, 1)[1].strip() for line in section.splitlines()
-            if line.startswith("user ")]
+    return [
+        line.split(None, 1)[1].strip() for line in section.splitlines() if line.startswith("user ")
+    ]
 
 
 def legacy_robots_in(acl_text: str) -> list[str]:
@@ -253,8 +320,9 @@ def legacy_robots_in(acl_text: str) -> list[str]:
     if LEGACY_MARKER not in acl_text:
         return []
     section = acl_text.split(LEGACY_MARKER, 1)[1]
-    return [line.split(None, 1)[1].strip() for line in section.splitlines()
-            if line.startswith("user ")]
+    return [
+        line.split(None, 1)[1].strip() for line in section.splitlines() if line.startswith("user ")
+    ]
 
 
 def read_password_file(path: Path) -> dict[str, str]:
@@ -327,11 +395,16 @@ class BrokerFiles:
 
     def _write(self, users: dict[str, str], legacy: list[str]) -> None:
         # 0600 when the file holds only hashes: Mosquitto warns about readable password files.
-        _write_atomically(self.password_file, "".join(f"{u}:{h}\n" for u, h in users.items()), 0o600)
+        _write_atomically(
+            self.password_file, "".join(f"{u}:{h}\n" for u, h in users.items()), 0o600
+        )
         # The master controls are the users under their prefix: the ACL follows the users.
         masters = [u for u in users if is_master_control(u)]
-        _write_atomically(self.acl_file, render_acl(self.topics, legacy, self.gateway_user,
-                                                    self.processors_user, masters), 0o644)
+        _write_atomically(
+            self.acl_file,
+            render_acl(self.topics, legacy, self.gateway_user, self.processors_user, masters),
+            0o644,
+        )
 
     def _legacy(self) -> list[str]:
         return legacy_robots_in(self.acl_file.read_text()) if self.acl_file.exists() else []
@@ -360,27 +433,38 @@ class BrokerFiles:
             users[username] = hash_password(password)
             self._write(users, self._legacy())
 
-    def add_robot(self, robot_id: str, *, legacy_chunks: bool = False, rotate: bool = False,
-                  password: str | None = None) -> RobotCredential:
+    def add_robot(
+        self,
+        robot_id: str,
+        *,
+        legacy_chunks: bool = False,
+        rotate: bool = False,
+        password: str | None = None,
+    ) -> RobotCredential:
         """Adds a robot user (or, with `rotate`, gives an existing one a new password) and
         returns its credential; the password is not stored anywhere but as a hash. A
         username `mapservice-master-<name>` is a VDA 5050 master control's."""
         check_identity(robot_id, self.service_users)
         if legacy_chunks and (vehicle_of_username(robot_id) or is_master_control(robot_id)):
-            raise ValueError("--legacy-chunks is for 2019 robots, not VDA 5050 vehicles or master controls")
+            raise ValueError(
+                "--legacy-chunks is for 2019 robots, not VDA 5050 vehicles or master controls"
+            )
         password = password or new_password()
         with self._locked():
             users = read_password_file(self.password_file)
             if robot_id in users and not rotate:
-                raise ValueError(f"robot {robot_id!r} already has an MQTT credential; "
-                                 "--rotate gives it a new password")
+                raise ValueError(
+                    f"robot {robot_id!r} already has an MQTT credential; "
+                    "--rotate gives it a new password"
+                )
             users[robot_id] = hash_password(password)
             legacy = [r for r in self._legacy() if r != robot_id or legacy_chunks]
             if legacy_chunks:
                 legacy.append(robot_id)
             self._write(users, legacy)
-        return RobotCredential(robot_id, robot_id, password, self.topics.robot_topics(robot_id),
-                               legacy_chunks)
+        return RobotCredential(
+            robot_id, robot_id, password, self.topics.robot_topics(robot_id), legacy_chunks
+        )
 
     def remove_robot(self, robot_id: str) -> bool:
         """Removes a robot's user (it can no longer connect once the broker reloaded)."""

@@ -25,7 +25,9 @@ class MqttTls:
 
     def __post_init__(self) -> None:
         if (self.cert_file is None) != (self.key_file is None):
-            raise ValueError("an MQTT client certificate needs its key file (and the other way round)")
+            raise ValueError(
+                "an MQTT client certificate needs its key file (and the other way round)"
+            )
 
 
 def parse_mqtt_url(url: str) -> tuple[str, int, bool]:
@@ -60,7 +62,7 @@ class BufferedSocket:
                 return data
             self._buffer, self._pos = data, 0
         end = self._pos + size
-        out = self._buffer[self._pos:end]
+        out = self._buffer[self._pos : end]
         self._pos = end
         if end >= len(self._buffer):
             self._buffer, self._pos = b"", 0
@@ -103,8 +105,10 @@ class PollingClient(mqtt.Client):
         except (TypeError, ValueError, OSError):
             # A socket closed under the loop (disconnect() from another thread): paho's
             # loop reports the connection lost and leaves a disconnect in progress be.
-            if self._state not in (mqtt._ConnectionState.MQTT_CS_DISCONNECTING,
-                                   mqtt._ConnectionState.MQTT_CS_DISCONNECTED):
+            if self._state not in (
+                mqtt._ConnectionState.MQTT_CS_DISCONNECTING,
+                mqtt._ConnectionState.MQTT_CS_DISCONNECTED,
+            ):
                 self._state = mqtt._ConnectionState.MQTT_CS_CONNECTION_LOST
             return mqtt.MQTTErrorCode.MQTT_ERR_CONN_LOST
 
@@ -153,9 +157,17 @@ class BufferedClient(PollingClient):
         # paho writes a queued packet until `to_process` bytes are out and acts on nothing
         # of a PUBACK's but its bytes (_packet_write), so one entry can hold many (its
         # "mid" is read only for PUBLISH).
-        self._out_packet.append({
-            "command": mqtt.PUBACK, "mid": 0, "qos": 1, "pos": 0,
-            "to_process": len(pubacks), "packet": bytes(pubacks), "info": None})
+        self._out_packet.append(
+            {
+                "command": mqtt.PUBACK,
+                "mid": 0,
+                "qos": 1,
+                "pos": 0,
+                "to_process": len(pubacks),
+                "packet": bytes(pubacks),
+                "info": None,
+            }
+        )
         if self._sockpairW is not None:
             try:
                 self._sockpairW.send(b"0")
@@ -192,20 +204,33 @@ class BufferedClient(PollingClient):
         """Reads every whole packet already buffered, not one: paho reads one packet per
         call (and per select()) unless it has messages of its own in flight."""
         rc = super().loop_read(max_packets)
-        while rc == mqtt.MQTT_ERR_SUCCESS and isinstance(self._sock, BufferedSocket) \
-                and self._sock.buffered() > 0:
+        while (
+            rc == mqtt.MQTT_ERR_SUCCESS
+            and isinstance(self._sock, BufferedSocket)
+            and self._sock.buffered() > 0
+        ):
             rc = super().loop_read(max_packets)
         return rc
 
 
-def make_client(client_id: str, *, clean_session: bool = True, manual_ack: bool = False,
-                username: str | None = None, password: str | None = None,
-                tls: bool = False, tls_files: MqttTls | None = None,
-                protocol: int = mqtt.MQTTv311, buffered_reads: bool = False) -> mqtt.Client:
+def make_client(
+    client_id: str,
+    *,
+    clean_session: bool = True,
+    manual_ack: bool = False,
+    username: str | None = None,
+    password: str | None = None,
+    tls: bool = False,
+    tls_files: MqttTls | None = None,
+    protocol: int = mqtt.MQTTv311,
+    buffered_reads: bool = False,
+) -> mqtt.Client:
     """A paho client; `tls` (the URL said mqtts://) turns TLS on, with `tls_files` if given;
     `buffered_reads` for a client that receives many messages (`BufferedClient`)."""
     if tls_files is not None and not tls and (tls_files.ca_file or tls_files.cert_file):
-        raise ValueError("MQTT CA or client certificate given for a plain mqtt:// URL; use mqtts://")
+        raise ValueError(
+            "MQTT CA or client certificate given for a plain mqtt:// URL; use mqtts://"
+        )
     client = (BufferedClient if buffered_reads else PollingClient)(
         mqtt.CallbackAPIVersion.VERSION2,
         client_id=client_id,
@@ -217,9 +242,11 @@ def make_client(client_id: str, *, clean_session: bool = True, manual_ack: bool 
         client.username_pw_set(username, password)
     if tls:
         files = tls_files or MqttTls()
-        client.tls_set(ca_certs=str(files.ca_file) if files.ca_file else None,
-                       certfile=str(files.cert_file) if files.cert_file else None,
-                       keyfile=str(files.key_file) if files.key_file else None)
+        client.tls_set(
+            ca_certs=str(files.ca_file) if files.ca_file else None,
+            certfile=str(files.cert_file) if files.cert_file else None,
+            keyfile=str(files.key_file) if files.key_file else None,
+        )
     client.max_inflight_messages_set(1000)
     client.max_queued_messages_set(0)
     return client
@@ -234,6 +261,10 @@ def service_client(settings: Settings, client_id: str, **kwargs) -> mqtt.Client:
     """A client of the service (gateway, advertiser) with its credential and TLS settings."""
     _, _, tls = parse_mqtt_url(settings.mqtt_url)
     return make_client(
-        client_id, username=settings.mqtt_username,
+        client_id,
+        username=settings.mqtt_username,
         password=settings.mqtt_password.get_secret_value() if settings.mqtt_password else None,
-        tls=tls, tls_files=settings_tls(settings), **kwargs)
+        tls=tls,
+        tls_files=settings_tls(settings),
+        **kwargs,
+    )

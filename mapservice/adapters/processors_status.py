@@ -26,8 +26,13 @@ STATUS_PATH = "/history-status"
 class ProcessorsStatus:
     """Readiness check (callable, with `reason()`) and `status()` for /api/v1/status."""
 
-    def __init__(self, base_url: str, ttl_s: float = 1.0, timeout_s: float = 1.0,
-                 wall_s: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self,
+        base_url: str,
+        ttl_s: float = 1.0,
+        timeout_s: float = 1.0,
+        wall_s: Callable[[], float] = time.time,
+    ) -> None:
         self.url = base_url.rstrip("/") + STATUS_PATH
         self.timeout_s, self.wall_s = timeout_s, wall_s
         self._lock = threading.Lock()
@@ -49,9 +54,11 @@ class ProcessorsStatus:
                     "storing": False,
                     "failing_since_ms": int(self._unreachable_since_s * 1000),
                     "last_stored_ms": last,
-                    "reason": (f"the processors do not answer at {self.url} "
-                               f"({type(exc).__name__}: {str(exc)[:200]}); nothing new is "
-                               "stored until they run again (see their log)"),
+                    "reason": (
+                        f"the processors do not answer at {self.url} "
+                        f"({type(exc).__name__}: {str(exc)[:200]}); nothing new is "
+                        "stored until they run again (see their log)"
+                    ),
                 }
             return False
         with self._lock:
@@ -71,8 +78,12 @@ class ProcessorsStatus:
         with self._lock:
             if self._doc is not None:
                 return dict(self._doc)
-        return {"storing": False, "failing_since_ms": None, "last_stored_ms": None,
-                "reason": f"no answer from the processors at {self.url} yet"}
+        return {
+            "storing": False,
+            "failing_since_ms": None,
+            "last_stored_ms": None,
+            "reason": f"no answer from the processors at {self.url} yet",
+        }
 
     def reason(self) -> str | None:
         with self._lock:

@@ -83,7 +83,9 @@ def read_pgm_header(data: bytes) -> PgmHeader:
         raise ValueError(f"not a greyscale PGM (magic {magic!r}; expected P2 or P5)")
     width, height, maxval = (int(t) for t in tokens[1:4])
     if not 0 < maxval <= 255:
-        raise ValueError(f"PGM maxval {maxval} is not supported (ROS maps are 8-bit, maxval <= 255)")
+        raise ValueError(
+            f"PGM maxval {maxval} is not supported (ROS maps are 8-bit, maxval <= 255)"
+        )
     return PgmHeader(magic, width, height, maxval, tuple(comments))
 
 
@@ -99,8 +101,9 @@ def read_pgm(path: str | Path) -> tuple[np.ndarray, PgmHeader]:
     return pixels, header
 
 
-def write_pgm(path: str | Path, pixels: np.ndarray, *, magic: str = "P5", comment: str = "",
-              maxval: int = 255) -> None:
+def write_pgm(
+    path: str | Path, pixels: np.ndarray, *, magic: str = "P5", comment: str = "", maxval: int = 255
+) -> None:
     """Writes P5 or P2 in the layout GIMP and map_saver use (one header item per line).
 
     Pillow writes P5 only and without a comment, so the header is written here.
@@ -108,8 +111,7 @@ def write_pgm(path: str | Path, pixels: np.ndarray, *, magic: str = "P5", commen
     pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
     height, width = pixels.shape
     comments = [c if c.startswith("#") else f"# {c}" for c in comment.splitlines()]
-    lines = [magic] + comments + [
-        f"{width} {height}", str(maxval)]
+    lines = [magic] + comments + [f"{width} {height}", str(maxval)]
     head = ("\n".join(lines) + "\n").encode("latin-1")
     if magic == "P5":
         body = pixels.tobytes()
@@ -135,22 +137,40 @@ def load_ros_map(yaml_path: str | Path) -> RosMap:
             pixels = np.asarray(img.convert("L"), dtype=np.uint8)
         comment, magic, maxval = "", "P5", 255
     origin = tuple(float(v) for v in doc.get("origin", (0.0, 0.0, 0.0)))
-    return RosMap(pixels, float(doc["resolution"]), origin,  # type: ignore[arg-type]
-                  comment=comment, negate=int(doc.get("negate", 0)),
-                  occupied_thresh=float(doc.get("occupied_thresh", 0.65)),
-                  free_thresh=float(doc.get("free_thresh", 0.196)),
-                  mode=str(doc.get("mode", "trinary")), magic=magic, max_brightness=maxval)
+    return RosMap(
+        pixels,
+        float(doc["resolution"]),
+        origin,  # type: ignore[arg-type]
+        comment=comment,
+        negate=int(doc.get("negate", 0)),
+        occupied_thresh=float(doc.get("occupied_thresh", 0.65)),
+        free_thresh=float(doc.get("free_thresh", 0.196)),
+        mode=str(doc.get("mode", "trinary")),
+        magic=magic,
+        max_brightness=maxval,
+    )
 
 
 def save_ros_map(ros_map: RosMap, yaml_path: str | Path, image_name: str | None = None) -> Path:
     """Writes the PGM and a map_server YAML beside it (image path relative to the YAML)."""
     yaml_path = Path(yaml_path)
     image_name = image_name or yaml_path.with_suffix(".pgm").name
-    write_pgm(yaml_path.parent / image_name, ros_map.pixels, magic=ros_map.magic,
-              comment=ros_map.comment, maxval=ros_map.max_brightness)
-    doc = {"image": image_name, "mode": ros_map.mode, "resolution": ros_map.resolution,
-           "origin": list(ros_map.origin), "negate": ros_map.negate,
-           "occupied_thresh": ros_map.occupied_thresh, "free_thresh": ros_map.free_thresh}
+    write_pgm(
+        yaml_path.parent / image_name,
+        ros_map.pixels,
+        magic=ros_map.magic,
+        comment=ros_map.comment,
+        maxval=ros_map.max_brightness,
+    )
+    doc = {
+        "image": image_name,
+        "mode": ros_map.mode,
+        "resolution": ros_map.resolution,
+        "origin": list(ros_map.origin),
+        "negate": ros_map.negate,
+        "occupied_thresh": ros_map.occupied_thresh,
+        "free_thresh": ros_map.free_thresh,
+    }
     yaml_path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return yaml_path
 
@@ -179,24 +199,36 @@ def meta_for(ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100) -
     rows = -(-ros_map.height // chunk_height)
     cols = -(-ros_map.width // chunk_width)
     return MapMetaSet(
-        width=ros_map.width, height=ros_map.height, chunk_width=chunk_width,
-        chunk_height=chunk_height, chunk_rows=rows, chunk_cols=cols, comment=ros_map.comment,
+        width=ros_map.width,
+        height=ros_map.height,
+        chunk_width=chunk_width,
+        chunk_height=chunk_height,
+        chunk_rows=rows,
+        chunk_cols=cols,
+        comment=ros_map.comment,
         max_brightness=str(ros_map.max_brightness),
-        resolution=ros_map.resolution, origin=ros_map.origin,
+        resolution=ros_map.resolution,
+        origin=ros_map.origin,
     )
 
 
-def slice_chunks(ros_map: RosMap, chunk_width: int = 100,
-                 chunk_height: int = 100) -> dict[tuple[int, int], bytes]:
+def slice_chunks(
+    ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100
+) -> dict[tuple[int, int], bytes]:
     """(row, column) -> chunk pixels; the map is padded with 'unknown' to whole chunks."""
     meta = meta_for(ros_map, chunk_width, chunk_height)
-    padded = np.full((meta.chunk_rows * chunk_height, meta.chunk_cols * chunk_width),
-                     ros_map.unknown_value, dtype=np.uint8)
+    padded = np.full(
+        (meta.chunk_rows * chunk_height, meta.chunk_cols * chunk_width),
+        ros_map.unknown_value,
+        dtype=np.uint8,
+    )
     padded[: ros_map.height, : ros_map.width] = ros_map.pixels
     return {
-        (r, c): padded[r * chunk_height:(r + 1) * chunk_height,
-                       c * chunk_width:(c + 1) * chunk_width].tobytes()
-        for r in range(meta.chunk_rows) for c in range(meta.chunk_cols)
+        (r, c): padded[
+            r * chunk_height : (r + 1) * chunk_height, c * chunk_width : (c + 1) * chunk_width
+        ].tobytes()
+        for r in range(meta.chunk_rows)
+        for c in range(meta.chunk_cols)
     }
 
 

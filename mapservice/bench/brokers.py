@@ -36,28 +36,37 @@ def run_rounds(args, base: Path, console, run_once) -> dict[str, list[dict]]:
             run_dir = base / broker / f"run-{i}"
             shutil.rmtree(run_dir, ignore_errors=True)
             before = os.getloadavg()
-            result = run_once(Namespace(**{**vars(args), "kafka": broker}), run_dir, i,
-                              args.repeat, console)
+            result = run_once(
+                Namespace(**{**vars(args), "kafka": broker}), run_dir, i, args.repeat, console
+            )
             result["broker"] = broker
             result["loadavg_before_run"] = before
             runs[broker].append(result)
-            console.print(f"round {i} on {BROKER_NAMES[broker]}: lost {result['lost']}, duplicated "
-                          f"{result['duplicated']}, p99 {_s(result.get('latency_p99_s'))}, "
-                          f"load {result['loadavg_1min_after_fleet']:.2f}")
+            console.print(
+                f"round {i} on {BROKER_NAMES[broker]}: lost {result['lost']}, duplicated "
+                f"{result['duplicated']}, p99 {_s(result.get('latency_p99_s'))}, "
+                f"load {result['loadavg_1min_after_fleet']:.2f}"
+            )
     return runs
 
 
 def side_by_side(med: dict[str, dict[str, float]]) -> list[tuple[str, dict[str, float | None]]]:
     """The compared measures, each with its median per broker (None: not measured)."""
     rows: list[tuple[str, str]] = [
-        (f"CPU per event: {c} (µs)", f"cpu_us_per_event.{c}") for c in COMPONENTS]
-    rows += [("CPU per event: stack total (µs)", "cpu_us_per_event.stack_total"),
-             ("latency publish -> queryable p50 (s)", "latency_p50_s"),
-             ("latency publish -> queryable p99 (s)", "latency_p99_s")]
+        (f"CPU per event: {c} (µs)", f"cpu_us_per_event.{c}") for c in COMPONENTS
+    ]
+    rows += [
+        ("CPU per event: stack total (µs)", "cpu_us_per_event.stack_total"),
+        ("latency publish -> queryable p50 (s)", "latency_p50_s"),
+        ("latency publish -> queryable p99 (s)", "latency_p99_s"),
+    ]
     rows += [(f"memory: {c} (MB resident)", f"rss_mb_after_fleet.{c}") for c in COMPONENTS]
-    rows += [("sustained (events/s)", "sustained_events_per_s"),
-             ("lost", "lost"), ("duplicated", "duplicated"),
-             ("load average (1 min) after the fleet", "loadavg_1min_after_fleet")]
+    rows += [
+        ("sustained (events/s)", "sustained_events_per_s"),
+        ("lost", "lost"),
+        ("duplicated", "duplicated"),
+        ("load average (1 min) after the fleet", "loadavg_1min_after_fleet"),
+    ]
     return [(label, {b: med.get(b, {}).get(key) for b in BROKERS}) for label, key in rows]
 
 
@@ -82,16 +91,20 @@ def _fmt(v: float | None) -> str:
 def print_table(console, args, rows) -> None:
     from rich.table import Table
 
-    table = Table(title=f"mapservice bench ingest --kafka both: {args.robots:,} robots, "
-                        f"{args.seconds:.0f} s, MQTT {args.mqtt}, median of {args.repeat} "
-                        f"round(s)")
+    table = Table(
+        title=f"mapservice bench ingest --kafka both: {args.robots:,} robots, "
+        f"{args.seconds:.0f} s, MQTT {args.mqtt}, median of {args.repeat} "
+        f"round(s)"
+    )
     table.add_column("measure")
     for broker in BROKERS:
         table.add_column(BROKER_NAMES[broker], justify="right")
     table.add_column("Apache / tansu", justify="right")
     for label, values in rows:
         r = ratio(values)
-        table.add_row(label, *(_fmt(values[b]) for b in BROKERS), "n/a" if r is None else f"{r:.2f}x")
+        table.add_row(
+            label, *(_fmt(values[b]) for b in BROKERS), "n/a" if r is None else f"{r:.2f}x"
+        )
     console.print(table)
 
 
@@ -112,7 +125,11 @@ def main(args) -> None:
     if getattr(args, "find_ceiling", False):
         sys.exit("--kafka both compares the brokers at one fleet size: drop --find-ceiling")
     facts = machine_facts()
-    base = Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="mapservice-brokers-"))
+    base = (
+        Path(args.data_dir)
+        if args.data_dir
+        else Path(tempfile.mkdtemp(prefix="mapservice-brokers-"))
+    )
     base.mkdir(parents=True, exist_ok=True)
     runs = run_rounds(args, base, console, run_once)
     med = {broker: medians(r) for broker, r in runs.items()}
@@ -122,11 +139,18 @@ def main(args) -> None:
     doc = {
         "benchmark": "ingest --kafka both",
         "command": "mapservice " + " ".join(sys.argv[1:]),
-        "args": {"robots": args.robots, "seconds": args.seconds, "mqtt": args.mqtt,
-                 "repeat": args.repeat, "data_dir": str(base)},
+        "args": {
+            "robots": args.robots,
+            "seconds": args.seconds,
+            "mqtt": args.mqtt,
+            "repeat": args.repeat,
+            "data_dir": str(base),
+        },
         "machine": facts,
-        "side_by_side": [{"measure": label, **values, "apache_over_tansu": ratio(values)}
-                         for label, values in rows],
+        "side_by_side": [
+            {"measure": label, **values, "apache_over_tansu": ratio(values)}
+            for label, values in rows
+        ],
         "medians": med,
         "runs": runs,
     }

@@ -83,7 +83,8 @@ class Survivor(threading.Thread):
                     if msg.error() is None and partition is not None and value is not None:
                         with self.lock:
                             self.newest_written[partition] = max(
-                                self.newest_written.get(partition, 0.0), float(value))
+                                self.newest_written.get(partition, 0.0), float(value)
+                            )
                 with self.lock:
                     self.assignment = {tp.partition for tp in self.consumer.assignment()}
         finally:
@@ -128,12 +129,27 @@ def member_loss(bootstrap: str, protocol: str, timeout_s: float = 90.0) -> dict:
     try:
         producer.start()
         survivor.start()
-        wait_until(lambda: len(survivor.holds()) == PARTITIONS, timeout_s, "the first member's assignment")
+        wait_until(
+            lambda: len(survivor.holds()) == PARTITIONS, timeout_s, "the first member's assignment"
+        )
         joined_at = time.monotonic()
-        child = subprocess.Popen([sys.executable, "-m", "mapservice.bench.group_protocol", "member",
-                                  json.dumps(config), topic], stdout=subprocess.PIPE, text=True)
-        wait_until(lambda: len(survivor.holds()) == PARTITIONS // 2, timeout_s,
-                   "the partitions' move to the second member")
+        child = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "mapservice.bench.group_protocol",
+                "member",
+                json.dumps(config),
+                topic,
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        wait_until(
+            lambda: len(survivor.holds()) == PARTITIONS // 2,
+            timeout_s,
+            "the partitions' move to the second member",
+        )
         join_s = time.monotonic() - joined_at
         assert child.stdout is not None
         # The child says when it reads from its partitions (then it truly holds them).
@@ -145,12 +161,22 @@ def member_loss(bootstrap: str, protocol: str, timeout_s: float = 90.0) -> dict:
         killed_at_wall, killed_at = time.time(), time.monotonic()
         os.kill(child.pid, signal.SIGKILL)
         child.wait()
-        reassigned_s = wait_until(lambda: lost <= survivor.holds(), timeout_s,
-                                  "the lost member's partitions' move to the survivor")
-        wait_until(lambda: survivor.read_since(lost, killed_at_wall), timeout_s,
-                   "reading the lost partitions' new records")
-        return {"protocol": protocol, "join_s": join_s, "reassigned_s": reassigned_s,
-                "recovered_s": time.monotonic() - killed_at}
+        reassigned_s = wait_until(
+            lambda: lost <= survivor.holds(),
+            timeout_s,
+            "the lost member's partitions' move to the survivor",
+        )
+        wait_until(
+            lambda: survivor.read_since(lost, killed_at_wall),
+            timeout_s,
+            "reading the lost partitions' new records",
+        )
+        return {
+            "protocol": protocol,
+            "join_s": join_s,
+            "reassigned_s": reassigned_s,
+            "recovered_s": time.monotonic() - killed_at,
+        }
     finally:
         if child is not None and child.poll() is None:
             child.kill()
@@ -179,8 +205,9 @@ def run(rounds: int, console, work_dir: Path) -> dict:
     from mapservice.local import kafka_broker
     from mapservice.local.embedded import free_port
 
-    node = kafka_broker.KafkaNodeConfig(log_dir=work_dir / "kafka" / "log", port=free_port(),
-                                        controller_port=free_port())
+    node = kafka_broker.KafkaNodeConfig(
+        log_dir=work_dir / "kafka" / "log", port=free_port(), controller_port=free_port()
+    )
     with open(work_dir / "kafka.log", "wb") as log_file:
         broker = kafka_broker.start_kafka(node, log_file)
         results: list[dict] = []
@@ -191,16 +218,28 @@ def run(rounds: int, console, work_dir: Path) -> dict:
                     r = member_loss(f"127.0.0.1:{node.port}", protocol)
                     r["round"] = i + 1
                     results.append(r)
-                    console.print(f"round {i + 1} {protocol:8s}: join {r['join_s']:.2f} s, lost member's "
-                                  f"partitions reassigned after {r['reassigned_s']:.2f} s, read again "
-                                  f"after {r['recovered_s']:.2f} s (load {os.getloadavg()[0]:.2f})")
+                    console.print(
+                        f"round {i + 1} {protocol:8s}: join {r['join_s']:.2f} s, lost member's "
+                        f"partitions reassigned after {r['reassigned_s']:.2f} s, read again "
+                        f"after {r['recovered_s']:.2f} s (load {os.getloadavg()[0]:.2f})"
+                    )
         finally:
             kafka_broker.stop_process_group(broker)
-    medians = {p: {k: statistics.median(r[k] for r in results if r["protocol"] == p)
-                   for k in ("join_s", "reassigned_s", "recovered_s")} for p in PROTOCOLS}
-    return {"kafka": kafka_broker.kafka_version(), "partitions": PARTITIONS,
-            "session_timeout_ms": 10_000, "heartbeat_interval_ms": 1000,
-            "rounds": results, "medians": medians}
+    medians = {
+        p: {
+            k: statistics.median(r[k] for r in results if r["protocol"] == p)
+            for k in ("join_s", "reassigned_s", "recovered_s")
+        }
+        for p in PROTOCOLS
+    }
+    return {
+        "kafka": kafka_broker.kafka_version(),
+        "partitions": PARTITIONS,
+        "session_timeout_ms": 10_000,
+        "heartbeat_interval_ms": 1000,
+        "rounds": results,
+        "medians": medians,
+    }
 
 
 def main(args) -> None:
@@ -217,20 +256,32 @@ def main(args) -> None:
     facts["loadavg_at_end"] = os.getloadavg()
     result["machine"] = facts
     for p, m in result["medians"].items():
-        console.print(f"{p:8s} (median of {args.rounds}): join {m['join_s']:.2f} s, member lost -> "
-                      f"partitions reassigned {m['reassigned_s']:.2f} s, read again {m['recovered_s']:.2f} s")
+        console.print(
+            f"{p:8s} (median of {args.rounds}): join {m['join_s']:.2f} s, member lost -> "
+            f"partitions reassigned {m['reassigned_s']:.2f} s, read again {m['recovered_s']:.2f} s"
+        )
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2, default=str))
         console.print(f"wrote {args.json}")
 
 
 def add_parser(kinds) -> None:
-    bench = kinds.add_parser("group-protocol", help="the history consumer's group on the embedded "
-                             "Apache Kafka: a member's join and its loss (SIGKILL) with the classic "
-                             "and the consumer (KIP-848) group protocol")
-    bench.add_argument("--rounds", type=int, default=3, help="rounds, each one loss per protocol "
-                       "(alternating which goes first); medians are reported")
-    bench.add_argument("--json", default=None, help="write the rounds and medians as JSON to this file")
+    bench = kinds.add_parser(
+        "group-protocol",
+        help="the history consumer's group on the embedded "
+        "Apache Kafka: a member's join and its loss (SIGKILL) with the classic "
+        "and the consumer (KIP-848) group protocol",
+    )
+    bench.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="rounds, each one loss per protocol "
+        "(alternating which goes first); medians are reported",
+    )
+    bench.add_argument(
+        "--json", default=None, help="write the rounds and medians as JSON to this file"
+    )
     bench.set_defaults(func=main)
 
 

@@ -25,13 +25,13 @@ import time
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from datetime import date, datetime, UTC
+from datetime import UTC, date, datetime
 from pathlib import Path
 
 import numpy as np
 
-from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.adapters.ros_map import RosMap, free_cells_metres, meta_for, slice_chunks
+from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.core.wire2019 import content_hash
 
 DAY_MS = 86_400_000
@@ -45,8 +45,24 @@ ANGULAR_SPEED = 0.2  # rad/s (loadgen.py)
 TTL_GUARD_MS = 3_600_000
 LOADER_ROBOT = "history-loader"
 
-POSE_COLUMNS = ["robot_id", "ts", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "battery",
-                "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"]
+POSE_COLUMNS = [
+    "robot_id",
+    "ts",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "battery",
+    "charging",
+    "loaded",
+    "has_path",
+    "path_x_mm",
+    "path_y_mm",
+    "recv_lag_ms",
+]
 CHUNK_COLUMNS = ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"]
 CONTENT_COLUMNS = ["content_hash", "day", "width", "height", "zlib_pixels"]
 
@@ -66,7 +82,7 @@ def circle_centres(ros_map: RosMap, radius_m: float = RADIUS_M) -> np.ndarray:
     r = radius_m / res
     slack = math.sqrt(0.5) + 0.001 / res + 0.01
     reach = math.ceil(r + slack)
-    dy, dx = np.mgrid[-reach:reach + 1, -reach:reach + 1]
+    dy, dx = np.mgrid[-reach : reach + 1, -reach : reach + 1]
     ring = np.abs(np.hypot(dx, dy) - r) <= slack
     ys = py[:, None] + dy[ring][None, :]
     xs = px[:, None] + dx[ring][None, :]
@@ -84,18 +100,26 @@ def pixel_of(ros_map: RosMap, x_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndar
     return row, col
 
 
-def grid_meta(ros_map: RosMap, rows: int | None = None, cols: int | None = None,
-              comment: str = "") -> MapMetaSet:
+def grid_meta(
+    ros_map: RosMap, rows: int | None = None, cols: int | None = None, comment: str = ""
+) -> MapMetaSet:
     """The map's own chunk grid, or a `rows` x `cols` grid of 100 x 100 chunks around it."""
     meta = meta_for(ros_map)
     if rows is None and cols is None:
         return meta
     rows = rows or meta.chunk_rows
     cols = cols or meta.chunk_cols
-    return MapMetaSet(width=cols * meta.chunk_width, height=rows * meta.chunk_height,
-                      chunk_width=meta.chunk_width, chunk_height=meta.chunk_height,
-                      chunk_rows=rows, chunk_cols=cols, comment=comment,
-                      resolution=meta.resolution, origin=meta.origin)
+    return MapMetaSet(
+        width=cols * meta.chunk_width,
+        height=rows * meta.chunk_height,
+        chunk_width=meta.chunk_width,
+        chunk_height=meta.chunk_height,
+        chunk_rows=rows,
+        chunk_cols=cols,
+        comment=comment,
+        resolution=meta.resolution,
+        origin=meta.origin,
+    )
 
 
 @dataclass
@@ -134,9 +158,18 @@ class LoadResult:
 class HistoryGenerator:
     """Deterministic (per seed and window) numpy columns of the 2019 workload."""
 
-    def __init__(self, ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *,
-                 meta: MapMetaSet, seed: int = 7, change_prob: float = 0.01,
-                 prefix: str = "robot") -> None:
+    def __init__(
+        self,
+        ros_map: RosMap,
+        robots: int,
+        start_ms: int,
+        end_ms: int,
+        *,
+        meta: MapMetaSet,
+        seed: int = 7,
+        change_prob: float = 0.01,
+        prefix: str = "robot",
+    ) -> None:
         if start_ms % POSE_PERIOD_MS:
             raise ValueError("start_ms must be a whole second")
         self.ros_map = ros_map
@@ -243,12 +276,13 @@ class HistoryGenerator:
         pixels = np.frombuffer(self._pixels[base], dtype=np.uint8).reshape(h, w).copy()
         rh, rw = rng.integers(4, 31, size=2)
         y0, x0 = rng.integers(0, h - rh + 1), rng.integers(0, w - rw + 1)
-        pixels[y0:y0 + rh, x0:x0 + rw] = rng.choice([0, 254])
+        pixels[y0 : y0 + rh, x0 : x0 + rw] = rng.choice([0, 254])
         raw = pixels.tobytes()
         return self._add_content(content_hash(raw), raw)
 
-    def _chunks(self, ts: np.ndarray, robot: np.ndarray, day: int,
-                rng: np.random.Generator) -> tuple[list, list]:
+    def _chunks(
+        self, ts: np.ndarray, robot: np.ndarray, day: int, rng: np.random.Generator
+    ) -> tuple[list, list]:
         n = ts.size
         rows = rng.integers(0, self.meta.chunk_rows, size=n).astype(np.uint16)
         cols = rng.integers(0, self.meta.chunk_cols, size=n).astype(np.uint16)
@@ -292,8 +326,9 @@ def parse_end(text: str | None) -> int:
     return int(dt.timestamp() * 1000)
 
 
-def plan_window(days: float, end_ms: int, retention_days: int,
-                now_ms: int | None = None) -> tuple[int, int, list[str]]:
+def plan_window(
+    days: float, end_ms: int, retention_days: int, now_ms: int | None = None
+) -> tuple[int, int, list[str]]:
     """[start, end) of whole seconds, inside the retention (less the guard)."""
     now_ms = time.time_ns() // 1_000_000 if now_ms is None else now_ms
     notes: list[str] = []
@@ -308,18 +343,31 @@ def plan_window(days: float, end_ms: int, retention_days: int,
         notes.append(
             f"the window starts {(earliest - start) / 60_000:.0f} min later than asked: rows "
             f"older than {retention_days} days (less a {TTL_GUARD_MS // 60_000} min guard) "
-            "would be dropped by the retention step")
+            "would be dropped by the retention step"
+        )
         start = earliest
     if start >= end:
-        raise ValueError(f"nothing to load: the window lies outside the {retention_days}-day retention")
+        raise ValueError(
+            f"nothing to load: the window lies outside the {retention_days}-day retention"
+        )
     return start, end, notes
 
 
-def load_history(store, ros_map: RosMap, *, days: float, robots: int, end_ms: int | None = None,
-                 grid: tuple[int, int] | None = None, seed: int = 7, change_prob: float = 0.01,
-                 snapshots: bool = True, bulk_snapshots: bool = True,
-                 allow_existing: bool = False,
-                 on_progress: Callable[[str, int, int, dict], None] | None = None) -> LoadResult:
+def load_history(
+    store,
+    ros_map: RosMap,
+    *,
+    days: float,
+    robots: int,
+    end_ms: int | None = None,
+    grid: tuple[int, int] | None = None,
+    seed: int = 7,
+    change_prob: float = 0.01,
+    snapshots: bool = True,
+    bulk_snapshots: bool = True,
+    allow_existing: bool = False,
+    on_progress: Callable[[str, int, int, dict], None] | None = None,
+) -> LoadResult:
     """Writes `days` of history for `robots` robots ending at `end_ms` into `store`.
 
     `store` is a ClickHouseStore (migrated here). `on_progress(phase, done, total, info)`
@@ -331,18 +379,23 @@ def load_history(store, ros_map: RosMap, *, days: float, robots: int, end_ms: in
     db = store.database
     client = store.client
     if not allow_existing:
-        (n,) = client.query(f"SELECT (SELECT count() FROM {db}.poses) + "
-                            f"(SELECT count() FROM {db}.chunk_events)").result_rows[0]
+        (n,) = client.query(
+            f"SELECT (SELECT count() FROM {db}.poses) + (SELECT count() FROM {db}.chunk_events)"
+        ).result_rows[0]
         if n:
-            raise ValueError(f"database {db!r} already holds {n} rows of history; load into "
-                             "an empty one (another --data-dir or --database)")
+            raise ValueError(
+                f"database {db!r} already holds {n} rows of history; load into "
+                "an empty one (another --data-dir or --database)"
+            )
     end_ms = parse_end(None) if end_ms is None else end_ms
     start, end, notes = plan_window(days, end_ms, store.retention_days)
     rows, cols = grid if grid is not None else (None, None)
-    meta = grid_meta(ros_map, rows, cols,
-                     comment=f"history-loader: {robots} robots, {days:g} days, seed {seed}")
-    gen = HistoryGenerator(ros_map, robots, start, end, meta=meta, seed=seed,
-                           change_prob=change_prob)
+    meta = grid_meta(
+        ros_map, rows, cols, comment=f"history-loader: {robots} robots, {days:g} days, seed {seed}"
+    )
+    gen = HistoryGenerator(
+        ros_map, robots, start, end, meta=meta, seed=seed, change_prob=change_prob
+    )
     result = LoadResult(start_ms=start, end_ms=gen.end_ms, robots=robots, meta=meta, notes=notes)
     # The grid in force for the whole window (the API validates chunk cells against it).
     store.append([make_envelope(LOADER_ROBOT, start, start, meta)])
@@ -352,16 +405,29 @@ def load_history(store, ros_map: RosMap, *, days: float, robots: int, end_ms: in
         block = gen.block(k_lo, k_hi)
         t1 = time.perf_counter()
         with store._lock:
-            client.insert(f"{db}.chunk_contents", data=block.contents,
-                          column_names=CONTENT_COLUMNS, column_oriented=True)
-            client.insert(f"{db}.chunk_events", data=block.chunks,
-                          column_names=CHUNK_COLUMNS, column_oriented=True)
-            client.insert(f"{db}.poses", data=block.poses,
-                          column_names=POSE_COLUMNS, column_oriented=True)
+            client.insert(
+                f"{db}.chunk_contents",
+                data=block.contents,
+                column_names=CONTENT_COLUMNS,
+                column_oriented=True,
+            )
+            client.insert(
+                f"{db}.chunk_events",
+                data=block.chunks,
+                column_names=CHUNK_COLUMNS,
+                column_oriented=True,
+            )
+            client.insert(
+                f"{db}.poses", data=block.poses, column_names=POSE_COLUMNS, column_oriented=True
+            )
             # The pose views read the Null table pose_derivations (schema v10), as
             # `derive_views` feeds them.
-            client.insert(f"{db}.pose_derivations", data=block.poses,
-                          column_names=POSE_COLUMNS, column_oriented=True)
+            client.insert(
+                f"{db}.pose_derivations",
+                data=block.poses,
+                column_names=POSE_COLUMNS,
+                column_oriented=True,
+            )
         t2 = time.perf_counter()
         result.generate_s += t1 - t0
         result.insert_s += t2 - t1
@@ -371,16 +437,19 @@ def load_history(store, ros_map: RosMap, *, days: float, robots: int, end_ms: in
         done += k_hi - k_lo
         del block
         if on_progress is not None:
-            on_progress("load", done, gen.seconds, {"poses": result.poses,
-                                                    "chunks": result.chunk_events})
+            on_progress(
+                "load", done, gen.seconds, {"poses": result.poses, "chunks": result.chunk_events}
+            )
     result.distinct_contents = gen.distinct_contents
     if snapshots:
         t0 = time.perf_counter()
         if bulk_snapshots:
             result.snapshots = store.build_snapshots_bulk(
                 gen.end_ms,
-                on_progress=None if on_progress is None
-                else (lambda d, t: on_progress("snapshots", d, t, {})))
+                on_progress=None
+                if on_progress is None
+                else (lambda d, t: on_progress("snapshots", d, t, {})),
+            )
         else:
             result.snapshots = store.build_snapshots(gen.end_ms)
         result.snapshot_s = time.perf_counter() - t0
@@ -390,8 +459,14 @@ def load_history(store, ros_map: RosMap, *, days: float, robots: int, end_ms: in
 def main(args) -> None:
     """The `mapservice load-history` command."""
     from rich.console import Console
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                               TimeElapsedColumn, TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     from mapservice.adapters.clickhouse.store import ClickHouseStore
     from mapservice.adapters.ros_map import load_ros_map
@@ -399,19 +474,31 @@ def main(args) -> None:
     from mapservice.settings import Settings
 
     console = Console()
-    settings = Settings(data_dir=Path(args.data_dir),
-                        **({"clickhouse_dsn": args.clickhouse_dsn} if args.clickhouse_dsn else {}))
+    settings = Settings(
+        data_dir=Path(args.data_dir),
+        **({"clickhouse_dsn": args.clickhouse_dsn} if args.clickhouse_dsn else {}),
+    )
     grid = None
     if args.grid:
         r, _, c = args.grid.lower().partition("x")
         grid = (int(r), int(c))
-    store = ClickHouseStore(settings.resolved_clickhouse_dsn, args.database or settings.clickhouse_database,
-                            settings.retention_days, settings.clickhouse_username,
-                            settings.clickhouse_password.get_secret_value(),
-                            int((args.snapshot_every_s or settings.snapshot_every_s) * 1000))
+    store = ClickHouseStore(
+        settings.resolved_clickhouse_dsn,
+        args.database or settings.clickhouse_database,
+        settings.retention_days,
+        settings.clickhouse_username,
+        settings.clickhouse_password.get_secret_value(),
+        int((args.snapshot_every_s or settings.snapshot_every_s) * 1000),
+    )
     ros_map = load_ros_map(args.map or DEFAULT_MAP)
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-               TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn())
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[info]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     try:
         with Progress(*columns, console=console) as progress:
             tasks: dict[str, int] = {}
@@ -423,10 +510,18 @@ def main(args) -> None:
                 text = ", ".join(f"{v:,} {k}" for k, v in info.items())
                 progress.update(tasks[phase], completed=done, total=total, info=text)
 
-            result = load_history(store, ros_map, days=args.days, robots=args.robots,
-                                  end_ms=parse_end(args.end), grid=grid, seed=args.seed,
-                                  change_prob=args.change_prob,
-                                  snapshots=not args.no_snapshots, on_progress=on_progress)
+            result = load_history(
+                store,
+                ros_map,
+                days=args.days,
+                robots=args.robots,
+                end_ms=parse_end(args.end),
+                grid=grid,
+                seed=args.seed,
+                change_prob=args.change_prob,
+                snapshots=not args.no_snapshots,
+                on_progress=on_progress,
+            )
             if args.optimize:
                 t0 = time.perf_counter()
                 progress.console.print("merging parts (OPTIMIZE FINAL)...")
@@ -436,8 +531,10 @@ def main(args) -> None:
         raise SystemExit(f"load-history: {exc}") from None
     finally:
         store.close()
+
     def fmt(ms):
         return datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%d %H:%M:%S")
+
     for note in result.notes:
         console.print(f"[yellow]note:[/yellow] {note}")
     console.print(
@@ -446,29 +543,51 @@ def main(args) -> None:
         f"for {result.robots} robots, {fmt(result.start_ms)} to {fmt(result.end_ms)} UTC, "
         f"on a {result.meta.chunk_rows} x {result.meta.chunk_cols} chunk grid, in "
         f"{result.load_s:.1f} s (generate {result.generate_s:.1f} s, insert "
-        f"{result.insert_s:.1f} s); {result.snapshots} snapshots in {result.snapshot_s:.1f} s")
-    console.print(f"into {settings.resolved_clickhouse_dsn} database "
-                  f"{args.database or settings.clickhouse_database}")
+        f"{result.insert_s:.1f} s); {result.snapshots} snapshots in {result.snapshot_s:.1f} s"
+    )
+    console.print(
+        f"into {settings.resolved_clickhouse_dsn} database "
+        f"{args.database or settings.clickhouse_database}"
+    )
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("load-history",
-                       help="write days of simulated 2019-workload history straight into ClickHouse")
-    p.add_argument("--days", type=float, default=1.0, help="days of history (at most the retention)")
+    p = sub.add_parser(
+        "load-history",
+        help="write days of simulated 2019-workload history straight into ClickHouse",
+    )
+    p.add_argument(
+        "--days", type=float, default=1.0, help="days of history (at most the retention)"
+    )
     p.add_argument("--robots", type=int, default=20, help="simulated robots")
     p.add_argument("--map", default=None, help="ROS map YAML (default: maps/warehouse.yaml)")
-    p.add_argument("--data-dir", default=".mapservice-data",
-                   help="embedded chDB under DIR/clickhouse (as `mapservice up`)")
+    p.add_argument(
+        "--data-dir",
+        default=".mapservice-data",
+        help="embedded chDB under DIR/clickhouse (as `mapservice up`)",
+    )
     p.add_argument("--clickhouse-dsn", default=None, help="a ClickHouse server or chdb:// instead")
     p.add_argument("--database", default=None, help="default: MAPSERVICE_CLICKHOUSE_DATABASE")
-    p.add_argument("--end", default="now", help="`now`, epoch ms or ISO time (UTC) of the last event")
-    p.add_argument("--grid", default=None,
-                   help="ROWSxCOLS chunk grid (e.g. 32x48); default: the map's own chunks")
+    p.add_argument(
+        "--end", default="now", help="`now`, epoch ms or ISO time (UTC) of the last event"
+    )
+    p.add_argument(
+        "--grid",
+        default=None,
+        help="ROWSxCOLS chunk grid (e.g. 32x48); default: the map's own chunks",
+    )
     p.add_argument("--seed", type=int, default=7, help="random seed (same seed, same history)")
-    p.add_argument("--change-prob", type=float, default=0.01,
-                   help="share of chunk writes with changed pixels")
-    p.add_argument("--snapshot-every-s", type=float, default=None,
-                   help="default: MAPSERVICE_SNAPSHOT_EVERY_S (600)")
+    p.add_argument(
+        "--change-prob", type=float, default=0.01, help="share of chunk writes with changed pixels"
+    )
+    p.add_argument(
+        "--snapshot-every-s",
+        type=float,
+        default=None,
+        help="default: MAPSERVICE_SNAPSHOT_EVERY_S (600)",
+    )
     p.add_argument("--no-snapshots", action="store_true", help="skip building the snapshots")
-    p.add_argument("--optimize", action="store_true", help="merge parts (OPTIMIZE FINAL) at the end")
+    p.add_argument(
+        "--optimize", action="store_true", help="merge parts (OPTIMIZE FINAL) at the end"
+    )
     p.set_defaults(func=main)

@@ -52,10 +52,20 @@ def machine_facts() -> dict:
     except Exception as exc:  # noqa: BLE001 - a fact we could not read, not a failure
         tansu = f"unknown ({exc})"
     mosquitto_bin = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    mosquitto = _first_line([mosquitto_bin, "-h"]) if os.path.exists(mosquitto_bin) else "not installed"
+    mosquitto = (
+        _first_line([mosquitto_bin, "-h"]) if os.path.exists(mosquitto_bin) else "not installed"
+    )
     versions = {}
-    for dist in ("chdb", "clickhouse-connect", "faust-streaming", "aiokafka", "confluent-kafka",
-                 "paho-mqtt", "fastapi", "uvicorn"):
+    for dist in (
+        "chdb",
+        "clickhouse-connect",
+        "faust-streaming",
+        "aiokafka",
+        "confluent-kafka",
+        "paho-mqtt",
+        "fastapi",
+        "uvicorn",
+    ):
         try:
             from importlib.metadata import version
 
@@ -63,7 +73,9 @@ def machine_facts() -> dict:
         except Exception:  # noqa: BLE001
             versions[dist] = "unknown"
     return {
-        "nproc": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "nproc": len(os.sched_getaffinity(0))
+        if hasattr(os, "sched_getaffinity")
+        else os.cpu_count(),
         "cpu_model": model,
         "ram_bytes": psutil.virtual_memory().total,
         "python": platform.python_version(),
@@ -81,10 +93,20 @@ def _git_state() -> dict:
     from mapservice.local.checkout import ROOT as root
 
     try:
-        head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
-                              text=True, timeout=10, check=False).stdout.strip()
-        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain"],
-                               capture_output=True, text=True, timeout=10, check=False).stdout.splitlines()
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=False,
+        ).stdout.splitlines()
     except (OSError, subprocess.TimeoutExpired):
         return {}
     return {"head": head, "uncommitted": [line.strip() for line in dirty]}

@@ -40,8 +40,11 @@ def resident_mb(proc: psutil.Process) -> tuple[float, float]:
 
 def resident_by_component(procs: dict) -> dict[str, float]:
     """Resident MB of each component process (with its children), by component name."""
-    return {name: round(resident_mb(psutil.Process(proc.pid))[0], 1)
-            for name, proc in procs.items() if proc.poll() is None}
+    return {
+        name: round(resident_mb(psutil.Process(proc.pid))[0], 1)
+        for name, proc in procs.items()
+        if proc.poll() is None
+    }
 
 
 def _children(proc: psutil.Process) -> list[psutil.Process]:

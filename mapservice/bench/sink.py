@@ -25,8 +25,9 @@ WAYS = ("batch",)
 
 def add_parser(kinds) -> None:
     p = kinds.add_parser("sink", help="CPU per event of the processors' history path")
-    p.add_argument("--events", type=int, default=60_000,
-                   help="pose events published and then consumed per run")
+    p.add_argument(
+        "--events", type=int, default=60_000, help="pose events published and then consumed per run"
+    )
     p.add_argument("--repeat", type=int, default=3, help="runs per way; medians are reported")
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
     p.add_argument("--one", choices=WAYS, help=argparse_hidden())
@@ -54,18 +55,20 @@ class _Counter:
 
 async def _one(way: str, events: int) -> dict:
     from mapservice.adapters.kafka_publisher import KafkaPublisher
-    from mapservice.testing.memory_store import MemoryStore
-    from mapservice.local.embedded import free_port, start_tansu, stop, wait_for_port
-    from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
-    from mapservice.settings import Settings
     from mapservice.adapters.kafka_topics import ensure_topics
+    from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
+    from mapservice.local.embedded import free_port, start_tansu, stop, wait_for_port
+    from mapservice.settings import Settings
+    from mapservice.testing.memory_store import MemoryStore
 
     class CountingStore(MemoryStore):
         def append_events(self, batch) -> None:
             _Counter.n += len(batch)
 
     port = free_port()
-    tansu = start_tansu(port, log_file=open(os.environ.get('BENCH_SINK_TANSU_LOG', os.devnull), 'wb'))
+    tansu = start_tansu(
+        port, log_file=open(os.environ.get("BENCH_SINK_TANSU_LOG", os.devnull), "wb")
+    )
     try:
         wait_for_port(port)
         data = Path(tempfile.mkdtemp(prefix="bench-sink-"))
@@ -74,10 +77,14 @@ async def _one(way: str, events: int) -> dict:
         pub = KafkaPublisher(settings, "bench-sink")
         t0 = 1_795_000_000_000
         for i in range(events):
-            payload = PoseReported(position=(i % 50 * 0.1, 1.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0),
-                                   battery_level=80.0)
-            e = make_envelope(f"robot-{i % 1000:04d}", t0 + i // 1000 * 1000, t0 + i // 1000 * 1000 + 20,
-                              payload)
+            payload = PoseReported(
+                position=(i % 50 * 0.1, 1.0, 0.0),
+                orientation=(0.0, 0.0, 0.0, 1.0),
+                battery_level=80.0,
+            )
+            e = make_envelope(
+                f"robot-{i % 1000:04d}", t0 + i // 1000 * 1000, t0 + i // 1000 * 1000 + 20, payload
+            )
             pub.publish(settings.topic_pose_events, kafka_key(e), encode(e), lambda err: None)
             if i % 5000 == 0:
                 pub.poll(0)
@@ -86,14 +93,19 @@ async def _one(way: str, events: int) -> dict:
         store = CountingStore()
         stopping = asyncio.Event()
         from mapservice.adapters.kafka_batch_source import KafkaBatchSource
-        from mapservice.processors.sink import HistorySink
         from mapservice.processors.history_consumer import HistoryConsumer
+        from mapservice.processors.sink import HistorySink
 
         source = KafkaBatchSource(settings, [settings.topic_pose_events], "bench-sink")
-        consumer = HistoryConsumer(source, HistorySink(store), None,
-                                   settings.sink_batch_size, settings.sink_batch_seconds,
-                                   min_batch_seconds=settings.sink_batch_min_seconds,
-                                   views_seconds=settings.sink_views_seconds)
+        consumer = HistoryConsumer(
+            source,
+            HistorySink(store),
+            None,
+            settings.sink_batch_size,
+            settings.sink_batch_seconds,
+            min_batch_seconds=settings.sink_batch_min_seconds,
+            views_seconds=settings.sink_views_seconds,
+        )
         source.on_assigned = consumer.on_assigned
         task = asyncio.create_task(consumer.run(stopping))
         first = None
@@ -109,12 +121,20 @@ async def _one(way: str, events: int) -> dict:
         if counted <= 0 or wall <= 0:
             # Timing starts at the first batch (the group join before it is not the sink's
             # cost), so the events after it are what is measured.
-            raise BenchError(f"all {events:,} events arrived in the first batch: nothing left "
-                             "to time; pass more --events (e.g. the default 60,000)")
-        return {"way": way, "events": counted, "wall_s": round(wall, 3), "cpu_s": round(cpu, 3),
-                "cpu_us_per_event": round(cpu / counted * 1e6, 1),
-                "events_per_s": round(counted / wall), "complete": _Counter.n >= events,
-                "task": bool(task)}
+            raise BenchError(
+                f"all {events:,} events arrived in the first batch: nothing left "
+                "to time; pass more --events (e.g. the default 60,000)"
+            )
+        return {
+            "way": way,
+            "events": counted,
+            "wall_s": round(wall, 3),
+            "cpu_s": round(cpu, 3),
+            "cpu_us_per_event": round(cpu / counted * 1e6, 1),
+            "events_per_s": round(counted / wall),
+            "complete": _Counter.n >= events,
+            "task": bool(task),
+        }
     finally:
         stop(tansu)
 
@@ -133,9 +153,22 @@ def main(args) -> None:
     runs: dict[str, list[dict]] = {w: [] for w in WAYS}
     for i in range(args.repeat):
         for way in WAYS:
-            out = subprocess.run([sys.executable, "-m", "mapservice.cli", "bench", "sink",
-                                  "--one", way, "--events", str(args.events)],
-                                 capture_output=True, text=True, timeout=900)
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "mapservice.cli",
+                    "bench",
+                    "sink",
+                    "--one",
+                    way,
+                    "--events",
+                    str(args.events),
+                ],
+                capture_output=True,
+                text=True,
+                timeout=900,
+            )
             line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
             error = next((x for x in out.stdout.splitlines() if x.startswith("ERROR ")), None)
             if error is not None:
@@ -144,13 +177,31 @@ def main(args) -> None:
                 raise SystemExit(f"{way} run failed:\n{out.stderr[-3000:]}".rstrip())
             result = json.loads(line[7:])
             runs[way].append(result)
-            print(f"run {i + 1}/{args.repeat} {way:5}: {result['cpu_us_per_event']:7.1f} µs CPU/event, "
-                  f"{result['events_per_s']:,} events/s", flush=True)
-    summary = {w: {"cpu_us_per_event_median": statistics.median(r["cpu_us_per_event"] for r in rs),
-                   "events_per_s_median": statistics.median(r["events_per_s"] for r in rs)}
-               for w, rs in runs.items()}
-    print(f"median: {summary['batch']['cpu_us_per_event_median']} µs CPU per event, "
-          f"{summary['batch']['events_per_s_median']:,} events/s")
+            print(
+                f"run {i + 1}/{args.repeat} {way:5}: {result['cpu_us_per_event']:7.1f} µs CPU/event, "
+                f"{result['events_per_s']:,} events/s",
+                flush=True,
+            )
+    summary = {
+        w: {
+            "cpu_us_per_event_median": statistics.median(r["cpu_us_per_event"] for r in rs),
+            "events_per_s_median": statistics.median(r["events_per_s"] for r in rs),
+        }
+        for w, rs in runs.items()
+    }
+    print(
+        f"median: {summary['batch']['cpu_us_per_event_median']} µs CPU per event, "
+        f"{summary['batch']['events_per_s_median']:,} events/s"
+    )
     if args.json:
-        Path(args.json).write_text(json.dumps({"machine": machine_facts(), "events": args.events,
-                                               "summary": summary, "runs": runs}, indent=2))
+        Path(args.json).write_text(
+            json.dumps(
+                {
+                    "machine": machine_facts(),
+                    "events": args.events,
+                    "summary": summary,
+                    "runs": runs,
+                },
+                indent=2,
+            )
+        )

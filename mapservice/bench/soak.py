@@ -56,8 +56,9 @@ def settle(samples: list[dict]) -> list[dict]:
     return [s for s in samples if s["t_s"] >= end / 10]
 
 
-def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float,
-              kafka: str = "tansu") -> dict:
+def summarize(
+    samples: list[dict], minutes: float, max_growth_mb_per_h: float, kafka: str = "tansu"
+) -> dict:
     """Per component: memory first/last/max and growth per hour; pipeline totals; disk;
     verdicts. `kafka`: the embedded broker ("tansu" grows by design, "apache" is judged)."""
     expected = EXPECTED_TO_GROW.get(kafka, set())
@@ -80,14 +81,18 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float,
         judged = anon_growth if anon_growth is not None else growth
         bounded = None if judged is None or name in expected else judged <= max_growth_mb_per_h
         out["components"][name] = {
-            "rss_first_mb": rss[0] if rss else None, "rss_last_mb": rss[-1] if rss else None,
-            "rss_max_mb": max(rss) if rss else None, "growth_mb_per_h": growth,
-            "anon_first_mb": anon[0][1] if anon else None, "anon_last_mb": anon[-1][1] if anon else None,
+            "rss_first_mb": rss[0] if rss else None,
+            "rss_last_mb": rss[-1] if rss else None,
+            "rss_max_mb": max(rss) if rss else None,
+            "growth_mb_per_h": growth,
+            "anon_first_mb": anon[0][1] if anon else None,
+            "anon_last_mb": anon[-1][1] if anon else None,
             "anon_growth_mb_per_h": anon_growth,
             "cpu_median_percent": statistics.median(cpu) if cpu else None,
             "cpu_start_percent": statistics.median(cpu[:tenth]) if cpu else None,
             "cpu_end_percent": statistics.median(cpu[-tenth:]) if cpu else None,
-            "growth_bounded": bounded}
+            "growth_bounded": bounded,
+        }
     if samples:
         last, first = samples[-1], steady[0] if steady else samples[0]
         stored = last["stored"] - first["stored"]
@@ -99,7 +104,11 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float,
         out["freshness_median_s"] = statistics.median(fresh) if fresh else None
         out["freshness_max_s"] = max(fresh) if fresh else None
         kafka_mem = out["components"].get("kafka", {})
-        if kafka == "tansu" and kafka_mem.get("growth_mb_per_h") is not None and out["events_per_s"] > 0:
+        if (
+            kafka == "tansu"
+            and kafka_mem.get("growth_mb_per_h") is not None
+            and out["events_per_s"] > 0
+        ):
             per_event = kafka_mem["growth_mb_per_h"] * 1e6 / (out["events_per_s"] * HOUR_S)
             out["kafka_bytes_per_event"] = per_event
             out["kafka_mb_per_day"] = kafka_mem["growth_mb_per_h"] * 24
@@ -109,9 +118,13 @@ def summarize(samples: list[dict], minutes: float, max_growth_mb_per_h: float,
         if inside:
             times = [t for t, _ in inside]
             out["serve_inside"] = {
-                key: {"first": inside[0][1][key], "last": inside[-1][1][key],
-                      "growth_per_h": growth_per_hour(times, [v[key] for _, v in inside])}
-                for key in inside[0][1]}
+                key: {
+                    "first": inside[0][1][key],
+                    "last": inside[-1][1][key],
+                    "growth_per_h": growth_per_hour(times, [v[key] for _, v in inside]),
+                }
+                for key in inside[0][1]
+            }
     out["bounded"] = all(c["growth_bounded"] is not False for c in out["components"].values())
     return out
 
@@ -123,9 +136,16 @@ def disk_summary(steady: list[dict], events_per_s: float) -> dict:
     for name in sorted({n for s in steady for n in s.get("disk_mb", {})}):
         points = [(s["t_s"], s["disk_mb"][name]) for s in steady if name in s.get("disk_mb", {})]
         growth = growth_per_hour([t for t, _ in points], [v for _, v in points])
-        out[name] = {"first_mb": points[0][1], "last_mb": points[-1][1], "growth_mb_per_h": growth,
-                     "bytes_per_event": (growth * 1e6 / (events_per_s * HOUR_S)
-                                         if growth is not None and events_per_s > 0 else None)}
+        out[name] = {
+            "first_mb": points[0][1],
+            "last_mb": points[-1][1],
+            "growth_mb_per_h": growth,
+            "bytes_per_event": (
+                growth * 1e6 / (events_per_s * HOUR_S)
+                if growth is not None and events_per_s > 0
+                else None
+            ),
+        }
     return out
 
 
@@ -149,8 +169,10 @@ def disk_dirs(data_dir: Path, kafka: str) -> dict[str, Path]:
     return dirs
 
 
-INSIDE_SERVE = {"mapservice_chdb_memory_tracked_bytes": ("chdb_mb", 1e-6),
-                "mapservice_python_allocated_blocks": ("python_blocks_k", 1e-3)}
+INSIDE_SERVE = {
+    "mapservice_chdb_memory_tracked_bytes": ("chdb_mb", 1e-6),
+    "mapservice_python_allocated_blocks": ("python_blocks_k", 1e-3),
+}
 
 
 def serve_inside(http: httpx.Client, api_url: str) -> dict[str, float] | None:
@@ -195,8 +217,10 @@ class Sampler:
 def freshness_s(http: httpx.Client, api_url: str, robot_id: str) -> float | None:
     """Seconds since the newest queryable pose of `robot_id` (None: none in the last minute)."""
     now_ms = int(time.time() * 1000)
-    reply = http.get(f"{api_url}/api/v1/poses", params={
-        "robotId": robot_id, "from": now_ms - 60_000, "to": now_ms + 1000})
+    reply = http.get(
+        f"{api_url}/api/v1/poses",
+        params={"robotId": robot_id, "from": now_ms - 60_000, "to": now_ms + 1000},
+    )
     reply.raise_for_status()
     times = [pose["ts_ms"] for pose in reply.json()]
     return (now_ms - max(times)) / 1000 if times else None
@@ -213,26 +237,37 @@ def run(args, console) -> dict:
     stack = Stack(data_dir, mqtt=args.mqtt, kafka="" if args.kafka == "auto" else args.kafka)
     settings = stack.settings()
     samples: list[dict] = []
-    result: dict = {"data_dir": str(data_dir), "robots": args.robots, "minutes": args.minutes,
-                    "mqtt": args.mqtt, "kafka": stack.kafka, "samples": samples}
+    result: dict = {
+        "data_dir": str(data_dir),
+        "robots": args.robots,
+        "minutes": args.minutes,
+        "mqtt": args.mqtt,
+        "kafka": stack.kafka,
+        "samples": samples,
+    }
     if stack.kafka == "apache":
         from mapservice.local.kafka_broker import kafka_version
 
         result["kafka_broker"] = {
-            "version": kafka_version(), "heap_mb": settings.embedded_kafka_heap_mb,
+            "version": kafka_version(),
+            "heap_mb": settings.embedded_kafka_heap_mb,
             "retention_hours": settings.embedded_kafka_retention_hours,
-            "retention_bytes_per_partition": settings.embedded_kafka_retention_bytes}
+            "retention_bytes_per_partition": settings.embedded_kafka_retention_bytes,
+        }
     disks = disk_dirs(data_dir, stack.kafka)
     fleet = None
     try:
-        with console.status(f"starting Kafka ({stack.kafka}), {args.mqtt}, server, gateway in {data_dir}..."):
+        with console.status(
+            f"starting Kafka ({stack.kafka}), {args.mqtt}, server, gateway in {data_dir}..."
+        ):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
             stack.start_server()
             stack.start_gateway()
         fleet = RobotFleet(stack.mqtt_url, ros_map, args.robots, prefix="soak")
-        driver = threading.Thread(target=fleet.run, args=(args.minutes * 60,), name="soak-fleet",
-                                  daemon=True)
+        driver = threading.Thread(
+            target=fleet.run, args=(args.minutes * 60,), name="soak-fleet", daemon=True
+        )
         sampler = Sampler(stack.procs)
         bench_proc = psutil.Process()
         http = httpx.Client(timeout=30)
@@ -242,12 +277,16 @@ def run(args, console) -> dict:
             driver.join(args.sample_s)
             for name, proc in stack.procs.items():
                 if proc.poll() is not None:
-                    raise RuntimeError(f"{name} exited ({proc.returncode}) after "
-                                       f"{(time.monotonic() - t0) / 60:.1f} min; see {stack.log_dir}/")
+                    raise RuntimeError(
+                        f"{name} exited ({proc.returncode}) after "
+                        f"{(time.monotonic() - t0) / 60:.1f} min; see {stack.log_dir}/"
+                    )
             rss, anon, cpu = sampler.sample()
             stats = http.get(f"{stack.api_url}/api/v1/stats").json()
             sample = {
-                "t_s": round(time.monotonic() - t0, 1), "rss_mb": rss, "anon_mb": anon,
+                "t_s": round(time.monotonic() - t0, 1),
+                "rss_mb": rss,
+                "anon_mb": anon,
                 "cpu_percent": cpu,
                 "disk_mb": {name: round(dir_mb(path), 2) for name, path in disks.items()},
                 "bench_rss_mb": bench_proc.memory_info().rss / 1e6,
@@ -262,7 +301,9 @@ def run(args, console) -> dict:
                 f"{sample['t_s'] / 60:6.1f} min  stored {sample['stored']:>9,}  "
                 f"dead letters {sample['dead_letters']}  freshness {sample['freshness_s']}s  "
                 + "  ".join(f"{n} {rss[n]:.0f} MB {cpu[n]:.0f}%" for n in sorted(rss))
-                + "  disk " + "  ".join(f"{n} {v:.0f} MB" for n, v in sample["disk_mb"].items()))
+                + "  disk "
+                + "  ".join(f"{n} {v:.0f} MB" for n, v in sample["disk_mb"].items())
+            )
     finally:
         if fleet is not None:
             fleet.stop()
@@ -274,64 +315,114 @@ def run(args, console) -> dict:
 def print_summary(console, result: dict, max_growth: float) -> None:
     s = result["summary"]
     if not s["representative"]:
-        console.print(f"[yellow]A {result['minutes']:g}-minute run is not representative: a soak "
-                      "needs at least an hour; the figures below are indicative only.[/]")
-    console.print(f"{result['robots']} robots, {s.get('events_per_s', 0):.1f} events/s stored; "
-                  f"{s.get('stored_events', 0):,} stored of {s.get('published_events', 0):,} published; "
-                  f"dead letters {s.get('dead_letters', 0)}; freshness median "
-                  f"{s.get('freshness_median_s')} s, max {s.get('freshness_max_s')} s")
+        console.print(
+            f"[yellow]A {result['minutes']:g}-minute run is not representative: a soak "
+            "needs at least an hour; the figures below are indicative only.[/]"
+        )
+    console.print(
+        f"{result['robots']} robots, {s.get('events_per_s', 0):.1f} events/s stored; "
+        f"{s.get('stored_events', 0):,} stored of {s.get('published_events', 0):,} published; "
+        f"dead letters {s.get('dead_letters', 0)}; freshness median "
+        f"{s.get('freshness_median_s')} s, max {s.get('freshness_max_s')} s"
+    )
     for name, c in s["components"].items():
         growth = c["growth_mb_per_h"]
-        verdict = ("expected: keeps every record" if name in EXPECTED_TO_GROW.get(s["kafka"], ()) else
-                   "bounded" if c["growth_bounded"] else f"over {max_growth:g} MB/h"
-                   if c["growth_bounded"] is False else "too few samples")
-        console.print(f"  {name:10s} RSS {c['rss_first_mb']:.0f} -> {c['rss_last_mb']:.0f} MB "
-                      f"(max {c['rss_max_mb']:.0f}), growth "
-                      f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'}"
-                      + (f", anonymous {c['anon_first_mb']:.0f} -> {c['anon_last_mb']:.0f} MB "
-                         f"({c['anon_growth_mb_per_h']:+.1f} MB/h)" if c.get("anon_growth_mb_per_h") is not None else "")
-                      + f" ({verdict}), "
-                      f"CPU median {c['cpu_median_percent'] or 0:.0f}% "
-                      f"({c['cpu_start_percent'] or 0:.0f}% at the start, {c['cpu_end_percent'] or 0:.0f}% at the end)")
-    for key, label, unit in (("chdb_mb", "ClickHouse's tracked memory in serve", "MB"),
-                             ("python_blocks_k", "Python's allocated blocks in serve", "k")):
+        verdict = (
+            "expected: keeps every record"
+            if name in EXPECTED_TO_GROW.get(s["kafka"], ())
+            else "bounded"
+            if c["growth_bounded"]
+            else f"over {max_growth:g} MB/h"
+            if c["growth_bounded"] is False
+            else "too few samples"
+        )
+        console.print(
+            f"  {name:10s} RSS {c['rss_first_mb']:.0f} -> {c['rss_last_mb']:.0f} MB "
+            f"(max {c['rss_max_mb']:.0f}), growth "
+            f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'}"
+            + (
+                f", anonymous {c['anon_first_mb']:.0f} -> {c['anon_last_mb']:.0f} MB "
+                f"({c['anon_growth_mb_per_h']:+.1f} MB/h)"
+                if c.get("anon_growth_mb_per_h") is not None
+                else ""
+            )
+            + f" ({verdict}), "
+            f"CPU median {c['cpu_median_percent'] or 0:.0f}% "
+            f"({c['cpu_start_percent'] or 0:.0f}% at the start, {c['cpu_end_percent'] or 0:.0f}% at the end)"
+        )
+    for key, label, unit in (
+        ("chdb_mb", "ClickHouse's tracked memory in serve", "MB"),
+        ("python_blocks_k", "Python's allocated blocks in serve", "k"),
+    ):
         inside = s.get("serve_inside", {}).get(key)
         if inside and inside["growth_per_h"] is not None:
-            console.print(f"  {label}: {inside['first']:.1f} -> {inside['last']:.1f} {unit}, "
-                          f"growth {inside['growth_per_h']:+.1f} {unit}/h")
+            console.print(
+                f"  {label}: {inside['first']:.1f} -> {inside['last']:.1f} {unit}, "
+                f"growth {inside['growth_per_h']:+.1f} {unit}/h"
+            )
     for name, d in s.get("disk", {}).items():
         growth = d["growth_mb_per_h"]
-        console.print(f"  disk {name:10s} {d['first_mb']:.1f} -> {d['last_mb']:.1f} MB, growth "
-                      f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'}"
-                      + (f", ~{d['bytes_per_event']:.0f} bytes per stored event"
-                         if d.get("bytes_per_event") is not None else ""))
+        console.print(
+            f"  disk {name:10s} {d['first_mb']:.1f} -> {d['last_mb']:.1f} MB, growth "
+            f"{'n/a' if growth is None else f'{growth:+.1f} MB/h'}"
+            + (
+                f", ~{d['bytes_per_event']:.0f} bytes per stored event"
+                if d.get("bytes_per_event") is not None
+                else ""
+            )
+        )
     broker = result.get("kafka_broker")
     if broker:
-        console.print(f"  Apache Kafka {broker['version']}: heap at most {broker['heap_mb']} MB; "
-                      f"its log kept {broker['retention_hours']} h and at most "
-                      f"{broker['retention_bytes_per_partition'] / 1024**2:.0f} MiB per partition")
+        console.print(
+            f"  Apache Kafka {broker['version']}: heap at most {broker['heap_mb']} MB; "
+            f"its log kept {broker['retention_hours']} h and at most "
+            f"{broker['retention_bytes_per_partition'] / 1024**2:.0f} MiB per partition"
+        )
     if "kafka_bytes_per_event" in s:
-        console.print(f"  tansu holds ~{s['kafka_bytes_per_event']:.0f} bytes per event: "
-                      f"{s['kafka_mb_per_day']:.0f} MB a day, {s['kafka_mb_per_week']:.0f} MB a week "
-                      "at this load until `mapservice up` restarts")
+        console.print(
+            f"  tansu holds ~{s['kafka_bytes_per_event']:.0f} bytes per event: "
+            f"{s['kafka_mb_per_day']:.0f} MB a day, {s['kafka_mb_per_week']:.0f} MB a week "
+            "at this load until `mapservice up` restarts"
+        )
 
 
 def add_parser(kinds) -> None:
-    soak = kinds.add_parser("soak", help="the embedded service under simulated robots for a long "
-                                         "time: memory, CPU, freshness and errors over time")
-    soak.add_argument("--minutes", type=float, default=60, help="how long the robots publish "
-                      "(under 60: reported as not representative)")
-    soak.add_argument("--robots", type=int, default=20, help="simulated robots (each a pose a "
-                      "second and a chunk every five)")
-    soak.add_argument("--mqtt", default="amqtt", help="amqtt (as `mapservice up`), mosquitto or an "
-                      "mqtt:// URL")
-    soak.add_argument("--kafka", choices=("auto", "apache", "tansu"), default="auto",
-                      help="the embedded Kafka: apache (a KRaft node, log on disk, bounded heap), "
-                      "tansu (in memory) or auto (MAPSERVICE_EMBEDDED_KAFKA: apache where Java is)")
+    soak = kinds.add_parser(
+        "soak",
+        help="the embedded service under simulated robots for a long "
+        "time: memory, CPU, freshness and errors over time",
+    )
+    soak.add_argument(
+        "--minutes",
+        type=float,
+        default=60,
+        help="how long the robots publish (under 60: reported as not representative)",
+    )
+    soak.add_argument(
+        "--robots",
+        type=int,
+        default=20,
+        help="simulated robots (each a pose a second and a chunk every five)",
+    )
+    soak.add_argument(
+        "--mqtt", default="amqtt", help="amqtt (as `mapservice up`), mosquitto or an mqtt:// URL"
+    )
+    soak.add_argument(
+        "--kafka",
+        choices=("auto", "apache", "tansu"),
+        default="auto",
+        help="the embedded Kafka: apache (a KRaft node, log on disk, bounded heap), "
+        "tansu (in memory) or auto (MAPSERVICE_EMBEDDED_KAFKA: apache where Java is)",
+    )
     soak.add_argument("--sample-s", type=float, default=30, help="seconds between samples")
-    soak.add_argument("--max-growth-mb-per-h", type=float, default=20, help="memory growth per hour "
-                      "allowed to each component except tansu (which keeps every record); Apache Kafka's "
-                      "JVM is judged too")
+    soak.add_argument(
+        "--max-growth-mb-per-h",
+        type=float,
+        default=20,
+        help="memory growth per hour "
+        "allowed to each component except tansu (which keeps every record); Apache Kafka's "
+        "JVM is judged too",
+    )
     soak.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
     soak.add_argument("--json", default=None, help="write samples and summary as JSON to this file")
     soak.set_defaults(func=main)

@@ -15,7 +15,9 @@ def naive_map_at(store, at_ms: int) -> list:
             "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
             "lower(hex(argMax(content_hash, (ts, robot_id)))) "
             f"FROM {db}.chunk_events WHERE ts <= fromUnixTimestamp64Milli({{t:Int64}}) "
-            "GROUP BY row, col ORDER BY row, col", parameters={"t": at_ms}).result_rows
+            "GROUP BY row, col ORDER BY row, col",
+            parameters={"t": at_ms},
+        ).result_rows
     return [ChunkState(*r) for r in rows]
 
 
@@ -23,10 +25,14 @@ def naive_robots_at(store, at_ms: int) -> list[tuple[str, int]]:
     """(robot, time of its latest pose <= T) over all poses: no snapshot."""
     db = store.database
     with store._lock:
-        return [tuple(r) for r in store.client.query(
-            f"SELECT robot_id, toUnixTimestamp64Milli(max(ts)) FROM {db}.poses "
-            "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) GROUP BY robot_id ORDER BY robot_id",
-            parameters={"t": at_ms}).result_rows]
+        return [
+            tuple(r)
+            for r in store.client.query(
+                f"SELECT robot_id, toUnixTimestamp64Milli(max(ts)) FROM {db}.poses "
+                "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) GROUP BY robot_id ORDER BY robot_id",
+                parameters={"t": at_ms},
+            ).result_rows
+        ]
 
 
 def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> list:
@@ -39,7 +45,8 @@ def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> li
         "ORDER BY robot_id, ts "
         "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
         f"ORDER BY ts, robot_id LIMIT 100000 {_FINAL_SETTINGS}",
-        {"f": from_ms, "t": to_ms, "s": step_ms})
+        {"f": from_ms, "t": to_ms, "s": step_ms},
+    )
 
 
 def naive_timeline(store, from_ms: int, to_ms: int, buckets: int) -> list:
@@ -51,15 +58,25 @@ def naive_timeline(store, from_ms: int, to_ms: int, buckets: int) -> list:
     bucket_ms, starts = timeline_buckets(from_ms, to_ms, buckets)
     db = store.database
     params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
-    window = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+    window = (
+        "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+    )
     bucket = "intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64})"
     with store._lock:
-        chunks = dict(store.client.query(
-            f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL WHERE {window} GROUP BY k",
-            parameters=params).result_rows)
-        robots = dict(store.client.query(
-            f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.poses WHERE {window} GROUP BY k",
-            parameters=params).result_rows)
+        chunks = dict(
+            store.client.query(
+                f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL WHERE {window} GROUP BY k",
+                parameters=params,
+            ).result_rows
+        )
+        robots = dict(
+            store.client.query(
+                f"SELECT {bucket} AS k, uniqExact(robot_id) FROM {db}.poses WHERE {window} GROUP BY k",
+                parameters=params,
+            ).result_rows
+        )
     conflicts = store.conflict_counts(from_ms, to_ms, bucket_ms)
-    return [TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
-            for k, start in enumerate(starts)]
+    return [
+        TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
+        for k, start in enumerate(starts)
+    ]

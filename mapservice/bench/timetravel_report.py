@@ -3,8 +3,14 @@ section it appends to a Markdown journal (`--benchmarks-md`)."""
 
 from __future__ import annotations
 
-TARGETS_MS = {"map_at": 100.0, "robots_at": 50.0, "window_10s": 50.0, "day_downsampled": 200.0,
-              "timeline": 150.0, "track": None}
+TARGETS_MS = {
+    "map_at": 100.0,
+    "robots_at": 50.0,
+    "window_10s": 50.0,
+    "day_downsampled": 200.0,
+    "timeline": 150.0,
+    "track": None,
+}
 
 ROWS = [
     ("map_at(T), random T", "map_at:random", "naive_map:random", "map_at"),
@@ -12,14 +18,31 @@ ROWS = [
     ("map_at(T), T ~6 days ago", "map_at:6_days_ago", "naive_map:6_days_ago", "map_at"),
     ("robots_at(T), random T", "robots_at", "naive_robots", "robots_at"),
     ("10 s window (chunk events + poses)", "window_10s", None, "window_10s"),
-    ("one day, poses 1 per robot per --step-s", "day_downsampled", "naive_downsampled",
-     "day_downsampled"),
-    ("one day for 86400x (1 per robot per 8,640 s)", "day_replay_86400x", "naive_replay_86400x",
-     "day_downsampled"),
-    ("86400x, `from` off the minute (keyframes + heads)", "replay_86400x_any_from", None,
-     "day_downsampled"),
+    (
+        "one day, poses 1 per robot per --step-s",
+        "day_downsampled",
+        "naive_downsampled",
+        "day_downsampled",
+    ),
+    (
+        "one day for 86400x (1 per robot per 8,640 s)",
+        "day_replay_86400x",
+        "naive_replay_86400x",
+        "day_downsampled",
+    ),
+    (
+        "86400x, `from` off the minute (keyframes + heads)",
+        "replay_86400x_any_from",
+        None,
+        "day_downsampled",
+    ),
     ("timeline, whole history, 10-min buckets", "timeline_week", "naive_timeline_week", "timeline"),
-    ("timeline, one day, 1,000 buckets of 86.4 s", "timeline_day", "naive_timeline_day", "timeline"),
+    (
+        "timeline, one day, 1,000 buckets of 86.4 s",
+        "timeline_day",
+        "naive_timeline_day",
+        "timeline",
+    ),
     ("track, one robot, one day at --step-s", "track_day", None, "track"),
 ]
 
@@ -37,15 +60,23 @@ def table_rows(results: dict) -> list[list[str]]:
         goal = TARGETS_MS[target]
         if not s["n"]:
             continue
-        out.append([label, str(s["n"]), _fmt(s["p50"]), _fmt(s["p99"]), _fmt(s["max"]),
-                    _fmt(ns.get("p50")), _fmt(ns.get("p99")),
-                    "-" if goal is None else f"<= {goal:.0f}",
-                    "-" if goal is None else ("yes" if s["p99"] <= goal else "NO")])
+        out.append(
+            [
+                label,
+                str(s["n"]),
+                _fmt(s["p50"]),
+                _fmt(s["p99"]),
+                _fmt(s["max"]),
+                _fmt(ns.get("p50")),
+                _fmt(ns.get("p99")),
+                "-" if goal is None else f"<= {goal:.0f}",
+                "-" if goal is None else ("yes" if s["p99"] <= goal else "NO"),
+            ]
+        )
     return out
 
 
-HEADER = ["query", "n", "p50 ms", "p99 ms", "max ms", "naive p50", "naive p99", "target p99",
-          "met"]
+HEADER = ["query", "n", "p50 ms", "p99 ms", "max ms", "naive p50", "naive p99", "target p99", "met"]
 
 
 def markdown(results: dict) -> str:
@@ -65,15 +96,21 @@ def markdown(results: dict) -> str:
     meas = results["measure"]
     busy = results["busy_before"] + results["busy_after"] + meas.get("busy_seen", [])
     if busy:
-        lines += [f"**The machine was not quiet**: another benchmark was running during "
-                  f"{meas.get('busy_rounds', '?')} of {meas.get('rounds', '?')} query rounds "
-                  f"(e.g. `{busy[0][:70]}`), so those latencies are pessimistic "
-                  f"(load average {results['loadavg_before']:.2f} before, "
-                  f"{results['loadavg_after']:.2f} after).", ""]
+        lines += [
+            f"**The machine was not quiet**: another benchmark was running during "
+            f"{meas.get('busy_rounds', '?')} of {meas.get('rounds', '?')} query rounds "
+            f"(e.g. `{busy[0][:70]}`), so those latencies are pessimistic "
+            f"(load average {results['loadavg_before']:.2f} before, "
+            f"{results['loadavg_after']:.2f} after).",
+            "",
+        ]
     else:
-        lines += ["No other benchmark ran during the measurement (checked every 10 query "
-                  f"rounds; load average {results['loadavg_before']:.2f} before, "
-                  f"{results['loadavg_after']:.2f} after).", ""]
+        lines += [
+            "No other benchmark ran during the measurement (checked every 10 query "
+            f"rounds; load average {results['loadavg_before']:.2f} before, "
+            f"{results['loadavg_after']:.2f} after).",
+            "",
+        ]
     if info.get("reused"):
         lines += ["The history was loaded by an earlier run (`--reuse`).", ""]
     lines += [
@@ -95,8 +132,11 @@ def markdown(results: dict) -> str:
         f"each, `build_snapshots`), the other {info.get('snapshots_bulk')} in "
         f"{info.get('bulk_s', 0):.1f} s (`build_snapshots_bulk`, one day per statement); "
         f"OPTIMIZE FINAL {info.get('optimize_s', 0):.1f} s"
-        + (" (another benchmark was running during the load)." if info.get("busy_during_load")
-           else " (no other benchmark ran during the load)."),
+        + (
+            " (another benchmark was running during the load)."
+            if info.get("busy_during_load")
+            else " (no other benchmark ran during the load)."
+        ),
         "",
         "| " + " | ".join(HEADER) + " |",
         "|" + "|".join(["---"] + ["---:"] * (len(HEADER) - 1)) + "|",
@@ -125,8 +165,9 @@ def markdown(results: dict) -> str:
         f"{checks.get('week_buckets', '?')} buckets.",
     ]
     if results.get("storage"):
-        parts = ", ".join(f"{k} {v / 2**20:.1f} MiB" for k, v in sorted(results["storage"].items())
-                          if v > 2**20)
+        parts = ", ".join(
+            f"{k} {v / 2**20:.1f} MiB" for k, v in sorted(results["storage"].items()) if v > 2**20
+        )
         lines += [f"On disk after merging: {parts}."]
     if results.get("remarks"):
         lines += ["", *results["remarks"]]

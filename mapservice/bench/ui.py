@@ -83,8 +83,9 @@ class ApiProcess:
     """`mapservice api` on a free port in its own process; the caller has closed the chDB
     directory first (one process may open it at a time). Stopped with SIGTERM on exit."""
 
-    def __init__(self, chdb_dir: Path, database: str, log_path: Path,
-                 timeout_s: float = 120) -> None:
+    def __init__(
+        self, chdb_dir: Path, database: str, log_path: Path, timeout_s: float = 120
+    ) -> None:
         from mapservice.local.embedded import free_port
 
         self.port = free_port()
@@ -102,22 +103,29 @@ class ApiProcess:
 
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as log:
-            self.proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", "api"],
-                                         env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "mapservice.cli", "api"],
+                env=self.env,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
         deadline = time.monotonic() + self.timeout_s
         try:
             while True:
                 if self.proc.poll() is not None:
-                    raise RuntimeError(f"the API exited ({self.proc.returncode}); see {self.log_path}")
+                    raise RuntimeError(
+                        f"the API exited ({self.proc.returncode}); see {self.log_path}"
+                    )
                 try:
                     if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
                         return self
                 except httpx.HTTPError:
                     pass
                 if time.monotonic() > deadline:
-                    raise RuntimeError(f"the API was not ready within {self.timeout_s:.0f} s; "
-                                       f"see {self.log_path}")
+                    raise RuntimeError(
+                        f"the API was not ready within {self.timeout_s:.0f} s; see {self.log_path}"
+                    )
                 time.sleep(0.1)
         except BaseException:
             self.__exit__()
@@ -138,8 +146,9 @@ class Loaded:
         self.start_ms, self.end_ms = start_ms, end_ms
 
 
-def load_or_reuse(data: Path, database: str, days: float, robots: int, end_ms: int,
-                  reuse: bool) -> tuple[Loaded, bool]:
+def load_or_reuse(
+    data: Path, database: str, days: float, robots: int, end_ms: int, reuse: bool
+) -> tuple[Loaded, bool]:
     """Loads the history, or with `reuse` reads back the one loaded before with the same
     days and robots (its end then stays the first load's). Returns it and whether it was reused."""
     marker = data / f"loaded-{database}.json"
@@ -148,8 +157,10 @@ def load_or_reuse(data: Path, database: str, days: float, robots: int, end_ms: i
         if doc["days"] == days and doc["robots"] == robots:
             migrate(data / "ch", database)
             return Loaded(doc["poses"], doc["chunk_events"], doc["start_ms"], doc["end_ms"]), True
-        raise SystemExit(f"bench ui: {marker} holds {doc['days']} days of {doc['robots']} "
-                         f"robots, not {days} of {robots}; use another --data-dir")
+        raise SystemExit(
+            f"bench ui: {marker} holds {doc['days']} days of {doc['robots']} "
+            f"robots, not {days} of {robots}; use another --data-dir"
+        )
     r = load(data / "ch", database, days, robots, end_ms)
     loaded = Loaded(r.poses, r.chunk_events, r.start_ms, r.end_ms)
     if reuse:
@@ -166,9 +177,17 @@ def migrate(path: Path, database: str) -> None:
     try:
         if store.schema_version() < SCHEMA_VERSION:
             t0 = time.perf_counter()
-            print(f"bench ui: migrating {database} to schema {SCHEMA_VERSION}...", file=sys.stderr, flush=True)
+            print(
+                f"bench ui: migrating {database} to schema {SCHEMA_VERSION}...",
+                file=sys.stderr,
+                flush=True,
+            )
             store.migrate()
-            print(f"bench ui: migrated in {time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+            print(
+                f"bench ui: migrated in {time.perf_counter() - t0:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
     finally:
         store.close()
 
@@ -188,14 +207,21 @@ def _progress(phase: str, done: int, total: int, info: dict) -> None:
 def load(path: Path, database: str, days: float, robots: int, end_ms: int):
     """Both histories share one chDB directory, in two databases; closed once loaded."""
     from mapservice.adapters.clickhouse.store import ClickHouseStore
+    from mapservice.adapters.ros_map import load_ros_map
     from mapservice.bench.history_loader import load_history
     from mapservice.robot import DEFAULT_MAP
-    from mapservice.adapters.ros_map import load_ros_map
 
     store = ClickHouseStore(f"chdb://{path}", database=database, snapshot_every_ms=600_000)
     try:
-        return load_history(store, load_ros_map(DEFAULT_MAP), days=days, robots=robots,
-                            end_ms=end_ms, grid=(32, 48), on_progress=_progress)
+        return load_history(
+            store,
+            load_ros_map(DEFAULT_MAP),
+            days=days,
+            robots=robots,
+            end_ms=end_ms,
+            grid=(32, 48),
+            on_progress=_progress,
+        )
     finally:
         store.close()  # the API process opens the directory next
 
@@ -226,9 +252,16 @@ def seek_phase(pw, api_url: str, start_ms: int, end_ms: int, seeks: int, seed: i
         api_times = page.evaluate("() => window.__replay.seekApiTimes.slice(1)")
     finally:
         browser.close()
-    return {"first_seek_ms": first, "seeks": len(times), "p50_ms": percentile(times, 50),
-            "p95_ms": percentile(times, 95), "max_ms": max(times), "images_downloaded": images,
-            "api_part_p50_ms": percentile(api_times, 50), "api_part_p95_ms": percentile(api_times, 95)}
+    return {
+        "first_seek_ms": first,
+        "seeks": len(times),
+        "p50_ms": percentile(times, 50),
+        "p95_ms": percentile(times, 95),
+        "max_ms": max(times),
+        "images_downloaded": images,
+        "api_part_p50_ms": percentile(api_times, 50),
+        "api_part_p95_ms": percentile(api_times, 95),
+    }
 
 
 def frame_phase(pw, api_url: str, start_ms: int, play_seconds: float) -> dict:
@@ -243,10 +276,15 @@ def frame_phase(pw, api_url: str, start_ms: int, play_seconds: float) -> dict:
         applied = page.evaluate("() => window.__replay.log.length")
     finally:
         browser.close()
-    return {"frames": len(script), "robots_shown": robots, "writes_applied": applied,
-            "script_p50_ms": percentile(script, 50), "script_p95_ms": percentile(script, 95),
-            "interval_p50_ms": percentile(intervals, 50),
-            "interval_p95_ms": percentile(intervals, 95)}
+    return {
+        "frames": len(script),
+        "robots_shown": robots,
+        "writes_applied": applied,
+        "script_p50_ms": percentile(script, 50),
+        "script_p95_ms": percentile(script, 95),
+        "interval_p50_ms": percentile(intervals, 50),
+        "interval_p95_ms": percentile(intervals, 95),
+    }
 
 
 def _get(api_url: str, path: str, **params):
@@ -272,8 +310,11 @@ def api_writes(api_url: str, f: int, t: int, step: int) -> list[dict]:
     while f < t:
         end = min(t, (f + DAY_MS // 2) // align * align)
         end = end if end > f else min(t, f + DAY_MS // 2)
-        doc = _get(api_url, "/api/v1/events", **{"from": f, "to": end, "step_ms": 3_600_000,
-                                                 "chunk_step_ms": step})
+        doc = _get(
+            api_url,
+            "/api/v1/events",
+            **{"from": f, "to": end, "step_ms": 3_600_000, "chunk_step_ms": step},
+        )
         out.extend(doc["chunks"])
         f = doc["to_ms"] if doc["truncated"] else end
     return out
@@ -321,30 +362,41 @@ def mismatches(page_cells: list, expected: dict) -> int:
     return sum(page.get(k) != expected.get(k) for k in page.keys() | expected.keys())
 
 
-def speed_run(pw, api_url: str, at_ms: int, speed: int, direction: int, seconds: float,
-              compact: bool) -> dict:
+def speed_run(
+    pw, api_url: str, at_ms: int, speed: int, direction: int, seconds: float, compact: bool
+) -> dict:
     """Plays at `speed` from `at_ms` for `seconds`; stalls and the skipped-change checks."""
     browser, page = browser_page(pw, f"{api_url}/?t={at_ms}&speed={speed}")
     try:
         page.evaluate("(on) => window.__replay.setCompaction(on)", compact)
         page.evaluate("(t) => window.__replay.seek(t)", at_ms)
-        page.wait_for_function("() => window.__replay.complete && !window.__replay.seeking",
-                               timeout=120_000)
+        page.wait_for_function(
+            "() => window.__replay.complete && !window.__replay.seeking", timeout=120_000
+        )
         p0 = page.evaluate("() => window.__replay.playhead")
-        page.evaluate("([s, d]) => { const r = window.__replay; r.clearCounts(); "
-                      "r.resetFrameStats(); r.play(s, d); }", [speed, direction])
+        page.evaluate(
+            "([s, d]) => { const r = window.__replay; r.clearCounts(); "
+            "r.resetFrameStats(); r.play(s, d); }",
+            [speed, direction],
+        )
         time.sleep(seconds)
         # Paused and read in one script: before the next frame's seek in place.
-        snap = page.evaluate("() => { const r = window.__replay; r.pause(); return {"
-                             "playhead: r.playhead, cells: r.cells(), applied: r.applied, "
-                             "stalls: r.stalls.slice(), buffering: r.buffering, "
-                             "window_ms: r.bufferWindowMs, step: r.chunkStepMs, "
-                             "frames: r.frameIntervals.slice(), windows: r.windows.length}; }")
+        snap = page.evaluate(
+            "() => { const r = window.__replay; r.pause(); return {"
+            "playhead: r.playhead, cells: r.cells(), applied: r.applied, "
+            "stalls: r.stalls.slice(), buffering: r.buffering, "
+            "window_ms: r.bufferWindowMs, step: r.chunkStepMs, "
+            "frames: r.frameIntervals.slice(), windows: r.windows.length}; }"
+        )
         p1, step = snap["playhead"], snap["step"]
-        page.wait_for_function(f"() => !window.__replay.seeking && "
-                               f"({step} === 0 || window.__replay.mapExactAt === window.__replay.playhead)",
-                               timeout=120_000)
-        rested = page.evaluate("() => ({playhead: window.__replay.playhead, cells: window.__replay.cells()})")
+        page.wait_for_function(
+            f"() => !window.__replay.seeking && "
+            f"({step} === 0 || window.__replay.mapExactAt === window.__replay.playhead)",
+            timeout=120_000,
+        )
+        rested = page.evaluate(
+            "() => ({playhead: window.__replay.playhead, cells: window.__replay.cells()})"
+        )
     finally:
         browser.close()
     expected, crossed = expected_at(api_url, p0, p1, step)
@@ -352,26 +404,44 @@ def speed_run(pw, api_url: str, at_ms: int, speed: int, direction: int, seconds:
     startup, later = (stalls[0], stalls[1:]) if stalls else (0.0, [])
     applied = snap["applied"]["forward" if direction > 0 else "backward"]
     return {
-        "speed": speed, "direction": direction, "compacted": compact, "chunk_step_ms": step,
-        "played_s": seconds, "data_played_h": round(abs(p1 - p0) / 3_600_000, 2),
-        "buffer_window_ms": round(snap["window_ms"]), "windows_fetched": snap["windows"],
-        "startup_ms": round(startup), "stalls": len(later),
-        "stall_max_ms": round(max(later, default=0)), "stall_total_ms": round(sum(later)),
+        "speed": speed,
+        "direction": direction,
+        "compacted": compact,
+        "chunk_step_ms": step,
+        "played_s": seconds,
+        "data_played_h": round(abs(p1 - p0) / 3_600_000, 2),
+        "buffer_window_ms": round(snap["window_ms"]),
+        "windows_fetched": snap["windows"],
+        "startup_ms": round(startup),
+        "stalls": len(later),
+        "stall_max_ms": round(max(later, default=0)),
+        "stall_total_ms": round(sum(later)),
         "stalls_over_window": sum(s > snap["window_ms"] for s in later),
         "buffering_at_pause": snap["buffering"],
         "frame_interval_p50_ms": percentile(snap["frames"], 50),
         "frame_interval_p95_ms": percentile(snap["frames"], 95),
-        "changes_applied": applied, "changes_expected": len(crossed),
+        "changes_applied": applied,
+        "changes_expected": len(crossed),
         "mismatching_cells": mismatches(snap["cells"], expected),
-        "mismatching_cells_at_rest": mismatches(rested["cells"], api_map(api_url, rested["playhead"])),
+        "mismatching_cells_at_rest": mismatches(
+            rested["cells"], api_map(api_url, rested["playhead"])
+        ),
     }
 
 
-def speeds_phase(pw, api_url: str, start_ms: int, end_ms: int, speeds: list[int],
-                 seconds: float, every_write: bool, backward: bool) -> list[dict]:
+def speeds_phase(
+    pw,
+    api_url: str,
+    start_ms: int,
+    end_ms: int,
+    speeds: list[int],
+    seconds: float,
+    every_write: bool,
+    backward: bool,
+) -> list[dict]:
     runs = []
     for speed in speeds:
-        for compact in ([True, False] if every_write else [True]):
+        for compact in [True, False] if every_write else [True]:
             runs.append(speed_run(pw, api_url, start_ms + 3_600_000, speed, 1, seconds, compact))
             print(json.dumps(runs[-1]), flush=True)
             if backward:
@@ -384,38 +454,66 @@ def main(args) -> None:
     from playwright.sync_api import sync_playwright
 
     if not (TEST_UI_DIR / "index.html").exists():
-        raise SystemExit(f"bench ui: the UI's test build ({TEST_UI_DIR}) is missing; run `make ui` first")
+        raise SystemExit(
+            f"bench ui: the UI's test build ({TEST_UI_DIR}) is missing; run `make ui` first"
+        )
     if args.reuse and not args.data_dir:
         raise SystemExit("bench ui: --reuse needs --data-dir")
     tmp = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-ui-"))
     tmp.mkdir(parents=True, exist_ok=True)
     end = time.time_ns() // 1_000_000 - 600_000
     speeds = [int(s) for s in args.high_speeds.split(",") if s.strip()]
-    out: dict = {"days": args.days, "robots": args.robots, "frame_robots": args.frame_robots,
-                 "frame_minutes": args.frame_minutes}
+    out: dict = {
+        "days": args.days,
+        "robots": args.robots,
+        "frame_robots": args.frame_robots,
+        "frame_minutes": args.frame_minutes,
+    }
     try:
         with sync_playwright() as pw:
             t0 = time.perf_counter()
-            result, reused = load_or_reuse(tmp, "bench_seek", args.days, args.robots, end, args.reuse)
-            out["seek_history"] = {"poses": result.poses, "chunk_events": result.chunk_events,
-                                   "load_s": round(time.perf_counter() - t0, 1), "reused": reused}
+            result, reused = load_or_reuse(
+                tmp, "bench_seek", args.days, args.robots, end, args.reuse
+            )
+            out["seek_history"] = {
+                "poses": result.poses,
+                "chunk_events": result.chunk_events,
+                "load_s": round(time.perf_counter() - t0, 1),
+                "reused": reused,
+            }
             with ApiProcess(tmp / "ch", "bench_seek", tmp / "logs" / "api-seek.log") as api:
                 if args.seeks:
-                    out["seek"] = seek_phase(pw, api.url, result.start_ms, result.end_ms,
-                                             args.seeks, args.seed)
+                    out["seek"] = seek_phase(
+                        pw, api.url, result.start_ms, result.end_ms, args.seeks, args.seed
+                    )
                     print(json.dumps(out, indent=2), flush=True)
                 if args.panel_reads:
                     from mapservice.bench.ui_reads import panel_reads_phase
-                    out["panel_reads"] = panel_reads_phase(api.url, result.start_ms, result.end_ms,
-                                                           args.panel_reads, args.seed)
+
+                    out["panel_reads"] = panel_reads_phase(
+                        api.url, result.start_ms, result.end_ms, args.panel_reads, args.seed
+                    )
                     print(json.dumps(out["panel_reads"], indent=2), flush=True)
                 if speeds:
-                    out["speeds"] = speeds_phase(pw, api.url, result.start_ms, result.end_ms,
-                                                 speeds, args.high_seconds, args.every_write,
-                                                 not args.forward_only)
+                    out["speeds"] = speeds_phase(
+                        pw,
+                        api.url,
+                        result.start_ms,
+                        result.end_ms,
+                        speeds,
+                        args.high_seconds,
+                        args.every_write,
+                        not args.forward_only,
+                    )
             if args.play_seconds > 0:
-                result, _ = load_or_reuse(tmp, "bench_frames", args.frame_minutes / 1440,
-                                          args.frame_robots, end, args.reuse)
+                result, _ = load_or_reuse(
+                    tmp,
+                    "bench_frames",
+                    args.frame_minutes / 1440,
+                    args.frame_robots,
+                    end,
+                    args.reuse,
+                )
                 with ApiProcess(tmp / "ch", "bench_frames", tmp / "logs" / "api-frames.log") as api:
                     out["frames"] = frame_phase(pw, api.url, result.start_ms, args.play_seconds)
     finally:
@@ -423,7 +521,9 @@ def main(args) -> None:
             shutil.rmtree(tmp, ignore_errors=True)
     out["summary"] = summary(out)
     if args.baseline:
-        out["ratio_to_baseline"] = ratios(out["summary"], summary(json.loads(Path(args.baseline).read_text())))
+        out["ratio_to_baseline"] = ratios(
+            out["summary"], summary(json.loads(Path(args.baseline).read_text()))
+        )
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2))
@@ -443,9 +543,14 @@ def summary(out: dict) -> dict:
 
 def ratios(now: dict, before: dict) -> dict:
     """Each p95 of `now` over the same figure of `before` (both measured on one history)."""
-    return {k: round(v / before[k], 3) for k, v in now.items()
-            if k.endswith("_ms") and isinstance(v, (int, float)) and isinstance(before.get(k), (int, float))
-            and before[k] > 0}
+    return {
+        k: round(v / before[k], 3)
+        for k, v in now.items()
+        if k.endswith("_ms")
+        and isinstance(v, (int, float))
+        and isinstance(before.get(k), (int, float))
+        and before[k] > 0
+    }
 
 
 def add_parser(kinds) -> None:
@@ -453,23 +558,51 @@ def add_parser(kinds) -> None:
     p.add_argument("--days", type=float, default=7.0, help="history for the seek measurement")
     p.add_argument("--robots", type=int, default=20, help="simulated robots in the history")
     p.add_argument("--seeks", type=int, default=50, help="random seeks timed")
-    p.add_argument("--panel-reads", type=int, default=40,
-                   help="instants per span (1 h, 1 d, 7 d) at which the plots' track request, the timeline's "
-                        "upload marks and the change feed's first page are timed (0: none)")
-    p.add_argument("--frame-robots", type=int, default=200, help="robots on the map for the frame-time measurement")
-    p.add_argument("--frame-minutes", type=float, default=30.0, help="history minutes played for the frame-time measurement")
+    p.add_argument(
+        "--panel-reads",
+        type=int,
+        default=40,
+        help="instants per span (1 h, 1 d, 7 d) at which the plots' track request, the timeline's "
+        "upload marks and the change feed's first page are timed (0: none)",
+    )
+    p.add_argument(
+        "--frame-robots",
+        type=int,
+        default=200,
+        help="robots on the map for the frame-time measurement",
+    )
+    p.add_argument(
+        "--frame-minutes",
+        type=float,
+        default=30.0,
+        help="history minutes played for the frame-time measurement",
+    )
     p.add_argument("--play-seconds", type=float, default=10.0, help="seconds of playback timed")
     p.add_argument("--seed", type=int, default=1, help="random seed of the history and the seeks")
-    p.add_argument("--high-speeds", default="3600,86400",
-                   help="speeds played on the seek history (comma-separated; empty: none)")
-    p.add_argument("--high-seconds", type=float, default=5.0, help="seconds played at each high speed")
-    p.add_argument("--every-write", action="store_true",
-                   help="also play each high speed fetching every chunk write (no compaction)")
+    p.add_argument(
+        "--high-speeds",
+        default="3600,86400",
+        help="speeds played on the seek history (comma-separated; empty: none)",
+    )
+    p.add_argument(
+        "--high-seconds", type=float, default=5.0, help="seconds played at each high speed"
+    )
+    p.add_argument(
+        "--every-write",
+        action="store_true",
+        help="also play each high speed fetching every chunk write (no compaction)",
+    )
     p.add_argument("--forward-only", action="store_true", help="high speeds forwards only")
     p.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
-    p.add_argument("--reuse", action="store_true",
-                   help="with --data-dir: load each history once, reuse it on later runs")
+    p.add_argument(
+        "--reuse",
+        action="store_true",
+        help="with --data-dir: load each history once, reuse it on later runs",
+    )
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
-    p.add_argument("--baseline", default=None,
-                   help="an earlier run's --json on the same history: report each p95's ratio to it")
+    p.add_argument(
+        "--baseline",
+        default=None,
+        help="an earlier run's --json on the same history: report each p95's ratio to it",
+    )
     p.set_defaults(func=main)

@@ -23,8 +23,11 @@ SPANS = {"1h": 3_600_000, "1d": 86_400_000, "7d": 7 * 86_400_000}
 def plot_window(from_ms: int, to_ms: int, width_px: int = PLOT_WIDTH_PX) -> tuple[int, int]:
     """(start, step_ms) of the plot's track request: as plots.ts plotWindow."""
     raw = (to_ms - from_ms) / max(50, width_px / 2)
-    step = (math.ceil(raw / KEYFRAME_MS) * KEYFRAME_MS if raw >= KEYFRAME_MS
-            else max(1000, math.ceil(raw / 1000) * 1000))
+    step = (
+        math.ceil(raw / KEYFRAME_MS) * KEYFRAME_MS
+        if raw >= KEYFRAME_MS
+        else max(1000, math.ceil(raw / 1000) * 1000)
+    )
     start = from_ms // KEYFRAME_MS * KEYFRAME_MS if step % KEYFRAME_MS == 0 else from_ms
     return start, step
 
@@ -42,11 +45,18 @@ def panel_reads_phase(api_url: str, start_ms: int, end_ms: int, n: int, seed: in
     rng = random.Random(seed)
     out: dict = {}
     with httpx.Client(base_url=api_url, timeout=600) as client:
-        robots = [r["robotId"] for r in client.get("/api/v1/robots", params={"at": end_ms}).json()["robots"]]
+        robots = [
+            r["robotId"]
+            for r in client.get("/api/v1/robots", params={"at": end_ms}).json()["robots"]
+        ]
         for name, span in SPANS.items():
             if span > end_ms - start_ms:
                 continue
-            times: dict[str, list[float]] = {"plot_track": [], "uploads": [], "changes_first_page": []}
+            times: dict[str, list[float]] = {
+                "plot_track": [],
+                "uploads": [],
+                "changes_first_page": [],
+            }
             refused = dict.fromkeys(times, 0)
             points: list[int] = []
             for _ in range(n):
@@ -54,9 +64,14 @@ def panel_reads_phase(api_url: str, start_ms: int, end_ms: int, n: int, seed: in
                 f = to - span
                 p_from, step = plot_window(f, to)
                 asks: dict[str, tuple[str, dict[str, int | str]]] = {
-                    "plot_track": (f"/api/v1/robots/{rng.choice(robots)}/track",
-                                   {"from": p_from, "to": to + 1, "step_ms": step}),
-                    "uploads": ("/api/v1/changes", {"from": f, "to": to, "kind": "upload", "limit": 1000}),
+                    "plot_track": (
+                        f"/api/v1/robots/{rng.choice(robots)}/track",
+                        {"from": p_from, "to": to + 1, "step_ms": step},
+                    ),
+                    "uploads": (
+                        "/api/v1/changes",
+                        {"from": f, "to": to, "kind": "upload", "limit": 1000},
+                    ),
                     "changes_first_page": ("/api/v1/changes", {"from": f, "to": to, "limit": 100}),
                 }
                 for key, (path, params) in asks.items():
@@ -70,8 +85,16 @@ def panel_reads_phase(api_url: str, start_ms: int, end_ms: int, n: int, seed: in
                     times[key].append(ms)
                     if key == "plot_track":
                         points.append(len(r.json()["points"]))
-            out[name] = {k: {"n": len(v), "p50_ms": _pct(v, 50), "p95_ms": _pct(v, 95),
-                             "max_ms": _pct(v, 100), "refused_422": refused[k]} for k, v in times.items()}
+            out[name] = {
+                k: {
+                    "n": len(v),
+                    "p50_ms": _pct(v, 50),
+                    "p95_ms": _pct(v, 95),
+                    "max_ms": _pct(v, 100),
+                    "refused_422": refused[k],
+                }
+                for k, v in times.items()
+            }
             out[name]["plot_track"]["points_p50"] = _pct([float(p) for p in points], 50)
             out[name]["plot_track"]["step_ms"] = plot_window(0, span)[1]
     return out

@@ -20,13 +20,13 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from urllib.parse import urlparse
 
-from mapservice.core.vda_ids import robot_id_for
 from mapservice.bench.fleet.mqtt_packets import (
     DISCONNECT_PACKET,
     PacketReader,
     PublishTemplate,
     connect_packet,
 )
+from mapservice.core.vda_ids import robot_id_for
 
 VISUALIZATION_PERIOD_S = 0.2
 STATE_EVERY = 5  # visualizations per state: a state a second
@@ -38,30 +38,55 @@ ACK_WAIT_S = 30.0
 
 
 def iso(ms: int) -> bytes:
-    return (datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3]
-            + "Z").encode()
+    return (
+        datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+    ).encode()
 
 
 def _header(serial: str) -> dict:
-    return {"headerId": 1, "timestamp": _TS, "version": VERSION, "manufacturer": MANUFACTURER,
-            "serialNumber": serial}
+    return {
+        "headerId": 1,
+        "timestamp": _TS,
+        "version": VERSION,
+        "manufacturer": MANUFACTURER,
+        "serialNumber": serial,
+    }
 
 
-def vehicle_messages(serial: str, index: int, centre: tuple[float, float],
-                     map_id: str = "floor") -> tuple[bytes, bytes]:
+def vehicle_messages(
+    serial: str, index: int, centre: tuple[float, float], map_id: str = "floor"
+) -> tuple[bytes, bytes]:
     """(visualization, state) payloads of one vehicle, the timestamp left as a marker."""
     angle = index * 0.7
-    position = {"x": round(centre[0] + math.cos(angle), 3), "y": round(centre[1] + math.sin(angle), 3),
-                "theta": round(angle, 3), "mapId": map_id, "positionInitialized": True}
-    visualization = {**_header(serial), "agvPosition": position,
-                     "velocity": {"vx": 0.5, "vy": 0.0, "omega": 0.0}}
-    state = {**_header(serial), "orderId": f"order-{index}", "orderUpdateId": 0,
-             "lastNodeId": "n0", "lastNodeSequenceId": 0, "driving": True,
-             "operatingMode": "AUTOMATIC", "nodeStates": [], "edgeStates": [],
-             "actionStates": [], "errors": [], "agvPosition": position,
-             "loads": [{"loadId": f"L{index}"}] if index % 2 == 0 else [],
-             "batteryState": {"batteryCharge": float(50 + index % 50), "charging": False},
-             "safetyState": {"eStop": "NONE", "fieldViolation": False}}
+    position = {
+        "x": round(centre[0] + math.cos(angle), 3),
+        "y": round(centre[1] + math.sin(angle), 3),
+        "theta": round(angle, 3),
+        "mapId": map_id,
+        "positionInitialized": True,
+    }
+    visualization = {
+        **_header(serial),
+        "agvPosition": position,
+        "velocity": {"vx": 0.5, "vy": 0.0, "omega": 0.0},
+    }
+    state = {
+        **_header(serial),
+        "orderId": f"order-{index}",
+        "orderUpdateId": 0,
+        "lastNodeId": "n0",
+        "lastNodeSequenceId": 0,
+        "driving": True,
+        "operatingMode": "AUTOMATIC",
+        "nodeStates": [],
+        "edgeStates": [],
+        "actionStates": [],
+        "errors": [],
+        "agvPosition": position,
+        "loads": [{"loadId": f"L{index}"}] if index % 2 == 0 else [],
+        "batteryState": {"batteryCharge": float(50 + index % 50), "charging": False},
+        "safetyState": {"eStop": "NONE", "fieldViolation": False},
+    }
     return (json.dumps(visualization).encode(), json.dumps(state).encode())
 
 
@@ -86,8 +111,16 @@ class VdaFleetStats:
 class VdaFleet:
     """`vehicles` VDA 5050 vehicles on `connections` MQTT connections."""
 
-    def __init__(self, mqtt_url: str, ros_map, vehicles: int, *, interface: str = "uagv",
-                 connections: int = 4, prefix: str = "v") -> None:
+    def __init__(
+        self,
+        mqtt_url: str,
+        ros_map,
+        vehicles: int,
+        *,
+        interface: str = "uagv",
+        connections: int = 4,
+        prefix: str = "v",
+    ) -> None:
         url = urlparse(mqtt_url)
         self.host, self.port = url.hostname or "127.0.0.1", url.port or 1883
         width = ros_map.width * ros_map.resolution if ros_map is not None else 20.0
@@ -96,11 +129,19 @@ class VdaFleet:
         self.vehicles: list[tuple[str, PublishTemplate, PublishTemplate]] = []
         for i in range(vehicles):
             serial = f"{prefix}{i:05d}"
-            centre = (ox + 1 + (i * 1.3) % max(width - 2, 1), oy + 1 + (i * 0.7) % max(height - 2, 1))
+            centre = (
+                ox + 1 + (i * 1.3) % max(width - 2, 1),
+                oy + 1 + (i * 0.7) % max(height - 2, 1),
+            )
             viz, state = vehicle_messages(serial, i, centre)
             base = f"{interface}/v2/{MANUFACTURER}/{serial}/"
-            self.vehicles.append((robot_id_for(MANUFACTURER, serial),
-                                  _template(base + "visualization", viz), _template(base + "state", state)))
+            self.vehicles.append(
+                (
+                    robot_id_for(MANUFACTURER, serial),
+                    _template(base + "visualization", viz),
+                    _template(base + "state", state),
+                )
+            )
         self.connections = max(1, min(connections, vehicles))
         self.stats = VdaFleetStats()
         self._stop = threading.Event()
@@ -111,9 +152,11 @@ class VdaFleet:
     def scheduled_events(self, seconds: float) -> int:
         """Messages the schedule asks for in `seconds` (whole visualization periods)."""
         slots = math.ceil(seconds / VISUALIZATION_PERIOD_S - 1e-9)
-        per_vehicle = [slots + sum(1 for slot in range(slots) if (slot + k) % STATE_EVERY == 0)
-                       for group in range(self.connections)
-                       for k in range(len(self.vehicles[group::self.connections]))]
+        per_vehicle = [
+            slots + sum(1 for slot in range(slots) if (slot + k) % STATE_EVERY == 0)
+            for group in range(self.connections)
+            for k in range(len(self.vehicles[group :: self.connections]))
+        ]
         return sum(per_vehicle)
 
     def stop(self) -> None:
@@ -124,18 +167,23 @@ class VdaFleet:
         return self.stats
 
     async def _run(self, seconds: float | None) -> None:
-        groups = [self.vehicles[i::self.connections] for i in range(self.connections)]
+        groups = [self.vehicles[i :: self.connections] for i in range(self.connections)]
         start = time.monotonic() + 0.5
         end = start + seconds if seconds is not None else math.inf
         late: list[float] = []
-        await asyncio.gather(*(self._connection(n, group, start, end, late)
-                               for n, group in enumerate(groups)))
+        await asyncio.gather(
+            *(self._connection(n, group, start, end, late) for n, group in enumerate(groups))
+        )
         late.sort()
-        self.stats.report = {"vehicles": len(self.vehicles), "connections": self.connections,
-                             "lag_p99_s": late[int(0.99 * (len(late) - 1))] if late else None}
+        self.stats.report = {
+            "vehicles": len(self.vehicles),
+            "connections": self.connections,
+            "lag_p99_s": late[int(0.99 * (len(late) - 1))] if late else None,
+        }
 
-    async def _connection(self, n: int, group: list, start: float, end: float,
-                          late: list[float]) -> None:
+    async def _connection(
+        self, n: int, group: list, start: float, end: float, late: list[float]
+    ) -> None:
         reader, writer = await asyncio.open_connection(self.host, self.port)
         writer.write(connect_packet(f"vda-bench-{n}-{time.monotonic_ns()}", 60, True))
         packets = PacketReader()
@@ -183,8 +231,14 @@ class VdaFleet:
         acks.cancel()
 
     @staticmethod
-    def _send(writer, pending: dict, next_pid: list[int], robot_id: str,
-              template: PublishTemplate, plus_ms: int = 0) -> int:
+    def _send(
+        writer,
+        pending: dict,
+        next_pid: list[int],
+        robot_id: str,
+        template: PublishTemplate,
+        plus_ms: int = 0,
+    ) -> int:
         next_pid[0] = next_pid[0] % 65535 + 1
         while next_pid[0] in pending:  # 65,535 in flight on one connection: skip used ids
             next_pid[0] = next_pid[0] % 65535 + 1

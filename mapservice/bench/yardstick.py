@@ -16,10 +16,16 @@ from collections.abc import Callable
 import msgspec
 
 # One robot's pose message, as the pipeline decodes, re-encodes and compresses them.
-_POSE = {"robot_id": "yardstick-0001", "timestamp": 1_795_255_200_000,
-         "position": [12.5, -3.25, 0.0], "orientation": [0.0, 0.0, 0.3826834, 0.9238795],
-         "battery_level": 81.5, "charging": False, "loaded": True,
-         "path": [[float(i), float(i) / 2] for i in range(20)]}
+_POSE = {
+    "robot_id": "yardstick-0001",
+    "timestamp": 1_795_255_200_000,
+    "position": [12.5, -3.25, 0.0],
+    "orientation": [0.0, 0.0, 0.3826834, 0.9238795],
+    "battery_level": 81.5,
+    "charging": False,
+    "loaded": True,
+    "path": [[float(i), float(i) / 2] for i in range(20)],
+}
 _ENCODED = msgspec.json.encode(_POSE)
 _PIXELS = bytes(range(256)) * 160  # 40 KiB: a map chunk's order of size
 

@@ -60,8 +60,9 @@ class Zone(msgspec.Struct, frozen=True, gc=False, tag="zone", array_like=True):
 Shape = PointOfInterest | Zone
 
 
-class AnnotationCreated(msgspec.Struct, frozen=True, gc=False, tag="annotation.created",
-                        array_like=True):
+class AnnotationCreated(
+    msgspec.Struct, frozen=True, gc=False, tag="annotation.created", array_like=True
+):
     """An operator created an annotation (`author`: the credential's name, never a secret)."""
 
     annotation_id: str
@@ -69,8 +70,9 @@ class AnnotationCreated(msgspec.Struct, frozen=True, gc=False, tag="annotation.c
     annotation: Shape
 
 
-class AnnotationChanged(msgspec.Struct, frozen=True, gc=False, tag="annotation.changed",
-                        array_like=True):
+class AnnotationChanged(
+    msgspec.Struct, frozen=True, gc=False, tag="annotation.changed", array_like=True
+):
     """An operator replaced an annotation's content (the whole new content)."""
 
     annotation_id: str
@@ -78,8 +80,9 @@ class AnnotationChanged(msgspec.Struct, frozen=True, gc=False, tag="annotation.c
     annotation: Shape
 
 
-class AnnotationRemoved(msgspec.Struct, frozen=True, gc=False, tag="annotation.removed",
-                        array_like=True):
+class AnnotationRemoved(
+    msgspec.Struct, frozen=True, gc=False, tag="annotation.removed", array_like=True
+):
     annotation_id: str
     author: str
 
@@ -122,8 +125,10 @@ class AnnotationEdit(msgspec.Struct, frozen=True, gc=False):
 
 def _finite(name: str, value: float) -> None:
     if not math.isfinite(value) or abs(value) > MAX_COORDINATE_M:
-        raise AnnotationError(f"{name} must be a finite number of metres within "
-                              f"{MAX_COORDINATE_M:.0f} of the map origin, not {value!r}")
+        raise AnnotationError(
+            f"{name} must be a finite number of metres within "
+            f"{MAX_COORDINATE_M:.0f} of the map origin, not {value!r}"
+        )
 
 
 def _text(name: str, value: str, limit: int, required: bool) -> None:
@@ -155,8 +160,9 @@ def _segments_cross(p1: Point, p2: Point, q1: Point, q2: Point) -> bool:
 def signed_area(ring: Ring) -> float:
     """Shoelace area in m²: positive when the ring runs counter-clockwise."""
     n = len(ring)
-    return 0.5 * sum(ring[i][0] * ring[(i + 1) % n][1] - ring[(i + 1) % n][0] * ring[i][1]
-                     for i in range(n))
+    return 0.5 * sum(
+        ring[i][0] * ring[(i + 1) % n][1] - ring[(i + 1) % n][0] * ring[i][1] for i in range(n)
+    )
 
 
 def check_ring(name: str, ring: Ring, check_crossings: bool = True) -> None:
@@ -172,8 +178,10 @@ def check_ring(name: str, ring: Ring, check_crossings: bool = True) -> None:
     n = len(ring)
     for i in range(n):
         if ring[i] == ring[(i + 1) % n]:
-            raise AnnotationError(f"{name} repeats vertex {i} ({ring[i][0]}, {ring[i][1]}) "
-                                  "next to itself; remove the duplicate (the ring closes by itself)")
+            raise AnnotationError(
+                f"{name} repeats vertex {i} ({ring[i][0]}, {ring[i][1]}) "
+                "next to itself; remove the duplicate (the ring closes by itself)"
+            )
     if abs(signed_area(ring)) < 1e-9:
         raise AnnotationError(f"{name} has no area (its vertices lie on one line)")
     if not check_crossings:
@@ -184,7 +192,8 @@ def check_ring(name: str, ring: Ring, check_crossings: bool = True) -> None:
             if _segments_cross(*edges[i], *edges[j]):
                 raise AnnotationError(
                     f"{name} crosses itself: edge {i} ({edges[i][0]} -> {edges[i][1]}) crosses "
-                    f"edge {j} ({edges[j][0]} -> {edges[j][1]}); draw it without crossings")
+                    f"edge {j} ({edges[j][0]} -> {edges[j][1]}); draw it without crossings"
+                )
 
 
 def validate(annotation: Shape) -> None:
@@ -193,18 +202,25 @@ def validate(annotation: Shape) -> None:
     _text("note", annotation.note, MAX_NOTE_CHARS, False)
     if isinstance(annotation, PointOfInterest):
         if annotation.kind not in POI_KINDS:
-            raise AnnotationError(f"a point of interest's kind is one of {', '.join(POI_KINDS)}, "
-                                  f"not {annotation.kind!r}")
+            raise AnnotationError(
+                f"a point of interest's kind is one of {', '.join(POI_KINDS)}, "
+                f"not {annotation.kind!r}"
+            )
         _finite("x", annotation.x)
         _finite("y", annotation.y)
         if annotation.heading is not None and not (
-                math.isfinite(annotation.heading) and -2 * math.pi <= annotation.heading <= 2 * math.pi):
+            math.isfinite(annotation.heading) and -2 * math.pi <= annotation.heading <= 2 * math.pi
+        ):
             raise AnnotationError(f"heading is in radians, within ±2π, not {annotation.heading!r}")
         return
     if annotation.kind not in ZONE_KINDS:
-        raise AnnotationError(f"a zone's kind is one of {', '.join(ZONE_KINDS)}, not {annotation.kind!r}")
+        raise AnnotationError(
+            f"a zone's kind is one of {', '.join(ZONE_KINDS)}, not {annotation.kind!r}"
+        )
     if len(annotation.holes) + 1 > MAX_RINGS:
-        raise AnnotationError(f"a zone has at most {MAX_RINGS} rings, not {len(annotation.holes) + 1}")
+        raise AnnotationError(
+            f"a zone has at most {MAX_RINGS} rings, not {len(annotation.holes) + 1}"
+        )
     # Large traced rings (a mask's import) are checked for crossings only when small: the
     # check is quadratic, and a traced boundary cannot cross itself.
     small = len(annotation.polygon) <= 500
@@ -214,28 +230,38 @@ def validate(annotation: Shape) -> None:
     if annotation.kind == "speed_limit":
         limit, unit = annotation.speed_limit, annotation.speed_unit
         if limit is None or unit is None:
-            raise AnnotationError("a speed_limit zone needs speed_limit and speed_unit "
-                                  f"({' or '.join(SPEED_UNITS)})")
+            raise AnnotationError(
+                f"a speed_limit zone needs speed_limit and speed_unit ({' or '.join(SPEED_UNITS)})"
+            )
         if unit not in SPEED_UNITS:
             raise AnnotationError(f"speed_unit is one of {', '.join(SPEED_UNITS)}, not {unit!r}")
         if not math.isfinite(limit) or limit <= 0:
-            raise AnnotationError(f"speed_limit must be above 0, not {limit!r} (a zone robots "
-                                  "may not enter is a keep_out zone)")
+            raise AnnotationError(
+                f"speed_limit must be above 0, not {limit!r} (a zone robots "
+                "may not enter is a keep_out zone)"
+            )
         if unit == "percent" and limit > 100:
             raise AnnotationError(f"a speed limit in percent is at most 100, not {limit!r}")
         if unit == "m/s" and limit > 100:
-            raise AnnotationError(f"a speed limit of {limit!r} m/s is no limit for a robot; "
-                                  "at most 100 m/s")
+            raise AnnotationError(
+                f"a speed limit of {limit!r} m/s is no limit for a robot; at most 100 m/s"
+            )
     elif annotation.speed_limit is not None or annotation.speed_unit is not None:
-        raise AnnotationError(f"only speed_limit zones carry speed_limit and speed_unit, "
-                              f"not a {annotation.kind} zone")
+        raise AnnotationError(
+            f"only speed_limit zones carry speed_limit and speed_unit, not a {annotation.kind} zone"
+        )
 
 
 def check_id(annotation_id: str) -> None:
-    if not annotation_id or len(annotation_id) > MAX_ID_CHARS or not all(
-            c.isalnum() or c in "-_.:" for c in annotation_id):
-        raise AnnotationError(f"an annotation id is 1 to {MAX_ID_CHARS} letters, digits or "
-                              f"'-_.:', not {annotation_id[:120]!r}")
+    if (
+        not annotation_id
+        or len(annotation_id) > MAX_ID_CHARS
+        or not all(c.isalnum() or c in "-_.:" for c in annotation_id)
+    ):
+        raise AnnotationError(
+            f"an annotation id is 1 to {MAX_ID_CHARS} letters, digits or "
+            f"'-_.:', not {annotation_id[:120]!r}"
+        )
 
 
 # --- state at an instant ---------------------------------------------------------------
@@ -253,18 +279,26 @@ def fold_annotations(edits: Iterable[AnnotationEdit], at_ms: int) -> dict[str, C
             continue
         before = out.get(ev.annotation_id)
         if before is None or isinstance(ev, AnnotationCreated):
-            out[ev.annotation_id] = CurrentAnnotation(ev.annotation_id, ev.annotation, edit.ts_ms,
-                                                      ev.author, edit.ts_ms, ev.author)
+            out[ev.annotation_id] = CurrentAnnotation(
+                ev.annotation_id, ev.annotation, edit.ts_ms, ev.author, edit.ts_ms, ev.author
+            )
         else:
-            out[ev.annotation_id] = CurrentAnnotation(ev.annotation_id, ev.annotation,
-                                                      before.created_ms, before.created_by,
-                                                      edit.ts_ms, ev.author)
+            out[ev.annotation_id] = CurrentAnnotation(
+                ev.annotation_id,
+                ev.annotation,
+                before.created_ms,
+                before.created_by,
+                edit.ts_ms,
+                ev.author,
+            )
     return out
 
 
 def zones_of(current: Iterable[CurrentAnnotation]) -> list[tuple[str, Zone]]:
-    return sorted(((c.annotation_id, c.annotation) for c in current
-                   if isinstance(c.annotation, Zone)), key=lambda z: z[0])
+    return sorted(
+        ((c.annotation_id, c.annotation) for c in current if isinstance(c.annotation, Zone)),
+        key=lambda z: z[0],
+    )
 
 
 # --- the JSON form (API bodies, the stored `body` column) -------------------------------
@@ -273,12 +307,25 @@ def zones_of(current: Iterable[CurrentAnnotation]) -> list[tuple[str, Zone]]:
 def to_doc(shape: Shape) -> dict[str, Any]:
     """An annotation as JSON-ready builtins (the API's and the stored form)."""
     if isinstance(shape, PointOfInterest):
-        return {"shape": "poi", "name": shape.name, "kind": shape.kind, "x": shape.x,
-                "y": shape.y, "heading": shape.heading, "note": shape.note}
-    return {"shape": "zone", "name": shape.name, "kind": shape.kind,
-            "polygon": [list(p) for p in shape.polygon],
-            "holes": [[list(p) for p in hole] for hole in shape.holes],
-            "speed_limit": shape.speed_limit, "speed_unit": shape.speed_unit, "note": shape.note}
+        return {
+            "shape": "poi",
+            "name": shape.name,
+            "kind": shape.kind,
+            "x": shape.x,
+            "y": shape.y,
+            "heading": shape.heading,
+            "note": shape.note,
+        }
+    return {
+        "shape": "zone",
+        "name": shape.name,
+        "kind": shape.kind,
+        "polygon": [list(p) for p in shape.polygon],
+        "holes": [[list(p) for p in hole] for hole in shape.holes],
+        "speed_limit": shape.speed_limit,
+        "speed_unit": shape.speed_unit,
+        "note": shape.note,
+    }
 
 
 def _ring(value: object, name: str) -> Ring:
@@ -286,8 +333,11 @@ def _ring(value: object, name: str) -> Ring:
         raise AnnotationError(f"{name} is a list of [x, y] vertices in metres")
     out = []
     for i, p in enumerate(value):
-        if not isinstance(p, (list, tuple)) or len(p) != 2 or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) for v in p):
+        if (
+            not isinstance(p, (list, tuple))
+            or len(p) != 2
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in p)
+        ):
             raise AnnotationError(f"{name} vertex {i} is not an [x, y] pair of numbers")
         out.append((float(p[0]), float(p[1])))
     return tuple(out)
@@ -302,16 +352,24 @@ def from_doc(doc: dict[str, Any], check: bool = True) -> Shape:
         if doc.get("shape") == "poi":
             heading = doc.get("heading")
             shape: Shape = PointOfInterest(
-                name=str(doc["name"]), kind=str(doc["kind"]), x=float(doc["x"]), y=float(doc["y"]),
+                name=str(doc["name"]),
+                kind=str(doc["kind"]),
+                x=float(doc["x"]),
+                y=float(doc["y"]),
                 heading=float(heading) if heading is not None else None,
-                note=str(doc.get("note") or ""))
+                note=str(doc.get("note") or ""),
+            )
         elif doc.get("shape") == "zone":
             limit = doc.get("speed_limit")
             shape = Zone(
-                name=str(doc["name"]), kind=str(doc["kind"]), polygon=_ring(doc["polygon"], "polygon"),
+                name=str(doc["name"]),
+                kind=str(doc["kind"]),
+                polygon=_ring(doc["polygon"], "polygon"),
                 holes=tuple(_ring(h, f"hole {k}") for k, h in enumerate(doc.get("holes") or ())),
                 speed_limit=float(limit) if limit is not None else None,
-                speed_unit=doc.get("speed_unit"), note=str(doc.get("note") or ""))
+                speed_unit=doc.get("speed_unit"),
+                note=str(doc.get("note") or ""),
+            )
         else:
             raise AnnotationError(f"shape is 'poi' or 'zone', not {str(doc.get('shape'))[:40]!r}")
     except KeyError as exc:
@@ -331,7 +389,9 @@ def prune_before(edits: Iterable[AnnotationEdit], boundary_ms: int) -> list[Anno
     at the boundary is folded from). ClickHouse's retention step applies the same rule."""
     ordered = sorted(edits, key=lambda e: (e.ts_ms, e.event_id))
     latest: dict[str, AnnotationEdit] = {}
-    started: dict[str, AnnotationEdit] = {}  # the edit that began the current life (fold's created_ms)
+    started: dict[
+        str, AnnotationEdit
+    ] = {}  # the edit that began the current life (fold's created_ms)
     for edit in ordered:
         if edit.ts_ms > boundary_ms:
             break
@@ -348,14 +408,18 @@ def prune_before(edits: Iterable[AnnotationEdit], boundary_ms: int) -> list[Anno
     return [e for e in ordered if e.ts_ms >= boundary_ms or e.event_id in keep]
 
 
-def zone_advertisement(annotation_id: str, change: str, ts_ms: int, author: str,
-                       public_base_url: str) -> dict[str, Any]:
+def zone_advertisement(
+    annotation_id: str, change: str, ts_ms: int, author: str, public_base_url: str
+) -> dict[str, Any]:
     """What robots get on the zone advertisement topic when a zone is created, changed or
     removed: which, when, by whom, and where the masks as of that edit are (nav2's
     map_server files and the CostmapFilterInfo parameters)."""
     base = f"{public_base_url.rstrip('/')}/api/v1/costmap-filters"
     return {
-        "annotationId": annotation_id, "change": change, "ts_ms": ts_ms, "by": author,
+        "annotationId": annotation_id,
+        "change": change,
+        "ts_ms": ts_ms,
+        "by": author,
         "keepOutMaskUrl": f"{base}/keepout/mask.yaml?at={ts_ms}",
         "keepOutPgmUrl": f"{base}/keepout/mask.pgm?at={ts_ms}",
         "keepOutFilterInfoUrl": f"{base}/keepout/filter-info.yaml?at={ts_ms}",

@@ -39,6 +39,7 @@ class ChunkRow(Protocol):
     robot_id: str
     content_hash: str
 
+
 # The robot id map uploads write as (`mapservice up`, `mapservice map upload`, the 2019 REST
 # upload through them); the conflict rule leaves its writes out.
 UPLOADER_ID = "map-upload"
@@ -58,7 +59,8 @@ class WindowTooBusy(ValueError):
         hours = (query.to_ms - query.from_ms) / 3_600_000
         super().__init__(
             f"the {hours:.1f} h window holds more than {MAX_WRITES:,} chunk writes, more than "
-            "the change feed reads at once; choose a shorter span (zoom the timeline in)")
+            "the change feed reads at once; choose a shorter span (zoom the timeline in)"
+        )
 
 
 class ChunkBox(msgspec.Struct, frozen=True):
@@ -100,7 +102,9 @@ class ChangeQuery(msgspec.Struct, frozen=True):
     box: ChunkBox | None = None
     before: ChangeCursor | None = None
     limit: int = 100
-    kind: str | None = None  # "change" or "upload": only entries of that kind (the timeline's upload marks)
+    kind: str | None = (
+        None  # "change" or "upload": only entries of that kind (the timeline's upload marks)
+    )
 
 
 class ChangeEntry(msgspec.Struct, frozen=True, gc=False):
@@ -130,8 +134,11 @@ def _order(r: ChunkRow) -> tuple[int, str]:
     return (r.ts_ms, r.robot_id)
 
 
-def page(writes: Iterable[ChunkRow], query: ChangeQuery,
-         earlier: Mapping[tuple[int, int], str] | None = None) -> list[ChangeEntry]:
+def page(
+    writes: Iterable[ChunkRow],
+    query: ChangeQuery,
+    earlier: Mapping[tuple[int, int], str] | None = None,
+) -> list[ChangeEntry]:
     """The feed's page for `query`, newest first, from `writes` = every robot's writes of
     `fetch_window(query)` and `earlier` = per chunk, the
     content hash of its latest write before that window (only the chunks the caller knows
@@ -142,8 +149,12 @@ def page(writes: Iterable[ChunkRow], query: ChangeQuery,
     upload_of = _uploads(rows)
     previous = _previous_hashes(rows, earlier or {})
     # An upload shows when any of its writes is in the area.
-    uploads_in_area = {id(run[0]) for r in rows if (run := upload_of.get(id(r))) is not None
-                       and (query.box is None or query.box.holds(r.row, r.column))}
+    uploads_in_area = {
+        id(run[0])
+        for r in rows
+        if (run := upload_of.get(id(r))) is not None
+        and (query.box is None or query.box.holds(r.row, r.column))
+    }
     entries: list[ChangeEntry] = []
     seen_uploads: set[int] = set()
     for r in rows:
@@ -152,18 +163,44 @@ def page(writes: Iterable[ChunkRow], query: ChangeQuery,
         run = upload_of.get(id(r))
         if run is not None:
             first, last, n = run
-            if (id(first) in seen_uploads or id(first) not in uploads_in_area
-                    or not query.from_ms <= first.ts_ms < query.to_ms):
+            if (
+                id(first) in seen_uploads
+                or id(first) not in uploads_in_area
+                or not query.from_ms <= first.ts_ms < query.to_ms
+            ):
                 continue
             seen_uploads.add(id(first))
-            entries.append(ChangeEntry("upload", first.ts_ms, first.row, first.column,
-                                       first.robot_id, first.content_hash, None, n, last.ts_ms))
+            entries.append(
+                ChangeEntry(
+                    "upload",
+                    first.ts_ms,
+                    first.row,
+                    first.column,
+                    first.robot_id,
+                    first.content_hash,
+                    None,
+                    n,
+                    last.ts_ms,
+                )
+            )
         elif previous.get(id(r)) == r.content_hash:
             continue
         elif query.from_ms <= r.ts_ms < query.to_ms and (
-                query.box is None or query.box.holds(r.row, r.column)):
-            entries.append(ChangeEntry("change", r.ts_ms, r.row, r.column, r.robot_id,
-                                       r.content_hash, previous.get(id(r)), 1, r.ts_ms))
+            query.box is None or query.box.holds(r.row, r.column)
+        ):
+            entries.append(
+                ChangeEntry(
+                    "change",
+                    r.ts_ms,
+                    r.row,
+                    r.column,
+                    r.robot_id,
+                    r.content_hash,
+                    previous.get(id(r)),
+                    1,
+                    r.ts_ms,
+                )
+            )
     if query.kind is not None:
         entries = [e for e in entries if e.kind == query.kind]
     entries.sort(key=ChangeEntry.key, reverse=True)
@@ -171,7 +208,7 @@ def page(writes: Iterable[ChunkRow], query: ChangeQuery,
         b = query.before
         limit_key = (b.ts_ms, b.row, b.column, b.robot_id)
         entries = [e for e in entries if e.key() < limit_key]
-    return entries[:query.limit]
+    return entries[: query.limit]
 
 
 def chunks_needing_earlier(writes: Sequence[ChunkRow], query: ChangeQuery) -> set[tuple[int, int]]:
@@ -181,8 +218,11 @@ def chunks_needing_earlier(writes: Sequence[ChunkRow], query: ChangeQuery) -> se
     for r in writes:
         k = (r.row, r.column)
         first[k] = min(first.get(k, r.ts_ms), r.ts_ms)
-    return {k for k, ts in first.items()
-            if ts >= query.from_ms and (query.box is None or query.box.holds(*k))}
+    return {
+        k
+        for k, ts in first.items()
+        if ts >= query.from_ms and (query.box is None or query.box.holds(*k))
+    }
 
 
 def upload_runs(rows: Sequence[ChunkRow]) -> list[tuple[ChunkRow, ChunkRow, int]]:
@@ -210,8 +250,9 @@ def _uploads(rows: Sequence[ChunkRow]) -> dict[int, tuple[ChunkRow, ChunkRow, in
     return out
 
 
-def _previous_hashes(rows: Sequence[ChunkRow],
-                     earlier: Mapping[tuple[int, int], str]) -> dict[int, str | None]:
+def _previous_hashes(
+    rows: Sequence[ChunkRow], earlier: Mapping[tuple[int, int], str]
+) -> dict[int, str | None]:
     """id(write) -> content hash of the write before it on its chunk (by time, robot)."""
     last: dict[tuple[int, int], str] = dict(earlier)
     out: dict[int, str | None] = {}

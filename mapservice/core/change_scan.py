@@ -27,8 +27,14 @@ from collections.abc import Callable, Collection, Mapping, Sequence
 import msgspec
 
 from mapservice.core import change_feed
-from mapservice.core.change_feed import (MARGIN_MS, UPLOAD_GAP_MS, ChangeEntry, ChangeQuery,
-                                         ChunkRow, WindowTooBusy)
+from mapservice.core.change_feed import (
+    MARGIN_MS,
+    UPLOAD_GAP_MS,
+    ChangeEntry,
+    ChangeQuery,
+    ChunkRow,
+    WindowTooBusy,
+)
 
 FIRST_SLICE_MS = 60_000
 # A slice grows at most this much at once, and towards this many writes.
@@ -41,8 +47,9 @@ Fetch = Callable[[int, int, Collection[str] | None], Sequence[ChunkRow]]
 Earlier = Callable[[set[tuple[int, int]], int], Mapping[tuple[int, int], str]]
 
 
-def newest_first(query: ChangeQuery, fetch: Fetch, earlier: Earlier,
-                 first_slice_ms: int = FIRST_SLICE_MS) -> list[ChangeEntry]:
+def newest_first(
+    query: ChangeQuery, fetch: Fetch, earlier: Earlier, first_slice_ms: int = FIRST_SLICE_MS
+) -> list[ChangeEntry]:
     """`change_feed.page(every write of the span, query, ...)`, read slice by slice."""
     hi = query.to_ms if query.before is None else min(query.to_ms, query.before.ts_ms + 1)
     out: list[ChangeEntry] = []
@@ -56,8 +63,9 @@ def newest_first(query: ChangeQuery, fetch: Fetch, earlier: Earlier,
         read += len(writes)
         if read > change_feed.MAX_WRITES:
             raise WindowTooBusy(query)
-        out += change_feed.page(writes, part, earlier(
-            change_feed.chunks_needing_earlier(writes, part), f_lo))
+        out += change_feed.page(
+            writes, part, earlier(change_feed.chunks_needing_earlier(writes, part), f_lo)
+        )
         # Towards SLICE_WRITES writes a slice, growing at most GROWTH times.
         rate = max(len(writes), 1) / (hi - lo + 2 * MARGIN_MS)
         span = int(min(span * GROWTH, max(span, SLICE_WRITES / rate - 2 * MARGIN_MS)))
@@ -65,15 +73,19 @@ def newest_first(query: ChangeQuery, fetch: Fetch, earlier: Earlier,
     return out
 
 
-def _uploads_going_on(writes: list[ChunkRow], part: ChangeQuery, end_ms: int,
-                      fetch: Fetch) -> list[ChunkRow]:
+def _uploads_going_on(
+    writes: list[ChunkRow], part: ChangeQuery, end_ms: int, fetch: Fetch
+) -> list[ChunkRow]:
     """The writes after `end_ms` of the uploads starting in `part` that had not ended by
     then (their writer wrote within UPLOAD_GAP_MS of it), fetched for those writers only."""
     more: list[ChunkRow] = []
     while True:
         runs = change_feed.upload_runs([*writes, *more])
-        going = {last.robot_id for first, last, _ in runs
-                 if part.from_ms <= first.ts_ms < part.to_ms and last.ts_ms >= end_ms - UPLOAD_GAP_MS}
+        going = {
+            last.robot_id
+            for first, last, _ in runs
+            if part.from_ms <= first.ts_ms < part.to_ms and last.ts_ms >= end_ms - UPLOAD_GAP_MS
+        }
         if not going:
             return more
         step = max(MARGIN_MS, end_ms - part.from_ms)  # the reach doubles

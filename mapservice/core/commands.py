@@ -43,8 +43,9 @@ class CommandIssued(msgspec.Struct, frozen=True, gc=False, tag="command.issued",
     heading: float | None = None
 
 
-class CommandAcknowledged(msgspec.Struct, frozen=True, gc=False, tag="command.ack",
-                          array_like=True):
+class CommandAcknowledged(
+    msgspec.Struct, frozen=True, gc=False, tag="command.ack", array_like=True
+):
     """The robot took the command (accepted) or refused it (rejected, with its reason)."""
 
     command_id: str
@@ -53,8 +54,9 @@ class CommandAcknowledged(msgspec.Struct, frozen=True, gc=False, tag="command.ac
     reason: str = ""
 
 
-class CommandFinished(msgspec.Struct, frozen=True, gc=False, tag="command.outcome",
-                      array_like=True):
+class CommandFinished(
+    msgspec.Struct, frozen=True, gc=False, tag="command.outcome", array_like=True
+):
     """How an accepted command ended: done, failed (with a reason) or cancelled."""
 
     command_id: str
@@ -82,16 +84,18 @@ class CommandError(ValueError):
 
 def check_command_id(command_id: str) -> None:
     if not COMMAND_ID.fullmatch(command_id):
-        raise CommandError(f"a command id is 1 to 100 letters, digits or '-_.:', "
-                           f"not {command_id[:120]!r}")
+        raise CommandError(
+            f"a command id is 1 to 100 letters, digits or '-_.:', not {command_id[:120]!r}"
+        )
 
 
 def check_issue(command: CommandIssued) -> None:
     """Raises CommandError saying what is wrong; returns for a command a robot can obey."""
     check_command_id(command.command_id)
     if command.kind not in COMMAND_KINDS:
-        raise CommandError(f"a command's kind is one of {', '.join(COMMAND_KINDS)}, "
-                           f"not {command.kind[:40]!r}")
+        raise CommandError(
+            f"a command's kind is one of {', '.join(COMMAND_KINDS)}, not {command.kind[:40]!r}"
+        )
     if command.kind == "goto_poi":
         if not command.poi_id or command.x is None or command.y is None:
             raise CommandError("a goto_poi command names its point of interest (poi_id)")
@@ -109,9 +113,11 @@ def vda_refusal(kind: str) -> str | None:
     """Why a command of this kind cannot go to a VDA 5050 vehicle (None: it can)."""
     if kind in VDA_ACTION_TYPES:
         return None
-    return (f"a VDA 5050 vehicle takes {', '.join(VDA_ACTION_TYPES)} (as instant actions); "
-            f"{kind} would need an order, which mapservice does not send: send the vehicle "
-            "an order from its master control")
+    return (
+        f"a VDA 5050 vehicle takes {', '.join(VDA_ACTION_TYPES)} (as instant actions); "
+        f"{kind} would need an order, which mapservice does not send: send the vehicle "
+        "an order from its master control"
+    )
 
 
 # --- the wire: what a robot receives and what it answers --------------------------------
@@ -119,9 +125,13 @@ def vda_refusal(kind: str) -> str | None:
 
 def command_message(command: CommandIssued) -> dict[str, Any]:
     """The JSON a robot receives on its command topic."""
-    doc: dict[str, Any] = {"commandId": command.command_id, "robotId": command.robot_id,
-                           "kind": command.kind, "issuedBy": command.issued_by,
-                           "issuedAt": command.issued_at_ms}
+    doc: dict[str, Any] = {
+        "commandId": command.command_id,
+        "robotId": command.robot_id,
+        "kind": command.kind,
+        "issuedBy": command.issued_by,
+        "issuedAt": command.issued_at_ms,
+    }
     if command.kind == "goto_poi":
         doc["poiId"] = command.poi_id
         doc["target"] = {"x": command.x, "y": command.y, "heading": command.heading}
@@ -136,18 +146,26 @@ def parse_command_message(data: bytes) -> CommandIssued:
     target = doc.get("target") or {}
     heading = target.get("heading")
     return CommandIssued(
-        command_id=str(doc["commandId"]), robot_id=str(doc["robotId"]), kind=str(doc["kind"]),
-        issued_by=str(doc.get("issuedBy", "")), issued_at_ms=int(doc.get("issuedAt", 0)),
+        command_id=str(doc["commandId"]),
+        robot_id=str(doc["robotId"]),
+        kind=str(doc["kind"]),
+        issued_by=str(doc.get("issuedBy", "")),
+        issued_at_ms=int(doc.get("issuedAt", 0)),
         poi_id=doc.get("poiId"),
         x=float(target["x"]) if "x" in target else None,
         y=float(target["y"]) if "y" in target else None,
-        heading=float(heading) if heading is not None else None)
+        heading=float(heading) if heading is not None else None,
+    )
 
 
 def response_message(response: CommandResponse, timestamp: str) -> dict[str, Any]:
     """The JSON a robot publishes for an ack or an outcome (the robot side's encoder)."""
-    doc: dict[str, Any] = {"robotId": response.robot_id, "commandId": response.command_id,
-                           "timestamp": timestamp, "reason": response.reason}
+    doc: dict[str, Any] = {
+        "robotId": response.robot_id,
+        "commandId": response.command_id,
+        "timestamp": timestamp,
+        "reason": response.reason,
+    }
     if isinstance(response, CommandAcknowledged):
         doc.update(type="ack", status=response.status)
     else:

@@ -38,7 +38,6 @@ from mapservice.core.ports import ChunkRow, ConflictRow
 Identity = tuple[int, int, int, str]
 
 
-
 def is_upload(w: ChunkRow) -> bool:
     """Whether the write is part of a map upload (the map uploader's), never in a conflict."""
     return w.robot_id == UPLOADER_ID
@@ -73,12 +72,15 @@ def all_conflicts(writes: Iterable[ChunkRow], window_ms: int) -> list[ConflictRo
     by_chunk: dict[tuple[int, int], list[ChunkRow]] = defaultdict(list)
     for w in _unique(writes):
         by_chunk[(w.row, w.column)].append(w)
-    out = [c for chunk in by_chunk.values() for b in chunk for c in conflicts_of(b, chunk, window_ms)]
+    out = [
+        c for chunk in by_chunk.values() for b in chunk for c in conflicts_of(b, chunk, window_ms)
+    ]
     return sorted(out, key=conflict_key)
 
 
-def affected_conflicts(new: Iterable[ChunkRow], stored: Iterable[ChunkRow],
-                       window_ms: int) -> list[ConflictRow]:
+def affected_conflicts(
+    new: Iterable[ChunkRow], stored: Iterable[ChunkRow], window_ms: int
+) -> list[ConflictRow]:
     """Every conflict a batch of new writes can create or change, given `stored` (which
     holds the batch and every write within the window of it on the same chunks).
 
@@ -103,8 +105,13 @@ def _by_chunk(writes: Iterable[ChunkRow]) -> dict[tuple[int, int], list[ChunkRow
     return out
 
 
-def _affected_in_chunk(news: list[ChunkRow], writes: list[ChunkRow], keys: list[tuple[int, str]],
-                       window_ms: int, out: dict[Identity, ConflictRow]) -> None:
+def _affected_in_chunk(
+    news: list[ChunkRow],
+    writes: list[ChunkRow],
+    keys: list[tuple[int, str]],
+    window_ms: int,
+    out: dict[Identity, ConflictRow],
+) -> None:
     """`affected_conflicts` for one chunk: `writes` (sorted by `_order`, whose keys are
     `keys`) hold the new writes and their neighbours; the conflicts go into `out`."""
     bs: dict[Identity, ChunkRow] = {}
@@ -124,8 +131,9 @@ def _affected_in_chunk(news: list[ChunkRow], writes: list[ChunkRow], keys: list[
             out[conflict_key(c)] = c
 
 
-def _latest_conflict(b: ChunkRow, writes: list[ChunkRow], keys: list[tuple[int, str]],
-                     window_ms: int) -> ConflictRow | None:
+def _latest_conflict(
+    b: ChunkRow, writes: list[ChunkRow], keys: list[tuple[int, str]], window_ms: int
+) -> ConflictRow | None:
     """`conflicts_of(b, writes)` for one chunk's writes sorted by `_order` (keys)."""
     if is_upload(b):
         return None
@@ -140,7 +148,9 @@ def _latest_conflict(b: ChunkRow, writes: list[ChunkRow], keys: list[tuple[int, 
     return None
 
 
-def neighbourhoods(new: Iterable[ChunkRow], window_ms: int) -> list[tuple[list[tuple[int, int]], int, int]]:
+def neighbourhoods(
+    new: Iterable[ChunkRow], window_ms: int
+) -> list[tuple[list[tuple[int, int]], int, int]]:
     """What to read from the store for `affected_conflicts`: clusters of the batch in
     time (a robot's old backlog and live writes stay separate reads), each as (chunks,
     from_ms, to_ms) covering every write within the window of the cluster's writes."""
@@ -151,8 +161,10 @@ def neighbourhoods(new: Iterable[ChunkRow], window_ms: int) -> list[tuple[list[t
             clusters[-1].append(w)
         else:
             clusters.append([w])
-    return [(sorted({(w.row, w.column) for w in c}), c[0].ts_ms - window_ms, c[-1].ts_ms + window_ms)
-            for c in clusters]
+    return [
+        (sorted({(w.row, w.column) for w in c}), c[0].ts_ms - window_ms, c[-1].ts_ms + window_ms)
+        for c in clusters
+    ]
 
 
 class _ChunkWrites:
@@ -176,7 +188,9 @@ class _ChunkWrites:
             self.writes.insert(i, w)
 
     def between(self, from_ms: int, to_ms: int) -> list[ChunkRow]:
-        return self.writes[bisect_left(self.keys, (from_ms,)):bisect_left(self.keys, (to_ms + 1,))]
+        return self.writes[
+            bisect_left(self.keys, (from_ms,)) : bisect_left(self.keys, (to_ms + 1,))
+        ]
 
     def forget_before(self, ts_ms: int) -> None:
         i = bisect_left(self.keys, (ts_ms,))
@@ -212,8 +226,12 @@ class RecentWrites:
         return from_ms >= self.covered_from_ms
 
     def near(self, chunks: Iterable[tuple[int, int]], from_ms: int, to_ms: int) -> list[ChunkRow]:
-        return [w for c in chunks if c in self._by_chunk
-                for w in self._by_chunk[c].between(from_ms, to_ms)]
+        return [
+            w
+            for c in chunks
+            if c in self._by_chunk
+            for w in self._by_chunk[c].between(from_ms, to_ms)
+        ]
 
     def affected(self, new: Iterable[ChunkRow], window_ms: int) -> list[ConflictRow]:
         """`affected_conflicts(new, <every write of their chunks>)` from the sorted index,

@@ -140,8 +140,9 @@ class VdaStateReported(msgspec.Struct, frozen=True, gc=False, tag="vda.state", a
     errors: tuple[VdaError, ...] = ()
 
 
-class VdaConnectionReported(msgspec.Struct, frozen=True, gc=False, tag="vda.connection",
-                            array_like=True):
+class VdaConnectionReported(
+    msgspec.Struct, frozen=True, gc=False, tag="vda.connection", array_like=True
+):
     """A vehicle's `connection` state: ONLINE, OFFLINE or CONNECTIONBROKEN. The event
     time of a CONNECTIONBROKEN is when the broker published the last will (its `timestamp`
     is the connect time, kept in sent_time_ms)."""
@@ -153,8 +154,9 @@ class VdaConnectionReported(msgspec.Struct, frozen=True, gc=False, tag="vda.conn
     sent_time_ms: int
 
 
-class VdaFactsheetReported(msgspec.Struct, frozen=True, gc=False, tag="vda.factsheet",
-                           array_like=True):
+class VdaFactsheetReported(
+    msgspec.Struct, frozen=True, gc=False, tag="vda.factsheet", array_like=True
+):
     """A vehicle's `factsheet`, as the JSON it sent (schema-validated)."""
 
     manufacturer: str
@@ -163,9 +165,20 @@ class VdaFactsheetReported(msgspec.Struct, frozen=True, gc=False, tag="vda.facts
     factsheet_json: str
 
 
-Payload = (ChunkUpdated | PoseReported | MapMetaSet | VdaStateReported | VdaConnectionReported
-           | VdaFactsheetReported | AnnotationCreated | AnnotationChanged | AnnotationRemoved
-           | CommandIssued | CommandAcknowledged | CommandFinished)
+Payload = (
+    ChunkUpdated
+    | PoseReported
+    | MapMetaSet
+    | VdaStateReported
+    | VdaConnectionReported
+    | VdaFactsheetReported
+    | AnnotationCreated
+    | AnnotationChanged
+    | AnnotationRemoved
+    | CommandIssued
+    | CommandAcknowledged
+    | CommandFinished
+)
 
 
 def pose_of(payload: Payload) -> PoseReported | None:
@@ -213,14 +226,16 @@ def event_id_for(robot_id: str, event_time_ms: int, payload: Payload) -> str:
     if isinstance(payload, ANNOTATION_EVENTS):
         # An operator's edit: the annotation, the instant and the whole content (two
         # different edits of one annotation in one millisecond both stay).
-        return _digest("annotation", payload.annotation_id, event_time_ms,
-                       msgspec.msgpack.encode(payload))
+        return _digest(
+            "annotation", payload.annotation_id, event_time_ms, msgspec.msgpack.encode(payload)
+        )
     if isinstance(payload, CommandIssued):
         return _digest("command", payload.command_id)  # issued once, whatever re-sends it
     if isinstance(payload, COMMAND_EVENTS):
         # A robot's answer, by its own time: a QoS 1 redelivery is the same event.
-        return _digest("command", payload.command_id, type_of(payload), payload.robot_id,
-                       event_time_ms)
+        return _digest(
+            "command", payload.command_id, type_of(payload), payload.robot_id, event_time_ms
+        )
     return _digest("meta", robot_id, event_time_ms, msgspec.msgpack.encode(payload))
 
 

@@ -40,7 +40,11 @@ CHUNK_SORT_FIELDS = {"timestamp": "ts_ms", "row": "row", "column": "column", "ro
 POSE_SORT_FIELDS = {"timestamp": "ts_ms", "robotId": "robot_id"}
 SortKey = tuple[str, Literal["asc", "desc"]]
 CHUNK_IDENTITY: tuple[SortKey, ...] = (
-    ("timestamp", "desc"), ("row", "asc"), ("column", "asc"), ("robotId", "asc"))
+    ("timestamp", "desc"),
+    ("row", "asc"),
+    ("column", "asc"),
+    ("robotId", "asc"),
+)
 POSE_IDENTITY: tuple[SortKey, ...] = (("timestamp", "desc"), ("robotId", "asc"))
 
 _INT = re.compile(r"[0-9]+")
@@ -49,7 +53,6 @@ _TRUE, _FALSE = {"true", "1"}, {"false", "0", ""}
 
 class QueryError(ValueError):
     """A malformed query parameter; the message names it and says what is accepted."""
-
 
 
 class ChunkQuery(msgspec.Struct, frozen=True):
@@ -99,9 +102,11 @@ def parse_time(name: str, value: str) -> int:
     """ISO 8601 (UTC when no zone is given) or epoch milliseconds, 1970 to 2262."""
     ms = parse_query_instant(value)
     if ms is None:
-        raise QueryError(f"query parameter {name!r}: {value!r} is neither ISO 8601 "
-                         "(e.g. 2018-12-20T23:34:33, UTC when no zone is given) nor epoch "
-                         "milliseconds between 1970 and 2262")
+        raise QueryError(
+            f"query parameter {name!r}: {value!r} is neither ISO 8601 "
+            "(e.g. 2018-12-20T23:34:33, UTC when no zone is given) nor epoch "
+            "milliseconds between 1970 and 2262"
+        )
     return ms
 
 
@@ -130,8 +135,9 @@ def _sort(value: str, fields: Mapping[str, str]) -> tuple[SortKey, ...]:
         field, _, direction = part.strip().partition(":")
         direction = (direction or "asc").strip().lower()
         if field not in fields or direction not in ("asc", "desc"):
-            raise QueryError(f"query parameter 'sort': {part.strip()[:80]!r} is not one of "
-                             f"{allowed}")
+            raise QueryError(
+                f"query parameter 'sort': {part.strip()[:80]!r} is not one of {allowed}"
+            )
         if field in {f for f, _ in keys}:
             raise QueryError(f"query parameter 'sort': {field!r} appears twice")
         keys.append((field, direction))  # type: ignore[arg-type]
@@ -144,15 +150,20 @@ def _page(params: Mapping[str, str]) -> tuple[int, int]:
     limit = _int("limit", params["limit"], 0, MAX_LIMIT) if "limit" in params else DEFAULT_LIMIT
     skip = _int("skip", params["skip"], 0, MAX_WINDOW) if "skip" in params else 0
     if skip + limit > MAX_WINDOW:
-        raise QueryError(f"skip + limit ({skip} + {limit}) is over {MAX_WINDOW}; page further "
-                         "with updatedBefore/updatedSince instead of skip")
+        raise QueryError(
+            f"skip + limit ({skip} + {limit}) is over {MAX_WINDOW}; page further "
+            "with updatedBefore/updatedSince instead of skip"
+        )
     return limit, skip
 
 
 def _times(params: Mapping[str, str]) -> dict[str, Any]:
     out = {}
-    for name, attr in (("timestamp", "timestamp_ms"), ("updatedSince", "updated_since_ms"),
-                       ("updatedBefore", "updated_before_ms")):
+    for name, attr in (
+        ("timestamp", "timestamp_ms"),
+        ("updatedSince", "updated_since_ms"),
+        ("updatedBefore", "updated_before_ms"),
+    ):
         if name in params:
             out[attr] = parse_time(name, params[name])
     return out
@@ -180,8 +191,10 @@ def parse_chunk_query(params: Mapping[str, str]) -> ChunkQuery:
             fields[name] = _bool(name, params[name])
     if "type" in params:
         if params["type"] not in CHUNK_TYPES:
-            raise QueryError(f"query parameter 'type': {params['type'][:40]!r} is not one of "
-                             f"{', '.join(CHUNK_TYPES)}")
+            raise QueryError(
+                f"query parameter 'type': {params['type'][:40]!r} is not one of "
+                f"{', '.join(CHUNK_TYPES)}"
+            )
         fields["type"] = params["type"]
     fields["limit"], fields["skip"] = _page(params)
     return ChunkQuery(**fields)
@@ -238,8 +251,9 @@ def _sorted(rows: list[Row], order: Sequence[SortKey], fields: Mapping[str, str]
     return rows
 
 
-def select(rows: Iterable[Row], query: ChunkQuery | PoseQuery,
-           ignore_time: bool = False) -> list[Row]:
+def select(
+    rows: Iterable[Row], query: ChunkQuery | PoseQuery, ignore_time: bool = False
+) -> list[Row]:
     """Filter, sort and page rows as the store does (`ignore_time`: the instant was
     applied already, as in a `latest` read where updatedBefore chose the instant)."""
     if ignore_time:
@@ -247,7 +261,7 @@ def select(rows: Iterable[Row], query: ChunkQuery | PoseQuery,
     fields = CHUNK_SORT_FIELDS if isinstance(query, ChunkQuery) else POSE_SORT_FIELDS
     kept = [r for r in rows if matches(r, query)]
     ordered = _sorted(kept, query.order, fields)
-    return ordered[query.skip: query.skip + query.limit]
+    return ordered[query.skip : query.skip + query.limit]
 
 
 def chunk_id(row: int, column: int, timestamp: str) -> str:
@@ -268,8 +282,9 @@ def parse_chunk_id(text: str) -> tuple[int, int, int]:
     m = _CHUNK_ID.fullmatch(text)
     ms = parse_timestamp(m.group(3)) if m else None
     if m is None or ms is None:
-        raise QueryError(f"{text[:120]!r} is not a chunk id like "
-                         "row:3_column:2_2018-12-20T23:34:33")
+        raise QueryError(
+            f"{text[:120]!r} is not a chunk id like row:3_column:2_2018-12-20T23:34:33"
+        )
     return int(m.group(1)), int(m.group(2)), ms
 
 

@@ -25,16 +25,31 @@ MAX_RECORD_BYTES = 256 * 1024
 
 def live_message(e: Envelope) -> dict[str, Any] | None:
     p = pose_of(e.payload) or e.payload
-    base = {"robotId": e.robot_id, "ts_ms": e.event_time_ms, "timestamp": format_timestamp(e.event_time_ms),
-            "receive_time_ms": e.receive_time_ms}
+    base = {
+        "robotId": e.robot_id,
+        "ts_ms": e.event_time_ms,
+        "timestamp": format_timestamp(e.event_time_ms),
+        "receive_time_ms": e.receive_time_ms,
+    }
     if isinstance(p, PoseReported):
-        return {"type": "pose", **base, "position": list(p.position),
-                "orientation": list(p.orientation), "battery_level": p.battery_level,
-                "charging": p.charging, "loaded": p.loaded,
-                "path": [list(pt) for pt in p.path] if p.path is not None else None}
+        return {
+            "type": "pose",
+            **base,
+            "position": list(p.position),
+            "orientation": list(p.orientation),
+            "battery_level": p.battery_level,
+            "charging": p.charging,
+            "loaded": p.loaded,
+            "path": [list(pt) for pt in p.path] if p.path is not None else None,
+        }
     if isinstance(p, ChunkUpdated):
-        return {"type": "chunk", **base, "row": p.row, "column": p.column,
-                "content_hash": p.content_hash.hex()}
+        return {
+            "type": "chunk",
+            **base,
+            "row": p.row,
+            "column": p.column,
+            "content_hash": p.content_hash.hex(),
+        }
     return None
 
 
@@ -71,12 +86,30 @@ class _LiveChunk(msgspec.Struct):
 def _live_struct(e: Envelope) -> _LivePose | _LiveChunk | None:
     p = pose_of(e.payload) or e.payload
     if isinstance(p, PoseReported):
-        return _LivePose("pose", e.robot_id, e.event_time_ms, format_timestamp(e.event_time_ms),
-                         e.receive_time_ms, p.position, p.orientation, p.battery_level,
-                         p.charging, p.loaded, p.path)
+        return _LivePose(
+            "pose",
+            e.robot_id,
+            e.event_time_ms,
+            format_timestamp(e.event_time_ms),
+            e.receive_time_ms,
+            p.position,
+            p.orientation,
+            p.battery_level,
+            p.charging,
+            p.loaded,
+            p.path,
+        )
     if isinstance(p, ChunkUpdated):
-        return _LiveChunk("chunk", e.robot_id, e.event_time_ms, format_timestamp(e.event_time_ms),
-                          e.receive_time_ms, p.row, p.column, p.content_hash.hex())
+        return _LiveChunk(
+            "chunk",
+            e.robot_id,
+            e.event_time_ms,
+            format_timestamp(e.event_time_ms),
+            e.receive_time_ms,
+            p.row,
+            p.column,
+            p.content_hash.hex(),
+        )
     return None
 
 
@@ -115,7 +148,8 @@ def decode_live_record(value: bytes) -> list[dict[str, Any]]:
     except msgspec.DecodeError as exc:
         raise BadLiveRecord(f"not JSON: {exc}") from exc
     if not isinstance(messages, list) or not all(
-            isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages):
+        isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages
+    ):
         raise BadLiveRecord("not a JSON array of pose/chunk messages")
     return messages
 

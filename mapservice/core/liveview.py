@@ -24,8 +24,8 @@ from cachetools import LRUCache, cached
 
 from mapservice.core.events import ChunkUpdated, Envelope, pose_of
 from mapservice.core.legacy_query import chunk_id
-from mapservice.core.render import chunk_pixels, png
 from mapservice.core.ports import ChunkState
+from mapservice.core.render import chunk_pixels, png
 from mapservice.core.timetravel import chunk_order
 from mapservice.core.wire2019 import format_timestamp
 
@@ -41,8 +41,9 @@ def supersedes(new: ChunkState, current: ChunkState | None) -> bool:
     return current is None or chunk_order(new) > chunk_order(current)
 
 
-def apply_chunks(view: dict[tuple[int, int], ChunkState],
-                 events: Iterable[Envelope]) -> list[Envelope]:
+def apply_chunks(
+    view: dict[tuple[int, int], ChunkState], events: Iterable[Envelope]
+) -> list[Envelope]:
     """Folds chunk writes into `view` (in place); returns, per chunk that changed, the
     write that is live now (in the batch's order), i.e. what to advertise."""
     changed: dict[tuple[int, int], Envelope] = {}
@@ -68,8 +69,10 @@ def chunk_id_2019(row: int, column: int, ts_ms: int) -> str:
 # ~1,000 entries of ~25 KB each.
 @cached(LRUCache(maxsize=1024), key=lambda p: p.content_hash, lock=threading.Lock())
 def _encoded(p: ChunkUpdated) -> tuple[str, str]:
-    return (base64.b64encode(p.data).decode(),
-            base64.b64encode(png(chunk_pixels(p.width, p.height, p.data))).decode())
+    return (
+        base64.b64encode(p.data).decode(),
+        base64.b64encode(png(chunk_pixels(p.width, p.height, p.data))).decode(),
+    )
 
 
 def advertisement(e: Envelope, public_base_url: str) -> dict[str, Any]:
@@ -128,8 +131,16 @@ def apply_poses(view: dict[str, RobotState], events: Iterable[Envelope]) -> list
         current = view.get(e.robot_id)
         last_seen = max(e.receive_time_ms, current.last_seen_ms if current else e.receive_time_ms)
         if current is None or e.event_time_ms > current.ts_ms:
-            view[e.robot_id] = RobotState(e.robot_id, e.event_time_ms, e.receive_time_ms, last_seen,
-                                          p.position, p.battery_level, p.charging, p.loaded)
+            view[e.robot_id] = RobotState(
+                e.robot_id,
+                e.event_time_ms,
+                e.receive_time_ms,
+                last_seen,
+                p.position,
+                p.battery_level,
+                p.charging,
+                p.loaded,
+            )
             changed[e.robot_id] = None
         elif last_seen != current.last_seen_ms:
             view[e.robot_id] = msgspec.structs.replace(current, last_seen_ms=last_seen)

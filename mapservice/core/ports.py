@@ -226,15 +226,20 @@ class TimeTravelReader(Protocol):
         """Poses with from_ms <= event time < to_ms, ordered by time then robot."""
 
     def poses_downsampled(
-        self, from_ms: int, to_ms: int, step_ms: int, robot_id: str | None = None,
+        self,
+        from_ms: int,
+        to_ms: int,
+        step_ms: int,
+        robot_id: str | None = None,
         limit: int = 100_000,
     ) -> list[PoseRow]:
         """Per robot, its first pose in each step [from_ms + k*step_ms, from_ms + (k+1)*step_ms)
         of from_ms <= event time < to_ms: at most one frame per robot per step, ordered by
         time then robot (a replay's poses at a coarser rate)."""
 
-    def robot_track(self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0,
-                    limit: int = 100_000) -> list[PoseRow]:
+    def robot_track(
+        self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0, limit: int = 100_000
+    ) -> list[PoseRow]:
         """One robot's poses with from_ms <= event time < to_ms in time order (with step_ms
         > 0, its first in each step [from_ms + k*step_ms, ...)), without planned paths
         (`path` None): a plot's read. A derived view: it may lag `poses` until
@@ -243,8 +248,9 @@ class TimeTravelReader(Protocol):
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""
 
-    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
-                               limit: int = 100_000) -> list[ChunkRow]:
+    def chunk_events_compacted(
+        self, from_ms: int, to_ms: int, step_ms: int, limit: int = 100_000
+    ) -> list[ChunkRow]:
         """Per chunk and absolute step bucket [k*step_ms, (k+1)*step_ms) within the
         window, only its winning write (greatest (event time, robot id), map_at's rule),
         ordered as chunk_events(): folding them gives the map exactly at every bucket
@@ -260,8 +266,9 @@ class TimeTravelReader(Protocol):
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Per chunk, the write with the greatest (event time, robot id) at or before `at_ms`."""
 
-    def robots_at(self, at_ms: int, after: str | None = None,
-                  limit: int | None = None) -> list[PoseRow]:
+    def robots_at(
+        self, at_ms: int, after: str | None = None, limit: int | None = None
+    ) -> list[PoseRow]:
         """Per robot, its pose with the greatest event time at or before `at_ms`, in robot id
         order: only robots whose id sorts after `after`, at most `limit` of them (a page)."""
 
@@ -300,8 +307,9 @@ class ConflictReader(Protocol):
     """Conflicts and the writes they are found among (mapservice/core/conflicts.py has the
     rule; ClickHouse: `conflict_reads`). Conflicts are written through `HistoryWriter`."""
 
-    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
-                          to_ms: int) -> list[ChunkRow]:
+    def chunk_writes_near(
+        self, chunks: Sequence[tuple[int, int]], from_ms: int, to_ms: int
+    ) -> list[ChunkRow]:
         """Writes on the given (row, column) chunks with from_ms <= event time <= to_ms,
         in event-time order (the neighbours a new write may conflict with)."""
 
@@ -320,18 +328,23 @@ class AnnotationReader(Protocol):
     def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
         """The operators' annotations standing at `at_ms` (inclusive), by id."""
 
-    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+    def annotation_edits(
+        self, from_ms: int, to_ms: int, limit: int = 10_000
+    ) -> list[AnnotationEdit]:
         """The annotation edits with from_ms <= time < to_ms, oldest first."""
 
-    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+    def zone_violations(
+        self, from_ms: int, to_ms: int, limit: int = 100_000
+    ) -> list[ZoneViolation]:
         """The zone violations with from_ms <= time < to_ms, by time."""
 
 
 class CommandReader(Protocol):
     """Operators' commands to robots and the robots' answers (ClickHouse mixin: command_reads)."""
 
-    def command_events(self, from_ms: int, to_ms: int, robot_id: str | None = None,
-                       limit: int = 10_000) -> list[StoredCommandEvent]:
+    def command_events(
+        self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 10_000
+    ) -> list[StoredCommandEvent]:
         """Operators' commands and the robots' answers with from_ms <= time < to_ms (of
         one robot, if named), oldest first."""
 
@@ -381,8 +394,20 @@ class StoreAdmin(Protocol):
 # A new store method goes into the role whose ClickHouse mixin implements it, and is then
 # part of HistoryStore too; a new concern gets a role protocol of its own beside these (and a
 # mixin in adapters/clickhouse/), added to the bases below.
-class HistoryStore(StoreSchema, HistoryWriter, TimeTravelReader, SnapshotKeeper, RetentionKeeper,
-                   ConflictReader, AnnotationReader, CommandReader, VdaReader, ChangeFeed, LegacyQueries,
-                   StoreAdmin, Protocol):
+class HistoryStore(
+    StoreSchema,
+    HistoryWriter,
+    TimeTravelReader,
+    SnapshotKeeper,
+    RetentionKeeper,
+    ConflictReader,
+    AnnotationReader,
+    CommandReader,
+    VdaReader,
+    ChangeFeed,
+    LegacyQueries,
+    StoreAdmin,
+    Protocol,
+):
     """The seven-day history, every role at once. Appends are idempotent on each event's
     natural identity."""

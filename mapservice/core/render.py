@@ -19,8 +19,9 @@ def chunk_pixels(width: int, height: int, zlib_pixels: bytes) -> np.ndarray:
     return np.frombuffer(zlib.decompress(zlib_pixels), dtype=np.uint8).reshape(height, width)
 
 
-def stitch(meta: MapMetaSet, chunks: Iterable[ChunkState],
-           contents: dict[bytes, tuple[int, int, bytes]]) -> np.ndarray:
+def stitch(
+    meta: MapMetaSet, chunks: Iterable[ChunkState], contents: dict[bytes, tuple[int, int, bytes]]
+) -> np.ndarray:
     """The whole map as one image (row 0 at the top, as in the PGM); unknown where unwritten."""
     cw, ch = meta.chunk_width, meta.chunk_height
     canvas = np.full((meta.chunk_rows * ch, meta.chunk_cols * cw), UNKNOWN, dtype=np.uint8)
@@ -31,7 +32,9 @@ def stitch(meta: MapMetaSet, chunks: Iterable[ChunkState],
         w, h, data = found
         if (w, h) != (cw, ch):
             continue  # written under another chunk size; not part of this map's grid
-        canvas[c.row * ch:(c.row + 1) * ch, c.column * cw:(c.column + 1) * cw] = chunk_pixels(w, h, data)
+        canvas[c.row * ch : (c.row + 1) * ch, c.column * cw : (c.column + 1) * cw] = chunk_pixels(
+            w, h, data
+        )
     return canvas[: meta.height, : meta.width]
 
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 
-
 from mapservice.core.ports import ChunkRow, ChunkState, PoseRow
 
 
@@ -19,7 +18,9 @@ def chunk_order(row: ChunkRow | ChunkState) -> tuple[int, str]:
     return (row.ts_ms, row.robot_id)
 
 
-def fold_map(events: Iterable[ChunkRow | ChunkState], at_ms: int) -> dict[tuple[int, int], ChunkState]:
+def fold_map(
+    events: Iterable[ChunkRow | ChunkState], at_ms: int
+) -> dict[tuple[int, int], ChunkState]:
     """(row, column) -> the winning write at or before `at_ms`."""
     state: dict[tuple[int, int], ChunkState] = {}
     for e in events:

@@ -25,8 +25,15 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Sequence
 
 from mapservice.core import change_feed
-from mapservice.core.change_feed import (MARGIN_MS, UPLOAD_GAP_MS, UPLOAD_MIN_CHUNKS, ChangeEntry,
-                                         ChangeQuery, ChunkRow, WindowTooBusy)
+from mapservice.core.change_feed import (
+    MARGIN_MS,
+    UPLOAD_GAP_MS,
+    UPLOAD_MIN_CHUNKS,
+    ChangeEntry,
+    ChangeQuery,
+    ChunkRow,
+    WindowTooBusy,
+)
 
 BURST_BUCKET_MS = MARGIN_MS
 BURST_MIN_WRITES = -(-UPLOAD_MIN_CHUNKS // 2)
@@ -64,7 +71,7 @@ def newest_first(query: ChangeQuery, bursts: Bursts, fetch: Fetch) -> list[Chang
             raise WindowTooBusy(query)
         for e in change_feed.page(writes, query):
             found[e.key()] = e
-    return [found[k] for k in sorted(found, reverse=True)[:query.limit]]
+    return [found[k] for k in sorted(found, reverse=True)[: query.limit]]
 
 
 def _windows(pairs: Iterable[tuple[str, int]]) -> list[tuple[str, int, int]]:

@@ -13,13 +13,14 @@ _PLAIN = re.compile(rb"[A-Za-z0-9_.-]")
 
 
 def _escape(name: str) -> str:
-    return "".join(chr(b) if _PLAIN.fullmatch(bytes([b])) else f"@{b:02X}"
-                   for b in name.encode())
+    return "".join(chr(b) if _PLAIN.fullmatch(bytes([b])) else f"@{b:02X}" for b in name.encode())
 
 
 def _unescape(escaped: str) -> str:
-    return b"".join(bytes.fromhex(m[1:]) if m.startswith("@") else m.encode()
-                    for m in re.findall(r"@[0-9A-F]{2}|[^@]+|@", escaped)).decode()
+    return b"".join(
+        bytes.fromhex(m[1:]) if m.startswith("@") else m.encode()
+        for m in re.findall(r"@[0-9A-F]{2}|[^@]+|@", escaped)
+    ).decode()
 
 
 def robot_id_for(manufacturer: str, serial_number: str) -> str:

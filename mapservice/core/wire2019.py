@@ -13,9 +13,8 @@ import math
 import re
 import zlib
 from collections.abc import Sequence
-from datetime import datetime, UTC
+from datetime import UTC, datetime
 from enum import Enum
-
 from typing import Annotated, Any, TypeVar
 
 import msgspec
@@ -225,8 +224,9 @@ def format_timestamps(ms: Sequence[int]) -> list[str]:
 
     if not len(ms):
         return []
-    texts = np.datetime_as_string(np.asarray(ms, dtype=np.int64).astype("datetime64[ms]"),
-                                  unit="ms").tolist()
+    texts = np.datetime_as_string(
+        np.asarray(ms, dtype=np.int64).astype("datetime64[ms]"), unit="ms"
+    ).tolist()
     return [t.removesuffix(".000") for t in texts]
 
 
@@ -268,8 +268,9 @@ def _mismatch(topic_robot_id: str, payload_robot_id: str) -> Rejection:
     )
 
 
-def decode_chunk_create(data: bytes, receive_ms: int, limits: Limits,
-                        topic_robot_id: str | None = None) -> Envelope | Rejection:
+def decode_chunk_create(
+    data: bytes, receive_ms: int, limits: Limits, topic_robot_id: str | None = None
+) -> Envelope | Rejection:
     """Validate an `iot/chunks/create` message (listing 14) into a ChunkUpdated event.
 
     `topic_robot_id` is the robot a per-robot chunk topic (`iot/chunks/create/{robotId}`)
@@ -377,7 +378,9 @@ def decode_coordinates(
     return make_envelope(msg.robotId, event_ms, receive_ms, payload)
 
 
-def encode_chunk_create(row: int, column: int, pixels: bytes, timestamp: str, robot_id: str) -> bytes:
+def encode_chunk_create(
+    row: int, column: int, pixels: bytes, timestamp: str, robot_id: str
+) -> bytes:
     """A 2019 `iot/chunks/create` message, as a robot would send it."""
     return msgspec.json.encode(
         {

@@ -85,7 +85,7 @@ def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.nd
         n = np.clip(np.ceil(xi - 0.5), c0, c1).astype(np.int64) - c0
         counts[rows - r0, 0] += 1
         np.subtract.at(counts, (rows - r0, n), 1)
-    return r0, c0, (np.cumsum(counts[:, :c1 - c0], axis=1) & 1).astype(bool)
+    return r0, c0, (np.cumsum(counts[:, : c1 - c0], axis=1) & 1).astype(bool)
 
 
 def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
@@ -93,7 +93,7 @@ def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
     rings (even-odd rule, pixel centres; the module's docstring has the exact rule)."""
     out = np.zeros((grid.height, grid.width), dtype=bool)
     r0, c0, window = rasterise_window(grid, rings)
-    out[r0:r0 + window.shape[0], c0:c0 + window.shape[1]] = window
+    out[r0 : r0 + window.shape[0], c0 : c0 + window.shape[1]] = window
     return out
 
 
@@ -127,7 +127,7 @@ def keep_out_labels(grid: Grid, zones: Sequence[tuple[str, Zone]]) -> tuple[np.n
             continue
         ids.append(annotation_id)
         r0, c0, window = rasterise_window(grid, (zone.polygon, *zone.holes))
-        region = labels[r0:r0 + window.shape[0], c0:c0 + window.shape[1]]
+        region = labels[r0 : r0 + window.shape[0], c0 : c0 + window.shape[1]]
         region[window] = len(ids)
     return labels, ids
 
@@ -160,10 +160,14 @@ def speed_mask(grid: Grid, zones: Sequence[Zone], unit: str) -> tuple[np.ndarray
     for zone in zones:
         if zone.kind != "speed_limit" or zone.speed_unit != unit or zone.speed_limit is None:
             continue
-        value = int(min(max(math.floor((zone.speed_limit - info.base) / info.multiplier + 1e-9), 1), 100))
+        value = int(
+            min(max(math.floor((zone.speed_limit - info.base) / info.multiplier + 1e-9), 1), 100)
+        )
         rows, cols, inside = _paint(mask, grid, zone)
         region = mask[rows, cols]
-        region[inside] = np.where((region[inside] == 0) | (region[inside] > value), value, region[inside])
+        region[inside] = np.where(
+            (region[inside] == 0) | (region[inside] > value), value, region[inside]
+        )
     return mask, info
 
 
@@ -241,9 +245,15 @@ def _inside(point: tuple[float, float], ring: Ring) -> bool:
 def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out") -> list[Zone]:
     """The True pixels of `mask` (height, width; row 0 at the top) as zones: one per
     outer boundary with the holes inside it, vertices on pixel edges in map metres."""
+
     def metres(ring: list[tuple[int, int]]) -> Ring:
-        return tuple((grid.origin_x + x * grid.resolution,
-                      grid.origin_y + (grid.height - y) * grid.resolution) for x, y in ring)
+        return tuple(
+            (
+                grid.origin_x + x * grid.resolution,
+                grid.origin_y + (grid.height - y) * grid.resolution,
+            )
+            for x, y in ring
+        )
 
     outers: list[Ring] = []
     holes: list[Ring] = []
@@ -262,10 +272,19 @@ def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out
         dx, dy = bx - ax, by - ay
         length = math.hypot(dx, dy)
         probe = (mx + dy / length * grid.resolution / 4, my - dx / length * grid.resolution / 4)
-        best = min((i for i, o in enumerate(outers) if _inside(probe, o)),
-                   key=lambda i: areas[i], default=None)
+        best = min(
+            (i for i, o in enumerate(outers) if _inside(probe, o)),
+            key=lambda i: areas[i],
+            default=None,
+        )
         if best is not None:
             owned[best].append(hole)
-    return [Zone(name=f"{name} {k + 1}" if len(outers) > 1 else name, kind=kind,
-                 polygon=outer, holes=tuple(owned[k]))
-            for k, outer in enumerate(outers)]
+    return [
+        Zone(
+            name=f"{name} {k + 1}" if len(outers) > 1 else name,
+            kind=kind,
+            polygon=outer,
+            holes=tuple(owned[k]),
+        )
+        for k, outer in enumerate(outers)
+    ]

@@ -30,19 +30,21 @@ from dataclasses import dataclass
 
 import structlog
 
-from mapservice.core.change_feed import UPLOADER_ID
-from mapservice.processors.conflict_recorder import record_conflicts
-from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, make_envelope
 from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
+from mapservice.core.change_feed import UPLOADER_ID
+from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, make_envelope
 from mapservice.core.ports import ChunkRow, HistoryStore
 from mapservice.core.wire2019 import content_hash
+from mapservice.processors.conflict_recorder import record_conflicts
 
 log = structlog.get_logger(__name__)
 
 STEP_S = 12
 POSE_EVERY_S = 3
 CHANGE_EVERY_S = 1800.0
-CONFLICT_EVERY = 4  # the 1st, 5th, 9th ... changed chunk is also reported, differently, by another robot
+CONFLICT_EVERY = (
+    4  # the 1st, 5th, 9th ... changed chunk is also reported, differently, by another robot
+)
 UPLOAD_ROBOT_ID = UPLOADER_ID  # as `mapservice map upload` writes the map
 DAY_MS = 86_400_000
 BATCH_POSES = 100_000
@@ -59,17 +61,35 @@ class BackfillResult:
     seconds: float
 
 
-def _chunk_event(robot_id: str, t_ms: int, row: int, column: int, pixels: bytes,
-                 width: int, height: int, lag_ms: int) -> Envelope:
+def _chunk_event(
+    robot_id: str,
+    t_ms: int,
+    row: int,
+    column: int,
+    pixels: bytes,
+    width: int,
+    height: int,
+    lag_ms: int,
+) -> Envelope:
     payload = ChunkUpdated(row, column, width, height, zlib.compress(pixels), content_hash(pixels))
     return make_envelope(robot_id, t_ms, t_ms + lag_ms, payload)
 
 
-def _pose_event(robot_id: str, t_ms: int, xy: tuple[float, float], yaw: float, battery: float,
-                charging: bool, loaded: bool, path, lag_ms: int) -> Envelope:
+def _pose_event(
+    robot_id: str,
+    t_ms: int,
+    xy: tuple[float, float],
+    yaw: float,
+    battery: float,
+    charging: bool,
+    loaded: bool,
+    path,
+    lag_ms: int,
+) -> Envelope:
     q = (0.0, 0.0, round(math.sin(yaw / 2), 6), round(math.cos(yaw / 2), 6))
-    payload = PoseReported((xy[0], xy[1], 0.0), q, round(battery, 1), charging, loaded,
-                           tuple(path) if path else None)
+    payload = PoseReported(
+        (xy[0], xy[1], 0.0), q, round(battery, 1), charging, loaded, tuple(path) if path else None
+    )
     return make_envelope(robot_id, t_ms, t_ms + lag_ms, payload)
 
 
@@ -78,8 +98,11 @@ def map_events(ros_map: RosMap, t_ms: int) -> list[Envelope]:
     meta = meta_for(ros_map)
     events = [make_envelope(UPLOAD_ROBOT_ID, t_ms, t_ms, meta)]
     for (row, column), pixels in sorted(slice_chunks(ros_map).items()):
-        events.append(_chunk_event(UPLOAD_ROBOT_ID, t_ms, row, column, pixels,
-                                   meta.chunk_width, meta.chunk_height, 0))
+        events.append(
+            _chunk_event(
+                UPLOAD_ROBOT_ID, t_ms, row, column, pixels, meta.chunk_width, meta.chunk_height, 0
+            )
+        )
     return events
 
 
@@ -91,8 +114,9 @@ def _misread(pixels: bytes, rng: random.Random, unknown: int) -> bytes:
     return bytes(out)
 
 
-def simulate(ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: int = 7,
-             prefix: str = "sim") -> Iterator[tuple[int, list[Envelope]]]:
+def simulate(
+    ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: int = 7, prefix: str = "sim"
+) -> Iterator[tuple[int, list[Envelope]]]:
     """(simulated time reached, events) batches of the fast-forwarded shift, in time order."""
     from mapservice.robot import sim
 
@@ -113,9 +137,9 @@ def simulate(ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: 
             return ()
         # Driving only drops waypoints from the front: the current ones end the route.
         known = tails.get(robot_id)
-        if known is None or len(wps) > len(known[0]) or known[0][len(known[0]) - len(wps):] != wps:
+        if known is None or len(wps) > len(known[0]) or known[0][len(known[0]) - len(wps) :] != wps:
             known = tails[robot_id] = (wps, tuple(sim.to_metres(s, p) for p in wps))
-        return (sim.to_metres(s, pos), *known[1][len(known[1]) - len(wps):])
+        return (sim.to_metres(s, pos), *known[1][len(known[1]) - len(wps) :])
 
     while state.t_ms < end_ms:
         before = state
@@ -123,26 +147,66 @@ def simulate(ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: 
         # Poses between the steps: each robot advanced along its own path.
         for robot in before.robots:
             for k in range(POSE_EVERY_S, STEP_S, POSE_EVERY_S):
-                pos, yaw, passed = sim.advance_along(robot.pos, robot.yaw, robot.waypoints, speed_px * k)
+                pos, yaw, passed = sim.advance_along(
+                    robot.pos, robot.yaw, robot.waypoints, speed_px * k
+                )
                 wps = robot.waypoints[passed:]
-                batch.append(_pose_event(
-                    robot.robot_id, before.t_ms + k * 1000, sim.to_metres(before, pos), yaw,
-                    robot.battery, robot.charging, robot.loaded, path(before, robot.robot_id, pos, wps),
-                    rng.randrange(15, 90)))
+                batch.append(
+                    _pose_event(
+                        robot.robot_id,
+                        before.t_ms + k * 1000,
+                        sim.to_metres(before, pos),
+                        yaw,
+                        robot.battery,
+                        robot.charging,
+                        robot.loaded,
+                        path(before, robot.robot_id, pos, wps),
+                        rng.randrange(15, 90),
+                    )
+                )
         for p in out.poses:
-            batch.append(_pose_event(p.robot_id, p.t_ms, (p.x, p.y), p.yaw, p.battery, p.charging,
-                                     p.loaded, p.path, rng.randrange(15, 90)))
+            batch.append(
+                _pose_event(
+                    p.robot_id,
+                    p.t_ms,
+                    (p.x, p.y),
+                    p.yaw,
+                    p.battery,
+                    p.charging,
+                    p.loaded,
+                    p.path,
+                    rng.randrange(15, 90),
+                )
+            )
         others = [r.robot_id for r in state.robots]
         for c in out.chunks:
             changed += 1
-            batch.append(_chunk_event(c.robot_id, c.t_ms, c.row, c.column, c.pixels,
-                                      meta.chunk_width, meta.chunk_height, rng.randrange(15, 90)))
+            batch.append(
+                _chunk_event(
+                    c.robot_id,
+                    c.t_ms,
+                    c.row,
+                    c.column,
+                    c.pixels,
+                    meta.chunk_width,
+                    meta.chunk_height,
+                    rng.randrange(15, 90),
+                )
+            )
             second = [r for r in others if r != c.robot_id]
             if second and changed % CONFLICT_EVERY == 1:
-                batch.append(_chunk_event(rng.choice(second), c.t_ms - rng.randrange(1000, 5000),
-                                          c.row, c.column,
-                                          _misread(c.pixels, rng, ros_map.unknown_value),
-                                          meta.chunk_width, meta.chunk_height, rng.randrange(15, 90)))
+                batch.append(
+                    _chunk_event(
+                        rng.choice(second),
+                        c.t_ms - rng.randrange(1000, 5000),
+                        c.row,
+                        c.column,
+                        _misread(c.pixels, rng, ros_map.unknown_value),
+                        meta.chunk_width,
+                        meta.chunk_height,
+                        rng.randrange(15, 90),
+                    )
+                )
         if len(batch) >= BATCH_POSES:
             yield state.t_ms, batch
             batch = []
@@ -150,9 +214,18 @@ def simulate(ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: 
         yield state.t_ms, batch
 
 
-def backfill(store: HistoryStore, ros_map: RosMap, *, days: float, robots: int, now_ms: int,
-             conflict_window_ms: int, seed: int = 7, prefix: str = "sim",
-             progress: Callable[[float], None] | None = None) -> BackfillResult:
+def backfill(
+    store: HistoryStore,
+    ros_map: RosMap,
+    *,
+    days: float,
+    robots: int,
+    now_ms: int,
+    conflict_window_ms: int,
+    seed: int = 7,
+    prefix: str = "sim",
+    progress: Callable[[float], None] | None = None,
+) -> BackfillResult:
     """Writes `days` of simulated history ending at `now_ms` into `store` (migrated)."""
     started = time.monotonic()
     start_ms = now_ms - int(days * DAY_MS)
@@ -167,9 +240,18 @@ def backfill(store: HistoryStore, ros_map: RosMap, *, days: float, robots: int, 
             store.derive_views_between(events[0].event_time_ms, events[-1].event_time_ms)
         else:
             store.append(events)
-        writes = [ChunkRow(e.payload.row, e.payload.column, e.event_time_ms, e.robot_id,
-                           e.payload.content_hash.hex(), e.receive_time_ms)
-                  for e in events if isinstance(e.payload, ChunkUpdated)]
+        writes = [
+            ChunkRow(
+                e.payload.row,
+                e.payload.column,
+                e.event_time_ms,
+                e.robot_id,
+                e.payload.content_hash.hex(),
+                e.receive_time_ms,
+            )
+            for e in events
+            if isinstance(e.payload, ChunkUpdated)
+        ]
         totals["chunk_writes"] += len(writes)
         totals["poses"] += len(events) - len(writes)
         totals["conflicts"] += record_conflicts(store, writes, conflict_window_ms)
@@ -178,8 +260,9 @@ def backfill(store: HistoryStore, ros_map: RosMap, *, days: float, robots: int, 
     # stored while the next is simulated.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="demo-history") as writer:
         pending = None
-        for reached, events in simulate(ros_map, robots, start_ms + 1000, now_ms, seed=seed,
-                                        prefix=prefix):
+        for reached, events in simulate(
+            ros_map, robots, start_ms + 1000, now_ms, seed=seed, prefix=prefix
+        ):
             if pending is not None:
                 pending.result()
             pending = writer.submit(write, events)
@@ -188,9 +271,19 @@ def backfill(store: HistoryStore, ros_map: RosMap, *, days: float, robots: int, 
         if pending is not None:
             pending.result()
     poses, chunk_writes, conflicts = totals["poses"], totals["chunk_writes"], totals["conflicts"]
-    snapshots = store.build_snapshots_bulk(now_ms) if hasattr(store, "build_snapshots_bulk") \
+    snapshots = (
+        store.build_snapshots_bulk(now_ms)
+        if hasattr(store, "build_snapshots_bulk")
         else store.build_snapshots(now_ms)
-    result = BackfillResult(start_ms, now_ms, poses, chunk_writes, conflicts, snapshots,
-                            round(time.monotonic() - started, 1))
+    )
+    result = BackfillResult(
+        start_ms,
+        now_ms,
+        poses,
+        chunk_writes,
+        conflicts,
+        snapshots,
+        round(time.monotonic() - started, 1),
+    )
     log.info("demo history written", **dict(vars(result).items()))
     return result

@@ -34,15 +34,19 @@ def ensure_port_free(port: int, what: str) -> None:
         except OSError:
             raise RuntimeError(
                 f"port {port} for {what} is already in use; stop what holds it or pick another "
-                "port (see `mapservice up --help`)") from None
+                "port (see `mapservice up --help`)"
+            ) from None
 
 
-def wait_for_port(port: int, timeout_s: float = 30.0, proc: subprocess.Popen | None = None,
-                  what: str = "service") -> None:
+def wait_for_port(
+    port: int, timeout_s: float = 30.0, proc: subprocess.Popen | None = None, what: str = "service"
+) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc is not None and proc.poll() is not None:
-            raise RuntimeError(f"{what} exited with code {proc.returncode} before listening on {port}")
+            raise RuntimeError(
+                f"{what} exited with code {proc.returncode} before listening on {port}"
+            )
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=0.5):
                 return
@@ -64,26 +68,45 @@ def start_tansu(port: int, log_file=None, preexec_fn=None) -> subprocess.Popen:
     ensure_port_free(port, "Kafka (tansu)")
     url = f"tcp://127.0.0.1:{port}"
     proc = subprocess.Popen(
-        [str(tansu_binary()), "broker", "--listener-url", url, "--advertised-listener-url", url,
-         "--storage-engine", "memory://tansu/"],
-        stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
-        start_new_session=True, preexec_fn=preexec_fn,
+        [
+            str(tansu_binary()),
+            "broker",
+            "--listener-url",
+            url,
+            "--advertised-listener-url",
+            url,
+            "--storage-engine",
+            "memory://tansu/",
+        ],
+        stdout=log_file or subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        preexec_fn=preexec_fn,
     )
     wait_for_port(port, proc=proc, what="tansu")
     return proc
 
 
-def start_amqtt(port: int, log_file=None, ws_port: int | None = None,
-                preexec_fn=None) -> subprocess.Popen:
+def start_amqtt(
+    port: int, log_file=None, ws_port: int | None = None, preexec_fn=None
+) -> subprocess.Popen:
     """amqtt on 127.0.0.1:port; with ws_port also MQTT over WebSocket there (for browsers)."""
     ensure_port_free(port, "MQTT (amqtt)")
     if ws_port:
         ensure_port_free(ws_port, "MQTT over WebSocket (amqtt)")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mapservice.local.embedded", "amqtt", str(port),
-         *([str(ws_port)] if ws_port else [])],
-        stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
-        start_new_session=True, preexec_fn=preexec_fn,
+        [
+            sys.executable,
+            "-m",
+            "mapservice.local.embedded",
+            "amqtt",
+            str(port),
+            *([str(ws_port)] if ws_port else []),
+        ],
+        stdout=log_file or subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        preexec_fn=preexec_fn,
     )
     wait_for_port(port, proc=proc, what="amqtt")
     if ws_port:
@@ -159,18 +182,23 @@ class MosquittoOptions:
     message_size_limit: int | None = None
 
 
-def mosquitto_conf(port: int, ws_port: int | None = None,
-                   options: MosquittoOptions = MosquittoOptions()) -> str:
+def mosquitto_conf(
+    port: int, ws_port: int | None = None, options: MosquittoOptions = MosquittoOptions()
+) -> str:
     text = MOSQUITTO_CONF.format(port=port)
     if options.message_size_limit is not None:
         text += f"message_size_limit {options.message_size_limit}\n"
     if options.password_file is not None:
-        text += MOSQUITTO_AUTH.format(password_file=options.password_file,
-                                      acl_file=options.acl_file)
+        text += MOSQUITTO_AUTH.format(
+            password_file=options.password_file, acl_file=options.acl_file
+        )
     else:
         text += "allow_anonymous true\n"
-    text += (MOSQUITTO_STORE.format(store_dir=options.store_dir) if options.store_dir is not None
-             else "persistence false\n")
+    text += (
+        MOSQUITTO_STORE.format(store_dir=options.store_dir)
+        if options.store_dir is not None
+        else "persistence false\n"
+    )
     if os.geteuid() == 0:
         # As root Mosquitto drops to its own user, who cannot read a test's private files
         # nor write the store in the data dir.
@@ -181,15 +209,23 @@ def mosquitto_conf(port: int, ws_port: int | None = None,
         if options.tls is None:
             raise ValueError("a TLS listener needs a server certificate")
         text += MOSQUITTO_TLS_LISTENER.format(
-            tls_port=options.tls_port, ca_file=options.tls.ca_file, cert_file=options.tls.cert_file,
+            tls_port=options.tls_port,
+            ca_file=options.tls.ca_file,
+            cert_file=options.tls.cert_file,
             key_file=options.tls.key_file,
-            require_certificate="true" if options.require_client_certificate else "false")
+            require_certificate="true" if options.require_client_certificate else "false",
+        )
     return text
 
 
-def start_mosquitto(port: int, workdir: Path, log_file=None, ws_port: int | None = None,
-                    options: MosquittoOptions = MosquittoOptions(),
-                    preexec_fn=None) -> subprocess.Popen:
+def start_mosquitto(
+    port: int,
+    workdir: Path,
+    log_file=None,
+    ws_port: int | None = None,
+    options: MosquittoOptions = MosquittoOptions(),
+    preexec_fn=None,
+) -> subprocess.Popen:
     """mosquitto on 127.0.0.1:port; with ws_port also MQTT over WebSocket there; `options`
     add authentication, a TLS listener and a store. Its password file and ACL are read at
     start: to change them, restart it (a SIGHUP after a start from the store stops
@@ -207,9 +243,13 @@ def start_mosquitto(port: int, workdir: Path, log_file=None, ws_port: int | None
     if options.store_dir is not None:
         options.store_dir.mkdir(parents=True, exist_ok=True)
     conf.write_text(mosquitto_conf(port, ws_port, options))
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log_file or subprocess.DEVNULL,
-                            stderr=subprocess.STDOUT, start_new_session=True,
-                            preexec_fn=preexec_fn)
+    proc = subprocess.Popen(
+        [binary, "-c", str(conf)],
+        stdout=log_file or subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        preexec_fn=preexec_fn,
+    )
     wait_for_port(port, proc=proc, what="mosquitto")
     if ws_port:
         wait_for_port(ws_port, proc=proc, what="mosquitto's WebSocket listener")
@@ -224,10 +264,14 @@ async def _serve_amqtt(port: int, ws_port: int | None = None) -> None:
     listeners = {"default": {"type": "tcp", "bind": f"127.0.0.1:{port}", "max_connections": 10000}}
     if ws_port:
         listeners["ws"] = {"type": "ws", "bind": f"127.0.0.1:{ws_port}", "max_connections": 1000}
-    broker = Broker({
-        "listeners": listeners,
-        "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
-    })
+    broker = Broker(
+        {
+            "listeners": listeners,
+            "plugins": {
+                "amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}
+            },
+        }
+    )
     await broker.start()
     try:
         await asyncio.Event().wait()

@@ -29,8 +29,13 @@ POM = Path(__file__).parent / "kafka" / "pom.xml"
 NODE_ID = 1
 # Start fast and small: the serial collector and the client compiler (C1) only; a JVM's
 # class-data sharing archive where the JDK has one. Measured here: ready ~2 s after start.
-JVM_FLAGS = ("-XX:+UseSerialGC", "-XX:TieredStopAtLevel=1", "-Xshare:auto",
-             "-XX:+ExitOnOutOfMemoryError", "-Djava.awt.headless=true")
+JVM_FLAGS = (
+    "-XX:+UseSerialGC",
+    "-XX:TieredStopAtLevel=1",
+    "-Xshare:auto",
+    "-XX:+ExitOnOutOfMemoryError",
+    "-Djava.awt.headless=true",
+)
 # WARN and above, plus the lines that say the node started and stopped.
 LOG4J2_YAML = """\
 Configuration:
@@ -59,15 +64,17 @@ def kafka_version() -> str:
 
 
 def embedded_choice(setting: str) -> str:
-    """"apache" or "tansu" for MAPSERVICE_EMBEDDED_KAFKA (auto: apache where Java is)."""
+    """ "apache" or "tansu" for MAPSERVICE_EMBEDDED_KAFKA (auto: apache where Java is)."""
     if setting == "auto":
         return "apache" if java_binary() is not None else "tansu"
     return setting
 
 
-TANSU_COST = ("tansu keeps every record in memory (~1.7 KB an event, no retention: ~0.7 GB a "
-              "day at 5 robots) and a restart of it loses every record it held, acknowledged "
-              "or not")
+TANSU_COST = (
+    "tansu keeps every record in memory (~1.7 KB an event, no retention: ~0.7 GB a "
+    "day at 5 robots) and a restart of it loses every record it held, acknowledged "
+    "or not"
+)
 
 
 def java_binary() -> str | None:
@@ -83,8 +90,9 @@ def default_jars_dir() -> Path:
     return cache / "mapservice" / f"kafka-{kafka_version()}"
 
 
-def ensure_jars(jars_dir: Path | None = None,
-                progress: Callable[[str], None] = lambda line: None) -> Path:
+def ensure_jars(
+    jars_dir: Path | None = None, progress: Callable[[str], None] = lambda line: None
+) -> Path:
     """The directory of the broker's jars, resolved by Maven on first use (44 MB in 46 jars,
     411 files downloaded into a 56 MB Maven repository: 20 s here on a quiet machine, 32-70 s
     at a load average of 22-31; 24-42 s from a warm Maven repository at that load, Maven's
@@ -104,28 +112,40 @@ def ensure_jars(jars_dir: Path | None = None,
             raise RuntimeError(
                 "Maven (`mvn`) is not installed, so the Apache Kafka jars cannot be fetched: "
                 "`make up` installs it as root (Debian: apt-get install maven), or set "
-                "MAPSERVICE_EMBEDDED_KAFKA=tansu to run on tansu (in memory, no retention)")
+                "MAPSERVICE_EMBEDDED_KAFKA=tansu to run on tansu (in memory, no retention)"
+            )
         staging = jars_dir / "libs.partial"
         shutil.rmtree(staging, ignore_errors=True)
         shutil.rmtree(libs, ignore_errors=True)
         proc = subprocess.Popen(
-            [mvn, "-B", "-f", str(POM), "dependency:copy-dependencies",
-             f"-DoutputDirectory={staging}", "-Dmdep.useRepositoryLayout=false"],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            [
+                mvn,
+                "-B",
+                "-f",
+                str(POM),
+                "dependency:copy-dependencies",
+                f"-DoutputDirectory={staging}",
+                "-Dmdep.useRepositoryLayout=false",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         output: list[str] = []
         assert proc.stdout is not None
         for line in proc.stdout:
             output.append(line.rstrip())
             # Maven logs them as "[INFO] Downloaded from central: <url> (<size> at <rate>)".
             if "Downloaded from" in line and ".jar" in line:
-                progress(line[line.index("Downloaded from"):].strip())
+                progress(line[line.index("Downloaded from") :].strip())
         if proc.wait() != 0:
             errors = [line for line in output if "[ERROR]" in line][:5]
             raise RuntimeError(
                 f"Maven could not fetch Apache Kafka {kafka_version()}'s jars (is Maven Central "
                 "reachable from here? a proxy goes into ~/.m2/settings.xml); set "
                 "MAPSERVICE_EMBEDDED_KAFKA=tansu to run on tansu instead. Maven said:\n"
-                + "\n".join(errors or output[-10:]))
+                + "\n".join(errors or output[-10:])
+            )
         staging.rename(libs)
         done.write_text(kafka_version() + "\n")
     return libs
@@ -150,76 +170,93 @@ class KafkaNodeConfig:
 
     def properties(self) -> str:
         segment = max(1024**2, self.retention_bytes // 16)
-        return "\n".join([
-            "process.roles=broker,controller",
-            f"node.id={self.node_id}",
-            # A static voter set: the controller's port is not written into the metadata
-            # log, so a lone node's restart may pick another free port.
-            "controller.quorum.voters="
-            + (self.voters or f"{self.node_id}@127.0.0.1:{self.controller_port}"),
-            f"listeners=PLAINTEXT://127.0.0.1:{self.port},CONTROLLER://127.0.0.1:{self.controller_port}",
-            f"advertised.listeners=PLAINTEXT://127.0.0.1:{self.port}",
-            "controller.listener.names=CONTROLLER",
-            "inter.broker.listener.name=PLAINTEXT",
-            "listener.security.protocol.map=CONTROLLER:PLAINTEXT,PLAINTEXT:PLAINTEXT",
-            f"log.dirs={self.log_dir}",
-            "num.partitions=1",
-            f"default.replication.factor={self.replication}",
-            f"min.insync.replicas={self.min_insync_replicas}",
-            f"offsets.topic.replication.factor={self.replication}",
-            "offsets.topic.num.partitions=6",
-            f"transaction.state.log.replication.factor={self.replication}",
-            f"transaction.state.log.min.isr={self.min_insync_replicas}",
-            f"share.coordinator.state.topic.replication.factor={self.replication}",
-            f"share.coordinator.state.topic.min.isr={self.min_insync_replicas}",
-            "group.initial.rebalance.delay.ms=0",
-            # Consumer groups of Kafka 4's protocol (KIP-848, MAPSERVICE_KAFKA_GROUP_PROTOCOL):
-            # the broker holds the members' session and heartbeat; the same 10 s and 1 s the
-            # classic protocol's members ask for (kafka_batch_source.py), under Kafka's
-            # defaults' floors of 45 s and 5 s.
-            "group.consumer.min.session.timeout.ms=10000",
-            "group.consumer.session.timeout.ms=10000",
-            "group.consumer.min.heartbeat.interval.ms=1000",
-            "group.consumer.heartbeat.interval.ms=1000",
-            # The service creates its own topics (the meta topic compacted).
-            "auto.create.topics.enable=false",
-            # Everything is in ClickHouse within a second: Kafka keeps a day, and at most
-            # retention_bytes per partition, checked every minute.
-            f"log.retention.hours={self.retention_hours}",
-            f"log.retention.bytes={self.retention_bytes}",
-            f"log.segment.bytes={segment}",
-            "log.retention.check.interval.ms=60000",
-            # After a SIGKILL the restarted node may register only once its old session has
-            # expired (9 s by default); heartbeats stay in this one process.
-            "broker.heartbeat.interval.ms=1000",
-            "broker.session.timeout.ms=4000",
-            # Few threads: one small node on a shared machine.
-            "num.network.threads=2",
-            "num.io.threads=2",
-            "background.threads=2",
-            "num.recovery.threads.per.data.dir=1",
-            "",
-        ])
+        return "\n".join(
+            [
+                "process.roles=broker,controller",
+                f"node.id={self.node_id}",
+                # A static voter set: the controller's port is not written into the metadata
+                # log, so a lone node's restart may pick another free port.
+                "controller.quorum.voters="
+                + (self.voters or f"{self.node_id}@127.0.0.1:{self.controller_port}"),
+                f"listeners=PLAINTEXT://127.0.0.1:{self.port},CONTROLLER://127.0.0.1:{self.controller_port}",
+                f"advertised.listeners=PLAINTEXT://127.0.0.1:{self.port}",
+                "controller.listener.names=CONTROLLER",
+                "inter.broker.listener.name=PLAINTEXT",
+                "listener.security.protocol.map=CONTROLLER:PLAINTEXT,PLAINTEXT:PLAINTEXT",
+                f"log.dirs={self.log_dir}",
+                "num.partitions=1",
+                f"default.replication.factor={self.replication}",
+                f"min.insync.replicas={self.min_insync_replicas}",
+                f"offsets.topic.replication.factor={self.replication}",
+                "offsets.topic.num.partitions=6",
+                f"transaction.state.log.replication.factor={self.replication}",
+                f"transaction.state.log.min.isr={self.min_insync_replicas}",
+                f"share.coordinator.state.topic.replication.factor={self.replication}",
+                f"share.coordinator.state.topic.min.isr={self.min_insync_replicas}",
+                "group.initial.rebalance.delay.ms=0",
+                # Consumer groups of Kafka 4's protocol (KIP-848, MAPSERVICE_KAFKA_GROUP_PROTOCOL):
+                # the broker holds the members' session and heartbeat; the same 10 s and 1 s the
+                # classic protocol's members ask for (kafka_batch_source.py), under Kafka's
+                # defaults' floors of 45 s and 5 s.
+                "group.consumer.min.session.timeout.ms=10000",
+                "group.consumer.session.timeout.ms=10000",
+                "group.consumer.min.heartbeat.interval.ms=1000",
+                "group.consumer.heartbeat.interval.ms=1000",
+                # The service creates its own topics (the meta topic compacted).
+                "auto.create.topics.enable=false",
+                # Everything is in ClickHouse within a second: Kafka keeps a day, and at most
+                # retention_bytes per partition, checked every minute.
+                f"log.retention.hours={self.retention_hours}",
+                f"log.retention.bytes={self.retention_bytes}",
+                f"log.segment.bytes={segment}",
+                "log.retention.check.interval.ms=60000",
+                # After a SIGKILL the restarted node may register only once its old session has
+                # expired (9 s by default); heartbeats stay in this one process.
+                "broker.heartbeat.interval.ms=1000",
+                "broker.session.timeout.ms=4000",
+                # Few threads: one small node on a shared machine.
+                "num.network.threads=2",
+                "num.io.threads=2",
+                "background.threads=2",
+                "num.recovery.threads.per.data.dir=1",
+                "",
+            ]
+        )
 
 
-def format_once(java: str, libs: Path, config_file: Path, log_dir: Path,
-                cluster: str | None = None) -> bool:
+def format_once(
+    java: str, libs: Path, config_file: Path, log_dir: Path, cluster: str | None = None
+) -> bool:
     """Formats the node's log directory unless it already is (then its records and
     offsets are kept); True if it formatted."""
     if (log_dir / "meta.properties").exists():
         return False
     log_dir.mkdir(parents=True, exist_ok=True)
     done = subprocess.run(
-        [java, *JVM_FLAGS, "-Xmx128m", "-cp", f"{libs}/*",
-         f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
-         # `--cluster-id=<id>` in one argument: an id that starts with "-" (one in 32 of
-         # the URL-safe ids) is otherwise read by the tool as an option of its own.
-         "kafka.tools.StorageTool", "format", f"--cluster-id={cluster or cluster_id()}",
-         "--config", str(config_file), "--ignore-formatted"],
-        capture_output=True, text=True)
+        [
+            java,
+            *JVM_FLAGS,
+            "-Xmx128m",
+            "-cp",
+            f"{libs}/*",
+            f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
+            # `--cluster-id=<id>` in one argument: an id that starts with "-" (one in 32 of
+            # the URL-safe ids) is otherwise read by the tool as an option of its own.
+            "kafka.tools.StorageTool",
+            "format",
+            f"--cluster-id={cluster or cluster_id()}",
+            "--config",
+            str(config_file),
+            "--ignore-formatted",
+        ],
+        capture_output=True,
+        text=True,
+    )
     if done.returncode != 0:
-        raise RuntimeError(f"formatting Kafka's log in {log_dir} failed: "
-                           f"{(done.stderr or done.stdout).strip()[-2000:]}")
+        raise RuntimeError(
+            f"formatting Kafka's log in {log_dir} failed: "
+            f"{(done.stderr or done.stdout).strip()[-2000:]}"
+        )
     return True
 
 
@@ -230,15 +267,21 @@ def cluster_id() -> str:
     return base64.urlsafe_b64encode(uuid.uuid4().bytes).decode().rstrip("=")
 
 
-def start_kafka(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = None,
-                timeout_s: float = 90.0, preexec_fn=None) -> subprocess.Popen:
+def start_kafka(
+    config: KafkaNodeConfig,
+    log_file=None,
+    jars_dir: Path | None = None,
+    timeout_s: float = 90.0,
+    preexec_fn=None,
+) -> subprocess.Popen:
     """Starts the node (formatting its log directory the first time) and returns once it
     answers a metadata request; its own process group, so it stops with `embedded.stop`."""
     earlier = running_pid(config)
     if earlier is not None:
         raise RuntimeError(
             f"an Apache Kafka from an earlier run still holds {config.log_dir} (pid {earlier}, "
-            f"left behind by a killed `mapservice up`?): stop it with `kill {earlier}`")
+            f"left behind by a killed `mapservice up`?): stop it with `kill {earlier}`"
+        )
     proc = launch(config, log_file, jars_dir, preexec_fn=preexec_fn)
     (config.log_dir.parent / "kafka.pid").write_text(f"{proc.pid}\n")
     try:
@@ -262,14 +305,21 @@ def running_pid(config: KafkaNodeConfig) -> int | None:
     return pid if b"kafka.Kafka" in cmdline and config_file in cmdline else None
 
 
-def launch(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = None,
-           cluster: str | None = None, preexec_fn=None) -> subprocess.Popen:
+def launch(
+    config: KafkaNodeConfig,
+    log_file=None,
+    jars_dir: Path | None = None,
+    cluster: str | None = None,
+    preexec_fn=None,
+) -> subprocess.Popen:
     """Starts the node's JVM without waiting (the nodes of a cluster form their quorum only
     together); formats its log directory first if it is new, with `cluster` as its id."""
     java = java_binary()
     if java is None:
-        raise RuntimeError("no Java runtime for Apache Kafka (Debian: apt-get install "
-                           "default-jre-headless; `make up` does as root)")
+        raise RuntimeError(
+            "no Java runtime for Apache Kafka (Debian: apt-get install "
+            "default-jre-headless; `make up` does as root)"
+        )
     ensure_port_free(config.port, "Kafka")
     ensure_port_free(config.controller_port, "Kafka's controller")
     libs = ensure_jars(jars_dir)
@@ -280,11 +330,22 @@ def launch(config: KafkaNodeConfig, log_file=None, jars_dir: Path | None = None,
     (config_dir / "log4j2.yaml").write_text(LOG4J2_YAML)
     format_once(java, libs, config_file, config.log_dir, cluster)
     return subprocess.Popen(
-        [java, *JVM_FLAGS, f"-Xms{min(64, config.heap_mb)}m", f"-Xmx{config.heap_mb}m",
-         f"-Dlog4j2.configurationFile={config_dir / 'log4j2.yaml'}",
-         "-cp", f"{libs}/*", "kafka.Kafka", str(config_file)],
-        stdout=log_file or subprocess.DEVNULL, stderr=subprocess.STDOUT,
-        start_new_session=True, preexec_fn=preexec_fn)
+        [
+            java,
+            *JVM_FLAGS,
+            f"-Xms{min(64, config.heap_mb)}m",
+            f"-Xmx{config.heap_mb}m",
+            f"-Dlog4j2.configurationFile={config_dir / 'log4j2.yaml'}",
+            "-cp",
+            f"{libs}/*",
+            "kafka.Kafka",
+            str(config_file),
+        ],
+        stdout=log_file or subprocess.DEVNULL,
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        preexec_fn=preexec_fn,
+    )
 
 
 def wait_until_serving(bootstrap: str, proc: subprocess.Popen, timeout_s: float) -> None:
@@ -324,8 +385,12 @@ def stop_process_group(proc: subprocess.Popen | None, timeout_s: float = 30.0) -
 
 def node_for(data_dir: Path, port: int, **limits) -> KafkaNodeConfig:
     """The embedded node of a data dir: its log in DATA_DIR/kafka/log."""
-    return KafkaNodeConfig(log_dir=Path(data_dir).resolve() / "kafka" / "log", port=port,
-                           controller_port=free_port(), **limits)
+    return KafkaNodeConfig(
+        log_dir=Path(data_dir).resolve() / "kafka" / "log",
+        port=port,
+        controller_port=free_port(),
+        **limits,
+    )
 
 
 if __name__ == "__main__":

@@ -32,8 +32,7 @@ PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 PID_FILE = "up.pids.json"
 GUARD = "guard"
 # Stack.stop's order: who feeds a broker stops before it, the brokers last.
-STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt",
-              "kafka")
+STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt", "kafka")
 
 
 def _prctl():
@@ -96,8 +95,11 @@ class Recorded:
 
     def still_running(self) -> bool:
         """Whether this very process still runs: same pid, start time and command line."""
-        return (self.start is not None and start_time(self.pid) == self.start
-                and tuple(command_line(self.pid)) == self.command)
+        return (
+            self.start is not None
+            and start_time(self.pid) == self.start
+            and tuple(command_line(self.pid)) == self.command
+        )
 
 
 @dataclass
@@ -115,8 +117,10 @@ class PidFile:
         a component's start time is read now (it was just started, by this process)."""
         known = {r.name: r for r in self._read()[1] if r.name in pids and r.pid == pids[r.name]}
         components = [known.get(name) or Recorded.of(name, pid) for name, pid in pids.items()]
-        record = {"up": _as_json(Recorded.of("up", os.getpid())),
-                  "components": [_as_json(r) for r in components if r.start is not None]}
+        record = {
+            "up": _as_json(Recorded.of("up", os.getpid())),
+            "components": [_as_json(r) for r in components if r.start is not None],
+        }
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
         tmp.parent.mkdir(parents=True, exist_ok=True)
         with open(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as file:
@@ -152,6 +156,7 @@ def end(leftovers: list[Recorded], timeout_s: float = 10.0) -> None:
     """Ends the leftovers one by one in STOP_ORDER (a guard still at work is given the time
     to finish first): SIGTERM to its process group (each component leads its own session; a
     stopped one is continued, to act on it), SIGKILL if it still runs after `timeout_s`."""
+
     def order(process: Recorded) -> int:
         return STOP_ORDER.index(process.name) if process.name in STOP_ORDER else len(STOP_ORDER)
 

@@ -18,16 +18,15 @@ from pathlib import Path
 import httpx
 import structlog
 
-from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, BrokerFiles,
-                                           new_password)
-from mapservice.local import embedded, kafka_broker, lifetime
-from mapservice.local.stack_mqtt import StackMqtt
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
+from mapservice.adapters.kafka_topics import ensure_topics
+from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER, BrokerFiles, new_password
 from mapservice.core.events import MapMetaSet, encode, kafka_key, make_envelope
+from mapservice.local import embedded, kafka_broker, lifetime
+from mapservice.local.stack_mqtt import StackMqtt
 from mapservice.runtime.secrets import ApiSecrets, api_secrets, with_local_api_secrets
 from mapservice.settings import Settings
-from mapservice.adapters.kafka_topics import ensure_topics
 
 log = structlog.get_logger(__name__)
 
@@ -84,7 +83,8 @@ class Stack(StackMqtt):
         if self.gateways < 1:
             raise ValueError(f"gateways must be at least 1, not {self.gateways}")
         self.gateway_health_ports = [self.health_port] + [
-            embedded.free_port() for _ in range(self.gateways - 1)]
+            embedded.free_port() for _ in range(self.gateways - 1)
+        ]
         if self.mqtt in ("amqtt", "mosquitto"):
             self.mqtt_port = self.mqtt_port or embedded.free_port()
             self.mqtt_url = f"mqtt://127.0.0.1:{self.mqtt_port}"
@@ -94,13 +94,16 @@ class Stack(StackMqtt):
             self.mqtt_url = self.mqtt
             # A broker of its own: only the operator knows where browsers reach it.
             self.mqtt_ws_url = self.extra_env.get(
-                "MAPSERVICE_MQTT_WS_URL", os.environ.get("MAPSERVICE_MQTT_WS_URL", ""))
+                "MAPSERVICE_MQTT_WS_URL", os.environ.get("MAPSERVICE_MQTT_WS_URL", "")
+            )
         if (self.mqtt_auth or self.mqtt_tls) and self.mqtt != "mosquitto":
             # amqtt checks topics per user, but deletes or takes over a client id's session
             # before it checks the credential (amqtt 0.12 broker._client_connected): any
             # anonymous client could wipe the gateway's session. Mosquitto does neither.
-            raise ValueError("robot identities (mqtt_auth) and MQTT TLS need the embedded "
-                             "Mosquitto (mqtt='mosquitto'), not " + repr(self.mqtt))
+            raise ValueError(
+                "robot identities (mqtt_auth) and MQTT TLS need the embedded "
+                "Mosquitto (mqtt='mosquitto'), not " + repr(self.mqtt)
+            )
         self.mqtts_url = ""
         if self.mqtt_tls:
             self.mqtt_tls_port = self.mqtt_tls_port or embedded.free_port()
@@ -134,10 +137,19 @@ class Stack(StackMqtt):
     def start_guard(self) -> None:
         """The guard that stops the components in order when this process dies."""
         self.guard = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.local.lifetime", lifetime.GUARD,
-             str(self.pid_file.path), str(os.getpid())],
-            stdout=self._log("guard"), stderr=subprocess.STDOUT, start_new_session=True,
-            preexec_fn=lifetime.die_with_parent)
+            [
+                sys.executable,
+                "-m",
+                "mapservice.local.lifetime",
+                lifetime.GUARD,
+                str(self.pid_file.path),
+                str(os.getpid()),
+            ],
+            stdout=self._log("guard"),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            preexec_fn=lifetime.die_with_parent,
+        )
         self._record()
 
     def _record(self) -> None:
@@ -187,14 +199,27 @@ class Stack(StackMqtt):
         processors (advertisements) theirs; anything else (robots, tools) none."""
         env: dict[str, str] = {}
         if self.mqtt_tls:
-            env.update({"MAPSERVICE_MQTT_URL": self.mqtts_url,
-                        "MAPSERVICE_MQTT_CA_FILE": str(self.ca_file)})
+            env.update(
+                {
+                    "MAPSERVICE_MQTT_URL": self.mqtts_url,
+                    "MAPSERVICE_MQTT_CA_FILE": str(self.ca_file),
+                }
+            )
         if self.mqtt_auth and component is not None:
-            user = (GATEWAY_USER if component.startswith("gateway") else
-                    PROCESSORS_USER if component.startswith(("server", "processors")) else None)
+            user = (
+                GATEWAY_USER
+                if component.startswith("gateway")
+                else PROCESSORS_USER
+                if component.startswith(("server", "processors"))
+                else None
+            )
             if user is not None:
-                env.update({"MAPSERVICE_MQTT_USERNAME": user,
-                            "MAPSERVICE_MQTT_PASSWORD": self.service_password(user)})
+                env.update(
+                    {
+                        "MAPSERVICE_MQTT_USERNAME": user,
+                        "MAPSERVICE_MQTT_PASSWORD": self.service_password(user),
+                    }
+                )
         return env
 
     @property
@@ -208,10 +233,11 @@ class Stack(StackMqtt):
         open to every local user); the API asks the processors whether it is stored."""
         if not self.apart:
             return {}
-        return {"MAPSERVICE_CLICKHOUSE_DSN": self.clickhouse_url,
-                "MAPSERVICE_CLICKHOUSE_PASSWORD": self.service_password("clickhouse"),
-                "MAPSERVICE_PROCESSORS_STATUS_URL":
-                    f"http://127.0.0.1:{self.processors_health_port}"}
+        return {
+            "MAPSERVICE_CLICKHOUSE_DSN": self.clickhouse_url,
+            "MAPSERVICE_CLICKHOUSE_PASSWORD": self.service_password("clickhouse"),
+            "MAPSERVICE_PROCESSORS_STATUS_URL": f"http://127.0.0.1:{self.processors_health_port}",
+        }
 
     def env(self, component: str | None = None) -> dict[str, str]:
         return {
@@ -224,7 +250,9 @@ class Stack(StackMqtt):
             "MAPSERVICE_API_HOST": "127.0.0.1",
             "MAPSERVICE_API_PORT": str(self.api_port),
             # Advertisements' chunkUrl must name this API, whatever port it got.
-            "MAPSERVICE_PUBLIC_BASE_URL": os.environ.get("MAPSERVICE_PUBLIC_BASE_URL", self.api_url),
+            "MAPSERVICE_PUBLIC_BASE_URL": os.environ.get(
+                "MAPSERVICE_PUBLIC_BASE_URL", self.api_url
+            ),
             "PYTHONUNBUFFERED": "1",
             **self._mqtt_env(component),
             **self.extra_env,
@@ -239,17 +267,28 @@ class Stack(StackMqtt):
         replica = 1 if component == "gateway" else int(component.rsplit("-", 1)[1])
         settings_env = {**os.environ, **self.extra_env}
         base = settings_env.get("MAPSERVICE_MQTT_CLIENT_ID", "mapservice-gateway")
-        return {"MAPSERVICE_MQTT_CLIENT_ID": f"{base}-{replica}",
-                "MAPSERVICE_MQTT_SHARE_GROUP": settings_env.get("MAPSERVICE_MQTT_SHARE_GROUP")
-                or "mapservice-gateways"}
+        return {
+            "MAPSERVICE_MQTT_CLIENT_ID": f"{base}-{replica}",
+            "MAPSERVICE_MQTT_SHARE_GROUP": settings_env.get("MAPSERVICE_MQTT_SHARE_GROUP")
+            or "mapservice-gateways",
+        }
 
     def settings(self) -> Settings:
         env = self.env()
-        return Settings(data_dir=self.data_dir, kafka_bootstrap=env["MAPSERVICE_KAFKA_BOOTSTRAP"],
-                        mqtt_url=self.mqtt_url, api_port=self.api_port,
-                        **{"mqtt_ws_url": self.mqtt_ws_url,
-                           **{k[len("MAPSERVICE_"):].lower(): v for k, v in self.extra_env.items()
-                              if k.startswith("MAPSERVICE_")}})
+        return Settings(
+            data_dir=self.data_dir,
+            kafka_bootstrap=env["MAPSERVICE_KAFKA_BOOTSTRAP"],
+            mqtt_url=self.mqtt_url,
+            api_port=self.api_port,
+            **{
+                "mqtt_ws_url": self.mqtt_ws_url,
+                **{
+                    k[len("MAPSERVICE_") :].lower(): v
+                    for k, v in self.extra_env.items()
+                    if k.startswith("MAPSERVICE_")
+                },
+            },
+        )
 
     def api_secrets(self) -> ApiSecrets:
         """The API's tokens: as set in extra_env or the environment, else the ones local
@@ -271,9 +310,14 @@ class Stack(StackMqtt):
     def spawn(self, name: str, *args: str) -> subprocess.Popen:
         """Runs `mapservice <args>` as component `name` (log in log_dir/<name>.log)."""
         self.commands[name] = args
-        proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args], env=self.env(name),
-                                stdout=self._log(name), stderr=subprocess.STDOUT,
-                                start_new_session=True, preexec_fn=self._preexec)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.cli", *args],
+            env=self.env(name),
+            stdout=self._log(name),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            preexec_fn=self._preexec,
+        )
         self.procs[name] = proc
         self._record()
         return proc
@@ -311,16 +355,21 @@ class Stack(StackMqtt):
         self.wait_healthy(f"http://127.0.0.1:{health_port}/readyz", name, proc)
         return proc
 
-    def start_api(self, port: int | None = None, name: str = "api",
-                  env: dict[str, str] | None = None) -> subprocess.Popen:
+    def start_api(
+        self, port: int | None = None, name: str = "api", env: dict[str, str] | None = None
+    ) -> subprocess.Popen:
         """`mapservice api` alone on `port` (default: the stack's API port), ready when
         /readyz says so; another port and name run another replica (`env` overrides)."""
         port = port or self.api_port
         embedded.ensure_port_free(port, f"the API ({name})")
-        proc = subprocess.Popen([sys.executable, "-m", "mapservice.cli", "api"],
-                                env={**self.env(), "MAPSERVICE_API_PORT": str(port), **(env or {})},
-                                stdout=self._log(name), stderr=subprocess.STDOUT,
-                                start_new_session=True, preexec_fn=self._preexec)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mapservice.cli", "api"],
+            env={**self.env(), "MAPSERVICE_API_PORT": str(port), **(env or {})},
+            stdout=self._log(name),
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            preexec_fn=self._preexec,
+        )
         self.procs[name] = proc
         self._record()
         embedded.wait_for_port(port, timeout_s=120, proc=proc, what=name)
@@ -331,8 +380,9 @@ class Stack(StackMqtt):
         """`mapservice clickhouse-server` (apart): the one process that opens the data dir's
         chDB, serving ClickHouse HTTP read-write to the service's user."""
         embedded.ensure_port_free(self.clickhouse_port, "the ClickHouse server")
-        proc = self.spawn("clickhouse", "clickhouse-server", "--port", str(self.clickhouse_port),
-                          "--read-write")
+        proc = self.spawn(
+            "clickhouse", "clickhouse-server", "--port", str(self.clickhouse_port), "--read-write"
+        )
         embedded.wait_for_port(self.clickhouse_port, timeout_s=120, proc=proc, what="clickhouse")
         self.wait_healthy(f"{self.clickhouse_url}/ping", "clickhouse", proc)
         return proc
@@ -346,12 +396,15 @@ class Stack(StackMqtt):
         self.start_processors(self.processors_health_port)
         self.start_api()
 
-    def wait_healthy(self, url: str, what: str, proc: subprocess.Popen,
-                     timeout_s: float = 60) -> None:
+    def wait_healthy(
+        self, url: str, what: str, proc: subprocess.Popen, timeout_s: float = 60
+    ) -> None:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if proc.poll() is not None:
-                raise RuntimeError(f"{what} exited ({proc.returncode}); see {self.log_dir}/{what}.log")
+                raise RuntimeError(
+                    f"{what} exited ({proc.returncode}); see {self.log_dir}/{what}.log"
+                )
             try:
                 if httpx.get(url, timeout=2).status_code == 200:
                     return
@@ -369,15 +422,19 @@ class Stack(StackMqtt):
         settings = self.settings()
         if self.kafka == "apache":
             node = kafka_broker.node_for(
-                self.data_dir, self.kafka_port, heap_mb=settings.embedded_kafka_heap_mb,
+                self.data_dir,
+                self.kafka_port,
+                heap_mb=settings.embedded_kafka_heap_mb,
                 retention_hours=settings.embedded_kafka_retention_hours,
-                retention_bytes=settings.embedded_kafka_retention_bytes)
-            self.procs["kafka"] = kafka_broker.start_kafka(node, self._log("kafka"),
-                                                           jars_dir=settings.kafka_jars_dir,
-                                                           preexec_fn=self._preexec)
+                retention_bytes=settings.embedded_kafka_retention_bytes,
+            )
+            self.procs["kafka"] = kafka_broker.start_kafka(
+                node, self._log("kafka"), jars_dir=settings.kafka_jars_dir, preexec_fn=self._preexec
+            )
         else:
-            self.procs["kafka"] = embedded.start_tansu(self.kafka_port, self._log("tansu"),
-                                                       preexec_fn=self._preexec)
+            self.procs["kafka"] = embedded.start_tansu(
+                self.kafka_port, self._log("tansu"), preexec_fn=self._preexec
+            )
         self._record()
         ensure_topics(settings)
         if self.meta is not None and self.kafka == "tansu":
@@ -444,7 +501,16 @@ class Stack(StackMqtt):
             self.guard.kill()
             self.guard.wait()
             self.guard = None
-        for name in ("sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt", "kafka"):
+        for name in (
+            "sim",
+            "gateway",
+            "server",
+            "api",
+            "processors",
+            "clickhouse",
+            "mqtt",
+            "kafka",
+        ):
             embedded.stop(self.procs.pop(name, None))
             self._record()
         for proc in self.procs.values():

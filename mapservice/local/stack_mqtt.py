@@ -11,7 +11,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER, BrokerFiles, RobotCredential
+from mapservice.adapters.mqtt_auth import (
+    GATEWAY_USER,
+    PROCESSORS_USER,
+    BrokerFiles,
+    RobotCredential,
+)
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.local import embedded
 from mapservice.local.certs import make_server_cert
@@ -22,13 +27,19 @@ if TYPE_CHECKING:
 BROKER_SIZE_HEADROOM = 8  # Mosquitto's message_size_limit over MAPSERVICE_MAX_MESSAGE_BYTES
 
 
-def mqtt_accepts(mqtt_url: str, username: str | None, password: str | None,
-                 timeout_s: float = 5.0, **tls) -> bool:
+def mqtt_accepts(
+    mqtt_url: str, username: str | None, password: str | None, timeout_s: float = 5.0, **tls
+) -> bool:
     """Whether the broker at `mqtt_url` accepts this credential (its CONNACK), for waiting
     until a reloaded password file is in force and for tests."""
     host, port, use_tls = parse_mqtt_url(mqtt_url)
-    client = make_client(f"probe-{username}-{time.time_ns()}", username=username,
-                         password=password, tls=use_tls, **tls)
+    client = make_client(
+        f"probe-{username}-{time.time_ns()}",
+        username=username,
+        password=password,
+        tls=use_tls,
+        **tls,
+    )
     answered, result = threading.Event(), []
 
     def on_connect(_c, _u, _f, reason_code, _p) -> None:
@@ -77,15 +88,21 @@ class StackMqtt:
     def start_mqtt(self) -> subprocess.Popen:
         embedded.stop(self.procs.pop("mqtt", None))
         if self.mqtt == "amqtt":
-            self.procs["mqtt"] = embedded.start_amqtt(self.mqtt_port, self._log("amqtt"),
-                                                      ws_port=self.mqtt_ws_port,
-                                                      preexec_fn=self._preexec)
+            self.procs["mqtt"] = embedded.start_amqtt(
+                self.mqtt_port,
+                self._log("amqtt"),
+                ws_port=self.mqtt_ws_port,
+                preexec_fn=self._preexec,
+            )
         elif self.mqtt == "mosquitto":
-            self.procs["mqtt"] = embedded.start_mosquitto(self.mqtt_port, self.data_dir,
-                                                          self._log("mosquitto"),
-                                                          ws_port=self.mqtt_ws_port,
-                                                          options=self._mosquitto_options(),
-                                                          preexec_fn=self._preexec)
+            self.procs["mqtt"] = embedded.start_mosquitto(
+                self.mqtt_port,
+                self.data_dir,
+                self._log("mosquitto"),
+                ws_port=self.mqtt_ws_port,
+                options=self._mosquitto_options(),
+                preexec_fn=self._preexec,
+            )
         else:
             raise RuntimeError(f"the MQTT broker at {self.mqtt} is not this stack's to start")
         self._record()
@@ -127,17 +144,22 @@ class StackMqtt:
         # 2019 robot (MQTT 3.1.1) learns nothing from a broker that drops its message.
         options = embedded.MosquittoOptions(
             store_dir=self.data_dir / "mosquitto",
-            message_size_limit=BROKER_SIZE_HEADROOM * self.settings().max_message_bytes)
+            message_size_limit=BROKER_SIZE_HEADROOM * self.settings().max_message_bytes,
+        )
         if self.mqtt_auth:
             for user in (GATEWAY_USER, PROCESSORS_USER):
                 self.broker_files.set_service_user(user, self.service_password(user))
             for path in (self.broker_files.password_file, self.broker_files.acl_file):
                 path.chmod(0o600)  # the broker runs as this user (or as root): it reads them
-            options = replace(options, password_file=self.broker_files.password_file,
-                              acl_file=self.broker_files.acl_file)
+            options = replace(
+                options,
+                password_file=self.broker_files.password_file,
+                acl_file=self.broker_files.acl_file,
+            )
         if self.mqtt_tls:
-            options = replace(options, tls_port=self.mqtt_tls_port,
-                              tls=make_server_cert(self.tls_dir))
+            options = replace(
+                options, tls_port=self.mqtt_tls_port, tls=make_server_cert(self.tls_dir)
+            )
         return options
 
     def add_robot(self, robot_id: str, *, legacy_chunks: bool = False) -> RobotCredential:

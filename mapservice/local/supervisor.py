@@ -9,8 +9,8 @@ component that stayed up for `healthy_after_s` counts as healthy again (its back
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import structlog
 
@@ -59,16 +59,24 @@ class Supervisor:
                     continue
                 w.failures += 1
                 w.restart_at = now + backoff_s(w.failures, self.base_s, self.cap_s)
-                self._say(f"{name} exited; restarting it in {w.restart_at - now:.0f} s "
-                          f"(failure {w.failures} in a row)", name, w.failures)
+                self._say(
+                    f"{name} exited; restarting it in {w.restart_at - now:.0f} s "
+                    f"(failure {w.failures} in a row)",
+                    name,
+                    w.failures,
+                )
             elif now >= w.restart_at:
                 try:
                     w.restart()
                 except Exception as exc:  # noqa: BLE001 - any failure to start: back off more
                     w.failures += 1
                     w.restart_at = self.clock() + backoff_s(w.failures, self.base_s, self.cap_s)
-                    self._say(f"{name} did not start again ({exc}); next try in "
-                              f"{w.restart_at - self.clock():.0f} s", name, w.failures)
+                    self._say(
+                        f"{name} did not start again ({exc}); next try in "
+                        f"{w.restart_at - self.clock():.0f} s",
+                        name,
+                        w.failures,
+                    )
                     continue
                 w.restart_at, w.started_at = None, self.clock()
                 self._say(f"{name} restarted", name, w.failures)

@@ -32,7 +32,9 @@ def print_addresses(console, title: str, rows: list[tuple[str, str]]) -> None:
     width; else one plain `name  value` line per row, as long as it needs to be."""
     if not console.is_terminal:
         width = max(len(name) for name, _ in rows)
-        sys.stdout.write(title + "\n" + "".join(f"  {name:<{width}}  {value}\n" for name, value in rows))
+        sys.stdout.write(
+            title + "\n" + "".join(f"  {name:<{width}}  {value}\n" for name, value in rows)
+        )
         sys.stdout.flush()
         return
     from rich.table import Table

@@ -46,9 +46,21 @@ async def beat_forever(heartbeat: Heartbeat, every_s: float = 1.0) -> None:
 
 
 class CachedCheck:
-    def __init__(self, name: str, call: Callable[[], object], ttl_s: float = 2.0,
-                 timeout_s: float = 2.0, clock: Callable[[], float] = time.monotonic):
-        self.name, self.call, self.ttl_s, self.timeout_s, self.clock = name, call, ttl_s, timeout_s, clock
+    def __init__(
+        self,
+        name: str,
+        call: Callable[[], object],
+        ttl_s: float = 2.0,
+        timeout_s: float = 2.0,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.name, self.call, self.ttl_s, self.timeout_s, self.clock = (
+            name,
+            call,
+            ttl_s,
+            timeout_s,
+            clock,
+        )
         self._ok = False
         self._checked: float | None = None
         self._running: threading.Thread | None = None
@@ -79,8 +91,9 @@ class CachedCheck:
     def _refresh(self, now: float) -> threading.Thread:
         """The running refresh, started if none runs (called under _lock)."""
         if self._running is None:
-            self._running = threading.Thread(target=self._run, daemon=True,
-                                             name=f"check-{self.name}")
+            self._running = threading.Thread(
+                target=self._run, daemon=True, name=f"check-{self.name}"
+            )
             self._started = now
             self._running.start()
         return self._running
@@ -108,12 +121,17 @@ def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedC
     from confluent_kafka.admin import AdminClient
 
     admin = AdminClient(settings.kafka_config())
-    return CachedCheck("kafka", lambda: bool(admin.list_topics(timeout=timeout_s).brokers),
-                       ttl_s=ttl_s, timeout_s=timeout_s)
+    return CachedCheck(
+        "kafka",
+        lambda: bool(admin.list_topics(timeout=timeout_s).brokers),
+        ttl_s=ttl_s,
+        timeout_s=timeout_s,
+    )
 
 
-def failing_reasons(checks: Mapping[str, Callable[[], object]],
-                    results: Mapping[str, bool]) -> dict[str, str]:
+def failing_reasons(
+    checks: Mapping[str, Callable[[], object]], results: Mapping[str, bool]
+) -> dict[str, str]:
     """Why each failed check failed, from the checks that can say so (a `reason()`
     method returning text, as insert_health.InsertHealth has): a probe's answer names
     the cause, not only the dependency."""
@@ -130,4 +148,8 @@ def probe_report(checks: Mapping[str, Callable[[], object]]) -> dict:
     why, `reasons`."""
     results = {name: bool(check()) for name, check in checks.items()}
     reasons = failing_reasons(checks, results)
-    return {"ok": all(results.values()), "checks": results, **({"reasons": reasons} if reasons else {})}
+    return {
+        "ok": all(results.values()),
+        "checks": results,
+        **({"reasons": reasons} if reasons else {}),
+    }

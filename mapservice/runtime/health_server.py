@@ -14,11 +14,14 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from .metrics_gate import Refusal
 
 
-def serve_health(host: str, port: int, status: Callable[[], dict],
-                 ready: Callable[[], dict] | None = None,
-                 metrics_gate: Callable[[str | None], Refusal] = lambda _auth: None,
-                 documents: dict[str, Callable[[], dict]] | None = None,
-                 ) -> ThreadingHTTPServer:
+def serve_health(
+    host: str,
+    port: int,
+    status: Callable[[], dict],
+    ready: Callable[[], dict] | None = None,
+    metrics_gate: Callable[[str | None], Refusal] = lambda _auth: None,
+    documents: dict[str, Callable[[], dict]] | None = None,
+) -> ThreadingHTTPServer:
     """Starts a daemon thread; `status()` (liveness) and `ready()` (readiness, default:
     the liveness) return a dict with a boolean `ok`; `metrics_gate(authorization)` says
     whether /metrics may be served (see metrics_gate.py); `documents` maps further paths
@@ -27,7 +30,9 @@ def serve_health(host: str, port: int, status: Callable[[], dict],
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - http.server's naming
-            refusal = metrics_gate(self.headers.get("Authorization")) if self.path == "/metrics" else None
+            refusal = (
+                metrics_gate(self.headers.get("Authorization")) if self.path == "/metrics" else None
+            )
             if refusal is not None:
                 code, reason = refusal
                 body, ctype = json.dumps({"detail": reason}).encode(), "application/json"
@@ -40,7 +45,11 @@ def serve_health(host: str, port: int, status: Callable[[], dict],
             elif self.path in paths:
                 body, ctype, code = json.dumps(paths[self.path]()).encode(), "application/json", 200
             else:
-                body, ctype, code = b'{"detail":"use /healthz, /readyz or /metrics"}', "application/json", 404
+                body, ctype, code = (
+                    b'{"detail":"use /healthz, /readyz or /metrics"}',
+                    "application/json",
+                    404,
+                )
             self.send_response(code)
             if code == 401:
                 self.send_header("WWW-Authenticate", 'Bearer realm="mapservice"')

@@ -17,7 +17,7 @@ import re
 import threading
 import time
 from collections.abc import Callable
-from datetime import datetime, UTC
+from datetime import UTC, datetime
 
 # ClickHouse ends an exception's message with its error code's name: "... (NOT_ENOUGH_SPACE)";
 # over HTTP (`mapservice up`'s ClickHouse server) clickhouse-connect adds "(for url ...)".
@@ -54,7 +54,7 @@ def describe(exc: BaseException) -> str:
     then the message, cut short."""
     text = " ".join(str(exc).split()) or type(exc).__name__
     code = code_of(exc)
-    text = text if len(text) <= _MAX_ERROR_CHARS else text[:_MAX_ERROR_CHARS - 3] + "..."
+    text = text if len(text) <= _MAX_ERROR_CHARS else text[: _MAX_ERROR_CHARS - 3] + "..."
     return f"{code}: {text}" if code else f"{type(exc).__name__}: {text}"
 
 
@@ -71,7 +71,9 @@ class InsertHealth:
     def __init__(self, wall_s: Callable[[], float] = time.time) -> None:
         self.wall_s = wall_s
         self._lock = threading.Lock()
-        self._failing_since: dict[str, float] = {}  # per kind: its first failure since its last success
+        self._failing_since: dict[
+            str, float
+        ] = {}  # per kind: its first failure since its last success
         self.failures = 0  # failed attempts since every kind last succeeded
         self.last_error: str | None = None
         self.last_error_code: str | None = None
@@ -123,9 +125,11 @@ class InsertHealth:
             since = _utc_hms(first)
             hint = HINTS.get(self.last_error_code or "")
             attempts = f"{self.failures} attempt" + ("s" if self.failures != 1 else "")
-            return (f"inserts failing since {since}Z ({attempts}): {self.last_error}"
-                    + (f"; {hint}" if hint else "")
-                    + "; the processors keep retrying and commit nothing unstored")
+            return (
+                f"inserts failing since {since}Z ({attempts}): {self.last_error}"
+                + (f"; {hint}" if hint else "")
+                + "; the processors keep retrying and commit nothing unstored"
+            )
 
     def status(self) -> dict:
         """For the API and the UI: storing or not, since when, why."""

@@ -22,8 +22,12 @@ def _access_fields(_logger, _name: str, event_dict: dict) -> dict:
     arguments are already in their message)."""
     args = event_dict.pop("positional_args", None)
     record = event_dict.get("_record")
-    if record is not None and record.name == "uvicorn.access" and isinstance(args, tuple) \
-            and len(args) == len(_ACCESS_FIELDS):
+    if (
+        record is not None
+        and record.name == "uvicorn.access"
+        and isinstance(args, tuple)
+        and len(args) == len(_ACCESS_FIELDS)
+    ):
         event_dict.update(zip(_ACCESS_FIELDS, args))
         event_dict["event"] = "request"
     return event_dict
@@ -35,6 +39,7 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
         if fmt == "json"
         else structlog.dev.ConsoleRenderer(colors=sys.stderr.isatty())
     )
+
     def add_component(_logger, _name: str, event_dict: dict) -> dict:
         # A processor, not only a context variable: threads (paho's, executors, uvicorn
         # in a thread) start with an empty context.
@@ -55,12 +60,18 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
     )
     structlog.contextvars.bind_contextvars(component=component)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(structlog.stdlib.ProcessorFormatter(
-        foreign_pre_chain=[*shared, structlog.stdlib.add_logger_name, _access_fields,
-                           structlog.processors.format_exc_info],
-        processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, renderer],
-        pass_foreign_args=True,
-    ))
+    handler.setFormatter(
+        structlog.stdlib.ProcessorFormatter(
+            foreign_pre_chain=[
+                *shared,
+                structlog.stdlib.add_logger_name,
+                _access_fields,
+                structlog.processors.format_exc_info,
+            ],
+            processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, renderer],
+            pass_foreign_args=True,
+        )
+    )
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level.upper())

@@ -17,9 +17,11 @@ Refusal = tuple[int, str] | None
 def metrics_gate(settings: Settings) -> Callable[[str | None], Refusal]:
     """A check of an `Authorization` header value against the settings' metrics rule."""
     access = settings.metrics_access
-    digests = [hashlib.sha256(t.encode()).digest()
-               for secret in (settings.api_metrics_token, settings.admin_token)
-               for t in token_list(secret)]
+    digests = [
+        hashlib.sha256(t.encode()).digest()
+        for secret in (settings.api_metrics_token, settings.admin_token)
+        for t in token_list(secret)
+    ]
 
     def check(authorization: str | None) -> Refusal:
         if access == "off":
@@ -28,8 +30,10 @@ def metrics_gate(settings: Settings) -> Callable[[str | None], Refusal]:
             return None
         scheme, _, token = (authorization or "").partition(" ")
         if scheme.lower() != "bearer" or not token.strip():
-            return 401, ("/metrics needs the metrics or the admin token: send "
-                         "'Authorization: Bearer <token>' (MAPSERVICE_API_METRICS_TOKEN)")
+            return 401, (
+                "/metrics needs the metrics or the admin token: send "
+                "'Authorization: Bearer <token>' (MAPSERVICE_API_METRICS_TOKEN)"
+            )
         digest = hashlib.sha256(token.strip().encode()).digest()
         # Compared by digest in constant time: the answer's timing says nothing of the token.
         if not any(hmac.compare_digest(digest, d) for d in digests):

@@ -17,18 +17,25 @@ log = structlog.get_logger(__name__)
 MAX_DELAY_S = 10.0
 
 
-def until_done(what: str, first_delay_s: float, on_failure: Callable[[], None] | None = None,
-               **log_fields) -> AsyncRetrying:
+def until_done(
+    what: str, first_delay_s: float, on_failure: Callable[[], None] | None = None, **log_fields
+) -> AsyncRetrying:
     """`async for attempt in until_done(...): with attempt: await ...` until it succeeds."""
 
     def before_sleep(state: RetryCallState) -> None:
         if on_failure is not None:
             on_failure()
-        log.error(f"{what} failed, retrying", error=str(state.outcome.exception()),
-                  attempt=state.attempt_number,
-                  retry_in=round(state.next_action.sleep, 3) if state.next_action else None,
-                  **log_fields)
+        log.error(
+            f"{what} failed, retrying",
+            error=str(state.outcome.exception()),
+            attempt=state.attempt_number,
+            retry_in=round(state.next_action.sleep, 3) if state.next_action else None,
+            **log_fields,
+        )
 
-    return AsyncRetrying(retry=retry_if_exception_type(Exception),
-                         wait=wait_exponential(multiplier=first_delay_s, max=MAX_DELAY_S),
-                         before_sleep=before_sleep, reraise=True)
+    return AsyncRetrying(
+        retry=retry_if_exception_type(Exception),
+        wait=wait_exponential(multiplier=first_delay_s, max=MAX_DELAY_S),
+        before_sleep=before_sleep,
+        reraise=True,
+    )

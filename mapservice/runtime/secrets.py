@@ -75,7 +75,9 @@ def with_local_api_secrets(settings: Settings) -> Settings:
     if not token_list(settings.api_writer_tokens):
         update["api_writer_tokens"] = SecretStr(local_secret(settings.data_dir, WRITER_TOKEN_FILE))
     if not token_list(settings.api_operator_tokens):
-        update["api_operator_tokens"] = SecretStr(local_secret(settings.data_dir, OPERATOR_TOKEN_FILE))
+        update["api_operator_tokens"] = SecretStr(
+            local_secret(settings.data_dir, OPERATOR_TOKEN_FILE)
+        )
     if settings.api_read_access == "token" and not token_list(settings.api_reader_tokens):
         update["api_reader_tokens"] = SecretStr(local_secret(settings.data_dir, READER_TOKEN_FILE))
     return settings.model_copy(update=update) if update else settings
@@ -83,6 +85,8 @@ def with_local_api_secrets(settings: Settings) -> Settings:
 
 def api_secrets(settings: Settings) -> ApiSecrets:
     """The credentials of `settings` as plain lists (call with_local_api_secrets first)."""
-    return ApiSecrets(admin=settings.admin_token.get_secret_value(),
-                      writers=tuple(token_list(settings.api_writer_tokens)),
-                      readers=tuple(token_list(settings.api_reader_tokens)))
+    return ApiSecrets(
+        admin=settings.admin_token.get_secret_value(),
+        writers=tuple(token_list(settings.api_writer_tokens)),
+        readers=tuple(token_list(settings.api_reader_tokens)),
+    )

@@ -26,14 +26,45 @@ from functools import cache
 from pathlib import Path
 
 # system.functions categories whose functions only compute on their arguments.
-ALLOWED_CATEGORIES = frozenset({
-    "Aggregate Functions", "Arithmetic", "Arrays", "Bit", "Bitmap", "Comparison",
-    "Conditional", "Dates and Times", "Distance", "Encoding", "Financial", "Geo",
-    "Geo Polygon", "Hash", "IP Address", "JSON", "Logical", "Machine Learning", "Map",
-    "Mathematical", "Null", "NumericIndexedVector", "QBit", "Random Number", "Rounding",
-    "String", "String Replacement", "String Search", "String Splitting", "Time Series",
-    "Time Window", "Tuple", "Type Conversion", "URL", "UUID",
-})
+ALLOWED_CATEGORIES = frozenset(
+    {
+        "Aggregate Functions",
+        "Arithmetic",
+        "Arrays",
+        "Bit",
+        "Bitmap",
+        "Comparison",
+        "Conditional",
+        "Dates and Times",
+        "Distance",
+        "Encoding",
+        "Financial",
+        "Geo",
+        "Geo Polygon",
+        "Hash",
+        "IP Address",
+        "JSON",
+        "Logical",
+        "Machine Learning",
+        "Map",
+        "Mathematical",
+        "Null",
+        "NumericIndexedVector",
+        "QBit",
+        "Random Number",
+        "Rounding",
+        "String",
+        "String Replacement",
+        "String Search",
+        "String Splitting",
+        "Time Series",
+        "Time Window",
+        "Tuple",
+        "Type Conversion",
+        "URL",
+        "UUID",
+    }
+)
 # Functions of the other categories ("Other", "Internal") that also only compute on their
 # arguments or on the rows of the statement. Not here, and so refused: file() and
 # filesystem*() (files), the ai*() functions (network), dictGet*/dictHas/region* (the
@@ -41,51 +72,144 @@ ALLOWED_CATEGORIES = frozenset({
 # (read tables by name, past the table check), getSetting/getServerSetting/getMacro/
 # hostName/FQDN/currentUser/showCertificate/getClientHTTPHeader and the like (server
 # internals), the introspection functions, encryption.
-EXTRA_ALLOWED = frozenset({
-    "_CAST", "caseWithExpression", "MACNumToString", "MACStringToNum", "MACStringToOUI",
-    "bar", "blockNumber", "blockSize", "byteSize", "colorOKLABToSRGB", "colorOKLCHToSRGB",
-    "colorSRGBToOKLAB", "colorSRGBToOKLCH", "countDigits", "currentDatabase",
-    "defaultValueOfArgumentType", "defaultValueOfTypeName", "digits", "finalizeAggregation",
-    "flipCoordinates", "formatReadableDecimalSize", "formatReadableQuantity",
-    "formatReadableSize", "formatReadableTimeDelta", "getSizeOfEnumType", "getSubcolumn",
-    "identity", "ignore", "indexHint", "initializeAggregation", "isConstant",
-    "isDecimalOverflow", "materialize", "minSampleSizeContinuous", "minSampleSizeConversion",
-    "neighbor", "parseISO8601Duration", "parseReadableSize", "parseReadableSizeOrNull",
-    "parseReadableSizeOrZero", "parseTimeDelta", "rowNumberInAllBlocks", "rowNumberInBlock",
-    "runningAccumulate", "runningDifference", "runningDifferenceStartingWithFirstValue",
-    # sleep holds one of the analysts' few query slots, nothing else (at most 3 s a block).
-    "sleep", "sleepEachRow", "throwIf", "toColumnTypeName", "toTypeName", "transform",
-    "variantElement", "variantType", "visibleWidth",
-    # Clients ask on connecting (clickhouse-connect: SELECT version(), timezone()).
-    "version",
-})
+EXTRA_ALLOWED = frozenset(
+    {
+        "_CAST",
+        "caseWithExpression",
+        "MACNumToString",
+        "MACStringToNum",
+        "MACStringToOUI",
+        "bar",
+        "blockNumber",
+        "blockSize",
+        "byteSize",
+        "colorOKLABToSRGB",
+        "colorOKLCHToSRGB",
+        "colorSRGBToOKLAB",
+        "colorSRGBToOKLCH",
+        "countDigits",
+        "currentDatabase",
+        "defaultValueOfArgumentType",
+        "defaultValueOfTypeName",
+        "digits",
+        "finalizeAggregation",
+        "flipCoordinates",
+        "formatReadableDecimalSize",
+        "formatReadableQuantity",
+        "formatReadableSize",
+        "formatReadableTimeDelta",
+        "getSizeOfEnumType",
+        "getSubcolumn",
+        "identity",
+        "ignore",
+        "indexHint",
+        "initializeAggregation",
+        "isConstant",
+        "isDecimalOverflow",
+        "materialize",
+        "minSampleSizeContinuous",
+        "minSampleSizeConversion",
+        "neighbor",
+        "parseISO8601Duration",
+        "parseReadableSize",
+        "parseReadableSizeOrNull",
+        "parseReadableSizeOrZero",
+        "parseTimeDelta",
+        "rowNumberInAllBlocks",
+        "rowNumberInBlock",
+        "runningAccumulate",
+        "runningDifference",
+        "runningDifferenceStartingWithFirstValue",
+        # sleep holds one of the analysts' few query slots, nothing else (at most 3 s a block).
+        "sleep",
+        "sleepEachRow",
+        "throwIf",
+        "toColumnTypeName",
+        "toTypeName",
+        "transform",
+        "variantElement",
+        "variantType",
+        "visibleWidth",
+        # Clients ask on connecting (clickhouse-connect: SELECT version(), timezone()).
+        "version",
+    }
+)
 # Allowed-category functions that still reach beyond the arguments.
 EXCLUDED = frozenset({"flameGraph", "serverTimezone"})
 # Aggregate function combinators, longest first (system.aggregate_function_combinators).
-COMBINATORS = ("SimpleState", "OrDefault", "Resample", "Distinct", "ForEach", "OrNull",
-               "ArgMin", "ArgMax", "State", "Merge", "Array", "Tuple", "Null", "Map", "If")
-ALLOWED_TABLE_FUNCTIONS = {name.lower(): name for name in (
-    "numbers", "numbers_mt", "zeros", "zeros_mt", "values", "generateSeries",
-    "generate_series", "view")}
-ALLOWED_SYSTEM_TABLES = frozenset({
-    "one", "numbers", "numbers_mt", "zeros", "zeros_mt", "databases", "tables", "columns",
-    "functions", "table_functions", "aggregate_function_combinators", "data_type_families",
-    "time_zones",
-    # Clients read it on connecting (clickhouse-connect: name, value, readonly); no secret
-    # is a setting of this service.
-    "settings",
-})
+COMBINATORS = (
+    "SimpleState",
+    "OrDefault",
+    "Resample",
+    "Distinct",
+    "ForEach",
+    "OrNull",
+    "ArgMin",
+    "ArgMax",
+    "State",
+    "Merge",
+    "Array",
+    "Tuple",
+    "Null",
+    "Map",
+    "If",
+)
+ALLOWED_TABLE_FUNCTIONS = {
+    name.lower(): name
+    for name in (
+        "numbers",
+        "numbers_mt",
+        "zeros",
+        "zeros_mt",
+        "values",
+        "generateSeries",
+        "generate_series",
+        "view",
+    )
+}
+ALLOWED_SYSTEM_TABLES = frozenset(
+    {
+        "one",
+        "numbers",
+        "numbers_mt",
+        "zeros",
+        "zeros_mt",
+        "databases",
+        "tables",
+        "columns",
+        "functions",
+        "table_functions",
+        "aggregate_function_combinators",
+        "data_type_families",
+        "time_zones",
+        # Clients read it on connecting (clickhouse-connect: name, value, readonly); no secret
+        # is a setting of this service.
+        "settings",
+    }
+)
 # Operators the parser writes as functions that system.functions does not list.
 PARSER_FUNCTIONS = frozenset({"lambda"})
 # AST nodes that call a function the dump does not name (`SELECT * APPLY(f)`).
 OPAQUE_NODES = {"ColumnsApplyTransformer": "the APPLY column transformer"}
-IN_FUNCTIONS = frozenset({"in", "notIn", "globalIn", "globalNotIn", "nullIn", "notNullIn",
-                          "globalNullIn", "globalNotNullIn"})
+IN_FUNCTIONS = frozenset(
+    {
+        "in",
+        "notIn",
+        "globalIn",
+        "globalNotIn",
+        "nullIn",
+        "notNullIn",
+        "globalNullIn",
+        "globalNotNullIn",
+    }
+)
 _CATALOGUE = Path(__file__).with_name("allowed_functions.txt")
-_REACHES_OUT = re.compile(r"file|url|s3|hdfs|remote|mysql|postgres|exec|python|azure|gcs|"
-                          r"redis|mongo|sqlite|odbc|jdbc|input|dict|^ai[A-Z]|iceberg|delta|"
-                          r"hudi|paimon|cluster|setting|macro|host|user|certificate|header",
-                          re.IGNORECASE)
+_REACHES_OUT = re.compile(
+    r"file|url|s3|hdfs|remote|mysql|postgres|exec|python|azure|gcs|"
+    r"redis|mongo|sqlite|odbc|jdbc|input|dict|^ai[A-Z]|iceberg|delta|"
+    r"hudi|paimon|cluster|setting|macro|host|user|certificate|header",
+    re.IGNORECASE,
+)
 
 
 class NotAllowed(ValueError):
@@ -107,7 +231,7 @@ class Catalogue:
     def _aggregate_with_combinators(self, name: str) -> bool:
         for suffix in COMBINATORS:
             if name.endswith(suffix) and len(name) > len(suffix):
-                base = name[:-len(suffix)]
+                base = name[: -len(suffix)]
                 if base in self.aggregates_exact or base.lower() in self.aggregates:
                     return True
                 if self._aggregate_with_combinators(base):
@@ -128,7 +252,8 @@ def catalogue_lines(rows: list[tuple[str, str, str, int, int]]) -> list[str]:
         if name in EXCLUDED:
             return False
         return name in EXTRA_ALLOWED or bool(
-            {c.strip() for c in categories.split(",") if c.strip()} & ALLOWED_CATEGORIES)
+            {c.strip() for c in categories.split(",") if c.strip()} & ALLOWED_CATEGORIES
+        )
 
     lines = []
     for name in sorted(by_name):
@@ -152,11 +277,13 @@ def catalogue() -> Catalogue:
             aggregates_exact.add(name)
             if "i" in flags:
                 aggregates.add(name.lower())
-    return Catalogue(frozenset(exact), frozenset(any_case), frozenset(aggregates),
-                     frozenset(aggregates_exact))
+    return Catalogue(
+        frozenset(exact), frozenset(any_case), frozenset(aggregates), frozenset(aggregates_exact)
+    )
 
 
 # --- the statement's parse -------------------------------------------------------------
+
 
 @dataclass
 class Node:
@@ -179,7 +306,7 @@ def quoted_identifiers(canonical: str) -> list[str]:
             while j < len(canonical) and canonical[j] != quote:
                 j += 2 if canonical[j] == "\\" else 1
             if quote == "`":
-                found.append(canonical[i + 1:j])
+                found.append(canonical[i + 1 : j])
             i = j + 1
         else:
             i += 1
@@ -214,11 +341,16 @@ def parse_ast(text: str) -> Node:
 
 
 def _refuse_function(name: str) -> NotAllowed:
-    why = (" (it reads files, the network, dictionaries or the server's own state)"
-           if _REACHES_OUT.search(name) else "")
-    return NotAllowed(f"Function {name} is not allowed for analysts{why}: only functions "
-                      "that compute on the statement's own values are "
-                      "(the allow-list is in docs/analysts.md, 'What SQL you may use')")
+    why = (
+        " (it reads files, the network, dictionaries or the server's own state)"
+        if _REACHES_OUT.search(name)
+        else ""
+    )
+    return NotAllowed(
+        f"Function {name} is not allowed for analysts{why}: only functions "
+        "that compute on the statement's own values are "
+        "(the allow-list is in docs/analysts.md, 'What SQL you may use')"
+    )
 
 
 def check_table(name: str, database: str) -> None:
@@ -230,21 +362,26 @@ def check_table(name: str, database: str) -> None:
         return
     raise NotAllowed(
         f"Table {name} is not readable for analysts: only the tables and views of database "
-        f"{database} and system.{{{', '.join(sorted(ALLOWED_SYSTEM_TABLES))}}} are")
+        f"{database} and system.{{{', '.join(sorted(ALLOWED_SYSTEM_TABLES))}}} are"
+    )
 
 
 def check_database(name: str, database: str) -> None:
     if name not in (database, "system"):
-        raise NotAllowed(f"Database {name} is not readable for analysts: only {database} "
-                         "(and the listed system tables) are")
+        raise NotAllowed(
+            f"Database {name} is not readable for analysts: only {database} "
+            "(and the listed system tables) are"
+        )
 
 
 def check_tree(node: Node, database: str, parent: Node | None = None) -> None:
     """Raises NotAllowed for the first function, table function or table of the statement
     (subqueries, CTEs, lambdas, JOINs, IN and EXPLAIN included) outside the allow-list."""
     if node.kind in OPAQUE_NODES:
-        raise NotAllowed(f"{OPAQUE_NODES[node.kind]} is not allowed for analysts: the function "
-                         "it applies cannot be checked; call the function on the columns")
+        raise NotAllowed(
+            f"{OPAQUE_NODES[node.kind]} is not allowed for analysts: the function "
+            "it applies cannot be checked; call the function on the columns"
+        )
     if node.kind == "Function" and node.words:
         name = node.words[0]
         if parent is not None and parent.kind == "TableExpression":
@@ -252,7 +389,8 @@ def check_tree(node: Node, database: str, parent: Node | None = None) -> None:
                 raise NotAllowed(
                     f"Table function {name} is not allowed for analysts: only "
                     f"{', '.join(sorted(ALLOWED_TABLE_FUNCTIONS.values()))} are (no files, "
-                    "URLs, object stores, other servers or programs)")
+                    "URLs, object stores, other servers or programs)"
+                )
         elif not catalogue().allows(name):
             raise _refuse_function(name)
         if name in IN_FUNCTIONS and node.children and len(node.children[0].children) == 2:
@@ -261,16 +399,31 @@ def check_tree(node: Node, database: str, parent: Node | None = None) -> None:
                 check_table(right.words[0], database)
     elif node.kind == "TableIdentifier" and node.words:
         check_table(node.words[0], database)
-    elif node.kind in ("ShowCreateTableQuery", "ShowCreateViewQuery", "ExistsTableQuery",
-                       "ExistsViewQuery", "ShowCreateDictionaryQuery") and len(node.words) >= 2:
+    elif (
+        node.kind
+        in (
+            "ShowCreateTableQuery",
+            "ShowCreateViewQuery",
+            "ExistsTableQuery",
+            "ExistsViewQuery",
+            "ShowCreateDictionaryQuery",
+        )
+        and len(node.words) >= 2
+    ):
         check_table(f"{node.words[0]}.{node.words[1]}", database)
         return
-    elif node.kind in ("ShowTables", "ShowColumns", "ShowCreateDatabaseQuery",
-                       "ExistsDatabaseQuery"):
+    elif node.kind in (
+        "ShowTables",
+        "ShowColumns",
+        "ShowCreateDatabaseQuery",
+        "ExistsDatabaseQuery",
+    ):
         identifiers = [c.words[0] for c in node.children if c.kind == "Identifier" and c.words]
         if node.kind == "ShowColumns" and identifiers:
-            check_table(".".join(identifiers[-2:][::-1]) if len(identifiers) > 1
-                        else identifiers[0], database)
+            check_table(
+                ".".join(identifiers[-2:][::-1]) if len(identifiers) > 1 else identifiers[0],
+                database,
+            )
         elif identifiers:
             check_database(identifiers[0], database)
         elif node.words:
@@ -283,17 +436,26 @@ def main() -> None:
     """Prints the allow-list file for this chDB's system.functions."""
     import chdb
 
-    out = chdb.query("SELECT name, categories, alias_to, case_insensitive, is_aggregate "
-                     "FROM system.functions WHERE origin = 'System'", "TSVRaw").bytes().decode()
+    out = (
+        chdb.query(
+            "SELECT name, categories, alias_to, case_insensitive, is_aggregate "
+            "FROM system.functions WHERE origin = 'System'",
+            "TSVRaw",
+        )
+        .bytes()
+        .decode()
+    )
     rows = []
     for line in out.splitlines():
         name, categories, alias_to, insensitive, aggregate = line.split("\t")
         rows.append((name, categories, alias_to, int(insensitive), int(aggregate)))
     version = str(chdb.query("SELECT version()", "TSVRaw")).strip()
-    sys.stdout.write(f"# Functions analysts may call (mapservice/sql/allow_list.py), from "
-                     f"ClickHouse {version}'s system.functions.\n"
-                     "# Regenerate: python -m mapservice.sql.allow_list > "
-                     "mapservice/sql/allowed_functions.txt\n")
+    sys.stdout.write(
+        f"# Functions analysts may call (mapservice/sql/allow_list.py), from "
+        f"ClickHouse {version}'s system.functions.\n"
+        "# Regenerate: python -m mapservice.sql.allow_list > "
+        "mapservice/sql/allowed_functions.txt\n"
+    )
     sys.stdout.write("\n".join(catalogue_lines(rows)) + "\n")
 
 

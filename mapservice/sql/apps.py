@@ -14,7 +14,6 @@ import ssl
 from starlette.applications import Starlette
 
 from mapservice.settings import Settings
-
 from mapservice.sql.credentials import analyst_gate, analyst_limits, analyst_user
 from mapservice.sql.engine import SqlEngine, SqlRequest
 from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
@@ -28,9 +27,13 @@ def engine_for(settings: Settings) -> SqlEngine:
         from mapservice.sql.chdb_engine import ChdbEngine
 
         return ChdbEngine(dsn, read_only_settings=limits)
-    return ServerEngine(dsn, settings.clickhouse_username,
-                        settings.clickhouse_password.get_secret_value(), read_only_settings=limits,
-                        verify=clickhouse_verify(settings))
+    return ServerEngine(
+        dsn,
+        settings.clickhouse_username,
+        settings.clickhouse_password.get_secret_value(),
+        read_only_settings=limits,
+        verify=clickhouse_verify(settings),
+    )
 
 
 def clickhouse_verify(settings: Settings) -> bool | ssl.SSLContext:
@@ -46,7 +49,12 @@ def clickhouse_verify(settings: Settings) -> bool | ssl.SSLContext:
 
 
 def engine_timezone(engine: SqlEngine) -> str:
-    return engine.execute(SqlRequest("SELECT timezone()", default_format="TSVRaw")).body.decode().strip() or "UTC"
+    return (
+        engine.execute(SqlRequest("SELECT timezone()", default_format="TSVRaw"))
+        .body.decode()
+        .strip()
+        or "UTC"
+    )
 
 
 def analyst_app(settings: Settings) -> Starlette | None:
@@ -55,10 +63,14 @@ def analyst_app(settings: Settings) -> Starlette | None:
     if user is None:
         return None
     engine = engine_for(settings)
-    return clickhouse_http_app(engine, [user], timezone=engine_timezone(engine),
-                               display_name="mapservice-api",
-                               read_only_database=settings.clickhouse_database,
-                               read_only_gate=analyst_gate(settings))
+    return clickhouse_http_app(
+        engine,
+        [user],
+        timezone=engine_timezone(engine),
+        display_name="mapservice-api",
+        read_only_database=settings.clickhouse_database,
+        read_only_gate=analyst_gate(settings),
+    )
 
 
 def server_app(settings: Settings, read_write: bool) -> Starlette:
@@ -66,19 +78,30 @@ def server_app(settings: Settings, read_write: bool) -> Starlette:
     a chdb:// one; the processes it serves set theirs to this server's http:// address)."""
     from mapservice.sql.chdb_engine import ChdbEngine
 
-    dsn = settings.clickhouse_dsn if settings.clickhouse_dsn.startswith("chdb://") \
+    dsn = (
+        settings.clickhouse_dsn
+        if settings.clickhouse_dsn.startswith("chdb://")
         else f"chdb://{(settings.data_dir / 'clickhouse').resolve()}"
-    engine = ChdbEngine(dsn,
-                        read_only_settings=analyst_limits(settings).settings())
+    )
+    engine = ChdbEngine(dsn, read_only_settings=analyst_limits(settings).settings())
     users = []
     analyst = analyst_user(settings)
     if analyst is not None:
         users.append(analyst)
-    users.append(SqlUser(settings.clickhouse_username,
-                         settings.clickhouse_password.get_secret_value(), read_only=not read_write))
-    app = clickhouse_http_app(engine, users, timezone=engine_timezone(engine),
-                              display_name="mapservice-clickhouse-server",
-                              read_only_database=settings.clickhouse_database,
-                              read_only_gate=analyst_gate(settings))
+    users.append(
+        SqlUser(
+            settings.clickhouse_username,
+            settings.clickhouse_password.get_secret_value(),
+            read_only=not read_write,
+        )
+    )
+    app = clickhouse_http_app(
+        engine,
+        users,
+        timezone=engine_timezone(engine),
+        display_name="mapservice-clickhouse-server",
+        read_only_database=settings.clickhouse_database,
+        read_only_gate=analyst_gate(settings),
+    )
     app.state.chdb_path = engine.path
     return app

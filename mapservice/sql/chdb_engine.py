@@ -94,14 +94,18 @@ class _Lane:
 class ChdbEngine:
     """`SqlEngine` over chDB at `path`."""
 
-    def __init__(self, path: str | Path, pool_size: int = 4,
-                 read_only_settings: dict[str, str] | None = None):
+    def __init__(
+        self, path: str | Path, pool_size: int = 4, read_only_settings: dict[str, str] | None = None
+    ):
         if "://" in str(path) and not str(path).startswith("chdb://"):
             raise ValueError(f"{path} is not a chDB directory (chdb:///dir or a path)")
         self.path = str(Path(str(path).removeprefix("chdb://")).resolve())
         self.read_only_settings = dict(read_only_settings or {})
-        self._lanes = {"statements": _Lane(pool_size), "inserts": _Lane(INSERT_HANDLES),
-                       "ping": _Lane(1)}
+        self._lanes = {
+            "statements": _Lane(pool_size),
+            "inserts": _Lane(INSERT_HANDLES),
+            "ping": _Lane(1),
+        }
         self._tmp = Path(tempfile.mkdtemp(prefix="mapservice-sql-"))
 
     # --- handles -----------------------------------------------------------------

@@ -7,11 +7,9 @@ from pathlib import Path
 
 from mapservice.runtime.secrets import local_secret, secrets_dir
 from mapservice.settings import Settings
-
 from mapservice.sql.http_protocol import SqlUser
 from mapservice.sql.query_gate import QueryGate
 from mapservice.sql.read_only import ReadOnlyLimits
-
 
 ANALYST_PASSWORD_FILE = "analyst-password"
 
@@ -39,12 +37,18 @@ def analyst_limits(settings: Settings) -> ReadOnlyLimits:
     """Each statement's limits; its memory a share of the analysts' total, so that
     ANALYST_MAX_CONCURRENT_QUERIES statements together stay within it."""
     share = settings.analyst_max_memory_total_bytes // settings.analyst_max_concurrent_queries
-    return ReadOnlyLimits(settings.analyst_max_execution_s, settings.analyst_max_result_rows,
-                          min(settings.analyst_max_memory_bytes, share),
-                          settings.analyst_max_threads)
+    return ReadOnlyLimits(
+        settings.analyst_max_execution_s,
+        settings.analyst_max_result_rows,
+        min(settings.analyst_max_memory_bytes, share),
+        settings.analyst_max_threads,
+    )
 
 
 def analyst_gate(settings: Settings) -> QueryGate:
     """The analysts' own threads and queue (one per process serving them)."""
-    return QueryGate(settings.analyst_max_concurrent_queries, settings.analyst_max_queued_queries,
-                     settings.analyst_queue_timeout_s)
+    return QueryGate(
+        settings.analyst_max_concurrent_queries,
+        settings.analyst_max_queued_queries,
+        settings.analyst_queue_timeout_s,
+    )

@@ -56,7 +56,19 @@ class SqlError(Exception):
     @property
     def http_status(self) -> int:
         """The status a ClickHouse server answers this error with over HTTP."""
-        if self.code in (SYNTAX_ERROR, UNKNOWN_SETTING, NOT_IMPLEMENTED, 27, 36, 47, 53, 130, 131, 271, 457):
+        if self.code in (
+            SYNTAX_ERROR,
+            UNKNOWN_SETTING,
+            NOT_IMPLEMENTED,
+            27,
+            36,
+            47,
+            53,
+            130,
+            131,
+            271,
+            457,
+        ):
             return 400
         if self.code in (READONLY, AUTHENTICATION_FAILED, ACCESS_DENIED):
             return 403

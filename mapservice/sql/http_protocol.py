@@ -44,21 +44,42 @@ from mapservice.sql.read_only import check_read_only
 log = structlog.get_logger(__name__)
 
 # URL parameters of the HTTP interface that are not settings of the statement.
-PROTOCOL_PARAMS = frozenset({
-    "query", "database", "default_format", "query_id", "session_id", "session_timeout",
-    "session_check", "user", "password", "quota_key", "compress", "decompress",
-    "enable_http_compression", "http_zlib_compression_level", "wait_end_of_query",
-    "buffer_size", "client_protocol_version", "send_progress_in_http_headers",
-    "http_headers_progress_interval_ms", "add_http_cors_header", "role",
-    "cancel_http_readonly_queries_on_client_close", "http_response_buffer_size",
-})
+PROTOCOL_PARAMS = frozenset(
+    {
+        "query",
+        "database",
+        "default_format",
+        "query_id",
+        "session_id",
+        "session_timeout",
+        "session_check",
+        "user",
+        "password",
+        "quota_key",
+        "compress",
+        "decompress",
+        "enable_http_compression",
+        "http_zlib_compression_level",
+        "wait_end_of_query",
+        "buffer_size",
+        "client_protocol_version",
+        "send_progress_in_http_headers",
+        "http_headers_progress_interval_ms",
+        "add_http_cors_header",
+        "role",
+        "cancel_http_readonly_queries_on_client_close",
+        "http_response_buffer_size",
+    }
+)
 MAX_QUERY_BYTES = 1024 * 1024
 MAX_INSERT_BYTES = 256 * 1024 * 1024
-_INSERT = re.compile(r"^\s*INSERT\s+INTO\s+(?P<target>.+?)\s+FORMAT\s+(?P<fmt>\w+)\s*$",
-                     re.IGNORECASE | re.DOTALL)
+_INSERT = re.compile(
+    r"^\s*INSERT\s+INTO\s+(?P<target>.+?)\s+FORMAT\s+(?P<fmt>\w+)\s*$", re.IGNORECASE | re.DOTALL
+)
 # The statement at the head of the body, the rows after its line (clickhouse-connect's form).
-_INSERT_HEAD = re.compile(rb"^\s*INSERT\s+INTO\s+(?P<target>[^\n]+?)\s+FORMAT\s+(?P<fmt>\w+)[ \t]*\r?\n",
-                          re.IGNORECASE)
+_INSERT_HEAD = re.compile(
+    rb"^\s*INSERT\s+INTO\s+(?P<target>[^\n]+?)\s+FORMAT\s+(?P<fmt>\w+)[ \t]*\r?\n", re.IGNORECASE
+)
 
 
 @dataclass(frozen=True)
@@ -96,8 +117,9 @@ def _decompress(body: bytes, encoding: str) -> bytes:
         try:
             import zstandard
         except ImportError as exc:
-            raise SqlError("Content-Encoding zstd is not supported here; send lz4 or gzip",
-                           48) from exc
+            raise SqlError(
+                "Content-Encoding zstd is not supported here; send lz4 or gzip", 48
+            ) from exc
         return zstandard.ZstdDecompressor().decompress(body, max_output_size=MAX_INSERT_BYTES)
     raise SqlError(f"Unknown Content-Encoding {encoding!r}; send gzip, deflate, lz4 or zstd", 48)
 
@@ -121,18 +143,25 @@ def _form_fields(content_type: str, body: bytes) -> dict[str, str] | None:
     if kind != "multipart/form-data":
         return None
     message = BytesParser(policy=HTTP).parsebytes(
-        b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n" + body)
+        b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n" + body
+    )
     if not message.is_multipart() or message.defects:
-        raise SqlError("Cannot parse the multipart/form-data body: "
-                       f"{[type(d).__name__ for d in message.defects] or 'no parts'}", 27)
+        raise SqlError(
+            "Cannot parse the multipart/form-data body: "
+            f"{[type(d).__name__ for d in message.defects] or 'no parts'}",
+            27,
+        )
     fields = {}
     for part in message.iter_parts():
         name = part.get_param("name", header="content-disposition")
         if not name:
             raise SqlError("A multipart/form-data part has no name", 27)
         if part.get_filename():
-            raise SqlError(f"External data ({name}: a file in the form) is not supported "
-                           "here; send the rows as a table in the statement", 48)
+            raise SqlError(
+                f"External data ({name}: a file in the form) is not supported "
+                "here; send the rows as a table in the statement",
+                48,
+            )
         payload = part.get_payload(decode=True) or b""
         charset = part.get_content_charset() or "utf-8"
         try:
@@ -162,9 +191,15 @@ def _error(exc: SqlError, query_id: str) -> Response:
     return PlainTextResponse(str(exc) + "\n", status_code=exc.http_status, headers=headers)
 
 
-def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: str = "UTC",
-                        display_name: str = "mapservice", read_only_database: str = "default",
-                        read_only_gate: QueryGate | None = None) -> Starlette:
+def clickhouse_http_app(
+    engine: SqlEngine,
+    users: list[SqlUser],
+    *,
+    timezone: str = "UTC",
+    display_name: str = "mapservice",
+    read_only_database: str = "default",
+    read_only_gate: QueryGate | None = None,
+) -> Starlette:
     """An ASGI app speaking the ClickHouse HTTP interface for `users`. Read-only ones get
     `check_read_only` (the allow-list; tables of `read_only_database`, also their default
     database), the engine's read-only handles and `read_only_gate`'s threads."""
@@ -179,8 +214,11 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
         name, password = _credentials(request)
         user = by_name.get(name)
         if user is None or not secrets.compare_digest(password.encode(), user.password.encode()):
-            raise SqlError(f"{name}: Authentication failed: password is incorrect, or there "
-                           "is no user with such name", AUTHENTICATION_FAILED)
+            raise SqlError(
+                f"{name}: Authentication failed: password is incorrect, or there "
+                "is no user with such name",
+                AUTHENTICATION_FAILED,
+            )
         return user
 
     def identify(request: Request) -> str | None:
@@ -196,8 +234,11 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
 
     async def query(request: Request) -> Response:
         query_id = request.query_params.get("query_id") or str(uuid.uuid4())
-        headers = {"X-ClickHouse-Query-Id": query_id, "X-ClickHouse-Timezone": timezone,
-                   "X-ClickHouse-Server-Display-Name": display_name}
+        headers = {
+            "X-ClickHouse-Query-Id": query_id,
+            "X-ClickHouse-Timezone": timezone,
+            "X-ClickHouse-Server-Display-Name": display_name,
+        }
         try:
             user = authenticate(request)
             url_query = request.query_params.get("query", "")
@@ -221,23 +262,32 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
                 sql="",
                 database=database,
                 default_format=params.get("default_format")
-                or request.headers.get("x-clickhouse-format") or "TabSeparated",
+                or request.headers.get("x-clickhouse-format")
+                or "TabSeparated",
                 params={k[6:]: v for k, v in params.items() if k.startswith("param_")},
-                settings={k: v for k, v in params.items()
-                          if k not in PROTOCOL_PARAMS and not k.startswith("param_")},
-                read_only=user.read_only)
+                settings={
+                    k: v
+                    for k, v in params.items()
+                    if k not in PROTOCOL_PARAMS and not k.startswith("param_")
+                },
+                read_only=user.read_only,
+            )
             insert = _INSERT.match(url_query) if body else None
             rows = body
             if not url_query and not user.read_only:
                 insert = _INSERT_HEAD.match(body[:65536])
-                rows = body[insert.end():] if insert else body
+                rows = body[insert.end() :] if insert else body
             if insert and not user.read_only:
                 target = insert["target"]
                 target = target.decode() if isinstance(target, bytes) else target
                 fmt = insert["fmt"].decode() if isinstance(insert["fmt"], bytes) else insert["fmt"]
                 result = await run_in_threadpool(engine.insert, target, fmt, rows, sql_request)
             else:
-                sql = url_query + ("\n" if url_query and body else "") + body.decode("utf-8", "replace")
+                sql = (
+                    url_query
+                    + ("\n" if url_query and body else "")
+                    + body.decode("utf-8", "replace")
+                )
                 if not sql.strip():
                     raise SqlError("Empty query: send it as ?query= or as the POST body", 62)
                 sql_request = _with_sql(sql_request, sql)
@@ -250,14 +300,20 @@ def clickhouse_http_app(engine: SqlEngine, users: list[SqlUser], *, timezone: st
             return _error(exc, query_id)
         headers["X-ClickHouse-Format"] = result.format
         headers["X-ClickHouse-Summary"] = json.dumps({"read_rows": "0", "written_rows": "0"})
-        return Response(result.body, headers=headers,
-                        media_type="text/plain; charset=UTF-8" if "JSON" not in result.format
-                        else "application/json; charset=UTF-8")
+        return Response(
+            result.body,
+            headers=headers,
+            media_type="text/plain; charset=UTF-8"
+            if "JSON" not in result.format
+            else "application/json; charset=UTF-8",
+        )
 
-    app = Starlette(routes=[
-        Route("/ping", ping, methods=["GET", "HEAD"]),
-        Route("/", query, methods=["GET", "POST"]),
-    ])
+    app = Starlette(
+        routes=[
+            Route("/ping", ping, methods=["GET", "HEAD"]),
+            Route("/", query, methods=["GET", "POST"]),
+        ]
+    )
     app.state.identify = identify
     return app
 

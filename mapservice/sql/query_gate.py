@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import TypeVar
-from collections.abc import Callable
 
 from mapservice.sql.engine import TOO_MANY_SIMULTANEOUS_QUERIES, SqlError
 
@@ -30,8 +30,9 @@ class TooManyQueries(SqlError):
 class QueryGate:
     """Admits a call to a thread of its own pool, or refuses it with TooManyQueries."""
 
-    def __init__(self, concurrent: int, queued: int, queue_timeout_s: float,
-                 name: str = "analyst-sql"):
+    def __init__(
+        self, concurrent: int, queued: int, queue_timeout_s: float, name: str = "analyst-sql"
+    ):
         if concurrent < 1 or queued < 0:
             raise ValueError("a query gate needs at least one thread and a queue of 0 or more")
         self.concurrent, self.queued, self.queue_timeout_s = concurrent, queued, queue_timeout_s
@@ -48,7 +49,9 @@ class QueryGate:
         return TooManyQueries(
             f"Too many simultaneous queries for analysts ({why}: {self.concurrent} run at a "
             f"time, {self.queued} wait). Too many queries: retry after {retry} s. "
-            "(TOO_MANY_SIMULTANEOUS_QUERIES)", retry)
+            "(TOO_MANY_SIMULTANEOUS_QUERIES)",
+            retry,
+        )
 
     async def run(self, fn: Callable[..., T], *args) -> T:
         if self._slots is None:

@@ -23,12 +23,22 @@ from mapservice.sql.allow_list import NotAllowed, check_identifiers, check_tree,
 from mapservice.sql.engine import ACCESS_DENIED, READONLY, SqlEngine, SqlError, SqlRequest
 
 # Root nodes of EXPLAIN AST for statements that only read.
-READ_STATEMENTS = frozenset({
-    "SelectWithUnionQuery", "SelectIntersectExceptQuery", "ShowTables", "ShowDatabases",
-    "DescribeQuery", "ExistsTableQuery", "ExistsDatabaseQuery",
-    "ExistsViewQuery", "ShowCreateTableQuery", "ShowCreateViewQuery",
-    "ShowCreateDatabaseQuery", "Explain",
-})
+READ_STATEMENTS = frozenset(
+    {
+        "SelectWithUnionQuery",
+        "SelectIntersectExceptQuery",
+        "ShowTables",
+        "ShowDatabases",
+        "DescribeQuery",
+        "ExistsTableQuery",
+        "ExistsDatabaseQuery",
+        "ExistsViewQuery",
+        "ShowCreateTableQuery",
+        "ShowCreateViewQuery",
+        "ShowCreateDatabaseQuery",
+        "Explain",
+    }
+)
 _INTO_OUTFILE = re.compile(r"\bINTO\s+OUTFILE\b", re.IGNORECASE)
 # EXPLAIN AST names SHOW TABLES, SHOW MERGES, SHOW CLUSTERS, SHOW FILESYSTEM CACHES alike
 # (ShowTables); the formatted statement tells them apart. These read allowed tables only.
@@ -57,8 +67,13 @@ class ReadOnlyLimits:
 def escape_parameter(value: str) -> str:
     """A query parameter's value as ClickHouse parses it (the escaped TSV form: a raw
     newline would end the value)."""
-    return (value.replace("\\", "\\\\").replace("\n", "\\n").replace("\t", "\\t")
-            .replace("\r", "\\r").replace("\0", "\\0"))
+    return (
+        value.replace("\\", "\\\\")
+        .replace("\n", "\\n")
+        .replace("\t", "\\t")
+        .replace("\r", "\\r")
+        .replace("\0", "\\0")
+    )
 
 
 def statement_kind(ast_text: str) -> str:
@@ -73,24 +88,39 @@ def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> st
     is one read of the allow-list's functions and of `database`'s tables. `request` must
     carry `database` (unqualified names resolve there, as do the statement's CTE names)."""
     if request.database != database:
-        raise SqlError(f"Database {request.database} is not readable for analysts: only "
-                       f"{database} is", ACCESS_DENIED)
+        raise SqlError(
+            f"Database {request.database} is not readable for analysts: only {database} is",
+            ACCESS_DENIED,
+        )
     probe = replace(request, read_only=True, settings={}, default_format="TSVRaw")
-    canonical = engine.execute(replace(
-        probe, sql="SELECT formatQuerySingleLine({statement:String})",
-        params={"statement": escape_parameter(request.sql)})).body.decode().strip()
+    canonical = (
+        engine.execute(
+            replace(
+                probe,
+                sql="SELECT formatQuerySingleLine({statement:String})",
+                params={"statement": escape_parameter(request.sql)},
+            )
+        )
+        .body.decode()
+        .strip()
+    )
     if _INTO_OUTFILE.search(canonical):
-        raise SqlError("INTO OUTFILE is not allowed here: the result comes back in the reply",
-                       READONLY)
+        raise SqlError(
+            "INTO OUTFILE is not allowed here: the result comes back in the reply", READONLY
+        )
     ast = engine.execute(replace(probe, sql=f"EXPLAIN AST {canonical}")).body.decode()
     kind = statement_kind(ast)
     if kind not in READ_STATEMENTS:
         hint = " (DESCRIBE TABLE shows a table's columns)" if kind == "ShowColumns" else ""
-        raise SqlError(f"Only reads are allowed for this user; this statement is {kind}{hint}",
-                       READONLY)
+        raise SqlError(
+            f"Only reads are allowed for this user; this statement is {kind}{hint}", READONLY
+        )
     if kind == "ShowTables" and not _SHOW_LISTS.match(canonical):
-        raise SqlError(f"{canonical.split(' FROM ')[0][:40]} is not allowed for analysts: "
-                       "SHOW TABLES, DATABASES, DICTIONARIES and SETTINGS are", ACCESS_DENIED)
+        raise SqlError(
+            f"{canonical.split(' FROM ')[0][:40]} is not allowed for analysts: "
+            "SHOW TABLES, DATABASES, DICTIONARIES and SETTINGS are",
+            ACCESS_DENIED,
+        )
     try:
         check_identifiers(canonical)
         check_tree(parse_ast(ast), database)

@@ -12,23 +12,32 @@ import httpx
 
 from mapservice.sql.engine import SqlError, SqlRequest, SqlResult, output_format
 
-
 MAX_URL_PARAMS_BYTES = 4096
 
 
 class ServerEngine:
     """`SqlEngine` over `http(s)://host:port` (a path after the port is the server's proxy path)."""
 
-    def __init__(self, dsn: str, username: str = "default", password: str = "",
-                 read_only_settings: dict[str, str] | None = None, timeout_s: float = 300.0,
-                 verify: bool | str = True):
+    def __init__(
+        self,
+        dsn: str,
+        username: str = "default",
+        password: str = "",
+        read_only_settings: dict[str, str] | None = None,
+        timeout_s: float = 300.0,
+        verify: bool | str = True,
+    ):
         parts = urlsplit(dsn)
         self.base_url = f"{parts.scheme}://{parts.hostname}:{parts.port or 8123}{parts.path}"
         self.read_only_settings = dict(read_only_settings or {})
         self._http = httpx.Client(
-            timeout=timeout_s, verify=verify,
-            headers={"X-ClickHouse-User": parts.username or username,
-                     "X-ClickHouse-Key": parts.password or password})
+            timeout=timeout_s,
+            verify=verify,
+            headers={
+                "X-ClickHouse-User": parts.username or username,
+                "X-ClickHouse-Key": parts.password or password,
+            },
+        )
 
     def _params(self, request: SqlRequest) -> dict[str, str]:
         params = {f"param_{k}": v for k, v in request.params.items()}
@@ -41,12 +50,14 @@ class ServerEngine:
         params["default_format"] = request.default_format
         return params
 
-    def _post(self, params: dict[str, str], body: bytes | None,
-              form: dict[str, str] | None = None) -> httpx.Response:
+    def _post(
+        self, params: dict[str, str], body: bytes | None, form: dict[str, str] | None = None
+    ) -> httpx.Response:
         try:
             if form is not None:
-                reply = self._http.post(self.base_url, params=params,
-                                        files={k: (None, v) for k, v in form.items()})
+                reply = self._http.post(
+                    self.base_url, params=params, files={k: (None, v) for k, v in form.items()}
+                )
             else:
                 reply = self._http.post(self.base_url, params=params, content=body)
         except httpx.HTTPError as exc:
@@ -65,8 +76,12 @@ class ServerEngine:
             reply = self._post(params, None, form={"query": request.sql, **bound})
         else:
             reply = self._post({**params, **bound}, request.sql.encode())
-        return SqlResult(reply.content, reply.headers.get(
-            "X-ClickHouse-Format", output_format(request.sql, request.default_format)))
+        return SqlResult(
+            reply.content,
+            reply.headers.get(
+                "X-ClickHouse-Format", output_format(request.sql, request.default_format)
+            ),
+        )
 
     def insert(self, target: str, fmt: str, data: bytes, request: SqlRequest) -> SqlResult:
         params = self._params(request)

@@ -18,5 +18,7 @@ def chromium_path() -> str | None:
 def launch(pw):
     exe = chromium_path()
     if exe is None:
-        raise SystemExit("Chromium is missing: apt-get install chromium (`make system-deps` as root)")
+        raise SystemExit(
+            "Chromium is missing: apt-get install chromium (`make system-deps` as root)"
+        )
     return pw.chromium.launch(executable_path=exe, headless=True, args=ARGS)

@@ -38,7 +38,7 @@ class MemorySource:
 
     def poll(self, max_records: int, timeout_s: float) -> list[SourceRecord]:
         with self._lock:
-            batch = self.log[self.position:self.position + max_records]
+            batch = self.log[self.position : self.position + max_records]
             self.position += len(batch)
             return [msgspec.structs.replace(r, membership=self.membership) for r in batch]
 
@@ -69,8 +69,13 @@ class MemorySource:
 
     def _rewind(self) -> None:
         self.position = next(
-            (i for i, r in enumerate(self.log)
-             if r.offset >= self.committed.get((r.topic, r.partition), 0)), len(self.log))
+            (
+                i
+                for i, r in enumerate(self.log)
+                if r.offset >= self.committed.get((r.topic, r.partition), 0)
+            ),
+            len(self.log),
+        )
 
     def close(self) -> None:
         self.started = False

@@ -13,11 +13,18 @@ from collections.abc import Sequence
 import msgspec
 import numpy as np
 
+from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core import change_scan, upload_scan
-from mapservice.core.commands import COMMAND_EVENTS, StoredCommandEvent
-from mapservice.core.annotations import (ANNOTATION_EVENTS, AnnotationEdit, CurrentAnnotation,
-                                         ZoneViolation, fold_annotations, prune_before)
+from mapservice.core.annotations import (
+    ANNOTATION_EVENTS,
+    AnnotationEdit,
+    CurrentAnnotation,
+    ZoneViolation,
+    fold_annotations,
+    prune_before,
+)
 from mapservice.core.change_feed import UPLOADER_ID, ChangeEntry, ChangeQuery
+from mapservice.core.commands import COMMAND_EVENTS, StoredCommandEvent
 from mapservice.core.events import (
     ChunkUpdated,
     DeadLetter,
@@ -29,11 +36,19 @@ from mapservice.core.events import (
     pose_of,
 )
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
-from mapservice.core.ports import (ChunkRow, ConflictRow, Counts, PoseRow, RetentionResult,
-                                   TimelineBucket, VdaConnectionRow, VdaErrorRow, VdaFacts,
-                                   VdaFactsheetRow)
-from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
-from mapservice.core.ports import ChunkState
+from mapservice.core.ports import (
+    ChunkRow,
+    ChunkState,
+    ConflictRow,
+    Counts,
+    PoseRow,
+    RetentionResult,
+    TimelineBucket,
+    VdaConnectionRow,
+    VdaErrorRow,
+    VdaFacts,
+    VdaFactsheetRow,
+)
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 
 
@@ -91,30 +106,49 @@ class MemoryStore:
                 self._append_vda(e)
                 if (pose := pose_of(p)) is not None:
                     self._poses[(e.robot_id, e.event_time_ms)] = PoseRow(
-                        e.robot_id, e.event_time_ms, *(_mm(v) for v in pose.position),
-                        *(_f32(v) for v in pose.orientation), _f32(pose.battery_level),
-                        pose.charging, pose.loaded,
-                        tuple((_mm(x), _mm(y)) for x, y in pose.path) if pose.path is not None else None,
-                        e.receive_time_ms)
+                        e.robot_id,
+                        e.event_time_ms,
+                        *(_mm(v) for v in pose.position),
+                        *(_f32(v) for v in pose.orientation),
+                        _f32(pose.battery_level),
+                        pose.charging,
+                        pose.loaded,
+                        tuple((_mm(x), _mm(y)) for x, y in pose.path)
+                        if pose.path is not None
+                        else None,
+                        e.receive_time_ms,
+                    )
                 elif isinstance(p, ChunkUpdated):
                     self._contents.setdefault(p.content_hash, (p.width, p.height, p.data))
                     key = (e.event_time_ms, p.row, p.column, e.robot_id)
-                    self._chunks[key] = ChunkRow(p.row, p.column, e.event_time_ms, e.robot_id,
-                                                 p.content_hash.hex(), e.receive_time_ms)
+                    self._chunks[key] = ChunkRow(
+                        p.row,
+                        p.column,
+                        e.event_time_ms,
+                        e.robot_id,
+                        p.content_hash.hex(),
+                        e.receive_time_ms,
+                    )
                 elif isinstance(p, MapMetaSet):
                     self._metas[(e.event_time_ms, e.robot_id)] = p
                 elif isinstance(p, ANNOTATION_EVENTS):
-                    self._annotation_edits[(p.annotation_id, e.event_time_ms, e.event_id)] = \
+                    self._annotation_edits[(p.annotation_id, e.event_time_ms, e.event_id)] = (
                         AnnotationEdit(e.event_time_ms, e.event_id, p)
+                    )
                 elif isinstance(p, COMMAND_EVENTS):
                     self._commands[(e.event_time_ms, e.event_id)] = StoredCommandEvent(
-                        e.event_time_ms, e.event_id, p)
+                        e.event_time_ms, e.event_id, p
+                    )
 
-    def command_events(self, from_ms: int, to_ms: int, robot_id: str | None = None,
-                       limit: int = 10_000) -> list[StoredCommandEvent]:
+    def command_events(
+        self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 10_000
+    ) -> list[StoredCommandEvent]:
         with self._lock:
-            return [self._commands[k] for k in sorted(self._commands) if from_ms <= k[0] < to_ms
-                    and robot_id in (None, self._commands[k].event.robot_id)][:limit]
+            return [
+                self._commands[k]
+                for k in sorted(self._commands)
+                if from_ms <= k[0] < to_ms and robot_id in (None, self._commands[k].event.robot_id)
+            ][:limit]
 
     def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
         with self._lock:
@@ -126,12 +160,19 @@ class MemoryStore:
             for v in rows:
                 self._zone_violations[(v.ts_ms, v.robot_id, v.annotation_id)] = v
 
-    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+    def zone_violations(
+        self, from_ms: int, to_ms: int, limit: int = 100_000
+    ) -> list[ZoneViolation]:
         with self._lock:
-            return [self._zone_violations[k] for k in sorted(self._zone_violations)
-                    if from_ms <= k[0] < to_ms][:limit]
+            return [
+                self._zone_violations[k]
+                for k in sorted(self._zone_violations)
+                if from_ms <= k[0] < to_ms
+            ][:limit]
 
-    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+    def annotation_edits(
+        self, from_ms: int, to_ms: int, limit: int = 10_000
+    ) -> list[AnnotationEdit]:
         with self._lock:
             edits = [e for e in self._annotation_edits.values() if from_ms <= e.ts_ms < to_ms]
         return sorted(edits, key=lambda e: (e.ts_ms, e.event_id))[:limit]
@@ -142,27 +183,44 @@ class MemoryStore:
             self._vda_error_counts[(robot, at)] = len(p.errors)
             for err in p.errors:
                 self._vda_errors[(robot, at, err.level, err.type, err.description)] = VdaErrorRow(
-                    at, err.level, err.type, err.description)
+                    at, err.level, err.type, err.description
+                )
         elif isinstance(p, VdaConnectionReported):
-            self._vda_connections[(robot, at, p.state)] = VdaConnectionRow(at, p.state, p.sent_time_ms)
+            self._vda_connections[(robot, at, p.state)] = VdaConnectionRow(
+                at, p.state, p.sent_time_ms
+            )
         elif isinstance(p, VdaFactsheetReported):
             self._vda_factsheets[(robot, at)] = VdaFactsheetRow(at, p.vda_version, p.factsheet_json)
 
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         def within(rows: dict) -> list:
-            return [v for k, v in sorted(rows.items()) if k[0] == robot_id and from_ms <= k[1] < to_ms]
-        sheets = [v for k, v in sorted(self._vda_factsheets.items())
-                  if k[0] == robot_id and k[1] < to_ms]
+            return [
+                v for k, v in sorted(rows.items()) if k[0] == robot_id and from_ms <= k[1] < to_ms
+            ]
+
+        sheets = [
+            v for k, v in sorted(self._vda_factsheets.items()) if k[0] == robot_id and k[1] < to_ms
+        ]
         counts = sorted((k[1], n) for k, n in self._vda_error_counts.items() if k[0] == robot_id)
-        clears = [t for (_, before), (t, n) in zip(counts, counts[1:], strict=False)
-                  if n == 0 and before > 0 and from_ms <= t < to_ms]
-        return VdaFacts(errors=within(self._vda_errors)[:limit],
-                        connections=within(self._vda_connections)[:limit],
-                        factsheet=sheets[-1] if sheets else None, error_clears=clears[:limit])
+        clears = [
+            t
+            for (_, before), (t, n) in zip(counts, counts[1:], strict=False)
+            if n == 0 and before > 0 and from_ms <= t < to_ms
+        ]
+        return VdaFacts(
+            errors=within(self._vda_errors)[:limit],
+            connections=within(self._vda_connections)[:limit],
+            factsheet=sheets[-1] if sheets else None,
+            error_clears=clears[:limit],
+        )
 
     def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
-        robots = {k[0] for rows in (self._vda_errors, self._vda_connections, self._vda_error_counts)
-                  for k in rows if from_ms <= k[1] < to_ms}
+        robots = {
+            k[0]
+            for rows in (self._vda_errors, self._vda_connections, self._vda_error_counts)
+            for k in rows
+            if from_ms <= k[1] < to_ms
+        }
         facts = {r: self.vda_facts(r, from_ms, to_ms, limit) for r in sorted(robots)}
         return {r: f for r, f in facts.items() if f.errors or f.connections or f.error_clears}
 
@@ -170,14 +228,24 @@ class MemoryStore:
         with self._lock:
             self._dead.extend(records)
 
-    def poses(self, from_ms: int, to_ms: int, robot_id: str | None = None,
-              limit: int = 100_000) -> list[PoseRow]:
-        rows = [r for r in self._poses.values()
-                if from_ms <= r.ts_ms < to_ms and (robot_id is None or r.robot_id == robot_id)]
+    def poses(
+        self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 100_000
+    ) -> list[PoseRow]:
+        rows = [
+            r
+            for r in self._poses.values()
+            if from_ms <= r.ts_ms < to_ms and (robot_id is None or r.robot_id == robot_id)
+        ]
         return sorted(rows, key=lambda r: (r.ts_ms, r.robot_id))[:limit]
 
-    def poses_downsampled(self, from_ms: int, to_ms: int, step_ms: int,
-                          robot_id: str | None = None, limit: int = 100_000) -> list[PoseRow]:
+    def poses_downsampled(
+        self,
+        from_ms: int,
+        to_ms: int,
+        step_ms: int,
+        robot_id: str | None = None,
+        limit: int = 100_000,
+    ) -> list[PoseRow]:
         if step_ms <= 0:
             raise ValueError("step_ms must be positive")
         first: dict[tuple[str, int], PoseRow] = {}
@@ -185,20 +253,25 @@ class MemoryStore:
             first.setdefault((r.robot_id, (r.ts_ms - from_ms) // step_ms), r)
         return sorted(first.values(), key=lambda r: (r.ts_ms, r.robot_id))[:limit]
 
-    def robot_track(self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0,
-                    limit: int = 100_000) -> list[PoseRow]:
+    def robot_track(
+        self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0, limit: int = 100_000
+    ) -> list[PoseRow]:
         if step_ms < 0:
             raise ValueError("step_ms must not be negative")
-        rows = (self.poses_downsampled(from_ms, to_ms, step_ms, robot_id, limit) if step_ms
-                else self.poses(from_ms, to_ms, robot_id, limit))
+        rows = (
+            self.poses_downsampled(from_ms, to_ms, step_ms, robot_id, limit)
+            if step_ms
+            else self.poses(from_ms, to_ms, robot_id, limit)
+        )
         return [msgspec.structs.replace(r, path=None) for r in rows]
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))[:limit]
 
-    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
-                               limit: int = 100_000) -> list[ChunkRow]:
+    def chunk_events_compacted(
+        self, from_ms: int, to_ms: int, step_ms: int, limit: int = 100_000
+    ) -> list[ChunkRow]:
         if step_ms <= 0:
             raise ValueError("step_ms must be positive")
         won: dict[tuple[int, int, int], ChunkRow] = {}
@@ -219,8 +292,10 @@ class MemoryStore:
             if from_ms <= p.ts_ms < to_ms:
                 robots[(p.ts_ms - from_ms) // bucket_ms].add(p.robot_id)
         conflicts = self.conflict_counts(from_ms, to_ms, bucket_ms) if starts else {}
-        return [TimelineBucket(start, chunks[k], conflicts.get(start, 0), len(robots[k]))
-                for k, start in enumerate(starts)]
+        return [
+            TimelineBucket(start, chunks[k], conflicts.get(start, 0), len(robots[k]))
+            for k, start in enumerate(starts)
+        ]
 
     def robot_known(self, robot_id: str) -> bool:
         return any(r == robot_id for r, _ in self._poses)
@@ -229,8 +304,9 @@ class MemoryStore:
         state = fold_map([*self._carried.values(), *self._chunks.values()], at_ms)
         return [state[k] for k in sorted(state)]
 
-    def robots_at(self, at_ms: int, after: str | None = None,
-                  limit: int | None = None) -> list[PoseRow]:
+    def robots_at(
+        self, at_ms: int, after: str | None = None, limit: int | None = None
+    ) -> list[PoseRow]:
         state = fold_robots(list(self._poses.values()), at_ms)
         page = [state[k] for k in sorted(state) if after is None or k > after]
         return page if limit is None else page[:limit]
@@ -249,10 +325,14 @@ class MemoryStore:
         boundary = now_ms - self.retention_days * DAY_MS
         cut = boundary // DAY_MS * DAY_MS
         with self._lock:
-            self._annotation_edits = {(e.event.annotation_id, e.ts_ms, e.event_id): e
-                                      for e in prune_before(self._annotation_edits.values(), boundary)}
-            carried_poses = {(p.robot_id, p.ts_ms) for p in fold_robots(
-                list(self._poses.values()), boundary).values()}
+            self._annotation_edits = {
+                (e.event.annotation_id, e.ts_ms, e.event_id): e
+                for e in prune_before(self._annotation_edits.values(), boundary)
+            }
+            carried_poses = {
+                (p.robot_id, p.ts_ms)
+                for p in fold_robots(list(self._poses.values()), boundary).values()
+            }
             self._commands = {k: v for k, v in self._commands.items() if k[0] >= cut}
             for facts in (self._vda_errors, self._vda_connections):  # keyed (robot, ts, ...)
                 for k in [k for k in facts if k[1] < cut]:
@@ -261,7 +341,9 @@ class MemoryStore:
             old_poses = [k for k in self._poses if k[1] < cut and k not in carried_poses]
             if not old_chunks and not old_poses:
                 return RetentionResult(boundary, _iso_day(cut), 0, 0)
-            dropped_days = {k[0] // DAY_MS for k in old_chunks} | {k[1] // DAY_MS for k in old_poses}
+            dropped_days = {k[0] // DAY_MS for k in old_chunks} | {
+                k[1] // DAY_MS for k in old_poses
+            }
             self._carried = fold_map([*self._carried.values(), *self._chunks.values()], boundary)
             for k in old_chunks:
                 del self._chunks[k]
@@ -271,7 +353,8 @@ class MemoryStore:
             self._zone_violations = {k: v for k, v in self._zone_violations.items() if k[0] >= cut}
             self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
             named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
-                bytes.fromhex(c.content_hash) for c in self._chunks.values()}
+                bytes.fromhex(c.content_hash) for c in self._chunks.values()
+            }
             self._contents = {h: v for h, v in self._contents.items() if h in named}
             in_force = [k for k in self._metas if k[0] <= boundary]
             if in_force:
@@ -279,11 +362,15 @@ class MemoryStore:
                 self._metas = {k: v for k, v in self._metas.items() if k >= keep}
             return RetentionResult(boundary, _iso_day(cut), len(dropped_days), 0)
 
-    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
-                          to_ms: int) -> list[ChunkRow]:
+    def chunk_writes_near(
+        self, chunks: Sequence[tuple[int, int]], from_ms: int, to_ms: int
+    ) -> list[ChunkRow]:
         wanted = set(chunks)
-        rows = [r for r in self._chunks.values()
-                if from_ms <= r.ts_ms <= to_ms and (r.row, r.column) in wanted]
+        rows = [
+            r
+            for r in self._chunks.values()
+            if from_ms <= r.ts_ms <= to_ms and (r.row, r.column) in wanted
+        ]
         return sorted(rows, key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))
 
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
@@ -296,7 +383,9 @@ class MemoryStore:
                     self._conflicts[key] = c
 
     def conflicts(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ConflictRow]:
-        return [self._conflicts[k] for k in sorted(self._conflicts) if from_ms <= k[0] < to_ms][:limit]
+        return [self._conflicts[k] for k in sorted(self._conflicts) if from_ms <= k[0] < to_ms][
+            :limit
+        ]
 
     def conflict_counts(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
         if bucket_ms <= 0:
@@ -316,22 +405,38 @@ class MemoryStore:
         counts: dict[tuple[str, int], int] = {}
         for r in self._chunks.values():
             if from_ms <= r.ts_ms < to_ms and (robot is None or r.robot_id == robot):
-                k = (r.robot_id, r.ts_ms // upload_scan.BURST_BUCKET_MS * upload_scan.BURST_BUCKET_MS)
+                k = (
+                    r.robot_id,
+                    r.ts_ms // upload_scan.BURST_BUCKET_MS * upload_scan.BURST_BUCKET_MS,
+                )
                 counts[k] = counts.get(k, 0) + 1
-        return [k for k, n in counts.items() if n >= upload_scan.BURST_MIN_WRITES or k[0] == UPLOADER_ID]
+        return [
+            k for k, n in counts.items() if n >= upload_scan.BURST_MIN_WRITES or k[0] == UPLOADER_ID
+        ]
 
     def _chunk_writes(self, from_ms: int, to_ms: int, robots=None) -> list[ChunkRow]:
-        return sorted((r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms
-                       and (robots is None or r.robot_id in robots)),
-                      key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id))
+        return sorted(
+            (
+                r
+                for r in self._chunks.values()
+                if from_ms <= r.ts_ms < to_ms and (robots is None or r.robot_id in robots)
+            ),
+            key=lambda r: (r.ts_ms, r.row, r.column, r.robot_id),
+        )
 
-    def _hashes_before(self, wanted: set[tuple[int, int]], before_ms: int) -> dict[tuple[int, int], str]:
+    def _hashes_before(
+        self, wanted: set[tuple[int, int]], before_ms: int
+    ) -> dict[tuple[int, int], str]:
         earlier: dict[tuple[int, int], tuple[int, str, str]] = {}
         # The floor the retention carried (writes from days it dropped) and the kept writes.
         kept: list[ChunkState | ChunkRow] = [*self._carried.values(), *self._chunks.values()]
         for r in kept:
             k = (r.row, r.column)
-            if r.ts_ms < before_ms and k in wanted and (r.ts_ms, r.robot_id) > earlier.get(k, (-1, "", ""))[:2]:
+            if (
+                r.ts_ms < before_ms
+                and k in wanted
+                and (r.ts_ms, r.robot_id) > earlier.get(k, (-1, "", ""))[:2]
+            ):
                 earlier[k] = (r.ts_ms, r.robot_id, r.content_hash)
         return {k: v[2] for k, v in earlier.items()}
 

@@ -9,15 +9,15 @@ import re
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from starlette.websockets import WebSocketDisconnect
-
-from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_publisher import MemoryPublisher
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.access import READ, Scope, check_routes
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
+from starlette.websockets import WebSocketDisconnect
+
+from mapservice.adapters.clock import ManualClock
 from mapservice.settings import Settings
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
 
 # The live stream answers only the service's own host names; the test client's default
 # Host, "testserver", is not one.
@@ -46,23 +46,50 @@ CREDENTIALS = {
 # The scope every operation must declare. A new operation fails test_every_operation_*
 # until it is added here (and its scope declared in the API).
 SCOPES = {
-    "getLiveness": "public", "getReadiness": "public",
-    "getMapAt": "read", "getMapPngAt": "read", "getRobotsAt": "read", "getRobotTrack": "read",
-    "listPoses": "read", "listChunkEvents": "read", "getChunkContent": "read",
+    "getLiveness": "public",
+    "getReadiness": "public",
+    "getMapAt": "read",
+    "getMapPngAt": "read",
+    "getRobotsAt": "read",
+    "getRobotTrack": "read",
+    "listPoses": "read",
+    "listChunkEvents": "read",
+    "getChunkContent": "read",
     "getChunkContentsBatch": "read",  # a read that POSTs its list of hashes
-    "listEvents": "read", "getTimeline": "read", "listConflicts": "read",
-    "exportTable": "read", "exportReplayMcap": "read", "getHistoryStats": "read",
-    "getClientConfig": "read", "getServiceStatus": "read", "listChanges": "read",
-    "getVdaVehicle": "read", "getVdaFleet": "read",
-    "getLegacyMeta": "read", "listLegacyChunks": "read", "getLegacyChunk": "read",
-    "getLegacyChunkPng": "read", "listLegacyRobots": "read",
-    "postLegacyMeta": "write", "putLegacyMeta": "write", "postLegacyChunk": "write",
-    "deleteLegacyMeta": "admin", "deleteLegacyChunks": "admin",
-    "listAnnotations": "read", "listAnnotationEdits": "read", "getCostmapFilterMask": "read",
-    "getCostmapFilterMaskYaml": "read", "getCostmapFilterInfo": "read",
-    "createAnnotation": "operator", "changeAnnotation": "operator", "removeAnnotation": "operator",
-    "importKeepOutMask": "operator", "listZoneViolations": "read",
-    "sendCommand": "operator", "listCommands": "read", "getCallerAccess": "read",
+    "listEvents": "read",
+    "getTimeline": "read",
+    "listConflicts": "read",
+    "exportTable": "read",
+    "exportReplayMcap": "read",
+    "getHistoryStats": "read",
+    "getClientConfig": "read",
+    "getServiceStatus": "read",
+    "listChanges": "read",
+    "getVdaVehicle": "read",
+    "getVdaFleet": "read",
+    "getLegacyMeta": "read",
+    "listLegacyChunks": "read",
+    "getLegacyChunk": "read",
+    "getLegacyChunkPng": "read",
+    "listLegacyRobots": "read",
+    "postLegacyMeta": "write",
+    "putLegacyMeta": "write",
+    "postLegacyChunk": "write",
+    "deleteLegacyMeta": "admin",
+    "deleteLegacyChunks": "admin",
+    "listAnnotations": "read",
+    "listAnnotationEdits": "read",
+    "getCostmapFilterMask": "read",
+    "getCostmapFilterMaskYaml": "read",
+    "getCostmapFilterInfo": "read",
+    "createAnnotation": "operator",
+    "changeAnnotation": "operator",
+    "removeAnnotation": "operator",
+    "importKeepOutMask": "operator",
+    "listZoneViolations": "read",
+    "sendCommand": "operator",
+    "listCommands": "read",
+    "getCallerAccess": "read",
 }
 
 # What each credential gets per scope: a status, or "ok" (anything the operation answers
@@ -72,31 +99,102 @@ EXPECTED = {
         "public": dict.fromkeys(CREDENTIALS, "ok"),
         # Open reads ignore a stale token (a browser's after a rotation); writes do not.
         "read": dict.fromkeys(CREDENTIALS, "ok"),
-        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok", "operator": 403},
-        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": 403},
+        "write": {
+            "none": 401,
+            "wrong": 401,
+            "reader": 403,
+            "writer": "ok",
+            "admin": "ok",
+            "metrics": 403,
+            "robot": "ok",
+            "operator": 403,
+        },
+        "admin": {
+            "none": 401,
+            "wrong": 401,
+            "reader": 403,
+            "writer": 403,
+            "admin": "ok",
+            "metrics": 403,
+            "robot": 403,
+            "operator": 403,
+        },
         # Shaping the floor: operators and the admin; readers, robots and writers may not.
-        "operator": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": "ok"},
+        "operator": {
+            "none": 401,
+            "wrong": 401,
+            "reader": 403,
+            "writer": 403,
+            "admin": "ok",
+            "metrics": 403,
+            "robot": 403,
+            "operator": "ok",
+        },
     },
     "token": {
         "public": dict.fromkeys(CREDENTIALS, "ok"),
-        "read": {"none": 401, "wrong": 401, "reader": "ok", "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok", "operator": "ok"},
-        "write": {"none": 401, "wrong": 401, "reader": 403, "writer": "ok", "admin": "ok", "metrics": 403, "robot": "ok", "operator": 403},
-        "admin": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": 403},
-        "operator": {"none": 401, "wrong": 401, "reader": 403, "writer": 403, "admin": "ok", "metrics": 403, "robot": 403, "operator": "ok"},
+        "read": {
+            "none": 401,
+            "wrong": 401,
+            "reader": "ok",
+            "writer": "ok",
+            "admin": "ok",
+            "metrics": 403,
+            "robot": "ok",
+            "operator": "ok",
+        },
+        "write": {
+            "none": 401,
+            "wrong": 401,
+            "reader": 403,
+            "writer": "ok",
+            "admin": "ok",
+            "metrics": 403,
+            "robot": "ok",
+            "operator": 403,
+        },
+        "admin": {
+            "none": 401,
+            "wrong": 401,
+            "reader": 403,
+            "writer": 403,
+            "admin": "ok",
+            "metrics": 403,
+            "robot": 403,
+            "operator": 403,
+        },
+        "operator": {
+            "none": 401,
+            "wrong": 401,
+            "reader": 403,
+            "writer": 403,
+            "admin": "ok",
+            "metrics": 403,
+            "robot": 403,
+            "operator": "ok",
+        },
     },
 }
 
 
 def settings_for(read_access: str, **overrides) -> Settings:
-    return Settings(admin_token=ADMIN_TOKEN, api_writer_tokens=",".join(WRITER_TOKENS),
-                    api_robot_tokens=",".join(f"{r}={t}" for r, t in ROBOT_TOKENS.items()),
-                    api_reader_tokens=READER_TOKEN, api_metrics_token=METRICS_TOKEN,
-                    api_operator_tokens=OPERATOR_TOKEN, api_read_access=read_access, api_rate_limit="", **overrides)
+    return Settings(
+        admin_token=ADMIN_TOKEN,
+        api_writer_tokens=",".join(WRITER_TOKENS),
+        api_robot_tokens=",".join(f"{r}={t}" for r, t in ROBOT_TOKENS.items()),
+        api_reader_tokens=READER_TOKEN,
+        api_metrics_token=METRICS_TOKEN,
+        api_operator_tokens=OPERATOR_TOKEN,
+        api_read_access=read_access,
+        api_rate_limit="",
+        **overrides,
+    )
 
 
 def app_for(settings: Settings, **kwargs) -> FastAPI:
-    return create_app(settings, MemoryStore(), {}, ManualClock(NOW), publisher=MemoryPublisher(),
-                      **kwargs)
+    return create_app(
+        settings, MemoryStore(), {}, ManualClock(NOW), publisher=MemoryPublisher(), **kwargs
+    )
 
 
 def auth(credential: str) -> dict[str, str]:
@@ -107,21 +205,29 @@ def auth(credential: str) -> dict[str, str]:
 def operations() -> list[tuple[str, str, dict]]:
     """(method, path, operation) of every operation the app's OpenAPI document lists."""
     doc = app_for(settings_for("open")).openapi()
-    return [(method.upper(), path, op) for path, ops in doc["paths"].items()
-            for method, op in ops.items()]
+    return [
+        (method.upper(), path, op)
+        for path, ops in doc["paths"].items()
+        for method, op in ops.items()
+    ]
 
 
 def example_request(method: str, path: str, op: dict) -> dict:
     """Arguments for TestClient.request: path parameters filled in, required query
     parameters given plausible values, a JSON body where the operation takes one."""
-    fill = {"content_hash": "00" * 16, "dataset": "robot-poses", "robot_id": "r1",
-            "chunk_id": "row:0_column:0_2026-11-21T09:00:00"}
+    fill = {
+        "content_hash": "00" * 16,
+        "dataset": "robot-poses",
+        "robot_id": "r1",
+        "chunk_id": "row:0_column:0_2026-11-21T09:00:00",
+    }
     url = re.sub(r"\{(\w+)\}", lambda m: fill.get(m.group(1), "x"), path)
     params = {}
     for p in op.get("parameters", []):
         if p["in"] == "query" and p.get("required"):
             params[p["name"]] = {"from": "2026-11-21T09:00:00Z", "to": "2026-11-21T09:30:00Z"}.get(
-                p["name"], "1")
+                p["name"], "1"
+            )
     kwargs: dict = {"method": method, "url": url, "params": params}
     if "requestBody" in op or method in ("POST", "PUT"):
         kwargs["json"] = {"hashes": ["00" * 16]} if path.endswith("/batch") else {}
@@ -134,22 +240,27 @@ OPERATIONS = operations()
 def test_every_operation_declares_the_expected_scope() -> None:
     """Each operation of the OpenAPI document has a scope (x-mapservice-scope), the one this test expects, and security to match."""
     found = {op["operationId"]: op.get("x-mapservice-scope") for _, _, op in OPERATIONS}
-    assert found == SCOPES, "an operation's scope changed, or one is new: declare it (api/access.py) and list it here"
+    assert found == SCOPES, (
+        "an operation's scope changed, or one is new: declare it (api/access.py) and list it here"
+    )
     for method, _, op in OPERATIONS:
         scope = op["x-mapservice-scope"]
         expected = {"public": [], "read": [{}, {"bearer": []}]}.get(scope, [{"bearer": []}])
         assert op["security"] == expected, op["operationId"]
         # The refusals are documented (a client generator, schemathesis' status check).
         documented = set(op["responses"])
-        assert ({"401", "403"} <= documented) == (scope in ("write", "admin", "operator")), op["operationId"]
+        assert ({"401", "403"} <= documented) == (scope in ("write", "admin", "operator")), op[
+            "operationId"
+        ]
         assert ("429" in documented) == (scope != "public"), op["operationId"]
         assert ("415" in documented) == (method in ("POST", "PUT")), op["operationId"]
 
 
 @pytest.mark.parametrize("read_access", ["open", "token"])
 @pytest.mark.parametrize("credential", list(CREDENTIALS))
-@pytest.mark.parametrize("method, path, op", OPERATIONS,
-                         ids=[op["operationId"] for _, _, op in OPERATIONS])
+@pytest.mark.parametrize(
+    "method, path, op", OPERATIONS, ids=[op["operationId"] for _, _, op in OPERATIONS]
+)
 def test_every_operation_with_every_credential(read_access, credential, method, path, op) -> None:
     """The table: 401 without or with a wrong token, 403 with a token lacking the scope, else whatever the input earns (never 401, 403 or 500)."""
     client = TestClient(app_for(settings_for(read_access)), raise_server_exceptions=False)
@@ -182,7 +293,9 @@ def test_an_app_with_a_route_without_scope_is_refused() -> None:
     with pytest.raises(RuntimeError, match="/forgotten"):
         check_routes(app)
     declared = FastAPI()
-    declared.get("/declared", dependencies=[pytest.importorskip("fastapi").Depends(READ)])(forgotten)
+    declared.get("/declared", dependencies=[pytest.importorskip("fastapi").Depends(READ)])(
+        forgotten
+    )
     check_routes(declared)
 
 
@@ -194,8 +307,11 @@ def test_the_writer_may_post_chunks_as_a_2019_robot(wire) -> None:
     client = TestClient(app)
     doc = wire.chunk_doc()
     assert client.post("/api/chunk-service/chunks", json=doc).status_code == 401
-    r = client.post("/api/chunk-service/chunks", json=doc,
-                    headers={"Authorization": f"Bearer {WRITER_TOKENS[0]}"})
+    r = client.post(
+        "/api/chunk-service/chunks",
+        json=doc,
+        headers={"Authorization": f"Bearer {WRITER_TOKENS[0]}"},
+    )
     assert r.status_code == 200, r.text
     publisher.poll()
     assert sum(len(v) for v in publisher.records.values()) == 1
@@ -206,19 +322,37 @@ def test_the_writer_may_post_chunks_as_a_2019_robot(wire) -> None:
 def test_a_robot_token_writes_chunks_only_as_its_own_robot(wire) -> None:
     """A robot token POSTs its own robot's chunk (200) and is refused another robot's (403, naming both); a writer token may write as any."""
     publisher = MemoryPublisher()
-    client = TestClient(create_app(settings_for("open"), MemoryStore(), {}, ManualClock(wire.now_ms),
-                                   publisher=publisher))
-    own = client.post("/api/chunk-service/chunks", json={**wire.chunk_doc(), "robotId": "agv-7"},
-                      headers={"Authorization": f"Bearer {ROBOT_TOKENS['agv-7']}"})
+    client = TestClient(
+        create_app(
+            settings_for("open"), MemoryStore(), {}, ManualClock(wire.now_ms), publisher=publisher
+        )
+    )
+    own = client.post(
+        "/api/chunk-service/chunks",
+        json={**wire.chunk_doc(), "robotId": "agv-7"},
+        headers={"Authorization": f"Bearer {ROBOT_TOKENS['agv-7']}"},
+    )
     assert own.status_code == 200, own.text
-    other = client.post("/api/chunk-service/chunks", json={**wire.chunk_doc(), "robotId": "agv-8"},
-                        headers={"Authorization": f"Bearer {ROBOT_TOKENS['agv-7']}"})
-    assert other.status_code == 403 and "agv-7" in other.json()["detail"] and "agv-8" in other.json()["detail"]
-    anyone = client.post("/api/chunk-service/chunks", json={**wire.chunk_doc(), "robotId": "agv-8"},
-                         headers={"Authorization": f"Bearer {WRITER_TOKENS[0]}"})
+    other = client.post(
+        "/api/chunk-service/chunks",
+        json={**wire.chunk_doc(), "robotId": "agv-8"},
+        headers={"Authorization": f"Bearer {ROBOT_TOKENS['agv-7']}"},
+    )
+    assert (
+        other.status_code == 403
+        and "agv-7" in other.json()["detail"]
+        and "agv-8" in other.json()["detail"]
+    )
+    anyone = client.post(
+        "/api/chunk-service/chunks",
+        json={**wire.chunk_doc(), "robotId": "agv-8"},
+        headers={"Authorization": f"Bearer {WRITER_TOKENS[0]}"},
+    )
     assert anyone.status_code == 200
     publisher.poll()
-    assert sum(len(v) for v in publisher.records.values()) == 2  # the refused one never reached Kafka
+    assert (
+        sum(len(v) for v in publisher.records.values()) == 2
+    )  # the refused one never reached Kafka
 
 
 def test_robot_tokens_must_be_pairs_and_long_in_production() -> None:
@@ -226,8 +360,12 @@ def test_robot_tokens_must_be_pairs_and_long_in_production() -> None:
     with pytest.raises(ValueError, match="robotId=token"):
         Settings(api_robot_tokens="just-a-token")
     with pytest.raises(ValueError, match="API_ROBOT_TOKENS"):
-        Settings(mode="production", admin_token=ADMIN_TOKEN, clickhouse_dsn="chdb:///x",
-                 api_robot_tokens="agv-7=short")
+        Settings(
+            mode="production",
+            admin_token=ADMIN_TOKEN,
+            clickhouse_dsn="chdb:///x",
+            api_robot_tokens="agv-7=short",
+        )
 
 
 # --- docs and metrics --------------------------------------------------------------------------
@@ -235,10 +373,19 @@ def test_robot_tokens_must_be_pairs_and_long_in_production() -> None:
 DOCS = ("/docs", "/redoc", "/openapi.json")
 
 
-@pytest.mark.parametrize("access, credential, expected", [
-    ("open", "none", 200), ("off", "admin", 404), ("token", "none", 401), ("token", "wrong", 401),
-    ("token", "metrics", 403), ("token", "reader", 200), ("token", "writer", 200), ("token", "admin", 200),
-])
+@pytest.mark.parametrize(
+    "access, credential, expected",
+    [
+        ("open", "none", 200),
+        ("off", "admin", 404),
+        ("token", "none", 401),
+        ("token", "wrong", 401),
+        ("token", "metrics", 403),
+        ("token", "reader", 200),
+        ("token", "writer", 200),
+        ("token", "admin", 200),
+    ],
+)
 def test_docs_follow_their_setting(access, credential, expected) -> None:
     """/docs, /redoc and /openapi.json: open, off (404) or for any reader/writer/admin token."""
     client = TestClient(app_for(settings_for("open", api_docs_access=access)))
@@ -246,10 +393,19 @@ def test_docs_follow_their_setting(access, credential, expected) -> None:
         assert client.get(path, headers=auth(credential)).status_code == expected, path
 
 
-@pytest.mark.parametrize("access, credential, expected", [
-    ("open", "none", 200), ("off", "admin", 404), ("token", "none", 401), ("token", "wrong", 401),
-    ("token", "reader", 403), ("token", "writer", 403), ("token", "metrics", 200), ("token", "admin", 200),
-])
+@pytest.mark.parametrize(
+    "access, credential, expected",
+    [
+        ("open", "none", 200),
+        ("off", "admin", 404),
+        ("token", "none", 401),
+        ("token", "wrong", 401),
+        ("token", "reader", 403),
+        ("token", "writer", 403),
+        ("token", "metrics", 200),
+        ("token", "admin", 200),
+    ],
+)
 def test_metrics_follow_their_setting(access, credential, expected) -> None:
     """/metrics: open, off (404), or the metrics token (or the admin's) only."""
     client = TestClient(app_for(settings_for("open", api_metrics_access=access)))
@@ -280,8 +436,9 @@ def test_live_stream_needs_a_token_where_reads_do() -> None:
     assert refused.value.code == 1008
     with client.websocket_connect(LIVE_URL, headers=auth("reader")) as ws:
         ws.close()
-    with client.websocket_connect(LIVE_URL,
-                                  subprotocols=["mapservice.live", f"bearer.{READER_TOKEN}"]) as ws:
+    with client.websocket_connect(
+        LIVE_URL, subprotocols=["mapservice.live", f"bearer.{READER_TOKEN}"]
+    ) as ws:
         assert ws.accepted_subprotocol == "mapservice.live"
         ws.close()
     open_client = TestClient(app_for(settings_for("open"), live_hub=LiveHub()))
@@ -315,14 +472,22 @@ def test_live_clients_are_bounded() -> None:
 
 def test_cors_only_for_listed_origins() -> None:
     """A preflight from a listed origin is answered with its origin and the Authorization header; another origin, or none listed, gets no CORS grant."""
-    client = TestClient(app_for(settings_for("open", api_allowed_origins=["https://dash.example.com"])))
-    preflight = {"Access-Control-Request-Method": "POST",
-                 "Access-Control-Request-Headers": "authorization,content-type"}
-    r = client.options("/api/chunk-service/chunks", headers={"Origin": "https://dash.example.com", **preflight})
+    client = TestClient(
+        app_for(settings_for("open", api_allowed_origins=["https://dash.example.com"]))
+    )
+    preflight = {
+        "Access-Control-Request-Method": "POST",
+        "Access-Control-Request-Headers": "authorization,content-type",
+    }
+    r = client.options(
+        "/api/chunk-service/chunks", headers={"Origin": "https://dash.example.com", **preflight}
+    )
     assert r.status_code == 200
     assert r.headers["access-control-allow-origin"] == "https://dash.example.com"
     assert "authorization" in r.headers["access-control-allow-headers"].lower()
-    r = client.options("/api/chunk-service/chunks", headers={"Origin": "https://evil.example", **preflight})
+    r = client.options(
+        "/api/chunk-service/chunks", headers={"Origin": "https://evil.example", **preflight}
+    )
     assert "access-control-allow-origin" not in r.headers
     r = client.get("/api/v1/stats", headers={"Origin": "https://evil.example"})
     assert r.status_code == 200 and "access-control-allow-origin" not in r.headers
@@ -333,7 +498,9 @@ def test_cors_only_for_listed_origins() -> None:
 
 def test_rate_limit_per_credential_with_retry_after() -> None:
     """Over MAPSERVICE_API_RATE_LIMIT a caller gets 429 with Retry-After; another credential has its own budget; probes are never limited."""
-    client = TestClient(app_for(settings_for("open").model_copy(update={"api_rate_limit": "3/minute"})))
+    client = TestClient(
+        app_for(settings_for("open").model_copy(update={"api_rate_limit": "3/minute"}))
+    )
     for _ in range(3):
         assert client.get("/api/v1/stats", headers=auth("writer")).status_code == 200
     r = client.get("/api/v1/stats", headers=auth("writer"))
@@ -356,13 +523,16 @@ def test_the_default_rate_limit_is_parsed() -> None:
     assert Scope.READ.value == "read"
 
 
-@pytest.mark.parametrize("credential, role, scopes", [
-    ("operator", "operator", ["operator", "read"]),
-    ("reader", "reader", ["read"]),
-    ("writer", "writer", ["read", "write"]),
-    ("none", None, []),
-    ("wrong", None, []),  # reads are open: a stale token is no one, not a refusal
-])
+@pytest.mark.parametrize(
+    "credential, role, scopes",
+    [
+        ("operator", "operator", ["operator", "read"]),
+        ("reader", "reader", ["read"]),
+        ("writer", "writer", ["read", "write"]),
+        ("none", None, []),
+        ("wrong", None, []),  # reads are open: a stale token is no one, not a refusal
+    ],
+)
 def test_the_caller_learns_its_role_and_scopes(credential, role, scopes) -> None:
     """GET /api/v1/caller names the token's role and scopes (the replay page offers editing
     only to the operator scope), never the token."""

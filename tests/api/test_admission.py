@@ -12,12 +12,12 @@ import time
 import httpx
 import pytest
 from fastapi.testclient import TestClient
-from starlette.testclient import WebSocketDenialResponse
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
+from starlette.testclient import WebSocketDenialResponse
+
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 LIVE_URL = "ws://localhost/api/v1/live"
 
@@ -38,8 +38,9 @@ class StuckStore(MemoryStore):
 
 def client_at(app, address: str) -> httpx.AsyncClient:
     """A client from its own address: anonymous callers are told apart by address."""
-    return httpx.AsyncClient(transport=httpx.ASGITransport(app=app, client=(address, 40000)),
-                             base_url="http://127.0.0.1")
+    return httpx.AsyncClient(
+        transport=httpx.ASGITransport(app=app, client=(address, 40000)), base_url="http://127.0.0.1"
+    )
 
 
 async def _get(app, address: str, path: str) -> httpx.Response:
@@ -57,8 +58,10 @@ def test_probes_answer_within_a_second_under_60_stuck_reads() -> None:
     app = create_app(settings, store, {"clickhouse": lambda: True})
 
     async def scenario():
-        reads = [asyncio.create_task(_get(app, f"10.0.{i // 200}.{i % 200 + 1}", "/api/v1/robots"))
-                 for i in range(60)]
+        reads = [
+            asyncio.create_task(_get(app, f"10.0.{i // 200}.{i % 200 + 1}", "/api/v1/robots"))
+            for i in range(60)
+        ]
         await asyncio.sleep(1.0)
         probe_times = []
         for path in ("/healthz", "/readyz", "/healthz", "/readyz"):
@@ -84,8 +87,7 @@ def test_probes_answer_within_a_second_under_60_stuck_reads() -> None:
 def test_a_queued_read_is_refused_after_the_queue_wait() -> None:
     """One worker busy, one request queued: after MAPSERVICE_API_QUEUE_WAIT_S a 503 says so."""
     store = StuckStore()
-    app = create_app(Settings(api_read_workers=1, api_read_queue=1, api_queue_wait_s=0.3),
-                     store)
+    app = create_app(Settings(api_read_workers=1, api_read_queue=1, api_queue_wait_s=0.3), store)
 
     async def scenario():
         stuck = asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots"))
@@ -116,17 +118,21 @@ def test_one_caller_cannot_take_the_pool_alone() -> None:
         return third, await other, await asyncio.gather(*mine)
 
     third, other, mine = asyncio.run(scenario())
-    assert third.status_code == 429 and "MAPSERVICE_API_CALLER_CONCURRENCY" in third.json()["detail"]
+    assert (
+        third.status_code == 429 and "MAPSERVICE_API_CALLER_CONCURRENCY" in third.json()["detail"]
+    )
     assert third.headers["retry-after"] == "1"
     assert other.status_code == 200 and all(r.status_code == 200 for r in mine)
 
 
 def _sql_app(release: threading.Event):
     """An analysts' engine stand-in whose every query waits for `release`."""
+
     async def app(scope, receive, send):
         await asyncio.get_running_loop().run_in_executor(None, release.wait, 30)
         await send({"type": "http.response.start", "status": 200, "headers": []})
         await send({"type": "http.response.body", "body": b"1\n"})
+
     return app
 
 
@@ -136,17 +142,27 @@ def test_analysts_queries_are_rate_limited_and_left_to_their_own_gate() -> None:
     analysts waiting on their engine never make a caller's reads 429 or 503."""
     release = threading.Event()
     release.set()
-    limited = TestClient(create_app(Settings(api_rate_limit="2/minute"), MemoryStore(),
-                                    sql_app=_sql_app(release)))
-    assert [limited.get("/clickhouse/?query=SELECT+1").status_code for _ in range(3)] == [200, 200, 429]
+    limited = TestClient(
+        create_app(Settings(api_rate_limit="2/minute"), MemoryStore(), sql_app=_sql_app(release))
+    )
+    assert [limited.get("/clickhouse/?query=SELECT+1").status_code for _ in range(3)] == [
+        200,
+        200,
+        429,
+    ]
 
     release.clear()
-    app = create_app(Settings(api_read_workers=1, api_read_queue=0, api_caller_concurrency=1),
-                     MemoryStore(), sql_app=_sql_app(release))
+    app = create_app(
+        Settings(api_read_workers=1, api_read_queue=0, api_caller_concurrency=1),
+        MemoryStore(),
+        sql_app=_sql_app(release),
+    )
 
     async def scenario():
-        waiting = [asyncio.create_task(_get(app, "10.0.0.1", "/clickhouse/?query=SELECT+1"))
-                   for _ in range(3)]
+        waiting = [
+            asyncio.create_task(_get(app, "10.0.0.1", "/clickhouse/?query=SELECT+1"))
+            for _ in range(3)
+        ]
         await asyncio.sleep(0.3)
         read = await _get(app, "10.0.0.1", "/api/v1/robots")
         release.set()
@@ -161,18 +177,22 @@ def test_the_live_stream_is_rate_limited_and_capped_per_caller() -> None:
     """Opening /api/v1/live counts against MAPSERVICE_API_RATE_LIMIT (it used to bypass it),
     and one caller holds at most MAPSERVICE_API_LIVE_CLIENTS_PER_CALLER connections: both
     refused with 429 and a JSON reason."""
-    client = TestClient(create_app(Settings(api_rate_limit="2/minute"), MemoryStore(),
-                                   live_hub=LiveHub()))
+    client = TestClient(
+        create_app(Settings(api_rate_limit="2/minute"), MemoryStore(), live_hub=LiveHub())
+    )
     for _ in range(2):
         with client.websocket_connect(LIVE_URL) as ws:
             ws.close()
     with pytest.raises(WebSocketDenialResponse) as over:
         with client.websocket_connect(LIVE_URL):
             pass
-    assert over.value.status_code == 429 and "MAPSERVICE_API_RATE_LIMIT" in over.value.json()["detail"]
+    assert (
+        over.value.status_code == 429 and "MAPSERVICE_API_RATE_LIMIT" in over.value.json()["detail"]
+    )
 
-    capped = TestClient(create_app(Settings(api_live_clients_per_caller=1), MemoryStore(),
-                                   live_hub=LiveHub()))
+    capped = TestClient(
+        create_app(Settings(api_live_clients_per_caller=1), MemoryStore(), live_hub=LiveHub())
+    )
     with capped.websocket_connect(LIVE_URL):
         with pytest.raises(WebSocketDenialResponse) as second:
             with capped.websocket_connect(LIVE_URL):
@@ -192,7 +212,9 @@ def test_probes_and_pages_belong_to_no_pool() -> None:
     async def scenario():
         stuck = asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots"))
         await asyncio.sleep(0.2)
-        replies = [await _get(app, "10.0.0.2", p) for p in ("/api/v1/robots", "/healthz", "/readyz")]
+        replies = [
+            await _get(app, "10.0.0.2", p) for p in ("/api/v1/robots", "/healthz", "/readyz")
+        ]
         store.release.set()
         await stuck
         return replies
@@ -219,8 +241,12 @@ def test_analysts_are_rate_limited_per_credential_not_per_address() -> None:
         basic = {"Authorization": "Basic " + base64.b64encode(b"analyst:s3cret").decode()}
         keyed = {"X-ClickHouse-User": "analyst", "X-ClickHouse-Key": "s3cret"}
         wrong = {"X-ClickHouse-User": "analyst", "X-ClickHouse-Key": "guess"}
-        return [await get("10.0.0.1", **basic), await get("10.0.0.2", **keyed),
-                await get("10.0.0.3", **basic), await get("10.0.0.3", **wrong),
-                await get("10.0.0.3", **wrong)]
+        return [
+            await get("10.0.0.1", **basic),
+            await get("10.0.0.2", **keyed),
+            await get("10.0.0.3", **basic),
+            await get("10.0.0.3", **wrong),
+            await get("10.0.0.3", **wrong),
+        ]
 
     assert asyncio.run(scenario()) == [200, 200, 429, 200, 200]

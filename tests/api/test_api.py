@@ -7,13 +7,13 @@ import zlib
 import pytest
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
-
-from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import IMMUTABLE
-from mapservice.settings import Settings
+
+from mapservice.adapters.clock import ManualClock
 from mapservice.core.wire2019 import content_hash
+from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 HOUR = 3_600_000
@@ -21,27 +21,52 @@ PIXELS = bytes(i % 256 for i in range(100 * 100))
 HASH = content_hash(PIXELS).hex()
 
 EXPECTED_OPERATION_IDS = {
-    "getLiveness", "getReadiness", "listPoses", "listChunkEvents", "getChunkContent",
-    "getHistoryStats", "getMapAt", "getRobotsAt", "getMapPngAt",
+    "getLiveness",
+    "getReadiness",
+    "listPoses",
+    "listChunkEvents",
+    "getChunkContent",
+    "getHistoryStats",
+    "getMapAt",
+    "getRobotsAt",
+    "getMapPngAt",
     # the 2019 REST contract (api/routers/chunk_service.py, coordinate_service.py)
-    "getLegacyMeta", "postLegacyMeta", "putLegacyMeta", "deleteLegacyMeta", "postLegacyChunk",
-    "listLegacyChunks", "deleteLegacyChunks", "getLegacyChunk", "getLegacyChunkPng",
+    "getLegacyMeta",
+    "postLegacyMeta",
+    "putLegacyMeta",
+    "deleteLegacyMeta",
+    "postLegacyChunk",
+    "listLegacyChunks",
+    "deleteLegacyChunks",
+    "getLegacyChunk",
+    "getLegacyChunkPng",
     "listLegacyRobots",
     # time-travel replay reads (api/routers/events.py, timeline.py, tracks.py)
-    "listEvents", "getTimeline", "getRobotTrack",
+    "listEvents",
+    "getTimeline",
+    "getRobotTrack",
     "listConflicts",
     "getChunkContentsBatch",  # api/routers/chunk_contents.py (replay UI seeks)
     "getClientConfig",  # api/routers/client_config.py (the /controller page)
     "getServiceStatus",  # api/routers/status.py (the replay UI's "history not stored" banner)
-    "exportTable", "exportReplayMcap",  # api/routers/exports.py
+    "exportTable",
+    "exportReplayMcap",  # api/routers/exports.py
     "listChanges",  # api/routers/changes.py (the replay UI's change feed)
     "getVdaVehicle",  # api/routers/vda5050.py (a VDA 5050 vehicle's errors, connection, factsheet)
     "getVdaFleet",  # api/routers/vda5050.py (every VDA 5050 vehicle's facts of a window)
     # operators' annotations (api/routers/annotations.py, costmap_filters.py, zone_violations.py)
-    "listAnnotations", "listAnnotationEdits", "createAnnotation", "changeAnnotation",
-    "removeAnnotation", "importKeepOutMask", "getCostmapFilterMask", "getCostmapFilterMaskYaml",
-    "getCostmapFilterInfo", "listZoneViolations",
-    "sendCommand", "listCommands",  # api/routers/commands.py (operators' commands to robots)
+    "listAnnotations",
+    "listAnnotationEdits",
+    "createAnnotation",
+    "changeAnnotation",
+    "removeAnnotation",
+    "importKeepOutMask",
+    "getCostmapFilterMask",
+    "getCostmapFilterMaskYaml",
+    "getCostmapFilterInfo",
+    "listZoneViolations",
+    "sendCommand",
+    "listCommands",  # api/routers/commands.py (operators' commands to robots)
     "getCallerAccess",  # api/routers/caller.py (the replay page offers editing to operators)
 }
 
@@ -49,23 +74,26 @@ EXPECTED_OPERATION_IDS = {
 @pytest.fixture
 def store(ev) -> MemoryStore:
     s = MemoryStore()
-    s.append([
-        ev.pose("r1", NOW, x=1.0, y=2.0, charging=True, loaded="dfs"),
-        ev.pose("r2", NOW, x=5.0, y=6.0, path=((1.0, 1.0), (2.0, 2.0))),
-        ev.pose("r1", NOW + 1000, x=1.5, y=2.0),
-        ev.pose("r1", NOW + 2000, x=2.0, y=2.0),
-        ev.chunk("r1", NOW + 500, 3, 2, PIXELS),
-        ev.chunk("r2", NOW + 1500, 0, 1, PIXELS),
-        ev.chunk("r2", NOW + 2500, 0, 1, bytes(10_000)),
-    ])
+    s.append(
+        [
+            ev.pose("r1", NOW, x=1.0, y=2.0, charging=True, loaded="dfs"),
+            ev.pose("r2", NOW, x=5.0, y=6.0, path=((1.0, 1.0), (2.0, 2.0))),
+            ev.pose("r1", NOW + 1000, x=1.5, y=2.0),
+            ev.pose("r1", NOW + 2000, x=2.0, y=2.0),
+            ev.chunk("r1", NOW + 500, 3, 2, PIXELS),
+            ev.chunk("r2", NOW + 1500, 0, 1, PIXELS),
+            ev.chunk("r2", NOW + 2500, 0, 1, bytes(10_000)),
+        ]
+    )
     s.append_dead_letters([ev.dead_letter()])
     return s
 
 
 @pytest.fixture
 def client(store) -> TestClient:
-    return TestClient(create_app(Settings(), store, {}, ManualClock(NOW + 60_000)),
-                      raise_server_exceptions=False)
+    return TestClient(
+        create_app(Settings(), store, {}, ManualClock(NOW + 60_000)), raise_server_exceptions=False
+    )
 
 
 def _window(path: str, client: TestClient, f, t, **params):
@@ -106,8 +134,18 @@ def test_metrics_count_requests_per_route_template_and_status(client) -> None:
     from prometheus_client import REGISTRY
 
     def count(path: str, status: str) -> float:
-        return REGISTRY.get_sample_value("mapservice_api_requests_total", {
-            "app_name": "mapservice-api", "method": "GET", "path": path, "status_code": status}) or 0.0
+        return (
+            REGISTRY.get_sample_value(
+                "mapservice_api_requests_total",
+                {
+                    "app_name": "mapservice-api",
+                    "method": "GET",
+                    "path": path,
+                    "status_code": status,
+                },
+            )
+            or 0.0
+        )
 
     template = "/api/v1/chunk-contents/{content_hash}"
     before_ok, before_404 = count(template, "200"), count(template, "404")
@@ -129,8 +167,11 @@ def test_poses_window_iso(client) -> None:
     r = _window("/api/v1/poses", client, "2026-11-21T10:00:00Z", "2026-11-21T10:00:02Z")
     assert r.status_code == 200, r.text
     body = r.json()
-    assert [(p["robotId"], p["ts_ms"]) for p in body] == [("r1", NOW), ("r2", NOW),
-                                                         ("r1", NOW + 1000)]
+    assert [(p["robotId"], p["ts_ms"]) for p in body] == [
+        ("r1", NOW),
+        ("r2", NOW),
+        ("r1", NOW + 1000),
+    ]
     first = body[0]
     assert first["timestamp"] == "2026-11-21T10:00:00"
     assert first["position"] == [1.0, 2.0, 0.0]
@@ -143,7 +184,9 @@ def test_poses_window_iso(client) -> None:
 def test_poses_window_epoch_ms_and_zoneless_iso_agree(client) -> None:
     """Epoch milliseconds and zoneless ISO (UTC) select the same window."""
     a = _window("/api/v1/poses", client, NOW + 1, NOW + 2001).json()
-    b = _window("/api/v1/poses", client, "2026-11-21T10:00:00.001", "2026-11-21T10:00:02.001").json()
+    b = _window(
+        "/api/v1/poses", client, "2026-11-21T10:00:00.001", "2026-11-21T10:00:02.001"
+    ).json()
     assert a == b
     assert [p["ts_ms"] for p in a] == [NOW + 1000, NOW + 2000]
 
@@ -169,7 +212,9 @@ def test_chunk_events_window(client) -> None:
     assert r.status_code == 200, r.text
     body = r.json()
     assert [(c["row"], c["column"], c["robotId"], c["ts_ms"]) for c in body] == [
-        (3, 2, "r1", NOW + 500), (0, 1, "r2", NOW + 1500)]
+        (3, 2, "r1", NOW + 500),
+        (0, 1, "r2", NOW + 1500),
+    ]
     assert body[0]["content_hash"] == HASH
     assert body[0]["timestamp"] == "2026-11-21T10:00:00.500"
     assert body[0]["receive_time_ms"] == NOW + 525
@@ -235,8 +280,9 @@ def test_chunk_content_raw_encoding(client) -> None:
     """encoding=raw returns the width x height pixels."""
     r = client.get(f"/api/v1/chunk-contents/{HASH}", params={"encoding": "raw"})
     assert r.status_code == 200 and r.content == PIXELS
-    assert client.get(f"/api/v1/chunk-contents/{HASH}",
-                      params={"encoding": "bmp"}).status_code == 422
+    assert (
+        client.get(f"/api/v1/chunk-contents/{HASH}", params={"encoding": "bmp"}).status_code == 422
+    )
 
 
 def test_unknown_chunk_content_is_404(client) -> None:
@@ -278,9 +324,15 @@ DOC_PAGES = {"/docs", "/docs/oauth2-redirect", "/redoc"}
 def test_every_route_has_an_operation_id(client) -> None:
     """Every API route declares an explicit, unique operation id."""
     routes = [r for r in _api_routes(client.app.routes) if r.path not in DOC_PAGES]
-    assert {r.path for r in routes} >= {"/healthz", "/readyz", "/metrics", "/api/v1/poses",
-                                        "/api/v1/chunk-events", "/api/v1/stats",
-                                        "/api/v1/chunk-contents/{content_hash}"}
+    assert {r.path for r in routes} >= {
+        "/healthz",
+        "/readyz",
+        "/metrics",
+        "/api/v1/poses",
+        "/api/v1/chunk-events",
+        "/api/v1/stats",
+        "/api/v1/chunk-contents/{content_hash}",
+    }
     ids = [r.operation_id for r in routes]
     assert all(ids), [r.path for r in routes if not r.operation_id]
     assert len(ids) == len(set(ids))
@@ -291,7 +343,6 @@ def test_openapi_lists_the_stable_operation_ids(client) -> None:
     doc = client.get("/openapi.json").json()
     ids = [op["operationId"] for item in doc["paths"].values() for op in item.values()]
     assert sorted(ids) == sorted(EXPECTED_OPERATION_IDS)
-
 
 
 # --- time travel -------------------------------------------------------------------------
@@ -316,11 +367,14 @@ def test_robots_at_returns_latest_pose_with_age(client) -> None:
     assert robots["r2"]["path"] == [[1.0, 1.0], [2.0, 2.0]]
 
 
-@pytest.mark.parametrize("at, fragment", [
-    (str(NOW + 3_600_000), "future"),
-    (str(NOW - 8 * 86_400_000), "retention"),
-    ("yesterday", "ISO 8601"),
-])
+@pytest.mark.parametrize(
+    "at, fragment",
+    [
+        (str(NOW + 3_600_000), "future"),
+        (str(NOW - 8 * 86_400_000), "retention"),
+        ("yesterday", "ISO 8601"),
+    ],
+)
 def test_instant_outside_retention_or_malformed_is_400(client, at, fragment) -> None:
     """An instant in the future, beyond the retention or malformed gets a 400 saying why."""
     for path in ("/api/v1/map", "/api/v1/robots"):
@@ -353,7 +407,9 @@ def test_map_png_at_t_has_each_chunks_pixels_in_place(store, ev) -> None:
     assert (img[100:200, 0:100] == 205).all()
     later = _png_pixels(client.get("/api/v1/map/png", params={"at": NOW + 3000}).content)
     assert (later[0:100, 100:200] == 0).all()  # replaced at NOW + 2500 by zeros
-    half = _png_pixels(client.get("/api/v1/map/png", params={"at": NOW + 3000, "scale": 0.5}).content)
+    half = _png_pixels(
+        client.get("/api/v1/map/png", params={"at": NOW + 3000, "scale": 0.5}).content
+    )
     assert half.shape == (200, 250)
 
 
@@ -367,7 +423,9 @@ def test_chunk_content_as_png(client) -> None:
     """encoding=png returns the chunk as a 100 x 100 greyscale PNG, immutable."""
     from mapservice.core.wire2019 import content_hash
 
-    r = client.get(f"/api/v1/chunk-contents/{content_hash(PIXELS).hex()}", params={"encoding": "png"})
+    r = client.get(
+        f"/api/v1/chunk-contents/{content_hash(PIXELS).hex()}", params={"encoding": "png"}
+    )
     assert r.status_code == 200 and r.headers["content-type"] == "image/png"
     assert "immutable" in r.headers["cache-control"]
     assert _png_pixels(r.content).tobytes() == PIXELS
@@ -394,26 +452,45 @@ def test_poses_and_chunk_events_json_equals_their_pydantic_models() -> None:
     import json
 
     from fastapi.testclient import TestClient
-
-    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
     from mapservice.api.routers.chunk_events import ChunkEvent
     from mapservice.api.routers.poses import Pose
+
     from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
     from mapservice.settings import Settings
+    from mapservice.testing.memory_store import MemoryStore
 
     store = MemoryStore()
-    store.append([
-        make_envelope("r1", 1_000, 1_005, PoseReported((1.0, 2.5, 0.0), (0.0, 0.0, 0.5, 0.8660254),
-                                                       55.5, "yes", True, ((1.0, 2.0), (3.0, 4.5)))),
-        make_envelope("r2", 2_001, 2_010, PoseReported((-3.25, 1e-7, 0.0), (0.0, 0.0, 0.0, 1.0),
-                                                       None, None, None, None)),
-        make_envelope("r1", 3_000, 3_002, ChunkUpdated(2, 3, 100, 100, b"x", bytes(range(16)))),
-    ])
+    store.append(
+        [
+            make_envelope(
+                "r1",
+                1_000,
+                1_005,
+                PoseReported(
+                    (1.0, 2.5, 0.0),
+                    (0.0, 0.0, 0.5, 0.8660254),
+                    55.5,
+                    "yes",
+                    True,
+                    ((1.0, 2.0), (3.0, 4.5)),
+                ),
+            ),
+            make_envelope(
+                "r2",
+                2_001,
+                2_010,
+                PoseReported((-3.25, 1e-7, 0.0), (0.0, 0.0, 0.0, 1.0), None, None, None, None),
+            ),
+            make_envelope("r1", 3_000, 3_002, ChunkUpdated(2, 3, 100, 100, b"x", bytes(range(16)))),
+        ]
+    )
     client = TestClient(create_app(Settings(), store, {}))
     poses = client.get("/api/v1/poses", params={"from": 0, "to": 10_000}).json()
     chunks = client.get("/api/v1/chunk-events", params={"from": 0, "to": 10_000}).json()
     assert [json.loads(Pose(**p).model_dump_json()) for p in poses] == poses and len(poses) == 2
     assert [list(p) for p in poses] == [list(Pose.model_fields)] * 2
-    assert [json.loads(ChunkEvent(**c).model_dump_json()) for c in chunks] == chunks and len(chunks) == 1
+    assert [json.loads(ChunkEvent(**c).model_dump_json()) for c in chunks] == chunks and len(
+        chunks
+    ) == 1
     assert list(chunks[0]) == list(ChunkEvent.model_fields)

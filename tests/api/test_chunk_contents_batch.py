@@ -7,13 +7,13 @@ import zlib
 import msgspec
 import pytest
 from fastapi.testclient import TestClient
-
-from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK, ContentCache
-from mapservice.settings import Settings
+
+from mapservice.adapters.clock import ManualClock
 from mapservice.core.wire2019 import content_hash
+from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 NOW = 1_795_255_200_000
 URL = "/api/v1/chunk-contents/batch"
@@ -48,8 +48,9 @@ def store(ev) -> CountingStore:
 
 @pytest.fixture
 def client(store) -> TestClient:
-    return TestClient(create_app(Settings(), store, {}, ManualClock(NOW + 60_000)),
-                      raise_server_exceptions=False)
+    return TestClient(
+        create_app(Settings(), store, {}, ManualClock(NOW + 60_000)), raise_server_exceptions=False
+    )
 
 
 def _decode(r) -> dict:
@@ -93,12 +94,15 @@ def test_batch_at_the_limit_is_accepted(client) -> None:
     assert [c[0] for c in body["contents"]] == [HA] and len(body["missing"]) == BATCH_MAX - 1
 
 
-@pytest.mark.parametrize("hashes, words", [
-    ([f"{i:032x}" for i in range(BATCH_MAX + 1)], "at most 2000"),
-    ([], "empty"),
-    ([HA, HA.upper()], "32 lowercase hex"),
-    (["abc"], "32 lowercase hex"),
-])
+@pytest.mark.parametrize(
+    "hashes, words",
+    [
+        ([f"{i:032x}" for i in range(BATCH_MAX + 1)], "at most 2000"),
+        ([], "empty"),
+        ([HA, HA.upper()], "32 lowercase hex"),
+        (["abc"], "32 lowercase hex"),
+    ],
+)
 def test_bad_batch_is_400_with_a_message(client, hashes, words) -> None:
     """Too many, none, or malformed hashes are a 400 that says what to fix."""
     r = client.post(URL, json={"hashes": hashes})

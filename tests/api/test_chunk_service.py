@@ -16,11 +16,11 @@ from PIL import Image
 from structlog.testing import capture_logs
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.core.events import ChunkUpdated, MapMetaSet, decode
 from mapservice.core.legacy_query import MAX_LIMIT
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits
+from mapservice.settings import Settings
+from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.fixtures.legacy import SpyStore, process
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
@@ -40,15 +40,21 @@ def pixels(i: int) -> bytes:
 # (robot, offset ms, row, column) per write; writes 12 and 13 overwrite cell (0, 0) at one
 # instant, and r2 > r1 wins it.
 WRITES = [(f"r{i % 3}", i * 1000, i % 4, i % 5) for i in range(12)] + [
-    ("r1", 12_000, 0, 0), ("r2", 12_000, 0, 0)]
+    ("r1", 12_000, 0, 0),
+    ("r2", 12_000, 0, 0),
+]
 
 
 @pytest.fixture
 def store(ev) -> SpyStore:
     s = SpyStore()
     s.append([ev.meta(NOW - 10_000, chunk_rows=4, chunk_cols=5)])
-    s.append([ev.chunk(robot, NOW + dt, row, col, pixels(i))
-              for i, (robot, dt, row, col) in enumerate(WRITES)])
+    s.append(
+        [
+            ev.chunk(robot, NOW + dt, row, col, pixels(i))
+            for i, (robot, dt, row, col) in enumerate(WRITES)
+        ]
+    )
     return s
 
 
@@ -115,9 +121,16 @@ def test_get_meta_without_meta_is_404(settings) -> None:
     assert r.status_code == 404 and "POST" in r.json()["detail"]
 
 
-META_8 = {"comment": "# CREATOR: GIMP PNM Filter Version 1.1", "width": 4800, "height": 3200,
-          "max_brightness": "255", "CHUNK_WIDTH": 100, "CHUNK_HEIGHT": 100, "CHUNK_ROWS": 32,
-          "CHUNK_COLS": 48}
+META_8 = {
+    "comment": "# CREATOR: GIMP PNM Filter Version 1.1",
+    "width": 4800,
+    "height": 3200,
+    "max_brightness": "255",
+    "CHUNK_WIDTH": 100,
+    "CHUNK_HEIGHT": 100,
+    "CHUNK_ROWS": 32,
+    "CHUNK_COLS": 48,
+}
 
 
 def test_post_meta_goes_through_the_meta_topic(client, store, publisher, settings) -> None:
@@ -148,24 +161,35 @@ def test_changing_the_map_geometry_needs_the_admin_token(client, publisher) -> N
     assert r.status_code == 403 and "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
     assert "500 x 400 px" in r.json()["detail"]
     assert anonymous(client).put(f"{BASE}/meta", json=META_8).status_code == 401
-    assert client.put(f"{BASE}/meta", json=META_8, headers={"Authorization": "Bearer nope"}).status_code == 401
+    assert (
+        client.put(
+            f"{BASE}/meta", json=META_8, headers={"Authorization": "Bearer nope"}
+        ).status_code
+        == 401
+    )
     publisher.poll()
     assert not publisher.records
 
 
-def test_same_geometry_and_first_meta_need_a_writer_token(client, store, publisher, settings) -> None:
+def test_same_geometry_and_first_meta_need_a_writer_token(
+    client, store, publisher, settings
+) -> None:
     """Re-posting the held geometry (a 2019 robot's start-up) and the very first meta need a writer token, not the admin's."""
     same = {**META_8, "width": 500, "height": 400, "CHUNK_ROWS": 4, "CHUNK_COLS": 5}
     assert client.post(f"{BASE}/meta", json=same).status_code == 200
     assert anonymous(client).post(f"{BASE}/meta", json=same).status_code == 401
-    empty = TestClient(create_app(settings, SpyStore(), {}, ManualClock(CLOCK_MS), publisher=publisher),
-                       headers=WRITER)
+    empty = TestClient(
+        create_app(settings, SpyStore(), {}, ManualClock(CLOCK_MS), publisher=publisher),
+        headers=WRITER,
+    )
     assert empty.post(f"{BASE}/meta", json=META_8).status_code == 200
 
 
 @pytest.mark.parametrize("path, body", [("meta", json.dumps(META_8)), ("chunks", "{}")])
-@pytest.mark.parametrize("content_type", [
-    "text/plain", "application/x-www-form-urlencoded", "multipart/form-data; boundary=x", None])
+@pytest.mark.parametrize(
+    "content_type",
+    ["text/plain", "application/x-www-form-urlencoded", "multipart/form-data; boundary=x", None],
+)
 def test_writes_take_json_bodies_only(client, publisher, path, body, content_type) -> None:
     """A write sent as text/plain or a form (what a page of another site may send without asking) is a 415; nothing is published."""
     headers = {"Content-Type": content_type} if content_type else {}
@@ -175,13 +199,16 @@ def test_writes_take_json_bodies_only(client, publisher, path, body, content_typ
     assert not publisher.records
 
 
-@pytest.mark.parametrize("body, fragment", [
-    (b"{not json", "meta.json"),
-    (b'{"width": 4800}', "height"),
-    (json.dumps({**META_8, "width": "wide"}).encode(), "width"),
-    (json.dumps({**META_8, "CHUNK_ROWS": 3}).encode(), "do not cover"),
-    (json.dumps({**META_8, "CHUNK_WIDTH": 0}).encode(), "CHUNK_WIDTH"),
-])
+@pytest.mark.parametrize(
+    "body, fragment",
+    [
+        (b"{not json", "meta.json"),
+        (b'{"width": 4800}', "height"),
+        (json.dumps({**META_8, "width": "wide"}).encode(), "width"),
+        (json.dumps({**META_8, "CHUNK_ROWS": 3}).encode(), "do not cover"),
+        (json.dumps({**META_8, "CHUNK_WIDTH": 0}).encode(), "CHUNK_WIDTH"),
+    ],
+)
 def test_malformed_meta_is_400_and_publishes_nothing(client, publisher, body, fragment) -> None:
     """A meta.json that is not JSON, lacks a field, has a wrong type or an impossible grid is a 400."""
     r = client.post(f"{BASE}/meta", content=body, headers=JSON)
@@ -218,27 +245,39 @@ def test_post_chunk_is_the_same_event_as_mqtt(client, publisher, settings, wire)
     body = r.json()
     assert body["_id"] == "row:3_column:2_2026-11-21T10:00:30"
     assert (body["_index"], body["_type"], body["result"], body["_version"]) == (
-        "chunks", "chunk", "created", 1)
+        "chunks",
+        "chunk",
+        "created",
+        1,
+    )
     assert isinstance(body["_shards"]["successful"], int)
     publisher.poll()
     [(key, value)] = publisher.records[settings.topic_chunk_events]
     via_mqtt = Router(settings, "gw").route(
-        "iot/chunks/create", wire.chunk(row=3, column=2, timestamp="2026-11-21T10:00:30"),
-        CLOCK_MS, Limits().with_meta(MapMetaSet(500, 400, 100, 100, 4, 5)))
+        "iot/chunks/create",
+        wire.chunk(row=3, column=2, timestamp="2026-11-21T10:00:30"),
+        CLOCK_MS,
+        Limits().with_meta(MapMetaSet(500, 400, 100, 100, 4, 5)),
+    )
     assert key == via_mqtt.key == b"3:2"
     assert decode(value) == via_mqtt.envelope
     assert isinstance(decode(value).payload, ChunkUpdated)
 
 
-@pytest.mark.parametrize("overrides, reason", [
-    ({"pgmB64compressedData": "not base64!"}, "bad_base64"),
-    ({"row": 4}, "out_of_map"),  # the stored meta has 4 rows
-    ({"timestamp": "2026-11-21T11:00:00"}, "timestamp_in_future"),
-    ({"timestamp": "yesterday"}, "bad_timestamp"),
-    ({"robotId": "bad id"}, "bad_robot_id"),
-    ({"pgmB64compressedData": base64.b64encode(zlib.compress(bytes(99))).decode()},
-     "wrong_chunk_size"),
-])
+@pytest.mark.parametrize(
+    "overrides, reason",
+    [
+        ({"pgmB64compressedData": "not base64!"}, "bad_base64"),
+        ({"row": 4}, "out_of_map"),  # the stored meta has 4 rows
+        ({"timestamp": "2026-11-21T11:00:00"}, "timestamp_in_future"),
+        ({"timestamp": "yesterday"}, "bad_timestamp"),
+        ({"robotId": "bad id"}, "bad_robot_id"),
+        (
+            {"pgmB64compressedData": base64.b64encode(zlib.compress(bytes(99))).decode()},
+            "wrong_chunk_size",
+        ),
+    ],
+)
 def test_post_chunk_is_validated_like_mqtt(client, publisher, wire, overrides, reason) -> None:
     """A chunk MQTT would dead-letter is a 400 naming the same reason; nothing is published."""
     wire.now_ms = CLOCK_MS
@@ -257,8 +296,11 @@ def test_chunks_right_after_meta_use_the_posted_grid(client, store, publisher, w
     r = client.post(f"{BASE}/chunks", json=small)
     assert r.status_code == 200, r.text
     process(publisher, store)
-    assert client.post(f"{BASE}/chunks", json=wire.chunk_doc()).json()["detail"].startswith(
-        "wrong_chunk_size")
+    assert (
+        client.post(f"{BASE}/chunks", json=wire.chunk_doc())
+        .json()["detail"]
+        .startswith("wrong_chunk_size")
+    )
 
 
 @pytest.mark.parametrize("path", ["chunks", "meta"])
@@ -272,7 +314,11 @@ def test_oversized_body_is_413(client, publisher, settings, path) -> None:
 
 def test_post_chunk_not_json_or_missing_field_is_400(client) -> None:
     """A body that is not JSON, or lacks a listing-10 field, is a 400."""
-    assert client.post(f"{BASE}/chunks", content=b"{", headers=JSON).json()["detail"].startswith("not_json")
+    assert (
+        client.post(f"{BASE}/chunks", content=b"{", headers=JSON)
+        .json()["detail"]
+        .startswith("not_json")
+    )
     r = client.post(f"{BASE}/chunks", json={"row": 1})
     assert r.status_code == 400 and r.json()["detail"].startswith("missing_field")
 
@@ -287,9 +333,15 @@ def test_read_your_own_write_by_id(client, store, publisher, wire) -> None:
     assert process(publisher, store) == 1
     r = client.get(f"{BASE}/chunks/id/{chunk_id}")
     assert r.status_code == 200
-    assert r.json() == {"row": 2, "column": 4, "timestamp": "2026-11-21T10:00:30.250",
-                        "chunk": doc["pgmB64compressedData"], "type": "pgm_base64_compressed",
-                        "id": chunk_id, "robotId": "lkjlkj"}
+    assert r.json() == {
+        "row": 2,
+        "column": 4,
+        "timestamp": "2026-11-21T10:00:30.250",
+        "chunk": doc["pgmB64compressedData"],
+        "type": "pgm_base64_compressed",
+        "id": chunk_id,
+        "robotId": "lkjlkj",
+    }
 
 
 # --- GET /chunks (listing 12): every parameter --------------------------------------------------
@@ -298,9 +350,15 @@ def test_read_your_own_write_by_id(client, store, publisher, wire) -> None:
 def test_listing_12_fields_and_types(client) -> None:
     """Each chunk has row, column, timestamp, chunk (base64 zlib pixels), type, id and robotId."""
     [first] = get(client, limit=1)
-    assert first == {"row": 0, "column": 0, "timestamp": "2026-11-21T10:00:12",
-                     "chunk": first["chunk"], "type": "pgm_base64_compressed",
-                     "id": "row:0_column:0_2026-11-21T10:00:12", "robotId": "r1"}
+    assert first == {
+        "row": 0,
+        "column": 0,
+        "timestamp": "2026-11-21T10:00:12",
+        "chunk": first["chunk"],
+        "type": "pgm_base64_compressed",
+        "id": "row:0_column:0_2026-11-21T10:00:12",
+        "robotId": "r1",
+    }
     assert zlib.decompress(base64.b64decode(first["chunk"])) == pixels(12)
 
 
@@ -316,28 +374,35 @@ def test_limit_and_skip(client) -> None:
     assert keys(get(client, limit=MAX_LIMIT)) == newest_first(WRITES)
 
 
-@pytest.mark.parametrize("param, value, expected", [
-    ("row", "1", lambda w: w[2] == 1),
-    ("column", "0", lambda w: w[3] == 0),
-    ("robotId", "r1", lambda w: w[0] == "r1"),
-    ("timestamp", "2026-11-21T10:00:12", lambda w: w[1] == 12_000),
-    ("timestamp", str(NOW + 12_000), lambda w: w[1] == 12_000),
-    ("updatedSince", "2026-11-21T10:00:11", lambda w: w[1] >= 11_000),
-    ("updatedBefore", "2026-11-21T10:00:02Z", lambda w: w[1] < 2_000),
-    ("updatedBefore", "2026-11-21T11:00:02+01:00", lambda w: w[1] < 2_000),
-])
+@pytest.mark.parametrize(
+    "param, value, expected",
+    [
+        ("row", "1", lambda w: w[2] == 1),
+        ("column", "0", lambda w: w[3] == 0),
+        ("robotId", "r1", lambda w: w[0] == "r1"),
+        ("timestamp", "2026-11-21T10:00:12", lambda w: w[1] == 12_000),
+        ("timestamp", str(NOW + 12_000), lambda w: w[1] == 12_000),
+        ("updatedSince", "2026-11-21T10:00:11", lambda w: w[1] >= 11_000),
+        ("updatedBefore", "2026-11-21T10:00:02Z", lambda w: w[1] < 2_000),
+        ("updatedBefore", "2026-11-21T11:00:02+01:00", lambda w: w[1] < 2_000),
+    ],
+)
 def test_filters(client, param, value, expected) -> None:
     """Each filter selects exactly its writes (since inclusive, before exclusive, no zone = UTC)."""
-    assert keys(get(client, limit=100, **{param: value})) == \
-        newest_first([w for w in WRITES if expected(w)])
+    assert keys(get(client, limit=100, **{param: value})) == newest_first(
+        [w for w in WRITES if expected(w)]
+    )
 
 
-@pytest.mark.parametrize("sort, order", [
-    ("timestamp:asc", lambda w: (w[1], w[2], w[3], w[0])),
-    ("timestamp:desc", lambda w: (-w[1], w[2], w[3], w[0])),
-    ("row:asc", lambda w: (w[2], -w[1], w[3], w[0])),
-    ("column:desc,robotId:asc", lambda w: (-w[3], w[0], -w[1], w[2])),
-])
+@pytest.mark.parametrize(
+    "sort, order",
+    [
+        ("timestamp:asc", lambda w: (w[1], w[2], w[3], w[0])),
+        ("timestamp:desc", lambda w: (-w[1], w[2], w[3], w[0])),
+        ("row:asc", lambda w: (w[2], -w[1], w[3], w[0])),
+        ("column:desc,robotId:asc", lambda w: (-w[3], w[0], -w[1], w[2])),
+    ],
+)
 def test_sort(client, sort, order) -> None:
     """sort orders by the whitelisted fields, the identity breaking ties."""
     assert keys(get(client, limit=100, sort=sort)) == sorted(WRITES, key=order)
@@ -364,7 +429,8 @@ def test_latest_then_filters_select_among_winners(client) -> None:
     """With latest, row/robotId filter the winners (cell (0,0) is r2's now, so r0 has none there)."""
     assert keys(get(client, latest="true", row="0", robotId="r0", limit=100)) == []
     assert keys(get(client, latest="true", row="0", limit=100)) == newest_first(
-        [w for w in WRITES if w[2] == 0 and w[1] != 0 and w[:2] != ("r1", 12_000)])
+        [w for w in WRITES if w[2] == 0 and w[1] != 0 and w[:2] != ("r1", 12_000)]
+    )
 
 
 def test_reduced_leaves_out_chunk_and_type(client) -> None:
@@ -382,22 +448,25 @@ def test_type_png_returns_base64_png(client) -> None:
     assert image.shape == (100, 100) and image.tobytes() == pixels(12)
 
 
-@pytest.mark.parametrize("params, fragment", [
-    ({"row": "abc"}, "'row'"),
-    ({"column": "-1"}, "'column'"),
-    ({"limit": str(MAX_LIMIT + 1)}, "'limit'"),
-    ({"limit": "ten"}, "'limit'"),
-    ({"skip": "9995", "limit": "10"}, "skip + limit"),
-    ({"sort": "timestamp; DROP TABLE chunk_events"}, "'sort'"),
-    ({"sort": "chunk:asc"}, "'sort'"),
-    ({"sort": "row:sideways"}, "'sort'"),
-    ({"latest": "maybe"}, "'latest'"),
-    ({"reduced": "yes please"}, "'reduced'"),
-    ({"type": "gif"}, "'type'"),
-    ({"timestamp": "yesterday"}, "'timestamp'"),
-    ({"updatedSince": "2026-13-01"}, "'updatedSince'"),
-    ({"updatedBefore": "soon"}, "'updatedBefore'"),
-])
+@pytest.mark.parametrize(
+    "params, fragment",
+    [
+        ({"row": "abc"}, "'row'"),
+        ({"column": "-1"}, "'column'"),
+        ({"limit": str(MAX_LIMIT + 1)}, "'limit'"),
+        ({"limit": "ten"}, "'limit'"),
+        ({"skip": "9995", "limit": "10"}, "skip + limit"),
+        ({"sort": "timestamp; DROP TABLE chunk_events"}, "'sort'"),
+        ({"sort": "chunk:asc"}, "'sort'"),
+        ({"sort": "row:sideways"}, "'sort'"),
+        ({"latest": "maybe"}, "'latest'"),
+        ({"reduced": "yes please"}, "'reduced'"),
+        ({"type": "gif"}, "'type'"),
+        ({"timestamp": "yesterday"}, "'timestamp'"),
+        ({"updatedSince": "2026-13-01"}, "'updatedSince'"),
+        ({"updatedBefore": "soon"}, "'updatedBefore'"),
+    ],
+)
 def test_malformed_parameters_are_400(client, params, fragment) -> None:
     """A malformed value is a 400 naming the parameter and what it accepts."""
     r = client.get(f"{BASE}/chunks", params=params)
@@ -419,8 +488,10 @@ def test_get_by_id_picks_the_winner_of_a_shared_instant(client) -> None:
     assert zlib.decompress(base64.b64decode(r.json()["chunk"])) == pixels(13)
 
 
-@pytest.mark.parametrize("chunk_id", ["row:0_column:0_2026-11-21T10:00:13", "nonsense",
-                                      "row:x_column:0_2026-11-21T10:00:12"])
+@pytest.mark.parametrize(
+    "chunk_id",
+    ["row:0_column:0_2026-11-21T10:00:13", "nonsense", "row:x_column:0_2026-11-21T10:00:12"],
+)
 def test_unknown_or_malformed_id_is_404(client, chunk_id) -> None:
     """An id that names no stored chunk (or no chunk at all) is a 404 with a message."""
     for suffix in ("", "/png"):

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.routers.client_config import coordinate_prefix
+
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 
 def _get(settings: Settings) -> dict:
@@ -19,10 +19,12 @@ def _get(settings: Settings) -> dict:
 def test_hands_out_the_configured_websocket_url_and_topics() -> None:
     """The page gets MAPSERVICE_MQTT_WS_URL and the 2019 topics the gateway reads."""
     body = _get(Settings(mqtt_ws_url="ws://127.0.0.1:9001/mqtt"))
-    assert body == {"mqtt_ws_url": "ws://127.0.0.1:9001/mqtt",
-                    "coordinate_topic_prefix": "iot/coordinates/",
-                    "create_chunk_topic": "iot/chunks/create",
-                    "robot_chunk_topic_prefix": "iot/chunks/create/"}
+    assert body == {
+        "mqtt_ws_url": "ws://127.0.0.1:9001/mqtt",
+        "coordinate_topic_prefix": "iot/coordinates/",
+        "create_chunk_topic": "iot/chunks/create",
+        "robot_chunk_topic_prefix": "iot/chunks/create/",
+    }
 
 
 def test_no_per_robot_chunk_topic_is_null() -> None:

@@ -8,8 +8,8 @@ import asyncio
 import threading
 
 from fastapi.testclient import TestClient
-
 from mapservice.api.composition import Api, compose_api
+
 from mapservice.core.live_messages import LiveText
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
@@ -18,15 +18,25 @@ from mapservice.testing.memory_store import MemoryStore
 def _settings(tmp_path) -> Settings:
     """Production settings without an analyst password: no analysts' SQL, so no ClickHouse
     engine is opened (embedded chDB allows one data path per process)."""
-    return Settings(mode="production", admin_token="t" * 32, clickhouse_dsn="http://127.0.0.1:1",
-                    clickhouse_password="p" * 16, kafka_bootstrap="127.0.0.1:1",
-                    data_dir=tmp_path, api_host="127.0.0.1", api_port=18_999)
+    return Settings(
+        mode="production",
+        admin_token="t" * 32,
+        clickhouse_dsn="http://127.0.0.1:1",
+        clickhouse_password="p" * 16,
+        kafka_bootstrap="127.0.0.1:1",
+        data_dir=tmp_path,
+        api_host="127.0.0.1",
+        api_port=18_999,
+    )
 
 
 def _compose(settings: Settings, **health) -> Api:
     async def build() -> Api:
-        return await compose_api(settings, MemoryStore(), **{
-            "readiness": {}, "liveness": {}, "advisory": {}, "history_status": None, **health})
+        return await compose_api(
+            settings,
+            MemoryStore(),
+            **{"readiness": {}, "liveness": {}, "advisory": {}, "history_status": None, **health},
+        )
 
     return asyncio.run(build())
 
@@ -47,8 +57,14 @@ def test_the_relay_feeds_the_hub_on_the_event_loop(tmp_path) -> None:
     """Messages the relay reads on its own thread reach a subscriber through the loop."""
 
     async def run() -> list:
-        api = await compose_api(_settings(tmp_path), MemoryStore(), readiness={}, liveness={},
-                                advisory={}, history_status=None)
+        api = await compose_api(
+            _settings(tmp_path),
+            MemoryStore(),
+            readiness={},
+            liveness={},
+            advisory={},
+            history_status=None,
+        )
         queue = api.hub.subscribe()
         message = LiveText('{"type": "pose", "robot_id": "r1"}')
         feeder = threading.Thread(target=api.relay.on_messages, args=([message],))
@@ -63,11 +79,19 @@ def test_the_relay_feeds_the_hub_on_the_event_loop(tmp_path) -> None:
 def test_the_health_of_what_runs_beside_it_is_what_the_api_reports(tmp_path) -> None:
     """/readyz requires `readiness` and reports `advisory`; /healthz answers `liveness`;
     /api/v1/status says what `history_status` says."""
-    storing = {"storing": False, "failing_since_ms": 1, "last_stored_ms": None,
-               "reason": "disk full"}
-    api = _compose(_settings(tmp_path), readiness={"history_store": lambda: False},
-                   liveness={"history_consumer": lambda: True},
-                   advisory={"kafka": lambda: False}, history_status=lambda: storing)
+    storing = {
+        "storing": False,
+        "failing_since_ms": 1,
+        "last_stored_ms": None,
+        "reason": "disk full",
+    }
+    api = _compose(
+        _settings(tmp_path),
+        readiness={"history_store": lambda: False},
+        liveness={"history_consumer": lambda: True},
+        advisory={"kafka": lambda: False},
+        history_status=lambda: storing,
+    )
     with TestClient(api.app) as client:
         ready = client.get("/readyz")
         assert ready.status_code == 503

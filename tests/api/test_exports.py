@@ -6,11 +6,11 @@ from __future__ import annotations
 import io
 
 from fastapi.testclient import TestClient
+from mapservice.api.app import create_app
 from mcap.reader import make_reader
 
-from mapservice.testing.memory_store import MemoryStore
-from mapservice.api.app import create_app
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, meta_event, pose_event
 
 T0 = 1_795_255_200_000
@@ -23,26 +23,40 @@ def client(store) -> TestClient:
 def messages_by_topic(mcap: bytes) -> dict[str, int]:
     """An MCAP download's message count per topic, from its summary."""
     summary = make_reader(io.BytesIO(mcap)).get_summary()
-    return {summary.channels[c].topic: n
-            for c, n in summary.statistics.channel_message_counts.items()}
+    return {
+        summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
+    }
 
 
 def test_replay_mcap_is_a_download_of_the_window() -> None:
     """GET /api/v1/exports/replay.mcap: an attachment with the map and the window's poses."""
     store = MemoryStore()
-    store.append([meta_event(T0 - 1000), chunk_event("a", T0 - 500)] +
-                 [pose_event("a", T0 + i * 1000) for i in range(10)])
+    store.append(
+        [meta_event(T0 - 1000), chunk_event("a", T0 - 500)]
+        + [pose_event("a", T0 + i * 1000) for i in range(10)]
+    )
     reply = client(store).get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 5000})
     assert reply.status_code == 200 and reply.headers["content-type"] == "application/x-mcap"
     assert reply.headers["content-disposition"].endswith(f'replay-{T0}-{T0 + 5000}.mcap"')
-    assert messages_by_topic(reply.content) == {"/map": 1, "/robots/a/pose": 5, "/robots/a/state": 5}
+    assert messages_by_topic(reply.content) == {
+        "/map": 1,
+        "/robots/a/pose": 5,
+        "/robots/a/state": 5,
+    }
 
 
 def test_replay_mcap_refuses_windows_it_cannot_serve() -> None:
     """Longer than a day, reversed, or before a map exists: 4xx with a reason."""
     c = client(MemoryStore())
-    assert c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 2 * 86_400_000}).status_code == 400
-    assert c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 - 1}).status_code == 400
+    assert (
+        c.get(
+            "/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 2 * 86_400_000}
+        ).status_code
+        == 400
+    )
+    assert (
+        c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 - 1}).status_code == 400
+    )
     no_map = c.get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 1000})
     assert no_map.status_code == 409 and "no map geometry" in no_map.json()["detail"]
 
@@ -52,11 +66,24 @@ def test_table_exports_name_what_they_need() -> None:
     c = client(MemoryStore())
     reply = c.get("/api/v1/exports/tables/robot-poses", params={"from": T0, "to": T0 + 1000})
     assert reply.status_code == 501 and "ClickHouse" in reply.json()["detail"]
-    assert c.get("/api/v1/exports/tables/poses; DROP", params={"from": T0, "to": T0 + 1}).status_code == 422
+    assert (
+        c.get("/api/v1/exports/tables/poses; DROP", params={"from": T0, "to": T0 + 1}).status_code
+        == 422
+    )
     for dataset in ("annotation-edits", "commands"):  # the operators' events are datasets too
-        assert c.get(f"/api/v1/exports/tables/{dataset}", params={"from": T0, "to": T0 + 1000}).status_code == 501
-    assert c.get("/api/v1/exports/tables/robot-poses",
-                 params={"from": T0, "to": T0 + 1, "format": "xlsx"}).status_code == 422
+        assert (
+            c.get(
+                f"/api/v1/exports/tables/{dataset}", params={"from": T0, "to": T0 + 1000}
+            ).status_code
+            == 501
+        )
+    assert (
+        c.get(
+            "/api/v1/exports/tables/robot-poses",
+            params={"from": T0, "to": T0 + 1, "format": "xlsx"},
+        ).status_code
+        == 422
+    )
 
 
 def test_replay_mcap_refuses_instants_past_2262() -> None:
@@ -69,7 +96,10 @@ def test_replay_mcap_refuses_instants_past_2262() -> None:
         reply = c.get("/api/v1/exports/replay.mcap", params={"from": instant, "to": instant})
         assert reply.status_code == 400, (instant, reply.status_code)
         assert "between 1970 and 2262" in reply.json()["detail"]
-    assert c.get("/api/v1/exports/replay.mcap", params={"from": "9" * 5000, "to": T0}).status_code == 400
+    assert (
+        c.get("/api/v1/exports/replay.mcap", params={"from": "9" * 5000, "to": T0}).status_code
+        == 400
+    )
 
 
 def test_replay_mcap_carries_the_operators_annotations_and_commands() -> None:
@@ -80,12 +110,24 @@ def test_replay_mcap_carries_the_operators_annotations_and_commands() -> None:
 
     zone = Zone("pit", "keep_out", ((0.0, 0.0), (1.0, 0.0), (1.0, 1.0)))
     store = MemoryStore()
-    store.append([meta_event(T0 - 1000), pose_event("a", T0),
-                  make_envelope("operator:x", T0 - 500, T0 - 500, AnnotationCreated("z1", "operator:x", zone)),
-                  make_envelope("a", T0 + 100, T0 + 100, CommandIssued("c1", "a", "pause", "operator:x", T0 + 100))])
+    store.append(
+        [
+            meta_event(T0 - 1000),
+            pose_event("a", T0),
+            make_envelope(
+                "operator:x", T0 - 500, T0 - 500, AnnotationCreated("z1", "operator:x", zone)
+            ),
+            make_envelope(
+                "a", T0 + 100, T0 + 100, CommandIssued("c1", "a", "pause", "operator:x", T0 + 100)
+            ),
+        ]
+    )
     reply = client(store).get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 1000})
     by_topic = messages_by_topic(reply.content)
     summary = make_reader(io.BytesIO(reply.content)).get_summary()
     assert by_topic["/annotations"] == 1 and by_topic["/commands"] == 1
-    assert {summary.schemas[c.schema_id].name for c in summary.channels.values()
-            if c.topic == "/annotations"} == {"foxglove.SceneUpdate"}
+    assert {
+        summary.schemas[c.schema_id].name
+        for c in summary.channels.values()
+        if c.topic == "/annotations"
+    } == {"foxglove.SceneUpdate"}

@@ -11,12 +11,12 @@ import time
 import httpx
 import pytest
 import uvicorn
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
-from mapservice.local.embedded import free_port
 from mapservice.api.composition import api_server_config
+
+from mapservice.local.embedded import free_port
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 HEADER_S, IDLE_S, BODY_S = 1.0, 1, 1.0
 
@@ -24,9 +24,14 @@ HEADER_S, IDLE_S, BODY_S = 1.0, 1, 1.0
 @pytest.fixture(scope="module")
 def server():
     """The API on 127.0.0.1 with short timeouts, served by uvicorn in a thread."""
-    settings = Settings(api_port=free_port(), api_header_timeout_s=HEADER_S,
-                        api_idle_timeout_s=IDLE_S, api_body_timeout_s=BODY_S,
-                        admin_token="a" * 32, api_writer_tokens="w" * 32)
+    settings = Settings(
+        api_port=free_port(),
+        api_header_timeout_s=HEADER_S,
+        api_idle_timeout_s=IDLE_S,
+        api_body_timeout_s=BODY_S,
+        admin_token="a" * 32,
+        api_writer_tokens="w" * 32,
+    )
     config = api_server_config(create_app(settings, MemoryStore(), {}), settings)
     config.log_level = "warning"
     uv = uvicorn.Server(config)
@@ -57,7 +62,7 @@ def closed_within(sock: socket.socket, seconds: float, trickle: bytes = b"") -> 
             return time.monotonic() - started
         if sent < len(trickle):
             try:
-                sock.send(trickle[sent:sent + 1])
+                sock.send(trickle[sent : sent + 1])
             except OSError:
                 return time.monotonic() - started
             sent += 1
@@ -82,7 +87,9 @@ def test_half_a_request_line_is_closed_after_the_header_timeout(server) -> None:
     """A connection that sends half a request line and then trickles header bytes is closed within the header timeout."""
     with connect(server) as sock:
         sock.sendall(b"GET /healthz HT")
-        took = closed_within(sock, HEADER_S + 3, trickle=b"TP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 40)
+        took = closed_within(
+            sock, HEADER_S + 3, trickle=b"TP/1.1\r\nHost: x\r\nX-Slow: " + b"a" * 40
+        )
     assert took is not None and took <= HEADER_S + 1.0, took
 
 
@@ -120,9 +127,11 @@ def test_keep_alive_requests_each_get_a_fresh_header_deadline(server) -> None:
 def test_a_trickled_body_is_refused_after_the_body_timeout(server) -> None:
     """Headers in time but a body that does not come: 408 after MAPSERVICE_API_BODY_TIMEOUT_S."""
     with connect(server) as sock:
-        sock.sendall(b"POST /api/chunk-service/chunks HTTP/1.1\r\nHost: x\r\n"
-                     b"Authorization: Bearer " + b"w" * 32 + b"\r\n"
-                     b"Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{")
+        sock.sendall(
+            b"POST /api/chunk-service/chunks HTTP/1.1\r\nHost: x\r\n"
+            b"Authorization: Bearer " + b"w" * 32 + b"\r\n"
+            b"Content-Type: application/json\r\nContent-Length: 100\r\n\r\n{"
+        )
         sock.settimeout(BODY_S + 3)
         started = time.monotonic()
         reply = sock.recv(4096)

@@ -7,12 +7,12 @@ import asyncio
 from contextlib import contextmanager
 
 from fastapi.testclient import TestClient
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
+
 from mapservice.core.live_messages import live_message
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 # The live stream answers only the service's own host names; the test client's default
 # Host, "testserver", is not one.
@@ -51,7 +51,9 @@ def test_websocket_without_a_live_feed_closes_with_reason():
 
 def test_websocket_before_the_feed_is_ready_asks_to_retry():
     """Until the relay reads the live topic, /api/v1/live closes with 1013 (try again later)."""
-    client = TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=LiveHub(ready=lambda: False)))
+    client = TestClient(
+        create_app(Settings(), MemoryStore(), {}, live_hub=LiveHub(ready=lambda: False))
+    )
     with client.websocket_connect(LIVE_URL) as ws:
         closed = ws.receive()
     assert closed["type"] == "websocket.close" and closed["code"] == 1013
@@ -83,9 +85,14 @@ def test_batched_frames_carry_several_events_in_order_each_with_sent_ms(ev):
         frame = ws.receive_json()
     assert isinstance(frame, list) and len(frame) == 3
     assert [(m["type"], m["robotId"], m["ts_ms"]) for m in frame] == [
-        ("pose", "r1", 1_000), ("pose", "r2", 3_000), ("chunk", "r1", 2_000)]
+        ("pose", "r1", 1_000),
+        ("pose", "r2", 3_000),
+        ("chunk", "r1", 2_000),
+    ]
     assert all(isinstance(m["sent_ms"], int) for m in frame)
-    assert {k: v for k, v in frame[1].items() if k != "sent_ms"} == queued[1]  # each event as sent alone
+    assert {k: v for k, v in frame[1].items() if k != "sent_ms"} == queued[
+        1
+    ]  # each event as sent alone
 
 
 def test_batched_frames_hold_at_most_1000_events(ev):
@@ -106,7 +113,9 @@ def test_unbatched_stream_sends_one_event_per_message(ev):
     hub = LiveHub()
     for query in ("", "?batch=false"):
         with viewer(hub, query) as (client, ws):
-            client.portal.call(lambda: hub.publish([live_message(ev.pose("r1", t)) for t in (1, 2)]))
+            client.portal.call(
+                lambda: hub.publish([live_message(ev.pose("r1", t)) for t in (1, 2)])
+            )
             got = [ws.receive_json(), ws.receive_json()]
         assert [(type(m), m["ts_ms"]) for m in got] == [(dict, 1), (dict, 2)]
         assert all("sent_ms" in m for m in got)
@@ -125,8 +134,10 @@ def test_a_bad_batch_value_is_refused_with_a_reason():
 @contextmanager
 def viewer(hub: LiveHub, query: str = ""):
     """An app on `hub` and a WebSocket on /api/v1/live (plus `query`), once the hub counts it."""
-    with TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client, \
-            client.websocket_connect(LIVE_URL + query) as ws:
+    with (
+        TestClient(create_app(Settings(), MemoryStore(), {}, live_hub=hub)) as client,
+        client.websocket_connect(LIVE_URL + query) as ws,
+    ):
         for _ in range(100):
             if hub.subscribers:
                 break

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
+from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_store import MemoryStore
-from mapservice.api.app import create_app
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 NOW = 1_795_255_200_000
 PIXELS = bytes(i % 256 for i in range(100 * 100))
@@ -17,11 +17,13 @@ PIXELS = bytes(i % 256 for i in range(100 * 100))
 @pytest.fixture
 def client(ev) -> TestClient:
     store = MemoryStore()
-    store.append([
-        ev.chunk("r1", NOW + 500, 3, 2, PIXELS),
-        ev.chunk("r2", NOW + 1500, 0, 1, PIXELS),
-        ev.chunk("r2", NOW + 2000, 0, 1, bytes(10_000)),
-    ])
+    store.append(
+        [
+            ev.chunk("r1", NOW + 500, 3, 2, PIXELS),
+            ev.chunk("r2", NOW + 1500, 0, 1, PIXELS),
+            ev.chunk("r2", NOW + 2000, 0, 1, bytes(10_000)),
+        ]
+    )
     return TestClient(create_app(Settings(), store, {}, ManualClock(NOW + 60_000)))
 
 
@@ -34,7 +36,10 @@ def test_compact_layout_holds_what_the_rows_hold(client) -> None:
     assert compact["fields"] == ["row", "column", "ts_ms", "robotId", "content_hash"]
     as_rows = [dict(zip(compact["fields"], cell)) for cell in compact["cells"]]
     assert as_rows == [{k: v for k, v in c.items() if k != "timestamp"} for c in rows["chunks"]]
-    assert {(c["row"], c["column"]): c["ts_ms"] for c in as_rows} == {(0, 1): NOW + 2000, (3, 2): NOW + 500}
+    assert {(c["row"], c["column"]): c["ts_ms"] for c in as_rows} == {
+        (0, 1): NOW + 2000,
+        (3, 2): NOW + 500,
+    }
 
 
 def test_rows_layout_keeps_the_2019_timestamps(client) -> None:

@@ -4,11 +4,11 @@ page of everything by default (what the replay UI asks for)."""
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
+from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_store import MemoryStore
-from mapservice.api.app import create_app
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import pose_event
 
 NOW = 1_795_255_200_000

@@ -16,13 +16,13 @@ import os
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
+from mapservice.api.app import create_app
 from schemathesis.checks import not_a_server_error
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.api.app import create_app
-from mapservice.settings import Settings
 from tests.conftest import EventFactory
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
@@ -35,14 +35,24 @@ def _store() -> MemoryStore:
     store = MemoryStore()
     store.append([ev.meta(NOW - 86_400_000)])
     for i in range(20):
-        store.append([ev.pose(f"r{i % 3}", NOW - i * 60_000, x=float(i)),
-                      ev.chunk(f"r{i % 2}", NOW - i * 90_000, i % 4, i % 5, bytes([i]) * 10_000)])
+        store.append(
+            [
+                ev.pose(f"r{i % 3}", NOW - i * 60_000, x=float(i)),
+                ev.chunk(f"r{i % 2}", NOW - i * 90_000, i % 4, i % 5, bytes([i]) * 10_000),
+            ]
+        )
     store.append_dead_letters([ev.dead_letter()])
     return store
 
 
 # As administrator (every scope), without the rate limit: the fuzzer is one fast client.
-APP = create_app(Settings(admin_token=ADMIN_TOKEN, api_rate_limit=""), _store(), {"kafka": lambda: True}, ManualClock(NOW), publisher=MemoryPublisher())
+APP = create_app(
+    Settings(admin_token=ADMIN_TOKEN, api_rate_limit=""),
+    _store(),
+    {"kafka": lambda: True},
+    ManualClock(NOW),
+    publisher=MemoryPublisher(),
+)
 schema = schemathesis.openapi.from_asgi("/openapi.json", APP)
 
 
@@ -54,8 +64,13 @@ def refusal_says_why(ctx, response, case) -> None:
 
 
 @schema.parametrize()
-@settings(max_examples=EXAMPLES, deadline=None, derandomize=os.environ.get("CI") == "true",
-          suppress_health_check=list(HealthCheck), database=None)
+@settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=os.environ.get("CI") == "true",
+    suppress_health_check=list(HealthCheck),
+    database=None,
+)
 def test_no_generated_request_gets_a_server_error(case) -> None:
     """Every operation answers generated input with a non-5xx status, and refusals say why."""
     response = case.call(headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
@@ -65,11 +80,16 @@ def test_no_generated_request_gets_a_server_error(case) -> None:
 
 def test_the_fuzzer_reaches_every_operation() -> None:
     """The OpenAPI document the fuzzer reads lists every route the app serves."""
-    operations = {(op.method.upper(), op.path) for op in
-                  (result.ok() for result in schema.get_all_operations())}
-    routes = {(method, route.path) for route in APP.routes
-              for method in getattr(route, "methods", None) or ()
-              if getattr(route, "include_in_schema", False) and method != "HEAD"}
+    operations = {
+        (op.method.upper(), op.path)
+        for op in (result.ok() for result in schema.get_all_operations())
+    }
+    routes = {
+        (method, route.path)
+        for route in APP.routes
+        for method in getattr(route, "methods", None) or ()
+        if getattr(route, "include_in_schema", False) and method != "HEAD"
+    }
     assert routes <= operations, routes - operations
     assert len(operations) >= 25
 

@@ -15,13 +15,13 @@ from contextlib import contextmanager
 
 import uvicorn
 from fastapi.testclient import TestClient
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.api.routers.exports import write_csv_slices
 from mapservice.api.streaming import BoundedPipe, ExportAborted
+
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 T0 = 1_795_255_200_000
 BYTES_PER_MINUTE = 4 * 1024  # of CSV: a 7-day window is ~40 MB
@@ -78,16 +78,21 @@ def test_an_export_nobody_reads_is_produced_a_few_mb_ahead_then_aborted() -> Non
     at MAPSERVICE_API_EXPORT_DEADLINE_S the server cuts them and the producers stop,
     freeing the exports' workers for the next client."""
     store = EndlessCsvStore()
-    settings = Settings(api_export_workers=4, api_export_queue=0, api_caller_concurrency=4,
-                        api_export_deadline_s=3.0)
+    settings = Settings(
+        api_export_workers=4,
+        api_export_queue=0,
+        api_caller_concurrency=4,
+        api_export_deadline_s=3.0,
+    )
     app = create_app(settings, store)
     path = f"/api/v1/exports/tables/robot-poses?from={T0}&to={T0 + 7 * 86_400_000}"
     with served(app) as (port, _):
         socks = [_silent_get(port, path) for _ in range(4)]
         time.sleep(2.0)
         produced = store.produced
-        assert 0 < produced <= 4 * 16 * 1024 * 1024, \
+        assert 0 < produced <= 4 * 16 * 1024 * 1024, (
             f"{produced / 1e6:.0f} MB produced for 4 clients that never read"
+        )
         time.sleep(3.0)  # past the deadline: the exports are cut, the producers stop
         stopped = store.queries
         time.sleep(1.0)
@@ -95,7 +100,9 @@ def test_an_export_nobody_reads_is_produced_a_few_mb_ahead_then_aborted() -> Non
         for sock in socks:
             sock.close()
         # The workers are free again: a client that reads gets its export.
-        reply = TestClient(app).get(f"/api/v1/exports/tables/robot-poses?from={T0}&to={T0 + 3_600_000}")
+        reply = TestClient(app).get(
+            f"/api/v1/exports/tables/robot-poses?from={T0}&to={T0 + 3_600_000}"
+        )
         assert reply.status_code == 200 and reply.text.startswith("robot_id,at\n")
 
 
@@ -117,6 +124,7 @@ def test_an_export_that_cannot_start_within_the_deadline_is_a_503() -> None:
 
 def test_the_pipe_holds_at_most_its_chunks_and_stops_its_producer_when_aborted() -> None:
     """The producer's writes block once max_chunks wait unread; abort() makes them raise."""
+
     async def scenario():
         pipe = BoundedPipe(asyncio.get_running_loop(), chunk_bytes=1024, max_chunks=4)
         written, outcome = [0], []
@@ -170,9 +178,13 @@ def _handshake(port: int) -> socket.socket:
     sock = socket.create_connection(("127.0.0.1", port))
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16 * 1024)
     key = base64.b64encode(os.urandom(16)).decode()
-    sock.sendall((f"GET /api/v1/live HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
-                  f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
-                  "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+    sock.sendall(
+        (
+            f"GET /api/v1/live HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+            f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n"
+        ).encode()
+    )
     head = b""
     while b"\r\n\r\n" not in head:
         head += sock.recv(1)

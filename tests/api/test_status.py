@@ -4,11 +4,11 @@ GET /api/v1/status gives the replay UI "history not stored since ..."."""
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
+
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 FULL = "Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. (NOT_ENOUGH_SPACE)"
 
@@ -27,8 +27,10 @@ def test_readiness_is_false_naming_the_failing_inserts_and_ready_again_after() -
     the reason with the error code; the next successful insert makes it 200 again."""
     health = InsertHealth()
     client = client_with(health)
-    assert client.get("/readyz").json() == {"ok": True, "checks": {"clickhouse": True,
-                                                                    "history_store": True}}
+    assert client.get("/readyz").json() == {
+        "ok": True,
+        "checks": {"clickhouse": True, "history_store": True},
+    }
     health.failed(RuntimeError(FULL))
     reply = client.get("/readyz")
     body = reply.json()
@@ -37,7 +39,9 @@ def test_readiness_is_false_naming_the_failing_inserts_and_ready_again_after() -
     assert body["reasons"]["history_store"].startswith("inserts failing since ")
     assert "NOT_ENOUGH_SPACE" in body["reasons"]["history_store"]
     health.stored()
-    assert client.get("/readyz").status_code == 200 and "reasons" not in client.get("/readyz").json()
+    assert (
+        client.get("/readyz").status_code == 200 and "reasons" not in client.get("/readyz").json()
+    )
 
 
 def test_status_says_whether_the_history_is_stored_and_since_when_not() -> None:

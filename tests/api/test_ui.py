@@ -9,8 +9,8 @@ from mapservice.api.app import create_app
 from mapservice.api.routers import ui
 
 from mapservice.local.checkout import TEST_UI_DIR
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 
 @pytest.fixture

@@ -40,6 +40,8 @@ DUMMY_SECRET = "0123456789abcdef0123456789abcdef"
 def dummy_secret(key: str) -> str:
     """The dummy value of a Secret key, in the shape its setting takes."""
     return f"agv-1={DUMMY_SECRET}" if key == "MAPSERVICE_API_ROBOT_TOKENS" else DUMMY_SECRET
+
+
 SECRET_REF = re.compile(r"^\$\{(?P<var>[A-Za-z_][A-Za-z0-9_]*):\?(?P<msg>[^}]+)\}$")
 VAR_NAME = re.compile(r"\bMAPSERVICE_[A-Z0-9_]*[A-Z0-9]\b")
 
@@ -66,8 +68,11 @@ def compose() -> dict:
 
 def compose_mapservice() -> dict[str, dict]:
     """Compose services that run the mapservice image, by service name."""
-    return {name: svc for name, svc in compose()["services"].items()
-            if "build" in svc or str(svc.get("image", "")).startswith("mapservice")}
+    return {
+        name: svc
+        for name, svc in compose()["services"].items()
+        if "build" in svc or str(svc.get("image", "")).startswith("mapservice")
+    }
 
 
 def compose_components() -> dict[str, dict]:
@@ -86,14 +91,22 @@ def k8s_docs() -> list[dict]:
 
 def jobs() -> list[tuple[dict, dict]]:
     """(job, container) for every container of a Job."""
-    return [(doc, c) for doc in k8s_docs() if doc["kind"] == "Job"
-            for c in doc["spec"]["template"]["spec"]["containers"]]
+    return [
+        (doc, c)
+        for doc in k8s_docs()
+        if doc["kind"] == "Job"
+        for c in doc["spec"]["template"]["spec"]["containers"]
+    ]
 
 
 def workloads() -> list[tuple[dict, dict]]:
     """(workload, container) for every container of a Deployment or StatefulSet."""
-    return [(doc, c) for doc in k8s_docs() if doc["kind"] in ("Deployment", "StatefulSet")
-            for c in doc["spec"]["template"]["spec"]["containers"]]
+    return [
+        (doc, c)
+        for doc in k8s_docs()
+        if doc["kind"] in ("Deployment", "StatefulSet")
+        for c in doc["spec"]["template"]["spec"]["containers"]
+    ]
 
 
 def configmap(name: str) -> dict[str, str]:
@@ -121,8 +134,11 @@ def health_port(argv: list[str]) -> int | None:
 def secret_keys_from_readme() -> set[str]:
     """Keys of the documented `kubectl create secret generic mapservice ...` command."""
     text = INFRA_README.read_text().replace("\\\n", " ")
-    commands = [line for line in text.splitlines()
-                if "kubectl" in line and "create secret generic mapservice" in line]
+    commands = [
+        line
+        for line in text.splitlines()
+        if "kubectl" in line and "create secret generic mapservice" in line
+    ]
     assert commands, "infra/README.md documents no `kubectl create secret generic mapservice`"
     return set(re.findall(r"--from-literal=([A-Z0-9_]+)=", " ".join(commands)))
 

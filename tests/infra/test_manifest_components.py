@@ -10,13 +10,25 @@ import urllib.request
 
 import pytest
 
-from mapservice.settings import Settings
 from mapservice.adapters.kafka_topics import topic_config, topic_partitions
-from tests.infra.manifests import (DUMMY_SECRET, K8S, STRIMZI_TOPICS, compose, compose_components,
-                                   compose_env, configmap, container_argv, health_port, jobs,
-                                   k8s_env, load_all, secret_keys_from_readme, settings_from,
-                                   workloads)
-
+from mapservice.settings import Settings
+from tests.infra.manifests import (
+    DUMMY_SECRET,
+    K8S,
+    STRIMZI_TOPICS,
+    compose,
+    compose_components,
+    compose_env,
+    configmap,
+    container_argv,
+    health_port,
+    jobs,
+    k8s_env,
+    load_all,
+    secret_keys_from_readme,
+    settings_from,
+    workloads,
+)
 
 # ------------------------------------------------------------- the real health handlers
 
@@ -25,10 +37,10 @@ from tests.infra.manifests import (DUMMY_SECRET, K8S, STRIMZI_TOPICS, compose, c
 def served():
     """served(component, path) -> HTTP status from the handler the component really runs."""
     from fastapi.testclient import TestClient
-
-    from mapservice.testing.memory_store import MemoryStore
     from mapservice.api.app import create_app
+
     from mapservice.runtime.health_server import serve_health
+    from mapservice.testing.memory_store import MemoryStore
 
     health = serve_health("127.0.0.1", 0, lambda: {"ok": True})
     port = health.server_address[1]
@@ -68,8 +80,11 @@ def test_gateway_statefulset_takes_its_mqtt_client_id_from_the_pod_name():
 
 
 def probes(container: dict) -> dict[str, dict]:
-    return {kind: container[kind]["httpGet"]
-            for kind in ("startupProbe", "livenessProbe", "readinessProbe") if kind in container}
+    return {
+        kind: container[kind]["httpGet"]
+        for kind in ("startupProbe", "livenessProbe", "readinessProbe")
+        if kind in container
+    }
 
 
 def resolve_port(container: dict, port) -> int:
@@ -129,14 +144,17 @@ def test_the_api_as_deployed_guards_metrics_and_docs_but_not_probes():
     """With the k8s ConfigMap and Secret, the API's probes answer without a token, /metrics and
     /openapi.json only with one, and the PodMonitor scrapes with the Secret's metrics token."""
     from fastapi.testclient import TestClient
+    from mapservice.api.app import create_app
 
     from mapservice.testing.memory_store import MemoryStore
-    from mapservice.api.app import create_app
 
     [(workload, container)] = [(w, c) for w, c in workloads() if container_argv(c)[:1] == ["api"]]
     settings = settings_from(k8s_env(workload, container))
     assert (settings.metrics_access, settings.docs_access, settings.api_read_access) == (
-        "token", "token", "open")
+        "token",
+        "token",
+        "open",
+    )
     api = TestClient(create_app(settings, MemoryStore(), {"clickhouse": lambda: True}))
     for kind, get in probes(container).items():
         assert api.get(get["path"]).status_code == 200, kind
@@ -146,8 +164,10 @@ def test_the_api_as_deployed_guards_metrics_and_docs_but_not_probes():
         assert api.get(path, headers=token).status_code == 200, path
     [monitor] = load_all(K8S / "monitoring" / "podmonitor.yaml")
     [http] = [e for e in monitor["spec"]["podMetricsEndpoints"] if e["port"] == "http"]
-    assert http["authorization"] == {"type": "Bearer", "credentials": {
-        "name": "mapservice", "key": "MAPSERVICE_API_METRICS_TOKEN"}}
+    assert http["authorization"] == {
+        "type": "Bearer",
+        "credentials": {"name": "mapservice", "key": "MAPSERVICE_API_METRICS_TOKEN"},
+    }
     assert "MAPSERVICE_API_METRICS_TOKEN" in secret_keys_from_readme()
 
 
@@ -175,19 +195,27 @@ def test_each_component_environment_gives_valid_production_settings():
         without_token = {k: v for k, v in env.items() if k != "MAPSERVICE_ADMIN_TOKEN"}
         with pytest.raises(ValueError, match="ADMIN_TOKEN"):
             settings_from(without_token)
-    assert compose_env(compose()["services"]["gateway"])["MAPSERVICE_CLICKHOUSE_DSN"] \
+    assert (
+        compose_env(compose()["services"]["gateway"])["MAPSERVICE_CLICKHOUSE_DSN"]
         == "http://clickhouse:8123"
+    )
 
 
 def test_strimzi_topics_match_the_settings():
     """strimzi-topics.yaml has the five Settings topics, ConfigMap partitions/replicas, and
     exactly the configs the service creates topics with (mapservice.adapters.kafka_topics.topic_config):
     retention as the history's, meta compacted x1, live x1 with the live retention."""
-    settings = settings_from({**configmap("mapservice"), "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
-                              "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET})
+    settings = settings_from(
+        {
+            **configmap("mapservice"),
+            "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
+            "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET,
+        }
+    )
     docs = load_all(STRIMZI_TOPICS)
-    assert all(d["kind"] == "KafkaTopic" and d["apiVersion"].startswith("kafka.strimzi.io/")
-               for d in docs)
+    assert all(
+        d["kind"] == "KafkaTopic" and d["apiVersion"].startswith("kafka.strimzi.io/") for d in docs
+    )
     topics = {d["spec"].get("topicName", d["metadata"]["name"]): d for d in docs}
     assert sorted(topics) == sorted(settings.kafka_topics)
     for name, doc in topics.items():
@@ -198,8 +226,11 @@ def test_strimzi_topics_match_the_settings():
             assert spec["config"]["retention.ms"] == settings.live_retention_s * 1000
         assert spec["replicas"] == settings.kafka_replication, name
         assert spec.get("config", {}).get("cleanup.policy", "delete") == (
-            "compact" if meta else "delete"), name
-        assert {k: str(v) for k, v in spec.get("config", {}).items()} == topic_config(settings, name), name
+            "compact" if meta else "delete"
+        ), name
+        assert {k: str(v) for k, v in spec.get("config", {}).items()} == topic_config(
+            settings, name
+        ), name
         cluster = doc["metadata"]["labels"]["strimzi.io/cluster"]
         assert settings.kafka_bootstrap.startswith(f"{cluster}-kafka-bootstrap."), name
 
@@ -220,7 +251,8 @@ def test_migrations_run_once_per_release_before_the_components():
         assert settings.mode == "production" and not settings.migrates_on_start, where
     for name in ("processors", "api"):
         assert compose()["services"][name]["depends_on"]["migrate"] == {
-            "condition": "service_completed_successfully"}, name
+            "condition": "service_completed_successfully"
+        }, name
     for workload, container in workloads():  # nobody else migrates in production mode
         assert not settings_from(k8s_env(workload, container)).migrates_on_start
 
@@ -228,12 +260,20 @@ def test_migrations_run_once_per_release_before_the_components():
 def test_the_schema_cluster_is_the_installations_replicated_cluster():
     """MAPSERVICE_CLICKHOUSE_CLUSTER names a cluster of the ClickHouseInstallation that has
     two or more replicas and a Keeper (what Replicated tables ON CLUSTER need)."""
-    (chi,) = [d for d in load_all(K8S / "platform" / "clickhouse.yaml")
-              if d["kind"] == "ClickHouseInstallation"]
+    (chi,) = [
+        d
+        for d in load_all(K8S / "platform" / "clickhouse.yaml")
+        if d["kind"] == "ClickHouseInstallation"
+    ]
     clusters = {c["name"]: c["layout"] for c in chi["spec"]["configuration"]["clusters"]}
     name = configmap("mapservice")["MAPSERVICE_CLICKHOUSE_CLUSTER"]
     assert name in clusters and clusters[name]["replicasCount"] >= 2
     assert chi["spec"]["configuration"]["zookeeper"]["nodes"]
-    host = settings_from({**configmap("mapservice"), "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
-                          "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET}).resolved_clickhouse_dsn
+    host = settings_from(
+        {
+            **configmap("mapservice"),
+            "MAPSERVICE_ADMIN_TOKEN": DUMMY_SECRET,
+            "MAPSERVICE_CLICKHOUSE_PASSWORD": DUMMY_SECRET,
+        }
+    ).resolved_clickhouse_dsn
     assert f"clickhouse-{chi['metadata']['name']}." in host  # the operator's Service for the CHI

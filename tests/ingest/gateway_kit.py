@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import json
 
+from mapservice.ingest.command_relay import CommandRelay
+from mapservice.ingest.gateway import Ingestor
+
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.commands import CommandIssued
 from mapservice.core.events import decode, encode, make_envelope
-from mapservice.ingest.command_relay import CommandRelay
-from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 
@@ -27,8 +28,13 @@ class Gateway:
         self.ingestor = Ingestor(self.settings, self.publisher, self.clock, gateway_id="gw")
         self.sent: list[tuple[str, dict]] = []
         router = self.ingestor.router
-        self.relay = CommandRelay(self.settings, lambda t, p: self.sent.append((t, json.loads(p))),
-                                  self.clock.now_ms, router.commands, router.vda_commands)
+        self.relay = CommandRelay(
+            self.settings,
+            lambda t, p: self.sent.append((t, json.loads(p))),
+            self.clock.now_ms,
+            router.commands,
+            router.vda_commands,
+        )
 
     def issue(self, cid: str, robot: str, kind: str = "pause", at_ms: int = NOW) -> bool:
         """An operator's command read from the command topic; True when it was delivered."""
@@ -38,5 +44,6 @@ class Gateway:
     def command_events(self) -> list:
         """The payloads published to the command topic so far (acks and outcomes)."""
         self.publisher.flush()
-        return [decode(v).payload for _, v in
-                self.publisher.records[self.settings.topic_command_events]]
+        return [
+            decode(v).payload for _, v in self.publisher.records[self.settings.topic_command_events]
+        ]

@@ -9,7 +9,8 @@ from __future__ import annotations
 import json
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from mapservice.core.commands import CommandAcknowledged, CommandFinished
 from mapservice.core.events import decode, decode_dead_letter, encode, make_envelope
@@ -25,13 +26,20 @@ class Gateway(gateway_kit.Gateway):
     def answer(self, robot: str, doc: dict | bytes, topic_robot: str | None = None):
         """A 2019 robot's answer on its command-events topic (`topic_robot`: another robot's)."""
         payload = doc if isinstance(doc, bytes) else json.dumps(doc).encode()
-        return self.ingestor.handle(f"iot/robots/{topic_robot or robot}/command-events",
-                                    payload, lambda: None)
+        return self.ingestor.handle(
+            f"iot/robots/{topic_robot or robot}/command-events", payload, lambda: None
+        )
 
 
 def ack(robot: str, cid: str, **extra) -> dict:
-    return {"robotId": robot, "commandId": cid, "type": "ack", "status": "accepted",
-            "timestamp": format_timestamp(NOW + 100), **extra}
+    return {
+        "robotId": robot,
+        "commandId": cid,
+        "type": "ack",
+        "status": "accepted",
+        "timestamp": format_timestamp(NOW + 100),
+        **extra,
+    }
 
 
 @pytest.fixture
@@ -43,12 +51,19 @@ def test_a_fresh_command_goes_to_its_robots_topic_a_stale_one_does_not(gw) -> No
     assert gw.issue("c-1", "agv-1")
     ((topic, payload),) = gw.sent
     assert topic == "iot/robots/agv-1/commands"
-    assert payload == {"commandId": "c-1", "robotId": "agv-1", "kind": "pause",
-                       "issuedBy": "operator:ab12", "issuedAt": NOW}
+    assert payload == {
+        "commandId": "c-1",
+        "robotId": "agv-1",
+        "kind": "pause",
+        "issuedBy": "operator:ab12",
+        "issuedAt": NOW,
+    }
     assert not gw.issue("c-old", "agv-1", at_ms=NOW - 31_000)  # older than the delivery TTL (30 s)
     assert len(gw.sent) == 1
     assert gw.ingestor.router.commands.robot_of("c-old") == "agv-1"  # still known for answers
-    answer = encode(make_envelope("agv-1", NOW, NOW, CommandAcknowledged("c-1", "agv-1", "accepted")))
+    answer = encode(
+        make_envelope("agv-1", NOW, NOW, CommandAcknowledged("c-1", "agv-1", "accepted"))
+    )
     assert not gw.relay.handle(answer) and not gw.relay.handle(b"\x00garbage")
 
 
@@ -59,30 +74,48 @@ def test_answers_become_events_on_the_command_topic(gw) -> None:
     event = decode(record.value)
     assert event.payload == CommandAcknowledged("c-1", "agv-1", "accepted")
     assert event.event_time_ms == NOW + 100 and event.robot_id == "agv-1"
-    record = gw.answer("agv-1", {**ack("agv-1", "c-1"), "type": "outcome", "outcome": "failed",
-                                 "reason": "blocked"})
+    record = gw.answer(
+        "agv-1",
+        {**ack("agv-1", "c-1"), "type": "outcome", "outcome": "failed", "reason": "blocked"},
+    )
     assert decode(record.value).payload == CommandFinished("c-1", "agv-1", "failed", "blocked")
     # A redelivery of the same answer is the same event (its id is its identity).
     assert decode(gw.answer("agv-1", ack("agv-1", "c-1")).value).event_id == event.event_id
 
 
-@pytest.mark.parametrize("doc,topic_robot,reason,says", [
-    (ack("agv-2", "c-1"), None, Reason.NOT_ITS_COMMAND, "another robot"),
-    (ack("agv-1", "c-nobody-sent"), None, Reason.UNKNOWN_COMMAND, "no command"),
-    (ack("agv-1", "c-1"), "agv-2", Reason.ROBOT_ID_MISMATCH, "payload says"),
-    (ack("agv-1", "c-1", status="maybe"), None, Reason.BAD_COMMAND_RESPONSE, "accepted, rejected"),
-    ({**ack("agv-1", "c-1"), "type": "outcome", "outcome": "exploded"}, None,
-     Reason.BAD_COMMAND_RESPONSE, "done, failed, cancelled"),
-    (ack("agv-1", "c-1", type="nack"), None, Reason.BAD_COMMAND_RESPONSE, "'ack' or 'outcome'"),
-    ({"robotId": "agv-1", "type": "ack"}, None, Reason.MISSING_FIELD, "commandId"),
-    (ack("agv-1", "c-1", status=7), None, Reason.WRONG_TYPE, "status"),
-    (ack("agv-1", "c-1", timestamp="yesterday"), None, Reason.BAD_TIMESTAMP, "ISO 8601"),
-    (ack("agv-1", "c-1", timestamp=format_timestamp(NOW + 3_600_000)), None,
-     Reason.TIMESTAMP_IN_FUTURE, "clock"),
-    (ack("agv-1", "c 1/#"), None, Reason.WRONG_TYPE, "not a command id"),
-    (ack("agv-1", "c-1", reason="x" * 501), None, Reason.OUT_OF_RANGE, "at most 500"),
-    (b"{not json", None, Reason.NOT_JSON, "not JSON"),
-])
+@pytest.mark.parametrize(
+    "doc,topic_robot,reason,says",
+    [
+        (ack("agv-2", "c-1"), None, Reason.NOT_ITS_COMMAND, "another robot"),
+        (ack("agv-1", "c-nobody-sent"), None, Reason.UNKNOWN_COMMAND, "no command"),
+        (ack("agv-1", "c-1"), "agv-2", Reason.ROBOT_ID_MISMATCH, "payload says"),
+        (
+            ack("agv-1", "c-1", status="maybe"),
+            None,
+            Reason.BAD_COMMAND_RESPONSE,
+            "accepted, rejected",
+        ),
+        (
+            {**ack("agv-1", "c-1"), "type": "outcome", "outcome": "exploded"},
+            None,
+            Reason.BAD_COMMAND_RESPONSE,
+            "done, failed, cancelled",
+        ),
+        (ack("agv-1", "c-1", type="nack"), None, Reason.BAD_COMMAND_RESPONSE, "'ack' or 'outcome'"),
+        ({"robotId": "agv-1", "type": "ack"}, None, Reason.MISSING_FIELD, "commandId"),
+        (ack("agv-1", "c-1", status=7), None, Reason.WRONG_TYPE, "status"),
+        (ack("agv-1", "c-1", timestamp="yesterday"), None, Reason.BAD_TIMESTAMP, "ISO 8601"),
+        (
+            ack("agv-1", "c-1", timestamp=format_timestamp(NOW + 3_600_000)),
+            None,
+            Reason.TIMESTAMP_IN_FUTURE,
+            "clock",
+        ),
+        (ack("agv-1", "c 1/#"), None, Reason.WRONG_TYPE, "not a command id"),
+        (ack("agv-1", "c-1", reason="x" * 501), None, Reason.OUT_OF_RANGE, "at most 500"),
+        (b"{not json", None, Reason.NOT_JSON, "not JSON"),
+    ],
+)
 def test_bad_answers_are_dead_letters_that_say_why(gw, doc, topic_robot, reason, says) -> None:
     gw.issue("c-1", "agv-1")  # sent to agv-1 only
     robot = doc["robotId"] if isinstance(doc, dict) and "robotId" in doc else "agv-1"
@@ -94,21 +127,41 @@ def test_bad_answers_are_dead_letters_that_say_why(gw, doc, topic_robot, reason,
 
 
 def test_a_topic_deeper_or_shallower_than_a_robots_is_no_answer(gw) -> None:
-    for topic in ("iot/robots/agv-1/command-events/x", "iot/robots//command-events",
-                  "iot/robots/agv-1/commands"):
+    for topic in (
+        "iot/robots/agv-1/command-events/x",
+        "iot/robots//command-events",
+        "iot/robots/agv-1/commands",
+    ):
         record = gw.ingestor.handle(topic, json.dumps(ack("agv-1", "c-1")).encode(), lambda: None)
         assert record.reason == Reason.UNKNOWN_TOPIC.value, topic
 
 
-FUZZ = settings(max_examples=2_000, deadline=None, derandomize=True,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                       HealthCheck.function_scoped_fixture])
+FUZZ = settings(
+    max_examples=2_000,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[
+        HealthCheck.too_slow,
+        HealthCheck.data_too_large,
+        HealthCheck.function_scoped_fixture,
+    ],
+)
 
 
 @st.composite
 def answer_payloads(draw) -> bytes:
-    good = {**ack("fuzz-1", "c-1"), **draw(st.sampled_from([
-        {}, {"type": "outcome", "outcome": "done"}, {"status": "rejected", "reason": "busy"}]))}
+    good = {
+        **ack("fuzz-1", "c-1"),
+        **draw(
+            st.sampled_from(
+                [
+                    {},
+                    {"type": "outcome", "outcome": "done"},
+                    {"status": "rejected", "reason": "busy"},
+                ]
+            )
+        ),
+    }
     if draw(st.booleans()):
         return json.dumps(mutate(good, draw)).encode()
     return draw(raw_nasties(good))
@@ -120,7 +173,9 @@ def answer_payloads(draw) -> bytes:
 def test_generated_answers_end_as_events_or_dead_letters(payload) -> None:
     gw = _fuzz_gateway()
     acked = []
-    record = gw.ingestor.handle("iot/robots/fuzz-1/command-events", payload, lambda: acked.append(1))
+    record = gw.ingestor.handle(
+        "iot/robots/fuzz-1/command-events", payload, lambda: acked.append(1)
+    )
     gw.publisher.poll()
     assert acked == [1] and gw.ingestor.in_flight == 0
     if record.reason is None:
@@ -143,6 +198,7 @@ def _fuzz_gateway() -> Gateway:
 
 def test_the_relays_book_forgets_the_oldest_beyond_its_limit() -> None:
     from mapservice.ingest.command_relay import CommandBook
+
     book = CommandBook(limit=2)
     for cid in ("a", "b", "c"):
         book.remember(cid, "r")

@@ -16,39 +16,76 @@ import json
 import zlib
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mapservice.ingest.gateway import Ingestor
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.core.events import decode, decode_dead_letter
-from mapservice.ingest.gateway import Ingestor
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import _ROBOT_ID, Reason, format_timestamp
+from mapservice.settings import Settings
+from mapservice.testing.memory_publisher import MemoryPublisher
 
 NOW = 1_795_255_200_000
-BUDGET = settings(max_examples=10_000, deadline=None, derandomize=True,
-                  suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                         HealthCheck.filter_too_much])
+BUDGET = settings(
+    max_examples=10_000,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[
+        HealthCheck.too_slow,
+        HealthCheck.data_too_large,
+        HealthCheck.filter_too_much,
+    ],
+)
 REASONS = {r.value for r in Reason}
 
 json_scalars = st.one_of(
-    st.none(), st.booleans(), st.integers(min_value=-(2**70), max_value=2**70),
-    st.floats(allow_nan=False, allow_infinity=False), st.text(max_size=50),
-    st.just("x" * 70_000), st.sampled_from(["", "true", "NaN", "1e309", "\u0000", "\udcff".encode("utf-8", "surrogatepass").decode("utf-8", "replace")]))
-json_values = st.recursive(json_scalars, lambda inner: st.one_of(
-    st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=10), inner, max_size=4)), max_leaves=12)
+    st.none(),
+    st.booleans(),
+    st.integers(min_value=-(2**70), max_value=2**70),
+    st.floats(allow_nan=False, allow_infinity=False),
+    st.text(max_size=50),
+    st.just("x" * 70_000),
+    st.sampled_from(
+        [
+            "",
+            "true",
+            "NaN",
+            "1e309",
+            "\u0000",
+            "\udcff".encode("utf-8", "surrogatepass").decode("utf-8", "replace"),
+        ]
+    ),
+)
+json_values = st.recursive(
+    json_scalars,
+    lambda inner: st.one_of(
+        st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=10), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
 
 
 def good_chunk(ts: int = NOW, pixels: bytes = bytes(100 * 100)) -> dict:
-    return {"pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
-            "row": 1, "column": 2, "timestamp": format_timestamp(ts), "robotId": "fuzz-1"}
+    return {
+        "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
+        "row": 1,
+        "column": 2,
+        "timestamp": format_timestamp(ts),
+        "robotId": "fuzz-1",
+    }
 
 
 def good_pose(ts: int = NOW) -> dict:
-    return {"robotId": "fuzz-1", "timestamp": format_timestamp(ts),
-            "pose": {"position": {"x": 1.0, "y": 2.0, "z": 0.0},
-                     "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
-            "status": {"battery": {"battery_level": 50, "charging": False}, "loaded": False}}
+    return {
+        "robotId": "fuzz-1",
+        "timestamp": format_timestamp(ts),
+        "pose": {
+            "position": {"x": 1.0, "y": 2.0, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+        },
+        "status": {"battery": {"battery_level": 50, "charging": False}, "loaded": False},
+    }
 
 
 def mutate(doc: dict, draw) -> dict:
@@ -81,16 +118,26 @@ def raw_nasties(good: dict) -> st.SearchStrategy[bytes]:
         st.binary(max_size=300),  # mostly invalid UTF-8 / not JSON
         st.integers(1, 5000).map(lambda n: b'{"x":' + b"[" * n + b"]" * n + b"}"),  # deep nesting
         st.integers(0, len(text)).map(lambda n: text[:n].encode()),  # truncated
-        st.sampled_from([text.replace("1.0", "NaN"), text.replace("1.0", "Infinity"),
-                         text.replace("1.0", "1e999"), text.replace("50", "-1e-400")]).map(str.encode),
+        st.sampled_from(
+            [
+                text.replace("1.0", "NaN"),
+                text.replace("1.0", "Infinity"),
+                text.replace("1.0", "1e999"),
+                text.replace("50", "-1e-400"),
+            ]
+        ).map(str.encode),
         st.just(b"{" + b'"a":1,' * 60_000 + b'"b":2}'),  # over the size limit
     )
 
 
 # Built once: compressing 50 MB takes a tenth of a second.
 ZLIB_BOMB = base64.b64encode(zlib.compress(bytes(50_000_000))).decode()  # 50 MB in ~49 KB
-ODD_PIXELS = [ZLIB_BOMB, base64.b64encode(zlib.compress(bytes(99))).decode(),
-              "!!!not base64!!!", base64.b64encode(b"not zlib").decode()]
+ODD_PIXELS = [
+    ZLIB_BOMB,
+    base64.b64encode(zlib.compress(bytes(99))).decode(),
+    "!!!not base64!!!",
+    base64.b64encode(b"not zlib").decode(),
+]
 
 
 @st.composite
@@ -104,7 +151,9 @@ def chunk_payloads(draw) -> bytes:
     if draw(st.booleans()):
         data = draw(st.sampled_from(ODD_PIXELS))
     else:  # corrupt: a valid stream cut short
-        data = base64.b64encode(zlib.compress(draw(st.binary(min_size=100, max_size=2000)) * 5)).decode()[:-8]
+        data = base64.b64encode(
+            zlib.compress(draw(st.binary(min_size=100, max_size=2000)) * 5)
+        ).decode()[:-8]
     return json.dumps({**good_chunk(), "pgmB64compressedData": data}).encode()
 
 
@@ -163,7 +212,10 @@ def test_coordinate_messages_never_break_the_gateway(handler, payload) -> None:
 def test_after_the_fuzzing_good_messages_are_accepted(handler) -> None:
     """The handler still accepts a good chunk and pose after everything above."""
     ingestor, publisher, _ = handler
-    for topic, doc in (("iot/chunks/create", good_chunk()), ("iot/coordinates/fuzz-1", good_pose())):
+    for topic, doc in (
+        ("iot/chunks/create", good_chunk()),
+        ("iot/coordinates/fuzz-1", good_pose()),
+    ):
         record = ingestor.handle(topic, json.dumps(doc).encode(), lambda: None)
         publisher.poll()
         assert record.reason is None, (topic, record.reason)

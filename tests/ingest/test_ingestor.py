@@ -5,11 +5,11 @@ from __future__ import annotations
 from functools import partial
 
 import pytest
-
-from mapservice.testing.memory_publisher import MemoryPublisher
-from mapservice.core.events import MapMetaSet, decode, decode_dead_letter
 from mapservice.ingest.gateway import Ingestor
+
+from mapservice.core.events import MapMetaSet, decode, decode_dead_letter
 from mapservice.settings import Settings
+from mapservice.testing.memory_publisher import MemoryPublisher
 
 
 class Acks:
@@ -42,7 +42,9 @@ def acks() -> Acks:
     return Acks()
 
 
-def test_accepted_chunk_is_published_to_chunk_topic(ingestor, publisher, settings, wire, acks) -> None:
+def test_accepted_chunk_is_published_to_chunk_topic(
+    ingestor, publisher, settings, wire, acks
+) -> None:
     """An accepted chunk lands on the chunk topic with key `row:column`."""
     ingestor.handle("iot/chunks/create", wire.chunk(row=4, column=9), acks.for_("m1"))
     publisher.poll()
@@ -52,8 +54,9 @@ def test_accepted_chunk_is_published_to_chunk_topic(ingestor, publisher, setting
     assert decode(value).payload.row == 4
 
 
-def test_accepted_pose_is_published_to_pose_topic(ingestor, publisher, settings, wire, acks,
-                                                  now_ms) -> None:
+def test_accepted_pose_is_published_to_pose_topic(
+    ingestor, publisher, settings, wire, acks, now_ms
+) -> None:
     """An accepted pose lands on the pose topic keyed by robot, stamped with the clock's time."""
     ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_("m1"))
     publisher.poll()
@@ -70,7 +73,11 @@ def test_rejected_message_goes_to_dead_letter_topic(ingestor, publisher, setting
     letter = decode_dead_letter(value)
     assert key == b"iot/chunks/create"
     assert (letter.reason, letter.payload, letter.mqtt_topic, letter.gateway) == (
-        "not_json", b"\x00not json", "iot/chunks/create", "gw-test")
+        "not_json",
+        b"\x00not json",
+        "iot/chunks/create",
+        "gw-test",
+    )
     assert letter.detail
     assert acks.calls == ["bad"]
 
@@ -88,7 +95,9 @@ def test_ack_waits_for_delivery(ingestor, publisher, wire, acks) -> None:
     assert ingestor.in_flight == 0
 
 
-def test_failed_delivery_is_retried_and_ack_waits(ingestor, publisher, settings, wire, acks) -> None:
+def test_failed_delivery_is_retried_and_ack_waits(
+    ingestor, publisher, settings, wire, acks
+) -> None:
     """A failed delivery is published again; ack waits until a delivery succeeds, once."""
     publisher.fail_with = RuntimeError("broker down")
     ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_("pose"))
@@ -122,12 +131,15 @@ def test_publisher_failing_from_the_start(settings, clock, wire, acks) -> None:
 
 
 def test_a_failed_delivery_waits_its_delay_without_holding_up_other_reports(
-        settings, clock, wire, acks) -> None:
+    settings, clock, wire, acks
+) -> None:
     """A failed record is not produced again inside the delivery callback (which would
     hold up every other report) but by retry_due() once its delay has passed."""
     publisher = MemoryPublisher(fail_with=OSError("request timed out"))
     now = [100.0]
-    ingestor = Ingestor(settings, publisher, clock, "gw", retry_delay_s=0.2, monotonic=lambda: now[0])
+    ingestor = Ingestor(
+        settings, publisher, clock, "gw", retry_delay_s=0.2, monotonic=lambda: now[0]
+    )
     for n in range(3):
         ingestor.handle("iot/coordinates/blabla", wire.pose(), acks.for_(f"p{n}"))
     publisher.poll()  # three failures, served at once
@@ -160,58 +172,88 @@ def test_settings_define_the_initial_limits(clock, wire) -> None:
     small = wire.chunk(pgmB64compressedData=wire.b64z(bytes(100)), row=4, column=4)
     assert ing.handle("iot/chunks/create", small, lambda: None).reason is None
     assert ing.handle("iot/chunks/create", wire.chunk(), lambda: None).reason == "wrong_chunk_size"
-    assert ing.handle("iot/chunks/create", wire.chunk(
-        pgmB64compressedData=wire.b64z(bytes(100)), row=5), lambda: None).reason == "out_of_map"
+    assert (
+        ing.handle(
+            "iot/chunks/create",
+            wire.chunk(pgmB64compressedData=wire.b64z(bytes(100)), row=5),
+            lambda: None,
+        ).reason
+        == "out_of_map"
+    )
     assert ing.handle("iot/chunks/create", b"x" * 5000, lambda: None).reason == "oversized"
 
 
 def test_apply_meta_narrows_the_grid(ingestor, wire) -> None:
     """After apply_meta, chunks outside the meta's rows/columns are out_of_map."""
-    assert ingestor.handle("iot/chunks/create", wire.chunk(row=10, column=10),
-                           lambda: None).reason is None
-    ingestor.apply_meta(MapMetaSet(width=300, height=200, chunk_width=100, chunk_height=100,
-                                   chunk_rows=2, chunk_cols=3))
-    assert ingestor.handle("iot/chunks/create", wire.chunk(row=10, column=10),
-                           lambda: None).reason == "out_of_map"
-    assert ingestor.handle("iot/chunks/create", wire.chunk(row=1, column=2),
-                           lambda: None).reason is None
-    assert ingestor.handle("iot/chunks/create", wire.chunk(row=2, column=0),
-                           lambda: None).reason == "out_of_map"
+    assert (
+        ingestor.handle("iot/chunks/create", wire.chunk(row=10, column=10), lambda: None).reason
+        is None
+    )
+    ingestor.apply_meta(
+        MapMetaSet(
+            width=300, height=200, chunk_width=100, chunk_height=100, chunk_rows=2, chunk_cols=3
+        )
+    )
+    assert (
+        ingestor.handle("iot/chunks/create", wire.chunk(row=10, column=10), lambda: None).reason
+        == "out_of_map"
+    )
+    assert (
+        ingestor.handle("iot/chunks/create", wire.chunk(row=1, column=2), lambda: None).reason
+        is None
+    )
+    assert (
+        ingestor.handle("iot/chunks/create", wire.chunk(row=2, column=0), lambda: None).reason
+        == "out_of_map"
+    )
 
 
 def test_apply_meta_sets_chunk_size_and_does_not_compound(ingestor, wire) -> None:
     """apply_meta replaces (not stacks) the previous meta, chunk size included."""
-    ingestor.apply_meta(MapMetaSet(width=100, height=100, chunk_width=50, chunk_height=50,
-                                   chunk_rows=2, chunk_cols=2))
+    ingestor.apply_meta(
+        MapMetaSet(
+            width=100, height=100, chunk_width=50, chunk_height=50, chunk_rows=2, chunk_cols=2
+        )
+    )
     half = wire.chunk(pgmB64compressedData=wire.b64z(bytes(2500)), row=1, column=1)
     assert ingestor.handle("iot/chunks/create", half, lambda: None).reason is None
-    assert ingestor.handle("iot/chunks/create", wire.chunk(row=1, column=1),
-                           lambda: None).reason == "wrong_chunk_size"
-    ingestor.apply_meta(MapMetaSet(width=800, height=800, chunk_width=100, chunk_height=100,
-                                   chunk_rows=8, chunk_cols=8))
-    assert ingestor.handle("iot/chunks/create", wire.chunk(row=7, column=7),
-                           lambda: None).reason is None
+    assert (
+        ingestor.handle("iot/chunks/create", wire.chunk(row=1, column=1), lambda: None).reason
+        == "wrong_chunk_size"
+    )
+    ingestor.apply_meta(
+        MapMetaSet(
+            width=800, height=800, chunk_width=100, chunk_height=100, chunk_rows=8, chunk_cols=8
+        )
+    )
+    assert (
+        ingestor.handle("iot/chunks/create", wire.chunk(row=7, column=7), lambda: None).reason
+        is None
+    )
     assert ingestor.limits.max_message_bytes == Settings().max_message_bytes
 
 
 def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
     """The rejected counter exists at 0 for each reason before any message is rejected."""
+    import mapservice.ingest.metrics  # noqa: F401
     from prometheus_client import REGISTRY
 
-    import mapservice.ingest.metrics  # noqa: F401
     from mapservice.core.wire2019 import Reason
 
     for reason in Reason:
-        assert REGISTRY.get_sample_value("mapservice_gateway_rejected_total", {"reason": reason.value}) is not None
+        assert (
+            REGISTRY.get_sample_value("mapservice_gateway_rejected_total", {"reason": reason.value})
+            is not None
+        )
 
 
 def test_the_mqtt_connected_gauge_follows_the_session() -> None:
     """mapservice_gateway_mqtt_connected is 1 after a successful connect and 0 after a disconnect."""
-    from paho.mqtt.reasoncodes import ReasonCode
+    from mapservice.ingest.gateway import MqttGateway
     from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.reasoncodes import ReasonCode
     from prometheus_client import REGISTRY
 
-    from mapservice.ingest.gateway import MqttGateway
     from mapservice.settings import Settings
 
     class Client:
@@ -221,8 +263,11 @@ def test_the_mqtt_connected_gauge_follows_the_session() -> None:
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway._on_connect(Client(), None, None, ReasonCode(PacketTypes.CONNACK, "Success"), None)
     assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 1
-    gateway._on_disconnect(Client(), None, None, ReasonCode(PacketTypes.DISCONNECT, "Normal disconnection"), None)
+    gateway._on_disconnect(
+        Client(), None, None, ReasonCode(PacketTypes.DISCONNECT, "Normal disconnection"), None
+    )
     assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 0
+
 
 # --- poison messages: none stops the gateway -----------------------------------------------
 
@@ -231,10 +276,14 @@ DEEP = b'{"x":' + b"[" * 1000 + b"]" * 1000 + b"}"
 
 def dead_letters(publisher, settings) -> list:
     publisher.poll()
-    return [decode_dead_letter(v) for _k, v in publisher.records.get(settings.topic_dead_letter, [])]
+    return [
+        decode_dead_letter(v) for _k, v in publisher.records.get(settings.topic_dead_letter, [])
+    ]
 
 
-def test_a_deeply_nested_message_is_a_dead_letter_and_acknowledged(ingestor, publisher, settings, acks) -> None:
+def test_a_deeply_nested_message_is_a_dead_letter_and_acknowledged(
+    ingestor, publisher, settings, acks
+) -> None:
     """A 2 KB JSON nested 1,000 deep becomes a too_deep dead letter; the message is acked."""
     ingestor.handle("iot/coordinates/r1", DEEP, acks.for_("deep"))
     (letter,) = dead_letters(publisher, settings)
@@ -242,7 +291,9 @@ def test_a_deeply_nested_message_is_a_dead_letter_and_acknowledged(ingestor, pub
     assert acks.calls == ["deep"] and ingestor.in_flight == 0
 
 
-def test_a_huge_message_leaves_a_dead_letter_that_fits_in_kafka(ingestor, publisher, settings, acks) -> None:
+def test_a_huge_message_leaves_a_dead_letter_that_fits_in_kafka(
+    ingestor, publisher, settings, acks
+) -> None:
     """A 1.2 MB message: an oversized dead letter holding its first 64 KB, its size and its sha256."""
     import hashlib
 
@@ -252,13 +303,16 @@ def test_a_huge_message_leaves_a_dead_letter_that_fits_in_kafka(ingestor, publis
     ((_key, value),) = publisher.records[settings.topic_dead_letter]
     assert len(value) < 100_000
     letter = decode_dead_letter(value)
-    assert letter.reason == "oversized" and letter.payload == payload[:64 * 1024]
-    assert str(len(payload)) in letter.detail and hashlib.sha256(payload).hexdigest() in letter.detail
+    assert letter.reason == "oversized" and letter.payload == payload[: 64 * 1024]
+    assert (
+        str(len(payload)) in letter.detail and hashlib.sha256(payload).hexdigest() in letter.detail
+    )
     assert acks.calls == ["huge"]
 
 
-def test_any_exception_while_routing_becomes_an_internal_error_dead_letter(ingestor, publisher, settings,
-                                                                         acks, monkeypatch) -> None:
+def test_any_exception_while_routing_becomes_an_internal_error_dead_letter(
+    ingestor, publisher, settings, acks, monkeypatch
+) -> None:
     """Whatever breaks inside decoding ends as an internal_error dead letter naming it, and an ack."""
     import mapservice.ingest.router as router
 
@@ -287,7 +341,9 @@ class TooLargeForKafka(MemoryPublisher):
         super().publish(topic, key, value, on_done)
 
 
-def test_a_record_kafka_refuses_becomes_a_record_too_large_dead_letter(settings, clock, wire, acks) -> None:
+def test_a_record_kafka_refuses_becomes_a_record_too_large_dead_letter(
+    settings, clock, wire, acks
+) -> None:
     """An accepted message whose record Kafka refuses as too large is dead-lettered and acked."""
     publisher = TooLargeForKafka(settings.topic_pose_events)
     ingestor = Ingestor(settings, publisher, clock, gateway_id="gw-test")
@@ -306,10 +362,10 @@ class Broken(MemoryPublisher):
 
 def test_the_mqtt_callback_survives_a_failing_producer(settings, wire) -> None:
     """If even the producer fails, on_message logs and counts it, leaves the message unacked and returns."""
+    from mapservice.ingest.gateway import MqttGateway
     from prometheus_client import REGISTRY
 
     from mapservice.adapters.clock import SystemClock
-    from mapservice.ingest.gateway import MqttGateway
 
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.ingestor = Ingestor(settings, Broken(), SystemClock(), gateway_id="gw-test")
@@ -342,9 +398,10 @@ class AckLog:
 
 def memory_gateway(settings):
     """An MqttGateway producing into memory, its MQTT client an AckLog."""
+    from mapservice.ingest.gateway import MqttGateway
+
     from mapservice.adapters.clock import SystemClock
     from mapservice.testing.memory_publisher import MemoryPublisher
-    from mapservice.ingest.gateway import MqttGateway
 
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.publisher = MemoryPublisher()
@@ -358,8 +415,11 @@ def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings,
     confirmations in one ack_many call."""
     gateway = memory_gateway(settings)
     for mid in (1, 2, 3):
-        msg = type("Msg", (), {"topic": "iot/coordinates/blabla", "payload": wire.pose(),
-                               "mid": mid, "qos": 1})
+        msg = type(
+            "Msg",
+            (),
+            {"topic": "iot/coordinates/blabla", "payload": wire.pose(), "mid": mid, "qos": 1},
+        )
         gateway._on_message(gateway.client, None, msg)
     assert gateway.client.batches == [] and gateway.ingestor.in_flight == 3  # not in Kafka yet
     gateway._poll()
@@ -388,7 +448,8 @@ def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
 
 
 def test_a_handled_and_delivered_message_leaves_nothing_for_the_cyclic_collector(
-        ingestor, publisher, wire) -> None:
+    ingestor, publisher, wire
+) -> None:
     """Routing, publishing, a failed delivery's retry and the ack free every object by
     reference counting: a cycle per message made gc ~12 % of the gateway's CPU.
 
@@ -421,10 +482,10 @@ def test_a_handled_and_delivered_message_leaves_nothing_for_the_cyclic_collector
 
 def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wire) -> None:
     """mapservice_gateway_in_flight is the ingestor's count of messages Kafka has not confirmed."""
+    from mapservice.ingest.gateway import MqttGateway
     from prometheus_client import REGISTRY
 
     from mapservice.adapters.clock import SystemClock
-    from mapservice.ingest.gateway import MqttGateway
 
     gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.publisher = MemoryPublisher()
@@ -456,8 +517,9 @@ def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings,
 def test_new_robot_ids_beyond_the_limit_are_dead_lettered(publisher, clock, wire, acks) -> None:
     """Open mode: three new robot ids a minute pass, a fourth new one is a dead letter
     `too_many_new_robots` whose detail names the setting, and robots already seen still pass."""
-    ingestor = Ingestor(Settings(ingest_new_robots_limit="3/minute"), publisher, clock, "gw",
-                        retry_delay_s=0)
+    ingestor = Ingestor(
+        Settings(ingest_new_robots_limit="3/minute"), publisher, clock, "gw", retry_delay_s=0
+    )
     for robot in ("a", "b", "c", "d", "a"):
         ingestor.handle(f"iot/coordinates/{robot}", wire.pose(robotId=robot), acks.for_(robot))
     publisher.poll()
@@ -472,8 +534,9 @@ def test_new_robot_ids_beyond_the_limit_are_dead_lettered(publisher, clock, wire
 
 
 def test_no_new_robot_limit_when_empty(publisher, clock, wire, acks) -> None:
-    ingestor = Ingestor(Settings(ingest_new_robots_limit=""), publisher, clock, "gw",
-                        retry_delay_s=0)
+    ingestor = Ingestor(
+        Settings(ingest_new_robots_limit=""), publisher, clock, "gw", retry_delay_s=0
+    )
     for n in range(50):
         ingestor.handle(f"iot/coordinates/r{n}", wire.pose(robotId=f"r{n}"), acks.for_("x"))
     publisher.poll()

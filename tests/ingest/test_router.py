@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
+from mapservice.ingest.router import Router
 
 from mapservice.core.events import ChunkUpdated, PoseReported, decode, decode_dead_letter
-from mapservice.ingest.router import Router
-from mapservice.settings import Settings
 from mapservice.core.wire2019 import Limits, Reason
+from mapservice.settings import Settings
 
 
 @pytest.fixture
@@ -28,7 +28,10 @@ def test_chunk_goes_to_chunk_topic_keyed_by_cell(router, settings, wire, now_ms)
     assert record.key == b"7:11"
     env = decode(record.value)
     assert env == record.envelope
-    assert isinstance(env.payload, ChunkUpdated) and (env.payload.row, env.payload.column) == (7, 11)
+    assert isinstance(env.payload, ChunkUpdated) and (env.payload.row, env.payload.column) == (
+        7,
+        11,
+    )
     assert env.receive_time_ms == now_ms
 
 
@@ -42,8 +45,16 @@ def test_pose_goes_to_pose_topic_keyed_by_robot(router, settings, wire, now_ms) 
     assert isinstance(env.payload, PoseReported) and env.robot_id == "blabla"
 
 
-@pytest.mark.parametrize("topic", ["iot/chunks/delete", "iot/chunks/create/a/b", "iot/coordinates",
-                                   "other/coordinates/blabla", ""])
+@pytest.mark.parametrize(
+    "topic",
+    [
+        "iot/chunks/delete",
+        "iot/chunks/create/a/b",
+        "iot/coordinates",
+        "other/coordinates/blabla",
+        "",
+    ],
+)
 def test_unknown_topic_is_dead_lettered(router, settings, wire, now_ms, topic) -> None:
     """A topic without a handler gives an unknown_topic dead letter with the original bytes."""
     payload = wire.pose()
@@ -81,15 +92,25 @@ def test_topic_robot_id_must_match_payload(router, wire, now_ms) -> None:
 def test_limits_passed_in_are_applied(router, wire, now_ms) -> None:
     """The limits given to route() decide what is in the map."""
     narrow = Limits(chunk_rows=2, chunk_cols=2)
-    assert router.route("iot/chunks/create", wire.chunk(row=1, column=1), now_ms, narrow).reason is None
-    assert router.route("iot/chunks/create", wire.chunk(row=2, column=1), now_ms,
-                        narrow).reason == "out_of_map"
+    assert (
+        router.route("iot/chunks/create", wire.chunk(row=1, column=1), now_ms, narrow).reason
+        is None
+    )
+    assert (
+        router.route("iot/chunks/create", wire.chunk(row=2, column=1), now_ms, narrow).reason
+        == "out_of_map"
+    )
 
 
 def test_configured_topics_are_used(wire, now_ms) -> None:
     """Custom MQTT and Kafka topic names from the settings are honoured."""
-    s = Settings(create_chunk_topic="site1/chunks", coordinate_topic="site1/robots/#",
-                 topic_chunk_events="c", topic_pose_events="p", topic_dead_letter="d")
+    s = Settings(
+        create_chunk_topic="site1/chunks",
+        coordinate_topic="site1/robots/#",
+        topic_chunk_events="c",
+        topic_pose_events="p",
+        topic_dead_letter="d",
+    )
     r = Router(s, "gw")
     assert r.route("site1/chunks", wire.chunk(), now_ms, Limits()).topic == "c"
     assert r.route("site1/robots/blabla", wire.pose(), now_ms, Limits()).topic == "p"
@@ -99,9 +120,17 @@ def test_configured_topics_are_used(wire, now_ms) -> None:
 def test_robot_chunk_topic_names_the_robot(router, settings, wire, now_ms) -> None:
     """A chunk on iot/chunks/create/<robotId> is the same ChunkUpdated the 2019 topic gives,
     attributed to that robot; a payload naming another robot is a robot_id_mismatch dead letter."""
-    legacy = router.route("iot/chunks/create", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits())
-    own = router.route("iot/chunks/create/r1", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits())
-    assert own.reason is None and (own.topic, own.key, own.value) == (legacy.topic, legacy.key, legacy.value)
+    legacy = router.route(
+        "iot/chunks/create", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits()
+    )
+    own = router.route(
+        "iot/chunks/create/r1", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits()
+    )
+    assert own.reason is None and (own.topic, own.key, own.value) == (
+        legacy.topic,
+        legacy.key,
+        legacy.value,
+    )
     assert own.envelope.robot_id == "r1"
     other = router.route("iot/chunks/create/r1", wire.chunk(robotId="r2"), now_ms, Limits())
     assert other.reason == "robot_id_mismatch" and other.topic == settings.topic_dead_letter
@@ -117,14 +146,22 @@ def test_robot_chunk_topic_can_be_configured_or_turned_off(wire, now_ms) -> None
     assert moved.route("site1/chunks/r1", wire.chunk(robotId="r1"), now_ms, Limits()).reason is None
     off = Router(Settings(robot_chunk_topic="", create_chunk_topic=""), "gw")
     for topic in ("iot/chunks/create/r1", "iot/chunks/create"):
-        assert off.route(topic, wire.chunk(robotId="r1"), now_ms, Limits()).reason == "unknown_topic"
+        assert (
+            off.route(topic, wire.chunk(robotId="r1"), now_ms, Limits()).reason == "unknown_topic"
+        )
     assert Settings(robot_chunk_topic="", create_chunk_topic="").mqtt_subscriptions == [
-        "iot/coordinates/#", "uagv/+/+/+/state", "uagv/+/+/+/visualization",
-        "uagv/+/+/+/connection", "uagv/+/+/+/factsheet", "iot/robots/+/command-events"]
+        "iot/coordinates/#",
+        "uagv/+/+/+/state",
+        "uagv/+/+/+/visualization",
+        "uagv/+/+/+/connection",
+        "uagv/+/+/+/factsheet",
+        "iot/robots/+/command-events",
+    ]
 
 
-@pytest.mark.parametrize("filter_", ["iot/coordinates/#", "iot/coordinates/+", "iot/coordinates/",
-                                     "iot/coordinates"])
+@pytest.mark.parametrize(
+    "filter_", ["iot/coordinates/#", "iot/coordinates/+", "iot/coordinates/", "iot/coordinates"]
+)
 def test_coordinate_topic_filter_forms(filter_, wire, now_ms) -> None:
     """Whether configured as `.../#`, `.../+` or a bare prefix, iot/coordinates/<id> is routed."""
     r = Router(Settings(coordinate_topic=filter_), "gw")

@@ -8,15 +8,15 @@ from __future__ import annotations
 import time
 from types import SimpleNamespace
 
+import mapservice.ingest.topic_follower as topic_follower
 import pytest
 from confluent_kafka import OFFSET_BEGINNING, OFFSET_END, TopicPartition
-from structlog.testing import capture_logs
-
-import mapservice.ingest.topic_follower as topic_follower
-from mapservice.core.commands import CommandIssued
-from mapservice.core.events import encode, make_envelope
 from mapservice.ingest.command_relay import COMMAND_MEMORY_S, CommandRelay
 from mapservice.ingest.meta_watcher import MetaWatcher
+from structlog.testing import capture_logs
+
+from mapservice.core.commands import CommandIssued
+from mapservice.core.events import encode, make_envelope
 from mapservice.settings import Settings
 from tests.conftest import meta_event
 from tests.ingest.gateway_kit import NOW
@@ -50,8 +50,10 @@ class StandInConsumer:
 
     def offsets_for_times(self, partitions: list[TopicPartition], timeout: float):
         self.asked_since = {tp.offset for tp in partitions}
-        return [TopicPartition(tp.topic, tp.partition, 7 if tp.partition == 0 else -1)
-                for tp in partitions]
+        return [
+            TopicPartition(tp.topic, tp.partition, 7 if tp.partition == 0 else -1)
+            for tp in partitions
+        ]
 
     def assign(self, partitions: list[TopicPartition]) -> None:
         self.assigned = [(tp.topic, tp.partition, tp.offset) for tp in partitions]
@@ -91,7 +93,8 @@ def test_the_meta_watcher_reads_from_the_beginning_and_applies_the_newest_meta(c
     with capture_logs() as logs:
         run_until(watcher, lambda: consumer.made and not consumer.made[0].queue)
     assert [e["event"] for e in logs if e["log_level"] == "warning"] == [
-        "meta record undecodable"] * 2  # the foreign record and the tombstone
+        "meta record undecodable"
+    ] * 2  # the foreign record and the tombstone
     (made,) = consumer.made
     topic = settings.topic_meta_events
     assert made.assigned == [(topic, 0, OFFSET_BEGINNING), (topic, 1, OFFSET_BEGINNING)]
@@ -109,7 +112,8 @@ def test_the_command_relay_reads_the_recent_commands_and_skips_tombstones(consum
         run_until(relay, lambda: bool(sent))
     # The tombstone is passed over; the garbage is refused by the relay, not a failure.
     assert [e["event"] for e in logs if e["log_level"] in ("warning", "error")] == [
-        "command record undecodable; skipped"]
+        "command record undecodable; skipped"
+    ]
     (made,) = consumer.made
     topic = settings.topic_command_events
     assert made.asked_since == {NOW - COMMAND_MEMORY_S * 1000}

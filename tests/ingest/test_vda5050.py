@@ -7,7 +7,11 @@ import json
 import math
 
 import pytest
-from hypothesis import given, settings as hsettings, strategies as st
+from hypothesis import given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
+from mapservice.ingest.router import Router
+from mapservice.ingest.vda5050 import SUBTOPICS, validator
 
 from mapservice.core.events import (
     PoseReported,
@@ -18,18 +22,21 @@ from mapservice.core.events import (
     decode,
     decode_dead_letter,
 )
-from mapservice.core.wire2019 import Limits, Reason
-from mapservice.ingest.router import Router
 from mapservice.core.vda_ids import robot_id_for, vehicle_of
-from mapservice.ingest.vda5050 import SUBTOPICS, validator
+from mapservice.core.wire2019 import Limits, Reason
 from mapservice.settings import Settings
 from tests.fixtures import vda5050 as vda
 
 VERSIONS = ["2.0.0", "2.1.0", "3.0.0"]
 
 
-def topic(version: str, subtopic: str, manufacturer: str = "Acme", serial: str = "001",
-          interface: str = "uagv") -> str:
+def topic(
+    version: str,
+    subtopic: str,
+    manufacturer: str = "Acme",
+    serial: str = "001",
+    interface: str = "uagv",
+) -> str:
     return f"{interface}/v{version[0]}/{manufacturer}/{serial}/{subtopic}"
 
 
@@ -57,20 +64,39 @@ def test_every_subtopic_of_every_version_is_accepted(router, now_ms, version, su
     assert record.reason is None, decode_dead_letter(record.value).detail
     env = decode(record.value)
     assert env.robot_id == "Acme:001" and record.key == b"Acme:001"
-    expected = {"state": VdaStateReported, "visualization": PoseReported,
-                "connection": VdaConnectionReported, "factsheet": VdaFactsheetReported}[subtopic]
+    expected = {
+        "state": VdaStateReported,
+        "visualization": PoseReported,
+        "connection": VdaConnectionReported,
+        "factsheet": VdaFactsheetReported,
+    }[subtopic]
     assert isinstance(env.payload, expected)
     settings = Settings()
-    assert record.topic == (settings.topic_pose_events if subtopic in ("state", "visualization")
-                            else settings.topic_meta_events)
+    assert record.topic == (
+        settings.topic_pose_events
+        if subtopic in ("state", "visualization")
+        else settings.topic_meta_events
+    )
 
 
 @pytest.mark.parametrize("version", VERSIONS)
 def test_state_maps_pose_battery_loads_path_errors_and_status(router, now_ms, version) -> None:
-    msg = vda.state(version, "Acme", "001", now_ms - 500, x=4.5, y=-2.0, theta=math.pi / 2,
-                    battery=42.5, charging=True, loads=[{"loadId": "L1"}],
-                    nodes=((5.0, 6.0), (7.0, 8.0)), paused=True, driving=False,
-                    errors=(("WARNING", "lowBattery", "below 50 %"), ("FATAL", "bumper", "")))
+    msg = vda.state(
+        version,
+        "Acme",
+        "001",
+        now_ms - 500,
+        x=4.5,
+        y=-2.0,
+        theta=math.pi / 2,
+        battery=42.5,
+        charging=True,
+        loads=[{"loadId": "L1"}],
+        nodes=((5.0, 6.0), (7.0, 8.0)),
+        paused=True,
+        driving=False,
+        errors=(("WARNING", "lowBattery", "below 50 %"), ("FATAL", "bumper", "")),
+    )
     env = decode(route(router, version, "state", msg, now_ms).value)
     p = env.payload
     assert env.event_time_ms == now_ms - 500
@@ -78,56 +104,150 @@ def test_state_maps_pose_battery_loads_path_errors_and_status(router, now_ms, ve
     assert p.pose.orientation == pytest.approx((0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)))
     assert (p.pose.battery_level, p.pose.charging, p.pose.loaded) == (42.5, True, True)
     assert p.pose.path == ((5.0, 6.0), (7.0, 8.0))
-    assert (p.driving, p.paused, p.operating_mode, p.order_id) == (False, True, "AUTOMATIC", "order-1")
-    assert p.errors == (VdaError("WARNING", "lowBattery", "below 50 %"), VdaError("FATAL", "bumper", ""))
-    assert (p.map_id, p.on_known_map, p.manufacturer, p.serial_number) == ("hall", True, "Acme", "001")
+    assert (p.driving, p.paused, p.operating_mode, p.order_id) == (
+        False,
+        True,
+        "AUTOMATIC",
+        "order-1",
+    )
+    assert p.errors == (
+        VdaError("WARNING", "lowBattery", "below 50 %"),
+        VdaError("FATAL", "bumper", ""),
+    )
+    assert (p.map_id, p.on_known_map, p.manufacturer, p.serial_number) == (
+        "hall",
+        True,
+        "Acme",
+        "001",
+    )
     empty = vda.state(version, "Acme", "001", now_ms, loads=[])
     assert decode(route(router, version, "state", empty, now_ms).value).payload.pose.loaded is False
 
 
 @pytest.mark.parametrize("version", VERSIONS)
 def test_visualization_carries_the_last_state_forward(router, now_ms, version) -> None:
-    first = decode(route(router, version, "visualization",
-                         vda.visualization(version, "Acme", "001", now_ms - 3000), now_ms).value)
+    first = decode(
+        route(
+            router,
+            version,
+            "visualization",
+            vda.visualization(version, "Acme", "001", now_ms - 3000),
+            now_ms,
+        ).value
+    )
     assert first.payload.battery_level is None  # no state yet: nothing to carry
-    route(router, version, "state", vda.state(version, "Acme", "001", now_ms - 2000, battery=61.0,
-                                              charging=True, loads=[{"loadId": "L"}]), now_ms)
-    env = decode(route(router, version, "visualization", vda.visualization(
-        version, "Acme", "001", now_ms - 1000, x=9.0, y=8.0, theta=0.0), now_ms).value)
+    route(
+        router,
+        version,
+        "state",
+        vda.state(
+            version,
+            "Acme",
+            "001",
+            now_ms - 2000,
+            battery=61.0,
+            charging=True,
+            loads=[{"loadId": "L"}],
+        ),
+        now_ms,
+    )
+    env = decode(
+        route(
+            router,
+            version,
+            "visualization",
+            vda.visualization(version, "Acme", "001", now_ms - 1000, x=9.0, y=8.0, theta=0.0),
+            now_ms,
+        ).value
+    )
     assert isinstance(env.payload, PoseReported)
     assert env.payload.position == (9.0, 8.0, 0.0)
-    assert (env.payload.battery_level, env.payload.charging, env.payload.loaded) == (61.0, True, True)
+    assert (env.payload.battery_level, env.payload.charging, env.payload.loaded) == (
+        61.0,
+        True,
+        True,
+    )
     assert env.payload.path == ((3.0, 4.0),)
-    other = decode(route(router, version, "visualization", vda.visualization(
-        version, "Acme", "002", now_ms), now_ms, serial="002").value)
+    other = decode(
+        route(
+            router,
+            version,
+            "visualization",
+            vda.visualization(version, "Acme", "002", now_ms),
+            now_ms,
+            serial="002",
+        ).value
+    )
     assert other.payload.battery_level is None  # per vehicle
 
 
 def test_map_transforms_move_known_maps_and_flag_unknown_ones(now_ms) -> None:
     router = Router(Settings(vda5050_map_transforms={"hall": (10.0, 0.0, math.pi / 2)}), "gw")
-    env = decode(route(router, "2.0.0", "state", vda.state(
-        "2.0.0", "Acme", "001", now_ms, x=1.0, y=0.0, theta=0.0, nodes=((2.0, 0.0),)), now_ms).value)
+    env = decode(
+        route(
+            router,
+            "2.0.0",
+            "state",
+            vda.state("2.0.0", "Acme", "001", now_ms, x=1.0, y=0.0, theta=0.0, nodes=((2.0, 0.0),)),
+            now_ms,
+        ).value
+    )
     assert env.payload.pose.position == pytest.approx((10.0, 1.0, 0.0))
-    assert env.payload.pose.orientation == pytest.approx((0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4)))
-    assert len(env.payload.pose.path) == 1 and env.payload.pose.path[0] == pytest.approx((10.0, 2.0))
+    assert env.payload.pose.orientation == pytest.approx(
+        (0, 0, math.sin(math.pi / 4), math.cos(math.pi / 4))
+    )
+    assert len(env.payload.pose.path) == 1 and env.payload.pose.path[0] == pytest.approx(
+        (10.0, 2.0)
+    )
     assert (env.payload.x, env.payload.y) == (1.0, 0.0)  # as reported, in the vehicle's frame
-    off = decode(route(router, "2.0.0", "state", vda.state(
-        "2.0.0", "Acme", "001", now_ms, x=1.0, y=0.0, map_id="cellar"), now_ms).value)
+    off = decode(
+        route(
+            router,
+            "2.0.0",
+            "state",
+            vda.state("2.0.0", "Acme", "001", now_ms, x=1.0, y=0.0, map_id="cellar"),
+            now_ms,
+        ).value
+    )
     assert off.payload.pose is None and off.payload.on_known_map is False
     assert (off.payload.map_id, off.payload.x) == ("cellar", 1.0)  # stored, flagged, not drawn
-    viz = decode(route(router, "2.0.0", "visualization", vda.visualization(
-        "2.0.0", "Acme", "001", now_ms, map_id="cellar"), now_ms).value)
+    viz = decode(
+        route(
+            router,
+            "2.0.0",
+            "visualization",
+            vda.visualization("2.0.0", "Acme", "001", now_ms, map_id="cellar"),
+            now_ms,
+        ).value
+    )
     assert isinstance(viz.payload, VdaStateReported) and viz.payload.on_known_map is False
 
 
 def test_connection_broken_is_offline_when_received_not_when_composed(router, now_ms) -> None:
     connect_ms = now_ms - 60_000  # the last will carries the connect time
-    env = decode(route(router, "2.0.0", "connection", vda.connection(
-        "2.0.0", "Acme", "001", connect_ms, "CONNECTIONBROKEN"), now_ms).value)
+    env = decode(
+        route(
+            router,
+            "2.0.0",
+            "connection",
+            vda.connection("2.0.0", "Acme", "001", connect_ms, "CONNECTIONBROKEN"),
+            now_ms,
+        ).value
+    )
     assert (env.event_time_ms, env.payload.sent_time_ms, env.payload.state) == (
-        now_ms, connect_ms, "CONNECTIONBROKEN")
-    online = decode(route(router, "2.0.0", "connection", vda.connection(
-        "2.0.0", "Acme", "001", connect_ms, "ONLINE"), now_ms).value)
+        now_ms,
+        connect_ms,
+        "CONNECTIONBROKEN",
+    )
+    online = decode(
+        route(
+            router,
+            "2.0.0",
+            "connection",
+            vda.connection("2.0.0", "Acme", "001", connect_ms, "ONLINE"),
+            now_ms,
+        ).value
+    )
     assert online.event_time_ms == connect_ms
 
 
@@ -151,18 +271,21 @@ def test_a_payload_naming_another_vehicle_is_refused(router, now_ms) -> None:
     assert dead_letter(route(router, "2.0.0", "state", msg, now_ms))[0] == "robot_id_mismatch"
 
 
-@pytest.mark.parametrize("raw_topic, payload, reason", [
-    ("uagv/v2/Acme/001/order", b"{}", "unknown_topic"),
-    ("uagv/v2/Acme/001/state/x", b"{}", "unknown_topic"),
-    ("uagv/v2/Acme//state", b"{}", "unknown_topic"),
-    ("uagv/v2/Acme/001/state", b"{not json", "not_json"),
-    ("uagv/v2/Acme/001/state", b"[1, 2]", "wrong_type"),
-    ("uagv/v2/Acme/001/state", b'{"version": "1.1.0"}', "vda_unsupported_version"),
-    ("uagv/v3/Acme/001/state", b'{"version": "2.0.0"}', "vda_unsupported_version"),
-    ("uagv/v2/Acme/001/state", b'{"version": 2}', "vda_unsupported_version"),
-    # 2.0.0's visualization schema requires nothing: the header is still required.
-    ("uagv/v2/Acme/001/visualization", b'{"version": "2.0.0"}', "missing_field"),
-])
+@pytest.mark.parametrize(
+    "raw_topic, payload, reason",
+    [
+        ("uagv/v2/Acme/001/order", b"{}", "unknown_topic"),
+        ("uagv/v2/Acme/001/state/x", b"{}", "unknown_topic"),
+        ("uagv/v2/Acme//state", b"{}", "unknown_topic"),
+        ("uagv/v2/Acme/001/state", b"{not json", "not_json"),
+        ("uagv/v2/Acme/001/state", b"[1, 2]", "wrong_type"),
+        ("uagv/v2/Acme/001/state", b'{"version": "1.1.0"}', "vda_unsupported_version"),
+        ("uagv/v3/Acme/001/state", b'{"version": "2.0.0"}', "vda_unsupported_version"),
+        ("uagv/v2/Acme/001/state", b'{"version": 2}', "vda_unsupported_version"),
+        # 2.0.0's visualization schema requires nothing: the header is still required.
+        ("uagv/v2/Acme/001/visualization", b'{"version": "2.0.0"}', "missing_field"),
+    ],
+)
 def test_malformed_messages_are_dead_lettered(router, now_ms, raw_topic, payload, reason) -> None:
     assert dead_letter(router.route(raw_topic, payload, now_ms, Limits()))[0] == reason
 
@@ -172,8 +295,9 @@ def test_bad_timestamps_and_overlong_ids_are_dead_lettered(router, now_ms) -> No
     assert dead_letter(route(router, "2.0.0", "state", msg, now_ms))[0] == "timestamp_in_future"
     long = "M" * 40
     msg = vda.state("2.0.0", long, long, now_ms)
-    reason, detail = dead_letter(route(router, "2.0.0", "state", msg, now_ms,
-                                       manufacturer=long, serial=long))
+    reason, detail = dead_letter(
+        route(router, "2.0.0", "state", msg, now_ms, manufacturer=long, serial=long)
+    )
     assert reason == "bad_robot_id" and "64" in detail
     viz = vda.visualization("2.0.0", "Acme", "001", now_ms)
     del viz["agvPosition"]
@@ -188,7 +312,8 @@ def invalid_variants(version: str, subtopic: str, msg: dict):
             yield f"without {key}", {k: v for k, v in msg.items() if k != key}
     for key, value in msg.items():
         if key in ("version", "manufacturer", "serialNumber") or key not in schema.get(
-                "properties", {}):
+            "properties", {}
+        ):
             continue  # checked before the schema (version) or against the topic; untyped
         wrong = {"bad": [value]} if not isinstance(value, dict) else "not an object"
         yield f"{key} of a wrong type", msg | {key: wrong}
@@ -197,7 +322,8 @@ def invalid_variants(version: str, subtopic: str, msg: dict):
 @pytest.mark.parametrize("version", VERSIONS)
 @pytest.mark.parametrize("subtopic", SUBTOPICS)
 def test_generated_invalid_messages_are_dead_lettered_with_the_schema_reason(
-        router, now_ms, version, subtopic) -> None:
+    router, now_ms, version, subtopic
+) -> None:
     msg = message(version, subtopic, now_ms)
     variants = list(invalid_variants(version, subtopic, msg))
     assert len(variants) >= 3
@@ -211,6 +337,7 @@ def test_generated_invalid_messages_are_dead_lettered_with_the_schema_reason(
 @hsettings(max_examples=300)
 def test_robot_ids_are_reversible_and_within_the_rules(manufacturer, serial) -> None:
     from mapservice.core.wire2019 import _ROBOT_ID
+
     robot_id = robot_id_for(manufacturer, serial)
     assert vehicle_of(robot_id) == (manufacturer, serial)
     if len(robot_id) <= 64:
@@ -221,19 +348,28 @@ def test_robot_ids_are_reversible_and_within_the_rules(manufacturer, serial) -> 
 
 def test_the_interface_name_is_a_setting(now_ms) -> None:
     settings = Settings(vda5050_interface="agv")
-    assert {"agv/+/+/+/state", "agv/+/+/+/visualization", "agv/+/+/+/connection",
-            "agv/+/+/+/factsheet"} <= set(settings.mqtt_subscriptions)
+    assert {
+        "agv/+/+/+/state",
+        "agv/+/+/+/visualization",
+        "agv/+/+/+/connection",
+        "agv/+/+/+/factsheet",
+    } <= set(settings.mqtt_subscriptions)
     # master control's orders and instant actions share the subtree: not subscribed
-    assert not any(t.startswith("agv/") and not t.endswith(
-        ("/state", "/visualization", "/connection", "/factsheet"))
-        for t in settings.mqtt_subscriptions)
+    assert not any(
+        t.startswith("agv/")
+        and not t.endswith(("/state", "/visualization", "/connection", "/factsheet"))
+        for t in settings.mqtt_subscriptions
+    )
     router = Router(settings, "gw")
     msg = vda.state("2.0.0", "Acme", "001", now_ms)
     assert route(router, "2.0.0", "state", msg, now_ms, interface="agv").reason is None
     assert dead_letter(route(router, "2.0.0", "state", msg, now_ms))[0] == "unknown_topic"
     off = Router(Settings(vda5050_interface=""), "gw")
     assert not any(t.startswith("uagv") for t in Settings(vda5050_interface="").mqtt_subscriptions)
-    assert dead_letter(route(off, "2.0.0", "state", msg, now_ms, interface="agv"))[0] == "unknown_topic"
+    assert (
+        dead_letter(route(off, "2.0.0", "state", msg, now_ms, interface="agv"))[0]
+        == "unknown_topic"
+    )
 
 
 @pytest.mark.parametrize("version", ["2.0.0", "2.1.0"])

@@ -21,15 +21,16 @@ import os
 import re
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
-
-from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_publisher import MemoryPublisher
-from mapservice.core.events import decode, decode_dead_letter
-from mapservice.core.wire2019 import Reason, format_timestamp
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from mapservice.ingest.gateway import Ingestor
 from mapservice.ingest.vda5050 import SCHEMA_DIR, SUBTOPICS, schema_version_for, validator
+
+from mapservice.adapters.clock import ManualClock
+from mapservice.core.events import decode, decode_dead_letter
+from mapservice.core.wire2019 import Reason, format_timestamp
 from mapservice.settings import Settings
+from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.fixtures import vda5050 as vda
 
 from .test_fuzz import json_values, raw_nasties
@@ -37,9 +38,16 @@ from .test_fuzz import json_values, raw_nasties
 NOW = 1_795_255_200_000
 VERSIONS = ("2.0.0", "2.1.0", "3.0.0")
 EXAMPLES = int(os.environ.get("MAPSERVICE_FUZZ_VDA_EXAMPLES", "200"))
-BUDGET = settings(max_examples=EXAMPLES, deadline=None, derandomize=True,
-                  suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                         HealthCheck.filter_too_much])
+BUDGET = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    derandomize=True,
+    suppress_health_check=[
+        HealthCheck.too_slow,
+        HealthCheck.data_too_large,
+        HealthCheck.filter_too_much,
+    ],
+)
 REASONS = {r.value for r in Reason}
 
 
@@ -61,7 +69,11 @@ pytestmark = pytest.mark.usefixtures("quiet_rejection_logs")
 def handler():
     settings_ = Settings()
     publisher = MemoryPublisher()
-    return Ingestor(settings_, publisher, ManualClock(NOW), gateway_id="vda-fuzz"), publisher, settings_
+    return (
+        Ingestor(settings_, publisher, ManualClock(NOW), gateway_id="vda-fuzz"),
+        publisher,
+        settings_,
+    )
 
 
 def handle(handler, mqtt_topic: str, payload: bytes) -> tuple[str | None, str]:
@@ -82,6 +94,7 @@ def handle(handler, mqtt_topic: str, payload: bytes) -> tuple[str | None, str]:
 
 
 # ---- the official examples ---------------------------------------------------------------
+
 
 def schema_examples() -> list[tuple[str, str, str, object]]:
     """(version, subtopic, the field's schema path, example) for every example in the
@@ -114,8 +127,11 @@ def with_example(version: str, subtopic: str, field: str, value) -> tuple[dict, 
         return {**msg, "timestamp": value}, Reason.TIMESTAMP_TOO_OLD.value
     if field == "version":
         supported = schema_version_for(value, f"v{version[0]}")
-        return ({**message(supported, subtopic), "version": value} if supported else
-                {**msg, "version": value}), None if supported else Reason.VDA_UNSUPPORTED_VERSION.value
+        return (
+            {**message(supported, subtopic), "version": value}
+            if supported
+            else {**msg, "version": value}
+        ), None if supported else Reason.VDA_UNSUPPORTED_VERSION.value
     if field == "actionId":
         action_state = {"actionId": value, "actionType": "pick", "actionStatus": "WAITING"}
         return {**msg, "actionStates": [action_state]}, None
@@ -125,8 +141,10 @@ def with_example(version: str, subtopic: str, field: str, value) -> tuple[dict, 
         config = "mobileRobotConfiguration" if version.startswith("3") else "vehicleConfig"
         entry = {"key": "softwareVersion", "value": "v1.0"} | {field: value}
         return {**msg, config: {**msg.get(config, {}), "versions": [entry]}}, None
-    raise AssertionError(f"no place for the example of {field!r} in a {version} {subtopic}: "
-                         "a newer schema brought a new example; give it its place here")
+    raise AssertionError(
+        f"no place for the example of {field!r} in a {version} {subtopic}: "
+        "a newer schema brought a new example; give it its place here"
+    )
 
 
 EXAMPLES_FOUND = schema_examples()
@@ -137,10 +155,14 @@ def test_the_vendored_schemas_carry_examples() -> None:
     assert {v for v, *_ in EXAMPLES_FOUND} == set(VERSIONS)
 
 
-@pytest.mark.parametrize(("version", "subtopic", "path", "value"), EXAMPLES_FOUND,
-                         ids=[f"{v}-{s}-{p.rsplit('/', 1)[-1]}-{x}" for v, s, p, x in EXAMPLES_FOUND])
+@pytest.mark.parametrize(
+    ("version", "subtopic", "path", "value"),
+    EXAMPLES_FOUND,
+    ids=[f"{v}-{s}-{p.rsplit('/', 1)[-1]}-{x}" for v, s, p, x in EXAMPLES_FOUND],
+)
 def test_every_official_example_is_accepted_or_dead_lettered_for_its_value(
-        handler, version, subtopic, path, value) -> None:
+    handler, version, subtopic, path, value
+) -> None:
     field = re.sub(r"/examples$", "", path).rsplit("/", 1)[-1] if path else ""
     # The example is valid for its field (the schema's own word).
     sub = validator(version, subtopic).schema
@@ -153,11 +175,16 @@ def test_every_official_example_is_accepted_or_dead_lettered_for_its_value(
     assert got == reason, detail
     if field == "timestamp":  # its format, at an instant within the retention: accepted
         recent = value.replace("1991-03-11", format_timestamp(NOW - 86_400_000)[:10])
-        assert handle(handler, topic(version, subtopic),
-                      json.dumps({**msg, "timestamp": recent}).encode())[0] is None
+        assert (
+            handle(
+                handler, topic(version, subtopic), json.dumps({**msg, "timestamp": recent}).encode()
+            )[0]
+            is None
+        )
 
 
 # ---- generated messages ------------------------------------------------------------------
+
 
 def mutate(doc, draw):
     """Replace, drop or add a value anywhere in the document, objects and arrays alike,
@@ -167,15 +194,23 @@ def mutate(doc, draw):
         parent, key, node = None, None, doc
         while isinstance(node, (dict, list)) and node and draw(st.booleans()):
             parent = node
-            key = (draw(st.sampled_from(sorted(node))) if isinstance(node, dict)
-                   else draw(st.integers(0, len(node) - 1)))
+            key = (
+                draw(st.sampled_from(sorted(node)))
+                if isinstance(node, dict)
+                else draw(st.integers(0, len(node) - 1))
+            )
             node = node[key]
         action = draw(st.sampled_from(["replace", "drop", "add"]))
         if parent is None or action == "add":
-            target = node if isinstance(node, (dict, list)) else parent if parent is not None else doc
+            target = (
+                node if isinstance(node, (dict, list)) else parent if parent is not None else doc
+            )
             if isinstance(target, dict):
-                target[draw(st.sampled_from(["", "x", "version", "timestamp", "mapId"]))
-                       if draw(st.booleans()) else draw(st.text(max_size=8))] = draw(json_values)
+                target[
+                    draw(st.sampled_from(["", "x", "version", "timestamp", "mapId"]))
+                    if draw(st.booleans())
+                    else draw(st.text(max_size=8))
+                ] = draw(json_values)
             else:
                 target.append(draw(json_values))
         elif action == "drop":
@@ -200,7 +235,8 @@ def refused_by_the_schema(version: str, subtopic: str, msg) -> bool:
         return False
     schema_version = schema_version_for(msg.get("version"), f"v{version[0]}")
     return schema_version is not None and bool(
-        next(validator(schema_version, subtopic).iter_errors(msg), None))
+        next(validator(schema_version, subtopic).iter_errors(msg), None)
+    )
 
 
 def fuzz(handler, version: str, subtopic: str, payload: bytes, msg) -> None:
@@ -220,6 +256,7 @@ def _fuzz_test(version: str, subtopic: str):
     @given(case=vda_payloads(version, subtopic))
     def test(handler, case) -> None:
         fuzz(handler, version, subtopic, *case)
+
     test.__doc__ = f"Generated VDA 5050 {version} {subtopic} messages: accepted or dead-lettered."
     return test
 
@@ -232,6 +269,7 @@ for _v in VERSIONS:
 def test_after_the_fuzzing_every_subtopic_is_still_accepted(handler) -> None:
     for version in VERSIONS:
         for subtopic in SUBTOPICS:
-            reason, detail = handle(handler, topic(version, subtopic),
-                                    json.dumps(message(version, subtopic)).encode())
+            reason, detail = handle(
+                handler, topic(version, subtopic), json.dumps(message(version, subtopic)).encode()
+            )
             assert reason is None, (version, subtopic, detail)

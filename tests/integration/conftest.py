@@ -27,8 +27,13 @@ def start_stack(tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = 
 def run_stack(stack: Stack, meta) -> Stack:
     """Brokers, the map meta, processors + API and gateway, ready to validate; all stopped
     again if any part fails to start."""
-    stack.start(stack.start_brokers, lambda: stack.publish_meta(meta), stack.start_server,
-                stack.start_gateway, lambda: wait_for_meta(stack))
+    stack.start(
+        stack.start_brokers,
+        lambda: stack.publish_meta(meta),
+        stack.start_server,
+        stack.start_gateway,
+        lambda: wait_for_meta(stack),
+    )
     return stack
 
 
@@ -59,13 +64,21 @@ def amqtt_stack(tmp_path_factory):
 
 def stored_keys(stack: Stack, kind: str, robot_prefix: str, from_ms: int, to_ms: int) -> list:
     path = "/api/v1/poses" if kind == "pose" else "/api/v1/chunk-events"
-    rows = httpx.get(f"{stack.api_url}{path}", params={"from": from_ms, "to": to_ms,
-                                                       "limit": 100000}, timeout=30).json()
+    rows = httpx.get(
+        f"{stack.api_url}{path}", params={"from": from_ms, "to": to_ms, "limit": 100000}, timeout=30
+    ).json()
     return [(r["robotId"], r["ts_ms"]) for r in rows if r["robotId"].startswith(robot_prefix)]
 
 
-def wait_for_count(stack: Stack, kind: str, robot_prefix: str, from_ms: int, to_ms: int,
-                   expected: int, timeout_s: float = 60) -> list:
+def wait_for_count(
+    stack: Stack,
+    kind: str,
+    robot_prefix: str,
+    from_ms: int,
+    to_ms: int,
+    expected: int,
+    timeout_s: float = 60,
+) -> list:
     deadline = time.monotonic() + timeout_s
     keys: list = []
     while time.monotonic() < deadline:
@@ -79,12 +92,14 @@ def wait_for_count(stack: Stack, kind: str, robot_prefix: str, from_ms: int, to_
 
 def read_topic(stack: Stack, topic: str, min_records: int, timeout_s: float = 30) -> list[bytes]:
     settings = stack.settings()
-    consumer = Consumer({**settings.kafka_config(), "group.id": "test-reader",
-                         "enable.auto.commit": False})
+    consumer = Consumer(
+        {**settings.kafka_config(), "group.id": "test-reader", "enable.auto.commit": False}
+    )
     try:
         md = consumer.list_topics(topic, timeout=10)
-        consumer.assign([TopicPartition(topic, p, OFFSET_BEGINNING)
-                         for p in md.topics[topic].partitions])
+        consumer.assign(
+            [TopicPartition(topic, p, OFFSET_BEGINNING) for p in md.topics[topic].partitions]
+        )
         values: list[bytes] = []
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and len(values) < min_records:

@@ -25,10 +25,13 @@ import httpx
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.core.ports import ChunkRow
 from mapservice.core.timetravel import fold_map
-from mapservice.core.wire2019 import (content_hash, encode_chunk_create, encode_coordinates,
-                                      format_timestamp)
+from mapservice.core.wire2019 import (
+    content_hash,
+    encode_chunk_create,
+    encode_coordinates,
+    format_timestamp,
+)
 from tests.fixtures.paths import ROOT
-
 
 ROBOTS = 10
 POSE_PERIOD_S = 0.2  # per robot: 50 poses/s in all
@@ -38,8 +41,10 @@ DOWN_S = 2.0  # how long a killed component stays down
 CLICKHOUSE_DOWN_S = 30.0
 RECOVERY_TIMEOUT_S = 120.0
 SNAPSHOT_EVERY_S = 10
-SNAPSHOT_ENV = {"MAPSERVICE_SNAPSHOT_EVERY_S": str(SNAPSHOT_EVERY_S),
-                "MAPSERVICE_SNAPSHOT_GRACE_S": "0"}  # snapshots every 10 s, built at once
+SNAPSHOT_ENV = {
+    "MAPSERVICE_SNAPSHOT_EVERY_S": str(SNAPSHOT_EVERY_S),
+    "MAPSERVICE_SNAPSHOT_GRACE_S": "0",
+}  # snapshots every 10 s, built at once
 ARTIFACT = ROOT / "test-artifacts" / "faults.json"
 REPORT: dict = {}  # both tests' sections, rewritten to ARTIFACT after each
 
@@ -96,7 +101,9 @@ class Load:
         if sent is not None:
             sent.acknowledged = True
 
-    def _publish(self, kind: str, topic: str, payload: bytes, key: tuple, content: str = "") -> None:
+    def _publish(
+        self, kind: str, topic: str, payload: bytes, key: tuple, content: str = ""
+    ) -> None:
         sent = Sent(kind, key, self.segment, now_ms(), content)
         info = self.client.publish(topic, payload, qos=1)
         with self._lock:
@@ -118,15 +125,31 @@ class Load:
             robot = f"{self.segment}-{i}"
             ts = max(now_ms(), last_ts.get(robot, 0) + 1)
             last_ts[robot] = ts
-            self._publish("pose", f"iot/coordinates/{robot}", encode_coordinates(
-                robot, format_timestamp(ts), 1.0 + i, 2.0 + (ts % 1000) / 1000, battery_level=50.0),
-                (robot, ts))
+            self._publish(
+                "pose",
+                f"iot/coordinates/{robot}",
+                encode_coordinates(
+                    robot,
+                    format_timestamp(ts),
+                    1.0 + i,
+                    2.0 + (ts % 1000) / 1000,
+                    battery_level=50.0,
+                ),
+                (robot, ts),
+            )
             if (n // ROBOTS) % CHUNK_EVERY == 0:
-                row, col = k % self.meta.chunk_rows, (k // self.meta.chunk_rows) % self.meta.chunk_cols
+                row, col = (
+                    k % self.meta.chunk_rows,
+                    (k // self.meta.chunk_rows) % self.meta.chunk_cols,
+                )
                 shade = k % len(self.shades)
-                self._publish("chunk", "iot/chunks/create", encode_chunk_create(
-                    row, col, self.shades[shade], format_timestamp(ts), robot),
-                    (row, col, robot, ts), self.hashes[shade])
+                self._publish(
+                    "chunk",
+                    "iot/chunks/create",
+                    encode_chunk_create(row, col, self.shades[shade], format_timestamp(ts), robot),
+                    (row, col, robot, ts),
+                    self.hashes[shade],
+                )
                 k += 1
             n += 1
 
@@ -179,15 +202,22 @@ def run_fault(name: str, load: Load, api_url: str, sql: Sql, fault: Callable[[],
             break
         time.sleep(0.2)
     run.caught_up_ms = wait_caught_up(sql, load, name)
-    print(f"{name}: back after {(run.restarted_ms - run.killed_ms) / 1000:.1f} s, queryable after "
-          f"{((run.recovered_ms or now_ms()) - run.killed_ms) / 1000:.1f} s, caught up after "
-          + (f"{(run.caught_up_ms - run.killed_ms) / 1000:.1f} s" if run.caught_up_ms
-             else "- (never: lost)"), flush=True)
+    print(
+        f"{name}: back after {(run.restarted_ms - run.killed_ms) / 1000:.1f} s, queryable after "
+        f"{((run.recovered_ms or now_ms()) - run.killed_ms) / 1000:.1f} s, caught up after "
+        + (
+            f"{(run.caught_up_ms - run.killed_ms) / 1000:.1f} s"
+            if run.caught_up_ms
+            else "- (never: lost)"
+        ),
+        flush=True,
+    )
     return run
 
 
-def wait_caught_up(sql: Sql, load: Load, segment: str, timeout_s: float = 90,
-                   stalled_s: float = 10) -> int | None:
+def wait_caught_up(
+    sql: Sql, load: Load, segment: str, timeout_s: float = 90, stalled_s: float = 10
+) -> int | None:
     """Until every acknowledged message of `segment` published over a second ago is stored
     (when; None if none of the missing ones got stored for `stalled_s`: lost, or timeout)."""
     deadline = time.monotonic() + timeout_s
@@ -216,8 +246,11 @@ def wait_caught_up(sql: Sql, load: Load, segment: str, timeout_s: float = 90,
 def queryable(api_url: str, robot: str, from_ms: int) -> bool:
     """Whether the API returns a pose of `robot` at or after `from_ms` (any error: no)."""
     try:
-        reply = httpx.get(f"{api_url}/api/v1/poses", timeout=5, params={
-            "robotId": robot, "from": from_ms, "to": from_ms + 600_000, "limit": 1})
+        reply = httpx.get(
+            f"{api_url}/api/v1/poses",
+            timeout=5,
+            params={"robotId": robot, "from": from_ms, "to": from_ms + 600_000, "limit": 1},
+        )
         return reply.status_code == 200 and bool(reply.json())
     except httpx.HTTPError:
         return False
@@ -231,8 +264,9 @@ class Sql:
         self.client_args = client_args
 
     def __call__(self, query: str, **parameters) -> list[tuple]:
-        client = clickhouse_connect.get_client(connect_timeout=10, send_receive_timeout=60,
-                                               **self.client_args)
+        client = clickhouse_connect.get_client(
+            connect_timeout=10, send_receive_timeout=60, **self.client_args
+        )
         try:
             if query.startswith("OPTIMIZE"):
                 client.command(query)
@@ -247,13 +281,21 @@ def stored_identities(sql: Sql, segments: list[str], final: bool) -> tuple[dict,
     read sees them): poses (robot, ts) -> n, chunk writes (row, col, robot, ts) -> (n, hash)."""
     where = " OR ".join(f"startsWith(robot_id, '{s}-')" for s in segments)
     f = " FINAL" if final else ""
-    poses = {(r, t): n for r, t, n in sql(
-        f"SELECT robot_id, toUnixTimestamp64Milli(ts), count() FROM mapservice.poses{f} "
-        f"WHERE {where} GROUP BY 1, 2")}
-    chunks = {(row, col, r, t): (n, h) for row, col, r, t, n, h in sql(
-        "SELECT row, col, robot_id, toUnixTimestamp64Milli(ts), count(), "
-        f"lower(hex(any(content_hash))) FROM mapservice.chunk_events{f} WHERE {where} "
-        "GROUP BY 1, 2, 3, 4")}
+    poses = {
+        (r, t): n
+        for r, t, n in sql(
+            f"SELECT robot_id, toUnixTimestamp64Milli(ts), count() FROM mapservice.poses{f} "
+            f"WHERE {where} GROUP BY 1, 2"
+        )
+    }
+    chunks = {
+        (row, col, r, t): (n, h)
+        for row, col, r, t, n, h in sql(
+            "SELECT row, col, robot_id, toUnixTimestamp64Milli(ts), count(), "
+            f"lower(hex(any(content_hash))) FROM mapservice.chunk_events{f} WHERE {where} "
+            "GROUP BY 1, 2, 3, 4"
+        )
+    }
     return poses, chunks
 
 
@@ -262,8 +304,9 @@ def count_of(stored: dict, s: Sent) -> int:
     return value[0] if isinstance(value, tuple) else value
 
 
-def wait_all_stored(sql: Sql, load: Load, segments: list[str], timeout_s: float = 90,
-                    settled_s: float = 8) -> None:
+def wait_all_stored(
+    sql: Sql, load: Load, segments: list[str], timeout_s: float = 90, settled_s: float = 8
+) -> None:
     """Until every acknowledged message's identity is stored, or nothing new was stored for
     `settled_s` (what tansu lost stays lost), or the timeout; the report counts what is
     missing then as lost."""
@@ -288,21 +331,33 @@ def wait_all_stored(sql: Sql, load: Load, segments: list[str], timeout_s: float 
 def api_duplicates(api_url: str, load: Load, segments: list[str]) -> dict[str, int]:
     """Rows the API's history reads return beyond one per identity, per segment."""
     lo, hi = min(s.key[-1] for s in load.sent) - 1, max(s.key[-1] for s in load.sent) + 1
-    poses = httpx.get(f"{api_url}/api/v1/poses", timeout=60,
-                      params={"from": lo, "to": hi, "limit": 100_000}).json()
-    chunks = httpx.get(f"{api_url}/api/v1/chunk-events", timeout=60,
-                       params={"from": lo, "to": hi, "limit": 100_000}).json()
+    poses = httpx.get(
+        f"{api_url}/api/v1/poses", timeout=60, params={"from": lo, "to": hi, "limit": 100_000}
+    ).json()
+    chunks = httpx.get(
+        f"{api_url}/api/v1/chunk-events",
+        timeout=60,
+        params={"from": lo, "to": hi, "limit": 100_000},
+    ).json()
     out = {}
     for seg in segments:
         keys = [(p["robotId"], p["ts_ms"]) for p in poses if p["robotId"].startswith(f"{seg}-")]
-        ckeys = [(c["row"], c["column"], c["robotId"], c["ts_ms"]) for c in chunks
-                 if c["robotId"].startswith(f"{seg}-")]
+        ckeys = [
+            (c["row"], c["column"], c["robotId"], c["ts_ms"])
+            for c in chunks
+            if c["robotId"].startswith(f"{seg}-")
+        ]
         out[seg] = (len(keys) - len(set(keys))) + (len(ckeys) - len(set(ckeys)))
     return out
 
 
-def segment_report(run: FaultRun, sent: list[Sent], final: tuple[dict, dict],
-                   raw: tuple[dict, dict], api_dups: dict[str, int]) -> dict:
+def segment_report(
+    run: FaultRun,
+    sent: list[Sent],
+    final: tuple[dict, dict],
+    raw: tuple[dict, dict],
+    api_dups: dict[str, int],
+) -> dict:
     def table(s: Sent, pair: tuple[dict, dict]) -> dict:
         return pair[0] if s.kind == "pose" else pair[1]
 
@@ -320,22 +375,31 @@ def segment_report(run: FaultRun, sent: list[Sent], final: tuple[dict, dict],
         "raw_duplicate_rows": sum(max(0, count_of(table(s, raw), s) - 1) for s in sent),
         "lost": len(lost),
         "lost_published_after_restart": sum(1 for s in lost if s.sent_ms >= run.restarted_ms),
-        "wrong_content": sum(1 for s in acked if s.kind == "chunk" and s.key in final[1]
-                             and final[1][s.key][1] != s.content_hash),
+        "wrong_content": sum(
+            1
+            for s in acked
+            if s.kind == "chunk" and s.key in final[1] and final[1][s.key][1] != s.content_hash
+        ),
         "down_s": round((run.restarted_ms - run.killed_ms) / 1000, 2) if run.killed_ms else None,
-        "recovery_s": (round((run.recovered_ms - run.killed_ms) / 1000, 2)
-                       if run.recovered_ms else None),
+        "recovery_s": (
+            round((run.recovered_ms - run.killed_ms) / 1000, 2) if run.recovered_ms else None
+        ),
         # From the fault until every acknowledged message of its robots was stored (None:
         # some never were).
-        "caught_up_s": (round((run.caught_up_ms - run.killed_ms) / 1000, 2)
-                        if run.caught_up_ms else None),
+        "caught_up_s": (
+            round((run.caught_up_ms - run.killed_ms) / 1000, 2) if run.caught_up_ms else None
+        ),
     }
 
 
 def all_chunk_rows(sql: Sql) -> list[ChunkRow]:
-    return [ChunkRow(row, col, ts, robot, h, 0) for row, col, ts, robot, h in sql(
-        "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)) "
-        "FROM mapservice.chunk_events FINAL")]
+    return [
+        ChunkRow(row, col, ts, robot, h, 0)
+        for row, col, ts, robot, h in sql(
+            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)) "
+            "FROM mapservice.chunk_events FINAL"
+        )
+    ]
 
 
 def wait_snapshot_repairs_done(sql: Sql, timeout_s: float = 60) -> int:
@@ -353,19 +417,35 @@ def wait_snapshot_repairs_done(sql: Sql, timeout_s: float = 60) -> int:
 def check_snapshots(sql: Sql, rows: list[ChunkRow]) -> tuple[list[int], list[int]]:
     """Each stored snapshot against the fold of the stored history at its instant: the map
     per chunk, the robots per robot (its latest pose time). Returns (all, wrong) instants."""
-    snaps = [t for (t,) in sql("SELECT toUnixTimestamp64Milli(snap_ts) FROM "
-                               "mapservice.snapshot_log FINAL ORDER BY snap_ts")]
-    pose_times = sql("SELECT robot_id, groupArray(toUnixTimestamp64Milli(ts)) "
-                     "FROM mapservice.poses FINAL GROUP BY robot_id")
+    snaps = [
+        t
+        for (t,) in sql(
+            "SELECT toUnixTimestamp64Milli(snap_ts) FROM "
+            "mapservice.snapshot_log FINAL ORDER BY snap_ts"
+        )
+    ]
+    pose_times = sql(
+        "SELECT robot_id, groupArray(toUnixTimestamp64Milli(ts)) "
+        "FROM mapservice.poses FINAL GROUP BY robot_id"
+    )
     wrong = []
     for t in snaps:
-        stored = {(row, col): (ts, robot, h) for row, col, ts, robot, h in sql(
-            "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)) "
-            "FROM mapservice.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({t:Int64})",
-            t=t)}
+        stored = {
+            (row, col): (ts, robot, h)
+            for row, col, ts, robot, h in sql(
+                "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)) "
+                "FROM mapservice.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({t:Int64})",
+                t=t,
+            )
+        }
         want = {k: (s.ts_ms, s.robot_id, s.content_hash) for k, s in fold_map(rows, t).items()}
-        robots = dict(sql("SELECT robot_id, toUnixTimestamp64Milli(ts) FROM mapservice.robot_snapshots "
-                          "FINAL WHERE snap_ts = fromUnixTimestamp64Milli({t:Int64})", t=t))
+        robots = dict(
+            sql(
+                "SELECT robot_id, toUnixTimestamp64Milli(ts) FROM mapservice.robot_snapshots "
+                "FINAL WHERE snap_ts = fromUnixTimestamp64Milli({t:Int64})",
+                t=t,
+            )
+        )
         want_robots = {r: max(x for x in ts if x <= t) for r, ts in pose_times if min(ts) <= t}
         if stored != want or robots != want_robots:
             wrong.append(t)
@@ -376,9 +456,12 @@ def map_reads_wrong(api_url: str, rows: list[ChunkRow], instants: list[int]) -> 
     """The API's map at each instant against the fold: the instants where they differ."""
     wrong = []
     for t in instants:
-        got = {(c["row"], c["column"]): (c["ts_ms"], c["robotId"], c["content_hash"])
-               for c in httpx.get(f"{api_url}/api/v1/map", params={"at": t}, timeout=60)
-               .json()["chunks"]}
+        got = {
+            (c["row"], c["column"]): (c["ts_ms"], c["robotId"], c["content_hash"])
+            for c in httpx.get(f"{api_url}/api/v1/map", params={"at": t}, timeout=60).json()[
+                "chunks"
+            ]
+        }
         want = {k: (s.ts_ms, s.robot_id, s.content_hash) for k, s in fold_map(rows, t).items()}
         if got != want:
             wrong.append(t)
@@ -400,8 +483,11 @@ def verify(sql: Sql, api_url: str, load: Load, runs: list[FaultRun], merge: bool
     snaps, wrong_snaps = check_snapshots(sql, rows)
     checks = {
         "latest_map_equals_fold": not map_reads_wrong(api_url, rows, [now_ms()]),
-        "snapshots": len(snaps), "wrong_snapshots": wrong_snaps,
-        "map_reads_at_snapshots_wrong": map_reads_wrong(api_url, rows, snaps[:: max(1, len(snaps) // 8)]),
+        "snapshots": len(snaps),
+        "wrong_snapshots": wrong_snaps,
+        "map_reads_at_snapshots_wrong": map_reads_wrong(
+            api_url, rows, snaps[:: max(1, len(snaps) // 8)]
+        ),
         "snapshot_repairs_pending": pending,
     }
     if merge:
@@ -410,7 +496,8 @@ def verify(sql: Sql, api_url: str, load: Load, runs: list[FaultRun], merge: bool
         sql("OPTIMIZE TABLE mapservice.chunk_events FINAL")
         merged = stored_identities(sql, segments, False)
         checks["raw_duplicates_after_merge"] = sum(
-            max(0, (v[0] if isinstance(v, tuple) else v) - 1) for d in merged for v in d.values())
+            max(0, (v[0] if isinstance(v, tuple) else v) - 1) for d in merged for v in d.values()
+        )
     return {"faults": faults, "checks": checks}
 
 
@@ -419,12 +506,16 @@ def write_report(section: str, report: dict) -> None:
     ARTIFACT.parent.mkdir(parents=True, exist_ok=True)
     ARTIFACT.write_text(json.dumps(REPORT, indent=2) + "\n")
     print(f"\n{section}: {report['topology']}")
-    print(f"{'fault':<28}{'published':>10}{'acked':>8}{'stored':>8}{'dup':>5}{'raw dup':>8}"
-          f"{'lost':>6}{'back s':>8}{'recovery s':>11}{'caught up s':>12}")
+    print(
+        f"{'fault':<28}{'published':>10}{'acked':>8}{'stored':>8}{'dup':>5}{'raw dup':>8}"
+        f"{'lost':>6}{'back s':>8}{'recovery s':>11}{'caught up s':>12}"
+    )
     for r in report["faults"]:
-        print(f"{r['fault']:<28}{r['published']:>10}{r['acknowledged']:>8}{r['stored']:>8}"
-              f"{r['duplicated']:>5}{r['raw_duplicate_rows']:>8}{r['lost']:>6}{r['down_s']!s:>8}"
-              f"{r['recovery_s']!s:>11}{r['caught_up_s']!s:>12}")
+        print(
+            f"{r['fault']:<28}{r['published']:>10}{r['acknowledged']:>8}{r['stored']:>8}"
+            f"{r['duplicated']:>5}{r['raw_duplicate_rows']:>8}{r['lost']:>6}{r['down_s']!s:>8}"
+            f"{r['recovery_s']!s:>11}{r['caught_up_s']!s:>12}"
+        )
     print(json.dumps(report["checks"]), flush=True)
 
 

@@ -15,9 +15,29 @@ def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> 
     live, the latency split at the gateway adds up, and storage is reported per table."""
     out = tmp_path / "bench.json"
     done = subprocess.run(
-        [sys.executable, "-m", "mapservice.cli", "bench", "ingest", "--robots", "3", "--seconds", "4",
-         "--repeat", "1", "--mqtt", "mosquitto", "--data-dir", str(tmp_path / "data"), "--json", str(out)],
-        capture_output=True, text=True, timeout=540)
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "bench",
+            "ingest",
+            "--robots",
+            "3",
+            "--seconds",
+            "4",
+            "--repeat",
+            "1",
+            "--mqtt",
+            "mosquitto",
+            "--data-dir",
+            str(tmp_path / "data"),
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=540,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     run = json.loads(out.read_text())["runs"][0]
     assert run["published_events"] >= 3 * 4 and run["stored_events"] == run["published_events"]
@@ -31,15 +51,36 @@ def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> 
 
 
 @pytest.mark.timeout(600)
-def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_message(tmp_path) -> None:
+def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_message(
+    tmp_path,
+) -> None:
     """`--gateways 2`: both replicas take part through the shared subscription, their
     confirmed messages add up to exactly what the robots published, and nothing is lost."""
     out = tmp_path / "bench.json"
     done = subprocess.run(
-        [sys.executable, "-m", "mapservice.cli", "bench", "ingest", "--robots", "3", "--seconds", "4",
-         "--gateways", "2", "--mqtt", "mosquitto", "--data-dir", str(tmp_path / "data"),
-         "--json", str(out)],
-        capture_output=True, text=True, timeout=540)
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "bench",
+            "ingest",
+            "--robots",
+            "3",
+            "--seconds",
+            "4",
+            "--gateways",
+            "2",
+            "--mqtt",
+            "mosquitto",
+            "--data-dir",
+            str(tmp_path / "data"),
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=540,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     run = json.loads(out.read_text())["runs"][0]
     assert run["gateways"] == 2 and (run["lost"], run["duplicated"]) == (0, 0)

@@ -16,9 +16,27 @@ def test_a_short_soak_samples_every_component_and_says_it_is_not_representative(
     no dead letters, a freshness under the sampling period, and the short-run warning."""
     out = tmp_path / "soak.json"
     done = subprocess.run(
-        [sys.executable, "-m", "mapservice.cli", "bench", "soak", "--minutes", "0.5", "--robots", "3",
-         "--sample-s", "5", "--data-dir", str(tmp_path / "data"), "--json", str(out)],
-        capture_output=True, text=True, timeout=280)
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "bench",
+            "soak",
+            "--minutes",
+            "0.5",
+            "--robots",
+            "3",
+            "--sample-s",
+            "5",
+            "--data-dir",
+            str(tmp_path / "data"),
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=280,
+    )
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-3000:]
     assert "not representative" in done.stdout
     result = json.loads(out.read_text())
@@ -27,7 +45,9 @@ def test_a_short_soak_samples_every_component_and_says_it_is_not_representative(
     assert {"kafka", "mqtt", "server", "gateway"} <= set(samples[-1]["rss_mb"])
     assert all(rss > 1 for rss in samples[-1]["rss_mb"].values())
     # Anonymous memory, on which growth is judged, is part of the resident size.
-    assert all(0 < samples[-1]["anon_mb"][n] <= samples[-1]["rss_mb"][n] for n in samples[-1]["rss_mb"])
+    assert all(
+        0 < samples[-1]["anon_mb"][n] <= samples[-1]["rss_mb"][n] for n in samples[-1]["rss_mb"]
+    )
     assert summary["stored_events"] > 3 * 10 and summary["dead_letters"] == 0
     assert summary["freshness_median_s"] is not None and summary["freshness_median_s"] < 5
     assert summary["representative"] is False

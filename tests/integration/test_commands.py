@@ -19,14 +19,14 @@ import time
 import httpx
 import paho.mqtt.client as mqtt
 import pytest
+from mapservice.robot.connection import RobotMqtt, load_credentials
+from mapservice.robot.sim import SimConfig, sim_robot_id
+from mapservice.robot.simrun import SimRunner
 
 from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import format_timestamp
 from mapservice.local.stack import Stack
-from mapservice.robot.connection import RobotMqtt, load_credentials
-from mapservice.robot.sim import SimConfig, sim_robot_id
-from mapservice.robot.simrun import SimRunner
 from tests.fixtures.paths import MAPS
 
 from .conftest import read_topic, run_stack, wait_for_count
@@ -41,9 +41,15 @@ OTHER = sim_robot_id(SIM_PREFIX, 1)
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    stack = Stack(tmp_path_factory.mktemp("stack-commands"), mqtt="mosquitto", mqtt_auth=True,
-                  extra_env={"MAPSERVICE_API_OPERATOR_TOKENS": OPERATOR,
-                             "MAPSERVICE_API_READER_TOKENS": READER})
+    stack = Stack(
+        tmp_path_factory.mktemp("stack-commands"),
+        mqtt="mosquitto",
+        mqtt_auth=True,
+        extra_env={
+            "MAPSERVICE_API_OPERATOR_TOKENS": OPERATOR,
+            "MAPSERVICE_API_READER_TOKENS": READER,
+        },
+    )
     yield run_stack(stack, meta_for(load_ros_map(MAPS / "depot.yaml")))
     stack.stop()
 
@@ -58,9 +64,14 @@ def robots(stack):
 
 @pytest.fixture(scope="module")
 def simulator(stack, robots):
-    runner = SimRunner(stack.mqtt_url, load_ros_map(MAPS / "depot.yaml"), 2, prefix=SIM_PREFIX,
-                       config=SimConfig(change_every_s=0, dwell_s=0.5),
-                       mqtt_conn=RobotMqtt(stack.mqtt_url, robots["sim"]))
+    runner = SimRunner(
+        stack.mqtt_url,
+        load_ros_map(MAPS / "depot.yaml"),
+        2,
+        prefix=SIM_PREFIX,
+        config=SimConfig(change_every_s=0, dwell_s=0.5),
+        mqtt_conn=RobotMqtt(stack.mqtt_url, robots["sim"]),
+    )
     thread = threading.Thread(target=runner.run, kwargs={"seconds": 240}, daemon=True)
     thread.start()
     yield runner
@@ -69,31 +80,48 @@ def simulator(stack, robots):
 
 
 def send(stack: Stack, body: dict, token: str = OPERATOR) -> httpx.Response:
-    return httpx.post(f"{stack.api_url}/api/v1/commands", json=body, timeout=30,
-                      headers={"Authorization": f"Bearer {token}"})
+    return httpx.post(
+        f"{stack.api_url}/api/v1/commands",
+        json=body,
+        timeout=30,
+        headers={"Authorization": f"Bearer {token}"},
+    )
 
 
 def positions(stack: Stack, robot: str, from_ms: int, to_ms: int) -> list[tuple[int, float, float]]:
-    rows = httpx.get(f"{stack.api_url}/api/v1/poses", params={"robotId": robot, "from": from_ms,
-                                                             "to": to_ms, "limit": 10_000},
-                     timeout=30).json()
-    return sorted((r["ts_ms"], r["position"][0], r["position"][1]) for r in rows
-                  if r["robotId"] == robot)
+    rows = httpx.get(
+        f"{stack.api_url}/api/v1/poses",
+        params={"robotId": robot, "from": from_ms, "to": to_ms, "limit": 10_000},
+        timeout=30,
+    ).json()
+    return sorted(
+        (r["ts_ms"], r["position"][0], r["position"][1]) for r in rows if r["robotId"] == robot
+    )
 
 
-def stored_command(stack: Stack, robot: str, command_id: str, since_ms: int,
-                   timeout_s: float = 30, until=lambda c: c["ack"] is not None) -> dict:
+def stored_command(
+    stack: Stack,
+    robot: str,
+    command_id: str,
+    since_ms: int,
+    timeout_s: float = 30,
+    until=lambda c: c["ack"] is not None,
+) -> dict:
     deadline = time.monotonic() + timeout_s
     found: dict = {}
     while time.monotonic() < deadline:
-        rows = httpx.get(f"{stack.api_url}/api/v1/commands",
-                         params={"from": since_ms, "to": now_ms() + 60_000, "robot": robot},
-                         timeout=30).json()["commands"]
+        rows = httpx.get(
+            f"{stack.api_url}/api/v1/commands",
+            params={"from": since_ms, "to": now_ms() + 60_000, "robot": robot},
+            timeout=30,
+        ).json()["commands"]
         found = next((c for c in rows if c["commandId"] == command_id), {})
         if found and until(found):
             return found
         time.sleep(0.25)
-    raise AssertionError(f"command {command_id} not stored with its answer in {timeout_s} s: {found}")
+    raise AssertionError(
+        f"command {command_id} not stored with its answer in {timeout_s} s: {found}"
+    )
 
 
 def test_a_pause_stops_a_simulated_robots_poses_within_2_s(stack, simulator):
@@ -119,8 +147,9 @@ def test_a_pause_stops_a_simulated_robots_poses_within_2_s(stack, simulator):
     assert len({(x, y) for _, x, y in after}) == 1, f"moved after the pause: {after}"
     other = positions(stack, OTHER, issued + 2_000, now_ms() + 1_000)
     assert len({(x, y) for _, x, y in other}) > 1  # the other robot drives on
-    command = stored_command(stack, PAUSED, "pause-1", issued - 1_000,
-                             until=lambda c: c["outcome"] is not None)
+    command = stored_command(
+        stack, PAUSED, "pause-1", issued - 1_000, until=lambda c: c["outcome"] is not None
+    )
     assert command["issuedBy"].startswith("operator") and OPERATOR not in command["issuedBy"]
     assert command["kind"] == "pause" and command["issued_ms"] == issued
     assert command["ack"]["status"] == "accepted" and command["ack"]["ts_ms"] - issued < 2_000
@@ -130,7 +159,10 @@ def test_a_pause_stops_a_simulated_robots_poses_within_2_s(stack, simulator):
     assert r.status_code == 202, r.text
     deadline = time.monotonic() + 20
     while time.monotonic() < deadline:
-        if any((x, y) != held for _, x, y in positions(stack, PAUSED, r.json()["issued_ms"], now_ms() + 1_000)):
+        if any(
+            (x, y) != held
+            for _, x, y in positions(stack, PAUSED, r.json()["issued_ms"], now_ms() + 1_000)
+        ):
             break
         time.sleep(0.5)
     else:
@@ -161,8 +193,14 @@ def test_robot_b_cannot_read_or_answer_robot_as_commands(stack, robots):
         assert json.loads(payload)["commandId"] == "acl-1"
         time.sleep(2)  # anything B could read would have arrived by now
         assert robot_b.received == []
-        answer = {"robotId": a.robot_id, "commandId": "acl-1", "type": "ack",
-                  "status": "rejected", "reason": "forged by b", "timestamp": format_timestamp(now_ms())}
+        answer = {
+            "robotId": a.robot_id,
+            "commandId": "acl-1",
+            "type": "ack",
+            "status": "rejected",
+            "reason": "forged by b",
+            "timestamp": format_timestamp(now_ms()),
+        }
         forged = robot_b.publish(a.topics["commandEvents"], json.dumps(answer).encode())
         deadline = time.monotonic() + 5
         while forged.mid not in robot_b.puback and time.monotonic() < deadline:
@@ -177,6 +215,8 @@ def test_robot_b_cannot_read_or_answer_robot_as_commands(stack, robots):
         robot_b.close()
     command = stored_command(stack, a.robot_id, "acl-1", ts - 1_000)
     assert command["ack"]["status"] == "accepted" and command["ack"]["reason"] == ""
-    letters = [decode_dead_letter(v) for v in read_topic(stack, stack.settings().topic_dead_letter, 1)]
+    letters = [
+        decode_dead_letter(v) for v in read_topic(stack, stack.settings().topic_dead_letter, 1)
+    ]
     mine = [d for d in letters if d.mqtt_topic == b.topics["commandEvents"]]
     assert [d.reason for d in mine] == ["not_its_command"], letters

@@ -17,10 +17,12 @@ from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
 
 
 def spawn(stack: Stack, name: str, *args: str, env: dict[str, str] | None = None):
-    return subprocess.Popen([sys.executable, "-m", "mapservice.cli", *args],
-                            env={**stack.env(), **(env or {})},
-                            stdout=open(stack.log_dir / f"{name}.log", "ab"),
-                            stderr=subprocess.STDOUT)
+    return subprocess.Popen(
+        [sys.executable, "-m", "mapservice.cli", *args],
+        env={**stack.env(), **(env or {})},
+        stdout=open(stack.log_dir / f"{name}.log", "ab"),
+        stderr=subprocess.STDOUT,
+    )
 
 
 def test_gateway_processors_and_api_run_as_separate_processes(tmp_path):
@@ -45,9 +47,14 @@ def test_gateway_processors_and_api_run_as_separate_processes(tmp_path):
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             text = httpx.get(f"http://127.0.0.1:{pr_port}/metrics").text
-            stored = sum(float(v) for v in re.findall(
-                r'^mapservice_sink_events_total\{topic="mapservice\.(?:pose|chunk)-events\.v1"\} (\S+)$',
-                text, re.M))
+            stored = sum(
+                float(v)
+                for v in re.findall(
+                    r'^mapservice_sink_events_total\{topic="mapservice\.(?:pose|chunk)-events\.v1"\} (\S+)$',
+                    text,
+                    re.M,
+                )
+            )
             if stored >= len(poses) + len(chunks):
                 break
             time.sleep(0.3)
@@ -61,8 +68,9 @@ def test_gateway_processors_and_api_run_as_separate_processes(tmp_path):
         api = spawn(stack, "api", "api")
         procs.append(api)
         wait_for_port(stack.api_port, timeout_s=60, proc=api, what="api")
-        rows = httpx.get(f"{stack.api_url}/api/v1/poses",
-                         params={"from": start, "to": start + 60_000}).json()
+        rows = httpx.get(
+            f"{stack.api_url}/api/v1/poses", params={"from": start, "to": start + 60_000}
+        ).json()
         assert len([r for r in rows if r["robotId"].startswith("alone")]) == len(poses)
     finally:
         for proc in procs:

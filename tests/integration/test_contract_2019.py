@@ -23,10 +23,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.local.stack import Stack
+from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
 from mapservice.core.wire2019 import format_timestamp, parse_timestamp
+from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS
 
 from .conftest import wait_for_meta
@@ -42,8 +42,11 @@ DEPOT = load_ros_map(MAPS / "depot.yaml")
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     """Brokers, processors + API and the gateway; no map meta published."""
-    stack = Stack(tmp_path_factory.mktemp("stack-2019"), mqtt="mosquitto",
-                  extra_env={"MAPSERVICE_ADMIN_TOKEN": TOKEN})
+    stack = Stack(
+        tmp_path_factory.mktemp("stack-2019"),
+        mqtt="mosquitto",
+        extra_env={"MAPSERVICE_ADMIN_TOKEN": TOKEN},
+    )
     stack.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = stack.api_url
     with stack.running():
         yield stack
@@ -60,8 +63,9 @@ def http(stack):
 def robot(stack):
     """A 2019 robot with its writer token: the header is all it adds."""
     token = stack.api_secrets().writers[0]
-    with httpx.Client(base_url=stack.api_url, timeout=60,
-                      headers={"Authorization": f"Bearer {token}"}) as client:
+    with httpx.Client(
+        base_url=stack.api_url, timeout=60, headers={"Authorization": f"Bearer {token}"}
+    ) as client:
         yield client
 
 
@@ -108,8 +112,17 @@ def check_listing_9(meta: dict) -> None:
 
 
 def check_listing_11(body: dict) -> None:
-    types = {"_index": str, "_type": str, "_id": str, "_version": int, "result": str,
-             "forced_refresh": bool, "_shards": dict, "_seq_no": int, "_primary_term": int}
+    types = {
+        "_index": str,
+        "_type": str,
+        "_id": str,
+        "_version": int,
+        "result": str,
+        "forced_refresh": bool,
+        "_shards": dict,
+        "_seq_no": int,
+        "_primary_term": int,
+    }
     for name, kind in types.items():
         assert type(body[name]) is kind, name
     assert all(type(body["_shards"][k]) is int for k in ("total", "successful", "failed"))
@@ -142,8 +155,9 @@ def stitched(chunks: list[dict], meta: dict) -> np.ndarray:
     canvas = np.zeros((meta["CHUNK_ROWS"] * ch, meta["CHUNK_COLS"] * cw), dtype=np.uint8)
     for c in chunks:
         pixels = np.frombuffer(zlib.decompress(base64.b64decode(c["chunk"])), dtype=np.uint8)
-        canvas[c["row"] * ch:(c["row"] + 1) * ch, c["column"] * cw:(c["column"] + 1) * cw] = \
+        canvas[c["row"] * ch : (c["row"] + 1) * ch, c["column"] * cw : (c["column"] + 1) * cw] = (
             pixels.reshape(ch, cw)
+        )
     return canvas[: meta["height"], : meta["width"]]
 
 
@@ -172,37 +186,72 @@ def test_robot_start_up_sequence(stack, http, robot) -> None:
         t0 = now_ms() - 5_000
         ts = format_timestamp(t0)
         local = slice_chunks(DEPOT)
-        messages = [("iot/chunks/create", json.dumps({
-            "pgmB64compressedData": b64zlib(px), "row": row, "column": col,
-            "timestamp": ts, "robotId": "robot-a"}).encode())
-            for (row, col), px in sorted(local.items())]
-        messages += [("iot/coordinates/robot-a", json.dumps({
-            "robotId": "robot-a", "timestamp": format_timestamp(t0 + k * 1000),
-            "pose": {"position": {"x": 1.0 + k, "y": 2.0, "z": 0},
-                     "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-            "status": {"battery": {"battery_level": 90, "charging": False}, "loaded": True},
-        }).encode()) for k in range(3)]
+        messages = [
+            (
+                "iot/chunks/create",
+                json.dumps(
+                    {
+                        "pgmB64compressedData": b64zlib(px),
+                        "row": row,
+                        "column": col,
+                        "timestamp": ts,
+                        "robotId": "robot-a",
+                    }
+                ).encode(),
+            )
+            for (row, col), px in sorted(local.items())
+        ]
+        messages += [
+            (
+                "iot/coordinates/robot-a",
+                json.dumps(
+                    {
+                        "robotId": "robot-a",
+                        "timestamp": format_timestamp(t0 + k * 1000),
+                        "pose": {
+                            "position": {"x": 1.0 + k, "y": 2.0, "z": 0},
+                            "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+                        },
+                        "status": {
+                            "battery": {"battery_level": 90, "charging": False},
+                            "loaded": True,
+                        },
+                    }
+                ).encode(),
+            )
+            for k in range(3)
+        ]
         publish_all(stack, messages)
 
         # Robot B starts: the meta is there, and it downloads the whole map in one query.
         meta_b = http.get(META).json()
-        whole = until(lambda: http.get(CHUNKS, params={"latest": "true", "limit": "10000"}).json(),
-                      lambda body: len(body) == len(local), what="the whole map")
+        whole = until(
+            lambda: http.get(CHUNKS, params={"latest": "true", "limit": "10000"}).json(),
+            lambda body: len(body) == len(local),
+            what="the whole map",
+        )
         for chunk in whole:
             check_listing_12(chunk)
         assert (stitched(whole, meta_b) == DEPOT.pixels).all()
 
-        robots = until(lambda: http.get(ROBOTS, params={"latest": "true"}).json(),
-                       lambda body: any(p["robotId"] == "robot-a" and
-                                        p["timestamp"] == format_timestamp(t0 + 2000)
-                                        for p in body), what="robot-a's latest pose")
+        robots = until(
+            lambda: http.get(ROBOTS, params={"latest": "true"}).json(),
+            lambda body: any(
+                p["robotId"] == "robot-a" and p["timestamp"] == format_timestamp(t0 + 2000)
+                for p in body
+            ),
+            what="robot-a's latest pose",
+        )
         [pose] = [p for p in robots if p["robotId"] == "robot-a"]
         check_listing_17(pose)
         assert pose["pose"]["position"]["x"] == 3.0 and pose["status"]["loaded"] is True
 
         # --- advertisements (listing 15; processors/advertiser.py) -----------------------
-        until(lambda: len({(a.get("row"), a.get("column")) for a in ads.messages}),
-              lambda n: n == len(local), what="an advertisement per chunk")
+        until(
+            lambda: len({(a.get("row"), a.get("column")) for a in ads.messages}),
+            lambda n: n == len(local),
+            what="an advertisement per chunk",
+        )
         for ad in ads.messages[:3]:
             assert ad["chunkUrl"].startswith(stack.api_url + "/api/chunk-service/chunks/id/")
             by_url = httpx.get(ad["chunkUrl"], timeout=30)
@@ -222,15 +271,23 @@ def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http, robot) -> 
     """POST /chunks with listing 10 answers listing 11; the _id then serves listing 13 and a PNG."""
     pixels = bytes(range(100)) * 100
     ts = format_timestamp(now_ms() - 2_000)
-    body = {"pgmB64compressedData": b64zlib(pixels), "row": 3, "column": 2,
-            "timestamp": ts, "robotId": "lkjlkj"}
+    body = {
+        "pgmB64compressedData": b64zlib(pixels),
+        "row": 3,
+        "column": 2,
+        "timestamp": ts,
+        "robotId": "lkjlkj",
+    }
     r = robot.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
     assert r.status_code == 200, r.text
     check_listing_11(r.json())
     chunk_id = r.json()["_id"]
     assert chunk_id == f"row:3_column:2_{ts}"
-    got = until(lambda: http.get(f"{CHUNKS}/id/{chunk_id}"), lambda r: r.status_code == 200,
-                what="the posted chunk")
+    got = until(
+        lambda: http.get(f"{CHUNKS}/id/{chunk_id}"),
+        lambda r: r.status_code == 200,
+        what="the posted chunk",
+    )
     check_listing_12(got.json())
     assert got.json()["chunk"] == body["pgmB64compressedData"]
     assert got.json()["type"] == "pgm_base64_compressed" and got.json()["robotId"] == "lkjlkj"
@@ -241,16 +298,28 @@ def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http, robot) -> 
 
 def test_post_chunk_is_validated_like_mqtt(robot) -> None:
     """A chunk outside the posted meta's grid is a 400 with the MQTT reason code."""
-    body = {"pgmB64compressedData": b64zlib(bytes(10_000)), "row": 99, "column": 0,
-            "timestamp": format_timestamp(now_ms()), "robotId": "lkjlkj"}
+    body = {
+        "pgmB64compressedData": b64zlib(bytes(10_000)),
+        "row": 99,
+        "column": 0,
+        "timestamp": format_timestamp(now_ms()),
+        "robotId": "lkjlkj",
+    }
     r = robot.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["detail"].startswith("out_of_map")
 
 
 def test_writes_need_the_robot_token_and_json(http, robot) -> None:
     """Without a token a write is 401, with a wrong one 401, as text/plain (even with the token) 415; a meta of another size needs the admin."""
-    body = json.dumps({"pgmB64compressedData": b64zlib(bytes(10_000)), "row": 0, "column": 0,
-                       "timestamp": format_timestamp(now_ms()), "robotId": "intruder"})
+    body = json.dumps(
+        {
+            "pgmB64compressedData": b64zlib(bytes(10_000)),
+            "row": 0,
+            "column": 0,
+            "timestamp": format_timestamp(now_ms()),
+            "robotId": "intruder",
+        }
+    )
     json_type = {"Content-Type": "application/json"}
     assert http.post(CHUNKS, content=body, headers=json_type).status_code == 401
     r = http.post(CHUNKS, content=body, headers={**json_type, "Authorization": "Bearer guessed"})
@@ -274,24 +343,33 @@ def test_listing_12_query_parameters(http) -> None:
 
     one = http.get(CHUNKS, params={"row": "3", "column": "2", "robotId": "lkjlkj"}).json()
     assert [(c["row"], c["column"], c["robotId"]) for c in one] == [(3, 2, "lkjlkj")]
-    assert http.get(CHUNKS, params={"timestamp": one[0]["timestamp"], "row": "3",
-                                    "column": "2"}).json()[0]["id"] == one[0]["id"]
+    assert (
+        http.get(
+            CHUNKS, params={"timestamp": one[0]["timestamp"], "row": "3", "column": "2"}
+        ).json()[0]["id"]
+        == one[0]["id"]
+    )
     reduced = http.get(CHUNKS, params={"reduced": "true", "limit": "2"}).json()
     for chunk in reduced:
         check_listing_12(chunk, reduced=True)
-    [as_png] = http.get(CHUNKS, params={"type": "png", "row": "3", "column": "2",
-                                        "robotId": "lkjlkj"}).json()
+    [as_png] = http.get(
+        CHUNKS, params={"type": "png", "row": "3", "column": "2", "robotId": "lkjlkj"}
+    ).json()
     assert as_png["type"] == "png"
     assert Image.open(io.BytesIO(base64.b64decode(as_png["chunk"]))).size == (100, 100)
 
     asc = http.get(CHUNKS, params={"sort": "row:asc,column:asc", "limit": "5"}).json()
     assert [(c["row"], c["column"]) for c in asc] == sorted((c["row"], c["column"]) for c in asc)
     page = http.get(CHUNKS, params={"limit": "3", "skip": "2"}).json()
-    assert [c["id"] for c in page] == [c["id"] for c in http.get(CHUNKS, params={"limit": "5"}).json()[2:5]]
+    assert [c["id"] for c in page] == [
+        c["id"] for c in http.get(CHUNKS, params={"limit": "5"}).json()[2:5]
+    ]
 
     # The complete map just before the REST write of row 3, column 2: robot-a's chunk there.
-    before = http.get(CHUNKS, params={"latest": "true", "updatedBefore": one[0]["timestamp"],
-                                      "row": "3", "column": "2"}).json()
+    before = http.get(
+        CHUNKS,
+        params={"latest": "true", "updatedBefore": one[0]["timestamp"], "row": "3", "column": "2"},
+    ).json()
     assert [c["robotId"] for c in before] == ["robot-a"]
     since = http.get(CHUNKS, params={"updatedSince": one[0]["timestamp"], "limit": "100"}).json()
     assert {c["robotId"] for c in since} == {"lkjlkj"}
@@ -303,8 +381,10 @@ def test_bad_and_unknown_parameters(http) -> None:
     assert r.status_code == 400 and "sort" in r.json()["detail"]
     r = http.get(ROBOTS, params={"limit": "100000"})
     assert r.status_code == 400 and "limit" in r.json()["detail"]
-    assert http.get(CHUNKS, params={"limit": "2", "colour": "red"}).json() == \
-        http.get(CHUNKS, params={"limit": "2"}).json()
+    assert (
+        http.get(CHUNKS, params={"limit": "2", "colour": "red"}).json()
+        == http.get(CHUNKS, params={"limit": "2"}).json()
+    )
 
 
 # --- A.2: listings 16 and 17 ------------------------------------------------------------------
@@ -314,22 +394,45 @@ def test_listings_16_17_coordinates(stack, http) -> None:
     """Listing 16 over MQTT comes back as listing 17; latest+updatedBefore is the pose at T."""
     t0 = now_ms() - 10_000
     stamps = [format_timestamp(t0), format_timestamp(t0 + 1000)]
-    publish_all(stack, [("iot/coordinates/blabla", json.dumps({
-        "robotId": "blabla", "timestamp": ts,
-        "pose": {"position": {"x": 10 + k, "y": 20, "z": 0},
-                 "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-        "status": {"battery": {"battery_level": 3, "charging": "sdf"}, "loaded": "dfs"},
-    }).encode()) for k, ts in enumerate(stamps)])
-    poses = until(lambda: http.get(ROBOTS, params={"robotId": "blabla"}).json(),
-                  lambda body: len(body) == 2, what="both poses")
+    publish_all(
+        stack,
+        [
+            (
+                "iot/coordinates/blabla",
+                json.dumps(
+                    {
+                        "robotId": "blabla",
+                        "timestamp": ts,
+                        "pose": {
+                            "position": {"x": 10 + k, "y": 20, "z": 0},
+                            "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+                        },
+                        "status": {
+                            "battery": {"battery_level": 3, "charging": "sdf"},
+                            "loaded": "dfs",
+                        },
+                    }
+                ).encode(),
+            )
+            for k, ts in enumerate(stamps)
+        ],
+    )
+    poses = until(
+        lambda: http.get(ROBOTS, params={"robotId": "blabla"}).json(),
+        lambda body: len(body) == 2,
+        what="both poses",
+    )
     for pose in poses:
         check_listing_17(pose)
     assert [p["timestamp"] for p in poses] == stamps[::-1]
-    assert poses[0]["status"] == {"battery": {"battery_level": 3, "charging": "sdf"},
-                                  "loaded": "dfs"}
+    assert poses[0]["status"] == {
+        "battery": {"battery_level": 3, "charging": "sdf"},
+        "loaded": "dfs",
+    }
     at = http.get(ROBOTS, params={"latest": "true", "updatedBefore": stamps[1]}).json()
-    assert [(p["robotId"], p["pose"]["position"]["x"]) for p in at
-            if p["robotId"] == "blabla"] == [("blabla", 10)]
+    assert [(p["robotId"], p["pose"]["position"]["x"]) for p in at if p["robotId"] == "blabla"] == [
+        ("blabla", 10)
+    ]
     asc = http.get(ROBOTS, params={"robotId": "blabla", "sort": "timestamp:asc", "limit": "1"})
     assert [p["timestamp"] for p in asc.json()] == stamps[:1]
 

@@ -50,11 +50,16 @@ RATE_HZ = 10  # per robot: 50 poses a second in all
 
 def mount_tmpfs(path: Path, size_mb: int) -> None:
     path.mkdir(parents=True, exist_ok=True)
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(path)],
-                          capture_output=True, text=True)
+    done = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(path)],
+        capture_output=True,
+        text=True,
+    )
     if done.returncode != 0:
-        pytest.skip(f"cannot mount a {size_mb} MB tmpfs as ClickHouse's data dir (needs root "
-                    f"and CAP_SYS_ADMIN): {done.stderr.strip() or done.returncode}")
+        pytest.skip(
+            f"cannot mount a {size_mb} MB tmpfs as ClickHouse's data dir (needs root "
+            f"and CAP_SYS_ADMIN): {done.stderr.strip() or done.returncode}"
+        )
 
 
 def unmount(path: Path) -> None:
@@ -115,8 +120,12 @@ class Poses:
         while not self._stop.is_set():
             ts = self.first_ms + tick * step_ms
             for robot in ROBOTS:
-                event = make_envelope(robot, ts, ts + 5, PoseReported(
-                    (tick % 100 / 10, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0), 50.0))
+                event = make_envelope(
+                    robot,
+                    ts,
+                    ts + 5,
+                    PoseReported((tick % 100 / 10, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0), 50.0),
+                )
 
                 def done(err, key=(robot, ts)) -> None:
                     if err is None:
@@ -124,8 +133,9 @@ class Poses:
                     else:
                         self.errors.append(err)
 
-                self.publisher.publish(self.settings.topic_pose_events, kafka_key(event),
-                                       encode(event), done)
+                self.publisher.publish(
+                    self.settings.topic_pose_events, kafka_key(event), encode(event), done
+                )
             self.publisher.poll(0)
             tick += 1
             time.sleep(step_ms / 1000)
@@ -153,8 +163,9 @@ def until(what: str, predicate, timeout_s: float = 60, last=lambda: None):
     `last()` (what there was instead)."""
     deadline = time.monotonic() + timeout_s
     while not (result := predicate()):
-        assert time.monotonic() < deadline, \
+        assert time.monotonic() < deadline, (
             f"timed out after {timeout_s:.0f} s waiting for: {what}; last: {last()}"
+        )
         time.sleep(0.5)
     return result
 
@@ -186,7 +197,9 @@ def fill(directory: Path) -> Path:
     return filler
 
 
-def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_nothing(stack, page) -> None:
+def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_nothing(
+    stack, page
+) -> None:
     """Readiness false naming NOT_ENOUGH_SPACE, the failing gauge, the status and the UI's
     banner while the disk is full; ready again once space is freed, the banner gone; every
     acknowledged pose stored once."""
@@ -195,15 +208,23 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
     page.goto(f"{api}/?live=1")
     banner = page.locator('[data-testid="history-banner"]')
     with Poses(stack) as poses:
-        until("poses stored", lambda: len(stored_keys(stack, "pose", "df-", poses.first_ms,
-                                                       poses.first_ms + 600_000)) >= 50)
+        until(
+            "poses stored",
+            lambda: (
+                len(stored_keys(stack, "pose", "df-", poses.first_ms, poses.first_ms + 600_000))
+                >= 50
+            ),
+        )
         assert get(f"{api}/readyz")[0] == 200
         filler = fill(stack.data_dir / "clickhouse")
         full_at = time.monotonic()
 
-        _code, body = until("/readyz to say the history is not stored",
-                           lambda: (r := get(f"{api}/readyz"))[0] == 503 and r, timeout_s=30,
-                           last=lambda: get(f"{api}/readyz"))
+        _code, body = until(
+            "/readyz to say the history is not stored",
+            lambda: (r := get(f"{api}/readyz"))[0] == 503 and r,
+            timeout_s=30,
+            last=lambda: get(f"{api}/readyz"),
+        )
         assert body["checks"]["history_store"] is False, body
         assert body["checks"]["clickhouse"] is True  # reads and SELECT 1 still work
         reason = body["reasons"]["history_store"]
@@ -231,8 +252,11 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
 
         filler.unlink()
         freed_at = time.monotonic()
-        until("ready again after the space was freed",
-              lambda: get(f"{api}/readyz")[0] == 200, timeout_s=60)
+        until(
+            "ready again after the space was freed",
+            lambda: get(f"{api}/readyz")[0] == 200,
+            timeout_s=60,
+        )
         recovered_s = time.monotonic() - freed_at
         assert gauge(stack, "mapservice_history_insert_failing") == 0.0
         assert get(f"{api}/api/v1/status")[1]["history"]["storing"] is True
@@ -258,5 +282,7 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
     lost = sorted(set(expected) - set(stored))
     assert not lost and not duplicated, (len(lost), lost[:5], len(duplicated), duplicated[:5])
     assert set(stored) == set(expected)
-    print(f"acknowledged {len(expected)} ({during} while full), stored once {len(stored)}, "
-          f"ready {recovered_s:.1f} s after the space was freed")
+    print(
+        f"acknowledged {len(expected)} ({during} while full), stored once {len(stored)}, "
+        f"ready {recovered_s:.1f} s after the space was freed"
+    )

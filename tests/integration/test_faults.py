@@ -46,11 +46,23 @@ from mapservice.local.stack import Stack
 from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import MAPS, ROOT
 
-from .fault_load import (CHUNK_EVERY, CLICKHOUSE_DOWN_S, DOWN_S, POSE_PERIOD_S, ROBOTS,
-                         SNAPSHOT_ENV, STEADY_S, FaultRun, Load, Sql, assert_guarantees, run_fault,
-                         verify, write_report)
+from .fault_load import (
+    CHUNK_EVERY,
+    CLICKHOUSE_DOWN_S,
+    DOWN_S,
+    POSE_PERIOD_S,
+    ROBOTS,
+    SNAPSHOT_ENV,
+    STEADY_S,
+    FaultRun,
+    Load,
+    Sql,
+    assert_guarantees,
+    run_fault,
+    verify,
+    write_report,
+)
 from .test_split_topology import start_clickhouse_server
-
 
 # ---- the split deployment: the test kills and restarts each part -------------------------
 
@@ -67,30 +79,41 @@ def kill(stack: Stack, name: str) -> None:
 @pytest.fixture(scope="module")
 def split(tmp_path_factory):
     ch_port = embedded.free_port()
-    stack = Stack(tmp_path_factory.mktemp("faults-split"), mqtt="mosquitto", extra_env={
-        "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}", **SNAPSHOT_ENV})
+    stack = Stack(
+        tmp_path_factory.mktemp("faults-split"),
+        mqtt="mosquitto",
+        extra_env={"MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}", **SNAPSHOT_ENV},
+    )
     stack.ch_port = ch_port  # type: ignore[attr-defined]
     stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]
-    with stack.running(stack.start_brokers,
-                       lambda: stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml"))),
-                       lambda: start_clickhouse_server(stack, ch_port),
-                       lambda: stack.start_processors(stack.processors_port),
-                       stack.start_api, stack.start_gateway):
+    with stack.running(
+        stack.start_brokers,
+        lambda: stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml"))),
+        lambda: start_clickhouse_server(stack, ch_port),
+        lambda: stack.start_processors(stack.processors_port),
+        stack.start_api,
+        stack.start_gateway,
+    ):
         yield stack
 
 
 def split_faults(stack: Stack) -> list[tuple[str, Callable[[], None]]]:
     def restart(name: str) -> None:
-        {"gateway": stack.start_gateway, "api": stack.start_api, "mqtt": stack.start_mqtt,
-         "kafka": stack.start_kafka,
-         "processors": lambda: stack.start_processors(stack.processors_port),
-         "clickhouse": lambda: start_clickhouse_server(stack, stack.ch_port)}[name]()
+        {
+            "gateway": stack.start_gateway,
+            "api": stack.start_api,
+            "mqtt": stack.start_mqtt,
+            "kafka": stack.start_kafka,
+            "processors": lambda: stack.start_processors(stack.processors_port),
+            "clickhouse": lambda: start_clickhouse_server(stack, stack.ch_port),
+        }[name]()
 
     def kill_restart(name: str, down_s: float = DOWN_S) -> Callable[[], None]:
         def fault() -> None:
             kill(stack, name)
             time.sleep(down_s)
             restart(name)
+
         return fault
 
     def kafka_while_clickhouse_down() -> None:
@@ -135,18 +158,27 @@ def test_split_deployment_keeps_every_acknowledged_message_through_each_fault(sp
         load.stop()
     finally:
         load.close()
-    report = {"topology": f"split deployment: {KAFKA_KIND[split.kafka]}, Mosquitto (store in the data dir), "
-                          "clickhouse-server (chDB), processors, api, gateway; restarted by the test",
-              "load": {"robots": ROBOTS, "poses_per_s": ROBOTS / POSE_PERIOD_S,
-                       "chunks_per_s": ROBOTS / POSE_PERIOD_S / CHUNK_EVERY, "qos": 1},
-              **verify(sql, split.api_url, load, runs, merge=True),
-              "seconds": round(time.monotonic() - started, 1)}
+    report = {
+        "topology": f"split deployment: {KAFKA_KIND[split.kafka]}, Mosquitto (store in the data dir), "
+        "clickhouse-server (chDB), processors, api, gateway; restarted by the test",
+        "load": {
+            "robots": ROBOTS,
+            "poses_per_s": ROBOTS / POSE_PERIOD_S,
+            "chunks_per_s": ROBOTS / POSE_PERIOD_S / CHUNK_EVERY,
+            "qos": 1,
+        },
+        **verify(sql, split.api_url, load, runs, merge=True),
+        "seconds": round(time.monotonic() - started, 1),
+    }
     write_report("split", report)
-    assert_guarantees(report, lossy=set() if split.kafka == "apache"
-                      else {"kafka-broker", "kafka-while-clickhouse-down"})
+    assert_guarantees(
+        report,
+        lossy=set() if split.kafka == "apache" else {"kafka-broker", "kafka-while-clickhouse-down"},
+    )
 
 
 # ---- `mapservice up`: its supervisor restarts what the test kills ------------------------
+
 
 class Up:
     """A running `mapservice up` (no simulated robots), its console collected."""
@@ -155,12 +187,33 @@ class Up:
         self.data_dir = data_dir
         self.api_port, self.mqtt_port = embedded.free_port(), embedded.free_port()
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
-             "--api-port", str(self.api_port), "--mqtt-port", str(self.mqtt_port),
-             "--map", str(MAPS / "depot.yaml"), "--robots", "0", "--history-days", "0",
-             "--restart-base-s", "0.5"],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            start_new_session=True, env={**os.environ, "COLUMNS": "200", **SNAPSHOT_ENV})
+            [
+                sys.executable,
+                "-m",
+                "mapservice.cli",
+                "up",
+                "--data-dir",
+                str(data_dir),
+                "--api-port",
+                str(self.api_port),
+                "--mqtt-port",
+                str(self.mqtt_port),
+                "--map",
+                str(MAPS / "depot.yaml"),
+                "--robots",
+                "0",
+                "--history-days",
+                "0",
+                "--restart-base-s",
+                "0.5",
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+            env={**os.environ, "COLUMNS": "200", **SNAPSHOT_ENV},
+        )
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
 
@@ -187,8 +240,12 @@ class Up:
 
     def children(self) -> dict[str, int]:
         """Component name (as the supervisor says it) -> pid of `up`'s child process."""
-        out = subprocess.run(["ps", "-ww", "-o", "pid=,args=", "--ppid", str(self.proc.pid)],
-                             capture_output=True, text=True, timeout=10).stdout
+        out = subprocess.run(
+            ["ps", "-ww", "-o", "pid=,args=", "--ppid", str(self.proc.pid)],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout
         found = {}
         for line in out.splitlines():
             pid, _, cmd = line.strip().partition(" ")
@@ -238,11 +295,17 @@ def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp
                 os.killpg(children[name], signal.SIGKILL)
                 up.wait_for(f"{name} exited", 20, after=mark)
                 up.wait_for(f"{name} restarted", 120, after=mark)
+
             return fault
 
         password = analyst_password_file(up.data_dir).read_text().strip()
-        sql = Sql(host="127.0.0.1", port=up.api_port, username="analyst", password=password,
-                  proxy_path="/clickhouse")
+        sql = Sql(
+            host="127.0.0.1",
+            port=up.api_port,
+            username="analyst",
+            password=password,
+            proxy_path="/clickhouse",
+        )
         load = Load(f"mqtt://127.0.0.1:{up.mqtt_port}", meta_for(load_ros_map(MAPS / "depot.yaml")))
         time.sleep(2)
         for name in ("gateway", "processors", "api", "clickhouse", "mqtt", "kafka"):
@@ -252,12 +315,14 @@ def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp
         load.stop()
         assert "did not start again" not in up.output, up.output[-4000:]
         kafka = "apache" if "Kafka (Apache Kafka" in up.output else "tansu"
-        report = {"topology": f"mapservice up: {KAFKA_KIND[kafka]}, embedded Mosquitto (store in the "
-                              "data dir), processors, API and the ClickHouse server over chDB, each "
-                              "its own process, gateway; restarted "
-                              "by up's supervisor",
-                  **verify(sql, up.api_url, load, runs, merge=False),
-                  "seconds": round(time.monotonic() - started, 1)}
+        report = {
+            "topology": f"mapservice up: {KAFKA_KIND[kafka]}, embedded Mosquitto (store in the "
+            "data dir), processors, API and the ClickHouse server over chDB, each "
+            "its own process, gateway; restarted "
+            "by up's supervisor",
+            **verify(sql, up.api_url, load, runs, merge=False),
+            "seconds": round(time.monotonic() - started, 1),
+        }
     finally:
         if load is not None:
             load.close()

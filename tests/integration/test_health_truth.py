@@ -38,19 +38,29 @@ def until(what: str, predicate, timeout_s: float = 60) -> None:
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     ch_port = embedded.free_port()
-    stack = Stack(tmp_path_factory.mktemp("health"), mqtt="mosquitto", extra_env={
-        "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}"})
+    stack = Stack(
+        tmp_path_factory.mktemp("health"),
+        mqtt="mosquitto",
+        extra_env={"MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}"},
+    )
     stack.ch_port = ch_port  # type: ignore[attr-defined]
     stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]
-    with stack.running(stack.start_brokers, lambda: start_clickhouse_server(stack, ch_port),
-                       lambda: stack.start_processors(stack.processors_port),
-                       stack.start_api, stack.start_gateway):
+    with stack.running(
+        stack.start_brokers,
+        lambda: start_clickhouse_server(stack, ch_port),
+        lambda: stack.start_processors(stack.processors_port),
+        stack.start_api,
+        stack.start_gateway,
+    ):
         yield stack
 
 
 def urls(stack) -> dict[str, str]:
-    return {"gateway": f"http://127.0.0.1:{stack.health_port}",
-            "processors": f"http://127.0.0.1:{stack.processors_port}", "api": stack.api_url}
+    return {
+        "gateway": f"http://127.0.0.1:{stack.health_port}",
+        "processors": f"http://127.0.0.1:{stack.processors_port}",
+        "api": stack.api_url,
+    }
 
 
 def all_ready(stack) -> bool:
@@ -77,8 +87,13 @@ def test_without_the_mqtt_broker_the_gateway_is_alive_but_not_ready(stack) -> No
     """Mosquitto killed: the gateway's /readyz says mqtt_connected false; back when it is."""
     gateway = urls(stack)["gateway"]
     kill(stack, "mqtt")
-    until("gateway unready", lambda: get(f"{gateway}/readyz") == (503, get(f"{gateway}/readyz")[1])
-          and get(f"{gateway}/readyz")[1].get("mqtt_connected") is False)
+    until(
+        "gateway unready",
+        lambda: (
+            get(f"{gateway}/readyz") == (503, get(f"{gateway}/readyz")[1])
+            and get(f"{gateway}/readyz")[1].get("mqtt_connected") is False
+        ),
+    )
     assert get(f"{gateway}/healthz")[0] == 200
     stack.start_mqtt()
     until("gateway ready again", lambda: get(f"{gateway}/readyz")[0] == 200)
@@ -90,8 +105,13 @@ def test_without_clickhouse_processors_and_api_are_not_ready(stack) -> None:
     kill(stack, "clickhouse")
     for name in ("processors", "api"):
         url = urls(stack)[name]
-        until(f"{name} unready", lambda url=url: get(f"{url}/readyz")[0] == 503
-              and get(f"{url}/readyz")[1]["checks"]["clickhouse"] is False)
+        until(
+            f"{name} unready",
+            lambda url=url: (
+                get(f"{url}/readyz")[0] == 503
+                and get(f"{url}/readyz")[1]["checks"]["clickhouse"] is False
+            ),
+        )
         assert get(f"{url}/healthz")[0] == 200, name
     start_clickhouse_server(stack, stack.ch_port)
     until("all ready again", lambda: all_ready(stack))

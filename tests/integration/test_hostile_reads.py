@@ -33,15 +33,14 @@ import time
 
 import httpx
 import pytest
-
-from mapservice.sql.credentials import analyst_password
+from mapservice.robot.loadgen import RobotFleet
 from websockets.sync.client import connect
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.bench.history_loader import load_history
 from mapservice.local.stack import Stack
-from mapservice.robot.loadgen import RobotFleet
+from mapservice.sql.credentials import analyst_password
 from tests.fixtures.paths import MAPS, ROOT
 
 from .conftest import wait_for_meta
@@ -53,7 +52,7 @@ PHASE_S = 35
 READERS = 20
 ANALYSTS = 60
 # The service's RSS: the ClickHouse server (chDB), the processors and the API together.
-MEMORY_BOUND = 3 * 1024 ** 3
+MEMORY_BOUND = 3 * 1024**3
 SERVICE = ("clickhouse", "processors", "api")
 ASSIGNED = "history partitions assigned"
 ARTIFACT = ROOT / "test-artifacts" / "hostile-reads.json"
@@ -65,15 +64,26 @@ def stack(tmp_path_factory):
     stack = Stack(tmp_path_factory.mktemp("hostile"), mqtt="mosquitto", apart=True)
     settings = stack.settings()
     ros_map = load_ros_map(MAPS / "warehouse.yaml")
-    store = ClickHouseStore(settings.resolved_clickhouse_dsn, settings.clickhouse_database,
-                            settings.retention_days)
+    store = ClickHouseStore(
+        settings.resolved_clickhouse_dsn, settings.clickhouse_database, settings.retention_days
+    )
     try:
-        result = load_history(store, ros_map, days=HISTORY_HOURS / 24, robots=HISTORY_ROBOTS,
-                              end_ms=time.time_ns() // 1_000_000 - 120_000)
+        result = load_history(
+            store,
+            ros_map,
+            days=HISTORY_HOURS / 24,
+            robots=HISTORY_ROBOTS,
+            end_ms=time.time_ns() // 1_000_000 - 120_000,
+        )
     finally:
         store.close()
-    stack.start(stack.start_brokers, lambda: stack.publish_meta(result.meta), stack.start_apart,
-                stack.start_gateway, lambda: wait_for_meta(stack))
+    stack.start(
+        stack.start_brokers,
+        lambda: stack.publish_meta(result.meta),
+        stack.start_apart,
+        stack.start_gateway,
+        lambda: wait_for_meta(stack),
+    )
     stack.ros_map = ros_map  # type: ignore[attr-defined]
     yield stack
     stack.stop()
@@ -205,7 +215,9 @@ def crowd(load: str, api: str, password: str, seconds: float, out) -> None:
     (probes, live stream, fleet) never wait for this process's GIL behind them: what is
     measured is the service's delay, not the load generator's. Puts its tally on `out`."""
     stop, tally = threading.Event(), {}
-    clients = readers(api, stop, tally) if load == "readers" else analysts(api, password, stop, tally)
+    clients = (
+        readers(api, stop, tally) if load == "readers" else analysts(api, password, stop, tally)
+    )
     for t in clients:
         t.start()
     time.sleep(seconds)
@@ -225,9 +237,23 @@ def run_phase(stack: Stack, load: str) -> dict:
     time.sleep(1.0)
     context = multiprocessing.get_context("spawn")
     tallies = context.Queue()
-    clients = [] if load == "baseline" else [context.Process(
-        target=crowd, args=(load, stack.api_url, analyst_password(stack.settings()),
-                            PHASE_S + 5.0, tallies), daemon=True)]
+    clients = (
+        []
+        if load == "baseline"
+        else [
+            context.Process(
+                target=crowd,
+                args=(
+                    load,
+                    stack.api_url,
+                    analyst_password(stack.settings()),
+                    PHASE_S + 5.0,
+                    tallies,
+                ),
+                daemon=True,
+            )
+        ]
+    )
     for process in clients:
         process.start()
     fleet = RobotFleet(stack.mqtt_url, stack.ros_map, FLEET, prefix=load, record=True)
@@ -238,18 +264,29 @@ def run_phase(stack: Stack, load: str) -> dict:
         t.stop.set()
     for t in (*clients, probes, memory, live):
         t.join(30)
-    latencies = sorted(live.arrived[(robot, ts)] - at for kind, robot, ts, at in stats.published
-                       if kind == "pose" and (robot, ts) in live.arrived)
+    latencies = sorted(
+        live.arrived[(robot, ts)] - at
+        for kind, robot, ts, at in stats.published
+        if kind == "pose" and (robot, ts) in live.arrived
+    )
     poses = sum(1 for kind, *_ in stats.published if kind == "pose")
     figures = {
-        "load": load, "clients": {"baseline": 0, "readers": READERS, "analysts": ANALYSTS}[load],
-        "fleet": FLEET, "seconds": PHASE_S,
-        "poses_published": poses, "poses_seen_live": len(latencies),
-        "publish_to_queryable_p50_s": round(latencies[len(latencies) // 2], 3) if latencies else None,
-        "publish_to_queryable_p99_s": round(latencies[int(len(latencies) * 0.99)], 3) if latencies else None,
-        "slowest_probe_s": round(probes.slowest, 3), "probe_failures": probes.failures[:5],
-        "service_peak_rss_mb": memory.peak // 2 ** 20,
-        "peak_rss_mb": {name: peak // 2 ** 20 for name, peak in memory.peaks.items()},
+        "load": load,
+        "clients": {"baseline": 0, "readers": READERS, "analysts": ANALYSTS}[load],
+        "fleet": FLEET,
+        "seconds": PHASE_S,
+        "poses_published": poses,
+        "poses_seen_live": len(latencies),
+        "publish_to_queryable_p50_s": round(latencies[len(latencies) // 2], 3)
+        if latencies
+        else None,
+        "publish_to_queryable_p99_s": round(latencies[int(len(latencies) * 0.99)], 3)
+        if latencies
+        else None,
+        "slowest_probe_s": round(probes.slowest, 3),
+        "probe_failures": probes.failures[:5],
+        "service_peak_rss_mb": memory.peak // 2**20,
+        "peak_rss_mb": {name: peak // 2**20 for name, peak in memory.peaks.items()},
         "consumer_assignments": processors_log.read_text().count(ASSIGNED) - assignments_before,
         "answers": tally,
         # The machine's, at the phase's end: on a shared machine it says what else ran.
@@ -267,14 +304,15 @@ def test_readers_and_analysts_do_not_starve_probes_or_ingest(stack) -> None:
     assert (stack.log_dir / "processors.log").read_text().count(ASSIGNED) == 1
     phases = {load: run_phase(stack, load) for load in ("baseline", "readers", "analysts")}
     ARTIFACT.parent.mkdir(parents=True, exist_ok=True)
-    ARTIFACT.write_text(json.dumps({"memory_bound_mb": MEMORY_BOUND // 2 ** 20, **phases},
-                                   indent=2) + "\n")
+    ARTIFACT.write_text(
+        json.dumps({"memory_bound_mb": MEMORY_BOUND // 2**20, **phases}, indent=2) + "\n"
+    )
     late = []
     for figures in phases.values():
         assert figures["poses_seen_live"] >= 0.99 * figures["poses_published"], figures
         assert not figures["probe_failures"], figures
         assert figures["consumer_assignments"] == 0, figures  # never left its group
-        assert figures["service_peak_rss_mb"] * 2 ** 20 < MEMORY_BOUND, figures
+        assert figures["service_peak_rss_mb"] * 2**20 < MEMORY_BOUND, figures
         if figures["slowest_probe_s"] >= 1.0 or figures["publish_to_queryable_p99_s"] > 2.0:
             late.append(figures)
     # The readers did read and the analysts' sleeps ran (beyond the analysts' gate they
@@ -287,7 +325,10 @@ def test_readers_and_analysts_do_not_starve_probes_or_ingest(stack) -> None:
     # (other work; the baseline's figures show it too) a miss is reported, not judged.
     overloaded = [f for f in late if f["load_average_1m"] > OVERLOADED * (os.cpu_count() or 1)]
     if overloaded and len(overloaded) == len(late):
-        pytest.skip("time bounds not judged: the machine's load average was "
-                    + ", ".join(f"{f['load_average_1m']} ({f['load']})" for f in late)
-                    + f" on {os.cpu_count()} cores: " + json.dumps(late))
+        pytest.skip(
+            "time bounds not judged: the machine's load average was "
+            + ", ".join(f"{f['load_average_1m']} ({f['load']})" for f in late)
+            + f" on {os.cpu_count()} cores: "
+            + json.dumps(late)
+        )
     assert not late, late

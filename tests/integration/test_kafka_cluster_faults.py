@@ -30,8 +30,19 @@ from mapservice.sql.credentials import analyst_password_file
 from tests.fixtures.paths import MAPS
 
 from .conftest import wait_for_meta
-from .fault_load import (DOWN_S, ROBOTS, SNAPSHOT_ENV, STEADY_S, Load, Sql, now_ms,
-                         queryable, run_fault, verify, write_report)
+from .fault_load import (
+    DOWN_S,
+    ROBOTS,
+    SNAPSHOT_ENV,
+    STEADY_S,
+    Load,
+    Sql,
+    now_ms,
+    queryable,
+    run_fault,
+    verify,
+    write_report,
+)
 
 NODES = (1, 2, 3)
 
@@ -43,9 +54,18 @@ class Cluster:
     def __init__(self, root: Path) -> None:
         ports = {i: (embedded.free_port(), embedded.free_port()) for i in NODES}
         voters = ",".join(f"{i}@127.0.0.1:{ports[i][1]}" for i in NODES)
-        self.configs = {i: kafka_broker.KafkaNodeConfig(
-            log_dir=root / f"node-{i}" / "log", port=ports[i][0], controller_port=ports[i][1],
-            node_id=i, voters=voters, replication=3, min_insync_replicas=2) for i in NODES}
+        self.configs = {
+            i: kafka_broker.KafkaNodeConfig(
+                log_dir=root / f"node-{i}" / "log",
+                port=ports[i][0],
+                controller_port=ports[i][1],
+                node_id=i,
+                voters=voters,
+                replication=3,
+                min_insync_replicas=2,
+            )
+            for i in NODES
+        }
         self.cluster_id = kafka_broker.cluster_id()
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
@@ -91,8 +111,10 @@ class Cluster:
             try:
                 md = self.admin().list_topics(timeout=5)
                 if len(md.brokers) == len(NODES) and all(
-                        len(p.isrs) == len(NODES) for t in md.topics.values()
-                        for p in t.partitions.values()):
+                    len(p.isrs) == len(NODES)
+                    for t in md.topics.values()
+                    for p in t.partitions.values()
+                ):
                     return
             except Exception:  # noqa: BLE001 - a node still starting
                 pass
@@ -107,9 +129,13 @@ class Cluster:
         while time.monotonic() < deadline:
             try:
                 md = self.admin().list_topics(timeout=5)
-                if (node not in md.brokers and self.active_controller() != node and all(
-                        p.leader != node for t in md.topics.values()
-                        for p in t.partitions.values())):
+                if (
+                    node not in md.brokers
+                    and self.active_controller() != node
+                    and all(
+                        p.leader != node for t in md.topics.values() for p in t.partitions.values()
+                    )
+                ):
                     return
             except Exception:  # noqa: BLE001 - between elections
                 pass
@@ -117,7 +143,9 @@ class Cluster:
         raise AssertionError(f"the cluster did not take over from node {node} in {timeout_s:.0f} s")
 
     def partition_leader(self, topic: str, partition: int = 0) -> int:
-        return self.admin().list_topics(topic, timeout=10).topics[topic].partitions[partition].leader
+        return (
+            self.admin().list_topics(topic, timeout=10).topics[topic].partitions[partition].leader
+        )
 
     def active_controller(self) -> int:
         """The KRaft quorum's leader, as the running nodes last wrote it down."""
@@ -139,18 +167,32 @@ def test_a_lost_broker_and_a_lost_controller_lose_and_duplicate_nothing(tmp_path
     started = time.monotonic()
     cluster = Cluster(tmp_path / "kafka")
     meta = meta_for(load_ros_map(MAPS / "depot.yaml"))
-    stack = Stack(tmp_path / "stack", mqtt="mosquitto", kafka=cluster.bootstrap, extra_env={
-        "MAPSERVICE_KAFKA_REPLICATION": "3", **SNAPSHOT_ENV})
+    stack = Stack(
+        tmp_path / "stack",
+        mqtt="mosquitto",
+        kafka=cluster.bootstrap,
+        extra_env={"MAPSERVICE_KAFKA_REPLICATION": "3", **SNAPSHOT_ENV},
+    )
     load = None
     killed: dict[str, dict] = {}
     try:
         cluster.start_all()
-        stack.start(stack.start_brokers, lambda: stack.publish_meta(meta), stack.start_server,
-                    stack.start_gateway, lambda: wait_for_meta(stack))
+        stack.start(
+            stack.start_brokers,
+            lambda: stack.publish_meta(meta),
+            stack.start_server,
+            stack.start_gateway,
+            lambda: wait_for_meta(stack),
+        )
         cluster.wait_complete()
         password = analyst_password_file(stack.data_dir).read_text().strip()
-        sql = Sql(host="127.0.0.1", port=stack.api_port, username="analyst", password=password,
-                  proxy_path="/clickhouse")
+        sql = Sql(
+            host="127.0.0.1",
+            port=stack.api_port,
+            username="analyst",
+            password=password,
+            proxy_path="/clickhouse",
+        )
         load = Load(stack.mqtt_url, meta)
         time.sleep(2)
         pose_topic = stack.settings().topic_pose_events
@@ -171,13 +213,18 @@ def test_a_lost_broker_and_a_lost_controller_lose_and_duplicate_nothing(tmp_path
                 time.sleep(DOWN_S)
                 cluster.restart(node)
                 killed[fault.__name__] = {
-                    "node": node, "failed_over_s": round(failed_over, 2),
+                    "node": node,
+                    "failed_over_s": round(failed_over, 2),
                     "stored_without_it_s": round(serving, 2),
-                    "back_in_sync_s": round(time.monotonic() - t0, 2)}
+                    "back_in_sync_s": round(time.monotonic() - t0, 2),
+                }
+
             return fault
 
-        faults = [("partition-leader", lambda: cluster.partition_leader(pose_topic)),
-                  ("active-controller", cluster.active_controller)]
+        faults = [
+            ("partition-leader", lambda: cluster.partition_leader(pose_topic)),
+            ("active-controller", cluster.active_controller),
+        ]
         runs = []
         for name, which in faults:
             fault = kill_restart(which)
@@ -188,17 +235,19 @@ def test_a_lost_broker_and_a_lost_controller_lose_and_duplicate_nothing(tmp_path
         load.segment = "after"
         time.sleep(STEADY_S)
         load.stop()
-        report = {"topology": "mapservice serve + gateway + Mosquitto on three Apache Kafka KRaft "
-                              "nodes (broker and controller each; replication factor 3, "
-                              "min.insync.replicas 2, acks=all); nodes restarted by the test",
-                  # Per fault: the node killed, when the others had fenced it and re-elected
-                  # its partitions' leaders and the quorum's, when a message published after
-                  # the kill was queryable (the node still down), and when it was back with
-                  # every partition fully in sync.
-                  "killed_nodes": killed,
-                  "load": {"robots": ROBOTS, "qos": 1},
-                  **verify(sql, stack.api_url, load, runs, merge=False),
-                  "seconds": round(time.monotonic() - started, 1)}
+        report = {
+            "topology": "mapservice serve + gateway + Mosquitto on three Apache Kafka KRaft "
+            "nodes (broker and controller each; replication factor 3, "
+            "min.insync.replicas 2, acks=all); nodes restarted by the test",
+            # Per fault: the node killed, when the others had fenced it and re-elected
+            # its partitions' leaders and the quorum's, when a message published after
+            # the kill was queryable (the node still down), and when it was back with
+            # every partition fully in sync.
+            "killed_nodes": killed,
+            "load": {"robots": ROBOTS, "qos": 1},
+            **verify(sql, stack.api_url, load, runs, merge=False),
+            "seconds": round(time.monotonic() - started, 1),
+        }
     finally:
         if load is not None:
             load.close()

@@ -11,7 +11,9 @@ from mapservice.bench.group_protocol import member_loss
 
 @pytest.mark.timeout(240)
 @pytest.mark.parametrize("protocol", ["classic", "consumer"])
-def test_a_killed_member_s_partitions_are_read_again_by_the_survivor(apache_kafka, protocol) -> None:
+def test_a_killed_member_s_partitions_are_read_again_by_the_survivor(
+    apache_kafka, protocol
+) -> None:
     """The broker's session timeout is 10 s for both protocols (the embedded node sets the
     consumer protocol's group.consumer.* to the classic members' values; Kafka's default
     is 45 s): recovery within 30 s, and the join moves half the partitions."""

@@ -21,8 +21,8 @@ import httpx
 import pytest
 
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.local.stack import Stack
 from mapservice.core.wire2019 import encode_coordinates, format_timestamp
+from mapservice.local.stack import Stack
 
 ROBOTS, SECONDS = 20, 30
 DAY_MS = 86_400_000
@@ -35,9 +35,23 @@ def now_ms() -> int:
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     data_dir = tmp_path_factory.mktemp("late") / "data"
-    subprocess.run([sys.executable, "-m", "mapservice.cli", "demo-history", "--data-dir",
-                    str(data_dir), "--days", "6.05", "--robots", "1"], check=True, timeout=600,
-                   capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "demo-history",
+            "--data-dir",
+            str(data_dir),
+            "--days",
+            "6.05",
+            "--robots",
+            "1",
+        ],
+        check=True,
+        timeout=600,
+        capture_output=True,
+    )
     stack = Stack(data_dir, mqtt="mosquitto")
     with stack.running():
         yield stack
@@ -53,9 +67,20 @@ def publish_load(stack, late: tuple[str, bytes], sent: list) -> None:
         start = time.monotonic()
         for second in range(SECONDS):
             ts = now_ms()
-            infos = [client.publish(f"iot/coordinates/load-{r}", encode_coordinates(
-                f"load-{r}", format_timestamp(ts), float(second), float(r), battery_level=50.0), qos=1)
-                for r in range(ROBOTS)]
+            infos = [
+                client.publish(
+                    f"iot/coordinates/load-{r}",
+                    encode_coordinates(
+                        f"load-{r}",
+                        format_timestamp(ts),
+                        float(second),
+                        float(r),
+                        battery_level=50.0,
+                    ),
+                    qos=1,
+                )
+                for r in range(ROBOTS)
+            ]
             sent.extend((f"load-{r}", ts) for r in range(ROBOTS))
             if second == SECONDS // 3:
                 infos.append(client.publish(*late, qos=1))
@@ -75,16 +100,19 @@ def metric(text: str, name: str) -> float:
 def test_a_pose_six_days_late_under_load_stalls_nothing(stack) -> None:
     """All 600 load poses stored once, no commit failure, the late pose exact at its instant."""
     late_ms = now_ms() - 6 * DAY_MS + 3_600_000  # inside the demo history, six days back
-    late = ("iot/coordinates/late-1", encode_coordinates("late-1", format_timestamp(late_ms), 4.5, 7.25,
-                                                         battery_level=33.0))
+    late = (
+        "iot/coordinates/late-1",
+        encode_coordinates("late-1", format_timestamp(late_ms), 4.5, 7.25, battery_level=33.0),
+    )
     sent: list[tuple[str, int]] = []
     started = now_ms()
     publish_load(stack, late, sent)
     http = httpx.Client(base_url=stack.api_url, timeout=30)
     deadline = time.monotonic() + 90
     while True:
-        stored = http.get("/api/v1/poses", params={"from": started - 1000, "to": now_ms() + 1,
-                                                   "limit": 100_000}).json()
+        stored = http.get(
+            "/api/v1/poses", params={"from": started - 1000, "to": now_ms() + 1, "limit": 100_000}
+        ).json()
         mine = [(p["robotId"], p["ts_ms"]) for p in stored if p["robotId"].startswith("load-")]
         if len(set(mine)) >= len(sent) or time.monotonic() > deadline:
             break
@@ -102,13 +130,18 @@ def test_a_pose_six_days_late_under_load_stalls_nothing(stack) -> None:
 
     # The timer repairs a day of snapshots per tick (every 30 s with 10-minute snapshots):
     # wait for the first step, not for all six (that would be three minutes).
-    sql = ("SELECT toUnixTimestamp64Milli(min(from_ts)), count() FROM mapservice.snapshot_repairs "
-           "FORMAT CSV")
+    sql = (
+        "SELECT toUnixTimestamp64Milli(min(from_ts)), count() FROM mapservice.snapshot_repairs "
+        "FORMAT CSV"
+    )
     password = (stack.data_dir / "secrets" / "analyst-password").read_text().strip()
 
     def pending() -> tuple[int, int]:
-        first, count = http.post("/clickhouse/", content=sql.encode(),
-                                 auth=("analyst", password)).text.strip().split(",")
+        first, count = (
+            http.post("/clickhouse/", content=sql.encode(), auth=("analyst", password))
+            .text.strip()
+            .split(",")
+        )
         return int(first), int(count)
 
     deadline = time.monotonic() + 120

@@ -18,14 +18,14 @@ import time
 import pytest
 from websockets.sync.client import connect
 
-from mapservice.local import embedded
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.core.events import make_envelope
 from mapservice.adapters.ros_map import load_ros_map, meta_for
-from mapservice.settings import Settings
+from mapservice.core.events import make_envelope
+from mapservice.core.wire2019 import encode_coordinates, format_timestamp
+from mapservice.local import embedded
 from mapservice.local.checkout import TEST_UI_ENV
 from mapservice.local.stack import Stack
-from mapservice.core.wire2019 import encode_coordinates, format_timestamp
+from mapservice.settings import Settings
 from tests.fixtures.paths import MAPS
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
@@ -55,12 +55,17 @@ def stack(tmp_path_factory):
     stack = Stack(root / "processors", mqtt="mosquitto", extra_env=dict(TEST_UI_ENV))
     stack.second_api_port = embedded.free_port()  # type: ignore[attr-defined]
     stack.root = root  # type: ignore[attr-defined]
-    with stack.running(stack.start_brokers, lambda: stack.publish_meta(meta),
-                       lambda: stack.start_processors(embedded.free_port()),
-                       lambda: stack.start_api(env={"MAPSERVICE_DATA_DIR": str(root / "api-1")}),
-                       lambda: stack.start_api(stack.second_api_port, name="api-2",
-                                               env={"MAPSERVICE_DATA_DIR": str(root / "api-2")}),
-                       stack.start_gateway, lambda: wait_for_meta(stack)):
+    with stack.running(
+        stack.start_brokers,
+        lambda: stack.publish_meta(meta),
+        lambda: stack.start_processors(embedded.free_port()),
+        lambda: stack.start_api(env={"MAPSERVICE_DATA_DIR": str(root / "api-1")}),
+        lambda: stack.start_api(
+            stack.second_api_port, name="api-2", env={"MAPSERVICE_DATA_DIR": str(root / "api-2")}
+        ),
+        stack.start_gateway,
+        lambda: wait_for_meta(stack),
+    ):
         yield stack
 
 
@@ -70,8 +75,10 @@ def live_url(port: int) -> str:
 
 def publish_pose(stack: Stack, robot: str) -> int:
     ts = now_ms()
-    publish_all(stack, [(f"iot/coordinates/{robot}",
-                         encode_coordinates(robot, format_timestamp(ts), 1.0, 2.0))])
+    publish_all(
+        stack,
+        [(f"iot/coordinates/{robot}", encode_coordinates(robot, format_timestamp(ts), 1.0, 2.0))],
+    )
     return ts
 
 
@@ -86,8 +93,10 @@ def next_of(ws, robot: str, timeout_s: float = 20) -> dict:
 
 def test_every_api_replica_streams_what_the_processors_stored(stack) -> None:
     """A pose published over MQTT reaches /api/v1/live of both API processes, once each."""
-    with connect(live_url(stack.api_port), open_timeout=10) as one, \
-            connect(live_url(stack.second_api_port), open_timeout=10) as two:
+    with (
+        connect(live_url(stack.api_port), open_timeout=10) as one,
+        connect(live_url(stack.second_api_port), open_timeout=10) as two,
+    ):
         ts = publish_pose(stack, "apart-1")
         for ws in (one, two):
             message = next_of(ws, "apart-1")
@@ -105,8 +114,9 @@ def test_a_restarted_replica_streams_again_from_now(stack) -> None:
     proc.send_signal(signal.SIGTERM)
     # uvicorn shuts down gracefully, then re-raises the signal it caught: exit by SIGTERM.
     assert proc.wait(30) in (0, -signal.SIGTERM)
-    stack.start_api(stack.second_api_port, name="api-2",
-                    env={"MAPSERVICE_DATA_DIR": str(stack.root / "api-2")})
+    stack.start_api(
+        stack.second_api_port, name="api-2", env={"MAPSERVICE_DATA_DIR": str(stack.root / "api-2")}
+    )
     with connect(live_url(stack.second_api_port), open_timeout=10) as two:
         ts = publish_pose(stack, "apart-after")
         got = [json.loads(two.recv(timeout=20))]
@@ -120,15 +130,19 @@ def test_a_restarted_replica_streams_again_from_now(stack) -> None:
 def test_the_ui_live_mode_shows_a_pose_stored_by_another_process(stack, page) -> None:
     """In the browser, live mode on an API replica draws a pose the processors stored elsewhere."""
     page.goto(f"{stack.api_url}/?live=1")
-    page.wait_for_function("() => window.__replay && window.__replay.liveStatus.connected",
-                           timeout=60_000)
+    page.wait_for_function(
+        "() => window.__replay && window.__replay.liveStatus.connected", timeout=60_000
+    )
     meta = page.evaluate("() => window.__replay.meta")
     x, y = meta["origin"][0] + 10.0, meta["origin"][1] + 10.0
     ts = now_ms()
-    publish_all(stack, [("iot/coordinates/apart-ui",
-                         encode_coordinates("apart-ui", format_timestamp(ts), x, y))])
+    publish_all(
+        stack,
+        [("iot/coordinates/apart-ui", encode_coordinates("apart-ui", format_timestamp(ts), x, y))],
+    )
     page.wait_for_function(
-        "() => window.__replay.drawnRobots().some(r => r.robotId === 'apart-ui')", timeout=30_000)
+        "() => window.__replay.drawnRobots().some(r => r.robotId === 'apart-ui')", timeout=30_000
+    )
     shown = {r["robotId"]: r for r in page.evaluate("() => window.__replay.robots()")}
     assert shown["apart-ui"]["x"] == pytest.approx(x) and shown["apart-ui"]["y"] == pytest.approx(y)
     assert page.evaluate("() => window.__replay.liveStatus.reconnects") == 0

@@ -16,9 +16,9 @@ from confluent_kafka.admin import AdminClient, NewTopic
 
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
+from mapservice.adapters.kafka_topics import ensure_topics
 from mapservice.core.live_messages import live_records
 from mapservice.settings import Settings
-from mapservice.adapters.kafka_topics import ensure_topics
 
 WAIT_S = 15
 
@@ -27,10 +27,20 @@ WAIT_S = 15
 def kafka(apache_kafka):
     """Settings on the shared broker, with topic names of this module's own."""
     prefix = f"test-live-relay-{uuid.uuid4().hex[:8]}"
-    settings = Settings(kafka_bootstrap=apache_kafka, **{
-        field: f"{prefix}.{field}" for field in (
-            "topic_chunk_events", "topic_pose_events", "topic_meta_events",
-            "topic_dead_letter", "topic_live", "topic_annotation_events")})
+    settings = Settings(
+        kafka_bootstrap=apache_kafka,
+        **{
+            field: f"{prefix}.{field}"
+            for field in (
+                "topic_chunk_events",
+                "topic_pose_events",
+                "topic_meta_events",
+                "topic_dead_letter",
+                "topic_live",
+                "topic_annotation_events",
+            )
+        },
+    )
     ensure_topics(settings)
     return settings
 
@@ -68,8 +78,11 @@ def test_every_replica_gets_every_stored_batch_in_order_from_its_start_on(kafka,
     first, got_first = started(kafka)
     second, got_second = started(kafka)
     try:
-        batches = [[ev.pose(f"rep-{b % 3}", 1_000 * b + i) for i in range(5)] + [ev.chunk("rep-c", 1_000 * b)]
-                   for b in range(10)]
+        batches = [
+            [ev.pose(f"rep-{b % 3}", 1_000 * b + i) for i in range(5)]
+            + [ev.chunk("rep-c", 1_000 * b)]
+            for b in range(10)
+        ]
         for batch in batches:
             publisher.publish(batch)
         expected = [(e.robot_id, e.event_time_ms) for batch in batches for e in batch]
@@ -106,12 +119,16 @@ def test_the_relay_reads_every_partition(kafka, ev):
     """On a multi-partition live topic (e.g. created by an operator) the relay reads all partitions."""
     settings = kafka.model_copy(update={"topic_live": kafka.topic_live + ".partitioned"})
     admin = AdminClient(settings.kafka_config())
-    admin.create_topics([NewTopic(settings.topic_live, num_partitions=2)])[settings.topic_live].result(10)
+    admin.create_topics([NewTopic(settings.topic_live, num_partitions=2)])[
+        settings.topic_live
+    ].result(10)
     relay, got = started(settings)
     producer = Producer(settings.kafka_config())
     try:
         for p in (0, 1):
-            producer.produce(settings.topic_live, partition=p, value=live_records([ev.pose(f"p{p}", p)])[0])
+            producer.produce(
+                settings.topic_live, partition=p, value=live_records([ev.pose(f"p{p}", p)])[0]
+            )
         producer.flush(10)
         assert sorted(got.wait_for(2)) == [("p0", 0), ("p1", 1)]
     finally:

@@ -11,12 +11,12 @@ import zlib
 
 import httpx
 import pytest
-
-from mapservice.core.events import decode_dead_letter
 from mapservice.ingest.router import DEAD_LETTER_PAYLOAD_MAX
 from mapservice.robot.loadgen import RobotFleet
-from mapservice.adapters.ros_map import load_ros_map
+
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.adapters.ros_map import load_ros_map
+from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS
 
@@ -49,10 +49,16 @@ def pose_and_chunk_messages(prefix: str, robots: int, per_robot: int, start_ms: 
         robot = f"{prefix}-{r}"
         for k in range(per_robot):
             ts = format_timestamp(start_ms + k * 1000 + r)
-            poses.append((f"iot/coordinates/{robot}",
-                          encode_coordinates(robot, ts, 1.0 + k, 2.0 + r, battery_level=50.0)))
+            poses.append(
+                (
+                    f"iot/coordinates/{robot}",
+                    encode_coordinates(robot, ts, 1.0 + k, 2.0 + r, battery_level=50.0),
+                )
+            )
             if k % 5 == 0:
-                chunks.append(("iot/chunks/create", encode_chunk_create(r % 3, k % 6, pixels, ts, robot)))
+                chunks.append(
+                    ("iot/chunks/create", encode_chunk_create(r % 3, k % 6, pixels, ts, robot))
+                )
     return poses, chunks
 
 
@@ -85,17 +91,37 @@ def test_republished_messages_are_stored_once(mosquitto_stack):
 def bad_messages(ts: str) -> dict[str, tuple[str, bytes]]:
     """One message per bad-input class, keyed by the reason the gateway must give."""
     good_pose = encode_coordinates("bad-1", ts, 1, 2).decode()
-    chunk = lambda **kw: ("iot/chunks/create", httpx.Request("POST", "http://x", json={  # noqa: E731
-        "pgmB64compressedData": base64.b64encode(zlib.compress(bytes(10000))).decode(),
-        "row": 0, "column": 0, "timestamp": ts, "robotId": "bad-1", **kw}).content)
+
+    def chunk(**kw):
+        return (
+            "iot/chunks/create",
+            httpx.Request(
+                "POST",
+                "http://x",
+                json={
+                    "pgmB64compressedData": base64.b64encode(zlib.compress(bytes(10000))).decode(),
+                    "row": 0,
+                    "column": 0,
+                    "timestamp": ts,
+                    "robotId": "bad-1",
+                    **kw,
+                },
+            ).content,
+        )
+
     return {
         "not_json": ("iot/coordinates/bad-1", b"{not json"),
-        "missing_field": ("iot/coordinates/bad-1", good_pose.replace('"timestamp"', '"when"').encode()),
+        "missing_field": (
+            "iot/coordinates/bad-1",
+            good_pose.replace('"timestamp"', '"when"').encode(),
+        ),
         "wrong_type": chunk(row="three"),
         "bad_robot_id": chunk(robotId="robot with spaces"),
         "bad_base64": chunk(pgmB64compressedData="%%%not-base64%%%"),
         "bad_zlib": chunk(pgmB64compressedData=base64.b64encode(b"not zlib at all").decode()),
-        "wrong_chunk_size": chunk(pgmB64compressedData=base64.b64encode(zlib.compress(bytes(99))).decode()),
+        "wrong_chunk_size": chunk(
+            pgmB64compressedData=base64.b64encode(zlib.compress(bytes(99))).decode()
+        ),
         "out_of_map": chunk(row=999),
         "bad_timestamp": chunk(timestamp="yesterday at noon"),
         "timestamp_in_future": chunk(timestamp="2099-01-01T00:00:00"),
@@ -117,8 +143,10 @@ def test_every_bad_input_class_is_dead_lettered_with_its_reason(mosquitto_stack)
     interleaved.append(good[-1])
     publish_all(stack, interleaved)
 
-    letters = [decode_dead_letter(v) for v in read_topic(
-        stack, stack.settings().topic_dead_letter, min_records=len(bad))]
+    letters = [
+        decode_dead_letter(v)
+        for v in read_topic(stack, stack.settings().topic_dead_letter, min_records=len(bad))
+    ]
     by_reason = {}
     for letter in letters:
         by_reason.setdefault(letter.reason, letter)
@@ -140,8 +168,14 @@ def test_every_bad_input_class_is_dead_lettered_with_its_reason(mosquitto_stack)
 def test_gateway_sigkill_under_load_loses_and_duplicates_nothing(mosquitto_stack):
     """SIGKILL of the gateway mid-load, then restart: every published message stored exactly once."""
     stack = mosquitto_stack
-    fleet = RobotFleet(stack.mqtt_url, load_ros_map(MAPS / "depot.yaml"), robots=100,
-                       prefix="kill", record=True, seed=11)
+    fleet = RobotFleet(
+        stack.mqtt_url,
+        load_ros_map(MAPS / "depot.yaml"),
+        robots=100,
+        prefix="kill",
+        record=True,
+        seed=11,
+    )
     start = now_ms() - 1000
     runner = threading.Thread(target=fleet.run, args=(10.0,))
     runner.start()
@@ -173,8 +207,15 @@ def test_live_websocket_streams_a_published_pose(mosquitto_stack):
     with connect(url, open_timeout=10) as ws:
         time.sleep(0.3)
         ts = now_ms()
-        publish_all(stack, [("iot/coordinates/live-1",
-                             encode_coordinates("live-1", format_timestamp(ts), 3.0, 4.0))])
+        publish_all(
+            stack,
+            [
+                (
+                    "iot/coordinates/live-1",
+                    encode_coordinates("live-1", format_timestamp(ts), 3.0, 4.0),
+                )
+            ],
+        )
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
             message = json.loads(ws.recv(timeout=30))

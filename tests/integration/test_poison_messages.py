@@ -33,8 +33,9 @@ def letters_for(stack, robot_topic: str, count: int) -> list:
 
 
 def good_pose(robot: str, ts_ms: int) -> tuple[str, bytes]:
-    return f"iot/coordinates/{robot}", encode_coordinates(robot, format_timestamp(ts_ms), 1.0, 2.0,
-                                                           battery_level=50.0)
+    return f"iot/coordinates/{robot}", encode_coordinates(
+        robot, format_timestamp(ts_ms), 1.0, 2.0, battery_level=50.0
+    )
 
 
 def test_poison_messages_are_dead_letters_and_the_next_message_is_stored(mosquitto_stack):
@@ -48,7 +49,10 @@ def test_poison_messages_are_dead_letters_and_the_next_message_is_stored(mosquit
     reasons = {d.reason: d for d in letters_for(stack, topic, 2)}
     assert {"too_deep", "oversized"} <= set(reasons)
     assert reasons["too_deep"].payload == DEEP
-    assert len(reasons["oversized"].payload) == 64 * 1024 and str(len(HUGE)) in reasons["oversized"].detail
+    assert (
+        len(reasons["oversized"].payload) == 64 * 1024
+        and str(len(HUGE)) in reasons["oversized"].detail
+    )
     status = health(stack)
     assert status["ok"] and status["mqtt_connected"] and status["mqtt_loop_alive"]
     assert status["in_flight"] == 0

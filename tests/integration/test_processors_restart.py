@@ -17,14 +17,21 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.kafka_publisher import KafkaPublisher
-from mapservice.core.conflicts import all_conflicts
-from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, encode, kafka_key, make_envelope
-from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.adapters.mqtt_client import make_client
+from mapservice.adapters.ros_map import load_ros_map, meta_for
+from mapservice.core.conflicts import all_conflicts
+from mapservice.core.events import (
+    ChunkUpdated,
+    Envelope,
+    PoseReported,
+    encode,
+    kafka_key,
+    make_envelope,
+)
 from mapservice.core.ports import ChunkRow
-from mapservice.local.stack import Stack
 from mapservice.core.timetravel import fold_map
 from mapservice.core.wire2019 import content_hash, parse_timestamp
+from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS
 
 ROBOTS = ["r1", "r2", "r3", "r4"]
@@ -39,13 +46,21 @@ def chunk(robot: str, ts: int, row: int, col: int, shade: int) -> Envelope:
 
 
 def pose(robot: str, ts: int) -> Envelope:
-    return make_envelope(robot, ts, ts + 20, PoseReported((ts % 1000 / 10, 1.0, 0.0),
-                                                          (0.0, 0.0, 0.0, 1.0), 50.0))
+    return make_envelope(
+        robot, ts, ts + 20, PoseReported((ts % 1000 / 10, 1.0, 0.0), (0.0, 0.0, 0.0, 1.0), 50.0)
+    )
 
 
 def writes(rng: random.Random, n: int, lo: int, hi: int) -> list[Envelope]:
-    return [chunk(rng.choice(ROBOTS), rng.randrange(lo, hi) // 10 * 10, *rng.choice(CHUNKS),
-                  rng.choice([10, 20, 30])) for _ in range(n)]
+    return [
+        chunk(
+            rng.choice(ROBOTS),
+            rng.randrange(lo, hi) // 10 * 10,
+            *rng.choice(CHUNKS),
+            rng.choice([10, 20, 30]),
+        )
+        for _ in range(n)
+    ]
 
 
 def poses(lo: int, hi: int) -> list[Envelope]:
@@ -57,14 +72,20 @@ def publish(stack: Stack, events: list[Envelope]) -> None:
     publisher = KafkaPublisher(settings, client_id="restart-test")
     errors: list = []
     for e in events:
-        topic = settings.topic_chunk_events if isinstance(e.payload, ChunkUpdated) else settings.topic_pose_events
+        topic = (
+            settings.topic_chunk_events
+            if isinstance(e.payload, ChunkUpdated)
+            else settings.topic_pose_events
+        )
         publisher.publish(topic, kafka_key(e), encode(e), lambda err: err and errors.append(err))
     assert publisher.flush(30) == 0 and not errors
 
 
 def row(e: Envelope) -> ChunkRow:
     p = e.payload
-    return ChunkRow(p.row, p.column, e.event_time_ms, e.robot_id, p.content_hash.hex(), e.receive_time_ms)
+    return ChunkRow(
+        p.row, p.column, e.event_time_ms, e.robot_id, p.content_hash.hex(), e.receive_time_ms
+    )
 
 
 class Advertisements:
@@ -77,7 +98,9 @@ class Advertisements:
         self.client = make_client(f"restart-test-{os.getpid()}")
         self.client.on_connect = lambda c, *a: c.subscribe(topic, qos=1)
         self.client.on_subscribe = lambda *a: self.subscribed.set()
-        self.client.on_message = lambda c, u, m: self.received.append(msgspec.json.decode(m.payload))
+        self.client.on_message = lambda c, u, m: self.received.append(
+            msgspec.json.decode(m.payload)
+        )
         self.client.connect(host, int(port))
         self.client.loop_start()
         assert self.subscribed.wait(10)
@@ -96,8 +119,10 @@ def api(stack: Stack, path: str, **params):
 def wait_stored(stack: Stack, lo: int, hi: int, chunks: int, pose_count: int, timeout_s=90) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        got = (len(api(stack, "/api/v1/chunk-events", **{"from": lo, "to": hi, "limit": 100_000})),
-               len(api(stack, "/api/v1/poses", **{"from": lo, "to": hi, "limit": 100_000})))
+        got = (
+            len(api(stack, "/api/v1/chunk-events", **{"from": lo, "to": hi, "limit": 100_000})),
+            len(api(stack, "/api/v1/poses", **{"from": lo, "to": hi, "limit": 100_000})),
+        )
         if got == (chunks, pose_count):
             return
         time.sleep(0.5)
@@ -112,9 +137,15 @@ def kill_server(stack: Stack) -> None:
 
 @pytest.fixture
 def stack(tmp_path):
-    s = Stack(tmp_path / "restart", mqtt="mosquitto",
-              extra_env={"MAPSERVICE_SNAPSHOT_EVERY_S": "20", "MAPSERVICE_SNAPSHOT_GRACE_S": "0",
-                         "MAPSERVICE_CONFLICT_WINDOW_S": str(WINDOW_MS // 1000)})
+    s = Stack(
+        tmp_path / "restart",
+        mqtt="mosquitto",
+        extra_env={
+            "MAPSERVICE_SNAPSHOT_EVERY_S": "20",
+            "MAPSERVICE_SNAPSHOT_GRACE_S": "0",
+            "MAPSERVICE_CONFLICT_WINDOW_S": str(WINDOW_MS // 1000),
+        },
+    )
     s.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = s.api_url
     try:
         s.start_brokers()
@@ -142,15 +173,19 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
         wait_stored(stack, base, base + 13 * minute, n_chunks(), n_poses())
         time.sleep(6)  # one snapshot tick: the late writes below must repair snapshots
 
-        phase2 = writes(rng, 30, base + 5 * minute, base + 10 * minute) + poses(base + 5 * minute, base + 10 * minute)
+        phase2 = writes(rng, 30, base + 5 * minute, base + 10 * minute) + poses(
+            base + 5 * minute, base + 10 * minute
+        )
         publish(stack, phase2)
         unique.update({e.event_id: e for e in phase2})
         wait_stored(stack, base, base + 13 * minute, n_chunks(), n_poses())
         time.sleep(2)  # offsets committed: these are not re-delivered after the kill
 
         # Mid-stream: writes to two chunks only, killed while they are being taken in.
-        in_flight = [chunk(rng.choice(ROBOTS), base + 10 * minute + i * 3000 + 7, *CHUNKS[i % 2], 60)
-                     for i in range(10)] + poses(base + 10 * minute, base + 10 * minute + 30_000)
+        in_flight = [
+            chunk(rng.choice(ROBOTS), base + 10 * minute + i * 3000 + 7, *CHUNKS[i % 2], 60)
+            for i in range(10)
+        ] + poses(base + 10 * minute, base + 10 * minute + 30_000)
         publish(stack, in_flight)
         time.sleep(0.3)
         kill_server(stack)
@@ -159,25 +194,39 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
         assert before_restart > 0
 
         stack.start_server()
-        live = fold_map([row(e) for e in unique.values() if isinstance(e.payload, ChunkUpdated)], 2**62)
+        live = fold_map(
+            [row(e) for e in unique.values() if isinstance(e.payload, ChunkUpdated)], 2**62
+        )
         # Re-delivered writes and late ones, all older than the live version of their chunk:
         # history, never advertised (an empty view after the restart would advertise them).
         # (The late ones' times end in 5 ms: no identity of theirs exists already.)
-        late = [chunk(r, max(base, live[(rw, c)].ts_ms - 1000 * rng.randrange(1, 200)) + 5, rw, c, 40)
-                for r, (rw, c) in zip(ROBOTS * 2, CHUNKS)]
+        late = [
+            chunk(r, max(base, live[(rw, c)].ts_ms - 1000 * rng.randrange(1, 200)) + 5, rw, c, 40)
+            for r, (rw, c) in zip(ROBOTS * 2, CHUNKS)
+        ]
         older = phase1[:20] + phase2 + late + poses(base + 10 * minute + 30_000, base + 11 * minute)
         rng.shuffle(older)
         publish(stack, older)
         unique.update({e.event_id: e for e in older})
         wait_stored(stack, base, base + 13 * minute, n_chunks(), n_poses())
         time.sleep(2)
-        in_flight_ids = {(e.payload.row, e.payload.column, e.event_time_ms, e.robot_id)
-                         for e in in_flight if isinstance(e.payload, ChunkUpdated)}
+        in_flight_ids = {
+            (e.payload.row, e.payload.column, e.event_time_ms, e.robot_id)
+            for e in in_flight
+            if isinstance(e.payload, ChunkUpdated)
+        }
         for a in ads.received[before_restart:]:
-            assert (a["row"], a["column"], parse_timestamp(a["timestamp"]), a["robotId"]) in in_flight_ids, a
+            assert (
+                a["row"],
+                a["column"],
+                parse_timestamp(a["timestamp"]),
+                a["robotId"],
+            ) in in_flight_ids, a
 
-        newest = [chunk(rng.choice(ROBOTS), base + 11 * minute + i * 1000, rw, c, 50 + i)
-                  for i, (rw, c) in enumerate(CHUNKS)]
+        newest = [
+            chunk(rng.choice(ROBOTS), base + 11 * minute + i * 1000, rw, c, 50 + i)
+            for i, (rw, c) in enumerate(CHUNKS)
+        ]
         last = newest + poses(base + 11 * minute, base + 12 * minute)
         publish(stack, last)
         unique.update({e.event_id: e for e in last})
@@ -185,43 +234,69 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
         time.sleep(7)  # a snapshot tick after the last batch
 
         chunk_rows = [row(e) for e in unique.values() if isinstance(e.payload, ChunkUpdated)]
-        stored = api(stack, "/api/v1/chunk-events", **{"from": base, "to": base + 13 * minute,
-                                                       "limit": 100_000})
+        stored = api(
+            stack,
+            "/api/v1/chunk-events",
+            **{"from": base, "to": base + 13 * minute, "limit": 100_000},
+        )
         keys = [(c["row"], c["column"], c["ts_ms"], c["robotId"]) for c in stored]
         assert len(keys) == len(set(keys)) == len(chunk_rows)
 
-        probes = [base - 1, base + 2 * minute, base + 5 * minute, base + 7 * minute + 333,
-                  base + 10 * minute, base + 11 * minute + 2500, now] + [e.event_time_ms for e in late]
+        probes = [
+            base - 1,
+            base + 2 * minute,
+            base + 5 * minute,
+            base + 7 * minute + 333,
+            base + 10 * minute,
+            base + 11 * minute + 2500,
+            now,
+        ] + [e.event_time_ms for e in late]
         for t in probes:
-            got = {(c["row"], c["column"]): (c["ts_ms"], c["robotId"], c["content_hash"])
-                   for c in api(stack, "/api/v1/map", at=t)["chunks"]}
-            want = {k: (s.ts_ms, s.robot_id, s.content_hash) for k, s in fold_map(chunk_rows, t).items()}
+            got = {
+                (c["row"], c["column"]): (c["ts_ms"], c["robotId"], c["content_hash"])
+                for c in api(stack, "/api/v1/map", at=t)["chunks"]
+            }
+            want = {
+                k: (s.ts_ms, s.robot_id, s.content_hash) for k, s in fold_map(chunk_rows, t).items()
+            }
             assert got == want, t
-            robots = {r["robotId"]: r["ts_ms"] for r in api(stack, "/api/v1/robots", at=t)["robots"]}
+            robots = {
+                r["robotId"]: r["ts_ms"] for r in api(stack, "/api/v1/robots", at=t)["robots"]
+            }
             pose_rows = [e for e in unique.values() if isinstance(e.payload, PoseReported)]
             latest: dict = {}
             for e in pose_rows:
                 if e.event_time_ms <= t:
-                    latest[e.robot_id] = max(latest.get(e.robot_id, e.event_time_ms), e.event_time_ms)
+                    latest[e.robot_id] = max(
+                        latest.get(e.robot_id, e.event_time_ms), e.event_time_ms
+                    )
             assert robots == latest, t
 
-        got_conflicts = api(stack, "/api/v1/conflicts", **{"from": base - minute,
-                                                           "to": base + 14 * minute})["conflicts"]
+        got_conflicts = api(
+            stack, "/api/v1/conflicts", **{"from": base - minute, "to": base + 14 * minute}
+        )["conflicts"]
         assert got_conflicts  # the workload has some, so the comparison means something
         fields = ("row", "column", "ts_ms", "robot_a", "ts_a_ms", "robot_b")
-        assert [tuple(c[f] for f in fields) for c in got_conflicts] == \
-            [tuple(msgspec.structs.astuple(c)) for c in all_conflicts(chunk_rows, WINDOW_MS)]
+        assert [tuple(c[f] for f in fields) for c in got_conflicts] == [
+            tuple(msgspec.structs.astuple(c)) for c in all_conflicts(chunk_rows, WINDOW_MS)
+        ]
         hashes = {(w.row, w.column, w.ts_ms, w.robot_id): w.content_hash for w in chunk_rows}
         assert [(c["hash_a"], c["hash_b"]) for c in got_conflicts] == [
-            (hashes[c["row"], c["column"], c["ts_a_ms"], c["robot_a"]],
-             hashes[c["row"], c["column"], c["ts_ms"], c["robot_b"]]) for c in got_conflicts]
+            (
+                hashes[c["row"], c["column"], c["ts_a_ms"], c["robot_a"]],
+                hashes[c["row"], c["column"], c["ts_ms"], c["robot_b"]],
+            )
+            for c in got_conflicts
+        ]
 
         final = fold_map(chunk_rows, 2**62)
         want_last = {k: (s.ts_ms, s.robot_id) for k, s in final.items()}
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline:
-            got_last = {(a["row"], a["column"]): (parse_timestamp(a["timestamp"]), a["robotId"])
-                        for a in ads.received}
+            got_last = {
+                (a["row"], a["column"]): (parse_timestamp(a["timestamp"]), a["robotId"])
+                for a in ads.received
+            }
             if got_last == want_last:
                 break
             time.sleep(0.5)
@@ -248,7 +323,9 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
     try:
         (n_snaps,) = store.client.query(
             "SELECT count() FROM mapservice.snapshot_log FINAL WHERE snap_ts >= "
-            "fromUnixTimestamp64Milli({b:Int64})", parameters={"b": base}).result_rows[0]
+            "fromUnixTimestamp64Milli({b:Int64})",
+            parameters={"b": base},
+        ).result_rows[0]
         assert n_snaps >= 30
         for t in range(base, base + 13 * minute, 20_000):
             assert {(c.row, c.column): c for c in store.map_at(t)} == fold_map(chunk_rows, t), t

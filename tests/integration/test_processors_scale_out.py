@@ -19,7 +19,6 @@ from mapservice.local.stack import Stack
 
 from .test_split_topology import start_clickhouse_server
 
-
 REPLICAS = ("processors-1", "processors-2")
 
 
@@ -39,15 +38,24 @@ def healthy(port: int) -> bool:
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     ch_port = embedded.free_port()
-    stack = Stack(tmp_path_factory.mktemp("scale-out"), mqtt="mosquitto", extra_env={
-        "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
-        "MAPSERVICE_KAFKA_PARTITIONS": "1",  # one replica gets it, the other none
-        "MAPSERVICE_SNAPSHOT_EVERY_S": "4",  # the timer ticks every second
-    })
+    stack = Stack(
+        tmp_path_factory.mktemp("scale-out"),
+        mqtt="mosquitto",
+        extra_env={
+            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
+            "MAPSERVICE_KAFKA_PARTITIONS": "1",  # one replica gets it, the other none
+            "MAPSERVICE_SNAPSHOT_EVERY_S": "4",  # the timer ticks every second
+        },
+    )
     stack.ports = [embedded.free_port() for _ in REPLICAS]  # type: ignore[attr-defined]
-    with stack.running(stack.start_brokers, lambda: start_clickhouse_server(stack, ch_port),
-                       *(lambda p=port, n=name: stack.start_processors(p, n)
-                         for port, name in zip(stack.ports, REPLICAS))):
+    with stack.running(
+        stack.start_brokers,
+        lambda: start_clickhouse_server(stack, ch_port),
+        *(
+            lambda p=port, n=name: stack.start_processors(p, n)
+            for port, name in zip(stack.ports, REPLICAS)
+        ),
+    ):
         yield stack
 
 

@@ -40,7 +40,12 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
 from mapservice.core.timetravel import fold_map
-from mapservice.core.wire2019 import content_hash, encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.core.wire2019 import (
+    content_hash,
+    encode_chunk_create,
+    encode_coordinates,
+    format_timestamp,
+)
 from mapservice.local.stack import Stack
 from mapservice.settings import Settings
 from mapservice.sql.credentials import analyst_password_file
@@ -58,17 +63,32 @@ POSES_PER_TURN = 6  # per robot and turn of the drive loop (~0.2 real s, ~30 sim
 CONFLICT_GAP_MS = 20_000  # within the 60 s conflict window
 # Restarts along the way (simulated day: component). "kafka" only where its broker keeps
 # its records across a restart (kafka_keeps_records).
-RESTARTS = {4.3: "processors", 6.8: "api", 9.4: "gateway", 11.6: "clickhouse", 14.2: "mqtt",
-            19.3: "kafka"}
+RESTARTS = {
+    4.3: "processors",
+    6.8: "api",
+    9.4: "gateway",
+    11.6: "clickhouse",
+    14.2: "mqtt",
+    19.3: "kafka",
+}
 # The operator's annotations (simulated day: edit), away from the API's restart. The first
 # robot drives at x 1.0-1.5 m, y 2 m (the others further right): inside the zone.
-KEEP_OUT = {"shape": "zone", "name": "wash bay", "kind": "keep_out",
-            "polygon": [[0.8, 1.7], [1.7, 1.7], [1.7, 2.3], [0.8, 2.3]]}
+KEEP_OUT = {
+    "shape": "zone",
+    "name": "wash bay",
+    "kind": "keep_out",
+    "polygon": [[0.8, 1.7], [1.7, 1.7], [1.7, 2.3], [0.8, 2.3]],
+}
 DOCK = {"shape": "poi", "name": "dock", "kind": "station", "x": 5.0, "y": 3.0, "heading": 0.0}
 NOTE = {"shape": "poi", "name": "spill", "kind": "note", "x": 7.0, "y": 4.0}
-EDITS = {1.0: ("create", "zone-wash", KEEP_OUT), 1.1: ("create", "poi-dock", DOCK),
-         2.0: ("create", "poi-spill", NOTE), 3.5: ("change", "poi-dock", {**DOCK, "x": 6.0}),
-         5.5: ("remove", "poi-spill", None), 21.0: ("change", "zone-wash", {**KEEP_OUT, "name": "wash bay 2"})}
+EDITS = {
+    1.0: ("create", "zone-wash", KEEP_OUT),
+    1.1: ("create", "poi-dock", DOCK),
+    2.0: ("create", "poi-spill", NOTE),
+    3.5: ("change", "poi-dock", {**DOCK, "x": 6.0}),
+    5.5: ("remove", "poi-spill", None),
+    21.0: ("change", "zone-wash", {**KEEP_OUT, "name": "wash bay 2"}),
+}
 # Storage per simulated day. After the first retention period (days RETENTION_DAYS + 2 on)
 # within FLAT_BOUND of its smallest day; once the floor was also renewed the first time (a
 # copy of its contents a week, dropped with the week: days 2 * RETENTION_DAYS + 1 on) within
@@ -87,9 +107,11 @@ class SimClock:
         return self.start_ms + int((time.time_ns() // 1_000_000 - self.origin_ms) * self.rate)
 
     def env(self) -> dict[str, str]:
-        return {"MAPSERVICE_CLOCK_START": str(self.start_ms),
-                "MAPSERVICE_CLOCK_ORIGIN": str(self.origin_ms),
-                "MAPSERVICE_CLOCK_RATE": str(self.rate)}
+        return {
+            "MAPSERVICE_CLOCK_START": str(self.start_ms),
+            "MAPSERVICE_CLOCK_ORIGIN": str(self.origin_ms),
+            "MAPSERVICE_CLOCK_RATE": str(self.rate),
+        }
 
 
 class Write:
@@ -118,11 +140,20 @@ def sim_stack(tmp_path_factory):
     # The stack takes a while to start: the clock starts then, far in the past, where no
     # real clock can expire anything.
     clock = SimClock(real_now - 40 * DAY, real_now + 20_000)
-    env = {**clock.env(), "MAPSERVICE_SNAPSHOT_EVERY_S": "10800",
-           "MAPSERVICE_SNAPSHOT_GRACE_S": "600", "MAPSERVICE_MAX_FUTURE_SKEW_S": "7200"}
+    env = {
+        **clock.env(),
+        "MAPSERVICE_SNAPSHOT_EVERY_S": "10800",
+        "MAPSERVICE_SNAPSHOT_GRACE_S": "600",
+        "MAPSERVICE_MAX_FUTURE_SKEW_S": "7200",
+    }
     stack = Stack(tmp_path_factory.mktemp("endurance"), mqtt="mosquitto", extra_env=env, apart=True)
-    stack.start(stack.start_brokers, lambda: stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml"))),
-                stack.start_apart, stack.start_gateway, lambda: wait_for_meta(stack))
+    stack.start(
+        stack.start_brokers,
+        lambda: stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml"))),
+        stack.start_apart,
+        stack.start_gateway,
+        lambda: wait_for_meta(stack),
+    )
     yield stack, clock
     stack.stop()
 
@@ -131,11 +162,17 @@ def history_bytes(stack: Stack) -> int | None:
     """Bytes of the history's active parts, as an analyst reads them through the API
     (None while the API is away, e.g. restarting)."""
     password = analyst_password_file(stack.data_dir).read_text().strip()
-    sql = (f"SELECT sum(total_bytes) FROM system.tables "
-           f"WHERE database = '{stack.settings().clickhouse_database}'")
+    sql = (
+        f"SELECT sum(total_bytes) FROM system.tables "
+        f"WHERE database = '{stack.settings().clickhouse_database}'"
+    )
     try:
-        r = httpx.post(f"{stack.api_url}/clickhouse/", content=sql.encode(),
-                       auth=("analyst", password), timeout=10)
+        r = httpx.post(
+            f"{stack.api_url}/clickhouse/",
+            content=sql.encode(),
+            auth=("analyst", password),
+            timeout=10,
+        )
     except httpx.HTTPError:
         return None
     return int(r.text.strip()) if r.status_code == 200 else None
@@ -160,13 +197,18 @@ class Drive:
     def chunk(self, row: int, column: int, ts: int, robot: str, pixels: bytes) -> Write:
         w = Write(row, column, ts, robot, pixels)
         self.written.append(w)
-        self.publish("iot/chunks/create", encode_chunk_create(row, column, pixels, format_timestamp(ts), robot))
+        self.publish(
+            "iot/chunks/create",
+            encode_chunk_create(row, column, pixels, format_timestamp(ts), robot),
+        )
         return w
 
     def pose(self, robot: str, ts: int, x: float) -> None:
         self.poses.append((robot, ts))
-        self.publish(f"iot/coordinates/{robot}", encode_coordinates(
-            robot, format_timestamp(ts), x, 2.0, battery_level=50.0))
+        self.publish(
+            f"iot/coordinates/{robot}",
+            encode_coordinates(robot, format_timestamp(ts), x, 2.0, battery_level=50.0),
+        )
 
     def acknowledged(self) -> None:
         for info in self.pending:
@@ -196,12 +238,21 @@ class Operator:
 
     def edit(self, change: str, annotation_id: str, body: dict | None, clock: SimClock) -> None:
         if change == "create":
-            r = httpx.post(self.url, json={**(body or {}), "id": annotation_id}, headers=self.headers, timeout=30)
+            r = httpx.post(
+                self.url,
+                json={**(body or {}), "id": annotation_id},
+                headers=self.headers,
+                timeout=30,
+            )
         elif change == "change":
-            r = httpx.put(f"{self.url}/{annotation_id}", json=body, headers=self.headers, timeout=30)
+            r = httpx.put(
+                f"{self.url}/{annotation_id}", json=body, headers=self.headers, timeout=30
+            )
         else:
             r = httpx.delete(f"{self.url}/{annotation_id}", headers=self.headers, timeout=30)
-        assert r.status_code in (200, 201, 204), f"{change} {annotation_id}: {r.status_code} {r.text}"
+        assert r.status_code in (200, 201, 204), (
+            f"{change} {annotation_id}: {r.status_code} {r.text}"
+        )
         if change == "remove":
             # No body: the removal's instant is at most now. Every instant checked is days
             # later, where that is the same fold.
@@ -257,10 +308,16 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
             last_ts = now
             if now >= next_change:
                 changes += 1
-                a = drive.chunk(*pallet, now, ROBOTS[changes % 3], bytes([changes % 200 + 20]) * size)
+                a = drive.chunk(
+                    *pallet, now, ROBOTS[changes % 3], bytes([changes % 200 + 20]) * size
+                )
                 if changes % 2 == 0:  # another robot sees it otherwise: a conflict
-                    b = drive.chunk(*pallet, now + CONFLICT_GAP_MS, ROBOTS[(changes + 1) % 3],
-                                    bytes([changes % 200 + 21]) * size)
+                    b = drive.chunk(
+                        *pallet,
+                        now + CONFLICT_GAP_MS,
+                        ROBOTS[(changes + 1) % 3],
+                        bytes([changes % 200 + 21]) * size,
+                    )
                     drive.conflicts.add((a.row, a.column, b.ts_ms, a.robot_id, a.ts_ms, b.robot_id))
                 next_change += 6 * HOUR
             drive.acknowledged()
@@ -276,8 +333,10 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
                     continue
                 del restarts_due[at]
                 if component == "kafka" and not kafka_keeps_records(stack):
-                    skipped.append("the Kafka broker's restart: tansu keeps its records in memory "
-                                   "and loses them on a restart")
+                    skipped.append(
+                        "the Kafka broker's restart: tansu keeps its records in memory "
+                        "and loses them on a restart"
+                    )
                     warnings.warn(f"endurance: skipped {skipped[-1]}", stacklevel=2)
                     continue
                 stack.restart(component)
@@ -287,7 +346,9 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     finally:
         drive.close()
     drive_s = time.monotonic() - started
-    print(f"\nendurance: {SIM_DAYS} simulated days driven in {drive_s:.0f} s; skipped: {skipped or 'nothing'}")
+    print(
+        f"\nendurance: {SIM_DAYS} simulated days driven in {drive_s:.0f} s; skipped: {skipped or 'nothing'}"
+    )
     print("endurance: history bytes per simulated day:", bytes_per_day)
 
     # The processors and API again, their clock slowed to real time where it stands: the
@@ -317,24 +378,38 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     now = clock.now_ms()
     lo = now - RETENTION_DAYS * DAY + 60_000
     pixels = {(w.row, w.column, w.content_hash): w.pixels for w in drive.written}
-    instants = [lo, lo + HOUR] + [lo + int(f * (now - lo)) for f in (
-        0.05, 0.12, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)] + [end - HOUR, now]
+    instants = (
+        [lo, lo + HOUR]
+        + [
+            lo + int(f * (now - lo))
+            for f in (0.05, 0.12, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95)
+        ]
+        + [end - HOUR, now]
+    )
     for t in instants:
         want = fold_map(drive.written, t)
         got = get("/api/v1/map", at=str(t))["chunks"]
         assert {(c["row"], c["column"]): c["content_hash"] for c in got} == {
-            k: v.content_hash for k, v in want.items()}, f"map at {format_timestamp(t)}"
-        listing = get("/api/chunk-service/chunks", latest="true", updatedBefore=str(t + 1), limit="10000")
+            k: v.content_hash for k, v in want.items()
+        }, f"map at {format_timestamp(t)}"
+        listing = get(
+            "/api/chunk-service/chunks", latest="true", updatedBefore=str(t + 1), limit="10000"
+        )
         assert len(listing) == len(want) == len(floor), f"2019 listing at {format_timestamp(t)}"
         for doc in listing:
             w = want[(doc["row"], doc["column"])]
             assert doc["chunk"] is not None, "the 2019 listing names pixels that are gone"
-            assert zlib.decompress(base64.b64decode(doc["chunk"])) == pixels[(w.row, w.column, w.content_hash)]
+            assert (
+                zlib.decompress(base64.b64decode(doc["chunk"]))
+                == pixels[(w.row, w.column, w.content_hash)]
+            )
         robots = {r["robotId"]: r["ts_ms"] for r in get("/api/v1/robots", at=str(t))["robots"]}
         want_robots = {r: max(ts for rr, ts in drive.poses if rr == r and ts <= t) for r in ROBOTS}
         assert {r: robots.get(r) for r in ROBOTS} == want_robots, f"robots at {format_timestamp(t)}"
-        annotations = {a["id"]: (a["annotation"], a["created_ms"], a["changed_ms"])
-                       for a in get("/api/v1/annotations", at=str(t))["annotations"]}
+        annotations = {
+            a["id"]: (a["annotation"], a["created_ms"], a["changed_ms"])
+            for a in get("/api/v1/annotations", at=str(t))["annotations"]
+        }
         assert annotations == operator.standing_at(t), f"annotations at {format_timestamp(t)}"
     # Created a retention and more ago: the zone and the dock stand, the dock moved.
     assert set(operator.standing_at(lo)) == {"zone-wash", "poi-dock"}
@@ -360,8 +435,10 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     assert [b["conflicts"] for b in got_buckets] == want_conflicts
     assert [b["robots_active"] for b in got_buckets] == [len(s) for s in want_active]
     conflicts = get("/api/v1/conflicts", **{"from": str(lo), "to": str(now)})
-    assert {(c["row"], c["column"], c["ts_ms"], c["robot_a"], c["ts_a_ms"], c["robot_b"])
-            for c in conflicts["conflicts"]} == {c for c in drive.conflicts if lo <= c[2] < now}
+    assert {
+        (c["row"], c["column"], c["ts_ms"], c["robot_a"], c["ts_a_ms"], c["robot_b"])
+        for c in conflicts["conflicts"]
+    } == {c for c in drive.conflicts if lo <= c[2] < now}
     assert sum(want_conflicts) >= RETENTION_DAYS  # two a day: the check means something
 
     # The change feed and the zone's violations: the history of the retention, exactly.
@@ -375,13 +452,19 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
         if lo <= w.ts_ms < now and before != w.content_hash:
             want_feed.add((w.ts_ms, w.row, w.column, w.robot_id, w.content_hash, before))
         content[(w.row, w.column)] = w.content_hash
-    assert {(c["ts_ms"], c["row"], c["column"], c["robot_id"], c["content_hash"], c["previous_hash"])
-            for c in changes["changes"]} == want_feed
+    assert {
+        (c["ts_ms"], c["row"], c["column"], c["robot_id"], c["content_hash"], c["previous_hash"])
+        for c in changes["changes"]
+    } == want_feed
     assert len(want_feed) >= RETENTION_DAYS * 2  # a few a day: the check means something
     assert all(c["kind"] == "change" for c in changes["changes"])
-    violations = get("/api/v1/zone-violations", **{"from": str(lo), "to": str(now), "limit": "100000"})
+    violations = get(
+        "/api/v1/zone-violations", **{"from": str(lo), "to": str(now), "limit": "100000"}
+    )
     assert not violations["truncated"]
-    want_violations = {(ROBOTS[0], ts) for robot, ts in drive.poses if robot == ROBOTS[0] and lo <= ts < now}
+    want_violations = {
+        (ROBOTS[0], ts) for robot, ts in drive.poses if robot == ROBOTS[0] and lo <= ts < now
+    }
     assert {(v["robotId"], v["ts_ms"]) for v in violations["violations"]} == want_violations
     assert {v["zoneId"] for v in violations["violations"]} == {"zone-wash"}
     api.close()
@@ -390,30 +473,48 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     store = ClickHouseStore.from_settings(stack.settings())
     try:
         db = store.database
-        missing = store._rows(f"SELECT count() FROM {db}.map_snapshots WHERE content_hash NOT IN "
-                              f"(SELECT content_hash FROM {db}.chunk_contents)", {})[0][0]
+        missing = store._rows(
+            f"SELECT count() FROM {db}.map_snapshots WHERE content_hash NOT IN "
+            f"(SELECT content_hash FROM {db}.chunk_contents)",
+            {},
+        )[0][0]
         assert missing == 0, "a snapshot names pixels that are gone"
-        (oldest,), = store._rows(f"SELECT toUnixTimestamp64Milli(min(ts)) FROM {db}.chunk_events", {})
+        ((oldest,),) = store._rows(
+            f"SELECT toUnixTimestamp64Milli(min(ts)) FROM {db}.chunk_events", {}
+        )
         assert oldest >= end - (RETENTION_DAYS + 1) * DAY, "days before the retention were kept"
-        (oldest_violation, violations_kept), = store._rows(
-            f"SELECT toUnixTimestamp64Milli(min(ts)), count() FROM {db}.zone_violations", {})
+        ((oldest_violation, violations_kept),) = store._rows(
+            f"SELECT toUnixTimestamp64Milli(min(ts)), count() FROM {db}.zone_violations", {}
+        )
         assert violations_kept and oldest_violation >= end - (RETENTION_DAYS + 1) * DAY, (
-            "zone violations before the retention were kept")
-        kept_edits = store._rows(f"SELECT annotation_id, change FROM {db}.annotation_events FINAL "
-                                 "ORDER BY ts", {})
+            "zone violations before the retention were kept"
+        )
+        kept_edits = store._rows(
+            f"SELECT annotation_id, change FROM {db}.annotation_events FINAL ORDER BY ts", {}
+        )
         # The standing annotations keep their creation and latest edit however old; the
         # removed one's edits went with the retention.
-        assert kept_edits == [("zone-wash", "created"), ("poi-dock", "created"),
-                              ("poi-dock", "changed"), ("zone-wash", "changed")], kept_edits
+        assert kept_edits == [
+            ("zone-wash", "created"),
+            ("poi-dock", "created"),
+            ("poi-dock", "changed"),
+            ("zone-wash", "changed"),
+        ], kept_edits
     finally:
         store.close()
 
     # Storage per simulated day: flat after the first retention period.
     after_first = {d: b for d, b in bytes_per_day.items() if d >= RETENTION_DAYS + 2}
     steady = {d: b for d, b in after_first.items() if d >= 2 * RETENTION_DAYS + 1}
-    assert len(after_first) >= SIM_DAYS - RETENTION_DAYS - 4, f"too few days measured: {bytes_per_day}"
-    assert len(steady) >= SIM_DAYS - 2 * RETENTION_DAYS - 3, f"too few days measured: {bytes_per_day}"
+    assert len(after_first) >= SIM_DAYS - RETENTION_DAYS - 4, (
+        f"too few days measured: {bytes_per_day}"
+    )
+    assert len(steady) >= SIM_DAYS - 2 * RETENTION_DAYS - 3, (
+        f"too few days measured: {bytes_per_day}"
+    )
     assert max(after_first.values()) <= FLAT_BOUND * min(after_first.values()), (
-        f"storage grows after the first retention period: {bytes_per_day}")
+        f"storage grows after the first retention period: {bytes_per_day}"
+    )
     assert max(steady.values()) <= STEADY_BOUND * min(steady.values()), (
-        f"storage grows in the steady state: {bytes_per_day}")
+        f"storage grows in the steady state: {bytes_per_day}"
+    )

@@ -13,6 +13,9 @@ import time
 import httpx
 import paho.mqtt.client as mqtt
 import pytest
+from mapservice.robot.connection import RobotMqtt, load_credentials
+from mapservice.robot.loadgen import RobotFleet
+from mapservice.robot.simrun import SimRunner
 
 from mapservice.adapters.mqtt_client import MqttTls, make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import load_ros_map, meta_for
@@ -20,9 +23,6 @@ from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 from mapservice.local.stack import Stack
 from mapservice.local.stack_mqtt import mqtt_accepts
-from mapservice.robot.connection import RobotMqtt, load_credentials
-from mapservice.robot.loadgen import RobotFleet
-from mapservice.robot.simrun import SimRunner
 from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from tests.fixtures.paths import MAPS, ROOT
 
@@ -37,27 +37,43 @@ def now_ms() -> int:
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    stack = Stack(tmp_path_factory.mktemp("stack-identity"), mqtt="mosquitto", mqtt_auth=True,
-                  mqtt_tls=True)
+    stack = Stack(
+        tmp_path_factory.mktemp("stack-identity"), mqtt="mosquitto", mqtt_auth=True, mqtt_tls=True
+    )
     yield run_stack(stack, meta_for(load_ros_map(MAPS / "depot.yaml")))
     stack.stop()
 
 
 @pytest.fixture(scope="module")
 def robots(stack):
-    return {name: stack.add_robot(f"id-{name}", legacy_chunks=(name == "legacy"))
-            for name in ("a", "b", "legacy")}
+    return {
+        name: stack.add_robot(f"id-{name}", legacy_chunks=(name == "legacy"))
+        for name in ("a", "b", "legacy")
+    }
 
 
 class Robot:
     """One robot's own MQTT connection (paho, QoS 1), with what it received."""
 
-    def __init__(self, url: str, username: str | None, password: str | None, *,
-                 client_id: str | None = None, protocol: int = mqtt.MQTTv311,
-                 tls: MqttTls | None = None) -> None:
+    def __init__(
+        self,
+        url: str,
+        username: str | None,
+        password: str | None,
+        *,
+        client_id: str | None = None,
+        protocol: int = mqtt.MQTTv311,
+        tls: MqttTls | None = None,
+    ) -> None:
         host, port, use_tls = parse_mqtt_url(url)
-        self.client = make_client(client_id or f"test-{username}-{now_ms()}", username=username,
-                                  password=password, tls=use_tls, tls_files=tls, protocol=protocol)
+        self.client = make_client(
+            client_id or f"test-{username}-{now_ms()}",
+            username=username,
+            password=password,
+            tls=use_tls,
+            tls_files=tls,
+            protocol=protocol,
+        )
         self.received: list[tuple[str, bytes]] = []
         self.puback: dict[int, str] = {}
         self.subscribed = threading.Event()
@@ -89,8 +105,10 @@ def chunk(robot_id: str, ts_ms: int, row: int = 1, column: int = 1) -> bytes:
 
 
 def dead_letters(stack: Stack) -> list:
-    return [decode_dead_letter(v) for v in read_topic(stack, stack.settings().topic_dead_letter, 1,
-                                                      timeout_s=5)]
+    return [
+        decode_dead_letter(v)
+        for v in read_topic(stack, stack.settings().topic_dead_letter, 1, timeout_s=5)
+    ]
 
 
 def test_anonymous_and_wrong_credentials_are_refused(stack, robots):
@@ -111,7 +129,8 @@ def test_tls_listener_needs_the_ca(stack, robots):
     a = robots["a"]
     with pytest.raises(Exception, match="CERTIFICATE_VERIFY_FAILED"):
         make_client("no-ca", username=a.username, password=a.password, tls=True).connect(
-            *parse_mqtt_url(stack.mqtts_url)[:2])
+            *parse_mqtt_url(stack.mqtts_url)[:2]
+        )
     ready = httpx.get(f"http://127.0.0.1:{stack.health_port}/readyz", timeout=5).json()
     assert ready["mqtt_connected"] is True
     assert stack.env("gateway")["MAPSERVICE_MQTT_URL"] == stack.mqtts_url
@@ -156,10 +175,14 @@ def test_advertisements_reach_robots_under_auth(stack, robots):
         finally:
             writer.close()
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not any(a.robot_id.encode() in p for _, p in listener.received):
+        while time.monotonic() < deadline and not any(
+            a.robot_id.encode() in p for _, p in listener.received
+        ):
             time.sleep(0.1)
-        assert any(t == b.topics["advertisements"] and a.robot_id.encode() in p
-                   for t, p in listener.received)
+        assert any(
+            t == b.topics["advertisements"] and a.robot_id.encode() in p
+            for t, p in listener.received
+        )
     finally:
         listener.close()
 
@@ -174,13 +197,23 @@ def test_zone_advertisements_reach_robots_under_auth(stack, robots):
         listener.client.subscribe(topic, 1)
         assert listener.subscribed.wait(5)
         token = stored_secret(stack.data_dir, OPERATOR_TOKEN_FILE)
-        r = httpx.post(f"{stack.api_url}/api/v1/annotations", timeout=30,
-                       headers={"Authorization": f"Bearer {token}"},
-                       json={"id": "zone-under-auth", "shape": "zone", "name": "spill",
-                             "kind": "keep_out", "polygon": [[1, 1], [2, 1], [2, 2]]})
+        r = httpx.post(
+            f"{stack.api_url}/api/v1/annotations",
+            timeout=30,
+            headers={"Authorization": f"Bearer {token}"},
+            json={
+                "id": "zone-under-auth",
+                "shape": "zone",
+                "name": "spill",
+                "kind": "keep_out",
+                "polygon": [[1, 1], [2, 1], [2, 2]],
+            },
+        )
         assert r.status_code == 201, r.text
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not any(b"zone-under-auth" in p for _, p in listener.received):
+        while time.monotonic() < deadline and not any(
+            b"zone-under-auth" in p for _, p in listener.received
+        ):
             time.sleep(0.1)
         assert any(t == topic and b"zone-under-auth" in p for t, p in listener.received)
     finally:
@@ -195,9 +228,11 @@ def test_robot_a_cannot_publish_as_robot_b(stack, robots):
     ts = now_ms() - 3_000
     robot = Robot(stack.mqtt_url, a.username, a.password)
     try:
-        forged = [robot.publish(b.topics["pose"], pose(b.robot_id, ts)),
-                  robot.publish(b.topics["chunks"], chunk(b.robot_id, ts)),
-                  robot.publish(f"iot/coordinates/{b.robot_id}", pose(a.robot_id, ts))]
+        forged = [
+            robot.publish(b.topics["pose"], pose(b.robot_id, ts)),
+            robot.publish(b.topics["chunks"], chunk(b.robot_id, ts)),
+            robot.publish(f"iot/coordinates/{b.robot_id}", pose(a.robot_id, ts)),
+        ]
         assert all(info.is_published() for info in forged)  # QoS 1 acknowledged, silently dropped
         assert robot.publish(a.topics["pose"], pose(a.robot_id, ts + 7)).is_published()
     finally:
@@ -214,7 +249,9 @@ def test_robot_a_cannot_publish_as_robot_b(stack, robots):
     finally:
         v5.close()
     assert wait_for_count(stack, "pose", a.robot_id, ts + 7, ts + 9, 2) == [
-        (a.robot_id, ts + 7), (a.robot_id, ts + 8)]
+        (a.robot_id, ts + 7),
+        (a.robot_id, ts + 8),
+    ]
     assert stored_keys(stack, "pose", b.robot_id, ts - 1, ts + 10) == []
     assert stored_keys(stack, "chunk", b.robot_id, ts - 1, ts + 10) == []
     assert not [d for d in dead_letters(stack) if b.robot_id in d.mqtt_topic]
@@ -233,8 +270,12 @@ def test_payload_naming_another_robot_is_a_dead_letter(stack, robots):
         robot.close()
     deadline, mine = time.monotonic() + 30, []
     while time.monotonic() < deadline and len(mine) < 2:
-        mine = [d for d in dead_letters(stack) if d.mqtt_topic in (a.topics["pose"], a.topics["chunks"])
-                and b.robot_id.encode() in d.payload]
+        mine = [
+            d
+            for d in dead_letters(stack)
+            if d.mqtt_topic in (a.topics["pose"], a.topics["chunks"])
+            and b.robot_id.encode() in d.payload
+        ]
     assert sorted(d.mqtt_topic for d in mine) == sorted([a.topics["pose"], a.topics["chunks"]])
     assert all(d.reason == "robot_id_mismatch" and repr(b.robot_id) in d.detail for d in mine)
     assert stored_keys(stack, "pose", b.robot_id, ts - 1, ts + 1) == []
@@ -248,7 +289,9 @@ def test_legacy_chunk_topic_is_closed_unless_opened_for_a_robot(stack, robots):
     for cred, row in ((a, 2), (legacy, 3)):
         robot = Robot(stack.mqtt_url, cred.username, cred.password)
         try:
-            assert robot.publish("iot/chunks/create", chunk(cred.robot_id, ts, row=row)).is_published()
+            assert robot.publish(
+                "iot/chunks/create", chunk(cred.robot_id, ts, row=row)
+            ).is_published()
         finally:
             robot.close()
     assert wait_for_count(stack, "chunk", legacy.robot_id, ts, ts + 1, 1) == [(legacy.robot_id, ts)]
@@ -283,9 +326,24 @@ def test_robot_add_command_gives_a_working_credential(stack, tmp_path):
     `up` then restarts its Mosquitto to read them), prints the credential and saves it; the
     robot can then connect."""
     creds = tmp_path / "robots.json"
-    done = subprocess.run([sys.executable, "-m", "mapservice.cli", "robot", "add", "id-cli",
-                           "--data-dir", str(stack.data_dir), "--save", str(creds)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "robot",
+            "add",
+            "id-cli",
+            "--data-dir",
+            str(stack.data_dir),
+            "--save",
+            str(creds),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert done.returncode == 0, done.stderr
     password = load_credentials(creds)["id-cli"]
     assert f"password   {password}" in done.stdout and "iot/chunks/create/id-cli" in done.stdout
@@ -296,9 +354,22 @@ def test_robot_add_command_gives_a_working_credential(stack, tmp_path):
         stack.reload_mqtt_if_files_changed()
         assert time.monotonic() < deadline, "the new robot was never accepted"
         time.sleep(0.5)
-    again = subprocess.run([sys.executable, "-m", "mapservice.cli", "robot", "add", "id-cli",
-                            "--data-dir", str(stack.data_dir)], cwd=ROOT, capture_output=True,
-                           text=True, timeout=60)
+    again = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "robot",
+            "add",
+            "id-cli",
+            "--data-dir",
+            str(stack.data_dir),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert again.returncode != 0 and "--rotate" in again.stderr
 
 
@@ -311,8 +382,14 @@ def test_simulated_robots_use_their_own_credentials(stack):
     conn = RobotMqtt(stack.mqtts_url, creds, MqttTls(stack.ca_file))
     start = now_ms()
     sim = SimRunner(stack.mqtts_url, ros_map, 2, prefix="idsim", mqtt_conn=conn)
-    fleet = RobotFleet(stack.mqtt_url, ros_map, 2, prefix="idload", chunk_period_s=2.0,
-                       mqtt_conn=RobotMqtt(stack.mqtt_url, creds))
+    fleet = RobotFleet(
+        stack.mqtt_url,
+        ros_map,
+        2,
+        prefix="idload",
+        chunk_period_s=2.0,
+        mqtt_conn=RobotMqtt(stack.mqtt_url, creds),
+    )
     runner = threading.Thread(target=sim.run, args=(6.0,))
     runner.start()
     stats = fleet.run(6.0)
@@ -325,4 +402,6 @@ def test_simulated_robots_use_their_own_credentials(stack):
     assert len(sim_poses) == sim.stats.poses
     assert (len(load_poses), len(load_chunks)) == (stats.poses, stats.chunks)
     with pytest.raises(ValueError, match="no credential"):
-        RobotFleet(stack.mqtt_url, ros_map, 3, prefix="idload", mqtt_conn=RobotMqtt(stack.mqtt_url, creds))
+        RobotFleet(
+            stack.mqtt_url, ros_map, 3, prefix="idload", mqtt_conn=RobotMqtt(stack.mqtt_url, creds)
+        )

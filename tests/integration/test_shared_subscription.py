@@ -14,24 +14,36 @@ from mapservice.local.stack import Stack
 from .conftest import start_stack, wait_for_count
 from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
 
+
 def accepted(health_port: int) -> float:
     text = httpx.get(f"http://127.0.0.1:{health_port}/metrics").text
-    match = re.search(r'^mapservice_gateway_messages_total\{outcome="accepted"\} (\S+)$', text, re.M)
+    match = re.search(
+        r'^mapservice_gateway_messages_total\{outcome="accepted"\} (\S+)$', text, re.M
+    )
     return float(match.group(1)) if match else 0.0
+
 
 def test_two_gateways_share_the_subscription(tmp_path_factory):
     """With $share, two gateway replicas each take part of the messages and all arrive once."""
     stack: Stack | None = None
     second = None
     try:
-
-        stack = start_stack(tmp_path_factory, "mosquitto", extra_env={
-            "MAPSERVICE_MQTT_SHARE_GROUP": "mapservice", "MAPSERVICE_MQTT_CLIENT_ID": "gw-1"})
+        stack = start_stack(
+            tmp_path_factory,
+            "mosquitto",
+            extra_env={
+                "MAPSERVICE_MQTT_SHARE_GROUP": "mapservice",
+                "MAPSERVICE_MQTT_CLIENT_ID": "gw-1",
+            },
+        )
         second_port = free_port()
         env = {**stack.env(), "MAPSERVICE_MQTT_CLIENT_ID": "gw-2"}
         second = subprocess.Popen(
             [sys.executable, "-m", "mapservice.cli", "gateway", "--health-port", str(second_port)],
-            env=env, stdout=open(stack.log_dir / "gateway-2.log", "ab"), stderr=subprocess.STDOUT)
+            env=env,
+            stdout=open(stack.log_dir / "gateway-2.log", "ab"),
+            stderr=subprocess.STDOUT,
+        )
         wait_for_port(second_port, proc=second, what="second gateway")
         stack.wait_healthy(f"http://127.0.0.1:{second_port}/healthz", "gateway-2", second)
 

@@ -33,10 +33,10 @@ import pytest
 from mcap.reader import make_reader
 from websockets.sync.client import connect
 
+from mapservice.core.wire2019 import content_hash, format_timestamp
 from mapservice.local import embedded
 from mapservice.local.checkout import TEST_UI_ENV
 from mapservice.local.stack import Stack
-from mapservice.core.wire2019 import content_hash, format_timestamp
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from . import test_contract_2019 as contract
@@ -49,21 +49,39 @@ def browser(module_browser):
     """This module's browser ends with the module (see tests/ui/conftest.playwright_browser)."""
     return module_browser
 
+
 TIMEOUT_MS = 60_000
 
 
 def has_clickhouse_server_command() -> bool:
-    return subprocess.run([sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--help"],
-                          capture_output=True, timeout=60).returncode == 0
+    return (
+        subprocess.run(
+            [sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--help"],
+            capture_output=True,
+            timeout=60,
+        ).returncode
+        == 0
+    )
 
 
 def start_clickhouse_server(stack: Stack, port: int) -> subprocess.Popen:
     """`mapservice clickhouse-server`: owns the stack's chDB directory, serves the
     ClickHouse HTTP interface read-write on 127.0.0.1:port."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--port", str(port), "--read-write"],
-        env=stack.env(), stdout=stack._log("clickhouse"), stderr=subprocess.STDOUT,
-        start_new_session=True)
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "clickhouse-server",
+            "--port",
+            str(port),
+            "--read-write",
+        ],
+        env=stack.env(),
+        stdout=stack._log("clickhouse"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
     stack.procs["clickhouse"] = proc
     embedded.wait_for_port(port, timeout_s=120, proc=proc, what="clickhouse-server")
     stack.wait_healthy(f"http://127.0.0.1:{port}/ping", "clickhouse", proc)
@@ -79,28 +97,39 @@ def stack(tmp_path_factory):
     if not has_clickhouse_server_command():
         # The only ClickHouse server the package registries offer is Debian's 18.16 (2018:
         # no DateTime64, codecs or TTL): the split runs on `mapservice clickhouse-server`.
-        pytest.fail("`mapservice clickhouse-server --help` failed: the ClickHouse HTTP "
-                    "interface over chDB is this module's server")
+        pytest.fail(
+            "`mapservice clickhouse-server --help` failed: the ClickHouse HTTP "
+            "interface over chDB is this module's server"
+        )
     ch_port = embedded.free_port()
-    stack = Stack(tmp_path_factory.mktemp("stack-split"), mqtt="mosquitto", extra_env={
-        **TEST_UI_ENV,
-        "MAPSERVICE_ADMIN_TOKEN": TOKEN,
-        "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
-    })
+    stack = Stack(
+        tmp_path_factory.mktemp("stack-split"),
+        mqtt="mosquitto",
+        extra_env={
+            **TEST_UI_ENV,
+            "MAPSERVICE_ADMIN_TOKEN": TOKEN,
+            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
+        },
+    )
     stack.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = stack.api_url
     stack.second_api_url = f"http://127.0.0.1:{embedded.free_port()}"  # type: ignore[attr-defined]
-    with stack.running(stack.start_brokers, lambda: start_clickhouse_server(stack, ch_port),
-                       lambda: stack.start_processors(embedded.free_port()), stack.start_api,
-                       lambda: stack.start_api(int(stack.second_api_url.rsplit(":", 1)[1]),
-                                               name="api-2"),
-                       stack.start_gateway):
+    with stack.running(
+        stack.start_brokers,
+        lambda: start_clickhouse_server(stack, ch_port),
+        lambda: stack.start_processors(embedded.free_port()),
+        stack.start_api,
+        lambda: stack.start_api(int(stack.second_api_url.rsplit(":", 1)[1]), name="api-2"),
+        stack.start_gateway,
+    ):
         yield stack
 
 
 # The 2019 contract suite, the same functions as in the embedded mode, in its file order
 # (each builds on the data of the ones before).
 test_robot_start_up_sequence = contract.test_robot_start_up_sequence
-test_listings_10_11_13_post_a_chunk_and_read_it_back = contract.test_listings_10_11_13_post_a_chunk_and_read_it_back
+test_listings_10_11_13_post_a_chunk_and_read_it_back = (
+    contract.test_listings_10_11_13_post_a_chunk_and_read_it_back
+)
 test_post_chunk_is_validated_like_mqtt = contract.test_post_chunk_is_validated_like_mqtt
 test_writes_need_the_robot_token_and_json = contract.test_writes_need_the_robot_token_and_json
 test_listing_12_query_parameters = contract.test_listing_12_query_parameters
@@ -128,26 +157,68 @@ def test_a_replay_seek_shows_what_was_published_at_t(stack, http, page) -> None:
     """Map and robots at T, through the API and in the UI, are the writes published up to T."""
     t0 = (now_ms() // 1000 - 30) * 1000
     (a, hash_a), (b, hash_b) = pixels_b64(11), pixels_b64(222)
-    chunk = lambda data, ts, robot: ("iot/chunks/create", json.dumps({  # noqa: E731
-        "pgmB64compressedData": data, "row": 0, "column": 0, "timestamp": format_timestamp(ts),
-        "robotId": robot}).encode())
-    pose = lambda robot, ts, x: (f"iot/coordinates/{robot}", json.dumps({  # noqa: E731
-        "robotId": robot, "timestamp": format_timestamp(ts),
-        "pose": {"position": {"x": x, "y": 3.0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-        "status": {"battery": {"battery_level": 50, "charging": False}, "loaded": False}}).encode())
-    publish_all(stack, [chunk(a, t0, "split-a"), chunk(b, t0 + 2000, "split-b"),
-                        pose("split-a", t0, 1.0), pose("split-a", t0 + 1000, 2.0),
-                        pose("split-b", t0 + 2000, 5.0)])
+
+    def chunk(data, ts, robot):
+        return (
+            "iot/chunks/create",
+            json.dumps(
+                {
+                    "pgmB64compressedData": data,
+                    "row": 0,
+                    "column": 0,
+                    "timestamp": format_timestamp(ts),
+                    "robotId": robot,
+                }
+            ).encode(),
+        )
+
+    def pose(robot, ts, x):
+        return (
+            f"iot/coordinates/{robot}",
+            json.dumps(
+                {
+                    "robotId": robot,
+                    "timestamp": format_timestamp(ts),
+                    "pose": {
+                        "position": {"x": x, "y": 3.0, "z": 0},
+                        "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+                    },
+                    "status": {
+                        "battery": {"battery_level": 50, "charging": False},
+                        "loaded": False,
+                    },
+                }
+            ).encode(),
+        )
+
+    publish_all(
+        stack,
+        [
+            chunk(a, t0, "split-a"),
+            chunk(b, t0 + 2000, "split-b"),
+            pose("split-a", t0, 1.0),
+            pose("split-a", t0 + 1000, 2.0),
+            pose("split-b", t0 + 2000, 5.0),
+        ],
+    )
 
     def at(t: int) -> tuple[dict, dict]:
         m = http.get("/api/v1/map", params={"at": t}).json()
         r = http.get("/api/v1/robots", params={"at": t}).json()
-        return ({(c["row"], c["column"]): (c["robotId"], c["content_hash"]) for c in m["chunks"]},
-                {p["robotId"]: (p["ts_ms"], p["position"][0]) for p in r["robots"]
-                 if p["robotId"].startswith("split-")})
+        return (
+            {(c["row"], c["column"]): (c["robotId"], c["content_hash"]) for c in m["chunks"]},
+            {
+                p["robotId"]: (p["ts_ms"], p["position"][0])
+                for p in r["robots"]
+                if p["robotId"].startswith("split-")
+            },
+        )
 
-    until(lambda: at(t0 + 2000), lambda got: got[0].get((0, 0)) == ("split-b", hash_b)
-          and "split-b" in got[1], what="the published writes stored")
+    until(
+        lambda: at(t0 + 2000),
+        lambda got: got[0].get((0, 0)) == ("split-b", hash_b) and "split-b" in got[1],
+        what="the published writes stored",
+    )
     chunks, robots = at(t0 + 1000)
     assert chunks[(0, 0)] == ("split-a", hash_a)
     assert robots == {"split-a": (t0 + 1000, 2.0)}
@@ -156,11 +227,16 @@ def test_a_replay_seek_shows_what_was_published_at_t(stack, http, page) -> None:
     page.goto(f"{stack.api_url}/?t={t0 + 1000}")
     page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
     assert page.evaluate("() => window.__replay.playhead") == t0 + 1000
-    shown = page.evaluate("() => Object.fromEntries([...window.__replay.engine.state.cells.values()]"
-                          ".map(c => [`${c.row}:${c.column}`, c.content_hash]))")
+    shown = page.evaluate(
+        "() => Object.fromEntries([...window.__replay.engine.state.cells.values()]"
+        ".map(c => [`${c.row}:${c.column}`, c.content_hash]))"
+    )
     assert shown["0:0"] == hash_a
-    shown_robots = {r["robotId"]: (r["ts_ms"], r["x"]) for r in page.evaluate("() => window.__replay.robots()")
-                    if r["robotId"].startswith("split-")}
+    shown_robots = {
+        r["robotId"]: (r["ts_ms"], r["x"])
+        for r in page.evaluate("() => window.__replay.robots()")
+        if r["robotId"].startswith("split-")
+    }
     assert shown_robots == {"split-a": (t0 + 1000, 2.0)}
     assert not page.errors
 
@@ -168,33 +244,61 @@ def test_a_replay_seek_shows_what_was_published_at_t(stack, http, page) -> None:
 def test_live_mode_reaches_every_api_replica_and_the_browser(stack, page) -> None:
     """A pose published over MQTT arrives on both replicas' /api/v1/live and on the UI's live map."""
     page.goto(f"{stack.api_url}/?live=1")
-    page.wait_for_function("() => window.__replay && window.__replay.liveStatus.connected",
-                           timeout=TIMEOUT_MS)
-    sockets = [connect(url.replace("http://", "ws://") + "/api/v1/live", open_timeout=10)
-               for url in (stack.api_url, stack.second_api_url)]
+    page.wait_for_function(
+        "() => window.__replay && window.__replay.liveStatus.connected", timeout=TIMEOUT_MS
+    )
+    sockets = [
+        connect(url.replace("http://", "ws://") + "/api/v1/live", open_timeout=10)
+        for url in (stack.api_url, stack.second_api_url)
+    ]
     try:
         time.sleep(0.5)
         meta = page.evaluate("() => window.__replay.meta")
         x, y = meta["origin"][0] + 10.0, meta["origin"][1] + 10.0
         ts = now_ms() // 1000 * 1000
-        publish_all(stack, [("iot/coordinates/split-live", json.dumps({
-            "robotId": "split-live", "timestamp": format_timestamp(ts),
-            "pose": {"position": {"x": x, "y": y, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-            "status": {"battery": {"battery_level": 80, "charging": False}, "loaded": True}}).encode())])
+        publish_all(
+            stack,
+            [
+                (
+                    "iot/coordinates/split-live",
+                    json.dumps(
+                        {
+                            "robotId": "split-live",
+                            "timestamp": format_timestamp(ts),
+                            "pose": {
+                                "position": {"x": x, "y": y, "z": 0},
+                                "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+                            },
+                            "status": {
+                                "battery": {"battery_level": 80, "charging": False},
+                                "loaded": True,
+                            },
+                        }
+                    ).encode(),
+                )
+            ],
+        )
         for ws in sockets:
             deadline = time.monotonic() + 30
             message: dict = {}
             while time.monotonic() < deadline and message.get("robotId") != "split-live":
                 message = json.loads(ws.recv(timeout=30))
             assert message["robotId"] == "split-live" and message["ts_ms"] == ts
-            assert message["position"][:2] == [x, y] and message["sent_ms"] >= message["receive_time_ms"]
+            assert (
+                message["position"][:2] == [x, y]
+                and message["sent_ms"] >= message["receive_time_ms"]
+            )
     finally:
         for ws in sockets:
             ws.close()
     page.wait_for_function(
-        "() => window.__replay.drawnRobots().some(r => r.robotId === 'split-live')", timeout=TIMEOUT_MS)
+        "() => window.__replay.drawnRobots().some(r => r.robotId === 'split-live')",
+        timeout=TIMEOUT_MS,
+    )
     shown = {r["robotId"]: r for r in page.evaluate("() => window.__replay.robots()")}
-    assert shown["split-live"]["x"] == pytest.approx(x) and shown["split-live"]["y"] == pytest.approx(y)
+    assert shown["split-live"]["x"] == pytest.approx(x) and shown["split-live"][
+        "y"
+    ] == pytest.approx(y)
     assert page.evaluate("() => window.__replay.liveStatus.reconnects") == 0
     assert not page.errors
 
@@ -221,19 +325,52 @@ def test_export_replay_through_the_clickhouse_server(stack, tmp_path) -> None:
     writes = []
     for n in range(150):
         pixels = bytes([n]) * 9_999 + bytes([n // 2])
-        writes.append(("iot/chunks/create", json.dumps({
-            "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(), "row": 0,
-            "column": 0, "timestamp": format_timestamp(t0 + 10 * n), "robotId": "split-many"}).encode()))
+        writes.append(
+            (
+                "iot/chunks/create",
+                json.dumps(
+                    {
+                        "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
+                        "row": 0,
+                        "column": 0,
+                        "timestamp": format_timestamp(t0 + 10 * n),
+                        "robotId": "split-many",
+                    }
+                ).encode(),
+            )
+        )
     publish_all(stack, writes)
     last = content_hash(bytes([149]) * 9_999 + bytes([74])).hex()
-    until(lambda: httpx.get(f"{stack.api_url}/api/v1/map", params={"at": t0 + 1490}, timeout=30).json(),
-          lambda m: any(c["content_hash"] == last for c in m["chunks"]), what="150 writes stored")
+    until(
+        lambda: httpx.get(
+            f"{stack.api_url}/api/v1/map", params={"at": t0 + 1490}, timeout=30
+        ).json(),
+        lambda m: any(c["content_hash"] == last for c in m["chunks"]),
+        what="150 writes stored",
+    )
     now = now_ms()
     out = tmp_path / "split.mcap"
-    done = subprocess.run([sys.executable, "-m", "mapservice.cli", "export", "replay",
-                           "--from", str(now - 600_000), "--to", str(now), "--api", stack.api_url,
-                           "--out", str(out)], env=stack.env(), capture_output=True, text=True,
-                          timeout=180)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "export",
+            "replay",
+            "--from",
+            str(now - 600_000),
+            "--to",
+            str(now),
+            "--api",
+            stack.api_url,
+            "--out",
+            str(out),
+        ],
+        env=stack.env(),
+        capture_output=True,
+        text=True,
+        timeout=180,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     summary = make_reader(io.BytesIO(out.read_bytes())).get_summary()
     topics = {summary.channels[c].topic for c in summary.statistics.channel_message_counts}
@@ -271,12 +408,15 @@ def test_an_api_replica_serves_analysts_read_only_from_the_server(stack) -> None
 
     password = analyst_password_file(stack.data_dir).read_text().strip()
     port = int(stack.second_api_url.rsplit(":", 1)[1])
-    client = clickhouse_connect.get_client(host="127.0.0.1", port=port, username="analyst",
-                                           password=password, proxy_path="/clickhouse")
+    client = clickhouse_connect.get_client(
+        host="127.0.0.1", port=port, username="analyst", password=password, proxy_path="/clickhouse"
+    )
     assert client.query("SELECT count() FROM mapservice.robot_poses").result_rows[0][0] > 0
     with pytest.raises(Exception, match="164"):
         client.command("TRUNCATE TABLE mapservice.poses")
-    reply = httpx.post(f"{stack.second_api_url}/clickhouse/", content=b"SELECT 1", auth=("analyst", "x"))
+    reply = httpx.post(
+        f"{stack.second_api_url}/clickhouse/", content=b"SELECT 1", auth=("analyst", "x")
+    )
     assert reply.status_code == 403
 
 
@@ -285,6 +425,9 @@ def test_an_api_replica_exports_only_its_own_metrics(stack) -> None:
     assert httpx.get(f"{stack.second_api_url}/api/v1/stats", timeout=10).status_code == 200
     text = httpx.get(f"{stack.second_api_url}/metrics", timeout=10).text
     assert "mapservice_api_requests_total" in text
-    for processors_metric in ("mapservice_sink_events_total", "mapservice_snapshot_runs_total",
-                              "mapservice_sink_insert_failures_total"):
+    for processors_metric in (
+        "mapservice_sink_events_total",
+        "mapservice_snapshot_runs_total",
+        "mapservice_sink_insert_failures_total",
+    ):
         assert processors_metric not in text, processors_metric

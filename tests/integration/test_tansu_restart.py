@@ -11,8 +11,8 @@ import time
 
 from mapservice.local import embedded
 
-
 # ---- the Kafka producer across a tansu restart -------------------------------------------
+
 
 def test_a_publisher_delivers_again_after_tansu_restarted_empty(tmp_path) -> None:
     """After tansu restarts empty, the publisher renews its stuck producer and every record is delivered."""
@@ -34,6 +34,7 @@ def test_a_publisher_delivers_again_after_tansu_restarted_empty(tmp_path) -> Non
                 delivered.append(n)
             else:
                 publisher.publish(settings.topic_pose_events, b"k%d" % n, b"v", done)
+
         publisher.publish(settings.topic_pose_events, b"k%d" % n, b"v", done)
 
     try:
@@ -60,6 +61,7 @@ def test_a_publisher_delivers_again_after_tansu_restarted_empty(tmp_path) -> Non
 
 # ---- the history's consumer across a tansu restart ---------------------------------------
 
+
 def poll_until(source, count: int, timeout_s: float) -> list:
     records: list = []
     deadline = time.monotonic() + timeout_s
@@ -68,7 +70,9 @@ def poll_until(source, count: int, timeout_s: float) -> list:
     return records
 
 
-def test_offsets_read_before_tansu_restarted_empty_are_not_committed_to_the_new_one(tmp_path) -> None:
+def test_offsets_read_before_tansu_restarted_empty_are_not_committed_to_the_new_one(
+    tmp_path,
+) -> None:
     """Offsets polled from a tansu that then restarted empty are not committed with the new log's: the group resumes where the new log was read to."""
     # As in the split deployment's Kafka-while-ClickHouse-down fault: the history consumer
     # stores a batch polled from the old tansu only once ClickHouse is back, by when it may

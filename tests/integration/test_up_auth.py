@@ -20,7 +20,9 @@ pytestmark = pytest.mark.integration
 
 def connect_code(port: int, username: str | None = None, password: str | None = None) -> int:
     """The CONNACK reason of a connection attempt (0: accepted)."""
-    client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=f"probe-{time.monotonic_ns()}")
+    client = PollingClient(
+        mqtt.CallbackAPIVersion.VERSION2, client_id=f"probe-{time.monotonic_ns()}"
+    )
     if username is not None:
         client.username_pw_set(username, password)
     codes: list[int] = []
@@ -35,7 +37,9 @@ def connect_code(port: int, username: str | None = None, password: str | None = 
 
 
 @pytest.mark.timeout(300)
-def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients_are_refused(tmp_path):
+def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients_are_refused(
+    tmp_path,
+):
     """Two simulated robots get credentials in DATA_DIR/secrets/robots.json and their poses
     are stored; an anonymous MQTT client is refused, a robot's credential is accepted; an
     anonymous REST write gets 401."""
@@ -50,7 +54,9 @@ def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients
         poses: list = []
         while time.monotonic() < deadline and not poses:
             now_ms = int(time.time() * 1000)
-            reply = up.api("/api/v1/poses", robotId="sim-000", **{"from": now_ms - 60_000, "to": now_ms})
+            reply = up.api(
+                "/api/v1/poses", robotId="sim-000", **{"from": now_ms - 60_000, "to": now_ms}
+            )
             poses = reply.json() if reply.status_code == 200 else []
             time.sleep(1)
         assert poses, f"no pose of sim-000 stored:\n{up.output[-3000:]}"
@@ -59,8 +65,11 @@ def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients
         assert connect_code(up.mqtt_port, "sim-001", creds["sim-001"]) == 0
         assert connect_code(up.mqtt_port, "controller-1", creds["controller-1"]) == 0
         assert "type its password on" in up.output
-        write = httpx.post(f"http://127.0.0.1:{up.api_port}/api/chunk-service/chunks",
-                           json={"robotId": "x"}, timeout=30)
+        write = httpx.post(
+            f"http://127.0.0.1:{up.api_port}/api/chunk-service/chunks",
+            json={"robotId": "x"},
+            timeout=30,
+        )
         assert write.status_code == 401
     finally:
         up.stop()

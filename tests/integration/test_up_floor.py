@@ -12,12 +12,12 @@ import time
 
 import httpx
 import pytest
-
-from mapservice.local.checkout import TEST_UI_ENV
-from mapservice.local.embedded import free_port
 from mapservice.robot.map_upload import MARKER, UPLOADER_ID
+
 from mapservice.adapters.ros_map import load_ros_map, slice_chunks
 from mapservice.core.wire2019 import content_hash, encode_coordinates, format_timestamp
+from mapservice.local.checkout import TEST_UI_ENV
+from mapservice.local.embedded import free_port
 from tests.fixtures.paths import MAPS, ROOT
 
 pytestmark = pytest.mark.integration
@@ -30,10 +30,26 @@ class Up:
     def __init__(self, data_dir, *args: str) -> None:
         self.api_port, self.mqtt_port = free_port(), free_port()
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
-             "--api-port", str(self.api_port), "--mqtt-port", str(self.mqtt_port), *args],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            start_new_session=True, env={**os.environ, **TEST_UI_ENV, "COLUMNS": "200"})
+            [
+                sys.executable,
+                "-m",
+                "mapservice.cli",
+                "up",
+                "--data-dir",
+                str(data_dir),
+                "--api-port",
+                str(self.api_port),
+                "--mqtt-port",
+                str(self.mqtt_port),
+                *args,
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+            env={**os.environ, **TEST_UI_ENV, "COLUMNS": "200"},
+        )
         self.lines: list[str] = []
         threading.Thread(target=self._read, daemon=True).start()
         self.wait_for("mapservice is up", 150)
@@ -69,8 +85,9 @@ class Up:
 def children(pid: int) -> dict[str, int]:
     """Subcommand -> pid of the `mapservice.cli` children of `up` (gateway, processors, api,
     clickhouse-server, sim)."""
-    out = subprocess.run(["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True,
-                         text=True).stdout
+    out = subprocess.run(
+        ["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True, text=True
+    ).stdout
     found = {}
     for line in out.splitlines():
         child, _, cmd = line.strip().partition(" ")
@@ -90,7 +107,9 @@ def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):
     try:
         assert "wrote 0.05 days of demo history" in up.output
         history = up.api("/api/v1/stats").json()["poses"]
-        assert history >= 2 * 0.05 * 86_400 / 3 * 0.9, history  # poses every 3 s, before the live ones
+        assert history >= 2 * 0.05 * 86_400 / 3 * 0.9, (
+            history
+        )  # poses every 3 s, before the live ones
         deadline, chunks = time.monotonic() + 60, []
         while time.monotonic() < deadline:
             chunks = up.api("/api/v1/map").json()["chunks"]
@@ -120,14 +139,25 @@ def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):
 def test_up_on_tb3_sandbox_runs_and_restarts_a_killed_gateway(tmp_path):
     """`up --map tb3_sandbox` runs 5 simulated robots for a minute with no component
     exiting; a SIGKILLed gateway is restarted, said on the console, and poses flow again."""
-    up = Up(tmp_path / "data", "--map", str(MAPS / "tb3_sandbox.yaml"), "--robots", "5",
-            "--restart-base-s", "0.5", "--history-days", "0")
+    up = Up(
+        tmp_path / "data",
+        "--map",
+        str(MAPS / "tb3_sandbox.yaml"),
+        "--robots",
+        "5",
+        "--restart-base-s",
+        "0.5",
+        "--history-days",
+        "0",
+    )
     try:
         assert "demo history" not in up.output
         time.sleep(60)
         assert "exited" not in up.output, up.output[-4000:]
         robots = up.api("/api/v1/robots").json()["robots"]
-        assert len([r for r in robots if r["robotId"].startswith("sim-") and r["online"]]) == 5, robots
+        assert len([r for r in robots if r["robotId"].startswith("sim-") and r["online"]]) == 5, (
+            robots
+        )
 
         os.kill(children(up.proc.pid)["gateway"], signal.SIGKILL)
         up.wait_for("gateway exited", 10)
@@ -136,14 +166,20 @@ def test_up_on_tb3_sandbox_runs_and_restarts_a_killed_gateway(tmp_path):
         import paho.mqtt.publish as publish
 
         now = int(time.time() * 1000)
-        publish.single("iot/coordinates/after-restart", encode_coordinates(
-            "after-restart", format_timestamp(now), 1.0, 2.0, (0, 0, 0, 1)), qos=1,
-            hostname="127.0.0.1", port=up.mqtt_port)
+        publish.single(
+            "iot/coordinates/after-restart",
+            encode_coordinates("after-restart", format_timestamp(now), 1.0, 2.0, (0, 0, 0, 1)),
+            qos=1,
+            hostname="127.0.0.1",
+            port=up.mqtt_port,
+        )
         deadline, found = time.monotonic() + 20, []
         while time.monotonic() < deadline and not found:
-            found = up.api("/api/v1/poses", robotId="after-restart",
-                           **{"from": format_timestamp(now - 60_000),
-                              "to": format_timestamp(now + 60_000)}).json()
+            found = up.api(
+                "/api/v1/poses",
+                robotId="after-restart",
+                **{"from": format_timestamp(now - 60_000), "to": format_timestamp(now + 60_000)},
+            ).json()
             time.sleep(0.5)
         assert found, "no pose stored after the gateway restarted"
     finally:

@@ -26,10 +26,26 @@ class PipedUp(Up):
         self.api_port, self.mqtt_port = free_port(), free_port()
         env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
-             "--api-port", str(self.api_port), "--mqtt-port", str(self.mqtt_port), *args],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            start_new_session=True, env=env)
+            [
+                sys.executable,
+                "-m",
+                "mapservice.cli",
+                "up",
+                "--data-dir",
+                str(data_dir),
+                "--api-port",
+                str(self.api_port),
+                "--mqtt-port",
+                str(self.mqtt_port),
+                *args,
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+            env=env,
+        )
         self.lines = []
         threading.Thread(target=self._read, daemon=True).start()
         self.wait_for("mapservice is up", 200)
@@ -51,8 +67,11 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
     try:
         out = up.output
         assert "simulating the last 0.3 days of 1 robots" in out and "done_percent=" in out
-        for step in ("starting Kafka (Apache Kafka", "starting the ClickHouse server, the processors",
-                     "starting the MQTT-to-Kafka gateway"):
+        for step in (
+            "starting Kafka (Apache Kafka",
+            "starting the ClickHouse server, the processors",
+            "starting the MQTT-to-Kafka gateway",
+        ):
             assert step in out
         password_path = str(data / "secrets" / "analyst-password")
         assert any(password_path in line for line in out.splitlines()), out[-3000:]
@@ -66,14 +85,22 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
                 if not stat.S_ISLNK(mode) and mode & 0o077:
                     exposed.append(f"{oct(stat.S_IMODE(mode))} {os.path.relpath(path, data)}")
         assert not exposed, exposed
-        for must in ("secrets/robots.json", "logs/processors.log", "logs/api.log",
-                     "logs/clickhouse.log", "secrets/clickhouse-password", "logs/mosquitto.log",
-                     "mqtt/passwd", "mqtt/acl"):
+        for must in (
+            "secrets/robots.json",
+            "logs/processors.log",
+            "logs/api.log",
+            "logs/clickhouse.log",
+            "secrets/clickhouse-password",
+            "logs/mosquitto.log",
+            "mqtt/passwd",
+            "mqtt/acl",
+        ):
             assert (data / must).exists(), must
         # The API in a process of its own, apart from the history consumer's; the ClickHouse
         # server the one process that opens the chDB directory (no `serve`).
-        recorded = {c["name"]: c for c in
-                    json.loads((data / "up.pids.json").read_text())["components"]}
+        recorded = {
+            c["name"]: c for c in json.loads((data / "up.pids.json").read_text())["components"]
+        }
         assert {"clickhouse", "processors", "api"} <= set(recorded) and "server" not in recorded
         assert recorded["api"]["command"][-1] == "api"
         assert recorded["processors"]["command"][3] == "processors"

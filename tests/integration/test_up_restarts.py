@@ -17,16 +17,18 @@ import time
 import paho.mqtt.client as mqtt
 import pytest
 
+from mapservice.adapters.mqtt_client import PollingClient
 from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from mapservice.local import embedded, lifetime
 from mapservice.local.embedded import free_port
-from mapservice.adapters.mqtt_client import PollingClient
 from tests.fixtures.paths import ROOT
 from tests.integration.test_up_auth import connect_code
 from tests.integration.test_up_floor import Up, children
 
-pytestmark = [pytest.mark.integration,
-              pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto")]
+pytestmark = [
+    pytest.mark.integration,
+    pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto"),
+]
 
 
 class UpOn(Up):
@@ -35,11 +37,29 @@ class UpOn(Up):
     def __init__(self, data_dir, api_port: int, mqtt_port: int, *args: str) -> None:
         self.api_port, self.mqtt_port = api_port, mqtt_port
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", "up", "--data-dir", str(data_dir),
-             "--api-port", str(api_port), "--mqtt-port", str(mqtt_port), "--robots", "0",
-             "--history-days", "0", *args],
-            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-            start_new_session=True)
+            [
+                sys.executable,
+                "-m",
+                "mapservice.cli",
+                "up",
+                "--data-dir",
+                str(data_dir),
+                "--api-port",
+                str(api_port),
+                "--mqtt-port",
+                str(mqtt_port),
+                "--robots",
+                "0",
+                "--history-days",
+                "0",
+                *args,
+            ],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            start_new_session=True,
+        )
         self.lines = []
         threading.Thread(target=self._read, daemon=True).start()
         self.wait_for("mapservice is up", 150)
@@ -51,8 +71,9 @@ class Robot:
 
     def __init__(self, port: int, robot_id: str, password: str | None = None) -> None:
         self.robot_id = robot_id
-        self.client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=robot_id,
-                                  clean_session=False)
+        self.client = PollingClient(
+            mqtt.CallbackAPIVersion.VERSION2, client_id=robot_id, clean_session=False
+        )
         if password:
             self.client.username_pw_set(robot_id, password)
         self.client.reconnect_delay_set(0.2, 1)
@@ -85,8 +106,11 @@ class Robot:
             # Never hold our lock while calling paho: its network thread calls _on_publish
             # holding paho's own message lock, and publish() takes that lock too (holding
             # ours across it deadlocked the robot after a reconnect's burst of PUBACKs).
-            info = self.client.publish(f"iot/coordinates/{self.robot_id}", encode_coordinates(
-                self.robot_id, format_timestamp(ts), 1.0, 2.0), qos=1)
+            info = self.client.publish(
+                f"iot/coordinates/{self.robot_id}",
+                encode_coordinates(self.robot_id, format_timestamp(ts), 1.0, 2.0),
+                qos=1,
+            )
             with self.lock:  # the PUBACK may have arrived before publish() returned its mid
                 self.sent[info.mid] = ts
                 if info.mid in self.early:
@@ -106,8 +130,12 @@ class Robot:
 
 
 def stored_timestamps(up: Up, robot_id: str, from_ms: int) -> list[int]:
-    rows = up.api("/api/v1/poses", robotId=robot_id, limit=100_000,
-                  **{"from": from_ms, "to": int(time.time() * 1000) + 60_000}).json()
+    rows = up.api(
+        "/api/v1/poses",
+        robotId=robot_id,
+        limit=100_000,
+        **{"from": from_ms, "to": int(time.time() * 1000) + 60_000},
+    ).json()
     return [row["ts_ms"] for row in rows]
 
 
@@ -149,9 +177,23 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
         if auth:
             # A robot added while `up` runs: `up` restarts its broker to read the new
             # credential (a SIGHUP here would lose what is queued for the gateway).
-            added = subprocess.run([sys.executable, "-m", "mapservice.cli", "robot", "add",
-                                    "added-while-up-runs", "--data-dir", str(data), "--json"],
-                                   cwd=ROOT, capture_output=True, text=True, timeout=60)
+            added = subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "mapservice.cli",
+                    "robot",
+                    "add",
+                    "added-while-up-runs",
+                    "--data-dir",
+                    str(data),
+                    "--json",
+                ],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
             assert added.returncode == 0, added.stderr
             up.wait_for("Mosquitto restarted to read them", 20)
             new_password = json.loads(added.stdout)["password"]
@@ -168,9 +210,11 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
         stored = stored_timestamps(up, robot_id, started_ms)
         lost = acked - set(stored)
         twice = len(stored) - len(set(stored))
-        print(f"\n{'--auth' if auth else 'anonymous'}: published {len(robot.sent)}, "
-              f"acknowledged {len(acked)}, stored {len(set(stored))}, lost {len(lost)}, "
-              f"stored twice {twice}")
+        print(
+            f"\n{'--auth' if auth else 'anonymous'}: published {len(robot.sent)}, "
+            f"acknowledged {len(acked)}, stored {len(set(stored))}, lost {len(lost)}, "
+            f"stored twice {twice}"
+        )
         assert len(acked) > 500
         assert not lost, f"{len(lost)} of {len(acked)} acknowledged poses lost"
         assert twice == 0

@@ -24,8 +24,13 @@ from mapservice.core.zone_masks import pixel_of, zone_pixels
 from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from tests.fixtures.paths import MAPS
 from tests.integration.test_up_floor import Up
-from tests.ui.annotation_drawing import (TIMEOUT_MS, center_on_metres, draw_zone_by_mouse,
-                                         give_token, seek_and_read)
+from tests.ui.annotation_drawing import (
+    TIMEOUT_MS,
+    center_on_metres,
+    draw_zone_by_mouse,
+    give_token,
+    seek_and_read,
+)
 from tests.ui.conftest import ARTIFACTS, DIST, module_browser, page  # noqa: F401  (fixtures)
 
 pytestmark = pytest.mark.integration
@@ -59,7 +64,9 @@ def aisle_crossing(latest: list[dict]) -> tuple[list[list[float]], str]:
         path = p["path"] or []
         for (x0, y0), (x1, y1) in zip(path[1:], path[2:]):
             mx, my = (x0 + x1) / 2, (y0 + y1) / 2
-            if math.dist((x0, y0), (x1, y1)) < 1.0 or any(math.dist((mx, my), w) < 3.0 for w in where):
+            if math.dist((x0, y0), (x1, y1)) < 1.0 or any(
+                math.dist((mx, my), w) < 3.0 for w in where
+            ):
                 continue
             if abs(x1 - x0) >= abs(y1 - y0):  # the aisle runs along x: the band spans y
                 return box(mx - 0.5, my - 2.0, mx + 0.5, my + 2.0), p["robotId"]
@@ -67,7 +74,9 @@ def aisle_crossing(latest: list[dict]) -> tuple[list[list[float]], str]:
     raise AssertionError("no robot drives a straight stretch away from the others")
 
 
-def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_zone(tmp_path, page):
+def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_zone(
+    tmp_path, page
+):
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
     data = tmp_path / "data"
@@ -89,7 +98,9 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
         # opens the replay UI with the operator token, ready to draw a keep-out zone.
         ready = time.monotonic() + 15
         page.goto(f"http://127.0.0.1:{up.api_port}/?panels=annotations")
-        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
         give_token(page, token)
         page.wait_for_selector('[data-testid="edit-panel"]', timeout=TIMEOUT_MS)
         page.fill('[data-testid="zone-name"]', KEEP_OUT_NAME)
@@ -104,8 +115,9 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
         draw_zone_by_mouse(page, [(x, y) for x, y in band])
         page.wait_for_selector('[data-testid="edit-status"]', timeout=TIMEOUT_MS)
         assert page.locator('[data-testid="annotation-error"]').count() == 0
-        standing = {a["annotation"]["name"]: a
-                    for a in up.api("/api/v1/annotations").json()["annotations"]}
+        standing = {
+            a["annotation"]["name"]: a for a in up.api("/api/v1/annotations").json()["annotations"]
+        }
         drawn_zone = standing[KEEP_OUT_NAME]
         assert drawn_zone["created_by"].startswith("operator:")
         assert drawn_zone["annotation"]["kind"] == "keep_out"
@@ -119,13 +131,27 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
         assert grid is not None
         # A speed zone over the map's western half: robots cross in and out of it all shift.
         x_mid = grid.origin_x + grid.width * grid.resolution / 2
-        speed = box(grid.origin_x - 1, grid.origin_y - 1, x_mid,
-                    grid.origin_y + grid.height * grid.resolution + 1)
+        speed = box(
+            grid.origin_x - 1,
+            grid.origin_y - 1,
+            x_mid,
+            grid.origin_y + grid.height * grid.resolution + 1,
+        )
         auth = {"Authorization": f"Bearer {token}"}
         url = f"http://127.0.0.1:{up.api_port}/api/v1/annotations"
-        r = httpx.post(url, json={"shape": "zone", "name": "slow", "kind": "speed_limit", "polygon": speed,
-                                  "speed_limit": SPEED_PERCENT, "speed_unit": "percent"},
-                       headers=auth, timeout=30)
+        r = httpx.post(
+            url,
+            json={
+                "shape": "zone",
+                "name": "slow",
+                "kind": "speed_limit",
+                "polygon": speed,
+                "speed_limit": SPEED_PERCENT,
+                "speed_unit": "percent",
+            },
+            headers=auth,
+            timeout=30,
+        )
         assert r.status_code == 201, r.text
         t0 = max(drawn_zone["created_ms"], r.json()["created_ms"])
         start, end = t0 + GRACE_S * 1000, t0 + (GRACE_S + WATCH_S) * 1000
@@ -139,9 +165,14 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
 
         zone_keep_out = Zone(name="k", kind="keep_out", polygon=tuple(map(tuple, keep_out)))
         inside = zone_pixels(grid, zone_keep_out)
-        violating = [p for p in watched
-                     if (px := pixel_of(grid, p["position"][0], p["position"][1])) and inside[px]]
-        assert violating == [], f"{len(violating)} stored poses inside the keep-out zone: {violating[:3]}"
+        violating = [
+            p
+            for p in watched
+            if (px := pixel_of(grid, p["position"][0], p["position"][1])) and inside[px]
+        ]
+        assert violating == [], (
+            f"{len(violating)} stored poses inside the keep-out zone: {violating[:3]}"
+        )
         violations = up.api("/api/v1/zone-violations", **{"from": start, "to": end}).json()
         assert violations["violations"] == [], violations
         # Nor do the robots plan through it any more; and they kept working.
@@ -149,14 +180,22 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
             for x, y in p["path"] or []:
                 px = pixel_of(grid, x, y)
                 assert px is None or not inside[px], f"{p['robotId']} plans through the zone"
-        moved = sum(math.dist(a["position"][:2], b["position"][:2]) > 0.1
-                    for a, b in zip(watched, watched[1:]) if a["robotId"] == b["robotId"])
+        moved = sum(
+            math.dist(a["position"][:2], b["position"][:2]) > 0.1
+            for a, b in zip(watched, watched[1:])
+            if a["robotId"] == b["robotId"]
+        )
         assert moved > WATCH_S, f"the robots hardly moved ({moved} steps)"
 
         # The speed zone: between two poses a second apart, starting inside it, a robot
         # drives at most the limit; outside it, at its top speed (1 m/s) too.
-        slow_zone = Zone(name="s", kind="speed_limit", polygon=tuple(map(tuple, speed)),
-                         speed_limit=SPEED_PERCENT, speed_unit="percent")
+        slow_zone = Zone(
+            name="s",
+            kind="speed_limit",
+            polygon=tuple(map(tuple, speed)),
+            speed_limit=SPEED_PERCENT,
+            speed_unit="percent",
+        )
         slow = zone_pixels(grid, slow_zone)
         inside_moves, fast_outside = [], 0
         for a, b in zip(watched, watched[1:]):
@@ -185,7 +224,9 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
         assert page.errors == []
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "up-keep-out-zone.png"))
-        print(f"zone across the aisle of {crossing}; {len(watched)} poses watched, "
-              f"{len(inside_moves)} moves in the speed zone")
+        print(
+            f"zone across the aisle of {crossing}; {len(watched)} poses watched, "
+            f"{len(inside_moves)} moves in the speed zone"
+        )
     finally:
         up.stop()

@@ -42,8 +42,9 @@ class Vehicle:
         self.client.loop_start()
 
     def publish(self, subtopic: str, msg: dict, retain: bool = False) -> None:
-        self.client.publish(f"{self.base}/{subtopic}", vda.encode(msg), qos=1,
-                            retain=retain).wait_for_publish(10)
+        self.client.publish(
+            f"{self.base}/{subtopic}", vda.encode(msg), qos=1, retain=retain
+        ).wait_for_publish(10)
 
 
 def test_vehicles_drive_charge_fail_and_drop_their_connection(stack) -> None:
@@ -51,9 +52,14 @@ def test_vehicles_drive_charge_fail_and_drop_their_connection(stack) -> None:
     port = int(stack.mqtt_url.rsplit(":", 1)[1])
     a = Vehicle(port, "2.0.0", "Acme", "001")
     b = Vehicle(port, "2.1.0", "Robo Co", "7:2")
-    reported: dict[str, list[tuple[int, float, float, float]]] = {"Acme:001": [], "Robo@20Co:7@3A2": []}
+    reported: dict[str, list[tuple[int, float, float, float]]] = {
+        "Acme:001": [],
+        "Robo@20Co:7@3A2": [],
+    }
     for v in (a, b):
-        v.publish("connection", vda.connection(v.version, v.m, v.s, now_ms(), "ONLINE"), retain=True)
+        v.publish(
+            "connection", vda.connection(v.version, v.m, v.s, now_ms(), "ONLINE"), retain=True
+        )
         v.publish("factsheet", vda.factsheet(v.version, v.m, v.s, now_ms()), retain=True)
     for step in range(6):  # drive along x; a state every third message, visualizations between
         for v, robot, charging in ((a, "Acme:001", False), (b, "Robo@20Co:7@3A2", True)):
@@ -61,13 +67,28 @@ def test_vehicles_drive_charge_fail_and_drop_their_connection(stack) -> None:
             x, y, theta = 1.0 + step, 2.0 + 0.5 * step, 0.1 * step
             if step % 3 == 0:
                 errors = (("WARNING", "lowBattery", "charge me"),) if charging else ()
-                v.publish("state", vda.state(v.version, v.m, v.s, t, x=x, y=y, theta=theta,
-                                             battery=50.0 + step, charging=charging,
-                                             loads=[{"loadId": "L1"}] if not charging else [],
-                                             nodes=((9.0, 9.0),), errors=errors))
+                v.publish(
+                    "state",
+                    vda.state(
+                        v.version,
+                        v.m,
+                        v.s,
+                        t,
+                        x=x,
+                        y=y,
+                        theta=theta,
+                        battery=50.0 + step,
+                        charging=charging,
+                        loads=[{"loadId": "L1"}] if not charging else [],
+                        nodes=((9.0, 9.0),),
+                        errors=errors,
+                    ),
+                )
             else:
-                v.publish("visualization", vda.visualization(v.version, v.m, v.s, t, x=x, y=y,
-                                                             theta=theta))
+                v.publish(
+                    "visualization",
+                    vda.visualization(v.version, v.m, v.s, t, x=x, y=y, theta=theta),
+                )
             reported[robot].append((t, x, y, theta))
         time.sleep(0.05)
     # Vehicle b's connection breaks: its socket closes without a DISCONNECT.
@@ -81,10 +102,14 @@ def test_vehicles_drive_charge_fail_and_drop_their_connection(stack) -> None:
     poses: list = []
     facts: dict = {}
     while time.monotonic() < deadline:
-        poses = httpx.get(f"{stack.api_url}/api/v1/poses", params={
-            "from": start, "to": now_ms() + 1000, "limit": 1000}, timeout=30).json()
-        facts = httpx.get(f"{stack.api_url}/api/v1/robots/Robo@20Co:7@3A2/vda5050",
-                          timeout=30).json()
+        poses = httpx.get(
+            f"{stack.api_url}/api/v1/poses",
+            params={"from": start, "to": now_ms() + 1000, "limit": 1000},
+            timeout=30,
+        ).json()
+        facts = httpx.get(
+            f"{stack.api_url}/api/v1/robots/Robo@20Co:7@3A2/vda5050", timeout=30
+        ).json()
         if len(poses) >= 12 and len(facts.get("connections", ())) >= 2:
             break
         time.sleep(0.5)
@@ -97,15 +122,26 @@ def test_vehicles_drive_charge_fail_and_drop_their_connection(stack) -> None:
         for p, (_, x, y, theta) in zip(got, sent):
             assert p["position"][:2] == pytest.approx([x, y], abs=0.001)  # stored in mm
             assert p["orientation"][2:] == pytest.approx(
-                [math.sin(theta / 2), math.cos(theta / 2)], abs=1e-6)
+                [math.sin(theta / 2), math.cos(theta / 2)], abs=1e-6
+            )
             assert p["battery_level"] is not None  # visualizations carry the state's battery
     assert [p["battery_level"] for p in sorted(by_robot["Acme:001"], key=lambda p: p["ts_ms"])] == [
-        50.0, 50.0, 50.0, 53.0, 53.0, 53.0]
+        50.0,
+        50.0,
+        50.0,
+        53.0,
+        53.0,
+        53.0,
+    ]
     assert {(p["charging"], p["loaded"]) for p in by_robot["Robo@20Co:7@3A2"]} == {(True, False)}
     assert {(p["charging"], p["loaded"]) for p in by_robot["Acme:001"]} == {(False, True)}
     assert by_robot["Acme:001"][0]["path"] == [[9.0, 9.0]]
 
-    assert (facts["manufacturer"], facts["serialNumber"], facts["online"]) == ("Robo Co", "7:2", False)
+    assert (facts["manufacturer"], facts["serialNumber"], facts["online"]) == (
+        "Robo Co",
+        "7:2",
+        False,
+    )
     states = [(c["state"], c["ts_ms"]) for c in facts["connections"]]
     assert states[0][0] == "ONLINE" and states[-1][0] == "CONNECTIONBROKEN"
     assert before_break <= states[-1][1] <= now_ms()  # offline at the break, not at connect

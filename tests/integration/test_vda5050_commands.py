@@ -20,38 +20,60 @@ OPERATOR = "operator-" + "p" * 32
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     installed_fleet()  # skips before a stack starts if npm is absent
-    stack = start_stack(tmp_path_factory, "mosquitto",
-                        {"MAPSERVICE_API_OPERATOR_TOKENS": OPERATOR})
+    stack = start_stack(tmp_path_factory, "mosquitto", {"MAPSERVICE_API_OPERATOR_TOKENS": OPERATOR})
     yield stack
     stack.stop()
 
 
 def send(stack, body: dict) -> httpx.Response:
-    return httpx.post(f"{stack.api_url}/api/v1/commands", json=body, timeout=30,
-                      headers={"Authorization": f"Bearer {OPERATOR}"})
+    return httpx.post(
+        f"{stack.api_url}/api/v1/commands",
+        json=body,
+        timeout=30,
+        headers={"Authorization": f"Bearer {OPERATOR}"},
+    )
 
 
 def test_a_pause_reaches_a_vda_5050_lib_vehicle_and_its_action_state_answers(stack, tmp_path):
     port = int(stack.mqtt_url.rsplit(":", 1)[1])
     recorder = Recorder(port)
-    vehicle = FleetProcess("vehicle", {
-        "broker": stack.mqtt_url, "interface": "uagv", "vdaVersion": "2.0.0",
-        "manufacturer": "Acme", "serialNumber": "P1", "batteryCharge": 70.0,
-        "initialPosition": {"mapId": "hall", "x": 1.0, "y": 1.0, "theta": 0.0},
-        "speed": 1.0, "timeLapse": 1, "visualizationMs": 200}, tmp_path, "vehicle-pause")
+    vehicle = FleetProcess(
+        "vehicle",
+        {
+            "broker": stack.mqtt_url,
+            "interface": "uagv",
+            "vdaVersion": "2.0.0",
+            "manufacturer": "Acme",
+            "serialNumber": "P1",
+            "batteryCharge": 70.0,
+            "initialPosition": {"mapId": "hall", "x": 1.0, "y": 1.0, "theta": 0.0},
+            "speed": 1.0,
+            "timeLapse": 1,
+            "visualizationMs": 200,
+        },
+        tmp_path,
+        "vehicle-pause",
+    )
     started_ms = time.time_ns() // 1_000_000
     try:
         vehicle.wait_for("started", 30)
         deadline = time.monotonic() + 60
-        while (r := send(stack, {"robotId": "Acme:P1", "kind": "pause", "id": "vda-pause-1"})
-               ).status_code == 404 and time.monotonic() < deadline:
+        while (
+            r := send(stack, {"robotId": "Acme:P1", "kind": "pause", "id": "vda-pause-1"})
+        ).status_code == 404 and time.monotonic() < deadline:
             time.sleep(0.5)  # until its first pose is stored
         assert r.status_code == 202, r.text
         command: dict = {}
         while time.monotonic() < deadline:
-            rows = httpx.get(f"{stack.api_url}/api/v1/commands", timeout=30, params={
-                "from": started_ms, "to": time.time_ns() // 1_000_000 + 60_000,
-                "robot": "Acme:P1"}).json()["commands"]
+            rows = httpx.get(
+                f"{stack.api_url}/api/v1/commands",
+                timeout=30,
+                params={
+                    "from": started_ms,
+                    "to": time.time_ns() // 1_000_000 + 60_000,
+                    "robot": "Acme:P1",
+                },
+            ).json()["commands"]
             command = next((c for c in rows if c["commandId"] == "vda-pause-1"), {})
             if command.get("outcome"):
                 break

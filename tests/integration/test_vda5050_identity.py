@@ -23,21 +23,31 @@ def broker(tmp_path):
     if not embedded.mosquitto_installed():
         pytest.fail("mosquitto is not installed (make system-deps installs it)")
     files = BrokerFiles(tmp_path / "passwd", tmp_path / "acl")
-    creds = {name: files.add_robot(name).password
-             for name in ("Acme/001", "Acme/002", MASTER)}
+    creds = {name: files.add_robot(name).password for name in ("Acme/001", "Acme/002", MASTER)}
     files.set_service_user(GATEWAY_USER, "gateway-secret")
     creds[GATEWAY_USER] = "gateway-secret"
     port = embedded.free_port()
-    proc = embedded.start_mosquitto(port, tmp_path, options=embedded.MosquittoOptions(
-        password_file=files.password_file, acl_file=files.acl_file))
+    proc = embedded.start_mosquitto(
+        port,
+        tmp_path,
+        options=embedded.MosquittoOptions(
+            password_file=files.password_file, acl_file=files.acl_file
+        ),
+    )
     yield port, creds
     proc.terminate()
     proc.wait(10)
 
 
 class Client:
-    def __init__(self, port: int, username: str, password: str, subscribe: str | None = None,
-                 will: str | None = None) -> None:
+    def __init__(
+        self,
+        port: int,
+        username: str,
+        password: str,
+        subscribe: str | None = None,
+        will: str | None = None,
+    ) -> None:
         self.received: list[tuple[str, bytes]] = []
         self.client = make_client(f"id-{username.replace('/', '-')}-{time.monotonic_ns()}")
         self.client.username_pw_set(username, password)
@@ -66,8 +76,13 @@ class Client:
 def test_a_vehicle_publishes_and_reads_only_its_own_subtree(broker) -> None:
     port, creds = broker
     gateway = Client(port, GATEWAY_USER, creds[GATEWAY_USER], subscribe="uagv/#")
-    vehicle = Client(port, "Acme/001", creds["Acme/001"], subscribe="uagv/+/+/+/order",
-                     will="uagv/v2/Acme/001/connection")
+    vehicle = Client(
+        port,
+        "Acme/001",
+        creds["Acme/001"],
+        subscribe="uagv/+/+/+/order",
+        will="uagv/v2/Acme/001/connection",
+    )
     master_like = Client(port, "Acme/002", creds["Acme/002"])
     for subtopic in ("state", "visualization", "connection", "factsheet"):
         vehicle.publish(f"uagv/v2/Acme/001/{subtopic}", b"own")
@@ -81,9 +96,12 @@ def test_a_vehicle_publishes_and_reads_only_its_own_subtree(broker) -> None:
     gateway.close()
     master_like.close()
     assert sorted(gateway.received) == sorted(
-        [(f"uagv/v2/Acme/001/{s}", b"own") for s in ("state", "visualization", "connection",
-                                                    "factsheet")]
-        + [("uagv/v2/Acme/001/connection", b'{"connectionState": "CONNECTIONBROKEN"}')])
+        [
+            (f"uagv/v2/Acme/001/{s}", b"own")
+            for s in ("state", "visualization", "connection", "factsheet")
+        ]
+        + [("uagv/v2/Acme/001/connection", b'{"connectionState": "CONNECTIONBROKEN"}')]
+    )
     assert vehicle.received == []  # its own order publish was refused, another's not readable
 
 
@@ -124,12 +142,16 @@ def test_a_master_control_orders_every_vehicle_and_reads_their_messages(broker) 
     time.sleep(1)
     for c in (gateway, master, one, two):
         c.close()
-    assert sorted(one.received) == [("uagv/v2/Acme/001/instantActions", b"pause 001"),
-                                    ("uagv/v2/Acme/001/order", b"order for 001")]
+    assert sorted(one.received) == [
+        ("uagv/v2/Acme/001/instantActions", b"pause 001"),
+        ("uagv/v2/Acme/001/order", b"order for 001"),
+    ]
     assert two.received == [("uagv/v2/Acme/002/order", b"order for 002")]
-    assert sorted(master.received) == [("uagv/v2/Acme/001/state", b"001's state"),
-                                       ("uagv/v2/Acme/002/connection", b"002 online"),
-                                       ("uagv/v2/Acme/002/state", b"002's state")]
+    assert sorted(master.received) == [
+        ("uagv/v2/Acme/001/state", b"001's state"),
+        ("uagv/v2/Acme/002/connection", b"002 online"),
+        ("uagv/v2/Acme/002/state", b"002's state"),
+    ]
     # The state the master sent as vehicle 001 never reached anyone.
     states = sorted(p for t, p in gateway.received if t.endswith("/state"))
     assert states == [b"001's state", b"002's state"]

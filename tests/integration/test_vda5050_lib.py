@@ -43,45 +43,92 @@ def transformed(x: float, y: float) -> tuple[float, float]:
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     installed_fleet()  # skips before a stack starts if npm is absent
-    stack = start_stack(tmp_path_factory, "mosquitto", {
-        "MAPSERVICE_VDA5050_MAP_TRANSFORMS": json.dumps({MAP_ID: list(TRANSFORM)})})
+    stack = start_stack(
+        tmp_path_factory,
+        "mosquitto",
+        {"MAPSERVICE_VDA5050_MAP_TRANSFORMS": json.dumps({MAP_ID: list(TRANSFORM)})},
+    )
     yield stack
     stack.stop()
 
 
 def node(node_id: str, seq: int, x: float, y: float, *actions: dict) -> dict:
-    return {"nodeId": node_id, "sequenceId": seq, "released": True,
-            "nodePosition": {"x": x, "y": y, "mapId": MAP_ID}, "actions": list(actions)}
+    return {
+        "nodeId": node_id,
+        "sequenceId": seq,
+        "released": True,
+        "nodePosition": {"x": x, "y": y, "mapId": MAP_ID},
+        "actions": list(actions),
+    }
 
 
 def edge(seq: int, start: str, end: str) -> dict:
-    return {"edgeId": f"{start}-{end}", "sequenceId": seq, "startNodeId": start,
-            "endNodeId": end, "released": True, "actions": []}
+    return {
+        "edgeId": f"{start}-{end}",
+        "sequenceId": seq,
+        "startNodeId": start,
+        "endNodeId": end,
+        "released": True,
+        "actions": [],
+    }
 
 
 def action(action_id: str, action_type: str, **params) -> dict:
-    return {"actionId": action_id, "actionType": action_type, "blockingType": "HARD",
-            "actionParameters": [{"key": k, "value": v} for k, v in params.items()]}
+    return {
+        "actionId": action_id,
+        "actionType": action_type,
+        "blockingType": "HARD",
+        "actionParameters": [{"key": k, "value": v} for k, v in params.items()],
+    }
 
 
 def route(order_id: str, *points: tuple[str, float, float, list]) -> dict:
     nodes = [node(n, 2 * i, x, y, *acts) for i, (n, x, y, acts) in enumerate(points)]
-    edges = [edge(2 * i + 1, a["nodeId"], b["nodeId"]) for i, (a, b) in
-             enumerate(zip(nodes, nodes[1:]))]
+    edges = [
+        edge(2 * i + 1, a["nodeId"], b["nodeId"]) for i, (a, b) in enumerate(zip(nodes, nodes[1:]))
+    ]
     return {"orderId": order_id, "orderUpdateId": 0, "nodes": nodes, "edges": edges}
 
 
 EPAL = {"stationType": "floor", "loadType": "EPAL", "duration": 0.5}
 VEHICLES = {  # (manufacturer, serial): (start x, y, theta, battery, orders)
-    ("Acme", "001"): (1.0, 1.0, 0.0, 80.0, [route(
-        "acme-1", ("a0", 1.0, 1.0, [action("pick-1", "pick", **EPAL)]), ("a1", 5.0, 1.0, []),
-        ("a2", 5.0, 3.0, [action("drop-1", "drop", **EPAL)]))]),
-    ("Robo Co", "7:2"): (2.0, 4.0, 0.0, 30.0, [route(
-        "robo-1", ("r0", 2.0, 4.0, []),
-        ("r1", 4.0, 5.0, [action("charge-1", "startCharging", duration=0.2)]))]),
-    ("Acme", "003"): (1.0, 6.0, 0.0, 60.0, [
-        route("acme3-far", ("far", 20.0, 9.0, [])),  # not where it stands: noRouteError
-        route("acme3-1", ("c0", 1.0, 6.0, []), ("c1", 4.0, 6.5, []))]),
+    ("Acme", "001"): (
+        1.0,
+        1.0,
+        0.0,
+        80.0,
+        [
+            route(
+                "acme-1",
+                ("a0", 1.0, 1.0, [action("pick-1", "pick", **EPAL)]),
+                ("a1", 5.0, 1.0, []),
+                ("a2", 5.0, 3.0, [action("drop-1", "drop", **EPAL)]),
+            )
+        ],
+    ),
+    ("Robo Co", "7:2"): (
+        2.0,
+        4.0,
+        0.0,
+        30.0,
+        [
+            route(
+                "robo-1",
+                ("r0", 2.0, 4.0, []),
+                ("r1", 4.0, 5.0, [action("charge-1", "startCharging", duration=0.2)]),
+            )
+        ],
+    ),
+    ("Acme", "003"): (
+        1.0,
+        6.0,
+        0.0,
+        60.0,
+        [
+            route("acme3-far", ("far", 20.0, 9.0, [])),  # not where it stands: noRouteError
+            route("acme3-1", ("c0", 1.0, 6.0, []), ("c1", 4.0, 6.5, [])),
+        ],
+    ),
 }
 
 
@@ -94,16 +141,35 @@ def test_vda_5050_lib_fleet_in_the_history(stack, tmp_path) -> None:
     master = None
     try:
         for (m, s), (x, y, theta, battery, _) in VEHICLES.items():
-            vehicles[m, s] = FleetProcess("vehicle", {
-                **common, "manufacturer": m, "serialNumber": s, "batteryCharge": battery,
-                "initialPosition": {"mapId": MAP_ID, "x": x, "y": y, "theta": theta},
-                "speed": 2.0, "timeLapse": 1, "visualizationMs": 200,
-            }, tmp_path, f"vehicle-{m}-{s}".replace(" ", "_").replace(":", "_"))
+            vehicles[m, s] = FleetProcess(
+                "vehicle",
+                {
+                    **common,
+                    "manufacturer": m,
+                    "serialNumber": s,
+                    "batteryCharge": battery,
+                    "initialPosition": {"mapId": MAP_ID, "x": x, "y": y, "theta": theta},
+                    "speed": 2.0,
+                    "timeLapse": 1,
+                    "visualizationMs": 200,
+                },
+                tmp_path,
+                f"vehicle-{m}-{s}".replace(" ", "_").replace(":", "_"),
+            )
         for v in vehicles.values():
             v.wait_for("started", 30)
-        master = FleetProcess("master", {**common, "plans": [
-            {"agv": {"manufacturer": m, "serialNumber": s}, "orders": orders}
-            for (m, s), (*_, orders) in VEHICLES.items()]}, tmp_path, "master")
+        master = FleetProcess(
+            "master",
+            {
+                **common,
+                "plans": [
+                    {"agv": {"manufacturer": m, "serialNumber": s}, "orders": orders}
+                    for (m, s), (*_, orders) in VEHICLES.items()
+                ],
+            },
+            tmp_path,
+            "master",
+        )
         master.wait_for("done", BUDGET_S / 2)
         time.sleep(0.5)  # a few visualizations of them standing
         # Acme/003's process dies: its socket closes without a DISCONNECT.
@@ -111,8 +177,11 @@ def test_vda_5050_lib_fleet_in_the_history(stack, tmp_path) -> None:
         vehicles["Acme", "003"].stop(signal.SIGKILL)
         vehicles["Acme", "001"].stop()  # a graceful stop says OFFLINE
         deadline = time.monotonic() + 30
-        while not recorder.of("connection", "Acme", "003")[-1][1]["connectionState"] \
-                == "CONNECTIONBROKEN" and time.monotonic() < deadline:
+        while (
+            not recorder.of("connection", "Acme", "003")[-1][1]["connectionState"]
+            == "CONNECTIONBROKEN"
+            and time.monotonic() < deadline
+        ):
             time.sleep(0.05)
         will_received_ms = time.time_ns() // 1_000_000
     finally:
@@ -122,10 +191,17 @@ def test_vda_5050_lib_fleet_in_the_history(stack, tmp_path) -> None:
             master.stop()
         recorder.stop()
 
-    outcomes = {(e["agv"]["serialNumber"], e["orderId"]): e["withError"]
-                for e in master.events if e["event"] == "processed"}
-    assert outcomes == {("001", "acme-1"): None, ("7:2", "robo-1"): None,
-                        ("003", "acme3-far"): "noRouteError", ("003", "acme3-1"): None}
+    outcomes = {
+        (e["agv"]["serialNumber"], e["orderId"]): e["withError"]
+        for e in master.events
+        if e["event"] == "processed"
+    }
+    assert outcomes == {
+        ("001", "acme-1"): None,
+        ("7:2", "robo-1"): None,
+        ("003", "acme3-far"): "noRouteError",
+        ("003", "acme3-1"): None,
+    }
 
     expected = expected_poses(recorder)
     total = sum(len(rows) for rows in expected.values())
@@ -137,7 +213,8 @@ def test_vda_5050_lib_fleet_in_the_history(stack, tmp_path) -> None:
         for ts, candidates in want.items():
             p = got[ts]
             assert any(matches(p, c) for c in candidates), json.dumps(
-                {"robot": robot, "stored": p, "sent": candidates})
+                {"robot": robot, "stored": p, "sent": candidates}
+            )
 
     acme1 = [expected["Acme:001"][ts][-1] for ts in sorted(expected["Acme:001"])]
     assert [c["loaded"] for c in acme1].count(True) > 0  # carried between pick and drop
@@ -168,17 +245,24 @@ def test_vda_5050_lib_fleet_in_the_history(stack, tmp_path) -> None:
     probe.disconnect()
     probe.loop_stop()
     letters = wait_for_dead_letter(stack, started_ms, "uagv/v2/Probe/0/state")
-    assert [(r["mqtt_topic"], r["reason"]) for r in letters if r["mqtt_topic"].startswith("uagv/")] \
-        == [("uagv/v2/Probe/0/state", "vda_unsupported_version")]
+    assert [
+        (r["mqtt_topic"], r["reason"]) for r in letters if r["mqtt_topic"].startswith("uagv/")
+    ] == [("uagv/v2/Probe/0/state", "vda_unsupported_version")]
 
 
 def wait_for_dead_letter(stack, started_ms: int, topic: str, timeout_s: float = 60) -> list[dict]:
     deadline = time.monotonic() + timeout_s
     rows: list[dict] = []
     while time.monotonic() < deadline:
-        text = httpx.get(f"{stack.api_url}/api/v1/exports/tables/dead-letters", params={
-            "from": started_ms - 1000, "to": time.time_ns() // 1_000_000 + 1000,
-            "format": "csv"}, timeout=30).text
+        text = httpx.get(
+            f"{stack.api_url}/api/v1/exports/tables/dead-letters",
+            params={
+                "from": started_ms - 1000,
+                "to": time.time_ns() // 1_000_000 + 1000,
+                "format": "csv",
+            },
+            timeout=30,
+        ).text
         rows = list(csv.DictReader(io.StringIO(text)))
         if any(r["mqtt_topic"] == topic for r in rows):
             return rows
@@ -198,31 +282,49 @@ def expected_poses(recorder: Recorder) -> dict[str, dict[int, list[dict]]]:
             if not topic.startswith(f"uagv/v2/{m}/{s}/") or "agvPosition" not in msg:
                 continue
             if topic.endswith("/state"):
-                status = {"battery_level": msg["batteryState"]["batteryCharge"],
-                          "charging": msg["batteryState"]["charging"],
-                          "loaded": bool(msg["loads"]) if "loads" in msg else None,
-                          "path": [list(transformed(n["nodePosition"]["x"], n["nodePosition"]["y"]))
-                                   for n in msg["nodeStates"] if "nodePosition" in n] or None}
+                status = {
+                    "battery_level": msg["batteryState"]["batteryCharge"],
+                    "charging": msg["batteryState"]["charging"],
+                    "loaded": bool(msg["loads"]) if "loads" in msg else None,
+                    "path": [
+                        list(transformed(n["nodePosition"]["x"], n["nodePosition"]["y"]))
+                        for n in msg["nodeStates"]
+                        if "nodePosition" in n
+                    ]
+                    or None,
+                }
             elif not topic.endswith("/visualization"):
                 continue
             pos = msg["agvPosition"]
-            robot.setdefault(vda_ms(msg["timestamp"]), []).append({
-                **status, "xy": transformed(pos["x"], pos["y"]),
-                "theta": pos["theta"] + TRANSFORM[2]})
+            robot.setdefault(vda_ms(msg["timestamp"]), []).append(
+                {
+                    **status,
+                    "xy": transformed(pos["x"], pos["y"]),
+                    "theta": pos["theta"] + TRANSFORM[2],
+                }
+            )
     return out
 
 
 def matches(stored: dict, want: dict) -> bool:
     theta = want["theta"]
-    return (stored["position"][:2] == pytest.approx(list(want["xy"]), abs=0.0011)  # mm
-            and stored["orientation"][2:] == pytest.approx(
-                [math.sin(theta / 2), math.cos(theta / 2)], abs=1e-6)
-            # battery_level is stored as a Float32
-            and (stored["battery_level"] == pytest.approx(want["battery_level"], rel=1e-6)
-                 if want["battery_level"] is not None else stored["battery_level"] is None)
-            and (stored["charging"], stored["loaded"]) == (want["charging"], want["loaded"])
-            and (flat(stored["path"]) == pytest.approx(flat(want["path"]), abs=0.0011)
-                 if want["path"] else not stored["path"]))
+    return (
+        stored["position"][:2] == pytest.approx(list(want["xy"]), abs=0.0011)  # mm
+        and stored["orientation"][2:]
+        == pytest.approx([math.sin(theta / 2), math.cos(theta / 2)], abs=1e-6)
+        # battery_level is stored as a Float32
+        and (
+            stored["battery_level"] == pytest.approx(want["battery_level"], rel=1e-6)
+            if want["battery_level"] is not None
+            else stored["battery_level"] is None
+        )
+        and (stored["charging"], stored["loaded"]) == (want["charging"], want["loaded"])
+        and (
+            flat(stored["path"]) == pytest.approx(flat(want["path"]), abs=0.0011)
+            if want["path"]
+            else not stored["path"]
+        )
+    )
 
 
 def flat(path: list | None) -> list[float]:
@@ -233,9 +335,15 @@ def wait_for_poses(stack, started_ms: int, expected: int, timeout_s: float = 60)
     deadline = time.monotonic() + timeout_s
     rows: list[dict] = []
     while time.monotonic() < deadline:
-        rows = httpx.get(f"{stack.api_url}/api/v1/poses", params={
-            "from": started_ms - 1000, "to": time.time_ns() // 1_000_000 + 1000,
-            "limit": 10000}, timeout=30).json()
+        rows = httpx.get(
+            f"{stack.api_url}/api/v1/poses",
+            params={
+                "from": started_ms - 1000,
+                "to": time.time_ns() // 1_000_000 + 1000,
+                "limit": 10000,
+            },
+            timeout=30,
+        ).json()
         if len(rows) >= expected:
             break
         time.sleep(0.5)

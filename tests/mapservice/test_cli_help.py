@@ -18,6 +18,9 @@ def walk(parser: argparse.ArgumentParser, path: str):
 
 def test_every_cli_argument_has_help() -> None:
     """No argument of any subcommand lacks a help string (hidden ones are SUPPRESSed)."""
-    missing = [f"{path} {'/'.join(a.option_strings) or a.dest}"
-               for path, a in walk(build_parser(), "mapservice") if not a.help]
+    missing = [
+        f"{path} {'/'.join(a.option_strings) or a.dest}"
+        for path, a in walk(build_parser(), "mapservice")
+        if not a.help
+    ]
     assert missing == []

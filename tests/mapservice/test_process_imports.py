@@ -18,7 +18,8 @@ cli.build_parser()
 import mapservice.server, mapservice.api.app, mapservice.sql.apps
 print(sorted(m for m in sys.modules if m.startswith('mapservice.processors')))
 """
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                          timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "[]"

@@ -24,8 +24,13 @@ def test_local_defaults() -> None:
     assert s.api_read_access == "open"
     assert (s.create_chunk_topic, s.coordinate_topic) == ("iot/chunks/create", "iot/coordinates/#")
     assert s.retention_ms == 7 * 86_400_000
-    assert s.mqtt_subscriptions == ["iot/chunks/create", "iot/coordinates/#", "iot/chunks/create/+",
-                                    *(f"uagv/+/+/+/{t}" for t in VDA), "iot/robots/+/command-events"]
+    assert s.mqtt_subscriptions == [
+        "iot/chunks/create",
+        "iot/coordinates/#",
+        "iot/chunks/create/+",
+        *(f"uagv/+/+/+/{t}" for t in VDA),
+        "iot/robots/+/command-events",
+    ]
 
 
 def test_production_refuses_default_admin_token() -> None:
@@ -36,14 +41,19 @@ def test_production_refuses_default_admin_token() -> None:
         Settings(mode="production", admin_token=DEFAULT_ADMIN_TOKEN)
 
 
-@pytest.mark.parametrize("field", ["admin_token", "api_writer_tokens", "api_reader_tokens",
-                                   "api_metrics_token"])
+@pytest.mark.parametrize(
+    "field", ["admin_token", "api_writer_tokens", "api_reader_tokens", "api_metrics_token"]
+)
 def test_production_refuses_short_tokens(field) -> None:
     """A token under 32 characters (e.g. a 1-character admin token) is refused in production, naming its variable; local mode takes it."""
     tokens = {"admin_token": TOKEN, field: f"{'u' * 40}, short"}
-    with pytest.raises(ValidationError, match=f"MAPSERVICE_{field.upper()} holds a token of 5 characters"):
+    with pytest.raises(
+        ValidationError, match=f"MAPSERVICE_{field.upper()} holds a token of 5 characters"
+    ):
         Settings(mode="production", **tokens)
-    with pytest.raises(ValidationError, match="MAPSERVICE_ADMIN_TOKEN holds a token of 1 characters"):
+    with pytest.raises(
+        ValidationError, match="MAPSERVICE_ADMIN_TOKEN holds a token of 1 characters"
+    ):
         Settings(mode="production", admin_token="t")
     assert Settings(**tokens).mode == "local"
 
@@ -65,16 +75,24 @@ def test_production_refuses_default_admin_token_from_env(monkeypatch) -> None:
         Settings()
     monkeypatch.setenv("MAPSERVICE_ADMIN_TOKEN", "s3cret-from-vault-" + "x" * 16)
     s = Settings()
-    assert s.mode == "production" and s.admin_token.get_secret_value() == "s3cret-from-vault-" + "x" * 16
+    assert (
+        s.mode == "production"
+        and s.admin_token.get_secret_value() == "s3cret-from-vault-" + "x" * 16
+    )
 
 
 def test_production_refuses_empty_clickhouse_password_for_a_server() -> None:
     """Against a ClickHouse server, production needs a password; embedded chDB does not."""
     with pytest.raises(ValidationError, match="MAPSERVICE_CLICKHOUSE_PASSWORD"):
-        Settings(mode="production", admin_token=SecretStr(TOKEN),
-                 clickhouse_dsn="http://clickhouse:8123")
-    ok = Settings(mode="production", admin_token=SecretStr(TOKEN),
-                  clickhouse_dsn="http://clickhouse:8123", clickhouse_password=SecretStr("pw"))
+        Settings(
+            mode="production", admin_token=SecretStr(TOKEN), clickhouse_dsn="http://clickhouse:8123"
+        )
+    ok = Settings(
+        mode="production",
+        admin_token=SecretStr(TOKEN),
+        clickhouse_dsn="http://clickhouse:8123",
+        clickhouse_password=SecretStr("pw"),
+    )
     assert ok.resolved_clickhouse_dsn == "http://clickhouse:8123"
     assert Settings(mode="production", admin_token=SecretStr(TOKEN)).mode == "production"
 
@@ -91,10 +109,13 @@ def test_env_vars_override(monkeypatch) -> None:
     assert s.kafka_bootstrap == "kafka-1:9093,kafka-2:9093"
     assert s.max_grid == 64 and s.max_future_skew_s == 2.5
     assert s.retention_ms == 3 * 86_400_000
-    assert s.mqtt_subscriptions == ["$share/gw/iot/chunks/create", "$share/gw/iot/coordinates/#",
-                                    "$share/gw/iot/chunks/create/+",
-                                    *(f"$share/gw/uagv/+/+/+/{t}" for t in VDA),
-                                    "$share/gw/iot/robots/+/command-events"]
+    assert s.mqtt_subscriptions == [
+        "$share/gw/iot/chunks/create",
+        "$share/gw/iot/coordinates/#",
+        "$share/gw/iot/chunks/create/+",
+        *(f"$share/gw/uagv/+/+/+/{t}" for t in VDA),
+        "$share/gw/iot/robots/+/command-events",
+    ]
 
 
 def test_invalid_env_value_is_refused(monkeypatch) -> None:
@@ -112,8 +133,10 @@ def test_clickhouse_dsn_defaults_to_chdb_in_data_dir(tmp_path: Path) -> None:
 
 def test_kafka_config_without_sasl() -> None:
     """Without credentials, kafka_config has only the bootstrap and protocol."""
-    assert Settings().kafka_config() == {"bootstrap.servers": "127.0.0.1:9092",
-                                         "security.protocol": "PLAINTEXT"}
+    assert Settings().kafka_config() == {
+        "bootstrap.servers": "127.0.0.1:9092",
+        "security.protocol": "PLAINTEXT",
+    }
 
 
 def test_kafka_config_includes_sasl_credentials(monkeypatch) -> None:
@@ -136,9 +159,14 @@ def test_kafka_config_includes_sasl_credentials(monkeypatch) -> None:
 def test_kafka_topics_lists_all_seven() -> None:
     """kafka_topics lists the chunk, pose, meta, dead-letter, live, annotation and command topics."""
     assert Settings(topic_meta_events="m").kafka_topics == [
-        "mapservice.chunk-events.v1", "mapservice.pose-events.v1", "m",
-        "mapservice.dead-letter.v1", "mapservice.live.v1", "mapservice.annotation-events.v1",
-        "mapservice.command-events.v1"]
+        "mapservice.chunk-events.v1",
+        "mapservice.pose-events.v1",
+        "m",
+        "mapservice.dead-letter.v1",
+        "mapservice.live.v1",
+        "mapservice.annotation-events.v1",
+        "mapservice.command-events.v1",
+    ]
 
 
 def test_kafka_ca_file_reaches_librdkafka(tmp_path: Path) -> None:
@@ -168,15 +196,23 @@ def cert_chains(monkeypatch) -> list[tuple]:
 def test_kafka_client_certificate_reaches_librdkafka_and_faust(tmp_path: Path, cert_chains) -> None:
     """MAPSERVICE_KAFKA_SSL_CERT_FILE/KEY_FILE become librdkafka's ssl.certificate.location and
     ssl.key.location (every confluent-kafka client) and the faust SSL context's cert chain."""
-    from mapservice.local.certs import make_client_cert
     from mapservice.processors.app import _faust_credentials
 
+    from mapservice.local.certs import make_client_cert
+
     files = make_client_cert(tmp_path, "mapservice")
-    s = Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=files.ca_file,
-                 kafka_ssl_cert_file=files.cert_file, kafka_ssl_key_file=files.key_file)
+    s = Settings(
+        kafka_security_protocol="SSL",
+        kafka_ssl_ca_file=files.ca_file,
+        kafka_ssl_cert_file=files.cert_file,
+        kafka_ssl_key_file=files.key_file,
+    )
     conf = s.kafka_config()
-    assert (conf["ssl.ca.location"], conf["ssl.certificate.location"], conf["ssl.key.location"]) == (
-        str(files.ca_file), str(files.cert_file), str(files.key_file))
+    assert (
+        conf["ssl.ca.location"],
+        conf["ssl.certificate.location"],
+        conf["ssl.key.location"],
+    ) == (str(files.ca_file), str(files.cert_file), str(files.key_file))
     assert "ssl.certificate.location" not in Settings().kafka_config()
     creds = _faust_credentials(s)
     assert creds.context.cert_store_stats()["x509_ca"] == 1
@@ -188,7 +224,8 @@ def test_kafka_client_certificate_reaches_librdkafka_and_faust(tmp_path: Path, c
 
 
 def test_clickhouse_tls_files_reach_clickhouse_connect_and_the_sql_engine(
-        tmp_path: Path, monkeypatch, cert_chains) -> None:
+    tmp_path: Path, monkeypatch, cert_chains
+) -> None:
     """MAPSERVICE_CLICKHOUSE_CA_FILE/CERT_FILE/KEY_FILE are passed to clickhouse-connect's
     get_client (ca_cert, client_cert, client_cert_key) by the store (writer, reader, ping) and
     to the analysts' SQL engine's TLS context; only for an https:// DSN."""
@@ -199,10 +236,17 @@ def test_clickhouse_tls_files_reach_clickhouse_connect_and_the_sql_engine(
     from mapservice.sql.apps import engine_for
 
     files = make_client_cert(tmp_path, "mapservice")
-    s = Settings(clickhouse_dsn="https://ch.example:8443", clickhouse_ca_file=files.ca_file,
-                 clickhouse_cert_file=files.cert_file, clickhouse_key_file=files.key_file)
-    expected = {"ca_cert": str(files.ca_file), "client_cert": str(files.cert_file),
-                "client_cert_key": str(files.key_file)}
+    s = Settings(
+        clickhouse_dsn="https://ch.example:8443",
+        clickhouse_ca_file=files.ca_file,
+        clickhouse_cert_file=files.cert_file,
+        clickhouse_key_file=files.key_file,
+    )
+    expected = {
+        "ca_cert": str(files.ca_file),
+        "client_cert": str(files.cert_file),
+        "client_cert_key": str(files.key_file),
+    }
     assert s.clickhouse_tls() == expected
     calls: list[dict] = []
     monkeypatch.setattr(clickhouse_connect, "get_client", lambda **kw: calls.append(kw) or object())
@@ -229,9 +273,14 @@ def test_mqtt_tls_files_reach_paho(tmp_path: Path, cert_chains) -> None:
     from mapservice.local.certs import make_client_cert
 
     files = make_client_cert(tmp_path, "mapservice-gateway")
-    s = Settings(mqtt_url="mqtts://broker:8883", mqtt_ca_file=files.ca_file,
-                 mqtt_cert_file=files.cert_file, mqtt_key_file=files.key_file,
-                 mqtt_username="mapservice-gateway", mqtt_password="pw")
+    s = Settings(
+        mqtt_url="mqtts://broker:8883",
+        mqtt_ca_file=files.ca_file,
+        mqtt_cert_file=files.cert_file,
+        mqtt_key_file=files.key_file,
+        mqtt_username="mapservice-gateway",
+        mqtt_password="pw",
+    )
     client = service_client(s, "gw")
     context = client._ssl_context
     assert context is not None and context.cert_store_stats()["x509_ca"] == 1

@@ -21,8 +21,11 @@ def test_up_names_the_generated_token_files_not_their_values(tmp_path) -> None:
 
 def test_up_names_configured_tokens_by_their_variable(tmp_path) -> None:
     """A token set in the environment is named by its variable; with reads by token, the reader row appears."""
-    rows = dict(api_token_rows(Settings(data_dir=tmp_path, api_writer_tokens="w" * 32,
-                                        api_read_access="token")))
+    rows = dict(
+        api_token_rows(
+            Settings(data_dir=tmp_path, api_writer_tokens="w" * 32, api_read_access="token")
+        )
+    )
     assert rows["API writer token (robots)"].startswith("MAPSERVICE_API_WRITER_TOKENS")
     assert str(tmp_path / "secrets" / "reader-token") in rows["API reader token"]
     assert rows["API reads"] == "need a token"

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import asyncio
 
+from mapservice.processors.history_consumer import HistoryConsumer
+from mapservice.processors.sink import HistorySink
+
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.processors.sink import HistorySink
-from mapservice.processors.history_consumer import HistoryConsumer
 
 NOW = 1_795_255_200_000
 POSES, CHUNKS = "poses", "chunks"
@@ -31,8 +32,9 @@ class FlakyStore(MemoryStore):
 
 
 def consumer_for(store: MemoryStore, source: MemorySource, batch: int = 100) -> HistoryConsumer:
-    return HistoryConsumer(source, HistorySink(store), None, batch_size=batch, batch_seconds=0.01,
-                           now_ms=lambda: NOW)
+    return HistoryConsumer(
+        source, HistorySink(store), None, batch_size=batch, batch_seconds=0.01, now_ms=lambda: NOW
+    )
 
 
 def drain(consumer: HistoryConsumer) -> None:
@@ -40,6 +42,7 @@ def drain(consumer: HistoryConsumer) -> None:
         await consumer.start()
         while await consumer.run_once():
             pass
+
     asyncio.run(go())
 
 

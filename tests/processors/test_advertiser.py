@@ -4,15 +4,18 @@ from __future__ import annotations
 
 import socket
 
-from mapservice.local.embedded import free_port
 from mapservice.processors.advertiser import MqttAdvertiser
+
+from mapservice.local.embedded import free_port
 from mapservice.settings import Settings
 
 
 def test_constructor_does_no_network_io(monkeypatch) -> None:
     """Building an advertiser opens no connection (even to an unresolvable host)."""
+
     def refuse(*args, **kwargs):
         raise AssertionError("network I/O in the constructor")
+
     monkeypatch.setattr(socket, "create_connection", refuse)
     adv = MqttAdvertiser(Settings(mqtt_url="mqtt://no-such-host.invalid:1883"))
     assert adv.topic == "iot/chunks/advertisement" and not adv.connected.is_set()
@@ -20,8 +23,10 @@ def test_constructor_does_no_network_io(monkeypatch) -> None:
 
 def test_publish_without_broker_queues_then_fails_counted_when_full() -> None:
     """With no broker, QoS 1 messages queue up to the bound; beyond it publish returns False."""
-    adv = MqttAdvertiser(Settings(mqtt_url=f"mqtt://127.0.0.1:{free_port()}",
-                                  advertisement_topic="ads/test"), max_queued=2)
+    adv = MqttAdvertiser(
+        Settings(mqtt_url=f"mqtt://127.0.0.1:{free_port()}", advertisement_topic="ads/test"),
+        max_queued=2,
+    )
     adv.start()
     try:
         results = [adv.publish({"n": i}) for i in range(4)]

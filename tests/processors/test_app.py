@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import faust
-
 from mapservice.processors.app import _faust_credentials, faust_broker_url
+
 from mapservice.settings import Settings
 
 
@@ -15,9 +15,14 @@ def test_plaintext_has_no_credentials():
 
 def test_sasl_ssl_carries_user_and_tls_context():
     """SASL_SSL with a user gives SASL credentials with a TLS context and the mechanism."""
-    creds = _faust_credentials(Settings(kafka_security_protocol="SASL_SSL",
-                                        kafka_sasl_mechanism="SCRAM-SHA-512",
-                                        kafka_username="u", kafka_password="p"))
+    creds = _faust_credentials(
+        Settings(
+            kafka_security_protocol="SASL_SSL",
+            kafka_sasl_mechanism="SCRAM-SHA-512",
+            kafka_username="u",
+            kafka_password="p",
+        )
+    )
     assert isinstance(creds, faust.SASLCredentials)
     assert creds.username == "u" and creds.password == "p"
     assert creds.ssl_context is not None
@@ -26,7 +31,9 @@ def test_sasl_ssl_carries_user_and_tls_context():
 
 def test_ssl_without_user_uses_tls_only():
     """SSL without a user gives TLS credentials."""
-    assert isinstance(_faust_credentials(Settings(kafka_security_protocol="SSL")), faust.SSLCredentials)
+    assert isinstance(
+        _faust_credentials(Settings(kafka_security_protocol="SSL")), faust.SSLCredentials
+    )
 
 
 def test_broker_url_lists_every_bootstrap_server():
@@ -40,7 +47,11 @@ def test_ssl_ca_file_is_loaded_into_the_faust_context(tmp_path):
     import certifi
     import pytest
 
-    creds = _faust_credentials(Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=certifi.where()))
+    creds = _faust_credentials(
+        Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=certifi.where())
+    )
     assert creds.context.get_ca_certs()
     with pytest.raises(FileNotFoundError):
-        _faust_credentials(Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=tmp_path / "missing.pem"))
+        _faust_credentials(
+            Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=tmp_path / "missing.pem")
+        )

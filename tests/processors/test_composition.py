@@ -7,21 +7,27 @@ from __future__ import annotations
 import asyncio
 import time
 
-import pytest
-
 import mapservice.processors.composition as composition
+import pytest
 from mapservice.processors.composition import compose_processors
+
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 
-PARTS = ("StoreThread", "KafkaLivePublisher", "HistorySink", "MqttAdvertiser", "LiveViews",
-         "KafkaBatchSource", "HistoryConsumer")
+PARTS = (
+    "StoreThread",
+    "KafkaLivePublisher",
+    "HistorySink",
+    "MqttAdvertiser",
+    "LiveViews",
+    "KafkaBatchSource",
+    "HistoryConsumer",
+)
 
 
 @pytest.fixture
 def settings(tmp_path) -> Settings:
-    return Settings(kafka_bootstrap="127.0.0.1:1", mqtt_url="mqtt://127.0.0.1:1",
-                    data_dir=tmp_path)
+    return Settings(kafka_bootstrap="127.0.0.1:1", mqtt_url="mqtt://127.0.0.1:1", data_dir=tmp_path)
 
 
 @pytest.fixture

@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import asyncio
 
+from mapservice.processors.history_consumer import HistoryConsumer
+from mapservice.processors.sink import HistorySink
+
+from mapservice.core.events import encode
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.core.events import encode
-from mapservice.processors.sink import HistorySink
-from mapservice.processors.history_consumer import HistoryConsumer
-from tests.processors.history_consumer_kit import (CHUNKS, NOW, POSES, FlakyStore, consumer_for,
-                                                   drain)
+from tests.processors.history_consumer_kit import (
+    CHUNKS,
+    NOW,
+    POSES,
+    FlakyStore,
+    consumer_for,
+    drain,
+)
 
 
 def test_every_record_is_stored_and_then_committed(ev) -> None:
@@ -30,8 +37,10 @@ def test_a_failed_insert_is_retried_before_anything_is_committed(ev) -> None:
     source.append(POSES, encode(ev.pose("r1", NOW)))
     commits_seen_at_attempt = []
     original_commit = source.commit
-    source.commit = lambda records: (commits_seen_at_attempt.append(store.attempts),
-                                     original_commit(records))[1]
+    source.commit = lambda records: (
+        commits_seen_at_attempt.append(store.attempts),
+        original_commit(records),
+    )[1]
     drain(consumer_for(store, source))
     assert store.counts().poses == 1
     assert commits_seen_at_attempt == [3]
@@ -102,12 +111,22 @@ def test_the_live_feed_gets_each_batch_once_it_is_queryable(ev) -> None:
         def publish(self, events) -> None:
             # Noted, not asserted here: the consumer would retry an exception raised here.
             stored = {(p.robot_id, p.ts_ms) for p in store.poses(0, 2 * NOW)}
-            self.batches.append(([e.event_time_ms for e in events],
-                                 {(e.robot_id, e.event_time_ms) for e in events} <= stored,
-                                 dict(source.committed)))
+            self.batches.append(
+                (
+                    [e.event_time_ms for e in events],
+                    {(e.robot_id, e.event_time_ms) for e in events} <= stored,
+                    dict(source.committed),
+                )
+            )
 
-    consumer = HistoryConsumer(source, HistorySink(store, Feed()), None, batch_size=100,
-                               batch_seconds=0.01, now_ms=lambda: NOW)
+    consumer = HistoryConsumer(
+        source,
+        HistorySink(store, Feed()),
+        None,
+        batch_size=100,
+        batch_seconds=0.01,
+        now_ms=lambda: NOW,
+    )
     drain(consumer)
     # Stored when pushed, pushed before the offsets moved on.
     assert Feed.batches == [([NOW, NOW + 1, NOW + 2], True, {})] and store.attempts == 2
@@ -124,8 +143,10 @@ class FullDiskStore(MemoryStore):
     def append_events(self, events) -> None:
         self.attempts += 1
         if self.full:
-            raise RuntimeError("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough "
-                               "space. (NOT_ENOUGH_SPACE)")
+            raise RuntimeError(
+                "Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough "
+                "space. (NOT_ENOUGH_SPACE)"
+            )
         super().append_events(events)
 
 

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import asyncio
 
+from mapservice.processors.history_consumer import HistoryConsumer
+from mapservice.processors.sink import HistorySink
+
+from mapservice.core.events import encode
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.core.events import encode
-from mapservice.processors.sink import HistorySink
-from mapservice.processors.history_consumer import HistoryConsumer
 from tests.processors.history_consumer_kit import NOW, POSES, Clock, drain
 
 
@@ -26,8 +27,13 @@ class TimedStore(MemoryStore):
         super().append_events(events)
 
 
-def timeouts_asked(ev, store_seconds: float, batches: int = 4,
-                   min_batch_seconds: float | None = None, idle_polls: int = 0) -> list[float]:
+def timeouts_asked(
+    ev,
+    store_seconds: float,
+    batches: int = 4,
+    min_batch_seconds: float | None = None,
+    idle_polls: int = 0,
+) -> list[float]:
     """The poll timeouts of a consumer whose window is at most 200 ms (at least
     `min_batch_seconds`; None: always 200 ms), over `batches` stores and then `idle_polls`
     polls that find nothing."""
@@ -44,12 +50,21 @@ def timeouts_asked(ev, store_seconds: float, batches: int = 4,
     source.poll = poll
     for i in range(batches):
         source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
-    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.2,
-                               min_batch_seconds=min_batch_seconds, now_ms=lambda: NOW, monotonic=clock)
+    consumer = HistoryConsumer(
+        source,
+        HistorySink(store),
+        None,
+        batch_size=100,
+        batch_seconds=0.2,
+        min_batch_seconds=min_batch_seconds,
+        now_ms=lambda: NOW,
+        monotonic=clock,
+    )
 
     async def go() -> None:
         for _ in range(batches + idle_polls):
             await consumer.run_once()
+
     asyncio.run(go())
     return asked
 
@@ -73,21 +88,37 @@ def test_stored_events_record_their_end_to_end_latency_and_batch_size(ev) -> Non
     def count(name: str, topic: str) -> float:
         return REGISTRY.get_sample_value(f"{name}_count", {"topic": topic}) or 0.0
 
-    before = (count("mapservice_event_to_stored_seconds", "lat-poses"),
-              count("mapservice_received_to_stored_seconds", "lat-poses"))
+    before = (
+        count("mapservice_event_to_stored_seconds", "lat-poses"),
+        count("mapservice_received_to_stored_seconds", "lat-poses"),
+    )
     batches_before = REGISTRY.get_sample_value("mapservice_sink_batch_events_count") or 0.0
     source, store = MemorySource(), MemoryStore()
     now = SystemClock().now_ms()
     for i in range(5):
         source.append("lat-poses", encode(ev.pose("r1", now - 3_000 + i)))
-    drain(HistoryConsumer(source, HistorySink(store), None, batch_size=100, batch_seconds=0.01,
-                          now_ms=SystemClock().now_ms))
+    drain(
+        HistoryConsumer(
+            source,
+            HistorySink(store),
+            None,
+            batch_size=100,
+            batch_seconds=0.01,
+            now_ms=SystemClock().now_ms,
+        )
+    )
     assert count("mapservice_event_to_stored_seconds", "lat-poses") == before[0] + 5
     assert count("mapservice_received_to_stored_seconds", "lat-poses") == before[1] + 5
-    assert (REGISTRY.get_sample_value("mapservice_sink_batch_events_count") or 0.0) == batches_before + 1
+    assert (
+        REGISTRY.get_sample_value("mapservice_sink_batch_events_count") or 0.0
+    ) == batches_before + 1
     # Three seconds old when stored: in the (2, 5] s bucket of the event-time histogram.
-    le2 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "2.0"})
-    le5 = REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "5.0"})
+    le2 = REGISTRY.get_sample_value(
+        "mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "2.0"}
+    )
+    le5 = REGISTRY.get_sample_value(
+        "mapservice_event_to_stored_seconds_bucket", {"topic": "lat-poses", "le": "5.0"}
+    )
     assert le5 - le2 == 5
 
 
@@ -97,16 +128,26 @@ def test_stored_latency_is_measured_on_the_service_clock(ev) -> None:
     from prometheus_client import REGISTRY
 
     def bucket(le: str) -> float:
-        return REGISTRY.get_sample_value("mapservice_event_to_stored_seconds_bucket",
-                                         {"topic": "sim-poses", "le": le}) or 0.0
+        return (
+            REGISTRY.get_sample_value(
+                "mapservice_event_to_stored_seconds_bucket", {"topic": "sim-poses", "le": le}
+            )
+            or 0.0
+        )
 
     before = bucket("5.0") - bucket("2.0")
     source, store = MemorySource(), MemoryStore()
     simulated_now = NOW - 30 * 86_400_000  # the wall clock is later still
     for i in range(4):
         source.append("sim-poses", encode(ev.pose("r1", simulated_now - 3_000 + i)))
-    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100,
-                               batch_seconds=0.01, now_ms=lambda: simulated_now)
+    consumer = HistoryConsumer(
+        source,
+        HistorySink(store),
+        None,
+        batch_size=100,
+        batch_seconds=0.01,
+        now_ms=lambda: simulated_now,
+    )
     drain(consumer)
     assert bucket("5.0") - bucket("2.0") == before + 4
 
@@ -131,6 +172,12 @@ def test_the_batch_window_gauge_reads_the_window_before_the_first_poll() -> None
     """A new consumer exports its starting window (the longest), not 0."""
     from prometheus_client import REGISTRY
 
-    HistoryConsumer(MemorySource(), HistorySink(MemoryStore()), None, batch_size=10,
-                    batch_seconds=0.25, min_batch_seconds=0.1)
+    HistoryConsumer(
+        MemorySource(),
+        HistorySink(MemoryStore()),
+        None,
+        batch_size=10,
+        batch_seconds=0.25,
+        min_batch_seconds=0.1,
+    )
     assert REGISTRY.get_sample_value("mapservice_sink_batch_window_seconds") == 0.25

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import asyncio
 
+from mapservice.processors.history_consumer import HistoryConsumer
+from mapservice.processors.sink import HistorySink
+
+from mapservice.core.events import encode
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.core.events import encode
-from mapservice.processors.sink import HistorySink
-from mapservice.processors.history_consumer import HistoryConsumer
 from tests.processors.history_consumer_kit import CHUNKS, NOW, POSES, Clock, drain
 
 
@@ -39,8 +40,16 @@ def test_pose_views_are_derived_after_the_live_push_and_before_the_commit(ev) ->
     source.append(POSES, encode(ev.pose("r1", NOW)))
     original_commit = source.commit
     source.commit = lambda records: (calls.append("commit"), original_commit(records))[1]
-    drain(HistoryConsumer(source, HistorySink(OrderedStore(), Feed()), None, batch_size=100,
-                          batch_seconds=0.01, now_ms=lambda: NOW))
+    drain(
+        HistoryConsumer(
+            source,
+            HistorySink(OrderedStore(), Feed()),
+            None,
+            batch_size=100,
+            batch_seconds=0.01,
+            now_ms=lambda: NOW,
+        )
+    )
     assert calls == ["append_events", "publish", "derive_views", "derive_views", "commit"]
 
 
@@ -61,14 +70,22 @@ def deferring_consumer(ev, views_seconds: float, batch_size: int = 100):
     one-pose batch that takes 0.3 s to poll and store."""
     clock, source = Clock(), MemorySource()
     store = DeriveLog(source)
-    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=batch_size,
-                               batch_seconds=0.2, now_ms=lambda: NOW, monotonic=clock,
-                               views_seconds=views_seconds)
+    consumer = HistoryConsumer(
+        source,
+        HistorySink(store),
+        None,
+        batch_size=batch_size,
+        batch_seconds=0.2,
+        now_ms=lambda: NOW,
+        monotonic=clock,
+        views_seconds=views_seconds,
+    )
 
     def batch(i: int) -> int:
         source.append(POSES, encode(ev.pose("r1", NOW + i)))
         clock.t += 0.3
         return asyncio.run(consumer.run_once())
+
     return consumer, source, store, batch
 
 
@@ -107,13 +124,21 @@ def test_a_stopping_consumer_derives_and_commits_what_it_stored(ev) -> None:
     source, stopping = MemorySource(), asyncio.Event()
     store = DeriveLog(source)
     source.append(POSES, encode(ev.pose("r1", NOW)))
-    consumer = HistoryConsumer(source, HistorySink(store), None, batch_size=100,
-                               batch_seconds=0.01, now_ms=lambda: NOW, views_seconds=60.0)
+    consumer = HistoryConsumer(
+        source,
+        HistorySink(store),
+        None,
+        batch_size=100,
+        batch_seconds=0.01,
+        now_ms=lambda: NOW,
+        views_seconds=60.0,
+    )
     original_poll = source.poll
 
     def poll(n, timeout_s):
         stopping.set()  # the first poll is the last
         return original_poll(n, timeout_s)
+
     source.poll = poll
     asyncio.run(consumer.run(stopping))
     assert store.derived == [([NOW], {})] and source.committed == {(POSES, 0): 1}
@@ -121,19 +146,28 @@ def test_a_stopping_consumer_derives_and_commits_what_it_stored(ev) -> None:
 
 def test_a_stop_with_the_store_away_gives_up_the_views_and_leaves_the_batch_uncommitted(ev) -> None:
     """One try on stop, no retry loop: the source closes, nothing is committed, and the batch comes again."""
+
     class AwayOnDerive(MemoryStore):
         def derive_views(self, events) -> None:
             raise ConnectionError("clickhouse away")
 
     source, stopping = MemorySource(), asyncio.Event()
     source.append(POSES, encode(ev.pose("r1", NOW)))
-    consumer = HistoryConsumer(source, HistorySink(AwayOnDerive()), None, batch_size=100,
-                               batch_seconds=0.01, now_ms=lambda: NOW, views_seconds=60.0)
+    consumer = HistoryConsumer(
+        source,
+        HistorySink(AwayOnDerive()),
+        None,
+        batch_size=100,
+        batch_seconds=0.01,
+        now_ms=lambda: NOW,
+        views_seconds=60.0,
+    )
     original_poll = source.poll
 
     def poll(n, timeout_s):
         stopping.set()
         return original_poll(n, timeout_s)
+
     source.poll = poll
     asyncio.run(asyncio.wait_for(consumer.run(stopping), 5))
     assert source.committed == {} and source.started is False
@@ -156,7 +190,10 @@ def test_the_views_insert_is_timed(ev) -> None:
     _consumer, _source, store, batch = deferring_consumer(ev, views_seconds=1.0)
     for i in range(5):
         batch(i)
-    assert store.derived and REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") == before + 1
+    assert (
+        store.derived
+        and REGISTRY.get_sample_value("mapservice_sink_derive_views_seconds_count") == before + 1
+    )
 
 
 class ConflictLog(DeriveLog):
@@ -180,6 +217,7 @@ def conflicting_consumer(ev, views_seconds: float, failures: int = 0):
     """A consumer with live views (conflict window 60 s) on a hand-driven clock, and a way
     to add a one-chunk batch of a robot, each robot's pixels its own, taking 0.3 s."""
     from mapservice.processors.views import LiveViews
+
     from mapservice.settings import Settings
 
     clock, source = Clock(), MemorySource()
@@ -187,14 +225,22 @@ def conflicting_consumer(ev, views_seconds: float, failures: int = 0):
     sink = HistorySink(store)
     views = LiveViews(Settings(conflict_window_s=60), store, None, sink.thread, now_ms=lambda: NOW)
     views.load()
-    consumer = HistoryConsumer(source, sink, views, batch_size=100,
-                               batch_seconds=0.2, now_ms=lambda: NOW, monotonic=clock,
-                               views_seconds=views_seconds)
+    consumer = HistoryConsumer(
+        source,
+        sink,
+        views,
+        batch_size=100,
+        batch_seconds=0.2,
+        now_ms=lambda: NOW,
+        monotonic=clock,
+        views_seconds=views_seconds,
+    )
 
     def batch(i: int, robot: str) -> int:
         source.append(CHUNKS, encode(ev.chunk(robot, NOW + i, 4, 4, bytes([ord(robot)]) * 10_000)))
         clock.t += 0.3
         return asyncio.run(consumer.run_once())
+
     return consumer, source, store, batch
 
 

@@ -10,14 +10,14 @@ import datetime as dt
 import time
 
 import pytest
+from mapservice.processors.app import snapshot_tick_s, snapshot_timer
+from mapservice.processors.sink import HistorySink
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock, SimulatedClock, clock_from_settings
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.timetravel import fold_map
-from mapservice.processors.app import snapshot_tick_s, snapshot_timer
-from mapservice.processors.sink import HistorySink
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, pose_event
 
 DAY = 86_400_000
@@ -27,8 +27,12 @@ T0 = int(dt.datetime(2026, 3, 1, tzinfo=dt.UTC).timestamp() * 1000)
 def _store(kind: str, tmp_path):
     if kind == "memory":
         return MemoryStore(retention_days=2)
-    s = ClickHouseStore(f"chdb://{tmp_path / 'ch'}", database="timer", retention_days=2,
-                        snapshot_every_ms=6 * 3_600_000)
+    s = ClickHouseStore(
+        f"chdb://{tmp_path / 'ch'}",
+        database="timer",
+        retention_days=2,
+        snapshot_every_ms=6 * 3_600_000,
+    )
     s.migrate()
     return s
 
@@ -39,14 +43,19 @@ def test_the_snapshot_timer_keeps_the_floor_through_three_retention_periods(kind
     sink = HistorySink(store)
     clock = ManualClock(T0)
     tick = snapshot_timer(sink, clock.now_ms, grace_ms=60_000)
-    floor = [chunk_event("mapper", T0 + 1, r, c, bytes([r * 10 + c]) * 10_000)
-             for r in range(3) for c in range(3)]
+    floor = [
+        chunk_event("mapper", T0 + 1, r, c, bytes([r * 10 + c]) * 10_000)
+        for r in range(3)
+        for c in range(3)
+    ]
     store.append(floor)
     written = list(floor)
 
     async def run() -> None:
         for hour in range(1, 8 * 24 + 1):  # 8 days: retention 2 days, four periods
-            moved = chunk_event("amr", T0 + hour * 3_600_000 - 500, 1, 1, bytes([hour % 256]) * 10_000)
+            moved = chunk_event(
+                "amr", T0 + hour * 3_600_000 - 500, 1, 1, bytes([hour % 256]) * 10_000
+            )
             store.append([moved, pose_event("amr", T0 + hour * 3_600_000 - 400)])
             written.append(moved)
             clock.advance(3_600_000)
@@ -55,14 +64,27 @@ def test_the_snapshot_timer_keeps_the_floor_through_three_retention_periods(kind
     asyncio.run(run())
     sink.thread.close()
     now = clock.now_ms()
-    rows = [type("W", (), {"row": e.payload.row, "column": e.payload.column, "ts_ms": e.event_time_ms,
-                           "robot_id": e.robot_id, "content_hash": e.payload.content_hash.hex()})()
-            for e in written]
+    rows = [
+        type(
+            "W",
+            (),
+            {
+                "row": e.payload.row,
+                "column": e.payload.column,
+                "ts_ms": e.event_time_ms,
+                "robot_id": e.robot_id,
+                "content_hash": e.payload.content_hash.hex(),
+            },
+        )()
+        for e in written
+    ]
     for t in range(now - 2 * DAY, now + 1, 5 * 3_600_000):
         want = {k: v.content_hash for k, v in fold_map(rows, t).items()}
         got = {(c.row, c.column): c.content_hash for c in store.map_at(t)}
         assert got == want, f"map at {t} ({(now - t) / DAY:.2f} days ago)"
-        assert len(store.chunk_contents([bytes.fromhex(h) for h in want.values()])) == len(set(want.values()))
+        assert len(store.chunk_contents([bytes.fromhex(h) for h in want.values()])) == len(
+            set(want.values())
+        )
     # The history before the retention's kept days is gone.
     assert not store.chunk_events(0, now - 3 * DAY)
     store.close()
@@ -75,8 +97,13 @@ def test_simulated_clock_runs_at_its_rate_from_its_start() -> None:
 
 def test_clock_from_settings_is_the_wall_clock_by_default_and_simulated_when_set() -> None:
     assert abs(clock_from_settings(Settings()).now_ms() - time.time_ns() // 1_000_000) < 1000
-    simulated = clock_from_settings(Settings(clock_start="2026-03-01T00:00:00Z", clock_rate=3600,
-                                             clock_origin=str(time.time_ns() // 1_000_000)))
+    simulated = clock_from_settings(
+        Settings(
+            clock_start="2026-03-01T00:00:00Z",
+            clock_rate=3600,
+            clock_origin=str(time.time_ns() // 1_000_000),
+        )
+    )
     assert 0 <= simulated.now_ms() - T0 < 3_600_000 * 5
     with pytest.raises(ValueError, match="MAPSERVICE_CLOCK_START"):
         clock_from_settings(Settings(clock_start="yesterday"))

@@ -5,13 +5,14 @@ from __future__ import annotations
 import msgspec
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from mapservice.core.events import DeadLetter, Envelope, encode, encode_dead_letter
 from mapservice.processors.sink import decode_dead_letters, split_events
 
+from mapservice.core.events import DeadLetter, Envelope, encode, encode_dead_letter
+
 NOW = 1_795_255_200_000
-PROPERTY = settings(max_examples=300, deadline=None, database=None,
-                    suppress_health_check=[HealthCheck.too_slow])
+PROPERTY = settings(
+    max_examples=300, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow]
+)
 
 
 def test_good_envelopes_are_decoded_in_order(ev) -> None:
@@ -25,9 +26,14 @@ def test_good_envelopes_are_decoded_in_order(ev) -> None:
 def test_garbage_becomes_undecodable_event_dead_letters(ev) -> None:
     """Records that are not envelopes become dead letters with the original bytes; good ones pass."""
     good = ev.pose("r1", NOW)
-    garbage = [b"", b"\xc1", b"not msgpack at all", msgspec.msgpack.encode({"event_id": "x"}),
-               msgspec.msgpack.encode(["id", "pose.reported", 1, "r1", "not-a-time", 0, []]),
-               encode_dead_letter(ev.dead_letter())]  # a dead letter is not an event
+    garbage = [
+        b"",
+        b"\xc1",
+        b"not msgpack at all",
+        msgspec.msgpack.encode({"event_id": "x"}),
+        msgspec.msgpack.encode(["id", "pose.reported", 1, "r1", "not-a-time", 0, []]),
+        encode_dead_letter(ev.dead_letter()),
+    ]  # a dead letter is not an event
     events, bad = split_events([garbage[0], encode(good), *garbage[1:]], NOW + 7)
     assert events == [good]
     assert len(bad) == len(garbage)
@@ -80,4 +86,7 @@ def test_dead_letters_topic_decodes_and_garbage_is_kept(ev) -> None:
     out = decode_dead_letters([encode_dead_letter(letter), b"\xff\xff"], NOW)
     assert out[0] == letter
     assert (out[1].reason, out[1].payload, out[1].receive_time_ms) == (
-        "undecodable_dead_letter", b"\xff\xff", NOW)
+        "undecodable_dead_letter",
+        b"\xff\xff",
+        NOW,
+    )

@@ -6,14 +6,14 @@ from __future__ import annotations
 import asyncio
 
 import pytest
+from mapservice.processors.history_consumer import HistoryConsumer
+from mapservice.processors.sink import HistorySink
+from mapservice.processors.views import LiveViews
 from prometheus_client import REGISTRY
 
+from mapservice.settings import Settings
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.processors.sink import HistorySink
-from mapservice.processors.history_consumer import HistoryConsumer
-from mapservice.processors.views import LiveViews
-from mapservice.settings import Settings
 from tests.conftest import NOW_MS, chunk_event, pose_event
 
 
@@ -43,8 +43,13 @@ def sink():
 
 
 def _views(sink, advertiser, now=NOW_MS, **settings) -> LiveViews:
-    return LiveViews(Settings(public_base_url="http://api:8080", **settings), sink.store,
-                     advertiser, sink.thread, now_ms=lambda: now)
+    return LiveViews(
+        Settings(public_base_url="http://api:8080", **settings),
+        sink.store,
+        advertiser,
+        sink.thread,
+        now_ms=lambda: now,
+    )
 
 
 def _store_and_view(views: LiveViews, sink: HistorySink, events) -> None:
@@ -59,11 +64,19 @@ def test_changes_are_advertised_once_and_older_writes_never(sink) -> None:
     views = _views(sink, ads)
     views.load()
     _store_and_view(views, sink, [chunk_event("a", NOW_MS, 1, 2)])
-    _store_and_view(views, sink, [chunk_event("b", NOW_MS - 1000, 1, 2, bytes([7]) * 10_000),
-                                  chunk_event("a", NOW_MS, 1, 2)])
+    _store_and_view(
+        views,
+        sink,
+        [
+            chunk_event("b", NOW_MS - 1000, 1, 2, bytes([7]) * 10_000),
+            chunk_event("a", NOW_MS, 1, 2),
+        ],
+    )
     _store_and_view(views, sink, [chunk_event("b", NOW_MS + 1000, 1, 2)])
     assert [(a["robotId"], a["id"]) for a in ads.sent] == [
-        ("a", "row:1_column:2_2026-11-21T10:00:00"), ("b", "row:1_column:2_2026-11-21T10:00:01")]
+        ("a", "row:1_column:2_2026-11-21T10:00:00"),
+        ("b", "row:1_column:2_2026-11-21T10:00:01"),
+    ]
     assert ads.sent[0]["chunkUrl"].startswith("http://api:8080/api/chunk-service/chunks/id/")
 
 
@@ -75,7 +88,9 @@ def test_rebuilt_views_continue_where_the_history_is(sink) -> None:
     views = _views(sink, ads)
     views.load()
     assert set(views.latest) == {(0, 0)} and set(views.robots) == {"r1"}
-    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 0, 0), chunk_event("b", NOW_MS - 5, 0, 0)])
+    _store_and_view(
+        views, sink, [chunk_event("a", NOW_MS, 0, 0), chunk_event("b", NOW_MS - 5, 0, 0)]
+    )
     assert ads.sent == []
     _store_and_view(views, sink, [chunk_event("b", NOW_MS + 5, 0, 0)])
     assert [a["robotId"] for a in ads.sent] == ["b"]
@@ -87,8 +102,14 @@ def test_conflicts_found_per_batch_are_written_together(sink) -> None:
     views = _views(sink, None, conflict_window_s=10)
     views.load()
     _store_and_view(views, sink, [chunk_event("a", NOW_MS, 4, 4)])
-    _store_and_view(views, sink, [chunk_event("b", NOW_MS + 9_000, 4, 4, bytes([1]) * 10_000),
-                                  chunk_event("c", NOW_MS + 30_000, 4, 4, bytes([2]) * 10_000)])
+    _store_and_view(
+        views,
+        sink,
+        [
+            chunk_event("b", NOW_MS + 9_000, 4, 4, bytes([1]) * 10_000),
+            chunk_event("c", NOW_MS + 30_000, 4, 4, bytes([2]) * 10_000),
+        ],
+    )
     assert sink.store.conflicts(NOW_MS, NOW_MS + 60_000) == []
     assert views.write_conflicts() == 1
     rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
@@ -100,12 +121,21 @@ def test_a_conflict_found_again_with_a_later_a_is_written_once_with_it(sink) -> 
     """Two batches move one conflict's A to a later write before the write: one row, the later A."""
     views = _views(sink, None, conflict_window_s=10)
     views.load()
-    _store_and_view(views, sink, [chunk_event("a", NOW_MS, 4, 4),
-                                  chunk_event("c", NOW_MS + 5_000, 4, 4, bytes([2]) * 10_000)])
+    _store_and_view(
+        views,
+        sink,
+        [
+            chunk_event("a", NOW_MS, 4, 4),
+            chunk_event("c", NOW_MS + 5_000, 4, 4, bytes([2]) * 10_000),
+        ],
+    )
     _store_and_view(views, sink, [chunk_event("b", NOW_MS + 2_000, 4, 4, bytes([1]) * 10_000)])
     assert views.write_conflicts() == 2
     rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
-    assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [("a", "b", 2_000), ("b", "c", 5_000)]
+    assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [
+        ("a", "b", 2_000),
+        ("b", "c", 5_000),
+    ]
 
 
 def test_each_batch_conflict_check_and_each_write_are_timed(sink) -> None:
@@ -134,8 +164,9 @@ def test_a_failing_advertiser_does_not_stop_the_sink(sink) -> None:
 def test_presence_transitions(sink) -> None:
     """Robots go online when heard from and offline after robot_offline_after_s of silence."""
     now = [NOW_MS]
-    views = LiveViews(Settings(robot_offline_after_s=10), sink.store, None, sink.thread,
-                      now_ms=lambda: now[0])
+    views = LiveViews(
+        Settings(robot_offline_after_s=10), sink.store, None, sink.thread, now_ms=lambda: now[0]
+    )
     asyncio.run(views.on_stored([pose_event("r1", NOW_MS, receive_lag_ms=0)]))
     assert views.check_presence() == ({"r1"}, set())
     now[0] += 10_001
@@ -171,6 +202,7 @@ def test_an_assignment_rebuilds_the_views_and_starts_the_advertiser(sink) -> Non
 def test_advertisements_beyond_the_backlog_bound_are_dropped(sink, monkeypatch) -> None:
     """With the encoding backlog full, a change is dropped (counted), not queued or awaited."""
     import mapservice.processors.views as views_module
+
     monkeypatch.setattr(views_module, "MAX_PENDING_ADS", 0)
     ads = FakeAdvertiser()
     views = _views(sink, ads)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-
 from tests.fixtures.mosquitto import mosquitto  # noqa: F401 (a fixture)
 from tests.fixtures.paths import MAPS, ROOT
 
@@ -18,4 +17,3 @@ def all_map_yamls() -> list[Path]:
     if SHARED_MAPS.is_dir():
         found.update({p.name: p for p in sorted(SHARED_MAPS.glob("*.yaml"))})
     return [found[k] for k in sorted(found)]
-

@@ -14,9 +14,9 @@ import httpx
 import msgspec
 import numpy as np
 import pytest
+from mapservice.robot.agent import LocalMap, RobotAgent, decode_chunk_doc, parse_odometry
 
 from mapservice.adapters.ros_map import load_ros_map
-from mapservice.robot.agent import LocalMap, RobotAgent, decode_chunk_doc, parse_odometry
 from tests.fixtures.paths import MAPS
 
 
@@ -35,13 +35,20 @@ class FakeChunkService:
             if method == "POST":
                 self.meta = json.loads(request.content)
                 return httpx.Response(200, json={"result": "created"})
-            return httpx.Response(200, json=self.meta) if self.meta else httpx.Response(404, json={})
+            return (
+                httpx.Response(200, json=self.meta) if self.meta else httpx.Response(404, json={})
+            )
         if path == "/api/chunk-service/chunks" and method == "POST":
             body = json.loads(request.content)
-            doc = {"row": body["row"], "column": body["column"], "timestamp": body["timestamp"],
-                   "chunk": body["pgmB64compressedData"], "type": "pgm_base64_compressed",
-                   "id": f"row:{body['row']}_column:{body['column']}_{body['timestamp']}",
-                   "robotId": body["robotId"]}
+            doc = {
+                "row": body["row"],
+                "column": body["column"],
+                "timestamp": body["timestamp"],
+                "chunk": body["pgmB64compressedData"],
+                "type": "pgm_base64_compressed",
+                "id": f"row:{body['row']}_column:{body['column']}_{body['timestamp']}",
+                "robotId": body["robotId"],
+            }
             self.chunks.append(doc)
             return httpx.Response(200, json={"_id": doc["id"], "result": "created"})
         if path == "/api/chunk-service/chunks":
@@ -50,7 +57,7 @@ class FakeChunkService:
             for doc in self.chunks:
                 latest[(doc["row"], doc["column"])] = doc
             skip, limit = int(request.url.params["skip"]), int(request.url.params["limit"])
-            return httpx.Response(200, json=list(latest.values())[skip:skip + limit])
+            return httpx.Response(200, json=list(latest.values())[skip : skip + limit])
         if path.startswith("/api/chunk-service/chunks/id/"):
             wanted = path.rsplit("/", 1)[1]
             doc = next((d for d in self.chunks if d["id"] == wanted), None)
@@ -58,9 +65,15 @@ class FakeChunkService:
         return httpx.Response(404)
 
     def advertise(self, doc: dict) -> bytes:
-        return msgspec.json.encode({"row": doc["row"], "column": doc["column"],
-                                    "timestamp": doc["timestamp"], "robotId": doc["robotId"],
-                                    "chunkUrl": f"http://svc/api/chunk-service/chunks/id/{doc['id']}"})
+        return msgspec.json.encode(
+            {
+                "row": doc["row"],
+                "column": doc["column"],
+                "timestamp": doc["timestamp"],
+                "robotId": doc["robotId"],
+                "chunkUrl": f"http://svc/api/chunk-service/chunks/id/{doc['id']}",
+            }
+        )
 
 
 class CapturingClient:
@@ -80,7 +93,9 @@ def robot_copy(tmp_path, name: str):
 
 def make_agent(tmp_path, name, service, **kw) -> RobotAgent:
     http = httpx.Client(base_url="http://svc", transport=httpx.MockTransport(service.handler))
-    agent = RobotAgent(robot_copy(tmp_path, name), name, "http://svc", "mqtt://unused", http=http, **kw)
+    agent = RobotAgent(
+        robot_copy(tmp_path, name), name, "http://svc", "mqtt://unused", http=http, **kw
+    )
     agent.client = CapturingClient()
     return agent
 
@@ -90,7 +105,7 @@ def edit_map(yaml_path, row0, col0, size, value) -> None:
 
     m = load_ros_map(yaml_path)
     pixels = m.pixels.copy()
-    pixels[row0:row0 + size, col0:col0 + size] = value
+    pixels[row0 : row0 + size, col0 : col0 + size] = value
     write_pgm(yaml_path.with_suffix(".pgm"), pixels, comment=m.comment)
 
 
@@ -100,7 +115,10 @@ def test_first_robot_uploads_meta_and_chunks_second_downloads(tmp_path) -> None:
     service = FakeChunkService()
     a = make_agent(tmp_path, "robot-a", service)
     assert a.start() == "uploaded"
-    assert service.requests[:2] == [("GET", "/api/chunk-service/meta"), ("POST", "/api/chunk-service/meta")]
+    assert service.requests[:2] == [
+        ("GET", "/api/chunk-service/meta"),
+        ("POST", "/api/chunk-service/meta"),
+    ]
     assert service.meta["CHUNK_ROWS"] == 4 and service.meta["resolution"] == 0.05
     assert len(service.chunks) == 4 * 7 and {c["robotId"] for c in service.chunks} == {"robot-a"}
     # Robot B starts with a different local map: the service's wins.
@@ -152,17 +170,35 @@ def test_decode_chunk_doc_and_odometry() -> None:
     """Chunk documents decode to pixels; odometry is read as nav_msgs/Odometry, a bare Pose
     or garbage (None)."""
     raw = bytes(range(100)) * 100
-    doc = {"row": 1, "column": 2, "chunk": base64.b64encode(zlib.compress(raw)).decode(),
-           "type": "pgm_base64_compressed"}
+    doc = {
+        "row": 1,
+        "column": 2,
+        "chunk": base64.b64encode(zlib.compress(raw)).decode(),
+        "type": "pgm_base64_compressed",
+    }
     assert decode_chunk_doc(doc) == (1, 2, raw)
     with pytest.raises(ValueError):
         decode_chunk_doc({**doc, "type": "png"})
-    odom = {"header": {"frame_id": "odom"}, "pose": {"pose": {"position": {"x": 1.5, "y": -2, "z": 0},
-            "orientation": {"x": 0, "y": 0, "z": 0.7071, "w": 0.7071}}, "covariance": []}}
+    odom = {
+        "header": {"frame_id": "odom"},
+        "pose": {
+            "pose": {
+                "position": {"x": 1.5, "y": -2, "z": 0},
+                "orientation": {"x": 0, "y": 0, "z": 0.7071, "w": 0.7071},
+            },
+            "covariance": [],
+        },
+    }
     reading = parse_odometry(msgspec.json.encode(odom))
     assert (reading.x, reading.y, reading.yaw_q[2]) == (1.5, -2.0, 0.7071)
     bare = parse_odometry(b'{"position": {"x": 3, "y": 4}, "battery": 55, "loaded": true}')
-    assert (bare.x, bare.y, bare.battery, bare.loaded, bare.yaw_q) == (3.0, 4.0, 55.0, True, (0, 0, 0, 1))
+    assert (bare.x, bare.y, bare.battery, bare.loaded, bare.yaw_q) == (
+        3.0,
+        4.0,
+        55.0,
+        True,
+        (0, 0, 0, 1),
+    )
     assert parse_odometry(b"not json") is None and parse_odometry(b'{"pose": 3}') is None
 
 
@@ -177,7 +213,9 @@ def test_simulated_pose_source_publishes_a_2019_pose(tmp_path) -> None:
     agent.start()
     for _ in range(3):
         agent.tick()
-    poses = [msgspec.json.decode(p) for t, p in agent.client.published if t == "iot/coordinates/robot-s"]
+    poses = [
+        msgspec.json.decode(p) for t, p in agent.client.published if t == "iot/coordinates/robot-s"
+    ]
     assert len(poses) == 3 and poses[0]["robotId"] == "robot-s"
     assert {"pose", "status", "timestamp"} <= set(poses[0])
 
@@ -207,8 +245,9 @@ def test_integrating_keeps_unpublished_local_edits(tmp_path) -> None:
 def test_a_robot_with_a_map_of_another_size_refuses_and_stores_nothing(tmp_path) -> None:
     """The service stores the warehouse (1006 x 1674): a depot robot's start raises a message
     naming both sizes, posts nothing, and leaves its own map file as it was."""
-    from mapservice.adapters.ros_map import meta_for
     from mapservice.robot.chunks import meta_to_json
+
+    from mapservice.adapters.ros_map import meta_for
 
     service = FakeChunkService(meta=meta_to_json(meta_for(load_ros_map(MAPS / "warehouse.yaml"))))
     a = make_agent(tmp_path, "robot-a", service)
@@ -226,45 +265,60 @@ def test_agent_with_a_credential_publishes_chunks_on_its_own_topic(tmp_path) -> 
     from mapservice.robot.connection import RobotMqtt
 
     service = FakeChunkService()
-    a = make_agent(tmp_path, "robot-a", service,
-                   mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"}))
+    a = make_agent(
+        tmp_path, "robot-a", service, mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"})
+    )
     a.start()
     edit_map(a.map_yaml, 150, 250, 40, 0)
     assert a.publish_local_changes() == 1
     assert a.client.published[-1][0] == "iot/chunks/create/robot-a"
     with pytest.raises(ValueError, match="no credential"):
-        make_agent(tmp_path, "robot-b", service, mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"}))
+        make_agent(
+            tmp_path, "robot-b", service, mqtt_conn=RobotMqtt("mqtt://unused", {"robot-a": "pw"})
+        )
 
 
-def test_the_agent_obeys_commands_with_its_simulated_pose_and_refuses_with_odometry(tmp_path) -> None:
+def test_the_agent_obeys_commands_with_its_simulated_pose_and_refuses_with_odometry(
+    tmp_path,
+) -> None:
     """`mapservice robot` with the simulated pose: a pause on its own command topic holds its
     reported position from the next tick on, acked and done on its answer topic; with an
     odometry source it cannot drive the robot, so it rejects the command, saying why."""
     from types import SimpleNamespace
 
-    from mapservice.core.commands import CommandIssued, command_message
     from mapservice.robot.agent import SimulatedPose
     from mapservice.robot.commands import command_topic, response_topic
 
+    from mapservice.core.commands import CommandIssued, command_message
+
     def command(robot: str, cid: str) -> SimpleNamespace:
         issued = CommandIssued(cid, robot, "pause", "operator:x", 0)
-        return SimpleNamespace(topic=command_topic(robot),
-                               payload=msgspec.json.encode(command_message(issued)))
+        return SimpleNamespace(
+            topic=command_topic(robot), payload=msgspec.json.encode(command_message(issued))
+        )
 
     source = SimulatedPose(load_ros_map(MAPS / "depot.yaml"), "agv-9")
     agent = make_agent(tmp_path, "agv-9", FakeChunkService(), pose_source=source)
     agent._on_message(None, None, command("agv-9", "c-1"))
     assert agent.adverts.empty()  # a command is no advertisement
     agent.tick()
-    held = [json.loads(p)["pose"]["position"] for t, p in agent.client.published
-            if t == "iot/coordinates/agv-9"][-1]
+    held = [
+        json.loads(p)["pose"]["position"]
+        for t, p in agent.client.published
+        if t == "iot/coordinates/agv-9"
+    ][-1]
     answers = [json.loads(p) for t, p in agent.client.published if t == response_topic("agv-9")]
     assert [(a["type"], a.get("status") or a.get("outcome")) for a in answers] == [
-        ("ack", "accepted"), ("outcome", "done")]
+        ("ack", "accepted"),
+        ("outcome", "done"),
+    ]
     for _ in range(5):
         agent.tick()
-    positions = [json.loads(p)["pose"]["position"] for t, p in agent.client.published
-                 if t == "iot/coordinates/agv-9"]
+    positions = [
+        json.loads(p)["pose"]["position"]
+        for t, p in agent.client.published
+        if t == "iot/coordinates/agv-9"
+    ]
     assert positions[-5:] == [held] * 5
 
     odometry = make_agent(tmp_path, "agv-8", FakeChunkService())  # no simulated pose
@@ -272,4 +326,6 @@ def test_the_agent_obeys_commands_with_its_simulated_pose_and_refuses_with_odome
     assert odometry.answer_commands() == 1
     ((topic, payload),) = odometry.client.published
     assert topic == response_topic("agv-8")
-    assert json.loads(payload)["status"] == "rejected" and "odometry" in json.loads(payload)["reason"]
+    assert (
+        json.loads(payload)["status"] == "rejected" and "odometry" in json.loads(payload)["reason"]
+    )

@@ -13,8 +13,8 @@ import httpx
 import numpy as np
 import pytest
 
-from mapservice.local import embedded
 from mapservice.adapters.ros_map import load_ros_map, write_pgm
+from mapservice.local import embedded
 from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS, ROOT
 
@@ -26,8 +26,12 @@ def empty_stack(tmp_path_factory):
     """A service with no map meta yet (the first robot brings it), advertising chunkUrls
     that resolve on this API."""
     api_port = embedded.free_port()
-    stack = Stack(tmp_path_factory.mktemp("robot-stack"), mqtt="mosquitto", api_port=api_port,
-                  extra_env={"MAPSERVICE_PUBLIC_BASE_URL": f"http://127.0.0.1:{api_port}"})
+    stack = Stack(
+        tmp_path_factory.mktemp("robot-stack"),
+        mqtt="mosquitto",
+        api_port=api_port,
+        extra_env={"MAPSERVICE_PUBLIC_BASE_URL": f"http://127.0.0.1:{api_port}"},
+    )
     with stack.running():
         yield stack
 
@@ -42,9 +46,27 @@ def robot_dir(tmp_path, name):
 
 def start_robot(stack, yaml_path, robot_id, log_path) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "mapservice.cli", "robot", "--map", str(yaml_path), "--robot-id",
-         robot_id, "--api", stack.api_url, "--mqtt", stack.mqtt_url, "--period", "0.5"],
-        cwd=ROOT, env=stack.env(), stdout=open(log_path, "wb"), stderr=subprocess.STDOUT)
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "robot",
+            "--map",
+            str(yaml_path),
+            "--robot-id",
+            robot_id,
+            "--api",
+            stack.api_url,
+            "--mqtt",
+            stack.mqtt_url,
+            "--period",
+            "0.5",
+        ],
+        cwd=ROOT,
+        env=stack.env(),
+        stdout=open(log_path, "wb"),
+        stderr=subprocess.STDOUT,
+    )
 
 
 def wait_until(pred, what, timeout_s=90.0, logs=()):
@@ -53,8 +75,10 @@ def wait_until(pred, what, timeout_s=90.0, logs=()):
         if pred():
             return
         time.sleep(0.3)
-    raise AssertionError(f"timed out waiting for {what}\n" +
-                         "\n".join(p.read_text()[-3000:] for p in logs if p.exists()))
+    raise AssertionError(
+        f"timed out waiting for {what}\n"
+        + "\n".join(p.read_text()[-3000:] for p in logs if p.exists())
+    )
 
 
 def pixels(yaml_path):
@@ -77,16 +101,22 @@ def test_robot_b_converges_to_robot_a(empty_stack, tmp_path) -> None:
     a = start_robot(stack, a_yaml, "robot-a", logs[0])
     b = None
     try:
+
         def stored_chunks():
-            resp = httpx.get(f"{stack.api_url}/api/chunk-service/chunks",
-                             params={"latest": "true", "limit": 100, "reduced": "true"}, timeout=10)
+            resp = httpx.get(
+                f"{stack.api_url}/api/chunk-service/chunks",
+                params={"latest": "true", "limit": 100, "reduced": "true"},
+                timeout=10,
+            )
             return resp.json() if resp.status_code == 200 else []
 
         def stored_meta():
             resp = httpx.get(f"{stack.api_url}/api/chunk-service/meta", timeout=10)
             return resp.json() if resp.status_code == 200 else None
 
-        wait_until(lambda: len(stored_chunks()) == 28, "robot A's 28 chunks to be stored", logs=logs)
+        wait_until(
+            lambda: len(stored_chunks()) == 28, "robot A's 28 chunks to be stored", logs=logs
+        )
         assert {c["robotId"] for c in stored_chunks()} == {"robot-a"}
         # Meta and chunks travel on different topics: B must not start before the meta is
         # stored, or it would find none and upload its own map (as a 2019 robot would).
@@ -96,17 +126,26 @@ def test_robot_b_converges_to_robot_a(empty_stack, tmp_path) -> None:
 
         b = start_robot(stack, b_yaml, "robot-b", logs[1])
         wait_until(lambda: "downloaded map" in logs[1].read_text(), "robot B's download", logs=logs)
-        wait_until(lambda: np.array_equal(pixels(b_yaml), original.pixels),
-                   "B's map to equal the service's", logs=logs)
+        wait_until(
+            lambda: np.array_equal(pixels(b_yaml), original.pixels),
+            "B's map to equal the service's",
+            logs=logs,
+        )
 
         edited = original.pixels.copy()
         edited[150:190, 250:290] = 0  # a pallet in chunk (1, 2)
         write_pgm(a_yaml.with_suffix(".pgm"), edited)
-        wait_until(lambda: np.array_equal(pixels(b_yaml), edited),
-                   "A's pallet to reach B's map file", logs=logs)
+        wait_until(
+            lambda: np.array_equal(pixels(b_yaml), edited),
+            "A's pallet to reach B's map file",
+            logs=logs,
+        )
         # B writes its map file first and logs the integration after it: wait for the line.
-        wait_until(lambda: "integrated chunks of other robots" in logs[1].read_text(),
-                   "B to log the integration", logs=logs)
+        wait_until(
+            lambda: "integrated chunks of other robots" in logs[1].read_text(),
+            "B to log the integration",
+            logs=logs,
+        )
         a_log, b_log = logs[0].read_text(), logs[1].read_text()
         assert "published local changes" in a_log, a_log
         assert "chunkUrl unreadable" not in b_log, b_log  # fetched through chunkUrl

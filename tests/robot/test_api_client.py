@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import httpx
 from fastapi.testclient import TestClient
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.robot import api_client
+
 from mapservice.runtime.secrets import ADMIN_TOKEN_FILE, WRITER_TOKEN_FILE, local_secret
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 
 
 def test_token_from_flag_then_environment_then_the_data_dir(monkeypatch, tmp_path) -> None:
@@ -32,11 +32,15 @@ def test_the_client_sends_the_token_and_waits_out_429() -> None:
     def handler(request: httpx.Request) -> httpx.Response:
         seen.append(request.headers.get("authorization"))
         status = answers.pop(0)
-        return httpx.Response(status, headers={"Retry-After": "0"} if status == 429 else {},
-                              json={"ok": status == 200})
+        return httpx.Response(
+            status,
+            headers={"Retry-After": "0"} if status == 429 else {},
+            json={"ok": status == 200},
+        )
 
-    with api_client.api_client("http://service", "robot-token",
-                               transport=httpx.MockTransport(handler)) as client:
+    with api_client.api_client(
+        "http://service", "robot-token", transport=httpx.MockTransport(handler)
+    ) as client:
         r = client.get("/api/chunk-service/meta")
     assert r.status_code == 200 and seen == ["Bearer robot-token"] * 3
 
@@ -52,7 +56,8 @@ def test_a_real_service_rate_limit_is_waited_out() -> None:
         statuses.append(response.status_code)
         return response
 
-    with api_client.api_client("http://testserver", "w" * 32,
-                               transport=httpx.MockTransport(counting)) as client:
+    with api_client.api_client(
+        "http://testserver", "w" * 32, transport=httpx.MockTransport(counting)
+    ) as client:
         assert all(client.get("/api/v1/stats").status_code == 200 for _ in range(5))
     assert 429 in statuses and statuses.count(200) == 5

@@ -14,9 +14,6 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-
-from mapservice.core.events import MapMetaSet
-from mapservice.adapters.ros_map import RosMap, load_ros_map, read_pgm, save_ros_map, slice_chunks, write_pgm
 from mapservice.robot.chunks import (
     chunk_of_pixel,
     describe,
@@ -28,6 +25,16 @@ from mapservice.robot.chunks import (
     stitch,
     stitch_dir,
 )
+
+from mapservice.adapters.ros_map import (
+    RosMap,
+    load_ros_map,
+    read_pgm,
+    save_ros_map,
+    slice_chunks,
+    write_pgm,
+)
+from mapservice.core.events import MapMetaSet
 from tests.fixtures.paths import ROOT
 from tests.robot.conftest import all_map_yamls
 
@@ -64,10 +71,25 @@ def test_meta_json_keeps_2019_fields_and_adds_geometry(tmp_path) -> None:
     yaml_path = next(p for p in MAP_YAMLS if p.stem == "warehouse")
     meta = slice_to_dir(yaml_path, tmp_path)
     doc = json.loads((tmp_path / "meta.json").read_text())
-    assert {"comment", "width", "height", "max_brightness", "CHUNK_WIDTH", "CHUNK_HEIGHT",
-            "CHUNK_ROWS", "CHUNK_COLS", "resolution", "origin"} == set(doc)
+    assert {
+        "comment",
+        "width",
+        "height",
+        "max_brightness",
+        "CHUNK_WIDTH",
+        "CHUNK_HEIGHT",
+        "CHUNK_ROWS",
+        "CHUNK_COLS",
+        "resolution",
+        "origin",
+    } == set(doc)
     assert doc["comment"].startswith("# Created by GIMP")
-    assert (doc["width"], doc["height"], doc["CHUNK_ROWS"], doc["CHUNK_COLS"]) == (1006, 1674, 17, 11)
+    assert (doc["width"], doc["height"], doc["CHUNK_ROWS"], doc["CHUNK_COLS"]) == (
+        1006,
+        1674,
+        17,
+        11,
+    )
     assert doc["max_brightness"] == "255" and doc["origin"] == [-15.1, -25.0, 0.0]
     assert meta_from_json(doc) == meta
     assert len(list(tmp_path.glob("chunk_*.pgm"))) == 17 * 11
@@ -88,11 +110,20 @@ def test_padding_is_the_maps_unknown_value(tmp_path) -> None:
 def odd_maps(draw):
     width = draw(st.integers(1, 57))
     height = draw(st.integers(1, 57))
-    pixels = draw(arrays(np.uint8, (height, width), elements=st.sampled_from([0, 205, 254, 255, 17])))
-    return pixels, draw(st.integers(2, 23)), draw(st.integers(2, 23)), draw(st.sampled_from(["P2", "P5"]))
+    pixels = draw(
+        arrays(np.uint8, (height, width), elements=st.sampled_from([0, 205, 254, 255, 17]))
+    )
+    return (
+        pixels,
+        draw(st.integers(2, 23)),
+        draw(st.integers(2, 23)),
+        draw(st.sampled_from(["P2", "P5"])),
+    )
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(odd_maps())
 def test_generated_odd_maps_round_trip(tmp_path, case) -> None:
     """Any size, any chunk size, P2 or P5: slice then stitch gives the identical pixels."""
@@ -100,7 +131,9 @@ def test_generated_odd_maps_round_trip(tmp_path, case) -> None:
     work = Path(tempfile.mkdtemp(dir=tmp_path))
     save_ros_map(RosMap(pixels, 0.05, (1.5, -2.0, 0.0), magic=magic), work / "m.yaml")
     meta = slice_to_dir(work / "m.yaml", work / "chunks", cw, ch)
-    assert meta.chunk_rows == -(-pixels.shape[0] // ch) and meta.chunk_cols == -(-pixels.shape[1] // cw)
+    assert meta.chunk_rows == -(-pixels.shape[0] // ch) and meta.chunk_cols == -(
+        -pixels.shape[1] // cw
+    )
     stitch_dir(work / "chunks", work / "back.pgm")
     back, header = read_pgm(work / "back.pgm")
     assert header.magic == magic
@@ -124,8 +157,16 @@ def test_sixteen_bit_pgm_is_refused_with_a_reason(tmp_path) -> None:
         read_pgm(tmp_path / "deep.pgm")
 
 
-META = MapMetaSet(width=604, height=307, chunk_width=100, chunk_height=100, chunk_rows=4,
-                  chunk_cols=7, resolution=0.05, origin=(-3.0, 2.5, 0.0))
+META = MapMetaSet(
+    width=604,
+    height=307,
+    chunk_width=100,
+    chunk_height=100,
+    chunk_rows=4,
+    chunk_cols=7,
+    resolution=0.05,
+    origin=(-3.0, 2.5, 0.0),
+)
 
 
 @given(st.integers(0, 603), st.integers(0, 306))
@@ -169,10 +210,18 @@ def test_cli_with_relative_paths(tmp_path) -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
 
     def run(*args):
-        return subprocess.run([sys.executable, "-m", "mapservice.cli", "map", *args], cwd=tmp_path,
-                              env=env, capture_output=True, text=True, timeout=120)
+        return subprocess.run(
+            [sys.executable, "-m", "mapservice.cli", "map", *args],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
 
-    sliced = run("slice", "maps/depot.yaml", "-o", "out", "--chunk-width", "64", "--chunk-height", "48")
+    sliced = run(
+        "slice", "maps/depot.yaml", "-o", "out", "--chunk-width", "64", "--chunk-height", "48"
+    )
     assert sliced.returncode == 0, sliced.stderr
     assert "70 chunks" in sliced.stdout  # ceil(604/64)=10 columns x ceil(307/48)=7 rows
     stitched = run("stitch", "out", "-o", "back/depot.pgm")
@@ -186,8 +235,9 @@ def test_cli_with_relative_paths(tmp_path) -> None:
 
 def test_bare_plain_pgm_round_trips_as_plain(tmp_path) -> None:
     """A bare P2 file (no YAML) slices without resolution/origin and stitches back as P2."""
-    (tmp_path / "hand.pgm").write_text("P2\n# hand made\n5 3\n255\n" +
-                                       "0 205 254 254 0\n254 254 254 205 205\n0 0 254 254 254\n")
+    (tmp_path / "hand.pgm").write_text(
+        "P2\n# hand made\n5 3\n255\n" + "0 205 254 254 0\n254 254 254 205 205\n0 0 254 254 254\n"
+    )
     meta = slice_to_dir(tmp_path / "hand.pgm", tmp_path / "c", 2, 2)
     assert (meta.chunk_rows, meta.chunk_cols, meta.resolution, meta.origin) == (2, 3, None, None)
     assert "resolution" not in json.loads((tmp_path / "c" / "meta.json").read_text())

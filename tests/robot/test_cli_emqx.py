@@ -23,8 +23,14 @@ def emqx():
     class Handler(BaseHTTPRequestHandler):
         def _any(self) -> None:
             body = self.rfile.read(int(self.headers.get("Content-Length") or 0))
-            resp = fake.handle(httpx.Request(self.command, f"http://emqx{self.path}",
-                                             headers=dict(self.headers), content=body))
+            resp = fake.handle(
+                httpx.Request(
+                    self.command,
+                    f"http://emqx{self.path}",
+                    headers=dict(self.headers),
+                    content=body,
+                )
+            )
             self.send_response(resp.status_code)
             self.send_header("Content-Length", str(len(resp.content)))
             self.end_headers()
@@ -42,10 +48,20 @@ def emqx():
 
 
 def robot_cli(url: str, tmp_path, *args: str, secret: str = SECRET) -> subprocess.CompletedProcess:
-    env = {**os.environ, "MAPSERVICE_EMQX_API_URL": url, "MAPSERVICE_EMQX_API_KEY": KEY,
-           "MAPSERVICE_EMQX_API_SECRET": secret, "MAPSERVICE_DATA_DIR": str(tmp_path)}
-    return subprocess.run([sys.executable, "-m", "mapservice.cli", "robot", *args, "--emqx"],
-                          env=env, capture_output=True, text=True, timeout=60)
+    env = {
+        **os.environ,
+        "MAPSERVICE_EMQX_API_URL": url,
+        "MAPSERVICE_EMQX_API_KEY": KEY,
+        "MAPSERVICE_EMQX_API_SECRET": secret,
+        "MAPSERVICE_DATA_DIR": str(tmp_path),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "mapservice.cli", "robot", *args, "--emqx"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
 
 
 def test_robot_add_list_remove_manage_emqx_users(emqx, tmp_path) -> None:

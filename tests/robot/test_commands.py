@@ -10,26 +10,32 @@ import math
 from types import SimpleNamespace
 
 import msgspec
+from mapservice.robot.commands import CommandInbox, SimCommands, command_topic, response_topic
+from mapservice.robot.sim import SimConfig, new_state, step
 
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.core.commands import CommandIssued, command_message
-from mapservice.robot.commands import CommandInbox, SimCommands, command_topic, response_topic
-from mapservice.robot.sim import SimConfig, new_state, step
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000
 
 
 def fleet(robots: int = 3):
-    state = new_state(load_ros_map(MAPS / "warehouse.yaml"), robots, seed=5, t_ms=T0,
-                      config=SimConfig(change_every_s=0, dwell_s=1.0))
+    state = new_state(
+        load_ros_map(MAPS / "warehouse.yaml"),
+        robots,
+        seed=5,
+        t_ms=T0,
+        config=SimConfig(change_every_s=0, dwell_s=1.0),
+    )
     inbox = CommandInbox(r.robot_id for r in state.robots)
     return state, inbox, SimCommands(inbox)
 
 
 def deliver(inbox: CommandInbox, command: CommandIssued) -> None:
-    msg = SimpleNamespace(topic=command_topic(command.robot_id),
-                          payload=msgspec.json.encode(command_message(command)))
+    msg = SimpleNamespace(
+        topic=command_topic(command.robot_id), payload=msgspec.json.encode(command_message(command))
+    )
     inbox.on_message(None, None, msg)
 
 
@@ -58,7 +64,9 @@ def test_pause_holds_the_robot_where_it_is_and_resume_lets_it_go() -> None:
     state, out = tick(state, commands)
     said = answers(commands)
     assert [(a["type"], a.get("status") or a.get("outcome")) for a in said] == [
-        ("ack", "accepted"), ("outcome", "done")]
+        ("ack", "accepted"),
+        ("outcome", "done"),
+    ]
     assert said[0]["robotId"] == target and said[0]["commandId"] == "c-1" and said[0]["timestamp"]
     held = {p.robot_id: (p.x, p.y) for p in out.poses}[target]
     others_moved = 0
@@ -91,6 +99,7 @@ def test_goto_poi_drives_to_the_point_and_cancel_drops_a_goal() -> None:
     robot = state.robots[1]
     # A point another robot's station is at: drivable, somewhere else on the floor.
     from mapservice.robot.sim import to_metres
+
     x, y = to_metres(state, state.grid.centre_px(state.stations[3]))
     deliver(inbox, command("g-1", robot.robot_id, "goto_poi", poi_id="dock", x=x, y=y))
     done_at = None
@@ -98,15 +107,25 @@ def test_goto_poi_drives_to_the_point_and_cancel_drops_a_goal() -> None:
         state, out = tick(state, commands)
         said = answers(commands)
         if n == 0:
-            assert said == [{"robotId": robot.robot_id, "commandId": "g-1", "timestamp": said[0]["timestamp"],
-                             "reason": "", "type": "ack", "status": "accepted"}]
+            assert said == [
+                {
+                    "robotId": robot.robot_id,
+                    "commandId": "g-1",
+                    "timestamp": said[0]["timestamp"],
+                    "reason": "",
+                    "type": "ack",
+                    "status": "accepted",
+                }
+            ]
         elif said:
             assert [(a["type"], a["outcome"]) for a in said] == [("outcome", "done")]
             done_at = {p.robot_id: (p.x, p.y) for p in out.poses}[robot.robot_id]
             break
     assert done_at is not None and math.dist(done_at, (x, y)) < 1.0
-    far = max(state.stations, key=lambda c: math.dist(state.grid.centre_px(c),
-                                                      state.grid.centre_px(state.stations[3])))
+    far = max(
+        state.stations,
+        key=lambda c: math.dist(state.grid.centre_px(c), state.grid.centre_px(state.stations[3])),
+    )
     fx, fy = to_metres(state, state.grid.centre_px(far))
     deliver(inbox, command("g-2", robot.robot_id, "goto_poi", poi_id="far-dock", x=fx, y=fy))
     state, out = tick(state, commands)
@@ -114,8 +133,11 @@ def test_goto_poi_drives_to_the_point_and_cancel_drops_a_goal() -> None:
     state, out = tick(state, commands)
     said = answers(commands)
     assert [(a["commandId"], a["type"], a.get("status") or a.get("outcome")) for a in said] == [
-        ("g-2", "ack", "accepted"), ("k-1", "ack", "accepted"), ("g-2", "outcome", "cancelled"),
-        ("k-1", "outcome", "done")]
+        ("g-2", "ack", "accepted"),
+        ("k-1", "ack", "accepted"),
+        ("g-2", "outcome", "cancelled"),
+        ("k-1", "outcome", "done"),
+    ]
     # A point off the floor cannot be reached: rejected at once, saying why.
     deliver(inbox, command("g-3", robot.robot_id, "goto_poi", poi_id="far", x=1e5, y=1e5))
     state, out = tick(state, commands)
@@ -134,10 +156,11 @@ def test_commands_for_other_robots_or_unreadable_are_ignored() -> None:
 def test_a_paused_robots_route_is_planned_again_when_the_floor_changes() -> None:
     """A pallet put across a held robot's route while it is paused: its route is planned
     on the new floor, so on resume it does not drive through the pallet."""
-    from mapservice.adapters.ros_map import drivable
-    from mapservice.robot.planning import path_is_clear
     from mapservice.robot.floor_changes import _occupied_value
+    from mapservice.robot.planning import path_is_clear
     from mapservice.robot.sim import StepOut, _with_pixels
+
+    from mapservice.adapters.ros_map import drivable
 
     state, inbox, commands = fleet(3)
     for _ in range(8):
@@ -150,7 +173,7 @@ def test_a_paused_robots_route_is_planned_again_when_the_floor_changes() -> None
     (ax, ay), (bx, by) = held.waypoints[1], held.waypoints[2]  # beyond the stretch driven next
     col, row = int((ax + bx) / 2), int((ay + by) / 2)
     pixels = state.ros_map.pixels.copy()
-    pixels[row - 8:row + 8, col - 8:col + 8] = _occupied_value(state.ros_map)
+    pixels[row - 8 : row + 8, col - 8 : col + 8] = _occupied_value(state.ros_map)
     changed = _with_pixels(state, pixels)
     assert not path_is_clear([held.pos, *held.waypoints], changed.drivable)
     after, _ = commands.after_step(state, changed, StepOut())

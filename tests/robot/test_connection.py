@@ -9,15 +9,21 @@ import threading
 import time
 
 import pytest
+from mapservice.robot.connection import (
+    RobotClients,
+    RobotMqtt,
+    add_mqtt_arguments,
+    load_credentials,
+    robot_mqtt_from_args,
+    save_credential,
+)
+from mapservice.robot.faults import to_messages
+from mapservice.robot.sim import ChunkOut, new_state, step
 
 from mapservice.adapters.mqtt_auth import BrokerFiles
 from mapservice.adapters.mqtt_client import make_client
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.local import embedded
-from mapservice.robot.connection import (RobotClients, RobotMqtt, add_mqtt_arguments, load_credentials,
-                                         robot_mqtt_from_args, save_credential)
-from mapservice.robot.faults import to_messages
-from mapservice.robot.sim import ChunkOut, new_state, step
 from tests.fixtures.paths import MAPS
 
 
@@ -39,9 +45,14 @@ def test_chunk_topic_follows_identity_and_flag():
     overrides either way."""
     assert RobotMqtt("mqtt://h").chunk_topic("r1") == "iot/chunks/create"
     assert RobotMqtt("mqtt://h", {"r1": "p"}).chunk_topic("r1") == "iot/chunks/create/r1"
-    assert RobotMqtt("mqtt://h", {"r1": "p"}, per_robot_chunk_topic=False).chunk_topic("r1") == \
-        "iot/chunks/create"
-    assert RobotMqtt("mqtt://h", per_robot_chunk_topic=True).chunk_topic("r1") == "iot/chunks/create/r1"
+    assert (
+        RobotMqtt("mqtt://h", {"r1": "p"}, per_robot_chunk_topic=False).chunk_topic("r1")
+        == "iot/chunks/create"
+    )
+    assert (
+        RobotMqtt("mqtt://h", per_robot_chunk_topic=True).chunk_topic("r1")
+        == "iot/chunks/create/r1"
+    )
     with pytest.raises(ValueError, match="r2"):
         RobotMqtt("mqtt://h", {"r1": "p"}).check(["r1", "r2"])
 
@@ -56,7 +67,10 @@ def test_flags_build_the_connection(tmp_path):
     conn = robot_mqtt_from_args(args, "mqtts://h:8883", default_ca_file="/ca.pem")
     assert conn.credentials == {"r1": "p"} and conn.chunk_topic("r1") == "iot/chunks/create"
     assert str(conn.tls.ca_file) == "/ca.pem"
-    assert robot_mqtt_from_args(parser.parse_args([]), "mqtt://h", default_ca_file="/ca.pem").tls is None
+    assert (
+        robot_mqtt_from_args(parser.parse_args([]), "mqtt://h", default_ca_file="/ca.pem").tls
+        is None
+    )
 
 
 def test_sim_messages_carry_their_robot_and_its_chunk_topic():
@@ -83,8 +97,11 @@ def auth_broker(tmp_path):
     files.set_service_user("mapservice-gateway", "gw")
     passwords = {r: files.add_robot(r).password for r in ("r1", "r2")}
     port = embedded.free_port()
-    proc = embedded.start_mosquitto(port, tmp_path / "mosquitto", options=embedded.MosquittoOptions(
-        files.password_file, files.acl_file))
+    proc = embedded.start_mosquitto(
+        port,
+        tmp_path / "mosquitto",
+        options=embedded.MosquittoOptions(files.password_file, files.acl_file),
+    )
     yield f"mqtt://127.0.0.1:{port}", passwords
     embedded.stop(proc)
 
@@ -113,8 +130,12 @@ def test_each_robot_connects_as_itself(auth_broker):
         deadline = time.monotonic() + 5
         while len(received) < 4 and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert sorted(received) == ["iot/chunks/create/r1", "iot/chunks/create/r2",
-                                    "iot/coordinates/r1", "iot/coordinates/r2"]
+        assert sorted(received) == [
+            "iot/chunks/create/r1",
+            "iot/chunks/create/r2",
+            "iot/coordinates/r1",
+            "iot/coordinates/r2",
+        ]
     finally:
         clients.close()
         reader.loop_stop()

@@ -3,6 +3,7 @@ arrow keys move it (poses go out), 'b' paints the chunk under it black (a chunk 
 
 from __future__ import annotations
 
+import base64
 import os
 import shlex
 import shutil
@@ -11,7 +12,6 @@ import sys
 import threading
 import time
 import zlib
-import base64
 
 import msgspec
 import pytest
@@ -19,8 +19,10 @@ import pytest
 from mapservice.adapters.mqtt_client import make_client
 from tests.fixtures.paths import MAPS, ROOT
 
-pytestmark = [pytest.mark.integration,
-              pytest.mark.skipif(shutil.which("tmux") is None, reason="needs tmux (apt-get install tmux)")]
+pytestmark = [
+    pytest.mark.integration,
+    pytest.mark.skipif(shutil.which("tmux") is None, reason="needs tmux (apt-get install tmux)"),
+]
 
 
 class Tmux:
@@ -30,16 +32,34 @@ class Tmux:
         self.base = ["tmux", "-L", name]
         self.name = name
         exports = " ".join(f"{k}={shlex.quote(v)}" for k, v in env.items())
-        subprocess.run([*self.base, "new-session", "-d", "-s", name, "-x", "100", "-y", "30",
-                        f"env {exports} {shlex.join(command)}; echo EXITED=$?; sleep 30"],
-                       check=True, timeout=10)
+        subprocess.run(
+            [
+                *self.base,
+                "new-session",
+                "-d",
+                "-s",
+                name,
+                "-x",
+                "100",
+                "-y",
+                "30",
+                f"env {exports} {shlex.join(command)}; echo EXITED=$?; sleep 30",
+            ],
+            check=True,
+            timeout=10,
+        )
 
     def keys(self, *keys: str) -> None:
         subprocess.run([*self.base, "send-keys", "-t", self.name, *keys], check=True, timeout=10)
 
     def screen(self) -> str:
-        return subprocess.run([*self.base, "capture-pane", "-p", "-t", self.name], check=True,
-                              timeout=10, capture_output=True, text=True).stdout
+        return subprocess.run(
+            [*self.base, "capture-pane", "-p", "-t", self.name],
+            check=True,
+            timeout=10,
+            capture_output=True,
+            text=True,
+        ).stdout
 
     def wait_screen(self, text: str, timeout_s: float = 30.0) -> str:
         deadline = time.monotonic() + timeout_s
@@ -81,10 +101,26 @@ def test_drive_and_paint_through_a_terminal(mosquitto) -> None:
     'b' publishes the chunk under the robot, all black; q quits cleanly."""
     client, received = subscribe(mosquitto)
     env = {"TERM": "xterm", "PYTHONPATH": str(ROOT), "PATH": os.environ.get("PATH", "")}
-    term = Tmux(f"mapservice-drive-{os.getpid()}",
-                [sys.executable, "-m", "mapservice.cli", "drive", "--map", str(MAPS / "depot.yaml"),
-                 "--mqtt", f"mqtt://127.0.0.1:{mosquitto}", "--robot-id", "tui-1",
-                 "--start", "15.1", "7.6", "--no-size-check"], env)
+    term = Tmux(
+        f"mapservice-drive-{os.getpid()}",
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "drive",
+            "--map",
+            str(MAPS / "depot.yaml"),
+            "--mqtt",
+            f"mqtt://127.0.0.1:{mosquitto}",
+            "--robot-id",
+            "tui-1",
+            "--start",
+            "15.1",
+            "7.6",
+            "--no-size-check",
+        ],
+        env,
+    )
     try:
         screen = term.wait_screen("chunk (1, 3)")
         assert "x=15.12 y=7.62 m" in screen and "@" in screen

@@ -6,17 +6,22 @@ from __future__ import annotations
 import httpx
 import pytest
 from fastapi.testclient import TestClient
+from mapservice.api.app import create_app
+from mapservice.robot.drive import check_map_size
+from mapservice.robot.map_upload import (
+    MARKER,
+    UPLOADER_ID,
+    MapSizeMismatch,
+    upload_map_if_fresh,
+    upload_map_rest,
+)
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
+from mapservice.core.wire2019 import content_hash
+from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore
-from mapservice.api.app import create_app
-from mapservice.robot.map_upload import (MARKER, UPLOADER_ID, MapSizeMismatch, upload_map_if_fresh,
-                                   upload_map_rest)
-from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
-from mapservice.robot.drive import check_map_size
-from mapservice.settings import Settings
-from mapservice.core.wire2019 import content_hash
 from tests.fixtures.legacy import process
 from tests.fixtures.paths import MAPS
 
@@ -30,8 +35,13 @@ def service():
     store, publisher = MemoryStore(), MemoryPublisher()
     settings = Settings(admin_token=ADMIN_TOKEN, api_writer_tokens=WRITER_TOKEN)
     app = create_app(settings, store, {}, ManualClock(NOW), publisher=publisher)
-    return store, publisher, TestClient(app, raise_server_exceptions=False,
-                                        headers={"Authorization": f"Bearer {WRITER_TOKEN}"})
+    return (
+        store,
+        publisher,
+        TestClient(
+            app, raise_server_exceptions=False, headers={"Authorization": f"Bearer {WRITER_TOKEN}"}
+        ),
+    )
 
 
 def test_upload_stores_meta_and_every_chunk_as_the_map_file(service) -> None:
@@ -102,8 +112,10 @@ def test_up_uploads_once_per_data_dir(monkeypatch, tmp_path) -> None:
     overwrite later changes), nor does one with history from before uploads, and a map of
     another size is refused."""
     calls = []
-    monkeypatch.setattr("mapservice.robot.map_upload.upload_map_events",
-                        lambda settings, ros_map, now_ms: calls.append(now_ms) or 7)
+    monkeypatch.setattr(
+        "mapservice.robot.map_upload.upload_map_events",
+        lambda settings, ros_map, now_ms: calls.append(now_ms) or 7,
+    )
     legacy = tmp_path / "legacy"
     depot0 = load_ros_map(MAPS / "depot.yaml")
     assert upload_map_if_fresh(Settings(), legacy, depot0, NOW, had_history=True) == 0

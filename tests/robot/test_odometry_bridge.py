@@ -7,9 +7,9 @@ import time
 
 import msgspec
 import pytest
+from mapservice.robot.agent import OdometryPose, RobotAgent
 
 from mapservice.adapters.mqtt_client import make_client
-from mapservice.robot.agent import OdometryPose, RobotAgent
 from mapservice.core.wire2019 import parse_timestamp
 from tests.fixtures.paths import MAPS
 
@@ -34,16 +34,23 @@ def test_odometry_topic_becomes_the_robots_pose(mosquitto) -> None:
     try:
         time.sleep(0.5)  # let the subscription settle
         ros.publish("robot/odom", b"garbage", qos=1)
-        odom = {"pose": {"pose": {"position": {"x": 4.25, "y": 3.5, "z": 0.0},
-                                  "orientation": {"x": 0, "y": 0, "z": 0.3827, "w": 0.9239}}},
-                "status": {"battery": {"battery_level": 61.0, "charging": False}, "loaded": True}}
+        odom = {
+            "pose": {
+                "pose": {
+                    "position": {"x": 4.25, "y": 3.5, "z": 0.0},
+                    "orientation": {"x": 0, "y": 0, "z": 0.3827, "w": 0.9239},
+                }
+            },
+            "status": {"battery": {"battery_level": 61.0, "charging": False}, "loaded": True},
+        }
         ros.publish("robot/odom", msgspec.json.encode(odom), qos=1)
         deadline = time.monotonic() + 10
         while source.read() is None and time.monotonic() < deadline:
             time.sleep(0.05)
         assert source.read() is not None and source.bad == 1
-        agent = RobotAgent(MAPS / "depot.yaml", "ros-1", "http://unused", "mqtt://unused",
-                           pose_source=source)
+        agent = RobotAgent(
+            MAPS / "depot.yaml", "ros-1", "http://unused", "mqtt://unused", pose_source=source
+        )
         agent.client = CapturingClient()
         before = time.time_ns() // 1_000_000
         assert agent.publish_pose()
@@ -52,7 +59,10 @@ def test_odometry_topic_becomes_the_robots_pose(mosquitto) -> None:
         assert topic == "iot/coordinates/ros-1" and doc["robotId"] == "ros-1"
         assert doc["pose"]["position"] == {"x": 4.25, "y": 3.5, "z": 0}
         assert doc["pose"]["orientation"]["z"] == 0.3827
-        assert doc["status"] == {"battery": {"battery_level": 61.0, "charging": False}, "loaded": True}
+        assert doc["status"] == {
+            "battery": {"battery_level": 61.0, "charging": False},
+            "loaded": True,
+        }
         assert parse_timestamp(doc["timestamp"]) >= before - 1000
     finally:
         ros.loop_stop()

@@ -11,14 +11,20 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map
+from mapservice.robot import sim
 from mapservice.robot.chunks import chunk_pixels, metres_to_pixel
 from mapservice.robot.faults import Faults, robot_skew_ms, to_messages
 from mapservice.robot.planning import build_grid, dilate, path_is_clear, plan, simplify
-from mapservice.robot import sim
 from mapservice.robot.sim import SimConfig, _protected, new_state, step
-from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, decode_coordinates, parse_timestamp
+
+from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map
+from mapservice.core.wire2019 import (
+    Limits,
+    Rejection,
+    decode_chunk_create,
+    decode_coordinates,
+    parse_timestamp,
+)
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000
@@ -36,13 +42,20 @@ def run(state, steps):
         yield state, out
 
 
-@pytest.mark.parametrize("name,robots,steps", [("depot", 6, 600), ("warehouse", 4, 200),
-                                                ("tb3_sandbox", 5, 300), ("map_circular", 5, 300)])
+@pytest.mark.parametrize(
+    "name,robots,steps",
+    [("depot", 6, 600), ("warehouse", 4, 200), ("tb3_sandbox", 5, 300), ("map_circular", 5, 300)],
+)
 def test_robots_stay_on_free_cells_and_publish_clear_paths(name, robots, steps) -> None:
     """Over many steps with map changes, every pose is on a drivable pixel of the map as it
     is then, and every published path crosses only drivable pixels."""
-    state = new_state(load_ros_map(MAPS / f"{name}.yaml"), robots, seed=3, t_ms=T0,
-                      config=SimConfig(change_every_s=8))
+    state = new_state(
+        load_ros_map(MAPS / f"{name}.yaml"),
+        robots,
+        seed=3,
+        t_ms=T0,
+        config=SimConfig(change_every_s=8),
+    )
     changes = paths = 0
     for state, out in run(state, steps):
         free = drivable(state.ros_map)  # the current map, after this step's change
@@ -50,7 +63,9 @@ def test_robots_stay_on_free_cells_and_publish_clear_paths(name, robots, steps) 
         changes += len(out.notes)
         for pose in out.poses:
             col, row = metres_to_pixel(pose.x, pose.y, state.meta)
-            assert free[row, col], f"{pose.robot_id} stands on a blocked pixel at {pose.x}, {pose.y}"
+            assert free[row, col], (
+                f"{pose.robot_id} stands on a blocked pixel at {pose.x}, {pose.y}"
+            )
             if pose.path:
                 paths += 1
                 pts = [pixel_point(state, x, y) for x, y in pose.path]
@@ -96,8 +111,9 @@ def test_map_changes_are_published_as_the_chunks_they_touched() -> None:
     for state, out in run(state, 400):
         for chunk in out.chunks:
             touched.add((chunk.row, chunk.column))
-            assert chunk.pixels == chunk_pixels(state.ros_map.pixels, state.meta, chunk.row,
-                                                chunk.column, 205)
+            assert chunk.pixels == chunk_pixels(
+                state.ros_map.pixels, state.meta, chunk.row, chunk.column, 205
+            )
             assert chunk.robot_id in {r.robot_id for r in state.robots}
         kinds.update(n.split(" ")[0] + " " + n.split(" ")[1] for n in out.notes)
     assert touched and {"pallet appeared", "pallet taken"} <= kinds
@@ -172,20 +188,29 @@ def test_faults_loss_skew_and_bad_input() -> None:
             if msg.topic == "iot/chunks/create":
                 result = decode_chunk_create(msg.payload, T0 + 1000, limits)
             else:
-                result = decode_coordinates(msg.topic.rsplit("/", 1)[1], msg.payload, T0 + 1000, limits)
+                result = decode_coordinates(
+                    msg.topic.rsplit("/", 1)[1], msg.payload, T0 + 1000, limits
+                )
             assert isinstance(result, Rejection), msg.kind
             assert result.reason.value == msg.kind[4:]
             reasons.add(result.reason.value)
     assert len(reasons) >= 5
     for msg in clean:
-        assert not isinstance(decode_coordinates(msg.topic.rsplit("/", 1)[1], msg.payload,
-                                                 T0 + 1000, limits), Rejection)
+        assert not isinstance(
+            decode_coordinates(msg.topic.rsplit("/", 1)[1], msg.payload, T0 + 1000, limits),
+            Rejection,
+        )
 
 
 def test_paths_fit_the_gateway_limit() -> None:
     """A published path never exceeds the gateway's 1,000-point limit."""
-    state = new_state(load_ros_map(MAPS / "warehouse.yaml"), 3, seed=2, t_ms=T0,
-                      config=replace(SimConfig(), change_every_s=0))
+    state = new_state(
+        load_ros_map(MAPS / "warehouse.yaml"),
+        3,
+        seed=2,
+        t_ms=T0,
+        config=replace(SimConfig(), change_every_s=0),
+    )
     for _state, out in run(state, 30):
         assert all(len(p.path) <= 1000 for p in out.poses)
 
@@ -194,8 +219,13 @@ def test_new_obstacles_keep_off_the_stretch_a_robot_drives_next() -> None:
     """The whole segment from a robot to its next waypoint is protected from map changes,
     not only its two ends (a replan keeps that waypoint, so an obstacle there would stay
     on the published path)."""
-    state = new_state(load_ros_map(MAPS / "warehouse.yaml"), 1, seed=3, t_ms=T0,
-                      config=replace(SimConfig(), change_every_s=0))
+    state = new_state(
+        load_ros_map(MAPS / "warehouse.yaml"),
+        1,
+        seed=3,
+        t_ms=T0,
+        config=replace(SimConfig(), change_every_s=0),
+    )
     g = state.grid
     a = g.centre_px((5, 5))
     b = g.centre_px((5, 5 + 20))
@@ -212,7 +242,7 @@ def floors(draw):
     pixels[:3, :] = pixels[-3:, :] = pixels[:, :3] = pixels[:, -3:] = 0
     for _ in range(draw(st.integers(0, 6))):
         r, c = draw(st.integers(0, height - 1)), draw(st.integers(0, width - 1))
-        pixels[r:r + draw(st.integers(3, 40)), c:c + draw(st.integers(3, 40))] = 0
+        pixels[r : r + draw(st.integers(3, 40)), c : c + draw(st.integers(3, 40))] = 0
     return RosMap(pixels, 0.05, (-1.0, 2.0, 0.0)), draw(st.integers(0, 10_000))
 
 
@@ -240,8 +270,13 @@ def test_a_floor_change_across_a_cached_route_makes_the_robot_replan() -> None:
     """Routes are cached per (start, goal) and reused without a check while the floor stays
     as it is; after a change that blocks a cached route, the same trip plans around the new
     obstacle, while a cached route the change left clear is still reused."""
-    state = new_state(load_ros_map(MAPS / "warehouse.yaml"), 1, seed=3, t_ms=T0,
-                      config=replace(SimConfig(), change_every_s=0))
+    state = new_state(
+        load_ros_map(MAPS / "warehouse.yaml"),
+        1,
+        seed=3,
+        t_ms=T0,
+        config=replace(SimConfig(), change_every_s=0),
+    )
     g = state.grid
     robot = replace(state.robots[0], pos=g.centre_px(state.stations[0]), waypoints=())
     far, near = state.stations[1], state.stations[2]
@@ -253,10 +288,13 @@ def test_a_floor_change_across_a_cached_route_makes_the_robot_replan() -> None:
     # A pallet on a cell in the middle of the cached route, away from the other route.
     cells = state.routes[(g.cell_at(*robot.pos), far)].cells
     other_cells = set(state.routes[(g.cell_at(*robot.pos), near)].cells)
-    row, col = next(c for c in cells[len(cells) // 3:] if all(
-        abs(c[0] - o[0]) > 4 or abs(c[1] - o[1]) > 4 for o in other_cells))
+    row, col = next(
+        c
+        for c in cells[len(cells) // 3 :]
+        if all(abs(c[0] - o[0]) > 4 or abs(c[1] - o[1]) > 4 for o in other_cells)
+    )
     pixels = state.ros_map.pixels.copy()
-    pixels[row * g.cell_px:(row + 1) * g.cell_px, col * g.cell_px:(col + 1) * g.cell_px] = 0
+    pixels[row * g.cell_px : (row + 1) * g.cell_px, col * g.cell_px : (col + 1) * g.cell_px] = 0
     changed = sim._with_pixels(state, pixels)
     free = drivable(changed.ros_map)
     assert not path_is_clear(list(first), free)

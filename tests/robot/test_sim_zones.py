@@ -9,16 +9,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-
-from mapservice.adapters.costmap_filters import grid_of
-from mapservice.adapters.ros_map import load_ros_map
-from mapservice.core.annotations import Zone
-from mapservice.core.zone_masks import Grid, keep_out_labels, pixel_of, zone_pixels
 from mapservice.robot import sim
 from mapservice.robot.planning import plan
 from mapservice.robot.sim import SimConfig, new_state, step, with_zones
 from mapservice.robot.sim_zones import route_cells, speed_at, way_out
 from mapservice.robot.zones import blocked_grid, floor_zones, zones_from_listing
+
+from mapservice.adapters.costmap_filters import grid_of
+from mapservice.adapters.ros_map import load_ros_map
+from mapservice.core.annotations import Zone
+from mapservice.core.zone_masks import Grid, keep_out_labels, pixel_of, zone_pixels
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000
@@ -77,10 +77,25 @@ def test_speed_limits_per_pixel_percent_of_top_speed_or_m_s_lowest_wins() -> Non
 
 
 def test_zones_from_the_api_listing() -> None:
-    listing = {"at_ms": 1, "annotations": [
-        {"id": "p", "annotation": {"shape": "poi", "name": "s", "kind": "station", "x": 1, "y": 2}},
-        {"id": "z", "annotation": {"shape": "zone", "name": "k", "kind": "keep_out",
-                                   "polygon": [[0, 0], [1, 0], [1, 1]], "holes": []}}]}
+    listing = {
+        "at_ms": 1,
+        "annotations": [
+            {
+                "id": "p",
+                "annotation": {"shape": "poi", "name": "s", "kind": "station", "x": 1, "y": 2},
+            },
+            {
+                "id": "z",
+                "annotation": {
+                    "shape": "zone",
+                    "name": "k",
+                    "kind": "keep_out",
+                    "polygon": [[0, 0], [1, 0], [1, 1]],
+                    "holes": [],
+                },
+            },
+        ],
+    }
     [(zone_id, zone)] = zones_from_listing(listing)
     assert zone_id == "z" and zone.kind == "keep_out" and zone.polygon[1] == (1.0, 0.0)
     with pytest.raises(ValueError, match="annotations"):
@@ -91,8 +106,13 @@ def test_zones_from_the_api_listing() -> None:
 
 
 def depot(robots: int = 6, change_every_s: float = 8):
-    return new_state(load_ros_map(MAPS / "depot.yaml"), robots, seed=3, t_ms=T0,
-                     config=SimConfig(change_every_s=change_every_s))
+    return new_state(
+        load_ros_map(MAPS / "depot.yaml"),
+        robots,
+        seed=3,
+        t_ms=T0,
+        config=SimConfig(change_every_s=change_every_s),
+    )
 
 
 def metres(state, p):

@@ -9,18 +9,20 @@ import io
 import httpx
 import numpy as np
 import pytest
+from mapservice.robot import zones_cli
+from mapservice.robot.zones_cli import MaskFiles, import_mask, mask_files, refusal
 from PIL import Image
 
 from mapservice.adapters.ros_map import RosMap, meta_for
 from mapservice.cli import build_parser
 from mapservice.core.events import make_envelope
-from mapservice.robot import zones_cli
-from mapservice.robot.zones_cli import MaskFiles, import_mask, mask_files, refusal
 from tests.api.test_annotations import NOW, OPERATOR, READER, World
 
 FLOOR = RosMap(np.full((30, 40), 254, dtype=np.uint8), 0.05, (-1.0, -2.0, 0.0))
-YAML = "image: {image}\nmode: trinary\nresolution: 0.05\norigin: [-1.0, -2.0, 0]\nnegate: 0\n" \
-       "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+YAML = (
+    "image: {image}\nmode: trinary\nresolution: 0.05\norigin: [-1.0, -2.0, 0]\nnegate: 0\n"
+    "occupied_thresh: 0.65\nfree_thresh: 0.196\n"
+)
 
 
 def write_mask(tmp_path, keep_out: np.ndarray, name: str = "mask"):
@@ -39,7 +41,9 @@ def keep_out() -> np.ndarray:
     return mask
 
 
-def test_import_mask_posts_the_files_and_the_keep_out_mask_exports_the_same_pixels(tmp_path, keep_out) -> None:
+def test_import_mask_posts_the_files_and_the_keep_out_mask_exports_the_same_pixels(
+    tmp_path, keep_out
+) -> None:
     w = World(make_envelope("admin", NOW - 1000, NOW - 1000, meta_for(FLOOR)))
     path = write_mask(tmp_path, keep_out)
     w.client.headers["Authorization"] = f"Bearer {OPERATOR}"
@@ -48,7 +52,9 @@ def test_import_mask_posts_the_files_and_the_keep_out_mask_exports_the_same_pixe
     events = w.store_published()
     assert {e.payload.annotation.name for e in events} == {"racks 1", "racks 2"}
     w.client.app.state.annotation_edits = None
-    r = w.client.get("/api/v1/costmap-filters/keepout/mask.pgm", params={"at": str(answer["at_ms"])})
+    r = w.client.get(
+        "/api/v1/costmap-filters/keepout/mask.pgm", params={"at": str(answer["at_ms"])}
+    )
     exported = np.asarray(Image.open(io.BytesIO(r.content)))
     assert np.array_equal(exported == 0, keep_out)
     # The PGM went as a PNG of the same pixels.
@@ -86,8 +92,17 @@ def test_the_command_line_has_help_and_fails_saying_why(tmp_path, capsys, monkey
         build_parser().parse_args(["zones", "import-mask", "--help"])
     help_text = capsys.readouterr().out
     assert "keep-out" in help_text and "--token" in help_text and "operator token" in help_text
-    args = build_parser().parse_args(["zones", "import-mask", str(tmp_path / "none.yaml"),
-                                      "--api", "http://127.0.0.1:9", "--token", "t"])
+    args = build_parser().parse_args(
+        [
+            "zones",
+            "import-mask",
+            str(tmp_path / "none.yaml"),
+            "--api",
+            "http://127.0.0.1:9",
+            "--token",
+            "t",
+        ]
+    )
     with pytest.raises(SystemExit, match="cannot read the mask YAML"):
         args.func(args)
     monkeypatch.setenv(zones_cli.OPERATOR_TOKEN_ENV, "from-env")

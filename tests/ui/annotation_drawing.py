@@ -54,6 +54,8 @@ def seek_and_read(page, t: int) -> dict:
             const lo = Math.min(a.loadedAt, t), hi = Math.max(a.loadedAt, t);
             return Number.isFinite(a.loadedAt) && !a.marks.some(([, ts]) => ts > lo && ts <= hi);
         }""",
-        arg=t, timeout=TIMEOUT_MS)
+        arg=t,
+        timeout=TIMEOUT_MS,
+    )
     page.wait_for_timeout(400)  # the next summary redraws what was read
     return drawn(page)

@@ -13,11 +13,11 @@ import time
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.testing.chromium import chromium_path, launch
-from mapservice.bench.history_loader import load_history
 from mapservice.adapters.ros_map import load_ros_map
+from mapservice.bench.history_loader import load_history
 from mapservice.local.checkout import TEST_UI_DIR, TEST_UI_ENV
 from mapservice.local.stack import Stack
+from mapservice.testing.chromium import chromium_path, launch
 from tests.fixtures.paths import MAPS, ROOT
 from tests.integration.conftest import run_stack
 
@@ -39,16 +39,24 @@ def history_stack(tmp_path_factory):
     """The whole service on 127.0.0.1 over HOURS of history ending ten minutes ago."""
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
-    stack = Stack(tmp_path_factory.mktemp("ui-stack"), mqtt="mosquitto",
-                  extra_env={**TEST_UI_ENV, "MAPSERVICE_SNAPSHOT_EVERY_S": "600"})
+    stack = Stack(
+        tmp_path_factory.mktemp("ui-stack"),
+        mqtt="mosquitto",
+        extra_env={**TEST_UI_ENV, "MAPSERVICE_SNAPSHOT_EVERY_S": "600"},
+    )
     settings = stack.settings()
     ros_map = load_ros_map(MAPS / "warehouse.yaml")
-    store = ClickHouseStore(settings.resolved_clickhouse_dsn, settings.clickhouse_database,
-                            settings.retention_days, snapshot_every_ms=600_000)
+    store = ClickHouseStore(
+        settings.resolved_clickhouse_dsn,
+        settings.clickhouse_database,
+        settings.retention_days,
+        snapshot_every_ms=600_000,
+    )
     end = time.time_ns() // 1_000_000 - 600_000
     try:
-        result = load_history(store, ros_map, days=HOURS / 24, robots=ROBOTS, end_ms=end,
-                              change_prob=0.3)
+        result = load_history(
+            store, ros_map, days=HOURS / 24, robots=ROBOTS, end_ms=end, change_prob=0.3
+        )
     finally:
         store.close()
     run_stack(stack, result.meta)

@@ -24,7 +24,15 @@ from mapservice.core.wire2019 import format_timestamp
 from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.settings import token_list
 
-from .annotation_drawing import TIMEOUT_MS, center_on_metres, draw_zone_by_mouse, drawn, give_token, screen, seek_and_read
+from .annotation_drawing import (
+    TIMEOUT_MS,
+    center_on_metres,
+    draw_zone_by_mouse,
+    drawn,
+    give_token,
+    screen,
+    seek_and_read,
+)
 from .test_investigator import api, open_at, screenshot
 
 # Across the aisle between the first two racks of the warehouse's lower half (maps/warehouse.*):
@@ -42,7 +50,10 @@ def operator_token(stack) -> str:
 
 def standing(stack, at: int | None = None) -> dict[str, dict]:
     params = {"at": at} if at is not None else {}
-    return {a["annotation"]["name"]: a for a in api(stack, "/api/v1/annotations", **params)["annotations"]}
+    return {
+        a["annotation"]["name"]: a
+        for a in api(stack, "/api/v1/annotations", **params)["annotations"]
+    }
 
 
 def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack) -> None:
@@ -83,7 +94,9 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     # Drawn as it was: not before its creation, from it on; its creation is marked on the timeline.
     assert zone["id"] not in seek_and_read(page, created - 60_000)["drawn"]["zones"]
     assert zone["id"] in seek_and_read(page, created + 1_000)["drawn"]["zones"]
-    page.wait_for_selector(f'[data-testid="annotation-edit-mark"][data-ts="{created}"]', timeout=TIMEOUT_MS)
+    page.wait_for_selector(
+        f'[data-testid="annotation-edit-mark"][data-ts="{created}"]', timeout=TIMEOUT_MS
+    )
 
     # A speed zone next to it, closed with Enter: stored with its limit, labelled with it.
     page.fill('[data-testid="zone-name"]', "ui-test slow lane")
@@ -93,12 +106,21 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     for x, y in SLOW:
         page.mouse.click(*screen(page, x, y))
     page.keyboard.press("Enter")
-    page.wait_for_function("() => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes('ui-test slow lane')",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes('ui-test slow lane')",
+        timeout=TIMEOUT_MS,
+    )
     slow = standing(stack)["ui-test slow lane"]["annotation"]
-    assert (slow["kind"], slow["speed_limit"], slow["speed_unit"], len(slow["polygon"])) == ("speed_limit", 0.3, "m/s", 4)
-    page.wait_for_function("() => [...document.querySelectorAll('.zone-label span')].some(e => e.innerText.includes('≤ 0.3 m/s'))",
-                           timeout=TIMEOUT_MS)
+    assert (slow["kind"], slow["speed_limit"], slow["speed_unit"], len(slow["polygon"])) == (
+        "speed_limit",
+        0.3,
+        "m/s",
+        4,
+    )
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('.zone-label span')].some(e => e.innerText.includes('≤ 0.3 m/s'))",
+        timeout=TIMEOUT_MS,
+    )
 
     # Selected once made: dragged 30 screen pixels (0.9 m) to the left, it is stored there.
     x0, y0 = screen(page, -6.5, -10.6)
@@ -108,7 +130,10 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
         page.mouse.move(x0 - 10 * k, y0)
     page.mouse.up()
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and standing(stack)["ui-test slow lane"]["annotation"]["polygon"] == slow["polygon"]:
+    while (
+        time.monotonic() < deadline
+        and standing(stack)["ui-test slow lane"]["annotation"]["polygon"] == slow["polygon"]
+    ):
         time.sleep(0.3)
     dragged = standing(stack)["ui-test slow lane"]["annotation"]["polygon"]
     for (x, y), (sx, sy) in zip(dragged, slow["polygon"]):
@@ -119,18 +144,27 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     page.select_option('[data-testid="poi-kind"]', "charger")
     page.click('[data-testid="place-poi"]')
     page.mouse.click(*screen(page, *POI_AT))
-    page.wait_for_function("() => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes('point ui-test dock')",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes('point ui-test dock')",
+        timeout=TIMEOUT_MS,
+    )
     poi = standing(stack)["ui-test dock"]
     assert poi["annotation"]["kind"] == "charger"
-    assert (poi["annotation"]["x"], poi["annotation"]["y"]) == (pytest.approx(POI_AT[0], abs=0.06), pytest.approx(POI_AT[1], abs=0.06))
+    assert (poi["annotation"]["x"], poi["annotation"]["y"]) == (
+        pytest.approx(POI_AT[0], abs=0.06),
+        pytest.approx(POI_AT[1], abs=0.06),
+    )
     page.wait_for_selector(f'.poi[data-id="{poi["id"]}"]', timeout=TIMEOUT_MS)
     # Selected: the one just placed; then the zone from the list, the point again by a click on the map.
-    page.wait_for_selector(f'[data-testid="annotation-row"][data-id="{poi["id"]}"].active', timeout=TIMEOUT_MS)
+    page.wait_for_selector(
+        f'[data-testid="annotation-row"][data-id="{poi["id"]}"].active', timeout=TIMEOUT_MS
+    )
     page.locator(f'[data-testid="annotation-row"][data-id="{zone["id"]}"]').click()
     assert ZONE_NAME in page.inner_text('[data-testid="edit-selected"]')
     page.locator(f'.poi[data-id="{poi["id"]}"]').click()
-    page.wait_for_selector(f'[data-testid="annotation-row"][data-id="{poi["id"]}"].active', timeout=TIMEOUT_MS)
+    page.wait_for_selector(
+        f'[data-testid="annotation-row"][data-id="{poi["id"]}"].active', timeout=TIMEOUT_MS
+    )
     # A refusal says why, in the server's words.
     page.fill('[data-testid="rename-input"]', "")
     page.click('[data-testid="rename"]')
@@ -139,8 +173,10 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     assert "refused" in error and "422" in error and "name" in error
     page.fill('[data-testid="rename-input"]', "ui-test dock 2")
     page.click('[data-testid="rename"]')
-    page.wait_for_function("() => [...document.querySelectorAll('.poi-name')].some(e => e.innerText === 'ui-test dock 2')",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('.poi-name')].some(e => e.innerText === 'ui-test dock 2')",
+        timeout=TIMEOUT_MS,
+    )
     renamed = standing(stack)
     assert "ui-test dock" not in renamed and renamed["ui-test dock 2"]["id"] == poi["id"]
     # Dragged 60 screen pixels (1.8 m) to the right.
@@ -152,37 +188,78 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
         page.mouse.move(x0 + 10 * k, y0)
     page.mouse.up()
     deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and standing(stack)["ui-test dock 2"]["annotation"]["x"] == poi["annotation"]["x"]:
+    while (
+        time.monotonic() < deadline
+        and standing(stack)["ui-test dock 2"]["annotation"]["x"] == poi["annotation"]["x"]
+    ):
         time.sleep(0.3)
     moved = standing(stack)["ui-test dock 2"]["annotation"]
-    assert moved["x"] == pytest.approx(POI_AT[0] + 1.8, abs=0.1) and moved["y"] == pytest.approx(POI_AT[1], abs=0.06)
+    assert moved["x"] == pytest.approx(POI_AT[0] + 1.8, abs=0.1) and moved["y"] == pytest.approx(
+        POI_AT[1], abs=0.06
+    )
 
     # A robot inside the zone: a violation on the map, in the list, on the timeline.
     t = int(time.time() * 1000)
-    body = {"robotId": VIOLATOR, "timestamp": format_timestamp(t),
-            "pose": {"position": {"x": -7.4, "y": -12.2, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-            "status": {"battery": {"battery_level": 0.5, "charging": False}, "loaded": False}}
-    subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(stack.mqtt_port), "-q", "1",
-                    "-t", f"iot/coordinates/{VIOLATOR}", "-m", json.dumps(body)], check=True, timeout=30)
+    body = {
+        "robotId": VIOLATOR,
+        "timestamp": format_timestamp(t),
+        "pose": {
+            "position": {"x": -7.4, "y": -12.2, "z": 0},
+            "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+        },
+        "status": {"battery": {"battery_level": 0.5, "charging": False}, "loaded": False},
+    }
+    subprocess.run(
+        [
+            "mosquitto_pub",
+            "-h",
+            "127.0.0.1",
+            "-p",
+            str(stack.mqtt_port),
+            "-q",
+            "1",
+            "-t",
+            f"iot/coordinates/{VIOLATOR}",
+            "-m",
+            json.dumps(body),
+        ],
+        check=True,
+        timeout=30,
+    )
     deadline = time.monotonic() + 60
     found: list = []
     while time.monotonic() < deadline and not found:
-        found = [v for v in api(stack, "/api/v1/zone-violations", **{"from": t - 1000, "to": t + 60_000})["violations"]
-                 if v["robotId"] == VIOLATOR]
+        found = [
+            v
+            for v in api(stack, "/api/v1/zone-violations", **{"from": t - 1000, "to": t + 60_000})[
+                "violations"
+            ]
+            if v["robotId"] == VIOLATOR
+        ]
         time.sleep(0.5)
     assert [(v["zoneId"], v["ts_ms"]) for v in found] == [(zone["id"], t)]
-    page.evaluate("() => window.__replay.seek(Date.now())")  # the timeline's span reaches t: marks and list read again
-    page.wait_for_selector(f'[data-testid="violation-row"][data-robot="{VIOLATOR}"]', timeout=TIMEOUT_MS)
+    page.evaluate(
+        "() => window.__replay.seek(Date.now())"
+    )  # the timeline's span reaches t: marks and list read again
+    page.wait_for_selector(
+        f'[data-testid="violation-row"][data-robot="{VIOLATOR}"]', timeout=TIMEOUT_MS
+    )
     assert ZONE_NAME in page.inner_text(f'[data-testid="violation-row"][data-robot="{VIOLATOR}"]')
-    page.wait_for_selector(f'[data-testid="zone-violation-mark"][data-ts="{t}"]', timeout=TIMEOUT_MS)
+    page.wait_for_selector(
+        f'[data-testid="zone-violation-mark"][data-ts="{t}"]', timeout=TIMEOUT_MS
+    )
     page.locator(f'[data-testid="violation-row"][data-robot="{VIOLATOR}"]').click()
-    page.wait_for_function(f"() => window.__replay.playhead === {t} && window.__replay.complete", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {t} && window.__replay.complete", timeout=TIMEOUT_MS
+    )
     page.wait_for_selector(f'.violation[data-robot="{VIOLATOR}"]', timeout=TIMEOUT_MS)
     assert VIOLATOR in drawn(page)["drawn"]["violations"]
     # The layer switch hides them, the address keeps it.
     assert drawn(page)["shown"] is True
     page.click('input[data-layer="annotations"]')
-    page.wait_for_function("() => !(new URLSearchParams(location.search).get('layers') ?? '').includes('annotations')")
+    page.wait_for_function(
+        "() => !(new URLSearchParams(location.search).get('layers') ?? '').includes('annotations')"
+    )
     assert drawn(page)["shown"] is False and page.locator(".poi").count() == 0
     page.click('input[data-layer="annotations"]')
     page.wait_for_function("() => window.__replay.annotations().shown")
@@ -201,7 +278,11 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     removed_before = int(time.time() * 1000)
     page.locator(f'[data-testid="annotation-row"][data-id="{poi["id"]}"]').click()
     page.click('[data-testid="delete"]')
-    page.wait_for_function("(id) => !document.querySelector(`.poi[data-id='${id}']`)", arg=poi["id"], timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "(id) => !document.querySelector(`.poi[data-id='${id}']`)",
+        arg=poi["id"],
+        timeout=TIMEOUT_MS,
+    )
     assert "ui-test dock 2" not in standing(stack)
     assert "ui-test dock 2" in standing(stack, removed_before)
     assert poi["id"] in seek_and_read(page, removed_before)["drawn"]["points"]
@@ -222,7 +303,9 @@ def test_a_token_without_the_operator_scope_gets_no_edit_controls(page, history_
     assert page.locator('[data-testid="annotation-panel"]').count() == 1
     body = {"shape": "poi", "name": "not allowed", "kind": "note", "x": 0, "y": 0}
     for headers, status in (({"Authorization": f"Bearer {writer}"}, 403), ({}, 401)):
-        r = httpx.post(f"{stack.api_url}/api/v1/annotations", json=body, headers=headers, timeout=30)
+        r = httpx.post(
+            f"{stack.api_url}/api/v1/annotations", json=body, headers=headers, timeout=30
+        )
         assert r.status_code == status and "operator" in r.json()["detail"]
     assert "not allowed" not in standing(stack)
     assert page.errors == []

@@ -30,7 +30,9 @@ POI_NAME = "ui-cmd dock"
 
 def commands(stack) -> dict[str, dict]:
     now = int(time.time() * 1000)
-    got = api(stack, "/api/v1/commands", **{"from": now - 600_000, "to": now + 60_000, "robot": ROBOT})
+    got = api(
+        stack, "/api/v1/commands", **{"from": now - 600_000, "to": now + 60_000, "robot": ROBOT}
+    )
     return {c["commandId"]: c for c in got["commands"]}
 
 
@@ -45,13 +47,34 @@ def stored_of(stack, command_id: str) -> dict:
 
 def answer(stack, command_id: str, status: str, reason: str = "") -> None:
     """The robot's ack, as the robot publishes it; waits until it is stored."""
-    body = {"robotId": ROBOT, "commandId": command_id, "type": "ack", "status": status,
-            "reason": reason, "timestamp": format_timestamp(int(time.time() * 1000))}
+    body = {
+        "robotId": ROBOT,
+        "commandId": command_id,
+        "type": "ack",
+        "status": status,
+        "reason": reason,
+        "timestamp": format_timestamp(int(time.time() * 1000)),
+    }
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         # The gateway takes an answer only to a command it delivered: again until it has.
-        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(stack.mqtt_port), "-q", "1",
-                        "-t", f"iot/robots/{ROBOT}/command-events", "-m", json.dumps(body)], check=True, timeout=30)
+        subprocess.run(
+            [
+                "mosquitto_pub",
+                "-h",
+                "127.0.0.1",
+                "-p",
+                str(stack.mqtt_port),
+                "-q",
+                "1",
+                "-t",
+                f"iot/robots/{ROBOT}/command-events",
+                "-m",
+                json.dumps(body),
+            ],
+            check=True,
+            timeout=30,
+        )
         for _ in range(6):
             ack = commands(stack)[command_id]["ack"]
             if ack is not None:
@@ -63,27 +86,44 @@ def answer(stack, command_id: str, status: str, reason: str = "") -> None:
 
 def sent_row(page, before: set[str]) -> str:
     """The id of the command row that appeared after a click."""
-    page.wait_for_function("(n) => document.querySelectorAll('[data-testid=\"command-row\"]').length > n",
-                           arg=len(before), timeout=TIMEOUT_MS)
-    ids = set(page.eval_on_selector_all('[data-testid="command-row"]', "rs => rs.map((r) => r.dataset.id)"))
+    page.wait_for_function(
+        "(n) => document.querySelectorAll('[data-testid=\"command-row\"]').length > n",
+        arg=len(before),
+        timeout=TIMEOUT_MS,
+    )
+    ids = set(
+        page.eval_on_selector_all(
+            '[data-testid="command-row"]', "rs => rs.map((r) => r.dataset.id)"
+        )
+    )
     (new,) = ids - before
     return new
 
 
 def rows(page) -> set[str]:
-    return set(page.eval_on_selector_all('[data-testid="command-row"]', "rs => rs.map((r) => r.dataset.id)"))
+    return set(
+        page.eval_on_selector_all(
+            '[data-testid="command-row"]', "rs => rs.map((r) => r.dataset.id)"
+        )
+    )
 
 
 def state_of(page, cid: str, state: str) -> None:
-    page.wait_for_selector(f'[data-testid="command-row"][data-id="{cid}"][data-state="{state}"]', timeout=TIMEOUT_MS)
+    page.wait_for_selector(
+        f'[data-testid="command-row"][data-id="{cid}"][data-state="{state}"]', timeout=TIMEOUT_MS
+    )
 
 
 def test_an_operator_pauses_sends_and_sees_the_robots_answers(page, history_stack) -> None:
     stack = history_stack
     token = operator_token(stack)
     auth = {"Authorization": f"Bearer {token}"}
-    r = httpx.post(f"{stack.api_url}/api/v1/annotations", headers=auth, timeout=30,
-                   json={"shape": "poi", "name": POI_NAME, "kind": "station", "x": 14.0, "y": 14.0})
+    r = httpx.post(
+        f"{stack.api_url}/api/v1/annotations",
+        headers=auth,
+        timeout=30,
+        json={"shape": "poi", "name": POI_NAME, "kind": "station", "x": 14.0, "y": 14.0},
+    )
     assert r.status_code in (200, 201), r.text
     poi = r.json()
     open_at(page, stack, f"?panels=annotations&sel={ROBOT}")
@@ -106,25 +146,40 @@ def test_an_operator_pauses_sends_and_sees_the_robots_answers(page, history_stac
     # The robot accepts: the row says so, and at the playhead after it the robot is paused.
     answer(stack, pause, "accepted")
     state_of(page, pause, "accepted")
-    page.evaluate("() => window.__replay.seek(Date.now())")  # the span reaches the command: its mark
-    mark = page.wait_for_selector(f'[data-testid="command-mark"][data-ts="{stored["issued_ms"]}"]', timeout=TIMEOUT_MS)
+    page.evaluate(
+        "() => window.__replay.seek(Date.now())"
+    )  # the span reaches the command: its mark
+    mark = page.wait_for_selector(
+        f'[data-testid="command-mark"][data-ts="{stored["issued_ms"]}"]', timeout=TIMEOUT_MS
+    )
     assert f"pause {ROBOT} by {stored['issuedBy']}: accepted" in (mark.text_content() or "")
     page.wait_for_selector('[data-testid="paused-badge"]', timeout=TIMEOUT_MS)
     page.evaluate("(t) => window.__replay.seek(t)", stored["issued_ms"] - 1000)
     page.wait_for_selector('[data-testid="paused-badge"]', state="detached", timeout=TIMEOUT_MS)
 
     # Go to the point of interest standing now: stored with its position; the robot refuses, with its reason.
-    page.wait_for_selector(f'[data-testid="command-poi"] option[value="{poi["id"]}"]', state="attached", timeout=TIMEOUT_MS)
+    page.wait_for_selector(
+        f'[data-testid="command-poi"] option[value="{poi["id"]}"]',
+        state="attached",
+        timeout=TIMEOUT_MS,
+    )
     page.select_option('[data-testid="command-poi"]', poi["id"])
     before = rows(page)
     page.click('[data-testid="command-goto"]')
     goto = sent_row(page, before)
     stored = stored_of(stack, goto)
-    assert (stored["kind"], stored["poiId"], stored["target"]["x"], stored["target"]["y"]) == ("goto_poi", poi["id"], 14.0, 14.0)
+    assert (stored["kind"], stored["poiId"], stored["target"]["x"], stored["target"]["y"]) == (
+        "goto_poi",
+        poi["id"],
+        14.0,
+        14.0,
+    )
     answer(stack, goto, "rejected", "paused: resume first")
     state_of(page, goto, "rejected")
-    assert f"go to {POI_NAME} {ROBOT} by {stored['issuedBy']}: rejected (paused: resume first)" in page.inner_text(
-        f'[data-testid="command-row"][data-id="{goto}"]')
+    assert (
+        f"go to {POI_NAME} {ROBOT} by {stored['issuedBy']}: rejected (paused: resume first)"
+        in page.inner_text(f'[data-testid="command-row"][data-id="{goto}"]')
+    )
     page.evaluate("() => window.__replay.seek(Date.now())")  # after the pause: the badge
     page.wait_for_selector('[data-testid="paused-badge"]', timeout=TIMEOUT_MS)
     page.wait_for_timeout(1000)
@@ -157,7 +212,11 @@ def test_a_token_without_the_operator_scope_gets_no_command_buttons(page, histor
     assert page.locator('[data-testid="command-panel"]').count() == 1
     for kind in ("pause", "resume", "cancel", "goto", "poi"):
         assert page.locator(f'[data-testid="command-{kind}"]').count() == 0
-    r = httpx.post(f"{stack.api_url}/api/v1/commands", json={"robotId": ROBOT, "kind": "pause"},
-                   headers={"Authorization": f"Bearer {writer}"}, timeout=30)
+    r = httpx.post(
+        f"{stack.api_url}/api/v1/commands",
+        json={"robotId": ROBOT, "kind": "pause"},
+        headers={"Authorization": f"Bearer {writer}"},
+        timeout=30,
+    )
     assert r.status_code == 403 and "operator" in r.json()["detail"]
     assert page.errors == []

@@ -16,8 +16,11 @@ TIMEOUT_MS = 30_000
 def _open(page, stack, robot_id: str) -> None:
     page.goto(f"{stack.api_url}/controller")
     page.locator("header input").fill(robot_id)
-    page.wait_for_function("() => document.querySelector('[data-testid=link]')"
-                           "?.innerText.startsWith('MQTT connected')", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => document.querySelector('[data-testid=link]')"
+        "?.innerText.startsWith('MQTT connected')",
+        timeout=TIMEOUT_MS,
+    )
 
 
 def _shown_position(page) -> tuple[float, float]:
@@ -28,20 +31,28 @@ def _shown_position(page) -> tuple[float, float]:
 
 def _painted_chunk(page, stack, robot_id: str) -> tuple[int, int, bytes]:
     """Waits for the page to report a painted chunk, then for the map to hold it by robot_id."""
-    page.wait_for_function("() => document.body.innerText.includes('painted chunk')",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => document.body.innerText.includes('painted chunk')", timeout=TIMEOUT_MS
+    )
     text = page.locator("header").inner_text()
     row, column = (int(v) for v in text.split("painted chunk ")[1].split()[0].split(":"))
     deadline = time.monotonic() + 30
     found = None
     while time.monotonic() < deadline and found is None:
         chunks = httpx.get(f"{stack.api_url}/api/v1/map", timeout=30).json()["chunks"]
-        found = next((c for c in chunks if (c["row"], c["column"]) == (row, column)
-                      and c["robotId"] == robot_id), None)
+        found = next(
+            (
+                c
+                for c in chunks
+                if (c["row"], c["column"]) == (row, column) and c["robotId"] == robot_id
+            ),
+            None,
+        )
         time.sleep(0.3)
     assert found is not None, "the painted chunk never reached the map"
-    raw = httpx.get(f"{stack.api_url}/api/v1/chunk-contents/{found['content_hash']}",
-                    params={"encoding": "raw"}).content
+    raw = httpx.get(
+        f"{stack.api_url}/api/v1/chunk-contents/{found['content_hash']}", params={"encoding": "raw"}
+    ).content
     return row, column, raw
 
 
@@ -60,8 +71,9 @@ def test_paint_without_a_token_says_what_rest_writes_need(page, history_stack) -
     page.locator('[data-testid="api-token"]').fill("")
     page.locator('[data-testid="api-token"]').dispatch_event("change")
     page.locator('[data-testid="paint-black"]').click()
-    page.wait_for_function("() => document.body.innerText.includes('need a writer token')",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => document.body.innerText.includes('need a writer token')", timeout=TIMEOUT_MS
+    )
     assert "writer-token" in page.locator("header").inner_text()
 
 
@@ -122,8 +134,11 @@ def test_driving_moves_the_stored_pose(page, history_stack) -> None:
     assert stored is not None, "the controller's robot never appeared in /api/v1/robots"
     assert stored["position"][:2] == [x, y]
     assert stored["online"]
-    legacy = httpx.get(f"{stack.api_url}/api/coordinate-service/robots",
-                       params={"robotId": robot, "latest": "true"}, timeout=30).json()
+    legacy = httpx.get(
+        f"{stack.api_url}/api/coordinate-service/robots",
+        params={"robotId": robot, "latest": "true"},
+        timeout=30,
+    ).json()
     assert legacy[0]["robotId"] == robot
     assert legacy[0]["pose"]["position"] == {"x": x, "y": y, "z": 0}
     # Standing still, the page keeps reporting once a second, like a robot.
@@ -141,10 +156,19 @@ def test_driving_moves_the_stored_pose(page, history_stack) -> None:
 def test_without_websocket_url_the_page_says_so(page, history_stack) -> None:
     """With no MAPSERVICE_MQTT_WS_URL the page shows that poses are not sent, and how to fix it."""
     stack = history_stack
-    page.route("**/api/v1/client-config", lambda route: route.fulfill(
-        content_type="application/json",
-        body=json.dumps({"mqtt_ws_url": None, "coordinate_topic_prefix": "iot/coordinates/",
-                         "create_chunk_topic": "iot/chunks/create"})))
+    page.route(
+        "**/api/v1/client-config",
+        lambda route: route.fulfill(
+            content_type="application/json",
+            body=json.dumps(
+                {
+                    "mqtt_ws_url": None,
+                    "coordinate_topic_prefix": "iot/coordinates/",
+                    "create_chunk_topic": "iot/chunks/create",
+                }
+            ),
+        ),
+    )
     page.goto(f"{stack.api_url}/controller")
     help_text = page.locator('[data-testid="link-help"]')
     help_text.wait_for(timeout=TIMEOUT_MS)
@@ -155,6 +179,7 @@ def test_without_websocket_url_the_page_says_so(page, history_stack) -> None:
 
 # ---- where the broker checks robot identities (mapservice up --auth, production) ---------
 
+
 @pytest.fixture(scope="module")
 def auth_stack(tmp_path_factory):
     """The service with Mosquitto checking robot identities; controller-auth has a credential."""
@@ -164,8 +189,12 @@ def auth_stack(tmp_path_factory):
     from tests.fixtures.paths import MAPS
     from tests.integration.conftest import run_stack
 
-    stack = Stack(tmp_path_factory.mktemp("ui-auth-stack"), mqtt="mosquitto", mqtt_auth=True,
-                  extra_env=dict(TEST_UI_ENV))
+    stack = Stack(
+        tmp_path_factory.mktemp("ui-auth-stack"),
+        mqtt="mosquitto",
+        mqtt_auth=True,
+        extra_env=dict(TEST_UI_ENV),
+    )
     try:  # a failed start stops what it had started, not only a finished module
         run_stack(stack, meta_for(load_ros_map(MAPS / "warehouse.yaml")))
         stack.controller_password = stack.add_robot("controller-auth").password  # type: ignore[attr-defined]
@@ -181,10 +210,15 @@ def test_under_robot_identities_the_page_asks_for_the_robots_password(page, auth
     page.locator("header input").dispatch_event("change")
     refused = page.locator('[data-testid="link-refused"]')
     refused.wait_for(timeout=TIMEOUT_MS)
-    assert "MQTT password" in refused.inner_text() and "robot add controller-auth" in refused.inner_text()
+    assert (
+        "MQTT password" in refused.inner_text()
+        and "robot add controller-auth" in refused.inner_text()
+    )
 
 
-def test_with_the_robots_password_the_page_drives_and_paints_as_that_robot(page, auth_stack) -> None:
+def test_with_the_robots_password_the_page_drives_and_paints_as_that_robot(
+    page, auth_stack
+) -> None:
     """With controller-auth's password the page connects, its pose is stored and a chunk painted over MQTT lands on its own topic."""
     stack = auth_stack
     page.goto(f"{stack.api_url}/controller")
@@ -193,8 +227,11 @@ def test_with_the_robots_password_the_page_drives_and_paints_as_that_robot(page,
     password = page.locator('[data-testid="mqtt-password"]')
     password.fill(stack.controller_password)
     password.dispatch_event("change")
-    page.wait_for_function("() => document.querySelector('[data-testid=link]')"
-                           "?.innerText.startsWith('MQTT connected')", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => document.querySelector('[data-testid=link]')"
+        "?.innerText.startsWith('MQTT connected')",
+        timeout=TIMEOUT_MS,
+    )
     page.locator('[data-testid="right"]').click()
     deadline = time.monotonic() + 30
     stored = None
@@ -204,8 +241,10 @@ def test_with_the_robots_password_the_page_drives_and_paints_as_that_robot(page,
         time.sleep(0.3)
     assert stored is not None, "the page's pose never arrived under robot identities"
     page.locator('[data-testid="paint-via"]').select_option("mqtt")
-    assert page.locator('[data-testid="paint-via"] option[value=mqtt]').get_attribute(
-        "title") == "iot/chunks/create/controller-auth"
+    assert (
+        page.locator('[data-testid="paint-via"] option[value=mqtt]').get_attribute("title")
+        == "iot/chunks/create/controller-auth"
+    )
     page.locator('[data-testid="paint-grey"]').click()
     _, _, raw = _painted_chunk(page, stack, "controller-auth")
     assert set(raw) == {205}
@@ -234,7 +273,9 @@ def test_racks_and_the_map_edge_stop_the_robot(page, history_stack) -> None:
     assert y == y0 and x >= x0
     meta = httpx.get(f"{stack.api_url}/api/chunk-service/meta", timeout=30).json()
     res, (ox, oy) = meta["resolution"], meta["origin"][:2]
-    picture = Image.open(io.BytesIO(httpx.get(f"{stack.api_url}/api/v1/map/png", timeout=30).content)).convert("L")
+    picture = Image.open(
+        io.BytesIO(httpx.get(f"{stack.api_url}/api/v1/map/png", timeout=30).content)
+    ).convert("L")
     if "occupied" in message:
         bx, by = (float(v) for v in re.search(r"x (-?[\d.]+) m, y (-?[\d.]+) m", message).groups())
         col, row = int((bx - ox) / res), int(meta["height"] - (by - oy) / res)
@@ -246,15 +287,24 @@ def test_racks_and_the_map_edge_stop_the_robot(page, history_stack) -> None:
     deadline = time.monotonic() + 30
     stored = None
     while time.monotonic() < deadline:
-        stored = next((r for r in httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
-                       if r["robotId"] == robot), None)
+        stored = next(
+            (
+                r
+                for r in httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
+                if r["robotId"] == robot
+            ),
+            None,
+        )
         if stored and stored["position"][:2] == [x, y]:
             break
         time.sleep(0.3)
     assert stored is not None and stored["position"][:2] == [x, y]
     now = int(time.time() * 1000)
-    poses = httpx.get(f"{stack.api_url}/api/v1/poses", params={"from": now - 300_000, "to": now + 1000},
-                      timeout=30).json()
+    poses = httpx.get(
+        f"{stack.api_url}/api/v1/poses",
+        params={"from": now - 300_000, "to": now + 1000},
+        timeout=30,
+    ).json()
     xs = [p["position"][0] for p in poses if p["robotId"] == robot]
     assert xs and max(xs) == x  # no pose was sent past the stop
     from .test_investigator import screenshot

@@ -13,10 +13,10 @@ import os
 
 import httpx
 import numpy as np
+from mapservice.robot.chunks import meta_from_json, metres_to_pixel
 from PIL import Image
 
 from mapservice.adapters.ros_map import drivable, load_ros_map, slice_chunks
-from mapservice.robot.chunks import meta_from_json, metres_to_pixel
 from mapservice.core.wire2019 import content_hash
 from tests.fixtures.paths import MAPS, ROOT
 from tests.integration.test_up_floor import Up
@@ -35,10 +35,14 @@ def stitched_free(api: str, at: int, ros_map) -> np.ndarray:
     cw, ch = meta["CHUNK_WIDTH"], meta["CHUNK_HEIGHT"]
     canvas = np.zeros((meta["CHUNK_ROWS"] * ch, meta["CHUNK_COLS"] * cw), np.uint8)
     for c in doc["chunks"]:
-        raw = httpx.get(f"{api}/api/v1/chunk-contents/{c['content_hash']}", params={"encoding": "raw"},
-                        timeout=60).content
-        canvas[c["row"] * ch:(c["row"] + 1) * ch, c["column"] * cw:(c["column"] + 1) * cw] = \
+        raw = httpx.get(
+            f"{api}/api/v1/chunk-contents/{c['content_hash']}",
+            params={"encoding": "raw"},
+            timeout=60,
+        ).content
+        canvas[c["row"] * ch : (c["row"] + 1) * ch, c["column"] * cw : (c["column"] + 1) * cw] = (
             np.frombuffer(raw, np.uint8).reshape(ch, cw)
+        )
     return drivable(ros_map.with_pixels(canvas[: ros_map.height, : ros_map.width]))
 
 
@@ -55,27 +59,39 @@ def test_first_make_up_shows_the_floor_and_a_past(tmp_path, browser) -> None:
     try:
         # Live, now: the real floor (chunks the simulator changed aside).
         page.goto(f"{api}/")
-        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
-        expected = {f"{r}:{c}": content_hash(px).hex() for (r, c), px in slice_chunks(ros_map).items()}
-        page.wait_for_function(f"() => window.__replay.engine.state.cells.size === {len(expected)}",
-                               timeout=TIMEOUT_MS)
-        cells = page.evaluate("() => [...window.__replay.engine.state.cells.values()]"
-                              ".map(c => [`${c.row}:${c.column}`, c.content_hash, c.robotId])")
+        page.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
+        expected = {
+            f"{r}:{c}": content_hash(px).hex() for (r, c), px in slice_chunks(ros_map).items()
+        }
+        page.wait_for_function(
+            f"() => window.__replay.engine.state.cells.size === {len(expected)}", timeout=TIMEOUT_MS
+        )
+        cells = page.evaluate(
+            "() => [...window.__replay.engine.state.cells.values()]"
+            ".map(c => [`${c.row}:${c.column}`, c.content_hash, c.robotId])"
+        )
         changed = [k for k, h, who in cells if h != expected[k]]
         assert all(who.startswith("sim-") for k, h, who in cells if h != expected[k]), cells
         assert len(changed) <= 12, changed
 
         # The past is there: the week's timeline holds robots days back.
         now = page.evaluate("() => Date.now()")
-        buckets = httpx.get(f"{api}/api/v1/timeline", params={"from": now - 7 * DAY_MS + 60_000, "to": now,
-                                                               "buckets": 168}, timeout=60).json()
+        buckets = httpx.get(
+            f"{api}/api/v1/timeline",
+            params={"from": now - 7 * DAY_MS + 60_000, "to": now, "buckets": 168},
+            timeout=60,
+        ).json()
         active_hours = [b for b in buckets["buckets"] if b["robots_active"] > 0]
         assert len(active_hours) >= 48, len(active_hours)
 
         # Two days ago: the floor, its robots on free pixels and online.
         t = now - 2 * DAY_MS
         page.goto(f"{api}/?t={t}&view=-2,-837,503")
-        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
         robots = page.evaluate("() => window.__replay.robots()")
         assert len(robots) == 3, robots
         free = stitched_free(api, t, ros_map)

@@ -31,15 +31,19 @@ def test_a_fresh_week_draws_the_whole_floor_at_every_seek(tmp_path, browser) -> 
     page.on("pageerror", lambda e: errors.append(str(e)))
     try:
         page.goto(f"{api}/")
-        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
         now = page.evaluate("() => Date.now()")
         for back in (6 * DAY_MS + 23 * HOUR_MS, 2 * DAY_MS, HOUR_MS):
             page.goto(f"{api}/?t={now - back}")
-            page.wait_for_function("() => window.__replay && window.__replay.complete",
-                                   timeout=TIMEOUT_MS)
+            page.wait_for_function(
+                "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+            )
             try:
-                page.wait_for_function(f"() => window.__replay.engine.state.cells.size === {grid}",
-                                       timeout=30_000)
+                page.wait_for_function(
+                    f"() => window.__replay.engine.state.cells.size === {grid}", timeout=30_000
+                )
             except PlaywrightTimeout:
                 pass
             drawn = page.evaluate("() => window.__replay.engine.state.cells.size")

@@ -20,32 +20,58 @@ def test_a_fresh_weeks_7d_span_lists_changes_marks_the_upload_and_plots(tmp_path
     page.on("pageerror", lambda e: errors.append(str(e)))
     try:
         page.goto(f"{api}/")
-        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
         now = page.evaluate("() => Date.now()")
         span = (now - 7 * DAY_MS, now)
-        robot = sorted(r["robotId"] for r in up.api("/api/v1/robots", at=now - 3_600_000).json()["robots"])[0]
-        page.goto(f"{api}/?t={now - 2 * DAY_MS}&sel={robot}&panels=changes,plots"
-                  f"&span={iso(span[0])},{iso(span[1])}")
-        page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+        robot = sorted(
+            r["robotId"] for r in up.api("/api/v1/robots", at=now - 3_600_000).json()["robots"]
+        )[0]
+        page.goto(
+            f"{api}/?t={now - 2 * DAY_MS}&sel={robot}&panels=changes,plots"
+            f"&span={iso(span[0])},{iso(span[1])}"
+        )
+        page.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
         # The change feed: the week's changes, newest first, read without an error.
-        page.wait_for_function("() => document.querySelectorAll('[data-testid=change-row][data-kind=change]').length > 0"
-                               " && !document.querySelector('[data-testid=change-count]').innerText.includes('loading')",
-                               timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            "() => document.querySelectorAll('[data-testid=change-row][data-kind=change]').length > 0"
+            " && !document.querySelector('[data-testid=change-count]').innerText.includes('loading')",
+            timeout=TIMEOUT_MS,
+        )
         assert page.locator('[data-testid="change-error"]').count() == 0
-        shown = [int(t) for t in page.eval_on_selector_all('[data-testid=change-row]', "rs => rs.map(r => r.dataset.ts)")]
+        shown = [
+            int(t)
+            for t in page.eval_on_selector_all(
+                "[data-testid=change-row]", "rs => rs.map(r => r.dataset.ts)"
+            )
+        ]
         assert shown == sorted(shown, reverse=True) and span[0] <= shown[-1] and shown[0] < span[1]
         # The demo's map upload at the week's first instant: one mark, not a zoom-in note.
-        page.wait_for_function("() => document.querySelectorAll('[data-testid=upload-mark]').length > 0",
-                               timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            "() => document.querySelectorAll('[data-testid=upload-mark]').length > 0",
+            timeout=TIMEOUT_MS,
+        )
         assert "zoom in" not in page.inner_text(".timeline-bar")
-        uploads = up.api("/api/v1/changes", **{"from": span[0], "to": span[1], "kind": "upload",
-                                               "limit": 1000}).json()["changes"]
+        uploads = up.api(
+            "/api/v1/changes", **{"from": span[0], "to": span[1], "kind": "upload", "limit": 1000}
+        ).json()["changes"]
         assert uploads and any(u["robot_id"] == "map-upload" for u in uploads)
-        marks = sorted(int(t) for t in page.eval_on_selector_all('[data-testid=upload-mark]', "ms => ms.map(m => m.dataset.ts)"))
+        marks = sorted(
+            int(t)
+            for t in page.eval_on_selector_all(
+                "[data-testid=upload-mark]", "ms => ms.map(m => m.dataset.ts)"
+            )
+        )
         assert marks == sorted(u["ts_ms"] for u in uploads)
         # The plots: the selected robot's battery over the week.
-        page.wait_for_function(f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
-                               f" && p.robots['{robot}'].ts.length > 100; }}", timeout=TIMEOUT_MS)
+        page.wait_for_function(
+            f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
+            f" && p.robots['{robot}'].ts.length > 100; }}",
+            timeout=TIMEOUT_MS,
+        )
         plot = page.evaluate(f"() => window.__replay.plots().robots['{robot}']")
         assert len({b for b in plot["battery"] if b is not None}) > 1
         assert errors == []

@@ -10,13 +10,13 @@ import time
 
 import pytest
 import uvicorn
-
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
+
 from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 from tests.ui.conftest import DIST
 
 FULL = "Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. (NOT_ENOUGH_SPACE)"
@@ -32,8 +32,9 @@ def status_api():
     settings = Settings(api_port=free_port(), ui_dir=TEST_UI_DIR)
     app = create_app(settings, MemoryStore(), {"history_store": health})
     app.state.history_status = health.status
-    uv = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=settings.api_port,
-                                       log_level="warning"))
+    uv = uvicorn.Server(
+        uvicorn.Config(app, host="127.0.0.1", port=settings.api_port, log_level="warning")
+    )
     thread = threading.Thread(target=uv.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 20

@@ -26,13 +26,24 @@ from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
 CONFLICT_ROBOTS = ("insp-a", "insp-b")
 
 
-def post_chunk(stack, robot: str, ts_ms: int, row: int, column: int, value: int, size: tuple[int, int]) -> str:
+def post_chunk(
+    stack, robot: str, ts_ms: int, row: int, column: int, value: int, size: tuple[int, int]
+) -> str:
     """A chunk write through the 2019 REST API, as a robot (or `mapservice map upload`) sends it."""
     pixels = bytes([value]) * (size[0] * size[1])
-    body = {"row": row, "column": column, "robotId": robot, "timestamp": format_timestamp(ts_ms),
-            "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode()}
-    r = httpx.post(f"{stack.api_url}/api/chunk-service/chunks", json=body, timeout=30,
-                   headers={"Authorization": f"Bearer {stack.api_secrets().writers[0]}"})
+    body = {
+        "row": row,
+        "column": column,
+        "robotId": robot,
+        "timestamp": format_timestamp(ts_ms),
+        "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
+    }
+    r = httpx.post(
+        f"{stack.api_url}/api/chunk-service/chunks",
+        json=body,
+        timeout=30,
+        headers={"Authorization": f"Bearer {stack.api_secrets().writers[0]}"},
+    )
     r.raise_for_status()
     return content_hash(pixels).hex()
 
@@ -47,10 +58,20 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
     size = (meta["CHUNK_WIDTH"], meta["CHUNK_HEIGHT"])
     t = stack.history.start_ms + 20 * 60_000
     # A chunk no loaded robot wrote within two conflict windows of the test's writes.
-    near = {(w["row"], w["column"]) for w in api(stack, "/api/v1/chunk-events", **{
-        "from": t - 130_000, "to": t + 130_000, "limit": 100_000})}
-    row, col = next((r, c) for r in range(meta["CHUNK_ROWS"] - 1, -1, -1)
-                    for c in range(meta["CHUNK_COLS"] - 1, -1, -1) if (r, c) not in near)
+    near = {
+        (w["row"], w["column"])
+        for w in api(
+            stack,
+            "/api/v1/chunk-events",
+            **{"from": t - 130_000, "to": t + 130_000, "limit": 100_000},
+        )
+    }
+    row, col = next(
+        (r, c)
+        for r in range(meta["CHUNK_ROWS"] - 1, -1, -1)
+        for c in range(meta["CHUNK_COLS"] - 1, -1, -1)
+        if (r, c) not in near
+    )
     post_chunk(stack, "map-upload", t - 10_000, row, col, 205, size)
     hash_a = post_chunk(stack, CONFLICT_ROBOTS[0], t, row, col, 0, size)
     hash_b = post_chunk(stack, CONFLICT_ROBOTS[1], t + 5_000, row, col, 254, size)
@@ -58,12 +79,19 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
     deadline = time.monotonic() + 60
     mine: list[dict] = []
     while time.monotonic() < deadline and not any(c["robot_b"] == CONFLICT_ROBOTS[1] for c in mine):
-        mine = [c for c in api(stack, "/api/v1/conflicts", **window)["conflicts"] if (c["row"], c["column"]) == (row, col)]
+        mine = [
+            c
+            for c in api(stack, "/api/v1/conflicts", **window)["conflicts"]
+            if (c["row"], c["column"]) == (row, col)
+        ]
         time.sleep(0.5)
     assert [(c["robot_a"], c["robot_b"], c["ts_a_ms"], c["ts_ms"]) for c in mine] == [
-        (CONFLICT_ROBOTS[0], CONFLICT_ROBOTS[1], t, t + 5_000)]
+        (CONFLICT_ROBOTS[0], CONFLICT_ROBOTS[1], t, t + 5_000)
+    ]
     # What the processors recorded: the robot's write over the upload is no conflict.
-    table = httpx.get(f"{stack.api_url}/api/v1/exports/tables/chunk-conflicts", params=window, timeout=60).text
+    table = httpx.get(
+        f"{stack.api_url}/api/v1/exports/tables/chunk-conflicts", params=window, timeout=60
+    ).text
     assert "map-upload" not in table and CONFLICT_ROBOTS[1] in table
 
     open_at(page, stack, f"?t={t + 60_000}&panels=conflicts")
@@ -72,25 +100,47 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
     rows = page.locator(selector)
     assert rows.count() == 1
     item = rows.first
-    assert (item.get_attribute("data-robot-a"), item.get_attribute("data-robot-b")) == CONFLICT_ROBOTS
-    a, b = item.locator('[data-testid="conflict-write-a"]'), item.locator('[data-testid="conflict-write-b"]')
+    assert (
+        item.get_attribute("data-robot-a"),
+        item.get_attribute("data-robot-b"),
+    ) == CONFLICT_ROBOTS
+    a, b = (
+        item.locator('[data-testid="conflict-write-a"]'),
+        item.locator('[data-testid="conflict-write-b"]'),
+    )
     # Both writes' pixels, loaded (black and white), with who wrote them and when (UTC).
-    page.wait_for_function(f"() => [...document.querySelectorAll('{selector} img')].length === 2 && "
-                           f"[...document.querySelectorAll('{selector} img')].every(i => i.complete && i.naturalWidth > 0)",
-                           timeout=TIMEOUT_MS)
-    assert hash_a in a.locator("img").get_attribute("src") and hash_b in b.locator("img").get_attribute("src")
+    page.wait_for_function(
+        f"() => [...document.querySelectorAll('{selector} img')].length === 2 && "
+        f"[...document.querySelectorAll('{selector} img')].every(i => i.complete && i.naturalWidth > 0)",
+        timeout=TIMEOUT_MS,
+    )
+    assert hash_a in a.locator("img").get_attribute("src") and hash_b in b.locator(
+        "img"
+    ).get_attribute("src")
     assert CONFLICT_ROBOTS[0] in a.inner_text() and format_timestamp(t)[11:19] in a.inner_text()
-    assert CONFLICT_ROBOTS[1] in b.inner_text() and format_timestamp(t + 5_000)[11:19] in b.inner_text()
+    assert (
+        CONFLICT_ROBOTS[1] in b.inner_text()
+        and format_timestamp(t + 5_000)[11:19] in b.inner_text()
+    )
     assert "5.0 s apart" in item.inner_text() and f"row {row}, column {col}" in item.inner_text()
-    listed = page.evaluate("() => [...document.querySelectorAll('[data-testid=conflict-row]')]"
-                           ".flatMap(e => [e.dataset.robotA, e.dataset.robotB])")
+    listed = page.evaluate(
+        "() => [...document.querySelectorAll('[data-testid=conflict-row]')]"
+        ".flatMap(e => [e.dataset.robotA, e.dataset.robotB])"
+    )
     assert listed and "map-upload" not in listed
     item.click()
-    page.wait_for_function(f"() => window.__replay.playhead === {t + 5_001} && window.__replay.complete",
-                           timeout=TIMEOUT_MS)
-    assert page.evaluate("([r, c]) => window.__replay.cell(r, c).content_hash", [row, col]) == hash_b
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {t + 5_001} && window.__replay.complete",
+        timeout=TIMEOUT_MS,
+    )
+    assert (
+        page.evaluate("([r, c]) => window.__replay.cell(r, c).content_hash", [row, col]) == hash_b
+    )
     ch, cw = size[1], size[0]
-    assert page.evaluate("() => window.__replay.outlined()") == [[row * ch, col * cw], [(row + 1) * ch, (col + 1) * cw]]
+    assert page.evaluate("() => window.__replay.outlined()") == [
+        [row * ch, col * cw],
+        [(row + 1) * ch, (col + 1) * cw],
+    ]
     page.evaluate("() => window.__replay.fitGrid()")
     page.wait_for_function("() => window.__replay.complete", timeout=TIMEOUT_MS)
     screenshot(page, "ui-conflicts.png")
@@ -101,9 +151,19 @@ def read_mcap(data: bytes) -> tuple[dict, list[tuple[str, int, bytes]]]:
     """(topic -> (encoding, schema name, schema encoding, schema data), messages)."""
     reader = make_reader(io.BytesIO(data))
     summary = reader.get_summary()
-    channels = {c.topic: (c.message_encoding, summary.schemas[c.schema_id].name, summary.schemas[c.schema_id].encoding,
-                          summary.schemas[c.schema_id].data) for c in summary.channels.values()}
-    messages = [(ch.topic, m.log_time // 1_000_000, m.data) for _, ch, m in make_reader(io.BytesIO(data)).iter_messages()]
+    channels = {
+        c.topic: (
+            c.message_encoding,
+            summary.schemas[c.schema_id].name,
+            summary.schemas[c.schema_id].encoding,
+            summary.schemas[c.schema_id].data,
+        )
+        for c in summary.channels.values()
+    }
+    messages = [
+        (ch.topic, m.log_time // 1_000_000, m.data)
+        for _, ch, m in make_reader(io.BytesIO(data)).iter_messages()
+    ]
     return channels, messages
 
 
@@ -118,18 +178,44 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
     t = stack.history.end_ms + 5 * 60_000
     # A robot reporting a planned path (the loaded history has none), as a 2019 robot does.
     for i, path in enumerate(([(1.0, 2.0), (3.0, 4.0)], [(3.0, 4.0), (5.0, 1.5)])):
-        body = {"robotId": "insp-path", "timestamp": format_timestamp(t - 300_000 + i * 60_000),
-                "pose": {"position": {"x": 1.0 + i, "y": 2.0, "z": 0}, "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}},
-                "status": {"battery": {"battery_level": 0.42, "charging": True}, "loaded": False},
-                "plannedPath": [{"x": x, "y": y} for x, y in path]}
-        subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(stack.mqtt_port), "-q", "1",
-                        "-t", "iot/coordinates/insp-path", "-m", json.dumps(body)], check=True, timeout=30)
+        body = {
+            "robotId": "insp-path",
+            "timestamp": format_timestamp(t - 300_000 + i * 60_000),
+            "pose": {
+                "position": {"x": 1.0 + i, "y": 2.0, "z": 0},
+                "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+            },
+            "status": {"battery": {"battery_level": 0.42, "charging": True}, "loaded": False},
+            "plannedPath": [{"x": x, "y": y} for x, y in path],
+        }
+        subprocess.run(
+            [
+                "mosquitto_pub",
+                "-h",
+                "127.0.0.1",
+                "-p",
+                str(stack.mqtt_port),
+                "-q",
+                "1",
+                "-t",
+                "iot/coordinates/insp-path",
+                "-m",
+                json.dumps(body),
+            ],
+            check=True,
+            timeout=30,
+        )
     deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and len(api(stack, "/api/v1/poses", robotId="insp-path", **{
-            "from": t - 600_000, "to": t})) < 2:
+    while (
+        time.monotonic() < deadline
+        and len(api(stack, "/api/v1/poses", robotId="insp-path", **{"from": t - 600_000, "to": t}))
+        < 2
+    ):
         time.sleep(0.5)
     open_at(page, stack, f"?t={t}")
-    span = page.evaluate("() => { const [f, t] = window.__replay.span(); return [Math.floor(f), Math.ceil(t)]; }")
+    span = page.evaluate(
+        "() => { const [f, t] = window.__replay.span(); return [Math.floor(f), Math.ceil(t)]; }"
+    )
     assert "UTC" in page.inner_text('[data-testid="export-span"]')
     page.select_option('[data-testid="export-kind"]', "mcap")
     with page.expect_download(timeout=TIMEOUT_MS) as info:
@@ -137,11 +223,15 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
     download = info.value
     assert download.suggested_filename.endswith(".mcap")
     data = open(download.path(), "rb").read()
-    page.wait_for_function("() => document.querySelector('[data-testid=export-status]')?.innerText.startsWith('saved')")
+    page.wait_for_function(
+        "() => document.querySelector('[data-testid=export-status]')?.innerText.startsWith('saved')"
+    )
     assert download.suggested_filename in page.inner_text('[data-testid="export-status"]')
     screenshot(page, "ui-export.png")
     channels, messages = read_mcap(data)
-    from_ms, to_ms = (int(v) for v in download.suggested_filename[len("replay-"):-len(".mcap")].split("-"))
+    from_ms, to_ms = (
+        int(v) for v in download.suggested_filename[len("replay-") : -len(".mcap")].split("-")
+    )
     assert [from_ms, to_ms] == span
     poses = api(stack, "/api/v1/poses", **{"from": from_ms, "to": to_ms, "limit": 100_000})
     robots = sorted({p["robotId"] for p in poses})
@@ -150,12 +240,23 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
         assert channels[f"/robots/{rid}/pose"][1] == "foxglove.PoseInFrame"
         encoding, _name, schema_encoding, schema = channels[f"/robots/{rid}/state"]
         assert (encoding, schema_encoding) == ("json", "jsonschema")
-        assert set(json.loads(schema)["properties"]) == {"battery_level", "battery_percent", "charging", "loaded"}
-        states = [(ts, json.loads(d)) for topic, ts, d in messages if topic == f"/robots/{rid}/state"]
+        assert set(json.loads(schema)["properties"]) == {
+            "battery_level",
+            "battery_percent",
+            "charging",
+            "loaded",
+        }
+        states = [
+            (ts, json.loads(d)) for topic, ts, d in messages if topic == f"/robots/{rid}/state"
+        ]
         stored = [(p["ts_ms"], p) for p in poses if p["robotId"] == rid]
         assert [ts for ts, _ in states] == [ts for ts, _ in stored]
         for (_, s), (_, p) in zip(states, stored):
-            assert (s["battery_level"], s["charging"], s["loaded"]) == (p["battery_level"], p["charging"], p["loaded"])
+            assert (s["battery_level"], s["charging"], s["loaded"]) == (
+                p["battery_level"],
+                p["charging"],
+                p["loaded"],
+            )
     assert {p["robotId"] for p in poses if p.get("path")} == {"insp-path"}
     assert channels["/robots/insp-path/planned_path"][1] == "foxglove.PosesInFrame"
     assert len([m for m in messages if m[0] == "/robots/insp-path/planned_path"]) == 2

@@ -44,24 +44,34 @@ def floor_changes(stack, span: tuple[int, int], box: dict) -> list[dict]:
     """From the stored writes: every write in the span and box that changed its chunk's
     content (the chunk's previous write by time, then robot, held other pixels), newest
     first. Uploads play no part: the loaded history has none."""
-    writes = api(stack, "/api/v1/chunk-events", **{"from": stack.history.start_ms, "to": span[1],
-                                                     "limit": 100_000})
+    writes = api(
+        stack,
+        "/api/v1/chunk-events",
+        **{"from": stack.history.start_ms, "to": span[1], "limit": 100_000},
+    )
     writes.sort(key=lambda w: (w["ts_ms"], w["robotId"]))
     before: dict[tuple[int, int], str] = {}
     changes = []
     for w in writes:
         k = (w["row"], w["column"])
-        if (span[0] <= w["ts_ms"] and box["rowMin"] <= w["row"] <= box["rowMax"]
-                and box["colMin"] <= w["column"] <= box["colMax"] and before.get(k) != w["content_hash"]):
+        if (
+            span[0] <= w["ts_ms"]
+            and box["rowMin"] <= w["row"] <= box["rowMax"]
+            and box["colMin"] <= w["column"] <= box["colMax"]
+            and before.get(k) != w["content_hash"]
+        ):
             changes.append(w)
         before[k] = w["content_hash"]
-    return sorted(changes, key=lambda w: (w["ts_ms"], w["row"], w["column"], w["robotId"]), reverse=True)
+    return sorted(
+        changes, key=lambda w: (w["ts_ms"], w["row"], w["column"], w["robotId"]), reverse=True
+    )
 
 
 def rows_shown(page) -> list[dict]:
     return page.evaluate(
         "() => [...document.querySelectorAll('[data-testid=change-row]')].map(e => ({kind: e.dataset.kind,"
-        " ts: +e.dataset.ts, robot: e.dataset.robot, row: +e.dataset.row, col: +e.dataset.col, text: e.innerText}))")
+        " ts: +e.dataset.ts, robot: e.dataset.robot, row: +e.dataset.row, col: +e.dataset.col, text: e.innerText}))"
+    )
 
 
 def test_last_change_in_a_drawn_area_with_its_robot_and_time(page, history_stack) -> None:
@@ -87,8 +97,11 @@ def test_last_change_in_a_drawn_area_with_its_robot_and_time(page, history_stack
     assert page.inner_text('[data-testid="change-area"]') == "area: chunk rows 1–2, columns 1–3"
     page.wait_for_function("() => new URLSearchParams(location.search).get('area') === '1,2,1,3'")
     box = {"rowMin": 1, "rowMax": 2, "colMin": 1, "colMax": 3}
-    page.wait_for_function("() => !document.querySelector('[data-testid=change-count]').innerText.includes('loading')"
-                           " && document.querySelectorAll('[data-testid=change-row]').length > 0", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => !document.querySelector('[data-testid=change-count]').innerText.includes('loading')"
+        " && document.querySelectorAll('[data-testid=change-row]').length > 0",
+        timeout=TIMEOUT_MS,
+    )
     assert all(1 <= r["row"] <= 2 and 1 <= r["col"] <= 3 for r in rows_shown(page))
     span = tuple(page.evaluate("() => window.__replay.span()"))
     expected = floor_changes(stack, (int(span[0]), int(span[1]) + 1), box)
@@ -96,26 +109,42 @@ def test_last_change_in_a_drawn_area_with_its_robot_and_time(page, history_stack
     shown = rows_shown(page)
     last = expected[0]
     assert (shown[0]["ts"], shown[0]["robot"], shown[0]["row"], shown[0]["col"]) == (
-        last["ts_ms"], last["robotId"], last["row"], last["column"])
+        last["ts_ms"],
+        last["robotId"],
+        last["row"],
+        last["column"],
+    )
     # What the worker reads: the time (UTC) and the robot on the line itself.
     assert last["timestamp"][:19].replace("T", " ") in shown[0]["text"]
-    assert last["robotId"] in shown[0]["text"] and f"row {last['row']}, column {last['column']}" in shown[0]["text"]
+    assert (
+        last["robotId"] in shown[0]["text"]
+        and f"row {last['row']}, column {last['column']}" in shown[0]["text"]
+    )
     assert [(s["ts"], s["row"], s["col"]) for s in shown[:10]] == [
-        (e["ts_ms"], e["row"], e["column"]) for e in expected[:10]]
+        (e["ts_ms"], e["row"], e["column"]) for e in expected[:10]
+    ]
 
     # Click: just after the change, its content on the map, its chunk outlined.
     page.locator('[data-testid="change-row"]').first.click()
-    page.wait_for_function(f"() => window.__replay.playhead === {last['ts_ms'] + 1} && window.__replay.complete",
-                           timeout=TIMEOUT_MS)
-    assert page.evaluate("([r, c]) => window.__replay.cell(r, c).content_hash", [last["row"], last["column"]]) \
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {last['ts_ms'] + 1} && window.__replay.complete",
+        timeout=TIMEOUT_MS,
+    )
+    assert (
+        page.evaluate(
+            "([r, c]) => window.__replay.cell(r, c).content_hash", [last["row"], last["column"]]
+        )
         == last["content_hash"]
+    )
     top, left = last["row"] * ch, last["column"] * cw
     assert page.evaluate("() => window.__replay.outlined()") == [[top, left], [top + ch, left + cw]]
     screenshot(page, "ui-change-feed.png")
     # Shift+←: the change before it.
     page.locator('[data-testid="map"]').click(position={"x": 5, "y": 5})
     page.keyboard.press("Shift+ArrowLeft")
-    page.wait_for_function(f"() => window.__replay.playhead === {expected[1]['ts_ms'] + 1}", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {expected[1]['ts_ms'] + 1}", timeout=TIMEOUT_MS
+    )
     assert page.errors == []
 
 
@@ -126,13 +155,20 @@ def test_fleet_panel_lists_every_robot_with_battery_percent(page, history_stack)
     t = stack.history.end_ms - 30 * 60_000
     open_at(page, stack, f"?t={t}&panels=fleet")
     robots = {r["robotId"]: r for r in api(stack, "/api/v1/robots", at=t)["robots"]}
-    page.wait_for_function(f"() => document.querySelectorAll('[data-testid=fleet-row]').length === {len(robots)}",
-                           timeout=TIMEOUT_MS)
-    page.wait_for_function("() => [...document.querySelectorAll('[data-testid=fleet-speed]')]"
-                           ".every(e => e.innerText.endsWith('m/s'))", timeout=TIMEOUT_MS)
-    rows = page.evaluate("() => [...document.querySelectorAll('[data-testid=fleet-row]')].map(e => [e.dataset.robot,"
-                         " e.querySelector('[data-testid=fleet-battery]').innerText,"
-                         " e.querySelector('[data-testid=fleet-speed]').innerText, e.innerText])")
+    page.wait_for_function(
+        f"() => document.querySelectorAll('[data-testid=fleet-row]').length === {len(robots)}",
+        timeout=TIMEOUT_MS,
+    )
+    page.wait_for_function(
+        "() => [...document.querySelectorAll('[data-testid=fleet-speed]')]"
+        ".every(e => e.innerText.endsWith('m/s'))",
+        timeout=TIMEOUT_MS,
+    )
+    rows = page.evaluate(
+        "() => [...document.querySelectorAll('[data-testid=fleet-row]')].map(e => [e.dataset.robot,"
+        " e.querySelector('[data-testid=fleet-battery]').innerText,"
+        " e.querySelector('[data-testid=fleet-speed]').innerText, e.innerText])"
+    )
     assert [r[0] for r in rows] == sorted(robots)
     poses = api(stack, "/api/v1/poses", **{"from": t - 10_000, "to": t + 1})
     for rid, battery, speed, text in rows:
@@ -141,18 +177,24 @@ def test_fleet_panel_lists_every_robot_with_battery_percent(page, history_stack)
         pct = math.floor((level * 100 if level <= 1 else level * 20 if level <= 5 else level) + 0.5)
         assert battery == f"{pct} %", (rid, battery, level)
         a, b = [p for p in poses if p["robotId"] == rid][-2:]
-        metres = ((b["position"][0] - a["position"][0]) ** 2 + (b["position"][1] - a["position"][1]) ** 2) ** 0.5
+        metres = (
+            (b["position"][0] - a["position"][0]) ** 2 + (b["position"][1] - a["position"][1]) ** 2
+        ) ** 0.5
         assert speed == f"{metres / ((b['ts_ms'] - a['ts_ms']) / 1000):.2f} m/s", (rid, speed)
         assert ("offline" if robots[rid]["online"] is False else "online") in text
     screenshot(page, "ui-fleet.png")
     target = sorted(robots)[-1]
     page.fill('[data-testid="fleet-search"]', target[-3:])
-    page.wait_for_function("() => document.querySelectorAll('[data-testid=fleet-row]').length === 1")
+    page.wait_for_function(
+        "() => document.querySelectorAll('[data-testid=fleet-row]').length === 1"
+    )
     page.click(f'[data-testid="fleet-row"][data-robot="{target}"]')
     page.wait_for_function(f"() => window.__replay.selected() === '{target}'")
     assert page.inner_text('[data-testid="robot-details"] h3') == target
     assert re.search(r"battery: \d+ %", page.inner_text('[data-testid="details-battery"]'))
-    page.wait_for_function(f"() => new URLSearchParams(location.search).get('follow') === '{target}'")
+    page.wait_for_function(
+        f"() => new URLSearchParams(location.search).get('follow') === '{target}'"
+    )
     assert page.errors == []
 
 
@@ -191,15 +233,30 @@ def test_a_shared_address_reopens_layers_selection_and_panels(page, browser, his
     other = browser.new_context(viewport={"width": 1280, "height": 800}).new_page()
     try:
         other.goto(shared)
-        other.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
-        layers = other.evaluate("() => Object.fromEntries([...document.querySelectorAll('input[data-layer]')]"
-                                ".map(e => [e.dataset.layer, e.checked]))")
-        assert layers == {"names": False, "battery": True, "paths": True, "borders": True, "info": False,
-                          "conflicts": True, "annotations": False}
+        other.wait_for_function(
+            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+        )
+        layers = other.evaluate(
+            "() => Object.fromEntries([...document.querySelectorAll('input[data-layer]')]"
+            ".map(e => [e.dataset.layer, e.checked]))"
+        )
+        assert layers == {
+            "names": False,
+            "battery": True,
+            "paths": True,
+            "borders": True,
+            "info": False,
+            "conflicts": True,
+            "annotations": False,
+        }
         assert other.evaluate("() => window.__replay.selected()") == robot
         assert other.inner_text('[data-testid="robot-details"] h3') == robot
-        assert other.is_visible('[data-testid="fleet-panel"]') and other.is_visible('[data-testid="change-feed"]')
-        assert other.evaluate("() => window.__replay.playhead") == page.evaluate("() => window.__replay.playhead")
+        assert other.is_visible('[data-testid="fleet-panel"]') and other.is_visible(
+            '[data-testid="change-feed"]'
+        )
+        assert other.evaluate("() => window.__replay.playhead") == page.evaluate(
+            "() => window.__replay.playhead"
+        )
         screenshot(other, "ui-shared-view.png")
     finally:
         other.context.close()

@@ -8,7 +8,7 @@ test-artifacts/ui/ and, with MAPSERVICE_UPDATE_SCREENSHOTS=1, to docs/."""
 from __future__ import annotations
 
 import math
-from datetime import datetime, UTC
+from datetime import UTC, datetime
 
 from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
 
@@ -44,21 +44,39 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
     robots = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])
     chosen, pinned = robots[0], robots[1]
     span = (t - 40 * 60_000, t + 10 * 60_000)
-    open_at(page, stack, f"?t={t}&sel={chosen}&plot={pinned}&panels=plots,fleet&span={iso(span[0])},{iso(span[1])}")
+    open_at(
+        page,
+        stack,
+        f"?t={t}&sel={chosen}&plot={pinned}&panels=plots,fleet&span={iso(span[0])},{iso(span[1])}",
+    )
     assert page.evaluate("() => window.__replay.span()") == list(span)
-    page.wait_for_function(f"() => {{ const p = window.__replay.plots(); return p && p.robots['{chosen}']"
-                           f" && p.robots['{pinned}'] && p.robots['{chosen}'].ts.length > 10; }}", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => {{ const p = window.__replay.plots(); return p && p.robots['{chosen}']"
+        f" && p.robots['{pinned}'] && p.robots['{chosen}'].ts.length > 10; }}",
+        timeout=TIMEOUT_MS,
+    )
     plots = page.evaluate("() => window.__replay.plots()")
     step, start = plots["stepMs"], plots["from"]
     assert 1000 <= step <= 20_000 and span[0] - step < start <= span[0]
-    assert [c.get_attribute("data-robot") for c in page.locator('[data-testid="plot-robot"]').all()] == [chosen, pinned]
+    assert [
+        c.get_attribute("data-robot") for c in page.locator('[data-testid="plot-robot"]').all()
+    ] == [chosen, pinned]
     for rid in (chosen, pinned):
         stored = first_in_each_step(
-            api(stack, "/api/v1/poses", **{"from": start, "to": span[1] + 1, "robotId": rid, "limit": 100_000}), start, step)
+            api(
+                stack,
+                "/api/v1/poses",
+                **{"from": start, "to": span[1] + 1, "robotId": rid, "limit": 100_000},
+            ),
+            start,
+            step,
+        )
         shown = plots["robots"][rid]
         assert shown["ts"] == [p["ts_ms"] for p in stored]
         assert shown["battery"] == [battery_pct(p["battery_level"]) for p in stored]
-        assert len({b for b in shown["battery"] if b is not None}) > 1, "the battery should change over 50 minutes"
+        assert len({b for b in shown["battery"] if b is not None}) > 1, (
+            "the battery should change over 50 minutes"
+        )
         walked = 0.0
         for i, p in enumerate(stored[1:], 1):
             q = stored[i - 1]
@@ -66,24 +84,30 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
             walked += d
             assert math.isclose(shown["distance"][i], walked, rel_tol=1e-9, abs_tol=1e-9)
             if p["ts_ms"] - q["ts_ms"] <= max(10_000, 3 * step):
-                assert math.isclose(shown["speed"][i], d / ((p["ts_ms"] - q["ts_ms"]) / 1000), rel_tol=1e-9)
+                assert math.isclose(
+                    shown["speed"][i], d / ((p["ts_ms"] - q["ts_ms"]) / 1000), rel_tol=1e-9
+                )
         assert shown["distance"][-1] > 1, "the robot should drive in 50 minutes"
 
     # Who is who: each line in its robot's colour, the colour of its swatch in the fleet list.
     page.wait_for_selector(f'[data-testid="fleet-row"][data-robot="{pinned}"]', timeout=TIMEOUT_MS)
-    colours = page.evaluate("""(ids) => {
+    colours = page.evaluate(
+        """(ids) => {
       const rgb = (c) => { const d = document.createElement('div'); d.style.color = c; document.body.append(d);
                            const v = getComputedStyle(d).color; d.remove(); return v; };
       const u = window.__replay.engine && document.querySelector('[data-plot=battery]');
       return ids.map(id => [rgb(window.__replay.plots().robots[id].colour),
         getComputedStyle(document.querySelector(`[data-testid=fleet-row][data-robot="${id}"] .dot`)).backgroundColor,
         getComputedStyle(document.querySelector(`[data-testid=plot-robot][data-robot="${id}"] .dot`)).backgroundColor]);
-    }""", [chosen, pinned])
+    }""",
+        [chosen, pinned],
+    )
     for plotted, fleet_dot, chip in colours:
         assert plotted == fleet_dot == chip
     assert colours[0][0] != colours[1][0]
     # The lines themselves are drawn in those colours: some pixels of the battery canvas are.
-    drawn = page.evaluate("""(cols) => {
+    drawn = page.evaluate(
+        """(cols) => {
       const cv = document.querySelector('[data-plot=battery] canvas');
       const d = cv.getContext('2d').getImageData(0, 0, cv.width, cv.height).data;
       const want = cols.map(c => c.match(/\\d+/g).map(Number));
@@ -91,7 +115,9 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
       for (let i = 0; i < d.length; i += 4) want.forEach((w, k) => {
         if (Math.abs(d[i] - w[0]) < 3 && Math.abs(d[i + 1] - w[1]) < 3 && Math.abs(d[i + 2] - w[2]) < 3) n[k]++; });
       return n;
-    }""", [c[0] for c in colours])
+    }""",
+        [c[0] for c in colours],
+    )
     assert all(n > 20 for n in drawn), drawn
 
     # The playhead, drawn on the plot where its time is.
@@ -105,6 +131,7 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
           const d = cv.getContext('2d').getImageData(px, py, 1, 1).data;
           return d[0] > 180 && d[1] < 80 && d[2] < 80;
         }""")
+
     page.wait_for_function("() => window.__replay.plotX(window.__replay.playhead) !== null")
     assert playhead_red()
     screenshot(page, "ui-plots.png")
@@ -115,13 +142,18 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
     x = page.evaluate(f"() => window.__replay.plotX({target})")
     page.mouse.click(over["x"] + x, over["y"] + over["height"] / 2)
     ms_per_px = (span[1] - span[0]) / over["width"]
-    page.wait_for_function(f"() => Math.abs(window.__replay.playhead - {target}) <= {ms_per_px * 1.5}"
-                           " && window.__replay.complete", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => Math.abs(window.__replay.playhead - {target}) <= {ms_per_px * 1.5}"
+        " && window.__replay.complete",
+        timeout=TIMEOUT_MS,
+    )
     page.wait_for_timeout(400)
     assert playhead_red()
     # The address keeps the span, the plots panel and the pinned robot.
     q = page.evaluate("() => Object.fromEntries(new URLSearchParams(location.search))")
-    assert q["span"] == f"{iso(span[0])},{iso(span[1])}" and q["plot"] == pinned and q["sel"] == chosen
+    assert (
+        q["span"] == f"{iso(span[0])},{iso(span[1])}" and q["plot"] == pinned and q["sel"] == chosen
+    )
     assert "plots" in q["panels"].split(",")
     assert page.errors == []
 
@@ -138,18 +170,24 @@ def test_timeline_reads_counts_and_zooms_back(page, history_stack) -> None:
     t = h.end_ms - 60 * 60_000
     open_at(page, stack, f"?t={t}&span={iso(span[0])},{iso(span[1])}")
     assert page.evaluate("() => window.__replay.span()") == list(span)
-    page.wait_for_function("() => { const d = window.__replay.timeline(); return d && d.from_ms === "
-                           f"{span[0]}; }}", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => {{ const d = window.__replay.timeline(); return d && d.from_ms === {span[0]}; }}",
+        timeout=TIMEOUT_MS,
+    )
     tl = page.evaluate("() => window.__replay.timeline()")
     strip = page.locator('[data-testid="timeline-strip"]').bounding_box()
-    width = page.evaluate("() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value")
+    width = page.evaluate(
+        "() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value"
+    )
 
     def x_of(ms: float) -> float:
         return (ms - span[0]) / (span[1] - span[0]) * width
 
     # A labelled axis: HH:MM of each tick, placed at its time, a few of them.
-    ticks = page.evaluate("() => [...document.querySelectorAll('[data-testid=timeline-axis] text')]"
-                          ".map(e => [+e.dataset.t, e.textContent, +e.getAttribute('x')])")
+    ticks = page.evaluate(
+        "() => [...document.querySelectorAll('[data-testid=timeline-axis] text')]"
+        ".map(e => [+e.dataset.t, e.textContent, +e.getAttribute('x')])"
+    )
     assert len(ticks) >= 4
     for ms, label, x in ticks:
         at = datetime.fromtimestamp(ms / 1000, UTC)
@@ -158,7 +196,11 @@ def test_timeline_reads_counts_and_zooms_back(page, history_stack) -> None:
         assert abs(x - x_of(ms)) < 0.5 and span[0] <= ms <= span[1]
 
     # Counts on hover, as the API counts them.
-    fresh = api(stack, "/api/v1/timeline", **{"from": tl["from_ms"], "to": tl["to_ms"], "buckets": len(tl["buckets"])})
+    fresh = api(
+        stack,
+        "/api/v1/timeline",
+        **{"from": tl["from_ms"], "to": tl["to_ms"], "buckets": len(tl["buckets"])},
+    )
     assert fresh["buckets"] == tl["buckets"]
     with_changes = [b for b in tl["buckets"] if b["chunk_changes"] > 0]
     quiet = min(with_changes, key=lambda b: b["chunk_changes"])
@@ -167,19 +209,27 @@ def test_timeline_reads_counts_and_zooms_back(page, history_stack) -> None:
     page.mouse.move(strip["x"] + x_of(mid), strip["y"] + 20)
     n = quiet["chunk_changes"]
     hover = page.inner_text('[data-testid="timeline-hover"]')
-    assert (f"{n} chunk change{'s' if n != 1 else ''} · {quiet['conflicts']} conflict" in hover
-            and f"{quiet['robots_active']} robot" in hover), hover
+    assert (
+        f"{n} chunk change{'s' if n != 1 else ''} · {quiet['conflicts']} conflict" in hover
+        and f"{quiet['robots_active']} robot" in hover
+    ), hover
     # Bars on a square-root scale with a floor: every bucket with a change is visible, its
     # height grows with its count (the loaded history has no spike; the unit tests
     # check one change beside a 187-chunk upload).
-    heights = page.evaluate("() => [...document.querySelectorAll('.strip rect.bar')].map(r => [+r.getAttribute('x'),"
-                            " +r.getAttribute('height')])")
+    heights = page.evaluate(
+        "() => [...document.querySelectorAll('.strip rect.bar')].map(r => [+r.getAttribute('x'),"
+        " +r.getAttribute('height')])"
+    )
     by_x = {round(x, 3): hgt for x, hgt in heights}
     top = busiest["chunk_changes"]
     for b in tl["buckets"]:
         shown = by_x[round(x_of(b["start_ms"]), 3)]
         c = b["chunk_changes"]
-        assert math.isclose(shown, 0 if c == 0 else MIN_BAR_PX + (36 - MIN_BAR_PX) * math.sqrt(c / top), abs_tol=1e-6)
+        assert math.isclose(
+            shown,
+            0 if c == 0 else MIN_BAR_PX + (36 - MIN_BAR_PX) * math.sqrt(c / top),
+            abs_tol=1e-6,
+        )
     assert by_x[round(x_of(quiet["start_ms"]), 3)] >= MIN_BAR_PX
     screenshot(page, "ui-timeline.png")
 
@@ -190,9 +240,14 @@ def test_timeline_reads_counts_and_zooms_back(page, history_stack) -> None:
     page.mouse.move(strip["x"] + 2 * width / 3, strip["y"] + 20, steps=4)
     page.mouse.up()
     zoomed = page.evaluate("() => window.__replay.span()")
-    assert span[0] < zoomed[0] < zoomed[1] < span[1] and zoomed[1] - zoomed[0] < (span[1] - span[0]) / 2
-    page.wait_for_function("() => new URLSearchParams(location.search).get('span') !== null"
-                           f" && !new URLSearchParams(location.search).get('span').startsWith('{iso(span[0])}')")
+    assert (
+        span[0] < zoomed[0] < zoomed[1] < span[1]
+        and zoomed[1] - zoomed[0] < (span[1] - span[0]) / 2
+    )
+    page.wait_for_function(
+        "() => new URLSearchParams(location.search).get('span') !== null"
+        f" && !new URLSearchParams(location.search).get('span').startsWith('{iso(span[0])}')"
+    )
     page.click('[data-testid="zoom-out"]')
     wider = page.evaluate("() => window.__replay.span()")
     assert math.isclose(wider[1] - wider[0], 2 * (zoomed[1] - zoomed[0]), rel_tol=1e-6)
@@ -215,8 +270,17 @@ def test_timeline_marks_a_map_upload_where_the_api_lists_it(page, history_stack)
     stack = history_stack
     h = stack.history
     span = (h.end_ms - 60 * 60_000, h.end_ms)
-    up = {"kind": "upload", "ts_ms": span[0] + 20 * 60_000, "row": 0, "column": 0, "robot_id": "floor-uploader",
-          "content_hash": "00" * 32, "previous_hash": None, "chunks": 187, "end_ms": span[0] + 20 * 60_000 + 2_000}
+    up = {
+        "kind": "upload",
+        "ts_ms": span[0] + 20 * 60_000,
+        "row": 0,
+        "column": 0,
+        "robot_id": "floor-uploader",
+        "content_hash": "00" * 32,
+        "previous_hash": None,
+        "chunks": 187,
+        "end_ms": span[0] + 20 * 60_000 + 2_000,
+    }
     asked: list[str] = []
 
     def with_upload(route):
@@ -231,12 +295,16 @@ def test_timeline_marks_a_map_upload_where_the_api_lists_it(page, history_stack)
     assert any(f"from={span[0]}&to={span[1]}" in u for u in asked), asked
     mark = page.locator('[data-testid="upload-mark"]')
     assert mark.count() == 1 and mark.get_attribute("data-ts") == str(up["ts_ms"])
-    width = page.evaluate("() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value")
+    width = page.evaluate(
+        "() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value"
+    )
     x = (up["ts_ms"] - span[0]) / (span[1] - span[0]) * width
     assert abs(float(mark.get_attribute("x")) + 1 - x) < 0.01
     strip = page.locator('[data-testid="timeline-strip"]').bounding_box()
     page.mouse.move(strip["x"] + x + 0.5, strip["y"] + 20)
-    assert "map upload by floor-uploader: 187 chunks" in page.inner_text('[data-testid="timeline-hover"]')
+    assert "map upload by floor-uploader: 187 chunks" in page.inner_text(
+        '[data-testid="timeline-hover"]'
+    )
     assert page.errors == []
 
 
@@ -260,33 +328,47 @@ def test_who_is_who_labels_apart_and_the_selected_robot_in_its_colour(page, hist
             break
         zoom -= 1
         centre = page.evaluate("() => window.__replay.view()")
-        page.evaluate(f"() => window.__replay.centerOnPixel({-centre['lat']}, {centre['lng']}, {zoom})")
+        page.evaluate(
+            f"() => window.__replay.centerOnPixel({-centre['lat']}, {centre['lng']}, {zoom})"
+        )
         page.wait_for_timeout(300)
     page.wait_for_function("() => window.__replay.drawnLabels().length > 0")
     labels = page.evaluate("() => window.__replay.drawnLabels()")
     # drawnRobots() is in page coordinates, the labels in the map's.
     box = page.locator('[data-testid="map"]').bounding_box()
-    drawn = {d["robotId"]: {"x": d["x"] - box["x"], "y": d["y"] - box["y"]}
-             for d in page.evaluate("() => window.__replay.drawnRobots()")}
+    drawn = {
+        d["robotId"]: {"x": d["x"] - box["x"], "y": d["y"] - box["y"]}
+        for d in page.evaluate("() => window.__replay.drawnRobots()")
+    }
     assert chosen in [lb["robotId"] for lb in labels]
 
     def overlap(a, b) -> bool:
-        return a["x"] < b["x"] + b["w"] and b["x"] < a["x"] + a["w"] and a["y"] < b["y"] + b["h"] and b["y"] < a["y"] + a["h"]
+        return (
+            a["x"] < b["x"] + b["w"]
+            and b["x"] < a["x"] + a["w"]
+            and a["y"] < b["y"] + b["h"]
+            and b["y"] < a["y"] + a["h"]
+        )
 
     for i, a in enumerate(labels):
-        for b in labels[i + 1:]:
+        for b in labels[i + 1 :]:
             assert not overlap(a, b), (a, b)
         for rid, d in drawn.items():
             if rid != a["robotId"]:
                 marker = {"x": d["x"] - 8, "y": d["y"] - 8, "w": 16, "h": 16}
                 assert not overlap(a, marker), (a, rid)
-    page.wait_for_function("() => { const t = window.__replay.trail(); return t && t.points > 1; }", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => { const t = window.__replay.trail(); return t && t.points > 1; }", timeout=TIMEOUT_MS
+    )
     trail = page.evaluate("() => window.__replay.trail()")
-    swatch = page.evaluate("""([c, id]) => {
+    swatch = page.evaluate(
+        """([c, id]) => {
       const d = document.createElement('div'); d.style.color = c; document.body.append(d);
       const v = getComputedStyle(d).color; d.remove();
       return [v, getComputedStyle(document.querySelector(`[data-testid=fleet-row][data-robot="${id}"] .dot`)).backgroundColor];
-    }""", [trail["colour"], chosen])
+    }""",
+        [trail["colour"], chosen],
+    )
     assert swatch[0] == swatch[1] and trail["weight"] >= 4
     screenshot(page, "ui-who-is-who.png")
     assert page.errors == []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import subprocess
 import time
 
@@ -47,30 +48,39 @@ def crossed_writes(stack, page, a: int, b: int) -> list[list]:
 
 def applied_forward(page) -> list[list]:
     return page.evaluate(
-        "() => window.__replay.log.filter(l => l.dir === 1).map(l => [l.ts_ms, l.robotId, l.row, l.column])")
+        "() => window.__replay.log.filter(l => l.dir === 1).map(l => [l.ts_ms, l.robotId, l.row, l.column])"
+    )
 
 
 def shown_hashes(page) -> dict[str, str]:
     return page.evaluate(
         "() => Object.fromEntries([...window.__replay.engine.state.cells.values()]"
-        ".map(c => [`${c.row}:${c.column}`, c.content_hash]))")
+        ".map(c => [`${c.row}:${c.column}`, c.content_hash]))"
+    )
 
 
 def map_hashes(stack, at: int) -> dict[str, str]:
-    return {f"{c['row']}:{c['column']}": c["content_hash"]
-            for c in api(stack, "/api/v1/map", at=at)["chunks"]}
+    return {
+        f"{c['row']}:{c['column']}": c["content_hash"]
+        for c in api(stack, "/api/v1/map", at=at)["chunks"]
+    }
 
 
 def play_until(page, speed: int, direction: int, until_ms: int, timeout_s: float = 90) -> int:
     """Plays until the playhead passes `until_ms`, pauses, and returns where it stopped."""
-    page.evaluate("([s, d]) => { window.__replay.clearLog(); window.__replay.play(s, d); }",
-                  [speed, direction])
+    page.evaluate(
+        "([s, d]) => { window.__replay.clearLog(); window.__replay.play(s, d); }",
+        [speed, direction],
+    )
     cmp = ">=" if direction > 0 else "<="
     # Paused from inside the page, in the frame that passes `until_ms`: at 86400x a round
     # trip from here would play on for tens of minutes of history, up to now (live mode).
     page.wait_for_function(
         f"() => {{ const r = window.__replay; if (r.seeking || !(r.playhead {cmp} {until_ms})) return false;"
-        " r.pause(); return true; }", polling="raf", timeout=timeout_s * 1000)
+        " r.pause(); return true; }",
+        polling="raf",
+        timeout=timeout_s * 1000,
+    )
     time.sleep(0.3)  # a frame applies what the pause left
     return page.evaluate("() => window.__replay.playhead")
 
@@ -84,20 +94,29 @@ def test_seek_shows_known_chunk_pixels_and_robot_positions(page, history_stack) 
     assert shown_hashes(page) == map_hashes(stack, t)
     # The pixels of a known chunk: canvas and screen both show the stored content.
     chunk = api(stack, "/api/v1/map", at=t)["chunks"][0]
-    raw = httpx.get(f"{stack.api_url}/api/v1/chunk-contents/{chunk['content_hash']}",
-                    params={"encoding": "raw"}).content
+    raw = httpx.get(
+        f"{stack.api_url}/api/v1/chunk-contents/{chunk['content_hash']}", params={"encoding": "raw"}
+    ).content
     meta = page.evaluate("() => window.__replay.meta")
     cw, ch = meta["CHUNK_WIDTH"], meta["CHUNK_HEIGHT"]
-    page.evaluate("([r, c]) => window.__replay.centerOnPixel(r, c, 1)",
-                  [chunk["row"] * ch + ch / 2, chunk["column"] * cw + cw / 2])
+    page.evaluate(
+        "([r, c]) => window.__replay.centerOnPixel(r, c, 1)",
+        [chunk["row"] * ch + ch / 2, chunk["column"] * cw + cw / 2],
+    )
     page.wait_for_function("() => window.__replay.complete", timeout=TIMEOUT_MS)
     for dy, dx in ((5, 5), (50, 50), (90, 20)):
-        px = page.evaluate("([r, c]) => window.__replay.chunkPixel(r, c)",
-                           [chunk["row"] * ch + dy, chunk["column"] * cw + dx])
+        px = page.evaluate(
+            "([r, c]) => window.__replay.chunkPixel(r, c)",
+            [chunk["row"] * ch + dy, chunk["column"] * cw + dx],
+        )
         assert px[:3] == [raw[dy * cw + dx]] * 3
     # A screenshot pixel in a uniform patch of that chunk, centred on screen, robots hidden.
-    uniform = [(y, x) for y in range(10, ch - 10, 5) for x in range(10, cw - 10, 5)
-               if len({raw[(y + j) * cw + x + i] for j in range(-3, 4) for i in range(-3, 4)}) == 1]
+    uniform = [
+        (y, x)
+        for y in range(10, ch - 10, 5)
+        for x in range(10, cw - 10, 5)
+        if len({raw[(y + j) * cw + x + i] for j in range(-3, 4) for i in range(-3, 4)}) == 1
+    ]
     assert uniform, "the known chunk has no uniform patch"
     y, x = uniform[len(uniform) // 2]
     r, c = chunk["row"] * ch + y + 0.5, chunk["column"] * cw + x + 0.5
@@ -124,17 +143,24 @@ def test_seek_shows_known_chunk_pixels_and_robot_positions(page, history_stack) 
     box = page.locator('[data-testid="map"]').bounding_box()
     checked = 0
     for rid, r in robots.items():
-        at = page.evaluate("([x, y]) => window.__replay.screenPointOfMetres(x, y)", r["position"][:2])
+        at = page.evaluate(
+            "([x, y]) => window.__replay.screenPointOfMetres(x, y)", r["position"][:2]
+        )
         assert abs(drawn[rid]["x"] - at["x"]) <= 0.5 and abs(drawn[rid]["y"] - at["y"]) <= 0.5
-        if (box["x"] + 10 <= at["x"] < box["x"] + box["width"] - 10
-                and box["y"] + 10 <= at["y"] < box["y"] + box["height"] - 10):
+        if (
+            box["x"] + 10 <= at["x"] < box["x"] + box["width"] - 10
+            and box["y"] + 10 <= at["y"] < box["y"] + box["height"] - 10
+        ):
             checked += 1
             assert shot.getpixel((round(at["x"]), round(at["y"]))) in battery_colours
     assert checked, "no robot inside the map's viewport"
     # Clicking a robot opens its details, clock-skew flag included.
-    rid, d = next((k, v) for k, v in drawn.items()
-                  if box["x"] + 10 <= v["x"] < box["x"] + box["width"] - 10
-                  and box["y"] + 10 <= v["y"] < box["y"] + box["height"] - 10)
+    rid, d = next(
+        (k, v)
+        for k, v in drawn.items()
+        if box["x"] + 10 <= v["x"] < box["x"] + box["width"] - 10
+        and box["y"] + 10 <= v["y"] < box["y"] + box["height"] - 10
+    )
     page.mouse.click(d["x"], d["y"])
     details = page.locator('[data-testid="robot-details"]')
     details.wait_for(timeout=TIMEOUT_MS)
@@ -160,8 +186,11 @@ def test_play_applies_every_change_in_order(page, history_stack, speed) -> None:
     assert len(expected) > (10 if speed == 8 else 100)
     assert applied_forward(page) == expected
     # Paused between two bucket boundaries the page reloads the exact map at the playhead.
-    page.wait_for_function(f"() => !window.__replay.seeking && (window.__replay.chunkStepMs === 0"
-                           f" || window.__replay.mapExactAt === {stopped})", timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => !window.__replay.seeking && (window.__replay.chunkStepMs === 0"
+        f" || window.__replay.mapExactAt === {stopped})",
+        timeout=TIMEOUT_MS,
+    )
     assert shown_hashes(page) == map_hashes(stack, stopped)
     assert not page.errors
 
@@ -175,8 +204,10 @@ def test_play_backwards_restores_each_earlier_state(page, history_stack) -> None
     stopped = play_until(page, 3600, -1, start - 3_600_000)
     undone = page.evaluate("() => window.__replay.log.filter(l => l.dir === -1).length")
     assert undone == len(crossed_writes(stack, page, start, stopped)) > 0
-    page.wait_for_function(f"() => !window.__replay.seeking && window.__replay.mapExactAt === {stopped}",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => !window.__replay.seeking && window.__replay.mapExactAt === {stopped}",
+        timeout=TIMEOUT_MS,
+    )
     assert shown_hashes(page) == map_hashes(stack, stopped)
     assert not page.errors
 
@@ -195,8 +226,11 @@ def test_deep_link_reopens_the_same_moment_speed_and_view(page, history_stack) -
     assert other.locator('[data-speed="60"]').get_attribute("class") == "on"
     assert other.evaluate("() => window.__replay.view()") == {"zoom": 0.5, "lat": -800, "lng": 1200}
     assert "view=0.5%2C-800%2C1200" in other.url or "view=0.5,-800,1200" in other.url
-    assert other.locator('[data-testid="playhead"]').inner_text().startswith(
-        time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t / 1000)))
+    assert (
+        other.locator('[data-testid="playhead"]')
+        .inner_text()
+        .startswith(time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t / 1000)))
+    )
     other.screenshot(path=str(ARTIFACTS / "deep_link_reopened.png"))
     other.close()
 
@@ -209,17 +243,42 @@ def test_live_mode_shows_a_pose_published_with_mosquitto_pub(page, history_stack
     ts = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime())
     meta = page.evaluate("() => window.__replay.meta")
     x, y = meta["origin"][0] + 10.0, meta["origin"][1] + 10.0
-    body = ('{"robotId": "ui-live", "timestamp": "%s", "pose": {"position": {"x": %s, "y": %s, "z": 0},'  # noqa: UP031 (a JSON template: its braces)
-            ' "orientation": {"x": 0, "y": 0, "z": 0, "w": 1}}, "status": {"battery":'
-            ' {"battery_level": 80, "charging": false}, "loaded": true}}') % (ts, x, y)
-    subprocess.run(["mosquitto_pub", "-h", "127.0.0.1", "-p", str(stack.mqtt_port), "-q", "1",
-                    "-t", "iot/coordinates/ui-live", "-m", body], check=True, timeout=30)
+    body = json.dumps(
+        {
+            "robotId": "ui-live",
+            "timestamp": ts,
+            "pose": {
+                "position": {"x": x, "y": y, "z": 0},
+                "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
+            },
+            "status": {"battery": {"battery_level": 80, "charging": False}, "loaded": True},
+        }
+    )
+    subprocess.run(
+        [
+            "mosquitto_pub",
+            "-h",
+            "127.0.0.1",
+            "-p",
+            str(stack.mqtt_port),
+            "-q",
+            "1",
+            "-t",
+            "iot/coordinates/ui-live",
+            "-m",
+            body,
+        ],
+        check=True,
+        timeout=30,
+    )
     page.wait_for_function(
-        "() => window.__replay.drawnRobots().some(r => r.robotId === 'ui-live')", timeout=TIMEOUT_MS)
+        "() => window.__replay.drawnRobots().some(r => r.robotId === 'ui-live')", timeout=TIMEOUT_MS
+    )
     shown = {r["robotId"]: r for r in page.evaluate("() => window.__replay.robots()")}
     assert shown["ui-live"]["x"] == pytest.approx(x) and shown["ui-live"]["y"] == pytest.approx(y)
     page.wait_for_function(
-        "() => document.querySelector('[data-testid=latency]').innerText.includes('latency')")
+        "() => document.querySelector('[data-testid=latency]').innerText.includes('latency')"
+    )
     assert not page.errors
 
 
@@ -230,20 +289,24 @@ def test_timeline_density_click_to_seek_and_keyboard(page, history_stack) -> Non
     t = stack.history.start_ms + 60 * 60_000
     open_at(page, stack, f"?t={t}")
     page.locator('[data-preset="6h"]').click()
-    page.wait_for_function("() => document.querySelectorAll('.strip .bar').length > 10",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => document.querySelectorAll('.strip .bar').length > 10", timeout=TIMEOUT_MS
+    )
     assert page.locator(".strip .active").count() > 10
     box = page.locator('[data-testid="timeline-strip"]').bounding_box()
     page.mouse.click(box["x"] + box["width"] * 0.25, box["y"] + box["height"] / 2)
-    page.wait_for_function(f"() => window.__replay.playhead !== {t} && window.__replay.complete",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => window.__replay.playhead !== {t} && window.__replay.complete", timeout=TIMEOUT_MS
+    )
     clicked = page.evaluate("() => window.__replay.playhead")
     now = time.time() * 1000
     assert now - 6 * 3_600_000 - 120_000 < clicked < now - 3 * 3_600_000
     page.locator('[data-testid="map"]').click(position={"x": 5, "y": 300})
     page.keyboard.press("ArrowRight")
-    page.wait_for_function(f"() => window.__replay.playhead === {clicked + 1000} && window.__replay.complete",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {clicked + 1000} && window.__replay.complete",
+        timeout=TIMEOUT_MS,
+    )
     page.keyboard.press("l")
     page.wait_for_function("() => window.__replay.live", timeout=TIMEOUT_MS)
     assert not page.errors

@@ -20,8 +20,10 @@ def _params(url: str) -> dict[str, str]:
 
 
 def _bar_heights(page) -> list[float]:
-    return page.evaluate("() => [...document.querySelectorAll('.strip rect.bar')]"
-                         ".sort((a, b) => a.getAttribute('x') - b.getAttribute('x')).map(r => +r.getAttribute('height'))")
+    return page.evaluate(
+        "() => [...document.querySelectorAll('.strip rect.bar')]"
+        ".sort((a, b) => a.getAttribute('x') - b.getAttribute('x')).map(r => +r.getAttribute('height'))"
+    )
 
 
 def test_upload_writes_are_not_counted_as_floor_changes(page, history_stack) -> None:
@@ -47,9 +49,18 @@ def test_upload_writes_are_not_counted_as_floor_changes(page, history_stack) -> 
 
     def uploads(route):
         body = route.fetch().json()
-        body["changes"] = [{"kind": "upload", "row": 0, "column": 0, "robot_id": robot, "content_hash": "00" * 16,
-                            "previous_hash": None, **added[key]}
-                           for key, robot in (("across", "looper"), ("one", "floor-uploader"))] + body["changes"]
+        body["changes"] = [
+            {
+                "kind": "upload",
+                "row": 0,
+                "column": 0,
+                "robot_id": robot,
+                "content_hash": "00" * 16,
+                "previous_hash": None,
+                **added[key],
+            }
+            for key, robot in (("across", "looper"), ("one", "floor-uploader"))
+        ] + body["changes"]
         route.fulfill(status=200, content_type="application/json", body=json.dumps(body))
 
     def chunk_events(route):
@@ -58,9 +69,18 @@ def test_upload_writes_are_not_counted_as_floor_changes(page, history_stack) -> 
             route.fallback()
             return
         body = route.fetch().json()
-        body += [{"row": 0, "column": k, "timestamp": "", "ts_ms": t, "receive_time_ms": t, "robotId": "looper",
-                  "content_hash": "00" * 16}
-                 for k, t in enumerate([a["ts_ms"]] * 5 + [a["end_ms"]] * 7)]
+        body += [
+            {
+                "row": 0,
+                "column": k,
+                "timestamp": "",
+                "ts_ms": t,
+                "receive_time_ms": t,
+                "robotId": "looper",
+                "content_hash": "00" * 16,
+            }
+            for k, t in enumerate([a["ts_ms"]] * 5 + [a["end_ms"]] * 7)
+        ]
         route.fulfill(status=200, content_type="application/json", body=json.dumps(body))
 
     page.route("**/api/v1/timeline?*", timeline)
@@ -72,20 +92,35 @@ def test_upload_writes_are_not_counted_as_floor_changes(page, history_stack) -> 
     counts = [b["chunk_changes"] for b in tl["buckets"]]
     top = max(1, *counts)
     want = [0 if c == 0 else MIN_BAR_PX + (36 - MIN_BAR_PX) * math.sqrt(c / top) for c in counts]
-    page.wait_for_function(f"() => document.querySelectorAll('.strip rect.bar').length === {len(counts)}")
-    page.wait_for_function("(i) => +[...document.querySelectorAll('.strip rect.bar')]"
-                           ".sort((a, b) => a.getAttribute('x') - b.getAttribute('x'))[i].getAttribute('height') "
-                           f"< 36 || {counts[added['i']]} === {top}", arg=added["i"], timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => document.querySelectorAll('.strip rect.bar').length === {len(counts)}"
+    )
+    page.wait_for_function(
+        "(i) => +[...document.querySelectorAll('.strip rect.bar')]"
+        ".sort((a, b) => a.getAttribute('x') - b.getAttribute('x'))[i].getAttribute('height') "
+        f"< 36 || {counts[added['i']]} === {top}",
+        arg=added["i"],
+        timeout=TIMEOUT_MS,
+    )
     shown = _bar_heights(page)
-    assert all(math.isclose(s, w, abs_tol=1e-6) for s, w in zip(shown, want)), (added, shown[:5], want[:5])
+    assert all(math.isclose(s, w, abs_tol=1e-6) for s, w in zip(shown, want)), (
+        added,
+        shown[:5],
+        want[:5],
+    )
     # The hover reads the floor's count, and the upload by name.
-    width = page.evaluate("() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value")
+    width = page.evaluate(
+        "() => document.querySelector('[data-testid=timeline-strip] svg').width.baseVal.value"
+    )
     strip = page.locator('[data-testid="timeline-strip"]').bounding_box()
     x = (added["one"]["ts_ms"] - span[0]) / (span[1] - span[0]) * width
     page.mouse.move(strip["x"] + x + 0.5, strip["y"] + 20)
     hover = page.inner_text('[data-testid="timeline-hover"]')
     n = counts[added["i"]]
-    assert f"{n} chunk change{'s' if n != 1 else ''} ·" in hover and "map upload by floor-uploader: 187 chunks" in hover
+    assert (
+        f"{n} chunk change{'s' if n != 1 else ''} ·" in hover
+        and "map upload by floor-uploader: 187 chunks" in hover
+    )
     assert page.errors == []
 
 
@@ -108,11 +143,34 @@ def test_a_click_on_a_conflict_mark_lands_after_the_later_write(page, history_st
             route.fallback()
             return
         s = marked["start"]
-        listed = [{"row": 1, "column": 2, "ts_ms": t, "robot_a": "a", "ts_a_ms": t - 3_000, "hash_a": None,
-                   "robot_b": "b", "hash_b": None, "seek_ms": t + 1} for t in (s + 700, s + 300)]
-        route.fulfill(status=200, content_type="application/json", body=json.dumps({
-            "from_ms": s, "to_ms": s + marked["bucket_ms"], "window_s": 60, "rule": "", "conflicts": listed,
-            "truncated": False}))
+        listed = [
+            {
+                "row": 1,
+                "column": 2,
+                "ts_ms": t,
+                "robot_a": "a",
+                "ts_a_ms": t - 3_000,
+                "hash_a": None,
+                "robot_b": "b",
+                "hash_b": None,
+                "seek_ms": t + 1,
+            }
+            for t in (s + 700, s + 300)
+        ]
+        route.fulfill(
+            status=200,
+            content_type="application/json",
+            body=json.dumps(
+                {
+                    "from_ms": s,
+                    "to_ms": s + marked["bucket_ms"],
+                    "window_s": 60,
+                    "rule": "",
+                    "conflicts": listed,
+                    "truncated": False,
+                }
+            ),
+        )
 
     page.route("**/api/v1/timeline?*", timeline)
     page.route("**/api/v1/conflicts?*", conflicts)
@@ -123,6 +181,8 @@ def test_a_click_on_a_conflict_mark_lands_after_the_later_write(page, history_st
     box = tick.bounding_box()
     page.mouse.click(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     # The bucket's first conflict (by its later write), just after that write.
-    page.wait_for_function(f"() => window.__replay.playhead === {marked['start'] + 301} && window.__replay.complete",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {marked['start'] + 301} && window.__replay.complete",
+        timeout=TIMEOUT_MS,
+    )
     assert page.errors == []

@@ -8,15 +8,15 @@ import time
 
 import pytest
 import uvicorn
-
-from mapservice.adapters.clock import SystemClock
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
+
+from mapservice.adapters.clock import SystemClock
 from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 from tests.ui.conftest import DIST
 
 READER = "viewer-" + "r" * 32
@@ -30,13 +30,26 @@ def token_api():
         pytest.fail("replay-ui is not built: run `make ui` first")
     now = SystemClock().now_ms()
     store = MemoryStore()
-    store.append([make_envelope("api", now - 60_000, now - 60_000,
-                                MapMetaSet(400, 300, 100, 100, 3, 4))])
-    settings = Settings(api_port=free_port(), api_read_access="token", api_reader_tokens=READER,
-                        admin_token="a" * 32, api_writer_tokens="w" * 32, ui_dir=TEST_UI_DIR)
+    store.append(
+        [make_envelope("api", now - 60_000, now - 60_000, MapMetaSet(400, 300, 100, 100, 3, 4))]
+    )
+    settings = Settings(
+        api_port=free_port(),
+        api_read_access="token",
+        api_reader_tokens=READER,
+        admin_token="a" * 32,
+        api_writer_tokens="w" * 32,
+        ui_dir=TEST_UI_DIR,
+    )
     hub = LiveHub()
-    uv = uvicorn.Server(uvicorn.Config(create_app(settings, store, {}, live_hub=hub),
-                                       host="127.0.0.1", port=settings.api_port, log_level="warning"))
+    uv = uvicorn.Server(
+        uvicorn.Config(
+            create_app(settings, store, {}, live_hub=hub),
+            host="127.0.0.1",
+            port=settings.api_port,
+            log_level="warning",
+        )
+    )
     thread = threading.Thread(target=uv.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 20
@@ -79,8 +92,10 @@ def test_the_export_button_follows_the_read_rules(page, token_api) -> None:
     page.select_option('[data-testid="export-kind"]', "mcap")
     page.click('[data-testid="export-button"]')
     status = page.locator('[data-testid="export-status"]')
-    page.wait_for_function("() => document.querySelector('[data-testid=export-status]')?.innerText.includes('401')",
-                           timeout=TIMEOUT_MS)
+    page.wait_for_function(
+        "() => document.querySelector('[data-testid=export-status]')?.innerText.includes('401')",
+        timeout=TIMEOUT_MS,
+    )
     assert "token" in status.inner_text()
     page.evaluate(f"() => localStorage.setItem('mapservice.apiToken', '{READER}')")
     page.reload()

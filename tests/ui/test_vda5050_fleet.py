@@ -15,9 +15,8 @@ import httpx
 import pytest
 
 from mapservice.adapters.mqtt_client import make_client
-from tests.fixtures import vda5050 as vda
-
 from mapservice.core.vda_ids import robot_id_for
+from tests.fixtures import vda5050 as vda
 from tests.fixtures.vda5050_fleet import FleetProcess, Recorder, installed_fleet, vda_ms
 
 from .test_investigator import screenshot
@@ -27,12 +26,31 @@ FLEET = (("Acme", "ui-1"), ("Robo Co", "ui:2"))
 
 
 def order(order_id: str, start: tuple[float, float], end: tuple[float, float], map_id: str) -> dict:
-    nodes = [{"nodeId": f"{order_id}-{i}", "sequenceId": 2 * i, "released": True,
-              "nodePosition": {"x": x, "y": y, "mapId": map_id}, "actions": []}
-             for i, (x, y) in enumerate((start, end))]
-    return {"orderId": order_id, "orderUpdateId": 0, "nodes": nodes, "edges": [{
-        "edgeId": f"{order_id}-e", "sequenceId": 1, "startNodeId": nodes[0]["nodeId"],
-        "endNodeId": nodes[1]["nodeId"], "released": True, "actions": []}]}
+    nodes = [
+        {
+            "nodeId": f"{order_id}-{i}",
+            "sequenceId": 2 * i,
+            "released": True,
+            "nodePosition": {"x": x, "y": y, "mapId": map_id},
+            "actions": [],
+        }
+        for i, (x, y) in enumerate((start, end))
+    ]
+    return {
+        "orderId": order_id,
+        "orderUpdateId": 0,
+        "nodes": nodes,
+        "edges": [
+            {
+                "edgeId": f"{order_id}-e",
+                "sequenceId": 1,
+                "startNodeId": nodes[0]["nodeId"],
+                "endNodeId": nodes[1]["nodeId"],
+                "released": True,
+                "actions": [],
+            }
+        ],
+    }
 
 
 def test_the_replay_ui_draws_vda_5050_vehicles(page, history_stack, tmp_path) -> None:
@@ -50,22 +68,52 @@ def test_the_replay_ui_draws_vda_5050_vehicles(page, history_stack, tmp_path) ->
     vehicles = []
     try:
         for (m, s), (start, _) in routes.items():
-            vehicles.append(FleetProcess("vehicle", {
-                **common, "manufacturer": m, "serialNumber": s, "batteryCharge": 70,
-                "initialPosition": {"mapId": "floor", "x": start[0], "y": start[1], "theta": 0},
-                "speed": 1.0, "timeLapse": 1, "visualizationMs": 200,
-            }, tmp_path, f"ui-{s}".replace(":", "_")))
+            vehicles.append(
+                FleetProcess(
+                    "vehicle",
+                    {
+                        **common,
+                        "manufacturer": m,
+                        "serialNumber": s,
+                        "batteryCharge": 70,
+                        "initialPosition": {
+                            "mapId": "floor",
+                            "x": start[0],
+                            "y": start[1],
+                            "theta": 0,
+                        },
+                        "speed": 1.0,
+                        "timeLapse": 1,
+                        "visualizationMs": 200,
+                    },
+                    tmp_path,
+                    f"ui-{s}".replace(":", "_"),
+                )
+            )
         for v in vehicles:
             v.wait_for("started", 30)
-        master = FleetProcess("master", {**common, "plans": [
-            {"agv": {"manufacturer": m, "serialNumber": s},
-             "orders": [order(f"ui-{i}", *routes[m, s], "floor")]}
-            for i, (m, s) in enumerate(FLEET)]}, tmp_path, "ui-master")
+        master = FleetProcess(
+            "master",
+            {
+                **common,
+                "plans": [
+                    {
+                        "agv": {"manufacturer": m, "serialNumber": s},
+                        "orders": [order(f"ui-{i}", *routes[m, s], "floor")],
+                    }
+                    for i, (m, s) in enumerate(FLEET)
+                ],
+            },
+            tmp_path,
+            "ui-master",
+        )
         # Live: both vehicles drawn while they drive.
         ids = [robot_id_for(m, s) for m, s in FLEET]
         page.wait_for_function(
             "(ids) => ids.every(id => window.__replay.drawnRobots().some(r => r.robotId === id))",
-            arg=ids, timeout=TIMEOUT_MS)
+            arg=ids,
+            timeout=TIMEOUT_MS,
+        )
         master.wait_for("done", 60)
         master.stop()
     finally:
@@ -74,9 +122,13 @@ def test_the_replay_ui_draws_vda_5050_vehicles(page, history_stack, tmp_path) ->
         recorder.stop()
 
     # A seek to the middle of the drive: each vehicle where its last message before said.
-    positions = {robot_id_for(m, s): [(vda_ms(msg["timestamp"]), msg["agvPosition"])
-                                      for _, msg in recorder.of("visualization", m, s)]
-                 for m, s in FLEET}
+    positions = {
+        robot_id_for(m, s): [
+            (vda_ms(msg["timestamp"]), msg["agvPosition"])
+            for _, msg in recorder.of("visualization", m, s)
+        ]
+        for m, s in FLEET
+    }
     t = min(p[len(p) // 2][0] for p in positions.values())
     for rid, reported in positions.items():
         wait_until_stored(stack, rid, reported[-1][0])
@@ -91,11 +143,15 @@ def test_the_replay_ui_draws_vda_5050_vehicles(page, history_stack, tmp_path) ->
         assert shown[rid]["y"] == pytest.approx(pos["y"], abs=0.0011)
     page.wait_for_function(
         "(ids) => ids.every(id => window.__replay.drawnRobots().some(r => r.robotId === id))",
-        arg=ids, timeout=TIMEOUT_MS)
+        arg=ids,
+        timeout=TIMEOUT_MS,
+    )
     drawn = {d["robotId"]: d for d in page.evaluate("() => window.__replay.drawnRobots()")}
     for rid in ids:
-        at = page.evaluate("([x, y]) => window.__replay.screenPointOfMetres(x, y)",
-                           [shown[rid]["x"], shown[rid]["y"]])
+        at = page.evaluate(
+            "([x, y]) => window.__replay.screenPointOfMetres(x, y)",
+            [shown[rid]["x"], shown[rid]["y"]],
+        )
         assert abs(drawn[rid]["x"] - at["x"]) <= 0.5 and abs(drawn[rid]["y"] - at["y"]) <= 0.5
     assert not page.errors
 
@@ -103,8 +159,11 @@ def test_the_replay_ui_draws_vda_5050_vehicles(page, history_stack, tmp_path) ->
 def wait_until_stored(stack, robot_id: str, last_ms: int, timeout_s: float = 60) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        rows = httpx.get(f"{stack.api_url}/api/v1/poses", params={
-            "robotId": robot_id, "from": last_ms, "to": last_ms + 1}, timeout=30).json()
+        rows = httpx.get(
+            f"{stack.api_url}/api/v1/poses",
+            params={"robotId": robot_id, "from": last_ms, "to": last_ms + 1},
+            timeout=30,
+        ).json()
         if rows:
             return
         time.sleep(0.5)
@@ -132,8 +191,12 @@ def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) 
     x, y = ox + 14.0, oy + 9.0
     client = make_client(f"vda-{m}-{s}-{now_ms()}")
     base = f"uagv/v2/{m}/{s}"
-    client.will_set(f"{base}/connection", vda.encode(vda.connection(v, m, s, now_ms(), "CONNECTIONBROKEN")),
-                    qos=1, retain=True)
+    client.will_set(
+        f"{base}/connection",
+        vda.encode(vda.connection(v, m, s, now_ms(), "CONNECTIONBROKEN")),
+        qos=1,
+        retain=True,
+    )
     client.connect("127.0.0.1", stack.mqtt_port)
     client.loop_start()
 
@@ -157,8 +220,9 @@ def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) 
     deadline = time.monotonic() + 60
     while True:
         facts = httpx.get(f"{stack.api_url}/api/v1/robots/{rid}/vda5050", timeout=30).json()
-        if [c["state"] for c in facts["connections"]] == ["ONLINE", "CONNECTIONBROKEN"] and \
-                facts["errorClears"] == [times[3]]:
+        if [c["state"] for c in facts["connections"]] == ["ONLINE", "CONNECTIONBROKEN"] and facts[
+            "errorClears"
+        ] == [times[3]]:
             break
         assert time.monotonic() < deadline, facts
         time.sleep(0.5)
@@ -169,16 +233,21 @@ def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) 
     open_at(page, stack, f"?t={times[2]}&sel={rid}&panels=fleet&span={span}")
     marks = page.locator(f'[data-testid="error-mark"][data-robot="{rid}"]')
     marks.first.wait_for(timeout=TIMEOUT_MS)
-    assert sorted((marks.nth(i).get_attribute("data-ts"), marks.nth(i).get_attribute("data-level"))
-                  for i in range(marks.count())) == [(str(times[1]), "FATAL"), (str(times[1]), "WARNING")]
+    assert sorted(
+        (marks.nth(i).get_attribute("data-ts"), marks.nth(i).get_attribute("data-level"))
+        for i in range(marks.count())
+    ) == [(str(times[1]), "FATAL"), (str(times[1]), "WARNING")]
     box = marks.first.bounding_box()
     page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
     hover = page.get_by_test_id("timeline-error-hover")
     hover.wait_for(timeout=TIMEOUT_MS)
     assert f"{rid}: FATAL bumper: hit" in hover.inner_text()
     assert f"{rid}: WARNING lowBattery: charge me" in hover.inner_text()
-    assert "FATAL bumper: hit" in marks.first.locator("title").text_content() + \
-        marks.nth(1).locator("title").text_content()
+    assert (
+        "FATAL bumper: hit"
+        in marks.first.locator("title").text_content()
+        + marks.nth(1).locator("title").text_content()
+    )
 
     row = page.locator(f'[data-testid="fleet-row"][data-robot="{rid}"]')
     row_errors = page.locator(f'[data-testid="fleet-errors"][data-robot="{rid}"] .err')
@@ -198,14 +267,22 @@ def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) 
     open_at(page, stack, f"?t={times[3]}&sel={rid}&panels=fleet&span={span}")
     page.wait_for_function(
         "(id) => document.querySelector(`[data-testid=details-errors]`)?.innerText.includes('none')",
-        arg=rid, timeout=TIMEOUT_MS)
-    assert row.count() == 1 and page.locator(f'[data-testid="fleet-errors"][data-robot="{rid}"]').count() == 0
+        arg=rid,
+        timeout=TIMEOUT_MS,
+    )
+    assert (
+        row.count() == 1
+        and page.locator(f'[data-testid="fleet-errors"][data-robot="{rid}"]').count() == 0
+    )
     # One millisecond before the break it is online; at the break, offline.
     for t, shown in ((broke - 1, "online"), (broke, "offline (broken)")):
         page.goto("about:blank")
         open_at(page, stack, f"?t={t}&sel={rid}&panels=fleet&span={span}")
         page.wait_for_function(
             "([id, shown]) => document.querySelector(`[data-testid=fleet-row][data-robot='${id}'] "
-            "[data-testid=fleet-online]`)?.innerText === shown", arg=[rid, shown], timeout=TIMEOUT_MS)
+            "[data-testid=fleet-online]`)?.innerText === shown",
+            arg=[rid, shown],
+            timeout=TIMEOUT_MS,
+        )
     assert "CONNECTIONBROKEN" in page.get_by_test_id("details-online").inner_text()
     assert not page.errors

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import clickhouse_connect
 
-from mapservice.core.ports import Counts
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.core.ports import Counts
 
 
 class AdminMixin(ClickHouseConnection):
@@ -21,7 +21,7 @@ class AdminMixin(ClickHouseConnection):
     def delete_chunks(self) -> int:
         db = self.database
         with self._lock:
-            (removed,), = self._rows(f"SELECT count() FROM {db}.chunk_events FINAL", {})
+            ((removed,),) = self._rows(f"SELECT count() FROM {db}.chunk_events FINAL", {})
             # TRUNCATE, not a lightweight DELETE: the whole table goes, at once and without
             # a mutation. Snapshots go too, or map_at would still answer with deleted
             # writes; their log stays, so the next snapshot builds on an empty map.
@@ -35,7 +35,7 @@ class AdminMixin(ClickHouseConnection):
     def delete_meta(self) -> int:
         db = self.database
         with self._lock:
-            (removed,), = self._rows(f"SELECT count() FROM {db}.map_meta FINAL", {})
+            ((removed,),) = self._rows(f"SELECT count() FROM {db}.map_meta FINAL", {})
             self.client.command(f"TRUNCATE TABLE {db}.map_meta")
         return int(removed)
 
@@ -45,14 +45,18 @@ class AdminMixin(ClickHouseConnection):
             f"SELECT (SELECT count() FROM {db}.poses FINAL), "
             f"(SELECT count() FROM {db}.chunk_events FINAL), "
             f"(SELECT uniqExact(content_hash) FROM {db}.chunk_contents), "
-            f"(SELECT count() FROM {db}.dead_letters)", {})
+            f"(SELECT count() FROM {db}.dead_letters)",
+            {},
+        )
         return Counts(*row)
 
     def storage_bytes(self) -> dict[str, int]:
         """Bytes on disk per table (active parts), for benchmarks and operators."""
         rows = self._rows(
             "SELECT table, sum(bytes_on_disk) FROM system.parts WHERE database = {d:String} "
-            "AND active GROUP BY table", {"d": self.database})
+            "AND active GROUP BY table",
+            {"d": self.database},
+        )
         return {t: int(b) for t, b in rows}
 
     def tracked_memory_bytes(self) -> int:
@@ -64,9 +68,19 @@ class AdminMixin(ClickHouseConnection):
     def optimize(self) -> None:
         """Merges parts now (and drops duplicates); benchmarks call it before measuring."""
         with self._lock:
-            for table in ("poses", "chunk_events", "chunk_contents", "map_meta", "dead_letters",
-                          "pose_keyframes", "pose_minutes", "pose_ten_minutes", "chunk_seconds",
-                          "chunk_bursts", "carried_poses"):
+            for table in (
+                "poses",
+                "chunk_events",
+                "chunk_contents",
+                "map_meta",
+                "dead_letters",
+                "pose_keyframes",
+                "pose_minutes",
+                "pose_ten_minutes",
+                "chunk_seconds",
+                "chunk_bursts",
+                "carried_poses",
+            ):
                 self.client.command(f"OPTIMIZE TABLE {self.database}.{table} FINAL")
 
     def ping(self, timeout_s: float = 2.0) -> bool:
@@ -77,8 +91,13 @@ class AdminMixin(ClickHouseConnection):
                 self._ping_client = self._connect()
             else:
                 self._ping_client = clickhouse_connect.get_client(
-                    dsn=self.dsn, username=self._username, password=self._password,
-                    connect_timeout=timeout_s, send_receive_timeout=timeout_s, **self.tls)
+                    dsn=self.dsn,
+                    username=self._username,
+                    password=self._password,
+                    connect_timeout=timeout_s,
+                    send_receive_timeout=timeout_s,
+                    **self.tls,
+                )
         return self._ping_client.command("SELECT 1") == 1
 
     def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:

@@ -26,7 +26,9 @@ def edit_of(row, check: bool = False) -> AnnotationEdit:
     if change == "removed":
         return AnnotationEdit(int(ts), event_id, AnnotationRemoved(annotation_id, author))
     kind = AnnotationCreated if change == "created" else AnnotationChanged
-    return AnnotationEdit(int(ts), event_id, kind(annotation_id, author, from_doc(json.loads(body), check=check)))
+    return AnnotationEdit(
+        int(ts), event_id, kind(annotation_id, author, from_doc(json.loads(body), check=check))
+    )
 
 
 class AnnotationReadsMixin(ClickHouseConnection):
@@ -36,22 +38,31 @@ class AnnotationReadsMixin(ClickHouseConnection):
         rows = self._rows(
             f"SELECT {_COLUMNS} FROM {self.database}.annotation_events FINAL "
             "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) ORDER BY annotation_id, ts, event_id",
-            {"t": at_ms})
+            {"t": at_ms},
+        )
         current = fold_annotations([edit_of(r) for r in rows], at_ms)
         return [current[k] for k in sorted(current)]
 
-    def annotation_edits(self, from_ms: int, to_ms: int, limit: int = 10_000) -> list[AnnotationEdit]:
+    def annotation_edits(
+        self, from_ms: int, to_ms: int, limit: int = 10_000
+    ) -> list[AnnotationEdit]:
         """The edits with from_ms <= time < to_ms, oldest first."""
         rows = self._rows(
             f"SELECT {_COLUMNS} FROM {self.database}.annotation_events FINAL "
             "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            "ORDER BY ts, event_id LIMIT {n:UInt32}", {"f": from_ms, "t": to_ms, "n": limit})
+            "ORDER BY ts, event_id LIMIT {n:UInt32}",
+            {"f": from_ms, "t": to_ms, "n": limit},
+        )
         return [edit_of(r) for r in rows]
 
-    def zone_violations(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ZoneViolation]:
+    def zone_violations(
+        self, from_ms: int, to_ms: int, limit: int = 100_000
+    ) -> list[ZoneViolation]:
         rows = self._rows(
             f"SELECT toUnixTimestamp64Milli(ts), robot_id, annotation_id, x, y FROM "
             f"{self.database}.zone_violations FINAL WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY ts, robot_id, annotation_id "
-            "LIMIT {n:UInt32}", {"f": from_ms, "t": to_ms, "n": limit})
+            "LIMIT {n:UInt32}",
+            {"f": from_ms, "t": to_ms, "n": limit},
+        )
         return [ZoneViolation(int(t), r, a, float(x), float(y)) for t, r, a, x, y in rows]

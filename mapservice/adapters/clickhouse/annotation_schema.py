@@ -32,6 +32,7 @@ def statements(db: str) -> tuple[str, ...]:
             x Float64,
             y Float64
         ) ENGINE = ReplacingMergeTree PARTITION BY toDate(ts) ORDER BY (ts, robot_id, annotation_id)""",
-        *analyst_schema.comment_statements(db, analyst_schema.comments_of(
-            "annotation_events", "zone_violations")),
+        *analyst_schema.comment_statements(
+            db, analyst_schema.comments_of("annotation_events", "zone_violations")
+        ),
     )

@@ -24,10 +24,13 @@ BUCKET_S = BURST_BUCKET_MS // 1000
 assert BUCKET_S * 1000 == BURST_BUCKET_MS  # buckets of whole seconds: a DateTime column
 
 # The buckets of chunk_events rows (add FROM and a filter on ts) worth keeping, as inserted.
-BURSTS_SELECT = (f"SELECT toStartOfInterval(ts, INTERVAL {BUCKET_S} SECOND) AS bucket, robot_id, "
-                 "toUInt32(count()) AS writes, now64(3)")
-BURSTS_KEPT = (f"GROUP BY bucket, robot_id HAVING writes >= {BURST_MIN_WRITES} "
-               f"OR robot_id = '{UPLOADER_ID}'")
+BURSTS_SELECT = (
+    f"SELECT toStartOfInterval(ts, INTERVAL {BUCKET_S} SECOND) AS bucket, robot_id, "
+    "toUInt32(count()) AS writes, now64(3)"
+)
+BURSTS_KEPT = (
+    f"GROUP BY bucket, robot_id HAVING writes >= {BURST_MIN_WRITES} OR robot_id = '{UPLOADER_ID}'"
+)
 
 
 def statements(db: str) -> tuple[str, ...]:
@@ -41,8 +44,10 @@ def statements(db: str) -> tuple[str, ...]:
         PARTITION BY toDate(bucket)
         ORDER BY (bucket, robot_id)""",
         # The whole buckets before the newest snapshot, as its builds would have written them.
-        (f"INSERT INTO {db}.{TABLE} (bucket, robot_id, writes, built) {BURSTS_SELECT} "
-         f"FROM {db}.chunk_events FINAL WHERE ts < (SELECT toStartOfInterval(max(snap_ts), "
-         f"INTERVAL {BUCKET_S} SECOND) FROM {db}.snapshot_log) {BURSTS_KEPT}"),
+        (
+            f"INSERT INTO {db}.{TABLE} (bucket, robot_id, writes, built) {BURSTS_SELECT} "
+            f"FROM {db}.chunk_events FINAL WHERE ts < (SELECT toStartOfInterval(max(snap_ts), "
+            f"INTERVAL {BUCKET_S} SECOND) FROM {db}.snapshot_log) {BURSTS_KEPT}"
+        ),
         *analyst_schema.comment_statements(db, analyst_schema.comments_of(TABLE)),
     )

@@ -39,28 +39,49 @@ class ChangeFeedMixin(SnapshotsMixin):
         # chunk_events is counted without FINAL (a write stored twice until a merge): both
         # can only add a bucket, which the writes read for it (FINAL) then settle.
         db, b = self.database, upload_scan.BURST_BUCKET_MS
-        (snap,), = self._rows(f"SELECT toUnixTimestamp64Milli(maxOrNull(snap_ts)) FROM {db}.snapshot_log "
-                              f"WHERE snap_ts < {self._valid_before()}", {})
+        ((snap,),) = self._rows(
+            f"SELECT toUnixTimestamp64Milli(maxOrNull(snap_ts)) FROM {db}.snapshot_log "
+            f"WHERE snap_ts < {self._valid_before()}",
+            {},
+        )
         cut = from_ms if snap is None else max(from_ms, min(to_ms, snap // b * b))
         only = "" if robot is None else " AND robot_id = {r:String}"
-        params = {"f": from_ms, "t": to_ms, "c": cut, "fb": from_ms // b * b // 1000, "cs": -(-cut // 1000),
-                  "r": robot or "", "b": b, "n": upload_scan.BURST_MIN_WRITES, "up": UPLOADER_ID}
-        rows = self._rows(
-            "SELECT robot_id, toInt64(toUnixTimestamp(bucket)) * 1000 "
-            f"FROM {db}.{burst_schema.TABLE} FINAL "
-            "WHERE bucket >= toDateTime({fb:Int64}) AND bucket < toDateTime({cs:Int64})"
-            f"{only} {_FINAL_SETTINGS}", params) if cut > from_ms else []
+        params = {
+            "f": from_ms,
+            "t": to_ms,
+            "c": cut,
+            "fb": from_ms // b * b // 1000,
+            "cs": -(-cut // 1000),
+            "r": robot or "",
+            "b": b,
+            "n": upload_scan.BURST_MIN_WRITES,
+            "up": UPLOADER_ID,
+        }
+        rows = (
+            self._rows(
+                "SELECT robot_id, toInt64(toUnixTimestamp(bucket)) * 1000 "
+                f"FROM {db}.{burst_schema.TABLE} FINAL "
+                "WHERE bucket >= toDateTime({fb:Int64}) AND bucket < toDateTime({cs:Int64})"
+                f"{only} {_FINAL_SETTINGS}",
+                params,
+            )
+            if cut > from_ms
+            else []
+        )
         if cut < to_ms:
             rows += self._rows(
                 "SELECT robot_id, intDiv(toUnixTimestamp64Milli(ts), {b:Int64}) * {b:Int64} AS bucket "
                 f"FROM {db}.chunk_events "
                 "PREWHERE ts >= fromUnixTimestamp64Milli({c:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
                 f"{only.replace(' AND', ' WHERE', 1)} GROUP BY robot_id, bucket "
-                "HAVING count() >= {n:UInt32} OR robot_id = {up:String}", params)
+                "HAVING count() >= {n:UInt32} OR robot_id = {up:String}",
+                params,
+            )
         return [(r[0], int(r[1])) for r in rows]
 
-    def _feed_writes(self, from_ms: int, to_ms: int,
-                     robots: Collection[str] | None) -> list[ChunkRow]:
+    def _feed_writes(
+        self, from_ms: int, to_ms: int, robots: Collection[str] | None
+    ) -> list[ChunkRow]:
         # A slice is a range of the sorting key's leading `ts`: its granules only.
         robot = "" if robots is None else " AND robot_id IN {rs:Array(String)}"
         rows = self._rows(
@@ -72,7 +93,9 @@ class ChangeFeedMixin(SnapshotsMixin):
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2]) for r in rows]
 
-    def _hashes_before(self, chunks: set[tuple[int, int]], before_ms: int) -> dict[tuple[int, int], str]:
+    def _hashes_before(
+        self, chunks: set[tuple[int, int]], before_ms: int
+    ) -> dict[tuple[int, int], str]:
         """Per chunk, the content of its latest write (by event time, robot id) before
         `before_ms`: the nearest valid snapshot at or before it plus the writes since (at
         most a snapshot interval), not every write of the history before it. Without such a
@@ -83,8 +106,10 @@ class ChangeFeedMixin(SnapshotsMixin):
         if not chunks:
             return {}
         db = self.database
-        wanted = ("(row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
-                  "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c))")
+        wanted = (
+            "(row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
+            "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c))"
+        )
         rows = self._rows(
             f"WITH (SELECT maxOrNull(snap_ts) FROM {db}.snapshot_log "
             "WHERE snap_ts <= fromUnixTimestamp64Milli({b:Int64}) "

@@ -18,9 +18,12 @@ _AFTER_NAME = re.compile(
     rf"^(\s*(?:CREATE\s+(?:OR\s+REPLACE\s+)?(?:MATERIALIZED\s+)?(?:TABLE|VIEW|DATABASE)"
     rf"(?:\s+IF\s+NOT\s+EXISTS)?|ALTER\s+TABLE|DROP\s+(?:TABLE|VIEW)(?:\s+IF\s+EXISTS)?"
     rf"|TRUNCATE\s+TABLE(?:\s+IF\s+EXISTS)?)\s+{_NAME})",
-    re.IGNORECASE)
+    re.IGNORECASE,
+)
 _RENAME = re.compile(r"^\s*RENAME\s+TABLE\s", re.IGNORECASE)
-_ENGINE = re.compile(r"ENGINE\s*=\s*(ReplacingMergeTree|AggregatingMergeTree|MergeTree)\b(\(([^)]*)\))?")
+_ENGINE = re.compile(
+    r"ENGINE\s*=\s*(ReplacingMergeTree|AggregatingMergeTree|MergeTree)\b(\(([^)]*)\))?"
+)
 
 
 def replicated_engine(match: re.Match) -> str:
@@ -40,5 +43,5 @@ def for_cluster(statement: str, cluster: str) -> str:
         return statement  # INSERT, SELECT, OPTIMIZE...: not DDL, replication carries them
     if re.search(r"\bON\s+CLUSTER\b", statement, re.IGNORECASE):
         return statement
-    rewritten = statement[:found.end()] + on + statement[found.end():]
+    rewritten = statement[: found.end()] + on + statement[found.end() :]
     return _ENGINE.sub(replicated_engine, rewritten)

@@ -9,8 +9,21 @@ from __future__ import annotations
 
 from mapservice.adapters.clickhouse import analyst_schema
 
-COLUMNS = ("ts", "robot_id", "command_id", "event", "event_id", "kind", "status", "by",
-           "poi_id", "x", "y", "heading", "reason")
+COLUMNS = (
+    "ts",
+    "robot_id",
+    "command_id",
+    "event",
+    "event_id",
+    "kind",
+    "status",
+    "by",
+    "poi_id",
+    "x",
+    "y",
+    "heading",
+    "reason",
+)
 
 
 def statements(db: str) -> tuple[str, ...]:

@@ -16,9 +16,9 @@ from mapservice.core.ports import ChunkRow, ConflictRow
 class ConflictReadsMixin(ClickHouseConnection):
     """Conflicts and the chunk writes they are detected from."""
 
-
-    def chunk_writes_near(self, chunks: Sequence[tuple[int, int]], from_ms: int,
-                          to_ms: int) -> list[ChunkRow]:
+    def chunk_writes_near(
+        self, chunks: Sequence[tuple[int, int]], from_ms: int, to_ms: int
+    ) -> list[ChunkRow]:
         if not chunks:
             return []
         rows = self._rows(

@@ -32,7 +32,6 @@ def _unflag(text: str) -> bool | str | None:
     return None if text == "" else _BOOLISH.decode(text)
 
 
-
 def _mm(metres: float) -> int:
     return round(metres * 1000)
 
@@ -42,10 +41,12 @@ def _mm(metres: float) -> int:
 # more than a String column, and most poses carry no path. Metres and the receive time are
 # computed by ClickHouse (the same IEEE division and sum Python would do), which spares the
 # client three passes over every row of a large read.
-_POSE_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
-                 "qx, qy, qz, qw, battery, charging, loaded, has_path, if(has_path, "
-                 "arrayStringConcat(arrayMap((x, y) -> concat(toString(x), ' ', toString(y)), "
-                 "path_x_mm, path_y_mm), ','), ''), toUnixTimestamp64Milli(ts) + recv_lag_ms")
+_POSE_COLUMNS = (
+    "robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
+    "qx, qy, qz, qw, battery, charging, loaded, has_path, if(has_path, "
+    "arrayStringConcat(arrayMap((x, y) -> concat(toString(x), ' ', toString(y)), "
+    "path_x_mm, path_y_mm), ','), ''), toUnixTimestamp64Milli(ts) + recv_lag_ms"
+)
 # Every FINAL read of poses and chunk_events: both are partitioned by the day of `ts`, a
 # sorting-key column, so rows with one identity always share a partition and FINAL need
 # not merge across partitions (it then skips merging single-part partitions entirely).
@@ -57,23 +58,43 @@ def _path(has_path: bool, text: str) -> tuple[tuple[float, float], ...] | None:
         return None
     if not text:
         return ()
-    return tuple((int(x) / 1000, int(y) / 1000)
-                 for x, y in (point.split(" ") for point in text.split(",")))
+    return tuple(
+        (int(x) / 1000, int(y) / 1000) for x, y in (point.split(" ") for point in text.split(","))
+    )
 
 
 def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
     """PoseRows from the columns of a `_POSE_COLUMNS` query, column-wise (it is faster)."""
     if not columns or not len(columns[0]):
         return []
-    robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, received = columns
+    robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, received = (
+        columns
+    )
     flags: dict[str, bool | str | None] = {}
 
     def unflag(texts: Sequence[str]) -> list:
         return [flags[t] if t in flags else flags.setdefault(t, _unflag(t)) for t in texts]
 
     paths = [_path(True, text) if has else None for has, text in zip(has_path, path)]
-    return list(map(PoseRow, robot, ts, x, y, z, qx, qy, qz, qw, battery, unflag(charging),
-                    unflag(loaded), paths, received))
+    return list(
+        map(
+            PoseRow,
+            robot,
+            ts,
+            x,
+            y,
+            z,
+            qx,
+            qy,
+            qz,
+            qw,
+            battery,
+            unflag(charging),
+            unflag(loaded),
+            paths,
+            received,
+        )
+    )
 
 
 class ClickHouseConnection:
@@ -100,12 +121,17 @@ class ClickHouseConnection:
             except ImportError as exc:
                 raise RuntimeError(
                     "embedded ClickHouse (chdb://) needs the embedded extra: pip install "
-                    "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server") from exc
+                    "'mapservice[embedded]'; or point MAPSERVICE_CLICKHOUSE_DSN at a server"
+                ) from exc
             return clickhouse_connect.get_client(dsn=self.dsn)
-        return clickhouse_connect.get_client(dsn=self.dsn, username=self._username,
-                                             password=self._password,
-                                             connect_timeout=min(10.0, self.timeout_s),
-                                             send_receive_timeout=self.timeout_s, **self.tls)
+        return clickhouse_connect.get_client(
+            dsn=self.dsn,
+            username=self._username,
+            password=self._password,
+            connect_timeout=min(10.0, self.timeout_s),
+            send_receive_timeout=self.timeout_s,
+            **self.tls,
+        )
 
     @property
     def client(self):
@@ -142,8 +168,10 @@ class ClickHouseConnection:
         snapshots before it."""
         # minOrNull: min() of no rows is the epoch, not NULL, which made every snapshot
         # invalid while no repair was pending (every read folded the whole history).
-        return (f"(SELECT ifNull(minOrNull(from_ts), "
-                f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)")
+        return (
+            f"(SELECT ifNull(minOrNull(from_ts), "
+            f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)"
+        )
 
     def _pose_query(self, sql: str, params: dict) -> list[PoseRow]:
         with self._reader() as c:

@@ -9,10 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from mapservice.adapters.clickhouse.connection import (
+    _FINAL_SETTINGS,
+    _POSE_COLUMNS,
+    ClickHouseConnection,
+)
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, sort_column
 from mapservice.core.ports import ChunkRow, PoseRow
-from mapservice.adapters.clickhouse.connection import (
-    _FINAL_SETTINGS, _POSE_COLUMNS, ClickHouseConnection)
 
 
 class LegacyMixin(ClickHouseConnection):
@@ -25,13 +28,16 @@ class LegacyMixin(ClickHouseConnection):
     def list_chunks(self, query: ChunkQuery) -> list[ChunkRow]:
         rows = self._legacy_rows(
             "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
-            f"recv_lag_ms FROM {self.database}.chunk_events FINAL", query,
-            lambda sql, params: self._rows(sql, params))
+            f"recv_lag_ms FROM {self.database}.chunk_events FINAL",
+            query,
+            lambda sql, params: self._rows(sql, params),
+        )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
 
     def list_poses(self, query: PoseQuery) -> list[PoseRow]:
         return self._legacy_rows(
-            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL", query, self._pose_query)
+            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL", query, self._pose_query
+        )
 
     def _legacy_rows(self, select: str, query: ChunkQuery | PoseQuery, run: Callable) -> list:
         """Filters only on sorting-key columns (PREWHERE keeps FINAL exact, as in poses()),
@@ -40,9 +46,11 @@ class LegacyMixin(ClickHouseConnection):
         then day: when that window alone fills skip + limit, the answer is the same."""
         where = []
         params: dict = {"n": query.limit, "s": query.skip}
-        for column, op, value in (("ts", "=", query.timestamp_ms),
-                                  ("ts", ">=", query.updated_since_ms),
-                                  ("ts", "<", query.updated_before_ms)):
+        for column, op, value in (
+            ("ts", "=", query.timestamp_ms),
+            ("ts", ">=", query.updated_since_ms),
+            ("ts", "<", query.updated_before_ms),
+        ):
             if value is not None:
                 name = f"p{len(params)}"
                 where.append(f"{column} {op} fromUnixTimestamp64Milli({{{name}:Int64}})")
@@ -55,20 +63,29 @@ class LegacyMixin(ClickHouseConnection):
                 if value is not None:
                     where.append(f"{column} = {{{column}:UInt16}}")
                     params[column] = value
-        order = ", ".join(f"{sort_column(f)} {'DESC' if d == 'desc' else 'ASC'}"
-                          for f, d in query.order)
+        order = ", ".join(
+            f"{sort_column(f)} {'DESC' if d == 'desc' else 'ASC'}" for f, d in query.order
+        )
 
         def sql(extra: list[str]) -> str:
             clause = f" PREWHERE {' AND '.join(where + extra)}" if where or extra else ""
-            return (f"{select}{clause} ORDER BY {order} LIMIT {{n:UInt32}} OFFSET {{s:UInt32}} "
-                    f"{_FINAL_SETTINGS}")
+            return (
+                f"{select}{clause} ORDER BY {order} LIMIT {{n:UInt32}} OFFSET {{s:UInt32}} "
+                f"{_FINAL_SETTINGS}"
+            )
 
-        if (query.limit and query.order[0] == ("timestamp", "desc")
-                and query.updated_since_ms is None and query.timestamp_ms is None):
+        if (
+            query.limit
+            and query.order[0] == ("timestamp", "desc")
+            and query.updated_since_ms is None
+            and query.timestamp_ms is None
+        ):
             upper = query.updated_before_ms or self.clock_ms()
             for span_ms in (3_600_000, 86_400_000):
-                rows = run(sql(["ts >= fromUnixTimestamp64Milli({lower:Int64})"]),
-                           {**params, "lower": upper - span_ms})
+                rows = run(
+                    sql(["ts >= fromUnixTimestamp64Milli({lower:Int64})"]),
+                    {**params, "lower": upper - span_ms},
+                )
                 if len(rows) == query.limit:
                     return rows
         return run(sql([]), params)

@@ -43,7 +43,9 @@ class MigrationsMixin(ClickHouseConnection):
     def schema_version(self) -> int:
         """The highest applied migration (0 on an empty database)."""
         try:
-            (version,), = self._rows(f"SELECT max(version) FROM {self.database}.schema_migrations", {})
+            ((version,),) = self._rows(
+                f"SELECT max(version) FROM {self.database}.schema_migrations", {}
+            )
         except Exception:  # no database or table yet
             return 0
         return int(version or 0)
@@ -61,15 +63,22 @@ class MigrationsMixin(ClickHouseConnection):
             c = self.client
             ddl = self._ddl
             ddl(f"CREATE DATABASE IF NOT EXISTS {db}")
-            ddl(f"CREATE TABLE IF NOT EXISTS {db}.schema_migrations (version UInt32, "
+            ddl(
+                f"CREATE TABLE IF NOT EXISTS {db}.schema_migrations (version UInt32, "
                 "description String, applied DateTime DEFAULT now()) "
-                "ENGINE = ReplacingMergeTree ORDER BY version")
-            ddl(f"ALTER TABLE {db}.schema_migrations ADD COLUMN IF NOT EXISTS "
-                "checksum String DEFAULT ''")
+                "ENGINE = ReplacingMergeTree ORDER BY version"
+            )
+            ddl(
+                f"ALTER TABLE {db}.schema_migrations ADD COLUMN IF NOT EXISTS "
+                "checksum String DEFAULT ''"
+            )
             self._take_migration_lock(holder, lock_timeout_s)
             try:
-                applied = dict(c.query(f"SELECT version, checksum FROM {db}.schema_migrations FINAL")
-                               .result_rows)
+                applied = dict(
+                    c.query(
+                        f"SELECT version, checksum FROM {db}.schema_migrations FINAL"
+                    ).result_rows
+                )
                 version = max(applied, default=0)
                 released = checksums()
                 for m in migrations(db, self.retention_days):
@@ -78,13 +87,19 @@ class MigrationsMixin(ClickHouseConnection):
                             raise MigrationChanged(
                                 f"schema migration {m.version} ({m.description}) differs from the "
                                 "one applied to this database; migrations must never change once "
-                                "released: add a new one instead")
+                                "released: add a new one instead"
+                            )
                         continue
-                    log.info("applying schema migration", version=m.version, description=m.description)
+                    log.info(
+                        "applying schema migration", version=m.version, description=m.description
+                    )
                     for statement in m.statements:
                         ddl(statement)
-                    c.insert(f"{db}.schema_migrations", [[m.version, m.description, released[m.version]]],
-                             column_names=["version", "description", "checksum"])
+                    c.insert(
+                        f"{db}.schema_migrations",
+                        [[m.version, m.description, released[m.version]]],
+                        column_names=["version", "description", "checksum"],
+                    )
                     version = max(version, m.version)
             finally:
                 ddl(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
@@ -103,13 +118,18 @@ class MigrationsMixin(ClickHouseConnection):
             try:
                 # Log, not MergeTree: on a cluster each replica has its own lock table,
                 # and ON CLUSTER DDL runs in one queue, so one CREATE still wins.
-                self._ddl(f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, since DateTime "
-                          "DEFAULT now()) ENGINE = Log")
+                self._ddl(
+                    f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, since DateTime "
+                    "DEFAULT now()) ENGINE = Log"
+                )
                 c.insert(f"{db}.{MIGRATION_LOCK}", [[holder]], column_names=["holder"])
                 return
             except clickhouse_connect.driver.exceptions.DatabaseError as exc:
-                if "already exists" not in str(exc).lower() and "(57)" not in str(exc) \
-                        and "code: 57" not in str(exc).lower():
+                if (
+                    "already exists" not in str(exc).lower()
+                    and "(57)" not in str(exc)
+                    and "code: 57" not in str(exc).lower()
+                ):
                     raise
             try:
                 rows = c.query(f"SELECT holder, since FROM {db}.{MIGRATION_LOCK}").result_rows
@@ -121,7 +141,8 @@ class MigrationsMixin(ClickHouseConnection):
             if time.monotonic() > deadline:
                 raise MigrationLocked(
                     f"schema migrations are locked by {who}; if that process is gone, run "
-                    f"`mapservice migrate --break-lock` (drops {db}.{MIGRATION_LOCK})")
+                    f"`mapservice migrate --break-lock` (drops {db}.{MIGRATION_LOCK})"
+                )
             if not waited:
                 log.info("waiting for another schema migration", holder=who)
                 waited = True
@@ -130,7 +151,10 @@ class MigrationsMixin(ClickHouseConnection):
     def break_migration_lock(self) -> bool:
         """Drops a lock left by a migrator that died; True if there was one."""
         with self._lock:
-            existed = bool(self.client.query(
-                f"EXISTS TABLE {self.database}.{MIGRATION_LOCK}").result_rows[0][0])
+            existed = bool(
+                self.client.query(f"EXISTS TABLE {self.database}.{MIGRATION_LOCK}").result_rows[0][
+                    0
+                ]
+            )
             self._ddl(f"DROP TABLE IF EXISTS {self.database}.{MIGRATION_LOCK} SYNC")
             return existed

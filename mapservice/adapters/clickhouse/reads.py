@@ -13,12 +13,12 @@ from collections.abc import Sequence
 
 import msgspec
 
-from mapservice.core.events import MapMetaSet
-from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket
-from mapservice.core.timetravel import timeline_buckets
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
 from mapservice.adapters.clickhouse.schema import KEYFRAME_MS, POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.core.events import MapMetaSet
+from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket
+from mapservice.core.timetravel import timeline_buckets
 
 
 class ReadsMixin(SnapshotsMixin):
@@ -26,12 +26,15 @@ class ReadsMixin(SnapshotsMixin):
 
     # --- reads ----------------------------------------------------------------------
 
-    def poses(self, from_ms: int, to_ms: int, robot_id: str | None = None,
-              limit: int = 100_000) -> list[PoseRow]:
+    def poses(
+        self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 100_000
+    ) -> list[PoseRow]:
         # PREWHERE on sorting-key columns only: duplicates of one identity pass or fail
         # together, so FINAL still sees all of them; the other columns are read only for
         # granules holding rows of the window.
-        where = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        where = (
+            "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        )
         params: dict = {"f": from_ms, "t": to_ms, "n": limit}
         if robot_id is not None:
             where += " AND robot_id = {r:String}"
@@ -42,13 +45,21 @@ class ReadsMixin(SnapshotsMixin):
             params,
         )
 
-    def poses_downsampled(self, from_ms: int, to_ms: int, step_ms: int,
-                          robot_id: str | None = None, limit: int = 100_000) -> list[PoseRow]:
+    def poses_downsampled(
+        self,
+        from_ms: int,
+        to_ms: int,
+        step_ms: int,
+        robot_id: str | None = None,
+        limit: int = 100_000,
+    ) -> list[PoseRow]:
         """Per robot and step bucket [from + k*step, from + (k+1)*step), its first pose in
         from_ms <= event time < to_ms; ordered by time then robot, like poses()."""
         if step_ms <= 0:
             raise ValueError("step_ms must be positive")
-        where = "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        where = (
+            "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        )
         params: dict = {"f": from_ms, "t": to_ms, "s": step_ms, "n": limit}
         if robot_id is not None:
             where += " AND robot_id = {r:String}"
@@ -65,12 +76,18 @@ class ReadsMixin(SnapshotsMixin):
                 f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} "
                 "WHERE ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY cell, ts, robot_id "
                 # A step of one minute is one keyframe per robot already (FINAL).
-                + ("" if step_ms == KEYFRAME_MS else
-                   "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) ")
-                + f"LIMIT {{n:UInt32}} {_FINAL_SETTINGS}", params)
+                + (
+                    ""
+                    if step_ms == KEYFRAME_MS
+                    else "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
+                )
+                + f"LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+                params,
+            )
         if step_ms >= 10 * KEYFRAME_MS:
             return self._pose_query(
-                self._keyframe_sql(_step_heads(from_ms, to_ms, step_ms), robot_id), params)
+                self._keyframe_sql(_step_heads(from_ms, to_ms, step_ms), robot_id), params
+            )
         return self._pose_query(
             f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {self.database}.poses FINAL WHERE {where} "
             "ORDER BY robot_id, ts "
@@ -94,21 +111,27 @@ class ReadsMixin(SnapshotsMixin):
         """
         db = self.database
         robot = " AND robot_id = {r:String}" if robot_id is not None else ""
-        window = ("ts >= fromUnixTimestamp64Milli({f:Int64}) "
-                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
+        window = (
+            "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        )
         candidates = (
             f"SELECT {POSE_COLUMNS} FROM {db}.pose_keyframes FINAL "
             "PREWHERE cell >= toStartOfMinute(fromUnixTimestamp64Milli({f:Int64})) "
-            f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} WHERE {window}")
+            f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} WHERE {window}"
+        )
         if heads:
             ranges = " OR ".join(
                 f"(ts >= fromUnixTimestamp64Milli({lo}) AND ts < fromUnixTimestamp64Milli({hi}))"
-                for lo, hi in heads)
-            candidates += (f" UNION ALL SELECT {POSE_COLUMNS} FROM {db}.poses FINAL "
-                           f"PREWHERE ({ranges}){robot}")
-        return (f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM ({candidates}) ORDER BY robot_id, ts "
-                "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
-                f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}")
+                for lo, hi in heads
+            )
+            candidates += (
+                f" UNION ALL SELECT {POSE_COLUMNS} FROM {db}.poses FINAL PREWHERE ({ranges}){robot}"
+            )
+        return (
+            f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM ({candidates}) ORDER BY robot_id, ts "
+            "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
+            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}"
+        )
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
         """Every chunk's winning write at or before `at_ms` (nearest snapshot + events).
@@ -129,11 +152,14 @@ class ReadsMixin(SnapshotsMixin):
                 "WHERE snap_ts = snap UNION ALL "
                 f"SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events "
                 "WHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64})) "
-                "GROUP BY row, col ORDER BY row, col", parameters={"t": at_ms}).result_rows
+                "GROUP BY row, col ORDER BY row, col",
+                parameters={"t": at_ms},
+            ).result_rows
         return [ChunkState(*r) for r in rows]
 
-    def robots_at(self, at_ms: int, after: str | None = None,
-                  limit: int | None = None) -> list[PoseRow]:
+    def robots_at(
+        self, at_ms: int, after: str | None = None, limit: int | None = None
+    ) -> list[PoseRow]:
         """Each robot's latest pose at or before `at_ms` (nearest snapshot + events).
 
         One statement in two passes over `poses`: the first finds each robot's latest time,
@@ -154,13 +180,16 @@ class ReadsMixin(SnapshotsMixin):
         cut = ""
         if limit is not None:
             cut, params["n"] = " ORDER BY robot_id LIMIT {n:UInt32}", limit
-        latest = ("(SELECT robot_id, max(ts) FROM ("
-                  f"SELECT robot_id, ts FROM {db}.poses "
-                  "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64})" + page
-                  + " UNION ALL "
-                  # max(ts): a rebuilt snapshot may still hold its older rows until merged.
-                  f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap{page}) "
-                  f"GROUP BY robot_id{cut})")
+        latest = (
+            "(SELECT robot_id, max(ts) FROM ("
+            f"SELECT robot_id, ts FROM {db}.poses "
+            "PREWHERE ts > snap AND ts <= fromUnixTimestamp64Milli({t:Int64})"
+            + page
+            + " UNION ALL "
+            # max(ts): a rebuilt snapshot may still hold its older rows until merged.
+            f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap{page}) "
+            f"GROUP BY robot_id{cut})"
+        )
         return self._pose_query(
             f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
             "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
@@ -170,7 +199,8 @@ class ReadsMixin(SnapshotsMixin):
             # A robot silent since before the retention: its last pose, carried (retention.py).
             f"SELECT * FROM {db}.carried_poses FINAL WHERE (robot_id, ts) IN {latest}) "
             f"ORDER BY robot_id LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
-            params)
+            params,
+        )
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         # PREWHERE on the sorting key's `ts`: as in poses(), FINAL sees every duplicate.
@@ -183,8 +213,9 @@ class ReadsMixin(SnapshotsMixin):
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
 
-    def chunk_events_compacted(self, from_ms: int, to_ms: int, step_ms: int,
-                               limit: int = 100_000) -> list[ChunkRow]:
+    def chunk_events_compacted(
+        self, from_ms: int, to_ms: int, step_ms: int, limit: int = 100_000
+    ) -> list[ChunkRow]:
         """Per chunk and absolute bucket [k*step, (k+1)*step) of from_ms <= event time <
         to_ms, only the bucket's winning write: the greatest (event time, robot id), the
         rule of map_at. Computed at query time from `chunk_events`, no cache.
@@ -198,8 +229,9 @@ class ReadsMixin(SnapshotsMixin):
         if step_ms <= 0:
             raise ValueError("step_ms must be positive")
         db = self.database
-        window = ("ts >= fromUnixTimestamp64Milli({f:Int64}) "
-                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
+        window = (
+            "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        )
         rows = self._rows(
             "SELECT row, col, toUnixTimestamp64Milli(ts) AS t, max(robot_id) AS robot, "
             "lower(hex(argMax(content_hash, robot_id))), argMax(recv_lag_ms, robot_id) "
@@ -218,8 +250,10 @@ class ReadsMixin(SnapshotsMixin):
         chunks = self._timeline_chunks(from_ms, to_ms, bucket_ms)
         robots = self._timeline_robots(from_ms, to_ms, bucket_ms)
         conflicts = self.conflict_counts(from_ms, to_ms, bucket_ms)
-        return [TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
-                for k, start in enumerate(starts)]
+        return [
+            TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
+            for k, start in enumerate(starts)
+        ]
 
     def _timeline_chunks(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
         """Chunk changes per bucket (k: the bucket's index), as `count() FROM chunk_events
@@ -232,31 +266,47 @@ class ReadsMixin(SnapshotsMixin):
         without one) are counted from chunk_events FINAL, as before.
         """
         db = self.database
-        params = {"f": from_ms, "t": to_ms, "b": bucket_ms,
-                  "f0": from_ms // 1000, "t1": -(-to_ms // 1000)}
-        cov = (f"(SELECT toDateTime(max(snap_ts)) FROM {db}.snapshot_log "
-               f"WHERE snap_ts < {self._valid_before()})")
-        seconds = (f"{db}.chunk_seconds FINAL PREWHERE second >= toDateTime({{f0:Int64}}) "
-                   "AND second < least(cov, toDateTime({t1:Int64}))")
+        params = {
+            "f": from_ms,
+            "t": to_ms,
+            "b": bucket_ms,
+            "f0": from_ms // 1000,
+            "t1": -(-to_ms // 1000),
+        }
+        cov = (
+            f"(SELECT toDateTime(max(snap_ts)) FROM {db}.snapshot_log "
+            f"WHERE snap_ts < {self._valid_before()})"
+        )
+        seconds = (
+            f"{db}.chunk_seconds FINAL PREWHERE second >= toDateTime({{f0:Int64}}) "
+            "AND second < least(cov, toDateTime({t1:Int64}))"
+        )
         if from_ms % 1000 == 0 and to_ms % 1000 == 0 and bucket_ms % 1000 == 0:
-            covered = (f"SELECT intDiv(toUnixTimestamp(second) * 1000 - {{f:Int64}}, {{b:Int64}}) AS k, "
-                       f"sum(changes) AS n FROM {seconds} GROUP BY k")
+            covered = (
+                f"SELECT intDiv(toUnixTimestamp(second) * 1000 - {{f:Int64}}, {{b:Int64}}) AS k, "
+                f"sum(changes) AS n FROM {seconds} GROUP BY k"
+            )
         else:
             s = "toInt64(toUnixTimestamp(second)) * 1000"
-            whole = (f"{s} >= {{f:Int64}} AND {s} + 1000 <= {{t:Int64}} AND "
-                     f"intDiv({s} - {{f:Int64}}, {{b:Int64}}) = intDiv({s} + 999 - {{f:Int64}}, {{b:Int64}})")
+            whole = (
+                f"{s} >= {{f:Int64}} AND {s} + 1000 <= {{t:Int64}} AND "
+                f"intDiv({s} - {{f:Int64}}, {{b:Int64}}) = intDiv({s} + 999 - {{f:Int64}}, {{b:Int64}})"
+            )
             covered = (
                 "SELECT tupleElement(kn, 1) AS k, sum(tupleElement(kn, 2)) AS n FROM ("
                 f"SELECT arrayJoin(if({whole}, [(intDiv({s} - {{f:Int64}}, {{b:Int64}}), length(offsets))], "
                 f"arrayMap(o -> (intDiv({s} + o - {{f:Int64}}, {{b:Int64}}), toUInt64(1)), "
                 f"arrayFilter(o -> {s} + o >= {{f:Int64}} AND {s} + o < {{t:Int64}}, offsets)))) AS kn "
-                f"FROM {seconds}) GROUP BY k")
+                f"FROM {seconds}) GROUP BY k"
+            )
         rows = self._rows(
             f"WITH {cov} AS cov SELECT k, sum(n) FROM ({covered} UNION ALL "
             f"SELECT intDiv(toUnixTimestamp64Milli(ts) - {{f:Int64}}, {{b:Int64}}) AS k, count() AS n "
             f"FROM {db}.chunk_events FINAL PREWHERE ts >= greatest(fromUnixTimestamp64Milli({{f:Int64}}), cov) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64}) GROUP BY k) GROUP BY k "
-            f"{_FINAL_SETTINGS}", params)
+            f"{_FINAL_SETTINGS}",
+            params,
+        )
         return {int(k): int(n) for k, n in rows}
 
     def _timeline_robots(self, from_ms: int, to_ms: int, bucket_ms: int) -> dict[int, int]:
@@ -276,26 +326,34 @@ class ReadsMixin(SnapshotsMixin):
         parts = []
         for table, lo, hi in _robot_cells(from_ms, to_ms, bucket_ms):
             if table is None:
-                parts.append(f"SELECT robot_id, {bucket.format(x='ts')} AS k FROM {db}.poses "
-                             f"PREWHERE ts >= fromUnixTimestamp64Milli({lo}) "
-                             f"AND ts < fromUnixTimestamp64Milli({hi})")
+                parts.append(
+                    f"SELECT robot_id, {bucket.format(x='ts')} AS k FROM {db}.poses "
+                    f"PREWHERE ts >= fromUnixTimestamp64Milli({lo}) "
+                    f"AND ts < fromUnixTimestamp64Milli({hi})"
+                )
                 continue
             size = _CELL_MS[table]
             aligned = from_ms % size == 0 and bucket_ms % size == 0  # a cell in one bucket
             times = "[first_ts]" if aligned else "[first_ts, last_ts]"
-            parts.append(f"SELECT robot_id, {bucket.format(x='x')} AS k FROM {db}.{table} "
-                         f"ARRAY JOIN {times} AS x WHERE cell >= fromUnixTimestamp64Milli({lo}) "
-                         f"AND cell < fromUnixTimestamp64Milli({hi})")
-        rows = self._rows(f"SELECT k, uniqExact(robot_id) FROM ({' UNION ALL '.join(parts)}) "
-                          "GROUP BY k", params)
+            parts.append(
+                f"SELECT robot_id, {bucket.format(x='x')} AS k FROM {db}.{table} "
+                f"ARRAY JOIN {times} AS x WHERE cell >= fromUnixTimestamp64Milli({lo}) "
+                f"AND cell < fromUnixTimestamp64Milli({hi})"
+            )
+        rows = self._rows(
+            f"SELECT k, uniqExact(robot_id) FROM ({' UNION ALL '.join(parts)}) GROUP BY k", params
+        )
         return {int(k): int(n) for k, n in rows}
 
     def robot_known(self, robot_id: str) -> bool:
         # pose_keyframes: a row per robot and minute, robot ids as LowCardinality (a part
         # without the robot in its dictionary is skipped), not a scan of `poses`.
-        return bool(self._rows(
-            f"SELECT 1 FROM {self.database}.pose_keyframes WHERE robot_id = {{r:String}} LIMIT 1",
-            {"r": robot_id}))
+        return bool(
+            self._rows(
+                f"SELECT 1 FROM {self.database}.pose_keyframes WHERE robot_id = {{r:String}} LIMIT 1",
+                {"r": robot_id},
+            )
+        )
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
         rows = self._rows(
@@ -326,7 +384,8 @@ class ReadsMixin(SnapshotsMixin):
 
     def latest_meta(self) -> MapMetaSet | None:
         rows = self._rows(
-            f"SELECT meta FROM {self.database}.map_meta FINAL ORDER BY ts DESC LIMIT 1", {})
+            f"SELECT meta FROM {self.database}.map_meta FINAL ORDER BY ts DESC LIMIT 1", {}
+        )
         if not rows:
             return None
         doc = msgspec.json.decode(rows[0][0])
@@ -347,9 +406,9 @@ def _step_heads(from_ms: int, to_ms: int, step_ms: int) -> list[tuple[int, int]]
 _CELL_MS = {"pose_ten_minutes": 600_000, "pose_minutes": KEYFRAME_MS}
 
 
-def _robot_cells(lo: int, hi: int, bucket_ms: int,
-                 levels: tuple[str, ...] = ("pose_ten_minutes", "pose_minutes")
-                 ) -> list[tuple[str | None, int, int]]:
+def _robot_cells(
+    lo: int, hi: int, bucket_ms: int, levels: tuple[str, ...] = ("pose_ten_minutes", "pose_minutes")
+) -> list[tuple[str | None, int, int]]:
     """[lo, hi) as (table, start, end) pieces: whole cells of the coarsest level not
     longer than a bucket, the rest of each end in finer levels, and `poses` (None) for
     what no whole minute covers."""
@@ -359,7 +418,10 @@ def _robot_cells(lo: int, hi: int, bucket_ms: int,
         size = _CELL_MS[table]
         a, b = -(-lo // size) * size, hi // size * size
         if bucket_ms >= size and b > a:
-            rest = levels[i + 1:]
-            return (_robot_cells(lo, a, bucket_ms, rest) + [(table, a, b)]
-                    + _robot_cells(b, hi, bucket_ms, rest))
+            rest = levels[i + 1 :]
+            return (
+                _robot_cells(lo, a, bucket_ms, rest)
+                + [(table, a, b)]
+                + _robot_cells(b, hi, bucket_ms, rest)
+            )
     return [(None, lo, hi)]

@@ -30,14 +30,15 @@ renewed floor. `RetentionMixin` builds on `snapshots.SnapshotsMixin`.
 from __future__ import annotations
 
 import datetime as dt
+
 import structlog
 
-from mapservice.core.annotations import prune_before
-from mapservice.core.ports import RetentionResult
 from mapservice.adapters.clickhouse.annotation_reads import edit_of
 from mapservice.adapters.clickhouse.cluster import for_cluster
 from mapservice.adapters.clickhouse.schema import RETAINED_BY_DAY
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.core.annotations import prune_before
+from mapservice.core.ports import RetentionResult
 
 log = structlog.get_logger(__name__)
 
@@ -68,22 +69,32 @@ class RetentionMixin(SnapshotsMixin):
                 "SELECT table, partition_id FROM system.parts WHERE database = {d:String} "
                 "AND active AND has(splitByChar(',', {t:String}), table) "
                 "AND partition_id < {c:String} GROUP BY table, partition_id ORDER BY table, partition_id",
-                {"d": db, "t": ",".join(RETAINED_BY_DAY), "c": cut_id})
+                {"d": db, "t": ",".join(RETAINED_BY_DAY), "c": cut_id},
+            )
             renewed = 0
             if any(table == "chunk_contents" for table, _ in old):
                 renewed = self._renew_contents(cut, now_ms)
             if any(table == "poses" for table, _ in old):
                 self._carry_poses(anchor, cut)
             for table, partition in old:
-                self.client.command(for_cluster(
-                    f"ALTER TABLE {db}.{table} DROP PARTITION ID '{partition}'", self.cluster))
+                self.client.command(
+                    for_cluster(
+                        f"ALTER TABLE {db}.{table} DROP PARTITION ID '{partition}'", self.cluster
+                    )
+                )
             if old:
                 self.client.command(
                     f"DELETE FROM {db}.snapshot_log WHERE snap_ts < toDateTime64({{c:Date}}, 3, 'UTC')",
-                    parameters={"c": cut})
+                    parameters={"c": cut},
+                )
                 self._drop_superseded_meta(boundary)
-                log.info("retention applied", anchor_ms=anchor, first_day_kept=str(cut),
-                         partitions_dropped=len(old), contents_renewed=renewed)
+                log.info(
+                    "retention applied",
+                    anchor_ms=anchor,
+                    first_day_kept=str(cut),
+                    partitions_dropped=len(old),
+                    contents_renewed=renewed,
+                )
             return RetentionResult(anchor, cut.isoformat(), len(old), renewed)
 
     def _rows_w(self, sql: str, params: dict) -> list:
@@ -95,7 +106,9 @@ class RetentionMixin(SnapshotsMixin):
             rows = self._rows_w(
                 f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() FROM {self.database}.snapshot_log "
                 "WHERE snap_ts <= fromUnixTimestamp64Milli({b:Int64}) "
-                f"AND snap_ts < {self._valid_before()}", {"b": boundary_ms})
+                f"AND snap_ts < {self._valid_before()}",
+                {"b": boundary_ms},
+            )
             if rows and rows[0][1]:
                 return int(rows[0][0])
             if attempt == 0:
@@ -110,20 +123,26 @@ class RetentionMixin(SnapshotsMixin):
         db = self.database
         today = dt.date(1970, 1, 1) + dt.timedelta(days=now_ms // DAY_MS)
         kept_from = "toDateTime64({c:Date}, 3, 'UTC')"
-        named = (f"SELECT content_hash FROM {db}.map_snapshots WHERE snap_ts >= {kept_from} "
-                 f"UNION DISTINCT SELECT content_hash FROM {db}.chunk_events WHERE ts >= {kept_from}")
+        named = (
+            f"SELECT content_hash FROM {db}.map_snapshots WHERE snap_ts >= {kept_from} "
+            f"UNION DISTINCT SELECT content_hash FROM {db}.chunk_events WHERE ts >= {kept_from}"
+        )
         params = {"c": cut, "today": today}
-        (count,), = self._rows_w(
+        ((count,),) = self._rows_w(
             f"SELECT uniqExact(content_hash) FROM {db}.chunk_contents WHERE day < {{c:Date}} "
             f"AND content_hash IN ({named}) AND content_hash NOT IN "
-            f"(SELECT content_hash FROM {db}.chunk_contents WHERE day >= {{c:Date}})", params)
+            f"(SELECT content_hash FROM {db}.chunk_contents WHERE day >= {{c:Date}})",
+            params,
+        )
         if count:
             self.client.command(
                 f"INSERT INTO {db}.chunk_contents (content_hash, day, width, height, zlib_pixels) "
                 "SELECT content_hash, {today:Date}, any(width), any(height), any(zlib_pixels) "
                 f"FROM {db}.chunk_contents WHERE day < {{c:Date}} AND content_hash IN ({named}) "
                 f"AND content_hash NOT IN (SELECT content_hash FROM {db}.chunk_contents "
-                "WHERE day >= {c:Date}) GROUP BY content_hash", parameters=params)
+                "WHERE day >= {c:Date}) GROUP BY content_hash",
+                parameters=params,
+            )
             self._known_contents.clear()  # days it remembers may be the dropped ones
         return int(count)
 
@@ -137,7 +156,8 @@ class RetentionMixin(SnapshotsMixin):
             "WHERE ts < toDateTime64({c:Date}, 3, 'UTC') AND (robot_id, ts) IN "
             f"(SELECT robot_id, ts FROM {db}.robot_snapshots "
             "WHERE snap_ts = fromUnixTimestamp64Milli({a:Int64}))",
-            parameters={"a": anchor_ms, "c": cut})
+            parameters={"a": anchor_ms, "c": cut},
+        )
         self.client.command(f"OPTIMIZE TABLE {db}.carried_poses FINAL")
 
     def _prune_annotation_edits(self, boundary_ms: int) -> None:
@@ -149,14 +169,17 @@ class RetentionMixin(SnapshotsMixin):
         rows = self._rows_w(
             f"SELECT toUnixTimestamp64Milli(ts), event_id, change, annotation_id, author, body "
             f"FROM {db}.annotation_events FINAL WHERE ts <= fromUnixTimestamp64Milli({{b:Int64}})",
-            {"b": boundary_ms})
+            {"b": boundary_ms},
+        )
         edits = [edit_of(r, check=False) for r in rows]
         kept = {e.event_id for e in prune_before(edits, boundary_ms)}
         gone = sorted({e.event_id for e in edits if e.ts_ms < boundary_ms} - kept)
         if gone:
             self.client.command(
                 f"DELETE FROM {db}.annotation_events WHERE ts < fromUnixTimestamp64Milli({{b:Int64}}) "
-                "AND has({ids:Array(String)}, event_id)", parameters={"b": boundary_ms, "ids": gone})
+                "AND has({ids:Array(String)}, event_id)",
+                parameters={"b": boundary_ms, "ids": gone},
+            )
             log.info("annotation edits before the retention pruned", edits=len(gone))
 
     def _drop_superseded_meta(self, boundary_ms: int) -> None:
@@ -164,8 +187,11 @@ class RetentionMixin(SnapshotsMixin):
         db = self.database
         rows = self._rows_w(
             f"SELECT toUnixTimestamp64Milli(max(ts)), count() FROM {db}.map_meta "
-            "WHERE ts <= fromUnixTimestamp64Milli({b:Int64})", {"b": boundary_ms})
+            "WHERE ts <= fromUnixTimestamp64Milli({b:Int64})",
+            {"b": boundary_ms},
+        )
         if rows and rows[0][1]:
             self.client.command(
                 f"DELETE FROM {db}.map_meta WHERE ts < fromUnixTimestamp64Milli({{m:Int64}})",
-                parameters={"m": int(rows[0][0])})
+                parameters={"m": int(rows[0][0])},
+            )

@@ -189,8 +189,10 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             # Measured on the 1,000-robot load test (BENCHMARKS.md): qz and qw were ~60 % of
             # `poses` at ~3.6 bytes a value; FPC(20) + ZSTD stores them in ~2.95 (Gorilla:
             # 4.0). Parts written before keep their codec until a merge rewrites them.
-            tuple(f"ALTER TABLE {database}.poses MODIFY COLUMN {q} Float32 CODEC(FPC(20), ZSTD(3))"
-                  for q in ("qx", "qy", "qz", "qw")),
+            tuple(
+                f"ALTER TABLE {database}.poses MODIFY COLUMN {q} Float32 CODEC(FPC(20), ZSTD(3))"
+                for q in ("qx", "qy", "qz", "qw")
+            ),
         ),
         Migration(
             7,
@@ -200,11 +202,15 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
         Migration(
             8,
             "snapshot repairs: a late event invalidates snapshots; the timer rebuilds them in steps",
-            (f"""CREATE TABLE IF NOT EXISTS {database}.snapshot_repairs (
+            (
+                f"""CREATE TABLE IF NOT EXISTS {database}.snapshot_repairs (
                     from_ts DateTime64(3, 'UTC'),
                     noted DateTime64(3, 'UTC')
                 ) ENGINE = MergeTree ORDER BY from_ts""",
-             *analyst_schema.comment_statements(database, analyst_schema.comments_of("snapshot_repairs"))),
+                *analyst_schema.comment_statements(
+                    database, analyst_schema.comments_of("snapshot_repairs")
+                ),
+            ),
         ),
         Migration(
             9,
@@ -224,18 +230,35 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "dropped the floor's only writes); the retention step drops day partitions",
             retention_schema.statements(database, DAY_PARTITIONED),
         ),
-        Migration(12, "VDA 5050 vehicles: states, errors, connections, factsheets",
-                  vda_schema.statements(database)),
-        Migration(13, "operators' annotations: points of interest and zones, as edit events",
-                  annotation_schema.statements(database)),
+        Migration(
+            12,
+            "VDA 5050 vehicles: states, errors, connections, factsheets",
+            vda_schema.statements(database),
+        ),
+        Migration(
+            13,
+            "operators' annotations: points of interest and zones, as edit events",
+            annotation_schema.statements(database),
+        ),
         Migration(14, "commands to robots and their answers", command_schema.statements(database)),
-        Migration(15, "analysts: keep-out violations with the zone's name (view)",
-                  tuple(analyst_schema.later_view_statements(database, "keep_out_violations"))),
-        Migration(16, "analysts: views of VDA 5050 vehicles' states, errors, connections, factsheets",
-                  analyst_schema.view_statements(database, vda_views.VIEWS)),
-        Migration(17, "pose_tracks: every pose sorted by robot, for one robot's plots and track",
-                  track_schema.statements(database, POSE_COLUMNS)),
-        Migration(18, "chunk_bursts: writers' dense 20 s, for uploads", burst_schema.statements(database)),
+        Migration(
+            15,
+            "analysts: keep-out violations with the zone's name (view)",
+            tuple(analyst_schema.later_view_statements(database, "keep_out_violations")),
+        ),
+        Migration(
+            16,
+            "analysts: views of VDA 5050 vehicles' states, errors, connections, factsheets",
+            analyst_schema.view_statements(database, vda_views.VIEWS),
+        ),
+        Migration(
+            17,
+            "pose_tracks: every pose sorted by robot, for one robot's plots and track",
+            track_schema.statements(database, POSE_COLUMNS),
+        ),
+        Migration(
+            18, "chunk_bursts: writers' dense 20 s, for uploads", burst_schema.statements(database)
+        ),
     ]
 
 
@@ -246,8 +269,10 @@ def checksums() -> dict[int, str]:
 
 
 # The pose columns, in table order (the keyframe view and its backfill name them).
-POSE_COLUMNS = ("robot_id, ts, x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, charging, loaded, "
-                "has_path, path_x_mm, path_y_mm, recv_lag_ms")
+POSE_COLUMNS = (
+    "robot_id, ts, x_mm, y_mm, z_mm, qx, qy, qz, qw, battery, charging, loaded, "
+    "has_path, path_x_mm, path_y_mm, recv_lag_ms"
+)
 KEYFRAME_MS = 60_000  # one keyframe per robot per minute (pose_keyframes)
 
 
@@ -280,12 +305,19 @@ def _poses_by_time(db: str, ttl_days: int) -> tuple[str, ...]:
         # Interleaved robots defeat Delta on positions; T64 (unused high bits cut per
         # block) keeps them at ~2 bytes. Gorilla gains nothing on quaternions in any order
         # and is the slowest codec to decode.
-        *(f"ALTER TABLE {db}.poses_v4 MODIFY COLUMN {column} {kind} CODEC({codec})"
-          for column, kind, codec in (
-              ("x_mm", "Int32", "T64, ZSTD(3)"), ("y_mm", "Int32", "T64, ZSTD(3)"),
-              ("z_mm", "Int32", "T64, ZSTD(3)"), ("qx", "Float32", "ZSTD(3)"),
-              ("qy", "Float32", "ZSTD(3)"), ("qz", "Float32", "ZSTD(3)"),
-              ("qw", "Float32", "ZSTD(3)"), ("battery", "Nullable(Float32)", "ZSTD(3)"))),
+        *(
+            f"ALTER TABLE {db}.poses_v4 MODIFY COLUMN {column} {kind} CODEC({codec})"
+            for column, kind, codec in (
+                ("x_mm", "Int32", "T64, ZSTD(3)"),
+                ("y_mm", "Int32", "T64, ZSTD(3)"),
+                ("z_mm", "Int32", "T64, ZSTD(3)"),
+                ("qx", "Float32", "ZSTD(3)"),
+                ("qy", "Float32", "ZSTD(3)"),
+                ("qz", "Float32", "ZSTD(3)"),
+                ("qw", "Float32", "ZSTD(3)"),
+                ("battery", "Nullable(Float32)", "ZSTD(3)"),
+            )
+        ),
         f"INSERT INTO {db}.poses_v4 SELECT * FROM {db}.poses",
         f"RENAME TABLE {db}.poses TO {db}.poses_by_robot, {db}.poses_v4 TO {db}.poses",
         f"DROP TABLE IF EXISTS {db}.poses_by_robot SYNC",
@@ -295,8 +327,10 @@ def _poses_by_time(db: str, ttl_days: int) -> tuple[str, ...]:
         f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
             AS SELECT {POSE_COLUMNS} FROM {db}.poses
             ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
-        (f"INSERT INTO {db}.pose_keyframes ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} FROM {db}.poses "
-         "ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)"),
+        (
+            f"INSERT INTO {db}.pose_keyframes ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} FROM {db}.poses "
+            "ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)"
+        ),
     )
 
 
@@ -338,13 +372,29 @@ SCHEMA_VERSION = 18
 
 # Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
 # map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
-DAY_PARTITIONED = ("poses", "chunk_events", "chunk_contents", "dead_letters", "map_snapshots",
-                   "robot_snapshots", "conflicts", "pose_keyframes", "pose_minutes",
-                   "pose_ten_minutes", "chunk_seconds")
+DAY_PARTITIONED = (
+    "poses",
+    "chunk_events",
+    "chunk_contents",
+    "dead_letters",
+    "map_snapshots",
+    "robot_snapshots",
+    "conflicts",
+    "pose_keyframes",
+    "pose_minutes",
+    "pose_ten_minutes",
+    "chunk_seconds",
+)
 # Dropped by day by the retention step, older than the snapshot carrying the floor: those, and
 # later tables (VDA 5050 facts but factsheets, zone violations, commands, tracks, bursts).
-RETAINED_BY_DAY = (*DAY_PARTITIONED, *vda_schema.RETAINED_BY_DAY, "zone_violations",
-                   "command_events", track_schema.TABLE, burst_schema.TABLE)
+RETAINED_BY_DAY = (
+    *DAY_PARTITIONED,
+    *vda_schema.RETAINED_BY_DAY,
+    "zone_violations",
+    "command_events",
+    track_schema.TABLE,
+    burst_schema.TABLE,
+)
 
 
 def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:
@@ -378,8 +428,9 @@ def _keyframes_table(db: str, name: str, order_by: str, ttl_days: int) -> str:
         SETTINGS ttl_only_drop_parts = 1"""
 
 
-def _pose_cells(db: str, name: str, start_of: str, ttl_days: int,
-                source: str = "poses") -> tuple[str, str]:
+def _pose_cells(
+    db: str, name: str, start_of: str, ttl_days: int, source: str = "poses"
+) -> tuple[str, str]:
     """A table of each robot's first and last pose time per cell (`start_of(ts)`: a minute,
     ten minutes), and the materialized view on `source` that fills it (schema v9: on
     `poses`; v10: on `pose_derivations`)."""
@@ -428,8 +479,10 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
         f"DROP TABLE IF EXISTS {db}.pose_keyframes_by_robot SYNC",
         f"DROP VIEW IF EXISTS {db}.pose_keyframes_mv SYNC",
         _keyframes_table(db, "pose_keyframes_v9", "(cell, robot_id)", ttl_days),
-        (f"INSERT INTO {db}.pose_keyframes_v9 ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} "
-         f"FROM {db}.pose_keyframes FINAL"),
+        (
+            f"INSERT INTO {db}.pose_keyframes_v9 ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} "
+            f"FROM {db}.pose_keyframes FINAL"
+        ),
         f"RENAME TABLE {db}.pose_keyframes TO {db}.pose_keyframes_by_robot, "
         f"{db}.pose_keyframes_v9 TO {db}.pose_keyframes",
         f"DROP TABLE IF EXISTS {db}.pose_keyframes_by_robot SYNC",
@@ -438,14 +491,18 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
             ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
         *_pose_cells(db, "pose_minutes", "toStartOfMinute", ttl_days),
         # Idempotent (min and max): a second run adds rows that change nothing.
-        (f"INSERT INTO {db}.pose_minutes (cell, robot_id, first_ts, last_ts) "
-         f"SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts), max(ts) FROM {db}.poses "
-         "GROUP BY cell, robot_id"),
+        (
+            f"INSERT INTO {db}.pose_minutes (cell, robot_id, first_ts, last_ts) "
+            f"SELECT toStartOfMinute(ts) AS cell, robot_id, min(ts), max(ts) FROM {db}.poses "
+            "GROUP BY cell, robot_id"
+        ),
         # The same per ten minutes: a week's timeline reads a tenth of the rows.
         *_pose_cells(db, "pose_ten_minutes", "toStartOfTenMinutes", ttl_days),
-        (f"INSERT INTO {db}.pose_ten_minutes (cell, robot_id, first_ts, last_ts) "
-         f"SELECT toStartOfTenMinutes(cell) AS c, robot_id, min(first_ts), max(last_ts) "
-         f"FROM {db}.pose_minutes GROUP BY c, robot_id"),
+        (
+            f"INSERT INTO {db}.pose_ten_minutes (cell, robot_id, first_ts, last_ts) "
+            f"SELECT toStartOfTenMinutes(cell) AS c, robot_id, min(first_ts), max(last_ts) "
+            f"FROM {db}.pose_minutes GROUP BY c, robot_id"
+        ),
         f"""CREATE TABLE IF NOT EXISTS {db}.chunk_seconds (
             second DateTime('UTC') CODEC(DoubleDelta, ZSTD(3)),
             offsets Array(UInt16) CODEC(ZSTD(3)),
@@ -457,12 +514,18 @@ def _replay_at_scale(db: str, ttl_days: int) -> tuple[str, ...]:
         TTL second + INTERVAL {ttl_days} DAY
         SETTINGS ttl_only_drop_parts = 1""",
         # The seconds the existing snapshots cover (before the newest one), as they build it.
-        (f"INSERT INTO {db}.chunk_seconds (second, offsets, built) {CHUNK_SECONDS_SELECT} "
-         f"FROM {db}.chunk_events FINAL WHERE ts < (SELECT toDateTime(max(snap_ts)) "
-         f"FROM {db}.snapshot_log) GROUP BY second"),
+        (
+            f"INSERT INTO {db}.chunk_seconds (second, offsets, built) {CHUNK_SECONDS_SELECT} "
+            f"FROM {db}.chunk_events FINAL WHERE ts < (SELECT toDateTime(max(snap_ts)) "
+            f"FROM {db}.snapshot_log) GROUP BY second"
+        ),
         *analyst_schema.comment_statements(
-            db, {**analyst_schema.TABLE_COMMENTS_V9_KEYFRAMES,
-                 **analyst_schema.comments_of("pose_minutes", "pose_ten_minutes", "chunk_seconds")}),
+            db,
+            {
+                **analyst_schema.TABLE_COMMENTS_V9_KEYFRAMES,
+                **analyst_schema.comments_of("pose_minutes", "pose_ten_minutes", "chunk_seconds"),
+            },
+        ),
     )
 
 
@@ -483,8 +546,10 @@ def _pose_views_after_push(db: str, ttl_days: int) -> tuple[str, ...]:
     """
     return (
         f"CREATE TABLE IF NOT EXISTS {db}.pose_derivations AS {db}.poses ENGINE = Null",
-        *(f"DROP VIEW IF EXISTS {db}.{view} SYNC"
-          for view in ("pose_keyframes_mv", "pose_minutes_mv", "pose_ten_minutes_mv")),
+        *(
+            f"DROP VIEW IF EXISTS {db}.{view} SYNC"
+            for view in ("pose_keyframes_mv", "pose_minutes_mv", "pose_ten_minutes_mv")
+        ),
         f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.pose_keyframes_mv TO {db}.pose_keyframes
             AS SELECT {POSE_COLUMNS} FROM {db}.pose_derivations
             ORDER BY robot_id, ts LIMIT 1 BY robot_id, toStartOfMinute(ts)""",
@@ -496,5 +561,7 @@ def _pose_views_after_push(db: str, ttl_days: int) -> tuple[str, ...]:
 
 # One chunk_seconds row per second from chunk_events (FINAL): the sorted millisecond
 # offsets of its writes (one per write; two writes in one millisecond repeat it).
-CHUNK_SECONDS_SELECT = ("SELECT toDateTime(ts) AS second, "
-                        "arraySort(groupArray(toUInt16(toUnixTimestamp64Milli(ts) % 1000))), now64(3)")
+CHUNK_SECONDS_SELECT = (
+    "SELECT toDateTime(ts) AS second, "
+    "arraySort(groupArray(toUInt16(toUnixTimestamp64Milli(ts) % 1000))), now64(3)"
+)

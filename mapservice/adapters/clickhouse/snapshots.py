@@ -13,8 +13,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
 from mapservice.adapters.clickhouse import burst_schema
+from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
 from mapservice.adapters.clickhouse.schema import CHUNK_SECONDS_SELECT
 
 NO_SNAPSHOT_RECHECK_S = 5.0
@@ -39,7 +39,8 @@ class SnapshotsMixin(ClickHouseConnection):
         if self._last_snapshot_ms is None and time.monotonic() >= self._no_snapshot_until:
             rows = self.client.query(
                 f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() "
-                f"FROM {self.database}.snapshot_log").result_rows
+                f"FROM {self.database}.snapshot_log"
+            ).result_rows
             if rows and rows[0][1]:
                 self._last_snapshot_ms = rows[0][0]
             else:
@@ -51,14 +52,23 @@ class SnapshotsMixin(ClickHouseConnection):
         params = {"s": snap_ms, "p": prev_ms if prev_ms is not None else -1}
         # prev == snap refolds a snapshot: its own rows plus every event up to it (a late
         # event older than the oldest snapshot, whose base is gone with the retention).
-        since = ("ts > fromUnixTimestamp64Milli({p:Int64}) AND "
-                 if prev_ms is not None and prev_ms != snap_ms else "")
-        prev_map = (f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
-                    "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
-                    if prev_ms is not None else "")
-        prev_robots = (f"SELECT robot_id, ts FROM {db}.robot_snapshots FINAL "
-                       "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
-                       if prev_ms is not None else "")
+        since = (
+            "ts > fromUnixTimestamp64Milli({p:Int64}) AND "
+            if prev_ms is not None and prev_ms != snap_ms
+            else ""
+        )
+        prev_map = (
+            f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
+            "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+            if prev_ms is not None
+            else ""
+        )
+        prev_robots = (
+            f"SELECT robot_id, ts FROM {db}.robot_snapshots FINAL "
+            "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+            if prev_ms is not None
+            else ""
+        )
         c = self.client
         c.command(
             f"INSERT INTO {db}.map_snapshots (snap_ts, row, col, ts, robot_id, content_hash, built) "
@@ -66,13 +76,15 @@ class SnapshotsMixin(ClickHouseConnection):
             "argMax(robot_id, (ts, robot_id)), argMax(content_hash, (ts, robot_id)), now64(3) "
             f"FROM ({prev_map}SELECT row, col, ts, robot_id, content_hash FROM {db}.chunk_events "
             f"WHERE {since}ts <= fromUnixTimestamp64Milli({{s:Int64}})) GROUP BY row, col",
-            parameters=params)
+            parameters=params,
+        )
         c.command(
             f"INSERT INTO {db}.robot_snapshots (snap_ts, robot_id, ts, built) "
             "SELECT fromUnixTimestamp64Milli({s:Int64}), robot_id, max(ts), now64(3) "
             f"FROM ({prev_robots}SELECT robot_id, ts FROM {db}.poses "
             f"WHERE {since}ts <= fromUnixTimestamp64Milli({{s:Int64}})) GROUP BY robot_id",
-            parameters=params)
+            parameters=params,
+        )
         self._write_chunk_seconds(prev_ms, snap_ms)
         self._write_chunk_bursts(prev_ms, snap_ms)
         c.command(
@@ -80,7 +92,8 @@ class SnapshotsMixin(ClickHouseConnection):
             "SELECT fromUnixTimestamp64Milli({s:Int64}), now64(3), "
             f"(SELECT count() FROM {db}.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}})), "
             f"(SELECT count() FROM {db}.robot_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{s:Int64}}))",
-            parameters=params)
+            parameters=params,
+        )
 
     def _write_chunk_seconds(self, prev_ms: int | None, snap_ms: int) -> None:
         """chunk_seconds for the whole seconds in [prev, snap) (all before snap without a
@@ -92,7 +105,8 @@ class SnapshotsMixin(ClickHouseConnection):
             f"{CHUNK_SECONDS_SELECT} FROM {self.database}.chunk_events FINAL "
             f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) GROUP BY second "
             f"{_FINAL_SETTINGS}",
-            parameters={"p": (prev_ms or 0) // 1000 * 1000, "s": snap_ms // 1000 * 1000})
+            parameters={"p": (prev_ms or 0) // 1000 * 1000, "s": snap_ms // 1000 * 1000},
+        )
 
     def _write_chunk_bursts(self, prev_ms: int | None, snap_ms: int) -> None:
         """chunk_bursts for the whole buckets in [prev, snap) (all before snap without a
@@ -104,11 +118,13 @@ class SnapshotsMixin(ClickHouseConnection):
             f"{burst_schema.BURSTS_SELECT} FROM {self.database}.chunk_events FINAL "
             f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) {burst_schema.BURSTS_KEPT} "
             f"{_FINAL_SETTINGS}",
-            parameters={"p": (prev_ms or 0) // b * b, "s": snap_ms // b * b})
+            parameters={"p": (prev_ms or 0) // b * b, "s": snap_ms // b * b},
+        )
 
     def _note_repair(self, from_ms: int) -> None:
-        self._insert("snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]],
-                     ["from_ts", "noted"])
+        self._insert(
+            "snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]], ["from_ts", "noted"]
+        )
 
     def repair_snapshots(self, max_snapshots: int = 144) -> int:
         """Rebuilds at most `max_snapshots` of the snapshots a late event invalidated,
@@ -119,7 +135,8 @@ class SnapshotsMixin(ClickHouseConnection):
         with self._lock:
             rows = self.client.query(
                 f"SELECT toUnixTimestamp64Milli(min(from_ts)), count(), "
-                f"toUnixTimestamp64Milli(max(noted)) FROM {db}.snapshot_repairs").result_rows
+                f"toUnixTimestamp64Milli(max(noted)) FROM {db}.snapshot_repairs"
+            ).result_rows
             if not rows or not rows[0][1]:
                 return 0
             from_ms, _, noted_ms = rows[0]
@@ -127,15 +144,19 @@ class SnapshotsMixin(ClickHouseConnection):
             first = -(-from_ms // every) * every  # the first snapshot that can contain from_ms
             # The oldest snapshot carries the floor from before the retention (whose events
             # are gone): never rebuilt from events alone, it is the base of every rebuild.
-            (oldest, known), = self.client.query(
-                f"SELECT toUnixTimestamp64Milli(min(snap_ts)), count() FROM {db}.snapshot_log").result_rows
+            ((oldest, known),) = self.client.query(
+                f"SELECT toUnixTimestamp64Milli(min(snap_ts)), count() FROM {db}.snapshot_log"
+            ).result_rows
             refolded = 0
             if known and first <= oldest:
                 self._build_one(oldest, oldest)
                 first, refolded = oldest + every, 1
             if newest is None or first > newest:  # nothing (more) to rebuild
-                self.client.command(f"DELETE FROM {db}.snapshot_repairs WHERE noted <= "
-                                    "fromUnixTimestamp64Milli({n:Int64})", parameters={"n": noted_ms})
+                self.client.command(
+                    f"DELETE FROM {db}.snapshot_repairs WHERE noted <= "
+                    "fromUnixTimestamp64Milli({n:Int64})",
+                    parameters={"n": noted_ms},
+                )
                 return refolded
             last = min(newest, first + (max_snapshots - 1) * every)
             prev = first - every
@@ -147,13 +168,18 @@ class SnapshotsMixin(ClickHouseConnection):
             self.client.command(
                 f"DELETE FROM {db}.snapshot_repairs WHERE noted <= fromUnixTimestamp64Milli({{n:Int64}}) "
                 "AND from_ts <= fromUnixTimestamp64Milli({l:Int64})",
-                parameters={"n": noted_ms, "l": last})
+                parameters={"n": noted_ms, "l": last},
+            )
             return (last - first) // every + 1 + refolded
 
     def _has_snapshot(self, snap_ms: int) -> bool:
-        return bool(self.client.query(
-            f"SELECT count() FROM {self.database}.snapshot_log WHERE snap_ts = "
-            "fromUnixTimestamp64Milli({s:Int64})", parameters={"s": snap_ms}).result_rows[0][0])
+        return bool(
+            self.client.query(
+                f"SELECT count() FROM {self.database}.snapshot_log WHERE snap_ts = "
+                "fromUnixTimestamp64Milli({s:Int64})",
+                parameters={"s": snap_ms},
+            ).result_rows[0][0]
+        )
 
     def build_snapshots(self, up_to_ms: int) -> int:
         """Builds every grid snapshot up to `up_to_ms` not built yet; returns how many."""
@@ -164,7 +190,8 @@ class SnapshotsMixin(ClickHouseConnection):
                 rows = self.client.query(
                     "SELECT toUnixTimestamp64Milli(min(ts)), count() FROM ("
                     f"SELECT ts FROM {self.database}.chunk_events UNION ALL "
-                    f"SELECT ts FROM {self.database}.poses)").result_rows
+                    f"SELECT ts FROM {self.database}.poses)"
+                ).result_rows
                 if not rows[0][1]:
                     return 0
                 # The first snapshot folds everything before it; each later one one interval.
@@ -190,14 +217,19 @@ class SnapshotsMixin(ClickHouseConnection):
         rows = self.client.query(
             "SELECT toUnixTimestamp64Milli(min(ts)), count() FROM ("
             f"SELECT ts FROM {self.database}.chunk_events UNION ALL "
-            f"SELECT ts FROM {self.database}.poses)").result_rows
+            f"SELECT ts FROM {self.database}.poses)"
+        ).result_rows
         if not rows[0][1]:
             return [], None
         oldest = max(rows[0][0], up_to_ms - self.retention_days * 86_400_000)
         return list(range(oldest // every * every, up_to_ms + 1, every)), None
 
-    def build_snapshots_bulk(self, up_to_ms: int, per_query: int = 144,
-                             on_progress: Callable[[int, int], None] | None = None) -> int:
+    def build_snapshots_bulk(
+        self,
+        up_to_ms: int,
+        per_query: int = 144,
+        on_progress: Callable[[int, int], None] | None = None,
+    ) -> int:
         """build_snapshots(up_to_ms), `per_query` snapshots per statement: the same rows.
 
         For a run of snapshots S1 < ... < Sn following snapshot P (or none): each write
@@ -210,7 +242,7 @@ class SnapshotsMixin(ClickHouseConnection):
         with self._lock:
             snaps, prev = self._due_snapshots(up_to_ms)
             for i in range(0, len(snaps), per_query):
-                run = snaps[i:i + per_query]
+                run = snaps[i : i + per_query]
                 self._build_run(run[0], run[-1], prev)
                 prev = run[-1]
                 self._last_snapshot_ms = prev
@@ -220,17 +252,31 @@ class SnapshotsMixin(ClickHouseConnection):
 
     def _build_run(self, first_ms: int, last_ms: int, prev_ms: int | None) -> None:
         db, every = self.database, self.snapshot_every_ms
-        params = {"a": first_ms, "b": last_ms, "e": every, "p": prev_ms if prev_ms is not None else -1}
+        params = {
+            "a": first_ms,
+            "b": last_ms,
+            "e": every,
+            "p": prev_ms if prev_ms is not None else -1,
+        }
         since = "ts > fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
-        bucket = ("greatest({a:Int64}, intDiv(toUnixTimestamp64Milli(ts) + {e:Int64} - 1, "
-                  "{e:Int64}) * {e:Int64})")
+        bucket = (
+            "greatest({a:Int64}, intDiv(toUnixTimestamp64Milli(ts) + {e:Int64} - 1, "
+            "{e:Int64}) * {e:Int64})"
+        )
         snap_times = "arrayJoin(range({a:Int64}, {b:Int64} + 1, {e:Int64}))"
-        prev_map = (f"SELECT {{p:Int64}} AS bucket, row, col, ts, robot_id, content_hash "
-                    f"FROM {db}.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{p:Int64}}) "
-                    "UNION ALL " if prev_ms is not None else "")
-        prev_robots = (f"SELECT {{p:Int64}} AS bucket, robot_id, ts FROM {db}.robot_snapshots FINAL "
-                       "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
-                       if prev_ms is not None else "")
+        prev_map = (
+            f"SELECT {{p:Int64}} AS bucket, row, col, ts, robot_id, content_hash "
+            f"FROM {db}.map_snapshots FINAL WHERE snap_ts = fromUnixTimestamp64Milli({{p:Int64}}) "
+            "UNION ALL "
+            if prev_ms is not None
+            else ""
+        )
+        prev_robots = (
+            f"SELECT {{p:Int64}} AS bucket, robot_id, ts FROM {db}.robot_snapshots FINAL "
+            "WHERE snap_ts = fromUnixTimestamp64Milli({p:Int64}) UNION ALL "
+            if prev_ms is not None
+            else ""
+        )
         c = self.client
         c.command(
             f"INSERT INTO {db}.map_snapshots (snap_ts, row, col, ts, robot_id, content_hash, built) "
@@ -244,7 +290,8 @@ class SnapshotsMixin(ClickHouseConnection):
             "w.win_hash, now64(3) "
             f"FROM (SELECT {snap_times} AS snap, row, col FROM (SELECT DISTINCT row, col FROM w)) AS g "
             "ASOF JOIN w ON g.row = w.row AND g.col = w.col AND g.snap >= w.bucket",
-            parameters=params)
+            parameters=params,
+        )
         c.command(
             f"INSERT INTO {db}.robot_snapshots (snap_ts, robot_id, ts, built) "
             "WITH w AS (SELECT bucket, robot_id, max(ts) AS win_ts "
@@ -253,11 +300,14 @@ class SnapshotsMixin(ClickHouseConnection):
             "SELECT fromUnixTimestamp64Milli(g.snap), g.robot_id, w.win_ts, now64(3) "
             f"FROM (SELECT {snap_times} AS snap, robot_id FROM (SELECT DISTINCT robot_id FROM w)) AS g "
             "ASOF JOIN w ON g.robot_id = w.robot_id AND g.snap >= w.bucket",
-            parameters=params)
+            parameters=params,
+        )
         self._write_chunk_seconds(prev_ms, last_ms)
         self._write_chunk_bursts(prev_ms, last_ms)
-        window = ("snap_ts >= fromUnixTimestamp64Milli({a:Int64}) AND "
-                  "snap_ts <= fromUnixTimestamp64Milli({b:Int64})")
+        window = (
+            "snap_ts >= fromUnixTimestamp64Milli({a:Int64}) AND "
+            "snap_ts <= fromUnixTimestamp64Milli({b:Int64})"
+        )
         c.command(
             f"INSERT INTO {db}.snapshot_log (snap_ts, built, chunks, robots) "
             "SELECT fromUnixTimestamp64Milli(g.snap), now64(3), m.n, r.n "
@@ -266,4 +316,5 @@ class SnapshotsMixin(ClickHouseConnection):
             f"FROM {db}.map_snapshots FINAL WHERE {window} GROUP BY snap_ts) AS m ON g.snap = m.snap "
             "LEFT JOIN (SELECT toUnixTimestamp64Milli(snap_ts) AS snap, count() AS n "
             f"FROM {db}.robot_snapshots FINAL WHERE {window} GROUP BY snap_ts) AS r ON g.snap = r.snap",
-            parameters=params)
+            parameters=params,
+        )

@@ -38,16 +38,35 @@ from mapservice.adapters.clock import SystemClock, clock_from_settings
 from mapservice.settings import Settings
 
 
-class ClickHouseStore(MigrationsMixin, WritesMixin, ReadsMixin, ConflictReadsMixin, RetentionMixin,
-                      ChangeFeedMixin, SnapshotsMixin, LegacyMixin, VdaReadsMixin,
-                      AnnotationReadsMixin, AdminMixin, TrackReadsMixin,
-                      CommandReadsMixin):
+class ClickHouseStore(
+    MigrationsMixin,
+    WritesMixin,
+    ReadsMixin,
+    ConflictReadsMixin,
+    RetentionMixin,
+    ChangeFeedMixin,
+    SnapshotsMixin,
+    LegacyMixin,
+    VdaReadsMixin,
+    AnnotationReadsMixin,
+    AdminMixin,
+    TrackReadsMixin,
+    CommandReadsMixin,
+):
     """Construction does no I/O; the first call connects."""
 
-    def __init__(self, dsn: str, database: str = "mapservice", retention_days: int = 7,
-                 username: str = "default", password: str = "",
-                 snapshot_every_ms: int = 600_000, cluster: str = "",
-                 tls: dict[str, str] | None = None, timeout_s: float = 60.0) -> None:
+    def __init__(
+        self,
+        dsn: str,
+        database: str = "mapservice",
+        retention_days: int = 7,
+        username: str = "default",
+        password: str = "",
+        snapshot_every_ms: int = 600_000,
+        cluster: str = "",
+        tls: dict[str, str] | None = None,
+        timeout_s: float = 60.0,
+    ) -> None:
         self.dsn = dsn
         self.cluster = cluster  # non-empty: DDL ON CLUSTER, Replicated tables (schema_cluster)
         self.snapshot_every_ms = snapshot_every_ms

@@ -12,26 +12,33 @@ from mapservice.core.ports import PoseRow
 
 # _POSE_COLUMNS without the planned path (has_path false, no path text): a plot never
 # draws it, and its arrays are most of what a pose row weighs.
-_TRACK_COLUMNS = ("robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
-                  "qx, qy, qz, qw, battery, charging, loaded, false, '', "
-                  "toUnixTimestamp64Milli(ts) + recv_lag_ms")
+_TRACK_COLUMNS = (
+    "robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
+    "qx, qy, qz, qw, battery, charging, loaded, false, '', "
+    "toUnixTimestamp64Milli(ts) + recv_lag_ms"
+)
 
 
 class TrackReadsMixin(ClickHouseConnection):
     """One robot's poses over a window."""
 
-    def robot_track(self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0,
-                    limit: int = 100_000) -> list[PoseRow]:
+    def robot_track(
+        self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0, limit: int = 100_000
+    ) -> list[PoseRow]:
         # The primary key (robot_id, ts) finds the robot's granules of the window: one
         # contiguous range, whatever the size of the fleet. PREWHERE on key columns only, so
         # FINAL still sees every duplicate of an identity (as poses() does).
         if step_ms < 0:
             raise ValueError("step_ms must not be negative")
-        every = "" if step_ms == 0 else \
-            "LIMIT 1 BY intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
+        every = (
+            ""
+            if step_ms == 0
+            else "LIMIT 1 BY intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
+        )
         return self._pose_query(
             f"SELECT {_TRACK_COLUMNS} FROM {self.database}.{TABLE} FINAL "
             "PREWHERE robot_id = {r:String} AND ts >= fromUnixTimestamp64Milli({f:Int64}) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64}) "
             f"ORDER BY ts {every}LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
-            {"r": robot_id, "f": from_ms, "t": to_ms, "s": max(step_ms, 1), "n": limit})
+            {"r": robot_id, "f": from_ms, "t": to_ms, "s": max(step_ms, 1), "n": limit},
+        )

@@ -30,8 +30,10 @@ def statements(db: str, pose_columns: str) -> tuple[str, ...]:
             ORDER BY (robot_id, ts)""",
         # One robot's consecutive positions differ by millimetres: Delta shrinks them
         # (poses, interleaving robots, needed T64).
-        *(f"ALTER TABLE {db}.{TABLE} MODIFY COLUMN {c} Int32 CODEC(Delta, ZSTD(3))"
-          for c in ("x_mm", "y_mm", "z_mm")),
+        *(
+            f"ALTER TABLE {db}.{TABLE} MODIFY COLUMN {c} Int32 CODEC(Delta, ZSTD(3))"
+            for c in ("x_mm", "y_mm", "z_mm")
+        ),
         f"DROP VIEW IF EXISTS {db}.{TABLE}_mv SYNC",
         f"""CREATE MATERIALIZED VIEW IF NOT EXISTS {db}.{TABLE}_mv TO {db}.{TABLE}
             AS SELECT {pose_columns} FROM {db}.pose_derivations""",

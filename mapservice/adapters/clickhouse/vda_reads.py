@@ -6,28 +6,34 @@ from __future__ import annotations
 from collections import defaultdict
 
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
-from mapservice.core.ports import VdaConnectionRow, VdaErrorRow, VdaFactsheetRow, VdaFacts
+from mapservice.core.ports import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
 
 
 class VdaReadsMixin(ClickHouseConnection):
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         return self._vda_facts(robot_id, from_ms, to_ms, limit).get(
-            robot_id, VdaFacts(errors=[], connections=[], factsheet=None))
+            robot_id, VdaFacts(errors=[], connections=[], factsheet=None)
+        )
 
     def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
         facts = self._vda_facts(None, from_ms, to_ms, limit)
         return {r: f for r, f in facts.items() if f.errors or f.connections or f.error_clears}
 
-    def _vda_facts(self, robot_id: str | None, from_ms: int, to_ms: int,
-                   limit: int) -> dict[str, VdaFacts]:
+    def _vda_facts(
+        self, robot_id: str | None, from_ms: int, to_ms: int, limit: int
+    ) -> dict[str, VdaFacts]:
         db, p = self.database, {"r": robot_id or "", "f": from_ms, "t": to_ms, "n": limit}
         robot = "robot_id = {r:String} AND " if robot_id is not None else ""
-        window = (f"{robot}ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
-                  "AND ts < fromUnixTimestamp64Milli({t:Int64})")
+        window = (
+            f"{robot}ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
+            "AND ts < fromUnixTimestamp64Milli({t:Int64})"
+        )
         errors = self._rows(
             f"SELECT robot_id, toUnixTimestamp64Milli(ts), level, type, description "
             f"FROM {db}.vda_errors FINAL WHERE {window} "
-            f"ORDER BY ts, level, type, description LIMIT {{n:UInt32}} BY robot_id", p)
+            f"ORDER BY ts, level, type, description LIMIT {{n:UInt32}} BY robot_id",
+            p,
+        )
         # A state without errors after one with some: the state before the window counts
         # (a clear at the window's first state).
         clears = self._rows(
@@ -38,14 +44,20 @@ class VdaReadsMixin(ClickHouseConnection):
                 FROM {db}.vda_states FINAL WHERE {robot}ts < fromUnixTimestamp64Milli({{t:Int64}})
                     AND ts >= fromUnixTimestamp64Milli({{f:Int64}}) - toIntervalHour(1))
             WHERE error_count = 0 AND before > 0 AND ts >= fromUnixTimestamp64Milli({{f:Int64}})
-            ORDER BY ts LIMIT {{n:UInt32}} BY robot_id""", p)
+            ORDER BY ts LIMIT {{n:UInt32}} BY robot_id""",
+            p,
+        )
         connections = self._rows(
             f"SELECT robot_id, toUnixTimestamp64Milli(ts), state, toUnixTimestamp64Milli(sent_ts) "
-            f"FROM {db}.vda_connections FINAL WHERE {window} ORDER BY ts LIMIT {{n:UInt32}} BY robot_id", p)
+            f"FROM {db}.vda_connections FINAL WHERE {window} ORDER BY ts LIMIT {{n:UInt32}} BY robot_id",
+            p,
+        )
         sheets = self._rows(
             f"SELECT robot_id, toUnixTimestamp64Milli(ts), vda_version, factsheet FROM {db}.vda_factsheets "
             f"WHERE {robot}ts < fromUnixTimestamp64Milli({{t:Int64}}) "
-            "ORDER BY ts DESC LIMIT 1 BY robot_id", p)
+            "ORDER BY ts DESC LIMIT 1 BY robot_id",
+            p,
+        )
         by_robot: dict[str, dict[str, list]] = defaultdict(lambda: {"e": [], "c": [], "x": []})
         for r, t, lv, ty, d in errors:
             by_robot[r]["e"].append(VdaErrorRow(int(t), lv, ty, d))
@@ -54,6 +66,12 @@ class VdaReadsMixin(ClickHouseConnection):
         for r, t, s, sent in connections:
             by_robot[r]["c"].append(VdaConnectionRow(int(t), s, int(sent)))
         factsheets = {r: VdaFactsheetRow(int(t), v, f) for r, t, v, f in sheets}
-        return {r: VdaFacts(errors=by_robot[r]["e"], connections=by_robot[r]["c"],
-                            factsheet=factsheets.get(r), error_clears=by_robot[r]["x"])
-                for r in sorted(set(by_robot) | set(factsheets))}
+        return {
+            r: VdaFacts(
+                errors=by_robot[r]["e"],
+                connections=by_robot[r]["c"],
+                factsheet=factsheets.get(r),
+                error_clears=by_robot[r]["x"],
+            )
+            for r in sorted(set(by_robot) | set(factsheets))
+        }

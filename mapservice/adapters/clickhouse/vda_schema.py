@@ -52,6 +52,10 @@ def statements(db: str) -> tuple[str, ...]:
             vda_version LowCardinality(String),
             factsheet String CODEC(ZSTD(3))
         ) ENGINE = ReplacingMergeTree ORDER BY (robot_id, ts)""",
-        *analyst_schema.comment_statements(db, analyst_schema.comments_of(
-            "vda_states", "vda_errors", "vda_connections", "vda_factsheets")),
+        *analyst_schema.comment_statements(
+            db,
+            analyst_schema.comments_of(
+                "vda_states", "vda_errors", "vda_connections", "vda_factsheets"
+            ),
+        ),
     )

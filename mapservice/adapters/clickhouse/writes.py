@@ -9,6 +9,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from mapservice.adapters.clickhouse import command_schema
+from mapservice.adapters.clickhouse.command_reads import command_row
+from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
+from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
+from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
+from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.events import (
     ChunkUpdated,
     DeadLetter,
@@ -19,18 +26,26 @@ from mapservice.core.events import (
     VdaStateReported,
     pose_of,
 )
-from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
-from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.ports import ConflictRow
-from mapservice.adapters.clickhouse import command_schema
-from mapservice.adapters.clickhouse.command_reads import command_row
-from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
-from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
-from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 
-
-_POSE_INSERT_COLUMNS = ["robot_id", "ts", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "battery",
-                        "charging", "loaded", "has_path", "path_x_mm", "path_y_mm", "recv_lag_ms"]
+_POSE_INSERT_COLUMNS = [
+    "robot_id",
+    "ts",
+    "x_mm",
+    "y_mm",
+    "z_mm",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "battery",
+    "charging",
+    "loaded",
+    "has_path",
+    "path_x_mm",
+    "path_y_mm",
+    "recv_lag_ms",
+]
 
 
 class WritesMixin(SnapshotsMixin):
@@ -63,12 +78,17 @@ class WritesMixin(SnapshotsMixin):
                 f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} "
                 f"FROM {db}.poses WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
                 "AND ts <= fromUnixTimestamp64Milli({t:Int64})",
-                parameters={"f": from_ms, "t": to_ms})
+                parameters={"f": from_ms, "t": to_ms},
+            )
 
     def append_events(self, events: Sequence[Envelope]) -> None:
         poses, chunks, contents, metas, annotations, commands = [], [], [], [], [], []
-        vda: dict[str, list] = {"vda_states": [], "vda_errors": [], "vda_connections": [],
-                                "vda_factsheets": []}
+        vda: dict[str, list] = {
+            "vda_states": [],
+            "vda_errors": [],
+            "vda_connections": [],
+            "vda_factsheets": [],
+        }
         for e in events:
             p = e.payload
             if pose_of(p) is not None:
@@ -76,8 +96,16 @@ class WritesMixin(SnapshotsMixin):
             if isinstance(p, (VdaStateReported, VdaConnectionReported, VdaFactsheetReported)):
                 _vda_rows(e, vda)
             elif isinstance(p, ChunkUpdated):
-                chunks.append([e.event_time_ms, p.row, p.column, e.robot_id, p.content_hash,
-                               e.receive_time_ms - e.event_time_ms])
+                chunks.append(
+                    [
+                        e.event_time_ms,
+                        p.row,
+                        p.column,
+                        e.robot_id,
+                        p.content_hash,
+                        e.receive_time_ms - e.event_time_ms,
+                    ]
+                )
                 day = e.event_time_ms // 86_400_000
                 if self._known_contents.get(p.content_hash) != day:
                     contents.append((p.content_hash, day, p.width, p.height, p.data))
@@ -90,15 +118,21 @@ class WritesMixin(SnapshotsMixin):
         with self._lock:
             if contents:
                 # Contents first: an event must never reference pixels that are not stored.
-                self._insert("chunk_contents", [list(x) for x in contents],
-                             ["content_hash", "day", "width", "height", "zlib_pixels"])
+                self._insert(
+                    "chunk_contents",
+                    [list(x) for x in contents],
+                    ["content_hash", "day", "width", "height", "zlib_pixels"],
+                )
                 for h, day, *_ in contents:
                     self._known_contents[h] = day
                 if len(self._known_contents) > 1_000_000:
                     self._known_contents.clear()
             if chunks:
-                self._insert("chunk_events", chunks,
-                             ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"])
+                self._insert(
+                    "chunk_events",
+                    chunks,
+                    ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"],
+                )
             if poses:
                 self._insert("poses", poses, _POSE_INSERT_COLUMNS)
             if metas:
@@ -107,9 +141,21 @@ class WritesMixin(SnapshotsMixin):
                 if rows:
                     self._insert(table, rows, _VDA_COLUMNS[table])
             if annotations:
-                self._insert("annotation_events", annotations, [
-                    "annotation_id", "ts", "event_id", "change", "author", "shape", "kind",
-                    "name", "body"])
+                self._insert(
+                    "annotation_events",
+                    annotations,
+                    [
+                        "annotation_id",
+                        "ts",
+                        "event_id",
+                        "change",
+                        "author",
+                        "shape",
+                        "kind",
+                        "name",
+                        "body",
+                    ],
+                )
             if commands:
                 self._insert("command_events", commands, list(command_schema.COLUMNS))
             # A late event (at or before the newest snapshot) makes the snapshots from its
@@ -125,32 +171,52 @@ class WritesMixin(SnapshotsMixin):
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         if not records:
             return
-        rows = [[r.receive_time_ms, r.reason, r.mqtt_topic, r.detail, r.payload, r.gateway]
-                for r in records]
+        rows = [
+            [r.receive_time_ms, r.reason, r.mqtt_topic, r.detail, r.payload, r.gateway]
+            for r in records
+        ]
         with self._lock:
-            self._insert("dead_letters", rows, [
-                "received", "reason", "mqtt_topic", "detail", "payload", "gateway"])
+            self._insert(
+                "dead_letters",
+                rows,
+                ["received", "reason", "mqtt_topic", "detail", "payload", "gateway"],
+            )
 
     def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
         if rows:
             with self._lock:
-                self._insert("zone_violations", [[v.ts_ms, v.robot_id, v.annotation_id, v.x, v.y]
-                                                 for v in rows],
-                             ["ts", "robot_id", "annotation_id", "x", "y"])
+                self._insert(
+                    "zone_violations",
+                    [[v.ts_ms, v.robot_id, v.annotation_id, v.x, v.y] for v in rows],
+                    ["ts", "robot_id", "annotation_id", "x", "y"],
+                )
 
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
         if not rows:
             return
         data = [[c.ts_ms, c.row, c.column, c.robot_b, c.robot_a, c.ts_a_ms] for c in rows]
         with self._lock:
-            self._insert("conflicts", data, [
-                "ts", "row", "col", "robot_b", "robot_a", "ts_a"])
+            self._insert("conflicts", data, ["ts", "row", "col", "robot_b", "robot_a", "ts_a"])
 
 
 _VDA_COLUMNS = {
-    "vda_states": ["robot_id", "ts", "manufacturer", "serial_number", "vda_version", "map_id",
-                   "on_known_map", "x", "y", "theta", "driving", "paused", "operating_mode",
-                   "order_id", "error_count"],
+    "vda_states": [
+        "robot_id",
+        "ts",
+        "manufacturer",
+        "serial_number",
+        "vda_version",
+        "map_id",
+        "on_known_map",
+        "x",
+        "y",
+        "theta",
+        "driving",
+        "paused",
+        "operating_mode",
+        "order_id",
+        "error_count",
+    ],
     "vda_errors": ["robot_id", "ts", "level", "type", "description"],
     "vda_connections": ["robot_id", "ts", "state", "sent_ts"],
     "vda_factsheets": ["robot_id", "ts", "vda_version", "factsheet"],
@@ -164,20 +230,45 @@ def _annotation_row(e: Envelope) -> list:
     if isinstance(p, AnnotationRemoved):
         return [p.annotation_id, e.event_time_ms, e.event_id, change, p.author, "", "", "", ""]
     doc = to_doc(p.annotation)
-    return [p.annotation_id, e.event_time_ms, e.event_id, change, p.author, doc["shape"],
-            doc["kind"], doc["name"], _json.encode(doc).decode()]
+    return [
+        p.annotation_id,
+        e.event_time_ms,
+        e.event_id,
+        change,
+        p.author,
+        doc["shape"],
+        doc["kind"],
+        doc["name"],
+        _json.encode(doc).decode(),
+    ]
 
 
 def _vda_rows(e: Envelope, out: dict[str, list]) -> None:
     """A VDA 5050 event's rows, by table (schema v12)."""
     p, at = e.payload, e.event_time_ms
     if isinstance(p, VdaStateReported):
-        out["vda_states"].append([
-            e.robot_id, at, p.manufacturer, p.serial_number, p.vda_version, p.map_id,
-            p.on_known_map, p.x, p.y, p.theta, p.driving, p.paused, p.operating_mode,
-            p.order_id, len(p.errors)])
-        out["vda_errors"].extend([e.robot_id, at, err.level, err.type, err.description]
-                                 for err in p.errors)
+        out["vda_states"].append(
+            [
+                e.robot_id,
+                at,
+                p.manufacturer,
+                p.serial_number,
+                p.vda_version,
+                p.map_id,
+                p.on_known_map,
+                p.x,
+                p.y,
+                p.theta,
+                p.driving,
+                p.paused,
+                p.operating_mode,
+                p.order_id,
+                len(p.errors),
+            ]
+        )
+        out["vda_errors"].extend(
+            [e.robot_id, at, err.level, err.type, err.description] for err in p.errors
+        )
     elif isinstance(p, VdaConnectionReported):
         out["vda_connections"].append([e.robot_id, at, p.state, p.sent_time_ms])
     elif isinstance(p, VdaFactsheetReported):
@@ -190,11 +281,17 @@ def _pose_row(e: Envelope) -> list:
     p = pose_of(e.payload)
     path = p.path or ()
     return [
-        e.robot_id, e.event_time_ms,
-        _mm(p.position[0]), _mm(p.position[1]), _mm(p.position[2]),
+        e.robot_id,
+        e.event_time_ms,
+        _mm(p.position[0]),
+        _mm(p.position[1]),
+        _mm(p.position[2]),
         *p.orientation,
-        p.battery_level, _flag(p.charging), _flag(p.loaded),
+        p.battery_level,
+        _flag(p.charging),
+        _flag(p.loaded),
         p.path is not None,
-        [_mm(x) for x, _ in path], [_mm(y) for _, y in path],
+        [_mm(x) for x, _ in path],
+        [_mm(y) for _, y in path],
         e.receive_time_ms - e.event_time_ms,
     ]

@@ -37,11 +37,19 @@ def _string(text: str | bytes) -> bytes:
     return struct.pack(">H", len(data)) + data
 
 
-def connect_packet(client_id: str, keepalive_s: int = 60, clean_session: bool = True,
-                   username: str | None = None, password: str | None = None) -> bytes:
+def connect_packet(
+    client_id: str,
+    keepalive_s: int = 60,
+    clean_session: bool = True,
+    username: str | None = None,
+    password: str | None = None,
+) -> bytes:
     """CONNECT, protocol level 4 (MQTT 3.1.1)."""
-    flags = (0x02 if clean_session else 0) | (0x80 if username is not None else 0) \
+    flags = (
+        (0x02 if clean_session else 0)
+        | (0x80 if username is not None else 0)
         | (0x40 if password is not None else 0)
+    )
     body = _string("MQTT") + bytes([4, flags]) + struct.pack(">H", keepalive_s) + _string(client_id)
     if username is not None:
         body += _string(username)
@@ -70,7 +78,9 @@ class PublishTemplate:
         header = self._headers.get(len(field))
         if header is None:
             remaining = len(self._topic) + 2 + len(self.prefix) + len(field) + len(self.suffix)
-            header = self._headers[len(field)] = bytes([PUBLISH << 4 | 0x02]) + varint(remaining) + self._topic
+            header = self._headers[len(field)] = (
+                bytes([PUBLISH << 4 | 0x02]) + varint(remaining) + self._topic
+            )
         return b"".join((header, packet_id.to_bytes(2, "big"), self.prefix, field, self.suffix))
 
 
@@ -113,13 +123,15 @@ class PacketReader:
                     raise ProtocolError("remaining length longer than four bytes")
             if i + length > end:
                 break
-            body = buf[i:i + length]
+            body = buf[i : i + length]
             kind = first >> 4
             if kind == PUBACK and length == 2:
                 acks.append((body[0] << 8) | body[1])
             elif kind == CONNACK and length == 2:
                 if body[1] != 0:
-                    raise ProtocolError(f"the broker refused the connection (CONNACK code {body[1]})")
+                    raise ProtocolError(
+                        f"the broker refused the connection (CONNACK code {body[1]})"
+                    )
                 self.connacked = True
             elif kind == PINGRESP:
                 self.pingresps += 1

@@ -58,11 +58,23 @@ class RawFleet:
     acknowledged until they are done. `pids` are the workers' process ids (for CPU
     accounting from outside); `stats.report` holds the schedule and CPU figures."""
 
-    def __init__(self, mqtt_url: str, ros_map, robots: int, *, prefix: str = "robot",
-                 processes: int | None = None, connections: int = 2,
-                 pose_period_s: float = 1.0, chunk_period_s: float = 5.0, seed: int = 7,
-                 mqtt_conn=None, nice: int = 0, ack_wait_s: float = ACK_WAIT_S,
-                 aligned_chunks: bool = False) -> None:
+    def __init__(
+        self,
+        mqtt_url: str,
+        ros_map,
+        robots: int,
+        *,
+        prefix: str = "robot",
+        processes: int | None = None,
+        connections: int = 2,
+        pose_period_s: float = 1.0,
+        chunk_period_s: float = 5.0,
+        seed: int = 7,
+        mqtt_conn=None,
+        nice: int = 0,
+        ack_wait_s: float = ACK_WAIT_S,
+        aligned_chunks: bool = False,
+    ) -> None:
         import numpy as np
 
         from mapservice.adapters.mqtt_client import parse_mqtt_url
@@ -87,15 +99,31 @@ class RawFleet:
         for w in range(self.processes):
             idx = list(range(w, robots, self.processes))  # interleaved: each spans the second
             ids = [self.robots[i] for i in idx]
-            creds = ([(r, self.conn.password(r)) for r in ids] if self.conn.authenticated else None)
-            self.plans.append(WorkerPlan(
-                host=host, port=port, robot_ids=ids, indices=idx, fleet_size=robots,
-                centres=[centres[i] for i in idx], chunk_topics=[self.conn.chunk_topic(r) for r in ids],
-                chunk_b64=b64, chunk_rows=meta.chunk_rows, chunk_cols=meta.chunk_cols,
-                seconds=None, pose_period_s=pose_period_s, chunk_period_s=chunk_period_s,
-                aligned_chunks=aligned_chunks, seed=seed + w, connections=connections,
-                credentials=creds, nice=nice, ack_wait_s=ack_wait_s,
-                client_prefix=f"rawfleet-{random.Random(seed).getrandbits(32):08x}"))
+            creds = [(r, self.conn.password(r)) for r in ids] if self.conn.authenticated else None
+            self.plans.append(
+                WorkerPlan(
+                    host=host,
+                    port=port,
+                    robot_ids=ids,
+                    indices=idx,
+                    fleet_size=robots,
+                    centres=[centres[i] for i in idx],
+                    chunk_topics=[self.conn.chunk_topic(r) for r in ids],
+                    chunk_b64=b64,
+                    chunk_rows=meta.chunk_rows,
+                    chunk_cols=meta.chunk_cols,
+                    seconds=None,
+                    pose_period_s=pose_period_s,
+                    chunk_period_s=chunk_period_s,
+                    aligned_chunks=aligned_chunks,
+                    seed=seed + w,
+                    connections=connections,
+                    credentials=creds,
+                    nice=nice,
+                    ack_wait_s=ack_wait_s,
+                    client_prefix=f"rawfleet-{random.Random(seed).getrandbits(32):08x}",
+                )
+            )
         self.stats = FleetStats()
         self.pids: list[int] = []
         self._procs: list = []
@@ -107,12 +135,15 @@ class RawFleet:
         """Spawns and connects the workers; returns once each is ready to publish."""
         # A fresh interpreter per worker (not fork: the caller runs threads; not
         # multiprocessing's spawn: it re-runs the caller's main script).
-        code = ("from mapservice.bench.fleet.rawfleet_worker import worker_main; import sys; "
-                "worker_main(int(sys.argv[1]))")
+        code = (
+            "from mapservice.bench.fleet.rawfleet_worker import worker_main; import sys; "
+            "worker_main(int(sys.argv[1]))"
+        )
         for plan in self.plans:
             parent, child = socket.socketpair()
-            proc = subprocess.Popen([sys.executable, "-c", code, str(child.fileno())],
-                                    pass_fds=[child.fileno()])
+            proc = subprocess.Popen(
+                [sys.executable, "-c", code, str(child.fileno())], pass_fds=[child.fileno()]
+            )
             child.close()
             pipe = Connection(parent.detach())
             pipe.send(WorkerPlan(**{**plan.__dict__, "seconds": seconds}))
@@ -136,8 +167,9 @@ class RawFleet:
     def stop(self) -> None:
         self._stop.set()
 
-    def run(self, seconds: float | None = None,
-            on_tick: Callable[[FleetStats], None] | None = None) -> FleetStats:
+    def run(
+        self, seconds: float | None = None, on_tick: Callable[[FleetStats], None] | None = None
+    ) -> FleetStats:
         """Publishes for `seconds` (until `stop()` if None); returns when every worker
         reported its last acknowledged message."""
         if not self._procs:
@@ -172,9 +204,11 @@ class RawFleet:
                     on_tick(self.stats)
         finally:
             self.close()
-        self.stats.report = {**summarize(reports),
-                             "puback_p50_s": percentile(self._ack_lags, 50),
-                             "puback_p99_s": percentile(self._ack_lags, 99)}
+        self.stats.report = {
+            **summarize(reports),
+            "puback_p50_s": percentile(self._ack_lags, 50),
+            "puback_p99_s": percentile(self._ack_lags, 99),
+        }
         return self.stats
 
     def _take(self, idx_kind: array, tss: array, walls: array, ack_walls: array) -> None:

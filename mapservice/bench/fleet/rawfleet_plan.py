@@ -32,11 +32,21 @@ def default_processes(robots: int) -> int:
 def chunk_payload(b64: bytes, row: int, column: int, timestamp: bytes, robot_id: bytes) -> bytes:
     """Exactly `encode_chunk_create`'s bytes, from the pixels' base64 computed once."""
     return b'{"pgmB64compressedData":"%s","row":%d,"column":%d,"timestamp":"%s","robotId":"%s"}' % (
-        b64, row, column, timestamp, robot_id)
+        b64,
+        row,
+        column,
+        timestamp,
+        robot_id,
+    )
 
 
-def pose_templates(robot_id: str, index: int, centre: tuple[float, float], pose_topic: str,
-                   phases: int = POSE_PHASES) -> list[PublishTemplate]:
+def pose_templates(
+    robot_id: str,
+    index: int,
+    centre: tuple[float, float],
+    pose_topic: str,
+    phases: int = POSE_PHASES,
+) -> list[PublishTemplate]:
     """One pre-encoded PUBLISH per step of the robot's lap, its timestamp left open."""
     cx, cy = centre
     out = []
@@ -44,11 +54,16 @@ def pose_templates(robot_id: str, index: int, centre: tuple[float, float], pose_
         angle = 2 * math.pi * k / phases + index
         yaw = angle + math.pi / 2
         battery = round(100.0 - ((index + k / phases) % 100.0), 1)
-        payload = encode_coordinates(robot_id, _TS_MARK, round(cx + math.cos(angle), 3),
-                                     round(cy + math.sin(angle), 3),
-                                     (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)),
-                                     battery_level=battery, charging=battery < 20,
-                                     loaded=index % 2 == 0)
+        payload = encode_coordinates(
+            robot_id,
+            _TS_MARK,
+            round(cx + math.cos(angle), 3),
+            round(cy + math.sin(angle), 3),
+            (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)),
+            battery_level=battery,
+            charging=battery < 20,
+            loaded=index % 2 == 0,
+        )
         prefix, mark, suffix = payload.partition(_TS_MARK.encode())
         if not mark or _TS_MARK.encode() in suffix:
             raise ValueError(f"robot id {robot_id!r} holds the timestamp marker")

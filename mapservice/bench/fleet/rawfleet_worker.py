@@ -105,8 +105,10 @@ class _Connection(asyncio.Protocol):
 async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
     loop = asyncio.get_running_loop()
     m = len(plan.robot_ids)
-    poses = [pose_templates(r, i, c, f"iot/coordinates/{r}")
-             for r, i, c in zip(plan.robot_ids, plan.indices, plan.centres)]
+    poses = [
+        pose_templates(r, i, c, f"iot/coordinates/{r}")
+        for r, i, c in zip(plan.robot_ids, plan.indices, plan.centres)
+    ]
     chunk_topics = {t: PublishTemplate(t, b"", b"") for t in set(plan.chunk_topics)}
     chunk_tpl = [chunk_topics[t] for t in plan.chunk_topics]
     robot_bytes = [r.encode() for r in plan.robot_ids]
@@ -118,10 +120,18 @@ async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
     conns: list[_Connection] = []
     n_conns = m if plan.credentials is not None else max(1, min(plan.connections, m))
     for c in range(n_conns):
-        _, conn = await loop.create_connection(lambda: _Connection(acked, errors), plan.host, plan.port)
+        _, conn = await loop.create_connection(
+            lambda: _Connection(acked, errors), plan.host, plan.port
+        )
         user, password = plan.credentials[c] if plan.credentials is not None else (None, None)
-        conn.transport.write(connect_packet(f"{plan.client_prefix}-{os.getpid()}-{c}", KEEPALIVE_S,
-                                            username=user, password=password))
+        conn.transport.write(
+            connect_packet(
+                f"{plan.client_prefix}-{os.getpid()}-{c}",
+                KEEPALIVE_S,
+                username=user,
+                password=password,
+            )
+        )
         conns.append(conn)
     await asyncio.wait_for(asyncio.gather(*(c.connacked for c in conns)), 30)
     conn_of = [conns[j if plan.credentials is not None else j % n_conns] for j in range(m)]
@@ -178,10 +188,13 @@ async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
                         if pid is None:
                             no_pid += 1
                         else:
-                            payload = chunk_payload(rng.choice(plan.chunk_b64),
-                                                    rng.randrange(plan.chunk_rows),
-                                                    rng.randrange(plan.chunk_cols), ts_cache,
-                                                    robot_bytes[j])
+                            payload = chunk_payload(
+                                rng.choice(plan.chunk_b64),
+                                rng.randrange(plan.chunk_rows),
+                                rng.randrange(plan.chunk_cols),
+                                ts_cache,
+                                robot_bytes[j],
+                            )
                             conn.pending.append(chunk_tpl[j].packet(pid, payload))
                             conn.in_flight[pid] = (plan.indices[j], CHUNK, ts, wall)
                             written[CHUNK] += 1
@@ -222,26 +235,34 @@ async def _worker(plan: WorkerPlan, pipe: Connection) -> None:
             conn.transport.write(DISCONNECT_PACKET)
             conn.transport.close()
     run_s = min(ended, t_end) - t0 if ended > t0 else 0.0
-    sched = scheduled_messages(plan, max(0.0, run_s)) if plan.seconds is None or stopped \
+    sched = (
+        scheduled_messages(plan, max(0.0, run_s))
+        if plan.seconds is None or stopped
         else scheduled_messages(plan, seconds)
-    pipe.send(("done", {
-        "pid": os.getpid(),
-        "robots": m,
-        "connections": n_conns,
-        "scheduled_poses": sched[0],
-        "scheduled_chunks": sched[1],
-        "written_poses": written[POSE],
-        "written_chunks": written[CHUNK],
-        "unacknowledged": unacked,
-        "no_packet_id": no_pid,
-        "lag_p50_s": percentile(lags, 50),
-        "lag_p99_s": percentile(lags, 99),
-        "lag_max_s": max(lags) if lags else None,
-        "cpu_s": cpu_run,
-        "wall_s": ended - wall0,
-        "cpu_percent_of_one_core": 100.0 * cpu_run / max(ended - wall0, 1e-9),
-        "errors": errors[:10],
-    }))
+    )
+    pipe.send(
+        (
+            "done",
+            {
+                "pid": os.getpid(),
+                "robots": m,
+                "connections": n_conns,
+                "scheduled_poses": sched[0],
+                "scheduled_chunks": sched[1],
+                "written_poses": written[POSE],
+                "written_chunks": written[CHUNK],
+                "unacknowledged": unacked,
+                "no_packet_id": no_pid,
+                "lag_p50_s": percentile(lags, 50),
+                "lag_p99_s": percentile(lags, 99),
+                "lag_max_s": max(lags) if lags else None,
+                "cpu_s": cpu_run,
+                "wall_s": ended - wall0,
+                "cpu_percent_of_one_core": 100.0 * cpu_run / max(ended - wall0, 1e-9),
+                "errors": errors[:10],
+            },
+        )
+    )
 
 
 def worker_main(fd: int) -> None:

@@ -1,5 +1,4 @@
-"""`mapservice bench ingest`: a series of runs (or a ceiling search), their table and JSON.
-"""
+"""`mapservice bench ingest`: a series of runs (or a ceiling search), their table and JSON."""
 
 from __future__ import annotations
 
@@ -44,13 +43,15 @@ def run_series(args, base: Path, console) -> tuple[list[dict], dict]:
         result = run_once(args, run_dir, i, args.repeat, console)
         runs.append(result)
         cpu = result["cpu_percent_of_one_core"]
-        console.print(f"run {i} ({args.robots:,} robots): lost {result['lost']}, duplicated "
-                      f"{result['duplicated']}, generator {result['loadgen_schedule_percent'] or 0:.2f} % "
-                      f"of schedule, p99 push {_s(result['latency_pushed_p99_s'])} / poll "
-                      f"{_s(result['latency_polled_p99_s'])}, sustained "
-                      f"{result['sustained_events_per_s']:,.0f}/s, "
-                      f"{_mb(result['bytes_per_robot_day'])}/robot-day, CPU {cpu['stack_total']:.0f} % "
-                      f"stack + {cpu['loadgen']:.0f} % loadgen, load {result['loadavg_1min_after_fleet']:.2f}")
+        console.print(
+            f"run {i} ({args.robots:,} robots): lost {result['lost']}, duplicated "
+            f"{result['duplicated']}, generator {result['loadgen_schedule_percent'] or 0:.2f} % "
+            f"of schedule, p99 push {_s(result['latency_pushed_p99_s'])} / poll "
+            f"{_s(result['latency_polled_p99_s'])}, sustained "
+            f"{result['sustained_events_per_s']:,.0f}/s, "
+            f"{_mb(result['bytes_per_robot_day'])}/robot-day, CPU {cpu['stack_total']:.0f} % "
+            f"stack + {cpu['loadgen']:.0f} % loadgen, load {result['loadavg_1min_after_fleet']:.2f}"
+        )
         if result["lost"]:
             console.print(f"[red]{loss_side(result['gateway_acked_minus_published'])}[/red]")
     return runs, medians(runs)
@@ -78,19 +79,28 @@ def find_ceiling(args, facts: dict, base: Path, console) -> dict:
         print_results(console, step_args, facts, runs, med)
         checks = live_bounds(robots, med)
         held = all(ok for *_, ok in checks)
-        steps.append({"robots": robots, "held": held,
-                      "missed": [name for name, _, _, ok in checks if not ok],
-                      "medians": med, "runs": runs})
-        console.print(f"{robots:,} robots: " + ("held every bound" if held else
-                                                  "missed " + ", ".join(steps[-1]["missed"])))
+        steps.append(
+            {
+                "robots": robots,
+                "held": held,
+                "missed": [name for name, _, _, ok in checks if not ok],
+                "medians": med,
+                "runs": runs,
+            }
+        )
+        console.print(
+            f"{robots:,} robots: "
+            + ("held every bound" if held else "missed " + ", ".join(steps[-1]["missed"]))
+        )
         if not held:
             break
         robots += args.ceiling_step
     largest = ceiling_verdict(steps)
-    console.print(f"[bold]largest fleet that held every bound: "
-                  f"{f'{largest:,} robots' if largest else 'none of the steps'}[/bold]"
-                  + ("" if judged(args.seconds) else f" (runs of {args.seconds:.0f} s: not "
-                     "representative)"))
+    console.print(
+        f"[bold]largest fleet that held every bound: "
+        f"{f'{largest:,} robots' if largest else 'none of the steps'}[/bold]"
+        + ("" if judged(args.seconds) else f" (runs of {args.seconds:.0f} s: not representative)")
+    )
     return {"steps": steps, "largest_fleet_held": largest}
 
 
@@ -106,21 +116,33 @@ def main(args) -> None:
     if args.robots < 1 or args.seconds <= 0 or args.repeat < 1:
         sys.exit("--robots, --seconds and --repeat must be positive")
     facts = machine_facts()
-    base = Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="mapservice-bench-"))
+    base = (
+        Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="mapservice-bench-"))
+    )
     base.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {
         "benchmark": "ingest",
-        "command": "mapservice bench ingest " + " ".join(sys.argv[3:] if sys.argv[1:3] == ["bench", "ingest"] else sys.argv[1:]),
-        "args": {"robots": args.robots, "seconds": args.seconds, "mqtt": args.mqtt,
-                 "repeat": args.repeat, "data_dir": str(base),
-                 "loadgen": getattr(args, "loadgen", "raw")},
+        "command": "mapservice bench ingest "
+        + " ".join(sys.argv[3:] if sys.argv[1:3] == ["bench", "ingest"] else sys.argv[1:]),
+        "args": {
+            "robots": args.robots,
+            "seconds": args.seconds,
+            "mqtt": args.mqtt,
+            "repeat": args.repeat,
+            "data_dir": str(base),
+            "loadgen": getattr(args, "loadgen", "raw"),
+        },
         "machine": facts,
         "targets": TARGETS,
-        "live_bounds": {"schedule_min_percent": SCHEDULE_MIN_PERCENT,
-                        "sustained_min_fraction": SUSTAINED_MIN_FRACTION,
-                        "push_p99_max_s": PUSH_P99_MAX_S, "poll_p99_max_s": POLL_P99_MAX_S,
-                        "small_fleet": SMALL_FLEET, "small_fleet_p99_s": SMALL_FLEET_P99_S,
-                        "min_judged_s": MIN_JUDGED_S},
+        "live_bounds": {
+            "schedule_min_percent": SCHEDULE_MIN_PERCENT,
+            "sustained_min_fraction": SUSTAINED_MIN_FRACTION,
+            "push_p99_max_s": PUSH_P99_MAX_S,
+            "poll_p99_max_s": POLL_P99_MAX_S,
+            "small_fleet": SMALL_FLEET,
+            "small_fleet_p99_s": SMALL_FLEET_P99_S,
+            "min_judged_s": MIN_JUDGED_S,
+        },
         "baseline_2019": BASELINE_2019,
     }
     if getattr(args, "find_ceiling", False):
@@ -128,9 +150,15 @@ def main(args) -> None:
     else:
         runs, med = run_series(args, base, console)
         print_results(console, args, facts, runs, med)
-        doc.update({"medians": med, "runs": runs,
-                    "bounds_held": all(ok for *_, ok in live_bounds(args.robots, med))
-                    if judged(args.seconds) else None})
+        doc.update(
+            {
+                "medians": med,
+                "runs": runs,
+                "bounds_held": all(ok for *_, ok in live_bounds(args.robots, med))
+                if judged(args.seconds)
+                else None,
+            }
+        )
     doc["machine"]["loadavg_at_end"] = os.getloadavg()
     if args.json:
         Path(args.json).write_text(json.dumps(_json_safe(doc), indent=2, default=str))

@@ -25,8 +25,9 @@ class CpuMeter:
     """CPU seconds per stack component, this process and its latency probes' threads, and
     the machine."""
 
-    def __init__(self, procs: dict, probe_native_ids: list[int | None],
-                 loadgen_pids: Sequence[int] = ()) -> None:
+    def __init__(
+        self, procs: dict, probe_native_ids: list[int | None], loadgen_pids: Sequence[int] = ()
+    ) -> None:
         self.procs = {name: psutil.Process(p.pid) for name, p in procs.items()}
         self.probe_native_ids = probe_native_ids  # the latency poller's and listener's threads
         self.loadgen = [psutil.Process(pid) for pid in loadgen_pids]  # RawFleet's workers
@@ -60,16 +61,25 @@ class CpuMeter:
             pct["gateway"] += pct.pop(name)
         bench = 100.0 * (after["_bench_process"] - before["_bench_process"]) / wall
         poller = 100.0 * (after["_poller_thread"] - before["_poller_thread"]) / wall
-        workers = 100.0 * (workers_cpu_s if workers_cpu_s is not None else
-                           after.get("_loadgen_workers", 0.0) - before.get("_loadgen_workers", 0.0)) / wall
+        workers = (
+            100.0
+            * (
+                workers_cpu_s
+                if workers_cpu_s is not None
+                else after.get("_loadgen_workers", 0.0) - before.get("_loadgen_workers", 0.0)
+            )
+            / wall
+        )
         pct["stack_total"] = sum(pct.values())
         # The load generator: its worker processes (RawFleet) and its part of this process
         # (paho's RobotFleet; or RawFleet collecting the acknowledged messages).
         pct["loadgen"] = bench - poller + workers
         pct["loadgen_workers"] = workers
         pct["latency_probes"] = poller
-        delta = {k: 100.0 * (after[k] - before[k]) / wall
-                 for k in ("_machine_processes", "_machine_irq", "_machine_steal")}
+        delta = {
+            k: 100.0 * (after[k] - before[k]) / wall
+            for k in ("_machine_processes", "_machine_irq", "_machine_steal")
+        }
         # Whatever else ran on the machine meanwhile (other users' work competes for the cores).
         pct["other_processes"] = delta["_machine_processes"] - pct["stack_total"] - bench - workers
         pct["irq_softirq"] = delta["_machine_irq"]

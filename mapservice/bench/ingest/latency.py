@@ -1,5 +1,4 @@
-"""Publish -> queryable per event, from the probes' notes: bounds, stages and percentiles.
-"""
+"""Publish -> queryable per event, from the probes' notes: bounds, stages and percentiles."""
 
 from __future__ import annotations
 
@@ -7,7 +6,6 @@ import math
 from collections.abc import Sequence
 
 from mapservice.bench.ingest.probes import Key
-
 
 INF = float("inf")
 
@@ -22,8 +20,9 @@ def queryable_times(first_polled: dict[Key, float], pushed: dict[Key, float]) ->
     return out
 
 
-def _latencies(queryable_at: dict[Key, float], not_seen_at: dict[Key, float],
-               keys: dict[Key, float]) -> tuple[list[float], list[float]]:
+def _latencies(
+    queryable_at: dict[Key, float], not_seen_at: dict[Key, float], keys: dict[Key, float]
+) -> tuple[list[float], list[float]]:
     """Per published event: (upper, lower) bound of publish -> queryable, in seconds.
 
     Upper: the first moment it was known queryable (`queryable_times`; for a polled event
@@ -43,8 +42,9 @@ def _latencies(queryable_at: dict[Key, float], not_seen_at: dict[Key, float],
     return upper, lower
 
 
-def _stage_latencies(received_at: dict[Key, float], queryable_at: dict[Key, float],
-                     keys: dict[Key, float]) -> dict:
+def _stage_latencies(
+    received_at: dict[Key, float], queryable_at: dict[Key, float], keys: dict[Key, float]
+) -> dict:
     """Where the time goes, per event seen: publish -> gateway receive (Mosquitto, the
     gateway's MQTT client) and gateway receive -> queryable (Kafka produce, tansu, the
     history consumer, the insert, the push or poll)."""
@@ -56,10 +56,12 @@ def _stage_latencies(received_at: dict[Key, float], queryable_at: dict[Key, floa
             # same way, or a sub-millisecond hop comes out negative.
             to_gateway.append(received - math.floor(wall * 1000) / 1000)
             after_gateway.append(queryable_at[key] - received)
-    return {"publish_to_gateway_p50_s": _pct(to_gateway, 50),
-            "publish_to_gateway_p99_s": _pct(to_gateway, 99),
-            "gateway_to_queryable_p50_s": _pct(after_gateway, 50),
-            "gateway_to_queryable_p99_s": _pct(after_gateway, 99)}
+    return {
+        "publish_to_gateway_p50_s": _pct(to_gateway, 50),
+        "publish_to_gateway_p99_s": _pct(to_gateway, 99),
+        "gateway_to_queryable_p50_s": _pct(after_gateway, 50),
+        "gateway_to_queryable_p99_s": _pct(after_gateway, 99),
+    }
 
 
 def _pct(values: Sequence[float], q: float) -> float | None:

@@ -29,17 +29,21 @@ def gateway_acks(health_ports: list[int]) -> list[float]:
     counts = []
     for port in health_ports:
         text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
-        counts.append(sum(counter_by_label(text, "mapservice_gateway_messages", "outcome").values()))
+        counts.append(
+            sum(counter_by_label(text, "mapservice_gateway_messages", "outcome").values())
+        )
     return counts
 
 
 # The server's store thread, stage by stage: each stage's histogram (one observation per
 # call; batch_events observes each batch's size).
-STORE_STAGES = {"insert": "mapservice_sink_insert_seconds",
-                "conflicts_check": "mapservice_conflicts_check_seconds",
-                "conflicts_write": "mapservice_conflicts_write_seconds",
-                "derive_views": "mapservice_sink_derive_views_seconds",
-                "batch_events": "mapservice_sink_batch_events"}
+STORE_STAGES = {
+    "insert": "mapservice_sink_insert_seconds",
+    "conflicts_check": "mapservice_conflicts_check_seconds",
+    "conflicts_write": "mapservice_conflicts_write_seconds",
+    "derive_views": "mapservice_sink_derive_views_seconds",
+    "batch_events": "mapservice_sink_batch_events",
+}
 
 
 def histogram_totals(text: str) -> dict[str, tuple[float, float]]:
@@ -56,8 +60,9 @@ def histogram_totals(text: str) -> dict[str, tuple[float, float]]:
     return out
 
 
-def store_stages(before: dict[str, tuple[float, float]], after: dict[str, tuple[float, float]],
-                 wall_s: float) -> dict:
+def store_stages(
+    before: dict[str, tuple[float, float]], after: dict[str, tuple[float, float]], wall_s: float
+) -> dict:
     """What the store thread spent between two scrapes, per stage: calls, mean ms per call
     and its share of the wall time; and the batches' mean size in events."""
     out: dict = {}
@@ -68,8 +73,11 @@ def store_stages(before: dict[str, tuple[float, float]], after: dict[str, tuple[
             out["batches"] = calls
             out["events_per_batch"] = total / calls if calls else None
         else:
-            out[stage] = {"calls": calls, "mean_ms": 1000 * total / calls if calls else None,
-                          "busy_percent": 100 * total / wall_s if wall_s > 0 else None}
+            out[stage] = {
+                "calls": calls,
+                "mean_ms": 1000 * total / calls if calls else None,
+                "busy_percent": 100 * total / wall_s if wall_s > 0 else None,
+            }
     return out
 
 

@@ -11,7 +11,6 @@ import time
 
 import httpx
 
-
 KEYS_PER_POSE = "pose"
 KEYS_PER_CHUNK = "chunk"
 
@@ -68,7 +67,7 @@ class QueryablePoller(threading.Thread):
 
     def _take_published(self) -> None:
         n = len(self.published)  # the fleet only appends; entries up to n are complete
-        for kind, robot, ts, _wall in self.published[self._consumed:n]:
+        for kind, robot, ts, _wall in self.published[self._consumed : n]:
             key = (kind, robot, ts)
             if key not in self.first_seen:
                 self.pending[key] = ts
@@ -98,12 +97,16 @@ class QueryablePoller(threading.Thread):
                 truncated = False
                 try:
                     rows = 0
-                    for kind, path in ((KEYS_PER_POSE, "/api/v1/poses"),
-                                       (KEYS_PER_CHUNK, "/api/v1/chunk-events")):
+                    for kind, path in (
+                        (KEYS_PER_POSE, "/api/v1/poses"),
+                        (KEYS_PER_CHUNK, "/api/v1/chunk-events"),
+                    ):
                         # Per kind: chunks and poses are stored by different agents, and a
                         # chunk still on its way must not widen the (larger) pose window.
-                        lower = min((ts for k, ts in self.pending.items() if k[0] == kind),
-                                    default=now_ms - 1000)
+                        lower = min(
+                            (ts for k, ts in self.pending.items() if k[0] == kind),
+                            default=now_ms - 1000,
+                        )
                         f, t = max(lower, oldest_allowed), now_ms + 5000
                         body, asked_at, seen_at = self._get(client, path, f, t)
                         rows += len(body)
@@ -205,8 +208,9 @@ class DrainWatch:
     expected event; given up once its counts have not grown for DRAIN_STALL_S (what is
     missing then is lost, not late) or after DRAIN_MAX_S in all."""
 
-    def __init__(self, expected: dict[str, int], stall_s: float = DRAIN_STALL_S,
-                 max_s: float = DRAIN_MAX_S) -> None:
+    def __init__(
+        self, expected: dict[str, int], stall_s: float = DRAIN_STALL_S, max_s: float = DRAIN_MAX_S
+    ) -> None:
         self.expected = expected
         self.stall_s, self.max_s = stall_s, max_s
         self.drained_s: float | None = None

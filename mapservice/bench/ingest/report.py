@@ -10,7 +10,6 @@ from typing import Any
 from mapservice.bench.ingest.latency import INF
 from mapservice.bench.ingest.probes import MAX_WINDOW_MS
 
-
 TARGETS = {
     "robots": 1000,
     "lost": 0,
@@ -27,8 +26,12 @@ POLL_P99_MAX_S = 2.0
 SMALL_FLEET = 1000  # up to this many robots, p99 (push or poll) at most SMALL_FLEET_P99_S
 SMALL_FLEET_P99_S = 0.3
 MIN_JUDGED_S = 60.0  # shorter runs are reported, not judged: start-up noise dominates them
-BASELINE_2019: dict[str, Any] = {"robots": 20, "bytes_per_day": 300e6, "bytes_per_robot_day": 15e6,
-                 "store": "Elasticsearch"}
+BASELINE_2019: dict[str, Any] = {
+    "robots": 20,
+    "bytes_per_day": 300e6,
+    "bytes_per_robot_day": 15e6,
+    "store": "Elasticsearch",
+}
 
 
 def _flatten(d: dict, prefix: str = "") -> dict[str, float]:
@@ -45,8 +48,11 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, float]:
 def medians(runs: list[dict]) -> dict[str, float]:
     flat = [_flatten(r) for r in runs]
     keys = set().union(*flat)
-    return {k: statistics.median(f[k] for f in flat if k in f)
-            for k in sorted(keys) if all(k in f for f in flat)}
+    return {
+        k: statistics.median(f[k] for f in flat if k in f)
+        for k in sorted(keys)
+        if all(k in f for f in flat)
+    }
 
 
 def _mb(v: float) -> str:
@@ -89,19 +95,40 @@ def live_bounds(robots: int, med: dict) -> list[tuple[str, str, float | None, bo
     checks = [
         ("lost", "0", get("lost"), get("lost") == 0),
         ("duplicated", "0", get("duplicated"), get("duplicated") == 0),
-        ("sustained (events/s)", f">= {SUSTAINED_MIN_FRACTION * offered:,.0f}",
-         get("sustained_events_per_s"),
-         (get("sustained_events_per_s") or 0) >= SUSTAINED_MIN_FRACTION * offered),
-        ("load generator: acknowledged / scheduled (%)", f">= {SCHEDULE_MIN_PERCENT}", schedule,
-         schedule is not None and schedule >= SCHEDULE_MIN_PERCENT),
-        ("p99 by the live push", f"<= {PUSH_P99_MAX_S:g} s", get("latency_pushed_p99_s"),
-         (get("latency_pushed_p99_s") or INF) <= PUSH_P99_MAX_S),
-        ("p99 by the poll", f"<= {POLL_P99_MAX_S:g} s", get("latency_polled_p99_s"),
-         (get("latency_polled_p99_s") or INF) <= POLL_P99_MAX_S),
+        (
+            "sustained (events/s)",
+            f">= {SUSTAINED_MIN_FRACTION * offered:,.0f}",
+            get("sustained_events_per_s"),
+            (get("sustained_events_per_s") or 0) >= SUSTAINED_MIN_FRACTION * offered,
+        ),
+        (
+            "load generator: acknowledged / scheduled (%)",
+            f">= {SCHEDULE_MIN_PERCENT}",
+            schedule,
+            schedule is not None and schedule >= SCHEDULE_MIN_PERCENT,
+        ),
+        (
+            "p99 by the live push",
+            f"<= {PUSH_P99_MAX_S:g} s",
+            get("latency_pushed_p99_s"),
+            (get("latency_pushed_p99_s") or INF) <= PUSH_P99_MAX_S,
+        ),
+        (
+            "p99 by the poll",
+            f"<= {POLL_P99_MAX_S:g} s",
+            get("latency_polled_p99_s"),
+            (get("latency_polled_p99_s") or INF) <= POLL_P99_MAX_S,
+        ),
     ]
     if robots <= SMALL_FLEET:
-        checks.append(("p99 (push or poll)", f"<= {SMALL_FLEET_P99_S:g} s", get("latency_p99_s"),
-                       (get("latency_p99_s") or INF) <= SMALL_FLEET_P99_S))
+        checks.append(
+            (
+                "p99 (push or poll)",
+                f"<= {SMALL_FLEET_P99_S:g} s",
+                get("latency_p99_s"),
+                (get("latency_p99_s") or INF) <= SMALL_FLEET_P99_S,
+            )
+        )
     return checks
 
 
@@ -114,8 +141,10 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
     from rich.table import Table
 
     n = len(runs)
-    title = (f"mapservice bench ingest: {args.robots} robots, {args.seconds:.0f} s, "
-             f"MQTT {args.mqtt}, {'median of ' + str(n) + ' runs' if n > 1 else '1 run'}")
+    title = (
+        f"mapservice bench ingest: {args.robots} robots, {args.seconds:.0f} s, "
+        f"MQTT {args.mqtt}, {'median of ' + str(n) + ' runs' if n > 1 else '1 run'}"
+    )
     table = Table(title=title)
     table.add_column("measure")
     table.add_column("target", justify="right")
@@ -126,105 +155,220 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
 
     def row(name, target, value, ok=None):
         # A run too short to be representative says so instead of a red MISSED.
-        mark = ("" if ok is None else "[dim]not judged[/dim]" if not judge else
-                "[green]ok[/green]" if ok else "[red]MISSED[/red]")
+        mark = (
+            ""
+            if ok is None
+            else "[dim]not judged[/dim]"
+            if not judge
+            else "[green]ok[/green]"
+            if ok
+            else "[red]MISSED[/red]"
+        )
         table.add_row(name, target, value, mark)
 
     offered = med["offered_events_per_s"]
     bounds = {name: (target, ok) for name, target, _, ok in live_bounds(args.robots, med)}
     row("offered load (events/s)", "", f"{offered:,.0f}")
-    row("published = acknowledged by the broker (events/s)", "", f"{med['published_events_per_s']:,.1f}")
+    row(
+        "published = acknowledged by the broker (events/s)",
+        "",
+        f"{med['published_events_per_s']:,.1f}",
+    )
     schedule = med.get("loadgen_schedule_percent")
-    row("load generator: acknowledged / scheduled", *bounds["load generator: acknowledged / scheduled (%)"][:1],
+    row(
+        "load generator: acknowledged / scheduled",
+        *bounds["load generator: acknowledged / scheduled (%)"][:1],
         f"{schedule:.2f} %" if schedule is not None else "n/a",
-        bounds["load generator: acknowledged / scheduled (%)"][1])
+        bounds["load generator: acknowledged / scheduled (%)"][1],
+    )
     if "loadgen_report.lag_p99_s" in med:
-        row("  load generator: p99 lateness / write -> PUBACK p99", "",
-            f"{_s(med.get('loadgen_report.lag_p99_s'))} / {_s(med.get('loadgen_report.puback_p99_s'))}")
-    row("sustained = stored / (seconds + drain time)", bounds["sustained (events/s)"][0],
-        f"{med['sustained_events_per_s']:,.1f}", bounds["sustained (events/s)"][1])
+        row(
+            "  load generator: p99 lateness / write -> PUBACK p99",
+            "",
+            f"{_s(med.get('loadgen_report.lag_p99_s'))} / {_s(med.get('loadgen_report.puback_p99_s'))}",
+        )
+    row(
+        "sustained = stored / (seconds + drain time)",
+        bounds["sustained (events/s)"][0],
+        f"{med['sustained_events_per_s']:,.1f}",
+        bounds["sustained (events/s)"][1],
+    )
     row("lost", "0", f"{med['lost']:,.0f}", med["lost"] == 0)
-    row("duplicated (rows beyond one per key)", "0", f"{med['duplicated']:,.0f}", med["duplicated"] == 0)
-    row("stats poses - published", "0", f"{med['stats_poses_minus_expected']:,.0f}",
-        med["stats_poses_minus_expected"] == 0)
-    row("stats chunk events - published", "0", f"{med['stats_chunk_events_minus_expected']:,.0f}",
-        med["stats_chunk_events_minus_expected"] == 0)
+    row(
+        "duplicated (rows beyond one per key)",
+        "0",
+        f"{med['duplicated']:,.0f}",
+        med["duplicated"] == 0,
+    )
+    row(
+        "stats poses - published",
+        "0",
+        f"{med['stats_poses_minus_expected']:,.0f}",
+        med["stats_poses_minus_expected"] == 0,
+    )
+    row(
+        "stats chunk events - published",
+        "0",
+        f"{med['stats_chunk_events_minus_expected']:,.0f}",
+        med["stats_chunk_events_minus_expected"] == 0,
+    )
     row("dead letters", "0", f"{med['dead_letters']:,.0f}", med["dead_letters"] == 0)
     row("publish -> queryable p50 (push or poll)", "", _s(med.get("latency_p50_s")))
     small = bounds.get("p99 (push or poll)")
-    row("publish -> queryable p99 (push or poll)", small[0] if small else "",
-        _s(med.get("latency_p99_s")), small[1] if small else None)
-    row("  p99 by the live push alone", bounds["p99 by the live push"][0],
-        _s(med.get("latency_pushed_p99_s")), bounds["p99 by the live push"][1])
-    row("  p99 by the poll alone", bounds["p99 by the poll"][0],
-        _s(med.get("latency_polled_p99_s")), bounds["p99 by the poll"][1])
-    row("  p50 by the push / by the poll", "",
-        f"{_s(med.get('latency_pushed_p50_s'))} / {_s(med.get('latency_polled_p50_s'))}")
-    row("  p50 / p99 lower bound (poll excluded)", "",
-        f"{_s(med.get('latency_lower_bound_p50_s'))} / {_s(med.get('latency_lower_bound_p99_s'))}")
-    row("  events pushed live / published", "",
-        f"{med.get('live_pushed_events', 0):,.0f} / {med['published_events']:,.0f}")
+    row(
+        "publish -> queryable p99 (push or poll)",
+        small[0] if small else "",
+        _s(med.get("latency_p99_s")),
+        small[1] if small else None,
+    )
+    row(
+        "  p99 by the live push alone",
+        bounds["p99 by the live push"][0],
+        _s(med.get("latency_pushed_p99_s")),
+        bounds["p99 by the live push"][1],
+    )
+    row(
+        "  p99 by the poll alone",
+        bounds["p99 by the poll"][0],
+        _s(med.get("latency_polled_p99_s")),
+        bounds["p99 by the poll"][1],
+    )
+    row(
+        "  p50 by the push / by the poll",
+        "",
+        f"{_s(med.get('latency_pushed_p50_s'))} / {_s(med.get('latency_polled_p50_s'))}",
+    )
+    row(
+        "  p50 / p99 lower bound (poll excluded)",
+        "",
+        f"{_s(med.get('latency_lower_bound_p50_s'))} / {_s(med.get('latency_lower_bound_p99_s'))}",
+    )
+    row(
+        "  events pushed live / published",
+        "",
+        f"{med.get('live_pushed_events', 0):,.0f} / {med['published_events']:,.0f}",
+    )
     row("publish -> queryable max", "", _s(med.get("latency_max_s")))
-    row("  publish -> gateway p50 / p99", "",
-        f"{_s(med.get('publish_to_gateway_p50_s'))} / {_s(med.get('publish_to_gateway_p99_s'))}")
-    row("  gateway -> queryable p50 / p99", "",
-        f"{_s(med.get('gateway_to_queryable_p50_s'))} / {_s(med.get('gateway_to_queryable_p99_s'))}")
-    row("history offset gaps read again / given up", "given up: 0",
+    row(
+        "  publish -> gateway p50 / p99",
+        "",
+        f"{_s(med.get('publish_to_gateway_p50_s'))} / {_s(med.get('publish_to_gateway_p99_s'))}",
+    )
+    row(
+        "  gateway -> queryable p50 / p99",
+        "",
+        f"{_s(med.get('gateway_to_queryable_p50_s'))} / {_s(med.get('gateway_to_queryable_p99_s'))}",
+    )
+    row(
+        "history offset gaps read again / given up",
+        "given up: 0",
         f"{med.get('history_offset_gaps_reread', 0):,.0f} / {med.get('history_offset_gaps_accepted', 0):,.0f}",
-        med.get("history_offset_gaps_accepted", 0) == 0)
-    row("events unseen within 30 s window", "0", f"{med['latency_censored']:,.0f}",
-        med["latency_censored"] == 0)
-    row("drain: fleet stop -> all stored", "", _s(med.get("drain_s")) if "drain_s" in med
-        else "not drained")
+        med.get("history_offset_gaps_accepted", 0) == 0,
+    )
+    row(
+        "events unseen within 30 s window",
+        "0",
+        f"{med['latency_censored']:,.0f}",
+        med["latency_censored"] == 0,
+    )
+    row(
+        "drain: fleet stop -> all stored",
+        "",
+        _s(med.get("drain_s")) if "drain_s" in med else "not drained",
+    )
     # Fixed overhead (the map's chunk contents, table parts, the schema) is scaled up to a
     # day with the run: on a short run it dominates and says nothing about per-robot growth.
     verdict = storage_verdict(args.seconds, med["bytes_per_robot_day"])
-    row("stored bytes per robot-day (all tables)", _mb(TARGETS["bytes_per_robot_day"]),
-        _mb(med["bytes_per_robot_day"]) + ("" if verdict is not None else
-                                           f" (not judged: run < {MIN_STORAGE_JUDGED_S:.0f} s)"),
-        verdict)
-    for t in ("poses", "chunk_events", "chunk_contents", "pose_keyframes", "conflicts", "map_meta",
-              "dead_letters", "schema_migrations"):
+    row(
+        "stored bytes per robot-day (all tables)",
+        _mb(TARGETS["bytes_per_robot_day"]),
+        _mb(med["bytes_per_robot_day"])
+        + ("" if verdict is not None else f" (not judged: run < {MIN_STORAGE_JUDGED_S:.0f} s)"),
+        verdict,
+    )
+    for t in (
+        "poses",
+        "chunk_events",
+        "chunk_contents",
+        "pose_keyframes",
+        "conflicts",
+        "map_meta",
+        "dead_letters",
+        "schema_migrations",
+    ):
         k = f"storage.bytes_per_robot_day_by_table.{t}"
         if k in med:
             row(f"  of which {t}", "", _mb(med[k]))
-    row("  events only (poses + chunk_events)", "", _mb(med["storage.bytes_per_robot_day_events_only"]))
+    row(
+        "  events only (poses + chunk_events)",
+        "",
+        _mb(med["storage.bytes_per_robot_day_events_only"]),
+    )
     row("2019 (Elasticsearch, 20 robots)", "", _mb(BASELINE_2019["bytes_per_robot_day"]))
-    for k in ("kafka", "mqtt", "gateway", "server", "stack_total", "loadgen", "latency_probes",
-              "other_processes", "irq_softirq", "steal", "machine_busy_all_cores"):
+    for k in (
+        "kafka",
+        "mqtt",
+        "gateway",
+        "server",
+        "stack_total",
+        "loadgen",
+        "latency_probes",
+        "other_processes",
+        "irq_softirq",
+        "steal",
+        "machine_busy_all_cores",
+    ):
         key = f"cpu_percent_of_one_core.{k}"
         if key in med:
             per_event = med.get(f"cpu_us_per_event.{k}")
-            row(f"CPU {k} (% of one core" + (", µs per event)" if per_event is not None else ")"),
-                "", f"{med[key]:.1f} %" + (f", {per_event:.0f} µs" if per_event is not None else ""))
+            row(
+                f"CPU {k} (% of one core" + (", µs per event)" if per_event is not None else ")"),
+                "",
+                f"{med[key]:.1f} %" + (f", {per_event:.0f} µs" if per_event is not None else ""),
+            )
     if "yardstick_ms" in med:
-        row("machine yardstick before the run (ms, lower = faster machine)", "",
-            f"{med['yardstick_ms']:.1f}")
+        row(
+            "machine yardstick before the run (ms, lower = faster machine)",
+            "",
+            f"{med['yardstick_ms']:.1f}",
+        )
     console.print(table)
     if not judge:
-        console.print(f"[yellow]A {args.seconds:.0f} s run is not representative (start-up noise "
-                      f"dominates): reported, not judged; judged runs last >= {MIN_JUDGED_S:.0f} s.[/yellow]")
+        console.print(
+            f"[yellow]A {args.seconds:.0f} s run is not representative (start-up noise "
+            f"dominates): reported, not judged; judged runs last >= {MIN_JUDGED_S:.0f} s.[/yellow]"
+        )
     other = med.get("cpu_percent_of_one_core.other_processes", 0.0)
-    console.print(f"load average at the end of the fleet: {med.get('loadavg_1min_after_fleet', float('nan')):.2f}; "
-                  f"other processes took {other:.0f} % of a core"
-                  + (" (a shared machine: development numbers)" if other > 15 else ""))
-    console.print(f"machine: {facts['nproc']} CPUs ({facts['cpu_model']}), "
-                  f"{facts['ram_bytes'] / 2**30:.1f} GiB RAM, Python {facts['python']}, "
-                  f"Kafka: {facts.get('kafka', facts['tansu'])}, {facts['mosquitto']}")
-    console.print("latency = the first moment the event was known queryable minus the load "
-                  "generator's publish time: the server's send time of its push on the live "
-                  "WebSocket (sent after its insert returned) or the end of the first poll of the API "
-                  f"that returned it (every ~{args.poll_interval * 1000:.0f} ms, so up to one "
-                  "poll interval plus the poll's own duration late), whichever came first; the "
-                  "lower bound uses the start of the last poll that did not return it yet. "
-                  "Sustained = events stored / (--seconds + drain time).")
+    console.print(
+        f"load average at the end of the fleet: {med.get('loadavg_1min_after_fleet', float('nan')):.2f}; "
+        f"other processes took {other:.0f} % of a core"
+        + (" (a shared machine: development numbers)" if other > 15 else "")
+    )
+    console.print(
+        f"machine: {facts['nproc']} CPUs ({facts['cpu_model']}), "
+        f"{facts['ram_bytes'] / 2**30:.1f} GiB RAM, Python {facts['python']}, "
+        f"Kafka: {facts.get('kafka', facts['tansu'])}, {facts['mosquitto']}"
+    )
+    console.print(
+        "latency = the first moment the event was known queryable minus the load "
+        "generator's publish time: the server's send time of its push on the live "
+        "WebSocket (sent after its insert returned) or the end of the first poll of the API "
+        f"that returned it (every ~{args.poll_interval * 1000:.0f} ms, so up to one "
+        "poll interval plus the poll's own duration late), whichever came first; the "
+        "lower bound uses the start of the last poll that did not return it yet. "
+        "Sustained = events stored / (--seconds + drain time)."
+    )
 
 
 def loss_side(acked_minus_published: float) -> str:
     """Where lost events went missing, from what the gateways had Kafka confirm."""
     if acked_minus_published < 0:
-        return (f"the gateways had {-acked_minus_published:.0f} fewer messages confirmed than the "
-                "robots had acknowledged: the MQTT broker did not pass them on (or a gateway "
-                "still holds them); see the broker's and the gateways' logs")
-    return ("the gateways had every published message confirmed by Kafka: the events were lost "
-            "after them (Kafka, the history consumer or the store); see the server's log")
+        return (
+            f"the gateways had {-acked_minus_published:.0f} fewer messages confirmed than the "
+            "robots had acknowledged: the MQTT broker did not pass them on (or a gateway "
+            "still holds them); see the broker's and the gateways' logs"
+        )
+    return (
+        "the gateways had every published message confirmed by Kafka: the events were lost "
+        "after them (Kafka, the history consumer or the store); see the server's log"
+    )

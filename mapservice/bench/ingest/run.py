@@ -35,15 +35,22 @@ from mapservice.bench.ingest.storage import measure_storage, scan_run
 from mapservice.bench.procstat import resident_by_component
 from mapservice.bench.yardstick import yardstick_ms
 
-
 WARMUP_PREFIX = "warmup"
 
 
 LOADGEN_NICE = 10  # added to the load generator's threads' niceness (Linux: per thread)
 
 
-def _status_line(run: int, runs: int, phase: str, elapsed: float, seconds: float, fleet,
-                 poller: QueryablePoller | None, started_wall: float) -> str:
+def _status_line(
+    run: int,
+    runs: int,
+    phase: str,
+    elapsed: float,
+    seconds: float,
+    fleet,
+    poller: QueryablePoller | None,
+    started_wall: float,
+) -> str:
     from rich.markup import escape
 
     pub = fleet.stats.poses + fleet.stats.chunks
@@ -54,15 +61,16 @@ def _status_line(run: int, runs: int, phase: str, elapsed: float, seconds: float
         f"run {run}/{runs} {phase} {elapsed:5.1f}/{seconds:.0f} s | published {pub:,} "
         f"({fleet.stats.poses:,} poses, {fleet.stats.chunks:,} chunks, {pub / span:,.0f}/s) | "
         f"queryable {seen:,} ({seen / span:,.0f}/s) | not yet {pub - seen:,} | "
-        f"last poll {poll:.0f} ms")
+        f"last poll {poll:.0f} ms"
+    )
 
 
 def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
     from rich.live import Live
 
-    from mapservice.robot import DEFAULT_MAP
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local.stack import Stack
+    from mapservice.robot import DEFAULT_MAP
 
     data_dir.mkdir(parents=True, exist_ok=True)
     ros_map = load_ros_map(DEFAULT_MAP)
@@ -76,8 +84,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         # Before the stack starts: the machine's speed right now, to compare runs by.
         result["yardstick_ms"] = yardstick_ms()
         t_start = time.monotonic()
-        with console.status(f"run {run}/{runs}: starting Kafka ({stack.kafka}), {args.mqtt}, server, "
-                            f"{gateways} gateway(s)..."):
+        with console.status(
+            f"run {run}/{runs}: starting Kafka ({stack.kafka}), {args.mqtt}, server, "
+            f"{gateways} gateway(s)..."
+        ):
             stack.start_brokers()
             stack.publish_meta(meta_for(ros_map))
             stack.start_server()
@@ -100,8 +110,9 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         listener = LiveListener(stack.api_url)
         listener.start()
         listener.connected.wait(15)
-        meter = CpuMeter(stack.procs, [poller.native_id, listener.native_id],
-                         getattr(fleet, "pids", []))
+        meter = CpuMeter(
+            stack.procs, [poller.native_id, listener.native_id], getattr(fleet, "pids", [])
+        )
         fleet_error: list[BaseException] = []
 
         def drive() -> None:
@@ -136,13 +147,25 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
         with Live(console=console, refresh_per_second=4, transient=True) as live:
             while driver.is_alive():
-                show(live, _status_line(run, runs, "fleet", time.monotonic() - fleet_t0,
-                                        args.seconds, fleet, poller, started_wall))
+                show(
+                    live,
+                    _status_line(
+                        run,
+                        runs,
+                        "fleet",
+                        time.monotonic() - fleet_t0,
+                        args.seconds,
+                        fleet,
+                        poller,
+                        started_wall,
+                    ),
+                )
                 for name, proc in stack.procs.items():
                     if proc.poll() is not None:
                         fleet.stop()
-                        raise RuntimeError(f"{name} exited ({proc.returncode}) during the run; "
-                                           f"see {stack.log_dir}")
+                        raise RuntimeError(
+                            f"{name} exited ({proc.returncode}) during the run; see {stack.log_dir}"
+                        )
                 driver.join(0.25)
             cpu_after = meter.snapshot()
             fleet_wall = time.monotonic() - fleet_t0
@@ -155,8 +178,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             n_poses = sum(1 for k in keys if k[0] == KEYS_PER_POSE)
             n_chunks = len(keys) - n_poses
             warm_poses = sum(1 for k in warm_keys if k[0] == KEYS_PER_POSE)
-            expected = {"poses": n_poses + warm_poses,
-                        "chunk_events": n_chunks + len(warm_keys) - warm_poses}
+            expected = {
+                "poses": n_poses + warm_poses,
+                "chunk_events": n_chunks + len(warm_keys) - warm_poses,
+            }
             # Drained when /api/v1/stats counts every published event (the store folds
             # duplicates, so reaching the count means each one is stored), then a moment
             # more for the poller to see the last ones. A backlog still being stored is
@@ -166,30 +191,56 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             drain = DrainWatch(expected)
             stats_client = httpx.Client(timeout=30)
             while not drain.given_up(time.monotonic() - drain_t0):
-                show(live, _status_line(run, runs, "drain", time.monotonic() - drain_t0,
-                                        DRAIN_MAX_S, fleet, poller, started_wall))
+                show(
+                    live,
+                    _status_line(
+                        run,
+                        runs,
+                        "drain",
+                        time.monotonic() - drain_t0,
+                        DRAIN_MAX_S,
+                        fleet,
+                        poller,
+                        started_wall,
+                    ),
+                )
                 if drain.drained_s is None:
                     try:
                         counts = stats_client.get(f"{stack.api_url}/api/v1/stats").json()
                         drain.observe(time.monotonic() - drain_t0, counts)
                     except (httpx.HTTPError, ValueError):
                         pass
-                if drain.drained_s is not None and keys.keys() <= (poller.first_seen.keys() | poller.censored):
+                if drain.drained_s is not None and keys.keys() <= (
+                    poller.first_seen.keys() | poller.censored
+                ):
                     break
                 time.sleep(0.25)
             drain_s = drain.drained_s
             drain_waited_s = time.monotonic() - drain_t0
             stats_client.close()
-            acked = [after - before for before, after in
-                     zip(acked_before, gateway_acks(stack.gateway_health_ports))]
+            acked = [
+                after - before
+                for before, after in zip(acked_before, gateway_acks(stack.gateway_health_ports))
+            ]
             # Per run (each has a fresh server): gaps the guard read again, and gaps it
             # gave up on (records it never read: they show up as lost).
             metrics_after = server_metrics(stack.api_url)
             gaps = history_offset_gaps(metrics_after)
-            stages = store_stages(stages_before, histogram_totals(metrics_after),
-                                  time.monotonic() - stages_t0)
-        console.print(_status_line(run, runs, "done", time.monotonic() - fleet_t0, args.seconds,
-                                   fleet, poller, started_wall))
+            stages = store_stages(
+                stages_before, histogram_totals(metrics_after), time.monotonic() - stages_t0
+            )
+        console.print(
+            _status_line(
+                run,
+                runs,
+                "done",
+                time.monotonic() - fleet_t0,
+                args.seconds,
+                fleet,
+                poller,
+                started_wall,
+            )
+        )
         poller.stop()
         poller.join()
         listener.stop()
@@ -203,70 +254,78 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             scanned = scan_run(stack.api_url, first_ts - 1000, last_ts + 1001, slice_ms)
             stats = httpx.get(f"{stack.api_url}/api/v1/stats", timeout=60).json()
 
-        fleet_rows = [k for kind in scanned.values() for k in kind
-                      if not k[1].startswith(WARMUP_PREFIX)]
+        fleet_rows = [
+            k for kind in scanned.values() for k in kind if not k[1].startswith(WARMUP_PREFIX)
+        ]
         unique = set(fleet_rows)
         lost = [k for k in keys if k not in unique]
         unexpected = [k for k in unique if k not in keys]
         stored_events = len(unique & keys.keys())
-        cpu_pct = CpuMeter.percent(cpu_before, cpu_after,
-                                   fleet.stats.report.get("cpu_s") if loadgen == "raw" else None)
+        cpu_pct = CpuMeter.percent(
+            cpu_before, cpu_after, fleet.stats.report.get("cpu_s") if loadgen == "raw" else None
+        )
         aligned = getattr(args, "aligned_chunks", False)
-        scheduled = (fleet.stats.report.get("scheduled_events") if loadgen == "raw"
-                     else fleet.scheduled_events(int(args.seconds)))
-        result.update({
-            "robots": args.robots,
-            "seconds": args.seconds,
-            "fleet_wall_s": fleet_wall,
-            "offered_events_per_s": args.robots * getattr(fleet, "events_per_robot_s", 1.2),
-            "published_poses": n_poses,
-            "published_chunks": n_chunks,
-            "published_events": len(keys),
-            "scheduled_events": scheduled,
-            "loadgen": loadgen,
-            # spread: robot i's chunk cycle offset by i poses; aligned: the whole fleet's
-            # chunks in one second of five (robot/schedule.py)
-            "chunk_schedule": "aligned" if aligned else "spread",
-            "loadgen_schedule_percent": 100.0 * len(keys) / scheduled if scheduled else None,
-            "loadgen_report": getattr(fleet.stats, "report", {}),
-            "published_events_per_s": len(keys) / args.seconds,
-            "published_duplicate_keys": len(published) - len(keys),
-            "stored_events": stored_events,
-            # Over the time from the first publish until the last event was stored: a
-            # pipeline that needs a long drain after the fleet stops did not sustain the rate.
-            "sustained_events_per_s": stored_events / (args.seconds + (
-                drain_s if drain_s is not None else drain_waited_s)),
-            "lost": len(lost),
-            "lost_examples": [list(k) for k in lost[:10]],
-            "duplicated": len(fleet_rows) - len(unique),
-            "unexpected": len(unexpected),
-            "stats_endpoint": stats,
-            "stats_expected": expected,
-            "stats_poses_minus_expected": stats["poses"] - expected["poses"],
-            "stats_chunk_events_minus_expected": stats["chunk_events"] - expected["chunk_events"],
-            "dead_letters": stats["dead_letters"],
-            "all_seen_by_poller": all_seen,
-            "drain_s": drain_s,
-            "drain_waited_s": drain_waited_s,
-            "drained": drain_s is not None,
-            # What the gateways had Kafka confirm (and so acknowledged to the broker) during
-            # the run, against what the robots had acknowledged: 0 if the broker passed on
-            # every message. With events lost, it says on which side of the gateways.
-            "gateway_acked_by_replica": acked,
-            "gateway_acked_minus_published": sum(acked) - len(keys),
-            "history_offset_gaps_reread": gaps["reread"],
-            "history_offset_gaps_accepted": gaps["accepted"],
-            # From the fleet's start to the drain: what each batch cost the store thread.
-            "store_stages": stages,
-            **_latency_figures(args, keys, poller, listener),
-            "cpu_percent_of_one_core": cpu_pct,
-            "cpu_us_per_event": cpu_us_per_event(cpu_pct, len(keys), fleet_wall),
-            "loadgen_nice": LOADGEN_NICE,
-            "run_started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started_wall)),
-            "run_ended_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ended_wall)),
-            "loadavg_after_fleet": os.getloadavg(),
-            "loadavg_1min_after_fleet": os.getloadavg()[0],
-        })
+        scheduled = (
+            fleet.stats.report.get("scheduled_events")
+            if loadgen == "raw"
+            else fleet.scheduled_events(int(args.seconds))
+        )
+        result.update(
+            {
+                "robots": args.robots,
+                "seconds": args.seconds,
+                "fleet_wall_s": fleet_wall,
+                "offered_events_per_s": args.robots * getattr(fleet, "events_per_robot_s", 1.2),
+                "published_poses": n_poses,
+                "published_chunks": n_chunks,
+                "published_events": len(keys),
+                "scheduled_events": scheduled,
+                "loadgen": loadgen,
+                # spread: robot i's chunk cycle offset by i poses; aligned: the whole fleet's
+                # chunks in one second of five (robot/schedule.py)
+                "chunk_schedule": "aligned" if aligned else "spread",
+                "loadgen_schedule_percent": 100.0 * len(keys) / scheduled if scheduled else None,
+                "loadgen_report": getattr(fleet.stats, "report", {}),
+                "published_events_per_s": len(keys) / args.seconds,
+                "published_duplicate_keys": len(published) - len(keys),
+                "stored_events": stored_events,
+                # Over the time from the first publish until the last event was stored: a
+                # pipeline that needs a long drain after the fleet stops did not sustain the rate.
+                "sustained_events_per_s": stored_events
+                / (args.seconds + (drain_s if drain_s is not None else drain_waited_s)),
+                "lost": len(lost),
+                "lost_examples": [list(k) for k in lost[:10]],
+                "duplicated": len(fleet_rows) - len(unique),
+                "unexpected": len(unexpected),
+                "stats_endpoint": stats,
+                "stats_expected": expected,
+                "stats_poses_minus_expected": stats["poses"] - expected["poses"],
+                "stats_chunk_events_minus_expected": stats["chunk_events"]
+                - expected["chunk_events"],
+                "dead_letters": stats["dead_letters"],
+                "all_seen_by_poller": all_seen,
+                "drain_s": drain_s,
+                "drain_waited_s": drain_waited_s,
+                "drained": drain_s is not None,
+                # What the gateways had Kafka confirm (and so acknowledged to the broker) during
+                # the run, against what the robots had acknowledged: 0 if the broker passed on
+                # every message. With events lost, it says on which side of the gateways.
+                "gateway_acked_by_replica": acked,
+                "gateway_acked_minus_published": sum(acked) - len(keys),
+                "history_offset_gaps_reread": gaps["reread"],
+                "history_offset_gaps_accepted": gaps["accepted"],
+                # From the fleet's start to the drain: what each batch cost the store thread.
+                "store_stages": stages,
+                **_latency_figures(args, keys, poller, listener),
+                "cpu_percent_of_one_core": cpu_pct,
+                "cpu_us_per_event": cpu_us_per_event(cpu_pct, len(keys), fleet_wall),
+                "loadgen_nice": LOADGEN_NICE,
+                "run_started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(started_wall)),
+                "run_ended_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(ended_wall)),
+                "loadavg_after_fleet": os.getloadavg(),
+                "loadavg_1min_after_fleet": os.getloadavg()[0],
+            }
+        )
     finally:
         gc.enable()
         if poller is not None:
@@ -317,18 +376,29 @@ def _load_fleet(args, stack, ros_map, console, label: str) -> tuple[str, Any]:
         from mapservice.bench.fleet.rawfleet import RawFleet
 
         # Worker processes at a lower priority: they stand for robots on other machines.
-        fleet = RawFleet(stack.mqtt_url, ros_map, args.robots,
-                         processes=getattr(args, "loadgen_processes", None), nice=LOADGEN_NICE,
-                         aligned_chunks=getattr(args, "aligned_chunks", False))
+        fleet = RawFleet(
+            stack.mqtt_url,
+            ros_map,
+            args.robots,
+            processes=getattr(args, "loadgen_processes", None),
+            nice=LOADGEN_NICE,
+            aligned_chunks=getattr(args, "aligned_chunks", False),
+        )
         with console.status(f"{label}: starting the load fleet's workers..."):
             fleet.start(args.seconds)
         return loadgen, fleet
-    return loadgen, RobotFleet(stack.mqtt_url, ros_map, args.robots, record=True,
-                               aligned_chunks=getattr(args, "aligned_chunks", False))
+    return loadgen, RobotFleet(
+        stack.mqtt_url,
+        ros_map,
+        args.robots,
+        record=True,
+        aligned_chunks=getattr(args, "aligned_chunks", False),
+    )
 
 
-def _latency_figures(args, keys: dict[Key, float], poller: QueryablePoller,
-                     listener: LiveListener) -> dict:
+def _latency_figures(
+    args, keys: dict[Key, float], poller: QueryablePoller, listener: LiveListener
+) -> dict:
     """Publish -> queryable of the run's events (push or poll, each alone, per kind, the
     lower bound, the split at the gateway) and how the poller itself kept up."""
     queryable_at = queryable_times(poller.first_seen, listener.pushed_at)
@@ -337,8 +407,11 @@ def _latency_figures(args, keys: dict[Key, float], poller: QueryablePoller,
     pushed = [at - keys[k] for k, at in listener.pushed_at.items() if k in keys]
     # What the poll adds to the push: the push is sent once the insert returned, so an
     # event seen by a poll long after its push was queryable and waited for the poller.
-    poll_after_push = [poller.first_seen[k] - at for k, at in listener.pushed_at.items()
-                       if k in keys and k in poller.first_seen]
+    poll_after_push = [
+        poller.first_seen[k] - at
+        for k, at in listener.pushed_at.items()
+        if k in keys and k in poller.first_seen
+    ]
     pose_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_POSE]
     chunk_upper = [v for k, v in zip(keys, upper) if k[0] == KEYS_PER_CHUNK]
     return {
@@ -395,7 +468,8 @@ def _storage_figures(storage: dict, robots: int, seconds: float, result: dict) -
         "bytes_per_robot_day": total / robot_days,
         "bytes_per_robot_day_by_table": per_table,
         "bytes_per_robot_day_events_only": events_only / robot_days,
-        "bytes_per_pose": storage["table_bytes"].get("poses", 0) / max(result["published_poses"], 1),
+        "bytes_per_pose": storage["table_bytes"].get("poses", 0)
+        / max(result["published_poses"], 1),
         "bytes_per_chunk_event": storage["table_bytes"].get("chunk_events", 0)
         / max(result["published_chunks"], 1),
     }

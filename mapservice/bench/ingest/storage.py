@@ -13,7 +13,6 @@ import httpx
 
 from mapservice.bench.ingest.probes import KEYS_PER_CHUNK, KEYS_PER_POSE, Key
 
-
 API_LIMIT = 100_000  # the API's maximum `limit`
 
 
@@ -33,10 +32,14 @@ def scan_run(api_url: str, f: int, t: int, slice_ms: int) -> dict[str, list[Key]
     with httpx.Client(timeout=120) as client:
         for start in range(f, t, slice_ms):
             end = min(start + slice_ms, t)
-            for kind, path in ((KEYS_PER_POSE, "/api/v1/poses"),
-                               (KEYS_PER_CHUNK, "/api/v1/chunk-events")):
-                out[kind].extend((kind, row["robotId"], row["ts_ms"])
-                                 for row in _scan(client, api_url, path, start, end))
+            for kind, path in (
+                (KEYS_PER_POSE, "/api/v1/poses"),
+                (KEYS_PER_CHUNK, "/api/v1/chunk-events"),
+            ):
+                out[kind].extend(
+                    (kind, row["robotId"], row["ts_ms"])
+                    for row in _scan(client, api_url, path, start, end)
+                )
     return out
 
 
@@ -48,21 +51,34 @@ def storage_report(data_dir: Path) -> dict:
     store = ClickHouseStore(Settings(data_dir=data_dir).resolved_clickhouse_dsn)
     db = store.database
     try:
-        raw = {t: store._rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
-               for t in ("poses", "chunk_events", "chunk_contents")}
-        parts_before = {t: int(n) for t, n in store._rows(
-            "SELECT table, count() FROM system.parts WHERE database = {d:String} AND active "
-            "GROUP BY table", {"d": db})}
+        raw = {
+            t: store._rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
+            for t in ("poses", "chunk_events", "chunk_contents")
+        }
+        parts_before = {
+            t: int(n)
+            for t, n in store._rows(
+                "SELECT table, count() FROM system.parts WHERE database = {d:String} AND active "
+                "GROUP BY table",
+                {"d": db},
+            )
+        }
         store.optimize()
-        merged = {t: store._rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
-                  for t in ("poses", "chunk_events", "chunk_contents")}
+        merged = {
+            t: store._rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
+            for t in ("poses", "chunk_events", "chunk_contents")
+        }
         tables = store.storage_bytes()
         columns = _column_bytes(store, db)
     finally:
         store.close()
-    return {"raw_rows_before_merge": raw, "rows_after_merge": merged,
-            "active_parts_before_merge": parts_before, "table_bytes": tables,
-            "column_compressed_bytes": columns}
+    return {
+        "raw_rows_before_merge": raw,
+        "rows_after_merge": merged,
+        "active_parts_before_merge": parts_before,
+        "table_bytes": tables,
+        "column_compressed_bytes": columns,
+    }
 
 
 def _column_bytes(store, db: str) -> dict[str, dict[str, int]]:
@@ -79,14 +95,17 @@ def _column_bytes(store, db: str) -> dict[str, dict[str, int]]:
         try:
             for t in ("poses", "chunk_events"):
                 c.command(f"CREATE TABLE {scratch}.{t} AS {db}.{t}")
-                c.command(f"ALTER TABLE {scratch}.{t} MODIFY SETTING min_bytes_for_wide_part = 0, "
-                          "min_rows_for_wide_part = 0")
+                c.command(
+                    f"ALTER TABLE {scratch}.{t} MODIFY SETTING min_bytes_for_wide_part = 0, "
+                    "min_rows_for_wide_part = 0"
+                )
                 c.command(f"INSERT INTO {scratch}.{t} SELECT * FROM {db}.{t}")
                 c.command(f"OPTIMIZE TABLE {scratch}.{t} FINAL")
             rows = c.query(
                 "SELECT table, column, sum(column_data_compressed_bytes), "
                 "sum(column_data_uncompressed_bytes) FROM system.parts_columns "
-                f"WHERE database = '{scratch}' AND active GROUP BY table, column").result_rows
+                f"WHERE database = '{scratch}' AND active GROUP BY table, column"
+            ).result_rows
         finally:
             c.command(f"DROP DATABASE IF EXISTS {scratch}")
     return {f"{t}.{col}": {"compressed": int(b), "uncompressed": int(u)} for t, col, b, u in rows}
@@ -98,10 +117,17 @@ def _storage_main(data_dir: str, out_file: str) -> None:
 
 def measure_storage(data_dir: Path) -> dict:
     out = data_dir / "storage.json"
-    code = ("import sys; from mapservice.bench.ingest.storage import _storage_main; "
-            "_storage_main(sys.argv[1], sys.argv[2])")
-    done = subprocess.run([sys.executable, "-c", code, str(data_dir), str(out)],
-                          capture_output=True, text=True, timeout=900, check=False)
+    code = (
+        "import sys; from mapservice.bench.ingest.storage import _storage_main; "
+        "_storage_main(sys.argv[1], sys.argv[2])"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(data_dir), str(out)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        check=False,
+    )
     if done.returncode != 0:
         raise RuntimeError(f"storage measurement failed:\n{done.stderr[-2000:]}")
     return json.loads(out.read_text())

@@ -31,8 +31,13 @@ from tests.conftest import meta_event, pose_event
 
 T0 = (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
 PIT = Zone("pit", "keep_out", ((0.0, 3.0), (2.0, 3.0), (2.0, 5.0), (0.0, 5.0)))
-AISLE = Zone("aisle 2", "speed_limit", ((4.0, 0.0), (6.0, 0.0), (6.0, 8.0)),
-             speed_limit=0.5, speed_unit="m/s")
+AISLE = Zone(
+    "aisle 2",
+    "speed_limit",
+    ((4.0, 0.0), (6.0, 0.0), (6.0, 8.0)),
+    speed_limit=0.5,
+    speed_unit="m/s",
+)
 DOCK = PointOfInterest("dock 1", "station", 1.0, 1.0)
 
 
@@ -45,16 +50,31 @@ def history(store) -> None:
     before the window, the aisle's speed zone made at +20 s, the pit removed and the dock
     moved at +40 s; a pause to agv-1 at +10 s, acknowledged at +11 s, done at +12 s."""
     store.append([meta_event(T0 - 10_000)])
-    store.append([_at(T0 - 5000, AnnotationCreated("z-pit", "operator:ab12", PIT)),
-                  _at(T0 - 4000, AnnotationCreated("p-dock", "operator:ab12", DOCK)),
-                  _at(T0 + 20_000, AnnotationCreated("z-aisle", "operator:cd34", AISLE)),
-                  _at(T0 + 40_000, AnnotationRemoved("z-pit", "operator:cd34")),
-                  _at(T0 + 40_000, AnnotationChanged(
-                      "p-dock", "operator:cd34", PointOfInterest("dock 1", "station", 3.0, 1.5)))])
-    store.append([_at(T0 + 10_000, CommandIssued("c-1", "agv-1", "pause", "operator:ab12", T0 + 10_000),
-                      "agv-1"),
-                  _at(T0 + 11_000, CommandAcknowledged("c-1", "agv-1", "accepted"), "agv-1"),
-                  _at(T0 + 12_000, CommandFinished("c-1", "agv-1", "done"), "agv-1")])
+    store.append(
+        [
+            _at(T0 - 5000, AnnotationCreated("z-pit", "operator:ab12", PIT)),
+            _at(T0 - 4000, AnnotationCreated("p-dock", "operator:ab12", DOCK)),
+            _at(T0 + 20_000, AnnotationCreated("z-aisle", "operator:cd34", AISLE)),
+            _at(T0 + 40_000, AnnotationRemoved("z-pit", "operator:cd34")),
+            _at(
+                T0 + 40_000,
+                AnnotationChanged(
+                    "p-dock", "operator:cd34", PointOfInterest("dock 1", "station", 3.0, 1.5)
+                ),
+            ),
+        ]
+    )
+    store.append(
+        [
+            _at(
+                T0 + 10_000,
+                CommandIssued("c-1", "agv-1", "pause", "operator:ab12", T0 + 10_000),
+                "agv-1",
+            ),
+            _at(T0 + 11_000, CommandAcknowledged("c-1", "agv-1", "accepted"), "agv-1"),
+            _at(T0 + 12_000, CommandFinished("c-1", "agv-1", "done"), "agv-1"),
+        ]
+    )
     store.append([pose_event("agv-1", T0 + i * 1000, x=float(i)) for i in range(60)])
 
 
@@ -67,21 +87,30 @@ def read_back(data: bytes) -> tuple[list[tuple[str, int, object]], dict[str, dic
             schemas[schema.name] = json.loads(schema.data)
             out.append((channel.topic, message.log_time // 1_000_000, json.loads(message.data)))
         else:
-            out.append((channel.topic, message.log_time // 1_000_000,
-                        protobuf.decoder_for(channel.message_encoding, schema)(message.data)))
+            out.append(
+                (
+                    channel.topic,
+                    message.log_time // 1_000_000,
+                    protobuf.decoder_for(channel.message_encoding, schema)(message.data),
+                )
+            )
     return out, schemas
 
 
 def _standing(update) -> dict[str, dict]:
     """What a SceneUpdate draws: id -> its kind, label(s), line vertices, sphere position."""
     assert [d.type for d in update.deletions] == [1]  # ALL: the update is the whole set
-    return {e.id: {"kind": {m.key: m.value for m in e.metadata}["kind"],
-                   "texts": [t.text for t in e.texts],
-                   "lines": [[(p.x, p.y) for p in line.points] for line in e.lines],
-                   "colors": [(line.color.r, line.color.g, line.color.b) for line in e.lines],
-                   "spheres": [(s.pose.position.x, s.pose.position.y) for s in e.spheres],
-                   "frame": e.frame_id}
-            for e in update.entities}
+    return {
+        e.id: {
+            "kind": {m.key: m.value for m in e.metadata}["kind"],
+            "texts": [t.text for t in e.texts],
+            "lines": [[(p.x, p.y) for p in line.points] for line in e.lines],
+            "colors": [(line.color.r, line.color.g, line.color.b) for line in e.lines],
+            "spheres": [(s.pose.position.x, s.pose.position.y) for s in e.spheres],
+            "frame": e.frame_id,
+        }
+        for e in update.entities
+    }
 
 
 def test_mcap_holds_the_annotations_at_the_start_and_after_each_edit() -> None:
@@ -96,9 +125,13 @@ def test_mcap_holds_the_annotations_at_the_start_and_after_each_edit() -> None:
     start = updates[0][1]
     assert set(start) == {"z-pit", "p-dock"}
     pit = start["z-pit"]
-    assert pit["kind"] == "keep_out" and pit["frame"] == "map" and pit["texts"] == ["pit (keep out)"]
+    assert (
+        pit["kind"] == "keep_out" and pit["frame"] == "map" and pit["texts"] == ["pit (keep out)"]
+    )
     assert pit["lines"] == [list(PIT.polygon)] and pit["colors"][0][0] > 0.8 > pit["colors"][0][1]
-    assert start["p-dock"]["spheres"] == [(1.0, 1.0)] and start["p-dock"]["texts"] == ["dock 1 (station)"]
+    assert start["p-dock"]["spheres"] == [(1.0, 1.0)] and start["p-dock"]["texts"] == [
+        "dock 1 (station)"
+    ]
     after_create = updates[1][1]
     assert set(after_create) == {"z-pit", "p-dock", "z-aisle"}
     assert after_create["z-aisle"]["texts"] == ["aisle 2 (speed limit 0.5 m/s)"]
@@ -114,8 +147,9 @@ def test_mcap_without_annotations_standing_starts_with_none() -> None:
     store = MemoryStore()
     history(store)
     messages, _ = read_back(_export(store, T0 - 9000, T0 - 4500))
-    assert [(t, set(_standing(m))) for topic, t, m in messages if topic == ANNOTATIONS_TOPIC] == \
-        [(T0 - 5000, {"z-pit"})]
+    assert [(t, set(_standing(m))) for topic, t, m in messages if topic == ANNOTATIONS_TOPIC] == [
+        (T0 - 5000, {"z-pit"})
+    ]
 
 
 def _export(store, from_ms: int, to_ms: int) -> bytes:
@@ -129,21 +163,28 @@ def test_mcap_holds_the_commands_and_the_robots_answers_in_time_order() -> None:
     history(store)
     messages, schemas = read_back(_export(store, T0, T0 + 60_000))
     commands = [(t, m) for topic, t, m in messages if topic == COMMANDS_TOPIC]
-    assert [(t, m["event"], m["by"], m["robot_id"], m["kind"], m["status"]) for t, m in commands] == [
+    assert [
+        (t, m["event"], m["by"], m["robot_id"], m["kind"], m["status"]) for t, m in commands
+    ] == [
         (T0 + 10_000, "issued", "operator:ab12", "agv-1", "pause", "issued"),
         (T0 + 11_000, "ack", "agv-1", "agv-1", "pause", "accepted"),
-        (T0 + 12_000, "outcome", "agv-1", "agv-1", "pause", "done")]
+        (T0 + 12_000, "outcome", "agv-1", "agv-1", "pause", "done"),
+    ]
     assert schemas["mapservice.CommandEvent"] == COMMANDS_SCHEMA
     assert all(set(COMMANDS_SCHEMA["required"]) <= set(m) for _, m in commands)
     # A window that starts after the issue still carries the answers (kind unknown there).
     later, _ = read_back(_export(store, T0 + 10_500, T0 + 60_000))
-    assert [(m["event"], m["kind"]) for topic, _, m in later if topic == COMMANDS_TOPIC] == \
-        [("ack", None), ("outcome", None)]
+    assert [(m["event"], m["kind"]) for topic, _, m in later if topic == COMMANDS_TOPIC] == [
+        ("ack", None),
+        ("outcome", None),
+    ]
 
 
 @pytest.fixture(scope="module")
 def clickhouse(tmp_path_factory):
-    store = ClickHouseStore(f"chdb://{tmp_path_factory.mktemp('exports') / 'ch'}", database="opexports")
+    store = ClickHouseStore(
+        f"chdb://{tmp_path_factory.mktemp('exports') / 'ch'}", database="opexports"
+    )
     store.migrate()
     history(store)
     yield store
@@ -154,16 +195,33 @@ def test_annotation_edits_and_commands_export_as_tables(clickhouse) -> None:
     """CSV of the window's edits (who, when, what) and commands (a robot's, if asked);
     Parquet too."""
     window = (T0, T0 + 60_000)
-    edits = list(csv.DictReader(io.StringIO(
-        export_table(clickhouse, "annotation-edits", "csv", *window, "agv-1").decode())))
+    edits = list(
+        csv.DictReader(
+            io.StringIO(
+                export_table(clickhouse, "annotation-edits", "csv", *window, "agv-1").decode()
+            )
+        )
+    )
     # Only the window's edits (the robot filter does not apply: edits have no robot).
     assert [r["annotation_id"] for r in edits[:1]] == ["z-aisle"]
-    assert sorted((r["annotation_id"], r["author"]) for r in edits) == \
-        [("p-dock", "operator:cd34"), ("z-aisle", "operator:cd34"), ("z-pit", "operator:cd34")]
-    assert edits[0]["annotation_id"] == "z-aisle" and json.loads(edits[0]["body"])["speed_limit"] == 0.5
-    commands = list(csv.DictReader(io.StringIO(
-        export_table(clickhouse, "commands", "csv", *window, "agv-1").decode())))
-    assert [(r["event"], r["by"], r["status"]) for r in commands] == \
-        [("issued", "operator:ab12", ""), ("ack", "agv-1", "accepted"), ("outcome", "agv-1", "done")]
+    assert sorted((r["annotation_id"], r["author"]) for r in edits) == [
+        ("p-dock", "operator:cd34"),
+        ("z-aisle", "operator:cd34"),
+        ("z-pit", "operator:cd34"),
+    ]
+    assert (
+        edits[0]["annotation_id"] == "z-aisle"
+        and json.loads(edits[0]["body"])["speed_limit"] == 0.5
+    )
+    commands = list(
+        csv.DictReader(
+            io.StringIO(export_table(clickhouse, "commands", "csv", *window, "agv-1").decode())
+        )
+    )
+    assert [(r["event"], r["by"], r["status"]) for r in commands] == [
+        ("issued", "operator:ab12", ""),
+        ("ack", "agv-1", "accepted"),
+        ("outcome", "agv-1", "done"),
+    ]
     assert export_table(clickhouse, "commands", "csv", *window, "agv-2").decode().count("\n") == 1
     assert export_table(clickhouse, "annotation-edits", "parquet", *window)[:4] == b"PAR1"

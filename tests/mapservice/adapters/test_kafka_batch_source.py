@@ -24,8 +24,9 @@ def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker(
     classic = consumer_config(Settings(kafka_bootstrap="127.0.0.1:1"), "history")
     assert Settings().kafka_group_protocol == "classic"
     assert "group.protocol" not in classic and classic["session.timeout.ms"] == 10_000
-    new = consumer_config(Settings(kafka_bootstrap="127.0.0.1:1", kafka_group_protocol="consumer"),
-                          "history")
+    new = consumer_config(
+        Settings(kafka_bootstrap="127.0.0.1:1", kafka_group_protocol="consumer"), "history"
+    )
     assert new["group.protocol"] == "consumer"
     assert "session.timeout.ms" not in new and "heartbeat.interval.ms" not in new
     assert new["enable.auto.commit"] is False and new["fetch.wait.max.ms"] == 50
@@ -41,8 +42,9 @@ def test_constructing_the_source_opens_no_consumer() -> None:
 def lag(group: str, topic: str, partition: str) -> float | None:
     from prometheus_client import REGISTRY
 
-    return REGISTRY.get_sample_value("mapservice_consumer_lag_records",
-                                     {"group": group, "topic": topic, "partition": partition})
+    return REGISTRY.get_sample_value(
+        "mapservice_consumer_lag_records", {"group": group, "topic": topic, "partition": partition}
+    )
 
 
 def test_statistics_set_the_lag_of_each_fetched_partition() -> None:
@@ -51,11 +53,18 @@ def test_statistics_set_the_lag_of_each_fetched_partition() -> None:
 
     from mapservice.adapters.kafka_batch_source import record_lag
 
-    stats = {"topics": {"poses": {"partitions": {
-        "0": {"consumer_lag": 42, "fetch_state": "active"},
-        "1": {"consumer_lag": -1, "fetch_state": "active"},
-        "2": {"consumer_lag": 7, "fetch_state": "none"},
-        "-1": {"consumer_lag": 9, "fetch_state": "active"}}}}}
+    stats = {
+        "topics": {
+            "poses": {
+                "partitions": {
+                    "0": {"consumer_lag": 42, "fetch_state": "active"},
+                    "1": {"consumer_lag": -1, "fetch_state": "active"},
+                    "2": {"consumer_lag": 7, "fetch_state": "none"},
+                    "-1": {"consumer_lag": 9, "fetch_state": "active"},
+                }
+            }
+        }
+    }
     record_lag("lag-test", json.dumps(stats))
     assert lag("lag-test", "poses", "0") == 42
     assert lag("lag-test", "poses", "1") is None and lag("lag-test", "poses", "2") is None
@@ -84,7 +93,9 @@ def test_a_commit_the_broker_refuses_later_is_reported() -> None:
     assert source.config["on_commit"] == source._committed
     source.config["on_commit"](None, [TopicPartition("t", 0, 5)])
     assert failures == []
-    source.config["on_commit"](KafkaError(KafkaError.REBALANCE_IN_PROGRESS), [TopicPartition("t", 0, 5)])
+    source.config["on_commit"](
+        KafkaError(KafkaError.REBALANCE_IN_PROGRESS), [TopicPartition("t", 0, 5)]
+    )
     assert failures == [1]
 
 
@@ -153,8 +164,9 @@ def offsets(records) -> list[tuple[int, int]]:
 def test_an_offset_gap_is_read_again_and_each_record_handed_out_once_in_order() -> None:
     """Partition 0 jumps from 11 to 14 (a batch tansu showed late): the source seeks back to 12,
     drops what followed the gap, keeps partition 1, and the next poll brings 12 to 15."""
-    source = _source([[(0, 10), (0, 11), (1, 5), (0, 14), (0, 15), (1, 6)],
-                      [(0, 12), (0, 13), (0, 14), (0, 15)]])
+    source = _source(
+        [[(0, 10), (0, 11), (1, 5), (0, 14), (0, 15), (1, 6)], [(0, 12), (0, 13), (0, 14), (0, 15)]]
+    )
     first = source.poll(100, 0.1)
     assert offsets(first) == [(0, 10), (0, 11), (1, 5), (1, 6)]
     assert source.consumer.seeks == [(0, 12)]
@@ -194,16 +206,23 @@ def test_a_newly_assigned_partition_starts_wherever_the_group_left_it() -> None:
 
 def test_a_compacted_topics_gaps_are_not_read_again() -> None:
     """A topic left out of contiguous_topics (the compacted map meta) jumps without a seek."""
-    source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t", "meta"], "g",
-                              contiguous_topics=["t"])
+    source = KafkaBatchSource(
+        Settings(kafka_bootstrap="127.0.0.1:1"), ["t", "meta"], "g", contiguous_topics=["t"]
+    )
     consumer = _ScriptedConsumer([])
     consumer.batches = [[_Message(0, 3, "meta"), _Message(0, 9, "meta"), _Message(0, 1, "t")]]
     source.consumer = consumer
-    assert [(r.topic, r.offset) for r in source.poll(100, 0.1)] == [("meta", 3), ("meta", 9), ("t", 1)]
+    assert [(r.topic, r.offset) for r in source.poll(100, 0.1)] == [
+        ("meta", 3),
+        ("meta", 9),
+        ("t", 1),
+    ]
     assert consumer.seeks == []
 
 
-def test_a_commit_covers_the_highest_offset_of_each_partition_delivered_in_this_membership() -> None:
+def test_a_commit_covers_the_highest_offset_of_each_partition_delivered_in_this_membership() -> (
+    None
+):
     """Records polled since the last assignment are committed past each partition's highest offset."""
     source = _assigned_source([[(0, 4), (1, 9), (0, 5)]])
     assert source.commit(source.poll(100, 0.1)) is True

@@ -21,7 +21,9 @@ def test_constructing_the_relay_starts_nothing() -> None:
     assert relay._thread is None and not relay.assigned.is_set() and relay.topic == "t"
 
 
-def test_the_relay_starts_at_offsets_the_broker_reported_before_it_says_assigned(monkeypatch) -> None:
+def test_the_relay_starts_at_offsets_the_broker_reported_before_it_says_assigned(
+    monkeypatch,
+) -> None:
     """Each partition starts at the end the broker reported (not OFFSET_END, resolved later), and `assigned` comes after that answer."""
     import threading
     from types import SimpleNamespace
@@ -36,7 +38,9 @@ def test_the_relay_starts_at_offsets_the_broker_reported_before_it_says_assigned
             pass
 
         def list_topics(self, topic, timeout):
-            return SimpleNamespace(topics={topic: SimpleNamespace(error=None, partitions={0: None, 1: None})})
+            return SimpleNamespace(
+                topics={topic: SimpleNamespace(error=None, partitions={0: None, 1: None})}
+            )
 
         def get_watermark_offsets(self, tp, timeout, cached):
             calls.append(("watermark", tp.partition, relay.assigned.is_set()))
@@ -57,5 +61,9 @@ def test_the_relay_starts_at_offsets_the_broker_reported_before_it_says_assigned
     thread = threading.Thread(target=relay._follow)
     thread.start()
     thread.join(10)
-    assert calls == [("watermark", 0, False), ("watermark", 1, False), ("assign", [(0, 40), (1, 41)])]
+    assert calls == [
+        ("watermark", 0, False),
+        ("watermark", 1, False),
+        ("assign", [(0, 40), (1, 41)]),
+    ]
     assert relay.assigned.is_set()

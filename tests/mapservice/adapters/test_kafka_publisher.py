@@ -30,8 +30,11 @@ def test_first_publish_creates_the_producer_and_queues_the_message() -> None:
 def test_producer_config_keeps_keys_on_faust_partitions() -> None:
     """Idempotent, acks=all, and murmur2_random partitioning as aiokafka/faust use."""
     config = producer_config(UNREACHABLE, "c")
-    assert (config["enable.idempotence"], config["acks"], config["partitioner"]) == \
-        (True, "all", "murmur2_random")
+    assert (config["enable.idempotence"], config["acks"], config["partitioner"]) == (
+        True,
+        "all",
+        "murmur2_random",
+    )
 
 
 def test_producer_linger_comes_from_the_kafka_linger_setting() -> None:

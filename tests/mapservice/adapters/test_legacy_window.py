@@ -11,8 +11,11 @@ SIMULATED_NOW = 1_700_000_000_000  # long before the wall clock
 
 
 def test_the_first_window_ends_at_the_service_clock_s_now() -> None:
-    store = ClickHouseStore.from_settings(Settings(
-        clock_start=str(SIMULATED_NOW), clock_rate=1e-9, clickhouse_dsn="http://127.0.0.1:1"))
+    store = ClickHouseStore.from_settings(
+        Settings(
+            clock_start=str(SIMULATED_NOW), clock_rate=1e-9, clickhouse_dsn="http://127.0.0.1:1"
+        )
+    )
     lowers: list[int] = []
 
     def run(sql: str, params: dict) -> list:

@@ -9,9 +9,17 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from mapservice.adapters.mqtt_auth import (GATEWAY_USER, PROCESSORS_USER, AclTopics, BrokerFiles,
-                                           hash_password, legacy_robots_in, read_password_file,
-                                           render_acl, verify_password)
+from mapservice.adapters.mqtt_auth import (
+    GATEWAY_USER,
+    PROCESSORS_USER,
+    AclTopics,
+    BrokerFiles,
+    hash_password,
+    legacy_robots_in,
+    read_password_file,
+    render_acl,
+    verify_password,
+)
 from mapservice.settings import Settings
 
 
@@ -29,7 +37,9 @@ def test_hash_is_what_mosquitto_passwd_writes_and_reads(tmp_path):
     subprocess.run([binary, "-b", str(path), "alice", "s3cret"], check=True)
     subprocess.run([binary, "-H", "sha512", "-b", str(path), "bob", "0ld"], check=True)
     users = read_password_file(path)
-    assert verify_password("s3cret", users["alice"]) and not verify_password("other", users["alice"])
+    assert verify_password("s3cret", users["alice"]) and not verify_password(
+        "other", users["alice"]
+    )
     assert verify_password("0ld", users["bob"])  # Mosquitto 1.x's $6$
 
 
@@ -44,36 +54,55 @@ def test_acl_lets_robots_publish_only_as_themselves():
     assert "pattern write iot/chunks/create/%u" in lines
     assert "pattern read iot/chunks/advertisement" in lines
     assert "pattern read iot/zones/advertisement" in lines  # robots learn the operators' zones
-    gateway = lines[lines.index(f"user {GATEWAY_USER}") + 1:lines.index(f"user {PROCESSORS_USER}")]
-    assert {"topic read iot/coordinates/#", "topic read iot/chunks/create/#",
-            "topic read iot/chunks/create", "topic read uagv/#"} <= set(gateway)
-    processors = lines[lines.index(f"user {PROCESSORS_USER}") + 1:]
-    assert {"topic write iot/chunks/advertisement", "topic write iot/zones/advertisement"} <= set(processors)
+    gateway = lines[
+        lines.index(f"user {GATEWAY_USER}") + 1 : lines.index(f"user {PROCESSORS_USER}")
+    ]
+    assert {
+        "topic read iot/coordinates/#",
+        "topic read iot/chunks/create/#",
+        "topic read iot/chunks/create",
+        "topic read uagv/#",
+    } <= set(gateway)
+    processors = lines[lines.index(f"user {PROCESSORS_USER}") + 1 :]
+    assert {"topic write iot/chunks/advertisement", "topic write iot/zones/advertisement"} <= set(
+        processors
+    )
     # Nothing but the named robots may write the 2019 topic, and no line grants write on a
     # wildcard to everyone.
     assert [line for line in lines if line.endswith(" iot/chunks/create") and "write" in line] == [
-        "topic write iot/chunks/create"] * 2
+        "topic write iot/chunks/create"
+    ] * 2
     assert legacy_robots_in(text) == ["old-3", "old-7"]
     assert not any(line.startswith("pattern write") and "#" in line for line in lines)
 
 
 def test_acl_follows_configured_topics():
     """Custom topic settings are what the ACL talks about."""
-    topics = AclTopics.from_settings(Settings(coordinate_topic="site1/robots/#",
-                                              robot_chunk_topic="site1/chunks/+",
-                                              create_chunk_topic="site1/chunks",
-                                              advertisement_topic="site1/adverts",
-                                              robot_topic_root="site1/own",
-                                              zone_advertisement_topic="site1/zones"))
-    assert topics.robot_topics("r1") == {"pose": "site1/robots/r1", "chunks": "site1/chunks/r1",
-                                         "advertisements": "site1/adverts",
-                                         "commands": "site1/own/r1/commands",
-                                         "commandEvents": "site1/own/r1/command-events"}
+    topics = AclTopics.from_settings(
+        Settings(
+            coordinate_topic="site1/robots/#",
+            robot_chunk_topic="site1/chunks/+",
+            create_chunk_topic="site1/chunks",
+            advertisement_topic="site1/adverts",
+            robot_topic_root="site1/own",
+            zone_advertisement_topic="site1/zones",
+        )
+    )
+    assert topics.robot_topics("r1") == {
+        "pose": "site1/robots/r1",
+        "chunks": "site1/chunks/r1",
+        "advertisements": "site1/adverts",
+        "commands": "site1/own/r1/commands",
+        "commandEvents": "site1/own/r1/command-events",
+    }
     text = render_acl(topics)
     assert "pattern write site1/robots/%u" in text and "topic read site1/chunks" in text
     assert "pattern read site1/own/%u/commands" in text
     assert "pattern write site1/own/%u/command-events" in text
-    assert "topic write site1/own/+/commands" in text and "topic read site1/own/+/command-events" in text
+    assert (
+        "topic write site1/own/+/commands" in text
+        and "topic read site1/own/+/command-events" in text
+    )
     assert "pattern read site1/zones" in text and "topic write site1/zones" in text
 
 
@@ -94,7 +123,10 @@ def test_add_rotate_remove_and_legacy(tmp_path):
     assert first.username == first.robot_id == "r1" and len(first.password) >= 32
     assert first.topics["chunks"] == "iot/chunks/create/r1"
     hashed = read_password_file(files.password_file)["r1"]
-    assert verify_password(first.password, hashed) and first.password not in files.password_file.read_text()
+    assert (
+        verify_password(first.password, hashed)
+        and first.password not in files.password_file.read_text()
+    )
     assert stat.S_IMODE(files.password_file.stat().st_mode) == 0o600
     with pytest.raises(ValueError, match="--rotate"):
         files.add_robot("r1")
@@ -109,8 +141,10 @@ def test_add_rotate_remove_and_legacy(tmp_path):
     assert files.robots() == ["r1"] and files.legacy_robots() == []
 
 
-@pytest.mark.parametrize("bad", ["", "a" * 65, "has space", "wild#card", "plus+", "a/b/c",
-                                 "a/", GATEWAY_USER, PROCESSORS_USER])
+@pytest.mark.parametrize(
+    "bad",
+    ["", "a" * 65, "has space", "wild#card", "plus+", "a/b/c", "a/", GATEWAY_USER, PROCESSORS_USER],
+)
 def test_robot_ids_follow_the_gateway_rule(tmp_path, bad):
     """A robot's username is a valid robotId (no MQTT wildcards or slashes for %u) and not a
     service user's name; one slash only between a VDA 5050 vehicle's two names."""

@@ -27,7 +27,9 @@ def test_buffered_socket_serves_small_reads_from_one_recv_and_reports_pending() 
     b.sendall(b"\x30\x05hello\x40\x02\x00\x07")
     b.close()
     assert sock.recv(1) == b"\x30" and sock.pending() == 10
-    assert sock.recv(1) == b"\x05" and sock.recv(5) == b"hello" and sock.recv(4) == b"\x40\x02\x00\x07"
+    assert (
+        sock.recv(1) == b"\x05" and sock.recv(5) == b"hello" and sock.recv(4) == b"\x40\x02\x00\x07"
+    )
     assert len(calls) == 1 and sock.pending() == 0 and sock.fileno() == a.fileno()
     assert sock.recv(1) == b""
     a.close()
@@ -58,8 +60,11 @@ def test_ack_many_queues_the_pubacks_ack_would_as_one_write_and_wakes_the_loop_o
         batched.ack_many([(7, 1), (8, 1), (9, 0), (65535, 1)])  # QoS 0 needs no ack
         (entry,) = batched._out_packet
         assert entry["packet"] == b"".join(p["packet"] for p in one_by_one._out_packet)
-        assert {k: v for k, v in entry.items() if k not in ("packet", "to_process", "mid")} == \
-            {k: v for k, v in one_by_one._out_packet[0].items() if k not in ("packet", "to_process", "mid")}
+        assert {k: v for k, v in entry.items() if k not in ("packet", "to_process", "mid")} == {
+            k: v
+            for k, v in one_by_one._out_packet[0].items()
+            if k not in ("packet", "to_process", "mid")
+        }
         assert entry["to_process"] == 12
         reader.setblocking(False)
         assert reader.recv(16) == b"0"
@@ -153,14 +158,20 @@ def test_the_gateway_client_still_serves_per_topic_callbacks() -> None:
     routed, rest = [], []
     client.message_callback_add("iot/chunks/#", lambda _c, _u, m: routed.append(m.mid))
     client.on_message = lambda _c, _u, m: rest.append(m.mid)
-    _read_all(client, publish_packet("iot/chunks/create", b"{}", 1)
-              + publish_packet("iot/coordinates/r1", b"{}", 2), 1, rest)
+    _read_all(
+        client,
+        publish_packet("iot/chunks/create", b"{}", 1)
+        + publish_packet("iot/coordinates/r1", b"{}", 2),
+        1,
+        rest,
+    )
     assert routed == [1] and rest == [2]
 
 
 @pytest.mark.parametrize("buffered_reads", [False, True], ids=["robot", "gateway"])
 def test_a_client_in_a_process_holding_over_a_thousand_files_connects_and_gets_its_messages(
-        tmp_path, buffered_reads) -> None:
+    tmp_path, buffered_reads
+) -> None:
     """paho's own loop waits with select(), which takes no descriptor numbered 1024 or more,
     and reports that as a lost connection: in a process with a thousand open files a plain
     paho client never connects (nor says why). Ours polls: it connects, subscribes and gets
@@ -187,7 +198,9 @@ def test_a_client_in_a_process_holding_over_a_thousand_files_connects_and_gets_i
         client = make_client("many-files", buffered_reads=buffered_reads)
         connected, got = threading.Event(), threading.Event()
         client.on_connect = lambda *_: connected.set()
-        client.on_message = lambda _c, _u, message: got.set() if message.payload == b"ping" else None
+        client.on_message = lambda _c, _u, message: (
+            got.set() if message.payload == b"ping" else None
+        )
         client.connect("127.0.0.1", stack.mqtt_port)
         client.loop_start()
         assert connected.wait(10), "no CONNACK"

@@ -16,8 +16,9 @@ from mapservice.runtime.insert_health import InsertHealth
 
 def processors_health(health: InsertHealth):
     port = free_port()
-    server = serve_health("127.0.0.1", port, lambda: {"ok": True},
-                          documents={"/history-status": health.status})
+    server = serve_health(
+        "127.0.0.1", port, lambda: {"ok": True}, documents={"/history-status": health.status}
+    )
     return server, f"http://127.0.0.1:{port}"
 
 
@@ -50,7 +51,11 @@ def test_the_api_apart_reports_a_full_disk_as_the_processors_see_it() -> None:
         assert report["ok"] is False
         assert "NOT_ENOUGH_SPACE" in report["reasons"]["history_store"]
         doc = status.status()
-        assert doc["storing"] is False and doc["failing_since_ms"] and "free disk space" in doc["reason"]
+        assert (
+            doc["storing"] is False
+            and doc["failing_since_ms"]
+            and "free disk space" in doc["reason"]
+        )
     finally:
         server.shutdown()
 

@@ -61,8 +61,13 @@ class KafkaKit:
     def read(self, count: int) -> list[tuple[bytes, bytes]]:
         from confluent_kafka import OFFSET_BEGINNING, Consumer, TopicPartition
 
-        consumer = Consumer({"bootstrap.servers": self.bootstrap, "group.id": f"{self.topic}-reader",
-                             "enable.auto.commit": False})
+        consumer = Consumer(
+            {
+                "bootstrap.servers": self.bootstrap,
+                "group.id": f"{self.topic}-reader",
+                "enable.auto.commit": False,
+            }
+        )
         consumer.assign([TopicPartition(self.topic, 0, OFFSET_BEGINNING)])
         got: list[tuple[bytes, bytes]] = []
         deadline = time.monotonic() + 30
@@ -76,10 +81,18 @@ class KafkaKit:
         return got
 
 
-@pytest.fixture(params=["memory", pytest.param("kafka", marks=[pytest.mark.integration,
-                                                               pytest.mark.timeout(120)])])
+@pytest.fixture(
+    params=[
+        "memory",
+        pytest.param("kafka", marks=[pytest.mark.integration, pytest.mark.timeout(120)]),
+    ]
+)
 def kit(request) -> Iterator[MemoryKit | KafkaKit]:
-    made = MemoryKit() if request.param == "memory" else KafkaKit(request.getfixturevalue("apache_kafka"))
+    made = (
+        MemoryKit()
+        if request.param == "memory"
+        else KafkaKit(request.getfixturevalue("apache_kafka"))
+    )
     yield made
     # The publishers' librdkafka handles go with the test (an unreachable one would
     # otherwise log its refused connections until the process exits).

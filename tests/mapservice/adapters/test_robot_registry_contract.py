@@ -33,15 +33,19 @@ class FakeEmqx:
         self.requests.append(request)
         expected = "Basic " + base64.b64encode(f"{KEY}:{SECRET}".encode()).decode()
         if request.headers.get("authorization") != expected:
-            return httpx.Response(401, json={"code": "BAD_API_KEY_OR_SECRET", "message": "Check api_key/api_secret"})
+            return httpx.Response(
+                401, json={"code": "BAD_API_KEY_OR_SECRET", "message": "Check api_key/api_secret"}
+            )
         path = request.url.raw_path.decode().split("?")[0]
         if not path.startswith(USERS_PATH):
             return httpx.Response(404, json={"code": "NOT_FOUND", "message": "no such path"})
-        user = unquote(path[len(USERS_PATH) + 1:]) if len(path) > len(USERS_PATH) else None
+        user = unquote(path[len(USERS_PATH) + 1 :]) if len(path) > len(USERS_PATH) else None
         body = json.loads(request.content) if request.content else {}
         if request.method == "POST" and user is None:
             if body["user_id"] in self.users:
-                return httpx.Response(409, json={"code": "ALREADY_EXISTS", "message": "User already exists"})
+                return httpx.Response(
+                    409, json={"code": "ALREADY_EXISTS", "message": "User already exists"}
+                )
             self.users[body["user_id"]] = body["password"]
             return httpx.Response(201, json={"user_id": body["user_id"], "is_superuser": False})
         if request.method == "PUT" and user is not None:
@@ -56,10 +60,19 @@ class FakeEmqx:
         if request.method == "GET" and user is None:
             page, limit = int(request.url.params["page"]), int(request.url.params["limit"])
             ids = list(self.users)
-            chunk = ids[(page - 1) * limit: page * limit]
-            return httpx.Response(200, json={
-                "data": [{"user_id": u, "is_superuser": False} for u in chunk],
-                "meta": {"page": page, "limit": limit, "count": len(ids), "hasnext": page * limit < len(ids)}})
+            chunk = ids[(page - 1) * limit : page * limit]
+            return httpx.Response(
+                200,
+                json={
+                    "data": [{"user_id": u, "is_superuser": False} for u in chunk],
+                    "meta": {
+                        "page": page,
+                        "limit": limit,
+                        "count": len(ids),
+                        "hasnext": page * limit < len(ids),
+                    },
+                },
+            )
         return httpx.Response(405, json={"code": "METHOD_NOT_ALLOWED", "message": request.method})
 
 
@@ -70,10 +83,16 @@ class Registry:
         if kind == "mosquitto":
             self.store = BrokerFiles(tmp_path / "passwd", tmp_path / "acl")
             self.password_ok = lambda robot, pw: verify_password(
-                pw, dict(line.split(":", 1) for line in self.store.password_file.read_text().split())[robot])
+                pw,
+                dict(line.split(":", 1) for line in self.store.password_file.read_text().split())[
+                    robot
+                ],
+            )
         else:
             self.fake = FakeEmqx()
-            client = httpx.Client(base_url="http://emqx:18083", transport=httpx.MockTransport(self.fake.handle))
+            client = httpx.Client(
+                base_url="http://emqx:18083", transport=httpx.MockTransport(self.fake.handle)
+            )
             self.store = EmqxUsers("http://emqx:18083", KEY, SECRET, client=client)
             self.password_ok = lambda robot, pw: self.fake.users.get(robot) == pw
 
@@ -99,7 +118,9 @@ def test_adding_twice_is_refused_and_rotate_replaces_the_password(registry) -> N
         registry.store.add_robot("agv-7")
     second = registry.store.add_robot("agv-7", rotate=True)
     assert second.password != first.password
-    assert registry.password_ok("agv-7", second.password) and not registry.password_ok("agv-7", first.password)
+    assert registry.password_ok("agv-7", second.password) and not registry.password_ok(
+        "agv-7", first.password
+    )
 
 
 def test_remove_says_whether_there_was_a_robot(registry) -> None:
@@ -110,7 +131,9 @@ def test_remove_says_whether_there_was_a_robot(registry) -> None:
     assert registry.store.robots() == ["b"]
 
 
-@pytest.mark.parametrize("bad", ["mapservice-gateway", "mapservice-gateway-0", "mapservice-x", "a/b/c", "#", ""])
+@pytest.mark.parametrize(
+    "bad", ["mapservice-gateway", "mapservice-gateway-0", "mapservice-x", "a/b/c", "#", ""]
+)
 def test_service_names_and_bad_ids_are_refused(registry, bad) -> None:
     """The service's users, the reserved mapservice- prefix (gateways' client ids) and ids outside the robotId rule are never robots."""
     with pytest.raises(ValueError):
@@ -130,20 +153,34 @@ def test_emqx_users_are_listed_across_pages(monkeypatch) -> None:
 def test_emqx_errors_say_what_to_do() -> None:
     """A wrong API key, an unreachable EMQX and missing settings each raise an EmqxError naming the setting to fix."""
     fake = FakeEmqx()
-    wrong = EmqxUsers("http://emqx:18083", KEY, "nope", client=httpx.Client(
-        base_url="http://emqx:18083", transport=httpx.MockTransport(fake.handle)))
+    wrong = EmqxUsers(
+        "http://emqx:18083",
+        KEY,
+        "nope",
+        client=httpx.Client(
+            base_url="http://emqx:18083", transport=httpx.MockTransport(fake.handle)
+        ),
+    )
     with pytest.raises(EmqxError, match="MAPSERVICE_EMQX_API_KEY"):
         wrong.add_robot("r1")
 
     def refuse(request):
         raise httpx.ConnectError("connection refused", request=request)
 
-    down = EmqxUsers("http://emqx:18083", KEY, SECRET, client=httpx.Client(
-        base_url="http://emqx:18083", transport=httpx.MockTransport(refuse)))
+    down = EmqxUsers(
+        "http://emqx:18083",
+        KEY,
+        SECRET,
+        client=httpx.Client(base_url="http://emqx:18083", transport=httpx.MockTransport(refuse)),
+    )
     with pytest.raises(EmqxError, match="MAPSERVICE_EMQX_API_URL"):
         down.robots()
     with pytest.raises(EmqxError, match="MAPSERVICE_EMQX_API_SECRET"):
         EmqxUsers("http://emqx:18083", KEY, "")
     with pytest.raises(EmqxError, match="ConfigMap"):
-        EmqxUsers("http://emqx:18083", KEY, SECRET, client=httpx.Client(
-            transport=httpx.MockTransport(fake.handle))).add_robot("r1", legacy_chunks=True)
+        EmqxUsers(
+            "http://emqx:18083",
+            KEY,
+            SECRET,
+            client=httpx.Client(transport=httpx.MockTransport(fake.handle)),
+        ).add_robot("r1", legacy_chunks=True)

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapservice.adapters.ros_map import UNKNOWN, RosMap, free_cells_metres, load_ros_map, meta_for, slice_chunks
+from mapservice.adapters.ros_map import (
+    UNKNOWN,
+    RosMap,
+    free_cells_metres,
+    load_ros_map,
+    meta_for,
+    slice_chunks,
+)
 from tests.fixtures.paths import MAPS
 
 # name: (width, height, resolution, origin, chunk rows, chunk cols) for 100 x 100 chunks
@@ -36,7 +43,9 @@ def test_load_reads_image_and_yaml(named_map) -> None:
 def test_load_accepts_a_string_path_relative_image(tmp_path) -> None:
     """The YAML's image path is resolved relative to the YAML file, not the working directory."""
     (tmp_path / "sub").mkdir()
-    (tmp_path / "sub" / "tiny.pgm").write_bytes(b"P5\n3 2\n255\n" + bytes([0, 205, 254, 254, 0, 205]))
+    (tmp_path / "sub" / "tiny.pgm").write_bytes(
+        b"P5\n3 2\n255\n" + bytes([0, 205, 254, 254, 0, 205])
+    )
     (tmp_path / "tiny.yaml").write_text("image: sub/tiny.pgm\nresolution: 0.5\norigin: [1, 2, 0]\n")
     m = load_ros_map(str(tmp_path / "tiny.yaml"))
     assert m.pixels.tolist() == [[0, 205, 254], [254, 0, 205]]
@@ -48,7 +57,12 @@ def test_meta_counts_whole_chunks(named_map) -> None:
     name, m = named_map
     width, height, resolution, origin, rows, cols = EXPECTED[name]
     meta = meta_for(m)
-    assert (meta.width, meta.height, meta.chunk_width, meta.chunk_height) == (width, height, 100, 100)
+    assert (meta.width, meta.height, meta.chunk_width, meta.chunk_height) == (
+        width,
+        height,
+        100,
+        100,
+    )
     assert (meta.chunk_rows, meta.chunk_cols) == (rows, cols)
     assert (meta.resolution, meta.origin) == (resolution, origin)
 
@@ -68,12 +82,16 @@ def test_slice_pads_with_unknown_and_keeps_pixels(named_map) -> None:
     name, m = named_map
     *_, rows, cols = EXPECTED[name]
     chunks = slice_chunks(m)
-    grid = np.block([[np.frombuffer(chunks[(r, c)], np.uint8).reshape(100, 100)
-                      for c in range(cols)] for r in range(rows)])
+    grid = np.block(
+        [
+            [np.frombuffer(chunks[(r, c)], np.uint8).reshape(100, 100) for c in range(cols)]
+            for r in range(rows)
+        ]
+    )
     assert grid.shape == (rows * 100, cols * 100)
     assert np.array_equal(grid[: m.height, : m.width], m.pixels)
-    assert (grid[m.height:, :] == UNKNOWN).all()
-    assert (grid[:, m.width:] == UNKNOWN).all()
+    assert (grid[m.height :, :] == UNKNOWN).all()
+    assert (grid[:, m.width :] == UNKNOWN).all()
     assert UNKNOWN == 205
     # The last chunk of the bottom row holds padding on both edges.
     last = np.frombuffer(chunks[(rows - 1, cols - 1)], np.uint8).reshape(100, 100)

@@ -77,8 +77,12 @@ class KafkaKit:
         from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 
         holder: list = []
-        source = KafkaBatchSource(self.settings, [self.topic], self.group,
-                                  on_assigned=lambda _parts: self._assigned(holder[0]))
+        source = KafkaBatchSource(
+            self.settings,
+            [self.topic],
+            self.group,
+            on_assigned=lambda _parts: self._assigned(holder[0]),
+        )
         holder.append(source)
         self.assignments[id(source)] = 0
         source.start()
@@ -117,10 +121,18 @@ class KafkaKit:
         self.producer = None  # librdkafka's handle goes now, not at exit after the broker
 
 
-@pytest.fixture(params=["memory", pytest.param("kafka", marks=[pytest.mark.integration,
-                                                               pytest.mark.timeout(180)])])
+@pytest.fixture(
+    params=[
+        "memory",
+        pytest.param("kafka", marks=[pytest.mark.integration, pytest.mark.timeout(180)]),
+    ]
+)
 def kit(request) -> Iterator[MemoryKit | KafkaKit]:
-    made = MemoryKit() if request.param == "memory" else KafkaKit(request.getfixturevalue("apache_kafka"))
+    made = (
+        MemoryKit()
+        if request.param == "memory"
+        else KafkaKit(request.getfixturevalue("apache_kafka"))
+    )
     yield made
     made.close()
 

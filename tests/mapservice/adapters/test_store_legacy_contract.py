@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import pytest
 
-from mapservice.testing.memory_store import MemoryStore
 from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 from mapservice.core.wire2019 import content_hash
+from mapservice.testing.memory_store import MemoryStore
 from tests.mapservice.adapters.store_contract import clickhouse_store
-
 
 # --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
 
@@ -24,11 +23,20 @@ def _legacy_history(ev, t0):
     """Chunk writes and poses spread over two days, with ties in time, row and robot."""
     day = 86_400_000
     return [
-        ev.chunk("r1", t0, 0, 0), ev.chunk("r2", t0, 0, 0), ev.chunk("r1", t0 + 1000, 0, 1),
-        ev.chunk("r2", t0 + 2000, 1, 0, bytes([1]) * 10_000), ev.chunk("r1", t0 - 2 * 3_600_000, 1, 1),
-        ev.chunk("r3", t0 - day - 5, 2, 0), ev.chunk("r1", t0 + 3000, 0, 0),
-        ev.pose("r1", t0), ev.pose("r2", t0), ev.pose("r1", t0 + 1000), ev.pose("r2", t0 + 2000),
-        ev.pose("r3", t0 - 2 * 3_600_000), ev.pose("r3", t0 - day - 5), ev.pose("r1", t0 + 3000),
+        ev.chunk("r1", t0, 0, 0),
+        ev.chunk("r2", t0, 0, 0),
+        ev.chunk("r1", t0 + 1000, 0, 1),
+        ev.chunk("r2", t0 + 2000, 1, 0, bytes([1]) * 10_000),
+        ev.chunk("r1", t0 - 2 * 3_600_000, 1, 1),
+        ev.chunk("r3", t0 - day - 5, 2, 0),
+        ev.chunk("r1", t0 + 3000, 0, 0),
+        ev.pose("r1", t0),
+        ev.pose("r2", t0),
+        ev.pose("r1", t0 + 1000),
+        ev.pose("r2", t0 + 2000),
+        ev.pose("r3", t0 - 2 * 3_600_000),
+        ev.pose("r3", t0 - day - 5),
+        ev.pose("r1", t0 + 3000),
     ]
 
 
@@ -40,8 +48,13 @@ def test_list_chunks_default_is_newest_first_ten(store, ev, t0) -> None:
     """No parameters: the ten newest writes, newest first, ties by row, column, robot."""
     store.append(_legacy_history(ev, t0))
     rows = store.list_chunks(parse_chunk_query({}))
-    assert _chunk_keys(rows, t0)[:5] == [(3000, 0, 0, "r1"), (2000, 1, 0, "r2"),
-                                          (1000, 0, 1, "r1"), (0, 0, 0, "r1"), (0, 0, 0, "r2")]
+    assert _chunk_keys(rows, t0)[:5] == [
+        (3000, 0, 0, "r1"),
+        (2000, 1, 0, "r2"),
+        (1000, 0, 1, "r1"),
+        (0, 0, 0, "r1"),
+        (0, 0, 0, "r2"),
+    ]
     assert len(rows) == 7 and rows[0].content_hash == content_hash(bytes(10_000)).hex()
 
 
@@ -50,15 +63,19 @@ def test_list_chunks_filters(store, ev, t0) -> None:
     store.append(_legacy_history(ev, t0))
 
     def keys(**params):
-        return _chunk_keys(store.list_chunks(parse_chunk_query(
-            {k: str(v) for k, v in params.items()})), t0)
+        return _chunk_keys(
+            store.list_chunks(parse_chunk_query({k: str(v) for k, v in params.items()})), t0
+        )
 
     assert keys(row=1) == [(2000, 1, 0, "r2"), (-7_200_000, 1, 1, "r1")]
     assert keys(column=1) == [(1000, 0, 1, "r1"), (-7_200_000, 1, 1, "r1")]
     assert keys(row=0, column=0, robotId="r2") == [(0, 0, 0, "r2")]
     assert keys(timestamp=t0) == [(0, 0, 0, "r1"), (0, 0, 0, "r2")]
-    assert keys(updatedSince=t0 + 1000) == [(3000, 0, 0, "r1"), (2000, 1, 0, "r2"),
-                                            (1000, 0, 1, "r1")]
+    assert keys(updatedSince=t0 + 1000) == [
+        (3000, 0, 0, "r1"),
+        (2000, 1, 0, "r2"),
+        (1000, 0, 1, "r1"),
+    ]
     assert keys(updatedSince=t0, updatedBefore=t0 + 1000) == [(0, 0, 0, "r1"), (0, 0, 0, "r2")]
 
 
@@ -69,11 +86,15 @@ def test_list_chunks_sort_skip_limit(store, ev, t0) -> None:
     def keys(**params):
         return _chunk_keys(store.list_chunks(parse_chunk_query(params)), t0)
 
-    assert keys(sort="timestamp:asc", limit="2") == [(-86_400_005, 2, 0, "r3"),
-                                                     (-7_200_000, 1, 1, "r1")]
-    assert keys(sort="row:desc,column:asc", limit="3") == [(-86_400_005, 2, 0, "r3"),
-                                                            (2000, 1, 0, "r2"),
-                                                            (-7_200_000, 1, 1, "r1")]
+    assert keys(sort="timestamp:asc", limit="2") == [
+        (-86_400_005, 2, 0, "r3"),
+        (-7_200_000, 1, 1, "r1"),
+    ]
+    assert keys(sort="row:desc,column:asc", limit="3") == [
+        (-86_400_005, 2, 0, "r3"),
+        (2000, 1, 0, "r2"),
+        (-7_200_000, 1, 1, "r1"),
+    ]
     assert keys(sort="robotId:desc", limit="1") == [(-86_400_005, 2, 0, "r3")]
     assert keys(skip="1", limit="2") == [(2000, 1, 0, "r2"), (1000, 0, 1, "r1")]
     assert keys(limit="0") == []
@@ -87,22 +108,40 @@ def test_list_poses_filters_sort_and_page(store, ev, t0) -> None:
         rows = store.list_poses(parse_pose_query({k: str(v) for k, v in params.items()}))
         return [(r.ts_ms - t0, r.robot_id) for r in rows]
 
-    assert keys() == [(3000, "r1"), (2000, "r2"), (1000, "r1"), (0, "r1"), (0, "r2"),
-                      (-7_200_000, "r3"), (-86_400_005, "r3")]
+    assert keys() == [
+        (3000, "r1"),
+        (2000, "r2"),
+        (1000, "r1"),
+        (0, "r1"),
+        (0, "r2"),
+        (-7_200_000, "r3"),
+        (-86_400_005, "r3"),
+    ]
     assert keys(robotId="r3") == [(-7_200_000, "r3"), (-86_400_005, "r3")]
     assert keys(timestamp=t0) == [(0, "r1"), (0, "r2")]
     assert keys(updatedSince=t0 + 1000, updatedBefore=t0 + 3000) == [(2000, "r2"), (1000, "r1")]
     assert keys(sort="robotId:desc,timestamp:asc", limit=3) == [
-        (-86_400_005, "r3"), (-7_200_000, "r3"), (0, "r2")]
+        (-86_400_005, "r3"),
+        (-7_200_000, "r3"),
+        (0, "r2"),
+    ]
     assert keys(skip=5, limit=5) == [(-7_200_000, "r3"), (-86_400_005, "r3")]
 
 
-@pytest.mark.parametrize("params", [
-    {}, {"limit": "1"}, {"limit": "3", "skip": "2"}, {"sort": "timestamp:asc"},
-    {"updatedBefore": "T+1500"}, {"updatedBefore": "T+1500", "limit": "4"},
-    {"sort": "column:desc,row:asc,timestamp:asc"}, {"robotId": "r1", "sort": "row:asc"},
-    {"limit": "10000"},
-])
+@pytest.mark.parametrize(
+    "params",
+    [
+        {},
+        {"limit": "1"},
+        {"limit": "3", "skip": "2"},
+        {"sort": "timestamp:asc"},
+        {"updatedBefore": "T+1500"},
+        {"updatedBefore": "T+1500", "limit": "4"},
+        {"sort": "column:desc,row:asc,timestamp:asc"},
+        {"robotId": "r1", "sort": "row:asc"},
+        {"limit": "10000"},
+    ],
+)
 def test_adapters_agree_on_legacy_queries(chdb_dir, ev, t0, params) -> None:
     """ClickHouse answers every 2019 query exactly as the in-memory fold does."""
     params = {k: str(t0 + int(v[2:])) if v.startswith("T+") else v for k, v in params.items()}
@@ -111,11 +150,13 @@ def test_adapters_agree_on_legacy_queries(chdb_dir, ev, t0, params) -> None:
         for s in (memory, clickhouse):
             s.migrate()
             s.append(_legacy_history(ev, t0))
-        assert clickhouse.list_chunks(parse_chunk_query(params)) == \
-            memory.list_chunks(parse_chunk_query(params))
+        assert clickhouse.list_chunks(parse_chunk_query(params)) == memory.list_chunks(
+            parse_chunk_query(params)
+        )
         pose_params = {k: v for k, v in params.items() if "row" not in v and "column" not in v}
-        assert clickhouse.list_poses(parse_pose_query(pose_params)) == \
-            memory.list_poses(parse_pose_query(pose_params))
+        assert clickhouse.list_poses(parse_pose_query(pose_params)) == memory.list_poses(
+            parse_pose_query(pose_params)
+        )
     finally:
         clickhouse.close()
 

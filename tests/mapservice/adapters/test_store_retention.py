@@ -16,19 +16,26 @@ import zlib
 
 import pytest
 from fastapi.testclient import TestClient
+from mapservice.api.app import create_app
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock
-from mapservice.testing.memory_store import MemoryStore
-from mapservice.api.app import create_app
+from mapservice.core.annotations import (
+    AnnotationChanged,
+    AnnotationCreated,
+    AnnotationEdit,
+    AnnotationRemoved,
+    PointOfInterest,
+    Zone,
+    fold_annotations,
+)
 from mapservice.core.change_feed import ChangeQuery
-from mapservice.core.annotations import (AnnotationChanged, AnnotationCreated, AnnotationEdit,
-                                         AnnotationRemoved, PointOfInterest, Zone, fold_annotations)
 from mapservice.core.events import make_envelope
 from mapservice.core.ports import ConflictRow
 from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash, format_timestamp
 from mapservice.settings import Settings
+from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, meta_event, pose_event
 
 DAY = 86_400_000
@@ -60,8 +67,12 @@ class Store:
     def _open(self):
         if self.kind == "memory":
             return MemoryStore(retention_days=RETENTION_DAYS)
-        return ClickHouseStore(f"chdb://{self.chdb_dir}", database=self.database,
-                               retention_days=RETENTION_DAYS, snapshot_every_ms=STEP)
+        return ClickHouseStore(
+            f"chdb://{self.chdb_dir}",
+            database=self.database,
+            retention_days=RETENTION_DAYS,
+            snapshot_every_ms=STEP,
+        )
 
     def restart(self) -> None:
         if self.kind == "memory":
@@ -98,7 +109,9 @@ class World:
         return e
 
     def map_at(self, t: int) -> dict:
-        return {k: (v.ts_ms, v.robot_id, v.content_hash) for k, v in fold_map(self.chunks, t).items()}
+        return {
+            k: (v.ts_ms, v.robot_id, v.content_hash) for k, v in fold_map(self.chunks, t).items()
+        }
 
     def robots_at(self, t: int) -> dict:
         return {r: p.ts_ms for r, p in fold_robots(self.poses, t).items()}
@@ -109,7 +122,12 @@ class _Row:
 
     def __init__(self, row, column, ts_ms, robot_id, content_hash) -> None:
         self.row, self.column, self.ts_ms, self.robot_id, self.content_hash = (
-            row, column, ts_ms, robot_id, content_hash)
+            row,
+            column,
+            ts_ms,
+            robot_id,
+            content_hash,
+        )
 
 
 def _write_step(store, world: World, start: int, step_no: int) -> None:
@@ -129,25 +147,35 @@ def _write_step(store, world: World, start: int, step_no: int) -> None:
     if step_no % 5 == 0:
         world.versions[(row, col)] += 1
         events.append(world.chunk(ROBOTS[(step_no + 1) % 3], t + 20_000, row, col))
-        conflict = ConflictRow(row, col, t + 20_000, ROBOTS[step_no % 3], t,
-                               ROBOTS[(step_no + 1) % 3])
+        conflict = ConflictRow(
+            row, col, t + 20_000, ROBOTS[step_no % 3], t, ROBOTS[(step_no + 1) % 3]
+        )
         world.conflicts.append(conflict)
         store.append_conflicts([conflict])
     # The operators' week: zones and points of interest drawn in the first days, some
     # changed or removed later; most never touched again (the floor's state).
     if step_no < 7 * 4 and step_no % 3 == 0:
         n = step_no // 3
-        shape = (Zone(f"zone {n}", "keep_out", ((n, 0.0), (n + 1.0, 0.0), (n + 1.0, 1.0)))
-                 if n % 2 else PointOfInterest(f"poi {n}", "station", float(n), 2.0))
-        events.append(world.annotate(start + HOUR + n, AnnotationCreated(f"a{n}", "operator:t", shape)))
+        shape = (
+            Zone(f"zone {n}", "keep_out", ((n, 0.0), (n + 1.0, 0.0), (n + 1.0, 1.0)))
+            if n % 2
+            else PointOfInterest(f"poi {n}", "station", float(n), 2.0)
+        )
+        events.append(
+            world.annotate(start + HOUR + n, AnnotationCreated(f"a{n}", "operator:t", shape))
+        )
     if step_no % 11 == 5:
         n = (step_no // 11) % 9
         if f"a{n}" in world.annotations_at(start + 2 * HOUR):
             shape = PointOfInterest(f"poi {n} moved at {step_no}", "door", float(step_no), 1.0)
-            events.append(world.annotate(start + 2 * HOUR, AnnotationChanged(f"a{n}", "operator:t", shape)))
+            events.append(
+                world.annotate(start + 2 * HOUR, AnnotationChanged(f"a{n}", "operator:t", shape))
+            )
     if step_no in (13, 40):
         removed = {13: "a4", 40: "a9"}[step_no]
-        events.append(world.annotate(start + 2 * HOUR + 1, AnnotationRemoved(removed, "operator:t")))
+        events.append(
+            world.annotate(start + 2 * HOUR + 1, AnnotationRemoved(removed, "operator:t"))
+        )
     if step_no % 7 == 3 and start - 2 * DAY > T0:
         late_row, late_col = 2, 4
         world.versions[(late_row, late_col)] += 1
@@ -168,8 +196,10 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
     for t in instants:
         got = {(c.row, c.column): (c.ts_ms, c.robot_id, c.content_hash) for c in store.map_at(t)}
         want = world.map_at(t)
-        assert got == want, f"map at {format_timestamp(t)} (now {format_timestamp(now)}): " \
-                            f"{len(got)} of {len(want)} chunks, {sum(got.get(k) == v for k, v in want.items())} right"
+        assert got == want, (
+            f"map at {format_timestamp(t)} (now {format_timestamp(now)}): "
+            f"{len(got)} of {len(want)} chunks, {sum(got.get(k) == v for k, v in want.items())} right"
+        )
         contents = store.chunk_contents([bytes.fromhex(h) for _, _, h in want.values()])
         for _, _, h in want.values():
             assert bytes.fromhex(h) in contents, f"pixels of {h} missing at {format_timestamp(t)}"
@@ -180,13 +210,17 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
         assert annotations == world.annotations_at(t), f"annotations at {format_timestamp(t)}"
     # The 2019 listing a robot downloads: latest=true&updatedBefore=T, with pixels.
     for t in (lo + 1, now - DAY):
-        body = client.get("/api/chunk-service/chunks", params={
-            "latest": "true", "updatedBefore": str(t), "limit": "1000"}).json()
+        body = client.get(
+            "/api/chunk-service/chunks",
+            params={"latest": "true", "updatedBefore": str(t), "limit": "1000"},
+        ).json()
         want = world.map_at(t - 1)
         assert len(body) == len(want), f"2019 latest listing before {format_timestamp(t)}"
         for doc in body:
             _, _, h = want[(doc["row"], doc["column"])]
-            assert doc["chunk"] is not None, f"2019 listing: chunk {doc['row']},{doc['column']} has no pixels"
+            assert doc["chunk"] is not None, (
+                f"2019 listing: chunk {doc['row']},{doc['column']} has no pixels"
+            )
             assert zlib.decompress(base64.b64decode(doc["chunk"])) == world.pixels[h]
     # Timeline and conflicts over the whole retention, against the brute force.
     buckets = RETENTION_DAYS * 4
@@ -209,7 +243,8 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
     assert [b.robots_active for b in timeline] == [len(r) for r in want_robots]
     assert store.conflicts(lo, now) == sorted(
         (c for c in world.conflicts if lo <= c.ts_ms < now),
-        key=lambda c: (c.ts_ms, c.row, c.column, c.robot_b))
+        key=lambda c: (c.ts_ms, c.row, c.column, c.robot_b),
+    )
     # The change feed of the whole retention, each change with the chunk's content before
     # it: for a chunk's first change in the retention, what a write now expired put there.
     # (The mapper's floor on day 0 is an upload, one entry of its own.)
@@ -220,17 +255,22 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
             want_feed.append((c.ts_ms, c.row, c.column, c.robot_id, c.content_hash, before))
         content[(c.row, c.column)] = c.content_hash
     feed = store.change_feed(ChangeQuery(lo, now, limit=10_000, kind="change"))
-    got_feed = sorted((e.ts_ms, e.row, e.column, e.robot_id, e.content_hash, e.previous_hash) for e in feed)
+    got_feed = sorted(
+        (e.ts_ms, e.row, e.column, e.robot_id, e.content_hash, e.previous_hash) for e in feed
+    )
     assert got_feed == sorted(want_feed), (
         f"change feed at {format_timestamp(now)}: "
-        f"{[g for g in got_feed if g not in want_feed][:3]} instead of {[w for w in want_feed if w not in got_feed][:3]}")
+        f"{[g for g in got_feed if g not in want_feed][:3]} instead of {[w for w in want_feed if w not in got_feed][:3]}"
+    )
 
 
 def _unnamed_snapshot_pixels(store: ClickHouseStore) -> int:
     db = store.database
     return store._rows(
         f"SELECT count() FROM {db}.map_snapshots WHERE content_hash NOT IN "
-        f"(SELECT content_hash FROM {db}.chunk_contents)", {})[0][0]
+        f"(SELECT content_hash FROM {db}.chunk_contents)",
+        {},
+    )[0][0]
 
 
 @pytest.mark.parametrize("kind", ["memory", "clickhouse"])
@@ -240,8 +280,13 @@ def test_three_retention_periods_keep_the_floor_exact(kind, chdb_dir) -> None:
     world = World()
     # Day 0: the map meta and the whole floor, written once.
     s.store.append([meta_event(T0, chunk_rows=ROWS, chunk_cols=COLS)])
-    s.store.append([world.chunk("mapper", T0 + 1000 + r * COLS + c, r, c)
-                    for r in range(ROWS) for c in range(COLS)])
+    s.store.append(
+        [
+            world.chunk("mapper", T0 + 1000 + r * COLS + c, r, c)
+            for r in range(ROWS)
+            for c in range(COLS)
+        ]
+    )
     bytes_per_day: dict[int, int] = {}
     steps_per_day = DAY // STEP
     for step_no in range(DAYS * steps_per_day):
@@ -272,7 +317,9 @@ def test_three_retention_periods_keep_the_floor_exact(kind, chdb_dir) -> None:
             assert all(e.event.annotation_id in at_boundary for e in old)
             assert len(old) <= 2 * len(at_boundary)
         if kind == "clickhouse":
-            assert _unnamed_snapshot_pixels(s.store) == 0, f"day {day}: a snapshot names missing pixels"
+            assert _unnamed_snapshot_pixels(s.store) == 0, (
+                f"day {day}: a snapshot names missing pixels"
+            )
             s.store.optimize()
             bytes_per_day[day] = sum(s.store.storage_bytes().values())
             carried = s.store._rows(f"SELECT count() FROM {s.database}.carried_poses", {})[0][0]

@@ -21,10 +21,18 @@ def _retention_history(store, ev):
     if hasattr(store, "snapshot_every_ms"):
         store.snapshot_every_ms = 6 * 3_600_000  # 40 snapshots for ten days, not 1,440
     written = [ev.chunk("mapper", RET_T0 + 1000, r, 0, bytes([r]) * 10_000) for r in range(3)]
-    written += [ev.chunk("amr", RET_T0 + d * DAY_MS + 5000, 3, 3, bytes([50 + d]) * 10_000)
-                for d in range(10)]
-    store.append([ev.meta(RET_T0), *written, ev.pose("quiet", RET_T0 + 3_600_000),
-                  *(ev.pose("busy", RET_T0 + d * DAY_MS + 7000) for d in range(10))])
+    written += [
+        ev.chunk("amr", RET_T0 + d * DAY_MS + 5000, 3, 3, bytes([50 + d]) * 10_000)
+        for d in range(10)
+    ]
+    store.append(
+        [
+            ev.meta(RET_T0),
+            *written,
+            ev.pose("quiet", RET_T0 + 3_600_000),
+            *(ev.pose("busy", RET_T0 + d * DAY_MS + 7000) for d in range(10)),
+        ]
+    )
     return written
 
 

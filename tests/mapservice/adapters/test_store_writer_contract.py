@@ -13,13 +13,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapservice.testing.memory_store import MemoryStore
+from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.ports import Counts, PoseRow
-from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core.wire2019 import content_hash
+from mapservice.testing.memory_store import MemoryStore
 from tests.mapservice.adapters.store_contract import clickhouse_store, random_pixels
-
 
 # --- schema -----------------------------------------------------------------------------
 
@@ -37,8 +36,7 @@ def test_migrate_returns_version_and_is_repeatable(store, ev, t0) -> None:
 
 def test_append_twice_yields_one_row_each(store, ev, t0) -> None:
     """Appending the same events twice (a redelivered batch) leaves one row per event."""
-    batch = [ev.pose("r1", t0), ev.pose("r2", t0), ev.chunk("r1", t0, 1, 1),
-             ev.meta(t0)]
+    batch = [ev.pose("r1", t0), ev.pose("r2", t0), ev.chunk("r1", t0, 1, 1), ev.meta(t0)]
     store.append(batch)
     store.append(batch)
     store.append(batch[:1] * 3)
@@ -57,8 +55,14 @@ def test_same_identity_keeps_one_row_with_the_last_write(store, ev, t0) -> None:
 
 def test_chunk_identity_includes_robot_and_cell(store, ev, t0) -> None:
     """Chunk writes differing only in robot, row or column are separate rows."""
-    store.append([ev.chunk("r1", t0, 0, 0), ev.chunk("r2", t0, 0, 0), ev.chunk("r1", t0, 0, 1),
-                  ev.chunk("r1", t0, 1, 0)])
+    store.append(
+        [
+            ev.chunk("r1", t0, 0, 0),
+            ev.chunk("r2", t0, 0, 0),
+            ev.chunk("r1", t0, 0, 1),
+            ev.chunk("r1", t0, 1, 0),
+        ]
+    )
     assert store.counts().chunk_events == 4
 
 
@@ -85,9 +89,13 @@ def test_latest_meta_is_the_newest(store, ev, t0) -> None:
 def test_counts_count_each_kind(store, ev, t0) -> None:
     """counts() reports poses, chunk events, distinct contents and dead letters."""
     store.append([ev.pose("r1", t0 + i) for i in range(5)])
-    store.append([ev.chunk("r1", t0, 0, 0, random_pixels(5)),
-                  ev.chunk("r1", t0, 0, 1, random_pixels(6)),
-                  ev.chunk("r1", t0, 0, 2, random_pixels(5))])
+    store.append(
+        [
+            ev.chunk("r1", t0, 0, 0, random_pixels(5)),
+            ev.chunk("r1", t0, 0, 1, random_pixels(6)),
+            ev.chunk("r1", t0, 0, 2, random_pixels(5)),
+        ]
+    )
     store.append_dead_letters([ev.dead_letter(t_ms=t0)])
     assert store.counts() == Counts(poses=5, chunk_events=3, chunk_contents=2, dead_letters=1)
 
@@ -120,24 +128,45 @@ def test_pose_precision_is_millimetres_and_float32(store, t0) -> None:
     store.append([make_envelope("r1", t0, t0 + 70, PRECISE)])
     (row,) = store.poses(t0, t0 + 1)
     assert row == PoseRow(
-        robot_id="r1", ts_ms=t0, x=1.235, y=-2.0, z=0.001,
-        qx=f32(0.1), qy=f32(-0.2), qz=f32(0.30000001), qw=f32(0.9273618),
-        battery_level=f32(33.3), charging=True, loaded="dfs",
-        path=((1.0, 2.001), (-0.5, 0.0)), receive_time_ms=t0 + 70)
+        robot_id="r1",
+        ts_ms=t0,
+        x=1.235,
+        y=-2.0,
+        z=0.001,
+        qx=f32(0.1),
+        qy=f32(-0.2),
+        qz=f32(0.30000001),
+        qw=f32(0.9273618),
+        battery_level=f32(33.3),
+        charging=True,
+        loaded="dfs",
+        path=((1.0, 2.001), (-0.5, 0.0)),
+        receive_time_ms=t0 + 70,
+    )
 
 
 def test_receive_time_before_event_time_is_kept(store, ev, t0) -> None:
     """A robot clock slightly ahead (negative lag) keeps its exact receive time."""
-    store.append([ev.pose("r1", t0, receive_lag_ms=-250_000),
-                  ev.chunk("r1", t0, receive_lag_ms=-1)])
+    store.append(
+        [ev.pose("r1", t0, receive_lag_ms=-250_000), ev.chunk("r1", t0, receive_lag_ms=-1)]
+    )
     assert store.poses(t0, t0 + 1)[0].receive_time_ms == t0 - 250_000
     assert store.chunk_events(t0, t0 + 1)[0].receive_time_ms == t0 - 1
 
 
-@pytest.mark.parametrize("charging,loaded", [
-    (True, False), (False, True), ("sdf", "dfs"), ("true", "false"), ("", "0"), (None, None),
-    (True, None),
-], ids=repr)
+@pytest.mark.parametrize(
+    "charging,loaded",
+    [
+        (True, False),
+        (False, True),
+        ("sdf", "dfs"),
+        ("true", "false"),
+        ("", "0"),
+        (None, None),
+        (True, None),
+    ],
+    ids=repr,
+)
 def test_flags_keep_bool_or_string_type(store, ev, t0, charging, loaded) -> None:
     """charging/loaded come back with the type the robot sent: bool stays bool, str stays str."""
     store.append([ev.pose("r1", t0, charging=charging, loaded=loaded)])
@@ -161,14 +190,26 @@ def test_battery_none_stays_none(store, ev, t0) -> None:
 
 def test_adapters_return_identical_rows(chdb_dir, ev, t0) -> None:
     """The same events give identical pose rows, chunk rows, contents and meta in both."""
-    events = [make_envelope("r1", t0, t0 + 70, PRECISE),
-              make_envelope("r2", t0 + 1, t0 + 2, PoseReported(
-                  position=(-123.4567, 0.0005, 10.0), orientation=(0.0, 0.0, 0.70710678, 0.70710678),
-                  battery_level=None, charging="sdf", loaded=False, path=None)),
-              ev.pose("r3", t0 + 2, x=0.0015, y=-0.0015),
-              ev.chunk("r1", t0 + 3, 2, 3, random_pixels(7)),
-              ev.chunk("r2", t0 + 3, 2, 3, random_pixels(7)),
-              ev.meta(t0 + 4)]
+    events = [
+        make_envelope("r1", t0, t0 + 70, PRECISE),
+        make_envelope(
+            "r2",
+            t0 + 1,
+            t0 + 2,
+            PoseReported(
+                position=(-123.4567, 0.0005, 10.0),
+                orientation=(0.0, 0.0, 0.70710678, 0.70710678),
+                battery_level=None,
+                charging="sdf",
+                loaded=False,
+                path=None,
+            ),
+        ),
+        ev.pose("r3", t0 + 2, x=0.0015, y=-0.0015),
+        ev.chunk("r1", t0 + 3, 2, 3, random_pixels(7)),
+        ev.chunk("r2", t0 + 3, 2, 3, random_pixels(7)),
+        ev.meta(t0 + 4),
+    ]
     memory, clickhouse = MemoryStore(), clickhouse_store(chdb_dir)
     try:
         for s in (memory, clickhouse):

@@ -28,8 +28,12 @@ def test_each_round_runs_both_brokers_alternating_which_goes_first(tmp_path) -> 
 
     args = Namespace(repeat=2, robots=10, seconds=5, mqtt="mosquitto", kafka="both")
     runs = run_rounds(args, tmp_path, Quiet(), fake_run_once)
-    assert calls == [("apache", "apache/run-1", 1), ("tansu", "tansu/run-1", 1),
-                     ("tansu", "tansu/run-2", 2), ("apache", "apache/run-2", 2)]
+    assert calls == [
+        ("apache", "apache/run-1", 1),
+        ("tansu", "tansu/run-1", 1),
+        ("tansu", "tansu/run-2", 2),
+        ("apache", "apache/run-2", 2),
+    ]
     assert [r["broker"] for r in runs["apache"]] == ["apache", "apache"]
     assert all(len(r["loadavg_before_run"]) == 3 for r in runs["tansu"])
 
@@ -37,10 +41,20 @@ def test_each_round_runs_both_brokers_alternating_which_goes_first(tmp_path) -> 
 def test_side_by_side_takes_each_brokers_medians_and_the_ratio() -> None:
     """CPU per event of the broker, latency and memory come from each broker's medians;
     the ratio is Apache Kafka's over tansu's, None where a side is missing or zero."""
-    med = {"apache": {"cpu_us_per_event.kafka": 30.0, "latency_p99_s": 0.8,
-                      "rss_mb_after_fleet.kafka": 400.0, "lost": 0.0},
-           "tansu": {"cpu_us_per_event.kafka": 20.0, "latency_p99_s": 0.4,
-                     "rss_mb_after_fleet.kafka": 100.0, "lost": 0.0}}
+    med = {
+        "apache": {
+            "cpu_us_per_event.kafka": 30.0,
+            "latency_p99_s": 0.8,
+            "rss_mb_after_fleet.kafka": 400.0,
+            "lost": 0.0,
+        },
+        "tansu": {
+            "cpu_us_per_event.kafka": 20.0,
+            "latency_p99_s": 0.4,
+            "rss_mb_after_fleet.kafka": 100.0,
+            "lost": 0.0,
+        },
+    }
     rows = dict(side_by_side(med))
     assert rows["CPU per event: kafka (µs)"] == {"apache": 30.0, "tansu": 20.0}
     assert ratio(rows["CPU per event: kafka (µs)"]) == pytest.approx(1.5)

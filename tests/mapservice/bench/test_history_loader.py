@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.ros_map import load_ros_map
 from mapservice.bench.history_loader import (
     DAY_MS,
     TTL_GUARD_MS,
@@ -22,7 +23,6 @@ from mapservice.bench.history_loader import (
     pixel_of,
     plan_window,
 )
-from mapservice.adapters.ros_map import load_ros_map
 from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
 from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash
@@ -47,14 +47,23 @@ def end_ms() -> int:
 
 
 def _store(path) -> ClickHouseStore:
-    return ClickHouseStore(f"chdb://{path}", database=f"loader_{next(_db)}",
-                           snapshot_every_ms=EVERY_MS)
+    return ClickHouseStore(
+        f"chdb://{path}", database=f"loader_{next(_db)}", snapshot_every_ms=EVERY_MS
+    )
 
 
 def _load(path, ros_map, end_ms, **kw):
     store = _store(path)
-    result = load_history(store, ros_map, days=SECONDS / 86_400, robots=ROBOTS, end_ms=end_ms,
-                          grid=kw.pop("grid", (4, 6)), change_prob=kw.pop("change_prob", 0.2), **kw)
+    result = load_history(
+        store,
+        ros_map,
+        days=SECONDS / 86_400,
+        robots=ROBOTS,
+        end_ms=end_ms,
+        grid=kw.pop("grid", (4, 6)),
+        change_prob=kw.pop("change_prob", 0.2),
+        **kw,
+    )
     return store, result
 
 
@@ -77,11 +86,19 @@ def test_row_counts_per_table(loaded) -> None:
     counts = store.counts()
     assert (counts.poses, counts.chunk_events) == (ROBOTS * SECONDS, ROBOTS * SECONDS // 5)
     used = _q(store, "SELECT uniqExact(content_hash, toDate(ts)) FROM {db}.chunk_events")[0][0]
-    assert _q(store, "SELECT count() FROM {db}.chunk_contents")[0][0] == used == result.chunk_contents
+    assert (
+        _q(store, "SELECT count() FROM {db}.chunk_contents")[0][0] == used == result.chunk_contents
+    )
     # Variety: changed pixels add contents beyond the map's own chunks.
     assert counts.chunk_contents > 20
-    assert _q(store, "SELECT count() FROM {db}.chunk_events WHERE content_hash NOT IN "
-                     "(SELECT content_hash FROM {db}.chunk_contents)")[0][0] == 0
+    assert (
+        _q(
+            store,
+            "SELECT count() FROM {db}.chunk_events WHERE content_hash NOT IN "
+            "(SELECT content_hash FROM {db}.chunk_contents)",
+        )[0][0]
+        == 0
+    )
     meta = store.latest_meta()
     assert (meta.chunk_rows, meta.chunk_cols, meta.width, meta.height) == (4, 6, 600, 400)
 
@@ -89,8 +106,11 @@ def test_row_counts_per_table(loaded) -> None:
 def test_contents_are_zlib_chunks_with_their_hash(loaded) -> None:
     """Every stored content inflates to 100 x 100 pixels whose blake2b-128 is its hash."""
     store, _ = loaded
-    rows = _q(store, "SELECT content_hash, width, height, zlib_pixels FROM {db}.chunk_contents",
-              column_formats={"zlib_pixels": "bytes", "content_hash": "bytes"})
+    rows = _q(
+        store,
+        "SELECT content_hash, width, height, zlib_pixels FROM {db}.chunk_contents",
+        column_formats={"zlib_pixels": "bytes", "content_hash": "bytes"},
+    )
     for h, w, height, data in rows:
         pixels = zlib.decompress(bytes(data))
         assert (w, height, len(pixels)) == (100, 100, 10_000)
@@ -141,8 +161,11 @@ def test_circle_centres_keep_the_whole_circle_free(ros_map) -> None:
 
 def _snapshot_rows(store) -> tuple[list, list, list]:
     return (
-        _q(store, "SELECT snap_ts, row, col, ts, robot_id, hex(content_hash) "
-                  "FROM {db}.map_snapshots FINAL ORDER BY ALL"),
+        _q(
+            store,
+            "SELECT snap_ts, row, col, ts, robot_id, hex(content_hash) "
+            "FROM {db}.map_snapshots FINAL ORDER BY ALL",
+        ),
         _q(store, "SELECT snap_ts, robot_id, ts FROM {db}.robot_snapshots FINAL ORDER BY ALL"),
         _q(store, "SELECT snap_ts, chunks, robots FROM {db}.snapshot_log FINAL ORDER BY ALL"),
         _q(store, "SELECT second, offsets FROM {db}.chunk_seconds FINAL ORDER BY ALL"),
@@ -153,10 +176,16 @@ def _derived_rows(store) -> tuple[list, ...]:
     """What the materialized views and the snapshot builders derived from the events."""
     return (
         _q(store, "SELECT * FROM {db}.pose_keyframes FINAL ORDER BY robot_id, ts"),
-        _q(store, "SELECT cell, robot_id, min(first_ts), max(last_ts) FROM {db}.pose_minutes "
-                  "GROUP BY ALL ORDER BY ALL"),
-        _q(store, "SELECT cell, robot_id, min(first_ts), max(last_ts) FROM {db}.pose_ten_minutes "
-                  "GROUP BY ALL ORDER BY ALL"),
+        _q(
+            store,
+            "SELECT cell, robot_id, min(first_ts), max(last_ts) FROM {db}.pose_minutes "
+            "GROUP BY ALL ORDER BY ALL",
+        ),
+        _q(
+            store,
+            "SELECT cell, robot_id, min(first_ts), max(last_ts) FROM {db}.pose_ten_minutes "
+            "GROUP BY ALL ORDER BY ALL",
+        ),
         _q(store, "SELECT second, offsets FROM {db}.chunk_seconds FINAL ORDER BY ALL"),
     )
 
@@ -168,15 +197,34 @@ def test_loader_derives_the_rows_live_ingest_derives(loaded, chdb_dir) -> None:
     live = _store(chdb_dir)
     try:
         live.migrate()
-        events = [make_envelope(p.robot_id, p.ts_ms, p.receive_time_ms, PoseReported(
-                      (p.x, p.y, p.z), (p.qx, p.qy, p.qz, p.qw), p.battery_level, p.charging,
-                      p.loaded, p.path)) for p in store.poses(0, 2**62)]
-        events += [make_envelope(c.robot_id, c.ts_ms, c.receive_time_ms, ChunkUpdated(
-                       c.row, c.column, 100, 100, b"", bytes.fromhex(c.content_hash)))
-                   for c in store.chunk_events(0, 2**62)]
+        events = [
+            make_envelope(
+                p.robot_id,
+                p.ts_ms,
+                p.receive_time_ms,
+                PoseReported(
+                    (p.x, p.y, p.z),
+                    (p.qx, p.qy, p.qz, p.qw),
+                    p.battery_level,
+                    p.charging,
+                    p.loaded,
+                    p.path,
+                ),
+            )
+            for p in store.poses(0, 2**62)
+        ]
+        events += [
+            make_envelope(
+                c.robot_id,
+                c.ts_ms,
+                c.receive_time_ms,
+                ChunkUpdated(c.row, c.column, 100, 100, b"", bytes.fromhex(c.content_hash)),
+            )
+            for c in store.chunk_events(0, 2**62)
+        ]
         events.sort(key=lambda e: e.event_time_ms)
         for i in range(0, len(events), 50):  # about a second of a 50-robot fleet per batch
-            live.append(events[i:i + 50])
+            live.append(events[i : i + 50])
         live.build_snapshots(result.end_ms)
         derived = _derived_rows(store)
         assert all(len(rows) > 0 for rows in derived)
@@ -206,7 +254,9 @@ def test_bulk_snapshots_continue_existing_ones_in_runs(chdb_dir, ros_map, end_ms
     try:
         middle = result.start_ms + 4 * EVERY_MS
         assert a.build_snapshots(middle) == b.build_snapshots(middle) > 0
-        assert a.build_snapshots_bulk(result.end_ms, per_query=3) == b.build_snapshots(result.end_ms)
+        assert a.build_snapshots_bulk(result.end_ms, per_query=3) == b.build_snapshots(
+            result.end_ms
+        )
         assert _snapshot_rows(a) == _snapshot_rows(b)
         assert a.build_snapshots_bulk(result.end_ms) == 0  # nothing due: nothing built
     finally:
@@ -220,8 +270,12 @@ def test_map_and_robots_at_equal_the_naive_fold(loaded) -> None:
     chunks = store.chunk_events(0, 2**62)
     poses = store.poses(0, 2**62)
     rng = np.random.default_rng(3)
-    instants = [result.start_ms - 1, result.start_ms + EVERY_MS, result.end_ms,
-                *rng.integers(result.start_ms, result.end_ms, 8).tolist()]
+    instants = [
+        result.start_ms - 1,
+        result.start_ms + EVERY_MS,
+        result.end_ms,
+        *rng.integers(result.start_ms, result.end_ms, 8).tolist(),
+    ]
     for at in instants:
         assert {(c.row, c.column): c for c in store.map_at(at)} == fold_map(chunks, at)
         assert store.robots_at(at) == [v for _, v in sorted(fold_robots(poses, at).items())]
@@ -249,9 +303,25 @@ def test_cli_load_history(chdb_dir, capsys) -> None:
     """`mapservice load-history` loads through the CLI and reports what it wrote."""
     from mapservice.cli import main
 
-    main(["load-history", "--days", "0.002", "--robots", "3", "--map", MAP, "--data-dir",
-          str(chdb_dir.parent), "--clickhouse-dsn", f"chdb://{chdb_dir}", "--database",
-          "loader_cli", "--snapshot-every-s", "60"])
+    main(
+        [
+            "load-history",
+            "--days",
+            "0.002",
+            "--robots",
+            "3",
+            "--map",
+            MAP,
+            "--data-dir",
+            str(chdb_dir.parent),
+            "--clickhouse-dsn",
+            f"chdb://{chdb_dir}",
+            "--database",
+            "loader_cli",
+            "--snapshot-every-s",
+            "60",
+        ]
+    )
     out = capsys.readouterr().out
     assert "loaded 516 poses" in out
     store = ClickHouseStore(f"chdb://{chdb_dir}", database="loader_cli")

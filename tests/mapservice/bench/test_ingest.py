@@ -1,4 +1,5 @@
 """Unit tests of the ingest benchmark's latency arithmetic (no brokers)."""
+
 import json
 
 from mapservice.bench.ingest.latency import INF, _latencies, _stage_latencies, queryable_times
@@ -11,7 +12,9 @@ def test_sub_millisecond_hop_to_the_gateway_is_never_negative() -> None:
     """The gateway stamps floored milliseconds; a publish 0.4 ms before it, in the same
     millisecond, counts as 0 s to the gateway, not as a negative time."""
     published = 1_700_000_000.1236  # 0.6 ms into millisecond ...123
-    stages = _stage_latencies({KEY: 1_700_000_000_123 / 1000}, {KEY: published + 0.25}, {KEY: published})
+    stages = _stage_latencies(
+        {KEY: 1_700_000_000_123 / 1000}, {KEY: published + 0.25}, {KEY: published}
+    )
     assert stages["publish_to_gateway_p50_s"] == 0.0
     assert abs(stages["gateway_to_queryable_p50_s"] - 0.2506) < 1e-6
 
@@ -64,9 +67,15 @@ def test_storage_is_judged_only_on_runs_long_enough() -> None:
 
 
 def _fleet_figures(**overrides) -> dict:
-    figures = {"lost": 0, "duplicated": 0, "sustained_events_per_s": 6000.0,
-               "loadgen_schedule_percent": 99.9, "latency_pushed_p99_s": 0.8,
-               "latency_polled_p99_s": 1.9, "latency_p99_s": 0.8}
+    figures = {
+        "lost": 0,
+        "duplicated": 0,
+        "sustained_events_per_s": 6000.0,
+        "loadgen_schedule_percent": 99.9,
+        "latency_pushed_p99_s": 0.8,
+        "latency_polled_p99_s": 1.9,
+        "latency_p99_s": 0.8,
+    }
     return {**figures, **overrides}
 
 
@@ -75,10 +84,18 @@ def test_live_bounds_hold_and_each_one_can_miss() -> None:
     from mapservice.bench.ingest.report import live_bounds
 
     assert all(ok for *_, ok in live_bounds(5000, _fleet_figures()))
-    for key, bad in (("lost", 1), ("duplicated", 2), ("sustained_events_per_s", 5900.0),
-                     ("loadgen_schedule_percent", 99.4), ("latency_pushed_p99_s", 1.01),
-                     ("latency_polled_p99_s", 2.2), ("latency_pushed_p99_s", None)):
-        missed = [name for name, _, _, ok in live_bounds(5000, _fleet_figures(**{key: bad})) if not ok]
+    for key, bad in (
+        ("lost", 1),
+        ("duplicated", 2),
+        ("sustained_events_per_s", 5900.0),
+        ("loadgen_schedule_percent", 99.4),
+        ("latency_pushed_p99_s", 1.01),
+        ("latency_polled_p99_s", 2.2),
+        ("latency_pushed_p99_s", None),
+    ):
+        missed = [
+            name for name, _, _, ok in live_bounds(5000, _fleet_figures(**{key: bad})) if not ok
+        ]
         assert len(missed) == 1, (key, missed)
 
 
@@ -95,8 +112,9 @@ def test_cpu_per_event_divides_each_components_share_by_the_event_rate() -> None
     """50 % of a core at 5,000 events/s is 100 µs per event; machine-wide figures are left out."""
     from mapservice.bench.ingest.cpu import cpu_us_per_event
 
-    per_event = cpu_us_per_event({"gateway": 50.0, "loadgen": 10.0, "other_processes": 80.0,
-                                  "wall_s": 60.0}, 300_000, 60.0)
+    per_event = cpu_us_per_event(
+        {"gateway": 50.0, "loadgen": 10.0, "other_processes": 80.0, "wall_s": 60.0}, 300_000, 60.0
+    )
     assert per_event == {"gateway": 100.0, "loadgen": 20.0}
     assert cpu_us_per_event({"gateway": 50.0}, 0, 60.0) == {}
 
@@ -105,10 +123,25 @@ def test_cpu_meter_counts_load_fleet_workers_as_load_generator_not_stack() -> No
     """Worker processes' CPU goes to the load generator and stays out of the stack's total."""
     from mapservice.bench.ingest.cpu import CpuMeter
 
-    zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
-            "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
-    after = {**zero, "gateway": 5.0, "_bench_process": 2.0, "_poller_thread": 1.0,
-             "_loadgen_workers": 3.0, "_machine_processes": 12.0, "_wall": 10.0}
+    zero = {
+        "gateway": 0.0,
+        "_bench_process": 0.0,
+        "_poller_thread": 0.0,
+        "_loadgen_workers": 0.0,
+        "_machine_processes": 0.0,
+        "_machine_irq": 0.0,
+        "_machine_steal": 0.0,
+        "_wall": 0.0,
+    }
+    after = {
+        **zero,
+        "gateway": 5.0,
+        "_bench_process": 2.0,
+        "_poller_thread": 1.0,
+        "_loadgen_workers": 3.0,
+        "_machine_processes": 12.0,
+        "_wall": 10.0,
+    }
     pct = CpuMeter.percent(zero, after)
     assert pct["stack_total"] == 50.0 and pct["loadgen"] == 40.0 and pct["loadgen_workers"] == 30.0
     assert pct["latency_probes"] == 10.0 and pct["other_processes"] == 20.0
@@ -118,8 +151,11 @@ def test_the_ceiling_is_the_last_step_of_an_unbroken_run_that_held() -> None:
     """Steps 1,000 and 2,000 held, 3,000 missed: the ceiling is 2,000; none held: None."""
     from mapservice.bench.ingest.command import ceiling_verdict
 
-    steps = [{"robots": 1000, "held": True}, {"robots": 2000, "held": True},
-             {"robots": 3000, "held": False}]
+    steps = [
+        {"robots": 1000, "held": True},
+        {"robots": 2000, "held": True},
+        {"robots": 3000, "held": False},
+    ]
     assert ceiling_verdict(steps) == 2000
     assert ceiling_verdict([{"robots": 1000, "held": False}]) is None
 
@@ -132,14 +168,27 @@ def printed_results(capsys, robots: int, seconds: float, **figures) -> str:
 
     from mapservice.bench.ingest.report import print_results
 
-    med = {**_fleet_figures(**figures), "offered_events_per_s": robots * 1.2,
-           "published_events_per_s": robots * 1.2, "stats_poses_minus_expected": 0,
-           "stats_chunk_events_minus_expected": 0, "dead_letters": 0, "latency_censored": 0,
-           "published_events": int(robots * 1.2 * seconds), "bytes_per_robot_day": 2e6,
-           "storage.bytes_per_robot_day_events_only": 1e6}
+    med = {
+        **_fleet_figures(**figures),
+        "offered_events_per_s": robots * 1.2,
+        "published_events_per_s": robots * 1.2,
+        "stats_poses_minus_expected": 0,
+        "stats_chunk_events_minus_expected": 0,
+        "dead_letters": 0,
+        "latency_censored": 0,
+        "published_events": int(robots * 1.2 * seconds),
+        "bytes_per_robot_day": 2e6,
+        "storage.bytes_per_robot_day_events_only": 1e6,
+    }
     args = argparse.Namespace(robots=robots, seconds=seconds, mqtt="mosquitto", poll_interval=0.1)
-    facts = {"nproc": 2, "cpu_model": "x", "ram_bytes": 2**30, "python": "3", "tansu": "t",
-             "mosquitto": "m"}
+    facts = {
+        "nproc": 2,
+        "cpu_model": "x",
+        "ram_bytes": 2**30,
+        "python": "3",
+        "tansu": "t",
+        "mosquitto": "m",
+    }
     print_results(Console(width=200), args, facts, [med], med)
     return capsys.readouterr().out
 
@@ -160,14 +209,23 @@ def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
     """Workers that exited before the last sample report their CPU themselves: that counts."""
     from mapservice.bench.ingest.cpu import CpuMeter
 
-    zero = {"gateway": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0, "_loadgen_workers": 0.0,
-            "_machine_processes": 0.0, "_machine_irq": 0.0, "_machine_steal": 0.0, "_wall": 0.0}
+    zero = {
+        "gateway": 0.0,
+        "_bench_process": 0.0,
+        "_poller_thread": 0.0,
+        "_loadgen_workers": 0.0,
+        "_machine_processes": 0.0,
+        "_machine_irq": 0.0,
+        "_machine_steal": 0.0,
+        "_wall": 0.0,
+    }
     after = {**zero, "_loadgen_workers": -4.0, "_machine_processes": 1.0, "_wall": 10.0}
     assert CpuMeter.percent(zero, after, workers_cpu_s=1.0)["loadgen_workers"] == 10.0
 
 
 def test_a_backlog_still_being_stored_is_waited_for_not_counted_lost() -> None:
     from mapservice.bench.ingest.probes import DrainWatch
+
     watch = DrainWatch({"poses": 100, "chunk_events": 10}, stall_s=20, max_s=600)
     for t in range(0, 100, 5):  # the store keeps counting, slowly, for 100 s
         watch.observe(t, {"poses": t, "chunk_events": 0})
@@ -178,6 +236,7 @@ def test_a_backlog_still_being_stored_is_waited_for_not_counted_lost() -> None:
 
 def test_the_drain_gives_up_once_the_store_stops_counting_or_at_its_cap() -> None:
     from mapservice.bench.ingest.probes import DrainWatch
+
     stalled = DrainWatch({"poses": 100}, stall_s=20, max_s=600)
     stalled.observe(0, {"poses": 50})
     stalled.observe(10, {"poses": 60})
@@ -192,9 +251,17 @@ def test_cpu_meter_counts_gateway_replicas_as_the_gateway() -> None:
     """A second gateway process's CPU is added to the gateway's, once."""
     from mapservice.bench.ingest.cpu import CpuMeter
 
-    zero = {"gateway": 0.0, "gateway-2": 0.0, "_bench_process": 0.0, "_poller_thread": 0.0,
-            "_loadgen_workers": 0.0, "_machine_processes": 0.0, "_machine_irq": 0.0,
-            "_machine_steal": 0.0, "_wall": 0.0}
+    zero = {
+        "gateway": 0.0,
+        "gateway-2": 0.0,
+        "_bench_process": 0.0,
+        "_poller_thread": 0.0,
+        "_loadgen_workers": 0.0,
+        "_machine_processes": 0.0,
+        "_machine_irq": 0.0,
+        "_machine_steal": 0.0,
+        "_wall": 0.0,
+    }
     after = {**zero, "gateway": 2.0, "gateway-2": 3.0, "_machine_processes": 5.0, "_wall": 10.0}
     pct = CpuMeter.percent(zero, after)
     assert pct["gateway"] == 50.0 and "gateway-2" not in pct and pct["stack_total"] == 50.0
@@ -214,30 +281,41 @@ def test_gateway_acks_sum_each_gateways_accepted_and_rejected(monkeypatch) -> No
 
     from mapservice.bench.ingest import metrics
 
-    text = ('# TYPE mapservice_gateway_messages_total counter\n'
-            'mapservice_gateway_messages_total{outcome="accepted"} 100.0\n'
-            'mapservice_gateway_messages_total{outcome="rejected"} 2.0\n'
-            '# TYPE mapservice_gateway_messages_created gauge\n'
-            'mapservice_gateway_messages_created{outcome="accepted"} 1.7e9\n')
+    text = (
+        "# TYPE mapservice_gateway_messages_total counter\n"
+        'mapservice_gateway_messages_total{outcome="accepted"} 100.0\n'
+        'mapservice_gateway_messages_total{outcome="rejected"} 2.0\n'
+        "# TYPE mapservice_gateway_messages_created gauge\n"
+        'mapservice_gateway_messages_created{outcome="accepted"} 1.7e9\n'
+    )
     monkeypatch.setattr(metrics.httpx, "get", lambda url, timeout: httpx.Response(200, text=text))
     assert metrics.gateway_acks([1, 2]) == [102.0, 102.0]
 
 
-def test_history_offset_gaps_reads_reread_and_accepted_from_the_servers_metrics(monkeypatch) -> None:
+def test_history_offset_gaps_reads_reread_and_accepted_from_the_servers_metrics(
+    monkeypatch,
+) -> None:
     """The guard's gap counts come from the server's /metrics, per outcome, 0 when absent."""
     import httpx
 
     from mapservice.bench.ingest import metrics
 
-    text = ('# TYPE mapservice_consumer_offset_gaps_total counter\n'
-            'mapservice_consumer_offset_gaps_total{outcome="reread"} 3.0\n'
-            '# TYPE mapservice_consumer_offset_gaps_created gauge\n'
-            'mapservice_consumer_offset_gaps_created{outcome="reread"} 1.7e9\n')
+    text = (
+        "# TYPE mapservice_consumer_offset_gaps_total counter\n"
+        'mapservice_consumer_offset_gaps_total{outcome="reread"} 3.0\n'
+        "# TYPE mapservice_consumer_offset_gaps_created gauge\n"
+        'mapservice_consumer_offset_gaps_created{outcome="reread"} 1.7e9\n'
+    )
     asked = []
-    monkeypatch.setattr(metrics.httpx, "get",
-                        lambda url, timeout: asked.append(url) or httpx.Response(200, text=text))
+    monkeypatch.setattr(
+        metrics.httpx,
+        "get",
+        lambda url, timeout: asked.append(url) or httpx.Response(200, text=text),
+    )
     assert metrics.history_offset_gaps(metrics.server_metrics("http://127.0.0.1:9")) == {
-        "reread": 3.0, "accepted": 0.0}
+        "reread": 3.0,
+        "accepted": 0.0,
+    }
     assert asked == ["http://127.0.0.1:9/metrics"]
 
 
@@ -245,12 +323,14 @@ def test_counter_by_label_sums_one_counters_samples_per_label_value() -> None:
     """Only the named counter's _total samples count, summed per value of the label."""
     from mapservice.bench.ingest.metrics import counter_by_label
 
-    text = ('# TYPE a_total counter\n'
-            'a_total{outcome="x",topic="p"} 1.0\n'
-            'a_total{outcome="x",topic="c"} 2.0\n'
-            'a_total{outcome="y",topic="c"} 4.0\n'
-            '# TYPE b_total counter\n'
-            'b_total{outcome="x"} 100.0\n')
+    text = (
+        "# TYPE a_total counter\n"
+        'a_total{outcome="x",topic="p"} 1.0\n'
+        'a_total{outcome="x",topic="c"} 2.0\n'
+        'a_total{outcome="y",topic="c"} 4.0\n'
+        "# TYPE b_total counter\n"
+        'b_total{outcome="x"} 100.0\n'
+    )
     assert counter_by_label(text, "a", "outcome") == {"x": 3.0, "y": 4.0}
 
 
@@ -259,17 +339,22 @@ def test_store_stages_are_the_histograms_growth_between_two_scrapes() -> None:
     from mapservice.bench.ingest.metrics import histogram_totals, store_stages
 
     def scrape(inserts: int, insert_s: float, batches: int, events: int) -> str:
-        return ('# TYPE mapservice_sink_insert_seconds histogram\n'
-                f'mapservice_sink_insert_seconds_bucket{{le="+Inf"}} {inserts}\n'
-                f'mapservice_sink_insert_seconds_count {inserts}\n'
-                f'mapservice_sink_insert_seconds_sum {insert_s}\n'
-                '# TYPE mapservice_sink_batch_events histogram\n'
-                f'mapservice_sink_batch_events_bucket{{le="+Inf"}} {batches}\n'
-                f'mapservice_sink_batch_events_count {batches}\n'
-                f'mapservice_sink_batch_events_sum {events}\n')
+        return (
+            "# TYPE mapservice_sink_insert_seconds histogram\n"
+            f'mapservice_sink_insert_seconds_bucket{{le="+Inf"}} {inserts}\n'
+            f"mapservice_sink_insert_seconds_count {inserts}\n"
+            f"mapservice_sink_insert_seconds_sum {insert_s}\n"
+            "# TYPE mapservice_sink_batch_events histogram\n"
+            f'mapservice_sink_batch_events_bucket{{le="+Inf"}} {batches}\n'
+            f"mapservice_sink_batch_events_count {batches}\n"
+            f"mapservice_sink_batch_events_sum {events}\n"
+        )
 
-    stages = store_stages(histogram_totals(scrape(10, 1.0, 10, 100)),
-                          histogram_totals(scrape(30, 3.0, 30, 700)), wall_s=4.0)
+    stages = store_stages(
+        histogram_totals(scrape(10, 1.0, 10, 100)),
+        histogram_totals(scrape(30, 3.0, 30, 700)),
+        wall_s=4.0,
+    )
     assert stages["insert"] == {"calls": 20, "mean_ms": 100.0, "busy_percent": 50.0}
     assert stages["conflicts_check"] == {"calls": 0, "mean_ms": None, "busy_percent": 0.0}
     assert (stages["batches"], stages["events_per_batch"]) == (20, 30.0)
@@ -311,7 +396,9 @@ def _slow_poller(monkeypatch, rows: int):
     return poller
 
 
-def test_a_slow_complete_poll_is_followed_by_the_next_at_once_not_by_an_equal_wait(monkeypatch) -> None:
+def test_a_slow_complete_poll_is_followed_by_the_next_at_once_not_by_an_equal_wait(
+    monkeypatch,
+) -> None:
     """The gap between polls is the poll figure's resolution: a poll slower than the
     cadence that returned its whole window is followed by the next without a wait."""
     poller = _slow_poller(monkeypatch, rows=2)

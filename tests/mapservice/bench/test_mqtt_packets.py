@@ -41,7 +41,11 @@ def test_a_publish_decodes_as_qos_1_with_its_topic_id_and_payload(size: int) -> 
     payload = bytes(range(256)) * (size // 256) + b"x" * (size % 256)
     packet = _decode(PublishPacket, publish_packet("iot/coordinates/robot-0001", payload, 4242))
     assert (packet.topic_name, packet.packet_id, packet.qos, packet.data) == (
-        "iot/coordinates/robot-0001", 4242, 1, payload)
+        "iot/coordinates/robot-0001",
+        4242,
+        1,
+        payload,
+    )
     assert not packet.dup_flag and not packet.retain_flag
 
 
@@ -60,11 +64,16 @@ def test_connect_decodes_with_client_id_credentials_and_keepalive() -> None:
     """CONNECT, MQTT 3.1.1, as amqtt's broker would read it."""
     from amqtt.mqtt.connect import ConnectPacket
 
-    packet = _decode(ConnectPacket, connect_packet("fleet-1", 45, username="robot-7", password="s3cret"))
+    packet = _decode(
+        ConnectPacket, connect_packet("fleet-1", 45, username="robot-7", password="s3cret")
+    )
     assert (packet.proto_name, packet.proto_level) == ("MQTT", 4)
     assert packet.clean_session_flag and packet.variable_header.keep_alive == 45
     assert (packet.payload.client_id, packet.payload.username, packet.payload.password) == (
-        "fleet-1", "robot-7", "s3cret")
+        "fleet-1",
+        "robot-7",
+        "s3cret",
+    )
     anonymous = _decode(ConnectPacket, connect_packet("fleet-2"))
     assert not anonymous.username_flag and not anonymous.password_flag
 
@@ -74,9 +83,12 @@ def test_reader_takes_pubacks_split_anywhere_and_other_packets_between() -> None
     from amqtt.mqtt.connack import ConnackPacket
     from amqtt.mqtt.puback import PubackPacket
 
-    stream = (ConnackPacket.build(0, 0).to_bytes() + b"".join(PubackPacket.build(i).to_bytes()
-                                                               for i in (1, 2, 300, 65535))
-              + b"\xd0\x00" + PubackPacket.build(7).to_bytes())
+    stream = (
+        ConnackPacket.build(0, 0).to_bytes()
+        + b"".join(PubackPacket.build(i).to_bytes() for i in (1, 2, 300, 65535))
+        + b"\xd0\x00"
+        + PubackPacket.build(7).to_bytes()
+    )
     for cut in range(len(stream) + 1):
         reader = PacketReader()
         acks = reader.feed(stream[:cut]) + reader.feed(stream[cut:])

@@ -12,8 +12,19 @@ import zlib
 
 import msgspec
 import paho.mqtt.client as mqtt
+from mapservice.robot import DEFAULT_MAP
+from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
 
+from mapservice.adapters.mqtt_client import PollingClient
 from mapservice.adapters.ros_map import load_ros_map
+from mapservice.bench.fleet.mqtt_packets import varint
+from mapservice.bench.fleet.rawfleet import RawFleet
+from mapservice.bench.fleet.rawfleet_plan import (
+    WorkerPlan,
+    chunk_payload,
+    pose_templates,
+    scheduled_messages,
+)
 from mapservice.core.wire2019 import (
     Limits,
     decode_chunk_create,
@@ -21,12 +32,6 @@ from mapservice.core.wire2019 import (
     encode_chunk_create,
     parse_timestamp,
 )
-from mapservice.robot import DEFAULT_MAP
-from mapservice.bench.fleet.mqtt_packets import varint
-from mapservice.bench.fleet.rawfleet import RawFleet
-from mapservice.bench.fleet.rawfleet_plan import WorkerPlan, chunk_payload, pose_templates, scheduled_messages
-from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
-from mapservice.adapters.mqtt_client import PollingClient
 
 
 def _payload(template, timestamp: bytes) -> bytes:
@@ -54,15 +59,26 @@ def test_chunk_payload_is_byte_for_byte_encode_chunk_create() -> None:
     for row, col, robot in ((0, 0, "robot-0000"), (16, 10, "r:1@x.y-z_")):
         ts = "2026-11-23T15:00:01"
         assert chunk_payload(b64, row, col, ts.encode(), robot.encode()) == encode_chunk_create(
-            row, col, pixels, ts, robot)
+            row, col, pixels, ts, robot
+        )
 
 
 def test_schedule_counts_each_robots_poses_from_its_offset_and_every_fifth_chunk() -> None:
     """Robot i of n is due at i/n of a second, then every second: in 10 s robot 0 has
     10 poses (2 chunks), robot 5 of 10 also 10 (its last at 9.5 s)."""
-    plan = WorkerPlan(host="h", port=1, robot_ids=["a", "b"], indices=[0, 5], fleet_size=10,
-                      centres=[(0, 0)] * 2, chunk_topics=["t"] * 2, chunk_b64=[b""], chunk_rows=1,
-                      chunk_cols=1, seconds=10)
+    plan = WorkerPlan(
+        host="h",
+        port=1,
+        robot_ids=["a", "b"],
+        indices=[0, 5],
+        fleet_size=10,
+        centres=[(0, 0)] * 2,
+        chunk_topics=["t"] * 2,
+        chunk_b64=[b""],
+        chunk_rows=1,
+        chunk_cols=1,
+        seconds=10,
+    )
     assert scheduled_messages(plan, 10) == (20, 4)
     assert scheduled_messages(plan, 9.4) == (19, 3)
 
@@ -70,9 +86,19 @@ def test_schedule_counts_each_robots_poses_from_its_offset_and_every_fifth_chunk
 def test_the_fleets_chunks_spread_over_the_chunk_period_unless_aligned() -> None:
     """Robots 0-9 over 5 s send chunks after poses 5, 4, 3, 2, 1, 5, ... (two per second);
     aligned, all ten after their fifth pose."""
-    plan = WorkerPlan(host="h", port=1, robot_ids=[f"r{i}" for i in range(10)], indices=list(range(10)),
-                      fleet_size=10, centres=[(0, 0)] * 10, chunk_topics=["t"] * 10, chunk_b64=[b""],
-                      chunk_rows=1, chunk_cols=1, seconds=10)
+    plan = WorkerPlan(
+        host="h",
+        port=1,
+        robot_ids=[f"r{i}" for i in range(10)],
+        indices=list(range(10)),
+        fleet_size=10,
+        centres=[(0, 0)] * 10,
+        chunk_topics=["t"] * 10,
+        chunk_b64=[b""],
+        chunk_rows=1,
+        chunk_cols=1,
+        seconds=10,
+    )
     per_second = [scheduled_messages(plan, s)[1] for s in (1, 2, 3, 4, 5)]
     assert per_second == [2, 4, 6, 8, 10]
     aligned = WorkerPlan(**{**plan.__dict__, "aligned_chunks": True})
@@ -80,8 +106,11 @@ def test_the_fleets_chunks_spread_over_the_chunk_period_unless_aligned() -> None
     phases = [chunk_phase(i, 5) for i in range(10)]
     firsts = [next(k for k in range(1, 6) if chunk_follows(k, p, 5)) for p in phases]
     assert firsts == [5, 4, 3, 2, 1, 5, 4, 3, 2, 1]
-    assert all(chunks_after(n, p, 5) == sum(chunk_follows(k, p, 5) for k in range(1, n + 1))
-               for p in range(5) for n in range(12))
+    assert all(
+        chunks_after(n, p, 5) == sum(chunk_follows(k, p, 5) for k in range(1, n + 1))
+        for p in range(5)
+        for n in range(12)
+    )
 
 
 def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) -> None:
@@ -97,7 +126,9 @@ def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) 
     sub.loop_start()
     try:
         assert subscribed.wait(10)
-        fleet = RawFleet(f"mqtt://127.0.0.1:{mosquitto}", load_ros_map(DEFAULT_MAP), 20, processes=2)
+        fleet = RawFleet(
+            f"mqtt://127.0.0.1:{mosquitto}", load_ros_map(DEFAULT_MAP), 20, processes=2
+        )
         stats = fleet.run(3)
         deadline = time.monotonic() + 10
         while len(received) < len(stats.published) and time.monotonic() < deadline:
@@ -117,7 +148,9 @@ def test_every_message_through_mosquitto_is_published_once_and_valid(mosquitto) 
             event = decode_chunk_create(payload, int(time.time() * 1000), limits)
             got.add(("chunk", event.robot_id, event.event_time_ms))
         else:
-            event = decode_coordinates(topic.rsplit("/", 1)[1], payload, int(time.time() * 1000), limits)
+            event = decode_coordinates(
+                topic.rsplit("/", 1)[1], payload, int(time.time() * 1000), limits
+            )
             got.add(("pose", event.robot_id, event.event_time_ms))
     assert len(received) == len(got) == len(stats.published)
     assert got == {(kind, robot, ts) for kind, robot, ts, _ in stats.published}
@@ -154,12 +187,12 @@ class HalfAckBroker(threading.Thread):
                         break
                     if len(buf) < i + length:
                         break
-                    kind, body, buf = buf[0] >> 4, buf[i:i + length], buf[i + length:]
+                    kind, body, buf = buf[0] >> 4, buf[i : i + length], buf[i + length :]
                     if kind == 1:
                         conn.sendall(b"\x20\x02\x00\x00")
                     elif kind == 3:
                         topic_len = int.from_bytes(body[:2], "big")
-                        pid = body[2 + topic_len:4 + topic_len]
+                        pid = body[2 + topic_len : 4 + topic_len]
                         self.publishes += 1
                         if self.publishes % 2 == 0:
                             conn.sendall(b"\x40" + varint(2) + pid)
@@ -170,8 +203,14 @@ def test_only_acknowledged_messages_count_as_published() -> None:
     what it wrote as published and the rest as unacknowledged."""
     broker = HalfAckBroker()
     broker.start()
-    fleet = RawFleet(f"mqtt://127.0.0.1:{broker.port}", load_ros_map(DEFAULT_MAP), 10,
-                     processes=1, connections=1, ack_wait_s=0.5)
+    fleet = RawFleet(
+        f"mqtt://127.0.0.1:{broker.port}",
+        load_ros_map(DEFAULT_MAP),
+        10,
+        processes=1,
+        connections=1,
+        ack_wait_s=0.5,
+    )
     stats = fleet.run(2)
     report = stats.report
     # 20 poses and the chunks of robots 3, 4, 8 and 9 (their cycles are 3-4 poses ahead)

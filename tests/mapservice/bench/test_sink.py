@@ -9,8 +9,22 @@ import sys
 
 def test_one_sink_run_counts_every_published_event() -> None:
     """A small run stores all of its events in the counting store and reports their CPU cost."""
-    out = subprocess.run([sys.executable, "-m", "mapservice.cli", "bench", "sink", "--one", "batch",
-                          "--events", "25000"], capture_output=True, text=True, timeout=300)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "bench",
+            "sink",
+            "--one",
+            "batch",
+            "--events",
+            "25000",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     line = next((x for x in out.stdout.splitlines() if x.startswith("RESULT ")), None)
     assert line is not None, out.stdout[-2000:] + out.stderr[-2000:]
     result = json.loads(line[7:])

@@ -9,8 +9,15 @@ from mapservice.bench.soak import growth_per_hour, settle, summarize
 
 
 def sample(t_s: float, rss: dict[str, float], stored: int) -> dict:
-    return {"t_s": t_s, "rss_mb": rss, "cpu_percent": dict.fromkeys(rss, 10.0), "published": stored,
-            "stored": stored, "dead_letters": 0, "freshness_s": 1.0}
+    return {
+        "t_s": t_s,
+        "rss_mb": rss,
+        "cpu_percent": dict.fromkeys(rss, 10.0),
+        "published": stored,
+        "stored": stored,
+        "dead_letters": 0,
+        "freshness_s": 1.0,
+    }
 
 
 def test_growth_per_hour_is_the_least_squares_slope() -> None:
@@ -28,8 +35,10 @@ def test_settle_drops_the_first_tenth_of_the_run() -> None:
 def test_summary_bounds_every_component_but_tansu_and_reports_tansu_per_event() -> None:
     """A gateway growing 60 MB/h breaks a 20 MB/h bound; tansu's growth is expected and
     priced per stored event (10 events/s, 36 MB/h -> 1,000 bytes per event)."""
-    samples = [sample(t, {"gateway": 50 + t / 60, "kafka": 100 + t / 100, "server": 200.0}, int(t * 10))
-               for t in range(0, 3601, 60)]
+    samples = [
+        sample(t, {"gateway": 50 + t / 60, "kafka": 100 + t / 100, "server": 200.0}, int(t * 10))
+        for t in range(0, 3601, 60)
+    ]
     s = summarize(samples, minutes=60, max_growth_mb_per_h=20)
     assert s["representative"] is True
     assert s["components"]["gateway"]["growth_bounded"] is False
@@ -58,9 +67,13 @@ def test_a_run_under_an_hour_is_not_representative() -> None:
 
 def test_summary_splits_serves_memory_into_clickhouse_and_python() -> None:
     """ClickHouse's tracked memory growing 6 MB/h and flat Python blocks are each reported with their growth."""
-    samples = [dict(sample(t, {"server": 500.0}, t), serve_inside={"chdb_mb": 100 + t / 600,
-                                                                    "python_blocks_k": 300.0})
-               for t in range(0, 3601, 60)]
+    samples = [
+        dict(
+            sample(t, {"server": 500.0}, t),
+            serve_inside={"chdb_mb": 100 + t / 600, "python_blocks_k": 300.0},
+        )
+        for t in range(0, 3601, 60)
+    ]
     inside = summarize(samples, minutes=60, max_growth_mb_per_h=20)["serve_inside"]
     assert inside["chdb_mb"]["growth_per_h"] == pytest.approx(6)
     assert inside["python_blocks_k"]["growth_per_h"] == pytest.approx(0)
@@ -68,12 +81,21 @@ def test_summary_splits_serves_memory_into_clickhouse_and_python() -> None:
 
 def test_growth_is_judged_on_anonymous_memory_where_it_was_sampled() -> None:
     """Resident file pages growing 60 MB/h (a mapped library paging in) with flat anonymous memory is bounded; anonymous growth is not."""
+
     def run(anon_slope: float) -> dict:
-        samples = [dict(sample(t, {"server": 500 + t / 60}, t), anon_mb={"server": 250 + anon_slope * t / 3600})
-                   for t in range(0, 3601, 60)]
+        samples = [
+            dict(
+                sample(t, {"server": 500 + t / 60}, t),
+                anon_mb={"server": 250 + anon_slope * t / 3600},
+            )
+            for t in range(0, 3601, 60)
+        ]
         return summarize(samples, minutes=60, max_growth_mb_per_h=20)["components"]["server"]
+
     flat = run(0)
-    assert flat["growth_mb_per_h"] == pytest.approx(60) and flat["anon_growth_mb_per_h"] == pytest.approx(0)
+    assert flat["growth_mb_per_h"] == pytest.approx(60) and flat[
+        "anon_growth_mb_per_h"
+    ] == pytest.approx(0)
     assert flat["growth_bounded"] is True
     assert run(30)["growth_bounded"] is False
 
@@ -82,9 +104,13 @@ def test_apache_kafkas_memory_is_judged_and_its_log_priced_per_event() -> None:
     """On Apache Kafka (a bounded heap) the broker's growth is judged like any component's,
     not excused as tansu's is, and its log's growth on disk is priced per stored event
     (10 events/s, 18 MB/h on disk -> 500 bytes per event)."""
-    samples = [dict(sample(t, {"kafka": 300 + t / 60, "server": 200.0}, int(t * 10)),
-                    disk_mb={"kafka_log": 1 + t / 200})
-               for t in range(0, 3601, 60)]
+    samples = [
+        dict(
+            sample(t, {"kafka": 300 + t / 60, "server": 200.0}, int(t * 10)),
+            disk_mb={"kafka_log": 1 + t / 200},
+        )
+        for t in range(0, 3601, 60)
+    ]
     apache = summarize(samples, minutes=60, max_growth_mb_per_h=20, kafka="apache")
     assert apache["components"]["kafka"]["growth_bounded"] is False
     assert apache["bounded"] is False

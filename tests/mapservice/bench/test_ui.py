@@ -56,9 +56,11 @@ def test_api_process_that_exits_early_raises_naming_its_log(tmp_path, monkeypatc
 def test_fold_keeps_the_later_write_and_mismatches_count_cells_that_differ() -> None:
     """fold applies the page's rule (a late, older write loses); mismatches counts each differing cell."""
     base = {(0, 0): (10, "a", "h0")}
-    writes = [{"row": 0, "column": 0, "ts_ms": 20, "robotId": "a", "content_hash": "h1"},
-              {"row": 0, "column": 1, "ts_ms": 5, "robotId": "b", "content_hash": "h2"},
-              {"row": 0, "column": 0, "ts_ms": 20, "robotId": "b", "content_hash": "h3"}]
+    writes = [
+        {"row": 0, "column": 0, "ts_ms": 20, "robotId": "a", "content_hash": "h1"},
+        {"row": 0, "column": 1, "ts_ms": 5, "robotId": "b", "content_hash": "h2"},
+        {"row": 0, "column": 0, "ts_ms": 20, "robotId": "b", "content_hash": "h3"},
+    ]
     state = fold(base, writes)
     assert state == {(0, 0): (20, "b", "h3"), (0, 1): (5, "b", "h2")}
     assert mismatches([[0, 0, 20, "b", "h3"], [0, 1, 5, "b", "h2"]], state) == 0
@@ -79,18 +81,27 @@ def test_reuse_reads_back_the_loaded_history_and_refuses_another_size(tmp_path) 
 def served_history(ev, monkeypatch):
     """An API over a MemoryStore with random chunk writes; the bench's reads go to it."""
     from fastapi.testclient import TestClient
+    from mapservice.api.app import create_app
 
     from mapservice.adapters.clock import ManualClock
-    from mapservice.testing.memory_store import MemoryStore
-    from mapservice.api.app import create_app
     from mapservice.settings import Settings
+    from mapservice.testing.memory_store import MemoryStore
 
     t0 = 1_795_255_200_000
     rng = random.Random(3)
     store = MemoryStore()
-    store.append([ev.chunk(rng.choice("abc"), t0 + rng.randrange(0, 3_600_000, 100),
-                           rng.randrange(3), rng.randrange(3), bytes([rng.randrange(256)]) * 10_000)
-                  for _ in range(600)])
+    store.append(
+        [
+            ev.chunk(
+                rng.choice("abc"),
+                t0 + rng.randrange(0, 3_600_000, 100),
+                rng.randrange(3),
+                rng.randrange(3),
+                bytes([rng.randrange(256)]) * 10_000,
+            )
+            for _ in range(600)
+        ]
+    )
     client = TestClient(create_app(Settings(), store, {}, ManualClock(t0 + 7_200_000)))
 
     def get(api_url, path, **params):
@@ -136,13 +147,24 @@ def test_summary_puts_panel_p95_beside_seek_and_ratios_compare_two_runs(capsys) 
     from mapservice.bench import ui
 
     def run(seek: float, plot: float, feed: float) -> dict:
-        return {"seek": {"p95_ms": seek}, "panel_reads": {"1h": {
-            "plot_track": {"p95_ms": plot, "refused_422": 0},
-            "changes_first_page": {"p95_ms": feed, "refused_422": 1}}}}
+        return {
+            "seek": {"p95_ms": seek},
+            "panel_reads": {
+                "1h": {
+                    "plot_track": {"p95_ms": plot, "refused_422": 0},
+                    "changes_first_page": {"p95_ms": feed, "refused_422": 1},
+                }
+            },
+        }
 
     after, before = ui.summary(run(180.0, 50.0, 100.0)), ui.summary(run(200.0, 2500.0, None))
-    assert after == {"seek_p95_ms": 180.0, "plot_track_1h_p95_ms": 50.0, "plot_track_1h_refused": 0,
-                     "changes_first_page_1h_p95_ms": 100.0, "changes_first_page_1h_refused": 1}
+    assert after == {
+        "seek_p95_ms": 180.0,
+        "plot_track_1h_p95_ms": 50.0,
+        "plot_track_1h_refused": 0,
+        "changes_first_page_1h_p95_ms": 100.0,
+        "changes_first_page_1h_refused": 1,
+    }
     # A figure the baseline lacks (every request refused) has no ratio.
     assert ui.ratios(after, before) == {"seek_p95_ms": 0.9, "plot_track_1h_p95_ms": 0.02}
     for done in range(101):

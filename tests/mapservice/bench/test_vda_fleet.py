@@ -6,12 +6,12 @@ from __future__ import annotations
 import time
 
 import pytest
+from mapservice.ingest.router import Router
 
 from mapservice.adapters.mqtt_client import make_client
 from mapservice.bench.vda_fleet import VdaFleet, iso, vehicle_messages
 from mapservice.core.events import decode
 from mapservice.core.wire2019 import Limits
-from mapservice.ingest.router import Router
 from mapservice.local import embedded
 from mapservice.settings import Settings
 
@@ -19,7 +19,9 @@ from mapservice.settings import Settings
 def test_its_messages_are_accepted_by_the_gateway() -> None:
     router = Router(Settings(), gateway_id="bench-test")
     now = time.time_ns() // 1_000_000
-    for subtopic, payload in zip(("visualization", "state"), vehicle_messages("v00001", 1, (3.0, 4.0))):
+    for subtopic, payload in zip(
+        ("visualization", "state"), vehicle_messages("v00001", 1, (3.0, 4.0))
+    ):
         payload = payload.replace(b"@@TS@@", iso(now))
         record = router.route(f"uagv/v2/VdaBench/v00001/{subtopic}", payload, now, Limits())
         assert record.reason is None, subtopic

@@ -7,7 +7,9 @@ import pytest
 from mapservice.bench import yardstick
 
 
-def test_the_yardstick_is_the_median_of_its_timed_rounds_after_one_untimed_warm_up(monkeypatch) -> None:
+def test_the_yardstick_is_the_median_of_its_timed_rounds_after_one_untimed_warm_up(
+    monkeypatch,
+) -> None:
     """Rounds of 5, 1 and 3 ms read 3 ms; the set piece runs four times (warm-up first)."""
     ran: list[int] = []
     monkeypatch.setattr(yardstick, "_one_round", lambda: ran.append(1) or 0)
@@ -25,4 +27,3 @@ def test_the_yardstick_refuses_zero_rounds() -> None:
     """No rounds is a caller's error, said plainly, not a median of nothing."""
     with pytest.raises(ValueError, match="at least 1"):
         yardstick.yardstick_ms(rounds=0)
-

@@ -7,11 +7,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapservice.core.conflicts import (
+    RecentWrites,
     affected_conflicts,
     all_conflicts,
     conflicts_of,
     neighbourhoods,
-    RecentWrites,
 )
 from mapservice.core.ports import ChunkRow, ConflictRow
 
@@ -46,8 +46,9 @@ def test_equal_times_are_ordered_by_robot() -> None:
 def test_one_conflict_per_b_naming_the_latest_conflicting_a() -> None:
     """Several conflicting writes before B, of several robots: one conflict, naming the
     latest of them (a write with B's own content does not conflict)."""
-    rows = conflicts_of(w("b", 100, H3), [w("a", 10, H1), w("a", 50, H2), w("a", 90, H3),
-                                          w("c", 20, H1)], W)
+    rows = conflicts_of(
+        w("b", 100, H3), [w("a", 10, H1), w("a", 50, H2), w("a", 90, H3), w("c", 20, H1)], W
+    )
     assert rows == [ConflictRow(0, 0, 100, "a", 50, "b")]
 
 
@@ -71,7 +72,9 @@ def test_late_write_moves_a_conflicts_a_to_itself_when_later() -> None:
     stored = [w("a", 1000, H1), w("b", 5000, H2)]
     late = w("c", 3000, H3)
     assert affected_conflicts([late], stored + [late], W) == [
-        ConflictRow(0, 0, 3000, "a", 1000, "c"), ConflictRow(0, 0, 5000, "c", 3000, "b")]
+        ConflictRow(0, 0, 3000, "a", 1000, "c"),
+        ConflictRow(0, 0, 5000, "c", 3000, "b"),
+    ]
 
 
 def test_neighbourhoods_cover_the_window_and_split_distant_writes() -> None:
@@ -89,13 +92,21 @@ def test_recent_writes_cover_only_from_their_start() -> None:
     assert len(recent) == 1 and not recent.covers(1499)
 
 
-_write = st.builds(w, st.sampled_from(["a", "b", "c"]), st.integers(0, 3 * W),
-                   st.sampled_from([H1, H2, H3]), st.integers(0, 1))
+_write = st.builds(
+    w,
+    st.sampled_from(["a", "b", "c"]),
+    st.integers(0, 3 * W),
+    st.sampled_from([H1, H2, H3]),
+    st.integers(0, 1),
+)
 
 
 @settings(max_examples=200, deadline=None)
-@given(old=st.lists(_write, max_size=40), new=st.lists(_write, min_size=1, max_size=10),
-       window=st.sampled_from([0, W // 2, W]))
+@given(
+    old=st.lists(_write, max_size=40),
+    new=st.lists(_write, min_size=1, max_size=10),
+    window=st.sampled_from([0, W // 2, W]),
+)
 def test_the_sorted_index_finds_what_the_pure_rule_finds(old, new, window) -> None:
     """RecentWrites.affected (its chunks kept sorted, repeats kept once) equals
     affected_conflicts over the same writes, repeats and all."""
@@ -115,8 +126,11 @@ def test_a_map_upload_is_never_a_conflict() -> None:
     assert conflicts_of(upload, [sim], W) == []
     assert conflicts_of(w("sim-001", 4000, H1), [upload], W) == []
     # sim-002's write conflicts with sim-001's, not with the later upload between them.
-    assert all_conflicts([sim, upload, after], W) == [ConflictRow(0, 0, 3000, "sim-001", 1000, "sim-002")]
+    assert all_conflicts([sim, upload, after], W) == [
+        ConflictRow(0, 0, 3000, "sim-001", 1000, "sim-002")
+    ]
     assert affected_conflicts([upload], [sim, upload, after], W) == [
-        ConflictRow(0, 0, 3000, "sim-001", 1000, "sim-002")]
+        ConflictRow(0, 0, 3000, "sim-001", 1000, "sim-002")
+    ]
     index = RecentWrites(0, [sim, upload])
     assert index.affected([upload], W) == []

@@ -22,13 +22,33 @@ from mapservice.core.events import (
 
 T = 1_795_255_200_000
 
-POSE = PoseReported(position=(1.5, -2.25, 0.0), orientation=(0.0, 0.0, 0.38268343, 0.92387953),
-                    battery_level=71.5, charging=True, loaded="dfs",
-                    path=((1.0, 2.0), (3.0, 4.5)))
-CHUNK = ChunkUpdated(row=3, column=2, width=100, height=100, data=b"x\x9c\x03\x00\x00\x00\x00\x01",
-                     content_hash=bytes(range(16)))
-META = MapMetaSet(width=1006, height=1674, chunk_width=100, chunk_height=100, chunk_rows=17,
-                  chunk_cols=11, comment="warehouse", resolution=0.03, origin=(-15.1, -25.0, 0.0))
+POSE = PoseReported(
+    position=(1.5, -2.25, 0.0),
+    orientation=(0.0, 0.0, 0.38268343, 0.92387953),
+    battery_level=71.5,
+    charging=True,
+    loaded="dfs",
+    path=((1.0, 2.0), (3.0, 4.5)),
+)
+CHUNK = ChunkUpdated(
+    row=3,
+    column=2,
+    width=100,
+    height=100,
+    data=b"x\x9c\x03\x00\x00\x00\x00\x01",
+    content_hash=bytes(range(16)),
+)
+META = MapMetaSet(
+    width=1006,
+    height=1674,
+    chunk_width=100,
+    chunk_height=100,
+    chunk_rows=17,
+    chunk_cols=11,
+    comment="warehouse",
+    resolution=0.03,
+    origin=(-15.1, -25.0, 0.0),
+)
 
 
 @pytest.mark.parametrize("payload", [POSE, CHUNK, META], ids=["pose", "chunk", "meta"])
@@ -49,10 +69,11 @@ def test_dead_letter_is_frozen() -> None:
         letter.reason = "ok"  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("payload", [POSE, CHUNK, META,
-                                     PoseReported(position=(0.0, 0.0, 0.0),
-                                                  orientation=(0.0, 0.0, 0.0, 1.0))],
-                         ids=["pose", "chunk", "meta", "bare-pose"])
+@pytest.mark.parametrize(
+    "payload",
+    [POSE, CHUNK, META, PoseReported(position=(0.0, 0.0, 0.0), orientation=(0.0, 0.0, 0.0, 1.0))],
+    ids=["pose", "chunk", "meta", "bare-pose"],
+)
 def test_envelope_round_trips(payload) -> None:
     """decode(encode(envelope)) equals the envelope, payload type and all."""
     env = make_envelope("robot-7", T, T + 42, payload)
@@ -112,16 +133,24 @@ def test_chunk_id_depends_on_chunk_robot_and_time() -> None:
     assert a.event_id == b.event_id
 
 
-@pytest.mark.parametrize("change", [
-    {"row": 4}, {"column": 3}, {"robot": "r2"}, {"t": T + 1},
-    {"row": 2, "column": 3},  # swapped row/column must not collide
-])
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"row": 4},
+        {"column": 3},
+        {"robot": "r2"},
+        {"t": T + 1},
+        {"row": 2, "column": 3},  # swapped row/column must not collide
+    ],
+)
 def test_chunk_id_differs_when_identity_differs(change: dict) -> None:
     """Another chunk, robot or instant gives another id."""
-    payload = msgspec.structs.replace(CHUNK, row=change.get("row", CHUNK.row),
-                                      column=change.get("column", CHUNK.column))
-    assert event_id_for("r1", T, CHUNK) != event_id_for(change.get("robot", "r1"),
-                                                         change.get("t", T), payload)
+    payload = msgspec.structs.replace(
+        CHUNK, row=change.get("row", CHUNK.row), column=change.get("column", CHUNK.column)
+    )
+    assert event_id_for("r1", T, CHUNK) != event_id_for(
+        change.get("robot", "r1"), change.get("t", T), payload
+    )
 
 
 def test_pose_and_chunk_of_same_robot_and_time_have_different_ids() -> None:
@@ -147,8 +176,10 @@ def test_meta_id_depends_on_content() -> None:
 def test_chunk_key_is_row_colon_column() -> None:
     """Chunk events are keyed by `row:column` so one chunk's writes stay in order."""
     assert kafka_key(make_envelope("r1", T, T, CHUNK)) == b"3:2"
-    assert kafka_key(make_envelope("r9", T, T, msgspec.structs.replace(CHUNK, row=12, column=0))) \
+    assert (
+        kafka_key(make_envelope("r9", T, T, msgspec.structs.replace(CHUNK, row=12, column=0)))
         == b"12:0"
+    )
 
 
 def test_pose_key_is_robot_id() -> None:
@@ -158,14 +189,21 @@ def test_pose_key_is_robot_id() -> None:
 
 def test_meta_key_is_constant() -> None:
     """All metas share one key, so the latest is well defined."""
-    assert kafka_key(make_envelope("a", T, T, META)) == kafka_key(make_envelope("b", T, T, META)) \
+    assert (
+        kafka_key(make_envelope("a", T, T, META))
+        == kafka_key(make_envelope("b", T, T, META))
         == b"map"
+    )
 
 
 def test_meta_2019_round_trip() -> None:
     """MapMetaSet survives the 2019 meta.json form, including resolution and origin."""
     doc = META.to_2019()
-    assert doc["CHUNK_ROWS"] == 17 and doc["CHUNK_COLS"] == 11 and doc["origin"] == [-15.1, -25.0, 0.0]
+    assert (
+        doc["CHUNK_ROWS"] == 17 and doc["CHUNK_COLS"] == 11 and doc["origin"] == [-15.1, -25.0, 0.0]
+    )
     assert MapMetaSet.from_2019(doc) == META
-    bare = MapMetaSet(width=10, height=10, chunk_width=5, chunk_height=5, chunk_rows=2, chunk_cols=2)
+    bare = MapMetaSet(
+        width=10, height=10, chunk_width=5, chunk_height=5, chunk_rows=2, chunk_cols=2
+    )
     assert "origin" not in bare.to_2019() and MapMetaSet.from_2019(bare.to_2019()) == bare

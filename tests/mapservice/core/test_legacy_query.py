@@ -25,7 +25,13 @@ def test_defaults_are_the_documents() -> None:
     q = parse_chunk_query({})
     assert q == ChunkQuery()
     assert (q.sort, q.latest, q.reduced, q.type, q.limit, q.skip) == (
-        (("timestamp", "desc"),), False, False, "pgm_base64_compressed", 10, 0)
+        (("timestamp", "desc"),),
+        False,
+        False,
+        "pgm_base64_compressed",
+        10,
+        0,
+    )
     assert parse_pose_query({}) == PoseQuery(sort=(("timestamp", "desc"),), limit=10, skip=0)
 
 
@@ -35,8 +41,9 @@ def test_query_is_frozen() -> None:
         parse_chunk_query({}).limit = 5  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("text", ["2026-11-21T10:00:00", "2026-11-21T10:00:00Z",
-                                  "2026-11-21T11:00:00+01:00", str(NOW)])
+@pytest.mark.parametrize(
+    "text", ["2026-11-21T10:00:00", "2026-11-21T10:00:00Z", "2026-11-21T11:00:00+01:00", str(NOW)]
+)
 def test_times_without_zone_are_utc(text) -> None:
     """Zoneless ISO, Z, an offset and epoch ms name the same instant."""
     assert parse_chunk_query({"updatedSince": text}).updated_since_ms == NOW
@@ -46,21 +53,28 @@ def test_sort_parses_a_whitelisted_list_and_appends_the_identity() -> None:
     """sort=row:asc,robotId:desc is kept; the identity breaks ties; direction defaults to asc."""
     q = parse_chunk_query({"sort": "row:asc, robotId:DESC"})
     assert q.sort == (("row", "asc"), ("robotId", "desc"))
-    assert q.order == (("row", "asc"), ("robotId", "desc"), ("timestamp", "desc"),
-                       ("column", "asc"))
+    assert q.order == (
+        ("row", "asc"),
+        ("robotId", "desc"),
+        ("timestamp", "desc"),
+        ("column", "asc"),
+    )
     assert parse_pose_query({"sort": "robotId"}).sort == (("robotId", "asc"),)
 
 
-@pytest.mark.parametrize("sort", ["ts:desc", "row:asc", "timestamp:up", "robotId:asc,robotId:desc",
-                                  "timestamp:desc) --", ""])
+@pytest.mark.parametrize(
+    "sort",
+    ["ts:desc", "row:asc", "timestamp:up", "robotId:asc,robotId:desc", "timestamp:desc) --", ""],
+)
 def test_pose_sort_outside_the_whitelist_is_an_error(sort) -> None:
     """Anything but timestamp/robotId with asc/desc, each once, is refused with the choices."""
     with pytest.raises(QueryError, match="'sort'"):
         parse_pose_query({"sort": sort})
 
 
-@pytest.mark.parametrize("params", [{"limit": str(MAX_LIMIT + 1)}, {"limit": "-1"},
-                                    {"skip": "1.5"}, {"skip": "9991"}])
+@pytest.mark.parametrize(
+    "params", [{"limit": str(MAX_LIMIT + 1)}, {"limit": "-1"}, {"skip": "1.5"}, {"skip": "9991"}]
+)
 def test_page_bounds(params) -> None:
     """limit <= 10000, whole numbers only, and skip + limit <= 10000."""
     with pytest.raises(QueryError):
@@ -73,8 +87,10 @@ def test_page_at_the_bounds_is_fine() -> None:
     assert parse_chunk_query({"skip": "9990"}).skip == 9990
 
 
-@pytest.mark.parametrize("value, expected", [("true", True), ("TRUE", True), ("1", True),
-                                             ("false", False), ("0", False), ("", False)])
+@pytest.mark.parametrize(
+    "value, expected",
+    [("true", True), ("TRUE", True), ("1", True), ("false", False), ("0", False), ("", False)],
+)
 def test_booleans(value, expected) -> None:
     """latest/reduced accept true/false (any case) and 1/0."""
     assert parse_chunk_query({"latest": value, "reduced": value}).latest is expected

@@ -26,8 +26,11 @@ PIXELS = bytes(i % 251 for i in range(100 * 100))
 def test_newer_write_replaces_and_is_returned_once_per_chunk() -> None:
     """Newer writes replace the live version; per chunk only the final one is returned."""
     view: dict = {}
-    e1, e2, e3 = chunk_event("a", NOW_MS, 1, 1), chunk_event("b", NOW_MS + 5, 1, 1), \
-        chunk_event("a", NOW_MS, 0, 0)
+    e1, e2, e3 = (
+        chunk_event("a", NOW_MS, 1, 1),
+        chunk_event("b", NOW_MS + 5, 1, 1),
+        chunk_event("a", NOW_MS, 0, 0),
+    )
     assert apply_chunks(view, [e1, e2, e3]) == [e2, e3]
     assert view[(1, 1)].robot_id == "b" and view[(1, 1)].ts_ms == NOW_MS + 5
 
@@ -53,11 +56,23 @@ def test_advertisement_has_the_2019_shape_and_resolvable_urls() -> None:
     """The payload is listing 15 field for field; chunkUrl is the 2019 chunk-by-id route."""
     e = chunk_event("lkjlkj", 1_545_348_873_000, 3, 2, PIXELS)
     ad = advertisement(e, "http://maps.example:8080/")
-    assert list(ad) == ["row", "column", "robotId", "chunk", "png", "timestamp", "id",
-                        "chunkUrl", "pngUrl"]
+    assert list(ad) == [
+        "row",
+        "column",
+        "robotId",
+        "chunk",
+        "png",
+        "timestamp",
+        "id",
+        "chunkUrl",
+        "pngUrl",
+    ]
     assert ad["id"] == "row:3_column:2_2018-12-20T23:34:33"
     assert ad["timestamp"] == "2018-12-20T23:34:33"
-    assert ad["chunkUrl"] == "http://maps.example:8080/api/chunk-service/chunks/id/row:3_column:2_2018-12-20T23:34:33"
+    assert (
+        ad["chunkUrl"]
+        == "http://maps.example:8080/api/chunk-service/chunks/id/row:3_column:2_2018-12-20T23:34:33"
+    )
     assert ad["pngUrl"] == ad["chunkUrl"] + "/png"
     assert (ad["row"], ad["column"], ad["robotId"]) == (3, 2, "lkjlkj")
     assert zlib.decompress(base64.b64decode(ad["chunk"])) == PIXELS
@@ -73,11 +88,22 @@ def test_advertisements_render_each_content_once_and_never_mix_contents(monkeypa
     real_png = liveview.png
     monkeypatch.setattr(liveview, "png", lambda image: rendered.append(1) or real_png(image))
     other = bytes([254]) * 10_000
-    ads = [advertisement(chunk_event(r, 1_545_348_873_000 + i, i, 0, px), "http://m/")
-           for i, (r, px) in enumerate([("a", PIXELS), ("b", other), ("c", PIXELS), ("d", other)])]
-    assert [zlib.decompress(base64.b64decode(ad["chunk"])) for ad in ads] == [PIXELS, other, PIXELS, other]
-    assert [Image.open(io.BytesIO(base64.b64decode(ad["png"]))).tobytes() for ad in ads] == \
-        [PIXELS, other, PIXELS, other]
+    ads = [
+        advertisement(chunk_event(r, 1_545_348_873_000 + i, i, 0, px), "http://m/")
+        for i, (r, px) in enumerate([("a", PIXELS), ("b", other), ("c", PIXELS), ("d", other)])
+    ]
+    assert [zlib.decompress(base64.b64decode(ad["chunk"])) for ad in ads] == [
+        PIXELS,
+        other,
+        PIXELS,
+        other,
+    ]
+    assert [Image.open(io.BytesIO(base64.b64decode(ad["png"]))).tobytes() for ad in ads] == [
+        PIXELS,
+        other,
+        PIXELS,
+        other,
+    ]
     assert len(rendered) <= 2
 
 

@@ -11,8 +11,13 @@ import random
 import pytest
 
 from mapservice.core import change_feed, upload_scan
-from mapservice.core.change_feed import (UPLOAD_GAP_MS, UPLOADER_ID, ChangeCursor, ChangeQuery,
-                                         ChunkBox)
+from mapservice.core.change_feed import (
+    UPLOAD_GAP_MS,
+    UPLOADER_ID,
+    ChangeCursor,
+    ChangeQuery,
+    ChunkBox,
+)
 from mapservice.core.ports import ChunkRow
 
 T0 = 1_700_000_020_000
@@ -36,7 +41,9 @@ class _Reads:
             if lo <= r.ts_ms < hi and robot in (None, r.robot_id):
                 k = (r.robot_id, r.ts_ms // b * b)
                 counts[k] = counts.get(k, 0) + 1
-        return [k for k, n in counts.items() if n >= upload_scan.BURST_MIN_WRITES or k[0] == UPLOADER_ID]
+        return [
+            k for k, n in counts.items() if n >= upload_scan.BURST_MIN_WRITES or k[0] == UPLOADER_ID
+        ]
 
     def scan(self, q: ChangeQuery) -> list:
         return upload_scan.newest_first(q, self.bursts, self.fetch)
@@ -48,8 +55,17 @@ class _Reads:
 
 def _history(seed: int, span_ms: int) -> list[ChunkRow]:
     rng = random.Random(seed)
-    rows = [ChunkRow(rng.randrange(4), rng.randrange(5), T0 + rng.randrange(span_ms),
-                     f"r{rng.randrange(4)}", f"{rng.randrange(3):032x}", 0) for _ in range(800)]
+    rows = [
+        ChunkRow(
+            rng.randrange(4),
+            rng.randrange(5),
+            T0 + rng.randrange(span_ms),
+            f"r{rng.randrange(4)}",
+            f"{rng.randrange(3):032x}",
+            0,
+        )
+        for _ in range(800)
+    ]
     for _ in range(14):
         # Uploads (or bursts just short of one) of any pace up to the gap, by robots that
         # also write alone, and the map uploader's few writes.
@@ -67,18 +83,24 @@ def test_found_uploads_are_the_rules_uploads(seed: int) -> None:
     span = 2 * 3_600_000
     reads = _Reads(_history(seed, span))
     rng = random.Random(seed)
-    for q in [ChangeQuery(T0 - DAY, T0 + 7 * DAY, kind="upload", limit=1000),
-              ChangeQuery(T0 + 1_800_000, T0 + 5_400_000, kind="upload", limit=1000),
-              ChangeQuery(T0, T0 + span, kind="upload", limit=3),
-              ChangeQuery(T0, T0 + span, robot_id="r1", kind="upload", limit=50),
-              ChangeQuery(T0, T0 + span, box=ChunkBox(2, 3, 0, 1), kind="upload", limit=50)]:
+    for q in [
+        ChangeQuery(T0 - DAY, T0 + 7 * DAY, kind="upload", limit=1000),
+        ChangeQuery(T0 + 1_800_000, T0 + 5_400_000, kind="upload", limit=1000),
+        ChangeQuery(T0, T0 + span, kind="upload", limit=3),
+        ChangeQuery(T0, T0 + span, robot_id="r1", kind="upload", limit=50),
+        ChangeQuery(T0, T0 + span, box=ChunkBox(2, 3, 0, 1), kind="upload", limit=50),
+    ]:
         want = reads.whole(q)
         assert reads.scan(q) == want
         if want:  # and from a cursor in the middle
             k = want[rng.randrange(len(want))].key()
-            paged = ChangeQuery(q.from_ms, q.to_ms, q.robot_id, q.box, ChangeCursor(*k), q.limit, q.kind)
+            paged = ChangeQuery(
+                q.from_ms, q.to_ms, q.robot_id, q.box, ChangeCursor(*k), q.limit, q.kind
+            )
             assert reads.scan(paged) == reads.whole(paged)
-    assert reads.whole(ChangeQuery(T0 - DAY, T0 + DAY, kind="upload", limit=1000))  # uploads to find
+    assert reads.whole(
+        ChangeQuery(T0 - DAY, T0 + DAY, kind="upload", limit=1000)
+    )  # uploads to find
 
 
 def test_a_busy_week_reads_the_uploads_writes_not_the_week(monkeypatch) -> None:
@@ -101,14 +123,22 @@ def test_a_busy_week_reads_the_uploads_writes_not_the_week(monkeypatch) -> None:
 
         # bursts: the stored rows' (a write a minute never reaches the threshold)
 
-    floor = [ChunkRow(i // 17, i % 17, T0 + 2 * DAY + i // 50, UPLOADER_ID, f"{i:032x}", 0) for i in range(187)]
+    floor = [
+        ChunkRow(i // 17, i % 17, T0 + 2 * DAY + i // 50, UPLOADER_ID, f"{i:032x}", 0)
+        for i in range(187)
+    ]
     # bot-7 re-sends 40 chunks between its minute's writes (at 7 s and 67 s).
-    resend = [ChunkRow(0, i % 3, T0 + 5 * DAY + 20_000 + 900 * i, "bot-7", f"{i:032x}", 0) for i in range(40)]
+    resend = [
+        ChunkRow(0, i % 3, T0 + 5 * DAY + 20_000 + 900 * i, "bot-7", f"{i:032x}", 0)
+        for i in range(40)
+    ]
     reads = Busy(floor + resend)
     q = ChangeQuery(T0, T0 + 7 * DAY, kind="upload", limit=1000)
     got = reads.scan(q)
     assert [(e.robot_id, e.chunks, e.ts_ms, e.end_ms) for e in got] == [
-        ("bot-7", 40, T0 + 5 * DAY + 20_000, T0 + 5 * DAY + 20_000 + 900 * 39), (UPLOADER_ID, 187, T0 + 2 * DAY, T0 + 2 * DAY + 3)]
+        ("bot-7", 40, T0 + 5 * DAY + 20_000, T0 + 5 * DAY + 20_000 + 900 * 39),
+        (UPLOADER_ID, 187, T0 + 2 * DAY, T0 + 2 * DAY + 3),
+    ]
     assert reads.fetched < 300  # of 2 M writes
 
 
@@ -130,10 +160,15 @@ def test_only_kind_upload_is_answered() -> None:
 def test_an_upload_at_the_slowest_pace_across_a_bucket_edge_is_found() -> None:
     """20 writes exactly a gap apart, half in each of two buckets: still an upload."""
     start = T0 + 3 * upload_scan.BURST_BUCKET_MS - 10 * UPLOAD_GAP_MS
-    reads = _Reads([ChunkRow(0, i, start + UPLOAD_GAP_MS * i, "slow", f"{i:032x}", 0) for i in range(20)])
+    reads = _Reads(
+        [ChunkRow(0, i, start + UPLOAD_GAP_MS * i, "slow", f"{i:032x}", 0) for i in range(20)]
+    )
     q = ChangeQuery(T0, T0 + DAY, kind="upload")
-    assert [(e.robot_id, e.chunks) for e in reads.scan(q)] == [("slow", 20)] == [
-        (e.robot_id, e.chunks) for e in reads.whole(q)]
+    assert (
+        [(e.robot_id, e.chunks) for e in reads.scan(q)]
+        == [("slow", 20)]
+        == [(e.robot_id, e.chunks) for e in reads.whole(q)]
+    )
 
 
 def test_a_full_page_still_takes_a_newer_upload_read_later() -> None:

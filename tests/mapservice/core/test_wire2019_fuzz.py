@@ -23,23 +23,25 @@ from mapservice.core.wire2019 import (
 )
 from tests.mapservice.core.wire2019_messages import DAY, NOW, b64z, stamp
 
-
 # --- nothing raises, whatever arrives -----------------------------------------------------
 
-SMALL = Limits(chunk_width=4, chunk_height=4, chunk_rows=8, chunk_cols=8,
-               max_message_bytes=64 * 1024)
+SMALL = Limits(
+    chunk_width=4, chunk_height=4, chunk_rows=8, chunk_cols=8, max_message_bytes=64 * 1024
+)
 
 json_values = st.recursive(
     st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=20),
-    lambda children: st.lists(children, max_size=4)
-    | st.dictionaries(st.text(max_size=8), children, max_size=4),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
     max_leaves=16,
 )
 json_objects = st.dictionaries(st.text(max_size=12), json_values, max_size=6)
 robot_ids = st.from_regex(r"[A-Za-z0-9_.:@-]{1,8}", fullmatch=True) | st.text(max_size=10)
 offsets = st.datetimes().map(lambda d: d.isoformat())
-zones = st.timedeltas(min_value=-timedelta(hours=23, minutes=59),
-                      max_value=timedelta(hours=23, minutes=59)).map(timezone)
+zones = st.timedeltas(
+    min_value=-timedelta(hours=23, minutes=59), max_value=timedelta(hours=23, minutes=59)
+).map(timezone)
 timestamps = (
     st.integers(-10 * DAY, 10 * DAY).map(stamp)
     | st.datetimes().map(lambda d: d.isoformat())
@@ -53,30 +55,43 @@ pixel_data = (
     | st.text(max_size=30)
 )
 any_value = json_values
-chunk_like = st.fixed_dictionaries({}, optional={
-    "pgmB64compressedData": pixel_data | any_value,
-    "row": st.integers(-3, 10) | any_value,
-    "column": st.integers(-3, 10) | any_value,
-    "timestamp": timestamps | any_value,
-    "robotId": robot_ids | any_value,
-})
-numbers = st.floats() | st.integers(-10**7, 10**7)
+chunk_like = st.fixed_dictionaries(
+    {},
+    optional={
+        "pgmB64compressedData": pixel_data | any_value,
+        "row": st.integers(-3, 10) | any_value,
+        "column": st.integers(-3, 10) | any_value,
+        "timestamp": timestamps | any_value,
+        "robotId": robot_ids | any_value,
+    },
+)
+numbers = st.floats() | st.integers(-(10**7), 10**7)
 vec = st.fixed_dictionaries({"x": numbers, "y": numbers}, optional={"z": numbers})
 quat = st.fixed_dictionaries({"x": numbers, "y": numbers, "z": numbers, "w": numbers})
-pose_like = st.fixed_dictionaries({}, optional={
-    "robotId": robot_ids | any_value,
-    "timestamp": timestamps | any_value,
-    "pose": st.fixed_dictionaries({"position": vec, "orientation": quat}) | any_value,
-    "status": st.fixed_dictionaries({}, optional={
-        "battery": st.fixed_dictionaries({}, optional={
-            "battery_level": numbers | st.none(), "charging": any_value}),
-        "loaded": any_value}) | any_value,
-    "plannedPath": st.lists(st.fixed_dictionaries({"x": numbers, "y": numbers}), max_size=5)
-    | any_value,
-})
+pose_like = st.fixed_dictionaries(
+    {},
+    optional={
+        "robotId": robot_ids | any_value,
+        "timestamp": timestamps | any_value,
+        "pose": st.fixed_dictionaries({"position": vec, "orientation": quat}) | any_value,
+        "status": st.fixed_dictionaries(
+            {},
+            optional={
+                "battery": st.fixed_dictionaries(
+                    {}, optional={"battery_level": numbers | st.none(), "charging": any_value}
+                ),
+                "loaded": any_value,
+            },
+        )
+        | any_value,
+        "plannedPath": st.lists(st.fixed_dictionaries({"x": numbers, "y": numbers}), max_size=5)
+        | any_value,
+    },
+)
 
-PROPERTY = settings(max_examples=200, deadline=None, database=None,
-                    suppress_health_check=[HealthCheck.too_slow])
+PROPERTY = settings(
+    max_examples=200, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow]
+)
 
 
 def _as_json(obj) -> bytes:
@@ -128,13 +143,17 @@ def test_decoders_never_raise_on_arbitrary_json(obj) -> None:
 
 @PROPERTY
 @given(doc=chunk_like | pose_like, junk=st.binary(min_size=1, max_size=12), where=st.integers(0))
-def test_decoders_never_raise_on_bytes_spliced_into_json(doc: dict, junk: bytes,
-                                                        where: int) -> None:
+def test_decoders_never_raise_on_bytes_spliced_into_json(
+    doc: dict, junk: bytes, where: int
+) -> None:
     """Arbitrary bytes (invalid UTF-8 included) inside a JSON string never make a decoder raise."""
     data = _as_json({**doc, "robotId": "MARKER"})
     data = data.replace(b"MARKER", junk, 1)
-    data = data[: where % (len(data) + 1)] + junk + data[where % (len(data) + 1):] \
-        if where % 3 == 0 else data
+    data = (
+        data[: where % (len(data) + 1)] + junk + data[where % (len(data) + 1) :]
+        if where % 3 == 0
+        else data
+    )
     _check_chunk(decode_chunk_create(data, NOW, SMALL), SMALL)
     _check_pose(decode_coordinates("r1", data, NOW, SMALL), "r1")
 

@@ -58,8 +58,10 @@ def test_rasterise_agrees_with_a_point_at_a_time_test(seed) -> None:
     rng = random.Random(seed)
     n = rng.randint(3, 15)
     cx, cy = GRID.origin_x + rng.uniform(0, 3.2), GRID.origin_y + rng.uniform(0, 2.4)
-    ring = [(cx + rng.uniform(0.1, 2) * math.cos(a), cy + rng.uniform(0.1, 2) * math.sin(a))
-            for a in sorted(rng.uniform(0, 2 * math.pi) for _ in range(n))]
+    ring = [
+        (cx + rng.uniform(0.1, 2) * math.cos(a), cy + rng.uniform(0.1, 2) * math.sin(a))
+        for a in sorted(rng.uniform(0, 2 * math.pi) for _ in range(n))
+    ]
     got = rasterise(GRID, [ring])
     for r in range(GRID.height):
         for c in range(GRID.width):

@@ -8,13 +8,13 @@ import zlib
 
 import numpy as np
 import pytest
+from mapservice.robot.chunks import metres_to_pixel
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.core.conflicts import all_conflicts, conflict_key
-from mapservice.local.demo_history import UPLOAD_ROBOT_ID, backfill
 from mapservice.adapters.ros_map import drivable, load_ros_map, slice_chunks
-from mapservice.robot.chunks import metres_to_pixel
+from mapservice.core.conflicts import all_conflicts, conflict_key
 from mapservice.core.wire2019 import content_hash
+from mapservice.local.demo_history import UPLOAD_ROBOT_ID, backfill
 from tests.fixtures.paths import MAPS
 
 NOW = 1_795_255_200_000
@@ -25,12 +25,14 @@ WINDOW_MS = 60_000
 @pytest.fixture(scope="module")
 def history(tmp_path_factory):
     """Three hours of three robots on the depot, stored as the processors would."""
-    store = ClickHouseStore(f"chdb://{tmp_path_factory.mktemp('demo')}", "mapservice", 7,
-                            snapshot_every_ms=600_000)
+    store = ClickHouseStore(
+        f"chdb://{tmp_path_factory.mktemp('demo')}", "mapservice", 7, snapshot_every_ms=600_000
+    )
     store.migrate()
     ros_map = load_ros_map(MAPS / "depot.yaml")
-    result = backfill(store, ros_map, days=HOURS / 24, robots=3, now_ms=NOW,
-                      conflict_window_ms=WINDOW_MS, seed=5)
+    result = backfill(
+        store, ros_map, days=HOURS / 24, robots=3, now_ms=NOW, conflict_window_ms=WINDOW_MS, seed=5
+    )
     yield store, ros_map, result
     store.close()
 
@@ -38,11 +40,14 @@ def history(tmp_path_factory):
 def stitched(store, ros_map, at_ms: int) -> np.ndarray:
     """The map at `at_ms` as pixels, from the store's own chunks."""
     meta = store.latest_meta()
-    canvas = np.zeros((meta.chunk_rows * meta.chunk_height, meta.chunk_cols * meta.chunk_width), np.uint8)
+    canvas = np.zeros(
+        (meta.chunk_rows * meta.chunk_height, meta.chunk_cols * meta.chunk_width), np.uint8
+    )
     for c in store.map_at(at_ms):
         w, h, data = store.chunk_content(bytes.fromhex(c.content_hash))
-        canvas[c.row * h:(c.row + 1) * h, c.column * w:(c.column + 1) * w] = \
-            np.frombuffer(zlib.decompress(data), np.uint8).reshape(h, w)
+        canvas[c.row * h : (c.row + 1) * h, c.column * w : (c.column + 1) * w] = np.frombuffer(
+            zlib.decompress(data), np.uint8
+        ).reshape(h, w)
     return canvas[: ros_map.height, : ros_map.width]
 
 
@@ -73,9 +78,11 @@ def test_map_and_robots_at_t_equal_the_fold_of_the_history(history) -> None:
     for at in [result.start_ms + rng.randrange(NOW - result.start_ms) for _ in range(8)]:
         fold: dict = {}
         for w in writes:
-            if (w.ts_ms <= at and (w.row, w.column) not in fold) or \
-                    (w.ts_ms <= at and (w.ts_ms, w.robot_id) > (fold[(w.row, w.column)].ts_ms,
-                                                              fold[(w.row, w.column)].robot_id)):
+            if (w.ts_ms <= at and (w.row, w.column) not in fold) or (
+                w.ts_ms <= at
+                and (w.ts_ms, w.robot_id)
+                > (fold[(w.row, w.column)].ts_ms, fold[(w.row, w.column)].robot_id)
+            ):
                 fold[(w.row, w.column)] = w
         got = {(c.row, c.column): (c.ts_ms, c.robot_id, c.content_hash) for c in store.map_at(at)}
         assert got == {k: (w.ts_ms, w.robot_id, w.content_hash) for k, w in fold.items()}
@@ -83,8 +90,9 @@ def test_map_and_robots_at_t_equal_the_fold_of_the_history(history) -> None:
         for p in poses:
             if p.ts_ms <= at:
                 latest[p.robot_id] = p
-        assert {(p.robot_id, p.ts_ms) for p in store.robots_at(at)} == \
-            {(p.robot_id, p.ts_ms) for p in latest.values()}
+        assert {(p.robot_id, p.ts_ms) for p in store.robots_at(at)} == {
+            (p.robot_id, p.ts_ms) for p in latest.values()
+        }
         # Every robot reported within the offline threshold (10 s) of T: drawn online.
         assert all(at - p.ts_ms <= 10_000 for p in latest.values() if at - result.start_ms > 10_000)
 
@@ -104,7 +112,9 @@ def test_every_robot_stands_on_a_free_pixel_of_the_map_at_its_time(history) -> N
     store, ros_map, result = history
     meta = store.latest_meta()
     rng = random.Random(2)
-    for at in [result.start_ms + 60_000 + rng.randrange(NOW - result.start_ms - 60_000) for _ in range(6)]:
+    for at in [
+        result.start_ms + 60_000 + rng.randrange(NOW - result.start_ms - 60_000) for _ in range(6)
+    ]:
         free = drivable(ros_map.with_pixels(stitched(store, ros_map, at)))
         for p in store.robots_at(at):
             col, row = metres_to_pixel(p.x, p.y, meta)
@@ -128,4 +138,6 @@ def test_the_pose_views_hold_every_robot_the_poses_hold(history) -> None:
     firsts = {}
     for p in store.poses(lo, lo + 30 * minute, limit=10_000_000):
         firsts.setdefault((p.robot_id, (p.ts_ms - lo) // minute), p.ts_ms)
-    assert sorted((p.robot_id, p.ts_ms) for p in frames) == sorted((r, t) for (r, _), t in firsts.items())
+    assert sorted((p.robot_id, p.ts_ms) for p in frames) == sorted(
+        (r, t) for (r, _), t in firsts.items()
+    )

@@ -18,14 +18,17 @@ def test_an_old_demo_keeps_its_floor_through_merges_and_the_retention(tmp_path) 
     store = ClickHouseStore(f"chdb://{tmp_path / 'ch'}", "mapservice", 7, snapshot_every_ms=600_000)
     store.migrate()
     ros_map = load_ros_map(MAPS / "depot.yaml")
-    result = backfill(store, ros_map, days=0.05, robots=2, now_ms=END, conflict_window_ms=60_000, seed=3)
+    result = backfill(
+        store, ros_map, days=0.05, robots=2, now_ms=END, conflict_window_ms=60_000, seed=3
+    )
     store.optimize()
     floor = set(slice_chunks(ros_map))
 
     def whole_at(t: int) -> None:
         chunks = store.map_at(t)
-        assert {(c.row, c.column) for c in chunks} == floor, \
+        assert {(c.row, c.column) for c in chunks} == floor, (
             f"{len(chunks)} of {len(floor)} chunks at {(END - t) / 3_600_000:.1f} h before the end"
+        )
         named = {bytes.fromhex(c.content_hash) for c in chunks}
         assert set(store.chunk_contents(list(named))) == named, "pixels missing"
 

@@ -15,9 +15,9 @@ from confluent_kafka import OFFSET_BEGINNING, Consumer, Producer, TopicPartition
 from confluent_kafka.admin import AdminClient, ConfigResource, NewTopic
 from rich.console import Console
 
-from mapservice.local.up import embedded_kafka_intro, kafka_keeps
 from mapservice.local import embedded, kafka_broker
 from mapservice.local.stack import Stack
+from mapservice.local.up import embedded_kafka_intro, kafka_keeps
 
 
 def fake_mvn(tmp_path: Path, script: str) -> Path:
@@ -39,15 +39,20 @@ def test_the_pom_pins_a_kafka_4_version() -> None:
 def test_without_maven_the_error_says_how_to_install_it_or_use_tansu(tmp_path, monkeypatch) -> None:
     """No `mvn` on PATH: a RuntimeError naming the Debian package and the tansu fallback."""
     monkeypatch.setenv("PATH", str(tmp_path))
-    with pytest.raises(RuntimeError, match=r"apt-get install maven.*MAPSERVICE_EMBEDDED_KAFKA=tansu"):
+    with pytest.raises(
+        RuntimeError, match=r"apt-get install maven.*MAPSERVICE_EMBEDDED_KAFKA=tansu"
+    ):
         kafka_broker.ensure_jars(tmp_path / "jars")
 
 
 def test_an_unreachable_maven_central_is_a_clear_error(tmp_path, monkeypatch) -> None:
     """Maven failing to resolve: the error names Maven Central, the fallback and Maven's own
     [ERROR] lines, and leaves no half-filled cache behind."""
-    bin_dir = fake_mvn(tmp_path, 'echo "[ERROR] Failed to execute goal: Could not transfer '
-                                 'artifact org.apache.kafka:kafka_2.13: Connection refused"\nexit 1\n')
+    bin_dir = fake_mvn(
+        tmp_path,
+        'echo "[ERROR] Failed to execute goal: Could not transfer '
+        'artifact org.apache.kafka:kafka_2.13: Connection refused"\nexit 1\n',
+    )
     monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
     with pytest.raises(RuntimeError, match="Maven Central") as caught:
         kafka_broker.ensure_jars(tmp_path / "jars")
@@ -59,12 +64,15 @@ def test_an_unreachable_maven_central_is_a_clear_error(tmp_path, monkeypatch) ->
 def test_jars_are_fetched_once_with_progress(tmp_path, monkeypatch) -> None:
     """The first call runs Maven (its downloads reported as progress); later calls use the cache."""
     calls = tmp_path / "calls"
-    bin_dir = fake_mvn(tmp_path, f'echo run >> {calls}\nfor a in "$@"; do case "$a" in '
-                                 '-DoutputDirectory=*) d="${a#-DoutputDirectory=}";; esac; done\n'
-                                 'mkdir -p "$d" && touch "$d/kafka_2.13.jar"\n'
-                                 # As Maven 3.8 prints them in batch mode (-B).
-                                 'echo "[INFO] Downloaded from central: https://repo/kafka_2.13.pom (2 kB)"\n'
-                                 'echo "[INFO] Downloaded from central: https://repo/kafka_2.13.jar (7 MB)"\n')
+    bin_dir = fake_mvn(
+        tmp_path,
+        f'echo run >> {calls}\nfor a in "$@"; do case "$a" in '
+        '-DoutputDirectory=*) d="${a#-DoutputDirectory=}";; esac; done\n'
+        'mkdir -p "$d" && touch "$d/kafka_2.13.jar"\n'
+        # As Maven 3.8 prints them in batch mode (-B).
+        'echo "[INFO] Downloaded from central: https://repo/kafka_2.13.pom (2 kB)"\n'
+        'echo "[INFO] Downloaded from central: https://repo/kafka_2.13.jar (7 MB)"\n',
+    )
     monkeypatch.setenv("PATH", f"{bin_dir}:{os.environ['PATH']}")
     seen: list[str] = []
     libs = kafka_broker.ensure_jars(tmp_path / "jars", progress=seen.append)
@@ -77,8 +85,13 @@ def test_jars_are_fetched_once_with_progress(tmp_path, monkeypatch) -> None:
 def test_the_node_keeps_by_time_and_size_with_a_bounded_heap(tmp_path) -> None:
     """The server properties carry the retention settings, segments a sixteenth of it, one
     static voter on the controller port, and listeners on 127.0.0.1 only."""
-    node = kafka_broker.KafkaNodeConfig(log_dir=tmp_path / "log", port=1234, controller_port=1235,
-                                        retention_hours=5, retention_bytes=64 * 1024**2)
+    node = kafka_broker.KafkaNodeConfig(
+        log_dir=tmp_path / "log",
+        port=1234,
+        controller_port=1235,
+        retention_hours=5,
+        retention_bytes=64 * 1024**2,
+    )
     props = dict(line.split("=", 1) for line in node.properties().splitlines() if line)
     assert props["log.retention.hours"] == "5"
     assert props["log.retention.bytes"] == str(64 * 1024**2)
@@ -116,8 +129,9 @@ def test_up_says_when_kafka_is_tansu_and_what_that_costs(monkeypatch, tmp_path) 
 def node(tmp_path):
     if kafka_broker.java_binary() is None:
         pytest.fail("no Java runtime for Apache Kafka (`make system-deps` installs it)")
-    config = kafka_broker.node_for(tmp_path / "data", embedded.free_port(),
-                                   retention_hours=48, retention_bytes=32 * 1024**2)
+    config = kafka_broker.node_for(
+        tmp_path / "data", embedded.free_port(), retention_hours=48, retention_bytes=32 * 1024**2
+    )
     log = open(tmp_path / "kafka.log", "ab")
     procs = [kafka_broker.start_kafka(config, log)]
     yield config, procs, log
@@ -141,13 +155,22 @@ def test_a_sigkilled_node_restarts_on_its_log_with_every_acknowledged_record(nod
 
     os.killpg(procs[0].pid, signal.SIGKILL)
     procs[0].wait(10)
-    procs.append(kafka_broker.start_kafka(
-        kafka_broker.node_for(config.log_dir.parent.parent, config.port, retention_hours=48,
-                              retention_bytes=32 * 1024**2), log))
+    procs.append(
+        kafka_broker.start_kafka(
+            kafka_broker.node_for(
+                config.log_dir.parent.parent,
+                config.port,
+                retention_hours=48,
+                retention_bytes=32 * 1024**2,
+            ),
+            log,
+        )
+    )
     assert (config.log_dir / "meta.properties").read_text() == meta  # not formatted again
 
-    consumer = Consumer({"bootstrap.servers": bootstrap, "group.id": "reader",
-                         "enable.auto.commit": False})
+    consumer = Consumer(
+        {"bootstrap.servers": bootstrap, "group.id": "reader", "enable.auto.commit": False}
+    )
     consumer.assign([TopicPartition("kept", p, OFFSET_BEGINNING) for p in range(3)])
     values, deadline = set(), time.monotonic() + 30
     while len(values) < 1000 and time.monotonic() < deadline:
@@ -167,9 +190,12 @@ def test_a_broker_left_running_on_the_data_dir_is_named_not_started_twice(node) 
     """A second start on a directory whose broker still runs (an orphan of a killed `up`)
     fails at once, naming its pid and how to stop it."""
     config, procs, log = node
-    with pytest.raises(RuntimeError, match=f"still holds .*pid {procs[0].pid}.*kill {procs[0].pid}"):
-        kafka_broker.start_kafka(kafka_broker.node_for(config.log_dir.parent.parent,
-                                                       embedded.free_port()), log)
+    with pytest.raises(
+        RuntimeError, match=f"still holds .*pid {procs[0].pid}.*kill {procs[0].pid}"
+    ):
+        kafka_broker.start_kafka(
+            kafka_broker.node_for(config.log_dir.parent.parent, embedded.free_port()), log
+        )
 
 
 def test_a_cluster_id_that_starts_with_a_dash_formats_the_log(tmp_path) -> None:

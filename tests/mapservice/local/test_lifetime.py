@@ -27,15 +27,18 @@ def test_a_child_started_with_die_with_parent_ends_when_its_parent_is_killed(tmp
     """The parent (as `up`) starts a child in a session of its own with the preexec, then is
     killed with SIGKILL: the child gets SIGTERM and ends. Its files are 0600 (umask 077)."""
     child_code = "import sys, time; open(sys.argv[1], 'w').close(); time.sleep(120)"
-    code = ("import subprocess, sys, time\n"
-            "from mapservice.local.lifetime import die_with_parent\n"
-            f"child = subprocess.Popen([sys.executable, '-c', {child_code!r}, sys.argv[1]],"
-            " start_new_session=True, preexec_fn=die_with_parent)\n"
-            "print(child.pid, flush=True)\n"
-            "time.sleep(120)\n")
+    code = (
+        "import subprocess, sys, time\n"
+        "from mapservice.local.lifetime import die_with_parent\n"
+        f"child = subprocess.Popen([sys.executable, '-c', {child_code!r}, sys.argv[1]],"
+        " start_new_session=True, preexec_fn=die_with_parent)\n"
+        "print(child.pid, flush=True)\n"
+        "time.sleep(120)\n"
+    )
     made = tmp_path / "made-by-child"
-    parent = subprocess.Popen([sys.executable, "-c", code, str(made)], stdout=subprocess.PIPE,
-                              text=True)
+    parent = subprocess.Popen(
+        [sys.executable, "-c", code, str(made)], stdout=subprocess.PIPE, text=True
+    )
     child = int(parent.stdout.readline())
     try:
         deadline = time.monotonic() + 10
@@ -70,8 +73,9 @@ def test_the_next_up_ends_what_the_last_one_left_and_only_that(tmp_path):
 
         data = json.loads(record)
         data["up"]["pid"] = dead.pid
-        data["components"].append({"name": "mqtt", "pid": stranger.pid, "start": 1,
-                                   "command": ["/usr/sbin/mosquitto"]})
+        data["components"].append(
+            {"name": "mqtt", "pid": stranger.pid, "start": 1, "command": ["/usr/sbin/mosquitto"]}
+        )
         pid_file.path.write_text(json.dumps(data))
         assert pid_file.running_up() is None
         found = pid_file.leftovers()
@@ -88,12 +92,18 @@ def test_the_next_up_ends_what_the_last_one_left_and_only_that(tmp_path):
 
 def test_a_running_up_is_found_and_its_components_are_not_leftovers(tmp_path):
     """While the `up` that wrote the pid file runs, another `up` is told so and ends nothing."""
-    up = subprocess.Popen([sys.executable, "-c",
-                           "import sys, time\n"
-                           "from mapservice.local.lifetime import PidFile\n"
-                           f"PidFile.in_data_dir({str(tmp_path)!r}).write({{}})\n"
-                           "print('written', flush=True); time.sleep(120)"],
-                          stdout=subprocess.PIPE, text=True)
+    up = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from mapservice.local.lifetime import PidFile\n"
+            f"PidFile.in_data_dir({str(tmp_path)!r}).write({{}})\n"
+            "print('written', flush=True); time.sleep(120)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert up.stdout.readline().strip() == "written"
         pid_file = lifetime.PidFile.in_data_dir(tmp_path)
@@ -111,30 +121,34 @@ def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
     SIGKILL: the guard stops the gateway first, and only once it has exited the broker
     (all at once, the broker quit first: it has nothing to finish)."""
     log = tmp_path / "stopped"
-    component = ("import signal, sys, time\n"
-                 "def stop(*_):\n"
-                 "    time.sleep(float(sys.argv[2]))\n"
-                 f"    open({str(log)!r}, 'a').write(sys.argv[1] + chr(10)); sys.exit(0)\n"
-                 "signal.signal(signal.SIGTERM, stop)\n"
-                 "print('ready', flush=True)\n"
-                 "while True: time.sleep(1)\n")
-    up_code = ("import subprocess, sys, time, os\n"
-               "from pathlib import Path\n"
-               "from mapservice.local import lifetime\n"
-               f"pid_file = lifetime.PidFile.in_data_dir({str(tmp_path)!r})\n"
-               f"component = {component!r}\n"
-               "procs = {name: subprocess.Popen([sys.executable, '-c', component, name, delay],"
-               " start_new_session=True, stdout=subprocess.PIPE, text=True)"
-               " for name, delay in (('kafka', '0'), ('gateway', '1'))}\n"
-               "for proc in procs.values(): proc.stdout.readline()\n"
-               "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
-               " str(pid_file.path), str(os.getpid())], start_new_session=True,"
-               " preexec_fn=lifetime.die_with_parent)\n"
-               "pids = {name: p.pid for name, p in procs.items()}\n"
-               "pids['guard'] = guard.pid\n"
-               "pid_file.write(pids)\n"
-               "print(' '.join(str(p) for p in pids.values()), flush=True)\n"
-               "time.sleep(120)\n")
+    component = (
+        "import signal, sys, time\n"
+        "def stop(*_):\n"
+        "    time.sleep(float(sys.argv[2]))\n"
+        f"    open({str(log)!r}, 'a').write(sys.argv[1] + chr(10)); sys.exit(0)\n"
+        "signal.signal(signal.SIGTERM, stop)\n"
+        "print('ready', flush=True)\n"
+        "while True: time.sleep(1)\n"
+    )
+    up_code = (
+        "import subprocess, sys, time, os\n"
+        "from pathlib import Path\n"
+        "from mapservice.local import lifetime\n"
+        f"pid_file = lifetime.PidFile.in_data_dir({str(tmp_path)!r})\n"
+        f"component = {component!r}\n"
+        "procs = {name: subprocess.Popen([sys.executable, '-c', component, name, delay],"
+        " start_new_session=True, stdout=subprocess.PIPE, text=True)"
+        " for name, delay in (('kafka', '0'), ('gateway', '1'))}\n"
+        "for proc in procs.values(): proc.stdout.readline()\n"
+        "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
+        " str(pid_file.path), str(os.getpid())], start_new_session=True,"
+        " preexec_fn=lifetime.die_with_parent)\n"
+        "pids = {name: p.pid for name, p in procs.items()}\n"
+        "pids['guard'] = guard.pid\n"
+        "pid_file.write(pids)\n"
+        "print(' '.join(str(p) for p in pids.values()), flush=True)\n"
+        "time.sleep(120)\n"
+    )
     up = subprocess.Popen([sys.executable, "-c", up_code], stdout=subprocess.PIPE, text=True)
     pids = [int(p) for p in up.stdout.readline().split()]
     try:

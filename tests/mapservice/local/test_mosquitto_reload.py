@@ -10,9 +10,9 @@ import paho.mqtt.client as mqtt
 import pytest
 
 from mapservice.adapters.mqtt_auth import GATEWAY_USER
+from mapservice.adapters.mqtt_client import PollingClient
 from mapservice.local import embedded
 from mapservice.local.stack import Stack
-from mapservice.adapters.mqtt_client import PollingClient
 
 pytestmark = pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto")
 
@@ -20,8 +20,9 @@ pytestmark = pytest.mark.skipif(not embedded.mosquitto_installed(), reason="need
 class Session:
     """A persistent (clean_session=False) subscriber, as the gateway is."""
 
-    def __init__(self, port: int, client_id: str, username: str | None = None,
-                 password: str | None = None) -> None:
+    def __init__(
+        self, port: int, client_id: str, username: str | None = None, password: str | None = None
+    ) -> None:
         self.port, self.client_id = port, client_id
         self.username, self.password = username, password
         self.received: list[bytes] = []
@@ -29,8 +30,9 @@ class Session:
 
     def connect(self) -> None:
         connected = threading.Event()
-        client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id,
-                             clean_session=False)
+        client = PollingClient(
+            mqtt.CallbackAPIVersion.VERSION2, client_id=self.client_id, clean_session=False
+        )
         if self.username:
             client.username_pw_set(self.username, self.password)
         client.on_connect = lambda c, u, f, reason, p: connected.set()
@@ -54,8 +56,14 @@ class Session:
         return len(self.received)
 
 
-def publish_acknowledged(port: int, topic: str, payloads: list[bytes], username=None,
-                         password=None, client_id="publisher") -> None:
+def publish_acknowledged(
+    port: int,
+    topic: str,
+    payloads: list[bytes],
+    username=None,
+    password=None,
+    client_id="publisher",
+) -> None:
     client = PollingClient(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id)
     if username:
         client.username_pw_set(username, password)
@@ -77,8 +85,9 @@ def test_a_robot_added_while_the_restarted_broker_runs_loses_no_queued_message(t
     stack = Stack(tmp_path, mqtt="mosquitto", mqtt_auth=True)
     try:
         stack.start_mqtt()
-        gateway = Session(stack.mqtt_port, GATEWAY_USER, GATEWAY_USER,
-                          stack.service_password(GATEWAY_USER))
+        gateway = Session(
+            stack.mqtt_port, GATEWAY_USER, GATEWAY_USER, stack.service_password(GATEWAY_USER)
+        )
         gateway.connect()
         gateway.client.subscribe("iot/coordinates/#", qos=1)
         time.sleep(0.5)
@@ -86,8 +95,14 @@ def test_a_robot_added_while_the_restarted_broker_runs_loses_no_queued_message(t
         stack.start_mqtt()  # what the next `up` does: the broker starts from its store
         credential = stack.add_robot("robot-added-late")
         payloads = [f"pose {i}".encode() for i in range(20)]
-        publish_acknowledged(stack.mqtt_port, "iot/coordinates/robot-added-late", payloads,
-                             credential.username, credential.password, credential.username)
+        publish_acknowledged(
+            stack.mqtt_port,
+            "iot/coordinates/robot-added-late",
+            payloads,
+            credential.username,
+            credential.password,
+            credential.username,
+        )
         gateway.connect()
         assert gateway.wait_for(20) == 20
         assert sorted(gateway.received) == sorted(payloads)
@@ -107,7 +122,10 @@ def test_the_brokers_message_size_limit_follows_the_gateways_maximum(tmp_path):
     stack = Stack(tmp_path, mqtt="mosquitto", extra_env={"MAPSERVICE_MAX_MESSAGE_BYTES": "4096"})
     try:
         stack.start_mqtt()
-        assert f"message_size_limit {limit}" in (tmp_path / f"mosquitto-{stack.mqtt_port}.conf").read_text()
+        assert (
+            f"message_size_limit {limit}"
+            in (tmp_path / f"mosquitto-{stack.mqtt_port}.conf").read_text()
+        )
         gateway = Session(stack.mqtt_port, "mapservice-gateway")
         gateway.connect()
         gateway.client.subscribe("iot/coordinates/#", qos=1)

@@ -22,14 +22,22 @@ def test_mosquitto_conf_with_auth_and_tls(tmp_path):
     certs = make_server_cert(tmp_path / "tls")
     options = embedded.MosquittoOptions(tmp_path / "passwd", tmp_path / "acl", 8883, certs)
     lines = embedded.mosquitto_conf(1883, 9001, options).splitlines()
-    for expected in ("allow_anonymous false", f"password_file {tmp_path / 'passwd'}",
-                     f"acl_file {tmp_path / 'acl'}", "use_username_as_clientid true",
-                     "per_listener_settings false", "listener 8883 127.0.0.1",
-                     f"certfile {certs.cert_file}", f"cafile {certs.ca_file}"):
+    for expected in (
+        "allow_anonymous false",
+        f"password_file {tmp_path / 'passwd'}",
+        f"acl_file {tmp_path / 'acl'}",
+        "use_username_as_clientid true",
+        "per_listener_settings false",
+        "listener 8883 127.0.0.1",
+        f"certfile {certs.cert_file}",
+        f"cafile {certs.ca_file}",
+    ):
         assert expected in lines
     assert "allow_anonymous true" not in lines
     plain = embedded.mosquitto_conf(1883).splitlines()
-    assert "allow_anonymous true" in plain and not any(line.startswith("password_file") for line in plain)
+    assert "allow_anonymous true" in plain and not any(
+        line.startswith("password_file") for line in plain
+    )
 
 
 def test_auth_stack_needs_mosquitto(tmp_path):
@@ -49,7 +57,11 @@ def test_component_credentials(tmp_path):
     assert gateway["MAPSERVICE_MQTT_PASSWORD"] != server["MAPSERVICE_MQTT_PASSWORD"]
     assert sim.get("MAPSERVICE_MQTT_USERNAME") is None  # robots use their own (--credentials)
     assert gateway["MAPSERVICE_MQTT_URL"] == stack.mqtts_url
-    assert gateway["MAPSERVICE_MQTT_CA_FILE"] == server["MAPSERVICE_MQTT_CA_FILE"] == str(stack.ca_file)
+    assert (
+        gateway["MAPSERVICE_MQTT_CA_FILE"]
+        == server["MAPSERVICE_MQTT_CA_FILE"]
+        == str(stack.ca_file)
+    )
     # The generated passwords are kept: a restarted stack uses the same.
     again = Stack(tmp_path, mqtt="mosquitto", mqtt_auth=True)
     assert again.env("gateway")["MAPSERVICE_MQTT_PASSWORD"] == gateway["MAPSERVICE_MQTT_PASSWORD"]
@@ -76,14 +88,19 @@ def test_amqtt_lets_an_unauthenticated_client_wipe_a_session():
     was queued for the gateway and its subscription are gone. If this test fails, amqtt has
     fixed it and the local stack could offer identities on amqtt too."""
     port = embedded.free_port()
-    proc = subprocess.Popen([sys.executable, "-c", AMQTT.format(port=port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", AMQTT.format(port=port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         embedded.wait_for_port(port, proc=proc, what="amqtt")
         got: list[bytes] = []
 
         def connect(client_id, clean, user):
-            client = make_client(client_id, clean_session=clean, username=user, password="x" if user else None)
+            client = make_client(
+                client_id, clean_session=clean, username=user, password="x" if user else None
+            )
             answered = threading.Event()
             client.on_connect = lambda *_: answered.set()
             client.on_message = lambda _c, _u, m: got.append(m.payload)

@@ -28,18 +28,32 @@ def test_gateway_replicas_share_the_subscription_each_with_its_own_session_and_p
     first, second = stack.env("gateway"), stack.env("gateway-2")
     assert first["MAPSERVICE_MQTT_CLIENT_ID"] == "mapservice-gateway-1"
     assert second["MAPSERVICE_MQTT_CLIENT_ID"] == "mapservice-gateway-2"
-    assert first["MAPSERVICE_MQTT_SHARE_GROUP"] == second["MAPSERVICE_MQTT_SHARE_GROUP"] == "mapservice-gateways"
+    assert (
+        first["MAPSERVICE_MQTT_SHARE_GROUP"]
+        == second["MAPSERVICE_MQTT_SHARE_GROUP"]
+        == "mapservice-gateways"
+    )
     assert "MAPSERVICE_MQTT_SHARE_GROUP" not in stack.env("server")
-    assert len(set(stack.gateway_health_ports)) == 2 and stack.gateway_health_ports[0] == stack.health_port
+    assert (
+        len(set(stack.gateway_health_ports)) == 2
+        and stack.gateway_health_ports[0] == stack.health_port
+    )
 
 
 def test_replicas_keep_a_configured_client_id_base_and_share_group(tmp_path):
     """MAPSERVICE_MQTT_CLIENT_ID and MAPSERVICE_MQTT_SHARE_GROUP, when set, are the base and
     the group."""
-    stack = Stack(tmp_path, mqtt="mosquitto", gateways=2, extra_env={
-        "MAPSERVICE_MQTT_CLIENT_ID": "plant-gw", "MAPSERVICE_MQTT_SHARE_GROUP": "plant"})
+    stack = Stack(
+        tmp_path,
+        mqtt="mosquitto",
+        gateways=2,
+        extra_env={"MAPSERVICE_MQTT_CLIENT_ID": "plant-gw", "MAPSERVICE_MQTT_SHARE_GROUP": "plant"},
+    )
     env = stack.env("gateway-2")
-    assert (env["MAPSERVICE_MQTT_CLIENT_ID"], env["MAPSERVICE_MQTT_SHARE_GROUP"]) == ("plant-gw-2", "plant")
+    assert (env["MAPSERVICE_MQTT_CLIENT_ID"], env["MAPSERVICE_MQTT_SHARE_GROUP"]) == (
+        "plant-gw-2",
+        "plant",
+    )
 
 
 def test_no_gateway_is_refused(tmp_path):

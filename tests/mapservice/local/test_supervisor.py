@@ -22,10 +22,13 @@ class Fake:
         self.alive[name] = True
 
     def supervisor(self) -> Supervisor:
-        return Supervisor(lambda n: self.alive[n],
-                          {n: (lambda n=n: self.restart(n)) for n in self.alive},
-                          report=self.messages.append, clock=lambda: self.now,
-                          healthy_after_s=60)
+        return Supervisor(
+            lambda n: self.alive[n],
+            {n: (lambda n=n: self.restart(n)) for n in self.alive},
+            report=self.messages.append,
+            clock=lambda: self.now,
+            healthy_after_s=60,
+        )
 
 
 def test_backoff_doubles_up_to_the_cap() -> None:

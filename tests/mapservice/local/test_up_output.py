@@ -13,8 +13,11 @@ from mapservice.local.up_output import ProgressLog, print_addresses, step
 def test_the_address_table_to_a_file_is_never_cut(capsys):
     """A value far wider than 80 columns is printed whole, on one line with its name."""
     long_path = "/data/" + "a-very-long-directory-name/" * 8 + "secrets/analyst-password"
-    print_addresses(Console(file=io.StringIO()), "mapservice is up",
-                    [("API", "http://127.0.0.1:8080"), ("SQL (analysts)", f"password in {long_path}")])
+    print_addresses(
+        Console(file=io.StringIO()),
+        "mapservice is up",
+        [("API", "http://127.0.0.1:8080"), ("SQL (analysts)", f"password in {long_path}")],
+    )
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "mapservice is up"
     assert any(line.strip() == f"SQL (analysts)  password in {long_path}" for line in lines)
@@ -24,11 +27,16 @@ def test_the_address_table_on_a_terminal_folds_instead_of_cutting():
     """On an 80-column terminal the long value wraps, and every character of it is shown."""
     long_path = "/data/" + "a-very-long-directory-name/" * 8 + "secrets/analyst-password"
     out = io.StringIO()
-    print_addresses(Console(file=out, force_terminal=True, width=80, color_system=None),
-                    "mapservice is up", [("SQL (analysts)", long_path)])
+    print_addresses(
+        Console(file=out, force_terminal=True, width=80, color_system=None),
+        "mapservice is up",
+        [("SQL (analysts)", long_path)],
+    )
     text = out.getvalue()
     assert "…" not in text
-    cells = "".join(line.split("│")[2].strip() for line in text.splitlines() if line.count("│") == 3)
+    cells = "".join(
+        line.split("│")[2].strip() for line in text.splitlines() if line.count("│") == 3
+    )
     assert cells == long_path
 
 
@@ -41,7 +49,10 @@ def test_progress_is_logged_at_the_start_and_then_at_most_every_period():
             now[0] = float(second)
             progress.update(second / 12)
     assert [(e["event"], e["elapsed_s"], e["done_percent"]) for e in logs] == [
-        ("simulating", 0, 0), ("simulating", 5, 42), ("simulating", 10, 83)]
+        ("simulating", 0, 0),
+        ("simulating", 5, 42),
+        ("simulating", 10, 83),
+    ]
 
 
 def test_a_start_step_not_on_a_terminal_logs_its_start_and_end():

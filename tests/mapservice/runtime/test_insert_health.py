@@ -3,15 +3,14 @@ again at the next success, and a reason an operator can act on."""
 
 from __future__ import annotations
 
-from datetime import datetime, UTC
+from datetime import UTC, datetime
 
-from mapservice.runtime.health import failing_reasons
 from clickhouse_connect.driver.exceptions import DatabaseError
 
+from mapservice.runtime.health import failing_reasons
 from mapservice.runtime.insert_health import InsertHealth, code_of, describe, error_code
 
-FULL = ("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. "
-        "(NOT_ENOUGH_SPACE)")
+FULL = "Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space. (NOT_ENOUGH_SPACE)"
 T0 = datetime(2026, 11, 25, 22, 15, 3, tzinfo=UTC).timestamp()
 
 
@@ -27,8 +26,12 @@ def test_before_any_insert_the_history_is_ready_with_no_reason() -> None:
     """Nothing tried yet: ready, nothing to explain, no last insert."""
     health = InsertHealth(Wall(T0))
     assert health() and not health.failing and health.reason() is None
-    assert health.status() == {"storing": True, "failing_since_ms": None, "last_stored_ms": None,
-                               "reason": None}
+    assert health.status() == {
+        "storing": True,
+        "failing_since_ms": None,
+        "last_stored_ms": None,
+        "reason": None,
+    }
 
 
 def test_a_failed_insert_makes_it_unready_naming_since_when_and_the_error() -> None:
@@ -41,7 +44,9 @@ def test_a_failed_insert_makes_it_unready_naming_since_when_and_the_error() -> N
     health.failed(RuntimeError(FULL))
     assert not health() and health.failing and health.failures == 2
     reason = health.reason()
-    assert reason.startswith("inserts failing since 22:15:03Z (2 attempts): NOT_ENOUGH_SPACE: Code: 243.")
+    assert reason.startswith(
+        "inserts failing since 22:15:03Z (2 attempts): NOT_ENOUGH_SPACE: Code: 243."
+    )
     assert "free disk space where ClickHouse keeps its data" in reason
     status = health.status()
     assert status["storing"] is False and status["failing_since_ms"] == int(T0 * 1000)
@@ -59,7 +64,9 @@ def test_a_successful_insert_clears_the_failure_and_records_when() -> None:
     assert health.status()["last_stored_ms"] == int((T0 + 30) * 1000)
     wall.t += 5
     health.failed(ConnectionError("connection refused"))
-    assert health.status()["failing_since_ms"] == int((T0 + 35) * 1000)  # a new failure, a new start
+    assert health.status()["failing_since_ms"] == int(
+        (T0 + 35) * 1000
+    )  # a new failure, a new start
 
 
 def test_errors_without_a_clickhouse_code_name_their_type_and_are_cut_short() -> None:
@@ -71,19 +78,26 @@ def test_errors_without_a_clickhouse_code_name_their_type_and_are_cut_short() ->
     assert long.startswith("RuntimeError: xxx") and long.endswith("...") and len(long) < 330
     health = InsertHealth(Wall(T0))
     health.failed(ConnectionError("connection refused"))
-    assert health.reason().endswith("ConnectionError: connection refused; the processors keep "
-                                    "retrying and commit nothing unstored")
+    assert health.reason().endswith(
+        "ConnectionError: connection refused; the processors keep "
+        "retrying and commit nothing unstored"
+    )
 
 
 def test_a_full_disk_over_clickhouse_http_says_what_to_do_like_embedded() -> None:
     """`mapservice up` inserts through the ClickHouse server: clickhouse-connect's error
     carries the code's name and ends its message with "(for url ...)". The reason still
     names NOT_ENOUGH_SPACE first and says to free disk space."""
-    body = ("Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space: While "
-            "executing SinkToStorage. (NOT_ENOUGH_SPACE) (version 25.8.2.1)")
+    body = (
+        "Code: 243. DB::Exception: Cannot reserve 1.00 MiB, not enough space: While "
+        "executing SinkToStorage. (NOT_ENOUGH_SPACE) (version 25.8.2.1)"
+    )
     url = "http://127.0.0.1:50837?query=INSERT+INTO+mapservice.poses"
-    over_http = DatabaseError(f"Received ClickHouse exception, code: 243, server response: {body} "
-                              f"(for url {url})", code=243, name="NOT_ENOUGH_SPACE")
+    over_http = DatabaseError(
+        f"Received ClickHouse exception, code: 243, server response: {body} (for url {url})",
+        code=243,
+        name="NOT_ENOUGH_SPACE",
+    )
     as_text = RuntimeError(f"server response: {FULL} (for url {url})")
     for exc in (over_http, as_text):
         assert code_of(exc) == "NOT_ENOUGH_SPACE"
@@ -113,8 +127,10 @@ def test_one_kind_of_insert_succeeding_does_not_hide_another_failing() -> None:
     health = InsertHealth(wall)
     health.failed(RuntimeError(FULL), "append_events")
     wall.t += 4
-    health.failed(RuntimeError("Code: 252. DB::Exception: Too many parts. (TOO_MANY_PARTS)"),
-                  "append_dead_letters")
+    health.failed(
+        RuntimeError("Code: 252. DB::Exception: Too many parts. (TOO_MANY_PARTS)"),
+        "append_dead_letters",
+    )
     health.stored("derive_views")
     assert not health() and health.failing_since_s == T0
     health.stored("append_events")
@@ -128,6 +144,7 @@ def test_a_health_port_probe_names_the_failing_inserts() -> None:
     """The processors' own /readyz (mapservice processors --health-port) carries the reason
     too, served as it is to the kubelet."""
     import json
+
     import httpx
 
     from mapservice.local.embedded import free_port
@@ -136,11 +153,15 @@ def test_a_health_port_probe_names_the_failing_inserts() -> None:
 
     health = InsertHealth(Wall(T0))
     readiness = {"clickhouse": lambda: True, "history_store": health}
-    server = serve_health("127.0.0.1", free_port(), lambda: probe_report({}),
-                          lambda: probe_report(readiness))
+    server = serve_health(
+        "127.0.0.1", free_port(), lambda: probe_report({}), lambda: probe_report(readiness)
+    )
     try:
         url = f"http://127.0.0.1:{server.server_address[1]}/readyz"
-        assert httpx.get(url).json() == {"ok": True, "checks": {"clickhouse": True, "history_store": True}}
+        assert httpx.get(url).json() == {
+            "ok": True,
+            "checks": {"clickhouse": True, "history_store": True},
+        }
         health.failed(RuntimeError(FULL))
         reply = httpx.get(url)
         body = json.loads(reply.text)

@@ -17,8 +17,10 @@ def restore_logging():
     saved_config = structlog.get_config()
     root = logging.getLogger()
     saved = (root.handlers[:], root.level)
-    libs = {n: (logging.getLogger(n).handlers[:], logging.getLogger(n).propagate)
-            for n in ("uvicorn", "uvicorn.error", "uvicorn.access", "faust", "aiokafka", "mode")}
+    libs = {
+        n: (logging.getLogger(n).handlers[:], logging.getLogger(n).propagate)
+        for n in ("uvicorn", "uvicorn.error", "uvicorn.access", "faust", "aiokafka", "mode")
+    }
     yield
     structlog.configure(**saved_config)
     structlog.contextvars.clear_contextvars()
@@ -38,7 +40,11 @@ def test_library_loggers_become_json_lines(capsys) -> None:
     logging.getLogger("aiokafka.consumer").warning("lost partition %s", 3)
     (line,) = lines(capsys)
     assert line["component"] == "processors"
-    assert (line["level"], line["logger"], line["event"]) == ("warning", "aiokafka.consumer", "lost partition 3")
+    assert (line["level"], line["logger"], line["event"]) == (
+        "warning",
+        "aiokafka.consumer",
+        "lost partition 3",
+    )
     assert line["timestamp"].endswith("Z")
 
 
@@ -47,17 +53,29 @@ def test_structlog_and_stdlib_share_one_format(capsys) -> None:
     configure("INFO", "json", "gateway")
     structlog.get_logger("x").info("connected", broker="mqtt://h")
     (line,) = lines(capsys)
-    assert (line["component"], line["level"], line["event"], line["broker"]) == ("gateway", "info", "connected", "mqtt://h")
+    assert (line["component"], line["level"], line["event"], line["broker"]) == (
+        "gateway",
+        "info",
+        "connected",
+        "mqtt://h",
+    )
 
 
 def test_uvicorn_access_log_is_structured(capsys) -> None:
     """A uvicorn access record becomes a 'request' line with client, method, path, HTTP version and status."""
     configure("INFO", "json", "api")
-    logging.getLogger("uvicorn.access").info('%s - "%s %s HTTP/%s" %d', "127.0.0.1:5000", "GET", "/api/v1/map", "1.1", 200)
+    logging.getLogger("uvicorn.access").info(
+        '%s - "%s %s HTTP/%s" %d', "127.0.0.1:5000", "GET", "/api/v1/map", "1.1", 200
+    )
     (line,) = lines(capsys)
     assert line["event"] == "request"
-    assert (line["client"], line["method"], line["path"], line["http_version"], line["status"]) == \
-        ("127.0.0.1:5000", "GET", "/api/v1/map", "1.1", 200)
+    assert (line["client"], line["method"], line["path"], line["http_version"], line["status"]) == (
+        "127.0.0.1:5000",
+        "GET",
+        "/api/v1/map",
+        "1.1",
+        200,
+    )
 
 
 def test_handlers_libraries_install_are_replaced(capsys) -> None:
@@ -85,8 +103,8 @@ def test_the_api_server_writes_a_json_access_log(capfd) -> None:
     import httpx
     import uvicorn
     from fastapi import FastAPI
-
     from mapservice.api.composition import api_server_config
+
     from mapservice.settings import Settings
 
     configure("INFO", "json", "api")

@@ -36,14 +36,20 @@ def test_local_mode_generates_admin_and_writer_tokens_once(tmp_path) -> None:
 
 def test_reader_token_only_where_reads_need_one(tmp_path) -> None:
     """With MAPSERVICE_API_READ_ACCESS=token a reader token is generated too."""
-    secrets = api_secrets(with_local_api_secrets(Settings(data_dir=tmp_path, api_read_access="token")))
+    secrets = api_secrets(
+        with_local_api_secrets(Settings(data_dir=tmp_path, api_read_access="token"))
+    )
     assert secrets.readers == (stored_secret(tmp_path, READER_TOKEN_FILE),)
 
 
 def test_configured_tokens_win_and_production_never_generates(tmp_path) -> None:
     """A token that is set is used as it is; production mode writes nothing to the data dir."""
-    set_ = Settings(data_dir=tmp_path, admin_token="a" * 32, api_writer_tokens="w" * 32,
-                    api_operator_tokens="o" * 32)
+    set_ = Settings(
+        data_dir=tmp_path,
+        admin_token="a" * 32,
+        api_writer_tokens="w" * 32,
+        api_operator_tokens="o" * 32,
+    )
     assert api_secrets(with_local_api_secrets(set_)).admin == "a" * 32
     assert not secrets_dir(tmp_path).exists()
     prod = Settings(data_dir=tmp_path, mode="production", admin_token="a" * 32)
@@ -55,8 +61,10 @@ def test_configured_tokens_win_and_production_never_generates(tmp_path) -> None:
 def test_processes_starting_together_end_with_one_secret(tmp_path) -> None:
     """Eight threads generating at once all read the same secret (written aside, then linked)."""
     results: list[str] = []
-    threads = [threading.Thread(target=lambda: results.append(local_secret(tmp_path, "x")))
-               for _ in range(8)]
+    threads = [
+        threading.Thread(target=lambda: results.append(local_secret(tmp_path, "x")))
+        for _ in range(8)
+    ]
     for t in threads:
         t.start()
     for t in threads:

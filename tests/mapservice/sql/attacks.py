@@ -23,8 +23,10 @@ ATTACKS: list[tuple[str, str]] = [
     ("file() in a WITH expression", "WITH file('{secret}') AS s SELECT s"),
     ("file() in a CTE", "WITH c AS (SELECT file('{secret}') AS s) SELECT s FROM c"),
     ("file() in a scalar subquery", "SELECT (SELECT file('{secret}'))"),
-    ("file() in a JOIN's subquery",
-     "SELECT s FROM (SELECT 1 AS k) AS a JOIN (SELECT 1 AS k, file('{secret}') AS s) AS b ON a.k = b.k"),
+    (
+        "file() in a JOIN's subquery",
+        "SELECT s FROM (SELECT 1 AS k) AS a JOIN (SELECT 1 AS k, file('{secret}') AS s) AS b ON a.k = b.k",
+    ),
     ("file() in a UNION", "SELECT '' UNION ALL SELECT file('{secret}')"),
     ("file() in WHERE", "SELECT 1 WHERE length(file('{secret}')) > 0"),
     ("file() in a window", "SELECT count() OVER (PARTITION BY file('{secret}'))"),
@@ -33,16 +35,20 @@ ATTACKS: list[tuple[str, str]] = [
     ("file() via APPLY", "SELECT * APPLY(file) FROM (SELECT '{secret}' AS p)"),
     ("file table function", "SELECT * FROM file('{secret}', 'LineAsString')"),
     ("FILE table function in capitals", "SELECT * FROM FILE('{secret}', 'LineAsString')"),
-    ("file table function in a JOIN",
-     "SELECT * FROM numbers(1) AS n JOIN file('{secret}', 'LineAsString') AS f ON 1"),
+    (
+        "file table function in a JOIN",
+        "SELECT * FROM numbers(1) AS n JOIN file('{secret}', 'LineAsString') AS f ON 1",
+    ),
     ("DESCRIBE a file", "DESCRIBE file('{secret}', 'LineAsString')"),
     ("python table function", "SELECT * FROM python(x)"),
     ("PYTHON() in capitals", "SELECT PYTHON(1)"),
     ("url table function", "SELECT * FROM url('http://127.0.0.1:9/x', 'CSV')"),
     ("s3 table function", "SELECT * FROM s3('http://127.0.0.1:9/b/x.csv', 'CSV')"),
     ("remote table function", "SELECT * FROM remote('127.0.0.1:9', system.one)"),
-    ("executable table function",
-     "SELECT * FROM executable('cat {secret}', 'LineAsString', 'x String')"),
+    (
+        "executable table function",
+        "SELECT * FROM executable('cat {secret}', 'LineAsString', 'x String')",
+    ),
     ("filesystem table function", "SELECT * FROM filesystem('{data}')"),
     ("merge() past the table check", "SELECT * FROM merge('system', '^users$')"),
     ("dictGet of a server dictionary", "SELECT dictGet('other.dict', 'v', toUInt64(1))"),
@@ -62,6 +68,8 @@ ATTACKS += [
     ("filesystemAvailable", "SELECT filesystemAvailable()"),
     # EXPLAIN AST prints identifiers raw: a line break in one starts lines that are no node.
     ("a line break in an alias before file()", "SELECT 1 AS `a\nb`, file('{secret}')"),
-    ("a line break in a column name before file()",
-     "SELECT `x\n TableExpression` FROM (SELECT 1 AS `x\n TableExpression`) WHERE file('{secret}') != ''"),
+    (
+        "a line break in a column name before file()",
+        "SELECT `x\n TableExpression` FROM (SELECT 1 AS `x\n TableExpression`) WHERE file('{secret}') != ''",
+    ),
 ]

@@ -19,15 +19,18 @@ from pathlib import Path
 from mapservice.sql.chdb_engine import ChdbEngine
 from mapservice.sql.engine import SqlError, SqlRequest
 from mapservice.sql.read_only import ReadOnlyLimits
-
 from tests.mapservice.sql.attacks import ATTACKS
 
 MARKER = "admin-token-that-must-not-leak"
 
 
 def old_checker(revision: str):
-    source = subprocess.run(["git", "show", f"{revision}:mapservice/sql/read_only.py"],
-                            check=True, capture_output=True, text=True).stdout
+    source = subprocess.run(
+        ["git", "show", f"{revision}:mapservice/sql/read_only.py"],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
     path = Path(tempfile.mkdtemp()) / "read_only_old.py"
     path.write_text(source)
     spec = importlib.util.spec_from_file_location("read_only_old", path)
@@ -55,8 +58,9 @@ def main(revision: str) -> int:
             else:
                 request = SqlRequest(sql, read_only=True)
                 checked = check(engine, request)
-            body = engine.execute(SqlRequest(checked, database=request.database,
-                                             read_only=True)).body.decode("utf-8", "replace")
+            body = engine.execute(
+                SqlRequest(checked, database=request.database, read_only=True)
+            ).body.decode("utf-8", "replace")
             outcome = "LEAKED the secret" if MARKER in body else f"ran: {body[:60]!r}"
             leaked += MARKER in body
         except SqlError as exc:

@@ -26,8 +26,10 @@ def engine(tmp_path):
 
 
 def test_inserts_and_ping_do_not_wait_behind_long_statements(engine) -> None:
-    readers = [threading.Thread(target=engine.execute, args=(SqlRequest(f"SELECT sleep({SLEEP_S})"),))
-               for _ in range(POOL)]
+    readers = [
+        threading.Thread(target=engine.execute, args=(SqlRequest(f"SELECT sleep({SLEEP_S})"),))
+        for _ in range(POOL)
+    ]
     for reader in readers:
         reader.start()
     time.sleep(0.5)  # both statement handles taken

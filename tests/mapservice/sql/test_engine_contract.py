@@ -20,8 +20,12 @@ LIMITS = ReadOnlyLimits(max_execution_time_s=5, max_result_rows=100).settings()
 def chdb_engine(tmp_path_factory):
     engine = ChdbEngine(tmp_path_factory.mktemp("sql") / "ch", read_only_settings=LIMITS)
     engine.execute(SqlRequest("CREATE DATABASE IF NOT EXISTS contract"))
-    engine.execute(SqlRequest("CREATE TABLE IF NOT EXISTS contract.t (n UInt32, s String) "
-                              "ENGINE = MergeTree ORDER BY n"))
+    engine.execute(
+        SqlRequest(
+            "CREATE TABLE IF NOT EXISTS contract.t (n UInt32, s String) "
+            "ENGINE = MergeTree ORDER BY n"
+        )
+    )
     yield engine
     engine.close()
 
@@ -48,14 +52,19 @@ def rows(engine, sql: str, **kw) -> list[str]:
 
 def test_executes_in_the_default_format_or_the_statements_own(engine) -> None:
     """No FORMAT clause: the request's default format; a FORMAT clause wins."""
-    assert engine.execute(SqlRequest("SELECT 1 AS x", default_format="CSVWithNames")).body == b'"x"\n1\n'
+    assert (
+        engine.execute(SqlRequest("SELECT 1 AS x", default_format="CSVWithNames")).body
+        == b'"x"\n1\n'
+    )
     result = engine.execute(SqlRequest("SELECT 2 AS x FORMAT JSONEachRow"))
     assert result.body == b'{"x":2}\n' and result.format == "JSONEachRow"
 
 
 def test_binds_parameters_by_name_never_into_the_text(engine) -> None:
     """{name:Type} placeholders take request values as data, quotes and all."""
-    assert rows(engine, "SELECT {s:String}, {n:UInt8} + 1", params={"s": "a'b", "n": "41"}) == ["a\\'b\t42"]
+    assert rows(engine, "SELECT {s:String}, {n:UInt8} + 1", params={"s": "a'b", "n": "41"}) == [
+        "a\\'b\t42"
+    ]
 
 
 def test_binds_parameters_far_larger_than_a_url(engine) -> None:
@@ -77,8 +86,9 @@ def test_uses_the_requested_database(engine) -> None:
 
 def test_settings_last_one_request(engine) -> None:
     """A request's settings apply to it only, never to the next request."""
-    assert rows(engine, "SELECT getSetting('max_threads') = 3",
-                settings={"max_threads": "3"}) == ["1"]
+    assert rows(engine, "SELECT getSetting('max_threads') = 3", settings={"max_threads": "3"}) == [
+        "1"
+    ]
     assert rows(engine, "SELECT getSetting('max_threads') = 3") == ["0"]
 
 
@@ -94,8 +104,11 @@ def test_errors_carry_clickhouse_codes(engine) -> None:
 
 def test_read_only_requests_cannot_write_or_lift_limits(engine) -> None:
     """read_only: writes, DDL and setting changes are refused by the engine itself."""
-    for sql in ("INSERT INTO contract.t VALUES (9, 'x')", "DROP TABLE contract.t",
-                "SELECT 1 SETTINGS max_execution_time = 1000"):
+    for sql in (
+        "INSERT INTO contract.t VALUES (9, 'x')",
+        "DROP TABLE contract.t",
+        "SELECT 1 SETTINGS max_execution_time = 1000",
+    ):
         with pytest.raises(SqlError) as refused:
             engine.execute(SqlRequest(sql, read_only=True))
         assert refused.value.code == READONLY, sql

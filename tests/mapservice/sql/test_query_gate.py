@@ -98,11 +98,15 @@ class ThreadRecordingEngine:
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    engine = ChdbEngine(tmp_path_factory.mktemp("gate") / "ch",
-                        read_only_settings=ReadOnlyLimits().settings())
+    engine = ChdbEngine(
+        tmp_path_factory.mktemp("gate") / "ch", read_only_settings=ReadOnlyLimits().settings()
+    )
     recording = ThreadRecordingEngine(engine)
-    app = clickhouse_http_app(recording, [SqlUser("analyst", "a-pw", read_only=True)],
-                              read_only_gate=QueryGate(concurrent=1, queued=1, queue_timeout_s=20))
+    app = clickhouse_http_app(
+        recording,
+        [SqlUser("analyst", "a-pw", read_only=True)],
+        read_only_gate=QueryGate(concurrent=1, queued=1, queue_timeout_s=20),
+    )
     with ServedApp(app) as served:
         yield served.url, recording
     engine.close()

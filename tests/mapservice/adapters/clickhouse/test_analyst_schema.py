@@ -9,9 +9,20 @@ import time
 
 import pytest
 
+from mapservice.adapters.clickhouse.analyst_schema import (
+    LATER_TABLE_COMMENTS,
+    LATER_VIEWS,
+    TABLE_COMMENTS,
+    VIEWS,
+)
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.clickhouse.analyst_schema import LATER_TABLE_COMMENTS, LATER_VIEWS, TABLE_COMMENTS, VIEWS
-from mapservice.core.annotations import AnnotationChanged, AnnotationCreated, AnnotationRemoved, Zone, ZoneViolation
+from mapservice.core.annotations import (
+    AnnotationChanged,
+    AnnotationCreated,
+    AnnotationRemoved,
+    Zone,
+    ZoneViolation,
+)
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.ports import ConflictRow
 from mapservice.core.wire2019 import content_hash
@@ -41,14 +52,23 @@ def loaded(tmp_path_factory):
         for i in range(0, 300, 2):
             x, y = x + rng.uniform(-0.4, 0.6), y + rng.uniform(-0.3, 0.3)
             heading = rng.uniform(-179, 179)
-            payload = PoseReported(position=(x, y, 0.0), orientation=yaw_quaternion(heading),
-                                   battery_level=round(90 - i / 10, 1),
-                                   charging=flags[i % 4], loaded=flags[(i // 2) % 4])
+            payload = PoseReported(
+                position=(x, y, 0.0),
+                orientation=yaw_quaternion(heading),
+                battery_level=round(90 - i / 10, 1),
+                charging=flags[i % 4],
+                loaded=flags[(i // 2) % 4],
+            )
             lag = rng.randint(-2000, 8000)
             poses.append((robot, T0 + i * 1000, x, y, heading, payload, lag))
     store.append([meta] + [make_envelope(r, t, t + lag, p) for r, t, _, _, _, p, lag in poses])
-    store.append([chunk_event("r1", T0 + 5000, 1, 2), chunk_event("r2", T0 + 9000, 1, 2, bytes([9]) * 10_000),
-                  chunk_event("r3", T0 + 70_000, 0, 0)])
+    store.append(
+        [
+            chunk_event("r1", T0 + 5000, 1, 2),
+            chunk_event("r2", T0 + 9000, 1, 2, bytes([9]) * 10_000),
+            chunk_event("r3", T0 + 70_000, 0, 0),
+        ]
+    )
     store.append_conflicts([ConflictRow(1, 2, T0 + 9000, "r1", T0 + 5000, "r2")])
     store.append_dead_letters([dead_letter("too_deep", b"[" * 2048, T0), dead_letter("not_json")])
     yield store, poses, meta.payload
@@ -63,18 +83,28 @@ def rows(store, sql: str) -> list[dict]:
 def test_robot_poses_are_metres_degrees_flags_and_chunks(loaded) -> None:
     """robot_poses: positions in metres, yaw in degrees, JSON booleans as Bool, chunk cells."""
     store, poses, meta = loaded
-    got = {(r["robot_id"], r["at"].timestamp() * 1000): r
-           for r in rows(store, "SELECT * FROM views.robot_poses")}
+    got = {
+        (r["robot_id"], r["at"].timestamp() * 1000): r
+        for r in rows(store, "SELECT * FROM views.robot_poses")
+    }
     assert len(got) == len(poses)
     as_bool = {True: True, False: False, None: None, "yes": None}
     for robot, t, x, y, heading, payload, lag in poses:
         row = got[(robot, float(t))]
-        assert row["x_m"] == pytest.approx(x, abs=0.0011) and row["y_m"] == pytest.approx(y, abs=0.0011)
+        assert row["x_m"] == pytest.approx(x, abs=0.0011) and row["y_m"] == pytest.approx(
+            y, abs=0.0011
+        )
         assert row["heading_deg"] == pytest.approx(heading, abs=0.01)
-        assert row["charging"] is as_bool[payload.charging] and row["loaded"] is as_bool[payload.loaded]
+        assert (
+            row["charging"] is as_bool[payload.charging]
+            and row["loaded"] is as_bool[payload.loaded]
+        )
         assert row["receive_lag_s"] == pytest.approx(lag / 1000)
         col, pixel_row = metres_to_pixel(row["x_m"], row["y_m"], meta)
-        assert (row["chunk_row"], row["chunk_col"]) == (pixel_row // meta.chunk_height, col // meta.chunk_width)
+        assert (row["chunk_row"], row["chunk_col"]) == (
+            pixel_row // meta.chunk_height,
+            col // meta.chunk_width,
+        )
 
 
 def test_robot_minutes_match_brute_force(loaded) -> None:
@@ -86,7 +116,9 @@ def test_robot_minutes_match_brute_force(loaded) -> None:
         mm = round(x * 1000) / 1000, round(y * 1000) / 1000  # as stored
         px, py = last.get(robot, mm)
         last[robot] = mm
-        cell = expected.setdefault((robot, t // 60_000 * 60_000), {"poses": 0, "distance": 0.0, "battery": []})
+        cell = expected.setdefault(
+            (robot, t // 60_000 * 60_000), {"poses": 0, "distance": 0.0, "battery": []}
+        )
         cell["poses"] += 1
         cell["distance"] += math.hypot(mm[0] - px, mm[1] - py)
         cell["battery"].append(payload.battery_level)
@@ -103,16 +135,27 @@ def test_chunk_changes_and_conflicts_read_cleanly(loaded) -> None:
     """chunk_changes: one row per write with its MD5 in hex; chunk_conflicts: the pair and the gap."""
     store, _, _ = loaded
     changes = rows(store, "SELECT * FROM views.chunk_changes ORDER BY at")
-    assert [(c["robot_id"], c["chunk_row"], c["chunk_col"]) for c in changes] == [("r1", 1, 2), ("r2", 1, 2), ("r3", 0, 0)]
+    assert [(c["robot_id"], c["chunk_row"], c["chunk_col"]) for c in changes] == [
+        ("r1", 1, 2),
+        ("r2", 1, 2),
+        ("r3", 0, 0),
+    ]
     assert changes[0]["content_hash"] == content_hash(bytes(100 * 100)).hex()
     (conflict,) = rows(store, "SELECT * FROM views.chunk_conflicts")
-    assert (conflict["robot_id"], conflict["other_robot_id"], conflict["seconds_apart"]) == ("r2", "r1", 4.0)
+    assert (conflict["robot_id"], conflict["other_robot_id"], conflict["seconds_apart"]) == (
+        "r2",
+        "r1",
+        4.0,
+    )
 
 
 def test_dead_letter_messages_have_reason_and_size(loaded) -> None:
     """dead_letter_messages: the reason and the stored payload's size."""
     store, _, _ = loaded
-    got = sorted((r["reason"], r["payload_bytes"]) for r in rows(store, "SELECT * FROM views.dead_letter_messages"))
+    got = sorted(
+        (r["reason"], r["payload_bytes"])
+        for r in rows(store, "SELECT * FROM views.dead_letter_messages")
+    )
     assert got == [("not_json", 5), ("too_deep", 2048)]
 
 
@@ -121,35 +164,63 @@ def test_keep_out_violations_name_the_zone_as_it_stood(loaded) -> None:
     stood at the pose's time (a renamed zone: the old name before, the new one after)."""
     store, _, _ = loaded
     square = ((0.0, 0.0), (2.0, 0.0), (2.0, 2.0), (0.0, 2.0))
-    store.append([
-        make_envelope("op", T0, T0, AnnotationCreated("z1", "op-anna", Zone("dock", "keep_out", square))),
-        make_envelope("op", T0 + 60_000, T0 + 60_000,
-                      AnnotationChanged("z1", "op-ben", Zone("dock (wet floor)", "keep_out", square))),
-        make_envelope("op", T0 + 90_000, T0 + 90_000, AnnotationRemoved("z1", "op-ben"))])
-    store.append_zone_violations([ZoneViolation(T0 + 10_000, "r1", "z1", 1.0, 1.5),
-                                  ZoneViolation(T0 + 70_000, "r2", "z1", 0.5, 0.5)])
+    store.append(
+        [
+            make_envelope(
+                "op", T0, T0, AnnotationCreated("z1", "op-anna", Zone("dock", "keep_out", square))
+            ),
+            make_envelope(
+                "op",
+                T0 + 60_000,
+                T0 + 60_000,
+                AnnotationChanged("z1", "op-ben", Zone("dock (wet floor)", "keep_out", square)),
+            ),
+            make_envelope("op", T0 + 90_000, T0 + 90_000, AnnotationRemoved("z1", "op-ben")),
+        ]
+    )
+    store.append_zone_violations(
+        [
+            ZoneViolation(T0 + 10_000, "r1", "z1", 1.0, 1.5),
+            ZoneViolation(T0 + 70_000, "r2", "z1", 0.5, 0.5),
+        ]
+    )
     got = rows(store, "SELECT * FROM views.keep_out_violations ORDER BY at")
-    assert [(r["robot_id"], r["zone_id"], r["zone_name"], r["zone_drawn_by"], r["x_m"], r["y_m"])
-            for r in got] == [("r1", "z1", "dock", "op-anna", 1.0, 1.5),
-                              ("r2", "z1", "dock (wet floor)", "op-ben", 0.5, 0.5)]
+    assert [
+        (r["robot_id"], r["zone_id"], r["zone_name"], r["zone_drawn_by"], r["x_m"], r["y_m"])
+        for r in got
+    ] == [
+        ("r1", "z1", "dock", "op-anna", 1.0, 1.5),
+        ("r2", "z1", "dock (wet floor)", "op-ben", 0.5, 0.5),
+    ]
     assert int(got[1]["zone_drawn_at"].timestamp() * 1000) == T0 + 60_000
 
 
 def test_every_table_view_and_column_has_a_comment(loaded) -> None:
     """system.tables/system.columns: nothing the analyst sees is undescribed."""
     store, _, _ = loaded
-    tables = rows(store, "SELECT name, comment FROM system.tables WHERE database = 'views' "
-                         "AND name NOT LIKE '%_mv' AND NOT is_temporary")
-    assert {t["name"] for t in tables} == (set(TABLE_COMMENTS) | set(LATER_TABLE_COMMENTS) | set(VIEWS)
-                                           | set(LATER_VIEWS))
+    tables = rows(
+        store,
+        "SELECT name, comment FROM system.tables WHERE database = 'views' "
+        "AND name NOT LIKE '%_mv' AND NOT is_temporary",
+    )
+    assert {t["name"] for t in tables} == (
+        set(TABLE_COMMENTS) | set(LATER_TABLE_COMMENTS) | set(VIEWS) | set(LATER_VIEWS)
+    )
     assert all(t["comment"] for t in tables)
-    undocumented = rows(store, "SELECT table, name FROM system.columns WHERE database = 'views' "
-                               "AND comment = '' AND table IN ({})".format(
-                                   ", ".join(f"'{t}'" for t in {**TABLE_COMMENTS, **LATER_TABLE_COMMENTS})))
+    undocumented = rows(
+        store,
+        "SELECT table, name FROM system.columns WHERE database = 'views' "
+        "AND comment = '' AND table IN ({})".format(
+            ", ".join(f"'{t}'" for t in {**TABLE_COMMENTS, **LATER_TABLE_COMMENTS})
+        ),
+    )
     # pose_keyframes and pose_derivations repeat the poses columns (described there); only
     # pose_keyframes' own are commented.
-    assert {(r["table"], r["name"]) for r in undocumented
-            if r["table"] not in ("pose_keyframes", "pose_derivations")} == set()
+    assert {
+        (r["table"], r["name"])
+        for r in undocumented
+        if r["table"] not in ("pose_keyframes", "pose_derivations")
+    } == set()
     for view, (_, _, columns) in {**VIEWS, **LATER_VIEWS}.items():
         described = [r["name"] for r in rows(store, f"DESCRIBE TABLE views.{view}")]
         assert described == list(columns), view
@@ -169,9 +240,10 @@ def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
     vehicle_factsheets (the main facts as columns) over VDA 5050 messages as ingested. The
     vehicle is on a map id without a transform: its facts are stored, no pose is drawn (the
     other tests' robots stay the only ones in robot_poses)."""
+    from mapservice.ingest.router import Router
+
     from mapservice.core.events import decode
     from mapservice.core.wire2019 import Limits
-    from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
 
@@ -184,10 +256,23 @@ def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
     messages = [
         ("connection", vda.connection(v, m, s, T0, "ONLINE"), T0),
         ("factsheet", sheet, T0),
-        ("state", vda.state(v, m, s, T0 + 1000, x=1.5, y=2.5, theta=math.pi / 2, map_id="cellar",
-                            paused=True, driving=False,
-                            errors=(("WARNING", "lowBattery", "charge me"), ("FATAL", "bumper", "hit"))),
-         T0 + 1000),
+        (
+            "state",
+            vda.state(
+                v,
+                m,
+                s,
+                T0 + 1000,
+                x=1.5,
+                y=2.5,
+                theta=math.pi / 2,
+                map_id="cellar",
+                paused=True,
+                driving=False,
+                errors=(("WARNING", "lowBattery", "charge me"), ("FATAL", "bumper", "hit")),
+            ),
+            T0 + 1000,
+        ),
         ("connection", vda.connection(v, m, s, T0, "CONNECTIONBROKEN"), T0 + 5000),
     ]
     events = []
@@ -197,22 +282,51 @@ def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
         events.append(decode(record.value))
     store.append(events)
     robot = "Acme@20Co:7"
-    state, = rows(store, f"SELECT * FROM views.vehicle_states WHERE robot_id = '{robot}'")
-    assert (state["manufacturer"], state["serial_number"], state["map_id"], state["on_known_map"]) == (
-        m, s, "cellar", False)
+    (state,) = rows(store, f"SELECT * FROM views.vehicle_states WHERE robot_id = '{robot}'")
+    assert (
+        state["manufacturer"],
+        state["serial_number"],
+        state["map_id"],
+        state["on_known_map"],
+    ) == (m, s, "cellar", False)
     assert (state["x_m"], state["y_m"], state["heading_deg"]) == (1.5, 2.5, 90.0)
     assert (state["driving"], state["paused"], state["operating_mode"], state["error_count"]) == (
-        False, True, "AUTOMATIC", 2)
-    errors = rows(store, "SELECT error_type, level, description, is_warning, toUnixTimestamp64Milli(at) AS t "
-                         f"FROM views.vehicle_errors WHERE robot_id = '{robot}' ORDER BY error_type")
-    assert [tuple(e.values()) for e in errors] == [("bumper", "FATAL", "hit", False, T0 + 1000),
-                                                   ("lowBattery", "WARNING", "charge me", True, T0 + 1000)]
-    spans = rows(store, "SELECT state, online, toUnixTimestamp64Milli(at) AS a, toUnixTimestamp64Milli(until) "
-                        f"AS u, duration_s FROM views.vehicle_connections WHERE robot_id = '{robot}' ORDER BY at")
-    assert [tuple(r.values()) for r in spans] == [("ONLINE", True, T0, T0 + 5000, 5.0),
-                                                  ("CONNECTIONBROKEN", False, T0 + 5000, None, None)]
-    fact, = rows(store, f"SELECT * FROM views.vehicle_factsheets WHERE robot_id = '{robot}'")
-    assert (fact["manufacturer"], fact["serial_number"], fact["series_name"], fact["vehicle_class"]) == (
-        m, s, "Tugger 3", "TUGGER")
-    assert (fact["speed_max_m_s"], fact["max_load_kg"], fact["length_m"], fact["width_m"]) == (1.8, 450.0, 1.2, 0.6)
-    assert rows(store, f"SELECT count() AS n FROM views.robot_poses WHERE robot_id = '{robot}'") == [{"n": 0}]
+        False,
+        True,
+        "AUTOMATIC",
+        2,
+    )
+    errors = rows(
+        store,
+        "SELECT error_type, level, description, is_warning, toUnixTimestamp64Milli(at) AS t "
+        f"FROM views.vehicle_errors WHERE robot_id = '{robot}' ORDER BY error_type",
+    )
+    assert [tuple(e.values()) for e in errors] == [
+        ("bumper", "FATAL", "hit", False, T0 + 1000),
+        ("lowBattery", "WARNING", "charge me", True, T0 + 1000),
+    ]
+    spans = rows(
+        store,
+        "SELECT state, online, toUnixTimestamp64Milli(at) AS a, toUnixTimestamp64Milli(until) "
+        f"AS u, duration_s FROM views.vehicle_connections WHERE robot_id = '{robot}' ORDER BY at",
+    )
+    assert [tuple(r.values()) for r in spans] == [
+        ("ONLINE", True, T0, T0 + 5000, 5.0),
+        ("CONNECTIONBROKEN", False, T0 + 5000, None, None),
+    ]
+    (fact,) = rows(store, f"SELECT * FROM views.vehicle_factsheets WHERE robot_id = '{robot}'")
+    assert (
+        fact["manufacturer"],
+        fact["serial_number"],
+        fact["series_name"],
+        fact["vehicle_class"],
+    ) == (m, s, "Tugger 3", "TUGGER")
+    assert (fact["speed_max_m_s"], fact["max_load_kg"], fact["length_m"], fact["width_m"]) == (
+        1.8,
+        450.0,
+        1.2,
+        0.6,
+    )
+    assert rows(
+        store, f"SELECT count() AS n FROM views.robot_poses WHERE robot_id = '{robot}'"
+    ) == [{"n": 0}]

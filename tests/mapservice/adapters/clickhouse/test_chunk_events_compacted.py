@@ -29,9 +29,16 @@ def _key(rows, t0):
 
 def test_each_chunk_keeps_its_last_write_per_absolute_bucket(store, ev, t0) -> None:
     """Per chunk and minute the latest write survives; a tie in time goes to the greater robot id."""
-    store.append([ev.chunk("a", t0 + 1_000, 0, 0), ev.chunk("a", t0 + 50_000, 0, 0),
-                  ev.chunk("b", t0 + 50_000, 0, 0, bytes([1]) * 10_000), ev.chunk("a", t0 + 20_000, 0, 1),
-                  ev.chunk("a", t0 + 61_000, 0, 0), ev.chunk("a", t0 + 119_999, 0, 0)])
+    store.append(
+        [
+            ev.chunk("a", t0 + 1_000, 0, 0),
+            ev.chunk("a", t0 + 50_000, 0, 0),
+            ev.chunk("b", t0 + 50_000, 0, 0, bytes([1]) * 10_000),
+            ev.chunk("a", t0 + 20_000, 0, 1),
+            ev.chunk("a", t0 + 61_000, 0, 0),
+            ev.chunk("a", t0 + 119_999, 0, 0),
+        ]
+    )
     rows = store.chunk_events_compacted(t0, t0 + 3 * MIN, MIN)
     assert _key(rows, t0) == [(0, 1, 20_000, "a"), (0, 0, 50_000, "b"), (0, 0, 119_999, "a")]
     assert rows[1].content_hash == store.chunk_events(t0 + 50_000, t0 + 50_001)[1].content_hash
@@ -41,13 +48,17 @@ def test_window_ends_cut_the_buckets_they_fall_in(store, ev, t0) -> None:
     """A window starting or ending inside a bucket returns the winner of the part inside it."""
     store.append([ev.chunk("a", t0 + o, 0, 0) for o in (10_000, 30_000, 70_000, 100_000)])
     assert _key(store.chunk_events_compacted(t0 + 20_000, t0 + 90_000, MIN), t0) == [
-        (0, 0, 30_000, "a"), (0, 0, 70_000, "a")]
+        (0, 0, 30_000, "a"),
+        (0, 0, 70_000, "a"),
+    ]
 
 
 def test_limit_keeps_the_earliest_and_step_must_be_positive(store, ev, t0) -> None:
     """The limit cuts the time-ordered answer; a step of 0 or less is refused."""
     store.append([ev.chunk("a", t0 + k * MIN, k % 3, 0) for k in range(6)])
-    assert [r.ts_ms - t0 for r in store.chunk_events_compacted(t0, t0 + 10 * MIN, MIN, limit=2)] == [0, MIN]
+    assert [
+        r.ts_ms - t0 for r in store.chunk_events_compacted(t0, t0 + 10 * MIN, MIN, limit=2)
+    ] == [0, MIN]
     with pytest.raises(ValueError):
         store.chunk_events_compacted(t0, t0 + MIN, 0)
 
@@ -60,16 +71,29 @@ def _naive(events, f: int, t: int, step: int) -> list[tuple]:
             k = (e[2], e[3], e[0] // step)
             if k not in won or e[:2] > won[k][:2]:
                 won[k] = e
-    return sorted(((e[2], e[3], e[0], e[1]) for e in won.values()), key=lambda x: (x[2], x[0], x[1], x[3]))
+    return sorted(
+        ((e[2], e[3], e[0], e[1]) for e in won.values()), key=lambda x: (x[2], x[0], x[1], x[3])
+    )
 
 
-def test_compacted_writes_equal_a_naive_fold_and_give_the_exact_map_at_every_boundary(store, ev, t0) -> None:
+def test_compacted_writes_equal_a_naive_fold_and_give_the_exact_map_at_every_boundary(
+    store, ev, t0
+) -> None:
     """Random writes, re-delivered duplicates and late arrivals: the answer equals a naive
     compaction, and folding it onto the map before the window gives map_at at each bucket
     boundary and at the window's end."""
     rng = random.Random(5)
-    events = sorted({(t0 + rng.randrange(0, 30 * MIN, 250), rng.choice("abc"),
-                      rng.randrange(3), rng.randrange(3)) for _ in range(400)})
+    events = sorted(
+        {
+            (
+                t0 + rng.randrange(0, 30 * MIN, 250),
+                rng.choice("abc"),
+                rng.randrange(3),
+                rng.randrange(3),
+            )
+            for _ in range(400)
+        }
+    )
     pixels = {e: bytes([rng.randrange(256)]) * 100 for e in events}
     env = {e: ev.chunk(e[1], e[0], e[2], e[3], pixels[e], width=10, height=10) for e in events}
     on_time = [e for e in events if e[0] % 7]

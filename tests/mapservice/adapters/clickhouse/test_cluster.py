@@ -8,8 +8,8 @@ import re
 
 import pytest
 
-from mapservice.adapters.clickhouse.schema import migrations
 from mapservice.adapters.clickhouse.cluster import for_cluster
+from mapservice.adapters.clickhouse.schema import migrations
 from mapservice.sql.chdb_engine import ChdbEngine
 from mapservice.sql.engine import SqlRequest
 from mapservice.sql.read_only import escape_parameter
@@ -22,8 +22,17 @@ def parse(tmp_path_factory):
     engine = ChdbEngine(tmp_path_factory.mktemp("cluster") / "ch")
 
     def formatted(statement: str) -> str:
-        return engine.execute(SqlRequest("SELECT formatQuerySingleLine({s:String})", default_format="TSVRaw",
-                                         params={"s": escape_parameter(statement)})).body.decode().strip()
+        return (
+            engine.execute(
+                SqlRequest(
+                    "SELECT formatQuerySingleLine({s:String})",
+                    default_format="TSVRaw",
+                    params={"s": escape_parameter(statement)},
+                )
+            )
+            .body.decode()
+            .strip()
+        )
 
     yield formatted
     engine.close()
@@ -49,12 +58,20 @@ def test_every_ddl_statement_runs_on_the_cluster(parse, statement) -> None:
 
 
 def _unreplicated(text: str) -> str:
-    return re.sub(r"Replicated(\w*MergeTree)\('[^']*', '[^']*'(?:, )?", r"\1(", text).replace(
-        " ON CLUSTER mapservice", "").replace("MergeTree()", "MergeTree")
+    return (
+        re.sub(r"Replicated(\w*MergeTree)\('[^']*', '[^']*'(?:, )?", r"\1(", text)
+        .replace(" ON CLUSTER mapservice", "")
+        .replace("MergeTree()", "MergeTree")
+    )
 
 
 def test_replicated_engines_keep_their_version_column(parse) -> None:
     """ReplacingMergeTree(ts_a) becomes ReplicatedReplacingMergeTree(path, replica, ts_a)."""
-    (conflicts,) = [s for s in STATEMENTS if "CREATE TABLE IF NOT EXISTS mapservice.conflicts_v5" in s]
+    (conflicts,) = [
+        s for s in STATEMENTS if "CREATE TABLE IF NOT EXISTS mapservice.conflicts_v5" in s
+    ]
     rewritten = parse(for_cluster(conflicts, "c1"))
-    assert "ReplicatedReplacingMergeTree('/clickhouse/tables/{shard}/{database}/{table}', '{replica}', ts_a)" in rewritten
+    assert (
+        "ReplicatedReplacingMergeTree('/clickhouse/tables/{shard}/{database}/{table}', '{replica}', ts_a)"
+        in rewritten
+    )

@@ -8,10 +8,13 @@ import time
 
 import pytest
 
-from mapservice.adapters.clickhouse.migrations import MIGRATION_LOCK, MigrationChanged, MigrationLocked
-from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.clickhouse.migrations import (
+    MIGRATION_LOCK,
+    MigrationChanged,
+    MigrationLocked,
+)
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION, checksums
-
+from mapservice.adapters.clickhouse.store import ClickHouseStore
 
 _n = iter(range(1000))
 
@@ -27,23 +30,32 @@ def test_migrate_records_each_version_once_with_its_checksum(store) -> None:
     """Every migration is recorded once, with the released checksum; the lock is gone after."""
     assert store.schema_version() == 0
     assert store.migrate() == SCHEMA_VERSION == store.migrate()
-    rows = store.client.query(f"SELECT version, checksum FROM {store.database}.schema_migrations").result_rows
+    rows = store.client.query(
+        f"SELECT version, checksum FROM {store.database}.schema_migrations"
+    ).result_rows
     assert dict(rows) == checksums() and len(rows) == SCHEMA_VERSION
-    assert not store.client.query(f"EXISTS TABLE {store.database}.{MIGRATION_LOCK}").result_rows[0][0]
+    assert not store.client.query(f"EXISTS TABLE {store.database}.{MIGRATION_LOCK}").result_rows[0][
+        0
+    ]
 
 
 def test_checksums_ignore_the_settings_a_migration_ran_with(store) -> None:
     """Another database name or retention renders other text but the same checksums."""
     other = ClickHouseStore(store.dsn, database=store.database, retention_days=3)
     other.migrate()
-    assert ClickHouseStore(store.dsn, database=store.database, retention_days=7).migrate() == SCHEMA_VERSION
+    assert (
+        ClickHouseStore(store.dsn, database=store.database, retention_days=7).migrate()
+        == SCHEMA_VERSION
+    )
 
 
 def test_an_edited_migration_is_refused(store) -> None:
     """A recorded checksum that differs from this release's stops the migration, naming it."""
     store.migrate()
-    store.client.command(f"ALTER TABLE {store.database}.schema_migrations UPDATE checksum = 'x' "
-                         "WHERE version = 3 SETTINGS mutations_sync = 1")
+    store.client.command(
+        f"ALTER TABLE {store.database}.schema_migrations UPDATE checksum = 'x' "
+        "WHERE version = 3 SETTINGS mutations_sync = 1"
+    )
     with pytest.raises(MigrationChanged, match="migration 3"):
         store.migrate()
 
@@ -51,8 +63,10 @@ def test_an_edited_migration_is_refused(store) -> None:
 def test_a_held_lock_makes_a_second_migrator_wait_then_fail_clearly(store) -> None:
     """While the lock is held another migrate waits; past its timeout it names the holder."""
     store.migrate()
-    store.client.command(f"CREATE TABLE {store.database}.{MIGRATION_LOCK} (holder String, "
-                         "since DateTime DEFAULT now()) ENGINE = Log")
+    store.client.command(
+        f"CREATE TABLE {store.database}.{MIGRATION_LOCK} (holder String, "
+        "since DateTime DEFAULT now()) ENGINE = Log"
+    )
     store.client.insert(f"{store.database}.{MIGRATION_LOCK}", [["job-7"]], column_names=["holder"])
     with pytest.raises(MigrationLocked, match=r"job-7.*--break-lock"):
         store.migrate(lock_timeout_s=1.0)
@@ -64,8 +78,10 @@ def test_a_lock_released_while_the_waiter_looks_at_it_is_taken(store) -> None:
     """The holder drops the lock between the waiter's failed CREATE and its look at the holder (seen in CI): the waiter takes the lock instead of failing."""
     store.migrate()
     db = store.database
-    store.client.command(f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, "
-                         "since DateTime DEFAULT now()) ENGINE = Log")
+    store.client.command(
+        f"CREATE TABLE {db}.{MIGRATION_LOCK} (holder String, "
+        "since DateTime DEFAULT now()) ENGINE = Log"
+    )
     real_ddl, released = store._ddl, []
 
     def ddl(statement: str) -> None:
@@ -101,30 +117,41 @@ def test_two_migrators_at_once_apply_each_migration_once(chdb_dir) -> None:
         for t in threads:
             t.join(330)
         assert errors == [] and results == [SCHEMA_VERSION, SCHEMA_VERSION]
-        versions = [v for (v,) in stores[0].client.query(
-            f"SELECT version FROM {database}.schema_migrations").result_rows]
+        versions = [
+            v
+            for (v,) in stores[0]
+            .client.query(f"SELECT version FROM {database}.schema_migrations")
+            .result_rows
+        ]
         assert sorted(versions) == list(range(1, SCHEMA_VERSION + 1))
     finally:
         for s in stores:  # closed even on failure: a leaked chDB handle breaks later modules
             s.close()
 
 
-def test_v10_moves_the_pose_views_behind_derive_views_and_keeps_what_v9_derived(store, monkeypatch) -> None:
+def test_v10_moves_the_pose_views_behind_derive_views_and_keeps_what_v9_derived(
+    store, monkeypatch
+) -> None:
     """A v9 database keeps its keyframes through v10; after it, poses reach the views only through derive_views."""
     from mapservice.adapters.clickhouse import migrations as migrations_module
     from tests.conftest import pose_event
 
     released = migrations_module.migrations
-    monkeypatch.setattr(migrations_module, "migrations",
-                        lambda db, days: [m for m in released(db, days) if m.version <= 9])
+    monkeypatch.setattr(
+        migrations_module,
+        "migrations",
+        lambda db, days: [m for m in released(db, days) if m.version <= 9],
+    )
     assert store.migrate() == 9
     hour_ago = int(time.time() * 1000) - 3_600_000  # inside the retention
     t0 = hour_ago - hour_ago % 60_000  # a whole minute
     store.append_events([pose_event("r1", t0 + s * 1000) for s in range(0, 120, 10)])
 
     def derived() -> tuple[int, int]:
-        return tuple(store.client.query(f"SELECT count() FROM {store.database}.{t} FINAL").result_rows[0][0]
-                     for t in ("pose_keyframes", "pose_minutes"))
+        return tuple(
+            store.client.query(f"SELECT count() FROM {store.database}.{t} FINAL").result_rows[0][0]
+            for t in ("pose_keyframes", "pose_minutes")
+        )
 
     assert derived() == (2, 2)  # v9: the views on poses fill them on insert
     monkeypatch.setattr(migrations_module, "migrations", released)
@@ -145,14 +172,22 @@ def test_v11_removes_every_ttl_and_keeps_the_rows(store, monkeypatch) -> None:
     from tests.conftest import chunk_event
 
     released = migrations_module.migrations
-    monkeypatch.setattr(migrations_module, "migrations",
-                        lambda db, days: [m for m in released(db, days) if m.version <= 10])
+    monkeypatch.setattr(
+        migrations_module,
+        "migrations",
+        lambda db, days: [m for m in released(db, days) if m.version <= 10],
+    )
     assert store.migrate() == 10
 
     def with_ttl() -> list[str]:
-        return [name for name, ddl in store.client.query(
-            "SELECT name, create_table_query FROM system.tables WHERE database = {d:String}",
-            parameters={"d": store.database}).result_rows if " TTL " in ddl]
+        return [
+            name
+            for name, ddl in store.client.query(
+                "SELECT name, create_table_query FROM system.tables WHERE database = {d:String}",
+                parameters={"d": store.database},
+            ).result_rows
+            if " TTL " in ddl
+        ]
 
     assert "chunk_events" in with_ttl()
     hour_ago = int(time.time() * 1000) - 3_600_000

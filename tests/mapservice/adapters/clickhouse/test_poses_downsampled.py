@@ -14,7 +14,6 @@ from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.testing.memory_store import MemoryStore
 
 
-
 @pytest.fixture
 def t0() -> int:
     """A whole minute an hour ago (inside the retention)."""
@@ -30,12 +29,24 @@ def test_first_pose_per_robot_per_step(store, ev, t0) -> None:
     offsets = {"a": [0, 300, 999, 1000, 1700, 2500], "b": [50, 1050, 1100, 2999]}
     store.append([ev.pose(r, t0 + o, x=o / 1000) for r, os in offsets.items() for o in os])
     rows = store.poses_downsampled(t0, t0 + 3000, 1000)
-    assert _key(rows, t0) == [("a", 0), ("b", 50), ("a", 1000), ("b", 1050), ("a", 2500),
-                              ("b", 2999)]
+    assert _key(rows, t0) == [
+        ("a", 0),
+        ("b", 50),
+        ("a", 1000),
+        ("b", 1050),
+        ("a", 2500),
+        ("b", 2999),
+    ]
     assert [r.x for r in rows][:2] == [0.0, 0.05]
     # Shifting the window shifts the steps: [100, 1100), [1100, 2100), [2100, 3100).
     assert _key(store.poses_downsampled(t0 + 100, t0 + 3100, 1000), t0) == [
-        ("a", 300), ("b", 1050), ("b", 1100), ("a", 1700), ("a", 2500), ("b", 2999)]
+        ("a", 300),
+        ("b", 1050),
+        ("b", 1100),
+        ("a", 1700),
+        ("a", 2500),
+        ("b", 2999),
+    ]
 
 
 def test_window_is_half_open_and_filters_robot(store, ev, t0) -> None:
@@ -44,7 +55,8 @@ def test_window_is_half_open_and_filters_robot(store, ev, t0) -> None:
     rows = store.poses_downsampled(t0, t0 + 4000, 1000)
     assert _key(rows, t0) == [(r, s * 1000) for s in range(4) for r in ("a", "b")]
     assert _key(store.poses_downsampled(t0, t0 + 4000, 1000, robot_id="b"), t0) == [
-        ("b", s * 1000) for s in range(4)]
+        ("b", s * 1000) for s in range(4)
+    ]
     assert store.poses_downsampled(t0, t0 + 4000, 1000, robot_id="nobody") == []
     assert len(store.poses_downsampled(t0, t0 + 4000, 1000, limit=3)) == 3
     assert _key(store.poses_downsampled(t0 + 1, t0 + 4000, 10_000), t0) == [("a", 500), ("b", 500)]
@@ -68,8 +80,11 @@ def test_redelivered_poses_count_once(store, ev, t0) -> None:
 
 def test_adapters_agree_on_a_fleet(chdb_dir, ev, t0) -> None:
     """Both adapters return identical rows for a few robots over many steps."""
-    events = [ev.pose(f"r{r}", t0 + 137 * i + r * 11, x=i * 0.001, battery_level=None if i % 3 else 50.0)
-              for r in range(3) for i in range(200)]
+    events = [
+        ev.pose(f"r{r}", t0 + 137 * i + r * 11, x=i * 0.001, battery_level=None if i % 3 else 50.0)
+        for r in range(3)
+        for i in range(200)
+    ]
     memory = MemoryStore()
     ch = ClickHouseStore(f"chdb://{chdb_dir}", database="downsample_fleet")
     try:
@@ -77,9 +92,11 @@ def test_adapters_agree_on_a_fleet(chdb_dir, ev, t0) -> None:
             s.migrate()
             s.append(events)
         for step in (500, 1000, 3333):
-            assert ch.poses_downsampled(t0 + 50, t0 + 20_000, step) == \
-                memory.poses_downsampled(t0 + 50, t0 + 20_000, step)
-        assert ch.poses_downsampled(t0, t0 + 30_000, 2000, robot_id="r1") == \
-            memory.poses_downsampled(t0, t0 + 30_000, 2000, robot_id="r1")
+            assert ch.poses_downsampled(t0 + 50, t0 + 20_000, step) == memory.poses_downsampled(
+                t0 + 50, t0 + 20_000, step
+            )
+        assert ch.poses_downsampled(
+            t0, t0 + 30_000, 2000, robot_id="r1"
+        ) == memory.poses_downsampled(t0, t0 + 30_000, 2000, robot_id="r1")
     finally:
         ch.close()

@@ -28,35 +28,62 @@ def _event(e, base: int):
     return make_envelope(robot, base + t, base + t, payload)
 
 
-events = st.lists(st.one_of(
-    st.tuples(st.just("chunk"), st.sampled_from("abc"), st.integers(0, SPAN_MS),
-              st.integers(0, 3), st.integers(0, 3), st.integers(0, 5)),
-    st.tuples(st.just("pose"), st.sampled_from("abc"), st.integers(0, SPAN_MS), st.integers(-5, 5)),
-), min_size=1, max_size=40)
+events = st.lists(
+    st.one_of(
+        st.tuples(
+            st.just("chunk"),
+            st.sampled_from("abc"),
+            st.integers(0, SPAN_MS),
+            st.integers(0, 3),
+            st.integers(0, 3),
+            st.integers(0, 5),
+        ),
+        st.tuples(
+            st.just("pose"), st.sampled_from("abc"), st.integers(0, SPAN_MS), st.integers(-5, 5)
+        ),
+    ),
+    min_size=1,
+    max_size=40,
+)
 
 
 def _rows(store) -> tuple:
     def q(sql):
         return store.client.query(sql.format(db=store.database)).result_rows
-    return (q("SELECT snap_ts, row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
-              "ORDER BY ALL"),
-            q("SELECT snap_ts, robot_id, ts FROM {db}.robot_snapshots FINAL ORDER BY ALL"),
-            q("SELECT snap_ts, chunks, robots FROM {db}.snapshot_log FINAL ORDER BY ALL"))
+
+    return (
+        q(
+            "SELECT snap_ts, row, col, ts, robot_id, content_hash FROM {db}.map_snapshots FINAL "
+            "ORDER BY ALL"
+        ),
+        q("SELECT snap_ts, robot_id, ts FROM {db}.robot_snapshots FINAL ORDER BY ALL"),
+        q("SELECT snap_ts, chunks, robots FROM {db}.snapshot_log FINAL ORDER BY ALL"),
+    )
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(first=events, late=events, middle=st.integers(-1, SPAN_MS // EVERY_MS),
-       per_query=st.integers(1, 12), redeliver=st.booleans())
+@settings(
+    max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    first=events,
+    late=events,
+    middle=st.integers(-1, SPAN_MS // EVERY_MS),
+    per_query=st.integers(1, 12),
+    redeliver=st.booleans(),
+)
 def test_bulk_equals_one_by_one(chdb_dir, first, late, middle, per_query, redeliver):
     """Same history and earlier snapshots: bulk and one-by-one give identical snapshot rows."""
     base = (time.time_ns() // 1_000_000 // EVERY_MS) * EVERY_MS - 2 * 3_600_000
-    one = ClickHouseStore(f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}",
-                          snapshot_every_ms=EVERY_MS)
-    bulk = ClickHouseStore(f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}",
-                           snapshot_every_ms=EVERY_MS)
+    one = ClickHouseStore(
+        f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}", snapshot_every_ms=EVERY_MS
+    )
+    bulk = ClickHouseStore(
+        f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}", snapshot_every_ms=EVERY_MS
+    )
     batch1 = list({e.event_id: e for e in (_event(e, base) for e in first)}.values())
-    batch2 = [e for e in (_event(e, base) for e in late) if e.event_id not in
-              {x.event_id for x in batch1}]
+    batch2 = [
+        e for e in (_event(e, base) for e in late) if e.event_id not in {x.event_id for x in batch1}
+    ]
     batch2 = list({e.event_id: e for e in batch2}.values())
     try:
         for s in (one, bulk):
@@ -66,8 +93,9 @@ def test_bulk_equals_one_by_one(chdb_dir, first, late, middle, per_query, redeli
                 s.build_snapshots(base + middle * EVERY_MS)
             # Events at or before those snapshots arrive late (they trigger a rebuild).
             s.append(batch2 + (batch1[:3] if redeliver else []))
-        assert bulk.build_snapshots_bulk(base + SPAN_MS, per_query=per_query) == \
-            one.build_snapshots(base + SPAN_MS)
+        assert bulk.build_snapshots_bulk(
+            base + SPAN_MS, per_query=per_query
+        ) == one.build_snapshots(base + SPAN_MS)
         assert _rows(bulk) == _rows(one)
     finally:
         one.close()
@@ -77,12 +105,19 @@ def test_bulk_equals_one_by_one(chdb_dir, first, late, middle, per_query, redeli
 def test_robots_at_mixes_recent_and_silent_robots(chdb_dir):
     """robots_at after a snapshot: robots that reported since it and robots silent since."""
     base = (time.time_ns() // 1_000_000 // EVERY_MS) * EVERY_MS - 2 * 3_600_000
-    store = ClickHouseStore(f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}",
-                            snapshot_every_ms=EVERY_MS)
+    store = ClickHouseStore(
+        f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}", snapshot_every_ms=EVERY_MS
+    )
     try:
         store.migrate()
-        store.append([_event(("pose", "c", 1000, 1), base), _event(("pose", "a", 2000, 2), base),
-                      _event(("pose", "a", 3000, 3), base), _event(("pose", "b", 4000, 4), base)])
+        store.append(
+            [
+                _event(("pose", "c", 1000, 1), base),
+                _event(("pose", "a", 2000, 2), base),
+                _event(("pose", "a", 3000, 3), base),
+                _event(("pose", "b", 4000, 4), base),
+            ]
+        )
         assert store.build_snapshots_bulk(base + EVERY_MS) == 2
         store.append([_event(("pose", "b", EVERY_MS + 500, 5), base)])
         got = [(p.robot_id, p.ts_ms - base, p.x) for p in store.robots_at(base + EVERY_MS + 900)]

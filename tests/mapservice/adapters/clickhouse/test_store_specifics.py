@@ -8,11 +8,10 @@ import os
 
 import pytest
 
+from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.core.events import PoseReported, make_envelope
-from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from tests.mapservice.adapters.store_contract import clickhouse_store, random_pixels
-
 
 # --- ClickHouse specifics -----------------------------------------------------------------
 
@@ -26,7 +25,8 @@ def test_clickhouse_writes_content_once_per_hash_and_day(chdb_dir, ev, t0) -> No
         for i in range(4):
             store.append([ev.chunk("r1", t0 + i, 0, i, pixels)])
         (physical,) = store.client.query(
-            f"SELECT count() FROM {store.database}.chunk_contents").result_rows[0]
+            f"SELECT count() FROM {store.database}.chunk_contents"
+        ).result_rows[0]
         assert physical == 1
     finally:
         store.close()
@@ -59,8 +59,11 @@ def test_clickhouse_reads_do_not_wait_for_a_writer(chdb_dir, ev, t0) -> None:
         store.append([ev.pose("r1", t0), ev.chunk("r1", t0, 0, 0)])
         answers: list = []
         with store._lock:  # what an insert holds for its whole duration
-            reader = threading.Thread(target=lambda: answers.append(
-                (len(store.poses(t0, t0 + 1)), len(store.map_at(t0)), len(store.robots_at(t0)))))
+            reader = threading.Thread(
+                target=lambda: answers.append(
+                    (len(store.poses(t0, t0 + 1)), len(store.map_at(t0)), len(store.robots_at(t0)))
+                )
+            )
             reader.start()
             reader.join(60)
             assert answers == [(1, 1, 1)], "a read waited for the write lock"
@@ -73,16 +76,32 @@ def test_schema_v6_compresses_quaternions_with_fpc(chdb_dir, ev, t0) -> None:
     store = clickhouse_store(chdb_dir)
     try:
         store.migrate()
-        codecs = dict(store.client.query(
-            "SELECT name, compression_codec FROM system.columns WHERE database = {d:String} "
-            "AND table = 'poses' AND name IN ('qx', 'qy', 'qz', 'qw')",
-            parameters={"d": store.database}).result_rows)
+        codecs = dict(
+            store.client.query(
+                "SELECT name, compression_codec FROM system.columns WHERE database = {d:String} "
+                "AND table = 'poses' AND name IN ('qx', 'qy', 'qz', 'qw')",
+                parameters={"d": store.database},
+            ).result_rows
+        )
         assert codecs == dict.fromkeys(("qx", "qy", "qz", "qw"), "CODEC(FPC(20), ZSTD(3))")
-        store.append([make_envelope("r1", t0, t0, PoseReported(
-            position=(1.0, 2.0, 0.0), orientation=(0.0, 0.0, 0.38268343, 0.92387953),
-            battery_level=None))])
+        store.append(
+            [
+                make_envelope(
+                    "r1",
+                    t0,
+                    t0,
+                    PoseReported(
+                        position=(1.0, 2.0, 0.0),
+                        orientation=(0.0, 0.0, 0.38268343, 0.92387953),
+                        battery_level=None,
+                    ),
+                )
+            ]
+        )
         (pose,) = store.poses(t0, t0 + 1)
-        assert (pose.qx, pose.qy, pose.qz, pose.qw) == pytest.approx((0.0, 0.0, 0.38268343, 0.92387953), rel=1e-7)
+        assert (pose.qx, pose.qy, pose.qz, pose.qw) == pytest.approx(
+            (0.0, 0.0, 0.38268343, 0.92387953), rel=1e-7
+        )
     finally:
         store.close()
 
@@ -90,8 +109,8 @@ def test_schema_v6_compresses_quaternions_with_fpc(chdb_dir, ev, t0) -> None:
 def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb_dir, t0) -> None:
     """A v4 database's pair-per-row conflicts become one row per B naming the latest A
     (ties in time: the greater robot); re-running v5 after it completed changes nothing."""
-    from mapservice.core.ports import ConflictRow
     from mapservice.adapters.clickhouse.schema import migrations
+    from mapservice.core.ports import ConflictRow
 
     store = clickhouse_store(chdb_dir)
     db, c = store.database, store.client
@@ -101,18 +120,31 @@ def test_schema_v5_keeps_the_latest_a_of_each_v3_conflict_and_reruns_safely(chdb
         for m in steps[:4]:
             for statement in m.statements:
                 c.command(statement)
-        c.command(f"CREATE TABLE {db}.schema_migrations (version UInt32, description String, "
-                  "applied DateTime DEFAULT now()) ENGINE = ReplacingMergeTree ORDER BY version")
-        c.insert(f"{db}.schema_migrations", [[m.version, m.description] for m in steps[:4]],
-                 column_names=["version", "description"])
+        c.command(
+            f"CREATE TABLE {db}.schema_migrations (version UInt32, description String, "
+            "applied DateTime DEFAULT now()) ENGINE = ReplacingMergeTree ORDER BY version"
+        )
+        c.insert(
+            f"{db}.schema_migrations",
+            [[m.version, m.description] for m in steps[:4]],
+            column_names=["version", "description"],
+        )
         h = bytes(16)
-        c.insert(f"{db}.conflicts", [
-            [t0 + 5000, 1, 2, "a", t0 + 1000, h, "d", h], [t0 + 5000, 1, 2, "b", t0 + 3000, h, "d", h],
-            [t0 + 5000, 1, 2, "c", t0 + 3000, h, "d", h], [t0 + 6000, 0, 0, "a", t0 + 10, h, "b", h]],
-            column_names=["ts", "row", "col", "robot_a", "ts_a", "hash_a", "robot_b", "hash_b"])
+        c.insert(
+            f"{db}.conflicts",
+            [
+                [t0 + 5000, 1, 2, "a", t0 + 1000, h, "d", h],
+                [t0 + 5000, 1, 2, "b", t0 + 3000, h, "d", h],
+                [t0 + 5000, 1, 2, "c", t0 + 3000, h, "d", h],
+                [t0 + 6000, 0, 0, "a", t0 + 10, h, "b", h],
+            ],
+            column_names=["ts", "row", "col", "robot_a", "ts_a", "hash_a", "robot_b", "hash_b"],
+        )
         assert store.migrate() == SCHEMA_VERSION
-        expected = [ConflictRow(1, 2, t0 + 5000, "c", t0 + 3000, "d"),
-                    ConflictRow(0, 0, t0 + 6000, "a", t0 + 10, "b")]
+        expected = [
+            ConflictRow(1, 2, t0 + 5000, "c", t0 + 3000, "d"),
+            ConflictRow(0, 0, t0 + 6000, "a", t0 + 10, "b"),
+        ]
         assert store.conflicts(t0, t0 + 10_000) == expected
         for statement in steps[4].statements:
             c.command(statement)

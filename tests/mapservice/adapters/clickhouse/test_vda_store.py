@@ -7,10 +7,10 @@ from __future__ import annotations
 import math
 
 import pytest
+from mapservice.ingest.router import Router
 
 from mapservice.core.events import decode
 from mapservice.core.wire2019 import Limits
-from mapservice.ingest.router import Router
 from mapservice.settings import Settings
 from tests.fixtures import vda5050 as vda
 
@@ -21,8 +21,12 @@ def events(settings: Settings, messages: list[tuple[str, dict, int]], limits: Li
     router = Router(settings, "gw")
     out = []
     for subtopic, msg, receive_ms in messages:
-        record = router.route(f"uagv/v2/{msg['manufacturer']}/{msg['serialNumber']}/{subtopic}",
-                              vda.encode(msg), receive_ms, limits)
+        record = router.route(
+            f"uagv/v2/{msg['manufacturer']}/{msg['serialNumber']}/{subtopic}",
+            vda.encode(msg),
+            receive_ms,
+            limits,
+        )
         assert record.reason is None, record.value
         out.append(decode(record.value))
     return out
@@ -30,32 +34,54 @@ def events(settings: Settings, messages: list[tuple[str, dict, int]], limits: Li
 
 def test_vda_facts_are_stored_and_read_back(store) -> None:
     v, m, s = "2.1.0", "Acme", "001"
-    batch = events(Settings(vda5050_map_transforms={"hall": (1.0, 2.0, 0.0)}), [
-        ("connection", vda.connection(v, m, s, NOW - 10_000, "ONLINE"), NOW - 10_000),
-        ("factsheet", vda.factsheet(v, m, s, NOW - 9_000), NOW - 9_000),
-        ("state", vda.state(v, m, s, NOW - 8_000, x=3.0, y=4.0, theta=math.pi, battery=55.0,
-                            charging=True, loads=[{"loadId": "a"}],
-                            errors=(("FATAL", "bumper", "hit"), ("WARNING", "lowBattery", ""))),
-         NOW - 8_000),
-        ("visualization", vda.visualization(v, m, s, NOW - 7_000, x=5.0, y=6.0), NOW - 7_000),
-        ("state", vda.state(v, m, s, NOW - 6_000, map_id="cellar"), NOW - 6_000),
-        # The last will: composed at connect time, offline when the broker sent it.
-        ("connection", vda.connection(v, m, s, NOW - 10_000, "CONNECTIONBROKEN"), NOW - 5_000),
-    ])
+    batch = events(
+        Settings(vda5050_map_transforms={"hall": (1.0, 2.0, 0.0)}),
+        [
+            ("connection", vda.connection(v, m, s, NOW - 10_000, "ONLINE"), NOW - 10_000),
+            ("factsheet", vda.factsheet(v, m, s, NOW - 9_000), NOW - 9_000),
+            (
+                "state",
+                vda.state(
+                    v,
+                    m,
+                    s,
+                    NOW - 8_000,
+                    x=3.0,
+                    y=4.0,
+                    theta=math.pi,
+                    battery=55.0,
+                    charging=True,
+                    loads=[{"loadId": "a"}],
+                    errors=(("FATAL", "bumper", "hit"), ("WARNING", "lowBattery", "")),
+                ),
+                NOW - 8_000,
+            ),
+            ("visualization", vda.visualization(v, m, s, NOW - 7_000, x=5.0, y=6.0), NOW - 7_000),
+            ("state", vda.state(v, m, s, NOW - 6_000, map_id="cellar"), NOW - 6_000),
+            # The last will: composed at connect time, offline when the broker sent it.
+            ("connection", vda.connection(v, m, s, NOW - 10_000, "CONNECTIONBROKEN"), NOW - 5_000),
+        ],
+    )
     store.append(batch)
     store.append(batch)  # a redelivery changes nothing
     poses = store.poses(NOW - 60_000, NOW, robot_id="Acme:001")
     # Transformed by the hall's (1, 2) offset; the state on "cellar" is not drawn.
-    assert [(p.ts_ms, p.x, p.y) for p in poses] == [(NOW - 8_000, 4.0, 6.0),
-                                                      (NOW - 7_000, 6.0, 8.0)]
+    assert [(p.ts_ms, p.x, p.y) for p in poses] == [
+        (NOW - 8_000, 4.0, 6.0),
+        (NOW - 7_000, 6.0, 8.0),
+    ]
     assert [(p.battery_level, p.charging, p.loaded) for p in poses] == [(55.0, True, True)] * 2
     assert poses[0].qz == 1.0  # theta pi about z
     assert poses[0].path == ((4.0, 6.0),)
     facts = store.vda_facts("Acme:001", NOW - 60_000, NOW)
     assert [(e.ts_ms, e.level, e.type, e.description) for e in facts.errors] == [
-        (NOW - 8_000, "FATAL", "bumper", "hit"), (NOW - 8_000, "WARNING", "lowBattery", "")]
+        (NOW - 8_000, "FATAL", "bumper", "hit"),
+        (NOW - 8_000, "WARNING", "lowBattery", ""),
+    ]
     assert [(c.ts_ms, c.state, c.sent_ms) for c in facts.connections] == [
-        (NOW - 10_000, "ONLINE", NOW - 10_000), (NOW - 5_000, "CONNECTIONBROKEN", NOW - 10_000)]
+        (NOW - 10_000, "ONLINE", NOW - 10_000),
+        (NOW - 5_000, "CONNECTIONBROKEN", NOW - 10_000),
+    ]
     assert facts.factsheet is not None and facts.factsheet.vda_version == "2.1.0"
     assert '"serialNumber":"001"' in facts.factsheet.factsheet
     assert store.vda_facts("Other:1", NOW - 60_000, NOW).connections == []
@@ -70,12 +96,23 @@ def test_vda_facts_expire_with_the_retention(store, ev) -> None:
     the other day partitions; the latest factsheet stays."""
     old = NOW - 9 * 86_400_000
     v, m, s = "2.0.0", "Acme", "001"
-    store.append(events(Settings(), [
-        ("connection", vda.connection(v, m, s, old, "ONLINE"), old),
-        ("factsheet", vda.factsheet(v, m, s, old), old),
-        ("state", vda.state(v, m, s, old, errors=(("FATAL", "bumper", ""),)), old),
-    ], Limits(retention_ms=30 * 86_400_000)))
-    store.append([ev.chunk("r1", old, 1, 2, bytes(10_000)), ev.chunk("r1", NOW - 3_600_000, 1, 2, bytes(10_000))])
+    store.append(
+        events(
+            Settings(),
+            [
+                ("connection", vda.connection(v, m, s, old, "ONLINE"), old),
+                ("factsheet", vda.factsheet(v, m, s, old), old),
+                ("state", vda.state(v, m, s, old, errors=(("FATAL", "bumper", ""),)), old),
+            ],
+            Limits(retention_ms=30 * 86_400_000),
+        )
+    )
+    store.append(
+        [
+            ev.chunk("r1", old, 1, 2, bytes(10_000)),
+            ev.chunk("r1", NOW - 3_600_000, 1, 2, bytes(10_000)),
+        ]
+    )
     store.build_snapshots(NOW - 60_000)
     store.apply_retention(NOW)
     facts = store.vda_facts("Acme:001", old - 1, NOW)
@@ -87,17 +124,28 @@ def test_the_fleets_facts_and_the_states_that_clear_errors(store) -> None:
     """vda_fleet_facts: every vehicle with facts in the window; a state without errors after
     one with errors ends them (error_clears), a second error-free state does not."""
     v = "2.0.0"
-    store.append(events(Settings(), [
-        ("state", vda.state(v, "Acme", "001", NOW - 9_000), NOW - 9_000),
-        ("state", vda.state(v, "Acme", "001", NOW - 8_000, errors=(("FATAL", "bumper", "hit"),)),
-         NOW - 8_000),
-        ("state", vda.state(v, "Acme", "001", NOW - 7_000, errors=(("FATAL", "bumper", "hit"),)),
-         NOW - 7_000),
-        ("state", vda.state(v, "Acme", "001", NOW - 6_000), NOW - 6_000),
-        ("state", vda.state(v, "Acme", "001", NOW - 5_000), NOW - 5_000),
-        ("connection", vda.connection(v, "Beta", "7", NOW - 4_000, "ONLINE"), NOW - 4_000),
-        ("factsheet", vda.factsheet(v, "Gamma", "9", NOW - 4_000), NOW - 4_000),
-    ]))
+    store.append(
+        events(
+            Settings(),
+            [
+                ("state", vda.state(v, "Acme", "001", NOW - 9_000), NOW - 9_000),
+                (
+                    "state",
+                    vda.state(v, "Acme", "001", NOW - 8_000, errors=(("FATAL", "bumper", "hit"),)),
+                    NOW - 8_000,
+                ),
+                (
+                    "state",
+                    vda.state(v, "Acme", "001", NOW - 7_000, errors=(("FATAL", "bumper", "hit"),)),
+                    NOW - 7_000,
+                ),
+                ("state", vda.state(v, "Acme", "001", NOW - 6_000), NOW - 6_000),
+                ("state", vda.state(v, "Acme", "001", NOW - 5_000), NOW - 5_000),
+                ("connection", vda.connection(v, "Beta", "7", NOW - 4_000, "ONLINE"), NOW - 4_000),
+                ("factsheet", vda.factsheet(v, "Gamma", "9", NOW - 4_000), NOW - 4_000),
+            ],
+        )
+    )
     fleet = store.vda_fleet_facts(NOW - 60_000, NOW)
     assert sorted(fleet) == ["Acme:001", "Beta:7"]  # a factsheet alone is no fact of the window
     acme = fleet["Acme:001"]
