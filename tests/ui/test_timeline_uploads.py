@@ -19,6 +19,7 @@ from mapservice.api.app import create_app
 from mapservice.adapters.clock import SystemClock
 from mapservice.core import change_feed
 from mapservice.core.change_feed import UPLOADER_ID
+from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
@@ -62,7 +63,7 @@ def busy_day_api():
             for i in range(25)
         ]
     )
-    settings = Settings(api_port=free_port())
+    settings = Settings(api_port=free_port(), ui_dir=TEST_UI_DIR)
     uv = uvicorn.Server(
         uvicorn.Config(
             create_app(settings, store, {}),
