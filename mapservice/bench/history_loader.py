@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapservice.adapters.clickhouse.writes import POSE_INSERT_COLUMNS
 from mapservice.adapters.ros_map import RosMap, free_cells_metres, meta_for, slice_chunks
 from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.core.wire2019 import content_hash
@@ -45,24 +46,6 @@ ANGULAR_SPEED = 0.2  # rad/s (loadgen.py)
 TTL_GUARD_MS = 3_600_000
 LOADER_ROBOT = "history-loader"
 
-POSE_COLUMNS = [
-    "robot_id",
-    "ts",
-    "x_mm",
-    "y_mm",
-    "z_mm",
-    "qx",
-    "qy",
-    "qz",
-    "qw",
-    "battery",
-    "charging",
-    "loaded",
-    "has_path",
-    "path_x_mm",
-    "path_y_mm",
-    "recv_lag_ms",
-]
 CHUNK_COLUMNS = ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"]
 CONTENT_COLUMNS = ["content_hash", "day", "width", "height", "zlib_pixels"]
 
@@ -418,14 +401,17 @@ def load_history(
                 column_oriented=True,
             )
             client.insert(
-                f"{db}.poses", data=block.poses, column_names=POSE_COLUMNS, column_oriented=True
+                f"{db}.poses",
+                data=block.poses,
+                column_names=POSE_INSERT_COLUMNS,
+                column_oriented=True,
             )
             # The pose views read the Null table pose_derivations (schema v10), as
             # `derive_views` feeds them.
             client.insert(
                 f"{db}.pose_derivations",
                 data=block.poses,
-                column_names=POSE_COLUMNS,
+                column_names=POSE_INSERT_COLUMNS,
                 column_oriented=True,
             )
         t2 = time.perf_counter()

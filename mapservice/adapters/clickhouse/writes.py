@@ -28,7 +28,7 @@ from mapservice.core.events import (
 )
 from mapservice.core.ports import ConflictRow
 
-_POSE_INSERT_COLUMNS = [
+POSE_INSERT_COLUMNS = [
     "robot_id",
     "ts",
     "x_mm",
@@ -65,7 +65,7 @@ class WritesMixin(SnapshotsMixin):
         poses = [_pose_row(e) for e in events if pose_of(e.payload) is not None]
         if poses:
             with self._lock:
-                self._insert("pose_derivations", poses, _POSE_INSERT_COLUMNS)
+                self._insert("pose_derivations", poses, POSE_INSERT_COLUMNS)
 
     def derive_views_between(self, from_ms: int, to_ms: int) -> None:
         """derive_views for every pose stored with from_ms <= event time <= to_ms, read
@@ -134,7 +134,7 @@ class WritesMixin(SnapshotsMixin):
                     ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"],
                 )
             if poses:
-                self._insert("poses", poses, _POSE_INSERT_COLUMNS)
+                self._insert("poses", poses, POSE_INSERT_COLUMNS)
             if metas:
                 self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
             for table, rows in vda.items():
@@ -277,7 +277,7 @@ def _vda_rows(e: Envelope, out: dict[str, list]) -> None:
 
 def _pose_row(e: Envelope) -> list:
     """A pose event (or a VDA state's pose) as the row `poses` (and `pose_derivations`)
-    store, in _POSE_INSERT_COLUMNS order."""
+    store, in POSE_INSERT_COLUMNS order."""
     p = pose_of(e.payload)
     path = p.path or ()
     return [
