@@ -15,10 +15,11 @@ import math
 from functools import cache
 from pathlib import Path
 
+import jsonschema_rs
 import msgspec
 from cachetools import LRUCache
 from jsonschema import Draft202012Validator
-from jsonschema.exceptions import best_match
+from jsonschema.exceptions import ValidationError, best_match
 
 from mapservice.core.events import (
     Envelope,
@@ -40,7 +41,9 @@ MAX_VEHICLES = 100_000  # vehicles whose last state is held for their visualizat
 
 
 @cache
-def validator(version: str, subtopic: str) -> Draft202012Validator:
+def patched_schema(version: str, subtopic: str) -> dict:
+    """The vendored schema of the version and subtopic, with its errata corrected: what
+    both validators below check."""
     schema = json.loads((SCHEMA_DIR / version / f"{subtopic}.schema").read_text())
     if (version, subtopic) == ("2.0.0", "state"):
         # Erratum: 2.0.0's state schema requires theta in a nodeState's nodePosition,
@@ -67,7 +70,35 @@ def validator(version: str, subtopic: str) -> Draft202012Validator:
             "serialNumber",
             "instantActions",
         ]
-    return Draft202012Validator(schema)
+    return schema
+
+
+@cache
+def validator(version: str, subtopic: str) -> Draft202012Validator:
+    """The reference validator: its best match is a refused message's reason."""
+    return Draft202012Validator(patched_schema(version, subtopic))
+
+
+@cache
+def compiled_validator(version: str, subtopic: str) -> jsonschema_rs.Validator:
+    """The same schema compiled (Rust): a valid message costs a few microseconds here,
+    against 60-120 in the reference validator, which names no formats' checker, so
+    neither does this one (`date-time` stays an annotation)."""
+    return jsonschema_rs.Draft202012Validator(
+        patched_schema(version, subtopic), validate_formats=False
+    )
+
+
+def schema_error(version: str, subtopic: str, msg: dict) -> ValidationError | None:
+    """Why the message is not valid against its schema, or None. The compiled validator
+    passes the valid ones; the reference validator judges the rest and words the reason,
+    so where the two disagree (a NaN is a number to it, say) the verdict is today's."""
+    try:
+        if compiled_validator(version, subtopic).is_valid(msg):
+            return None
+    except ValueError:
+        pass  # a value the compiled validator cannot take: the reference one judges it
+    return best_match(validator(version, subtopic).iter_errors(msg))
 
 
 def schema_version_for(version: object, topic_major: str) -> str | None:
@@ -142,7 +173,7 @@ class VdaIngest:
                     "2.0.x, 2.1.x (topic v2) and 3.0.x (topic v3) are accepted"
                 ),
             )
-        error = best_match(validator(version, subtopic).iter_errors(msg))
+        error = schema_error(version, subtopic, msg)
         if error is not None:
             where = "/".join(str(p) for p in error.absolute_path) or "(message)"
             return Rejection(
