@@ -143,6 +143,24 @@ class VdaIngest:
     def decode(
         self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits
     ) -> Envelope | Rejection:
+        return self.decode_message(mqtt_topic, payload, receive_ms, limits)[0]
+
+    def decode_message(
+        self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits
+    ) -> tuple[Envelope | Rejection, dict | None]:
+        """decode's result, with the message as parsed once it is valid against its schema
+        (the router reads a state's actionStates from it without parsing it again)."""
+        checked = self._schema_checked(mqtt_topic, payload, limits)
+        if isinstance(checked, Rejection):
+            return checked, None
+        msg = checked[-1]
+        return self._event(*checked, receive_ms, limits), msg
+
+    def _schema_checked(
+        self, mqtt_topic: str, payload: bytes, limits: Limits
+    ) -> tuple[str, str, str, str, dict] | Rejection:
+        """(manufacturer, serial, subtopic, schema version, message) of a message valid
+        against its version's schema on a well-formed topic."""
         levels = mqtt_topic.split("/")
         if len(levels) != 5 or levels[4] not in SUBTOPICS or not all(levels):
             return Rejection(
@@ -180,6 +198,18 @@ class VdaIngest:
                 Reason.VDA_SCHEMA,
                 (f"not a valid VDA 5050 {version} {subtopic}: at {where}: {error.message[:300]}"),
             )
+        return manufacturer, serial, subtopic, version, msg
+
+    def _event(
+        self,
+        manufacturer: str,
+        serial: str,
+        subtopic: str,
+        version: str,
+        msg: dict,
+        receive_ms: int,
+        limits: Limits,
+    ) -> Envelope | Rejection:
         for key in ("manufacturer", "serialNumber", "timestamp"):
             # 2.0.0's visualization schema requires none of its header.
             if not isinstance(msg.get(key), str):
