@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 from dataclasses import dataclass
 
 from mapservice.core.commands import COMMAND_EVENTS
@@ -101,9 +100,9 @@ class Router:
                 robot_id = mqtt_topic[len(self.robot_chunk_prefix) :]
                 result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
             elif self.vda.handles(mqtt_topic):
-                result = self.vda.decode(mqtt_topic, payload, receive_ms, limits)
+                result, msg = self.vda.decode_message(mqtt_topic, payload, receive_ms, limits)
                 if not isinstance(result, Rejection):
-                    return self._vda_record(mqtt_topic, payload, result, receive_ms)
+                    return self._vda_record(mqtt_topic, msg or {}, result, receive_ms)
             elif (answering := self._command_robot(mqtt_topic)) is not None:
                 answer = decode_response(
                     payload, answering, receive_ms, limits, self.commands.robot_of
@@ -135,7 +134,7 @@ class Router:
             )
 
     def _vda_record(
-        self, mqtt_topic: str, payload: bytes, envelope: Envelope, receive_ms: int
+        self, mqtt_topic: str, msg: dict, envelope: Envelope, receive_ms: int
     ) -> Record:
         """A vehicle's event; its version is remembered (its commands are sent in it) and
         a `state`'s actionStates naming commands become those commands' answers."""
@@ -144,7 +143,6 @@ class Router:
             self.vda_commands.heard(envelope.robot_id, event.vda_version)
         extra: list[Record] = []
         if mqtt_topic.endswith("/state"):
-            msg = json.loads(payload)  # valid: the schema held
             # 3.0 reports instant actions apart from the order's actions.
             states = [*msg.get("actionStates", ()), *msg.get("instantActionStates", ())]
             for answer in self.vda_commands.answers(envelope.robot_id, states):

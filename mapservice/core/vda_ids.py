@@ -10,9 +10,12 @@ import re
 # A-Z a-z 0-9 _ . - becomes `@` and two upper-case hex digits (so ':' and '@' in a name are
 # escaped and the one ':' separates the two names).
 _PLAIN = re.compile(rb"[A-Za-z0-9_.-]")
+_ALL_PLAIN = re.compile(r"[A-Za-z0-9_.-]*")  # ASCII ranges: a name that escapes to itself
 
 
 def _escape(name: str) -> str:
+    if _ALL_PLAIN.fullmatch(name):
+        return name  # most names: no per-byte work on the gateway's hot path
     return "".join(chr(b) if _PLAIN.fullmatch(bytes([b])) else f"@{b:02X}" for b in name.encode())
 
 
