@@ -31,7 +31,14 @@ from mapservice.core.events import (
     make_envelope,
 )
 from mapservice.core.vda_ids import robot_id_for
-from mapservice.core.wire2019 import Limits, Reason, Rejection, check_time
+from mapservice.core.wire2019 import (
+    MAX_ABS_METRES,
+    Limits,
+    Reason,
+    Rejection,
+    check_time,
+    finite,
+)
 from mapservice.settings import VDA5050_SUBTOPICS
 
 SCHEMA_DIR = Path(__file__).with_name("vda5050_schemas")
@@ -99,6 +106,34 @@ def schema_error(version: str, subtopic: str, msg: dict) -> ValidationError | No
     except ValueError:
         pass  # a value the compiled validator cannot take: the reference one judges it
     return best_match(validator(version, subtopic).iter_errors(msg))
+
+
+def _refuse_constant(name: str) -> float:
+    # Python's json reads NaN and Infinity, which JSON (RFC 8259) has no token for and
+    # which no pose, battery or path point may hold.
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _storable_numbers(msg: dict) -> bool:
+    """Whether the numbers a state or visualization puts into the history are finite and
+    within the floor's bounds (a number too large for a float, like 1e400, reads as inf)."""
+    position = msg.get("agvPosition") or msg.get("mobileRobotPosition") or {}
+    power = msg.get("powerSupply") or msg.get("batteryState") or {}
+    values = [
+        position.get("x"),
+        position.get("y"),
+        position.get("theta"),
+        power.get("batteryCharge", power.get("stateOfCharge")),
+    ]
+    for node in msg.get("nodeStates", ()):
+        values += [node.get("nodePosition", {}).get(k) for k in ("x", "y")]
+    planned = msg.get("plannedPath") or {}
+    for point in planned.get("trajectory", {}).get("controlPoints", ()):
+        values += [point.get("x"), point.get("y")]
+    try:
+        return finite(*(None if v is None else float(v) for v in values))
+    except (OverflowError, TypeError, ValueError):
+        return False  # an integer beyond any float
 
 
 def schema_version_for(version: object, topic_major: str) -> str | None:
@@ -177,7 +212,7 @@ class VdaIngest:
                 f"{len(payload)} bytes; at most {limits.max_message_bytes} are accepted",
             )
         try:
-            msg = json.loads(payload)
+            msg = json.loads(payload, parse_constant=_refuse_constant)
         except (ValueError, RecursionError) as exc:
             return Rejection(Reason.NOT_JSON, f"not JSON: {str(exc)[:200]}")
         if not isinstance(msg, dict):
@@ -234,6 +269,14 @@ class VdaIngest:
         sent_ms = check_time(msg["timestamp"], receive_ms, limits)
         if isinstance(sent_ms, Rejection):
             return sent_ms
+        if subtopic in ("state", "visualization") and not _storable_numbers(msg):
+            return Rejection(
+                Reason.OUT_OF_RANGE,
+                (
+                    "position, battery charge and path points must be finite and below "
+                    f"{MAX_ABS_METRES:g} m"
+                ),
+            )
         if subtopic == "connection":
             state = msg["connectionState"]
             # The last will was composed at connect time: it went offline when published.

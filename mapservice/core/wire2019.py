@@ -334,6 +334,9 @@ def _finite(*values: float | None) -> bool:
     return all(v is None or (math.isfinite(v) and abs(v) < MAX_ABS_METRES) for v in values)
 
 
+finite = _finite  # the VDA 5050 ingest bounds the numbers it stores the same way
+
+
 def decode_coordinates(
     topic_robot_id: str, data: bytes, receive_ms: int, limits: Limits
 ) -> Envelope | Rejection:

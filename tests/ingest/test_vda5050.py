@@ -383,3 +383,46 @@ def test_a_node_state_without_theta_is_accepted(router, now_ms, version) -> None
     del msg["nodeStates"][0]["nodePosition"]["mapId"]
     reason, detail = dead_letter(route(router, version, "state", msg, now_ms))
     assert reason == "vda_schema" and "nodeStates/0/nodePosition" in detail
+
+
+@pytest.mark.parametrize("subtopic", ["state", "visualization", "factsheet"])
+def test_nan_and_infinity_tokens_are_not_json(router, now_ms, subtopic) -> None:
+    msg = message("2.0.0", subtopic, now_ms)
+    msg["headerId"] = float("nan")  # json.dumps writes the token NaN, which JSON lacks
+    payload = json.dumps(msg).encode()
+    assert b"NaN" in payload
+    letter = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()))
+    assert letter == ("not_json", "not JSON: NaN is not a JSON number")
+    payload = json.dumps(msg).replace("NaN", "-Infinity").encode()
+    letter = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()))
+    assert letter[0] == "not_json" and "-Infinity" in letter[1]
+
+
+@pytest.mark.parametrize(
+    "subtopic, where, value",
+    [
+        ("visualization", ("agvPosition", "x"), "1e400"),
+        ("visualization", ("agvPosition", "y"), str(10**400)),
+        ("visualization", ("agvPosition", "x"), "2e6"),
+        ("state", ("agvPosition", "theta"), "-1e400"),
+        ("state", ("batteryState", "batteryCharge"), "1e400"),
+        ("state", ("nodeStates", 0, "nodePosition", "x"), "1e400"),
+    ],
+)
+def test_numbers_beyond_a_float_or_the_floor_are_out_of_range(
+    router, now_ms, subtopic, where, value
+) -> None:
+    msg = message("2.0.0", subtopic, now_ms)
+    if where[0] == "nodeStates":
+        assert msg["nodeStates"] and "nodePosition" in msg["nodeStates"][0]
+    target = msg
+    for key in where[:-1]:
+        target = target[key]
+    marker = 123456.789
+    target[where[-1]] = marker
+    payload = json.dumps(msg).replace(repr(marker), value).encode()
+    reason, detail = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()))
+    assert reason == "out_of_range" and "finite" in detail
+    # The same message with an ordinary number is stored.
+    payload = json.dumps(msg).replace(repr(marker), "1.5").encode()
+    assert router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()).reason is None
