@@ -21,18 +21,17 @@ import structlog
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.adapters.kafka_topics import ensure_topics
-from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER, BrokerFiles, new_password
+from mapservice.adapters.mqtt_auth import BrokerFiles
 from mapservice.core.events import MapMetaSet, encode, kafka_key, make_envelope
 from mapservice.local import embedded, kafka_broker, lifetime
+from mapservice.local.stack_env import StackEnv
 from mapservice.local.stack_mqtt import StackMqtt
-from mapservice.runtime.secrets import ApiSecrets, api_secrets, with_local_api_secrets
-from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
 
 @dataclass
-class Stack(StackMqtt):
+class Stack(StackMqtt, StackEnv):
     data_dir: Path
     mqtt: str = "amqtt"  # "amqtt", "mosquitto" or an mqtt:// URL of a running broker
     api_port: int = 0
@@ -121,14 +120,6 @@ class Stack(StackMqtt):
         self._broker_files_seen: tuple = ()
 
     @property
-    def embeds_kafka(self) -> bool:
-        return self.kafka in ("apache", "tansu")
-
-    @property
-    def kafka_bootstrap(self) -> str:
-        return f"127.0.0.1:{self.kafka_port}" if self.embeds_kafka else self.kafka
-
-    @property
     def _preexec(self):
         # Not the parent-death signal: all at once, tansu's memory went before the
         # processors had read the last messages from it. The guard stops them in order.
@@ -172,128 +163,6 @@ class Stack(StackMqtt):
                 mode = path.lstat().st_mode
                 if not path.is_symlink() and mode & 0o077:
                     path.chmod(mode & 0o7700)
-
-    @property
-    def api_url(self) -> str:
-        return f"http://127.0.0.1:{self.api_port}"
-
-    @property
-    def ca_file(self) -> Path:
-        """The local CA's certificate (clients of the TLS listener trust it)."""
-        return self.tls_dir / "ca.crt"
-
-    def service_password(self, username: str) -> str:
-        """The generated password of a service user (kept in DATA_DIR/secrets/): an MQTT
-        one, or "clickhouse" (the service's user on `mapservice clickhouse-server`)."""
-        name = "clickhouse-password" if username == "clickhouse" else f"mqtt-{username}-password"
-        path = self.data_dir / "secrets" / name
-        if not path.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.parent.chmod(0o700)
-            path.write_text(new_password() + "\n")
-            path.chmod(0o600)
-        return path.read_text().strip()
-
-    def _mqtt_env(self, component: str | None) -> dict[str, str]:
-        """A component's MQTT address, TLS and credential: the gateway its service user, the
-        processors (advertisements) theirs; anything else (robots, tools) none."""
-        env: dict[str, str] = {}
-        if self.mqtt_tls:
-            env.update(
-                {
-                    "MAPSERVICE_MQTT_URL": self.mqtts_url,
-                    "MAPSERVICE_MQTT_CA_FILE": str(self.ca_file),
-                }
-            )
-        if self.mqtt_auth and component is not None:
-            user = (
-                GATEWAY_USER
-                if component.startswith("gateway")
-                else PROCESSORS_USER
-                if component.startswith(("server", "processors"))
-                else None
-            )
-            if user is not None:
-                env.update(
-                    {
-                        "MAPSERVICE_MQTT_USERNAME": user,
-                        "MAPSERVICE_MQTT_PASSWORD": self.service_password(user),
-                    }
-                )
-        return env
-
-    @property
-    def clickhouse_url(self) -> str:
-        """The ClickHouse HTTP interface of `mapservice clickhouse-server` (apart only)."""
-        return f"http://127.0.0.1:{self.clickhouse_port}"
-
-    def _apart_env(self) -> dict[str, str]:
-        """Apart: every component reaches the history through the ClickHouse server, as the
-        service's ClickHouse user with a generated password (DATA_DIR/secrets/: the port is
-        open to every local user); the API asks the processors whether it is stored."""
-        if not self.apart:
-            return {}
-        return {
-            "MAPSERVICE_CLICKHOUSE_DSN": self.clickhouse_url,
-            "MAPSERVICE_CLICKHOUSE_PASSWORD": self.service_password("clickhouse"),
-            "MAPSERVICE_PROCESSORS_STATUS_URL": f"http://127.0.0.1:{self.processors_health_port}",
-        }
-
-    def env(self, component: str | None = None) -> dict[str, str]:
-        return {
-            **os.environ,
-            **self._apart_env(),
-            "MAPSERVICE_DATA_DIR": str(self.data_dir),
-            "MAPSERVICE_KAFKA_BOOTSTRAP": self.kafka_bootstrap,
-            "MAPSERVICE_MQTT_URL": self.mqtt_url,
-            "MAPSERVICE_MQTT_WS_URL": self.mqtt_ws_url,
-            "MAPSERVICE_API_HOST": "127.0.0.1",
-            "MAPSERVICE_API_PORT": str(self.api_port),
-            # Advertisements' chunkUrl must name this API, whatever port it got.
-            "MAPSERVICE_PUBLIC_BASE_URL": os.environ.get(
-                "MAPSERVICE_PUBLIC_BASE_URL", self.api_url
-            ),
-            "PYTHONUNBUFFERED": "1",
-            **self._mqtt_env(component),
-            **self.extra_env,
-            **self._gateway_replica_env(component),
-        }
-
-    def _gateway_replica_env(self, component: str | None) -> dict[str, str]:
-        """With several gateways: each replica's client id, and the shared subscription's
-        group (MAPSERVICE_MQTT_SHARE_GROUP if set, else `mapservice-gateways`)."""
-        if self.gateways == 1 or component is None or not component.startswith("gateway"):
-            return {}
-        replica = 1 if component == "gateway" else int(component.rsplit("-", 1)[1])
-        settings_env = {**os.environ, **self.extra_env}
-        base = settings_env.get("MAPSERVICE_MQTT_CLIENT_ID", "mapservice-gateway")
-        return {
-            "MAPSERVICE_MQTT_CLIENT_ID": f"{base}-{replica}",
-            "MAPSERVICE_MQTT_SHARE_GROUP": settings_env.get("MAPSERVICE_MQTT_SHARE_GROUP")
-            or "mapservice-gateways",
-        }
-
-    def settings(self) -> Settings:
-        env = self.env()
-        return Settings(
-            data_dir=self.data_dir,
-            kafka_bootstrap=env["MAPSERVICE_KAFKA_BOOTSTRAP"],
-            mqtt_url=self.mqtt_url,
-            api_port=self.api_port,
-            **{
-                "mqtt_ws_url": self.mqtt_ws_url,
-                **{
-                    k[len("MAPSERVICE_") :].lower(): v
-                    for k, v in self.extra_env.items()
-                    if k.startswith("MAPSERVICE_")
-                },
-            },
-        )
-
-    def api_secrets(self) -> ApiSecrets:
-        """The API's tokens: as set in extra_env or the environment, else the ones local
-        mode generates into the data dir (the same files the server reads)."""
-        return api_secrets(with_local_api_secrets(self.settings()))
 
     def _log(self, name: str):
         self.log_dir.mkdir(parents=True, exist_ok=True)

@@ -307,3 +307,29 @@ def test_map_transforms_as_json_text_in_the_environment_or_a_keyword(monkeypatch
     assert Settings().vda5050_map_transforms == {"hall": (3, 2, 0.5)}
     with pytest.raises(ValidationError):
         Settings(vda5050_map_transforms='{"hall": [3, 2]}')
+
+
+def test_one_settings_class_holds_every_section_once_in_the_sections_order() -> None:
+    """Settings is composed of one section per concern; pydantic orders the fields by the
+    reversed method resolution order, so listing the sections in another order, or a field
+    defined in two sections, would reorder or merge the configuration's fields."""
+    from mapservice.settings.api import ApiSettings
+    from mapservice.settings.clickhouse import ClickHouseSettings
+    from mapservice.settings.history import HistorySettings
+    from mapservice.settings.kafka import KafkaSettings
+    from mapservice.settings.live import LiveSettings
+    from mapservice.settings.mqtt import MqttSettings
+    from mapservice.settings.process import ProcessSettings
+
+    sections = (
+        ProcessSettings,
+        KafkaSettings,
+        ClickHouseSettings,
+        MqttSettings,
+        HistorySettings,
+        LiveSettings,
+        ApiSettings,
+    )
+    expected = [name for section in sections for name in section.model_fields]
+    assert list(Settings.model_fields) == expected
+    assert list(Settings.model_fields)[:2] == ["mode", "data_dir"]

@@ -1,0 +1,49 @@
+"""What the service tells robots and viewers as it happens: advertisements, commands'
+delivery, conflicts, clock skew and robots going offline (the 2019 document's ideas I.3, I.4)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+
+class LiveSettings(BaseModel):
+    """Advertisement and command topics, and the thresholds of conflicts, skew and offline."""
+
+    advertisement_topic: str = Field(
+        "iot/chunks/advertisement", description="2019 NEW_CHUNK_ADVERTISEMENT_TOPIC."
+    )
+    zone_advertisement_topic: str = Field(
+        "iot/zones/advertisement",
+        description=(
+            "MQTT topic where robots learn that the zones changed (next to the chunk "
+            "advertisements): the change, and where to GET the keep-out and speed masks."
+        ),
+    )
+    robot_topic_root: str = Field(
+        "iot/robots/",
+        description=(
+            "Root of each robot's own topics: the gateway delivers its commands on "
+            "<root><robotId>/commands and reads its acks and outcomes from "
+            "<root><robotId>/command-events (the broker's ACL lets only that robot use them)."
+        ),
+    )
+    command_delivery_ttl_s: float = Field(
+        30.0,
+        gt=0,
+        description=(
+            "A command older than this when the gateway reads it (after an outage, a restart) "
+            "is not delivered: a pause meant for minutes ago must not stop a robot now."
+        ),
+    )
+    public_base_url: str = Field(
+        "http://127.0.0.1:8080", description="Base of the chunkUrl in advertisements."
+    )
+    conflict_window_s: float = Field(
+        60.0, ge=0, description="Different writes closer than this conflict."
+    )
+    clock_skew_threshold_s: float = Field(
+        5.0, ge=0, description="|receive - event time| beyond this is flagged."
+    )
+    robot_offline_after_s: float = Field(
+        10.0, gt=0, description="Silence after which a robot is offline."
+    )
