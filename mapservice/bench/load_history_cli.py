@@ -3,23 +3,58 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from mapservice.bench.history_loader import load_history, parse_end
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
+
+
+@contextmanager
+def load_progress(
+    console, snapshots_label: str = "snapshots"
+) -> Iterator[tuple[Progress, Callable[[str, int, int, dict], None]]]:
+    """Rich progress bars for the history loader (also `bench timetravel`'s): the bars and
+    the `on_progress` that feeds them, a bar per phase (history seconds, snapshot batches)."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TaskID,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[info]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    with Progress(*columns, console=console) as progress:
+        tasks: dict[str, TaskID] = {}
+
+        def on_progress(phase: str, done: int, total: int, info: dict) -> None:
+            if phase not in tasks:
+                label = "history (s)" if phase == "load" else snapshots_label
+                tasks[phase] = progress.add_task(label, total=total, info="")
+            text = ", ".join(f"{v:,} {k}" for k, v in info.items())
+            progress.update(tasks[phase], completed=done, total=total, info=text)
+
+        yield progress, on_progress
 
 
 def main(args) -> None:
     """The `mapservice load-history` command."""
     from rich.console import Console
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
 
     from mapservice.adapters.clickhouse.store import ClickHouseStore
     from mapservice.adapters.ros_map import load_ros_map
@@ -44,25 +79,8 @@ def main(args) -> None:
         int((args.snapshot_every_s or settings.snapshot_every_s) * 1000),
     )
     ros_map = load_ros_map(args.map or DEFAULT_MAP)
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[info]}"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    )
     try:
-        with Progress(*columns, console=console) as progress:
-            tasks: dict[str, int] = {}
-
-            def on_progress(phase: str, done: int, total: int, info: dict) -> None:
-                if phase not in tasks:
-                    label = "history (s)" if phase == "load" else "snapshots"
-                    tasks[phase] = progress.add_task(label, total=total, info="")
-                text = ", ".join(f"{v:,} {k}" for k, v in info.items())
-                progress.update(tasks[phase], completed=done, total=total, info=text)
-
+        with load_progress(console) as (progress, on_progress):
             result = load_history(
                 store,
                 ros_map,

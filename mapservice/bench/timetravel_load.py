@@ -17,17 +17,9 @@ LOAD_FILE = "history-load.json"
 
 def load(store, args, data_dir: Path, console, busy_at_start: list[str]) -> dict:
     """Loads the history (or reuses it) and returns what the load took."""
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
-
     from mapservice.adapters.ros_map import load_ros_map
     from mapservice.bench.history_loader import load_history
+    from mapservice.bench.load_history_cli import load_progress
     from mapservice.robot import DEFAULT_MAP
 
     store.migrate()
@@ -45,29 +37,7 @@ def load(store, args, data_dir: Path, console, busy_at_start: list[str]) -> dict
         return info
     grid = tuple(int(v) for v in args.grid.lower().split("x"))
     ros_map = load_ros_map(args.map or DEFAULT_MAP)
-    columns = (
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("{task.fields[info]}"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-    )
-    with Progress(*columns, console=console) as progress:
-        tasks: dict[str, int] = {}
-
-        def on_progress(phase: str, done: int, total: int, info: dict) -> None:
-            if phase not in tasks:
-                tasks[phase] = progress.add_task(
-                    "history (s)" if phase == "load" else "snapshots (bulk)", total=total, info=""
-                )
-            progress.update(
-                tasks[phase],
-                completed=done,
-                total=total,
-                info=", ".join(f"{v:,} {k}" for k, v in info.items()),
-            )
-
+    with load_progress(console, "snapshots (bulk)") as (_, on_progress):
         result = load_history(
             store,
             ros_map,
