@@ -424,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_parser(sub)
 
-    from mapservice.bench.history_loader import add_parser as add_load_history_parser
+    from mapservice.bench.load_history_cli import add_parser as add_load_history_parser
 
     add_load_history_parser(sub)
 

@@ -11,7 +11,7 @@ import httpx
 import pytest
 from PIL import Image
 
-from mapservice.bench.ui import expected_at
+from mapservice.bench.ui_expected import expected_at
 
 from .conftest import ARTIFACTS
 

@@ -15,14 +15,8 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.ros_map import load_ros_map
-from mapservice.bench.history_loader import (
-    DAY_MS,
-    TTL_GUARD_MS,
-    circle_centres,
-    load_history,
-    pixel_of,
-    plan_window,
-)
+from mapservice.bench.history_generator import DAY_MS, circle_centres, pixel_of
+from mapservice.bench.history_loader import TTL_GUARD_MS, load_history, plan_window
 from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
 from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash

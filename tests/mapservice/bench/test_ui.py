@@ -11,8 +11,9 @@ import httpx
 import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.bench import ui
-from mapservice.bench.ui import ApiProcess, api_env, expected_at, fold, load_or_reuse, mismatches
+from mapservice.bench import ui_expected, ui_setup
+from mapservice.bench.ui_expected import expected_at, fold, mismatches
+from mapservice.bench.ui_setup import ApiProcess, api_env, load_or_reuse
 from mapservice.local.checkout import TEST_UI_DIR
 
 
@@ -109,7 +110,7 @@ def served_history(ev, monkeypatch):
         r.raise_for_status()
         return r.json()
 
-    monkeypatch.setattr(ui, "_get", get)
+    monkeypatch.setattr(ui_expected, "_get", get)
     return store, t0
 
 
@@ -168,6 +169,6 @@ def test_summary_puts_panel_p95_beside_seek_and_ratios_compare_two_runs(capsys) 
     # A figure the baseline lacks (every request refused) has no ratio.
     assert ui.ratios(after, before) == {"seek_p95_ms": 0.9, "plot_track_1h_p95_ms": 0.02}
     for done in range(101):
-        ui._progress("load", done, 100, {"poses": done})
+        ui_setup._progress("load", done, 100, {"poses": done})
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == 21 and lines[-1] == "bench ui: load 100/100 poses=100"
