@@ -9,7 +9,8 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
 
-from mapservice.adapters.exports import TABLE_FORMATS, TABLES, export_mcap, export_table
+from mapservice.adapters.mcap_export import export_mcap
+from mapservice.adapters.table_export import TABLE_FORMATS, TABLES, export_table
 from mapservice.core.ports import HistoryStore
 
 from ..access import READ

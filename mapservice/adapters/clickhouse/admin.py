@@ -102,7 +102,7 @@ class AdminMixin(ClickHouseConnection):
 
     def export_query(self, sql: str, parameters: dict, fmt: str) -> bytes:
         """A read's result as ClickHouse writes it in `fmt` (CSVWithNames, Parquet, ...);
-        mapservice/adapters/exports.py builds `sql` from fixed names, values go as parameters."""
+        mapservice/adapters/table_export.py builds `sql` from fixed names, values go as parameters."""
         with self._reader() as client:
             return client.raw_query(sql, parameters=parameters, fmt=fmt)
 

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import msgspec
 
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
-from mapservice.adapters.clickhouse.schema import KEYFRAME_MS, POSE_COLUMNS
+from mapservice.adapters.clickhouse.pose_schema import KEYFRAME_MS, POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 from mapservice.core.events import MapMetaSet
 from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket

@@ -15,7 +15,7 @@ from collections.abc import Callable
 
 from mapservice.adapters.clickhouse import burst_schema
 from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
-from mapservice.adapters.clickhouse.schema import CHUNK_SECONDS_SELECT
+from mapservice.adapters.clickhouse.pose_schema import CHUNK_SECONDS_SELECT
 
 NO_SNAPSHOT_RECHECK_S = 5.0
 

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from mapservice.adapters.clickhouse import command_schema
 from mapservice.adapters.clickhouse.command_reads import command_row
 from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
-from mapservice.adapters.clickhouse.schema import POSE_COLUMNS
+from mapservice.adapters.clickhouse.pose_schema import POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
 from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
 from mapservice.core.commands import COMMAND_EVENTS

@@ -15,8 +15,9 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.exports import export_mcap, export_table
 from mapservice.adapters.mcap_annotations import ANNOTATIONS_TOPIC, COMMANDS_SCHEMA, COMMANDS_TOPIC
+from mapservice.adapters.mcap_export import export_mcap
+from mapservice.adapters.table_export import export_table
 from mapservice.core.annotations import (
     AnnotationChanged,
     AnnotationCreated,

@@ -14,19 +14,19 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
-from mapservice.adapters.exports import (
+from mapservice.adapters.mcap_channels import (
     CONNECTION_SCHEMA,
     ERRORS_SCHEMA,
     MAP_TOPIC,
     STATE_SCHEMA,
     connection_topic,
     errors_topic,
-    export_mcap,
-    export_table,
     path_topic,
     pose_topic,
     state_topic,
 )
+from mapservice.adapters.mcap_export import export_mcap
+from mapservice.adapters.table_export import export_table
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, meta_event, pose_event
 

@@ -9,13 +9,9 @@ import time
 
 import pytest
 
-from mapservice.adapters.clickhouse.analyst_schema import (
-    LATER_TABLE_COMMENTS,
-    LATER_VIEWS,
-    TABLE_COMMENTS,
-    VIEWS,
-)
+from mapservice.adapters.clickhouse.analyst_views import LATER_VIEWS, VIEWS
 from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.clickhouse.table_comments import LATER_TABLE_COMMENTS, TABLE_COMMENTS
 from mapservice.core.annotations import (
     AnnotationChanged,
     AnnotationCreated,

@@ -1,13 +1,13 @@
-"""Exports people open elsewhere: a time window of the history as CSV or Parquet (written
-by ClickHouse itself from the analysts' views) and as MCAP (Foxglove and Lichtblick replay
-it: the map as a `foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned
-path as `foxglove.PosesInFrame` and its battery, charging and loaded flags as a JSON channel
-whose JSON schema states the units; a VDA 5050 vehicle's errors and warnings and its
-connection state as JSON channels too; the operators' annotations standing as
-`foxglove.SceneUpdate` on `/annotations` and their commands with the robots' answers as
-JSON on `/commands`: mcap_annotations).
+"""A time window of the history as MCAP, which Foxglove and Lichtblick replay: the map as a
+`foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned path as
+`foxglove.PosesInFrame` and its battery, charging and loaded flags as a JSON channel whose
+JSON schema states the units; a VDA 5050 vehicle's errors and warnings and its connection
+state as JSON channels too; the operators' annotations standing as `foxglove.SceneUpdate` on
+`/annotations` and their commands with the robots' answers as JSON on `/commands`
+(mcap_annotations). Topic names and JSON schemas: mcap_channels. CSV and Parquet:
+table_export.
 
-May depend on: the ports and the analyst schema; the store's ClickHouse client for tables."""
+May depend on: the ports (it reads the window through HistoryStore)."""
 
 from __future__ import annotations
 
@@ -20,187 +20,28 @@ import numpy as np
 
 from mapservice.adapters.mcap_annotations import (
     ANNOTATIONS_TOPIC,
-    COMMANDS_SCHEMA,
     COMMANDS_SCHEMA_NAME,
     COMMANDS_TOPIC,
     annotation_states,
     command_messages,
     scene_update,
 )
+from mapservice.adapters.mcap_channels import (
+    CONNECTION_SCHEMA_NAME,
+    ERRORS_SCHEMA_NAME,
+    JSON_SCHEMAS,
+    MAP_FRAME,
+    MAP_TOPIC,
+    STATE_SCHEMA_NAME,
+    battery_percent,
+    connection_topic,
+    errors_topic,
+    path_topic,
+    pose_topic,
+    state_topic,
+)
 from mapservice.core.events import MapMetaSet
 from mapservice.core.ports import HistoryStore, PoseRow
-
-# Dataset -> (view, its time column). Names come from here, never from a request.
-TABLES: dict[str, tuple[str, str]] = {
-    "robot-poses": ("robot_poses", "at"),
-    "chunk-changes": ("chunk_changes", "at"),
-    "chunk-conflicts": ("chunk_conflicts", "at"),
-    "dead-letters": ("dead_letter_messages", "received_at"),
-    # VDA 5050 vehicles' facts beyond their poses: their tables are already in analysts'
-    # units (metres, radians, UTC times), read with FINAL (a redelivery is stored once).
-    "vehicle-states": ("vda_states", "ts"),
-    "vehicle-errors": ("vda_errors", "ts"),
-    "vehicle-connections": ("vda_connections", "ts"),
-    # Operators' annotation edits (who, when, the annotation as JSON) and their commands
-    # with the robots' answers: event tables, read with FINAL like the VDA ones.
-    "annotation-edits": ("annotation_events", "ts"),
-    "commands": ("command_events", "ts"),
-}
-_READ_FINAL = {
-    "vda_states",
-    "vda_errors",
-    "vda_connections",
-    "annotation_events",
-    "command_events",
-}  # tables, not views
-_NO_ROBOT = {"dead-letters", "annotation-edits"}  # datasets without a robot_id column
-TABLE_FORMATS = {
-    "csv": ("CSVWithNames", "text/csv"),
-    "parquet": ("Parquet", "application/vnd.apache.parquet"),
-}
-MAP_TOPIC = "/map"
-MAP_FRAME = "map"
-
-
-def pose_topic(robot_id: str) -> str:
-    return f"/robots/{robot_id}/pose"
-
-
-def state_topic(robot_id: str) -> str:
-    return f"/robots/{robot_id}/state"
-
-
-def path_topic(robot_id: str) -> str:
-    return f"/robots/{robot_id}/planned_path"
-
-
-def errors_topic(robot_id: str) -> str:
-    return f"/robots/{robot_id}/errors"
-
-
-def connection_topic(robot_id: str) -> str:
-    return f"/robots/{robot_id}/connection"
-
-
-STATE_SCHEMA_NAME = "mapservice.RobotState"
-# The state channel's JSON schema (JSON Schema draft 2020-12, as Foxglove reads it).
-STATE_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": STATE_SCHEMA_NAME,
-    "description": "A robot's reported state with each pose",
-    "type": "object",
-    "properties": {
-        "battery_level": {
-            "type": ["number", "null"],
-            "description": "battery as the robot reported it (a 0-1 fraction, "
-            "0-5 V-like scale or %: see battery_percent)",
-        },
-        "battery_percent": {
-            "type": ["number", "null"],
-            "minimum": 0,
-            "maximum": 100,
-            "description": "battery in % (unit: %): level <= 1 times 100, "
-            "<= 5 times 20, else as reported; clamped to 0-100",
-        },
-        "charging": {
-            "type": ["boolean", "string", "null"],
-            "description": "on a charger (a 2019 robot may send a word)",
-        },
-        "loaded": {
-            "type": ["boolean", "string", "null"],
-            "description": "carrying a load (a 2019 robot may send a word)",
-        },
-    },
-    "required": ["battery_level", "battery_percent", "charging", "loaded"],
-}
-
-
-ERRORS_SCHEMA_NAME = "mapservice.VdaErrors"
-# A VDA 5050 vehicle's active errors and warnings, sent with each state that has some and
-# with the first state without (an empty list): the latest message is what is active.
-ERRORS_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": ERRORS_SCHEMA_NAME,
-    "description": "A VDA 5050 vehicle's active errors and warnings (state.errors) from this "
-    "instant until the next message",
-    "type": "object",
-    "properties": {
-        "count": {"type": "integer", "minimum": 0, "description": "number of active errors"},
-        "fatal": {"type": "integer", "minimum": 0, "description": "those not WARNING"},
-        "errors": {
-            "type": "array",
-            "items": {
-                "type": "object",
-                "properties": {
-                    "level": {
-                        "type": "string",
-                        "description": "WARNING or FATAL (3.0: also URGENT, CRITICAL)",
-                    },
-                    "type": {"type": "string", "description": "the vehicle's errorType"},
-                    "description": {
-                        "type": "string",
-                        "description": "the vehicle's errorDescription",
-                    },
-                },
-                "required": ["level", "type", "description"],
-            },
-        },
-    },
-    "required": ["count", "fatal", "errors"],
-}
-
-CONNECTION_SCHEMA_NAME = "mapservice.VdaConnection"
-CONNECTION_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": CONNECTION_SCHEMA_NAME,
-    "description": "A VDA 5050 vehicle's connection state from this instant on (log time: "
-    "the message's timestamp; for CONNECTIONBROKEN, the broker's last will, "
-    "when the gateway received it)",
-    "type": "object",
-    "properties": {
-        "state": {"type": "string", "enum": ["ONLINE", "OFFLINE", "CONNECTIONBROKEN"]},
-        "online": {"type": "boolean", "description": "state is ONLINE"},
-        "sent_ms": {
-            "type": "integer",
-            "description": "the message's own timestamp, ms since "
-            "the epoch (the last will's: connect time)",
-        },
-    },
-    "required": ["state", "online", "sent_ms"],
-}
-_JSON_SCHEMAS = {
-    STATE_SCHEMA_NAME: STATE_SCHEMA,
-    ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
-    CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA,
-    COMMANDS_SCHEMA_NAME: COMMANDS_SCHEMA,
-}
-
-
-def battery_percent(level: float | None) -> float | None:
-    """The reported battery in %, by the rule the replay UI shows it with."""
-    if level is None or level != level:
-        return None
-    pct = level * 100 if level <= 1 else level * 20 if level <= 5 else level
-    return round(min(100.0, max(0.0, pct)), 1)
-
-
-def export_table(
-    store, dataset: str, fmt: str, from_ms: int, to_ms: int, robot_id: str | None = None
-) -> bytes:
-    """`dataset` rows with from <= time < to, in ClickHouse's CSVWithNames or Parquet."""
-    view, time_column = TABLES[dataset]
-    clickhouse_format, _ = TABLE_FORMATS[fmt]
-    robot_filter = " AND robot_id = {robot:String}" if robot_id and dataset not in _NO_ROBOT else ""
-    final = " FINAL" if view in _READ_FINAL else ""
-    sql = (
-        f"SELECT * FROM {store.database}.{view}{final} WHERE {time_column} >= "
-        "fromUnixTimestamp64Milli({from_ms:Int64}, 'UTC') AND "
-        f"{time_column} < fromUnixTimestamp64Milli({{to_ms:Int64}}, 'UTC'){robot_filter} "
-        f"ORDER BY {time_column}"
-    )
-    return store.export_query(
-        sql, {"from_ms": from_ms, "to_ms": to_ms, "robot": robot_id or ""}, clickhouse_format
-    )
 
 
 @dataclass
@@ -235,7 +76,7 @@ class _McapOut:
                 self._schemas[schema] = register()
             channel = self._channels[topic] = self.writer.register_channel(
                 topic=topic,
-                message_encoding="json" if schema in _JSON_SCHEMAS else "protobuf",
+                message_encoding="json" if schema in JSON_SCHEMAS else "protobuf",
                 schema_id=self._schemas[schema],
             )
         return channel
@@ -255,7 +96,7 @@ class _McapOut:
             topic,
             schema,
             lambda: self.writer.register_schema(
-                name=schema, encoding="jsonschema", data=json.dumps(_JSON_SCHEMAS[schema]).encode()
+                name=schema, encoding="jsonschema", data=json.dumps(JSON_SCHEMAS[schema]).encode()
             ),
         )
         self._add(channel, json.dumps(doc, separators=(",", ":")).encode(), ts_ms)
