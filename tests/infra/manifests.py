@@ -23,6 +23,7 @@ INFRA_README = INFRA / "README.md"
 DOCKERIGNORE = ROOT / ".dockerignore"
 STRIMZI_TOPICS = K8S / "strimzi-topics.yaml"
 KUSTOMIZATION = K8S / "kustomization.yaml"
+PLATFORM = K8S / "platform"  # the operators' custom resources: Kafka, EMQX, ClickHouse
 
 COMPONENTS = {"gateway", "processors", "api"}
 ONE_SHOT = {"migrate"}  # runs to completion once per release
@@ -87,6 +88,16 @@ def kustomize_resources() -> list[str]:
 def k8s_docs() -> list[dict]:
     """Every document of the manifests kustomization.yaml deploys."""
     return [doc for name in kustomize_resources() for doc in load_all(K8S / name)]
+
+
+def k8s_objects() -> list[tuple[Path, dict]]:
+    """Every Kubernetes object in infra/k8s (recursively), with its file."""
+    found = []
+    for path in sorted(K8S.rglob("*.yaml")):
+        for doc in yaml.safe_load_all(path.read_text()):
+            if doc and "kind" in doc and doc.get("apiVersion") != "kustomize.config.k8s.io/v1beta1":
+                found.append((path, doc))
+    return found
 
 
 def jobs() -> list[tuple[dict, dict]]:

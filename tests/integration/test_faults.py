@@ -12,9 +12,9 @@ restarts each. Mosquitto runs as the stack runs it for `up`: its store (sessions
 QoS 1 messages) in the data dir.
 
 The load (fault_load.py): robots publishing poses and chunks at QoS 1, each message's
-identity recorded with whether the broker acknowledged it, counted apart per fault:
-published, acknowledged, stored, duplicated, lost, and the time until queryable again. The
-report is printed and written to test-artifacts/faults.json.
+identity recorded with whether the broker acknowledged it, counted apart per fault (the
+verdict, fault_verdict.py): published, acknowledged, stored, duplicated, lost, and the time
+until queryable again. The report is printed and written to test-artifacts/faults.json.
 
 Kafka is the embedded Apache Kafka node (its log on disk): a SIGKILLed broker restarts on
 its log, so a Kafka kill, alone or while ClickHouse is down, must lose nothing either.
@@ -57,11 +57,9 @@ from .fault_load import (
     FaultRun,
     Load,
     Sql,
-    assert_guarantees,
     run_fault,
-    verify,
-    write_report,
 )
+from .fault_verdict import assert_guarantees, verify, write_report
 from .test_split_topology import start_clickhouse_server
 
 # ---- the split deployment: the test kills and restarts each part -------------------------

@@ -40,9 +40,8 @@ from .fault_load import (
     now_ms,
     queryable,
     run_fault,
-    verify,
-    write_report,
 )
+from .fault_verdict import verify, write_report
 
 NODES = (1, 2, 3)
 

@@ -246,7 +246,8 @@ def test_every_reason_code_has_a_bad_message() -> None:
     """Every Reason of the 2019 codec has a case above; the router's and the gateway's
     (unknown_topic, internal_error, record_too_large, too_many_new_robots) and the VDA 5050
     ingest's (vda_*) and the command answers' are tested in tests/ingest (test_ingestor.py,
-    test_vda5050.py, test_command_responses.py)."""
+    test_ingestor_poison.py, test_mqtt_gateway.py, test_vda5050.py,
+    test_command_responses.py)."""
     covered = {c.reason for c in BAD_CASES}
     elsewhere = {
         Reason.UNKNOWN_TOPIC,

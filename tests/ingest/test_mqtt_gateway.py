@@ -1,0 +1,142 @@
+"""The MQTT side of the gateway (MqttGateway): its metrics, its batched acknowledgements,
+its health, and what paho hands it that the router never sees."""
+
+from __future__ import annotations
+
+from mapservice.ingest.gateway import Ingestor
+
+from mapservice.settings import Settings
+from mapservice.testing.memory_publisher import MemoryPublisher
+from tests.ingest.ingestor_kit import settings  # noqa: F401  (a fixture)
+
+
+def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
+    """The rejected counter exists at 0 for each reason before any message is rejected."""
+    import mapservice.ingest.metrics  # noqa: F401
+    from prometheus_client import REGISTRY
+
+    from mapservice.core.wire2019 import Reason
+
+    for reason in Reason:
+        assert (
+            REGISTRY.get_sample_value("mapservice_gateway_rejected_total", {"reason": reason.value})
+            is not None
+        )
+
+
+def test_the_mqtt_connected_gauge_follows_the_session() -> None:
+    """mapservice_gateway_mqtt_connected is 1 after a successful connect and 0 after a disconnect."""
+    from mapservice.ingest.gateway import MqttGateway
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.reasoncodes import ReasonCode
+    from prometheus_client import REGISTRY
+
+    from mapservice.settings import Settings
+
+    class Client:
+        def subscribe(self, topics):
+            self.topics = topics
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway._on_connect(Client(), None, None, ReasonCode(PacketTypes.CONNACK, "Success"), None)
+    assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 1
+    gateway._on_disconnect(
+        Client(), None, None, ReasonCode(PacketTypes.DISCONNECT, "Normal disconnection"), None
+    )
+    assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 0
+
+
+# --- poison messages: none stops the gateway -----------------------------------------------
+class AckLog:
+    """paho's client as the gateway acknowledges through it: each ack_many call's acks."""
+
+    def __init__(self) -> None:
+        self.batches: list = []
+
+    def ack_many(self, acks) -> None:
+        self.batches.append(list(acks))
+
+
+def memory_gateway(settings):
+    """An MqttGateway producing into memory, its MQTT client an AckLog."""
+    from mapservice.ingest.gateway import MqttGateway
+
+    from mapservice.adapters.clock import SystemClock
+    from mapservice.testing.memory_publisher import MemoryPublisher
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway.publisher = MemoryPublisher()
+    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+    gateway.client = AckLog()
+    return gateway
+
+
+def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings, wire) -> None:
+    """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
+    confirmations in one ack_many call."""
+    gateway = memory_gateway(settings)
+    for mid in (1, 2, 3):
+        msg = type(
+            "Msg",
+            (),
+            {"topic": "iot/coordinates/blabla", "payload": wire.pose(), "mid": mid, "qos": 1},
+        )
+        gateway._on_message(gateway.client, None, msg)
+    assert gateway.client.batches == [] and gateway.ingestor.in_flight == 3  # not in Kafka yet
+    gateway._poll()
+    assert gateway.client.batches == [[(1, 1), (2, 1), (3, 1)]] and gateway.ingestor.in_flight == 0
+    gateway._poll()
+    assert len(gateway.client.batches) == 1  # nothing new: no empty ack_many
+
+
+def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
+    """/healthz's status says not ok when paho's network thread has ended, connected or not."""
+    import threading
+
+    from mapservice.ingest.gateway import MqttGateway
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway._connected.set()
+
+    class Client:
+        _thread = threading.Thread(target=lambda: None)
+
+    gateway.client = Client()
+    Client._thread.start()
+    Client._thread.join()
+    status = gateway.status()
+    assert status["ok"] is False and status["mqtt_loop_alive"] is False
+
+
+def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wire) -> None:
+    """mapservice_gateway_in_flight is the ingestor's count of messages Kafka has not confirmed."""
+    from mapservice.ingest.gateway import MqttGateway
+    from prometheus_client import REGISTRY
+
+    from mapservice.adapters.clock import SystemClock
+
+    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    gateway.publisher = MemoryPublisher()
+    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+    for _mid in (1, 2):
+        gateway.ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None)
+    assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 2
+    gateway.publisher.poll()
+    assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 0
+
+
+def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings, wire) -> None:
+    """paho raises on reading such a topic; the gateway dead-letters the message (acked) and goes on."""
+    import paho.mqtt.client as mqtt
+
+    gateway = memory_gateway(settings)
+    bad = mqtt.MQTTMessage(mid=4, topic=b"iot/coordinates/\xff")
+    bad.payload, bad.qos = wire.pose(), 1
+    good = mqtt.MQTTMessage(mid=5, topic=b"iot/coordinates/blabla")
+    good.payload, good.qos = wire.pose(), 1
+    gateway._on_message(gateway.client, None, bad)
+    gateway._on_message(gateway.client, None, good)
+    gateway._poll()
+    assert gateway.client.batches == [[(4, 1), (5, 1)]]
+    letters = [value for _, value in gateway.publisher.records[settings.topic_dead_letter]]
+    assert len(letters) == 1 and b"unknown_topic" in letters[0] and b"not-utf8:" in letters[0]
