@@ -16,7 +16,6 @@ REST and MQTT API (appendix A):
 
 from __future__ import annotations
 
-import base64
 import os
 import queue
 import signal
@@ -24,7 +23,6 @@ import sys
 import threading
 import time
 import zlib
-from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import httpx
@@ -33,22 +31,17 @@ import numpy as np
 import structlog
 import yaml
 
-from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
-from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, write_pgm
+from mapservice.adapters.ros_map import load_ros_map, write_pgm
 from mapservice.core.events import MapMetaSet
-from mapservice.core.wire2019 import (
-    content_hash,
-    encode_chunk_create,
-    encode_coordinates,
-    format_timestamp,
-)
+from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .api_client import api_client, writer_token
-from .chunks import chunk_pixels, meta_to_json, paste_chunk
+from .chunks import meta_to_json
 from .commands import CommandInbox, SimCommands, command_topic, refusals
 from .connection import RobotMqtt, robot_mqtt_from_args
-from .faults import yaw_quaternion
+from .local_map import LocalMap, chunk_body, compatible, decode_chunk_doc
 from .map_upload import stored_meta
+from .pose_sources import OdometryPose, SimulatedPose
 
 log = structlog.get_logger("robot")
 
@@ -56,194 +49,6 @@ ADVERTISEMENT_TOPIC = "iot/chunks/advertisement"
 CHUNK_TOPIC = "iot/chunks/create"
 META_PATH = "/api/chunk-service/meta"
 CHUNKS_PATH = "/api/chunk-service/chunks"
-
-
-# --- the local map and what changed in it (pure) ---------------------------------------------
-
-
-@dataclass
-class LocalMap:
-    """The robot's map pixels and, per chunk, what the service is known to hold."""
-
-    pixels: np.ndarray
-    meta: MapMetaSet
-    fill: int
-    known: dict[tuple[int, int], tuple[bytes, bytes]] = field(default_factory=dict)  # hash, pixels
-
-    @classmethod
-    def of(cls, ros_map: RosMap, chunk_width: int = 100, chunk_height: int = 100) -> LocalMap:
-        local = cls(
-            ros_map.pixels.copy(),
-            meta_for(ros_map, chunk_width, chunk_height),
-            ros_map.unknown_value,
-        )
-        local.mark_all_known()
-        return local
-
-    def chunk(self, row: int, column: int) -> bytes:
-        return chunk_pixels(self.pixels, self.meta, row, column, self.fill)
-
-    def cells(self):
-        return ((r, c) for r in range(self.meta.chunk_rows) for c in range(self.meta.chunk_cols))
-
-    def mark_all_known(self) -> None:
-        for rc in self.cells():
-            data = self.chunk(*rc)
-            self.known[rc] = (content_hash(data), data)
-
-    def changes(self, pixels: np.ndarray, threshold: float = 0.0) -> list[tuple[int, int, bytes]]:
-        """Chunks of `pixels` whose hash differs from the known one and of which more than
-        `threshold` (a fraction of the chunk's pixels) changed; they become the known ones."""
-        self.pixels = pixels
-        out = []
-        for rc in self.cells():
-            data = self.chunk(*rc)
-            digest = content_hash(data)
-            known_hash, known = self.known.get(rc, (b"", b""))
-            if digest == known_hash:
-                continue
-            if known and len(known) == len(data):
-                changed = np.count_nonzero(
-                    np.frombuffer(data, np.uint8) != np.frombuffer(known, np.uint8)
-                )
-                if changed <= threshold * len(data):
-                    continue  # small noise: keep comparing against what the service holds
-            self.known[rc] = (digest, data)
-            out.append((*rc, data))
-        return out
-
-    def integrate(self, row: int, column: int, data: bytes) -> bool:
-        """Writes a chunk from the service into the map; False when it held it already."""
-        if not (0 <= row < self.meta.chunk_rows and 0 <= column < self.meta.chunk_cols):
-            return False
-        if len(data) != self.meta.chunk_width * self.meta.chunk_height:
-            raise ValueError(f"chunk ({row}, {column}) has {len(data)} bytes")
-        digest = content_hash(data)
-        self.known[(row, column)] = (digest, data)
-        if self.chunk(row, column) == data:
-            return False
-        pixels = self.pixels.copy()
-        paste_chunk(pixels, self.meta, row, column, data)
-        self.pixels = pixels
-        return True
-
-
-def decode_chunk_doc(doc: dict) -> tuple[int, int, bytes]:
-    """(row, column, pixels) of a chunk as the REST API returns it (listing 13)."""
-    kind = doc.get("type", "pgm_base64_compressed")
-    if kind != "pgm_base64_compressed":
-        raise ValueError(f"chunk type {kind!r}; ask for pgm_base64_compressed")
-    raw = doc.get("chunk") or doc.get("pgmB64compressedData")
-    if raw is None:
-        raise ValueError("chunk document has no 'chunk' field")
-    return int(doc["row"]), int(doc["column"]), zlib.decompress(base64.b64decode(raw))
-
-
-def chunk_body(row: int, column: int, data: bytes, robot_id: str, t_ms: int) -> dict:
-    """Listing 10: the JSON a robot POSTs to /api/chunk-service/chunks."""
-    return msgspec.json.decode(
-        encode_chunk_create(row, column, data, format_timestamp(t_ms), robot_id)
-    )
-
-
-def compatible(local: MapMetaSet, remote: MapMetaSet) -> bool:
-    return (local.width, local.height, local.chunk_width, local.chunk_height) == (
-        remote.width,
-        remote.height,
-        remote.chunk_width,
-        remote.chunk_height,
-    )
-
-
-# --- pose sources ----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class PoseReading:
-    x: float
-    y: float
-    yaw_q: tuple[float, float, float, float]
-    battery: float = 100.0
-    charging: bool = False
-    loaded: bool = False
-    path: tuple[tuple[float, float], ...] | None = None
-
-
-class SimulatedPose:
-    """One robot of the simulator, driving between stations of the robot's own map."""
-
-    def __init__(self, ros_map: RosMap, robot_id: str, seed: int = 0) -> None:
-        from .sim import SimConfig, new_state
-
-        seed = seed or sum(robot_id.encode())
-        state = new_state(ros_map, 1, seed=seed, config=SimConfig(change_every_s=0))
-        self.state = replace(state, robots=(replace(state.robots[0], robot_id=robot_id),))
-        self.commands: SimCommands | None = None  # the agent's, once it reads commands
-
-    def read(self) -> PoseReading | None:
-        from .sim import step
-
-        if self.commands is None:
-            self.state, out = step(self.state)
-        else:
-            before = self.commands.before_step(self.state)
-            self.state, out = self.commands.after_step(before, *step(before))
-        p = out.poses[0]
-        return PoseReading(p.x, p.y, yaw_quaternion(p.yaw), p.battery, p.charging, p.loaded, p.path)
-
-
-def parse_odometry(data: bytes) -> PoseReading | None:
-    """nav_msgs/Odometry as JSON ({"pose": {"pose": {...}}}), a bare geometry_msgs/Pose
-    ({"position", "orientation"}) or one wrapped in "pose"; optional battery/charging/loaded."""
-    try:
-        doc = msgspec.json.decode(data)
-        pose = doc
-        while isinstance(pose, dict) and "pose" in pose and "position" not in pose:
-            pose = pose["pose"]
-        pos, ori = pose["position"], pose.get("orientation") or {"x": 0, "y": 0, "z": 0, "w": 1}
-        status = doc.get("status") or {}
-        battery = (status.get("battery") or {}) if isinstance(status, dict) else {}
-        return PoseReading(
-            float(pos["x"]),
-            float(pos["y"]),
-            (float(ori["x"]), float(ori["y"]), float(ori["z"]), float(ori["w"])),
-            float(battery.get("battery_level", doc.get("battery", 100.0))),
-            bool(battery.get("charging", doc.get("charging", False))),
-            bool(status.get("loaded", doc.get("loaded", False))),
-        )
-    except (msgspec.DecodeError, KeyError, TypeError, ValueError, AttributeError):
-        return None
-
-
-class OdometryPose:
-    """The latest odometry message of a local MQTT topic, re-stamped when published."""
-
-    def __init__(self, mqtt_url: str, topic: str) -> None:
-        self.latest: PoseReading | None = None
-        self.bad = 0
-        host, port, tls = parse_mqtt_url(mqtt_url)
-        self.client = make_client(f"odom-{os.getpid()}-{time.time_ns() % 10**6}", tls=tls)
-        self.client.on_connect = lambda c, *_: c.subscribe(topic, qos=0)
-        self.client.on_message = self._on_message
-        self.client.connect(host, port, keepalive=30)
-        self.client.loop_start()
-
-    def _on_message(self, client, userdata, msg) -> None:
-        reading = parse_odometry(msg.payload)
-        if reading is None:
-            self.bad += 1
-        else:
-            self.latest = reading
-
-    def read(self) -> PoseReading | None:
-        return self.latest
-
-    def close(self) -> None:
-        self.client.loop_stop()
-        self.client.disconnect()
-
-
-# --- the agent -------------------------------------------------------------------------------
 
 
 class RobotAgent:

@@ -14,7 +14,9 @@ import httpx
 import msgspec
 import numpy as np
 import pytest
-from mapservice.robot.agent import LocalMap, RobotAgent, decode_chunk_doc, parse_odometry
+from mapservice.robot.agent import RobotAgent
+from mapservice.robot.local_map import LocalMap, decode_chunk_doc
+from mapservice.robot.pose_sources import parse_odometry
 
 from mapservice.adapters.ros_map import load_ros_map
 from tests.fixtures.paths import MAPS
@@ -205,7 +207,7 @@ def test_decode_chunk_doc_and_odometry() -> None:
 def test_simulated_pose_source_publishes_a_2019_pose(tmp_path) -> None:
     """With the simulated pose source, each tick publishes one listing-16 pose (with a
     planned path once the robot has a route) on iot/coordinates/<robotId>."""
-    from mapservice.robot.agent import SimulatedPose
+    from mapservice.robot.pose_sources import SimulatedPose
 
     service = FakeChunkService()
     agent = make_agent(tmp_path, "robot-s", service)
@@ -286,8 +288,8 @@ def test_the_agent_obeys_commands_with_its_simulated_pose_and_refuses_with_odome
     odometry source it cannot drive the robot, so it rejects the command, saying why."""
     from types import SimpleNamespace
 
-    from mapservice.robot.agent import SimulatedPose
     from mapservice.robot.commands import command_topic, response_topic
+    from mapservice.robot.pose_sources import SimulatedPose
 
     from mapservice.core.commands import CommandIssued, command_message
 

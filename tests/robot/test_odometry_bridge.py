@@ -7,7 +7,8 @@ import time
 
 import msgspec
 import pytest
-from mapservice.robot.agent import OdometryPose, RobotAgent
+from mapservice.robot.agent import RobotAgent
+from mapservice.robot.pose_sources import OdometryPose
 
 from mapservice.adapters.mqtt_client import make_client
 from mapservice.core.wire2019 import parse_timestamp
