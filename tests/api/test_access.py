@@ -9,8 +9,9 @@ import re
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from mapservice.api.access import READ, Scope, check_routes
+from mapservice.api.access import READ, check_routes
 from mapservice.api.app import create_app
+from mapservice.api.credentials import Scope
 from mapservice.api.live_hub import LiveHub
 from starlette.websockets import WebSocketDisconnect
 
