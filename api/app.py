@@ -18,8 +18,10 @@ from mapservice.adapters.clock import SystemClock
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.settings import Settings
 
-from .access import AccessGuard, Credentials, check_routes, document_scopes
+from .access import check_routes, document_scopes
+from .access_guard import AccessGuard
 from .admission import AdmissionControl, default_pool_of
+from .credentials import Credentials
 from .limits import BodyLimit, validation_error
 from .routers import (
     annotations as annotation_routes,

@@ -35,8 +35,9 @@ from mapservice.core.ports import AnnotationReader, Clock, EventPublisher, TimeT
 from mapservice.core.zone_masks import mask_to_zones
 from mapservice.settings import Settings
 
-from ..access import OPERATE, READ, Caller
+from ..access import OPERATE, READ
 from ..annotation_state import recent_edits, standing
+from ..credentials import Caller
 from ..deps import WindowQuery, at_instant, get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 

@@ -9,7 +9,8 @@ from typing import Annotated
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel
 
-from ..access import GRANTS, READ, Caller
+from ..access import READ
+from ..credentials import GRANTS, Caller
 
 router = APIRouter(prefix="/api/v1/caller", tags=["access"])
 

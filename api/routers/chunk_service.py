@@ -33,7 +33,8 @@ from mapservice.core.render import chunk_pixels, png
 from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
 from mapservice.settings import Settings
 
-from ..access import ADMIN, READ, WRITE, Caller, Scope, require, require_robot
+from ..access import ADMIN, READ, WRITE, require, require_robot
+from ..credentials import Caller, Scope
 from ..deps import get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 

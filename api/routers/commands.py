@@ -32,7 +32,8 @@ from mapservice.core.ports import Clock, EventPublisher, HistoryStore
 from mapservice.core.vda_ids import vehicle_of
 from mapservice.settings import Settings
 
-from ..access import OPERATE, READ, Caller
+from ..access import OPERATE, READ
+from ..credentials import Caller
 from ..deps import WindowQuery, get_clock, get_settings, get_store
 from ..publishing import get_publisher, publish_and_wait
 

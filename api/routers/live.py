@@ -13,7 +13,8 @@ from pydantic import TypeAdapter, ValidationError
 
 from mapservice.core.live_messages import LiveText
 
-from ..access import LIVE_SUBPROTOCOL, SOCKET_READ
+from ..access import SOCKET_READ
+from ..credentials import LIVE_SUBPROTOCOL
 from ..limits import allowed_hosts, host_allowed, origin_allowed
 
 router = APIRouter(tags=["live"])

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.access import Scope
+from mapservice.api.credentials import Scope
 from mapservice.api.live_hub import LiveHub
 from starlette.websockets import WebSocketDisconnect
 
