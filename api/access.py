@@ -19,7 +19,6 @@ from mapservice.settings import Settings
 
 from .access_guard import DOCS_PATHS
 from .credentials import (
-    TOKEN_SUBPROTOCOL,
     WHO_MAY,
     Caller,
     Scope,
@@ -27,6 +26,7 @@ from .credentials import (
     client_address,
     decide,
     denied,
+    subprotocol_token,
 )
 
 STATE_CHANGING = ("POST", "PUT", "PATCH", "DELETE")
@@ -118,12 +118,8 @@ class NeedSocket:
 
     def __call__(self, websocket: WebSocket) -> Caller:
         token = bearer_token(websocket.headers.get("authorization"))
-        offered = [
-            p.strip() for p in websocket.headers.get("sec-websocket-protocol", "").split(",")
-        ]
-        for protocol in offered:
-            if token is None and protocol.startswith(TOKEN_SUBPROTOCOL):
-                token = protocol[len(TOKEN_SUBPROTOCOL) :]
+        if token is None:
+            token = subprotocol_token(websocket.headers.get("sec-websocket-protocol", ""))
         try:
             return decide(
                 websocket.app.state.access,

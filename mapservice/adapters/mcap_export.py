@@ -124,8 +124,8 @@ class _Floor:
     def apply(self, changes: list[tuple[int, int, str]]) -> None:
         missing = [bytes.fromhex(h) for _, _, h in changes if h not in self._contents]
         if missing:
-            for digest, content in self.store.chunk_contents(missing).items():
-                self._contents[digest.hex()] = content
+            for stored_hash, stored in self.store.chunk_contents(missing).items():
+                self._contents[stored_hash.hex()] = stored
         cw, ch = self.meta.chunk_width, self.meta.chunk_height
         for row, col, digest in changes:
             content = self._contents.get(digest)

@@ -85,6 +85,11 @@ def test_live_stream_needs_a_token_where_reads_do() -> None:
     ) as ws:
         assert ws.accepted_subprotocol == "mapservice.live"
         ws.close()
+    # An empty `bearer.` is no token: refused with the reason that says what to send.
+    with pytest.raises(WebSocketDisconnect) as refused:
+        with client.websocket_connect(LIVE_URL, subprotocols=["mapservice.live", "bearer."]) as ws:
+            ws.receive_json()
+    assert refused.value.code == 1008 and "needs" in refused.value.reason
     open_client = TestClient(app_for(settings_for("open"), live_hub=LiveHub()))
     with open_client.websocket_connect(LIVE_URL) as ws:
         ws.close()
