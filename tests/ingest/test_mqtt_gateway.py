@@ -68,7 +68,9 @@ def memory_gateway(gateway, settings):
     return gateway
 
 
-def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(gateway, settings, wire) -> None:
+def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(
+    gateway, settings, wire
+) -> None:
     """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
     confirmations in one ack_many call."""
     gateway = memory_gateway(gateway, settings)
@@ -89,7 +91,6 @@ def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(gateway, 
 def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(gateway, settings) -> None:
     """/healthz's status says not ok when paho's network thread has ended, connected or not."""
     import threading
-
 
     gateway._connected.set()
 
@@ -118,7 +119,9 @@ def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(gateway, sett
     assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 0
 
 
-def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(gateway, settings, wire) -> None:
+def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(
+    gateway, settings, wire
+) -> None:
     """paho raises on reading such a topic; the gateway dead-letters the message (acked) and goes on."""
     import paho.mqtt.client as mqtt
 
