@@ -15,8 +15,12 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from functools import partial
+from typing import TYPE_CHECKING
 
 import structlog
+
+if TYPE_CHECKING:
+    from confluent_kafka.admin import AdminClient
 
 log = structlog.get_logger(__name__)
 
@@ -132,7 +136,7 @@ class KafkaMetadata:
     def __init__(self, settings) -> None:
         self._config = settings.kafka_config()
         self._lock = threading.Lock()
-        self.admin = None
+        self.admin: AdminClient | None = None
 
     def __call__(self, timeout_s: float) -> bool:
         from confluent_kafka.admin import AdminClient

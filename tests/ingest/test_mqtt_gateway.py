@@ -4,10 +4,8 @@ its health, and what paho hands it that the router never sees."""
 from __future__ import annotations
 
 import pytest
-
 from mapservice.ingest.gateway import Ingestor
 
-from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.ingest.ingestor_kit import gateway, settings  # noqa: F401  (fixtures)
 
@@ -31,8 +29,6 @@ def test_the_mqtt_connected_gauge_follows_the_session(gateway) -> None:
     from paho.mqtt.packettypes import PacketTypes
     from paho.mqtt.reasoncodes import ReasonCode
     from prometheus_client import REGISTRY
-
-    from mapservice.settings import Settings
 
     class Client:
         def subscribe(self, topics):

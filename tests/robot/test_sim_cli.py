@@ -7,7 +7,6 @@ from __future__ import annotations
 import signal
 
 import pytest
-
 from mapservice.robot import sim_cli
 
 
@@ -53,7 +52,7 @@ def test_ctrl_c_stops_the_fleet_and_an_unreachable_broker_says_what_to_do() -> N
     fleet = Fleet(KeyboardInterrupt())
     sim_cli._run_fleet(lambda: fleet, Fleet.run, "mqtt://x:1")
     assert fleet.stopped == 1
-    with pytest.raises(SystemExit, match="cannot reach the MQTT broker at mqtt://x:1.*--mqtt-url"):
+    with pytest.raises(SystemExit, match=r"cannot reach the MQTT broker at mqtt://x:1.*--mqtt-url"):
         sim_cli._run_fleet(lambda: Fleet(ConnectionRefusedError()), Fleet.run, "mqtt://x:1")
 
 
