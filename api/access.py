@@ -19,6 +19,7 @@ from mapservice.settings import Settings
 
 from .access_guard import DOCS_PATHS
 from .credentials import (
+    GRANTS,
     WHO_MAY,
     Caller,
     Scope,
@@ -27,6 +28,7 @@ from .credentials import (
     decide,
     denied,
     subprotocol_token,
+    tokens_of,
 )
 
 STATE_CHANGING = ("POST", "PUT", "PATCH", "DELETE")
@@ -36,8 +38,8 @@ _bearer = HTTPBearer(
     auto_error=False,
     scheme_name="bearer",
     description=(
-        "A reader, writer (robot) or admin token: `Authorization: Bearer <token>`. Which one an "
-        "operation needs is its `x-mapservice-scope`."
+        f"Send {tokens_of(tuple(GRANTS))} as `Authorization: Bearer <token>`. Which roles "
+        "an operation admits is its `x-mapservice-scope`; its 403 answer names them."
     ),
 )
 _WHAT = {

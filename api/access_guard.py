@@ -19,19 +19,21 @@ from starlette.types import Scope as AsgiScope
 
 from .admission import CALLER_KEY, deny_socket
 from .credentials import (
-    WHO_MAY,
     Caller,
     Credentials,
-    Scope,
     bearer_token,
     client_address,
     denied,
     subprotocol_token,
+    tokens_of,
 )
 
 DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 # Not rate-limited: the kubelet's probes must never be refused for being frequent.
 UNLIMITED_PATHS = ("/healthz", "/readyz")
+# Who may read the docs pages while MAPSERVICE_API_DOCS_ACCESS=token: the roles this guard has
+# always admitted, not every holder of the read scope (operator and robot tokens get a 403).
+DOCS_ROLES = ("reader", "writer", "admin")
 
 
 class AccessGuard:
@@ -110,11 +112,11 @@ class AccessGuard:
             return denied(
                 401, "the bearer token is not one of this service's credentials", "invalid_token"
             )
-        if caller.role in ("reader", "writer", "admin"):
+        if caller.role in DOCS_ROLES:
             return None
         return denied(
             401 if caller.role is None else 403,
-            f"the API documentation needs {WHO_MAY[Scope.READ]} (MAPSERVICE_API_DOCS_ACCESS=token)",
+            f"the API documentation needs {tokens_of(DOCS_ROLES)} (MAPSERVICE_API_DOCS_ACCESS=token)",
         )
 
 

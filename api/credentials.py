@@ -48,18 +48,35 @@ GRANTS: dict[str, frozenset[Scope]] = {
     "admin": frozenset({Scope.READ, Scope.WRITE, Scope.ADMIN, Scope.OPERATE, Scope.METRICS}),
     "metrics": frozenset({Scope.METRICS}),
 }
-WHO_MAY = {
-    Scope.READ: "a reader, writer or admin token (MAPSERVICE_API_READER_TOKENS, "
-    "MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
-    Scope.WRITE: "a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, "
-    "MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN)",
-    Scope.ADMIN: "the administrator token (MAPSERVICE_ADMIN_TOKEN)",
-    Scope.OPERATE: "an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, "
-    "MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor "
-    "nor command robots",
-    Scope.METRICS: "the metrics token or the admin token (MAPSERVICE_API_METRICS_TOKEN, "
-    "MAPSERVICE_ADMIN_TOKEN)",
+# The setting each role's tokens come from, for the answers that say which token to send.
+ROLE_SETTINGS: dict[str, str] = {
+    "reader": "MAPSERVICE_API_READER_TOKENS",
+    "writer": "MAPSERVICE_API_WRITER_TOKENS",
+    "robot": "MAPSERVICE_API_ROBOT_TOKENS",
+    "operator": "MAPSERVICE_API_OPERATOR_TOKENS",
+    "admin": "MAPSERVICE_ADMIN_TOKEN",
+    "metrics": "MAPSERVICE_API_METRICS_TOKEN",
 }
+
+
+def holders(scope: Scope) -> tuple[str, ...]:
+    """The roles that hold `scope`, in GRANTS' order."""
+    return tuple(role for role, scopes in GRANTS.items() if scope in scopes)
+
+
+def tokens_of(roles: tuple[str, ...]) -> str:
+    """'a reader, writer or admin token (their settings)': the words a refusal names."""
+    if not roles:
+        raise ValueError("no role given: name at least one role")
+    named = roles[0] if len(roles) == 1 else f"{', '.join(roles[:-1])} or {roles[-1]}"
+    article = "an" if named[0] in "aeiou" else "a"
+    settings = ", ".join(ROLE_SETTINGS[role] for role in roles)
+    return f"{article} {named} token ({settings})"
+
+
+# Who may open each scope, derived from GRANTS so that what a refusal says cannot drift from
+# what the check does (PUBLIC is held by no role: nobody is ever refused it).
+WHO_MAY: dict[Scope, str] = {scope: tokens_of(holders(scope)) for scope in Scope if holders(scope)}
 # Browsers connect to /api/v1/live without headers of their own: they offer these two
 # WebSocket subprotocols, the second carrying the token; the first is the one accepted.
 LIVE_SUBPROTOCOL = "mapservice.live"

@@ -256,7 +256,9 @@ class MqttGateway:
     def __init__(self, settings: Settings, health_port: int | None = None) -> None:
         self.settings = settings
         self.gateway_id = settings.mqtt_client_id
-        self.publisher = KafkaPublisher(settings, client_id=self.gateway_id)
+        # Kept apart from `publisher` (which tests may swap): close() releases what was made here.
+        self._kafka = KafkaPublisher(settings, client_id=self.gateway_id)
+        self.publisher: EventPublisher = self._kafka
         self.ingestor = Ingestor(
             settings, self.publisher, clock_from_settings(settings), self.gateway_id
         )
@@ -388,6 +390,7 @@ class MqttGateway:
             self.client.loop_stop()
             self.meta_watcher.stop()
             self.command_relay.stop()
+            self.close()
             log.info("gateway stopped", undelivered=remaining)
 
     def _poll(self) -> None:
@@ -406,6 +409,13 @@ class MqttGateway:
 
     def stop(self, *_args) -> None:
         self._stop.set()
+
+    def close(self) -> None:
+        """Releases the gateway's Kafka clients without waiting for Kafka (run() has flushed
+        what it took by then): neither its producer nor its readiness check's admin client
+        goes on dialling the brokers."""
+        self._kafka.close()
+        self.kafka_ready.close()
 
 
 def run_gateway(settings: Settings, health_port: int | None = None) -> None:

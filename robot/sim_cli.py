@@ -2,9 +2,20 @@
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import time
+from collections.abc import Callable
+from typing import Protocol, TypeVar
+
+
+class _Fleet(Protocol):
+    def stop(self) -> None: ...
+
+
+F = TypeVar("F", bound=_Fleet)
+PROGRESS_EVERY_S = 10.0  # how often a run without a terminal logs its progress
 
 
 def cmd_sim(args) -> None:
@@ -40,8 +51,9 @@ def cmd_sim(args) -> None:
         if args.no_zones
         else ZoneFeed(args.api or settings.public_base_url, writer_token(args.token))
     )
-    try:
-        runner = SimRunner(
+
+    def make_runner() -> SimRunner:
+        return SimRunner(
             mqtt_url,
             ros_map,
             args.robots,
@@ -53,75 +65,88 @@ def cmd_sim(args) -> None:
             zone_feed=feed,
             zone_topic=settings.zone_advertisement_topic,
         )
-    except ValueError as exc:
-        sys.exit(f"mapservice sim: {exc}")
-    signal.signal(signal.SIGTERM, lambda *_: runner.stop())
+
     console = Console()
-    log.info("simulated robots starting", robots=args.robots, map=str(args.map), mqtt=mqtt_url)
-    last = [0.0]
+    due = _every(PROGRESS_EVERY_S)
 
     def log_progress(r) -> None:
-        now = time.monotonic()
-        if now - last[0] >= 10:
-            last[0] = now
-            s = r.stats
-            log.info(
-                "simulating",
-                robots=s.robots,
-                poses=s.poses,
-                chunks=s.chunks,
-                bad=s.bad,
-                lost=s.lost,
-                errors=s.errors,
-                map_changes=s.map_changes,
-                rate_per_s=round(s.rate(), 1),
-            )
+        if due():
+            log.info("simulating", **_sim_stats(r.stats), rate_per_s=round(r.stats.rate(), 1))
 
-    def run() -> None:
+    def run(runner: SimRunner) -> None:
+        log.info("simulated robots starting", robots=args.robots, map=str(args.map), mqtt=mqtt_url)
         if console.is_terminal and not args.quiet:
             with Live(progress_table(runner), console=console, refresh_per_second=2) as live:
                 runner.run(args.seconds, on_tick=lambda r: live.update(progress_table(r)))
         else:
             runner.run(args.seconds, on_tick=log_progress)
 
-    _until_stopped(run, runner.stop, mqtt_url)
-    s = runner.stats
-    log.info(
-        "simulation stopped",
-        robots=s.robots,
-        poses=s.poses,
-        chunks=s.chunks,
-        bad=s.bad,
-        lost=s.lost,
-        errors=s.errors,
-        map_changes=s.map_changes,
-    )
+    runner = _run_fleet(make_runner, run, mqtt_url)
+    log.info("simulation stopped", **_sim_stats(runner.stats))
 
 
 def _load_test(args, mqtt_url, ros_map, log, conn) -> None:
     """The 2019 load test: one pose a second, the same chunks re-sent at new positions."""
     from mapservice.robot.loadgen import RobotFleet
 
-    try:
-        fleet = RobotFleet(mqtt_url, ros_map, args.robots, prefix=args.prefix, mqtt_conn=conn)
-    except ValueError as exc:
-        sys.exit(f"mapservice sim: {exc}")
-    signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
-    started, last = time.monotonic(), [0.0]
+    started, due = time.monotonic(), _every(PROGRESS_EVERY_S)
 
     def progress(stats) -> None:
-        now = time.monotonic()
-        if now - last[0] >= 10:
-            last[0] = now
+        if due():
+            elapsed = max(time.monotonic() - started, 1e-9)
             log.info(
                 "simulating (load test)",
                 robots=args.robots,
                 poses=stats.poses,
                 chunks=stats.chunks,
-                rate_per_s=round((stats.poses + stats.chunks) / max(now - started, 1e-9), 1),
+                rate_per_s=round((stats.poses + stats.chunks) / elapsed, 1),
             )
 
-    _until_stopped(lambda: fleet.run(args.seconds, on_tick=progress), fleet.stop, mqtt_url)
+    _run_fleet(
+        lambda: RobotFleet(mqtt_url, ros_map, args.robots, prefix=args.prefix, mqtt_conn=conn),
+        lambda fleet: fleet.run(args.seconds, on_tick=progress),
+        mqtt_url,
+    )
+
+
+def _run_fleet(make: Callable[[], F], run: Callable[[F], object], mqtt_url: str) -> F:
+    """Makes a fleet (simulated robots or the load test's), lets SIGTERM stop it, and runs
+    it until done or stopped; returns it for its final stats. What differs is `make` and
+    `run`; a fleet that cannot be made (a bad argument) ends the command with why."""
+    try:
+        fleet = make()
+    except ValueError as exc:
+        sys.exit(f"mapservice sim: {exc}")
+    signal.signal(signal.SIGTERM, lambda *_: fleet.stop())
+    _until_stopped(lambda: run(fleet), fleet.stop, mqtt_url)
+    return fleet
+
+
+def _every(seconds: float) -> Callable[[], bool]:
+    """True at most once every `seconds` (the first call included): the progress logs."""
+    last = [-math.inf]
+
+    def due() -> bool:
+        now = time.monotonic()
+        if now - last[0] < seconds:
+            return False
+        last[0] = now
+        return True
+
+    return due
+
+
+def _sim_stats(s) -> dict:
+    """The simulation's counters, as its progress and its final log lines name them."""
+    return {
+        "robots": s.robots,
+        "poses": s.poses,
+        "chunks": s.chunks,
+        "bad": s.bad,
+        "lost": s.lost,
+        "errors": s.errors,
+        "map_changes": s.map_changes,
+    }
 
 
 def _until_stopped(run, stop, mqtt_url: str) -> None:

@@ -73,6 +73,7 @@ class KafkaPublisher:
         self._renew_interval_s = renew_interval_s
         self._renewed_at = -math.inf
         self._lock = threading.Lock()
+        self._closed = False
 
     @property
     def connected(self) -> bool:
@@ -81,6 +82,8 @@ class KafkaPublisher:
 
     def _get(self) -> Producer:
         with self._lock:
+            if self._closed:
+                raise RuntimeError("the Kafka publisher is closed: make a new one to publish")
             if self._producer is None:
                 made: list[Producer] = []
                 # Without an error_cb, librdkafka's fatal error is raised out of poll().
@@ -166,6 +169,25 @@ class KafkaPublisher:
                 left += producer.flush(max(0.0, deadline - time.monotonic()))
         self._poll_retiring()
         return left
+
+    def close(self) -> int:
+        """Releases every producer without waiting for Kafka (flush first to deliver what is
+        held): what they still hold is purged, its delivery reports served (failed), then
+        each is closed, so none goes on dialling the brokers. Returns how many records and
+        requests were purged. (A producer's own close() flushes: against an unreachable
+        broker that would wait for every record's message.timeout.ms.)"""
+        with self._lock:
+            self._closed = True
+            producers = [*self._retiring, *([self._producer] if self._producer else [])]
+            self._producer, self._retiring = None, []
+            self._purged.clear()
+        purged = 0
+        for producer in producers:
+            purged += len(producer)
+            producer.purge(in_queue=True, in_flight=True, blocking=False)
+            _poll(producer, 0)
+            producer.close()
+        return purged
 
 
 def _fatal(err: KafkaError) -> bool:

@@ -14,8 +14,13 @@ import asyncio
 import threading
 import time
 from collections.abc import Callable, Mapping
+from functools import partial
+from typing import TYPE_CHECKING
 
 import structlog
+
+if TYPE_CHECKING:
+    from confluent_kafka.admin import AdminClient
 
 log = structlog.get_logger(__name__)
 
@@ -53,7 +58,9 @@ class CachedCheck:
         ttl_s: float = 2.0,
         timeout_s: float = 2.0,
         clock: Callable[[], float] = time.monotonic,
+        on_close: Callable[[], object] | None = None,
     ):
+        self.on_close = on_close  # releases what the call holds (a client): close()
         self.name, self.call, self.ttl_s, self.timeout_s, self.clock = (
             name,
             call,
@@ -66,6 +73,10 @@ class CachedCheck:
         self._running: threading.Thread | None = None
         self._started = 0.0  # when the running refresh began
         self._lock = threading.Lock()
+
+    def close(self) -> None:
+        if self.on_close is not None:
+            self.on_close()
 
     def _run(self) -> None:
         try:
@@ -116,16 +127,40 @@ class CachedCheck:
             return False  # hung: down until it answers
 
 
-def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:
-    """A broker metadata request (the cheapest call that needs a working broker)."""
-    from confluent_kafka.admin import AdminClient
+class KafkaMetadata:
+    """A broker metadata request (the cheapest call that needs a working broker). Its
+    AdminClient is made on the first request: librdkafka dials the brokers as soon as a
+    client exists, and a process never probed need not (nor log that it cannot reach them).
+    `close()` lets it go, so it stops dialling."""
 
-    admin = AdminClient(settings.kafka_config())
+    def __init__(self, settings) -> None:
+        self._config = settings.kafka_config()
+        self._lock = threading.Lock()
+        self.admin: AdminClient | None = None
+
+    def __call__(self, timeout_s: float) -> bool:
+        from confluent_kafka.admin import AdminClient
+
+        with self._lock:
+            if self.admin is None:
+                self.admin = AdminClient(self._config)
+            admin = self.admin
+        return bool(admin.list_topics(timeout=timeout_s).brokers)
+
+    def close(self) -> None:
+        with self._lock:
+            self.admin = None  # AdminClient has no close: its last reference gone, it ends
+
+
+def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:
+    """Whether a Kafka broker answers metadata; its `close()` releases the client."""
+    metadata = KafkaMetadata(settings)
     return CachedCheck(
         "kafka",
-        lambda: bool(admin.list_topics(timeout=timeout_s).brokers),
+        partial(metadata, timeout_s),
         ttl_s=ttl_s,
         timeout_s=timeout_s,
+        on_close=metadata.close,
     )
 
 

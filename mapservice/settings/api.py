@@ -28,7 +28,7 @@ class ApiSettings(BaseModel):
         "open",
         description=(
             "`open`: reads need no credential (2019 robots read anonymously); `token`: every "
-            "read needs a reader, writer or admin token."
+            "read needs a reader, writer, robot, operator or admin token."
         ),
     )
     api_reader_tokens: SecretStr = Field(
@@ -78,7 +78,8 @@ class ApiSettings(BaseModel):
     api_docs_access: Literal["open", "token", "off"] | None = Field(
         None,
         description=(
-            "/docs, /redoc and /openapi.json: `open`, `token` (any valid token) or `off` (404). "
+            "/docs, /redoc and /openapi.json: `open`, `token` (a reader, writer or admin token) or "
+            "`off` (404). "
             "Empty: open in local mode, token in production mode."
         ),
     )

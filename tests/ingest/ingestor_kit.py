@@ -38,3 +38,15 @@ def ingestor(settings, publisher, clock) -> Ingestor:
 @pytest.fixture
 def acks() -> Acks:
     return Acks()
+
+
+@pytest.fixture
+def gateway():
+    """An MqttGateway whose Kafka is nowhere (127.0.0.1:1), closed afterwards: a gateway left
+    open keeps its librdkafka clients dialling that address, logging each failure, until
+    the test process exits."""
+    from mapservice.ingest.gateway import MqttGateway
+
+    made = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
+    yield made
+    made.close()

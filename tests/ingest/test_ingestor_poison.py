@@ -6,9 +6,14 @@ from __future__ import annotations
 from mapservice.ingest.gateway import Ingestor
 
 from mapservice.core.events import decode_dead_letter
-from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
-from tests.ingest.ingestor_kit import acks, ingestor, publisher, settings  # noqa: F401  (fixtures)
+from tests.ingest.ingestor_kit import (  # noqa: F401  (fixtures)
+    acks,
+    gateway,
+    ingestor,
+    publisher,
+    settings,
+)
 
 DEEP = b'{"x":' + b"[" * 1000 + b"]" * 1000 + b"}"
 
@@ -99,14 +104,12 @@ class Broken(MemoryPublisher):
         raise RuntimeError("producer gone")
 
 
-def test_the_mqtt_callback_survives_a_failing_producer(settings, wire) -> None:
+def test_the_mqtt_callback_survives_a_failing_producer(gateway, settings, wire) -> None:
     """If even the producer fails, on_message logs and counts it, leaves the message unacked and returns."""
-    from mapservice.ingest.gateway import MqttGateway
     from prometheus_client import REGISTRY
 
     from mapservice.adapters.clock import SystemClock
 
-    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.ingestor = Ingestor(settings, Broken(), SystemClock(), gateway_id="gw-test")
     before = REGISTRY.get_sample_value("mapservice_gateway_handling_errors_total") or 0
 

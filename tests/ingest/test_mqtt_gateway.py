@@ -3,11 +3,11 @@ its health, and what paho hands it that the router never sees."""
 
 from __future__ import annotations
 
+import pytest
 from mapservice.ingest.gateway import Ingestor
 
-from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
-from tests.ingest.ingestor_kit import settings  # noqa: F401  (a fixture)
+from tests.ingest.ingestor_kit import gateway, settings  # noqa: F401  (fixtures)
 
 
 def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
@@ -24,20 +24,16 @@ def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
         )
 
 
-def test_the_mqtt_connected_gauge_follows_the_session() -> None:
+def test_the_mqtt_connected_gauge_follows_the_session(gateway) -> None:
     """mapservice_gateway_mqtt_connected is 1 after a successful connect and 0 after a disconnect."""
-    from mapservice.ingest.gateway import MqttGateway
     from paho.mqtt.packettypes import PacketTypes
     from paho.mqtt.reasoncodes import ReasonCode
     from prometheus_client import REGISTRY
-
-    from mapservice.settings import Settings
 
     class Client:
         def subscribe(self, topics):
             self.topics = topics
 
-    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway._on_connect(Client(), None, None, ReasonCode(PacketTypes.CONNACK, "Success"), None)
     assert REGISTRY.get_sample_value("mapservice_gateway_mqtt_connected") == 1
     gateway._on_disconnect(
@@ -57,24 +53,23 @@ class AckLog:
         self.batches.append(list(acks))
 
 
-def memory_gateway(settings):
-    """An MqttGateway producing into memory, its MQTT client an AckLog."""
-    from mapservice.ingest.gateway import MqttGateway
-
+def memory_gateway(gateway, settings):
+    """The gateway producing into memory, its MQTT client an AckLog."""
     from mapservice.adapters.clock import SystemClock
     from mapservice.testing.memory_publisher import MemoryPublisher
 
-    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.publisher = MemoryPublisher()
     gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
     gateway.client = AckLog()
     return gateway
 
 
-def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings, wire) -> None:
+def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(
+    gateway, settings, wire
+) -> None:
     """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
     confirmations in one ack_many call."""
-    gateway = memory_gateway(settings)
+    gateway = memory_gateway(gateway, settings)
     for mid in (1, 2, 3):
         msg = type(
             "Msg",
@@ -89,13 +84,10 @@ def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(settings,
     assert len(gateway.client.batches) == 1  # nothing new: no empty ack_many
 
 
-def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
+def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(gateway, settings) -> None:
     """/healthz's status says not ok when paho's network thread has ended, connected or not."""
     import threading
 
-    from mapservice.ingest.gateway import MqttGateway
-
-    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway._connected.set()
 
     class Client:
@@ -108,14 +100,12 @@ def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(settings) -> None:
     assert status["ok"] is False and status["mqtt_loop_alive"] is False
 
 
-def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wire) -> None:
+def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(gateway, settings, wire) -> None:
     """mapservice_gateway_in_flight is the ingestor's count of messages Kafka has not confirmed."""
-    from mapservice.ingest.gateway import MqttGateway
     from prometheus_client import REGISTRY
 
     from mapservice.adapters.clock import SystemClock
 
-    gateway = MqttGateway(Settings(kafka_bootstrap="127.0.0.1:1"))
     gateway.publisher = MemoryPublisher()
     gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
     for _mid in (1, 2):
@@ -125,11 +115,13 @@ def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(settings, wir
     assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 0
 
 
-def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings, wire) -> None:
+def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(
+    gateway, settings, wire
+) -> None:
     """paho raises on reading such a topic; the gateway dead-letters the message (acked) and goes on."""
     import paho.mqtt.client as mqtt
 
-    gateway = memory_gateway(settings)
+    gateway = memory_gateway(gateway, settings)
     bad = mqtt.MQTTMessage(mid=4, topic=b"iot/coordinates/\xff")
     bad.payload, bad.qos = wire.pose(), 1
     good = mqtt.MQTTMessage(mid=5, topic=b"iot/coordinates/blabla")
@@ -140,3 +132,28 @@ def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(settings,
     assert gateway.client.batches == [[(4, 1), (5, 1)]]
     letters = [value for _, value in gateway.publisher.records[settings.topic_dead_letter]]
     assert len(letters) == 1 and b"unknown_topic" in letters[0] and b"not-utf8:" in letters[0]
+
+
+def test_closing_a_gateway_releases_its_kafka_clients_without_waiting_for_kafka(gateway) -> None:
+    """close() purges and closes the gateway's producer (a record to an unreachable broker
+    still in it) and lets its readiness check's admin client go: neither goes on dialling."""
+    import time
+
+    from confluent_kafka import KafkaException
+
+    results: list = []
+    gateway.publisher.publish("t", b"k", b"v", results.append)
+    producer = gateway.publisher._producer
+    assert producer is not None and len(producer) > 0
+    with pytest.raises(KafkaException):
+        gateway.kafka_ready.call()  # nothing answers, but its admin client exists now
+    assert gateway.kafka_ready.call.func.admin is not None
+    started = time.monotonic()
+    gateway.close()
+    assert time.monotonic() - started < 5  # not the record's message.timeout.ms
+    assert isinstance(results[0], KafkaException)  # reported failed: purged, not lost silently
+    with pytest.raises(RuntimeError, match="closed"):
+        producer.produce("t", b"v")  # the librdkafka handle itself is closed
+    assert gateway.kafka_ready.call.func.admin is None
+    with pytest.raises(RuntimeError, match="closed"):
+        gateway.publisher.publish("t", b"k", b"v", results.append)

@@ -1558,7 +1558,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `write` scope: a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            /** @description the token lacks the `write` scope: a writer, robot or admin token (MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -1615,7 +1615,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `admin` scope: the administrator token (MAPSERVICE_ADMIN_TOKEN) */
+            /** @description the token lacks the `admin` scope: an admin token (MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -1829,7 +1829,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `write` scope: a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            /** @description the token lacks the `write` scope: a writer, robot or admin token (MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -1902,7 +1902,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `write` scope: a writer or robot token or the admin token (MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            /** @description the token lacks the `write` scope: a writer, robot or admin token (MAPSERVICE_API_WRITER_TOKENS, MAPSERVICE_API_ROBOT_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -1959,7 +1959,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `admin` scope: the administrator token (MAPSERVICE_ADMIN_TOKEN) */
+            /** @description the token lacks the `admin` scope: an admin token (MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2123,7 +2123,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2240,7 +2240,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2311,7 +2311,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2376,7 +2376,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
@@ -2781,7 +2781,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description the token lacks the `operator` scope: an operator token or the admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN); readers and robots may not shape the floor nor command robots */
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
             403: {
                 headers: {
                     [name: string]: unknown;
