@@ -1,6 +1,7 @@
 import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
 import { effectScope, nextTick, ref } from "vue";
 import { ApiError } from "../src/lib/api";
+import { RETENTION_MS } from "../src/lib/engine";
 import type { TrackSample } from "../src/lib/plots";
 import { initialSpan, shownSpan } from "../src/lib/timeline";
 import { parseUrlState } from "../src/lib/urlstate";
@@ -129,6 +130,9 @@ describe("the plot panel's reads", () => {
 
   it("reads a span reaching the present again as its poses arrive", async () => {
     const { asked, plots, scope } = page(`?span=${iso(NOW - 7 * 24 * HOUR)},${iso(NOW)}`);
+    // The whole retention, its start on a whole minute: within the one window the API reads.
+    expect(asked[0].to - asked[0].from).toBeLessThanOrEqual(RETENTION_MS);
+    expect(asked[0].from).toBeGreaterThanOrEqual(NOW - RETENTION_MS);
     asked[0].resolve(track(3, asked[0].from, asked[0].step)); // a history still being written
     await settle();
     expect(plots.data.value.series.get("r1")?.ts).toHaveLength(3);
@@ -138,6 +142,21 @@ describe("the plot panel's reads", () => {
     asked[1].resolve(track(500, asked[1].from, asked[1].step));
     await settle();
     expect(plots.data.value.series.get("r1")?.ts).toHaveLength(500);
+    scope.stop();
+  });
+
+  it("says why the API refused a read, and does not repeat it until the span changes", async () => {
+    const { asked, plots, strip, mountStrip, scope } = page(`?span=${iso(NOW - 3 * HOUR)},${iso(NOW - 2 * HOUR)}`);
+    asked[0].reject(new ApiError(400, "400 'from' is after 'to'"));
+    mountStrip();
+    await settle();
+    expect(plots.error.value).toBe("plots not read (400 'from' is after 'to')");
+    vi.advanceTimersByTime(10 * RETRY_MAX_MS);
+    expect(asked).toHaveLength(1);
+    strip.value = { viewFrom: NOW - 4 * HOUR, viewTo: NOW - 2 * HOUR };
+    await settle();
+    vi.advanceTimersByTime(READ_DELAY_MS);
+    expect(asked).toHaveLength(2);
     scope.stop();
   });
 });

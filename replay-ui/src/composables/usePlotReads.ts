@@ -2,11 +2,14 @@
  * The plot panel's reads: the chosen robots' tracks over the timeline's span, read again
  * when the robots change or the span moved by 2 % of its length (a span sliding with
  * playback or live). A failed read is tried again after 1 s, 2 s, 4 s ... at most
- * RETRY_MAX_MS apart, the plots drawn so far kept and the error said; a span reaching the
+ * RETRY_MAX_MS apart, the plots drawn so far kept and the error said (a request the API
+ * refuses as such, a 400 or 422, is said and not repeated); a span reaching the
  * present (poses still arriving, a history still being written) is read again every
  * REFRESH_MS, so a read that came back thin or early is not the last one.
  */
 import { onScopeDispose, ref, shallowRef, watch } from "vue";
+import { ApiError } from "../lib/api";
+import { RETENTION_MS } from "../lib/engine";
 import { plotWindow, seriesOf, type RobotSeries, type TrackSample } from "../lib/plots";
 
 export interface PlotData {
@@ -21,6 +24,8 @@ export const READ_DELAY_MS = 200;
 export const RETRY_FIRST_MS = 1_000;
 export const RETRY_MAX_MS = 30_000;
 export const REFRESH_MS = 30_000;
+/** Answers that a repeat would get again (a bad window, no access): not tried again. */
+const REFUSED = new Set([400, 401, 403, 422]);
 /** A span ending less than this before the present may still gain poses. */
 export const GROWING_MS = 5 * 60_000;
 
@@ -67,8 +72,12 @@ export function usePlotReads(o: PlotReadOptions) {
 
   async function load() {
     timer = null;
-    const [fromMs, toMs] = o.span();
+    const [spanFrom, toMs] = o.span();
     const to = Math.round(toMs);
+    // The API reads at most the retention back from now, in one window of at most the
+    // retention: a span of the whole retention would not be read once its start is
+    // floored to a whole minute (a minute's margin).
+    const fromMs = Math.max(spanFrom, Math.max(to + 1, Date.now()) - RETENTION_MS + 60_000);
     const { from, stepMs } = plotWindow(fromMs, to, o.width());
     const ids = [...o.robots()];
     const key = `${ids.join()}|${from}|${to}`;
@@ -85,8 +94,13 @@ export function usePlotReads(o: PlotReadOptions) {
       if (ids.length && Date.now() - to < GROWING_MS) later(REFRESH_MS);
     } catch (e) {
       if (loadedKey !== key || disposed) return;
-      const wait = Math.min(RETRY_MAX_MS, RETRY_FIRST_MS * 2 ** failures++);
       const why = e instanceof Error ? e.message : String(e);
+      // Refused again if repeated: said, not repeated (a change of span or robots reads).
+      if (e instanceof ApiError && REFUSED.has(e.status)) {
+        error.value = `plots not read (${why.slice(0, 160)})`;
+        return;
+      }
+      const wait = Math.min(RETRY_MAX_MS, RETRY_FIRST_MS * 2 ** failures++);
       error.value = `plots not read (${why.slice(0, 100)}): trying again in ${Math.round(wait / 1000)} s`;
       later(wait);
     } finally {
