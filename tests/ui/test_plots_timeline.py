@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from datetime import UTC, datetime
+from urllib.parse import parse_qs, urlparse
 
 from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
 
@@ -44,14 +45,24 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
     robots = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])
     chosen, pinned = robots[0], robots[1]
     span = (t - 40 * 60_000, t + 10 * 60_000)
+    plot_reads = []  # (from, to) of every track read but the trail's
+    # (the selected robot's trail on the map is read up to the playhead inclusive: t + 1)
+
+    def on_request(request) -> None:
+        if urlparse(request.url).path.endswith("/track"):
+            query = parse_qs(urlparse(request.url).query)
+            read = (int(query["from"][0]), int(query["to"][0]))
+            if read[1] > t + 1:
+                plot_reads.append(read)
+
+    page.on("request", on_request)
     open_at(
         page,
         stack,
         f"?t={t}&sel={chosen}&plot={pinned}&panels=plots,fleet&span={iso(span[0])},{iso(span[1])}",
     )
     assert page.evaluate("() => window.__replay.span()") == list(span)
-    # The panel may read the last hour first (it is rendered before the timeline strip
-    # that holds the span): wait for the span's read.
+    # Wait for the span's read (answered, both robots drawn).
     page.wait_for_function(
         f"() => {{ const p = window.__replay.plots(); return p && p.robots['{chosen}']"
         f" && p.robots['{pinned}'] && p.robots['{chosen}'].ts.length > 10"
@@ -61,6 +72,9 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
     plots = page.evaluate("() => window.__replay.plots()")
     step, start = plots["stepMs"], plots["from"]
     assert 1000 <= step <= 20_000 and span[0] - step < start <= span[0]
+    # No read of another span first (the panel is mounted before the timeline strip: it
+    # reads the span the strip starts on, the address's, not the last hour).
+    assert plot_reads and all(span[0] - step < f <= span[0] for f, _ in plot_reads), plot_reads
     assert [
         c.get_attribute("data-robot") for c in page.locator('[data-testid="plot-robot"]').all()
     ] == [chosen, pinned]

@@ -131,3 +131,18 @@ export function conflictSeek(conflicts: { ts_ms: number; seek_ms: number }[], st
   if (!inBucket.length) return null;
   return inBucket.reduce((a, c) => (c.ts_ms < a.ts_ms ? c : a)).seek_ms;
 }
+
+/** The span the timeline shows first: the address's, else the hour up to `now`. */
+export function initialSpan(fromAddress: readonly [number, number] | null | undefined, now: number): [number, number] {
+  return fromAddress ? [fromAddress[0], fromAddress[1]] : [now - 3_600_000, now];
+}
+
+/**
+ * The span the panels show, [from, to): the strip's view once it is mounted; before that
+ * (panels rendered ahead of it read at their mount) the span the strip will start on, so
+ * their first read is not of a span nobody asked for.
+ */
+export function shownSpan(strip: { viewFrom: number; viewTo: number } | null | undefined,
+  fromAddress: readonly [number, number] | null | undefined, now: number): [number, number] {
+  return strip ? [strip.viewFrom, strip.viewTo] : initialSpan(fromAddress, now);
+}
