@@ -70,7 +70,8 @@ def test_readers_robots_and_strangers_may_not_send_commands_and_are_told_why() -
     assert r.status_code == 403 and "commanding robots" in r.json()["detail"]
     assert "MAPSERVICE_API_OPERATOR_TOKENS" in r.json()["detail"]
     r = w.send(pause, ROBOT)  # a robot may not command itself or others
-    assert r.status_code == 403 and "readers and robots may not" in r.json()["detail"]
+    assert r.status_code == 403 and "this robot token may not" in r.json()["detail"]
+    assert "needs an operator or admin token" in r.json()["detail"]
     r = w.send(pause, None)
     assert r.status_code == 401 and "Authorization: Bearer" in r.json()["detail"]
     assert w.published() == []
