@@ -25,17 +25,23 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def ensure_port_free(port: int, what: str) -> None:
+def port_is_free(port: int) -> bool:
     with socket.socket() as s:
         # As servers do: a port in TIME_WAIT is free to listen on.
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
         except OSError:
-            raise RuntimeError(
-                f"port {port} for {what} is already in use; stop what holds it or pick another "
-                "port (see `mapservice up --help`)"
-            ) from None
+            return False
+        return True
+
+
+def ensure_port_free(port: int, what: str) -> None:
+    if not port_is_free(port):
+        raise RuntimeError(
+            f"port {port} for {what} is already in use; stop what holds it or pick another "
+            "port (see `mapservice up --help`)"
+        )
 
 
 def wait_for_port(

@@ -72,6 +72,8 @@ class Stack(StackMqtt, StackEnv):
     apart: bool = False
     clickhouse_port: int = 0
     processors_health_port: int = 0
+    # The ports above this stack chose itself (given as 0), until a component was told one.
+    _chosen_ports: set[str] = field(default_factory=set, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -112,6 +114,14 @@ class Stack(StackMqtt, StackEnv):
         self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
         self.pid_file = lifetime.PidFile.in_data_dir(self.data_dir)
         if self.apart:
+            self._chosen_ports = {
+                name
+                for name, port in (
+                    ("clickhouse_port", self.clickhouse_port),
+                    ("processors_health_port", self.processors_health_port),
+                )
+                if not port
+            }
             self.clickhouse_port = self.clickhouse_port or embedded.free_port()
             self.processors_health_port = self.processors_health_port or embedded.free_port()
         # The broker files as the running Mosquitto read them, and a change seen once
@@ -256,12 +266,33 @@ class Stack(StackMqtt, StackEnv):
         self.wait_healthy(f"{self.clickhouse_url}/ping", "clickhouse", proc)
         return proc
 
+    def _rechoose_if_taken(self, attribute: str, what: str) -> None:
+        """A port this stack chose itself, and told no component yet, is swapped for a free
+        one if something took it meanwhile: it was free when chosen, but the Kafka and MQTT
+        clients started since connect from ports of the same ephemeral range (a restarted
+        `up` once found its ClickHouse server's port taken that way). A port that was given
+        is kept, and refused by the start if taken."""
+        if attribute not in self._chosen_ports:
+            return
+        self._chosen_ports.discard(attribute)  # from now on a component is told it
+        port = getattr(self, attribute)
+        if not embedded.port_is_free(port):
+            setattr(self, attribute, embedded.free_port())
+            log.info(
+                "a port chosen for the stack was taken meanwhile: another chosen",
+                component=what,
+                taken=port,
+                port=getattr(self, attribute),
+            )
+
     def start_apart(self) -> None:
         """What `serve` runs, in three processes (apart=True): the ClickHouse server, the
         processors (creating the schema) and the API on the stack's API port."""
         if not self.apart:
             raise RuntimeError("this stack runs processors and API in one process (apart=False)")
+        self._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
         self.start_clickhouse_server()
+        self._rechoose_if_taken("processors_health_port", "the processors' health endpoint")
         self.start_processors(self.processors_health_port)
         self.start_api()
 

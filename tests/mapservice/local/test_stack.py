@@ -60,3 +60,28 @@ def test_no_gateway_is_refused(tmp_path):
     """gateways=0 is an error naming the value."""
     with pytest.raises(ValueError, match="at least 1"):
         Stack(tmp_path, mqtt="mosquitto", gateways=0)
+
+
+def test_a_chosen_port_taken_before_its_server_starts_is_chosen_again(tmp_path):
+    """The ClickHouse server's and the processors' health ports are chosen when the stack is
+    made and bound seconds later; a client connection may take one meanwhile (a restarted
+    `up` failed so). Chosen ports taken by then are chosen again, before anyone is told
+    them; a given port is kept (and refused by the start, naming it)."""
+    import socket
+
+    stack = Stack(tmp_path, mqtt="mosquitto", apart=True)
+    taken = stack.clickhouse_port
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", taken))
+        holder.listen()
+        stack._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
+        assert stack.clickhouse_port != taken
+        assert f"127.0.0.1:{stack.clickhouse_port}" in stack.env("api")["MAPSERVICE_CLICKHOUSE_DSN"]
+        # Told to a component now: a later start keeps it whatever happens.
+        chosen = stack.clickhouse_port
+        stack._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
+        assert stack.clickhouse_port == chosen
+
+        given = Stack(tmp_path, mqtt="mosquitto", apart=True, clickhouse_port=taken)
+        given._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
+        assert given.clickhouse_port == taken
