@@ -52,6 +52,7 @@ class WritesMixin(SnapshotsMixin):
     """append (append_events, then derive_views), append_dead_letters, append_conflicts."""
 
     _known_contents: dict[bytes, int]  # hash -> day already written
+    cluster: str  # non-empty: a replicated cluster (store.py)
 
     # --- writes ---------------------------------------------------------------------
 
@@ -61,11 +62,36 @@ class WritesMixin(SnapshotsMixin):
 
     def derive_views(self, events: Sequence[Envelope]) -> None:
         """Feeds the batch's poses to the pose views (schema v10: through the Null table
-        `pose_derivations`); repeating it for a batch changes nothing."""
-        poses = [_pose_row(e) for e in events if pose_of(e.payload) is not None]
-        if poses:
-            with self._lock:
-                self._insert("pose_derivations", poses, POSE_INSERT_COLUMNS)
+        `pose_derivations`); repeating it for a batch changes nothing.
+
+        The poses are stored already, so ClickHouse reads them back itself over the spans
+        of the batch's event times (`reread_spans`) instead of being sent every row
+        again; poses of other batches in those spans are derived again, which changes
+        nothing. A batch whose spans would re-read much more than itself (a backlog, late
+        poses spread over minutes) sends its rows, as does a cluster: the re-read could
+        run on a replica the batch's part has not reached yet."""
+        pose_events = [e for e in events if pose_of(e.payload) is not None]
+        if not pose_events:
+            return
+        spans = None if self.cluster else reread_spans([e.event_time_ms for e in pose_events])
+        with self._lock:
+            if spans is None:
+                rows = [_pose_row(e) for e in pose_events]
+                self._insert("pose_derivations", rows, POSE_INSERT_COLUMNS)
+            else:
+                self._derive_spans(spans)
+
+    def _derive_spans(self, spans: Sequence[tuple[int, int]]) -> None:
+        db = self.database
+        # Whole milliseconds from the stored events: written into the statement as integers.
+        within = " OR ".join(
+            f"(ts >= fromUnixTimestamp64Milli({int(lo)}) AND ts <= fromUnixTimestamp64Milli({int(hi)}))"
+            for lo, hi in spans
+        )
+        self.client.command(
+            f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) "
+            f"SELECT {POSE_COLUMNS} FROM {db}.poses WHERE {within}"
+        )
 
     def derive_views_between(self, from_ms: int, to_ms: int) -> None:
         """derive_views for every pose stored with from_ms <= event time <= to_ms, read
@@ -273,6 +299,31 @@ def _vda_rows(e: Envelope, out: dict[str, list]) -> None:
         out["vda_connections"].append([e.robot_id, at, p.state, p.sent_time_ms])
     elif isinstance(p, VdaFactsheetReported):
         out["vda_factsheets"].append([e.robot_id, at, p.vda_version, p.factsheet_json])
+
+
+# Event times at most this far apart are re-read as one span (a live batch is one span).
+REREAD_GAP_MS = 1_000
+# A batch is re-read only while its spans cover at most this much history in all (a live
+# batch covers its window, about a second); beyond it re-reading costs more than the rows.
+REREAD_MAX_MS = 5_000
+REREAD_MAX_SPANS = 16
+
+
+def reread_spans(times_ms: Sequence[int]) -> list[tuple[int, int]] | None:
+    """The spans [first, last] of event times that `derive_views` re-reads for a batch
+    with these event times, or None when re-reading them would cost more than sending
+    the batch's rows (more than REREAD_MAX_MS of history or REREAD_MAX_SPANS spans)."""
+    spans: list[tuple[int, int]] = []
+    for t in sorted(times_ms):
+        if spans and t - spans[-1][1] <= REREAD_GAP_MS:
+            spans[-1] = (spans[-1][0], t)
+        else:
+            spans.append((t, t))
+    if not spans or len(spans) > REREAD_MAX_SPANS:
+        return None
+    if sum(hi - lo for lo, hi in spans) > REREAD_MAX_MS:
+        return None
+    return spans
 
 
 def _pose_row(e: Envelope) -> list:
