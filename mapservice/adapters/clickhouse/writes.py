@@ -98,14 +98,8 @@ class WritesMixin(SnapshotsMixin):
         back inside ClickHouse: a bulk writer (the demo history) spares re-sending a batch
         it just stored (about as long as storing it). A pose derived twice changes nothing,
         so windows may overlap."""
-        db = self.database
         with self._lock:
-            self.client.command(
-                f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) SELECT {POSE_COLUMNS} "
-                f"FROM {db}.poses WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
-                "AND ts <= fromUnixTimestamp64Milli({t:Int64})",
-                parameters={"f": from_ms, "t": to_ms},
-            )
+            self._derive_spans([(from_ms, to_ms)])
 
     def append_events(self, events: Sequence[Envelope]) -> None:
         poses, chunks, contents, metas, annotations, commands = [], [], [], [], [], []
