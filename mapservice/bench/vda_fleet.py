@@ -5,8 +5,10 @@ on `<interface>/v2/<manufacturer>/<serial>/...`, QoS 1.
 Like RawFleet (bench/fleet/rawfleet.py) it is not the limit: pre-encoded PUBLISH packets
 (`mqtt_packets.PublishTemplate`, only the timestamp and packet id filled in) written on a
 few raw connections from one asyncio loop. A message counts as published when its PUBACK
-arrived. A vehicle's state goes out 100 ms after a visualization, so no two of its messages
-share a millisecond (a vehicle's pose is identified by its robot id and event time).
+arrived. A vehicle's state goes out with a visualization, stamped at least a millisecond
+after it, so no two of its messages share a millisecond (a vehicle's pose is identified by
+its robot id and event time) and no stamp runs ahead of its sending (the server times
+publish -> stored from it).
 """
 
 from __future__ import annotations
@@ -216,10 +218,13 @@ class VdaFleet:
                     await writer.drain()
                     await asyncio.sleep(delay)
                 late.append(max(0.0, time.monotonic() - due))
-                self._send(writer, pending, next_pid, robot_id, viz)
+                sent_ms = self._send(writer, pending, next_pid, robot_id, viz)
                 if (slot + k) % STATE_EVERY == 0:
-                    # Its state, once a second, stamped between two visualizations.
-                    self._send(writer, pending, next_pid, robot_id, state, plus_ms=100)
+                    # Its state, once a second, sent with the visualization and stamped at
+                    # least a millisecond after it: the history keeps one pose per vehicle
+                    # and millisecond, and the server times publish -> stored from the
+                    # stamp, so no stamp may run ahead of its sending.
+                    self._send(writer, pending, next_pid, robot_id, state, after_ms=sent_ms)
             slot += 1
             await writer.drain()
         deadline = time.monotonic() + ACK_WAIT_S
@@ -237,12 +242,14 @@ class VdaFleet:
         next_pid: list[int],
         robot_id: str,
         template: PublishTemplate,
-        plus_ms: int = 0,
+        after_ms: int | None = None,
     ) -> int:
         next_pid[0] = next_pid[0] % 65535 + 1
         while next_pid[0] in pending:  # 65,535 in flight on one connection: skip used ids
             next_pid[0] = next_pid[0] % 65535 + 1
-        ms = time.time_ns() // 1_000_000 + plus_ms
+        ms = time.time_ns() // 1_000_000
+        if after_ms is not None:
+            ms = max(ms, after_ms + 1)
         pending[next_pid[0]] = (robot_id, ms)
         writer.write(template.packet(next_pid[0], iso(ms)))
         return ms

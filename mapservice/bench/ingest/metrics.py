@@ -91,3 +91,64 @@ def history_offset_gaps(text: str) -> dict[str, float]:
     the server's /metrics text): read again, or accepted as lost after its rereads ran out."""
     gaps = counter_by_label(text, "mapservice_consumer_offset_gaps", "outcome")
     return {"reread": gaps.get("reread", 0.0), "accepted": gaps.get("accepted", 0.0)}
+
+
+# Publish -> stored, per event, as the server itself timed it: from the event's own
+# timestamp (the load fleets stamp each message as they send it) to the return of the
+# insert that made it queryable. Exact per event where the client's figures are bounds
+# (the poll adds up to its interval, the push its Kafka hop), read at the histogram's
+# bucket precision (25 ms steps up to 0.3 s).
+STORED_LATENCY = "mapservice_event_to_stored_seconds"
+
+
+def histogram_buckets(text: str, metric: str = STORED_LATENCY) -> dict[float, float]:
+    """A histogram's cumulative bucket counts in a /metrics text, by upper bound (`le`),
+    summed over its other labels."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out: dict[float, float] = {}
+    for family in text_string_to_metric_families(text):
+        if family.name != metric:
+            continue
+        for sample in family.samples:
+            if sample.name == f"{metric}_bucket":
+                le = float(sample.labels["le"])
+                out[le] = out.get(le, 0.0) + sample.value
+    return out
+
+
+def bucket_quantile(counts: dict[float, float], q: float) -> float | None:
+    """The q-quantile (0..1) of cumulative bucket counts, linear within its bucket as
+    Prometheus' histogram_quantile; None without observations. One in the +Inf bucket
+    gives the highest finite bound (the quantile is at least that)."""
+    bounds = sorted(counts)
+    total = counts[bounds[-1]] if bounds else 0.0
+    if total <= 0:
+        return None
+    rank = q * total
+    lower, below = 0.0, 0.0
+    for le in bounds:
+        if counts[le] >= rank:
+            if le == float("inf"):
+                return lower
+            inside = counts[le] - below
+            return lower + (le - lower) * ((rank - below) / inside if inside else 1.0)
+        lower, below = le, counts[le]
+    return lower
+
+
+def stored_latency(
+    before: dict[float, float], after: dict[float, float], bound_s: float
+) -> dict[str, float | None]:
+    """Publish -> stored of the events stored between two scrapes: how many, p50 and p99
+    (interpolated within their bucket), and the share stored within `bound_s` (exact when
+    `bound_s` is a bucket bound)."""
+    counts = {le: n - before.get(le, 0.0) for le, n in after.items()}
+    total = counts.get(float("inf"), 0.0)
+    within = max((n for le, n in counts.items() if le <= bound_s), default=0.0)
+    return {
+        "events": total,
+        "p50_s": bucket_quantile(counts, 0.5),
+        "p99_s": bucket_quantile(counts, 0.99),
+        "within_bound_fraction": within / total if total else None,
+    }

@@ -23,7 +23,11 @@ SCHEDULE_MIN_PERCENT = 99.5  # the load generator kept its schedule (else it was
 SUSTAINED_MIN_FRACTION = 0.99
 PUSH_P99_MAX_S = 1.0
 POLL_P99_MAX_S = 2.0
-SMALL_FLEET = 1000  # up to this many robots, p99 (push or poll) at most SMALL_FLEET_P99_S
+# Up to this many robots, p99 publish -> queryable at most SMALL_FLEET_P99_S, judged on
+# the server's own per-event timing (publish -> stored, `stored_latency_p99_s`): a
+# client's first sight of an event (push or poll) is an upper bound that adds the live
+# stream's Kafka hop or up to a poll interval, both reported beside it.
+SMALL_FLEET = 1000
 SMALL_FLEET_P99_S = 0.3
 MIN_JUDGED_S = 60.0  # shorter runs are reported, not judged: start-up noise dominates them
 BASELINE_2019: dict[str, Any] = {
@@ -121,12 +125,13 @@ def live_bounds(robots: int, med: dict) -> list[tuple[str, str, float | None, bo
         ),
     ]
     if robots <= SMALL_FLEET:
+        within = get("stored_within_small_fleet_bound")
         checks.append(
             (
-                "p99 (push or poll)",
+                "p99 publish -> stored (server)",
                 f"<= {SMALL_FLEET_P99_S:g} s",
-                get("latency_p99_s"),
-                (get("latency_p99_s") or INF) <= SMALL_FLEET_P99_S,
+                get("stored_latency_p99_s"),
+                within is not None and within >= 0.99,
             )
         )
     return checks
@@ -213,14 +218,21 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
         med["stats_chunk_events_minus_expected"] == 0,
     )
     row("dead letters", "0", f"{med['dead_letters']:,.0f}", med["dead_letters"] == 0)
-    row("publish -> queryable p50 (push or poll)", "", _s(med.get("latency_p50_s")))
-    small = bounds.get("p99 (push or poll)")
+    small = bounds.get("p99 publish -> stored (server)")
+    within = med.get("stored_within_small_fleet_bound")
     row(
-        "publish -> queryable p99 (push or poll)",
+        "publish -> stored p50 / p99 (server, per event)",
         small[0] if small else "",
-        _s(med.get("latency_p99_s")),
+        f"{_s(med.get('stored_latency_p50_s'))} / {_s(med.get('stored_latency_p99_s'))}",
         small[1] if small else None,
     )
+    row(
+        f"  stored within {SMALL_FLEET_P99_S:g} s (share of events)",
+        ">= 99 %" if small else "",
+        "-" if within is None else f"{100 * within:.2f} %",
+    )
+    row("publish -> queryable p50 (push or poll)", "", _s(med.get("latency_p50_s")))
+    row("publish -> queryable p99 (push or poll)", "", _s(med.get("latency_p99_s")))
     row(
         "  p99 by the live push alone",
         bounds["p99 by the live push"][0],
@@ -350,6 +362,10 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
         f"Kafka: {facts.get('kafka', facts['tansu'])}, {facts['mosquitto']}"
     )
     console.print(
+        "publish -> stored = the server's own timing of each event, from its timestamp "
+        "(the fleet stamps each message as it sends it) to the return of the insert that "
+        "made it queryable, read off mapservice_event_to_stored_seconds (25 ms buckets up "
+        "to 0.3 s; p50/p99 interpolated within their bucket, the share within 0.3 s exact). "
         "latency = the first moment the event was known queryable minus the load "
         "generator's publish time: the server's send time of its push on the live "
         "WebSocket (sent after its insert returned) or the end of the first poll of the API "

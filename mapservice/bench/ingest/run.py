@@ -17,10 +17,12 @@ from mapservice.bench.ingest.cpu import CpuMeter, cpu_us_per_event
 from mapservice.bench.ingest.latency import INF, _latencies, _pct, _stage_latencies, queryable_times
 from mapservice.bench.ingest.metrics import (
     gateway_acks,
+    histogram_buckets,
     histogram_totals,
     history_offset_gaps,
     server_metrics,
     store_stages,
+    stored_latency,
 )
 from mapservice.bench.ingest.probes import (
     DRAIN_MAX_S,
@@ -31,6 +33,7 @@ from mapservice.bench.ingest.probes import (
     LiveListener,
     QueryablePoller,
 )
+from mapservice.bench.ingest.report import SMALL_FLEET_P99_S
 from mapservice.bench.ingest.storage import measure_storage, scan_run
 from mapservice.bench.procstat import resident_by_component
 from mapservice.bench.yardstick import yardstick_ms
@@ -131,7 +134,9 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
         driver = threading.Thread(target=drive, name="loadgen", daemon=True)
         acked_before = gateway_acks(stack.gateway_health_ports)
-        stages_before = histogram_totals(server_metrics(stack.api_url))
+        metrics_before = server_metrics(stack.api_url)
+        stages_before = histogram_totals(metrics_before)
+        stored_before = histogram_buckets(metrics_before)
         stages_t0 = time.monotonic()
         cpu_before = meter.snapshot()
         started_wall = time.time()
@@ -229,6 +234,9 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             stages = store_stages(
                 stages_before, histogram_totals(metrics_after), time.monotonic() - stages_t0
             )
+            stored = stored_latency(
+                stored_before, histogram_buckets(metrics_after), SMALL_FLEET_P99_S
+            )
         console.print(
             _status_line(
                 run,
@@ -316,6 +324,10 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 "history_offset_gaps_accepted": gaps["accepted"],
                 # From the fleet's start to the drain: what each batch cost the store thread.
                 "store_stages": stages,
+                "stored_events_timed": stored["events"],
+                "stored_latency_p50_s": stored["p50_s"],
+                "stored_latency_p99_s": stored["p99_s"],
+                "stored_within_small_fleet_bound": stored["within_bound_fraction"],
                 **_latency_figures(args, keys, poller, listener),
                 "cpu_percent_of_one_core": cpu_pct,
                 "cpu_us_per_event": cpu_us_per_event(cpu_pct, len(keys), fleet_wall),

@@ -51,6 +51,10 @@ def test_each_vehicle_sends_a_state_a_second_and_five_visualizations(tmp_path) -
         proc.wait(10)
     keys = [(robot, ts) for _, robot, ts, _ in stats.published]
     assert len(keys) == len(set(keys)) == stats.poses  # no two messages of a vehicle share a ms
+    # Stamped as sent (a state at most 1 ms after its visualization): the server's
+    # publish -> stored timing starts at the stamp, so none may run ahead of its PUBACK.
+    ahead_ms = [ts - acked * 1000 for _, _, ts, acked in stats.published]
+    assert max(ahead_ms) <= 1, max(ahead_ms)
     assert {robot for robot, _ in keys} == {f"VdaBench:v{i:05d}" for i in range(10)}
     # 2 s: ten visualizations and two states per vehicle
     assert seen.count("visualization") == 100 and seen.count("state") == 20
