@@ -13,13 +13,16 @@ const iso = (ms: number) => new Date(ms).toISOString();
 
 type Asked = { id: string; from: number; to: number; step: number; resolve: (t: TrackSample[]) => void; reject: (e: Error) => void };
 
+/** The oldest instant App.vue gives the plots: the retention back from the present, a minute's margin. */
+const appOldest = () => Date.now() - RETENTION_MS + 60_000;
+
 /**
  * The plot panel's reads wired as the page wires them: the span is the timeline strip's
  * once it is mounted, before that what App.vue gives the panels (shownSpan), from the
- * address; the panel reads once at its mount (PlotPanel's onMounted), its reads held until
- * answered.
+ * address; the oldest instant readable is App.vue's unless given; the panel reads once at
+ * its mount (PlotPanel's onMounted), its reads held until answered.
  */
-function page(search: string, robots = ["r1"]) {
+function page(search: string, robots = ["r1"], oldestMs = appOldest) {
   const initial = parseUrlState(search);
   const strip = ref<{ viewFrom: number; viewTo: number } | null>(null);
   const asked: Asked[] = [];
@@ -28,6 +31,7 @@ function page(search: string, robots = ["r1"]) {
     read: (id, from, to, step) => new Promise((resolve, reject) => asked.push({ id, from, to, step, resolve, reject })),
     robots: () => robots,
     span: () => shownSpan(strip.value, initial.span, Date.now()),
+    oldestMs,
     width: () => 800,
   }))!;
   void plots.load(); // the panel's mount, ahead of the strip's
@@ -142,6 +146,29 @@ describe("the plot panel's reads", () => {
     asked[1].resolve(track(500, asked[1].from, asked[1].step));
     await settle();
     expect(plots.data.value.series.get("r1")?.ts).toHaveLength(500);
+    scope.stop();
+  });
+
+  it("reads a span older than the oldest instant it is given from that instant, as it is at each read", async () => {
+    // Not the retention back from now: the reads take the page's oldest instant, not one of their own.
+    let oldest = NOW - 2 * 24 * HOUR - 30 * 60_000;
+    const { asked, scope } = page(`?span=${iso(NOW - 3 * 24 * HOUR)},${iso(NOW)}`, ["r1"], () => oldest);
+    expect(asked[0].from).toBe(oldest);
+    expect(asked[0].to).toBe(NOW + 1);
+    asked[0].resolve([]);
+    await settle();
+    oldest += HOUR;
+    vi.advanceTimersByTime(REFRESH_MS); // the span reaches the present: read again
+    expect(asked).toHaveLength(2);
+    expect(asked[1].from).toBe(oldest);
+    scope.stop();
+  });
+
+  it("reads a span ending in the future in one window of at most the retention", async () => {
+    const { asked, scope } = page(`?span=${iso(NOW - 8 * 24 * HOUR)},${iso(NOW + 24 * HOUR)}`);
+    expect(asked[0].to).toBe(NOW + 24 * HOUR + 1);
+    expect(asked[0].to - asked[0].from).toBeLessThanOrEqual(RETENTION_MS);
+    expect(asked[0].from).toBeGreaterThan(appOldest());
     scope.stop();
   });
 

@@ -28,6 +28,11 @@ export const REFRESH_MS = 30_000;
 const REFUSED = new Set([400, 401, 403, 422]);
 /** A span ending less than this before the present may still gain poses. */
 export const GROWING_MS = 5 * 60_000;
+/**
+ * The longest window the API reads in one request is the retention; a minute less, as a
+ * start floored to a whole minute (plotWindow) lengthens the window by up to a minute.
+ */
+const MAX_WINDOW_MS = RETENTION_MS - 60_000;
 
 export interface PlotReadOptions {
   /** Reads one robot's track: the first pose of every `stepMs` in [from, to). */
@@ -35,6 +40,11 @@ export interface PlotReadOptions {
   robots: () => string[];
   /** The span to show, [from, to) in ms (props read in a getter). */
   span: () => readonly [number, number];
+  /**
+   * The oldest instant the API reads, asked at each read (the page's one definition of
+   * the retention clamp): a span starting before it is read from it.
+   */
+  oldestMs: () => number;
   /** The plotting width in px (the step follows from it). */
   width: () => number;
   /** New data to draw. */
@@ -74,10 +84,9 @@ export function usePlotReads(o: PlotReadOptions) {
     timer = null;
     const [spanFrom, toMs] = o.span();
     const to = Math.round(toMs);
-    // The API reads at most the retention back from now, in one window of at most the
-    // retention: a span of the whole retention would not be read once its start is
-    // floored to a whole minute (a minute's margin).
-    const fromMs = Math.max(spanFrom, Math.max(to + 1, Date.now()) - RETENTION_MS + 60_000);
+    // The API reads nothing older than the oldest instant, in one window of at most the
+    // retention (a span ending in the future may be longer than what is kept before now).
+    const fromMs = Math.max(spanFrom, o.oldestMs(), to + 1 - MAX_WINDOW_MS);
     const { from, stepMs } = plotWindow(fromMs, to, o.width());
     const ids = [...o.robots()];
     const key = `${ids.join()}|${from}|${to}`;
