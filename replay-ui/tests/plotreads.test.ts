@@ -1,7 +1,7 @@
 import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
 import { effectScope, nextTick, ref } from "vue";
 import { ApiError } from "../src/lib/api";
-import { RETENTION_MS } from "../src/lib/engine";
+import { RETENTION_MS } from "../src/lib/retention";
 import type { TrackSample } from "../src/lib/plots";
 import { initialSpan, shownSpan } from "../src/lib/timeline";
 import { parseUrlState } from "../src/lib/urlstate";

@@ -9,7 +9,7 @@ import { computed, reactive, ref, shallowRef, watch, type Ref } from "vue";
 import { AnnotationApi } from "../lib/annotationapi";
 import { CommandApi } from "../lib/commandapi";
 import { awaiting, commandMarks, mergeCommands, pausedAt, type Command, type CommandKind } from "../lib/commands";
-import { RETENTION_MS } from "../lib/engine";
+import { oldestReadable } from "../lib/retention";
 
 export interface CommandDeps {
   base: string;
@@ -50,7 +50,7 @@ export function useCommands(d: CommandDeps) {
   async function loadSpan(from: number, to: number) {
     spanRead = { from, to, at: Date.now() };
     try {
-      spanCommands.value = await api.list(Math.max(from, Date.now() - RETENTION_MS + 60_000), to);
+      spanCommands.value = await api.list(Math.max(from, oldestReadable(Date.now())), to);
     } catch {
       spanCommands.value = [];
     }
@@ -58,7 +58,7 @@ export function useCommands(d: CommandDeps) {
 
   async function loadRobot(id: string, around: number) {
     robotRead = { id, at: Date.now(), around };
-    const from = Math.max(Date.now() - RETENTION_MS + 60_000, Math.min(around, Date.now()) - ROBOT_LOOKBACK_MS);
+    const from = Math.max(oldestReadable(Date.now()), Math.min(around, Date.now()) - ROBOT_LOOKBACK_MS);
     try {
       const got = await api.list(from, Date.now() + 60_000, id);
       if (d.selected.value === id) robotCommands.value = got;

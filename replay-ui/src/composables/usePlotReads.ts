@@ -9,7 +9,7 @@
  */
 import { onScopeDispose, ref, shallowRef, watch } from "vue";
 import { ApiError } from "../lib/api";
-import { RETENTION_MS } from "../lib/engine";
+import { RETENTION_MS } from "../lib/retention";
 import { plotWindow, seriesOf, type RobotSeries, type TrackSample } from "../lib/plots";
 
 export interface PlotData {

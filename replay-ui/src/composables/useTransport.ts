@@ -5,7 +5,8 @@
  */
 import { ref, type Ref } from "vue";
 import { SPEEDS, type Speed } from "../lib/clock";
-import { RETENTION_MS, type ReplayEngine } from "../lib/engine";
+import type { ReplayEngine } from "../lib/engine";
+import { RETENTION_MS } from "../lib/retention";
 import { clampToRetention, fromInputValue, PICKER_FORMATS, toInputValue, type UrlState } from "../lib/urlstate";
 
 function wall() {

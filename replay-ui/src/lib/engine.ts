@@ -15,9 +15,9 @@ import { ChunkImages } from "./images";
 import { LiveConnection, liveUrl, type LiveMessage } from "./live";
 import { MapState } from "./mapstate";
 import { INTERPOLATE_MAX_SPEED, OFFLINE_AFTER_MS, poseAt, type PlacedPose } from "./poses";
+import { oldestReadable } from "./retention";
 import type { MapMeta, Pose, RobotAt } from "./types";
 
-export const RETENTION_MS = 7 * 86_400_000;
 /**
  * While paused, what only matters later (the look-ahead window, conflict marks, the
  * timeline's density) is asked for once the playhead has stayed put this long after a
@@ -89,7 +89,7 @@ export class ReplayEngine {
   constructor(base = "", now = Date.now()) {
     this.api = new Api(base);
     this.clock = new PlaybackClock(now, now);
-    this.clock.minMs = now - RETENTION_MS;
+    this.clock.minMs = oldestReadable(now);
     this.playhead = now;
     this.images = new ChunkImages(this.api);
     this.buffer = new EventBuffer(this.api, now, 1);
@@ -129,7 +129,7 @@ export class ReplayEngine {
   async seek(t: number, keepLive = false, record = true): Promise<void> {
     const wall = this.now();
     this.recordSeek = record;
-    this.clock.minMs = wall - RETENTION_MS + 60_000;
+    this.clock.minMs = oldestReadable(wall);
     t = Math.round(Math.min(wall, Math.max(this.clock.minMs, t)));
     const gen = ++this.seekGen;
     this.seeking = true;

@@ -1,5 +1,6 @@
 /** What the address bar carries, so a link reopens the same moment, speed and view. */
 import { isSpeed, type Speed } from "./clock";
+import { oldestReadable } from "./retention";
 
 export interface UrlState {
   live: boolean;
@@ -108,7 +109,7 @@ function parseArea(v: string | null): [number, number, number, number] | null {
  * can, and what to tell the user (null when `t` is fine).
  */
 export function clampToRetention(t: number, now: number, retentionMs: number): { t: number; problem: string | null } {
-  const oldest = now - retentionMs + 60_000;
+  const oldest = oldestReadable(now, retentionMs);
   if (t < oldest) {
     return { t: oldest, problem: `the link's time ${formatUtc(t)} is older than the ${Math.round(retentionMs / 86_400_000)} days the history keeps; showing the oldest instant kept` };
   }
