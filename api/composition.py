@@ -70,7 +70,12 @@ class Api:
         await self.server.serve()
 
     async def stop(self) -> None:
-        await asyncio.get_running_loop().run_in_executor(None, self.relay.stop)
+        """The relay, then the REST writes' producer: a request waits for its record's
+        delivery, so once uvicorn has served the last one nothing is left to deliver, and a
+        producer left open would keep dialling Kafka until the process exits."""
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(None, self.relay.stop)
+        await loop.run_in_executor(None, self.publisher.close)
 
 
 async def compose_api(

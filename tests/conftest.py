@@ -45,6 +45,36 @@ def _hermetic_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatc
             monkeypatch.delenv(name)
 
 
+def librdkafka_threads() -> int:
+    """The threads of this process's librdkafka clients, which name them rdk:main,
+    rdk:broker... (Linux lists them in /proc; elsewhere none are counted)."""
+    tasks = Path("/proc/self/task")
+    if not tasks.is_dir():
+        return 0
+    count = 0
+    for task in tasks.iterdir():
+        try:
+            count += (task / "comm").read_text().startswith("rdk:")
+        except OSError:  # the thread ended meanwhile
+            continue
+    return count
+
+
+@pytest.fixture(autouse=True)
+def _kafka_clients_closed(request: pytest.FixtureRequest) -> Iterator[None]:
+    """A fast test closes every librdkafka client it made. One left open (or left to the
+    garbage collector, when a callback refers back to it) keeps dialling its unreachable
+    broker from its own threads, logging each failure, into the tests that follow."""
+    if request.node.get_closest_marker("integration"):
+        yield
+        return
+    before = librdkafka_threads()
+    yield
+    left = librdkafka_threads() - before
+    if left > 0:
+        pytest.fail(f"{left} librdkafka threads still run: close the Kafka clients made here")
+
+
 @pytest.fixture
 def now_ms() -> int:
     return NOW_MS

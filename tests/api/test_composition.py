@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import threading
 
+import pytest
 from fastapi.testclient import TestClient
 from mapservice.api.composition import Api, compose_api
 
@@ -99,3 +100,15 @@ def test_the_health_of_what_runs_beside_it_is_what_the_api_reports(tmp_path) -> 
         live = client.get("/healthz")
         assert live.status_code == 200 and live.json()["checks"] == {"history_consumer": True}
     assert api.app.state.history_status() is storing
+
+
+def test_stopping_closes_the_rest_writes_producer(tmp_path) -> None:
+    """A 2019 REST write made the publisher's producer; stopping the API closes it rather
+    than leave it dialling Kafka until the process exits."""
+    api = _compose(_settings(tmp_path))
+    api.publisher.publish("t", b"k", b"v", lambda _error: None)
+    assert api.publisher.connected
+    asyncio.run(api.stop())
+    assert not api.publisher.connected
+    with pytest.raises(RuntimeError, match="closed"):
+        api.publisher.publish("t", b"k", b"v", lambda _error: None)

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
+import pytest
+
 from mapservice.adapters.kafka_publisher import KafkaPublisher, producer_config
 from mapservice.settings import Settings
 
@@ -16,15 +20,19 @@ def test_constructing_poll_and_flush_create_no_producer() -> None:
     assert not pub.connected
 
 
-def test_first_publish_creates_the_producer_and_queues_the_message() -> None:
-    """The first publish makes the producer; the undelivered message stays queued."""
+@pytest.fixture
+def poster() -> Iterator[KafkaPublisher]:
     pub = KafkaPublisher(UNREACHABLE, client_id="poster")
-    pub.publish("t", b"k", b"v", lambda error: None)
-    assert pub.connected and pub.flush(0.1) == 1
-    # Purged and served, the undelivered message lets go of its producer, which would
-    # otherwise dial the unreachable broker for the rest of the test run.
-    pub._producer.purge()
-    assert pub.flush(0.1) == 0
+    yield pub
+    pub.close()
+
+
+def test_first_publish_creates_the_producer_and_queues_the_message(poster) -> None:
+    """The first publish makes the producer; the undelivered message stays queued until
+    close() purges it and closes the producer."""
+    poster.publish("t", b"k", b"v", lambda error: None)
+    assert poster.connected and poster.flush(0.1) == 1
+    assert poster.close() == 1 and not poster.connected
 
 
 def test_producer_config_keeps_keys_on_faust_partitions() -> None:
