@@ -7,20 +7,26 @@ from __future__ import annotations
 import httpx
 
 
+def summed_samples(text: str, family_name: str, sample_name: str, key) -> dict:
+    """One metric family's `sample_name` samples in a /metrics text, summed per
+    `key(labels)`."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    out: dict = {}
+    for family in text_string_to_metric_families(text):
+        if family.name != family_name:
+            continue
+        for sample in family.samples:
+            if sample.name == sample_name:
+                k = key(sample.labels)
+                out[k] = out.get(k, 0.0) + sample.value
+    return out
+
+
 def counter_by_label(text: str, counter: str, label: str) -> dict[str, float]:
     """A Prometheus counter's `<counter>_total` samples in a /metrics text, summed per value
     of one label (an unlabelled sample counts under "")."""
-    from prometheus_client.parser import text_string_to_metric_families
-
-    out: dict[str, float] = {}
-    for family in text_string_to_metric_families(text):
-        if family.name != counter:
-            continue
-        for sample in family.samples:
-            if sample.name == f"{counter}_total":
-                key = sample.labels.get(label, "")
-                out[key] = out.get(key, 0.0) + sample.value
-    return out
+    return summed_samples(text, counter, f"{counter}_total", lambda labels: labels.get(label, ""))
 
 
 def gateway_acks(health_ports: list[int]) -> list[float]:
@@ -104,17 +110,7 @@ STORED_LATENCY = "mapservice_event_to_stored_seconds"
 def histogram_buckets(text: str, metric: str = STORED_LATENCY) -> dict[float, float]:
     """A histogram's cumulative bucket counts in a /metrics text, by upper bound (`le`),
     summed over its other labels."""
-    from prometheus_client.parser import text_string_to_metric_families
-
-    out: dict[float, float] = {}
-    for family in text_string_to_metric_families(text):
-        if family.name != metric:
-            continue
-        for sample in family.samples:
-            if sample.name == f"{metric}_bucket":
-                le = float(sample.labels["le"])
-                out[le] = out.get(le, 0.0) + sample.value
-    return out
+    return summed_samples(text, metric, f"{metric}_bucket", lambda labels: float(labels["le"]))
 
 
 def bucket_quantile(counts: dict[float, float], q: float) -> float | None:
