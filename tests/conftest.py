@@ -45,19 +45,23 @@ def _hermetic_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatc
             monkeypatch.delenv(name)
 
 
-def librdkafka_threads() -> int:
-    """The threads of this process's librdkafka clients, which name them rdk:main,
-    rdk:broker... (Linux lists them in /proc; elsewhere none are counted)."""
+def librdkafka_clients() -> set[str]:
+    """This process's librdkafka clients, each by its one `rdk:main` thread's id (Linux
+    lists threads in /proc; elsewhere none are counted). Broker threads (`rdk:broker...`)
+    are not counted: a client whose brokers have been gone for a while bootstraps again,
+    with new broker threads, at any moment, so an integration test's leftover client would
+    otherwise be blamed on whatever fast test runs then."""
     tasks = Path("/proc/self/task")
     if not tasks.is_dir():
-        return 0
-    count = 0
+        return set()
+    clients = set()
     for task in tasks.iterdir():
         try:
-            count += (task / "comm").read_text().startswith("rdk:")
+            if (task / "comm").read_text().strip() == "rdk:main":
+                clients.add(task.name)
         except OSError:  # the thread ended meanwhile
             continue
-    return count
+    return clients
 
 
 @pytest.fixture(autouse=True)
@@ -68,11 +72,11 @@ def _kafka_clients_closed(request: pytest.FixtureRequest) -> Iterator[None]:
     if request.node.get_closest_marker("integration"):
         yield
         return
-    before = librdkafka_threads()
+    before = librdkafka_clients()
     yield
-    left = librdkafka_threads() - before
-    if left > 0:
-        pytest.fail(f"{left} librdkafka threads still run: close the Kafka clients made here")
+    left = librdkafka_clients() - before
+    if left:
+        pytest.fail(f"{len(left)} librdkafka clients still run: close the Kafka clients made here")
 
 
 @pytest.fixture

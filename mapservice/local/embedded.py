@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import random
 import shutil
 import socket
 import subprocess
@@ -18,11 +19,52 @@ from pathlib import Path
 
 from mapservice.local.certs import CertFiles
 
+# Below this, ports of well-known services crowd; above it, picking at random rarely collides.
+LOWEST_CHOSEN_PORT = 10_000
+_EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_ports_handed_out: set[int] = set()
+_pick = random.SystemRandom()  # not the global generator: tests seed that one alike
+
+
+def ephemeral_ports() -> range | None:
+    """The ports the kernel gives outgoing connections (Linux's setting), if known."""
+    try:
+        low, high = (int(n) for n in _EPHEMERAL_RANGE.read_text().split())
+    except (OSError, ValueError):
+        return None
+    return range(low, high + 1)
+
 
 def free_port() -> int:
+    """A port free to listen on now, chosen outside the kernel's ephemeral range when it
+    is known. A port is chosen to be bound later, often again after a restart; one from
+    the ephemeral range can meanwhile become the local end of any process's outgoing
+    connection, and the server then fails with "address in use"."""
+    ephemeral = ephemeral_ports()
+    if ephemeral is not None:
+        candidates = [
+            r
+            for r in (range(LOWEST_CHOSEN_PORT, ephemeral.start), range(ephemeral.stop, 65_536))
+            if len(r) > 0
+        ]
+        for _ in range(200 if candidates else 0):
+            port = _pick.choice(_pick.choices(candidates, weights=[len(r) for r in candidates])[0])
+            if port not in _ports_handed_out and _bindable(port):
+                _ports_handed_out.add(port)
+                return port
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+        return int(s.getsockname()[1])
+
+
+def _bindable(port: int) -> bool:
+    # Without SO_REUSEADDR: a port with connections still in TIME_WAIT is passed over.
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
 
 
 def port_is_free(port: int) -> bool:

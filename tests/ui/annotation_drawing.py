@@ -40,7 +40,10 @@ def draw_zone_by_mouse(page, corners: Sequence[tuple[float, float]]) -> None:
 
 
 def seek_and_read(page, t: int) -> dict:
-    """Seeks to t and waits until the annotations at t are read and drawn."""
+    """Seeks to t and waits until the annotations at t are read and drawn. An instant
+    still ahead of the page's clock (an edit's time plus a second, just after the edit) is
+    waited for first: the replay clamps a seek to now, and would stop short of t."""
+    page.wait_for_function("(t) => Date.now() > t", arg=t, timeout=TIMEOUT_MS)
     page.evaluate("(t) => window.__replay.seek(t)", t)
     # The page reads the annotations again only when the seek crosses an edit (or leaves the
     # span whose edits it knows): the list read at an earlier instant with no edit between

@@ -1,0 +1,55 @@
+"""The fast tests' check for librdkafka clients left open (`_kafka_clients_closed` in
+tests/conftest.py) counts the clients a test made, not the threads older clients start."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from confluent_kafka import Producer
+
+from tests.conftest import librdkafka_clients
+
+UNREACHABLE = {
+    "bootstrap.servers": "127.0.0.1:1",
+    "log_level": 0,
+    "reconnect.backoff.ms": 10,
+    "reconnect.backoff.max.ms": 50,
+}
+
+
+def broker_threads() -> set[str]:
+    ids = set()
+    for task in Path("/proc/self/task").iterdir():
+        try:
+            if (task / "comm").read_text().startswith("rdk:broker"):
+                ids.add(task.name)
+        except OSError:
+            continue
+    return ids
+
+
+def test_an_older_client_bootstrapping_again_is_not_a_new_client() -> None:
+    """A client whose brokers are gone bootstraps again (librdkafka >= 2.10) with new broker
+    threads, at any moment: counting threads blamed that on the fast test running then."""
+    old = Producer({**UNREACHABLE, "metadata.recovery.rebootstrap.trigger.ms": 100})
+    try:
+        clients, threads = librdkafka_clients(), broker_threads()
+        deadline = time.monotonic() + 20
+        while not broker_threads() - threads and time.monotonic() < deadline:
+            old.poll(0.05)
+        assert broker_threads() - threads, "the old client started no new broker thread"
+        assert librdkafka_clients() == clients
+    finally:
+        old.flush(0)
+
+
+def test_a_client_left_open_is_counted() -> None:
+    before = librdkafka_clients()
+    left_open = Producer(UNREACHABLE)
+    try:
+        assert len(librdkafka_clients() - before) == 1
+    finally:
+        left_open.flush(0)
+        del left_open
+    assert librdkafka_clients() == before
