@@ -18,9 +18,10 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 from argparse import Namespace
 from pathlib import Path
+
+from mapservice.bench.workdir import bench_data_dir
 
 BROKERS = ("apache", "tansu")
 COMPONENTS = ("kafka", "gateway", "server", "mqtt")
@@ -125,13 +126,8 @@ def main(args) -> None:
     if getattr(args, "find_ceiling", False):
         sys.exit("--kafka both compares the brokers at one fleet size: drop --find-ceiling")
     facts = machine_facts()
-    base = (
-        Path(args.data_dir)
-        if args.data_dir
-        else Path(tempfile.mkdtemp(prefix="mapservice-brokers-"))
-    )
-    base.mkdir(parents=True, exist_ok=True)
-    runs = run_rounds(args, base, console, run_once)
+    with bench_data_dir(args.data_dir, "mapservice-brokers-") as base:
+        runs = run_rounds(args, base, console, run_once)
     med = {broker: medians(r) for broker, r in runs.items()}
     rows = side_by_side(med)
     print_table(console, args, rows)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from mapservice.bench.workdir import DATA_DIR_HELP
+
 
 def add_bench_parser(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks")
@@ -14,7 +16,7 @@ def add_bench_parser(sub) -> None:
         "--seconds", type=float, default=60, help="how long the fleet publishes per run"
     )
     ingest.add_argument("--mqtt", default="mosquitto", help="mosquitto, amqtt or an mqtt:// URL")
-    ingest.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    ingest.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     ingest.add_argument("--repeat", type=int, default=1, help="runs; medians are reported")
     ingest.add_argument("--json", default=None, help="write the results as JSON to this file")
     ingest.add_argument(

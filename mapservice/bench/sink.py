@@ -16,9 +16,11 @@ import resource
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
+from contextlib import ExitStack
 from pathlib import Path
+
+from mapservice.bench.workdir import bench_data_dir
 
 WAYS = ("batch",)
 
@@ -69,9 +71,10 @@ async def _one(way: str, events: int) -> dict:
     tansu = start_tansu(
         port, log_file=open(os.environ.get("BENCH_SINK_TANSU_LOG", os.devnull), "wb")
     )
+    data_dir = ExitStack()
     try:
         wait_for_port(port)
-        data = Path(tempfile.mkdtemp(prefix="bench-sink-"))
+        data = data_dir.enter_context(bench_data_dir(None, "bench-sink-"))
         settings = Settings(kafka_bootstrap=f"127.0.0.1:{port}", data_dir=data)
         ensure_topics(settings)
         pub = KafkaPublisher(settings, "bench-sink")
@@ -137,6 +140,7 @@ async def _one(way: str, events: int) -> dict:
         }
     finally:
         stop(tansu)
+        data_dir.close()
 
 
 def main(args) -> None:

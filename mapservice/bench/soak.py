@@ -25,15 +25,16 @@ from __future__ import annotations
 import json
 import os
 import statistics
-import tempfile
 import threading
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import httpx
 import psutil
 
 from mapservice.bench.procstat import cpu_seconds, resident_mb
+from mapservice.bench.workdir import DATA_DIR_HELP, bench_data_dir
 
 HOUR_S = 3600.0
 # tansu: memory storage, every record kept (docs/embedded.md); Apache Kafka is bounded.
@@ -232,7 +233,8 @@ def run(args, console) -> dict:
     from mapservice.robot import DEFAULT_MAP
     from mapservice.robot.loadgen import RobotFleet
 
-    data_dir = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-soak-"))
+    cleanup = ExitStack()
+    data_dir = cleanup.enter_context(bench_data_dir(args.data_dir, "bench-soak-"))
     ros_map = load_ros_map(DEFAULT_MAP)
     stack = Stack(data_dir, mqtt=args.mqtt, kafka="" if args.kafka == "auto" else args.kafka)
     settings = stack.settings()
@@ -308,6 +310,7 @@ def run(args, console) -> dict:
         if fleet is not None:
             fleet.stop()
         stack.stop()
+        cleanup.close()
     result["summary"] = summarize(samples, args.minutes, args.max_growth_mb_per_h, stack.kafka)
     return result
 
@@ -423,7 +426,7 @@ def add_parser(kinds) -> None:
         "allowed to each component except tansu (which keeps every record); Apache Kafka's "
         "JVM is judged too",
     )
-    soak.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    soak.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     soak.add_argument("--json", default=None, help="write samples and summary as JSON to this file")
     soak.set_defaults(func=main)
 

@@ -42,13 +42,14 @@ import json
 import os
 import platform
 import sys
-import tempfile
+from contextlib import ExitStack
 from datetime import UTC, datetime
 from pathlib import Path
 
 from mapservice.bench.timetravel_load import load
 from mapservice.bench.timetravel_measure import busy_processes, measure, wait_quiet
 from mapservice.bench.timetravel_report import HEADER, markdown, table_rows
+from mapservice.bench.workdir import DATA_DIR_HELP, bench_data_dir
 
 
 def machine_facts() -> dict:
@@ -84,8 +85,8 @@ def main(args) -> None:
     console = Console()
     if not console.is_terminal:
         console = Console(width=150)
-    data_dir = Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="tt-bench-"))
-    data_dir.mkdir(parents=True, exist_ok=True)
+    cleanup = ExitStack()
+    data_dir = cleanup.enter_context(bench_data_dir(args.data_dir, "tt-bench-"))
     dsn = args.clickhouse_dsn or f"chdb://{(data_dir / 'clickhouse').resolve()}"
     store = ClickHouseStore(dsn, database=args.database, snapshot_every_ms=600_000)
     results: dict = {
@@ -115,6 +116,7 @@ def main(args) -> None:
         results["storage"] = store.storage_bytes()
     finally:
         store.close()
+        cleanup.close()
     results["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
 
     table = Table(
@@ -155,7 +157,7 @@ def add_parser(kinds) -> None:
     tt.add_argument("--robots", type=int, default=20, help="simulated robots in the history")
     tt.add_argument("--grid", default="32x48", help="ROWSxCOLS chunk grid of the map meta")
     tt.add_argument("--map", default=None, help="ROS map YAML (default: maps/warehouse.yaml)")
-    tt.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    tt.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     tt.add_argument(
         "--clickhouse-dsn",
         default=None,

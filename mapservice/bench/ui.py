@@ -50,6 +50,7 @@ from pathlib import Path
 
 from mapservice.bench.ui_browser import frame_phase, seek_phase, speeds_phase
 from mapservice.bench.ui_setup import ApiProcess, load_or_reuse
+from mapservice.bench.workdir import DATA_DIR_HELP
 from mapservice.local.checkout import TEST_UI_DIR
 
 
@@ -196,7 +197,7 @@ def add_parser(kinds) -> None:
         help="also play each high speed fetching every chunk write (no compaction)",
     )
     p.add_argument("--forward-only", action="store_true", help="high speeds forwards only")
-    p.add_argument("--data-dir", default=None, help="default: a fresh temporary directory")
+    p.add_argument("--data-dir", default=None, help=DATA_DIR_HELP)
     p.add_argument(
         "--reuse",
         action="store_true",

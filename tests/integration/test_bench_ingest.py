@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -55,8 +57,11 @@ def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_m
     tmp_path,
 ) -> None:
     """`--gateways 2`: both replicas take part through the shared subscription, their
-    confirmed messages add up to exactly what the robots published, and nothing is lost."""
+    confirmed messages add up to exactly what the robots published, and nothing is lost.
+    Without `--data-dir` the run's data goes to a temporary directory, removed at the end."""
     out = tmp_path / "bench.json"
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
     done = subprocess.run(
         [
             sys.executable,
@@ -72,17 +77,19 @@ def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_m
             "2",
             "--mqtt",
             "mosquitto",
-            "--data-dir",
-            str(tmp_path / "data"),
             "--json",
             str(out),
         ],
         capture_output=True,
         text=True,
         timeout=540,
+        env={**os.environ, "TMPDIR": str(temporary)},
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    run = json.loads(out.read_text())["runs"][0]
+    doc = json.loads(out.read_text())
+    assert Path(doc["args"]["data_dir"]).parent == temporary
+    assert not list(temporary.glob("mapservice-bench-*")), "the run's data was left behind"
+    run = doc["runs"][0]
     assert run["gateways"] == 2 and (run["lost"], run["duplicated"]) == (0, 0)
     assert all(n > 0 for n in run["gateway_acked_by_replica"]), run["gateway_acked_by_replica"]
     assert run["gateway_acked_minus_published"] == 0

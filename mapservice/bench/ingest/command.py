@@ -6,7 +6,6 @@ import json
 import os
 import shutil
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +30,7 @@ from mapservice.bench.ingest.report import (
 )
 from mapservice.bench.ingest.run import run_once
 from mapservice.bench.machine import machine_facts
+from mapservice.bench.workdir import bench_data_dir
 
 
 def run_series(args, base: Path, console) -> tuple[list[dict], dict]:
@@ -105,6 +105,11 @@ def find_ceiling(args, facts: dict, base: Path, console) -> dict:
 
 
 def main(args) -> None:
+    with bench_data_dir(args.data_dir, "mapservice-bench-") as base:
+        _main(args, base)
+
+
+def _main(args, base: Path) -> None:
     from rich.console import Console
 
     from mapservice.runtime.logs import configure
@@ -116,10 +121,6 @@ def main(args) -> None:
     if args.robots < 1 or args.seconds <= 0 or args.repeat < 1:
         sys.exit("--robots, --seconds and --repeat must be positive")
     facts = machine_facts()
-    base = (
-        Path(args.data_dir) if args.data_dir else Path(tempfile.mkdtemp(prefix="mapservice-bench-"))
-    )
-    base.mkdir(parents=True, exist_ok=True)
     doc: dict[str, Any] = {
         "benchmark": "ingest",
         "command": "mapservice bench ingest "
