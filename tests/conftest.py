@@ -7,6 +7,7 @@ from __future__ import annotations
 import base64
 import itertools
 import os
+import time
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -45,23 +46,33 @@ def _hermetic_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatc
             monkeypatch.delenv(name)
 
 
-def librdkafka_clients() -> set[str]:
+def librdkafka_clients(settle_s: float = 0.0) -> set[str]:
     """This process's librdkafka clients, each by its one `rdk:main` thread's id (Linux
     lists threads in /proc; elsewhere none are counted). Broker threads (`rdk:broker...`)
     are not counted: a client whose brokers have been gone for a while bootstraps again,
     with new broker threads, at any moment, so an integration test's leftover client would
-    otherwise be blamed on whatever fast test runs then."""
+    otherwise be blamed on whatever fast test runs then. A thread is named by its creator's
+    name until it names itself, so a broker thread just made reads `rdk:main` for a moment:
+    with `settle_s`, only threads still `rdk:main` that much later are counted."""
+    clients = _threads_named("rdk:main")
+    if settle_s and clients:
+        time.sleep(settle_s)
+        clients &= _threads_named("rdk:main")
+    return clients
+
+
+def _threads_named(name: str) -> set[str]:
     tasks = Path("/proc/self/task")
     if not tasks.is_dir():
         return set()
-    clients = set()
+    found = set()
     for task in tasks.iterdir():
         try:
-            if (task / "comm").read_text().strip() == "rdk:main":
-                clients.add(task.name)
+            if (task / "comm").read_text().strip() == name:
+                found.add(task.name)
         except OSError:  # the thread ended meanwhile
             continue
-    return clients
+    return found
 
 
 @pytest.fixture(autouse=True)
@@ -75,6 +86,8 @@ def _kafka_clients_closed(request: pytest.FixtureRequest) -> Iterator[None]:
     before = librdkafka_clients()
     yield
     left = librdkafka_clients() - before
+    if left:
+        left = librdkafka_clients(settle_s=0.05) - before
     if left:
         pytest.fail(f"{len(left)} librdkafka clients still run: close the Kafka clients made here")
 

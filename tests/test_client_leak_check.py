@@ -10,6 +10,7 @@ from confluent_kafka import Producer
 
 from tests.conftest import librdkafka_clients
 
+SETTLE_S = 0.05  # see librdkafka_clients
 UNREACHABLE = {
     "bootstrap.servers": "127.0.0.1:1",
     "log_level": 0,
@@ -34,22 +35,28 @@ def test_an_older_client_bootstrapping_again_is_not_a_new_client() -> None:
     threads, at any moment: counting threads blamed that on the fast test running then."""
     old = Producer({**UNREACHABLE, "metadata.recovery.rebootstrap.trigger.ms": 100})
     try:
-        clients, threads = librdkafka_clients(), broker_threads()
-        deadline = time.monotonic() + 20
+        old.produce("t", b"x")  # something to deliver: it keeps asking for the brokers
+        clients, threads = librdkafka_clients(SETTLE_S), broker_threads()
+        deadline = time.monotonic() + 60
         while not broker_threads() - threads and time.monotonic() < deadline:
             old.poll(0.05)
         assert broker_threads() - threads, "the old client started no new broker thread"
-        assert librdkafka_clients() == clients
+        assert not librdkafka_clients(SETTLE_S) - clients
     finally:
-        old.flush(0)
+        close(old)
 
 
 def test_a_client_left_open_is_counted() -> None:
-    before = librdkafka_clients()
+    before = librdkafka_clients(SETTLE_S)
     left_open = Producer(UNREACHABLE)
     try:
-        assert len(librdkafka_clients() - before) == 1
+        assert len(librdkafka_clients(SETTLE_S) - before) == 1
     finally:
-        left_open.flush(0)
-        del left_open
-    assert librdkafka_clients() == before
+        close(left_open)
+    assert not librdkafka_clients(SETTLE_S) - before
+
+
+def close(producer: Producer) -> None:
+    producer.purge()
+    producer.flush(0)
+    producer.close()
