@@ -4,16 +4,16 @@ and resumes on the same data). The reference pages it links are checked by test_
 from __future__ import annotations
 
 import json
-import signal
+import os
 import subprocess
-import sys
 import time
 
 import httpx
 import pytest
 
-from mapservice.local.embedded import ensure_port_free, free_port
-from tests.fixtures.paths import README, ROOT
+from mapservice.local.embedded import ensure_port_free
+from tests.fixtures.paths import README
+from tests.fixtures.up import Up
 
 
 def try_it_block() -> str:
@@ -22,54 +22,23 @@ def try_it_block() -> str:
     return block.split("```bash", 1)[1].rsplit("```", 1)[0]
 
 
-def start_up(data_dir, api_port: int, mqtt_port: int) -> subprocess.Popen:
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "mapservice.cli",
-            "up",
-            "--data-dir",
-            str(data_dir),
-            "--robots",
-            "2",
-            "--api-port",
-            str(api_port),
-            "--mqtt-port",
-            str(mqtt_port),
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        start_new_session=True,
-    )
-    deadline = time.monotonic() + 240  # a fresh data dir first gets its week of demo history
-    seen = []
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if not line:
-            break
-        seen.append(line)
-        if "mapservice is up" in line:
-            return proc
-    proc.kill()
-    raise AssertionError("mapservice up did not come up:\n" + "".join(seen[-40:]))
+def start_up(data_dir, ports: tuple[int, int] | None = None) -> Up:
+    # A fresh data dir first gets its week of demo history.
+    return Up(data_dir, "--robots", "2", ports=ports, env=dict(os.environ), ready_within_s=240)
 
 
-def stop_up(proc: subprocess.Popen) -> int:
-    proc.send_signal(signal.SIGINT)
-    _out, _ = proc.communicate(timeout=60)
-    return proc.returncode
+def stop_up(up: Up) -> int | None:
+    up.stop()
+    return up.proc.returncode
 
 
 @pytest.mark.integration
 def test_try_it_block_against_mapservice_up(tmp_path):
     """`mapservice up` comes up; the README's mosquitto_pub pose is queryable within 2 s; Ctrl-C
     stops everything; a second `up` on the same data dir still has it."""
-    api_port, mqtt_port = free_port(), free_port()
     data_dir = tmp_path / "data"
-    proc = start_up(data_dir, api_port, mqtt_port)
+    up = start_up(data_dir)
+    api_port, mqtt_port = up.api_port, up.mqtt_port
     try:
         script = (
             try_it_block()
@@ -95,12 +64,12 @@ def test_try_it_block_against_mapservice_up(tmp_path):
             assert time.monotonic() < deadline, "the simulated robots never published"
             time.sleep(0.5)
     finally:
-        code = stop_up(proc)
+        code = stop_up(up)
     assert code == 0
     for port in (api_port, mqtt_port):
         ensure_port_free(port, "a component `up` should have stopped")
 
-    proc = start_up(data_dir, api_port, mqtt_port)
+    up = start_up(data_dir, (api_port, mqtt_port))
     try:
         now = time.time_ns() // 1_000_000
         rows = httpx.get(
@@ -109,4 +78,4 @@ def test_try_it_block_against_mapservice_up(tmp_path):
         ).json()
         assert len(rows) == 1
     finally:
-        assert stop_up(proc) == 0
+        assert stop_up(up) == 0

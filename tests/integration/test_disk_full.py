@@ -147,7 +147,12 @@ class Poses:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join(10)
-        assert self.publisher.flush(30) == 0
+        try:
+            assert self.publisher.flush(30) == 0
+        finally:
+            # Left open, its producer dials the stopped broker from its threads for the
+            # rest of the session.
+            self.publisher.close()
 
     def acked_between(self, start: float, end: float) -> int:
         return sum(1 for *_, at in self.acked if start <= at <= end)

@@ -33,8 +33,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
-import threading
 import time
 from collections.abc import Callable
 
@@ -44,7 +42,8 @@ from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.local import embedded
 from mapservice.local.stack import Stack
 from mapservice.sql.credentials import analyst_password_file
-from tests.fixtures.paths import MAPS, ROOT
+from tests.fixtures.paths import MAPS
+from tests.fixtures.up import Up
 
 from .fault_load import (
     CHUNK_EVERY,
@@ -178,63 +177,24 @@ def test_split_deployment_keeps_every_acknowledged_message_through_each_fault(sp
 # ---- `mapservice up`: its supervisor restarts what the test kills ------------------------
 
 
-class Up:
-    """A running `mapservice up` (no simulated robots), its console collected."""
+class SupervisedUp(Up):
+    """A running `mapservice up` (no simulated robots) on the depot map, restarting a killed
+    part after half a second."""
 
     def __init__(self, data_dir) -> None:
-        self.data_dir = data_dir
-        self.api_port, self.mqtt_port = embedded.free_port(), embedded.free_port()
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mapservice.cli",
-                "up",
-                "--data-dir",
-                str(data_dir),
-                "--api-port",
-                str(self.api_port),
-                "--mqtt-port",
-                str(self.mqtt_port),
-                "--map",
-                str(MAPS / "depot.yaml"),
-                "--robots",
-                "0",
-                "--history-days",
-                "0",
-                "--restart-base-s",
-                "0.5",
-            ],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-            env={**os.environ, "COLUMNS": "200", **SNAPSHOT_ENV},
+        super().__init__(
+            data_dir,
+            "--map",
+            str(MAPS / "depot.yaml"),
+            "--robots",
+            "0",
+            "--history-days",
+            "0",
+            "--restart-base-s",
+            "0.5",
+            env={**os.environ, **SNAPSHOT_ENV, "COLUMNS": "200"},
+            ready_within_s=None,
         )
-        self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-
-    def _read(self) -> None:
-        for line in self.proc.stdout:
-            self.lines.append(line)
-
-    @property
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    @property
-    def api_url(self) -> str:
-        return f"http://127.0.0.1:{self.api_port}"
-
-    def wait_for(self, text: str, timeout_s: float, after: int = 0) -> None:
-        """Until `text` is on the console (in lines from `after` on)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self.proc.poll() is None:
-            if text in "".join(self.lines[after:]):
-                return
-            time.sleep(0.1)
-        raise AssertionError(f"no {text!r} from mapservice up:\n{self.output[-4000:]}")
 
     def children(self) -> dict[str, int]:
         """Component name (as the supervisor says it) -> pid of `up`'s child process."""
@@ -261,14 +221,6 @@ class Up:
                 found["mqtt"] = int(pid)
         return found
 
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-
 
 @pytest.mark.timeout(600)
 def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp_path) -> None:
@@ -278,7 +230,7 @@ def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp
     if not embedded.mosquitto_installed():
         pytest.fail("mosquitto is not installed (`make system-deps`)")
     started = time.monotonic()
-    up = Up(tmp_path / "data")
+    up = SupervisedUp(tmp_path / "data")
     load = None
     runs: list[FaultRun] = []
     try:

@@ -13,7 +13,7 @@ import pytest
 
 from mapservice.adapters.mqtt_auth import read_password_file
 from mapservice.adapters.mqtt_client import PollingClient
-from tests.integration.test_up_floor import Up
+from tests.fixtures.up import Up
 
 pytestmark = pytest.mark.integration
 

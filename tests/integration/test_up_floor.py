@@ -5,96 +5,17 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
-import threading
 import time
 
-import httpx
 import pytest
 from mapservice.robot.map_upload import MARKER, UPLOADER_ID
 
 from mapservice.adapters.ros_map import load_ros_map, slice_chunks
 from mapservice.core.wire2019 import content_hash, encode_coordinates, format_timestamp
-from mapservice.local.checkout import TEST_UI_ENV
-from mapservice.local.embedded import free_port
-from tests.fixtures.paths import MAPS, ROOT
+from tests.fixtures.paths import MAPS
+from tests.fixtures.up import Up, children
 
 pytestmark = pytest.mark.integration
-
-
-class Up:
-    """A running `mapservice up` whose console lines are collected in the background; it
-    serves the UI's test build, which the browser tests drive through window.__replay."""
-
-    def __init__(self, data_dir, *args: str) -> None:
-        self.api_port, self.mqtt_port = free_port(), free_port()
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mapservice.cli",
-                "up",
-                "--data-dir",
-                str(data_dir),
-                "--api-port",
-                str(self.api_port),
-                "--mqtt-port",
-                str(self.mqtt_port),
-                *args,
-            ],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-            env={**os.environ, **TEST_UI_ENV, "COLUMNS": "200"},
-        )
-        self.lines: list[str] = []
-        threading.Thread(target=self._read, daemon=True).start()
-        self.wait_for("mapservice is up", 150)
-
-    def _read(self) -> None:
-        for line in self.proc.stdout:
-            self.lines.append(line)
-
-    @property
-    def output(self) -> str:
-        return "".join(self.lines)
-
-    def wait_for(self, text: str, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and self.proc.poll() is None:
-            if text in self.output:
-                return
-            time.sleep(0.2)
-        raise AssertionError(f"no {text!r} from mapservice up:\n{self.output[-4000:]}")
-
-    def api(self, path: str, **params) -> httpx.Response:
-        return httpx.get(f"http://127.0.0.1:{self.api_port}{path}", params=params, timeout=30)
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-
-
-def children(pid: int) -> dict[str, int]:
-    """Subcommand -> pid of the `mapservice.cli` children of `up` (gateway, processors, api,
-    clickhouse-server, sim)."""
-    out = subprocess.run(
-        ["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True, text=True
-    ).stdout
-    found = {}
-    for line in out.splitlines():
-        child, _, cmd = line.strip().partition(" ")
-        parts = cmd.split()
-        if "mapservice.cli" in parts:
-            found[parts[parts.index("mapservice.cli") + 1]] = int(child)
-    return found
 
 
 def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):

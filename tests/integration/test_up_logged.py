@@ -6,49 +6,18 @@ from __future__ import annotations
 import json
 import os
 import stat
-import subprocess
-import sys
-import threading
 
 import pytest
 
-from mapservice.local.embedded import free_port
-from tests.fixtures.paths import ROOT
-from tests.integration.test_up_floor import Up
+from tests.fixtures.up import Up
 
 pytestmark = pytest.mark.integration
 
 
-class PipedUp(Up):
+def piped_up(data_dir, *args: str) -> Up:
     """`up` whose stdout and stderr are a pipe, with no COLUMNS to widen its console."""
-
-    def __init__(self, data_dir, *args: str) -> None:
-        self.api_port, self.mqtt_port = free_port(), free_port()
-        env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mapservice.cli",
-                "up",
-                "--data-dir",
-                str(data_dir),
-                "--api-port",
-                str(self.api_port),
-                "--mqtt-port",
-                str(self.mqtt_port),
-                *args,
-            ],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-            env=env,
-        )
-        self.lines = []
-        threading.Thread(target=self._read, daemon=True).start()
-        self.wait_for("mapservice is up", 200)
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES")}
+    return Up(data_dir, *args, env=env, ready_within_s=200)
 
 
 @pytest.mark.timeout(300)
@@ -63,7 +32,7 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
     old.write_text("x")
     old.chmod(0o644)
     data.chmod(0o755)
-    up = PipedUp(data, "--auth", "--robots", "1", "--history-days", "0.3")
+    up = piped_up(data, "--auth", "--robots", "1", "--history-days", "0.3")
     try:
         out = up.output
         assert "simulating the last 0.3 days of 1 robots" in out and "done_percent=" in out

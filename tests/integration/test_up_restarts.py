@@ -22,8 +22,8 @@ from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from mapservice.local import embedded, lifetime
 from mapservice.local.embedded import free_port
 from tests.fixtures.paths import ROOT
+from tests.fixtures.up import Up, children
 from tests.integration.test_up_auth import connect_code
-from tests.integration.test_up_floor import Up, children
 
 pytestmark = [
     pytest.mark.integration,
@@ -31,38 +31,10 @@ pytestmark = [
 ]
 
 
-class UpOn(Up):
-    """`mapservice up` on given ports (the robot reconnects to the same broker address)."""
-
-    def __init__(self, data_dir, api_port: int, mqtt_port: int, *args: str) -> None:
-        self.api_port, self.mqtt_port = api_port, mqtt_port
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "mapservice.cli",
-                "up",
-                "--data-dir",
-                str(data_dir),
-                "--api-port",
-                str(api_port),
-                "--mqtt-port",
-                str(mqtt_port),
-                "--robots",
-                "0",
-                "--history-days",
-                "0",
-                *args,
-            ],
-            cwd=ROOT,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            start_new_session=True,
-        )
-        self.lines = []
-        threading.Thread(target=self._read, daemon=True).start()
-        self.wait_for("mapservice is up", 150)
+def up_on(data_dir, api_port: int, mqtt_port: int, *args: str) -> Up:
+    """`mapservice up` without robots or history on given ports (the robot reconnects to
+    the same broker address)."""
+    return Up(data_dir, "--robots", "0", "--history-days", "0", *args, ports=(api_port, mqtt_port))
 
 
 class Robot:
@@ -149,7 +121,7 @@ def restarted(up: Up, how: str, data_dir, *args: str) -> Up:
         up.proc.kill()
     up.proc.wait(60)
     time.sleep(3)  # the robot publishes on into a broker that is down: its session queues
-    return UpOn(data_dir, up.api_port, up.mqtt_port, *args)
+    return up_on(data_dir, up.api_port, up.mqtt_port, *args)
 
 
 @pytest.mark.timeout(420)
@@ -162,7 +134,7 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
     the next `up` failed on its own orphans' ports.)"""
     data = tmp_path / "data"
     args = ("--auth",) if auth else ()
-    up = UpOn(data, free_port(), free_port(), *args)
+    up = up_on(data, free_port(), free_port(), *args)
     robot_id, password = "restart-robot", None
     if auth:
         robot_id = "controller-1"  # `up --auth` gives the /controller page's robot a credential
@@ -229,7 +201,7 @@ def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
     (SIGSTOP) and `up` killed with kill -9: the API still holds its port. The next `up`
     finds it in the pid file, says so, ends it and comes up on the same ports."""
     data = tmp_path / "data"
-    up = UpOn(data, free_port(), free_port())
+    up = up_on(data, free_port(), free_port())
     server = children(up.proc.pid)["api"]
     try:
         guard = json.loads((data / "up.pids.json").read_text())["components"]
@@ -239,7 +211,7 @@ def test_up_ends_a_component_that_outlived_a_killed_up(tmp_path):
         up.proc.wait(30)
         time.sleep(1)
         assert lifetime.start_time(server) is not None, "the stopped API did not outlive up"
-        up = UpOn(data, up.api_port, up.mqtt_port)
+        up = up_on(data, up.api_port, up.mqtt_port)
         assert "ended without stopping its components" in up.output
         assert f"api (pid {server})" in up.output
         assert lifetime.start_time(server) is None

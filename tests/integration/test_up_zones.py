@@ -23,7 +23,7 @@ from mapservice.core.annotations import Zone
 from mapservice.core.zone_masks import pixel_of, zone_pixels
 from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from tests.fixtures.paths import MAPS
-from tests.integration.test_up_floor import Up
+from tests.fixtures.up import Up
 from tests.ui.annotation_drawing import (
     TIMEOUT_MS,
     center_on_metres,

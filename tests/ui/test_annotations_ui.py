@@ -13,8 +13,6 @@ test-artifacts/ui/ and, with MAPSERVICE_UPDATE_SCREENSHOTS=1, to docs/ui-zones.p
 
 from __future__ import annotations
 
-import json
-import subprocess
 import time
 
 import httpx
@@ -23,6 +21,7 @@ import pytest
 from mapservice.core.wire2019 import format_timestamp
 from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.settings import token_list
+from tests.fixtures.mosquitto import mosquitto_pub
 
 from .annotation_drawing import (
     TIMEOUT_MS,
@@ -209,23 +208,7 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
         },
         "status": {"battery": {"battery_level": 0.5, "charging": False}, "loaded": False},
     }
-    subprocess.run(
-        [
-            "mosquitto_pub",
-            "-h",
-            "127.0.0.1",
-            "-p",
-            str(stack.mqtt_port),
-            "-q",
-            "1",
-            "-t",
-            f"iot/coordinates/{VIOLATOR}",
-            "-m",
-            json.dumps(body),
-        ],
-        check=True,
-        timeout=30,
-    )
+    mosquitto_pub(stack.mqtt_port, f"iot/coordinates/{VIOLATOR}", body)
     deadline = time.monotonic() + 60
     found: list = []
     while time.monotonic() < deadline and not found:

@@ -13,13 +13,12 @@ MAPSERVICE_UPDATE_SCREENSHOTS=1, to docs/ui-commands.png."""
 
 from __future__ import annotations
 
-import json
-import subprocess
 import time
 
 import httpx
 
 from mapservice.core.wire2019 import format_timestamp
+from tests.fixtures.mosquitto import mosquitto_pub
 
 from .test_annotations_ui import give_token, operator_token
 from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
@@ -58,23 +57,7 @@ def answer(stack, command_id: str, status: str, reason: str = "") -> None:
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         # The gateway takes an answer only to a command it delivered: again until it has.
-        subprocess.run(
-            [
-                "mosquitto_pub",
-                "-h",
-                "127.0.0.1",
-                "-p",
-                str(stack.mqtt_port),
-                "-q",
-                "1",
-                "-t",
-                f"iot/robots/{ROBOT}/command-events",
-                "-m",
-                json.dumps(body),
-            ],
-            check=True,
-            timeout=30,
-        )
+        mosquitto_pub(stack.mqtt_port, f"iot/robots/{ROBOT}/command-events", body)
         for _ in range(6):
             ack = commands(stack)[command_id]["ack"]
             if ack is not None:

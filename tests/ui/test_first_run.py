@@ -19,7 +19,7 @@ from PIL import Image
 from mapservice.adapters.ros_map import drivable, load_ros_map, slice_chunks
 from mapservice.core.wire2019 import content_hash
 from tests.fixtures.paths import MAPS, ROOT
-from tests.integration.test_up_floor import Up
+from tests.fixtures.up import Up
 
 from .conftest import ARTIFACTS
 

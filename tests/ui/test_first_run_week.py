@@ -8,22 +8,20 @@ from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from mapservice.adapters.ros_map import load_ros_map, slice_chunks
 from tests.fixtures.paths import MAPS
-from tests.integration.test_up_floor import Up
+from tests.fixtures.up import Up
 
 TIMEOUT_MS = 90_000
 HOUR_MS, DAY_MS = 3_600_000, 86_400_000
 
 
-class WeekUp(Up):
+def week_up(data_dir) -> Up:
     """`mapservice up` with the default week of history: writing it takes a minute or two."""
-
-    def wait_for(self, text: str, timeout_s: float) -> None:
-        super().wait_for(text, max(timeout_s, 420))
+    return Up(data_dir, ready_within_s=420)
 
 
 def test_a_fresh_week_draws_the_whole_floor_at_every_seek(tmp_path, browser) -> None:
     grid = len(slice_chunks(load_ros_map(MAPS / "warehouse.yaml")))
-    up = WeekUp(tmp_path / "data")
+    up = week_up(tmp_path / "data")
     api = f"http://127.0.0.1:{up.api_port}"
     context = browser.new_context(viewport={"width": 1280, "height": 800})
     page = context.new_page()

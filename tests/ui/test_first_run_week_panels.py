@@ -5,14 +5,14 @@ battery over the week."""
 
 from __future__ import annotations
 
-from tests.ui.test_first_run_week import TIMEOUT_MS, WeekUp
+from tests.ui.test_first_run_week import TIMEOUT_MS, week_up
 from tests.ui.test_plots_timeline import iso
 
 DAY_MS = 86_400_000
 
 
 def test_a_fresh_weeks_7d_span_lists_changes_marks_the_upload_and_plots(tmp_path, browser) -> None:
-    up = WeekUp(tmp_path / "data")
+    up = week_up(tmp_path / "data")
     api = f"http://127.0.0.1:{up.api_port}"
     context = browser.new_context(viewport={"width": 1280, "height": 800})
     page = context.new_page()

@@ -11,7 +11,6 @@ import base64
 import csv
 import io
 import json
-import subprocess
 import time
 import zlib
 
@@ -20,6 +19,7 @@ import pytest
 from mcap.reader import make_reader
 
 from mapservice.core.wire2019 import content_hash, format_timestamp
+from tests.fixtures.mosquitto import mosquitto_pub
 
 from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
 
@@ -188,23 +188,7 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
             "status": {"battery": {"battery_level": 0.42, "charging": True}, "loaded": False},
             "plannedPath": [{"x": x, "y": y} for x, y in path],
         }
-        subprocess.run(
-            [
-                "mosquitto_pub",
-                "-h",
-                "127.0.0.1",
-                "-p",
-                str(stack.mqtt_port),
-                "-q",
-                "1",
-                "-t",
-                "iot/coordinates/insp-path",
-                "-m",
-                json.dumps(body),
-            ],
-            check=True,
-            timeout=30,
-        )
+        mosquitto_pub(stack.mqtt_port, "iot/coordinates/insp-path", body)
     deadline = time.monotonic() + 60
     while (
         time.monotonic() < deadline

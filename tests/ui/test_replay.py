@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 import json
-import subprocess
 import time
 
 import httpx
@@ -12,6 +11,7 @@ import pytest
 from PIL import Image
 
 from mapservice.bench.ui_expected import expected_at
+from tests.fixtures.mosquitto import mosquitto_pub
 
 from .conftest import ARTIFACTS
 
@@ -254,23 +254,7 @@ def test_live_mode_shows_a_pose_published_with_mosquitto_pub(page, history_stack
             "status": {"battery": {"battery_level": 80, "charging": False}, "loaded": True},
         }
     )
-    subprocess.run(
-        [
-            "mosquitto_pub",
-            "-h",
-            "127.0.0.1",
-            "-p",
-            str(stack.mqtt_port),
-            "-q",
-            "1",
-            "-t",
-            "iot/coordinates/ui-live",
-            "-m",
-            body,
-        ],
-        check=True,
-        timeout=30,
-    )
+    mosquitto_pub(stack.mqtt_port, "iot/coordinates/ui-live", body)
     page.wait_for_function(
         "() => window.__replay.drawnRobots().some(r => r.robotId === 'ui-live')", timeout=TIMEOUT_MS
     )
