@@ -68,18 +68,15 @@ def answer(stack, command_id: str, status: str, reason: str = "") -> None:
 
 
 def sent_row(page, before: set[str]) -> str:
-    """The id of the command row that appeared after a click."""
+    """The id of the command row that appeared after a click (and stays: a read under way
+    when the command was sent must not drop it from the list)."""
     page.wait_for_function(
-        "(n) => document.querySelectorAll('[data-testid=\"command-row\"]').length > n",
-        arg=len(before),
+        "(before) => [...document.querySelectorAll('[data-testid=\"command-row\"]')]"
+        ".some((r) => !before.includes(r.dataset.id))",
+        arg=sorted(before),
         timeout=TIMEOUT_MS,
     )
-    ids = set(
-        page.eval_on_selector_all(
-            '[data-testid="command-row"]', "rs => rs.map((r) => r.dataset.id)"
-        )
-    )
-    (new,) = ids - before
+    (new,) = rows(page) - before
     return new
 
 

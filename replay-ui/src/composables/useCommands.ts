@@ -46,6 +46,9 @@ export function useCommands(d: CommandDeps) {
   let robotRead = { id: "", at: 0, around: 0 };
   let poisAt = 0;
   let loading = false;
+  /** The commands this page sent to the selected robot, in order: a read begun before a send
+   * answers without it, so what was sent since a read began is kept beside its answer. */
+  let sent: Command[] = [];
 
   async function loadSpan(from: number, to: number) {
     spanRead = { from, to, at: Date.now() };
@@ -59,9 +62,10 @@ export function useCommands(d: CommandDeps) {
   async function loadRobot(id: string, around: number) {
     robotRead = { id, at: Date.now(), around };
     const from = Math.max(oldestReadable(Date.now()), Math.min(around, Date.now()) - ROBOT_LOOKBACK_MS);
+    const sentBefore = sent.length;
     try {
       const got = await api.list(from, Date.now() + 60_000, id);
-      if (d.selected.value === id) robotCommands.value = got;
+      if (d.selected.value === id) robotCommands.value = mergeCommands(sent.slice(sentBefore), got);
     } catch (e) {
       error.value = `the robot's commands could not be read: ${(e as Error).message}`;
     }
@@ -79,6 +83,7 @@ export function useCommands(d: CommandDeps) {
 
   watch(d.selected, () => {
     robotCommands.value = [];
+    sent = [];
     error.value = null;
     robotRead = { id: "", at: 0, around: 0 };
   });
@@ -109,6 +114,8 @@ export function useCommands(d: CommandDeps) {
     error.value = null;
     try {
       const c = await api.send(id, kind, poiId);
+      if (d.selected.value !== id) return;
+      sent.push(c);
       robotCommands.value = mergeCommands(robotCommands.value, [c]);
       robotRead.at = 0; // poll for its ack at once
     } catch (e) {

@@ -1,0 +1,57 @@
+import { afterEach, describe, expect, it, vi } from "vitest";
+import { nextTick, ref } from "vue";
+import { useCommands } from "../src/composables/useCommands";
+import type { Command } from "../src/lib/commands";
+
+function cmd(id: string, kind: string, issued: number): Command {
+  return { commandId: id, robotId: "r1", kind, poiId: null, target: null, issuedBy: "operator:ops", issued_ms: issued, ack: null, outcome: null };
+}
+
+/** fetch as the API answers: a list read waits for `release`, a send answers at once. */
+function api(listed: Command[], made: Command) {
+  let release = () => {};
+  const held = new Promise<void>((r) => (release = r));
+  vi.stubGlobal("fetch", async (url: string, init?: RequestInit) => {
+    if (init?.method === "POST") return new Response(JSON.stringify(made), { status: 201 });
+    await held;
+    return new Response(JSON.stringify({ commands: listed }), { status: 200 });
+  });
+  return { release };
+}
+
+async function settle() {
+  for (let i = 0; i < 5; i++) await new Promise((r) => setTimeout(r, 0));
+  await nextTick();
+}
+
+afterEach(() => vi.unstubAllGlobals());
+
+describe("the selected robot's commands", () => {
+  it("keep a command sent while an older read was under way", async () => {
+    const now = Date.now();
+    const pause = cmd("p", "pause", now - 5_000);
+    const goto = cmd("g", "resume", now);
+    const { release } = api([pause], goto);
+    const selected = ref<string | null>("r1");
+    const c = useCommands({ base: "", selected, operator: () => true, span: () => [now - 60_000, now + 60_000] });
+    c.tick(now); // the read begins, and is answered only after the send
+    await c.send("resume");
+    expect(c.recent.map((x) => x.commandId)).toEqual(["g"]);
+    release();
+    await settle();
+    // The read's list predates the send; the sent command stays listed beside it.
+    expect(c.recent.map((x) => x.commandId)).toEqual(["g", "p"]);
+  });
+
+  it("drop a send answered after another robot was selected", async () => {
+    const now = Date.now();
+    api([], cmd("g", "resume", now)).release();
+    const selected = ref<string | null>("r1");
+    const c = useCommands({ base: "", selected, operator: () => true, span: () => [now - 60_000, now + 60_000] });
+    const sending = c.send("resume");
+    selected.value = "r2";
+    await sending;
+    await settle();
+    expect(c.recent).toEqual([]);
+  });
+});
