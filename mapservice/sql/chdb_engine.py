@@ -106,7 +106,9 @@ class ChdbEngine:
             "inserts": _Lane(INSERT_HANDLES),
             "ping": _Lane(1),
         }
-        self._tmp = Path(tempfile.mkdtemp(prefix="mapservice-sql-"))
+        # Beside the data, not in the system's temporary directory: a process ended by a
+        # signal never closes its engine, and left one empty directory there per start.
+        self._inserts = Path(f"{self.path}-inserts")
 
     # --- handles -----------------------------------------------------------------
 
@@ -178,7 +180,8 @@ class ChdbEngine:
             raise SqlError("Cannot execute query in readonly mode", 164)
         # chDB has no request body: the rows go through a private file (as clickhouse-connect's
         # own chDB backend does). `.bin` keeps chDB from guessing a compression by extension.
-        fd, name = tempfile.mkstemp(suffix=".bin", dir=self._tmp)
+        self._inserts.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(suffix=".bin", dir=self._inserts)
         try:
             with os.fdopen(fd, "wb") as file:
                 file.write(data)
@@ -203,6 +206,6 @@ class ChdbEngine:
                 except queue.Empty:
                     break
         try:
-            self._tmp.rmdir()
+            self._inserts.rmdir()
         except OSError:
             pass

@@ -43,3 +43,21 @@ def test_inserts_and_ping_do_not_wait_behind_long_statements(engine) -> None:
     # Behind the statements they would have waited about SLEEP_S - 0.5 s.
     assert took < 1.5, f"the insert and the pings took {took:.2f} s"
     assert engine.execute(SqlRequest("SELECT count() FROM default.t")).body.strip() == b"2"
+
+
+def test_inserts_leave_nothing_in_the_system_temporary_directory(tmp_path, monkeypatch) -> None:
+    """A process ended by a signal never closes its engine: its insert files' directory is
+    beside the data (removed with it), not one more directory left in /tmp per start."""
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    monkeypatch.setattr(chdb_engine.tempfile, "tempdir", str(system_tmp))
+    engine = chdb_engine.ChdbEngine(tmp_path / "ch")
+    try:
+        engine.execute(SqlRequest("CREATE TABLE default.u (x UInt32) ENGINE = Log"))
+        engine.insert("default.u", "TSV", b"7\n", SqlRequest(""))
+        assert engine.execute(SqlRequest("SELECT sum(x) FROM default.u")).body.strip() == b"7"
+        assert list(system_tmp.iterdir()) == []  # checked before close: a kill skips it
+        assert list((tmp_path / "ch-inserts").iterdir()) == []
+    finally:
+        engine.close()
+    assert not (tmp_path / "ch-inserts").exists()
