@@ -68,6 +68,12 @@ class KafkaLivePublisher:
             log.warning("live record not delivered", error=str(err))
 
     def close(self, timeout_s: float = 5.0) -> None:
-        if self._producer is not None:
-            self._producer.flush(timeout_s)
-            self._producer = None
+        """Delivers what it can within `timeout_s`, drops the rest (best effort, as ever)
+        and closes the producer, so that it stops dialling the brokers now."""
+        producer, self._producer = self._producer, None
+        if producer is not None:
+            producer.flush(timeout_s)
+            if len(producer):  # their delivery reports (purged) count them as dropped
+                producer.purge(in_queue=True, in_flight=True, blocking=False)
+                producer.poll(0)
+            producer.close()

@@ -27,7 +27,6 @@ import os
 import statistics
 import threading
 import time
-from contextlib import ExitStack
 from pathlib import Path
 
 import httpx
@@ -228,13 +227,16 @@ def freshness_s(http: httpx.Client, api_url: str, robot_id: str) -> float | None
 
 
 def run(args, console) -> dict:
+    with bench_data_dir(args.data_dir, "bench-soak-") as data_dir:
+        return _run(args, console, data_dir)
+
+
+def _run(args, console, data_dir: Path) -> dict:
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local.stack import Stack
     from mapservice.robot import DEFAULT_MAP
     from mapservice.robot.loadgen import RobotFleet
 
-    cleanup = ExitStack()
-    data_dir = cleanup.enter_context(bench_data_dir(args.data_dir, "bench-soak-"))
     ros_map = load_ros_map(DEFAULT_MAP)
     stack = Stack(data_dir, mqtt=args.mqtt, kafka="" if args.kafka == "auto" else args.kafka)
     settings = stack.settings()
@@ -310,7 +312,6 @@ def run(args, console) -> dict:
         if fleet is not None:
             fleet.stop()
         stack.stop()
-        cleanup.close()
     result["summary"] = summarize(samples, args.minutes, args.max_growth_mb_per_h, stack.kafka)
     return result
 

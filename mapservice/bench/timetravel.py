@@ -42,7 +42,6 @@ import json
 import os
 import platform
 import sys
-from contextlib import ExitStack
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -77,6 +76,11 @@ def machine_facts() -> dict:
 
 
 def main(args) -> None:
+    with bench_data_dir(args.data_dir, "tt-bench-") as data_dir:
+        _main(args, data_dir)
+
+
+def _main(args, data_dir: Path) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -85,8 +89,6 @@ def main(args) -> None:
     console = Console()
     if not console.is_terminal:
         console = Console(width=150)
-    cleanup = ExitStack()
-    data_dir = cleanup.enter_context(bench_data_dir(args.data_dir, "tt-bench-"))
     dsn = args.clickhouse_dsn or f"chdb://{(data_dir / 'clickhouse').resolve()}"
     store = ClickHouseStore(dsn, database=args.database, snapshot_every_ms=600_000)
     results: dict = {
@@ -116,7 +118,6 @@ def main(args) -> None:
         results["storage"] = store.storage_bytes()
     finally:
         store.close()
-        cleanup.close()
     results["finished"] = datetime.now(UTC).isoformat(timespec="seconds")
 
     table = Table(

@@ -29,3 +29,30 @@ def test_a_given_directory_is_made_and_kept(tmp_path) -> None:
         assert data == given and data.is_dir()
         (data / "kept").write_text("x")
     assert (given / "kept").read_text() == "x"
+
+
+@pytest.mark.parametrize("bench", ["soak", "timetravel"])
+def test_a_benchmark_failing_before_its_run_leaves_no_directory(
+    bench: str, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A failure while setting up (a map that does not load, a store that does not open)
+    removes the temporary directory as a failed run does."""
+    import argparse
+    import tempfile
+
+    from mapservice.bench import soak, timetravel
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("setup failed")
+
+    if bench == "soak":
+        monkeypatch.setattr("mapservice.adapters.ros_map.load_ros_map", fail)
+        with pytest.raises(RuntimeError, match="setup failed"):
+            soak.run(argparse.Namespace(data_dir=None), console=None)
+    else:
+        monkeypatch.setattr("mapservice.adapters.clickhouse.store.ClickHouseStore", fail)
+        with pytest.raises(RuntimeError, match="setup failed"):
+            timetravel.main(argparse.Namespace(data_dir=None, clickhouse_dsn=None, database=None))
+    assert list(tmp_path.iterdir()) == []
