@@ -102,10 +102,21 @@ api-types: $(STAMP) $(UI)/node_modules/.installed
 up: $(STAMP) ui mosquitto java
 	$(PY) -m mapservice.cli up $(ARGS)
 
+# The fast tests on every core (pytest-xdist, one worker per core), then the integration
+# tests one at a time: they start brokers and servers and judge time bounds, so they get the
+# machine to themselves. Both parts always run; the target fails if either did ("no tests
+# collected" counts as passed for one part when ARGS selects only the other's tests).
+TEST_WORKERS ?= auto
+
 test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
-	$(PY) -m pytest --durations=30 $(ARGS)
+	@fast=0; slow=0; \
+	$(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) || fast=$$?; \
+	$(PY) -m pytest -m integration --durations=30 $(ARGS) || slow=$$?; \
+	echo "fast tests: exit $$fast; integration tests: exit $$slow"; \
+	if [ $$fast -eq 5 ] && [ $$slow -eq 5 ]; then exit 5; fi; \
+	[ $$fast -eq 0 -o $$fast -eq 5 ] && [ $$slow -eq 0 -o $$slow -eq 5 ]
 
 # ruff's lint rules over the Python tree and mypy (strict on mapservice/core/), as configured
 # in pyproject.toml; `.ci/run` runs it before the tests.
@@ -115,7 +126,7 @@ lint: $(STAMP)
 	$(VENV)/bin/mypy
 
 test-unit: $(STAMP)
-	$(PY) -m pytest -m "not integration" $(ARGS)
+	$(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) $(ARGS)
 
 bench: $(STAMP) system-deps
 	$(PY) -m mapservice.cli bench ingest $(ARGS)
