@@ -77,7 +77,7 @@ def find_ceiling(args, facts: dict, base: Path, console) -> dict:
         step_args = argparse.Namespace(**{**vars(args), "robots": robots})
         runs, med = run_series(step_args, base / f"robots-{robots}", console)
         print_results(console, step_args, facts, runs, med)
-        checks = live_bounds(robots, med)
+        checks = live_bounds(robots, med, getattr(args, "latency_clients", True))
         held = all(ok for *_, ok in checks)
         steps.append(
             {
@@ -155,7 +155,12 @@ def _main(args, base: Path) -> None:
             {
                 "medians": med,
                 "runs": runs,
-                "bounds_held": all(ok for *_, ok in live_bounds(args.robots, med))
+                "bounds_held": all(
+                    ok
+                    for *_, ok in live_bounds(
+                        args.robots, med, getattr(args, "latency_clients", True)
+                    )
+                )
                 if judged(args.seconds)
                 else None,
             }
