@@ -46,8 +46,9 @@ def run_series(args, base: Path, console) -> tuple[list[dict], dict]:
         console.print(
             f"run {i} ({args.robots:,} robots): lost {result['lost']}, duplicated "
             f"{result['duplicated']}, generator {result['loadgen_schedule_percent'] or 0:.2f} % "
-            f"of schedule, p99 push {_s(result['latency_pushed_p99_s'])} / poll "
-            f"{_s(result['latency_polled_p99_s'])}, sustained "
+            f"of schedule, p99 stored {_s(result['stored_latency_p99_s'])} (server) / push "
+            f"{_s(result.get('latency_pushed_p99_s'))} / poll "
+            f"{_s(result.get('latency_polled_p99_s'))}, sustained "
             f"{result['sustained_events_per_s']:,.0f}/s, "
             f"{_mb(result['bytes_per_robot_day'])}/robot-day, CPU {cpu['stack_total']:.0f} % "
             f"stack + {cpu['loadgen']:.0f} % loadgen, load {result['loadavg_1min_after_fleet']:.2f}"

@@ -57,13 +57,17 @@ def _status_line(
     from rich.markup import escape
 
     pub = fleet.stats.poses + fleet.stats.chunks
-    seen = len(poller.first_seen) if poller else 0
     span = max(time.time() - started_wall, 1e-6)
-    poll = poller.poll_seconds[-1] * 1000 if poller and poller.poll_seconds else 0.0
-    return escape(
+    line = (
         f"run {run}/{runs} {phase} {elapsed:5.1f}/{seconds:.0f} s | published {pub:,} "
-        f"({fleet.stats.poses:,} poses, {fleet.stats.chunks:,} chunks, {pub / span:,.0f}/s) | "
-        f"queryable {seen:,} ({seen / span:,.0f}/s) | not yet {pub - seen:,} | "
+        f"({fleet.stats.poses:,} poses, {fleet.stats.chunks:,} chunks, {pub / span:,.0f}/s)"
+    )
+    if poller is None:  # --no-latency-clients: nothing here sees what is queryable
+        return escape(line)
+    seen = len(poller.first_seen)
+    poll = poller.poll_seconds[-1] * 1000 if poller.poll_seconds else 0.0
+    return escape(
+        f"{line} | queryable {seen:,} ({seen / span:,.0f}/s) | not yet {pub - seen:,} | "
         f"last poll {poll:.0f} ms"
     )
 

@@ -541,3 +541,16 @@ def test_the_ingest_command_runs_the_latency_clients_unless_told_not_to() -> Non
     add_bench_parser(parser.add_subparsers(dest="command"))
     assert parser.parse_args(["bench", "ingest"]).latency_clients is True
     assert parser.parse_args(["bench", "ingest", "--no-latency-clients"]).latency_clients is False
+
+
+def test_the_progress_line_claims_nothing_queryable_without_the_poller() -> None:
+    """Without the latency clients nothing counts what is queryable: the progress line
+    shows what was published, not "queryable 0"."""
+    import time
+    from types import SimpleNamespace
+
+    from mapservice.bench.ingest.run import _status_line
+
+    fleet = SimpleNamespace(stats=SimpleNamespace(poses=6000, chunks=0))
+    line = _status_line(1, 1, "fleet", 1.0, 60, fleet, None, time.time() - 1)
+    assert "published 6,000" in line and "queryable" not in line
