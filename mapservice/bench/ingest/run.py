@@ -57,13 +57,17 @@ def _status_line(
     from rich.markup import escape
 
     pub = fleet.stats.poses + fleet.stats.chunks
-    seen = len(poller.first_seen) if poller else 0
     span = max(time.time() - started_wall, 1e-6)
-    poll = poller.poll_seconds[-1] * 1000 if poller and poller.poll_seconds else 0.0
-    return escape(
+    line = (
         f"run {run}/{runs} {phase} {elapsed:5.1f}/{seconds:.0f} s | published {pub:,} "
-        f"({fleet.stats.poses:,} poses, {fleet.stats.chunks:,} chunks, {pub / span:,.0f}/s) | "
-        f"queryable {seen:,} ({seen / span:,.0f}/s) | not yet {pub - seen:,} | "
+        f"({fleet.stats.poses:,} poses, {fleet.stats.chunks:,} chunks, {pub / span:,.0f}/s)"
+    )
+    if poller is None:  # --no-latency-clients: nothing here sees what is queryable
+        return escape(line)
+    seen = len(poller.first_seen)
+    poll = poller.poll_seconds[-1] * 1000 if poller.poll_seconds else 0.0
+    return escape(
+        f"{line} | queryable {seen:,} ({seen / span:,.0f}/s) | not yet {pub - seen:,} | "
         f"last poll {poll:.0f} ms"
     )
 
@@ -107,14 +111,18 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         # cyclic collector stop this process for 0.2-0.4 s every ~2 s late in a 5,000-robot
         # run, and the poller with it: the poll figure then measured those pauses.
         gc.disable()
-        poller = QueryablePoller(stack.api_url, fleet.stats.published, args.poll_interval)
-        poller.start()
-        poller._ready.wait(5)
-        listener = LiveListener(stack.api_url)
-        listener.start()
-        listener.connected.wait(15)
+        clients = getattr(args, "latency_clients", True)
+        if clients:
+            poller = QueryablePoller(stack.api_url, fleet.stats.published, args.poll_interval)
+            poller.start()
+            poller._ready.wait(5)
+            listener = LiveListener(stack.api_url)
+            listener.start()
+            listener.connected.wait(15)
         meter = CpuMeter(
-            stack.procs, [poller.native_id, listener.native_id], getattr(fleet, "pids", [])
+            stack.procs,
+            [poller.native_id, listener.native_id] if poller and listener else [],
+            getattr(fleet, "pids", []),
         )
         fleet_error: list[BaseException] = []
 
@@ -215,8 +223,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                         drain.observe(time.monotonic() - drain_t0, counts)
                     except (httpx.HTTPError, ValueError):
                         pass
-                if drain.drained_s is not None and keys.keys() <= (
-                    poller.first_seen.keys() | poller.censored
+                if drain.drained_s is not None and (
+                    poller is None or keys.keys() <= (poller.first_seen.keys() | poller.censored)
                 ):
                     break
                 time.sleep(0.25)
@@ -249,11 +257,13 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 started_wall,
             )
         )
-        poller.stop()
-        poller.join()
-        listener.stop()
-        listener.join(5)
-        all_seen = keys.keys() <= poller.first_seen.keys()
+        all_seen = None
+        if poller is not None and listener is not None:
+            poller.stop()
+            poller.join()
+            listener.stop()
+            listener.join(5)
+            all_seen = keys.keys() <= poller.first_seen.keys()
 
         with console.status(f"run {run}/{runs}: scanning the run window through the API..."):
             first_ts = min(ts for _, _, ts, _ in published)
@@ -328,7 +338,12 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 "stored_latency_p50_s": stored["p50_s"],
                 "stored_latency_p99_s": stored["p99_s"],
                 "stored_within_small_fleet_bound": stored["within_bound_fraction"],
-                **_latency_figures(args, keys, poller, listener),
+                "latency_clients": poller is not None,
+                **(
+                    _latency_figures(args, keys, poller, listener)
+                    if poller is not None and listener is not None
+                    else {}
+                ),
                 "cpu_percent_of_one_core": cpu_pct,
                 "cpu_us_per_event": cpu_us_per_event(cpu_pct, len(keys), fleet_wall),
                 "loadgen_nice": LOADGEN_NICE,

@@ -213,7 +213,9 @@ def test_the_ceiling_is_the_last_step_of_an_unbroken_run_that_held() -> None:
     assert ceiling_verdict([{"robots": 1000, "held": False}]) is None
 
 
-def printed_results(capsys, robots: int, seconds: float, **figures) -> str:
+def printed_results(
+    capsys, robots: int, seconds: float, latency_clients: bool = True, **figures
+) -> str:
     """What print_results prints for one run of `robots` robots over `seconds` with these figures."""
     import argparse
 
@@ -233,7 +235,13 @@ def printed_results(capsys, robots: int, seconds: float, **figures) -> str:
         "bytes_per_robot_day": 2e6,
         "storage.bytes_per_robot_day_events_only": 1e6,
     }
-    args = argparse.Namespace(robots=robots, seconds=seconds, mqtt="mosquitto", poll_interval=0.1)
+    args = argparse.Namespace(
+        robots=robots,
+        seconds=seconds,
+        mqtt="mosquitto",
+        poll_interval=0.1,
+        latency_clients=latency_clients,
+    )
     facts = {
         "nproc": 2,
         "cpu_model": "x",
@@ -483,3 +491,66 @@ def test_a_poll_cut_at_the_row_limit_backs_off_as_long_as_it_took(monkeypatch) -
     poller = _slow_poller(monkeypatch, rows=5)
     assert poller.truncated_polls == 6
     assert all(w >= 0.06 for w in poller._halt.waits)
+
+
+def test_without_latency_clients_a_small_fleet_is_judged_on_the_servers_timing_alone() -> None:
+    """--no-latency-clients: up to 1,000 robots the push and poll bounds are left out (not
+    measured) and the server-timed bound judges; above, they stay in, not held, so such a
+    run never passes for one that held every bound."""
+    from mapservice.bench.ingest.report import live_bounds
+
+    unmeasured = _fleet_figures(
+        sustained_events_per_s=1200.0, latency_pushed_p99_s=None, latency_polled_p99_s=None
+    )
+    small = live_bounds(1000, {**unmeasured, "stored_within_small_fleet_bound": 0.995}, False)
+    assert [n for n, *_ in small if n.startswith("p99 by")] == []
+    assert all(ok for *_, ok in small)
+    slow = live_bounds(1000, {**unmeasured, "stored_within_small_fleet_bound": 0.95}, False)
+    assert [n for n, _, _, ok in slow if not ok] == ["p99 publish -> stored (server)"]
+    large = live_bounds(5000, _fleet_figures(latency_pushed_p99_s=0.1), False)
+    assert sorted(n for n, _, _, ok in large if not ok) == [
+        "p99 by the live push",
+        "p99 by the poll",
+    ]
+
+
+def test_the_results_say_the_clients_figures_were_not_measured(capsys) -> None:
+    """Without the latency clients the push and poll rows say why they are empty, and the
+    unseen-events row is not judged."""
+    out = printed_results(
+        capsys,
+        1000,
+        60.0,
+        latency_clients=False,
+        latency_pushed_p99_s=None,
+        latency_polled_p99_s=None,
+        stored_within_small_fleet_bound=0.995,
+        stored_latency_p99_s=0.25,
+    )
+    push = next(line for line in out.splitlines() if "p99 by the live push alone" in line)
+    assert "not measured (--no-latency-clients)" in push and "MISSED" not in push
+    assert "MISSED" not in out
+
+
+def test_the_ingest_command_runs_the_latency_clients_unless_told_not_to() -> None:
+    import argparse
+
+    from mapservice.bench.cli import add_bench_parser
+
+    parser = argparse.ArgumentParser()
+    add_bench_parser(parser.add_subparsers(dest="command"))
+    assert parser.parse_args(["bench", "ingest"]).latency_clients is True
+    assert parser.parse_args(["bench", "ingest", "--no-latency-clients"]).latency_clients is False
+
+
+def test_the_progress_line_claims_nothing_queryable_without_the_poller() -> None:
+    """Without the latency clients nothing counts what is queryable: the progress line
+    shows what was published, not "queryable 0"."""
+    import time
+    from types import SimpleNamespace
+
+    from mapservice.bench.ingest.run import _status_line
+
+    fleet = SimpleNamespace(stats=SimpleNamespace(poses=6000, chunks=0))
+    line = _status_line(1, 1, "fleet", 1.0, 60, fleet, None, time.time() - 1)
+    assert "published 6,000" in line and "queryable" not in line
