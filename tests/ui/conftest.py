@@ -91,6 +91,16 @@ def module_browser():
     yield from playwright_browser()
 
 
+REPLAY_READY = "() => window.__replay && window.__replay.complete"
+
+
+def open_replay(page, api: str, query: str = "", timeout_ms: int = 90_000) -> None:
+    """Opens the replay served at `api` (`query`: `?t=...` and the like) and waits until it
+    has drawn everything that view asked for."""
+    page.goto(f"{api}/{query}")
+    page.wait_for_function(REPLAY_READY, timeout=timeout_ms)
+
+
 @pytest.fixture
 def page(browser, request):
     """A fresh 1280x800 page; a screenshot of it is saved under test-artifacts/ui/."""

@@ -21,7 +21,7 @@ from mapservice.core.wire2019 import content_hash
 from tests.fixtures.paths import MAPS, ROOT
 from tests.fixtures.up import Up
 
-from .conftest import ARTIFACTS
+from .conftest import ARTIFACTS, open_replay
 
 SCREENSHOT = ROOT / "docs" / "screenshot.png"
 TIMEOUT_MS = 90_000
@@ -46,22 +46,15 @@ def stitched_free(api: str, at: int, ros_map) -> np.ndarray:
     return drivable(ros_map.with_pixels(canvas[: ros_map.height, : ros_map.width]))
 
 
-def test_first_make_up_shows_the_floor_and_a_past(tmp_path, browser) -> None:
+def test_first_make_up_shows_the_floor_and_a_past(tmp_path, page) -> None:
     """Fresh up: the UI shows the map file at now (but for simulator changes) and history days back;
     two days ago every robot stands on a free pixel and those that reported in the last 10 s are online."""
     ros_map = load_ros_map(MAPS / "warehouse.yaml")
     up = Up(tmp_path / "data", "--robots", "3", "--history-days", "2.1")
     api = f"http://127.0.0.1:{up.api_port}"
-    context = browser.new_context(viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
     try:
         # Live, now: the real floor (chunks the simulator changed aside).
-        page.goto(f"{api}/")
-        page.wait_for_function(
-            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
-        )
+        open_replay(page, api, timeout_ms=TIMEOUT_MS)
         expected = {
             f"{r}:{c}": content_hash(px).hex() for (r, c), px in slice_chunks(ros_map).items()
         }
@@ -88,10 +81,7 @@ def test_first_make_up_shows_the_floor_and_a_past(tmp_path, browser) -> None:
 
         # Two days ago: the floor, its robots on free pixels and online.
         t = now - 2 * DAY_MS
-        page.goto(f"{api}/?t={t}&view=-2,-837,503")
-        page.wait_for_function(
-            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
-        )
+        open_replay(page, api, f"?t={t}&view=-2,-837,503", timeout_ms=TIMEOUT_MS)
         robots = page.evaluate("() => window.__replay.robots()")
         assert len(robots) == 3, robots
         free = stitched_free(api, t, ros_map)
@@ -102,7 +92,7 @@ def test_first_make_up_shows_the_floor_and_a_past(tmp_path, browser) -> None:
             if t - r["ts_ms"] <= 10_000:
                 assert r["offline"] is False, r
         assert any(t - r["ts_ms"] <= 10_000 for r in robots)
-        assert errors == []
+        assert page.errors == []
 
         shot = page.screenshot()
         ARTIFACTS.mkdir(parents=True, exist_ok=True)
@@ -114,5 +104,4 @@ def test_first_make_up_shows_the_floor_and_a_past(tmp_path, browser) -> None:
             SCREENSHOT.parent.mkdir(parents=True, exist_ok=True)
             SCREENSHOT.write_bytes(shot)
     finally:
-        context.close()
         up.stop()

@@ -18,6 +18,8 @@ from tests.fixtures.paths import MAPS
 from tests.fixtures.up import Up
 from tests.ui.test_plots_timeline import iso
 
+from .conftest import open_replay
+
 TIMEOUT_MS = 90_000
 HOUR_MS, DAY_MS = 3_600_000, 86_400_000
 
@@ -30,99 +32,76 @@ def up(tmp_path_factory):
     up.stop()
 
 
-def test_a_fresh_week_draws_the_whole_floor_at_every_seek(up, browser) -> None:
+def test_a_fresh_week_draws_the_whole_floor_at_every_seek(up, page) -> None:
     grid = len(slice_chunks(load_ros_map(MAPS / "warehouse.yaml")))
     api = f"http://127.0.0.1:{up.api_port}"
-    context = browser.new_context(viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    try:
-        page.goto(f"{api}/")
-        page.wait_for_function(
-            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
-        )
-        now = page.evaluate("() => Date.now()")
-        for back in (6 * DAY_MS + 23 * HOUR_MS, 2 * DAY_MS, HOUR_MS):
-            page.goto(f"{api}/?t={now - back}")
+    open_replay(page, api, timeout_ms=TIMEOUT_MS)
+    now = page.evaluate("() => Date.now()")
+    for back in (6 * DAY_MS + 23 * HOUR_MS, 2 * DAY_MS, HOUR_MS):
+        open_replay(page, api, f"?t={now - back}", timeout_ms=TIMEOUT_MS)
+        try:
             page.wait_for_function(
-                "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+                f"() => window.__replay.engine.state.cells.size === {grid}", timeout=30_000
             )
-            try:
-                page.wait_for_function(
-                    f"() => window.__replay.engine.state.cells.size === {grid}", timeout=30_000
-                )
-            except PlaywrightTimeout:
-                pass
-            drawn = page.evaluate("() => window.__replay.engine.state.cells.size")
-            assert drawn == grid, f"{drawn} of {grid} chunks drawn {back / HOUR_MS:.0f} h back"
-        assert errors == []
-    finally:
-        context.close()
+        except PlaywrightTimeout:
+            pass
+        drawn = page.evaluate("() => window.__replay.engine.state.cells.size")
+        assert drawn == grid, f"{drawn} of {grid} chunks drawn {back / HOUR_MS:.0f} h back"
+    assert page.errors == []
 
 
-def test_a_fresh_weeks_7d_span_lists_changes_marks_the_upload_and_plots(up, browser) -> None:
+def test_a_fresh_weeks_7d_span_lists_changes_marks_the_upload_and_plots(up, page) -> None:
     api = f"http://127.0.0.1:{up.api_port}"
-    context = browser.new_context(viewport={"width": 1280, "height": 800})
-    page = context.new_page()
-    errors: list[str] = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    try:
-        page.goto(f"{api}/")
-        page.wait_for_function(
-            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
+    open_replay(page, api, timeout_ms=TIMEOUT_MS)
+    now = page.evaluate("() => Date.now()")
+    span = (now - 7 * DAY_MS, now)
+    robot = sorted(
+        r["robotId"] for r in up.api("/api/v1/robots", at=now - 3_600_000).json()["robots"]
+    )[0]
+    open_replay(
+        page,
+        api,
+        f"?t={now - 2 * DAY_MS}&sel={robot}&panels=changes,plots"
+        f"&span={iso(span[0])},{iso(span[1])}",
+        timeout_ms=TIMEOUT_MS,
+    )
+    # The change feed: the week's changes, newest first, read without an error.
+    page.wait_for_function(
+        "() => document.querySelectorAll('[data-testid=change-row][data-kind=change]').length > 0"
+        " && !document.querySelector('[data-testid=change-count]').innerText.includes('loading')",
+        timeout=TIMEOUT_MS,
+    )
+    assert page.locator('[data-testid="change-error"]').count() == 0
+    shown = [
+        int(t)
+        for t in page.eval_on_selector_all(
+            "[data-testid=change-row]", "rs => rs.map(r => r.dataset.ts)"
         )
-        now = page.evaluate("() => Date.now()")
-        span = (now - 7 * DAY_MS, now)
-        robot = sorted(
-            r["robotId"] for r in up.api("/api/v1/robots", at=now - 3_600_000).json()["robots"]
-        )[0]
-        page.goto(
-            f"{api}/?t={now - 2 * DAY_MS}&sel={robot}&panels=changes,plots"
-            f"&span={iso(span[0])},{iso(span[1])}"
+    ]
+    assert shown == sorted(shown, reverse=True) and span[0] <= shown[-1] and shown[0] < span[1]
+    # The demo's map upload at the week's first instant: one mark, not a zoom-in note.
+    page.wait_for_function(
+        "() => document.querySelectorAll('[data-testid=upload-mark]').length > 0",
+        timeout=TIMEOUT_MS,
+    )
+    assert "zoom in" not in page.inner_text(".timeline-bar")
+    uploads = up.api(
+        "/api/v1/changes", **{"from": span[0], "to": span[1], "kind": "upload", "limit": 1000}
+    ).json()["changes"]
+    assert uploads and any(u["robot_id"] == "map-upload" for u in uploads)
+    marks = sorted(
+        int(t)
+        for t in page.eval_on_selector_all(
+            "[data-testid=upload-mark]", "ms => ms.map(m => m.dataset.ts)"
         )
-        page.wait_for_function(
-            "() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS
-        )
-        # The change feed: the week's changes, newest first, read without an error.
-        page.wait_for_function(
-            "() => document.querySelectorAll('[data-testid=change-row][data-kind=change]').length > 0"
-            " && !document.querySelector('[data-testid=change-count]').innerText.includes('loading')",
-            timeout=TIMEOUT_MS,
-        )
-        assert page.locator('[data-testid="change-error"]').count() == 0
-        shown = [
-            int(t)
-            for t in page.eval_on_selector_all(
-                "[data-testid=change-row]", "rs => rs.map(r => r.dataset.ts)"
-            )
-        ]
-        assert shown == sorted(shown, reverse=True) and span[0] <= shown[-1] and shown[0] < span[1]
-        # The demo's map upload at the week's first instant: one mark, not a zoom-in note.
-        page.wait_for_function(
-            "() => document.querySelectorAll('[data-testid=upload-mark]').length > 0",
-            timeout=TIMEOUT_MS,
-        )
-        assert "zoom in" not in page.inner_text(".timeline-bar")
-        uploads = up.api(
-            "/api/v1/changes", **{"from": span[0], "to": span[1], "kind": "upload", "limit": 1000}
-        ).json()["changes"]
-        assert uploads and any(u["robot_id"] == "map-upload" for u in uploads)
-        marks = sorted(
-            int(t)
-            for t in page.eval_on_selector_all(
-                "[data-testid=upload-mark]", "ms => ms.map(m => m.dataset.ts)"
-            )
-        )
-        assert marks == sorted(u["ts_ms"] for u in uploads)
-        # The plots: the selected robot's battery over the week.
-        page.wait_for_function(
-            f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
-            f" && p.robots['{robot}'].ts.length > 100; }}",
-            timeout=TIMEOUT_MS,
-        )
-        plot = page.evaluate(f"() => window.__replay.plots().robots['{robot}']")
-        assert len({b for b in plot["battery"] if b is not None}) > 1
-        assert errors == []
-    finally:
-        context.close()
+    )
+    assert marks == sorted(u["ts_ms"] for u in uploads)
+    # The plots: the selected robot's battery over the week.
+    page.wait_for_function(
+        f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
+        f" && p.robots['{robot}'].ts.length > 100; }}",
+        timeout=TIMEOUT_MS,
+    )
+    plot = page.evaluate(f"() => window.__replay.plots().robots['{robot}']")
+    assert len({b for b in plot["battery"] if b is not None}) > 1
+    assert page.errors == []

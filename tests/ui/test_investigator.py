@@ -14,7 +14,7 @@ import httpx
 
 from tests.fixtures.paths import ROOT
 
-from .conftest import ARTIFACTS
+from .conftest import ARTIFACTS, open_replay
 
 TIMEOUT_MS = 60_000
 DOCS = ROOT / "docs"
@@ -27,8 +27,7 @@ def api(stack, path: str, **params):
 
 
 def open_at(page, stack, query: str) -> None:
-    page.goto(f"{stack.api_url}/{query}")
-    page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+    open_replay(page, stack.api_url, query, timeout_ms=TIMEOUT_MS)
 
 
 def screenshot(page, name: str) -> None:

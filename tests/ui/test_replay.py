@@ -13,7 +13,7 @@ from PIL import Image
 from mapservice.bench.ui_expected import expected_at
 from tests.fixtures.mosquitto import mosquitto_pub
 
-from .conftest import ARTIFACTS
+from .conftest import ARTIFACTS, open_replay
 
 TIMEOUT_MS = 60_000
 
@@ -25,8 +25,7 @@ def api(stack, path: str, **params):
 
 
 def open_at(page, stack, query: str) -> None:
-    page.goto(f"{stack.api_url}/{query}")
-    page.wait_for_function("() => window.__replay && window.__replay.complete", timeout=TIMEOUT_MS)
+    open_replay(page, stack.api_url, query, timeout_ms=TIMEOUT_MS)
 
 
 def expected_writes(stack, a: int, b: int) -> list[list]:
