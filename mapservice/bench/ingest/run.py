@@ -34,7 +34,7 @@ from mapservice.bench.ingest.probes import (
     QueryablePoller,
 )
 from mapservice.bench.ingest.report import SMALL_FLEET_P99_S
-from mapservice.bench.ingest.storage import measure_storage, scan_run
+from mapservice.bench.ingest.storage import measure_storage, scan_run, storage_figures
 from mapservice.bench.procstat import resident_by_component
 from mapservice.bench.yardstick import yardstick_ms
 
@@ -363,7 +363,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
     with console.status(f"run {run}/{runs}: OPTIMIZE FINAL and measuring bytes on disk..."):
         storage = measure_storage(data_dir)
-    result["storage"] = _storage_figures(storage, args.robots, args.seconds, result)
+    result["storage"] = storage_figures(storage, args.robots, args.seconds, result)
     result["bytes_per_robot_day"] = result["storage"]["bytes_per_robot_day"]
     return result
 
@@ -478,25 +478,4 @@ def _latency_figures(
             "truncated_polls": poller.truncated_polls,
             "in_response_duplicates": poller.in_response_duplicates,
         },
-    }
-
-
-def _storage_figures(storage: dict, robots: int, seconds: float, result: dict) -> dict:
-    """The bytes on disk after the merge, per robot-day (all tables, each table, the events
-    alone) and per event."""
-    total = sum(storage["table_bytes"].values())
-    robot_days = robots * seconds / 86_400
-    per_table = {t: b / robot_days for t, b in storage["table_bytes"].items()}
-    events_only = sum(storage["table_bytes"].get(t, 0) for t in ("poses", "chunk_events"))
-    return {
-        **storage,
-        "total_bytes": total,
-        "robot_days": robot_days,
-        "bytes_per_robot_day": total / robot_days,
-        "bytes_per_robot_day_by_table": per_table,
-        "bytes_per_robot_day_events_only": events_only / robot_days,
-        "bytes_per_pose": storage["table_bytes"].get("poses", 0)
-        / max(result["published_poses"], 1),
-        "bytes_per_chunk_event": storage["table_bytes"].get("chunk_events", 0)
-        / max(result["published_chunks"], 1),
     }

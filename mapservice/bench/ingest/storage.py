@@ -131,3 +131,24 @@ def measure_storage(data_dir: Path) -> dict:
     if done.returncode != 0:
         raise RuntimeError(f"storage measurement failed:\n{done.stderr[-2000:]}")
     return json.loads(out.read_text())
+
+
+def storage_figures(storage: dict, robots: int, seconds: float, result: dict) -> dict:
+    """The bytes on disk after the merge, per robot-day (all tables, each table, the events
+    alone) and per event."""
+    total = sum(storage["table_bytes"].values())
+    robot_days = robots * seconds / 86_400
+    per_table = {t: b / robot_days for t, b in storage["table_bytes"].items()}
+    events_only = sum(storage["table_bytes"].get(t, 0) for t in ("poses", "chunk_events"))
+    return {
+        **storage,
+        "total_bytes": total,
+        "robot_days": robot_days,
+        "bytes_per_robot_day": total / robot_days,
+        "bytes_per_robot_day_by_table": per_table,
+        "bytes_per_robot_day_events_only": events_only / robot_days,
+        "bytes_per_pose": storage["table_bytes"].get("poses", 0)
+        / max(result["published_poses"], 1),
+        "bytes_per_chunk_event": storage["table_bytes"].get("chunk_events", 0)
+        / max(result["published_chunks"], 1),
+    }

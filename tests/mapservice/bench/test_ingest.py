@@ -161,45 +161,6 @@ def test_a_quantile_beyond_the_last_bucket_is_at_least_its_bound() -> None:
     assert bucket_quantile({0.1: 0.0, float("inf"): 0.0}, 0.99) is None
 
 
-def test_cpu_per_event_divides_each_components_share_by_the_event_rate() -> None:
-    """50 % of a core at 5,000 events/s is 100 µs per event; machine-wide figures are left out."""
-    from mapservice.bench.ingest.cpu import cpu_us_per_event
-
-    per_event = cpu_us_per_event(
-        {"gateway": 50.0, "loadgen": 10.0, "other_processes": 80.0, "wall_s": 60.0}, 300_000, 60.0
-    )
-    assert per_event == {"gateway": 100.0, "loadgen": 20.0}
-    assert cpu_us_per_event({"gateway": 50.0}, 0, 60.0) == {}
-
-
-def test_cpu_meter_counts_load_fleet_workers_as_load_generator_not_stack() -> None:
-    """Worker processes' CPU goes to the load generator and stays out of the stack's total."""
-    from mapservice.bench.ingest.cpu import CpuMeter
-
-    zero = {
-        "gateway": 0.0,
-        "_bench_process": 0.0,
-        "_poller_thread": 0.0,
-        "_loadgen_workers": 0.0,
-        "_machine_processes": 0.0,
-        "_machine_irq": 0.0,
-        "_machine_steal": 0.0,
-        "_wall": 0.0,
-    }
-    after = {
-        **zero,
-        "gateway": 5.0,
-        "_bench_process": 2.0,
-        "_poller_thread": 1.0,
-        "_loadgen_workers": 3.0,
-        "_machine_processes": 12.0,
-        "_wall": 10.0,
-    }
-    pct = CpuMeter.percent(zero, after)
-    assert pct["stack_total"] == 50.0 and pct["loadgen"] == 40.0 and pct["loadgen_workers"] == 30.0
-    assert pct["latency_probes"] == 10.0 and pct["other_processes"] == 20.0
-
-
 def test_the_ceiling_is_the_last_step_of_an_unbroken_run_that_held() -> None:
     """Steps 1,000 and 2,000 held, 3,000 missed: the ceiling is 2,000; none held: None."""
     from mapservice.bench.ingest.command import ceiling_verdict
@@ -283,24 +244,6 @@ def test_the_results_show_the_yardstick_measured_before_the_run(capsys) -> None:
     assert "18.2" in next(line for line in out.splitlines() if "machine yardstick" in line)
 
 
-def test_cpu_meter_takes_the_workers_own_cpu_count_when_given() -> None:
-    """Workers that exited before the last sample report their CPU themselves: that counts."""
-    from mapservice.bench.ingest.cpu import CpuMeter
-
-    zero = {
-        "gateway": 0.0,
-        "_bench_process": 0.0,
-        "_poller_thread": 0.0,
-        "_loadgen_workers": 0.0,
-        "_machine_processes": 0.0,
-        "_machine_irq": 0.0,
-        "_machine_steal": 0.0,
-        "_wall": 0.0,
-    }
-    after = {**zero, "_loadgen_workers": -4.0, "_machine_processes": 1.0, "_wall": 10.0}
-    assert CpuMeter.percent(zero, after, workers_cpu_s=1.0)["loadgen_workers"] == 10.0
-
-
 def test_a_backlog_still_being_stored_is_waited_for_not_counted_lost() -> None:
     from mapservice.bench.ingest.probes import DrainWatch
 
@@ -323,26 +266,6 @@ def test_the_drain_gives_up_once_the_store_stops_counting_or_at_its_cap() -> Non
     for t in range(0, 61, 5):
         capped.observe(t, {"poses": t})
     assert capped.given_up(60) and not capped.given_up(59)
-
-
-def test_cpu_meter_counts_gateway_replicas_as_the_gateway() -> None:
-    """A second gateway process's CPU is added to the gateway's, once."""
-    from mapservice.bench.ingest.cpu import CpuMeter
-
-    zero = {
-        "gateway": 0.0,
-        "gateway-2": 0.0,
-        "_bench_process": 0.0,
-        "_poller_thread": 0.0,
-        "_loadgen_workers": 0.0,
-        "_machine_processes": 0.0,
-        "_machine_irq": 0.0,
-        "_machine_steal": 0.0,
-        "_wall": 0.0,
-    }
-    after = {**zero, "gateway": 2.0, "gateway-2": 3.0, "_machine_processes": 5.0, "_wall": 10.0}
-    pct = CpuMeter.percent(zero, after)
-    assert pct["gateway"] == 50.0 and "gateway-2" not in pct and pct["stack_total"] == 50.0
 
 
 def test_a_loss_is_placed_before_or_after_the_gateways() -> None:
