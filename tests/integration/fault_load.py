@@ -229,10 +229,25 @@ def wait_caught_up(
         if missing - now_missing:  # some that were missing got stored
             progress = time.monotonic()
         elif time.monotonic() - progress >= stalled_s:
+            _print_missing(load, segment, now_missing)
             return None
         missing = now_missing
         time.sleep(0.5)
+    _print_missing(load, segment, missing)
     return None
+
+
+def _print_missing(load: Load, segment: str, missing: set) -> None:
+    """Which acknowledged messages were still not stored when the wait gave up, oldest
+    first, with when each was sent: a verdict of "never caught up" then says whether the
+    stragglers were sent before the fault, during it or after it."""
+    sent = {s.key: s for s in load.of(segment)}
+    oldest = sorted(missing, key=lambda k: sent[k].sent_ms if k in sent else 0)[:10]
+    print(
+        f"{segment}: {len(missing)} acknowledged message(s) not stored at {now_ms()}; oldest: "
+        + ", ".join(f"{k} sent {sent[k].sent_ms if k in sent else '?'}" for k in oldest),
+        flush=True,
+    )
 
 
 def queryable(api_url: str, robot: str, from_ms: int) -> bool:
