@@ -242,10 +242,10 @@ def _print_missing(load: Load, segment: str, missing: set) -> None:
     first, with when each was sent: a verdict of "never caught up" then says whether the
     stragglers were sent before the fault, during it or after it."""
     sent = {s.key: s for s in load.of(segment)}
-    oldest = sorted(missing, key=lambda k: sent[k].sent_ms if k in sent else 0)[:10]
+    oldest = sorted(missing, key=lambda k: sent[k].sent_ms)[:10]
     print(
         f"{segment}: {len(missing)} acknowledged message(s) not stored at {now_ms()}; oldest: "
-        + ", ".join(f"{k} sent {sent[k].sent_ms if k in sent else '?'}" for k in oldest),
+        + ", ".join(f"{k} sent {sent[k].sent_ms}" for k in oldest),
         flush=True,
     )
 

@@ -23,6 +23,7 @@ from mapservice.bench.ingest.report import (
     _mb,
     _s,
     judged,
+    latency_clients,
     live_bounds,
     loss_side,
     medians,
@@ -78,7 +79,7 @@ def find_ceiling(args, facts: dict, base: Path, console) -> dict:
         step_args = argparse.Namespace(**{**vars(args), "robots": robots})
         runs, med = run_series(step_args, base / f"robots-{robots}", console)
         print_results(console, step_args, facts, runs, med)
-        checks = live_bounds(robots, med, getattr(args, "latency_clients", True))
+        checks = live_bounds(robots, med, latency_clients(args))
         held = all(ok for *_, ok in checks)
         steps.append(
             {
@@ -157,10 +158,7 @@ def _main(args, base: Path) -> None:
                 "medians": med,
                 "runs": runs,
                 "bounds_held": all(
-                    ok
-                    for *_, ok in live_bounds(
-                        args.robots, med, getattr(args, "latency_clients", True)
-                    )
+                    ok for *_, ok in live_bounds(args.robots, med, latency_clients(args))
                 )
                 if judged(args.seconds)
                 else None,

@@ -33,7 +33,7 @@ from mapservice.bench.ingest.probes import (
     LiveListener,
     QueryablePoller,
 )
-from mapservice.bench.ingest.report import SMALL_FLEET_P99_S
+from mapservice.bench.ingest.report import SMALL_FLEET_P99_S, latency_clients
 from mapservice.bench.ingest.storage import measure_storage, scan_run, storage_figures
 from mapservice.bench.procstat import resident_by_component
 from mapservice.bench.yardstick import yardstick_ms
@@ -111,8 +111,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         # cyclic collector stop this process for 0.2-0.4 s every ~2 s late in a 5,000-robot
         # run, and the poller with it: the poll figure then measured those pauses.
         gc.disable()
-        clients = getattr(args, "latency_clients", True)
-        if clients:
+        if latency_clients(args):
             poller = QueryablePoller(stack.api_url, fleet.stats.published, args.poll_interval)
             poller.start()
             poller._ready.wait(5)
