@@ -105,6 +105,9 @@ def history_offset_gaps(text: str) -> dict[str, float]:
 # (the poll adds up to its interval, the push its Kafka hop), read at the histogram's
 # bucket precision (25 ms steps up to 0.3 s).
 STORED_LATENCY = "mapservice_event_to_stored_seconds"
+# The same from the gateway's receive time: the part of publish -> stored after the MQTT
+# broker and the gateway's queue (Kafka, the history consumer's batch and its insert).
+RECEIVED_LATENCY = "mapservice_received_to_stored_seconds"
 
 
 def histogram_buckets(text: str, metric: str = STORED_LATENCY) -> dict[float, float]:

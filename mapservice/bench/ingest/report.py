@@ -252,6 +252,13 @@ def print_results(console, args, facts: dict, runs: list[dict], med: dict) -> No
         ">= 99 %" if small else "",
         "-" if within is None else f"{100 * within:.2f} %",
     )
+    # Where the time goes: from the gateway's receive on (Kafka, the batch, its insert);
+    # the rest of publish -> stored is the MQTT broker and the gateway's queue.
+    row(
+        "  gateway received -> stored p50 / p99",
+        "",
+        f"{_s(med.get('received_to_stored_p50_s'))} / {_s(med.get('received_to_stored_p99_s'))}",
+    )
     row("publish -> queryable p50 (push or poll)", "", _s(med.get("latency_p50_s")))
     row("publish -> queryable p99 (push or poll)", "", _s(med.get("latency_p99_s")))
     row(

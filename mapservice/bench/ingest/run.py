@@ -16,6 +16,7 @@ import httpx
 from mapservice.bench.ingest.cpu import CpuMeter, cpu_us_per_event
 from mapservice.bench.ingest.latency import INF, _latencies, _pct, _stage_latencies, queryable_times
 from mapservice.bench.ingest.metrics import (
+    RECEIVED_LATENCY,
     gateway_acks,
     histogram_buckets,
     histogram_totals,
@@ -144,6 +145,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         metrics_before = server_metrics(stack.api_url)
         stages_before = histogram_totals(metrics_before)
         stored_before = histogram_buckets(metrics_before)
+        received_before = histogram_buckets(metrics_before, RECEIVED_LATENCY)
         stages_t0 = time.monotonic()
         cpu_before = meter.snapshot()
         started_wall = time.time()
@@ -244,6 +246,11 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
             stored = stored_latency(
                 stored_before, histogram_buckets(metrics_after), SMALL_FLEET_P99_S
             )
+            received = stored_latency(
+                received_before,
+                histogram_buckets(metrics_after, RECEIVED_LATENCY),
+                SMALL_FLEET_P99_S,
+            )
         console.print(
             _status_line(
                 run,
@@ -337,6 +344,8 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 "stored_latency_p50_s": stored["p50_s"],
                 "stored_latency_p99_s": stored["p99_s"],
                 "stored_within_small_fleet_bound": stored["within_bound_fraction"],
+                "received_to_stored_p50_s": received["p50_s"],
+                "received_to_stored_p99_s": received["p99_s"],
                 "latency_clients": poller is not None,
                 **(
                     _latency_figures(args, keys, poller, listener)

@@ -230,10 +230,14 @@ def test_the_results_show_publish_to_stored_beside_the_clients_figure(capsys) ->
         stored_latency_p50_s=0.101,
         stored_latency_p99_s=0.262,
         stored_within_small_fleet_bound=0.9931,
+        received_to_stored_p50_s=0.087,
+        received_to_stored_p99_s=0.231,
         latency_p99_s=0.318,
     )
     line = next(line for line in out.splitlines() if "publish -> stored p50 / p99" in line)
     assert "0.101 s / 0.262 s" in line and "ok" in line
+    part = next(line for line in out.splitlines() if "gateway received -> stored" in line)
+    assert "0.087 s / 0.231 s" in part
     assert "99.31 %" in next(line for line in out.splitlines() if "stored within 0.3 s" in line)
     assert "0.318 s" in next(line for line in out.splitlines() if "p99 (push or poll)" in line)
 
