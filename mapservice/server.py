@@ -33,7 +33,7 @@ from mapservice.runtime.health import (
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
-from mapservice.runtime.thread_priority import keep_merges_low, supported
+from mapservice.runtime.thread_priority import keep_merges_low
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -124,8 +124,7 @@ async def serve(
     merges_low = None
     if store.dsn.startswith("chdb://"):
         export_process_memory(store)
-        if settings.chdb_merge_nice and supported():
-            merges_low = asyncio.ensure_future(keep_merges_low(settings.chdb_merge_nice))
+        merges_low = keep_merges_low(settings)
     advisory: dict = {}  # reported by /readyz, not required
     loop_beat = Heartbeat(max_age_s=15.0)
     beating = asyncio.ensure_future(beat_forever(loop_beat))
@@ -186,7 +185,7 @@ async def serve(
     finally:
         beating.cancel()
         if merges_low is not None:
-            merges_low.cancel()
+            merges_low.stop()
         if api_parts is not None:
             await api_parts.stop()
         if parts is not None:

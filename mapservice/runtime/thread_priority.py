@@ -1,15 +1,16 @@
 """Embedded ClickHouse's merges at a lower CPU priority than the ingest path.
 
-With chDB, ClickHouse merges the history's parts in this process, on threads it names
+With chDB, ClickHouse merges the history's parts inside the process that holds the chDB
+directory (`serve`, or `mapservice clickhouse-server` in `make up`), on threads it names
 `MergeMutate`, and on a small machine those merges compete for a core with the inserts
 that make events queryable. Their cost grows as the day's parts grow: at 1,000 VDA 5050
 vehicles they took 15 % of a core in the first minute and 37 % in the eleventh, and the
 inserts, waiting for a core behind them, took twice as long (BENCHMARKS.md, "Merges").
 
 Linux keeps a nice value per thread, so those threads alone get a higher one: they still
-use every idle cycle, but give way to the threads that insert, consume and serve. A
-ClickHouse server does the same for its own merges with its server setting
-`os_threads_nice_value_merge_mutate`.
+use every idle cycle, but give way to the threads that insert, consume and serve. Raising
+a thread's nice value needs no privilege; ClickHouse's own server setting for this,
+`os_threads_nice_value_merge_mutate`, needs CAP_SYS_NICE and is not set in chDB.
 
 ClickHouse starts merge threads when it needs them, so the priorities are applied again
 every few seconds rather than once.
@@ -17,12 +18,14 @@ every few seconds rather than once.
 
 from __future__ import annotations
 
-import asyncio
 import os
 import sys
+import threading
 from pathlib import Path
 
 import structlog
+
+from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
@@ -64,16 +67,44 @@ def lower_priority(nice: int, names: frozenset[str] = MERGE_THREADS, tasks: Path
     return changed
 
 
-async def keep_merges_low(
-    nice: int, every_s: float = EVERY_S, names: frozenset[str] = MERGE_THREADS
-) -> None:
-    """Applies `lower_priority(nice, names)` now and every `every_s` until cancelled (off the
-    event loop: reading a few hundred threads' names takes milliseconds)."""
-    loop = asyncio.get_running_loop()
-    total = 0
-    while True:
-        changed = await loop.run_in_executor(None, lower_priority, nice, names)
-        if changed:
-            total += changed
-            log.info("chDB merge threads at a lower CPU priority", nice=nice, threads=total)
-        await asyncio.sleep(every_s)
+class MergePriorityKeeper:
+    """Applies `lower_priority(nice, names)` at once and every `every_s` on a daemon thread
+    of its own (a process that only serves HTTP, like `mapservice clickhouse-server`, has
+    no loop of ours to run it on), until stopped or the process ends."""
+
+    def __init__(
+        self, nice: int, every_s: float = EVERY_S, names: frozenset[str] = MERGE_THREADS
+    ) -> None:
+        self.nice, self.every_s, self.names = nice, every_s, names
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="merge-priority", daemon=True)
+
+    def start(self) -> MergePriorityKeeper:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def _run(self) -> None:
+        total = 0
+        while not self._stop.is_set():
+            try:
+                changed = lower_priority(self.nice, self.names)
+            except OSError as exc:  # /proc unreadable: say so once, leave the priorities
+                log.warning("cannot set the merge threads' CPU priority", error=str(exc))
+                return
+            if changed:
+                total += changed
+                log.info(
+                    "chDB merge threads at a lower CPU priority", nice=self.nice, threads=total
+                )
+            self._stop.wait(self.every_s)
+
+
+def keep_merges_low(settings: Settings) -> MergePriorityKeeper | None:
+    """Starts the keeper for this process's embedded chDB, as `MAPSERVICE_CHDB_MERGE_NICE`
+    asks (0: none); None where it is off or not supported."""
+    if not settings.chdb_merge_nice or not supported():
+        return None
+    return MergePriorityKeeper(settings.chdb_merge_nice).start()

@@ -20,7 +20,7 @@ from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS
 
-from .conftest import read_topic, wait_for_count
+from .conftest import merge_threads_lowered, read_topic, wait_for_count
 
 
 def now_ms() -> int:
@@ -226,29 +226,12 @@ def test_live_websocket_streams_a_published_pose(mosquitto_stack):
 
 
 def test_embedded_merges_run_at_a_lower_cpu_priority(mosquitto_stack):
-    """`serve` sets embedded chDB's merge threads to MAPSERVICE_CHDB_MERGE_NICE (19 by
-    default) once merges run; its other threads keep the process's own priority."""
-    from pathlib import Path
-
-    from mapservice.runtime.thread_priority import MERGE_THREADS, thread_names
-
-    tasks = Path(f"/proc/{mosquitto_stack.procs['server'].pid}/task")
+    """`serve` holds the chDB directory: it sets ClickHouse's merge threads in it to
+    MAPSERVICE_CHDB_MERGE_NICE (19 by default) once merges run, and no other thread."""
     start = now_ms() - 60_000
-    deadline = time.monotonic() + 90
-    merges: list[int] = []
-    for round_ in range(60):
-        # Batches a few hundred milliseconds apart: one part each, until parts get merged.
+
+    def make_parts(round_: int) -> None:
         poses, _ = pose_and_chunk_messages(f"merge{round_}", robots=5, per_robot=2, start_ms=start)
         publish_all(mosquitto_stack, poses)
-        time.sleep(0.3)
-        names = thread_names(tasks)
-        merges = [t for t, name in names.items() if name in MERGE_THREADS]
-        if merges and all(os.getpriority(os.PRIO_PROCESS, t) == 19 for t in merges):
-            break
-        assert time.monotonic() < deadline
-    assert merges, f"no merge thread in serve: {sorted(set(thread_names(tasks).values()))}"
-    assert all(os.getpriority(os.PRIO_PROCESS, t) == 19 for t in merges)
-    # The rest (the inserts' threads among them) keep theirs: none took the merges' value.
-    assert os.getpriority(os.PRIO_PROCESS, mosquitto_stack.procs["server"].pid) < 19
-    others = [t for t, name in thread_names(tasks).items() if name not in MERGE_THREADS]
-    assert not [t for t in others if os.getpriority(os.PRIO_PROCESS, t) == 19]
+
+    merge_threads_lowered(mosquitto_stack.procs["server"].pid, make_parts)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import ctypes
 import os
 import threading
@@ -14,11 +13,13 @@ import pytest
 
 from mapservice.runtime.thread_priority import (
     MERGE_THREADS,
+    MergePriorityKeeper,
     keep_merges_low,
     lower_priority,
     supported,
     thread_names,
 )
+from mapservice.settings import Settings
 
 pytestmark = pytest.mark.skipif(not supported(), reason="per-thread nice values are Linux's")
 
@@ -73,27 +74,26 @@ def test_a_thread_already_lower_is_left_as_it_is() -> None:
 
 
 def test_the_keeper_applies_it_at_once_and_again_to_later_threads() -> None:
-    async def scenario() -> tuple[int, int]:
-        with named_thread("ms-merge") as first:
-            keeper = asyncio.ensure_future(
-                keep_merges_low(5, every_s=0.05, names=frozenset({"ms-merge"}))
-            )
-            try:
-                await wait_for(lambda: nice_of(first) == 5)
-                with named_thread("ms-merge") as later:
-                    await wait_for(lambda: nice_of(later) == 5)
-                    return nice_of(first), nice_of(later)
-            finally:
-                keeper.cancel()
-
-    assert asyncio.run(scenario()) == (5, 5)
+    with named_thread("ms-merge") as first:
+        keeper = MergePriorityKeeper(5, every_s=0.05, names=frozenset({"ms-merge"})).start()
+        try:
+            wait_for(lambda: nice_of(first) == 5)
+            with named_thread("ms-merge") as later:
+                wait_for(lambda: nice_of(later) == 5)
+        finally:
+            keeper.stop()
 
 
-async def wait_for(condition, timeout_s: float = 5.0) -> None:
+def test_the_setting_turns_the_keeper_off() -> None:
+    # On, it is started by `serve` and `clickhouse-server` (tests/integration).
+    assert keep_merges_low(Settings(chdb_merge_nice=0)) is None
+
+
+def wait_for(condition, timeout_s: float = 5.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
         assert time.monotonic() < deadline, "not applied in time"
-        await asyncio.sleep(0.02)
+        time.sleep(0.02)
 
 
 def test_chdb_merges_run_on_threads_of_the_expected_name(chdb_dir) -> None:
