@@ -67,10 +67,12 @@ def cmd_migrate(args) -> None:
 def cmd_clickhouse_server(args) -> None:
     import uvicorn
 
+    from mapservice.runtime.thread_priority import keep_merges_low
     from mapservice.sql.apps import server_app
 
     settings = settings_for("clickhouse-server")
     app = server_app(settings, read_write=args.read_write)
+    keep_merges_low(settings)  # this process holds the chDB directory: its merges run here
     log = logging.getLogger("mapservice.clickhouse-server")
     log.info(
         "ClickHouse HTTP interface over %s on http://%s:%d (%s)",

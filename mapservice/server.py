@@ -33,6 +33,7 @@ from mapservice.runtime.health import (
 from mapservice.runtime.health_server import serve_health
 from mapservice.runtime.heap import freeze_startup_heap
 from mapservice.runtime.metrics_gate import metrics_gate
+from mapservice.runtime.thread_priority import keep_merges_low
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -120,8 +121,10 @@ async def serve(
     readiness: dict[str, Callable[[], bool]] = {
         "clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)
     }
+    merges_low = None
     if store.dsn.startswith("chdb://"):
         export_process_memory(store)
+        merges_low = keep_merges_low(settings)
     advisory: dict = {}  # reported by /readyz, not required
     loop_beat = Heartbeat(max_age_s=15.0)
     beating = asyncio.ensure_future(beat_forever(loop_beat))
@@ -181,6 +184,8 @@ async def serve(
             await stop.wait()
     finally:
         beating.cancel()
+        if merges_low is not None:
+            merges_low.stop()
         if api_parts is not None:
             await api_parts.stop()
         if parts is not None:

@@ -43,6 +43,17 @@ class ClickHouseSettings(BaseModel):
             "pipeline); not used by embedded chDB."
         ),
     )
+    chdb_merge_nice: int = Field(
+        19,
+        ge=0,
+        le=19,
+        description=(
+            "Embedded chDB only: the nice value (0-19) of ClickHouse's merge threads in the "
+            "process holding the chDB directory, so that merges use idle CPU and give way to "
+            "the inserts (0: the process's own). A ClickHouse server has its own setting: "
+            "os_threads_nice_value_merge_mutate."
+        ),
+    )
     clickhouse_cluster: str = Field(
         "",
         description=(

@@ -113,3 +113,32 @@ def read_topic(stack: Stack, topic: str, min_records: int, timeout_s: float = 30
         return values
     finally:
         consumer.close()
+
+
+def merge_threads_lowered(pid: int, make_parts, nice: int = 19, timeout_s: float = 90) -> list:
+    """Calls `make_parts(round)` until process `pid` has merge threads, all at `nice` (the
+    default MAPSERVICE_CHDB_MERGE_NICE); returns their ids. Its other threads, the inserts'
+    among them, must not have taken that value."""
+    import os
+    from pathlib import Path
+
+    from mapservice.runtime.thread_priority import MERGE_THREADS, thread_names
+
+    tasks = Path(f"/proc/{pid}/task")
+    deadline = time.monotonic() + timeout_s
+    merges: list[int] = []
+    round_ = 0
+    while time.monotonic() < deadline:
+        make_parts(round_)
+        round_ += 1
+        time.sleep(0.3)  # a batch each: one part per table, until parts get merged
+        merges = [t for t, name in thread_names(tasks).items() if name in MERGE_THREADS]
+        if merges and all(os.getpriority(os.PRIO_PROCESS, t) == nice for t in merges):
+            break
+    names = thread_names(tasks)
+    assert merges, f"no merge thread in process {pid}: {sorted(set(names.values()))}"
+    assert all(os.getpriority(os.PRIO_PROCESS, t) == nice for t in merges)
+    assert os.getpriority(os.PRIO_PROCESS, pid) < nice
+    others = [t for t, name in names.items() if name not in MERGE_THREADS]
+    assert not [t for t in others if os.getpriority(os.PRIO_PROCESS, t) == nice]
+    return merges

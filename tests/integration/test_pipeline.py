@@ -20,7 +20,7 @@ from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 from tests.fixtures.paths import MAPS
 
-from .conftest import read_topic, wait_for_count
+from .conftest import merge_threads_lowered, read_topic, wait_for_count
 
 
 def now_ms() -> int:
@@ -223,3 +223,15 @@ def test_live_websocket_streams_a_published_pose(mosquitto_stack):
                 break
         assert message["robotId"] == "live-1" and message["position"][:2] == [3.0, 4.0]
         assert message["ts_ms"] == ts
+
+
+def test_embedded_merges_run_at_a_lower_cpu_priority(mosquitto_stack):
+    """`serve` holds the chDB directory: it sets ClickHouse's merge threads in it to
+    MAPSERVICE_CHDB_MERGE_NICE (19 by default) once merges run, and no other thread."""
+    start = now_ms() - 60_000
+
+    def make_parts(round_: int) -> None:
+        poses, _ = pose_and_chunk_messages(f"merge{round_}", robots=5, per_robot=2, start_ms=start)
+        publish_all(mosquitto_stack, poses)
+
+    merge_threads_lowered(mosquitto_stack.procs["server"].pid, make_parts)

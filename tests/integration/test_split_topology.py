@@ -40,8 +40,9 @@ from mapservice.local.stack import Stack
 from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixtures)
 
 from . import test_contract_2019 as contract
+from .conftest import merge_threads_lowered
 from .test_contract_2019 import TOKEN, http, robot, until  # noqa: F401  (http, robot: fixtures)
-from .test_pipeline import now_ms, publish_all
+from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
 
 
 @pytest.fixture(scope="module")
@@ -315,6 +316,18 @@ def test_a_batch_of_2000_chunk_contents_through_the_clickhouse_server(stack, htt
     answer = msgspec.msgpack.decode(reply.content)
     assert sorted(c[0] for c in answer["contents"]) == known
     assert len(answer["missing"]) == 2000 - len(known)
+
+
+def test_the_clickhouse_server_runs_its_merges_at_a_lower_cpu_priority(stack) -> None:
+    """`mapservice clickhouse-server` holds the chDB directory, so its merges run there: at
+    MAPSERVICE_CHDB_MERGE_NICE (19 by default), and no other of its threads."""
+    start = now_ms() - 60_000
+
+    def make_parts(round_: int) -> None:
+        poses, _ = pose_and_chunk_messages(f"merge{round_}", robots=5, per_robot=2, start_ms=start)
+        publish_all(stack, poses)
+
+    merge_threads_lowered(stack.procs["clickhouse"].pid, make_parts)
 
 
 def test_export_replay_through_the_clickhouse_server(stack, tmp_path) -> None:
