@@ -225,13 +225,18 @@ def test_live_websocket_streams_a_published_pose(mosquitto_stack):
         assert message["ts_ms"] == ts
 
 
-def test_embedded_merges_run_at_a_lower_cpu_priority(mosquitto_stack):
-    """`serve` holds the chDB directory: it sets ClickHouse's merge threads in it to
-    MAPSERVICE_CHDB_MERGE_NICE (19 by default) once merges run, and no other thread."""
+def pose_rounds(stack):
+    """`make_parts(round)` for merge_threads_lowered: ten poses of new robots a round."""
     start = now_ms() - 60_000
 
     def make_parts(round_: int) -> None:
         poses, _ = pose_and_chunk_messages(f"merge{round_}", robots=5, per_robot=2, start_ms=start)
-        publish_all(mosquitto_stack, poses)
+        publish_all(stack, poses)
 
-    merge_threads_lowered(mosquitto_stack.procs["server"].pid, make_parts)
+    return make_parts
+
+
+def test_embedded_merges_run_at_a_lower_cpu_priority(mosquitto_stack):
+    """`serve` holds the chDB directory: it sets ClickHouse's merge threads in it to
+    MAPSERVICE_CHDB_MERGE_NICE (19 by default) once merges run, and no other thread."""
+    merge_threads_lowered(mosquitto_stack.procs["server"].pid, pose_rounds(mosquitto_stack))

@@ -42,7 +42,7 @@ from tests.ui.conftest import DIST, module_browser, page  # noqa: F401  (fixture
 from . import test_contract_2019 as contract
 from .conftest import merge_threads_lowered
 from .test_contract_2019 import TOKEN, http, robot, until  # noqa: F401  (http, robot: fixtures)
-from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
+from .test_pipeline import now_ms, pose_rounds, publish_all
 
 
 @pytest.fixture(scope="module")
@@ -321,13 +321,7 @@ def test_a_batch_of_2000_chunk_contents_through_the_clickhouse_server(stack, htt
 def test_the_clickhouse_server_runs_its_merges_at_a_lower_cpu_priority(stack) -> None:
     """`mapservice clickhouse-server` holds the chDB directory, so its merges run there: at
     MAPSERVICE_CHDB_MERGE_NICE (19 by default), and no other of its threads."""
-    start = now_ms() - 60_000
-
-    def make_parts(round_: int) -> None:
-        poses, _ = pose_and_chunk_messages(f"merge{round_}", robots=5, per_robot=2, start_ms=start)
-        publish_all(stack, poses)
-
-    merge_threads_lowered(stack.procs["clickhouse"].pid, make_parts)
+    merge_threads_lowered(stack.procs["clickhouse"].pid, pose_rounds(stack))
 
 
 def test_export_replay_through_the_clickhouse_server(stack, tmp_path) -> None:
