@@ -24,6 +24,7 @@ from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
 # change feed know its writes as a map upload.
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.events import ChunkUpdated, MapMetaSet, encode, kafka_key, make_envelope
+from mapservice.core.ports import EventPublisher
 from mapservice.core.wire2019 import content_hash, format_timestamp
 from mapservice.settings import Settings
 
@@ -62,6 +63,22 @@ def upload_map_events(
 
     meta = meta_for(ros_map)
     publisher = KafkaPublisher(settings, client_id="mapservice-map-upload")
+    try:
+        return _publish_map(publisher, settings, ros_map, meta, now_ms, robot_id)
+    finally:
+        # A producer left open keeps its threads and goes on dialling the broker for as
+        # long as `up` runs (and logs refused connections once the broker stops).
+        publisher.close()
+
+
+def _publish_map(
+    publisher: EventPublisher,
+    settings: Settings,
+    ros_map: RosMap,
+    meta: MapMetaSet,
+    now_ms: int,
+    robot_id: str,
+) -> int:
     errors: list = []
     meta_env = make_envelope(robot_id, now_ms, now_ms, meta)
     publisher.publish(

@@ -373,9 +373,14 @@ class Stack(StackMqtt, StackEnv):
         now = SystemClock().now_ms()
         env = make_envelope("mapservice", now, now, meta)
         errors: list = []
-        publisher.publish(settings.topic_meta_events, kafka_key(env), encode(env), errors.append)
-        if publisher.flush(30) or any(errors):
-            raise RuntimeError(f"could not publish the map meta to Kafka: {errors}")
+        try:
+            publisher.publish(
+                settings.topic_meta_events, kafka_key(env), encode(env), errors.append
+            )
+            if publisher.flush(30) or any(errors):
+                raise RuntimeError(f"could not publish the map meta to Kafka: {errors}")
+        finally:
+            publisher.close()  # else its producer dials the broker for as long as the stack runs
 
     def start(self, *steps: Callable[[], object]) -> None:
         """Runs `steps` in order (default: brokers, `serve`, the gateways); stops every

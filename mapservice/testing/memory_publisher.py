@@ -11,6 +11,7 @@ class MemoryPublisher:
         self.records: dict[str, list[tuple[bytes, bytes]]] = defaultdict(list)
         self._pending: list[tuple[str, bytes, bytes, Callable[[Exception | None], None]]] = []
         self.fail_with = fail_with
+        self.closed = False
 
     def publish(
         self, topic: str, key: bytes, value: bytes, on_done: Callable[[Exception | None], None]
@@ -27,3 +28,10 @@ class MemoryPublisher:
     def flush(self, timeout: float = 0.0) -> int:
         self.poll()
         return 0
+
+    def close(self) -> int:
+        """As KafkaPublisher.close: what is still held is dropped, and nothing is delivered
+        after; returns how many records were dropped."""
+        dropped, self._pending = len(self._pending), []
+        self.closed = True
+        return dropped

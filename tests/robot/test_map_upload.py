@@ -150,3 +150,28 @@ def test_map_upload_cli_explains_what_to_do(monkeypatch, tmp_path) -> None:
         main(["map", "upload", str(MAPS / "depot.yaml"), "--replace"])
     with pytest.raises(SystemExit, match="is the service running"):
         main(["map", "upload", str(MAPS / "depot.yaml"), "--api", "http://127.0.0.1:9"])
+
+
+def test_the_map_upload_to_kafka_releases_its_producer(monkeypatch) -> None:
+    """`up`'s upload closes its Kafka producer once the map is published, and when publishing
+    failed: a producer left open keeps dialling the broker for as long as `up` runs."""
+    from mapservice.robot.map_upload import upload_map_events
+
+    made: list[MemoryPublisher] = []
+
+    def publisher(settings, client_id, fail_with=None):
+        made.append(MemoryPublisher(fail_with=fail_with))
+        return made[-1]
+
+    monkeypatch.setattr("mapservice.adapters.kafka_publisher.KafkaPublisher", publisher)
+    depot = load_ros_map(MAPS / "depot.yaml")
+    assert upload_map_events(Settings(), depot, NOW) == len(slice_chunks(depot))
+    assert made[-1].closed and made[-1].records
+
+    monkeypatch.setattr(
+        "mapservice.adapters.kafka_publisher.KafkaPublisher",
+        lambda settings, client_id: publisher(settings, client_id, OSError("broker gone")),
+    )
+    with pytest.raises(RuntimeError, match="could not publish the map to Kafka"):
+        upload_map_events(Settings(), depot, NOW)
+    assert made[-1].closed

@@ -85,3 +85,28 @@ def test_a_chosen_port_taken_before_its_server_starts_is_chosen_again(tmp_path):
         given = Stack(tmp_path, mqtt="mosquitto", apart=True, clickhouse_port=taken)
         given._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
         assert given.clickhouse_port == taken
+
+
+def test_publishing_the_map_meta_releases_its_producer(tmp_path, monkeypatch):
+    """The stack's meta publisher is closed once the meta is on Kafka, and when it could not
+    be: else its producer goes on dialling the broker until the process ends."""
+    from mapservice.adapters.ros_map import load_ros_map, meta_for
+    from mapservice.testing.memory_publisher import MemoryPublisher
+    from tests.fixtures.paths import MAPS
+
+    made: list[MemoryPublisher] = []
+    fail: list[Exception] = []
+
+    def publisher(settings, client_id):
+        made.append(MemoryPublisher(fail_with=fail[0] if fail else None))
+        return made[-1]
+
+    monkeypatch.setattr("mapservice.local.stack.KafkaPublisher", publisher)
+    stack = Stack(tmp_path, mqtt="mosquitto")
+    meta = meta_for(load_ros_map(MAPS / "depot.yaml"))
+    stack.publish_meta(meta)
+    assert made[-1].closed and made[-1].records
+    fail.append(OSError("broker gone"))
+    with pytest.raises(RuntimeError, match="could not publish the map meta"):
+        stack.publish_meta(meta)
+    assert made[-1].closed
