@@ -1,6 +1,7 @@
 """`mapservice bench sink`: CPU per event of the processors' history path.
 
-Each run is a fresh process: it fills a pose topic on an embedded tansu with N events,
+Each run is a fresh process: it fills a pose topic on the embedded broker `up` would run
+(Apache Kafka where Java is, else tansu; MAPSERVICE_EMBEDDED_KAFKA picks) with N events,
 then drains it through the processors' HistoryConsumer (confluent-kafka KafkaBatchSource,
 decode, store, commit) into a store that only counts, and reports the CPU time (user +
 system of the whole process) and wall time from the first stored event to the last: the
@@ -59,7 +60,8 @@ async def _one(way: str, events: int) -> dict:
     from mapservice.adapters.kafka_publisher import KafkaPublisher
     from mapservice.adapters.kafka_topics import ensure_topics
     from mapservice.core.events import PoseReported, encode, kafka_key, make_envelope
-    from mapservice.local.embedded import free_port, start_tansu, stop, wait_for_port
+    from mapservice.local import kafka_broker
+    from mapservice.local.embedded import free_port, stop
     from mapservice.settings import Settings
     from mapservice.testing.memory_store import MemoryStore
 
@@ -68,16 +70,22 @@ async def _one(way: str, events: int) -> dict:
             _Counter.n += len(batch)
 
     port = free_port()
-    tansu = start_tansu(
-        port, log_file=open(os.environ.get("BENCH_SINK_TANSU_LOG", os.devnull), "wb")
-    )
-    data_dir = ExitStack()
+    cleanup = ExitStack()  # closed last in, first out: producer, broker, data dir
     try:
-        wait_for_port(port)
-        data = data_dir.enter_context(bench_data_dir(None, "bench-sink-"))
+        data = cleanup.enter_context(bench_data_dir(None, "bench-sink-"))
         settings = Settings(kafka_bootstrap=f"127.0.0.1:{port}", data_dir=data)
+        choice = kafka_broker.embedded_choice(settings.embedded_kafka)
+        broker = kafka_broker.start_embedded(
+            choice,
+            data,
+            port,
+            settings,
+            log_file=open(os.environ.get("BENCH_SINK_BROKER_LOG", os.devnull), "wb"),
+        )
+        cleanup.callback(stop, broker)
         ensure_topics(settings)
         pub = KafkaPublisher(settings, "bench-sink")
+        cleanup.callback(pub.close)
         t0 = 1_795_000_000_000
         for i in range(events):
             payload = PoseReported(
@@ -136,11 +144,11 @@ async def _one(way: str, events: int) -> dict:
             "cpu_us_per_event": round(cpu / counted * 1e6, 1),
             "events_per_s": round(counted / wall),
             "complete": _Counter.n >= events,
+            "broker": choice,
             "task": bool(task),
         }
     finally:
-        stop(tansu)
-        data_dir.close()
+        cleanup.close()
 
 
 def main(args) -> None:
@@ -183,7 +191,7 @@ def main(args) -> None:
             runs[way].append(result)
             print(
                 f"run {i + 1}/{args.repeat} {way:5}: {result['cpu_us_per_event']:7.1f} µs CPU/event, "
-                f"{result['events_per_s']:,} events/s",
+                f"{result['events_per_s']:,} events/s (broker: {result['broker']})",
                 flush=True,
             )
     summary = {

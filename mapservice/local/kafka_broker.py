@@ -22,8 +22,12 @@ import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from mapservice.local.embedded import ensure_port_free, free_port, wait_for_port
+from mapservice.local.embedded import ensure_port_free, free_port, start_tansu, wait_for_port
+
+if TYPE_CHECKING:
+    from mapservice.settings import Settings
 
 POM = Path(__file__).parent / "kafka" / "pom.xml"
 NODE_ID = 1
@@ -381,6 +385,30 @@ def stop_process_group(proc: subprocess.Popen | None, timeout_s: float = 30.0) -
         proc.wait()
     except ProcessLookupError:
         proc.wait()
+
+
+def start_embedded(
+    choice: str,
+    data_dir: Path,
+    port: int,
+    settings: Settings,
+    log_file=None,
+    preexec_fn=None,
+) -> subprocess.Popen:
+    """The embedded broker `choice` names ("apache" or "tansu", see `embedded_choice`) on
+    `port`, Apache Kafka's log under DATA_DIR/kafka/; either stops with `embedded.stop`."""
+    if choice == "apache":
+        node = node_for(
+            data_dir,
+            port,
+            heap_mb=settings.embedded_kafka_heap_mb,
+            retention_hours=settings.embedded_kafka_retention_hours,
+            retention_bytes=settings.embedded_kafka_retention_bytes,
+        )
+        return start_kafka(node, log_file, jars_dir=settings.kafka_jars_dir, preexec_fn=preexec_fn)
+    if choice == "tansu":
+        return start_tansu(port, log_file, preexec_fn=preexec_fn)
+    raise ValueError(f"no embedded Kafka broker named {choice!r}: apache or tansu")
 
 
 def node_for(data_dir: Path, port: int, **limits) -> KafkaNodeConfig:

@@ -320,21 +320,14 @@ class Stack(StackMqtt, StackEnv):
             raise RuntimeError(f"the Kafka at {self.kafka} is not this stack's to start")
         embedded.stop(self.procs.pop("kafka", None))
         settings = self.settings()
-        if self.kafka == "apache":
-            node = kafka_broker.node_for(
-                self.data_dir,
-                self.kafka_port,
-                heap_mb=settings.embedded_kafka_heap_mb,
-                retention_hours=settings.embedded_kafka_retention_hours,
-                retention_bytes=settings.embedded_kafka_retention_bytes,
-            )
-            self.procs["kafka"] = kafka_broker.start_kafka(
-                node, self._log("kafka"), jars_dir=settings.kafka_jars_dir, preexec_fn=self._preexec
-            )
-        else:
-            self.procs["kafka"] = embedded.start_tansu(
-                self.kafka_port, self._log("tansu"), preexec_fn=self._preexec
-            )
+        self.procs["kafka"] = kafka_broker.start_embedded(
+            self.kafka,
+            self.data_dir,
+            self.kafka_port,
+            settings,
+            self._log("kafka" if self.kafka == "apache" else "tansu"),
+            preexec_fn=self._preexec,
+        )
         self._record()
         ensure_topics(settings)
         if self.meta is not None and self.kafka == "tansu":

@@ -6,6 +6,8 @@ import json
 import subprocess
 import sys
 
+from mapservice.local import kafka_broker
+
 
 def test_one_sink_run_counts_every_published_event() -> None:
     """A small run stores all of its events in the counting store and reports their CPU cost."""
@@ -29,3 +31,5 @@ def test_one_sink_run_counts_every_published_event() -> None:
     assert line is not None, out.stdout[-2000:] + out.stderr[-2000:]
     result = json.loads(line[7:])
     assert result["complete"] and 0 < result["events"] <= 25_000 and result["cpu_us_per_event"] > 0
+    # The broker `up` runs: Apache Kafka wherever Java is, tansu only as the fallback.
+    assert result["broker"] == ("apache" if kafka_broker.java_binary() else "tansu"), result
