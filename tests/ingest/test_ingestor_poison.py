@@ -104,13 +104,11 @@ class Broken(MemoryPublisher):
         raise RuntimeError("producer gone")
 
 
-def test_the_mqtt_callback_survives_a_failing_producer(gateway, settings, wire) -> None:
+def test_the_mqtt_callback_survives_a_failing_producer(gateway, settings, wire, clock) -> None:
     """If even the producer fails, on_message logs and counts it, leaves the message unacked and returns."""
     from prometheus_client import REGISTRY
 
-    from mapservice.adapters.clock import SystemClock
-
-    gateway.ingestor = Ingestor(settings, Broken(), SystemClock(), gateway_id="gw-test")
+    gateway.ingestor = Ingestor(settings, Broken(), clock, gateway_id="gw-test")
     before = REGISTRY.get_sample_value("mapservice_gateway_handling_errors_total") or 0
 
     class Msg:

@@ -53,23 +53,23 @@ class AckLog:
         self.batches.append(list(acks))
 
 
-def memory_gateway(gateway, settings):
-    """The gateway producing into memory, its MQTT client an AckLog."""
-    from mapservice.adapters.clock import SystemClock
+def memory_gateway(gateway, settings, clock):
+    """The gateway producing into memory, its MQTT client an AckLog; its clock the tests'
+    fixed now, which the `wire` payloads' timestamps are built around."""
     from mapservice.testing.memory_publisher import MemoryPublisher
 
     gateway.publisher = MemoryPublisher()
-    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+    gateway.ingestor = Ingestor(settings, gateway.publisher, clock, gateway_id="gw-test")
     gateway.client = AckLog()
     return gateway
 
 
 def test_the_gateway_acknowledges_what_one_poll_delivered_in_one_batch(
-    gateway, settings, wire
+    gateway, settings, wire, clock
 ) -> None:
     """Messages are acknowledged only once Kafka confirmed them, all of one producer poll's
     confirmations in one ack_many call."""
-    gateway = memory_gateway(gateway, settings)
+    gateway = memory_gateway(gateway, settings, clock)
     for mid in (1, 2, 3):
         msg = type(
             "Msg",
@@ -100,14 +100,14 @@ def test_health_is_not_ok_when_the_mqtt_loop_thread_is_dead(gateway, settings) -
     assert status["ok"] is False and status["mqtt_loop_alive"] is False
 
 
-def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(gateway, settings, wire) -> None:
+def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(
+    gateway, settings, wire, clock
+) -> None:
     """mapservice_gateway_in_flight is the ingestor's count of messages Kafka has not confirmed."""
     from prometheus_client import REGISTRY
 
-    from mapservice.adapters.clock import SystemClock
-
     gateway.publisher = MemoryPublisher()
-    gateway.ingestor = Ingestor(settings, gateway.publisher, SystemClock(), gateway_id="gw-test")
+    gateway.ingestor = Ingestor(settings, gateway.publisher, clock, gateway_id="gw-test")
     for _mid in (1, 2):
         gateway.ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None)
     assert REGISTRY.get_sample_value("mapservice_gateway_in_flight") == 2
@@ -116,12 +116,12 @@ def test_the_in_flight_gauge_reads_the_gateways_count_when_scraped(gateway, sett
 
 
 def test_a_topic_that_is_not_utf8_becomes_an_unknown_topic_dead_letter(
-    gateway, settings, wire
+    gateway, settings, wire, clock
 ) -> None:
     """paho raises on reading such a topic; the gateway dead-letters the message (acked) and goes on."""
     import paho.mqtt.client as mqtt
 
-    gateway = memory_gateway(gateway, settings)
+    gateway = memory_gateway(gateway, settings, clock)
     bad = mqtt.MQTTMessage(mid=4, topic=b"iot/coordinates/\xff")
     bad.payload, bad.qos = wire.pose(), 1
     good = mqtt.MQTTMessage(mid=5, topic=b"iot/coordinates/blabla")
