@@ -9,6 +9,7 @@ import threading
 
 from confluent_kafka import Consumer, TopicPartition
 
+from mapservice.adapters.kafka_logs import logged
 from mapservice.settings import Settings
 
 
@@ -48,7 +49,13 @@ class TopicFollower:
     def _read(self) -> None:
         """Reads the topic until stopped; raises what the consumer raises (Kafka away)."""
         consumer = Consumer(
-            {**self.settings.kafka_config(), "group.id": self.group_id, "enable.auto.commit": False}
+            logged(
+                {
+                    **self.settings.kafka_config(),
+                    "group.id": self.group_id,
+                    "enable.auto.commit": False,
+                }
+            )
         )
         try:
             md = consumer.list_topics(self.topic, timeout=30)

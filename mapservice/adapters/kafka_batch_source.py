@@ -16,6 +16,7 @@ import structlog
 from confluent_kafka import Consumer, KafkaError, KafkaException, TopicPartition
 from prometheus_client import Counter, Gauge
 
+from mapservice.adapters.kafka_logs import logged
 from mapservice.core.ports import SourceRecord
 from mapservice.settings import Settings
 
@@ -82,20 +83,22 @@ def consumer_config(settings: Settings, group_id: str) -> dict:
 
 
 def _common_config(settings: Settings, group_id: str) -> dict:
-    return {
-        **settings.kafka_config(),
-        "group.id": group_id,
-        "client.id": group_id,
-        "auto.offset.reset": "earliest",
-        "enable.auto.commit": False,
-        "enable.auto.offset.store": False,
-        # tansu answers an empty fetch only when this wait runs out, not when records
-        # arrive, so librdkafka's 500 ms default added ~0.1-0.2 s to every event's
-        # latency. Apache Kafka answers on arrival; there a short wait costs only idle
-        # fetches.
-        "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
-        "statistics.interval.ms": STATS_INTERVAL_MS,
-    }
+    return logged(
+        {
+            **settings.kafka_config(),
+            "group.id": group_id,
+            "client.id": group_id,
+            "auto.offset.reset": "earliest",
+            "enable.auto.commit": False,
+            "enable.auto.offset.store": False,
+            # tansu answers an empty fetch only when this wait runs out, not when records
+            # arrive, so librdkafka's 500 ms default added ~0.1-0.2 s to every event's
+            # latency. Apache Kafka answers on arrival; there a short wait costs only idle
+            # fetches.
+            "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
+            "statistics.interval.ms": STATS_INTERVAL_MS,
+        }
+    )
 
 
 def record_lag(group: str, stats_json: str) -> None:

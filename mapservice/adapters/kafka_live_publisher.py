@@ -14,6 +14,7 @@ import structlog
 from confluent_kafka import Producer
 from prometheus_client import Counter
 
+from mapservice.adapters.kafka_logs import logged
 from mapservice.core.events import Envelope
 from mapservice.core.live_messages import live_records
 from mapservice.settings import Settings
@@ -28,17 +29,19 @@ LIVE_DROPPED = Counter(
 
 
 def live_producer_config(settings: Settings, client_id: str) -> dict:
-    return {
-        **settings.kafka_config(),
-        "client.id": client_id,
-        # One partition per producer keeps a processor's batches in order; a live message
-        # older than a few seconds is worth nothing, so no long retries either.
-        "acks": "1",
-        "linger.ms": 5,
-        "message.timeout.ms": 5_000,
-        "queue.buffering.max.kbytes": 32 * 1024,
-        "compression.type": "none",
-    }
+    return logged(
+        {
+            **settings.kafka_config(),
+            "client.id": client_id,
+            # One partition per producer keeps a processor's batches in order; a live message
+            # older than a few seconds is worth nothing, so no long retries either.
+            "acks": "1",
+            "linger.ms": 5,
+            "message.timeout.ms": 5_000,
+            "queue.buffering.max.kbytes": 32 * 1024,
+            "compression.type": "none",
+        }
+    )
 
 
 class KafkaLivePublisher:

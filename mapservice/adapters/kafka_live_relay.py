@@ -18,6 +18,7 @@ import structlog
 from confluent_kafka import Consumer, KafkaError, TopicPartition
 from prometheus_client import Counter, Histogram
 
+from mapservice.adapters.kafka_logs import logged
 from mapservice.core.live_messages import BadLiveRecord, LiveText, live_record_texts
 from mapservice.settings import Settings
 
@@ -35,17 +36,19 @@ RELAY_BAD = Counter(
 
 def live_consumer_config(settings: Settings) -> dict:
     group = f"mapservice-api-live-{uuid.uuid4().hex[:12]}"  # never joins: assign() only
-    return {
-        **settings.kafka_config(),
-        "group.id": group,
-        "client.id": group,
-        "enable.auto.commit": False,
-        "enable.auto.offset.store": False,
-        "auto.offset.reset": "latest",
-        # tansu answers an empty fetch only when the wait runs out (kafka_batch_source.py).
-        "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
-        "queued.max.messages.kbytes": 16 * 1024,
-    }
+    return logged(
+        {
+            **settings.kafka_config(),
+            "group.id": group,
+            "client.id": group,
+            "enable.auto.commit": False,
+            "enable.auto.offset.store": False,
+            "auto.offset.reset": "latest",
+            # tansu answers an empty fetch only when the wait runs out (kafka_batch_source.py).
+            "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
+            "queued.max.messages.kbytes": 16 * 1024,
+        }
+    )
 
 
 class KafkaLiveRelay:

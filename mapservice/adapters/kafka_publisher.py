@@ -21,6 +21,7 @@ import structlog
 from confluent_kafka import KafkaError, KafkaException, Producer
 from prometheus_client import Counter
 
+from mapservice.adapters.kafka_logs import logged
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -38,20 +39,22 @@ RENEW_INTERVAL_S = 10.0
 
 
 def producer_config(settings: Settings, client_id: str) -> dict:
-    return {
-        **settings.kafka_config(),
-        "client.id": client_id,
-        "enable.idempotence": True,
-        "acks": "all",
-        # 50 ms (the default) batches several events per partition: at 1,000 robots this
-        # cut the CPU per event of tansu by ~2/3 and of the gateway by ~1/5; 20 ms doubled
-        # tansu's again and took nothing off the end-to-end latency (BENCHMARKS.md).
-        "linger.ms": settings.kafka_linger_ms,
-        "compression.type": "none",  # aiokafka (faust) lacks lz4 without extras; chunks are zlib already
-        # Same partition for the same key as faust/aiokafka producers.
-        "partitioner": "murmur2_random",
-        "message.timeout.ms": MESSAGE_TIMEOUT_MS,
-    }
+    return logged(
+        {
+            **settings.kafka_config(),
+            "client.id": client_id,
+            "enable.idempotence": True,
+            "acks": "all",
+            # 50 ms (the default) batches several events per partition: at 1,000 robots this
+            # cut the CPU per event of tansu by ~2/3 and of the gateway by ~1/5; 20 ms doubled
+            # tansu's again and took nothing off the end-to-end latency (BENCHMARKS.md).
+            "linger.ms": settings.kafka_linger_ms,
+            "compression.type": "none",  # aiokafka (faust) lacks lz4 without extras; chunks are zlib already
+            # Same partition for the same key as faust/aiokafka producers.
+            "partitioner": "murmur2_random",
+            "message.timeout.ms": MESSAGE_TIMEOUT_MS,
+        }
+    )
 
 
 class RecordTooLarge(ValueError):
