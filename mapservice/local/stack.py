@@ -80,9 +80,15 @@ class Stack(StackMqtt, StackEnv):
         self.log_dir = self.data_dir / "logs"
         self.api_port = self.api_port or embedded.free_port()
         self.kafka_port = self.kafka_port or embedded.free_port()
-        self.health_port = self.health_port or embedded.free_port()
         if self.gateways < 1:
             raise ValueError(f"gateways must be at least 1, not {self.gateways}")
+        # Replica 1's port is `health_port` (given or chosen); the other replicas' are chosen.
+        self._chosen_ports = {
+            f"gateway-{replica}"
+            for replica in range(1, self.gateways + 1)
+            if replica > 1 or not self.health_port
+        }
+        self.health_port = self.health_port or embedded.free_port()
         self.gateway_health_ports = [self.health_port] + [
             embedded.free_port() for _ in range(self.gateways - 1)
         ]
@@ -114,7 +120,7 @@ class Stack(StackMqtt, StackEnv):
         self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
         self.pid_file = lifetime.PidFile.in_data_dir(self.data_dir)
         if self.apart:
-            self._chosen_ports = {
+            self._chosen_ports |= {
                 name
                 for name, port in (
                     ("clickhouse_port", self.clickhouse_port),
@@ -205,6 +211,7 @@ class Stack(StackMqtt, StackEnv):
         """Starts gateway replica `replica` (1: the component named "gateway", then
         "gateway-2", ...) and waits until it is ready."""
         name = "gateway" if replica == 1 else f"gateway-{replica}"
+        self._rechoose_if_taken(f"gateway-{replica}", f"the {name}'s health endpoint")
         port = self.gateway_health_ports[replica - 1]
         embedded.ensure_port_free(port, f"the {name}'s health endpoint")
         proc = self.spawn(name, "gateway", "--health-port", str(port))
@@ -266,24 +273,41 @@ class Stack(StackMqtt, StackEnv):
         self.wait_healthy(f"{self.clickhouse_url}/ping", "clickhouse", proc)
         return proc
 
-    def _rechoose_if_taken(self, attribute: str, what: str) -> None:
+    def _rechoose_if_taken(self, key: str, what: str) -> None:
         """A port this stack chose itself, and told no component yet, is swapped for a free
-        one if something took it meanwhile: it was free when chosen, but the Kafka and MQTT
-        clients started since connect from ports of the same ephemeral range (a restarted
-        `up` once found its ClickHouse server's port taken that way). A port that was given
-        is kept, and refused by the start if taken."""
-        if attribute not in self._chosen_ports:
+        one if something took it meanwhile. It was free when chosen, seconds before: another
+        process may have chosen it since (test suites side by side pick free ports the same
+        way; a CI run lost its gateway's so), or, where the kernel's ephemeral range is not
+        known, a client connection may hold it (a restarted `up` once found its ClickHouse
+        server's port taken that way). A port that was given is kept, and refused by the
+        start if taken. `key`: the attribute's name, or "gateway-N" for replica N's health
+        port."""
+        if key not in self._chosen_ports:
             return
-        self._chosen_ports.discard(attribute)  # from now on a component is told it
-        port = getattr(self, attribute)
+        self._chosen_ports.discard(key)  # from now on a component is told it
+        port = self._port_named(key)
         if not embedded.port_is_free(port):
-            setattr(self, attribute, embedded.free_port())
+            self._set_port(key, embedded.free_port())
             log.info(
                 "a port chosen for the stack was taken meanwhile: another chosen",
                 component=what,
                 taken=port,
-                port=getattr(self, attribute),
+                port=self._port_named(key),
             )
+
+    def _port_named(self, key: str) -> int:
+        if key.startswith("gateway-"):
+            return self.gateway_health_ports[int(key.removeprefix("gateway-")) - 1]
+        return int(getattr(self, key))
+
+    def _set_port(self, key: str, port: int) -> None:
+        if key.startswith("gateway-"):
+            replica = int(key.removeprefix("gateway-"))
+            self.gateway_health_ports[replica - 1] = port
+            if replica == 1:
+                self.health_port = port
+        else:
+            setattr(self, key, port)
 
     def start_apart(self) -> None:
         """What `serve` runs, in three processes (apart=True): the ClickHouse server, the

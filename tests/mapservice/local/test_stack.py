@@ -87,6 +87,29 @@ def test_a_chosen_port_taken_before_its_server_starts_is_chosen_again(tmp_path):
         assert given.clickhouse_port == taken
 
 
+def test_a_chosen_gateway_health_port_taken_before_the_gateway_starts_is_chosen_again(tmp_path):
+    """Each gateway replica's health port is chosen with the stack and bound only after
+    Kafka, the MQTT broker and the history have started; another process may take it
+    meanwhile (a CI run's `up` stopped on "port ... for the gateway's health endpoint is
+    already in use"). Replica 1's is `health_port`, which `up` prints; a given one is kept."""
+    import socket
+
+    stack = Stack(tmp_path, mqtt="mosquitto", gateways=2)
+    first, second = stack.gateway_health_ports
+    with socket.socket() as a, socket.socket() as b:
+        for holder, port in ((a, first), (b, second)):
+            holder.bind(("127.0.0.1", port))
+            holder.listen()
+        stack._rechoose_if_taken("gateway-1", "the gateway's health endpoint")
+        stack._rechoose_if_taken("gateway-2", "the gateway-2's health endpoint")
+        assert first not in stack.gateway_health_ports and second not in stack.gateway_health_ports
+        assert stack.health_port == stack.gateway_health_ports[0]
+
+        given = Stack(tmp_path, mqtt="mosquitto", health_port=first)
+        given._rechoose_if_taken("gateway-1", "the gateway's health endpoint")
+        assert given.health_port == first == given.gateway_health_ports[0]
+
+
 def test_publishing_the_map_meta_releases_its_producer(tmp_path, monkeypatch):
     """The stack's meta publisher is closed once the meta is on Kafka, and when it could not
     be: else its producer goes on dialling the broker until the process ends."""
