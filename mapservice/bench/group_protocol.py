@@ -139,7 +139,8 @@ def member_loss(bootstrap: str, protocol: str, timeout_s: float = 90.0) -> dict:
                 "-m",
                 "mapservice.bench.group_protocol",
                 "member",
-                json.dumps(config),
+                # The logger is an object, not a setting: the child adds its own.
+                json.dumps({k: v for k, v in config.items() if k != "logger"}),
                 topic,
             ],
             stdout=subprocess.PIPE,
@@ -191,7 +192,9 @@ def _member(config_json: str, topic: str) -> None:
     """The child member: reads until killed; says once when it reads records."""
     from confluent_kafka import Consumer
 
-    consumer = Consumer(json.loads(config_json))
+    from mapservice.adapters.kafka_logs import logged
+
+    consumer = Consumer(logged(json.loads(config_json)))
     consumer.subscribe([topic])
     said = False
     while True:
