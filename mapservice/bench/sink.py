@@ -80,7 +80,9 @@ async def _one(way: str, events: int) -> dict:
             data,
             port,
             settings,
-            log_file=open(os.environ.get("BENCH_SINK_BROKER_LOG", os.devnull), "wb"),
+            log_file=cleanup.enter_context(
+                open(os.environ.get("BENCH_SINK_BROKER_LOG", os.devnull), "wb")
+            ),
         )
         cleanup.callback(stop, broker)
         ensure_topics(settings)

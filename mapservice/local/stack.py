@@ -277,7 +277,7 @@ class Stack(StackMqtt, StackEnv):
         """A port this stack chose itself, and told no component yet, is swapped for a free
         one if something took it meanwhile. It was free when chosen, seconds before: another
         process may have chosen it since (test suites side by side pick free ports the same
-        way; a CI run lost its gateway's so), or, where the kernel's ephemeral range is not
+        way), or, where the kernel's ephemeral range is not
         known, a client connection may hold it (a restarted `up` once found its ClickHouse
         server's port taken that way). A port that was given is kept, and refused by the
         start if taken. `key`: the attribute's name, or "gateway-N" for replica N's health

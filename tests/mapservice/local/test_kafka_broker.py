@@ -212,3 +212,11 @@ def test_a_cluster_id_that_starts_with_a_dash_formats_the_log(tmp_path) -> None:
     dashed = "-" + kafka_broker.cluster_id()[1:]
     assert kafka_broker.format_once(java, libs, config_file, config.log_dir, dashed)
     assert f"cluster.id={dashed}" in (config.log_dir / "meta.properties").read_text()
+
+
+def test_an_unknown_embedded_broker_is_refused_by_name(tmp_path) -> None:
+    """start_embedded starts nothing for a name other than apache or tansu, and says which."""
+    from mapservice.settings import Settings
+
+    with pytest.raises(ValueError, match="'zookeeper': apache or tansu"):
+        kafka_broker.start_embedded("zookeeper", tmp_path, 1, Settings())

@@ -90,8 +90,8 @@ def test_a_chosen_port_taken_before_its_server_starts_is_chosen_again(tmp_path):
 def test_a_chosen_gateway_health_port_taken_before_the_gateway_starts_is_chosen_again(tmp_path):
     """Each gateway replica's health port is chosen with the stack and bound only after
     Kafka, the MQTT broker and the history have started; another process may take it
-    meanwhile (a CI run's `up` stopped on "port ... for the gateway's health endpoint is
-    already in use"). Replica 1's is `health_port`, which `up` prints; a given one is kept."""
+    meanwhile, and `up` then stopped on "port ... for the gateway's health endpoint is
+    already in use". Replica 1's is `health_port`, which `up` prints; a given one is kept."""
     import socket
 
     stack = Stack(tmp_path, mqtt="mosquitto", gateways=2)
