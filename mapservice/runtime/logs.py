@@ -4,17 +4,64 @@ The service's own loggers are structlog's; the libraries it runs (faust, aiokafk
 uvicorn with its access log, confluent-kafka's Python side) log through the standard
 library, whose records go through the same processors and renderer, so in JSON mode every
 line on stderr is one JSON object carrying `component`, `level`, `logger` and `timestamp`.
+
+No line carries a secret sent in a URL: whatever a line holds (a uvicorn access record's
+path, an HTTP client's request line, an exception's text), a query parameter whose name
+says it is a secret (password, token, key, ...) has its value replaced by `[redacted]`.
+Clients put credentials there (ClickHouse's `?password=`), so every logger is covered,
+not a list of the ones known to print URLs.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import sys
+from urllib.parse import unquote_plus
 
 import structlog
 
 # uvicorn's access log record: args are (client address, method, path, HTTP version, status).
 _ACCESS_FIELDS = ("client", "method", "path", "http_version", "status")
+
+
+# name=value in a query string (after ? or &), the name and value as they were sent.
+_QUERY_PAIR = re.compile(r"([?&])([^=&#?\s\"']+)=([^&#\s\"']*)")
+# A parameter whose name (decoded, any case) holds one of these carries a secret.
+_SECRET_NAME_PARTS = ("pass", "pwd", "secret", "token", "key", "auth", "credential", "sig")
+REDACTED = "[redacted]"
+
+
+def redact_query_secrets(text: str) -> str:
+    """`text` with the value of every secret-named query parameter replaced by REDACTED."""
+    if "=" not in text:
+        return text
+
+    def redact(pair: re.Match[str]) -> str:
+        name = unquote_plus(pair[2]).lower()
+        if any(part in name for part in _SECRET_NAME_PARTS):
+            return f"{pair[1]}{pair[2]}={REDACTED}"
+        return pair[0]
+
+    return _QUERY_PAIR.sub(redact, text)
+
+
+def _redacted(value):
+    if isinstance(value, str):
+        return redact_query_secrets(value)
+    if isinstance(value, tuple | list):
+        return type(value)(_redacted(item) for item in value)
+    if isinstance(value, dict):
+        return {key: _redacted(item) for key, item in value.items()}
+    return value
+
+
+def _redact_secrets(_logger, _name: str, event_dict: dict) -> dict:
+    """Every value of the line (its message, fields and formatted exception) redacted."""
+    for key, value in event_dict.items():
+        if key != "_record":
+            event_dict[key] = _redacted(value)
+    return event_dict
 
 
 def _access_fields(_logger, _name: str, event_dict: dict) -> dict:
@@ -53,7 +100,7 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
         structlog.processors.TimeStamper(fmt="iso", utc=True),
     ]
     structlog.configure(
-        processors=[*shared, structlog.processors.format_exc_info, renderer],
+        processors=[*shared, structlog.processors.format_exc_info, _redact_secrets, renderer],
         wrapper_class=structlog.make_filtering_bound_logger(logging.getLevelName(level.upper())),
         logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
         cache_logger_on_first_use=True,
@@ -67,6 +114,7 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
                 structlog.stdlib.add_logger_name,
                 _access_fields,
                 structlog.processors.format_exc_info,
+                _redact_secrets,
             ],
             processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, renderer],
             pass_foreign_args=True,

@@ -20,15 +20,11 @@ anyio threads the rest of the process shares.
 from __future__ import annotations
 
 import base64
-import gzip
 import json
 import re
 import secrets
 import uuid
-import zlib
 from dataclasses import dataclass, replace
-from email.parser import BytesParser
-from email.policy import HTTP
 
 import structlog
 from starlette.applications import Starlette
@@ -40,6 +36,8 @@ from starlette.routing import Route
 from mapservice.sql.engine import AUTHENTICATION_FAILED, SqlEngine, SqlError, SqlRequest
 from mapservice.sql.query_gate import QueryGate, TooManyQueries
 from mapservice.sql.read_only import check_read_only
+from mapservice.sql.request_body import BodyCap, body_work
+from mapservice.sql.request_params import check_params
 
 log = structlog.get_logger(__name__)
 
@@ -73,6 +71,17 @@ PROTOCOL_PARAMS = frozenset(
 )
 MAX_QUERY_BYTES = 1024 * 1024
 MAX_INSERT_BYTES = 256 * 1024 * 1024
+# A body's cap, received and decoded, by whether its user is read-only.
+BODY_CAPS = {
+    True: BodyCap(
+        MAX_QUERY_BYTES,
+        "a read-only statement is at most this long; send shorter statements (a long list "
+        "as one Array parameter)",
+    ),
+    False: BodyCap(
+        MAX_INSERT_BYTES, "send the rows in several inserts, each at most this long decoded"
+    ),
+}
 _INSERT = re.compile(
     r"^\s*INSERT\s+INTO\s+(?P<target>.+?)\s+FORMAT\s+(?P<fmt>\w+)\s*$", re.IGNORECASE | re.DOTALL
 )
@@ -87,88 +96,6 @@ class SqlUser:
     name: str
     password: str
     read_only: bool
-
-
-class _TooLarge(Exception):
-    pass
-
-
-def _decode_body(body: bytes, encoding: str) -> bytes:
-    try:
-        return _decompress(body, encoding.strip().lower())
-    except SqlError:
-        raise
-    except Exception as exc:  # gzip, zlib and lz4 each raise their own kind
-        raise SqlError(f"Cannot decode the {encoding} request body: {exc}", 271) from exc
-
-
-def _decompress(body: bytes, encoding: str) -> bytes:
-    if encoding in ("", "identity"):
-        return body
-    if encoding == "gzip":
-        return gzip.decompress(body)
-    if encoding == "deflate":
-        return zlib.decompress(body)
-    if encoding == "lz4":
-        import lz4.frame
-
-        return lz4.frame.decompress(body)
-    if encoding == "zstd":
-        try:
-            import zstandard
-        except ImportError as exc:
-            raise SqlError(
-                "Content-Encoding zstd is not supported here; send lz4 or gzip", 48
-            ) from exc
-        return zstandard.ZstdDecompressor().decompress(body, max_output_size=MAX_INSERT_BYTES)
-    raise SqlError(f"Unknown Content-Encoding {encoding!r}; send gzip, deflate, lz4 or zstd", 48)
-
-
-async def _read_body(request: Request, limit: int) -> bytes:
-    chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > limit:
-            raise _TooLarge()
-        chunks.append(chunk)
-    return b"".join(chunks)
-
-
-def _form_fields(content_type: str, body: bytes) -> dict[str, str] | None:
-    """The fields of a multipart/form-data body (the statement as `query`, parameters as
-    `param_<name>`), or None for any other body (the statement, or an INSERT's rows)."""
-    # Only multipart: curl --data-binary labels a plain statement
-    # application/x-www-form-urlencoded, and a ClickHouse server reads that as the statement.
-    kind = content_type.split(";", 1)[0].strip().lower()
-    if kind != "multipart/form-data":
-        return None
-    message = BytesParser(policy=HTTP).parsebytes(
-        b"Content-Type: " + content_type.encode("latin-1") + b"\r\n\r\n" + body
-    )
-    if not message.is_multipart() or message.defects:
-        raise SqlError(
-            "Cannot parse the multipart/form-data body: "
-            f"{[type(d).__name__ for d in message.defects] or 'no parts'}",
-            27,
-        )
-    fields = {}
-    for part in message.iter_parts():
-        name = part.get_param("name", header="content-disposition")
-        if not name:
-            raise SqlError("A multipart/form-data part has no name", 27)
-        if part.get_filename():
-            raise SqlError(
-                f"External data ({name}: a file in the form) is not supported "
-                "here; send the rows as a table in the statement",
-                48,
-            )
-        payload = part.get_payload(decode=True) or b""
-        charset = part.get_content_charset() or "utf-8"
-        try:
-            fields[name] = payload.decode(charset)
-        except (LookupError, UnicodeDecodeError) as exc:
-            raise SqlError(f"Form field {name} is not {charset} text: {exc}", 27) from exc
-    return fields
 
 
 def _credentials(request: Request) -> tuple[str, str]:
@@ -205,6 +132,7 @@ def clickhouse_http_app(
     database), the engine's read-only handles and `read_only_gate`'s threads."""
     by_name = {u.name: u for u in users}
     gate = read_only_gate or QueryGate(concurrent=2, queued=8, queue_timeout_s=5)
+    bodies = {True: body_work("read-only"), False: body_work("read-write")}
 
     def checked_and_run(sql_request: SqlRequest):
         checked = check_read_only(engine, sql_request, read_only_database)
@@ -233,24 +161,23 @@ def clickhouse_http_app(
         return PlainTextResponse("Ok.\n")
 
     async def query(request: Request) -> Response:
-        query_id = request.query_params.get("query_id") or str(uuid.uuid4())
+        query_id = str(uuid.uuid4())  # until the caller's is known to be fit for a header
         headers = {
             "X-ClickHouse-Query-Id": query_id,
             "X-ClickHouse-Timezone": timezone,
             "X-ClickHouse-Server-Display-Name": display_name,
         }
         try:
+            check_params(request.query_params, request.headers)
+            query_id = request.query_params.get("query_id") or query_id
+            headers["X-ClickHouse-Query-Id"] = query_id
             user = authenticate(request)
             url_query = request.query_params.get("query", "")
-            limit = MAX_QUERY_BYTES if user.read_only else MAX_INSERT_BYTES
-            try:
-                body = await _read_body(request, limit)
-            except _TooLarge:
-                raise SqlError(f"The request body is larger than {limit} bytes", 131) from None
-            body = _decode_body(body, request.headers.get("content-encoding", ""))
+            received = await bodies[user.read_only].read(request, BODY_CAPS[user.read_only])
+            body, form = received.data, received.form
             params = dict(request.query_params)
-            form = _form_fields(request.headers.get("content-type", ""), body)
             if form is not None:
+                check_params(form)
                 # The statement and its parameters in the body; the URL's still count.
                 url_query = form.pop("query", "") or url_query
                 params.update(form)

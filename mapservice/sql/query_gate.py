@@ -31,11 +31,17 @@ class QueryGate:
     """Admits a call to a thread of its own pool, or refuses it with TooManyQueries."""
 
     def __init__(
-        self, concurrent: int, queued: int, queue_timeout_s: float, name: str = "analyst-sql"
+        self,
+        concurrent: int,
+        queued: int,
+        queue_timeout_s: float,
+        name: str = "analyst-sql",
+        who: str = "analysts",
     ):
         if concurrent < 1 or queued < 0:
             raise ValueError("a query gate needs at least one thread and a queue of 0 or more")
         self.concurrent, self.queued, self.queue_timeout_s = concurrent, queued, queue_timeout_s
+        self.who = who  # named in a refusal
         self._executor = ThreadPoolExecutor(concurrent, thread_name_prefix=name)
         self._admitted = 0  # running or waiting; touched only on the event loop's thread
         self._slots: asyncio.Semaphore | None = None
@@ -47,7 +53,7 @@ class QueryGate:
     def _refuse(self, why: str) -> TooManyQueries:
         retry = max(1, math.ceil(self.queue_timeout_s))
         return TooManyQueries(
-            f"Too many simultaneous queries for analysts ({why}: {self.concurrent} run at a "
+            f"Too many simultaneous queries for {self.who} ({why}: {self.concurrent} run at a "
             f"time, {self.queued} wait). Too many queries: retry after {retry} s. "
             "(TOO_MANY_SIMULTANEOUS_QUERIES)",
             retry,
