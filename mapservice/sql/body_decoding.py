@@ -21,7 +21,7 @@ TOO_LARGE = 131  # ClickHouse's TOO_LARGE_STRING_SIZE: a 400 over HTTP
 CANNOT_DECOMPRESS = 271
 ENCODINGS = ("gzip", "deflate", "lz4", "zstd")
 # The most one decoding step produces (and so the most decoding overshoots the cap by).
-OUTPUT_STEP = 1024 * 1024
+OUTPUT_STEP = 256 * 1024
 # zstd: the largest window a body may ask for. RFC 8878 asks decoders to support 8 MiB;
 # without a bound a 20-byte frame header makes the decoder reserve up to 2 GiB.
 ZSTD_MAX_WINDOW = 8 * 1024 * 1024

@@ -128,3 +128,81 @@ def test_the_api_server_writes_a_json_access_log(capfd) -> None:
     requests = [line for line in out if line.get("event") == "request"]
     assert requests and requests[0]["path"] == "/ping" and requests[0]["status"] == 200
     assert all(line["component"] == "api" for line in out)
+
+
+SECRET = "s3cr3t-Pa55"
+# Names that carry a secret, as clients spell them (any case, percent-encoded or not).
+SECRET_PARAMS = ["password", "PASSWORD", "pass%77ord", "key", "api_key", "token", "access_token"]
+
+
+@pytest.mark.parametrize("fmt", ["json", "console"])
+def test_no_secret_in_a_url_reaches_the_api_access_log(capfd, tmp_path, fmt) -> None:
+    """An analyst's `?password=` (and any other secret-named parameter) on the API's
+    /clickhouse, served as `serve` serves it: the access log has the request, not the
+    secret, in both formats."""
+    import threading
+    import time
+
+    import httpx
+    import uvicorn
+    from fastapi import FastAPI
+    from mapservice.api.app import SQL_PATH, PathPrefix
+    from mapservice.api.composition import api_server_config
+
+    from mapservice.local.embedded import free_port
+    from mapservice.settings import Settings
+    from mapservice.sql.chdb_engine import ChdbEngine
+    from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
+
+    configure("INFO", fmt, "api")
+    port = free_port()
+    engine = ChdbEngine(tmp_path / "ch")
+    app = FastAPI()
+    app.add_middleware(
+        PathPrefix,
+        prefix=SQL_PATH,
+        target=clickhouse_http_app(engine, [SqlUser("analyst", SECRET, read_only=True)]),
+    )
+    server = uvicorn.Server(api_server_config(app, Settings(api_host="127.0.0.1", api_port=port)))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not server.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        base = f"http://127.0.0.1:{port}{SQL_PATH}/"
+        reply = httpx.get(f"{base}?user=analyst&password={SECRET}&query=SELECT%201")
+        assert reply.text == "1\n"
+        for name in SECRET_PARAMS:
+            httpx.get(f"{base}?user=analyst&{name}={SECRET}&query=SELECT%202")
+    finally:
+        server.should_exit = True
+        thread.join(10)
+        engine.close()
+    err = capfd.readouterr().err
+    assert "SELECT%201" in err and "[redacted]" in err
+    assert SECRET not in err
+
+
+def test_no_secret_in_a_url_reaches_any_logger_path(capsys) -> None:
+    """The other ways a URL reaches a line: a structlog field, a library's message (httpx
+    logs each request's URL), its arguments, an exception's text."""
+    import structlog
+
+    configure("INFO", "json", "api")
+    url = f"http://ch:8123/?user=svc&password={SECRET}&query=SELECT+1"
+    structlog.get_logger("x").info("calling", url=url, nested={"urls": [url]})
+    logging.getLogger("httpx").info(f'HTTP Request: POST {url} "HTTP/1.1 200 OK"')
+    logging.getLogger("clickhouse_connect").warning("retrying %s", url)
+    try:
+        raise ConnectionError(f"unreachable: {url}")
+    except ConnectionError:
+        logging.getLogger("uvicorn.error").exception("request failed")
+        structlog.get_logger("y").exception("request failed")
+    out = capsys.readouterr().err
+    assert len(lines_of(out)) == 5 and out.count("password=[redacted]") >= 6
+    assert SECRET not in out and "query=SELECT+1" in out
+
+
+def lines_of(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
