@@ -14,7 +14,10 @@ replies (replies are identity-encoded; every client handles that), external data
 in the multipart body), the native TCP protocol (clickhouse-client speaks only that).
 
 Read-only users (the analysts) run on their own bounded pool (`QueryGate`), never on the
-anyio threads the rest of the process shares.
+anyio threads the rest of the process shares. A body is capped as sent and as decoded
+(BODY_CAPS: the user's), and decoded and parsed on threads of its own
+(mapservice/sql/request_body.py); the parameters that name things are checked before use
+(mapservice/sql/request_params.py).
 """
 
 from __future__ import annotations
