@@ -12,6 +12,7 @@ This is CPU work: callers run it off the event loop (mapservice/sql/request_body
 
 from __future__ import annotations
 
+import io
 import zlib
 from collections.abc import Iterator
 
@@ -62,11 +63,11 @@ def decode(body: bytes, encoding: str, limit: int, advice: str) -> bytes:
         if len(body) > limit:
             raise BodyTooLarge(limit, advice, decoded=False)
         return body
-    out = bytearray()
+    # BytesIO: getvalue() hands over its buffer, so a body near the cap is held once.
+    out = io.BytesIO()
     try:
         for piece in _PIECES[encoding](body, limit):
-            out += piece
-            if len(out) > limit:
+            if out.write(piece) and out.tell() > limit:
                 raise BodyTooLarge(limit, advice, decoded=True)
     except SqlError:
         raise
@@ -76,7 +77,7 @@ def decode(body: bytes, encoding: str, limit: int, advice: str) -> bytes:
             "whole, or without Content-Encoding",
             CANNOT_DECOMPRESS,
         ) from exc
-    return bytes(out)
+    return out.getvalue()
 
 
 def _zlib_pieces(body: bytes, wbits: int, members: bool) -> Iterator[bytes]:
