@@ -51,7 +51,7 @@ def client(url: str, user: str, password: str, **kw):
     )
 
 
-@pytest.mark.parametrize("compress", ["lz4", "gzip", False])
+@pytest.mark.parametrize("compress", ["lz4", "zstd", "gzip", False])
 def test_clickhouse_connect_inserts_and_reads_back(url, compress) -> None:
     """clickhouse-connect's inserts (each compression) and typed reads work unchanged."""
     writer = client(url, "writer", "w-pw", compress=compress, database="h")
