@@ -26,6 +26,7 @@ import re
 import secrets
 import uuid
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from email.parser import BytesParser
 from email.policy import HTTP
@@ -40,6 +41,7 @@ from starlette.routing import Route
 from mapservice.sql.engine import AUTHENTICATION_FAILED, SqlEngine, SqlError, SqlRequest
 from mapservice.sql.query_gate import QueryGate, TooManyQueries
 from mapservice.sql.read_only import check_read_only
+from mapservice.sql.settings_policy import check_headers, check_settings
 
 log = structlog.get_logger(__name__)
 
@@ -199,15 +201,20 @@ def clickhouse_http_app(
     display_name: str = "mapservice",
     read_only_database: str = "default",
     read_only_gate: QueryGate | None = None,
+    read_only_limits: Mapping[str, str] | None = None,
 ) -> Starlette:
     """An ASGI app speaking the ClickHouse HTTP interface for `users`. Read-only ones get
     `check_read_only` (the allow-list; tables of `read_only_database`, also their default
-    database), the engine's read-only handles and `read_only_gate`'s threads."""
+    database), the settings policy (settings_policy.py; limits: `read_only_limits`, by
+    default the engine's), the engine's read-only handles and `read_only_gate`'s threads."""
     by_name = {u.name: u for u in users}
+    limits = dict(
+        getattr(engine, "read_only_settings", {}) if read_only_limits is None else read_only_limits
+    )
     gate = read_only_gate or QueryGate(concurrent=2, queued=8, queue_timeout_s=5)
 
     def checked_and_run(sql_request: SqlRequest):
-        checked = check_read_only(engine, sql_request, read_only_database)
+        checked = check_read_only(engine, sql_request, read_only_database, limits)
         return engine.execute(_with_sql(sql_request, checked))
 
     def authenticate(request: Request) -> SqlUser:
@@ -250,6 +257,10 @@ def clickhouse_http_app(
             body = _decode_body(body, request.headers.get("content-encoding", ""))
             params = dict(request.query_params)
             form = _form_fields(request.headers.get("content-type", ""), body)
+            if user.read_only:
+                check_headers(request.headers.keys())
+                check_settings(_settings_in(params), limits, "URL parameter")
+                check_settings(_settings_in(form or {}), limits, "form field")
             if form is not None:
                 # The statement and its parameters in the body; the URL's still count.
                 url_query = form.pop("query", "") or url_query
@@ -265,12 +276,9 @@ def clickhouse_http_app(
                 or request.headers.get("x-clickhouse-format")
                 or "TabSeparated",
                 params={k[6:]: v for k, v in params.items() if k.startswith("param_")},
-                settings={
-                    k: v
-                    for k, v in params.items()
-                    if k not in PROTOCOL_PARAMS and not k.startswith("param_")
-                },
+                settings=_settings_in(params),
                 read_only=user.read_only,
+                analyst=user.read_only,
             )
             insert = _INSERT.match(url_query) if body else None
             rows = body
@@ -316,6 +324,14 @@ def clickhouse_http_app(
     )
     app.state.identify = identify
     return app
+
+
+def _settings_in(fields: Mapping[str, str]) -> dict[str, str]:
+    """The settings among a request's URL parameters or form fields: all but the
+    protocol's own parameters and the bound `param_<name>` values."""
+    return {
+        k: v for k, v in fields.items() if k not in PROTOCOL_PARAMS and not k.startswith("param_")
+    }
 
 
 def _with_sql(request: SqlRequest, sql: str) -> SqlRequest:
