@@ -131,8 +131,11 @@ class ChdbEngine:
         on the engine refuses writes and any change of a setting on it); closed at the end."""
         handle = _Handle(self.path)
         try:
-            for name, value in settings.items():
-                handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
+            if settings:  # one SET: its assignments apply in their order
+                handle.run(
+                    "SET "
+                    + ", ".join(f"{_setting_name(k)} = {_quote(v)}" for k, v in settings.items())
+                )
             yield handle
         finally:
             handle.close()

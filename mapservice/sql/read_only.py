@@ -117,10 +117,16 @@ def check_read_only(
         raise SqlError(
             "INTO OUTFILE is not allowed here: the result comes back in the reply", READONLY
         )
+    clauses = statement_settings(canonical)
+    for clause in clauses:  # before the parse: a refused setting costs no more work
+        for name, value in clause:
+            check_setting(
+                name, parameter_value(value, request.params), limits or {}, "in the statement"
+            )
     ast = engine.execute(replace(probe, sql=f"EXPLAIN AST {canonical}")).body.decode()
     kind = statement_kind(ast)
     tree = parse_ast(ast)
-    _check_statement_settings(canonical, tree, request.params, limits or {})
+    _check_settings_clauses(clauses, tree)
     if kind == "Set":
         return canonical  # only allowed settings, and without a session it changes nothing
     if kind not in READ_STATEMENTS:
@@ -151,20 +157,14 @@ def _set_nodes(node: Node) -> int:
     return (node.kind == "Set") + sum(_set_nodes(child) for child in children)
 
 
-def _check_statement_settings(
-    canonical: str, tree: Node, params: Mapping[str, str], limits: Mapping[str, str]
-) -> None:
-    """Every SETTINGS clause and SET of the statement through the settings policy. The
-    engine's parse says how many there are (`Set` nodes); a statement whose clauses the
-    formatted text does not show as many is refused rather than half checked."""
-    clauses = statement_settings(canonical)
+def _check_settings_clauses(clauses: list, tree: Node) -> None:
+    """The engine's parse says how many SETTINGS clauses and SETs there are (`Set`
+    nodes): a statement whose formatted text shows another number was not wholly checked
+    by the settings policy, and is refused."""
     expected = _set_nodes(tree)
     if len(clauses) != expected:
         raise SqlError(
             f"The settings of this statement cannot be checked ({expected} SETTINGS clauses "
-            f"parsed, {len(clauses)} read); send settings as URL parameters",
+            f"in the parse, {len(clauses)} in the text); send settings as URL parameters",
             ACCESS_DENIED,
         )
-    for clause in clauses:
-        for name, value in clause:
-            check_setting(name, parameter_value(value, params), limits, "in the statement")

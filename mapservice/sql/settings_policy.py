@@ -84,6 +84,13 @@ def check_setting(name: str, value: str, limits: Mapping[str, str], channel: str
     "SETTINGS clause", ...), is harmless or tightens a limit of `limits`."""
     if name in HARMLESS:
         return
+    if name in limits and _number(limits[name]) is None:  # a mode: only as it is
+        if value.strip("'") == limits[name]:
+            return
+        raise SettingRefused(
+            f"Setting {name} = {value[:40]!r} ({channel}) is not allowed for analysts: it "
+            f"is {limits[name]} for them"
+        )
     if name in limits or name in UNSET_LIMITS:
         asked = _number(value)
         ceiling = _number(limits[name]) if name in limits else None
