@@ -84,6 +84,8 @@ def check_setting(name: str, value: str, limits: Mapping[str, str], channel: str
     "SETTINGS clause", ...), is harmless or tightens a limit of `limits`."""
     if name in HARMLESS:
         return
+    if name == "readonly" and value.strip("'") == "1":
+        return  # what it is already (a server's client, e.g. our ServerEngine, sends it)
     if name in limits and _number(limits[name]) is None:  # a mode: only as it is
         if value.strip("'") == limits[name]:
             return
