@@ -16,7 +16,7 @@ from dataclasses import replace
 import pytest
 from starlette.testclient import TestClient
 
-from mapservice.sql.allow_list import BY_NAME_CALLERS
+from mapservice.sql.allow_list import BY_NAME_CALLERS, catalogue
 from mapservice.sql.chdb_engine import ChdbEngine
 from mapservice.sql.engine import SqlError, SqlRequest
 from mapservice.sql.http_protocol import PROTOCOL_PARAMS, SqlUser, clickhouse_http_app
@@ -253,7 +253,7 @@ def test_no_function_or_table_function_reaches_a_file_or_the_network(sandbox, in
     tables = chunk(rows(engine, "SELECT name FROM system.table_functions ORDER BY name"), index)
     tried, statements, ran = 0, 0, 0
     for name, aggregate in functions:
-        refused_alone = "not allowed" in run_as_analyst(engine, f"SELECT {name}(1)")
+        refused_alone = not catalogue().allows(name)
         for sql in function_cases(name, aggregate == "1", refused_alone, secret, url):
             reply = run_as_analyst(engine, sql)
             statements += 1
