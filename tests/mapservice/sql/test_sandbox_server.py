@@ -137,3 +137,22 @@ def test_tighter_limits_and_output_settings_still_work_through_the_api(stack) ->
         "/", params={"max_result_rows": "2"}, content=b"SELECT * FROM numbers(3)", auth=ANALYST
     )
     assert too_many.status_code == 500 and "TOO_MANY_ROWS" in too_many.text
+
+
+def test_the_api_forwards_with_the_analysts_own_server_credential(tmp_path, monkeypatch) -> None:
+    """MAPSERVICE_CLICKHOUSE_ANALYST_USERNAME/PASSWORD when set; in local mode without them
+    the analyst's own credential (which `mapservice clickhouse-server` serves read-only);
+    in production without them the service's user (None)."""
+    from mapservice.settings import Settings
+    from mapservice.sql.apps import analyst_server_credential
+
+    analyst = SqlUser("analyst", "a-pw", read_only=True)
+    monkeypatch.setenv("MAPSERVICE_CLICKHOUSE_ANALYST_USERNAME", "mapservice_analyst")
+    monkeypatch.setenv("MAPSERVICE_CLICKHOUSE_ANALYST_PASSWORD", "ch-pw")
+    configured = Settings(data_dir=tmp_path, clickhouse_dsn="http://ch:8123")
+    assert analyst_server_credential(configured, analyst) == ("mapservice_analyst", "ch-pw")
+    monkeypatch.delenv("MAPSERVICE_CLICKHOUSE_ANALYST_USERNAME")
+    local = Settings(data_dir=tmp_path, clickhouse_dsn="http://127.0.0.1:8123", mode="local")
+    assert analyst_server_credential(local, analyst) == ("analyst", "a-pw")
+    production = local.model_copy(update={"mode": "production"})
+    assert analyst_server_credential(production, analyst) is None
