@@ -117,15 +117,17 @@ def check_read_only(
         raise SqlError(
             "INTO OUTFILE is not allowed here: the result comes back in the reply", READONLY
         )
+    # The engine first: under readonly = 1 EXPLAIN AST already refuses a SETTINGS clause
+    # that changes a value; the settings policy then sees every clause.
+    ast = engine.execute(replace(probe, sql=f"EXPLAIN AST {canonical}")).body.decode()
+    kind = statement_kind(ast)
+    tree = parse_ast(ast)
     clauses = statement_settings(canonical)
-    for clause in clauses:  # before the parse: a refused setting costs no more work
+    for clause in clauses:
         for name, value in clause:
             check_setting(
                 name, parameter_value(value, request.params), limits or {}, "in the statement"
             )
-    ast = engine.execute(replace(probe, sql=f"EXPLAIN AST {canonical}")).body.decode()
-    kind = statement_kind(ast)
-    tree = parse_ast(ast)
     _check_settings_clauses(clauses, tree)
     if kind == "Set":
         return canonical  # only allowed settings, and without a session it changes nothing

@@ -106,7 +106,7 @@ def test_the_analyst_reads_with_clickhouse_connect_but_cannot_write(url) -> None
             "Table function file is not allowed",
         ),
         ("SELECT * FROM url('http://127.0.0.1:9/x', 'CSV')", "Table function url is not allowed"),
-        ("SELECT 1 SETTINGS max_result_rows = 100000000", "max_result_rows"),
+        ("SELECT 1 SETTINGS max_result_rows = 100000000", "readonly"),
         ("SELECT number FROM system.numbers LIMIT 100000", "TOO_MANY_ROWS"),
     ],
 )
