@@ -54,9 +54,11 @@ HARMLESS = frozenset(
 )
 # Limits with no value of their own here: any positive value tightens them (0: unlimited).
 UNSET_LIMITS = frozenset({"max_result_bytes", "max_rows_to_read", "max_bytes_to_read"})
-# X-ClickHouse-* headers a client sends and this interface understands (credentials, the
-# database, the output format, a quota key). Any other is refused for a read-only user
-# rather than ignored: a client that meant it as a setting learns it had no effect.
+# X-ClickHouse-* request headers of a ClickHouse server's HTTP interface (credentials,
+# the database, the output format, a quota key, clickhouse-connect's certificate login,
+# which this interface does not offer, so the password still decides). Any other is
+# refused for a read-only user rather than ignored: a client that meant it as a setting
+# learns it had no effect.
 PROTOCOL_HEADERS = frozenset(
     {
         "x-clickhouse-user",
@@ -64,6 +66,7 @@ PROTOCOL_HEADERS = frozenset(
         "x-clickhouse-database",
         "x-clickhouse-format",
         "x-clickhouse-quota",
+        "x-clickhouse-ssl-certificate-auth",
     }
 )
 _NUMBER = re.compile(r"^\s*'?(\d+(\.\d+)?)'?\s*$")
