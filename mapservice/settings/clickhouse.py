@@ -70,6 +70,19 @@ class ClickHouseSettings(BaseModel):
         ),
     )
 
+    clickhouse_analyst_username: str = Field(
+        "",
+        description=(
+            "The ClickHouse server's read-only user for analysts' statements (readonly and "
+            "the limits constant in its profile). Empty: in local mode the analyst's own "
+            "credential (mapservice clickhouse-server knows it), else the service's user "
+            "with readonly=1 and the limits as settings of each request."
+        ),
+    )
+    clickhouse_analyst_password: SecretStr = Field(
+        SecretStr(""), description="Its password (secret)."
+    )
+
     # Analysts: read-only SQL over the ClickHouse HTTP protocol at the API's /clickhouse
     analyst_username: str = Field("analyst", description="The read-only SQL user.")
     analyst_password: SecretStr = Field(

@@ -187,6 +187,10 @@ ALLOWED_SYSTEM_TABLES = frozenset(
         "settings",
     }
 )
+# Functions that call an aggregate function named by their first argument, a string
+# (system.functions documents each as taking an aggregate function's name): that name
+# is checked like a call.
+BY_NAME_CALLERS = frozenset({"arrayReduce", "arrayReduceInRanges", "initializeAggregation"})
 # Operators the parser writes as functions that system.functions does not list.
 PARSER_FUNCTIONS = frozenset({"lambda"})
 # AST nodes that call a function the dump does not name (`SELECT * APPLY(f)`).
@@ -353,6 +357,21 @@ def _refuse_function(name: str) -> NotAllowed:
     )
 
 
+def _check_named_function(caller: str, node: Node) -> None:
+    """`arrayReduce('sumIf', ...)`: the first argument, a string literal, names a function
+    the allow-list holds (its parameters, `'quantile(0.9)'`, aside)."""
+    arguments = node.children[0].children if node.children else []
+    first = arguments[0] if arguments else None
+    literal = " ".join(first.words) if first and first.kind == "Literal" else ""
+    if not (len(literal) > 2 and literal[0] == literal[-1] == "'"):
+        raise NotAllowed(
+            f"{caller} takes the name of an aggregate function as a string literal here"
+        )
+    named = literal[1:-1].split("(", 1)[0].strip()
+    if not catalogue().allows(named):
+        raise _refuse_function(named)
+
+
 def check_table(name: str, database: str) -> None:
     """`db.table` or `table` (in the analyst's database, where CTE names also live)."""
     db, dot, table = name.partition(".")
@@ -393,6 +412,8 @@ def check_tree(node: Node, database: str, parent: Node | None = None) -> None:
                 )
         elif not catalogue().allows(name):
             raise _refuse_function(name)
+        elif name in BY_NAME_CALLERS:
+            _check_named_function(name, node)
         if name in IN_FUNCTIONS and node.children and len(node.children[0].children) == 2:
             right = node.children[0].children[1]
             if right.kind == "Identifier" and right.words:

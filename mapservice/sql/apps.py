@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ssl
 
+import structlog
 from starlette.applications import Starlette
 
 from mapservice.settings import Settings
@@ -19,8 +20,12 @@ from mapservice.sql.engine import SqlEngine, SqlRequest
 from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
 from mapservice.sql.server_engine import ServerEngine
 
+log = structlog.get_logger(__name__)
 
-def engine_for(settings: Settings) -> SqlEngine:
+
+def engine_for(settings: Settings, analyst_auth: tuple[str, str] | None = None) -> SqlEngine:
+    """The engine over the service's ClickHouse; `analyst_auth`: the server credential for
+    analysts' own statements (ServerEngine)."""
     dsn = settings.resolved_clickhouse_dsn
     limits = analyst_limits(settings).settings()
     if dsn.startswith("chdb://"):
@@ -33,7 +38,28 @@ def engine_for(settings: Settings) -> SqlEngine:
         settings.clickhouse_password.get_secret_value(),
         read_only_settings=limits,
         verify=clickhouse_verify(settings),
+        analyst_auth=analyst_auth,
     )
+
+
+def analyst_server_credential(settings: Settings, analyst: SqlUser) -> tuple[str, str] | None:
+    """The credential `analyst`'s statements reach a ClickHouse server with: the configured
+    analysts' user, or in local mode the analyst's own (`mapservice clickhouse-server`
+    serves the analyst read-only); None: the service's user, read-only per request."""
+    if settings.clickhouse_analyst_username:
+        return (
+            settings.clickhouse_analyst_username,
+            settings.clickhouse_analyst_password.get_secret_value(),
+        )
+    if settings.mode == "local":
+        return (analyst.name, analyst.password)
+    if not settings.resolved_clickhouse_dsn.startswith("chdb://"):
+        log.warning(
+            "analysts' statements reach ClickHouse as the service's user (readonly=1 and "
+            "the limits per request); set MAPSERVICE_CLICKHOUSE_ANALYST_USERNAME to a "
+            "read-only user whose profile holds them"
+        )
+    return None
 
 
 def clickhouse_verify(settings: Settings) -> bool | ssl.SSLContext:
@@ -62,7 +88,7 @@ def analyst_app(settings: Settings) -> Starlette | None:
     user = analyst_user(settings)
     if user is None:
         return None
-    engine = engine_for(settings)
+    engine = engine_for(settings, analyst_server_credential(settings, user))
     return clickhouse_http_app(
         engine,
         [user],

@@ -7,8 +7,11 @@ Each statement runs on a chDB connection handle of its own kind:
 - inserts (the processors storing the history) and `SELECT 1` (readiness) on pools of
   their own: a few long reads (the API's exports, run by the service's user) hold every
   handle of the first pool, and the history would wait behind them;
-- read-only statements on a fresh handle that is made read-only (`readonly = 1`, which the
-  engine enforces and nobody can lift on that handle) and closed afterwards (about 1 ms).
+- read-only statements on a fresh handle: the request's settings, then the limits, then
+  `readonly = 1` (which the engine enforces and nobody can lift on that handle); closed
+  afterwards (about 1 ms). clickhouse-local, under chDB, does not confine the scalar
+  `file()` to `user_files_path` nor `url()` to allowed hosts: for those the analysts'
+  allow-list (read_only.py) is the only line here; a ClickHouse server enforces both.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from mapservice.sql.engine import SqlError, SqlRequest, SqlResult, output_format
+from mapservice.sql.settings_policy import apply_read_only
 
 _SETTING_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 # SET and USE only change the session, and the HTTP interface here has none (like a
@@ -122,16 +126,16 @@ class ChdbEngine:
             pool.queue.put(handle)
 
     @contextmanager
-    def _fresh(self, before: dict[str, str], readonly: str, after: dict[str, str]):
-        """A handle of its own: `before` set, then `readonly` (from then on the engine refuses
-        writes and any change of a setting on it), then `after`; closed at the end."""
+    def _fresh(self, settings: dict[str, str]):
+        """A handle of its own with `settings` set in their order (`readonly` last: from then
+        on the engine refuses writes and any change of a setting on it); closed at the end."""
         handle = _Handle(self.path)
         try:
-            for name, value in before.items():
-                handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
-            handle.run(f"SET readonly = {_quote(readonly)}")
-            for name, value in after.items():  # refused by the engine, as on a server
-                handle.run(f"SET {_setting_name(name)} = {_quote(value)}")
+            if settings:  # one SET: its assignments apply in their order
+                handle.run(
+                    "SET "
+                    + ", ".join(f"{_setting_name(k)} = {_quote(v)}" for k, v in settings.items())
+                )
             yield handle
         finally:
             handle.close()
@@ -140,15 +144,16 @@ class ChdbEngine:
     def _handle_for(self, request: SqlRequest, lane: str = "statements"):
         asked_readonly = request.settings.get("readonly", "0") not in ("", "0")
         if request.read_only or asked_readonly:
-            # A read-only user gets the engine's limits and cannot change any setting; a
-            # writer asking for readonly (the API forwarding an analyst's statement to a
-            # server) sets its own limits first, as a server applies a request's settings.
-            others = {k: v for k, v in request.settings.items() if k != "readonly"}
+            # A read-only user: its settings (the protocol let only the settings policy's
+            # through), then the limits, then readonly = 1, so neither can be lifted. A
+            # writer asking for readonly (a server's client) gets its settings applied
+            # first and readonly last, as a server applies a request's settings.
             if request.read_only:
-                context = self._fresh(self.read_only_settings, "1", request.settings)
+                settings = apply_read_only(request.settings, self.read_only_settings)
             else:
-                context = self._fresh(others, request.settings["readonly"], {})
-            with context as handle:
+                settings = {k: v for k, v in request.settings.items() if k != "readonly"}
+                settings["readonly"] = request.settings["readonly"]
+            with self._fresh(settings) as handle:
                 handle.use(request.database)
                 yield handle
             return
@@ -170,7 +175,7 @@ class ChdbEngine:
         fmt = output_format(request.sql, request.default_format)
         lane = "ping" if _PING.match(request.sql) and not request.settings else "statements"
         with self._handle_for(request, lane) as handle:
-            if _SESSION_ONLY.match(request.sql) and not request.read_only:
+            if _SESSION_ONLY.match(request.sql):
                 return SqlResult(b"", fmt)
             result = handle.run(request.sql, request.default_format, request.params)
             return SqlResult(result.bytes() or b"", fmt)

@@ -33,6 +33,9 @@ class SqlRequest:
     params: dict[str, str] = field(default_factory=dict)  # {name:Type} placeholders, by name
     settings: dict[str, str] = field(default_factory=dict)
     read_only: bool = False
+    # An analyst's own statement (not the service's check of one): an engine with the
+    # analysts' own credential on its server runs it as that user.
+    analyst: bool = False
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ import json
 import re
 import secrets
 import uuid
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import structlog
@@ -41,6 +42,7 @@ from mapservice.sql.query_gate import QueryGate, TooManyQueries
 from mapservice.sql.read_only import check_read_only
 from mapservice.sql.request_body import BodyCap, body_work
 from mapservice.sql.request_params import check_params
+from mapservice.sql.settings_policy import check_headers, check_settings
 
 log = structlog.get_logger(__name__)
 
@@ -129,16 +131,21 @@ def clickhouse_http_app(
     display_name: str = "mapservice",
     read_only_database: str = "default",
     read_only_gate: QueryGate | None = None,
+    read_only_limits: Mapping[str, str] | None = None,
 ) -> Starlette:
     """An ASGI app speaking the ClickHouse HTTP interface for `users`. Read-only ones get
     `check_read_only` (the allow-list; tables of `read_only_database`, also their default
-    database), the engine's read-only handles and `read_only_gate`'s threads."""
+    database), the settings policy (settings_policy.py; limits: `read_only_limits`, by
+    default the engine's), the engine's read-only handles and `read_only_gate`'s threads."""
     by_name = {u.name: u for u in users}
+    limits = dict(
+        getattr(engine, "read_only_settings", {}) if read_only_limits is None else read_only_limits
+    )
     gate = read_only_gate or QueryGate(concurrent=2, queued=8, queue_timeout_s=5)
     bodies = {True: body_work("read-only"), False: body_work("read-write")}
 
     def checked_and_run(sql_request: SqlRequest):
-        checked = check_read_only(engine, sql_request, read_only_database)
+        checked = check_read_only(engine, sql_request, read_only_database, limits)
         return engine.execute(_with_sql(sql_request, checked))
 
     def authenticate(request: Request) -> SqlUser:
@@ -176,9 +183,15 @@ def clickhouse_http_app(
             headers["X-ClickHouse-Query-Id"] = query_id
             user = authenticate(request)
             url_query = request.query_params.get("query", "")
+            if user.read_only:
+                # Before the body is read: a refused setting costs nothing more.
+                check_headers(request.headers.keys())
+                check_settings(_settings_in(request.query_params), limits, "URL parameter")
             received = await bodies[user.read_only].read(request, BODY_CAPS[user.read_only])
             body, form = received.data, received.form
             params = dict(request.query_params)
+            if user.read_only:
+                check_settings(_settings_in(form or {}), limits, "form field")
             if form is not None:
                 check_params(form)
                 # The statement and its parameters in the body; the URL's still count.
@@ -195,12 +208,9 @@ def clickhouse_http_app(
                 or request.headers.get("x-clickhouse-format")
                 or "TabSeparated",
                 params={k[6:]: v for k, v in params.items() if k.startswith("param_")},
-                settings={
-                    k: v
-                    for k, v in params.items()
-                    if k not in PROTOCOL_PARAMS and not k.startswith("param_")
-                },
+                settings=_settings_in(params),
                 read_only=user.read_only,
+                analyst=user.read_only,
             )
             insert = _INSERT.match(url_query) if body else None
             rows = body
@@ -246,6 +256,14 @@ def clickhouse_http_app(
     )
     app.state.identify = identify
     return app
+
+
+def _settings_in(fields: Mapping[str, str]) -> dict[str, str]:
+    """The settings among a request's URL parameters or form fields: all but the
+    protocol's own parameters and the bound `param_<name>` values."""
+    return {
+        k: v for k, v in fields.items() if k not in PROTOCOL_PARAMS and not k.startswith("param_")
+    }
 
 
 def _with_sql(request: SqlRequest, sql: str) -> SqlRequest:

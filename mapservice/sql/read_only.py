@@ -17,10 +17,12 @@ Two things it still allows are refused here, from ClickHouse's own parse of the 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
-from mapservice.sql.allow_list import NotAllowed, check_identifiers, check_tree, parse_ast
+from mapservice.sql.allow_list import Node, NotAllowed, check_identifiers, check_tree, parse_ast
 from mapservice.sql.engine import ACCESS_DENIED, READONLY, SqlEngine, SqlError, SqlRequest
+from mapservice.sql.settings_policy import check_setting, parameter_value, statement_settings
 
 # Root nodes of EXPLAIN AST for statements that only read.
 READ_STATEMENTS = frozenset(
@@ -82,17 +84,24 @@ def statement_kind(ast_text: str) -> str:
     return first.split(" ", 1)[0]
 
 
-def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> str:
+def check_read_only(
+    engine: SqlEngine,
+    request: SqlRequest,
+    database: str,
+    limits: Mapping[str, str] | None = None,
+) -> str:
     """The statement as ClickHouse formats it (what then runs, so what was checked is what
     runs); raises SqlError (READONLY, ACCESS_DENIED, or the parser's SYNTAX_ERROR) unless it
-    is one read of the allow-list's functions and of `database`'s tables. `request` must
-    carry `database` (unqualified names resolve there, as do the statement's CTE names)."""
+    is one read of the allow-list's functions and of `database`'s tables whose SETTINGS
+    clauses (or SET) change only what the settings policy allows under `limits`. `request`
+    must carry `database` (unqualified names resolve there, as do the statement's CTE
+    names)."""
     if request.database != database:
         raise SqlError(
             f"Database {request.database} is not readable for analysts: only {database} is",
             ACCESS_DENIED,
         )
-    probe = replace(request, read_only=True, settings={}, default_format="TSVRaw")
+    probe = replace(request, read_only=True, analyst=False, settings={}, default_format="TSVRaw")
     canonical = (
         engine.execute(
             replace(
@@ -108,8 +117,20 @@ def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> st
         raise SqlError(
             "INTO OUTFILE is not allowed here: the result comes back in the reply", READONLY
         )
+    # The engine first: under readonly = 1 EXPLAIN AST already refuses a SETTINGS clause
+    # that changes a value; the settings policy then sees every clause.
     ast = engine.execute(replace(probe, sql=f"EXPLAIN AST {canonical}")).body.decode()
     kind = statement_kind(ast)
+    tree = parse_ast(ast)
+    clauses = statement_settings(canonical)
+    for clause in clauses:
+        for name, value in clause:
+            check_setting(
+                name, parameter_value(value, request.params), limits or {}, "in the statement"
+            )
+    _check_settings_clauses(clauses, tree)
+    if kind == "Set":
+        return canonical  # only allowed settings, and without a session it changes nothing
     if kind not in READ_STATEMENTS:
         hint = " (DESCRIBE TABLE shows a table's columns)" if kind == "ShowColumns" else ""
         raise SqlError(
@@ -123,7 +144,29 @@ def check_read_only(engine: SqlEngine, request: SqlRequest, database: str) -> st
         )
     try:
         check_identifiers(canonical)
-        check_tree(parse_ast(ast), database)
+        check_tree(tree, database)
     except NotAllowed as exc:
         raise SqlError(str(exc), ACCESS_DENIED) from exc
     return canonical
+
+
+def _set_nodes(node: Node) -> int:
+    """SETTINGS clauses and SET in the parse; an EXPLAIN's options (its first child) are
+    a `Set` node too, and no settings."""
+    children = node.children
+    if node.kind == "Explain" and children and children[0].kind == "Set":
+        children = children[1:]
+    return (node.kind == "Set") + sum(_set_nodes(child) for child in children)
+
+
+def _check_settings_clauses(clauses: list, tree: Node) -> None:
+    """The engine's parse says how many SETTINGS clauses and SETs there are (`Set`
+    nodes): a statement whose formatted text shows another number was not wholly checked
+    by the settings policy, and is refused."""
+    expected = _set_nodes(tree)
+    if len(clauses) != expected:
+        raise SqlError(
+            f"The settings of this statement cannot be checked ({expected} SETTINGS clauses "
+            f"in the parse, {len(clauses)} in the text); send settings as URL parameters",
+            ACCESS_DENIED,
+        )

@@ -290,7 +290,9 @@ def test_clickhouse_installation_is_replicated_with_keeper_and_a_readonly_analys
         chi["spec"]["configuration"]["profiles"],
     )
     profile = users["mapservice_analyst/profile"]
-    assert profiles[f"{profile}/readonly"] in ("1", "2")
+    assert profiles[f"{profile}/readonly"] == "1"
+    for name in ("readonly", "max_execution_time", "max_result_rows", "max_memory_usage"):
+        assert f"{profile}/constraints/{name}/const" in profiles, name
     assert (
         int(profiles[f"{profile}/max_execution_time"]) > 0
         and int(profiles[f"{profile}/max_result_rows"]) > 0
