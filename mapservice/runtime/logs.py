@@ -80,6 +80,18 @@ def _access_fields(_logger, _name: str, event_dict: dict) -> dict:
     return event_dict
 
 
+class _CurrentStderr:
+    """sys.stderr as it is at each write: loggers are cached on first use, and one cached
+    while stderr was redirected (a test's capture, a CLI's progress display) must not keep
+    writing to a stream that has since been closed."""
+
+    def write(self, text: str) -> int:
+        return sys.stderr.write(text)
+
+    def flush(self) -> None:
+        sys.stderr.flush()
+
+
 def configure(level: str = "INFO", fmt: str = "console", component: str = "mapservice") -> None:
     renderer = (
         structlog.processors.JSONRenderer()
@@ -102,7 +114,7 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
     structlog.configure(
         processors=[*shared, structlog.processors.format_exc_info, _redact_secrets, renderer],
         wrapper_class=structlog.make_filtering_bound_logger(logging.getLevelName(level.upper())),
-        logger_factory=structlog.PrintLoggerFactory(file=sys.stderr),
+        logger_factory=structlog.PrintLoggerFactory(file=_CurrentStderr()),
         cache_logger_on_first_use=True,
     )
     structlog.contextvars.bind_contextvars(component=component)

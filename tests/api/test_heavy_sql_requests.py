@@ -66,7 +66,8 @@ def test_a_gzip_bomb_on_clickhouse_is_a_400_while_healthz_answers(api) -> None:
         label=f"gzip bomb on the API's /clickhouse ({len(body)} bytes, 300 MiB decoded)",
     )
     reply = run.assert_responsive(max_heavy_s=REFUSAL_WITHIN_S)
-    assert reply.status_code == 400 and f"more than {MAX_QUERY_BYTES} bytes" in reply.text
+    assert reply.status_code == 400, reply.text
+    assert f"more than {MAX_QUERY_BYTES} bytes" in reply.text
 
 
 def test_five_thousand_fields_on_clickhouse_are_a_400_while_healthz_answers(api) -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import io
 import json
 import logging
+import sys
 
 import pytest
 import structlog
@@ -206,3 +208,20 @@ def test_no_secret_in_a_url_reaches_any_logger_path(capsys) -> None:
 
 def lines_of(text: str) -> list[dict]:
     return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def test_a_logger_cached_while_stderr_was_redirected_writes_to_the_stderr_of_now(
+    monkeypatch,
+) -> None:
+    """Loggers are cached on first use; one first used under a redirection that has since
+    ended (a test's capture, a progress display) must not write to the closed stream."""
+    then = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", then)
+    configure("INFO", "json", "api")
+    logger = structlog.get_logger("cached-under-redirection")
+    logger.info("first")
+    then.close()
+    now = io.StringIO()
+    monkeypatch.setattr(sys, "stderr", now)
+    logger.info("second")
+    assert json.loads(now.getvalue())["event"] == "second"
