@@ -298,6 +298,19 @@ def test_clickhouse_installation_is_replicated_with_keeper_and_a_readonly_analys
         and int(profiles[f"{profile}/max_result_rows"]) > 0
     )
     assert "mapservice_analyst/quota" in users
+    # The engine's own access control: SELECT on the service's database and on the system
+    # tables the parser allows, no source grant (FILE, URL, REMOTE, ...).
+    from mapservice.sql.allow_list import ALLOWED_SYSTEM_TABLES
+
+    assert sorted(users["mapservice_analyst/grants/query"]) == sorted(
+        ["GRANT SELECT ON mapservice.*"]
+        + [f"GRANT SELECT ON system.{t}" for t in ALLOWED_SYSTEM_TABLES]
+    )
+    assert not any(k.startswith("mapservice_analyst/allow_databases") for k in users)
+    settings = chi["spec"]["configuration"]["settings"]
+    assert settings["user_files_path"].rstrip("/").endswith("user_files_none")
+    (no_hosts,) = chi["spec"]["configuration"]["files"].values()
+    assert "<remote_url_allow_hosts></remote_url_allow_hosts>" in no_hosts
     config = next(
         d
         for _, d in k8s_objects()
