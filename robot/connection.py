@@ -195,10 +195,13 @@ class RobotClients:
     def chunk_topic(self, robot_id: str) -> str:
         return self.conn.chunk_topic(robot_id)
 
-    def subscribe(self, topic: str, on_message, qos: int = 1) -> str:
+    def subscribe(self, topic: str, on_message, qos: int = 1) -> str | None:
         """Reads `topic` on an existing connection (the first robot's own, or the shared
         anonymous one), never on one more: a second connection under a robot's credential
-        would take over the first. Returns whose connection reads it."""
+        would take over the first. Returns whose connection reads it (None: there is no
+        connection, as a fleet of no robot with credentials has none)."""
+        if not self.clients:
+            return None
         key = next(iter(self.clients))
         subscribe_always(self.clients[key], [(topic, qos)], on_message)
         return key or "the fleet"
