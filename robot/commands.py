@@ -17,7 +17,6 @@ import time
 from collections import OrderedDict
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
-from typing import Any
 
 import msgspec
 import paho.mqtt.client as mqtt
@@ -34,7 +33,7 @@ from mapservice.core.commands import (
 from mapservice.core.wire2019 import format_timestamp
 
 from .chunks import metres_to_pixel
-from .connection import RobotClients
+from .connection import RobotClients, subscribe_always
 from .planning import plan, simplify
 from .sim import PoseOut, Robot, SimState, StepOut
 
@@ -74,19 +73,8 @@ class CommandInbox:
 
     def attach(self, client: mqtt.Client, robot_ids: Iterable[str]) -> None:
         """Subscribes `client` to these robots' command topics, now and on each reconnect."""
-        topics = [(command_topic(r, self.root), 1) for r in robot_ids]
         client.on_message = self.on_message
-        previous: Any = client.on_connect
-
-        def on_connect(c, userdata, flags, reason_code, properties=None) -> None:
-            if previous is not None:
-                previous(c, userdata, flags, reason_code, properties)
-            if not reason_code.is_failure:
-                c.subscribe(topics)
-
-        client.on_connect = on_connect
-        if client.is_connected():
-            client.subscribe(topics)
+        subscribe_always(client, [(command_topic(r, self.root), 1) for r in robot_ids])
 
     def attach_fleet(self, clients: RobotClients) -> None:
         """Each robot's own connection reads its commands; a shared anonymous one, all of them."""

@@ -6,6 +6,12 @@ A credentials file is JSON, `{"<robotId>": "<password>", ...}`, as `mapservice r
 one, each robot has a connection of its own (the broker knows who publishes), and chunks go
 to the robot's own chunk topic (`iot/chunks/create/<robotId>`), which is the only chunk
 topic an authenticated robot may use unless an operator opened the 2019 one for it.
+
+A robot has ONE connection: the broker makes a client's id its username
+(`use_username_as_clientid`), so a second connection with the same credential takes the
+first one's place and the two throw each other off in turn. Whatever else a tool reads on
+a robot's behalf (commands, zone advertisements) subscribes on that connection
+(`subscribe_always`, `RobotClients.subscribe`).
 """
 
 from __future__ import annotations
@@ -131,6 +137,26 @@ class RobotMqtt:
             )
 
 
+def subscribe_always(client: mqtt.Client, topics: list[tuple[str, int]], on_message=None) -> None:
+    """Subscribes `client` to `topics` now (if connected) and again on each reconnect; with
+    `on_message`, the messages of these topics go to it (paho routes them by filter), the
+    client's other subscriptions keep their own handler."""
+    if on_message is not None:
+        for topic, _ in topics:
+            client.message_callback_add(topic, on_message)
+    previous = client.on_connect
+
+    def on_connect(c, userdata, flags, reason_code, properties=None) -> None:
+        if previous is not None:
+            previous(c, userdata, flags, reason_code, properties)
+        if not reason_code.is_failure:
+            c.subscribe(topics)
+
+    client.on_connect = on_connect
+    if client.is_connected():
+        client.subscribe(topics)
+
+
 class RobotClients:
     """The connections of a fleet: one per robot when robots have credentials (the broker
     then checks each robot's topics), one shared anonymous connection otherwise."""
@@ -168,6 +194,17 @@ class RobotClients:
 
     def chunk_topic(self, robot_id: str) -> str:
         return self.conn.chunk_topic(robot_id)
+
+    def subscribe(self, topic: str, on_message, qos: int = 1) -> str | None:
+        """Reads `topic` on an existing connection (the first robot's own, or the shared
+        anonymous one), never on one more: a second connection under a robot's credential
+        would take over the first. Returns whose connection reads it (None: there is no
+        connection, as a fleet of no robot with credentials has none)."""
+        if not self.clients:
+            return None
+        key = next(iter(self.clients))
+        subscribe_always(self.clients[key], [(topic, qos)], on_message)
+        return key or "the fleet"
 
     def close(self) -> None:
         for client in self.clients.values():

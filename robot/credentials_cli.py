@@ -43,7 +43,7 @@ def _broker_files(args):
 def _where(files) -> str:
     if _is_emqx(files):
         return f"EMQX's built-in database ({files.api_url})"
-    return f"{files.password_file} and {files.acl_file}"
+    return f"{files.password_file}, {files.acl_file} and {files.dynsec_file}"
 
 
 def _is_emqx(files) -> bool:

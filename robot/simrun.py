@@ -98,19 +98,13 @@ class SimRunner:
                 "disconnected from the MQTT broker", reason=str(reason)
             )
 
-    def _listen_for_zones(self) -> mqtt.Client:
-        """A connection of its own (as the first robot, where robots have credentials) that
-        hands each zone advertisement to the feed, subscribed again on every reconnect."""
+    def _listen_for_zones(self, clients: RobotClients) -> None:
+        """Hands each zone advertisement to the feed; read on the first robot's own
+        connection (or the shared anonymous one), as one more connection under a robot's
+        credential would throw that robot's off the broker."""
         assert self.zone_feed is not None
-        feed, topic = self.zone_feed, self.zone_topic
-        first = (
-            self.state.robots[0].robot_id if self.conn.authenticated and self.state.robots else None
-        )
-        client = self.conn.client(f"sim-{self.seed}-zones-{time.time_ns() % 10**9}", first)
-        client.on_connect = lambda c, *_: c.subscribe(topic, qos=1)
-        client.on_message = lambda _c, _u, msg: feed.advertised(msg.payload)
-        self.conn.connect(client, who=f"the zone listener ({first or 'anonymous'})")
-        return client
+        feed = self.zone_feed
+        clients.subscribe(self.zone_topic, lambda _c, _u, msg: feed.advertised(msg.payload))
 
     def apply_zones(self) -> None:
         """Takes on the zones the feed fetched since the last step, if any."""
@@ -137,13 +131,8 @@ class SimRunner:
         )
         clients.connect()
         self.commands.inbox.attach_fleet(clients)
-        listener = None
         if self.zone_feed is not None:
-            try:
-                listener = self._listen_for_zones()
-            except BaseException:
-                clients.close()
-                raise
+            self._listen_for_zones(clients)
             self.zone_feed.refresh()  # the zones standing before the first step
             self.apply_zones()
             self.zone_feed.start()
@@ -198,9 +187,6 @@ class SimRunner:
             self._closing = True  # our own disconnects are no errors
             if self.zone_feed is not None:
                 self.zone_feed.stop()
-            if listener is not None:
-                listener.loop_stop()
-                listener.disconnect()
             clients.close()
         return self.stats
 

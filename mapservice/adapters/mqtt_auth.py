@@ -10,6 +10,9 @@ as in 2019. A master control (a username `mapservice-master-<name>`) publishes `
 `instantActions` to every VDA 5050 vehicle and reads all their state, visualization,
 connection and factsheet messages; vehicles still read only their own orders.
 
+Shared subscriptions (`$share/...`), which the acl_file cannot refuse, are refused to every
+user but the service's by a third file, the dynamic security plugin's (mosquitto_dynsec.py).
+
 The files are Mosquitto's own formats (`password_file`, `acl_file`), written here without
 `mosquitto_passwd` so that the production image needs no Mosquitto: passwords are hashed
 as mosquitto_passwd 2.x does (`$7$`: PBKDF2-SHA512, 101 rounds, 12-byte salt; generated
@@ -32,6 +35,8 @@ from pathlib import Path
 
 from mapservice.core.vda_ids import robot_id_for
 from mapservice.settings import VDA5050_SUBTOPICS, Settings
+
+from .mosquitto_dynsec import render_dynsec
 
 GATEWAY_USER = "mapservice-gateway"
 PROCESSORS_USER = "mapservice-processors"
@@ -386,6 +391,11 @@ class BrokerFiles:
     def service_users(self) -> tuple[str, str]:
         return self.gateway_user, self.processors_user
 
+    @property
+    def dynsec_file(self) -> Path:
+        """The dynamic security plugin's file, beside the ACL (`<acl>.dynsec.json`)."""
+        return self.acl_file.with_name(f"{self.acl_file.name}.dynsec.json")
+
     @contextmanager
     def _locked(self):
         self.password_file.parent.mkdir(parents=True, exist_ok=True)
@@ -403,6 +413,11 @@ class BrokerFiles:
         _write_atomically(
             self.acl_file,
             render_acl(self.topics, legacy, self.gateway_user, self.processors_user, masters),
+            0o644,
+        )
+        _write_atomically(
+            self.dynsec_file,
+            render_dynsec(u for u in users if u not in self.service_users),
             0o644,
         )
 

@@ -7,6 +7,7 @@ EMQX/VerneMQ/Mosquitto by changing addresses only.
 from __future__ import annotations
 
 import asyncio
+import glob
 import os
 import random
 import shutil
@@ -193,6 +194,18 @@ password_file {password_file}
 acl_file {acl_file}
 use_username_as_clientid true
 """
+# The acl_file is not asked about subscriptions; this plugin refuses robots the shared ones
+# (mapservice/adapters/mosquitto_dynsec.py) and leaves everything else to the acl_file.
+MOSQUITTO_DYNSEC = """\
+plugin {plugin}
+plugin_opt_config_file {config_file}
+"""
+# Where Debian's mosquitto package, the eclipse-mosquitto image and a source build put it.
+DYNSEC_PLUGIN_GLOBS = (
+    "/usr/lib/*/mosquitto_dynamic_security.so",
+    "/usr/lib/mosquitto_dynamic_security.so",
+    "/usr/local/lib/mosquitto_dynamic_security.so",
+)
 MOSQUITTO_TLS_LISTENER = """\
 listener {tls_port} 127.0.0.1
 cafile {ca_file}
@@ -200,6 +213,21 @@ certfile {cert_file}
 keyfile {key_file}
 require_certificate {require_certificate}
 """
+
+
+def dynsec_plugin() -> Path:
+    """Mosquitto's dynamic security plugin; without it robots could join the gateways'
+    shared subscription, so a broker checking identities does not start."""
+    for pattern in DYNSEC_PLUGIN_GLOBS:
+        found = sorted(glob.glob(pattern))
+        if found:
+            return Path(found[0])
+    raise RuntimeError(
+        "Mosquitto's dynamic security plugin (mosquitto_dynamic_security.so, part of Debian's "
+        "mosquitto package and of the eclipse-mosquitto image) was not found in "
+        f"{', '.join(DYNSEC_PLUGIN_GLOBS)}: a broker checking robot identities needs it to "
+        "refuse robots' shared subscriptions"
+    )
 
 
 def mosquitto_installed() -> bool:
@@ -220,6 +248,8 @@ class MosquittoOptions:
 
     password_file: Path | None = None
     acl_file: Path | None = None
+    # The dynamic security plugin's file (BrokerFiles.dynsec_file): shared subscriptions.
+    dynsec_file: Path | None = None
     tls_port: int | None = None
     tls: CertFiles | None = None
     require_client_certificate: bool = False
@@ -240,6 +270,8 @@ def mosquitto_conf(
         text += MOSQUITTO_AUTH.format(
             password_file=options.password_file, acl_file=options.acl_file
         )
+        if options.dynsec_file is not None:
+            text += MOSQUITTO_DYNSEC.format(plugin=dynsec_plugin(), config_file=options.dynsec_file)
     else:
         text += "allow_anonymous true\n"
     text += (

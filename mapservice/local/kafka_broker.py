@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mapservice.local.embedded import ensure_port_free, free_port, start_tansu, wait_for_port
+from mapservice.local.kafka_auth import TANSU_NO_AUTH, listener_properties, sasl_client_config
 
 if TYPE_CHECKING:
     from mapservice.settings import Settings
@@ -171,6 +172,10 @@ class KafkaNodeConfig:
     voters: str = ""  # id@host:port,...; empty: this node alone
     replication: int = 1  # of internal and new topics
     min_insync_replicas: int = 1
+    # (username, password) pairs: both listeners then take only SASL/PLAIN clients that
+    # name one of them (kafka_auth.py); the first is the node's own, for its controller
+    # connection. Empty: no authentication (anyone who reaches the port may produce).
+    sasl_users: tuple[tuple[str, str], ...] = ()
 
     def properties(self) -> str:
         segment = max(1024**2, self.retention_bytes // 16)
@@ -182,11 +187,7 @@ class KafkaNodeConfig:
                 # log, so a lone node's restart may pick another free port.
                 "controller.quorum.voters="
                 + (self.voters or f"{self.node_id}@127.0.0.1:{self.controller_port}"),
-                f"listeners=PLAINTEXT://127.0.0.1:{self.port},CONTROLLER://127.0.0.1:{self.controller_port}",
-                f"advertised.listeners=PLAINTEXT://127.0.0.1:{self.port}",
-                "controller.listener.names=CONTROLLER",
-                "inter.broker.listener.name=PLAINTEXT",
-                "listener.security.protocol.map=CONTROLLER:PLAINTEXT,PLAINTEXT:PLAINTEXT",
+                *listener_properties(self.port, self.controller_port, self.sasl_users),
                 f"log.dirs={self.log_dir}",
                 "num.partitions=1",
                 f"default.replication.factor={self.replication}",
@@ -226,6 +227,12 @@ class KafkaNodeConfig:
                 "",
             ]
         )
+
+    def client_config(self) -> dict[str, str]:
+        """librdkafka's security settings to reach this node (as its own user)."""
+        if not self.sasl_users:
+            return {}
+        return sasl_client_config(*self.sasl_users[0])
 
 
 def format_once(
@@ -290,7 +297,7 @@ def start_kafka(
     (config.log_dir.parent / "kafka.pid").write_text(f"{proc.pid}\n")
     try:
         wait_for_port(config.port, timeout_s=timeout_s, proc=proc, what="Apache Kafka")
-        wait_until_serving(f"127.0.0.1:{config.port}", proc, timeout_s)
+        wait_until_serving(f"127.0.0.1:{config.port}", proc, timeout_s, config.client_config())
     except BaseException:
         stop_process_group(proc)
         raise
@@ -330,7 +337,10 @@ def launch(
     config_dir = config.log_dir.parent
     config_dir.mkdir(parents=True, exist_ok=True)
     config_file = config_dir / "server.properties"
-    config_file.write_text(config.properties())
+    # Only this user reads it: with SASL it holds the users' passwords.
+    with open(os.open(config_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as file:
+        file.write(config.properties())
+    config_file.chmod(0o600)
     (config_dir / "log4j2.yaml").write_text(LOG4J2_YAML)
     format_once(java, libs, config_file, config.log_dir, cluster)
     return subprocess.Popen(
@@ -352,12 +362,14 @@ def launch(
     )
 
 
-def wait_until_serving(bootstrap: str, proc: subprocess.Popen, timeout_s: float) -> None:
+def wait_until_serving(
+    bootstrap: str, proc: subprocess.Popen, timeout_s: float, security: dict | None = None
+) -> None:
     """Until the broker names itself in a metadata answer (it listens before it has caught
     up with its metadata log)."""
     from confluent_kafka.admin import AdminClient
 
-    admin = AdminClient({"bootstrap.servers": bootstrap, "log_level": 0})
+    admin = AdminClient({"bootstrap.servers": bootstrap, "log_level": 0, **(security or {})})
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -394,9 +406,12 @@ def start_embedded(
     settings: Settings,
     log_file=None,
     preexec_fn=None,
+    sasl_users: tuple[tuple[str, str], ...] = (),
 ) -> subprocess.Popen:
     """The embedded broker `choice` names ("apache" or "tansu", see `embedded_choice`) on
-    `port`, Apache Kafka's log under DATA_DIR/kafka/; either stops with `embedded.stop`."""
+    `port`, Apache Kafka's log under DATA_DIR/kafka/; either stops with `embedded.stop`.
+    With `sasl_users` only clients naming one of them (SASL/PLAIN) are served: Apache
+    Kafka only (tansu has no authentication)."""
     if choice == "apache":
         node = node_for(
             data_dir,
@@ -404,8 +419,11 @@ def start_embedded(
             heap_mb=settings.embedded_kafka_heap_mb,
             retention_hours=settings.embedded_kafka_retention_hours,
             retention_bytes=settings.embedded_kafka_retention_bytes,
+            sasl_users=sasl_users,
         )
         return start_kafka(node, log_file, jars_dir=settings.kafka_jars_dir, preexec_fn=preexec_fn)
+    if choice == "tansu" and sasl_users:
+        raise ValueError(TANSU_NO_AUTH)
     if choice == "tansu":
         return start_tansu(port, log_file, preexec_fn=preexec_fn)
     raise ValueError(f"no embedded Kafka broker named {choice!r}: apache or tansu")

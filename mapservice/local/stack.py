@@ -24,6 +24,7 @@ from mapservice.adapters.kafka_topics import ensure_topics
 from mapservice.adapters.mqtt_auth import BrokerFiles
 from mapservice.core.events import MapMetaSet, encode, kafka_key, make_envelope
 from mapservice.local import embedded, kafka_broker, lifetime
+from mapservice.local.kafka_auth import TANSU_NO_AUTH
 from mapservice.local.stack_env import StackEnv
 from mapservice.local.stack_mqtt import StackMqtt
 
@@ -54,6 +55,9 @@ class Stack(StackMqtt, StackEnv):
     # A TLS listener too (a local CA in DATA_DIR/tls/), which the components connect through.
     mqtt_tls: bool = False
     mqtt_tls_port: int = 0
+    # The embedded Apache Kafka serves only the service's components, with a generated
+    # password (SASL/PLAIN, DATA_DIR/secrets/; local/kafka_auth.py).
+    kafka_auth: bool = False
     # Gateway replicas: more than one share the robots' topics through an MQTT shared
     # subscription (as the gateway Deployment's replicas do), each with its own client id
     # (so its own persistent session) and health port.
@@ -118,6 +122,11 @@ class Stack(StackMqtt, StackEnv):
         self.tls_dir = self.data_dir / "tls"
         self.broker_files = BrokerFiles.in_data_dir(self.data_dir)
         self.kafka = self.kafka or kafka_broker.embedded_choice(self.settings().embedded_kafka)
+        if self.kafka_auth and self.kafka != "apache":
+            raise ValueError(
+                "Kafka credentials (kafka_auth) are the embedded Apache Kafka's: "
+                + (TANSU_NO_AUTH if self.kafka == "tansu" else f"{self.kafka} has its own")
+            )
         self.pid_file = lifetime.PidFile.in_data_dir(self.data_dir)
         if self.apart:
             self._chosen_ports |= {
@@ -351,6 +360,7 @@ class Stack(StackMqtt, StackEnv):
             settings,
             self._log("kafka" if self.kafka == "apache" else "tansu"),
             preexec_fn=self._preexec,
+            sasl_users=self.kafka_users(),
         )
         self._record()
         ensure_topics(settings)

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER, new_password
+from mapservice.local.kafka_auth import KAFKA_NODE_USER, KAFKA_SERVICE_USER, component_env
 from mapservice.runtime.secrets import ApiSecrets, api_secrets, with_local_api_secrets
 from mapservice.settings import Settings
 
@@ -27,6 +28,7 @@ class StackEnv:
         mqtt_ws_url: str
         mqtt_auth: bool
         mqtt_tls: bool
+        kafka_auth: bool
         api_port: int
         apart: bool
         clickhouse_port: int
@@ -51,10 +53,13 @@ class StackEnv:
         """The local CA's certificate (clients of the TLS listener trust it)."""
         return self.tls_dir / "ca.crt"
 
-    def service_password(self, username: str) -> str:
+    def service_password(self, username: str, system: str = "mqtt") -> str:
         """The generated password of a service user (kept in DATA_DIR/secrets/): an MQTT
-        one, or "clickhouse" (the service's user on `mapservice clickhouse-server`)."""
-        name = "clickhouse-password" if username == "clickhouse" else f"mqtt-{username}-password"
+        one, a Kafka one (system="kafka"), or "clickhouse" (the service's user on
+        `mapservice clickhouse-server`)."""
+        name = (
+            "clickhouse-password" if username == "clickhouse" else f"{system}-{username}-password"
+        )
         path = self.data_dir / "secrets" / name
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -91,6 +96,21 @@ class StackEnv:
                 )
         return env
 
+    def kafka_users(self) -> tuple[tuple[str, str], ...]:
+        """The embedded Kafka's users with kafka_auth (the node's own first), else none."""
+        if not self.kafka_auth:
+            return ()
+        return tuple(
+            (user, self.service_password(user, "kafka"))
+            for user in (KAFKA_NODE_USER, KAFKA_SERVICE_USER)
+        )
+
+    def _kafka_env(self) -> dict[str, str]:
+        """Every component is the service's: with kafka_auth each gets its Kafka user."""
+        if not self.kafka_auth:
+            return {}
+        return component_env(self.service_password(KAFKA_SERVICE_USER, "kafka"))
+
     @property
     def clickhouse_url(self) -> str:
         """The ClickHouse HTTP interface of `mapservice clickhouse-server` (apart only)."""
@@ -123,6 +143,7 @@ class StackEnv:
                 "MAPSERVICE_PUBLIC_BASE_URL", self.api_url
             ),
             "PYTHONUNBUFFERED": "1",
+            **self._kafka_env(),
             **self._mqtt_env(component),
             **self.extra_env,
             **self._gateway_replica_env(component),
@@ -153,7 +174,7 @@ class StackEnv:
                 "mqtt_ws_url": self.mqtt_ws_url,
                 **{
                     k[len("MAPSERVICE_") :].lower(): v
-                    for k, v in self.extra_env.items()
+                    for k, v in {**self._kafka_env(), **self.extra_env}.items()
                     if k.startswith("MAPSERVICE_")
                 },
             },

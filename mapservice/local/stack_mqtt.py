@@ -82,7 +82,7 @@ class StackMqtt:
         def _record(self) -> None: ...
         def _log(self, name: str): ...
         def settings(self) -> Settings: ...
-        def service_password(self, username: str) -> str: ...
+        def service_password(self, username: str, system: str = "mqtt") -> str: ...
         def is_alive(self, name: str) -> bool: ...
 
     def start_mqtt(self) -> subprocess.Popen:
@@ -111,7 +111,8 @@ class StackMqtt:
 
     def _broker_files_state(self) -> tuple:
         state = []
-        for path in (self.broker_files.password_file, self.broker_files.acl_file):
+        files = self.broker_files
+        for path in (files.password_file, files.acl_file, files.dynsec_file):
             try:
                 info = path.stat()
                 state.append((info.st_mtime_ns, info.st_size, info.st_ino))
@@ -149,12 +150,14 @@ class StackMqtt:
         if self.mqtt_auth:
             for user in (GATEWAY_USER, PROCESSORS_USER):
                 self.broker_files.set_service_user(user, self.service_password(user))
-            for path in (self.broker_files.password_file, self.broker_files.acl_file):
+            files = self.broker_files
+            for path in (files.password_file, files.acl_file, files.dynsec_file):
                 path.chmod(0o600)  # the broker runs as this user (or as root): it reads them
             options = replace(
                 options,
-                password_file=self.broker_files.password_file,
-                acl_file=self.broker_files.acl_file,
+                password_file=files.password_file,
+                acl_file=files.acl_file,
+                dynsec_file=files.dynsec_file,
             )
         if self.mqtt_tls:
             options = replace(

@@ -55,6 +55,18 @@ def cmd_up(args) -> None:
             "does not keep QoS 1 messages for a restarting gateway (README, embedded "
             "mode). `make system-deps` installs Mosquitto.[/yellow]"
         )
+    from mapservice.local.kafka_broker import embedded_choice
+    from mapservice.settings import Settings
+
+    # Under --auth the embedded Apache Kafka takes only the components' credential; tansu
+    # (no Java) has no authentication, said below and in the README's limits.
+    kafka_open = args.auth and embedded_choice(Settings().embedded_kafka) != "apache"
+    if kafka_open:
+        console.print(
+            "[yellow]--auth on tansu: Kafka has no authentication there, so any local user "
+            "can produce to it (Apache Kafka, with a Java runtime, requires the service's "
+            "credential).[/yellow]"
+        )
     stack = Stack(
         Path(args.data_dir),
         mqtt=broker,
@@ -62,6 +74,7 @@ def cmd_up(args) -> None:
         mqtt_port=args.mqtt_port if not args.mqtt_url else 0,
         kafka_port=args.kafka_port,
         mqtt_auth=args.auth,
+        kafka_auth=args.auth and not kafka_open,
         tied_to_parent=True,
         apart=True,
     )

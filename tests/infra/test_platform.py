@@ -332,3 +332,43 @@ def test_compose_strimzi_and_the_embedded_broker_run_one_kafka_version() -> None
     image = compose["services"]["kafka"]["image"]
     assert image == f"apache/kafka:{kafka_version()}"
     assert str(platform("Kafka")["spec"]["kafka"]["version"]) == kafka_version()
+
+
+def test_emqx_refuses_robots_every_shared_subscription_of_the_service() -> None:
+    """No robot, vehicle or master control subscribes to `$share/<group>/<filter>` for any
+    topic robots deal with (wildcards included) nor publishes there: the ACL refuses it as
+    sent, and since EMQX 5 authorizes `$share/<group>/t` as `t` (a master control may read
+    every vehicle's state, so the ACL alone would let it join the gateways' group there),
+    the robots' listeners have no shared subscriptions at all; the gateways' zone has."""
+    s = Settings(mqtt_share_group="mapservice")
+    rules = acl_rules()
+    for topic in s.mqtt_subscriptions:
+        assert emqx_allows(rules, "mapservice-gateway", "subscribe", topic), topic
+    gateway_filters = [f.removeprefix("$share/mapservice/") for f in s.mqtt_subscriptions]
+    tried = 0
+    for identity in ("r1", "agv-7.hall_2@plant:1", "Acme/001", "mapservice-master-plant"):
+        filters = [
+            *gateway_filters,
+            s.advertisement_topic,
+            s.zone_advertisement_topic,
+            f"{s.coordinate_topic.removesuffix('#')}{identity}",
+            "#",
+            "+",
+            "iot/#",
+            f"{s.vda5050_interface}/#",
+        ]
+        for group in ("mapservice", "g", "robots"):
+            for topic_filter in filters:
+                shared = f"$share/{group}/{topic_filter}"
+                assert not emqx_allows(rules, identity, "subscribe", shared), (identity, shared)
+                assert not emqx_allows(rules, identity, "publish", shared), (identity, shared)
+                tried += 1
+    assert tried >= 4 * 3 * 15
+    config = emqx_config()
+    top = re.search(r"^mqtt \{(.*?)^\}", config, re.S | re.M)
+    assert top and re.search(r"^\s*shared_subscription = false$", top[1], re.M)
+    internal = re.search(r"^zones\.internal \{(.*?)^\}", config, re.S | re.M)
+    assert internal and re.search(r"^\s*shared_subscription = true$", internal[1], re.M)
+    for name in ("tcp.default", "ssl.default"):
+        listener = re.search(rf"^listeners\.{re.escape(name)} \{{(.*?)^\}}", config, re.S | re.M)
+        assert listener and "zone" not in listener[1], name  # robots: the default zone

@@ -5,14 +5,19 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import time
 
 import httpx
+import paho.mqtt.client as mqtt
 
+from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.local.embedded import free_port, wait_for_port
 from mapservice.local.stack import Stack
+from tests.fixtures.paths import MAPS
 
-from .conftest import start_stack, wait_for_count
+from .conftest import run_stack, start_stack, wait_for_count
 from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
+from .test_robot_identity import Robot, pose
 
 
 def accepted(health_port: int) -> float:
@@ -61,3 +66,49 @@ def test_two_gateways_share_the_subscription(tmp_path_factory):
             second.wait(10)
         if stack is not None:
             stack.stop()
+
+
+def test_a_robot_cannot_join_the_gateways_group(tmp_path_factory):
+    """With robot identities and the share group on, a robot's subscription to the
+    gateways' `$share/<group>/...` is refused in its SUBACK and all 100 poses it then
+    sends are stored (a member the broker denies each message would have dropped its turn)."""
+    share = "mapservice"
+    stack = Stack(
+        tmp_path_factory.mktemp("stack-shared-auth"),
+        mqtt="mosquitto",
+        mqtt_auth=True,
+        extra_env={"MAPSERVICE_MQTT_SHARE_GROUP": share},
+    )
+    robot = None
+    try:
+        # Before the broker starts: a restart for a new user could come between the gateway's
+        # connection and its subscription, and poses sent then would find no subscriber.
+        credential = stack.broker_files.add_robot("share-intruder")
+        run_stack(stack, meta_for(load_ros_map(MAPS / "depot.yaml")))
+        robot = Robot(
+            stack.mqtt_url, credential.username, credential.password, protocol=mqtt.MQTTv5
+        )
+        codes: list = []
+        robot.client.on_subscribe = lambda _c, _u, _m, reason_codes, _p: codes.extend(reason_codes)
+        settings = stack.settings()
+        robot.client.subscribe([(topic, 1) for topic in settings.mqtt_subscriptions])
+        deadline = time.monotonic() + 10
+        while len(codes) < len(settings.mqtt_subscriptions) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(codes) == len(settings.mqtt_subscriptions)
+
+        start = now_ms() - 60_000
+        for k in range(100):
+            info = robot.publish(
+                credential.topics["pose"], pose(credential.robot_id, start + k * 100, x=1.0 + k % 7)
+            )
+            assert info.is_published()
+        stored = wait_for_count(
+            stack, "pose", credential.robot_id, start, start + 60_000, 100, timeout_s=30
+        )
+        assert len(stored) == len(set(stored)) == 100, f"stored {len(stored)} of 100"
+        assert all(code.is_failure for code in codes), [str(c) for c in codes]
+    finally:
+        if robot is not None:
+            robot.close()
+        stack.stop()

@@ -42,7 +42,7 @@ def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients
 ):
     """Two simulated robots get credentials in DATA_DIR/secrets/robots.json and their poses
     are stored; an anonymous MQTT client is refused, a robot's credential is accepted; an
-    anonymous REST write gets 401."""
+    anonymous REST write gets 401; an anonymous Kafka producer writes nothing."""
     data = tmp_path / "data"
     up = Up(data, "--auth", "--robots", "2", "--history-days", "0")
     try:
@@ -71,5 +71,33 @@ def test_up_auth_robots_publish_with_their_own_credentials_and_anonymous_clients
             timeout=30,
         )
         assert write.status_code == 401
+        # Kafka serves only the components: a local producer without their credential
+        # cannot write (on 4a32dd7 it wrote command events, for instance).
+        assert anonymous_kafka_write(data) is not None
     finally:
         up.stop()
+
+
+def anonymous_kafka_write(data):
+    """The delivery error of a record an anonymous producer sends to `up`'s Kafka (None: the
+    broker took it)."""
+    from confluent_kafka import Producer
+
+    properties = (data / "kafka" / "server.properties").read_text()
+    advertised = next(
+        line for line in properties.splitlines() if line.startswith("advertised.listeners=")
+    )
+    producer = Producer(
+        {
+            "bootstrap.servers": advertised.rsplit("//", 1)[1],
+            "message.timeout.ms": 4000,
+            "log_level": 0,
+        }
+    )
+    errors: list = []
+    producer.produce(
+        "mapservice.command-events.v1", b"anonymous", callback=lambda e, _m: errors.append(e)
+    )
+    producer.flush(8)
+    assert errors, "no delivery report within 8 s"
+    return errors[0]

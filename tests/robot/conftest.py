@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tests.fixtures.mosquitto import mosquitto  # noqa: F401 (a fixture)
+from tests.fixtures.mosquitto import mosquitto, mosquitto_identities  # noqa: F401 (fixtures)
 from tests.fixtures.paths import MAPS, ROOT
 
 SHARED_MAPS = ROOT.parent / "shared" / "maps"

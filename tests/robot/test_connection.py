@@ -141,3 +141,12 @@ def test_each_robot_connects_as_itself(auth_broker):
         reader.loop_stop()
     with pytest.raises(PermissionError, match="refused r1's credential"):
         RobotClients(RobotMqtt(url, {"r1": "wrong"}), ["r1"], "test").connect()
+
+
+def test_a_fleet_without_a_connection_subscribes_nowhere():
+    """Where robots have credentials and there is no robot, there is no connection to read
+    on, and none is opened for it."""
+    clients = RobotClients(RobotMqtt("mqtt://127.0.0.1:1", {}), [], "test")
+    clients.connect()
+    assert clients.subscribe("iot/zones/advertisement", lambda *_: None) is None
+    assert clients.clients == {}

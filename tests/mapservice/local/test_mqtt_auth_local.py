@@ -20,9 +20,13 @@ def test_mosquitto_conf_with_auth_and_tls(tmp_path):
     """With identities: no anonymous client, the password file and ACL, client id = username;
     with TLS: a second listener with the local CA's server certificate."""
     certs = make_server_cert(tmp_path / "tls")
-    options = embedded.MosquittoOptions(tmp_path / "passwd", tmp_path / "acl", 8883, certs)
+    options = embedded.MosquittoOptions(
+        tmp_path / "passwd", tmp_path / "acl", tmp_path / "acl.dynsec.json", 8883, certs
+    )
     lines = embedded.mosquitto_conf(1883, 9001, options).splitlines()
     for expected in (
+        f"plugin {embedded.dynsec_plugin()}",
+        f"plugin_opt_config_file {tmp_path / 'acl.dynsec.json'}",
         "allow_anonymous false",
         f"password_file {tmp_path / 'passwd'}",
         f"acl_file {tmp_path / 'acl'}",
