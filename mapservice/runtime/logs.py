@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import re
 import sys
+from typing import TextIO, cast
 from urllib.parse import unquote_plus
 
 import structlog
@@ -114,7 +115,7 @@ def configure(level: str = "INFO", fmt: str = "console", component: str = "mapse
     structlog.configure(
         processors=[*shared, structlog.processors.format_exc_info, _redact_secrets, renderer],
         wrapper_class=structlog.make_filtering_bound_logger(logging.getLevelName(level.upper())),
-        logger_factory=structlog.PrintLoggerFactory(file=_CurrentStderr()),
+        logger_factory=structlog.PrintLoggerFactory(file=cast(TextIO, _CurrentStderr())),
         cache_logger_on_first_use=True,
     )
     structlog.contextvars.bind_contextvars(component=component)
