@@ -12,7 +12,7 @@ import io
 
 import numpy as np
 import yaml
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from mapservice.adapters.ros_map import OCCUPIED, RosMap, classify, read_pgm_header
 from mapservice.core.events import MapMetaSet
@@ -96,6 +96,11 @@ def _decoded(image: bytes, size: tuple[int, int]) -> np.ndarray:
     """The image's grey pixels, decoded only once its header says it is `size` (width,
     height): Pillow's open reads the header alone, so a small file that would inflate to
     a huge image is refused before a pixel is decompressed."""
+    if size[0] * size[1] > MAX_MASK_PIXELS:
+        raise MaskFileError(
+            f"the map is {size[0]} x {size[1]} px; masks of at most {MAX_MASK_PIXELS} pixels "
+            "(MAX_MASK_PIXELS) are imported: draw the zones instead"
+        )
     try:
         with Image.open(io.BytesIO(image), formats=MASK_FORMATS) as img:
             if img.size != size:
@@ -106,6 +111,10 @@ def _decoded(image: bytes, size: tuple[int, int]) -> np.ndarray:
             return np.asarray(img.convert("L"), dtype=np.uint8)
     except MaskFileError:
         raise
+    except UnidentifiedImageError:
+        raise MaskFileError(
+            "the mask image is not a PNG or PGM (the formats nav2's map_server reads)"
+        ) from None
     except Exception as exc:  # noqa: BLE001 - Pillow raises many kinds for bad bytes
         raise MaskFileError(f"the mask image does not decode: {str(exc)[:200]}") from None
 

@@ -56,7 +56,12 @@ def _edges_in_pixels(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, 4))
 
 
-MAX_ZONE_RASTER_CELLS = 16_000_000  # cells + row crossings one zone may cost to rasterise
+# What one zone may cost to rasterise: the cells of its box on the map's grid (a whole
+# 8,000 x 8,000 map), and the crossings of its edges with the pixel rows (a ring crosses
+# each row a few times; a zigzag of many vertices across many rows is refused).
+MAX_ZONE_MASK_CELLS = 64_000_000
+MAX_ZONE_ROW_CROSSINGS = 4_000_000
+_CROSSINGS_AT_ONCE = 1 << 20  # rasterised in batches: memory bounded whatever the zone
 
 
 class ZoneMaskError(ValueError):
@@ -85,25 +90,30 @@ def _rows_crossed(edges: np.ndarray, r0: int, r1: int) -> tuple[np.ndarray, np.n
     return first.astype(np.int64), count.astype(np.int64)
 
 
-def raster_cost(grid: Grid, rings: Sequence[Ring]) -> int:
-    """What rasterising the rings costs, in cells: the window's cells plus one per edge
-    and pixel row it crosses. Linear in the vertices: checked before any rasterising."""
+def raster_cost(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int]:
+    """(cells of the rings' box on the grid, crossings of their edges with pixel rows):
+    what rasterising them costs, computed in one linear pass before any rasterising."""
     edges = _edges_in_pixels(grid, rings)
     if not len(edges):
-        return 0
+        return 0, 0
     r0, r1, c0, c1 = _window(grid, edges)
-    return (r1 - r0) * (c1 - c0 + 1) + int(_rows_crossed(edges, r0, r1)[1].sum())
+    return (r1 - r0) * (c1 - c0), int(_rows_crossed(edges, r0, r1)[1].sum())
 
 
 def check_raster_cost(grid: Grid, zone: Zone) -> None:
-    """ZoneMaskError when the zone costs more than MAX_ZONE_RASTER_CELLS to rasterise on
-    this map (its masks are drawn for every nav2 mask, violation check and export)."""
-    cost = raster_cost(grid, (zone.polygon, *zone.holes))
-    if cost > MAX_ZONE_RASTER_CELLS:
+    """ZoneMaskError when the zone costs more than the caps to rasterise on this map (its
+    masks are drawn for every nav2 mask, violation check and export)."""
+    cells, crossings = raster_cost(grid, (zone.polygon, *zone.holes))
+    if cells > MAX_ZONE_MASK_CELLS:
         raise ZoneMaskError(
-            f"the zone covers {cost} cells of the map's {grid.resolution:g} m grid "
-            f"(its box plus its edges' crossings of the pixel rows); at most "
-            f"{MAX_ZONE_RASTER_CELLS} (MAX_ZONE_RASTER_CELLS): split it into smaller zones"
+            f"the zone spans {cells} cells of the map's {grid.resolution:g} m grid; at most "
+            f"{MAX_ZONE_MASK_CELLS} (MAX_ZONE_MASK_CELLS): split it into smaller zones"
+        )
+    if crossings > MAX_ZONE_ROW_CROSSINGS:
+        raise ZoneMaskError(
+            f"the zone's edges cross the map's pixel rows {crossings} times; at most "
+            f"{MAX_ZONE_ROW_CROSSINGS} (MAX_ZONE_ROW_CROSSINGS): simplify its outline "
+            "or split it into smaller zones"
         )
 
 
@@ -111,14 +121,39 @@ def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.nd
     """(first row, first column, boolean window): the pixels whose centre is inside the
     rings (even-odd), within the rings' bounding box clipped to the grid. Each
     non-horizontal edge toggles, on every pixel row whose centre line it crosses, the
-    pixels left of the crossing; the parity of the toggles is inside."""
+    pixels left of the crossing; the parity of the toggles is inside (kept modulo 256 in
+    bytes: the parity is all that counts)."""
     edges = _edges_in_pixels(grid, rings)
     if not len(edges):
         return 0, 0, np.zeros((0, 0), dtype=bool)
     r0, r1, c0, c1 = _window(grid, edges)
-    counts = np.zeros((r1 - r0, c1 - c0 + 1), dtype=np.int32)
+    toggles = np.zeros((r1 - r0, c1 - c0 + 1), dtype=np.uint8)
     first, crossed = _rows_crossed(edges, r0, r1)
-    # Every (edge, row) crossing at once: the edge's index repeated once per row it crosses.
+    ends = np.cumsum(crossed)
+    start = 0
+    while start < len(edges):
+        # The next edges up to _CROSSINGS_AT_ONCE crossings (at least one edge).
+        stop = max(
+            int(np.searchsorted(ends, ends[start] - crossed[start] + _CROSSINGS_AT_ONCE, "right")),
+            start + 1,
+        )
+        _toggle(toggles, edges[start:stop], first[start:stop], crossed[start:stop], r0, c0, c1)
+        start = stop
+    np.cumsum(toggles[:, : c1 - c0], axis=1, dtype=np.uint8, out=toggles[:, : c1 - c0])
+    return r0, c0, (toggles[:, : c1 - c0] & 1).astype(bool)
+
+
+def _toggle(
+    toggles: np.ndarray,
+    edges: np.ndarray,
+    first: np.ndarray,
+    crossed: np.ndarray,
+    r0: int,
+    c0: int,
+    c1: int,
+) -> None:
+    """Every (edge, row) crossing of these edges at once: each edge's index repeated once
+    per row it crosses, its crossing's x, and the toggles it makes."""
     which = np.repeat(np.arange(len(edges)), crossed)
     rows = np.repeat(first, crossed) + (
         np.arange(len(which)) - np.repeat(np.cumsum(crossed) - crossed, crossed)
@@ -128,10 +163,8 @@ def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.nd
     # Centres c + 0.5 < xi: columns up to ceil(xi - 0.5) - 1. Columns left of the
     # window toggle nothing inside it, but the parity they carry does: counted at c0.
     n = np.clip(np.ceil(xi - 0.5), c0, c1).astype(np.int64) - c0
-    counts[:, 0] += np.bincount(rows - r0, minlength=r1 - r0).astype(np.int32)
-    np.subtract.at(counts, (rows - r0, n), 1)
-    inside = np.cumsum(counts[:, : c1 - c0], axis=1, dtype=np.int32) & 1
-    return r0, c0, inside.astype(bool)
+    toggles[:, 0] += np.bincount(rows - r0, minlength=toggles.shape[0]).astype(np.uint8)
+    np.subtract.at(toggles, (rows - r0, n), np.uint8(1))
 
 
 def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
