@@ -51,13 +51,13 @@ def _on_event_loop() -> bool:
 
 def test_zone_geometry_is_checked_on_a_worker_thread_not_the_event_loop(monkeypatch) -> None:
     seen: list[bool] = []
-    real = core_annotations.check_zone_rings
+    real = core_annotations.validate
 
-    def spy(polygon, holes):
+    def spy(annotation):
         seen.append(_on_event_loop())
-        return real(polygon, holes)
+        return real(annotation)
 
-    monkeypatch.setattr(core_annotations, "check_zone_rings", spy)
+    monkeypatch.setattr(core_annotations, "validate", spy)
     w = World()
     assert w.create(keep_out("aisle", square(0, 3, 2))).status_code == 201
     r = w.client.put(
