@@ -49,6 +49,18 @@ def crossing_ring(rng: random.Random, n: int, radius: float = 50.0) -> list[Poin
     return ring[:length][::-1] + ring[length:]
 
 
+def parallel_comb_ring(vertices: int) -> list[Point]:
+    """A valid ring that is GEOS's worst case: teeth of long parallel diagonal edges a
+    millimetre apart, every edge's box overlapping every other's (no index helps), so
+    checking it costs nearer n² than n log n. `vertices` is rounded down to 4k + 2."""
+    teeth = (vertices - 2) // 4
+    ring: list[Point] = []
+    for k in range(teeth):
+        x = k * 0.001
+        ring += [(x, 0.0), (x + 50.0, 50.0), (x + 50.0005, 50.0), (x + 0.0005, 0.0)]
+    return [*ring, (teeth * 0.001 + 0.01, -1.0), (-0.01, -1.0)]
+
+
 def bow_tie(scale: float = 1.0) -> list[Point]:
     """Two triangles meeting where two edges cross: zero signed area, not zero area."""
     return [(0.0, 0.0), (scale, scale), (scale, 0.0), (0.0, scale)]

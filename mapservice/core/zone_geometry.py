@@ -9,7 +9,7 @@ itself), every hole inside the polygon and no two holes overlapping or nested. A
 touch the polygon or another hole at single points, as the rings traced from a mask do.
 
 Every check is bounded: the total number of vertices is capped before anything else is
-looked at, and the per-vertex checks are linear.
+looked at, the per-vertex checks are linear, and a valid zone costs one pass of GEOS.
 """
 
 from __future__ import annotations
@@ -24,7 +24,11 @@ import shapely
 Point = tuple[float, float]
 Ring = tuple[Point, ...]
 
-MAX_ZONE_VERTICES = 20_000  # all rings of one zone together; a traced floor plan has fewer
+# All rings of one zone together. GEOS's validity costs O(n log n) on ordinary outlines
+# but nearer O(n²) on the worst valid ones (thousands of long parallel edges, all their
+# boxes overlapping): about a second at this cap on this project's machines. The largest
+# zone traced from the shared warehouse keep-out mask has 714 vertices.
+MAX_ZONE_VERTICES = 5_000
 MAX_COORDINATE_M = 1_000_000.0  # a kilometre-sized factory is 1,000 m; beyond is a typo
 # Twice the area below this (m²) is no area at all: a ring whose vertices nearly lie on a line.
 _NO_AREA_M2 = 1e-9
@@ -98,10 +102,10 @@ def _where(reason: str) -> tuple[str, str]:
 
 def _check_ring_shape(name: str, ring: Ring, geometry: shapely.LinearRing) -> None:
     """No crossing, no touching itself, some area: a bow-tie is a crossing, not 'no area'."""
-    if not shapely.is_simple(geometry):
-        if _on_one_line(ring):
+    kind, at = _where(shapely.is_valid_reason(shapely.Polygon(geometry)))
+    if kind != "Valid Geometry":
+        if _on_one_line(ring) or kind == "Too few points":
             raise ZoneGeometryError(f"{name} has no area (its vertices lie on one line)")
-        kind, at = _where(shapely.is_valid_reason(shapely.Polygon(geometry)))
         verb = "touches itself" if kind == "Ring Self-intersection" else "crosses itself"
         raise ZoneGeometryError(f"{name} {verb} at {at}; draw it without crossings")
     if abs(signed_area(ring)) < _NO_AREA_M2:
@@ -128,10 +132,18 @@ def check_zone_rings(polygon: Ring, holes: Sequence[Ring]) -> None:
     for name, ring in zip(names, rings, strict=True):
         _check_vertices(name, ring)
     geometries = [shapely.LinearRing(ring) for ring in rings]
+    # One pass of GEOS's validity over the whole zone: the common, valid case costs that
+    # and the areas. Only a refusal looks further, for the ring and the reason to name.
+    whole = shapely.is_valid_reason(shapely.Polygon(geometries[0], geometries[1:]))
+    if whole == "Valid Geometry":
+        for name, ring in zip(names, rings, strict=True):
+            if abs(signed_area(ring)) < _NO_AREA_M2:
+                raise ZoneGeometryError(f"{name} has no area (its vertices lie on one line)")
+        return
     for name, ring, geometry in zip(names, rings, geometries, strict=True):
         _check_ring_shape(name, ring, geometry)
     if not holes:
-        return
+        raise ZoneGeometryError(f"the zone is not a valid area: {whole}")
     shell = shapely.Polygon(geometries[0])
     hole_areas = shapely.polygons(np.asarray(geometries[1:], dtype=object))
     inside = shapely.covers(shell, hole_areas)
@@ -149,9 +161,7 @@ def check_zone_rings(polygon: Ring, holes: Sequence[Ring]) -> None:
             f"hole {k} lies outside the polygon; a hole lies inside its zone's polygon "
             "(outside it, the even-odd rule would add its area to the zone)"
         )
-    kind, at = _where(shapely.is_valid_reason(shapely.Polygon(geometries[0], geometries[1:])))
-    if kind == "Valid Geometry":
-        return
+    kind, at = _where(whole)
     if kind == "Holes are nested":
         raise ZoneGeometryError(
             f"a hole lies inside another hole near {at}; an island inside a hole is a zone "
