@@ -134,6 +134,13 @@ def png_bomb(width: int, height: int, truncate: bool = False) -> bytes:
     )
 
 
+def png_header_only(width: int, height: int) -> bytes:
+    """A PNG's signature and header for width x height (up to 2³¹ - 1 each) and no image
+    data: what a decoder reads before it decides to allocate."""
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IEND", b"")
+
+
 def checkerboard(width: int, height: int, cell: int = 1) -> np.ndarray:
     """Keep-out (True) on alternate cells of `cell` pixels: every cell its own area."""
     rows, cols = np.indices((height, width)) // cell

@@ -111,6 +111,13 @@ def _decoded(image: bytes, size: tuple[int, int]) -> np.ndarray:
             return np.asarray(img.convert("L"), dtype=np.uint8)
     except MaskFileError:
         raise
+    except Image.DecompressionBombError:
+        # Pillow's own guard, at open, for headers past twice Image.MAX_IMAGE_PIXELS: far
+        # more pixels than any map of this service (MAX_MASK_PIXELS) has.
+        raise MaskFileError(
+            f"the mask image's header gives far more pixels than the map's {size[0]} x "
+            f"{size[1]} px; a mask covers the map exactly"
+        ) from None
     except UnidentifiedImageError:
         raise MaskFileError(
             "the mask image is not a PNG or PGM (the formats nav2's map_server reads)"

@@ -29,6 +29,7 @@ from tests.geometry_kit import (
     mask_png,
     mask_yaml,
     png_bomb,
+    png_header_only,
     star_ring,
 )
 
@@ -192,6 +193,26 @@ def test_a_png_bomb_is_refused_from_its_header_before_decoding(decodes) -> None:
     assert decodes == []
     assert _import(w, png_bomb(500, 400)).status_code == 201
     assert decodes and set(decodes) == {(500, 400)}
+
+
+@pytest.mark.parametrize(
+    "size",
+    [
+        (2**31 - 1, 2**31 - 1),
+        (20_000, 20_000),  # past Pillow's own guard (twice Image.MAX_IMAGE_PIXELS)
+        (Image.MAX_IMAGE_PIXELS // 400 + 1, 400),  # past its warning only
+        (1, 10**9),
+        (500, 400),  # the map's own size, but no pixels
+    ],
+)
+def test_a_header_of_any_size_without_pixels_is_a_fast_422(size, decodes) -> None:
+    w = World()
+    started = time.perf_counter()
+    r = _import(w, png_header_only(*size))
+    assert r.status_code == 422, r.text
+    assert time.perf_counter() - started < 2
+    if size != (500, 400):
+        assert decodes == [] and "500 x 400 px" in r.json()["detail"]
 
 
 def test_a_mask_for_a_map_over_the_pixel_cap_is_refused_before_decoding(decodes) -> None:
