@@ -22,7 +22,7 @@ from .access import check_routes, document_scopes
 from .access_guard import AccessGuard
 from .admission import AdmissionControl, default_pool_of
 from .credentials import Credentials
-from .limits import BodyLimit, validation_error
+from .limits import BodyLimit, HostCheck, allowed_hosts, validation_error
 from .routers import (
     annotations as annotation_routes,
 )
@@ -167,6 +167,9 @@ def create_app(
             expose_headers=["Retry-After", "X-Map-At-Ms", "X-Chunk-Width", "X-Chunk-Height"],
             max_age=600,
         )
+    # Outermost: a request under another site's host name (DNS rebinding) reaches nothing,
+    # not even the rate limiter; one check for every route, the WebSocket and /clickhouse.
+    app.add_middleware(HostCheck, allowed=allowed_hosts(settings))
     return app
 
 

@@ -1,9 +1,11 @@
 """Bounds on what a client may send: a body limit on every route, validation errors that
-never echo large input, and WebSocket connections only from the service's own pages."""
+never echo large input, requests only under the service's own host names, and WebSocket
+connections only from the service's own pages."""
 
 from __future__ import annotations
 
 import asyncio
+import ipaddress
 import json
 from urllib.parse import urlsplit
 
@@ -14,6 +16,23 @@ from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 ECHO_MAX = 200  # characters of a rejected input a reply may repeat
+
+
+async def reply_and_close(send: Send, status: int, detail: str) -> None:
+    """A JSON refusal `{"detail": ...}` that closes the connection (its body unread)."""
+    body = json.dumps({"detail": detail}).encode()
+    await send(
+        {
+            "type": "http.response.start",
+            "status": status,
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                (b"connection", b"close"),
+            ],
+        }
+    )
+    await send({"type": "http.response.body", "body": body})
 
 
 class BodyLimit:
@@ -44,7 +63,7 @@ class BodyLimit:
             async with asyncio.timeout(self.timeout_s):
                 chunks = await self._read(receive)
         except TimeoutError:
-            await self._reply(
+            await reply_and_close(
                 send,
                 408,
                 f"the request body did not arrive within "
@@ -80,28 +99,12 @@ class BodyLimit:
                 return chunks
 
     async def _too_large(self, send: Send) -> None:
-        await self._reply(
+        await reply_and_close(
             send,
             413,
             f"the request body is larger than {self.max_bytes} bytes "
             "(MAPSERVICE_API_MAX_BODY_BYTES)",
         )
-
-    @staticmethod
-    async def _reply(send: Send, status: int, detail: str) -> None:
-        body = json.dumps({"detail": detail}).encode()
-        await send(
-            {
-                "type": "http.response.start",
-                "status": status,
-                "headers": [
-                    (b"content-type", b"application/json"),
-                    (b"content-length", str(len(body)).encode()),
-                    (b"connection", b"close"),
-                ],
-            }
-        )
-        await send({"type": "http.response.body", "body": body})
 
 
 def _short(value):
@@ -149,10 +152,57 @@ def allowed_hosts(settings) -> frozenset[str]:
     return frozenset(names)
 
 
+def _is_address(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
 def host_allowed(host: str | None, allowed: frozenset[str]) -> bool:
     """A page of another site whose name an attacker points at this address (DNS
-    rebinding) reaches the service under that name: its Host is not one of ours."""
-    return bool(host) and _host_name(host) in allowed
+    rebinding) reaches the service under that name: its Host is not one of ours. An IP
+    address as Host is no such name (a page can only be of that address itself): the
+    kubelet's probes, Prometheus and clients inside the cluster send the pod's."""
+    if not host:
+        return False
+    name = _host_name(host)
+    return name in allowed or _is_address(name)
+
+
+# Answered under any Host: the kubelet asks them by the pod's address (or a name set in the
+# probe), and they say only whether the process lives and is ready - nothing of the
+# history. A restart loop must never follow from a mistyped MAPSERVICE_API_ALLOWED_HOSTS.
+PROBE_PATHS = frozenset({"/healthz", "/readyz"})
+
+
+class HostCheck:
+    """Every request and WebSocket under one of the service's own host names (allowed_hosts,
+    or an IP address), else refused before any other middleware or route sees it: 421
+    Misdirected Request, or a WebSocket closed before it is accepted. The probes excepted."""
+
+    def __init__(self, app: ASGIApp, allowed: frozenset[str]) -> None:
+        self.app, self.allowed = app, allowed
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket") or scope["path"] in PROBE_PATHS:
+            await self.app(scope, receive, send)
+            return
+        host = next((v.decode("latin-1") for k, v in scope["headers"] if k == b"host"), None)
+        if host_allowed(host, self.allowed):
+            await self.app(scope, receive, send)
+            return
+        detail = (
+            f"this service does not answer under the host name {(host or '')[:100]!r}; "
+            "add it to MAPSERVICE_API_ALLOWED_HOSTS if it is one of the service's names"
+        )
+        if scope["type"] == "websocket":
+            # Before accept: the handshake is refused (HTTP 403), no data is sent.
+            reason = "this host name is not one of the service's (MAPSERVICE_API_ALLOWED_HOSTS)"
+            await send({"type": "websocket.close", "code": 1008, "reason": reason})
+            return
+        await reply_and_close(send, 421, detail)
 
 
 def origin_allowed(origin: str | None, host: str | None, allowed: list[str]) -> bool:

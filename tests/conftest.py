@@ -38,12 +38,16 @@ NOW_MS = 1_795_255_200_000
 @pytest.fixture(autouse=True)
 def _hermetic_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
     """No MAPSERVICE_* variable of the developer's shell leaks into Settings() in fast tests
-    (integration tests keep the environment they were started with)."""
+    (integration tests keep the environment they were started with), and the test
+    client's host name is the apps' own."""
     if request.node.get_closest_marker("integration"):
         return
     for name in list(os.environ):
         if name.upper().startswith("MAPSERVICE_"):
             monkeypatch.delenv(name)
+    # Starlette's TestClient sends Host: testserver, a name no deployment has: the fast
+    # tests' apps take it as one of theirs (tests/api/test_host_check.py sends others).
+    monkeypatch.setenv("MAPSERVICE_API_ALLOWED_HOSTS", '["testserver"]')
 
 
 def librdkafka_clients(settle_s: float = 0.0) -> set[str]:

@@ -26,13 +26,22 @@ from mapservice.core.annotations import (
     AnnotationError,
     AnnotationRemoved,
     CurrentAnnotation,
+    Shape,
+    Zone,
     check_id,
     from_doc,
     to_doc,
 )
 from mapservice.core.events import make_envelope
 from mapservice.core.ports import AnnotationReader, Clock, EventPublisher, TimeTravelReader
-from mapservice.core.zone_masks import mask_to_zones
+from mapservice.core.zone_geometry import MAX_ZONE_VERTICES, check_vertex_count
+from mapservice.core.zone_masks import (
+    Grid,
+    ZoneMaskError,
+    check_raster_cost,
+    check_traceable,
+    mask_to_zones,
+)
 from mapservice.settings import Settings
 
 from ..access import OPERATE, READ
@@ -72,8 +81,10 @@ class AnnotationIn(BaseModel):
     x: float | None = None
     y: float | None = None
     heading: float | None = None
-    polygon: list[tuple[float, float]] | None = Field(None, max_length=10_000)
-    holes: list[list[tuple[float, float]]] = Field(default_factory=list, max_length=100)
+    polygon: list[tuple[float, float]] | None = Field(None, max_length=MAX_ZONE_VERTICES)
+    holes: list[Annotated[list[tuple[float, float]], Field(max_length=MAX_ZONE_VERTICES)]] = Field(
+        default_factory=list, max_length=100
+    )
     speed_limit: float | None = None
     speed_unit: Literal["percent", "m/s"] | None = None
     note: str = Field("", max_length=2000)
@@ -166,6 +177,45 @@ async def _publish(
     return edit
 
 
+def _traced_zones(body: MaskImport, grid: Grid) -> list[Zone]:
+    """The mask's keep-out areas as zones, or a 422 naming the first cap it passes: the
+    image's size (from its header, before decoding), its outline's length (before tracing),
+    the number of zones and each zone's vertices and cells."""
+    try:
+        image = base64.b64decode(body.image_base64, validate=True)
+        pixels = keep_out_pixels(read_mask(body.yaml, image, (grid.width, grid.height)), grid)
+        check_traceable(pixels)
+        zones = mask_to_zones(grid, pixels, body.name)
+        if len(zones) > MAX_IMPORTED_ZONES:
+            raise ValueError(
+                f"the mask has {len(zones)} separate areas; at most "
+                f"{MAX_IMPORTED_ZONES} are imported as zones"
+            )
+        for zone in zones:
+            check_vertex_count(1 + len(zone.holes), len(zone.polygon) + sum(map(len, zone.holes)))
+            check_raster_cost(grid, zone)
+    except (binascii.Error, ValueError) as exc:
+        raise HTTPException(422, f"the mask cannot be imported: {exc}") from None
+    return zones
+
+
+def _checked_shape(body: AnnotationIn, grid: Grid | None) -> Shape:
+    """The annotation, valid and (a zone, once the map has a frame) cheap enough to
+    rasterise; runs on a worker thread, as its geometry checks grow with its vertices."""
+    shape = _shape(body)
+    if isinstance(shape, Zone) and grid is not None:
+        try:
+            check_raster_cost(grid, shape)
+        except ZoneMaskError as exc:
+            raise HTTPException(422, f"the annotation is not valid: {exc}") from None
+    return shape
+
+
+async def _valid_shape(body: AnnotationIn, store: AnnotationStore) -> Shape:
+    grid = grid_of(await run_in_threadpool(store.latest_meta))
+    return await run_in_threadpool(_checked_shape, body, grid)
+
+
 @router.get(
     "", operation_id="listAnnotations", response_model=Annotations, dependencies=[Depends(READ)]
 )
@@ -220,7 +270,7 @@ async def create_annotation(
     publisher: PublisherDep,
 ) -> AnnotationOut:
     """Creates a point of interest or a zone (409 if the id is taken)."""
-    shape = _shape(body)
+    shape = await _valid_shape(body, store)
     annotation_id = body.id or f"a-{secrets.token_hex(8)}"
     try:
         check_id(annotation_id)
@@ -277,7 +327,7 @@ async def change_annotation(
     publisher: PublisherDep,
 ) -> AnnotationOut:
     """Replaces an annotation's content (move, rename, reshape, another limit)."""
-    shape = _shape(body)
+    shape = await _valid_shape(body, store)
     now = clock.now_ms()
     before = await _existing(request, store, annotation_id, now)
     edit = await _publish(
@@ -344,19 +394,9 @@ async def import_keep_out_mask(
             "the map has no resolution and origin yet; upload the map "
             "(`mapservice map upload`) before importing a mask",
         )
-    try:
-        image = base64.b64decode(body.image_base64, validate=True)
-        mask = read_mask(body.yaml, image)
-        pixels = keep_out_pixels(mask, grid)
-    except (binascii.Error, ValueError) as exc:
-        raise HTTPException(422, f"the mask cannot be imported: {exc}") from None
-    zones = await run_in_threadpool(mask_to_zones, grid, pixels, body.name)
-    if len(zones) > MAX_IMPORTED_ZONES:
-        raise HTTPException(
-            422,
-            f"the mask has {len(zones)} separate areas; at most "
-            f"{MAX_IMPORTED_ZONES} are imported as zones",
-        )
+    # Decoding, tracing and checking run on a worker thread, each step capped before the
+    # next: the event loop (and with it the probes) never waits for an image.
+    zones = await run_in_threadpool(_traced_zones, body, grid)
     now = clock.now_ms()
     ids = []
     for zone in zones:

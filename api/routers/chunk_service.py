@@ -186,18 +186,22 @@ async def post_meta(
 ) -> dict:
     """Stores meta.json through the event path (a map.meta_set event on Kafka); the
     gateway validates chunks against it as soon as it has read it. A robot (writer token)
-    posts the first meta, as 2019 robots do; changing the map's geometry once one is held
-    invalidates every chunk robots send, so it needs the administrator's token."""
+    posts the first meta, as 2019 robots do; changing the map's frame once one is held (its
+    size, chunk grid, resolution or origin) moves every chunk, zone and nav2 mask, so it
+    needs the administrator's token."""
     meta = parse_meta(await _read_body(request, settings.max_message_bytes))
     now = clock.now_ms()
     held = await run_in_threadpool(_meta_for_validation, request, store, now)
-    if held is not None and _geometry(held) != _geometry(meta):
-        require(
-            caller,
-            Scope.ADMIN,
-            what=f"changing the map from {held.width} x {held.height} px in "
-            f"{held.chunk_width} x {held.chunk_height} chunks",
-        )
+    if held is not None:
+        meta = _keeping_held_frame(meta, held)
+        changed = _frame_change(held, meta)
+        if changed:
+            require(
+                caller,
+                Scope.ADMIN,
+                what=f"changing the map from {held.width} x {held.height} px in "
+                f"{held.chunk_width} x {held.chunk_height} chunks ({changed})",
+            )
     envelope = make_envelope(META_ROBOT_ID, now, now, meta)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
     request.app.state.posted_meta = (now, meta)
@@ -234,8 +238,47 @@ def delete_meta(
 POSTED_META_GRACE_MS = 60_000
 
 
-def _geometry(meta: MapMetaSet) -> tuple[int, ...]:
-    return meta.width, meta.height, meta.chunk_width, meta.chunk_height
+# The map's frame: its size, its chunk grid, and where its pixels lie on the floor
+# (resolution, origin). Zones, nav2 masks and every stored chunk are read in it.
+_FRAME = (
+    ("width", "px"),
+    ("height", "px"),
+    ("chunk_width", "px"),
+    ("chunk_height", "px"),
+    ("chunk_rows", ""),
+    ("chunk_cols", ""),
+    ("resolution", "m"),
+    ("origin", ""),
+)
+_SIZES = ("width", "height", "chunk_width", "chunk_height", "chunk_rows", "chunk_cols")
+
+
+def _keeping_held_frame(meta: MapMetaSet, held: MapMetaSet) -> MapMetaSet:
+    """A 2019 robot's meta.json has no resolution or origin: re-posting the held map's
+    size without them (its start-up) keeps the held ones, moving nothing and erasing
+    nothing. A meta of another size is a new map: taken as posted (by the admin)."""
+    if any(getattr(meta, name) != getattr(held, name) for name in _SIZES):
+        return meta
+    return msgspec.structs.replace(
+        meta,
+        resolution=held.resolution if meta.resolution is None else meta.resolution,
+        origin=held.origin if meta.origin is None else meta.origin,
+    )
+
+
+def _frame_change(held: MapMetaSet, meta: MapMetaSet) -> str:
+    """What of the frame the new meta changes ('' for nothing), for the refusal."""
+    changes = []
+    for name, unit in _FRAME:
+        before, after = getattr(held, name), getattr(meta, name)
+        if before != after:
+            suffix = f" {unit}" if unit else ""
+            changes.append(f"{name} from {_shown(before)}{suffix} to {_shown(after)}{suffix}")
+    return ", ".join(changes)
+
+
+def _shown(value: object) -> str:
+    return str(list(value)) if isinstance(value, tuple) else str(value)
 
 
 def _meta_for_validation(request: Request, store: HistoryStore, now_ms: int) -> MapMetaSet | None:

@@ -15,7 +15,7 @@ from mapservice.core.live_messages import LiveText
 
 from ..access import SOCKET_READ
 from ..credentials import LIVE_SUBPROTOCOL
-from ..limits import allowed_hosts, host_allowed, origin_allowed
+from ..limits import origin_allowed
 
 router = APIRouter(tags=["live"])
 log = structlog.get_logger(__name__)
@@ -43,13 +43,7 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
     token as the subprotocol `bearer.<token>` next to `mapservice.live`."""
     hub = websocket.app.state.live
     settings = websocket.app.state.settings
-    if not host_allowed(websocket.headers.get("host"), allowed_hosts(settings)):
-        # Before accept: the handshake is refused (HTTP 403), no data is sent.
-        await websocket.close(
-            code=1008,
-            reason="this host name may not open the live stream (MAPSERVICE_API_ALLOWED_HOSTS)",
-        )
-        return
+    # The Host was checked for every request, this one too (api/limits.py HostCheck).
     if not origin_allowed(
         websocket.headers.get("origin"), websocket.headers.get("host"), settings.api_allowed_origins
     ):

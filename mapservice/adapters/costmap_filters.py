@@ -12,13 +12,17 @@ import io
 
 import numpy as np
 import yaml
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from mapservice.adapters.ros_map import OCCUPIED, RosMap, classify, read_pgm_header
 from mapservice.core.events import MapMetaSet
 from mapservice.core.zone_masks import MASK_KEEP_OUT, FilterInfo, Grid
 
 FREE_PIXEL, OCCUPIED_PIXEL = 254, 0  # what map_saver writes for free and occupied
+# The formats a mask may come in (map_server reads PGM and PNG); Pillow's other decoders,
+# and their flaws, are never reached from a request.
+MASK_FORMATS = ("PNG", "PPM")
+MAX_MASK_PIXELS = 64_000_000  # 8,000 x 8,000: a mask decodes to one byte a pixel, and more
 
 
 class MaskFileError(ValueError):
@@ -88,8 +92,43 @@ def filter_info_yaml(info: FilterInfo, node: str, mask_topic: str) -> str:
     return yaml.safe_dump(doc, sort_keys=False)
 
 
-def read_mask(yaml_text: str, image: bytes) -> RosMap:
-    """A mask given as its YAML text and image bytes (PGM, or any image Pillow reads)."""
+def _decoded(image: bytes, size: tuple[int, int]) -> np.ndarray:
+    """The image's grey pixels, decoded only once its header says it is `size` (width,
+    height): Pillow's open reads the header alone, so a small file that would inflate to
+    a huge image is refused before a pixel is decompressed."""
+    if size[0] * size[1] > MAX_MASK_PIXELS:
+        raise MaskFileError(
+            f"the map is {size[0]} x {size[1]} px; masks of at most {MAX_MASK_PIXELS} pixels "
+            "(MAX_MASK_PIXELS) are imported: draw the zones instead"
+        )
+    try:
+        with Image.open(io.BytesIO(image), formats=MASK_FORMATS) as img:
+            if img.size != size:
+                raise MaskFileError(
+                    f"the mask is {img.size[0]} x {img.size[1]} px but the map is "
+                    f"{size[0]} x {size[1]} px; a mask covers the map exactly"
+                )
+            return np.asarray(img.convert("L"), dtype=np.uint8)
+    except MaskFileError:
+        raise
+    except Image.DecompressionBombError:
+        # Pillow's own guard, at open, for headers past twice Image.MAX_IMAGE_PIXELS: far
+        # more pixels than any map of this service (MAX_MASK_PIXELS) has.
+        raise MaskFileError(
+            f"the mask image's header gives far more pixels than the map's {size[0]} x "
+            f"{size[1]} px; a mask covers the map exactly"
+        ) from None
+    except UnidentifiedImageError:
+        raise MaskFileError(
+            "the mask image is not a PNG or PGM (the formats nav2's map_server reads)"
+        ) from None
+    except Exception as exc:  # noqa: BLE001 - Pillow raises many kinds for bad bytes
+        raise MaskFileError(f"the mask image does not decode: {str(exc)[:200]}") from None
+
+
+def read_mask(yaml_text: str, image: bytes, size: tuple[int, int]) -> RosMap:
+    """A mask given as its YAML text and image bytes (PGM or PNG) that must be `size`
+    (width, height) pixels: the map's, checked from the image's header before decoding."""
     try:
         doc = yaml.safe_load(yaml_text)
     except yaml.YAMLError as exc:
@@ -114,11 +153,7 @@ def read_mask(yaml_text: str, image: bytes) -> RosMap:
             maxval = read_pgm_header(image[:4096]).maxval
         except ValueError as exc:
             raise MaskFileError(f"the mask image is not a readable PGM: {exc}") from None
-    try:
-        with Image.open(io.BytesIO(image)) as img:
-            pixels = np.asarray(img.convert("L"), dtype=np.uint8)
-    except Exception as exc:  # noqa: BLE001 - Pillow raises many kinds for bad bytes
-        raise MaskFileError(f"the mask image does not decode: {str(exc)[:200]}") from None
+    pixels = _decoded(image, size)
     if maxval != 255:
         pixels = np.rint(pixels.astype(np.float64) * maxval / 255).astype(np.uint8)
     return RosMap(

@@ -16,18 +16,25 @@ from typing import Any
 
 import msgspec
 
+from mapservice.core.zone_geometry import (
+    MAX_COORDINATE_M,
+    Point,
+    Ring,
+    ZoneGeometryError,
+    check_coordinate,
+    check_vertex_count,
+    check_zone_rings,
+    signed_area,
+)
+
+__all__ = ["MAX_COORDINATE_M", "Point", "Ring", "signed_area"]
+
 POI_KINDS = ("station", "charger", "door", "note")
 ZONE_KINDS = ("keep_out", "speed_limit", "note")
 SPEED_UNITS = ("percent", "m/s")
-MAX_RING_VERTICES = 10_000
-MAX_RINGS = 10_000
 MAX_NAME_CHARS = 200
 MAX_NOTE_CHARS = 2_000
 MAX_ID_CHARS = 100
-MAX_COORDINATE_M = 1_000_000.0  # a kilometre-sized factory is 1,000 m; beyond is a typo
-
-Point = tuple[float, float]
-Ring = tuple[Point, ...]
 
 
 class AnnotationError(ValueError):
@@ -124,11 +131,10 @@ class AnnotationEdit(msgspec.Struct, frozen=True, gc=False):
 
 
 def _finite(name: str, value: float) -> None:
-    if not math.isfinite(value) or abs(value) > MAX_COORDINATE_M:
-        raise AnnotationError(
-            f"{name} must be a finite number of metres within "
-            f"{MAX_COORDINATE_M:.0f} of the map origin, not {value!r}"
-        )
+    try:
+        check_coordinate(name, value)
+    except ZoneGeometryError as exc:
+        raise AnnotationError(str(exc)) from None
 
 
 def _text(name: str, value: str, limit: int, required: bool) -> None:
@@ -136,64 +142,6 @@ def _text(name: str, value: str, limit: int, required: bool) -> None:
         raise AnnotationError(f"{name} must not be empty")
     if len(value) > limit:
         raise AnnotationError(f"{name} has {len(value)} characters; at most {limit}")
-
-
-def _cross(o: Point, a: Point, b: Point) -> float:
-    return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
-
-
-def _segments_cross(p1: Point, p2: Point, q1: Point, q2: Point) -> bool:
-    """True when the segments cross at a point inside both (touching ends is allowed)."""
-    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
-    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
-    if ((d1 > 0 > d2) or (d1 < 0 < d2)) and ((d3 > 0 > d4) or (d3 < 0 < d4)):
-        return True
-    # Collinear overlap of positive length: two edges running along each other.
-    if d1 == d2 == d3 == d4 == 0:
-        axis = 0 if abs(p2[0] - p1[0]) >= abs(p2[1] - p1[1]) else 1
-        lo1, hi1 = sorted((p1[axis], p2[axis]))
-        lo2, hi2 = sorted((q1[axis], q2[axis]))
-        return min(hi1, hi2) - max(lo1, lo2) > 0
-    return False
-
-
-def signed_area(ring: Ring) -> float:
-    """Shoelace area in m²: positive when the ring runs counter-clockwise."""
-    n = len(ring)
-    return 0.5 * sum(
-        ring[i][0] * ring[(i + 1) % n][1] - ring[(i + 1) % n][0] * ring[i][1] for i in range(n)
-    )
-
-
-def check_ring(name: str, ring: Ring, check_crossings: bool = True) -> None:
-    """A ring of 3 or more vertices, finite, no repeated consecutive vertex, a non-zero
-    area and, when asked, no two edges crossing (a bow-tie is not an area anyone meant)."""
-    if len(ring) < 3:
-        raise AnnotationError(f"{name} has {len(ring)} vertices; a polygon needs at least 3")
-    if len(ring) > MAX_RING_VERTICES:
-        raise AnnotationError(f"{name} has {len(ring)} vertices; at most {MAX_RING_VERTICES}")
-    for i, (x, y) in enumerate(ring):
-        _finite(f"{name} vertex {i} x", x)
-        _finite(f"{name} vertex {i} y", y)
-    n = len(ring)
-    for i in range(n):
-        if ring[i] == ring[(i + 1) % n]:
-            raise AnnotationError(
-                f"{name} repeats vertex {i} ({ring[i][0]}, {ring[i][1]}) "
-                "next to itself; remove the duplicate (the ring closes by itself)"
-            )
-    if abs(signed_area(ring)) < 1e-9:
-        raise AnnotationError(f"{name} has no area (its vertices lie on one line)")
-    if not check_crossings:
-        return
-    edges = [(ring[i], ring[(i + 1) % n]) for i in range(n)]
-    for i in range(n):
-        for j in range(i + 1, n):
-            if _segments_cross(*edges[i], *edges[j]):
-                raise AnnotationError(
-                    f"{name} crosses itself: edge {i} ({edges[i][0]} -> {edges[i][1]}) crosses "
-                    f"edge {j} ({edges[j][0]} -> {edges[j][1]}); draw it without crossings"
-                )
 
 
 def validate(annotation: Shape) -> None:
@@ -217,16 +165,10 @@ def validate(annotation: Shape) -> None:
         raise AnnotationError(
             f"a zone's kind is one of {', '.join(ZONE_KINDS)}, not {annotation.kind!r}"
         )
-    if len(annotation.holes) + 1 > MAX_RINGS:
-        raise AnnotationError(
-            f"a zone has at most {MAX_RINGS} rings, not {len(annotation.holes) + 1}"
-        )
-    # Large traced rings (a mask's import) are checked for crossings only when small: the
-    # check is quadratic, and a traced boundary cannot cross itself.
-    small = len(annotation.polygon) <= 500
-    check_ring("polygon", annotation.polygon, small)
-    for k, hole in enumerate(annotation.holes):
-        check_ring(f"hole {k}", hole, len(hole) <= 500)
+    try:
+        check_zone_rings(annotation.polygon, annotation.holes)
+    except ZoneGeometryError as exc:
+        raise AnnotationError(str(exc)) from None
     if annotation.kind == "speed_limit":
         limit, unit = annotation.speed_limit, annotation.speed_unit
         if limit is None or unit is None:
@@ -343,6 +285,16 @@ def _ring(value: object, name: str) -> Ring:
     return tuple(out)
 
 
+def _check_size(polygon: object, holes: object) -> None:
+    """The cap on vertices from the lists' lengths, before a vertex is converted."""
+    rings = [polygon, *(holes if isinstance(holes, (list, tuple)) else ())]
+    sizes = [len(r) for r in rings if isinstance(r, (list, tuple))]
+    try:
+        check_vertex_count(len(sizes), sum(sizes))
+    except ZoneGeometryError as exc:
+        raise AnnotationError(str(exc)) from None
+
+
 def from_doc(doc: dict[str, Any], check: bool = True) -> Shape:
     """An annotation from its JSON form, validated unless `check` is False (a stored one
     was validated when it was made; reads must not refuse it under later rules, nor pay
@@ -361,6 +313,8 @@ def from_doc(doc: dict[str, Any], check: bool = True) -> Shape:
             )
         elif doc.get("shape") == "zone":
             limit = doc.get("speed_limit")
+            if check:
+                _check_size(doc.get("polygon"), doc.get("holes"))
             shape = Zone(
                 name=str(doc["name"]),
                 kind=str(doc["kind"]),

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 
 import msgspec
 import numpy as np
+import shapely
 
 from mapservice.core.annotations import Ring, Zone, signed_area
 
@@ -55,37 +56,115 @@ def _edges_in_pixels(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros((0, 4))
 
 
-def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.ndarray]:
-    """(first row, first column, boolean window): the pixels whose centre is inside the
-    rings (even-odd), within the rings' bounding box clipped to the grid. Each
-    non-horizontal edge toggles, on every pixel row whose centre line it crosses, the
-    pixels left of the crossing; the parity of the toggles is inside."""
-    edges = _edges_in_pixels(grid, rings)
-    if not len(edges):
-        return 0, 0, np.zeros((0, 0), dtype=bool)
+# What one zone may cost to rasterise: the cells of its box on the map's grid (a whole
+# 8,000 x 8,000 map), and the crossings of its edges with the pixel rows (a ring crosses
+# each row a few times; a zigzag of many vertices across many rows is refused).
+MAX_ZONE_MASK_CELLS = 64_000_000
+MAX_ZONE_ROW_CROSSINGS = 4_000_000
+_CROSSINGS_AT_ONCE = 1 << 20  # rasterised in batches: memory bounded whatever the zone
+
+
+class ZoneMaskError(ValueError):
+    """A zone too costly to rasterise on this map, or a mask too intricate to trace into
+    zones; the message says how large and the cap."""
+
+
+def _window(grid: Grid, edges: np.ndarray) -> tuple[int, int, int, int]:
+    """(first row, end row, first column, end column) of the edges' box, clipped to the grid."""
     xs, ys = edges[:, [0, 2]], edges[:, [1, 3]]
     r0 = int(min(max(math.floor(ys.min()), 0), grid.height))
     r1 = int(min(max(math.ceil(ys.max()), 0), grid.height))
     c0 = int(min(max(math.floor(xs.min()), 0), grid.width))
     c1 = int(min(max(math.ceil(xs.max()), 0), grid.width))
-    counts = np.zeros((r1 - r0, c1 - c0 + 1), dtype=np.int32)
-    for x0, y0, x1, y1 in edges:
-        if y0 == y1:
-            continue
-        lo, hi = min(y0, y1), max(y0, y1)
-        # Rows r whose centre line r + 0.5 lies in [lo, hi).
-        first = max(math.ceil(lo - 0.5), r0)
-        last = min(math.ceil(hi - 0.5) - 1, r1 - 1)
-        if last < first:
-            continue
-        rows = np.arange(first, last + 1)
-        xi = x0 + (rows + 0.5 - y0) * (x1 - x0) / (y1 - y0)
-        # Centres c + 0.5 < xi: columns up to ceil(xi - 0.5) - 1. Columns left of the
-        # window toggle nothing inside it, but the parity they carry does: counted at c0.
-        n = np.clip(np.ceil(xi - 0.5), c0, c1).astype(np.int64) - c0
-        counts[rows - r0, 0] += 1
-        np.subtract.at(counts, (rows - r0, n), 1)
-    return r0, c0, (np.cumsum(counts[:, : c1 - c0], axis=1) & 1).astype(bool)
+    return r0, r1, c0, c1
+
+
+def _rows_crossed(edges: np.ndarray, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per edge, the first window row whose centre line r + 0.5 it crosses (lying in
+    [min y, max y)) and how many rows it crosses (0 for horizontal edges)."""
+    y0, y1 = edges[:, 1], edges[:, 3]
+    lo, hi = np.minimum(y0, y1), np.maximum(y0, y1)
+    first = np.maximum(np.ceil(lo - 0.5), r0)
+    last = np.minimum(np.ceil(hi - 0.5) - 1, r1 - 1)
+    count = np.where(y0 != y1, np.maximum(last - first + 1, 0), 0)
+    return first.astype(np.int64), count.astype(np.int64)
+
+
+def raster_cost(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int]:
+    """(cells of the rings' box on the grid, crossings of their edges with pixel rows):
+    what rasterising them costs, computed in one linear pass before any rasterising."""
+    edges = _edges_in_pixels(grid, rings)
+    if not len(edges):
+        return 0, 0
+    r0, r1, c0, c1 = _window(grid, edges)
+    return (r1 - r0) * (c1 - c0), int(_rows_crossed(edges, r0, r1)[1].sum())
+
+
+def check_raster_cost(grid: Grid, zone: Zone) -> None:
+    """ZoneMaskError when the zone costs more than the caps to rasterise on this map (its
+    masks are drawn for every nav2 mask, violation check and export)."""
+    cells, crossings = raster_cost(grid, (zone.polygon, *zone.holes))
+    if cells > MAX_ZONE_MASK_CELLS:
+        raise ZoneMaskError(
+            f"the zone spans {cells} cells of the map's {grid.resolution:g} m grid; at most "
+            f"{MAX_ZONE_MASK_CELLS} (MAX_ZONE_MASK_CELLS): split it into smaller zones"
+        )
+    if crossings > MAX_ZONE_ROW_CROSSINGS:
+        raise ZoneMaskError(
+            f"the zone's edges cross the map's pixel rows {crossings} times; at most "
+            f"{MAX_ZONE_ROW_CROSSINGS} (MAX_ZONE_ROW_CROSSINGS): simplify its outline "
+            "or split it into smaller zones"
+        )
+
+
+def rasterise_window(grid: Grid, rings: Sequence[Ring]) -> tuple[int, int, np.ndarray]:
+    """(first row, first column, boolean window): the pixels whose centre is inside the
+    rings (even-odd), within the rings' bounding box clipped to the grid. Each
+    non-horizontal edge toggles, on every pixel row whose centre line it crosses, the
+    pixels left of the crossing; the parity of the toggles is inside (kept modulo 256 in
+    bytes: the parity is all that counts)."""
+    edges = _edges_in_pixels(grid, rings)
+    if not len(edges):
+        return 0, 0, np.zeros((0, 0), dtype=bool)
+    r0, r1, c0, c1 = _window(grid, edges)
+    toggles = np.zeros((r1 - r0, c1 - c0 + 1), dtype=np.uint8)
+    first, crossed = _rows_crossed(edges, r0, r1)
+    ends = np.cumsum(crossed)
+    start = 0
+    while start < len(edges):
+        # The next edges up to _CROSSINGS_AT_ONCE crossings (at least one edge).
+        stop = max(
+            int(np.searchsorted(ends, ends[start] - crossed[start] + _CROSSINGS_AT_ONCE, "right")),
+            start + 1,
+        )
+        _toggle(toggles, edges[start:stop], first[start:stop], crossed[start:stop], r0, c0, c1)
+        start = stop
+    np.cumsum(toggles[:, : c1 - c0], axis=1, dtype=np.uint8, out=toggles[:, : c1 - c0])
+    return r0, c0, (toggles[:, : c1 - c0] & 1).astype(bool)
+
+
+def _toggle(
+    toggles: np.ndarray,
+    edges: np.ndarray,
+    first: np.ndarray,
+    crossed: np.ndarray,
+    r0: int,
+    c0: int,
+    c1: int,
+) -> None:
+    """Every (edge, row) crossing of these edges at once: each edge's index repeated once
+    per row it crosses, its crossing's x, and the toggles it makes."""
+    which = np.repeat(np.arange(len(edges)), crossed)
+    rows = np.repeat(first, crossed) + (
+        np.arange(len(which)) - np.repeat(np.cumsum(crossed) - crossed, crossed)
+    )
+    x0, y0, x1, y1 = (edges[which, k] for k in range(4))
+    xi = x0 + (rows + 0.5 - y0) * (x1 - x0) / (y1 - y0)
+    # Centres c + 0.5 < xi: columns up to ceil(xi - 0.5) - 1. Columns left of the
+    # window toggle nothing inside it, but the parity they carry does: counted at c0.
+    n = np.clip(np.ceil(xi - 0.5), c0, c1).astype(np.int64) - c0
+    toggles[:, 0] += np.bincount(rows - r0, minlength=toggles.shape[0]).astype(np.uint8)
+    np.subtract.at(toggles, (rows - r0, n), np.uint8(1))
 
 
 def rasterise(grid: Grid, rings: Sequence[Ring]) -> np.ndarray:
@@ -177,6 +256,29 @@ def speed_mask(grid: Grid, zones: Sequence[Zone], unit: str) -> tuple[np.ndarray
 _STEPS = ((1, 0), (0, 1), (-1, 0), (0, -1))
 
 
+MAX_TRACED_EDGES = 200_000  # pixel edges between masked and free a mask may have to be traced
+
+
+def boundary_edges(mask: np.ndarray) -> int:
+    """How many pixel edges separate masked from free pixels (the map's border counting as
+    free): the work of tracing the mask, and a bound on its zones' vertices (4 per zone at
+    least, so a quarter of it bounds their number)."""
+    padded = np.pad(mask.astype(bool), 1)
+    return int((padded[1:, :] != padded[:-1, :]).sum() + (padded[:, 1:] != padded[:, :-1]).sum())
+
+
+def check_traceable(mask: np.ndarray) -> None:
+    """ZoneMaskError for a mask whose outline is longer than MAX_TRACED_EDGES pixel edges
+    (a checkerboard's is 2 per pixel): counted in one pass before any tracing."""
+    edges = boundary_edges(mask)
+    if edges > MAX_TRACED_EDGES:
+        raise ZoneMaskError(
+            f"the mask's keep-out areas have {edges} pixel edges of outline; at most "
+            f"{MAX_TRACED_EDGES} are traced into zones (MAX_TRACED_EDGES): a mask of a few "
+            "solid areas has far fewer (smooth or clean it before importing)"
+        )
+
+
 def trace_rings(mask: np.ndarray) -> list[list[tuple[int, int]]]:
     """The boundary of the True pixels as closed rings of pixel corners (x, y down), each
     running clockwise on screen around the inside (holes the other way), collinear
@@ -223,23 +325,33 @@ def trace_rings(mask: np.ndarray) -> list[list[tuple[int, int]]]:
             # The start may lie mid-edge of the ring: drop it when collinear.
             if len(ring) > 2 and _collinear(ring[-1], ring[0], ring[1]):
                 ring.pop(0)
-            rings.append(ring)
+            rings.extend(_loops(ring))
     return rings
+
+
+def _loops(ring: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:
+    """A ring that passes a corner twice (pixels meeting there only diagonally) as the
+    simple loops it is made of, cut at that corner: the same edges, so the same pixels by
+    the even-odd rule, and each loop a simple ring (a valid polygon's ring, GEOS's rule)."""
+    loops: list[list[tuple[int, int]]] = []
+    path: list[tuple[int, int]] = []
+    at: dict[tuple[int, int], int] = {}
+    for corner in ring:
+        seen = at.get(corner)
+        if seen is None:
+            at[corner] = len(path)
+            path.append(corner)
+            continue
+        loops.append(path[seen:])
+        for dropped in path[seen + 1 :]:
+            del at[dropped]
+        del path[seen + 1 :]
+    loops.append(path)
+    return loops
 
 
 def _collinear(a: tuple[int, int], b: tuple[int, int], c: tuple[int, int]) -> bool:
     return bool((b[0] - a[0]) * (c[1] - a[1]) == (b[1] - a[1]) * (c[0] - a[0]))
-
-
-def _inside(point: tuple[float, float], ring: Ring) -> bool:
-    x, y = point
-    result = False
-    n = len(ring)
-    for i in range(n):
-        (x0, y0), (x1, y1) = ring[i], ring[(i + 1) % n]
-        if (y0 > y) != (y1 > y) and x < x0 + (y - y0) * (x1 - x0) / (y1 - y0):
-            result = not result
-    return result
 
 
 def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out") -> list[Zone]:
@@ -262,7 +374,7 @@ def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out
         # Outer rings run clockwise (negative area in the map frame), holes the other way.
         (outers if signed_area(m) < 0 else holes).append(m)
     owned: list[list[Ring]] = [[] for _ in outers]
-    areas = [-signed_area(o) for o in outers]
+    probes = []
     for hole in holes:
         # A point just inside a masked pixel next to the hole's first edge lies in the
         # component around the hole: the smallest outer ring containing it owns the hole.
@@ -271,14 +383,20 @@ def mask_to_zones(grid: Grid, mask: np.ndarray, name: str, kind: str = "keep_out
         # Every ring has the masked pixels on its right-hand side.
         dx, dy = bx - ax, by - ay
         length = math.hypot(dx, dy)
-        probe = (mx + dy / length * grid.resolution / 4, my - dx / length * grid.resolution / 4)
-        best = min(
-            (i for i, o in enumerate(outers) if _inside(probe, o)),
-            key=lambda i: areas[i],
-            default=None,
+        probes.append(
+            (mx + dy / length * grid.resolution / 4, my - dx / length * grid.resolution / 4)
         )
-        if best is not None:
-            owned[best].append(hole)
+    if holes and outers:
+        # GEOS's index: each probe meets only the outers whose box holds it, not all of them.
+        areas = np.array([-signed_area(o) for o in outers])
+        tree = shapely.STRtree(shapely.polygons([shapely.linearrings(o) for o in outers]))
+        probe, outer = tree.query(shapely.points(probes), predicate="within")
+        best: dict[int, int] = {}
+        for p, o in zip(probe.tolist(), outer.tolist(), strict=True):
+            if p not in best or areas[o] < areas[best[p]]:
+                best[p] = o
+        for p, o in sorted(best.items()):
+            owned[o].append(holes[p])
     return [
         Zone(
             name=f"{name} {k + 1}" if len(outers) > 1 else name,

@@ -147,8 +147,9 @@ class ApiSettings(BaseModel):
         default_factory=list,
         description=(
             "Host names (the Host header, without port) besides 127.0.0.1, localhost, ::1, the "
-            "host of public_base_url and of api_allowed_origins under which /api/v1/live may be "
-            "opened (a page of another site whose name resolves to this address: DNS rebinding)."
+            "host of public_base_url and of api_allowed_origins under which the API answers "
+            "(a page of another site whose name resolves to this address: DNS rebinding); an "
+            "IP address as Host and the probes are always answered, other names get a 421."
         ),
     )
     processors_status_url: str = Field(

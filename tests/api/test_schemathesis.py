@@ -46,8 +46,9 @@ def _store() -> MemoryStore:
 
 
 # As administrator (every scope), without the rate limit: the fuzzer is one fast client.
+# Built at import, before the tests' environment: its host name named here.
 APP = create_app(
-    Settings(admin_token=ADMIN_TOKEN, api_rate_limit=""),
+    Settings(admin_token=ADMIN_TOKEN, api_rate_limit="", api_allowed_hosts=["testserver"]),
     _store(),
     {"kafka": lambda: True},
     ManualClock(NOW),

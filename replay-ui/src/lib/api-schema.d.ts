@@ -90,16 +90,18 @@ export interface paths {
          * Post Meta
          * @description Stores meta.json through the event path (a map.meta_set event on Kafka); the
          *     gateway validates chunks against it as soon as it has read it. A robot (writer token)
-         *     posts the first meta, as 2019 robots do; changing the map's geometry once one is held
-         *     invalidates every chunk robots send, so it needs the administrator's token.
+         *     posts the first meta, as 2019 robots do; changing the map's frame once one is held (its
+         *     size, chunk grid, resolution or origin) moves every chunk, zone and nav2 mask, so it
+         *     needs the administrator's token.
          */
         put: operations["putLegacyMeta"];
         /**
          * Post Meta
          * @description Stores meta.json through the event path (a map.meta_set event on Kafka); the
          *     gateway validates chunks against it as soon as it has read it. A robot (writer token)
-         *     posts the first meta, as 2019 robots do; changing the map's geometry once one is held
-         *     invalidates every chunk robots send, so it needs the administrator's token.
+         *     posts the first meta, as 2019 robots do; changing the map's frame once one is held (its
+         *     size, chunk grid, resolution or origin) moves every chunk, zone and nav2 mask, so it
+         *     needs the administrator's token.
          */
         post: operations["postLegacyMeta"];
         /**

@@ -1,0 +1,95 @@
+"""Who may move the floor: the map's frame (size, chunk grid, resolution, origin) changes
+only with the admin's token. Every frame field changed alone, by every role, in both read
+modes: the admin's change is published, everyone else's is refused (403 naming the field,
+401 without a credential) and nothing reaches Kafka; the held frame re-posted (as a 2019
+robot does at start-up, with or without resolution and origin) stays a writer's right."""
+
+from __future__ import annotations
+
+import pytest
+from fastapi.testclient import TestClient
+from mapservice.api.app import create_app
+
+from mapservice.adapters.clock import ManualClock
+from mapservice.core.events import MapMetaSet, decode, make_envelope
+from mapservice.testing.memory_publisher import MemoryPublisher
+from mapservice.testing.memory_store import MemoryStore
+from tests.api.access_kit import NOW, auth, settings_for
+
+HELD = MapMetaSet(
+    width=500,
+    height=400,
+    chunk_width=100,
+    chunk_height=100,
+    chunk_rows=4,
+    chunk_cols=5,
+    comment="the warehouse",
+    resolution=0.05,
+    origin=(-1.5, 2.0, 0.0),
+)
+HELD_DOC = HELD.to_2019()
+
+# Each a change of one frame field alone, still a meta.json that parses (chunks cover it).
+FRAME_CHANGES = {
+    "width": {"width": 450},
+    "height": {"height": 350},
+    "chunk_width": {"CHUNK_WIDTH": 120},
+    "chunk_height": {"CHUNK_HEIGHT": 110},
+    "chunk_rows": {"CHUNK_ROWS": 5},
+    "chunk_cols": {"CHUNK_COLS": 6},
+    "resolution": {"resolution": 0.1},
+    "resolution (rounding)": {"resolution": 0.05000001},
+    "origin x": {"origin": [10.0, 2.0, 0.0]},
+    "origin y": {"origin": [-1.5, -2.0, 0.0]},
+    "origin yaw": {"origin": [-1.5, 2.0, 0.3]},
+}
+REFUSED = {"writer": 403, "robot": 403, "operator": 403, "reader": 403, "none": 401}
+
+
+def _world(read_access: str) -> tuple[TestClient, MemoryPublisher, str]:
+    settings = settings_for(read_access)
+    store = MemoryStore()
+    store.append([make_envelope("admin", NOW - 60_000, NOW - 60_000, HELD)])
+    publisher = MemoryPublisher()
+    app = create_app(settings, store, {}, ManualClock(NOW), publisher=publisher)
+    return TestClient(app), publisher, settings.topic_meta_events
+
+
+def _published(publisher: MemoryPublisher, topic: str) -> list[MapMetaSet]:
+    publisher.poll()
+    return [decode(value).payload for _, value in publisher.records.get(topic, [])]
+
+
+@pytest.mark.parametrize("read_access", ["open", "token"])
+@pytest.mark.parametrize("method", ["POST", "PUT"])
+@pytest.mark.parametrize("field", list(FRAME_CHANGES))
+@pytest.mark.parametrize("role", [*REFUSED, "admin"])
+def test_a_frame_change_needs_the_admin(read_access, method, field, role) -> None:
+    client, publisher, topic = _world(read_access)
+    body = {**HELD_DOC, **FRAME_CHANGES[field]}
+    r = client.request(method, "/api/chunk-service/meta", json=body, headers=auth(role))
+    if role == "admin":
+        assert r.status_code == 200, r.text
+        [stored] = _published(publisher, topic)
+        assert stored == MapMetaSet.from_2019(body)
+        return
+    assert r.status_code == REFUSED[role], r.text
+    if role in ("writer", "robot"):
+        name = field.split(" ")[0]
+        assert name.replace("origin", "origin from") in r.json()["detail"]
+        assert "MAPSERVICE_ADMIN_TOKEN" in r.json()["detail"]
+    assert _published(publisher, topic) == []
+
+
+@pytest.mark.parametrize("read_access", ["open", "token"])
+@pytest.mark.parametrize("role", ["writer", "robot", "admin"])
+def test_the_held_frame_re_posted_is_a_writers_right_and_moves_nothing(read_access, role) -> None:
+    """The same meta; the same without resolution and origin (a 2019 robot's meta.json),
+    which keeps the held ones; another comment or max_brightness (not the frame)."""
+    client, publisher, topic = _world(read_access)
+    without_frame = {k: v for k, v in HELD_DOC.items() if k not in ("resolution", "origin")}
+    for body in (HELD_DOC, without_frame, {**HELD_DOC, "comment": "re-scanned"}):
+        r = client.post("/api/chunk-service/meta", json=body, headers=auth(role))
+        assert r.status_code == 200, r.text
+    stored = _published(publisher, topic)
+    assert [(m.resolution, m.origin) for m in stored] == [(0.05, (-1.5, 2.0, 0.0))] * 3
