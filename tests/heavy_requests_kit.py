@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
@@ -61,7 +62,7 @@ class ProbedRun(Generic[T]):
 
 
 def probe_during(
-    probe_url: str,
+    probe_url: str | Sequence[str],
     heavy,
     *,
     label: str = "heavy request",
@@ -71,7 +72,9 @@ def probe_during(
 ) -> ProbedRun:
     """Runs `heavy()` on a thread while probing `probe_url` every `interval_s` (module
     docstring). A probe that does not answer 200 within `probe_timeout_s` is a failure;
-    `heavy` not returning within `heavy_timeout_s` is an error of the run."""
+    `heavy` not returning within `heavy_timeout_s` is an error of the run. Several probe
+    URLs (liveness and readiness) are asked in turn, each every `interval_s`."""
+    urls = [probe_url] if isinstance(probe_url, str) else list(probe_url)
     run: ProbedRun = ProbedRun(label, load_before=os.getloadavg())
     done = threading.Event()
 
@@ -87,23 +90,25 @@ def probe_during(
 
     thread = threading.Thread(target=send, name=f"heavy: {label}", daemon=True)
     with httpx.Client(timeout=probe_timeout_s) as probes:
-        probes.get(probe_url)  # connected before the heavy request starts
+        for url in urls:
+            probes.get(url)  # connected before the heavy request starts
         thread.start()
         deadline = time.monotonic() + heavy_timeout_s
         while not done.is_set():
             if time.monotonic() > deadline:
                 run.error = TimeoutError(f"no answer within {heavy_timeout_s} s")
                 break
-            started = time.monotonic()
-            try:
-                status = probes.get(probe_url).status_code
-                if status != 200:
-                    run.probe_failures.append(f"status {status}")
-            except httpx.HTTPError as exc:
-                run.probe_failures.append(f"{type(exc).__name__}: {exc}")
-            took = time.monotonic() - started
-            run.probe_s.append(took)
-            done.wait(max(0.0, interval_s - took))
+            round_started = time.monotonic()
+            for url in urls:
+                started = time.monotonic()
+                try:
+                    status = probes.get(url).status_code
+                    if status != 200:
+                        run.probe_failures.append(f"{url}: status {status}")
+                except httpx.HTTPError as exc:
+                    run.probe_failures.append(f"{url}: {type(exc).__name__}: {exc}")
+                run.probe_s.append(time.monotonic() - started)
+            done.wait(max(0.0, interval_s - (time.monotonic() - round_started)))
     thread.join(timeout=1)
     run.load_after = os.getloadavg()
     print(run.summary())

@@ -18,6 +18,7 @@ AUTHENTICATION_FAILED = 516
 UNKNOWN_SETTING = 115
 NOT_IMPLEMENTED = 48
 ACCESS_DENIED = 497
+TIMEOUT_EXCEEDED = 159
 TOO_MANY_SIMULTANEOUS_QUERIES = 202
 
 _CODE = re.compile(r"Code: (\d+)\.")
@@ -79,6 +80,8 @@ class SqlError(Exception):
             return 503
         if self.code in (UNKNOWN_TABLE, UNKNOWN_DATABASE):
             return 404
+        if self.code == TIMEOUT_EXCEEDED:  # a statement stopped by max_execution_time
+            return 408
         return 500
 
 
