@@ -5,7 +5,7 @@ called directly and through wrappers, with a canary file and a canary TCP listen
 must never be reached. The counts are printed (`-s`) and recorded in the test's report.
 
 The chDB engine here is the one the API and `mapservice clickhouse-server` run;
-test_sandbox_server.py runs the issue's attacks on the ServerEngine path."""
+test_sandbox_server.py runs the known settings attacks on the ServerEngine path."""
 
 from __future__ import annotations
 

@@ -70,7 +70,7 @@ def stack(tmp_path_factory):
 
 
 def attacks(secret) -> list[tuple[str, dict[str, str], str]]:
-    """(setting named in the refusal, URL parameters, statement): the issue's attacks."""
+    """(setting named in the refusal, URL parameters, statement): settings attacks seen on the analysts' door."""
     filters = f"{{'system.one':'toInt64(file(\\'{secret}\\'))=1'}}"
     return [
         (
