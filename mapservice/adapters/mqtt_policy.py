@@ -37,7 +37,7 @@ VEHICLE_READS = ("order", "instantActions")
 
 # The username rules, as regular expressions both brokers' renderings use.
 ROBOT_USERNAME = r"[A-Za-z0-9_.:@-]{1,64}"  # the gateway's robotId rule (wire2019)
-MASTER_USERNAME = re.escape(MASTER_PREFIX) + r"[A-Za-z0-9_.-]{1,40}"
+MASTER_USERNAME = MASTER_PREFIX + r"[A-Za-z0-9_.-]{1,40}"  # the prefix has no special character
 # A VDA 5050 manufacturer or serial number as a level of a vehicle's username and topics.
 VEHICLE_NAME = r"[^/+#:\x00-\x1f\x7f]{1,64}"
 
