@@ -1,14 +1,10 @@
 """Robot identities at the MQTT broker: Mosquitto's password file and ACL file.
 
-Every robot has its own MQTT user, named by its robotId, with a generated password. The
-ACL lets a user publish only on topics that name it (`iot/coordinates/<username>`,
-`iot/chunks/create/<username>`) and read the advertisements; the service's users read
-what the gateway consumes and publish the advertisements. The 2019 chunk topic
-(`iot/chunks/create`) names no robot, so it is closed to robots unless an operator opens
-it for a named robot (`legacy_chunks`), which then may write chunks under any robotId,
-as in 2019. A master control (a username `mapservice-master-<name>`) publishes `order` and
-`instantActions` to every VDA 5050 vehicle and reads all their state, visualization,
-connection and factsheet messages; vehicles still read only their own orders.
+Every robot, VDA 5050 vehicle and master control has its own MQTT user with a generated
+password; what each may publish and read is the access policy (mqtt_policy.py), which the
+ACL file renders (mosquitto_acl.py). The 2019 chunk topic (`iot/chunks/create`) names no
+robot, so it is closed to robots unless an operator opens it for a named robot
+(`legacy_chunks`), which then may write chunks under any robotId, as in 2019.
 
 Shared subscriptions (`$share/...`), which the acl_file cannot refuse, are refused to every
 user but the service's by a third file, the dynamic security plugin's (mosquitto_dynsec.py).
@@ -34,24 +30,42 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mapservice.core.vda_ids import robot_id_for
-from mapservice.settings import VDA5050_SUBTOPICS, Settings
+from mapservice.settings import Settings
 
+from .mosquitto_acl import legacy_robots_in, master_controls_in, render_acl
 from .mosquitto_dynsec import render_dynsec
+from .mqtt_policy import (
+    GATEWAY_USER,
+    MASTER_PREFIX,
+    MASTER_USERNAME,
+    PROCESSORS_USER,
+    RESERVED_PREFIX,
+    ROBOT_USERNAME,
+    AclTopics,
+    is_master_control,
+    vehicle_of_username,
+)
 
-GATEWAY_USER = "mapservice-gateway"
-PROCESSORS_USER = "mapservice-processors"
-RESERVED_PREFIX = "mapservice-"
+__all__ = [
+    "GATEWAY_USER",
+    "PROCESSORS_USER",
+    "AclTopics",
+    "BrokerFiles",
+    "RobotCredential",
+    "check_identity",
+    "hash_password",
+    "is_master_control",
+    "legacy_robots_in",
+    "master_controls_in",
+    "new_password",
+    "render_acl",
+    "vehicle_of_username",
+    "verify_password",
+]
+
 PBKDF2_ROUNDS = 101  # what mosquitto_passwd 2.0 writes
-_ROBOT_ID = re.compile(r"[A-Za-z0-9_.:@-]{1,64}")  # the gateway's robotId rule (wire2019)
-# A VDA 5050 manufacturer or serial number as a level of a vehicle's username and topics.
-_VEHICLE_NAME = re.compile(r"[^/+#:\x00-\x1f\x7f]{1,64}")
-LEGACY_MARKER = "# --- robots allowed the 2019 chunk topic"
-MASTER_MARKER = "# --- VDA 5050 master controls"
-# A master control's username: under the service's reserved prefix, which no robot or
-# vehicle may use (check_robot_id), so it never names a robot's topics.
-MASTER_PREFIX = "mapservice-master-"
-_MASTER = re.compile(re.escape(MASTER_PREFIX) + r"[A-Za-z0-9_.-]{1,40}")
-MASTER_WRITES = ("order", "instantActions")
+_ROBOT_ID = re.compile(ROBOT_USERNAME)
+_MASTER = re.compile(MASTER_USERNAME)
 
 
 def new_password() -> str:
@@ -85,23 +99,6 @@ def verify_password(password: str, hashed: str) -> bool:
     except (ValueError, TypeError):
         return False
     return hmac.compare_digest(computed, digest)
-
-
-def vehicle_of_username(username: str) -> tuple[str, str] | None:
-    """(manufacturer, serialNumber) of a VDA 5050 vehicle's MQTT username
-    `<manufacturer>/<serialNumber>`; None for a 2019 robot's (a robotId has no slash)."""
-    if username.count("/") != 1:
-        return None
-    manufacturer, serial = username.split("/")
-    return (
-        (manufacturer, serial)
-        if _VEHICLE_NAME.fullmatch(manufacturer) and _VEHICLE_NAME.fullmatch(serial)
-        else None
-    )
-
-
-def is_master_control(username: str) -> bool:
-    return username.startswith(MASTER_PREFIX)
 
 
 def check_master_control(username: str) -> None:
@@ -156,178 +153,6 @@ def check_identity(
         check_master_control(username)
     else:
         check_robot_id(username, service_users)
-
-
-@dataclass(frozen=True)
-class AclTopics:
-    """The topics the ACL is about, as the service is configured."""
-
-    coordinate_prefix: str = "iot/coordinates/"
-    robot_chunk_prefix: str = "iot/chunks/create/"
-    legacy_chunk_topic: str = "iot/chunks/create"
-    advertisement_topic: str = "iot/chunks/advertisement"
-    vda_interface: str = (
-        "uagv"  # VDA 5050 vehicles' topics: <interface>/<major>/<manufacturer>/<serial>/...
-    )
-    robot_root: str = "iot/robots/"  # <root><robotId>/commands (read), .../command-events (write)
-    zone_advertisement_topic: str = "iot/zones/advertisement"
-
-    @classmethod
-    def from_settings(cls, settings: Settings) -> AclTopics:
-        def prefix(topic_filter: str) -> str:
-            return topic_filter.rstrip("#+").rstrip("/") + "/"
-
-        return cls(
-            prefix(settings.coordinate_topic),
-            prefix(settings.robot_chunk_topic or "iot/chunks/create/+"),
-            settings.create_chunk_topic or "iot/chunks/create",
-            settings.advertisement_topic,
-            settings.vda5050_interface,
-            settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "",
-            settings.zone_advertisement_topic,
-        )
-
-    def robot_topics(self, robot_id: str) -> dict[str, str]:
-        """What a robot publishes to (and reads), for its configuration."""
-        if is_master_control(robot_id):
-            base = f"{self.vda_interface}/+/+/+/"
-            return {
-                "publishes": base + "{" + ",".join(MASTER_WRITES) + "}",
-                "reads": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
-                "masterControl": "yes",
-            }
-        if (names := vehicle_of_username(robot_id)) is not None:
-            base = f"{self.vda_interface}/<v2|v3>/{names[0]}/{names[1]}/"
-            return {
-                "publishes": base + "{" + ",".join(VDA5050_SUBTOPICS) + "}",
-                "reads": base + "{order,instantActions}",
-                "robotId": robot_id_for(*names),
-            }
-        return {
-            "pose": f"{self.coordinate_prefix}{robot_id}",
-            "chunks": f"{self.robot_chunk_prefix}{robot_id}",
-            "advertisements": self.advertisement_topic,
-            **(
-                {
-                    "commands": f"{self.robot_root}{robot_id}/commands",
-                    "commandEvents": f"{self.robot_root}{robot_id}/command-events",
-                }
-                if self.robot_root
-                else {}
-            ),
-        }
-
-
-def render_acl(
-    topics: AclTopics,
-    legacy_robots: list[str] = (),
-    gateway_user: str = GATEWAY_USER,
-    processors_user: str = PROCESSORS_USER,
-    master_controls: list[str] = (),
-) -> str:
-    """Mosquitto's acl_file: `%u` patterns for every robot, the service's users, the VDA
-    5050 master controls, and the robots an operator allowed on the 2019 chunk topic.
-    Anything not listed is denied."""
-    lines = [
-        "# Mosquitto acl_file for mapservice, written by `mapservice robot add/remove`:",
-        "# edits between the markers are overwritten. Anything not allowed here is denied.",
-        "#",
-        "# Every robot (its MQTT username is its robotId) publishes only on topics naming itself",
-        "# and reads the map's and the operators' zones' advertisements.",
-        f"pattern write {topics.coordinate_prefix}%u",
-        f"pattern write {topics.robot_chunk_prefix}%u",
-        f"pattern read {topics.advertisement_topic}",
-        f"pattern read {topics.zone_advertisement_topic}",
-        *(
-            [
-                "# Only the robot itself reads its commands and answers them (acks, outcomes).",
-                f"pattern read {topics.robot_root}%u/commands",
-                f"pattern write {topics.robot_root}%u/command-events",
-            ]
-            if topics.robot_root
-            else []
-        ),
-        *(
-            [
-                "",
-                "# Every VDA 5050 vehicle (its username is <manufacturer>/<serialNumber>, the two",
-                "# levels of its topics) publishes only in its own subtree and reads its orders.",
-                *(f"pattern write {topics.vda_interface}/+/%u/{sub}" for sub in VDA5050_SUBTOPICS),
-                *(
-                    f"pattern read {topics.vda_interface}/+/%u/{sub}"
-                    for sub in ("order", "instantActions")
-                ),
-            ]
-            if topics.vda_interface
-            else []
-        ),
-        "",
-        "# The gateway reads everything robots publish (also through $share/<group>/...).",
-        f"user {gateway_user}",
-        f"topic read {topics.coordinate_prefix}#",
-        f"topic read {topics.robot_chunk_prefix}#",
-        f"topic read {topics.legacy_chunk_topic}",
-        *(
-            [
-                f"topic read {topics.vda_interface}/#",
-                "# ... and sends a VDA 5050 vehicle its operators' commands as instant actions.",
-                f"topic write {topics.vda_interface}/+/+/+/instantActions",
-            ]
-            if topics.vda_interface
-            else []
-        ),
-        *(
-            [
-                f"topic read {topics.robot_root}+/command-events",
-                "# ... and delivers the operators' commands, each on its robot's command topic.",
-                f"topic write {topics.robot_root}+/commands",
-            ]
-            if topics.robot_root
-            else []
-        ),
-        "",
-        "# The processors announce each change of the latest map and of the zones.",
-        f"user {processors_user}",
-        f"topic write {topics.advertisement_topic}",
-        f"topic write {topics.zone_advertisement_topic}",
-        "",
-        f"{MASTER_MARKER} (each orders every vehicle and reads all their messages;",
-        "# `mapservice robot add mapservice-master-<name>`) ---",
-    ]
-    for master in sorted(set(master_controls)) if topics.vda_interface else ():
-        lines += [
-            f"user {master}",
-            *(f"topic write {topics.vda_interface}/+/+/+/{sub}" for sub in MASTER_WRITES),
-            *(f"topic read {topics.vda_interface}/+/+/+/{sub}" for sub in VDA5050_SUBTOPICS),
-        ]
-    lines += [
-        "",
-        f"{LEGACY_MARKER} ({topics.legacy_chunk_topic}, which names no robot: such a",
-        "# robot may write chunks under any robotId; `mapservice robot add --legacy-chunks`) ---",
-    ]
-    for robot in sorted(set(legacy_robots)):
-        lines += [f"user {robot}", f"topic write {topics.legacy_chunk_topic}"]
-    return "\n".join(lines) + "\n"
-
-
-def master_controls_in(acl_text: str) -> list[str]:
-    """The master controls a rendered ACL names."""
-    if MASTER_MARKER not in acl_text:
-        return []
-    section = acl_text.split(MASTER_MARKER, 1)[1].split(LEGACY_MARKER, 1)[0]
-    return [
-        line.split(None, 1)[1].strip() for line in section.splitlines() if line.startswith("user ")
-    ]
-
-
-def legacy_robots_in(acl_text: str) -> list[str]:
-    """The robots a rendered ACL allows on the 2019 chunk topic."""
-    if LEGACY_MARKER not in acl_text:
-        return []
-    section = acl_text.split(LEGACY_MARKER, 1)[1]
-    return [
-        line.split(None, 1)[1].strip() for line in section.splitlines() if line.startswith("user ")
-    ]
 
 
 def read_password_file(path: Path) -> dict[str, str]:

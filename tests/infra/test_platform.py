@@ -10,6 +10,7 @@ import re
 import yaml
 
 from mapservice.settings import Settings
+from tests.fixtures.emqx_acl_eval import emqx_allows, rule_lines
 from tests.fixtures.paths import ROOT
 from tests.infra.manifests import PLATFORM, k8s_objects
 
@@ -95,44 +96,7 @@ def emqx_config() -> str:
 
 def acl_rules() -> list[str]:
     cm = next(d for p, d in k8s_objects() if d["kind"] == "ConfigMap" and p.parent == PLATFORM)
-    return [line for line in cm["data"]["acl.conf"].splitlines() if line.startswith("{")]
-
-
-RULE = re.compile(
-    r'^\{(?P<perm>allow|deny), (?P<who>all|\{(?:user|username), (?:"(?P<user>[^"]*)"|'
-    r'\{re, "(?P<re>[^"]*)"\})\}), (?P<action>publish|subscribe|all), \[(?P<topics>.*)\]\}\.$'
-)
-
-
-def topic_matches(topic_filter: str, topic: str) -> bool:
-    """MQTT matching of a topic (or, for a subscription, a filter taken literally) by a filter."""
-    f, t = topic_filter.split("/"), topic.split("/")
-    for i, level in enumerate(f):
-        if level == "#":
-            return True
-        if i >= len(t) or (level != "+" and level != t[i]):
-            return False
-    return len(f) == len(t)
-
-
-def emqx_allows(rules: list[str], username: str, action: str, topic: str) -> bool:
-    """What EMQX's file authorizer answers (first matching rule, `${username}` rendered;
-    no_match = deny), for the rule forms acl.conf uses."""
-    for rule in rules:
-        if rule == "{deny, all}.":
-            return False
-        m = RULE.match(rule)
-        assert m, f"acl.conf rule this check cannot read: {rule}"
-        if m["who"] != "all" and not (
-            username == m["user"] or (m["re"] and re.search(m["re"], username))
-        ):
-            continue
-        if m["action"] not in ("all", action):
-            continue
-        topics = [t.replace("${username}", username) for t in re.findall(r'"([^"]*)"', m["topics"])]
-        if any(topic_matches(t, topic) for t in topics):
-            return m["perm"] == "allow"
-    return False
+    return rule_lines(cm["data"]["acl.conf"])
 
 
 def test_emqx_acl_lets_each_party_do_only_its_part() -> None:

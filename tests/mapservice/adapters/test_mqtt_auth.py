@@ -59,9 +59,9 @@ def test_acl_lets_robots_publish_only_as_themselves():
     ]
     assert {
         "topic read iot/coordinates/#",
-        "topic read iot/chunks/create/#",
+        "topic read iot/chunks/create/+",
         "topic read iot/chunks/create",
-        "topic read uagv/#",
+        "topic read uagv/+/+/+/state",
     } <= set(gateway)
     processors = lines[lines.index(f"user {PROCESSORS_USER}") + 1 :]
     assert {"topic write iot/chunks/advertisement", "topic write iot/zones/advertisement"} <= set(

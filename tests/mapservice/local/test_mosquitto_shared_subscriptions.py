@@ -7,15 +7,13 @@ robots tried to join it. The service's users still subscribe through their group
 
 from __future__ import annotations
 
-import threading
 import time
 
-import paho.mqtt.client as mqtt
 import pytest
 
 from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER
-from mapservice.adapters.mqtt_client import make_client
 from mapservice.settings import VDA5050_SUBTOPICS, Settings
+from tests.fixtures.mosquitto import ProbeClient as Client
 from tests.fixtures.mosquitto import mosquitto_identities  # noqa: F401 (a fixture)
 
 SETTINGS = Settings(mqtt_share_group="mapservice")
@@ -43,58 +41,6 @@ def robot_facing_filters(identity: str) -> list[str]:
         "iot/+/+",
         f"{s.vda5050_interface}/#",
     ]
-
-
-class Client:
-    """An MQTT 5 connection that records its SUBACKs' and PUBACKs' reason codes."""
-
-    def __init__(self, port: int, username: str, password: str) -> None:
-        self.client = make_client(
-            f"shared-{time.time_ns()}",
-            username=username,
-            password=password,
-            protocol=mqtt.MQTTv5,
-        )
-        self.received: list[str] = []
-        self.subacks: dict[int, list] = {}
-        self.pubacks: dict[int, object] = {}
-        self._lock = threading.Lock()
-        connected = threading.Event()
-        self.client.on_connect = lambda *_: connected.set()
-        self.client.on_message = lambda _c, _u, m: self._got(m.topic)
-        self.client.on_subscribe = lambda _c, _u, mid, codes, _p: self.subacks.__setitem__(
-            mid, list(codes)
-        )
-        self.client.on_publish = lambda _c, _u, mid, code, _p: self.pubacks.__setitem__(mid, code)
-        self.client.connect("127.0.0.1", port, keepalive=30)
-        self.client.loop_start()
-        assert connected.wait(10), f"{username} could not connect"
-
-    def _got(self, topic: str) -> None:
-        with self._lock:
-            self.received.append(topic)
-
-    def subscribe(self, filters: list[str]) -> list:
-        """Each filter's reason code, in order (one SUBSCRIBE per filter: a refused one
-        must not hide the others' answers)."""
-        mids = [self.client.subscribe(f, qos=1)[1] for f in filters]
-        deadline = time.monotonic() + 10
-        while not all(m in self.subacks for m in mids) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert all(m in self.subacks for m in mids), "the broker did not answer every SUBSCRIBE"
-        return [self.subacks[m][0] for m in mids]
-
-    def publish(self, topic: str, payload: bytes = b"{}"):
-        info = self.client.publish(topic, payload, qos=1)
-        info.wait_for_publish(10)
-        deadline = time.monotonic() + 5
-        while info.mid not in self.pubacks and time.monotonic() < deadline:
-            time.sleep(0.01)
-        return self.pubacks.get(info.mid)
-
-    def close(self) -> None:
-        self.client.disconnect()
-        self.client.loop_stop()
 
 
 @pytest.fixture
