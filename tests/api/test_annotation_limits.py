@@ -1,8 +1,9 @@
-"""Zones and imported masks through the API in bounded time and off the event loop: zone
+"""Zones and imported masks through the API, off the event loop: zone
 geometry refused with the right reason at any size, the caps on vertices and on the cells
 a zone rasterises into answered early with a 422 naming the cap, and a mask image's size
 read from its header (a decompression bomb, a checkerboard, other formats, truncated
-files) before anything is decoded or traced."""
+files) before anything is decoded or traced. How long they take while the probes are
+timed: tests/api/test_heavy_requests.py."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ import asyncio
 import base64
 import io
 import random
-import time
 
 import numpy as np
 import pytest
@@ -103,10 +103,8 @@ def test_a_hole_outside_or_across_its_polygon_is_a_422(hole, says) -> None:
 def test_the_largest_allowed_zone_passes_and_one_vertex_more_is_refused_naming_the_cap() -> None:
     w = World()
     doc = largest_allowed_zone_doc(radius_m=8.0, cx=10.0, cy=12.0)
-    started = time.perf_counter()
     r = w.create(doc)
     assert r.status_code == 201, r.text
-    assert time.perf_counter() - started < 10
     doc["holes"][0].insert(
         1, [(doc["holes"][0][0][0] + doc["holes"][0][1][0]) / 2, doc["holes"][0][0][1] - 1e-6]
     )
@@ -114,7 +112,7 @@ def test_the_largest_allowed_zone_passes_and_one_vertex_more_is_refused_naming_t
     assert r.status_code == 422 and "MAX_ZONE_VERTICES" in r.json()["detail"], r.text
 
 
-def test_a_zone_of_101_rings_of_500_vertices_is_refused_early_naming_the_cap() -> None:
+def test_a_zone_of_101_rings_of_500_vertices_is_refused_early_naming_the_cap(monkeypatch) -> None:
     """The shape that held the event loop for 21.7 s: 50,500 vertices, over the cap."""
     w = World()
     rng = random.Random(1)
@@ -125,11 +123,19 @@ def test_a_zone_of_101_rings_of_500_vertices_is_refused_early_naming_the_cap() -
     ]
     outer = [[round(x + 10, 3), round(y + 12, 3)] for x, y in star_ring(rng, 500, radius=9)]
     body = keep_out("heavy", outer, holes=holes)
-    started = time.perf_counter()
+    geometry_checked: list[int] = []
+    real = core_annotations.check_zone_rings
+
+    def spy(polygon, holes):
+        geometry_checked.append(len(holes))
+        return real(polygon, holes)
+
+    monkeypatch.setattr(core_annotations, "check_zone_rings", spy)
     r = w.create(body)
     assert r.status_code == 422, r.text
     assert "MAX_ZONE_VERTICES" in r.text
-    assert time.perf_counter() - started < 2
+    # Early: refused by the count of its vertices, before any geometry was computed.
+    assert geometry_checked == []
 
 
 def test_a_zone_spanning_too_many_map_cells_is_refused_naming_the_cap() -> None:
@@ -182,11 +188,9 @@ def test_a_png_bomb_is_refused_from_its_header_before_decoding(decodes) -> None:
     w = World()
     bomb = png_bomb(12_000, 14_000)
     assert len(bomb) < 1_000_000
-    started = time.perf_counter()
     r = _import(w, bomb)
     assert r.status_code == 422, r.text
     assert "12000 x 14000 px but the map is 500 x 400 px" in r.json()["detail"]
-    assert time.perf_counter() - started < 2
     for size in ((499, 400), (501, 400), (500, 399), (500, 401), (400, 500)):
         r = _import(w, png_bomb(*size))
         assert r.status_code == 422 and "but the map is 500 x 400 px" in r.text, size
@@ -207,10 +211,8 @@ def test_a_png_bomb_is_refused_from_its_header_before_decoding(decodes) -> None:
 )
 def test_a_header_of_any_size_without_pixels_is_a_fast_422(size, decodes) -> None:
     w = World()
-    started = time.perf_counter()
     r = _import(w, png_header_only(*size))
     assert r.status_code == 422, r.text
-    assert time.perf_counter() - started < 2
     if size != (500, 400):
         assert decodes == [] and "500 x 400 px" in r.json()["detail"]
 
@@ -228,11 +230,9 @@ def test_a_checkerboard_mask_is_refused_before_tracing_naming_the_cap() -> None:
     w = _big_map(10, 10)
     image = mask_png(checkerboard(1000, 1000))
     assert len(image) < 10_000
-    started = time.perf_counter()
     r = _import(w, image)
     assert r.status_code == 422, r.text
     assert "MAX_TRACED_EDGES" in r.json()["detail"]
-    assert time.perf_counter() - started < 3
     assert not w.publisher.records[w.settings.topic_annotation_events]
 
 

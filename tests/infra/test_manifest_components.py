@@ -44,7 +44,11 @@ def served():
 
     health = serve_health("127.0.0.1", 0, lambda: {"ok": True})
     port = health.server_address[1]
-    api = TestClient(create_app(Settings(), MemoryStore(), {"clickhouse": lambda: True}))
+    # By the pod's address, as the kubelet and Prometheus ask (no host name to check).
+    api = TestClient(
+        create_app(Settings(), MemoryStore(), {"clickhouse": lambda: True}),
+        base_url="http://10.0.0.7",
+    )
 
     def status(component: str, path: str) -> int:
         if component == "api":

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 import random
-import time
 
 import numpy as np
 import pytest
@@ -166,41 +165,30 @@ def test_coordinates_far_away_or_not_numbers_are_refused(bad) -> None:
 
 def test_the_vertex_cap_counts_every_ring_and_is_checked_before_any_vertex() -> None:
     """The largest allowed zone passes; one vertex more is refused naming the cap, and a
-    zone of a million vertices is refused from its lists' lengths alone (fast)."""
+    zone of a million vertices is refused from its lists' lengths alone."""
     doc = largest_allowed_zone_doc()
     assert len(doc["polygon"]) + sum(map(len, doc["holes"])) == MAX_ZONE_VERTICES
-    started = time.perf_counter()
     from_doc(doc)
-    assert time.perf_counter() - started < 5.0
     over = {**doc, "holes": [*doc["holes"][:-1], [*doc["holes"][-1], doc["holes"][-1][0]]]}
     with pytest.raises(AnnotationError, match="MAX_ZONE_VERTICES"):
         from_doc(over)
-    huge = {**doc, "holes": [[[0, 0]] * 10_000] * 100}  # a million, not even valid vertices
-    started = time.perf_counter()
+    # A million vertices, not even valid ones: refused by the count, before any is read.
+    huge = {**doc, "holes": [[[0, 0]] * 10_000] * 100}
     with pytest.raises(AnnotationError, match=f"at most {MAX_ZONE_VERTICES} in all"):
         from_doc(huge)
-    assert time.perf_counter() - started < 0.5
     with pytest.raises(ZoneGeometryError, match="MAX_ZONE_VERTICES"):
         check_zone_rings(tuple(SQUARE), [tuple(SQUARE)] * (MAX_ZONE_VERTICES // 4))
 
 
-def test_zones_at_the_cap_are_checked_in_bounded_time() -> None:
-    """101 rings at the cap's worth, a ring of the cap's vertices (simple, crossing) and
-    GEOS's worst valid case at the cap: a few seconds at most each, loaded machine
-    included (the pairwise check they replace took 21.7 s for 101 x 500 vertices)."""
+def test_zones_at_the_cap_are_judged_right() -> None:
+    """At the cap's size a simple ring passes and a crossing one is refused as crossing
+    (the pairwise check GEOS replaced gave up above 500 vertices). Their time while the
+    probes are timed: tests/api/test_heavy_requests.py."""
     rng = random.Random(3)
-    for zone in (
-        from_doc(largest_allowed_zone_doc(), check=False),
-        _zone(star_ring(rng, MAX_ZONE_VERTICES)),
-        _zone(crossing_ring(rng, MAX_ZONE_VERTICES)),
-        _zone(parallel_comb_ring(MAX_ZONE_VERTICES)),
-    ):
-        started = time.perf_counter()
-        try:
-            validate(zone)
-        except AnnotationError:
-            pass
-        assert time.perf_counter() - started < 4.0
+    validate(from_doc(largest_allowed_zone_doc(), check=False))
+    validate(_zone(star_ring(rng, MAX_ZONE_VERTICES)))
+    with pytest.raises(AnnotationError, match="crosses itself"):
+        validate(_zone(crossing_ring(rng, MAX_ZONE_VERTICES)))
 
 
 def test_geoss_worst_valid_case_is_valid() -> None:

@@ -28,6 +28,10 @@ from tests.heavy_requests_kit import probe_during
 
 from .serving import ServedApp
 
+# Probes timed while a heavy request runs: in the integration part, which runs one test at
+# a time on the machine, so that another test's load does not stand for the server's.
+TIMED_PROBES = pytest.mark.integration
+
 MiB = 1024 * 1024
 ANALYST, WRITER = ("analyst", "a-pw"), ("writer", "w-pw")
 # A refused body's answer, however large it claims to be once decoded (the refusal comes
@@ -121,6 +125,7 @@ def test_the_writers_cap_is_the_insert_cap() -> None:
 # --- over HTTP, with the probes ---------------------------------------------------------
 
 
+@TIMED_PROBES
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_an_analysts_bomb_is_a_400_and_the_probes_keep_answering(url, encoding) -> None:
     """200 MiB of zeros in well under the 1 MiB a statement may take (gzip: 200 KB): a 400
@@ -140,6 +145,7 @@ def test_an_analysts_bomb_is_a_400_and_the_probes_keep_answering(url, encoding) 
     assert f"decodes to more than {MAX_QUERY_BYTES} bytes" in reply.text
 
 
+@TIMED_PROBES
 def test_a_writers_bomb_is_refused_at_the_insert_cap(url) -> None:
     """A writer's zstd body of 300 MiB decoded: a 400 at MAX_INSERT_BYTES, probes on time."""
     body = bomb("zstd", 300)
@@ -182,6 +188,7 @@ def multipart(fields: dict[str, bytes], boundary: str = "b0undary") -> tuple[byt
     return body, f"multipart/form-data; boundary={boundary}"
 
 
+@TIMED_PROBES
 def test_five_thousand_fields_are_a_400_and_the_probes_keep_answering(url) -> None:
     fields = {"query": b"SELECT 1"} | {f"param_p{n}": b"x" for n in range(5000)}
     body, content_type = multipart(fields)
@@ -196,6 +203,7 @@ def test_five_thousand_fields_are_a_400_and_the_probes_keep_answering(url) -> No
     assert reply.status_code == 400 and f"more than {MAX_FORM_FIELDS} fields" in reply.text
 
 
+@TIMED_PROBES
 def test_the_largest_allowed_multipart_is_answered_and_the_probes_keep_answering(url) -> None:
     """MAX_FORM_FIELDS fields filling the 1 MiB cap: parsed off the event loop and run."""
     size = MAX_QUERY_BYTES // MAX_FORM_FIELDS - 120
