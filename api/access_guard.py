@@ -5,7 +5,6 @@ the rate limits per credential (MAPSERVICE_API_RATE_LIMIT). Who a caller is come
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable
@@ -27,6 +26,7 @@ from .credentials import (
     subprotocol_token,
     tokens_of,
 )
+from .limits import send_refusal
 
 DOCS_PATHS = ("/docs", "/docs/oauth2-redirect", "/redoc", "/openapi.json")
 # Not rate-limited: the kubelet's probes must never be refused for being frequent.
@@ -84,7 +84,7 @@ class AccessGuard:
         if path in DOCS_PATHS and self.docs != "open" and scope["type"] == "http":
             denied = self._docs_denied(caller, valid)
             if denied is not None:
-                await _reply(send, denied.status_code, denied.detail, denied.headers or {})
+                await send_refusal(send, denied.status_code, denied.detail, denied.headers or {})
                 return
         if self.limits and path not in UNLIMITED_PATHS:
             for item in self.limits:
@@ -99,7 +99,7 @@ class AccessGuard:
                     if scope["type"] == "websocket":
                         await deny_socket(scope, send, 429, detail, retry_after=wait)
                     else:
-                        await _reply(send, 429, detail, {"Retry-After": str(wait)})
+                        await send_refusal(send, 429, detail, {"Retry-After": str(wait)})
                     return
         await self.app(scope, receive, send)
 
@@ -118,19 +118,3 @@ class AccessGuard:
             401 if caller.role is None else 403,
             f"the API documentation needs {tokens_of(DOCS_ROLES)} (MAPSERVICE_API_DOCS_ACCESS=token)",
         )
-
-
-async def _reply(send: Send, status: int, detail: str, headers: dict[str, str]) -> None:
-    body = json.dumps({"detail": detail}).encode()
-    await send(
-        {
-            "type": "http.response.start",
-            "status": status,
-            "headers": [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode()),
-                *((k.lower().encode(), v.encode()) for k, v in headers.items()),
-            ],
-        }
-    )
-    await send({"type": "http.response.body", "body": body})

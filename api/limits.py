@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import json
+from collections.abc import Mapping
 from urllib.parse import urlsplit
 
 from fastapi import Request
@@ -18,8 +19,10 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 ECHO_MAX = 200  # characters of a rejected input a reply may repeat
 
 
-async def reply_and_close(send: Send, status: int, detail: str) -> None:
-    """A JSON refusal `{"detail": ...}` that closes the connection (its body unread)."""
+async def send_refusal(
+    send: Send, status: int, detail: str, headers: Mapping[str, str] | None = None
+) -> None:
+    """A JSON refusal `{"detail": ...}` sent by a middleware, before any route."""
     body = json.dumps({"detail": detail}).encode()
     await send(
         {
@@ -28,11 +31,16 @@ async def reply_and_close(send: Send, status: int, detail: str) -> None:
             "headers": [
                 (b"content-type", b"application/json"),
                 (b"content-length", str(len(body)).encode()),
-                (b"connection", b"close"),
+                *((k.lower().encode(), v.encode()) for k, v in (headers or {}).items()),
             ],
         }
     )
     await send({"type": "http.response.body", "body": body})
+
+
+async def reply_and_close(send: Send, status: int, detail: str) -> None:
+    """A refusal that closes the connection (its body unread)."""
+    await send_refusal(send, status, detail, {"connection": "close"})
 
 
 class BodyLimit:

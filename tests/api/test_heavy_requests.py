@@ -16,13 +16,10 @@ from __future__ import annotations
 
 import base64
 import gzip
-import threading
 
 import httpx
 import pytest
-import uvicorn
 from mapservice.api.app import create_app
-from mapservice.api.composition import api_server_config
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.zone_geometry import MAX_ZONE_VERTICES
@@ -46,7 +43,7 @@ from tests.geometry_kit import (
     png_bomb,
 )
 from tests.heavy_requests_kit import probe_during
-from tests.mapservice.sql.serving import ServedApp
+from tests.mapservice.sql.serving import ServedApi
 
 # Timed probes: in the integration part, which runs one test at a time on the machine.
 pytestmark = pytest.mark.integration
@@ -60,16 +57,6 @@ ZONE_WITHIN_S = 10.0
 # A map of 80 x 80 chunks of 100 px at 5 cm: 400 m square, 64 M cells (the rasterising cap).
 CHUNKS = 80
 ORIGIN, RESOLUTION = (-1.5, 2.0), 0.05
-
-
-class ServedApi(ServedApp):
-    """ServedApp with the API's own uvicorn configuration."""
-
-    def __init__(self, app, settings):
-        super().__init__(app)
-        self.port, self.url = settings.api_port, f"http://127.0.0.1:{settings.api_port}"
-        self.server = uvicorn.Server(api_server_config(app, settings))
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
 
 
 @pytest.fixture(scope="module")
@@ -113,6 +100,10 @@ def import_mask(api: str, png: bytes) -> httpx.Response:
         headers={"Authorization": f"Bearer {OPERATOR}"},
         timeout=60,
     )
+
+
+def post_sql(api: str, body: bytes, headers: dict[str, str] | None = None) -> httpx.Response:
+    return httpx.post(f"{api}/clickhouse", content=body, auth=ANALYST, headers=headers, timeout=60)
 
 
 # --- zones --------------------------------------------------------------------------------
@@ -176,13 +167,7 @@ def test_a_gzip_bomb_on_clickhouse_is_a_400_while_the_probes_answer(api) -> None
     run = probed(
         api,
         f"gzip bomb on /clickhouse ({len(body)} bytes, 300 MiB decoded)",
-        lambda: httpx.post(
-            f"{api}/clickhouse",
-            content=body,
-            auth=ANALYST,
-            headers={"Content-Encoding": "gzip"},
-            timeout=60,
-        ),
+        lambda: post_sql(api, body, {"Content-Encoding": "gzip"}),
     )
     reply = run.assert_responsive(max_heavy_s=REFUSAL_WITHIN_S)
     assert reply.status_code == 400, reply.text
@@ -198,13 +183,7 @@ def test_five_thousand_fields_on_clickhouse_are_a_400_while_the_probes_answer(ap
     run = probed(
         api,
         "5,000-field multipart on /clickhouse",
-        lambda: httpx.post(
-            f"{api}/clickhouse",
-            content=body,
-            auth=ANALYST,
-            headers={"Content-Type": "multipart/form-data; boundary=zz"},
-            timeout=60,
-        ),
+        lambda: post_sql(api, body, {"Content-Type": "multipart/form-data; boundary=zz"}),
     )
     reply = run.assert_responsive(max_heavy_s=REFUSAL_WITHIN_S)
     assert reply.status_code == 400, reply.text
@@ -236,7 +215,7 @@ def test_the_worst_analyst_statement_is_stopped_while_the_probes_answer(
     run = probed(
         api,
         f"analyst statement stopped by a limit ({' or '.join(stopped_by)})",
-        lambda: httpx.post(f"{api}/clickhouse", content=statement, auth=ANALYST, timeout=60),
+        lambda: post_sql(api, statement.encode()),
     )
     reply = run.assert_responsive(max_heavy_s=ANALYST_TIME_LIMIT_S + REFUSAL_WITHIN_S)
     (limit,) = [name for name in stopped_by if f"({name})" in reply.text] or [reply.text]

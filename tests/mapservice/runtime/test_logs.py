@@ -98,34 +98,18 @@ def test_below_the_level_nothing_is_written(capsys) -> None:
 
 def test_the_api_server_writes_a_json_access_log(capfd) -> None:
     """The API's uvicorn (as `serve` configures it) writes one JSON 'request' line per request."""
-    import socket
-    import threading
-    import time
-
     import httpx
-    import uvicorn
     from fastapi import FastAPI
-    from mapservice.api.composition import api_server_config
 
+    from mapservice.local.embedded import free_port
     from mapservice.settings import Settings
+    from tests.mapservice.sql.serving import ServedApi
 
     configure("INFO", "json", "api")
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     app = FastAPI()
     app.get("/ping")(lambda: {"ok": True})
-    server = uvicorn.Server(api_server_config(app, Settings(api_host="127.0.0.1", api_port=port)))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    try:
-        deadline = time.monotonic() + 10
-        while not server.started and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert httpx.get(f"http://127.0.0.1:{port}/ping").status_code == 200
-    finally:
-        server.should_exit = True
-        thread.join(10)
+    with ServedApi(app, Settings(api_host="127.0.0.1", api_port=free_port())) as served:
+        assert httpx.get(f"{served.url}/ping").status_code == 200
     out = [json.loads(line) for line in capfd.readouterr().err.splitlines() if line.startswith("{")]
     requests = [line for line in out if line.get("event") == "request"]
     assert requests and requests[0]["path"] == "/ping" and requests[0]["status"] == 200
@@ -142,19 +126,15 @@ def test_no_secret_in_a_url_reaches_the_api_access_log(capfd, tmp_path, fmt) -> 
     """An analyst's `?password=` (and any other secret-named parameter) on the API's
     /clickhouse, served as `serve` serves it: the access log has the request, not the
     secret, in both formats."""
-    import threading
-    import time
-
     import httpx
-    import uvicorn
     from fastapi import FastAPI
     from mapservice.api.app import SQL_PATH, PathPrefix
-    from mapservice.api.composition import api_server_config
 
     from mapservice.local.embedded import free_port
     from mapservice.settings import Settings
     from mapservice.sql.chdb_engine import ChdbEngine
     from mapservice.sql.http_protocol import SqlUser, clickhouse_http_app
+    from tests.mapservice.sql.serving import ServedApi
 
     configure("INFO", fmt, "api")
     port = free_port()
@@ -165,21 +145,14 @@ def test_no_secret_in_a_url_reaches_the_api_access_log(capfd, tmp_path, fmt) -> 
         prefix=SQL_PATH,
         target=clickhouse_http_app(engine, [SqlUser("analyst", SECRET, read_only=True)]),
     )
-    server = uvicorn.Server(api_server_config(app, Settings(api_host="127.0.0.1", api_port=port)))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
     try:
-        deadline = time.monotonic() + 10
-        while not server.started and time.monotonic() < deadline:
-            time.sleep(0.05)
-        base = f"http://127.0.0.1:{port}{SQL_PATH}/"
-        reply = httpx.get(f"{base}?user=analyst&password={SECRET}&query=SELECT%201")
-        assert reply.text == "1\n"
-        for name in SECRET_PARAMS:
-            httpx.get(f"{base}?user=analyst&{name}={SECRET}&query=SELECT%202")
+        with ServedApi(app, Settings(api_host="127.0.0.1", api_port=port)) as served:
+            base = f"{served.url}{SQL_PATH}/"
+            reply = httpx.get(f"{base}?user=analyst&password={SECRET}&query=SELECT%201")
+            assert reply.text == "1\n"
+            for name in SECRET_PARAMS:
+                httpx.get(f"{base}?user=analyst&{name}={SECRET}&query=SELECT%202")
     finally:
-        server.should_exit = True
-        thread.join(10)
         engine.close()
     err = capfd.readouterr().err
     assert "SELECT%201" in err and "[redacted]" in err

@@ -1,4 +1,5 @@
-"""Serving a ClickHouse HTTP app from a test: uvicorn in a thread on a free port."""
+"""Serving an ASGI app from a test (a ClickHouse HTTP app, the API): uvicorn in a thread on a
+free port."""
 
 from __future__ import annotations
 
@@ -11,19 +12,19 @@ from mapservice.local import embedded
 
 
 class ServedApp:
-    def __init__(self, app):
-        self.port = embedded.free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.server = uvicorn.Server(
-            uvicorn.Config(
+    def __init__(self, app, config: uvicorn.Config | None = None):
+        if config is None:
+            config = uvicorn.Config(
                 app,
                 host="127.0.0.1",
-                port=self.port,
+                port=embedded.free_port(),
                 log_config=None,
                 log_level=None,
                 access_log=False,
             )
-        )
+        self.port = config.port
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
     def __enter__(self) -> ServedApp:
@@ -38,3 +39,14 @@ class ServedApp:
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
         self.thread.join(timeout=10)
+
+
+class ServedApi(ServedApp):
+    """ServedApp with the API's own uvicorn configuration (`serve`'s protocol settings and
+    access log), on `settings.api_port`. (A uvicorn.Config configures logging as it is
+    made: only the API's own is made here, so its access log stays as `serve` has it.)"""
+
+    def __init__(self, app, settings):
+        from mapservice.api.composition import api_server_config
+
+        super().__init__(app, api_server_config(app, settings))
