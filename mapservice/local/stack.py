@@ -185,9 +185,12 @@ class Stack(StackMqtt, StackEnv):
         for root, dirs, files in os.walk(self.data_dir):
             for name in dirs + files:
                 path = Path(root, name)
-                mode = path.lstat().st_mode
-                if not path.is_symlink() and mode & 0o077:
-                    path.chmod(mode & 0o7700)
+                try:
+                    mode = path.lstat().st_mode
+                    if not path.is_symlink() and mode & 0o077:
+                        path.chmod(mode & 0o7700)
+                except FileNotFoundError:  # a scratch file of a running engine, gone since
+                    continue
 
     def _log(self, name: str):
         self.log_dir.mkdir(parents=True, exist_ok=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from mapservice.local.stack import Stack
@@ -133,3 +135,27 @@ def test_publishing_the_map_meta_releases_its_producer(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="could not publish the map meta"):
         stack.publish_meta(meta)
     assert made[-1].closed
+
+
+def test_protecting_the_data_dir_passes_over_a_file_that_vanishes_meanwhile(
+    tmp_path, monkeypatch
+) -> None:
+    """A running engine's scratch file listed by the walk and deleted before its mode is
+    read: skipped, and the rest still made private."""
+    data = tmp_path / "data"
+    (data / "clickhouse").mkdir(parents=True)
+    gone = data / "clickhouse" / "scratch"
+    gone.write_text("x")
+    kept = data / "kept.txt"
+    kept.write_text("x")
+    kept.chmod(0o644)
+    real_lstat = Path.lstat
+
+    def lstat(self, *args, **kwargs):
+        if self == gone:
+            raise FileNotFoundError(2, "No such file or directory", str(self))
+        return real_lstat(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "lstat", lstat)
+    Stack(data).protect_data_dir()
+    assert kept.stat().st_mode & 0o077 == 0
