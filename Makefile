@@ -102,21 +102,27 @@ api-types: $(STAMP) $(UI)/node_modules/.installed
 up: $(STAMP) ui mosquitto java
 	$(PY) -m mapservice.cli up $(ARGS)
 
-# The fast tests on every core (pytest-xdist, one worker per core), then the integration
-# tests one at a time: they start brokers and servers and judge time bounds, so they get the
-# machine to themselves. Both parts always run; the target fails if either did ("no tests
-# collected" counts as passed for one part when ARGS selects only the other's tests).
+# Three steps, all always run; the target fails if any did ("no tests collected" counts as
+# passed for a step when ARGS selects only other steps' tests):
+# - the fast tests on every core (pytest-xdist, one worker per core);
+# - the integration tests, which start brokers and servers and mostly wait on them, on
+#   INTEGRATION_WORKERS workers, a whole module to a worker (its stack is module-scoped),
+#   each worker's stacks on ports of their own (tests/conftest.py);
+# - the tests marked `alone`, which judge time under load (probes, latencies), one at a
+#   time with the machine to themselves.
 TEST_WORKERS ?= auto
+INTEGRATION_WORKERS ?= 2
 
 test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
-	@fast=0; slow=0; \
+	@fast=0; parallel=0; alone=0; \
 	$(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) || fast=$$?; \
-	$(PY) -m pytest -m integration --durations=30 $(ARGS) || slow=$$?; \
-	echo "fast tests: exit $$fast; integration tests: exit $$slow"; \
-	if [ $$fast -eq 5 ] && [ $$slow -eq 5 ]; then exit 5; fi; \
-	[ $$fast -eq 0 -o $$fast -eq 5 ] && [ $$slow -eq 0 -o $$slow -eq 5 ]
+	$(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 $(ARGS) || parallel=$$?; \
+	$(PY) -m pytest -m "integration and alone" --durations=10 $(ARGS) || alone=$$?; \
+	echo "fast tests: exit $$fast; integration tests: exit $$parallel; integration tests alone: exit $$alone"; \
+	if [ $$fast -eq 5 ] && [ $$parallel -eq 5 ] && [ $$alone -eq 5 ]; then exit 5; fi; \
+	for rc in $$fast $$parallel $$alone; do [ $$rc -eq 0 -o $$rc -eq 5 ] || exit 1; done
 
 # ruff's lint rules over the Python tree and mypy (strict on mapservice/core/), as configured
 # in pyproject.toml; `.ci/run` runs it before the tests.

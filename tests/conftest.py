@@ -27,9 +27,29 @@ from mapservice.core.events import (
     make_envelope,
 )
 from mapservice.core.wire2019 import Limits, content_hash, format_timestamp
+from mapservice.local.embedded import PORT_SLICE_ENV
 
 if TYPE_CHECKING:
     from mapservice.core.ports import HistoryStore
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """On pytest-xdist's workers, each worker's stacks (and their children) choose ports
+    from a slice of their own, so stacks started side by side never collide."""
+    worker, count = (
+        os.environ.get("PYTEST_XDIST_WORKER"),
+        os.environ.get("PYTEST_XDIST_WORKER_COUNT"),
+    )
+    if worker and count and worker.removeprefix("gw").isdigit():
+        os.environ[PORT_SLICE_ENV] = f"{int(worker.removeprefix('gw'))}/{count}"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Modules with a `long` test first: pytest-xdist hands out whole modules in this order
+    (`--dist loadfile`), so the parallel step does not end on one worker's long module."""
+    long_modules = {item.path for item in items if item.get_closest_marker("long")}
+    items.sort(key=lambda item: item.path not in long_modules)
+
 
 # 2026-11-21T10:00:00Z: a fixed "now" so every test sees the same gateway clock.
 NOW_MS = 1_795_255_200_000

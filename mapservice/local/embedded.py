@@ -25,6 +25,11 @@ LOWEST_CHOSEN_PORT = 10_000
 _EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
 _ports_handed_out: set[int] = set()
 _pick = random.SystemRandom()  # not the global generator: tests seed that one alike
+# "k/n": this process and its children choose ports only from the k-th (0-based) of n
+# disjoint slices of the candidates, so that n local stacks started side by side (the
+# integration tests on several workers) never pick the same port between its choice and
+# its bind, which the bind check alone cannot rule out.
+PORT_SLICE_ENV = "MAPSERVICE_LOCAL_PORT_SLICE"
 
 
 def ephemeral_ports() -> range | None:
@@ -48,6 +53,7 @@ def free_port() -> int:
             for r in (range(LOWEST_CHOSEN_PORT, ephemeral.start), range(ephemeral.stop, 65_536))
             if len(r) > 0
         ]
+        candidates = [r for r in (_slice(r) for r in candidates) if len(r) > 0]
         for _ in range(200 if candidates else 0):
             port = _pick.choice(_pick.choices(candidates, weights=[len(r) for r in candidates])[0])
             if port not in _ports_handed_out and _bindable(port):
@@ -56,6 +62,19 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def _slice(ports: range) -> range:
+    """The share of `ports` that MAPSERVICE_LOCAL_PORT_SLICE gives this process (all of them
+    when unset or malformed)."""
+    try:
+        k, n = (int(part) for part in os.environ.get(PORT_SLICE_ENV, "").split("/"))
+    except ValueError:
+        return ports
+    if not 0 <= k < n:
+        return ports
+    size = len(ports) // n
+    return ports[k * size : (k + 1) * size]
 
 
 def _bindable(port: int) -> bool:

@@ -43,3 +43,28 @@ def test_without_a_known_range_the_kernel_chooses(monkeypatch: pytest.MonkeyPatc
     port = embedded.free_port()
     with socket.socket() as s:
         s.bind(("127.0.0.1", port))
+
+
+def test_stacks_side_by_side_choose_from_disjoint_slices(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two workers' stacks pick ports at random; without slices one could take a port the
+    other chose and had not bound yet."""
+    monkeypatch.setattr(embedded, "ephemeral_ports", lambda: range(32_768, 61_000))
+    chosen: list[set[int]] = []
+    for k in range(3):
+        monkeypatch.setenv(embedded.PORT_SLICE_ENV, f"{k}/3")
+        monkeypatch.setattr(embedded, "_ports_handed_out", set())
+        ports = {embedded.free_port() for _ in range(300)}
+        low, high = range(10_000, 32_768), range(61_000, 65_536)
+        mine = {*low[k * len(low) // 3 : (k + 1) * len(low) // 3]}
+        mine |= {*high[k * len(high) // 3 : (k + 1) * len(high) // 3]}
+        assert ports <= mine
+        chosen.append(ports)
+    assert all(not chosen[a] & chosen[b] for a in range(3) for b in range(a + 1, 3))
+
+
+@pytest.mark.parametrize("value", ["", "2", "3/3", "-1/2", "a/b", "1/0"])
+def test_a_missing_or_malformed_slice_means_every_candidate(
+    value: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv(embedded.PORT_SLICE_ENV, value)
+    assert embedded._slice(range(10_000, 20_000)) == range(10_000, 20_000)
