@@ -44,6 +44,48 @@ def pytest_configure(config: pytest.Config) -> None:
         os.environ[PORT_SLICE_ENV] = f"{int(worker.removeprefix('gw'))}/{count}"
 
 
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """A session that selects integration tests only (`-m "integration ..."`) does not import
+    the modules that cannot hold one: importing and generating the thousands of fast tests
+    only to deselect them cost every worker of every integration step its time."""
+    if not str(config.option.markexpr).startswith("integration"):
+        return None
+    if collection_path.suffix != ".py" or not collection_path.name.startswith("test_"):
+        return None
+    return None if _may_hold_integration_tests(collection_path) else True
+
+
+def pytest_deselected(items: list[pytest.Item]) -> None:
+    """The fast session, which imports every module, checks the rule above held for each
+    integration test it passed over: one marked some other way would otherwise be skipped
+    by the integration steps without a word."""
+    missed = sorted(
+        {
+            str(item.path)
+            for item in items
+            if item.get_closest_marker("integration") and not _may_hold_integration_tests(item.path)
+        }
+    )
+    if missed:
+        pytest.exit(
+            "integration tests in modules that neither they nor a conftest.py above them "
+            f"mark with `pytest.mark.integration` (the integration steps would not import them): {missed}",
+            returncode=4,
+        )
+
+
+def _may_hold_integration_tests(module: Path) -> bool:
+    """The module, or a conftest.py above it in tests/, names the marker."""
+    tests = Path(__file__).parent
+    places = [module] + [
+        d / "conftest.py" for d in module.parents if d.is_relative_to(tests) and d != tests
+    ]
+    return any(
+        place.is_file() and "mark.integration" in place.read_text(errors="replace")
+        for place in places
+    )
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Modules with a `long` test first: pytest-xdist hands out whole modules in this order
     (`--dist loadfile`), so the parallel step does not end on one worker's long module."""
