@@ -204,12 +204,13 @@ class Stack(StackMqtt, StackEnv):
         if self.mqtt in ("amqtt", "mosquitto"):
             self.start_mqtt()
 
-    def spawn(self, name: str, *args: str) -> subprocess.Popen:
-        """Runs `mapservice <args>` as component `name` (log in log_dir/<name>.log)."""
+    def spawn(self, name: str, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+        """Runs `mapservice <args>` as component `name` (log in log_dir/<name>.log), with the
+        stack's environment for it and `env` over it."""
         self.commands[name] = args
         proc = subprocess.Popen(
             [sys.executable, "-m", "mapservice.cli", *args],
-            env=self.env(name),
+            env={**self.env(name), **(env or {})},
             stdout=self._log(name),
             stderr=subprocess.STDOUT,
             start_new_session=True,
@@ -260,16 +261,7 @@ class Stack(StackMqtt, StackEnv):
         /readyz says so; another port and name run another replica (`env` overrides)."""
         port = port or self.api_port
         embedded.ensure_port_free(port, f"the API ({name})")
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", "api"],
-            env={**self.env(), "MAPSERVICE_API_PORT": str(port), **(env or {})},
-            stdout=self._log(name),
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            preexec_fn=self._preexec,
-        )
-        self.procs[name] = proc
-        self._record()
+        proc = self.spawn(name, "api", env={"MAPSERVICE_API_PORT": str(port), **(env or {})})
         embedded.wait_for_port(port, timeout_s=120, proc=proc, what=name)
         self.wait_healthy(f"http://127.0.0.1:{port}/readyz", name, proc)
         return proc

@@ -19,8 +19,15 @@ def pytest_collection_modifyitems(items):
             item.add_marker(pytest.mark.integration)
 
 
-def start_stack(tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = None) -> Stack:
-    stack = Stack(tmp_path_factory.mktemp(f"stack-{mqtt}"), mqtt=mqtt, extra_env=extra_env or {})
+def start_stack(
+    tmp_path_factory, mqtt: str, extra_env: dict[str, str] | None = None, gateways: int = 1
+) -> Stack:
+    stack = Stack(
+        tmp_path_factory.mktemp(f"stack-{mqtt}"),
+        mqtt=mqtt,
+        extra_env=extra_env or {},
+        gateways=gateways,
+    )
     return run_stack(stack, meta_for(load_ros_map(MAPS / "depot.yaml")))
 
 
@@ -31,7 +38,7 @@ def run_stack(stack: Stack, meta) -> Stack:
         stack.start_brokers,
         lambda: stack.publish_meta(meta),
         stack.start_server,
-        stack.start_gateway,
+        stack.start_gateways,
         lambda: wait_for_meta(stack),
     )
     return stack

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import re
 import signal
-import subprocess
-import sys
 import time
 
 import httpx
@@ -16,15 +14,6 @@ from mapservice.local.stack import Stack
 from .test_pipeline import now_ms, pose_and_chunk_messages, publish_all
 
 
-def spawn(stack: Stack, name: str, *args: str, env: dict[str, str] | None = None):
-    return subprocess.Popen(
-        [sys.executable, "-m", "mapservice.cli", *args],
-        env={**stack.env(), **(env or {})},
-        stdout=open(stack.log_dir / f"{name}.log", "ab"),
-        stderr=subprocess.STDOUT,
-    )
-
-
 def test_gateway_processors_and_api_run_as_separate_processes(tmp_path):
     """`mapservice gateway` and `mapservice processors` ingest alone; later `mapservice api` serves it."""
     stack = Stack(tmp_path / "alone", mqtt="mosquitto")
@@ -32,11 +21,11 @@ def test_gateway_processors_and_api_run_as_separate_processes(tmp_path):
     try:
         stack.start_brokers()
         gw_port, pr_port = free_port(), free_port()
-        processors = spawn(stack, "processors", "processors", "--health-port", str(pr_port))
+        processors = stack.spawn("processors", "processors", "--health-port", str(pr_port))
         procs.append(processors)
         wait_for_port(pr_port, timeout_s=120, proc=processors, what="processors")
         stack.wait_healthy(f"http://127.0.0.1:{pr_port}/healthz", "processors", processors)
-        gateway = spawn(stack, "gateway", "gateway", "--health-port", str(gw_port))
+        gateway = stack.spawn("gateway", "gateway", "--health-port", str(gw_port))
         procs.append(gateway)
         wait_for_port(gw_port, proc=gateway, what="gateway")
         stack.wait_healthy(f"http://127.0.0.1:{gw_port}/healthz", "gateway", gateway)
@@ -65,7 +54,7 @@ def test_gateway_processors_and_api_run_as_separate_processes(tmp_path):
         procs.clear()
 
         # chDB allows one opener per directory: the API starts once the processors are gone.
-        api = spawn(stack, "api", "api")
+        api = stack.spawn("api", "api")
         procs.append(api)
         wait_for_port(stack.api_port, timeout_s=60, proc=api, what="api")
         rows = httpx.get(

@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import re
-import subprocess
-import sys
 import time
 
 import httpx
 import paho.mqtt.client as mqtt
 
 from mapservice.adapters.ros_map import load_ros_map, meta_for
-from mapservice.local.embedded import free_port, wait_for_port
 from mapservice.local.stack import Stack
 from tests.fixtures.paths import MAPS
 
@@ -31,26 +28,9 @@ def accepted(health_port: int) -> float:
 def test_two_gateways_share_the_subscription(tmp_path_factory):
     """With $share, two gateway replicas each take part of the messages and all arrive once."""
     stack: Stack | None = None
-    second = None
     try:
-        stack = start_stack(
-            tmp_path_factory,
-            "mosquitto",
-            extra_env={
-                "MAPSERVICE_MQTT_SHARE_GROUP": "mapservice",
-                "MAPSERVICE_MQTT_CLIENT_ID": "gw-1",
-            },
-        )
-        second_port = free_port()
-        env = {**stack.env(), "MAPSERVICE_MQTT_CLIENT_ID": "gw-2"}
-        second = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", "gateway", "--health-port", str(second_port)],
-            env=env,
-            stdout=open(stack.log_dir / "gateway-2.log", "ab"),
-            stderr=subprocess.STDOUT,
-        )
-        wait_for_port(second_port, proc=second, what="second gateway")
-        stack.wait_healthy(f"http://127.0.0.1:{second_port}/healthz", "gateway-2", second)
+        stack = start_stack(tmp_path_factory, "mosquitto", gateways=2)
+        second_port = stack.gateway_health_ports[1]
 
         start = now_ms() - 60_000
         poses, chunks = pose_and_chunk_messages("shared", robots=10, per_robot=40, start_ms=start)
@@ -61,9 +41,6 @@ def test_two_gateways_share_the_subscription(tmp_path_factory):
         assert first_share > 0 and second_share > 0
         assert first_share + second_share >= len(poses) + len(chunks)
     finally:
-        if second is not None:
-            second.terminate()
-            second.wait(10)
         if stack is not None:
             stack.stop()
 

@@ -54,71 +54,23 @@ def browser(module_browser):
 TIMEOUT_MS = 60_000
 
 
-def has_clickhouse_server_command() -> bool:
-    return (
-        subprocess.run(
-            [sys.executable, "-m", "mapservice.cli", "clickhouse-server", "--help"],
-            capture_output=True,
-            timeout=60,
-        ).returncode
-        == 0
-    )
-
-
-def start_clickhouse_server(stack: Stack, port: int) -> subprocess.Popen:
-    """`mapservice clickhouse-server`: owns the stack's chDB directory, serves the
-    ClickHouse HTTP interface read-write on 127.0.0.1:port."""
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "mapservice.cli",
-            "clickhouse-server",
-            "--port",
-            str(port),
-            "--read-write",
-        ],
-        env=stack.env(),
-        stdout=stack._log("clickhouse"),
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
-    )
-    stack.procs["clickhouse"] = proc
-    embedded.wait_for_port(port, timeout_s=120, proc=proc, what="clickhouse-server")
-    stack.wait_healthy(f"http://127.0.0.1:{port}/ping", "clickhouse", proc)
-    return proc
-
-
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
     """Brokers, the ClickHouse HTTP server, processors, two API replicas and the gateway,
     each its own process; no map meta published (the 2019 start-up sequence runs first)."""
     if not DIST.exists():
         pytest.fail("replay-ui is not built: run `make ui` first")
-    if not has_clickhouse_server_command():
-        # The only ClickHouse server the package registries offer is Debian's 18.16 (2018:
-        # no DateTime64, codecs or TTL): the split runs on `mapservice clickhouse-server`.
-        pytest.fail(
-            "`mapservice clickhouse-server --help` failed: the ClickHouse HTTP "
-            "interface over chDB is this module's server"
-        )
-    ch_port = embedded.free_port()
     stack = Stack(
         tmp_path_factory.mktemp("stack-split"),
         mqtt="mosquitto",
-        extra_env={
-            **TEST_UI_ENV,
-            "MAPSERVICE_ADMIN_TOKEN": TOKEN,
-            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
-        },
+        apart=True,
+        extra_env={**TEST_UI_ENV, "MAPSERVICE_ADMIN_TOKEN": TOKEN},
     )
     stack.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = stack.api_url
     stack.second_api_url = f"http://127.0.0.1:{embedded.free_port()}"  # type: ignore[attr-defined]
     with stack.running(
         stack.start_brokers,
-        lambda: start_clickhouse_server(stack, ch_port),
-        lambda: stack.start_processors(embedded.free_port()),
-        stack.start_api,
+        stack.start_apart,
         lambda: stack.start_api(int(stack.second_api_url.rsplit(":", 1)[1]), name="api-2"),
         stack.start_gateway,
     ):
@@ -392,7 +344,7 @@ def test_no_analyst_reads_a_secret_through_either_front_end(stack) -> None:
 
     password = analyst_password_file(stack.data_dir).read_text().strip()
     secret = stack.data_dir / "secrets" / "analyst-password"
-    ch_url = stack.extra_env["MAPSERVICE_CLICKHOUSE_DSN"]
+    ch_url = stack.clickhouse_url
     for url in (f"{stack.second_api_url}/clickhouse/", ch_url + "/"):
         for name, template in ATTACKS:
             sql = template.format(data=stack.data_dir, secret=secret)
