@@ -4,11 +4,15 @@ them. CI runs it once, before the tests; these tests check its configuration, no
 
 from __future__ import annotations
 
+import ast
+import importlib.util
 import subprocess
 import tomllib
+from pathlib import Path
 
 from tests.fixtures.paths import ROOT
 from tools.installed_layout import modules
+from tools.typecheck import sources
 
 # The modules not yet held to mypy --strict (the overrides that disable error codes) and the
 # (module, error code) pairs they silence. The list may only shrink: lower these when a
@@ -42,6 +46,46 @@ def test_make_lint_runs_every_check():
         ".venv/bin/python -m tools.lint_imports --no-logo",
     ):
         assert command in commands, f"make lint does not run {command!r}: {commands}"
+
+
+def test_mypy_names_each_module_as_the_program_imports_it():
+    """Each file mypy checks has the name Python imports it by (through the editable
+    install), so pyproject's per-module settings name the modules the program runs."""
+    for source in sources():
+        if source.module.startswith("mapservice"):
+            spec = importlib.util.find_spec(source.module)
+            assert spec is not None and spec.origin is not None, source.module
+            assert Path(spec.origin).resolve() == (ROOT / str(source.path)).resolve()
+
+
+def imported_by(module: str, path: Path) -> set[str]:
+    """The modules `module` imports (`from a import b`: `a`, which holds `b`)."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1]
+            found.add(
+                ".".join(base + [node.module] if node.level and node.module else base)
+                if node.level
+                else str(node.module)
+            )
+    return found
+
+
+def test_every_product_import_reaches_a_checked_module():
+    """Every import of a `mapservice` module names a module mypy checks: none is left
+    unresolved (and so unchecked, as `ignore_missing_imports` would let it be)."""
+    checked = {source.module for source in sources()}
+    missing = {
+        f"{module} imports {name}"
+        for module, path in modules().items()
+        for name in imported_by(module, path)
+        if name.startswith("mapservice") and name not in checked
+    }
+    assert not missing, sorted(missing)
 
 
 def test_the_core_is_typed_strictly():
