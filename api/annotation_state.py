@@ -54,7 +54,8 @@ def recent_edits(request: Request) -> _Recent:
     with _created:
         if getattr(state, "annotation_edits", None) is None:
             state.annotation_edits = _Recent()
-    return state.annotation_edits
+    edits: _Recent = state.annotation_edits
+    return edits
 
 
 def standing(request: Request, store: AnnotationReader, at_ms: int) -> dict[str, CurrentAnnotation]:

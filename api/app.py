@@ -10,7 +10,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
 from mapservice.api.live_hub import LiveHub
-from starlette.types import ASGIApp
+from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
@@ -184,7 +184,7 @@ class PathPrefix:
     def __init__(self, app: ASGIApp, prefix: str, target: ASGIApp):
         self.app, self.prefix, self.target = app, prefix, target
 
-    async def __call__(self, scope, receive, send) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         path = scope.get("path", "")
         if scope["type"] == "http" and (path == self.prefix or path.startswith(self.prefix + "/")):
             rest = path[len(self.prefix) :] or "/"

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import uvicorn
 from fastapi import FastAPI
@@ -32,7 +33,7 @@ from .live_hub import LiveHub
 Check = Callable[[], bool]
 
 
-def api_server_config(app, settings: Settings) -> uvicorn.Config:
+def api_server_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
     """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
     through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
     A request's head must arrive within api_header_timeout_s and an idle keep-alive
@@ -85,7 +86,7 @@ async def compose_api(
     readiness: Mapping[str, Check],
     liveness: Mapping[str, Check],
     advisory: Mapping[str, Check],
-    history_status: Callable[[], dict] | None,
+    history_status: Callable[[], dict[str, Any]] | None,
 ) -> Api:
     """Builds the API around `store`; nothing is served or read until `Api.start`/`serve`.
 

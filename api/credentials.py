@@ -154,7 +154,7 @@ def subprotocol_token(offered: str) -> str | None:
     return None
 
 
-def client_address(client) -> str:
+def client_address(client: tuple[str, int] | None) -> str:
     """The client's host from an ASGI (host, port) pair or Starlette's Address."""
     return client[0] if client else "unknown"
 

@@ -31,7 +31,7 @@ class HeaderDeadlineProtocol(H11Protocol):
     header_timeout_s: float = 10.0
     _deadline: asyncio.TimerHandle | None = None
 
-    def connection_made(self, transport) -> None:  # type: ignore[override]
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         self._arm()
 

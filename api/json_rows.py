@@ -8,6 +8,8 @@ written once.
 
 from __future__ import annotations
 
+from typing import Any
+
 import msgspec
 from fastapi import Response
 from pydantic import BaseModel
@@ -24,5 +26,5 @@ class JsonRows:
         )
         self._encode = msgspec.json.Encoder().encode
 
-    def response(self, rows: list) -> Response:
+    def response(self, rows: list[Any]) -> Response:
         return Response(self._encode(rows), media_type="application/json")

@@ -22,7 +22,7 @@ PUBLISH_TIMEOUT_S = 10.0
 
 def get_publisher(request: Request) -> EventPublisher:
     """The app's publisher, or a 503 saying how to configure one."""
-    publisher = getattr(request.app.state, "publisher", None)
+    publisher: EventPublisher | None = getattr(request.app.state, "publisher", None)
     if publisher is None:
         raise HTTPException(
             503,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import Any
 
 from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.events import (
@@ -134,7 +135,7 @@ class Router:
             )
 
     def _vda_record(
-        self, mqtt_topic: str, msg: dict, envelope: Envelope, receive_ms: int
+        self, mqtt_topic: str, msg: dict[str, Any], envelope: Envelope, receive_ms: int
     ) -> Record:
         """A vehicle's event; its version is remembered (its commands are sent in it) and
         a `state`'s actionStates naming commands become those commands' answers."""

@@ -17,6 +17,7 @@ import math
 import signal
 import sys
 from collections.abc import Callable
+from typing import Any
 
 import structlog
 from prometheus_client import Gauge
@@ -56,7 +57,7 @@ def export_process_memory(store: ClickHouseStore) -> None:
     PYTHON_BLOCKS.set_function(sys.getallocatedblocks)
 
 
-def _or_nan(read) -> float:
+def _or_nan(read: Callable[[], float]) -> float:
     try:
         return float(read())
     except Exception:  # a scrape must not fail because ClickHouse is busy or closing
@@ -125,12 +126,12 @@ async def serve(
     if store.dsn.startswith("chdb://"):
         export_process_memory(store)
         merges_low = keep_merges_low(settings)
-    advisory: dict = {}  # reported by /readyz, not required
+    advisory: dict[str, Callable[[], bool]] = {}  # reported by /readyz, not required
     loop_beat = Heartbeat(max_age_s=15.0)
     beating = asyncio.ensure_future(beat_forever(loop_beat))
     liveness = {"event_loop": loop_beat.alive}
     # Whether the history is being stored, where that is known.
-    history_status: Callable[[], dict] | None = None
+    history_status: Callable[[], dict[str, Any]] | None = None
     if parts is not None:
         readiness["kafka"] = kafka
         readiness.update(parts.readiness())

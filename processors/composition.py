@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import faust
 
@@ -64,7 +65,7 @@ class Processors:
     def liveness(self) -> dict[str, Check]:
         return {"processors": self.running, "history_consumer": self.consumer.heartbeat.alive}
 
-    def history_status(self) -> dict:
+    def history_status(self) -> dict[str, Any]:
         """Whether the history is being stored, as /api/v1/status and the UI's banner say."""
         return self.sink.health.status()
 
@@ -94,7 +95,7 @@ def compose_processors(settings: Settings, store: HistoryStore) -> Processors:
     advertiser = MqttAdvertiser(settings)
     views = LiveViews(settings, store, advertiser, store_thread, now_ms=now_ms)
 
-    async def stop_views(sender, *args, **kwargs) -> None:
+    async def stop_views(sender: object, *args: object, **kwargs: object) -> None:
         await asyncio.get_running_loop().run_in_executor(None, views.close)
         advertiser.stop()
 

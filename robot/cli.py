@@ -6,6 +6,7 @@ sim_cli and credentials_cli.
 
 from __future__ import annotations
 
+import argparse
 import sys
 
 from mapservice.robot import DEFAULT_MAP
@@ -28,7 +29,7 @@ def _probability(text: str) -> float:
 # --- robot, drive --------------------------------------------------------------------------
 
 
-def cmd_robot(args) -> None:
+def cmd_robot(args: argparse.Namespace) -> None:
     if args.robot_command is not None:
         return cmd_credentials(args)
     if not args.map or not args.robot_id:
@@ -41,7 +42,7 @@ def cmd_robot(args) -> None:
     agent_main(args)
 
 
-def cmd_drive(args) -> None:
+def cmd_drive(args: argparse.Namespace) -> None:
     from .drive import main as drive_main
 
     drive_main(args)
@@ -54,7 +55,7 @@ TOKEN_HELP = (
 )
 
 
-def add_parsers(sub) -> None:
+def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     m = sub.add_parser("map", help="slice a ROS map into 2019 chunks, stitch it back, describe it")
     msub = m.add_subparsers(dest="map_command", required=True)
     sl = msub.add_parser("slice", help="cut a map (ROS YAML or PGM) into chunk PGMs + meta.json")

@@ -68,7 +68,7 @@ class CommandInbox:
         self._queue: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._seen: OrderedDict[str, None] = OrderedDict()
 
-    def on_message(self, _client, _userdata, msg) -> None:
+    def on_message(self, _client: mqtt.Client, _userdata: object, msg: mqtt.MQTTMessage) -> None:
         self._queue.put(msg.payload)
 
     def attach(self, client: mqtt.Client, robot_ids: Iterable[str]) -> None:

@@ -8,10 +8,12 @@ move and once a second, on iot/coordinates/{robotId}.
 
 from __future__ import annotations
 
+import argparse
 import curses
 import sys
 import time
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,6 +24,9 @@ from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, fo
 from .chunks import chunk_of_pixel, chunk_pixels, metres_to_pixel, paste_chunk, pixel_to_metres
 from .connection import RobotMqtt, robot_mqtt_from_args
 from .faults import yaw_quaternion
+
+if TYPE_CHECKING:
+    import httpx
 
 MOVES = {"up": (0, -1), "down": (0, 1), "left": (-1, 0), "right": (1, 0)}
 YAWS = {"up": np.pi / 2, "down": -np.pi / 2, "left": np.pi, "right": 0.0}
@@ -163,7 +168,7 @@ KEYS = {
 PAINT = {ord("b"): "black", ord("g"): "grey", ord("w"): "white"}
 
 
-def _loop(screen, state: DriveState, pub: Publisher) -> None:
+def _loop(screen: curses.window, state: DriveState, pub: Publisher) -> None:
     curses.curs_set(0)
     screen.keypad(True)
     screen.timeout(200)
@@ -202,7 +207,9 @@ def _loop(screen, state: DriveState, pub: Publisher) -> None:
             last_pose = time.monotonic()
 
 
-def check_map_size(api_url: str, meta: MapMetaSet, http=None, token: str | None = None) -> None:
+def check_map_size(
+    api_url: str, meta: MapMetaSet, http: httpx.Client | None = None, token: str | None = None
+) -> None:
     """Raises ValueError when the service stores a map of another size: painting this map's
     chunks into it would corrupt it (a service without a map accepts any)."""
     import httpx
@@ -225,7 +232,7 @@ def check_map_size(api_url: str, meta: MapMetaSet, http=None, token: str | None 
         raise ValueError(mismatch_message(stored, meta, f"this map ({meta.width} x {meta.height})"))
 
 
-def main(args) -> None:
+def main(args: argparse.Namespace) -> None:
     try:
         ros_map = load_ros_map(args.map)
         state = start_state(ros_map, tuple(args.start) if args.start else None, args.step)

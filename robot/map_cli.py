@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import time
 
 
-def cmd_map(args) -> None:
+def cmd_map(args: argparse.Namespace) -> None:
     from .chunks import describe, slice_to_dir, stitch_dir
 
     try:
@@ -31,7 +32,7 @@ def cmd_map(args) -> None:
         sys.exit(f"mapservice map {args.map_command}: {exc}")
 
 
-def _map_upload(args) -> None:
+def _map_upload(args: argparse.Namespace) -> None:
     """`map upload`: the whole map through the 2019 REST API, as events like any robot's."""
     import httpx
     from mapservice.robot.map_upload import MapSizeMismatch, upload_map_rest

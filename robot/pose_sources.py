@@ -8,6 +8,7 @@ import time
 from dataclasses import dataclass, replace
 
 import msgspec
+import paho.mqtt.client as mqtt
 
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import RosMap
@@ -86,7 +87,7 @@ class OdometryPose:
         self.client.connect(host, port, keepalive=30)
         self.client.loop_start()
 
-    def _on_message(self, client, userdata, msg) -> None:
+    def _on_message(self, client: mqtt.Client, userdata: object, msg: mqtt.MQTTMessage) -> None:
         reading = parse_odometry(msg.payload)
         if reading is None:
             self.bad += 1

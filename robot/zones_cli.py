@@ -9,6 +9,7 @@ warehouse mask in base64 is over the API's default body limit as a PGM.
 
 from __future__ import annotations
 
+import argparse
 import base64
 import io
 import os
@@ -98,7 +99,8 @@ def import_mask(http: httpx.Client, path: Path, name: str) -> dict[str, Any]:
         json={"yaml": text, "image_base64": base64.b64encode(image).decode(), "name": name},
     )
     response.raise_for_status()
-    return response.json()
+    imported: dict[str, Any] = response.json()
+    return imported
 
 
 def refusal(exc: httpx.HTTPStatusError) -> str:
@@ -116,7 +118,7 @@ def refusal(exc: httpx.HTTPStatusError) -> str:
     )
 
 
-def cmd_zones(args) -> None:
+def cmd_zones(args: argparse.Namespace) -> None:
     token = operator_token(args.token)
     try:
         with api_client(args.api, token, timeout=120) as http:
@@ -137,7 +139,7 @@ def cmd_zones(args) -> None:
     )
 
 
-def add_parser(sub) -> None:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     zones = sub.add_parser("zones", help="operators' zones on the floor (keep-out, speed limits)")
     zsub = zones.add_subparsers(dest="zones_command", required=True)
     imp = zsub.add_parser(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 from fastapi import APIRouter, Depends, Request, Response
@@ -37,7 +38,7 @@ async def _evaluate(checks: dict) -> dict[str, bool]:
     return await asyncio.get_running_loop().run_in_executor(PROBES, run)
 
 
-def _nowait(check) -> bool | None:
+def _nowait(check: Callable[[], object]) -> bool | None:
     nowait = getattr(check, "nowait", None)
     if nowait is not None:
         answer = nowait()

@@ -7,6 +7,7 @@ The API key is created in EMQX's dashboard (System -> API Key) or its bootstrap 
 
 from __future__ import annotations
 
+from typing import Any
 from urllib.parse import quote
 
 import httpx
@@ -52,7 +53,7 @@ class EmqxUsers:
         self._client = client or httpx.Client(base_url=api_url.rstrip("/"), timeout=10.0)
         self._client.auth = httpx.BasicAuth(api_key, api_secret)
 
-    def _call(self, method: str, path: str, **kwargs) -> httpx.Response:
+    def _call(self, method: str, path: str, **kwargs: Any) -> httpx.Response:
         try:
             resp = self._client.request(method, path, **kwargs)
         except httpx.HTTPError as exc:

@@ -9,9 +9,10 @@ the history sink.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import structlog
-from confluent_kafka import Producer
+from confluent_kafka import KafkaError, Message, Producer
 from prometheus_client import Counter
 
 from mapservice.adapters.kafka_logs import logged
@@ -28,7 +29,7 @@ LIVE_DROPPED = Counter(
 )
 
 
-def live_producer_config(settings: Settings, client_id: str) -> dict:
+def live_producer_config(settings: Settings, client_id: str) -> dict[str, Any]:
     return logged(
         {
             **settings.kafka_config(),
@@ -65,7 +66,7 @@ class KafkaLivePublisher:
         producer.poll(0)  # serve earlier records' delivery callbacks
 
     @staticmethod
-    def _delivered(err, _msg) -> None:
+    def _delivered(err: KafkaError | None, _msg: Message) -> None:
         if err is not None:
             LIVE_DROPPED.inc()
             log.warning("live record not delivered", error=str(err))

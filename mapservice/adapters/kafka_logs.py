@@ -14,10 +14,11 @@ polled) would hold them unseen.
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 LIBRDKAFKA_LOGGER = logging.getLogger("librdkafka")
 
 
-def logged(conf: dict) -> dict:
+def logged(conf: dict[str, Any]) -> dict[str, Any]:
     """`conf` with librdkafka's log lines going to LIBRDKAFKA_LOGGER."""
     return {**conf, "logger": LIBRDKAFKA_LOGGER}

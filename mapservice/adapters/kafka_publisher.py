@@ -16,9 +16,10 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import structlog
-from confluent_kafka import KafkaError, KafkaException, Producer
+from confluent_kafka import KafkaError, KafkaException, Message, Producer
 from prometheus_client import Counter
 
 from mapservice.adapters.kafka_logs import logged
@@ -38,7 +39,7 @@ MESSAGE_TIMEOUT_MS = 10_000
 RENEW_INTERVAL_S = 10.0
 
 
-def producer_config(settings: Settings, client_id: str) -> dict:
+def producer_config(settings: Settings, client_id: str) -> dict[str, Any]:
     return logged(
         {
             **settings.kafka_config(),
@@ -121,7 +122,9 @@ class KafkaPublisher:
         while True:
             producer = self._get()
 
-            def delivered(err, _msg, producer=producer) -> None:
+            def delivered(
+                err: KafkaError | None, _msg: Message, producer: Producer = producer
+            ) -> None:
                 if err is not None and (_fatal(err) or err.code() == KafkaError._MSG_TIMED_OUT):
                     self._renew(producer, str(err), at_once=_fatal(err))
                 on_done(None if err is None else KafkaException(err))

@@ -25,6 +25,7 @@ import hmac
 import os
 import re
 import secrets
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -222,7 +223,7 @@ class BrokerFiles:
         return self.acl_file.with_name(f"{self.acl_file.name}.dynsec.json")
 
     @contextmanager
-    def _locked(self):
+    def _locked(self) -> Iterator[None]:
         self.password_file.parent.mkdir(parents=True, exist_ok=True)
         with open(self.password_file.with_name(f".{self.password_file.name}.lock"), "w") as lock:
             fcntl.flock(lock, fcntl.LOCK_EX)

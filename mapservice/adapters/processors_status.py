@@ -15,6 +15,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 import httpx
 
@@ -36,7 +37,7 @@ class ProcessorsStatus:
         self.url = base_url.rstrip("/") + STATUS_PATH
         self.timeout_s, self.wall_s = timeout_s, wall_s
         self._lock = threading.Lock()
-        self._doc: dict | None = None
+        self._doc: dict[str, Any] | None = None
         self._unreachable_since_s: float | None = None
         self._check = CachedCheck("history_store", self._fetch, ttl_s=ttl_s, timeout_s=timeout_s)
 
@@ -72,7 +73,7 @@ class ProcessorsStatus:
         """The answer without waiting (the API's probes call it on the event loop)."""
         return self._check.nowait()
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """storing, failing_since_ms, last_stored_ms, reason (insert_health's shape)."""
         self._check()
         with self._lock:

@@ -7,7 +7,7 @@ import argparse
 from mapservice.bench.workdir import DATA_DIR_HELP
 
 
-def add_bench_parser(sub) -> None:
+def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     bench = sub.add_parser("bench", help="benchmarks")
     kinds = bench.add_subparsers(dest="kind", required=True)
     ingest = kinds.add_parser("ingest", help="the 2019 load test through the whole pipeline")
@@ -124,7 +124,7 @@ def add_bench_parser(sub) -> None:
     add_group_protocol_parser(kinds)
 
 
-def _run_ingest(args) -> None:
+def _run_ingest(args: argparse.Namespace) -> None:
     if args.kafka == "both":
         from mapservice.bench.brokers import main
     else:

@@ -9,6 +9,7 @@ import platform
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import psutil
 
@@ -43,7 +44,7 @@ def embedded_kafka_fact() -> str:
     return "tansu (memory)"
 
 
-def machine_facts() -> dict:
+def machine_facts() -> dict[str, Any]:
     model = cpu_model()
     try:
         from mapservice.local.embedded import tansu_binary
@@ -89,7 +90,7 @@ def machine_facts() -> dict:
     }
 
 
-def _git_state() -> dict:
+def _git_state() -> dict[str, Any]:
     from mapservice.local.checkout import ROOT as root
 
     try:

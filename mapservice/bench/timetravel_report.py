@@ -3,6 +3,8 @@ section it appends to a Markdown journal (`--benchmarks-md`)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 TARGETS_MS = {
     "map_at": 100.0,
     "robots_at": 50.0,
@@ -51,7 +53,7 @@ def _fmt(v: float | None) -> str:
     return "-" if v is None else (f"{v:.0f}" if v >= 100 else f"{v:.1f}")
 
 
-def table_rows(results: dict) -> list[list[str]]:
+def table_rows(results: dict[str, Any]) -> list[list[str]]:
     lat = results["latency_ms"]
     out = []
     for label, key, naive, target in ROWS:
@@ -79,7 +81,7 @@ def table_rows(results: dict) -> list[list[str]]:
 HEADER = ["query", "n", "p50 ms", "p99 ms", "max ms", "naive p50", "naive p99", "target p99", "met"]
 
 
-def markdown(results: dict) -> str:
+def markdown(results: dict[str, Any]) -> str:
     info, m, checks = results["load"], results["machine"], results["measure"]["checks"]
     lat = results["measure"]["latency_ms"]
     lines = [

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import random
 import time
+from typing import Any
 
 KEYFRAME_MS = 60_000
 PLOT_WIDTH_PX = 1264  # the plot panel's width in a 1280-pixel page
@@ -39,11 +40,13 @@ def _pct(values: list[float], q: float) -> float | None:
     return round(s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))], 1)
 
 
-def panel_reads_phase(api_url: str, start_ms: int, end_ms: int, n: int, seed: int) -> dict:
+def panel_reads_phase(
+    api_url: str, start_ms: int, end_ms: int, n: int, seed: int
+) -> dict[str, Any]:
     import httpx
 
     rng = random.Random(seed)
-    out: dict = {}
+    out: dict[str, Any] = {}
     with httpx.Client(base_url=api_url, timeout=600) as client:
         robots = [
             r["robotId"]

@@ -19,7 +19,7 @@ log = structlog.get_logger(__name__)
 
 def backoff_s(failures: int, base_s: float = 1.0, cap_s: float = 60.0) -> float:
     """1, 2, 4, ... seconds after the 1st, 2nd, 3rd failure in a row, at most `cap_s`."""
-    return min(cap_s, base_s * 2 ** max(0, failures - 1))
+    return min(cap_s, base_s * 2.0 ** max(0, failures - 1))
 
 
 @dataclass

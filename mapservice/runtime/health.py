@@ -15,12 +15,14 @@ import threading
 import time
 from collections.abc import Callable, Mapping
 from functools import partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
 if TYPE_CHECKING:
     from confluent_kafka.admin import AdminClient
+
+    from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
 
@@ -133,7 +135,7 @@ class KafkaMetadata:
     client exists, and a process never probed need not (nor log that it cannot reach them).
     `close()` lets it go, so it stops dialling."""
 
-    def __init__(self, settings) -> None:
+    def __init__(self, settings: Settings) -> None:
         self._config = settings.kafka_config()
         self._lock = threading.Lock()
         self.admin: AdminClient | None = None
@@ -152,7 +154,7 @@ class KafkaMetadata:
             self.admin = None  # AdminClient has no close: its last reference gone, it ends
 
 
-def kafka_check(settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:
+def kafka_check(settings: Settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:
     """Whether a Kafka broker answers metadata; its `close()` releases the client."""
     metadata = KafkaMetadata(settings)
     return CachedCheck(
@@ -178,7 +180,7 @@ def failing_reasons(
     return out
 
 
-def probe_report(checks: Mapping[str, Callable[[], object]]) -> dict:
+def probe_report(checks: Mapping[str, Callable[[], object]]) -> dict[str, Any]:
     """A probe's answer: `ok`, each check's result and, for those that failed and can say
     why, `reasons`."""
     results = {name: bool(check()) for name, check in checks.items()}

@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from datetime import UTC, datetime
+from typing import Any
 
 # ClickHouse ends an exception's message with its error code's name: "... (NOT_ENOUGH_SPACE)";
 # over HTTP (`mapservice up`'s ClickHouse server) clickhouse-connect adds "(for url ...)".
@@ -131,7 +132,7 @@ class InsertHealth:
                 + "; the processors keep retrying and commit nothing unstored"
             )
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """For the API and the UI: storing or not, since when, why."""
         with self._lock:
             failing_since, last_stored = self._since(), self.last_stored_s

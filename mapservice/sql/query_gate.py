@@ -14,7 +14,7 @@ import asyncio
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from mapservice.sql.engine import TOO_MANY_SIMULTANEOUS_QUERIES, SqlError
 
@@ -59,7 +59,7 @@ class QueryGate:
             retry,
         )
 
-    async def run(self, fn: Callable[..., T], *args) -> T:
+    async def run(self, fn: Callable[..., T], *args: Any) -> T:
         if self._slots is None:
             self._slots = asyncio.Semaphore(self.concurrent)
         if self._admitted >= self.concurrent + self.queued:
@@ -79,7 +79,7 @@ class QueryGate:
             raise
         future = asyncio.get_running_loop().run_in_executor(self._executor, fn, *args)
 
-        def release(done: asyncio.Future) -> None:
+        def release(done: asyncio.Future[T]) -> None:
             # When the statement ends, not when its caller gives up: an abandoned statement
             # keeps its engine thread until it finishes (or hits max_execution_time).
             self._admitted -= 1

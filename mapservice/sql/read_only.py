@@ -159,7 +159,7 @@ def _set_nodes(node: Node) -> int:
     return (node.kind == "Set") + sum(_set_nodes(child) for child in children)
 
 
-def _check_settings_clauses(clauses: list, tree: Node) -> None:
+def _check_settings_clauses(clauses: list[list[tuple[str, str]]], tree: Node) -> None:
     """The engine's parse says how many SETTINGS clauses and SETs there are (`Set`
     nodes): a statement whose formatted text shows another number was not wholly checked
     by the settings policy, and is refused."""

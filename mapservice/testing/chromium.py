@@ -5,6 +5,8 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from playwright.sync_api import Browser, Playwright
+
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"]
 
 
@@ -15,7 +17,7 @@ def chromium_path() -> str | None:
     return shutil.which("chromium")
 
 
-def launch(pw):
+def launch(pw: Playwright) -> Browser:
     exe = chromium_path()
     if exe is None:
         raise SystemExit(

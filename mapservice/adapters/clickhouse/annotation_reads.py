@@ -4,6 +4,8 @@ the edits in a window."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
+from typing import Any
 
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.core.annotations import (
@@ -20,7 +22,7 @@ from mapservice.core.annotations import (
 _COLUMNS = "toUnixTimestamp64Milli(ts), event_id, change, annotation_id, author, body"
 
 
-def edit_of(row, check: bool = False) -> AnnotationEdit:
+def edit_of(row: Sequence[Any], check: bool = False) -> AnnotationEdit:
     """A stored row as the edit it records (not validated again unless `check`)."""
     ts, event_id, change, annotation_id, author, body = row
     if change == "removed":

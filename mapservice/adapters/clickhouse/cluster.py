@@ -26,7 +26,7 @@ _ENGINE = re.compile(
 )
 
 
-def replicated_engine(match: re.Match) -> str:
+def replicated_engine(match: re.Match[str]) -> str:
     args = (match.group(3) or "").strip()
     return f"ENGINE = Replicated{match.group(1)}({REPLICA_PATH}{', ' + args if args else ''})"
 

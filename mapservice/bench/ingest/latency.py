@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 from mapservice.bench.ingest.probes import Key
 
@@ -44,7 +45,7 @@ def _latencies(
 
 def _stage_latencies(
     received_at: dict[Key, float], queryable_at: dict[Key, float], keys: dict[Key, float]
-) -> dict:
+) -> dict[str, Any]:
     """Where the time goes, per event seen: publish -> gateway receive (Mosquitto, the
     gateway's MQTT client) and gateway receive -> queryable (Kafka produce, tansu, the
     history consumer, the insert, the push or poll)."""

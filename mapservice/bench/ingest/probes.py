@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from typing import Any
 
 import httpx
 
@@ -35,7 +36,9 @@ class QueryablePoller(threading.Thread):
     what may still be missing instead of a fixed 30 s of history.
     """
 
-    def __init__(self, api_url: str, published: list, interval_s: float = POLL_INTERVAL_S) -> None:
+    def __init__(
+        self, api_url: str, published: list[Any], interval_s: float = POLL_INTERVAL_S
+    ) -> None:
         super().__init__(name="latency-poller", daemon=True)
         self.api_url = api_url
         self.published = published
@@ -73,7 +76,9 @@ class QueryablePoller(threading.Thread):
                 self.pending[key] = ts
         self._consumed = n
 
-    def _get(self, client: httpx.Client, path: str, f: int, t: int) -> tuple[list, float, float]:
+    def _get(
+        self, client: httpx.Client, path: str, f: int, t: int
+    ) -> tuple[list[Any], float, float]:
         asked_at = time.time()
         r = client.get(f"{self.api_url}{path}", params={"from": f, "to": t, "limit": POLL_LIMIT})
         seen_at = time.time()
