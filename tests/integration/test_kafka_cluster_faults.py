@@ -18,6 +18,7 @@ import os
 import signal
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -79,8 +80,9 @@ class Cluster:
         self.procs[node] = kafka_broker.launch(self.configs[node], log, cluster=self.cluster_id)
 
     def start_all(self) -> None:
-        for node in NODES:
-            self.start(node)
+        # Side by side: each node's first start formats its log (a JVM of its own) first.
+        with ThreadPoolExecutor(len(NODES)) as pool:
+            list(pool.map(self.start, NODES))
         self.wait_complete()
 
     def kill(self, node: int) -> None:
@@ -193,7 +195,7 @@ def test_a_lost_broker_and_a_lost_controller_lose_and_duplicate_nothing(tmp_path
             proxy_path="/clickhouse",
         )
         load = Load(stack.mqtt_url, meta)
-        time.sleep(2)
+        time.sleep(STEADY_S)  # the warmup segment
         pose_topic = stack.settings().topic_pose_events
 
         def kill_restart(which: Callable[[], int]) -> Callable[[], None]:
