@@ -46,6 +46,16 @@ class KafkaSettings(BaseModel):
             "group.min.session.timeout.ms (6 s by default, 3 s on the embedded node)."
         ),
     )
+    kafka_check_ttl_s: float = Field(
+        5.0,
+        ge=0.5,
+        le=60,
+        description=(
+            "How long the gateway's and the processors' readiness reuse an answer about Kafka "
+            "(a broker metadata request at most this often): also how long a Kafka that went "
+            "or came back may go unnoticed by /readyz."
+        ),
+    )
     kafka_group_protocol: Literal["classic", "consumer"] = Field(
         "classic",
         description=(
