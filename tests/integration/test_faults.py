@@ -24,8 +24,12 @@ the processors had not yet stored. Those losses are then measured and reported, 
 can be promised is asserted: nothing duplicated, nothing lost that was published after
 the new broker was up. docs/delivery.md and docs/embedded.md state the limit.
 
+Each fault runs one second of load before it and keeps its part down one second beyond
+its own restart's time; the processors' consumer sessions are 3 s (SHORT_SESSION_ENV), so a
+killed processors' partitions go to its restart without the default's 10 s wait.
+
 Bounded: every wait has a timeout and every process is stopped in a finally block; the
-module takes about 4.5 minutes on the project's 2-core machine shared with other work.
+module takes about four minutes on the project's 2-core machine shared with other work.
 """
 
 from __future__ import annotations
