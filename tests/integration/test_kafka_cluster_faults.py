@@ -70,6 +70,7 @@ class Cluster:
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         self.procs: dict = {}
+        self._admin: AdminClient | None = None
 
     @property
     def bootstrap(self) -> str:
@@ -95,12 +96,16 @@ class Cluster:
         self.wait_complete()
 
     def stop(self) -> None:
+        self._admin = None  # AdminClient has no close: its last reference gone, it ends
         for proc in self.procs.values():
             kafka_broker.stop_process_group(proc)
         self.procs.clear()
 
     def admin(self) -> AdminClient:
-        return AdminClient({"bootstrap.servers": self.bootstrap})
+        """One client for every poll (each new one dials all three nodes anew)."""
+        if self._admin is None:
+            self._admin = AdminClient({"bootstrap.servers": self.bootstrap, "log_level": 0})
+        return self._admin
 
     def wait_complete(self, timeout_s: float = 90) -> None:
         """Until all three brokers are in the metadata and every partition has all three
