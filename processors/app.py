@@ -49,7 +49,9 @@ def faust_app(settings: Settings) -> faust.App:
         broker_commit_interval=1.0,
         # tansu holds a join for the whole rebalance timeout; short keeps start-up quick.
         broker_rebalance_timeout=settings.kafka_rebalance_timeout_s,
-        broker_session_timeout=max(settings.kafka_rebalance_timeout_s, 10),
+        broker_session_timeout=max(
+            settings.kafka_rebalance_timeout_s, settings.kafka_session_timeout_s
+        ),
         broker_heartbeat_interval=1.0,
         producer_partitioner=None,
         topic_replication_factor=settings.kafka_replication,

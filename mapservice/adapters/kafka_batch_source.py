@@ -61,7 +61,12 @@ STALE_COMMITS = Counter(
 
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
-    session_ms = max(int(settings.kafka_rebalance_timeout_s * 1000), 10_000)
+    # A batch may take this long between polls (a stalled insert) before the member leaves
+    # its group; the session (heartbeats, sent by librdkafka's own thread) may be shorter.
+    poll_ms = max(int(settings.kafka_rebalance_timeout_s * 1000), 10_000)
+    session_ms = int(
+        max(settings.kafka_rebalance_timeout_s, settings.kafka_session_timeout_s) * 1000
+    )
     if settings.kafka_group_protocol == "consumer":
         # KIP-848: the broker assigns and holds the session timeout and the heartbeat
         # interval (group.consumer.session.timeout.ms, ...heartbeat.interval.ms; the
@@ -69,7 +74,7 @@ def consumer_config(settings: Settings, group_id: str) -> dict:
         return {
             **_common_config(settings, group_id),
             "group.protocol": "consumer",
-            "max.poll.interval.ms": session_ms,
+            "max.poll.interval.ms": poll_ms,
         }
     return {
         **_common_config(settings, group_id),
@@ -77,7 +82,7 @@ def consumer_config(settings: Settings, group_id: str) -> dict:
         # long, and tansu always waits the whole of it, so it is kept short. An insert
         # that stalls longer costs a rejoin and a re-delivery, never a loss.
         "session.timeout.ms": session_ms,
-        "max.poll.interval.ms": session_ms,
+        "max.poll.interval.ms": max(poll_ms, session_ms),
         "heartbeat.interval.ms": 1000,
     }
 

@@ -199,6 +199,9 @@ class KafkaNodeConfig:
                 f"share.coordinator.state.topic.replication.factor={self.replication}",
                 f"share.coordinator.state.topic.min.isr={self.min_insync_replicas}",
                 "group.initial.rebalance.delay.ms=0",
+                # Classic-protocol members may ask for sessions down to 3 s
+                # (MAPSERVICE_KAFKA_SESSION_TIMEOUT_S; Kafka's floor is 6 s).
+                "group.min.session.timeout.ms=3000",
                 # Consumer groups of Kafka 4's protocol (KIP-848, MAPSERVICE_KAFKA_GROUP_PROTOCOL):
                 # the broker holds the members' session and heartbeat; the same 10 s and 1 s the
                 # classic protocol's members ask for (kafka_batch_source.py), under Kafka's

@@ -35,6 +35,13 @@ GUARD = "guard"
 STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt", "kafka")
 
 
+def stop_rank(name: str) -> int:
+    """Where component `name` stops in STOP_ORDER: a replica ("gateway-2", "processors-1")
+    with its kind, before the brokers it needs to shut down cleanly; other names last."""
+    kind = name if name in STOP_ORDER else name.rsplit("-", 1)[0]
+    return STOP_ORDER.index(kind) if kind in STOP_ORDER else len(STOP_ORDER)
+
+
 def _prctl():
     try:
         return ctypes.CDLL(None, use_errno=True).prctl
@@ -157,10 +164,7 @@ def end(leftovers: list[Recorded], timeout_s: float = 10.0) -> None:
     to finish first): SIGTERM to its process group (each component leads its own session; a
     stopped one is continued, to act on it), SIGKILL if it still runs after `timeout_s`."""
 
-    def order(process: Recorded) -> int:
-        return STOP_ORDER.index(process.name) if process.name in STOP_ORDER else len(STOP_ORDER)
-
-    for process in sorted(leftovers, key=order):
+    for process in sorted(leftovers, key=lambda process: stop_rank(process.name)):
         if process.name == GUARD:
             _wait_gone(process, timeout_s * len(leftovers))
         for sig in (signal.SIGTERM, signal.SIGKILL):

@@ -428,21 +428,11 @@ class Stack(StackMqtt, StackEnv):
             self.guard.kill()
             self.guard.wait()
             self.guard = None
-        for name in (
-            "sim",
-            "gateway",
-            "server",
-            "api",
-            "processors",
-            "clickhouse",
-            "mqtt",
-            "kafka",
-        ):
-            embedded.stop(self.procs.pop(name, None))
+        # Replicas with their kind: a processors replica stopped after Kafka spent its whole
+        # stop timeout retrying the gone broker.
+        for name in sorted(self.procs, key=lifetime.stop_rank):
+            embedded.stop(self.procs.pop(name))
             self._record()
-        for proc in self.procs.values():
-            embedded.stop(proc)
-        self.procs.clear()
         if self.tied_to_parent:
             self.pid_file.remove()
 

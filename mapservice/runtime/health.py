@@ -154,13 +154,14 @@ class KafkaMetadata:
             self.admin = None  # AdminClient has no close: its last reference gone, it ends
 
 
-def kafka_check(settings: Settings, ttl_s: float = 5.0, timeout_s: float = 3.0) -> CachedCheck:
-    """Whether a Kafka broker answers metadata; its `close()` releases the client."""
+def kafka_check(settings: Settings, timeout_s: float = 3.0) -> CachedCheck:
+    """Whether a Kafka broker answers metadata (an answer reused for
+    MAPSERVICE_KAFKA_CHECK_TTL_S); its `close()` releases the client."""
     metadata = KafkaMetadata(settings)
     return CachedCheck(
         "kafka",
         partial(metadata, timeout_s),
-        ttl_s=ttl_s,
+        ttl_s=settings.kafka_check_ttl_s,
         timeout_s=timeout_s,
         on_close=metadata.close,
     )

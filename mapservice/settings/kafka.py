@@ -36,6 +36,26 @@ class KafkaSettings(BaseModel):
     kafka_rebalance_timeout_s: float = Field(
         3.0, gt=0, description="Consumer-group rebalance timeout."
     )
+    kafka_session_timeout_s: float = Field(
+        10.0,
+        ge=3,  # three heartbeats (one a second)
+        description=(
+            "Consumer-group session timeout of the processors' classic-protocol consumers: how "
+            "long after a replica died (no heartbeat) its partitions go to the others or to "
+            "its restart. At least the rebalance timeout; Apache Kafka refuses less than its "
+            "group.min.session.timeout.ms (6 s by default, 3 s on the embedded node)."
+        ),
+    )
+    kafka_check_ttl_s: float = Field(
+        5.0,
+        ge=0.5,
+        le=60,
+        description=(
+            "How long the gateway's and the processors' readiness reuse an answer about Kafka "
+            "(a broker metadata request at most this often): also how long a Kafka that went "
+            "or came back may go unnoticed by /readyz."
+        ),
+    )
     kafka_group_protocol: Literal["classic", "consumer"] = Field(
         "classic",
         description=(

@@ -30,8 +30,8 @@ from mapservice.core.wire2019 import (
 ROBOTS = 10
 POSE_PERIOD_S = 0.2  # per robot: 50 poses/s in all
 CHUNK_EVERY = 10  # a chunk every 10th pose of a robot: 5 chunks/s
-STEADY_S = 2.0  # load before each fault and after its recovery
-DOWN_S = 2.0  # how long a killed component stays down
+STEADY_S = 1.0  # load before each fault and after its recovery: 50 poses, 5 chunks
+DOWN_S = 1.0  # how long a killed component stays down (beyond its own start's time)
 CLICKHOUSE_DOWN_S = 30.0
 RECOVERY_TIMEOUT_S = 120.0
 SNAPSHOT_EVERY_S = 10
@@ -39,6 +39,8 @@ SNAPSHOT_ENV = {
     "MAPSERVICE_SNAPSHOT_EVERY_S": str(SNAPSHOT_EVERY_S),
     "MAPSERVICE_SNAPSHOT_GRACE_S": "0",
 }  # snapshots every 10 s, built at once
+# A killed processors' partitions go to its restart 3 s after it died, not 10.
+SHORT_SESSION_ENV = {"MAPSERVICE_KAFKA_SESSION_TIMEOUT_S": "3"}
 
 
 def now_ms() -> int:
@@ -269,18 +271,27 @@ class Sql:
 
     def __init__(self, **client_args) -> None:
         self.client_args = client_args
+        self._client = None  # one connection for every statement, new after a failure
 
     def __call__(self, query: str, **parameters) -> list[tuple]:
-        client = clickhouse_connect.get_client(
-            connect_timeout=10, send_receive_timeout=60, **self.client_args
-        )
+        if self._client is None:
+            self._client = clickhouse_connect.get_client(
+                connect_timeout=10, send_receive_timeout=60, **self.client_args
+            )
         try:
             if query.startswith("OPTIMIZE"):
-                client.command(query)
+                self._client.command(query)
                 return []
-            return client.query(query, parameters=parameters).result_rows
-        finally:
-            client.close()
+            return self._client.query(query, parameters=parameters).result_rows
+        except Exception:
+            # The server may have been restarted: the next statement connects anew.
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
 
 
 def stored_identities(sql: Sql, segments: list[str], final: bool) -> tuple[dict, dict]:

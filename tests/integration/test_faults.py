@@ -24,8 +24,12 @@ the processors had not yet stored. Those losses are then measured and reported, 
 can be promised is asserted: nothing duplicated, nothing lost that was published after
 the new broker was up. docs/delivery.md and docs/embedded.md state the limit.
 
+Each fault runs one second of load before it and keeps its part down one second beyond
+its own restart's time; the processors' consumer sessions are 3 s (SHORT_SESSION_ENV), so a
+killed processors' partitions go to its restart without the default's 10 s wait.
+
 Bounded: every wait has a timeout and every process is stopped in a finally block; the
-module takes about 4.5 minutes on the project's 2-core machine shared with other work.
+module takes about four minutes on the project's 2-core machine shared with other work.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from .fault_load import (
     DOWN_S,
     POSE_PERIOD_S,
     ROBOTS,
+    SHORT_SESSION_ENV,
     SNAPSHOT_ENV,
     STEADY_S,
     FaultRun,
@@ -79,7 +84,11 @@ def split(tmp_path_factory):
     stack = Stack(
         tmp_path_factory.mktemp("faults-split"),
         mqtt="mosquitto",
-        extra_env={"MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}", **SNAPSHOT_ENV},
+        extra_env={
+            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
+            **SNAPSHOT_ENV,
+            **SHORT_SESSION_ENV,
+        },
     )
     stack.ch_port = ch_port  # type: ignore[attr-defined]
     stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]
@@ -116,7 +125,7 @@ def split_faults(stack: Stack) -> list[tuple[str, Callable[[], None]]]:
     def kafka_while_clickhouse_down() -> None:
         # What waited in Kafka for ClickHouse: on disk with Apache Kafka, in tansu's memory only.
         kill(stack, "clickhouse")
-        time.sleep(5)
+        time.sleep(DOWN_S)  # a backlog in Kafka, unstored, when Kafka goes too
         kill(stack, "kafka")
         time.sleep(DOWN_S)
         restart("kafka")
@@ -145,7 +154,7 @@ def test_split_deployment_keeps_every_acknowledged_message_through_each_fault(sp
     load = Load(split.mqtt_url, meta_for(load_ros_map(MAPS / "depot.yaml")))
     runs: list[FaultRun] = []
     try:
-        time.sleep(2)
+        time.sleep(STEADY_S)  # the warmup segment
         for name, fault in split_faults(split):
             runs.append(run_fault(name, load, split.api_url, sql, fault))
             exited = [n for n, p in split.procs.items() if p.poll() is not None]
@@ -192,7 +201,7 @@ class SupervisedUp(Up):
             "0",
             "--restart-base-s",
             "0.5",
-            env={**os.environ, **SNAPSHOT_ENV, "COLUMNS": "200"},
+            env={**os.environ, **SNAPSHOT_ENV, **SHORT_SESSION_ENV, "COLUMNS": "200"},
             ready_within_s=None,
         )
 
@@ -257,7 +266,7 @@ def test_up_supervises_each_killed_part_and_keeps_every_acknowledged_message(tmp
             proxy_path="/clickhouse",
         )
         load = Load(f"mqtt://127.0.0.1:{up.mqtt_port}", meta_for(load_ros_map(MAPS / "depot.yaml")))
-        time.sleep(2)
+        time.sleep(STEADY_S)  # the warmup segment
         for name in ("gateway", "processors", "api", "clickhouse", "mqtt", "kafka"):
             runs.append(run_fault(f"up-{name}", load, up.api_url, sql, kill_and_wait_restart(name)))
         load.segment = "after"

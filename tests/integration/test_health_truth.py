@@ -41,7 +41,11 @@ def stack(tmp_path_factory):
     stack = Stack(
         tmp_path_factory.mktemp("health"),
         mqtt="mosquitto",
-        extra_env={"MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}"},
+        extra_env={
+            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
+            # /readyz asks Kafka every second, not every 5 s: a change shows within 1 s.
+            "MAPSERVICE_KAFKA_CHECK_TTL_S": "1",
+        },
     )
     stack.ch_port = ch_port  # type: ignore[attr-defined]
     stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]

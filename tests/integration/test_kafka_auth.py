@@ -111,10 +111,13 @@ def records(stack: Stack, topic: str) -> list[bytes]:
 def test_a_producer_without_the_services_credential_writes_nothing(stack):
     settings = stack.settings()
     topic = settings.topic_command_events
-    outcomes: dict[str, object] = {}
+    # Every intruder at once (each its own producer, their timeouts running side by side):
+    # each one's record is refused or times out on its own, whatever the others do.
+    producers: dict[str, Producer] = {}
+    delivered: dict[str, list] = {}
     for name, conf in intruders(stack).items():
         marker = f"intruder-{name}".encode()
-        producer = Producer(
+        producers[name] = Producer(
             {
                 "bootstrap.servers": stack.kafka_bootstrap,
                 **conf,
@@ -122,14 +125,19 @@ def test_a_producer_without_the_services_credential_writes_nothing(stack):
                 "log_level": 0,
             }
         )
-        delivered: list = []
+        delivered[name] = []
         try:
-            producer.produce(topic, marker, callback=lambda err, _m, out=delivered: out.append(err))
+            producers[name].produce(
+                topic, marker, callback=lambda err, _m, out=delivered[name]: out.append(err)
+            )
         except Exception as exc:  # refused before it is queued
-            delivered.append(exc)
-        producer.flush(8)
-        outcomes[name] = delivered[0] if delivered else "no delivery report"
-        assert delivered and delivered[0] is not None, f"{name}: the broker took the record"
+            delivered[name].append(exc)
+    deadline = time.monotonic() + 15  # each record's own timeout is 4 s
+    for producer in producers.values():
+        producer.flush(max(0.0, deadline - time.monotonic()))
+    outcomes = {name: out[0] if out else "no delivery report" for name, out in delivered.items()}
+    for name, out in delivered.items():
+        assert out and out[0] is not None, f"{name}: the broker took the record"
     # The service's own credential, for contrast: its record is there, the others' are not.
     producer = Producer({**settings.kafka_config(), "message.timeout.ms": 10000})
     producer.produce(topic, b"the-service")

@@ -18,6 +18,7 @@ import os
 import signal
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -69,6 +70,7 @@ class Cluster:
         self.root = root
         root.mkdir(parents=True, exist_ok=True)
         self.procs: dict = {}
+        self._admin: AdminClient | None = None
 
     @property
     def bootstrap(self) -> str:
@@ -79,8 +81,9 @@ class Cluster:
         self.procs[node] = kafka_broker.launch(self.configs[node], log, cluster=self.cluster_id)
 
     def start_all(self) -> None:
-        for node in NODES:
-            self.start(node)
+        # Side by side: each node's first start formats its log (a JVM of its own) first.
+        with ThreadPoolExecutor(len(NODES)) as pool:
+            list(pool.map(self.start, NODES))
         self.wait_complete()
 
     def kill(self, node: int) -> None:
@@ -93,12 +96,16 @@ class Cluster:
         self.wait_complete()
 
     def stop(self) -> None:
+        self._admin = None  # AdminClient has no close: its last reference gone, it ends
         for proc in self.procs.values():
             kafka_broker.stop_process_group(proc)
         self.procs.clear()
 
     def admin(self) -> AdminClient:
-        return AdminClient({"bootstrap.servers": self.bootstrap})
+        """One client for every poll (each new one dials all three nodes anew)."""
+        if self._admin is None:
+            self._admin = AdminClient({"bootstrap.servers": self.bootstrap, "log_level": 0})
+        return self._admin
 
     def wait_complete(self, timeout_s: float = 90) -> None:
         """Until all three brokers are in the metadata and every partition has all three
@@ -193,7 +200,7 @@ def test_a_lost_broker_and_a_lost_controller_lose_and_duplicate_nothing(tmp_path
             proxy_path="/clickhouse",
         )
         load = Load(stack.mqtt_url, meta)
-        time.sleep(2)
+        time.sleep(STEADY_S)  # the warmup segment
         pose_topic = stack.settings().topic_pose_events
 
         def kill_restart(which: Callable[[], int]) -> Callable[[], None]:

@@ -144,6 +144,8 @@ def stack(tmp_path):
             "MAPSERVICE_SNAPSHOT_EVERY_S": "20",
             "MAPSERVICE_SNAPSHOT_GRACE_S": "0",
             "MAPSERVICE_CONFLICT_WINDOW_S": str(WINDOW_MS // 1000),
+            # The killed server's partitions go to its restart 3 s after it died, not 10.
+            "MAPSERVICE_KAFKA_SESSION_TIMEOUT_S": "3",
         },
     )
     s.extra_env["MAPSERVICE_PUBLIC_BASE_URL"] = s.api_url

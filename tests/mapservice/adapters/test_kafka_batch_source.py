@@ -33,6 +33,20 @@ def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker(
     Consumer(new).close()
 
 
+def test_the_session_timeout_is_a_setting_apart_from_the_poll_interval() -> None:
+    """A short session (a dead replica's partitions move sooner) leaves the poll interval
+    (how long a stalled insert may hold a batch before the member leaves) at 10 s or the
+    rebalance timeout; a rebalance timeout beyond the session lengthens both."""
+    for session_s, rebalance_s in [(3.0, 0.5), (3.0, 3.0), (4.0, 5.0), (10.0, 3.0), (45.0, 30.0)]:
+        conf = consumer_config(
+            Settings(kafka_session_timeout_s=session_s, kafka_rebalance_timeout_s=rebalance_s),
+            "history",
+        )
+        assert conf["session.timeout.ms"] == int(max(session_s, rebalance_s) * 1000)
+        assert conf["max.poll.interval.ms"] == max(10_000, conf["session.timeout.ms"]), conf
+        assert conf["heartbeat.interval.ms"] * 3 <= conf["session.timeout.ms"], conf
+
+
 def test_constructing_the_source_opens_no_consumer() -> None:
     """No network I/O in the constructor: the consumer is created by start()."""
     source = KafkaBatchSource(Settings(kafka_bootstrap="127.0.0.1:1"), ["t"], "g")

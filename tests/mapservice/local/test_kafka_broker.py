@@ -99,6 +99,8 @@ def test_the_node_keeps_by_time_and_size_with_a_bounded_heap(tmp_path) -> None:
     assert props["controller.quorum.voters"] == "1@127.0.0.1:1235"
     assert props["listeners"] == "PLAINTEXT://127.0.0.1:1234,CONTROLLER://127.0.0.1:1235"
     assert props["log.dirs"] == str(tmp_path / "log")
+    # The shortest session MAPSERVICE_KAFKA_SESSION_TIMEOUT_S allows is accepted.
+    assert int(props["group.min.session.timeout.ms"]) <= 3000
 
 
 def test_auto_is_tansu_only_where_no_java_is_found(monkeypatch, tmp_path) -> None:

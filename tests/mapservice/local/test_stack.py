@@ -159,3 +159,36 @@ def test_protecting_the_data_dir_passes_over_a_file_that_vanishes_meanwhile(
     monkeypatch.setattr(Path, "lstat", lstat)
     Stack(data).protect_data_dir()
     assert kept.stat().st_mode & 0o077 == 0
+
+
+def test_stop_ends_replicas_with_their_kind_before_the_brokers(tmp_path, monkeypatch):
+    """Whatever order the components were started in, `stop` ends the clients before the
+    brokers they need for a clean shutdown: a replica ("processors-2", "gateway-3",
+    "api-2") with its kind, so never after Kafka; a name of no kind comes last."""
+    import random
+
+    from mapservice.local.lifetime import STOP_ORDER
+
+    kinds = [k for k in STOP_ORDER if k != "guard"]
+    rng = random.Random(5)
+    for _ in range(30):
+        names = [k for k in kinds if rng.random() < 0.7]
+        names += [f"{k}-{n}" for k in ("gateway", "api", "processors") for n in (1, 2, 3)]
+        names += ["elsewhere"]
+        rng.shuffle(names)
+        stopped: list[str] = []
+        stack = Stack(tmp_path / "data", mqtt="mosquitto")
+        stack.procs = {name: name for name in names}  # type: ignore[misc]
+        monkeypatch.setattr(
+            "mapservice.local.stack.embedded.stop",
+            lambda proc, stopped=stopped: proc is None or stopped.append(proc),  # None: none
+        )
+        stack.stop()
+        assert sorted(stopped) == sorted(names) and not stack.procs
+        rank = [
+            kinds.index(n if n in kinds else n.rsplit("-", 1)[0])
+            if n != "elsewhere"
+            else len(kinds)
+            for n in stopped
+        ]
+        assert rank == sorted(rank), stopped

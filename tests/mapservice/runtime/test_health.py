@@ -6,7 +6,8 @@ from __future__ import annotations
 import threading
 import time
 
-from mapservice.runtime.health import CachedCheck, Heartbeat
+from mapservice.runtime.health import CachedCheck, Heartbeat, kafka_check
+from mapservice.settings import Settings
 
 
 class Clock:
@@ -101,3 +102,23 @@ def test_nowait_never_blocks_and_refreshes_in_the_background() -> None:
         time.sleep(0.01)
     assert len(calls) == 2  # the refresh runs, in the background
     release.set()
+
+
+def test_the_kafka_check_reuses_its_answer_for_the_configured_time() -> None:
+    """MAPSERVICE_KAFKA_CHECK_TTL_S: a broker that is not there is asked again only once the
+    last answer is that old (default 5 s), so /readyz notices a change within it."""
+    clock = [0.0]
+    for ttl_s in (0.5, 1.0, 5.0):
+        calls = []
+        settings = Settings(kafka_bootstrap="127.0.0.1:1", kafka_check_ttl_s=ttl_s)
+        check = kafka_check(settings)
+        assert check.ttl_s == ttl_s
+        # The metadata call itself is swapped for a counter: what is tested is the reuse.
+        check.call = lambda calls=calls: calls.append(1) or True
+        check.clock = lambda: clock[0]
+        assert check() is True and len(calls) == 1
+        clock[0] += ttl_s * 0.9
+        assert check() is True and len(calls) == 1  # reused
+        clock[0] += ttl_s * 0.2
+        assert check() is True and len(calls) == 2  # asked again
+    assert Settings().kafka_check_ttl_s == 5.0
