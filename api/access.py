@@ -18,6 +18,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from mapservice.settings import Settings
 
 from .access_guard import DOCS_PATHS
+from .context import context_of
 from .credentials import (
     GRANTS,
     WHO_MAY,
@@ -82,7 +83,7 @@ class Need:
         self, request: Request, credentials: HTTPAuthorizationCredentials | None = Security(_bearer)
     ) -> Caller:
         caller = decide(
-            request.app.state.access,
+            context_of(request.app).access,
             self.scope,
             credentials.credentials if credentials else None,
             client_address(request.client),
@@ -124,7 +125,7 @@ class NeedSocket:
             token = subprotocol_token(websocket.headers.get("sec-websocket-protocol", ""))
         try:
             return decide(
-                websocket.app.state.access,
+                context_of(websocket.app).access,
                 self.scope,
                 token,
                 client_address(websocket.client),
@@ -210,7 +211,7 @@ def document_scopes(app: FastAPI) -> None:
         if app.openapi_schema is not None:
             return app.openapi_schema
         schema = build()
-        settings: Settings = app.state.settings
+        settings: Settings = context_of(app).settings
         scopes = {
             (method.lower(), r.path): route_scope(r)
             for r in all_routes(app)

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import threading
 
-from fastapi import Request
-
 from mapservice.core.annotations import (
     AnnotationCreated,
     AnnotationEdit,
@@ -21,7 +19,7 @@ from mapservice.core.ports import AnnotationReader
 RECENT_MS = 60_000
 
 
-class _Recent:
+class RecentEdits:
     """The edits this process published lately (read-your-writes before the store has them)."""
 
     def __init__(self) -> None:
@@ -46,22 +44,12 @@ class _Recent:
             return [e for e in self.edits if e.ts_ms <= at_ms]
 
 
-_created = threading.Lock()
-
-
-def recent_edits(request: Request) -> _Recent:
-    state = request.app.state
-    with _created:
-        if getattr(state, "annotation_edits", None) is None:
-            state.annotation_edits = _Recent()
-    edits: _Recent = state.annotation_edits
-    return edits
-
-
-def standing(request: Request, store: AnnotationReader, at_ms: int) -> dict[str, CurrentAnnotation]:
+def standing(
+    recent_edits: RecentEdits, store: AnnotationReader, at_ms: int
+) -> dict[str, CurrentAnnotation]:
     """The annotations at `at_ms`: the store's, with this process's recent edits applied."""
     current = {c.annotation_id: c for c in store.annotations_at(at_ms)}
-    recent = recent_edits(request).up_to(at_ms)
+    recent = recent_edits.up_to(at_ms)
     if not recent:
         return current
     # The recent edits are the latest of their ids: re-applied on the stored state of those

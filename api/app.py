@@ -2,25 +2,28 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 from fastapi import FastAPI
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi_offline import FastAPIOffline
-from mapservice.api.live_hub import LiveHub
 from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette_exporter import PrometheusMiddleware
 
 from mapservice import __version__
 from mapservice.adapters.clock import SystemClock
+from mapservice.api.live_hub import LiveHub
 from mapservice.core.ports import Clock, EventPublisher, HistoryStore
+from mapservice.core.store_roles import StoreRoles
 from mapservice.settings import Settings
 
 from .access import check_routes, document_scopes
 from .access_guard import AccessGuard
 from .admission import AdmissionControl, default_pool_of
+from .context import ApiContext
 from .credentials import Credentials
 from .limits import BodyLimit, HostCheck, allowed_hosts, validation_error
 from .routers import (
@@ -85,15 +88,23 @@ ROUTERS = (
 
 def create_app(
     settings: Settings,
-    store: HistoryStore,
-    readiness: dict[str, Callable[[], bool]] | None = None,
+    store: HistoryStore | None,
+    readiness: Mapping[str, Callable[[], bool]] | None = None,
     clock: Clock | None = None,
     live_hub: LiveHub | None = None,
     publisher: EventPublisher | None = None,
     sql_app: ASGIApp | None = None,
     pool_of: Callable[[str], str | None] = default_pool_of,
+    *,
+    liveness: Mapping[str, Callable[[], bool]] | None = None,
+    advisory: Mapping[str, Callable[[], bool]] | None = None,
+    history_status: Callable[[], dict[str, Any]] | None = None,
 ) -> FastAPI:
-    """`pool_of` names the admission pool of a path (api/admission.py)."""
+    """The app over `store`, cut into its roles here: the routes are handed one role each
+    through api/deps.py, none the whole store. `store` None builds the routes only (the
+    OpenAPI document). `pool_of` names the admission pool of a path (api/admission.py);
+    `readiness` and `advisory` are the checks /readyz answers with, `liveness` those of
+    /healthz; `history_status` says whether this process stores the history."""
     # /docs and /redoc with Swagger UI and ReDoc served from the installed package, not a
     # CDN: a plant network often has no internet.
     app = FastAPIOffline(
@@ -101,26 +112,29 @@ def create_app(
         version=__version__,
         description="Map and fleet history for factory robots",
     )
-    app.state.settings = settings
-    app.state.store = store
-    app.state.readiness = readiness or {}
-    app.state.clock = clock or SystemClock()
-    app.state.live = live_hub
-    app.state.publisher = publisher  # None: 2019 REST writes answer 503
-    # Exports are produced in threads of their own, as many as the exports' pool admits
-    # (api/admission.py, api/streaming.py): they never take the reads' threads.
-    app.state.export_executor = ThreadPoolExecutor(
-        settings.api_export_workers, thread_name_prefix="exports"
-    )
     # The tokens as the settings hold them: local mode's generated ones are filled in by
     # the process before (mapservice/runtime/secrets.py); an empty one opens nothing.
-    app.state.access = credentials = Credentials(settings)
+    credentials = Credentials(settings)
+    # The app's one state: everything the routes and middlewares are given (api/context.py).
+    app.state.context = ApiContext(
+        settings=settings,
+        clock=clock or SystemClock(),
+        roles=None if store is None else StoreRoles.of(store),
+        access=credentials,
+        export_executor=ThreadPoolExecutor(
+            settings.api_export_workers, thread_name_prefix="exports"
+        ),
+        publisher=publisher,
+        live=live_hub,
+        readiness=dict(readiness or {}),
+        liveness=dict(liveness or {}),
+        advisory=dict(advisory or {}),
+        history_status=history_status,
+    )
     for module in ROUTERS:
         app.include_router(module.router)
     check_routes(app)
     document_scopes(app)
-    if sql_app is not None:
-        app.state.sql_app = sql_app
     # Request rate, errors and duration per route template (mapservice_api_requests_total,
     # mapservice_api_request_duration_seconds); probes and scrapes are not counted, and
     # paths that match no route share one label instead of one series per URL.

@@ -88,7 +88,8 @@ async def compose_api(
     advisory: Mapping[str, Check],
     history_status: Callable[[], dict[str, Any]] | None,
 ) -> Api:
-    """Builds the API around `store`; nothing is served or read until `Api.start`/`serve`.
+    """Builds the API around `store` (the app cuts it into its roles); nothing is served
+    or read until `Api.start`/`serve`.
 
     `readiness` (required) and `advisory` (reported) are the checks /readyz answers with,
     `liveness` the ones /healthz does; `history_status` says whether the history is being
@@ -111,15 +112,15 @@ async def compose_api(
     app = create_app(
         settings,
         store,
-        dict(readiness),
+        readiness,
         clock=clock_from_settings(settings),
         live_hub=hub,
         publisher=publisher,
         sql_app=await loop.run_in_executor(None, analyst_app, settings),
+        liveness=liveness,
+        advisory=advisory,
+        # /api/v1/status (the UI's banner) reads the inserts' state where they happen.
+        history_status=history_status,
     )
-    app.state.liveness = dict(liveness)
-    app.state.advisory = dict(advisory)
-    # /api/v1/status (the UI's banner) reads the inserts' state where they happen.
-    app.state.history_status = history_status
     server = uvicorn.Server(api_server_config(app, settings))
     return Api(app, hub, relay, publisher, server)

@@ -1,27 +1,157 @@
-"""What routers share: the store, the settings, and time-parameter parsing."""
+"""What routers share: the parts of the app's context (api/context.py) as dependencies,
+one role of the store each, and time-parameter parsing.
+
+A route declares what it uses with the aliases below (`HistoryDep`, `SettingsDep`...): each
+resolves to one part of the context, so no route is handed the store as a whole."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from typing import Annotated, Any
 
-from fastapi import Depends, HTTPException, Query, Request
+from fastapi import Depends, HTTPException, Query
 from pydantic import BaseModel, Field
+from starlette.requests import HTTPConnection
 
-from mapservice.core.ports import Clock, HistoryStore
+from mapservice.core.ports import (
+    AnnotationReader,
+    ChangeFeed,
+    Clock,
+    CommandReader,
+    ConflictReader,
+    LegacyQueries,
+    StoreAdmin,
+    TableExports,
+    TimeTravelReader,
+    VdaReader,
+)
+from mapservice.core.store_roles import StoreRoles
 from mapservice.core.wire2019 import parse_query_instant
 from mapservice.settings import Settings
 
-
-def get_store(request: Request) -> HistoryStore:
-    return request.app.state.store
-
-
-def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
+from .annotation_state import RecentEdits
+from .content_cache import ContentCache
+from .context import ApiContext, Check, context_of
+from .live_hub import LiveHub
 
 
-def get_clock(request: Request) -> Clock:
-    return request.app.state.clock
+async def api_context(connection: HTTPConnection) -> ApiContext:
+    """The context `create_app` built (HTTP requests and WebSockets alike). These
+    dependencies are async because they only read it: a sync one would take a thread of
+    the pool the reads use (the probes must answer while every one of those is busy)."""
+    return context_of(connection.app)
+
+
+Context = Annotated[ApiContext, Depends(api_context)]
+
+
+async def get_settings(context: Context) -> Settings:
+    return context.settings
+
+
+async def get_clock(context: Context) -> Clock:
+    return context.clock
+
+
+async def _roles(context: Context) -> StoreRoles:
+    if context.roles is None:
+        raise HTTPException(503, "this API app was built without a history store")
+    return context.roles
+
+
+RolesDep = Annotated[StoreRoles, Depends(_roles)]
+
+
+async def history_reader(roles: RolesDep) -> TimeTravelReader:
+    return roles.history
+
+
+async def conflict_reader(roles: RolesDep) -> ConflictReader:
+    return roles.conflicts
+
+
+async def annotation_reader(roles: RolesDep) -> AnnotationReader:
+    return roles.annotations
+
+
+async def command_reader(roles: RolesDep) -> CommandReader:
+    return roles.commands
+
+
+async def vda_reader(roles: RolesDep) -> VdaReader:
+    return roles.vda
+
+
+async def change_feed(roles: RolesDep) -> ChangeFeed:
+    return roles.changes
+
+
+async def legacy_queries(roles: RolesDep) -> LegacyQueries:
+    return roles.legacy
+
+
+async def store_admin(roles: RolesDep) -> StoreAdmin:
+    return roles.admin
+
+
+async def table_exports(roles: RolesDep) -> TableExports | None:
+    """None for a store without them (only ClickHouse has them): the route says 501."""
+    return roles.exports
+
+
+async def export_executor(context: Context) -> ThreadPoolExecutor:
+    return context.export_executor
+
+
+async def live_hub(context: Context) -> LiveHub | None:
+    return context.live
+
+
+async def readiness_checks(context: Context) -> Mapping[str, Check]:
+    return context.readiness
+
+
+async def liveness_checks(context: Context) -> Mapping[str, Check]:
+    return context.liveness
+
+
+async def advisory_checks(context: Context) -> Mapping[str, Check]:
+    return context.advisory
+
+
+async def content_cache(context: Context) -> ContentCache:
+    return context.content_cache
+
+
+async def recent_edits(context: Context) -> RecentEdits:
+    return context.recent_edits
+
+
+async def history_status(context: Context) -> Callable[[], dict[str, Any]] | None:
+    """The inserts' state where the processors run in this process (`mapservice serve`)."""
+    return context.history_status
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+ClockDep = Annotated[Clock, Depends(get_clock)]
+HistoryDep = Annotated[TimeTravelReader, Depends(history_reader)]
+ConflictsDep = Annotated[ConflictReader, Depends(conflict_reader)]
+AnnotationsDep = Annotated[AnnotationReader, Depends(annotation_reader)]
+CommandsDep = Annotated[CommandReader, Depends(command_reader)]
+VdaDep = Annotated[VdaReader, Depends(vda_reader)]
+ChangesDep = Annotated[ChangeFeed, Depends(change_feed)]
+LegacyDep = Annotated[LegacyQueries, Depends(legacy_queries)]
+AdminDep = Annotated[StoreAdmin, Depends(store_admin)]
+ExportsDep = Annotated[TableExports | None, Depends(table_exports)]
+ExportPoolDep = Annotated[ThreadPoolExecutor, Depends(export_executor)]
+RecentEditsDep = Annotated[RecentEdits, Depends(recent_edits)]
+ContentCacheDep = Annotated[ContentCache, Depends(content_cache)]
+LiveHubDep = Annotated[LiveHub | None, Depends(live_hub)]
+ReadinessDep = Annotated[Mapping[str, Check], Depends(readiness_checks)]
+LivenessDep = Annotated[Mapping[str, Check], Depends(liveness_checks)]
+AdvisoryDep = Annotated[Mapping[str, Check], Depends(advisory_checks)]
+HistoryStatusSource = Annotated[Callable[[], dict[str, Any]] | None, Depends(history_status)]
 
 
 def parse_time_param(name: str, value: str) -> int:
@@ -62,9 +192,9 @@ def parse_instant(value: str, settings: Settings, now_ms: int) -> int:
 
 
 def at_instant(
+    settings: SettingsDep,
+    clock: ClockDep,
     at: str | None = Query(None, description="Instant (ISO 8601 or epoch ms); default now"),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
 ) -> int:
     """The `at` query parameter as epoch ms, checked against the retention."""
     now = clock.now_ms()

@@ -13,18 +13,18 @@ import sys
 from typing import Any
 
 from mapservice.api.app import create_app
-
+from mapservice.api.context import context_of
 from mapservice.settings import Settings
 
 
 def openapi_document() -> dict[str, Any]:
     """The document `/openapi.json` serves, for the default settings (no store is needed:
     building it reads only the routes)."""
-    app = create_app(Settings.model_construct(), None)  # type: ignore[arg-type]
+    app = create_app(Settings.model_construct(), None)
     try:
         return app.openapi()
     finally:
-        app.state.export_executor.shutdown(wait=False)
+        context_of(app).export_executor.shutdown(wait=False)
 
 
 def main() -> None:

@@ -17,12 +17,14 @@ from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, encode, k
 from mapservice.core.ports import EventPublisher
 from mapservice.settings import Settings
 
+from .context import context_of
+
 PUBLISH_TIMEOUT_S = 10.0
 
 
 def get_publisher(request: Request) -> EventPublisher:
     """The app's publisher, or a 503 saying how to configure one."""
-    publisher: EventPublisher | None = getattr(request.app.state, "publisher", None)
+    publisher = context_of(request.app).publisher
     if publisher is None:
         raise HTTPException(
             503,

@@ -1,6 +1,7 @@
 """The process entry: runs the processors and/or the API in one asyncio loop around one
 HistoryStore. Each is composed in its own package (processors/composition.py,
-api/composition.py); here the store is made, the schema awaited, the health checks of what
+api/composition.py), each cutting the store into the roles its parts use
+(mapservice/core/store_roles.py); here the store is made, the schema awaited, the health checks of what
 runs in this process gathered, and the parts started and stopped in order.
 
 With embedded ClickHouse (chdb) only one process may open the data directory, so

@@ -16,6 +16,7 @@ import faust
 import structlog
 from prometheus_client import Counter
 
+from mapservice.core.ports import RetentionKeeper, SnapshotKeeper
 from mapservice.settings import Settings
 
 from .sink import HistorySink, decode_dead_letters
@@ -67,7 +68,7 @@ def dead_letter_agent(
         async for events in stream.noack().noack_take(batch, within=within):
             records = decode_dead_letters((e.value for e in events), now_ms())
             await sink.insert_until_done(
-                sink.store.append_dead_letters, records, {topic: len(records)}
+                sink.writer.append_dead_letters, records, {topic: len(records)}
             )
             for e in events:
                 e.ack()
@@ -83,24 +84,29 @@ def snapshot_tick_s(settings: Settings) -> float:
 
 
 def snapshot_timer(
-    sink: HistorySink, now_ms: Callable[[], int], grace_ms: int
+    sink: HistorySink,
+    snapshots: SnapshotKeeper,
+    retention: RetentionKeeper,
+    now_ms: Callable[[], int],
+    grace_ms: int,
 ) -> Callable[[], Awaitable[None]]:
     """One tick: repair what late events invalidated (a bounded step), build the snapshots
     due by the service's clock, then the retention step (the anchor snapshot first, so the
-    floor crosses the boundary; partitions older than its day dropped)."""
+    floor crosses the boundary; partitions older than its day dropped), each on the sink's
+    thread, the one that talks to the store."""
 
     async def build_snapshots() -> None:
         SNAPSHOT_RUNS.inc()
         try:
             # Late events first: snapshots they invalidated, a bounded step per tick.
-            repaired = await sink.run(sink.store.repair_snapshots)
+            repaired = await sink.run(snapshots.repair_snapshots)
             if repaired:
                 log.info("snapshots repaired after a late event", count=repaired)
             now = now_ms()
-            built = await sink.run(sink.store.build_snapshots, now - grace_ms)
+            built = await sink.run(snapshots.build_snapshots, now - grace_ms)
             if built:
                 log.info("snapshots built", count=built)
-            await sink.run(sink.store.apply_retention, now)
+            await sink.run(retention.apply_retention, now)
         except Exception as exc:  # the next tick tries again; reads stay correct meanwhile
             log.error("snapshot build or retention failed", error=str(exc))
 

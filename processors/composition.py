@@ -23,6 +23,7 @@ from mapservice.adapters.clock import clock_from_settings
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.core.ports import HistoryStore
+from mapservice.core.store_roles import StoreRoles
 from mapservice.settings import Settings
 
 from .advertiser import MqttAdvertiser
@@ -81,19 +82,30 @@ class Processors:
 
 
 def compose_processors(settings: Settings, store: HistoryStore) -> Processors:
-    """Builds the processors around `store`; nothing connects until `Processors.start`."""
+    """Builds the processors around `store`, cut into its roles here: each part is handed
+    the roles it uses, none the whole store. Nothing connects until `Processors.start`."""
+    roles = StoreRoles.of(store)
     app = faust_app(settings)
     # The service's clock (the wall clock unless settings simulate one): the timers, the
     # retention step and the views all read it.
     now_ms = clock_from_settings(settings).now_ms
     store_thread = StoreThread()
     live = KafkaLivePublisher(settings)
-    sink = HistorySink(store, live, thread=store_thread)
+    sink = HistorySink(roles.writer, live, thread=store_thread)
 
     # Live views: latest map + advertisements, robots, conflicts; rebuilt by the history
     # consumer on every partition assignment.
     advertiser = MqttAdvertiser(settings)
-    views = LiveViews(settings, store, advertiser, store_thread, now_ms=now_ms)
+    views = LiveViews(
+        settings,
+        history=roles.history,
+        annotations=roles.annotations,
+        conflicts=roles.conflicts,
+        writer=roles.writer,
+        advertiser=advertiser,
+        store_thread=store_thread,
+        now_ms=now_ms,
+    )
 
     async def stop_views(sender: object, *args: object, **kwargs: object) -> None:
         await asyncio.get_running_loop().run_in_executor(None, views.close)
@@ -143,6 +155,8 @@ def compose_processors(settings: Settings, store: HistoryStore) -> Processors:
     )
 
     app.timer(snapshot_tick_s(settings), on_leader=True)(
-        snapshot_timer(sink, now_ms, int(settings.snapshot_grace_s * 1000))
+        snapshot_timer(
+            sink, roles.snapshots, roles.retention, now_ms, int(settings.snapshot_grace_s * 1000)
+        )
     )
     return Processors(app, store_thread, sink, views, consumer, live)

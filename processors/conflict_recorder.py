@@ -1,14 +1,43 @@
 """Recording conflicts after stored batches: the pure rule (`mapservice.core.conflicts`)
 applied to the new writes and their stored neighbours (`find_conflicts`), the result
-written to the store (`write_conflicts`), at once or several batches' worth together."""
+written to the store (`write_conflicts`), at once or several batches' worth together
+(`ConflictWatch`, the live views' part: the recent writes in memory and the rows found
+but not yet written)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Protocol
 
+from prometheus_client import Counter, Histogram
+
 from mapservice.core.conflicts import RecentWrites, affected_conflicts, conflict_key, neighbourhoods
-from mapservice.core.ports import ChunkRow, ConflictReader, ConflictRow, HistoryWriter
+from mapservice.core.events import ChunkUpdated, Envelope
+from mapservice.core.ports import (
+    ChunkRow,
+    ConflictReader,
+    ConflictRow,
+    HistoryWriter,
+    TimeTravelReader,
+)
+
+CONFLICTS = Counter("mapservice_conflicts_recorded_total", "Conflict rows written to the history")
+# Both on the store thread, where the next batch waits for them.
+CONFLICT_CHECK_SECONDS = Histogram(
+    "mapservice_conflicts_check_seconds",
+    "Duration of finding one stored batch's conflicts",
+    buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1),
+)
+CONFLICT_WRITE_SECONDS = Histogram(
+    "mapservice_conflicts_write_seconds",
+    "Duration of one insert of the conflicts found since the last",
+    buckets=(0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1),
+)
+# Conflict neighbours of live batches come from memory (mapservice.core.conflicts.RecentWrites)
+# when the window is short enough to keep its writes; older ones from the store.
+RECENT_MAX_WINDOW_MS = 600_000
+RECENT_SLACK_MS = 120_000
+RECENT_MAX_ROWS = 200_000
 
 
 class ConflictStore(ConflictReader, HistoryWriter, Protocol):
@@ -77,3 +106,75 @@ class UnwrittenConflicts:
 
     def clear(self) -> None:
         self._rows.clear()
+
+
+class ConflictWatch:
+    """Finds each stored batch's conflicts (`find`) and stores them several batches' worth
+    at a time (`write`). Touched only in the store thread: `load` and `find` read the store
+    (the writes near new ones from `conflicts`, the recent ones from `history`)."""
+
+    def __init__(
+        self,
+        history: TimeTravelReader,
+        conflicts: ConflictReader,
+        writer: HistoryWriter,
+        window_ms: int,
+        now_ms: Callable[[], int],
+    ) -> None:
+        self.history, self.conflicts, self.writer = history, conflicts, writer
+        self.window_ms = window_ms
+        self.now_ms = now_ms
+        self.recent: RecentWrites | None = None
+        self.unwritten = UnwrittenConflicts()
+        self._recent_pruned_ms = 0
+
+    def _recent_span_ms(self) -> int:
+        return 2 * self.window_ms + RECENT_SLACK_MS
+
+    def load(self, horizon_ms: int) -> None:
+        """The writes of the recent past in memory, when the window is short enough and
+        they are few enough; else every batch asks the store."""
+        self.recent = None
+        if self.window_ms > RECENT_MAX_WINDOW_MS:
+            return
+        now = self.now_ms()
+        since = now - self._recent_span_ms()
+        rows = self.history.chunk_events(since, horizon_ms, limit=RECENT_MAX_ROWS)
+        if len(rows) >= RECENT_MAX_ROWS:
+            return  # too busy to hold in memory: every batch asks the store
+        self._recent_pruned_ms = now
+        self.recent = RecentWrites(since, rows)
+
+    def find(self, events: Sequence[Envelope]) -> int:
+        """Finds every conflict the stored batch creates or changes, for `write`; returns
+        how many rows now wait to be written."""
+        new = [
+            ChunkRow(
+                e.payload.row,
+                e.payload.column,
+                e.event_time_ms,
+                e.robot_id,
+                e.payload.content_hash.hex(),
+                e.receive_time_ms,
+            )
+            for e in events
+            if isinstance(e.payload, ChunkUpdated)
+        ]
+        now = self.now_ms()
+        if self.recent is not None and now - self._recent_pruned_ms > 10_000:
+            self.recent.forget_before(now - self._recent_span_ms())
+            self._recent_pruned_ms = now
+        with CONFLICT_CHECK_SECONDS.time():
+            self.unwritten.add(find_conflicts(self.conflicts, new, self.window_ms, self.recent))
+        return len(self.unwritten)
+
+    def write(self) -> int:
+        """Stores the conflicts found since the last call; returns how many rows."""
+        if not self.unwritten:
+            return 0
+        rows = self.unwritten.rows()
+        with CONFLICT_WRITE_SECONDS.time():
+            write_conflicts(self.writer, rows, self.recent)
+        self.unwritten.clear()
+        CONFLICTS.inc(len(rows))
+        return len(rows)

@@ -124,7 +124,7 @@ async def store_values(
         if bad:
             bad_by_topic[topic] = bad
     if good:
-        await sink.insert_until_done(sink.store.append_events, good, per_topic)
+        await sink.insert_until_done(sink.writer.append_events, good, per_topic)
         BATCH_EVENTS.observe(len(good))
         stored_ms = clock_ms()
         for topic, events in by_topic.items():
@@ -135,7 +135,7 @@ async def store_values(
             await views.on_stored(good)  # conflicts, latest map, robots
     for topic, bad in bad_by_topic.items():
         log.warning("undecodable records on an event topic", topic=topic, count=len(bad))
-        await sink.insert_until_done(sink.store.append_dead_letters, bad, {topic: len(bad)})
+        await sink.insert_until_done(sink.writer.append_dead_letters, bad, {topic: len(bad)})
     return good
 
 
@@ -288,7 +288,7 @@ class HistoryConsumer:
         what is not committed is delivered again)."""
         try:
             if self._underived:
-                await self.sink.run(self.sink.store.derive_views, self._underived)
+                await self.sink.run(self.sink.writer.derive_views, self._underived)
                 self._underived = []
             if self.views is not None:
                 await self.views.store_thread.run(self.views.write_conflicts)

@@ -11,7 +11,7 @@ import structlog
 from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.core.events import DeadLetter, Envelope, decode, decode_dead_letter
-from mapservice.core.ports import HistoryStore, LiveFeed
+from mapservice.core.ports import HistoryWriter, LiveFeed
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.runtime.retry import until_done
 
@@ -50,17 +50,17 @@ LAST_INSERT = Gauge(
 
 
 class HistorySink:
-    """Stores on `thread`, the one that talks to the store (store_thread.py; a thread of
+    """Stores through `writer` on `thread`, the one that talks to the store (store_thread.py; a thread of
     its own when none is given), and records whether the inserts succeed."""
 
     def __init__(
         self,
-        store: HistoryStore,
+        writer: HistoryWriter,
         live: LiveFeed | None = None,
         health: InsertHealth | None = None,
         thread: StoreThread | None = None,
     ) -> None:
-        self.store = store
+        self.writer = writer
         self.live = live
         self.thread = thread or StoreThread()
         # Whether the inserts succeed: readiness, the metrics below, the UI's banner.
@@ -112,7 +112,7 @@ class HistorySink:
         ):
             with attempt:
                 started = time.monotonic()
-                await self._insert(self.store.derive_views, batch)
+                await self._insert(self.writer.derive_views, batch)
         DERIVE_SECONDS.observe(time.monotonic() - started)
 
 

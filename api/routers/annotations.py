@@ -12,9 +12,9 @@ from __future__ import annotations
 import base64
 import binascii
 import secrets
-from typing import Annotated, Any, Literal, Protocol
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 
@@ -33,7 +33,7 @@ from mapservice.core.annotations import (
     to_doc,
 )
 from mapservice.core.events import make_envelope
-from mapservice.core.ports import AnnotationReader, Clock, EventPublisher, TimeTravelReader
+from mapservice.core.ports import AnnotationReader, EventPublisher, TimeTravelReader
 from mapservice.core.zone_geometry import MAX_ZONE_VERTICES, check_vertex_count
 from mapservice.core.zone_masks import (
     Grid,
@@ -45,21 +45,22 @@ from mapservice.core.zone_masks import (
 from mapservice.settings import Settings
 
 from ..access import OPERATE, READ
-from ..annotation_state import recent_edits, standing
+from ..annotation_state import RecentEdits, standing
 from ..credentials import Caller
-from ..deps import WindowQuery, at_instant, get_clock, get_settings, get_store
+from ..deps import (
+    AnnotationsDep,
+    ClockDep,
+    HistoryDep,
+    RecentEditsDep,
+    SettingsDep,
+    WindowQuery,
+    at_instant,
+)
 from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/v1/annotations", tags=["annotations"])
 
 
-class AnnotationStore(AnnotationReader, TimeTravelReader, Protocol):
-    """The annotations and their edits, and the map meta that bounds them."""
-
-
-StoreDep = Annotated[AnnotationStore, Depends(get_store)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-ClockDep = Annotated[Clock, Depends(get_clock)]
 PublisherDep = Annotated[EventPublisher, Depends(get_publisher)]
 OperatorDep = Annotated[Caller, Depends(OPERATE)]
 AtDep = Annotated[int, Depends(at_instant)]
@@ -161,7 +162,7 @@ def _shape(body: AnnotationIn):
 
 
 async def _publish(
-    request: Request,
+    recent: RecentEdits,
     publisher: EventPublisher,
     settings: Settings,
     caller: Caller,
@@ -169,11 +170,11 @@ async def _publish(
     event,
     after_ms: int = 0,
 ) -> AnnotationEdit:
-    now_ms = recent_edits(request).stamp(now_ms, after_ms)
+    now_ms = recent.stamp(now_ms, after_ms)
     envelope = make_envelope(caller.name, now_ms, now_ms, event)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
     edit = AnnotationEdit(now_ms, envelope.event_id, event)
-    recent_edits(request).add(edit)
+    recent.add(edit)
     return edit
 
 
@@ -211,18 +212,18 @@ def _checked_shape(body: AnnotationIn, grid: Grid | None) -> Shape:
     return shape
 
 
-async def _valid_shape(body: AnnotationIn, store: AnnotationStore) -> Shape:
-    grid = grid_of(await run_in_threadpool(store.latest_meta))
+async def _valid_shape(body: AnnotationIn, history: TimeTravelReader) -> Shape:
+    grid = grid_of(await run_in_threadpool(history.latest_meta))
     return await run_in_threadpool(_checked_shape, body, grid)
 
 
 @router.get(
     "", operation_id="listAnnotations", response_model=Annotations, dependencies=[Depends(READ)]
 )
-def list_annotations(request: Request, store: StoreDep, at: AtDep) -> Annotations:
+def list_annotations(recent: RecentEditsDep, store: AnnotationsDep, at: AtDep) -> Annotations:
     """The points of interest and zones standing at `at` (default now), with who created
     and last changed each, and when."""
-    current = standing(request, store, at)
+    current = standing(recent, store, at)
     return Annotations(at_ms=at, annotations=[_out(current[k]) for k in sorted(current)])
 
 
@@ -230,7 +231,7 @@ def list_annotations(request: Request, store: StoreDep, at: AtDep) -> Annotation
     "/edits", operation_id="listAnnotationEdits", response_model=Edits, dependencies=[Depends(READ)]
 )
 def list_annotation_edits(
-    store: StoreDep,
+    store: AnnotationsDep,
     settings: SettingsDep,
     clock: ClockDep,
     window: WindowQuery,
@@ -261,30 +262,31 @@ def list_annotation_edits(
 
 @router.post("", operation_id="createAnnotation", response_model=AnnotationOut, status_code=201)
 async def create_annotation(
-    request: Request,
+    recent: RecentEditsDep,
     body: AnnotationCreate,
     caller: OperatorDep,
-    store: StoreDep,
+    store: AnnotationsDep,
+    history: HistoryDep,
     settings: SettingsDep,
     clock: ClockDep,
     publisher: PublisherDep,
 ) -> AnnotationOut:
     """Creates a point of interest or a zone (409 if the id is taken)."""
-    shape = await _valid_shape(body, store)
+    shape = await _valid_shape(body, history)
     annotation_id = body.id or f"a-{secrets.token_hex(8)}"
     try:
         check_id(annotation_id)
     except AnnotationError as exc:
         raise HTTPException(422, str(exc)) from None
     now = clock.now_ms()
-    if annotation_id in await run_in_threadpool(standing, request, store, now):
+    if annotation_id in await run_in_threadpool(standing, recent, store, now):
         raise HTTPException(
             409,
             f"annotation {annotation_id!r} exists; change it with PUT "
             f"/api/v1/annotations/{annotation_id} or choose another id",
         )
     edit = await _publish(
-        request,
+        recent,
         publisher,
         settings,
         caller,
@@ -302,9 +304,9 @@ async def create_annotation(
 
 
 async def _existing(
-    request: Request, store: AnnotationStore, annotation_id: str, now: int
+    recent: RecentEdits, store: AnnotationReader, annotation_id: str, now: int
 ) -> CurrentAnnotation:
-    current = await run_in_threadpool(standing, request, store, now)
+    current = await run_in_threadpool(standing, recent, store, now)
     if annotation_id not in current:
         raise HTTPException(
             404,
@@ -317,21 +319,22 @@ async def _existing(
 
 @router.put("/{annotation_id}", operation_id="changeAnnotation", response_model=AnnotationOut)
 async def change_annotation(
-    request: Request,
+    recent: RecentEditsDep,
     annotation_id: IdPath,
     body: AnnotationIn,
     caller: OperatorDep,
-    store: StoreDep,
+    store: AnnotationsDep,
+    history: HistoryDep,
     settings: SettingsDep,
     clock: ClockDep,
     publisher: PublisherDep,
 ) -> AnnotationOut:
     """Replaces an annotation's content (move, rename, reshape, another limit)."""
-    shape = await _valid_shape(body, store)
+    shape = await _valid_shape(body, history)
     now = clock.now_ms()
-    before = await _existing(request, store, annotation_id, now)
+    before = await _existing(recent, store, annotation_id, now)
     edit = await _publish(
-        request,
+        recent,
         publisher,
         settings,
         caller,
@@ -351,19 +354,19 @@ async def change_annotation(
 
 @router.delete("/{annotation_id}", operation_id="removeAnnotation", status_code=204)
 async def remove_annotation(
-    request: Request,
+    recent: RecentEditsDep,
     annotation_id: IdPath,
     caller: OperatorDep,
-    store: StoreDep,
+    store: AnnotationsDep,
     settings: SettingsDep,
     clock: ClockDep,
     publisher: PublisherDep,
 ) -> None:
     """Removes an annotation from now on (its history stays)."""
     now = clock.now_ms()
-    before = await _existing(request, store, annotation_id, now)
+    before = await _existing(recent, store, annotation_id, now)
     await _publish(
-        request,
+        recent,
         publisher,
         settings,
         caller,
@@ -377,17 +380,17 @@ async def remove_annotation(
     "/import-mask", operation_id="importKeepOutMask", response_model=Imported, status_code=201
 )
 async def import_keep_out_mask(
-    request: Request,
+    recent: RecentEditsDep,
     body: MaskImport,
     caller: OperatorDep,
-    store: StoreDep,
+    history: HistoryDep,
     settings: SettingsDep,
     clock: ClockDep,
     publisher: PublisherDep,
 ) -> Imported:
     """A nav2 keep-out mask as keep-out zones, one per connected area (with its holes),
     their edges on pixel edges: exporting the keep-out mask gives back its pixels."""
-    grid = grid_of(await run_in_threadpool(store.latest_meta))
+    grid = grid_of(await run_in_threadpool(history.latest_meta))
     if grid is None:
         raise HTTPException(
             409,
@@ -402,7 +405,7 @@ async def import_keep_out_mask(
     for zone in zones:
         annotation_id = f"z-{secrets.token_hex(8)}"
         edit = await _publish(
-            request,
+            recent,
             publisher,
             settings,
             caller,

@@ -7,7 +7,7 @@ entry and never counts as a floor change."""
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, Protocol
+from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel
@@ -20,21 +20,11 @@ from mapservice.core.change_feed import (
     ChunkBox,
     WindowTooBusy,
 )
-from mapservice.core.ports import ChangeFeed, TimeTravelReader
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import WindowQuery, get_settings, get_store
+from ..deps import ChangesDep, HistoryDep, SettingsDep, WindowQuery
 
 router = APIRouter(prefix="/api/v1/changes", tags=["changes"], dependencies=[Depends(READ)])
-
-
-class ChangesStore(ChangeFeed, TimeTravelReader, Protocol):
-    """The change feed and the map meta its chunk box is checked against."""
-
-
-Store = Annotated[ChangesStore, Depends(get_store)]
-AppSettings = Annotated[Settings, Depends(get_settings)]
 
 
 class Change(BaseModel):
@@ -110,8 +100,9 @@ def _metres_to_chunks(meta, x_min: float, x_max: float, y_min: float, y_max: flo
 
 @router.get("", operation_id="listChanges", response_model=ChangePage)
 def list_changes(
-    store: Store,
-    settings: AppSettings,
+    store: ChangesDep,
+    history: HistoryDep,
+    settings: SettingsDep,
     window: WindowQuery,
     robot: str | None = Query(None, description="Only this robot's writes"),
     row_min: int | None = Query(None, ge=0),
@@ -130,7 +121,7 @@ def list_changes(
 ) -> ChangePage:
     f, t = window.parse(settings.retention_ms)
     box = _chunk_box(
-        store.latest_meta, (row_min, row_max), (col_min, col_max), (x_min, x_max, y_min, y_max)
+        history.latest_meta, (row_min, row_max), (col_min, col_max), (x_min, x_max, y_min, y_max)
     )
     cursor = None
     if before is not None:

@@ -8,19 +8,15 @@ requests, each needing its own database read.
 from __future__ import annotations
 
 import re
-import threading
 import zlib
-from collections.abc import Sequence
 
 import msgspec
-from cachetools import LRUCache
-from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, Body, Depends, HTTPException, Query, Response
 
-from mapservice.core.ports import TimeTravelReader
 from mapservice.core.render import chunk_pixels, png
 
 from ..access import READ
-from ..deps import get_store
+from ..deps import ContentCacheDep, HistoryDep
 
 router = APIRouter(
     prefix="/api/v1/chunk-contents", tags=["chunk-contents"], dependencies=[Depends(READ)]
@@ -29,55 +25,6 @@ _HEX32 = re.compile(r"^[0-9a-f]{32}$")
 IMMUTABLE = "public, max-age=31536000, immutable"
 BATCH_MAX = 2000
 MSGPACK = "application/vnd.msgpack"
-# Bytes of zlib pixels kept in memory per app (a 100x100 chunk is ~0.1-2 KiB compressed).
-CACHE_BYTES = 64 * 1024 * 1024
-
-Content = tuple[int, int, bytes]
-
-
-class ContentCache:
-    """Content is immutable per hash, so a hit never goes stale; bounded by bytes held."""
-
-    def __init__(self, max_bytes: int = CACHE_BYTES) -> None:
-        self._lru: LRUCache[bytes, Content] = LRUCache(
-            max_bytes, getsizeof=lambda c: len(c[2]) + 64
-        )
-        self._lock = threading.Lock()  # the endpoints run in the threadpool
-
-    def get_many(self, store: TimeTravelReader, hashes: Sequence[bytes]) -> dict[bytes, Content]:
-        found: dict[bytes, Content] = {}
-        with self._lock:
-            for h in hashes:
-                c = self._lru.get(h)
-                if c is not None:
-                    found[h] = c
-        todo = [h for h in dict.fromkeys(hashes) if h not in found]
-        if todo:
-            fresh = store.chunk_contents(todo) if len(todo) > 1 else _one(store, todo[0])
-            with self._lock:
-                for h, c in fresh.items():
-                    if len(c[2]) + 64 <= self._lru.maxsize:
-                        self._lru[h] = c
-            found.update(fresh)
-        return found
-
-
-def _one(store: TimeTravelReader, h: bytes) -> dict[bytes, Content]:
-    c = store.chunk_content(h)
-    return {} if c is None else {h: c}
-
-
-_cache_lock = threading.Lock()
-
-
-def get_cache(request: Request) -> ContentCache:
-    """One cache per app (so per store: tests build many apps over different stores)."""
-    state = request.app.state
-    with _cache_lock:
-        cache = getattr(state, "chunk_content_cache", None)
-        if cache is None:
-            cache = state.chunk_content_cache = ContentCache()
-    return cache
 
 
 class BatchResponse(msgspec.Struct):
@@ -106,8 +53,9 @@ _encoder = msgspec.msgpack.Encoder()
 )
 def get_chunk_contents_batch(
     hashes: list[str] = Body(..., embed=True),
-    store: TimeTravelReader = Depends(get_store),
-    cache: ContentCache = Depends(get_cache),
+    *,
+    store: HistoryDep,
+    cache: ContentCacheDep,
 ) -> Response:
     if not hashes:
         raise HTTPException(400, f"hashes is empty; send 1 to {BATCH_MAX} content hashes")
@@ -145,8 +93,9 @@ def get_chunk_content(
         pattern="^(zlib|raw|png)$",
         description="zlib: as the robot sent it; raw: width x height bytes; png",
     ),
-    store: TimeTravelReader = Depends(get_store),
-    cache: ContentCache = Depends(get_cache),
+    *,
+    store: HistoryDep,
+    cache: ContentCacheDep,
 ) -> Response:
     if not _HEX32.match(content_hash):
         raise HTTPException(400, "content_hash must be 32 lowercase hex characters")

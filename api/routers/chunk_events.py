@@ -5,11 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import TimeTravelReader
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
-from ..deps import WindowQuery, get_store
+from ..deps import HistoryDep, WindowQuery
 from ..json_rows import JsonRows
 
 router = APIRouter(
@@ -35,7 +34,8 @@ _ROWS = JsonRows(ChunkEvent)
 def list_chunk_events(
     window: WindowQuery,
     limit: int = Query(10_000, ge=1, le=100_000),
-    store: TimeTravelReader = Depends(get_store),
+    *,
+    store: HistoryDep,
 ) -> Response:
     f, t = window.parse(MAX_SPAN_MS)
     rows = store.chunk_events(f, t, limit)

@@ -28,14 +28,20 @@ from mapservice.core.legacy_query import (
     parse_chunk_query,
     select,
 )
-from mapservice.core.ports import Clock, EventPublisher, HistoryStore
+from mapservice.core.ports import (
+    Clock,
+    EventPublisher,
+    LegacyQueries,
+    StoreAdmin,
+    TimeTravelReader,
+)
 from mapservice.core.render import chunk_pixels, png
 from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
 from mapservice.settings import Settings
 
 from ..access import ADMIN, READ, WRITE, require, require_robot
 from ..credentials import Caller, Scope
-from ..deps import get_clock, get_settings, get_store
+from ..deps import get_clock, get_settings, history_reader, legacy_queries, store_admin
 from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/chunk-service", tags=["2019 chunk service"])
@@ -111,7 +117,7 @@ def _index_response(index: str, doc_type: str, doc_id: str) -> dict:
     dependencies=[Depends(READ)],
     responses={404: {"description": "no meta stored yet: POST one"}},
 )
-def get_meta(store: HistoryStore = Depends(get_store)) -> dict:
+def get_meta(store: TimeTravelReader = Depends(history_reader)) -> dict:
     """The stored meta.json (listing 9)."""
     meta = store.latest_meta()
     if meta is None:
@@ -181,7 +187,7 @@ async def post_meta(
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
     publisher: EventPublisher = Depends(get_publisher),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(history_reader),
     caller: Caller = Depends(WRITE),
 ) -> dict:
     """Stores meta.json through the event path (a map.meta_set event on Kafka); the
@@ -219,7 +225,7 @@ async def post_meta(
 def delete_meta(
     request: Request,
     caller: Caller = Depends(ADMIN),
-    store: HistoryStore = Depends(get_store),
+    store: StoreAdmin = Depends(store_admin),
 ) -> dict:
     """Administrative: deletes the stored meta (needs the admin bearer token)."""
     removed = store.delete_meta()
@@ -281,7 +287,9 @@ def _shown(value: object) -> str:
     return str(list(value)) if isinstance(value, tuple) else str(value)
 
 
-def _meta_for_validation(request: Request, store: HistoryStore, now_ms: int) -> MapMetaSet | None:
+def _meta_for_validation(
+    request: Request, store: TimeTravelReader, now_ms: int
+) -> MapMetaSet | None:
     """The stored meta, or one this API instance has just published and the processors
     have not stored yet: a robot POSTs its meta and then its chunks at once (A.1.1)."""
     stored = store.latest_meta()
@@ -328,7 +336,7 @@ async def post_chunk(
     request: Request,
     caller: Caller = Depends(WRITE),
     settings: Settings = Depends(get_settings),
-    store: HistoryStore = Depends(get_store),
+    store: TimeTravelReader = Depends(history_reader),
     clock: Clock = Depends(get_clock),
     publisher: EventPublisher = Depends(get_publisher),
 ) -> dict:
@@ -350,7 +358,7 @@ async def post_chunk(
     )
 
 
-def _render(rows: Sequence, query: ChunkQuery, store: HistoryStore) -> list[dict]:
+def _render(rows: Sequence, query: ChunkQuery, store: TimeTravelReader) -> list[dict]:
     contents = (
         {} if query.reduced else store.chunk_contents([bytes.fromhex(r.content_hash) for r in rows])
     )
@@ -403,7 +411,8 @@ def list_chunks(
     limit: str | None = Query(None, description=f"default 10, at most {MAX_LIMIT}"),
     skip: str | None = Query(None, description="default 0; skip + limit at most 10000"),
     robotId: str | None = Query(None),
-    store: HistoryStore = Depends(get_store),
+    store: LegacyQueries = Depends(legacy_queries),
+    history: TimeTravelReader = Depends(history_reader),
     settings: Settings = Depends(get_settings),
     clock: Clock = Depends(get_clock),
 ) -> JSONResponse:
@@ -415,17 +424,17 @@ def list_chunks(
         raise HTTPException(400, str(exc)) from None
     if query.latest:
         now = clock.now_ms() + int(settings.max_future_skew_s * 1000)
-        rows = select(store.map_at(latest_instant(query, now)), query, ignore_time=True)
+        rows = select(history.map_at(latest_instant(query, now)), query, ignore_time=True)
     else:
         rows = store.list_chunks(query)
-    return JSONResponse(_render(rows, query, store))
+    return JSONResponse(_render(rows, query, history))
 
 
 @router.delete("/chunks", operation_id="deleteLegacyChunks")
 def delete_chunks(
     request: Request,
     caller: Caller = Depends(ADMIN),
-    store: HistoryStore = Depends(get_store),
+    store: StoreAdmin = Depends(store_admin),
 ) -> dict:
     """Administrative: deletes every stored chunk write (needs the admin bearer token)."""
     removed = store.delete_chunks()
@@ -438,7 +447,7 @@ def delete_chunks(
     return {"acknowledged": True, "deleted": removed}
 
 
-def _chunk_by_id(chunk_id_: str, store: HistoryStore):
+def _chunk_by_id(chunk_id_: str, store: LegacyQueries):
     try:
         row, column, ts_ms = parse_chunk_id(chunk_id_)
     except QueryError as exc:
@@ -459,10 +468,14 @@ def _chunk_by_id(chunk_id_: str, store: HistoryStore):
     dependencies=[Depends(READ)],
     responses={200: {"model": LegacyChunk}, 404: {"description": "no such chunk"}},
 )
-def get_chunk(chunk_id: str, store: HistoryStore = Depends(get_store)) -> JSONResponse:
+def get_chunk(
+    chunk_id: str,
+    store: LegacyQueries = Depends(legacy_queries),
+    history: TimeTravelReader = Depends(history_reader),
+) -> JSONResponse:
     """Listing 13: one chunk by the id POST /chunks answered with."""
     row = _chunk_by_id(chunk_id, store)
-    return JSONResponse(_render([row], ChunkQuery(), store)[0])
+    return JSONResponse(_render([row], ChunkQuery(), history)[0])
 
 
 @router.get(
@@ -471,10 +484,14 @@ def get_chunk(chunk_id: str, store: HistoryStore = Depends(get_store)) -> JSONRe
     dependencies=[Depends(READ)],
     responses={200: {"content": {"image/png": {}}}, 404: {"description": "no such chunk"}},
 )
-def get_chunk_png(chunk_id: str, store: HistoryStore = Depends(get_store)) -> Response:
+def get_chunk_png(
+    chunk_id: str,
+    store: LegacyQueries = Depends(legacy_queries),
+    history: TimeTravelReader = Depends(history_reader),
+) -> Response:
     """The chunk as a greyscale PNG."""
     row = _chunk_by_id(chunk_id, store)
-    found = store.chunk_content(bytes.fromhex(row.content_hash))
+    found = history.chunk_content(bytes.fromhex(row.content_hash))
     if found is None:
         raise HTTPException(404, f"chunk {chunk_id[:120]!r} has no stored pixels")
     return Response(png(chunk_pixels(*found)), media_type="image/png")

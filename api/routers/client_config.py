@@ -6,10 +6,8 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends
 from pydantic import BaseModel
 
-from mapservice.settings import Settings
-
 from ..access import READ
-from ..deps import get_settings
+from ..deps import SettingsDep
 
 router = APIRouter(
     prefix="/api/v1/client-config", tags=["client-config"], dependencies=[Depends(READ)]
@@ -33,7 +31,7 @@ def coordinate_prefix(coordinate_topic: str) -> str:
 
 
 @router.get("", operation_id="getClientConfig", response_model=ClientConfig)
-def get_client_config(settings: Settings = Depends(get_settings)) -> ClientConfig:
+def get_client_config(settings: SettingsDep) -> ClientConfig:
     # The service's own broker credentials stay on the server: where the broker checks
     # robot identities, the page connects with a robot's credential its user types in.
     return ClientConfig(

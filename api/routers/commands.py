@@ -28,20 +28,16 @@ from mapservice.core.commands import (
     vda_refusal,
 )
 from mapservice.core.events import make_envelope
-from mapservice.core.ports import Clock, EventPublisher, HistoryStore
+from mapservice.core.ports import AnnotationReader, EventPublisher
 from mapservice.core.vda_ids import vehicle_of
-from mapservice.settings import Settings
 
 from ..access import OPERATE, READ
 from ..credentials import Caller
-from ..deps import WindowQuery, get_clock, get_settings, get_store
+from ..deps import AnnotationsDep, ClockDep, CommandsDep, HistoryDep, SettingsDep, WindowQuery
 from ..publishing import get_publisher, publish_and_wait
 
 router = APIRouter(prefix="/api/v1/commands", tags=["commands"])
 
-StoreDep = Annotated[HistoryStore, Depends(get_store)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-ClockDep = Annotated[Clock, Depends(get_clock)]
 PublisherDep = Annotated[EventPublisher, Depends(get_publisher)]
 OperatorDep = Annotated[Caller, Depends(OPERATE)]
 ROBOT_ID = r"^[A-Za-z0-9_.:@-]{1,64}$"  # the 2019 robotId rule
@@ -126,7 +122,7 @@ def _out(command: CommandIssued, ts_ms: int, record: CommandRecord | None = None
     )
 
 
-def _poi(store: HistoryStore, poi_id: str, now_ms: int) -> PointOfInterest:
+def _poi(store: AnnotationReader, poi_id: str, now_ms: int) -> PointOfInterest:
     current = {c.annotation_id: c.annotation for c in store.annotations_at(now_ms)}
     found: Any = current.get(poi_id)
     if found is None:
@@ -146,14 +142,15 @@ def _poi(store: HistoryStore, poi_id: str, now_ms: int) -> PointOfInterest:
 async def send_command(
     body: CommandIn,
     caller: OperatorDep,
-    store: StoreDep,
+    history: HistoryDep,
+    annotations: AnnotationsDep,
     settings: SettingsDep,
     clock: ClockDep,
     publisher: PublisherDep,
 ) -> CommandOut:
     """Sends a command to a robot (202: Kafka has it; the gateway delivers it at once on
     the robot's command topic). Its ack and outcome appear in GET /api/v1/commands."""
-    if not await run_in_threadpool(store.robot_known, body.robotId):
+    if not await run_in_threadpool(history.robot_known, body.robotId):
         raise HTTPException(
             404,
             f"robot {body.robotId!r} has reported no pose within the "
@@ -168,7 +165,7 @@ async def send_command(
         if refused is not None:
             raise HTTPException(422, f"robot {body.robotId!r} is a VDA 5050 vehicle: {refused}")
     now = clock.now_ms()
-    poi = await run_in_threadpool(_poi, store, body.poiId, now) if body.poiId else None
+    poi = await run_in_threadpool(_poi, annotations, body.poiId, now) if body.poiId else None
     command = CommandIssued(
         command_id=body.id or f"c-{secrets.token_hex(8)}",
         robot_id=body.robotId,
@@ -191,7 +188,7 @@ async def send_command(
 
 @router.get("", operation_id="listCommands", response_model=Commands, dependencies=[Depends(READ)])
 def list_commands(
-    store: StoreDep,
+    store: CommandsDep,
     settings: SettingsDep,
     clock: ClockDep,
     window: WindowQuery,

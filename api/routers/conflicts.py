@@ -14,10 +14,9 @@ from pydantic import BaseModel
 
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.ports import ConflictReader, ConflictRow
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import WindowQuery, get_settings, get_store
+from ..deps import ConflictsDep, SettingsDep, WindowQuery
 
 router = APIRouter(prefix="/api/v1/conflicts", tags=["conflicts"], dependencies=[Depends(READ)])
 
@@ -54,8 +53,9 @@ def rule_text(window_s: float) -> str:
 def list_conflicts(
     window: WindowQuery,
     limit: int = Query(10_000, ge=1, le=100_000),
-    store: ConflictReader = Depends(get_store),
-    settings: Settings = Depends(get_settings),
+    *,
+    store: ConflictsDep,
+    settings: SettingsDep,
 ) -> Conflicts:
     f, t = window.parse(settings.retention_ms)
     stored = store.conflicts(f, t, limit + 1)

@@ -14,12 +14,11 @@ from mapservice.core.legacy_query import (
     pose_id,
     select,
 )
-from mapservice.core.ports import Clock, HistoryStore, PoseRow
+from mapservice.core.ports import PoseRow
 from mapservice.core.wire2019 import format_timestamp
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import get_clock, get_settings, get_store
+from ..deps import ClockDep, HistoryDep, LegacyDep, SettingsDep
 
 router = APIRouter(
     prefix="/api/coordinate-service", tags=["2019 coordinate service"], dependencies=[Depends(READ)]
@@ -77,9 +76,11 @@ def list_robots(
     latest: str | None = Query(None, description="only each robot's newest pose (default false)"),
     limit: str | None = Query(None, description=f"default 10, at most {MAX_LIMIT}"),
     skip: str | None = Query(None, description="default 0; skip + limit at most 10000"),
-    store: HistoryStore = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
+    *,
+    store: LegacyDep,
+    history: HistoryDep,
+    settings: SettingsDep,
+    clock: ClockDep,
 ) -> JSONResponse:
     """Listing 17: poses; `latest=true&updatedBefore=T` is every robot at T (nearest
     snapshot plus the poses after it)."""
@@ -89,7 +90,7 @@ def list_robots(
         raise HTTPException(400, str(exc)) from None
     if query.latest:
         now = clock.now_ms() + int(settings.max_future_skew_s * 1000)
-        rows = select(store.robots_at(latest_instant(query, now)), query, ignore_time=True)
+        rows = select(history.robots_at(latest_instant(query, now)), query, ignore_time=True)
     else:
         rows = store.list_poses(query)
     return JSONResponse([legacy_pose(r) for r in rows])

@@ -11,9 +11,9 @@ mask.pgm) and a costmap_filter_info_server at filter-info.yaml.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Protocol
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from fastapi.responses import Response
 
 from mapservice.adapters.costmap_filters import (
@@ -35,19 +35,14 @@ from mapservice.core.zone_masks import (
 )
 
 from ..access import READ
-from ..annotation_state import standing
-from ..deps import at_instant, get_store
+from ..annotation_state import RecentEdits, standing
+from ..deps import AnnotationsDep, HistoryDep, RecentEditsDep, at_instant
 
 router = APIRouter(
     prefix="/api/v1/costmap-filters", tags=["annotations"], dependencies=[Depends(READ)]
 )
 
 
-class ZoneStore(AnnotationReader, TimeTravelReader, Protocol):
-    """The standing zones and the map meta they are drawn on."""
-
-
-StoreDep = Annotated[ZoneStore, Depends(get_store)]
 AtDep = Annotated[int, Depends(at_instant)]
 FilterPath = Annotated[Literal["keepout", "speed"], Path(description="keepout or speed")]
 UnitQuery = Annotated[
@@ -68,8 +63,10 @@ _YAML_RESPONSE: dict[int | str, dict[str, Any]] = {
 }
 
 
-def _zones(request: Request, store: ZoneStore, at: int) -> tuple[Grid, list[Zone]]:
-    grid = grid_of(store.latest_meta())
+def _zones(
+    recent: RecentEdits, history: TimeTravelReader, annotations: AnnotationReader, at: int
+) -> tuple[Grid, list[Zone]]:
+    grid = grid_of(history.latest_meta())
     if grid is None:
         raise HTTPException(
             409,
@@ -78,7 +75,7 @@ def _zones(request: Request, store: ZoneStore, at: int) -> tuple[Grid, list[Zone
         )
     zones = [
         c.annotation
-        for c in standing(request, store, at).values()
+        for c in standing(recent, annotations, at).values()
         if isinstance(c.annotation, Zone)
     ]
     return grid, zones
@@ -97,10 +94,15 @@ def _info(filter_: str, zones: list[Zone], unit: str) -> FilterInfo:
     responses=_PGM_RESPONSE,
 )
 def get_mask(
-    request: Request, filter_: FilterPath, store: StoreDep, at: AtDep, unit: UnitQuery = "percent"
+    filter_: FilterPath,
+    recent: RecentEditsDep,
+    history: HistoryDep,
+    annotations: AnnotationsDep,
+    at: AtDep,
+    unit: UnitQuery = "percent",
 ) -> Response:
     """The mask at `at` (default now): one pixel per map pixel, row 0 at the top."""
-    grid, zones = _zones(request, store, at)
+    grid, zones = _zones(recent, history, annotations, at)
     if filter_ == "keepout":
         body = keep_out_pgm(keep_out_mask(grid, zones))
     else:
@@ -121,10 +123,16 @@ def get_mask(
     response_class=Response,
     responses=_YAML_RESPONSE,
 )
-def get_mask_yaml(request: Request, filter_: FilterPath, store: StoreDep, at: AtDep) -> Response:
+def get_mask_yaml(
+    filter_: FilterPath,
+    recent: RecentEditsDep,
+    history: HistoryDep,
+    annotations: AnnotationsDep,
+    at: AtDep,
+) -> Response:
     """The map_server YAML of the mask: the map's resolution and origin; `image: mask.pgm`
     (save both files side by side)."""
-    grid, _ = _zones(request, store, at)
+    grid, _ = _zones(recent, history, annotations, at)
     return Response(
         mask_yaml(grid, "mask.pgm", "trinary" if filter_ == "keepout" else "raw"), media_type=YAML
     )
@@ -137,11 +145,16 @@ def get_mask_yaml(request: Request, filter_: FilterPath, store: StoreDep, at: At
     responses=_YAML_RESPONSE,
 )
 def get_filter_info(
-    request: Request, filter_: FilterPath, store: StoreDep, at: AtDep, unit: UnitQuery = "percent"
+    filter_: FilterPath,
+    recent: RecentEditsDep,
+    history: HistoryDep,
+    annotations: AnnotationsDep,
+    at: AtDep,
+    unit: UnitQuery = "percent",
 ) -> Response:
     """The costmap_filter_info_server parameters for the mask: type (0 keep-out, 1 speed %,
     2 speed m/s), base and multiplier (filter value = base + multiplier x mask value)."""
-    _, zones = _zones(request, store, at)
+    _, zones = _zones(recent, history, annotations, at)
     info = _info(filter_, zones, unit)
     node = "keepout_filter_info_server" if filter_ == "keepout" else "speed_filter_info_server"
     return Response(filter_info_yaml(info, node, f"/{filter_}_filter_mask"), media_type=YAML)

@@ -17,12 +17,10 @@ import msgspec
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, TimeTravelReader
 from mapservice.core.wire2019 import format_timestamps
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import WindowQuery, check_step, get_clock, get_settings, get_store
+from ..deps import ClockDep, HistoryDep, SettingsDep, WindowQuery, check_step
 from .chunk_events import ChunkEvent
 from .poses import Pose
 
@@ -98,9 +96,10 @@ def list_events(
         "(k+1)*chunk_step_ms) only its winning change "
         "(the map stays exact at every bucket boundary)",
     ),
-    store: TimeTravelReader = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
+    *,
+    store: HistoryDep,
+    settings: SettingsDep,
+    clock: ClockDep,
 ) -> Response:
     check_step(step_ms)
     check_step(chunk_step_ms, "chunk_step_ms", "every chunk change")

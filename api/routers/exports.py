@@ -3,19 +3,27 @@ as an MCAP file that Foxglove or Lichtblick replays."""
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Query
 from fastapi.responses import Response, StreamingResponse
 from pydantic import Field
 
-from mapservice.adapters.mcap_export import export_mcap
+from mapservice.adapters.mcap_export import ReplaySources, export_mcap
 from mapservice.adapters.table_export import TABLE_FORMATS, TABLES, export_table
-from mapservice.core.ports import HistoryStore
 
 from ..access import READ
-from ..deps import TimeWindow
+from ..deps import ExportPoolDep, ExportsDep, RolesDep, TimeWindow
 from ..streaming import BoundedPipe, produce
+
+
+async def replay_sources(roles: RolesDep) -> ReplaySources:
+    """The roles a replay export reads, and no other."""
+    return ReplaySources(roles.history, roles.vda, roles.annotations, roles.commands)
+
+
+ReplaySourcesDep = Annotated[ReplaySources, Depends(replay_sources)]
 
 router = APIRouter(prefix="/api/v1/exports", tags=["exports"], dependencies=[Depends(READ)])
 MAX_TABLE_SPAN_MS = 7 * 86_400_000
@@ -52,7 +60,8 @@ def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
     responses={200: {"content": {"text/csv": {}, "application/vnd.apache.parquet": {}}}},
 )
 async def export_table_route(
-    request: Request,
+    pool: ExportPoolDep,
+    store: ExportsDep,
     dataset: Dataset,
     window: Annotated[TableWindow, Query()],
     format: Literal["csv", "parquet"] = Query("csv", description="csv (with a header) or parquet"),
@@ -65,9 +74,8 @@ async def export_table_route(
 ) -> Response:
     """Rows of an analysts' view (docs/analysts.md) in the window, as ClickHouse writes them.
     CSV is streamed slice by slice of the window as the client reads it."""
-    store: HistoryStore = request.app.state.store
     f, t = window.parse(MAX_TABLE_SPAN_MS)
-    if not hasattr(store, "export_query"):
+    if store is None:
         raise HTTPException(501, "table exports need the ClickHouse store")
 
     def producer(out) -> None:
@@ -77,7 +85,7 @@ async def export_table_route(
             write_csv_slices(store, dataset, f, t, robot_id, out)
 
     return await _stream(
-        request, producer, TABLE_FORMATS[format][1], _filename(TABLES[dataset][0], f, t, format)
+        pool, producer, TABLE_FORMATS[format][1], _filename(TABLES[dataset][0], f, t, format)
     )
 
 
@@ -117,7 +125,8 @@ def write_csv_slices(
     responses={200: {"content": {"application/x-mcap": {}}}},
 )
 async def export_replay_mcap(
-    request: Request,
+    pool: ExportPoolDep,
+    sources: ReplaySourcesDep,
     window: Annotated[McapWindow, Query()],
 ) -> Response:
     """The map (`/map`, foxglove.Grid) and every robot in the window, as MCAP for Foxglove
@@ -127,12 +136,11 @@ async def export_replay_mcap(
     annotations standing at the start and after each edit (`/annotations`,
     foxglove.SceneUpdate) and their commands with the robots' answers (`/commands`, JSON);
     streamed as it is written."""
-    store: HistoryStore = request.app.state.store
     f, t = window.parse(MAX_MCAP_SPAN_MS)
     try:
         return await _stream(
-            request,
-            lambda out: export_mcap(store, f, t, out),
+            pool,
+            lambda out: export_mcap(sources, f, t, out),
             "application/x-mcap",
             _filename("replay", f, t, "mcap"),
         )
@@ -140,10 +148,10 @@ async def export_replay_mcap(
         raise HTTPException(409, str(exc)) from exc
 
 
-async def _stream(request: Request, producer, media_type: str, headers: dict) -> Response:
+async def _stream(pool: ThreadPoolExecutor, producer, media_type: str, headers: dict) -> Response:
     """The producer run in the exports' pool, its bytes sent as the client reads them
     (api/streaming.py); the whole within MAPSERVICE_API_EXPORT_DEADLINE_S (api/admission.py)."""
-    pipe, first = await produce(request.app.state.export_executor, producer)
+    pipe, first = await produce(pool, producer)
     return _PipeResponse(pipe, first, media_type=media_type, headers=headers)
 
 

@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 
 from mapservice.runtime.health import failing_reasons
 
 from ..access import METRICS, PUBLIC
+from ..deps import AdvisoryDep, LivenessDep, ReadinessDep
 
 router = APIRouter(tags=["health"])
 
@@ -24,7 +25,7 @@ router = APIRouter(tags=["health"])
 PROBES = ThreadPoolExecutor(max_workers=1, thread_name_prefix="probes")
 
 
-async def _evaluate(checks: dict) -> dict[str, bool]:
+async def _evaluate(checks: Mapping[str, Callable[[], bool]]) -> dict[str, bool]:
     """Each check's answer: on the event loop when every check can answer without waiting
     (a CachedCheck with an answer, a heartbeat), else in the probes' thread (a
     CachedCheck's very first call waits for the dependency)."""
@@ -47,26 +48,25 @@ def _nowait(check: Callable[[], object]) -> bool | None:
 
 
 @router.get("/healthz", operation_id="getLiveness", dependencies=[Depends(PUBLIC)])
-async def liveness(request: Request) -> JSONResponse:
+async def liveness(heartbeats: LivenessDep) -> JSONResponse:
     """Alive: this answer needs the event loop; with the processors in this process, also
     their loops' heartbeats (mapservice/runtime/health.py)."""
-    checks = await _evaluate(getattr(request.app.state, "liveness", {}))
+    checks = await _evaluate(heartbeats)
     ok = all(checks.values())
     body = {"ok": ok, "checks": checks} if checks else {"ok": True}
     return JSONResponse(body, status_code=200 if ok else 503)
 
 
 @router.get("/readyz", operation_id="getReadiness", dependencies=[Depends(PUBLIC)])
-async def readiness(request: Request) -> JSONResponse:
+async def readiness(required: ReadinessDep, advisory: AdvisoryDep) -> JSONResponse:
     """Ready: a real call to each required dependency; advisory ones (Kafka for the API
     alone) are reported in `checks` but do not make it unready."""
-    required = request.app.state.readiness
     checks = await _evaluate(required)
     ok = all(checks.values())
     # Why a failed check failed, where it can say (the history store's inserts: since when,
     # the error); a reason is the check's in-memory state, so it never waits either.
     reasons = failing_reasons(required, checks)
-    checks.update(await _evaluate(getattr(request.app.state, "advisory", {})))
+    checks.update(await _evaluate(advisory))
     return JSONResponse(
         {"ok": ok, "checks": checks, **({"reasons": reasons} if reasons else {})},
         status_code=200 if ok else 503,

@@ -15,6 +15,7 @@ from mapservice.core.live_messages import LiveText
 
 from ..access import SOCKET_READ
 from ..credentials import LIVE_SUBPROTOCOL
+from ..deps import LiveHubDep, SettingsDep
 from ..limits import origin_allowed
 
 router = APIRouter(tags=["live"])
@@ -32,7 +33,9 @@ _BOOL = TypeAdapter(bool)
 
 
 @router.websocket("/api/v1/live", dependencies=[Depends(SOCKET_READ)])
-async def live(websocket: WebSocket, batch: str = "false") -> None:
+async def live(
+    websocket: WebSocket, hub: LiveHubDep, settings: SettingsDep, batch: str = "false"
+) -> None:
     """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`,
     sent once the event is queryable through this API. With `?batch=true` each message is
     instead a JSON array of one or more such events, in order, each exactly as sent alone
@@ -41,8 +44,6 @@ async def live(websocket: WebSocket, batch: str = "false") -> None:
     `batch` that is not a boolean (true/false, 1/0, yes/no, on/off) closes the socket
     with 1008 and a reason. With MAPSERVICE_API_READ_ACCESS=token a browser sends its
     token as the subprotocol `bearer.<token>` next to `mapservice.live`."""
-    hub = websocket.app.state.live
-    settings = websocket.app.state.settings
     # The Host was checked for every request, this one too (api/limits.py HostCheck).
     if not origin_allowed(
         websocket.headers.get("origin"), websocket.headers.get("host"), settings.api_allowed_origins

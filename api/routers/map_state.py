@@ -8,12 +8,11 @@ import msgspec
 from fastapi import APIRouter, Depends, HTTPException, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import TimeTravelReader
 from mapservice.core.render import png, stitch
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
-from ..deps import at_instant, get_store
+from ..deps import HistoryDep, at_instant
 
 router = APIRouter(prefix="/api/v1/map", tags=["map"], dependencies=[Depends(READ)])
 _json = msgspec.json.Encoder()
@@ -50,7 +49,8 @@ COMPACT_FIELDS = ("row", "column", "ts_ms", "robotId", "content_hash")
 def get_map_at(
     at_ms: int = Depends(at_instant),
     layout: Literal["rows", "compact"] = Query("rows", description="rows or compact"),
-    store: TimeTravelReader = Depends(get_store),
+    *,
+    store: HistoryDep,
 ) -> Response:
     meta = store.latest_meta()
     chunks = store.map_at(at_ms)
@@ -84,7 +84,8 @@ def get_map_at(
 def get_map_png_at(
     at_ms: int = Depends(at_instant),
     scale: float = Query(1.0, gt=0, le=4, description="Image scale (nearest neighbour)"),
-    store: TimeTravelReader = Depends(get_store),
+    *,
+    store: HistoryDep,
 ) -> Response:
     meta = store.latest_meta()
     if meta is None:

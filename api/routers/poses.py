@@ -5,11 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
-from mapservice.core.ports import TimeTravelReader
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
-from ..deps import WindowQuery, get_store
+from ..deps import HistoryDep, WindowQuery
 from ..json_rows import JsonRows
 
 router = APIRouter(prefix="/api/v1/poses", tags=["poses"], dependencies=[Depends(READ)])
@@ -37,7 +36,8 @@ def list_poses(
     window: WindowQuery,
     robot_id: str | None = Query(None, alias="robotId", max_length=64),
     limit: int = Query(10_000, ge=1, le=100_000),
-    store: TimeTravelReader = Depends(get_store),
+    *,
+    store: HistoryDep,
 ) -> Response:
     f, t = window.parse(MAX_SPAN_MS)
     rows = store.poses(f, t, robot_id, limit)

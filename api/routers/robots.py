@@ -6,12 +6,10 @@ from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
 from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
-from mapservice.core.ports import TimeTravelReader
 from mapservice.core.wire2019 import format_timestamp
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import at_instant, get_settings, get_store
+from ..deps import HistoryDep, SettingsDep, at_instant
 from .poses import Pose
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
@@ -52,8 +50,9 @@ def get_robots_at(
             "Only robots whose robotId sorts after this one: the previous page's `next_after`"
         ),
     ),
-    store: TimeTravelReader = Depends(get_store),
-    settings: Settings = Depends(get_settings),
+    *,
+    store: HistoryDep,
+    settings: SettingsDep,
 ) -> RobotsAt:
     """Every robot's latest pose at `at`, a page of at most `limit` robots in robotId
     order (one page holds every robot of a fleet up to 10,000, as before pages existed)."""

@@ -5,14 +5,12 @@ from __future__ import annotations
 import msgspec
 from fastapi import APIRouter, Depends
 
-from mapservice.core.ports import StoreAdmin
-
 from ..access import READ
-from ..deps import get_store
+from ..deps import AdminDep
 
 router = APIRouter(prefix="/api/v1/stats", tags=["stats"], dependencies=[Depends(READ)])
 
 
 @router.get("", operation_id="getHistoryStats")
-def get_stats(store: StoreAdmin = Depends(get_store)) -> dict:
+def get_stats(store: AdminDep) -> dict:
     return msgspec.structs.asdict(store.counts())

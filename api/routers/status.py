@@ -7,13 +7,11 @@ reader's view of it, behind the read scope like the history itself.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Annotated
-
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends
 from pydantic import BaseModel
 
 from ..access import READ
+from ..deps import HistoryStatusSource
 
 router = APIRouter(prefix="/api/v1/status", tags=["status"], dependencies=[Depends(READ)])
 
@@ -29,14 +27,6 @@ class ServiceStatus(BaseModel):
     # null: this process does not store the history (the API running apart from the
     # processors); their /readyz and mapservice_history_insert_failing say it there.
     history: HistoryStatus | None
-
-
-def history_status(request: Request) -> Callable[[], dict] | None:
-    """The inserts' state where the processors run in this process (`mapservice serve`)."""
-    return getattr(request.app.state, "history_status", None)
-
-
-HistoryStatusSource = Annotated[Callable[[], dict] | None, Depends(history_status)]
 
 
 @router.get("", operation_id="getServiceStatus", response_model=ServiceStatus)

@@ -5,12 +5,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, HTTPException, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, TimeTravelReader
 from mapservice.core.timetravel import timeline_buckets
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import WindowQuery, get_clock, get_settings, get_store
+from ..deps import ClockDep, HistoryDep, SettingsDep, WindowQuery
 
 router = APIRouter(prefix="/api/v1/timeline", tags=["timeline"], dependencies=[Depends(READ)])
 MAX_BUCKETS = 2000
@@ -43,9 +41,10 @@ class Timeline(BaseModel):
 def get_timeline(
     window: WindowQuery,
     buckets: int = Query(200, description=f"Number of buckets, 1 to {MAX_BUCKETS}"),
-    store: TimeTravelReader = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
+    *,
+    store: HistoryDep,
+    settings: SettingsDep,
+    clock: ClockDep,
 ) -> Timeline:
     if not 1 <= buckets <= MAX_BUCKETS:
         raise HTTPException(

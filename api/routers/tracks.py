@@ -7,12 +7,10 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, TimeTravelReader
 from mapservice.core.timetravel import yaw
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import WindowQuery, check_step, get_clock, get_settings, get_store
+from ..deps import ClockDep, HistoryDep, SettingsDep, WindowQuery, check_step
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
 MAX_POINTS = 100_000
@@ -46,9 +44,10 @@ def get_robot_track(
     robot_id: Annotated[str, Path(max_length=64)],
     window: WindowQuery,
     step_ms: int = Query(0, description="0: every pose; > 0: at most one point per step"),
-    store: TimeTravelReader = Depends(get_store),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
+    *,
+    store: HistoryDep,
+    settings: SettingsDep,
+    clock: ClockDep,
 ) -> Track:
     check_step(step_ms)
     span = MAX_SPAN_EVERY_POSE_MS if step_ms == 0 else settings.retention_ms

@@ -12,6 +12,7 @@ from fastapi import APIRouter, Depends, HTTPException, Request
 from fastapi.responses import FileResponse, HTMLResponse
 
 from ..access import PUBLIC
+from ..context import context_of
 
 # The pages and their assets hold no data (it comes from the API, with its own scopes).
 router = APIRouter(tags=["ui"], include_in_schema=False, dependencies=[Depends(PUBLIC)])
@@ -28,7 +29,7 @@ then reload. <code>make up</code> builds it when needed.</p>
 
 def _dist(request: Request) -> Path:
     """The build to serve: MAPSERVICE_UI_DIR (an installed image), else the checkout's."""
-    return request.app.state.settings.ui_dir or DIST
+    return context_of(request.app).settings.ui_dir or DIST
 
 
 def _page(request: Request, name: str) -> FileResponse | HTMLResponse:

@@ -10,19 +10,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import Clock, VdaFacts, VdaReader
+from mapservice.core.ports import VdaFacts
 from mapservice.core.vda_ids import vehicle_of
 from mapservice.core.wire2019 import format_timestamp
-from mapservice.settings import Settings
 
 from ..access import READ
-from ..deps import get_clock, get_settings, get_store, window_in_retention
+from ..deps import ClockDep, SettingsDep, VdaDep, window_in_retention
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
 
-StoreDep = Annotated[VdaReader, Depends(get_store)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-ClockDep = Annotated[Clock, Depends(get_clock)]
 FromQuery = Annotated[
     str | None,
     Query(
@@ -68,7 +64,7 @@ class VdaVehicle(BaseModel):
 
 @router.get("/{robot_id}/vda5050", operation_id="getVdaVehicle", response_model=VdaVehicle)
 def get_vda_vehicle(
-    store: StoreDep,
+    store: VdaDep,
     settings: SettingsDep,
     clock: ClockDep,
     robot_id: Annotated[
@@ -101,7 +97,7 @@ def get_vda_vehicle(
 
 @router.get("/vda5050", operation_id="getVdaFleet", response_model=list[VdaVehicle])
 def get_vda_fleet(
-    store: StoreDep,
+    store: VdaDep,
     settings: SettingsDep,
     clock: ClockDep,
     from_: FromQuery = None,

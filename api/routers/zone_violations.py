@@ -8,19 +8,12 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import AnnotationReader, Clock
-from mapservice.settings import Settings
-
 from ..access import READ
-from ..deps import WindowQuery, get_clock, get_settings, get_store
+from ..deps import AnnotationsDep, ClockDep, SettingsDep, WindowQuery
 
 router = APIRouter(
     prefix="/api/v1/zone-violations", tags=["annotations"], dependencies=[Depends(READ)]
 )
-
-StoreDep = Annotated[AnnotationReader, Depends(get_store)]
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-ClockDep = Annotated[Clock, Depends(get_clock)]
 
 
 class Violation(BaseModel):
@@ -40,7 +33,7 @@ class Violations(BaseModel):
 
 @router.get("", operation_id="listZoneViolations", response_model=Violations)
 def list_zone_violations(
-    store: StoreDep,
+    store: AnnotationsDep,
     settings: SettingsDep,
     clock: ClockDep,
     window: WindowQuery,

@@ -19,7 +19,7 @@ from mapservice.core.annotations import (
     Zone,
 )
 from mapservice.core.commands import CommandAcknowledged, CommandIssued, StoredCommandEvent
-from mapservice.core.ports import HistoryStore
+from mapservice.core.ports import AnnotationReader, CommandReader
 
 ANNOTATIONS_TOPIC = "/annotations"
 COMMANDS_TOPIC = "/commands"
@@ -99,7 +99,7 @@ def command_doc(stored: StoredCommandEvent, kinds: dict[str, str]) -> dict:
 
 
 def command_messages(
-    store: HistoryStore, from_ms: int, to_ms: int, limit: int = 1_000_000
+    store: CommandReader, from_ms: int, to_ms: int, limit: int = 1_000_000
 ) -> list[tuple[int, dict]]:
     """The window's command events as (log time, `/commands` document), in time order."""
     kinds: dict[str, str] = {}
@@ -109,7 +109,7 @@ def command_messages(
 
 
 def annotation_states(
-    store: HistoryStore, from_ms: int, to_ms: int, limit: int = 1_000_000
+    store: AnnotationReader, from_ms: int, to_ms: int, limit: int = 1_000_000
 ) -> list[tuple[int, dict[str, Shape]]]:
     """The annotations standing at `from_ms` (left out when none stand: an empty scene is
     what a reader shows before any message), then after each instant of the window with an

@@ -7,7 +7,7 @@ state as JSON channels too; the operators' annotations standing as `foxglove.Sce
 (mcap_annotations). Topic names and JSON schemas: mcap_channels. CSV and Parquet:
 table_export.
 
-May depend on: the ports (it reads the window through HistoryStore)."""
+May depend on: the ports (it reads the window through the roles of `ReplaySources`)."""
 
 from __future__ import annotations
 
@@ -41,7 +41,13 @@ from mapservice.adapters.mcap_channels import (
     state_topic,
 )
 from mapservice.core.events import MapMetaSet
-from mapservice.core.ports import HistoryStore, PoseRow
+from mapservice.core.ports import (
+    AnnotationReader,
+    CommandReader,
+    PoseRow,
+    TimeTravelReader,
+    VdaReader,
+)
 
 
 @dataclass
@@ -113,10 +119,21 @@ class _McapOut:
         self.writer.finish()
 
 
+@dataclass(frozen=True)
+class ReplaySources:
+    """The store's roles a replay export reads: the map and poses (`history`), VDA 5050
+    facts, the annotations and the commands."""
+
+    history: TimeTravelReader
+    vda: VdaReader
+    annotations: AnnotationReader
+    commands: CommandReader
+
+
 class _Floor:
     """The whole map as one image, updated chunk by chunk."""
 
-    def __init__(self, meta: MapMetaSet, store: HistoryStore):
+    def __init__(self, meta: MapMetaSet, store: TimeTravelReader):
         self.meta, self.store = meta, store
         self.pixels = np.full((meta.height, meta.width), 205, dtype=np.uint8)  # ROS "unknown"
         self._contents: dict[str, tuple[int, int, bytes]] = {}
@@ -195,9 +212,7 @@ def _state_doc(row: PoseRow) -> dict:
     }
 
 
-def _vda_messages(
-    store: HistoryStore, from_ms: int, to_ms: int
-) -> list[tuple[int, str, str, dict]]:
+def _vda_messages(store: VdaReader, from_ms: int, to_ms: int) -> list[tuple[int, str, str, dict]]:
     """The window's VDA 5050 errors (one message per error instant and per clear) and
     connection states, as (log time, topic, schema name, document), in time order."""
     out: list[tuple[int, str, str, dict]] = []
@@ -233,24 +248,26 @@ def _vda_messages(
 
 
 def _side_messages(
-    store: HistoryStore, from_ms: int, to_ms: int
+    sources: ReplaySources, from_ms: int, to_ms: int
 ) -> list[tuple[int, str, str | None, object]]:
     """Everything besides the map and poses, as (log time, topic, JSON schema name or None
     for a protobuf message, message), in time order: VDA 5050 facts, the annotations standing
     at `from_ms` and after each edit, and the commands with the robots' answers."""
-    out: list[tuple[int, str, str | None, object]] = list(_vda_messages(store, from_ms, to_ms))
+    out: list[tuple[int, str, str | None, object]] = list(
+        _vda_messages(sources.vda, from_ms, to_ms)
+    )
     out += [
         (t, ANNOTATIONS_TOPIC, None, scene_update(t, standing))
-        for t, standing in annotation_states(store, from_ms, to_ms)
+        for t, standing in annotation_states(sources.annotations, from_ms, to_ms)
     ]
     out += [
         (t, COMMANDS_TOPIC, COMMANDS_SCHEMA_NAME, doc)
-        for t, doc in command_messages(store, from_ms, to_ms)
+        for t, doc in command_messages(sources.commands, from_ms, to_ms)
     ]
     return sorted(out, key=lambda m: (m[0], m[1]))
 
 
-def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
+def _all_poses(store: TimeTravelReader, from_ms: int, to_ms: int, page: int):
     """Every pose of the window, page by page (a page never splits one instant's robots)."""
     cursor = from_ms
     while cursor < to_ms:
@@ -268,7 +285,7 @@ def _all_poses(store: HistoryStore, from_ms: int, to_ms: int, page: int):
 
 
 def export_mcap(
-    store: HistoryStore,
+    sources: ReplaySources,
     from_ms: int,
     to_ms: int,
     out: BinaryIO,
@@ -281,6 +298,7 @@ def export_mcap(
     charging, loaded), and each robot's planned path when it changes (an empty path when
     the robot drops it), VDA 5050 vehicles' errors and connection states, the annotations
     standing at `from_ms` and after each edit, and the commands. Returns the counts."""
+    store = sources.history
     meta = store.latest_meta()
     if meta is None:
         raise ValueError("no map geometry is set yet (the 2019 meta); nothing to export")
@@ -289,7 +307,7 @@ def export_mcap(
     floor.apply([(c.row, c.column, c.content_hash) for c in store.map_at(from_ms)])
     writer = _McapOut(out)
     paths: dict[str, tuple | None] = {}
-    side = _side_messages(store, from_ms, to_ms)
+    side = _side_messages(sources, from_ms, to_ms)
     side_next = 0
 
     def write_side(until_ms: int) -> None:

@@ -389,8 +389,19 @@ class StoreAdmin(Protocol):
     def close(self) -> None: ...
 
 
+class TableExports(Protocol):
+    """The analysts' views read as ClickHouse writes them (CSV, Parquet): only a ClickHouse
+    store has it (ClickHouse: `admin`); mapservice/adapters/table_export.py writes the SQL."""
+
+    database: str
+
+    def export_query(self, sql: str, parameters: dict[str, object], fmt: str) -> bytes:
+        """The rows of `sql` in ClickHouse's output format `fmt`."""
+
+
 # `HistoryStore` is the whole store: what a composition root (server.py, the CLI's commands,
-# the benchmarks' loaders) constructs and hands on. A component depends on the roles it uses.
+# the benchmarks' loaders) constructs and cuts into its roles (core/store_roles.py) to hand
+# each component the roles it uses; no component is handed the whole store.
 # A new store method goes into the role whose ClickHouse mixin implements it, and is then
 # part of HistoryStore too; a new concern gets a role protocol of its own beside these (and a
 # mixin in adapters/clickhouse/), added to the bases below.

@@ -16,6 +16,7 @@ import pytest
 import yaml
 from fastapi.testclient import TestClient
 from mapservice.api.app import create_app
+from mapservice.api.context import context_of
 from PIL import Image
 
 from mapservice.adapters.clock import ManualClock
@@ -142,7 +143,7 @@ def test_edits_are_events_with_who_and_when_and_the_annotations_travel_in_time()
     keys = [k for k, _ in w.publisher.records[w.settings.topic_annotation_events]]
     assert keys[0] == b"annotation:dock-1"
     # Forget this process's own recent edits: what follows is the store's answer.
-    w.client.app.state.annotation_edits = None
+    context_of(w.client.app).recent_edits.edits = []
     assert w.at(NOW - 1) == {}
     assert list(w.at(NOW)) == ["dock-1"] and w.at(NOW)["dock-1"]["annotation"]["x"] == 3.5
     assert set(w.at(NOW + 60_000)) == {"dock-1", zone_id}
@@ -312,7 +313,7 @@ def test_the_keep_out_mask_at_t_is_the_rasterisation_of_the_zones_at_t_pixel_for
         checks.append((w.clock.now_ms() + 10, [list(p) for p in standing.values()]))
         w.clock.advance(10_000)
     w.store_published()
-    w.client.app.state.annotation_edits = None
+    context_of(w.client.app).recent_edits.edits = []
     centres_x = ox + (np.arange(width) + 0.5) * res
     centres_y = oy + (height - np.arange(height) - 0.5) * res
     for t, polygons in (checks[3], checks[-1]):
@@ -426,7 +427,7 @@ def test_the_warehouse_keep_out_mask_imported_and_exported_gives_the_same_pixels
         isinstance(e.payload, AnnotationCreated) and e.payload.annotation.kind == "keep_out"
         for e in events
     )
-    w.client.app.state.annotation_edits = None
+    context_of(w.client.app).recent_edits.edits = []
     # One event per zone, a millisecond apart: the mask as of the import's last one.
     exported = _mask(w, "keepout", r.json()["at_ms"])
     want = classify(source) == 100

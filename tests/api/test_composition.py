@@ -10,6 +10,7 @@ import threading
 import pytest
 from fastapi.testclient import TestClient
 from mapservice.api.composition import Api, compose_api
+from mapservice.api.context import context_of
 
 from mapservice.core.live_messages import LiveText
 from mapservice.settings import Settings
@@ -46,7 +47,8 @@ def test_the_parts_are_wired_into_the_app_and_its_server(tmp_path) -> None:
     """The hub and publisher are the app's; the hub is ready once the relay reads the live
     topic; the server serves this app where the settings say."""
     api = _compose(_settings(tmp_path))
-    assert api.app.state.live is api.hub and api.app.state.publisher is api.publisher
+    context = context_of(api.app)
+    assert context.live is api.hub and context.publisher is api.publisher
     assert api.hub.ready() is False
     api.relay.assigned.set()
     assert api.hub.ready() is True
@@ -99,7 +101,7 @@ def test_the_health_of_what_runs_beside_it_is_what_the_api_reports(tmp_path) -> 
         assert ready.json()["checks"] == {"history_store": False, "kafka": False}
         live = client.get("/healthz")
         assert live.status_code == 200 and live.json()["checks"] == {"history_consumer": True}
-    assert api.app.state.history_status() is storing
+    assert context_of(api.app).history_status() is storing
 
 
 def test_stopping_closes_the_rest_writes_producer(tmp_path) -> None:

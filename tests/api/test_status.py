@@ -17,8 +17,12 @@ def client_with(health: InsertHealth | None) -> TestClient:
     readiness = {"clickhouse": lambda: True}
     if health is not None:
         readiness["history_store"] = health
-    app = create_app(Settings(), MemoryStore(), readiness)
-    app.state.history_status = None if health is None else health.status
+    app = create_app(
+        Settings(),
+        MemoryStore(),
+        readiness,
+        history_status=None if health is None else health.status,
+    )
     return TestClient(app)
 
 

@@ -7,7 +7,10 @@ import asyncio
 
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
+from mapservice.processors.store_thread import StoreThread
+from mapservice.processors.views import Advertiser, LiveViews
 
+from mapservice.settings import Settings
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
 
@@ -29,6 +32,27 @@ class FlakyStore(MemoryStore):
             self.failures -= 1
             raise ConnectionError("clickhouse away")
         super().append_events(events)
+
+
+def live_views(
+    settings: Settings,
+    store: MemoryStore,
+    advertiser: Advertiser | None,
+    thread: StoreThread,
+    now_ms=None,
+) -> LiveViews:
+    """Live views whose every role is the test's one in-memory store."""
+    clock = {} if now_ms is None else {"now_ms": now_ms}
+    return LiveViews(
+        settings,
+        history=store,
+        annotations=store,
+        conflicts=store,
+        writer=store,
+        advertiser=advertiser,
+        store_thread=thread,
+        **clock,
+    )
 
 
 def consumer_for(store: MemoryStore, source: MemorySource, batch: int = 100) -> HistoryConsumer:

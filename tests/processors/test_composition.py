@@ -60,7 +60,7 @@ def test_each_part_is_built_once_and_handed_to_the_parts_that_use_it(processors,
     assert p.store_thread is built["StoreThread"][0]
     assert p.sink.thread is p.store_thread and p.views.store_thread is p.store_thread
     assert p.sink.live is p.live is built["KafkaLivePublisher"][0]
-    assert p.views.advertiser is built["MqttAdvertiser"][0] and p.views.store is p.sink.store
+    assert p.views.advertiser is built["MqttAdvertiser"][0] and p.views.writer is p.sink.writer
     assert p.consumer.sink is p.sink and p.consumer.views is p.views
     source = built["KafkaBatchSource"][0]
     assert p.consumer.source is source and source.on_assigned == p.consumer.on_assigned

@@ -12,7 +12,7 @@ from mapservice.processors.sink import HistorySink
 from mapservice.core.events import encode
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
-from tests.processors.history_consumer_kit import CHUNKS, NOW, POSES, Clock, drain
+from tests.processors.history_consumer_kit import CHUNKS, NOW, POSES, Clock, drain, live_views
 
 
 def test_pose_views_are_derived_after_the_live_push_and_before_the_commit(ev) -> None:
@@ -216,14 +216,12 @@ class ConflictLog(DeriveLog):
 def conflicting_consumer(ev, views_seconds: float, failures: int = 0):
     """A consumer with live views (conflict window 60 s) on a hand-driven clock, and a way
     to add a one-chunk batch of a robot, each robot's pixels its own, taking 0.3 s."""
-    from mapservice.processors.views import LiveViews
-
     from mapservice.settings import Settings
 
     clock, source = Clock(), MemorySource()
     store = ConflictLog(source, failures)
     sink = HistorySink(store)
-    views = LiveViews(Settings(conflict_window_s=60), store, None, sink.thread, now_ms=lambda: NOW)
+    views = live_views(Settings(conflict_window_s=60), store, None, sink.thread, now_ms=lambda: NOW)
     views.load()
     consumer = HistoryConsumer(
         source,

@@ -42,7 +42,7 @@ def test_the_snapshot_timer_keeps_the_floor_through_three_retention_periods(kind
     store = _store(kind, tmp_path)
     sink = HistorySink(store)
     clock = ManualClock(T0)
-    tick = snapshot_timer(sink, clock.now_ms, grace_ms=60_000)
+    tick = snapshot_timer(sink, store, store, clock.now_ms, grace_ms=60_000)
     floor = [
         chunk_event("mapper", T0 + 1, r, c, bytes([r * 10 + c]) * 10_000)
         for r in range(3)

@@ -15,6 +15,7 @@ from mapservice.settings import Settings
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import NOW_MS, chunk_event, pose_event
+from tests.processors.history_consumer_kit import live_views
 
 
 class FakeAdvertiser:
@@ -43,9 +44,9 @@ def sink():
 
 
 def _views(sink, advertiser, now=NOW_MS, **settings) -> LiveViews:
-    return LiveViews(
+    return live_views(
         Settings(public_base_url="http://api:8080", **settings),
-        sink.store,
+        sink.writer,
         advertiser,
         sink.thread,
         now_ms=lambda: now,
@@ -53,7 +54,7 @@ def _views(sink, advertiser, now=NOW_MS, **settings) -> LiveViews:
 
 
 def _store_and_view(views: LiveViews, sink: HistorySink, events) -> None:
-    sink.store.append(events)
+    sink.writer.append(events)
     asyncio.run(views.on_stored(events))
     views.flush()
 
@@ -83,7 +84,7 @@ def test_changes_are_advertised_once_and_older_writes_never(sink) -> None:
 def test_rebuilt_views_continue_where_the_history_is(sink) -> None:
     """After a restart the view comes from the store: stored writes are not re-advertised,
     older ones still lose, newer ones are advertised."""
-    sink.store.append([chunk_event("a", NOW_MS, 0, 0), pose_event("r1", NOW_MS)])
+    sink.writer.append([chunk_event("a", NOW_MS, 0, 0), pose_event("r1", NOW_MS)])
     ads = FakeAdvertiser()
     views = _views(sink, ads)
     views.load()
@@ -110,9 +111,9 @@ def test_conflicts_found_per_batch_are_written_together(sink) -> None:
             chunk_event("c", NOW_MS + 30_000, 4, 4, bytes([2]) * 10_000),
         ],
     )
-    assert sink.store.conflicts(NOW_MS, NOW_MS + 60_000) == []
+    assert sink.writer.conflicts(NOW_MS, NOW_MS + 60_000) == []
     assert views.write_conflicts() == 1
-    rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
+    rows = sink.writer.conflicts(NOW_MS, NOW_MS + 60_000)
     assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [("a", "b", 9_000)]
     assert views.write_conflicts() == 0
 
@@ -131,7 +132,7 @@ def test_a_conflict_found_again_with_a_later_a_is_written_once_with_it(sink) -> 
     )
     _store_and_view(views, sink, [chunk_event("b", NOW_MS + 2_000, 4, 4, bytes([1]) * 10_000)])
     assert views.write_conflicts() == 2
-    rows = sink.store.conflicts(NOW_MS, NOW_MS + 60_000)
+    rows = sink.writer.conflicts(NOW_MS, NOW_MS + 60_000)
     assert [(c.robot_a, c.robot_b, c.ts_ms - NOW_MS) for c in rows] == [
         ("a", "b", 2_000),
         ("b", "c", 5_000),
@@ -164,8 +165,8 @@ def test_a_failing_advertiser_does_not_stop_the_sink(sink) -> None:
 def test_presence_transitions(sink) -> None:
     """Robots go online when heard from and offline after robot_offline_after_s of silence."""
     now = [NOW_MS]
-    views = LiveViews(
-        Settings(robot_offline_after_s=10), sink.store, None, sink.thread, now_ms=lambda: now[0]
+    views = live_views(
+        Settings(robot_offline_after_s=10), sink.writer, None, sink.thread, now_ms=lambda: now[0]
     )
     asyncio.run(views.on_stored([pose_event("r1", NOW_MS, receive_lag_ms=0)]))
     assert views.check_presence() == ({"r1"}, set())
@@ -183,9 +184,9 @@ def test_an_assignment_rebuilds_the_views_and_starts_the_advertiser(sink) -> Non
         def start(self) -> None:
             self.calls.append("start")
 
-    sink.store.append([chunk_event("a", NOW_MS, 2, 3)])
+    sink.writer.append([chunk_event("a", NOW_MS, 2, 3)])
     adv = Recorder()
-    views = LiveViews(Settings(), sink.store, adv, sink.thread)
+    views = live_views(Settings(), sink.writer, adv, sink.thread)
     assert views.latest == {}
 
     consumer = HistoryConsumer(MemorySource(), sink, views, batch_size=10, batch_seconds=0.01)
@@ -201,9 +202,9 @@ def test_an_assignment_rebuilds_the_views_and_starts_the_advertiser(sink) -> Non
 
 def test_advertisements_beyond_the_backlog_bound_are_dropped(sink, monkeypatch) -> None:
     """With the encoding backlog full, a change is dropped (counted), not queued or awaited."""
-    import mapservice.processors.views as views_module
+    import mapservice.processors.advertising as advertising
 
-    monkeypatch.setattr(views_module, "MAX_PENDING_ADS", 0)
+    monkeypatch.setattr(advertising, "MAX_PENDING_ADS", 0)
     ads = FakeAdvertiser()
     views = _views(sink, ads)
     views.load()
@@ -214,15 +215,15 @@ def test_advertisements_beyond_the_backlog_bound_are_dropped(sink, monkeypatch) 
 def test_a_failed_rebuild_is_retried_before_the_next_batch_is_applied(sink, monkeypatch) -> None:
     """If rebuilding at assignment fails, the app keeps running and the next stored batch
     rebuilds first, so an older write still cannot win."""
-    sink.store.append([chunk_event("a", NOW_MS, 0, 0)])
+    sink.writer.append([chunk_event("a", NOW_MS, 0, 0)])
     ads = FakeAdvertiser()
-    views = LiveViews(Settings(), sink.store, ads, sink.thread)
-    real_map_at = sink.store.map_at
-    monkeypatch.setattr(sink.store, "map_at", lambda at: (_ for _ in ()).throw(OSError("down")))
+    views = live_views(Settings(), sink.writer, ads, sink.thread)
+    real_map_at = sink.writer.map_at
+    monkeypatch.setattr(sink.writer, "map_at", lambda at: (_ for _ in ()).throw(OSError("down")))
     consumer = HistoryConsumer(MemorySource(), sink, views, batch_size=10, batch_seconds=0.01)
     consumer.on_assigned([("mapservice.chunk-events.v1", 0)])
     asyncio.run(consumer.run_once())
     assert not views.loaded
-    monkeypatch.setattr(sink.store, "map_at", real_map_at)
+    monkeypatch.setattr(sink.writer, "map_at", real_map_at)
     _store_and_view(views, sink, [chunk_event("b", NOW_MS - 1, 0, 0)])
     assert views.loaded and ads.sent == [] and views.latest[(0, 0)].robot_id == "a"

@@ -22,6 +22,7 @@ from mapservice.core.events import make_envelope
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import NOW_MS
+from tests.processors.history_consumer_kit import live_views
 
 ZONE = Zone("aisle 3", "keep_out", ((0.0, 0.0), (2.0, 0.0), (2.0, 1.0)))
 POI = PointOfInterest("dock", "station", 1.0, 1.0)
@@ -57,7 +58,7 @@ def _edit(t: int, event):
 
 
 def _stored(views: LiveViews, sink: HistorySink, *events) -> None:
-    sink.store.append(list(events))
+    sink.writer.append(list(events))
     asyncio.run(views.on_stored(list(events)))
     views.flush()
 
@@ -67,7 +68,7 @@ def test_zone_edits_are_advertised_on_the_zone_topic_and_points_of_interest_are_
     settings = Settings(
         public_base_url="http://api:8080", zone_advertisement_topic="iot/zones/advertisement"
     )
-    views = LiveViews(settings, sink.store, ads, sink.thread, now_ms=lambda: NOW_MS)
+    views = live_views(settings, sink.writer, ads, sink.thread, now_ms=lambda: NOW_MS)
     views.load()
     _stored(
         views,
@@ -102,9 +103,9 @@ def test_zone_edits_are_advertised_on_the_zone_topic_and_points_of_interest_are_
 def test_a_zone_known_from_the_history_is_advertised_when_removed(sink) -> None:
     """After a restart the views learn the standing zones from the store: removing one is
     advertised although this process never saw it created."""
-    sink.store.append([_edit(NOW_MS, AnnotationCreated("z1", "operator:ab12", ZONE))])
+    sink.writer.append([_edit(NOW_MS, AnnotationCreated("z1", "operator:ab12", ZONE))])
     ads = TopicAdvertiser()
-    views = LiveViews(Settings(), sink.store, ads, sink.thread, now_ms=lambda: NOW_MS + 60_000)
+    views = live_views(Settings(), sink.writer, ads, sink.thread, now_ms=lambda: NOW_MS + 60_000)
     views.load()
     _stored(views, sink, _edit(NOW_MS + 60_000, AnnotationRemoved("z1", "operator:ab12")))
     assert [(t, p["change"]) for t, p in ads.sent] == [("iot/zones/advertisement", "removed")]
@@ -120,9 +121,9 @@ def test_a_pose_inside_a_keep_out_zone_is_a_zone_violation(sink) -> None:
     from mapservice.adapters.clock import ManualClock
     from tests.conftest import meta_event, pose_event
 
-    sink.store.append([meta_event(NOW_MS - 10_000)])  # 500 x 400 px at 0.05 m from (-1.5, 2.0)
-    views = LiveViews(
-        Settings(), sink.store, TopicAdvertiser(), sink.thread, now_ms=lambda: NOW_MS + 100_000
+    sink.writer.append([meta_event(NOW_MS - 10_000)])  # 500 x 400 px at 0.05 m from (-1.5, 2.0)
+    views = live_views(
+        Settings(), sink.writer, TopicAdvertiser(), sink.thread, now_ms=lambda: NOW_MS + 100_000
     )
     views.load()
     keep_out = Zone("pit", "keep_out", ((0.0, 3.0), (2.0, 3.0), (2.0, 5.0), (0.0, 5.0)))
@@ -149,11 +150,11 @@ def test_a_pose_inside_a_keep_out_zone_is_a_zone_violation(sink) -> None:
     )  # before the zone existed
     _stored(views, sink, _edit(NOW_MS + 2000, AnnotationRemoved("pit", "operator:ab12")))
     _stored(views, sink, pose_event("amr-1", NOW_MS + 3000, x=1.0, y=4.0))
-    found = sink.store.zone_violations(NOW_MS - 60_000, NOW_MS + 60_000)
+    found = sink.writer.zone_violations(NOW_MS - 60_000, NOW_MS + 60_000)
     assert [(v.robot_id, v.annotation_id, v.ts_ms) for v in found] == [
         ("amr-1", "pit", NOW_MS + 1000)
     ]
-    client = TestClient(create_app(Settings(), sink.store, {}, ManualClock(NOW_MS + 100_000)))
+    client = TestClient(create_app(Settings(), sink.writer, {}, ManualClock(NOW_MS + 100_000)))
     body = client.get(
         "/api/v1/zone-violations", params={"from": str(NOW_MS - 60_000), "to": str(NOW_MS + 60_000)}
     ).json()

@@ -9,6 +9,7 @@ import io
 import httpx
 import numpy as np
 import pytest
+from mapservice.api.context import context_of
 from mapservice.robot import zones_cli
 from mapservice.robot.zones_cli import MaskFiles, import_mask, mask_files, refusal
 from PIL import Image
@@ -51,7 +52,7 @@ def test_import_mask_posts_the_files_and_the_keep_out_mask_exports_the_same_pixe
     assert len(answer["ids"]) == 2
     events = w.store_published()
     assert {e.payload.annotation.name for e in events} == {"racks 1", "racks 2"}
-    w.client.app.state.annotation_edits = None
+    context_of(w.client.app).recent_edits.edits = []
     r = w.client.get(
         "/api/v1/costmap-filters/keepout/mask.pgm", params={"at": str(answer["at_ms"])}
     )

@@ -30,8 +30,9 @@ def status_api():
         pytest.fail("replay-ui is not built: run `make ui` first")
     health = InsertHealth()
     settings = Settings(api_port=free_port(), ui_dir=TEST_UI_DIR)
-    app = create_app(settings, MemoryStore(), {"history_store": health})
-    app.state.history_status = health.status
+    app = create_app(
+        settings, MemoryStore(), {"history_store": health}, history_status=health.status
+    )
     uv = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=settings.api_port, log_level="warning")
     )

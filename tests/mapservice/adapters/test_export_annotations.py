@@ -16,7 +16,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.mcap_annotations import ANNOTATIONS_TOPIC, COMMANDS_SCHEMA, COMMANDS_TOPIC
-from mapservice.adapters.mcap_export import export_mcap
+from mapservice.adapters.mcap_export import ReplaySources, export_mcap
 from mapservice.adapters.table_export import export_table
 from mapservice.core.annotations import (
     AnnotationChanged,
@@ -40,6 +40,11 @@ AISLE = Zone(
     speed_unit="m/s",
 )
 DOCK = PointOfInterest("dock 1", "station", 1.0, 1.0)
+
+
+def _sources(store) -> ReplaySources:
+    """Every role a replay export reads, from the test's one store."""
+    return ReplaySources(store, store, store, store)
 
 
 def _at(t_ms: int, payload, who: str = "operator:ab12"):
@@ -118,7 +123,7 @@ def test_mcap_holds_the_annotations_at_the_start_and_after_each_edit() -> None:
     store = MemoryStore()
     history(store)
     out = io.BytesIO()
-    counts = export_mcap(store, T0 + 5000, T0 + 50_000, out)
+    counts = export_mcap(_sources(store), T0 + 5000, T0 + 50_000, out)
     messages, _ = read_back(out.getvalue())
     updates = [(t, _standing(m)) for topic, t, m in messages if topic == ANNOTATIONS_TOPIC]
     assert [t for t, _ in updates] == [T0 + 5000, T0 + 20_000, T0 + 40_000]
@@ -155,7 +160,7 @@ def test_mcap_without_annotations_standing_starts_with_none() -> None:
 
 def _export(store, from_ms: int, to_ms: int) -> bytes:
     out = io.BytesIO()
-    export_mcap(store, from_ms, to_ms, out)
+    export_mcap(_sources(store), from_ms, to_ms, out)
     return out.getvalue()
 
 

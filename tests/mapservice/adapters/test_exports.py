@@ -25,12 +25,17 @@ from mapservice.adapters.mcap_channels import (
     pose_topic,
     state_topic,
 )
-from mapservice.adapters.mcap_export import export_mcap
+from mapservice.adapters.mcap_export import ReplaySources, export_mcap
 from mapservice.adapters.table_export import export_table
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, meta_event, pose_event
 
 T0 = (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
+
+
+def _sources(store) -> ReplaySources:
+    """Every role a replay export reads, from the test's one store."""
+    return ReplaySources(store, store, store, store)
 
 
 def history(store) -> None:
@@ -77,7 +82,7 @@ def test_mcap_holds_the_map_and_every_pose_of_the_window() -> None:
     store = MemoryStore()
     history(store)
     out = io.BytesIO()
-    counts = export_mcap(store, T0 + 10_000, T0 + 50_000, out, grid_every_ms=10_000)
+    counts = export_mcap(_sources(store), T0 + 10_000, T0 + 50_000, out, grid_every_ms=10_000)
     messages = read_mcap(out.getvalue())
     grids = [(t, m) for topic, t, m in messages if topic == MAP_TOPIC]
     poses = [(topic, t, m) for topic, t, m in messages if topic.endswith("/pose")]
@@ -121,7 +126,7 @@ def test_mcap_holds_battery_charging_loaded_and_planned_paths() -> None:
         ]
     )
     out = io.BytesIO()
-    counts = export_mcap(store, T0, T0 + 5_000, out)
+    counts = export_mcap(_sources(store), T0, T0 + 5_000, out)
     summary = make_reader(io.BytesIO(out.getvalue())).get_summary()
     channels = {c.topic: c for c in summary.channels.values()}
     state = channels[state_topic("a")]
@@ -183,7 +188,7 @@ def test_mcap_holds_vda_vehicles_errors_and_connection_states() -> None:
         record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
         store.append([decode(record.value)])
     out = io.BytesIO()
-    counts = export_mcap(store, T0, T0 + 5_000, out)
+    counts = export_mcap(_sources(store), T0, T0 + 5_000, out)
     summary = make_reader(io.BytesIO(out.getvalue())).get_summary()
     channels = {c.topic: c for c in summary.channels.values()}
     for topic, schema in (
@@ -230,7 +235,7 @@ def test_mcap_holds_vda_vehicles_errors_and_connection_states() -> None:
 def test_mcap_without_a_map_geometry_is_refused() -> None:
     """No meta yet: a clear error instead of an empty file."""
     with pytest.raises(ValueError, match="no map geometry"):
-        export_mcap(MemoryStore(), T0, T0 + 1000, io.BytesIO())
+        export_mcap(_sources(MemoryStore()), T0, T0 + 1000, io.BytesIO())
 
 
 def test_mcap_pages_through_more_poses_than_a_page() -> None:
@@ -238,7 +243,7 @@ def test_mcap_pages_through_more_poses_than_a_page() -> None:
     store = MemoryStore()
     history(store)
     out = io.BytesIO()
-    counts = export_mcap(store, T0, T0 + 60_000, out, page=7)
+    counts = export_mcap(_sources(store), T0, T0 + 60_000, out, page=7)
     assert counts.poses == 120
     stamps = [(topic, t) for topic, t, _ in read_mcap(out.getvalue()) if topic.endswith("/pose")]
     assert len(set(stamps)) == 120
