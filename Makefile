@@ -119,11 +119,13 @@ test: $(STAMP) system-deps ui test-ui
 	[ $$fast -eq 0 -o $$fast -eq 5 ] && [ $$slow -eq 0 -o $$slow -eq 5 ]
 
 # ruff's lint rules over the Python tree and mypy (strict on mapservice/core/), as configured
-# in pyproject.toml; `.ci/run` runs it before the tests.
-lint: $(STAMP)
+# in pyproject.toml, and ESLint over the UI (replay-ui/eslint.config.js: rules that find
+# bugs, no formatting); `.ci/run` runs it before the tests.
+lint: $(STAMP) $(UI)/node_modules/.installed
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
+	cd $(UI) && npm run --silent lint
 
 test-unit: $(STAMP)
 	$(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) $(ARGS)
