@@ -125,14 +125,16 @@ test: $(STAMP) system-deps ui test-ui
 	for rc in $$fast $$parallel $$alone; do [ $$rc -eq 0 -o $$rc -eq 5 ] || exit 1; done
 
 # ruff's lint rules and format check over the Python tree, mypy and the import contracts, as
-# configured in pyproject.toml; `.ci/run` runs it before the tests (which do not run it again).
+# configured in pyproject.toml, and ESLint over the UI (replay-ui/eslint.config.js: rules that
+# find bugs, no formatting); `.ci/run` runs it before the tests (which do not run it again).
 # mypy and import-linter run through tools/, which names each file as installed
 # (`mapservice.api.access` for api/access.py): neither can follow the editable install's hook.
-lint: $(STAMP)
+lint: $(STAMP) $(UI)/node_modules/.installed
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(PY) -m tools.typecheck
 	$(PY) -m tools.lint_imports --no-logo
+	cd $(UI) && npm run --silent lint
 
 test-unit: $(STAMP)
 	$(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) $(ARGS)

@@ -7,8 +7,9 @@ them); a slow subscriber loses its oldest messages, never slows the others.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+
+from mapservice.core.live_messages import LiveText
 
 
 class LiveHub:
@@ -31,7 +32,7 @@ class LiveHub:
     def subscribers(self) -> int:
         return len(self._subscribers)
 
-    def publish(self, messages: Sequence[Mapping[str, Any]]) -> None:
+    def publish(self, messages: Sequence[LiveText]) -> None:
         for queue in self._subscribers:
             for m in messages:
                 if queue.full():

@@ -43,7 +43,6 @@ from mapservice.settings import VDA5050_SUBTOPICS
 
 SCHEMA_DIR = Path(__file__).with_name("vda5050_schemas")
 SUBTOPICS = VDA5050_SUBTOPICS
-CONNECTION_STATES = ("ONLINE", "OFFLINE", "CONNECTIONBROKEN")
 MAX_VEHICLES = 100_000  # vehicles whose last state is held for their visualization poses
 
 

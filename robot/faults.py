@@ -6,14 +6,17 @@ Pure: the same outputs, options and tick give the same messages.
 
 from __future__ import annotations
 
-import base64
 import random
-import zlib
 from dataclasses import dataclass
 
 import msgspec
 
-from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.core.wire2019 import (
+    encode_chunk_create,
+    encode_coordinates,
+    encode_pixels,
+    format_timestamp,
+)
 
 from .sim import ChunkOut, PoseOut, StepOut
 
@@ -85,13 +88,7 @@ def bad_message(
 ) -> Message:
     """One invalid message of a random class the gateway must dead-letter."""
     ts = format_timestamp(t_ms)
-    good_chunk = {
-        "pgmB64compressedData": base64.b64encode(zlib.compress(bytes(pixels))).decode(),
-        "row": 0,
-        "column": 0,
-        "timestamp": ts,
-        "robotId": robot_id,
-    }
+    good_chunk = msgspec.json.decode(encode_chunk_create(0, 0, bytes(pixels), ts, robot_id))
     kind = rng.choice(
         [
             "not_json",
@@ -129,9 +126,7 @@ def bad_message(
     if kind == "bad_base64":
         good_chunk["pgmB64compressedData"] = "not*base64!"
     elif kind == "wrong_chunk_size":
-        good_chunk["pgmB64compressedData"] = base64.b64encode(
-            zlib.compress(bytes(pixels // 2))
-        ).decode()
+        good_chunk["pgmB64compressedData"] = encode_pixels(bytes(pixels // 2))
     elif kind == "out_of_map":
         good_chunk["row"] = 999_999
     return Message(chunk_topic(robot_id), msgspec.json.encode(good_chunk), f"bad:{kind}", robot_id)

@@ -4,7 +4,6 @@ behind one parametrized fixture (`store`), over one chDB engine per module (`chd
 
 from __future__ import annotations
 
-import base64
 import itertools
 import os
 import time
@@ -26,8 +25,9 @@ from mapservice.core.events import (
     PoseReported,
     make_envelope,
 )
-from mapservice.core.wire2019 import Limits, content_hash, format_timestamp
+from mapservice.core.wire2019 import Limits, content_hash, encode_pixels, format_timestamp
 from mapservice.local.embedded import PORT_SLICE_ENV
+from tests.fixtures.listings_2019 import listing_14, listing_16
 
 if TYPE_CHECKING:
     from mapservice.core.ports import HistoryStore
@@ -183,38 +183,18 @@ class Wire:
         """A 2019-style timestamp (no zone, UTC) `offset_ms` from now."""
         return format_timestamp(self.now_ms + offset_ms)
 
-    @staticmethod
-    def b64z(raw: bytes) -> str:
-        return base64.b64encode(zlib.compress(raw)).decode()
+    b64z = staticmethod(encode_pixels)
 
     def chunk_doc(self, **overrides) -> dict:
         """Listing 14, field for field, with real 100 x 100 pixels and a current timestamp."""
-        doc = {
-            "pgmB64compressedData": self.b64z(bytes([205]) * 10_000),
-            "row": 3,
-            "column": 2,
-            "timestamp": self.ts(),
-            "robotId": "lkjlkj",
-        }
-        doc.update(overrides)
-        return doc
+        return listing_14(self.ts(), bytes([205]) * 10_000, **overrides)
 
     def chunk(self, **overrides) -> bytes:
         return msgspec.json.encode(self.chunk_doc(**overrides))
 
     def pose_doc(self, **overrides) -> dict:
         """Listing 16 as printed (integers, string flags), with a current timestamp."""
-        doc = {
-            "robotId": "blabla",
-            "timestamp": self.ts(),
-            "pose": {
-                "position": {"x": 10, "y": 20, "z": 0},
-                "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
-            },
-            "status": {"battery": {"battery_level": 3, "charging": "sdf"}, "loaded": "dfs"},
-        }
-        doc.update(overrides)
-        return doc
+        return listing_16(self.ts(), **overrides)
 
     def pose(self, **overrides) -> bytes:
         return msgspec.json.encode(self.pose_doc(**overrides))

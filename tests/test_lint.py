@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import json
 import subprocess
 import tomllib
 from pathlib import Path
@@ -116,6 +117,18 @@ def test_ci_lints_before_it_tests():
         if line.strip().startswith("make ")
     ]
     assert steps[:2] == ["make lint", "make test"]
+
+
+def test_make_lint_runs_the_uis_linter_after_installing_it():
+    """The UI's ESLint is part of `make lint`, which installs the UI's packages first."""
+    makefile = (ROOT / "Makefile").read_text()
+    target = makefile.split("\nlint:", 1)[1].split("\n\n", 1)[0]
+    prerequisites, recipe = target.split("\n", 1)
+    assert "$(UI)/node_modules/.installed" in prerequisites.split()
+    assert "cd $(UI) && npm run --silent lint" in recipe
+    scripts = json.loads((ROOT / "replay-ui" / "package.json").read_text())["scripts"]
+    assert scripts["lint"] == "eslint ."
+    assert (ROOT / "replay-ui" / "eslint.config.js").is_file()
 
 
 # Written by tools, not by hand: the UI's API types are generated from the OpenAPI document.

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import time
 
 import structlog
@@ -147,15 +146,10 @@ async def _send_batches(websocket: WebSocket, queue: asyncio.Queue) -> None:
         await websocket.send_text("[" + ",".join(_event_text(m, sent_ms) for m in messages) + "]")
 
 
-def _event_text(message: LiveText | dict, sent_ms: int) -> str:
-    """One event's JSON with `sent_ms` added."""
-    if isinstance(message, LiveText):
-        # As it came from the live topic, with this send's time added: no decoding
-        # into a dict and encoding again, per message and viewer.
-        return message.with_sent_ms(sent_ms)
-    # A copy: every subscriber's queue holds the same dict, and each stamps its own send.
-    # Encoded as WebSocket.send_json does, so the text is what it sent before.
-    return json.dumps({**message, "sent_ms": sent_ms}, separators=(",", ":"), ensure_ascii=False)
+def _event_text(message: LiveText, sent_ms: int) -> str:
+    """One event's JSON with `sent_ms` added: as it came from the live topic, with this
+    send's time added, no decoding into a dict and encoding again, per message and viewer."""
+    return message.with_sent_ms(sent_ms)
 
 
 def _now_ms() -> int:

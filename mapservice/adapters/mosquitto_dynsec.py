@@ -54,8 +54,3 @@ def render_dynsec(usernames: Iterable[str]) -> str:
         ],
     }
     return json.dumps(config, indent=1) + "\n"
-
-
-def dynsec_users(dynsec_text: str) -> list[str]:
-    """The users a rendered file names."""
-    return [client["username"] for client in json.loads(dynsec_text).get("clients", [])]

@@ -261,11 +261,6 @@ class BrokerFiles:
     def legacy_robots(self) -> list[str]:
         return self._legacy()
 
-    def ensure(self) -> None:
-        """Writes both files if missing (a broker needs them to start), keeping what is there."""
-        with self._locked():
-            self._write(read_password_file(self.password_file), self._legacy())
-
     def set_service_user(self, username: str, password: str) -> None:
         if username not in self.service_users:
             raise ValueError(f"{username!r} is not one of the service users {self.service_users}")

@@ -144,7 +144,6 @@ class HistoryGenerator:
             if h not in index:
                 index[h] = self._add_content(h, pixels)
             self.tile_content[t] = index[h]
-        self.base_contents = len(self._hashes)
 
     def _add_content(self, h: bytes, pixels: bytes) -> int:
         self._pixels.append(pixels)

@@ -236,13 +236,6 @@ def fold_annotations(edits: Iterable[AnnotationEdit], at_ms: int) -> dict[str, C
     return out
 
 
-def zones_of(current: Iterable[CurrentAnnotation]) -> list[tuple[str, Zone]]:
-    return sorted(
-        ((c.annotation_id, c.annotation) for c in current if isinstance(c.annotation, Zone)),
-        key=lambda z: z[0],
-    )
-
-
 # --- the JSON form (API bodies, the stored `body` column) -------------------------------
 
 

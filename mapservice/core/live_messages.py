@@ -23,39 +23,9 @@ from mapservice.core.wire2019 import format_timestamp
 MAX_RECORD_BYTES = 256 * 1024
 
 
-def live_message(e: Envelope) -> dict[str, Any] | None:
-    p = pose_of(e.payload) or e.payload
-    base = {
-        "robotId": e.robot_id,
-        "ts_ms": e.event_time_ms,
-        "timestamp": format_timestamp(e.event_time_ms),
-        "receive_time_ms": e.receive_time_ms,
-    }
-    if isinstance(p, PoseReported):
-        return {
-            "type": "pose",
-            **base,
-            "position": list(p.position),
-            "orientation": list(p.orientation),
-            "battery_level": p.battery_level,
-            "charging": p.charging,
-            "loaded": p.loaded,
-            "path": [list(pt) for pt in p.path] if p.path is not None else None,
-        }
-    if isinstance(p, ChunkUpdated):
-        return {
-            "type": "chunk",
-            **base,
-            "row": p.row,
-            "column": p.column,
-            "content_hash": p.content_hash.hex(),
-        }
-    return None
-
-
 class _LivePose(msgspec.Struct):
-    """`live_message`'s pose, as a struct: the same JSON (fields in the same order), encoded
-    without building a dict per event."""
+    """A pose's live message, encoded from a struct (not a dict per event); the UI reads
+    these fields (replay-ui/src/lib/live.ts)."""
 
     type: str
     robotId: str
@@ -71,7 +41,7 @@ class _LivePose(msgspec.Struct):
 
 
 class _LiveChunk(msgspec.Struct):
-    """`live_message`'s chunk, as a struct (see _LivePose)."""
+    """A chunk write's live message (see _LivePose)."""
 
     type: str
     robotId: str
@@ -141,19 +111,6 @@ class BadLiveRecord(ValueError):
     """A live-topic record that is not a JSON array of live messages."""
 
 
-def decode_live_record(value: bytes) -> list[dict[str, Any]]:
-    """The messages of one live-topic record; BadLiveRecord if it is not one."""
-    try:
-        messages = msgspec.json.decode(value)
-    except msgspec.DecodeError as exc:
-        raise BadLiveRecord(f"not JSON: {exc}") from exc
-    if not isinstance(messages, list) or not all(
-        isinstance(m, dict) and m.get("type") in ("pose", "chunk") for m in messages
-    ):
-        raise BadLiveRecord("not a JSON array of pose/chunk messages")
-    return messages
-
-
 class LiveText(Mapping[str, Any]):
     """One live message as the JSON text it came in: the API sends it on as it is (adding
     `sent_ms`) instead of decoding it into a dict and encoding it again per viewer; read
@@ -194,7 +151,7 @@ _decode_kind = msgspec.json.Decoder(_Kind).decode
 
 def live_record_texts(value: bytes) -> list[LiveText]:
     """The messages of one live-topic record, each kept as its JSON text (`LiveText`);
-    BadLiveRecord if it is not a JSON array of pose/chunk messages (as decode_live_record)."""
+    BadLiveRecord if it is not a JSON array of pose/chunk messages."""
     try:
         raws = _decode_raw_list(value)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:

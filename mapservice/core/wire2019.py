@@ -381,13 +381,18 @@ def decode_coordinates(
     return make_envelope(msg.robotId, event_ms, receive_ms, payload)
 
 
+def encode_pixels(pixels: bytes) -> str:
+    """A chunk's `pgmB64compressedData`: its grey levels, zlib-compressed, in base64."""
+    return base64.b64encode(zlib.compress(pixels)).decode()
+
+
 def encode_chunk_create(
     row: int, column: int, pixels: bytes, timestamp: str, robot_id: str
 ) -> bytes:
     """A 2019 `iot/chunks/create` message, as a robot would send it."""
     return msgspec.json.encode(
         {
-            "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
+            "pgmB64compressedData": encode_pixels(pixels),
             "row": row,
             "column": column,
             "timestamp": timestamp,
@@ -403,11 +408,12 @@ def encode_coordinates(
     y: float,
     yaw_quaternion: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0),
     battery_level: float = 100.0,
-    charging: bool = False,
-    loaded: bool = False,
+    charging: bool | str = False,
+    loaded: bool | str = False,
     path: list[tuple[float, float]] | None = None,
 ) -> bytes:
-    """A 2019 `iot/coordinates/{robotId}` message (listing 16), plus the optional path."""
+    """A 2019 `iot/coordinates/{robotId}` message (listing 16), plus the optional path. The
+    flags are booleans or, as listing 16 prints them, short free text."""
     qx, qy, qz, qw = yaw_quaternion
     doc: dict[str, Any] = {
         "robotId": robot_id,

@@ -1,10 +1,5 @@
 import { afterEach, describe, expect, it, vi } from "vitest";
-import { Api, downsample, fetchRetrying, mapFromWire } from "../src/lib/api";
-import type { Pose } from "../src/lib/types";
-
-function pose(robotId: string, ts: number): Pose {
-  return { robotId, ts_ms: ts, position: [0, 0, 0], orientation: [0, 0, 0, 1], battery_level: 1, charging: false, loaded: false, path: null };
-}
+import { Api, fetchRetrying, mapFromWire } from "../src/lib/api";
 
 function respond(routes: Record<string, unknown>) {
   const calls: string[] = [];
@@ -20,28 +15,13 @@ function respond(routes: Record<string, unknown>) {
 afterEach(() => vi.unstubAllGlobals());
 
 describe("Api", () => {
-  it("falls back to chunk-events and poses while /events is missing, and remembers it", async () => {
-    const chunk = { row: 1, column: 2, ts_ms: 5, robotId: "r", content_hash: "a".repeat(32) };
-    const calls = respond({ "/api/v1/chunk-events": [chunk], "/api/v1/poses": [pose("r", 1), pose("r", 2), pose("r", 70_000)] });
-    const api = new Api();
-    const w = await api.events(0, 100_000, 60_000);
-    expect(w.chunks).toEqual([chunk]);
-    expect(w.poses.map((p) => p.ts_ms)).toEqual([1, 70_000]);
-    expect(w.truncated).toBe(false);
-    await api.events(0, 100_000, 0);
-    expect(calls.filter((c) => c.startsWith("/api/v1/events"))).toHaveLength(1);
-  });
-
-  it("asks for the map at T in the compact layout and reads either layout", async () => {
+  it("asks for the map at T in the compact layout and reads its fields by name", async () => {
     const chunk = { row: 1, column: 2, ts_ms: 5, robotId: "r", content_hash: "a".repeat(32) };
     const calls = respond({ "/api/v1/map": {
       at_ms: 9, meta: null, fields: ["row", "column", "ts_ms", "robotId", "content_hash"], cells: [[1, 2, 5, "r", "a".repeat(32)]],
     } });
     expect(await new Api().map(9)).toEqual({ at_ms: 9, meta: null, chunks: [chunk] });
     expect(calls).toEqual(["/api/v1/map?at=9&layout=compact"]);
-    // An older server ignores the layout and answers with one object per chunk.
-    respond({ "/api/v1/map": { at_ms: 9, meta: null, chunks: [{ ...chunk, timestamp: "1970-01-01T00:00:00.005" }] } });
-    expect((await new Api().map(9)).chunks[0]).toMatchObject(chunk);
     // Fields in another order are read by name.
     expect(mapFromWire({ at_ms: 9, meta: null, fields: ["content_hash", "robotId", "ts_ms", "column", "row"], cells: [["a".repeat(32), "r", 5, 2, 1]] }).chunks).toEqual([chunk]);
   });
@@ -52,18 +32,25 @@ describe("Api", () => {
     expect(await new Api().events(0, 10, 0)).toEqual(body);
   });
 
-  it("treats a missing timeline or conflicts endpoint as no data, not an error", async () => {
-    respond({});
+  it("reports a missing endpoint as an error and asks no other endpoint", async () => {
+    // The page is served by the API it reads: a 404 is a fault to show, not an older server.
+    const calls = respond({});
     const api = new Api();
-    expect(await api.timeline(0, 10, 5)).toBeNull();
-    expect(await api.conflicts(0, 10)).toEqual([]);
+    for (const read of [
+      () => api.events(0, 10, 0),
+      () => api.timeline(0, 10, 5),
+      () => api.conflicts(0, 10),
+      () => api.track("r", 0, 10, 1),
+    ]) await expect(read()).rejects.toMatchObject({ status: 404 });
+    expect(calls.map((c) => c.split("?")[0])).toEqual([
+      "/api/v1/events", "/api/v1/timeline", "/api/v1/conflicts", "/api/v1/robots/r/track",
+    ]);
   });
-});
 
-describe("downsample", () => {
-  it("keeps each robot's first pose per step", () => {
-    const got = downsample([pose("a", 0), pose("b", 10), pose("a", 500), pose("a", 1000), pose("b", 1999)], 1000);
-    expect(got.map((p) => `${p.robotId}${p.ts_ms}`)).toEqual(["a0", "b10", "a1000", "b1999"]);
+  it("reads the conflicts out of the conflicts answer", async () => {
+    const conflict = { ts_ms: 5, row: 1, column: 2, robot_a: "a", robot_b: "b" };
+    respond({ "/api/v1/conflicts": { from_ms: 0, to_ms: 10, window_s: 1, rule: "r", conflicts: [conflict], truncated: false } });
+    expect(await new Api().conflicts(0, 10)).toEqual([conflict]);
   });
 });
 

@@ -54,9 +54,8 @@ describe("pollStatus", () => {
     expect(bannerFor((got as { history: HistoryStatus | null }).history)).toBeNull();
   });
 
-  it("stops asking an older server without the endpoint, and learns nothing from failures", async () => {
-    expect(await pollStatus(reply(404, { detail: "Not Found" }))).toBe("stop");
-    expect(await pollStatus(reply(503, { detail: "starting" }))).toBe("unknown");
+  it("learns nothing from a failure, a 404 included, and is asked again next time", async () => {
+    for (const status of [404, 500, 503]) expect(await pollStatus(reply(status, { detail: "no" }))).toBe("unknown");
     const down = (async () => { throw new TypeError("Failed to fetch"); }) as unknown as typeof fetch;
     expect(await pollStatus(down)).toBe("unknown");
   });

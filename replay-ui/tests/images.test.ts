@@ -44,18 +44,17 @@ describe("chunk batch decoding", () => {
     const calls: { url: string; body: string }[] = [];
     vi.stubGlobal("fetch", async (url: string, init: RequestInit) => {
       calls.push({ url, body: init.body as string });
-      if (url.startsWith("/old")) return new Response("", { status: 405, statusText: "Method Not Allowed" });
+      if (url.startsWith("/refusing")) return new Response("", { status: 405, statusText: "Method Not Allowed" });
       return new Response(encode({ contents: [], missing: [hex(3)] }), { status: 200 });
     });
     expect(await new Api().chunkBatch([hex(3)])).toEqual({ contents: [], missing: [hex(3)] });
     expect(calls[0]).toEqual({ url: "/api/v1/chunk-contents/batch", body: JSON.stringify({ hashes: [hex(3)] }) });
-    await expect(new Api("/old").chunkBatch([hex(3)])).rejects.toMatchObject({ status: 405 });
+    await expect(new Api("/refusing").chunkBatch([hex(3)])).rejects.toMatchObject({ status: 405 });
   });
 });
 
 class FakeSource implements ChunkSource {
   batches: string[][] = [];
-  pngs: string[] = [];
   constructor(public known: Set<string>, public batchError: Error | null = null) {}
   async chunkBatch(hashes: string[]): Promise<ChunkBatch> {
     this.batches.push(hashes);
@@ -64,9 +63,6 @@ class FakeSource implements ChunkSource {
       contents: hashes.filter((h) => this.known.has(h)).map((hash) => ({ hash, width: 1, height: 1, zlib: new Uint8Array() })),
       missing: hashes.filter((h) => !this.known.has(h)),
     };
-  }
-  chunkUrl(hash: string): string {
-    return `/png/${hash}`;
   }
 }
 
@@ -78,11 +74,6 @@ function images(source: FakeSource, opts = {}) {
     decode: (c: ChunkContent) => {
       if (c.hash === BROKEN) throw new Error("bad zlib");
       return fakeImage(c.hash);
-    },
-    loadPng: async (url: string) => {
-      source.pngs.push(url);
-      if (!source.known.has(url.slice(5))) throw new Error("404");
-      return fakeImage(url);
     },
     ...opts,
   });
@@ -121,20 +112,6 @@ describe("ChunkImages", () => {
     expect(src.batches).toHaveLength(1);
   });
 
-  it("falls back to one PNG per hash when the server has no batch endpoint", async () => {
-    const src = new FakeSource(new Set([hex(1), hex(2)]), new ApiError(405, "Method Not Allowed"));
-    const { im, loaded } = images(src);
-    im.requestMany([hex(1), hex(2)]);
-    await settle();
-    await settle();
-    expect(im.batchMissing).toBe(true);
-    expect(src.pngs.sort()).toEqual([`/png/${hex(1)}`, `/png/${hex(2)}`]);
-    expect(loaded.flat().sort()).toEqual([hex(1), hex(2)]);
-    im.request(hex(3));
-    await settle();
-    expect(src.batches).toHaveLength(1); // never tries the batch again
-  });
-
   it("fails only the pictures that do not decode", async () => {
     const src = new FakeSource(new Set([hex(1), BROKEN]));
     const { im, loaded } = images(src);
@@ -145,12 +122,23 @@ describe("ChunkImages", () => {
   });
 
   it("fails a batch's hashes on other errors instead of waiting for them forever", async () => {
-    const src = new FakeSource(new Set([hex(1)]), new ApiError(500, "boom"));
-    const { im } = images(src);
-    im.requestMany([hex(1)]);
-    await settle();
-    expect(im.failed.has(hex(1))).toBe(true);
-    expect(im.queued).toBe(0);
+    // A 404 or 405 too: the page's own server has the batch endpoint, so nothing else is asked.
+    const fetched: string[] = [];
+    vi.stubGlobal("fetch", async (url: string) => {
+      fetched.push(url);
+      return new Response("", { status: 404 });
+    });
+    for (const status of [404, 405, 500]) {
+      const src = new FakeSource(new Set([hex(1)]), new ApiError(status, "no"));
+      const { im } = images(src);
+      im.requestMany([hex(1)]);
+      await settle();
+      await settle();
+      expect(im.failed.has(hex(1))).toBe(true);
+      expect(im.queued).toBe(0);
+      expect(src.batches).toHaveLength(1);
+    }
+    expect(fetched).toEqual([]);
   });
 
   it("appends prefetches behind what is queued, and urgent requests jump ahead", async () => {

@@ -10,7 +10,7 @@ from fastapi.testclient import TestClient
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 
-from mapservice.core.live_messages import live_message
+from mapservice.core.live_messages import LiveText, live_record_texts, live_records
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 
@@ -19,11 +19,17 @@ from mapservice.testing.memory_store import MemoryStore
 LIVE_URL = "ws://localhost/api/v1/live"
 
 
+def live_texts(events) -> list[LiveText]:
+    """The events' live messages as the relay hands them to the hub (encoded by the
+    processors' encoder, read back from the live topic's records)."""
+    return [text for record in live_records(events) for text in live_record_texts(record)]
+
+
 def test_slow_subscriber_keeps_the_newest(ev):
     """A full queue drops its oldest message, never blocks the publisher."""
     hub = LiveHub(queue_size=2)
     queue = hub.subscribe()
-    hub.publish([live_message(ev.pose("r1", t)) for t in (1, 2, 3)])
+    hub.publish(live_texts([ev.pose("r1", t) for t in (1, 2, 3)]))
     assert [queue.get_nowait()["ts_ms"] for _ in range(2)] == [2, 3]
     hub.unsubscribe(queue)
     assert hub.subscribers == 0
@@ -35,7 +41,7 @@ def test_websocket_streams_published_messages(ev):
     with viewer(hub) as (client, ws):
         other = hub.subscribe()  # a second viewer that has not sent its copy yet
         # The hub lives on the app's loop; the relay hands it messages there too.
-        client.portal.call(lambda: hub.publish([live_message(ev.pose("r9", 5_000, x=2.0))]))
+        client.portal.call(lambda: hub.publish(live_texts([ev.pose("r9", 5_000, x=2.0)])))
         message = ws.receive_json()
     assert message["type"] == "pose" and message["robotId"] == "r9" and "sent_ms" in message
     assert "sent_ms" not in other.get_nowait()  # each viewer stamps its own send time
@@ -62,10 +68,8 @@ def test_websocket_before_the_feed_is_ready_asks_to_retry():
 
 def test_websocket_sends_a_live_text_as_it_came_with_its_send_time(ev):
     """A message the relay kept as JSON text goes out as that text plus sent_ms."""
-    from mapservice.core.live_messages import live_record_texts, live_records
-
     hub = LiveHub()
-    texts = live_record_texts(live_records([ev.pose("r7", 6_000, x=3.0)])[0])
+    texts = live_texts([ev.pose("r7", 6_000, x=3.0)])
     with viewer(hub) as (client, ws):
         client.portal.call(lambda: hub.publish(texts))
         raw = ws.receive_text()
@@ -75,11 +79,9 @@ def test_websocket_sends_a_live_text_as_it_came_with_its_send_time(ev):
 
 def test_batched_frames_carry_several_events_in_order_each_with_sent_ms(ev):
     """With ?batch=true what queued up arrives as one JSON array, in order, each event with its sent_ms."""
-    from mapservice.core.live_messages import live_record_texts, live_records
-
     hub = LiveHub()
-    texts = live_record_texts(live_records([ev.pose("r1", 1_000), ev.chunk("r1", 2_000)])[0])
-    queued = [texts[0], live_message(ev.pose("r2", 3_000)), texts[1]]  # relayed texts and dicts
+    texts = live_texts([ev.pose("r1", 1_000), ev.chunk("r1", 2_000), ev.pose("r2", 3_000)])
+    queued = [texts[0], texts[2], texts[1]]
     with viewer(hub, "?batch=true") as (client, ws):
         client.portal.call(lambda: hub.publish(queued))
         frame = ws.receive_json()
@@ -90,15 +92,13 @@ def test_batched_frames_carry_several_events_in_order_each_with_sent_ms(ev):
         ("chunk", "r1", 2_000),
     ]
     assert all(isinstance(m["sent_ms"], int) for m in frame)
-    assert {k: v for k, v in frame[1].items() if k != "sent_ms"} == queued[
-        1
-    ]  # each event as sent alone
+    assert {k: v for k, v in frame[1].items() if k != "sent_ms"} == dict(queued[1])
 
 
 def test_batched_frames_hold_at_most_1000_events(ev):
     """1,500 events queued while the client is not reading arrive in frames of at most 1,000, all in order."""
     hub = LiveHub()
-    messages = [live_message(ev.pose("r1", t)) for t in range(1, 1_501)]
+    messages = live_texts([ev.pose("r1", t) for t in range(1, 1_501)])
     with viewer(hub, "?batch=true") as (client, ws):
         client.portal.call(lambda: hub.publish(messages))
         frames = [ws.receive_json()]
@@ -113,9 +113,7 @@ def test_unbatched_stream_sends_one_event_per_message(ev):
     hub = LiveHub()
     for query in ("", "?batch=false"):
         with viewer(hub, query) as (client, ws):
-            client.portal.call(
-                lambda: hub.publish([live_message(ev.pose("r1", t)) for t in (1, 2)])
-            )
+            client.portal.call(lambda: hub.publish(live_texts([ev.pose("r1", t) for t in (1, 2)])))
             got = [ws.receive_json(), ws.receive_json()]
         assert [(type(m), m["ts_ms"]) for m in got] == [(dict, 1), (dict, 2)]
         assert all("sent_ms" in m for m in got)

@@ -22,7 +22,13 @@ from mapservice.ingest.gateway import Ingestor
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.events import decode, decode_dead_letter
-from mapservice.core.wire2019 import _ROBOT_ID, Reason, format_timestamp
+from mapservice.core.wire2019 import (
+    _ROBOT_ID,
+    Reason,
+    encode_chunk_create,
+    encode_coordinates,
+    format_timestamp,
+)
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 
@@ -67,25 +73,14 @@ json_values = st.recursive(
 
 
 def good_chunk(ts: int = NOW, pixels: bytes = bytes(100 * 100)) -> dict:
-    return {
-        "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
-        "row": 1,
-        "column": 2,
-        "timestamp": format_timestamp(ts),
-        "robotId": "fuzz-1",
-    }
+    return json.loads(encode_chunk_create(1, 2, pixels, format_timestamp(ts), "fuzz-1"))
 
 
 def good_pose(ts: int = NOW) -> dict:
-    return {
-        "robotId": "fuzz-1",
-        "timestamp": format_timestamp(ts),
-        "pose": {
-            "position": {"x": 1.0, "y": 2.0, "z": 0.0},
-            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
-        },
-        "status": {"battery": {"battery_level": 50, "charging": False}, "loaded": False},
-    }
+    """At (1.0, 2.0) with battery 50: raw_nasties replaces those numbers in its text."""
+    return json.loads(
+        encode_coordinates("fuzz-1", format_timestamp(ts), 1.0, 2.0, battery_level=50)
+    )
 
 
 def mutate(doc: dict, draw) -> dict:

@@ -25,8 +25,14 @@ from PIL import Image
 
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
-from mapservice.core.wire2019 import format_timestamp, parse_timestamp
+from mapservice.core.wire2019 import (
+    encode_chunk_create,
+    encode_coordinates,
+    format_timestamp,
+    parse_timestamp,
+)
 from mapservice.local.stack import Stack
+from tests.fixtures.listings_2019 import listing_14, listing_16
 from tests.fixtures.paths import MAPS
 
 from .conftest import wait_for_meta
@@ -99,10 +105,6 @@ class Subscriber:
     def close(self) -> None:
         self.client.loop_stop()
         self.client.disconnect()
-
-
-def b64zlib(pixels: bytes) -> str:
-    return base64.b64encode(zlib.compress(pixels)).decode()
 
 
 def check_listing_9(meta: dict) -> None:
@@ -187,37 +189,20 @@ def test_robot_start_up_sequence(stack, http, robot) -> None:
         ts = format_timestamp(t0)
         local = slice_chunks(DEPOT)
         messages = [
-            (
-                "iot/chunks/create",
-                json.dumps(
-                    {
-                        "pgmB64compressedData": b64zlib(px),
-                        "row": row,
-                        "column": col,
-                        "timestamp": ts,
-                        "robotId": "robot-a",
-                    }
-                ).encode(),
-            )
+            ("iot/chunks/create", encode_chunk_create(row, col, px, ts, "robot-a"))
             for (row, col), px in sorted(local.items())
         ]
         messages += [
             (
                 "iot/coordinates/robot-a",
-                json.dumps(
-                    {
-                        "robotId": "robot-a",
-                        "timestamp": format_timestamp(t0 + k * 1000),
-                        "pose": {
-                            "position": {"x": 1.0 + k, "y": 2.0, "z": 0},
-                            "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
-                        },
-                        "status": {
-                            "battery": {"battery_level": 90, "charging": False},
-                            "loaded": True,
-                        },
-                    }
-                ).encode(),
+                encode_coordinates(
+                    "robot-a",
+                    format_timestamp(t0 + k * 1000),
+                    1.0 + k,
+                    2.0,
+                    battery_level=90,
+                    loaded=True,
+                ),
             )
             for k in range(3)
         ]
@@ -271,13 +256,7 @@ def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http, robot) -> 
     """POST /chunks with listing 10 answers listing 11; the _id then serves listing 13 and a PNG."""
     pixels = bytes(range(100)) * 100
     ts = format_timestamp(now_ms() - 2_000)
-    body = {
-        "pgmB64compressedData": b64zlib(pixels),
-        "row": 3,
-        "column": 2,
-        "timestamp": ts,
-        "robotId": "lkjlkj",
-    }
+    body = listing_14(ts, pixels)
     r = robot.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
     assert r.status_code == 200, r.text
     check_listing_11(r.json())
@@ -298,28 +277,14 @@ def test_listings_10_11_13_post_a_chunk_and_read_it_back(stack, http, robot) -> 
 
 def test_post_chunk_is_validated_like_mqtt(robot) -> None:
     """A chunk outside the posted meta's grid is a 400 with the MQTT reason code."""
-    body = {
-        "pgmB64compressedData": b64zlib(bytes(10_000)),
-        "row": 99,
-        "column": 0,
-        "timestamp": format_timestamp(now_ms()),
-        "robotId": "lkjlkj",
-    }
+    body = listing_14(format_timestamp(now_ms()), row=99, column=0)
     r = robot.post(CHUNKS, content=json.dumps(body), headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["detail"].startswith("out_of_map")
 
 
 def test_writes_need_the_robot_token_and_json(http, robot) -> None:
     """Without a token a write is 401, with a wrong one 401, as text/plain (even with the token) 415; a meta of another size needs the admin."""
-    body = json.dumps(
-        {
-            "pgmB64compressedData": b64zlib(bytes(10_000)),
-            "row": 0,
-            "column": 0,
-            "timestamp": format_timestamp(now_ms()),
-            "robotId": "intruder",
-        }
-    )
+    body = encode_chunk_create(0, 0, bytes(10_000), format_timestamp(now_ms()), "intruder")
     json_type = {"Content-Type": "application/json"}
     assert http.post(CHUNKS, content=body, headers=json_type).status_code == 401
     r = http.post(CHUNKS, content=body, headers={**json_type, "Authorization": "Bearer guessed"})
@@ -397,23 +362,7 @@ def test_listings_16_17_coordinates(stack, http) -> None:
     publish_all(
         stack,
         [
-            (
-                "iot/coordinates/blabla",
-                json.dumps(
-                    {
-                        "robotId": "blabla",
-                        "timestamp": ts,
-                        "pose": {
-                            "position": {"x": 10 + k, "y": 20, "z": 0},
-                            "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
-                        },
-                        "status": {
-                            "battery": {"battery_level": 3, "charging": "sdf"},
-                            "loaded": "dfs",
-                        },
-                    }
-                ).encode(),
-            )
+            ("iot/coordinates/blabla", json.dumps(listing_16(ts, x=10 + k)).encode())
             for k, ts in enumerate(stamps)
         ],
     )

@@ -85,7 +85,7 @@ export function useAnnotations(d: AnnotationDeps) {
       violations.value = v.items;
       truncated.value = v.truncated;
     } catch {
-      // An older server without annotations, or a span beyond the retention: no marks.
+      // A span beyond the retention (or a failed read): no marks.
       edits.value = [];
       violations.value = [];
     } finally {

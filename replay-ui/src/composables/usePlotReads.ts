@@ -65,7 +65,7 @@ export function usePlotReads(o: PlotReadOptions) {
 
   function later(ms: number) {
     if (timer) clearTimeout(timer);
-    timer = disposed ? null : setTimeout(load, ms);
+    timer = disposed ? null : setTimeout(() => void load(), ms);
   }
 
   function schedule() {

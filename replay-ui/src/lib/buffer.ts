@@ -180,7 +180,7 @@ export class EventBuffer {
       this.source.robotsAt(f - 1),
     ]);
     if (gen !== this.generation || t !== this.from) return;
-    let { chunks, poses, to } = complete(w, f, t);
+    const { chunks, poses, to } = complete(w, f, t);
     if (to < t) {
       // Truncated: keep only what was returned up to `to`, and fetch less next time.
       return this.extendBackward(f + Math.max(1, Math.floor((t - f) / 2)), t);

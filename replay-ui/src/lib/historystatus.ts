@@ -35,15 +35,14 @@ export function bannerFor(history: HistoryStatus | null | undefined): Banner | n
   };
 }
 
-/** What one poll learnt: the status, or `stop` (an older server without the endpoint). */
-export type Poll = { history: HistoryStatus | null } | "stop" | "unknown";
+/** What one poll learnt: the status, or nothing. */
+export type Poll = { history: HistoryStatus | null } | "unknown";
 
-/** One GET /api/v1/status: a server without it (404) is not asked again; any other
- * failure (the server restarting, a 401 the page reports elsewhere) says nothing. */
+/** One GET /api/v1/status: a failure (the server restarting, a 401 the page reports
+ * elsewhere) says nothing, and the next poll asks again. */
 export async function pollStatus(fetchFn: typeof fetch = fetch, base = ""): Promise<Poll> {
   try {
     const r = await fetchFn(`${base}/api/v1/status`, { headers: authHeaders() });
-    if (r.status === 404) return "stop";
     if (!r.ok) return "unknown";
     const body = (await r.json()) as { history?: HistoryStatus | null };
     return { history: body.history ?? null };

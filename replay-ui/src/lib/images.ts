@@ -5,28 +5,21 @@
  * Hashes asked for in the same task (a seek asks for every chunk of the map at once) are
  * fetched together through the batch endpoint, in a few slices a few at a time, and
  * inflated here: a seek costs a few requests and one database read per slice instead of
- * one request and one read per picture. Against an older server without the batch
- * endpoint, each hash is fetched alone as a PNG (cached by the browser: immutable).
+ * one request and one read per picture.
  */
-import { ApiError } from "./api";
 import { greyToRgba, inflate, slicesFor, type ChunkBatch, type ChunkContent } from "./chunkdecode";
-import { authHeaders } from "./auth";
 
 export type ChunkImage = ImageBitmap | HTMLImageElement | HTMLCanvasElement | OffscreenCanvas;
 
 export interface ChunkSource {
   chunkBatch(hashes: string[]): Promise<ChunkBatch>;
-  chunkUrl(hash: string): string;
 }
 
 export interface ChunkImagesOptions {
   /** Batch requests in flight at once. */
   parallel?: number;
-  /** Single PNG requests in flight at once (fallback). */
-  concurrency?: number;
   capacity?: number;
   decode?: (c: ChunkContent) => ChunkImage;
-  loadPng?: (url: string) => Promise<ChunkImage>;
 }
 
 export class ChunkImages {
@@ -35,27 +28,21 @@ export class ChunkImages {
   private queue: string[] = [];
   private active = 0;
   private scheduled = false;
-  /** The server has no batch endpoint: one PNG per hash. */
-  batchMissing = false;
   /** Pictures downloaded (each distinct hash once). */
   fetched = 0;
-  /** HTTP requests made for pictures (batches and single PNGs). */
+  /** HTTP requests made for pictures (batches). */
   requests = 0;
   failed = new Set<string>();
   /** Hashes that just became available (one call per batch). */
   onLoad: (hashes: string[]) => void = () => {};
   readonly parallel: number;
-  readonly concurrency: number;
   readonly capacity: number;
   private decode: (c: ChunkContent) => ChunkImage;
-  private loadPng: (url: string) => Promise<ChunkImage>;
 
   constructor(private source: ChunkSource, opts: ChunkImagesOptions = {}) {
     this.parallel = opts.parallel ?? 4;
-    this.concurrency = opts.concurrency ?? 8;
     this.capacity = opts.capacity ?? 6000;
     this.decode = opts.decode ?? decodeContent;
-    this.loadPng = opts.loadPng ?? loadPng;
   }
 
   get(hash: string): ChunkImage | undefined {
@@ -122,10 +109,6 @@ export class ChunkImages {
   }
 
   private pump(): void {
-    if (this.batchMissing) {
-      while (this.active < this.concurrency && this.queue.length) this.start(this.loadOne(this.queue.shift()!));
-      return;
-    }
     while (this.active < this.parallel && this.queue.length) {
       const [slice] = slicesFor(this.queue, this.parallel - this.active);
       this.queue.splice(0, slice.length);
@@ -146,13 +129,8 @@ export class ChunkImages {
     this.requests++;
     try {
       batch = await this.source.chunkBatch(hashes);
-    } catch (e) {
-      if (e instanceof ApiError && (e.status === 404 || e.status === 405)) {
-        this.batchMissing = true;
-        this.queue.unshift(...hashes);
-      } else {
-        for (const h of hashes) this.fail(h);
-      }
+    } catch {
+      for (const h of hashes) this.fail(h);
       return;
     }
     for (const h of batch.missing) this.fail(h);
@@ -169,16 +147,6 @@ export class ChunkImages {
     const answered = new Set([...done, ...batch.missing]);
     for (const h of hashes) if (!answered.has(h) && !this.ready.has(h)) this.fail(h);
     if (done.length) this.onLoad(done);
-  }
-
-  private async loadOne(hash: string): Promise<void> {
-    this.requests++;
-    try {
-      this.store(hash, await this.loadPng(this.source.chunkUrl(hash)));
-      this.onLoad([hash]);
-    } catch {
-      this.fail(hash);
-    }
   }
 
   private store(hash: string, img: ChunkImage): void {
@@ -202,15 +170,4 @@ export function decodeContent(c: ChunkContent): ChunkImage {
   const canvas = typeof OffscreenCanvas === "function" ? new OffscreenCanvas(c.width, c.height) : Object.assign(document.createElement("canvas"), { width: c.width, height: c.height });
   (canvas.getContext("2d") as CanvasRenderingContext2D | OffscreenCanvasRenderingContext2D).putImageData(pixels, 0, 0);
   return canvas;
-}
-
-async function loadPng(url: string): Promise<ChunkImage> {
-  const r = await fetch(url, { headers: authHeaders() });
-  if (!r.ok) throw new Error(`${r.status}`);
-  const blob = await r.blob();
-  if (typeof createImageBitmap === "function") return createImageBitmap(blob);
-  const img = new Image();
-  img.src = URL.createObjectURL(blob);
-  await img.decode();
-  return img;
 }

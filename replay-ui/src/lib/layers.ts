@@ -32,22 +32,32 @@ export function fillNoData(ctx: CanvasRenderingContext2D, x0: number, y0: number
   ctx.restore();
 }
 
+/** The Leaflet internals the canvas overlay uses (private, so not in @types/leaflet). */
+interface CanvasOverlayInternals {
+  _image: HTMLCanvasElement | undefined;
+  _zoomAnimated: boolean;
+  options: L.ImageOverlayOptions & { pixelWidth: number; pixelHeight: number };
+  _updateZIndex(): void;
+}
+
 /**
  * An ImageOverlay whose element is a canvas: Leaflet positions and zoom-animates it like
  * an image, and we draw into it.
  */
-const CanvasOverlay = (L.ImageOverlay as any).extend({
-  _initImage(this: any) {
+const CanvasOverlay = L.ImageOverlay.extend({
+  _initImage(this: CanvasOverlayInternals) {
     const canvas: HTMLCanvasElement = (this._image = L.DomUtil.create("canvas", "leaflet-image-layer") as HTMLCanvasElement);
     if (this._zoomAnimated) L.DomUtil.addClass(canvas, "leaflet-zoom-animated");
     if (this.options.className) L.DomUtil.addClass(canvas, this.options.className);
     canvas.width = this.options.pixelWidth;
     canvas.height = this.options.pixelHeight;
-    canvas.onselectstart = L.Util.falseFn as any;
-    canvas.onmousemove = L.Util.falseFn as any;
+    canvas.onselectstart = L.Util.falseFn;
+    canvas.onmousemove = L.Util.falseFn;
     if (this.options.zIndex != null) this._updateZIndex();
   },
-});
+}) as unknown as new (
+  url: string, bounds: L.LatLngBoundsExpression, options: CanvasOverlayInternals["options"],
+) => L.ImageOverlay;
 
 /** One canvas pixel per chunk, stretched over the grid (drawn pixelated). */
 function makeCanvasOverlay(meta: MapMeta, className: string, opacity = 1): L.ImageOverlay {
@@ -64,15 +74,25 @@ function makeCanvasOverlay(meta: MapMeta, className: string, opacity = 1): L.Ima
  */
 const TILE = 256;
 
-const ChunkGridLayer = (L.GridLayer as any).extend({
-  createTile(this: any, coords: L.Coords) {
+/** A grid tile as Leaflet keeps it in its private `_tiles`. */
+interface GridTile {
+  el: HTMLCanvasElement;
+  coords: L.Coords;
+  current: boolean;
+}
+
+/** The chunk grid layer with the ChunkLayer that draws its tiles, and Leaflet's tiles. */
+type ChunkGridInternals = L.GridLayer & { owner: ChunkLayer; _tiles?: Record<string, GridTile> };
+
+const ChunkGridLayer = L.GridLayer.extend({
+  createTile(this: ChunkGridInternals, coords: L.Coords) {
     const tile = L.DomUtil.create("canvas", "leaflet-tile chunk-tile") as HTMLCanvasElement;
     tile.width = TILE;
     tile.height = TILE;
     this.owner.drawTile(tile, coords);
     return tile;
   },
-});
+}) as unknown as new (options: L.GridLayerOptions) => L.GridLayer;
 
 export class ChunkLayer {
   readonly overlay: L.GridLayer;
@@ -84,15 +104,15 @@ export class ChunkLayer {
       tileSize: TILE, noWrap: true, updateWhenZooming: false, keepBuffer: 1, className: "chunk-tiles",
       bounds: L.latLngBounds(gridBounds(meta)), minZoom: -10, maxZoom: 10, minNativeZoom: -8, maxNativeZoom: 3,
     });
-    (this.overlay as any).owner = this;
+    (this.overlay as ChunkGridInternals).owner = this;
     images.onLoad = (hashes) => {
       const loaded = new Set(hashes);
       for (const [k, h] of this.waiting) if (loaded.has(h)) state.dirty.add(k);
     };
   }
 
-  private tiles(): { el: HTMLCanvasElement; coords: L.Coords; current: boolean }[] {
-    return Object.values(((this.overlay as any)._tiles ?? {}) as Record<string, { el: HTMLCanvasElement; coords: L.Coords; current: boolean }>);
+  private tiles(): GridTile[] {
+    return Object.values((this.overlay as ChunkGridInternals)._tiles ?? {});
   }
 
   /** Draws every chunk a new tile covers. */
@@ -203,7 +223,7 @@ export class InfoLayer {
   }
 
   draw(state: MapState, t: number, mode: InfoMode): void {
-    const canvas = (this.overlay as any)._image as HTMLCanvasElement | undefined;
+    const canvas = (this.overlay as unknown as CanvasOverlayInternals)._image;
     const ctx = canvas?.getContext("2d");
     if (!ctx) return;
     ctx.clearRect(0, 0, ctx.canvas.width, ctx.canvas.height);

@@ -61,7 +61,7 @@ export class RobotLayer extends L.Layer {
   }
 
   private reset(): void {
-    const map = (this as any)._map as L.Map | undefined;
+    const map = this._map as L.Map | undefined;
     if (!map || !this.canvas) return;
     const size = map.getSize();
     const ratio = window.devicePixelRatio || 1;
@@ -80,7 +80,7 @@ export class RobotLayer extends L.Layer {
   }
 
   redraw(): void {
-    const map = (this as any)._map as L.Map | undefined;
+    const map = this._map as L.Map | undefined;
     const meta = this.meta();
     if (!map || !this.canvas || !meta) return;
     // The canvas stays over the viewport while the map pane is dragged.
@@ -186,7 +186,7 @@ export class RobotLayer extends L.Layer {
   }
 
   private hover(e: L.LeafletMouseEvent): void {
-    const map = (this as any)._map as L.Map;
+    const map = this._map;
     map.getContainer().style.cursor = this.hit(e.containerPoint.x, e.containerPoint.y) ? "pointer" : "";
   }
 }

@@ -30,7 +30,7 @@ export interface ReplayHookContext {
 
 export function exposeReplay(c: ReplayHookContext): void {
   const { engine, view } = c;
-  (window as any).__replay = {
+  (window as unknown as { __replay: unknown }).__replay = {
     engine,
     get playhead() { return engine.playhead; },
     get complete() { return c.complete(); },

@@ -9,6 +9,16 @@ import { authHeaders } from "./auth";
 
 export interface VdaError { ts_ms: number; level: string; type: string; description: string }
 export interface VdaConnection { ts_ms: number; state: string; sent_ms: number }
+/** The parts of a VDA 5050 factsheet the page reads: a vehicle's document, so any of them
+ * may be missing or of another type. */
+export interface Factsheet {
+  manufacturer?: unknown;
+  serialNumber?: unknown;
+  typeSpecification?: { seriesName?: unknown };
+  physicalParameters?: { speedMax?: unknown };
+  [field: string]: unknown;
+}
+
 export interface VdaVehicle {
   robotId: string;
   manufacturer: string;
@@ -16,7 +26,7 @@ export interface VdaVehicle {
   online: boolean | null;
   errors: VdaError[];
   connections: VdaConnection[];
-  factsheet: { ts_ms: number; vda_version: string; factsheet: Record<string, any> } | null;
+  factsheet: { ts_ms: number; vda_version: string; factsheet: Factsheet } | null;
   errorClears: number[];
 }
 
