@@ -6,6 +6,7 @@ history's size."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import httpx
@@ -20,7 +21,7 @@ from mapservice.core.wire2019 import (
 from mapservice.local.stack import Stack
 from mapservice.sql.credentials import analyst_password_file
 
-RATE = 8640  # a simulated day every 10 real seconds
+RATE = 17_280  # a simulated day every 5 real seconds
 
 
 class SimClock:
@@ -125,6 +126,37 @@ class Drive:
     def close(self) -> None:
         self.client.loop_stop()
         self.client.disconnect()
+
+
+class Restart:
+    """Restarts one of the stack's components on a thread of its own, so the drive loop
+    goes on measuring the history's size meanwhile: a restart takes real seconds, which
+    are simulated days on the clock."""
+
+    def __init__(self, stack: Stack, component: str, drive: Drive) -> None:
+        self.component = component
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(
+            target=self._run, args=(stack, drive), name=f"restart-{component}", daemon=True
+        )
+        self._thread.start()
+
+    def _run(self, stack: Stack, drive: Drive) -> None:
+        try:
+            stack.restart(self.component)
+            if self.component == "mqtt":  # the robots' client reconnects, then publishes again
+                drive.wait_connected()
+        except BaseException as exc:  # noqa: BLE001 - raised again on the test's thread
+            self.error = exc
+
+    def finished(self, timeout_s: float = 0) -> bool:
+        """Whether the restart is over (waiting up to `timeout_s`); raises what it raised."""
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            return False
+        if self.error is not None:
+            raise RuntimeError(f"restarting {self.component} failed") from self.error
+        return True
 
 
 class Operator:
