@@ -168,7 +168,22 @@ class Operator:
         self.headers = {"Authorization": f"Bearer {stack.api_secrets().admin}"}
         self.edits: list[tuple[int, str, str, dict | None]] = []  # ts, id, change, annotation
 
+    def stands(self, annotation_id: str, timeout_s: float = 60) -> None:
+        """Waits until the API lists `annotation_id` (an edit is stored through Kafka and
+        the processors: seconds of real time, which are simulated hours here)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            r = httpx.get(self.url, headers=self.headers, timeout=30)
+            if r.status_code == 200 and any(
+                a["id"] == annotation_id for a in r.json()["annotations"]
+            ):
+                return
+            assert time.monotonic() < deadline, f"{annotation_id} not stored: {r.text[:300]}"
+            time.sleep(0.2)
+
     def edit(self, change: str, annotation_id: str, body: dict | None, clock: SimClock) -> None:
+        if change != "create":  # the operator edits what the API shows
+            self.stands(annotation_id)
         if change == "create":
             r = httpx.post(
                 self.url,
