@@ -60,17 +60,19 @@ HOUR = 3_600_000
 RETENTION_DAYS = Settings.model_fields["retention_days"].default  # the default: 7
 SIM_DAYS = 25
 ROBOTS = ("end-1", "end-2", "end-3")
-POSES_PER_TURN = 6  # per robot and turn of the drive loop (~0.2 real s, ~30 simulated min)
+POSES_PER_TURN = 6  # per robot and turn of the drive loop (~0.2 real s, ~1 simulated hour)
 CONFLICT_GAP_MS = 20_000  # within the 60 s conflict window
 # Restarts along the way (simulated day: component). "kafka" only where its broker keeps
-# its records across a restart (kafka_keeps_records).
+# its records across a restart (kafka_keeps_records). All before the last retention period
+# (days 18-25), which the checks read: a restart takes real seconds, simulated days here,
+# during which the robots wait.
 RESTARTS = {
     4.3: "processors",
     6.8: "api",
     9.4: "gateway",
-    11.6: "clickhouse",
+    11.0: "clickhouse",
+    12.6: "kafka",
     14.2: "mqtt",
-    19.3: "kafka",
 }
 # The operator's annotations (simulated day: edit), away from the API's restart. The first
 # robot drives at x 1.0-1.5 m, y 2 m (the others further right): inside the zone.
