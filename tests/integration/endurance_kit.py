@@ -61,7 +61,8 @@ def kafka_keeps_records(stack: Stack) -> bool:
 
 def history_bytes(stack: Stack) -> int | None:
     """Bytes of the history's active parts, as an analyst reads them through the API
-    (None while the API is away, e.g. restarting)."""
+    (None while the API is away, e.g. restarting, or slow: the drive loop tries again on
+    its next turn, where a long wait would cost simulated days)."""
     password = analyst_password_file(stack.data_dir).read_text().strip()
     sql = (
         f"SELECT sum(total_bytes) FROM system.tables "
@@ -72,7 +73,7 @@ def history_bytes(stack: Stack) -> int | None:
             f"{stack.api_url}/clickhouse/",
             content=sql.encode(),
             auth=("analyst", password),
-            timeout=10,
+            timeout=3,
         )
     except httpx.HTTPError:
         return None
@@ -85,6 +86,9 @@ class Drive:
     def __init__(self, stack: Stack) -> None:
         host, port, _ = parse_mqtt_url(stack.mqtt_url)
         self.client = make_client(f"endurance-{time.time_ns()}", clean_session=False)
+        # Back within a second of the broker's restart: paho's default back-off doubles up
+        # to two minutes, and each real second of it is hours of the simulated clock.
+        self.client.reconnect_delay_set(min_delay=0.2, max_delay=1)
         self.client.connect(host, port)
         self.client.loop_start()
         self.pending: list = []

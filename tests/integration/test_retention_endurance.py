@@ -63,16 +63,17 @@ ROBOTS = ("end-1", "end-2", "end-3")
 POSES_PER_TURN = 6  # per robot and turn of the drive loop (~0.2 real s, ~1 simulated hour)
 CONFLICT_GAP_MS = 20_000  # within the 60 s conflict window
 # Restarts along the way (simulated day: component). "kafka" only where its broker keeps
-# its records across a restart (kafka_keeps_records). All before the last retention period
-# (days 18-25), which the checks read: a restart takes real seconds, simulated days here,
-# during which the robots wait.
+# its records across a restart (kafka_keeps_records). A restart takes real seconds,
+# simulated days here: the robots wait through it. All are over before the last retention
+# period (days 18-25), which the checks read, and those that stop the storage's
+# measurement (the API, the ClickHouse server) before the days it is judged on (9 on).
 RESTARTS = {
     4.3: "processors",
-    6.8: "api",
+    6.2: "api",
+    7.6: "clickhouse",
     9.4: "gateway",
-    11.0: "clickhouse",
-    12.6: "kafka",
-    14.2: "mqtt",
+    11.0: "kafka",
+    13.0: "mqtt",
 }
 # The operator's annotations (simulated day: edit), away from the API's restart. The first
 # robot drives at x 1.0-1.5 m, y 2 m (the others further right): inside the zone.
@@ -157,9 +158,8 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
             # While a component restarts the robots and the operator wait (what they sent
             # meanwhile would wait for that component), the storage is still measured.
             if restarting is None:
-                for k in range(
-                    POSES_PER_TURN
-                ):  # spread over the simulated time since the last turn
+                # Spread over the simulated time since the last turn.
+                for k in range(POSES_PER_TURN):
                     ts = last_ts + (now - last_ts) * (k + 1) // POSES_PER_TURN
                     for i, robot in enumerate(ROBOTS):
                         drive.pose(robot, ts - i, 1.0 + i + k / 10)
