@@ -134,8 +134,8 @@ class Drive:
 
 class Restart:
     """Restarts one of the stack's components on a thread of its own, so the drive loop
-    goes on measuring the history's size meanwhile: a restart takes real seconds, which
-    are simulated days on the clock."""
+    goes on meanwhile: a restart takes real seconds, which are simulated days on the
+    clock."""
 
     def __init__(self, stack: Stack, component: str, drive: Drive) -> None:
         self.component = component
