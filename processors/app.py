@@ -79,7 +79,10 @@ def dead_letter_agent(
 def snapshot_tick_s(settings: Settings) -> float:
     """The snapshot timer's period in real seconds: a quarter of the snapshot interval (at
     most 30 s of the service's clock), shortened by a simulated clock's rate so snapshots
-    and retention keep pace with the time they are built for."""
+    and retention keep pace with the time they are built for; MAPSERVICE_SNAPSHOT_TICK_S
+    sets it outright."""
+    if settings.snapshot_tick_s is not None:
+        return settings.snapshot_tick_s
     return max(0.2, min(30.0, settings.snapshot_every_s / 4) / settings.clock_rate)
 
 

@@ -94,6 +94,15 @@ class HistorySettings(BaseModel):
     snapshot_grace_s: float = Field(
         60.0, ge=0, description="Snapshot S is built once now > S + grace."
     )
+    snapshot_tick_s: float | None = Field(
+        None,
+        ge=0.2,
+        description=(
+            "Period in real seconds of the snapshot timer (late-event repairs, snapshots, "
+            "the retention step); unset: a quarter of the snapshot interval, at most 30 s "
+            "of the service's clock."
+        ),
+    )
 
     @property
     def retention_ms(self) -> int:

@@ -261,6 +261,8 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
             "ready again after the space was freed",
             lambda: get(f"{api}/readyz")[0] == 200,
             timeout_s=60,
+            # Which check stayed false, and what the processors logged last.
+            last=lambda: (get(f"{api}/readyz"), processors_log(stack)[-3000:]),
         )
         recovered_s = time.monotonic() - freed_at
         assert gauge(stack, "mapservice_history_insert_failing") == 0.0

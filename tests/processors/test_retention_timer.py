@@ -114,3 +114,11 @@ def test_the_snapshot_timer_ticks_faster_on_a_faster_clock() -> None:
     assert snapshot_tick_s(Settings(clock_rate=60)) == pytest.approx(0.5)
     assert snapshot_tick_s(Settings(clock_rate=6000)) == pytest.approx(0.2)  # at most 5 a second
     assert snapshot_tick_s(Settings(snapshot_every_s=3600, clock_rate=30)) == pytest.approx(1.0)
+
+
+def test_the_snapshot_timers_period_can_be_set_outright() -> None:
+    for tick in (0.2, 2.0, 45.0):
+        assert snapshot_tick_s(Settings(snapshot_tick_s=tick)) == tick
+        assert snapshot_tick_s(Settings(snapshot_tick_s=tick, clock_rate=6000)) == tick
+    with pytest.raises(ValueError, match="snapshot_tick_s"):
+        Settings(snapshot_tick_s=0.05)  # more than five ticks a second: refused
