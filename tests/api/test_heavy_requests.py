@@ -46,7 +46,7 @@ from tests.heavy_requests_kit import probe_during
 from tests.mapservice.sql.serving import ServedApi
 
 # Timed probes: in the integration part, which runs one test at a time on the machine.
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.alone]
 
 ANALYST = ("analyst", "an-analysts-password")
 # The analysts' time limit here: the worst statement runs this long, then is stopped.

@@ -357,6 +357,7 @@ def test_no_attack_reads_a_secret_of_the_running_service(stack, password, name, 
     assert token not in reply.text and password not in reply.text
 
 
+@pytest.mark.alone  # times a route while 30 statements sleep
 def test_sleeping_analysts_get_too_many_queries_and_the_api_does_not_wait(stack, password) -> None:
     """30 concurrent `SELECT sleep(3)` (the issue: 60 stalled every sync route for a minute):
     at most the pool and its queue (2 + 8) are taken in, the others get 503 with

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.alone
+
 
 @pytest.mark.timeout(600)
 def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> None:

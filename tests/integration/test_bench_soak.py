@@ -9,6 +9,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.alone
+
 
 @pytest.mark.timeout(300)
 def test_a_short_soak_samples_every_component_and_says_it_is_not_representative(tmp_path) -> None:

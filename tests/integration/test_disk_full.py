@@ -43,6 +43,8 @@ from tests.ui.conftest import ARTIFACTS, DIST, module_browser, page  # noqa: F40
 
 from .conftest import stored_keys
 
+pytestmark = pytest.mark.long
+
 DISK_MB = 96
 ROBOTS = [f"df-r{i}" for i in range(5)]
 RATE_HZ = 10  # per robot: 50 poses a second in all

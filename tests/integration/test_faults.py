@@ -64,7 +64,8 @@ from .fault_load import (
     run_fault,
 )
 from .fault_verdict import assert_guarantees, verify, write_report
-from .test_split_topology import start_clickhouse_server
+
+pytestmark = pytest.mark.long
 
 # ---- the split deployment: the test kills and restarts each part -------------------------
 
@@ -80,24 +81,18 @@ def kill(stack: Stack, name: str) -> None:
 
 @pytest.fixture(scope="module")
 def split(tmp_path_factory):
-    ch_port = embedded.free_port()
+    """What `serve` runs, apart (the ClickHouse server, processors, API), as the split
+    deployment has it, with the brokers and the gateway."""
     stack = Stack(
         tmp_path_factory.mktemp("faults-split"),
         mqtt="mosquitto",
-        extra_env={
-            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
-            **SNAPSHOT_ENV,
-            **SHORT_SESSION_ENV,
-        },
+        apart=True,
+        extra_env={**SNAPSHOT_ENV, **SHORT_SESSION_ENV},
     )
-    stack.ch_port = ch_port  # type: ignore[attr-defined]
-    stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]
     with stack.running(
         stack.start_brokers,
         lambda: stack.publish_meta(meta_for(load_ros_map(MAPS / "depot.yaml"))),
-        lambda: start_clickhouse_server(stack, ch_port),
-        lambda: stack.start_processors(stack.processors_port),
-        stack.start_api,
+        stack.start_apart,
         stack.start_gateway,
     ):
         yield stack
@@ -110,8 +105,8 @@ def split_faults(stack: Stack) -> list[tuple[str, Callable[[], None]]]:
             "api": stack.start_api,
             "mqtt": stack.start_mqtt,
             "kafka": stack.start_kafka,
-            "processors": lambda: stack.start_processors(stack.processors_port),
-            "clickhouse": lambda: start_clickhouse_server(stack, stack.ch_port),
+            "processors": lambda: stack.start_processors(stack.processors_health_port),
+            "clickhouse": stack.start_clickhouse_server,
         }[name]()
 
     def kill_restart(name: str, down_s: float = DOWN_S) -> Callable[[], None]:
@@ -150,7 +145,12 @@ def test_split_deployment_keeps_every_acknowledged_message_through_each_fault(sp
     # Gateway, processors, API, Mosquitto and Kafka SIGKILLed and restarted by the test;
     # losses are allowed only through tansu's memory storage, and are measured.
     started = time.monotonic()
-    sql = Sql(host="127.0.0.1", port=split.ch_port, username="default", password="")
+    sql = Sql(
+        host="127.0.0.1",
+        port=split.clickhouse_port,
+        username="default",
+        password=split.service_password("clickhouse"),
+    )
     load = Load(split.mqtt_url, meta_for(load_ros_map(MAPS / "depot.yaml")))
     runs: list[FaultRun] = []
     try:

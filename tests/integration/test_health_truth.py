@@ -14,10 +14,7 @@ import time
 import httpx
 import pytest
 
-from mapservice.local import embedded
 from mapservice.local.stack import Stack
-
-from .test_split_topology import start_clickhouse_server
 
 
 def get(url: str) -> tuple[int, dict]:
@@ -37,32 +34,23 @@ def until(what: str, predicate, timeout_s: float = 60) -> None:
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    ch_port = embedded.free_port()
     stack = Stack(
         tmp_path_factory.mktemp("health"),
         mqtt="mosquitto",
+        apart=True,
         extra_env={
-            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
             # /readyz asks Kafka every second, not every 5 s: a change shows within 1 s.
             "MAPSERVICE_KAFKA_CHECK_TTL_S": "1",
         },
     )
-    stack.ch_port = ch_port  # type: ignore[attr-defined]
-    stack.processors_port = embedded.free_port()  # type: ignore[attr-defined]
-    with stack.running(
-        stack.start_brokers,
-        lambda: start_clickhouse_server(stack, ch_port),
-        lambda: stack.start_processors(stack.processors_port),
-        stack.start_api,
-        stack.start_gateway,
-    ):
+    with stack.running(stack.start_brokers, stack.start_apart, stack.start_gateway):
         yield stack
 
 
 def urls(stack) -> dict[str, str]:
     return {
         "gateway": f"http://127.0.0.1:{stack.health_port}",
-        "processors": f"http://127.0.0.1:{stack.processors_port}",
+        "processors": f"http://127.0.0.1:{stack.processors_health_port}",
         "api": stack.api_url,
     }
 
@@ -117,7 +105,7 @@ def test_without_clickhouse_processors_and_api_are_not_ready(stack) -> None:
             ),
         )
         assert get(f"{url}/healthz")[0] == 200, name
-    start_clickhouse_server(stack, stack.ch_port)
+    stack.start_clickhouse_server()
     until("all ready again", lambda: all_ready(stack))
 
 

@@ -48,6 +48,8 @@ from tests.fixtures.paths import MAPS, ROOT
 
 from .conftest import wait_for_meta
 
+pytestmark = pytest.mark.alone
+
 HISTORY_HOURS = 6
 HISTORY_ROBOTS = 20
 FLEET = 100  # robots publishing a pose a second (and a chunk every five)

@@ -44,6 +44,8 @@ from .fault_load import (
 )
 from .fault_verdict import verify, write_report
 
+pytestmark = pytest.mark.long
+
 NODES = (1, 2, 3)
 
 

@@ -8,6 +8,9 @@ import pytest
 
 from mapservice.bench.group_protocol import member_loss
 
+# Judges the group's rebalance times: alone on the machine.
+pytestmark = pytest.mark.alone
+
 
 @pytest.mark.timeout(240)
 @pytest.mark.parametrize("protocol", ["classic", "consumer"])

@@ -24,6 +24,8 @@ from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.core.wire2019 import encode_coordinates, format_timestamp
 from mapservice.local.stack import Stack
 
+pytestmark = pytest.mark.long
+
 ROBOTS, SECONDS = 20, 30
 DAY_MS = 86_400_000
 REPAIR_TICK_S = 2.0

@@ -17,7 +17,6 @@ import pytest
 from mapservice.local import embedded
 from mapservice.local.stack import Stack
 
-from .test_split_topology import start_clickhouse_server
 
 REPLICAS = ("processors-1", "processors-2")
 
@@ -37,12 +36,11 @@ def healthy(port: int) -> bool:
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    ch_port = embedded.free_port()
     stack = Stack(
         tmp_path_factory.mktemp("scale-out"),
         mqtt="mosquitto",
+        apart=True,
         extra_env={
-            "MAPSERVICE_CLICKHOUSE_DSN": f"http://127.0.0.1:{ch_port}",
             "MAPSERVICE_KAFKA_PARTITIONS": "1",  # one replica gets it, the other none
             "MAPSERVICE_SNAPSHOT_EVERY_S": "4",  # the timer ticks every second
             # The killed replica's partition goes to the standby 3 s after it died, not 10.
@@ -52,7 +50,7 @@ def stack(tmp_path_factory):
     stack.ports = [embedded.free_port() for _ in REPLICAS]  # type: ignore[attr-defined]
     with stack.running(
         stack.start_brokers,
-        lambda: start_clickhouse_server(stack, ch_port),
+        stack.start_clickhouse_server,
         *(
             lambda p=port, n=name: stack.start_processors(p, n)
             for port, name in zip(stack.ports, REPLICAS)

@@ -47,6 +47,8 @@ from tests.fixtures.paths import MAPS
 from .conftest import wait_for_meta
 from .endurance_kit import Drive, Operator, SimClock, history_bytes, kafka_keeps_records
 
+pytestmark = pytest.mark.long
+
 DAY = 86_400_000
 HOUR = 3_600_000
 RETENTION_DAYS = Settings.model_fields["retention_days"].default  # the default: 7

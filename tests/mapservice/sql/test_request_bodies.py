@@ -4,6 +4,8 @@ answer within 1 s while the heaviest bodies are refused)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import gzip
 import tracemalloc
 import zlib
@@ -28,9 +30,13 @@ from tests.heavy_requests_kit import probe_during
 
 from .serving import ServedApp
 
-# Probes timed while a heavy request runs: in the integration part, which runs one test at
-# a time on the machine, so that another test's load does not stand for the server's.
-TIMED_PROBES = pytest.mark.integration
+
+def timed_probes(test: Callable[..., None]) -> Callable[..., None]:
+    """Probes timed while a heavy request runs: an integration test run alone on the machine,
+    so that another test's load does not stand for the server's."""
+    marked: Callable[..., None] = pytest.mark.alone(pytest.mark.integration(test))
+    return marked
+
 
 MiB = 1024 * 1024
 ANALYST, WRITER = ("analyst", "a-pw"), ("writer", "w-pw")
@@ -125,7 +131,7 @@ def test_the_writers_cap_is_the_insert_cap() -> None:
 # --- over HTTP, with the probes ---------------------------------------------------------
 
 
-@TIMED_PROBES
+@timed_probes
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_an_analysts_bomb_is_a_400_and_the_probes_keep_answering(url, encoding) -> None:
     """200 MiB of zeros in well under the 1 MiB a statement may take (gzip: 200 KB): a 400
@@ -145,7 +151,7 @@ def test_an_analysts_bomb_is_a_400_and_the_probes_keep_answering(url, encoding) 
     assert f"decodes to more than {MAX_QUERY_BYTES} bytes" in reply.text
 
 
-@TIMED_PROBES
+@timed_probes
 def test_a_writers_bomb_is_refused_at_the_insert_cap(url) -> None:
     """A writer's zstd body of 300 MiB decoded: a 400 at MAX_INSERT_BYTES, probes on time."""
     body = bomb("zstd", 300)
@@ -188,7 +194,7 @@ def multipart(fields: dict[str, bytes], boundary: str = "b0undary") -> tuple[byt
     return body, f"multipart/form-data; boundary={boundary}"
 
 
-@TIMED_PROBES
+@timed_probes
 def test_five_thousand_fields_are_a_400_and_the_probes_keep_answering(url) -> None:
     fields = {"query": b"SELECT 1"} | {f"param_p{n}": b"x" for n in range(5000)}
     body, content_type = multipart(fields)
@@ -203,7 +209,7 @@ def test_five_thousand_fields_are_a_400_and_the_probes_keep_answering(url) -> No
     assert reply.status_code == 400 and f"more than {MAX_FORM_FIELDS} fields" in reply.text
 
 
-@TIMED_PROBES
+@timed_probes
 def test_the_largest_allowed_multipart_is_answered_and_the_probes_keep_answering(url) -> None:
     """MAX_FORM_FIELDS fields filling the 1 MiB cap: parsed off the event loop and run."""
     size = MAX_QUERY_BYTES // MAX_FORM_FIELDS - 120
