@@ -376,6 +376,16 @@ def t0() -> int:
     return (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
 
 
+def sparse_snapshots(store, every_ms: int = 6 * 3_600_000) -> None:
+    """Makes a ClickHouse store snapshot every `every_ms` (6 h) instead of every 10 minutes,
+    before its first snapshot: a test that runs days of history through the retention then
+    builds tens of snapshots, not thousands (each a few chDB statements). No answer depends
+    on the interval: a read folds the events after the newest snapshot before its instant.
+    The memory twin keeps no snapshots."""
+    if hasattr(store, "snapshot_every_ms"):
+        store.snapshot_every_ms = every_ms
+
+
 @pytest.fixture(params=STORE_KINDS)
 def store(
     request: pytest.FixtureRequest, open_store: Callable[..., HistoryStore]
