@@ -30,6 +30,7 @@ from mapservice.local.embedded import PORT_SLICE_ENV
 from tests.fixtures.listings_2019 import listing_14, listing_16
 
 if TYPE_CHECKING:
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
     from mapservice.core.ports import HistoryStore
 
 
@@ -296,19 +297,63 @@ STORE_KINDS = ("memory", "clickhouse", "clickhouse-http")
 _store_databases = itertools.count()
 
 
+# Each module's chDB holds one migrated database, the template that `clone_migrated` copies.
+SCHEMA_TEMPLATE = "schema_template"
+_templates: dict[Path, ClickHouseStore] = {}
+
+
 @pytest.fixture(scope="module")
 def chdb_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    """One chDB engine for the module, kept open by a root store and closed at the module's
-    end: chDB runs one engine per process, so the next module may then open its own. Each
-    store the module opens is a database of its own in it (an empty history)."""
+    """One chDB engine for the module, kept open by a migrated template store and closed at
+    the module's end: chDB runs one engine per process, so the next module may then open its
+    own. Each store the module opens is a database of its own in it (an empty history)."""
     from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
     from mapservice.adapters.clickhouse.store import ClickHouseStore
 
     path = tmp_path_factory.mktemp("chdb") / "ch"
-    root = ClickHouseStore(f"chdb://{path}", database="root")
-    assert root.migrate() == SCHEMA_VERSION
+    template = ClickHouseStore(f"chdb://{path}", database=SCHEMA_TEMPLATE)
+    assert template.migrate() == SCHEMA_VERSION
+    _templates[path] = template
     yield path
-    root.close()
+    del _templates[path]
+    template.close()
+
+
+def clone_migrated(chdb_dir: Path, database: str) -> None:
+    """Creates `database` in the module's chDB as migrate() leaves a new one: the template's
+    tables and views, and its log of applied migrations (so the store's own migrate() then
+    finds every migration applied, checksums included). About 40 statements instead of the
+    170 of the migrations (a chDB statement costs milliseconds; every store test makes a
+    database). tests/mapservice/adapters/clickhouse/test_migrations.py checks that a clone
+    has exactly the schema the migrations make."""
+    from mapservice.adapters.clickhouse.migrations import MIGRATION_LOCK
+
+    template = _templates[chdb_dir]
+    source, c = template.database, template.client
+    objects = c.query(
+        "SELECT name, engine, create_table_query FROM system.tables "
+        "WHERE database = {d:String} AND name != {lock:String}",
+        parameters={"d": source, "lock": MIGRATION_LOCK},
+    ).result_rows
+    c.command(f"CREATE DATABASE {database}")
+    # Tables first; a view may read another view, so views go once what they read exists.
+    pending = [
+        ddl.replace(f"{source}.", f"{database}.")
+        for _, engine, ddl in sorted(objects, key=lambda o: o[1] in ("View", "MaterializedView"))
+    ]
+    while pending:
+        failed = []
+        for ddl in pending:
+            try:
+                c.command(ddl)
+            except Exception:  # a view over one not created yet: again after the others
+                if not ddl.startswith(("CREATE VIEW", "CREATE MATERIALIZED VIEW")):
+                    raise
+                failed.append(ddl)
+        if len(failed) == len(pending):
+            c.command(failed[0])  # no progress: raise its error
+        pending = failed
+    c.command(f"INSERT INTO {database}.schema_migrations SELECT * FROM {source}.schema_migrations")
 
 
 @pytest.fixture(scope="module")
@@ -356,12 +401,24 @@ def t0() -> int:
     return (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
 
 
+def sparse_snapshots(store, every_ms: int = 6 * 3_600_000) -> None:
+    """Makes a ClickHouse store snapshot every `every_ms` (6 h) instead of every 10 minutes,
+    before its first snapshot: a test that runs days of history through the retention then
+    builds tens of snapshots, not thousands (each a few chDB statements). No answer depends
+    on the interval: a read folds the events after the newest snapshot before its instant.
+    The memory twin keeps no snapshots."""
+    if hasattr(store, "snapshot_every_ms"):
+        store.snapshot_every_ms = every_ms
+
+
 @pytest.fixture(params=STORE_KINDS)
 def store(
     request: pytest.FixtureRequest, open_store: Callable[..., HistoryStore]
 ) -> Iterator[HistoryStore]:
     """An empty, migrated store of each kind (a module's own `store` fixture overrides it)."""
     s = open_store(request.param)
+    if request.param != "memory":
+        clone_migrated(request.getfixturevalue("chdb_dir"), s.database)
     s.migrate()
     yield s
     s.close()

@@ -5,6 +5,7 @@ test_access_surfaces.py."""
 
 from __future__ import annotations
 
+import functools
 import re
 
 import pytest
@@ -215,6 +216,15 @@ def test_every_operation_declares_the_expected_scope() -> None:
         assert ("415" in documented) == (method in ("POST", "PUT")), op["operationId"]
 
 
+@functools.cache
+def shared_app(read_access: str) -> FastAPI:
+    """One app per read-access mode for the table's cases: building an app costs several
+    times the request each case makes, over a thousand cases. Built on the first case's
+    call, under the fast tests' environment (tests/conftest.py `_hermetic_env`); the
+    cases assert only who may call what, which no earlier case's request changes."""
+    return app_for(settings_for(read_access))
+
+
 @pytest.mark.parametrize("read_access", ["open", "token"])
 @pytest.mark.parametrize("credential", list(CREDENTIALS))
 @pytest.mark.parametrize(
@@ -222,7 +232,7 @@ def test_every_operation_declares_the_expected_scope() -> None:
 )
 def test_every_operation_with_every_credential(read_access, credential, method, path, op) -> None:
     """The table: 401 without or with a wrong token, 403 with a token lacking the scope, else whatever the input earns (never 401, 403 or 500)."""
-    client = TestClient(app_for(settings_for(read_access)), raise_server_exceptions=False)
+    client = TestClient(shared_app(read_access), raise_server_exceptions=False)
     expected = EXPECTED[read_access][SCOPES[op["operationId"]]][credential]
     r = client.request(**example_request(method, path, op), headers=auth(credential))
     if expected == "ok":

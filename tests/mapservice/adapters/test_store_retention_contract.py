@@ -9,6 +9,8 @@ parts older than the retention.
 
 from __future__ import annotations
 
+from tests.conftest import sparse_snapshots
+
 # --- retention that keeps state (the long run: test_store_retention.py) ------------------
 
 RET_T0 = 1_767_225_600_000  # 2026-01-01T00:00Z: long past, only the store's clock counts
@@ -18,8 +20,7 @@ DAY_MS = 86_400_000
 def _retention_history(store, ev):
     """A floor written once (3 chunks), a pallet rewritten daily for ten days, a robot that
     reported once at the start and one that reports daily; the events, for the fold."""
-    if hasattr(store, "snapshot_every_ms"):
-        store.snapshot_every_ms = 6 * 3_600_000  # 40 snapshots for ten days, not 1,440
+    sparse_snapshots(store)  # 40 snapshots for ten days, not 1,440
     written = [ev.chunk("mapper", RET_T0 + 1000, r, 0, bytes([r]) * 10_000) for r in range(3)]
     written += [
         ev.chunk("amr", RET_T0 + d * DAY_MS + 5000, 3, 3, bytes([50 + d]) * 10_000)

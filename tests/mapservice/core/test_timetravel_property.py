@@ -17,6 +17,7 @@ from mapservice.core.ports import ChunkState
 from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
+from tests.conftest import clone_migrated
 
 EVERY_MS = 60_000
 SPAN_MS = 10 * EVERY_MS
@@ -83,6 +84,7 @@ def test_state_at_t_equals_brute_force_fold(
     store = ClickHouseStore(
         f"chdb://{chdb_dir}", database=f"tt_{next(_db)}", snapshot_every_ms=EVERY_MS
     )
+    clone_migrated(chdb_dir, store.database)  # each example: a new database, migrated
     store.migrate()
     envs = [
         chunk(e[1], base + e[2], e[3], e[4], e[5])

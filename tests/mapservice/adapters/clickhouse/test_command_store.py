@@ -11,7 +11,7 @@ from mapservice.core.commands import (
     command_records,
 )
 from mapservice.core.events import PoseReported, make_envelope
-from tests.conftest import NOW_MS, meta_event
+from tests.conftest import NOW_MS, meta_event, sparse_snapshots
 
 DAY_MS = 86_400_000
 GOTO = CommandIssued(
@@ -56,6 +56,7 @@ def test_commands_and_answers_by_window_and_robot(store) -> None:
 def test_commands_expire_with_the_retention(store) -> None:
     """A week and a day later, the first day's commands are gone and the last day's stay."""
     later = NOW_MS + 8 * DAY_MS
+    sparse_snapshots(store)  # tens of snapshots for these days, not a thousand
     pose = PoseReported((1.0, 2.0, 0.0), (0.0, 0.0, 0.0, 1.0))
     store.append(
         [meta_event(NOW_MS - 1_000)]

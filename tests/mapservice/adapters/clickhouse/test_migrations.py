@@ -197,3 +197,38 @@ def test_v11_removes_every_ttl_and_keeps_the_rows(store, monkeypatch) -> None:
     assert with_ttl() == []
     assert store.counts().chunk_events == 1
     assert store.migrate() == SCHEMA_VERSION  # repeatable
+
+
+@pytest.mark.parametrize("retention_days", [7, 2])
+def test_a_cloned_test_database_has_the_schema_the_migrations_make(chdb_dir, retention_days):
+    """The store fixture's databases are cloned from a migrated template (tests/conftest.py
+    `clone_migrated`): each table and view, and the migration log, as migrate() writes them
+    (whatever the retention: the schema since v11 does not depend on it)."""
+    from tests.conftest import clone_migrated
+
+    migrated = ClickHouseStore(
+        f"chdb://{chdb_dir}", database=f"m{next(_n)}", retention_days=retention_days
+    )
+    cloned = ClickHouseStore(f"chdb://{chdb_dir}", database=f"m{next(_n)}")
+    try:
+        migrated.migrate()
+        clone_migrated(chdb_dir, cloned.database)
+
+        def schema(store: ClickHouseStore) -> tuple:
+            objects = store.client.query(
+                "SELECT name, engine, replaceAll(create_table_query, {db:String}, 'DB.') "
+                "FROM system.tables WHERE database = {d:String} ORDER BY name",
+                parameters={"d": store.database, "db": f"{store.database}."},
+            ).result_rows
+            log = store.client.query(
+                f"SELECT version, description, checksum FROM {store.database}.schema_migrations "
+                "FINAL ORDER BY version"
+            ).result_rows
+            return objects, log
+
+        assert schema(cloned) == schema(migrated)
+        assert len(schema(cloned)[0]) > 30
+        assert cloned.migrate() == SCHEMA_VERSION  # every migration found applied
+    finally:
+        migrated.close()
+        cloned.close()

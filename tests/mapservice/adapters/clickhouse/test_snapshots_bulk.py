@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
 from mapservice.core.wire2019 import content_hash
+from tests.conftest import clone_migrated
 
 EVERY_MS = 60_000
 SPAN_MS = 10 * EVERY_MS
@@ -87,6 +88,7 @@ def test_bulk_equals_one_by_one(chdb_dir, first, late, middle, per_query, redeli
     batch2 = list({e.event_id: e for e in batch2}.values())
     try:
         for s in (one, bulk):
+            clone_migrated(chdb_dir, s.database)  # each example: new databases, migrated
             s.migrate()
             s.append(batch1)
             if middle >= 0:  # some snapshots exist before the bulk build

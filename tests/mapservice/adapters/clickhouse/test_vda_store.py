@@ -12,6 +12,7 @@ from mapservice.ingest.router import Router
 from mapservice.core.events import decode
 from mapservice.core.wire2019 import Limits
 from mapservice.settings import Settings
+from tests.conftest import sparse_snapshots
 from tests.fixtures import vda5050 as vda
 
 NOW = 1_795_255_200_000
@@ -96,6 +97,7 @@ def test_vda_facts_expire_with_the_retention(store, ev) -> None:
     the other day partitions; the latest factsheet stays."""
     old = NOW - 9 * 86_400_000
     v, m, s = "2.0.0", "Acme", "001"
+    sparse_snapshots(store)  # tens of snapshots for these days, not a thousand
     store.append(
         events(
             Settings(),
