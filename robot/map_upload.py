@@ -117,6 +117,12 @@ def admit_map(
     return envelopes
 
 
+def check_map(settings: Settings, ros_map: RosMap, now_ms: int) -> None:
+    """Raises UploadRefused when the intake would refuse the map's upload (`up` asks before
+    it starts anything)."""
+    admit_map(Intake.from_settings(settings), map_messages(ros_map, now_ms), now_ms)
+
+
 def upload_map_events(
     settings: Settings, ros_map: RosMap, now_ms: int, robot_id: str = UPLOADER_ID
 ) -> int:
