@@ -56,8 +56,8 @@ class MetaDoc(msgspec.Struct):
     CHUNK_HEIGHT: int
     CHUNK_ROWS: int
     CHUNK_COLS: int
-    comment: Annotated[str, msgspec.Meta(max_length=1024)] = ""
-    max_brightness: Annotated[str, msgspec.Meta(max_length=16)] | int = "255"
+    comment: str = ""
+    max_brightness: str | int = "255"
     resolution: float | None = None
     origin: Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)] | None = None
 

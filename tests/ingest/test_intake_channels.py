@@ -176,6 +176,11 @@ BAD_INPUTS: dict[str, BadInput] = {
             meta_doc(**{r.choice(META_FIELDS): r.choice([0, -r.randrange(1, 99), 70_000])})
         ),
     ),
+    "meta resolution out of range": BadInput(
+        "meta",
+        Reason.OUT_OF_RANGE,
+        lambda r: encoded(meta_doc(resolution=r.choice([0, -r.random(), 1e6 + r.random()]))),
+    ),
     "meta grid short of the map": BadInput(
         "meta",
         Reason.GRID_SHORT_OF_MAP,
