@@ -110,7 +110,8 @@ class BodyLimit:
         await reply_and_close(
             send,
             413,
-            f"the request body is larger than {self.max_bytes} bytes "
+            # Worded as the 2019 writes' refusals (reason first): a map upload reads it.
+            f"oversized: the request body is larger than {self.max_bytes} bytes "
             "(MAPSERVICE_API_MAX_BODY_BYTES)",
         )
 

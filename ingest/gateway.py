@@ -21,6 +21,8 @@ import structlog
 from mapservice.adapters.clock import clock_from_settings
 from mapservice.adapters.kafka_publisher import KafkaPublisher, RecordTooLarge
 from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
+from mapservice.core.events import MapMetaSet
+from mapservice.core.intake import Intake
 from mapservice.core.ports import Clock, EventPublisher
 from mapservice.core.wire2019 import Limits, Reason
 from mapservice.runtime.health import kafka_check
@@ -61,16 +63,7 @@ class Ingestor:
         self.router = Router(settings, gateway_id)
         self.publisher = publisher
         self.clock = clock
-        self.limits = Limits(
-            chunk_width=settings.chunk_width,
-            chunk_height=settings.chunk_height,
-            chunk_rows=settings.max_grid,
-            chunk_cols=settings.max_grid,
-            max_message_bytes=settings.max_message_bytes,
-            max_future_skew_ms=int(settings.max_future_skew_s * 1000),
-            retention_ms=settings.retention_ms,
-        )
-        self._base_limits = self.limits
+        self._base_intake = self.intake = Intake.from_settings(settings)
         self.new_robots = NewRobots(settings.ingest_new_robots_limit)
         self._in_flight = 0
         self._lock = threading.Lock()
@@ -80,8 +73,12 @@ class Ingestor:
         self._failures_unlogged = 0
         self._failure_logged_at = -FAILURE_LOG_EVERY_S
 
-    def apply_meta(self, meta) -> None:
-        self.limits = self._base_limits.with_meta(meta)
+    def apply_meta(self, meta: MapMetaSet) -> None:
+        self.intake = self._base_intake.with_meta(meta)
+
+    @property
+    def limits(self) -> Limits:
+        return self.intake.limits
 
     @property
     def in_flight(self) -> int:
@@ -93,7 +90,7 @@ class Ingestor:
         is then left unacknowledged, in the broker's session."""
         delivery = _Delivery(self, ack, time.monotonic())
         record = delivery.record = self.router.route(
-            mqtt_topic, payload, self.clock.now_ms(), self.limits
+            mqtt_topic, payload, self.clock.now_ms(), self.intake
         )
         if record.envelope is not None:
             refusal = self.new_robots.refusal(record.envelope.robot_id)

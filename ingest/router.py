@@ -20,13 +20,8 @@ from mapservice.core.events import (
     kafka_key,
     make_envelope,
 )
-from mapservice.core.wire2019 import (
-    Limits,
-    Reason,
-    Rejection,
-    decode_chunk_create,
-    decode_coordinates,
-)
+from mapservice.core.intake import Intake
+from mapservice.core.wire2019 import Reason, Rejection
 from mapservice.settings import Settings
 
 from .command_relay import CommandBook
@@ -89,17 +84,19 @@ class Router:
         robot_id, _, rest = mqtt_topic[len(self.robot_root) :].partition("/")
         return robot_id if rest == "command-events" and robot_id else None
 
-    def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, limits: Limits) -> Record:
+    def route(self, mqtt_topic: str, payload: bytes, receive_ms: int, intake: Intake) -> Record:
+        """The record for one message; its 2019 writes pass `intake` (the limits of now)."""
+        limits = intake.limits
         try:
             if mqtt_topic == self.chunk_topic:
-                result = decode_chunk_create(payload, receive_ms, limits)
+                result = intake.chunk(payload, receive_ms)
             elif (
                 self.robot_chunk_prefix
                 and mqtt_topic.startswith(self.robot_chunk_prefix)
                 and "/" not in mqtt_topic[len(self.robot_chunk_prefix) :]
             ):  # one level: `+`
                 robot_id = mqtt_topic[len(self.robot_chunk_prefix) :]
-                result = decode_chunk_create(payload, receive_ms, limits, topic_robot_id=robot_id)
+                result = intake.chunk(payload, receive_ms, topic_robot_id=robot_id)
             elif self.vda.handles(mqtt_topic):
                 result, msg = self.vda.decode_message(mqtt_topic, payload, receive_ms, limits)
                 if not isinstance(result, Rejection):
@@ -115,7 +112,7 @@ class Router:
                 )
             elif mqtt_topic.startswith(self.coordinate_prefix):
                 robot_id = mqtt_topic[len(self.coordinate_prefix) :]
-                result = decode_coordinates(robot_id, payload, receive_ms, limits)
+                result = intake.coordinates(robot_id, payload, receive_ms)
             else:
                 result = Rejection(
                     Reason.UNKNOWN_TOPIC, f"no handler for MQTT topic {mqtt_topic[:200]!r}"

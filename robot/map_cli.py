@@ -35,7 +35,7 @@ def cmd_map(args: argparse.Namespace) -> None:
 def _map_upload(args: argparse.Namespace) -> None:
     """`map upload`: the whole map through the 2019 REST API, as events like any robot's."""
     import httpx
-    from mapservice.robot.map_upload import MapSizeMismatch, upload_map_rest
+    from mapservice.robot.map_upload import MapSizeMismatch, UploadRefused, upload_map_rest
 
     from mapservice.adapters.ros_map import load_ros_map
 
@@ -60,6 +60,8 @@ def _map_upload(args: argparse.Namespace) -> None:
             )
     except MapSizeMismatch as exc:
         sys.exit(f"mapservice map upload: {exc}")
+    except UploadRefused as exc:
+        sys.exit(f"mapservice map upload: the service refused the map: {exc}")
     except httpx.HTTPError as exc:
         sys.exit(
             f"mapservice map upload: cannot upload to {args.api}: {exc}; is the service "

@@ -1,21 +1,23 @@
 """Publishing a whole ROS map as events: its meta and every chunk (the 2019 `fillDB`).
 
-Two routes, one meaning:
-- `upload_map_events` writes `map.meta_set` and `chunk.updated` envelopes straight to Kafka
-  with the same publisher the gateway and the REST API use (`mapservice up` on a fresh
-  data dir);
+A map is uploaded as the 2019 writes a robot would send (`map_messages`: its meta.json and
+one listing-10 chunk per chunk), by two routes with one meaning:
+- `upload_map_events` passes them through the intake the gateway and the REST API use, then
+  publishes the events to Kafka (`mapservice up` on a fresh data dir);
 - `upload_map_rest` posts them to a running service's 2019 REST API
-  (`mapservice map upload`), which turns them into the same events.
-Both refuse to overwrite a stored map of another size unless told to replace it.
+  (`mapservice map upload`), which passes them through that intake.
+Either way a message the intake refuses stops the upload with `UploadRefused`, naming the
+reason an MQTT dead letter would give. Both refuse to overwrite a stored map of another
+size unless told to replace it.
 """
 
 from __future__ import annotations
 
-import base64
-import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+import msgspec
 import structlog
 
 from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
@@ -23,9 +25,10 @@ from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
 # UPLOADER_ID: the robot id the uploaded chunks are attributed to; the conflict rule and the
 # change feed know its writes as a map upload.
 from mapservice.core.change_feed import UPLOADER_ID
-from mapservice.core.events import ChunkUpdated, MapMetaSet, encode, kafka_key, make_envelope
+from mapservice.core.events import Envelope, MapMetaSet, encode, kafka_key, make_envelope
+from mapservice.core.intake import Intake, split_refusal
 from mapservice.core.ports import EventPublisher
-from mapservice.core.wire2019 import content_hash, format_timestamp
+from mapservice.core.wire2019 import Rejection, encode_chunk_create, format_timestamp
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -55,54 +58,117 @@ def mismatch_message(stored: MapMetaSet, offered: MapMetaSet, what: str) -> str:
     )
 
 
+class UploadRefused(ValueError):
+    """The intake refused one of the map's messages; `reason` is its code, as an MQTT dead
+    letter or a REST refusal names it."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason, self.detail = reason, detail
+
+    @classmethod
+    def of(cls, rejection: Rejection) -> UploadRefused:
+        return cls(rejection.reason.value, rejection.detail)
+
+
+@dataclass(frozen=True)
+class MapMessages:
+    """A map as the 2019 writes that upload it."""
+
+    meta: bytes  # meta.json (listing 8, with the ROS resolution and origin)
+    chunks: list[bytes]  # one chunk write (listing 10) per chunk
+
+
+def map_messages(ros_map: RosMap, now_ms: int, robot_id: str = UPLOADER_ID) -> MapMessages:
+    meta = meta_for(ros_map)
+    stamp = format_timestamp(now_ms)
+    return MapMessages(
+        msgspec.json.encode(meta.to_2019()),
+        [
+            encode_chunk_create(row, column, pixels, stamp, robot_id)
+            for (row, column), pixels in slice_chunks(
+                ros_map, meta.chunk_width, meta.chunk_height
+            ).items()
+        ],
+    )
+
+
+def admitted_meta(intake: Intake, meta_json: bytes) -> MapMetaSet:
+    """The meta the intake takes from `meta_json`; raises UploadRefused when it refuses it."""
+    meta = intake.map_meta(meta_json)
+    if isinstance(meta, Rejection):
+        raise UploadRefused.of(meta)
+    return meta
+
+
+def admit_map(
+    intake: Intake, messages: MapMessages, now_ms: int, robot_id: str = UPLOADER_ID
+) -> list[Envelope]:
+    """The map's events, each message through the intake (the chunks against the map's own
+    meta); raises UploadRefused at the first message it refuses."""
+    meta = admitted_meta(intake, messages.meta)
+    chunk_intake = intake.with_meta(meta)
+    envelopes = [make_envelope(robot_id, now_ms, now_ms, meta)]
+    for message in messages.chunks:
+        envelope = chunk_intake.chunk(message, now_ms)
+        if isinstance(envelope, Rejection):
+            raise UploadRefused.of(envelope)
+        envelopes.append(envelope)
+    return envelopes
+
+
+def check_map(settings: Settings, ros_map: RosMap, now_ms: int) -> None:
+    """Raises UploadRefused when the intake would refuse the map's upload (`up` asks before
+    it starts anything)."""
+    admit_map(Intake.from_settings(settings), map_messages(ros_map, now_ms), now_ms)
+
+
 def upload_map_events(
     settings: Settings, ros_map: RosMap, now_ms: int, robot_id: str = UPLOADER_ID
 ) -> int:
     """Publishes the map's meta and all its chunks to Kafka; returns the chunk count."""
     from mapservice.adapters.kafka_publisher import KafkaPublisher
 
-    meta = meta_for(ros_map)
+    messages = map_messages(ros_map, now_ms, robot_id)
     publisher = KafkaPublisher(settings, client_id="mapservice-map-upload")
     try:
-        return _publish_map(publisher, settings, ros_map, meta, now_ms, robot_id)
+        return publish_map(publisher, settings, messages, now_ms, robot_id)
     finally:
         # A producer left open keeps its threads and goes on dialling the broker for as
         # long as `up` runs (and logs refused connections once the broker stops).
         publisher.close()
 
 
-def _publish_map(
+def publish_map(
     publisher: EventPublisher,
     settings: Settings,
-    ros_map: RosMap,
-    meta: MapMetaSet,
+    messages: MapMessages,
     now_ms: int,
-    robot_id: str,
+    robot_id: str = UPLOADER_ID,
 ) -> int:
-    errors: list = []
-    meta_env = make_envelope(robot_id, now_ms, now_ms, meta)
-    publisher.publish(
-        settings.topic_meta_events, kafka_key(meta_env), encode(meta_env), errors.append
+    """Publishes the map's events once the intake took every message (nothing is published
+    when it refuses one); returns the chunk count."""
+    publish_events(
+        publisher, settings, admit_map(Intake.from_settings(settings), messages, now_ms, robot_id)
     )
-    chunks = slice_chunks(ros_map, meta.chunk_width, meta.chunk_height)
-    for (row, column), pixels in chunks.items():
-        env = make_envelope(
-            robot_id,
-            now_ms,
-            now_ms,
-            ChunkUpdated(
-                row,
-                column,
-                meta.chunk_width,
-                meta.chunk_height,
-                zlib.compress(pixels),
-                content_hash(pixels),
-            ),
+    return len(messages.chunks)
+
+
+def publish_events(
+    publisher: EventPublisher, settings: Settings, envelopes: list[Envelope], what: str = "the map"
+) -> None:
+    """Publishes a map's admitted events (its meta, its chunks) and waits until Kafka has
+    them all; raises RuntimeError when it does not take one."""
+    errors: list = []
+    for envelope in envelopes:
+        topic = (
+            settings.topic_meta_events
+            if isinstance(envelope.payload, MapMetaSet)
+            else settings.topic_chunk_events
         )
-        publisher.publish(settings.topic_chunk_events, kafka_key(env), encode(env), errors.append)
+        publisher.publish(topic, kafka_key(envelope), encode(envelope), errors.append)
     if publisher.flush(60) or any(errors):
-        raise RuntimeError(f"could not publish the map to Kafka: {[e for e in errors if e]}")
-    return len(chunks)
+        raise RuntimeError(f"could not publish {what} to Kafka: {[e for e in errors if e]}")
 
 
 def check_data_dir_map(data_dir: Path, ros_map: RosMap) -> bool:
@@ -165,9 +231,8 @@ def upload_map_rest(
     robot_id: str = UPLOADER_ID,
 ) -> int:
     """Posts the map's meta and chunks to the 2019 REST API; returns the chunk count.
-    Raises MapSizeMismatch when the stored map has another size and `replace` is not set."""
-    from mapservice.robot.chunks import meta_to_json
-
+    Raises MapSizeMismatch when the stored map has another size and `replace` is not set,
+    UploadRefused when the service refuses one of the map's messages."""
     meta = meta_for(ros_map)
     stored = stored_meta(http)
     if stored is not None and not same_geometry(stored, meta) and not replace:
@@ -175,17 +240,30 @@ def upload_map_rest(
             mismatch_message(stored, meta, "this map")
             + "; --replace (admin) replaces the service's map"
         )
-    if stored is None or not same_geometry(stored, meta):
-        http.post("/api/chunk-service/meta", json=meta_to_json(meta)).raise_for_status()
-    chunks = slice_chunks(ros_map, meta.chunk_width, meta.chunk_height)
-    stamp = format_timestamp(now_ms)
-    for (row, column), pixels in chunks.items():
-        body = {
-            "row": row,
-            "column": column,
-            "robotId": robot_id,
-            "timestamp": stamp,
-            "pgmB64compressedData": base64.b64encode(zlib.compress(pixels)).decode(),
-        }
-        http.post("/api/chunk-service/chunks", json=body).raise_for_status()
-    return len(chunks)
+    messages = map_messages(ros_map, now_ms, robot_id)
+    return post_map(http, messages, with_meta=stored is None or not same_geometry(stored, meta))
+
+
+def post_map(http: httpx.Client, messages: MapMessages, with_meta: bool = True) -> int:
+    """Posts the map's messages (its meta.json first when `with_meta`); returns the chunk
+    count. A message the service refuses (400, 413) raises UploadRefused with its reason."""
+    posts = [("/api/chunk-service/meta", messages.meta)] if with_meta else []
+    posts += [("/api/chunk-service/chunks", chunk) for chunk in messages.chunks]
+    for path, body in posts:
+        resp = http.post(path, content=body, headers={"Content-Type": "application/json"})
+        if resp.status_code in (400, 413):
+            text = _detail(resp)
+            refusal = split_refusal(text)
+            if refusal is None:
+                raise UploadRefused(f"http_{resp.status_code}", text)
+            raise UploadRefused(refusal[0].value, refusal[1])
+        resp.raise_for_status()
+    return len(messages.chunks)
+
+
+def _detail(resp: httpx.Response) -> str:
+    try:
+        detail = resp.json().get("detail")
+    except ValueError:
+        detail = None
+    return detail if isinstance(detail, str) else resp.text[:500]

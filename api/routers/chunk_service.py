@@ -18,6 +18,7 @@ from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
 from mapservice.core.events import MapMetaSet, make_envelope
+from mapservice.core.intake import Intake, refusal_text
 from mapservice.core.legacy_query import (
     MAX_LIMIT,
     ChunkQuery,
@@ -36,7 +37,7 @@ from mapservice.core.ports import (
     TimeTravelReader,
 )
 from mapservice.core.render import chunk_pixels, png
-from mapservice.core.wire2019 import Limits, Rejection, decode_chunk_create, format_timestamp
+from mapservice.core.wire2019 import Reason, Rejection, format_timestamp
 from mapservice.settings import Settings
 
 from ..access import ADMIN, READ, WRITE, require, require_robot
@@ -61,35 +62,14 @@ class LegacyChunk(BaseModel):
     robotId: str
 
 
-class MetaDoc(msgspec.Struct):
-    """meta.json (listing 8/9) as a robot posts it; ROS resolution/origin are optional."""
-
-    width: int
-    height: int
-    CHUNK_WIDTH: int
-    CHUNK_HEIGHT: int
-    CHUNK_ROWS: int
-    CHUNK_COLS: int
-    comment: str = ""
-    max_brightness: str | int = "255"
-    resolution: float | None = None
-    origin: list[float] | None = None
-
-
-_meta_decoder = msgspec.json.Decoder(MetaDoc)
-
-
 async def _read_body(request: Request, limit: int) -> bytes:
     """The request body, refused with 413 past `limit` bytes before it is all in memory."""
     body = bytearray()
     async for part in request.stream():
         body += part
         if len(body) > limit:
-            raise HTTPException(
-                413,
-                f"oversized: the body exceeds the {limit}-byte limit "
-                "(MAPSERVICE_MAX_MESSAGE_BYTES)",
-            )
+            detail = f"the body exceeds the {limit}-byte limit (MAPSERVICE_MAX_MESSAGE_BYTES)"
+            raise HTTPException(413, refusal_text(Rejection(Reason.OVERSIZED, detail)))
     return bytes(body)
 
 
@@ -125,37 +105,13 @@ def get_meta(store: TimeTravelReader = Depends(history_reader)) -> dict:
     return meta.to_2019()
 
 
-def parse_meta(body: bytes) -> MapMetaSet:
-    """meta.json to a MapMetaSet, or a 400 that says what is wrong."""
-    try:
-        doc = _meta_decoder.decode(body)
-    except (msgspec.DecodeError, UnicodeDecodeError) as exc:
-        raise HTTPException(400, f"meta.json: {exc}") from None
-    sizes = {
-        "width": doc.width,
-        "height": doc.height,
-        "CHUNK_WIDTH": doc.CHUNK_WIDTH,
-        "CHUNK_HEIGHT": doc.CHUNK_HEIGHT,
-        "CHUNK_ROWS": doc.CHUNK_ROWS,
-        "CHUNK_COLS": doc.CHUNK_COLS,
-    }
-    for name, value in sizes.items():
-        high = 4096 if name in ("CHUNK_WIDTH", "CHUNK_HEIGHT") else 65_535
-        if not 1 <= value <= high:
-            raise HTTPException(400, f"meta.json: {name} = {value} is outside 1..{high}")
-    if (
-        doc.CHUNK_COLS * doc.CHUNK_WIDTH < doc.width
-        or doc.CHUNK_ROWS * doc.CHUNK_HEIGHT < doc.height
-    ):
-        raise HTTPException(
-            400,
-            f"meta.json: {doc.CHUNK_ROWS} x {doc.CHUNK_COLS} chunks of "
-            f"{doc.CHUNK_WIDTH} x {doc.CHUNK_HEIGHT} do not cover "
-            f"{doc.width} x {doc.height} pixels",
-        )
-    if doc.origin is not None and len(doc.origin) != 3:
-        raise HTTPException(400, "meta.json: origin must be [x, y, yaw]")
-    return MapMetaSet.from_2019(msgspec.to_builtins(doc))
+def _intake(settings: Settings, meta: MapMetaSet | None = None) -> Intake:
+    return Intake.from_settings(settings).with_meta(meta)
+
+
+def _refused(rejection: Rejection) -> HTTPException:
+    """A write the gateway would dead-letter: a 400 whose detail starts with its reason."""
+    return HTTPException(400, refusal_text(rejection))
 
 
 _META_BODY = {
@@ -195,8 +151,11 @@ async def post_meta(
     posts the first meta, as 2019 robots do; changing the map's frame once one is held (its
     size, chunk grid, resolution or origin) moves every chunk, zone and nav2 mask, so it
     needs the administrator's token."""
-    meta = parse_meta(await _read_body(request, settings.max_message_bytes))
+    body = await _read_body(request, settings.max_message_bytes)
     now = clock.now_ms()
+    meta = _intake(settings).map_meta(body)
+    if isinstance(meta, Rejection):
+        raise _refused(meta)
     held = await run_in_threadpool(_meta_for_validation, request, store, now)
     if held is not None:
         meta = _keeping_held_frame(meta, held)
@@ -299,19 +258,6 @@ def _meta_for_validation(
     return posted
 
 
-def _limits(settings: Settings, meta: MapMetaSet | None) -> Limits:
-    limits = Limits(
-        chunk_width=settings.chunk_width,
-        chunk_height=settings.chunk_height,
-        chunk_rows=settings.max_grid,
-        chunk_cols=settings.max_grid,
-        max_message_bytes=settings.max_message_bytes,
-        max_future_skew_ms=int(settings.max_future_skew_s * 1000),
-        retention_ms=settings.retention_ms,
-    )
-    return limits.with_meta(meta) if meta is not None else limits
-
-
 @router.post(
     "/chunks",
     operation_id="postLegacyChunk",
@@ -340,14 +286,14 @@ async def post_chunk(
     clock: Clock = Depends(get_clock),
     publisher: EventPublisher = Depends(get_publisher),
 ) -> dict:
-    """Listing 10 in, listing 11 out: validated exactly like an MQTT iot/chunks/create
-    message and written to Kafka like one."""
+    """Listing 10 in, listing 11 out: validated by the intake an MQTT iot/chunks/create
+    message passes and written to Kafka like one."""
     body = await _read_body(request, settings.max_message_bytes)
     now = clock.now_ms()
     meta = await run_in_threadpool(_meta_for_validation, request, store, now)
-    result = decode_chunk_create(body, now, _limits(settings, meta))
+    result = _intake(settings, meta).chunk(body, now)
     if isinstance(result, Rejection):
-        raise HTTPException(400, f"{result.reason.value}: {result.detail}")
+        raise _refused(result)
     require_robot(caller, result.robot_id)
     await run_in_threadpool(publish_and_wait, publisher, settings, result)
     payload = result.payload

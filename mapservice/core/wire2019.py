@@ -44,6 +44,7 @@ class Reason(str, Enum):
     WRONG_CHUNK_SIZE = "wrong_chunk_size"
     OUT_OF_MAP = "out_of_map"
     OUT_OF_RANGE = "out_of_range"
+    GRID_SHORT_OF_MAP = "grid_short_of_map"  # a map meta whose chunk grid does not cover it
     BAD_TIMESTAMP = "bad_timestamp"
     TIMESTAMP_IN_FUTURE = "timestamp_in_future"
     TIMESTAMP_TOO_OLD = "timestamp_too_old"
@@ -146,7 +147,9 @@ MAX_PATH_POINTS = 1000
 MAX_ABS_METRES = 1e6
 
 
-def _decode(decoder: msgspec.json.Decoder[_T], data: bytes) -> _T | Rejection:
+def decode(decoder: msgspec.json.Decoder[_T], data: bytes, what: str = "payload") -> _T | Rejection:
+    """`data` decoded into the decoder's type, or the Rejection that says why not
+    (`what` names the message in the detail)."""
     try:
         return decoder.decode(data)
     except msgspec.ValidationError as exc:
@@ -154,12 +157,16 @@ def _decode(decoder: msgspec.json.Decoder[_T], data: bytes) -> _T | Rejection:
         reason = Reason.MISSING_FIELD if "missing required field" in text else Reason.WRONG_TYPE
         return Rejection(reason, text)
     except msgspec.DecodeError as exc:
-        return Rejection(Reason.NOT_JSON, f"payload is not JSON: {exc}")
+        return Rejection(Reason.NOT_JSON, f"{what} is not JSON: {exc}")
     except UnicodeDecodeError as exc:  # msgspec raises it for invalid UTF-8 inside a string
-        return Rejection(Reason.NOT_JSON, f"payload is not UTF-8 JSON: {exc}")
+        return Rejection(Reason.NOT_JSON, f"{what} is not UTF-8 JSON: {exc}")
     except RecursionError:
         # A small message nested ~1,000 levels deep: msgspec gives up; so do we, politely.
         return Rejection(Reason.TOO_DEEP, "JSON nested too deeply to decode")
+
+
+def oversized(size: int, limits: Limits) -> Rejection:
+    return Rejection(Reason.OVERSIZED, f"{size} bytes exceeds the {limits.max_message_bytes} limit")
 
 
 # Instants a query may name: the Unix epoch to 2262-04-11, the last instant whose
@@ -276,10 +283,8 @@ def decode_chunk_create(
     `topic_robot_id` is the robot a per-robot chunk topic (`iot/chunks/create/{robotId}`)
     names; the payload's robotId must be the same. None: the 2019 topic, which names none."""
     if len(data) > limits.max_message_bytes:
-        return Rejection(
-            Reason.OVERSIZED, f"{len(data)} bytes exceeds the {limits.max_message_bytes} limit"
-        )
-    msg = _decode(_chunk_decoder, data)
+        return oversized(len(data), limits)
+    msg = decode(_chunk_decoder, data)
     if isinstance(msg, Rejection):
         return msg
     if bad := _check_robot_id(msg.robotId):
@@ -342,10 +347,8 @@ def decode_coordinates(
 ) -> Envelope | Rejection:
     """Validate an `iot/coordinates/{robotId}` message (listing 16) into a PoseReported."""
     if len(data) > limits.max_message_bytes:
-        return Rejection(
-            Reason.OVERSIZED, f"{len(data)} bytes exceeds the {limits.max_message_bytes} limit"
-        )
-    msg = _decode(_pose_decoder, data)
+        return oversized(len(data), limits)
+    msg = decode(_pose_decoder, data)
     if isinstance(msg, Rejection):
         return msg
     if bad := _check_robot_id(msg.robotId):

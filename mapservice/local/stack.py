@@ -16,17 +16,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
+import msgspec
 import structlog
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.adapters.kafka_topics import ensure_topics
 from mapservice.adapters.mqtt_auth import BrokerFiles
-from mapservice.core.events import MapMetaSet, encode, kafka_key, make_envelope
+from mapservice.core.events import MapMetaSet, make_envelope
+from mapservice.core.intake import Intake
 from mapservice.local import embedded, kafka_broker, lifetime
 from mapservice.local.kafka_auth import TANSU_NO_AUTH
 from mapservice.local.stack_env import StackEnv
 from mapservice.local.stack_mqtt import StackMqtt
+from mapservice.robot.map_upload import admitted_meta, publish_events
 
 log = structlog.get_logger(__name__)
 
@@ -389,18 +392,18 @@ class Stack(StackMqtt, StackEnv):
         return proc is not None and proc.poll() is None
 
     def publish_meta(self, meta: MapMetaSet) -> None:
-        self.meta = meta
+        """Publishes the map's meta as robot `mapservice`, through the intake every 2019
+        write passes (UploadRefused when it refuses the meta)."""
         settings = self.settings()
+        admitted = admitted_meta(
+            Intake.from_settings(settings), msgspec.json.encode(meta.to_2019())
+        )
+        self.meta = meta
         publisher = KafkaPublisher(settings, client_id="mapservice-up")
         now = SystemClock().now_ms()
-        env = make_envelope("mapservice", now, now, meta)
-        errors: list = []
         try:
-            publisher.publish(
-                settings.topic_meta_events, kafka_key(env), encode(env), errors.append
-            )
-            if publisher.flush(30) or any(errors):
-                raise RuntimeError(f"could not publish the map meta to Kafka: {errors}")
+            envelope = make_envelope("mapservice", now, now, admitted)
+            publish_events(publisher, settings, [envelope], "the map meta")
         finally:
             publisher.close()  # else its producer dials the broker for as long as the stack runs
 

@@ -22,7 +22,7 @@ def cmd_up(args) -> None:
     from mapservice.local import lifetime
     from mapservice.local.stack import Stack
     from mapservice.local.up_output import log, print_addresses, step
-    from mapservice.robot.map_upload import check_data_dir_map, upload_map_if_fresh
+    from mapservice.robot.map_upload import check_data_dir_map, check_map, upload_map_if_fresh
     from mapservice.runtime.logs import configure
 
     # Nothing `up` or its components write (secrets, logs, the broker's store, the history)
@@ -99,6 +99,7 @@ def cmd_up(args) -> None:
     ros_map = load_ros_map(args.map)
     try:
         check_data_dir_map(stack.data_dir, ros_map)  # before the meta is published
+        check_map(stack.settings(), ros_map, SystemClock().now_ms())  # the intake takes it
         had_history = (stack.data_dir / "clickhouse").exists()
     except ValueError as exc:
         sys.exit(f"mapservice up: {exc}")

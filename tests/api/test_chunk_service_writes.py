@@ -14,7 +14,7 @@ from mapservice.ingest.router import Router
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.events import ChunkUpdated, MapMetaSet, decode
-from mapservice.core.wire2019 import Limits
+from mapservice.core.intake import Intake
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.api.chunk_service_kit import (
     ADMIN,
@@ -186,7 +186,7 @@ def test_post_chunk_is_the_same_event_as_mqtt(client, publisher, settings, wire)
         "iot/chunks/create",
         wire.chunk(row=3, column=2, timestamp="2026-11-21T10:00:30"),
         CLOCK_MS,
-        Limits().with_meta(MapMetaSet(500, 400, 100, 100, 4, 5)),
+        Intake().with_meta(MapMetaSet(500, 400, 100, 100, 4, 5)),
     )
     assert key == via_mqtt.key == b"3:2"
     assert decode(value) == via_mqtt.envelope

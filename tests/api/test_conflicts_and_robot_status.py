@@ -159,7 +159,7 @@ def test_a_vda_vehicles_facts(ev) -> None:
     from mapservice.ingest.router import Router
 
     from mapservice.core.events import decode
-    from mapservice.core.wire2019 import Limits
+    from mapservice.core.intake import Intake
     from tests.fixtures import vda5050 as vda
 
     router, store = Router(Settings(), "gw"), MemoryStore()
@@ -174,7 +174,7 @@ def test_a_vda_vehicles_facts(ev) -> None:
         ),
         ("connection", vda.connection("2.0.0", m, s, NOW - 9_000, "CONNECTIONBROKEN"), NOW - 2_000),
     ]:
-        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Intake())
         store.append([decode(record.value)])
     client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW)))
     body = client.get("/api/v1/robots/Acme@20Co:7@3A1/vda5050").json()
@@ -199,7 +199,7 @@ def test_the_vda_fleets_facts() -> None:
     from mapservice.ingest.router import Router
 
     from mapservice.core.events import decode
-    from mapservice.core.wire2019 import Limits
+    from mapservice.core.intake import Intake
     from tests.fixtures import vda5050 as vda
 
     router, store = Router(Settings(), "gw"), MemoryStore()
@@ -216,7 +216,7 @@ def test_the_vda_fleets_facts() -> None:
         ("Beta", "2", "factsheet", vda.factsheet("2.0.0", "Beta", "2", NOW - 6_000)),
         ("Beta", "2", "connection", vda.connection("2.0.0", "Beta", "2", NOW - 5_000, "OFFLINE")),
     ]:
-        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), NOW - 5_000, Limits())
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), NOW - 5_000, Intake())
         store.append([decode(record.value)])
     client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW)))
     body = {v["robotId"]: v for v in client.get("/api/v1/robots/vda5050").json()}

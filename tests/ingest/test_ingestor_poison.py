@@ -58,12 +58,12 @@ def test_any_exception_while_routing_becomes_an_internal_error_dead_letter(
     ingestor, publisher, settings, acks, monkeypatch
 ) -> None:
     """Whatever breaks inside decoding ends as an internal_error dead letter naming it, and an ack."""
-    import mapservice.ingest.router as router
+    from mapservice.core.intake import Intake
 
     def broken(*_args, **_kw):
         raise KeyError("surprise")
 
-    monkeypatch.setattr(router, "decode_coordinates", broken)
+    monkeypatch.setattr(Intake, "coordinates", broken)
     ingestor.handle("iot/coordinates/r1", b"{}", acks.for_("m"))
     (letter,) = dead_letters(publisher, settings)
     assert letter.reason == "internal_error" and "KeyError" in letter.detail

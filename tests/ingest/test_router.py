@@ -6,6 +6,7 @@ import pytest
 from mapservice.ingest.router import Router
 
 from mapservice.core.events import ChunkUpdated, PoseReported, decode, decode_dead_letter
+from mapservice.core.intake import Intake
 from mapservice.core.wire2019 import Limits, Reason
 from mapservice.settings import Settings
 
@@ -22,7 +23,7 @@ def router(settings: Settings) -> Router:
 
 def test_chunk_goes_to_chunk_topic_keyed_by_cell(router, settings, wire, now_ms) -> None:
     """An accepted chunk becomes a ChunkUpdated on the chunk topic, keyed `row:column`."""
-    record = router.route("iot/chunks/create", wire.chunk(row=7, column=11), now_ms, Limits())
+    record = router.route("iot/chunks/create", wire.chunk(row=7, column=11), now_ms, Intake())
     assert record.reason is None
     assert record.topic == settings.topic_chunk_events == "mapservice.chunk-events.v1"
     assert record.key == b"7:11"
@@ -37,7 +38,7 @@ def test_chunk_goes_to_chunk_topic_keyed_by_cell(router, settings, wire, now_ms)
 
 def test_pose_goes_to_pose_topic_keyed_by_robot(router, settings, wire, now_ms) -> None:
     """An accepted pose becomes a PoseReported on the pose topic, keyed by robot id."""
-    record = router.route("iot/coordinates/blabla", wire.pose(), now_ms, Limits())
+    record = router.route("iot/coordinates/blabla", wire.pose(), now_ms, Intake())
     assert record.reason is None
     assert record.topic == settings.topic_pose_events
     assert record.key == b"blabla"
@@ -58,7 +59,7 @@ def test_pose_goes_to_pose_topic_keyed_by_robot(router, settings, wire, now_ms) 
 def test_unknown_topic_is_dead_lettered(router, settings, wire, now_ms, topic) -> None:
     """A topic without a handler gives an unknown_topic dead letter with the original bytes."""
     payload = wire.pose()
-    record = router.route(topic, payload, now_ms, Limits())
+    record = router.route(topic, payload, now_ms, Intake())
     assert record.reason == Reason.UNKNOWN_TOPIC.value == "unknown_topic"
     assert record.topic == settings.topic_dead_letter
     assert record.envelope is None
@@ -69,7 +70,7 @@ def test_unknown_topic_is_dead_lettered(router, settings, wire, now_ms, topic) -
 def test_rejection_is_dead_lettered_with_everything(router, settings, now_ms) -> None:
     """A rejected message keeps reason, detail, original bytes, MQTT topic, time and gateway."""
     payload = b'{"row": 3, "column": 2, oops'
-    record = router.route("iot/chunks/create", payload, now_ms, Limits())
+    record = router.route("iot/chunks/create", payload, now_ms, Intake())
     assert record.reason == "not_json"
     assert record.topic == settings.topic_dead_letter == "mapservice.dead-letter.v1"
     assert record.key == b"iot/chunks/create"
@@ -84,14 +85,14 @@ def test_rejection_is_dead_lettered_with_everything(router, settings, now_ms) ->
 
 def test_topic_robot_id_must_match_payload(router, wire, now_ms) -> None:
     """The robot named by the coordinates topic must be the payload's robotId."""
-    record = router.route("iot/coordinates/robot-2", wire.pose(), now_ms, Limits())
+    record = router.route("iot/coordinates/robot-2", wire.pose(), now_ms, Intake())
     assert record.reason == "robot_id_mismatch"
     assert decode_dead_letter(record.value).mqtt_topic == "iot/coordinates/robot-2"
 
 
 def test_limits_passed_in_are_applied(router, wire, now_ms) -> None:
     """The limits given to route() decide what is in the map."""
-    narrow = Limits(chunk_rows=2, chunk_cols=2)
+    narrow = Intake(Limits(chunk_rows=2, chunk_cols=2))
     assert (
         router.route("iot/chunks/create", wire.chunk(row=1, column=1), now_ms, narrow).reason
         is None
@@ -112,19 +113,19 @@ def test_configured_topics_are_used(wire, now_ms) -> None:
         topic_dead_letter="d",
     )
     r = Router(s, "gw")
-    assert r.route("site1/chunks", wire.chunk(), now_ms, Limits()).topic == "c"
-    assert r.route("site1/robots/blabla", wire.pose(), now_ms, Limits()).topic == "p"
-    assert r.route("iot/chunks/create", wire.chunk(), now_ms, Limits()).topic == "d"
+    assert r.route("site1/chunks", wire.chunk(), now_ms, Intake()).topic == "c"
+    assert r.route("site1/robots/blabla", wire.pose(), now_ms, Intake()).topic == "p"
+    assert r.route("iot/chunks/create", wire.chunk(), now_ms, Intake()).topic == "d"
 
 
 def test_robot_chunk_topic_names_the_robot(router, settings, wire, now_ms) -> None:
     """A chunk on iot/chunks/create/<robotId> is the same ChunkUpdated the 2019 topic gives,
     attributed to that robot; a payload naming another robot is a robot_id_mismatch dead letter."""
     legacy = router.route(
-        "iot/chunks/create", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits()
+        "iot/chunks/create", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Intake()
     )
     own = router.route(
-        "iot/chunks/create/r1", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Limits()
+        "iot/chunks/create/r1", wire.chunk(row=7, column=11, robotId="r1"), now_ms, Intake()
     )
     assert own.reason is None and (own.topic, own.key, own.value) == (
         legacy.topic,
@@ -132,7 +133,7 @@ def test_robot_chunk_topic_names_the_robot(router, settings, wire, now_ms) -> No
         legacy.value,
     )
     assert own.envelope.robot_id == "r1"
-    other = router.route("iot/chunks/create/r1", wire.chunk(robotId="r2"), now_ms, Limits())
+    other = router.route("iot/chunks/create/r1", wire.chunk(robotId="r2"), now_ms, Intake())
     assert other.reason == "robot_id_mismatch" and other.topic == settings.topic_dead_letter
     letter = decode_dead_letter(other.value)
     assert "'r1'" in letter.detail and "'r2'" in letter.detail
@@ -143,11 +144,11 @@ def test_robot_chunk_topic_can_be_configured_or_turned_off(wire, now_ms) -> None
     """MAPSERVICE_ROBOT_CHUNK_TOPIC moves the per-robot chunk topic; empty turns it off (and
     an empty MAPSERVICE_CREATE_CHUNK_TOPIC the 2019 one): such messages are unknown_topic."""
     moved = Router(Settings(robot_chunk_topic="site1/chunks/+"), "gw")
-    assert moved.route("site1/chunks/r1", wire.chunk(robotId="r1"), now_ms, Limits()).reason is None
+    assert moved.route("site1/chunks/r1", wire.chunk(robotId="r1"), now_ms, Intake()).reason is None
     off = Router(Settings(robot_chunk_topic="", create_chunk_topic=""), "gw")
     for topic in ("iot/chunks/create/r1", "iot/chunks/create"):
         assert (
-            off.route(topic, wire.chunk(robotId="r1"), now_ms, Limits()).reason == "unknown_topic"
+            off.route(topic, wire.chunk(robotId="r1"), now_ms, Intake()).reason == "unknown_topic"
         )
     assert Settings(robot_chunk_topic="", create_chunk_topic="").mqtt_subscriptions == [
         "iot/coordinates/#",
@@ -165,5 +166,5 @@ def test_robot_chunk_topic_can_be_configured_or_turned_off(wire, now_ms) -> None
 def test_coordinate_topic_filter_forms(filter_, wire, now_ms) -> None:
     """Whether configured as `.../#`, `.../+` or a bare prefix, iot/coordinates/<id> is routed."""
     r = Router(Settings(coordinate_topic=filter_), "gw")
-    record = r.route("iot/coordinates/blabla", wire.pose(), now_ms, Limits())
+    record = r.route("iot/coordinates/blabla", wire.pose(), now_ms, Intake())
     assert record.reason is None, decode_dead_letter(record.value).detail

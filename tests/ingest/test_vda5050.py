@@ -22,8 +22,9 @@ from mapservice.core.events import (
     decode,
     decode_dead_letter,
 )
+from mapservice.core.intake import Intake
 from mapservice.core.vda_ids import robot_id_for, vehicle_of
-from mapservice.core.wire2019 import Limits, Reason
+from mapservice.core.wire2019 import Reason
 from mapservice.settings import Settings
 from tests.fixtures import vda5050 as vda
 
@@ -52,7 +53,7 @@ def router() -> Router:
 
 
 def route(router: Router, version: str, subtopic: str, msg: dict, now_ms: int, **kw):
-    return router.route(topic(version, subtopic, **kw), vda.encode(msg), now_ms, Limits())
+    return router.route(topic(version, subtopic, **kw), vda.encode(msg), now_ms, Intake())
 
 
 @pytest.mark.parametrize("version", VERSIONS)
@@ -287,7 +288,7 @@ def test_a_payload_naming_another_vehicle_is_refused(router, now_ms) -> None:
     ],
 )
 def test_malformed_messages_are_dead_lettered(router, now_ms, raw_topic, payload, reason) -> None:
-    assert dead_letter(router.route(raw_topic, payload, now_ms, Limits()))[0] == reason
+    assert dead_letter(router.route(raw_topic, payload, now_ms, Intake()))[0] == reason
 
 
 def test_bad_timestamps_and_overlong_ids_are_dead_lettered(router, now_ms) -> None:
@@ -391,10 +392,10 @@ def test_nan_and_infinity_tokens_are_not_json(router, now_ms, subtopic) -> None:
     msg["headerId"] = float("nan")  # json.dumps writes the token NaN, which JSON lacks
     payload = json.dumps(msg).encode()
     assert b"NaN" in payload
-    letter = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()))
+    letter = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Intake()))
     assert letter == ("not_json", "not JSON: NaN is not a JSON number")
     payload = json.dumps(msg).replace("NaN", "-Infinity").encode()
-    letter = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()))
+    letter = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Intake()))
     assert letter[0] == "not_json" and "-Infinity" in letter[1]
 
 
@@ -421,8 +422,8 @@ def test_numbers_beyond_a_float_or_the_floor_are_out_of_range(
     marker = 123456.789
     target[where[-1]] = marker
     payload = json.dumps(msg).replace(repr(marker), value).encode()
-    reason, detail = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()))
+    reason, detail = dead_letter(router.route(topic("2.0.0", subtopic), payload, now_ms, Intake()))
     assert reason == "out_of_range" and "finite" in detail
     # The same message with an ordinary number is stored.
     payload = json.dumps(msg).replace(repr(marker), "1.5").encode()
-    assert router.route(topic("2.0.0", subtopic), payload, now_ms, Limits()).reason is None
+    assert router.route(topic("2.0.0", subtopic), payload, now_ms, Intake()).reason is None

@@ -4,6 +4,7 @@ events), the size check shared with `drive`, and the once-per-data-dir upload of
 from __future__ import annotations
 
 import httpx
+import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from mapservice.api.app import create_app
@@ -17,7 +18,7 @@ from mapservice.robot.map_upload import (
 )
 
 from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
+from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, slice_chunks
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
@@ -175,3 +176,64 @@ def test_the_map_upload_to_kafka_releases_its_producer(monkeypatch) -> None:
     with pytest.raises(RuntimeError, match="could not publish the map to Kafka"):
         upload_map_events(Settings(), depot, NOW)
     assert made[-1].closed
+
+
+def noise_map(seed: int, width: int, height: int) -> RosMap:
+    """A map of random pixels: its chunks barely compress."""
+    pixels = np.random.default_rng(seed).integers(0, 256, (height, width), dtype=np.uint8)
+    return RosMap(pixels=pixels, resolution=0.05, origin=(0.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_up_refuses_a_map_the_intake_refuses_and_publishes_nothing(
+    monkeypatch, tmp_path, seed
+) -> None:
+    """A map whose chunk writes exceed MAPSERVICE_MAX_MESSAGE_BYTES is refused by `up`'s
+    check before anything starts and by its upload ('oversized', as the gateway would
+    dead-letter them); nothing reaches Kafka and the data dir is not marked uploaded."""
+    from mapservice.robot.map_upload import UploadRefused, check_map
+
+    made: list[MemoryPublisher] = []
+    monkeypatch.setattr(
+        "mapservice.adapters.kafka_publisher.KafkaPublisher",
+        lambda settings, client_id: made.append(MemoryPublisher()) or made[-1],
+    )
+    settings = Settings(max_message_bytes=1024 * (1 + seed))
+    noisy = noise_map(seed, 150 + 50 * seed, 120)
+    with pytest.raises(UploadRefused) as checked:
+        check_map(settings, noisy, NOW)
+    with pytest.raises(UploadRefused) as uploaded:
+        upload_map_if_fresh(settings, tmp_path, noisy, NOW)
+    assert checked.value.reason == uploaded.value.reason == "oversized"
+    assert all(not p.records for p in made) and not (tmp_path / MARKER).exists()
+    check_map(Settings(), noisy, NOW)  # within the default limit: taken
+
+
+def test_map_upload_cli_names_the_refusal_reason(monkeypatch, tmp_path, service) -> None:
+    """`mapservice map upload` of a map the service refuses exits naming the reason."""
+    from mapservice.cli import main
+
+    store, publisher, _ = service
+    pgm = tmp_path / "noise.pgm"
+    pixels = noise_map(0, 150, 120).pixels
+    pgm.write_bytes(b"P5\n150 120\n255\n" + pixels.tobytes())
+    (tmp_path / "noise.yaml").write_text(
+        "image: noise.pgm\nresolution: 0.05\norigin: [0.0, 0.0, 0.0]\n"
+        "negate: 0\noccupied_thresh: 0.65\nfree_thresh: 0.196\n"
+    )
+    small = create_app(
+        Settings(admin_token=ADMIN_TOKEN, api_writer_tokens=WRITER_TOKEN, max_message_bytes=1024),
+        store,
+        {},
+        ManualClock(NOW),
+        publisher=publisher,
+    )
+    monkeypatch.setattr(
+        "mapservice.robot.api_client.api_client",
+        lambda api, token: TestClient(
+            small, raise_server_exceptions=False, headers={"Authorization": f"Bearer {token}"}
+        ),
+    )
+    with pytest.raises(SystemExit, match="the service refused the map: oversized: "):
+        main(["map", "upload", str(tmp_path / "noise.yaml"), "--token", WRITER_TOKEN])
+    assert process(publisher, store) == 1  # the meta; no chunk

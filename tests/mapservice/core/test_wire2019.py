@@ -247,7 +247,8 @@ def test_every_reason_code_has_a_bad_message() -> None:
     (unknown_topic, internal_error, record_too_large, too_many_new_robots) and the VDA 5050
     ingest's (vda_*) and the command answers' are tested in tests/ingest (test_ingestor.py,
     test_ingestor_poison.py, test_mqtt_gateway.py, test_vda5050.py,
-    test_command_responses.py)."""
+    test_command_responses.py); the map meta's (grid_short_of_map) in
+    tests/ingest/test_intake_channels.py."""
     covered = {c.reason for c in BAD_CASES}
     elsewhere = {
         Reason.UNKNOWN_TOPIC,
@@ -260,6 +261,7 @@ def test_every_reason_code_has_a_bad_message() -> None:
         Reason.BAD_COMMAND_RESPONSE,
         Reason.UNKNOWN_COMMAND,
         Reason.NOT_ITS_COMMAND,
+        Reason.GRID_SHORT_OF_MAP,
     }
     assert covered == set(Reason) - elsewhere
 
