@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -27,6 +28,7 @@ from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.core.intake import Intake
 from mapservice.local import embedded, kafka_broker, lifetime
 from mapservice.local.kafka_auth import TANSU_NO_AUTH
+from mapservice.local.side_by_side import SideBySide
 from mapservice.local.stack_env import StackEnv
 from mapservice.local.stack_mqtt import StackMqtt
 from mapservice.robot.map_upload import admitted_meta, publish_events
@@ -81,6 +83,11 @@ class Stack(StackMqtt, StackEnv):
     processors_health_port: int = 0
     # The ports above this stack chose itself (given as 0), until a component was told one.
     _chosen_ports: set[str] = field(default_factory=set, init=False, repr=False)
+    # Components started side by side (start_apart): their threads, and the lock under which
+    # a process is spawned and recorded, or refused once `stop` began.
+    _side_by_side: SideBySide = field(default_factory=SideBySide, init=False, repr=False)
+    _lock: threading.RLock = field(default_factory=threading.RLock, init=False, repr=False)
+    _stopping: bool = field(default=False, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
@@ -174,10 +181,13 @@ class Stack(StackMqtt, StackEnv):
     def _record(self) -> None:
         """The pid file names `up` and every component running now."""
         if self.tied_to_parent:
-            running = {name: proc.pid for name, proc in self.procs.items() if proc.poll() is None}
-            if self.guard is not None and self.guard.poll() is None:
-                running[lifetime.GUARD] = self.guard.pid
-            self.pid_file.write(running)
+            with self._lock:
+                running = {
+                    name: proc.pid for name, proc in self.procs.items() if proc.poll() is None
+                }
+                if self.guard is not None and self.guard.poll() is None:
+                    running[lifetime.GUARD] = self.guard.pid
+                self.pid_file.write(running)
 
     def protect_data_dir(self) -> None:
         """The data dir 0700 and nothing in it readable by others (it holds the secrets, the
@@ -211,16 +221,21 @@ class Stack(StackMqtt, StackEnv):
         """Runs `mapservice <args>` as component `name` (log in log_dir/<name>.log), with the
         stack's environment for it and `env` over it."""
         self.commands[name] = args
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mapservice.cli", *args],
-            env={**self.env(name), **(env or {})},
-            stdout=self._log(name),
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            preexec_fn=self._preexec,
-        )
-        self.procs[name] = proc
-        self._record()
+        # Under the lock, and refused once `stop` began: a start-up step still running side by
+        # side must not leave a process behind the stack.
+        with self._lock:
+            if self._stopping:
+                raise RuntimeError(f"not starting {name}: the stack is being stopped")
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "mapservice.cli", *args],
+                env={**self.env(name), **(env or {})},
+                stdout=self._log(name),
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                preexec_fn=self._preexec,
+            )
+            self.procs[name] = proc
+            self._record()
         return proc
 
     def start_gateway(self, replica: int = 1) -> subprocess.Popen:
@@ -284,11 +299,10 @@ class Stack(StackMqtt, StackEnv):
         """A port this stack chose itself, and told no component yet, is swapped for a free
         one if something took it meanwhile. It was free when chosen, seconds before: another
         process may have chosen it since (test suites side by side pick free ports the same
-        way), or, where the kernel's ephemeral range is not
-        known, a client connection may hold it (a restarted `up` once found its ClickHouse
-        server's port taken that way). A port that was given is kept, and refused by the
-        start if taken. `key`: the attribute's name, or "gateway-N" for replica N's health
-        port."""
+        way), or, where the kernel's ephemeral range is not known, a client connection may
+        hold it (a restarted `up` once found its ClickHouse server's port taken that way). A
+        port that was given is kept, and refused by the start if taken. `key`: the
+        attribute's name, or "gateway-N" for replica N's health port."""
         if key not in self._chosen_ports:
             return
         self._chosen_ports.discard(key)  # from now on a component is told it
@@ -316,16 +330,38 @@ class Stack(StackMqtt, StackEnv):
         else:
             setattr(self, key, port)
 
-    def start_apart(self) -> None:
-        """What `serve` runs, in three processes (apart=True): the ClickHouse server, the
-        processors (creating the schema) and the API on the stack's API port."""
+    def start_apart(self, gateway: bool = False) -> None:
+        """What `serve` runs, in three processes (apart=True): the ClickHouse server (unless
+        it runs), then side by side the processors (creating the schema) and the API on the
+        stack's API port (which waits for the schema), and with `gateway` the gateway."""
         if not self.apart:
             raise RuntimeError("this stack runs processors and API in one process (apart=False)")
-        self._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
-        self.start_clickhouse_server()
+        if not self.is_alive("clickhouse"):
+            self._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
+            self.start_clickhouse_server()
         self._rechoose_if_taken("processors_health_port", "the processors' health endpoint")
-        self.start_processors(self.processors_health_port)
-        self.start_api()
+        self.side_by_side(
+            lambda: self.start_processors(self.processors_health_port),
+            self.start_api,
+            *([self.start_gateway] if gateway else []),
+        )
+
+    def start_brokers_and_clickhouse(self, meta: MapMetaSet) -> None:
+        """The brokers, the map meta published once Kafka answers, and side by side the
+        ClickHouse server (apart); then `start_apart` starts the rest."""
+        self._rechoose_if_taken("clickhouse_port", "the ClickHouse server")
+
+        def brokers() -> None:
+            self.start_brokers()
+            self.publish_meta(meta)
+
+        # The brokers in this thread: Kafka's process is recorded only once it answers, so
+        # only this thread's Ctrl-C can stop it while it starts.
+        self.side_by_side(brokers, self.start_clickhouse_server)
+
+    def side_by_side(self, here: Callable[[], object], *elsewhere: Callable[[], object]) -> None:
+        """Start-up steps at once (SideBySide.run); `stop` waits for those still running."""
+        self._side_by_side.run(here, *elsewhere)
 
     def wait_healthy(
         self, url: str, what: str, proc: subprocess.Popen, timeout_s: float = 60
@@ -427,6 +463,16 @@ class Stack(StackMqtt, StackEnv):
             self.stop()
 
     def stop(self) -> None:
+        with self._lock:
+            self._stopping = True
+        try:
+            self._stop()
+            # A start-up step still running side by side ends now that its process is gone.
+            self._side_by_side.join()
+        finally:
+            self._stopping = False
+
+    def _stop(self) -> None:
         if self.guard is not None:  # this process stops them itself, in the same order
             self.guard.kill()
             self.guard.wait()

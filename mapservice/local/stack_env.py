@@ -9,9 +9,14 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER, new_password
+from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER
 from mapservice.local.kafka_auth import KAFKA_NODE_USER, KAFKA_SERVICE_USER, component_env
-from mapservice.runtime.secrets import ApiSecrets, api_secrets, with_local_api_secrets
+from mapservice.runtime.secrets import (
+    ApiSecrets,
+    api_secrets,
+    local_secret,
+    with_local_api_secrets,
+)
 from mapservice.settings import Settings
 
 
@@ -60,13 +65,9 @@ class StackEnv:
         name = (
             "clickhouse-password" if username == "clickhouse" else f"{system}-{username}-password"
         )
-        path = self.data_dir / "secrets" / name
-        if not path.exists():
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.parent.chmod(0o700)
-            path.write_text(new_password() + "\n")
-            path.chmod(0o600)
-        return path.read_text().strip()
+        # As long as new_password's (24 random bytes), and created once even when components
+        # start side by side (two threads asking at once end with the same password).
+        return local_secret(self.data_dir, name, nbytes=24)
 
     def _mqtt_env(self, component: str | None) -> dict[str, str]:
         """A component's MQTT address, TLS and credential: the gateway its service user, the

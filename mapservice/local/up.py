@@ -139,19 +139,20 @@ def cmd_up(args) -> None:
                 robot_credentials = stack.robot_credentials(
                     simulated_robot_ids(args) + [CONTROLLER_ROBOT]
                 )
-        with step(console, f"starting Kafka ({kafka_name}) and the MQTT broker"):
-            stack.start_brokers()
-            stack.publish_meta(meta_for(ros_map))
-        # Three processes, as the split deployment runs them: the history consumer never
+        # Side by side where nothing waits on the other: a component's start is mostly its
+        # interpreter importing, so started together they are up in the slowest one's time.
+        with step(
+            console, f"starting Kafka ({kafka_name}), the MQTT broker and the ClickHouse server"
+        ):
+            stack.start_brokers_and_clickhouse(meta_for(ros_map))
+        # Processes apart, as the split deployment runs them: the history consumer never
         # shares a process (its CPU, memory, threads) with API reads and exports.
         with step(
             console,
-            "starting the ClickHouse server, the processors (creating the "
-            "ClickHouse schema) and the API, each its own process",
+            "starting the processors (creating the ClickHouse schema), the API and the "
+            "MQTT-to-Kafka gateway, each its own process",
         ):
-            stack.start_apart()
-        with step(console, "starting the MQTT-to-Kafka gateway"):
-            stack.start_gateway()
+            stack.start_apart(gateway=True)
         with step(console, "publishing the map's chunks (fresh data dir only)"):
             uploaded = upload_map_if_fresh(
                 stack.settings(), stack.data_dir, ros_map, SystemClock().now_ms(), had_history

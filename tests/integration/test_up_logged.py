@@ -38,8 +38,9 @@ def test_a_logged_first_run_shows_progress_a_whole_table_and_keeps_its_files_pri
         assert "simulating the last 0.3 days of 1 robots" in out and "done_percent=" in out
         for step in (
             "starting Kafka (Apache Kafka",
-            "starting the ClickHouse server, the processors",
-            "starting the MQTT-to-Kafka gateway",
+            "the MQTT broker and the ClickHouse server",
+            "starting the processors (creating the ClickHouse schema), the API and the "
+            "MQTT-to-Kafka gateway",
         ):
             assert step in out
         password_path = str(data / "secrets" / "analyst-password")

@@ -155,9 +155,16 @@ def test_robots_keep_out_of_a_zone_drawn_across_their_aisle_and_slow_in_a_speed_
         assert r.status_code == 201, r.text
         t0 = max(drawn_zone["created_ms"], r.json()["created_ms"])
         start, end = t0 + GRACE_S * 1000, t0 + (GRACE_S + WATCH_S) * 1000
-        while time.time() * 1000 < end + 5_000:  # the last poses stored, a few seconds on
-            time.sleep(5)
+        while time.time() * 1000 < end:
+            time.sleep(min(5.0, max(0.1, end / 1000 - time.time())))
             assert up.proc.poll() is None, up.output[-3000:]
+        # The watch's last poses stored: every robot has one stored from its end on (they
+        # report every second), rather than a fixed few seconds waited.
+        deadline = time.monotonic() + 30
+        while len({p["robotId"] for p in poses(up, end, end + 10_000)}) < 5:
+            assert time.monotonic() < deadline, "the poses after the watch were not stored"
+            assert up.proc.poll() is None, up.output[-3000:]
+            time.sleep(0.5)
 
         watched = poses(up, start, end)
         robots = {p["robotId"] for p in watched}
