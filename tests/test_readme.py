@@ -15,6 +15,8 @@ from mapservice.local.embedded import ensure_port_free
 from tests.fixtures.paths import README
 from tests.fixtures.up import Up
 
+pytestmark = pytest.mark.long
+
 
 def try_it_block() -> str:
     text = README.read_text()

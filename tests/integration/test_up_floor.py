@@ -15,7 +15,7 @@ from mapservice.core.wire2019 import content_hash, encode_coordinates, format_ti
 from tests.fixtures.paths import MAPS
 from tests.fixtures.up import Up, children
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.long]
 
 
 def test_fresh_up_serves_the_map_file_chunk_by_chunk(tmp_path):

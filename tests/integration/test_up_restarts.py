@@ -26,6 +26,7 @@ from tests.fixtures.up import Up, children
 from tests.integration.test_up_auth import connect_code
 
 pytestmark = [
+    pytest.mark.long,
     pytest.mark.integration,
     pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto"),
 ]

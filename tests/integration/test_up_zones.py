@@ -33,7 +33,7 @@ from tests.ui.annotation_drawing import (
 )
 from tests.ui.conftest import ARTIFACTS, DIST, module_browser, page  # noqa: F401  (fixtures)
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.long]
 
 WATCH_S = 120  # the acceptance's two minutes of poses
 GRACE_S = 10  # the zone reaches the robots (store, advertisement, API read) and they act

@@ -20,6 +20,8 @@ from tests.ui.test_plots_timeline import iso
 
 from .conftest import open_replay
 
+pytestmark = pytest.mark.long
+
 TIMEOUT_MS = 90_000
 HOUR_MS, DAY_MS = 3_600_000, 86_400_000
 
