@@ -213,6 +213,7 @@ def check_map_size(
     """Raises ValueError when the service stores a map of another size: painting this map's
     chunks into it would corrupt it (a service without a map accepts any)."""
     import httpx
+
     from mapservice.robot.map_upload import mismatch_message, same_geometry, stored_meta
 
     try:

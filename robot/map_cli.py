@@ -35,9 +35,9 @@ def cmd_map(args: argparse.Namespace) -> None:
 def _map_upload(args: argparse.Namespace) -> None:
     """`map upload`: the whole map through the 2019 REST API, as events like any robot's."""
     import httpx
-    from mapservice.robot.map_upload import MapSizeMismatch, UploadRefused, upload_map_rest
 
     from mapservice.adapters.ros_map import load_ros_map
+    from mapservice.robot.map_upload import MapSizeMismatch, UploadRefused, upload_map_rest
 
     from .api_client import admin_token, api_client, writer_token
 

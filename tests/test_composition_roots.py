@@ -24,14 +24,14 @@ import types
 from collections.abc import Iterator
 from typing import Any
 
-import mapservice.processors.composition as processors_composition
 import pytest
 from fastapi import FastAPI
 from fastapi.routing import APIRoute, APIWebSocketRoute
-from mapservice.api.access import all_routes
 from starlette.requests import Request
 from starlette.websockets import WebSocket
 
+import mapservice.processors.composition as processors_composition
+from mapservice.api.access import all_routes
 from mapservice.core import ports
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

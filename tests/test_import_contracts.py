@@ -44,7 +44,9 @@ def write(staged: Path, module: str, source: str) -> None:
     """A module under its installed name, in the staged folder that package is installed from."""
     package, name = module.rsplit(".", 1)
     package_init = modules(staged)[package]
-    (package_init.parent / f"{name}.py").write_text(f'"""A module that breaks a contract."""\n{source}')
+    (package_init.parent / f"{name}.py").write_text(
+        f'"""A module that breaks a contract."""\n{source}'
+    )
 
 
 def broken(result: subprocess.CompletedProcess[str], contract: str, module: str) -> bool:

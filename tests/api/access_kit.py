@@ -4,9 +4,9 @@ and the Authorization header for a credential by its name."""
 from __future__ import annotations
 
 from fastapi import FastAPI
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore

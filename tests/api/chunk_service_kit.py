@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.fixtures.legacy import SpyStore

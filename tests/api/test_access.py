@@ -11,10 +11,10 @@ import re
 import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
-from mapservice.api.access import READ, check_routes
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.access import READ, check_routes
+from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore

@@ -7,9 +7,9 @@ from __future__ import annotations
 import re
 
 import pytest
+
 from mapservice.api.access_guard import DOCS_ROLES
 from mapservice.api.credentials import GRANTS, ROLE_SETTINGS, WHO_MAY, Scope
-
 from mapservice.settings import Settings
 from tests.api.access_kit import app_for, settings_for
 

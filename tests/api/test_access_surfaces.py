@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.credentials import Scope
-from mapservice.api.live_hub import LiveHub
 from starlette.websockets import WebSocketDisconnect
 
+from mapservice.api.credentials import Scope
+from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from tests.api.access_kit import CREDENTIALS, LIVE_URL, READER_TOKEN, app_for, auth, settings_for
 

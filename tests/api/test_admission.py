@@ -12,10 +12,10 @@ import time
 import httpx
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.api.live_hub import LiveHub
 from starlette.testclient import WebSocketDenialResponse
 
+from mapservice.api.app import create_app
+from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 

@@ -14,10 +14,10 @@ import random
 
 import numpy as np
 import pytest
-from mapservice.api.routers import annotations as annotations_router
 from PIL import Image, ImageFile
 
 from mapservice.adapters import costmap_filters
+from mapservice.api.routers import annotations as annotations_router
 from mapservice.core import annotations as core_annotations
 from mapservice.core.zone_geometry import MAX_ZONE_VERTICES
 from tests.api.test_annotations import NOW, OPERATOR, World, keep_out, square

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import yaml
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.api.context import context_of
 from PIL import Image
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.adapters.ros_map import classify, load_ros_map, meta_for
+from mapservice.api.app import create_app
+from mapservice.api.context import context_of
 from mapservice.core.annotations import AnnotationCreated, AnnotationRemoved
 from mapservice.core.events import decode, make_envelope
 from mapservice.settings import Settings

@@ -7,10 +7,10 @@ import zlib
 import pytest
 from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.api.routers.chunk_contents import IMMUTABLE
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
+from mapservice.api.routers.chunk_contents import IMMUTABLE
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
@@ -452,10 +452,10 @@ def test_poses_and_chunk_events_json_equals_their_pydantic_models() -> None:
     import json
 
     from fastapi.testclient import TestClient
+
     from mapservice.api.app import create_app
     from mapservice.api.routers.chunk_events import ChunkEvent
     from mapservice.api.routers.poses import Pose
-
     from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
     from mapservice.settings import Settings
     from mapservice.testing.memory_store import MemoryStore

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

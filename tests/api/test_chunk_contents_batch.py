@@ -7,10 +7,10 @@ import zlib
 import msgspec
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK, ContentCache
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
+from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK, ContentCache
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

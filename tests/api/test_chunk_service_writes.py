@@ -9,12 +9,12 @@ import zlib
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.ingest.router import Router
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.events import ChunkUpdated, MapMetaSet, decode
 from mapservice.core.intake import Intake
+from mapservice.ingest.router import Router
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.api.chunk_service_kit import (
     ADMIN,

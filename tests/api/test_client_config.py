@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
+
 from mapservice.api.app import create_app
 from mapservice.api.routers.client_config import coordinate_prefix
-
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 

@@ -6,9 +6,9 @@ and outcomes over a window."""
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.commands import CommandAcknowledged, CommandFinished, CommandIssued
 from mapservice.core.events import PoseReported, decode, make_envelope
 from mapservice.settings import Settings

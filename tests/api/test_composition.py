@@ -9,9 +9,9 @@ import threading
 
 import pytest
 from fastapi.testclient import TestClient
+
 from mapservice.api.composition import Api, compose_api
 from mapservice.api.context import context_of
-
 from mapservice.core.live_messages import LiveText
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.ports import ConflictRow
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
@@ -156,10 +156,9 @@ def test_conflicts_need_from_and_to(client) -> None:
 def test_a_vda_vehicles_facts(ev) -> None:
     """/api/v1/robots/{id}/vda5050: errors, connection states (offline at the last will's
     receipt), the factsheet, and both names; a robot id that is no vehicle's is a 404."""
-    from mapservice.ingest.router import Router
-
     from mapservice.core.events import decode
     from mapservice.core.intake import Intake
+    from mapservice.ingest.router import Router
     from tests.fixtures import vda5050 as vda
 
     router, store = Router(Settings(), "gw"), MemoryStore()
@@ -196,10 +195,9 @@ def test_a_vda_vehicles_facts(ev) -> None:
 def test_the_vda_fleets_facts() -> None:
     """/api/v1/robots/vda5050: every vehicle with facts in the window, its errors and the
     state that cleared them, its online state and factsheet; 2019 robots are not in it."""
-    from mapservice.ingest.router import Router
-
     from mapservice.core.events import decode
     from mapservice.core.intake import Intake
+    from mapservice.ingest.router import Router
     from tests.fixtures import vda5050 as vda
 
     router, store = Router(Settings(), "gw"), MemoryStore()

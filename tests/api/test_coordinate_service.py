@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.legacy_query import MAX_LIMIT
 from mapservice.core.wire2019 import parse_timestamp
 from mapservice.settings import Settings

@@ -6,9 +6,9 @@ from __future__ import annotations
 import io
 
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 from mcap.reader import make_reader
 
+from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, meta_event, pose_event

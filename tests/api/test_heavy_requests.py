@@ -19,9 +19,9 @@ import gzip
 
 import httpx
 import pytest
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.zone_geometry import MAX_ZONE_VERTICES
 from mapservice.local.embedded import free_port
 from mapservice.sql.chdb_engine import ChdbEngine

@@ -11,9 +11,9 @@ import time
 import httpx
 import pytest
 import uvicorn
+
 from mapservice.api.app import create_app
 from mapservice.api.composition import api_server_config
-
 from mapservice.local.embedded import free_port
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

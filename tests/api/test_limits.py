@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.api.live_hub import LiveHub
 from starlette.websockets import WebSocketDisconnect
 
+from mapservice.api.app import create_app
+from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 

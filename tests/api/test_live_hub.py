@@ -7,9 +7,9 @@ import asyncio
 from contextlib import contextmanager
 
 from fastapi.testclient import TestClient
+
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
-
 from mapservice.core.live_messages import LiveText, live_record_texts, live_records
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

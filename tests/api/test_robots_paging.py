@@ -4,9 +4,9 @@ page of everything by default (what the replay UI asks for)."""
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import pose_event

@@ -16,10 +16,10 @@ import os
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
-from mapservice.api.app import create_app
 from schemathesis.checks import not_a_server_error
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore

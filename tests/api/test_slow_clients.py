@@ -15,11 +15,11 @@ from contextlib import contextmanager
 
 import uvicorn
 from fastapi.testclient import TestClient
+
 from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.api.routers.exports import write_csv_slices
 from mapservice.api.streaming import BoundedPipe, ExportAborted
-
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 

@@ -4,8 +4,8 @@ GET /api/v1/status gives the replay UI "history not stored since ..."."""
 from __future__ import annotations
 
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
+from mapservice.api.app import create_app
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

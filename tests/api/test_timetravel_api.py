@@ -6,10 +6,10 @@ import math
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.api.routers import events as events_router
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
+from mapservice.api.routers import events as events_router
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.ports import ConflictRow
 from mapservice.settings import Settings

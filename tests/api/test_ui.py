@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
+
 from mapservice.api.app import create_app
 from mapservice.api.routers import ui
-
 from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

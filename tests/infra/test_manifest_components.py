@@ -37,8 +37,8 @@ from tests.infra.manifests import (
 def served():
     """served(component, path) -> HTTP status from the handler the component really runs."""
     from fastapi.testclient import TestClient
-    from mapservice.api.app import create_app
 
+    from mapservice.api.app import create_app
     from mapservice.runtime.health_server import serve_health
     from mapservice.testing.memory_store import MemoryStore
 
@@ -148,8 +148,8 @@ def test_the_api_as_deployed_guards_metrics_and_docs_but_not_probes():
     """With the k8s ConfigMap and Secret, the API's probes answer without a token, /metrics and
     /openapi.json only with one, and the PodMonitor scrapes with the Secret's metrics token."""
     from fastapi.testclient import TestClient
-    from mapservice.api.app import create_app
 
+    from mapservice.api.app import create_app
     from mapservice.testing.memory_store import MemoryStore
 
     [(workload, container)] = [(w, c) for w, c in workloads() if container_argv(c)[:1] == ["api"]]

@@ -129,9 +129,8 @@ def cli_invocations() -> list[tuple[str, list[str]]]:
 
 def test_every_mapservice_subcommand_is_accepted_by_the_cli(monkeypatch):
     """Every `mapservice ...` argv in infra/ parses with the real CLI and reaches its handler."""
-    from mapservice.robot import cli as robot_cli
-
     from mapservice import cli
+    from mapservice.robot import cli as robot_cli
 
     invocations = cli_invocations()
     assert {

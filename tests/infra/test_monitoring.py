@@ -42,14 +42,13 @@ SUFFIXES = {
 
 def exported_metric_names() -> set[str]:
     """Every sample name the gateway, processors and API processes register (series or not)."""
+    import mapservice.adapters.kafka_batch_source  # noqa: F401
     import mapservice.ingest.metrics  # noqa: F401
     import mapservice.processors.advertiser  # noqa: F401
     import mapservice.processors.app  # noqa: F401
     import mapservice.processors.history_consumer  # noqa: F401
     import mapservice.processors.views  # noqa: F401
     from mapservice.api.app import create_app
-
-    import mapservice.adapters.kafka_batch_source  # noqa: F401
     from mapservice.settings import Settings
     from mapservice.testing.memory_store import MemoryStore
 

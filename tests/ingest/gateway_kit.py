@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import json
 
-from mapservice.ingest.command_relay import CommandRelay
-from mapservice.ingest.gateway import Ingestor
-
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.commands import CommandIssued
 from mapservice.core.events import decode, encode, make_envelope
+from mapservice.ingest.command_relay import CommandRelay
+from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 

@@ -4,8 +4,8 @@ publishing into memory with no retry delay, and the acks its callbacks give."""
 from __future__ import annotations
 
 import pytest
-from mapservice.ingest.gateway import Ingestor
 
+from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 

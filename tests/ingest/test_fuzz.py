@@ -18,7 +18,6 @@ import zlib
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mapservice.ingest.gateway import Ingestor
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.events import decode, decode_dead_letter
@@ -29,6 +28,7 @@ from mapservice.core.wire2019 import (
     encode_coordinates,
     format_timestamp,
 )
+from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 

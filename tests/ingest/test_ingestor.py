@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from functools import partial
 
-from mapservice.ingest.gateway import Ingestor
-
 from mapservice.core.events import MapMetaSet, decode, decode_dead_letter
+from mapservice.ingest.gateway import Ingestor
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.ingest.ingestor_kit import acks, ingestor, publisher, settings  # noqa: F401  (fixtures)

@@ -3,9 +3,8 @@ and is acknowledged."""
 
 from __future__ import annotations
 
-from mapservice.ingest.gateway import Ingestor
-
 from mapservice.core.events import decode_dead_letter
+from mapservice.ingest.gateway import Ingestor
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.ingest.ingestor_kit import (  # noqa: F401  (fixtures)
     acks,

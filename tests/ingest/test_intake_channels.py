@@ -18,14 +18,14 @@ from dataclasses import dataclass
 import msgspec
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
-from mapservice.ingest.gateway import Ingestor
-from mapservice.robot.map_upload import MapMessages, UploadRefused, post_map, publish_map
 
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.core.intake import split_refusal
 from mapservice.core.wire2019 import Reason, format_timestamp
+from mapservice.ingest.gateway import Ingestor
+from mapservice.robot.map_upload import MapMessages, UploadRefused, post_map, publish_map
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore

@@ -4,17 +4,17 @@ its health, and what paho hands it that the router never sees."""
 from __future__ import annotations
 
 import pytest
-from mapservice.ingest.gateway import Ingestor
 
+from mapservice.ingest.gateway import Ingestor
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.ingest.ingestor_kit import gateway, settings  # noqa: F401  (fixtures)
 
 
 def test_every_dead_letter_reason_has_a_series_from_the_start() -> None:
     """The rejected counter exists at 0 for each reason before any message is rejected."""
-    import mapservice.ingest.metrics  # noqa: F401
     from prometheus_client import REGISTRY
 
+    import mapservice.ingest.metrics  # noqa: F401
     from mapservice.core.wire2019 import Reason
 
     for reason in Reason:

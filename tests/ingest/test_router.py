@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
-from mapservice.ingest.router import Router
 
 from mapservice.core.events import ChunkUpdated, PoseReported, decode, decode_dead_letter
 from mapservice.core.intake import Intake
 from mapservice.core.wire2019 import Limits, Reason
+from mapservice.ingest.router import Router
 from mapservice.settings import Settings
 
 

@@ -8,15 +8,15 @@ from __future__ import annotations
 import time
 from types import SimpleNamespace
 
-import mapservice.ingest.topic_follower as topic_follower
 import pytest
 from confluent_kafka import OFFSET_BEGINNING, OFFSET_END, TopicPartition
-from mapservice.ingest.command_relay import COMMAND_MEMORY_S, CommandRelay
-from mapservice.ingest.meta_watcher import MetaWatcher
 from structlog.testing import capture_logs
 
+import mapservice.ingest.topic_follower as topic_follower
 from mapservice.core.commands import CommandIssued
 from mapservice.core.events import encode, make_envelope
+from mapservice.ingest.command_relay import COMMAND_MEMORY_S, CommandRelay
+from mapservice.ingest.meta_watcher import MetaWatcher
 from mapservice.settings import Settings
 from tests.conftest import meta_event
 from tests.ingest.gateway_kit import NOW

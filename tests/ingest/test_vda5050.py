@@ -10,8 +10,6 @@ import pytest
 from hypothesis import given
 from hypothesis import settings as hsettings
 from hypothesis import strategies as st
-from mapservice.ingest.router import Router
-from mapservice.ingest.vda5050 import SUBTOPICS, validator
 
 from mapservice.core.events import (
     PoseReported,
@@ -25,6 +23,8 @@ from mapservice.core.events import (
 from mapservice.core.intake import Intake
 from mapservice.core.vda_ids import robot_id_for, vehicle_of
 from mapservice.core.wire2019 import Reason
+from mapservice.ingest.router import Router
+from mapservice.ingest.vda5050 import SUBTOPICS, validator
 from mapservice.settings import Settings
 from tests.fixtures import vda5050 as vda
 

@@ -23,12 +23,12 @@ import re
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mapservice.ingest.gateway import Ingestor
-from mapservice.ingest.vda5050 import SCHEMA_DIR, SUBTOPICS, schema_version_for, validator
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.core.events import decode, decode_dead_letter
 from mapservice.core.wire2019 import Reason, format_timestamp
+from mapservice.ingest.gateway import Ingestor
+from mapservice.ingest.vda5050 import SCHEMA_DIR, SUBTOPICS, schema_version_for, validator
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.fixtures import vda5050 as vda

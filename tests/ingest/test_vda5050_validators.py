@@ -18,10 +18,10 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from jsonschema.exceptions import best_match
-from mapservice.ingest import vda5050
-from mapservice.ingest.vda5050 import SUBTOPICS, VdaIngest, compiled_validator, validator
 
 from mapservice.core.wire2019 import Limits, Reason, Rejection
+from mapservice.ingest import vda5050
+from mapservice.ingest.vda5050 import SUBTOPICS, VdaIngest, compiled_validator, validator
 
 from .test_vda5050_fuzz import (
     BUDGET,

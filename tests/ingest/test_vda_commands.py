@@ -6,11 +6,11 @@ become its ack and outcome, once each."""
 from __future__ import annotations
 
 import pytest
-from mapservice.ingest.vda5050 import validator
-from mapservice.ingest.vda_commands import VdaCommandRefused, VdaCommands, instant_actions_message
 
 from mapservice.core.commands import CommandAcknowledged, CommandFinished, CommandIssued
 from mapservice.core.vda_ids import robot_id_for
+from mapservice.ingest.vda5050 import validator
+from mapservice.ingest.vda_commands import VdaCommandRefused, VdaCommands, instant_actions_message
 from tests.fixtures import vda5050 as vda
 from tests.ingest import gateway_kit
 from tests.ingest.gateway_kit import NOW

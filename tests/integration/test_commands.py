@@ -19,14 +19,14 @@ import time
 import httpx
 import paho.mqtt.client as mqtt
 import pytest
-from mapservice.robot.connection import RobotMqtt, load_credentials
-from mapservice.robot.sim import SimConfig, sim_robot_id
-from mapservice.robot.simrun import SimRunner
 
 from mapservice.adapters.ros_map import load_ros_map, meta_for
 from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import format_timestamp
 from mapservice.local.stack import Stack
+from mapservice.robot.connection import RobotMqtt, load_credentials
+from mapservice.robot.sim import SimConfig, sim_robot_id
+from mapservice.robot.simrun import SimRunner
 from tests.fixtures.paths import MAPS
 
 from .conftest import read_topic, run_stack, wait_for_count

@@ -36,13 +36,13 @@ import time
 
 import httpx
 import pytest
-from mapservice.robot.loadgen import RobotFleet
 from websockets.sync.client import connect
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.bench.history_loader import load_history
 from mapservice.local.stack import Stack
+from mapservice.robot.loadgen import RobotFleet
 from mapservice.sql.credentials import analyst_password
 from tests.fixtures.paths import MAPS, ROOT
 

@@ -11,13 +11,13 @@ import zlib
 
 import httpx
 import pytest
-from mapservice.ingest.router import DEAD_LETTER_PAYLOAD_MAX
-from mapservice.robot.loadgen import RobotFleet
 
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
+from mapservice.ingest.router import DEAD_LETTER_PAYLOAD_MAX
+from mapservice.robot.loadgen import RobotFleet
 from tests.fixtures.paths import MAPS
 
 from .conftest import merge_threads_lowered, read_topic, wait_for_count

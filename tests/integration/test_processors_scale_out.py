@@ -17,7 +17,6 @@ import pytest
 from mapservice.local import embedded
 from mapservice.local.stack import Stack
 
-
 REPLICAS = ("processors-1", "processors-2")
 
 

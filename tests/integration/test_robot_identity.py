@@ -13,9 +13,6 @@ import time
 import httpx
 import paho.mqtt.client as mqtt
 import pytest
-from mapservice.robot.connection import RobotMqtt, load_credentials
-from mapservice.robot.loadgen import RobotFleet
-from mapservice.robot.simrun import SimRunner
 
 from mapservice.adapters.mqtt_client import MqttTls, make_client, parse_mqtt_url
 from mapservice.adapters.ros_map import load_ros_map, meta_for
@@ -23,6 +20,9 @@ from mapservice.core.events import decode_dead_letter
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 from mapservice.local.stack import Stack
 from mapservice.local.stack_mqtt import mqtt_accepts
+from mapservice.robot.connection import RobotMqtt, load_credentials
+from mapservice.robot.loadgen import RobotFleet
+from mapservice.robot.simrun import SimRunner
 from mapservice.runtime.secrets import OPERATOR_TOKEN_FILE, stored_secret
 from tests.fixtures.paths import MAPS, ROOT
 

@@ -8,10 +8,10 @@ import signal
 import time
 
 import pytest
-from mapservice.robot.map_upload import MARKER, UPLOADER_ID
 
 from mapservice.adapters.ros_map import load_ros_map, slice_chunks
 from mapservice.core.wire2019 import content_hash, encode_coordinates, format_timestamp
+from mapservice.robot.map_upload import MARKER, UPLOADER_ID
 from tests.fixtures.paths import MAPS
 from tests.fixtures.up import Up, children
 

@@ -58,7 +58,6 @@ def test_live_stream_compression_is_off_unless_configured() -> None:
     """uvicorn offers permessage-deflate on the live WebSocket only with api_live_compression."""
     from mapservice.api.app import create_app
     from mapservice.api.composition import api_server_config
-
     from mapservice.settings import Settings
     from mapservice.testing.memory_store import MemoryStore
 

@@ -196,9 +196,8 @@ def cert_chains(monkeypatch) -> list[tuple]:
 def test_kafka_client_certificate_reaches_librdkafka_and_faust(tmp_path: Path, cert_chains) -> None:
     """MAPSERVICE_KAFKA_SSL_CERT_FILE/KEY_FILE become librdkafka's ssl.certificate.location and
     ssl.key.location (every confluent-kafka client) and the faust SSL context's cert chain."""
-    from mapservice.processors.app import _faust_credentials
-
     from mapservice.local.certs import make_client_cert
+    from mapservice.processors.app import _faust_credentials
 
     files = make_client_cert(tmp_path, "mapservice")
     s = Settings(

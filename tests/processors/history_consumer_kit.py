@@ -9,7 +9,6 @@ from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
 from mapservice.processors.store_thread import StoreThread
 from mapservice.processors.views import Advertiser, LiveViews
-
 from mapservice.settings import Settings
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore

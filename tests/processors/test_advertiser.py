@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import socket
 
-from mapservice.processors.advertiser import MqttAdvertiser
-
 from mapservice.local.embedded import free_port
+from mapservice.processors.advertiser import MqttAdvertiser
 from mapservice.settings import Settings
 
 

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import faust
-from mapservice.processors.app import _faust_credentials, faust_broker_url
 
+from mapservice.processors.app import _faust_credentials, faust_broker_url
 from mapservice.settings import Settings
 
 

@@ -1,6 +1,7 @@
 """The history consumer's batch window: short while stores are quick, long once they slow."""
 
 import pytest
+
 from mapservice.processors.batch_window import STORE_SHARE, batch_window, smoothed
 
 

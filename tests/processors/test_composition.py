@@ -7,10 +7,10 @@ from __future__ import annotations
 import asyncio
 import time
 
-import mapservice.processors.composition as composition
 import pytest
-from mapservice.processors.composition import compose_processors
 
+import mapservice.processors.composition as composition
+from mapservice.processors.composition import compose_processors
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 

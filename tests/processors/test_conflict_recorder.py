@@ -5,15 +5,15 @@ from __future__ import annotations
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from mapservice.core.conflicts import RecentWrites, all_conflicts
+from mapservice.core.ports import ChunkRow
 from mapservice.processors.conflict_recorder import (
     UnwrittenConflicts,
     find_conflicts,
     record_conflicts,
     write_conflicts,
 )
-
-from mapservice.core.conflicts import RecentWrites, all_conflicts
-from mapservice.core.ports import ChunkRow
 from mapservice.testing.memory_store import MemoryStore
 
 W = 60_000

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import asyncio
 
+from mapservice.core.events import encode
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
-
-from mapservice.core.events import encode
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore
 from tests.processors.history_consumer_kit import NOW, POSES, Clock, drain

@@ -10,12 +10,12 @@ import datetime as dt
 import time
 
 import pytest
-from mapservice.processors.app import snapshot_tick_s, snapshot_timer
-from mapservice.processors.sink import HistorySink
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock, SimulatedClock, clock_from_settings
 from mapservice.core.timetravel import fold_map
+from mapservice.processors.app import snapshot_tick_s, snapshot_timer
+from mapservice.processors.sink import HistorySink
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, pose_event

@@ -5,9 +5,9 @@ from __future__ import annotations
 import msgspec
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from mapservice.processors.sink import decode_dead_letters, split_events
 
 from mapservice.core.events import DeadLetter, Envelope, encode, encode_dead_letter
+from mapservice.processors.sink import decode_dead_letters, split_events
 
 NOW = 1_795_255_200_000
 PROPERTY = settings(

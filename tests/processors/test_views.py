@@ -6,11 +6,11 @@ from __future__ import annotations
 import asyncio
 
 import pytest
+from prometheus_client import REGISTRY
+
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
 from mapservice.processors.views import LiveViews
-from prometheus_client import REGISTRY
-
 from mapservice.settings import Settings
 from mapservice.testing.memory_source import MemorySource
 from mapservice.testing.memory_store import MemoryStore

@@ -8,8 +8,6 @@ from __future__ import annotations
 import asyncio
 
 import pytest
-from mapservice.processors.sink import HistorySink
-from mapservice.processors.views import LiveViews
 
 from mapservice.core.annotations import (
     AnnotationChanged,
@@ -19,6 +17,8 @@ from mapservice.core.annotations import (
     Zone,
 )
 from mapservice.core.events import make_envelope
+from mapservice.processors.sink import HistorySink
+from mapservice.processors.views import LiveViews
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import NOW_MS
@@ -116,9 +116,9 @@ def test_a_pose_inside_a_keep_out_zone_is_a_zone_violation(sink) -> None:
     (stored, listed by the API); poses outside it, poses before it existed, and poses in a
     speed zone are not; once the zone is removed, none."""
     from fastapi.testclient import TestClient
-    from mapservice.api.app import create_app
 
     from mapservice.adapters.clock import ManualClock
+    from mapservice.api.app import create_app
     from tests.conftest import meta_event, pose_event
 
     sink.writer.append([meta_event(NOW_MS - 10_000)])  # 500 x 400 px at 0.05 m from (-1.5, 2.0)

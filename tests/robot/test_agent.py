@@ -14,11 +14,11 @@ import httpx
 import msgspec
 import numpy as np
 import pytest
+
+from mapservice.adapters.ros_map import load_ros_map
 from mapservice.robot.agent import RobotAgent
 from mapservice.robot.local_map import LocalMap, decode_chunk_doc
 from mapservice.robot.pose_sources import parse_odometry
-
-from mapservice.adapters.ros_map import load_ros_map
 from tests.fixtures.paths import MAPS
 
 
@@ -247,9 +247,8 @@ def test_integrating_keeps_unpublished_local_edits(tmp_path) -> None:
 def test_a_robot_with_a_map_of_another_size_refuses_and_stores_nothing(tmp_path) -> None:
     """The service stores the warehouse (1006 x 1674): a depot robot's start raises a message
     naming both sizes, posts nothing, and leaves its own map file as it was."""
-    from mapservice.robot.chunks import meta_to_json
-
     from mapservice.adapters.ros_map import meta_for
+    from mapservice.robot.chunks import meta_to_json
 
     service = FakeChunkService(meta=meta_to_json(meta_for(load_ros_map(MAPS / "warehouse.yaml"))))
     a = make_agent(tmp_path, "robot-a", service)
@@ -288,10 +287,9 @@ def test_the_agent_obeys_commands_with_its_simulated_pose_and_refuses_with_odome
     odometry source it cannot drive the robot, so it rejects the command, saying why."""
     from types import SimpleNamespace
 
+    from mapservice.core.commands import CommandIssued, command_message
     from mapservice.robot.commands import command_topic, response_topic
     from mapservice.robot.pose_sources import SimulatedPose
-
-    from mapservice.core.commands import CommandIssued, command_message
 
     def command(robot: str, cid: str) -> SimpleNamespace:
         issued = CommandIssued(cid, robot, "pause", "operator:x", 0)

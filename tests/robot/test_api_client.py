@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import httpx
 from fastapi.testclient import TestClient
+
 from mapservice.api.app import create_app
 from mapservice.robot import api_client
-
 from mapservice.runtime.secrets import ADMIN_TOKEN_FILE, WRITER_TOKEN_FILE, local_secret
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore

@@ -14,6 +14,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+
+from mapservice.adapters.ros_map import (
+    RosMap,
+    load_ros_map,
+    read_pgm,
+    save_ros_map,
+    slice_chunks,
+    write_pgm,
+)
+from mapservice.core.events import MapMetaSet
 from mapservice.robot.chunks import (
     chunk_of_pixel,
     describe,
@@ -25,16 +35,6 @@ from mapservice.robot.chunks import (
     stitch,
     stitch_dir,
 )
-
-from mapservice.adapters.ros_map import (
-    RosMap,
-    load_ros_map,
-    read_pgm,
-    save_ros_map,
-    slice_chunks,
-    write_pgm,
-)
-from mapservice.core.events import MapMetaSet
 from tests.fixtures.paths import ROOT
 from tests.robot.conftest import all_map_yamls
 

@@ -10,11 +10,11 @@ import math
 from types import SimpleNamespace
 
 import msgspec
-from mapservice.robot.commands import CommandInbox, SimCommands, command_topic, response_topic
-from mapservice.robot.sim import SimConfig, new_state, step
 
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.core.commands import CommandIssued, command_message
+from mapservice.robot.commands import CommandInbox, SimCommands, command_topic, response_topic
+from mapservice.robot.sim import SimConfig, new_state, step
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000
@@ -156,11 +156,10 @@ def test_commands_for_other_robots_or_unreadable_are_ignored() -> None:
 def test_a_paused_robots_route_is_planned_again_when_the_floor_changes() -> None:
     """A pallet put across a held robot's route while it is paused: its route is planned
     on the new floor, so on resume it does not drive through the pallet."""
+    from mapservice.adapters.ros_map import drivable
     from mapservice.robot.floor_changes import _occupied_value
     from mapservice.robot.planning import path_is_clear
     from mapservice.robot.sim import StepOut, _with_pixels
-
-    from mapservice.adapters.ros_map import drivable
 
     state, inbox, commands = fleet(3)
     for _ in range(8):

@@ -9,6 +9,11 @@ import threading
 import time
 
 import pytest
+
+from mapservice.adapters.mqtt_auth import BrokerFiles
+from mapservice.adapters.mqtt_client import make_client
+from mapservice.adapters.ros_map import load_ros_map
+from mapservice.local import embedded
 from mapservice.robot.connection import (
     RobotClients,
     RobotMqtt,
@@ -19,11 +24,6 @@ from mapservice.robot.connection import (
 )
 from mapservice.robot.faults import to_messages
 from mapservice.robot.sim import ChunkOut, new_state, step
-
-from mapservice.adapters.mqtt_auth import BrokerFiles
-from mapservice.adapters.mqtt_client import make_client
-from mapservice.adapters.ros_map import load_ros_map
-from mapservice.local import embedded
 from tests.fixtures.paths import MAPS
 
 

@@ -7,7 +7,11 @@ import httpx
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+
+from mapservice.adapters.clock import ManualClock
+from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, slice_chunks
 from mapservice.api.app import create_app
+from mapservice.core.wire2019 import content_hash
 from mapservice.robot.drive import check_map_size
 from mapservice.robot.map_upload import (
     MARKER,
@@ -16,10 +20,6 @@ from mapservice.robot.map_upload import (
     upload_map_if_fresh,
     upload_map_rest,
 )
-
-from mapservice.adapters.clock import ManualClock
-from mapservice.adapters.ros_map import RosMap, load_ros_map, meta_for, slice_chunks
-from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_publisher import MemoryPublisher
 from mapservice.testing.memory_store import MemoryStore

@@ -7,11 +7,11 @@ import time
 
 import msgspec
 import pytest
-from mapservice.robot.agent import RobotAgent
-from mapservice.robot.pose_sources import OdometryPose
 
 from mapservice.adapters.mqtt_client import make_client
 from mapservice.core.wire2019 import parse_timestamp
+from mapservice.robot.agent import RobotAgent
+from mapservice.robot.pose_sources import OdometryPose
 from tests.fixtures.paths import MAPS
 
 pytestmark = pytest.mark.integration

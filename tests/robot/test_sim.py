@@ -11,11 +11,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from mapservice.robot import sim
-from mapservice.robot.chunks import chunk_pixels, metres_to_pixel
-from mapservice.robot.faults import Faults, robot_skew_ms, to_messages
-from mapservice.robot.planning import build_grid, dilate, path_is_clear, plan, simplify
-from mapservice.robot.sim import SimConfig, _protected, new_state, step
 
 from mapservice.adapters.ros_map import RosMap, drivable, load_ros_map
 from mapservice.core.wire2019 import (
@@ -25,6 +20,11 @@ from mapservice.core.wire2019 import (
     decode_coordinates,
     parse_timestamp,
 )
+from mapservice.robot import sim
+from mapservice.robot.chunks import chunk_pixels, metres_to_pixel
+from mapservice.robot.faults import Faults, robot_skew_ms, to_messages
+from mapservice.robot.planning import build_grid, dilate, path_is_clear, plan, simplify
+from mapservice.robot.sim import SimConfig, _protected, new_state, step
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000

@@ -7,6 +7,7 @@ from __future__ import annotations
 import signal
 
 import pytest
+
 from mapservice.robot import sim_cli
 
 

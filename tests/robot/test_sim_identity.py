@@ -9,16 +9,15 @@ import json
 import threading
 import time
 
+from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER
+from mapservice.adapters.mqtt_client import make_client
+from mapservice.adapters.ros_map import load_ros_map
+from mapservice.core.commands import CommandIssued, command_message
 from mapservice.robot.commands import command_topic, response_topic
 from mapservice.robot.connection import RobotMqtt
 from mapservice.robot.sim import SimConfig, sim_robot_id
 from mapservice.robot.simrun import SimRunner
 from mapservice.robot.zone_feed import ZoneFeed
-
-from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER
-from mapservice.adapters.mqtt_client import make_client
-from mapservice.adapters.ros_map import load_ros_map
-from mapservice.core.commands import CommandIssued, command_message
 from tests.fixtures.paths import MAPS
 
 PREFIX = "ident"

@@ -9,16 +9,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from mapservice.robot import sim
-from mapservice.robot.planning import plan
-from mapservice.robot.sim import SimConfig, new_state, step, with_zones
-from mapservice.robot.sim_zones import route_cells, speed_at, way_out
-from mapservice.robot.zones import blocked_grid, floor_zones, zones_from_listing
 
 from mapservice.adapters.costmap_filters import grid_of
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.core.annotations import Zone
 from mapservice.core.zone_masks import Grid, keep_out_labels, pixel_of, zone_pixels
+from mapservice.robot import sim
+from mapservice.robot.planning import plan
+from mapservice.robot.sim import SimConfig, new_state, step, with_zones
+from mapservice.robot.sim_zones import route_cells, speed_at, way_out
+from mapservice.robot.zones import blocked_grid, floor_zones, zones_from_listing
 from tests.fixtures.paths import MAPS
 
 T0 = 1_795_255_200_000

@@ -7,10 +7,10 @@ import json
 import time
 
 import httpx
-from mapservice.robot import zone_feed
-from mapservice.robot.zone_feed import ZoneFeed, shows
 
 from mapservice.core.annotations import Zone
+from mapservice.robot import zone_feed
+from mapservice.robot.zone_feed import ZoneFeed, shows
 
 ZONE = Zone(name="k", kind="keep_out", polygon=((0.0, 0.0), (1.0, 0.0), (1.0, 1.0)))
 

@@ -9,14 +9,14 @@ import io
 import httpx
 import numpy as np
 import pytest
-from mapservice.api.context import context_of
-from mapservice.robot import zones_cli
-from mapservice.robot.zones_cli import MaskFiles, import_mask, mask_files, refusal
 from PIL import Image
 
 from mapservice.adapters.ros_map import RosMap, meta_for
+from mapservice.api.context import context_of
 from mapservice.cli import build_parser
 from mapservice.core.events import make_envelope
+from mapservice.robot import zones_cli
+from mapservice.robot.zones_cli import MaskFiles, import_mask, mask_files, refusal
 from tests.api.test_annotations import NOW, OPERATOR, READER, World
 
 FLOOR = RosMap(np.full((30, 40), 254, dtype=np.uint8), 0.05, (-1.0, -2.0, 0.0))

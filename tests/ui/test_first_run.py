@@ -13,11 +13,11 @@ import os
 
 import httpx
 import numpy as np
-from mapservice.robot.chunks import meta_from_json, metres_to_pixel
 from PIL import Image
 
 from mapservice.adapters.ros_map import drivable, load_ros_map, slice_chunks
 from mapservice.core.wire2019 import content_hash
+from mapservice.robot.chunks import meta_from_json, metres_to_pixel
 from tests.fixtures.paths import MAPS, ROOT
 from tests.fixtures.up import Up
 

@@ -10,8 +10,8 @@ import time
 
 import pytest
 import uvicorn
-from mapservice.api.app import create_app
 
+from mapservice.api.app import create_app
 from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port
 from mapservice.runtime.insert_health import InsertHealth

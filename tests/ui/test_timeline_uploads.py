@@ -14,9 +14,9 @@ import time
 
 import pytest
 import uvicorn
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clock import SystemClock
+from mapservice.api.app import create_app
 from mapservice.core import change_feed
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.local.checkout import TEST_UI_DIR

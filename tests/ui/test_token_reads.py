@@ -8,10 +8,10 @@ import time
 
 import pytest
 import uvicorn
-from mapservice.api.app import create_app
-from mapservice.api.live_hub import LiveHub
 
 from mapservice.adapters.clock import SystemClock
+from mapservice.api.app import create_app
+from mapservice.api.live_hub import LiveHub
 from mapservice.core.events import MapMetaSet, make_envelope
 from mapservice.local.checkout import TEST_UI_DIR
 from mapservice.local.embedded import free_port

@@ -153,10 +153,9 @@ def test_mcap_holds_vda_vehicles_errors_and_connection_states() -> None:
     """A VDA 5050 vehicle's errors and warnings (each state's active list, an empty list
     when a state clears them) and its connection states (offline when the last will was
     received) as JSON channels with their JSON schemas, read back with `mcap`."""
-    from mapservice.ingest.router import Router
-
     from mapservice.core.events import decode
     from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
 
@@ -283,10 +282,9 @@ def test_parquet_reads_back(clickhouse, tmp_path) -> None:
 def test_vda_5050_facts_export_as_tables(clickhouse) -> None:
     """A vehicle's states, errors and connection states, each in its own dataset, once per
     fact although the message came twice (a QoS 1 redelivery)."""
-    from mapservice.ingest.router import Router
-
     from mapservice.core.events import decode
     from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
 

@@ -95,10 +95,10 @@ def test_the_conflict_inspectors_one_call_over_every_store(store, ev, t0) -> Non
     both writes' robots, times and content hashes and the seek time just after the later
     write, where the map holds it; the map uploader's write under them is in no conflict."""
     from fastapi.testclient import TestClient
-    from mapservice.api.app import create_app
-    from mapservice.processors.conflict_recorder import record_conflicts
 
     from mapservice.adapters.clock import ManualClock
+    from mapservice.api.app import create_app
+    from mapservice.processors.conflict_recorder import record_conflicts
     from mapservice.settings import Settings
 
     black, white, grey = bytes(10_000), bytes([254]) * 10_000, bytes([205]) * 10_000

@@ -16,10 +16,10 @@ import zlib
 
 import pytest
 from fastapi.testclient import TestClient
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.clock import ManualClock
+from mapservice.api.app import create_app
 from mapservice.core.annotations import (
     AnnotationChanged,
     AnnotationCreated,

@@ -121,10 +121,10 @@ def test_publish_to_stored_is_read_from_the_servers_histogram_between_two_scrape
     """The bench reads the history consumer's own per-event histogram: the events observed
     between two scrapes, their share within 0.3 s exactly (a bucket bound) and p50/p99
     interpolated within their buckets."""
-    from mapservice.processors.history_consumer import STORED_LATENCY_BUCKETS
     from prometheus_client import CollectorRegistry, Histogram, generate_latest
 
     from mapservice.bench.ingest.metrics import histogram_buckets, stored_latency
+    from mapservice.processors.history_consumer import STORED_LATENCY_BUCKETS
 
     registry = CollectorRegistry()
     hist = Histogram(

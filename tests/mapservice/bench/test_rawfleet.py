@@ -12,8 +12,6 @@ import zlib
 
 import msgspec
 import paho.mqtt.client as mqtt
-from mapservice.robot import DEFAULT_MAP
-from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
 
 from mapservice.adapters.mqtt_client import PollingClient
 from mapservice.adapters.ros_map import load_ros_map
@@ -32,6 +30,8 @@ from mapservice.core.wire2019 import (
     encode_chunk_create,
     parse_timestamp,
 )
+from mapservice.robot import DEFAULT_MAP
+from mapservice.robot.schedule import chunk_follows, chunk_phase, chunks_after
 
 
 def _payload(template, timestamp: bytes) -> bytes:

@@ -82,9 +82,9 @@ def test_reuse_reads_back_the_loaded_history_and_refuses_another_size(tmp_path) 
 def served_history(ev, monkeypatch):
     """An API over a MemoryStore with random chunk writes; the bench's reads go to it."""
     from fastapi.testclient import TestClient
-    from mapservice.api.app import create_app
 
     from mapservice.adapters.clock import ManualClock
+    from mapservice.api.app import create_app
     from mapservice.settings import Settings
     from mapservice.testing.memory_store import MemoryStore
 

@@ -6,12 +6,12 @@ from __future__ import annotations
 import time
 
 import pytest
-from mapservice.ingest.router import Router
 
 from mapservice.adapters.mqtt_client import make_client
 from mapservice.bench.vda_fleet import VdaFleet, iso, vehicle_messages
 from mapservice.core.events import decode
 from mapservice.core.wire2019 import Limits
+from mapservice.ingest.router import Router
 from mapservice.local import embedded
 from mapservice.settings import Settings
 

@@ -9,9 +9,9 @@ import time
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-from mapservice.api.app import create_app
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.api.app import create_app
 from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
 from mapservice.core.ports import ChunkState
 from mapservice.core.timetravel import fold_map, fold_robots

@@ -8,13 +8,13 @@ import zlib
 
 import numpy as np
 import pytest
-from mapservice.robot.chunks import metres_to_pixel
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.ros_map import drivable, load_ros_map, slice_chunks
 from mapservice.core.conflicts import all_conflicts, conflict_key
 from mapservice.core.wire2019 import content_hash
 from mapservice.local.demo_history import UPLOAD_ROBOT_ID, backfill
+from mapservice.robot.chunks import metres_to_pixel
 from tests.fixtures.paths import MAPS
 
 NOW = 1_795_255_200_000

@@ -128,8 +128,8 @@ def test_no_secret_in_a_url_reaches_the_api_access_log(capfd, tmp_path, fmt) -> 
     secret, in both formats."""
     import httpx
     from fastapi import FastAPI
-    from mapservice.api.app import SQL_PATH, PathPrefix
 
+    from mapservice.api.app import SQL_PATH, PathPrefix
     from mapservice.local.embedded import free_port
     from mapservice.settings import Settings
     from mapservice.sql.chdb_engine import ChdbEngine

@@ -4,11 +4,10 @@ answer within 1 s while the heaviest bodies are refused)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import gzip
 import tracemalloc
 import zlib
+from collections.abc import Callable
 
 import httpx
 import lz4.frame

@@ -236,10 +236,9 @@ def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
     vehicle_factsheets (the main facts as columns) over VDA 5050 messages as ingested. The
     vehicle is on a map id without a transform: its facts are stored, no pose is drawn (the
     other tests' robots stay the only ones in robot_poses)."""
-    from mapservice.ingest.router import Router
-
     from mapservice.core.events import decode
     from mapservice.core.wire2019 import Limits
+    from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
 

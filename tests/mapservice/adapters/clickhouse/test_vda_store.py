@@ -7,10 +7,10 @@ from __future__ import annotations
 import math
 
 import pytest
-from mapservice.ingest.router import Router
 
 from mapservice.core.events import decode
 from mapservice.core.wire2019 import Limits
+from mapservice.ingest.router import Router
 from mapservice.settings import Settings
 from tests.conftest import sparse_snapshots
 from tests.fixtures import vda5050 as vda
