@@ -10,7 +10,8 @@ from fastapi.testclient import TestClient
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.api.app import create_app
-from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK, ContentCache
+from mapservice.api.content_cache import ContentCache
+from mapservice.api.routers.chunk_contents import BATCH_MAX, MSGPACK
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
