@@ -286,8 +286,8 @@ async def post_chunk(
     clock: Clock = Depends(get_clock),
     publisher: EventPublisher = Depends(get_publisher),
 ) -> dict:
-    """Listing 10 in, listing 11 out: validated by the intake an MQTT iot/chunks/create
-    message passes and written to Kafka like one."""
+    """Listing 10 in, listing 11 out: validated by the same intake as an MQTT
+    iot/chunks/create message and written to Kafka like one."""
     body = await _read_body(request, settings.max_message_bytes)
     now = clock.now_ms()
     meta = await run_in_threadpool(_meta_for_validation, request, store, now)

@@ -20,8 +20,8 @@ export interface paths {
         put?: never;
         /**
          * Post Chunk
-         * @description Listing 10 in, listing 11 out: validated exactly like an MQTT iot/chunks/create
-         *     message and written to Kafka like one.
+         * @description Listing 10 in, listing 11 out: validated by the same intake as an MQTT
+         *     iot/chunks/create message and written to Kafka like one.
          */
         post: operations["postLegacyChunk"];
         /**

@@ -154,7 +154,7 @@ def test_mcap_holds_vda_vehicles_errors_and_connection_states() -> None:
     when a state clears them) and its connection states (offline when the last will was
     received) as JSON channels with their JSON schemas, read back with `mcap`."""
     from mapservice.core.events import decode
-    from mapservice.core.wire2019 import Limits
+    from mapservice.core.intake import Intake
     from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
@@ -184,7 +184,7 @@ def test_mcap_holds_vda_vehicles_errors_and_connection_states() -> None:
         ("state", vda.state(v, m, s, T0 + 4000), T0 + 4000),
         ("connection", vda.connection(v, m, s, T0 + 500, "CONNECTIONBROKEN"), T0 + 4500),
     ]:
-        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Intake())
         store.append([decode(record.value)])
     out = io.BytesIO()
     counts = export_mcap(_sources(store), T0, T0 + 5_000, out)
@@ -283,7 +283,7 @@ def test_vda_5050_facts_export_as_tables(clickhouse) -> None:
     """A vehicle's states, errors and connection states, each in its own dataset, once per
     fact although the message came twice (a QoS 1 redelivery)."""
     from mapservice.core.events import decode
-    from mapservice.core.wire2019 import Limits
+    from mapservice.core.intake import Intake
     from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
@@ -305,7 +305,7 @@ def test_vda_5050_facts_export_as_tables(clickhouse) -> None:
         ),
         ("connection", vda.connection("2.1.0", "Acme", "001", ts + 1000, "OFFLINE")),
     ):
-        record = router.route(f"uagv/v2/Acme/001/{subtopic}", vda.encode(msg), ts + 2000, Limits())
+        record = router.route(f"uagv/v2/Acme/001/{subtopic}", vda.encode(msg), ts + 2000, Intake())
         assert record.reason is None
         for _ in range(2):  # two inserts: two parts, folded by FINAL
             clickhouse.append([decode(record.value)])

@@ -10,7 +10,7 @@ import pytest
 from mapservice.adapters.mqtt_client import make_client
 from mapservice.bench.vda_fleet import VdaFleet, iso, vehicle_messages
 from mapservice.core.events import decode
-from mapservice.core.wire2019 import Limits
+from mapservice.core.intake import Intake
 from mapservice.ingest.router import Router
 from mapservice.local import embedded
 from mapservice.settings import Settings
@@ -23,7 +23,7 @@ def test_its_messages_are_accepted_by_the_gateway() -> None:
         ("visualization", "state"), vehicle_messages("v00001", 1, (3.0, 4.0))
     ):
         payload = payload.replace(b"@@TS@@", iso(now))
-        record = router.route(f"uagv/v2/VdaBench/v00001/{subtopic}", payload, now, Limits())
+        record = router.route(f"uagv/v2/VdaBench/v00001/{subtopic}", payload, now, Intake())
         assert record.reason is None, subtopic
         assert decode(record.value).robot_id == "VdaBench:v00001"
 

@@ -20,6 +20,7 @@ from mapservice.core.annotations import (
     ZoneViolation,
 )
 from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.intake import Intake
 from mapservice.core.ports import ConflictRow
 from mapservice.core.wire2019 import content_hash
 from robot.chunks import metres_to_pixel
@@ -237,7 +238,6 @@ def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
     vehicle is on a map id without a transform: its facts are stored, no pose is drawn (the
     other tests' robots stay the only ones in robot_poses)."""
     from mapservice.core.events import decode
-    from mapservice.core.wire2019 import Limits
     from mapservice.ingest.router import Router
     from mapservice.settings import Settings
     from tests.fixtures import vda5050 as vda
@@ -272,7 +272,7 @@ def test_vehicle_views_read_vda_5050_facts(loaded) -> None:
     ]
     events = []
     for subtopic, msg, received in messages:
-        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Limits())
+        record = router.route(f"uagv/v2/{m}/{s}/{subtopic}", vda.encode(msg), received, Intake())
         assert record.reason is None, record.value
         events.append(decode(record.value))
     store.append(events)

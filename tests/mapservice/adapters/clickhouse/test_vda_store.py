@@ -9,6 +9,7 @@ import math
 import pytest
 
 from mapservice.core.events import decode
+from mapservice.core.intake import Intake
 from mapservice.core.wire2019 import Limits
 from mapservice.ingest.router import Router
 from mapservice.settings import Settings
@@ -26,7 +27,7 @@ def events(settings: Settings, messages: list[tuple[str, dict, int]], limits: Li
             f"uagv/v2/{msg['manufacturer']}/{msg['serialNumber']}/{subtopic}",
             vda.encode(msg),
             receive_ms,
-            limits,
+            Intake(limits),
         )
         assert record.reason is None, record.value
         out.append(decode(record.value))
