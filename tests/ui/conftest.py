@@ -69,8 +69,8 @@ def playwright_browser():
     """Debian's Chromium through Playwright, for as long as the generator is open.
 
     While it is, Playwright's sync API keeps an event loop running in the main thread, and
-    asyncio.run() fails there: a module outside tests/ui that needs a browser takes one of
-    module scope (`module_browser`), so the tests after it are not affected."""
+    asyncio.run() or a second sync_playwright() fails there: every browser is of module
+    scope, so whatever module a test worker runs next is not affected."""
     from playwright.sync_api import sync_playwright
 
     if chromium_path() is None:
@@ -81,7 +81,7 @@ def playwright_browser():
         b.close()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
     yield from playwright_browser()
 
