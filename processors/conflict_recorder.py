@@ -12,13 +12,14 @@ from typing import Protocol
 from prometheus_client import Counter, Histogram
 
 from mapservice.core.conflicts import RecentWrites, affected_conflicts, conflict_key, neighbourhoods
-from mapservice.core.events import ChunkUpdated, Envelope
+from mapservice.core.events import Envelope
 from mapservice.core.ports import (
     ChunkRow,
     ConflictReader,
     ConflictRow,
     HistoryWriter,
     TimeTravelReader,
+    chunk_rows_of,
 )
 
 CONFLICTS = Counter("mapservice_conflicts_recorded_total", "Conflict rows written to the history")
@@ -148,18 +149,7 @@ class ConflictWatch:
     def find(self, events: Sequence[Envelope]) -> int:
         """Finds every conflict the stored batch creates or changes, for `write`; returns
         how many rows now wait to be written."""
-        new = [
-            ChunkRow(
-                e.payload.row,
-                e.payload.column,
-                e.event_time_ms,
-                e.robot_id,
-                e.payload.content_hash.hex(),
-                e.receive_time_ms,
-            )
-            for e in events
-            if isinstance(e.payload, ChunkUpdated)
-        ]
+        new = chunk_rows_of(events)
         now = self.now_ms()
         if self.recent is not None and now - self._recent_pruned_ms > 10_000:
             self.recent.forget_before(now - self._recent_span_ms())

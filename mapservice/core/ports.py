@@ -9,7 +9,7 @@ import msgspec
 
 from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneViolation
 from mapservice.core.commands import StoredCommandEvent
-from mapservice.core.events import DeadLetter, Envelope, MapMetaSet
+from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
@@ -68,6 +68,22 @@ class ChunkRow(msgspec.Struct, frozen=True, gc=False, array_like=True):
     robot_id: str
     content_hash: str  # hex
     receive_time_ms: int
+
+
+def chunk_rows_of(events: Sequence[Envelope]) -> list[ChunkRow]:
+    """The chunk writes among `events`, as the store lists them (which write, not its pixels)."""
+    return [
+        ChunkRow(
+            e.payload.row,
+            e.payload.column,
+            e.event_time_ms,
+            e.robot_id,
+            e.payload.content_hash.hex(),
+            e.receive_time_ms,
+        )
+        for e in events
+        if isinstance(e.payload, ChunkUpdated)
+    ]
 
 
 class ChunkState(msgspec.Struct, frozen=True, gc=False, array_like=True):

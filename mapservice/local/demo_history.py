@@ -33,7 +33,7 @@ import structlog
 from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, make_envelope
-from mapservice.core.ports import ChunkRow, HistoryStore
+from mapservice.core.ports import HistoryStore, chunk_rows_of
 from mapservice.core.wire2019 import content_hash
 from mapservice.processors.conflict_recorder import record_conflicts
 
@@ -240,18 +240,7 @@ def backfill(
             store.derive_views_between(events[0].event_time_ms, events[-1].event_time_ms)
         else:
             store.append(events)
-        writes = [
-            ChunkRow(
-                e.payload.row,
-                e.payload.column,
-                e.event_time_ms,
-                e.robot_id,
-                e.payload.content_hash.hex(),
-                e.receive_time_ms,
-            )
-            for e in events
-            if isinstance(e.payload, ChunkUpdated)
-        ]
+        writes = chunk_rows_of(events)
         totals["chunk_writes"] += len(writes)
         totals["poses"] += len(events) - len(writes)
         totals["conflicts"] += record_conflicts(store, writes, conflict_window_ms)
