@@ -1,6 +1,6 @@
 """What the API's routes and middlewares are given, typed and in one place: the settings,
 the clock, the store by role, the event publisher, the live hub, the health checks and the
-per-app caches. `create_app` (api/app.py) builds it once; routes ask for one part each
+per-app caches and state. `create_app` (api/app.py) builds it once; routes ask for one part each
 through the dependencies of api/deps.py, never for the context or the store as a whole.
 """
 
@@ -21,6 +21,7 @@ from .annotation_state import RecentEdits
 from .content_cache import ContentCache
 from .credentials import Credentials
 from .live_hub import LiveHub
+from .posted_meta import PostedMeta
 
 Check = Callable[[], bool]
 
@@ -47,6 +48,7 @@ class ApiContext:
     history_status: Callable[[], dict[str, Any]] | None = None
     content_cache: ContentCache = field(default_factory=ContentCache)
     recent_edits: RecentEdits = field(default_factory=RecentEdits)
+    posted_meta: PostedMeta = field(default_factory=PostedMeta)
 
 
 def context_of(app: Starlette) -> ApiContext:

@@ -6,9 +6,9 @@ resolves to one part of the context, so no route is handed the store as a whole.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, HTTPException, Query
 from pydantic import BaseModel, Field
@@ -20,6 +20,7 @@ from mapservice.core.ports import (
     Clock,
     CommandReader,
     ConflictReader,
+    EventPublisher,
     LegacyQueries,
     StoreAdmin,
     TableExports,
@@ -30,10 +31,15 @@ from mapservice.core.store_roles import StoreRoles
 from mapservice.core.wire2019 import parse_query_instant
 from mapservice.settings import Settings
 
+from .access import ADMIN, OPERATE, WRITE
 from .annotation_state import RecentEdits
 from .content_cache import ContentCache
 from .context import ApiContext, Check, context_of
+from .credentials import Caller
 from .live_hub import LiveHub
+from .posted_meta import PostedMeta
+
+T = TypeVar("T")
 
 
 async def api_context(connection: HTTPConnection) -> ApiContext:
@@ -46,12 +52,13 @@ async def api_context(connection: HTTPConnection) -> ApiContext:
 Context = Annotated[ApiContext, Depends(api_context)]
 
 
-async def get_settings(context: Context) -> Settings:
-    return context.settings
+def _part(pick: Callable[[ApiContext], T]) -> Callable[[ApiContext], Awaitable[T]]:
+    """A dependency that resolves to one part of the context."""
 
+    async def part(context: Context) -> T:
+        return pick(context)
 
-async def get_clock(context: Context) -> Clock:
-    return context.clock
+    return part
 
 
 async def _roles(context: Context) -> StoreRoles:
@@ -63,95 +70,56 @@ async def _roles(context: Context) -> StoreRoles:
 RolesDep = Annotated[StoreRoles, Depends(_roles)]
 
 
-async def history_reader(roles: RolesDep) -> TimeTravelReader:
-    return roles.history
+def _role(pick: Callable[[StoreRoles], T]) -> Callable[[StoreRoles], Awaitable[T]]:
+    """A dependency that resolves to one role of the store (a 503 without a store)."""
+
+    async def role(roles: RolesDep) -> T:
+        return pick(roles)
+
+    return role
 
 
-async def conflict_reader(roles: RolesDep) -> ConflictReader:
-    return roles.conflicts
+async def _publisher(context: Context) -> EventPublisher:
+    """The app's publisher, or a 503 saying how to configure one."""
+    if context.publisher is None:
+        raise HTTPException(
+            503,
+            "this API instance has no event publisher (Kafka) configured, "
+            "so it cannot accept writes; run it with MAPSERVICE_KAFKA_BOOTSTRAP "
+            "set (`mapservice api` / `mapservice serve`) or write via MQTT",
+        )
+    return context.publisher
 
 
-async def annotation_reader(roles: RolesDep) -> AnnotationReader:
-    return roles.annotations
-
-
-async def command_reader(roles: RolesDep) -> CommandReader:
-    return roles.commands
-
-
-async def vda_reader(roles: RolesDep) -> VdaReader:
-    return roles.vda
-
-
-async def change_feed(roles: RolesDep) -> ChangeFeed:
-    return roles.changes
-
-
-async def legacy_queries(roles: RolesDep) -> LegacyQueries:
-    return roles.legacy
-
-
-async def store_admin(roles: RolesDep) -> StoreAdmin:
-    return roles.admin
-
-
-async def table_exports(roles: RolesDep) -> TableExports | None:
-    """None for a store without them (only ClickHouse has them): the route says 501."""
-    return roles.exports
-
-
-async def export_executor(context: Context) -> ThreadPoolExecutor:
-    return context.export_executor
-
-
-async def live_hub(context: Context) -> LiveHub | None:
-    return context.live
-
-
-async def readiness_checks(context: Context) -> Mapping[str, Check]:
-    return context.readiness
-
-
-async def liveness_checks(context: Context) -> Mapping[str, Check]:
-    return context.liveness
-
-
-async def advisory_checks(context: Context) -> Mapping[str, Check]:
-    return context.advisory
-
-
-async def content_cache(context: Context) -> ContentCache:
-    return context.content_cache
-
-
-async def recent_edits(context: Context) -> RecentEdits:
-    return context.recent_edits
-
-
-async def history_status(context: Context) -> Callable[[], dict[str, Any]] | None:
-    """The inserts' state where the processors run in this process (`mapservice serve`)."""
-    return context.history_status
-
-
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-ClockDep = Annotated[Clock, Depends(get_clock)]
-HistoryDep = Annotated[TimeTravelReader, Depends(history_reader)]
-ConflictsDep = Annotated[ConflictReader, Depends(conflict_reader)]
-AnnotationsDep = Annotated[AnnotationReader, Depends(annotation_reader)]
-CommandsDep = Annotated[CommandReader, Depends(command_reader)]
-VdaDep = Annotated[VdaReader, Depends(vda_reader)]
-ChangesDep = Annotated[ChangeFeed, Depends(change_feed)]
-LegacyDep = Annotated[LegacyQueries, Depends(legacy_queries)]
-AdminDep = Annotated[StoreAdmin, Depends(store_admin)]
-ExportsDep = Annotated[TableExports | None, Depends(table_exports)]
-ExportPoolDep = Annotated[ThreadPoolExecutor, Depends(export_executor)]
-RecentEditsDep = Annotated[RecentEdits, Depends(recent_edits)]
-ContentCacheDep = Annotated[ContentCache, Depends(content_cache)]
-LiveHubDep = Annotated[LiveHub | None, Depends(live_hub)]
-ReadinessDep = Annotated[Mapping[str, Check], Depends(readiness_checks)]
-LivenessDep = Annotated[Mapping[str, Check], Depends(liveness_checks)]
-AdvisoryDep = Annotated[Mapping[str, Check], Depends(advisory_checks)]
-HistoryStatusSource = Annotated[Callable[[], dict[str, Any]] | None, Depends(history_status)]
+SettingsDep = Annotated[Settings, Depends(_part(lambda c: c.settings))]
+ClockDep = Annotated[Clock, Depends(_part(lambda c: c.clock))]
+PublisherDep = Annotated[EventPublisher, Depends(_publisher)]
+HistoryDep = Annotated[TimeTravelReader, Depends(_role(lambda r: r.history))]
+ConflictsDep = Annotated[ConflictReader, Depends(_role(lambda r: r.conflicts))]
+AnnotationsDep = Annotated[AnnotationReader, Depends(_role(lambda r: r.annotations))]
+CommandsDep = Annotated[CommandReader, Depends(_role(lambda r: r.commands))]
+VdaDep = Annotated[VdaReader, Depends(_role(lambda r: r.vda))]
+ChangesDep = Annotated[ChangeFeed, Depends(_role(lambda r: r.changes))]
+LegacyDep = Annotated[LegacyQueries, Depends(_role(lambda r: r.legacy))]
+AdminDep = Annotated[StoreAdmin, Depends(_role(lambda r: r.admin))]
+# None for a store without them (only ClickHouse has them): the route says 501.
+ExportsDep = Annotated[TableExports | None, Depends(_role(lambda r: r.exports))]
+ExportPoolDep = Annotated[ThreadPoolExecutor, Depends(_part(lambda c: c.export_executor))]
+RecentEditsDep = Annotated[RecentEdits, Depends(_part(lambda c: c.recent_edits))]
+PostedMetaDep = Annotated[PostedMeta, Depends(_part(lambda c: c.posted_meta))]
+ContentCacheDep = Annotated[ContentCache, Depends(_part(lambda c: c.content_cache))]
+LiveHubDep = Annotated[LiveHub | None, Depends(_part(lambda c: c.live))]
+ReadinessDep = Annotated[Mapping[str, Check], Depends(_part(lambda c: c.readiness))]
+LivenessDep = Annotated[Mapping[str, Check], Depends(_part(lambda c: c.liveness))]
+AdvisoryDep = Annotated[Mapping[str, Check], Depends(_part(lambda c: c.advisory))]
+# The inserts' state where the processors run in this process (`mapservice serve`).
+HistoryStatusSource = Annotated[
+    Callable[[], dict[str, Any]] | None, Depends(_part(lambda c: c.history_status))
+]
+# Who called, once the route's scope admitted them.
+WriterCaller = Annotated[Caller, Depends(WRITE)]
+OperatorCaller = Annotated[Caller, Depends(OPERATE)]
+AdminCaller = Annotated[Caller, Depends(ADMIN)]
 
 
 def parse_time_param(name: str, value: str) -> int:
@@ -199,6 +167,9 @@ def at_instant(
     """The `at` query parameter as epoch ms, checked against the retention."""
     now = clock.now_ms()
     return parse_instant(at, settings, now) if at is not None else now
+
+
+AtDep = Annotated[int, Depends(at_instant)]
 
 
 def window_in_retention(

@@ -9,7 +9,7 @@ from __future__ import annotations
 import threading
 import time
 
-from fastapi import HTTPException, Request
+from fastapi import HTTPException
 
 from mapservice.core.annotations import ANNOTATION_EVENTS
 from mapservice.core.commands import COMMAND_EVENTS
@@ -17,22 +17,7 @@ from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, encode, k
 from mapservice.core.ports import EventPublisher
 from mapservice.settings import Settings
 
-from .context import context_of
-
 PUBLISH_TIMEOUT_S = 10.0
-
-
-def get_publisher(request: Request) -> EventPublisher:
-    """The app's publisher, or a 503 saying how to configure one."""
-    publisher = context_of(request.app).publisher
-    if publisher is None:
-        raise HTTPException(
-            503,
-            "this API instance has no event publisher (Kafka) configured, "
-            "so it cannot accept writes; run it with MAPSERVICE_KAFKA_BOOTSTRAP "
-            "set (`mapservice api` / `mapservice serve`) or write via MQTT",
-        )
-    return publisher
 
 
 def topic_for(settings: Settings, envelope: Envelope) -> str:

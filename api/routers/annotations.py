@@ -44,26 +44,25 @@ from mapservice.core.zone_masks import (
 )
 from mapservice.settings import Settings
 
-from ..access import OPERATE, READ
+from ..access import READ
 from ..annotation_state import RecentEdits, standing
 from ..credentials import Caller
 from ..deps import (
     AnnotationsDep,
+    AtDep,
     ClockDep,
     HistoryDep,
+    OperatorCaller,
+    PublisherDep,
     RecentEditsDep,
     SettingsDep,
     WindowQuery,
-    at_instant,
 )
-from ..publishing import get_publisher, publish_and_wait
+from ..publishing import publish_and_wait
 
 router = APIRouter(prefix="/api/v1/annotations", tags=["annotations"])
 
 
-PublisherDep = Annotated[EventPublisher, Depends(get_publisher)]
-OperatorDep = Annotated[Caller, Depends(OPERATE)]
-AtDep = Annotated[int, Depends(at_instant)]
 IdPath = Annotated[str, Path(description="The annotation's id", max_length=100)]
 
 MAX_IMPORTED_ZONES = 5_000
@@ -264,7 +263,7 @@ def list_annotation_edits(
 async def create_annotation(
     recent: RecentEditsDep,
     body: AnnotationCreate,
-    caller: OperatorDep,
+    caller: OperatorCaller,
     store: AnnotationsDep,
     history: HistoryDep,
     settings: SettingsDep,
@@ -322,7 +321,7 @@ async def change_annotation(
     recent: RecentEditsDep,
     annotation_id: IdPath,
     body: AnnotationIn,
-    caller: OperatorDep,
+    caller: OperatorCaller,
     store: AnnotationsDep,
     history: HistoryDep,
     settings: SettingsDep,
@@ -356,7 +355,7 @@ async def change_annotation(
 async def remove_annotation(
     recent: RecentEditsDep,
     annotation_id: IdPath,
-    caller: OperatorDep,
+    caller: OperatorCaller,
     store: AnnotationsDep,
     settings: SettingsDep,
     clock: ClockDep,
@@ -382,7 +381,7 @@ async def remove_annotation(
 async def import_keep_out_mask(
     recent: RecentEditsDep,
     body: MaskImport,
-    caller: OperatorDep,
+    caller: OperatorCaller,
     history: HistoryDep,
     settings: SettingsDep,
     clock: ClockDep,

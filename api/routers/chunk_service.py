@@ -30,20 +30,28 @@ from mapservice.core.legacy_query import (
     select,
 )
 from mapservice.core.ports import (
-    Clock,
-    EventPublisher,
     LegacyQueries,
-    StoreAdmin,
     TimeTravelReader,
 )
 from mapservice.core.render import chunk_pixels, png
 from mapservice.core.wire2019 import Reason, Rejection, format_timestamp
 from mapservice.settings import Settings
 
-from ..access import ADMIN, READ, WRITE, require, require_robot
-from ..credentials import Caller, Scope
-from ..deps import get_clock, get_settings, history_reader, legacy_queries, store_admin
-from ..publishing import get_publisher, publish_and_wait
+from ..access import READ, require, require_robot
+from ..credentials import Scope
+from ..deps import (
+    AdminCaller,
+    AdminDep,
+    ClockDep,
+    HistoryDep,
+    LegacyDep,
+    PostedMetaDep,
+    PublisherDep,
+    SettingsDep,
+    WriterCaller,
+)
+from ..posted_meta import PostedMeta
+from ..publishing import publish_and_wait
 
 router = APIRouter(prefix="/api/chunk-service", tags=["2019 chunk service"])
 log = structlog.get_logger(__name__)
@@ -97,7 +105,7 @@ def _index_response(index: str, doc_type: str, doc_id: str) -> dict:
     dependencies=[Depends(READ)],
     responses={404: {"description": "no meta stored yet: POST one"}},
 )
-def get_meta(store: TimeTravelReader = Depends(history_reader)) -> dict:
+def get_meta(store: HistoryDep) -> dict:
     """The stored meta.json (listing 9)."""
     meta = store.latest_meta()
     if meta is None:
@@ -140,11 +148,12 @@ _META_BODY = {
 @router.post("/meta", operation_id="postLegacyMeta", openapi_extra=_META_BODY)
 async def post_meta(
     request: Request,
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
-    publisher: EventPublisher = Depends(get_publisher),
-    store: TimeTravelReader = Depends(history_reader),
-    caller: Caller = Depends(WRITE),
+    settings: SettingsDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
+    store: HistoryDep,
+    posted: PostedMetaDep,
+    caller: WriterCaller,
 ) -> dict:
     """Stores meta.json through the event path (a map.meta_set event on Kafka); the
     gateway validates chunks against it as soon as it has read it. A robot (writer token)
@@ -156,7 +165,7 @@ async def post_meta(
     meta = _intake(settings).map_meta(body)
     if isinstance(meta, Rejection):
         raise _refused(meta)
-    held = await run_in_threadpool(_meta_for_validation, request, store, now)
+    held = await run_in_threadpool(_meta_for_validation, store, posted, now)
     if held is not None:
         meta = _keeping_held_frame(meta, held)
         changed = _frame_change(held, meta)
@@ -169,7 +178,7 @@ async def post_meta(
             )
     envelope = make_envelope(META_ROBOT_ID, now, now, meta)
     await run_in_threadpool(publish_and_wait, publisher, settings, envelope)
-    request.app.state.posted_meta = (now, meta)
+    posted.published(now, meta)
     log.info(
         "map meta posted",
         rows=meta.chunk_rows,
@@ -183,8 +192,8 @@ async def post_meta(
 @router.delete("/meta", operation_id="deleteLegacyMeta")
 def delete_meta(
     request: Request,
-    caller: Caller = Depends(ADMIN),
-    store: StoreAdmin = Depends(store_admin),
+    caller: AdminCaller,
+    store: AdminDep,
 ) -> dict:
     """Administrative: deletes the stored meta (needs the admin bearer token)."""
     removed = store.delete_meta()
@@ -198,9 +207,6 @@ def delete_meta(
 
 
 # --- chunks ----------------------------------------------------------------------------
-
-
-POSTED_META_GRACE_MS = 60_000
 
 
 # The map's frame: its size, its chunk grid, and where its pixels lie on the floor
@@ -247,15 +253,11 @@ def _shown(value: object) -> str:
 
 
 def _meta_for_validation(
-    request: Request, store: TimeTravelReader, now_ms: int
+    store: TimeTravelReader, posted: PostedMeta, now_ms: int
 ) -> MapMetaSet | None:
     """The stored meta, or one this API instance has just published and the processors
     have not stored yet: a robot POSTs its meta and then its chunks at once (A.1.1)."""
-    stored = store.latest_meta()
-    posted_at, posted = getattr(request.app.state, "posted_meta", None) or (None, None)
-    if posted is None or stored == posted or now_ms - posted_at > POSTED_META_GRACE_MS:
-        return stored
-    return posted
+    return posted.for_validation(store.latest_meta(), now_ms)
 
 
 @router.post(
@@ -280,17 +282,18 @@ def _meta_for_validation(
 )
 async def post_chunk(
     request: Request,
-    caller: Caller = Depends(WRITE),
-    settings: Settings = Depends(get_settings),
-    store: TimeTravelReader = Depends(history_reader),
-    clock: Clock = Depends(get_clock),
-    publisher: EventPublisher = Depends(get_publisher),
+    caller: WriterCaller,
+    settings: SettingsDep,
+    store: HistoryDep,
+    posted: PostedMetaDep,
+    clock: ClockDep,
+    publisher: PublisherDep,
 ) -> dict:
     """Listing 10 in, listing 11 out: validated by the same intake as an MQTT
     iot/chunks/create message and written to Kafka like one."""
     body = await _read_body(request, settings.max_message_bytes)
     now = clock.now_ms()
-    meta = await run_in_threadpool(_meta_for_validation, request, store, now)
+    meta = await run_in_threadpool(_meta_for_validation, store, posted, now)
     result = _intake(settings, meta).chunk(body, now)
     if isinstance(result, Rejection):
         raise _refused(result)
@@ -339,6 +342,10 @@ def _query_params(request: Request) -> dict[str, str]:
 )
 def list_chunks(
     request: Request,
+    store: LegacyDep,
+    history: HistoryDep,
+    settings: SettingsDep,
+    clock: ClockDep,
     row: str | None = Query(None, description="chunk row (number)"),
     column: str | None = Query(None, description="chunk column (number)"),
     timestamp: str | None = Query(None, description="exact write time (UTC ISO or epoch ms)"),
@@ -357,10 +364,6 @@ def list_chunks(
     limit: str | None = Query(None, description=f"default 10, at most {MAX_LIMIT}"),
     skip: str | None = Query(None, description="default 0; skip + limit at most 10000"),
     robotId: str | None = Query(None),
-    store: LegacyQueries = Depends(legacy_queries),
-    history: TimeTravelReader = Depends(history_reader),
-    settings: Settings = Depends(get_settings),
-    clock: Clock = Depends(get_clock),
 ) -> JSONResponse:
     """Listing 12: chunk writes; `latest=true&updatedBefore=T` is the map at T, read from
     the nearest snapshot plus the events after it."""
@@ -379,8 +382,8 @@ def list_chunks(
 @router.delete("/chunks", operation_id="deleteLegacyChunks")
 def delete_chunks(
     request: Request,
-    caller: Caller = Depends(ADMIN),
-    store: StoreAdmin = Depends(store_admin),
+    caller: AdminCaller,
+    store: AdminDep,
 ) -> dict:
     """Administrative: deletes every stored chunk write (needs the admin bearer token)."""
     removed = store.delete_chunks()
@@ -416,8 +419,8 @@ def _chunk_by_id(chunk_id_: str, store: LegacyQueries):
 )
 def get_chunk(
     chunk_id: str,
-    store: LegacyQueries = Depends(legacy_queries),
-    history: TimeTravelReader = Depends(history_reader),
+    store: LegacyDep,
+    history: HistoryDep,
 ) -> JSONResponse:
     """Listing 13: one chunk by the id POST /chunks answered with."""
     row = _chunk_by_id(chunk_id, store)
@@ -432,8 +435,8 @@ def get_chunk(
 )
 def get_chunk_png(
     chunk_id: str,
-    store: LegacyQueries = Depends(legacy_queries),
-    history: TimeTravelReader = Depends(history_reader),
+    store: LegacyDep,
+    history: HistoryDep,
 ) -> Response:
     """The chunk as a greyscale PNG."""
     row = _chunk_by_id(chunk_id, store)

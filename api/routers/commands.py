@@ -28,18 +28,24 @@ from mapservice.core.commands import (
     vda_refusal,
 )
 from mapservice.core.events import make_envelope
-from mapservice.core.ports import AnnotationReader, EventPublisher
+from mapservice.core.ports import AnnotationReader
 from mapservice.core.vda_ids import vehicle_of
 
-from ..access import OPERATE, READ
-from ..credentials import Caller
-from ..deps import AnnotationsDep, ClockDep, CommandsDep, HistoryDep, SettingsDep, WindowQuery
-from ..publishing import get_publisher, publish_and_wait
+from ..access import READ
+from ..deps import (
+    AnnotationsDep,
+    ClockDep,
+    CommandsDep,
+    HistoryDep,
+    OperatorCaller,
+    PublisherDep,
+    SettingsDep,
+    WindowQuery,
+)
+from ..publishing import publish_and_wait
 
 router = APIRouter(prefix="/api/v1/commands", tags=["commands"])
 
-PublisherDep = Annotated[EventPublisher, Depends(get_publisher)]
-OperatorDep = Annotated[Caller, Depends(OPERATE)]
 ROBOT_ID = r"^[A-Za-z0-9_.:@-]{1,64}$"  # the 2019 robotId rule
 
 
@@ -141,7 +147,7 @@ def _poi(store: AnnotationReader, poi_id: str, now_ms: int) -> PointOfInterest:
 @router.post("", operation_id="sendCommand", response_model=CommandOut, status_code=202)
 async def send_command(
     body: CommandIn,
-    caller: OperatorDep,
+    caller: OperatorCaller,
     history: HistoryDep,
     annotations: AnnotationsDep,
     settings: SettingsDep,

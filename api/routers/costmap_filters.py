@@ -36,14 +36,13 @@ from mapservice.core.zone_masks import (
 
 from ..access import READ
 from ..annotation_state import RecentEdits, standing
-from ..deps import AnnotationsDep, HistoryDep, RecentEditsDep, at_instant
+from ..deps import AnnotationsDep, AtDep, HistoryDep, RecentEditsDep
 
 router = APIRouter(
     prefix="/api/v1/costmap-filters", tags=["annotations"], dependencies=[Depends(READ)]
 )
 
 
-AtDep = Annotated[int, Depends(at_instant)]
 FilterPath = Annotated[Literal["keepout", "speed"], Path(description="keepout or speed")]
 UnitQuery = Annotated[
     Literal["percent", "m/s"],

@@ -12,7 +12,7 @@ from mapservice.core.render import png, stitch
 from mapservice.core.wire2019 import format_timestamps
 
 from ..access import READ
-from ..deps import HistoryDep, at_instant
+from ..deps import AtDep, HistoryDep
 
 router = APIRouter(prefix="/api/v1/map", tags=["map"], dependencies=[Depends(READ)])
 _json = msgspec.json.Encoder()
@@ -47,7 +47,7 @@ COMPACT_FIELDS = ("row", "column", "ts_ms", "robotId", "content_hash")
     "and parse (the replay UI asks for it on every seek).",
 )
 def get_map_at(
-    at_ms: int = Depends(at_instant),
+    at_ms: AtDep,
     layout: Literal["rows", "compact"] = Query("rows", description="rows or compact"),
     *,
     store: HistoryDep,
@@ -82,7 +82,7 @@ def get_map_at(
 
 @router.get("/png", operation_id="getMapPngAt", responses={200: {"content": {"image/png": {}}}})
 def get_map_png_at(
-    at_ms: int = Depends(at_instant),
+    at_ms: AtDep,
     scale: float = Query(1.0, gt=0, le=4, description="Image scale (nearest neighbour)"),
     *,
     store: HistoryDep,

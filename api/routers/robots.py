@@ -9,7 +9,7 @@ from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
 from mapservice.core.wire2019 import format_timestamp
 
 from ..access import READ
-from ..deps import HistoryDep, SettingsDep, at_instant
+from ..deps import AtDep, HistoryDep, SettingsDep
 from .poses import Pose
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
@@ -34,7 +34,7 @@ MAX_PAGE = 10_000
 
 @router.get("", operation_id="getRobotsAt", response_model=RobotsAt)
 def get_robots_at(
-    at_ms: int = Depends(at_instant),
+    at_ms: AtDep,
     limit: int = Query(
         MAX_PAGE,
         ge=1,
