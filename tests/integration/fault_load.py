@@ -96,9 +96,9 @@ class Load:
             sent.acknowledged = True
 
     def _publish(
-        self, kind: str, topic: str, payload: bytes, key: tuple, content: str = ""
+        self, kind: str, segment: str, topic: str, payload: bytes, key: tuple, content: str = ""
     ) -> None:
-        sent = Sent(kind, key, self.segment, now_ms(), content)
+        sent = Sent(kind, key, segment, now_ms(), content)
         info = self.client.publish(topic, payload, qos=1)
         with self._lock:
             self.sent.append(sent)
@@ -116,11 +116,16 @@ class Load:
             next_at += POSE_PERIOD_S / ROBOTS
             self._stop.wait(max(0.0, next_at - time.monotonic()))
             i = n % ROBOTS
-            robot = f"{self.segment}-{i}"
+            # Read once per tick: the test switches segments from its own thread, and a
+            # message counted in one segment under another segment's robot is looked for
+            # among the wrong robots by that segment's wait (never found: "not caught up").
+            segment = self.segment
+            robot = f"{segment}-{i}"
             ts = max(now_ms(), last_ts.get(robot, 0) + 1)
             last_ts[robot] = ts
             self._publish(
                 "pose",
+                segment,
                 f"iot/coordinates/{robot}",
                 encode_coordinates(
                     robot,
@@ -139,6 +144,7 @@ class Load:
                 shade = k % len(self.shades)
                 self._publish(
                     "chunk",
+                    segment,
                     "iot/chunks/create",
                     encode_chunk_create(row, col, self.shades[shade], format_timestamp(ts), robot),
                     (row, col, robot, ts),

@@ -286,3 +286,61 @@ def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) 
         )
     assert "CONNECTIONBROKEN" in page.get_by_test_id("details-online").inner_text()
     assert not page.errors
+
+
+def test_the_details_agree_with_the_fleet_row_before_the_vehicle_s_own_facts_arrive(
+    page, history_stack
+) -> None:
+    """The details read the selected vehicle's facts apart from the fleet row's; until they
+    arrive (here: never, the request fails) the details show the fleet's exact connection
+    state, not "online" from the pose silence beside a row that says "offline (broken)"."""
+    stack = history_stack
+    v, m, s = "2.1.0", "Acme", "ui-late"
+    rid = robot_id_for(m, s)
+    open_at(page, stack, "?live=1")
+    ox, oy = page.evaluate("() => window.__replay.meta")["origin"][:2]
+    client = make_client(f"vda-{m}-{s}-{now_ms()}")
+    base = f"uagv/v2/{m}/{s}"
+    client.will_set(
+        f"{base}/connection",
+        vda.encode(vda.connection(v, m, s, now_ms(), "CONNECTIONBROKEN")),
+        qos=1,
+        retain=True,
+    )
+    client.connect("127.0.0.1", stack.mqtt_port)
+    client.loop_start()
+    for sub, msg in (
+        ("connection", vda.connection(v, m, s, now_ms(), "ONLINE")),
+        ("state", vda.state(v, m, s, now_ms(), x=ox + 16.0, y=oy + 9.0, errors=())),
+    ):
+        client.publish(f"{base}/{sub}", vda.encode(msg), qos=1).wait_for_publish(10)
+    client.loop_stop()
+    client.socket().close()  # the broker publishes the last will
+    deadline = time.monotonic() + 60
+    while True:
+        facts = httpx.get(f"{stack.api_url}/api/v1/robots/{rid}/vda5050", timeout=30).json()
+        if [c["state"] for c in facts["connections"]] == ["ONLINE", "CONNECTIONBROKEN"]:
+            break
+        assert time.monotonic() < deadline, facts
+        time.sleep(0.5)
+    broke = facts["connections"][1]["ts_ms"]
+
+    own = f"/api/v1/robots/{rid.replace(':', '%3A')}/vda5050"
+    refused = []
+
+    def refuse(route) -> None:
+        refused.append(route.request.url)
+        route.abort()
+
+    page.goto("about:blank")
+    page.route(lambda url: own in url, refuse)
+    span = f"{iso(broke - 60_000)},{iso(broke + 60_000)}"
+    open_at(page, stack, f"?t={broke}&sel={rid}&panels=fleet&span={span}")
+    page.wait_for_function(
+        "(id) => document.querySelector(`[data-testid=fleet-row][data-robot='${id}'] "
+        "[data-testid=fleet-online]`)?.innerText === 'offline (broken)'",
+        arg=rid,
+        timeout=TIMEOUT_MS,
+    )
+    assert refused, "the page never asked for the vehicle's own facts"
+    assert "CONNECTIONBROKEN" in page.get_by_test_id("details-online").inner_text()

@@ -2,7 +2,7 @@
  * The replay page's VDA 5050 facts: the timeline span's error onsets (marks), the fleet's
  * facts of the hour before the playhead (each row's current errors; online/offline from
  * the exact connection states where one is in that hour, else the pose silence), and the
- * selected vehicle's facts with its factsheet. Each read at most every 2 s of playhead.
+ * selected vehicle's facts with its factsheet (the fleet's until its own are read). Each read at most every 2 s of playhead.
  */
 import { ref, shallowRef } from "vue";
 import type { FleetRow } from "../lib/fleet";
@@ -82,5 +82,13 @@ export function useVdaFacts(base: () => string) {
     return rows;
   }
 
-  return { marks, selected, loadMarks, loadSelected, decorate };
+  /** What the details of `robotId` show: its own facts once read, until then the fleet's
+   * (the same hour before the playhead), so that the details never say "online" from the
+   * pose silence while its fleet row already shows the exact connection state. */
+  function factsOf(robotId: string): VdaVehicle | null {
+    const own = selected.value;
+    return own && own.robotId === robotId ? own : (fleet.value.get(robotId) ?? null);
+  }
+
+  return { marks, selected, loadMarks, loadSelected, decorate, factsOf };
 }
