@@ -150,18 +150,20 @@ class ClickHouseConnection:
 
     @contextmanager
     def _reader(self):
-        """The read client, held for one read."""
-        with self._read_lock:
+        """The read client, held for one read. A read that meets a part a full disk cut
+        short reloads its table as a write does (after the read client is released)."""
+        with self._reloading_broken_tables(), self._read_lock:
             if self._read_client is None:
                 self._read_client = self._connect()
             yield self._read_client
 
     @contextmanager
     def _reloading_broken_tables(self):
-        """Around a write with the writer client: when it fails because chDB cannot read a
-        part (one a full disk cut short), reloads the tables the error names, so that the
-        caller's retry finds the part set aside (broken_parts.py). The failure is raised
-        still: the caller records it and retries. A ClickHouse server is left alone."""
+        """Around a write or a read: when it fails because chDB cannot read a part (one a
+        full disk cut short), reloads the tables the error names with the writer client,
+        so that the caller's retry finds the part set aside (broken_parts.py). The failure
+        is raised still: the caller records it and retries. A ClickHouse server is left
+        alone."""
         try:
             yield
         except Exception as exc:

@@ -101,6 +101,29 @@ def test_a_merged_part_cut_short_is_set_aside_and_its_sources_restored(
         store.close()
 
 
+@pytest.mark.parametrize("which", ["marks", "every file"])
+def test_a_read_that_meets_a_cut_short_part_recovers_it_too(chdb_dir, ev, t0, which) -> None:
+    """The API's reads fail on the part once; the next read answers every pose (a part
+    no insert re-reads would otherwise fail every read of its time range)."""
+    store = clickhouse_store(chdb_dir)
+    try:
+        store.migrate()
+        sent = batches(ev, t0)
+        for batch in sent:
+            store.append_events(batch)
+        cut_short(merged_poses_part(store), which)
+        window = (t0, t0 + BATCHES * 1000)
+        with pytest.raises(Exception) as failed:
+            store.poses(*window, limit=10_000)
+        assert code_of(failed.value) in BROKEN_PART_CODES, failed.value
+        got = store.poses(*window, limit=10_000)
+        assert sorted((p.robot_id, p.ts_ms) for p in got) == sorted(
+            (e.robot_id, e.event_time_ms) for batch in sent for e in batch
+        )
+    finally:
+        store.close()
+
+
 def test_chdb_tables_keep_a_merges_sources_for_minutes(chdb_dir) -> None:
     """chDB's default removes a merge's sources at once; every MergeTree table of a
     migrated store keeps them 480 s, the time to restore them from a broken merged part."""
