@@ -16,8 +16,13 @@ from contextlib import contextmanager
 
 import clickhouse_connect
 import msgspec
+import structlog
 
 from mapservice.core.ports import PoseRow
+
+from .broken_parts import BrokenPartRecovery
+
+log = structlog.get_logger(__name__)
 
 _json = msgspec.json.Encoder()
 _BOOLISH = msgspec.json.Decoder(bool | str | None)
@@ -113,6 +118,8 @@ class ClickHouseConnection:
     timeout_s: float
     _read_lock: threading.Lock
     _insert_contexts: dict[tuple[str, tuple[str, ...]], object]
+    # Created on the first failed write to chDB (broken_parts.py); kept for its cooldowns.
+    _broken_parts: BrokenPartRecovery | None = None
 
     def _connect(self):
         if self.dsn.startswith("chdb://"):
@@ -143,20 +150,49 @@ class ClickHouseConnection:
 
     @contextmanager
     def _reader(self):
-        """The read client, held for one read."""
-        with self._read_lock:
+        """The read client, held for one read. A read that meets a part a full disk cut
+        short reloads its table as a write does (after the read client is released)."""
+        with self._reloading_broken_tables(), self._read_lock:
             if self._read_client is None:
                 self._read_client = self._connect()
             yield self._read_client
 
+    @contextmanager
+    def _reloading_broken_tables(self):
+        """Around a write or a read: when it fails because chDB cannot read a part (one a
+        full disk cut short), reloads the tables the error names with the writer client,
+        so that the caller's retry finds the part set aside (broken_parts.py). The failure
+        is raised still: the caller records it and retries. A ClickHouse server is left
+        alone."""
+        try:
+            yield
+        except Exception as exc:
+            if self.dsn.startswith("chdb://"):
+                with self._lock:
+                    if self._broken_parts is None:
+                        self._broken_parts = BrokenPartRecovery(
+                            self.database,
+                            lambda sql: self.client.command(sql),
+                            lambda sql: self.client.query(sql).result_rows,
+                        )
+                    try:
+                        if self._broken_parts.after_failure(exc):
+                            self._insert_contexts.clear()  # they name the tables reloaded
+                    except Exception as failed:  # noqa: BLE001 - the write's error is the one to raise
+                        log.error("reloading tables with broken parts failed", error=str(failed))
+            raise
+
     def _insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
         """Inserts `rows` into `table` of the database with the writer client (under `_lock`)."""
         key = (table, tuple(columns))
-        context = self._insert_contexts.get(key)
-        if context is None:
-            context = self.client.create_insert_context(f"{self.database}.{table}", list(columns))
-            self._insert_contexts[key] = context
-        self.client.insert(data=rows, context=context)
+        with self._reloading_broken_tables():
+            context = self._insert_contexts.get(key)
+            if context is None:
+                context = self.client.create_insert_context(
+                    f"{self.database}.{table}", list(columns)
+                )
+                self._insert_contexts[key] = context
+            self.client.insert(data=rows, context=context)
 
     def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
         with self._reader() as c:

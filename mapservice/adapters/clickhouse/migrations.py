@@ -15,6 +15,7 @@ import time
 import clickhouse_connect.driver.exceptions
 import structlog
 
+from mapservice.adapters.clickhouse.broken_parts import keep_merged_sources
 from mapservice.adapters.clickhouse.cluster import for_cluster
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.adapters.clickhouse.schema import checksums, migrations
@@ -104,6 +105,7 @@ class MigrationsMixin(ClickHouseConnection):
             finally:
                 ddl(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
             self._insert_contexts.clear()  # column types may have changed
+            keep_merged_sources(db, ddl, lambda sql: c.query(sql).result_rows)
             return version
 
     def _ddl(self, statement: str) -> None:

@@ -88,10 +88,11 @@ class WritesMixin(SnapshotsMixin):
             f"(ts >= fromUnixTimestamp64Milli({int(lo)}) AND ts <= fromUnixTimestamp64Milli({int(hi)}))"
             for lo, hi in spans
         )
-        self.client.command(
-            f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) "
-            f"SELECT {POSE_COLUMNS} FROM {db}.poses WHERE {within}"
-        )
+        with self._reloading_broken_tables():  # the re-read meets a part a full disk broke
+            self.client.command(
+                f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) "
+                f"SELECT {POSE_COLUMNS} FROM {db}.poses WHERE {within}"
+            )
 
     def derive_views_between(self, from_ms: int, to_ms: int) -> None:
         """derive_views for every pose stored with from_ms <= event time <= to_ms, read
