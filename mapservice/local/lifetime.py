@@ -80,7 +80,8 @@ def private_files() -> None:
 
 def die_with_parent() -> None:
     """A `preexec_fn`: as private_files, and the child gets SIGTERM when the process that
-    started it dies."""
+    started it dies. Only from a process's main thread: Linux sends the signal when the
+    thread that forked the child ends, which for another thread is long before the process."""
     os.umask(0o077)
     if _PRCTL is not None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)

@@ -164,6 +164,11 @@ class Stack(StackMqtt, StackEnv):
         """The guard that stops the components in order when this process dies, and what
         this process starts from now on marked as its own (a component it dies while
         starting is in no record yet: the guard finds it by the mark)."""
+        if threading.current_thread() is not threading.main_thread():
+            # Linux sends the parent-death signal when the *thread* that forked the guard
+            # ends, not the process: a guard started on a start thread would stop
+            # everything as soon as that thread is done.
+            raise RuntimeError("the guard must be started from the main thread")
         mark = lifetime.mark_children()
         self.guard = subprocess.Popen(
             [
