@@ -87,6 +87,15 @@ def die_with_parent() -> None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
 
 
+def guard_preexec() -> None:
+    """The guard's `preexec_fn`: as die_with_parent, with SIGTERM ignored until the guard
+    has its handler (an ignored signal stays ignored across exec): `up` killed while the
+    guard's interpreter starts would otherwise end the guard before it acted. A signal
+    lost that way is made up for by the guard's look at its parent."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    die_with_parent()
+
+
 def start_time(pid: int) -> int | None:
     """The process's start time in clock ticks since boot (/proc/<pid>/stat field 22), None
     when it does not run (or is a zombie: it runs nothing any more)."""
@@ -256,7 +265,7 @@ def guard(pid_file: Path, parent: int, mark: str, passes: int = 5) -> None:
     signal.signal(signal.SIGTERM, lambda *_: died.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is `up`'s to act on
     while not died.wait(1.0):
-        if os.getppid() != parent:  # `up` died before the signal was set
+        if os.getppid() != parent:  # `up` died before the signal was set, or was ignored
             break
     record = PidFile(pid_file)
     end(record.unrecorded(mark) + record.running_components())

@@ -183,7 +183,7 @@ class Stack(StackMqtt, StackEnv):
             stdout=self._log("guard"),
             stderr=subprocess.STDOUT,
             start_new_session=True,
-            preexec_fn=lifetime.die_with_parent,
+            preexec_fn=lifetime.guard_preexec,
         )
         self._record()
 

@@ -142,7 +142,7 @@ def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
         "for proc in procs.values(): proc.stdout.readline()\n"
         "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
         " str(pid_file.path), str(os.getpid()), lifetime.mark_children()],"
-        " start_new_session=True, preexec_fn=lifetime.die_with_parent)\n"
+        " start_new_session=True, preexec_fn=lifetime.guard_preexec)\n"
         "pids = {name: p.pid for name, p in procs.items()}\n"
         "pids['guard'] = guard.pid\n"
         "pid_file.write(pids)\n"
@@ -173,7 +173,7 @@ UNRECORDED_UP = (
     "mark = lifetime.mark_children()\n"
     "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
     " str(pid_file.path), str(os.getpid()), mark], start_new_session=True,"
-    " preexec_fn=lifetime.die_with_parent)\n"
+    " preexec_fn=lifetime.guard_preexec)\n"
     "components = [subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'],"
     " start_new_session=True) for _ in range(3)]\n"
     "recorded = int(sys.argv[2])\n"
@@ -196,22 +196,26 @@ def start_unrecorded_up(tmp_path, recorded: int) -> tuple[subprocess.Popen, int,
 
 def test_the_guard_ends_components_up_started_and_had_not_recorded_when_killed(tmp_path):
     """`up` is killed after starting components it had not recorded yet (0, 1 or 2 of the
-    three recorded: as if killed between a start and its record, on any start thread): the
-    guard ends every one of them, found by `up`'s mark."""
+    three recorded: as if killed between a start and its record, on any start thread), at
+    once (the guard's interpreter still starting) or once the guard waits: the guard ends
+    every one of them, found by `up`'s mark."""
     for recorded in range(3):
-        data_dir = tmp_path / str(recorded)
-        up, guard, components = start_unrecorded_up(data_dir, recorded)
-        try:
-            time.sleep(1.5)  # the guard has installed its signal handler
-            up.kill()
-            up.wait()
-            survivors = [pid for pid in components if not wait_gone(pid, 20)]
-            assert not survivors, f"{recorded} of 3 recorded: {survivors} outlived up"
-            assert wait_gone(guard, 10)
-        finally:
-            for pid in (guard, *components):
-                if lifetime.start_time(pid) is not None:
-                    os.kill(pid, signal.SIGKILL)
+        for pause_s in (0.0, 1.5):
+            data_dir = tmp_path / f"{recorded}-{pause_s}"
+            up, guard, components = start_unrecorded_up(data_dir, recorded)
+            try:
+                time.sleep(pause_s)
+                up.kill()
+                up.wait()
+                survivors = [pid for pid in components if not wait_gone(pid, 20)]
+                assert not survivors, (
+                    f"{recorded} of 3 recorded, killed after {pause_s} s: {survivors} outlived up"
+                )
+                assert wait_gone(guard, 10)
+            finally:
+                for pid in (guard, *components):
+                    if lifetime.start_time(pid) is not None:
+                        os.kill(pid, signal.SIGKILL)
 
 
 def test_the_next_up_ends_unrecorded_components_of_a_dead_up_whose_guard_died_too(tmp_path):
