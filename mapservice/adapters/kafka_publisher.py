@@ -39,7 +39,9 @@ MESSAGE_TIMEOUT_MS = 10_000
 RENEW_INTERVAL_S = 10.0
 
 
-def producer_config(settings: Settings, client_id: str) -> dict[str, Any]:
+def producer_config(
+    settings: Settings, client_id: str, message_timeout_ms: int = MESSAGE_TIMEOUT_MS
+) -> dict[str, Any]:
     return logged(
         {
             **settings.kafka_config(),
@@ -53,7 +55,7 @@ def producer_config(settings: Settings, client_id: str) -> dict[str, Any]:
             "compression.type": "none",  # aiokafka (faust) lacks lz4 without extras; chunks are zlib already
             # Same partition for the same key as faust/aiokafka producers.
             "partitioner": "murmur2_random",
-            "message.timeout.ms": MESSAGE_TIMEOUT_MS,
+            "message.timeout.ms": message_timeout_ms,
         }
     )
 
@@ -68,12 +70,17 @@ class KafkaPublisher:
     dials Kafka, nor logs that it cannot reach it)."""
 
     def __init__(
-        self, settings: Settings, client_id: str, renew_interval_s: float = RENEW_INTERVAL_S
+        self,
+        settings: Settings,
+        client_id: str,
+        renew_interval_s: float = RENEW_INTERVAL_S,
+        message_timeout_ms: int = MESSAGE_TIMEOUT_MS,
     ) -> None:
-        self._config = producer_config(settings, client_id)
+        self._config = producer_config(settings, client_id, message_timeout_ms)
         self._producer: Producer | None = None
         self._retiring: list[Producer] = []  # renewed ones: purged, polled until they are empty
         self._purged: set[int] = set()  # ids of retiring producers already purged
+        self._error_reports: dict[int, _ErrorReport] = {}  # by id of their producer
         self._renew_interval_s = renew_interval_s
         self._renewed_at = -math.inf
         self._lock = threading.Lock()
@@ -89,12 +96,11 @@ class KafkaPublisher:
             if self._closed:
                 raise RuntimeError("the Kafka publisher is closed: make a new one to publish")
             if self._producer is None:
-                made: list[Producer] = []
                 # Without an error_cb, librdkafka's fatal error is raised out of poll().
-                made.append(
-                    Producer({**self._config, "error_cb": lambda err: self._on_error(made[0], err)})
-                )
-                self._producer = made[0]
+                report = _ErrorReport(self._on_error)
+                producer = report.producer = Producer({**self._config, "error_cb": report})
+                self._error_reports[id(producer)] = report
+                self._producer = producer
             return self._producer
 
     def _on_error(self, producer: Producer, err: KafkaError) -> None:
@@ -157,6 +163,7 @@ class KafkaPublisher:
                 with self._lock:
                     self._retiring.remove(old)
                     self._purged.discard(id(old))
+                self._release(old)
 
     def poll(self, timeout: float) -> None:
         if self._retiring:
@@ -192,8 +199,31 @@ class KafkaPublisher:
             purged += len(producer)
             producer.purge(in_queue=True, in_flight=True, blocking=False)
             _poll(producer, 0)
-            producer.close()
+            self._release(producer)
         return purged
+
+    def _release(self, producer: Producer) -> None:
+        """Closes a producer that holds nothing any more, now: left to its last reference,
+        its threads went on dialling the brokers (the whole outage long, when they are
+        gone), as the cycle through its error callback is freed by the cyclic collector
+        only, which a process allocating little (a gateway without brokers) seldom runs."""
+        report = self._error_reports.pop(id(producer), None)
+        if report is not None:
+            report.producer = None  # the cycle broken, whatever close() leaves
+        producer.close()
+
+
+class _ErrorReport:
+    """A producer's error_cb: passes librdkafka's errors on with the producer they are
+    about, until that producer is released."""
+
+    def __init__(self, on_error: Callable[[Producer, KafkaError], None]) -> None:
+        self.on_error = on_error
+        self.producer: Producer | None = None
+
+    def __call__(self, err: KafkaError) -> None:
+        if self.producer is not None:
+            self.on_error(self.producer, err)
 
 
 def _fatal(err: KafkaError) -> bool:

@@ -13,7 +13,12 @@ then stops them in order). So that a `kill -9` of `up` does not leave them runni
 - the next `up` on that data dir ends whatever the record names that still runs (the guard
   killed too, a machine where the signal cannot be set), in the same order, by recorded
   process group only, and only a process whose start time and command line are still the
-  recorded ones (a reused pid is someone else's).
+  recorded ones (a reused pid is someone else's);
+- a process is recorded only once started, so one that `up` (or a start thread of it)
+  had just forked when it died is in no record: every process `up` starts carries `up`'s
+  mark in its environment (MARK_ENV: `up`'s pid and start time, which no other process
+  shares), and the guard and the next `up` also end the processes that carry the dead
+  `up`'s mark and are not recorded, first (they were just starting: nothing in flight).
 """
 
 from __future__ import annotations
@@ -31,8 +36,23 @@ from pathlib import Path
 PR_SET_PDEATHSIG = 1  # <linux/prctl.h>
 PID_FILE = "up.pids.json"
 GUARD = "guard"
+# A process carrying the mark of a dead `up` that its record does not name: it was being
+# started when `up` died.
+UNRECORDED = "unrecorded"
+MARK_ENV = "MAPSERVICE_UP_MARK"
 # Stack.stop's order: who feeds a broker stops before it, the brokers last.
-STOP_ORDER = (GUARD, "sim", "gateway", "server", "api", "processors", "clickhouse", "mqtt", "kafka")
+STOP_ORDER = (
+    GUARD,
+    UNRECORDED,
+    "sim",
+    "gateway",
+    "server",
+    "api",
+    "processors",
+    "clickhouse",
+    "mqtt",
+    "kafka",
+)
 
 
 def stop_rank(name: str) -> int:
@@ -60,10 +80,20 @@ def private_files() -> None:
 
 def die_with_parent() -> None:
     """A `preexec_fn`: as private_files, and the child gets SIGTERM when the process that
-    started it dies."""
+    started it dies. Only from a process's main thread: Linux sends the signal when the
+    thread that forked the child ends, which for another thread is long before the process."""
     os.umask(0o077)
     if _PRCTL is not None:
         _PRCTL(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
+def guard_preexec() -> None:
+    """The guard's `preexec_fn`: as die_with_parent, with SIGTERM ignored until the guard
+    has its handler (an ignored signal stays ignored across exec): `up` killed while the
+    guard's interpreter starts would otherwise end the guard before it acted. A signal
+    lost that way is made up for by the guard's look at its parent."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    die_with_parent()
 
 
 def start_time(pid: int) -> int | None:
@@ -77,6 +107,39 @@ def start_time(pid: int) -> int | None:
     if fields[0] == "Z":
         return None
     return int(fields[19])
+
+
+def mark_of(pid: int, start: int | None) -> str:
+    """The mark of the `up` with this pid and start time (MARK_ENV's value)."""
+    return f"{pid}:{start}"
+
+
+def mark_children() -> str:
+    """Every process this one starts from now on carries its mark (MARK_ENV); returns it.
+    Through the environment, so also what is started without an environment of its own
+    (the brokers inherit this process's)."""
+    mark = mark_of(os.getpid(), start_time(os.getpid()))
+    os.environ[MARK_ENV] = mark
+    return mark
+
+
+def marked(mark: str, variable: str = MARK_ENV) -> list[int]:
+    """The pids of the processes (of this user: others' environments are not readable)
+    whose environment sets `variable` to `mark`. A child forked and not yet executing its
+    program shows its parent's environment as it was at the parent's start: found once it
+    runs."""
+    needle = f"\0{variable}={mark}\0".encode()
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            environ = b"\0" + (entry / "environ").read_bytes()
+        except OSError:  # gone meanwhile, or another user's
+            continue
+        if needle in environ:
+            pids.append(int(entry.name))
+    return pids
 
 
 def command_line(pid: int) -> list[str]:
@@ -150,13 +213,24 @@ class PidFile:
         return up if up is not None and up.pid != os.getpid() and up.still_running() else None
 
     def leftovers(self) -> list[Recorded]:
-        """Recorded components still running although their `up` does not."""
-        if self.running_up() is not None:
+        """Components still running although their `up` does not: recorded ones, and those
+        carrying its mark that were being started when it died."""
+        up, _ = self._read()
+        if up is None or self.running_up() is not None:
             return []
-        return self.running_components()
+        return self.unrecorded(mark_of(up.pid, up.start)) + self.running_components()
 
     def running_components(self) -> list[Recorded]:
         return [r for r in self._read()[1] if r.still_running() and r.pid != os.getpid()]
+
+    def unrecorded(self, mark: str) -> list[Recorded]:
+        """The processes carrying `mark` that the record does not name (nor this process)."""
+        recorded = {r.pid for r in self._read()[1]}
+        return [
+            Recorded.of(UNRECORDED, pid)
+            for pid in marked(mark)
+            if pid not in recorded and pid != os.getpid()
+        ]
 
 
 def end(leftovers: list[Recorded], timeout_s: float = 10.0) -> None:
@@ -181,17 +255,26 @@ def _wait_gone(process: Recorded, timeout_s: float) -> None:
         time.sleep(0.05)
 
 
-def guard(pid_file: Path, parent: int) -> None:
+def guard(pid_file: Path, parent: int, mark: str, passes: int = 5) -> None:
     """The guard's life: wait for SIGTERM (its parent `up` died: the parent-death signal),
-    then end what the pid file names, in order. `up` itself ends the guard with SIGKILL
-    when it stops its components itself."""
+    then end what `up` started, in order: what the pid file names, and what carries `up`'s
+    `mark` unrecorded. Again while unrecorded ones turn up (a child forked just before `up`
+    died shows the mark only once it runs its program), at most `passes` times. `up`
+    ends the guard with SIGKILL after it stopped its components itself."""
     died = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: died.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is `up`'s to act on
     while not died.wait(1.0):
-        if os.getppid() != parent:  # `up` died before the signal was set
+        if os.getppid() != parent:  # `up` died before the signal was set, or was ignored
             break
-    end(PidFile(pid_file).running_components())
+    record = PidFile(pid_file)
+    end(record.unrecorded(mark) + record.running_components())
+    for _ in range(passes):
+        time.sleep(0.2)
+        unrecorded = record.unrecorded(mark)
+        if not unrecorded:
+            break
+        end(unrecorded)
 
 
 def _signal_group(process: Recorded, sig: int) -> None:
@@ -213,6 +296,6 @@ def _from_json(d: dict) -> Recorded:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 4 or sys.argv[1] != GUARD:
-        sys.exit("usage: python -m mapservice.local.lifetime guard PID_FILE PARENT_PID")
-    guard(Path(sys.argv[2]), int(sys.argv[3]))
+    if len(sys.argv) != 5 or sys.argv[1] != GUARD:
+        sys.exit("usage: python -m mapservice.local.lifetime guard PID_FILE PARENT_PID MARK")
+    guard(Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4])

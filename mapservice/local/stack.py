@@ -161,7 +161,15 @@ class Stack(StackMqtt, StackEnv):
         return lifetime.private_files if self.tied_to_parent else None
 
     def start_guard(self) -> None:
-        """The guard that stops the components in order when this process dies."""
+        """The guard that stops the components in order when this process dies, and what
+        this process starts from now on marked as its own (a component it dies while
+        starting is in no record yet: the guard finds it by the mark)."""
+        if threading.current_thread() is not threading.main_thread():
+            # Linux sends the parent-death signal when the *thread* that forked the guard
+            # ends, not the process: a guard started on a start thread would stop
+            # everything as soon as that thread is done.
+            raise RuntimeError("the guard must be started from the main thread")
+        mark = lifetime.mark_children()
         self.guard = subprocess.Popen(
             [
                 sys.executable,
@@ -170,11 +178,12 @@ class Stack(StackMqtt, StackEnv):
                 lifetime.GUARD,
                 str(self.pid_file.path),
                 str(os.getpid()),
+                mark,
             ],
             stdout=self._log("guard"),
             stderr=subprocess.STDOUT,
             start_new_session=True,
-            preexec_fn=lifetime.die_with_parent,
+            preexec_fn=lifetime.guard_preexec,
         )
         self._record()
 
@@ -473,10 +482,9 @@ class Stack(StackMqtt, StackEnv):
             self._stopping = False
 
     def _stop(self) -> None:
-        if self.guard is not None:  # this process stops them itself, in the same order
-            self.guard.kill()
-            self.guard.wait()
-            self.guard = None
+        # This process stops them itself, in the guard's order; the guard is ended last, so
+        # that it still stops the rest if this process is killed meanwhile (the record
+        # follows each stop).
         # Replicas with their kind: a processors replica stopped after Kafka spent its whole
         # stop timeout retrying the gone broker.
         for name in sorted(self.procs, key=lifetime.stop_rank):
@@ -484,6 +492,10 @@ class Stack(StackMqtt, StackEnv):
             self._record()
         if self.tied_to_parent:
             self.pid_file.remove()
+        if self.guard is not None:
+            self.guard.kill()
+            self.guard.wait()
+            self.guard = None
 
     def __enter__(self) -> Stack:
         self.start()

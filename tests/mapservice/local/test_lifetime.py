@@ -141,8 +141,8 @@ def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
         " for name, delay in (('kafka', '0'), ('gateway', '1'))}\n"
         "for proc in procs.values(): proc.stdout.readline()\n"
         "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
-        " str(pid_file.path), str(os.getpid())], start_new_session=True,"
-        " preexec_fn=lifetime.die_with_parent)\n"
+        " str(pid_file.path), str(os.getpid()), lifetime.mark_children()],"
+        " start_new_session=True, preexec_fn=lifetime.guard_preexec)\n"
         "pids = {name: p.pid for name, p in procs.items()}\n"
         "pids['guard'] = guard.pid\n"
         "pid_file.write(pids)\n"
@@ -161,3 +161,84 @@ def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
         for pid in pids:
             if lifetime.start_time(pid) is not None:
                 os.kill(pid, signal.SIGKILL)
+
+
+# A stand-in for `up` that marks its children, records a guard, starts components and
+# records only the first `recorded` of them (the others as if `up` died between starting
+# them and recording them), then prints the pids and waits to be killed.
+UNRECORDED_UP = (
+    "import subprocess, sys, os, time\n"
+    "from mapservice.local import lifetime\n"
+    "pid_file = lifetime.PidFile.in_data_dir(sys.argv[1])\n"
+    "mark = lifetime.mark_children()\n"
+    "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
+    " str(pid_file.path), str(os.getpid()), mark], start_new_session=True,"
+    " preexec_fn=lifetime.guard_preexec)\n"
+    "components = [subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'],"
+    " start_new_session=True) for _ in range(3)]\n"
+    "recorded = int(sys.argv[2])\n"
+    "pid_file.write({'guard': guard.pid, **{f'gateway-{i}': p.pid"
+    " for i, p in enumerate(components[:recorded])}})\n"
+    "print(guard.pid, *(p.pid for p in components), flush=True)\n"
+    "time.sleep(120)\n"
+)
+
+
+def start_unrecorded_up(tmp_path, recorded: int) -> tuple[subprocess.Popen, int, list[int]]:
+    up = subprocess.Popen(
+        [sys.executable, "-c", UNRECORDED_UP, str(tmp_path), str(recorded)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    guard, *components = (int(p) for p in up.stdout.readline().split())
+    return up, guard, components
+
+
+def test_the_guard_ends_components_up_started_and_had_not_recorded_when_killed(tmp_path):
+    """`up` is killed after starting components it had not recorded yet (0, 1 or 2 of the
+    three recorded: as if killed between a start and its record, on any start thread), at
+    once (the guard's interpreter still starting) or once the guard waits: the guard ends
+    every one of them, found by `up`'s mark."""
+    for recorded in range(3):
+        for pause_s in (0.0, 1.5):
+            data_dir = tmp_path / f"{recorded}-{pause_s}"
+            up, guard, components = start_unrecorded_up(data_dir, recorded)
+            try:
+                time.sleep(pause_s)
+                up.kill()
+                up.wait()
+                survivors = [pid for pid in components if not wait_gone(pid, 20)]
+                assert not survivors, (
+                    f"{recorded} of 3 recorded, killed after {pause_s} s: {survivors} outlived up"
+                )
+                assert wait_gone(guard, 10)
+            finally:
+                for pid in (guard, *components):
+                    if lifetime.start_time(pid) is not None:
+                        os.kill(pid, signal.SIGKILL)
+
+
+def test_the_next_up_ends_unrecorded_components_of_a_dead_up_whose_guard_died_too(tmp_path):
+    """The guard is killed with `up`: the next `up` finds the components the record names
+    and those carrying the dead `up`'s mark that it does not name, and ends them all; a
+    process that carries another `up`'s mark is left alone."""
+    up, guard, components = start_unrecorded_up(tmp_path, 1)
+    env = {**os.environ, lifetime.MARK_ENV: lifetime.mark_of(up.pid, 1)}  # another `up`
+    stranger = subprocess.Popen(SLEEPER, start_new_session=True, env=env)
+    try:
+        os.kill(guard, signal.SIGKILL)
+        assert wait_gone(guard)
+        up.kill()
+        up.wait()
+        found = lifetime.PidFile.in_data_dir(tmp_path).leftovers()
+        assert sorted(p.pid for p in found) == sorted(components)
+        assert sorted(p.name for p in found) == ["gateway-0", "unrecorded", "unrecorded"]
+        lifetime.end(found)
+        assert all(wait_gone(pid) for pid in components)
+        assert stranger.poll() is None
+    finally:
+        for pid in (guard, *components):
+            if lifetime.start_time(pid) is not None:
+                os.kill(pid, signal.SIGKILL)
+        stranger.kill()
+        stranger.wait()
