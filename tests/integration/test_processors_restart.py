@@ -37,6 +37,11 @@ from tests.fixtures.paths import MAPS
 ROBOTS = ["r1", "r2", "r3", "r4"]
 CHUNKS = [(r, c) for r in range(3) for c in range(2)]
 WINDOW_MS = 60_000
+# The snapshot timer's period (a quarter of the 20 s snapshot interval, 5 s, by default):
+# a short one lets the waits for "a tick has run" be short too.
+SNAPSHOT_TICK_S = 1.0
+# Long enough that a whole tick ran after it began (one may be just under way).
+A_WHOLE_TICK_S = 3 * SNAPSHOT_TICK_S
 
 
 def chunk(robot: str, ts: int, row: int, col: int, shade: int) -> Envelope:
@@ -143,6 +148,7 @@ def stack(tmp_path):
         extra_env={
             "MAPSERVICE_SNAPSHOT_EVERY_S": "20",
             "MAPSERVICE_SNAPSHOT_GRACE_S": "0",
+            "MAPSERVICE_SNAPSHOT_TICK_S": str(SNAPSHOT_TICK_S),
             "MAPSERVICE_CONFLICT_WINDOW_S": str(WINDOW_MS // 1000),
             # The killed server's partitions go to its restart 3 s after it died, not 10.
             "MAPSERVICE_KAFKA_SESSION_TIMEOUT_S": "3",
@@ -173,7 +179,7 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
         n_chunks = lambda: sum(isinstance(e.payload, ChunkUpdated) for e in unique.values())  # noqa: E731
         n_poses = lambda: len(unique) - n_chunks()  # noqa: E731
         wait_stored(stack, base, base + 13 * minute, n_chunks(), n_poses())
-        time.sleep(6)  # one snapshot tick: the late writes below must repair snapshots
+        time.sleep(A_WHOLE_TICK_S)  # snapshots built: the late writes below must repair them
 
         phase2 = writes(rng, 30, base + 5 * minute, base + 10 * minute) + poses(
             base + 5 * minute, base + 10 * minute
@@ -233,7 +239,7 @@ def test_restart_mid_stream_rebuilds_views_without_duplicates_or_wrong_snapshots
         publish(stack, last)
         unique.update({e.event_id: e for e in last})
         wait_stored(stack, base, base + 13 * minute, n_chunks(), n_poses())
-        time.sleep(7)  # a snapshot tick after the last batch
+        time.sleep(A_WHOLE_TICK_S)  # a snapshot tick after the last batch
 
         chunk_rows = [row(e) for e in unique.values() if isinstance(e.payload, ChunkUpdated)]
         stored = api(

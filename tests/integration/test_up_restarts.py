@@ -31,6 +31,13 @@ pytestmark = [
     pytest.mark.skipif(not embedded.mosquitto_installed(), reason="needs mosquitto"),
 ]
 
+# Each running `up` acknowledges this many poses published after it started (about 2 s of
+# the robot's): the faults come under load, and waiting for them rather than for a fixed
+# time also proves the robot reconnected.
+ACKED_EACH_RUN = 100
+# While `up` is down the robot publishes on into its session (about 1 s of poses).
+SENT_WHILE_DOWN = 50
+
 
 def up_on(data_dir, api_port: int, mqtt_port: int, *args: str) -> Up:
     """`mapservice up` without robots or history on given ports (the robot reconnects to
@@ -91,6 +98,30 @@ class Robot:
                     self.acked.add(ts)
             time.sleep(0.02)
 
+    def wait_acked_since(self, since_ms: int, count: int = ACKED_EACH_RUN) -> None:
+        """Until `count` poses stamped from `since_ms` on are acknowledged."""
+        deadline = time.monotonic() + 90
+        while True:
+            with self.lock:
+                acked = sum(ts >= since_ms for ts in self.acked)
+            if acked >= count:
+                return
+            assert time.monotonic() < deadline, f"{acked} of {count} poses acknowledged"
+            time.sleep(0.1)
+
+    def wait_sent(self, count: int = SENT_WHILE_DOWN) -> None:
+        """Until `count` more poses are published (queued in the session while disconnected)."""
+        with self.lock:
+            target = len(self.sent) + count
+        deadline = time.monotonic() + 30
+        while True:
+            with self.lock:
+                sent = len(self.sent)
+            if sent >= target:
+                return
+            assert time.monotonic() < deadline, f"the robot stopped publishing ({sent})"
+            time.sleep(0.05)
+
     def stop(self, timeout_s: float = 30) -> None:
         """Stops publishing and waits for the PUBACKs of what is in flight."""
         self.running = False
@@ -112,8 +143,9 @@ def stored_timestamps(up: Up, robot_id: str, from_ms: int) -> list[int]:
     return [row["ts_ms"] for row in rows]
 
 
-def restarted(up: Up, how: str, data_dir, *args: str) -> Up:
-    """Ends `up` as `how` says and starts it again on the same ports and data dir."""
+def restarted(up: Up, how: str, data_dir, robot: Robot, *args: str) -> Up:
+    """Ends `up` as `how` says and starts it again on the same ports and data dir; the
+    robot publishes on into a broker that is down, and its session queues."""
     if how == "SIGINT":
         up.proc.send_signal(signal.SIGINT)
     elif how == "kill -9 of its process group":
@@ -121,7 +153,7 @@ def restarted(up: Up, how: str, data_dir, *args: str) -> Up:
     elif how == "kill -9 of up alone":
         up.proc.kill()
     up.proc.wait(60)
-    time.sleep(3)  # the robot publishes on into a broker that is down: its session queues
+    robot.wait_sent()
     return up_on(data_dir, up.api_port, up.mqtt_port, *args)
 
 
@@ -143,10 +175,10 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
     started_ms = int(time.time() * 1000) - 1_000
     robot = Robot(up.mqtt_port, robot_id, password)
     try:
-        time.sleep(4)
+        robot.wait_acked_since(started_ms)
         for how in ("SIGINT", "kill -9 of its process group", "kill -9 of up alone"):
-            up = restarted(up, how, data, *args)
-            time.sleep(4)
+            up = restarted(up, how, data, robot, *args)
+            robot.wait_acked_since(int(time.time() * 1000))
         if auth:
             # A robot added while `up` runs: `up` restarts its broker to read the new
             # credential (a SIGHUP here would lose what is queued for the gateway).
@@ -171,7 +203,7 @@ def test_up_restarted_three_ways_stores_every_acknowledged_pose_once(tmp_path, a
             up.wait_for("Mosquitto restarted to read them", 20)
             new_password = json.loads(added.stdout)["password"]
             assert connect_code(up.mqtt_port, "added-while-up-runs", new_password) == 0
-            time.sleep(4)
+            robot.wait_acked_since(int(time.time() * 1000))
         robot.stop()
         acked = set(robot.acked)
         deadline = time.monotonic() + 60
