@@ -19,10 +19,12 @@ machine's load average is at most OVERLOADED per core (a shared machine at 15 pe
 missed them with no reader at all); beyond, a miss skips the test with the figures, the
 other bounds still asserted. A phase that misses a time bound runs once more and is judged
 by that second run (the first one's figures kept beside it): one stall of the pipeline of
-a few seconds, whatever its cause, misses the p99 of a 20 s phase, but a load that starves
-probes or ingest misses it twice. The figures of all phases are printed (run with -s) and
+a few seconds, whatever its cause, misses the p99 of a PHASE_S phase (the robots publish
+through all of it, so it delays far more than 1 % of the poses), but a load that starves
+probes or ingest misses it twice. The crowd's clients run before the fleet starts and until
+its last poses arrived: the hostile load covers each phase's every probe and pose. The figures of all phases are printed (run with -s) and
 written to test-artifacts/hostile-reads.json for BENCHMARKS.md. Bounded:
-three phases of PHASE_S plus the history's load, about two minutes on an idle machine.
+three phases of PHASE_S plus the history's load, about a minute on an idle machine.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ pytestmark = pytest.mark.alone
 HISTORY_HOURS = 6
 HISTORY_ROBOTS = 20
 FLEET = 100  # robots publishing a pose a second (and a chunk every five)
-PHASE_S = 20  # 2,000 poses a phase: its p99 is its 20 slowest
+PHASE_S = 10  # 1,000 poses a phase: its p99 is its 10 slowest
 READERS = 20
 ANALYSTS = 60
 # The service's RSS: the ClickHouse server (chDB), the processors and the API together.
@@ -147,9 +149,11 @@ class Live(threading.Thread):
     def __init__(self, url: str) -> None:
         super().__init__(daemon=True)
         self.url, self.stop, self.arrived = url, threading.Event(), {}
+        self.connected = threading.Event()
 
     def run(self) -> None:
         with connect(self.url + "/api/v1/live?batch=true", max_size=None) as ws:
+            self.connected.set()
             while not self.stop.is_set():
                 try:
                     frame = ws.recv(timeout=0.5)
@@ -251,7 +255,7 @@ def run_phase(stack: Stack, load: str) -> dict:
     memory = Memory({name: stack.procs[name].pid for name in SERVICE})
     for t in (probes, memory, live):
         t.start()
-    time.sleep(1.0)
+    assert live.connected.wait(30), "the live stream did not connect"
     context = multiprocessing.get_context("spawn")
     tallies, started, done = context.Queue(), context.Event(), context.Event()
     clients = (
@@ -333,8 +337,8 @@ def test_readers_and_analysts_do_not_starve_probes_or_ingest(stack) -> None:
     for load in ("baseline", "readers", "analysts"):
         figures = run_phase(stack, load)
         if not on_time(figures):
-            # One stall of the pipeline (a merge, a snapshot) of 2.5 s puts a 20 s phase's
-            # p99 past 2 s; a load that starves probes or ingest misses the bounds again.
+            # One stall of the pipeline (a merge, a snapshot) of 2.5 s puts a phase's p99
+            # past 2 s; a load that starves probes or ingest misses the bounds again.
             figures = {**run_phase(stack, load), "late_first_run": figures}
         phases[load] = figures
     ARTIFACT.parent.mkdir(parents=True, exist_ok=True)
