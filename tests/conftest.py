@@ -113,30 +113,37 @@ def _hermetic_env(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatc
     monkeypatch.setenv("MAPSERVICE_API_ALLOWED_HOSTS", '["testserver"]')
 
 
-def librdkafka_clients(settle_s: float = 0.0) -> set[str]:
+def librdkafka_clients(settle_s: float = 0.0, among: set[str] | None = None) -> set[str]:
     """This process's librdkafka clients, each by its one `rdk:main` thread's id (Linux
-    lists threads in /proc; elsewhere none are counted). Broker threads (`rdk:broker...`)
+    lists threads in /proc; elsewhere none are counted), among the threads `among` (ids, as
+    `thread_ids()` gives them) or all. Broker threads (`rdk:broker...`)
     are not counted: a client whose brokers have been gone for a while bootstraps again,
     with new broker threads, at any moment, so an integration test's leftover client would
     otherwise be blamed on whatever fast test runs then. A thread is named by its creator's
     name until it names itself, so a broker thread just made reads `rdk:main` for a moment:
     with `settle_s`, only threads still `rdk:main` that much later are counted."""
-    clients = _threads_named("rdk:main")
+    clients = _threads_named("rdk:main", among)
     if settle_s and clients:
         time.sleep(settle_s)
-        clients &= _threads_named("rdk:main")
+        clients &= _threads_named("rdk:main", clients)
     return clients
 
 
-def _threads_named(name: str) -> set[str]:
-    tasks = Path("/proc/self/task")
-    if not tasks.is_dir():
+def thread_ids() -> set[str]:
+    """The ids of this process's threads (none where /proc does not list them)."""
+    try:
+        return set(os.listdir("/proc/self/task"))
+    except OSError:
         return set()
+
+
+def _threads_named(name: str, among: set[str] | None = None) -> set[str]:
     found = set()
-    for task in tasks.iterdir():
+    for task in thread_ids() if among is None else among:
         try:
-            if (task / "comm").read_text().strip() == name:
-                found.add(task.name)
+            with open(f"/proc/self/task/{task}/comm") as comm:
+                if comm.read().strip() == name:
+                    found.add(task)
         except OSError:  # the thread ended meanwhile
             continue
     return found
@@ -146,15 +153,18 @@ def _threads_named(name: str) -> set[str]:
 def _kafka_clients_closed(request: pytest.FixtureRequest) -> Iterator[None]:
     """A fast test closes every librdkafka client it made. One left open (or left to the
     garbage collector, when a callback refers back to it) keeps dialling its unreachable
-    broker from its own threads, logging each failure, into the tests that follow."""
+    broker from its own threads, logging each failure, into the tests that follow.
+    A client the test made has a thread the test made, so only the threads new since the
+    test began are read: reading the name of each of a worker's threads (chDB's pool among
+    them) before and after each of thousands of tests cost more than most of the tests."""
     if request.node.get_closest_marker("integration"):
         yield
         return
-    before = librdkafka_clients()
+    before = thread_ids()
     yield
-    left = librdkafka_clients() - before
+    left = librdkafka_clients(among=thread_ids() - before)
     if left:
-        left = librdkafka_clients(settle_s=0.05) - before
+        left = librdkafka_clients(settle_s=0.05, among=left)
     if left:
         pytest.fail(f"{len(left)} librdkafka clients still run: close the Kafka clients made here")
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from confluent_kafka import Producer
 
-from tests.conftest import librdkafka_clients
+from tests.conftest import librdkafka_clients, thread_ids
 
 SETTLE_S = 0.05  # see librdkafka_clients
 UNREACHABLE = {
@@ -66,6 +66,19 @@ def test_a_client_left_open_is_counted() -> None:
     finally:
         close(left_open)
     assert not librdkafka_clients(SETTLE_S) - before
+
+
+def test_a_client_left_open_is_among_the_threads_new_since_the_test_began() -> None:
+    """The per-test check reads only the threads made since the test began: a client made
+    then is among them."""
+    before = thread_ids()
+    left_open = Producer(UNREACHABLE)
+    try:
+        new = thread_ids() - before
+        assert len(librdkafka_clients(SETTLE_S, among=new)) == 1
+    finally:
+        close(left_open)
+    assert not librdkafka_clients(SETTLE_S, among=thread_ids() - before)
 
 
 def close(producer: Producer) -> None:

@@ -9,17 +9,15 @@ from __future__ import annotations
 import json
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from mapservice.core.commands import CommandAcknowledged, CommandFinished
 from mapservice.core.events import decode, decode_dead_letter, encode, make_envelope
 from mapservice.core.wire2019 import Reason, format_timestamp
 from tests.ingest import gateway_kit
+from tests.ingest.fuzz_kit import FuzzedGateway, budget, mutate, raw_nasties
 from tests.ingest.gateway_kit import NOW
-from tests.ingest.test_fuzz import mutate, raw_nasties
-
-REASONS = {r.value for r in Reason}
 
 
 class Gateway(gateway_kit.Gateway):
@@ -136,16 +134,7 @@ def test_a_topic_deeper_or_shallower_than_a_robots_is_no_answer(gw) -> None:
         assert record.reason == Reason.UNKNOWN_TOPIC.value, topic
 
 
-FUZZ = settings(
-    max_examples=2_000,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[
-        HealthCheck.too_slow,
-        HealthCheck.data_too_large,
-        HealthCheck.function_scoped_fixture,
-    ],
-)
+FUZZ = budget(2_000)
 
 
 @st.composite
@@ -167,33 +156,22 @@ def answer_payloads(draw) -> bytes:
     return draw(raw_nasties(good))
 
 
+@pytest.fixture(scope="module")
+def fuzzed_gateway() -> FuzzedGateway:
+    """One gateway for every generated answer, with command c-1 sent to fuzz-1."""
+    gw = Gateway()
+    gw.issue("c-1", "fuzz-1")
+    return FuzzedGateway(wired=(gw.settings, gw.ingestor, gw.publisher))
+
+
 @pytest.mark.usefixtures("quiet_rejection_logs")
 @FUZZ
 @given(payload=answer_payloads())
-def test_generated_answers_end_as_events_or_dead_letters(payload) -> None:
-    gw = _fuzz_gateway()
-    acked = []
-    record = gw.ingestor.handle(
-        "iot/robots/fuzz-1/command-events", payload, lambda: acked.append(1)
-    )
-    gw.publisher.poll()
-    assert acked == [1] and gw.ingestor.in_flight == 0
-    if record.reason is None:
-        event = decode(record.value)
+def test_generated_answers_end_as_events_or_dead_letters(fuzzed_gateway, payload) -> None:
+    event = fuzzed_gateway.fate("iot/robots/fuzz-1/command-events", payload).event
+    if event is not None:
         assert event.robot_id == "fuzz-1" and event.payload.command_id == "c-1"
         assert isinstance(event.payload, (CommandAcknowledged, CommandFinished))
-    else:
-        assert record.reason in REASONS and decode_dead_letter(record.value).detail
-
-
-_FUZZ: list[Gateway] = []
-
-
-def _fuzz_gateway() -> Gateway:
-    if not _FUZZ:
-        _FUZZ.append(Gateway())
-        _FUZZ[0].issue("c-1", "fuzz-1")
-    return _FUZZ[0]
 
 
 def test_the_relays_book_forgets_the_oldest_beyond_its_limit() -> None:

@@ -16,60 +16,18 @@ import json
 import zlib
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
-from mapservice.adapters.clock import ManualClock
-from mapservice.core.events import decode, decode_dead_letter
 from mapservice.core.wire2019 import (
     _ROBOT_ID,
-    Reason,
     encode_chunk_create,
     encode_coordinates,
     format_timestamp,
 )
-from mapservice.ingest.gateway import Ingestor
-from mapservice.settings import Settings
-from mapservice.testing.memory_publisher import MemoryPublisher
+from tests.ingest.fuzz_kit import NOW, FuzzedGateway, budget, mutate, raw_nasties
 
-NOW = 1_795_255_200_000
-BUDGET = settings(
-    max_examples=10_000,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[
-        HealthCheck.too_slow,
-        HealthCheck.data_too_large,
-        HealthCheck.filter_too_much,
-    ],
-)
-REASONS = {r.value for r in Reason}
-
-json_scalars = st.one_of(
-    st.none(),
-    st.booleans(),
-    st.integers(min_value=-(2**70), max_value=2**70),
-    st.floats(allow_nan=False, allow_infinity=False),
-    st.text(max_size=50),
-    st.just("x" * 70_000),
-    st.sampled_from(
-        [
-            "",
-            "true",
-            "NaN",
-            "1e309",
-            "\u0000",
-            "\udcff".encode("utf-8", "surrogatepass").decode("utf-8", "replace"),
-        ]
-    ),
-)
-json_values = st.recursive(
-    json_scalars,
-    lambda inner: st.one_of(
-        st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=10), inner, max_size=4)
-    ),
-    max_leaves=12,
-)
+BUDGET = budget(10_000)
 
 
 def good_chunk(ts: int = NOW, pixels: bytes = bytes(100 * 100)) -> dict:
@@ -80,48 +38,6 @@ def good_pose(ts: int = NOW) -> dict:
     """At (1.0, 2.0) with battery 50: raw_nasties replaces those numbers in its text."""
     return json.loads(
         encode_coordinates("fuzz-1", format_timestamp(ts), 1.0, 2.0, battery_level=50)
-    )
-
-
-def mutate(doc: dict, draw) -> dict:
-    """Replace, drop or add fields anywhere in the document."""
-    doc = json.loads(json.dumps(doc))
-    for _ in range(draw(st.integers(1, 4))):
-        path, node = [], doc
-        while isinstance(node, dict) and node and draw(st.booleans()):
-            key = draw(st.sampled_from(sorted(node)))
-            path.append(key)
-            if not isinstance(node[key], dict):
-                break
-            node = node[key]
-        parent = doc
-        for key in path[:-1]:
-            parent = parent[key]
-        action = draw(st.sampled_from(["replace", "drop", "add"]))
-        if not path or action == "add":
-            parent[draw(st.text(max_size=8))] = draw(json_values)
-        elif action == "drop":
-            parent.pop(path[-1], None)
-        else:
-            parent[path[-1]] = draw(json_values)
-    return doc
-
-
-def raw_nasties(good: dict) -> st.SearchStrategy[bytes]:
-    text = json.dumps(good)
-    return st.one_of(
-        st.binary(max_size=300),  # mostly invalid UTF-8 / not JSON
-        st.integers(1, 5000).map(lambda n: b'{"x":' + b"[" * n + b"]" * n + b"}"),  # deep nesting
-        st.integers(0, len(text)).map(lambda n: text[:n].encode()),  # truncated
-        st.sampled_from(
-            [
-                text.replace("1.0", "NaN"),
-                text.replace("1.0", "Infinity"),
-                text.replace("1.0", "1e999"),
-                text.replace("50", "-1e-400"),
-            ]
-        ).map(str.encode),
-        st.just(b"{" + b'"a":1,' * 60_000 + b'"b":2}'),  # over the size limit
     )
 
 
@@ -164,30 +80,17 @@ pytestmark = pytest.mark.usefixtures("quiet_rejection_logs")
 
 
 @pytest.fixture(scope="module")
-def handler():
-    settings_ = Settings()
-    publisher = MemoryPublisher()
-    ingestor = Ingestor(settings_, publisher, ManualClock(NOW), gateway_id="fuzz")
-    return ingestor, publisher, settings_
+def handler() -> FuzzedGateway:
+    return FuzzedGateway("fuzz")
 
 
-def handle_and_check(handler, topic: str, payload: bytes) -> None:
-    ingestor, publisher, s = handler
-    acked = []
-    record = ingestor.handle(topic, payload, lambda: acked.append(1))
-    publisher.poll()
-    assert acked == [1], "every message is acknowledged once Kafka has its record"
-    assert ingestor.in_flight == 0
-    if record.reason is None:
-        envelope = decode(record.value)
+def handle_and_check(handler: FuzzedGateway, topic: str, payload: bytes) -> None:
+    event = handler.fate(topic, payload).event
+    if event is not None:
         # A mutation may name another valid robot in a chunk; a pose must match its topic.
-        assert _ROBOT_ID.fullmatch(envelope.robot_id)
+        assert _ROBOT_ID.fullmatch(event.robot_id)
         if topic.startswith("iot/coordinates/"):
-            assert envelope.robot_id == topic.rsplit("/", 1)[1]
-    else:
-        assert record.topic == s.topic_dead_letter and record.reason in REASONS
-        letter = decode_dead_letter(record.value)
-        assert letter.reason == record.reason and len(letter.payload) <= 64 * 1024
+            assert event.robot_id == topic.rsplit("/", 1)[1]
 
 
 @BUDGET
@@ -206,11 +109,9 @@ def test_coordinate_messages_never_break_the_gateway(handler, payload) -> None:
 
 def test_after_the_fuzzing_good_messages_are_accepted(handler) -> None:
     """The handler still accepts a good chunk and pose after everything above."""
-    ingestor, publisher, _ = handler
     for topic, doc in (
         ("iot/chunks/create", good_chunk()),
         ("iot/coordinates/fuzz-1", good_pose()),
     ):
-        record = ingestor.handle(topic, json.dumps(doc).encode(), lambda: None)
-        publisher.poll()
-        assert record.reason is None, (topic, record.reason)
+        fate = handler.fate(topic, json.dumps(doc).encode())
+        assert fate.reason is None, (topic, fate.letter)

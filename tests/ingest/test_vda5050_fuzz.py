@@ -1,5 +1,5 @@
 """VDA 5050 through the gateway's message handler (`Ingestor.handle`: routing, validation,
-dead letters, the producer contract), like the 2019 codec's fuzzer (test_fuzz.py):
+dead letters, the producer contract), on the fuzzers' one harness (fuzz_kit.py):
 
 - every official example in the vendored schemas (the `examples` of their fields; the
   VDA5050 repository has no example messages) put into a valid message of its version and
@@ -21,34 +21,18 @@ import os
 import re
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
-from mapservice.adapters.clock import ManualClock
-from mapservice.core.events import decode, decode_dead_letter
 from mapservice.core.wire2019 import Reason, format_timestamp
-from mapservice.ingest.gateway import Ingestor
 from mapservice.ingest.vda5050 import SCHEMA_DIR, SUBTOPICS, schema_version_for, validator
-from mapservice.settings import Settings
-from mapservice.testing.memory_publisher import MemoryPublisher
 from tests.fixtures import vda5050 as vda
+from tests.ingest.fuzz_kit import NOW, FuzzedGateway, budget, mutate, raw_nasties
 
-from .test_fuzz import json_values, raw_nasties
-
-NOW = 1_795_255_200_000
 VERSIONS = ("2.0.0", "2.1.0", "3.0.0")
-EXAMPLES = int(os.environ.get("MAPSERVICE_FUZZ_VDA_EXAMPLES", "200"))
-BUDGET = settings(
-    max_examples=EXAMPLES,
-    deadline=None,
-    derandomize=True,
-    suppress_health_check=[
-        HealthCheck.too_slow,
-        HealthCheck.data_too_large,
-        HealthCheck.filter_too_much,
-    ],
-)
-REASONS = {r.value for r in Reason}
+BUDGET = budget(int(os.environ.get("MAPSERVICE_FUZZ_VDA_EXAMPLES", "200")))
+# Fields an added value is named by, besides generated names: the header's and a map's.
+FIELD_NAMES = ("", "x", "version", "timestamp", "mapId")
 
 
 def topic(version: str, subtopic: str) -> str:
@@ -66,31 +50,17 @@ pytestmark = pytest.mark.usefixtures("quiet_rejection_logs")
 
 
 @pytest.fixture(scope="module")
-def handler():
-    settings_ = Settings()
-    publisher = MemoryPublisher()
-    return (
-        Ingestor(settings_, publisher, ManualClock(NOW), gateway_id="vda-fuzz"),
-        publisher,
-        settings_,
-    )
+def handler() -> FuzzedGateway:
+    return FuzzedGateway("vda-fuzz")
 
 
-def handle(handler, mqtt_topic: str, payload: bytes) -> tuple[str | None, str]:
+def handle(handler: FuzzedGateway, mqtt_topic: str, payload: bytes) -> tuple[str | None, str]:
     """The message's fate: (None, robot id) accepted, (reason, detail) dead-lettered."""
-    ingestor, publisher, s = handler
-    acked: list[int] = []
-    record = ingestor.handle(mqtt_topic, payload, lambda: acked.append(1))
-    publisher.poll()
-    assert acked == [1], "every message is acknowledged once Kafka has its record"
-    assert ingestor.in_flight == 0
-    if record.reason is None:
-        return None, decode(record.value).robot_id
-    assert record.topic == s.topic_dead_letter and record.reason in REASONS
-    letter = decode_dead_letter(record.value)
-    assert letter.reason == record.reason and len(letter.payload) <= 64 * 1024
-    assert letter.detail, "a dead letter says why"
-    return letter.reason, letter.detail
+    fate = handler.fate(mqtt_topic, payload)
+    if fate.letter is None:
+        assert fate.event is not None
+        return None, fate.event.robot_id
+    return fate.letter.reason, fate.letter.detail
 
 
 # ---- the official examples ---------------------------------------------------------------
@@ -186,46 +156,12 @@ def test_every_official_example_is_accepted_or_dead_lettered_for_its_value(
 # ---- generated messages ------------------------------------------------------------------
 
 
-def mutate(doc, draw):
-    """Replace, drop or add a value anywhere in the document, objects and arrays alike,
-    one to four times."""
-    doc = json.loads(json.dumps(doc))
-    for _ in range(draw(st.integers(1, 4))):
-        parent, key, node = None, None, doc
-        while isinstance(node, (dict, list)) and node and draw(st.booleans()):
-            parent = node
-            key = (
-                draw(st.sampled_from(sorted(node)))
-                if isinstance(node, dict)
-                else draw(st.integers(0, len(node) - 1))
-            )
-            node = node[key]
-        action = draw(st.sampled_from(["replace", "drop", "add"]))
-        if parent is None or action == "add":
-            target = (
-                node if isinstance(node, (dict, list)) else parent if parent is not None else doc
-            )
-            if isinstance(target, dict):
-                target[
-                    draw(st.sampled_from(["", "x", "version", "timestamp", "mapId"]))
-                    if draw(st.booleans())
-                    else draw(st.text(max_size=8))
-                ] = draw(json_values)
-            else:
-                target.append(draw(json_values))
-        elif action == "drop":
-            parent.pop(key)
-        else:
-            parent[key] = draw(json_values)
-    return doc
-
-
 @st.composite
 def vda_payloads(draw, version: str, subtopic: str) -> tuple[bytes, dict | None]:
     good = message(version, subtopic)
     if draw(st.integers(0, 4)) == 0:
         return draw(raw_nasties(good)), None
-    msg = mutate(good, draw)
+    msg = mutate(good, draw, FIELD_NAMES)
     return json.dumps(msg).encode(), msg
 
 

@@ -36,7 +36,7 @@ from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash, format_timestamp
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
-from tests.conftest import chunk_event, meta_event, pose_event
+from tests.conftest import chunk_event, clone_migrated, meta_event, pose_event
 
 DAY = 86_400_000
 HOUR = 3_600_000
@@ -62,6 +62,8 @@ class Store:
         self.kind, self.chdb_dir = kind, chdb_dir
         self.database = f"retention_{next(_databases)}"
         self.store = self._open()
+        if kind != "memory":  # the module's migrated template, copied (the retention is its 7 days)
+            clone_migrated(chdb_dir, self.database)
         self.store.migrate()
 
     def _open(self):
@@ -274,8 +276,9 @@ def _unnamed_snapshot_pixels(store: ClickHouseStore) -> int:
 
 
 @pytest.mark.parametrize("kind", ["memory", "clickhouse"])
-def test_three_retention_periods_keep_the_floor_exact(kind, chdb_dir) -> None:
-    s = Store(kind, chdb_dir)
+def test_three_retention_periods_keep_the_floor_exact(kind, request) -> None:
+    # The memory twin needs no chDB: the module's engine (a migrated template) only for ClickHouse.
+    s = Store(kind, None if kind == "memory" else request.getfixturevalue("chdb_dir"))
     clock = ManualClock(T0)
     world = World()
     # Day 0: the map meta and the whole floor, written once.
