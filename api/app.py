@@ -88,7 +88,7 @@ ROUTERS = (
 
 def create_app(
     settings: Settings,
-    store: HistoryStore | None,
+    store: HistoryStore | StoreRoles | None,
     readiness: Mapping[str, Callable[[], bool]] | None = None,
     clock: Clock | None = None,
     live_hub: LiveHub | None = None,
@@ -100,7 +100,7 @@ def create_app(
     advisory: Mapping[str, Callable[[], bool]] | None = None,
     history_status: Callable[[], dict[str, Any]] | None = None,
 ) -> FastAPI:
-    """The app over `store`, cut into its roles here: the routes are handed one role each
+    """The app over the store's roles (a whole store is cut into them here): the routes are handed one role each
     through api/deps.py, none the whole store. `store` None builds the routes only (the
     OpenAPI document). `pool_of` names the admission pool of a path (api/admission.py);
     `readiness` and `advisory` are the checks /readyz answers with, `liveness` those of

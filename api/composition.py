@@ -2,8 +2,8 @@
 feeds it from the live topic, the publisher of the 2019 REST writes, the FastAPI app and
 the uvicorn server around it.
 
-The process entry (mapservice/server.py) makes the store (with embedded chDB one per
-process, shared with the processors), hands the API the health checks of what runs beside
+The process entry (mapservice/server.py) makes the store's roles over one connection (with
+embedded chDB one per process, shared with the processors), hands the API the health checks of what runs beside
 it, starts the API, serves it and stops it (`Api`).
 """
 
@@ -22,6 +22,7 @@ from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.core.live_messages import LiveText
 from mapservice.core.ports import HistoryStore
+from mapservice.core.store_roles import StoreRoles
 from mapservice.runtime.secrets import with_local_api_secrets
 from mapservice.settings import Settings
 from mapservice.sql.apps import analyst_app
@@ -81,14 +82,14 @@ class Api:
 
 async def compose_api(
     settings: Settings,
-    store: HistoryStore,
+    store: HistoryStore | StoreRoles,
     *,
     readiness: Mapping[str, Check],
     liveness: Mapping[str, Check],
     advisory: Mapping[str, Check],
     history_status: Callable[[], dict[str, Any]] | None,
 ) -> Api:
-    """Builds the API around `store` (the app cuts it into its roles); nothing is served
+    """Builds the API around the store's roles (the app cuts a whole store into them); nothing is served
     or read until `Api.start`/`serve`.
 
     `readiness` (required) and `advisory` (reported) are the checks /readyz answers with,

@@ -37,24 +37,29 @@ def cmd_serve(args, processors: bool = True, api: bool = True, component: str = 
 
 
 def cmd_migrate(args) -> None:
-    from mapservice.adapters.clickhouse.migrations import MigrationChanged, MigrationLocked
+    from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+    from mapservice.adapters.clickhouse.migrations import (
+        ClickHouseSchema,
+        MigrationChanged,
+        MigrationLocked,
+    )
     from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
-    from mapservice.adapters.clickhouse.store import ClickHouseStore
 
     settings = settings_for("migrate")
-    store = ClickHouseStore.from_settings(settings)
+    connection = ClickHouseConnection.from_settings(settings)
+    schema = ClickHouseSchema(connection)
     log = logging.getLogger("mapservice.migrate")
     try:
         if args.break_lock:
             log.info(
-                "migration lock %s", "dropped" if store.break_migration_lock() else "was not held"
+                "migration lock %s", "dropped" if schema.break_migration_lock() else "was not held"
             )
-        before = store.schema_version()
-        version = store.migrate(lock_timeout_s=args.lock_timeout_s)
+        before = schema.schema_version()
+        version = schema.migrate(lock_timeout_s=args.lock_timeout_s)
     except (MigrationLocked, MigrationChanged) as exc:
         sys.exit(f"mapservice migrate: {exc}")
     finally:
-        store.close()
+        connection.close()
     log.info(
         "schema of %s at version %d (was %d; this release: %d)",
         settings.clickhouse_database,

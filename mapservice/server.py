@@ -1,8 +1,9 @@
 """The process entry: runs the processors and/or the API in one asyncio loop around one
-HistoryStore. Each is composed in its own package (processors/composition.py,
-api/composition.py), each cutting the store into the roles its parts use
-(mapservice/core/store_roles.py); here the store is made, the schema awaited, the health checks of what
-runs in this process gathered, and the parts started and stopped in order.
+ClickHouse connection. Here the connection and the store's roles over it are made
+(mapservice/adapters/clickhouse/store.py), the schema awaited, the health checks of what
+runs in this process gathered, and the parts started and stopped in order; each part is
+composed in its own package (processors/composition.py, api/composition.py), handing its
+components the roles they use (mapservice/core/store_roles.py).
 
 With embedded ClickHouse (chdb) only one process may open the data directory, so
 `mapservice serve` runs both here; with a ClickHouse server they can run apart
@@ -23,7 +24,10 @@ from typing import Any
 import structlog
 from prometheus_client import Gauge
 
-from mapservice.adapters.clickhouse.store import ClickHouseStore
+from mapservice.adapters.clickhouse.admin import ClickHouseAdmin
+from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.adapters.clickhouse.migrations import ClickHouseSchema
+from mapservice.adapters.clickhouse.store import clickhouse_roles_from_settings
 from mapservice.adapters.kafka_topics import ensure_topics
 from mapservice.runtime.health import (
     CachedCheck,
@@ -51,7 +55,7 @@ PYTHON_BLOCKS = Gauge(
 )
 
 
-def export_process_memory(store: ClickHouseStore) -> None:
+def export_process_memory(store: ClickHouseAdmin) -> None:
     """With chDB, ClickHouse lives in this process: its tracked memory and Python's
     allocations, side by side with the resident size, say which of the two a growth is in."""
     CHDB_MEMORY.set_function(lambda: _or_nan(store.tracked_memory_bytes))
@@ -65,7 +69,7 @@ def _or_nan(read: Callable[[], float]) -> float:
         return math.nan
 
 
-async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
+async def wait_for_schema(store: ClickHouseSchema, every_s: float = 2.0) -> int:
     """Waits until `mapservice migrate` has brought the schema to this release's version
     (production: migrations run once per release, never from every pod at once)."""
     from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
@@ -94,25 +98,26 @@ async def wait_for_schema(store: ClickHouseStore, every_s: float = 2.0) -> int:
 async def serve(
     settings: Settings, *, processors: bool = True, api: bool = True, health_port: int | None = None
 ) -> None:
-    store = ClickHouseStore.from_settings(settings)
+    connection = ClickHouseConnection.from_settings(settings)
+    roles = clickhouse_roles_from_settings(settings, connection)
     parts = None
     if processors:
         # Imported only where they run: an API process alone registers (and exports) none
         # of the processors' metrics.
         from mapservice.processors.composition import compose_processors
 
-        parts = compose_processors(settings, store)
+        parts = compose_processors(settings, roles)
     loop = asyncio.get_running_loop()
     if settings.migrates_on_start:
         # With the processors here, on their store thread: the one that talks to the store.
         version = await (
-            parts.store_thread.run(store.migrate)
+            parts.store_thread.run(roles.schema.migrate)
             if parts is not None
-            else loop.run_in_executor(None, store.migrate)
+            else loop.run_in_executor(None, roles.schema.migrate)
         )
     else:
-        version = await wait_for_schema(store)
-    log.info("history schema ready", version=version, dsn=store.dsn.split("@")[-1])
+        version = await wait_for_schema(ClickHouseSchema(connection))
+    log.info("history schema ready", version=version, dsn=connection.dsn.split("@")[-1])
     if parts is not None:
         await loop.run_in_executor(None, ensure_topics, settings)
         await parts.start()
@@ -121,11 +126,11 @@ async def serve(
     # heartbeats of the loops that do the work (mapservice/runtime/health.py).
     kafka = kafka_check(settings)
     readiness: dict[str, Callable[[], bool]] = {
-        "clickhouse": CachedCheck("clickhouse", store.ping, ttl_s=2.0, timeout_s=2.0)
+        "clickhouse": CachedCheck("clickhouse", connection.ping, ttl_s=2.0, timeout_s=2.0)
     }
     merges_low = None
-    if store.dsn.startswith("chdb://"):
-        export_process_memory(store)
+    if connection.dsn.startswith("chdb://"):
+        export_process_memory(ClickHouseAdmin(connection))
         merges_low = keep_merges_low(settings)
     advisory: dict[str, Callable[[], bool]] = {}  # reported by /readyz, not required
     loop_beat = Heartbeat(max_age_s=15.0)
@@ -157,7 +162,7 @@ async def serve(
 
             api_parts = await compose_api(
                 settings,
-                store,
+                roles,
                 readiness=readiness,
                 liveness=liveness,
                 advisory=advisory,
@@ -192,5 +197,5 @@ async def serve(
             await api_parts.stop()
         if parts is not None:
             await parts.stop()
-        store.close()
+        connection.close()
         log.info("stopped")

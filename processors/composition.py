@@ -81,9 +81,9 @@ class Processors:
         self.store_thread.close()
 
 
-def compose_processors(settings: Settings, store: HistoryStore) -> Processors:
-    """Builds the processors around `store`, cut into its roles here: each part is handed
-    the roles it uses, none the whole store. Nothing connects until `Processors.start`."""
+def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> Processors:
+    """Builds the processors around the store's roles (a whole store is cut into them
+    here): each part is handed the roles it uses, none the whole store. Nothing connects until `Processors.start`."""
     roles = StoreRoles.of(store)
     app = faust_app(settings)
     # The service's clock (the wall clock unless settings simulate one): the timers, the

@@ -19,7 +19,7 @@ from tools.typecheck import sources
 # (module, error code) pairs they silence. The list may only shrink: lower these when a
 # module is fixed.
 MOST_LAX_MODULES = 102
-MOST_SILENCED_CODES = 242
+MOST_SILENCED_CODES = 238
 
 
 def mypy_config() -> dict:

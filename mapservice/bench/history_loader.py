@@ -146,7 +146,7 @@ def load_history(
         t0 = time.perf_counter()
         block = gen.block(k_lo, k_hi)
         t1 = time.perf_counter()
-        with store._lock:
+        with store.lock:
             client.insert(
                 f"{db}.chunk_contents",
                 data=block.contents,

@@ -10,7 +10,7 @@ def naive_map_at(store, at_ms: int) -> list:
     from mapservice.core.ports import ChunkState
 
     db = store.database
-    with store._lock:
+    with store.lock:
         rows = store.client.query(
             "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
             "lower(hex(argMax(content_hash, (ts, robot_id)))) "
@@ -24,7 +24,7 @@ def naive_map_at(store, at_ms: int) -> list:
 def naive_robots_at(store, at_ms: int) -> list[tuple[str, int]]:
     """(robot, time of its latest pose <= T) over all poses: no snapshot."""
     db = store.database
-    with store._lock:
+    with store.lock:
         return [
             tuple(r)
             for r in store.client.query(
@@ -37,14 +37,14 @@ def naive_robots_at(store, at_ms: int) -> list[tuple[str, int]]:
 
 def naive_poses_downsampled(store, from_ms: int, to_ms: int, step_ms: int) -> list:
     """poses_downsampled from every pose (the query before the keyframes of schema v4)."""
-    from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
+    from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS, POSE_READ_COLUMNS
 
-    return store._pose_query(
-        f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {store.database}.poses FINAL "
+    return store.pose_query(
+        f"SELECT {POSE_READ_COLUMNS} FROM (SELECT * FROM {store.database}.poses FINAL "
         "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
         "ORDER BY robot_id, ts "
         "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
-        f"ORDER BY ts, robot_id LIMIT 100000 {_FINAL_SETTINGS}",
+        f"ORDER BY ts, robot_id LIMIT 100000 {FINAL_SETTINGS}",
         {"f": from_ms, "t": to_ms, "s": step_ms},
     )
 
@@ -62,7 +62,7 @@ def naive_timeline(store, from_ms: int, to_ms: int, buckets: int) -> list:
         "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
     )
     bucket = "intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {b:Int64})"
-    with store._lock:
+    with store.lock:
         chunks = dict(
             store.client.query(
                 f"SELECT {bucket} AS k, count() FROM {db}.chunk_events FINAL WHERE {window} GROUP BY k",

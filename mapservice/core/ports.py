@@ -356,7 +356,7 @@ class AnnotationReader(Protocol):
 
 
 class CommandReader(Protocol):
-    """Operators' commands to robots and the robots' answers (ClickHouse mixin: command_reads)."""
+    """Operators' commands to robots and the robots' answers (ClickHouse: `command_reads`)."""
 
     def command_events(
         self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 10_000
@@ -415,12 +415,15 @@ class TableExports(Protocol):
         """The rows of `sql` in ClickHouse's output format `fmt`."""
 
 
-# `HistoryStore` is the whole store: what a composition root (server.py, the CLI's commands,
-# the benchmarks' loaders) constructs and cuts into its roles (core/store_roles.py) to hand
-# each component the roles it uses; no component is handed the whole store.
-# A new store method goes into the role whose ClickHouse mixin implements it, and is then
-# part of HistoryStore too; a new concern gets a role protocol of its own beside these (and a
-# mixin in adapters/clickhouse/), added to the bases below.
+# `HistoryStore` is the whole store: every role at once (the memory store; ClickHouse's
+# `ClickHouseStore` for tests and tools). A composition root hands each component the roles
+# it uses (core/store_roles.py): ClickHouse's are adapters of their own over one connection
+# (adapters/clickhouse/store.py: `clickhouse_roles`), a whole store is cut into views; no
+# component is handed the whole store.
+# A new store method goes into the role whose ClickHouse adapter implements it, and is then
+# part of HistoryStore too; a new concern gets a role protocol of its own beside these (and
+# an adapter module in adapters/clickhouse/, built in `clickhouse_roles`), added to the bases
+# below.
 class HistoryStore(
     StoreSchema,
     HistoryWriter,

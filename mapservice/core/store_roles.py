@@ -1,11 +1,12 @@
 """The store handed out by role: each component gets the role ports it uses
 (mapservice/core/ports.py), never the whole store.
 
-A composition root (server.py, the CLI's commands) makes one store, over one connection,
-and cuts it into `StoreRoles`; it then hands each component the fields it needs. A role is
-a `RoleView`: it answers its protocol's members and nothing else, so a component that
-reaches for a method of another role fails at once with a message naming its role,
-instead of quietly depending on the whole store.
+A composition root (server.py, the CLI's commands) makes the roles over one connection
+(ClickHouse: one adapter per role, adapters/clickhouse/store.py) or cuts one store that
+answers them all (the memory store) into `StoreRoles`; it then hands each component the
+fields it needs. A cut role is a `RoleView`: it answers its protocol's members and nothing
+else, so a component that reaches for a method of another role fails at once with a
+message naming its role, instead of quietly depending on the whole store.
 """
 
 from __future__ import annotations
@@ -113,8 +114,11 @@ class StoreRoles:
     exports: TableExports | None = None
 
     @classmethod
-    def of(cls, store: HistoryStore) -> StoreRoles:
-        """The roles of a whole store, each a view that answers only its role."""
+    def of(cls, store: HistoryStore | StoreRoles) -> StoreRoles:
+        """The roles of a whole store, each a view that answers only its role (roles
+        already made apart are returned as they are)."""
+        if isinstance(store, StoreRoles):
+            return store
         has_exports = all(hasattr(store, m) for m in role_members(TableExports))
         return cls(
             schema=narrowed(store, StoreSchema),

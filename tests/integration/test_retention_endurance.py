@@ -316,23 +316,23 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     store = ClickHouseStore.from_settings(stack.settings())
     try:
         db = store.database
-        missing = store._rows(
+        missing = store.rows(
             f"SELECT count() FROM {db}.map_snapshots WHERE content_hash NOT IN "
             f"(SELECT content_hash FROM {db}.chunk_contents)",
             {},
         )[0][0]
         assert missing == 0, "a snapshot names pixels that are gone"
-        ((oldest,),) = store._rows(
+        ((oldest,),) = store.rows(
             f"SELECT toUnixTimestamp64Milli(min(ts)) FROM {db}.chunk_events", {}
         )
         assert oldest >= end - (RETENTION_DAYS + 1) * DAY, "days before the retention were kept"
-        ((oldest_violation, violations_kept),) = store._rows(
+        ((oldest_violation, violations_kept),) = store.rows(
             f"SELECT toUnixTimestamp64Milli(min(ts)), count() FROM {db}.zone_violations", {}
         )
         assert violations_kept and oldest_violation >= end - (RETENTION_DAYS + 1) * DAY, (
             "zone violations before the retention were kept"
         )
-        kept_edits = store._rows(
+        kept_edits = store.rows(
             f"SELECT annotation_id, change FROM {db}.annotation_events FINAL ORDER BY ts", {}
         )
         # The standing annotations keep their creation and latest edit however old; the

@@ -250,7 +250,7 @@ def test_clickhouse_tls_files_reach_clickhouse_connect_and_the_sql_engine(
     calls: list[dict] = []
     monkeypatch.setattr(clickhouse_connect, "get_client", lambda **kw: calls.append(kw) or object())
     store = ClickHouseStore.from_settings(s)
-    store._connect()
+    store.connect()
     try:
         store.ping()
     except AttributeError:

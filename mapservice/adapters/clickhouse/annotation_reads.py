@@ -1,5 +1,6 @@
 """Reads of the annotation edits (schema v13): the annotations standing at an instant and
-the edits in a window."""
+the edits in a window: `ClickHouseAnnotationReads`, the AnnotationReader role, over the
+store's connection, and `edit_of` (a stored row as its edit), which the retention uses too."""
 
 from __future__ import annotations
 
@@ -33,12 +34,15 @@ def edit_of(row: Sequence[Any], check: bool = False) -> AnnotationEdit:
     )
 
 
-class AnnotationReadsMixin(ClickHouseConnection):
+class ClickHouseAnnotationReads:
+    def __init__(self, connection: ClickHouseConnection) -> None:
+        self.connection = connection
+
     def annotations_at(self, at_ms: int) -> list[CurrentAnnotation]:
         """The annotations standing at `at_ms` (inclusive), by id: each id's edits up to
         then folded (a few per annotation; the retention keeps them few)."""
-        rows = self._rows(
-            f"SELECT {_COLUMNS} FROM {self.database}.annotation_events FINAL "
+        rows = self.connection.rows(
+            f"SELECT {_COLUMNS} FROM {self.connection.database}.annotation_events FINAL "
             "WHERE ts <= fromUnixTimestamp64Milli({t:Int64}) ORDER BY annotation_id, ts, event_id",
             {"t": at_ms},
         )
@@ -49,8 +53,8 @@ class AnnotationReadsMixin(ClickHouseConnection):
         self, from_ms: int, to_ms: int, limit: int = 10_000
     ) -> list[AnnotationEdit]:
         """The edits with from_ms <= time < to_ms, oldest first."""
-        rows = self._rows(
-            f"SELECT {_COLUMNS} FROM {self.database}.annotation_events FINAL "
+        rows = self.connection.rows(
+            f"SELECT {_COLUMNS} FROM {self.connection.database}.annotation_events FINAL "
             "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
             "ORDER BY ts, event_id LIMIT {n:UInt32}",
             {"f": from_ms, "t": to_ms, "n": limit},
@@ -60,9 +64,9 @@ class AnnotationReadsMixin(ClickHouseConnection):
     def zone_violations(
         self, from_ms: int, to_ms: int, limit: int = 100_000
     ) -> list[ZoneViolation]:
-        rows = self._rows(
+        rows = self.connection.rows(
             f"SELECT toUnixTimestamp64Milli(ts), robot_id, annotation_id, x, y FROM "
-            f"{self.database}.zone_violations FINAL WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
+            f"{self.connection.database}.zone_violations FINAL WHERE ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY ts, robot_id, annotation_id "
             "LIMIT {n:UInt32}",
             {"f": from_ms, "t": to_ms, "n": limit},

@@ -7,9 +7,9 @@ The uploads alone (the timeline's marks) are found from per-writer write counts
 schema v18), so a week of a large fleet is not read write by write.
 On the read client.
 
-`ChangeFeedMixin` builds on `snapshots` (the previous contents come from the nearest valid
-map snapshot plus the writes after it, as map_at) and so on `connection`, never on another
-mixin's queries.
+`ClickHouseChangeFeed` (the ChangeFeed role) holds the connection only (the previous
+contents come from the nearest valid map snapshot plus the writes after it, as map_at),
+never another role's queries.
 """
 
 from __future__ import annotations
@@ -17,15 +17,17 @@ from __future__ import annotations
 from collections.abc import Collection
 
 from mapservice.adapters.clickhouse import burst_schema
-from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS
-from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS, ClickHouseConnection
 from mapservice.core import change_scan, upload_scan
 from mapservice.core.change_feed import UPLOADER_ID, ChangeEntry, ChangeQuery
 from mapservice.core.ports import ChunkRow
 
 
-class ChangeFeedMixin(SnapshotsMixin):
+class ClickHouseChangeFeed:
     """Map changes and uploads of a window, page by page."""
+
+    def __init__(self, connection: ClickHouseConnection) -> None:
+        self.connection = connection
 
     def change_feed(self, query: ChangeQuery) -> list[ChangeEntry]:
         if query.kind == "upload":
@@ -38,10 +40,10 @@ class ChangeFeedMixin(SnapshotsMixin):
         # chunk_events. A whole bucket's count is at least its count within the span, and
         # chunk_events is counted without FINAL (a write stored twice until a merge): both
         # can only add a bucket, which the writes read for it (FINAL) then settle.
-        db, b = self.database, upload_scan.BURST_BUCKET_MS
-        ((snap,),) = self._rows(
+        db, b = self.connection.database, upload_scan.BURST_BUCKET_MS
+        ((snap,),) = self.connection.rows(
             f"SELECT toUnixTimestamp64Milli(maxOrNull(snap_ts)) FROM {db}.snapshot_log "
-            f"WHERE snap_ts < {self._valid_before()}",
+            f"WHERE snap_ts < {self.connection.valid_before()}",
             {},
         )
         cut = from_ms if snap is None else max(from_ms, min(to_ms, snap // b * b))
@@ -58,18 +60,18 @@ class ChangeFeedMixin(SnapshotsMixin):
             "up": UPLOADER_ID,
         }
         rows = (
-            self._rows(
+            self.connection.rows(
                 "SELECT robot_id, toInt64(toUnixTimestamp(bucket)) * 1000 "
                 f"FROM {db}.{burst_schema.TABLE} FINAL "
                 "WHERE bucket >= toDateTime({fb:Int64}) AND bucket < toDateTime({cs:Int64})"
-                f"{only} {_FINAL_SETTINGS}",
+                f"{only} {FINAL_SETTINGS}",
                 params,
             )
             if cut > from_ms
             else []
         )
         if cut < to_ms:
-            rows += self._rows(
+            rows += self.connection.rows(
                 "SELECT robot_id, intDiv(toUnixTimestamp64Milli(ts), {b:Int64}) * {b:Int64} AS bucket "
                 f"FROM {db}.chunk_events "
                 "PREWHERE ts >= fromUnixTimestamp64Milli({c:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
@@ -84,11 +86,11 @@ class ChangeFeedMixin(SnapshotsMixin):
     ) -> list[ChunkRow]:
         # A slice is a range of the sorting key's leading `ts`: its granules only.
         robot = "" if robots is None else " AND robot_id IN {rs:Array(String)}"
-        rows = self._rows(
+        rows = self.connection.rows(
             "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)) "
-            f"FROM {self.database}.chunk_events FINAL "
+            f"FROM {self.connection.database}.chunk_events FINAL "
             "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
-            f"{robot} ORDER BY ts, row, col, robot_id {_FINAL_SETTINGS}",
+            f"{robot} ORDER BY ts, row, col, robot_id {FINAL_SETTINGS}",
             {"f": from_ms, "t": to_ms, "rs": sorted(robots or ())},
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2]) for r in rows]
@@ -105,17 +107,17 @@ class ChangeFeedMixin(SnapshotsMixin):
         in the snapshots only (the floor carried forward)."""
         if not chunks:
             return {}
-        db = self.database
+        db = self.connection.database
         wanted = (
             "(row, col) IN (SELECT tupleElement(c, 1), tupleElement(c, 2) "
             "FROM (SELECT arrayJoin({cs:Array(Tuple(UInt16, UInt16))}) AS c))"
         )
-        rows = self._rows(
+        rows = self.connection.rows(
             f"WITH (SELECT maxOrNull(snap_ts) FROM {db}.snapshot_log "
             "WHERE snap_ts <= fromUnixTimestamp64Milli({b:Int64}) "
-            f"AND snap_ts < {self._valid_before()}) AS before_snap, "
+            f"AND snap_ts < {self.connection.valid_before()}) AS before_snap, "
             f"ifNull(before_snap, (SELECT minOrNull(snap_ts) FROM {db}.snapshot_log "
-            f"WHERE snap_ts < {self._valid_before()})) AS snap, "
+            f"WHERE snap_ts < {self.connection.valid_before()})) AS snap, "
             "ifNull(before_snap, toDateTime64(0, 3)) AS writes_after "
             "SELECT row, col, lower(hex(argMax(content_hash, (ts, robot_id)))) FROM ("
             f"SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "

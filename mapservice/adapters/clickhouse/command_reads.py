@@ -1,5 +1,6 @@
 """Operators' commands and the robots' answers (schema v14): their rows, and the reads
-of a window of them (the replay timeline's commands)."""
+of a window of them (the replay timeline's commands): `command_row` (the writer's) and
+`ClickHouseCommandReads`, the CommandReader role, over the store's connection."""
 
 from __future__ import annotations
 
@@ -86,14 +87,17 @@ def stored_of(row) -> StoredCommandEvent:
     return StoredCommandEvent(int(ts), event_id, CommandFinished(command_id, robot, status, reason))
 
 
-class CommandReadsMixin(ClickHouseConnection):
+class ClickHouseCommandReads:
+    def __init__(self, connection: ClickHouseConnection) -> None:
+        self.connection = connection
+
     def command_events(
         self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 10_000
     ) -> list[StoredCommandEvent]:
         """The commands and answers with from_ms <= time < to_ms (of one robot, if named),
         oldest first."""
-        rows = self._rows(
-            f"SELECT {_COLUMNS} FROM {self.database}.command_events FINAL "
+        rows = self.connection.rows(
+            f"SELECT {_COLUMNS} FROM {self.connection.database}.command_events FINAL "
             "WHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
             "AND ({r:String} = '' OR robot_id = {r:String}) "
             "ORDER BY ts, event_id LIMIT {n:UInt32}",

@@ -1,11 +1,13 @@
-"""The store's connection to ClickHouse and the low-level helpers every part of it shares.
+"""The store's one connection to ClickHouse and the low-level helpers every role shares.
 
-`ClickHouseConnection` is the base of each of the store's mixins: the writer client (one
-at a time, under `_lock`), the read client (under `_read_lock`), reusable insert contexts,
-`_rows` and `_pose_query` for reads, and the pure helpers that turn values into columns and
-columns into PoseRows (`_flag`, `_unflag`, `_mm`, `_POSE_COLUMNS`, `_FINAL_SETTINGS`,
-`_pose_rows`, ...). It depends only on clickhouse-connect, msgspec and the core's records,
-never on another module of the store.
+`ClickHouseConnection` is what each of the store's role adapters holds (as recorders share
+one datastore): the database, the writer client (one at a time, under `lock`), the read
+client (under a lock of its own), a ping client, reusable insert contexts, `rows` and
+`pose_query` for reads, and what the process knows of the stored data that more than one
+role needs (`known_contents`). The pure helpers that turn values into columns and columns
+into PoseRows (`flag`, `unflag`, `mm`, `POSE_READ_COLUMNS`, `FINAL_SETTINGS`, `pose_rows`)
+are here too. It depends only on clickhouse-connect, msgspec and the core's records, never
+on another module of the store.
 """
 
 from __future__ import annotations
@@ -13,31 +15,33 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 from contextlib import contextmanager
+from typing import Any
 
 import clickhouse_connect
 import msgspec
 import structlog
 
 from mapservice.core.ports import PoseRow
+from mapservice.settings import Settings
 
 from .broken_parts import BrokenPartRecovery
 
 log = structlog.get_logger(__name__)
 
-_json = msgspec.json.Encoder()
+json_encoder = msgspec.json.Encoder()
 _BOOLISH = msgspec.json.Decoder(bool | str | None)
 
 
-def _flag(value: bool | str | None) -> str:
+def flag(value: bool | str | None) -> str:
     # Stored as JSON text so the 2019 API can answer with the type the robot sent.
-    return "" if value is None else _json.encode(value).decode()
+    return "" if value is None else json_encoder.encode(value).decode()
 
 
-def _unflag(text: str) -> bool | str | None:
+def unflag(text: str) -> bool | str | None:
     return None if text == "" else _BOOLISH.decode(text)
 
 
-def _mm(metres: float) -> int:
+def mm(metres: float) -> int:
     return round(metres * 1000)
 
 
@@ -46,7 +50,7 @@ def _mm(metres: float) -> int:
 # more than a String column, and most poses carry no path. Metres and the receive time are
 # computed by ClickHouse (the same IEEE division and sum Python would do), which spares the
 # client three passes over every row of a large read.
-_POSE_COLUMNS = (
+POSE_READ_COLUMNS = (
     "robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
     "qx, qy, qz, qw, battery, charging, loaded, has_path, if(has_path, "
     "arrayStringConcat(arrayMap((x, y) -> concat(toString(x), ' ', toString(y)), "
@@ -55,7 +59,7 @@ _POSE_COLUMNS = (
 # Every FINAL read of poses and chunk_events: both are partitioned by the day of `ts`, a
 # sorting-key column, so rows with one identity always share a partition and FINAL need
 # not merge across partitions (it then skips merging single-part partitions entirely).
-_FINAL_SETTINGS = "SETTINGS do_not_merge_across_partitions_select_final = 1"
+FINAL_SETTINGS = "SETTINGS do_not_merge_across_partitions_select_final = 1"
 
 
 def _path(has_path: bool, text: str) -> tuple[tuple[float, float], ...] | None:
@@ -68,8 +72,8 @@ def _path(has_path: bool, text: str) -> tuple[tuple[float, float], ...] | None:
     )
 
 
-def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
-    """PoseRows from the columns of a `_POSE_COLUMNS` query, column-wise (it is faster)."""
+def pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
+    """PoseRows from the columns of a `POSE_READ_COLUMNS` query, column-wise (it is faster)."""
     if not columns or not len(columns[0]):
         return []
     robot, ts, x, y, z, qx, qy, qz, qw, battery, charging, loaded, has_path, path, received = (
@@ -77,8 +81,8 @@ def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
     )
     flags: dict[str, bool | str | None] = {}
 
-    def unflag(texts: Sequence[str]) -> list:
-        return [flags[t] if t in flags else flags.setdefault(t, _unflag(t)) for t in texts]
+    def unflag_all(texts: Sequence[str]) -> list:
+        return [flags[t] if t in flags else flags.setdefault(t, unflag(t)) for t in texts]
 
     paths = [_path(True, text) if has else None for has, text in zip(has_path, path)]
     return list(
@@ -94,8 +98,8 @@ def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
             qz,
             qw,
             battery,
-            unflag(charging),
-            unflag(loaded),
+            unflag_all(charging),
+            unflag_all(loaded),
             paths,
             received,
         )
@@ -103,25 +107,70 @@ def _pose_rows(columns: Sequence[Sequence]) -> list[PoseRow]:
 
 
 class ClickHouseConnection:
-    """The clients and locks the store's mixins share. ClickHouseStore.__init__ sets the
-    attributes below (construction does no I/O); the first call connects."""
+    """The clients and locks the store's roles share; construction does no I/O, the first
+    call connects.
 
-    dsn: str
-    database: str
-    retention_days: int
-    _username: str
-    _password: str
-    _client: object | None
-    _lock: threading.RLock
-    _read_client: object | None
-    tls: dict[str, str]
-    timeout_s: float
-    _read_lock: threading.Lock
-    _insert_contexts: dict[tuple[str, tuple[str, ...]], object]
-    # Created on the first failed write to chDB (broken_parts.py); kept for its cooldowns.
-    _broken_parts: BrokenPartRecovery | None = None
+    chDB allows one opener per directory and a client is not thread-safe, so each client is
+    used under its own lock: writes, schema changes and snapshot building under `lock`,
+    reads under the read client's, ping on a client of its own. Callers in an event loop
+    run the roles' methods in an executor."""
 
-    def _connect(self):
+    def __init__(
+        self,
+        dsn: str,
+        database: str = "mapservice",
+        retention_days: int = 7,
+        username: str = "default",
+        password: str = "",
+        cluster: str = "",
+        tls: dict[str, str] | None = None,
+        timeout_s: float = 60.0,
+    ) -> None:
+        self.dsn = dsn
+        self.database = database
+        self.retention_days = retention_days
+        self.cluster = cluster  # non-empty: DDL ON CLUSTER, Replicated tables (schema_cluster)
+        self._username = username
+        self._password = password
+        self._client: Any = None
+        self.lock = threading.RLock()
+        # Reads get a client of their own: an API read then runs beside an insert instead
+        # of queueing behind it (chDB runs queries of two handles at once; measured: a
+        # 3 ms read took ~9 ms beside a 150 ms query instead of waiting it out). Reads never
+        # take `lock`, so a writer that reads while holding it cannot deadlock with them.
+        self._read_client: Any = None
+        self._read_lock = threading.Lock()
+        self._ping_client: Any = None
+        # clickhouse-connect's TLS arguments (ca_cert, client_cert, client_cert_key) for an
+        # https:// server (from_settings: MAPSERVICE_CLICKHOUSE_*_FILE).
+        self.tls: dict[str, str] = dict(tls or {})
+        # A server request that has not answered in this long fails (and is retried by its
+        # caller): clickhouse-connect waits 300 s by default, and an insert hung on a server
+        # that was restarting held the whole pipeline that long (fault tests).
+        self.timeout_s = timeout_s
+        # Content hash -> the day it was last written: the writer skips pixels already
+        # stored that day, the retention forgets what it renews (both under `lock`).
+        self.known_contents: dict[bytes, int] = {}
+        # One reusable insert context per (table, columns): without it every insert first
+        # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
+        self._insert_contexts: dict[tuple[str, tuple[str, ...]], object] = {}
+        # Created on the first failed write to chDB (broken_parts.py); kept for its cooldowns.
+        self._broken_parts: BrokenPartRecovery | None = None
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> ClickHouseConnection:
+        return cls(
+            settings.resolved_clickhouse_dsn,
+            settings.clickhouse_database,
+            settings.retention_days,
+            settings.clickhouse_username,
+            settings.clickhouse_password.get_secret_value(),
+            settings.clickhouse_cluster,
+            tls=settings.clickhouse_tls(),
+            timeout_s=settings.clickhouse_timeout_s,
+        )
+
+    def connect(self):
         if self.dsn.startswith("chdb://"):
             try:
                 import chdb  # noqa: F401  (clickhouse-connect loads it; say what to do if absent)
@@ -142,23 +191,23 @@ class ClickHouseConnection:
 
     @property
     def client(self):
-        """The client for writes, schema changes and snapshot building (under `_lock`)."""
-        with self._lock:
+        """The client for writes, schema changes and snapshot building (under `lock`)."""
+        with self.lock:
             if self._client is None:
-                self._client = self._connect()
+                self._client = self.connect()
             return self._client
 
     @contextmanager
-    def _reader(self):
+    def reader(self):
         """The read client, held for one read. A read that meets a part a full disk cut
         short reloads its table as a write does (after the read client is released)."""
-        with self._reloading_broken_tables(), self._read_lock:
+        with self.reloading_broken_tables(), self._read_lock:
             if self._read_client is None:
-                self._read_client = self._connect()
+                self._read_client = self.connect()
             yield self._read_client
 
     @contextmanager
-    def _reloading_broken_tables(self):
+    def reloading_broken_tables(self):
         """Around a write or a read: when it fails because chDB cannot read a part (one a
         full disk cut short), reloads the tables the error names with the writer client,
         so that the caller's retry finds the part set aside (broken_parts.py). The failure
@@ -168,7 +217,7 @@ class ClickHouseConnection:
             yield
         except Exception as exc:
             if self.dsn.startswith("chdb://"):
-                with self._lock:
+                with self.lock:
                     if self._broken_parts is None:
                         self._broken_parts = BrokenPartRecovery(
                             self.database,
@@ -182,10 +231,10 @@ class ClickHouseConnection:
                         log.error("reloading tables with broken parts failed", error=str(failed))
             raise
 
-    def _insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
-        """Inserts `rows` into `table` of the database with the writer client (under `_lock`)."""
+    def insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
+        """Inserts `rows` into `table` of the database with the writer client (under `lock`)."""
         key = (table, tuple(columns))
-        with self._reloading_broken_tables():
+        with self.reloading_broken_tables():
             context = self._insert_contexts.get(key)
             if context is None:
                 context = self.client.create_insert_context(
@@ -194,11 +243,15 @@ class ClickHouseConnection:
                 self._insert_contexts[key] = context
             self.client.insert(data=rows, context=context)
 
-    def _rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
-        with self._reader() as c:
+    def forget_insert_contexts(self) -> None:
+        """After a schema change: the column types the contexts hold may be stale."""
+        self._insert_contexts.clear()
+
+    def rows(self, sql: str, params: dict, **query_options) -> list[tuple]:
+        with self.reader() as c:
             return c.query(sql, parameters=params, **query_options).result_rows
 
-    def _valid_before(self) -> str:
+    def valid_before(self) -> str:
         """SQL for the first instant whose snapshots may be wrong (a pending repair's
         start), or far in the future: reads (the snapshots' own and the change feed's) use only
         snapshots before it."""
@@ -209,7 +262,31 @@ class ClickHouseConnection:
             f"toDateTime64('2299-12-31 00:00:00', 3, 'UTC')) FROM {self.database}.snapshot_repairs)"
         )
 
-    def _pose_query(self, sql: str, params: dict) -> list[PoseRow]:
-        with self._reader() as c:
+    def pose_query(self, sql: str, params: dict) -> list[PoseRow]:
+        with self.reader() as c:
             columns = c.query(sql, parameters=params).result_columns
-        return _pose_rows(columns)
+        return pose_rows(columns)
+
+    def ping(self, timeout_s: float = 2.0) -> bool:
+        """A real round trip to ClickHouse on a client of its own (a hung server must not
+        hold the read or write client); readiness calls it through a CachedCheck."""
+        if self._ping_client is None:
+            if self.dsn.startswith("chdb://"):
+                self._ping_client = self.connect()
+            else:
+                self._ping_client = clickhouse_connect.get_client(
+                    dsn=self.dsn,
+                    username=self._username,
+                    password=self._password,
+                    connect_timeout=timeout_s,
+                    send_receive_timeout=timeout_s,
+                    **self.tls,
+                )
+        return self._ping_client.command("SELECT 1") == 1
+
+    def close(self) -> None:
+        with self.lock, self._read_lock:
+            for client in (self._client, self._read_client):
+                if client is not None:
+                    client.close()
+            self._client = self._read_client = None

@@ -1,8 +1,8 @@
 """The store's answers to the 2019 REST contract: chunk and pose listings filtered, ordered
 and paged as `core.legacy_query` parsed them.
 
-`LegacyMixin` reads through `connection.ClickHouseConnection` and depends on nothing else
-of the store.
+`ClickHouseLegacyQueries` (the LegacyQueries role) reads through the
+`connection.ClickHouseConnection` it holds and depends on nothing else of the store.
 """
 
 from __future__ import annotations
@@ -10,33 +10,40 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from mapservice.adapters.clickhouse.connection import (
-    _FINAL_SETTINGS,
-    _POSE_COLUMNS,
+    FINAL_SETTINGS,
+    POSE_READ_COLUMNS,
     ClickHouseConnection,
 )
+from mapservice.adapters.clock import SystemClock
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, sort_column
 from mapservice.core.ports import ChunkRow, PoseRow
 
 
-class LegacyMixin(ClickHouseConnection):
+class ClickHouseLegacyQueries:
     """list_chunks, list_poses."""
 
-    clock_ms: Callable[[], int]  # the service's clock (ClickHouseStore sets it)
-
-    # --- the 2019 REST contract ----------------------------------------------------------
+    def __init__(
+        self, connection: ClickHouseConnection, clock_ms: Callable[[], int] | None = None
+    ) -> None:
+        self.connection = connection
+        # The service's clock: the newest-first listing looks for its rows just before
+        # "now" on it (a simulated clock where the settings ask for one).
+        self.clock_ms: Callable[[], int] = clock_ms or SystemClock().now_ms
 
     def list_chunks(self, query: ChunkQuery) -> list[ChunkRow]:
         rows = self._legacy_rows(
             "SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
-            f"recv_lag_ms FROM {self.database}.chunk_events FINAL",
+            f"recv_lag_ms FROM {self.connection.database}.chunk_events FINAL",
             query,
-            lambda sql, params: self._rows(sql, params),
+            lambda sql, params: self.connection.rows(sql, params),
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
 
     def list_poses(self, query: PoseQuery) -> list[PoseRow]:
         return self._legacy_rows(
-            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL", query, self._pose_query
+            f"SELECT {POSE_READ_COLUMNS} FROM {self.connection.database}.poses FINAL",
+            query,
+            self.connection.pose_query,
         )
 
     def _legacy_rows(self, select: str, query: ChunkQuery | PoseQuery, run: Callable) -> list:
@@ -71,7 +78,7 @@ class LegacyMixin(ClickHouseConnection):
             clause = f" PREWHERE {' AND '.join(where + extra)}" if where or extra else ""
             return (
                 f"{select}{clause} ORDER BY {order} LIMIT {{n:UInt32}} OFFSET {{s:UInt32}} "
-                f"{_FINAL_SETTINGS}"
+                f"{FINAL_SETTINGS}"
             )
 
         if (

@@ -1,9 +1,9 @@
 """The store's schema: its version, applying the numbered migrations of `schema` under a
 lock table, checking their checksums, and breaking a lock a dead migrator left.
 
-`MigrationsMixin` runs on the writer client of `connection.ClickHouseConnection`; it
-depends on that base, on `schema` (the migrations) and on `cluster` (ON CLUSTER DDL), never
-on the store's other mixins.
+`ClickHouseSchema` (the StoreSchema role) runs on the writer client of the
+`connection.ClickHouseConnection` it holds; it depends on that, on `schema` (the migrations)
+and on `cluster` (ON CLUSTER DDL), never on the store's other roles.
 """
 
 from __future__ import annotations
@@ -34,18 +34,17 @@ class MigrationChanged(RuntimeError):
     """An applied migration's statements differ from this release's."""
 
 
-class MigrationsMixin(ClickHouseConnection):
+class ClickHouseSchema:
     """Schema version, migrate, the migration lock."""
 
-    cluster: str  # non-empty: DDL ON CLUSTER, Replicated tables (schema_cluster)
-
-    # --- schema ---------------------------------------------------------------------
+    def __init__(self, connection: ClickHouseConnection) -> None:
+        self.connection = connection
 
     def schema_version(self) -> int:
         """The highest applied migration (0 on an empty database)."""
         try:
-            ((version,),) = self._rows(
-                f"SELECT max(version) FROM {self.database}.schema_migrations", {}
+            ((version,),) = self.connection.rows(
+                f"SELECT max(version) FROM {self.connection.database}.schema_migrations", {}
             )
         except Exception:  # no database or table yet
             return 0
@@ -58,10 +57,10 @@ class MigrationsMixin(ClickHouseConnection):
         second with TABLE_ALREADY_EXISTS): two migrators never interleave statements, the
         second waits and then finds everything applied. Each applied migration keeps a
         checksum of its statements; a migration edited after it ran is an error."""
-        db = self.database
+        db = self.connection.database
         holder = holder or f"{socket.gethostname()}:{os.getpid()}"
-        with self._lock:
-            c = self.client
+        with self.connection.lock:
+            c = self.connection.client
             ddl = self._ddl
             ddl(f"CREATE DATABASE IF NOT EXISTS {db}")
             ddl(
@@ -82,7 +81,7 @@ class MigrationsMixin(ClickHouseConnection):
                 )
                 version = max(applied, default=0)
                 released = checksums()
-                for m in migrations(db, self.retention_days):
+                for m in migrations(db, self.connection.retention_days):
                     if m.version in applied:
                         if applied[m.version] and applied[m.version] != released[m.version]:
                             raise MigrationChanged(
@@ -104,16 +103,16 @@ class MigrationsMixin(ClickHouseConnection):
                     version = max(version, m.version)
             finally:
                 ddl(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
-            self._insert_contexts.clear()  # column types may have changed
+            self.connection.forget_insert_contexts()  # column types may have changed
             keep_merged_sources(db, ddl, lambda sql: c.query(sql).result_rows)
             return version
 
     def _ddl(self, statement: str) -> None:
         """A schema statement, ON CLUSTER with Replicated engines where a cluster is set."""
-        self.client.command(for_cluster(statement, self.cluster))
+        self.connection.client.command(for_cluster(statement, self.connection.cluster))
 
     def _take_migration_lock(self, holder: str, timeout_s: float) -> None:
-        db, c = self.database, self.client
+        db, c = self.connection.database, self.connection.client
         deadline = time.monotonic() + timeout_s
         waited = False
         while True:
@@ -152,11 +151,12 @@ class MigrationsMixin(ClickHouseConnection):
 
     def break_migration_lock(self) -> bool:
         """Drops a lock left by a migrator that died; True if there was one."""
-        with self._lock:
+        db = self.connection.database
+        with self.connection.lock:
             existed = bool(
-                self.client.query(f"EXISTS TABLE {self.database}.{MIGRATION_LOCK}").result_rows[0][
+                self.connection.client.query(f"EXISTS TABLE {db}.{MIGRATION_LOCK}").result_rows[0][
                     0
                 ]
             )
-            self._ddl(f"DROP TABLE IF EXISTS {self.database}.{MIGRATION_LOCK} SYNC")
+            self._ddl(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
             return existed

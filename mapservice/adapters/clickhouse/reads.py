@@ -2,9 +2,10 @@
 (raw and downsampled), chunk writes, the timeline, chunk contents and the latest map
 metadata, all on the read client (conflicts: `conflict_reads`).
 
-`ReadsMixin` builds on `snapshots.SnapshotsMixin` (reads use only valid snapshots) and so
-on `connection`; it also depends on `schema` for the keyframe columns, never on the
-store's other mixins.
+`ClickHouseTimeTravel` (the TimeTravelReader role) holds the connection (reads use only
+valid snapshots: `ClickHouseConnection.valid_before`), the conflict reads (the timeline
+counts conflicts) and the track reads (`robot_track`); it also depends on `pose_schema`
+for the keyframe columns, never on the store's other roles.
 """
 
 from __future__ import annotations
@@ -13,18 +14,36 @@ from collections.abc import Sequence
 
 import msgspec
 
-from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, _POSE_COLUMNS
+from mapservice.adapters.clickhouse.conflict_reads import ClickHouseConflictReads
+from mapservice.adapters.clickhouse.connection import (
+    FINAL_SETTINGS,
+    POSE_READ_COLUMNS,
+    ClickHouseConnection,
+)
 from mapservice.adapters.clickhouse.pose_schema import KEYFRAME_MS, POSE_COLUMNS
-from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.adapters.clickhouse.track_reads import ClickHouseTrackReads
 from mapservice.core.events import MapMetaSet
 from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket
 from mapservice.core.timetravel import timeline_buckets
 
 
-class ReadsMixin(SnapshotsMixin):
+class ClickHouseTimeTravel:
     """Time travel and replay."""
 
-    # --- reads ----------------------------------------------------------------------
+    def __init__(
+        self,
+        connection: ClickHouseConnection,
+        conflicts: ClickHouseConflictReads,
+        tracks: ClickHouseTrackReads,
+    ) -> None:
+        self.connection = connection
+        self._conflicts = conflicts
+        self._tracks = tracks
+
+    def robot_track(
+        self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0, limit: int = 100_000
+    ) -> list[PoseRow]:
+        return self._tracks.robot_track(robot_id, from_ms, to_ms, step_ms, limit)
 
     def poses(
         self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 100_000
@@ -39,9 +58,9 @@ class ReadsMixin(SnapshotsMixin):
         if robot_id is not None:
             where += " AND robot_id = {r:String}"
             params["r"] = robot_id
-        return self._pose_query(
-            f"SELECT {_POSE_COLUMNS} FROM {self.database}.poses FINAL PREWHERE {where} "
-            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+        return self.connection.pose_query(
+            f"SELECT {POSE_READ_COLUMNS} FROM {self.connection.database}.poses FINAL PREWHERE {where} "
+            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {FINAL_SETTINGS}",
             params,
         )
 
@@ -70,8 +89,8 @@ class ReadsMixin(SnapshotsMixin):
             # the first keyframe of each (robot, step) is the first one met, and reading
             # stops at the LIMIT. (cell, ts, robot_id) is the (ts, robot_id) order.
             robot = " AND robot_id = {r:String}" if robot_id is not None else ""
-            return self._pose_query(
-                f"SELECT {_POSE_COLUMNS} FROM {self.database}.pose_keyframes FINAL "
+            return self.connection.pose_query(
+                f"SELECT {POSE_READ_COLUMNS} FROM {self.connection.database}.pose_keyframes FINAL "
                 "PREWHERE cell >= fromUnixTimestamp64Milli({f:Int64}) "
                 f"AND cell < fromUnixTimestamp64Milli({{t:Int64}}){robot} "
                 "WHERE ts < fromUnixTimestamp64Milli({t:Int64}) ORDER BY cell, ts, robot_id "
@@ -81,18 +100,18 @@ class ReadsMixin(SnapshotsMixin):
                     if step_ms == KEYFRAME_MS
                     else "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
                 )
-                + f"LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+                + f"LIMIT {{n:UInt32}} {FINAL_SETTINGS}",
                 params,
             )
         if step_ms >= 10 * KEYFRAME_MS:
-            return self._pose_query(
+            return self.connection.pose_query(
                 self._keyframe_sql(_step_heads(from_ms, to_ms, step_ms), robot_id), params
             )
-        return self._pose_query(
-            f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {self.database}.poses FINAL WHERE {where} "
+        return self.connection.pose_query(
+            f"SELECT {POSE_READ_COLUMNS} FROM (SELECT * FROM {self.connection.database}.poses FINAL WHERE {where} "
             "ORDER BY robot_id, ts "
             "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
-            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {FINAL_SETTINGS}",
             params,
         )
 
@@ -109,7 +128,7 @@ class ReadsMixin(SnapshotsMixin):
         ranges, so the primary key reads only their granules (a condition computed from
         `ts` alone would read the time column of the whole window to find them).
         """
-        db = self.database
+        db = self.connection.database
         robot = " AND robot_id = {r:String}" if robot_id is not None else ""
         window = (
             "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
@@ -128,9 +147,9 @@ class ReadsMixin(SnapshotsMixin):
                 f" UNION ALL SELECT {POSE_COLUMNS} FROM {db}.poses FINAL PREWHERE ({ranges}){robot}"
             )
         return (
-            f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM ({candidates}) ORDER BY robot_id, ts "
+            f"SELECT {POSE_READ_COLUMNS} FROM (SELECT * FROM ({candidates}) ORDER BY robot_id, ts "
             "LIMIT 1 BY robot_id, intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64})) "
-            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}"
+            f"ORDER BY ts, robot_id LIMIT {{n:UInt32}} {FINAL_SETTINGS}"
         )
 
     def map_at(self, at_ms: int) -> list[ChunkState]:
@@ -140,12 +159,12 @@ class ReadsMixin(SnapshotsMixin):
         it to a constant before choosing granules). Without a snapshot it is the epoch, so
         the snapshot side is empty and every event <= `at_ms` is folded.
         """
-        db = self.database
-        with self._reader() as c:
+        db = self.connection.database
+        with self.connection.reader() as c:
             rows = c.query(
                 f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
                 "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
-                f"AND snap_ts < {self._valid_before()}) AS snap "
+                f"AND snap_ts < {self.connection.valid_before()}) AS snap "
                 "SELECT row, col, toUnixTimestamp64Milli(max(ts)), argMax(robot_id, (ts, robot_id)), "
                 "lower(hex(argMax(content_hash, (ts, robot_id)))) "
                 f"FROM (SELECT row, col, ts, robot_id, content_hash FROM {db}.map_snapshots "
@@ -172,7 +191,7 @@ class ReadsMixin(SnapshotsMixin):
         A page (`after`, `limit`) is cut in the first pass, so a fleet of 100,000 robot ids
         sends one page's rows, not every robot's, and the second pass reads only the page's.
         """
-        db = self.database
+        db = self.connection.database
         params: dict = {"t": at_ms}
         page = ""
         if after is not None:
@@ -190,25 +209,25 @@ class ReadsMixin(SnapshotsMixin):
             f"SELECT robot_id, ts FROM {db}.robot_snapshots WHERE snap_ts = snap{page}) "
             f"GROUP BY robot_id{cut})"
         )
-        return self._pose_query(
+        return self.connection.pose_query(
             f"WITH (SELECT max(snap_ts) FROM {db}.snapshot_log "
             "WHERE snap_ts <= fromUnixTimestamp64Milli({t:Int64}) "
-            f"AND snap_ts < {self._valid_before()}) AS snap "
-            f"SELECT {_POSE_COLUMNS} FROM (SELECT * FROM {db}.poses FINAL "
+            f"AND snap_ts < {self.connection.valid_before()}) AS snap "
+            f"SELECT {POSE_READ_COLUMNS} FROM (SELECT * FROM {db}.poses FINAL "
             f"PREWHERE (robot_id, ts) IN {latest} UNION ALL "
             # A robot silent since before the retention: its last pose, carried (retention.py).
             f"SELECT * FROM {db}.carried_poses FINAL WHERE (robot_id, ts) IN {latest}) "
-            f"ORDER BY robot_id LIMIT 1 BY robot_id {_FINAL_SETTINGS}",
+            f"ORDER BY robot_id LIMIT 1 BY robot_id {FINAL_SETTINGS}",
             params,
         )
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         # PREWHERE on the sorting key's `ts`: as in poses(), FINAL sees every duplicate.
-        rows = self._rows(
+        rows = self.connection.rows(
             f"SELECT row, col, toUnixTimestamp64Milli(ts), robot_id, lower(hex(content_hash)), "
-            f"recv_lag_ms FROM {self.database}.chunk_events FINAL "
+            f"recv_lag_ms FROM {self.connection.database}.chunk_events FINAL "
             "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            f"ORDER BY ts, row, col, robot_id LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            f"ORDER BY ts, row, col, robot_id LIMIT {{n:UInt32}} {FINAL_SETTINGS}",
             {"f": from_ms, "t": to_ms, "n": limit},
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
@@ -228,17 +247,17 @@ class ReadsMixin(SnapshotsMixin):
         """
         if step_ms <= 0:
             raise ValueError("step_ms must be positive")
-        db = self.database
+        db = self.connection.database
         window = (
             "ts >= fromUnixTimestamp64Milli({f:Int64}) AND ts < fromUnixTimestamp64Milli({t:Int64})"
         )
-        rows = self._rows(
+        rows = self.connection.rows(
             "SELECT row, col, toUnixTimestamp64Milli(ts) AS t, max(robot_id) AS robot, "
             "lower(hex(argMax(content_hash, robot_id))), argMax(recv_lag_ms, robot_id) "
             f"FROM {db}.chunk_events FINAL PREWHERE {window} AND (row, col, ts) IN ("
             f"SELECT row, col, max(ts) FROM {db}.chunk_events PREWHERE {window} "
             "GROUP BY row, col, intDiv(toUnixTimestamp64Milli(ts), {s:Int64})) "
-            f"GROUP BY row, col, ts ORDER BY t, row, col, robot LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            f"GROUP BY row, col, ts ORDER BY t, row, col, robot LIMIT {{n:UInt32}} {FINAL_SETTINGS}",
             {"f": from_ms, "t": to_ms, "s": step_ms, "n": limit},
         )
         return [ChunkRow(r[0], r[1], r[2], r[3], r[4], r[2] + r[5]) for r in rows]
@@ -249,7 +268,7 @@ class ReadsMixin(SnapshotsMixin):
             return []
         chunks = self._timeline_chunks(from_ms, to_ms, bucket_ms)
         robots = self._timeline_robots(from_ms, to_ms, bucket_ms)
-        conflicts = self.conflict_counts(from_ms, to_ms, bucket_ms)
+        conflicts = self._conflicts.conflict_counts(from_ms, to_ms, bucket_ms)
         return [
             TimelineBucket(start, chunks.get(k, 0), conflicts.get(start, 0), robots.get(k, 0))
             for k, start in enumerate(starts)
@@ -265,7 +284,7 @@ class ReadsMixin(SnapshotsMixin):
         millisecond offsets one by one. Events from that snapshot on (and all of them
         without one) are counted from chunk_events FINAL, as before.
         """
-        db = self.database
+        db = self.connection.database
         params = {
             "f": from_ms,
             "t": to_ms,
@@ -275,7 +294,7 @@ class ReadsMixin(SnapshotsMixin):
         }
         cov = (
             f"(SELECT toDateTime(max(snap_ts)) FROM {db}.snapshot_log "
-            f"WHERE snap_ts < {self._valid_before()})"
+            f"WHERE snap_ts < {self.connection.valid_before()})"
         )
         seconds = (
             f"{db}.chunk_seconds FINAL PREWHERE second >= toDateTime({{f0:Int64}}) "
@@ -299,12 +318,12 @@ class ReadsMixin(SnapshotsMixin):
                 f"arrayFilter(o -> {s} + o >= {{f:Int64}} AND {s} + o < {{t:Int64}}, offsets)))) AS kn "
                 f"FROM {seconds}) GROUP BY k"
             )
-        rows = self._rows(
+        rows = self.connection.rows(
             f"WITH {cov} AS cov SELECT k, sum(n) FROM ({covered} UNION ALL "
             f"SELECT intDiv(toUnixTimestamp64Milli(ts) - {{f:Int64}}, {{b:Int64}}) AS k, count() AS n "
             f"FROM {db}.chunk_events FINAL PREWHERE ts >= greatest(fromUnixTimestamp64Milli({{f:Int64}}), cov) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64}) GROUP BY k) GROUP BY k "
-            f"{_FINAL_SETTINGS}",
+            f"{FINAL_SETTINGS}",
             params,
         )
         return {int(k): int(n) for k, n in rows}
@@ -320,7 +339,7 @@ class ReadsMixin(SnapshotsMixin):
         The minutes the window's ends cut are read from `poses`, as are shorter buckets.
         A duplicate pose names the same robot: no FINAL needed anywhere.
         """
-        db = self.database
+        db = self.connection.database
         params = {"f": from_ms, "t": to_ms, "b": bucket_ms}
         bucket = "intDiv(toUnixTimestamp64Milli({x}) - {{f:Int64}}, {{b:Int64}})"
         parts = []
@@ -340,7 +359,7 @@ class ReadsMixin(SnapshotsMixin):
                 f"ARRAY JOIN {times} AS x WHERE cell >= fromUnixTimestamp64Milli({lo}) "
                 f"AND cell < fromUnixTimestamp64Milli({hi})"
             )
-        rows = self._rows(
+        rows = self.connection.rows(
             f"SELECT k, uniqExact(robot_id) FROM ({' UNION ALL '.join(parts)}) GROUP BY k", params
         )
         return {int(k): int(n) for k, n in rows}
@@ -349,15 +368,15 @@ class ReadsMixin(SnapshotsMixin):
         # pose_keyframes: a row per robot and minute, robot ids as LowCardinality (a part
         # without the robot in its dictionary is skipped), not a scan of `poses`.
         return bool(
-            self._rows(
-                f"SELECT 1 FROM {self.database}.pose_keyframes WHERE robot_id = {{r:String}} LIMIT 1",
+            self.connection.rows(
+                f"SELECT 1 FROM {self.connection.database}.pose_keyframes WHERE robot_id = {{r:String}} LIMIT 1",
                 {"r": robot_id},
             )
         )
 
     def chunk_content(self, content_hash: bytes) -> tuple[int, int, bytes] | None:
-        rows = self._rows(
-            f"SELECT width, height, zlib_pixels FROM {self.database}.chunk_contents "
+        rows = self.connection.rows(
+            f"SELECT width, height, zlib_pixels FROM {self.connection.database}.chunk_contents "
             "WHERE content_hash = unhex({h:String}) LIMIT 1",
             {"h": content_hash.hex()},
             # As bytes: read as text, zlib data that is not UTF-8 would come back as hex.
@@ -372,9 +391,9 @@ class ReadsMixin(SnapshotsMixin):
         """Many content hashes at once: hash -> (width, height, zlib pixels)."""
         if not hashes:
             return {}
-        rows = self._rows(
+        rows = self.connection.rows(
             f"SELECT content_hash, any(width), any(height), any(zlib_pixels) "
-            f"FROM {self.database}.chunk_contents WHERE content_hash IN "
+            f"FROM {self.connection.database}.chunk_contents WHERE content_hash IN "
             "(SELECT arrayJoin(arrayMap(h -> toFixedString(unhex(h), 16), {hs:Array(String)}))) "
             "GROUP BY content_hash",
             {"hs": [h.hex() for h in set(hashes)]},
@@ -383,8 +402,9 @@ class ReadsMixin(SnapshotsMixin):
         return {bytes(h): (w, ht, bytes(d)) for h, w, ht, d in rows}
 
     def latest_meta(self) -> MapMetaSet | None:
-        rows = self._rows(
-            f"SELECT meta FROM {self.database}.map_meta FINAL ORDER BY ts DESC LIMIT 1", {}
+        rows = self.connection.rows(
+            f"SELECT meta FROM {self.connection.database}.map_meta FINAL ORDER BY ts DESC LIMIT 1",
+            {},
         )
         if not rows:
             return None

@@ -24,7 +24,8 @@ the processors' snapshot timer on the service's clock (`adapters/clock.py`):
    creation); a removed annotation's edits go. The edits after the boundary are history.
 
 Storage is then flat per day after the first retention period: the kept days, plus the
-renewed floor. `RetentionMixin` builds on `snapshots.SnapshotsMixin`.
+renewed floor. `ClickHouseRetention` (the RetentionKeeper role) holds the connection and the
+store's `snapshots.ClickHouseSnapshots` (it builds the anchor when missing).
 """
 
 from __future__ import annotations
@@ -35,8 +36,9 @@ import structlog
 
 from mapservice.adapters.clickhouse.annotation_reads import edit_of
 from mapservice.adapters.clickhouse.cluster import for_cluster
+from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.adapters.clickhouse.schema import RETAINED_BY_DAY
-from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.adapters.clickhouse.snapshots import ClickHouseSnapshots
 from mapservice.core.annotations import prune_before
 from mapservice.core.ports import RetentionResult
 
@@ -45,20 +47,20 @@ log = structlog.get_logger(__name__)
 DAY_MS = 86_400_000
 
 
-class RetentionMixin(SnapshotsMixin):
+class ClickHouseRetention:
     """apply_retention: expiry by the service's clock, the floor carried forward."""
 
-    retention_days: int
-    cluster: str
-    _known_contents: dict[bytes, int]  # hash -> day already written
+    def __init__(self, connection: ClickHouseConnection, snapshots: ClickHouseSnapshots) -> None:
+        self.connection = connection
+        self.snapshots = snapshots
 
     def apply_retention(self, now_ms: int) -> RetentionResult:
         """Drops the history older than the retention at `now_ms` (day partitions before
         the day of the anchor snapshot), keeping the state at every instant from
         `now_ms - retention` on exact: the floor, its pixels, the map metadata."""
-        boundary = now_ms - self.retention_days * DAY_MS
-        db = self.database
-        with self._lock:
+        boundary = now_ms - self.connection.retention_days * DAY_MS
+        db = self.connection.database
+        with self.connection.lock:
             self._prune_annotation_edits(boundary)
             anchor = self._retention_anchor(boundary)
             if anchor is None:
@@ -77,13 +79,14 @@ class RetentionMixin(SnapshotsMixin):
             if any(table == "poses" for table, _ in old):
                 self._carry_poses(anchor, cut)
             for table, partition in old:
-                self.client.command(
+                self.connection.client.command(
                     for_cluster(
-                        f"ALTER TABLE {db}.{table} DROP PARTITION ID '{partition}'", self.cluster
+                        f"ALTER TABLE {db}.{table} DROP PARTITION ID '{partition}'",
+                        self.connection.cluster,
                     )
                 )
             if old:
-                self.client.command(
+                self.connection.client.command(
                     f"DELETE FROM {db}.snapshot_log WHERE snap_ts < toDateTime64({{c:Date}}, 3, 'UTC')",
                     parameters={"c": cut},
                 )
@@ -98,15 +101,15 @@ class RetentionMixin(SnapshotsMixin):
             return RetentionResult(anchor, cut.isoformat(), len(old), renewed)
 
     def _rows_w(self, sql: str, params: dict) -> list:
-        return self.client.query(sql, parameters=params).result_rows
+        return self.connection.client.query(sql, parameters=params).result_rows
 
     def _retention_anchor(self, boundary_ms: int) -> int | None:
         """The newest valid snapshot at or before the boundary, built if missing."""
         for attempt in range(2):
             rows = self._rows_w(
-                f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() FROM {self.database}.snapshot_log "
+                f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() FROM {self.connection.database}.snapshot_log "
                 "WHERE snap_ts <= fromUnixTimestamp64Milli({b:Int64}) "
-                f"AND snap_ts < {self._valid_before()}",
+                f"AND snap_ts < {self.connection.valid_before()}",
                 {"b": boundary_ms},
             )
             if rows and rows[0][1]:
@@ -114,13 +117,13 @@ class RetentionMixin(SnapshotsMixin):
             if attempt == 0:
                 # The snapshot timer builds them; on a store that was down (or a first
                 # start on old history) the boundary may be ahead of them.
-                self.build_snapshots(boundary_ms)
+                self.snapshots.build_snapshots(boundary_ms)
         return None
 
     def _renew_contents(self, cut: dt.date, now_ms: int) -> int:
         """Copies into today's partition the contents that a kept row names and that only
         partitions before `cut` hold; returns how many."""
-        db = self.database
+        db = self.connection.database
         today = dt.date(1970, 1, 1) + dt.timedelta(days=now_ms // DAY_MS)
         kept_from = "toDateTime64({c:Date}, 3, 'UTC')"
         named = (
@@ -135,7 +138,7 @@ class RetentionMixin(SnapshotsMixin):
             params,
         )
         if count:
-            self.client.command(
+            self.connection.client.command(
                 f"INSERT INTO {db}.chunk_contents (content_hash, day, width, height, zlib_pixels) "
                 "SELECT content_hash, {today:Date}, any(width), any(height), any(zlib_pixels) "
                 f"FROM {db}.chunk_contents WHERE day < {{c:Date}} AND content_hash IN ({named}) "
@@ -143,27 +146,27 @@ class RetentionMixin(SnapshotsMixin):
                 "WHERE day >= {c:Date}) GROUP BY content_hash",
                 parameters=params,
             )
-            self._known_contents.clear()  # days it remembers may be the dropped ones
+            self.connection.known_contents.clear()  # days it remembers may be the dropped ones
         return int(count)
 
     def _carry_poses(self, anchor_ms: int, cut: dt.date) -> None:
         """Carries the poses the anchor snapshot names that are older than the cut: each
         robot's last pose, however long it has been silent (one row per robot: the newer
         carried pose replaces the older, merged at once, the table holding a row a robot)."""
-        db = self.database
-        self.client.command(
+        db = self.connection.database
+        self.connection.client.command(
             f"INSERT INTO {db}.carried_poses SELECT * FROM {db}.poses FINAL "
             "WHERE ts < toDateTime64({c:Date}, 3, 'UTC') AND (robot_id, ts) IN "
             f"(SELECT robot_id, ts FROM {db}.robot_snapshots "
             "WHERE snap_ts = fromUnixTimestamp64Milli({a:Int64}))",
             parameters={"a": anchor_ms, "c": cut},
         )
-        self.client.command(f"OPTIMIZE TABLE {db}.carried_poses FINAL")
+        self.connection.client.command(f"OPTIMIZE TABLE {db}.carried_poses FINAL")
 
     def _prune_annotation_edits(self, boundary_ms: int) -> None:
         """Deletes the annotation edits before the boundary that no annotation standing at
         the boundary needs (its latest edit, and its creation, stay however old)."""
-        db = self.database
+        db = self.connection.database
         # The same rule as the memory store's (core `prune_before`), on the edits up to the
         # boundary: a few per annotation once pruned, so reading them is cheap.
         rows = self._rows_w(
@@ -175,7 +178,7 @@ class RetentionMixin(SnapshotsMixin):
         kept = {e.event_id for e in prune_before(edits, boundary_ms)}
         gone = sorted({e.event_id for e in edits if e.ts_ms < boundary_ms} - kept)
         if gone:
-            self.client.command(
+            self.connection.client.command(
                 f"DELETE FROM {db}.annotation_events WHERE ts < fromUnixTimestamp64Milli({{b:Int64}}) "
                 "AND has({ids:Array(String)}, event_id)",
                 parameters={"b": boundary_ms, "ids": gone},
@@ -184,14 +187,14 @@ class RetentionMixin(SnapshotsMixin):
 
     def _drop_superseded_meta(self, boundary_ms: int) -> None:
         """Map metadata replaced before the boundary: the one in force at the boundary stays."""
-        db = self.database
+        db = self.connection.database
         rows = self._rows_w(
             f"SELECT toUnixTimestamp64Milli(max(ts)), count() FROM {db}.map_meta "
             "WHERE ts <= fromUnixTimestamp64Milli({b:Int64})",
             {"b": boundary_ms},
         )
         if rows and rows[0][1]:
-            self.client.command(
+            self.connection.client.command(
                 f"DELETE FROM {db}.map_meta WHERE ts < fromUnixTimestamp64Milli({{m:Int64}})",
                 parameters={"m": int(rows[0][0])},
             )

@@ -3,9 +3,11 @@ and the nearest valid one, and repairing those a late event made wrong. Each bui
 writes `chunk_seconds` (schema v9) for the seconds before its snapshot, so those rows are
 valid exactly where the snapshots are.
 
-`SnapshotsMixin` runs on the writer client of `connection.ClickHouseConnection` and
-depends on nothing else of the store but `schema` (the chunk_seconds query); `writes` and
-`reads` build on it.
+`ClickHouseSnapshots` (the SnapshotKeeper role) runs on the writer client of the
+`connection.ClickHouseConnection` it holds and depends on nothing else of the store but
+the schema modules (the chunk_seconds and chunk_bursts queries). It also knows the newest
+snapshot: the writer (a late event notes a repair) and the retention (its anchor) are
+handed the same instance.
 """
 
 from __future__ import annotations
@@ -14,18 +16,20 @@ import time
 from collections.abc import Callable
 
 from mapservice.adapters.clickhouse import burst_schema
-from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
+from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS, ClickHouseConnection
 from mapservice.adapters.clickhouse.pose_schema import CHUNK_SECONDS_SELECT
 
 NO_SNAPSHOT_RECHECK_S = 5.0
 
 
-class SnapshotsMixin(ClickHouseConnection):
+class ClickHouseSnapshots:
     """Snapshots of the map and the robots every `snapshot_every_ms`."""
 
-    snapshot_every_ms: int
-    _last_snapshot_ms: int | None  # newest snapshot built, once known
-    _no_snapshot_until: float  # monotonic time until which "no snapshot yet" holds
+    def __init__(self, connection: ClickHouseConnection, snapshot_every_ms: int = 600_000) -> None:
+        self.connection = connection
+        self.snapshot_every_ms = snapshot_every_ms
+        self._last_snapshot_ms: int | None = None  # newest snapshot built, once known
+        self._no_snapshot_until = 0.0  # monotonic time until which "no snapshot yet" holds
 
     # --- snapshots ------------------------------------------------------------------
     # A snapshot at S holds, per chunk, the winning write with event time <= S and, per
@@ -33,13 +37,14 @@ class SnapshotsMixin(ClickHouseConnection):
     # plus the events in (S - every, S], so building is cheap and reading the state at T
     # costs one snapshot plus at most `every` of events, however old T is.
 
-    def _newest_snapshot(self) -> int | None:
+    def newest_snapshot(self) -> int | None:
+        """The newest snapshot's time, or None before the first (under the writer's lock)."""
         # Every batch asks; until the first snapshot exists, "none" is asked again at
         # most every few seconds instead of once per batch (~4 ms each on chDB).
         if self._last_snapshot_ms is None and time.monotonic() >= self._no_snapshot_until:
-            rows = self.client.query(
+            rows = self.connection.client.query(
                 f"SELECT toUnixTimestamp64Milli(max(snap_ts)), count() "
-                f"FROM {self.database}.snapshot_log"
+                f"FROM {self.connection.database}.snapshot_log"
             ).result_rows
             if rows and rows[0][1]:
                 self._last_snapshot_ms = rows[0][0]
@@ -48,7 +53,7 @@ class SnapshotsMixin(ClickHouseConnection):
         return self._last_snapshot_ms
 
     def _build_one(self, snap_ms: int, prev_ms: int | None) -> None:
-        db = self.database
+        db = self.connection.database
         params = {"s": snap_ms, "p": prev_ms if prev_ms is not None else -1}
         # prev == snap refolds a snapshot: its own rows plus every event up to it (a late
         # event older than the oldest snapshot, whose base is gone with the retention).
@@ -69,7 +74,7 @@ class SnapshotsMixin(ClickHouseConnection):
             if prev_ms is not None
             else ""
         )
-        c = self.client
+        c = self.connection.client
         c.command(
             f"INSERT INTO {db}.map_snapshots (snap_ts, row, col, ts, robot_id, content_hash, built) "
             "SELECT fromUnixTimestamp64Milli({s:Int64}), row, col, max(ts), "
@@ -100,11 +105,11 @@ class SnapshotsMixin(ClickHouseConnection):
         previous snapshot), from chunk_events FINAL: the same rows whichever snapshots
         are built together (one by one, in bulk runs, in repairs)."""
         since = "ts >= fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
-        self.client.command(
-            f"INSERT INTO {self.database}.chunk_seconds (second, offsets, built) "
-            f"{CHUNK_SECONDS_SELECT} FROM {self.database}.chunk_events FINAL "
+        self.connection.client.command(
+            f"INSERT INTO {self.connection.database}.chunk_seconds (second, offsets, built) "
+            f"{CHUNK_SECONDS_SELECT} FROM {self.connection.database}.chunk_events FINAL "
             f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) GROUP BY second "
-            f"{_FINAL_SETTINGS}",
+            f"{FINAL_SETTINGS}",
             parameters={"p": (prev_ms or 0) // 1000 * 1000, "s": snap_ms // 1000 * 1000},
         )
 
@@ -113,16 +118,18 @@ class SnapshotsMixin(ClickHouseConnection):
         previous snapshot): consecutive builds tile the buckets, whichever way they run."""
         b = burst_schema.BUCKET_S * 1000
         since = "ts >= fromUnixTimestamp64Milli({p:Int64}) AND " if prev_ms is not None else ""
-        self.client.command(
-            f"INSERT INTO {self.database}.{burst_schema.TABLE} (bucket, robot_id, writes, built) "
-            f"{burst_schema.BURSTS_SELECT} FROM {self.database}.chunk_events FINAL "
+        self.connection.client.command(
+            f"INSERT INTO {self.connection.database}.{burst_schema.TABLE} (bucket, robot_id, writes, built) "
+            f"{burst_schema.BURSTS_SELECT} FROM {self.connection.database}.chunk_events FINAL "
             f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) {burst_schema.BURSTS_KEPT} "
-            f"{_FINAL_SETTINGS}",
+            f"{FINAL_SETTINGS}",
             parameters={"p": (prev_ms or 0) // b * b, "s": snap_ms // b * b},
         )
 
-    def _note_repair(self, from_ms: int) -> None:
-        self._insert(
+    def note_repair(self, from_ms: int) -> None:
+        """Notes that the snapshots from `from_ms` on are wrong (a late event): reads skip
+        them until `repair_snapshots` rebuilds them (under the writer's lock)."""
+        self.connection.insert(
             "snapshot_repairs", [[from_ms, time.time_ns() // 1_000_000]], ["from_ts", "noted"]
         )
 
@@ -131,20 +138,20 @@ class SnapshotsMixin(ClickHouseConnection):
         oldest first, in one bulk statement per table; returns how many. The snapshot
         timer calls it until nothing is pending, so a late event costs the consumer no
         time and the repair is spread over ticks."""
-        db, every = self.database, self.snapshot_every_ms
-        with self._lock:
-            rows = self.client.query(
+        db, every = self.connection.database, self.snapshot_every_ms
+        with self.connection.lock:
+            rows = self.connection.client.query(
                 f"SELECT toUnixTimestamp64Milli(min(from_ts)), count(), "
                 f"toUnixTimestamp64Milli(max(noted)) FROM {db}.snapshot_repairs"
             ).result_rows
             if not rows or not rows[0][1]:
                 return 0
             from_ms, _, noted_ms = rows[0]
-            newest = self._newest_snapshot()
+            newest = self.newest_snapshot()
             first = -(-from_ms // every) * every  # the first snapshot that can contain from_ms
             # The oldest snapshot carries the floor from before the retention (whose events
             # are gone): never rebuilt from events alone, it is the base of every rebuild.
-            ((oldest, known),) = self.client.query(
+            ((oldest, known),) = self.connection.client.query(
                 f"SELECT toUnixTimestamp64Milli(min(snap_ts)), count() FROM {db}.snapshot_log"
             ).result_rows
             refolded = 0
@@ -152,7 +159,7 @@ class SnapshotsMixin(ClickHouseConnection):
                 self._build_one(oldest, oldest)
                 first, refolded = oldest + every, 1
             if newest is None or first > newest:  # nothing (more) to rebuild
-                self.client.command(
+                self.connection.client.command(
                     f"DELETE FROM {db}.snapshot_repairs WHERE noted <= "
                     "fromUnixTimestamp64Milli({n:Int64})",
                     parameters={"n": noted_ms},
@@ -164,8 +171,10 @@ class SnapshotsMixin(ClickHouseConnection):
             # Done up to `last`: what was noted before this step now starts after it (a
             # late event noted meanwhile keeps its own, earlier row).
             if last < newest:
-                self._insert("snapshot_repairs", [[last + 1, noted_ms]], ["from_ts", "noted"])
-            self.client.command(
+                self.connection.insert(
+                    "snapshot_repairs", [[last + 1, noted_ms]], ["from_ts", "noted"]
+                )
+            self.connection.client.command(
                 f"DELETE FROM {db}.snapshot_repairs WHERE noted <= fromUnixTimestamp64Milli({{n:Int64}}) "
                 "AND from_ts <= fromUnixTimestamp64Milli({l:Int64})",
                 parameters={"n": noted_ms, "l": last},
@@ -174,8 +183,8 @@ class SnapshotsMixin(ClickHouseConnection):
 
     def _has_snapshot(self, snap_ms: int) -> bool:
         return bool(
-            self.client.query(
-                f"SELECT count() FROM {self.database}.snapshot_log WHERE snap_ts = "
+            self.connection.client.query(
+                f"SELECT count() FROM {self.connection.database}.snapshot_log WHERE snap_ts = "
                 "fromUnixTimestamp64Milli({s:Int64})",
                 parameters={"s": snap_ms},
             ).result_rows[0][0]
@@ -184,18 +193,18 @@ class SnapshotsMixin(ClickHouseConnection):
     def build_snapshots(self, up_to_ms: int) -> int:
         """Builds every grid snapshot up to `up_to_ms` not built yet; returns how many."""
         every = self.snapshot_every_ms
-        with self._lock:
-            last = self._newest_snapshot()
+        with self.connection.lock:
+            last = self.newest_snapshot()
             if last is None:
-                rows = self.client.query(
+                rows = self.connection.client.query(
                     "SELECT toUnixTimestamp64Milli(min(ts)), count() FROM ("
-                    f"SELECT ts FROM {self.database}.chunk_events UNION ALL "
-                    f"SELECT ts FROM {self.database}.poses)"
+                    f"SELECT ts FROM {self.connection.database}.chunk_events UNION ALL "
+                    f"SELECT ts FROM {self.connection.database}.poses)"
                 ).result_rows
                 if not rows[0][1]:
                     return 0
                 # The first snapshot folds everything before it; each later one one interval.
-                oldest = max(rows[0][0], up_to_ms - self.retention_days * 86_400_000)
+                oldest = max(rows[0][0], up_to_ms - self.connection.retention_days * 86_400_000)
                 first = oldest // every * every
                 snaps = list(range(first, up_to_ms + 1, every))
                 prev = None
@@ -211,17 +220,17 @@ class SnapshotsMixin(ClickHouseConnection):
     def _due_snapshots(self, up_to_ms: int) -> tuple[list[int], int | None]:
         """The snapshots build_snapshots(up_to_ms) would build, and the one before them."""
         every = self.snapshot_every_ms
-        last = self._newest_snapshot()
+        last = self.newest_snapshot()
         if last is not None:
             return list(range(last + every, up_to_ms + 1, every)), last
-        rows = self.client.query(
+        rows = self.connection.client.query(
             "SELECT toUnixTimestamp64Milli(min(ts)), count() FROM ("
-            f"SELECT ts FROM {self.database}.chunk_events UNION ALL "
-            f"SELECT ts FROM {self.database}.poses)"
+            f"SELECT ts FROM {self.connection.database}.chunk_events UNION ALL "
+            f"SELECT ts FROM {self.connection.database}.poses)"
         ).result_rows
         if not rows[0][1]:
             return [], None
-        oldest = max(rows[0][0], up_to_ms - self.retention_days * 86_400_000)
+        oldest = max(rows[0][0], up_to_ms - self.connection.retention_days * 86_400_000)
         return list(range(oldest // every * every, up_to_ms + 1, every)), None
 
     def build_snapshots_bulk(
@@ -239,7 +248,7 @@ class SnapshotsMixin(ClickHouseConnection):
         snapshot with an ASOF JOIN. That is what the chain of `_build_one` computes, one
         statement per table and run instead of three per snapshot.
         """
-        with self._lock:
+        with self.connection.lock:
             snaps, prev = self._due_snapshots(up_to_ms)
             for i in range(0, len(snaps), per_query):
                 run = snaps[i : i + per_query]
@@ -251,7 +260,7 @@ class SnapshotsMixin(ClickHouseConnection):
             return len(snaps)
 
     def _build_run(self, first_ms: int, last_ms: int, prev_ms: int | None) -> None:
-        db, every = self.database, self.snapshot_every_ms
+        db, every = self.connection.database, self.snapshot_every_ms
         params = {
             "a": first_ms,
             "b": last_ms,
@@ -277,7 +286,7 @@ class SnapshotsMixin(ClickHouseConnection):
             if prev_ms is not None
             else ""
         )
-        c = self.client
+        c = self.connection.client
         c.command(
             f"INSERT INTO {db}.map_snapshots (snap_ts, row, col, ts, robot_id, content_hash, built) "
             "WITH w AS (SELECT bucket, row, col, max(ts) AS win_ts, "

@@ -1,59 +1,88 @@
-"""ClickHouse behind the HistoryStore port, through clickhouse-connect.
+"""ClickHouse behind the store's role ports, through clickhouse-connect.
 
 The same code serves `chdb:///dir` (embedded chDB) and `http(s)://host:8123` (a server).
-chDB allows one opener per directory and a client is not thread-safe, so each client is
-used under its own lock (writes and snapshot building under one, reads under another, ping
-on a client of its own: connection.py); callers in an event loop run these methods in an
-executor.
+One `connection.ClickHouseConnection` holds the clients, their locks and the database;
+each role of the store (mapservice/core/ports.py) is an adapter of its own over it, in its
+own module: `migrations` (StoreSchema), `writes` (HistoryWriter), `reads` (TimeTravelReader,
+with `track_reads`), `snapshots` (SnapshotKeeper), `retention` (RetentionKeeper),
+`conflict_reads` (ConflictReader), `annotation_reads` (AnnotationReader), `command_reads`
+(CommandReader), `vda_reads` (VdaReader), `change_feed` (ChangeFeed), `legacy` (the 2019
+REST listings) and `admin` (StoreAdmin, TableExports).
 
-`ClickHouseStore` is composed of one mixin per concern, each over the clients and locks of
-`connection.ClickHouseConnection`: `migrations` (the schema and its lock), `writes`
-(events, dead letters, conflicts), `snapshots` (building and repairing them), `reads`
-(time travel and replay), `conflict_reads` (conflicts and the writes near chunks),
-`change_feed` (map changes page by page), `annotation_reads` (operators' annotations), `legacy` (the 2019 REST queries), `retention`
-(expiry that keeps the floor) and `admin` (deletes, counts,
-optimize, ping, exports, close). This module only constructs it: the mixins never import
-it.
+`clickhouse_roles` builds them over one connection, sharing what two roles must share (the
+snapshot keeper that knows the newest snapshot): what a composition root hands out, one
+role to each component. `ClickHouseStore` is every role at once, for what uses the store
+whole: tests, benchmarks and loaders, the CLI's one-shot commands.
 """
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
+from typing import Any
 
-from mapservice.adapters.clickhouse.admin import AdminMixin
-from mapservice.adapters.clickhouse.annotation_reads import AnnotationReadsMixin
-from mapservice.adapters.clickhouse.change_feed import ChangeFeedMixin
-from mapservice.adapters.clickhouse.command_reads import CommandReadsMixin
-from mapservice.adapters.clickhouse.conflict_reads import ConflictReadsMixin
-from mapservice.adapters.clickhouse.legacy import LegacyMixin
-from mapservice.adapters.clickhouse.migrations import MigrationsMixin
-from mapservice.adapters.clickhouse.reads import ReadsMixin
-from mapservice.adapters.clickhouse.retention import RetentionMixin
-from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
-from mapservice.adapters.clickhouse.track_reads import TrackReadsMixin
-from mapservice.adapters.clickhouse.vda_reads import VdaReadsMixin
-from mapservice.adapters.clickhouse.writes import WritesMixin
-from mapservice.adapters.clock import SystemClock, clock_from_settings
+from mapservice.adapters.clickhouse.admin import ClickHouseAdmin
+from mapservice.adapters.clickhouse.annotation_reads import ClickHouseAnnotationReads
+from mapservice.adapters.clickhouse.change_feed import ClickHouseChangeFeed
+from mapservice.adapters.clickhouse.command_reads import ClickHouseCommandReads
+from mapservice.adapters.clickhouse.conflict_reads import ClickHouseConflictReads
+from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.adapters.clickhouse.legacy import ClickHouseLegacyQueries
+from mapservice.adapters.clickhouse.migrations import ClickHouseSchema
+from mapservice.adapters.clickhouse.reads import ClickHouseTimeTravel
+from mapservice.adapters.clickhouse.retention import ClickHouseRetention
+from mapservice.adapters.clickhouse.snapshots import ClickHouseSnapshots
+from mapservice.adapters.clickhouse.track_reads import ClickHouseTrackReads
+from mapservice.adapters.clickhouse.vda_reads import ClickHouseVdaReads
+from mapservice.adapters.clickhouse.writes import ClickHouseHistoryWriter
+from mapservice.adapters.clock import clock_from_settings
+from mapservice.core.store_roles import StoreRoles
 from mapservice.settings import Settings
 
 
-class ClickHouseStore(
-    MigrationsMixin,
-    WritesMixin,
-    ReadsMixin,
-    ConflictReadsMixin,
-    RetentionMixin,
-    ChangeFeedMixin,
-    SnapshotsMixin,
-    LegacyMixin,
-    VdaReadsMixin,
-    AnnotationReadsMixin,
-    AdminMixin,
-    TrackReadsMixin,
-    CommandReadsMixin,
-):
-    """Construction does no I/O; the first call connects."""
+def clickhouse_roles(
+    connection: ClickHouseConnection,
+    snapshot_every_ms: int = 600_000,
+    clock_ms: Callable[[], int] | None = None,
+) -> StoreRoles:
+    """Every role of the store over `connection`, each an adapter of its own. `clock_ms` is
+    the service's clock (the newest-first 2019 listing looks just before "now" on it)."""
+    snapshots = ClickHouseSnapshots(connection, snapshot_every_ms)
+    conflicts = ClickHouseConflictReads(connection)
+    admin = ClickHouseAdmin(connection)
+    return StoreRoles(
+        schema=ClickHouseSchema(connection),
+        writer=ClickHouseHistoryWriter(connection, snapshots),
+        history=ClickHouseTimeTravel(connection, conflicts, ClickHouseTrackReads(connection)),
+        snapshots=snapshots,
+        retention=ClickHouseRetention(connection, snapshots),
+        conflicts=conflicts,
+        annotations=ClickHouseAnnotationReads(connection),
+        commands=ClickHouseCommandReads(connection),
+        vda=ClickHouseVdaReads(connection),
+        changes=ClickHouseChangeFeed(connection),
+        legacy=ClickHouseLegacyQueries(connection, clock_ms),
+        admin=admin,
+        exports=admin,
+    )
+
+
+def clickhouse_roles_from_settings(
+    settings: Settings, connection: ClickHouseConnection | None = None
+) -> StoreRoles:
+    """`clickhouse_roles` as the settings configure them (over a new connection unless one
+    is given): the snapshot interval and the service's clock."""
+    return clickhouse_roles(
+        connection or ClickHouseConnection.from_settings(settings),
+        int(settings.snapshot_every_s * 1000),
+        clock_from_settings(settings).now_ms,
+    )
+
+
+class ClickHouseStore:
+    """Every role of the store over one connection, answering each role's methods (and the
+    connection's attributes) as one object: for tests, benchmarks and tools that use the
+    store whole. No component is handed it: composition roots hand out `roles`' fields.
+    Construction does no I/O; the first call connects."""
 
     def __init__(
         self,
@@ -66,52 +95,44 @@ class ClickHouseStore(
         cluster: str = "",
         tls: dict[str, str] | None = None,
         timeout_s: float = 60.0,
+        clock_ms: Callable[[], int] | None = None,
     ) -> None:
-        self.dsn = dsn
-        self.cluster = cluster  # non-empty: DDL ON CLUSTER, Replicated tables (schema_cluster)
-        self.snapshot_every_ms = snapshot_every_ms
-        self._last_snapshot_ms: int | None = None  # newest snapshot built, once known
-        self._no_snapshot_until = 0.0  # monotonic time until which "no snapshot yet" holds
-        self.database = database
-        self.retention_days = retention_days
-        self._username = username
-        self._password = password
-        self._client = None
-        self._lock = threading.RLock()
-        # Reads get a client of their own: an API read then runs beside an insert instead
-        # of queueing behind it (chDB runs queries of two handles at once; measured: a
-        # 3 ms read took ~9 ms beside a 150 ms query instead of waiting it out). Reads never
-        # take `_lock`, so a writer that reads while holding it cannot deadlock with them.
-        self._read_client = None
-        self._read_lock = threading.Lock()
-        self._ping_client = None
-        # clickhouse-connect's TLS arguments (ca_cert, client_cert, client_cert_key) for an
-        # https:// server (from_settings: MAPSERVICE_CLICKHOUSE_*_FILE).
-        self.tls: dict[str, str] = dict(tls or {})
-        # A server request that has not answered in this long fails (and is retried by its
-        # caller): clickhouse-connect waits 300 s by default, and an insert hung on a server
-        # that was restarting held the whole pipeline that long (fault tests).
-        self.timeout_s = timeout_s
-        self._known_contents: dict[bytes, int] = {}  # hash -> day already written
-        # One reusable insert context per (table, columns): without it every insert first
-        # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
-        self._insert_contexts: dict[tuple[str, tuple[str, ...]], object] = {}
-        # The service's clock (from_settings: a simulated one when settings ask for it);
-        # the newest-first 2019 listing looks for its rows just before "now" on it.
-        self.clock_ms: Callable[[], int] = SystemClock().now_ms
+        connection = ClickHouseConnection(
+            dsn, database, retention_days, username, password, cluster, tls, timeout_s
+        )
+        self._adopt(connection, clickhouse_roles(connection, snapshot_every_ms, clock_ms))
 
     @classmethod
     def from_settings(cls, settings: Settings) -> ClickHouseStore:
-        store = cls(
-            settings.resolved_clickhouse_dsn,
-            settings.clickhouse_database,
-            settings.retention_days,
-            settings.clickhouse_username,
-            settings.clickhouse_password.get_secret_value(),
-            int(settings.snapshot_every_s * 1000),
-            settings.clickhouse_cluster,
-            tls=settings.clickhouse_tls(),
-            timeout_s=settings.clickhouse_timeout_s,
-        )
-        store.clock_ms = clock_from_settings(settings).now_ms
+        connection = ClickHouseConnection.from_settings(settings)
+        store = cls.__new__(cls)
+        store._adopt(connection, clickhouse_roles_from_settings(settings, connection))
         return store
+
+    def _adopt(self, connection: ClickHouseConnection, roles: StoreRoles) -> None:
+        object.__setattr__(self, "connection", connection)
+        object.__setattr__(self, "roles", roles)
+        # Where a name is looked up: each role's adapter (the first that has it), then the
+        # connection (database, dsn, client, ping, ...).
+        parts = [getattr(roles, f) for f in roles.__dataclass_fields__]
+        object.__setattr__(self, "_parts", (*(p for p in parts if p is not None), connection))
+
+    def __getattr__(self, name: str) -> Any:
+        # Only called for names not found on the store itself: the parts' members.
+        if name.startswith("__"):
+            raise AttributeError(name)
+        for part in self.__dict__.get("_parts", ()):
+            if hasattr(part, name):
+                return getattr(part, name)
+        raise AttributeError(f"no role of the ClickHouse store has {name!r}")
+
+    def __setattr__(self, name: str, value: object) -> None:
+        # A setting (snapshot_every_ms, clock_ms, cluster) is changed where it lives.
+        for part in self._parts:
+            if hasattr(part, name):
+                setattr(part, name, value)
+                return
+        object.__setattr__(self, name, value)
+
+    def __repr__(self) -> str:
+        return f"<ClickHouseStore {self.connection.database} at {self.connection.dsn}>"

@@ -1,16 +1,17 @@
 """The store's reads of one robot over a window (the plot panel's track), from
 `pose_tracks` (schema v17: poses sorted by (robot_id, ts)), on the read client.
 
-`TrackReadsMixin` builds on `connection` only, never on another mixin's queries.
+`ClickHouseTrackReads` holds the connection only, never another role's queries; the
+time-travel reader (reads.py) answers `robot_track` through it.
 """
 
 from __future__ import annotations
 
-from mapservice.adapters.clickhouse.connection import _FINAL_SETTINGS, ClickHouseConnection
+from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS, ClickHouseConnection
 from mapservice.adapters.clickhouse.track_schema import TABLE
 from mapservice.core.ports import PoseRow
 
-# _POSE_COLUMNS without the planned path (has_path false, no path text): a plot never
+# POSE_READ_COLUMNS without the planned path (has_path false, no path text): a plot never
 # draws it, and its arrays are most of what a pose row weighs.
 _TRACK_COLUMNS = (
     "robot_id, toUnixTimestamp64Milli(ts), x_mm / 1000, y_mm / 1000, z_mm / 1000, "
@@ -19,8 +20,11 @@ _TRACK_COLUMNS = (
 )
 
 
-class TrackReadsMixin(ClickHouseConnection):
+class ClickHouseTrackReads:
     """One robot's poses over a window."""
+
+    def __init__(self, connection: ClickHouseConnection) -> None:
+        self.connection = connection
 
     def robot_track(
         self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0, limit: int = 100_000
@@ -35,10 +39,10 @@ class TrackReadsMixin(ClickHouseConnection):
             if step_ms == 0
             else "LIMIT 1 BY intDiv(toUnixTimestamp64Milli(ts) - {f:Int64}, {s:Int64}) "
         )
-        return self._pose_query(
-            f"SELECT {_TRACK_COLUMNS} FROM {self.database}.{TABLE} FINAL "
+        return self.connection.pose_query(
+            f"SELECT {_TRACK_COLUMNS} FROM {self.connection.database}.{TABLE} FINAL "
             "PREWHERE robot_id = {r:String} AND ts >= fromUnixTimestamp64Milli({f:Int64}) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64}) "
-            f"ORDER BY ts {every}LIMIT {{n:UInt32}} {_FINAL_SETTINGS}",
+            f"ORDER BY ts {every}LIMIT {{n:UInt32}} {FINAL_SETTINGS}",
             {"r": robot_id, "f": from_ms, "t": to_ms, "s": max(step_ms, 1), "n": limit},
         )

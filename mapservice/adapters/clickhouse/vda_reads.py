@@ -1,5 +1,6 @@
 """Reads of the VDA 5050 tables (schema v12): vehicles' errors (and the states that cleared
-them), connection states and latest factsheets, of one vehicle or the whole fleet."""
+them), connection states and latest factsheets, of one vehicle or the whole fleet:
+`ClickHouseVdaReads`, the VdaReader role, over the store's connection."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.core.ports import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
 
 
-class VdaReadsMixin(ClickHouseConnection):
+class ClickHouseVdaReads:
+    def __init__(self, connection: ClickHouseConnection) -> None:
+        self.connection = connection
+
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
         return self._vda_facts(robot_id, from_ms, to_ms, limit).get(
             robot_id, VdaFacts(errors=[], connections=[], factsheet=None)
@@ -22,13 +26,16 @@ class VdaReadsMixin(ClickHouseConnection):
     def _vda_facts(
         self, robot_id: str | None, from_ms: int, to_ms: int, limit: int
     ) -> dict[str, VdaFacts]:
-        db, p = self.database, {"r": robot_id or "", "f": from_ms, "t": to_ms, "n": limit}
+        db, p = (
+            self.connection.database,
+            {"r": robot_id or "", "f": from_ms, "t": to_ms, "n": limit},
+        )
         robot = "robot_id = {r:String} AND " if robot_id is not None else ""
         window = (
             f"{robot}ts >= fromUnixTimestamp64Milli({{f:Int64}}) "
             "AND ts < fromUnixTimestamp64Milli({t:Int64})"
         )
-        errors = self._rows(
+        errors = self.connection.rows(
             f"SELECT robot_id, toUnixTimestamp64Milli(ts), level, type, description "
             f"FROM {db}.vda_errors FINAL WHERE {window} "
             f"ORDER BY ts, level, type, description LIMIT {{n:UInt32}} BY robot_id",
@@ -36,7 +43,7 @@ class VdaReadsMixin(ClickHouseConnection):
         )
         # A state without errors after one with some: the state before the window counts
         # (a clear at the window's first state).
-        clears = self._rows(
+        clears = self.connection.rows(
             f"""SELECT robot_id, toUnixTimestamp64Milli(ts) FROM (
                 SELECT robot_id, ts, error_count, lagInFrame(error_count, 1, 0) OVER (
                     PARTITION BY robot_id ORDER BY ts ROWS BETWEEN 1 PRECEDING AND CURRENT ROW)
@@ -47,12 +54,12 @@ class VdaReadsMixin(ClickHouseConnection):
             ORDER BY ts LIMIT {{n:UInt32}} BY robot_id""",
             p,
         )
-        connections = self._rows(
+        connections = self.connection.rows(
             f"SELECT robot_id, toUnixTimestamp64Milli(ts), state, toUnixTimestamp64Milli(sent_ts) "
             f"FROM {db}.vda_connections FINAL WHERE {window} ORDER BY ts LIMIT {{n:UInt32}} BY robot_id",
             p,
         )
-        sheets = self._rows(
+        sheets = self.connection.rows(
             f"SELECT robot_id, toUnixTimestamp64Milli(ts), vda_version, factsheet FROM {db}.vda_factsheets "
             f"WHERE {robot}ts < fromUnixTimestamp64Milli({{t:Int64}}) "
             "ORDER BY ts DESC LIMIT 1 BY robot_id",

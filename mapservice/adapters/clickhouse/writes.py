@@ -1,8 +1,9 @@
 """The store's appends: events (poses, chunk writes and their contents, map metadata),
 dead letters and conflicts, each batch through the writer client under its lock.
 
-`WritesMixin` builds on `snapshots.SnapshotsMixin` (and so on `connection`): a late event
-notes a snapshot repair. It depends on nothing else of the store.
+`ClickHouseHistoryWriter` (the HistoryWriter role) holds the connection and the store's
+`snapshots.ClickHouseSnapshots`: a late event notes a snapshot repair. It depends on
+nothing else of the store but the rows of `command_reads.command_row`.
 """
 
 from __future__ import annotations
@@ -11,9 +12,14 @@ from collections.abc import Sequence
 
 from mapservice.adapters.clickhouse import command_schema
 from mapservice.adapters.clickhouse.command_reads import command_row
-from mapservice.adapters.clickhouse.connection import _flag, _json, _mm
+from mapservice.adapters.clickhouse.connection import (
+    ClickHouseConnection,
+    flag,
+    json_encoder,
+    mm,
+)
 from mapservice.adapters.clickhouse.pose_schema import POSE_COLUMNS
-from mapservice.adapters.clickhouse.snapshots import SnapshotsMixin
+from mapservice.adapters.clickhouse.snapshots import ClickHouseSnapshots
 from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
 from mapservice.core.commands import COMMAND_EVENTS
 from mapservice.core.events import (
@@ -48,13 +54,12 @@ POSE_INSERT_COLUMNS = [
 ]
 
 
-class WritesMixin(SnapshotsMixin):
+class ClickHouseHistoryWriter:
     """append (append_events, then derive_views), append_dead_letters, append_conflicts."""
 
-    _known_contents: dict[bytes, int]  # hash -> day already written
-    cluster: str  # non-empty: a replicated cluster (store.py)
-
-    # --- writes ---------------------------------------------------------------------
+    def __init__(self, connection: ClickHouseConnection, snapshots: ClickHouseSnapshots) -> None:
+        self.connection = connection
+        self.snapshots = snapshots  # the one the snapshot timer builds with (the newest known)
 
     def append(self, events: Sequence[Envelope]) -> None:
         self.append_events(events)
@@ -73,23 +78,28 @@ class WritesMixin(SnapshotsMixin):
         pose_events = [e for e in events if pose_of(e.payload) is not None]
         if not pose_events:
             return
-        spans = None if self.cluster else reread_spans([e.event_time_ms for e in pose_events])
-        with self._lock:
+        spans = (
+            None
+            if self.connection.cluster
+            else reread_spans([e.event_time_ms for e in pose_events])
+        )
+        with self.connection.lock:
             if spans is None:
                 rows = [_pose_row(e) for e in pose_events]
-                self._insert("pose_derivations", rows, POSE_INSERT_COLUMNS)
+                self.connection.insert("pose_derivations", rows, POSE_INSERT_COLUMNS)
             else:
                 self._derive_spans(spans)
 
     def _derive_spans(self, spans: Sequence[tuple[int, int]]) -> None:
-        db = self.database
+        db = self.connection.database
         # Whole milliseconds from the stored events: written into the statement as integers.
         within = " OR ".join(
             f"(ts >= fromUnixTimestamp64Milli({int(lo)}) AND ts <= fromUnixTimestamp64Milli({int(hi)}))"
             for lo, hi in spans
         )
-        with self._reloading_broken_tables():  # the re-read meets a part a full disk broke
-            self.client.command(
+        # The re-read meets a part a full disk broke.
+        with self.connection.reloading_broken_tables():
+            self.connection.client.command(
                 f"INSERT INTO {db}.pose_derivations ({POSE_COLUMNS}) "
                 f"SELECT {POSE_COLUMNS} FROM {db}.poses WHERE {within}"
             )
@@ -99,7 +109,7 @@ class WritesMixin(SnapshotsMixin):
         back inside ClickHouse: a bulk writer (the demo history) spares re-sending a batch
         it just stored (about as long as storing it). A pose derived twice changes nothing,
         so windows may overlap."""
-        with self._lock:
+        with self.connection.lock:
             self._derive_spans([(from_ms, to_ms)])
 
     def append_events(self, events: Sequence[Envelope]) -> None:
@@ -128,41 +138,43 @@ class WritesMixin(SnapshotsMixin):
                     ]
                 )
                 day = e.event_time_ms // 86_400_000
-                if self._known_contents.get(p.content_hash) != day:
+                if self.connection.known_contents.get(p.content_hash) != day:
                     contents.append((p.content_hash, day, p.width, p.height, p.data))
             elif isinstance(p, MapMetaSet):
-                metas.append([e.event_time_ms, e.robot_id, _json.encode(p.to_2019()).decode()])
+                metas.append(
+                    [e.event_time_ms, e.robot_id, json_encoder.encode(p.to_2019()).decode()]
+                )
             elif isinstance(p, ANNOTATION_EVENTS):
                 annotations.append(_annotation_row(e))
             elif isinstance(p, COMMAND_EVENTS):
                 commands.append(command_row(e))
-        with self._lock:
+        with self.connection.lock:
             if contents:
                 # Contents first: an event must never reference pixels that are not stored.
-                self._insert(
+                self.connection.insert(
                     "chunk_contents",
                     [list(x) for x in contents],
                     ["content_hash", "day", "width", "height", "zlib_pixels"],
                 )
                 for h, day, *_ in contents:
-                    self._known_contents[h] = day
-                if len(self._known_contents) > 1_000_000:
-                    self._known_contents.clear()
+                    self.connection.known_contents[h] = day
+                if len(self.connection.known_contents) > 1_000_000:
+                    self.connection.known_contents.clear()
             if chunks:
-                self._insert(
+                self.connection.insert(
                     "chunk_events",
                     chunks,
                     ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"],
                 )
             if poses:
-                self._insert("poses", poses, POSE_INSERT_COLUMNS)
+                self.connection.insert("poses", poses, POSE_INSERT_COLUMNS)
             if metas:
-                self._insert("map_meta", metas, ["ts", "robot_id", "meta"])
+                self.connection.insert("map_meta", metas, ["ts", "robot_id", "meta"])
             for table, rows in vda.items():
                 if rows:
-                    self._insert(table, rows, _VDA_COLUMNS[table])
+                    self.connection.insert(table, rows, _VDA_COLUMNS[table])
             if annotations:
-                self._insert(
+                self.connection.insert(
                     "annotation_events",
                     annotations,
                     [
@@ -178,16 +190,16 @@ class WritesMixin(SnapshotsMixin):
                     ],
                 )
             if commands:
-                self._insert("command_events", commands, list(command_schema.COLUMNS))
+                self.connection.insert("command_events", commands, list(command_schema.COLUMNS))
             # A late event (at or before the newest snapshot) makes the snapshots from its
             # time on wrong. Noting that is all the batch waits for: reads stop using those
             # snapshots at once (they fold events from the last good one: exact, slower),
             # and the snapshot timer rebuilds them in bounded steps (repair_snapshots).
             times = [row[0] for row in chunks] + [row[1] for row in poses]
             if times:
-                last = self._newest_snapshot()
+                last = self.snapshots.newest_snapshot()
                 if last is not None and min(times) <= last:
-                    self._note_repair(min(times))
+                    self.snapshots.note_repair(min(times))
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         if not records:
@@ -196,8 +208,8 @@ class WritesMixin(SnapshotsMixin):
             [r.receive_time_ms, r.reason, r.mqtt_topic, r.detail, r.payload, r.gateway]
             for r in records
         ]
-        with self._lock:
-            self._insert(
+        with self.connection.lock:
+            self.connection.insert(
                 "dead_letters",
                 rows,
                 ["received", "reason", "mqtt_topic", "detail", "payload", "gateway"],
@@ -205,8 +217,8 @@ class WritesMixin(SnapshotsMixin):
 
     def append_zone_violations(self, rows: Sequence[ZoneViolation]) -> None:
         if rows:
-            with self._lock:
-                self._insert(
+            with self.connection.lock:
+                self.connection.insert(
                     "zone_violations",
                     [[v.ts_ms, v.robot_id, v.annotation_id, v.x, v.y] for v in rows],
                     ["ts", "robot_id", "annotation_id", "x", "y"],
@@ -216,8 +228,10 @@ class WritesMixin(SnapshotsMixin):
         if not rows:
             return
         data = [[c.ts_ms, c.row, c.column, c.robot_b, c.robot_a, c.ts_a_ms] for c in rows]
-        with self._lock:
-            self._insert("conflicts", data, ["ts", "row", "col", "robot_b", "robot_a", "ts_a"])
+        with self.connection.lock:
+            self.connection.insert(
+                "conflicts", data, ["ts", "row", "col", "robot_b", "robot_a", "ts_a"]
+            )
 
 
 _VDA_COLUMNS = {
@@ -260,7 +274,7 @@ def _annotation_row(e: Envelope) -> list:
         doc["shape"],
         doc["kind"],
         doc["name"],
-        _json.encode(doc).decode(),
+        json_encoder.encode(doc).decode(),
     ]
 
 
@@ -329,15 +343,15 @@ def _pose_row(e: Envelope) -> list:
     return [
         e.robot_id,
         e.event_time_ms,
-        _mm(p.position[0]),
-        _mm(p.position[1]),
-        _mm(p.position[2]),
+        mm(p.position[0]),
+        mm(p.position[1]),
+        mm(p.position[2]),
         *p.orientation,
         p.battery_level,
-        _flag(p.charging),
-        _flag(p.loaded),
+        flag(p.charging),
+        flag(p.loaded),
         p.path is not None,
-        [_mm(x) for x, _ in path],
-        [_mm(y) for _, y in path],
+        [mm(x) for x, _ in path],
+        [mm(y) for _, y in path],
         e.receive_time_ms - e.event_time_ms,
     ]

@@ -52,12 +52,12 @@ def storage_report(data_dir: Path) -> dict:
     db = store.database
     try:
         raw = {
-            t: store._rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
+            t: store.rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
             for t in ("poses", "chunk_events", "chunk_contents")
         }
         parts_before = {
             t: int(n)
-            for t, n in store._rows(
+            for t, n in store.rows(
                 "SELECT table, count() FROM system.parts WHERE database = {d:String} AND active "
                 "GROUP BY table",
                 {"d": db},
@@ -65,7 +65,7 @@ def storage_report(data_dir: Path) -> dict:
         }
         store.optimize()
         merged = {
-            t: store._rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
+            t: store.rows(f"SELECT count() FROM {db}.{t}", {})[0][0]
             for t in ("poses", "chunk_events", "chunk_contents")
         }
         tables = store.storage_bytes()
@@ -88,7 +88,7 @@ def _column_bytes(store, db: str) -> dict[str, dict[str, int]]:
     sizes, so the event tables are copied into a scratch database forced to wide parts.
     """
     scratch = "bench_scratch"
-    with store._lock:
+    with store.lock:
         c = store.client
         c.command(f"DROP DATABASE IF EXISTS {scratch}")
         c.command(f"CREATE DATABASE {scratch}")

@@ -268,7 +268,7 @@ def _check(store, world: World, now: int, client: TestClient) -> None:
 
 def _unnamed_snapshot_pixels(store: ClickHouseStore) -> int:
     db = store.database
-    return store._rows(
+    return store.rows(
         f"SELECT count() FROM {db}.map_snapshots WHERE content_hash NOT IN "
         f"(SELECT content_hash FROM {db}.chunk_contents)",
         {},
@@ -325,7 +325,7 @@ def test_three_retention_periods_keep_the_floor_exact(kind, request) -> None:
             )
             s.store.optimize()
             bytes_per_day[day] = sum(s.store.storage_bytes().values())
-            carried = s.store._rows(f"SELECT count() FROM {s.database}.carried_poses", {})[0][0]
+            carried = s.store.rows(f"SELECT count() FROM {s.database}.carried_poses", {})[0][0]
             assert carried <= len(ROBOTS), "carried_poses holds more than a pose per robot"
     if kind == "clickhouse":
         # Flat after the first retention period: what the last day holds is what day 9 held

@@ -19,6 +19,7 @@ from mapservice.adapters.clickhouse.broken_parts import (
     BrokenPartRecovery,
     tables_named,
 )
+from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.runtime.insert_health import code_of
 from tests.mapservice.adapters.store_contract import clickhouse_store
@@ -246,12 +247,12 @@ def test_a_table_whose_attach_fails_is_attached_at_the_next_failure() -> None:
 def test_a_clickhouse_server_is_never_reloaded() -> None:
     """Over HTTP the failure is raised as it came and nothing is sent to the server (the
     address does not even answer)."""
-    store = ClickHouseStore("http://127.0.0.1:9", timeout_s=1)
+    connection = ClickHouseConnection("http://127.0.0.1:9", timeout_s=1)
     error = RuntimeError("Empty marks file. (CORRUPTED_DATA)")
-    with pytest.raises(RuntimeError) as raised, store._reloading_broken_tables():
+    with pytest.raises(RuntimeError) as raised, connection.reloading_broken_tables():
         raise error
     assert raised.value is error
-    assert store._broken_parts is None and store._client is None
+    assert connection._broken_parts is None and connection._client is None
 
 
 def test_the_names_in_an_error() -> None:

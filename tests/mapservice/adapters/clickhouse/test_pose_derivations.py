@@ -67,14 +67,14 @@ def test_a_backlog_or_scattered_late_poses_are_not_re_read() -> None:
 def _rows_sent(store, monkeypatch) -> list[int]:
     """Counts the rows derive_views sends to pose_derivations from Python."""
     sent: list[int] = []
-    insert = store._insert
+    insert = store.connection.insert
 
     def counting(table, rows, columns):
         if table == "pose_derivations":
             sent.append(len(rows))
         return insert(table, rows, columns)
 
-    monkeypatch.setattr(store, "_insert", counting)
+    monkeypatch.setattr(store.connection, "insert", counting)
     return sent
 
 
@@ -105,7 +105,7 @@ def test_a_backlog_and_a_cluster_send_the_rows(store, monkeypatch) -> None:
     assert [p.x for p in store.robot_track("r1", m0, m0 + 60_000)] == [float(s) for s in range(30)]
     live = [pose_event("r2", m0 + 40_000 + 200 * k, x=float(k)) for k in range(5)]
     store.append_events(live)
-    monkeypatch.setattr(store, "cluster", "replicated")
+    monkeypatch.setattr(store.connection, "cluster", "replicated")
     store.derive_views(live)
     assert sent == [30, 5]
     assert len(store.robot_track("r2", m0, m0 + 60_000)) == 5

@@ -58,7 +58,7 @@ def test_clickhouse_reads_do_not_wait_for_a_writer(chdb_dir, ev, t0) -> None:
         store.migrate()
         store.append([ev.pose("r1", t0), ev.chunk("r1", t0, 0, 0)])
         answers: list = []
-        with store._lock:  # what an insert holds for its whole duration
+        with store.lock:  # what an insert holds for its whole duration
             reader = threading.Thread(
                 target=lambda: answers.append(
                     (len(store.poses(t0, t0 + 1)), len(store.map_at(t0)), len(store.robots_at(t0)))
