@@ -198,22 +198,6 @@ class Stack(StackMqtt, StackEnv):
                     running[lifetime.GUARD] = self.guard.pid
                 self.pid_file.write(running)
 
-    def protect_data_dir(self) -> None:
-        """The data dir 0700 and nothing in it readable by others (it holds the secrets, the
-        broker's store and password file, the logs and the history): also a data dir made by
-        an older release, whose files were group and world readable."""
-        self.data_dir.mkdir(parents=True, exist_ok=True)
-        self.data_dir.chmod(0o700)
-        for root, dirs, files in os.walk(self.data_dir):
-            for name in dirs + files:
-                path = Path(root, name)
-                try:
-                    mode = path.lstat().st_mode
-                    if not path.is_symlink() and mode & 0o077:
-                        path.chmod(mode & 0o7700)
-                except FileNotFoundError:  # a scratch file of a running engine, gone since
-                    continue
-
     def _log(self, name: str):
         self.log_dir.mkdir(parents=True, exist_ok=True)
         return open(self.log_dir / f"{name}.log", "ab")

@@ -20,6 +20,7 @@ def cmd_up(args) -> None:
     from mapservice.adapters.clock import SystemClock
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local import lifetime
+    from mapservice.local.private_dir import protect_data_dir
     from mapservice.local.stack import Stack
     from mapservice.local.up_output import log, print_addresses, step
     from mapservice.robot.map_upload import check_data_dir_map, check_map, upload_map_if_fresh
@@ -94,7 +95,7 @@ def cmd_up(args) -> None:
             pid_file=str(stack.pid_file.path),
         )
         lifetime.end(leftovers)
-    stack.protect_data_dir()
+    protect_data_dir(stack.data_dir)
     stack.start_guard()
     ros_map = load_ros_map(args.map)
     try:

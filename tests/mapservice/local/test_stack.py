@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from mapservice.local.private_dir import protect_data_dir
 from mapservice.local.stack import Stack
 
 
@@ -157,7 +158,7 @@ def test_protecting_the_data_dir_passes_over_a_file_that_vanishes_meanwhile(
         return real_lstat(self, *args, **kwargs)
 
     monkeypatch.setattr(Path, "lstat", lstat)
-    Stack(data).protect_data_dir()
+    protect_data_dir(data)
     assert kept.stat().st_mode & 0o077 == 0
 
 
