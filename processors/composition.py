@@ -91,7 +91,7 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
     now_ms = clock_from_settings(settings).now_ms
     store_thread = StoreThread()
     live = KafkaLivePublisher(settings)
-    sink = HistorySink(roles.writer, live, thread=store_thread)
+    sink = HistorySink(roles.writer, live, thread=store_thread, retention_ms=settings.retention_ms)
 
     # Live views: latest map + advertisements, robots, conflicts; rebuilt by the history
     # consumer on every partition assignment.

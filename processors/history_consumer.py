@@ -98,7 +98,8 @@ async def store_values(
     clock_ms: Callable[[], int] = SystemClock().now_ms,
 ) -> list:
     """Decodes a batch, stores its events in one append, then feeds the live stream and
-    the views; bad records become dead letters. Returns the stored events, whose derived
+    the views; bad records become dead letters, and events older than the retention at
+    `now_ms` are dropped (`HistorySink.unexpired`). Returns the stored events, whose derived
     pose views (`HistorySink.derive_until_done`) and conflicts (`LiveViews.write_conflicts`)
     the caller writes before committing.
 
@@ -117,7 +118,8 @@ async def store_values(
     by_topic: dict[str, list] = {}
     bad_by_topic = {}
     for topic, values in values_by_topic.items():
-        events, bad = split_events(values, now_ms)
+        decoded, bad = split_events(values, now_ms)
+        events = sink.unexpired(topic, decoded, now_ms)
         good.extend(events)
         by_topic[topic] = events
         per_topic[topic] = len(events)

@@ -3,8 +3,9 @@ part (raw Kafka values to what the store appends)."""
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 
 import msgspec
 import structlog
@@ -12,6 +13,7 @@ from prometheus_client import Counter, Gauge, Histogram
 
 from mapservice.core.events import DeadLetter, Envelope, decode, decode_dead_letter
 from mapservice.core.ports import HistoryWriter, LiveFeed
+from mapservice.core.retention import DAY_MS, DEFAULT_RETENTION_MS, expired
 from mapservice.runtime.insert_health import InsertHealth
 from mapservice.runtime.retry import until_done
 
@@ -43,6 +45,14 @@ INSERT_FAILING_SINCE = Gauge(
     "mapservice_history_insert_failing_since_timestamp_seconds",
     "Unix time of the first failed history insert of the current failure; 0 while inserts succeed",
 )
+EXPIRED = Counter(
+    "mapservice_sink_expired_events_total",
+    "Events not stored: older than the retention at the service's clock (records read "
+    "again from Kafka after the retention dropped their day)",
+    ["topic"],
+)
+# A whole topic read again is millions of such events: one line a minute says so.
+EXPIRED_LOG_EVERY_S = 60.0
 LAST_INSERT = Gauge(
     "mapservice_history_last_insert_timestamp_seconds",
     "Unix time of the last successful history insert (0: none yet)",
@@ -59,15 +69,43 @@ class HistorySink:
         live: LiveFeed | None = None,
         health: InsertHealth | None = None,
         thread: StoreThread | None = None,
+        retention_ms: int = DEFAULT_RETENTION_MS,
+        monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
         self.writer = writer
         self.live = live
+        self.retention_ms = retention_ms
+        self.monotonic = monotonic
+        self._expired_since_log: dict[str, int] = {}  # per topic, dropped since the last line
+        self._expired_logged_at = -math.inf  # monotonic
         self.thread = thread or StoreThread()
         # Whether the inserts succeed: readiness, the metrics below, the UI's banner.
         self.health = health = health or InsertHealth()
         INSERT_FAILING.set_function(lambda: float(health.failing))
         INSERT_FAILING_SINCE.set_function(lambda: health.failing_since_s or 0.0)
         LAST_INSERT.set_function(lambda: health.last_stored_s or 0.0)
+
+    def unexpired(self, topic: str, events: list[Envelope], now_ms: int) -> list[Envelope]:
+        """`events` but those the retention at `now_ms` (the service's clock) has already
+        forgotten: stored, they would bring a dropped day back, with the snapshots, views and
+        conflicts built over it, until the next retention step. Each dropped one is counted
+        (EXPIRED); a log line a minute at most says how many."""
+        kept = [e for e in events if not expired(e, now_ms, self.retention_ms)]
+        if len(kept) == len(events):
+            return events
+        dropped = len(events) - len(kept)
+        EXPIRED.labels(topic).inc(dropped)
+        self._expired_since_log[topic] = self._expired_since_log.get(topic, 0) + dropped
+        if self.monotonic() - self._expired_logged_at >= EXPIRED_LOG_EVERY_S:
+            self._expired_logged_at = self.monotonic()
+            counts, self._expired_since_log = self._expired_since_log, {}
+            log.warning(
+                "events older than the retention not stored",
+                retention_days=self.retention_ms / DAY_MS,
+                boundary_ms=now_ms - self.retention_ms,
+                dropped=counts,
+            )
+        return kept
 
     async def run(self, fn, *args):
         return await self.thread.run(fn, *args)

@@ -52,7 +52,12 @@ OFFSET_GAPS = Counter(
 # restarted empty (memory storage) those offsets point past the new log's records: the
 # group's next assignment would start there and skip them
 # (tests/integration/test_tansu_restart.py).
-NEVER_COMMITTED = -1  # the membership of records polled while the group changed
+NEVER_COMMITTED = -1  # records polled while the group changed that could not be read again
+READ_AGAIN = Counter(
+    "mapservice_consumer_read_again_after_rebalance_total",
+    "Batches polled while the consumer group changed, read again under the new membership "
+    "(never handed out: they could not be committed)",
+)
 STALE_COMMITS = Counter(
     "mapservice_consumer_stale_commits_total",
     "Commits not made: their records were delivered before the group "
@@ -181,9 +186,17 @@ class KafkaBatchSource:
         before = self._membership
         messages = self.consumer.consume(max_records, timeout_s)
         # Rebalance callbacks run inside consume(), and the batch may hold records fetched
-        # on either side of them: such a batch is stored but never committed (later
-        # commits cover it, or its records are delivered again).
-        membership = self._membership if self._membership == before else NEVER_COMMITTED
+        # on either side of them: such a batch can never be committed. Handed out, its
+        # records would be stored and left uncommitted; in a partition no later record
+        # reaches (a chunk written once) the group's offset would then never pass them, and
+        # every later join would deliver them again, until one after the retention dropped
+        # their day brings that day back. So its partitions are read again, under the new
+        # membership; only where that fails is it handed out uncommittable.
+        membership = self._membership
+        if self._membership != before:
+            if self._read_again(messages):
+                return []
+            membership = NEVER_COMMITTED
         for m in messages:
             err = m.error()
             if err is not None:
@@ -213,6 +226,31 @@ class KafkaBatchSource:
                 SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"", membership)
             )
         return out
+
+    def _read_again(self, messages: list) -> bool:
+        """Seeks each partition of `messages` this member still owns back to its first
+        offset among them (the others are another member's now); False if a seek failed."""
+        first: dict[tuple[str, int], int] = {}
+        for m in messages:
+            if m.error() is None:
+                key = (m.topic(), m.partition())
+                first[key] = min(first.get(key, m.offset()), m.offset())
+        try:
+            owned = {(tp.topic, tp.partition) for tp in self.consumer.assignment()}
+            for key, offset in first.items():
+                if key in owned:
+                    self.consumer.seek(TopicPartition(key[0], key[1], offset))
+        except KafkaException as exc:
+            log.warning(
+                "could not read again a batch polled while the consumer group changed; "
+                "its records are stored but not committed",
+                error=str(exc),
+            )
+            return False
+        self._forget([TopicPartition(t, p) for t, p in first])
+        if first:
+            READ_AGAIN.inc()
+        return True
 
     def _reread(self, key: tuple[str, int], expected: int, got: int) -> bool:
         """Seeks a partition back to its first unseen offset; False once the same gap was

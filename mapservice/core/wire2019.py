@@ -20,6 +20,7 @@ from typing import Annotated, Any, TypeVar
 import msgspec
 
 from mapservice.core.events import ChunkUpdated, Envelope, MapMetaSet, PoseReported, make_envelope
+from mapservice.core.retention import DAY_MS, DEFAULT_RETENTION_MS, older_than_retention
 
 _T = TypeVar("_T")
 
@@ -76,7 +77,7 @@ class Limits(msgspec.Struct, frozen=True):
     chunk_cols: int = 1000
     max_message_bytes: int = 256 * 1024
     max_future_skew_ms: int = 300_000
-    retention_ms: int = 7 * 86_400_000
+    retention_ms: int = DEFAULT_RETENTION_MS
 
     def with_meta(self, meta: MapMetaSet) -> Limits:
         return msgspec.structs.replace(
@@ -247,10 +248,10 @@ def _check_time(text: str, now_ms: int, limits: Limits) -> int | Rejection:
             f"timestamp {text[:64]} is {(ms - now_ms) / 1000:.1f} s ahead of the gateway clock "
             f"(allowed {limits.max_future_skew_ms / 1000:.0f} s); check the robot's clock",
         )
-    if ms < now_ms - limits.retention_ms:
+    if older_than_retention(ms, now_ms, limits.retention_ms):
         return Rejection(
             Reason.TIMESTAMP_TOO_OLD,
-            f"timestamp {text[:64]} is older than the {limits.retention_ms // 86_400_000}-day "
+            f"timestamp {text[:64]} is older than the {limits.retention_ms // DAY_MS}-day "
             "retention",
         )
     return ms

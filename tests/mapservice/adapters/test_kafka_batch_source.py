@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from mapservice.adapters.kafka_batch_source import KafkaBatchSource, consumer_config
 from mapservice.settings import Settings
 
@@ -142,11 +144,22 @@ class _ScriptedConsumer:
         self.seeks: list[tuple[int, int]] = []
         self.commits: list[list[tuple[int, int]]] = []
         self.member_id = "member-1"
+        self.owned = [0, 1]  # the partitions of "t" assigned to this member
+        self.seek_fails = False
+
+    def assignment(self):
+        from confluent_kafka import TopicPartition
+
+        return [TopicPartition("t", p) for p in self.owned]
 
     def consume(self, _n, _timeout):
         return self.batches.pop(0) if self.batches else []
 
     def seek(self, tp) -> None:
+        if self.seek_fails:
+            from confluent_kafka import KafkaError, KafkaException
+
+            raise KafkaException(KafkaError(KafkaError._STATE))
         self.seeks.append((tp.partition, tp.offset))
 
     def memberid(self) -> str:
@@ -268,20 +281,61 @@ def test_nothing_is_committed_once_the_consumer_has_left_its_group() -> None:
     assert source.commit(records) is False and source.consumer.commits == []
 
 
-def test_a_batch_polled_while_the_group_changed_is_not_committed() -> None:
-    """The assignment callback ran inside consume(): that batch may hold records from before it, so only the next batch is committed."""
+def _rebalancing(source: KafkaBatchSource, owned: list[int]):
+    """Makes the next consume() run an assignment of `owned` inside it, as librdkafka does."""
     from confluent_kafka import TopicPartition
 
-    source = _assigned_source([[(0, 900)], [(0, 2)]])
     consume = source.consumer.consume
 
     def consume_with_a_rebalance(n, timeout):
-        source._assigned(source.consumer, [TopicPartition("t", 0)])
+        source.consumer.consume = consume
+        source.consumer.owned = owned
+        source._assigned(source.consumer, [TopicPartition("t", p) for p in owned])
         return consume(n, timeout)
 
     source.consumer.consume = consume_with_a_rebalance
+
+
+def test_a_batch_polled_while_the_group_changed_is_not_committed() -> None:
+    """The assignment callback ran inside consume(): that batch may hold records from
+    before it and could never be committed, so it is not handed out; the partitions this
+    member still owns are read again from the batch's first offsets (partition 1 went to
+    another member), and what comes then is committed."""
+    source = _assigned_source([[(0, 900), (1, 40), (0, 901)], [(0, 900), (0, 901)]])
+    _rebalancing(source, owned=[0])
+    assert source.poll(100, 0.1) == []
+    assert source.consumer.seeks == [(0, 900)]
+    again = source.poll(100, 0.1)
+    assert offsets(again) == [(0, 900), (0, 901)]
+    assert source.commit(again) is True
+    assert source.consumer.commits == [[(0, 902)]]
+
+
+@pytest.mark.parametrize("partitions", [[0], [1], [0, 1]])
+def test_every_record_delivered_across_a_group_change_is_read_again_until_committed(
+    partitions,
+) -> None:
+    """Whatever partitions a batch polled across a rebalance holds, each record of an owned
+    partition comes again in a batch that can be committed: no partition's offset is left
+    behind records that were stored (the group would deliver them again on every join)."""
+    batch = [(p, o) for o in range(5, 8) for p in partitions]
+    source = _assigned_source([batch, batch])
+    _rebalancing(source, owned=[0, 1])
+    assert source.poll(100, 0.1) == []
+    assert sorted(source.consumer.seeks) == [(p, 5) for p in partitions]
+    again = source.poll(100, 0.1)
+    assert source.commit(again) is True
+    assert sorted(source.consumer.commits[0]) == [(p, 8) for p in partitions]
+
+
+def test_a_batch_that_cannot_be_read_again_is_handed_out_but_not_committed() -> None:
+    """A seek librdkafka refuses (the partition not fetching yet): the batch is handed out
+    as before, stored, and its offsets are left to a later commit."""
+    source = _assigned_source([[(0, 900)], [(0, 2)]])
+    source.consumer.seek_fails = True
+    _rebalancing(source, owned=[0])
     mixed = source.poll(100, 0.1)
-    source.consumer.consume = consume
+    assert offsets(mixed) == [(0, 900)]
     assert source.commit(mixed) is False and source.consumer.commits == []
     assert source.commit(source.poll(100, 0.1)) is True
     assert source.consumer.commits == [[(0, 3)]]
