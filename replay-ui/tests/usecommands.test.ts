@@ -43,7 +43,26 @@ describe("the selected robot's commands", () => {
     expect(c.recent.map((x) => x.commandId)).toEqual(["g", "p"]);
   });
 
-  it("drop a send answered after another robot was selected", async () => {
+  it("keep a sent command until a read lists it, also when the read began after the send", async () => {
+    const now = Date.now();
+    const pause = cmd("p", "pause", now - 5_000);
+    const goto = cmd("g", "resume", now);
+    const listed = [pause]; // the history has not stored the send yet
+    api(listed, goto).release();
+    const selected = ref<string | null>("r1");
+    const c = useCommands({ base: "", selected, operator: () => true, span: () => [now - 60_000, now + 60_000] });
+    await c.send("resume");
+    c.tick(now); // a read begun after the send, answered without it
+    await settle();
+    expect(c.recent.map((x) => x.commandId)).toEqual(["g", "p"]);
+    listed.push({ ...goto, ack: { status: "accepted", reason: "", ts_ms: now + 100 } });
+    c.tick(now + 86_400_000); // a day on: read again; stored now, with its ack, and shown so
+    await settle();
+    expect(c.recent.map((x) => x.commandId)).toEqual(["g", "p"]);
+    expect(c.recent[0].ack).not.toBeNull();
+  });
+
+    it("drop a send answered after another robot was selected", async () => {
     const now = Date.now();
     api([], cmd("g", "resume", now)).release();
     const selected = ref<string | null>("r1");

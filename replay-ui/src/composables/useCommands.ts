@@ -46,8 +46,10 @@ export function useCommands(d: CommandDeps) {
   let robotRead = { id: "", at: 0, around: 0 };
   let poisAt = 0;
   let loading = false;
-  /** The commands this page sent to the selected robot, in order: a read begun before a send
-   * answers without it, so what was sent since a read began is kept beside its answer. */
+  /** The commands this page sent to the selected robot and no read has listed yet: the API
+   * answers a send once Kafka holds it and the history stores it a moment later, so a read
+   * begun before the send, or soon after it, answers without it. Each stays beside the
+   * reads' answers until one lists it. */
   let sent: Command[] = [];
 
   async function loadSpan(from: number, to: number) {
@@ -62,10 +64,13 @@ export function useCommands(d: CommandDeps) {
   async function loadRobot(id: string, around: number) {
     robotRead = { id, at: Date.now(), around };
     const from = Math.max(oldestReadable(Date.now()), Math.min(around, Date.now()) - ROBOT_LOOKBACK_MS);
-    const sentBefore = sent.length;
     try {
       const got = await api.list(from, Date.now() + 60_000, id);
-      if (d.selected.value === id) robotCommands.value = mergeCommands(sent.slice(sentBefore), got);
+      if (d.selected.value === id) {
+        const listed = new Set(got.map((c) => c.commandId));
+        sent = sent.filter((c) => !listed.has(c.commandId));
+        robotCommands.value = mergeCommands(sent, got);
+      }
     } catch (e) {
       error.value = `the robot's commands could not be read: ${(e as Error).message}`;
     }
