@@ -178,6 +178,22 @@ def iso(ms: int) -> str:
     return datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
+def connected_vehicle(stack, v: str, m: str, s: str):
+    """A VDA 5050 vehicle's MQTT client, connected, whose last will says its connection
+    broke (as a vehicle's broker announces it); and its topics' base."""
+    client = make_client(f"vda-{m}-{s}-{now_ms()}")
+    base = f"uagv/v2/{m}/{s}"
+    client.will_set(
+        f"{base}/connection",
+        vda.encode(vda.connection(v, m, s, now_ms(), "CONNECTIONBROKEN")),
+        qos=1,
+        retain=True,
+    )
+    client.connect("127.0.0.1", stack.mqtt_port)
+    client.loop_start()
+    return client, base
+
+
 def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) -> None:
     """One vehicle: online, a factsheet, a state with a FATAL and a WARNING error (the
     mark's hover names level, type and description), the same again, a state that clears
@@ -189,16 +205,7 @@ def test_vda_errors_connection_and_factsheet_in_the_replay(page, history_stack) 
     open_at(page, stack, "?live=1")
     ox, oy = page.evaluate("() => window.__replay.meta")["origin"][:2]
     x, y = ox + 14.0, oy + 9.0
-    client = make_client(f"vda-{m}-{s}-{now_ms()}")
-    base = f"uagv/v2/{m}/{s}"
-    client.will_set(
-        f"{base}/connection",
-        vda.encode(vda.connection(v, m, s, now_ms(), "CONNECTIONBROKEN")),
-        qos=1,
-        retain=True,
-    )
-    client.connect("127.0.0.1", stack.mqtt_port)
-    client.loop_start()
+    client, base = connected_vehicle(stack, v, m, s)
 
     def publish(sub: str, msg: dict) -> None:
         client.publish(f"{base}/{sub}", vda.encode(msg), qos=1).wait_for_publish(10)
@@ -299,16 +306,7 @@ def test_the_details_agree_with_the_fleet_row_before_the_vehicle_s_own_facts_arr
     rid = robot_id_for(m, s)
     open_at(page, stack, "?live=1")
     ox, oy = page.evaluate("() => window.__replay.meta")["origin"][:2]
-    client = make_client(f"vda-{m}-{s}-{now_ms()}")
-    base = f"uagv/v2/{m}/{s}"
-    client.will_set(
-        f"{base}/connection",
-        vda.encode(vda.connection(v, m, s, now_ms(), "CONNECTIONBROKEN")),
-        qos=1,
-        retain=True,
-    )
-    client.connect("127.0.0.1", stack.mqtt_port)
-    client.loop_start()
+    client, base = connected_vehicle(stack, v, m, s)
     for sub, msg in (
         ("connection", vda.connection(v, m, s, now_ms(), "ONLINE")),
         ("state", vda.state(v, m, s, now_ms(), x=ox + 16.0, y=oy + 9.0, errors=())),

@@ -9,6 +9,8 @@ at once.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -61,6 +63,21 @@ def cut_short(part: Path, which: str) -> list[str]:
     return [f.name for f in files]
 
 
+@contextmanager
+def store_with_a_cut_part(chdb_dir, ev, t0, which: str) -> Iterator[tuple]:
+    """A migrated chDB store holding the batches' poses, its merged poses part cut short
+    (`which` files emptied); yields the store, the batches sent and what was cut."""
+    store = clickhouse_store(chdb_dir)
+    try:
+        store.migrate()
+        sent = batches(ev, t0)
+        for batch in sent:
+            store.append_events(batch)
+        yield store, sent, cut_short(merged_poses_part(store), which)
+    finally:
+        store.close()
+
+
 # The primary index is not among them: the engine keeps a part's index from its writing,
 # so emptying it on disk changes nothing until the next load.
 @pytest.mark.parametrize("which", ["marks", "column data", "every file"])
@@ -70,13 +87,7 @@ def test_a_merged_part_cut_short_is_set_aside_and_its_sources_restored(
     """The derived views' re-read of the stored poses fails on the cut part once (the
     failure the writer records and retries); the retry succeeds, every pose is stored
     once, the part is in detached/ as broken-on-start."""
-    store = clickhouse_store(chdb_dir)
-    try:
-        store.migrate()
-        sent = batches(ev, t0)
-        for batch in sent:
-            store.append_events(batch)
-        cut = cut_short(merged_poses_part(store), which)
+    with store_with_a_cut_part(chdb_dir, ev, t0, which) as (store, sent, cut):
         every = [e for batch in sent for e in batch]
 
         with pytest.raises(Exception) as failed:
@@ -98,21 +109,13 @@ def test_a_merged_part_cut_short_is_set_aside_and_its_sources_restored(
             f"SELECT name FROM system.detached_parts WHERE database = '{db}' AND table = 'poses'"
         ).result_rows
         assert [n for (n,) in detached if n.startswith("broken")], detached
-    finally:
-        store.close()
 
 
 @pytest.mark.parametrize("which", ["marks", "every file"])
 def test_a_read_that_meets_a_cut_short_part_recovers_it_too(chdb_dir, ev, t0, which) -> None:
     """The API's reads fail on the part once; the next read answers every pose (a part
     no insert re-reads would otherwise fail every read of its time range)."""
-    store = clickhouse_store(chdb_dir)
-    try:
-        store.migrate()
-        sent = batches(ev, t0)
-        for batch in sent:
-            store.append_events(batch)
-        cut_short(merged_poses_part(store), which)
+    with store_with_a_cut_part(chdb_dir, ev, t0, which) as (store, sent, _cut):
         window = (t0, t0 + BATCHES * 1000)
         with pytest.raises(Exception) as failed:
             store.poses(*window, limit=10_000)
@@ -121,8 +124,6 @@ def test_a_read_that_meets_a_cut_short_part_recovers_it_too(chdb_dir, ev, t0, wh
         assert sorted((p.robot_id, p.ts_ms) for p in got) == sorted(
             (e.robot_id, e.event_time_ms) for batch in sent for e in batch
         )
-    finally:
-        store.close()
 
 
 def test_chdb_tables_keep_a_merges_sources_for_minutes(chdb_dir) -> None:
