@@ -34,6 +34,7 @@ from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, make_envelope
 from mapservice.core.ports import HistoryStore, chunk_rows_of
+from mapservice.core.retention import DAY_MS
 from mapservice.core.wire2019 import content_hash
 from mapservice.processors.conflict_recorder import record_conflicts
 
@@ -46,7 +47,6 @@ CONFLICT_EVERY = (
     4  # the 1st, 5th, 9th ... changed chunk is also reported, differently, by another robot
 )
 UPLOAD_ROBOT_ID = UPLOADER_ID  # as `mapservice map upload` writes the map
-DAY_MS = 86_400_000
 BATCH_POSES = 100_000
 
 

@@ -49,6 +49,7 @@ from mapservice.core.ports import (
     VdaFacts,
     VdaFactsheetRow,
 )
+from mapservice.core.retention import DAY_MS
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 
 
@@ -62,9 +63,6 @@ def _mm(v: float) -> float:
 
 def _f32(v: float | None) -> float | None:
     return None if v is None else float(np.float32(v))
-
-
-DAY_MS = 86_400_000
 
 
 class MemoryStore:

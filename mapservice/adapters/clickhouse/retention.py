@@ -41,10 +41,9 @@ from mapservice.adapters.clickhouse.schema import RETAINED_BY_DAY
 from mapservice.adapters.clickhouse.snapshots import ClickHouseSnapshots
 from mapservice.core.annotations import prune_before
 from mapservice.core.ports import RetentionResult
+from mapservice.core.retention import DAY_MS
 
 log = structlog.get_logger(__name__)
-
-DAY_MS = 86_400_000
 
 
 class ClickHouseRetention:
