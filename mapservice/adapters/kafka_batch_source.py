@@ -101,10 +101,10 @@ def _common_config(settings: Settings, group_id: str) -> dict:
             "auto.offset.reset": "earliest",
             "enable.auto.commit": False,
             "enable.auto.offset.store": False,
-            # tansu answers an empty fetch only when this wait runs out, not when records
-            # arrive, so librdkafka's 500 ms default added ~0.1-0.2 s to every event's
-            # latency. Apache Kafka answers on arrival; there a short wait costs only idle
-            # fetches.
+            # Apache Kafka answers a waiting fetch as soon as records arrive: a long wait
+            # costs no latency, a short one idle fetches (the broker's CPU while the plant
+            # is quiet). tansu answers only when the wait runs out: the embedded tansu's
+            # components are given a short one (local/stack_env.py).
             "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
             "statistics.interval.ms": STATS_INTERVAL_MS,
         }

@@ -44,7 +44,7 @@ def live_consumer_config(settings: Settings) -> dict:
             "enable.auto.commit": False,
             "enable.auto.offset.store": False,
             "auto.offset.reset": "latest",
-            # tansu answers an empty fetch only when the wait runs out (kafka_batch_source.py).
+            # As the history's fetch waits (kafka_batch_source.py).
             "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
             "queued.max.messages.kbytes": 16 * 1024,
         }

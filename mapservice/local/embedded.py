@@ -132,6 +132,11 @@ def tansu_binary() -> Path:
     return path
 
 
+# tansu answers a fetch with no new records only when the fetch's wait runs out, even if
+# records arrive meanwhile: its clients wait this long (docs/embedded.md has the figures).
+TANSU_FETCH_WAIT_MS = 50
+
+
 def start_tansu(port: int, log_file=None, preexec_fn=None) -> subprocess.Popen:
     ensure_port_free(port, "Kafka (tansu)")
     url = f"tcp://127.0.0.1:{port}"

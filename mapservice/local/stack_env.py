@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from mapservice.adapters.mqtt_auth import GATEWAY_USER, PROCESSORS_USER
+from mapservice.local.embedded import TANSU_FETCH_WAIT_MS
 from mapservice.local.kafka_auth import KAFKA_NODE_USER, KAFKA_SERVICE_USER, component_env
 from mapservice.runtime.secrets import (
     ApiSecrets,
@@ -107,10 +108,16 @@ class StackEnv:
         )
 
     def _kafka_env(self) -> dict[str, str]:
-        """Every component is the service's: with kafka_auth each gets its Kafka user."""
-        if not self.kafka_auth:
-            return {}
-        return component_env(self.service_password(KAFKA_SERVICE_USER, "kafka"))
+        """Every component is the service's: with kafka_auth each gets its Kafka user. On
+        the embedded tansu, fetches wait 50 ms for new records unless told otherwise: tansu
+        answers a fetch only when its wait runs out, so the default wait (for Apache Kafka,
+        which answers on arrival) would be every record's latency."""
+        env = {}
+        if self.kafka == "tansu" and "MAPSERVICE_KAFKA_FETCH_WAIT_MS" not in os.environ:
+            env["MAPSERVICE_KAFKA_FETCH_WAIT_MS"] = str(TANSU_FETCH_WAIT_MS)
+        if self.kafka_auth:
+            env |= component_env(self.service_password(KAFKA_SERVICE_USER, "kafka"))
+        return env
 
     @property
     def clickhouse_url(self) -> str:

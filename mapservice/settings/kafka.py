@@ -74,10 +74,13 @@ class KafkaSettings(BaseModel):
         "partition (librdkafka linger.ms).",
     )
     kafka_fetch_wait_ms: int = Field(
-        50,
+        500,
         ge=1,
         le=10_000,
-        description="Longest a history fetch waits for new records (librdkafka fetch.wait.max.ms).",
+        description="Longest the history's and the live relay's fetch waits for new records "
+        "(librdkafka fetch.wait.max.ms). Apache Kafka answers as soon as records arrive, so "
+        "the wait costs no latency there, and a short one only costs idle fetches; tansu "
+        "answers only when it runs out, so the embedded tansu runs with 50 ms.",
     )
     # The broker `mapservice up` and the test stacks embed (mapservice/local/kafka_broker.py).
     embedded_kafka: Literal["auto", "apache", "tansu"] = Field(

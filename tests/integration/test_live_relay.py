@@ -1,8 +1,8 @@
 """The live stream across processes on Apache Kafka (the session's shared node): what the
 processors' KafkaLivePublisher publishes reaches every API replica's KafkaLiveRelay.
 
-Bounded: each test waits seconds at most (a relay follows new messages within its
-50 ms fetch wait)."""
+Bounded: each test waits seconds at most (Apache Kafka answers a relay's waiting fetch
+as soon as new messages arrive)."""
 
 from __future__ import annotations
 

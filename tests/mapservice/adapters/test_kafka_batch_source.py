@@ -8,13 +8,14 @@ from mapservice.adapters.kafka_batch_source import KafkaBatchSource, consumer_co
 from mapservice.settings import Settings
 
 
-def test_consumer_commits_by_hand_and_fetches_with_the_configured_short_wait() -> None:
+def test_consumer_commits_by_hand_and_fetches_with_the_configured_wait() -> None:
     """Offsets are never auto-committed or auto-stored, and fetch.wait.max.ms comes from
-    the settings (default 50 ms: tansu answers an empty fetch only when the wait ends)."""
+    the settings (default 500 ms: Apache Kafka answers on arrival; a stack on the embedded
+    tansu sets 50, tests/mapservice/local/test_stack.py)."""
     conf = consumer_config(Settings(kafka_fetch_wait_ms=40), "history")
     assert conf["enable.auto.commit"] is False and conf["enable.auto.offset.store"] is False
     assert conf["fetch.wait.max.ms"] == 40
-    assert consumer_config(Settings(), "history")["fetch.wait.max.ms"] == 50
+    assert consumer_config(Settings(), "history")["fetch.wait.max.ms"] == 500
 
 
 def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker() -> None:
@@ -31,7 +32,7 @@ def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker(
     )
     assert new["group.protocol"] == "consumer"
     assert "session.timeout.ms" not in new and "heartbeat.interval.ms" not in new
-    assert new["enable.auto.commit"] is False and new["fetch.wait.max.ms"] == 50
+    assert new["enable.auto.commit"] is False and new["fetch.wait.max.ms"] == 500
     Consumer(new).close()
 
 

@@ -1,4 +1,5 @@
-"""The local stack's gateway replicas: their client ids, shared subscription and ports."""
+"""The local stack's gateway replicas: their client ids, shared subscription and ports; the
+fetch wait its components get on each embedded Kafka."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import pytest
 
 from mapservice.local.private_dir import protect_data_dir
 from mapservice.local.stack import Stack
+from mapservice.settings import Settings
 
 
 @pytest.fixture(autouse=True)
@@ -193,3 +195,24 @@ def test_stop_ends_replicas_with_their_kind_before_the_brokers(tmp_path, monkeyp
             for n in stopped
         ]
         assert rank == sorted(rank), stopped
+
+
+@pytest.mark.parametrize("component", ["server", "processors", "api", "gateway", None])
+def test_components_on_tansu_fetch_with_a_short_wait_and_on_apache_kafka_with_the_default(
+    tmp_path, monkeypatch, component
+):
+    """tansu answers a fetch only when its wait runs out, so every component of a stack on
+    it waits 50 ms; on Apache Kafka (which answers on arrival) they keep the settings'
+    default of 500 ms, and a wait the operator set is kept on either."""
+    monkeypatch.delenv("MAPSERVICE_KAFKA_FETCH_WAIT_MS", raising=False)
+    on_tansu = Stack(tmp_path / "t", mqtt="mosquitto", kafka="tansu")
+    on_apache = Stack(tmp_path / "a", mqtt="mosquitto", kafka="apache")
+    assert on_tansu.env(component)["MAPSERVICE_KAFKA_FETCH_WAIT_MS"] == "50"
+    assert "MAPSERVICE_KAFKA_FETCH_WAIT_MS" not in on_apache.env(component)
+    assert (on_tansu.settings().kafka_fetch_wait_ms, on_apache.settings().kafka_fetch_wait_ms) == (
+        50,
+        Settings().kafka_fetch_wait_ms,
+    )
+    assert Settings().kafka_fetch_wait_ms == 500
+    monkeypatch.setenv("MAPSERVICE_KAFKA_FETCH_WAIT_MS", "120")
+    assert on_tansu.env(component)["MAPSERVICE_KAFKA_FETCH_WAIT_MS"] == "120"
