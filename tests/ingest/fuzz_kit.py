@@ -11,6 +11,7 @@ mutation's choices) and the handler under 1 ms; nothing here is made per example
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -76,31 +77,45 @@ json_values = st.recursive(
 )
 
 
+# The strategies a mutation draws from, made once: a strategy made per draw is built and
+# validated by Hypothesis again each time.
+_REPEATS = st.integers(1, 4)
+_ACTIONS = st.sampled_from(["replace", "drop", "add"])
+_FIELD_NAMES = st.text(max_size=8)
+
+
+@functools.cache
+def _index_below(n: int) -> st.SearchStrategy[int]:
+    return st.integers(0, n - 1)
+
+
+@functools.cache
+def _one_of_names(names: tuple[str, ...]) -> st.SearchStrategy[str]:
+    return st.sampled_from(names)
+
+
 def mutate(doc, draw, names: Sequence[str] = ()):
     """A copy of `doc` with a value replaced, dropped or added anywhere in it, in objects
     and arrays alike, one to four times. An added field is named by `names` (the fields a
     validator looks for) or by generated text."""
     doc = json.loads(json.dumps(doc))
-    for _ in range(draw(st.integers(1, 4))):
+    for _ in range(draw(_REPEATS)):
         parent, key, node = None, None, doc
         while isinstance(node, (dict, list)) and node and draw(st.booleans()):
             parent = node
-            key = (
-                draw(st.sampled_from(sorted(node)))
-                if isinstance(node, dict)
-                else draw(st.integers(0, len(node) - 1))
-            )
+            index = draw(_index_below(len(node)))
+            key = sorted(node)[index] if isinstance(node, dict) else index
             node = node[key]
-        action = draw(st.sampled_from(["replace", "drop", "add"]))
+        action = draw(_ACTIONS)
         if parent is None or action == "add":
             target = (
                 node if isinstance(node, (dict, list)) else parent if parent is not None else doc
             )
             if isinstance(target, dict):
                 target[
-                    draw(st.sampled_from(list(names)))
+                    draw(_one_of_names(tuple(names)))
                     if names and draw(st.booleans())
-                    else draw(st.text(max_size=8))
+                    else draw(_FIELD_NAMES)
                 ] = draw(json_values)
             elif isinstance(target, list):
                 target.append(draw(json_values))

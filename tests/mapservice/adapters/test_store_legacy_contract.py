@@ -14,6 +14,7 @@ import pytest
 from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 from mapservice.core.wire2019 import content_hash
 from mapservice.testing.memory_store import MemoryStore
+from tests.conftest import sparse_snapshots
 from tests.mapservice.adapters.store_contract import clickhouse_store
 
 # --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
@@ -165,6 +166,8 @@ def test_delete_chunks_empties_history_and_map(store, ev, t0) -> None:
     """delete_chunks removes every write, snapshot and conflict, keeps poses, counts what went."""
     from mapservice.core.ports import ConflictRow
 
+    # Snapshots every 6 h: several of them over the history's day hold its chunks, not 145.
+    sparse_snapshots(store)
     store.append(_legacy_history(ev, t0))
     store.append_conflicts([ConflictRow(0, 0, t0, "r2", t0, "r1")])
     assert len(store.conflicts(t0 - 1, t0 + 1)) == 1
