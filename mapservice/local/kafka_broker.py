@@ -4,6 +4,8 @@ published jars, its log on disk under the data dir.
 The jars are resolved once by Maven from `kafka/pom.xml` (which pins the version compose
 and the Strimzi files run) into a cache shared by every data dir; the node is formatted
 once per log directory, so a restart (or a SIGKILL) keeps every record it acknowledged.
+Both JVMs (the formatter's and the broker's) map the jars' class-data archive, made once
+by `fetch` or the first start (kafka_cds.py).
 Retention by time and by size bounds its disk; a small heap bounds its memory. Where no
 Java is installed, `mapservice up` falls back to tansu (`embedded.start_tansu`), which keeps
 records in memory only.

@@ -92,12 +92,17 @@ def ensure_archive(
     failed = archive.with_suffix(".failed")
     if failed.exists() or not os.access(libs.parent, os.W_OK):
         return None
+
+    def say(line: str) -> None:
+        log.info(line)
+        progress(line)
+
     with _lock(libs.parent / ".classes.lock", wait) as held:
         if not held:
             return None
         if sharing_flags(java, libs):
             return archive
-        progress(f"making a class-data archive of Apache Kafka's JVM in {archive} (once)...")
+        say(f"making a class-data archive of Apache Kafka's JVM in {archive} (once)...")
         started = time.monotonic()
         try:
             _make(java, libs, archive, train)
@@ -110,7 +115,7 @@ def ensure_archive(
                 error,
             )
             return None
-        progress(
+        say(
             f"made the class-data archive in {time.monotonic() - started:.1f} s "
             f"({archive.stat().st_size // 1024**2} MB)"
         )
