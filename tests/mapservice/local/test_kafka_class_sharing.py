@@ -27,13 +27,16 @@ def java() -> str:
     return found
 
 
-def copy_jars(into: Path) -> Path:
+def copy_jars(into: Path, link: bool = True) -> Path:
     """A jars directory of its own (the archive is kept beside the jars): the cached jars,
-    linked where the file system allows, with their times kept."""
+    with their times kept, linked where the file system allows unless `link` is False (the
+    JVM takes a hard link for the file an archive was made with)."""
     libs = kafka_broker.ensure_jars()
     (into / "libs").mkdir(parents=True)
     for jar in libs.glob("*.jar"):
         try:
+            if not link:
+                raise OSError("copy asked for")
             os.link(jar, into / "libs" / jar.name)
         except OSError:
             shutil.copy2(jar, into / "libs" / jar.name)
@@ -136,15 +139,17 @@ def test_an_archive_made_for_other_jars_only_warns(made, tmp_path) -> None:
     or a moved cache looks like to the JVM): it refuses to map it, says so, and the broker
     serves."""
     _, libs, *_ = made
-    other = copy_jars(tmp_path / "other")
+    other = copy_jars(tmp_path / "other", link=False)
     archive = kafka_cds.archive_path(java(), libs)
     for made_file in (archive, archive.with_suffix(".size")):
         shutil.copy2(made_file, other.parent / made_file.name)
     assert kafka_cds.sharing_flags(java(), other)
     proc, log = start_node(tmp_path, other.parent)
     try:
-        assert kafka_broker.mapped_archive(proc) is not None
+        copied = kafka_broker.mapped_archive(proc)
+        assert copied == str(other.parent / archive.name)
         assert "Unable to use shared archive" in log.read_text()
+        assert copied not in Path(f"/proc/{proc.pid}/maps").read_text()
     finally:
         kafka_broker.stop_process_group(proc)
 
