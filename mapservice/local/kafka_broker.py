@@ -181,8 +181,10 @@ def format_once(
         text=True,
     )
     if done.returncode != 0 and sharing:
+        # Discarded only if the tool then succeeds without it (a bad config fails both ways).
+        formatted = format_once(java, libs, config_file, log_dir, cluster)
         kafka_cds.discard(java, libs, f"Kafka's StorageTool exited with {done.returncode}")
-        return format_once(java, libs, config_file, log_dir, cluster)
+        return formatted
     if done.returncode != 0:
         raise RuntimeError(
             f"formatting Kafka's log in {log_dir} failed: "

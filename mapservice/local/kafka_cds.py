@@ -72,7 +72,8 @@ def discard(java: str, libs: Path, why: str) -> None:
     archive = archive_path(java, libs)
     log.warning("discarding Kafka's class-data archive %s: %s", archive, why)
     for path in (_size_file(archive), archive):
-        path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # a read-only cache: then it is only not used
+            path.unlink(missing_ok=True)
 
 
 def ensure_archive(
@@ -107,7 +108,8 @@ def ensure_archive(
         try:
             _make(java, libs, archive, train)
         except Exception as error:  # a broker that did not start, a JVM that did not dump
-            failed.write_text(f"{error}\n")
+            with contextlib.suppress(OSError):
+                failed.write_text(f"{error}\n")
             log.warning(
                 "could not make Kafka's class-data archive (brokers start without it; remove "
                 "%s to try again): %s",

@@ -256,3 +256,21 @@ def test_another_java_or_other_jars_name_another_archive(tmp_path, change) -> No
     after = kafka_cds.archive_path(str(runtime), libs)
     assert after != before
     assert after.parent == before.parent == tmp_path
+
+
+def test_a_formatter_failing_for_its_config_keeps_the_archive(made, tmp_path) -> None:
+    """A configuration the tool refuses fails with and without the archive: the error is the
+    tool's, and the archive, not at fault, is kept."""
+    _, libs, *_ = made
+    other = copy_jars(tmp_path / "other")
+    archive = kafka_cds.archive_path(java(), libs)
+    for made_file in (archive, archive.with_suffix(".size")):
+        shutil.copy2(made_file, other.parent / made_file.name)
+    sharing = kafka_cds.sharing_flags(java(), other)
+    assert sharing
+    config_file = tmp_path / "server.properties"
+    config_file.write_text("process.roles=broker,controller\n")  # no node.id, no log.dirs
+    (tmp_path / "log4j2.yaml").write_text(kafka_broker.LOG4J2_YAML)
+    with pytest.raises(RuntimeError, match="formatting Kafka's log"):
+        kafka_broker.format_once(java(), other, config_file, tmp_path / "log", sharing=sharing)
+    assert kafka_cds.sharing_flags(java(), other) == sharing
