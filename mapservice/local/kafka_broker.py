@@ -165,6 +165,8 @@ def format_once(
             *JVM_FLAGS,
             *sharing,
             "-Xmx128m",
+            # A JVM's crash report beside its config, not in the caller's working directory.
+            f"-XX:ErrorFile={config_file.with_name('hs_err_pid%p.log')}",
             "-cp",
             f"{libs}/*",
             f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
@@ -317,6 +319,7 @@ def broker_command(java: str, libs: Path, config: KafkaNodeConfig, config_file: 
         *JVM_FLAGS,
         f"-Xms{min(64, config.heap_mb)}m",
         f"-Xmx{config.heap_mb}m",
+        f"-XX:ErrorFile={config_file.with_name('hs_err_pid%p.log')}",
         f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
         "-cp",
         f"{libs}/*",

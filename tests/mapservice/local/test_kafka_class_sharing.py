@@ -198,6 +198,9 @@ def test_a_jvm_that_dies_on_the_archive_is_started_again_without_it(
         assert kafka_broker.mapped_archive(proc) is None
         assert not archive.exists()
         assert "discarding Kafka's class-data archive" in caplog.text
+        # The crash report is the node's, not left in the working directory.
+        assert list(config.log_dir.parent.glob("hs_err_pid*.log"))
+        assert not list(Path.cwd().glob("hs_err_pid*.log"))
     finally:
         kafka_broker.stop_process_group(proc)
 
