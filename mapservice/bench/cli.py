@@ -123,6 +123,10 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
 
     add_group_protocol_parser(kinds)
 
+    from mapservice.bench.kafka_start import add_parser as add_kafka_start_parser
+
+    add_kafka_start_parser(kinds)
+
 
 def _run_ingest(args: argparse.Namespace) -> None:
     if args.kafka == "both":

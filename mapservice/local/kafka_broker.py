@@ -4,6 +4,8 @@ published jars, its log on disk under the data dir.
 The jars are resolved once by Maven from `kafka/pom.xml` (which pins the version compose
 and the Strimzi files run) into a cache shared by every data dir; the node is formatted
 once per log directory, so a restart (or a SIGKILL) keeps every record it acknowledged.
+Both JVMs (the formatter's and the broker's) map the jars' class-data archive, made once
+by `fetch` or the first start (kafka_cds.py).
 Retention by time and by size bounds its disk; a small heap bounds its memory. Where no
 Java is installed, `mapservice up` falls back to tansu (`embedded.start_tansu`), which keeps
 records in memory only.
@@ -17,23 +19,26 @@ import re
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from mapservice.local import kafka_cds
 from mapservice.local.embedded import ensure_port_free, free_port, start_tansu, wait_for_port
-from mapservice.local.kafka_auth import TANSU_NO_AUTH, listener_properties, sasl_client_config
+from mapservice.local.kafka_auth import TANSU_NO_AUTH
+from mapservice.local.kafka_node import LOG4J2_YAML as LOG4J2_YAML
+from mapservice.local.kafka_node import NODE_ID as NODE_ID
+from mapservice.local.kafka_node import KafkaNodeConfig as KafkaNodeConfig
 
 if TYPE_CHECKING:
     from mapservice.settings import Settings
 
 POM = Path(__file__).parent / "kafka" / "pom.xml"
-NODE_ID = 1
-# Start fast and small: the serial collector and the client compiler (C1) only; a JVM's
-# class-data sharing archive where the JDK has one. Measured here: ready ~2 s after start.
+# Start fast and small: the serial collector and the client compiler (C1) only; the JDK's
+# class-data sharing archive, and over it the jars' own (kafka_cds.py) once it is made.
 JVM_FLAGS = (
     "-XX:+UseSerialGC",
     "-XX:TieredStopAtLevel=1",
@@ -41,23 +46,6 @@ JVM_FLAGS = (
     "-XX:+ExitOnOutOfMemoryError",
     "-Djava.awt.headless=true",
 )
-# WARN and above, plus the lines that say the node started and stopped.
-LOG4J2_YAML = """\
-Configuration:
-  Appenders:
-    Console:
-      name: STDOUT
-      PatternLayout:
-        pattern: "[%d] %p %m (%c)%n"
-  Loggers:
-    Root:
-      level: WARN
-      AppenderRef:
-        - ref: STDOUT
-    Logger:
-      - name: kafka.server.KafkaRaftServer
-        level: INFO
-"""
 
 
 def kafka_version() -> str:
@@ -156,93 +144,18 @@ def ensure_jars(
     return libs
 
 
-@dataclass(frozen=True)
-class KafkaNodeConfig:
-    """One KRaft node on 127.0.0.1: where it listens and keeps its log, what it keeps. Alone
-    by default; with `voters` and `replication` one of a cluster (the fault tests')."""
-
-    log_dir: Path
-    port: int
-    controller_port: int
-    heap_mb: int = 256
-    retention_hours: int = 24
-    # Per partition; log segments of a sixteenth of it, so retention frees space in steps.
-    retention_bytes: int = 256 * 1024**2
-    node_id: int = NODE_ID
-    voters: str = ""  # id@host:port,...; empty: this node alone
-    replication: int = 1  # of internal and new topics
-    min_insync_replicas: int = 1
-    # (username, password) pairs: both listeners then take only SASL/PLAIN clients that
-    # name one of them (kafka_auth.py); the first is the node's own, for its controller
-    # connection. Empty: no authentication (anyone who reaches the port may produce).
-    sasl_users: tuple[tuple[str, str], ...] = ()
-
-    def properties(self) -> str:
-        segment = max(1024**2, self.retention_bytes // 16)
-        return "\n".join(
-            [
-                "process.roles=broker,controller",
-                f"node.id={self.node_id}",
-                # A static voter set: the controller's port is not written into the metadata
-                # log, so a lone node's restart may pick another free port.
-                "controller.quorum.voters="
-                + (self.voters or f"{self.node_id}@127.0.0.1:{self.controller_port}"),
-                *listener_properties(self.port, self.controller_port, self.sasl_users),
-                f"log.dirs={self.log_dir}",
-                "num.partitions=1",
-                f"default.replication.factor={self.replication}",
-                f"min.insync.replicas={self.min_insync_replicas}",
-                f"offsets.topic.replication.factor={self.replication}",
-                "offsets.topic.num.partitions=6",
-                f"transaction.state.log.replication.factor={self.replication}",
-                f"transaction.state.log.min.isr={self.min_insync_replicas}",
-                f"share.coordinator.state.topic.replication.factor={self.replication}",
-                f"share.coordinator.state.topic.min.isr={self.min_insync_replicas}",
-                "group.initial.rebalance.delay.ms=0",
-                # Classic-protocol members may ask for sessions down to 3 s
-                # (MAPSERVICE_KAFKA_SESSION_TIMEOUT_S; Kafka's floor is 6 s).
-                "group.min.session.timeout.ms=3000",
-                # Consumer groups of Kafka 4's protocol (KIP-848, MAPSERVICE_KAFKA_GROUP_PROTOCOL):
-                # the broker holds the members' session and heartbeat; the same 10 s and 1 s the
-                # classic protocol's members ask for (kafka_batch_source.py), under Kafka's
-                # defaults' floors of 45 s and 5 s.
-                "group.consumer.min.session.timeout.ms=10000",
-                "group.consumer.session.timeout.ms=10000",
-                "group.consumer.min.heartbeat.interval.ms=1000",
-                "group.consumer.heartbeat.interval.ms=1000",
-                # The service creates its own topics (the meta topic compacted).
-                "auto.create.topics.enable=false",
-                # Everything is in ClickHouse within a second: Kafka keeps a day, and at most
-                # retention_bytes per partition, checked every minute.
-                f"log.retention.hours={self.retention_hours}",
-                f"log.retention.bytes={self.retention_bytes}",
-                f"log.segment.bytes={segment}",
-                "log.retention.check.interval.ms=60000",
-                # After a SIGKILL the restarted node may register only once its old session has
-                # expired (9 s by default); heartbeats stay in this one process.
-                "broker.heartbeat.interval.ms=1000",
-                "broker.session.timeout.ms=4000",
-                # Few threads: one small node on a shared machine.
-                "num.network.threads=2",
-                "num.io.threads=2",
-                "background.threads=2",
-                "num.recovery.threads.per.data.dir=1",
-                "",
-            ]
-        )
-
-    def client_config(self) -> dict[str, str]:
-        """librdkafka's security settings to reach this node (as its own user)."""
-        if not self.sasl_users:
-            return {}
-        return sasl_client_config(*self.sasl_users[0])
-
-
 def format_once(
-    java: str, libs: Path, config_file: Path, log_dir: Path, cluster: str | None = None
+    java: str,
+    libs: Path,
+    config_file: Path,
+    log_dir: Path,
+    cluster: str | None = None,
+    sharing: tuple[str, ...] = (),
 ) -> bool:
     """Formats the node's log directory unless it already is (then its records and
-    offsets are kept); True if it formatted."""
+    offsets are kept); True if it formatted. `sharing`: flags of a class-data archive
+    (kafka_cds.py); if the tool fails with them, the archive is discarded and it runs again
+    without."""
     if (log_dir / "meta.properties").exists():
         return False
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -250,7 +163,10 @@ def format_once(
         [
             java,
             *JVM_FLAGS,
+            *sharing,
             "-Xmx128m",
+            # A JVM's crash report beside its config, not in the caller's working directory.
+            f"-XX:ErrorFile={config_file.with_name('hs_err_pid%p.log')}",
             "-cp",
             f"{libs}/*",
             f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
@@ -266,6 +182,11 @@ def format_once(
         capture_output=True,
         text=True,
     )
+    if done.returncode != 0 and sharing:
+        # Discarded only if the tool then succeeds without it (a bad config fails both ways).
+        formatted = format_once(java, libs, config_file, log_dir, cluster)
+        kafka_cds.discard(java, libs, f"Kafka's StorageTool exited with {done.returncode}")
+        return formatted
     if done.returncode != 0:
         raise RuntimeError(
             f"formatting Kafka's log in {log_dir} failed: "
@@ -297,14 +218,45 @@ def start_kafka(
             f"left behind by a killed `mapservice up`?): stop it with `kill {earlier}`"
         )
     proc = launch(config, log_file, jars_dir, preexec_fn=preexec_fn)
+    try:
+        wait_ready(config, proc, timeout_s)
+    except ExitedWhileStarting:
+        if mapped_archive(proc) is None:
+            raise
+        # A JVM that dies while it starts on an archive is retried once without it.
+        kafka_cds.discard(
+            str(java_binary()),
+            ensure_jars(jars_dir),
+            f"a broker started on it exited with {proc.returncode}",
+        )
+        proc = launch(config, log_file, jars_dir, preexec_fn=preexec_fn, sharing=())
+        wait_ready(config, proc, timeout_s)
+    return proc
+
+
+def wait_ready(config: KafkaNodeConfig, proc: subprocess.Popen, timeout_s: float) -> None:
+    """Until the node answers a metadata request; stops it if it does not."""
     (config.log_dir.parent / "kafka.pid").write_text(f"{proc.pid}\n")
     try:
         wait_for_port(config.port, timeout_s=timeout_s, proc=proc, what="Apache Kafka")
         wait_until_serving(f"127.0.0.1:{config.port}", proc, timeout_s, config.client_config())
-    except BaseException:
+    except BaseException as error:
+        exited = proc.poll() is not None
         stop_process_group(proc)
+        if exited and isinstance(error, RuntimeError):
+            raise ExitedWhileStarting(f"{error} (exit code {proc.returncode})") from error
         raise
-    return proc
+
+
+class ExitedWhileStarting(RuntimeError):
+    """The broker's JVM ended before it served."""
+
+
+def mapped_archive(proc: subprocess.Popen) -> str | None:
+    """The class-data archive a JVM was started on, if any."""
+    flag = "-XX:SharedArchiveFile="
+    args = [str(arg) for arg in proc.args] if isinstance(proc.args, list) else []
+    return next((arg[len(flag) :] for arg in args if arg.startswith(flag)), None)
 
 
 def running_pid(config: KafkaNodeConfig) -> int | None:
@@ -325,9 +277,12 @@ def launch(
     jars_dir: Path | None = None,
     cluster: str | None = None,
     preexec_fn=None,
+    sharing: tuple[str, ...] | None = None,
 ) -> subprocess.Popen:
     """Starts the node's JVM without waiting (the nodes of a cluster form their quorum only
-    together); formats its log directory first if it is new, with `cluster` as its id."""
+    together); formats its log directory first if it is new, with `cluster` as its id.
+    `sharing`: the class-data flags of both JVMs; by default the jars' archive, made first
+    if no other process is making it (`class_sharing`)."""
     java = java_binary()
     if java is None:
         raise RuntimeError(
@@ -337,24 +292,16 @@ def launch(
     ensure_port_free(config.port, "Kafka")
     ensure_port_free(config.controller_port, "Kafka's controller")
     libs = ensure_jars(jars_dir)
-    config_dir = config.log_dir.parent
-    config_dir.mkdir(parents=True, exist_ok=True)
-    config_file = config_dir / "server.properties"
-    # Only this user reads it: with SASL it holds the users' passwords.
-    with open(os.open(config_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as file:
-        file.write(config.properties())
-    config_file.chmod(0o600)
-    (config_dir / "log4j2.yaml").write_text(LOG4J2_YAML)
-    format_once(java, libs, config_file, config.log_dir, cluster)
+    if sharing is None:
+        sharing = class_sharing(java, libs, wait=False)
+    config_file = config.write_files()
+    format_once(java, libs, config_file, config.log_dir, cluster, sharing)
+    if sharing and not kafka_cds.sharing_flags(java, libs):
+        sharing = ()  # the formatter died on it: discarded
     return subprocess.Popen(
         [
-            java,
-            *JVM_FLAGS,
-            f"-Xms{min(64, config.heap_mb)}m",
-            f"-Xmx{config.heap_mb}m",
-            f"-Dlog4j2.configurationFile={config_dir / 'log4j2.yaml'}",
-            "-cp",
-            f"{libs}/*",
+            *broker_command(java, libs, config, config_file),
+            *sharing,
             "kafka.Kafka",
             str(config_file),
         ],
@@ -363,6 +310,60 @@ def launch(
         start_new_session=True,
         preexec_fn=preexec_fn,
     )
+
+
+def broker_command(java: str, libs: Path, config: KafkaNodeConfig, config_file: Path) -> list[str]:
+    """The broker's JVM and its flags, up to its main class."""
+    return [
+        java,
+        *JVM_FLAGS,
+        f"-Xms{min(64, config.heap_mb)}m",
+        f"-Xmx{config.heap_mb}m",
+        f"-XX:ErrorFile={config_file.with_name('hs_err_pid%p.log')}",
+        f"-Dlog4j2.configurationFile={config_file.with_name('log4j2.yaml')}",
+        "-cp",
+        f"{libs}/*",
+    ]
+
+
+def class_sharing(
+    java: str, libs: Path, wait: bool, progress: Callable[[str], None] = lambda line: None
+) -> tuple[str, ...]:
+    """The flags that map the jars' class-data archive, made first by a broker's start where
+    there is none (kafka_cds.py); none where it cannot be made, or (without `wait`) while
+    another process makes it."""
+    kafka_cds.ensure_archive(
+        java, libs, lambda dump: train_archive(java, libs, dump), progress, wait=wait
+    )
+    return kafka_cds.sharing_flags(java, libs)
+
+
+def train_archive(java: str, libs: Path, dump: tuple[str, ...]) -> None:
+    """Starts a throwaway node with `dump`'s flags until it serves, then stops it cleanly:
+    the JVM writes the classes it loaded at its exit."""
+    with tempfile.TemporaryDirectory(prefix="kafka-cds-") as tmp:
+        config = KafkaNodeConfig(
+            log_dir=Path(tmp) / "kafka" / "log", port=free_port(), controller_port=free_port()
+        )
+        config_file = config.write_files()
+        format_once(java, libs, config_file, config.log_dir)
+        with open(Path(tmp) / "kafka.log", "w+") as log_file:
+            proc = subprocess.Popen(
+                [
+                    *broker_command(java, libs, config, config_file),
+                    *dump,
+                    "kafka.Kafka",
+                    str(config_file),
+                ],
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+            )
+            try:
+                wait_ready(config, proc, timeout_s=120)
+            finally:
+                # Writing the archive (~50 MB) at the exit takes seconds more on a busy machine.
+                stop_process_group(proc, timeout_s=180)
 
 
 def wait_until_serving(
@@ -443,8 +444,11 @@ def node_for(data_dir: Path, port: int, **limits) -> KafkaNodeConfig:
 
 
 if __name__ == "__main__":
-    # `python -m mapservice.local.kafka_broker fetch`: resolves the jars (make, CI).
+    # `python -m mapservice.local.kafka_broker fetch`: resolves the jars and makes their
+    # class-data archive (make, CI).
     if sys.argv[1:] == ["fetch"]:
-        print(ensure_jars(progress=print))
+        print(libs := ensure_jars(progress=print))
+        if (java := java_binary()) is not None:
+            class_sharing(java, libs, wait=True, progress=print)
     else:
         sys.exit("usage: python -m mapservice.local.kafka_broker fetch")

@@ -246,7 +246,8 @@ def cmd_up(args) -> None:
 
 def embedded_kafka_intro(stack, console) -> str:
     """Which Kafka `up` runs (said on the console, with what the tansu fallback costs);
-    fetches the Apache Kafka jars first, with progress, when they are not cached yet."""
+    fetches the Apache Kafka jars first, with progress, when they are not cached yet, and
+    makes their class-data archive when there is none."""
     from mapservice.local import kafka_broker
 
     if stack.kafka == "tansu":
@@ -269,6 +270,9 @@ def embedded_kafka_intro(stack, console) -> str:
         kafka_broker.ensure_jars(
             jars, progress=lambda line: console.print(f"  {line}", highlight=False)
         )
+    java = kafka_broker.java_binary()
+    if java is not None:
+        kafka_broker.class_sharing(java, jars / "libs", wait=True, progress=console.print)
     return f"Apache Kafka {version}"
 
 
