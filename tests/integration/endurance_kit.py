@@ -20,7 +20,14 @@ from mapservice.core.wire2019 import (
 from mapservice.local.stack import Stack
 from mapservice.sql.credentials import analyst_password_file
 
-RATE = 8640  # a simulated day every 10 real seconds
+# A simulated day every 10 real seconds. The retention (seven days) is then 70 real seconds,
+# and that is how far the history may fall behind what the robots had acknowledged before
+# the sink drops an event as older than the retention (the product's rule) while the checks'
+# brute-force fold still counts it. A Kafka broker's restart takes 20-40 s under load, and
+# after a restart the snapshot timer catches up the days it cost in one run that holds the
+# store thread the sink shares (10-32 s measured at twice this rate): at twice this rate
+# (35 s) runs failed that way under a load average of 12-27.
+RATE = 8640
 
 
 class SimClock:
@@ -58,24 +65,42 @@ def kafka_keeps_records(stack: Stack) -> bool:
     return proc is not None and "tansu" not in " ".join(map(str, proc.args))
 
 
-def history_bytes(stack: Stack) -> int | None:
-    """Bytes of the history's active parts, as an analyst reads them through the API
-    (None while the API is away, e.g. restarting)."""
+def analyst_number(stack: Stack, sql: str) -> int | None:
+    """One number an analyst reads through the API's /clickhouse (None while the API is
+    away, e.g. restarting, or the answer is empty). `{db}` in `sql` names the service's
+    database."""
     password = analyst_password_file(stack.data_dir).read_text().strip()
-    sql = (
-        f"SELECT sum(total_bytes) FROM system.tables "
-        f"WHERE database = '{stack.settings().clickhouse_database}'"
-    )
     try:
         r = httpx.post(
             f"{stack.api_url}/clickhouse/",
-            content=sql.encode(),
+            content=sql.format(db=stack.settings().clickhouse_database).encode(),
             auth=("analyst", password),
             timeout=10,
         )
     except httpx.HTTPError:
         return None
-    return int(r.text.strip()) if r.status_code == 200 else None
+    text = r.text.strip()
+    return int(text) if r.status_code == 200 and text.lstrip("-").isdigit() else None
+
+
+def history_bytes(stack: Stack) -> int | None:
+    """Bytes of the history's active parts, as an analyst reads them through the API
+    (None while the API is away, e.g. restarting)."""
+    return analyst_number(
+        stack, "SELECT sum(total_bytes) FROM system.tables WHERE database = '{db}'"
+    )
+
+
+def oldest_history_ms(stack: Stack) -> int | None:
+    """The oldest chunk write and zone violation the history holds (the earlier of the two,
+    ms), as an analyst reads them; None while unknown."""
+    oldest = []
+    for table in ("chunk_events", "zone_violations"):
+        ms = analyst_number(stack, f"SELECT toUnixTimestamp64Milli(min(ts)) FROM {{db}}.{table}")
+        if ms is None:
+            return None
+        oldest.append(ms)
+    return min(oldest)
 
 
 class Drive:
