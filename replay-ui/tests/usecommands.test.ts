@@ -74,3 +74,64 @@ describe("the selected robot's commands", () => {
     expect(c.recent).toEqual([]);
   });
 });
+
+describe("the span's commands", () => {
+  /** fetch that counts the span reads (no robot selected: only those) and answers `listed`. */
+  function counting(listed: Command[] = []) {
+    const reads: string[] = [];
+    vi.stubGlobal("fetch", async (url: string) => {
+      reads.push(url);
+      return new Response(JSON.stringify({ commands: listed }), { status: 200 });
+    });
+    return reads;
+  }
+
+  it("are read once a refresh while a live span slides with the clock, not at every tick", async () => {
+    const reads = counting();
+    let now = Date.now();
+    vi.spyOn(Date, "now").mockImplementation(() => now);
+    const live = () => [now - 3_600_000, now] as [number, number];
+    const c = useCommands({ base: "", selected: ref(null), operator: () => false, span: live });
+    for (let i = 0; i < 100; i++) { // 20 s of ticks five times a second
+      c.tick(now);
+      await settle();
+      now += 200;
+    }
+    // One read, then one per 5 s refresh: 4-5 over 20 s, not 100.
+    expect(reads.length).toBeGreaterThanOrEqual(4);
+    expect(reads.length).toBeLessThanOrEqual(5);
+    vi.restoreAllMocks();
+  });
+
+  it("are read again for a span the last read does not hold, and not for one inside it", async () => {
+    const reads = counting();
+    const now = Date.now();
+    let span: [number, number] = [now - 86_400_000, now - 3_600_000]; // paused in the past
+    const c = useCommands({ base: "", selected: ref(null), operator: () => false, span: () => span });
+    c.tick(span[0]);
+    await settle();
+    expect(reads.length).toBe(1);
+    span = [now - 80_000_000, now - 7_200_000]; // zoomed in: inside what was read
+    c.tick(span[0]);
+    await settle();
+    expect(reads.length).toBe(1);
+    span = [now - 2 * 86_400_000, now - 3_600_000]; // zoomed out: earlier than was read
+    c.tick(span[0]);
+    await settle();
+    expect(reads.length).toBe(2);
+    expect(reads[1]).toContain(`to=${now - 3_600_000}`);
+  });
+
+  it("are read again for a span inside a read cut at the API's limit", async () => {
+    const now = Date.now();
+    const reads = counting(Array.from({ length: 1_000 }, (_, i) => cmd(`c${i}`, "pause", now - 80_000_000 + i)));
+    let span: [number, number] = [now - 86_400_000, now - 3_600_000];
+    const c = useCommands({ base: "", selected: ref(null), operator: () => false, span: () => span });
+    c.tick(span[0]);
+    await settle();
+    span = [now - 80_000_000, now - 7_200_000];
+    c.tick(span[0]);
+    await settle();
+    expect(reads.length).toBe(2);
+  });
+});

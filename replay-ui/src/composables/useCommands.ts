@@ -24,6 +24,8 @@ const ROBOT_LOOKBACK_MS = 86_400_000;
 const POLL_MS = 1_000;
 const REFRESH_MS = 5_000;
 const POIS_EVERY_MS = 10_000;
+/** The API's default cap on a window's commands (GET /api/v1/commands `limit`). */
+const SPAN_LIMIT = 1_000;
 
 export function useCommands(d: CommandDeps) {
   const api = new CommandApi(d.base);
@@ -42,7 +44,9 @@ export function useCommands(d: CommandDeps) {
   /** The selected robot's latest commands, newest first. */
   const recent = computed(() => [...robotCommands.value].reverse().slice(0, 5));
 
-  let spanRead = { from: 0, to: 0, at: 0 };
+  /** The last span read: [from, to) as read (past a live span's end), the span asked for,
+   * when, and whether the answer was whole (not cut at the limit). */
+  let spanRead = { from: 0, to: 0, asked: 0, at: 0, whole: false };
   let robotRead = { id: "", at: 0, around: 0 };
   let poisAt = 0;
   let loading = false;
@@ -52,13 +56,25 @@ export function useCommands(d: CommandDeps) {
    * reads' answers until one lists it. */
   let sent: Command[] = [];
 
-  async function loadSpan(from: number, to: number) {
-    spanRead = { from, to, at: Date.now() };
+  /** Reads the span's commands; a span that ends near now (live: its end slides with the
+   * clock) is read ahead to the next refreshes, so that sliding asks nothing until then. */
+  async function loadSpan(from: number, to: number, now: number) {
+    const until = to >= now - REFRESH_MS ? Math.max(to, now + 2 * REFRESH_MS) : to;
+    spanRead = { from, to: until, asked: to, at: now, whole: true };
     try {
-      spanCommands.value = await api.list(Math.max(from, oldestReadable(Date.now())), to);
+      const got = await api.list(Math.max(from, oldestReadable(now)), until);
+      // A window cut at the API's limit covers only itself: a zoom into it reads again.
+      spanRead.whole = got.length < SPAN_LIMIT;
+      spanCommands.value = got;
     } catch {
       spanCommands.value = [];
     }
+  }
+
+  /** Whether the last span read holds every command of [from, to) as of its refresh. */
+  function spanCovered(from: number, to: number): boolean {
+    if (from === spanRead.from && to === spanRead.asked) return true;
+    return spanRead.whole && from >= spanRead.from && to <= spanRead.to;
   }
 
   async function loadRobot(id: string, around: number) {
@@ -101,7 +117,7 @@ export function useCommands(d: CommandDeps) {
     const [from, to] = d.span();
     const id = d.selected.value;
     const jobs: Promise<void>[] = [];
-    if (from !== spanRead.from || to !== spanRead.to || now - spanRead.at > REFRESH_MS) jobs.push(loadSpan(from, to));
+    if (!spanCovered(from, to) || now - spanRead.at > REFRESH_MS) jobs.push(loadSpan(from, to, now));
     if (id) {
       const every = robotCommands.value.some(awaiting) ? POLL_MS : REFRESH_MS;
       if (id !== robotRead.id || now - robotRead.at > every || Math.abs(t - robotRead.around) > ROBOT_LOOKBACK_MS / 2) jobs.push(loadRobot(id, t));
