@@ -73,13 +73,25 @@ def test_the_dev_lock_adds_the_embedded_and_test_extras() -> None:
 
 def test_image_and_make_install_from_the_locks() -> None:
     """The Dockerfile installs requirements.lock with hashes, then the project without deps;
-    make (and so CI) installs requirements-dev.lock the same way."""
+    make (and so CI) installs requirements-dev.lock the same way, through uv, which it
+    installs pinned and hash-checked first (requirements-uv.lock, from requirements-uv.in)."""
     docker = (ROOT / "infra" / "Dockerfile").read_text()
     assert "pip install --require-hashes -r requirements.lock" in docker
     assert "pip install --no-deps ." in docker
     make = (ROOT / "Makefile").read_text()
-    assert "--require-hashes -r requirements-dev.lock" in make
-    assert "pip install --quiet --no-deps -e" in make
+    assert "pip install --quiet --require-hashes -r requirements-uv.lock" in make
+    assert "uv pip install --quiet --python $(PY) --require-hashes -r requirements-dev.lock" in make
+    assert "uv pip install --quiet --python $(PY) --no-deps -e" in make
+    wanted = [
+        Requirement(line)
+        for line in (ROOT / "requirements-uv.in").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
+    uv = locked("requirements-uv.lock")
+    assert [(canonical(r.name), str(r.specifier)) for r in wanted] == [
+        ("uv", f"=={uv['uv']}")
+    ] and len(uv) == 1
+    assert (ROOT / "requirements-uv.lock").read_text().count("--hash=sha256:") >= 2
 
 
 BLOCK_EMBEDDED = """
