@@ -255,12 +255,17 @@ def _wait_gone(process: Recorded, timeout_s: float) -> None:
         time.sleep(0.05)
 
 
-def guard(pid_file: Path, parent: int, mark: str, passes: int = 5) -> None:
+# How long the guard keeps looking for `up`'s unrecorded children after it found the last
+# one: a child forked just before `up` died shows the mark only once it runs its program,
+# which on a loaded machine can be seconds later.
+SETTLE_S = 10.0
+
+
+def guard(pid_file: Path, parent: int, mark: str, settle_s: float = SETTLE_S) -> None:
     """The guard's life: wait for SIGTERM (its parent `up` died: the parent-death signal),
     then end what `up` started, in order: what the pid file names, and what carries `up`'s
-    `mark` unrecorded. Again while unrecorded ones turn up (a child forked just before `up`
-    died shows the mark only once it runs its program), at most `passes` times. `up`
-    ends the guard with SIGKILL after it stopped its components itself."""
+    `mark` unrecorded; then again each unrecorded one that turns up, until none has for
+    `settle_s`. `up` ends the guard with SIGKILL after it stopped its components itself."""
     died = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: died.set())
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is `up`'s to act on
@@ -269,12 +274,13 @@ def guard(pid_file: Path, parent: int, mark: str, passes: int = 5) -> None:
             break
     record = PidFile(pid_file)
     end(record.unrecorded(mark) + record.running_components())
-    for _ in range(passes):
+    quiet_until = time.monotonic() + settle_s
+    while time.monotonic() < quiet_until:
         time.sleep(0.2)
         unrecorded = record.unrecorded(mark)
-        if not unrecorded:
-            break
-        end(unrecorded)
+        if unrecorded:
+            end(unrecorded)
+            quiet_until = time.monotonic() + settle_s
 
 
 def _signal_group(process: Recorded, sig: int) -> None:
@@ -296,6 +302,13 @@ def _from_json(d: dict) -> Recorded:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 5 or sys.argv[1] != GUARD:
-        sys.exit("usage: python -m mapservice.local.lifetime guard PID_FILE PARENT_PID MARK")
-    guard(Path(sys.argv[2]), int(sys.argv[3]), sys.argv[4])
+    if len(sys.argv) not in (5, 6) or sys.argv[1] != GUARD:
+        sys.exit(
+            "usage: python -m mapservice.local.lifetime guard PID_FILE PARENT_PID MARK [SETTLE_S]"
+        )
+    guard(
+        Path(sys.argv[2]),
+        int(sys.argv[3]),
+        sys.argv[4],
+        float(sys.argv[5]) if len(sys.argv) == 6 else SETTLE_S,
+    )

@@ -141,7 +141,7 @@ def test_the_guard_stops_the_components_in_order_when_up_is_killed(tmp_path):
         " for name, delay in (('kafka', '0'), ('gateway', '1'))}\n"
         "for proc in procs.values(): proc.stdout.readline()\n"
         "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
-        " str(pid_file.path), str(os.getpid()), lifetime.mark_children()],"
+        " str(pid_file.path), str(os.getpid()), lifetime.mark_children(), '1'],"
         " start_new_session=True, preexec_fn=lifetime.guard_preexec)\n"
         "pids = {name: p.pid for name, p in procs.items()}\n"
         "pids['guard'] = guard.pid\n"
@@ -172,7 +172,7 @@ UNRECORDED_UP = (
     "pid_file = lifetime.PidFile.in_data_dir(sys.argv[1])\n"
     "mark = lifetime.mark_children()\n"
     "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
-    " str(pid_file.path), str(os.getpid()), mark], start_new_session=True,"
+    " str(pid_file.path), str(os.getpid()), mark, '1'], start_new_session=True,"
     " preexec_fn=lifetime.guard_preexec)\n"
     "components = [subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'],"
     " start_new_session=True) for _ in range(3)]\n"
@@ -242,3 +242,49 @@ def test_the_next_up_ends_unrecorded_components_of_a_dead_up_whose_guard_died_to
                 os.kill(pid, signal.SIGKILL)
         stranger.kill()
         stranger.wait()
+
+
+# A stand-in for `up` that records a guard and forks a component whose program runs only
+# `late_s` after the fork (its preexec_fn waits, as a child forked on a loaded machine just
+# before `up` died may): `up` is killed meanwhile, before the component shows the mark.
+LATE_EXEC_UP = (
+    "import subprocess, sys, os, time\n"
+    "from mapservice.local import lifetime\n"
+    "pid_file = lifetime.PidFile.in_data_dir(sys.argv[1])\n"
+    "mark = lifetime.mark_children()\n"
+    "guard = subprocess.Popen([sys.executable, '-m', 'mapservice.local.lifetime', 'guard',"
+    " str(pid_file.path), str(os.getpid()), mark, sys.argv[3]], start_new_session=True,"
+    " preexec_fn=lifetime.guard_preexec)\n"
+    "pid_file.write({'guard': guard.pid})\n"
+    "pid = os.fork()\n"
+    "if pid == 0:\n"
+    "    time.sleep(float(sys.argv[2]))\n"
+    "    os.execv(sys.executable, [sys.executable, '-c', 'import time; time.sleep(120)'])\n"
+    "print(guard.pid, pid, flush=True)\n"
+    "time.sleep(120)\n"
+)
+
+
+def test_the_guard_ends_a_component_that_runs_its_program_seconds_after_up_died(tmp_path):
+    """A component forked just before `up` died and running its program only seconds later
+    (a loaded machine) shows `up`'s mark only then: the guard keeps looking until none has
+    turned up for its settle time, and ends it."""
+    for late_s in (0.5, 3.0):
+        up = subprocess.Popen(
+            [sys.executable, "-c", LATE_EXEC_UP, str(tmp_path / str(late_s)), str(late_s), "5"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        guard, late = (int(p) for p in up.stdout.readline().split())
+        try:
+            time.sleep(1.0)  # the guard waits; the component has not run its program yet
+            up.kill()
+            up.wait()
+            assert wait_gone(late, 30), (
+                f"a component running its program {late_s} s late outlived up"
+            )
+            assert wait_gone(guard, 30)
+        finally:
+            for pid in (guard, late):
+                if lifetime.start_time(pid) is not None:
+                    os.kill(pid, signal.SIGKILL)
