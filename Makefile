@@ -107,26 +107,33 @@ up: $(STAMP) ui mosquitto java
 
 # Three steps, all always run; the target fails if any did ("no tests collected" counts as
 # passed for a step when ARGS selects only other steps' tests):
-# - the fast tests, on one pytest-xdist worker per core and one more;
-# - the integration tests, which start brokers and servers and mostly wait on them, on
-#   INTEGRATION_WORKERS workers, a whole module to a worker (its stack is module-scoped),
-#   each worker's stacks on ports of their own (tests/conftest.py);
 # - the tests marked `alone`, which judge time under load (probes, latencies), one at a
-#   time with the machine to themselves.
+#   time; beside them
+# - the fast tests, on one pytest-xdist worker per core and one more, at the lowest CPU
+#   priority (nice 19): the `alone` tests' processes are scheduled first and the fast tests
+#   take only the CPU they leave (they left 65 % of two cores idle, the 25-day endurance test
+#   mostly waits on its timers). Their output is kept in a file and shown when they end;
+# - then the integration tests, which start brokers and servers and mostly wait on them, on
+#   INTEGRATION_WORKERS workers, a whole module to a worker (its stack is module-scoped),
+#   each worker's stacks on ports of their own (tests/conftest.py); the two steps that run
+#   together have a half of the ports each (MAPSERVICE_LOCAL_PORT_SLICE).
 # A worker more than the cores: at one per core the machine was idle a quarter of the
 # time (the fast step 76 % busy, the integration step 71 %, on 2 cores: tests wait on
 # subprocesses, brokers and timers), which the extra worker fills.
 TEST_WORKERS ?= $(shell echo $$(( $$(nproc) + 1 )))
 INTEGRATION_WORKERS ?= 3
+TEST_LOGS ?= .cache/test-logs
 
 test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
-	@fast=0; parallel=0; alone=0; \
-	$(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) || fast=$$?; \
+	@fast=0; parallel=0; alone=0; mkdir -p $(TEST_LOGS); fast_log=$(TEST_LOGS)/fast-tests.log; \
+	echo "The fast tests run beside the alone tests at nice 19; their output, shown when they end: $$fast_log"; \
+	MAPSERVICE_LOCAL_PORT_SLICE=0/2 nice -n 19 $(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) > $$fast_log 2>&1 & fast_pid=$$!; \
+	MAPSERVICE_LOCAL_PORT_SLICE=1/2 $(PY) -m pytest -m "integration and alone" --durations=10 $(ARGS) || alone=$$?; \
+	wait $$fast_pid || fast=$$?; cat $$fast_log; \
 	$(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 $(ARGS) || parallel=$$?; \
-	$(PY) -m pytest -m "integration and alone" --durations=10 $(ARGS) || alone=$$?; \
-	echo "fast tests: exit $$fast; integration tests: exit $$parallel; integration tests alone: exit $$alone"; \
+	echo "fast tests: exit $$fast; integration tests alone: exit $$alone; integration tests: exit $$parallel"; \
 	if [ $$fast -eq 5 ] && [ $$parallel -eq 5 ] && [ $$alone -eq 5 ]; then exit 5; fi; \
 	for rc in $$fast $$parallel $$alone; do [ $$rc -eq 0 -o $$rc -eq 5 ] || exit 1; done
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import signal
 import time
 import zlib
 from collections.abc import Callable, Iterator
@@ -26,7 +27,7 @@ from mapservice.core.events import (
     make_envelope,
 )
 from mapservice.core.wire2019 import Limits, content_hash, encode_pixels, format_timestamp
-from mapservice.local.embedded import PORT_SLICE_ENV
+from mapservice.local.embedded import PORT_SLICE_ENV, sub_slice
 from tests.fixtures.listings_2019 import listing_14, listing_16
 
 if TYPE_CHECKING:
@@ -34,15 +35,29 @@ if TYPE_CHECKING:
     from mapservice.core.ports import HistoryStore
 
 
+# The slice the run was started with, before a worker's own replaces it.
+_RUN_PORT_SLICE = os.environ.get(PORT_SLICE_ENV)
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """On pytest-xdist's workers, each worker's stacks (and their children) choose ports
-    from a slice of their own, so stacks started side by side never collide."""
+    from a slice of their own (of the run's slice, when it has one), so stacks started side
+    by side never collide.
+
+    A run started in the background by a shell without job control (`make test` runs the
+    fast tests beside the `alone` tests) inherits SIGINT ignored, and Python then keeps it
+    ignored: Ctrl-C would leave that run going, its servers with it. It gets Python's own
+    handler back, so it stops as a run in the foreground does, its fixtures torn down."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     worker, count = (
         os.environ.get("PYTEST_XDIST_WORKER"),
         os.environ.get("PYTEST_XDIST_WORKER_COUNT"),
     )
-    if worker and count and worker.removeprefix("gw").isdigit():
-        os.environ[PORT_SLICE_ENV] = f"{int(worker.removeprefix('gw'))}/{count}"
+    if worker and count and worker.removeprefix("gw").isdigit() and count.isdigit():
+        os.environ[PORT_SLICE_ENV] = sub_slice(
+            _RUN_PORT_SLICE, int(worker.removeprefix("gw")), int(count)
+        )
 
 
 def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:

@@ -77,6 +77,20 @@ def _slice(ports: range) -> range:
     return ports[k * size : (k + 1) * size]
 
 
+def sub_slice(run_slice: str | None, part: int, parts: int) -> str:
+    """The MAPSERVICE_LOCAL_PORT_SLICE value for the `part`-th of `parts` processes that
+    share `run_slice` (a test run's workers, when two runs go side by side with a slice
+    each): that slice cut again, so that every worker of both runs has ports of its own.
+    No slice, or a malformed one, is the whole range."""
+    try:
+        k, n = (int(p) for p in (run_slice or "").split("/"))
+    except ValueError:
+        k, n = 0, 1
+    if not 0 <= k < n:
+        k, n = 0, 1
+    return f"{k * parts + part}/{n * parts}"
+
+
 def _bindable(port: int) -> bool:
     # Without SO_REUSEADDR: a port with connections still in TIME_WAIT is passed over.
     with socket.socket() as s:
