@@ -110,9 +110,11 @@ up: $(STAMP) ui mosquitto java
 # - the tests marked `alone`, which judge time under load (probes, latencies), one at a
 #   time; beside them
 # - the fast tests, on one pytest-xdist worker per core and one more, at the lowest CPU
-#   priority (nice 19): the `alone` tests' processes are scheduled first and the fast tests
-#   take only the CPU they leave (they left 65 % of two cores idle, the 25-day endurance test
-#   mostly waits on its timers). Their output is kept in a file and shown when they end;
+#   priority (`chrt --idle`, Linux's SCHED_IDLE): the `alone` tests' processes are scheduled
+#   first and the fast tests take only the CPU they leave (they left 65 % of two cores idle,
+#   the 25-day endurance test mostly waits on its timers). Not `nice 19`: that would take
+#   away the nice values some tests set and check (chDB's merge threads). Their output is
+#   kept in a file and shown when they end;
 # - then the integration tests, which start brokers and servers and mostly wait on them, on
 #   INTEGRATION_WORKERS workers, a whole module to a worker (its stack is module-scoped),
 #   each worker's stacks on ports of their own (tests/conftest.py); the two steps that run
@@ -128,8 +130,8 @@ test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
 	@fast=0; parallel=0; alone=0; mkdir -p $(TEST_LOGS); fast_log=$(TEST_LOGS)/fast-tests.log; \
-	echo "The fast tests run beside the alone tests at nice 19; their output, shown when they end: $$fast_log"; \
-	MAPSERVICE_LOCAL_PORT_SLICE=0/2 nice -n 19 $(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) > $$fast_log 2>&1 & fast_pid=$$!; \
+	echo "The fast tests run beside the alone tests at the lowest CPU priority; their output, shown when they end: $$fast_log"; \
+	MAPSERVICE_LOCAL_PORT_SLICE=0/2 chrt --idle 0 $(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) > $$fast_log 2>&1 & fast_pid=$$!; \
 	MAPSERVICE_LOCAL_PORT_SLICE=1/2 $(PY) -m pytest -m "integration and alone" --durations=10 $(ARGS) || alone=$$?; \
 	wait $$fast_pid || fast=$$?; cat $$fast_log; \
 	$(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 $(ARGS) || parallel=$$?; \
