@@ -28,7 +28,6 @@ import json
 import os
 import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,11 +87,11 @@ def die_with_parent() -> None:
 
 
 def guard_preexec() -> None:
-    """The guard's `preexec_fn`: as die_with_parent, with SIGTERM ignored until the guard
-    has its handler (an ignored signal stays ignored across exec): `up` killed while the
-    guard's interpreter starts would otherwise end the guard before it acted. A signal
-    lost that way is made up for by the guard's look at its parent."""
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    """The guard's `preexec_fn`: as die_with_parent, with SIGTERM blocked (a blocked signal
+    stays blocked across exec, and pending): `up` killed while the guard's interpreter
+    starts would otherwise end the guard before it acted; blocked, the signal waits for the
+    guard to take it."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
     die_with_parent()
 
 
@@ -266,11 +265,14 @@ def guard(pid_file: Path, parent: int, mark: str, settle_s: float = SETTLE_S) ->
     then end what `up` started, in order: what the pid file names, and what carries `up`'s
     `mark` unrecorded; then again each unrecorded one that turns up, until none has for
     `settle_s`. `up` ends the guard with SIGKILL after it stopped its components itself."""
-    died = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: died.set())
+    # SIGTERM is taken by sigtimedwait, not by a handler: Python runs a handler between
+    # any two bytecodes of the main thread, also while that thread holds the lock the
+    # handler needs (an Event's, at the start and end of its wait), and the guard then
+    # waited for itself for ever, leaving all of `up`'s components running.
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is `up`'s to act on
-    while not died.wait(1.0):
-        if os.getppid() != parent:  # `up` died before the signal was set, or was ignored
+    while signal.sigtimedwait({signal.SIGTERM}, 1.0) is None:
+        if os.getppid() != parent:  # `up` died before it set the parent-death signal
             break
     record = PidFile(pid_file)
     end(record.unrecorded(mark) + record.running_components())

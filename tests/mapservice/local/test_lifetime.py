@@ -288,3 +288,53 @@ def test_the_guard_ends_a_component_that_runs_its_program_seconds_after_up_died(
             for pid in (guard, late):
                 if lifetime.start_time(pid) is not None:
                     os.kill(pid, signal.SIGKILL)
+
+
+# A guard whose threading.Event holds its lock nearly all the time, as Event.wait does for a
+# moment at its start and its end: a SIGTERM handler that needs that lock, run by Python in
+# such a moment, waits for itself for ever. The guard must act whatever its main thread holds.
+HELD_LOCK_GUARD = (
+    "import runpy, sys, threading, time\n"
+    "class HeldEvent(threading.Event):\n"
+    "    def wait(self, timeout=None):\n"
+    "        with self._cond:\n"
+    "            time.sleep(0.5)\n"
+    "        return super().wait(0.01)\n"
+    "threading.Event = HeldEvent\n"
+    "sys.argv = ['lifetime', 'guard', *sys.argv[1:]]\n"
+    "runpy.run_module('mapservice.local.lifetime', run_name='__main__')\n"
+)
+
+
+def test_the_guard_acts_on_up_s_death_whatever_its_main_thread_holds(tmp_path):
+    """The parent-death signal reaches the guard while its main thread holds a lock a signal
+    handler would need: the guard still ends the recorded component, and itself."""
+    pid_file = lifetime.PidFile.in_data_dir(tmp_path)
+    component = subprocess.Popen(SLEEPER, start_new_session=True)
+    pid_file.write({"gateway-0": component.pid})
+    guard = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            HELD_LOCK_GUARD,
+            str(pid_file.path),
+            str(os.getpid()),
+            "no-mark",
+            "1",
+        ],
+        start_new_session=True,
+        preexec_fn=lifetime.guard_preexec,
+    )
+    try:
+        time.sleep(1.5)  # the guard waits for the signal (its interpreter started)
+        guard.send_signal(signal.SIGTERM)
+        try:
+            component.wait(15)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("the guard did not end the component") from None
+        assert guard.wait(15) == 0
+    finally:
+        for process in (guard, component):
+            if process.poll() is None:
+                process.kill()
+                process.wait()
