@@ -18,8 +18,8 @@ from tools.typecheck import sources
 # The modules not yet held to mypy --strict (the overrides that disable error codes) and the
 # (module, error code) pairs they silence. The list may only shrink: lower these when a
 # module is fixed.
-MOST_LAX_MODULES = 102
-MOST_SILENCED_CODES = 238
+MOST_LAX_MODULES = 101
+MOST_SILENCED_CODES = 235
 
 
 def mypy_config() -> dict:

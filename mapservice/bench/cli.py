@@ -99,7 +99,17 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         "jars), tansu (in memory), auto (MAPSERVICE_EMBEDDED_KAFKA: apache "
         "where Java is), or both: each --repeat round runs the workload on "
         "Apache Kafka and on tansu and prints them side by side (CPU per "
-        "event per component, latency, memory; bench/brokers.py)",
+        "event per component, latency, memory; bench/compare.py)",
+    )
+    ingest.add_argument(
+        "--compare",
+        action="append",
+        metavar="NAME=KEY=VALUE,...",
+        help="given twice: run the workload on two variants of the stack, interleaved "
+        "round by round (--repeat rounds), and report each measure's medians with the "
+        "second's over the first's; a variant's KEY=VALUE pairs are settings of the "
+        "components (MAPSERVICE_...=...), kafka=apache|tansu, or python=PATH (another "
+        "checkout's Python: its code runs the components); bench/compare.py",
     )
     ingest.set_defaults(func=_run_ingest)
 
@@ -129,8 +139,8 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
 
 
 def _run_ingest(args: argparse.Namespace) -> None:
-    if args.kafka == "both":
-        from mapservice.bench.brokers import main
+    if args.kafka == "both" or getattr(args, "compare", None):
+        from mapservice.bench.compare import main
     else:
         from mapservice.bench.ingest.command import main
     if args.kafka == "auto":

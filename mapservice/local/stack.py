@@ -50,6 +50,9 @@ class Stack(StackMqtt, StackEnv):
     kafka: str = ""
     health_port: int = 0
     extra_env: dict[str, str] = field(default_factory=dict)
+    # The Python that runs the components (another checkout's, to compare two commits:
+    # bench/compare.py); empty: this one.
+    python: str = ""
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     commands: dict[str, tuple[str, ...]] = field(default_factory=dict)  # how each was spawned
     meta: MapMetaSet | None = None  # the last published map meta (re-published after a restart)
@@ -220,7 +223,7 @@ class Stack(StackMqtt, StackEnv):
             if self._stopping:
                 raise RuntimeError(f"not starting {name}: the stack is being stopped")
             proc = subprocess.Popen(
-                [sys.executable, "-m", "mapservice.cli", *args],
+                [self.python or sys.executable, "-m", "mapservice.cli", *args],
                 env={**self.env(name), **(env or {})},
                 stdout=self._log(name),
                 stderr=subprocess.STDOUT,

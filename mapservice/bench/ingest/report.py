@@ -69,7 +69,7 @@ def _s(v: float | None) -> str:
     return f"> {MAX_WINDOW_MS / 1000:.0f} s (censored)" if v == INF else f"{v:.3f} s"
 
 
-def _json_safe(v):
+def _json_safe(v: Any) -> Any:
     if isinstance(v, float) and v in (INF, -INF):
         return None  # JSON has no infinity: a censored latency (> 30 s) is written as null
     if isinstance(v, dict):

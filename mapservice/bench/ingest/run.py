@@ -83,8 +83,16 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
     data_dir.mkdir(parents=True, exist_ok=True)
     ros_map = load_ros_map(DEFAULT_MAP)
     gateways = getattr(args, "gateways", 1)
-    # `kafka`: "apache" or "tansu" (bench/brokers.py runs both); unset: the setting's choice.
-    stack = Stack(data_dir, mqtt=args.mqtt, gateways=gateways, kafka=getattr(args, "kafka", ""))
+    # `kafka`: "apache" or "tansu" (bench/compare.py runs both); unset: the setting's choice.
+    # A compared variant's settings and Python (bench/compare.py), if any.
+    stack = Stack(
+        data_dir,
+        mqtt=args.mqtt,
+        gateways=gateways,
+        kafka=getattr(args, "kafka", ""),
+        extra_env=dict(getattr(args, "stack_env", None) or {}),
+        python=getattr(args, "stack_python", None) or "",
+    )
     result: dict = {"data_dir": str(data_dir), "gateways": gateways}
     poller: QueryablePoller | None = None
     listener: LiveListener | None = None
