@@ -130,9 +130,7 @@ class TrackBuckets(BaseModel):
 def get_robot_track_buckets(
     robot_id: Annotated[str, Path(max_length=64)],
     window: WindowQuery,
-    buckets: int = Query(
-        200, description=f"At most this many buckets, 2 to {MAX_TRACK_BUCKETS:,}"
-    ),
+    buckets: int = Query(200, description=f"At most this many buckets, 2 to {MAX_TRACK_BUCKETS:,}"),
     *,
     store: HistoryDep,
     settings: SettingsDep,

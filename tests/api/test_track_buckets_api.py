@@ -55,7 +55,9 @@ def client(store) -> TestClient:
 
 
 def _buckets(client, f, t, n, robot="walker"):
-    r = client.get(f"/api/v1/robots/{robot}/track-buckets", params={"from": f, "to": t, "buckets": n})
+    r = client.get(
+        f"/api/v1/robots/{robot}/track-buckets", params={"from": f, "to": t, "buckets": n}
+    )
     assert r.status_code == 200, r.text
     return r.json()
 
@@ -65,9 +67,7 @@ def _raw_distance(client, f, t, robot="walker") -> float:
         "/api/v1/poses", params={"from": f, "to": t, "robotId": robot, "limit": 100_000}
     ).json()
     poses.sort(key=lambda p: p["ts_ms"])
-    return sum(
-        math.dist(a["position"][:2], b["position"][:2]) for a, b in zip(poses, poses[1:])
-    )
+    return sum(math.dist(a["position"][:2], b["position"][:2]) for a, b in zip(poses, poses[1:]))
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -77,8 +77,15 @@ def test_the_distance_of_a_window_is_the_raw_folds_at_every_bucket_count(client,
     t = START + int(rng.integers(HOUR, 4 * HOUR))
     raw = _raw_distance(client, f, t)
     assert raw > 100
-    for n in sorted({2, 3, int(rng.integers(4, 50)), int(rng.integers(50, MAX_TRACK_BUCKETS)),
-                     MAX_TRACK_BUCKETS}):
+    for n in sorted(
+        {
+            2,
+            3,
+            int(rng.integers(4, 50)),
+            int(rng.integers(50, MAX_TRACK_BUCKETS)),
+            MAX_TRACK_BUCKETS,
+        }
+    ):
         body = _buckets(client, f, t, n)
         size = body["bucket_ms"]
         assert size in BUCKET_SIZES_MS or size % DAY == 0
@@ -100,8 +107,9 @@ def test_a_day_reads_the_same_in_hours_and_in_a_week(client) -> None:
     (whole hours: a day is whole buckets) differ only by the steps across the reads' edges."""
     day = START - START % DAY
     whole = _buckets(client, day, day + DAY, 300)["distance_m"]
-    hours = sum(_buckets(client, day + h * HOUR, day + (h + 1) * HOUR, 360)["distance_m"]
-                for h in range(24))
+    hours = sum(
+        _buckets(client, day + h * HOUR, day + (h + 1) * HOUR, 360)["distance_m"] for h in range(24)
+    )
     week = _buckets(client, day + DAY - 7 * DAY + HOUR, day + DAY, 200)
     in_day = sum(b["distance_m"] for b in week["buckets"] if day <= b["start_ms"] < day + DAY)
     assert whole == pytest.approx(_raw_distance(client, day, day + DAY), rel=1e-9)
@@ -129,7 +137,7 @@ def test_an_unknown_robot_is_404_and_a_quiet_window_is_empty(client) -> None:
 def test_bad_parameters_are_400_before_the_store_is_asked(store, client, params, fragment) -> None:
     asked = []
     original = store.track_buckets
-    store.track_buckets = lambda *a: asked.append(a) or original(*a)  # type: ignore[method-assign]
+    store.track_buckets = lambda *a: asked.append(a) or original(*a)
     try:
         r = client.get(
             "/api/v1/robots/walker/track-buckets", params={"from": START, "to": NOW, **params}

@@ -135,7 +135,9 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
             assert shown["batteryMin"][k] == battery_pct(min(levels))
             assert shown["batteryMax"][k] == battery_pct(max(levels))
             assert abs(shown["battery"][k] - battery_pct(sum(levels) / len(levels))) <= 1
-            assert math.isclose(shown["bucketDistance"][k], b["distance"], rel_tol=1e-6, abs_tol=1e-6)
+            assert math.isclose(
+                shown["bucketDistance"][k], b["distance"], rel_tol=1e-6, abs_tol=1e-6
+            )
             if b["step_ms"]:
                 assert math.isclose(
                     shown["speed"][k], b["distance"] / (b["step_ms"] / 1000), rel_tol=1e-6
@@ -229,14 +231,20 @@ def test_a_days_distance_reads_the_same_at_every_zoom(page, history_stack) -> No
     end = start + day
     raw = raw_distance(stack, robot, start, end)
     assert raw > 100, raw
-    poses = api(stack, "/api/v1/poses", **{"from": start, "to": end, "robotId": robot, "limit": 100_000})
+    poses = api(
+        stack, "/api/v1/poses", **{"from": start, "to": end, "robotId": robot, "limit": 100_000}
+    )
     hours = sorted({p["ts_ms"] // hour * hour for p in poses})
     assert len(hours) >= 3
 
     def read(span: tuple[int, int]) -> dict:
-        open_at(
-            page, stack, f"?t={h.end_ms}&plot={robot}&panels=plots&span={iso(span[0])},{iso(span[1])}"
+        # The playhead inside the span (the history's end where it holds it).
+        t = (
+            min(max(h.end_ms, span[0]), span[1] - 1)
+            if span[1] - span[0] > hour
+            else span[0] + hour // 2
         )
+        open_at(page, stack, f"?t={t}&plot={robot}&panels=plots&span={iso(span[0])},{iso(span[1])}")
         page.wait_for_function(
             f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
             f" && p.to === {span[1]}; }}",
@@ -271,8 +279,10 @@ def test_a_days_distance_reads_the_same_at_every_zoom(page, history_stack) -> No
             assert math.isclose(v, b["distance"] / (b["step_ms"] / 1000), rel_tol=0.02), (v, b)
         assert max(v for v, _ in speeds) > 0.1
     # The panel names the week's distance beside the robot: the day's, all the history.
-    text = page.inner_text(f'[data-testid="plot-robot"][data-robot="{robot}"] [data-testid="plot-driven"]')
-    assert text.endswith(" km") or text.endswith(" m"), text
+    text = page.inner_text(
+        f'[data-testid="plot-robot"][data-robot="{robot}"] [data-testid="plot-driven"]'
+    )
+    assert text.endswith((" km", " m")), text
     value = float(text.split()[0]) * (1000 if text.endswith(" km") else 1)
     assert abs(value - raw) <= 0.02 * raw + 10, (text, raw)
     screenshot(page, "ui-plots-week.png")

@@ -41,11 +41,12 @@ export function seriesOf(r: TrackBuckets): RobotSeries {
     const hi = Math.min(start + r.bucket_ms, r.to_ms);
     const b = byStart.get(start);
     // The range in %: battery levels on two scales (0-1 and 0-100) are not in the same order.
-    const ends = [batteryPercent(b?.battery_min), batteryPercent(b?.battery_max)];
+    const low = batteryPercent(b?.battery_min);
+    const high = batteryPercent(b?.battery_max);
     out.mid.push((lo + hi) / 2);
     out.battery.push(batteryPercent(b?.battery_mean));
-    out.batteryMin.push(ends[0] === null || ends[1] === null ? ends[0] ?? ends[1] : Math.min(ends[0], ends[1]));
-    out.batteryMax.push(ends[0] === null || ends[1] === null ? ends[0] ?? ends[1] : Math.max(ends[0], ends[1]));
+    out.batteryMin.push(low === null || high === null ? low ?? high : Math.min(low, high));
+    out.batteryMax.push(low === null || high === null ? low ?? high : Math.max(low, high));
     out.speed.push(b?.speed_mps ?? null);
     out.bucketDistance.push(b?.distance_m ?? 0);
     driven += b?.distance_m ?? 0;

@@ -40,8 +40,9 @@ def test_a_step_counts_once_in_the_bucket_of_its_later_pose(store, ev, t0) -> No
     )
     store.append([ev.pose("r", start + 15_000, x=3.0, y=4.0, battery_level=45.0)])
     got = store.track_buckets("r", start, start + 2 * b, b)
-    assert [(k.start_ms - start, k.poses, k.steps, k.first_ms - start, k.last_ms - start)
-            for k in got] == [(0, 2, 1, 1_000, 9_000), (b, 3, 3, 12_000, 19_000)]
+    assert [
+        (k.start_ms - start, k.poses, k.steps, k.first_ms - start, k.last_ms - start) for k in got
+    ] == [(0, 2, 1, 1_000, 9_000), (b, 3, 3, 12_000, 19_000)]
     assert got[0].distance_m == pytest.approx(5.0) and got[0].step_ms == 8_000
     # 9 s -> 12 s: 4 m; 12 s -> 15 s: 4 m; 15 s -> 19 s: 5 m.
     assert got[1].distance_m == pytest.approx(13.0) and got[1].step_ms == 10_000
