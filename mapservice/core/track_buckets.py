@@ -74,7 +74,8 @@ def bucket_size_for(from_ms: int, to_ms: int, max_buckets: int) -> int:
     for size in BUCKET_SIZES_MS:
         if buckets_in(from_ms, to_ms, size) <= max_buckets:
             return size
-    days = max(1, math.ceil((to_ms - from_ms) / (max_buckets - 1) / DAY_MS))
+    # Fewer days than span / max_buckets make more buckets than that: start there.
+    days = max(1, math.ceil((to_ms - from_ms) / max_buckets / DAY_MS))
     while buckets_in(from_ms, to_ms, days * DAY_MS) > max_buckets:
         days += 1
     return days * DAY_MS
