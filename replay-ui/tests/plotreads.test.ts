@@ -152,7 +152,8 @@ describe("the plot panel's reads", () => {
     expect(driven(plots)).toBe(3);
     vi.advanceTimersByTime(REFRESH_MS);
     expect(asked).toHaveLength(2);
-    expect([asked[1].from, asked[1].to]).toEqual([asked[0].from, asked[0].to]);
+    // The same span, from the oldest instant kept at this read (30 s later).
+    expect([asked[1].from, asked[1].to]).toEqual([appOldest(), asked[0].to]);
     asked[1].resolve(answer(200, asked[1]));
     await settle();
     expect(driven(plots)).toBe(200);

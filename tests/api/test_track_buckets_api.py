@@ -50,7 +50,8 @@ def store() -> MemoryStore:
 
 @pytest.fixture(scope="module")
 def client(store) -> TestClient:
-    app = create_app(Settings(api_rate_limit=""), store, {}, ManualClock(NOW))
+    settings = Settings(api_rate_limit="", api_allowed_hosts=["testserver"])
+    app = create_app(settings, store, {}, ManualClock(NOW))
     return TestClient(app, raise_server_exceptions=False)
 
 
@@ -119,7 +120,7 @@ def test_a_day_reads_the_same_in_hours_and_in_a_week(client) -> None:
 def test_an_unknown_robot_is_404_and_a_quiet_window_is_empty(client) -> None:
     r = client.get("/api/v1/robots/ghost/track-buckets", params={"from": START, "to": NOW})
     assert r.status_code == 404 and "'ghost'" in r.json()["detail"]
-    body = _buckets(client, NOW - HOUR, NOW, 10)
+    body = _buckets(client, NOW - 20 * 60_000, NOW, 10)  # the walker stopped 30 min ago
     assert body["buckets"] == [] and body["distance_m"] == 0
 
 
