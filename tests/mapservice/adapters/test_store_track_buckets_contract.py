@@ -25,7 +25,7 @@ _robots = itertools.count()
 def test_a_step_counts_once_in_the_bucket_of_its_later_pose(store, ev, t0) -> None:
     """Steps of 3-4-5 triangles across a bucket edge: each counts where it ends; the
     window's first pose starts none; speed is distance over the steps' time; battery min,
-    max and mean over the poses reporting one; a re-sent pose replaces the first."""
+    max and mean over the poses reporting one; a re-sent pose counts once."""
     b = 10_000
     start = t0 - t0 % b
     store.append(
@@ -34,10 +34,11 @@ def test_a_step_counts_once_in_the_bucket_of_its_later_pose(store, ev, t0) -> No
             ev.pose("r", start + 1_000, x=0.0, y=0.0, battery_level=60.0),
             ev.pose("r", start + 12_000, x=3.0, y=0.0, battery_level=None),
             ev.pose("r", start + 19_000, x=0.0, y=0.0, battery_level=40.0),
-            ev.pose("r", start + 15_000, x=0.0, y=-9.0),  # replaced below
+            ev.pose("r", start + 15_000, x=3.0, y=4.0, battery_level=45.0),
             ev.pose("other", start + 5_000, x=100.0),
         ]
     )
+    # A batch delivered again: its poses stored once.
     store.append([ev.pose("r", start + 15_000, x=3.0, y=4.0, battery_level=45.0)])
     got = store.track_buckets("r", start, start + 2 * b, b)
     assert [
@@ -74,8 +75,8 @@ def _plain_fold(poses, bucket_ms):
     return out
 
 
-# A track: (offset in ms, x, y, battery or None) per pose; offsets repeat (a re-sent pose,
-# the last stored wins) and jump (silent gaps); stored in shuffled batches.
+# A track: (offset in ms, x, y, battery or None) per pose, one per offset; some sent again
+# (a redelivered batch), a silent gap in the middle; stored in shuffled batches.
 _pose = st.tuples(
     st.one_of(st.integers(0, 120_000), st.integers(0, 40).map(lambda k: k * 3_000)),
     st.floats(-500, 500, allow_nan=False),
@@ -91,21 +92,24 @@ _pose = st.tuples(
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(
-    track=st.lists(_pose, min_size=1, max_size=60),
+    track=st.lists(_pose, min_size=1, max_size=60, unique_by=lambda p: p[0]),
+    resent=st.lists(st.integers(0, 59), max_size=20),
     batches=st.integers(1, 4),
     gap=st.integers(0, 3_000_000),
     cut=st.tuples(st.integers(0, 30_000), st.integers(0, 30_000)),
     order=st.randoms(use_true_random=False),
 )
 def test_buckets_equal_a_plain_fold_of_the_raw_poses_at_every_size(
-    store, ev, t0, track, batches, gap, cut, order
+    store, ev, t0, track, resent, batches, gap, cut, order
 ) -> None:
     robot = f"g{next(_robots)}"
     # A silent gap: the second half of the track after `gap` ms without a pose.
-    events = [
-        ev.pose(robot, t0 + t + (gap if i >= len(track) // 2 else 0), x=x, y=y, battery_level=b)
-        for i, (t, x, y, b) in enumerate(track)
-    ]
+    # One pose per instant (a second pose at an instant is a rewrite, not a redelivery).
+    at = {
+        t + (gap if i >= len(track) // 2 else 0): (x, y, b) for i, (t, x, y, b) in enumerate(track)
+    }
+    events = [ev.pose(robot, t0 + t, x=x, y=y, battery_level=b) for t, (x, y, b) in at.items()]
+    events += [events[i] for i in resent if i < len(events)]
     order.shuffle(events)
     for k in range(min(batches, len(events))):
         store.append(events[k::batches])
