@@ -1,4 +1,6 @@
-"""A robot's track over a window: where it was (x, y, heading) and its battery."""
+"""A robot's track over a window: where it was (x, y, heading) and its battery; and the
+same window aggregated per bucket from every pose (distance, speed, battery range), the
+plots' read."""
 
 from __future__ import annotations
 
@@ -7,7 +9,9 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
+from mapservice.core.ports import TimeTravelReader
 from mapservice.core.timetravel import yaw
+from mapservice.core.track_buckets import bucket_size_for, mean_speed_mps
 
 from ..access import READ
 from ..deps import ClockDep, HistoryDep, SettingsDep, WindowQuery, check_step
@@ -15,6 +19,16 @@ from ..deps import ClockDep, HistoryDep, SettingsDep, WindowQuery, check_step
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
 MAX_POINTS = 100_000
 MAX_SPAN_EVERY_POSE_MS = 86_400_000
+MAX_TRACK_BUCKETS = 1000
+
+
+def check_known(store: TimeTravelReader, robot_id: str) -> None:
+    """A 404 naming a robot that never reported (asked when a read found nothing)."""
+    if not store.robot_known(robot_id):
+        raise HTTPException(
+            404,
+            f"robot {robot_id!r} has no pose in the history; GET /api/v1/robots lists the robots",
+        )
 
 
 class TrackPoint(BaseModel):
@@ -59,11 +73,8 @@ def get_robot_track(
             f"{MAX_POINTS:,}; use step_ms >= {-(-(t - f) // MAX_POINTS)}",
         )
     rows = store.robot_track(robot_id, f, t, step_ms, limit=MAX_POINTS + 1)
-    if not rows and not store.robot_known(robot_id):
-        raise HTTPException(
-            404,
-            f"robot {robot_id!r} has no pose in the history; GET /api/v1/robots lists the robots",
-        )
+    if not rows:
+        check_known(store, robot_id)
     return Track(
         robotId=robot_id,
         from_ms=f,
@@ -77,5 +88,85 @@ def get_robot_track(
                 battery_level=r.battery_level,
             )
             for r in rows[:MAX_POINTS]
+        ],
+    )
+
+
+class TrackBucket(BaseModel):
+    start_ms: int  # a multiple of bucket_ms; the bucket is [start_ms, start_ms + bucket_ms)
+    poses: int
+    steps: int  # steps ending in the bucket, each from the robot's previous pose in the window
+    distance_m: float  # their length in the plane, metres
+    step_ms: int  # the time they span
+    speed_mps: float | None  # distance_m over step_ms (None without a step)
+    first_ms: int  # the bucket's first and last pose
+    last_ms: int
+    battery_min: float | None  # over the bucket's poses that report a level
+    battery_max: float | None
+    battery_mean: float | None
+
+
+class TrackBuckets(BaseModel):
+    robotId: str
+    from_ms: int
+    to_ms: int
+    bucket_ms: int
+    distance_m: float  # the window's, the sum of its buckets'
+    buckets: list[TrackBucket]
+
+
+@router.get(
+    "/{robot_id}/track-buckets",
+    operation_id="getRobotTrackBuckets",
+    response_model=TrackBuckets,
+    description="The robot's poses in [from, to) (windows up to the retention) aggregated per "
+    "bucket [k*bucket_ms, (k+1)*bucket_ms), from every pose: bucket_ms is the smallest round "
+    "size (1 s, 2 s, 5 s ... 30 min, 1 h ... 1 d, then whole days) giving at most `buckets` "
+    "buckets. A step joins two consecutive poses in the window and counts once, in the bucket "
+    "of its later pose, so the buckets' distances add up to the window's at every size; "
+    "speed is a bucket's distance over the time its steps span. Buckets without a pose are "
+    "left out. 404 if the robot never reported.",
+)
+def get_robot_track_buckets(
+    robot_id: Annotated[str, Path(max_length=64)],
+    window: WindowQuery,
+    buckets: int = Query(200, description=f"At most this many buckets, 2 to {MAX_TRACK_BUCKETS:,}"),
+    *,
+    store: HistoryDep,
+    settings: SettingsDep,
+    clock: ClockDep,
+) -> TrackBuckets:
+    if not 2 <= buckets <= MAX_TRACK_BUCKETS:
+        raise HTTPException(
+            400,
+            f"buckets ({buckets}) must be between 2 and {MAX_TRACK_BUCKETS:,}; "
+            "a plot needs no more buckets than it has pixels",
+        )
+    f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
+    bucket_ms = bucket_size_for(f, t, buckets)
+    rows = store.track_buckets(robot_id, f, t, bucket_ms)
+    if not rows:
+        check_known(store, robot_id)
+    return TrackBuckets(
+        robotId=robot_id,
+        from_ms=f,
+        to_ms=t,
+        bucket_ms=bucket_ms,
+        distance_m=sum(b.distance_m for b in rows),
+        buckets=[
+            TrackBucket(
+                start_ms=b.start_ms,
+                poses=b.poses,
+                steps=b.steps,
+                distance_m=b.distance_m,
+                step_ms=b.step_ms,
+                speed_mps=mean_speed_mps(b),
+                first_ms=b.first_ms,
+                last_ms=b.last_ms,
+                battery_min=b.battery_min,
+                battery_max=b.battery_max,
+                battery_mean=b.battery_mean,
+            )
+            for b in rows
         ],
     )

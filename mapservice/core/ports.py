@@ -162,6 +162,24 @@ class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     robots_active: int
 
 
+class TrackBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
+    """One robot over one bucket [start_ms, start_ms + bucket_ms) of a window, from every
+    pose it stored there (core/track_buckets.py has the rule): its poses, the steps that end
+    in the bucket (from the robot's previous pose in the window), their length in metres
+    (x, y) and the time they span, and the battery's range and mean over its poses."""
+
+    start_ms: int
+    poses: int
+    steps: int
+    distance_m: float
+    step_ms: int  # the time the steps span: distance_m / step_ms is the mean speed
+    first_ms: int
+    last_ms: int
+    battery_min: float | None
+    battery_max: float | None
+    battery_mean: float | None
+
+
 class VdaErrorRow(msgspec.Struct, frozen=True, gc=False):
     ts_ms: int
     level: str
@@ -260,6 +278,14 @@ class TimeTravelReader(Protocol):
         > 0, its first in each step [from_ms + k*step_ms, ...)), without planned paths
         (`path` None): a plot's read. A derived view: it may lag `poses` until
         `derive_views` of the same events."""
+
+    def track_buckets(
+        self, robot_id: str, from_ms: int, to_ms: int, bucket_ms: int
+    ) -> list[TrackBucket]:
+        """One robot's poses with from_ms <= event time < to_ms aggregated per absolute
+        bucket [k*bucket_ms, (k+1)*bucket_ms) (core/track_buckets.py: `fold_track_buckets`
+        is the rule), buckets holding a pose only, in time order: the plots' read, from
+        every pose whatever the bucket size. A derived view, as `robot_track`."""
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         """Chunk writes with from_ms <= event time < to_ms, in event-time order."""

@@ -44,6 +44,7 @@ from mapservice.core.ports import (
     PoseRow,
     RetentionResult,
     TimelineBucket,
+    TrackBucket,
     VdaConnectionRow,
     VdaErrorRow,
     VdaFacts,
@@ -51,6 +52,7 @@ from mapservice.core.ports import (
 )
 from mapservice.core.retention import DAY_MS
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
+from mapservice.core.track_buckets import fold_track_buckets
 
 
 def _iso_day(ms: int) -> str:
@@ -262,6 +264,12 @@ class MemoryStore:
             else self.poses(from_ms, to_ms, robot_id, limit)
         )
         return [msgspec.structs.replace(r, path=None) for r in rows]
+
+    def track_buckets(
+        self, robot_id: str, from_ms: int, to_ms: int, bucket_ms: int
+    ) -> list[TrackBucket]:
+        rows = self.poses(from_ms, to_ms, robot_id, limit=len(self._poses))
+        return fold_track_buckets(rows, from_ms, to_ms, bucket_ms)
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]

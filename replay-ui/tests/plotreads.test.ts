@@ -2,7 +2,7 @@ import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
 import { effectScope, nextTick, ref } from "vue";
 import { ApiError } from "../src/lib/api";
 import { RETENTION_MS } from "../src/lib/retention";
-import type { TrackSample } from "../src/lib/plots";
+import type { TrackBuckets } from "../src/lib/types";
 import { initialSpan, shownSpan } from "../src/lib/timeline";
 import { parseUrlState } from "../src/lib/urlstate";
 import { READ_DELAY_MS, REFRESH_MS, RETRY_FIRST_MS, RETRY_MAX_MS, usePlotReads } from "../src/composables/usePlotReads";
@@ -11,7 +11,7 @@ const NOW = Date.UTC(2026, 10, 26, 12, 0, 0);
 const HOUR = 3_600_000;
 const iso = (ms: number) => new Date(ms).toISOString();
 
-type Asked = { id: string; from: number; to: number; step: number; resolve: (t: TrackSample[]) => void; reject: (e: Error) => void };
+type Asked = { id: string; from: number; to: number; buckets: number; resolve: (t: TrackBuckets) => void; reject: (e: Error) => void };
 
 /** The oldest instant App.vue gives the plots: the retention back from the present, a minute's margin. */
 const appOldest = () => Date.now() - RETENTION_MS + 60_000;
@@ -28,7 +28,7 @@ function page(search: string, robots = ["r1"], oldestMs = appOldest) {
   const asked: Asked[] = [];
   const scope = effectScope();
   const plots = scope.run(() => usePlotReads({
-    read: (id, from, to, step) => new Promise((resolve, reject) => asked.push({ id, from, to, step, resolve, reject })),
+    read: (id, from, to, buckets) => new Promise((resolve, reject) => asked.push({ id, from, to, buckets, resolve, reject })),
     robots: () => robots,
     span: () => shownSpan(strip.value, initial.span, Date.now()),
     oldestMs,
@@ -48,8 +48,19 @@ async function settle() {
   for (let i = 0; i < 5; i++) await Promise.resolve();
 }
 
-const track = (n: number, from: number, step: number): TrackSample[] =>
-  Array.from({ length: n }, (_, i) => ({ ts_ms: from + i * step, x: i, y: 0, battery_level: 90 - i * 0.01 }));
+/** The API's answer to `a`: its first `n` buckets hold poses, a metre driven in each. */
+function answer(n: number, a: Asked): TrackBuckets {
+  const bucket_ms = Math.max(1000, Math.ceil((a.to - a.from) / (a.buckets - 1) / 1000) * 1000);
+  const first = Math.floor(a.from / bucket_ms) * bucket_ms;
+  const buckets = Array.from({ length: n }, (_, i) => {
+    const start_ms = first + i * bucket_ms;
+    return { start_ms, poses: 2, steps: 1, distance_m: 1, step_ms: 1000, speed_mps: 1, first_ms: Math.max(start_ms, a.from),
+      last_ms: Math.max(start_ms, a.from) + 1, battery_min: 50, battery_max: 60, battery_mean: 55 };
+  });
+  return { robotId: a.id, from_ms: a.from, to_ms: a.to, bucket_ms, distance_m: n, buckets };
+}
+const driven = (plots: ReturnType<typeof usePlotReads>) =>
+  plots.data.value.series.get("r1")?.distance.at(-1);
 
 describe("the plot panel's reads", () => {
   beforeEach(() => {
@@ -64,14 +75,13 @@ describe("the plot panel's reads", () => {
     expect(asked).toHaveLength(1);
     const first = asked[0];
     expect(first.to).toBe(span[1] + 1);
-    expect(first.from).toBeLessThanOrEqual(span[0]);
-    expect(first.from).toBeGreaterThan(span[0] - first.step);
-    first.resolve(track(50, first.from, first.step));
+    expect(first.from).toBe(span[0]);
+    first.resolve(answer(50, first));
     mountStrip();
     await settle();
     vi.advanceTimersByTime(READ_DELAY_MS);
     expect(asked).toHaveLength(1); // the strip shows the span read: nothing to read again
-    expect(plots.data.value.series.get("r1")?.ts).toHaveLength(50);
+    expect(driven(plots)).toBe(50);
 
     strip.value = { viewFrom: span[0] + HOUR, viewTo: span[1] - HOUR }; // a zoom
     await settle();
@@ -84,8 +94,8 @@ describe("the plot panel's reads", () => {
   it("without a span in the address, reads the hour the strip starts on", async () => {
     const { asked, mountStrip, scope } = page(`?t=${NOW - HOUR / 2}`);
     expect(asked.map((a) => a.to)).toEqual([NOW + 1]);
-    expect(asked[0].from).toBeGreaterThan(NOW - HOUR - asked[0].step);
-    asked[0].resolve([]);
+    expect(asked[0].from).toBe(NOW - HOUR);
+    asked[0].resolve(answer(0, asked[0]));
     mountStrip();
     await settle();
     vi.advanceTimersByTime(READ_DELAY_MS);
@@ -105,10 +115,10 @@ describe("the plot panel's reads", () => {
     vi.advanceTimersByTime(1);
     expect(asked).toHaveLength(2);
     expect([asked[1].from, asked[1].to]).toEqual([asked[0].from, asked[0].to]);
-    asked[1].resolve(track(30, asked[1].from, asked[1].step));
+    asked[1].resolve(answer(30, asked[1]));
     await settle();
     expect(plots.error.value).toBeNull();
-    expect(plots.data.value.series.get("r1")?.ts).toHaveLength(30);
+    expect(driven(plots)).toBe(30);
     vi.advanceTimersByTime(10 * REFRESH_MS);
     expect(asked).toHaveLength(2); // a past span read is not read again
     scope.stop();
@@ -134,18 +144,19 @@ describe("the plot panel's reads", () => {
 
   it("reads a span reaching the present again as its poses arrive", async () => {
     const { asked, plots, scope } = page(`?span=${iso(NOW - 7 * 24 * HOUR)},${iso(NOW)}`);
-    // The whole retention, its start on a whole minute: within the one window the API reads.
+    // The whole retention: within the one window the API reads.
     expect(asked[0].to - asked[0].from).toBeLessThanOrEqual(RETENTION_MS);
     expect(asked[0].from).toBeGreaterThanOrEqual(NOW - RETENTION_MS);
-    asked[0].resolve(track(3, asked[0].from, asked[0].step)); // a history still being written
+    asked[0].resolve(answer(3, asked[0])); // a history still being written
     await settle();
-    expect(plots.data.value.series.get("r1")?.ts).toHaveLength(3);
+    expect(driven(plots)).toBe(3);
     vi.advanceTimersByTime(REFRESH_MS);
     expect(asked).toHaveLength(2);
-    expect([asked[1].from, asked[1].to]).toEqual([asked[0].from, asked[0].to]);
-    asked[1].resolve(track(500, asked[1].from, asked[1].step));
+    // The same span, from the oldest instant kept at this read (30 s later).
+    expect([asked[1].from, asked[1].to]).toEqual([appOldest(), asked[0].to]);
+    asked[1].resolve(answer(200, asked[1]));
     await settle();
-    expect(plots.data.value.series.get("r1")?.ts).toHaveLength(500);
+    expect(driven(plots)).toBe(200);
     scope.stop();
   });
 
@@ -155,7 +166,7 @@ describe("the plot panel's reads", () => {
     const { asked, scope } = page(`?span=${iso(NOW - 3 * 24 * HOUR)},${iso(NOW)}`, ["r1"], () => oldest);
     expect(asked[0].from).toBe(oldest);
     expect(asked[0].to).toBe(NOW + 1);
-    asked[0].resolve([]);
+    asked[0].resolve(answer(0, asked[0]));
     await settle();
     oldest += HOUR;
     vi.advanceTimersByTime(REFRESH_MS); // the span reaches the present: read again

@@ -1,5 +1,5 @@
 import { describe, expect, it } from "vitest";
-import { BAR_MAX_PX, MIN_BAR_PX, barHeight, bucketAt, bucketText, stripMarks, timeTicks } from "../src/lib/timeline";
+import { BAR_MAX_PX, MIN_BAR_PX, barHeight, bucketAt, bucketText, estimateLabelPx, stripMarks, timeTicks } from "../src/lib/timeline";
 
 const bucket = (start_ms: number, chunk_changes: number, conflicts: number, robots_active: number) =>
   ({ start_ms, chunk_changes, conflicts, robots_active });
@@ -61,5 +61,35 @@ describe("timeTicks", () => {
   });
   it("shows seconds under a minute's step", () => {
     expect(timeTicks(at(14, 0, 0), at(14, 0, 30), 800)[1].label).toBe("14:00:05");
+  });
+  it("never lets two labels overlap, over generated spans, widths and label widths", () => {
+    let seed = 12345;
+    const rnd = () => ((seed = (Math.imul(seed, 1103515245) + 12345) >>> 0) / 2 ** 32);
+    for (let k = 0; k < 2000; k++) {
+      const span = Math.round(10 ** (3 + rnd() * 6.5)); // a second to about 36 days
+      const from = Date.UTC(2026, 10, 1) + Math.round(rnd() * 30 * 86_400_000);
+      const width = 120 + Math.round(rnd() * 2400);
+      const fontPx = 9 + rnd() * 6;
+      const labelPx = (label: string) => estimateLabelPx(label, fontPx);
+      // The plots' axis (50 px between grid lines at least) and the timeline strip's (90).
+      for (const minGap of [50, 90]) {
+        const ticks = timeTicks(from, from + span, width, minGap, labelPx);
+        const x = (t: number) => ((t - from) / span) * width;
+        ticks.forEach((tk, i) => {
+          expect(tk.t).toBeGreaterThanOrEqual(from);
+          expect(tk.t).toBeLessThanOrEqual(from + span);
+          if (i === 0) return;
+          const prev = ticks[i - 1];
+          const room = x(tk.t) - x(prev.t) - (labelPx(tk.label) + labelPx(prev.label)) / 2;
+          expect(room, `${span} ms over ${width} px: ${prev.label} | ${tk.label}`).toBeGreaterThan(0);
+          expect(x(tk.t) - x(prev.t)).toBeGreaterThanOrEqual(minGap - 1e-9);
+        });
+      }
+    }
+  });
+  it("labels a week of plots at 1280 px by the day, apart", () => {
+    const ticks = timeTicks(at(0, 0, 0, 18), at(0, 0, 0, 25), 1200, 50);
+    expect(ticks.every((t) => /^11-\d\d \d\d:00$/.test(t.label))).toBe(true);
+    expect(ticks.length).toBeGreaterThanOrEqual(7);
   });
 });

@@ -101,7 +101,7 @@ def test_a_fresh_weeks_7d_span_lists_changes_marks_the_upload_and_plots(up, page
     # The plots: the selected robot's battery over the week.
     page.wait_for_function(
         f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
-        f" && p.robots['{robot}'].ts.length > 100; }}",
+        f" && p.robots['{robot}'].mid.length > 100; }}",
         timeout=TIMEOUT_MS,
     )
     plot = page.evaluate(f"() => window.__replay.plots().robots['{robot}']")

@@ -27,33 +27,69 @@ def battery_pct(level: float | None) -> int | None:
     return math.floor(min(100, max(0, pct)) + 0.5)
 
 
-def first_in_each_step(poses: list[dict], start: int, step: int) -> list[dict]:
-    seen: dict[int, dict] = {}
-    for p in sorted(poses, key=lambda p: p["ts_ms"]):
-        seen.setdefault((p["ts_ms"] - start) // step, p)
-    return sorted(seen.values(), key=lambda p: p["ts_ms"])
+def raw_buckets(poses: list[dict], bucket_ms: int) -> dict[int, dict]:
+    """A plain fold of raw poses (GET /api/v1/poses) per bucket [k*bucket_ms, ...): each step
+    between consecutive poses counted in the bucket of its later pose."""
+    out: dict[int, dict] = {}
+    poses = sorted(poses, key=lambda p: p["ts_ms"])
+    for i, p in enumerate(poses):
+        b = out.setdefault(
+            p["ts_ms"] // bucket_ms * bucket_ms, {"distance": 0.0, "step_ms": 0, "levels": []}
+        )
+        if p["battery_level"] is not None:
+            b["levels"].append(p["battery_level"])
+        if i:
+            q = poses[i - 1]
+            b["distance"] += math.dist(p["position"][:2], q["position"][:2])
+            b["step_ms"] += p["ts_ms"] - q["ts_ms"]
+    return out
+
+
+def raw_distance(stack, robot: str, start: int, end: int) -> float:
+    """Metres between the robot's consecutive raw poses in [start, end)."""
+    poses = sorted(
+        api(
+            stack,
+            "/api/v1/poses",
+            **{"from": start, "to": end, "robotId": robot, "limit": 100_000},
+        ),
+        key=lambda p: p["ts_ms"],
+    )
+    return sum(math.dist(a["position"][:2], b["position"][:2]) for a, b in zip(poses, poses[1:]))
+
+
+def driven_shown(series: dict, start: int, end: int) -> float:
+    """The metres a robot's distance line shows driven in [start, end): its value at the
+    last of its instants (`edges`) at or before each end."""
+
+    def at(t: int) -> float:
+        shown = 0.0
+        for x, d in zip(series["edges"], series["distance"]):
+            if x <= t:
+                shown = d
+        return shown
+
+    return at(end) - at(start)
 
 
 def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -> None:
     """Open an address with a robot selected, another pinned to the plots and a span: the
-    plots show both robots over exactly that span; the battery line is the stored battery
-    (in %) of the first pose of every step, speed and distance follow from the stored
-    positions; each line has the robot's fleet-list colour; the playhead is drawn on the
-    plot; a click on the plot seeks there."""
+    plots show both robots over exactly that span, in round buckets; per bucket, the
+    battery's mean and min-max band (in %) are those of the stored poses in it, the
+    distance the sum of the stored steps ending in it and the speed that over the steps'
+    time; each line has the robot's fleet-list colour; the playhead is drawn on the plot;
+    a click on the plot seeks there."""
     stack = history_stack
     t = stack.history.end_ms - 30 * 60_000
     robots = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])
     chosen, pinned = robots[0], robots[1]
     span = (t - 40 * 60_000, t + 10 * 60_000)
-    plot_reads = []  # (from, to) of every track read but the trail's
-    # (the selected robot's trail on the map is read up to the playhead inclusive: t + 1)
+    plot_reads = []  # (from, to) of every plot read
 
     def on_request(request) -> None:
-        if urlparse(request.url).path.endswith("/track"):
+        if urlparse(request.url).path.endswith("/track-buckets"):
             query = parse_qs(urlparse(request.url).query)
-            read = (int(query["from"][0]), int(query["to"][0]))
-            if read[1] > t + 1:
-                plot_reads.append(read)
+            plot_reads.append((int(query["from"][0]), int(query["to"][0])))
 
     page.on("request", on_request)
     open_at(
@@ -65,46 +101,55 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
     # Wait for the span's read (answered, both robots drawn).
     page.wait_for_function(
         f"() => {{ const p = window.__replay.plots(); return p && p.robots['{chosen}']"
-        f" && p.robots['{pinned}'] && p.robots['{chosen}'].ts.length > 10"
-        f" && p.from <= {span[0]} && p.from > {span[0]} - p.stepMs; }}",
+        f" && p.robots['{pinned}'] && p.robots['{chosen}'].mid.length > 10"
+        f" && p.from === {span[0]}; }}",
         timeout=TIMEOUT_MS,
     )
     plots = page.evaluate("() => window.__replay.plots()")
-    step, start = plots["stepMs"], plots["from"]
-    assert 1000 <= step <= 20_000 and span[0] - step < start <= span[0]
+    bucket = plots["bucketMs"]
+    assert 1000 <= bucket <= 60_000 and 60_000 % bucket == 0, bucket
     # No read of another span first (the panel is mounted before the timeline strip: it
     # reads the span the strip starts on, the address's, not the last hour).
-    assert plot_reads and all(span[0] - step < f <= span[0] for f, _ in plot_reads), plot_reads
+    assert plot_reads and all(r == (span[0], span[1] + 1) for r in plot_reads), plot_reads
     assert [
         c.get_attribute("data-robot") for c in page.locator('[data-testid="plot-robot"]').all()
     ] == [chosen, pinned]
     for rid in (chosen, pinned):
-        stored = first_in_each_step(
+        stored = raw_buckets(
             api(
                 stack,
                 "/api/v1/poses",
-                **{"from": start, "to": span[1] + 1, "robotId": rid, "limit": 100_000},
+                **{"from": span[0], "to": span[1] + 1, "robotId": rid, "limit": 100_000},
             ),
-            start,
-            step,
+            bucket,
         )
         shown = plots["robots"][rid]
-        assert shown["ts"] == [p["ts_ms"] for p in stored]
-        assert shown["battery"] == [battery_pct(p["battery_level"]) for p in stored]
-        assert len({b for b in shown["battery"] if b is not None}) > 1, (
+        starts = [e // bucket * bucket for e in shown["edges"][:-1]]
+        assert [s for s, d in zip(starts, shown["battery"]) if d is not None] == sorted(stored)
+        for k, start in enumerate(starts):
+            b = stored.get(start)
+            if b is None:
+                assert shown["battery"][k] is None and shown["bucketDistance"][k] == 0
+                continue
+            levels = b["levels"]
+            # The band's ends are the lowest and highest level in % (a level of 5 or less
+            # reads as a 0-5 scale, 5.1 as 5 %: the ends, not the levels, are ordered).
+            ends = sorted([battery_pct(min(levels)), battery_pct(max(levels))])
+            assert [shown["batteryMin"][k], shown["batteryMax"][k]] == ends
+            assert abs(shown["battery"][k] - battery_pct(sum(levels) / len(levels))) <= 1
+            assert math.isclose(
+                shown["bucketDistance"][k], b["distance"], rel_tol=1e-6, abs_tol=1e-6
+            )
+            if b["step_ms"]:
+                assert math.isclose(
+                    shown["speed"][k], b["distance"] / (b["step_ms"] / 1000), rel_tol=1e-6
+                )
+        total = sum(b["distance"] for b in stored.values())
+        assert math.isclose(shown["distance"][-1], total, rel_tol=1e-6)
+        assert total > 1, "the robot should drive in 50 minutes"
+        assert len({b for b in shown["batteryMin"] if b is not None}) > 1, (
             "the battery should change over 50 minutes"
         )
-        walked = 0.0
-        for i, p in enumerate(stored[1:], 1):
-            q = stored[i - 1]
-            d = math.dist(p["position"][:2], q["position"][:2])
-            walked += d
-            assert math.isclose(shown["distance"][i], walked, rel_tol=1e-9, abs_tol=1e-9)
-            if p["ts_ms"] - q["ts_ms"] <= max(10_000, 3 * step):
-                assert math.isclose(
-                    shown["speed"][i], d / ((p["ts_ms"] - q["ts_ms"]) / 1000), rel_tol=1e-9
-                )
-        assert shown["distance"][-1] > 1, "the robot should drive in 50 minutes"
 
     # Who is who: each line in its robot's colour, the colour of its swatch in the fleet list.
     page.wait_for_selector(f'[data-testid="fleet-row"][data-robot="{pinned}"]', timeout=TIMEOUT_MS)
@@ -172,6 +217,77 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
         q["span"] == f"{iso(span[0])},{iso(span[1])}" and q["plot"] == pinned and q["sel"] == chosen
     )
     assert "plots" in q["panels"].split(",")
+    assert page.errors == []
+
+
+def test_a_days_distance_reads_the_same_at_every_zoom(page, history_stack) -> None:
+    """A robot's distance over a day, read through the plots at the 1 h zoom (the day's
+    hours, one span each), the 1 d zoom (the day) and the 7 d zoom (the week ending with
+    it, its buckets within the day), agrees within 2 % with a fold of the API's raw poses,
+    and so does each bucket's speed; the panel names the span's distance beside the robot."""
+    stack = history_stack
+    h = stack.history
+    hour, day = 3_600_000, 86_400_000
+    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=h.end_ms)["robots"])[0]
+    start = h.end_ms - h.end_ms % hour + hour - day  # a day of whole hours holding the history
+    end = start + day
+    raw = raw_distance(stack, robot, start, end)
+    assert raw > 100, raw
+    poses = api(
+        stack, "/api/v1/poses", **{"from": start, "to": end, "robotId": robot, "limit": 100_000}
+    )
+    hours = sorted({p["ts_ms"] // hour * hour for p in poses})
+    assert len(hours) >= 3
+
+    def read(span: tuple[int, int]) -> dict:
+        # The playhead inside the span (the history's end where it holds it).
+        t = (
+            min(max(h.end_ms, span[0]), span[1] - 1)
+            if span[1] - span[0] > hour
+            else span[0] + hour // 2
+        )
+        open_at(page, stack, f"?t={t}&plot={robot}&panels=plots&span={iso(span[0])},{iso(span[1])}")
+        page.wait_for_function(
+            f"() => {{ const p = window.__replay.plots(); return p && p.robots['{robot}']"
+            f" && p.to === {span[1]}; }}",
+            timeout=TIMEOUT_MS,
+        )
+        return page.evaluate("() => window.__replay.plots()")
+
+    by_hours = 0.0
+    for h0 in hours:
+        by_hours += driven_shown(read((h0, h0 + hour))["robots"][robot], h0, h0 + hour + 1)
+    by_day = read((start, end))
+    week = read((end - 7 * day, end))
+    shown = {
+        "1 h": by_hours,
+        "1 d": driven_shown(by_day["robots"][robot], start, end + 1),
+        "7 d": driven_shown(week["robots"][robot], start, end + 1),
+    }
+    assert week["bucketMs"] >= 10 * 60_000 and day % week["bucketMs"] == 0, week["bucketMs"]
+    for zoom, metres in shown.items():
+        assert abs(metres - raw) <= 0.02 * raw, (zoom, metres, raw, shown)
+    # Speed at the day and the week zooms: each bucket's, the raw steps' over their time.
+    for plots in (by_day, week):
+        series, bucket = plots["robots"][robot], plots["bucketMs"]
+        folded = raw_buckets(poses, bucket)
+        speeds = [
+            (v, folded[e // bucket * bucket])
+            for e, v in zip(series["edges"][:-1], series["speed"])
+            if v is not None and start <= e < end
+        ]
+        assert len(speeds) >= 3
+        for v, b in speeds:
+            assert math.isclose(v, b["distance"] / (b["step_ms"] / 1000), rel_tol=0.02), (v, b)
+        assert max(v for v, _ in speeds) > 0.1
+    # The panel names the week's distance beside the robot: the day's, all the history.
+    text = page.inner_text(
+        f'[data-testid="plot-robot"][data-robot="{robot}"] [data-testid="plot-driven"]'
+    )
+    assert text.endswith((" km", " m")), text
+    value = float(text.split()[0]) * (1000 if text.endswith(" km") else 1)
+    assert abs(value - raw) <= 0.02 * raw + 10, (text, raw)
+    screenshot(page, "ui-plots-week.png")
     assert page.errors == []
 
 

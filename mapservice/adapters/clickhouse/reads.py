@@ -4,8 +4,8 @@ metadata, all on the read client (conflicts: `conflict_reads`).
 
 `ClickHouseTimeTravel` (the TimeTravelReader role) holds the connection (reads use only
 valid snapshots: `ClickHouseConnection.valid_before`), the conflict reads (the timeline
-counts conflicts) and the track reads (`robot_track`); it also depends on `pose_schema`
-for the keyframe columns, never on the store's other roles.
+counts conflicts) and the track reads (`robot_track`, `track_buckets`); it also depends on
+`pose_schema` for the keyframe columns, never on the store's other roles.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from mapservice.adapters.clickhouse.connection import (
 from mapservice.adapters.clickhouse.pose_schema import KEYFRAME_MS, POSE_COLUMNS
 from mapservice.adapters.clickhouse.track_reads import ClickHouseTrackReads
 from mapservice.core.events import MapMetaSet
-from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket
+from mapservice.core.ports import ChunkRow, ChunkState, PoseRow, TimelineBucket, TrackBucket
 from mapservice.core.timetravel import timeline_buckets
 
 
@@ -44,6 +44,11 @@ class ClickHouseTimeTravel:
         self, robot_id: str, from_ms: int, to_ms: int, step_ms: int = 0, limit: int = 100_000
     ) -> list[PoseRow]:
         return self._tracks.robot_track(robot_id, from_ms, to_ms, step_ms, limit)
+
+    def track_buckets(
+        self, robot_id: str, from_ms: int, to_ms: int, bucket_ms: int
+    ) -> list[TrackBucket]:
+        return self._tracks.track_buckets(robot_id, from_ms, to_ms, bucket_ms)
 
     def poses(
         self, from_ms: int, to_ms: int, robot_id: str | None = None, limit: int = 100_000

@@ -1,5 +1,6 @@
 /**
- * The plot panel's reads: the chosen robots' tracks over the timeline's span, read again
+ * The plot panel's reads: the chosen robots' per-bucket aggregates over the timeline's
+ * span (about a bucket every three pixels, the size chosen by the API), read again
  * when the robots change or the span moved by 2 % of its length (a span sliding with
  * playback or live). A failed read is tried again after 1 s, 2 s, 4 s ... at most
  * RETRY_MAX_MS apart, the plots drawn so far kept and the error said (a request the API
@@ -10,10 +11,11 @@
 import { onScopeDispose, ref, shallowRef, watch } from "vue";
 import { ApiError } from "../lib/api";
 import { RETENTION_MS } from "../lib/retention";
-import { plotWindow, seriesOf, type RobotSeries, type TrackSample } from "../lib/plots";
+import { plotBuckets, seriesOf, type RobotSeries } from "../lib/plots";
+import type { TrackBuckets } from "../lib/types";
 
 export interface PlotData {
-  stepMs: number;
+  bucketMs: number;
   from: number;
   to: number;
   series: Map<string, RobotSeries>;
@@ -28,15 +30,12 @@ export const REFRESH_MS = 30_000;
 const REFUSED = new Set([400, 401, 403, 422]);
 /** A span ending less than this before the present may still gain poses. */
 export const GROWING_MS = 5 * 60_000;
-/**
- * The longest window the API reads in one request is the retention; a minute less, as a
- * start floored to a whole minute (plotWindow) lengthens the window by up to a minute.
- */
-const MAX_WINDOW_MS = RETENTION_MS - 60_000;
+/** The longest window the API reads in one request is the retention. */
+const MAX_WINDOW_MS = RETENTION_MS;
 
 export interface PlotReadOptions {
-  /** Reads one robot's track: the first pose of every `stepMs` in [from, to). */
-  read: (robotId: string, fromMs: number, toMs: number, stepMs: number) => Promise<TrackSample[]>;
+  /** Reads one robot's poses in [from, to) aggregated in at most `buckets` buckets. */
+  read: (robotId: string, fromMs: number, toMs: number, buckets: number) => Promise<TrackBuckets>;
   robots: () => string[];
   /** The span to show, [from, to) in ms (props read in a getter). */
   span: () => readonly [number, number];
@@ -45,7 +44,7 @@ export interface PlotReadOptions {
    * the retention clamp): a span starting before it is read from it.
    */
   oldestMs: () => number;
-  /** The plotting width in px (the step follows from it). */
+  /** The plotting width in px (the number of buckets follows from it). */
   width: () => number;
   /** New data to draw. */
   drawn?: () => void;
@@ -54,7 +53,7 @@ export interface PlotReadOptions {
 }
 
 export function usePlotReads(o: PlotReadOptions) {
-  const data = shallowRef<PlotData>({ stepMs: 0, from: 0, to: 0, series: new Map() });
+  const data = shallowRef<PlotData>({ bucketMs: 0, from: 0, to: 0, series: new Map() });
   const loading = ref(false);
   const error = ref<string | null>(null);
   let timer: ReturnType<typeof setTimeout> | null = null;
@@ -86,17 +85,18 @@ export function usePlotReads(o: PlotReadOptions) {
     const to = Math.round(toMs);
     // The API reads nothing older than the oldest instant, in one window of at most the
     // retention (a span ending in the future may be longer than what is kept before now).
-    const fromMs = Math.max(spanFrom, o.oldestMs(), to + 1 - MAX_WINDOW_MS);
-    const { from, stepMs } = plotWindow(fromMs, to, o.width());
+    const from = Math.round(Math.max(spanFrom, o.oldestMs(), to + 1 - MAX_WINDOW_MS));
+    const buckets = plotBuckets(o.width());
     const ids = [...o.robots()];
     const key = `${ids.join()}|${from}|${to}`;
     loadedKey = key;
     asked = { robots: ids.join(), from, to };
     loading.value = true;
     try {
-      const tracks = await Promise.all(ids.map((id) => o.read(id, from, to + 1, stepMs)));
+      const answers = await Promise.all(ids.map((id) => o.read(id, from, to + 1, buckets)));
       if (loadedKey !== key || disposed) return;
-      data.value = { stepMs, from, to, series: new Map(ids.map((id, i) => [id, seriesOf(tracks[i], stepMs)])) };
+      const bucketMs = answers[0]?.bucket_ms ?? 0;
+      data.value = { bucketMs, from, to, series: new Map(ids.map((id, i) => [id, seriesOf(answers[i])])) };
       error.value = null;
       failures = 0;
       o.drawn?.();

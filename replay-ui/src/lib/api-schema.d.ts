@@ -620,6 +620,26 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/robots/{robot_id}/track-buckets": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Robot Track Buckets
+         * @description The robot's poses in [from, to) (windows up to the retention) aggregated per bucket [k*bucket_ms, (k+1)*bucket_ms), from every pose: bucket_ms is the smallest round size (1 s, 2 s, 5 s ... 30 min, 1 h ... 1 d, then whole days) giving at most `buckets` buckets. A step joins two consecutive poses in the window and counts once, in the bucket of its later pose, so the buckets' distances add up to the window's at every size; speed is a bucket's distance over the time its steps span. Buckets without a pose are left out. 404 if the robot never reported.
+         */
+        get: operations["getRobotTrackBuckets"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/robots/{robot_id}/vda5050": {
         parameters: {
             query?: never;
@@ -1326,6 +1346,46 @@ export interface components {
             from_ms: number;
             /** Points */
             points: components["schemas"]["TrackPoint"][];
+            /** Robotid */
+            robotId: string;
+            /** To Ms */
+            to_ms: number;
+        };
+        /** TrackBucket */
+        TrackBucket: {
+            /** Battery Max */
+            battery_max: number | null;
+            /** Battery Mean */
+            battery_mean: number | null;
+            /** Battery Min */
+            battery_min: number | null;
+            /** Distance M */
+            distance_m: number;
+            /** First Ms */
+            first_ms: number;
+            /** Last Ms */
+            last_ms: number;
+            /** Poses */
+            poses: number;
+            /** Speed Mps */
+            speed_mps: number | null;
+            /** Start Ms */
+            start_ms: number;
+            /** Step Ms */
+            step_ms: number;
+            /** Steps */
+            steps: number;
+        };
+        /** TrackBuckets */
+        TrackBuckets: {
+            /** Bucket Ms */
+            bucket_ms: number;
+            /** Buckets */
+            buckets: components["schemas"]["TrackBucket"][];
+            /** Distance M */
+            distance_m: number;
+            /** From Ms */
+            from_ms: number;
             /** Robotid */
             robotId: string;
             /** To Ms */
@@ -3449,6 +3509,58 @@ export interface operations {
                 };
                 content: {
                     "application/json": components["schemas"]["Track"];
+                };
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    getRobotTrackBuckets: {
+        parameters: {
+            query: {
+                /** @description Start (inclusive), ISO 8601 or epoch ms */
+                from: string;
+                /** @description End (exclusive), ISO 8601 or epoch ms */
+                to: string;
+                /** @description At most this many buckets, 2 to 1,000 */
+                buckets?: number;
+            };
+            header?: never;
+            path: {
+                robot_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["TrackBuckets"];
                 };
             };
             /** @description Validation Error */

@@ -5,9 +5,8 @@
  */
 import type { Source } from "./buffer";
 import { parseBatch, type ChunkBatch } from "./chunkdecode";
-import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline } from "./types";
+import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline, TrackBuckets } from "./types";
 import { authHeaders } from "./auth";
-import type { TrackSample } from "./plots";
 import type { Change } from "./changefeed";
 
 export class ApiError extends Error {
@@ -143,10 +142,9 @@ export class Api implements Source {
     return r.changes;
   }
 
-  /** The robot's track with battery, the first pose of every `stepMs` in [from, to) (the plots). */
-  async trackSamples(robotId: string, fromMs: number, toMs: number, stepMs: number): Promise<TrackSample[]> {
-    const r = await getJson<{ points: TrackSample[] }>(`${this.base}/api/v1/robots/${encodeURIComponent(robotId)}`
-      + `/track?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&step_ms=${stepMs}`);
-    return r.points;
+  /** One robot's poses in [from, to) aggregated in at most `buckets` round buckets. */
+  async trackBuckets(robotId: string, fromMs: number, toMs: number, buckets: number): Promise<TrackBuckets> {
+    return getJson<TrackBuckets>(`${this.base}/api/v1/robots/${encodeURIComponent(robotId)}`
+      + `/track-buckets?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&buckets=${buckets}`);
   }
 }

@@ -1,77 +1,99 @@
 /**
  * The plot panel's series: battery (%), speed (m/s) and distance driven (m) over time for a
- * robot, from its track downsampled by the API (the first pose of every step). Pure: the
- * panel fetches the track and draws these.
+ * robot, from the API's aggregates of every stored pose per time bucket
+ * (GET /api/v1/robots/{id}/track-buckets), so a figure is the same whichever zoom shows it:
+ * a day's distance is its buckets' sum at any bucket size. Pure: the panel fetches the
+ * buckets and draws these.
  */
 import { batteryPercent } from "./fleet";
+import type { TrackBuckets } from "./types";
 
-export interface TrackSample {
-  ts_ms: number;
-  x: number;
-  y: number;
-  battery_level: number | null;
+/** Buckets asked for a plot `widthPx` wide: about one every three pixels. */
+export function plotBuckets(widthPx: number): number {
+  return Math.min(MAX_BUCKETS, Math.max(2, Math.round(widthPx / 3)));
 }
+
+/** The API's cap on buckets per read (api/routers/tracks.py). */
+export const MAX_BUCKETS = 1000;
 
 export interface RobotSeries {
-  ts: number[];
-  battery: (number | null)[]; // %
-  speed: (number | null)[]; // m/s, mean over the step before the sample
-  distance: number[]; // m driven since the first sample of the window
+  /** Each bucket's middle (within the window): where its battery and speed are drawn. */
+  mid: number[];
+  battery: (number | null)[]; // mean % over the bucket's poses
+  batteryMin: (number | null)[]; // %
+  batteryMax: (number | null)[]; // %
+  speed: (number | null)[]; // m/s: the bucket's distance over the time its steps span
+  bucketDistance: number[]; // m driven in each bucket
+  /** The window's start, then each bucket's end (within the window): where distance is drawn. */
+  edges: number[];
+  distance: number[]; // m driven from the window's start to each edge
 }
 
-/** Aim for about one sample per two pixels of plot, never below a pose a second. */
-export function plotStepMs(fromMs: number, toMs: number, widthPx: number): number {
-  const raw = (toMs - fromMs) / Math.max(50, widthPx / 2);
-  return raw >= KEYFRAME_MS ? Math.ceil(raw / KEYFRAME_MS) * KEYFRAME_MS : Math.max(1000, Math.ceil(raw / 1000) * 1000);
-}
-
-/** The store keeps a pose a minute per robot apart (pose keyframes): a window starting on a
- * whole minute with a step of whole minutes is read from those, not from every pose. */
-const KEYFRAME_MS = 60_000;
-
-/** The track request for a span: its start (on a whole minute for steps of minutes) and step. */
-export function plotWindow(fromMs: number, toMs: number, widthPx: number): { from: number; stepMs: number } {
-  const stepMs = plotStepMs(fromMs, toMs, widthPx);
-  const from = stepMs % KEYFRAME_MS === 0 ? Math.floor(fromMs / KEYFRAME_MS) * KEYFRAME_MS : Math.floor(fromMs);
-  return { from, stepMs };
-}
-
-/** A gap longer than this between samples means the robot was silent: no speed across it. */
-export function gapMs(stepMs: number): number {
-  return Math.max(10_000, 3 * stepMs);
-}
-
-export function seriesOf(points: TrackSample[], stepMs: number): RobotSeries {
-  const out: RobotSeries = { ts: [], battery: [], speed: [], distance: [] };
-  let dist = 0;
-  points.forEach((p, i) => {
-    const prev = i > 0 ? points[i - 1] : null;
-    let speed: number | null = null;
-    if (prev) {
-      const d = Math.hypot(p.x - prev.x, p.y - prev.y);
-      const dt = (p.ts_ms - prev.ts_ms) / 1000;
-      if (dt > 0 && p.ts_ms - prev.ts_ms <= gapMs(stepMs)) speed = d / dt;
-      dist += d;
-    }
-    out.ts.push(p.ts_ms);
-    out.battery.push(batteryPercent(p.battery_level));
-    out.speed.push(speed);
-    out.distance.push(dist);
-  });
+/** One robot's buckets as series: every bucket of the window, null where the robot has no
+ * pose (a gap in the lines), the distance a running sum of the buckets'. */
+export function seriesOf(r: TrackBuckets): RobotSeries {
+  const byStart = new Map(r.buckets.map((b) => [b.start_ms, b]));
+  const out: RobotSeries = { mid: [], battery: [], batteryMin: [], batteryMax: [], speed: [], bucketDistance: [],
+    edges: [r.from_ms], distance: [0] };
+  let driven = 0;
+  for (let start = Math.floor(r.from_ms / r.bucket_ms) * r.bucket_ms; start < r.to_ms; start += r.bucket_ms) {
+    const lo = Math.max(start, r.from_ms);
+    const hi = Math.min(start + r.bucket_ms, r.to_ms);
+    const b = byStart.get(start);
+    // The range in %: battery levels on two scales (0-1 and 0-100) are not in the same order.
+    const low = batteryPercent(b?.battery_min);
+    const high = batteryPercent(b?.battery_max);
+    out.mid.push((lo + hi) / 2);
+    out.battery.push(batteryPercent(b?.battery_mean));
+    out.batteryMin.push(low === null || high === null ? low ?? high : Math.min(low, high));
+    out.batteryMax.push(low === null || high === null ? low ?? high : Math.max(low, high));
+    out.speed.push(b?.speed_mps ?? null);
+    out.bucketDistance.push(b?.distance_m ?? 0);
+    driven += b?.distance_m ?? 0;
+    out.edges.push(hi);
+    out.distance.push(driven);
+  }
   return out;
 }
 
+/** The metres `s` shows driven in [from, to): between the distance line's points at those
+ * instants (edges of its buckets; elsewhere the nearest edge within). */
+export function drivenBetween(s: RobotSeries, from: number, to: number): number {
+  const at = (t: number) => {
+    let i = 0;
+    while (i + 1 < s.edges.length && s.edges[i + 1] <= t) i++;
+    return s.distance[i];
+  };
+  return at(to) - at(from);
+}
+
+export type SeriesKey = "battery" | "batteryMin" | "batteryMax" | "speed" | "distance";
+
 /**
  * Several robots' series on one time axis (uPlot wants one x array): the union of their
- * sample times, each robot's value where it has a sample and null elsewhere.
+ * instants, per robot and key (in that order) its value where it has one and undefined
+ * elsewhere (bridged, not a gap; a gap is null).
  */
-export function alignSeries(series: RobotSeries[], key: "battery" | "speed" | "distance"): [number[], ...(number | null | undefined)[][]] {
-  const xs = [...new Set(series.flatMap((s) => s.ts))].sort((a, b) => a - b);
+export function alignSeries(series: RobotSeries[], keys: readonly SeriesKey[]): [number[], ...(number | null | undefined)[][]] {
+  const xsOf = (s: RobotSeries, k: SeriesKey) => (k === "distance" ? s.edges : s.mid);
+  const xs = [...new Set(series.flatMap((s) => keys.flatMap((k) => xsOf(s, k))))].sort((a, b) => a - b);
   const index = new Map(xs.map((t, i) => [t, i]));
-  const ys = series.map((s) => {
+  const ys = series.flatMap((s) => keys.map((k) => {
     const col: (number | null | undefined)[] = new Array(xs.length).fill(undefined);
-    s.ts.forEach((t, i) => (col[index.get(t)!] = s[key][i]));
+    xsOf(s, k).forEach((t, i) => (col[index.get(t)!] = s[k][i]));
     return col;
-  });
+  }));
   return [xs, ...ys];
+}
+
+/** "1 s", "5 min", "1 h", "2 d": a bucket size as the panel names it. */
+export function durationText(ms: number): string {
+  const units: [number, string][] = [[86_400_000, "d"], [3_600_000, "h"], [60_000, "min"], [1000, "s"]];
+  const [size, name] = units.find(([u]) => ms >= u && ms % u === 0) ?? [1, "ms"];
+  return `${ms / size} ${name}`;
+}
+
+/** "850 m", "12.3 km". */
+export function distanceText(m: number): string {
+  return m < 1000 ? `${m.toFixed(0)} m` : `${(m / 1000).toFixed(m < 100_000 ? 2 : 1)} km`;
 }

@@ -20,7 +20,7 @@ export interface ReplayHookContext {
   play: (dir: 1 | -1) => void;
   span: () => [number, number];
   /** The plot panel's series by robot and its step, or null when it is closed. */
-  plots: () => { stepMs: number; from: number; series: Map<string, RobotSeries> } | null;
+  plots: () => { bucketMs: number; from: number; to: number; series: Map<string, RobotSeries> } | null;
   /** The x of an instant on the plots, css px from the left edge of their plotting area, or null. */
   plotX: (t: number) => number | null;
   timeline: () => unknown;
@@ -89,11 +89,12 @@ export function exposeReplay(c: ReplayHookContext): void {
     selected: () => c.selected.value,
     centerOnPixel: (row: number, col: number, zoom: number) =>
       view.value?.map.setView([-row, col], zoom, { animate: false }),
-    /** The plotted series: {stepMs, from (the track request's), robots: {id: {colour, ts, battery, speed, distance}}}, or null. */
+    /** The plotted series: {bucketMs, from and to (the read's), robots: {id: {colour, ...RobotSeries}}}, or null. */
     plots: () => {
       const p = c.plots();
       if (!p) return null;
-      return { stepMs: p.stepMs, from: p.from, robots: Object.fromEntries([...p.series].map(([id, s]) => [id, { colour: robotColour(id), ...s }])) };
+      return { bucketMs: p.bucketMs, from: p.from, to: p.to,
+        robots: Object.fromEntries([...p.series].map(([id, s]) => [id, { colour: robotColour(id), ...s }])) };
     },
     plotX: c.plotX,
     /** The selected robot's trail as drawn: its colour and how many points it has. */

@@ -65,23 +65,51 @@ export interface Tick {
   label: string;
 }
 
+/** A label's width in px at an 11 px sans-serif font, from its length (a little wider than
+ * measured: digits are 0.55 em there, colons and dashes less), where none can be measured. */
+export function estimateLabelPx(label: string, fontPx = 11): number {
+  return label.length * fontPx * 0.62;
+}
+
+/** Room left between two labels drawn centred on their ticks. */
+export const LABEL_GAP_PX = 8;
+
+function tickLabel(t: number, step: number, span: number): string {
+  const iso = new Date(t).toISOString();
+  const day = iso.slice(5, 10);
+  const time = step < MINUTE ? iso.slice(11, 19) : iso.slice(11, 16);
+  return step >= DAY || t % DAY === 0 || span > DAY ? `${day} ${time}` : time;
+}
+
 /**
- * Axis ticks on round UTC instants, at least `minGapPx` apart: "14:05" within a day,
- * "11-24 14:00" where the span crosses days, "14:05:30" below a minute; a tick at
- * midnight names its day.
+ * Axis ticks on round UTC instants: the smallest round step (STEPS, then whole days) whose
+ * ticks are at least `minGapPx` apart and whose labels, centred on their ticks at the
+ * width `labelPx` gives them, never overlap. "14:05" within a day, "11-24 14:00" where the
+ * span crosses days, "14:05:30" below a minute; a tick at midnight names its day.
  */
-export function timeTicks(from: number, to: number, widthPx: number, minGapPx = 90): Tick[] {
+export function timeTicks(from: number, to: number, widthPx: number, minGapPx = 90,
+  labelPx: (label: string) => number = estimateLabelPx): Tick[] {
   const span = Math.max(1, to - from);
-  const step = STEPS.find((s) => (s / span) * widthPx >= minGapPx) ?? DAY * Math.ceil((span / widthPx) * minGapPx / DAY);
-  const ticks: Tick[] = [];
-  for (let t = Math.ceil(from / step) * step; t <= to; t += step) {
-    const iso = new Date(t).toISOString();
-    const day = iso.slice(5, 10);
-    const time = step < MINUTE ? iso.slice(11, 19) : iso.slice(11, 16);
-    const label = step >= DAY || (t % DAY === 0) ? `${day} ${time}` : span > DAY ? `${day} ${time}` : time;
-    ticks.push({ t, label });
+  const pxPerMs = Math.max(1, widthPx) / span;
+  const at = (step: number): Tick[] => {
+    const ticks: Tick[] = [];
+    for (let t = Math.ceil(from / step) * step; t <= to; t += step) ticks.push({ t, label: tickLabel(t, step, span) });
+    return ticks;
+  };
+  const apart = (ticks: Tick[], step: number): boolean => {
+    const widths = ticks.map((tk) => labelPx(tk.label));
+    return widths.every((w, i) => i === 0 || step * pxPerMs >= (w + widths[i - 1]) / 2 + LABEL_GAP_PX);
+  };
+  for (const step of STEPS) {
+    // A step too small for the gap is never laid out (a second over a week: 600k ticks).
+    if (step * pxPerMs < minGapPx) continue;
+    const ticks = at(step);
+    if (apart(ticks, step)) return ticks;
   }
-  return ticks;
+  for (let days = Math.max(1, Math.ceil(minGapPx / (DAY * pxPerMs))); ; days++) {
+    const ticks = at(days * DAY);
+    if (apart(ticks, days * DAY)) return ticks;
+  }
 }
 
 /** A map upload as the timeline knows it (a `kind: "upload"` entry of the change feed). */

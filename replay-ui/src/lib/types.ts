@@ -60,3 +60,7 @@ export type Timeline = Schemas["Timeline"];
 
 /** A conflict (GET /api/v1/conflicts). */
 export type Conflict = Schemas["Conflict"];
+
+/** One robot's track aggregated per time bucket from every pose (the plots' read). */
+export type TrackBuckets = Schemas["TrackBuckets"];
+export type TrackBucket = Schemas["TrackBucket"];
