@@ -37,6 +37,7 @@ SCOPES = {
     "getMapPngAt": "read",
     "getRobotsAt": "read",
     "getRobotTrack": "read",
+    "getRobotTrackBuckets": "read",
     "listPoses": "read",
     "listChunkEvents": "read",
     "getChunkContent": "read",

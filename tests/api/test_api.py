@@ -45,6 +45,7 @@ EXPECTED_OPERATION_IDS = {
     "listEvents",
     "getTimeline",
     "getRobotTrack",
+    "getRobotTrackBuckets",
     "listConflicts",
     "getChunkContentsBatch",  # api/routers/chunk_contents.py (replay UI seeks)
     "getClientConfig",  # api/routers/client_config.py (the /controller page)
