@@ -150,15 +150,20 @@ def test_a_caller_over_its_queue_share_gets_429_with_retry_after() -> None:
 
 
 class OrderedStore(StuckStore):
-    """Records which `at` each read asked for, in the order they ran."""
+    """Records which `at` each read asked for, in the order they ran, as ms after `base`
+    (an hour ago: within the retention, as `at` must be)."""
 
     def __init__(self) -> None:
         super().__init__()
+        self.base = time.time_ns() // 1_000_000 - 3_600_000
         self.order: list[int] = []
 
     def robots_at(self, at_ms: int, after=None, limit=None):
-        self.order.append(at_ms)
+        self.order.append(at_ms - self.base)
         return super().robots_at(at_ms, after=after, limit=limit)
+
+    def path(self, offset: int) -> str:
+        return f"/api/v1/robots?at={self.base + offset}"
 
 
 def test_two_sessions_of_one_address_take_turns() -> None:
@@ -170,10 +175,7 @@ def test_two_sessions_of_one_address_take_turns() -> None:
     app = create_app(Settings(api_read_workers=1, api_read_queue=32), store)
 
     async def get(address: str, at: int, session: str):
-        async with client_at(app, address) as client:
-            return await client.get(
-                f"/api/v1/robots?at={at}", headers={"X-Mapservice-Session": session}, timeout=60
-            )
+        return await _session_get(app, address, store.path(at), session)
 
     async def scenario():
         first = [asyncio.create_task(get("10.0.0.1", 100 + i, "tab1")) for i in range(12)]
@@ -194,14 +196,12 @@ def test_two_sessions_of_one_address_take_turns() -> None:
 
     async def many_sessions():
         hostile = [
-            asyncio.create_task(
-                _session_get(app2, "10.0.0.1", f"/api/v1/robots?at={100 + i}", f"s{i}")
-            )
+            asyncio.create_task(_session_get(app2, "10.0.0.1", store2.path(100 + i), f"s{i}"))
             for i in range(12)
         ]
         await asyncio.sleep(0.3)
         honest = [
-            asyncio.create_task(_session_get(app2, "10.0.0.2", f"/api/v1/robots?at={200 + i}", ""))
+            asyncio.create_task(_session_get(app2, "10.0.0.2", store2.path(200 + i), ""))
             for i in range(3)
         ]
         await asyncio.sleep(0.3)
@@ -218,6 +218,47 @@ async def _session_get(app, address: str, path: str, session: str) -> httpx.Resp
         return await client.get(path, headers={"X-Mapservice-Session": session}, timeout=60)
 
 
+def test_a_hostile_caller_with_many_sessions_gets_one_share_and_the_probes_stay_fast() -> None:
+    """One address sends 100 reads at once, each naming a session of its own (as many
+    connections, as many tabs): it runs MAPSERVICE_API_CALLER_CONCURRENCY and keeps
+    MAPSERVICE_API_CALLER_QUEUE waiting, the rest are 429 at once (memory bounded); another
+    address's read is served within its turn, and the probes answer within a second."""
+    store = OrderedStore()
+    settings = Settings(
+        api_read_workers=2, api_read_queue=32, api_caller_concurrency=2, api_caller_queue=8
+    )
+    app = create_app(settings, store, {"clickhouse": lambda: True})
+
+    async def scenario():
+        hostile = [
+            asyncio.create_task(_session_get(app, "10.6.6.6", store.path(1000 + i), f"tab{i}"))
+            for i in range(100)
+        ]
+        await asyncio.sleep(0.5)
+        refused = [t.result() for t in hostile if t.done()]
+        honest = asyncio.create_task(_get(app, "10.0.0.2", store.path(1)))
+        await asyncio.sleep(0.2)
+        probe_times = []
+        for path in ("/healthz", "/readyz"):
+            started = time.monotonic()
+            reply = await asyncio.wait_for(_get(app, "10.9.9.9", path), timeout=5)
+            probe_times.append(time.monotonic() - started)
+            assert reply.status_code == 200
+        store.release.set()
+        return refused, await honest, await asyncio.gather(*hostile), probe_times
+
+    refused, honest, hostile, probe_times = asyncio.run(scenario())
+    assert len(refused) == 100 - 2 - 8
+    assert {r.status_code for r in refused} == {429}
+    assert all(r.headers["retry-after"].isdigit() for r in refused)
+    assert honest.status_code == 200
+    assert sum(r.status_code == 200 for r in hostile) == 2 + 8
+    # The other address's read ran right after the first of the hostile caller's waiting
+    # ones: one turn each, not after all eight.
+    assert store.order.index(1) <= 2 + 1, store.order
+    assert max(probe_times) < 1.0, probe_times
+
+
 def test_a_read_whose_client_left_leaves_the_queue() -> None:
     """A page cancels a superseded read while it waits (the browser closes its connection):
     the read leaves the queue, its place free for the next, and never runs. On uvicorn: an
@@ -227,7 +268,7 @@ def test_a_read_whose_client_left_leaves_the_queue() -> None:
     replies: dict[int, int] = {}
 
     def get(url: str, at: int) -> None:
-        replies[at] = httpx.get(f"{url}/api/v1/robots?at={at}", timeout=30).status_code
+        replies[at] = httpx.get(f"{url}{store.path(at)}", timeout=30).status_code
 
     with served(app) as (port, _):
         url = f"http://127.0.0.1:{port}"
@@ -235,7 +276,7 @@ def test_a_read_whose_client_left_leaves_the_queue() -> None:
         stuck.start()
         time.sleep(0.3)
         with socket.create_connection(("127.0.0.1", port)) as left:
-            left.sendall(b"GET /api/v1/robots?at=2 HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            left.sendall(f"GET {store.path(2)} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
             time.sleep(0.3)
         time.sleep(0.3)
         queued = threading.Thread(target=get, args=(url, 3))
