@@ -35,7 +35,10 @@ class Model:
             if victim.caller == caller:
                 sessions = Counter(t.session for t in self.waiting if t.caller == caller)
                 assert sessions[victim.session] >= sessions[session] + 2
-                assert victim is [t for t in self.waiting if t.session == victim.session][-1]
+                line = [
+                    t for t in self.waiting if (t.caller, t.session) == (caller, victim.session)
+                ]
+                assert victim is line[-1]  # the newest of its session
             else:
                 assert before[victim.caller] >= before[caller] + 2
             self.waiting.remove(victim)

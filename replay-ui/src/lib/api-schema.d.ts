@@ -1504,7 +1504,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1574,7 +1574,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1624,7 +1624,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1676,7 +1676,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1729,7 +1729,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1772,7 +1772,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1845,7 +1845,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1918,7 +1918,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1968,7 +1968,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2034,7 +2034,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2080,7 +2080,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2148,7 +2148,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2197,7 +2197,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2265,7 +2265,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2336,7 +2336,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2394,7 +2394,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2428,7 +2428,7 @@ export interface operations {
                     "application/json": components["schemas"]["CallerAccess"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2492,7 +2492,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2554,7 +2554,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2604,7 +2604,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2653,7 +2653,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2687,7 +2687,7 @@ export interface operations {
                     "application/json": components["schemas"]["ClientConfig"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2738,7 +2738,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2806,7 +2806,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2855,7 +2855,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2906,7 +2906,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2957,7 +2957,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3006,7 +3006,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3058,7 +3058,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3106,7 +3106,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3161,7 +3161,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3209,7 +3209,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3258,7 +3258,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3308,7 +3308,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3358,7 +3358,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3408,7 +3408,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3460,7 +3460,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3511,7 +3511,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3547,7 +3547,7 @@ export interface operations {
                     };
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3581,7 +3581,7 @@ export interface operations {
                     "application/json": components["schemas"]["ServiceStatus"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3631,7 +3631,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3680,7 +3680,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
