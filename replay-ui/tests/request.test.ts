@@ -181,7 +181,7 @@ describe("what a failed read says", () => {
 
   it("getJson throws that text, keeping the server's own words apart", async () => {
     vi.stubGlobal("fetch", async () => new Response(JSON.stringify({ detail: "MAPSERVICE_X is 3" }), { status: 404 }));
-    const e = await getJson("/api/v1/map?at=1", "the map").catch((x) => x);
+    const e = (await getJson("/api/v1/map?at=1", "the map").catch((x: unknown) => x)) as ApiError;
     expect(e).toBeInstanceOf(ApiError);
     expect(e.status).toBe(404);
     expect(e.message).not.toContain("MAPSERVICE_X");

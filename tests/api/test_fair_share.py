@@ -138,17 +138,23 @@ def test_backlogged_callers_are_served_in_turns(workers, sessions, bursts, finis
     within a caller its sessions take turns the same way."""
     callers = [f"caller{i}" for i in range(len(sessions))]
     model = Model(FairShare(workers, queue=200, caller_running=workers, caller_queue=100))
-    for i, caller in enumerate(callers):  # everyone busy and waiting before the count starts
-        for k in range(max(workers + 1, bursts[i])):
-            model.offer(caller, f"s{k % sessions[i]}")
-    counted = len(model.granted)
-    for index in finishing:
-        model.finish(index)
-        # Keep every caller's every session waiting (a client asking again at once).
+
+    def keep_waiting() -> None:
+        """Every caller's every session keeps a request waiting (a client asking again at
+        once): all of them backlogged, the case turns are for."""
         for i, caller in enumerate(callers):
             for s in range(sessions[i]):
                 if not any(t.caller == caller and t.session == f"s{s}" for t in model.waiting):
                     model.offer(caller, f"s{s}")
+
+    for i, caller in enumerate(callers):  # everyone busy and waiting before the count starts
+        for k in range(max(workers + 1, bursts[i])):
+            model.offer(caller, f"s{k % sessions[i]}")
+    keep_waiting()
+    counted = len(model.granted)
+    for index in finishing:
+        model.finish(index)
+        keep_waiting()
         served = Counter(t.caller for t in model.granted[counted:])
         counts = [served[c] for c in callers]
         assert max(counts) - min(counts) <= 1, counts
