@@ -110,11 +110,13 @@ class Pool:
         if ticket.granted:
             self._gauge()
             return None
-        woken = asyncio.get_running_loop().create_future()
+        woken: asyncio.Future[str | None] = asyncio.get_running_loop().create_future()
         self._woken[ticket] = woken
         self._gauge()
         left = watch.start() if watch is not None else None
-        waits: set[asyncio.Future] = {woken} if left is None else {woken, left}
+        waits: set[asyncio.Future[str | None] | asyncio.Future[None]] = {woken}
+        if left is not None:
+            waits.add(left)
         try:
             await asyncio.wait(waits, timeout=self.wait_s, return_when=asyncio.FIRST_COMPLETED)
         except asyncio.CancelledError:
@@ -321,7 +323,8 @@ def session_of(scope: Scope) -> str:
     """The session a request names (SESSION_HEADER), at most SESSION_MAX characters."""
     for name, value in scope["headers"]:
         if name == SESSION_HEADER:
-            return value[:SESSION_MAX].decode("latin-1")
+            session: str = value[:SESSION_MAX].decode("latin-1")
+            return session
     return ""
 
 
@@ -335,7 +338,7 @@ class LeaveWatch:
     def __init__(self, scope: Scope, receive: Receive) -> None:
         self._receive, self._read = receive, deque[Message]()
         self._bodiless = scope["method"] in ("GET", "HEAD")
-        self._task: asyncio.Task | None = None
+        self._task: asyncio.Task[None] | None = None
         self.left: asyncio.Future[None] | None = None
 
     def start(self) -> asyncio.Future[None] | None:
