@@ -254,9 +254,8 @@ def _refusals(scope: Scope, method: str, settings: Settings) -> list[tuple[str, 
         out.append(
             (
                 "429",
-                "over MAPSERVICE_API_RATE_LIMIT, or this caller has "
-                "MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After "
-                "says when to try again",
+                "over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of "
+                "the pool's queue (api/admission.py); Retry-After says when to try again",
             )
         )
         out.append(

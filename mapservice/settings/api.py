@@ -204,9 +204,18 @@ class ApiSettings(BaseModel):
         8,
         ge=1,
         description=(
-            "Reads, exports and analysts' queries one credential (or one client address when "
-            "anonymous) may have running or queued at once; one more is 429. At least a "
-            "browser's 6 connections per host, so one replay UI page is never refused."
+            "Reads (or exports) one credential (or one client address when anonymous) may have "
+            "running at once; more wait their turn in the pool's queue, where callers, and each "
+            "caller's sessions (its pages' tabs), are served in turns."
+        ),
+    )
+    api_caller_queue: int = Field(
+        24,
+        ge=1,
+        description=(
+            "Reads (or exports) one credential (or one client address when anonymous) may have "
+            "waiting in a pool's queue; one more is 429 with Retry-After (a session of that "
+            "caller with fewer waiting takes the place of the newest of the one with most)."
         ),
     )
     api_export_deadline_s: float = Field(

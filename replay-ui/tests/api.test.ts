@@ -1,5 +1,5 @@
 import { afterEach, describe, expect, it, vi } from "vitest";
-import { Api, fetchRetrying, mapFromWire } from "../src/lib/api";
+import { Api, mapFromWire } from "../src/lib/api";
 
 function respond(routes: Record<string, unknown>) {
   const calls: string[] = [];
@@ -51,28 +51,5 @@ describe("Api", () => {
     const conflict = { ts_ms: 5, row: 1, column: 2, robot_a: "a", robot_b: "b" };
     respond({ "/api/v1/conflicts": { from_ms: 0, to_ms: 10, window_s: 1, rule: "r", conflicts: [conflict], truncated: false } });
     expect(await new Api().conflicts(0, 10)).toEqual([conflict]);
-  });
-});
-
-describe("fetchRetrying", () => {
-  it("retries a 503 or 429 after its Retry-After, then returns the answer", async () => {
-    const answers = [
-      new Response(JSON.stringify({ detail: "busy" }), { status: 503, headers: { "Retry-After": "2" } }),
-      new Response(JSON.stringify({ detail: "slow down" }), { status: 429, headers: { "Retry-After": "60" } }),
-      new Response(JSON.stringify({ ok: 1 }), { status: 200 }),
-    ];
-    vi.stubGlobal("fetch", async () => answers.shift());
-    const waits: number[] = [];
-    const r = await fetchRetrying("/api/v1/robots", async (ms) => { waits.push(ms); });
-    expect(r.status).toBe(200);
-    expect(waits).toEqual([2000, 5000]); // Retry-After, capped at 5 s
-  });
-
-  it("gives up after three retries with the last refusal", async () => {
-    vi.stubGlobal("fetch", async () => new Response("{}", { status: 503 }));
-    const waits: number[] = [];
-    const r = await fetchRetrying("/x", async (ms) => { waits.push(ms); });
-    expect(r.status).toBe(503);
-    expect(waits).toEqual([1000, 1000, 1000]);
   });
 });

@@ -1,7 +1,8 @@
 import { afterEach, beforeEach, describe, expect, it, vi } from "vitest";
 import type { MapAt } from "../src/lib/api";
 import type { Speed } from "../src/lib/clock";
-import { FRAME_WAIT_MAX_MS, ReplayEngine, SETTLE_MS } from "../src/lib/engine";
+import { FRAME_WAIT_MAX_MS, ReplayEngine, SEEK_RETRY_MS, SETTLE_MS } from "../src/lib/engine";
+import { ApiError } from "../src/lib/request";
 import type { EventWindow, RobotAt } from "../src/lib/types";
 
 const NOW = Date.UTC(2026, 10, 21, 12, 0, 0);
@@ -65,8 +66,8 @@ describe("seek", () => {
   it("asks for the map and the robots at T at once, and for the pictures as soon as the map is here", async () => {
     const { engine, map, robots, calls } = makeEngine();
     const done = engine.seek(T);
-    expect(calls.map).toHaveBeenCalledWith(T);
-    expect(calls.robots).toHaveBeenCalledWith(T); // before the map answered
+    expect(calls.map).toHaveBeenCalledWith(T, expect.any(AbortSignal));
+    expect(calls.robots).toHaveBeenCalledWith(T, expect.any(AbortSignal)); // before the map answered
     map.resolve(MAP);
     await settle();
     // The robots are still on the way; the pictures are asked for already.
@@ -151,7 +152,7 @@ describe("pausing above 60x", () => {
     engine.clock.hold(T + 40_000, NOW);
     advance(SETTLE_MS);
     engine.frame();
-    expect(calls.map).toHaveBeenLastCalledWith(T + 40_000);
+    expect(calls.map).toHaveBeenLastCalledWith(T + 40_000, expect.any(AbortSignal));
     expect(engine.exactMapLoads).toBe(1);
     await settle();
     expect(engine.mapExactAt).toBe(T + 40_000);
@@ -160,6 +161,48 @@ describe("pausing above 60x", () => {
     advance(SETTLE_MS);
     engine.frame();
     expect(engine.exactMapLoads).toBe(1);
+  });
+});
+
+describe("a seek and a busy server", () => {
+  it("cancels the reads of a seek that a newer one superseded", async () => {
+    const { engine, calls } = makeEngine();
+    void engine.seek(T);
+    const first = calls.map.mock.calls[0][1];
+    const firstRobots = calls.robots.mock.calls[0][1];
+    expect(first?.aborted).toBe(false);
+    void engine.seek(T + 60_000);
+    expect(first?.aborted).toBe(true);
+    expect(firstRobots?.aborted).toBe(true);
+    expect(calls.map.mock.calls[1][1]?.aborted).toBe(false);
+  });
+
+  it("keeps the link's instant while it loads and after it failed, and tries again by itself", async () => {
+    const { engine, calls, map, robots } = makeEngine();
+    let wall = NOW;
+    engine.now = () => wall;
+    calls.map.mockRejectedValueOnce(new ApiError(503, "The server stayed too busy to load the map."));
+    const done = engine.seek(T);
+    expect(engine.playhead).toBe(T); // at once: the address names the link's instant
+    await done;
+    expect(engine.error).toContain("too busy");
+    expect(engine.playhead).toBe(T);
+    for (let i = 0; i < 5; i++) {
+      wall += (SEEK_RETRY_MS - 1) / 5;
+      engine.frame();
+    }
+    expect(calls.map).toHaveBeenCalledTimes(1); // not every frame
+    wall += 1;
+    engine.frame();
+    expect(calls.map).toHaveBeenCalledTimes(2);
+    expect(calls.map).toHaveBeenLastCalledWith(T, expect.any(AbortSignal));
+    map.resolve(MAP);
+    robots.resolve(ROBOTS);
+    await settle();
+    await settle();
+    expect(engine.error).toBeNull();
+    expect(engine.state.cells.size).toBe(3);
+    expect(engine.playhead).toBe(T);
   });
 });
 

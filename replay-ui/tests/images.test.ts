@@ -141,6 +141,24 @@ describe("ChunkImages", () => {
     expect(fetched).toEqual([]);
   });
 
+  it("asks again later for pictures a busy (or unreachable) server did not send", async () => {
+    for (const status of [429, 503, 0]) {
+      const src = new FakeSource(new Set([hex(1)]), new ApiError(status, "busy"));
+      const { im, loaded } = images(src);
+      im.requestMany([hex(1)]);
+      await settle();
+      await settle();
+      expect(im.failed.has(hex(1))).toBe(false);
+      expect(im.queued).toBe(0);
+      src.batchError = null; // the server has time again: the next want of it asks
+      im.requestMany([hex(1)]);
+      await settle();
+      await settle();
+      expect(src.batches).toHaveLength(2);
+      expect(loaded.flat()).toEqual([hex(1)]);
+    }
+  });
+
   it("appends prefetches behind what is queued, and urgent requests jump ahead", async () => {
     const src = new FakeSource(new Set([hex(1), hex(2), hex(3)]));
     const { im } = images(src, { parallel: 1 });

@@ -2,6 +2,7 @@ import { afterEach, describe, expect, it, vi } from "vitest";
 import { nextTick, ref } from "vue";
 import { useCommands } from "../src/composables/useCommands";
 import type { Command } from "../src/lib/commands";
+import { REFRESH_MS } from "../src/lib/cadence";
 
 function cmd(id: string, kind: string, issued: number): Command {
   return { commandId: id, robotId: "r1", kind, poiId: null, target: null, issuedBy: "operator:ops", issued_ms: issued, ack: null, outcome: null };
@@ -97,9 +98,25 @@ describe("the span's commands", () => {
       await settle();
       now += 200;
     }
-    // One read, then one per 5 s refresh: 4-5 over 20 s, not 100.
-    expect(reads.length).toBeGreaterThanOrEqual(4);
-    expect(reads.length).toBeLessThanOrEqual(5);
+    // One read, then one per refresh: 1 + 20 s / REFRESH_MS, not 100.
+    const refreshes = Math.floor(20_000 / REFRESH_MS);
+    expect(reads.length).toBeGreaterThanOrEqual(1 + refreshes - 1);
+    expect(reads.length).toBeLessThanOrEqual(1 + refreshes);
+    vi.restoreAllMocks();
+  });
+
+  it("are read once for a span in the past, however long the page rests on it", async () => {
+    const reads = counting();
+    let now = Date.now();
+    vi.spyOn(Date, "now").mockImplementation(() => now);
+    const span: [number, number] = [now - 86_400_000, now - 3_600_000]; // paused yesterday
+    const c = useCommands({ base: "", selected: ref(null), operator: () => false, span: () => span });
+    for (let i = 0; i < 50; i++) { // ten minutes, a tick every 12 s
+      c.tick(span[0]);
+      await settle();
+      now += 12_000;
+    }
+    expect(reads.length).toBe(1);
     vi.restoreAllMocks();
   });
 

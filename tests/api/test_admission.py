@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import socket
 import threading
 import time
 
@@ -18,6 +19,7 @@ from mapservice.api.app import create_app
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
+from tests.api.test_slow_clients import served
 
 LIVE_URL = "ws://localhost/api/v1/live"
 
@@ -103,26 +105,188 @@ def test_a_queued_read_is_refused_after_the_queue_wait() -> None:
 
 
 def test_one_caller_cannot_take_the_pool_alone() -> None:
-    """An address with MAPSERVICE_API_CALLER_CONCURRENCY reads under way gets 429 for one
-    more; another address is still served."""
+    """An address with MAPSERVICE_API_CALLER_CONCURRENCY reads running waits its turn for
+    one more (no longer refused); another address is served at once meanwhile, and the
+    waiting one once one of its own is done."""
     store = StuckStore()
     app = create_app(Settings(api_caller_concurrency=2, api_read_workers=8), store)
 
     async def scenario():
         mine = [asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots")) for _ in range(2)]
         await asyncio.sleep(0.3)
-        third = await _get(app, "10.0.0.1", "/api/v1/robots")
+        third = asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots"))
         other = asyncio.create_task(_get(app, "10.0.0.2", "/api/v1/robots"))
         await asyncio.sleep(0.3)
+        entered = store.entered  # the two of 10.0.0.1 and the other's, not the third
         store.release.set()
-        return third, await other, await asyncio.gather(*mine)
+        return entered, await third, await other, await asyncio.gather(*mine)
 
-    third, other, mine = asyncio.run(scenario())
-    assert (
-        third.status_code == 429 and "MAPSERVICE_API_CALLER_CONCURRENCY" in third.json()["detail"]
+    entered, third, other, mine = asyncio.run(scenario())
+    assert entered == 3
+    assert third.status_code == 200 and other.status_code == 200
+    assert all(r.status_code == 200 for r in mine)
+
+
+def test_a_caller_over_its_queue_share_gets_429_with_retry_after() -> None:
+    """Beyond MAPSERVICE_API_CALLER_QUEUE waiting reads of one address, one more is 429 at
+    once with Retry-After; another address still gets a place in the queue."""
+    store = StuckStore()
+    settings = Settings(api_read_workers=1, api_read_queue=8, api_caller_queue=2)
+    app = create_app(settings, store)
+
+    async def scenario():
+        mine = [asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots")) for _ in range(3)]
+        await asyncio.sleep(0.3)
+        over = await _get(app, "10.0.0.1", "/api/v1/robots")
+        other = asyncio.create_task(_get(app, "10.0.0.2", "/api/v1/robots"))
+        await asyncio.sleep(0.2)
+        store.release.set()
+        return over, await other, await asyncio.gather(*mine)
+
+    over, other, mine = asyncio.run(scenario())
+    assert over.status_code == 429 and "MAPSERVICE_API_CALLER_QUEUE" in over.json()["detail"]
+    assert over.headers["retry-after"].isdigit()
+    assert other.status_code == 200 and [r.status_code for r in mine] == [200] * 3
+
+
+class OrderedStore(StuckStore):
+    """Records which `at` each read asked for, in the order they ran, as ms after `base`
+    (an hour ago: within the retention, as `at` must be)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.base = time.time_ns() // 1_000_000 - 3_600_000
+        self.order: list[int] = []
+
+    def robots_at(self, at_ms: int, after=None, limit=None):
+        self.order.append(at_ms - self.base)
+        return super().robots_at(at_ms, after=after, limit=limit)
+
+    def path(self, offset: int) -> str:
+        return f"/api/v1/robots?at={self.base + offset}"
+
+
+def test_two_sessions_of_one_address_take_turns() -> None:
+    """A tab with twelve reads queued and a second tab of the same address asking three:
+    the second tab's reads run between the first's (turns per X-Mapservice-Session), not
+    after all twelve; a client naming a session per request gains nothing over one that
+    names none (they share the address's turns with the other address)."""
+    store = OrderedStore()
+    app = create_app(Settings(api_read_workers=1, api_read_queue=32), store)
+
+    async def get(address: str, at: int, session: str):
+        return await _session_get(app, address, store.path(at), session)
+
+    async def scenario():
+        first = [asyncio.create_task(get("10.0.0.1", 100 + i, "tab1")) for i in range(12)]
+        await asyncio.sleep(0.3)
+        second = [asyncio.create_task(get("10.0.0.1", 200 + i, "tab2")) for i in range(3)]
+        await asyncio.sleep(0.3)
+        store.release.set()
+        return await asyncio.gather(*first, *second)
+
+    replies = asyncio.run(scenario())
+    assert all(r.status_code == 200 for r in replies)
+    tab2 = [i for i, at in enumerate(store.order) if at >= 200]
+    # The first read ran at once; then the tabs alternate: tab2's by the 6th read.
+    assert tab2 == [2, 4, 6], store.order
+
+    store2 = OrderedStore()
+    app2 = create_app(Settings(api_read_workers=1, api_read_queue=32), store2)
+
+    async def many_sessions():
+        hostile = [
+            asyncio.create_task(_session_get(app2, "10.0.0.1", store2.path(100 + i), f"s{i}"))
+            for i in range(12)
+        ]
+        await asyncio.sleep(0.3)
+        honest = [
+            asyncio.create_task(_session_get(app2, "10.0.0.2", store2.path(200 + i), ""))
+            for i in range(3)
+        ]
+        await asyncio.sleep(0.3)
+        store2.release.set()
+        return await asyncio.gather(*hostile, *honest)
+
+    assert all(r.status_code == 200 for r in asyncio.run(many_sessions()))
+    honest = [i for i, at in enumerate(store2.order) if at >= 200]
+    assert honest == [2, 4, 6], store2.order
+
+
+async def _session_get(app, address: str, path: str, session: str) -> httpx.Response:
+    async with client_at(app, address) as client:
+        return await client.get(path, headers={"X-Mapservice-Session": session}, timeout=60)
+
+
+def test_a_hostile_caller_with_many_sessions_gets_one_share_and_the_probes_stay_fast() -> None:
+    """One address sends 100 reads at once, each naming a session of its own (as many
+    connections, as many tabs): it runs MAPSERVICE_API_CALLER_CONCURRENCY and keeps
+    MAPSERVICE_API_CALLER_QUEUE waiting, the rest are 429 at once (memory bounded); another
+    address's read is served within its turn, and the probes answer within a second."""
+    store = OrderedStore()
+    settings = Settings(
+        api_read_workers=2, api_read_queue=32, api_caller_concurrency=2, api_caller_queue=8
     )
-    assert third.headers["retry-after"] == "1"
-    assert other.status_code == 200 and all(r.status_code == 200 for r in mine)
+    app = create_app(settings, store, {"clickhouse": lambda: True})
+
+    async def scenario():
+        hostile = [
+            asyncio.create_task(_session_get(app, "10.6.6.6", store.path(1000 + i), f"tab{i}"))
+            for i in range(100)
+        ]
+        await asyncio.sleep(0.5)
+        refused = [t.result() for t in hostile if t.done()]
+        honest = asyncio.create_task(_get(app, "10.0.0.2", store.path(1)))
+        await asyncio.sleep(0.2)
+        probe_times = []
+        for path in ("/healthz", "/readyz"):
+            started = time.monotonic()
+            reply = await asyncio.wait_for(_get(app, "10.9.9.9", path), timeout=5)
+            probe_times.append(time.monotonic() - started)
+            assert reply.status_code == 200
+        store.release.set()
+        return refused, await honest, await asyncio.gather(*hostile), probe_times
+
+    refused, honest, hostile, probe_times = asyncio.run(scenario())
+    assert len(refused) == 100 - 2 - 8
+    assert {r.status_code for r in refused} == {429}
+    assert all(r.headers["retry-after"].isdigit() for r in refused)
+    assert honest.status_code == 200
+    assert sum(r.status_code == 200 for r in hostile) == 2 + 8
+    # The other address's read ran right after the first of the hostile caller's waiting
+    # ones: one turn each, not after all eight.
+    assert store.order.index(1) <= 2 + 1, store.order
+    assert max(probe_times) < 1.0, probe_times
+
+
+def test_a_read_whose_client_left_leaves_the_queue() -> None:
+    """A page cancels a superseded read while it waits (the browser closes its connection):
+    the read leaves the queue, its place free for the next, and never runs. On uvicorn: an
+    in-process client never closes a connection."""
+    store = OrderedStore()
+    app = create_app(Settings(api_read_workers=1, api_read_queue=1), store)
+    replies: dict[int, int] = {}
+
+    def get(url: str, at: int) -> None:
+        replies[at] = httpx.get(f"{url}{store.path(at)}", timeout=30).status_code
+
+    with served(app) as (port, _):
+        url = f"http://127.0.0.1:{port}"
+        stuck = threading.Thread(target=get, args=(url, 1))
+        stuck.start()
+        time.sleep(0.3)
+        with socket.create_connection(("127.0.0.1", port)) as left:
+            left.sendall(f"GET {store.path(2)} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
+            time.sleep(0.3)
+        time.sleep(0.3)
+        queued = threading.Thread(target=get, args=(url, 3))
+        queued.start()
+        time.sleep(0.3)
+        store.release.set()
+        stuck.join(30)
+        queued.join(30)
+    assert replies == {1: 200, 3: 200}  # 3 not 503: the place 2 held was free again
+    assert store.order == [1, 3]
 
 
 def _sql_app(release: threading.Event):

@@ -15,6 +15,7 @@ import {
 } from "../lib/annotations";
 import { setApiToken } from "../lib/auth";
 import { resolutionOf } from "../lib/geo";
+import { mayGrow, readAheadTo, REFRESH_MS } from "../lib/cadence";
 import type { MapView } from "../lib/mapview";
 
 export interface AnnotationDeps {
@@ -54,7 +55,9 @@ export function useAnnotations(d: AnnotationDeps) {
   let loadedAt = NaN;
   let listLoading = false;
   let dirty = false;
-  let win = { from: 0, to: 0, at: 0 };
+  /** The span the edits and violations were read for, up to where (past a live span's
+   * end) and when. */
+  let win = { from: 0, to: 0, until: 0, at: 0 };
   let winLoading = false;
   let drawnKey = "";
   /** This page's own edits, until the store's edits hold them (a second or two): the
@@ -77,9 +80,13 @@ export function useAnnotations(d: AnnotationDeps) {
 
   async function loadWindow(from: number, to: number) {
     winLoading = true;
-    win = { from, to, at: Date.now() };
+    const now = Date.now();
+    // A span reaching now is read ahead past it: its end sliding with the clock reads
+    // nothing new until the next refresh.
+    const until = readAheadTo(to, now);
+    win = { from, to, until, at: now };
     try {
-      const [e, v] = await Promise.all([api.edits(from, to), api.violations(from, to)]);
+      const [e, v] = await Promise.all([api.edits(from, until), api.violations(from, until)]);
       pending = pending.filter((p) => Date.now() - p.ts_ms < PENDING_MS && !e.items.some((x) => sameEdit(x, p)));
       edits.value = [...e.items, ...pending];
       violations.value = v.items;
@@ -97,11 +104,13 @@ export function useAnnotations(d: AnnotationDeps) {
   function tick(t: number) {
     const [from, to] = d.span();
     const slack = (to - from) / 50;
-    // A span reaching the last minute gains edits and violations as they are stored: read it again every 5 s.
-    const stale = (d.live() || to > Date.now() - 60_000) && Date.now() - win.at > 5_000;
-    if (!winLoading && (Math.abs(from - win.from) > slack || Math.abs(to - win.to) > slack || stale)) void loadWindow(from, to);
+    // A span reaching now gains edits and violations as they are stored: read again every
+    // refresh; its end sliding within what was read ahead asks nothing.
+    const stale = mayGrow(win.until, win.at) && Date.now() - win.at > REFRESH_MS;
+    const moved = Math.abs(from - win.from) > slack || Math.abs(to - win.to) > slack || to > win.until;
+    if (!winLoading && (moved || stale)) void loadWindow(from, to);
     // Outside the span the edits were read for, an edit may be unknown: read again every 10 s of playhead.
-    const unknown = !(t >= win.from && t < win.to && loadedAt >= win.from && loadedAt < win.to);
+    const unknown = !(t >= win.from && t < win.until && loadedAt >= win.from && loadedAt < win.until);
     if (!listLoading && (dirty || Number.isNaN(loadedAt) || crossesEdit(edits.value, loadedAt, t)
         || (unknown && Math.abs(t - loadedAt) > 10_000))) void loadList(t);
     redraw(t);

@@ -10,6 +10,7 @@ import { AnnotationApi } from "../lib/annotationapi";
 import { CommandApi } from "../lib/commandapi";
 import { awaiting, commandMarks, mergeCommands, pausedAt, type Command, type CommandKind } from "../lib/commands";
 import { oldestReadable } from "../lib/retention";
+import { mayGrow, readAheadTo, REFRESH_MS } from "../lib/cadence";
 
 export interface CommandDeps {
   base: string;
@@ -22,8 +23,7 @@ export interface CommandDeps {
 /** How far before the playhead the selected robot's commands are read (its latest pause). */
 const ROBOT_LOOKBACK_MS = 86_400_000;
 const POLL_MS = 1_000;
-const REFRESH_MS = 5_000;
-const POIS_EVERY_MS = 10_000;
+const POIS_EVERY_MS = 2 * REFRESH_MS;
 /** The API's default cap on a window's commands (GET /api/v1/commands `limit`). */
 const SPAN_LIMIT = 1_000;
 
@@ -59,7 +59,7 @@ export function useCommands(d: CommandDeps) {
   /** Reads the span's commands; a span that ends near now (live: its end slides with the
    * clock) is read ahead to the next refreshes, so that sliding asks nothing until then. */
   async function loadSpan(from: number, to: number, now: number) {
-    const until = to >= now - REFRESH_MS ? Math.max(to, now + 2 * REFRESH_MS) : to;
+    const until = readAheadTo(to, now);
     spanRead = { from, to: until, asked: to, at: now, whole: true };
     try {
       const got = await api.list(Math.max(from, oldestReadable(now)), until);
@@ -117,7 +117,8 @@ export function useCommands(d: CommandDeps) {
     const [from, to] = d.span();
     const id = d.selected.value;
     const jobs: Promise<void>[] = [];
-    if (!spanCovered(from, to) || now - spanRead.at > REFRESH_MS) jobs.push(loadSpan(from, to, now));
+    const due = mayGrow(spanRead.to, spanRead.at) && now - spanRead.at > REFRESH_MS;
+    if (!spanCovered(from, to) || due) jobs.push(loadSpan(from, to, now));
     if (id) {
       const every = robotCommands.value.some(awaiting) ? POLL_MS : REFRESH_MS;
       if (id !== robotRead.id || now - robotRead.at > every || Math.abs(t - robotRead.around) > ROBOT_LOOKBACK_MS / 2) jobs.push(loadRobot(id, t));

@@ -4,6 +4,7 @@
  * shows, refreshed every 200 ms (the engine and the map are plain objects, not reactive).
  */
 import { onBeforeUnmount, reactive, type Ref, type ShallowRef } from "vue";
+import { busyWaits } from "../lib/request";
 import type { Speed } from "../lib/clock";
 import type { ReplayEngine } from "../lib/engine";
 import type { LayerToggles, MapView } from "../lib/mapview";
@@ -44,6 +45,8 @@ export function useFrameLoop(d: FrameLoopDeps) {
     seeking: false,
     complete: false,
     error: null as string | null,
+    /** Some read waits for a busy server's Retry-After (lib/request.ts). */
+    waiting: false,
     liveConnected: false,
     latencyMs: null as number | null,
     robots: 0,
@@ -111,6 +114,7 @@ export function useFrameLoop(d: FrameLoopDeps) {
     ui.buffering = engine.buffering;
     ui.seeking = engine.seeking;
     ui.error = engine.error;
+    ui.waiting = busyWaits.count > 0;
     ui.liveConnected = engine.live.status.connected;
     ui.latencyMs = engine.live.status.latencyMs;
     ui.chunks = engine.state.cells.size;

@@ -2,10 +2,13 @@
  * The replay page's VDA 5050 facts: the timeline span's error onsets (marks), the fleet's
  * facts of the hour before the playhead (each row's current errors; online/offline from
  * the exact connection states where one is in that hour, else the pose silence), and the
- * selected vehicle's facts with its factsheet (the fleet's until its own are read). Each read at most every 2 s of playhead.
+ * selected vehicle's facts with its factsheet (the fleet's until its own are read). The
+ * fleet's and the vehicle's facts are read at most every 2 s of playhead; the marks as the
+ * page's other span lists are (lib/cadence.ts).
  */
 import { ref, shallowRef } from "vue";
 import type { FleetRow } from "../lib/fleet";
+import { mayGrow, readAheadTo, REFRESH_MS } from "../lib/cadence";
 import { connectionAt, errorMarks, errorsAt, fleetFacts, isVehicleId, vehicleFacts, type ErrorMark, type VdaVehicle } from "../lib/vda";
 
 const FLEET_WINDOW_MS = 3_600_000;
@@ -18,22 +21,30 @@ export function useVdaFacts(base: () => string) {
   const marks = shallowRef<ErrorMark[]>([]);
   const fleet = shallowRef(new Map<string, VdaVehicle>());
   const selected = ref<VdaVehicle | null>(null);
-  let marksFor = "";
+  /** The span the marks were read for, up to where (past a live span's end) and when. */
+  let marksRead = { from: 0, to: 0, until: 0, at: 0 };
   let fleetFor = -Infinity;
   let fleetLoading = false;
   let selectedFor = { id: "", t: -Infinity };
 
   async function loadMarks(from: number | undefined, to: number | undefined) {
     if (from === undefined || to === undefined) return;
-    const key = `${Math.floor(from / REREAD_MS)}:${Math.floor(to / REREAD_MS)}`;
-    if (key === marksFor) return;
-    marksFor = key;
+    const now = Date.now();
+    // The view slides with live (or playback) every frame: read again only once it moved
+    // by 2 % of its span or past what was read ahead, or at the refresh cadence while the
+    // span reaches now (errors are stored as they happen).
+    const slack = (to - from) / 50;
+    const moved = Math.abs(from - marksRead.from) > slack || Math.abs(to - marksRead.to) > slack || to > marksRead.until;
+    const stale = mayGrow(marksRead.until, marksRead.at) && now - marksRead.at > REFRESH_MS;
+    if (!moved && !stale) return;
+    const until = readAheadTo(to, now);
+    marksRead = { from, to, until, at: now };
     if (to - from > MARKS_MAX_SPAN_MS) {
       marks.value = [];
       return;
     }
     try {
-      marks.value = errorMarks(await fleetFacts(base(), from, to));
+      marks.value = errorMarks(await fleetFacts(base(), from, until));
     } catch {
       marks.value = [];
     }

@@ -4,8 +4,7 @@
  * is an ApiError carrying the server's own message (why, and what to do); `send` is the
  * operators' writes' one request (the commands use it too).
  */
-import { ApiError, getJson } from "./api";
-import { authHeaders } from "./auth";
+import { ApiError, fetchRetrying, getJson } from "./api";
 import { bodyOf, type Annotation, type AnnotationDoc, type AnnotationEdit, type ZoneViolation } from "./annotations";
 
 /** At most this many violations per window: a robot parked in a zone reports every second. */
@@ -17,9 +16,9 @@ export interface Window<T> {
 }
 
 export async function send<T>(method: string, url: string, body?: unknown): Promise<T | null> {
-  const r = await fetch(url, {
+  const r = await fetchRetrying(url, {
     method,
-    headers: { ...authHeaders(), ...(body === undefined ? {} : { "Content-Type": "application/json" }) },
+    headers: body === undefined ? {} : { "Content-Type": "application/json" },
     body: body === undefined ? undefined : JSON.stringify(body),
   });
   if (!r.ok) {
@@ -41,26 +40,26 @@ export class AnnotationApi {
   constructor(public base = "") {}
 
   async at(atMs: number): Promise<Annotation[]> {
-    const r = await getJson<{ annotations: Annotation[] }>(`${this.base}/api/v1/annotations?at=${Math.round(atMs)}`);
+    const r = await getJson<{ annotations: Annotation[] }>(`${this.base}/api/v1/annotations?at=${Math.round(atMs)}`, "the zones");
     return r.annotations;
   }
 
   async edits(fromMs: number, toMs: number): Promise<Window<AnnotationEdit>> {
     const r = await getJson<{ edits: AnnotationEdit[]; truncated: boolean }>(
-      `${this.base}/api/v1/annotations/edits?from=${Math.round(fromMs)}&to=${Math.round(toMs)}`);
+      `${this.base}/api/v1/annotations/edits?from=${Math.round(fromMs)}&to=${Math.round(toMs)}`, "the zone edits");
     return { items: r.edits, truncated: r.truncated };
   }
 
   async violations(fromMs: number, toMs: number): Promise<Window<ZoneViolation>> {
     const r = await getJson<{ violations: ZoneViolation[]; truncated: boolean }>(
-      `${this.base}/api/v1/zone-violations?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&limit=${VIOLATION_LIMIT}`);
+      `${this.base}/api/v1/zone-violations?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&limit=${VIOLATION_LIMIT}`, "the zone violations");
     return { items: r.violations, truncated: r.truncated };
   }
 
   /** The scopes of the token this browser holds (GET /api/v1/caller); [] when it cannot tell. */
   async scopes(): Promise<string[]> {
     try {
-      return (await getJson<{ scopes: string[] }>(`${this.base}/api/v1/caller`)).scopes;
+      return (await getJson<{ scopes: string[] }>(`${this.base}/api/v1/caller`, "what your token may do")).scopes;
     } catch {
       return [];
     }

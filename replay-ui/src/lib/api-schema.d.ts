@@ -1564,7 +1564,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1634,7 +1634,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1684,7 +1684,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1736,7 +1736,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1789,7 +1789,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1832,7 +1832,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1905,7 +1905,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -1978,7 +1978,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2028,7 +2028,7 @@ export interface operations {
                 };
                 content?: never;
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2094,7 +2094,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2140,7 +2140,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2208,7 +2208,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2257,7 +2257,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2325,7 +2325,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2396,7 +2396,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2454,7 +2454,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2488,7 +2488,7 @@ export interface operations {
                     "application/json": components["schemas"]["CallerAccess"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2552,7 +2552,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2614,7 +2614,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2664,7 +2664,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2713,7 +2713,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2747,7 +2747,7 @@ export interface operations {
                     "application/json": components["schemas"]["ClientConfig"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2798,7 +2798,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2866,7 +2866,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2915,7 +2915,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -2966,7 +2966,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3017,7 +3017,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3066,7 +3066,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3118,7 +3118,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3166,7 +3166,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3221,7 +3221,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3269,7 +3269,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3318,7 +3318,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3368,7 +3368,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3418,7 +3418,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3468,7 +3468,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3520,7 +3520,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3572,7 +3572,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3623,7 +3623,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3659,7 +3659,7 @@ export interface operations {
                     };
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3693,7 +3693,7 @@ export interface operations {
                     "application/json": components["schemas"]["ServiceStatus"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3743,7 +3743,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;
@@ -3792,7 +3792,7 @@ export interface operations {
                     "application/json": components["schemas"]["HTTPValidationError"];
                 };
             };
-            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller has MAPSERVICE_API_CALLER_CONCURRENCY requests under way; Retry-After says when to try again */
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
             429: {
                 headers: {
                     [name: string]: unknown;

@@ -6,42 +6,34 @@
 import type { Source } from "./buffer";
 import { parseBatch, type ChunkBatch } from "./chunkdecode";
 import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline, TrackBuckets } from "./types";
-import { authHeaders } from "./auth";
+import { ApiError, explainFailure, explainUnreachable, fetchRetrying, isAbort, sharedGet } from "./request";
 import type { Change } from "./changefeed";
 
-export class ApiError extends Error {
-  constructor(public status: number, message: string) {
-    super(message);
+export { ApiError, fetchRetrying } from "./request";
+
+/** GET `url` as JSON: shared with the same read in flight, asked again while the server
+ * is busy, given up when `signal` aborts. A failure is an ApiError whose message says, in
+ * a user's words, what of `what` could not be loaded and what to do (the server's own
+ * words are its `detail`). */
+export async function getJson<T>(url: string, what = "the data", signal?: AbortSignal): Promise<T> {
+  let answer;
+  try {
+    answer = await sharedGet(url, signal);
+  } catch (e) {
+    if (isAbort(e) || signal?.aborted) throw e;
+    throw new ApiError(0, explainUnreachable(what), String(e));
   }
-}
-
-/** Answers that say "busy, come back" (the server's pools and per-client caps); retried
- * after their Retry-After (at most RETRY_CAP_MS), RETRIES times at most. */
-const BUSY = new Set([429, 503]);
-const RETRIES = 3;
-const RETRY_CAP_MS = 5_000;
-
-export async function fetchRetrying(url: string, sleep = (ms: number) => new Promise((r) => setTimeout(r, ms))): Promise<Response> {
-  for (let attempt = 0; ; attempt++) {
-    const r = await fetch(url, { headers: authHeaders() });
-    if (!BUSY.has(r.status) || attempt >= RETRIES) return r;
-    const seconds = Number(r.headers.get("Retry-After"));
-    await sleep(Math.min(RETRY_CAP_MS, Number.isFinite(seconds) && seconds > 0 ? seconds * 1000 : 1000));
-  }
-}
-
-export async function getJson<T>(url: string): Promise<T> {
-  const r = await fetchRetrying(url);
-  if (!r.ok) {
-    let detail = r.statusText;
+  if (answer.status < 200 || answer.status > 299) {
+    let detail = "";
     try {
-      detail = (await r.json()).detail ?? detail;
+      const d = JSON.parse(answer.text).detail;
+      detail = typeof d === "string" ? d : JSON.stringify(d);
     } catch {
       /* not JSON */
     }
-    throw new ApiError(r.status, `${url}: ${r.status} ${typeof detail === "string" ? detail : JSON.stringify(detail)}`);
+    throw new ApiError(answer.status, explainFailure(what, answer.status), detail);
   }
-  return r.json() as Promise<T>;
+  return JSON.parse(answer.text) as T;
 }
 
 const DAY = 86_400_000;
@@ -83,45 +75,51 @@ export class Api implements Source {
   }
 
   /** Many chunk pictures in one request (MessagePack). */
-  async chunkBatch(hashes: string[]): Promise<ChunkBatch> {
+  async chunkBatch(hashes: string[], signal?: AbortSignal): Promise<ChunkBatch> {
     const url = `${this.base}/api/v1/chunk-contents/batch`;
-    const r = await fetch(url, { method: "POST", headers: { "Content-Type": "application/json", ...authHeaders() }, body: JSON.stringify({ hashes }) });
-    if (!r.ok) throw new ApiError(r.status, `${url}: ${r.status} ${r.statusText}`);
+    let r: Response;
+    try {
+      r = await fetchRetrying(url, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ hashes }), signal });
+    } catch (e) {
+      if (isAbort(e) || signal?.aborted) throw e;
+      throw new ApiError(0, explainUnreachable("the map's pictures"), String(e));
+    }
+    if (!r.ok) throw new ApiError(r.status, explainFailure("the map's pictures", r.status));
     return parseBatch(await r.arrayBuffer());
   }
 
   /** The map at T, asked for in the compact layout. */
-  async map(atMs: number): Promise<MapAt> {
-    return mapFromWire(await getJson<MapAtWire>(`${this.base}/api/v1/map?at=${Math.round(atMs)}&layout=compact`));
+  async map(atMs: number, signal?: AbortSignal): Promise<MapAt> {
+    return mapFromWire(await getJson<MapAtWire>(`${this.base}/api/v1/map?at=${Math.round(atMs)}&layout=compact`, "the map", signal));
   }
 
   async mapAt(atMs: number): Promise<ChunkCell[]> {
     return (await this.map(atMs)).chunks;
   }
 
-  async robotsAt(atMs: number): Promise<RobotAt[]> {
-    return (await getJson<{ robots: RobotAt[] }>(`${this.base}/api/v1/robots?at=${Math.round(atMs)}`)).robots;
+  async robotsAt(atMs: number, signal?: AbortSignal): Promise<RobotAt[]> {
+    return (await getJson<{ robots: RobotAt[] }>(`${this.base}/api/v1/robots?at=${Math.round(atMs)}`, "the robots", signal)).robots;
   }
 
   /** A replay window; `chunkStepMs` > 0 asks the server to compact chunk writes per bucket. */
-  async events(fromMs: number, toMs: number, stepMs: number, chunkStepMs = 0): Promise<EventWindow> {
+  async events(fromMs: number, toMs: number, stepMs: number, chunkStepMs = 0, signal?: AbortSignal): Promise<EventWindow> {
     const compact = chunkStepMs > 0 ? `&chunk_step_ms=${chunkStepMs}` : "";
-    return getJson<EventWindow>(`${this.base}/api/v1/events?from=${fromMs}&to=${toMs}&step_ms=${stepMs}${compact}`);
+    return getJson<EventWindow>(`${this.base}/api/v1/events?from=${fromMs}&to=${toMs}&step_ms=${stepMs}${compact}`, "the replay's next minutes", signal);
   }
 
-  async timeline(fromMs: number, toMs: number, buckets: number): Promise<Timeline> {
-    return getJson<Timeline>(`${this.base}/api/v1/timeline?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&buckets=${buckets}`);
+  async timeline(fromMs: number, toMs: number, buckets: number, signal?: AbortSignal): Promise<Timeline> {
+    return getJson<Timeline>(`${this.base}/api/v1/timeline?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&buckets=${buckets}`, "the timeline", signal);
   }
 
   async conflicts(fromMs: number, toMs: number): Promise<Conflict[]> {
     const r = await getJson<{ conflicts: Conflict[] }>(
-      `${this.base}/api/v1/conflicts?from=${Math.round(fromMs)}&to=${Math.round(Math.min(toMs, fromMs + DAY))}`);
+      `${this.base}/api/v1/conflicts?from=${Math.round(fromMs)}&to=${Math.round(Math.min(toMs, fromMs + DAY))}`, "the conflicts");
     return r.conflicts;
   }
 
   async track(robotId: string, fromMs: number, toMs: number, stepMs: number): Promise<Pose[]> {
     const r = await getJson<{ points: { ts_ms: number; x: number; y: number; yaw: number }[] }>(
-      `${this.base}/api/v1/robots/${encodeURIComponent(robotId)}/track?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&step_ms=${stepMs}`);
+      `${this.base}/api/v1/robots/${encodeURIComponent(robotId)}/track?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&step_ms=${stepMs}`, `${robotId}'s trail`);
     return r.points.map((p) => ({
       robotId, ts_ms: p.ts_ms, position: [p.x, p.y, 0], orientation: [0, 0, Math.sin(p.yaw / 2), Math.cos(p.yaw / 2)],
       battery_level: null, charging: null, loaded: null, path: null,
@@ -132,19 +130,19 @@ export class Api implements Source {
    * timeline buckets, so its writes leave the change bars where they are. */
   async chunkEvents(fromMs: number, toMs: number): Promise<{ ts_ms: number; robotId: string }[]> {
     return getJson<{ ts_ms: number; robotId: string }[]>(
-      `${this.base}/api/v1/chunk-events?from=${Math.floor(fromMs)}&to=${Math.ceil(toMs)}&limit=100000`);
+      `${this.base}/api/v1/chunk-events?from=${Math.floor(fromMs)}&to=${Math.ceil(toMs)}&limit=100000`, "the upload's writes");
   }
 
   /** The map uploads in [from, to) (newest first, at most 1000), for the timeline's marks. */
-  async uploads(fromMs: number, toMs: number): Promise<Change[]> {
+  async uploads(fromMs: number, toMs: number, signal?: AbortSignal): Promise<Change[]> {
     const r = await getJson<{ changes: Change[] }>(
-      `${this.base}/api/v1/changes?kind=upload&limit=1000&from=${Math.round(fromMs)}&to=${Math.round(toMs)}`);
+      `${this.base}/api/v1/changes?kind=upload&limit=1000&from=${Math.round(fromMs)}&to=${Math.round(toMs)}`, "the map uploads", signal);
     return r.changes;
   }
 
-  /** One robot's poses in [from, to) aggregated in at most `buckets` round buckets. */
+  /** One robot's poses in [from, to) aggregated in at most `buckets` round buckets (the plots). */
   async trackBuckets(robotId: string, fromMs: number, toMs: number, buckets: number): Promise<TrackBuckets> {
     return getJson<TrackBuckets>(`${this.base}/api/v1/robots/${encodeURIComponent(robotId)}`
-      + `/track-buckets?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&buckets=${buckets}`);
+      + `/track-buckets?from=${Math.round(fromMs)}&to=${Math.round(toMs)}&buckets=${buckets}`, `${robotId}'s plots`);
   }
 }

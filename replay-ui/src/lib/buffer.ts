@@ -12,7 +12,7 @@ import { annotatePrev, cellKey, compareChanges } from "./mapstate";
 import type { ChunkCell, ChunkChange, EventWindow, Pose, RobotAt } from "./types";
 
 export interface Source {
-  events(fromMs: number, toMs: number, stepMs: number, chunkStepMs?: number): Promise<EventWindow>;
+  events(fromMs: number, toMs: number, stepMs: number, chunkStepMs?: number, signal?: AbortSignal): Promise<EventWindow>;
   mapAt(atMs: number): Promise<ChunkCell[]>;
   robotsAt(atMs: number): Promise<RobotAt[]>;
 }
@@ -83,6 +83,8 @@ export class EventBuffer {
   windows: [number, number, number][] = [];
   private inflight: Promise<void> | null = null;
   private generation = 0;
+  /** Cancels the window reads of the generation a reset ended (nobody wants them). */
+  private abort = new AbortController();
   maxChunks = 400_000;
 
   constructor(private source: Source, atMs: number, speed: number) {
@@ -95,6 +97,8 @@ export class EventBuffer {
   /** Starts over at a seek: the caller has applied the map and robots at `atMs`. */
   reset(atMs: number, speed: number, robots: RobotAt[]): void {
     this.generation++;
+    this.abort.abort();
+    this.abort = new AbortController();
     this.inflight = null;
     this.from = atMs + 1;
     this.to = atMs + 1;
@@ -159,7 +163,7 @@ export class EventBuffer {
 
   async extendForward(f: number, t: number): Promise<void> {
     const gen = this.generation;
-    const w = await this.source.events(f, t, this.stepMs, this.chunkStepMs);
+    const w = await this.source.events(f, t, this.stepMs, this.chunkStepMs, this.abort.signal);
     if (gen !== this.generation || f !== this.to) return;
     const { chunks, poses, to } = complete(w, f, t);
     chunks.sort(compareChanges);
@@ -175,7 +179,7 @@ export class EventBuffer {
     const gen = this.generation;
     // The cells and robots as they were just before f, the base for the new writes' `prev`.
     const [w, before, robots] = await Promise.all([
-      this.source.events(f, t, this.stepMs, this.chunkStepMs),
+      this.source.events(f, t, this.stepMs, this.chunkStepMs, this.abort.signal),
       this.source.mapAt(f - 1),
       this.source.robotsAt(f - 1),
     ]);

@@ -2,7 +2,7 @@
  * The change feed (GET /api/v1/changes) as the replay's panel needs it: the request, an area
  * drawn on the map as a chunk box, and the previous/next change from the playhead.
  */
-import { authHeaders } from "./auth";
+import { getJson } from "./api";
 import type { MapMeta } from "./types";
 
 export interface Change {
@@ -53,17 +53,7 @@ export function changesUrl(base: string, fromMs: number, toMs: number, f: Change
 
 export async function fetchChanges(base: string, fromMs: number, toMs: number, f: ChangeFilter, limit = 200, before: string | null = null): Promise<ChangePage> {
   const url = changesUrl(base, fromMs, toMs, f, limit, before);
-  const r = await fetch(url, { headers: authHeaders() });
-  if (!r.ok) {
-    let detail = r.statusText;
-    try {
-      detail = (await r.json()).detail ?? detail;
-    } catch {
-      /* not JSON */
-    }
-    throw new Error(`change feed: ${r.status} ${detail}`);
-  }
-  return (await r.json()) as ChangePage;
+  return getJson<ChangePage>(url, "the change feed");
 }
 
 /** The chunk box two map pixels (corners of a drawn rectangle, any order) span, clipped to the grid; null outside it. */

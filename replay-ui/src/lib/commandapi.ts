@@ -13,7 +13,7 @@ export class CommandApi {
   async list(fromMs: number, toMs: number, robotId?: string): Promise<Command[]> {
     const robot = robotId ? `&robot=${encodeURIComponent(robotId)}` : "";
     const r = await getJson<{ commands: Command[] }>(
-      `${this.base}/api/v1/commands?from=${Math.round(fromMs)}&to=${Math.round(toMs)}${robot}`);
+      `${this.base}/api/v1/commands?from=${Math.round(fromMs)}&to=${Math.round(toMs)}${robot}`, "the commands");
     return r.commands;
   }
 

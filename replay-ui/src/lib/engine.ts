@@ -9,6 +9,7 @@
  * between two boundaries, the exact map at the playhead is loaded (a seek in place).
  */
 import { Api } from "./api";
+import { errorText, isAbort } from "./request";
 import { chunkStepMs, EventBuffer, keepBehindMs, poseStepMs } from "./buffer";
 import { PlaybackClock, type Speed } from "./clock";
 import { ChunkImages } from "./images";
@@ -26,6 +27,9 @@ import type { MapMeta, Pose, RobotAt } from "./types";
  */
 export const SETTLE_MS = 300;
 export const FRAME_WAIT_MAX_MS = 2000;
+/** A seek that failed (the server stayed busy or unreachable beyond the reads' patience)
+ * is tried again this long after, by itself: the page recovers without a reload. */
+export const SEEK_RETRY_MS = 30_000;
 
 export interface RobotView extends PlacedPose {
   robotId: string;
@@ -83,6 +87,10 @@ export class ReplayEngine {
   private exactMapTried = -1;
   private recordSeek = true;
   private seekGen = 0;
+  /** Cancels the reads of a seek that a newer one superseded. */
+  private seekAbort: AbortController | null = null;
+  /** A seek that failed: its instant and when (the map is not known there; retried). */
+  private failedSeek: { t: number; at: number } | null = null;
   private lastStepMs: number;
   onSeeked: () => void = () => {};
 
@@ -132,21 +140,27 @@ export class ReplayEngine {
     this.clock.minMs = oldestReadable(wall);
     t = Math.round(Math.min(wall, Math.max(this.clock.minMs, t)));
     const gen = ++this.seekGen;
+    this.seekAbort?.abort();
+    const abort = (this.seekAbort = new AbortController());
     this.seeking = true;
+    this.failedSeek = null;
     this.seekStartedWall = this.perfNow();
     this.seekDrawnAt = 0;
     if (!keepLive) {
       this.live.stop();
       this.clock.seek(t, wall);
+      // The instant asked for, at once: the address keeps it while the map loads (or waits
+      // for a busy server), never the instant shown before.
+      this.playhead = t;
     }
     try {
       // Both at once; the pictures the map at T lacks are asked for (in a few batches, not
       // tile by tile) as soon as the map is here, while the robots may still be on the way.
-      const map = this.api.map(t).then((m) => {
+      const map = this.api.map(t, abort.signal).then((m) => {
         if (gen === this.seekGen) this.images.requestMany(m.chunks.map((c) => c.content_hash));
         return m;
       });
-      const [mapAt, robots] = await Promise.all([map, this.api.robotsAt(t)]);
+      const [mapAt, robots] = await Promise.all([map, this.api.robotsAt(t, abort.signal)]);
       if (gen !== this.seekGen) return;
       if (record) this.seekApiTimes.push(this.perfNow() - this.seekStartedWall);
       this.meta = mapAt.meta ?? this.meta;
@@ -168,7 +182,10 @@ export class ReplayEngine {
       for (const m of pending) this.onLive(m);
       this.onSeeked();
     } catch (e) {
-      if (gen === this.seekGen) this.error = String(e);
+      if (gen === this.seekGen && !isAbort(e)) {
+        this.error = errorText(e);
+        this.failedSeek = { t, at: this.now() };
+      }
     } finally {
       if (gen === this.seekGen) this.seeking = false;
     }
@@ -192,8 +209,14 @@ export class ReplayEngine {
 
   /** Advances to the clock's instant; called once per animation frame. */
   frame(): void {
-    if (this.seeking || !this.meta) return;
+    if (this.seeking) return;
     const wall = this.now();
+    if (this.failedSeek) {
+      // The map at the playhead is unknown: nothing to move; ask again in a while.
+      if (wall - this.failedSeek.at >= SEEK_RETRY_MS) void this.seek(this.failedSeek.t, this.clock.live, false);
+      return;
+    }
+    if (!this.meta) return;
     if (this.clock.live) {
       this.playhead = wall;
       this.buffering = false; // live follows the WebSocket, there is no buffer to wait for
@@ -243,7 +266,7 @@ export class ReplayEngine {
         // Prefetch the pictures of the writes just buffered, in playing order.
         const fresh = dir > 0 ? this.buffer.chunks.slice(before) : this.buffer.chunks.slice(0, this.buffer.chunks.length - before).reverse();
         this.images.requestMany(fresh.slice(0, 5000).map((c) => c.content_hash), false);
-      }).catch((e) => (this.error = String(e)));
+      }).catch((e) => (this.error = errorText(e)));
     }
     this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));
   }
@@ -273,7 +296,7 @@ export class ReplayEngine {
       this.exactAt = { t, robots: new Map(robots.map((r) => [r.robotId, r])) };
       for (const r of robots) this.robotInfo.set(r.robotId, r);
       this.liveVersion++; // the view redraws the robots
-    }).catch((e) => (this.error = String(e)))
+    }).catch((e) => (this.error = errorText(e)))
       .finally(() => { if (this.exactLoading === t) this.exactLoading = -1; });
   }
 

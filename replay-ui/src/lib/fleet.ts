@@ -3,7 +3,7 @@
  * list), battery in %, speed from the track, the planned path's goal, and label placement
  * that never overlaps (a label that fits nowhere is left out; the list still names it).
  */
-import { authHeaders } from "./auth";
+import { getJson } from "./api";
 import type { Pose } from "./types";
 
 /** How far back the fleet panel reads poses for the speeds: two samples of a 1 Hz robot and slack. */
@@ -12,10 +12,8 @@ export const SPEED_WINDOW_MS = 10_000;
 /** Every robot's poses of the SPEED_WINDOW_MS up to `t`, by robot (one request for the fleet). */
 export async function recentTracks(base: string, t: number): Promise<Map<string, Pose[]>> {
   const url = `${base}/api/v1/poses?from=${Math.floor(t) - SPEED_WINDOW_MS}&to=${Math.floor(t) + 1}&limit=100000`;
-  const r = await fetch(url, { headers: authHeaders() });
-  if (!r.ok) throw new Error(`${url}: ${r.status} ${r.statusText}`);
   const tracks = new Map<string, Pose[]>();
-  for (const p of (await r.json()) as Pose[]) {
+  for (const p of await getJson<Pose[]>(url, "the robots' speeds")) {
     let track = tracks.get(p.robotId);
     if (!track) tracks.set(p.robotId, (track = []));
     track.push(p);

@@ -3,7 +3,7 @@
  * refuses inserts (a full disk, ...) the replay would show a past that silently stops, so
  * the page says "history not stored since HH:MM:SS UTC", with the server's reason.
  */
-import { authHeaders } from "./auth";
+import { pageHeaders } from "./request";
 
 /** /api/v1/status's `history`: null where the API runs apart from the processors. */
 export interface HistoryStatus {
@@ -42,7 +42,7 @@ export type Poll = { history: HistoryStatus | null } | "unknown";
  * elsewhere) says nothing, and the next poll asks again. */
 export async function pollStatus(fetchFn: typeof fetch = fetch, base = ""): Promise<Poll> {
   try {
-    const r = await fetchFn(`${base}/api/v1/status`, { headers: authHeaders() });
+    const r = await fetchFn(`${base}/api/v1/status`, { headers: pageHeaders() });
     if (!r.ok) return "unknown";
     const body = (await r.json()) as { history?: HistoryStatus | null };
     return { history: body.history ?? null };

@@ -8,6 +8,7 @@
  * one request and one read per picture.
  */
 import { greyToRgba, inflate, slicesFor, type ChunkBatch, type ChunkContent } from "./chunkdecode";
+import { ApiError, BUSY } from "./request";
 
 export type ChunkImage = ImageBitmap | HTMLImageElement | HTMLCanvasElement | OffscreenCanvas;
 
@@ -129,8 +130,14 @@ export class ChunkImages {
     this.requests++;
     try {
       batch = await this.source.chunkBatch(hashes);
-    } catch {
-      for (const h of hashes) this.fail(h);
+    } catch (e) {
+      // A server that stayed busy (or out of reach) past the reads' patience is asked
+      // again the next time a picture is wanted; any other refusal is final.
+      const transient = e instanceof ApiError && (BUSY.has(e.status) || e.status === 0);
+      for (const h of hashes) {
+        if (transient) this.requested.delete(h);
+        else this.fail(h);
+      }
       return;
     }
     for (const h of batch.missing) this.fail(h);

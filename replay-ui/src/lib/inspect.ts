@@ -4,7 +4,8 @@
  * page holds for reads (lib/auth.ts): a link cannot carry an Authorization header, so the
  * file is fetched and handed to the browser as a download.
  */
-import { authHeaders } from "./auth";
+import { getJson } from "./api";
+import { fetchRetrying } from "./request";
 
 export interface ConflictEntry {
   row: number;
@@ -41,9 +42,7 @@ async function failure(what: string, r: Response): Promise<Error> {
 
 export async function fetchConflictList(base: string, fromMs: number, toMs: number, limit = 500): Promise<ConflictList> {
   const q = new URLSearchParams({ from: String(Math.floor(fromMs)), to: String(Math.ceil(toMs)), limit: String(limit) });
-  const r = await fetch(`${base}/api/v1/conflicts?${q}`, { headers: authHeaders() });
-  if (!r.ok) throw await failure("conflicts", r);
-  return (await r.json()) as ConflictList;
+  return getJson<ConflictList>(`${base}/api/v1/conflicts?${q}`, "the conflicts");
 }
 
 export function conflictKey(c: ConflictEntry): string {
@@ -82,7 +81,7 @@ export function fileNameOf(r: Response, fallback: string): string {
 
 /** Fetches an export (with the read token) and saves it; resolves to its name and size in bytes. */
 export async function downloadExport(base: string, kind: ExportKind, fromMs: number, toMs: number): Promise<{ name: string; bytes: number }> {
-  const r = await fetch(exportUrl(base, kind, fromMs, toMs), { headers: authHeaders() });
+  const r = await fetchRetrying(exportUrl(base, kind, fromMs, toMs));
   if (!r.ok) throw await failure("export", r);
   const blob = await r.blob();
   const name = fileNameOf(r, kind === "mcap" ? "replay.mcap" : `${kind}.csv`);

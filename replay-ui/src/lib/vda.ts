@@ -5,7 +5,7 @@
  * with some clears them (errorClears), so the errors at T are those of the latest error
  * instant at or before T, unless a clear came between.
  */
-import { authHeaders } from "./auth";
+import { getJson } from "./api";
 
 export interface VdaError { ts_ms: number; level: string; type: string; description: string }
 export interface VdaConnection { ts_ms: number; state: string; sent_ms: number }
@@ -35,18 +35,12 @@ export interface ErrorMark { ts_ms: number; robotId: string; level: string; type
 
 export interface FactsheetSummary { manufacturer: string; serialNumber: string; series: string | null; speedMax: number | null; version: string }
 
-async function getJson<T>(url: string): Promise<T> {
-  const r = await fetch(url, { headers: authHeaders() });
-  if (!r.ok) throw new Error(`${url}: ${r.status} ${r.statusText}`);
-  return (await r.json()) as T;
-}
-
 export function fleetFacts(base: string, from: number, to: number): Promise<VdaVehicle[]> {
-  return getJson<VdaVehicle[]>(`${base}/api/v1/robots/vda5050?from=${Math.floor(from)}&to=${Math.floor(to)}`);
+  return getJson<VdaVehicle[]>(`${base}/api/v1/robots/vda5050?from=${Math.floor(from)}&to=${Math.floor(to)}`, "the robots' VDA 5050 states");
 }
 
 export function vehicleFacts(base: string, robotId: string, from: number, to: number): Promise<VdaVehicle> {
-  return getJson<VdaVehicle>(`${base}/api/v1/robots/${encodeURIComponent(robotId)}/vda5050?from=${Math.floor(from)}&to=${Math.floor(to)}`);
+  return getJson<VdaVehicle>(`${base}/api/v1/robots/${encodeURIComponent(robotId)}/vda5050?from=${Math.floor(from)}&to=${Math.floor(to)}`, `${robotId}'s VDA 5050 state`);
 }
 
 /** A robot id that names a VDA 5050 vehicle (`<manufacturer>:<serialNumber>`, escaped). */
