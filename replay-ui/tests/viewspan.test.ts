@@ -65,7 +65,7 @@ describe("the timeline's view and the playhead", () => {
         const [a, b] = p.view;
         const at = (f: number) => a + f * (b - a);
         const op = Math.floor(rnd() * 9);
-        let what = "";
+        let what: string;
         if (op === 0) {
           // A drag over part of the strip (at least a second).
           const x0 = rnd();
@@ -91,10 +91,10 @@ describe("the timeline's view and the playhead", () => {
           what = "zoom out";
           p.history.push(p.view);
           showView(p, widerSpan(p.view, bounds));
-        } else if (op === 4 && p.history.length) {
+        } else if (op === 4) {
           what = "back";
-          const prev = p.history.pop()!;
-          showView(p, fitSpan(prev[0], prev[1], bounds));
+          const prev = p.history.pop();
+          if (prev) showView(p, fitSpan(prev[0], prev[1], bounds));
         } else if (op === 5) {
           const from = bounds.minMs - DAY + rnd() * 9 * DAY;
           const to = from + (rnd() - 0.2) * 3 * DAY;

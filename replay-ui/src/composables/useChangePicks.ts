@@ -53,7 +53,10 @@ export function useChangePicks(d: ChangePickDeps) {
    * feed's robot and area while it is open). Presses while one is being looked for are dropped.
    */
   let stepping = false;
-  async function stepChange(dir: 1 | -1) {
+  function stepChange(dir: 1 | -1): void {
+    void findAndPick(dir);
+  }
+  async function findAndPick(dir: 1 | -1) {
     if (stepping) return;
     stepping = true;
     const filtered = d.feedOpen() && (changeRobot.value !== null || changeBox.value !== null);
