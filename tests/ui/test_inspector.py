@@ -151,7 +151,9 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
     )
     shot = Image.open(
         io.BytesIO(
-            page.screenshot(clip={"x": round(edge["x"]), "y": round(edge["y"]), "width": 1, "height": 1})
+            page.screenshot(
+                clip={"x": round(edge["x"]), "y": round(edge["y"]), "width": 1, "height": 1}
+            )
         )
     ).convert("RGB")
     r, g, b = shot.getpixel((0, 0))

@@ -157,7 +157,9 @@ def test_shift_arrows_step_through_changes_with_the_feed_closed(page, history_st
             [top, left],
             [top + ch, left + cw],
         ]
-    before = api(stack, "/api/v1/changes", **{"from": span[0], "to": following["ts_ms"], "limit": 1})
+    before = api(
+        stack, "/api/v1/changes", **{"from": span[0], "to": following["ts_ms"], "limit": 1}
+    )
     assert before["changes"], "no change before the first one after t"
     page.keyboard.press("Shift+ArrowLeft")
     settled_at(page, before["changes"][0]["ts_ms"] + 1)
