@@ -4,6 +4,7 @@ as an MCAP file that Foxglove or Lichtblick replays."""
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from datetime import UTC, datetime
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query
@@ -49,8 +50,16 @@ class McapWindow(TimeWindow):
     to: str = Field(description="End (exclusive); at most 24 hours after from")
 
 
+def utc_file_time(ms: int) -> str:
+    """An instant as a file name may hold it, readable: 2026-11-28_10-00-00 (UTC), with
+    .250 when not on a whole second; no colons, which some file systems refuse."""
+    text = datetime.fromtimestamp(ms // 1000, UTC).strftime("%Y-%m-%d_%H-%M-%S")
+    return f"{text}.{ms % 1000:03d}" if ms % 1000 else text
+
+
 def _filename(stem: str, from_ms: int, to_ms: int, ext: str) -> dict[str, str]:
-    return {"Content-Disposition": f'attachment; filename="{stem}-{from_ms}-{to_ms}.{ext}"'}
+    name = f"{stem}_{utc_file_time(from_ms)}_to_{utc_file_time(to_ms)}_UTC.{ext}"
+    return {"Content-Disposition": f'attachment; filename="{name}"'}
 
 
 @router.get(

@@ -4,11 +4,15 @@ clear 4xx for bad windows."""
 from __future__ import annotations
 
 import io
+import random
+import re
+from datetime import datetime
 
 from fastapi.testclient import TestClient
 from mcap.reader import make_reader
 
 from mapservice.api.app import create_app
+from mapservice.api.routers.exports import utc_file_time
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
 from tests.conftest import chunk_event, meta_event, pose_event
@@ -28,6 +32,23 @@ def messages_by_topic(mcap: bytes) -> dict[str, int]:
     }
 
 
+def test_export_file_names_read_their_span_in_utc() -> None:
+    """An export's file name holds its span as readable UTC (no epoch milliseconds, no
+    colons), exact to the millisecond: parsed back, it is the instant asked for."""
+    rng = random.Random(5)
+    for _ in range(2000):
+        ms = rng.randrange(1_700_000_000_000, 1_900_000_000_000)
+        if rng.random() < 0.3:
+            ms -= ms % 1000
+        text = utc_file_time(ms)
+        m = re.fullmatch(r"(\d{4}-\d\d-\d\d)_(\d\d)-(\d\d)-(\d\d)(?:\.(\d{3}))?", text)
+        assert m, text
+        day, h, mi, sec, frac = m.groups()
+        at = datetime.fromisoformat(f"{day}T{h}:{mi}:{sec}+00:00")
+        assert int(at.timestamp()) * 1000 + int(frac or 0) == ms
+        assert (frac is None) == (ms % 1000 == 0)
+
+
 def test_replay_mcap_is_a_download_of_the_window() -> None:
     """GET /api/v1/exports/replay.mcap: an attachment with the map and the window's poses."""
     store = MemoryStore()
@@ -37,7 +58,9 @@ def test_replay_mcap_is_a_download_of_the_window() -> None:
     )
     reply = client(store).get("/api/v1/exports/replay.mcap", params={"from": T0, "to": T0 + 5000})
     assert reply.status_code == 200 and reply.headers["content-type"] == "application/x-mcap"
-    assert reply.headers["content-disposition"].endswith(f'replay-{T0}-{T0 + 5000}.mcap"')
+    assert reply.headers["content-disposition"].endswith(
+        f'replay_{utc_file_time(T0)}_to_{utc_file_time(T0 + 5000)}_UTC.mcap"'
+    )
     assert messages_by_topic(reply.content) == {
         "/map": 1,
         "/robots/a/pose": 5,

@@ -96,6 +96,9 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     page.wait_for_selector(
         f'[data-testid="annotation-edit-mark"][data-ts="{created}"]', timeout=TIMEOUT_MS
     )
+    # Back to now to edit on: an edit leaves a replay paused in the past where it is.
+    page.click('[data-testid="live"]')
+    page.wait_for_function("() => window.__replay.live && window.__replay.complete")
 
     # A speed zone next to it, closed with Enter: stored with its limit, labelled with it.
     page.fill('[data-testid="zone-name"]', "ui-test slow lane")
@@ -261,6 +264,12 @@ def test_an_operator_draws_a_zone_places_and_renames_a_point(page, history_stack
     removed_before = int(time.time() * 1000)
     page.locator(f'[data-testid="annotation-row"][data-id="{poi["id"]}"]').click()
     page.click('[data-testid="delete"]')
+    # Paused before it, the point is still there; "show it" goes to the deletion.
+    page.wait_for_function(
+        "() => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes('remove ui-test dock 2')",
+        timeout=TIMEOUT_MS,
+    )
+    page.click('[data-testid="edit-show"]')
     page.wait_for_function(
         "(id) => !document.querySelector(`.poi[data-id='${id}']`)",
         arg=poi["id"],

@@ -17,7 +17,9 @@ import zlib
 import httpx
 import pytest
 from mcap.reader import make_reader
+from PIL import Image
 
+from mapservice.api.routers.exports import utc_file_time
 from mapservice.core.wire2019 import content_hash, format_timestamp
 from tests.fixtures.mosquitto import mosquitto_pub
 
@@ -141,6 +143,21 @@ def test_a_conflicts_two_writes_side_by_side_and_no_upload(page, history_stack) 
         [row * ch, col * cw],
         [(row + 1) * ch, (col + 1) * cw],
     ]
+    # The picked chunk's orange outline is drawn above the red conflict box on the same
+    # chunk (which is drawn again at every seek): the middle of their shared top edge is orange.
+    page.wait_for_timeout(500)
+    edge = page.evaluate(
+        "([r, c]) => window.__replay.screenPointOfPixel(r, c)", [row * ch, col * cw + cw / 2]
+    )
+    shot = Image.open(
+        io.BytesIO(
+            page.screenshot(
+                clip={"x": round(edge["x"]), "y": round(edge["y"]), "width": 1, "height": 1}
+            )
+        )
+    ).convert("RGB")
+    r, g, b = shot.getpixel((0, 0))
+    assert r > 200 and 100 < g < 180 and b < 80, (r, g, b)
     page.evaluate("() => window.__replay.fitGrid()")
     page.wait_for_function("() => window.__replay.complete", timeout=TIMEOUT_MS)
     screenshot(page, "ui-conflicts.png")
@@ -213,10 +230,10 @@ def test_the_visible_span_downloads_as_mcap_and_csv(page, history_stack) -> None
     assert download.suggested_filename in page.inner_text('[data-testid="export-status"]')
     screenshot(page, "ui-export.png")
     channels, messages = read_mcap(data)
-    from_ms, to_ms = (
-        int(v) for v in download.suggested_filename[len("replay-") : -len(".mcap")].split("-")
-    )
-    assert [from_ms, to_ms] == span
+    # Named by its span in readable UTC (2026-11-28_10-00-00, milliseconds when not whole).
+    name = download.suggested_filename
+    assert name == f"replay_{utc_file_time(span[0])}_to_{utc_file_time(span[1])}_UTC.mcap", name
+    from_ms, to_ms = span
     poses = api(stack, "/api/v1/poses", **{"from": from_ms, "to": to_ms, "limit": 100_000})
     robots = sorted({p["robotId"] for p in poses})
     assert robots and channels["/map"][1] == "foxglove.Grid"

@@ -4,8 +4,9 @@
  * the timeline's span (its marks, the panel's list), and an operator's edits (drawn on the
  * map, sent to the API, every refusal shown with the server's message).
  *
- * An edit happens now (the server stamps it): after one, a replay paused in the past moves
- * to the edit's instant, where the map shows its result.
+ * An edit happens now (the server stamps it). The playhead stays where the operator is
+ * looking (a replay paused in the past is not moved to now): the status names the edit's
+ * instant and offers to go there, where the map shows its result.
  */
 import { computed, onBeforeUnmount, onMounted, reactive, ref, shallowRef, type ShallowRef } from "vue";
 import { AnnotationApi } from "../lib/annotationapi";
@@ -47,6 +48,8 @@ export function useAnnotations(d: AnnotationDeps) {
   const error = ref<string | null>(null);
   const status = ref<string | null>(null);
   const busy = ref(false);
+  /** The instant of this page's last stored edit (null: none yet), for "show it". */
+  const editedAt = ref<number | null>(null);
   const form = reactive({
     zoneName: "keep-out", zoneKind: "keep_out" as ZoneKind, speed: 0.5, speedUnit: "m/s" as "m/s" | "percent",
     poiName: "", poiKind: "station" as PoiKind, rename: "",
@@ -156,7 +159,7 @@ export function useAnnotations(d: AnnotationDeps) {
       if (r) select(r.id);
       dirty = true;
       win.at = 0;
-      if (!d.live()) d.seek(at);
+      editedAt.value = at;
     } catch (e) {
       error.value = `${what} refused: ${(e as Error).message}`;
     } finally {
@@ -267,8 +270,8 @@ export function useAnnotations(d: AnnotationDeps) {
   }
 
   return reactive({
-    list, edits, violations, truncated, episodes, marks, operator, selected, tool, error, status, busy, form,
-    tick, select, drawZone, placePoi, cancelTool, rename, remove, useToken, seek: d.seek, hook,
+    list, edits, violations, truncated, episodes, marks, operator, selected, tool, error, status, busy, form, editedAt,
+    tick, select, drawZone, placePoi, cancelTool, rename, remove, useToken, seek: d.seek, live: d.live, hook,
   });
 }
 

@@ -4,7 +4,8 @@
  * just after it and outlines its chunk on the map.
  */
 import { ref, type Ref, type ShallowRef } from "vue";
-import { boxOfPixels, neighbourChange, seekTargetOf, type Change, type ChunkBox } from "../lib/changefeed";
+import { boxOfPixels, changeSearchRanges, fetchChanges, findNeighbourChange, seekTargetOf, type Change, type ChunkBox,
+  type WriteDensity } from "../lib/changefeed";
 import type { ReplayEngine } from "../lib/engine";
 import { conflictKey, type ConflictEntry } from "../lib/inspect";
 import type { MapView } from "../lib/mapview";
@@ -14,8 +15,11 @@ export interface ChangePickDeps {
   engine: ReplayEngine;
   view: ShallowRef<MapView | null>;
   initial: UrlState;
-  /** The changes the feed lists (none while it is closed). */
-  listed: () => Change[];
+  /** The timeline's span and its chunk writes per bucket (null: not read yet). */
+  span: () => [number, number];
+  density: () => WriteDensity | null;
+  /** The change feed is open: Shift+←/→ step through what it lists (its robot and area). */
+  feedOpen: () => boolean;
   /** Leaves live mode, pauses and seeks to an instant. */
   pauseAt: (t: number) => void;
   notice: Ref<string | null>;
@@ -43,11 +47,33 @@ export function useChangePicks(d: ChangePickDeps) {
     d.pauseAt(c.seek_ms);
   }
 
-  /** Shift+←/→: to the previous/next change of the feed (the listed ones) from the playhead. */
-  function stepChange(dir: 1 | -1) {
-    const c = neighbourChange(d.listed(), engine.playhead, dir);
-    if (c) pickChange(c);
-    else d.notice.value = `no ${dir > 0 ? "later" : "earlier"} change in the change feed's list (the timeline's span and its filters)`;
+  /**
+   * Shift+←/→: to the previous/next change from the playhead, whatever panel is open: the
+   * timeline's counts say where changes can be, the change feed reads them there (with the
+   * feed's robot and area while it is open). Presses while one is being looked for are dropped.
+   */
+  let stepping = false;
+  function stepChange(dir: 1 | -1): void {
+    void findAndPick(dir);
+  }
+  async function findAndPick(dir: 1 | -1) {
+    if (stepping) return;
+    stepping = true;
+    const filtered = d.feedOpen() && (changeRobot.value !== null || changeBox.value !== null);
+    const filter = filtered ? { robot: changeRobot.value, box: changeBox.value } : { robot: null, box: null };
+    const from = engine.playhead;
+    try {
+      const ranges = changeSearchRanges(d.density(), d.span(), from, dir);
+      const c = await findNeighbourChange((a, b, before) => fetchChanges(engine.api.base, a, b, filter, dir > 0 ? 1000 : 20, before), ranges, from, dir);
+      if (c) pickChange(c);
+      else {
+        d.notice.value = `no ${dir > 0 ? "later" : "earlier"} change in the timeline's span${filtered ? " with the change feed's robot and area" : ""}: zoom out to look further`;
+      }
+    } catch (e) {
+      d.notice.value = `the ${dir > 0 ? "next" : "previous"} change could not be read: ${(e as Error).message}`;
+    } finally {
+      stepping = false;
+    }
   }
 
   function drawArea() {

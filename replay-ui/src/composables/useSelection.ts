@@ -7,6 +7,7 @@ import type { ReplayEngine, RobotView } from "../lib/engine";
 import { robotColour } from "../lib/fleet";
 import type { MapView } from "../lib/mapview";
 import { robotStatus, type RobotStatus } from "../lib/poses";
+import { trailRuns, trailShown } from "../lib/trail";
 
 /** The trail's length before the playhead; a point every TRAIL_STEP_MS. */
 const TRAIL_MS = 600_000;
@@ -35,17 +36,21 @@ export function useSelection(d: SelectionDeps) {
     selectedInfo.value = r ? { view: r, status: { ...robotStatus(r.pose, engine.robotInfo.get(r.robotId), engine.playhead), online: !r.offline } } : null;
   }
 
+  /** Drawn while playing no faster than 60x (lib/trail.ts): at 3600x it lags far behind the robot. */
+  const shown = () => trailShown(engine.clock.playing, engine.clock.live, engine.clock.speed);
+
   async function loadTrail() {
     const id = selected.value;
     const t = engine.playhead;
     trailFor = { id: id ?? "", at: t };
-    if (!id) {
+    if (!id || !shown()) {
       view.value?.showTrail([]);
       return;
     }
     try {
       const points = await engine.api.track(id, Math.max(d.oldestMs(), t - TRAIL_MS), t + 1, TRAIL_STEP_MS);
-      if (trailFor.id === id) view.value?.showTrail(points.map((p) => ({ x: p.position[0], y: p.position[1] })), robotColour(id));
+      const runs = trailRuns(points.map((p) => ({ ts_ms: p.ts_ms, x: p.position[0], y: p.position[1] })));
+      if (trailFor.id === id) view.value?.showTrail(runs, robotColour(id));
     } catch {
       view.value?.showTrail([]);
     }
@@ -83,6 +88,11 @@ export function useSelection(d: SelectionDeps) {
   function tick() {
     if (!selected.value) return;
     refreshSelected();
+    if (!shown()) {
+      if (trailFor.at !== -1) view.value?.showTrail([]);
+      trailFor = { id: selected.value, at: -1 };
+      return;
+    }
     if (Math.abs(engine.playhead - trailFor.at) > 30_000 * Math.max(1, engine.clock.speed / 60)) void loadTrail();
   }
 

@@ -88,3 +88,64 @@ export function neighbourChange(changes: Change[], playhead: number, dir: 1 | -1
 export function boxText(b: ChunkBox): string {
   return `rows ${b.rowMin}–${b.rowMax}, columns ${b.colMin}–${b.colMax}`;
 }
+
+/** What the change search needs of the timeline: its buckets' chunk writes. */
+export interface WriteDensity {
+  from_ms: number;
+  to_ms: number;
+  bucket_ms: number;
+  buckets: { start_ms: number; chunk_changes: number }[];
+}
+
+/**
+ * Where to look for the change next to the playhead, nearest first, from the timeline's
+ * own counts: every change is a chunk write, so only buckets with writes can hold one.
+ * Each range [from, to) reaches from the playhead to the end (dir 1) or from the start
+ * (dir -1) of the 1st, 2nd, 4th, 8th… bucket with writes on that side: a first small read,
+ * wider ones only where the nearest writes changed nothing. Without counts: the span's
+ * side of the playhead at once.
+ */
+export function changeSearchRanges(tl: WriteDensity | null, span: readonly [number, number], playhead: number,
+  dir: 1 | -1): [number, number][] {
+  // A change is shown just after it (seekTargetOf): before the playhead means at least 1 ms before.
+  const [lo, hi] = dir > 0 ? [Math.max(span[0], playhead), span[1]] : [span[0], Math.min(span[1], playhead - 1)];
+  if (hi <= lo) return [];
+  if (!tl) return [[lo, hi]];
+  const ends = tl.buckets
+    .filter((b) => b.chunk_changes > 0 && b.start_ms < hi && b.start_ms + tl.bucket_ms > lo)
+    .map((b) => (dir > 0 ? Math.min(hi, b.start_ms + tl.bucket_ms) : Math.max(lo, b.start_ms)));
+  if (dir < 0) ends.reverse();
+  const out: [number, number][] = [];
+  for (let k = 1; ; k *= 2) {
+    const end = ends[Math.min(k, ends.length) - 1];
+    if (end === undefined) break;
+    out.push(dir > 0 ? [lo, end] : [end, hi]);
+    if (k >= ends.length) break;
+  }
+  // Past the timeline's counts (a span it did not read yet): the rest at once.
+  if ((dir > 0 && tl.to_ms < hi) || (dir < 0 && tl.from_ms > lo)) out.push([lo, hi]);
+  return out;
+}
+
+/** One page of the change feed (newest first) of [from, to) older than `before`. */
+export type ChangePageReader = (from: number, to: number, before: string | null) => Promise<ChangePage>;
+
+/**
+ * The change next to the playhead (what neighbourChange picks from a full list), read range
+ * by range (changeSearchRanges) from the change feed, newest first: backwards, the first
+ * page holding one has it; forwards, the oldest, paging back through the range.
+ */
+export async function findNeighbourChange(read: ChangePageReader, ranges: [number, number][], playhead: number,
+  dir: 1 | -1): Promise<Change | null> {
+  for (const [from, to] of ranges) {
+    let before: string | null = null;
+    let best: Change | null = null;
+    do {
+      const page = await read(from, to, before);
+      best = neighbourChange(best ? [best, ...page.changes] : page.changes, playhead, dir);
+      before = page.next;
+    } while (before && !(dir < 0 && best));
+    if (best) return best;
+  }
+  return null;
+}

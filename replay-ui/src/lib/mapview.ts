@@ -23,6 +23,9 @@ export interface LayerToggles {
   annotations: boolean;
 }
 
+/** The pane of the picked chunk's outline. */
+const PICKED_PANE = "picked";
+
 export class MapView {
   readonly map: L.Map;
   chunks: ChunkLayer | null = null;
@@ -39,8 +42,9 @@ export class MapView {
   meta: MapMeta | null = null;
   follow: string | null = null;
   onRobotClick: (id: string) => void = () => {};
-  /** The change the feed's panel points at, and the area it is filtered by. */
-  changeOutline = L.rectangle([[0, 0], [0, 0]], { color: "#ff8c00", weight: 4, fill: false, interactive: false });
+  /** The change the feed's panel points at (drawn above the conflict boxes, in a pane of its
+   * own: a box redrawn at every seek would else cover it), and the area the feed is filtered by. */
+  changeOutline = L.rectangle([[0, 0], [0, 0]], { color: "#ff8c00", weight: 4, fill: false, interactive: false, pane: PICKED_PANE });
   areaRect = L.rectangle([[0, 0], [0, 0]], { color: "#6f42c1", weight: 2, dashArray: "6 4", fillOpacity: 0.06, interactive: false });
   private fitted = false;
   private drawing: { done: (a: Pixel, b: Pixel) => void; start: L.LatLng | null } | null = null;
@@ -52,6 +56,8 @@ export class MapView {
       // The arrow keys step through time (the page's shortcuts), not pan the map.
       keyboard: false });
     this.map.setView([0, 0], 0);
+    // Above the overlay pane (400: chunks, conflict boxes, trail), below the markers (600).
+    this.map.createPane(PICKED_PANE).style.zIndex = "450";
     this.robots = new RobotLayer(() => this.meta, () => ({
       names: this.toggles?.names ?? true, battery: this.toggles?.battery ?? true,
       paths: this.toggles?.paths ?? true, selected: this.selected,
@@ -120,11 +126,11 @@ export class MapView {
     this.robots.update(robots);
   }
 
-  /** The selected robot's recent track, wide and in the robot's own colour (its marker ring and path's). */
-  showTrail(points: { x: number; y: number }[], colour = "#1f6feb"): void {
+  /** The selected robot's recent track (its runs, lib/trail.ts), wide and in the robot's own colour (its marker ring and path's). */
+  showTrail(runs: { x: number; y: number }[][], colour = "#1f6feb"): void {
     const meta = this.meta;
     this.trail.setStyle({ color: colour, weight: 4, opacity: 0.85 });
-    this.trail.setLatLngs(meta ? points.map((p) => metresToLatLng(meta, p.x, p.y)) : []);
+    this.trail.setLatLngs(meta ? runs.map((run) => run.map((p) => metresToLatLng(meta, p.x, p.y))) : []);
   }
 
   showConflicts(conflicts: Conflict[], t: number, windowMs: number): void {
@@ -189,6 +195,35 @@ export class MapView {
 
   fitGrid(): void {
     if (this.meta) this.map.fitBounds(gridBounds(this.meta), { animate: false });
+  }
+
+  /**
+   * A "whole floor" button under the zoom buttons: the floor fitted in view. `first` runs
+   * before (the page stops following a robot there, which would pan the floor away again).
+   */
+  addWholeFloorButton(first: () => void): void {
+    const fit = () => {
+      first();
+      this.fitGrid();
+    };
+    const WholeFloor = L.Control.extend({
+      onAdd: () => {
+        const bar = L.DomUtil.create("div", "leaflet-bar");
+        const a = L.DomUtil.create("a", "whole-floor", bar);
+        a.href = "#";
+        a.textContent = "whole floor";
+        a.title = "Show the whole floor (stops following a robot)";
+        a.setAttribute("role", "button");
+        a.dataset.testid = "whole-floor";
+        L.DomEvent.disableClickPropagation(bar);
+        L.DomEvent.on(a, "click", (e) => {
+          L.DomEvent.preventDefault(e);
+          fit();
+        });
+        return bar;
+      },
+    });
+    new WholeFloor({ position: "topleft" }).addTo(this.map);
   }
 
   /** Where the robots were drawn, in page coordinates. */

@@ -97,10 +97,11 @@ export function exposeReplay(c: ReplayHookContext): void {
         robots: Object.fromEntries([...p.series].map(([id, s]) => [id, { colour: robotColour(id), ...s }])) };
     },
     plotX: c.plotX,
-    /** The selected robot's trail as drawn: its colour and how many points it has. */
+    /** The selected robot's trail as drawn: its colour, how many points and runs (lib/trail.ts) it has. */
     trail: () => {
       const t = view.value?.trail;
-      return t ? { colour: t.options.color, weight: t.options.weight, points: (t.getLatLngs() as unknown[]).length } : null;
+      const runs = (t?.getLatLngs() ?? []) as unknown[][];
+      return t ? { colour: t.options.color, weight: t.options.weight, points: runs.flat().length, runs: runs.length } : null;
     },
     timeline: c.timeline,
     annotations: c.annotations,
