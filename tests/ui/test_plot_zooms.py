@@ -46,8 +46,10 @@ def test_a_days_distance_reads_the_same_at_every_zoom(page, history_stack) -> No
     h = stack.history
     hour, day = 3_600_000, 86_400_000
     robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=h.end_ms)["robots"])[0]
-    start = h.end_ms - h.end_ms % hour + hour - day  # a day of whole hours holding the history
-    end = start + day
+    # A day of whole hours ending at the last whole hour of the history (the page moves a span
+    # reaching past now back to end now: every span read here lies in the past).
+    end = h.end_ms - h.end_ms % hour
+    start = end - day
     raw = raw_distance(stack, robot, start, end)
     assert raw > 100, raw
     poses = api(
@@ -75,7 +77,9 @@ def test_a_days_distance_reads_the_same_at_every_zoom(page, history_stack) -> No
     for h0 in hours:
         by_hours += driven_shown(read((h0, h0 + hour))["robots"][robot], h0, h0 + hour + 1)
     by_day = read((start, end))
-    week = read((end - 7 * day, end))
+    # The 7 d zoom: a week's span ending with the day, short of the oldest instant kept
+    # (the page moves a span reaching before it).
+    week = read((end - 7 * day + 2 * hour, end))
     shown = {
         "1 h": by_hours,
         "1 d": driven_shown(by_day["robots"][robot], start, end + 1),
