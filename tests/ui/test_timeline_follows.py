@@ -206,6 +206,51 @@ def test_an_operators_edit_leaves_the_playhead(page, history_stack) -> None:
     assert page.errors == []
 
 
+def test_show_it_follows_the_page_leaving_and_rejoining_live(page, history_stack) -> None:
+    """Live, an operator places a point: the map shows it now, so no "show it". Paused
+    (nothing else changes: the status and the edit's instant stay), "show it" appears at
+    once and goes to the edit's instant; back to live, it goes again."""
+    stack = history_stack
+    open_at(page, stack, "?live=1&panels=annotations")
+    page.wait_for_function("() => window.__replay.liveStatus.connected", timeout=TIMEOUT_MS)
+    token = operator_token(stack)
+    give_token(page, token)
+    page.wait_for_selector('[data-testid="edit-panel"]', timeout=TIMEOUT_MS)
+    page.evaluate("() => window.__replay.fitGrid()")
+    name = f"ui-test show it {time.time_ns()}"
+    page.fill('[data-testid="poi-name"]', name)
+    page.click('[data-testid="place-poi"]')
+    page.mouse.click(*screen(page, -4.0, -9.6))
+    page.wait_for_function(
+        "(n) => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes(n)",
+        arg=name,
+        timeout=TIMEOUT_MS,
+    )
+    stored = next(
+        a
+        for a in api(stack, "/api/v1/annotations")["annotations"]
+        if a["annotation"]["name"] == name
+    )
+    try:
+        assert page.evaluate("() => window.__replay.live")
+        assert page.locator('[data-testid="edit-show"]').count() == 0
+        page.click('[data-testid="play-pause"]')  # leaves live where it is
+        page.wait_for_selector('[data-testid="edit-show"]', timeout=5_000)
+        page.click('[data-testid="edit-show"]')
+        settled_at(page, stored["changed_ms"])
+        page.wait_for_selector(f'.poi[data-id="{stored["id"]}"]', timeout=TIMEOUT_MS)
+        page.click('[data-testid="live"]')
+        page.wait_for_function("() => window.__replay.live", timeout=TIMEOUT_MS)
+        page.wait_for_selector('[data-testid="edit-show"]', state="detached", timeout=5_000)
+    finally:
+        httpx.delete(
+            f"{stack.api_url}/api/v1/annotations/{stored['id']}",
+            headers={"Authorization": f"Bearer {token}"},
+            timeout=30,
+        ).raise_for_status()
+    assert page.errors == []
+
+
 def test_whole_floor_while_following_a_robot(page, history_stack) -> None:
     """Following a robot zoomed in, "whole floor" shows the floor (every corner of the grid
     in the map's box) and stops following, so the view stays there."""

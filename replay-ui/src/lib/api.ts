@@ -140,6 +140,14 @@ export class Api implements Source {
     return r.changes;
   }
 
+  /** The highest battery level robot `id` reported in [from, to) (null: none): the buckets'
+   * highest over the fewest buckets the API gives (lib/battery.ts, to tell its scale). */
+  async highestBatteryLevel(robotId: string, fromMs: number, toMs: number): Promise<number | null> {
+    const levels = (await this.trackBuckets(robotId, fromMs, toMs, 2)).buckets
+      .map((b) => b.battery_max).filter((v): v is number => v !== null);
+    return levels.length ? Math.max(...levels) : null;
+  }
+
   /** One robot's poses in [from, to) aggregated in at most `buckets` round buckets (the plots). */
   async trackBuckets(robotId: string, fromMs: number, toMs: number, buckets: number): Promise<TrackBuckets> {
     return getJson<TrackBuckets>(`${this.base}/api/v1/robots/${encodeURIComponent(robotId)}`
