@@ -23,6 +23,22 @@ export async function recentTracks(base: string, t: number): Promise<Map<string,
   return tracks;
 }
 
+/** Adds `pose` to its robot's track in `tracks` (kept in time order) and drops the poses more
+ * than `windowMs` older than the track's newest: the fleet panel's speeds while live, from
+ * the live stream's poses (in any order: a late one is put in its place, a repeat ignored). */
+export function addToTrack(tracks: Map<string, Pose[]>, pose: Pose, windowMs: number = SPEED_WINDOW_MS): void {
+  let track = tracks.get(pose.robotId);
+  if (!track) tracks.set(pose.robotId, (track = []));
+  let i = track.length;
+  while (i > 0 && track[i - 1].ts_ms > pose.ts_ms) i--;
+  if (i > 0 && track[i - 1].ts_ms === pose.ts_ms) return;
+  track.splice(i, 0, pose);
+  const oldest = track[track.length - 1].ts_ms - windowMs;
+  let drop = 0;
+  while (track[drop].ts_ms < oldest) drop++;
+  if (drop) track.splice(0, drop);
+}
+
 /** 24 colours apart enough to tell on a map: 12 hues 30 degrees apart, dark and light. */
 const PALETTE = Array.from({ length: 24 }, (_, i) => `hsl(${((i * 7) % 12) * 30 + 5}, 75%, ${i < 12 ? 38 : 55}%)`);
 
