@@ -61,10 +61,16 @@ describe("the controller page's requests go through the page's request layer", (
 
   it("posts a chunk with the session header, the same body again after a busy answer", async () => {
     const asked = server([[429], [201, { id: "x" }]]);
-    const r = await postChunk({ row: 1, column: 2 });
-    expect(r.status).toBe(201);
+    await postChunk({ row: 1, column: 2 });
     expect(asked.map((a) => [a.method, a.url, a.session, a.body])).toEqual(
       Array(2).fill(["POST", "/api/chunk-service/chunks", SESSION_ID, JSON.stringify({ row: 1, column: 2 })]));
+  });
+
+  it("says why a chunk was refused in the server's words, with its status for the token case", async () => {
+    server([[422, { detail: "row 99 is outside the 16 x 12 chunk grid" }]]);
+    await expect(postChunk({ row: 99, column: 2 })).rejects.toMatchObject({ status: 422, message: "422: row 99 is outside the 16 x 12 chunk grid" });
+    server([[401, { detail: "a writer token is needed" }]]);
+    await expect(postChunk({ row: 1, column: 2 })).rejects.toMatchObject({ status: 401 });
   });
 
   it("reads a picture's bytes with the session header; a newer read cancels the older", async () => {

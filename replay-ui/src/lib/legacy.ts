@@ -1,7 +1,7 @@
 /** The 2019 REST contract (appendix A) as the controller page speaks it, like a robot. */
 import { quaternionOfYaw } from "./geo";
 import type { MapMeta } from "./types";
-import { ApiError, fetchRetrying, getJson } from "./request";
+import { ApiError, getJson, send } from "./request";
 
 /** "2018-12-20T23:34:33": the 2019 timestamp format (UTC, seconds). */
 export function timestamp2019(ms: number): string {
@@ -24,13 +24,10 @@ export async function chunkMessage(meta: MapMeta, robotId: string, row: number, 
 }
 
 /** POST /api/chunk-service/chunks as a robot does, through the page's request layer (a busy
- * server is asked again after its Retry-After; the write is refused then, never half done). */
-export async function postChunk(message: object, base = ""): Promise<Response> {
-  return fetchRetrying(`${base}/api/chunk-service/chunks`, {
-    method: "POST",
-    headers: { "Content-Type": "application/json" },
-    body: JSON.stringify(message),
-  });
+ * server is asked again after its Retry-After; the write is refused then, never half done);
+ * a refusal is an ApiError with the server's words. */
+export async function postChunk(message: object, base = ""): Promise<void> {
+  await send("POST", `${base}/api/chunk-service/chunks`, message);
 }
 
 /** Listing 16, the body a robot publishes on iot/coordinates/{robotId}. */

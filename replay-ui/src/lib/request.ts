@@ -257,3 +257,27 @@ export class Superseding {
     this.current = null;
   }
 }
+
+/** A write (`method` with a JSON `body`) through the page's request layer, the answer's JSON
+ * (null for 204); a refusal is an ApiError carrying the server's own words (why, and what to
+ * do), as `<status>: <detail>`. */
+export async function send<T>(method: string, url: string, body?: unknown): Promise<T | null> {
+  const r = await fetchRetrying(url, {
+    method,
+    headers: body === undefined ? {} : { "Content-Type": "application/json" },
+    body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  if (!r.ok) {
+    let detail: unknown = r.statusText;
+    try {
+      detail = (await r.json()).detail ?? detail;
+    } catch {
+      /* not JSON */
+    }
+    const text = typeof detail === "string" ? detail
+      : Array.isArray(detail) ? detail.map((d) => `${(d.loc ?? []).slice(1).join(".")}: ${d.msg}`).join("; ")
+      : JSON.stringify(detail);
+    throw new ApiError(r.status, `${r.status}: ${text}`);
+  }
+  return r.status === 204 ? null : ((await r.json()) as T);
+}
