@@ -34,6 +34,10 @@ _BOOLISH = msgspec.json.Decoder(bool | str | None)
 
 def flag(value: bool | str | None) -> str:
     # Stored as JSON text so the 2019 API can answer with the type the robot sent.
+    if value is True:  # the usual two, spared the encoder: a batch flags every pose twice
+        return "true"
+    if value is False:
+        return "false"
     return "" if value is None else json_encoder.encode(value).decode()
 
 
