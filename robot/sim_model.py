@@ -100,14 +100,19 @@ class SimState:
 
 @dataclass
 class RouteEntry:
-    """A planned route in the cache: its cells (an array of rows and columns, as
-    `route_clear` checks them), their simplified waypoints, and the grid it was last found
-    clear on. The grid is replaced whenever the floor changes, so an entry checked against
-    the current grid object needs no check again until then."""
+    """A planned route in the cache: its cells, their simplified waypoints, and the grid
+    it was last found clear on. The grid is replaced whenever the floor changes, so an
+    entry checked against the current grid object needs no check again until then."""
 
-    cells: np.ndarray
+    cells: list[Cell]
     waypoints: tuple[Point, ...]
     checked_on: PlanGrid
+    # The cells as an (n, 2) array, as `route_clear` checks them: made once per route, not
+    # at every check after a floor change.
+    cell_array: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.cell_array = np.asarray(self.cells)
 
 
 @dataclass(frozen=True)
@@ -193,7 +198,7 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
     entry = state.routes.get((start, goal))
     if entry is not None and entry.checked_on is not grid:
         # The floor changed since: keep the route only if it is still drivable.
-        if route_clear(grid, entry.cells):
+        if route_clear(grid, entry.cell_array):
             entry.checked_on = grid
         else:
             entry = None
@@ -204,7 +209,7 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
         if len(state.routes) > MAX_CACHED_ROUTES:
             state.routes.clear()
         entry = state.routes[(start, goal)] = RouteEntry(
-            np.asarray(cells), tuple(grid.centre_px(c) for c in simplify(cells)), grid
+            cells, tuple(grid.centre_px(c) for c in simplify(cells)), grid
         )
     if robot.waypoints:
         return (robot.waypoints[0],) + entry.waypoints[1:]

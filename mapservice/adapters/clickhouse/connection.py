@@ -235,14 +235,23 @@ class ClickHouseConnection:
                         log.error("reloading tables with broken parts failed", error=str(failed))
             raise
 
-    def insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
-        """Inserts `rows` into `table` of the database with the writer client (under `lock`)."""
-        key = (table, tuple(columns))
+    def insert(
+        self,
+        table: str,
+        rows: Sequence[Sequence],
+        columns: Sequence[str],
+        *,
+        column_oriented: bool = False,
+    ) -> None:
+        """Inserts `rows` into `table` of the database with the writer client (under `lock`).
+        With `column_oriented`, `rows` is one sequence per column instead (in `columns`
+        order): a writer that builds columns spares the client turning rows into them."""
+        key = (table, tuple(columns), column_oriented)
         with self.reloading_broken_tables():
             context = self._insert_contexts.get(key)
             if context is None:
                 context = self.client.create_insert_context(
-                    f"{self.database}.{table}", list(columns)
+                    f"{self.database}.{table}", list(columns), column_oriented=column_oriented
                 )
                 self._insert_contexts[key] = context
             self.client.insert(data=rows, context=context)

@@ -88,8 +88,12 @@ class ClickHouseHistoryWriter:
         )
         with self.connection.lock:
             if spans is None:
-                rows = _pose_rows(pose_events)
-                self.connection.insert("pose_derivations", rows, POSE_INSERT_COLUMNS)
+                self.connection.insert(
+                    "pose_derivations",
+                    _pose_columns(pose_events),
+                    POSE_INSERT_COLUMNS,
+                    column_oriented=True,
+                )
             else:
                 self._derive_spans(spans)
 
@@ -151,7 +155,7 @@ class ClickHouseHistoryWriter:
                 annotations.append(_annotation_row(e))
             elif isinstance(p, COMMAND_EVENTS):
                 commands.append(command_row(e))
-        poses = _pose_rows(pose_events)
+        poses = _pose_columns(pose_events) if pose_events else None
         with self.connection.lock:
             if contents:
                 # Contents first: an event must never reference pixels that are not stored.
@@ -171,7 +175,7 @@ class ClickHouseHistoryWriter:
                     ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"],
                 )
             if poses:
-                self.connection.insert("poses", poses, POSE_INSERT_COLUMNS)
+                self.connection.insert("poses", poses, POSE_INSERT_COLUMNS, column_oriented=True)
             if metas:
                 self.connection.insert("map_meta", metas, ["ts", "robot_id", "meta"])
             for table, rows in vda.items():
@@ -199,7 +203,7 @@ class ClickHouseHistoryWriter:
             # time on wrong. Noting that is all the batch waits for: reads stop using those
             # snapshots at once (they fold events from the last good one: exact, slower),
             # and the snapshot timer rebuilds them in bounded steps (repair_snapshots).
-            times = [row[0] for row in chunks] + [row[1] for row in poses]
+            times = [row[0] for row in chunks] + [e.event_time_ms for e in pose_events]
             if times:
                 last = self.snapshots.newest_snapshot()
                 if last is not None and min(times) <= last:
@@ -339,53 +343,51 @@ def reread_spans(times_ms: Sequence[int]) -> list[tuple[int, int]] | None:
     return spans
 
 
-def _pose_rows(events: Sequence[Envelope]) -> list[list]:
-    """Pose events (or VDA states' poses) as the rows `poses` (and `pose_derivations`)
-    store, in POSE_INSERT_COLUMNS order.
-
-    The paths' points are converted to millimetres for the whole batch at once: a path
-    holds up to a thousand points, and rounding them one by one in Python was most of the
-    time a batch took to insert. numpy's rint of the same product rounds half to even,
-    as `round` does, so the integers are the same; points numpy cannot hold exactly
-    (not finite, or beyond 2**52 mm) take `mm` one by one and fail as it fails."""
+def _pose_columns(events: Sequence[Envelope]) -> list[list]:
+    """Pose events (or VDA states' poses) as the columns `poses` (and `pose_derivations`)
+    store, in POSE_INSERT_COLUMNS order: built column by column (the client would turn
+    rows into columns again), and the positions and paths converted to millimetres for
+    the whole batch at once (`_millimetres`). A batch of the demo history holds 100,000
+    poses of up to a thousand path points each: per value in Python, that conversion
+    was most of its insert."""
     poses = [pose_of(e.payload) for e in events]
     paths = [p.path or () for p in poses]  # type: ignore[union-attr]
-    xs_mm, ys_mm = _path_millimetres(paths)
-    rows, at = [], 0
-    for e, p, path in zip(events, poses, paths):
+    positions = _millimetres([[p.position for p in poses]], 3)  # type: ignore[union-attr]
+    path_mm = _millimetres(paths, 2)
+    path_x, path_y, at = [], [], 0
+    for path in paths:
         end = at + len(path)
-        rows.append(
-            [
-                e.robot_id,
-                e.event_time_ms,
-                mm(p.position[0]),  # type: ignore[union-attr]
-                mm(p.position[1]),  # type: ignore[union-attr]
-                mm(p.position[2]),  # type: ignore[union-attr]
-                *p.orientation,  # type: ignore[union-attr]
-                p.battery_level,  # type: ignore[union-attr]
-                flag(p.charging),  # type: ignore[union-attr]
-                flag(p.loaded),  # type: ignore[union-attr]
-                p.path is not None,  # type: ignore[union-attr]
-                xs_mm[at:end],
-                ys_mm[at:end],
-                e.receive_time_ms - e.event_time_ms,
-            ]
-        )
+        path_x.append(path_mm[0][at:end])
+        path_y.append(path_mm[1][at:end])
         at = end
-    return rows
+    return [
+        [e.robot_id for e in events],
+        [e.event_time_ms for e in events],
+        *positions,
+        *(list(q) for q in zip(*(p.orientation for p in poses))),  # type: ignore[union-attr]
+        [p.battery_level for p in poses],  # type: ignore[union-attr]
+        [flag(p.charging) for p in poses],  # type: ignore[union-attr]
+        [flag(p.loaded) for p in poses],  # type: ignore[union-attr]
+        [p.path is not None for p in poses],  # type: ignore[union-attr]
+        path_x,
+        path_y,
+        [e.receive_time_ms - e.event_time_ms for e in events],
+    ]
 
 
-def _path_millimetres(paths: Sequence[Sequence[tuple[float, float]]]) -> tuple[list, list]:
-    """Every path's x and y in millimetres, the paths one after the other."""
-    points = sum(len(path) for path in paths)
+def _millimetres(groups: Sequence[Sequence[Sequence[float]]], width: int) -> list[list[int]]:
+    """`mm` of every value of the groups' points of `width` coordinates each: one list per
+    coordinate, the groups' points one after the other. numpy's rint of the same product
+    rounds half to even as `round` does, so the integers are the same; values numpy cannot
+    hold exactly (not finite, or beyond 2**52 mm) take `mm` one by one and fail as it
+    fails."""
+    points = list(chain.from_iterable(groups))
     if not points:
-        return [], []
-    metres = np.fromiter(chain.from_iterable(chain.from_iterable(paths)), np.float64)
-    scaled = metres * 1000
-    if len(metres) != 2 * points or not (
+        return [[] for _ in range(width)]
+    scaled = np.fromiter(chain.from_iterable(points), np.float64) * 1000
+    if len(scaled) != width * len(points) or not (
         np.isfinite(scaled).all() and np.abs(scaled).max() < 2.0**52
     ):
-        flat = list(chain.from_iterable(paths))
-        return [mm(x) for x, _ in flat], [mm(y) for _, y in flat]
+        return [[mm(point[i]) for point in points] for i in range(width)]
     millimetres = np.rint(scaled).astype(np.int64)
-    return millimetres[0::2].tolist(), millimetres[1::2].tolist()
+    return [millimetres[i::width].tolist() for i in range(width)]
