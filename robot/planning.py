@@ -154,7 +154,8 @@ def plan(grid: PlanGrid, start: Cell, goal: Cell) -> list[Cell] | None:
     A* with the octile heuristic; a diagonal step only where both cells beside it are ok
     (no corner cutting). Written over the grid's framed flat boolean list (`ok_padded`)
     with heapq rather than the `pathfinding` package's node objects: the same search at a
-    fraction of the CPU, which is what lets the demo history simulate a week in a minute.
+    fraction of the CPU, which is what lets the demo history simulate a week in well under a
+    minute.
     """
     if not (grid.is_ok(start) and grid.is_ok(goal)):
         return None
@@ -205,7 +206,8 @@ def _octile_heuristic(size: int, row_length: int, target: int) -> list[float]:
     d_col = np.abs(index % row_length - target % row_length)
     straight = (d_row + d_col).astype(np.float64)
     diagonal = np.minimum(d_row, d_col).astype(np.float64)
-    return (straight + (_SQRT2 - 2) * diagonal).tolist()
+    table: list[float] = (straight + (_SQRT2 - 2) * diagonal).tolist()
+    return table
 
 
 def route_clear(grid: PlanGrid, cells: list[Cell] | np.ndarray) -> bool:

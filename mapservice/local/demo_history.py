@@ -9,7 +9,8 @@ conflicts, snapshots as the processors' timer builds them. History starts with t
 file itself at the first instant (what `mapservice map upload` writes), so the map at any
 T is the real floor with that day's pallets and doors.
 
-Fast-forward, and what it changes (so the whole week takes under a minute of CPU here):
+Fast-forward, and what it changes (so the whole week takes under a minute of CPU here,
+simulation and inserts; BENCHMARKS.md has the figures):
 - the simulation steps STEP_S seconds at a time; between steps each moving robot is
   advanced along its planned path, so poses lie on the path (on free pixels) every
   POSE_EVERY_S seconds instead of every second;

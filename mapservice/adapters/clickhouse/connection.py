@@ -157,7 +157,7 @@ class ClickHouseConnection:
         self.known_contents: dict[bytes, int] = {}
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
-        self._insert_contexts: dict[tuple[str, tuple[str, ...]], object] = {}
+        self._insert_contexts: dict[tuple[str, tuple[str, ...], bool], object] = {}
         # Created on the first failed write to chDB (broken_parts.py); kept for its cooldowns.
         self._broken_parts: BrokenPartRecovery | None = None
 

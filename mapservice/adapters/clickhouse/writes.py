@@ -351,8 +351,8 @@ def _pose_columns(events: Sequence[Envelope]) -> list[list]:
     poses of up to a thousand path points each: per value in Python, that conversion
     was most of its insert."""
     poses = [pose_of(e.payload) for e in events]
-    paths = [p.path or () for p in poses]  # type: ignore[union-attr]
-    positions = _millimetres([[p.position for p in poses]], 3)  # type: ignore[union-attr]
+    paths = [p.path or () for p in poses]
+    positions = _millimetres([[p.position for p in poses]], 3)
     path_mm = _millimetres(paths, 2)
     path_x, path_y, at = [], [], 0
     for path in paths:
@@ -364,11 +364,11 @@ def _pose_columns(events: Sequence[Envelope]) -> list[list]:
         [e.robot_id for e in events],
         [e.event_time_ms for e in events],
         *positions,
-        *(list(q) for q in zip(*(p.orientation for p in poses))),  # type: ignore[union-attr]
-        [p.battery_level for p in poses],  # type: ignore[union-attr]
-        [flag(p.charging) for p in poses],  # type: ignore[union-attr]
-        [flag(p.loaded) for p in poses],  # type: ignore[union-attr]
-        [p.path is not None for p in poses],  # type: ignore[union-attr]
+        *(list(q) for q in zip(*(p.orientation for p in poses))),
+        [p.battery_level for p in poses],
+        [flag(p.charging) for p in poses],
+        [flag(p.loaded) for p in poses],
+        [p.path is not None for p in poses],
         path_x,
         path_y,
         [e.receive_time_ms - e.event_time_ms for e in events],
