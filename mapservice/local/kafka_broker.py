@@ -37,20 +37,15 @@ if TYPE_CHECKING:
     from mapservice.settings import Settings
 
 POM = Path(__file__).parent / "kafka" / "pom.xml"
-# Small: the serial collector; the JDK's class-data sharing archive, and over it the jars'
-# own (kafka_cds.py) once it is made. The broker runs for as long as the stack does, so it
-# gets the server compiler (C2) too: with the client compiler (C1) alone its request threads
-# took about twice the CPU per record under load.
+# Start fast and small: the serial collector and the client compiler (C1) only; the JDK's
+# class-data sharing archive, and over it the jars' own (kafka_cds.py) once it is made.
 JVM_FLAGS = (
     "-XX:+UseSerialGC",
+    "-XX:TieredStopAtLevel=1",
     "-Xshare:auto",
     "-XX:+ExitOnOutOfMemoryError",
     "-Djava.awt.headless=true",
 )
-
-# A tool that runs for a second (the log directory's formatter) starts faster on the client
-# compiler (C1) alone: the server compiler's work would never pay for itself.
-SHORT_LIVED_JVM_FLAGS = ("-XX:TieredStopAtLevel=1",)
 
 
 def kafka_version() -> str:
@@ -168,7 +163,6 @@ def format_once(
         [
             java,
             *JVM_FLAGS,
-            *SHORT_LIVED_JVM_FLAGS,
             *sharing,
             "-Xmx128m",
             # A JVM's crash report beside its config, not in the caller's working directory.
