@@ -65,21 +65,6 @@ STALE_COMMITS = Counter(
 )
 
 
-# With MAPSERVICE_KAFKA_FETCH_GATHER_MS: more than a busy plant's records in a gather (about
-# 250 kB a second at 1,000 robots), so that the wait, not the bytes, ends the fetch.
-GATHER_MIN_BYTES = 4 * 1024 * 1024
-
-
-def fetch_config(settings: Settings) -> dict:
-    """How the history consumer's fetches wait: records gathered for up to
-    `kafka_fetch_gather_ms` (bounded by `kafka_fetch_wait_ms`), or, with a gather of 0,
-    answered on arrival and otherwise after `kafka_fetch_wait_ms`."""
-    gather = min(settings.kafka_fetch_gather_ms, settings.kafka_fetch_wait_ms)
-    if gather <= 0:
-        return {"fetch.wait.max.ms": settings.kafka_fetch_wait_ms}
-    return {"fetch.wait.max.ms": gather, "fetch.min.bytes": GATHER_MIN_BYTES}
-
-
 def consumer_config(settings: Settings, group_id: str) -> dict:
     # A batch may take this long between polls (a stalled insert) before the member leaves
     # its group; the session (heartbeats, sent by librdkafka's own thread) may be shorter.
@@ -116,13 +101,11 @@ def _common_config(settings: Settings, group_id: str) -> dict:
             "auto.offset.reset": "earliest",
             "enable.auto.commit": False,
             "enable.auto.offset.store": False,
-            # Apache Kafka answers a fetch as soon as fetch.min.bytes arrived (1 by default):
-            # under load that was a fetch per produce request, every partition's own
-            # (librdkafka sends one per partition and linger). Gathered for a few tens of
-            # ms instead, the broker answers a fetch per gather (fetch_config). tansu answers
-            # only when the wait runs out: the embedded tansu's components are given a short
-            # one (local/stack_env.py).
-            **fetch_config(settings),
+            # Apache Kafka answers a waiting fetch as soon as records arrive: a long wait
+            # costs no latency, a short one idle fetches (the broker's CPU while the plant
+            # is quiet). tansu answers only when the wait runs out: the embedded tansu's
+            # components are given a short one (local/stack_env.py).
+            "fetch.wait.max.ms": settings.kafka_fetch_wait_ms,
             "statistics.interval.ms": STATS_INTERVAL_MS,
         }
     )

@@ -82,17 +82,6 @@ class KafkaSettings(BaseModel):
         "the wait costs no latency there, and a short one only costs idle fetches; tansu "
         "answers only when it runs out, so the embedded tansu runs with 50 ms.",
     )
-    kafka_fetch_gather_ms: int = Field(
-        50,
-        ge=0,
-        le=1_000,
-        description="How long the history consumer's fetch lets records gather on the broker "
-        "before it answers (fetch.wait.max.ms, with a fetch.min.bytes a busy plant does not "
-        "reach): one fetch per this many ms under load, instead of one per record batch the "
-        "producers send (one per partition every linger: hundreds a second at 1,000 robots). "
-        "Adds up to this much to publish -> stored; at most MAPSERVICE_KAFKA_FETCH_WAIT_MS; "
-        "0: answered on arrival.",
-    )
     # The broker `mapservice up` and the test stacks embed (mapservice/local/kafka_broker.py).
     embedded_kafka: Literal["auto", "apache", "tansu"] = Field(
         "auto",

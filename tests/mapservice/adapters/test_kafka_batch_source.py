@@ -10,36 +10,12 @@ from mapservice.settings import Settings
 
 def test_consumer_commits_by_hand_and_fetches_with_the_configured_wait() -> None:
     """Offsets are never auto-committed or auto-stored, and fetch.wait.max.ms comes from
-    the settings: the gather (default 50 ms), never longer than the fetch wait (a stack on
-    the embedded tansu sets 50, tests/mapservice/local/test_stack.py)."""
+    the settings (default 500 ms: Apache Kafka answers on arrival; a stack on the embedded
+    tansu sets 50, tests/mapservice/local/test_stack.py)."""
     conf = consumer_config(Settings(kafka_fetch_wait_ms=40), "history")
     assert conf["enable.auto.commit"] is False and conf["enable.auto.offset.store"] is False
     assert conf["fetch.wait.max.ms"] == 40
-    assert consumer_config(Settings(), "history")["fetch.wait.max.ms"] == 50
-
-
-@pytest.mark.parametrize("wait_ms", [1, 20, 50, 51, 500, 10_000])
-@pytest.mark.parametrize("gather_ms", [0, 1, 30, 50, 200, 1_000])
-def test_a_fetch_gathers_records_for_at_most_the_gather_and_the_wait(wait_ms, gather_ms) -> None:
-    """With a gather, the broker holds a fetch until the gather ends (a byte count a plant
-    does not reach: one fetch per gather under load, not one per partition's produce
-    request), never longer than the fetch wait; a gather of 0 answers on arrival (the
-    broker's default of 1 byte) and waits out an idle fetch for the fetch wait."""
-    conf = consumer_config(
-        Settings(kafka_fetch_wait_ms=wait_ms, kafka_fetch_gather_ms=gather_ms), "history"
-    )
-    if gather_ms == 0:
-        assert conf["fetch.wait.max.ms"] == wait_ms and "fetch.min.bytes" not in conf
-    else:
-        assert conf["fetch.wait.max.ms"] == min(gather_ms, wait_ms)
-        # 5,000 robots send about 1.25 MB a second: the wait ends a gather, not the bytes.
-        assert conf["fetch.min.bytes"] >= 5_000 * 250 * conf["fetch.wait.max.ms"] / 1_000
-
-
-def test_a_gathering_consumer_is_one_librdkafka_takes() -> None:
-    from confluent_kafka import Consumer
-
-    Consumer(consumer_config(Settings(kafka_bootstrap="127.0.0.1:1"), "history")).close()
+    assert consumer_config(Settings(), "history")["fetch.wait.max.ms"] == 500
 
 
 def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker() -> None:
@@ -56,7 +32,7 @@ def test_the_consumer_group_protocol_leaves_session_and_heartbeat_to_the_broker(
     )
     assert new["group.protocol"] == "consumer"
     assert "session.timeout.ms" not in new and "heartbeat.interval.ms" not in new
-    assert new["enable.auto.commit"] is False and new["fetch.wait.max.ms"] == 50
+    assert new["enable.auto.commit"] is False and new["fetch.wait.max.ms"] == 500
     Consumer(new).close()
 
 
