@@ -12,7 +12,12 @@ from __future__ import annotations
 import shutil
 import subprocess
 import sys
+from argparse import Namespace
 from pathlib import Path
+from typing import IO, TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from mapservice.local.stack import Stack
 
 SAMPLES_PER_S = 100  # py-spy's default: 6,000 samples in a 60-second run
 
@@ -40,7 +45,7 @@ class Profilers:
         self.pids = pids
         self.seconds = seconds
         self.label = label
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
 
     def start(self) -> None:
         exe = py_spy()
@@ -50,7 +55,7 @@ class Profilers:
             with open(out.with_suffix(".log"), "wb") as errors:
                 self.procs[component] = self._record(exe, pid, out, errors)
 
-    def _record(self, exe: str, pid: int, out: Path, errors) -> subprocess.Popen:
+    def _record(self, exe: str, pid: int, out: Path, errors: IO[bytes]) -> subprocess.Popen[bytes]:
         return subprocess.Popen(
             [
                 exe,
@@ -93,7 +98,7 @@ class Profilers:
         return written
 
 
-def start_profilers(args, stack, run: int) -> Profilers | None:
+def start_profilers(args: Namespace, stack: Stack, run: int) -> Profilers | None:
     """With `--profile DIR`: py-spy started on each Python component for the fleet's run."""
     directory = getattr(args, "profile", None)
     if not directory:
@@ -105,7 +110,7 @@ def start_profilers(args, stack, run: int) -> Profilers | None:
     return profilers
 
 
-def python_components(stack) -> dict[str, int]:
+def python_components(stack: Stack) -> dict[str, int]:
     """The stack's components that run Python (those it spawned as `mapservice ...`), by pid."""
     return {
         name: proc.pid
