@@ -8,6 +8,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -15,11 +16,9 @@ import pytest
 # by its own accounts (every event stored once, stages that add up), not by absolute times.
 
 
-@pytest.mark.timeout(600)
-def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> None:
-    """Three robots for four seconds through Mosquitto: every event stored once and pushed
-    live, the latency split at the gateway adds up, and storage is reported per table."""
-    out = tmp_path / "bench.json"
+def bench_ingest(out: Path, *options: str, env: dict[str, str] | None = None) -> dict[str, Any]:
+    """`mapservice bench ingest` on three robots for four seconds through Mosquitto, with
+    `options`; its JSON report (written to `out`), the run having succeeded."""
     done = subprocess.run(
         [
             sys.executable,
@@ -31,21 +30,27 @@ def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> 
             "3",
             "--seconds",
             "4",
-            "--repeat",
-            "1",
             "--mqtt",
             "mosquitto",
-            "--data-dir",
-            str(tmp_path / "data"),
+            *options,
             "--json",
             str(out),
         ],
         capture_output=True,
         text=True,
         timeout=540,
+        env=env,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    run = json.loads(out.read_text())["runs"][0]
+    return json.loads(out.read_text())
+
+
+@pytest.mark.timeout(600)
+def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> None:
+    """Three robots for four seconds through Mosquitto: every event stored once and pushed
+    live, the latency split at the gateway adds up, and storage is reported per table."""
+    out = tmp_path / "bench.json"
+    run = bench_ingest(out, "--repeat", "1", "--data-dir", str(tmp_path / "data"))["runs"][0]
     assert run["published_events"] >= 3 * 4 and run["stored_events"] == run["published_events"]
     assert (run["lost"], run["duplicated"], run["dead_letters"]) == (0, 0, 0)
     assert run["live_errors"] == 0 and run["live_pushed_events"] == run["published_events"]
@@ -66,31 +71,7 @@ def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_m
     out = tmp_path / "bench.json"
     temporary = tmp_path / "tmp"
     temporary.mkdir()
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapservice.cli",
-            "bench",
-            "ingest",
-            "--robots",
-            "3",
-            "--seconds",
-            "4",
-            "--gateways",
-            "2",
-            "--mqtt",
-            "mosquitto",
-            "--json",
-            str(out),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=540,
-        env={**os.environ, "TMPDIR": str(temporary)},
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    doc = json.loads(out.read_text())
+    doc = bench_ingest(out, "--gateways", "2", env={**os.environ, "TMPDIR": str(temporary)})
     assert Path(doc["args"]["data_dir"]).parent == temporary
     assert not list(temporary.glob("mapservice-bench-*")), "the run's data was left behind"
     run = doc["runs"][0]
@@ -106,31 +87,7 @@ def test_bench_ingest_profile_writes_a_flame_graph_per_python_component(tmp_path
     graph each, named in the run's result (the brokers, not Python, get none)."""
     profiles = tmp_path / "profiles"
     out = tmp_path / "bench.json"
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "mapservice.cli",
-            "bench",
-            "ingest",
-            "--robots",
-            "3",
-            "--seconds",
-            "4",
-            "--mqtt",
-            "mosquitto",
-            "--no-latency-clients",
-            "--profile",
-            str(profiles),
-            "--json",
-            str(out),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=540,
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    run = json.loads(out.read_text())["runs"][0]
+    run = bench_ingest(out, "--no-latency-clients", "--profile", str(profiles))["runs"][0]
     assert run["profiles"] == {
         "gateway": str(profiles / "gateway-run1.svg"),
         "server": str(profiles / "server-run1.svg"),
