@@ -26,6 +26,18 @@ def api(stack, path: str, **params):
     return r.json()
 
 
+def loaded_robots(stack, at: int) -> list[str]:
+    """The robots at `at` that the loaded history drove, sorted. Other tests on the shared
+    stack add robots of their own (controllers', VDA 5050 vehicles, conflict writers) whose
+    names may sort first and which need not move at all."""
+    loaded = {f"robot-{i:04d}" for i in range(stack.history.robots)}
+    return sorted(
+        r["robotId"]
+        for r in api(stack, "/api/v1/robots", at=at)["robots"]
+        if r["robotId"] in loaded
+    )
+
+
 def open_at(page, stack, query: str) -> None:
     open_replay(page, stack.api_url, query, timeout_ms=TIMEOUT_MS)
 
@@ -212,7 +224,7 @@ def test_a_shared_address_reopens_layers_selection_and_panels(page, browser, his
     assert page.is_checked('input[data-layer="borders"]')  # space did not toggle it back
     page.keyboard.press(" ")
     page.wait_for_function("() => !window.__replay.playing()")
-    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])[0]
+    robot = loaded_robots(stack, t)[0]
     page.click('[data-testid="panel-fleet"]')
     page.click('[data-testid="panel-changes"]')
     page.click(f'[data-testid="fleet-row"][data-robot="{robot}"]')

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
+from .test_investigator import TIMEOUT_MS, api, loaded_robots, open_at, screenshot
 from .test_plots_timeline import iso, raw_buckets
 
 
@@ -45,7 +45,7 @@ def test_a_days_distance_reads_the_same_at_every_zoom(page, history_stack) -> No
     stack = history_stack
     h = stack.history
     hour, day = 3_600_000, 86_400_000
-    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=h.end_ms)["robots"])[0]
+    robot = loaded_robots(stack, h.end_ms)[0]
     # A day of whole hours ending at the last whole hour of the history (the page moves a span
     # reaching past now back to end now: every span read here lies in the past).
     end = h.end_ms - h.end_ms % hour

@@ -11,7 +11,7 @@ import math
 from datetime import UTC, datetime
 from urllib.parse import parse_qs, urlparse
 
-from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
+from .test_investigator import TIMEOUT_MS, api, loaded_robots, open_at, screenshot
 
 MIN_BAR_PX = 3  # replay-ui/src/lib/timeline.ts
 
@@ -20,10 +20,12 @@ def iso(ms: int) -> str:
     return datetime.fromtimestamp(ms / 1000, UTC).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
 
 
-def battery_pct(level: float | None) -> int | None:
+def battery_pct(level: float | None, percent: bool) -> int | None:
+    """A level in whole percent on its robot's scale: `percent` for a robot that ever
+    reported more than 1 (its 4.3 is 4 %), else a fraction (its 0.8 is 80 %)."""
     if level is None:
         return None
-    pct = level * 100 if level <= 1 else level * 20 if level <= 5 else level
+    pct = level if percent else level * 100
     return math.floor(min(100, max(0, pct)) + 0.5)
 
 
@@ -53,10 +55,17 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
     time; each line has the robot's fleet-list colour; the playhead is drawn on the plot;
     a click on the plot seeks there."""
     stack = history_stack
-    t = stack.history.end_ms - 30 * 60_000
-    robots = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])
-    chosen, pinned = robots[0], robots[1]
+    # The loaded robot-0000's battery falls 1 % a minute from 100 over 100-minute cycles: the
+    # span holds the minutes where it reads 5 % or less (a level a 0-5 scale would misread),
+    # whatever the hour the history ends at.
+    cycle, low = 100 * 60_000, 97 * 60_000
+    latest = stack.history.end_ms - 15 * 60_000
+    low_at = (latest - low) // cycle * cycle + low
+    t = low_at + 5 * 60_000
     span = (t - 40 * 60_000, t + 10 * 60_000)
+    assert span[0] >= stack.history.start_ms, "the history is too short for the span"
+    robots = loaded_robots(stack, t)
+    chosen, pinned = robots[0], robots[1]
     plot_reads = []  # (from, to) of every plot read
 
     def on_request(request) -> None:
@@ -97,6 +106,9 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
             bucket,
         )
         shown = plots["robots"][rid]
+        # The loaded robots report percent: the span holds levels above 1 (and some at or
+        # below 5 at some hours, which a per-sample guess would read as a 0-5 scale).
+        percent = max(level for b in stored.values() for level in b["levels"]) > 1
         starts = [e // bucket * bucket for e in shown["edges"][:-1]]
         assert [s for s, d in zip(starts, shown["battery"]) if d is not None] == sorted(stored)
         for k, start in enumerate(starts):
@@ -105,11 +117,10 @@ def test_plots_equal_the_stored_poses_on_the_replay_clock(page, history_stack) -
                 assert shown["battery"][k] is None and shown["bucketDistance"][k] == 0
                 continue
             levels = b["levels"]
-            # The band's ends are the lowest and highest level in % (a level of 5 or less
-            # reads as a 0-5 scale, 5.1 as 5 %: the ends, not the levels, are ordered).
-            ends = sorted([battery_pct(min(levels)), battery_pct(max(levels))])
+            # The band's ends are the lowest and highest level in % on the robot's scale.
+            ends = [battery_pct(min(levels), percent), battery_pct(max(levels), percent)]
             assert [shown["batteryMin"][k], shown["batteryMax"][k]] == ends
-            assert abs(shown["battery"][k] - battery_pct(sum(levels) / len(levels))) <= 1
+            assert abs(shown["battery"][k] - battery_pct(sum(levels) / len(levels), percent)) <= 1
             assert math.isclose(
                 shown["bucketDistance"][k], b["distance"], rel_tol=1e-6, abs_tol=1e-6
             )
@@ -371,7 +382,7 @@ def test_who_is_who_labels_apart_and_the_selected_robot_in_its_colour(page, hist
     shown; its trail is drawn wide in its own colour, the colour of its fleet-list swatch."""
     stack = history_stack
     t = stack.history.end_ms - 25 * 60_000
-    robots = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])
+    robots = loaded_robots(stack, t)
     chosen = robots[-1]
     open_at(page, stack, f"?t={t}&sel={chosen}&panels=fleet")
     page.evaluate("() => window.__replay.fitGrid()")

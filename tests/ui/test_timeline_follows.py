@@ -15,7 +15,7 @@ import httpx
 from .annotation_drawing import give_token, screen
 from .conftest import ARTIFACTS
 from .test_annotations_ui import operator_token
-from .test_investigator import TIMEOUT_MS, api, open_at, screenshot
+from .test_investigator import TIMEOUT_MS, api, loaded_robots, open_at, screenshot
 from .test_plots_timeline import iso
 
 HOUR = 3_600_000
@@ -256,7 +256,7 @@ def test_whole_floor_while_following_a_robot(page, history_stack) -> None:
     in the map's box) and stops following, so the view stays there."""
     stack = history_stack
     t = stack.history.end_ms - 30 * 60_000
-    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])[0]
+    robot = loaded_robots(stack, t)[0]
     open_at(page, stack, f"?t={t}&sel={robot}&follow={robot}&speed=60&play=1")
     page.evaluate(
         "() => { const v = window.__replay.view(); window.__replay.centerOnPixel(-v.lat, v.lng, 3); }"
@@ -281,7 +281,7 @@ def test_three_panels_keep_the_map_usable(browser, history_stack) -> None:
     and the screenshots are saved for a look."""
     stack = history_stack
     t = stack.history.end_ms - 30 * 60_000
-    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])[0]
+    robot = loaded_robots(stack, t)[0]
     for w, h in ((1280, 800), (1920, 1080)):
         context = browser.new_context(viewport={"width": w, "height": h})
         page = context.new_page()
@@ -350,7 +350,7 @@ def test_three_side_panels_clip_no_plot_or_legend_item(browser, history_stack) -
     test-artifacts/ui/."""
     stack = history_stack
     t = stack.history.end_ms - 30 * 60_000
-    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])[0]
+    robot = loaded_robots(stack, t)[0]
     for w, h in ((1280, 800), (1920, 1080)):
         context = browser.new_context(viewport={"width": w, "height": h})
         page = context.new_page()
