@@ -131,10 +131,10 @@ test: $(STAMP) system-deps ui test-ui
 	$(PY) -m mapservice.local.kafka_broker fetch
 	@fast=0; parallel=0; alone=0; mkdir -p $(TEST_LOGS); fast_log=$(TEST_LOGS)/fast-tests.log; \
 	echo "The fast tests run beside the alone tests at the lowest CPU priority; their output, shown when they end: $$fast_log"; \
-	MAPSERVICE_LOCAL_PORT_SLICE=0/2 chrt --idle 0 $(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 $(ARGS) > $$fast_log 2>&1 & fast_pid=$$!; \
-	MAPSERVICE_LOCAL_PORT_SLICE=1/2 $(PY) -m pytest -m "integration and alone" --durations=10 $(ARGS) || alone=$$?; \
+	MAPSERVICE_LOCAL_PORT_SLICE=0/2 chrt --idle 0 $(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 --junitxml=$(TEST_LOGS)/fast-tests.xml $(ARGS) > $$fast_log 2>&1 & fast_pid=$$!; \
+	MAPSERVICE_LOCAL_PORT_SLICE=1/2 $(PY) -m pytest -m "integration and alone" --durations=10 --junitxml=$(TEST_LOGS)/alone-tests.xml $(ARGS) || alone=$$?; \
 	wait $$fast_pid || fast=$$?; cat $$fast_log; \
-	$(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 $(ARGS) || parallel=$$?; \
+	$(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 --junitxml=$(TEST_LOGS)/integration-tests.xml $(ARGS) || parallel=$$?; \
 	echo "fast tests: exit $$fast; integration tests alone: exit $$alone; integration tests: exit $$parallel"; \
 	if [ $$fast -eq 5 ] && [ $$parallel -eq 5 ] && [ $$alone -eq 5 ]; then exit 5; fi; \
 	for rc in $$fast $$parallel $$alone; do [ $$rc -eq 0 -o $$rc -eq 5 ] || exit 1; done
