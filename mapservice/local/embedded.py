@@ -64,6 +64,13 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def reserve_ports(*ports: int | None) -> None:
+    """Ports this process was told to use (a command line's `--mqtt-port`): `free_port`
+    never chooses them for anything else. They are bound later, sometimes a minute later
+    (`up` writes its demo week first): meanwhile the port looks free."""
+    _ports_handed_out.update(p for p in ports if p)
+
+
 def _slice(ports: range) -> range:
     """The share of `ports` that MAPSERVICE_LOCAL_PORT_SLICE gives this process (all of them
     when unset or malformed)."""

@@ -68,3 +68,31 @@ def test_a_missing_or_malformed_slice_means_every_candidate(
 ) -> None:
     monkeypatch.setenv(embedded.PORT_SLICE_ENV, value)
     assert embedded._slice(range(10_000, 20_000)) == range(10_000, 20_000)
+
+
+def test_a_stack_never_chooses_a_port_it_was_given(
+    monkeypatch: pytest.MonkeyPatch, tmp_path
+) -> None:
+    """`up --mqtt-port P` binds P only after its demo week is written; meanwhile P looks
+    free, and the ports `up` chose for its own parts (Kafka, its controller, the ClickHouse
+    server, health) must not be P: once, the MQTT broker then found its port taken. Here
+    the range to choose from holds only the given ports and as many others as the stack
+    needs: each given port is its component's, every chosen one another."""
+    from mapservice.local.stack import Stack
+
+    monkeypatch.setattr(embedded, "_ports_handed_out", set())
+    free = [p for p in range(20_000, 21_000) if embedded._bindable(p)][:7]
+    given = {"api_port": free[0], "mqtt_port": free[1], "health_port": free[2]}
+    monkeypatch.setattr(embedded, "LOWEST_CHOSEN_PORT", free[0])
+    monkeypatch.setattr(embedded, "ephemeral_ports", lambda: range(free[-1] + 1, 65_536))
+    monkeypatch.delenv(embedded.PORT_SLICE_ENV, raising=False)
+    stack = Stack(tmp_path / "stack", mqtt="mosquitto", apart=True, **given)
+    assert {k: getattr(stack, k) for k in given} == given
+    chosen = [
+        stack.kafka_port,
+        stack.mqtt_ws_port,
+        stack.clickhouse_port,
+        stack.processors_health_port,
+    ]
+    assert not set(chosen) & set(given.values()), (chosen, given)
+    assert len(set(chosen)) == len(chosen)
