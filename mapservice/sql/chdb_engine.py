@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 import queue
 import re
+import shutil
 import tempfile
 import threading
 from contextlib import contextmanager
@@ -26,6 +27,9 @@ from pathlib import Path
 
 from mapservice.sql.engine import SqlError, SqlRequest, SqlResult, output_format
 from mapservice.sql.settings_policy import apply_read_only
+
+_NOT_ENOUGH_SPACE = 243
+_PART_FILES_BYTES = 1 << 20
 
 _SETTING_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 # SET and USE only change the session, and the HTTP interface here has none (like a
@@ -191,10 +195,34 @@ class ChdbEngine:
             with os.fdopen(fd, "wb") as file:
                 file.write(data)
             with self._handle_for(request, "inserts") as handle:
-                handle.run(f"INSERT INTO {target} FROM INFILE {_quote(name)} FORMAT {fmt}")
+                try:
+                    handle.run(f"INSERT INTO {target} FROM INFILE {_quote(name)} FORMAT {fmt}")
+                except SqlError as exc:
+                    raise self._out_of_space(exc, len(data)) from exc
             return SqlResult(b"", fmt)
         finally:
             os.unlink(name)
+
+    def _out_of_space(self, exc: SqlError, size: int) -> SqlError:
+        """A failed insert on a disk too full to hold it, said as ClickHouse says it.
+
+        A server reserves a part's space first and refuses with NOT_ENOUGH_SPACE; the
+        embedded engine may get as far as writing the part and fail on whichever file the
+        disk refused (CANNOT_READ_ALL_DATA, CANNOT_WRITE_TO_FILE_DESCRIPTOR, ...), which
+        tells an operator nothing. With less free space than the rows (twice, compressed
+        or not, plus a MiB for the part's files), the disk is the cause."""
+        try:
+            free = shutil.disk_usage(self.path).free
+        except OSError:
+            return exc
+        if free >= 2 * size + _PART_FILES_BYTES or exc.code == _NOT_ENOUGH_SPACE:
+            return exc
+        return SqlError(
+            f"Cannot write the inserted rows: {free} bytes free on the disk of {self.path} "
+            f"for {size} bytes of rows; the engine said: {' '.join(str(exc).split())[:300]} "
+            "(NOT_ENOUGH_SPACE)",
+            _NOT_ENOUGH_SPACE,
+        )
 
     def ping(self) -> bool:
         try:
