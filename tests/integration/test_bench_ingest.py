@@ -48,9 +48,15 @@ def bench_ingest(out: Path, *options: str, env: dict[str, str] | None = None) ->
 @pytest.mark.timeout(600)
 def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> None:
     """Three robots for four seconds through Mosquitto: every event stored once and pushed
-    live, the latency split at the gateway adds up, and storage is reported per table."""
+    live, the latency split at the gateway adds up, and storage is reported per table.
+    With `--profile DIR` (one run for both: a run costs a stack's start), py-spy samples
+    the gateway and `serve` meanwhile: one flame graph each, named in the run's result (the
+    brokers, not Python, get none)."""
     out = tmp_path / "bench.json"
-    run = bench_ingest(out, "--repeat", "1", "--data-dir", str(tmp_path / "data"))["runs"][0]
+    profiles = tmp_path / "profiles"
+    run = bench_ingest(
+        out, "--repeat", "1", "--data-dir", str(tmp_path / "data"), "--profile", str(profiles)
+    )["runs"][0]
     assert run["published_events"] >= 3 * 4 and run["stored_events"] == run["published_events"]
     assert (run["lost"], run["duplicated"], run["dead_letters"]) == (0, 0, 0)
     assert run["live_errors"] == 0 and run["live_pushed_events"] == run["published_events"]
@@ -59,6 +65,13 @@ def test_bench_ingest_reports_zero_loss_latency_stages_and_storage(tmp_path) -> 
     assert 0 < run["gateway_to_queryable_p50_s"] <= run["latency_p99_s"]
     tables = run["storage"]["bytes_per_robot_day_by_table"]
     assert tables["poses"] > 0 and tables["chunk_events"] > 0 and tables["pose_keyframes"] > 0
+    assert run["profiles"] == {
+        "gateway": str(profiles / "gateway-run1.svg"),
+        "server": str(profiles / "server-run1.svg"),
+    }
+    assert sorted(p.name for p in profiles.iterdir()) == ["gateway-run1.svg", "server-run1.svg"]
+    for svg in profiles.iterdir():
+        assert re.search(r'id="frames"[^>]* total_samples="[1-9]', svg.read_text()), svg
 
 
 @pytest.mark.timeout(600)
@@ -79,19 +92,3 @@ def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_m
     assert all(n > 0 for n in run["gateway_acked_by_replica"]), run["gateway_acked_by_replica"]
     assert run["gateway_acked_minus_published"] == 0
     assert "gateway-2" not in run["cpu_percent_of_one_core"]
-
-
-@pytest.mark.timeout(600)
-def test_bench_ingest_profile_writes_a_flame_graph_per_python_component(tmp_path) -> None:
-    """`--profile DIR`: while the fleet runs, py-spy samples the gateway and `serve`; one flame
-    graph each, named in the run's result (the brokers, not Python, get none)."""
-    profiles = tmp_path / "profiles"
-    out = tmp_path / "bench.json"
-    run = bench_ingest(out, "--no-latency-clients", "--profile", str(profiles))["runs"][0]
-    assert run["profiles"] == {
-        "gateway": str(profiles / "gateway-run1.svg"),
-        "server": str(profiles / "server-run1.svg"),
-    }
-    assert sorted(p.name for p in profiles.iterdir()) == ["gateway-run1.svg", "server-run1.svg"]
-    for svg in profiles.iterdir():
-        assert re.search(r'id="frames"[^>]* total_samples="[1-9]', svg.read_text()), svg
