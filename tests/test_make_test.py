@@ -1,6 +1,6 @@
-"""How `make test` runs its three steps: the `alone` tests, then the integration tests, and
-beside both the fast tests at the lowest CPU priority (SCHED_IDLE), on the other half of the
-ports; every step always runs and any failure fails the target. The recipe is run for real, by make, with a
+"""How `make test` runs its three steps: the `alone` tests with the fast tests beside them at
+the lowest CPU priority (SCHED_IDLE), each on half of the ports, then the integration tests; every step
+always runs and any failure fails the target. The recipe is run for real, by make, with a
 stand-in for the venv's Python that records how each step was started."""
 
 from __future__ import annotations
@@ -33,8 +33,7 @@ RECORDER = textwrap.dedent(
     marks = argv[argv.index("-m", 1) + 1] if argv[:2] == ["-m", "pytest"] else None
     started = time.time()
     if marks is not None:
-        # The fast step takes longest, as it does for real: the others start beside it.
-        time.sleep(3.0 if marks == "not integration" else 1.0)
+        time.sleep(1.0)
     with open(os.environ["RECORDED"], "a") as f:
         f.write(json.dumps({{"marks": marks, "policy": os.sched_getscheduler(0), "start": started,
                              "end": time.time(),
@@ -78,9 +77,6 @@ def run_make_test(tmp_path: Path, failing: str | None = None) -> tuple[int, dict
 def test_the_fast_tests_run_beside_the_alone_tests_at_the_lowest_priority_on_other_ports(
     tmp_path: Path,
 ) -> None:
-    """The fast tests start with the `alone` tests and go on beside the integration tests
-    (which start when the `alone` tests end): the fast ones at SCHED_IDLE on one half of
-    the ports, the others, one after the other, on the other half."""
     code, steps = run_make_test(tmp_path)
     assert code == 0
     fast, alone, integration = steps["fast"], steps["alone"], steps["integration"]
@@ -88,11 +84,11 @@ def test_the_fast_tests_run_beside_the_alone_tests_at_the_lowest_priority_on_oth
     assert fast["policy"] == os.SCHED_IDLE
     assert alone["policy"] == integration["policy"] == os.sched_getscheduler(0)
     assert fast["start"] < alone["end"] and alone["start"] < fast["end"], (
-        "the fast and alone steps ran one after the other"
+        "the two steps ran one after the other"
     )
-    assert integration["start"] >= alone["end"]
-    assert integration["start"] < fast["end"], "the integration step waited for the fast tests"
-    assert fast["slice"] == "0/2" and alone["slice"] == integration["slice"] == "1/2"
+    assert integration["start"] >= max(fast["end"], alone["end"])
+    assert {fast["slice"], alone["slice"]} == {"0/2", "1/2"}
+    assert integration["slice"] is None
 
 
 @pytest.mark.parametrize("failing", sorted(STEPS))
