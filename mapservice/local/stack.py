@@ -95,15 +95,9 @@ class Stack(StackMqtt, StackEnv):
     def __post_init__(self) -> None:
         self.data_dir = Path(self.data_dir).resolve()
         self.log_dir = self.data_dir / "logs"
-        embedded.reserve_ports(
-            self.api_port,
-            self.kafka_port,
-            self.health_port,
-            self.mqtt_port,
-            self.mqtt_ws_port,
-            self.mqtt_tls_port,
-            self.clickhouse_port,
-            self.processors_health_port,
+        embedded.reserve_ports(  # the given ports are their components' alone
+            *(self.api_port, self.kafka_port, self.health_port, self.mqtt_port, self.mqtt_ws_port),
+            *(self.mqtt_tls_port, self.clickhouse_port, self.processors_health_port),
         )
         self.api_port = self.api_port or embedded.free_port()
         self.kafka_port = self.kafka_port or embedded.free_port()

@@ -13,6 +13,7 @@ import time
 import httpx
 import pytest
 from fastapi.testclient import TestClient
+from prometheus_client import REGISTRY
 from starlette.testclient import WebSocketDenialResponse
 
 from mapservice.api.app import create_app
@@ -270,18 +271,31 @@ def test_a_read_whose_client_left_leaves_the_queue() -> None:
     def get(url: str, at: int) -> None:
         replies[at] = httpx.get(f"{url}{store.path(at)}", timeout=30).status_code
 
+    def pool(active: int, waiting: int) -> None:
+        # The read pool's own gauges: waits for states, not for times (a loaded machine).
+        deadline = time.monotonic() + 30
+        while (
+            REGISTRY.get_sample_value("mapservice_api_pool_active", {"pool": "read"}),
+            REGISTRY.get_sample_value("mapservice_api_pool_waiting", {"pool": "read"}),
+        ) != (
+            active,
+            waiting,
+        ):
+            assert time.monotonic() < deadline, f"the read pool never had {active} + {waiting}"
+            time.sleep(0.02)
+
     with served(app) as (port, _):
         url = f"http://127.0.0.1:{port}"
         stuck = threading.Thread(target=get, args=(url, 1))
         stuck.start()
-        time.sleep(0.3)
+        pool(active=1, waiting=0)
         with socket.create_connection(("127.0.0.1", port)) as left:
             left.sendall(f"GET {store.path(2)} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
-            time.sleep(0.3)
-        time.sleep(0.3)
+            pool(active=1, waiting=1)
+        pool(active=1, waiting=0)  # the read whose client left is out of the queue
         queued = threading.Thread(target=get, args=(url, 3))
         queued.start()
-        time.sleep(0.3)
+        pool(active=1, waiting=1)
         store.release.set()
         stuck.join(30)
         queued.join(30)
