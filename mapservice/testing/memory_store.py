@@ -35,6 +35,7 @@ from mapservice.core.events import (
     VdaStateReported,
     pose_of,
 )
+from mapservice.core.incidents import Incident
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
 from mapservice.core.ports import (
     ChunkRow,
@@ -53,6 +54,7 @@ from mapservice.core.ports import (
 from mapservice.core.retention import DAY_MS
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 from mapservice.core.track_buckets import fold_track_buckets
+from mapservice.testing.memory_incidents import IncidentLog
 
 
 def _iso_day(ms: int) -> str:
@@ -86,6 +88,7 @@ class MemoryStore:
         self._vda_error_counts: dict[tuple[str, int], int] = {}  # per state (vda_states)
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
         self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
+        self._incidents = IncidentLog()
         self._commands: dict[tuple[int, str], StoredCommandEvent] = {}  # (time, event id)
         self._lock = threading.Lock()
 
@@ -159,6 +162,21 @@ class MemoryStore:
         with self._lock:
             for v in rows:
                 self._zone_violations[(v.ts_ms, v.robot_id, v.annotation_id)] = v
+
+    def append_incidents(
+        self, found: Sequence[Incident], found_ms: int, retracted: Sequence[Incident] = ()
+    ) -> None:
+        self._incidents.append(found, found_ms, retracted)
+
+    def incidents(
+        self,
+        from_ms: int,
+        to_ms: int,
+        kinds: Sequence[str] = (),
+        robot_id: str | None = None,
+        limit: int = 10_000,
+    ) -> list[Incident]:
+        return self._incidents.incidents(from_ms, to_ms, kinds, robot_id, limit)
 
     def zone_violations(
         self, from_ms: int, to_ms: int, limit: int = 100_000
@@ -357,6 +375,7 @@ class MemoryStore:
                 del self._poses[k]
             self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
             self._zone_violations = {k: v for k, v in self._zone_violations.items() if k[0] >= cut}
+            self._incidents.forget_before(cut)
             self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
             named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
                 bytes.fromhex(c.content_hash) for c in self._chunks.values()
