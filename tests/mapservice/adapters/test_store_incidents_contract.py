@@ -13,7 +13,6 @@ import itertools
 import random
 
 import msgspec
-
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
