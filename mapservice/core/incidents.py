@@ -275,7 +275,7 @@ def battery_low_incidents(track: Sequence[PoseRow], th: IncidentThresholds) -> l
 def offline_incidents(
     track: Sequence[PoseRow], until_ms: int, th: IncidentThresholds
 ) -> list[Incident]:
-    silences = [
+    silences: list[tuple[PoseRow, PoseRow | None, int, bool]] = [
         (track[i], track[i + 1], track[i + 1].ts_ms, False)
         for i in range(len(track) - 1)
         if track[i + 1].ts_ms - track[i].ts_ms > th.offline_after_ms
