@@ -107,20 +107,13 @@ def incident_id(kind: str, robots: Sequence[str], start_ms: int) -> str:
 
 
 def unique_poses(poses: Iterable[PoseRow]) -> dict[str, list[PoseRow]]:
-    """Each robot's poses in event-time order, one per instant: of several poses at one
-    instant (a duplicate, or a robot that sent two), the first by the store's order
-    (receive time, then position), whatever order they came in."""
+    """Each robot's poses in event-time order, one per instant: of several poses of one
+    robot at one instant (a redelivery, or a robot that sent two), the last given, as the
+    store keeps the last written."""
     by_robot: dict[str, dict[int, PoseRow]] = defaultdict(dict)
     for pose in poses:
-        seen = by_robot[pose.robot_id]
-        other = seen.get(pose.ts_ms)
-        if other is None or _order(pose) < _order(other):
-            seen[pose.ts_ms] = pose
+        by_robot[pose.robot_id][pose.ts_ms] = pose
     return {robot: [at[ts] for ts in sorted(at)] for robot, at in sorted(by_robot.items())}
-
-
-def _order(pose: PoseRow) -> tuple[int, float, float]:
-    return (pose.receive_time_ms, pose.x, pose.y)
 
 
 def detect(

@@ -6,10 +6,11 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Protocol
 
 import msgspec
+import numpy as np
 
 from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneViolation
 from mapservice.core.commands import StoredCommandEvent
-from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
+from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet, pose_of
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
@@ -69,6 +70,40 @@ class ChunkRow(msgspec.Struct, frozen=True, gc=False, array_like=True):
     robot_id: str
     content_hash: str  # hex
     receive_time_ms: int
+
+
+def stored_mm(v: float) -> float:
+    """A position as the store keeps it: to the millimetre."""
+    return round(v * 1000) / 1000
+
+
+def stored_f32(v: float | None) -> float | None:
+    """A quaternion component or battery level as the store keeps it: a 32-bit float."""
+    return None if v is None else float(np.float32(v))
+
+
+def pose_rows_of(events: Sequence[Envelope]) -> list[PoseRow]:
+    """The poses among `events` (robots' own and VDA 5050 vehicles' on a known map), as the
+    store keeps them: positions to the millimetre, quaternions and battery 32-bit."""
+    rows = []
+    for e in events:
+        if (pose := pose_of(e.payload)) is not None:
+            rows.append(
+                PoseRow(
+                    e.robot_id,
+                    e.event_time_ms,
+                    *(stored_mm(v) for v in pose.position),
+                    *(float(np.float32(v)) for v in pose.orientation),
+                    stored_f32(pose.battery_level),
+                    pose.charging,
+                    pose.loaded,
+                    None
+                    if pose.path is None
+                    else tuple((stored_mm(x), stored_mm(y)) for x, y in pose.path),
+                    e.receive_time_ms,
+                )
+            )
+    return rows
 
 
 def chunk_rows_of(events: Sequence[Envelope]) -> list[ChunkRow]:

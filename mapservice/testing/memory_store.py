@@ -11,7 +11,6 @@ import threading
 from collections.abc import Sequence
 
 import msgspec
-import numpy as np
 
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core import change_scan, upload_scan
@@ -33,7 +32,6 @@ from mapservice.core.events import (
     VdaConnectionReported,
     VdaFactsheetReported,
     VdaStateReported,
-    pose_of,
 )
 from mapservice.core.incidents import Incident
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
@@ -50,6 +48,7 @@ from mapservice.core.ports import (
     VdaErrorRow,
     VdaFacts,
     VdaFactsheetRow,
+    pose_rows_of,
 )
 from mapservice.core.retention import DAY_MS
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
@@ -59,14 +58,6 @@ from mapservice.testing.memory_incidents import IncidentLog
 
 def _iso_day(ms: int) -> str:
     return datetime.datetime.fromtimestamp(ms / 1000, datetime.UTC).date().isoformat()
-
-
-def _mm(v: float) -> float:
-    return round(v * 1000) / 1000
-
-
-def _f32(v: float | None) -> float | None:
-    return None if v is None else float(np.float32(v))
 
 
 class MemoryStore:
@@ -107,20 +98,8 @@ class MemoryStore:
             for e in events:
                 p = e.payload
                 self._append_vda(e)
-                if (pose := pose_of(p)) is not None:
-                    self._poses[(e.robot_id, e.event_time_ms)] = PoseRow(
-                        e.robot_id,
-                        e.event_time_ms,
-                        *(_mm(v) for v in pose.position),
-                        *(_f32(v) for v in pose.orientation),
-                        _f32(pose.battery_level),
-                        pose.charging,
-                        pose.loaded,
-                        tuple((_mm(x), _mm(y)) for x, y in pose.path)
-                        if pose.path is not None
-                        else None,
-                        e.receive_time_ms,
-                    )
+                if (row := next(iter(pose_rows_of((e,))), None)) is not None:
+                    self._poses[(e.robot_id, e.event_time_ms)] = row
                 elif isinstance(p, ChunkUpdated):
                     self._contents.setdefault(p.content_hash, (p.width, p.height, p.data))
                     key = (e.event_time_ms, p.row, p.column, e.robot_id)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 import random
 
+import msgspec
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -211,15 +212,10 @@ def test_an_incident_is_named_by_its_kind_robots_and_start():
     assert len(ids) == 8
 
 
-def test_of_two_poses_at_one_instant_the_store_keeps_the_first_received():
+def test_of_two_poses_at_one_instant_the_last_given_stays_as_in_the_store():
     first = pose(t_s=1, x=1.0)
-    second = PoseRow(
-        **{
-            **{f: getattr(first, f) for f in first.__struct_fields__},
-            "x": 9.0,
-            "receive_time_ms": first.receive_time_ms + 5,
-        }
-    )
+    second = msgspec.structs.replace(first, x=9.0, receive_time_ms=first.receive_time_ms - 5)
+    assert unique_poses([first, second])["r1"] == [second]
     assert unique_poses([second, first])["r1"] == [first]
 
 
@@ -261,7 +257,7 @@ def floor_history(seed: int) -> list[PoseRow]:
 
 @settings(max_examples=40, deadline=None)
 @given(st.integers(0, 10_000), st.randoms(use_true_random=False))
-def test_the_same_incidents_whatever_the_order_and_duplicates(seed, rng):
+def test_the_same_incidents_whatever_the_order_and_duplicates_of_the_poses(seed, rng):
     poses = floor_history(seed)
     now = max(p.ts_ms for p in poses) + rng.randint(0, 20_000)
     expected = detect(poses, now)
