@@ -25,6 +25,8 @@ from __future__ import annotations
 import bisect
 from collections.abc import Callable, Iterable, Sequence
 
+import msgspec
+
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
@@ -49,16 +51,12 @@ def _key(incident: Incident) -> Incident:
     """What a new finding must differ in to be written again: all but an ongoing silence's
     end and length, which grow with the clock."""
     if incident.kind == "offline" and incident.ongoing:
-        return Incident(**{**_fields(incident), "end_ms": 0, "measure": 0.0})
+        return msgspec.structs.replace(incident, end_ms=0, measure=0.0)
     return incident
 
 
 def _ts(pose: PoseRow) -> int:
     return pose.ts_ms
-
-
-def _fields(incident: Incident) -> dict:
-    return {f: getattr(incident, f) for f in incident.__struct_fields__}
 
 
 class IncidentTracker:

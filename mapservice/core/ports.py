@@ -88,18 +88,28 @@ def pose_rows_of(events: Sequence[Envelope]) -> list[PoseRow]:
     rows = []
     for e in events:
         if (pose := pose_of(e.payload)) is not None:
+            x, y, z = pose.position
+            qx, qy, qz, qw = (float(np.float32(v)) for v in pose.orientation)
+            path = (
+                None
+                if pose.path is None
+                else tuple((stored_mm(a), stored_mm(b)) for a, b in pose.path)
+            )
             rows.append(
                 PoseRow(
                     e.robot_id,
                     e.event_time_ms,
-                    *(stored_mm(v) for v in pose.position),
-                    *(float(np.float32(v)) for v in pose.orientation),
+                    stored_mm(x),
+                    stored_mm(y),
+                    stored_mm(z),
+                    qx,
+                    qy,
+                    qz,
+                    qw,
                     stored_f32(pose.battery_level),
                     pose.charging,
                     pose.loaded,
-                    None
-                    if pose.path is None
-                    else tuple((stored_mm(x), stored_mm(y)) for x, y in pose.path),
+                    path,
                     e.receive_time_ms,
                 )
             )
