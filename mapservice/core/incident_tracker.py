@@ -132,6 +132,16 @@ class IncidentTracker:
         self.retracted.clear()
         return found, retracted
 
+    def give_back(self, found: Sequence[Incident], retracted: Sequence[Incident]) -> None:
+        """Findings `take` gave that could not be stored: taken again next time, unless a
+        later finding of the same incident replaced them."""
+        for incident in found:
+            if incident.incident_id not in self.retracted:
+                self.found.setdefault(incident.incident_id, incident)
+        for incident in retracted:
+            if incident.incident_id not in self.found:
+                self.retracted.setdefault(incident.incident_id, incident)
+
     def forget(self, now_ms: int) -> None:
         """Lets go of poses older than `keep_ms` (each robot's newest before stays, and a
         robot's poses since an ongoing incident of its own began) and of the incidents

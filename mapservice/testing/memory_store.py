@@ -48,9 +48,9 @@ from mapservice.core.ports import (
     VdaErrorRow,
     VdaFacts,
     VdaFactsheetRow,
-    pose_rows_of,
 )
 from mapservice.core.retention import DAY_MS
+from mapservice.core.stored_rows import pose_rows_of
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 from mapservice.core.track_buckets import fold_track_buckets
 from mapservice.testing.memory_incidents import IncidentLog

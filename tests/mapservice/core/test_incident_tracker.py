@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
-from mapservice.core.ports import PoseRow, pose_rows_of
+from mapservice.core.ports import PoseRow
+from mapservice.core.stored_rows import pose_rows_of
 from mapservice.testing.memory_store import MemoryStore
 from tests.mapservice.core.test_incidents import floor_history
 
