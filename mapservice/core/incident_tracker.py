@@ -28,6 +28,7 @@ from collections.abc import Callable, Iterable, Sequence
 import msgspec
 
 from mapservice.core.incidents import (
+    STUCK_CRITICAL_S,
     Incident,
     IncidentThresholds,
     battery_low_incidents,
@@ -57,6 +58,34 @@ def _key(incident: Incident) -> Incident:
 
 def _ts(pose: PoseRow) -> int:
     return pose.ts_ms
+
+
+def _joined(before: Incident, after: Incident, th: IncidentThresholds) -> Incident:
+    """A run found ongoing (`before`) and its part from the poses before the new ones on
+    (`after`, found over them and the new ones) as one, as the rules find the whole run."""
+    if before.kind == "stuck":
+        still_s = (after.end_ms - before.start_ms) / 1000
+        return msgspec.structs.replace(
+            after,
+            incident_id=before.incident_id,
+            start_ms=before.start_ms,
+            measure=still_s,
+            severity="critical" if still_s >= STUCK_CRITICAL_S else "warning",
+            evidence=(before.evidence[0], after.evidence[1]),
+            from_data_edge=False,
+        )
+    low = min(before, after, key=lambda i: (i.measure, i.evidence[1].ts_ms))
+    return msgspec.structs.replace(
+        after,
+        incident_id=before.incident_id,
+        start_ms=before.start_ms,
+        x=low.x,
+        y=low.y,
+        measure=low.measure,
+        severity=low.severity,
+        evidence=(before.evidence[0], low.evidence[1]),
+        from_data_edge=False,
+    )
 
 
 class IncidentTracker:
@@ -106,16 +135,43 @@ class IncidentTracker:
         """A stored batch's poses (as the store keeps them, in the order stored)."""
         if not poses:
             return
-        robots: set[str] = set()
+        newest_before: dict[str, PoseRow | None] = {}
         for pose in poses:
-            robots.add(pose.robot_id)
             track = self.tracks.setdefault(pose.robot_id, [])
+            newest_before.setdefault(pose.robot_id, track[-1] if track else None)
             at = bisect.bisect_left(track, pose.ts_ms, key=_ts)
             if at < len(track) and track[at].ts_ms == pose.ts_ms:
                 track[at] = pose  # the store keeps the last written
             else:
                 track.insert(at, pose)
-        self._redo(robots, min(p.ts_ms for p in poses), now_ms)
+        # The earliest instant the batch can change: each new pose's place at the ticks
+        # from the pose before it.
+        changed_from = min(self._pose_before(p.robot_id, p.ts_ms, default=p.ts_ms) for p in poses)
+        known = self._known(changed_from - self.th.lookback_ms)
+        ongoing_own: dict[str, dict[str, Incident]] = {}
+        for i in known:
+            if i.ongoing and i.kind in OWN_KINDS:
+                ongoing_own.setdefault(i.robots[0], {})[i.kind] = i
+        first_new_of: dict[str, int] = {}
+        for p in poses:
+            first_new_of[p.robot_id] = min(first_new_of.get(p.robot_id, p.ts_ms), p.ts_ms)
+        for robot, before in newest_before.items():
+            first_new = first_new_of[robot]
+            ongoing = ongoing_own.get(robot, {})
+            if before is None or first_new > before.ts_ms:
+                if self._append_own(robot, before, first_new, ongoing, now_ms):
+                    continue
+            self._redo_own(robot, first_new - self.th.offline_after_ms, now_ms)
+        self._redo_near_misses(set(newest_before), changed_from, known)
+
+    def _pose_before(self, robot: str, ts_ms: int, default: int) -> int:
+        """The time of the stored pose of `robot` before `ts_ms` (`default` if none)."""
+        if ts_ms <= self._held(robot):
+            earlier = [p.ts_ms for p in self.read(ts_ms, ts_ms, robot) if p.ts_ms < ts_ms]
+            return max(earlier, default=default)
+        track = self.tracks.get(robot, [])
+        at = bisect.bisect_left(track, ts_ms, key=_ts)
+        return track[at - 1].ts_ms if at > 0 else default
 
     def tick(self, now_ms: int) -> None:
         """Silences that began or turned critical as the clock moved."""
@@ -207,10 +263,58 @@ class IncidentTracker:
         return self.held_from.get(robot, self.held_from_ms)
 
     def _redo(self, robots: set[str], from_ms: int, now_ms: int) -> None:
-        off = self.th.offline_after_ms
+        """Everything the poses of `robots` from `from_ms` on can change, the slow way."""
         for robot in sorted(robots):
-            self._redo_own(robot, from_ms - off, now_ms)
-        self._redo_near_misses(robots, from_ms - off - self.th.tick_ms, now_ms)
+            self._redo_own(robot, from_ms - self.th.offline_after_ms, now_ms)
+        self._redo_near_misses(robots, from_ms, self._known(from_ms - self.th.lookback_ms))
+
+    def _append_own(
+        self,
+        robot: str,
+        before: PoseRow | None,
+        first_new_ms: int,
+        ongoing: dict[str, Incident],
+        now_ms: int,
+    ) -> bool:
+        """A robot's own incidents when its new poses all come after its newest (the live
+        case): the rules run over the new poses and the windows they look back on only,
+        and a run that goes on from the one ongoing is joined to it (the poses before the
+        new ones are unchanged, and so is their part of the run). False when what is known
+        does not fit (then the slow way)."""
+        th = self.th
+        seg_from = (before.ts_ms if before else first_new_ms) - th.stuck_ms - th.offline_after_ms
+        track = unique_poses(self._poses(robot, seg_from)).get(robot, [])
+        fresh = [
+            *stuck_incidents(track, th),
+            *battery_low_incidents(track, th),
+            *offline_incidents(track, now_ms, th),
+        ]
+        continued: set[str] = set()
+        noted: list[Incident] = []
+        for incident in fresh:
+            if incident.end_ms < first_new_ms:
+                continue  # before the new poses: unchanged
+            if (
+                before is not None
+                and incident.kind in ("stuck", "battery_low")
+                and incident.evidence[0].ts_ms <= before.ts_ms
+            ):
+                went_on = ongoing.get(incident.kind)
+                if went_on is None:
+                    return False
+                incident = _joined(went_on, incident, th)
+                continued.add(incident.kind)
+            noted.append(incident)
+        for incident in noted:
+            self._note(incident)
+        fresh_ids = {i.incident_id for i in noted}
+        for kind, incident in ongoing.items():
+            if kind == "offline":
+                if incident.incident_id not in fresh_ids:
+                    self._drop(incident)  # its silence was shorter than it seemed
+            elif kind not in continued:
+                self._note(msgspec.structs.replace(incident, ongoing=False))
+        return True
 
     def _known(self, cut_ms: int) -> list[Incident]:
         """The latest finding of every incident ongoing or ending at or after `cut_ms`."""
@@ -240,27 +344,28 @@ class IncidentTracker:
             [i for i in fresh if i.end_ms >= cut_ms],
         )
 
-    def _redo_near_misses(self, robots: set[str], cut_ms: int, now_ms: int) -> None:
-        mine = [
+    def _redo_near_misses(
+        self, robots: set[str], changed_from_ms: int, known: Iterable[Incident]
+    ) -> None:
+        """The near misses of pairs with a robot of `robots` at the ticks from
+        `changed_from_ms` on, each run from its start: the ticks before are unchanged, so
+        a known run that reaches them keeps its start (`known`: every incident ongoing or
+        ending at or after changed_from_ms - lookback)."""
+        tick = self.th.tick_ms
+        first_tick = -(-changed_from_ms // tick) * tick
+        reaching = [
             i
-            for i in self._known(cut_ms)
-            if i.kind == "near_miss" and robots.intersection(i.robots)
+            for i in known
+            if i.kind == "near_miss"
+            and robots.intersection(i.robots)
+            and i.end_ms >= first_tick - tick
         ]
-        cut_ms = min([cut_ms, *(i.start_ms for i in mine if i.ongoing)])
-        start = cut_ms - self.th.offline_after_ms - self.th.tick_ms
-        while True:
-            tracks = unique_poses(self._poses(None, start))
-            fresh = [
-                i for i in near_miss_incidents(tracks, self.th) if robots.intersection(i.robots)
-            ]
-            edge = [i for i in fresh if i.from_data_edge and i.end_ms >= cut_ms]
-            if not any(self._earlier_exists(r, tracks[r][0].ts_ms) for i in edge for r in i.robots):
-                break  # what reaches the data's edge starts there: the history has no more
-            start -= 2 * (cut_ms - start)
-        self._replace(
-            [i for i in mine if i.end_ms >= cut_ms or i.ongoing],
-            [i for i in fresh if i.end_ms >= cut_ms],
-        )
+        start = min([first_tick, *(i.start_ms for i in reaching)])
+        tracks = unique_poses(self._poses(None, start - self.th.offline_after_ms))
+        fresh = near_miss_incidents(tracks, self.th, from_tick=start, involving=robots)
+        # A run that ends before the changed ticks is unchanged (and, begun before `start`,
+        # found cut short here): the one known stands.
+        self._replace(reaching, [i for i in fresh if i.end_ms >= first_tick - tick])
 
     def _earlier_exists(self, robot: str, ts_ms: int) -> bool:
         """Whether the store holds a pose of `robot` before `ts_ms`."""

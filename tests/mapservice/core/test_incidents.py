@@ -18,9 +18,13 @@ from mapservice.core.incidents import (
     detect,
     incident_id,
     is_charging,
+    near_miss_incidents,
     unique_poses,
 )
 from mapservice.core.ports import PoseRow
+from tests.mapservice.core.near_miss_reference import (
+    near_miss_incidents as reference_near_misses,
+)
 
 T0 = 1_795_255_200_000
 TH = IncidentThresholds()
@@ -297,3 +301,17 @@ def test_thresholds_refuse_what_no_rule_can_use():
     for bad in ({"near_miss_m": 0}, {"stuck_ms": 0}, {"tick_ms": -1}, {"moving_m_s": -0.1}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             IncidentThresholds(**bad)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.integers(0, 240), st.booleans())
+def test_the_array_near_miss_rule_is_the_plain_one(seed, from_s, some):
+    """Over the same tracks, from any tick and for any robots involved: the same runs,
+    distances, places and evidence as the rule written plainly (near_miss_reference.py)."""
+    tracks = unique_poses(floor_history(seed))
+    from_tick = T0 + from_s * 1000
+    involving = set(list(tracks)[:1]) if some else None
+    assert near_miss_incidents(tracks, TH, from_tick, involving) == reference_near_misses(
+        tracks, TH, from_tick, involving
+    )
+    assert near_miss_incidents(tracks, TH) == reference_near_misses(tracks, TH)
