@@ -27,8 +27,8 @@ from collections.abc import Callable, Iterable, Sequence
 
 import msgspec
 
+from mapservice.core.incident_model import STUCK_CRITICAL_S
 from mapservice.core.incidents import (
-    STUCK_CRITICAL_S,
     Incident,
     IncidentThresholds,
     battery_low_incidents,
@@ -238,26 +238,29 @@ class IncidentTracker:
         self.found.pop(incident.incident_id, None)
         self.retracted[incident.incident_id] = incident
 
-    def _poses(self, robot: str | None, from_ms: int) -> list[PoseRow]:
+    def _tracks(self, robot: str | None, from_ms: int) -> dict[str, list[PoseRow]]:
         """The stored poses of `robot` (of every robot if None) from `from_ms` on, with
-        each robot's newest before it: from memory, and before the held span from the store."""
+        each robot's newest before it, per robot in time order: from memory, and before the
+        held span from the store."""
         robots = [robot] if robot is not None else list(self.tracks)
         lacking = [r for r in robots if from_ms < self._held(r)]
-        out: list[PoseRow] = []
+        out: dict[str, list[PoseRow]] = {}
+        for r in robots:
+            if r not in lacking:
+                track = self.tracks.get(r, [])
+                out[r] = track[max(0, bisect.bisect_left(track, from_ms, key=_ts) - 1) :]
         if lacking:
             until = max(self._held(r) for r in lacking)
             read = self.read(
                 from_ms, until, robot if robot is not None or len(lacking) > 1 else lacking[0]
             )
             wanted = set(lacking)
-            out += [p for p in read if p.robot_id in wanted and p.ts_ms < self._held(p.robot_id)]
-        for r in robots:
-            track = self.tracks.get(r, [])
-            if r in lacking:
-                out += track[bisect.bisect_left(track, self._held(r), key=_ts) :]
-            else:
-                out += track[max(0, bisect.bisect_left(track, from_ms, key=_ts) - 1) :]
-        return out
+            rows = [p for p in read if p.robot_id in wanted and p.ts_ms < self._held(p.robot_id)]
+            for r in lacking:
+                track = self.tracks.get(r, [])
+                rows += track[bisect.bisect_left(track, self._held(r), key=_ts) :]
+            out.update(unique_poses(rows))
+        return {r: t for r, t in out.items() if t}
 
     def _held(self, robot: str) -> int:
         return self.held_from.get(robot, self.held_from_ms)
@@ -283,7 +286,7 @@ class IncidentTracker:
         does not fit (then the slow way)."""
         th = self.th
         seg_from = (before.ts_ms if before else first_new_ms) - th.stuck_ms - th.offline_after_ms
-        track = unique_poses(self._poses(robot, seg_from)).get(robot, [])
+        track = self._tracks(robot, seg_from).get(robot, [])
         fresh = [
             *stuck_incidents(track, th),
             *battery_low_incidents(track, th),
@@ -329,7 +332,7 @@ class IncidentTracker:
         cut_ms = min([cut_ms, *(i.start_ms for i in mine if i.ongoing)])
         start = cut_ms - self.th.lookback_ms
         while True:
-            track = unique_poses(self._poses(robot, start)).get(robot, [])
+            track = self._tracks(robot, start).get(robot, [])
             fresh = [
                 *stuck_incidents(track, self.th),
                 *battery_low_incidents(track, self.th),
@@ -360,11 +363,24 @@ class IncidentTracker:
             and robots.intersection(i.robots)
             and i.end_ms >= first_tick - tick
         ]
-        start = min([first_tick, *(i.start_ms for i in reaching)])
-        tracks = unique_poses(self._poses(None, start - self.th.offline_after_ms))
-        fresh = near_miss_incidents(tracks, self.th, from_tick=start, involving=robots)
-        # A run that ends before the changed ticks is unchanged (and, begun before `start`,
-        # found cut short here): the one known stands.
+        # Every pair from the changed ticks on, but the pairs whose known run reaches them:
+        # those from their run's start (their robots only).
+        going_on: dict[tuple[str, ...], int] = {}
+        for i in reaching:  # from the first of a pair's runs that reach them, or from them
+            going_on[i.robots] = min(i.start_ms, first_tick, going_on.get(i.robots, first_tick))
+        fresh = [
+            i
+            for i in near_miss_incidents(
+                self._tracks(None, first_tick), self.th, from_tick=first_tick, involving=robots
+            )
+            if i.robots not in going_on
+        ]
+        for pair, start in going_on.items():
+            tracks = {r: t for r, t in self._tracks(None, start).items() if r in pair}
+            fresh += [
+                i for i in near_miss_incidents(tracks, self.th, from_tick=start) if i.robots == pair
+            ]
+        # A run that ends before the changed ticks is unchanged: the one known stands.
         self._replace(reaching, [i for i in fresh if i.end_ms >= first_tick - tick])
 
     def _earlier_exists(self, robot: str, ts_ms: int) -> bool:

@@ -19,61 +19,51 @@ from mapservice.core.ports import PoseRow
 _NEIGHBOURS = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
 
 
-class _Places:
-    """Every robot's places: one row per (robot, tick) its poses surround."""
-
-    def __init__(self) -> None:
-        self.tick: list[np.ndarray] = []
-        self.robot: list[np.ndarray] = []
-        self.x: list[np.ndarray] = []
-        self.y: list[np.ndarray] = []
-        self.moving: list[np.ndarray] = []
-        self.before: list[np.ndarray] = []  # indexes into `poses`
-        self.after: list[np.ndarray] = []
-        self.poses: list[PoseRow] = []
-
-    def add(self, k: int, track: list[PoseRow], th: IncidentThresholds, from_tick: int) -> None:
-        n = len(track)
-        if n < 2:
-            return
-        step = th.tick_ms
-        ts = np.fromiter((p.ts_ms for p in track), np.int64, n)
-        lo = max(-(-int(ts[0]) // step), -(-from_tick // step))
-        hi = int(ts[-1]) // step
-        if hi < lo:
-            return
-        xs = np.fromiter((p.x for p in track), np.float64, n)
-        ys = np.fromiter((p.y for p in track), np.float64, n)
-        ticks = np.arange(lo, hi + 1, dtype=np.int64) * step
-        a = np.minimum(np.searchsorted(ts, ticks, side="right") - 1, n - 2)
-        ok = ts[a + 1] - ts[a] <= th.offline_after_ms
-        # A tick on a pose that a silence follows takes its place from the step before it.
-        back = (~ok) & (ticks == ts[a]) & (a > 0)
-        back &= ts[a] - ts[np.maximum(a - 1, 0)] <= th.offline_after_ms
-        a = np.where(back, a - 1, a)
-        keep = ok | back
-        ticks, a = ticks[keep], a[keep]
-        b = a + 1
-        gap = ts[b] - ts[a]
-        f = (ticks - ts[a]) / gap
-        dx_mm = np.round((xs[a] - xs[b]) * 1000)
-        dy_mm = np.round((ys[a] - ys[b]) * 1000)
-        base = len(self.poses)
-        self.poses += track
-        self.tick.append(ticks)
-        self.robot.append(np.full(len(ticks), k, dtype=np.int64))
-        self.x.append(xs[a] + f * (xs[b] - xs[a]))
-        self.y.append(ys[a] + f * (ys[b] - ys[a]))
-        # faster than moving_m_s, in whole millimetres (mm/ms is m/s)
-        self.moving.append(dx_mm * dx_mm + dy_mm * dy_mm > (th.moving_m_s * gap) ** 2)
-        self.before.append(a + base)
-        self.after.append(b + base)
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        return tuple(
-            np.concatenate(c)
-            for c in (self.tick, self.robot, self.x, self.y, self.moving, self.before, self.after)
-        )
+def _places(
+    tracks: dict[str, list[PoseRow]], robots: list[str], th: IncidentThresholds, from_tick: int
+) -> tuple[list[PoseRow], tuple[np.ndarray, ...]]:
+    """Every robot's places, one row per (robot, tick) its poses surround, all robots at
+    once: (the poses, flat; and per row its tick, robot index, x, y, whether it moved, and
+    the indexes of the poses before and after it)."""
+    step, off = th.tick_ms, th.offline_after_ms
+    poses = [p for r in robots for p in tracks[r]]
+    sizes = np.fromiter((len(tracks[r]) for r in robots), np.int64, len(robots))
+    first = np.cumsum(sizes) - sizes
+    ts = np.fromiter((p.ts_ms for p in poses), np.int64, len(poses))
+    xs = np.fromiter((p.x for p in poses), np.float64, len(poses))
+    ys = np.fromiter((p.y for p in poses), np.float64, len(poses))
+    has = sizes >= 2
+    last = first + sizes - 1
+    lo = np.maximum(-(-ts[np.minimum(first, len(ts) - 1)] // step), -(-from_tick // step))
+    hi = ts[last] // step
+    counts = np.where(has, np.maximum(hi - lo + 1, 0), 0)
+    total = int(counts.sum())
+    robot = np.repeat(np.arange(len(robots), dtype=np.int64), counts)
+    ticks = (
+        np.repeat(lo, counts) + np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+    ) * step
+    # One sorted key for every robot's poses: its index, then the time.
+    span = int(ts.max()) + 1 if len(ts) else 1
+    keys = np.repeat(np.arange(len(robots), dtype=np.int64), sizes) * span + ts
+    a = np.searchsorted(keys, robot * span + ticks, side="right") - 1
+    a = np.minimum(a, last[robot] - 1)
+    ok = ts[a + 1] - ts[a] <= off
+    # A tick on a pose that a silence follows takes its place from the step before it.
+    back = (~ok) & (ticks == ts[a]) & (a > first[robot])
+    back &= ts[a] - ts[np.maximum(a - 1, 0)] <= off
+    a = np.where(back, a - 1, a)
+    keep = ok | back
+    ticks, robot, a = ticks[keep], robot[keep], a[keep]
+    b = a + 1
+    gap = ts[b] - ts[a]
+    f = (ticks - ts[a]) / gap
+    dx_mm = np.round((xs[a] - xs[b]) * 1000)
+    dy_mm = np.round((ys[a] - ys[b]) * 1000)
+    # faster than moving_m_s, in whole millimetres (mm/ms is m/s)
+    moving = dx_mm * dx_mm + dy_mm * dy_mm > (th.moving_m_s * gap) ** 2
+    x = xs[a] + f * (xs[b] - xs[a])
+    y = ys[a] + f * (ys[b] - ys[a])
+    return poses, (ticks, robot, x, y, moving, a, b)
 
 
 def _close_pairs(
@@ -127,14 +117,11 @@ def near_miss_incidents(
 ) -> list[Incident]:
     """The near misses over the ticks from `from_tick` on (all if None), of the pairs with a
     robot of `involving` (all if None)."""
-    robots = sorted(tracks)
-    places = _Places()
-    start = -(2**62) if from_tick is None else from_tick
-    for k, robot in enumerate(robots):
-        places.add(k, tracks[robot], th, start)
-    if not places.tick:
+    robots = sorted(r for r, track in tracks.items() if track)
+    if not robots:
         return []
-    tick, robot, x, y, moving, before, after = places.arrays()
+    start = -(2**62) if from_tick is None else from_tick
+    poses, (tick, robot, x, y, moving, before, after) = _places(tracks, robots, th, start)
     if not len(tick):
         return []
     mine = (
@@ -150,7 +137,6 @@ def near_miss_incidents(
         if gap < th.near_miss_m:
             pair = (robots[robot[a]], robots[robot[b]])
             close.setdefault(pair, []).append((int(tick[a]), gap, a, b))
-    poses = places.poses
     incidents = []
     for pair, ticks in sorted(close.items()):
         first = 0
