@@ -376,7 +376,7 @@ class IncidentTracker:
             if i.robots not in going_on
         ]
         for pair, start in going_on.items():
-            tracks = {r: t for r, t in self._tracks(None, start).items() if r in pair}
+            tracks = {r: t for r in pair for r, t in self._tracks(r, start).items()}
             fresh += [
                 i for i in near_miss_incidents(tracks, self.th, from_tick=start) if i.robots == pair
             ]
