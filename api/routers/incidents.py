@@ -57,14 +57,14 @@ def _as_of(i: FoundIncident, now_ms: int) -> Incident:
         end, measure = now_ms, (now_ms - i.start_ms) / 1000
     return Incident(
         id=i.incident_id,
-        kind=i.kind,  # type: ignore[arg-type]  # one of KINDS, as the rules write them
+        kind=i.kind,
         robots=list(i.robots),
         start_ms=i.start_ms,
         end_ms=end,
         ongoing=i.ongoing,
         x=i.x,
         y=i.y,
-        severity=i.severity,  # type: ignore[arg-type]
+        severity=i.severity,
         measure=measure,
         evidence=[Evidence(robotId=e.robot_id, ts_ms=e.ts_ms, x=e.x, y=e.y) for e in i.evidence],
     )

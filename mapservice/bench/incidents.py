@@ -16,6 +16,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.ports import PoseRow
@@ -24,7 +25,7 @@ T0 = 1_795_255_200_000
 PATH = ((0.0, 0.0), (1.0, 1.0))
 
 
-def run(robots: int, seconds: int, warm_s: int, floor_m2: float, seed: int = 1) -> dict:
+def run(robots: int, seconds: int, warm_s: int, floor_m2: float, seed: int = 1) -> dict[str, float]:
     """One run: µs of CPU per pose after `warm_s` seconds, and the incidents it found."""
     rng = random.Random(seed)
     side = math.sqrt(robots * floor_m2)
@@ -85,7 +86,7 @@ def main(args: argparse.Namespace) -> None:
     console = Console()
     if args.seconds <= args.warm_s:
         sys.exit("--seconds must be more than --warm-s (the figures come after the warm-up)")
-    result: dict = {"machine": machine_facts(), "yardstick_ms": yardstick_ms(), "runs": {}}
+    result: dict[str, Any] = {"machine": machine_facts(), "yardstick_ms": yardstick_ms(), "runs": {}}
     for robots in args.robots:
         rounds = []
         for k in range(args.rounds):
