@@ -86,7 +86,11 @@ def main(args: argparse.Namespace) -> None:
     console = Console()
     if args.seconds <= args.warm_s:
         sys.exit("--seconds must be more than --warm-s (the figures come after the warm-up)")
-    result: dict[str, Any] = {"machine": machine_facts(), "yardstick_ms": yardstick_ms(), "runs": {}}
+    result: dict[str, Any] = {
+        "machine": machine_facts(),
+        "yardstick_ms": yardstick_ms(),
+        "runs": {},
+    }
     for robots in args.robots:
         rounds = []
         for k in range(args.rounds):
