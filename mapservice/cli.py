@@ -172,6 +172,9 @@ def cmd_demo_history(args) -> None:
     # On a terminal a progress bar; else (a file, a pipe: the bar prints nothing there) a
     # log line every PROGRESS_LOG_S, so a logged first run shows it is getting on.
     configure("WARNING" if console.is_terminal else "INFO", "console", "demo-history")
+    # The week's batches hold hundreds of thousands of objects at once: with Python's
+    # default thresholds the collector walked them again and again, a tenth of the CPU.
+    freeze_startup_heap()
     data_dir, days, robots = Path(args.data_dir), args.days, args.robots
     try:
         ros_map = load_ros_map(args.map)

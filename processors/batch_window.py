@@ -8,19 +8,35 @@ duration says which: at 1,000 robots a batch is stored in ~45 ms, and this rule 
 a store takes ~100 ms and more, and there CPU is what the whole stack lacks (BENCHMARKS.md,
 live ingest). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
 stores are quick, growing to the longest window as they slow down (a busier machine makes
-them slower too, so the loop backs off exactly when CPU gets scarce).
+them slower too, so the loop backs off exactly when CPU gets scarce). It is also long enough
+to gather FILL_EVENTS at the recent arrival rate: a quiet plant does not pay that fixed cost
+ten times a second for a handful of events.
 """
 
 from __future__ import annotations
 
 STORE_SHARE = 0.4  # storing (insert, views, commit) takes at most this share of the loop
 SMOOTHING = 0.3  # weight of the newest batch in the running store time
+# A store's fixed cost is the same for 3 events as for 300: a small plant (20 robots send
+# ~24 events a second) paid it ten times a second for a few events each, most of its
+# processors' CPU. So the window is also long enough to gather about this many events at
+# the recent arrival rate, within the same bounds: from about 400 robots (500 events a
+# second) a plant gathers them within the shortest window and keeps it; a quiet one stores
+# every longest window. (100 events, at 1,000 robots' 1,200 a second, lengthened windows
+# whenever the rate dipped: the median publish -> stored rose by 25 ms.)
+FILL_EVENTS = 50
 
 
-def batch_window(store_s: float, shortest_s: float, longest_s: float) -> float:
-    """The window that keeps a store of `store_s` at STORE_SHARE of the loop, within
-    [shortest_s, longest_s] (a shortest beyond the longest is the longest)."""
-    return min(longest_s, max(min(shortest_s, longest_s), store_s / STORE_SHARE))
+def batch_window(
+    store_s: float, shortest_s: float, longest_s: float, events_per_s: float | None = None
+) -> float:
+    """The window that keeps a store of `store_s` at STORE_SHARE of the loop and gathers
+    FILL_EVENTS at `events_per_s` (None: not known yet), within [shortest_s, longest_s] (a
+    shortest beyond the longest is the longest)."""
+    wanted = store_s / STORE_SHARE
+    if events_per_s is not None:
+        wanted = max(wanted, FILL_EVENTS / events_per_s if events_per_s > 0 else longest_s)
+    return min(longest_s, max(min(shortest_s, longest_s), wanted))
 
 
 def smoothed(previous_s: float | None, sample_s: float) -> float:

@@ -177,6 +177,7 @@ class HistoryConsumer:
         self.window_s = batch_seconds  # until stores were timed
         BATCH_WINDOW.set(self.window_s)
         self._store_s: float | None = None  # running store time per batch (smoothed)
+        self._events_per_s: float | None = None  # running arrival rate (smoothed)
         self.now_ms = now_ms
         self.monotonic = monotonic
         self._last_poll_returned = -math.inf  # monotonic; the first poll takes what is queued
@@ -218,10 +219,12 @@ class HistoryConsumer:
 
     def _timed_store(self, store_s: float) -> None:
         """Sizes the next windows after a batch that took `store_s` to store (0 for an
-        empty poll: when idle the window shrinks, so the first events after a pause wait
-        least)."""
+        empty poll: when idle the window shrinks to what the recent arrival rate needs to
+        fill a batch, so the first events after a pause wait least)."""
         self._store_s = smoothed(self._store_s, store_s)
-        self.window_s = batch_window(self._store_s, self.min_batch_seconds, self.batch_seconds)
+        self.window_s = batch_window(
+            self._store_s, self.min_batch_seconds, self.batch_seconds, self._events_per_s
+        )
         BATCH_WINDOW.set(self.window_s)
 
     async def run_once(self) -> int:
@@ -230,7 +233,12 @@ class HistoryConsumer:
         records: list[SourceRecord] = await self._call(
             self.source.poll, self.batch_size, self.poll_timeout()
         )
-        self._last_poll_returned = self.monotonic()
+        previous, self._last_poll_returned = self._last_poll_returned, self.monotonic()
+        if records and math.isfinite(previous) and self._last_poll_returned > previous:
+            # Gathered since the previous poll returned (an idle poll leaves the rate be:
+            # a quiet spell is no reason to store the next events sooner).
+            rate = len(records) / (self._last_poll_returned - previous)
+            self._events_per_s = smoothed(self._events_per_s, rate)
         if self.assigned:
             self.assigned = False
             # The group changed: the pose views of what this replica stored are derived

@@ -57,7 +57,8 @@ def meta_from_json(doc: dict) -> MapMetaSet:
 # --- pixels <-> metres (pure) ------------------------------------------------------------
 
 
-def _geometry(meta: MapMetaSet) -> tuple[float, float, float]:
+def metres_geometry(meta: MapMetaSet) -> tuple[float, float, float]:
+    """(resolution, origin x, origin y) of the map: what converts pixels to metres."""
     if meta.resolution is None or meta.origin is None:
         raise ValueError("the map meta has no resolution/origin; slice it from its ROS YAML")
     return meta.resolution, meta.origin[0], meta.origin[1]
@@ -66,13 +67,13 @@ def _geometry(meta: MapMetaSet) -> tuple[float, float, float]:
 def pixel_to_metres(col: float, row: float, meta: MapMetaSet) -> tuple[float, float]:
     """World (x, y) of the centre of image pixel (col, row); row 0 is the top row and the
     ROS origin is the lower-left corner of the image."""
-    res, ox, oy = _geometry(meta)
+    res, ox, oy = metres_geometry(meta)
     return ox + (col + 0.5) * res, oy + (meta.height - row - 0.5) * res
 
 
 def metres_to_pixel(x: float, y: float, meta: MapMetaSet) -> tuple[int, int]:
     """Image pixel (col, row) that holds world point (x, y); may lie outside the image."""
-    res, ox, oy = _geometry(meta)
+    res, ox, oy = metres_geometry(meta)
     col = math.floor((x - ox) / res + 1e-9)
     row = meta.height - 1 - math.floor((y - oy) / res + 1e-9)
     return col, row

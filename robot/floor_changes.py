@@ -92,9 +92,19 @@ def _door(state: SimState, rng: random.Random) -> tuple[int, int, int, int] | No
     return None
 
 
-def _with_pixels(state: SimState, pixels: np.ndarray) -> SimState:
+def _with_pixels(
+    state: SimState, pixels: np.ndarray, box: tuple[int, int, int, int] | None = None
+) -> SimState:
+    """The state on the map `pixels`. With `box` (row0, col0, row1, col1, exclusive), the
+    only pixels that differ from the state's map: only they are classified again (a pixel
+    is drivable or not by its own value), not the whole image at every floor change."""
     m = state.ros_map.with_pixels(pixels)
-    free = drivable(m)
+    if box is None:
+        free = drivable(m)
+    else:
+        r0, c0, r1, c1 = box
+        free = state.drivable.copy()
+        free[r0:r1, c0:c1] = drivable(m.with_pixels(pixels[r0:r1, c0:c1]))
     grid, floor_grid = plan_grids(free, state.zones, m.resolution, state.config)
     return replace(state, ros_map=m, drivable=free, grid=grid, floor_grid=floor_grid)
 
@@ -136,7 +146,9 @@ def change_map(state: SimState, rng: random.Random) -> tuple[SimState, list[Chun
         pixels = state.ros_map.pixels.copy()
         pixels[r0:r1, c0:c1] = np.frombuffer(change.before, np.uint8).reshape(r1 - r0, c1 - c0)
         state = _with_pixels(
-            replace(state, changes=tuple(x for x in state.changes if x is not change)), pixels
+            replace(state, changes=tuple(x for x in state.changes if x is not change)),
+            pixels,
+            change.pixels,
         )
         what = "pallet taken away" if change.kind == "pallet" else "door opened"
         return (
@@ -162,7 +174,7 @@ def change_map(state: SimState, rng: random.Random) -> tuple[SimState, list[Chun
     pixels[r0:r1, c0:c1] = _occupied_value(state.ros_map)
     hold_ms = int(rng.uniform(2, 6) * c.change_every_s * 1000)
     change = MapChange(kind, box, before, state.t_ms + hold_ms)
-    new = _with_pixels(replace(state, changes=state.changes + (change,)), pixels)
+    new = _with_pixels(replace(state, changes=state.changes + (change,)), pixels, box)
     # On the floor alone: a station inside a keep-out zone is unreachable while the zone
     # stands, and no map change could ever pass this check.
     reachable = largest_component(new.floor.ok)

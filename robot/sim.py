@@ -39,6 +39,7 @@ from .sim_model import (
     SimConfig,
     SimState,
     StepOut,
+    evolve,
     route_to,
     sim_robot_id,
     to_metres,
@@ -175,9 +176,10 @@ def advance_along(
     return pos, yaw, passed
 
 
-def _advance(robot: Robot, distance_px: float) -> Robot:
+def _advance(robot: Robot, distance_px: float, battery: float) -> Robot:
+    """The robot driven `distance_px` along its waypoints, its battery then at `battery`."""
     pos, yaw, passed = advance_along(robot.pos, robot.yaw, robot.waypoints, distance_px)
-    return replace(robot, pos=pos, waypoints=robot.waypoints[passed:], yaw=yaw)
+    return evolve(robot, pos=pos, waypoints=robot.waypoints[passed:], yaw=yaw, battery=battery)
 
 
 # --- behaviour ---------------------------------------------------------------------------
@@ -198,20 +200,20 @@ def _next_task(state: SimState, robot: Robot, rng: random.Random) -> Robot:
     for task, index, cell in options[:3]:
         route = _route(state, robot, cell)
         if route is not None:
-            return replace(robot, task=task, target=index, waypoints=route)
-    return replace(robot, task="idle", wait_s=state.config.dwell_s)
+            return evolve(robot, task=task, target=index, waypoints=route)
+    return evolve(robot, task="idle", wait_s=state.config.dwell_s)
 
 
 def _arrive(state: SimState, robot: Robot) -> Robot:
     c = state.config
     if robot.task == "to_charger":
-        return replace(robot, task="charging", charging=True)
+        return evolve(robot, task="charging", charging=True)
     if robot.task == "to_pick":
-        return replace(robot, task="dwell", loaded=True, wait_s=c.dwell_s)
+        return evolve(robot, task="dwell", loaded=True, wait_s=c.dwell_s)
     if robot.task == "to_drop":
-        return replace(robot, task="dwell", loaded=False, wait_s=c.dwell_s)
+        return evolve(robot, task="dwell", loaded=False, wait_s=c.dwell_s)
     if robot.task == "leave_zone":  # out of a new keep-out zone: choose the next job now
-        return replace(robot, task="idle", wait_s=0.0)
+        return evolve(robot, task="idle", wait_s=0.0)
     return robot
 
 
@@ -223,11 +225,11 @@ def _robot_step(state: SimState, robot: Robot, make_rng: Callable[[], random.Ran
         battery = min(100.0, robot.battery + c.charge_per_s * c.dt_s)
         if battery >= c.full_battery:
             return _next_task(
-                state, replace(robot, battery=battery, charging=False, task="idle"), make_rng()
+                state, evolve(robot, battery=battery, charging=False, task="idle"), make_rng()
             )
-        return replace(robot, battery=battery)
+        return evolve(robot, battery=battery)
     if robot.task in ("dwell", "idle"):
-        robot = replace(
+        robot = evolve(
             robot,
             battery=max(0.0, robot.battery - c.idle_drain_per_s * c.dt_s),
             wait_s=robot.wait_s - c.dt_s,
@@ -236,14 +238,17 @@ def _robot_step(state: SimState, robot: Robot, make_rng: Callable[[], random.Ran
     if not robot.waypoints:
         return _arrive(state, robot)
     speed_px = speed_at(state, robot.pos) * c.dt_s / state.ros_map.resolution
-    robot = _advance(robot, speed_px)
-    robot = replace(robot, battery=max(0.0, robot.battery - c.drain_per_s * c.dt_s))
+    robot = _advance(robot, speed_px, max(0.0, robot.battery - c.drain_per_s * c.dt_s))
     if not robot.waypoints:
         robot = _arrive(state, robot)
     return robot
 
 
-def _path_metres(state: SimState, robot: Robot) -> tuple[tuple[float, float], ...]:
+def _path_metres(
+    state: SimState, robot: Robot, here: tuple[float, float]
+) -> tuple[tuple[float, float], ...]:
+    """The robot's path in metres: `here` (its position, converted already), then its
+    waypoints."""
     if not robot.waypoints:
         return ()
     wps = robot.waypoints[: state.config.max_path_points - 1]
@@ -253,7 +258,7 @@ def _path_metres(state: SimState, robot: Robot) -> tuple[tuple[float, float], ..
         if len(_WAYPOINTS_METRES) > 4096:
             _WAYPOINTS_METRES.clear()
         tail = _WAYPOINTS_METRES[key] = tuple(to_metres(state, p) for p in wps)
-    return (to_metres(state, robot.pos), *tail)
+    return (here, *tail)
 
 
 # Waypoints (image points) -> metres: a robot reports the same remaining route for many
@@ -270,7 +275,7 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
     c = state.config
     out = StepOut()
     t_ms = state.t_ms + int(c.dt_s * 1000)
-    state = replace(state, t_ms=t_ms, tick=state.tick + 1)
+    state = evolve(state, t_ms=t_ms, tick=state.tick + 1)
     if c.change_every_s > 0 and t_ms >= state.next_change_ms:
         rng = _rng(state.seed, state.tick, "map")
         old_grid = state.grid
@@ -288,7 +293,8 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
     for robot in state.robots:
         robot = _robot_step(state, robot, partial(_rng, state.seed, state.tick, robot.robot_id))
         robots.append(robot)
-        x, y = to_metres(state, robot.pos)
+        here = to_metres(state, robot.pos)
+        x, y = here
         out.poses.append(
             PoseOut(
                 robot.robot_id,
@@ -299,7 +305,7 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
                 round(robot.battery, 1),
                 robot.charging,
                 robot.loaded,
-                _path_metres(state, robot),
+                _path_metres(state, robot, here),
             )
         )
-    return replace(state, robots=tuple(robots)), out
+    return evolve(state, robots=tuple(robots)), out

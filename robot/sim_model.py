@@ -5,14 +5,15 @@ it shares (with its cache): plain values, no behaviour. `robot/sim.py` steps the
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from typing import Any, TypeVar
 
 import numpy as np
 
 from mapservice.adapters.ros_map import RosMap
 from mapservice.core.events import MapMetaSet
 
-from .chunks import pixel_to_metres
+from .chunks import metres_geometry
 from .planning import Cell, PlanGrid, plan, route_clear, simplify
 from .zones import NO_ZONES, FloorZones
 
@@ -106,6 +107,12 @@ class RouteEntry:
     cells: list[Cell]
     waypoints: tuple[Point, ...]
     checked_on: PlanGrid
+    # The cells as an (n, 2) array, as `route_clear` checks them: made once per route, not
+    # at every check after a floor change.
+    cell_array: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.cell_array = np.asarray(self.cells)
 
 
 @dataclass(frozen=True)
@@ -139,14 +146,48 @@ class StepOut:
 
 MAX_CACHED_ROUTES = 4096
 
+_Frozen = TypeVar("_Frozen", Robot, SimState)
+_FIELDS: dict[type, frozenset[str]] = {}
+
+
+def evolve(value: _Frozen, **changes: Any) -> _Frozen:
+    """`dataclasses.replace` for the simulator's frozen records, without re-running their
+    `__init__`: a copy of the instance's fields with `changes` over them. A simulated week
+    replaces robots hundreds of thousands of times, and `replace` was a tenth of its CPU."""
+    cls = type(value)
+    names = _FIELDS.get(cls)
+    if names is None:
+        names = _FIELDS[cls] = frozenset(f.name for f in fields(cls))
+    if not names.issuperset(changes):
+        raise TypeError(f"{cls.__name__} has no field {sorted(set(changes) - names)}")
+    new = object.__new__(cls)
+    attrs = new.__dict__
+    attrs.update(value.__dict__)
+    attrs.update(changes)
+    return new
+
 
 # --- geometry and routes -----------------------------------------------------------------
 
 
 def to_metres(state: SimState, p: Point) -> tuple[float, float]:
     """Continuous image point to world metres (pixel_to_metres is for pixel centres)."""
-    x, y = pixel_to_metres(p[0] - 0.5, p[1] - 0.5, state.meta)
+    meta = state.meta
+    known = _GEOMETRY.get(id(meta))
+    if known is None or known[0] is not meta:
+        if len(_GEOMETRY) > 64:
+            _GEOMETRY.clear()
+        known = _GEOMETRY[id(meta)] = (meta, *metres_geometry(meta), meta.height)
+    _, res, ox, oy, height = known
+    # pixel_to_metres' arithmetic step for step (the same floats), on the meta's numbers
+    # looked up once: a week of demo history converts millions of points.
+    x = ox + (p[0] - 0.5 + 0.5) * res
+    y = oy + (height - (p[1] - 0.5) - 0.5) * res
     return round(x, 3), round(y, 3)
+
+
+# The geometry of each map meta in use (by identity: metas are immutable and long-lived).
+_GEOMETRY: dict[int, tuple] = {}
 
 
 def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | None:
@@ -157,7 +198,7 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
     entry = state.routes.get((start, goal))
     if entry is not None and entry.checked_on is not grid:
         # The floor changed since: keep the route only if it is still drivable.
-        if route_clear(grid, entry.cells):
+        if route_clear(grid, entry.cell_array):
             entry.checked_on = grid
         else:
             entry = None

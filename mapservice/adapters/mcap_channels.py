@@ -128,7 +128,9 @@ JSON_SCHEMAS = {
 
 
 def battery_percent(level: float | None) -> float | None:
-    """The reported battery in %, by the rule the replay UI shows it with."""
+    """The reported battery in %, judged from the level alone (the replay UI judges by the
+    robot's highest level instead, replay-ui/src/lib/battery.ts: a percent robot's 5.0 is
+    5 % there, 100 % here)."""
     if level is None or level != level:
         return None
     pct = level * 100 if level <= 1 else level * 20 if level <= 5 else level

@@ -111,6 +111,15 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
         "components (MAPSERVICE_...=...), kafka=apache|tansu, or python=PATH (another "
         "checkout's Python: its code runs the components); bench/compare.py",
     )
+    ingest.add_argument(
+        "--profile",
+        metavar="DIR",
+        default=None,
+        help="while the fleet runs, sample each Python component (the gateways, serve) "
+        "with py-spy (`pip install py-spy`; root or CAP_SYS_PTRACE) and write a flame graph "
+        "of its CPU to DIR/<component>-run<N>.svg (with --compare, "
+        "<component>-<variant>-run<N>.svg); the brokers (Java, C) are not sampled",
+    )
     ingest.set_defaults(func=_run_ingest)
 
     from mapservice.bench.timetravel import add_parser as add_timetravel_parser

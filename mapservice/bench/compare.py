@@ -96,7 +96,11 @@ def run_rounds(
             run_dir = base / variant.name / f"run-{i}"
             shutil.rmtree(run_dir, ignore_errors=True)
             before = os.getloadavg()
-            overrides: dict[str, Any] = {"stack_env": variant.env, "stack_python": variant.python}
+            overrides: dict[str, Any] = {
+                "stack_env": variant.env,
+                "stack_python": variant.python,
+                "variant_name": variant.name,  # names its --profile files
+            }
             if variant.kafka is not None:
                 overrides["kafka"] = variant.kafka
             result = run_once(

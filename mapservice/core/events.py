@@ -203,11 +203,13 @@ class Envelope(msgspec.Struct, frozen=True, gc=False, array_like=True):
 
 
 def _digest(*parts: object) -> str:
-    h = hashlib.blake2b(digest_size=16)
-    for part in parts:
-        h.update(part if isinstance(part, bytes) else str(part).encode())
-        h.update(b"\x1f")
-    return h.hexdigest()
+    """blake2b-128 of the parts, each followed by a unit separator (text as UTF-8), hashed
+    in one call: a simulated week digests a million ids, and an update per part and per
+    separator was most of the cost."""
+    data = b"".join(
+        (part if isinstance(part, bytes) else str(part).encode()) + b"\x1f" for part in parts
+    )
+    return hashlib.blake2b(data, digest_size=16).hexdigest()
 
 
 def event_id_for(robot_id: str, event_time_ms: int, payload: Payload) -> str:

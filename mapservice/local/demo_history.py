@@ -9,7 +9,8 @@ conflicts, snapshots as the processors' timer builds them. History starts with t
 file itself at the first instant (what `mapservice map upload` writes), so the map at any
 T is the real floor with that day's pallets and doors.
 
-Fast-forward, and what it changes (so the whole week takes under a minute of CPU here):
+Fast-forward, and what it changes (so the whole week takes under a minute of CPU here,
+simulation and inserts; BENCHMARKS.md has the figures):
 - the simulation steps STEP_S seconds at a time; between steps each moving robot is
   advanced along its planned path, so poses lie on the path (on free pixels) every
   POSE_EVERY_S seconds instead of every second;
@@ -129,9 +130,9 @@ def simulate(
     tails: dict[str, tuple[tuple, tuple]] = {}  # robot -> (waypoints, them in metres)
     changed = 0
 
-    def path(s, robot_id: str, pos, waypoints) -> tuple:
-        """The robot's path in metres (its position, then its waypoints), converting each
-        planned route once rather than at every pose."""
+    def path(s, robot_id: str, here: tuple[float, float], waypoints) -> tuple:
+        """The robot's path in metres (`here`, its position in metres, then its waypoints),
+        converting each planned route once rather than at every pose."""
         wps = waypoints[: config.max_path_points - 1]
         if not wps:
             return ()
@@ -139,7 +140,7 @@ def simulate(
         known = tails.get(robot_id)
         if known is None or len(wps) > len(known[0]) or known[0][len(known[0]) - len(wps) :] != wps:
             known = tails[robot_id] = (wps, tuple(sim.to_metres(s, p) for p in wps))
-        return (sim.to_metres(s, pos), *known[1][len(known[1]) - len(wps) :])
+        return (here, *known[1][len(known[1]) - len(wps) :])
 
     while state.t_ms < end_ms:
         before = state
@@ -150,17 +151,17 @@ def simulate(
                 pos, yaw, passed = sim.advance_along(
                     robot.pos, robot.yaw, robot.waypoints, speed_px * k
                 )
-                wps = robot.waypoints[passed:]
+                here = sim.to_metres(before, pos)
                 batch.append(
                     _pose_event(
                         robot.robot_id,
                         before.t_ms + k * 1000,
-                        sim.to_metres(before, pos),
+                        here,
                         yaw,
                         robot.battery,
                         robot.charging,
                         robot.loaded,
-                        path(before, robot.robot_id, pos, wps),
+                        path(before, robot.robot_id, here, robot.waypoints[passed:]),
                         rng.randrange(15, 90),
                     )
                 )

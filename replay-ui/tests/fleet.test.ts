@@ -1,5 +1,6 @@
 import { describe, expect, it } from "vitest";
-import { batteryPercent, fleetRows, placeLabels, robotColour, speedAt } from "../src/lib/fleet";
+import { fleetRows, placeLabels, robotColour, speedAt } from "../src/lib/fleet";
+import { BatteryScales } from "../src/lib/battery";
 import type { Pose } from "../src/lib/types";
 
 function pose(id: string, ts: number, x: number, extra: Partial<Pose> = {}): Pose {
@@ -8,7 +9,12 @@ function pose(id: string, ts: number, x: number, extra: Partial<Pose> = {}): Pos
 
 describe("fleet", () => {
   it("shows battery as a percentage of any 2019 scale", () => {
-    expect([batteryPercent(61), batteryPercent(0.5), batteryPercent(4), batteryPercent(null)]).toEqual([61, 50, 80, null]);
+    // Each robot on its own scale: a fraction robot's 0.5 is 50 %, a percent robot's 4 is 4 %.
+    const scales = new BatteryScales();
+    const rows = fleetRows([["pct", 61], ["frac", 0.5], ["low", 4], ["none", null]].map(([id, level]) =>
+      ({ robotId: id as string, pose: pose(id as string, 0, 0, { battery_level: level as number | null }), offline: false })),
+    new Map(), 0, "", scales);
+    expect(Object.fromEntries(rows.map((r) => [r.robotId, r.batteryPct]))).toEqual({ pct: 61, frac: 50, low: 4, none: null });
   });
 
   it("gives each robot one stable colour, different between robots", () => {

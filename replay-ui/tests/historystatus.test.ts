@@ -1,5 +1,6 @@
 import { describe, expect, it } from "vitest";
 import { bannerFor, pollStatus, utcClock, type HistoryStatus } from "../src/lib/historystatus";
+import { SESSION_HEADER, SESSION_ID } from "../src/lib/request";
 
 const SINCE = Date.UTC(2026, 10, 25, 22, 15, 3, 400);
 const failing: HistoryStatus = {
@@ -37,26 +38,34 @@ describe("bannerFor", () => {
 describe("pollStatus", () => {
   const reply = (status: number, body: unknown) =>
     (async () => new Response(JSON.stringify(body), { status })) as unknown as typeof fetch;
+  /** The request layer's options with a clock its waits advance (a busy answer is waited for). */
+  const via = (fetchFn: typeof fetch) => {
+    let now = 0;
+    return { fetchFn, now: () => now, sleep: async (ms: number) => void (now += ms) };
+  };
 
   it("reads the history's status from /api/v1/status", async () => {
     const urls: string[] = [];
-    const fetchFn = (async (url: string) => {
+    const sessions: (string | null)[] = [];
+    const fetchFn = (async (url: string, init: RequestInit) => {
       urls.push(url);
+      sessions.push(new Headers(init.headers).get(SESSION_HEADER));
       return new Response(JSON.stringify({ history: failing }), { status: 200 });
     }) as unknown as typeof fetch;
-    expect(await pollStatus(fetchFn, "http://h")).toEqual({ history: failing });
+    expect(await pollStatus("http://h", via(fetchFn))).toEqual({ history: failing });
     expect(urls).toEqual(["http://h/api/v1/status"]);
+    expect(sessions).toEqual([SESSION_ID]);
   });
 
   it("an API apart from the processors answers null: no banner", async () => {
-    const got = await pollStatus(reply(200, { history: null }));
+    const got = await pollStatus("", via(reply(200, { history: null })));
     expect(got).toEqual({ history: null });
     expect(bannerFor((got as { history: HistoryStatus | null }).history)).toBeNull();
   });
 
   it("learns nothing from a failure, a 404 included, and is asked again next time", async () => {
-    for (const status of [404, 500, 503]) expect(await pollStatus(reply(status, { detail: "no" }))).toBe("unknown");
+    for (const status of [404, 500, 503]) expect(await pollStatus("", via(reply(status, { detail: "no" })))).toBe("unknown");
     const down = (async () => { throw new TypeError("Failed to fetch"); }) as unknown as typeof fetch;
-    expect(await pollStatus(down)).toBe("unknown");
+    expect(await pollStatus("", via(down))).toBe("unknown");
   });
 });

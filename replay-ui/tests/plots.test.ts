@@ -22,7 +22,7 @@ function random(seed: number) {
 
 describe("plot series", () => {
   it("battery in % with its range, speed over the steps' time, distance summed from the window's start", () => {
-    const s = seriesOf(answer(500, 3500, 1000, [bucket(0, 3, 2000, [0.7, 0.8, 0.75]), bucket(2000, 5, 1000, [79, 80, 79.5])]));
+    const s = seriesOf(answer(500, 3500, 1000, [bucket(0, 3, 2000, [70, 80, 75]), bucket(2000, 5, 1000, [79, 80, 79.5])]));
     expect(s.mid).toEqual([750, 1500, 2500, 3250]); // buckets cut by the window's ends: their middle within it
     expect(s.edges).toEqual([500, 1000, 2000, 3000, 3500]);
     expect(s.battery).toEqual([75, null, 80, null]);

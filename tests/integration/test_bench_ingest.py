@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -97,3 +98,43 @@ def test_bench_ingest_with_two_gateways_splits_the_load_and_accounts_for_every_m
     assert all(n > 0 for n in run["gateway_acked_by_replica"]), run["gateway_acked_by_replica"]
     assert run["gateway_acked_minus_published"] == 0
     assert "gateway-2" not in run["cpu_percent_of_one_core"]
+
+
+@pytest.mark.timeout(600)
+def test_bench_ingest_profile_writes_a_flame_graph_per_python_component(tmp_path) -> None:
+    """`--profile DIR`: while the fleet runs, py-spy samples the gateway and `serve`; one flame
+    graph each, named in the run's result (the brokers, not Python, get none)."""
+    profiles = tmp_path / "profiles"
+    out = tmp_path / "bench.json"
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "mapservice.cli",
+            "bench",
+            "ingest",
+            "--robots",
+            "3",
+            "--seconds",
+            "4",
+            "--mqtt",
+            "mosquitto",
+            "--no-latency-clients",
+            "--profile",
+            str(profiles),
+            "--json",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=540,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    run = json.loads(out.read_text())["runs"][0]
+    assert run["profiles"] == {
+        "gateway": str(profiles / "gateway-run1.svg"),
+        "server": str(profiles / "server-run1.svg"),
+    }
+    assert sorted(p.name for p in profiles.iterdir()) == ["gateway-run1.svg", "server-run1.svg"]
+    for svg in profiles.iterdir():
+        assert re.search(r'id="frames"[^>]* total_samples="[1-9]', svg.read_text()), svg

@@ -2,7 +2,7 @@
 
 import pytest
 
-from mapservice.processors.batch_window import STORE_SHARE, batch_window, smoothed
+from mapservice.processors.batch_window import FILL_EVENTS, STORE_SHARE, batch_window, smoothed
 
 
 def test_a_quick_store_gets_the_shortest_window() -> None:
@@ -39,3 +39,17 @@ def test_after_one_slow_store_quick_ones_bring_the_shortest_window_back() -> Non
 def test_the_first_store_time_is_taken_as_it_is() -> None:
     """With nothing measured yet the first store time is the running time."""
     assert smoothed(None, 0.07) == 0.07
+
+
+@pytest.mark.parametrize("events_per_s", [0.0, 1.0, 24.0, 120.0, 500.0, 999.0, 1200.0, 6000.0])
+@pytest.mark.parametrize("store_s", [0.0, 0.01, 0.03, 0.06, 0.15])
+def test_the_window_also_gathers_a_batch_worth_its_fixed_cost(store_s, events_per_s) -> None:
+    """Whatever the store time, the window is long enough to gather FILL_EVENTS at the
+    arrival rate, within the bounds: a quiet plant (none, or 24 events a second) stores
+    every longest window, a plant of 1,000 robots and more keeps the store's own window."""
+    window = batch_window(store_s, 0.1, 0.2, events_per_s)
+    gather = FILL_EVENTS / events_per_s if events_per_s else float("inf")
+    assert window == pytest.approx(min(0.2, max(0.1, store_s / STORE_SHARE, gather)))
+    assert window >= batch_window(store_s, 0.1, 0.2)  # never shorter than the store's own
+    if events_per_s >= FILL_EVENTS / 0.1:
+        assert window == batch_window(store_s, 0.1, 0.2)

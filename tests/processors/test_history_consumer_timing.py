@@ -6,7 +6,10 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from mapservice.core.events import encode
+from mapservice.processors.batch_window import FILL_EVENTS
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
 from mapservice.testing.memory_source import MemorySource
@@ -32,10 +35,12 @@ def timeouts_asked(
     batches: int = 4,
     min_batch_seconds: float | None = None,
     idle_polls: int = 0,
+    per_batch: int = FILL_EVENTS,
 ) -> list[float]:
     """The poll timeouts of a consumer whose window is at most 200 ms (at least
-    `min_batch_seconds`; None: always 200 ms), over `batches` stores and then `idle_polls`
-    polls that find nothing."""
+    `min_batch_seconds`; None: always 200 ms), over `batches` stores of `per_batch` events
+    each (by default a full batch: batch_window.FILL_EVENTS) and then `idle_polls` polls
+    that find nothing."""
     clock = Clock()
     source, store = MemorySource(), TimedStore(clock, store_seconds)
     asked: list[float] = []
@@ -44,16 +49,16 @@ def timeouts_asked(
     def poll(n, timeout_s):
         asked.append(round(timeout_s, 6))
         clock.t += timeout_s  # a poll with nothing to return early waits out its timeout
-        return original_poll(1, timeout_s)
+        return original_poll(per_batch, timeout_s)
 
     source.poll = poll
-    for i in range(batches):
+    for i in range(batches * per_batch):
         source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
     consumer = HistoryConsumer(
         source,
         HistorySink(store),
         None,
-        batch_size=100,
+        batch_size=max(100, per_batch),
         batch_seconds=0.2,
         min_batch_seconds=min_batch_seconds,
         now_ms=lambda: NOW,
@@ -162,9 +167,29 @@ def test_slow_stores_keep_the_longest_batch_window(ev) -> None:
 
 
 def test_an_idle_spell_shrinks_the_batch_window_back_to_its_shortest(ev) -> None:
-    """After 90 ms stores (200 ms window) empty polls count as 0 s stores: 157, 110, then 100 ms."""
-    asked = timeouts_asked(ev, 0.09, batches=6, min_batch_seconds=0.1, idle_polls=5)
+    """After 90 ms stores (200 ms window) empty polls count as 0 s stores: 157, 110, then 100 ms
+    (the batches' arrival rate fills a batch within the shortest window)."""
+    asked = timeouts_asked(
+        ev, 0.09, batches=6, min_batch_seconds=0.1, idle_polls=5, per_batch=2 * FILL_EVENTS
+    )
     assert [round(t, 4) for t in asked[6:]] == [0.11, 0.1575, 0.1103, 0.1, 0.1]
+
+
+@pytest.mark.parametrize("per_batch", [1, 2, 5, 10, 20])
+def test_a_quiet_plant_gathers_its_events_for_the_longest_window(ev, per_batch) -> None:
+    """Quick stores, but a few events per 100 ms (a plant of a few dozen robots): after the
+    first batch shows the rate, every poll waits out the longest window (200 ms less the
+    store), so the store's fixed cost is paid half as often."""
+    asked = timeouts_asked(ev, 0.01, batches=6, min_batch_seconds=0.1, per_batch=per_batch)
+    assert asked[2:] == [0.19] * 4
+
+
+@pytest.mark.parametrize("per_batch", [FILL_EVENTS, 2 * FILL_EVENTS, 5 * FILL_EVENTS])
+def test_a_busy_plant_keeps_the_shortest_window(ev, per_batch) -> None:
+    """Quick stores of full batches (1,000 robots and more): the shortest window, as
+    before."""
+    asked = timeouts_asked(ev, 0.01, batches=6, min_batch_seconds=0.1, per_batch=per_batch)
+    assert asked[1:] == [0.09] * 5
 
 
 def test_the_batch_window_gauge_reads_the_window_before_the_first_poll() -> None:

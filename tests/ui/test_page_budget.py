@@ -9,6 +9,8 @@ import time
 from datetime import datetime
 from urllib.parse import parse_qs, urlparse
 
+import httpx
+
 from .conftest import ARTIFACTS, open_replay
 from .test_replay import TIMEOUT_MS, map_hashes, shown_hashes
 
@@ -81,12 +83,9 @@ def test_a_second_tab_opened_during_a_3600x_replay_draws_its_instant_without_a_r
     assert not errors and not page.errors
 
 
-def test_an_idle_live_page_asks_at_most_once_every_two_seconds(page, history_stack) -> None:
-    """Live, nothing happening: over IDLE_WINDOW_S the page sends at most one request
-    every two seconds besides its WebSocket (the lists the stream does not carry are read
-    again at one cadence, a sliding span is read ahead, the status is not polled apace)."""
-    stack = history_stack
-    open_replay(page, stack.api_url, "?live=1", timeout_ms=TIMEOUT_MS)
+def _idle_requests(page, stack, query: str) -> list[str]:
+    """The requests of a live page at rest over IDLE_WINDOW_S, besides its WebSocket."""
+    open_replay(page, stack.api_url, query, timeout_ms=TIMEOUT_MS)
     page.wait_for_function("() => window.__replay.liveStatus.connected", timeout=TIMEOUT_MS)
     page.wait_for_timeout(3000)  # what the first frames ask for once
     asked: list[str] = []
@@ -95,7 +94,34 @@ def test_an_idle_live_page_asks_at_most_once_every_two_seconds(page, history_sta
         lambda r: asked.append(f"{r.method} {r.url}") if r.resource_type != "websocket" else None,
     )
     page.wait_for_timeout(IDLE_WINDOW_S * 1000)
-    print(f"\nidle live page: {len(asked)} requests in {IDLE_WINDOW_S} s: {asked}")
-    assert len(asked) <= IDLE_MAX_REQUESTS, asked
+    print(f"\nidle live page {query}: {len(asked)} requests in {IDLE_WINDOW_S} s: {asked}")
     assert page.evaluate("() => window.__replay.live")
     assert not page.errors
+    return asked
+
+
+def test_an_idle_live_page_asks_at_most_once_every_two_seconds(page, history_stack) -> None:
+    """Live, nothing happening: over IDLE_WINDOW_S the page sends at most one request
+    every two seconds besides its WebSocket (the lists the stream does not carry are read
+    again at one cadence, a sliding span is read ahead, the status is not polled apace)."""
+    asked = _idle_requests(page, history_stack, "?live=1")
+    assert len(asked) <= IDLE_MAX_REQUESTS, asked
+
+
+def test_an_idle_live_page_with_every_panel_open_keeps_the_budget(page, history_stack) -> None:
+    """The same with every panel open, a robot selected and plotted: the fleet list's
+    speeds come from the live stream (no read of the poses every two seconds), and the
+    panels' lists are read again only at the page's cadence or once their span slid."""
+    stack = history_stack
+    robot = sorted(
+        r["robotId"]
+        for r in httpx.get(f"{stack.api_url}/api/v1/robots", timeout=30).json()["robots"]
+    )[0]
+    asked = _idle_requests(
+        page,
+        stack,
+        f"?live=1&sel={robot}&plot={robot}&panels=changes,fleet,conflicts,plots,annotations",
+    )
+    assert page.locator('[data-testid="fleet-row"]').count() > 0
+    assert not [a for a in asked if "/api/v1/poses?" in a], asked
+    assert len(asked) <= IDLE_MAX_REQUESTS, asked

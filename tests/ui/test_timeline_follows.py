@@ -206,6 +206,51 @@ def test_an_operators_edit_leaves_the_playhead(page, history_stack) -> None:
     assert page.errors == []
 
 
+def test_show_it_follows_the_page_leaving_and_rejoining_live(page, history_stack) -> None:
+    """Live, an operator places a point: the map shows it now, so no "show it". Paused
+    (nothing else changes: the status and the edit's instant stay), "show it" appears at
+    once and goes to the edit's instant; back to live, it goes again."""
+    stack = history_stack
+    open_at(page, stack, "?live=1&panels=annotations")
+    page.wait_for_function("() => window.__replay.liveStatus.connected", timeout=TIMEOUT_MS)
+    token = operator_token(stack)
+    give_token(page, token)
+    page.wait_for_selector('[data-testid="edit-panel"]', timeout=TIMEOUT_MS)
+    page.evaluate("() => window.__replay.fitGrid()")
+    name = f"ui-test show it {time.time_ns()}"
+    page.fill('[data-testid="poi-name"]', name)
+    page.click('[data-testid="place-poi"]')
+    page.mouse.click(*screen(page, -4.0, -9.6))
+    page.wait_for_function(
+        "(n) => (document.querySelector('[data-testid=edit-status]')?.innerText ?? '').includes(n)",
+        arg=name,
+        timeout=TIMEOUT_MS,
+    )
+    stored = next(
+        a
+        for a in api(stack, "/api/v1/annotations")["annotations"]
+        if a["annotation"]["name"] == name
+    )
+    try:
+        assert page.evaluate("() => window.__replay.live")
+        assert page.locator('[data-testid="edit-show"]').count() == 0
+        page.click('[data-testid="play-pause"]')  # leaves live where it is
+        page.wait_for_selector('[data-testid="edit-show"]', timeout=5_000)
+        page.click('[data-testid="edit-show"]')
+        settled_at(page, stored["changed_ms"])
+        page.wait_for_selector(f'.poi[data-id="{stored["id"]}"]', timeout=TIMEOUT_MS)
+        page.click('[data-testid="live"]')
+        page.wait_for_function("() => window.__replay.live", timeout=TIMEOUT_MS)
+        page.wait_for_selector('[data-testid="edit-show"]', state="detached", timeout=5_000)
+    finally:
+        httpx.delete(
+            f"{stack.api_url}/api/v1/annotations/{stored['id']}",
+            headers={"Authorization": f"Bearer {token}"},
+            timeout=30,
+        ).raise_for_status()
+    assert page.errors == []
+
+
 def test_whole_floor_while_following_a_robot(page, history_stack) -> None:
     """Following a robot zoomed in, "whole floor" shows the floor (every corner of the grid
     in the map's box) and stops following, so the view stays there."""
@@ -257,5 +302,73 @@ def test_three_panels_keep_the_map_usable(browser, history_stack) -> None:
             assert details["y"] < h - 40, (w, h, details)
             # The page itself does not scroll: what is below the fold is inside a panel that does.
             assert page.evaluate("() => document.documentElement.scrollHeight") <= h
+        finally:
+            context.close()
+
+
+# Every box that must show whole, with the box it must fit in (a box that scrolls or clips
+# its content): each plot in the plots' panel, each timeline legend item in the timeline's
+# bar, each plotted robot's chip in the plots' bar, every side panel within the side bar's
+# width; all of them within the window.
+CLIPPED = """() => {
+  const box = (el) => el.getBoundingClientRect();
+  const inside = (a, b) => a.left >= b.left - 0.5 && a.right <= b.right + 0.5 && a.top >= b.top - 0.5 && a.bottom <= b.bottom + 0.5;
+  const within = (a, b) => a.left >= b.left - 0.5 && a.right <= b.right + 0.5;
+  const view = { left: 0, top: 0, right: innerWidth, bottom: innerHeight };
+  const out = [];
+  // whole: inside its container and the window; else (a side panel, which the side bar
+  // scrolls to) within their widths only.
+  const check = (what, el, container, whole = true) => {
+    const a = box(el), b = box(container);
+    if (a.width === 0 || a.height === 0) out.push(`${what}: not drawn`);
+    else if (!(whole ? inside(a, b) : within(a, b))) out.push(`${what} ${JSON.stringify(a)} outside ${JSON.stringify(b)}`);
+    else if (!(whole ? inside(a, view) : within(a, view))) out.push(`${what} ${JSON.stringify(a)} outside the window`);
+  };
+  const plots = document.querySelector('[data-testid=plot-panel]');
+  if (!plots) return ['no plot panel'];
+  for (const p of plots.querySelectorAll('[data-plot]')) {
+    const u = p.querySelector('.uplot');
+    if (!u) out.push(`plot ${p.dataset.plot}: not drawn`);
+    else check(`plot ${p.dataset.plot}`, u, plots);
+  }
+  for (const c of plots.querySelectorAll('[data-testid=plot-robot]')) check(`plot chip ${c.dataset.robot}`, c, plots);
+  const bar = document.querySelector('.timeline-bar');
+  const items = document.querySelectorAll('[data-testid=timeline-legend-item]');
+  if (!items.length) out.push('no timeline legend');
+  for (const i of items) check(`legend item ${i.textContent.trim()}`, i, bar);
+  const side = document.querySelector('aside.side');
+  for (const s of side.children) check(`side panel ${s.className || s.tagName}`, s, side, false);
+  return out;
+}"""
+
+
+def test_three_side_panels_clip_no_plot_or_legend_item(browser, history_stack) -> None:
+    """Changes, fleet and conflicts open beside the plots (a robot selected and plotted),
+    at 1280x800 and 1920x1080: every plot shows whole within its panel, every legend item
+    of the timeline and every chip of the plots within its bar, no side panel wider than the
+    side bar (which scrolls), all of it within the window. Screenshots in
+    test-artifacts/ui/."""
+    stack = history_stack
+    t = stack.history.end_ms - 30 * 60_000
+    robot = sorted(r["robotId"] for r in api(stack, "/api/v1/robots", at=t)["robots"])[0]
+    for w, h in ((1280, 800), (1920, 1080)):
+        context = browser.new_context(viewport={"width": w, "height": h})
+        page = context.new_page()
+        try:
+            open_at(
+                page, stack, f"?t={t}&sel={robot}&plot={robot}&panels=changes,fleet,conflicts,plots"
+            )
+            page.wait_for_selector('[data-testid="fleet-row"]', timeout=TIMEOUT_MS)
+            page.wait_for_function(
+                "() => { const p = window.__replay.plots(); return p && Object.keys(p.robots).length > 0; }",
+                timeout=TIMEOUT_MS,
+            )
+            page.wait_for_timeout(500)
+            screenshot(page, f"ui-three-side-panels-{w}x{h}.png")
+            assert page.evaluate(CLIPPED) == [], (w, h)
+            # Nothing wider than the window: no horizontal scrolling anywhere on the page.
+            assert page.evaluate("() => document.documentElement.scrollWidth") <= w
+            map_box = page.locator('[data-testid="map"]').bounding_box()
+            assert map_box["height"] >= 0.5 * h, (w, h, map_box)
         finally:
             context.close()

@@ -34,6 +34,10 @@ _BOOLISH = msgspec.json.Decoder(bool | str | None)
 
 def flag(value: bool | str | None) -> str:
     # Stored as JSON text so the 2019 API can answer with the type the robot sent.
+    if value is True:  # the usual two, spared the encoder: a batch flags every pose twice
+        return "true"
+    if value is False:
+        return "false"
     return "" if value is None else json_encoder.encode(value).decode()
 
 
@@ -153,7 +157,7 @@ class ClickHouseConnection:
         self.known_contents: dict[bytes, int] = {}
         # One reusable insert context per (table, columns): without it every insert first
         # asks the server for the table's column types (a DESCRIBE, ~3 ms on chDB).
-        self._insert_contexts: dict[tuple[str, tuple[str, ...]], object] = {}
+        self._insert_contexts: dict[tuple[str, tuple[str, ...], bool], object] = {}
         # Created on the first failed write to chDB (broken_parts.py); kept for its cooldowns.
         self._broken_parts: BrokenPartRecovery | None = None
 
@@ -231,14 +235,23 @@ class ClickHouseConnection:
                         log.error("reloading tables with broken parts failed", error=str(failed))
             raise
 
-    def insert(self, table: str, rows: Sequence[Sequence], columns: Sequence[str]) -> None:
-        """Inserts `rows` into `table` of the database with the writer client (under `lock`)."""
-        key = (table, tuple(columns))
+    def insert(
+        self,
+        table: str,
+        rows: Sequence[Sequence],
+        columns: Sequence[str],
+        *,
+        column_oriented: bool = False,
+    ) -> None:
+        """Inserts `rows` into `table` of the database with the writer client (under `lock`).
+        With `column_oriented`, `rows` is one sequence per column instead (in `columns`
+        order): a writer that builds columns spares the client turning rows into them."""
+        key = (table, tuple(columns), column_oriented)
         with self.reloading_broken_tables():
             context = self._insert_contexts.get(key)
             if context is None:
                 context = self.client.create_insert_context(
-                    f"{self.database}.{table}", list(columns)
+                    f"{self.database}.{table}", list(columns), column_oriented=column_oriented
                 )
                 self._insert_contexts[key] = context
             self.client.insert(data=rows, context=context)

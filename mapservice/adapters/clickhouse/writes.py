@@ -9,6 +9,9 @@ nothing else of the store but the rows of `command_reads.command_row`.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import chain
+
+import numpy as np
 
 from mapservice.adapters.clickhouse import command_schema, incident_schema
 from mapservice.adapters.clickhouse.command_reads import command_row
@@ -87,8 +90,12 @@ class ClickHouseHistoryWriter:
         )
         with self.connection.lock:
             if spans is None:
-                rows = [_pose_row(e) for e in pose_events]
-                self.connection.insert("pose_derivations", rows, POSE_INSERT_COLUMNS)
+                self.connection.insert(
+                    "pose_derivations",
+                    _pose_columns(pose_events),
+                    POSE_INSERT_COLUMNS,
+                    column_oriented=True,
+                )
             else:
                 self._derive_spans(spans)
 
@@ -115,7 +122,7 @@ class ClickHouseHistoryWriter:
             self._derive_spans([(from_ms, to_ms)])
 
     def append_events(self, events: Sequence[Envelope]) -> None:
-        poses, chunks, contents, metas, annotations, commands = [], [], [], [], [], []
+        pose_events, chunks, contents, metas, annotations, commands = [], [], [], [], [], []
         vda: dict[str, list] = {
             "vda_states": [],
             "vda_errors": [],
@@ -125,7 +132,7 @@ class ClickHouseHistoryWriter:
         for e in events:
             p = e.payload
             if pose_of(p) is not None:
-                poses.append(_pose_row(e))
+                pose_events.append(e)
             if isinstance(p, (VdaStateReported, VdaConnectionReported, VdaFactsheetReported)):
                 _vda_rows(e, vda)
             elif isinstance(p, ChunkUpdated):
@@ -150,6 +157,7 @@ class ClickHouseHistoryWriter:
                 annotations.append(_annotation_row(e))
             elif isinstance(p, COMMAND_EVENTS):
                 commands.append(command_row(e))
+        poses = _pose_columns(pose_events) if pose_events else None
         with self.connection.lock:
             if contents:
                 # Contents first: an event must never reference pixels that are not stored.
@@ -169,7 +177,7 @@ class ClickHouseHistoryWriter:
                     ["ts", "row", "col", "robot_id", "content_hash", "recv_lag_ms"],
                 )
             if poses:
-                self.connection.insert("poses", poses, POSE_INSERT_COLUMNS)
+                self.connection.insert("poses", poses, POSE_INSERT_COLUMNS, column_oriented=True)
             if metas:
                 self.connection.insert("map_meta", metas, ["ts", "robot_id", "meta"])
             for table, rows in vda.items():
@@ -197,7 +205,7 @@ class ClickHouseHistoryWriter:
             # time on wrong. Noting that is all the batch waits for: reads stop using those
             # snapshots at once (they fold events from the last good one: exact, slower),
             # and the snapshot timer rebuilds them in bounded steps (repair_snapshots).
-            times = [row[0] for row in chunks] + [row[1] for row in poses]
+            times = [row[0] for row in chunks] + [e.event_time_ms for e in pose_events]
             if times:
                 last = self.snapshots.newest_snapshot()
                 if last is not None and min(times) <= last:
@@ -349,23 +357,51 @@ def reread_spans(times_ms: Sequence[int]) -> list[tuple[int, int]] | None:
     return spans
 
 
-def _pose_row(e: Envelope) -> list:
-    """A pose event (or a VDA state's pose) as the row `poses` (and `pose_derivations`)
-    store, in POSE_INSERT_COLUMNS order."""
-    p = pose_of(e.payload)
-    path = p.path or ()
+def _pose_columns(events: Sequence[Envelope]) -> list[list]:
+    """Pose events (or VDA states' poses) as the columns `poses` (and `pose_derivations`)
+    store, in POSE_INSERT_COLUMNS order: built column by column (the client would turn
+    rows into columns again), and the positions and paths converted to millimetres for
+    the whole batch at once (`_millimetres`). A batch of the demo history holds 100,000
+    poses of up to a thousand path points each: per value in Python, that conversion
+    was most of its insert."""
+    poses = [pose_of(e.payload) for e in events]
+    paths = [p.path or () for p in poses]
+    positions = _millimetres([[p.position for p in poses]], 3)
+    path_mm = _millimetres(paths, 2)
+    path_x, path_y, at = [], [], 0
+    for path in paths:
+        end = at + len(path)
+        path_x.append(path_mm[0][at:end])
+        path_y.append(path_mm[1][at:end])
+        at = end
     return [
-        e.robot_id,
-        e.event_time_ms,
-        mm(p.position[0]),
-        mm(p.position[1]),
-        mm(p.position[2]),
-        *p.orientation,
-        p.battery_level,
-        flag(p.charging),
-        flag(p.loaded),
-        p.path is not None,
-        [mm(x) for x, _ in path],
-        [mm(y) for _, y in path],
-        e.receive_time_ms - e.event_time_ms,
+        [e.robot_id for e in events],
+        [e.event_time_ms for e in events],
+        *positions,
+        *(list(q) for q in zip(*(p.orientation for p in poses))),
+        [p.battery_level for p in poses],
+        [flag(p.charging) for p in poses],
+        [flag(p.loaded) for p in poses],
+        [p.path is not None for p in poses],
+        path_x,
+        path_y,
+        [e.receive_time_ms - e.event_time_ms for e in events],
     ]
+
+
+def _millimetres(groups: Sequence[Sequence[Sequence[float]]], width: int) -> list[list[int]]:
+    """`mm` of every value of the groups' points of `width` coordinates each: one list per
+    coordinate, the groups' points one after the other. numpy's rint of the same product
+    rounds half to even as `round` does, so the integers are the same; values numpy cannot
+    hold exactly (not finite, or beyond 2**52 mm) take `mm` one by one and fail as it
+    fails."""
+    points = list(chain.from_iterable(groups))
+    if not points:
+        return [[] for _ in range(width)]
+    scaled = np.fromiter(chain.from_iterable(points), np.float64) * 1000
+    if len(scaled) != width * len(points) or not (
+        np.isfinite(scaled).all() and np.abs(scaled).max() < 2.0**52
+    ):
+        return [[mm(point[i]) for point in points] for i in range(width)]
+    millimetres = np.rint(scaled).astype(np.int64)
+    return [millimetres[i::width].tolist() for i in range(width)]

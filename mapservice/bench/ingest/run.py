@@ -34,6 +34,7 @@ from mapservice.bench.ingest.probes import (
     LiveListener,
     QueryablePoller,
 )
+from mapservice.bench.ingest.profile import start_profilers
 from mapservice.bench.ingest.report import SMALL_FLEET_P99_S, latency_clients
 from mapservice.bench.ingest.storage import measure_storage, scan_run, storage_figures
 from mapservice.bench.procstat import resident_by_component
@@ -159,6 +160,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
         started_wall = time.time()
         fleet_t0 = time.monotonic()
         driver.start()
+        profilers = start_profilers(args, stack, run)  # --profile: py-spy on each component
         last_line = [0.0]
 
         def show(live, line: str) -> None:
@@ -191,6 +193,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
                 driver.join(0.25)
             cpu_after = meter.snapshot()
             fleet_wall = time.monotonic() - fleet_t0
+            result["profiles"] = profilers.wait() if profilers else None  # files written
             result["rss_mb_after_fleet"] = resident_by_component(stack.procs)
             ended_wall = time.time()
             if fleet_error:

@@ -1,6 +1,7 @@
 /**
  * The robots the panels list: the fleet panel's rows (with their speeds, from the fleet's
- * last seconds of poses before the playhead, and their VDA 5050 facts), and the robot ids
+ * last seconds of poses before the playhead: read from the API when replaying, the live
+ * stream's when live; and their VDA 5050 facts), and the robot ids
  * the change feed and the plots offer.
  */
 import { ref } from "vue";
@@ -31,11 +32,14 @@ export function useFleetRows(engine: ReplayEngine, decorate: (rows: FleetRow[], 
     }
   }
 
-  /** The fleet panel's rows at the playhead; returns how many robots there are. */
+  /** The fleet panel's rows at the playhead; returns how many robots there are. Live, the
+   * speeds come from the stream's poses (engine.liveTracks): nothing is read for them. */
   function refreshRows(): number {
     const robots = engine.robots();
-    fleet.value = decorate(fleetRows(robots, speedTracks, engine.playhead, fleetSearch.value), engine.playhead);
-    if (!speedLoading && Math.abs(engine.playhead - speedFor) > SPEEDS_REREAD_MS) void loadSpeeds();
+    const live = engine.clock.live;
+    const tracks = live ? engine.liveTracks : speedTracks;
+    fleet.value = decorate(fleetRows(robots, tracks, engine.playhead, fleetSearch.value), engine.playhead);
+    if (!live && !speedLoading && Math.abs(engine.playhead - speedFor) > SPEEDS_REREAD_MS) void loadSpeeds();
     return robots.length;
   }
 

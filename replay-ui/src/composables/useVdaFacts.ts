@@ -3,12 +3,15 @@
  * facts of the hour before the playhead (each row's current errors; online/offline from
  * the exact connection states where one is in that hour, else the pose silence), and the
  * selected vehicle's facts with its factsheet (the fleet's until its own are read). The
- * fleet's and the vehicle's facts are read at most every 2 s of playhead; the marks as the
- * page's other span lists are (lib/cadence.ts).
+ * marks are read as the page's other span lists are (lib/cadence.ts); the fleet's facts come
+ * from the marks' read where it holds the hour before the playhead (live, a view of an hour
+ * or more), else are read at most every 2 s of playhead, and no more than once a refresh
+ * while the playhead stays within a read that reached ahead of now (live); the vehicle's
+ * facts at most every 2 s of playhead.
  */
 import { ref, shallowRef } from "vue";
 import type { FleetRow } from "../lib/fleet";
-import { mayGrow, readAheadTo, REFRESH_MS } from "../lib/cadence";
+import { mayGrow, readAheadTo, REFRESH_MS, stillAnswers, type SpanRead } from "../lib/cadence";
 import { connectionAt, errorMarks, errorsAt, fleetFacts, isVehicleId, vehicleFacts, type ErrorMark, type VdaVehicle } from "../lib/vda";
 
 const FLEET_WINDOW_MS = 3_600_000;
@@ -23,7 +26,12 @@ export function useVdaFacts(base: () => string) {
   const selected = ref<VdaVehicle | null>(null);
   /** The span the marks were read for, up to where (past a live span's end) and when. */
   let marksRead = { from: 0, to: 0, until: 0, at: 0 };
-  let fleetFor = -Infinity;
+  /** The vehicles of the last marks' read, over [from, until). */
+  let marksFacts: { from: number; until: number; vehicles: VdaVehicle[] } | null = null;
+  /** Which read the fleet's facts come from (the marks' or its own). */
+  let fleetFrom: object | null = null;
+  /** The fleet's own read: for the instant `t`, up to `until`, made at `at`. */
+  let fleetRead: SpanRead = { t: -Infinity, until: -Infinity, at: 0 };
   let fleetLoading = false;
   let selectedFor = { id: "", t: -Infinity };
 
@@ -41,21 +49,35 @@ export function useVdaFacts(base: () => string) {
     marksRead = { from, to, until, at: now };
     if (to - from > MARKS_MAX_SPAN_MS) {
       marks.value = [];
+      marksFacts = null;
       return;
     }
     try {
-      marks.value = errorMarks(await fleetFacts(base(), from, until));
+      const vehicles = await fleetFacts(base(), from, until);
+      marksFacts = { from, until, vehicles };
+      marks.value = errorMarks(vehicles);
     } catch {
       marks.value = [];
+      marksFacts = null;
     }
   }
 
   async function loadFleet(t: number) {
-    if (fleetLoading || Math.abs(t - fleetFor) <= REREAD_MS) return;
+    const m = marksFacts;
+    if (m && m.from <= t - FLEET_WINDOW_MS && t < m.until) {
+      // The marks' read holds the hour before the playhead: nothing to read for the fleet.
+      if (fleetFrom !== m) fleet.value = new Map(m.vehicles.map((v) => [v.robotId, v]));
+      fleetFrom = m;
+      return;
+    }
+    const now = Date.now();
+    if (fleetLoading || stillAnswers(fleetRead, t, now, REREAD_MS)) return;
     fleetLoading = true;
-    fleetFor = t;
+    const read = { t, until: readAheadTo(t + 1, now), at: now };
+    fleetRead = read;
     try {
-      fleet.value = new Map((await fleetFacts(base(), t - FLEET_WINDOW_MS, t + 1)).map((v) => [v.robotId, v]));
+      fleet.value = new Map((await fleetFacts(base(), t - FLEET_WINDOW_MS, read.until)).map((v) => [v.robotId, v]));
+      fleetFrom = read;
     } catch {
       fleet.value = new Map();
     } finally {

@@ -1,11 +1,14 @@
 /**
  * The annotation endpoints as the replay uses them: the annotations standing at an instant,
  * their edits and the zone violations over a window, and an operator's edits. Every refusal
- * is an ApiError carrying the server's own message (why, and what to do); `send` is the
- * operators' writes' one request (the commands use it too).
+ * is an ApiError carrying the server's own message (why, and what to do), from `send`
+ * (lib/request.ts), the writes' one request.
  */
-import { ApiError, fetchRetrying, getJson } from "./api";
+import { getJson } from "./api";
+import { send } from "./request";
 import { bodyOf, type Annotation, type AnnotationDoc, type AnnotationEdit, type ZoneViolation } from "./annotations";
+
+export { send } from "./request";
 
 /** At most this many violations per window: a robot parked in a zone reports every second. */
 export const VIOLATION_LIMIT = 5_000;
@@ -13,27 +16,6 @@ export const VIOLATION_LIMIT = 5_000;
 export interface Window<T> {
   items: T[];
   truncated: boolean;
-}
-
-export async function send<T>(method: string, url: string, body?: unknown): Promise<T | null> {
-  const r = await fetchRetrying(url, {
-    method,
-    headers: body === undefined ? {} : { "Content-Type": "application/json" },
-    body: body === undefined ? undefined : JSON.stringify(body),
-  });
-  if (!r.ok) {
-    let detail: unknown = r.statusText;
-    try {
-      detail = (await r.json()).detail ?? detail;
-    } catch {
-      /* not JSON */
-    }
-    const text = typeof detail === "string" ? detail
-      : Array.isArray(detail) ? detail.map((d) => `${(d.loc ?? []).slice(1).join(".")}: ${d.msg}`).join("; ")
-      : JSON.stringify(detail);
-    throw new ApiError(r.status, `${r.status}: ${text}`);
-  }
-  return r.status === 204 ? null : ((await r.json()) as T);
 }
 
 export class AnnotationApi {

@@ -6,35 +6,10 @@
 import type { Source } from "./buffer";
 import { parseBatch, type ChunkBatch } from "./chunkdecode";
 import type { ChunkCell, Conflict, EventWindow, MapMeta, Pose, RobotAt, Timeline, TrackBuckets } from "./types";
-import { ApiError, explainFailure, explainUnreachable, fetchRetrying, isAbort, sharedGet } from "./request";
+import { ApiError, explainFailure, explainUnreachable, fetchRetrying, getJson, isAbort } from "./request";
 import type { Change } from "./changefeed";
 
-export { ApiError, fetchRetrying } from "./request";
-
-/** GET `url` as JSON: shared with the same read in flight, asked again while the server
- * is busy, given up when `signal` aborts. A failure is an ApiError whose message says, in
- * a user's words, what of `what` could not be loaded and what to do (the server's own
- * words are its `detail`). */
-export async function getJson<T>(url: string, what = "the data", signal?: AbortSignal): Promise<T> {
-  let answer;
-  try {
-    answer = await sharedGet(url, signal);
-  } catch (e) {
-    if (isAbort(e) || signal?.aborted) throw e;
-    throw new ApiError(0, explainUnreachable(what), String(e));
-  }
-  if (answer.status < 200 || answer.status > 299) {
-    let detail = "";
-    try {
-      const d = JSON.parse(answer.text).detail;
-      detail = typeof d === "string" ? d : JSON.stringify(d);
-    } catch {
-      /* not JSON */
-    }
-    throw new ApiError(answer.status, explainFailure(what, answer.status), detail);
-  }
-  return JSON.parse(answer.text) as T;
-}
+export { ApiError, fetchRetrying, getJson } from "./request";
 
 const DAY = 86_400_000;
 
@@ -138,6 +113,14 @@ export class Api implements Source {
     const r = await getJson<{ changes: Change[] }>(
       `${this.base}/api/v1/changes?kind=upload&limit=1000&from=${Math.round(fromMs)}&to=${Math.round(toMs)}`, "the map uploads", signal);
     return r.changes;
+  }
+
+  /** The highest battery level robot `id` reported in [from, to) (null: none): the buckets'
+   * highest over the fewest buckets the API gives (lib/battery.ts, to tell its scale). */
+  async highestBatteryLevel(robotId: string, fromMs: number, toMs: number): Promise<number | null> {
+    const levels = (await this.trackBuckets(robotId, fromMs, toMs, 2)).buckets
+      .map((b) => b.battery_max).filter((v): v is number => v !== null);
+    return levels.length ? Math.max(...levels) : null;
   }
 
   /** One robot's poses in [from, to) aggregated in at most `buckets` round buckets (the plots). */

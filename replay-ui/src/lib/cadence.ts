@@ -21,3 +21,18 @@ export function readAheadTo(to: number, now: number): number {
 export function mayGrow(readTo: number, readAt: number): boolean {
   return readTo > readAt - REFRESH_MS;
 }
+
+/** A read made at `at` for the instant `t`, reaching up to `until` (readAheadTo). */
+export interface SpanRead {
+  t: number;
+  until: number;
+  at: number;
+}
+
+/** Whether `read` still answers for the instant `t` at `now`: `t` within `slackMs` of the
+ * instant read, or within what was read ahead of it while that may not have grown yet
+ * (a live playhead asks again once a refresh, not every `slackMs`). */
+export function stillAnswers(read: SpanRead, t: number, now: number, slackMs: number): boolean {
+  if (Math.abs(t - read.t) <= slackMs) return true;
+  return t >= read.t && t < read.until && !(mayGrow(read.until, read.at) && now - read.at > REFRESH_MS);
+}

@@ -15,6 +15,7 @@ import { PlaybackClock, type Speed } from "./clock";
 import { ChunkImages } from "./images";
 import { LiveConnection, liveUrl, type LiveMessage } from "./live";
 import { MapState } from "./mapstate";
+import { addToTrack } from "./fleet";
 import { INTERPOLATE_MAX_SPEED, OFFLINE_AFTER_MS, poseAt, type PlacedPose } from "./poses";
 import { oldestReadable } from "./retention";
 import type { MapMeta, Pose, RobotAt } from "./types";
@@ -62,6 +63,9 @@ export class ReplayEngine {
   private exactLoading = -1;
   /** Live mode: latest pose per robot. */
   livePoses = new Map<string, Pose>();
+  /** Each robot's live poses of the last seconds (fleet.ts SPEED_WINDOW_MS): the fleet
+   * panel's speeds while live come from the stream, not from reading the poses again. */
+  liveTracks = new Map<string, Pose[]>();
   /** Bumped by every live pose (the view redraws robots only when something moved). */
   liveVersion = 0;
   live: LiveConnection;
@@ -171,6 +175,7 @@ export class ReplayEngine {
       this.robotInfo = new Map(robots.map((r) => [r.robotId, r]));
       this.exactAt = { t, robots: new Map(this.robotInfo) };
       this.livePoses = new Map(robots.map((r) => [r.robotId, r]));
+      this.liveTracks = new Map(robots.map((r) => [r.robotId, [r]]));
       this.liveVersion++;
       this.playhead = t;
       if (!keepLive) this.clock.hold(t, this.now());
@@ -348,6 +353,7 @@ export class ReplayEngine {
     if (m.type === "chunk") {
       this.state.applyForward([{ row: m.row, column: m.column, ts_ms: m.ts_ms, robotId: m.robotId, content_hash: m.content_hash }]);
     } else if (m.type === "pose") {
+      addToTrack(this.liveTracks, m);
       const prev = this.livePoses.get(m.robotId);
       if (!prev || prev.ts_ms <= m.ts_ms) {
         this.livePoses.set(m.robotId, m);

@@ -1,9 +1,10 @@
 /**
  * The fleet panel's rows and the robots' look: one colour per robot (marker ring, path,
- * list), battery in %, speed from the track, the planned path's goal, and label placement
+ * list), battery in % (each robot on its own scale), speed from the track, the planned path's goal, and label placement
  * that never overlaps (a label that fits nowhere is left out; the list still names it).
  */
 import { getJson } from "./api";
+import { batteryScales, type BatteryScales } from "./battery";
 import type { Pose } from "./types";
 
 /** How far back the fleet panel reads poses for the speeds: two samples of a 1 Hz robot and slack. */
@@ -22,11 +23,20 @@ export async function recentTracks(base: string, t: number): Promise<Map<string,
   return tracks;
 }
 
-/** Battery level as a percentage: 2019 robots report 0..100, some 0..1 or 0..5. */
-export function batteryPercent(level: number | null | undefined): number | null {
-  if (level === null || level === undefined || Number.isNaN(level)) return null;
-  const pct = level <= 1 ? level * 100 : level <= 5 ? level * 20 : level;
-  return Math.round(Math.min(100, Math.max(0, pct)));
+/** Adds `pose` to its robot's track in `tracks` (kept in time order) and drops the poses more
+ * than `windowMs` older than the track's newest: the fleet panel's speeds while live, from
+ * the live stream's poses (in any order: a late one is put in its place, a repeat ignored). */
+export function addToTrack(tracks: Map<string, Pose[]>, pose: Pose, windowMs: number = SPEED_WINDOW_MS): void {
+  let track = tracks.get(pose.robotId);
+  if (!track) tracks.set(pose.robotId, (track = []));
+  let i = track.length;
+  while (i > 0 && track[i - 1].ts_ms > pose.ts_ms) i--;
+  if (i > 0 && track[i - 1].ts_ms === pose.ts_ms) return;
+  track.splice(i, 0, pose);
+  const oldest = track[track.length - 1].ts_ms - windowMs;
+  let drop = 0;
+  while (track[drop].ts_ms < oldest) drop++;
+  if (drop) track.splice(0, drop);
 }
 
 /** 24 colours apart enough to tell on a map: 12 hues 30 degrees apart, dark and light. */
@@ -90,7 +100,9 @@ export interface FleetRobot {
   offline: boolean;
 }
 
-export function fleetRows(robots: FleetRobot[], tracks: Map<string, Pose[]>, t: number, search: string): FleetRow[] {
+/** The fleet panel's rows, battery in percent on each robot's own scale (lib/battery.ts). */
+export function fleetRows(robots: FleetRobot[], tracks: Map<string, Pose[]>, t: number, search: string,
+  scales: BatteryScales = batteryScales): FleetRow[] {
   const q = search.trim().toLowerCase();
   return robots
     .filter((r) => !q || r.robotId.toLowerCase().includes(q))
@@ -98,7 +110,7 @@ export function fleetRows(robots: FleetRobot[], tracks: Map<string, Pose[]>, t: 
       robotId: r.robotId,
       colour: robotColour(r.robotId),
       online: !r.offline,
-      batteryPct: batteryPercent(r.pose.battery_level),
+      batteryPct: scales.percent(r.robotId, r.pose.battery_level),
       charging: flagText(r.pose.charging),
       loaded: flagText(r.pose.loaded),
       lastSeenMs: r.pose.ts_ms,

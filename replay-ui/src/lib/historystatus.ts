@@ -3,7 +3,7 @@
  * refuses inserts (a full disk, ...) the replay would show a past that silently stops, so
  * the page says "history not stored since HH:MM:SS UTC", with the server's reason.
  */
-import { pageHeaders } from "./request";
+import { sharedGet, type FetchOptions } from "./request";
 
 /** /api/v1/status's `history`: null where the API runs apart from the processors. */
 export interface HistoryStatus {
@@ -38,13 +38,14 @@ export function bannerFor(history: HistoryStatus | null | undefined): Banner | n
 /** What one poll learnt: the status, or nothing. */
 export type Poll = { history: HistoryStatus | null } | "unknown";
 
-/** One GET /api/v1/status: a failure (the server restarting, a 401 the page reports
- * elsewhere) says nothing, and the next poll asks again. */
-export async function pollStatus(fetchFn: typeof fetch = fetch, base = ""): Promise<Poll> {
+/** One GET /api/v1/status through the page's request layer (its session; a busy server
+ * waited for): a failure (the server restarting, a 401 the page reports elsewhere) says
+ * nothing, and the next poll asks again. */
+export async function pollStatus(base = "", opts: FetchOptions = {}): Promise<Poll> {
   try {
-    const r = await fetchFn(`${base}/api/v1/status`, { headers: pageHeaders() });
-    if (!r.ok) return "unknown";
-    const body = (await r.json()) as { history?: HistoryStatus | null };
+    const r = await sharedGet(`${base}/api/v1/status`, undefined, opts);
+    if (r.status < 200 || r.status > 299) return "unknown";
+    const body = JSON.parse(r.text) as { history?: HistoryStatus | null };
     return { history: body.history ?? null };
   } catch {
     return "unknown";

@@ -1,7 +1,7 @@
 /** The 2019 REST contract (appendix A) as the controller page speaks it, like a robot. */
 import { quaternionOfYaw } from "./geo";
 import type { MapMeta } from "./types";
-import { authHeaders } from "./auth";
+import { ApiError, getJson, send } from "./request";
 
 /** "2018-12-20T23:34:33": the 2019 timestamp format (UTC, seconds). */
 export function timestamp2019(ms: number): string {
@@ -23,12 +23,11 @@ export async function chunkMessage(meta: MapMeta, robotId: string, row: number, 
   return { pgmB64compressedData: await pgmB64compressed(pixels), row, column, timestamp: timestamp2019(nowMs), robotId };
 }
 
-export async function postChunk(message: object): Promise<Response> {
-  return fetch("/api/chunk-service/chunks", {
-    method: "POST",
-    headers: { "Content-Type": "application/json", ...authHeaders() },
-    body: JSON.stringify(message),
-  });
+/** POST /api/chunk-service/chunks as a robot does, through the page's request layer (a busy
+ * server is asked again after its Retry-After; the write is refused then, never half done);
+ * a refusal is an ApiError with the server's words. */
+export async function postChunk(message: object, base = ""): Promise<void> {
+  await send("POST", `${base}/api/chunk-service/chunks`, message);
 }
 
 /** Listing 16, the body a robot publishes on iot/coordinates/{robotId}. */
@@ -42,12 +41,14 @@ export function poseMessage(robotId: string, x: number, y: number, yaw: number, 
   };
 }
 
-export async function getMeta(): Promise<MapMeta | null> {
-  const r = await fetch("/api/chunk-service/meta", { headers: authHeaders() });
-  if (r.ok) {
-    const m = await r.json();
+/** The map's meta (null: none stored yet): the 2019 endpoint's, else the map's resolved one
+ * (a 2019 meta may lack the chunk size). Any other failure is an ApiError in a user's words. */
+export async function getMeta(base = ""): Promise<MapMeta | null> {
+  try {
+    const m = await getJson<Partial<MapMeta> | null>(`${base}/api/chunk-service/meta`, "the map's meta");
     if (m && m.CHUNK_WIDTH) return m as MapMeta;
+  } catch (e) {
+    if (!(e instanceof ApiError && e.status === 404)) throw e;
   }
-  const v1 = await fetch("/api/v1/map", { headers: authHeaders() });
-  return v1.ok ? ((await v1.json()).meta as MapMeta | null) : null;
+  return (await getJson<{ meta: MapMeta | null }>(`${base}/api/v1/map`, "the map")).meta;
 }

@@ -5,7 +5,7 @@
  * a day's distance is its buckets' sum at any bucket size. Pure: the panel fetches the
  * buckets and draws these.
  */
-import { batteryPercent } from "./fleet";
+import { batteryScales, levelPercent, type BatteryScales } from "./battery";
 import type { TrackBuckets } from "./types";
 
 /** Buckets asked for a plot `widthPx` wide: about one every three pixels. */
@@ -30,8 +30,10 @@ export interface RobotSeries {
 }
 
 /** One robot's buckets as series: every bucket of the window, null where the robot has no
- * pose (a gap in the lines), the distance a running sum of the buckets'. */
-export function seriesOf(r: TrackBuckets): RobotSeries {
+ * pose (a gap in the lines), the distance a running sum of the buckets'; battery in percent
+ * on the robot's own scale, which the buckets' highest levels inform (lib/battery.ts). */
+export function seriesOf(r: TrackBuckets, scales: BatteryScales = batteryScales): RobotSeries {
+  const scale = scales.noted(r.robotId, ...r.buckets.map((b) => b.battery_max));
   const byStart = new Map(r.buckets.map((b) => [b.start_ms, b]));
   const out: RobotSeries = { mid: [], battery: [], batteryMin: [], batteryMax: [], speed: [], bucketDistance: [],
     edges: [r.from_ms], distance: [0] };
@@ -40,13 +42,10 @@ export function seriesOf(r: TrackBuckets): RobotSeries {
     const lo = Math.max(start, r.from_ms);
     const hi = Math.min(start + r.bucket_ms, r.to_ms);
     const b = byStart.get(start);
-    // The range in %: battery levels on two scales (0-1 and 0-100) are not in the same order.
-    const low = batteryPercent(b?.battery_min);
-    const high = batteryPercent(b?.battery_max);
     out.mid.push((lo + hi) / 2);
-    out.battery.push(batteryPercent(b?.battery_mean));
-    out.batteryMin.push(low === null || high === null ? low ?? high : Math.min(low, high));
-    out.batteryMax.push(low === null || high === null ? low ?? high : Math.max(low, high));
+    out.battery.push(levelPercent(b?.battery_mean, scale));
+    out.batteryMin.push(levelPercent(b?.battery_min, scale));
+    out.batteryMax.push(levelPercent(b?.battery_max, scale));
     out.speed.push(b?.speed_mps ?? null);
     out.bucketDistance.push(b?.distance_m ?? 0);
     driven += b?.distance_m ?? 0;

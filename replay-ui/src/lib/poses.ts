@@ -5,6 +5,7 @@
  */
 import { upperBound } from "./mapstate";
 import type { Pose } from "./types";
+import { levelPercent, type BatteryScale } from "./battery";
 
 /** Above this speed poses are sampled, not interpolated. */
 export const INTERPOLATE_MAX_SPEED = 8;
@@ -51,10 +52,10 @@ export function yawOfPose(p: Pose): number {
   return Math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z));
 }
 
-/** Battery level (2019 robots report 0..100, some 0..1 or 0..5) as a colour. */
-export function batteryColour(level: number | null | undefined): string {
-  if (level === null || level === undefined || Number.isNaN(level)) return "#888888";
-  const pct = level <= 1 ? level * 100 : level <= 5 ? level * 20 : level;
+/** A battery level on the robot's `scale` (lib/battery.ts) as a colour. */
+export function batteryColour(level: number | null | undefined, scale: BatteryScale = "percent"): string {
+  const pct = levelPercent(level, scale);
+  if (pct === null) return "#888888";
   if (pct < 20) return "#d62728";
   if (pct < 50) return "#ff9f1c";
   return "#2ca02c";

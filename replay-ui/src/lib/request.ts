@@ -200,3 +200,84 @@ export function sharedGet(
 export function isAbort(e: unknown): boolean {
   return (e instanceof DOMException || e instanceof Error) && e.name === "AbortError";
 }
+
+/** GET `url` as JSON: shared with the same read in flight, asked again while the server
+ * is busy, given up when `signal` aborts. A failure is an ApiError whose message says, in
+ * a user's words, what of `what` could not be loaded and what to do (the server's own
+ * words are its `detail`). */
+export async function getJson<T>(url: string, what = "the data", signal?: AbortSignal): Promise<T> {
+  let answer;
+  try {
+    answer = await sharedGet(url, signal);
+  } catch (e) {
+    if (isAbort(e) || signal?.aborted) throw e;
+    throw new ApiError(0, explainUnreachable(what), String(e));
+  }
+  if (answer.status < 200 || answer.status > 299) {
+    let detail = "";
+    try {
+      const d = JSON.parse(answer.text).detail;
+      detail = typeof d === "string" ? d : JSON.stringify(d);
+    } catch {
+      /* not JSON */
+    }
+    throw new ApiError(answer.status, explainFailure(what, answer.status), detail);
+  }
+  return JSON.parse(answer.text) as T;
+}
+
+/** GET `url`'s bytes (a picture), asked again while the server is busy; a failure is an
+ * ApiError in a user's words about `what`, as getJson's. */
+export async function getBlob(url: string, what: string, signal?: AbortSignal): Promise<Blob> {
+  let r: Response;
+  try {
+    r = await fetchRetrying(url, { signal });
+  } catch (e) {
+    if (isAbort(e) || signal?.aborted) throw e;
+    throw new ApiError(0, explainUnreachable(what), String(e));
+  }
+  if (!r.ok) throw new ApiError(r.status, explainFailure(what, r.status), await r.text().catch(() => ""));
+  return r.blob();
+}
+
+/** One read of a kind at a time: asking again cancels the read before, whose answer would
+ * be stale (a picture of the floor superseded by a newer one). */
+export class Superseding {
+  private current: AbortController | null = null;
+
+  /** The signal of the new read; the previous read's is aborted. */
+  next(): AbortSignal {
+    this.current?.abort();
+    this.current = new AbortController();
+    return this.current.signal;
+  }
+
+  cancel(): void {
+    this.current?.abort();
+    this.current = null;
+  }
+}
+
+/** A write (`method` with a JSON `body`) through the page's request layer, the answer's JSON
+ * (null for 204); a refusal is an ApiError carrying the server's own words (why, and what to
+ * do), as `<status>: <detail>`. */
+export async function send<T>(method: string, url: string, body?: unknown): Promise<T | null> {
+  const r = await fetchRetrying(url, {
+    method,
+    headers: body === undefined ? {} : { "Content-Type": "application/json" },
+    body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  if (!r.ok) {
+    let detail: unknown = r.statusText;
+    try {
+      detail = (await r.json()).detail ?? detail;
+    } catch {
+      /* not JSON */
+    }
+    const text = typeof detail === "string" ? detail
+      : Array.isArray(detail) ? detail.map((d) => `${(d.loc ?? []).slice(1).join(".")}: ${d.msg}`).join("; ")
+      : JSON.stringify(detail);
+    throw new ApiError(r.status, `${r.status}: ${text}`);
+  }
+  return r.status === 204 ? null : ((await r.json()) as T);
+}

@@ -8,6 +8,7 @@ import type { RobotView } from "./engine";
 import { metresToLatLng } from "./geo";
 import { placeLabels, robotColour } from "./fleet";
 import { batteryColour, yawOfPose } from "./poses";
+import { batteryScales } from "./battery";
 import type { MapMeta } from "./types";
 
 export interface RobotStyle {
@@ -133,7 +134,7 @@ export class RobotLayer extends L.Layer {
       }
       ctx.beginPath();
       ctx.arc(0, 0, RADIUS, 0, 2 * Math.PI);
-      ctx.fillStyle = style.battery ? batteryColour(r.pose.battery_level) : NEUTRAL;
+      ctx.fillStyle = style.battery ? batteryColour(r.pose.battery_level, batteryScales.noted(r.robotId, r.pose.battery_level)) : NEUTRAL;
       ctx.fill();
       // The ring in the robot's own colour: the same as its path and its fleet-list swatch.
       ctx.lineWidth = 3;

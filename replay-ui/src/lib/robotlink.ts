@@ -5,7 +5,7 @@
  */
 import mqtt from "mqtt";
 import type { IClientOptions, MqttClient } from "mqtt";
-import { authHeaders } from "./auth";
+import { getJson } from "./request";
 
 export interface ClientConfig {
   mqtt_ws_url: string | null;
@@ -29,9 +29,10 @@ export type LinkState = "unconfigured" | "connecting" | "connected" | "reconnect
 
 export type Connect = (url: string, options: IClientOptions) => MqttClient;
 
-export async function getClientConfig(): Promise<ClientConfig | null> {
-  const r = await fetch("/api/v1/client-config", { headers: authHeaders() }).catch(() => null);
-  return r && r.ok ? ((await r.json()) as ClientConfig) : null;
+/** Where the broker is and on which topics a robot publishes, through the page's request
+ * layer (its session, a busy server waited for); a failure is an ApiError in a user's words. */
+export function getClientConfig(base = ""): Promise<ClientConfig> {
+  return getJson<ClientConfig>(`${base}/api/v1/client-config`, "the robot link's settings");
 }
 
 export class RobotLink {

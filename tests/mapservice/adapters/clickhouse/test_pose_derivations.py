@@ -69,10 +69,10 @@ def _rows_sent(store, monkeypatch) -> list[int]:
     sent: list[int] = []
     insert = store.connection.insert
 
-    def counting(table, rows, columns):
+    def counting(table, rows, columns, *, column_oriented=False):
         if table == "pose_derivations":
-            sent.append(len(rows))
-        return insert(table, rows, columns)
+            sent.append(len(rows[0]) if column_oriented else len(rows))
+        return insert(table, rows, columns, column_oriented=column_oriented)
 
     monkeypatch.setattr(store.connection, "insert", counting)
     return sent
