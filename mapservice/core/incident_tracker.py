@@ -135,6 +135,10 @@ class IncidentTracker:
         """A stored batch's poses (as the store keeps them, in the order stored)."""
         if not poses:
             return
+        # Poses older than memory (late ones, a backlog read again): one read of the store
+        # brings memory back to where the rules will look, instead of a read per pose.
+        oldest = min(p.ts_ms for p in poses)
+        self._cover(oldest - 2 * self.th.lookback_ms - self.th.tick_ms)
         newest_before: dict[str, PoseRow | None] = {}
         for pose in poses:
             track = self.tracks.setdefault(pose.robot_id, [])
@@ -161,7 +165,7 @@ class IncidentTracker:
             if before is None or first_new > before.ts_ms:
                 if self._append_own(robot, before, first_new, ongoing, now_ms):
                     continue
-            self._redo_own(robot, first_new - self.th.offline_after_ms, now_ms)
+            self._redo_own(robot, first_new - self.th.offline_after_ms, now_ms, known)
         self._redo_near_misses(set(newest_before), changed_from, known)
 
     def _pose_before(self, robot: str, ts_ms: int, default: int) -> int:
@@ -267,9 +271,24 @@ class IncidentTracker:
 
     def _redo(self, robots: set[str], from_ms: int, now_ms: int) -> None:
         """Everything the poses of `robots` from `from_ms` on can change, the slow way."""
+        known = self._known(from_ms - self.th.lookback_ms)
         for robot in sorted(robots):
-            self._redo_own(robot, from_ms - self.th.offline_after_ms, now_ms)
-        self._redo_near_misses(robots, from_ms, self._known(from_ms - self.th.lookback_ms))
+            self._redo_own(robot, from_ms - self.th.offline_after_ms, now_ms, known)
+        self._redo_near_misses(robots, from_ms, known)
+
+    def _cover(self, from_ms: int) -> None:
+        """Memory holds every stored pose from `from_ms` on (and each robot's newest before
+        it): what it lacks read from the store at once."""
+        if from_ms >= self.held_from_ms:
+            return
+        read = unique_poses(self.read(from_ms, self.held_from_ms, None))
+        for robot, rows in read.items():
+            held = self._held(robot)
+            older = [p for p in rows if p.ts_ms < held]
+            # the store's and memory's poses; memory's last (it holds what was stored last)
+            self.tracks[robot] = unique_poses(older + self.tracks.get(robot, [])).get(robot, [])
+        self.held_from_ms = from_ms
+        self.held_from = {r: t for r, t in self.held_from.items() if t < from_ms}
 
     def _append_own(
         self,
@@ -327,8 +346,11 @@ class IncidentTracker:
         known.update(self.current)
         return list(known.values())
 
-    def _redo_own(self, robot: str, cut_ms: int, now_ms: int) -> None:
-        mine = [i for i in self._known(cut_ms) if i.kind in OWN_KINDS and i.robots == (robot,)]
+    def _redo_own(
+        self, robot: str, cut_ms: int, now_ms: int, known: Iterable[Incident] | None = None
+    ) -> None:
+        known = self._known(cut_ms) if known is None else known
+        mine = [i for i in known if i.kind in OWN_KINDS and i.robots == (robot,)]
         cut_ms = min([cut_ms, *(i.start_ms for i in mine if i.ongoing)])
         start = cut_ms - self.th.lookback_ms
         while True:

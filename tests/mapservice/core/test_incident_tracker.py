@@ -111,3 +111,48 @@ def check_live_equals_recomputed(seed: int, restarts: int) -> None:
     expected = detect(store.poses(0, now + 1, limit=10**9), now, th)
     assert expected
     assert normal(store.incidents(0, now + 1)) == normal(expected)
+
+
+def test_a_batch_of_poses_older_than_memory_reads_the_store_once() -> None:
+    """A backlog (poses of minutes ago, after a restart or from a robot's buffer): one read
+    brings memory back to them, not a read per pose or per robot (each read is a store
+    query on the processors' one store thread)."""
+    th = IncidentThresholds()
+    store = MemoryStore()
+    reads = []
+
+    def read(from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:
+        reads.append((from_ms, to_ms, robot))
+        return reader(store)(from_ms, to_ms, robot)
+
+    tracker = IncidentTracker(read, store.incidents, th, KEEP_MS)
+    t0 = 1_795_255_200_000
+    now = t0 + 600_000
+    tracker.load([], now - KEEP_MS, [], now)
+    backlog = [
+        envelope(
+            PoseRow(
+                f"r{r}",
+                t0 + k * 1000,
+                float(k % 7),
+                float(r),
+                0,
+                0,
+                0,
+                0,
+                1,
+                50.0,
+                False,
+                None,
+                None,
+                t0 + k * 1000,
+            ),
+            now,
+        )
+        for r in range(20)
+        for k in range(60)
+    ]
+    store.append(backlog)
+    reads.clear()
+    tracker.add(pose_rows_of(backlog), now)
+    assert len(reads) <= 2, reads
