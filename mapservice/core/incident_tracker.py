@@ -307,7 +307,9 @@ class IncidentTracker:
         seg_from = (before.ts_ms if before else first_new_ms) - th.stuck_ms - th.offline_after_ms
         track = self._tracks(robot, seg_from).get(robot, [])
         fresh = [
-            *stuck_incidents(track, th),
+            # judged from the newest pose before the new ones: a run through it is the one
+            # ongoing, joined below
+            *stuck_incidents(track, th, before.ts_ms if before else first_new_ms),
             *battery_low_incidents(track, th),
             *offline_incidents(track, now_ms, th),
         ]

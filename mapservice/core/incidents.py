@@ -118,7 +118,11 @@ def _runs(flags: Sequence[bool], presences: Sequence[tuple[int, int]]) -> list[t
     return runs
 
 
-def stuck_incidents(track: Sequence[PoseRow], th: IncidentThresholds) -> list[Incident]:
+def stuck_incidents(
+    track: Sequence[PoseRow], th: IncidentThresholds, judged_from_ms: int | None = None
+) -> list[Incident]:
+    """`judged_from_ms`: the condition is judged at the poses from then on only (the
+    earlier ones are only looked back on), for a caller that knows the runs before."""
     presences = _presences(track, th.offline_after_ms)
     limit_mm2 = (th.stuck_m * 1000) ** 2
     flags = [False] * len(track)
@@ -126,6 +130,8 @@ def stuck_incidents(track: Sequence[PoseRow], th: IncidentThresholds) -> list[In
         oldest = first  # the oldest pose of the window ending at i
         for i in range(first, last + 1):
             pose = track[i]
+            if judged_from_ms is not None and pose.ts_ms < judged_from_ms:
+                continue
             while track[oldest].ts_ms < pose.ts_ms - th.stuck_ms:
                 oldest += 1
             flags[i] = (
