@@ -306,12 +306,16 @@ class IncidentTracker:
         th = self.th
         seg_from = (before.ts_ms if before else first_new_ms) - th.stuck_ms - th.offline_after_ms
         track = self._tracks(robot, seg_from).get(robot, [])
+        recent = track[
+            bisect.bisect_left(track, before.ts_ms if before else first_new_ms, key=_ts) :
+        ]
         fresh = [
             # judged from the newest pose before the new ones: a run through it is the one
             # ongoing, joined below
             *stuck_incidents(track, th, before.ts_ms if before else first_new_ms),
-            *battery_low_incidents(track, th),
-            *offline_incidents(track, now_ms, th),
+            # the others look at no pose before it
+            *battery_low_incidents(recent, th),
+            *offline_incidents(recent, now_ms, th),
         ]
         continued: set[str] = set()
         noted: list[Incident] = []
