@@ -31,13 +31,16 @@ from mapservice.core.incident_model import STUCK_CRITICAL_S
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
+    battery_low_at,
     battery_low_incidents,
-    near_miss_incidents,
     offline_incidents,
     stuck_incidents,
+    stuck_possible_at,
     unique_poses,
 )
+from mapservice.core.near_miss import near_misses, pose_columns
 from mapservice.core.ports import PoseRow
+from mapservice.core.recent_poses import RecentPoses
 
 # A robot's own incidents; a near miss involves two.
 OWN_KINDS = ("stuck", "battery_low", "offline")
@@ -110,6 +113,8 @@ class IncidentTracker:
         # `current_from_ms`; the earlier ones are read from the store.
         self.current: dict[str, Incident] = {}
         self.current_from_ms = 0
+        # every robot's recent poses as columns, for the near misses of each batch
+        self.recent = RecentPoses()
         self.found: dict[str, Incident] = {}  # new or changed findings, not taken yet
         self.retracted: dict[str, Incident] = {}
 
@@ -122,6 +127,7 @@ class IncidentTracker:
         (and each robot's newest before it), `stored` the incidents stored that meet that
         span. The rules then run over it, for what was stored but not yet found."""
         self.tracks = unique_poses(poses)
+        self.recent.reset()
         self.held_from_ms = held_from_ms
         self.held_from = {}
         self.current = {i.incident_id: i for i in stored}
@@ -135,37 +141,70 @@ class IncidentTracker:
         """A stored batch's poses (as the store keeps them, in the order stored)."""
         if not poses:
             return
+        th = self.th
         # Poses older than memory (late ones, a backlog read again): one read of the store
         # brings memory back to where the rules will look, instead of a read per pose.
         oldest = min(p.ts_ms for p in poses)
-        self._cover(oldest - 2 * self.th.lookback_ms - self.th.tick_ms)
+        self._cover(oldest - 2 * th.lookback_ms - th.tick_ms)
+        self.recent.add(poses)
         newest_before: dict[str, PoseRow | None] = {}
+        first_new_of: dict[str, int] = {}
+        # Robots whose own incidents the new poses may change (the others' new poses all
+        # came after their newest and start no condition nor silence: their own rules find
+        # nothing new unless one of their incidents is ongoing, checked below).
+        eventful: set[str] = set()
+        # The earliest instant the batch can change: each new pose's place at the ticks
+        # from the pose before it (found here for a pose after its robot's newest, below
+        # for the others).
+        changed_from = oldest
+        placed_later: list[PoseRow] = []
+        held_from, held_from_ms = self.held_from, self.held_from_ms
         for pose in poses:
-            track = self.tracks.setdefault(pose.robot_id, [])
-            newest_before.setdefault(pose.robot_id, track[-1] if track else None)
-            at = bisect.bisect_left(track, pose.ts_ms, key=_ts)
-            if at < len(track) and track[at].ts_ms == pose.ts_ms:
+            robot, ts = pose.robot_id, pose.ts_ms
+            track = self.tracks.setdefault(robot, [])
+            last = track[-1] if track else None
+            if robot not in newest_before:
+                newest_before[robot] = last
+                first_new_of[robot] = ts
+            elif ts < first_new_of[robot]:
+                first_new_of[robot] = ts
+            if last is not None and ts > last.ts_ms and ts > held_from.get(robot, held_from_ms):
+                track.append(pose)
+                changed_from = min(changed_from, last.ts_ms)
+                if (
+                    ts - last.ts_ms > th.offline_after_ms
+                    or battery_low_at(pose, th)
+                    or stuck_possible_at(last, pose, th)
+                ):
+                    eventful.add(robot)
+                continue
+            eventful.add(robot)
+            placed_later.append(pose)
+            at = bisect.bisect_left(track, ts, key=_ts)
+            if at < len(track) and track[at].ts_ms == ts:
                 track[at] = pose  # the store keeps the last written
             else:
                 track.insert(at, pose)
-        # The earliest instant the batch can change: each new pose's place at the ticks
-        # from the pose before it.
-        changed_from = min(self._pose_before(p.robot_id, p.ts_ms, default=p.ts_ms) for p in poses)
-        known = self._known(changed_from - self.th.lookback_ms)
+        for p in placed_later:
+            changed_from = min(changed_from, self._pose_before(p.robot_id, p.ts_ms, p.ts_ms))
+        known = self._known(changed_from - th.lookback_ms)
         ongoing_own: dict[str, dict[str, Incident]] = {}
         for i in known:
             if i.ongoing and i.kind in OWN_KINDS:
                 ongoing_own.setdefault(i.robots[0], {})[i.kind] = i
-        first_new_of: dict[str, int] = {}
-        for p in poses:
-            first_new_of[p.robot_id] = min(first_new_of.get(p.robot_id, p.ts_ms), p.ts_ms)
         for robot, before in newest_before.items():
-            first_new = first_new_of[robot]
             ongoing = ongoing_own.get(robot, {})
+            if (
+                robot not in eventful
+                and not ongoing
+                and now_ms - self.tracks[robot][-1].ts_ms <= th.offline_after_ms
+            ):
+                continue  # the rules over its new poses would find nothing
+            first_new = first_new_of[robot]
             if before is None or first_new > before.ts_ms:
                 if self._append_own(robot, before, first_new, ongoing, now_ms):
                     continue
-            self._redo_own(robot, first_new - self.th.offline_after_ms, now_ms, known)
+            self._redo_own(robot, first_new - th.offline_after_ms, now_ms, known)
         self._redo_near_misses(set(newest_before), changed_from, known)
 
     def _pose_before(self, robot: str, ts_ms: int, default: int) -> int:
@@ -207,7 +246,9 @@ class IncidentTracker:
         robot's poses since an ongoing incident of its own began) and of the incidents
         that ended before them and are not ongoing."""
         cut = now_ms - self.keep_ms
-        if cut <= self.held_from_ms:
+        # In steps of a twentieth of what is kept, not every batch: each step walks every
+        # robot's track, and what is held a little longer is only read from memory again.
+        if cut - self.held_from_ms < max(1, self.keep_ms // 20):
             return
         reach = self.th.lookback_ms
         since = dict.fromkeys(self.tracks, cut)
@@ -396,18 +437,24 @@ class IncidentTracker:
         going_on: dict[tuple[str, ...], int] = {}
         for i in reaching:  # from the first of a pair's runs that reach them, or from them
             going_on[i.robots] = min(i.start_ms, first_tick, going_on.get(i.robots, first_tick))
+        if first_tick >= self.held_from_ms:  # memory holds them: the columns kept
+            cols = self.recent.columns(first_tick, self.tracks)
+        else:
+            cols = pose_columns(self._tracks(None, first_tick))
         fresh = [
             i
-            for i in near_miss_incidents(
-                self._tracks(None, first_tick), self.th, from_tick=first_tick, involving=robots
-            )
+            for i in near_misses(cols, self.th, from_tick=first_tick, involving=robots)
             if i.robots not in going_on
         ]
+        # their robots' poses from the earliest of their pairs' starts, every pair in one pass
+        reach_from: dict[str, int] = {}
         for pair, start in going_on.items():
-            tracks = {r: t for r in pair for r, t in self._tracks(r, start).items()}
-            fresh += [
-                i for i in near_miss_incidents(tracks, self.th, from_tick=start) if i.robots == pair
-            ]
+            for r in pair:
+                reach_from[r] = min(start, reach_from.get(r, start))
+        if going_on:
+            tracks = {r: t for r, at in reach_from.items() for r, t in self._tracks(r, at).items()}
+            pairs_from = {(a, b): start for (a, b), start in going_on.items()}
+            fresh += near_misses(pose_columns(tracks), self.th, pairs_from=pairs_from)
         # A run that ends before the changed ticks is unchanged: the one known stands.
         self._replace(reaching, [i for i in fresh if i.end_ms >= first_tick - tick])
 

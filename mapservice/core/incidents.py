@@ -51,6 +51,7 @@ __all__ = [
     "Incident",
     "IncidentThresholds",
     "PoseRef",
+    "battery_low_at",
     "battery_low_incidents",
     "detect",
     "incident_id",
@@ -58,6 +59,7 @@ __all__ = [
     "near_miss_incidents",
     "offline_incidents",
     "stuck_incidents",
+    "stuck_possible_at",
     "unique_poses",
 ]
 
@@ -118,13 +120,31 @@ def _runs(flags: Sequence[bool], presences: Sequence[tuple[int, int]]) -> list[t
     return runs
 
 
+def _stuck_limit_mm2(th: IncidentThresholds) -> float:
+    return (th.stuck_m * 1000) ** 2
+
+
+def stuck_possible_at(previous: PoseRow | None, pose: PoseRow, th: IncidentThresholds) -> bool:
+    """Whether the stuck condition can hold at `pose`, judged from the pose before it in its
+    presence only (`previous`, None if it opens one): it needs a planned path, and the pose
+    before, when inside the window, nearer than `stuck_m`. The condition's first part, so
+    that the live detection can pass over a moving robot without its window."""
+    if not pose.path:
+        return False
+    return (
+        previous is None
+        or previous.ts_ms < pose.ts_ms - th.stuck_ms
+        or mm2(previous, pose) < _stuck_limit_mm2(th)
+    )
+
+
 def stuck_incidents(
     track: Sequence[PoseRow], th: IncidentThresholds, judged_from_ms: int | None = None
 ) -> list[Incident]:
     """`judged_from_ms`: the condition is judged at the poses from then on only (the
     earlier ones are only looked back on), for a caller that knows the runs before."""
     presences = _presences(track, th.offline_after_ms)
-    limit_mm2 = (th.stuck_m * 1000) ** 2
+    limit_mm2 = _stuck_limit_mm2(th)
     flags = [False] * len(track)
     for first, last in presences:
         oldest = first  # the oldest pose of the window ending at i
@@ -132,12 +152,12 @@ def stuck_incidents(
             pose = track[i]
             if judged_from_ms is not None and pose.ts_ms < judged_from_ms:
                 continue
+            if not stuck_possible_at(track[i - 1] if i > first else None, pose, th):
+                continue
             while track[oldest].ts_ms < pose.ts_ms - th.stuck_ms:
                 oldest += 1
-            flags[i] = (
-                bool(pose.path)
-                and track[first].ts_ms <= pose.ts_ms - th.stuck_ms
-                and all(mm2(track[j], pose) < limit_mm2 for j in range(oldest, i))
+            flags[i] = track[first].ts_ms <= pose.ts_ms - th.stuck_ms and all(
+                mm2(track[j], pose) < limit_mm2 for j in range(oldest, i)
             )
     first_judged = next(
         (
@@ -180,13 +200,17 @@ def is_charging(value: bool | str | None) -> bool:
     return bool(value)
 
 
+def battery_low_at(pose: PoseRow, th: IncidentThresholds) -> bool:
+    """The battery_low condition at one pose."""
+    return (
+        pose.battery_level is not None
+        and pose.battery_level < th.battery_low_percent
+        and not is_charging(pose.charging)
+    )
+
+
 def battery_low_incidents(track: Sequence[PoseRow], th: IncidentThresholds) -> list[Incident]:
-    flags = [
-        p.battery_level is not None
-        and p.battery_level < th.battery_low_percent
-        and not is_charging(p.charging)
-        for p in track
-    ]
+    flags = [battery_low_at(p, th) for p in track]
     incidents = []
     for a, b in _runs(flags, _presences(track, th.offline_after_ms)):
         run = track[a : b + 1]

@@ -8,9 +8,11 @@ from __future__ import annotations
 import random
 
 import msgspec
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapservice.core import incident_tracker, near_miss
 from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
@@ -156,3 +158,91 @@ def test_a_batch_of_poses_older_than_memory_reads_the_store_once() -> None:
     reads.clear()
     tracker.add(pose_rows_of(backlog), now)
     assert len(reads) <= 2, reads
+
+
+def fleet_pose(robot: str, ts: int, x: float, y: float, battery: float) -> PoseRow:
+    return PoseRow(robot, ts, x, y, 0, 0, 0, 0, 1, battery, False, None, ((0.0, 0.0),), ts)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_live_case_judges_only_the_robots_whose_new_poses_can_start_something(
+    seed, monkeypatch
+) -> None:
+    """Poses after each robot's newest: a robot driving on (faster than the stuck distance
+    a pose, its battery fine, no silence) has no own incident to change, and its window is
+    not judged again; the robots standing with a path and those running low are."""
+    rng = random.Random(seed)
+    th = IncidentThresholds()
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 120_000)
+    t0 = 1_795_255_200_000
+    robots = [f"r{k:02d}" for k in range(30)]
+    standing = set(rng.sample(robots, 4))
+    low = set(rng.sample(robots, 3))
+    speed = {r: rng.uniform(0.2, 2.0) for r in robots}
+    batches = [
+        [
+            fleet_pose(
+                r,
+                t0 + s * 1000 + k * 7,
+                # 4 m apart across: no near misses to judge
+                0.0 if r in standing else s * speed[r],
+                4.0 * k,
+                10.0 if r in low else 80.0,
+            )
+            for k, r in enumerate(robots)
+        ]
+        for s in range(45)
+    ]
+    for s, batch in enumerate(batches[:-1]):
+        tracker.add(batch, t0 + (s + 1) * 1000)
+        tracker.take()
+
+    judged = []
+    stuck_incidents = incident_tracker.stuck_incidents
+
+    def counted(track, *args):
+        judged.extend(p.robot_id for p in track[-1:])
+        return stuck_incidents(track, *args)
+
+    monkeypatch.setattr(incident_tracker, "stuck_incidents", counted)
+    tracker.add(batches[-1], t0 + 45_000)
+    assert set(judged) == standing | low
+    found, _ = tracker.take()
+    assert {i.robots[0] for i in found if i.kind == "stuck"} == standing
+
+
+@pytest.mark.parametrize("pairs", [2, 9])
+def test_near_misses_going_on_are_judged_in_one_pass_whatever_their_number(
+    pairs, monkeypatch
+) -> None:
+    """Pairs of robots driving side by side, closer than the near-miss distance: each
+    batch carries their runs on, all of them in one pass over the arrays (not one per
+    pair, each a fixed cost of array operations)."""
+    th = IncidentThresholds()
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 120_000)
+    t0 = 1_795_255_200_000
+
+    def batch(s: int) -> list[PoseRow]:
+        return [
+            fleet_pose(f"p{k:02d}{side}", t0 + s * 1000 + k, s * 1.0, 10.0 * k + 0.5 * n, 80.0)
+            for k in range(pairs)
+            for n, side in enumerate("ab")
+        ]
+
+    for s in range(10):
+        tracker.add(batch(s), t0 + (s + 1) * 1000)
+    going_on = [i for i in tracker.current.values() if i.kind == "near_miss" and i.ongoing]
+    assert len(going_on) == pairs
+    passes = []
+    places = near_miss._places
+
+    def counted(*args):
+        passes.append(1)
+        return places(*args)
+
+    monkeypatch.setattr(near_miss, "_places", counted)
+    tracker.add(batch(10), t0 + 11_000)
+    assert len(passes) <= 2
+    assert {i.robots for i in tracker.current.values() if i.ongoing} == {
+        (f"p{k:02d}a", f"p{k:02d}b") for k in range(pairs)
+    }

@@ -4,6 +4,7 @@ span the history is read in."""
 
 from __future__ import annotations
 
+import bisect
 import math
 import random
 
@@ -21,6 +22,7 @@ from mapservice.core.incidents import (
     near_miss_incidents,
     unique_poses,
 )
+from mapservice.core.near_miss import near_misses, pose_columns
 from mapservice.core.ports import PoseRow
 from tests.mapservice.core.near_miss_reference import (
     near_miss_incidents as reference_near_misses,
@@ -315,3 +317,34 @@ def test_the_array_near_miss_rule_is_the_plain_one(seed, from_s, some):
         tracks, TH, from_tick, involving
     )
     assert near_miss_incidents(tracks, TH) == reference_near_misses(tracks, TH)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 10_000), st.randoms(use_true_random=False))
+def test_pairs_each_from_its_own_tick_in_one_pass_are_each_pair_alone(seed, rng):
+    """Several pairs' near misses in one pass, each from its own tick (as the live detection
+    runs the pairs whose runs go on): what the plain rule finds for each pair alone over
+    its two robots' poses from the newest before that tick, flags included."""
+    tracks = unique_poses(floor_history(seed))
+    robots = sorted(tracks)
+    pairs = [(a, b) for a in robots for b in robots if a < b]
+    pairs_from = {
+        pair: T0 + rng.randint(0, 480) * TH.tick_ms
+        for pair in rng.sample(pairs, rng.randint(1, len(pairs)))
+    }
+
+    def since(robot: str, ms: int) -> list[PoseRow]:
+        track = tracks[robot]
+        return track[max(0, bisect.bisect_left(track, ms, key=lambda p: p.ts_ms) - 1) :]
+
+    involved = {r for pair in pairs_from for r in pair}
+    reach = {r: min(ms for pair, ms in pairs_from.items() if r in pair) for r in involved}
+    together = pose_columns({r: since(r, ms) for r, ms in reach.items()})
+    alone = [
+        i
+        for pair, ms in pairs_from.items()
+        for i in reference_near_misses({r: since(r, ms) for r in pair}, TH, ms)
+        if i.robots == pair
+    ]
+    found = near_misses(together, TH, pairs_from=pairs_from)
+    assert sorted(found, key=lambda i: i.incident_id) == sorted(alone, key=lambda i: i.incident_id)
