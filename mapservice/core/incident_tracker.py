@@ -159,25 +159,28 @@ class IncidentTracker:
         changed_from = oldest
         placed_later: list[PoseRow] = []
         held_from, held_from_ms = self.held_from, self.held_from_ms
+        tracks, off = self.tracks, th.offline_after_ms
         for pose in poses:
             robot, ts = pose.robot_id, pose.ts_ms
-            track = self.tracks.setdefault(robot, [])
+            track = tracks.get(robot)
+            if track is None:
+                track = tracks[robot] = []
             last = track[-1] if track else None
             if robot not in newest_before:
                 newest_before[robot] = last
                 first_new_of[robot] = ts
-            elif ts < first_new_of[robot]:
-                first_new_of[robot] = ts
             if last is not None and ts > last.ts_ms and ts > held_from.get(robot, held_from_ms):
                 track.append(pose)
-                changed_from = min(changed_from, last.ts_ms)
+                if last.ts_ms < changed_from:
+                    changed_from = last.ts_ms
                 if (
-                    ts - last.ts_ms > th.offline_after_ms
+                    ts - last.ts_ms > off
                     or battery_low_at(pose, th)
                     or stuck_possible_at(last, pose, th)
                 ):
                     eventful.add(robot)
                 continue
+            first_new_of[robot] = min(first_new_of[robot], ts)
             eventful.add(robot)
             placed_later.append(pose)
             at = bisect.bisect_left(track, ts, key=_ts)

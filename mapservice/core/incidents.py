@@ -120,10 +120,6 @@ def _runs(flags: Sequence[bool], presences: Sequence[tuple[int, int]]) -> list[t
     return runs
 
 
-def _stuck_limit_mm2(th: IncidentThresholds) -> float:
-    return (th.stuck_m * 1000) ** 2
-
-
 def stuck_possible_at(previous: PoseRow | None, pose: PoseRow, th: IncidentThresholds) -> bool:
     """Whether the stuck condition can hold at `pose`, judged from the pose before it in its
     presence only (`previous`, None if it opens one): it needs a planned path, and the pose
@@ -131,11 +127,15 @@ def stuck_possible_at(previous: PoseRow | None, pose: PoseRow, th: IncidentThres
     that the live detection can pass over a moving robot without its window."""
     if not pose.path:
         return False
-    return (
-        previous is None
-        or previous.ts_ms < pose.ts_ms - th.stuck_ms
-        or mm2(previous, pose) < _stuck_limit_mm2(th)
-    )
+    if previous is None or previous.ts_ms < pose.ts_ms - th.stuck_ms:
+        return True
+    # A difference along one axis of at least stuck_m and half a millimetre rounds to
+    # stuck_m or more (mm2's rounding moves it by half a millimetre at most): far enough.
+    reach = th.stuck_m * 1000 + 0.5
+    dx, dy = (previous.x - pose.x) * 1000, (previous.y - pose.y) * 1000
+    if dx >= reach or -dx >= reach or dy >= reach or -dy >= reach:
+        return False
+    return mm2(previous, pose) < (th.stuck_m * 1000) ** 2
 
 
 def stuck_incidents(
@@ -144,7 +144,7 @@ def stuck_incidents(
     """`judged_from_ms`: the condition is judged at the poses from then on only (the
     earlier ones are only looked back on), for a caller that knows the runs before."""
     presences = _presences(track, th.offline_after_ms)
-    limit_mm2 = _stuck_limit_mm2(th)
+    limit_mm2 = (th.stuck_m * 1000) ** 2  # as stuck_possible_at
     flags = [False] * len(track)
     for first, last in presences:
         oldest = first  # the oldest pose of the window ending at i

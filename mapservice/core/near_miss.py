@@ -8,6 +8,7 @@ computed by `math.hypot` for the few candidate pairs.
 
 from __future__ import annotations
 
+import bisect
 import math
 from typing import NamedTuple
 
@@ -181,59 +182,83 @@ def near_misses(
         else np.isin(robot, [k for k, r in enumerate(robots) if r in involving])
     )
     i, j = _close_pairs(tick, robot, x, y, moving, mine, th)
-    first, last = _bounds(cols)
-    ts = cols.ts
-
-    def ref(row: int) -> PoseRef:
-        return PoseRef(
-            robots[int(cols.robot[row])], int(ts[row]), float(cols.x[row]), float(cols.y[row])
-        )
-
-    def first_ts(r: int, pair: tuple[str, str]) -> int:
-        """The robot's first pose the pair's rule reads: the newest before its instant."""
-        if pairs_from is None:
-            return int(ts[first[r]])
-        lo, hi = int(first[r]), int(last[r]) + 1
-        at = lo + int(np.searchsorted(ts[lo:hi], pairs_from[pair], side="left")) - 1
-        return int(ts[max(at, lo)])
-
-    # pair -> its close ticks: (tick, gap, the first robot's row, the second's)
-    close: dict[tuple[str, str], list[tuple[int, float, int, int]]] = {}
-    for a, b in sorted(zip(i.tolist(), j.tolist(), strict=True), key=lambda ab: tick[ab[0]]):
-        pair = (robots[robot[a]], robots[robot[b]])
-        if pairs_from is not None and tick[a] < pairs_from.get(pair, 2**62):
+    # pair -> its close ticks: (tick, gap, the first robot's place row, the second's)
+    close: dict[tuple[int, int], list[tuple[int, float, int, int]]] = {}
+    candidates = zip(
+        tick[i].tolist(),
+        robot[i].tolist(),
+        robot[j].tolist(),
+        (x[i] - x[j]).tolist(),
+        (y[i] - y[j]).tolist(),
+        i.tolist(),
+        j.tolist(),
+        strict=True,
+    )
+    pair_from = {}
+    if pairs_from is not None:
+        place = {r: k for k, r in enumerate(robots)}
+        pair_from = {(place[a], place[b]): ms for (a, b), ms in pairs_from.items()}
+    for t, ra, rb, dx, dy, a, b in sorted(candidates, key=lambda c: c[0]):
+        if pairs_from is not None and t < pair_from.get((ra, rb), 2**62):
             continue
-        gap = math.hypot(x[a] - x[b], y[a] - y[b])
+        gap = math.hypot(dx, dy)
         if gap < th.near_miss_m:
-            close.setdefault(pair, []).append((int(tick[a]), gap, a, b))
-    incidents = []
+            close.setdefault((ra, rb), []).append((t, gap, a, b))
+    # the runs: (pair, first tick, last tick, gap, the closest tick's place rows)
+    runs: list[tuple[tuple[int, int], int, int, float, int, int]] = []
     for pair, ticks in sorted(close.items()):
-        pair_rows = (int(robot[ticks[0][2]]), int(robot[ticks[0][3]]))
         begin = 0
         for n in range(1, len(ticks) + 1):
             if n < len(ticks) and ticks[n][0] - ticks[n - 1][0] == th.tick_ms:
                 continue
             run = ticks[begin:n]
             _, gap, a, b = min(run, key=lambda t: (t[1], t[0]))
-            start_ms = run[0][0]
-            incidents.append(
-                Incident(
-                    incident_id=incident_id("near_miss", pair, start_ms),
-                    kind="near_miss",
-                    robots=pair,
-                    start_ms=start_ms,
-                    end_ms=run[-1][0],
-                    # no later tick has both robots' positions yet
-                    ongoing=run[-1][0] + th.tick_ms > min(int(ts[last[r]]) for r in pair_rows),
-                    x=(float(x[a]) + float(x[b])) / 2,
-                    y=(float(y[a]) + float(y[b])) / 2,
-                    severity="critical" if gap < th.near_miss_m / 2 else "warning",
-                    measure=round(gap, 3),
-                    evidence=tuple(ref(int(k)) for k in (before[a], after[a], before[b], after[b])),
-                    from_data_edge=any(
-                        run[0][0] - th.tick_ms < first_ts(r, pair) for r in pair_rows
-                    ),
-                )
-            )
+            runs.append((pair, run[0][0], run[-1][0], gap, a, b))
             begin = n
+    if not runs:
+        return []
+    # every run's figures from the arrays at once
+    a_rows = np.array([run[4] for run in runs])
+    b_rows = np.array([run[5] for run in runs])
+    mid_x = ((x[a_rows] + x[b_rows]) / 2).tolist()
+    mid_y = ((y[a_rows] + y[b_rows]) / 2).tolist()
+    poses = np.stack((before[a_rows], after[a_rows], before[b_rows], after[b_rows]), axis=1)
+    ev_robot, ev_ts = cols.robot[poses].tolist(), cols.ts[poses].tolist()
+    ev_x, ev_y = cols.x[poses].tolist(), cols.y[poses].tolist()
+    first, last = _bounds(cols)
+    ts = cols.ts.tolist()
+    newest = cols.ts[last].tolist()
+
+    def first_ts(r: int, pair: tuple[int, int]) -> int:
+        """The robot's first pose the pair's rule reads (with `pairs_from`: the newest
+        before the pair's instant)."""
+        lo = int(first[r])
+        if pairs_from is None:
+            return ts[lo]
+        at = bisect.bisect_left(ts, pair_from[pair], lo, int(last[r]) + 1) - 1
+        return ts[max(at, lo)]
+
+    incidents = []
+    for k, (pair, start_ms, end_ms, gap, _, _) in enumerate(runs):
+        names = (robots[pair[0]], robots[pair[1]])
+        incidents.append(
+            Incident(
+                incident_id=incident_id("near_miss", names, start_ms),
+                kind="near_miss",
+                robots=names,
+                start_ms=start_ms,
+                end_ms=end_ms,
+                # no later tick has both robots' positions yet
+                ongoing=end_ms + th.tick_ms > min(newest[r] for r in pair),
+                x=mid_x[k],
+                y=mid_y[k],
+                severity="critical" if gap < th.near_miss_m / 2 else "warning",
+                measure=round(gap, 3),
+                evidence=tuple(
+                    PoseRef(robots[ev_robot[k][n]], ev_ts[k][n], ev_x[k][n], ev_y[k][n])
+                    for n in range(4)
+                ),
+                from_data_edge=any(start_ms - th.tick_ms < first_ts(r, pair) for r in pair),
+            )
+        )
     return incidents

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Sequence
+from operator import attrgetter
 
 import numpy as np
 
@@ -90,17 +91,16 @@ class RecentPoses:
         self.pending.clear()
         if not poses:
             return
-        for p in poses:
-            if p.robot_id not in self.index:
-                self.index[p.robot_id] = len(self.names)
-                self.names.append(p.robot_id)
-        index, n = self.index, len(poses)
-        self.robot = np.concatenate(
-            (self.robot, np.fromiter((index[p.robot_id] for p in poses), np.int64, n))
-        )
-        self.ts = np.concatenate((self.ts, np.fromiter((p.ts_ms for p in poses), np.int64, n)))
-        self.x = np.concatenate((self.x, np.fromiter((p.x for p in poses), np.float64, n)))
-        self.y = np.concatenate((self.y, np.fromiter((p.y for p in poses), np.float64, n)))
+        for robot in set(map(attrgetter("robot_id"), poses)).difference(self.index):
+            self.index[robot] = len(self.names)
+            self.names.append(robot)
+        n = len(poses)
+        robot = map(self.index.__getitem__, map(attrgetter("robot_id"), poses))
+        self.robot = np.concatenate((self.robot, np.fromiter(robot, np.int64, n)))
+        ts = np.fromiter(map(attrgetter("ts_ms"), poses), np.int64, n)
+        self.ts = np.concatenate((self.ts, ts))
+        self.x = np.concatenate((self.x, np.fromiter(map(attrgetter("x"), poses), np.float64, n)))
+        self.y = np.concatenate((self.y, np.fromiter(map(attrgetter("y"), poses), np.float64, n)))
 
 
 def _ts(pose: PoseRow) -> int:

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapservice.core.incident_model import mm2
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
@@ -20,6 +21,7 @@ from mapservice.core.incidents import (
     incident_id,
     is_charging,
     near_miss_incidents,
+    stuck_possible_at,
     unique_poses,
 )
 from mapservice.core.near_miss import near_misses, pose_columns
@@ -348,3 +350,28 @@ def test_pairs_each_from_its_own_tick_in_one_pass_are_each_pair_alone(seed, rng)
     ]
     found = near_misses(together, TH, pairs_from=pairs_from)
     assert sorted(found, key=lambda i: i.incident_id) == sorted(alone, key=lambda i: i.incident_id)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.floats(-500, 500).map(lambda v: round(v, 3)),
+    st.floats(-500, 500).map(lambda v: round(v, 3)),
+    st.floats(0, math.tau),
+    st.integers(-3, 3),
+    st.sampled_from([0.05, 0.1, 0.25, 1.0]),
+)
+def test_the_stuck_condition_s_first_part_is_the_distance_to_the_pose_before(
+    x, y, heading, off_mm, stuck_m
+):
+    """Poses a second apart, their distance around the stuck distance (to the millimetre,
+    in any direction): the stuck condition can hold at the second exactly when it lies
+    nearer than stuck_m to the first, as the rule measures (whole millimetres)."""
+    th = IncidentThresholds(stuck_m=stuck_m)
+    d = stuck_m + off_mm / 1000
+    first = pose(x=x, y=y)
+    second = pose(
+        t_s=1, x=round(x + d * math.cos(heading), 3), y=round(y + d * math.sin(heading), 3)
+    )
+    assert stuck_possible_at(first, second, th) == (mm2(first, second) < (stuck_m * 1000) ** 2)
+    assert stuck_possible_at(None, second, th)
+    assert not stuck_possible_at(first, msgspec.structs.replace(second, path=None), th)
