@@ -38,7 +38,7 @@ from mapservice.core.incidents import (
     stuck_possible_at,
     unique_poses,
 )
-from mapservice.core.near_miss import near_misses, pose_columns
+from mapservice.core.near_miss import near_misses, pose_columns, with_tracks
 from mapservice.core.ports import PoseRow
 from mapservice.core.recent_poses import RecentPoses
 
@@ -444,20 +444,19 @@ class IncidentTracker:
             cols = self.recent.columns(first_tick, self.tracks)
         else:
             cols = pose_columns(self._tracks(None, first_tick))
-        fresh = [
-            i
-            for i in near_misses(cols, self.th, from_tick=first_tick, involving=robots)
-            if i.robots not in going_on
-        ]
-        # their robots' poses from the earliest of their pairs' starts, every pair in one pass
+        # the going-on pairs' robots from the earliest of their pairs' starts
         reach_from: dict[str, int] = {}
         for pair, start in going_on.items():
             for r in pair:
                 reach_from[r] = min(start, reach_from.get(r, start))
-        if going_on:
-            tracks = {r: t for r, at in reach_from.items() for r, t in self._tracks(r, at).items()}
-            pairs_from = {(a, b): start for (a, b), start in going_on.items()}
-            fresh += near_misses(pose_columns(tracks), self.th, pairs_from=pairs_from)
+        reach = {r: t for r, at in reach_from.items() for r, t in self._tracks(r, at).items()}
+        fresh = near_misses(
+            with_tracks(cols, reach),
+            self.th,
+            from_tick=first_tick,
+            involving=robots,
+            pairs_from={(a, b): start for (a, b), start in going_on.items()},
+        )
         # A run that ends before the changed ticks is unchanged: the one known stands.
         self._replace(reaching, [i for i in fresh if i.end_ms >= first_tick - tick])
 

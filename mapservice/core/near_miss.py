@@ -46,6 +46,30 @@ def pose_columns(tracks: dict[str, list[PoseRow]]) -> PoseColumns:
     )
 
 
+def with_tracks(cols: PoseColumns, tracks: dict[str, list[PoseRow]]) -> PoseColumns:
+    """`cols` with the rows of the robots of `tracks` replaced by their poses there."""
+    extra = pose_columns(tracks)
+    if not extra.robots:
+        return cols
+    robots = cols.robots
+    if not set(extra.robots).issubset(robots):
+        robots = sorted(set(robots).union(extra.robots))
+    place = {r: k for k, r in enumerate(robots)}
+    own = np.asarray([place[r] for r in cols.robots], dtype=np.int64)[cols.robot]
+    theirs = np.asarray([place[r] for r in extra.robots], dtype=np.int64)
+    kept = ~np.isin(own, theirs)
+    robot = np.concatenate((own[kept], theirs[extra.robot]))
+    ts = np.concatenate((cols.ts[kept], extra.ts))
+    order = np.lexsort((ts, robot))
+    return PoseColumns(
+        robots,
+        robot[order],
+        ts[order],
+        np.concatenate((cols.x[kept], extra.x))[order],
+        np.concatenate((cols.y[kept], extra.y))[order],
+    )
+
+
 def _bounds(cols: PoseColumns) -> tuple[np.ndarray, np.ndarray]:
     """Each robot's first and last row."""
     sizes = np.bincount(cols.robot, minlength=len(cols.robots))
@@ -53,10 +77,12 @@ def _bounds(cols: PoseColumns) -> tuple[np.ndarray, np.ndarray]:
     return first, first + sizes - 1
 
 
-def _places(cols: PoseColumns, th: IncidentThresholds, from_tick: int) -> tuple[np.ndarray, ...]:
-    """Every robot's places, one row per (robot, tick) its poses surround, all robots at
-    once: per row its tick, robot index, x, y, whether it moved, and the rows of the poses
-    before and after it."""
+def _places(
+    cols: PoseColumns, th: IncidentThresholds, from_tick: int | np.ndarray
+) -> tuple[np.ndarray, ...]:
+    """Every robot's places, one row per (robot, tick) its poses surround from `from_tick`
+    on (one for all, or each robot's), all robots at once: per row its tick, robot index, x,
+    y, whether it moved, and the rows of the poses before and after it."""
     step, off = th.tick_ms, th.offline_after_ms
     ts, xs, ys = cols.ts, cols.x, cols.y
     first, last = _bounds(cols)
@@ -161,26 +187,40 @@ def near_misses(
     involving: set[str] | None = None,
     pairs_from: dict[tuple[str, str], int] | None = None,
 ) -> list[Incident]:
-    """`near_miss_incidents` over columns. With `pairs_from`, of those pairs only, each
-    over the ticks from its own instant on, as if its two robots' poses began with the
-    newest before that instant (several pairs' runs in one pass)."""
+    """`near_miss_incidents` over columns. With `pairs_from`, the pairs it names each over
+    the ticks from its own on, and for every pair its two robots' poses read as beginning
+    with the newest before its first tick (as if each pair were judged alone, over the
+    poses from that tick on: the live detection's runs that go on, in the same pass as the
+    pairs from `from_tick`)."""
     robots = cols.robots
     if not robots:
         return []
-    if pairs_from is not None:
-        if not pairs_from:
-            return []
-        from_tick = min(pairs_from.values())
-        involving = {r for pair in pairs_from for r in pair}
-    start = -(2**62) if from_tick is None else from_tick
-    tick, robot, x, y, moving, before, after = _places(cols, th, start)
+    everyone = from_tick if from_tick is not None else -(2**62)
+    pair_from: dict[tuple[int, int], int] = {}
+    if pairs_from:
+        place = {r: k for k, r in enumerate(robots)}
+        pair_from = {
+            (place[a], place[b]): ms
+            for (a, b), ms in pairs_from.items()
+            if a in place and b in place
+        }
+    # each robot's first tick: the earliest of its named pairs', or from_tick
+    robot_from = np.full(len(robots), everyone, dtype=np.int64)
+    for (ra, rb), ms in pair_from.items():
+        robot_from[ra] = min(robot_from[ra], ms)
+        robot_from[rb] = min(robot_from[rb], ms)
+    tick, robot, x, y, moving, before, after = _places(cols, th, robot_from)
     if not len(tick):
         return []
-    mine = (
-        np.ones(len(robot), dtype=bool)
-        if involving is None
-        else np.isin(robot, [k for k, r in enumerate(robots) if r in involving])
-    )
+    # the robots whose pairs are judged (besides the named pairs): each one's flag
+    chosen = None if involving is None else [r in involving for r in robots]
+    if chosen is None:
+        mine = np.ones(len(robot), dtype=bool)
+    else:
+        in_some = list(chosen)
+        for ra, rb in pair_from:
+            in_some[ra] = in_some[rb] = True
+        mine = np.asarray(in_some)[robot]
     i, j = _close_pairs(tick, robot, x, y, moving, mine, th)
     # pair -> its close ticks: (tick, gap, the first robot's place row, the second's)
     close: dict[tuple[int, int], list[tuple[int, float, int, int]]] = {}
@@ -194,12 +234,12 @@ def near_misses(
         j.tolist(),
         strict=True,
     )
-    pair_from = {}
-    if pairs_from is not None:
-        place = {r: k for k, r in enumerate(robots)}
-        pair_from = {(place[a], place[b]): ms for (a, b), ms in pairs_from.items()}
     for t, ra, rb, dx, dy, a, b in sorted(candidates, key=lambda c: c[0]):
-        if pairs_from is not None and t < pair_from.get((ra, rb), 2**62):
+        named = pair_from.get((ra, rb))
+        if named is not None:
+            if t < named:
+                continue
+        elif t < everyone or (chosen is not None and not (chosen[ra] or chosen[rb])):
             continue
         gap = math.hypot(dx, dy)
         if gap < th.near_miss_m:
@@ -231,11 +271,11 @@ def near_misses(
 
     def first_ts(r: int, pair: tuple[int, int]) -> int:
         """The robot's first pose the pair's rule reads (with `pairs_from`: the newest
-        before the pair's instant)."""
+        before the pair's first tick)."""
         lo = int(first[r])
         if pairs_from is None:
             return ts[lo]
-        at = bisect.bisect_left(ts, pair_from[pair], lo, int(last[r]) + 1) - 1
+        at = bisect.bisect_left(ts, pair_from.get(pair, everyone), lo, int(last[r]) + 1) - 1
         return ts[max(at, lo)]
 
     incidents = []

@@ -321,26 +321,32 @@ def test_the_array_near_miss_rule_is_the_plain_one(seed, from_s, some):
     assert near_miss_incidents(tracks, TH) == reference_near_misses(tracks, TH)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=60, deadline=None)
 @given(st.integers(0, 10_000), st.randoms(use_true_random=False))
 def test_pairs_each_from_its_own_tick_in_one_pass_are_each_pair_alone(seed, rng):
-    """Several pairs' near misses in one pass, each from its own tick (as the live detection
-    runs the pairs whose runs go on): what the plain rule finds for each pair alone over
-    its two robots' poses from the newest before that tick, flags included."""
+    """The live detection's one pass: some pairs each from its own tick (the runs that go
+    on), and every other pair with a robot of `involving` from `from_tick`, the robots'
+    poses given from the earliest tick each one needs. What the plain rule finds for each
+    named pair alone, over its two robots' poses from the newest before its tick, and for
+    the others over every robot's poses from the newest before `from_tick`; flags and
+    evidence included."""
     tracks = unique_poses(floor_history(seed))
     robots = sorted(tracks)
     pairs = [(a, b) for a in robots for b in robots if a < b]
+    from_tick = T0 + rng.randint(0, 480) * TH.tick_ms
     pairs_from = {
-        pair: T0 + rng.randint(0, 480) * TH.tick_ms
-        for pair in rng.sample(pairs, rng.randint(1, len(pairs)))
+        pair: T0 + rng.randint(0, from_tick - T0 + 1) // TH.tick_ms * TH.tick_ms
+        for pair in rng.sample(pairs, rng.randint(0, len(pairs)))
     }
+    involving = set(rng.sample(robots, rng.randint(0, len(robots))))
 
     def since(robot: str, ms: int) -> list[PoseRow]:
         track = tracks[robot]
         return track[max(0, bisect.bisect_left(track, ms, key=lambda p: p.ts_ms) - 1) :]
 
-    involved = {r for pair in pairs_from for r in pair}
-    reach = {r: min(ms for pair, ms in pairs_from.items() if r in pair) for r in involved}
+    reach = {
+        r: min([from_tick, *(ms for pair, ms in pairs_from.items() if r in pair)]) for r in robots
+    }
     together = pose_columns({r: since(r, ms) for r, ms in reach.items()})
     alone = [
         i
@@ -348,8 +354,17 @@ def test_pairs_each_from_its_own_tick_in_one_pass_are_each_pair_alone(seed, rng)
         for i in reference_near_misses({r: since(r, ms) for r in pair}, TH, ms)
         if i.robots == pair
     ]
-    found = near_misses(together, TH, pairs_from=pairs_from)
-    assert sorted(found, key=lambda i: i.incident_id) == sorted(alone, key=lambda i: i.incident_id)
+    others = [
+        i
+        for i in reference_near_misses(
+            {r: since(r, from_tick) for r in robots}, TH, from_tick, involving
+        )
+        if i.robots not in pairs_from
+    ]
+    found = near_misses(together, TH, from_tick, involving, pairs_from)
+    assert sorted(found, key=lambda i: i.incident_id) == sorted(
+        alone + others, key=lambda i: i.incident_id
+    )
 
 
 @settings(max_examples=300, deadline=None)
