@@ -3,6 +3,7 @@ of the rules, the record of one, and its id."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 from collections.abc import Sequence
@@ -77,6 +78,12 @@ class Incident(msgspec.Struct, frozen=True):
 
 
 def incident_id(kind: str, robots: Sequence[str], start_ms: int) -> str:
+    return _incident_id(kind, tuple(robots), start_ms)
+
+
+# The live detection names an ongoing incident again with every batch.
+@functools.lru_cache(maxsize=65_536)
+def _incident_id(kind: str, robots: tuple[str, ...], start_ms: int) -> str:
     key = "\x1f".join((kind, *robots, str(start_ms)))
     return hashlib.blake2b(key.encode(), digest_size=16).hexdigest()
 

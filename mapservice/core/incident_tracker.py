@@ -290,6 +290,11 @@ class IncidentTracker:
         """The stored poses of `robot` (of every robot if None) from `from_ms` on, with
         each robot's newest before it, per robot in time order: from memory, and before the
         held span from the store."""
+        if robot is not None and from_ms >= self._held(robot):  # in memory
+            track = self.tracks.get(robot)
+            if not track:
+                return {}
+            return {robot: track[max(0, bisect.bisect_left(track, from_ms, key=_ts) - 1) :]}
         robots = [robot] if robot is not None else list(self.tracks)
         lacking = [r for r in robots if from_ms < self._held(r)]
         out: dict[str, list[PoseRow]] = {}

@@ -10,17 +10,13 @@ from __future__ import annotations
 
 import bisect
 import math
+from operator import attrgetter
 from typing import NamedTuple
 
 import numpy as np
 
 from mapservice.core.incident_model import Incident, IncidentThresholds, PoseRef, incident_id
 from mapservice.core.ports import PoseRow
-
-# A pair closer than the cell size lies in one cell or two neighbouring ones: each cell
-# looks at itself and at four of its eight neighbours, so that of two neighbours one looks
-# at the other.
-_LOOKED_AT = [(0, 0), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
 class PoseColumns(NamedTuple):
@@ -36,13 +32,13 @@ class PoseColumns(NamedTuple):
 def pose_columns(tracks: dict[str, list[PoseRow]]) -> PoseColumns:
     robots = sorted(r for r, track in tracks.items() if track)
     poses = [p for r in robots for p in tracks[r]]
-    sizes = np.fromiter((len(tracks[r]) for r in robots), np.int64, len(robots))
+    sizes = np.fromiter(map(len, map(tracks.__getitem__, robots)), np.int64, len(robots))
     return PoseColumns(
         robots,
         np.repeat(np.arange(len(robots), dtype=np.int64), sizes),
-        np.fromiter((p.ts_ms for p in poses), np.int64, len(poses)),
-        np.fromiter((p.x for p in poses), np.float64, len(poses)),
-        np.fromiter((p.y for p in poses), np.float64, len(poses)),
+        np.fromiter(map(attrgetter("ts_ms"), poses), np.int64, len(poses)),
+        np.fromiter(map(attrgetter("x"), poses), np.float64, len(poses)),
+        np.fromiter(map(attrgetter("y"), poses), np.float64, len(poses)),
     )
 
 
@@ -141,31 +137,28 @@ def _close_pairs(
     key = (ti * width + cx) * height + cy
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
-    # the occupied cells: each one's key, where its places begin in `order`, how many
-    begins = np.flatnonzero(np.concatenate(([True], sorted_key[1:] != sorted_key[:-1])))
-    cells = sorted_key[begins]
-    sizes = np.diff(np.append(begins, len(key)))
     firsts, seconds = [], []
-    for dx, dy in _LOOKED_AT:
-        wanted = key + dx * height + dy
-        at = np.minimum(np.searchsorted(cells, wanted), len(cells) - 1)
-        counts = np.where(cells[at] == wanted, sizes[at], 0)
+    # From each place (in key order): the places of its cell and the next one up, then of
+    # the three cells of the next column, each a run of consecutive keys.
+    for low, high in ((0, 2), (height - 1, height + 2)):
+        lo = np.searchsorted(sorted_key, sorted_key + low)
+        counts = np.searchsorted(sorted_key, sorted_key + high) - lo
         total = int(counts.sum())
         if not total:
             continue
-        i = np.repeat(np.arange(len(key)), counts)
-        starts = np.repeat(np.cumsum(counts) - counts, counts)
-        j = order[np.repeat(begins[at], counts) + np.arange(total) - starts]
-        if (dx, dy) != (0, 0):  # found from one of the two cells only: in robot order
-            i, j = np.where(robot[i] < robot[j], i, j), np.where(robot[i] < robot[j], j, i)
-        firsts.append(i)
-        seconds.append(j)
+        firsts.append(np.repeat(np.arange(len(key)), counts))
+        seconds.append(np.repeat(lo - (np.cumsum(counts) - counts), counts) + np.arange(total))
     if not firsts:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty
-    i, j = np.concatenate(firsts), np.concatenate(seconds)
+    i, j = order[np.concatenate(firsts)], order[np.concatenate(seconds)]
+    # Two places in one cell are found from each of them: kept in robot order; in two
+    # cells, from one of them only: put in robot order.
+    once = (key[i] != key[j]) | (robot[i] < robot[j])
+    i, j = i[once], j[once]
+    i, j = np.where(robot[i] < robot[j], i, j), np.where(robot[i] < robot[j], j, i)
     near = (x[i] - x[j]) ** 2 + (y[i] - y[j]) ** 2 <= (cell * (1 + 1e-9)) ** 2
-    keep = (robot[i] < robot[j]) & (mine[i] | mine[j]) & (moving[i] | moving[j]) & near
+    keep = (robot[i] != robot[j]) & (mine[i] | mine[j]) & (moving[i] | moving[j]) & near
     return i[keep], j[keep]
 
 
@@ -197,13 +190,10 @@ def near_misses(
         return []
     everyone = from_tick if from_tick is not None else -(2**62)
     pair_from: dict[tuple[int, int], int] = {}
-    if pairs_from:
-        place = {r: k for k, r in enumerate(robots)}
-        pair_from = {
-            (place[a], place[b]): ms
-            for (a, b), ms in pairs_from.items()
-            if a in place and b in place
-        }
+    for (a, b), ms in (pairs_from or {}).items():
+        ra, rb = bisect.bisect_left(robots, a), bisect.bisect_left(robots, b)
+        if max(ra, rb) < len(robots) and robots[ra] == a and robots[rb] == b:
+            pair_from[(ra, rb)] = ms
     # each robot's first tick: the earliest of its named pairs', or from_tick
     robot_from = np.full(len(robots), everyone, dtype=np.int64)
     for (ra, rb), ms in pair_from.items():
