@@ -21,6 +21,7 @@ from mapservice.core.ports import (
     CommandReader,
     ConflictReader,
     EventPublisher,
+    IncidentReader,
     LegacyQueries,
     StoreAdmin,
     TableExports,
@@ -97,6 +98,7 @@ PublisherDep = Annotated[EventPublisher, Depends(_publisher)]
 HistoryDep = Annotated[TimeTravelReader, Depends(_role(lambda r: r.history))]
 ConflictsDep = Annotated[ConflictReader, Depends(_role(lambda r: r.conflicts))]
 AnnotationsDep = Annotated[AnnotationReader, Depends(_role(lambda r: r.annotations))]
+IncidentsDep = Annotated[IncidentReader, Depends(_role(lambda r: r.incidents))]
 CommandsDep = Annotated[CommandReader, Depends(_role(lambda r: r.commands))]
 VdaDep = Annotated[VdaReader, Depends(_role(lambda r: r.vda))]
 ChangesDep = Annotated[ChangeFeed, Depends(_role(lambda r: r.changes))]

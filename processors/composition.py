@@ -101,6 +101,7 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
         history=roles.history,
         annotations=roles.annotations,
         conflicts=roles.conflicts,
+        incidents=roles.incidents,
         writer=roles.writer,
         advertiser=advertiser,
         store_thread=store_thread,
@@ -115,7 +116,7 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
     app.on_before_shutdown.connect(stop_views, weak=False)  # type: ignore[arg-type]
 
     async def presence() -> None:
-        views.check_presence()
+        await views.tick()
 
     app.timer(1.0)(presence)
 

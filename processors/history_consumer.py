@@ -100,7 +100,7 @@ async def store_values(
     """Decodes a batch, stores its events in one append, then feeds the live stream and
     the views; bad records become dead letters, and events older than the retention at
     `now_ms` are dropped (`HistorySink.unexpired`). Returns the stored events, whose derived
-    pose views (`HistorySink.derive_until_done`) and conflicts (`LiveViews.write_conflicts`)
+    pose views (`HistorySink.derive_until_done`) and conflicts and incidents (`LiveViews.write_found`)
     the caller writes before committing.
 
     One append for the whole batch, poses and chunks together: each append has a fixed
@@ -280,7 +280,7 @@ class HistoryConsumer:
             await self.sink.derive_until_done(self._underived)
             self._underived = []
         if self.views is not None:
-            await self.views.write_conflicts_until_done()
+            await self.views.write_found_until_done()
         self._underived_since = None
         if self._uncommitted:
             records, self._uncommitted = list(self._uncommitted.values()), {}
@@ -301,7 +301,7 @@ class HistoryConsumer:
                 await self.sink.run(self.sink.writer.derive_views, self._underived)
                 self._underived = []
             if self.views is not None:
-                await self.views.store_thread.run(self.views.write_conflicts)
+                await self.views.store_thread.run(self.views.write_found)
             await self.settle()
         except Exception as exc:  # noqa: BLE001 - anything the store raises; logged, re-delivered
             log.warning(

@@ -1,6 +1,6 @@
-"""The processors' live views: the latest map (advertised on MQTT), the robots, the zones
-and conflicts, each a part of its own (latest_map.py, presence.py, zone_watch.py,
-conflict_recorder.py) with its advertisements on one queue (advertising.py); `LiveViews`
+"""The processors' live views: the latest map (advertised on MQTT), the robots, the zones,
+conflicts and incidents, each a part of its own (latest_map.py, presence.py, zone_watch.py,
+conflict_recorder.py, incident_watch.py) with its advertisements on one queue (advertising.py); `LiveViews`
 drives them together.
 
 Fed by the history consumer after each insert (`on_stored`), so a view never shows, and an
@@ -32,6 +32,7 @@ from mapservice.core.ports import (
     ChunkState,
     ConflictReader,
     HistoryWriter,
+    IncidentReader,
     TimeTravelReader,
 )
 from mapservice.runtime.retry import until_done
@@ -39,6 +40,7 @@ from mapservice.settings import Settings
 
 from .advertising import AdvertisementQueue, Advertiser
 from .conflict_recorder import ConflictWatch
+from .incident_watch import IncidentWatch
 from .latest_map import LatestMap
 from .presence import Presence
 from .store_thread import StoreThread
@@ -61,6 +63,7 @@ class LiveViews:
         history: TimeTravelReader,
         annotations: AnnotationReader,
         conflicts: ConflictReader,
+        incidents: IncidentReader,
         writer: HistoryWriter,
         advertiser: Advertiser | None,
         store_thread: StoreThread,
@@ -89,6 +92,7 @@ class LiveViews:
         self.conflicts = ConflictWatch(
             history, conflicts, writer, int(settings.conflict_window_s * 1000), now_ms
         )
+        self.incidents = IncidentWatch(settings, history, incidents, writer, now_ms)
         self.loaded = False
 
     @property
@@ -112,6 +116,7 @@ class LiveViews:
         self.presence.load(self.history, horizon)
         self.zones.load(horizon)
         self.conflicts.load(horizon)
+        self.incidents.load(horizon)
         self.loaded = True
         log.info(
             "live views rebuilt from the history",
@@ -131,6 +136,12 @@ class LiveViews:
         of ~10 ms on chDB)."""
         return self.conflicts.write()
 
+    def write_found(self) -> int:
+        """Stores the conflicts and incidents found since the last call; returns how many
+        rows. Called with the pose views, before offsets are committed
+        (HistoryConsumer.settle)."""
+        return self.write_conflicts() + self.incidents.write()
+
     # --- in the event loop ----------------------------------------------------------------
 
     async def on_stored(self, events: Sequence[Envelope]) -> None:
@@ -145,6 +156,7 @@ class LiveViews:
         has_poses = any(pose_of(e.payload) is not None for e in events)
         if has_poses:
             self.presence.apply(events)
+            await self._until_done(self.incidents.find, events)
         zones_changed = False
         for e in events:
             if isinstance(e.payload, ANNOTATION_EVENTS):
@@ -171,10 +183,17 @@ class LiveViews:
         """Logs robots going online/offline; returns (came online, went offline)."""
         return self.presence.check(self.now_ms())
 
-    async def write_conflicts_until_done(self) -> None:
-        """`write_conflicts` on the store thread, retried until it succeeds."""
-        if len(self.conflicts.unwritten):  # nothing to hand to the store thread
-            await self._until_done(lambda _: self.write_conflicts(), None)
+    async def tick(self) -> None:
+        """Once a second: robots going online and offline, and the incidents of silences."""
+        self.check_presence()
+        if self.loaded:
+            await self.store_thread.run(self.incidents.tick)
+
+    async def write_found_until_done(self) -> None:
+        """`write_found` on the store thread, retried until it succeeds."""
+        tracker = self.incidents.tracker
+        if len(self.conflicts.unwritten) or tracker.found or tracker.retracted:
+            await self._until_done(lambda _: self.write_found(), None)
 
     async def _until_done(self, fn: Callable[[Any], object], batch: Any) -> None:
         # Retried: acknowledging the batch without its conflicts and views would lose them.

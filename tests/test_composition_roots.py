@@ -46,6 +46,7 @@ ROLES = [
     ports.RetentionKeeper,
     ports.ConflictReader,
     ports.AnnotationReader,
+    ports.IncidentReader,
     ports.CommandReader,
     ports.VdaReader,
     ports.ChangeFeed,

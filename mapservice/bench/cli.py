@@ -146,6 +146,10 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
 
     add_kafka_start_parser(kinds)
 
+    from mapservice.bench.incidents import add_parser as add_incidents_parser
+
+    add_incidents_parser(kinds)
+
 
 def _run_ingest(args: argparse.Namespace) -> None:
     if args.kafka == "both" or getattr(args, "compare", None):

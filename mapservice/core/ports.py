@@ -13,6 +13,7 @@ from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSe
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
+    from mapservice.core.incidents import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
 
 
@@ -249,6 +250,14 @@ class HistoryWriter(Protocol):
         """Idempotent on B's identity (ts, row, column, robot_b): of two rows with one
         identity the one naming the later A (by ts_a; on a tie the later append) stays."""
 
+    def append_incidents(
+        self, found: Sequence[Incident], found_ms: int, retracted: Sequence[Incident] = ()
+    ) -> None:
+        """Stores incidents as found at `found_ms` (the detection's clock): one per id, the
+        latest finding (by `found_ms`; on a tie the later append) replacing earlier ones.
+        `retracted`: incidents found before that a later history no longer holds (a late
+        pose broke them); reads leave them out."""
+
 
 class TimeTravelReader(Protocol):
     """The history at an instant and over a window: poses, chunk writes, the map and the
@@ -381,6 +390,22 @@ class AnnotationReader(Protocol):
         """The zone violations with from_ms <= time < to_ms, by time."""
 
 
+class IncidentReader(Protocol):
+    """The incidents found in the history (ClickHouse: `incident_reads`)."""
+
+    def incidents(
+        self,
+        from_ms: int,
+        to_ms: int,
+        kinds: Sequence[str] = (),
+        robot_id: str | None = None,
+        limit: int = 10_000,
+    ) -> list[Incident]:
+        """The incidents meeting [from_ms, to_ms) (start < to_ms, end >= from_ms), of
+        `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
+        id; as last found, retracted ones left out."""
+
+
 class CommandReader(Protocol):
     """Operators' commands to robots and the robots' answers (ClickHouse: `command_reads`)."""
 
@@ -458,6 +483,7 @@ class HistoryStore(
     RetentionKeeper,
     ConflictReader,
     AnnotationReader,
+    IncidentReader,
     CommandReader,
     VdaReader,
     ChangeFeed,

@@ -22,6 +22,7 @@ from mapservice.core.ports import (
     ConflictReader,
     HistoryStore,
     HistoryWriter,
+    IncidentReader,
     LegacyQueries,
     RetentionKeeper,
     SnapshotKeeper,
@@ -106,6 +107,7 @@ class StoreRoles:
     retention: RetentionKeeper
     conflicts: ConflictReader
     annotations: AnnotationReader
+    incidents: IncidentReader
     commands: CommandReader
     vda: VdaReader
     changes: ChangeFeed
@@ -128,6 +130,7 @@ class StoreRoles:
             retention=narrowed(store, RetentionKeeper),
             conflicts=narrowed(store, ConflictReader),
             annotations=narrowed(store, AnnotationReader),
+            incidents=narrowed(store, IncidentReader),
             commands=narrowed(store, CommandReader),
             vda=narrowed(store, VdaReader),
             changes=narrowed(store, ChangeFeed),

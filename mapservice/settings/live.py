@@ -45,5 +45,27 @@ class LiveSettings(BaseModel):
         5.0, ge=0, description="|receive - event time| beyond this is flagged."
     )
     robot_offline_after_s: float = Field(
-        10.0, gt=0, description="Silence after which a robot is offline."
+        10.0, gt=0, description="Silence after which a robot is offline (and an incident)."
+    )
+    incident_near_miss_m: float = Field(
+        1.0, gt=0, description="Two robots closer than this, one of them moving: a near miss."
+    )
+    incident_moving_m_s: float = Field(
+        0.05, ge=0, description="A robot faster than this is moving (for near misses)."
+    )
+    incident_stuck_m: float = Field(
+        0.1,
+        gt=0,
+        description="A robot with a planned path that stayed this close to where it stands "
+        "for incident_stuck_s is stuck.",
+    )
+    incident_stuck_s: float = Field(30.0, gt=0, description="See incident_stuck_m.")
+    incident_battery_low_percent: float = Field(
+        15.0, gt=0, le=100, description="A battery below this level, not charging, is low."
+    )
+    incident_memory_s: float = Field(
+        300.0,
+        ge=60,
+        description="How much recent history the processors keep in memory to find "
+        "incidents; poses older than this (late ones) are read from the store.",
     )

@@ -11,7 +11,6 @@ import threading
 from collections.abc import Sequence
 
 import msgspec
-import numpy as np
 
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core import change_scan, upload_scan
@@ -33,8 +32,8 @@ from mapservice.core.events import (
     VdaConnectionReported,
     VdaFactsheetReported,
     VdaStateReported,
-    pose_of,
 )
+from mapservice.core.incidents import Incident
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
 from mapservice.core.ports import (
     ChunkRow,
@@ -51,20 +50,14 @@ from mapservice.core.ports import (
     VdaFactsheetRow,
 )
 from mapservice.core.retention import DAY_MS
+from mapservice.core.stored_rows import pose_rows_of
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 from mapservice.core.track_buckets import fold_track_buckets
+from mapservice.testing.memory_incidents import IncidentLog
 
 
 def _iso_day(ms: int) -> str:
     return datetime.datetime.fromtimestamp(ms / 1000, datetime.UTC).date().isoformat()
-
-
-def _mm(v: float) -> float:
-    return round(v * 1000) / 1000
-
-
-def _f32(v: float | None) -> float | None:
-    return None if v is None else float(np.float32(v))
 
 
 class MemoryStore:
@@ -86,6 +79,7 @@ class MemoryStore:
         self._vda_error_counts: dict[tuple[str, int], int] = {}  # per state (vda_states)
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
         self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
+        self._incidents = IncidentLog()
         self._commands: dict[tuple[int, str], StoredCommandEvent] = {}  # (time, event id)
         self._lock = threading.Lock()
 
@@ -104,20 +98,8 @@ class MemoryStore:
             for e in events:
                 p = e.payload
                 self._append_vda(e)
-                if (pose := pose_of(p)) is not None:
-                    self._poses[(e.robot_id, e.event_time_ms)] = PoseRow(
-                        e.robot_id,
-                        e.event_time_ms,
-                        *(_mm(v) for v in pose.position),
-                        *(_f32(v) for v in pose.orientation),
-                        _f32(pose.battery_level),
-                        pose.charging,
-                        pose.loaded,
-                        tuple((_mm(x), _mm(y)) for x, y in pose.path)
-                        if pose.path is not None
-                        else None,
-                        e.receive_time_ms,
-                    )
+                if (row := next(iter(pose_rows_of((e,))), None)) is not None:
+                    self._poses[(e.robot_id, e.event_time_ms)] = row
                 elif isinstance(p, ChunkUpdated):
                     self._contents.setdefault(p.content_hash, (p.width, p.height, p.data))
                     key = (e.event_time_ms, p.row, p.column, e.robot_id)
@@ -159,6 +141,21 @@ class MemoryStore:
         with self._lock:
             for v in rows:
                 self._zone_violations[(v.ts_ms, v.robot_id, v.annotation_id)] = v
+
+    def append_incidents(
+        self, found: Sequence[Incident], found_ms: int, retracted: Sequence[Incident] = ()
+    ) -> None:
+        self._incidents.append(found, found_ms, retracted)
+
+    def incidents(
+        self,
+        from_ms: int,
+        to_ms: int,
+        kinds: Sequence[str] = (),
+        robot_id: str | None = None,
+        limit: int = 10_000,
+    ) -> list[Incident]:
+        return self._incidents.incidents(from_ms, to_ms, kinds, robot_id, limit)
 
     def zone_violations(
         self, from_ms: int, to_ms: int, limit: int = 100_000
@@ -357,6 +354,7 @@ class MemoryStore:
                 del self._poses[k]
             self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
             self._zone_violations = {k: v for k, v in self._zone_violations.items() if k[0] >= cut}
+            self._incidents.forget_before(cut)
             self._dead = [d for d in self._dead if d.receive_time_ms >= cut]
             named = {bytes.fromhex(c.content_hash) for c in self._carried.values()} | {
                 bytes.fromhex(c.content_hash) for c in self._chunks.values()

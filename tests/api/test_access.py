@@ -73,6 +73,7 @@ SCOPES = {
     "removeAnnotation": "operator",
     "importKeepOutMask": "operator",
     "listZoneViolations": "read",
+    "listIncidents": "read",
     "sendCommand": "operator",
     "listCommands": "read",
     "getCallerAccess": "read",

@@ -66,6 +66,7 @@ EXPECTED_OPERATION_IDS = {
     "getCostmapFilterMaskYaml",
     "getCostmapFilterInfo",
     "listZoneViolations",
+    "listIncidents",
     "sendCommand",
     "listCommands",  # api/routers/commands.py (operators' commands to robots)
     "getCallerAccess",  # api/routers/caller.py (the replay page offers editing to operators)

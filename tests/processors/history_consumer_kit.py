@@ -47,6 +47,7 @@ def live_views(
         history=store,
         annotations=store,
         conflicts=store,
+        incidents=store,
         writer=store,
         advertiser=advertiser,
         store_thread=thread,

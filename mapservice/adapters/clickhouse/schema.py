@@ -24,6 +24,7 @@ from mapservice.adapters.clickhouse import (
     annotation_schema,
     burst_schema,
     command_schema,
+    incident_schema,
     pose_schema,
     retention_schema,
     track_schema,
@@ -264,6 +265,11 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
         Migration(
             18, "chunk_bursts: writers' dense 20 s, for uploads", burst_schema.statements(database)
         ),
+        Migration(
+            19,
+            "incidents: near misses, stuck and silent robots, low batteries, as found",
+            incident_schema.statements(database),
+        ),
     ]
 
 
@@ -307,7 +313,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 18
+SCHEMA_VERSION = 19
 
 # Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
 # map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
@@ -333,4 +339,5 @@ RETAINED_BY_DAY = (
     "command_events",
     track_schema.TABLE,
     burst_schema.TABLE,
+    incident_schema.TABLE,
 )

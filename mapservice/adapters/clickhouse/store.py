@@ -5,7 +5,8 @@ One `connection.ClickHouseConnection` holds the clients, their locks and the dat
 each role of the store (mapservice/core/ports.py) is an adapter of its own over it, in its
 own module: `migrations` (StoreSchema), `writes` (HistoryWriter), `reads` (TimeTravelReader,
 with `track_reads`), `snapshots` (SnapshotKeeper), `retention` (RetentionKeeper),
-`conflict_reads` (ConflictReader), `annotation_reads` (AnnotationReader), `command_reads`
+`conflict_reads` (ConflictReader), `annotation_reads` (AnnotationReader), `incident_reads`
+(IncidentReader), `command_reads`
 (CommandReader), `vda_reads` (VdaReader), `change_feed` (ChangeFeed), `legacy` (the 2019
 REST listings) and `admin` (StoreAdmin, TableExports).
 
@@ -26,6 +27,7 @@ from mapservice.adapters.clickhouse.change_feed import ClickHouseChangeFeed
 from mapservice.adapters.clickhouse.command_reads import ClickHouseCommandReads
 from mapservice.adapters.clickhouse.conflict_reads import ClickHouseConflictReads
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.adapters.clickhouse.incident_reads import ClickHouseIncidentReads
 from mapservice.adapters.clickhouse.legacy import ClickHouseLegacyQueries
 from mapservice.adapters.clickhouse.migrations import ClickHouseSchema
 from mapservice.adapters.clickhouse.reads import ClickHouseTimeTravel
@@ -57,6 +59,7 @@ def clickhouse_roles(
         retention=ClickHouseRetention(connection, snapshots),
         conflicts=conflicts,
         annotations=ClickHouseAnnotationReads(connection),
+        incidents=ClickHouseIncidentReads(connection),
         commands=ClickHouseCommandReads(connection),
         vda=ClickHouseVdaReads(connection),
         changes=ClickHouseChangeFeed(connection),

@@ -310,6 +310,28 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
             "y": "The pose's y in metres",
         },
     ),
+    "incidents": (
+        "What went wrong on the floor, found by the processors from the poses: near misses, "
+        "stuck and silent robots, low batteries (schema v19). One row per finding: read with "
+        "FINAL and leave out retracted rows.",
+        {
+            "incident_id": "The incident: a digest of its kind, robots and start",
+            "kind": "near_miss, stuck, offline or battery_low",
+            "robots": "The robots involved (two for a near miss), sorted",
+            "start": "When it began (UTC): the first close tick, when the robot stopped, its "
+            "last report before the silence, its first low report",
+            "end": "When it was last seen (UTC); now for a silence still going on",
+            "ongoing": "It still held at the newest pose known when it was found",
+            "x": "Where, in metres (a near miss: halfway between the robots at their closest)",
+            "y": "Where, in metres",
+            "severity": "warning or critical",
+            "measure": "The closest distance in metres (near_miss), the seconds stopped "
+            "(stuck) or silent (offline), the lowest level in percent (battery_low)",
+            "evidence": "The poses that made it, as JSON [[robot_id, ts_ms, x, y], ...]",
+            "found": "When the processors found it (the latest finding replaces earlier ones)",
+            "retracted": "A later history no longer holds it (a late pose broke it)",
+        },
+    ),
 }
 
 

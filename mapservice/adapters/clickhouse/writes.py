@@ -13,7 +13,7 @@ from itertools import chain
 
 import numpy as np
 
-from mapservice.adapters.clickhouse import command_schema
+from mapservice.adapters.clickhouse import command_schema, incident_schema
 from mapservice.adapters.clickhouse.command_reads import command_row
 from mapservice.adapters.clickhouse.connection import (
     ClickHouseConnection,
@@ -21,6 +21,7 @@ from mapservice.adapters.clickhouse.connection import (
     json_encoder,
     mm,
 )
+from mapservice.adapters.clickhouse.incident_reads import incident_row
 from mapservice.adapters.clickhouse.pose_schema import POSE_COLUMNS
 from mapservice.adapters.clickhouse.snapshots import ClickHouseSnapshots
 from mapservice.core.annotations import ANNOTATION_EVENTS, AnnotationRemoved, ZoneViolation, to_doc
@@ -35,6 +36,7 @@ from mapservice.core.events import (
     VdaStateReported,
     pose_of,
 )
+from mapservice.core.incidents import Incident
 from mapservice.core.ports import ConflictRow
 
 POSE_INSERT_COLUMNS = [
@@ -231,6 +233,18 @@ class ClickHouseHistoryWriter:
                     [[v.ts_ms, v.robot_id, v.annotation_id, v.x, v.y] for v in rows],
                     ["ts", "robot_id", "annotation_id", "x", "y"],
                 )
+
+    def append_incidents(
+        self, found: Sequence[Incident], found_ms: int, retracted: Sequence[Incident] = ()
+    ) -> None:
+        rows = [
+            incident_row(incident, found_ms, gone)
+            for incidents, gone in ((found, False), (retracted, True))
+            for incident in incidents
+        ]
+        if rows:
+            with self.connection.lock:
+                self.connection.insert(incident_schema.TABLE, rows, list(incident_schema.COLUMNS))
 
     def append_conflicts(self, rows: Sequence[ConflictRow]) -> None:
         if not rows:

@@ -505,6 +505,26 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/incidents": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * List Incidents
+         * @description The incidents meeting the window (begun before its end, not ended before its start).
+         */
+        get: operations["listIncidents"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/map": {
         parameters: {
             query?: never;
@@ -1139,6 +1159,17 @@ export interface components {
             /** Truncated */
             truncated: boolean;
         };
+        /** Evidence */
+        Evidence: {
+            /** Robotid */
+            robotId: string;
+            /** Ts Ms */
+            ts_ms: number;
+            /** X */
+            x: number;
+            /** Y */
+            y: number;
+        };
         /** HTTPValidationError */
         HTTPValidationError: {
             /** Detail */
@@ -1161,6 +1192,48 @@ export interface components {
             at_ms: number;
             /** Ids */
             ids: string[];
+        };
+        /** Incident */
+        Incident: {
+            /** End Ms */
+            end_ms: number;
+            /** Evidence */
+            evidence: components["schemas"]["Evidence"][];
+            /** Id */
+            id: string;
+            /**
+             * Kind
+             * @enum {string}
+             */
+            kind: "near_miss" | "stuck" | "offline" | "battery_low";
+            /** Measure */
+            measure: number;
+            /** Ongoing */
+            ongoing: boolean;
+            /** Robots */
+            robots: string[];
+            /**
+             * Severity
+             * @enum {string}
+             */
+            severity: "warning" | "critical";
+            /** Start Ms */
+            start_ms: number;
+            /** X */
+            x: number;
+            /** Y */
+            y: number;
+        };
+        /** Incidents */
+        Incidents: {
+            /** From Ms */
+            from_ms: number;
+            /** Incidents */
+            incidents: components["schemas"]["Incident"][];
+            /** To Ms */
+            to_ms: number;
+            /** Truncated */
+            truncated: boolean;
         };
         /**
          * LegacyChunk
@@ -3210,6 +3283,59 @@ export interface operations {
                 content: {
                     "application/vnd.apache.parquet": unknown;
                     "text/csv": unknown;
+                };
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    listIncidents: {
+        parameters: {
+            query: {
+                /** @description Start (inclusive), ISO 8601 or epoch ms */
+                from: string;
+                /** @description End (exclusive), ISO 8601 or epoch ms */
+                to: string;
+                /** @description Only these kinds (repeat it). */
+                kind?: ("near_miss" | "stuck" | "offline" | "battery_low")[] | null;
+                /** @description Only those with it. */
+                robot?: string | null;
+                limit?: number;
+            };
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["Incidents"];
                 };
             };
             /** @description Validation Error */

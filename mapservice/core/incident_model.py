@@ -1,0 +1,103 @@
+"""What an incident is (mapservice/core/incidents.py finds them): its kinds, the thresholds
+of the rules, the record of one, and its id."""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import msgspec
+
+from mapservice.core.ports import PoseRow
+
+KINDS = ("near_miss", "stuck", "offline", "battery_low")
+SEVERITIES = ("warning", "critical")
+STUCK_CRITICAL_S = 300  # stood still this long: critical
+
+
+@dataclass(frozen=True)
+class IncidentThresholds:
+    """Where each rule draws its line (the settings' `MAPSERVICE_INCIDENT_*` values)."""
+
+    near_miss_m: float = 1.0
+    moving_m_s: float = 0.05
+    stuck_m: float = 0.1
+    stuck_ms: int = 30_000
+    offline_after_ms: int = 10_000
+    battery_low_percent: float = 15.0
+    tick_ms: int = 500
+
+    def __post_init__(self) -> None:
+        for name in ("near_miss_m", "stuck_m", "battery_low_percent"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive")
+        if self.moving_m_s < 0:
+            raise ValueError("moving_m_s must not be negative")
+        for name in ("stuck_ms", "offline_after_ms", "tick_ms"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive")
+
+    @property
+    def lookback_ms(self) -> int:
+        """How far before a span a recomputation must read for the rules to see what they
+        would have seen live: a stuck window and the silence that may precede it."""
+        return self.stuck_ms + self.offline_after_ms
+
+
+class PoseRef(msgspec.Struct, frozen=True, array_like=True):
+    """A stored pose that made an incident (its evidence)."""
+
+    robot_id: str
+    ts_ms: int
+    x: float
+    y: float
+
+
+class Incident(msgspec.Struct, frozen=True):
+    incident_id: str
+    kind: str
+    robots: tuple[str, ...]
+    start_ms: int
+    end_ms: int
+    # The condition still held at the newest pose known (or the silence lasts up to
+    # `until_ms`): a later history may move its end.
+    ongoing: bool
+    x: float
+    y: float
+    severity: str
+    # The kind's own figure: the closest distance in metres (near_miss), the seconds stopped
+    # (stuck) or silent (offline), the lowest level in percent (battery_low).
+    measure: float
+    evidence: tuple[PoseRef, ...]
+    # The run began at the first pose the rule was given: it may reach further back than the
+    # history read (a recomputation reads further back for these).
+    from_data_edge: bool = False
+
+
+def incident_id(kind: str, robots: Sequence[str], start_ms: int) -> str:
+    return _incident_id(kind, tuple(robots), start_ms)
+
+
+# The live detection names an ongoing incident again with every batch.
+@functools.lru_cache(maxsize=65_536)
+def _incident_id(kind: str, robots: tuple[str, ...], start_ms: int) -> str:
+    key = "\x1f".join((kind, *robots, str(start_ms)))
+    return hashlib.blake2b(key.encode(), digest_size=16).hexdigest()
+
+
+def pose_ref(pose: PoseRow) -> PoseRef:
+    return PoseRef(pose.robot_id, pose.ts_ms, pose.x, pose.y)
+
+
+def distance(a: PoseRow, b: PoseRow) -> float:
+    return math.hypot(a.x - b.x, a.y - b.y)
+
+
+def mm2(a: PoseRow, b: PoseRow) -> int:
+    """The squared distance in whole millimetres (positions are stored to the millimetre):
+    exact, so a robot that moved exactly the threshold is judged alike on every machine."""
+    dx, dy = round((a.x - b.x) * 1000), round((a.y - b.y) * 1000)
+    return dx * dx + dy * dy

@@ -1,0 +1,248 @@
+"""Live detection equals recomputation: random floors' poses arrive in batches, out of order,
+some of them late (beyond what the tracker holds in memory) or twice, with restarts in
+between (a new tracker loaded from the store); what the tracker found and stored, batch
+by batch, is what the rules find over the whole stored history."""
+
+from __future__ import annotations
+
+import random
+
+import msgspec
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapservice.core import incident_tracker, near_miss
+from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.incident_tracker import IncidentTracker
+from mapservice.core.incidents import Incident, IncidentThresholds, detect
+from mapservice.core.ports import PoseRow
+from mapservice.core.stored_rows import pose_rows_of
+from mapservice.testing.memory_store import MemoryStore
+from tests.mapservice.core.test_incidents import floor_history
+
+KEEP_MS = 45_000  # short: late poses and long incidents reach beyond memory
+
+
+def envelope(p: PoseRow, receive_ms: int):
+    payload = PoseReported(
+        position=(p.x, p.y, 0.0),
+        orientation=(0.0, 0.0, 0.0, 1.0),
+        battery_level=p.battery_level,
+        charging=p.charging,
+        path=p.path,
+    )
+    return make_envelope(p.robot_id, p.ts_ms, receive_ms, payload)
+
+
+def reader(store: MemoryStore):
+    def read(from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:
+        newest = [p for p in store.robots_at(from_ms - 1) if robot in (None, p.robot_id)]
+        return newest + store.poses(from_ms, to_ms, robot, limit=10**9)
+
+    return read
+
+
+def normal(incidents: list[Incident]) -> list[Incident]:
+    """An ongoing silence's end and length are the finder's clock: left out."""
+    return sorted(
+        (
+            msgspec.structs.replace(i, end_ms=0, measure=0.0, from_data_edge=False)
+            if i.kind == "offline" and i.ongoing
+            else msgspec.structs.replace(i, from_data_edge=False)
+            for i in incidents
+        ),
+        key=lambda i: i.incident_id,
+    )
+
+
+def arrivals(seed: int) -> list[tuple[int, list]]:
+    """The history's poses as batches of one second of arrival: most within half a second
+    of their time, some late by up to two minutes, some twice."""
+    rng = random.Random(seed)
+    timed = []
+    for p in floor_history(seed):
+        delay = (
+            rng.choice((0, 50, 200, 500)) if rng.random() > 0.06 else rng.randint(5_000, 120_000)
+        )
+        timed.append((p.ts_ms + delay, p))
+        if rng.random() < 0.05:
+            timed.append((p.ts_ms + delay + rng.randint(0, 30_000), p))
+    timed.sort(key=lambda t: t[0])
+    batches: dict[int, list] = {}
+    for at, p in timed:
+        arrive = -(-at // 1000) * 1000
+        batches.setdefault(arrive, []).append(envelope(p, at))
+    return sorted(batches.items())
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 10_000), st.integers(0, 10_000))
+def test_what_is_found_live_is_what_the_history_holds(seed, restarts):
+    check_live_equals_recomputed(seed, restarts)
+
+
+def check_live_equals_recomputed(seed: int, restarts: int) -> None:
+    rng = random.Random(restarts)
+    th = IncidentThresholds()
+    store = MemoryStore()
+    tracker = IncidentTracker(reader(store), store.incidents, th, KEEP_MS)
+    now = 0
+    for now, batch in arrivals(seed):
+        if rng.random() < 0.03:  # a restart: a new tracker, from the store
+            tracker = IncidentTracker(reader(store), store.incidents, th, KEEP_MS)
+            since = now - KEEP_MS
+            tracker.load(
+                reader(store)(since, now + 1, None),
+                since,
+                store.incidents(since - th.lookback_ms, now + 1),
+                now,
+            )
+            found, retracted = tracker.take()
+            store.append_incidents(found, now, retracted)
+        store.append(batch)
+        tracker.add(pose_rows_of(batch), now)
+        tracker.tick(now)
+        found, retracted = tracker.take()
+        store.append_incidents(found, now, retracted)
+        tracker.forget(now)
+    tracker.tick(now)
+    found, retracted = tracker.take()
+    store.append_incidents(found, now, retracted)
+
+    expected = detect(store.poses(0, now + 1, limit=10**9), now, th)
+    assert expected
+    assert normal(store.incidents(0, now + 1)) == normal(expected)
+
+
+def test_a_batch_of_poses_older_than_memory_reads_the_store_once() -> None:
+    """A backlog (poses of minutes ago, after a restart or from a robot's buffer): one read
+    brings memory back to them, not a read per pose or per robot (each read is a store
+    query on the processors' one store thread)."""
+    th = IncidentThresholds()
+    store = MemoryStore()
+    reads = []
+
+    def read(from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:
+        reads.append((from_ms, to_ms, robot))
+        return reader(store)(from_ms, to_ms, robot)
+
+    tracker = IncidentTracker(read, store.incidents, th, KEEP_MS)
+    t0 = 1_795_255_200_000
+    now = t0 + 600_000
+    tracker.load([], now - KEEP_MS, [], now)
+    backlog = [
+        envelope(
+            PoseRow(
+                f"r{r}",
+                t0 + k * 1000,
+                float(k % 7),
+                float(r),
+                0,
+                0,
+                0,
+                0,
+                1,
+                50.0,
+                False,
+                None,
+                None,
+                t0 + k * 1000,
+            ),
+            now,
+        )
+        for r in range(20)
+        for k in range(60)
+    ]
+    store.append(backlog)
+    reads.clear()
+    tracker.add(pose_rows_of(backlog), now)
+    assert len(reads) <= 2, reads
+
+
+def fleet_pose(robot: str, ts: int, x: float, y: float, battery: float) -> PoseRow:
+    return PoseRow(robot, ts, x, y, 0, 0, 0, 0, 1, battery, False, None, ((0.0, 0.0),), ts)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_live_case_judges_only_the_robots_whose_new_poses_can_start_something(
+    seed, monkeypatch
+) -> None:
+    """Poses after each robot's newest: a robot driving on (faster than the stuck distance
+    a pose, its battery fine, no silence) has no own incident to change, and its window is
+    not judged again; the robots standing with a path and those running low are."""
+    rng = random.Random(seed)
+    th = IncidentThresholds()
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 120_000)
+    t0 = 1_795_255_200_000
+    robots = [f"r{k:02d}" for k in range(30)]
+    standing = set(rng.sample(robots, 4))
+    low = set(rng.sample(robots, 3))
+    speed = {r: rng.uniform(0.2, 2.0) for r in robots}
+    batches = [
+        [
+            fleet_pose(
+                r,
+                t0 + s * 1000 + k * 7,
+                # 4 m apart across: no near misses to judge
+                0.0 if r in standing else s * speed[r],
+                4.0 * k,
+                10.0 if r in low else 80.0,
+            )
+            for k, r in enumerate(robots)
+        ]
+        for s in range(45)
+    ]
+    for s, batch in enumerate(batches[:-1]):
+        tracker.add(batch, t0 + (s + 1) * 1000)
+        tracker.take()
+
+    judged = []
+    stuck_incidents = incident_tracker.stuck_incidents
+
+    def counted(track, *args):
+        judged.extend(p.robot_id for p in track[-1:])
+        return stuck_incidents(track, *args)
+
+    monkeypatch.setattr(incident_tracker, "stuck_incidents", counted)
+    tracker.add(batches[-1], t0 + 45_000)
+    assert set(judged) == standing | low
+    found, _ = tracker.take()
+    assert {i.robots[0] for i in found if i.kind == "stuck"} == standing
+
+
+@pytest.mark.parametrize("pairs", [2, 9])
+def test_near_misses_going_on_are_judged_in_one_pass_whatever_their_number(
+    pairs, monkeypatch
+) -> None:
+    """Pairs of robots driving side by side, closer than the near-miss distance: each
+    batch carries their runs on, all of them in one pass over the arrays (not one per
+    pair, each a fixed cost of array operations)."""
+    th = IncidentThresholds()
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 120_000)
+    t0 = 1_795_255_200_000
+
+    def batch(s: int) -> list[PoseRow]:
+        return [
+            fleet_pose(f"p{k:02d}{side}", t0 + s * 1000 + k, s * 1.0, 10.0 * k + 0.5 * n, 80.0)
+            for k in range(pairs)
+            for n, side in enumerate("ab")
+        ]
+
+    for s in range(10):
+        tracker.add(batch(s), t0 + (s + 1) * 1000)
+    going_on = [i for i in tracker.current.values() if i.kind == "near_miss" and i.ongoing]
+    assert len(going_on) == pairs
+    passes = []
+    places = near_miss._places
+
+    def counted(*args):
+        passes.append(1)
+        return places(*args)
+
+    monkeypatch.setattr(near_miss, "_places", counted)
+    tracker.add(batch(10), t0 + 11_000)
+    assert len(passes) == 1
+    assert {i.robots for i in tracker.current.values() if i.ongoing} == {
+        (f"p{k:02d}a", f"p{k:02d}b") for k in range(pairs)
+    }

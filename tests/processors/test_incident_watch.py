@@ -1,0 +1,135 @@
+"""The processors find incidents as batches are stored: what they write is what the rules
+find over the stored history (stuck, near misses, low batteries, silences, a late pose
+breaking one), written with the conflicts before the commit, a failed write retried, and
+a rebuilt view (a restart) writes nothing it had written."""
+
+from __future__ import annotations
+
+import asyncio
+
+from mapservice.core.events import encode
+from mapservice.core.incidents import detect
+from mapservice.processors.history_consumer import HistoryConsumer
+from mapservice.processors.sink import HistorySink
+from mapservice.settings import Settings
+from mapservice.testing.memory_source import MemorySource
+from mapservice.testing.memory_store import MemoryStore
+from tests.processors.history_consumer_kit import NOW, POSES, Clock, live_views
+
+PATH = ((1.0, 1.0), (9.0, 1.0))
+
+
+class IncidentLog(MemoryStore):
+    """Counts incident writes and fails the first `failures` of them."""
+
+    def __init__(self, failures: int = 0) -> None:
+        super().__init__()
+        self.failures = failures
+        self.writes: list[int] = []
+
+    def append_incidents(self, found, found_ms, retracted=()) -> None:
+        if self.failures:
+            self.failures -= 1
+            raise ConnectionError("clickhouse away")
+        self.writes.append(len(found) + len(retracted))
+        super().append_incidents(found, found_ms, retracted)
+
+
+class Floor:
+    """A consumer with live views on a clock the test moves (`now`), and batches of poses."""
+
+    def __init__(self, store: IncidentLog | None = None) -> None:
+        self.store = store or IncidentLog()
+        self.source, self.clock, self.now = MemorySource(), Clock(), NOW - 120_000
+        self.start()
+
+    def start(self) -> None:
+        sink = HistorySink(self.store)
+        self.views = live_views(Settings(), self.store, None, sink.thread, now_ms=lambda: self.now)
+        self.views.load()
+        self.consumer = HistoryConsumer(
+            self.source,
+            sink,
+            self.views,
+            batch_size=1000,
+            batch_seconds=0.01,
+            now_ms=lambda: self.now,
+            monotonic=self.clock,
+            views_seconds=0.0,
+        )
+
+    def send(self, ev, *poses: tuple) -> None:
+        """Poses (robot, seconds after NOW - 120 s, x, y, battery, path), stored as one batch."""
+        for robot, t_s, x, y, battery, path in poses:
+            t = NOW - 120_000 + round(t_s * 1000)
+            self.source.append(
+                POSES, encode(ev.pose(robot, t, x, y, battery_level=battery, path=path))
+            )
+            self.now = max(self.now, t + 300)
+        self.clock.t += 1
+        asyncio.run(self.consumer.run_once())
+
+    def tick(self, seconds: float) -> None:
+        self.now += round(seconds * 1000)
+        asyncio.run(self.views.tick())
+        asyncio.run(self.views.write_found_until_done())
+
+    def expected(self):
+        return detect(self.store.poses(0, self.now + 1, limit=10**9), self.now)
+
+    def stored(self):
+        return self.store.incidents(0, self.now + 1)
+
+
+def _normal(incidents):
+    return sorted(
+        (i.kind, i.robots, i.start_ms, i.end_ms if not (i.kind == "offline" and i.ongoing) else 0)
+        for i in incidents
+    )
+
+
+def test_what_the_processors_write_is_what_the_rules_find(ev) -> None:
+    floor = Floor()
+    for t in range(60):
+        floor.send(
+            ev,
+            # s stands still with a path for 40 s; a passes b at 0.5 m; c's battery runs low
+            ("s", t, 5.0 if t < 40 else 5.0 + t - 40, 5.0, 80.0, PATH),
+            ("a", t, float(t) * 0.5, 0.0, 80.0, PATH),
+            ("b", t, 15.0, 0.5, 80.0, None),
+            ("c", t, 20.0, 20.0, 20.0 - t * 0.25, None),
+        )
+    kinds = {i.kind for i in floor.stored()}
+    assert {"stuck", "near_miss", "battery_low"} <= kinds
+    assert _normal(floor.stored()) == _normal(floor.expected())
+    # the clock moves on with no more poses: every robot falls silent
+    floor.tick(11)
+    assert {i.robots for i in floor.stored() if i.kind == "offline" and i.ongoing} == {
+        ("s",),
+        ("a",),
+        ("b",),
+        ("c",),
+    }
+
+
+def test_a_late_pose_retracts_the_silence_it_fills(ev) -> None:
+    floor = Floor()
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(10)])
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(25, 35)])
+    assert [i.kind for i in floor.stored()] == ["offline"]
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(10, 25, 2)])
+    assert floor.stored() == []
+    assert _normal(floor.stored()) == _normal(floor.expected())
+
+
+def test_a_failed_write_is_retried_and_a_restart_writes_nothing_again(ev) -> None:
+    store = IncidentLog(failures=1)
+    floor = Floor(store)
+    floor.send(ev, *[("s", t, 3.0, 3.0, 5.0, PATH) for t in range(40)])
+    found = floor.stored()
+    assert sorted(i.kind for i in found) == ["battery_low", "stuck"]
+    writes = len(store.writes)
+    floor.start()  # a restart: the views rebuilt from the store
+    asyncio.run(floor.views.write_found_until_done())
+    assert len(store.writes) == writes
+    assert floor.stored() == found
