@@ -30,6 +30,7 @@ from .credentials import (
     decide,
     subprotocol_token,
 )
+from .foxglove_frames import SubscriptionCount, close_frame
 from .limits import allowed_hosts, host_allowed, origin_allowed
 
 log = structlog.get_logger(__name__)
@@ -267,10 +268,19 @@ class FoxgloveGate:
                 answer = _set_header(answer, "Sec-WebSocket-Protocol", OLD_SUBPROTOCOL)
             writer.write(answer)
 
+        counted = SubscriptionCount(self.settings.foxglove_max_subscriptions)
+
         async def copy(
             src: asyncio.StreamReader, dst: asyncio.StreamWriter, to_client: bool
         ) -> None:
             while data := await src.read(_CHUNK):
+                if not to_client and (reason := counted.feed(data)):
+                    log.info("foxglove client closed", reason=reason)
+                    writer.write(close_frame(1008, reason))
+                    with contextlib.suppress(Exception):
+                        async with asyncio.timeout(2.0):
+                            await writer.drain()
+                    return
                 dst.write(data)
                 if to_client:
                     try:

@@ -29,6 +29,14 @@ class FoxgloveSettings(BaseModel):
             "its own and reads of the history."
         ),
     )
+    foxglove_max_subscriptions: int = Field(
+        2000,
+        ge=1,
+        description=(
+            "Channels one client may subscribe to at once (a robot has four); a client that "
+            "subscribes to more is closed with 1008 and a reason naming this setting."
+        ),
+    )
     foxglove_backlog: int = Field(
         1024,
         ge=16,
