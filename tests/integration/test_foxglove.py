@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import random
 import time
 
@@ -53,8 +54,6 @@ class Fox:
 
 @pytest.fixture(scope="module")
 def fox(tmp_path_factory):
-    import os
-
     data = tmp_path_factory.mktemp("foxglove") / "data"
     env = {
         **os.environ,
