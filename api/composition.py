@@ -28,6 +28,7 @@ from mapservice.settings import Settings
 from mapservice.sql.apps import analyst_app
 
 from .app import create_app
+from .foxglove_service import FoxgloveService
 from .http_timeouts import header_deadline_protocol
 from .live_hub import LiveHub
 
@@ -61,6 +62,7 @@ class Api:
     relay: KafkaLiveRelay
     publisher: KafkaPublisher
     server: uvicorn.Server
+    foxglove: FoxgloveService | None = None
 
     def start(self) -> None:
         """The relay starts reading the live topic; until it reads every partition,
@@ -68,7 +70,10 @@ class Api:
         self.relay.start()
 
     async def serve(self) -> None:
-        """Serves HTTP until the process is told to stop (uvicorn handles the signals)."""
+        """Serves HTTP (and Foxglove clients) until the process is told to stop (uvicorn
+        handles the signals)."""
+        if self.foxglove is not None:
+            await self.foxglove.start()
         await self.server.serve()
 
     async def stop(self) -> None:
@@ -76,6 +81,8 @@ class Api:
         delivery, so once uvicorn has served the last one nothing is left to deliver, and a
         producer left open would keep dialling Kafka until the process exits."""
         loop = asyncio.get_running_loop()
+        if self.foxglove is not None:
+            await self.foxglove.stop()
         await loop.run_in_executor(None, self.relay.stop)
         await loop.run_in_executor(None, self.publisher.close)
 
@@ -110,11 +117,12 @@ async def compose_api(
     # Local mode: the API's tokens generated on first start, kept in the data dir
     # (`mapservice up` prints where); production: as set, validated by Settings.
     settings = with_local_api_secrets(settings)
+    clock = clock_from_settings(settings)
     app = create_app(
         settings,
         store,
         readiness,
-        clock=clock_from_settings(settings),
+        clock=clock,
         live_hub=hub,
         publisher=publisher,
         sql_app=await loop.run_in_executor(None, analyst_app, settings),
@@ -124,4 +132,10 @@ async def compose_api(
         history_status=history_status,
     )
     server = uvicorn.Server(api_server_config(app, settings))
-    return Api(app, hub, relay, publisher, server)
+    roles = StoreRoles.of(store)
+    foxglove = (
+        FoxgloveService(settings, roles.history, roles.annotations, hub, clock.now_ms)
+        if settings.foxglove_enabled
+        else None
+    )
+    return Api(app, hub, relay, publisher, server, foxglove)

@@ -17,20 +17,27 @@ class LiveHub:
 
     def __init__(self, queue_size: int = 10_000, ready: Callable[[], bool] = lambda: True) -> None:
         self._subscribers: set[asyncio.Queue] = set()
+        self._feeds: set[asyncio.Queue] = set()  # the process's own consumers, not viewers
         self._queue_size = queue_size
         self.ready = ready  # whether the feed reaches this process yet (the relay reads the topic)
 
-    def subscribe(self) -> asyncio.Queue:
+    def subscribe(self, viewer: bool = True) -> asyncio.Queue:
+        """A queue of every message from now on; `viewer` False for a feed of this process
+        (the Foxglove server's), which the cap on viewers does not count."""
         queue: asyncio.Queue = asyncio.Queue(self._queue_size)
         self._subscribers.add(queue)
+        if not viewer:
+            self._feeds.add(queue)
         return queue
 
     def unsubscribe(self, queue: asyncio.Queue) -> None:
         self._subscribers.discard(queue)
+        self._feeds.discard(queue)
 
     @property
     def subscribers(self) -> int:
-        return len(self._subscribers)
+        """The viewers (the WebSocket clients of /api/v1/live)."""
+        return len(self._subscribers) - len(self._feeds)
 
     def publish(self, messages: Sequence[LiveText]) -> None:
         for queue in self._subscribers:

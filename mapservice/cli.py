@@ -266,6 +266,12 @@ def build_parser() -> argparse.ArgumentParser:
         "refused (REST writes always need a token)",
     )
     up.add_argument("--api-port", type=int, default=8080, help="HTTP API and replay UI port")
+    up.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=8765,
+        help="Foxglove WebSocket server port (Foxglove and Lichtblick connect to it)",
+    )
     up.add_argument("--mqtt-port", type=int, default=1883, help="MQTT port for robots")
     up.add_argument("--kafka-port", type=int, default=0, help="0: a free port")
     up.add_argument(

@@ -1,8 +1,10 @@
-"""The channels of an MCAP export, as a reader (Foxglove, Lichtblick, a script) finds them:
-topic names, the map's frame, and the JSON schemas of the JSON channels (the robot state with
-its units, a VDA 5050 vehicle's errors and connection state, the commands).
+"""The Foxglove channels, as a reader (Foxglove, Lichtblick, a script) finds them in an MCAP
+export and on the Foxglove WebSocket server alike: topic names, the map's and the robots'
+frames, and the JSON schemas of the JSON channels (the robot state with its units, a chunk
+change, a VDA 5050 vehicle's errors and connection state, the commands).
 
-Data and naming only (mcap_export.py writes the file)."""
+Data and naming only (foxglove_messages.py builds the messages, mcap_export.py writes the
+file, foxglove_live.py and foxglove_replay.py serve them)."""
 
 from __future__ import annotations
 
@@ -10,6 +12,15 @@ from mapservice.adapters.mcap_annotations import COMMANDS_SCHEMA, COMMANDS_SCHEM
 
 MAP_TOPIC = "/map"
 MAP_FRAME = "map"
+# Every robot's frame in the map (foxglove.FrameTransform), as ROS names its transforms.
+TF_TOPIC = "/tf"
+# Each stored chunk write, one message each (JSON): the floor's grid is sent at most so often,
+# this says which writes it holds, none skipped.
+MAP_CHANGES_TOPIC = "/map/changes"
+
+
+def robot_frame(robot_id: str) -> str:
+    return f"{robot_id}/base_link"
 
 
 def pose_topic(robot_id: str) -> str:
@@ -64,6 +75,23 @@ STATE_SCHEMA = {
     "required": ["battery_level", "battery_percent", "charging", "loaded"],
 }
 
+
+CHUNK_CHANGE_SCHEMA_NAME = "mapservice.ChunkChange"
+CHUNK_CHANGE_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": CHUNK_CHANGE_SCHEMA_NAME,
+    "description": "One stored write of one chunk of the floor (its pixels: "
+    "GET /api/v1/chunks/contents/{content_hash})",
+    "type": "object",
+    "properties": {
+        "row": {"type": "integer", "minimum": 0},
+        "column": {"type": "integer", "minimum": 0},
+        "robot_id": {"type": "string", "description": "who wrote it"},
+        "content_hash": {"type": "string", "description": "the chunk's content, hex"},
+        "ts_ms": {"type": "integer", "description": "event time, ms since the epoch"},
+    },
+    "required": ["row", "column", "robot_id", "content_hash", "ts_ms"],
+}
 
 ERRORS_SCHEMA_NAME = "mapservice.VdaErrors"
 # A VDA 5050 vehicle's active errors and warnings, sent with each state that has some and
@@ -121,6 +149,7 @@ CONNECTION_SCHEMA = {
 # Every JSON channel's schema by name: a channel whose schema is here is JSON, else protobuf.
 JSON_SCHEMAS = {
     STATE_SCHEMA_NAME: STATE_SCHEMA,
+    CHUNK_CHANGE_SCHEMA_NAME: CHUNK_CHANGE_SCHEMA,
     ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
     CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA,
     COMMANDS_SCHEMA_NAME: COMMANDS_SCHEMA,

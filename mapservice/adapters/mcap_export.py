@@ -1,23 +1,29 @@
 """A time window of the history as MCAP, which Foxglove and Lichtblick replay: the map as a
 `foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned path as
-`foxglove.PosesInFrame` and its battery, charging and loaded flags as a JSON channel whose
-JSON schema states the units; a VDA 5050 vehicle's errors and warnings and its connection
-state as JSON channels too; the operators' annotations standing as `foxglove.SceneUpdate` on
-`/annotations` and their commands with the robots' answers as JSON on `/commands`
-(mcap_annotations). Topic names and JSON schemas: mcap_channels. CSV and Parquet:
-table_export.
+`foxglove.PosesInFrame`, its frame in the map as `foxglove.FrameTransform` on `/tf`, and its
+battery, charging and loaded flags as a JSON channel whose JSON schema states the units; a
+VDA 5050 vehicle's errors and warnings and its connection state as JSON channels too; the
+operators' annotations standing as `foxglove.SceneUpdate` on `/annotations` and their
+commands with the robots' answers as JSON on `/commands` (mcap_annotations). Topic names and
+JSON schemas: mcap_channels; the messages: foxglove_messages (the Foxglove WebSocket server
+sends the same). CSV and Parquet: table_export.
 
 May depend on: the ports (it reads the window through the roles of `ReplaySources`)."""
 
 from __future__ import annotations
 
 import json
-import zlib
 from dataclasses import dataclass
 from typing import BinaryIO
 
-import numpy as np
-
+from mapservice.adapters.foxglove_messages import (
+    Floor,
+    path_message,
+    pose_message,
+    state_doc,
+    transform_message,
+    window_poses,
+)
 from mapservice.adapters.mcap_annotations import (
     ANNOTATIONS_TOPIC,
     COMMANDS_SCHEMA_NAME,
@@ -30,17 +36,15 @@ from mapservice.adapters.mcap_channels import (
     CONNECTION_SCHEMA_NAME,
     ERRORS_SCHEMA_NAME,
     JSON_SCHEMAS,
-    MAP_FRAME,
     MAP_TOPIC,
     STATE_SCHEMA_NAME,
-    battery_percent,
+    TF_TOPIC,
     connection_topic,
     errors_topic,
     path_topic,
     pose_topic,
     state_topic,
 )
-from mapservice.core.events import MapMetaSet
 from mapservice.core.ports import (
     AnnotationReader,
     CommandReader,
@@ -61,6 +65,7 @@ class McapCounts:
     vda_connections: int = 0
     annotation_updates: int = 0  # SceneUpdates on /annotations (the start's state is one)
     commands: int = 0
+    transforms: int = 0  # foxglove.FrameTransform on /tf, one with each pose
 
 
 class _McapOut:
@@ -130,88 +135,6 @@ class ReplaySources:
     commands: CommandReader
 
 
-class _Floor:
-    """The whole map as one image, updated chunk by chunk."""
-
-    def __init__(self, meta: MapMetaSet, store: TimeTravelReader):
-        self.meta, self.store = meta, store
-        self.pixels = np.full((meta.height, meta.width), 205, dtype=np.uint8)  # ROS "unknown"
-        self._contents: dict[str, tuple[int, int, bytes]] = {}
-
-    def apply(self, changes: list[tuple[int, int, str]]) -> None:
-        missing = [bytes.fromhex(h) for _, _, h in changes if h not in self._contents]
-        if missing:
-            for stored_hash, stored in self.store.chunk_contents(missing).items():
-                self._contents[stored_hash.hex()] = stored
-        cw, ch = self.meta.chunk_width, self.meta.chunk_height
-        for row, col, digest in changes:
-            content = self._contents.get(digest)
-            if content is None:
-                continue  # contents older than the retention: the chunk stays as it was
-            width, height, data = content
-            tile = np.frombuffer(zlib.decompress(data), dtype=np.uint8).reshape(height, width)
-            self.pixels[row * ch : row * ch + height, col * cw : col * cw + width] = tile[
-                : self.meta.height - row * ch, : self.meta.width - col * cw
-            ]
-
-    def grid(self, ts_ms: int):
-        from foxglove_schemas_protobuf.Grid_pb2 import Grid
-        from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
-
-        resolution = self.meta.resolution or 1.0
-        ox, oy, _ = self.meta.origin or (0.0, 0.0, 0.0)
-        grid = Grid(
-            frame_id=MAP_FRAME,
-            column_count=self.meta.width,
-            row_stride=self.meta.width,
-            cell_stride=1,
-            data=np.flipud(self.pixels).tobytes(),  # row 0 = bottom (+y up)
-            fields=[
-                PackedElementField(
-                    name="value", offset=0, type=PackedElementField.NumericType.UINT8
-                )
-            ],
-        )
-        grid.timestamp.FromMilliseconds(ts_ms)
-        grid.cell_size.x = grid.cell_size.y = resolution
-        grid.pose.position.x, grid.pose.position.y = ox, oy
-        grid.pose.orientation.w = 1.0
-        return grid
-
-
-def _pose_message(row: PoseRow):
-    from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
-
-    message = PoseInFrame(frame_id=MAP_FRAME)
-    message.timestamp.FromMilliseconds(row.ts_ms)
-    p, q = message.pose.position, message.pose.orientation
-    p.x, p.y, p.z = row.x, row.y, row.z
-    q.x, q.y, q.z, q.w = row.qx, row.qy, row.qz, row.qw
-    return message
-
-
-def _path_message(row: PoseRow):
-    """The planned path as foxglove.PosesInFrame (what Foxglove's 3D panel draws as a line)."""
-    from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
-
-    message = PosesInFrame(frame_id=MAP_FRAME)
-    message.timestamp.FromMilliseconds(row.ts_ms)
-    for x, y in row.path or ():
-        pose = message.poses.add()
-        pose.position.x, pose.position.y = x, y
-        pose.orientation.w = 1.0
-    return message
-
-
-def _state_doc(row: PoseRow) -> dict:
-    return {
-        "battery_level": row.battery_level,
-        "battery_percent": battery_percent(row.battery_level),
-        "charging": row.charging,
-        "loaded": row.loaded,
-    }
-
-
 def _vda_messages(store: VdaReader, from_ms: int, to_ms: int) -> list[tuple[int, str, str, dict]]:
     """The window's VDA 5050 errors (one message per error instant and per clear) and
     connection states, as (log time, topic, schema name, document), in time order."""
@@ -267,23 +190,6 @@ def _side_messages(
     return sorted(out, key=lambda m: (m[0], m[1]))
 
 
-def _all_poses(store: TimeTravelReader, from_ms: int, to_ms: int, page: int):
-    """Every pose of the window, page by page (a page never splits one instant's robots)."""
-    cursor = from_ms
-    while cursor < to_ms:
-        rows = store.poses(cursor, to_ms, None, page)
-        if len(rows) < page:
-            yield from rows
-            return
-        last = rows[-1].ts_ms
-        if last == cursor:  # one instant fills a page: take it whole and move on
-            yield from store.poses(cursor, cursor + 1, None, 10 * page)
-            cursor += 1
-            continue
-        yield from (r for r in rows if r.ts_ms < last)
-        cursor = last
-
-
 def export_mcap(
     sources: ReplaySources,
     from_ms: int,
@@ -303,7 +209,7 @@ def export_mcap(
     if meta is None:
         raise ValueError("no map geometry is set yet (the 2019 meta); nothing to export")
     counts = McapCounts()
-    floor = _Floor(meta, store)
+    floor = Floor(meta, store)
     floor.apply([(c.row, c.column, c.content_hash) for c in store.map_at(from_ms)])
     writer = _McapOut(out)
     paths: dict[str, tuple | None] = {}
@@ -337,21 +243,23 @@ def export_mcap(
 
     def write_pose(row: PoseRow) -> None:
         write_side(row.ts_ms)
-        writer.protobuf(pose_topic(row.robot_id), _pose_message(row), row.ts_ms)
-        writer.json(state_topic(row.robot_id), STATE_SCHEMA_NAME, _state_doc(row), row.ts_ms)
+        writer.protobuf(pose_topic(row.robot_id), pose_message(row), row.ts_ms)
+        writer.protobuf(TF_TOPIC, transform_message(row), row.ts_ms)
+        writer.json(state_topic(row.robot_id), STATE_SCHEMA_NAME, state_doc(row), row.ts_ms)
         counts.poses += 1
+        counts.transforms += 1
         counts.states += 1
         path = tuple(row.path) if row.path else None
         if row.robot_id not in paths and path is None:
             paths[row.robot_id] = None  # no path yet: nothing to draw
         elif paths.get(row.robot_id, ()) != path:
             paths[row.robot_id] = path
-            writer.protobuf(path_topic(row.robot_id), _path_message(row), row.ts_ms)
+            writer.protobuf(path_topic(row.robot_id), path_message(row), row.ts_ms)
             counts.paths += 1
 
     write_grid(from_ms)
     changes = store.chunk_events(from_ms, to_ms, limit=1_000_000)
-    poses = _all_poses(store, from_ms, to_ms, page)
+    poses = window_poses(store, from_ms, to_ms, page)
     pending: list[tuple[int, int, str]] = []
     last_grid_ms = from_ms
     next_pose = next(poses, None)

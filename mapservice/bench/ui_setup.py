@@ -24,6 +24,7 @@ def api_env(chdb_dir: Path, database: str, port: int) -> dict[str, str]:
         "MAPSERVICE_CLICKHOUSE_DATABASE": database,
         "MAPSERVICE_API_HOST": "127.0.0.1",
         "MAPSERVICE_API_PORT": str(port),
+        "MAPSERVICE_FOXGLOVE_PORT": "0",  # a free one: benchmarks run beside other APIs
         "MAPSERVICE_LOG_LEVEL": "WARNING",
         # The benchmark measures the service, not its per-client rate limit (one browser
         # seeking and playing at full speed is one client).

@@ -41,6 +41,7 @@ class Stack(StackMqtt, StackEnv):
     data_dir: Path
     mqtt: str = "amqtt"  # "amqtt", "mosquitto" or an mqtt:// URL of a running broker
     api_port: int = 0
+    foxglove_port: int = 0  # the API process's Foxglove WebSocket server
     mqtt_port: int = 0
     mqtt_ws_port: int = 0  # the embedded broker's MQTT-over-WebSocket listener (browsers)
     kafka_port: int = 0
@@ -100,6 +101,7 @@ class Stack(StackMqtt, StackEnv):
             *(self.mqtt_tls_port, self.clickhouse_port, self.processors_health_port),
         )
         self.api_port = self.api_port or embedded.free_port()
+        self.foxglove_port = self.foxglove_port or embedded.free_port()
         self.kafka_port = self.kafka_port or embedded.free_port()
         if self.gateways < 1:
             raise ValueError(f"gateways must be at least 1, not {self.gateways}")
@@ -257,6 +259,7 @@ class Stack(StackMqtt, StackEnv):
 
     def start_server(self) -> subprocess.Popen:
         embedded.ensure_port_free(self.api_port, "the API")
+        embedded.ensure_port_free(self.foxglove_port, "the Foxglove server")
         proc = self.spawn("server", "serve")
         embedded.wait_for_port(self.api_port, timeout_s=120, proc=proc, what="server")
         self.wait_healthy(f"{self.api_url}/readyz", "server", proc)
@@ -277,9 +280,14 @@ class Stack(StackMqtt, StackEnv):
     ) -> subprocess.Popen:
         """`mapservice api` alone on `port` (default: the stack's API port), ready when
         /readyz says so; another port and name run another replica (`env` overrides)."""
+        own = {"MAPSERVICE_API_PORT": str(port or self.api_port)}
+        if port and port != self.api_port:
+            own["MAPSERVICE_FOXGLOVE_PORT"] = "0"  # another replica: a Foxglove port of its own
         port = port or self.api_port
         embedded.ensure_port_free(port, f"the API ({name})")
-        proc = self.spawn(name, "api", env={"MAPSERVICE_API_PORT": str(port), **(env or {})})
+        if "MAPSERVICE_FOXGLOVE_PORT" not in own:
+            embedded.ensure_port_free(self.foxglove_port, "the Foxglove server")
+        proc = self.spawn(name, "api", env={**own, **(env or {})})
         embedded.wait_for_port(port, timeout_s=120, proc=proc, what=name)
         self.wait_healthy(f"http://127.0.0.1:{port}/readyz", name, proc)
         return proc

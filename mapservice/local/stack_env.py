@@ -36,6 +36,7 @@ class StackEnv:
         mqtt_tls: bool
         kafka_auth: bool
         api_port: int
+        foxglove_port: int
         apart: bool
         clickhouse_port: int
         processors_health_port: int
@@ -53,6 +54,10 @@ class StackEnv:
     @property
     def api_url(self) -> str:
         return f"http://127.0.0.1:{self.api_port}"
+
+    @property
+    def foxglove_url(self) -> str:
+        return f"ws://127.0.0.1:{self.foxglove_port}"
 
     @property
     def ca_file(self) -> Path:
@@ -146,6 +151,8 @@ class StackEnv:
             "MAPSERVICE_MQTT_WS_URL": self.mqtt_ws_url,
             "MAPSERVICE_API_HOST": "127.0.0.1",
             "MAPSERVICE_API_PORT": str(self.api_port),
+            "MAPSERVICE_FOXGLOVE_HOST": "127.0.0.1",
+            "MAPSERVICE_FOXGLOVE_PORT": str(self.foxglove_port),
             # Advertisements' chunkUrl must name this API, whatever port it got.
             "MAPSERVICE_PUBLIC_BASE_URL": os.environ.get(
                 "MAPSERVICE_PUBLIC_BASE_URL", self.api_url

@@ -72,6 +72,7 @@ def cmd_up(args) -> None:
         Path(args.data_dir),
         mqtt=broker,
         api_port=args.api_port,
+        foxglove_port=args.foxglove_port,
         mqtt_port=args.mqtt_port if not args.mqtt_url else 0,
         kafka_port=args.kafka_port,
         mqtt_auth=args.auth,
@@ -200,6 +201,11 @@ def cmd_up(args) -> None:
                 f"{robot_credentials} (the simulated robots' "
                 f"and {CONTROLLER_ROBOT}'s: type its password on {stack.api_url}/controller)",
             )
+        row(
+            "Foxglove / Lichtblick",
+            f"{stack.foxglove_url}  (live; {stack.foxglove_url}/replay: the week under the "
+            "app's playback controls; docs/foxglove.md)",
+        )
         row("MQTT WebSocket (browsers)", stack.mqtt_ws_url or "(none)")
         row(f"Kafka ({kafka_name})", f"127.0.0.1:{stack.kafka_port}  (" + kafka_keeps(stack) + ")")
         row(

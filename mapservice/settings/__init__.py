@@ -20,6 +20,7 @@ from mapservice.settings.credentials import (
     robot_tokens,
     token_list,
 )
+from mapservice.settings.foxglove import FoxgloveSettings
 from mapservice.settings.history import HistorySettings
 from mapservice.settings.kafka import KafkaSettings
 from mapservice.settings.live import LiveSettings
@@ -39,8 +40,9 @@ __all__ = [
 
 # pydantic orders the fields by the reversed method resolution order: the sections are listed
 # last first, so the fields (and `Settings.model_fields`) run process, Kafka, ClickHouse, MQTT,
-# history, live, API.
+# history, live, API, Foxglove.
 class Settings(
+    FoxgloveSettings,
     ApiSettings,
     LiveSettings,
     HistorySettings,

@@ -35,6 +35,21 @@ def test_slow_subscriber_keeps_the_newest(ev):
     assert hub.subscribers == 0
 
 
+def test_the_processes_own_feeds_get_every_message_but_are_no_viewers(ev):
+    """A feed of the process (the Foxglove server's) gets what viewers get, and the cap on
+    viewers (MAPSERVICE_API_MAX_LIVE_CLIENTS) counts only the viewers, however many of each."""
+    for feeds, viewers in ((1, 0), (1, 3), (2, 1), (0, 2)):
+        hub = LiveHub()
+        queues = [hub.subscribe(viewer=False) for _ in range(feeds)]
+        queues += [hub.subscribe() for _ in range(viewers)]
+        assert hub.subscribers == viewers
+        hub.publish(live_texts([ev.pose("r1", 5)]))
+        assert all(q.get_nowait()["ts_ms"] == 5 for q in queues)
+        for q in queues:
+            hub.unsubscribe(q)
+        assert hub.subscribers == 0
+
+
 def test_websocket_streams_published_messages(ev):
     """/api/v1/live delivers what the relay hands the hub after the client connected."""
     hub = LiveHub()

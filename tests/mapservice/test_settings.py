@@ -314,6 +314,7 @@ def test_one_settings_class_holds_every_section_once_in_the_sections_order() -> 
     defined in two sections, would reorder or merge the configuration's fields."""
     from mapservice.settings.api import ApiSettings
     from mapservice.settings.clickhouse import ClickHouseSettings
+    from mapservice.settings.foxglove import FoxgloveSettings
     from mapservice.settings.history import HistorySettings
     from mapservice.settings.kafka import KafkaSettings
     from mapservice.settings.live import LiveSettings
@@ -328,6 +329,7 @@ def test_one_settings_class_holds_every_section_once_in_the_sections_order() -> 
         HistorySettings,
         LiveSettings,
         ApiSettings,
+        FoxgloveSettings,
     )
     expected = [name for section in sections for name in section.model_fields]
     assert list(Settings.model_fields) == expected

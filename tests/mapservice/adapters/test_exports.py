@@ -19,10 +19,12 @@ from mapservice.adapters.mcap_channels import (
     ERRORS_SCHEMA,
     MAP_TOPIC,
     STATE_SCHEMA,
+    TF_TOPIC,
     connection_topic,
     errors_topic,
     path_topic,
     pose_topic,
+    robot_frame,
     state_topic,
 )
 from mapservice.adapters.mcap_export import ReplaySources, export_mcap
@@ -103,6 +105,17 @@ def test_mcap_holds_the_map_and_every_pose_of_the_window() -> None:
     assert counts.chunk_changes == 2
     times = [t for _, t, _ in messages]
     assert times == sorted(times)  # log times in order, as players expect
+    # Each pose with the robot's frame in the map, at the same instant and place.
+    transforms = [(t, m) for topic, t, m in messages if topic == TF_TOPIC]
+    assert counts.transforms == len(transforms) == len(poses)
+    for (topic, t, pose), (tf_t, tf) in zip(poses, transforms):
+        robot = topic.split("/")[2]
+        assert (tf_t, tf.parent_frame_id, tf.child_frame_id) == (t, "map", robot_frame(robot))
+        assert (tf.translation.x, tf.translation.y, tf.rotation.w) == (
+            pose.pose.position.x,
+            pose.pose.position.y,
+            pose.pose.orientation.w,
+        )
 
 
 def test_mcap_holds_battery_charging_loaded_and_planned_paths() -> None:

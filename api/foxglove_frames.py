@@ -1,0 +1,114 @@
+"""A Foxglove client's WebSocket frames, read as the gate passes them on unchanged: how many
+channels it is subscribed to (the protocol's `subscribe` and `unsubscribe` text messages),
+so that the gate can close a client that subscribes to more than its cap. Binary frames
+(the client's publishing, playback control) are skipped, not buffered."""
+
+from __future__ import annotations
+
+import json
+
+_TEXT, _CONTINUATION = 0x1, 0x0
+MAX_TEXT_BYTES = 1024 * 1024  # a subscribe to thousands of channels is well below
+
+
+class SubscriptionCount:
+    """Feed it the client's bytes in order; `feed` says why to close the client, or None."""
+
+    def __init__(self, cap: int) -> None:
+        self.cap = cap
+        self.subscriptions: set[int] = set()
+        self._buf = bytearray()
+        self._skip = 0  # bytes of a frame not read (binary)
+        self._text = bytearray()  # a text message's fragments so far
+        self._in_text = False
+
+    def feed(self, data: bytes) -> str | None:
+        if self._skip:
+            taken = min(self._skip, len(data))
+            self._skip -= taken
+            data = data[taken:]
+        self._buf += data
+        while True:
+            frame = self._next_frame()
+            if frame is None:
+                return None
+            if isinstance(frame, str):
+                return frame
+            fin, opcode, payload = frame
+            if opcode == _TEXT or (opcode == _CONTINUATION and self._in_text):
+                self._text += payload
+                self._in_text = not fin
+                if len(self._text) > MAX_TEXT_BYTES:
+                    return f"a text message over {MAX_TEXT_BYTES} bytes"
+                if fin:
+                    reason = self._message(bytes(self._text))
+                    self._text.clear()
+                    if reason:
+                        return reason
+
+    def _next_frame(self) -> tuple[bool, int, bytes] | str | None:
+        buf = self._buf
+        if len(buf) < 2:
+            return None
+        fin, opcode = bool(buf[0] & 0x80), buf[0] & 0x0F
+        masked, length, at = bool(buf[1] & 0x80), buf[1] & 0x7F, 2
+        if length == 126:
+            if len(buf) < 4:
+                return None
+            length, at = int.from_bytes(buf[2:4], "big"), 4
+        elif length == 127:
+            if len(buf) < 10:
+                return None
+            length, at = int.from_bytes(buf[2:10], "big"), 10
+        if not masked:
+            return "a client's frames must be masked (RFC 6455)"
+        if len(buf) < at + 4:
+            return None
+        mask, at = bytes(buf[at : at + 4]), at + 4
+        is_text = opcode == _TEXT or (opcode == _CONTINUATION and self._in_text)
+        if not is_text:  # skipped as it streams by
+            available = len(buf) - at
+            if available >= length:
+                del buf[: at + length]
+            else:
+                self._skip = length - available
+                buf.clear()
+            return (True, opcode, b"")
+        if length > MAX_TEXT_BYTES:
+            return f"a text message over {MAX_TEXT_BYTES} bytes"
+        if len(buf) < at + length:
+            return None
+        payload = bytes(buf[at : at + length])
+        del buf[: at + length]
+        keys = (mask * (length // 4 + 1))[:length]
+        unmasked = (int.from_bytes(payload, "big") ^ int.from_bytes(keys, "big")).to_bytes(
+            length, "big"
+        )
+        return (fin, opcode, unmasked)
+
+    def _message(self, text: bytes) -> str | None:
+        try:
+            message = json.loads(text)
+        except ValueError:
+            return None  # the server answers what it cannot read; nothing to count
+        if not isinstance(message, dict):
+            return None
+        if message.get("op") == "subscribe":
+            for s in message.get("subscriptions") or ():
+                if isinstance(s, dict) and isinstance(s.get("id"), int):
+                    self.subscriptions.add(s["id"])
+        elif message.get("op") == "unsubscribe":
+            for i in message.get("subscriptionIds") or ():
+                self.subscriptions.discard(i)
+        if len(self.subscriptions) > self.cap:
+            return (
+                f"more than {self.cap} subscriptions "
+                "(MAPSERVICE_FOXGLOVE_MAX_SUBSCRIPTIONS); subscribe to fewer channels"
+            )
+        return None
+
+
+def close_frame(code: int, reason: str) -> bytes:
+    """A server's (unmasked) close frame with `code` and `reason` (cut to fit 125 bytes)."""
+    body = code.to_bytes(2, "big") + reason.encode()[:123]
+    return bytes([0x88, len(body)]) + body

@@ -1,0 +1,207 @@
+"""A replay client's own Foxglove server: the history's retention window as the data's
+start and end (the SDK's playback-control capability), driven by the app's own controls.
+A seek to T draws the floor, the robots and the annotations at T (foxglove_scene.py: as
+`/api/v1/map?at=` and `/api/v1/robots?at=` read them); play at a speed streams the stored
+chunk writes and poses in event-time order, tick after tick, every one of them whatever the
+speed (a tick that takes longer only slows the playback down: none is skipped); pause stops.
+
+Each session has its own SDK context and server (a loopback port the gate pipes one client
+to): the protocol's playback state is the server's, so two clients would otherwise fight
+over one playhead. One player thread per session does the store reads and the logging.
+
+May depend on: the ports (reads through the scene and `TimeTravelReader`)."""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import structlog
+from foxglove.websocket import ServerListener
+
+from mapservice.adapters.foxglove_channels import FoxgloveChannels
+from mapservice.adapters.foxglove_messages import window_changes, window_poses
+from mapservice.adapters.foxglove_scene import ChunkChange, FoxgloveScene
+from mapservice.core.ports import AnnotationReader, ChunkRow, TimeTravelReader
+
+log = structlog.get_logger(__name__)
+
+_NS_PER_MS = 1_000_000
+TICK_S = 0.1  # wall time per playback step
+# A seek's picture goes out this long after the seek's answer (the SDK sends the answer on
+# its control queue as the callback returns; the picture must not overtake it, the app
+# clears what it holds on a seek).
+_AFTER_ANSWER_S = 0.02
+
+
+@dataclass
+class Playhead:
+    """Where the playback is and how it moves (read and set under the session's lock)."""
+
+    at_ms: int
+    speed: float = 1.0
+    playing: bool = False
+    ended: bool = False
+
+
+class ReplaySession(ServerListener):
+    """One client's replay: its SDK server (`start` returns its port) and its player."""
+
+    def __init__(
+        self,
+        history: TimeTravelReader,
+        annotations: AnnotationReader,
+        start_ms: int,
+        end_ms: int,
+        backlog: int = 1024,
+    ) -> None:
+        self.history, self.annotations = history, annotations
+        self.start_ms, self.end_ms, self.backlog = start_ms, end_ms, backlog
+        self.playhead = Playhead(at_ms=end_ms)
+        self.lock = threading.Lock()
+        self.commands: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self.scene: FoxgloveScene | None = None
+        self.server: Any = None
+        self.sent_changes = 0  # chunk writes played (tests)
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="foxglove-replay", daemon=True)
+
+    def start(self) -> int:
+        import foxglove
+        from foxglove.websocket import Capability
+
+        context = foxglove.Context()
+        self.scene = FoxgloveScene(FoxgloveChannels(context), self.history, self.annotations)
+        self.server = foxglove.start_server(
+            name="mapservice replay",
+            host="127.0.0.1",
+            port=0,
+            context=context,
+            server_listener=self,
+            capabilities=[Capability.PlaybackControl, Capability.Time],
+            playback_time_range=(self.start_ms * _NS_PER_MS, self.end_ms * _NS_PER_MS),
+            message_backlog_size=self.backlog,
+        )
+        self.commands.put(("seek", self.end_ms))  # the picture at the window's end: now
+        self._thread.start()
+        return int(self.server.port)
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self.commands.put(("stop", None))
+        if self._thread.is_alive():
+            self._thread.join(10.0)
+        if self.server is not None:
+            self.server.stop()
+
+    # --- the SDK's ServerListener (its threads) -----------------------------------------
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self.commands.put(("resend", str(channel.topic)))
+
+    def on_unsubscribe(self, client: Any, channel: Any) -> None:
+        return None
+
+    def on_playback_control_request(self, request: Any) -> Any:
+        from foxglove.websocket import PlaybackCommand
+
+        with self.lock:
+            head = self.playhead
+            head.speed = float(request.playback_speed) if request.playback_speed > 0 else head.speed
+            head.playing = request.playback_command == PlaybackCommand.Play
+            seek = request.seek_time
+            if seek is not None:
+                head.at_ms = min(max(int(seek) // _NS_PER_MS, self.start_ms), self.end_ms)
+                head.ended = False
+                self.commands.put(("seek", head.at_ms))
+            if head.playing and head.at_ms >= self.end_ms:
+                head.playing, head.ended = False, True
+            return self._state(did_seek=seek is not None, request_id=request.request_id)
+
+    def _state(self, did_seek: bool, request_id: str | None) -> Any:
+        from foxglove.websocket import PlaybackState, PlaybackStatus
+
+        head = self.playhead
+        status = (
+            PlaybackStatus.Ended
+            if head.ended
+            else PlaybackStatus.Playing
+            if head.playing
+            else PlaybackStatus.Paused
+        )
+        return PlaybackState(
+            status=status,
+            current_time=head.at_ms * _NS_PER_MS,
+            playback_speed=head.speed,
+            did_seek=did_seek,
+            request_id=request_id,
+        )
+
+    # --- the player ---------------------------------------------------------------------
+
+    def _run(self) -> None:
+        while not self._stopping.is_set():
+            try:
+                command, arg = self.commands.get(timeout=TICK_S)
+            except queue.Empty:
+                command, arg = "tick", None
+            try:
+                self._do(command, arg)
+            except Exception as exc:  # a failed read ends no session: the next command goes on
+                log.warning("foxglove replay step failed", command=command, error=str(exc))
+
+    def _do(self, command: str, arg: Any) -> None:
+        scene = self.scene
+        assert scene is not None
+        if command == "seek":
+            time.sleep(_AFTER_ANSWER_S)
+            scene.draw_at(int(arg))
+            self.server.broadcast_time(int(arg) * _NS_PER_MS)
+        elif command == "resend":
+            scene.resend(str(arg))
+        elif command == "tick":
+            self._tick(scene)
+
+    def _tick(self, scene: FoxgloveScene) -> None:
+        with self.lock:
+            head = self.playhead
+            if not head.playing:
+                return
+            from_ms = head.at_ms
+            to_ms = min(self.end_ms, from_ms + max(1, int(TICK_S * 1000 * head.speed)))
+        self._play(scene, from_ms, to_ms)
+        with self.lock:
+            if head.at_ms != from_ms or not head.playing:
+                return  # a seek or pause came meanwhile: it decides where the playhead is
+            head.at_ms = to_ms
+            ended = to_ms >= self.end_ms
+            if ended:
+                head.playing, head.ended = False, True
+            state = self._state(did_seek=False, request_id=None)
+        self.server.broadcast_time(to_ms * _NS_PER_MS)
+        if ended:
+            self.server.broadcast_playback_state(state)
+
+    def _play(self, scene: FoxgloveScene, from_ms: int, to_ms: int) -> None:
+        """[from_ms, to_ms)'s chunk writes and poses, in event-time order (writes first at
+        one instant, as the map at that instant holds them), then the floor once."""
+        changes = window_changes(self.history, from_ms, to_ms)
+        i = 0
+        for pose in window_poses(self.history, from_ms, to_ms):
+            j = i
+            while j < len(changes) and changes[j].ts_ms <= pose.ts_ms:
+                j += 1
+            if j > i:
+                self.sent_changes += scene.chunk_changes(_change(c) for c in changes[i:j])
+                i = j
+            scene.pose(pose)
+        if i < len(changes):
+            self.sent_changes += scene.chunk_changes(_change(c) for c in changes[i:])
+        scene.grid(to_ms - 1)
+
+
+def _change(row: ChunkRow) -> ChunkChange:
+    return ChunkChange(row.row, row.column, row.robot_id, row.content_hash, row.ts_ms)

@@ -1,0 +1,187 @@
+"""What a Foxglove client sees of the plant, on one SDK context: the floor, every robot
+(pose, transform, state, planned path), each stored chunk write and the annotations, kept
+as they were last sent so that a client subscribing later gets the current picture, and
+drawn whole at an instant (the floor and robots at T, as `/api/v1/map?at=` and
+`/api/v1/robots?at=` read them: snapshot plus events). Fed by the live stream
+(foxglove_live.py) or a replay session's reads (foxglove_replay.py).
+
+Not thread-safe: one thread drives a scene (its owner's worker).
+
+May depend on: the ports (the store's time-travel and annotation reads)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from mapservice.adapters.foxglove_channels import FoxgloveChannels
+from mapservice.adapters.foxglove_messages import (
+    Floor,
+    path_message,
+    pose_message,
+    state_doc,
+    transform_message,
+)
+from mapservice.adapters.mcap_annotations import ANNOTATIONS_TOPIC, scene_update
+from mapservice.adapters.mcap_channels import (
+    CHUNK_CHANGE_SCHEMA_NAME,
+    MAP_CHANGES_TOPIC,
+    MAP_TOPIC,
+    STATE_SCHEMA_NAME,
+    TF_TOPIC,
+    path_topic,
+    pose_topic,
+    state_topic,
+)
+from mapservice.core.annotations import Shape
+from mapservice.core.ports import AnnotationReader, PoseRow, TimeTravelReader
+
+# A page of robots_at: a floor of this many robots is drawn in one read.
+_ROBOTS_PAGE = 10_000
+
+
+@dataclass(frozen=True)
+class ChunkChange:
+    """One stored chunk write (a live message's or the store's `ChunkRow`)."""
+
+    row: int
+    column: int
+    robot_id: str
+    content_hash: str  # hex
+    ts_ms: int
+
+
+class FoxgloveScene:
+    """The channels' current picture and how it changes."""
+
+    def __init__(
+        self,
+        channels: FoxgloveChannels,
+        history: TimeTravelReader,
+        annotations: AnnotationReader,
+    ) -> None:
+        self.channels, self.history, self.annotation_store = channels, history, annotations
+        self.floor: Floor | None = None
+        self.floor_ms = 0  # the instant the floor shows
+        self.floor_dirty = False  # chunk writes applied since the last grid sent
+        self.robots: dict[str, PoseRow] = {}
+        self._paths: dict[str, tuple[tuple[float, float], ...] | None] = {}
+        self.standing: dict[str, Shape] | None = None
+        self.standing_ms = 0
+        # The channels every picture has, advertised before their first message: a client
+        # subscribes at connect and misses none of their messages (a robot's channels come
+        # with the robot; a late subscriber gets its current messages again, `resend`).
+        from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+        from foxglove_schemas_protobuf.Grid_pb2 import Grid
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+        channels.declare_protobuf(MAP_TOPIC, Grid)
+        channels.declare_protobuf(TF_TOPIC, FrameTransform)
+        channels.declare_protobuf(ANNOTATIONS_TOPIC, SceneUpdate)
+        channels.declare_json(MAP_CHANGES_TOPIC, CHUNK_CHANGE_SCHEMA_NAME)
+
+    # --- the picture at an instant ------------------------------------------------------
+
+    def draw_at(self, at_ms: int) -> None:
+        """The floor, every robot and the annotations as they stood at `at_ms`."""
+        meta = self.history.latest_meta()
+        self.floor = Floor(meta, self.history) if meta is not None else None
+        if self.floor is not None:
+            self.floor.apply((c.row, c.column, c.content_hash) for c in self.history.map_at(at_ms))
+            self.floor_ms, self.floor_dirty = at_ms, False
+            self.channels.protobuf(MAP_TOPIC, self.floor.grid(at_ms), at_ms)
+        self.robots, self._paths = {}, {}
+        after: str | None = None
+        while True:
+            page = self.history.robots_at(at_ms, after=after, limit=_ROBOTS_PAGE)
+            for row in page:
+                self.pose(row, path_always=True)
+            if len(page) < _ROBOTS_PAGE:
+                break
+            after = page[-1].robot_id
+        self.annotations_at(at_ms, force=True)
+
+    def annotations_at(self, at_ms: int, force: bool = False) -> bool:
+        """Sends the annotations standing at `at_ms` if they changed (or `force`); whether
+        it sent them."""
+        standing = {
+            c.annotation_id: c.annotation for c in self.annotation_store.annotations_at(at_ms)
+        }
+        if not force and standing == self.standing:
+            return False
+        self.standing, self.standing_ms = standing, at_ms
+        self.channels.protobuf(ANNOTATIONS_TOPIC, scene_update(at_ms, standing), at_ms)
+        return True
+
+    # --- changes ------------------------------------------------------------------------
+
+    def pose(self, row: PoseRow, path_always: bool = False) -> None:
+        """A robot's pose, transform and state; its planned path when it changed (with
+        `path_always`, also an unchanged one: a seek's picture is complete)."""
+        self.robots[row.robot_id] = row
+        self.channels.protobuf(pose_topic(row.robot_id), pose_message(row), row.ts_ms)
+        self.channels.protobuf(TF_TOPIC, transform_message(row), row.ts_ms)
+        self.channels.json(state_topic(row.robot_id), STATE_SCHEMA_NAME, state_doc(row), row.ts_ms)
+        path = tuple(row.path) if row.path else None
+        known = row.robot_id in self._paths
+        if path_always or (known and self._paths[row.robot_id] != path) or (path and not known):
+            self.channels.protobuf(path_topic(row.robot_id), path_message(row), row.ts_ms)
+        self._paths[row.robot_id] = path
+
+    def chunk_changes(self, changes: Iterable[ChunkChange]) -> int:
+        """Each write on the changes channel, drawn into the floor (sent by `grid`)."""
+        changes = list(changes)
+        if not changes:
+            return 0
+        if self.floor is None:
+            meta = self.history.latest_meta()
+            if meta is None:
+                return 0  # no geometry yet: no floor to draw into
+            self.floor = Floor(meta, self.history)
+        for c in changes:
+            self.channels.json(
+                MAP_CHANGES_TOPIC,
+                CHUNK_CHANGE_SCHEMA_NAME,
+                {
+                    "row": c.row,
+                    "column": c.column,
+                    "robot_id": c.robot_id,
+                    "content_hash": c.content_hash,
+                    "ts_ms": c.ts_ms,
+                },
+                c.ts_ms,
+            )
+        self.floor.apply((c.row, c.column, c.content_hash) for c in changes)
+        self.floor_ms, self.floor_dirty = max(self.floor_ms, changes[-1].ts_ms), True
+        return len(changes)
+
+    def grid(self, ts_ms: int | None = None) -> bool:
+        """Sends the floor if writes were drawn since the last one; whether it did."""
+        if self.floor is None or not self.floor_dirty:
+            return False
+        at = self.floor_ms if ts_ms is None else ts_ms
+        self.channels.protobuf(MAP_TOPIC, self.floor.grid(at), at)
+        self.floor_dirty = False
+        return True
+
+    def resend(self, topic: str) -> None:
+        """The current message of `topic` again (a client just subscribed to it: the
+        protocol keeps no last message for it)."""
+        if topic == MAP_TOPIC and self.floor is not None:
+            self.channels.protobuf(MAP_TOPIC, self.floor.grid(self.floor_ms), self.floor_ms)
+            self.floor_dirty = False
+        elif topic == ANNOTATIONS_TOPIC and self.standing is not None:
+            self.channels.protobuf(
+                ANNOTATIONS_TOPIC, scene_update(self.standing_ms, self.standing), self.standing_ms
+            )
+        elif topic == TF_TOPIC:
+            for row in self.robots.values():
+                self.channels.protobuf(TF_TOPIC, transform_message(row), row.ts_ms)
+        else:
+            for row in self.robots.values():
+                if topic == pose_topic(row.robot_id):
+                    self.channels.protobuf(topic, pose_message(row), row.ts_ms)
+                elif topic == state_topic(row.robot_id):
+                    self.channels.json(topic, STATE_SCHEMA_NAME, state_doc(row), row.ts_ms)
+                elif topic == path_topic(row.robot_id):
+                    self.channels.protobuf(topic, path_message(row), row.ts_ms)

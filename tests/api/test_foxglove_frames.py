@@ -1,0 +1,105 @@
+"""The gate's count of a client's subscriptions from the WebSocket frames it passes on:
+for generated sessions (subscribes and unsubscribes of random ids, binary frames between
+them, text messages fragmented, frames of every length encoding, the bytes cut anywhere),
+the count is the model's and the client is named over its cap exactly when the model is;
+and through the gate, a client that subscribes to one channel too many is closed with 1008."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import random
+
+import pytest
+
+from mapservice.api.foxglove_frames import SubscriptionCount
+from tests.api.test_foxglove_gate import Upstream101, gate_over, request, settings
+
+
+def frame(opcode: int, payload: bytes, fin: bool = True) -> bytes:
+    """A client's (masked) frame."""
+    head = bytes([(0x80 if fin else 0) | opcode])
+    n = len(payload)
+    if n < 126:
+        head += bytes([0x80 | n])
+    elif n < 65536:
+        head += bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    else:
+        head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
+    mask = os.urandom(4)
+    return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+def text_frames(message: dict, rng: random.Random) -> bytes:
+    data = json.dumps(message).encode()
+    if rng.random() < 0.3 and len(data) > 2:  # fragmented
+        cut = rng.randrange(1, len(data))
+        return frame(0x1, data[:cut], fin=False) + frame(0x0, data[cut:])
+    return frame(0x1, data)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_count_is_the_models_however_the_bytes_come(seed):
+    rng = random.Random(seed)
+    cap = rng.randrange(1, 40)
+    count = SubscriptionCount(cap)
+    model: set[int] = set()
+    stream = b""
+    over_at = None  # the message after which the model is over the cap
+    messages = 0
+    while messages < 60 and over_at is None:
+        if rng.random() < 0.2:
+            stream += frame(0x2, os.urandom(rng.choice((10, 200, 70_000))))  # binary: skipped
+            continue
+        if rng.random() < 0.6 or not model:
+            ids = [rng.randrange(200) for _ in range(rng.randrange(1, 6))]
+            message = {"op": "subscribe", "subscriptions": [{"id": i, "channelId": i} for i in ids]}
+            model |= set(ids)
+        else:
+            ids = rng.sample(sorted(model), rng.randrange(1, len(model) + 1))
+            message = {"op": "unsubscribe", "subscriptionIds": ids}
+            model -= set(ids)
+        stream += text_frames(message, rng)
+        messages += 1
+        if len(model) > cap:
+            over_at = len(stream)
+    said = None
+    fed = 0
+    while fed < len(stream) and said is None:
+        n = rng.randrange(1, 5000)
+        said = count.feed(stream[fed : fed + n])
+        fed += n
+    if over_at is None:
+        assert said is None and count.subscriptions == model
+    else:
+        assert said is not None and "MAPSERVICE_FOXGLOVE_MAX_SUBSCRIPTIONS" in said
+        assert fed >= over_at  # not before the message that went over
+
+
+def test_unmasked_frames_and_huge_texts_are_refused():
+    assert "masked" in SubscriptionCount(5).feed(bytes([0x81, 0x02]) + b"{}")
+    huge = bytes([0x81, 0x80 | 127]) + (10**7).to_bytes(8, "big") + b"abcd"
+    assert "over" in SubscriptionCount(5).feed(huge)
+
+
+def test_a_client_over_its_cap_is_closed_with_1008_through_the_gate():
+    async def main() -> bytes:
+        upstream = Upstream101(flood=False)
+        gate, port = await gate_over(upstream, settings(foxglove_max_subscriptions=3))
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(request())
+        await reader.readuntil(b"\r\n\r\n")
+        for i in range(4):
+            sub = {"op": "subscribe", "subscriptions": [{"id": i, "channelId": i}]}
+            writer.write(frame(0x1, json.dumps(sub).encode()))
+            await writer.drain()
+        async with asyncio.timeout(5):
+            answer = await reader.read()  # until the gate closes the connection
+        writer.close()
+        await gate.stop()
+        return answer
+
+    answer = asyncio.run(main())
+    assert answer[:1] == b"\x88"  # a close frame, then the end of the connection
+    assert answer[2:4] == (1008).to_bytes(2, "big") and b"MAX_SUBSCRIPTIONS" in answer
