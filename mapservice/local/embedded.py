@@ -18,6 +18,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
+
 from mapservice.local.certs import CertFiles
 
 # Below this, ports of well-known services crowd; above it, picking at random rarely collides.
@@ -62,6 +64,23 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def wait_healthy(
+    url: str, what: str, proc: subprocess.Popen, log: Path, timeout_s: float = 60
+) -> None:
+    """Until `url` answers 200; an error naming `log` if `proc` exits or time runs out."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"{what} exited ({proc.returncode}); see {log}")
+        try:
+            if httpx.get(url, timeout=2).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.2)
+    raise RuntimeError(f"{what} not healthy at {url} after {timeout_s:.0f} s")
 
 
 def reserve_ports(*ports: int | None) -> None:

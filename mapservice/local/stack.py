@@ -10,13 +10,11 @@ import os
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import httpx
 import msgspec
 import structlog
 
@@ -97,8 +95,9 @@ class Stack(StackMqtt, StackEnv):
         self.data_dir = Path(self.data_dir).resolve()
         self.log_dir = self.data_dir / "logs"
         embedded.reserve_ports(  # the given ports are their components' alone
-            *(self.api_port, self.kafka_port, self.health_port, self.mqtt_port, self.mqtt_ws_port),
-            *(self.mqtt_tls_port, self.clickhouse_port, self.processors_health_port),
+            *(self.api_port, self.foxglove_port, self.kafka_port, self.health_port, self.mqtt_port),
+            *(self.mqtt_ws_port, self.mqtt_tls_port, self.clickhouse_port),
+            self.processors_health_port,
         )
         self.api_port = self.api_port or embedded.free_port()
         self.foxglove_port = self.foxglove_port or embedded.free_port()
@@ -374,19 +373,7 @@ class Stack(StackMqtt, StackEnv):
     def wait_healthy(
         self, url: str, what: str, proc: subprocess.Popen, timeout_s: float = 60
     ) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if proc.poll() is not None:
-                raise RuntimeError(
-                    f"{what} exited ({proc.returncode}); see {self.log_dir}/{what}.log"
-                )
-            try:
-                if httpx.get(url, timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.2)
-        raise RuntimeError(f"{what} not healthy at {url} after {timeout_s:.0f} s")
+        embedded.wait_healthy(url, what, proc, self.log_dir / f"{what}.log", timeout_s)
 
     def start_kafka(self) -> subprocess.Popen:
         """Apache Kafka resumes on its log in DATA_DIR/kafka/; tansu keeps topics in memory,
