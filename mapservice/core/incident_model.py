@@ -8,10 +8,24 @@ import hashlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import msgspec
 
-from mapservice.core.ports import PoseRow
+
+class Placed(Protocol):
+    """A pose as the rules read it: a stored pose row is one (the ports, which name this
+    module's Incident, are not imported here: no circle)."""
+
+    @property
+    def robot_id(self) -> str: ...
+    @property
+    def ts_ms(self) -> int: ...
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+
 
 KINDS = ("near_miss", "stuck", "offline", "battery_low")
 SEVERITIES = ("warning", "critical")
@@ -88,15 +102,15 @@ def _incident_id(kind: str, robots: tuple[str, ...], start_ms: int) -> str:
     return hashlib.blake2b(key.encode(), digest_size=16).hexdigest()
 
 
-def pose_ref(pose: PoseRow) -> PoseRef:
+def pose_ref(pose: Placed) -> PoseRef:
     return PoseRef(pose.robot_id, pose.ts_ms, pose.x, pose.y)
 
 
-def distance(a: PoseRow, b: PoseRow) -> float:
+def distance(a: Placed, b: Placed) -> float:
     return math.hypot(a.x - b.x, a.y - b.y)
 
 
-def mm2(a: PoseRow, b: PoseRow) -> int:
+def mm2(a: Placed, b: Placed) -> int:
     """The squared distance in whole millimetres (positions are stored to the millimetre):
     exact, so a robot that moved exactly the threshold is judged alike on every machine."""
     dx, dy = round((a.x - b.x) * 1000), round((a.y - b.y) * 1000)

@@ -242,8 +242,8 @@ def near_misses(
             if n < len(ticks) and ticks[n][0] - ticks[n - 1][0] == th.tick_ms:
                 continue
             run = ticks[begin:n]
-            _, gap, a, b = min(run, key=lambda t: (t[1], t[0]))
-            runs.append((pair, run[0][0], run[-1][0], gap, a, b))
+            _, gap, a_row, b_row = min(run, key=lambda t: (t[1], t[0]))
+            runs.append((pair, run[0][0], run[-1][0], gap, a_row, b_row))
             begin = n
     if not runs:
         return []
@@ -264,9 +264,9 @@ def near_misses(
         before the pair's first tick)."""
         lo = int(first[r])
         if pairs_from is None:
-            return ts[lo]
+            return int(ts[lo])
         at = bisect.bisect_left(ts, pair_from.get(pair, everyone), lo, int(last[r]) + 1) - 1
-        return ts[max(at, lo)]
+        return int(ts[max(at, lo)])
 
     incidents = []
     for k, (pair, start_ms, end_ms, gap, _, _) in enumerate(runs):

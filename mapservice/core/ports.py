@@ -13,7 +13,7 @@ from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSe
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
-    from mapservice.core.incidents import Incident
+    from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
 
 
