@@ -65,6 +65,7 @@ def test_replay_mcap_is_a_download_of_the_window() -> None:
         "/map": 1,
         "/robots/a/pose": 5,
         "/robots/a/state": 5,
+        "/tf": 5,  # each pose's transform, map -> a/base_link
     }
 
 
