@@ -36,6 +36,10 @@ the panel reads' p95 per span; `--baseline FILE` (an earlier run's `--json`) add
 figure's ratio to that run's (this / baseline: under 1 is faster), the comparison that
 holds on a shared machine where absolute times do not.
 
+`--page-cpu-url URL` measures something else and only that: what an idle page costs,
+Chromium's CPU live and paused on a running service with live robots, this build against
+`--page-cpu-baseline` in interleaved pairs (ui_cpu.py).
+
 The loading and the API process are in ui_setup.py, the browser phases in ui_browser.py,
 what the page must show after playing in ui_expected.py, the panel reads in ui_reads.py.
 """
@@ -49,6 +53,7 @@ import time
 from pathlib import Path
 
 from mapservice.bench.ui_browser import frame_phase, seek_phase, speeds_phase
+from mapservice.bench.ui_cpu import add_arguments as add_page_cpu_arguments
 from mapservice.bench.ui_setup import ApiProcess, load_or_reuse
 from mapservice.bench.workdir import DATA_DIR_HELP
 from mapservice.local.checkout import TEST_UI_DIR
@@ -61,6 +66,11 @@ def main(args) -> None:
         raise SystemExit(
             f"bench ui: the UI's test build ({TEST_UI_DIR}) is missing; run `make ui` first"
         )
+    if args.page_cpu_url:
+        from mapservice.bench.ui_cpu import main as page_cpu_main
+
+        page_cpu_main(args)
+        return
     if args.reuse and not args.data_dir:
         raise SystemExit("bench ui: --reuse needs --data-dir")
     tmp = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-ui-"))
@@ -158,7 +168,9 @@ def ratios(now: dict, before: dict) -> dict:
 
 
 def add_parser(kinds) -> None:
-    p = kinds.add_parser("ui", help="the replay UI in headless Chromium: seek and frame times")
+    p = kinds.add_parser(
+        "ui", help="the replay UI in headless Chromium: seek and frame times, an idle page's CPU"
+    )
     p.add_argument("--days", type=float, default=7.0, help="history for the seek measurement")
     p.add_argument("--robots", type=int, default=20, help="simulated robots in the history")
     p.add_argument("--seeks", type=int, default=50, help="random seeks timed")
@@ -204,6 +216,7 @@ def add_parser(kinds) -> None:
         help="with --data-dir: load each history once, reuse it on later runs",
     )
     p.add_argument("--json", default=None, help="write the results as JSON to this file")
+    add_page_cpu_arguments(p)
     p.add_argument(
         "--baseline",
         default=None,

@@ -66,4 +66,29 @@ describe("PlaybackClock", () => {
     expect(c.live).toBe(false);
     expect(c.time(NOW + 3000)).toBe(NOW - 5000);
   });
+
+  it("tells of every change asked for, not of the holds the frames make", () => {
+    const actions: [string, (c: PlaybackClock) => void][] = [
+      ["play", (c) => c.play(NOW)], ["pause", (c) => c.pause(NOW)], ["toggle", (c) => c.toggle(NOW)],
+      ["speed", (c) => c.setSpeed(60, NOW)], ["direction", (c) => c.setDirection(-1, NOW)],
+      ["seek", (c) => c.seek(NOW - 5000, NOW)], ["step", (c) => c.step(1, NOW)], ["live", (c) => c.goLive(NOW)],
+    ];
+    for (const [name, act] of actions) {
+      for (const playing of [false, true]) {
+        const c = new PlaybackClock(NOW - 60_000, NOW);
+        if (playing) c.play(NOW);
+        let told = 0;
+        c.onChange = () => told++;
+        act(c);
+        expect(told, `${name}, playing: ${playing}`).toBeGreaterThan(0);
+      }
+    }
+    const c = new PlaybackClock(NOW - 60_000, NOW);
+    c.play(NOW);
+    let told = 0;
+    c.onChange = () => told++;
+    c.hold(NOW - 30_000, NOW + 10);
+    c.time(NOW + 20);
+    expect(told).toBe(0);
+  });
 });

@@ -273,3 +273,44 @@ describe("robots at the playhead", () => {
     expect(calls.robots).toHaveBeenCalledTimes(2); // once by the seek, once on pausing: not every frame
   });
 });
+
+describe("waking the page's frame loop", () => {
+  it("wakes it for a clock action, a seek's end, a live pose or map write, the exact robots at rest", async () => {
+    const e = makeEngine();
+    let wakes = 0;
+    e.engine.onWake = () => wakes++;
+    const woke = async (what: string, act: () => unknown) => {
+      const before = wakes;
+      await act();
+      await settle();
+      expect(wakes, what).toBeGreaterThan(before);
+    };
+    const done = e.engine.seek(T);
+    await woke("the seek's end", async () => {
+      e.map.resolve(MAP);
+      e.robots.resolve(ROBOTS);
+      await done;
+    });
+    await woke("play", () => e.engine.clock.play(NOW));
+    await woke("pause", () => e.engine.clock.pause(NOW));
+    await woke("a speed", () => e.engine.setSpeed(8));
+    const onLive = (m: unknown) => (e.engine as unknown as { onLive: (m: unknown) => void }).onLive(m);
+    e.engine.clock.goLive(NOW);
+    await woke("a live pose", () => onLive({ type: "pose", robotId: "r9", ts_ms: NOW, position: [1, 2, 0] }));
+    await woke("a live map write", () => onLive({ type: "chunk", row: 0, column: 1, ts_ms: NOW, robotId: "r9", content_hash: hex(9) }));
+  });
+
+  it("wakes it when a seek fails: the error is shown without waiting for the idle tick", async () => {
+    const e = makeEngine();
+    let wakes = 0;
+    e.engine.onWake = () => wakes++;
+    e.calls.robots.mockRejectedValueOnce(new ApiError(400, "refused"));
+    const done = e.engine.seek(T);
+    const before = wakes;
+    e.map.resolve(MAP);
+    await done;
+    expect(e.engine.error).not.toBeNull();
+    expect(wakes).toBeGreaterThan(before);
+  });
+});
+

@@ -1,5 +1,5 @@
 import { describe, expect, it } from "vitest";
-import { agoText, clampToRetention, formatUrlState, fromInputValue, parseUrlState, toInputValue } from "../src/lib/urlstate";
+import { agoChangesIn, agoText, clampToRetention, formatUrlState, fromInputValue, parseUrlState, toInputValue } from "../src/lib/urlstate";
 
 describe("url state", () => {
   it("round-trips time, speed, direction, play and view", () => {
@@ -85,5 +85,25 @@ describe("url state", () => {
   it("says how far from now", () => {
     expect(agoText(0, 3_723_000)).toBe("1 h 2 min ago");
     expect(agoText(1000, 1000)).toBe("now");
+  });
+
+  it("knows when its text next changes: not before, and right then", () => {
+    const at = Date.UTC(2026, 10, 21, 10, 0, 0, 123);
+    // Elapsed times from a little in the future to ten days, at every sub-second offset.
+    const elapsed = [-2500, -1, 0];
+    for (let k = 1; k <= 2000; k++) elapsed.push(Math.floor(k ** 3 * 0.108) + ((k * 337) % 1000));
+    for (const e of elapsed) {
+      const now = at + e;
+      const due = agoChangesIn(at, now);
+      const text = agoText(at, now);
+      expect(due, `${e}`).toBeGreaterThanOrEqual(1);
+      expect(agoText(at, now + due - 1), `${e}`).toBe(text);
+      expect(agoText(at, now + Math.floor(due / 2)), `${e}`).toBe(text);
+      expect(agoText(at, now + due), `${e}`).not.toBe(text);
+    }
+    // Its resolution: a second under an hour, a minute under a day, an hour beyond.
+    expect(agoChangesIn(at, at + 600_000)).toBeLessThanOrEqual(1000);
+    expect(agoChangesIn(at, at + 7_200_000)).toBeGreaterThan(1000);
+    expect(agoChangesIn(at, at + 2 * 86_400_000)).toBeGreaterThan(60_000);
   });
 });

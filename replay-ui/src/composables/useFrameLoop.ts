@@ -1,10 +1,13 @@
 /**
  * The page's one requestAnimationFrame loop: the engine's frame, the map's chunks, robots,
  * info labels and conflict marks, the frame statistics; and the small reactive summary Vue
- * shows, refreshed every 200 ms (the engine and the map are plain objects, not reactive).
+ * shows, refreshed every 200 ms while frames run (the engine and the map are plain
+ * objects, not reactive). It runs every animation frame only while something moves; else
+ * an idle tick now and then, until an event wakes it (lib/framepace.ts decides which).
  */
-import { onBeforeUnmount, reactive, type Ref, type ShallowRef } from "vue";
+import { onBeforeUnmount, reactive, watch, type Ref, type ShallowRef } from "vue";
 import { busyWaits } from "../lib/request";
+import { framePace, liveReadout } from "../lib/framepace";
 import type { Speed } from "../lib/clock";
 import type { ReplayEngine } from "../lib/engine";
 import type { LayerToggles, MapView } from "../lib/mapview";
@@ -35,8 +38,8 @@ export interface FrameLoopDeps {
 export function useFrameLoop(d: FrameLoopDeps) {
   const { engine, view, toggles } = d;
   const ui = reactive({
+    /** The playhead; live, its wall second (what the clock shows: not a render per frame). */
     playhead: engine.playhead,
-    now: Date.now(),
     playing: false,
     live: false,
     speed: 1 as Speed,
@@ -55,6 +58,11 @@ export function useFrameLoop(d: FrameLoopDeps) {
   });
   let pendingView = d.initialView;
   let raf = 0;
+  let idle: ReturnType<typeof setTimeout> | null = null;
+  /** From start() until the page goes. */
+  let running = false;
+  /** Animation frames run, and idle ticks (for the tests: none while paused and at rest). */
+  const pace = { frames: 0, idleTicks: 0 };
   let lastFrame = 0;
   let lastSummary = 0;
   let lastInfo = 0;
@@ -62,8 +70,51 @@ export function useFrameLoop(d: FrameLoopDeps) {
   let conflicts: Conflict[] = [];
   let conflictsLoadedFor = 0;
 
-  function loop(now: number) {
+  /** Something changed (lib/framepace.ts): the next animation frame runs, whatever the pace. */
+  function wake() {
+    if (raf || !running) return;
+    if (idle) clearTimeout(idle);
+    idle = null;
     raf = requestAnimationFrame(loop);
+  }
+
+  /** After a frame or an idle tick: the next frame, or the idle tick. The one place that decides. */
+  function next() {
+    if (raf || !running) return;
+    const v = view.value;
+    const due = framePace({
+      playback: engine.clock.playing && !engine.clock.live,
+      seeking: engine.seeking,
+      settled: engine.settled(),
+      dirty: engine.state.dirty.size > 0 && !!v?.chunks,
+    }, Date.now(), engine.clock.live);
+    if (due === "frame") {
+      raf = requestAnimationFrame(loop);
+      return;
+    }
+    // The next frame after a rest is not a frame interval, and shows the summary at once.
+    lastFrame = 0;
+    lastSummary = 0;
+    if (idle) clearTimeout(idle);
+    idle = setTimeout(idleTick, due);
+  }
+
+  function loop(now: number) {
+    raf = 0;
+    pace.frames++;
+    step(now, true);
+    next();
+  }
+
+  function idleTick() {
+    idle = null;
+    pace.idleTicks++;
+    step(performance.now(), false);
+    next();
+  }
+
+  /** One step of the engine and the map; `framed`: in an animation frame (its times count). */
+  function step(now: number, framed: boolean) {
     const t0 = performance.now();
     engine.frame();
     const v = view.value;
@@ -90,23 +141,26 @@ export function useFrameLoop(d: FrameLoopDeps) {
         if (toggles.conflicts && engine.settled()) void updateConflicts(v);
       }
     }
-    if (lastFrame) {
+    if (framed && lastFrame) {
       engine.frameTimes.push(performance.now() - t0);
       engine.frameIntervals.push(now - lastFrame);
     }
     if (engine.frameTimes.length > FRAME_STATS_MAX) engine.frameTimes.splice(0, FRAME_STATS_MAX / 2);
     if (engine.frameIntervals.length > FRAME_STATS_MAX) engine.frameIntervals.splice(0, FRAME_STATS_MAX / 2);
-    lastFrame = now;
-    if (now - lastSummary > SUMMARY_MS) {
+    lastFrame = framed ? now : 0;
+    if (!framed || now - lastSummary > SUMMARY_MS) {
       lastSummary = now;
       summarise();
     }
   }
 
+  /** The readouts. Vue re-renders what reads a field only when its value changes: live, the
+   * playhead and the latency are written at the clock's resolution, a second. */
   function summarise() {
     const c = engine.clock;
-    ui.playhead = engine.playhead;
-    ui.now = Date.now();
+    const second = c.live ? liveReadout(engine.playhead) : null;
+    if (second === null || second !== ui.playhead) ui.latencyMs = engine.live.status.latencyMs;
+    ui.playhead = second ?? engine.playhead;
     ui.playing = c.playing;
     ui.live = c.live;
     ui.speed = c.speed;
@@ -116,7 +170,6 @@ export function useFrameLoop(d: FrameLoopDeps) {
     ui.error = engine.error;
     ui.waiting = busyWaits.count > 0;
     ui.liveConnected = engine.live.status.connected;
-    ui.latencyMs = engine.live.status.latencyMs;
     ui.chunks = engine.state.cells.size;
     ui.fetched = engine.images.fetched;
     d.onSummary();
@@ -136,19 +189,31 @@ export function useFrameLoop(d: FrameLoopDeps) {
     v.showConflicts(conflicts, t, CONFLICTS_AROUND_MS);
   }
 
+  /** Runs the loop; from now on whatever changes what is shown wakes it. */
   function start() {
-    raf = requestAnimationFrame(loop);
+    engine.onWake = wake;
+    engine.images.afterBatch = wake;
+    // A pan or zoom: the address keeps the view (the robots' canvas redraws itself).
+    view.value?.map.on("moveend zoomend resize", wake);
+    running = true;
+    wake();
   }
 
   /** After a layer toggle: the info labels and conflict marks at the next frame. */
   function redrawInfo() {
     lastInfo = 0;
+    wake();
   }
 
+  // A robot selected or followed: drawn (and the map panned to it) at the next frame.
+  watch([d.selected, d.following], wake);
+
   onBeforeUnmount(() => {
+    running = false;
     cancelAnimationFrame(raf);
+    if (idle) clearTimeout(idle);
     engine.live.stop();
   });
 
-  return { ui, start, redrawInfo };
+  return { ui, start, redrawInfo, pace };
 }

@@ -30,10 +30,16 @@ export function useSelection(d: SelectionDeps) {
   const selectedInfo = ref<{ view: RobotView; status: RobotStatus } | null>(null);
   let trailFor = { id: "", at: 0 };
 
+  let shownInfo = "null";
   function refreshSelected() {
     const r = selected.value ? engine.robots().find((x) => x.robotId === selected.value) : undefined;
     // Online as the robot is drawn: exact at a resting playhead, allowing for the sampling step while playing fast.
-    selectedInfo.value = r ? { view: r, status: { ...robotStatus(r.pose, engine.robotInfo.get(r.robotId), engine.playhead), online: !r.offline } } : null;
+    const info = r ? { view: r, status: { ...robotStatus(r.pose, engine.robotInfo.get(r.robotId), engine.playhead), online: !r.offline } } : null;
+    // Written only when it reads otherwise: the details do not re-render with every summary of a resting page.
+    const text = JSON.stringify(info);
+    if (text === shownInfo) return;
+    shownInfo = text;
+    selectedInfo.value = info;
   }
 
   /** Drawn while playing no faster than 60x (lib/trail.ts): at 3600x it lags far behind the robot. */

@@ -34,6 +34,9 @@ export class PlaybackClock {
   live = false;
   /** Earliest instant the playhead may reach (retention start); `now` is the latest. */
   minMs = -Infinity;
+  /** After each change asked for (play, pause, speed, direction, seek, step, live): the
+   * page's frame loop wakes (lib/framepace.ts). Not after `hold`, which the frames make. */
+  onChange: () => void = () => {};
 
   constructor(timeMs: number, wallMs: number) {
     this.anchorTime = timeMs;
@@ -62,12 +65,14 @@ export class PlaybackClock {
     this.reanchor(wallMs);
     this.live = false;
     this.playing = true;
+    this.onChange();
   }
 
   pause(wallMs: number): void {
     this.reanchor(wallMs);
     this.live = false;
     this.playing = false;
+    this.onChange();
   }
 
   toggle(wallMs: number): void {
@@ -78,11 +83,13 @@ export class PlaybackClock {
   setSpeed(speed: Speed, wallMs: number): void {
     this.reanchor(wallMs);
     this.speed = speed;
+    this.onChange();
   }
 
   setDirection(direction: 1 | -1, wallMs: number): void {
     this.reanchor(wallMs);
     this.direction = direction;
+    this.onChange();
   }
 
   seek(timeMs: number, wallMs: number): void {
@@ -91,6 +98,7 @@ export class PlaybackClock {
     this.live = false;
     this.anchorTime = this.clamp(timeMs, wallMs);
     this.anchorWall = wallMs;
+    this.onChange();
   }
 
   /** Holds the playhead where it is while keeping the play state (the buffer is behind). */
@@ -111,6 +119,7 @@ export class PlaybackClock {
     this.direction = 1;
     this.anchorTime = wallMs;
     this.anchorWall = wallMs;
+    this.onChange();
   }
 
   /** True when playing forward has caught up with now (the UI may then switch to live). */

@@ -97,6 +97,10 @@ export class ReplayEngine {
   private failedSeek: { t: number; at: number } | null = null;
   private lastStepMs: number;
   onSeeked: () => void = () => {};
+  /** Something changed that the page should show: a clock action, a seek's end, a live
+   * pose or map write, the exact robots at rest, an error. The frame loop wakes
+   * (lib/framepace.ts): while nothing moves it does not run every animation frame. */
+  onWake: () => void = () => {};
 
   constructor(base = "", now = Date.now()) {
     this.api = new Api(base);
@@ -105,6 +109,7 @@ export class ReplayEngine {
     this.playhead = now;
     this.images = new ChunkImages(this.api);
     this.buffer = new EventBuffer(this.api, now, 1);
+    this.clock.onChange = () => this.onWake();
     this.lastStepMs = poseStepMs(1);
     this.live = new LiveConnection(liveUrl(location), (m) => this.onLive(m), (reconnect) => {
       // Whatever happened while disconnected is in the store: start again from now.
@@ -193,6 +198,7 @@ export class ReplayEngine {
       }
     } finally {
       if (gen === this.seekGen) this.seeking = false;
+      this.onWake();
     }
   }
 
@@ -271,7 +277,10 @@ export class ReplayEngine {
         // Prefetch the pictures of the writes just buffered, in playing order.
         const fresh = dir > 0 ? this.buffer.chunks.slice(before) : this.buffer.chunks.slice(0, this.buffer.chunks.length - before).reverse();
         this.images.requestMany(fresh.slice(0, 5000).map((c) => c.content_hash), false);
-      }).catch((e) => (this.error = errorText(e)));
+      }).catch((e) => {
+        this.error = errorText(e);
+        this.onWake();
+      });
     }
     this.buffer.trim(this.playhead, dir, keepBehindMs(this.clock.speed));
   }
@@ -301,7 +310,11 @@ export class ReplayEngine {
       this.exactAt = { t, robots: new Map(robots.map((r) => [r.robotId, r])) };
       for (const r of robots) this.robotInfo.set(r.robotId, r);
       this.liveVersion++; // the view redraws the robots
-    }).catch((e) => (this.error = errorText(e)))
+      this.onWake();
+    }).catch((e) => {
+      this.error = errorText(e);
+      this.onWake();
+    })
       .finally(() => { if (this.exactLoading === t) this.exactLoading = -1; });
   }
 
@@ -352,12 +365,14 @@ export class ReplayEngine {
     }
     if (m.type === "chunk") {
       this.state.applyForward([{ row: m.row, column: m.column, ts_ms: m.ts_ms, robotId: m.robotId, content_hash: m.content_hash }]);
+      this.onWake();
     } else if (m.type === "pose") {
       addToTrack(this.liveTracks, m);
       const prev = this.livePoses.get(m.robotId);
       if (!prev || prev.ts_ms <= m.ts_ms) {
         this.livePoses.set(m.robotId, m);
         this.liveVersion++;
+        this.onWake();
       }
     }
   }

@@ -36,6 +36,8 @@ export class ChunkImages {
   failed = new Set<string>();
   /** Hashes that just became available (one call per batch). */
   onLoad: (hashes: string[]) => void = () => {};
+  /** After each batch answered or given up on (the page's frame loop wakes to draw, or to stop waiting). */
+  afterBatch: () => void = () => {};
   readonly parallel: number;
   readonly capacity: number;
   private decode: (c: ChunkContent) => ChunkImage;
@@ -122,6 +124,7 @@ export class ChunkImages {
     void p.finally(() => {
       this.active--;
       this.pump();
+      this.afterBatch();
     });
   }
 

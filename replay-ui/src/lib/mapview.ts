@@ -47,6 +47,8 @@ export class MapView {
   changeOutline = L.rectangle([[0, 0], [0, 0]], { color: "#ff8c00", weight: 4, fill: false, interactive: false, pane: PICKED_PANE });
   areaRect = L.rectangle([[0, 0], [0, 0]], { color: "#6f42c1", weight: 2, dashArray: "6 4", fillOpacity: 0.06, interactive: false });
   private fitted = false;
+  /** The conflicts the boxes show (redrawn only when they change: the loop asks twice a second). */
+  private conflictsShown = "";
   private drawing: { done: (a: Pixel, b: Pixel) => void; start: L.LatLng | null } | null = null;
 
   constructor(el: HTMLElement, private state: MapState, private images: ChunkImages) {
@@ -77,6 +79,7 @@ export class MapView {
       return;
     }
     this.meta = meta;
+    this.conflictsShown = "";
     this.chunks?.overlay.remove();
     this.info?.overlay.remove();
     this.grid?.remove();
@@ -135,10 +138,13 @@ export class MapView {
 
   showConflicts(conflicts: Conflict[], t: number, windowMs: number): void {
     const meta = this.meta;
+    const shown = meta ? conflicts.filter((c) => c.ts_ms <= t && c.ts_ms >= t - windowMs) : [];
+    const key = shown.map((c) => `${c.ts_ms}:${c.row}:${c.column}:${c.robot_a}:${c.robot_b}`).join();
+    if (key === this.conflictsShown) return;
+    this.conflictsShown = key;
     this.conflictLayer.clearLayers();
     if (!meta) return;
-    for (const c of conflicts) {
-      if (c.ts_ms > t || c.ts_ms < t - windowMs) continue;
+    for (const c of shown) {
       L.rectangle(chunkBounds(meta, c.row, c.column), { color: "#e00", weight: 3, fill: false, interactive: true })
         .bindTooltip(`conflict ${c.robot_a} / ${c.robot_b} at ${new Date(c.ts_ms).toISOString()}`)
         .addTo(this.conflictLayer);

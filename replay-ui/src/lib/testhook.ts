@@ -16,6 +16,8 @@ export interface ReplayHookContext {
   engine: ReplayEngine;
   view: ShallowRef<MapView | null>;
   complete: () => boolean;
+  /** The frame loop's animation frames and idle ticks, and the page's re-renders. */
+  pace: () => { frames: number; idleTicks: number; renders: number };
   selected: Ref<string | null>;
   play: (dir: 1 | -1) => void;
   span: () => [number, number];
@@ -34,6 +36,9 @@ export function exposeReplay(c: ReplayHookContext): void {
     engine,
     get playhead() { return engine.playhead; },
     get complete() { return c.complete(); },
+    /** Animation frames run, idle ticks, page re-renders: while paused and at rest the first
+     * and the last stand still (lib/framepace.ts). */
+    get pace() { return c.pace(); },
     get seeking() { return engine.seeking; },
     get log() { return engine.state.log; },
     get seekTimes() { return engine.seekTimes; },

@@ -154,6 +154,16 @@ export function agoText(ms: number, now: number): string {
   return `${parts.join(" ")} ago`;
 }
 
+/** How long until agoText(ms, now) reads otherwise (ms, at least 1): each second under an
+ * hour, each minute under a day, each hour beyond ("now" until two seconds). */
+export function agoChangesIn(ms: number, now: number): number {
+  const d = Math.max(0, Math.round((now - ms) / 1000));
+  const unit = d < 3600 ? 1 : d < 86400 ? 60 : 3600;
+  const next = d < 2 ? 2 : (Math.floor(d / unit) + 1) * unit;
+  // d turns to `next` half a second before it (agoText rounds).
+  return Math.max(1, (next - 0.5) * 1000 - (now - ms));
+}
+
 /** The picker's text: "2026-11-21 10:00:05", 24-hour UTC (a native date-time input would
  * show the browser's locale, e.g. 12-hour AM/PM, beside the UTC clock). */
 export function toInputValue(ms: number): string {
