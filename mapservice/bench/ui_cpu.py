@@ -37,7 +37,8 @@ def _browser_root(before: set[int]) -> psutil.Process:
         try:
             if p.pid in before or not p.name().startswith("chrom"):
                 continue
-            if not p.parent().name().startswith("chrom"):
+            parent = p.parent()
+            if parent is None or not parent.name().startswith("chrom"):
                 return p
         except psutil.Error:
             continue
