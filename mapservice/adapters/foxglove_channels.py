@@ -60,6 +60,12 @@ class FoxgloveChannels:
             channel = self._channel(topic, schema, "json")
         return channel
 
+    def listened(self, topic: str) -> bool:
+        """Whether a client (or another sink) takes the declared topic's messages now: the
+        SDK drops a message nobody takes, so a server without clients need not build it."""
+        channel = self._channels.get(topic)
+        return channel is not None and channel.has_sinks()
+
     def protobuf(self, topic: str, message: Any, ts_ms: int) -> None:
         channel = self.declare_protobuf(topic, type(message))
         channel.log(message.SerializeToString(), log_time=ts_ms * _NS_PER_MS)

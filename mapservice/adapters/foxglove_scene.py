@@ -11,8 +11,9 @@ May depend on: the ports (the store's time-travel and annotation reads)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from mapservice.adapters.foxglove_channels import FoxgloveChannels
 from mapservice.adapters.foxglove_messages import (
@@ -73,7 +74,11 @@ class FoxgloveScene:
         # with the robot; a late subscriber gets its current messages again, `resend`).
         from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
         from foxglove_schemas_protobuf.Grid_pb2 import Grid
+        from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+        from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+        self._classes = {"pose": PoseInFrame, "path": PosesInFrame, "tf": FrameTransform}
 
         channels.declare_protobuf(MAP_TOPIC, Grid)
         channels.declare_protobuf(TF_TOPIC, FrameTransform)
@@ -119,14 +124,25 @@ class FoxgloveScene:
         """A robot's pose, transform and state; its planned path when it changed (with
         `path_always`, also an unchanged one: a seek's picture is complete)."""
         self.robots[row.robot_id] = row
-        self.channels.protobuf(pose_topic(row.robot_id), pose_message(row), row.ts_ms)
-        self.channels.protobuf(TF_TOPIC, transform_message(row), row.ts_ms)
-        self.channels.json(state_topic(row.robot_id), STATE_SCHEMA_NAME, state_doc(row), row.ts_ms)
+        self._protobuf(pose_topic(row.robot_id), "pose", lambda: pose_message(row), row.ts_ms)
+        self._protobuf(TF_TOPIC, "tf", lambda: transform_message(row), row.ts_ms)
+        self.channels.declare_json(state_topic(row.robot_id), STATE_SCHEMA_NAME)
+        if self.channels.listened(state_topic(row.robot_id)):
+            self.channels.json(
+                state_topic(row.robot_id), STATE_SCHEMA_NAME, state_doc(row), row.ts_ms
+            )
         path = tuple(row.path) if row.path else None
         known = row.robot_id in self._paths
         if path_always or (known and self._paths[row.robot_id] != path) or (path and not known):
-            self.channels.protobuf(path_topic(row.robot_id), path_message(row), row.ts_ms)
+            self._protobuf(path_topic(row.robot_id), "path", lambda: path_message(row), row.ts_ms)
         self._paths[row.robot_id] = path
+
+    def _protobuf(self, topic: str, kind: str, build: Callable[[], Any], ts_ms: int) -> None:
+        """build()'s message on `topic` (declared: advertised with its robot), built only
+        when a client takes it: a server nobody watches spends nothing per pose."""
+        self.channels.declare_protobuf(topic, self._classes[kind])
+        if self.channels.listened(topic):
+            self.channels.protobuf(topic, build(), ts_ms)
 
     def chunk_changes(self, changes: Iterable[ChunkChange]) -> int:
         """Each write on the changes channel, drawn into the floor (sent by `grid`)."""
@@ -138,7 +154,7 @@ class FoxgloveScene:
             if meta is None:
                 return 0  # no geometry yet: no floor to draw into
             self.floor = Floor(meta, self.history)
-        for c in changes:
+        for c in changes if self.channels.listened(MAP_CHANGES_TOPIC) else ():
             self.channels.json(
                 MAP_CHANGES_TOPIC,
                 CHUNK_CHANGE_SCHEMA_NAME,
@@ -157,8 +173,8 @@ class FoxgloveScene:
 
     def grid(self, ts_ms: int | None = None) -> bool:
         """Sends the floor if writes were drawn since the last one; whether it did."""
-        if self.floor is None or not self.floor_dirty:
-            return False
+        if self.floor is None or not self.floor_dirty or not self.channels.listened(MAP_TOPIC):
+            return False  # a client that subscribes later gets the floor then (`resend`)
         at = self.floor_ms if ts_ms is None else ts_ms
         self.channels.protobuf(MAP_TOPIC, self.floor.grid(at), at)
         self.floor_dirty = False

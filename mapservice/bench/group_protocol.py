@@ -119,6 +119,8 @@ def create_topic(bootstrap: str, topic: str) -> None:
 
 def member_loss(bootstrap: str, protocol: str, timeout_s: float = 90.0) -> dict:
     """One round: the second member's join, then its SIGKILL; seconds for each."""
+    from mapservice.local.embedded import module_command
+
     topic = f"bench-group-protocol-{uuid.uuid4().hex[:8]}"
     group = f"{topic}-group"
     create_topic(bootstrap, topic)
@@ -134,15 +136,13 @@ def member_loss(bootstrap: str, protocol: str, timeout_s: float = 90.0) -> dict:
         )
         joined_at = time.monotonic()
         child = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
+            module_command(
                 "mapservice.bench.group_protocol",
                 "member",
                 # The logger is an object, not a setting: the child adds its own.
                 json.dumps({k: v for k, v in config.items() if k != "logger"}),
                 topic,
-            ],
+            ),
             stdout=subprocess.PIPE,
             text=True,
         )

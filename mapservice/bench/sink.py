@@ -16,7 +16,6 @@ import os
 import resource
 import statistics
 import subprocess
-import sys
 import time
 from contextlib import ExitStack
 from pathlib import Path
@@ -164,14 +163,13 @@ def main(args) -> None:
         print("RESULT " + json.dumps(result), flush=True)
         os._exit(0)  # librdkafka's threads need not be waited for
     from mapservice.bench.machine import machine_facts
+    from mapservice.local.embedded import module_command
 
     runs: dict[str, list[dict]] = {w: [] for w in WAYS}
     for i in range(args.repeat):
         for way in WAYS:
             out = subprocess.run(
-                [
-                    sys.executable,
-                    "-m",
+                module_command(
                     "mapservice.cli",
                     "bench",
                     "sink",
@@ -179,7 +177,7 @@ def main(args) -> None:
                     way,
                     "--events",
                     str(args.events),
-                ],
+                ),
                 capture_output=True,
                 text=True,
                 timeout=900,

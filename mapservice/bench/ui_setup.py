@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from mapservice.local.checkout import TEST_UI_ENV
+from mapservice.local.embedded import module_command
 
 
 def api_env(chdb_dir: Path, database: str, port: int) -> dict[str, str]:
@@ -59,7 +60,7 @@ class ApiProcess:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as log:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "mapservice.cli", "api"],
+                module_command("mapservice.cli", "api"),
                 env=self.env,
                 stdout=log,
                 stderr=subprocess.STDOUT,

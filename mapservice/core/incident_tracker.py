@@ -27,7 +27,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import msgspec
 
-from mapservice.core.incident_model import STUCK_CRITICAL_S
+from mapservice.core.incident_joins import carried_on, joined_own
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
@@ -38,7 +38,7 @@ from mapservice.core.incidents import (
     stuck_possible_at,
     unique_poses,
 )
-from mapservice.core.near_miss import near_misses, pose_columns, with_tracks
+from mapservice.core.near_miss import Closest, near_misses, pose_columns, with_tracks
 from mapservice.core.ports import PoseRow
 from mapservice.core.recent_poses import RecentPoses
 
@@ -63,34 +63,6 @@ def _ts(pose: PoseRow) -> int:
     return pose.ts_ms
 
 
-def _joined(before: Incident, after: Incident, th: IncidentThresholds) -> Incident:
-    """A run found ongoing (`before`) and its part from the poses before the new ones on
-    (`after`, found over them and the new ones) as one, as the rules find the whole run."""
-    if before.kind == "stuck":
-        still_s = (after.end_ms - before.start_ms) / 1000
-        return msgspec.structs.replace(
-            after,
-            incident_id=before.incident_id,
-            start_ms=before.start_ms,
-            measure=still_s,
-            severity="critical" if still_s >= STUCK_CRITICAL_S else "warning",
-            evidence=(before.evidence[0], after.evidence[1]),
-            from_data_edge=False,
-        )
-    low = min(before, after, key=lambda i: (i.measure, i.evidence[1].ts_ms))
-    return msgspec.structs.replace(
-        after,
-        incident_id=before.incident_id,
-        start_ms=before.start_ms,
-        x=low.x,
-        y=low.y,
-        measure=low.measure,
-        severity=low.severity,
-        evidence=(before.evidence[0], low.evidence[1]),
-        from_data_edge=False,
-    )
-
-
 class IncidentTracker:
     def __init__(
         self,
@@ -113,6 +85,8 @@ class IncidentTracker:
         # `current_from_ms`; the earlier ones are read from the store.
         self.current: dict[str, Incident] = {}
         self.current_from_ms = 0
+        # near misses found here (not read from the store): their closest tick, unrounded
+        self.closest: dict[str, Closest] = {}
         # every robot's recent poses as columns, for the near misses of each batch
         self.recent = RecentPoses()
         self.found: dict[str, Incident] = {}  # new or changed findings, not taken yet
@@ -132,6 +106,7 @@ class IncidentTracker:
         self.held_from = {}
         self.current = {i.incident_id: i for i in stored}
         self.current_from_ms = held_from_ms - self.th.lookback_ms
+        self.closest = {}
         self.found.clear()
         self.retracted.clear()
         if self.tracks:
@@ -208,7 +183,8 @@ class IncidentTracker:
                 if self._append_own(robot, before, first_new, ongoing, now_ms):
                     continue
             self._redo_own(robot, first_new - th.offline_after_ms, now_ms, known)
-        self._redo_near_misses(set(newest_before), changed_from, known)
+        late = {p.robot_id for p in placed_later}
+        self._redo_near_misses(set(newest_before), changed_from, known, late)
 
     def _pose_before(self, robot: str, ts_ms: int, default: int) -> int:
         """The time of the stored pose of `robot` before `ts_ms` (`default` if none)."""
@@ -270,6 +246,7 @@ class IncidentTracker:
         self.current = {
             k: i for k, i in self.current.items() if i.ongoing or i.end_ms >= cut - reach
         }
+        self.closest = {k: c for k, c in self.closest.items() if k in self.current}
 
     # --- finding ------------------------------------------------------------------------
 
@@ -379,7 +356,7 @@ class IncidentTracker:
                 went_on = ongoing.get(incident.kind)
                 if went_on is None:
                     return False
-                incident = _joined(went_on, incident, th)
+                incident = joined_own(went_on, incident, th)
                 continued.add(incident.kind)
             noted.append(incident)
         for incident in noted:
@@ -425,12 +402,17 @@ class IncidentTracker:
         )
 
     def _redo_near_misses(
-        self, robots: set[str], changed_from_ms: int, known: Iterable[Incident]
+        self,
+        robots: set[str],
+        changed_from_ms: int,
+        known: Iterable[Incident],
+        late: set[str] | None = None,
     ) -> None:
         """The near misses of pairs with a robot of `robots` at the ticks from
         `changed_from_ms` on, each run from its start: the ticks before are unchanged, so
         a known run that reaches them keeps its start (`known`: every incident ongoing or
-        ending at or after changed_from_ms - lookback)."""
+        ending at or after changed_from_ms - lookback). `late`: the robots with poses
+        placed before their newest (None: any may have)."""
         tick = self.th.tick_ms
         first_tick = -(-changed_from_ms // tick) * tick
         reaching = [
@@ -440,11 +422,24 @@ class IncidentTracker:
             and robots.intersection(i.robots)
             and i.end_ms >= first_tick - tick
         ]
-        # Every pair from the changed ticks on, but the pairs whose known run reaches them:
-        # those from their run's start (their robots only).
+        # A run begun before the changed ticks whose robots' new poses all came after their
+        # newest has no tick that can change: carried on from its closest tick found here
+        # (`carried_on`), not judged again from its start (a pair side by side for an hour
+        # would cost an hour of ticks a batch).
+        joinable = {
+            i.robots: i
+            for i in reaching
+            if i.start_ms < first_tick
+            and late is not None
+            and not late.intersection(i.robots)
+            and i.incident_id in self.closest
+        }
+        # Every pair from the changed ticks on, but the other pairs whose known run reaches
+        # them: those from their run's start (their robots only).
         going_on: dict[tuple[str, ...], int] = {}
         for i in reaching:  # from the first of a pair's runs that reach them, or from them
-            going_on[i.robots] = min(i.start_ms, first_tick, going_on.get(i.robots, first_tick))
+            if i.robots not in joinable:
+                going_on[i.robots] = min(i.start_ms, first_tick, going_on.get(i.robots, first_tick))
         if first_tick >= self.held_from_ms:  # memory holds them: the columns kept
             cols = self.recent.columns(first_tick, self.tracks)
         else:
@@ -455,13 +450,24 @@ class IncidentTracker:
             for r in pair:
                 reach_from[r] = min(start, reach_from.get(r, start))
         reach = {r: t for r, at in reach_from.items() for r, t in self._tracks(r, at).items()}
-        fresh = near_misses(
-            with_tracks(cols, reach),
-            self.th,
-            from_tick=first_tick,
-            involving=robots,
-            pairs_from={(a, b): start for (a, b), start in going_on.items()},
+        closest: dict[str, Closest] = {}
+        fresh, closest = carried_on(
+            joinable,
+            self.closest,
+            near_misses(
+                with_tracks(cols, reach),
+                self.th,
+                from_tick=first_tick,
+                involving=robots,
+                pairs_from={(a, b): start for (a, b), start in going_on.items()},
+                closest=closest,
+            ),
+            closest,
+            first_tick,
+            tick,
+            lambda robot: self.tracks[robot][-1].ts_ms,
         )
+        self.closest.update(closest)
         # A run that ends before the changed ticks is unchanged: the one known stands.
         self._replace(reaching, [i for i in fresh if i.end_ms >= first_tick - tick])
 

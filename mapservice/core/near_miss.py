@@ -19,6 +19,14 @@ from mapservice.core.incident_model import Incident, IncidentThresholds, PoseRef
 from mapservice.core.ports import PoseRow
 
 
+class Closest(NamedTuple):
+    """A near miss's closest tick: the distance unrounded, then the tick (ordered as the
+    rule picks: the closest, the earliest of equals)."""
+
+    gap: float
+    tick_ms: int
+
+
 class PoseColumns(NamedTuple):
     """Robots' poses as columns, sorted by robot, then time, one pose per instant."""
 
@@ -179,12 +187,14 @@ def near_misses(
     from_tick: int | None = None,
     involving: set[str] | None = None,
     pairs_from: dict[tuple[str, str], int] | None = None,
+    closest: dict[str, Closest] | None = None,
 ) -> list[Incident]:
     """`near_miss_incidents` over columns. With `pairs_from`, the pairs it names each over
     the ticks from its own on, and for every pair its two robots' poses read as beginning
     with the newest before its first tick (as if each pair were judged alone, over the
     poses from that tick on: the live detection's runs that go on, in the same pass as the
-    pairs from `from_tick`)."""
+    pairs from `from_tick`). `closest` is given each incident's closest tick, unrounded
+    (what `join_runs` needs to carry a run on exactly)."""
     robots = cols.robots
     if not robots:
         return []
@@ -291,4 +301,6 @@ def near_misses(
                 from_data_edge=any(start_ms - th.tick_ms < first_ts(r, pair) for r in pair),
             )
         )
+        if closest is not None:
+            closest[incidents[-1].incident_id] = Closest(gap, int(tick[runs[k][4]]))
     return incidents

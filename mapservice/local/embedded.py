@@ -34,6 +34,14 @@ _pick = random.SystemRandom()  # not the global generator: tests seed that one a
 PORT_SLICE_ENV = "MAPSERVICE_LOCAL_PORT_SLICE"
 
 
+def module_command(module: str, *args: str, python: str = "") -> list[str]:
+    """The command that runs `python -m module args` (this Python when none is given) on
+    the installed code: `-P` keeps the working directory off sys.path, where a checkout
+    of another commit would shadow the package (a comparison of two commits run from one
+    of them would run its code twice)."""
+    return [python or sys.executable, "-P", "-m", module, *args]
+
+
 def ephemeral_ports() -> range | None:
     """The ports the kernel gives outgoing connections (Linux's setting), if known."""
     try:
@@ -208,14 +216,12 @@ def start_amqtt(
     if ws_port:
         ensure_port_free(ws_port, "MQTT over WebSocket (amqtt)")
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
+        module_command(
             "mapservice.local.embedded",
             "amqtt",
             str(port),
             *([str(ws_port)] if ws_port else []),
-        ],
+        ),
         stdout=log_file or subprocess.DEVNULL,
         stderr=subprocess.STDOUT,
         start_new_session=True,

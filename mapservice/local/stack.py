@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -179,15 +178,13 @@ class Stack(StackMqtt, StackEnv):
             raise RuntimeError("the guard must be started from the main thread")
         mark = lifetime.mark_children()
         self.guard = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
+            embedded.module_command(
                 "mapservice.local.lifetime",
                 lifetime.GUARD,
                 str(self.pid_file.path),
                 str(os.getpid()),
                 mark,
-            ],
+            ),
             stdout=self._log("guard"),
             stderr=subprocess.STDOUT,
             start_new_session=True,
@@ -228,7 +225,7 @@ class Stack(StackMqtt, StackEnv):
             if self._stopping:
                 raise RuntimeError(f"not starting {name}: the stack is being stopped")
             proc = subprocess.Popen(
-                [self.python or sys.executable, "-m", "mapservice.cli", *args],
+                embedded.module_command("mapservice.cli", *args, python=self.python),
                 env={**self.env(name), **(env or {})},
                 stdout=self._log(name),
                 stderr=subprocess.STDOUT,

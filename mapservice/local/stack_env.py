@@ -120,6 +120,13 @@ class StackEnv:
         env = {}
         if self.kafka == "tansu" and "MAPSERVICE_KAFKA_FETCH_WAIT_MS" not in os.environ:
             env["MAPSERVICE_KAFKA_FETCH_WAIT_MS"] = str(TANSU_FETCH_WAIT_MS)
+        if self.kafka == "apache" and "MAPSERVICE_KAFKA_PARTITIONS" not in os.environ:
+            # One processors replica reads the embedded broker, so more partitions share
+            # nothing out; they cost produce requests (librdkafka sends one per partition
+            # and linger) that the broker's CPU follows: one partition per topic took it to
+            # 0.42x at 1,000 robots (BENCHMARKS.md). tansu keeps the default: two producers
+            # on one of its partitions can hide a batch from a reader (docs/embedded.md).
+            env["MAPSERVICE_KAFKA_PARTITIONS"] = "1"
         if self.kafka_auth:
             env |= component_env(self.service_password(KAFKA_SERVICE_USER, "kafka"))
         return env

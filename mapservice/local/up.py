@@ -20,6 +20,7 @@ def cmd_up(args) -> None:
     from mapservice.adapters.clock import SystemClock
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.local import lifetime
+    from mapservice.local.embedded import module_command
     from mapservice.local.private_dir import protect_data_dir
     from mapservice.local.stack import Stack
     from mapservice.local.up_output import log, print_addresses, step
@@ -110,9 +111,7 @@ def cmd_up(args) -> None:
             # Its own process: chDB lets one process open a directory, and the engine is
             # released only when the process that opened it ends.
             done = subprocess.run(
-                [
-                    sys.executable,
-                    "-m",
+                module_command(
                     "mapservice.cli",
                     "demo-history",
                     "--data-dir",
@@ -123,7 +122,7 @@ def cmd_up(args) -> None:
                     str(args.robots),
                     "--map",
                     str(args.map),
-                ],
+                ),
                 preexec_fn=lifetime.die_with_parent,
             )
             if done.returncode != 0:

@@ -48,6 +48,9 @@ class Recorder:
     def declare_json(self, topic: str, schema_name: str) -> None:
         pass
 
+    def listened(self, topic: str) -> bool:
+        return True
+
     def protobuf(self, topic: str, message: Any, ts_ms: int) -> None:
         self.sent.append((topic, ts_ms, message))
 
@@ -277,3 +280,54 @@ def test_the_live_feed_sends_each_write_and_pose_of_the_stream_and_the_floor_the
         store.chunk_contents([bytes.fromhex(c.content_hash) for c in chunks]),
     )
     assert np.array_equal(grid_pixels(channels.on(MAP_TOPIC)[-1][1]), expected)
+
+
+@pytest.mark.parametrize("sink", [False, True], ids=["nobody-listens", "a-sink-listens"])
+def test_the_live_feed_builds_messages_only_for_a_channel_someone_takes(
+    sink, tmp_path, monkeypatch
+):
+    """On the SDK's own channels: with no client (no sink) the live stream moves the scene
+    (its robots, its floor) but builds no message; with a sink (an MCAP writer on the same
+    context, as a client's subscription is one) every pose, transform, state and write is
+    sent, and the floor."""
+    import foxglove
+
+    from mapservice.adapters import foxglove_scene
+    from mapservice.adapters.foxglove_channels import FoxgloveChannels
+    from mapservice.adapters.foxglove_live import FoxgloveLive
+
+    built: list[str] = []
+    for name in ("pose_message", "transform_message", "path_message", "state_doc"):
+        real = getattr(foxglove_scene, name)
+        monkeypatch.setattr(
+            foxglove_scene, name, lambda row, real=real, name=name: built.append(name) or real(row)
+        )
+    store, events = history(1)
+    ordered = sorted(events[1:], key=lambda e: (e.event_time_ms, e.robot_id))
+    live = [text for record in live_records(ordered) for text in live_record_texts(record)]
+    context = foxglove.Context()
+    writer = foxglove.open_mcap(tmp_path / "sink.mcap", context=context) if sink else None
+    channels = FoxgloveChannels(context)
+    scene = FoxgloveScene(channels, store, store)
+    feed = FoxgloveLive(scene, lambda: T0 - 1, grid_every_s=1e-9, annotations_every_s=3600)
+    try:
+        feed._draw_now()
+        built.clear()
+        feed._apply(live)
+    finally:
+        feed.close()
+        if writer is not None:
+            writer.close()
+    poses = sum(m["type"] == "pose" for m in live)
+    assert poses > 10
+    assert {m["robotId"] for m in live if m["type"] == "pose"} == set(scene.robots)
+    assert scene.floor is not None and scene.floor_ms == max(
+        m["ts_ms"] for m in live if m["type"] == "chunk"
+    )
+    if sink:
+        assert built.count("pose_message") == built.count("state_doc") == poses
+        assert built.count("transform_message") == poses
+        assert not scene.floor_dirty  # the floor went out
+    else:
+        assert built == []
+        assert scene.floor_dirty  # kept for a client that subscribes: `resend` draws it

@@ -5,6 +5,7 @@ broker and Python reach the stack it runs."""
 from __future__ import annotations
 
 import argparse
+import sys
 from argparse import Namespace
 
 import pytest
@@ -176,6 +177,29 @@ def test_a_stack_runs_its_components_with_the_python_it_is_given(tmp_path) -> No
     finally:
         proc.kill()
         proc.wait()
+
+
+@pytest.mark.parametrize("given", [False, True], ids=["this-python", "another-python"])
+def test_a_checkout_in_the_working_directory_never_shadows_the_components_code(
+    tmp_path, monkeypatch, given
+) -> None:
+    """`python -m` puts the working directory first on sys.path: a comparison run from one
+    checkout would run that checkout's `mapservice` under the other checkout's Python, both
+    variants the same code. The components import the installed package whatever the
+    directory holds."""
+    from mapservice.local.stack import Stack
+
+    shadow = tmp_path / "checkout"
+    (shadow / "mapservice").mkdir(parents=True)
+    (shadow / "mapservice" / "__init__.py").write_text("")
+    (shadow / "mapservice" / "cli.py").write_text("print('the working directory's code')\n")
+    monkeypatch.chdir(shadow)
+    stack = Stack(tmp_path / "data", python=sys.executable if given else "")
+    proc = stack.spawn("gateway", "--help")
+    assert proc.wait(timeout=60) == 0
+    out = (stack.log_dir / "gateway.log").read_text()
+    assert "the working directory's code" not in out
+    assert "usage: mapservice" in out
 
 
 def test_the_ingest_command_takes_two_comparisons_with_help() -> None:

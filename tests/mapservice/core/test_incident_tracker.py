@@ -246,3 +246,35 @@ def test_near_misses_going_on_are_judged_in_one_pass_whatever_their_number(
     assert {i.robots for i in tracker.current.values() if i.ongoing} == {
         (f"p{k:02d}a", f"p{k:02d}b") for k in range(pairs)
     }
+
+
+@pytest.mark.parametrize("seconds", [30, 240])
+def test_a_near_miss_going_on_costs_each_batch_its_new_ticks_only(seconds, monkeypatch) -> None:
+    """Two robots side by side for minutes (a queue at a door, a convoy): each batch
+    carries their run on from the ticks it can change, so a batch costs the same at the
+    run's fourth minute as at its first seconds (judged from the run's start, it cost a
+    tick more every half second), and the run found is the one the rule finds."""
+    th = IncidentThresholds()
+    t0 = 1_795_255_200_000
+    poses = [
+        fleet_pose(robot, t0 + s * 1000 + k, s * 0.5, 0.4 * k, 80.0)
+        for s in range(seconds + 1)
+        for k, robot in enumerate(("a", "b"))
+    ]
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 600_000)
+    places = near_miss._places
+    per_batch: list[int] = []
+
+    def counted(*args):
+        result = places(*args)
+        per_batch.append(len(result[0]))
+        return result
+
+    monkeypatch.setattr(near_miss, "_places", counted)
+    for s in range(seconds + 1):
+        tracker.add(poses[2 * s : 2 * s + 2], t0 + s * 1000 + 500)
+    assert max(per_batch[5:]) <= 8  # two robots, a second's ticks and its edges
+    [run] = [i for i in tracker.current.values() if i.kind == "near_miss"]
+    [expected] = [i for i in detect(poses, t0 + seconds * 1000 + 500, th) if i.kind == "near_miss"]
+    assert normal([run]) == normal([expected])
+    assert run.ongoing and run.end_ms - run.start_ms >= (seconds - 1) * 1000

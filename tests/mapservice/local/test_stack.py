@@ -216,3 +216,32 @@ def test_components_on_tansu_fetch_with_a_short_wait_and_on_apache_kafka_with_th
     assert Settings().kafka_fetch_wait_ms == 500
     monkeypatch.setenv("MAPSERVICE_KAFKA_FETCH_WAIT_MS", "120")
     assert on_tansu.env(component)["MAPSERVICE_KAFKA_FETCH_WAIT_MS"] == "120"
+
+
+@pytest.mark.parametrize("component", ["server", "processors", "api", "gateway", None])
+def test_the_embedded_apache_kafka_gets_one_partition_a_topic_unless_told(
+    tmp_path, monkeypatch, component
+):
+    """One processors replica reads the embedded Apache Kafka: its topics are made with one
+    partition (the broker's CPU follows produce requests, one per partition); tansu and a
+    Kafka of the operator's keep the settings' default, and a count the operator set is kept."""
+    monkeypatch.delenv("MAPSERVICE_KAFKA_PARTITIONS", raising=False)
+    on_apache = Stack(tmp_path / "a", mqtt="mosquitto", kafka="apache")
+    on_tansu = Stack(tmp_path / "t", mqtt="mosquitto", kafka="tansu")
+    external = Stack(tmp_path / "e", mqtt="mosquitto", kafka="127.0.0.1:9")
+    assert on_apache.env(component)["MAPSERVICE_KAFKA_PARTITIONS"] == "1"
+    assert on_apache.settings().kafka_partitions == 1
+    for other in (on_tansu, external):
+        assert "MAPSERVICE_KAFKA_PARTITIONS" not in other.env(component)
+        assert other.settings().kafka_partitions == Settings().kafka_partitions == 6
+    chosen = Stack(
+        tmp_path / "c",
+        mqtt="mosquitto",
+        kafka="apache",
+        extra_env={"MAPSERVICE_KAFKA_PARTITIONS": "3"},
+    )
+    assert chosen.env(component)["MAPSERVICE_KAFKA_PARTITIONS"] == "3"
+    assert chosen.settings().kafka_partitions == 3
+    monkeypatch.setenv("MAPSERVICE_KAFKA_PARTITIONS", "4")
+    assert on_apache.env(component)["MAPSERVICE_KAFKA_PARTITIONS"] == "4"
+    assert on_apache.settings().kafka_partitions == 4
