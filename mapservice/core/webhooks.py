@@ -1,6 +1,7 @@
 """Webhooks an operator registers for incident alerts: what a valid one is, how a delivery
 is signed (and how a receiver checks it), how long a failed one waits before its next
-try, and when one that keeps failing is paused.
+try, and when one that keeps failing is paused (its URL's check is an adapter's,
+mapservice/adapters/webhook_urls.py: parsing a URL is no core business).
 
 Signing: the body is signed with HMAC-SHA256 under the webhook's secret, over
 `<timestamp>.<body>` (the timestamp in whole seconds since the epoch, sent in
@@ -16,18 +17,15 @@ import hmac
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from urllib.parse import urlsplit
 
 SIGNATURE_HEADER = "X-Mapservice-Signature"
 TIMESTAMP_HEADER = "X-Mapservice-Timestamp"
 WEBHOOK_ID_HEADER = "X-Mapservice-Webhook"
 DELIVERY_HEADER = "X-Mapservice-Delivery"
-URL_MAX_CHARS = 2048
 SECRET_MIN_CHARS = 16
 SECRET_MAX_CHARS = 256
 # A secret is text a plant's system can keep in its configuration: printable ASCII.
 _SECRET = re.compile(r"[\x21-\x7e]+")
-_HOST = re.compile(r"[A-Za-z0-9.\-\[\]:]+")
 
 
 def signature(secret: str, timestamp_s: int, body: bytes) -> str:
@@ -65,34 +63,7 @@ def backoff_s(attempt: int, base_s: float, cap_s: float) -> float:
     base, 2 base, 4 base, ... at most `cap_s`."""
     if attempt < 1:
         raise ValueError("attempt counts from 1")
-    return min(cap_s, base_s * 2 ** min(attempt - 1, 62))
-
-
-def check_url(url: str) -> str:
-    """The URL if a webhook may be sent to it, else ValueError saying why: http or https,
-    a host, no credentials (a URL is listed to every operator and logged; the secret is the
-    credential), no fragment, at most URL_MAX_CHARS."""
-    if len(url) > URL_MAX_CHARS:
-        raise ValueError(f"the URL is longer than {URL_MAX_CHARS} characters")
-    if any(c.isspace() or ord(c) < 0x20 or ord(c) == 0x7F for c in url):
-        raise ValueError("the URL holds whitespace or control characters")
-    try:
-        parts = urlsplit(url)
-        port = parts.port  # raises on a port that is no number or out of range
-    except ValueError as exc:
-        raise ValueError(f"the URL is malformed: {exc}") from None
-    if parts.scheme not in ("http", "https"):
-        raise ValueError("the URL must be http:// or https://")
-    if parts.username is not None or parts.password is not None or "@" in parts.netloc:
-        raise ValueError("the URL must not hold credentials: the secret signs each delivery")
-    host = parts.hostname or ""
-    if not host or not _HOST.fullmatch(host):
-        raise ValueError("the URL has no valid host")
-    if port == 0:
-        raise ValueError("the URL's port must be 1 to 65535")
-    if parts.fragment or url.endswith("#"):
-        raise ValueError("the URL must not have a fragment")
-    return url
+    return float(min(cap_s, base_s * 2.0 ** min(attempt - 1, 62)))
 
 
 def check_secret(secret: str) -> str:

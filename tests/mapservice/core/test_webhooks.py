@@ -10,14 +10,13 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from mapservice.adapters.webhook_urls import URL_MAX_CHARS, check_url
 from mapservice.core.webhooks import (
     SIGNATURE_HEADER,
     TIMESTAMP_HEADER,
-    URL_MAX_CHARS,
     WebhookHealth,
     backoff_s,
     check_secret,
-    check_url,
     signed_headers,
     verify,
 )
