@@ -4,6 +4,12 @@ registered (webhook_delivery.py). Runs on the store thread right after the findi
 returned, and only hands the alerts over: the MQTT client's thread (advertising.py) and the
 webhooks' workers send them, so neither a broker nor a receiver can hold the store up.
 
+Which replica sends: the one that stores the findings, i.e. the owner of the partitions
+whose poses made them (each replica finds the incidents of the robots it stores). So each
+finding is sent once, by one process, and again only where it is found again: after a
+rebalance or restart the views are rebuilt from the store and what was stored is known
+(`seed`), so only findings that differ from the stored ones are sent.
+
 Retained: the last alert of each kind. A system that subscribes (or reconnects) learns at
 once the newest finding of every kind and when it was found, so it can tell a quiet floor
 from a dead feed; what is open now is what `GET /api/v1/incidents` lists. Not one retained

@@ -208,3 +208,26 @@ def test_a_full_queue_drops_the_oldest_and_counts_it() -> None:
     deliveries.set_webhooks([])  # removed: its deliveries go with it
     assert deliveries.queued("w") == 0 and deliveries.offer({"kind": "stuck"}) == 0
     deliveries.close()
+
+
+def test_a_receiver_back_before_the_tries_run_out_gets_everything_without_a_resume(ev) -> None:
+    port = free_port()
+    patient = DeliveryPolicy(timeout_s=0.3, max_tries=6, backoff_base_s=0.2, backoff_cap_s=1.0)
+    deliveries = WebhookDeliveries(patient)
+    deliveries.set_webhooks([Webhook("w1", f"http://127.0.0.1:{port}/", SECRET)])
+    deliveries.start()
+    receiver = None
+    try:
+        floor = WebhookFloor(deliveries)
+        floor.run(ev, 60)
+        wait_for(lambda: deliveries.health()["w1"].failed_tries >= 2)  # down: refused twice
+        receiver = Receiver(port)  # back
+        wait_for(lambda: deliveries.queued("w1") == 0)
+        health = deliveries.health()["w1"]
+        assert health.state == "active" and health.failed_tries < patient.max_tries
+        announced = {a["id"] for a in receiver.delivered().values()}
+        assert {i.incident_id for i in floor.stored()} <= announced
+    finally:
+        deliveries.close()
+        if receiver is not None:
+            receiver.close()
