@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
+import structlog
 from prometheus_client import Counter
 
 from mapservice.core.incident_alerts import AlertLedger, alert_document, alert_topic
@@ -29,6 +30,8 @@ from mapservice.core.incident_model import Incident
 
 from .advertising import AdvertisementQueue
 from .webhook_delivery import WebhookDeliveries
+
+log = structlog.get_logger(__name__)
 
 ALERTS = Counter(
     "mapservice_incident_alerts_total", "Incident alerts handed over to be sent", ["event"]
@@ -56,10 +59,15 @@ class IncidentAlerts:
         """The findings just stored: each an alert on its kind's topic and to the webhooks."""
         for event, incident in self.ledger.classify(found, retracted):
             doc = alert_document(incident, event, found_ms)
-            if self.mqtt is not None:
-                self.mqtt.to_topic(alert_topic(self.topic_root, incident.kind), doc, retain=True)
-            if self.webhooks is not None:
-                self.webhooks.offer(doc)
+            try:
+                if self.mqtt is not None:
+                    topic = alert_topic(self.topic_root, incident.kind)
+                    self.mqtt.to_topic(topic, doc, retain=True)
+                if self.webhooks is not None:
+                    self.webhooks.offer(doc)
+            except Exception as exc:  # the findings are stored: an alert never undoes that
+                log.warning("incident alert not handed over", error=str(exc), kind=incident.kind)
+                continue
             ALERTS.labels(event).inc()
 
     def keep(self, held: Iterable[str], held_count: int) -> None:

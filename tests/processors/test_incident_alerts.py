@@ -117,3 +117,14 @@ def test_a_failed_insert_announces_nothing_and_a_restart_nothing_again(ev) -> No
     floor.send(ev, ("s", 40, 3.0, 3.0, 5.0, PATH))
     later = floor.alerts()[len(alerts) :]
     assert later and all(a["event"] != "new" for a in later)
+
+
+def test_an_alert_that_cannot_be_handed_over_does_not_fail_the_stored_findings(ev) -> None:
+    """On shutdown the MQTT queue closes before the consumer's last write: the findings are
+    stored all the same, their alerts logged as not sent."""
+    floor = AlertFloor()
+    floor.views.close()  # the queue's thread is gone
+    writes = floor.views.incidents.writer
+    floor.send(ev, *[("s", t, 3.0, 3.0, 5.0, PATH) for t in range(40)])
+    assert sorted(i.kind for i in writes.incidents(0, floor.now + 1)) == ["battery_low", "stuck"]
+    assert [topic for topic, *_ in floor.mqtt.sent if topic.startswith("iot/incidents/")] == []
