@@ -66,10 +66,11 @@ class MqttAdvertiser:
         """Queues one chunk advertisement; False (logged, counted) if it could not be queued."""
         return self.publish_to(self.topic, payload)
 
-    def publish_to(self, topic: str, payload: dict) -> bool:
-        """Queues one advertisement on `topic` (chunks', zones'); as `publish`."""
+    def publish_to(self, topic: str, payload: dict, retain: bool = False) -> bool:
+        """Queues one document on `topic` (chunks', zones' advertisements, incident alerts),
+        retained by the broker if asked; as `publish`."""
         try:
-            rc = self.client.publish(topic, _json.encode(payload), qos=self.qos).rc
+            rc = self.client.publish(topic, _json.encode(payload), qos=self.qos, retain=retain).rc
             error = mqtt.error_string(rc)
         except Exception as exc:  # never let MQTT trouble reach the sink
             rc, error = -1, str(exc)

@@ -1,6 +1,7 @@
-"""The advertisements the live views send robots (chunk changes, zone edits), encoded and
-published on one thread of their own: encoding one (base64 + PNG) takes ~2 ms, which stays
-off the event loop, and each chunk's advertisements keep their order. Best effort: a
+"""The advertisements the live views send robots (chunk changes, zone edits) and the
+incident alerts (incident_alerts.py), encoded and published on one thread of their own:
+encoding one (base64 + PNG) takes ~2 ms, which stays off the event loop and the store
+thread, and each chunk's advertisements keep their order. Best effort: a
 failure is logged, a backlog beyond its bound is dropped and counted."""
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ class Advertiser(Protocol):
 
     def publish(self, payload: dict[str, Any]) -> bool: ...
 
-    def publish_to(self, topic: str, payload: dict[str, Any]) -> bool: ...
+    def publish_to(self, topic: str, payload: dict[str, Any], retain: bool = False) -> bool: ...
 
     def stop(self) -> None: ...
 
@@ -53,9 +54,15 @@ class AdvertisementQueue:
             self._pending += 1
         self._thread.submit(self._publish, e)
 
-    def to_topic(self, topic: str, ad: dict[str, Any]) -> None:
-        """A document for `topic` (a zone edit's advertisement)."""
-        self._thread.submit(self._publish_to, topic, ad)
+    def to_topic(self, topic: str, ad: dict[str, Any], retain: bool = False) -> None:
+        """A document for `topic` (a zone edit's advertisement, an incident alert); dropped
+        (counted) when the backlog is full."""
+        with self._pending_lock:
+            if self._pending >= MAX_PENDING_ADS:
+                ADS_DROPPED.inc()
+                return
+            self._pending += 1
+        self._thread.submit(self._publish_to, topic, ad, retain)
 
     def _publish(self, e: Envelope) -> None:
         try:
@@ -66,11 +73,17 @@ class AdvertisementQueue:
             with self._pending_lock:
                 self._pending -= 1
 
-    def _publish_to(self, topic: str, ad: dict[str, Any]) -> None:
+    def _publish_to(self, topic: str, ad: dict[str, Any], retain: bool) -> None:
         try:
-            self.advertiser.publish_to(topic, ad)
+            if retain:
+                self.advertiser.publish_to(topic, ad, retain=True)
+            else:
+                self.advertiser.publish_to(topic, ad)
         except Exception as exc:  # best effort, as chunk advertisements
-            log.warning("zone advertisement failed", error=str(exc))
+            log.warning("advertisement failed", error=str(exc), topic=topic)
+        finally:
+            with self._pending_lock:
+                self._pending -= 1
 
     def flush(self) -> None:
         """Waits until every advertisement handed over so far was published (tests)."""

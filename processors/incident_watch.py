@@ -2,7 +2,8 @@
 the views from the store, fed every stored batch's poses, and what is found written
 together with the conflicts, before the batch's offsets are committed (like them, the
 stored incidents lag the history by up to sink_views_seconds). Touched only in the store
-thread: its reads of the history beyond memory (late poses) are store calls."""
+thread: its reads of the history beyond memory (late poses) are store calls. Once stored,
+the findings are handed to the alerts (incident_alerts.py), which only queue them."""
 
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ from mapservice.core.ports import (
 )
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.settings import Settings
+
+from .incident_alerts import IncidentAlerts
 
 INCIDENTS = Counter(
     "mapservice_incidents_found_total",
@@ -58,8 +61,10 @@ class IncidentWatch:
         incidents: IncidentReader,
         writer: HistoryWriter,
         now_ms: Callable[[], int],
+        alerts: IncidentAlerts | None = None,
     ) -> None:
         self.history, self.writer, self.now_ms = history, writer, now_ms
+        self.alerts = alerts
         self.keep_ms = round(settings.incident_memory_s * 1000)
         self.tracker = IncidentTracker(
             self._read, incidents.incidents, thresholds_of(settings), self.keep_ms
@@ -77,6 +82,8 @@ class IncidentWatch:
         since = now - self.keep_ms
         stored = self.tracker.read_incidents(since - self.tracker.th.lookback_ms, horizon_ms)
         self.tracker.load(self._read(since, horizon_ms, None), since, stored, now)
+        if self.alerts is not None:
+            self.alerts.seed(self.tracker.current.values())
 
     def find(self, events: Sequence[Envelope]) -> int:
         """Runs the rules over what the stored batch can change; returns how many findings
@@ -103,5 +110,9 @@ class IncidentWatch:
         for incident in found:
             INCIDENTS.labels(incident.kind).inc()
         INCIDENTS_RETRACTED.inc(len(retracted))
+        if self.alerts is not None:
+            self.alerts.announce(found, retracted, now)
         self.tracker.forget(now)
+        if self.alerts is not None:
+            self.alerts.keep(self.tracker.current, len(self.tracker.current))
         return len(found) + len(retracted)

@@ -40,10 +40,12 @@ from mapservice.settings import Settings
 
 from .advertising import AdvertisementQueue, Advertiser
 from .conflict_recorder import ConflictWatch
+from .incident_alerts import IncidentAlerts
 from .incident_watch import IncidentWatch
 from .latest_map import LatestMap
 from .presence import Presence
 from .store_thread import StoreThread
+from .webhook_delivery import WebhookDeliveries
 from .zone_watch import ZONE_VIOLATIONS, Zones
 
 log = structlog.get_logger(__name__)
@@ -68,6 +70,7 @@ class LiveViews:
         advertiser: Advertiser | None,
         store_thread: StoreThread,
         now_ms: Callable[[], int] = SystemClock().now_ms,
+        webhooks: WebhookDeliveries | None = None,
     ) -> None:
         self.settings = settings
         self.history = history
@@ -92,7 +95,8 @@ class LiveViews:
         self.conflicts = ConflictWatch(
             history, conflicts, writer, int(settings.conflict_window_s * 1000), now_ms
         )
-        self.incidents = IncidentWatch(settings, history, incidents, writer, now_ms)
+        alerts = IncidentAlerts(settings.incident_alert_topic_root, self.ads, webhooks)
+        self.incidents = IncidentWatch(settings, history, incidents, writer, now_ms, alerts)
         self.loaded = False
 
     @property

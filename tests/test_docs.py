@@ -65,3 +65,27 @@ def test_the_readme_stays_a_newcomers_page():
     assert lines <= README_MAX_LINES, (
         f"README.md has {lines} lines: move reference material to a page in docs/ and link it"
     )
+
+
+def test_the_webhook_verification_snippet_accepts_a_delivery_and_refuses_tampering():
+    """docs/history.md's receiver snippet, run: it accepts a delivery signed as the
+    processors sign it, and refuses another secret, a changed body, a moved or stale
+    timestamp."""
+    import time
+
+    from mapservice.core.webhooks import signed_headers
+
+    text = (DOCS / "history.md").read_text()
+    block = text.split("<!-- verify-webhook -->", 1)[1].split("<!-- /verify-webhook -->", 1)[0]
+    code = block.split("```python", 1)[1].split("```", 1)[0]
+    scope: dict = {}
+    exec(compile(code, "docs/history.md", "exec"), scope)
+    verified = scope["verified"]
+    secret, body, now = "0123456789abcdef-plant", b'{"kind": "stuck"}', int(time.time())
+    headers = {k.lower(): v for k, v in signed_headers(secret, now, body).items()}
+    assert verified(secret, headers, body)
+    assert not verified(secret + "x", headers, body)
+    assert not verified(secret, headers, body + b" ")
+    assert not verified(secret, {**headers, "x-mapservice-timestamp": str(now + 1)}, body)
+    stale = {k.lower(): v for k, v in signed_headers(secret, now - 301, body).items()}
+    assert not verified(secret, stale, body)

@@ -52,7 +52,7 @@ def render_acl(
         "# edits between the markers are overwritten. Anything not allowed here is denied.",
         "#",
         "# Every robot (its MQTT username is its robotId) publishes only on topics naming itself",
-        "# and reads its own commands; every user reads the map's and the zones' advertisements.",
+        "# and reads its own commands; every user reads the advertisements and the incident alerts.",
         *_patterns(rules_of(policy, Identity.ROBOT, Identity.EVERYONE)),
     ]
     if vehicle_rules := rules_of(policy, Identity.VEHICLE):
@@ -68,7 +68,7 @@ def render_acl(
         "# delivers the operators' commands (a vehicle's as instant actions).",
         *_user(gateway_user, rules_of(policy, Identity.GATEWAY)),
         "",
-        "# The processors announce each change of the latest map and of the zones.",
+        "# The processors announce each change of the latest map and of the zones, and incidents.",
         *_user(processors_user, rules_of(policy, Identity.PROCESSORS)),
         "",
         f"{MASTER_MARKER} (each orders every vehicle and reads all their messages;",

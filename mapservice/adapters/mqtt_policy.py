@@ -97,6 +97,7 @@ class AclTopics:
     )
     robot_root: str = "iot/robots/"  # <root><robotId>/commands (read), .../command-events (write)
     zone_advertisement_topic: str = "iot/zones/advertisement"
+    incident_alert_root: str = "iot/incidents/"  # <root><kind>: the processors' incident alerts
 
     @classmethod
     def from_settings(cls, settings: Settings) -> AclTopics:
@@ -111,6 +112,7 @@ class AclTopics:
             settings.vda5050_interface,
             settings.robot_topic_root.rstrip("/") + "/" if settings.robot_topic_root else "",
             settings.zone_advertisement_topic,
+            prefix(settings.incident_alert_topic_root),
         )
 
     def robot_topics(self, robot_id: str) -> dict[str, str]:
@@ -166,6 +168,9 @@ def access_policy(topics: AclTopics) -> tuple[Rule, ...]:
         # Everyone learns of each change of the latest map and of the operators' zones.
         Rule(Identity.EVERYONE, sub, topics.advertisement_topic),
         Rule(Identity.EVERYONE, sub, topics.zone_advertisement_topic),
+        # Everyone may hear of the incidents (the plant's systems subscribe); no robot may
+        # raise or fake one.
+        Rule(Identity.EVERYONE, sub, f"{topics.incident_alert_root}+"),
     ]
     if vda:
         rows += [
@@ -196,10 +201,11 @@ def access_policy(topics: AclTopics) -> tuple[Rule, ...]:
             *([f"{vda}/+/+/+/instantActions"] if vda else []),
         )
     ]
-    # The processors announce each change of the latest map and of the zones.
+    # The processors announce each change of the latest map and of the zones, and the incidents.
     rows += [
         Rule(Identity.PROCESSORS, pub, topics.advertisement_topic),
         Rule(Identity.PROCESSORS, pub, topics.zone_advertisement_topic),
+        Rule(Identity.PROCESSORS, pub, f"{topics.incident_alert_root}+"),
         Rule(Identity.LEGACY_CHUNKS, pub, topics.legacy_chunk_topic),
     ]
     return tuple(rows)

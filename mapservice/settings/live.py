@@ -19,6 +19,14 @@ class LiveSettings(BaseModel):
             "advertisements): the change, and where to GET the keep-out and speed masks."
         ),
     )
+    incident_alert_topic_root: str = Field(
+        "iot/incidents/",
+        description=(
+            "Root of the incident alerts' MQTT topics: every finding (new, changed, ended, "
+            "retracted) on <root><kind>, QoS 1, the last of each kind retained. Only the "
+            "processors may publish there; every user may subscribe."
+        ),
+    )
     robot_topic_root: str = Field(
         "iot/robots/",
         description=(

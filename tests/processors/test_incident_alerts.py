@@ -1,0 +1,130 @@
+"""Every incident finding the processors store is announced once it is stored, and only
+then: on `iot/incidents/<kind>` (retained) and to the webhooks, new, changed, ended or
+retracted; a failed insert announces nothing until its retry stores it, and a restart does
+not announce again what was stored before it."""
+
+from __future__ import annotations
+
+import asyncio
+
+from mapservice.core.incident_model import KINDS
+from tests.processors.history_consumer_kit import live_views
+from tests.processors.test_incident_watch import PATH, Floor, IncidentLog
+
+
+class Captured:
+    """An MQTT advertiser that keeps what it was handed (and whether it was stored then)."""
+
+    def __init__(self, store: IncidentLog) -> None:
+        self.store = store
+        self.sent: list[tuple[str, dict, bool, set[str]]] = []
+
+    def start(self) -> None:
+        pass
+
+    def publish(self, payload: dict) -> bool:
+        return self.publish_to("chunks", payload)
+
+    def publish_to(self, topic: str, payload: dict, retain: bool = False) -> bool:
+        stored = {i.incident_id for i in self.store.incidents(0, 2**62)}
+        self.sent.append((topic, payload, retain, stored))
+        return True
+
+    def stop(self) -> None:
+        pass
+
+
+class AlertFloor(Floor):
+    def start(self) -> None:
+        super().start()
+        self.mqtt = getattr(self, "mqtt", None) or Captured(self.store)
+        views = live_views(
+            self.views.settings,
+            self.store,
+            self.mqtt,
+            self.consumer.sink.thread,
+            now_ms=lambda: self.now,
+        )
+        views.load()
+        self.views = self.consumer.views = views
+
+    def alerts(self) -> list[dict]:
+        self.views.flush()
+        return [doc for topic, doc, _, _ in self.mqtt.sent if topic.startswith("iot/incidents/")]
+
+
+def test_every_stored_finding_is_announced_on_its_kinds_topic_after_it_is_stored(ev) -> None:
+    floor = AlertFloor()
+    for t in range(60):
+        floor.send(
+            ev,
+            ("s", t, 5.0 if t < 40 else 5.0 + t - 40, 5.0, 80.0, PATH),
+            ("a", t, float(t) * 0.5, 0.0, 80.0, PATH),
+            ("b", t, 15.0, 0.5, 80.0, None),
+            ("c", t, 20.0, 20.0, 20.0 - t * 0.25, None),
+        )
+    floor.tick(11)  # everyone falls silent
+    alerts = floor.alerts()
+    assert {a["kind"] for a in alerts} == set(KINDS)
+    for topic, doc, retain, stored in floor.mqtt.sent:
+        if topic.startswith("iot/incidents/"):
+            assert topic == f"iot/incidents/{doc['kind']}" and retain
+            assert doc["id"] in stored  # published only once the finding was stored
+    # every stored incident was announced, its last alert as it is stored
+    last = {a["id"]: a for a in alerts}
+    stored = floor.stored()
+    assert {i.incident_id for i in stored} <= set(last)
+    for i in stored:
+        if not (i.kind == "offline" and i.ongoing):
+            assert (last[i.incident_id]["end_ms"], last[i.incident_id]["ongoing"]) == (
+                i.end_ms,
+                i.ongoing,
+            )
+    # each incident's first alert is `new`; the stuck run ended when s drove off
+    first: dict[str, str] = {}
+    for a in alerts:
+        first.setdefault(a["id"], a["event"])
+    assert set(first.values()) == {"new"}
+    stuck = [a["event"] for a in alerts if a["kind"] == "stuck"]
+    assert stuck[0] == "new" and "ended" in stuck
+
+
+def test_a_retraction_is_announced(ev) -> None:
+    floor = AlertFloor()
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(10)])
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(25, 35)])
+    (silence,) = floor.alerts()
+    assert (silence["kind"], silence["event"]) == ("offline", "new")
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(10, 25, 2)])
+    assert floor.stored() == []
+    retraction = floor.alerts()[-1]
+    assert (retraction["id"], retraction["event"], retraction["ongoing"]) == (
+        silence["id"],
+        "retracted",
+        False,
+    )
+
+
+def test_a_failed_insert_announces_nothing_and_a_restart_nothing_again(ev) -> None:
+    store = IncidentLog(failures=1)
+    floor = AlertFloor(store)
+    floor.send(ev, *[("s", t, 3.0, 3.0, 5.0, PATH) for t in range(40)])
+    alerts = floor.alerts()
+    assert sorted(a["kind"] for a in alerts if a["event"] == "new") == ["battery_low", "stuck"]
+    assert all(stored for _, _, _, stored in floor.mqtt.sent)
+    floor.start()  # a restart: the views rebuilt from the store
+    asyncio.run(floor.views.write_found_until_done())
+    floor.send(ev, ("s", 40, 3.0, 3.0, 5.0, PATH))
+    later = floor.alerts()[len(alerts) :]
+    assert later and all(a["event"] != "new" for a in later)
+
+
+def test_an_alert_that_cannot_be_handed_over_does_not_fail_the_stored_findings(ev) -> None:
+    """On shutdown the MQTT queue closes before the consumer's last write: the findings are
+    stored all the same, their alerts logged as not sent."""
+    floor = AlertFloor()
+    floor.views.close()  # the queue's thread is gone
+    writes = floor.views.incidents.writer
+    floor.send(ev, *[("s", t, 3.0, 3.0, 5.0, PATH) for t in range(40)])
+    assert sorted(i.kind for i in writes.incidents(0, floor.now + 1)) == ["battery_low", "stuck"]
+    assert [topic for topic, *_ in floor.mqtt.sent if topic.startswith("iot/incidents/")] == []
