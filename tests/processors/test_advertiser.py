@@ -24,13 +24,14 @@ def test_publish_without_broker_queues_then_fails_counted_when_full() -> None:
     """With no broker, QoS 1 messages queue up to the bound; beyond it publish returns False."""
     adv = MqttAdvertiser(
         Settings(mqtt_url=f"mqtt://127.0.0.1:{free_port()}", advertisement_topic="ads/test"),
-        max_queued=2,
+        max_queued=4,
     )
     adv.start()
     try:
-        results = [adv.publish({"n": i}) for i in range(4)]
+        # Each chunk change is two messages: the 2019 topic's and its area's.
+        results = [adv.publish({"row": 0, "column": i}) for i in range(4)]
         assert results == [True, True, False, False]
-        assert adv.failures == 2
+        assert adv.failures == 4
     finally:
         adv.stop()
 
@@ -40,6 +41,6 @@ def test_bad_address_does_not_raise() -> None:
     adv = MqttAdvertiser(Settings(mqtt_url="mqtt://no-such-host.invalid:1883"), max_queued=1)
     adv.start()
     try:
-        assert adv.publish({"a": 1}) in (True, False)
+        assert adv.publish({"row": 0, "column": 0}) in (True, False)
     finally:
         adv.stop()
