@@ -37,12 +37,12 @@ import structlog
 import yaml
 
 from mapservice.adapters.ros_map import load_ros_map, write_pgm
-from mapservice.core.areas import AreaGrid
+from mapservice.core.areas import DEFAULT_AREA_MARGIN_M, AreaGrid
 from mapservice.core.events import MapMetaSet
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .api_client import api_client, writer_token
-from .areas import DEFAULT_AREA_MARGIN_M, AreaFeed, areas_around, map_areas
+from .areas import AreaFeed, areas_around, map_areas
 from .chunks import meta_to_json
 from .commands import CommandInbox, SimCommands, command_topic, refusals
 from .connection import RobotMqtt, robot_mqtt_from_args

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable, Hashable, Iterable
+from typing import Any
 
 import paho.mqtt.client as mqtt
 
@@ -25,10 +26,6 @@ from mapservice.core.areas import (
 from mapservice.core.events import MapMetaSet
 
 from .chunks import metres_to_pixel
-
-# Enough to see a change a few seconds ahead at a robot's speed (1-2 m/s), small enough
-# that a robot reads 1 to 4 areas of the default size (core/areas.py).
-DEFAULT_AREA_MARGIN_M = 5.0
 
 
 def areas_of_pixel_window(
@@ -98,9 +95,16 @@ class AreaFeed:
         client.message_callback_add(area_topic_filter(advertisement_topic), on_message)
         previous = client.on_connect
 
-        def on_connect(c, userdata, flags, reason_code, properties=None) -> None:
+        def on_connect(
+            c: mqtt.Client,
+            userdata: Any,
+            flags: Any,
+            reason_code: Any,
+            properties: Any = None,
+        ) -> None:
             if previous is not None:
-                previous(c, userdata, flags, reason_code, properties)
+                # paho's type names each version's signature; this client is of version 2
+                previous(c, userdata, flags, reason_code, properties)  # type: ignore[call-arg]
             if not reason_code.is_failure:
                 with self._lock:
                     self._subscribe(self.needed.current())

@@ -9,10 +9,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from mapservice.core.areas import DEFAULT_AREA_CHUNKS
+from mapservice.core.areas import DEFAULT_AREA_CHUNKS, DEFAULT_AREA_MARGIN_M
 from mapservice.robot import DEFAULT_MAP
 
-from .areas import DEFAULT_AREA_MARGIN_M
 from .connection import add_mqtt_arguments
 from .credentials_cli import cmd_credentials
 from .map_cli import cmd_map

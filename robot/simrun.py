@@ -11,9 +11,9 @@ import paho.mqtt.client as mqtt
 import structlog
 
 from mapservice.adapters.ros_map import RosMap
-from mapservice.core.areas import AreaGrid
+from mapservice.core.areas import DEFAULT_AREA_MARGIN_M, AreaGrid
 
-from .areas import DEFAULT_AREA_MARGIN_M, AreaFeed, areas_around_pixel
+from .areas import AreaFeed, areas_around_pixel
 from .commands import CommandInbox, SimCommands
 from .connection import RobotClients, RobotMqtt
 from .faults import Faults, to_messages

@@ -21,6 +21,9 @@ from dataclasses import dataclass
 # A robot near the middle of an area with a margin of a few metres reads 1 to 4 areas: with
 # 100-pixel chunks, 4 chunks are 12 m at 3 cm a pixel and 20 m at 5 cm.
 DEFAULT_AREA_CHUNKS = 4
+# Metres around a robot whose areas it reads: enough to see a change a few seconds ahead
+# at a robot's speed (1-2 m/s), small enough for 1 to 4 areas of the default size.
+DEFAULT_AREA_MARGIN_M = 5.0
 AREA_LEVEL = "area"
 
 Area = tuple[int, int]  # (area row, area column)
