@@ -1,4 +1,5 @@
-"""Publishes the 2019 chunk advertisements over MQTT (paho, its own network thread).
+"""Publishes the chunk advertisements over MQTT (paho, its own network thread): each change
+on the 2019 topic and on its area's topic (core/areas.py), encoded once.
 
 The sink must never wait for or fail because of MQTT: `publish` only queues (bounded),
 and a broker that is down, slow or refusing costs a logged, counted failure, not a stuck
@@ -19,6 +20,7 @@ import structlog
 from prometheus_client import Counter
 
 from mapservice.adapters.mqtt_client import parse_mqtt_url, service_client
+from mapservice.core.areas import AdvertisementTopics, AreaGrid
 from mapservice.settings import Settings
 
 log = structlog.get_logger(__name__)
@@ -35,6 +37,11 @@ class MqttAdvertiser:
 
     def __init__(self, settings: Settings, *, qos: int = 1, max_queued: int = 10_000) -> None:
         self.topic = settings.advertisement_topic
+        self.topics = AdvertisementTopics(
+            settings.advertisement_topic,
+            AreaGrid(settings.advertisement_area_chunks),
+            settings.advertise_on_2019_topic,
+        )
         self.host, self.port, _tls = parse_mqtt_url(settings.mqtt_url)
         self.qos = qos
         self.client = service_client(
@@ -63,14 +70,23 @@ class MqttAdvertiser:
             )
 
     def publish(self, payload: dict) -> bool:
-        """Queues one chunk advertisement; False (logged, counted) if it could not be queued."""
-        return self.publish_to(self.topic, payload)
+        """Queues one chunk advertisement on its topics (the 2019 one, its area's); False
+        (logged, counted) if any could not be queued."""
+        encoded = _json.encode(payload)
+        results = [
+            self._queue(topic, encoded)
+            for topic in self.topics.for_chunk(payload["row"], payload["column"])
+        ]
+        return all(results)
 
     def publish_to(self, topic: str, payload: dict, retain: bool = False) -> bool:
         """Queues one document on `topic` (chunks', zones' advertisements, incident alerts),
         retained by the broker if asked; as `publish`."""
+        return self._queue(topic, _json.encode(payload), retain)
+
+    def _queue(self, topic: str, encoded: bytes, retain: bool = False) -> bool:
         try:
-            rc = self.client.publish(topic, _json.encode(payload), qos=self.qos, retain=retain).rc
+            rc = self.client.publish(topic, encoded, qos=self.qos, retain=retain).rc
             error = mqtt.error_string(rc)
         except Exception as exc:  # never let MQTT trouble reach the sink
             rc, error = -1, str(exc)

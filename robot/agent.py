@@ -6,12 +6,17 @@ REST and MQTT API (appendix A):
 1. GET /api/chunk-service/meta. None stored: POST this robot's meta and all its chunks.
    Stored: download the whole map (GET /api/chunk-service/chunks?latest=true) into the
    local map file.
-2. Every period: integrate chunks other robots changed (iot/chunks/advertisement, each
-   downloaded through its chunkUrl); in a period without any, look for local changes of
+2. Every period: integrate chunks other robots changed (each downloaded through its
+   chunkUrl); in a period without any, look for local changes of
    the map file and publish every chunk whose content hash changed and that changed by
    more than the threshold (the seed's idea I.5) on iot/chunks/create.
 3. Every period: publish pose and status on iot/coordinates/{robotId}, from a simulated
    drive on the map or from JSON odometry on a local MQTT topic (the 2019 ROS bridge).
+
+Changes of other robots: the 2019 agent read every change of the plant on
+iot/chunks/advertisement (`advertisements="2019"`). By default the agent reads only the
+advertisement areas around it (areas.py), following its pose; until its first pose it reads
+every area of the map, so nothing is missed between the download and the first pose.
 """
 
 from __future__ import annotations
@@ -32,10 +37,12 @@ import structlog
 import yaml
 
 from mapservice.adapters.ros_map import load_ros_map, write_pgm
+from mapservice.core.areas import DEFAULT_AREA_MARGIN_M, AreaGrid
 from mapservice.core.events import MapMetaSet
 from mapservice.core.wire2019 import encode_chunk_create, encode_coordinates, format_timestamp
 
 from .api_client import api_client, writer_token
+from .areas import AreaFeed, areas_around, map_areas
 from .chunks import meta_to_json
 from .commands import CommandInbox, SimCommands, command_topic, refusals
 from .connection import RobotMqtt, robot_mqtt_from_args
@@ -46,6 +53,8 @@ from .pose_sources import OdometryPose, SimulatedPose
 log = structlog.get_logger("robot")
 
 ADVERTISEMENT_TOPIC = "iot/chunks/advertisement"
+# areas: the advertisement areas around the robot; 2019: every change, on the 2019 topic.
+ADVERTISEMENT_MODES = ("areas", "2019")
 CHUNK_TOPIC = "iot/chunks/create"
 META_PATH = "/api/chunk-service/meta"
 CHUNKS_PATH = "/api/chunk-service/chunks"
@@ -67,7 +76,14 @@ class RobotAgent:
         http: httpx.Client | None = None,
         token: str | None = None,
         mqtt_conn: RobotMqtt | None = None,
+        advertisements: str = "areas",
+        area_grid: AreaGrid = AreaGrid(),
+        area_margin_m: float = DEFAULT_AREA_MARGIN_M,
     ) -> None:
+        if advertisements not in ADVERTISEMENT_MODES:
+            raise ValueError(
+                f"advertisements: one of {ADVERTISEMENT_MODES}, not {advertisements!r}"
+            )
         self.map_yaml = Path(map_yaml)
         self.ros_map = load_ros_map(self.map_yaml)
         doc = yaml.safe_load(self.map_yaml.read_text())
@@ -92,6 +108,10 @@ class RobotAgent:
         self._file_sig = self._signature()
         self._pending = False  # the file changed and its chunks were not compared yet
         self.client = None
+        self.advertisements = advertisements
+        self.area_grid = area_grid
+        self.area_margin_m = area_margin_m
+        self.area_feed: AreaFeed | None = None
 
     # -- the map file
 
@@ -183,7 +203,8 @@ class RobotAgent:
     # -- the loop
 
     def _on_connect(self, client, userdata, flags, reason, properties=None) -> None:
-        client.subscribe([(ADVERTISEMENT_TOPIC, 1), (command_topic(self.robot_id), 1)])
+        whole_plant = [(ADVERTISEMENT_TOPIC, 1)] if self.advertisements == "2019" else []
+        client.subscribe([*whole_plant, (command_topic(self.robot_id), 1)])
 
     def _on_message(self, client, userdata, msg) -> None:
         if msg.topic == command_topic(self.robot_id):
@@ -209,7 +230,20 @@ class RobotAgent:
         self.client = self.conn.client(f"robot-{self.robot_id}", self.robot_id)
         self.client.on_connect = self._on_connect
         self.client.on_message = self._on_message
+        if self.advertisements == "areas":
+            self.area_feed = AreaFeed(
+                self.client, ADVERTISEMENT_TOPIC, lambda _c, _u, msg: self.adverts.put(msg.payload)
+            )
+            self.area_feed.move(self.robot_id, map_areas(self.local.meta, self.area_grid))
         self.conn.connect(self.client, who=f"robot {self.robot_id}")
+
+    def follow(self, x: float, y: float) -> None:
+        """Reads the advertisement areas around map point (x, y), and no other."""
+        if self.area_feed is not None:
+            self.area_feed.move(
+                self.robot_id,
+                areas_around(x, y, self.area_margin_m, self.local.meta, self.area_grid),
+            )
 
     def _refresh_from_disk(self) -> None:
         """Takes up edits of the map file; they stay pending until compared and published."""
@@ -291,6 +325,7 @@ class RobotAgent:
         reading = self.pose_source.read() if self.pose_source is not None else None
         if reading is None:
             return False
+        self.follow(reading.x, reading.y)
         now = time.time_ns() // 1_000_000
         self.client.publish(
             f"iot/coordinates/{self.robot_id}",
@@ -358,6 +393,9 @@ def main(args) -> None:
             chunk_height=args.chunk_height,
             token=writer_token(args.token),
             mqtt_conn=robot_mqtt_from_args(args, args.mqtt),
+            advertisements=args.advertisements,
+            area_grid=AreaGrid(args.area_chunks),
+            area_margin_m=args.area_margin,
         )
         signal.signal(signal.SIGTERM, lambda *_: agent.stop())
         how = agent.start()

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mapservice.core.areas import DEFAULT_AREA_CHUNKS, DEFAULT_AREA_MARGIN_M
 from mapservice.robot import DEFAULT_MAP
 
 from .connection import add_mqtt_arguments
@@ -23,6 +24,20 @@ def _probability(text: str) -> float:
     value = float(text)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"{text} is not a probability between 0 and 1")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not 1 or more")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"{text} is not 0 or more")
     return value
 
 
@@ -162,6 +177,19 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         help="ignore the operators' zones: robots drive through keep-out zones "
         "at full speed (the 2019 behaviour)",
     )
+    sim.add_argument(
+        "--area-margin",
+        type=_non_negative,
+        default=DEFAULT_AREA_MARGIN_M,
+        metavar="METRES",
+        help="each robot reads the map changes of the advertisement areas within this "
+        "distance of it (MAPSERVICE_ADVERTISEMENT_AREA_CHUNKS sets their size)",
+    )
+    sim.add_argument(
+        "--no-advertisements",
+        action="store_true",
+        help="robots read no map changes (as the simulator did before advertisement areas)",
+    )
     add_mqtt_arguments(sim, many=True)
     sim.set_defaults(func=cmd_sim)
 
@@ -203,6 +231,27 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     rb.add_argument("--chunk-width", type=int, default=100, help="chunk width in pixels")
     rb.add_argument("--chunk-height", type=int, default=100, help="chunk height in pixels")
     rb.add_argument("--seconds", type=float, default=None, help="stop after this long")
+    rb.add_argument(
+        "--advertisements",
+        choices=["areas", "2019"],
+        default="areas",
+        help="areas: read the map changes of the advertisement areas around the robot; "
+        "2019: every change of the plant on iot/chunks/advertisement",
+    )
+    rb.add_argument(
+        "--area-chunks",
+        type=_positive_int,
+        default=DEFAULT_AREA_CHUNKS,
+        help="side of an advertisement area in chunks: the service's "
+        "MAPSERVICE_ADVERTISEMENT_AREA_CHUNKS",
+    )
+    rb.add_argument(
+        "--area-margin",
+        type=_non_negative,
+        default=DEFAULT_AREA_MARGIN_M,
+        metavar="METRES",
+        help="read the areas within this distance of the robot",
+    )
     add_mqtt_arguments(rb, many=False)
     rb.set_defaults(func=cmd_robot, robot_command=None)
     ids = rb.add_subparsers(

@@ -183,7 +183,8 @@ Written: {_where(files)}; {reload}.""")
             if cred.legacy_chunks
             else "refused by the broker (use the topic above)"
         }
-  and reads {cred.topics["advertisements"]}. Anything else the broker refuses; a payload
+  and reads {cred.topics["advertisements"]} (every change of the map) or the areas around
+  it, {cred.topics["areaAdvertisements"]}. Anything else the broker refuses; a payload
   whose robotId differs from the topic's is a dead letter (robot_id_mismatch).
 
 Written: {_where(files)}; {reload}.{saved}"""

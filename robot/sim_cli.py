@@ -39,6 +39,8 @@ def cmd_sim(args) -> None:
     from rich.console import Console
     from rich.live import Live
 
+    from mapservice.core.areas import AreaGrid
+
     from .api_client import writer_token
     from .faults import Faults
     from .sim import SimConfig
@@ -64,6 +66,9 @@ def cmd_sim(args) -> None:
             mqtt_conn=conn,
             zone_feed=feed,
             zone_topic=settings.zone_advertisement_topic,
+            advertisement_topic=None if args.no_advertisements else settings.advertisement_topic,
+            area_grid=AreaGrid(settings.advertisement_area_chunks),
+            area_margin_m=args.area_margin,
         )
 
     console = Console()
@@ -146,6 +151,7 @@ def _sim_stats(s) -> dict:
         "lost": s.lost,
         "errors": s.errors,
         "map_changes": s.map_changes,
+        "advertisements_read": s.advertisements,
     }
 
 

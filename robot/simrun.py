@@ -11,7 +11,9 @@ import paho.mqtt.client as mqtt
 import structlog
 
 from mapservice.adapters.ros_map import RosMap
+from mapservice.core.areas import DEFAULT_AREA_MARGIN_M, AreaGrid
 
+from .areas import AreaFeed, areas_around_pixel
 from .commands import CommandInbox, SimCommands
 from .connection import RobotClients, RobotMqtt
 from .faults import Faults, to_messages
@@ -30,6 +32,7 @@ class SimStats:
     errors: int = 0  # publishes the client or broker refused, disconnects
     map_changes: int = 0
     zone_changes: int = 0  # new sets of operators' zones the robots took on
+    advertisements: int = 0  # map changes read on the areas' topics around the robots
     started: float = field(default_factory=time.monotonic)
     recent: deque = field(default_factory=lambda: deque(maxlen=5))
     window: deque = field(default_factory=lambda: deque(maxlen=20))  # (monotonic, sent so far)
@@ -60,6 +63,9 @@ class SimRunner:
         mqtt_conn: RobotMqtt | None = None,
         zone_feed: ZoneFeed | None = None,
         zone_topic: str = "iot/zones/advertisement",
+        advertisement_topic: str | None = None,
+        area_grid: AreaGrid = AreaGrid(),
+        area_margin_m: float = DEFAULT_AREA_MARGIN_M,
     ) -> None:
         self.mqtt_url = mqtt_url
         # Where robots have credentials, each connects as itself (RobotClients).
@@ -85,6 +91,11 @@ class SimRunner:
         self.conn.check([r.robot_id for r in self.state.robots])
         self.zone_feed = zone_feed
         self.zone_topic = zone_topic
+        # None: the robots read no map changes; else each reads the areas around it.
+        self.advertisement_topic = advertisement_topic
+        self.area_grid = area_grid
+        self.area_margin_px = area_margin_m / ros_map.resolution
+        self.area_feeds: dict[str | None, AreaFeed] = {}
         self._stop = threading.Event()
         self._closing = False
 
@@ -105,6 +116,27 @@ class SimRunner:
         assert self.zone_feed is not None
         feed = self.zone_feed
         clients.subscribe(self.zone_topic, lambda _c, _u, msg: feed.advertised(msg.payload))
+
+    def _read_areas(self, clients: RobotClients) -> None:
+        """An area feed on each connection (each robot's own, or the shared one)."""
+
+        def advertised(_c, _u, _msg) -> None:
+            self.stats.advertisements += 1
+
+        assert self.advertisement_topic is not None
+        self.area_feeds = {
+            key: AreaFeed(client, self.advertisement_topic, advertised)
+            for key, client in clients.clients.items()
+        }
+
+    def follow_robots(self) -> None:
+        """Each robot reads the areas around where it is now."""
+        if not self.area_feeds:
+            return
+        meta, grid, margin = self.state.meta, self.area_grid, self.area_margin_px
+        for robot in self.state.robots:
+            feed = self.area_feeds[robot.robot_id if self.conn.authenticated else None]
+            feed.move(robot.robot_id, areas_around_pixel(*robot.pos, margin, meta, grid))
 
     def apply_zones(self) -> None:
         """Takes on the zones the feed fetched since the last step, if any."""
@@ -131,6 +163,8 @@ class SimRunner:
         )
         clients.connect()
         self.commands.inbox.attach_fleet(clients)
+        if self.advertisement_topic is not None:
+            self._read_areas(clients)
         if self.zone_feed is not None:
             self._listen_for_zones(clients)
             self.zone_feed.refresh()  # the zones standing before the first step
@@ -151,6 +185,7 @@ class SimRunner:
                 self.apply_zones()
                 before = self.commands.before_step(self.state)
                 self.state, out = self.commands.after_step(before, *step(before))
+                self.follow_robots()
                 messages, lost = to_messages(
                     out,
                     self.faults,
@@ -213,6 +248,11 @@ def progress_table(runner: SimRunner):
             f"min {min(r.battery for r in robots):.0f} %, {sum(r.loaded for r in robots)} loaded",
         )
     table.add_row("map changes", f"{s.map_changes}" + (f": {s.recent[-1]}" if s.recent else ""))
+    if runner.area_feeds:
+        table.add_row(
+            "changes read",
+            f"{s.advertisements} advertisements of the areas around the robots",
+        )
     if runner.zone_feed is not None:
         table.add_row(
             "operators' zones",

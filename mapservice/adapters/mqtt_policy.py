@@ -7,7 +7,8 @@ tests read each rendering back against it. An identity is a kind of MQTT user:
 - a robot (2019 contract): its username is its robotId;
 - a VDA 5050 vehicle: its username is `<manufacturer>/<serialNumber>`, two levels of its topics;
 - a master control: a username `mapservice-master-<name>`;
-- everyone: any authenticated user (the map's and the zones' advertisements are public);
+- everyone: any authenticated user (the map's advertisements, on the 2019 topic and on the
+  area topics, and the zones' are public);
 - the gateway and the processors: the service's own users;
 - a robot an operator let use the 2019 chunk topic (named one by one; that topic carries no
   robotId, so such a robot may write chunks under any robotId).
@@ -22,6 +23,7 @@ import re
 from dataclasses import dataclass
 from enum import Enum
 
+from mapservice.core.areas import area_topic_filter
 from mapservice.core.vda_ids import robot_id_for
 from mapservice.settings import VDA5050_SUBTOPICS, Settings
 
@@ -99,6 +101,11 @@ class AclTopics:
     zone_advertisement_topic: str = "iot/zones/advertisement"
     incident_alert_root: str = "iot/incidents/"  # <root><kind>: the processors' incident alerts
 
+    @property
+    def area_advertisement_filter(self) -> str:
+        """Every advertisement area's topic (core/areas.py)."""
+        return area_topic_filter(self.advertisement_topic)
+
     @classmethod
     def from_settings(cls, settings: Settings) -> AclTopics:
         def prefix(topic_filter: str) -> str:
@@ -135,6 +142,7 @@ class AclTopics:
             "pose": f"{self.coordinate_prefix}{robot_id}",
             "chunks": f"{self.robot_chunk_prefix}{robot_id}",
             "advertisements": self.advertisement_topic,
+            "areaAdvertisements": self.area_advertisement_filter,
             **(
                 {
                     "commands": f"{self.robot_root}{robot_id}/commands",
@@ -165,8 +173,10 @@ def access_policy(topics: AclTopics) -> tuple[Rule, ...]:
             if root
             else []
         ),
-        # Everyone learns of each change of the latest map and of the operators' zones.
+        # Everyone learns of each change of the latest map (the whole plant's, or an
+        # area's) and of the operators' zones.
         Rule(Identity.EVERYONE, sub, topics.advertisement_topic),
+        Rule(Identity.EVERYONE, sub, topics.area_advertisement_filter),
         Rule(Identity.EVERYONE, sub, topics.zone_advertisement_topic),
         # Everyone may hear of the incidents (the plant's systems subscribe); no robot may
         # raise or fake one.
@@ -204,6 +214,7 @@ def access_policy(topics: AclTopics) -> tuple[Rule, ...]:
     # The processors announce each change of the latest map and of the zones, and the incidents.
     rows += [
         Rule(Identity.PROCESSORS, pub, topics.advertisement_topic),
+        Rule(Identity.PROCESSORS, pub, topics.area_advertisement_filter),
         Rule(Identity.PROCESSORS, pub, topics.zone_advertisement_topic),
         Rule(Identity.PROCESSORS, pub, f"{topics.incident_alert_root}+"),
         Rule(Identity.LEGACY_CHUNKS, pub, topics.legacy_chunk_topic),

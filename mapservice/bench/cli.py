@@ -150,6 +150,10 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
 
     add_incidents_parser(kinds)
 
+    from mapservice.bench.fanout import add_parser as add_fanout_parser
+
+    add_fanout_parser(kinds)
+
 
 def _run_ingest(args: argparse.Namespace) -> None:
     if args.kafka == "both" or getattr(args, "compare", None):

@@ -5,12 +5,32 @@ from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
+from mapservice.core.areas import DEFAULT_AREA_CHUNKS
+
 
 class LiveSettings(BaseModel):
     """Advertisement and command topics, and the thresholds of conflicts, skew and offline."""
 
     advertisement_topic: str = Field(
         "iot/chunks/advertisement", description="2019 NEW_CHUNK_ADVERTISEMENT_TOPIC."
+    )
+    advertise_on_2019_topic: bool = Field(
+        True,
+        description=(
+            "Advertise each chunk change on the 2019 topic too (every robot subscribed to it "
+            "receives every change of the plant). Off only where no 2019 robot runs: robots "
+            "of this project read the area topics."
+        ),
+    )
+    advertisement_area_chunks: int = Field(
+        DEFAULT_AREA_CHUNKS,
+        ge=1,
+        le=100_000,
+        description=(
+            "Side of an advertisement area in chunks: a change of chunk (row, column) is also "
+            "advertised on <advertisement_topic>/area/<row // n>/<column // n>, which robots "
+            "subscribe to around them. Robots must use the same value (--area-chunks)."
+        ),
     )
     zone_advertisement_topic: str = Field(
         "iot/zones/advertisement",

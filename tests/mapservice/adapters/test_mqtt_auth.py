@@ -92,6 +92,7 @@ def test_acl_follows_configured_topics():
         "pose": "site1/robots/r1",
         "chunks": "site1/chunks/r1",
         "advertisements": "site1/adverts",
+        "areaAdvertisements": "site1/adverts/area/+/+",
         "commands": "site1/own/r1/commands",
         "commandEvents": "site1/own/r1/command-events",
     }
@@ -104,6 +105,8 @@ def test_acl_follows_configured_topics():
         and "topic read site1/own/+/command-events" in text
     )
     assert "pattern read site1/zones" in text and "topic write site1/zones" in text
+    assert "pattern read site1/adverts/area/+/+" in text
+    assert "topic write site1/adverts/area/+/+" in text
 
 
 def test_gateway_may_send_vda_vehicles_instant_actions():
