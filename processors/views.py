@@ -32,6 +32,7 @@ from mapservice.core.ports import (
     ChunkState,
     ConflictReader,
     HistoryWriter,
+    IncidentFeed,
     IncidentReader,
     TimeTravelReader,
 )
@@ -54,7 +55,7 @@ __all__ = ["Advertiser", "LiveViews"]
 class LiveViews:
     """Rebuilt from the map and robots at an instant (`history`), the standing zones
     (`annotations`) and the writes near new ones (`conflicts`); the conflicts and zone
-    violations found are stored through `writer`."""
+    violations found are stored through `writer`, the incidents announced on `live`."""
 
     def __init__(
         self,
@@ -68,6 +69,7 @@ class LiveViews:
         advertiser: Advertiser | None,
         store_thread: StoreThread,
         now_ms: Callable[[], int] = SystemClock().now_ms,
+        live: IncidentFeed | None = None,
     ) -> None:
         self.settings = settings
         self.history = history
@@ -92,7 +94,7 @@ class LiveViews:
         self.conflicts = ConflictWatch(
             history, conflicts, writer, int(settings.conflict_window_s * 1000), now_ms
         )
-        self.incidents = IncidentWatch(settings, history, incidents, writer, now_ms)
+        self.incidents = IncidentWatch(settings, history, incidents, writer, now_ms, live)
         self.loaded = False
 
     @property
