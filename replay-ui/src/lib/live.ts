@@ -10,11 +10,13 @@
  * neither hammer it nor re-seek the replay once a second, and many tabs spread out.
  */
 import type { ChunkChange, Pose } from "./types";
+import type { IncidentAnnouncement } from "./incidents";
 import { liveProtocols } from "./auth";
 
 export type LiveMessage =
   | ({ type: "pose"; sent_ms?: number } & Pose)
-  | ({ type: "chunk"; sent_ms?: number; receive_time_ms?: number } & ChunkChange);
+  | ({ type: "chunk"; sent_ms?: number; receive_time_ms?: number } & ChunkChange)
+  | IncidentAnnouncement;
 
 export interface LiveStatus {
   connected: boolean;
@@ -78,10 +80,14 @@ export class LiveConnection {
       const events = Array.isArray(data) ? data : [data];
       if (events.length === 0) return;
       this.status.messages += events.length;
-      // One latency sample per frame, from its newest event: the smoothing stays per
-      // arrival rather than being swamped by a catch-up frame of a thousand old events.
-      const lag = Date.now() - events[events.length - 1].ts_ms;
-      this.status.latencyMs = this.status.latencyMs === null ? lag : Math.round(0.8 * this.status.latencyMs + 0.2 * lag);
+      // One latency sample per frame, from its newest robot event (an incident's time is
+      // when it was found, not a robot's): the smoothing stays per arrival rather than
+      // being swamped by a catch-up frame of a thousand old events.
+      const newest = [...events].reverse().find((m) => m.type !== "incident");
+      if (newest) {
+        const lag = Date.now() - newest.ts_ms;
+        this.status.latencyMs = this.status.latencyMs === null ? lag : Math.round(0.8 * this.status.latencyMs + 0.2 * lag);
+      }
       for (const m of events) this.onMessage(m);
     };
     ws.onclose = () => {

@@ -1,0 +1,191 @@
+/**
+ * The incidents panel's state: the incidents of the timeline's span (read while the panel is
+ * open, with its kinds and robot; the area drawn on the map, the change feed's, applied
+ * here), what the live stream announces merged in as it comes (a live page asks nothing to
+ * see a new one), the picked incident (the map seeks a few seconds before it, rings its
+ * robots and draws their trails), and previous/next incident.
+ *
+ * Reads keep the page's budget (lib/cadence.ts): a span reaching now is read ahead past it,
+ * so its end sliding with the clock asks nothing until then; while live the stream brings
+ * what is new, and a replay of a span reaching now reads again at the page's cadence.
+ */
+import { computed, ref, shallowRef, watch, type Ref, type ShallowRef } from "vue";
+import { getJson } from "../lib/api";
+import type { ChunkBox } from "../lib/changefeed";
+import { mayGrow, readAheadTo, REFRESH_MS } from "../lib/cadence";
+import type { ReplayEngine } from "../lib/engine";
+import { applyAnnouncement, incidentSeek, incidentsUrl, isKind, KIND_STYLE, measureText, neighbourIncident, shownIncidents,
+  sortByStart, trailWindow, type Incident, type IncidentAnnouncement, type IncidentKind, type IncidentQuery } from "../lib/incidents";
+import type { MapView } from "../lib/mapview";
+import { oldestReadable } from "../lib/retention";
+import { trailRuns, type TrailPoint } from "../lib/trail";
+import { formatUtc, type UrlState } from "../lib/urlstate";
+
+export interface IncidentDeps {
+  engine: ReplayEngine;
+  view: ShallowRef<MapView | null>;
+  initial: UrlState;
+  /** The timeline's span [from, to). */
+  span: () => [number, number];
+  /** The area drawn on the map (the change feed's), null: the whole floor. */
+  area: Ref<ChunkBox | null>;
+  /** The panel is open; `open()` opens it. */
+  isOpen: () => boolean;
+  open: () => void;
+  /** Leaves live mode, pauses and seeks to an instant. */
+  pauseAt: (t: number) => void;
+  notice: Ref<string | null>;
+}
+
+/** The most one read lists (the API's answer says when it cut there). */
+export const INCIDENT_LIMIT = 5000;
+
+export function useIncidents(d: IncidentDeps) {
+  const { engine, view } = d;
+  const kinds = ref<IncidentKind[]>(d.initial.incidentKinds.filter(isKind));
+  const robot = ref<string | null>(d.initial.incidentRobot);
+  const picked = ref<string | null>(d.initial.incident);
+  const items = shallowRef<Incident[]>([]);
+  const truncated = ref(false);
+  const loading = ref(false);
+  const error = ref<string | null>(null);
+  const query = (): IncidentQuery => ({ kinds: kinds.value, robot: robot.value });
+  const queryKey = () => JSON.stringify(query());
+
+  /** What was read: [from, to) (to past now for a span reaching it), for which query, when. */
+  let read = { from: 0, to: 0, key: "", at: 0 };
+  let asked = 0;
+
+  const list = computed(() => shownIncidents(items.value, d.span(), d.area.value, engine.meta));
+  /** Newest first, as the panel lists them. */
+  const newestFirst = computed(() => [...list.value].reverse());
+
+  async function load(): Promise<void> {
+    const mine = ++asked;
+    const now = Date.now();
+    const [from, to] = d.span();
+    const until = readAheadTo(to, now);
+    read = { from, to: until, key: queryKey(), at: now };
+    loading.value = true;
+    try {
+      const page = await getJson<{ incidents: Incident[]; truncated: boolean }>(
+        incidentsUrl(engine.api.base, Math.max(from, oldestReadable(now)), until, query(), INCIDENT_LIMIT), "the incidents");
+      if (mine !== asked) return;
+      items.value = sortByStart(page.incidents);
+      truncated.value = page.truncated;
+      error.value = null;
+      afterLoad();
+    } catch (e) {
+      if (mine === asked) error.value = (e as Error).message;
+    } finally {
+      if (mine === asked) loading.value = false;
+    }
+  }
+
+  /** With the summary (a few times a second): reads again what is due, one read at a time. */
+  function tick() {
+    if (!d.isOpen() || loading.value) return;
+    const [from, to] = d.span();
+    const covered = read.key === queryKey() && from >= read.from && to <= read.to && !(truncated.value && from !== read.from);
+    const live = engine.clock.live && engine.live.status.connected;
+    const due = !live && mayGrow(read.to, read.at) && Date.now() - read.at > REFRESH_MS;
+    if (!covered || due) void load();
+  }
+
+  // A filter changed: the list shown is the old one's until the new one is read.
+  watch([kinds, robot], () => {
+    if (d.isOpen()) void load();
+  });
+
+  /** A live announcement: merged into what was read (for the read's window and query). */
+  engine.onIncident = (a: IncidentAnnouncement) => {
+    if (!d.isOpen() || !read.key) return;
+    items.value = applyAnnouncement(items.value, a, read, query());
+    if (a.incident.id === picked.value && a.retracted) unpick();
+  };
+
+  let trailsFor = "";
+  /** The map shows `i` picked: its robots ringed, its place, their trails around it. */
+  function showOnMap(i: Incident) {
+    const style = KIND_STYLE[i.kind];
+    const title = `${style.label}: ${i.robots.join(", ")} · ${formatUtc(i.start_ms)} · ${measureText(i)}`;
+    const mark = { robots: i.robots, x: i.x, y: i.y, colour: style.colour, title };
+    view.value?.showIncident(mark);
+    trailsFor = i.id;
+    const [a, b] = trailWindow(i);
+    const from = Math.max(a, oldestReadable(Date.now()));
+    // A point a second: a trail of a few minutes, drawn as the robots drove it.
+    const step = Math.max(1000, Math.round((b - from) / 600));
+    void Promise.all(i.robots.map(async (id): Promise<[string, TrailPoint[][]]> => {
+      try {
+        const points = await engine.api.track(id, from, b, step);
+        return [id, trailRuns(points.map((p) => ({ ts_ms: p.ts_ms, x: p.position[0], y: p.position[1] })))];
+      } catch {
+        return [id, []];
+      }
+    })).then((trails) => {
+      if (trailsFor === i.id) view.value?.showIncident(mark, new Map(trails));
+    });
+  }
+
+  /** A click on an incident (or its step key): a few seconds before it, its robots shown. */
+  function pick(i: Incident) {
+    picked.value = i.id;
+    d.pauseAt(incidentSeek(i));
+    showOnMap(i);
+  }
+
+  function unpick() {
+    picked.value = null;
+    trailsFor = "";
+    view.value?.showIncident(null);
+  }
+
+  let shownPick = "";
+  let pendingStep: 0 | 1 | -1 = 0;
+  /** After a read: a pick the address named is shown once its incident is listed. */
+  function afterLoad() {
+    const i = picked.value ? items.value.find((x) => x.id === picked.value) : undefined;
+    if (i && shownPick !== i.id) {
+      shownPick = i.id;
+      showOnMap(i);
+    }
+    if (pendingStep) {
+      const dir = pendingStep;
+      pendingStep = 0;
+      step(dir);
+    }
+  }
+
+  /** [ / ]: the previous/next incident of the panel's list from the playhead (or from the
+   * picked one while the playhead is where its pick left it). Closed, the panel opens and
+   * steps once it has read its list. */
+  function step(dir: 1 | -1) {
+    if (!d.isOpen()) {
+      pendingStep = dir;
+      d.open();
+      return;
+    }
+    const next = neighbourIncident(list.value, picked.value, engine.playhead, dir);
+    if (next) pick(next);
+    else d.notice.value = `no ${dir > 0 ? "later" : "earlier"} incident in the timeline's span with the panel's filters: zoom out to look further`;
+  }
+
+  /** The first listed incident beginning in [from, to) (a click on the timeline's lane). */
+  function pickIn(from: number, to: number) {
+    const i = list.value.find((x) => x.start_ms >= from && x.start_ms < to) ?? list.value.find((x) => x.end_ms >= from && x.start_ms < to);
+    if (i) pick(i);
+  }
+
+  /** Once the map is there: the pick the address named, if read already. */
+  function attach() {
+    shownPick = "";
+    afterLoad();
+  }
+
+  const state = () => ({ kinds: kinds.value, robot: robot.value, picked: picked.value });
+
+  return { kinds, robot, picked, items, list, newestFirst, truncated, loading, error, tick, pick, unpick, step, pickIn, attach, state };
+}
+
+export type IncidentsState = ReturnType<typeof useIncidents>;
