@@ -19,6 +19,7 @@ import { applyAnnouncement, incidentSeek, incidentsUrl, isKind, KIND_STYLE, meas
 import type { MapView } from "../lib/mapview";
 import { oldestReadable } from "../lib/retention";
 import { trailRuns, type TrailPoint } from "../lib/trail";
+import type { MapMeta } from "../lib/types";
 import { formatUtc, type UrlState } from "../lib/urlstate";
 
 export interface IncidentDeps {
@@ -55,8 +56,11 @@ export function useIncidents(d: IncidentDeps) {
   /** What was read: [from, to) (to past now for a span reaching it), for which query, when. */
   let read = { from: 0, to: 0, key: "", at: 0 };
   let asked = 0;
+  let failedAt = -Infinity;
 
-  const list = computed(() => shownIncidents(items.value, d.span(), d.area.value, engine.meta));
+  /** The map's meta as of the last tick (the engine's is not reactive): the area's chunks. */
+  const meta = shallowRef<MapMeta | null>(null);
+  const list = computed(() => shownIncidents(items.value, d.span(), d.area.value, meta.value));
   /** Newest first, as the panel lists them. */
   const newestFirst = computed(() => [...list.value].reverse());
 
@@ -76,7 +80,11 @@ export function useIncidents(d: IncidentDeps) {
       error.value = null;
       afterLoad();
     } catch (e) {
-      if (mine === asked) error.value = (e as Error).message;
+      if (mine === asked) {
+        error.value = (e as Error).message;
+        failedAt = Date.now();
+        read = { ...read, key: "" }; // read again, once a refresh has passed
+      }
     } finally {
       if (mine === asked) loading.value = false;
     }
@@ -84,7 +92,9 @@ export function useIncidents(d: IncidentDeps) {
 
   /** With the summary (a few times a second): reads again what is due, one read at a time. */
   function tick() {
-    if (!d.isOpen() || loading.value) return;
+    if (!d.isOpen()) return;
+    if (meta.value !== engine.meta) meta.value = engine.meta;
+    if (loading.value || Date.now() - failedAt < REFRESH_MS) return;
     const [from, to] = d.span();
     const covered = read.key === queryKey() && from >= read.from && to <= read.to && !(truncated.value && from !== read.from);
     const live = engine.clock.live && engine.live.status.connected;
@@ -95,6 +105,12 @@ export function useIncidents(d: IncidentDeps) {
   // A filter changed: the list shown is the old one's until the new one is read.
   watch([kinds, robot], () => {
     if (d.isOpen()) void load();
+  });
+  // Closed, the panel hears no announcement: opened again, it reads its list again.
+  watch(d.isOpen, (open) => {
+    if (open) return;
+    read = { ...read, key: "" };
+    items.value = [];
   });
 
   /** A live announcement: merged into what was read (for the read's window and query). */
