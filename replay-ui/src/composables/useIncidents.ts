@@ -5,9 +5,10 @@
  * see a new one), the picked incident (the map seeks a few seconds before it, rings its
  * robots and draws their trails), and previous/next incident.
  *
- * Reads keep the page's budget (lib/cadence.ts): a span reaching now is read ahead past it,
- * so its end sliding with the clock asks nothing until then; while live the stream brings
- * what is new, and a replay of a span reaching now reads again at the page's cadence.
+ * Reads keep the page's budget (lib/cadence.ts): while live, a list read on the stream's
+ * connection is kept current by it (read again on a new connection, as the one before may
+ * have missed some); otherwise a span reaching now is read ahead past it, so its end sliding with the
+ * clock asks nothing until then, and read again at the page's cadence.
  */
 import { computed, ref, shallowRef, watch, type Ref, type ShallowRef } from "vue";
 import { getJson } from "../lib/api";
@@ -47,14 +48,18 @@ export function useIncidents(d: IncidentDeps) {
   const robot = ref<string | null>(d.initial.incidentRobot);
   const picked = ref<string | null>(d.initial.incident);
   const items = shallowRef<Incident[]>([]);
+  /** Every robot an incident read named (the robot filter offers them: a list filtered by
+   * one robot names no other). */
+  const robotsSeen = shallowRef<string[]>([]);
   const truncated = ref(false);
   const loading = ref(false);
   const error = ref<string | null>(null);
   const query = (): IncidentQuery => ({ kinds: kinds.value, robot: robot.value });
   const queryKey = () => JSON.stringify(query());
 
-  /** What was read: [from, to) (to past now for a span reaching it), for which query, when. */
-  let read = { from: 0, to: 0, key: "", at: 0 };
+  /** What was read: [from, to) (to past now for a span reaching it), for which query, when,
+   * and, if the live stream was connected then, its connection (-1: not live). */
+  let read = { from: 0, to: 0, key: "", at: 0, stream: -1 };
   let asked = 0;
   let failedAt = -Infinity;
 
@@ -69,13 +74,15 @@ export function useIncidents(d: IncidentDeps) {
     const now = Date.now();
     const [from, to] = d.span();
     const until = readAheadTo(to, now);
-    read = { from, to: until, key: queryKey(), at: now };
+    read = { from, to: until, key: queryKey(), at: now, stream: streamNow() };
     loading.value = true;
     try {
       const page = await getJson<{ incidents: Incident[]; truncated: boolean }>(
         incidentsUrl(engine.api.base, Math.max(from, oldestReadable(now)), until, query(), INCIDENT_LIMIT), "the incidents");
       if (mine !== asked) return;
       items.value = sortByStart(page.incidents);
+      const named = new Set([...robotsSeen.value, ...page.incidents.flatMap((i) => i.robots)]);
+      if (named.size > robotsSeen.value.length) robotsSeen.value = [...named].sort();
       truncated.value = page.truncated;
       error.value = null;
       afterLoad();
@@ -96,10 +103,23 @@ export function useIncidents(d: IncidentDeps) {
     if (meta.value !== engine.meta) meta.value = engine.meta;
     if (loading.value || Date.now() - failedAt < REFRESH_MS) return;
     const [from, to] = d.span();
+    const stream = streamNow();
+    if (stream >= 0 && read.key === queryKey() && from >= read.from && !truncated.value) {
+      // Live on the connection the list was read on: the stream brings every new incident.
+      // On another (the first, or after a drop that may have lost some): read once more.
+      if (stream !== read.stream) void load();
+      else read.to = Math.max(read.to, readAheadTo(to, Date.now()));
+      return;
+    }
     const covered = read.key === queryKey() && from >= read.from && to <= read.to && !(truncated.value && from !== read.from);
-    const live = engine.clock.live && engine.live.status.connected;
-    const due = !live && mayGrow(read.to, read.at) && Date.now() - read.at > REFRESH_MS;
+    const due = stream < 0 && mayGrow(read.to, read.at) && Date.now() - read.at > REFRESH_MS;
     if (!covered || due) void load();
+  }
+
+  /** The live stream's connection (its number) while live and connected, else -1:
+   * what it announced on one connection, none missed, keeps a list read on it current. */
+  function streamNow(): number {
+    return engine.clock.live && engine.live.status.connected ? engine.live.status.connections : -1;
   }
 
   // A filter changed: the list shown is the old one's until the new one is read.
@@ -201,7 +221,7 @@ export function useIncidents(d: IncidentDeps) {
 
   const state = () => ({ kinds: kinds.value, robot: robot.value, picked: picked.value });
 
-  return { kinds, robot, picked, items, list, newestFirst, truncated, loading, error, tick, pick, unpick, step, pickIn, attach, state };
+  return { kinds, robot, picked, items, robotsSeen, list, newestFirst, truncated, loading, error, tick, pick, unpick, step, pickIn, attach, state };
 }
 
 export type IncidentsState = ReturnType<typeof useIncidents>;

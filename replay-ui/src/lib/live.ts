@@ -23,6 +23,8 @@ export interface LiveStatus {
   latencyMs: number | null; // event time -> shown (smoothed)
   messages: number;
   reconnects: number;
+  /** Connections opened so far: a list kept current by the stream knows its own. */
+  connections: number;
 }
 
 export const BACKOFF_BASE_MS = 1000;
@@ -37,7 +39,7 @@ export function backoffDelay(failures: number, random: () => number = Math.rando
 }
 
 export class LiveConnection {
-  status: LiveStatus = { connected: false, latencyMs: null, messages: 0, reconnects: 0 };
+  status: LiveStatus = { connected: false, latencyMs: null, messages: 0, reconnects: 0, connections: 0 };
   private ws: WebSocket | null = null;
   private stopped = true;
   private failures = 0; // reconnects since the last connection that proved itself
@@ -70,6 +72,7 @@ export class LiveConnection {
     this.ws = ws;
     ws.onopen = () => {
       this.status.connected = true;
+      this.status.connections++;
       this.stableTimer = setTimeout(() => (this.failures = 0), STABLE_MS);
       this.onOpen(reconnect);
     };
