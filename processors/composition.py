@@ -106,6 +106,7 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
         advertiser=advertiser,
         store_thread=store_thread,
         now_ms=now_ms,
+        live=live,
     )
 
     async def stop_views(sender: object, *args: object, **kwargs: object) -> None:

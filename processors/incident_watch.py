@@ -3,12 +3,15 @@ the views from the store, fed every stored batch's poses, and what is found writ
 together with the conflicts, before the batch's offsets are committed (like them, the
 stored incidents lag the history by up to sink_views_seconds). Touched only in the store
 thread: its reads of the history beyond memory (late poses) are store calls. Once stored,
-the findings are handed to the alerts (incident_alerts.py), which only queue them."""
+the findings are announced on the live stream (mapservice/core/live_incidents.py: a live
+page lists them without asking) and handed to the alerts (incident_alerts.py), which only
+queue them."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import structlog
 from prometheus_client import Counter, Histogram
 
 from mapservice.core.events import Envelope
@@ -16,6 +19,7 @@ from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import IncidentThresholds
 from mapservice.core.ports import (
     HistoryWriter,
+    IncidentFeed,
     IncidentReader,
     PoseRow,
     TimeTravelReader,
@@ -38,6 +42,8 @@ INCIDENT_CHECK_SECONDS = Histogram(
     "Duration of finding one stored batch's incidents",
     buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1),
 )
+log = structlog.get_logger(__name__)
+
 # A late pose's read of the history beyond memory: one window of every robot's poses.
 READ_LIMIT = 5_000_000
 
@@ -62,9 +68,10 @@ class IncidentWatch:
         writer: HistoryWriter,
         now_ms: Callable[[], int],
         alerts: IncidentAlerts | None = None,
+        feed: IncidentFeed | None = None,
     ) -> None:
         self.history, self.writer, self.now_ms = history, writer, now_ms
-        self.alerts = alerts
+        self.alerts, self.feed = alerts, feed
         self.keep_ms = round(settings.incident_memory_s * 1000)
         self.tracker = IncidentTracker(
             self._read, incidents.incidents, thresholds_of(settings), self.keep_ms
@@ -107,6 +114,13 @@ class IncidentWatch:
         except BaseException:
             self.tracker.give_back(found, retracted)  # written with the next try
             raise
+        if self.feed is not None:
+            # Best effort, like the rest of the live stream: the findings are stored, and a
+            # page that missed the announcement reads them from the list.
+            try:
+                self.feed.publish_incidents(found, retracted, now)
+            except Exception as exc:  # noqa: BLE001 - whatever the feed raises; logged
+                log.warning("incidents not announced on the live stream", error=str(exc))
         for incident in found:
             INCIDENTS.labels(incident.kind).inc()
         INCIDENTS_RETRACTED.inc(len(retracted))

@@ -32,6 +32,7 @@ from mapservice.core.ports import (
     ChunkState,
     ConflictReader,
     HistoryWriter,
+    IncidentFeed,
     IncidentReader,
     TimeTravelReader,
 )
@@ -56,7 +57,7 @@ __all__ = ["Advertiser", "LiveViews"]
 class LiveViews:
     """Rebuilt from the map and robots at an instant (`history`), the standing zones
     (`annotations`) and the writes near new ones (`conflicts`); the conflicts and zone
-    violations found are stored through `writer`."""
+    violations found are stored through `writer`, the incidents announced on `live`."""
 
     def __init__(
         self,
@@ -71,6 +72,7 @@ class LiveViews:
         store_thread: StoreThread,
         now_ms: Callable[[], int] = SystemClock().now_ms,
         webhooks: WebhookDeliveries | None = None,
+        live: IncidentFeed | None = None,
     ) -> None:
         self.settings = settings
         self.history = history
@@ -96,7 +98,9 @@ class LiveViews:
             history, conflicts, writer, int(settings.conflict_window_s * 1000), now_ms
         )
         alerts = IncidentAlerts(settings.incident_alert_topic_root, self.ads, webhooks)
-        self.incidents = IncidentWatch(settings, history, incidents, writer, now_ms, alerts)
+        self.incidents = IncidentWatch(
+            settings, history, incidents, writer, now_ms, alerts=alerts, feed=live
+        )
         self.loaded = False
 
     @property

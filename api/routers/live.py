@@ -1,4 +1,4 @@
-"""Live stream of chunk changes and poses as they are stored (WebSocket)."""
+"""Live stream of chunk changes, poses and incidents as they are stored (WebSocket)."""
 
 from __future__ import annotations
 
@@ -36,7 +36,9 @@ async def live(
     websocket: WebSocket, hub: LiveHubDep, settings: SettingsDep, batch: str = "false"
 ) -> None:
     """Each message is one JSON event: {"type": "pose"|"chunk", ...} plus `sent_ms`,
-    sent once the event is queryable through this API. With `?batch=true` each message is
+    sent once the event is queryable through this API, or an incident found in them
+    once stored: {"type": "incident", "ts_ms", "retracted", "incident"} (the incident as
+    GET /api/v1/incidents lists it). With `?batch=true` each message is
     instead a JSON array of one or more such events, in order, each exactly as sent alone
     (its own `sent_ms`, the frame's send time): what had queued up for this viewer, at most
     1,000 per message, so a busy floor costs one send per batch rather than per event. A

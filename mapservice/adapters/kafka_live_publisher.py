@@ -1,4 +1,5 @@
-"""The processors' side of the live stream: stored batches' live messages onto Kafka.
+"""The processors' side of the live stream: stored batches' live messages, and the
+incidents found in them, onto Kafka.
 
 Best effort by design: the history is already stored when this runs and a viewer that
 missed something re-seeks from the store, so a record that cannot be delivered within a
@@ -8,6 +9,7 @@ the history sink.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,6 +19,8 @@ from prometheus_client import Counter
 
 from mapservice.adapters.kafka_logs import logged
 from mapservice.core.events import Envelope
+from mapservice.core.incident_model import Incident
+from mapservice.core.live_incidents import incident_records
 from mapservice.core.live_messages import live_records
 from mapservice.settings import Settings
 
@@ -52,12 +56,25 @@ class KafkaLivePublisher:
         self.topic = settings.topic_live
         self._config = live_producer_config(settings, client_id)
         self._producer: Producer | None = None
+        self._lock = threading.Lock()
 
     def publish(self, events: Sequence[Envelope]) -> None:
-        if self._producer is None:
-            self._producer = Producer(self._config)
-        producer = self._producer
-        for record in live_records(events):
+        self._produce(live_records(events))
+
+    def publish_incidents(
+        self, found: Sequence[Incident], retracted: Sequence[Incident], found_ms: int
+    ) -> None:
+        """Stored incident findings (called from the processors' store thread)."""
+        self._produce(incident_records(found, retracted, found_ms))
+
+    def _produce(self, records: list[bytes]) -> None:
+        # The batches' records come from the event loop, the incidents' from the store
+        # thread: one producer for both (librdkafka's is thread-safe), made once.
+        with self._lock:
+            if self._producer is None:
+                self._producer = Producer(self._config)
+            producer = self._producer
+        for record in records:
             try:
                 producer.produce(self.topic, value=record, on_delivery=self._delivered)
                 LIVE_RECORDS.inc()

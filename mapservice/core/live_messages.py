@@ -1,6 +1,7 @@
 """Live stream of stored events: the messages, their Kafka records, the API's fan-out.
 
-The processors, once a batch is stored (so queryable), publish its live messages on the
+The processors, once a batch is stored (so queryable), publish its live messages (and,
+once stored, the incidents found in it: live_incidents.py) on the
 live topic (`MAPSERVICE_TOPIC_LIVE`); every API process reads that topic from its end and
 fans the messages out to its WebSocket subscribers (`LiveHub`). One path whether the
 processors run in the API's process or elsewhere, and N API replicas each see it all.
@@ -89,21 +90,23 @@ _encode = msgspec.json.Encoder().encode
 def live_records(events: Iterable[Envelope], max_bytes: int = MAX_RECORD_BYTES) -> list[bytes]:
     """The live topic's records for a stored batch: JSON arrays of its live messages, in
     the batch's order, each at most `max_bytes` unless a single message is larger."""
+    return pack_records((_encode(m) for m in map(_live_struct, events) if m is not None), max_bytes)
+
+
+def pack_records(parts: Iterable[bytes], max_bytes: int = MAX_RECORD_BYTES) -> list[bytes]:
+    """Encoded messages as live-topic records: JSON arrays of them, in order, each at most
+    `max_bytes` unless a single message is larger."""
     records: list[bytes] = []
-    parts: list[bytes] = []
+    batch: list[bytes] = []
     size = 2
-    for e in events:
-        message = _live_struct(e)
-        if message is None:
-            continue
-        part = _encode(message)
-        if parts and size + len(part) + 1 > max_bytes:
-            records.append(b"[" + b",".join(parts) + b"]")
-            parts, size = [], 2
-        parts.append(part)
+    for part in parts:
+        if batch and size + len(part) + 1 > max_bytes:
+            records.append(b"[" + b",".join(batch) + b"]")
+            batch, size = [], 2
+        batch.append(part)
         size += len(part) + 1
-    if parts:
-        records.append(b"[" + b",".join(parts) + b"]")
+    if batch:
+        records.append(b"[" + b",".join(batch) + b"]")
     return records
 
 
@@ -149,9 +152,14 @@ _decode_raw_list = msgspec.json.Decoder(list[msgspec.Raw]).decode
 _decode_kind = msgspec.json.Decoder(_Kind).decode
 
 
+# What the live topic carries: stored poses and chunk writes, and the incidents found in
+# them (mapservice/core/live_incidents.py).
+LIVE_TYPES = ("pose", "chunk", "incident")
+
+
 def live_record_texts(value: bytes) -> list[LiveText]:
     """The messages of one live-topic record, each kept as its JSON text (`LiveText`);
-    BadLiveRecord if it is not a JSON array of pose/chunk messages."""
+    BadLiveRecord if it is not a JSON array of live messages (LIVE_TYPES)."""
     try:
         raws = _decode_raw_list(value)
     except (msgspec.DecodeError, msgspec.ValidationError) as exc:
@@ -162,7 +170,7 @@ def live_record_texts(value: bytes) -> list[LiveText]:
             kind = _decode_kind(raw).type
         except (msgspec.DecodeError, msgspec.ValidationError):
             kind = None
-        if kind not in ("pose", "chunk"):
-            raise BadLiveRecord("not a JSON array of pose/chunk messages")
+        if kind not in LIVE_TYPES:
+            raise BadLiveRecord("not a JSON array of pose/chunk/incident messages")
         out.append(LiveText(bytes(raw).decode()))
     return out

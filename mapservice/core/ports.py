@@ -43,6 +43,16 @@ class LiveFeed(Protocol):
         """Called after `events` are in the history, so queryable."""
 
 
+class IncidentFeed(Protocol):
+    """Where stored incident findings go for live viewers (mapservice/core/live_incidents.py);
+    never blocks."""
+
+    def publish_incidents(
+        self, found: Sequence[Incident], retracted: Sequence[Incident], found_ms: int
+    ) -> None:
+        """Called after the findings are stored, so listed."""
+
+
 # The records are frozen and hold only immutable values, so none can be part of a reference
 # cycle: `gc=False` keeps them out of the cyclic collector (mapservice/runtime/heap.py).
 class PoseRow(msgspec.Struct, frozen=True, gc=False, array_like=True):

@@ -129,6 +129,20 @@ describe("LiveConnection", () => {
     expect(c.status.messages).toBe(4);
   });
 
+  it("hands on incident announcements but takes no latency from them (their time is when they were found)", () => {
+    const got: { type: string }[] = [];
+    const c = new LiveConnection("ws://x", (m) => got.push(m), () => {});
+    c.start();
+    vi.setSystemTime(10_000);
+    const incident = { type: "incident", ts_ms: 9_999, retracted: false, incident: { id: "i" } };
+    FakeSocket.all[0].onmessage!({ data: JSON.stringify([{ type: "pose", ts_ms: 9_000, robotId: "r" }, incident]) });
+    expect(got.map((m) => m.type)).toEqual(["pose", "incident"]);
+    expect(c.status.latencyMs).toBe(1000);
+    FakeSocket.all[0].onmessage!({ data: JSON.stringify([incident]) });
+    expect(got).toHaveLength(3);
+    expect(c.status.latencyMs).toBe(1000);
+  });
+
   it("asks the page's own server for batched frames", () => {
     expect(liveUrl({ protocol: "https:", host: "maps.example:8443" })).toBe("wss://maps.example:8443/api/v1/live?batch=true");
     expect(liveUrl({ protocol: "http:", host: "localhost:8000" })).toBe("ws://localhost:8000/api/v1/live?batch=true");

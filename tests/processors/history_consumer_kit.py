@@ -39,8 +39,10 @@ def live_views(
     advertiser: Advertiser | None,
     thread: StoreThread,
     now_ms=None,
+    live=None,
 ) -> LiveViews:
-    """Live views whose every role is the test's one in-memory store."""
+    """Live views whose every role is the test's one in-memory store (`live`: where the
+    incidents are announced)."""
     clock = {} if now_ms is None else {"now_ms": now_ms}
     return LiveViews(
         settings,
@@ -51,6 +53,7 @@ def live_views(
         writer=store,
         advertiser=advertiser,
         store_thread=thread,
+        live=live,
         **clock,
     )
 

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from mapservice.core.events import encode
 from mapservice.core.incidents import detect
 from mapservice.processors.history_consumer import HistoryConsumer
@@ -35,17 +37,33 @@ class IncidentLog(MemoryStore):
         super().append_incidents(found, found_ms, retracted)
 
 
+class Announced:
+    """The live stream's incident announcements, as the store held them when each came."""
+
+    def __init__(self, store: MemoryStore, fail: bool = False) -> None:
+        self.store, self.fail = store, fail
+        self.calls: list[tuple[list, list, int, list]] = []
+
+    def publish_incidents(self, found, retracted, found_ms) -> None:
+        self.calls.append((list(found), list(retracted), found_ms, self.store.incidents(0, 2**62)))
+        if self.fail:
+            raise BufferError("local queue full")
+
+
 class Floor:
     """A consumer with live views on a clock the test moves (`now`), and batches of poses."""
 
-    def __init__(self, store: IncidentLog | None = None) -> None:
+    def __init__(self, store: IncidentLog | None = None, live: Announced | None = None) -> None:
         self.store = store or IncidentLog()
+        self.live = live
         self.source, self.clock, self.now = MemorySource(), Clock(), NOW - 120_000
         self.start()
 
     def start(self) -> None:
         sink = HistorySink(self.store)
-        self.views = live_views(Settings(), self.store, None, sink.thread, now_ms=lambda: self.now)
+        self.views = live_views(
+            Settings(), self.store, None, sink.thread, now_ms=lambda: self.now, live=self.live
+        )
         self.views.load()
         self.consumer = HistoryConsumer(
             self.source,
@@ -133,3 +151,30 @@ def test_a_failed_write_is_retried_and_a_restart_writes_nothing_again(ev) -> Non
     asyncio.run(floor.views.write_found_until_done())
     assert len(store.writes) == writes
     assert floor.stored() == found
+
+
+@pytest.mark.parametrize("feed_fails", [False, True])
+def test_each_stored_finding_is_announced_once_after_it_is_stored(ev, feed_fails) -> None:
+    """Every write of findings is announced once, after the store holds them (a live page
+    asking the list then gets them too), with its retractions; a write that failed is
+    announced when its retry succeeds, and a feed that fails loses the announcement only
+    (the findings stay stored, the processors go on)."""
+    store = IncidentLog(failures=1)
+    live = Announced(store, fail=feed_fails)
+    floor = Floor(store, live)
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(10)])
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(25, 35)])
+    floor.send(ev, *[("r", t, float(t), 0.0, 80.0, None) for t in range(10, 25, 2)])
+    floor.tick(11)
+    assert len(live.calls) == len(store.writes) >= 3
+    found_ids: set[str] = set()
+    for found, retracted, found_ms, stored_then in live.calls:
+        held = {i.incident_id: i for i in stored_then}
+        assert all(held.get(i.incident_id) == i for i in found)
+        assert not {i.incident_id for i in retracted} & set(held)
+        assert found_ms <= floor.now
+        found_ids |= {i.incident_id for i in found}
+        found_ids -= {i.incident_id for i in retracted}
+    # What the announcements add up to is what the store lists.
+    assert found_ids == {i.incident_id for i in floor.stored()}
+    assert [i.kind for i in floor.stored()] == ["offline"]

@@ -111,7 +111,8 @@ def test_an_idle_live_page_asks_at_most_once_every_two_seconds(page, history_sta
 def test_an_idle_live_page_with_every_panel_open_keeps_the_budget(page, history_stack) -> None:
     """The same with every panel open, a robot selected and plotted: the fleet list's
     speeds come from the live stream (no read of the poses every two seconds), and the
-    panels' lists are read again only at the page's cadence or once their span slid."""
+    panels' lists are read again only at the page's cadence or once their span slid (new
+    incidents come on the stream)."""
     stack = history_stack
     robot = sorted(
         r["robotId"]
@@ -120,7 +121,7 @@ def test_an_idle_live_page_with_every_panel_open_keeps_the_budget(page, history_
     asked = _idle_requests(
         page,
         stack,
-        f"?live=1&sel={robot}&plot={robot}&panels=changes,fleet,conflicts,plots,annotations",
+        f"?live=1&sel={robot}&plot={robot}&panels=changes,fleet,conflicts,plots,annotations,incidents",
     )
     assert page.locator('[data-testid="fleet-row"]').count() > 0
     assert not [a for a in asked if "/api/v1/poses?" in a], asked

@@ -1,7 +1,7 @@
 /**
  * The address bar holds what the page shows (the instant or live, speed and direction, the
  * map's view, the followed and selected robots, layers, panels, the change feed's filter,
- * the timeline's span, the plotted robots), so a copied link opens the same page. Written
+ * the timeline's span, the plotted robots, the incidents panel's filters and pick), so a copied link opens the same page. Written
  * with replaceState (no history entry per frame), only when it changed.
  */
 import type { Ref, ShallowRef } from "vue";
@@ -20,6 +20,8 @@ export interface UrlSyncDeps {
   changeRobot: Ref<string | null>;
   span: () => [number, number] | null;
   plotted: Ref<string[]>;
+  /** The incidents panel's filters and pick. */
+  incidents: () => { kinds: string[]; robot: string | null; picked: string | null };
 }
 
 export function useUrlSync(d: UrlSyncDeps) {
@@ -36,6 +38,7 @@ export function useUrlSync(d: UrlSyncDeps) {
       changeRobot: d.changeRobot.value,
       span: d.span(),
       plot: d.plotted.value,
+      ...((i) => ({ incidentKinds: i.kinds, incidentRobot: i.robot, incident: i.picked }))(d.incidents()),
     });
     if (url !== lastUrl) {
       lastUrl = url;

@@ -14,6 +14,7 @@ import { chunkStepMs, EventBuffer, keepBehindMs, poseStepMs } from "./buffer";
 import { PlaybackClock, type Speed } from "./clock";
 import { ChunkImages } from "./images";
 import { LiveConnection, liveUrl, type LiveMessage } from "./live";
+import type { IncidentAnnouncement } from "./incidents";
 import { MapState } from "./mapstate";
 import { addToTrack } from "./fleet";
 import { INTERPOLATE_MAX_SPEED, OFFLINE_AFTER_MS, poseAt, type PlacedPose } from "./poses";
@@ -101,6 +102,8 @@ export class ReplayEngine {
    * pose or map write, the exact robots at rest, an error. The frame loop wakes
    * (lib/framepace.ts): while nothing moves it does not run every animation frame. */
   onWake: () => void = () => {};
+  /** An incident announced on the live stream (the incidents panel merges it). */
+  onIncident: (m: IncidentAnnouncement) => void = () => {};
 
   constructor(base = "", now = Date.now()) {
     this.api = new Api(base);
@@ -357,6 +360,11 @@ export class ReplayEngine {
   private pendingLive: LiveMessage[] = [];
 
   private onLive(m: LiveMessage): void {
+    if (m.type === "incident") {
+      // Not the floor's state: the incidents panel's, whatever the snapshot is doing.
+      this.onIncident(m);
+      return;
+    }
     if (!this.clock.live) return;
     if (this.seeking) {
       // Arrived while the snapshot loads: applied right after it (older ones lose the tie).

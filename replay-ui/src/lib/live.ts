@@ -10,17 +10,21 @@
  * neither hammer it nor re-seek the replay once a second, and many tabs spread out.
  */
 import type { ChunkChange, Pose } from "./types";
+import type { IncidentAnnouncement } from "./incidents";
 import { liveProtocols } from "./auth";
 
 export type LiveMessage =
   | ({ type: "pose"; sent_ms?: number } & Pose)
-  | ({ type: "chunk"; sent_ms?: number; receive_time_ms?: number } & ChunkChange);
+  | ({ type: "chunk"; sent_ms?: number; receive_time_ms?: number } & ChunkChange)
+  | IncidentAnnouncement;
 
 export interface LiveStatus {
   connected: boolean;
   latencyMs: number | null; // event time -> shown (smoothed)
   messages: number;
   reconnects: number;
+  /** Connections opened so far: a list kept current by the stream knows its own. */
+  connections: number;
 }
 
 export const BACKOFF_BASE_MS = 1000;
@@ -35,7 +39,7 @@ export function backoffDelay(failures: number, random: () => number = Math.rando
 }
 
 export class LiveConnection {
-  status: LiveStatus = { connected: false, latencyMs: null, messages: 0, reconnects: 0 };
+  status: LiveStatus = { connected: false, latencyMs: null, messages: 0, reconnects: 0, connections: 0 };
   private ws: WebSocket | null = null;
   private stopped = true;
   private failures = 0; // reconnects since the last connection that proved itself
@@ -68,6 +72,7 @@ export class LiveConnection {
     this.ws = ws;
     ws.onopen = () => {
       this.status.connected = true;
+      this.status.connections++;
       this.stableTimer = setTimeout(() => (this.failures = 0), STABLE_MS);
       this.onOpen(reconnect);
     };
@@ -78,10 +83,14 @@ export class LiveConnection {
       const events = Array.isArray(data) ? data : [data];
       if (events.length === 0) return;
       this.status.messages += events.length;
-      // One latency sample per frame, from its newest event: the smoothing stays per
-      // arrival rather than being swamped by a catch-up frame of a thousand old events.
-      const lag = Date.now() - events[events.length - 1].ts_ms;
-      this.status.latencyMs = this.status.latencyMs === null ? lag : Math.round(0.8 * this.status.latencyMs + 0.2 * lag);
+      // One latency sample per frame, from its newest robot event (an incident's time is
+      // when it was found, not a robot's): the smoothing stays per arrival rather than
+      // being swamped by a catch-up frame of a thousand old events.
+      const newest = [...events].reverse().find((m) => m.type !== "incident");
+      if (newest) {
+        const lag = Date.now() - newest.ts_ms;
+        this.status.latencyMs = this.status.latencyMs === null ? lag : Math.round(0.8 * this.status.latencyMs + 0.2 * lag);
+      }
       for (const m of events) this.onMessage(m);
     };
     ws.onclose = () => {

@@ -10,6 +10,7 @@ import type { ChunkImages } from "./images";
 import { ChunkLayer, gridLines, InfoLayer, type InfoMode } from "./layers";
 import type { MapState } from "./mapstate";
 import { RobotLayer } from "./robotlayer";
+import { robotColour } from "./fleet";
 import type { Conflict, MapMeta } from "./types";
 
 export interface LayerToggles {
@@ -39,6 +40,9 @@ export class MapView {
   annotations: AnnotationLayer;
   toggles: LayerToggles | null = null;
   selected: string | null = null;
+  /** The robots of the picked incident (ringed), its place and its robots' trails. */
+  highlighted: string[] = [];
+  incidentLayer = L.layerGroup();
   meta: MapMeta | null = null;
   follow: string | null = null;
   onRobotClick: (id: string) => void = () => {};
@@ -62,11 +66,12 @@ export class MapView {
     this.map.createPane(PICKED_PANE).style.zIndex = "450";
     this.robots = new RobotLayer(() => this.meta, () => ({
       names: this.toggles?.names ?? true, battery: this.toggles?.battery ?? true,
-      paths: this.toggles?.paths ?? true, selected: this.selected,
+      paths: this.toggles?.paths ?? true, selected: this.selected, highlighted: this.highlighted,
     }));
     this.robots.onClick = (id) => this.onRobotClick(id);
     this.robots.addTo(this.map);
     this.trail.addTo(this.map);
+    this.incidentLayer.addTo(this.map);
     this.annotations = new AnnotationLayer(this.map, () => this.meta);
   }
 
@@ -134,6 +139,26 @@ export class MapView {
     const meta = this.meta;
     this.trail.setStyle({ color: colour, weight: 4, opacity: 0.85 });
     this.trail.setLatLngs(meta ? runs.map((run) => run.map((p) => metresToLatLng(meta, p.x, p.y))) : []);
+  }
+
+  /**
+   * The picked incident (null: none): its robots ringed, its place marked in its kind's
+   * colour, and each robot's trail around it (its runs, lib/trail.ts) in the robot's colour.
+   */
+  showIncident(incident: { robots: string[]; x: number; y: number; colour: string; title: string } | null,
+    trails: Map<string, { x: number; y: number }[][]> = new Map()): void {
+    this.incidentLayer.clearLayers();
+    this.highlighted = incident ? incident.robots : [];
+    this.robots.redraw();
+    const meta = this.meta;
+    if (!incident || !meta) return;
+    for (const [id, runs] of trails) {
+      L.polyline(runs.map((run) => run.map((p) => metresToLatLng(meta, p.x, p.y))),
+        { color: robotColour(id), weight: 3, opacity: 0.9, interactive: false }).addTo(this.incidentLayer);
+    }
+    L.circleMarker(metresToLatLng(meta, incident.x, incident.y),
+      { radius: 14, color: incident.colour, weight: 3, fillOpacity: 0.15, interactive: true })
+      .bindTooltip(incident.title).addTo(this.incidentLayer);
   }
 
   showConflicts(conflicts: Conflict[], t: number, windowMs: number): void {

@@ -16,6 +16,8 @@ export interface RobotStyle {
   battery: boolean;
   paths: boolean;
   selected: string | null;
+  /** The robots of the incident picked in the incidents panel: ringed in red. */
+  highlighted: readonly string[];
 }
 
 export interface DrawnRobot {
@@ -26,6 +28,7 @@ export interface DrawnRobot {
 
 const RADIUS = 8;
 const NEUTRAL = "#4a90d9";
+export const HIGHLIGHT = "#d62728";
 
 export class RobotLayer extends L.Layer {
   private canvas: HTMLCanvasElement | null = null;
@@ -131,6 +134,15 @@ export class RobotLayer extends L.Layer {
         ctx.strokeStyle = "#1f6feb";
         ctx.lineWidth = 3;
         ctx.stroke();
+      }
+      if (style.highlighted.includes(r.robotId)) {
+        ctx.beginPath();
+        ctx.arc(0, 0, RADIUS + 9, 0, 2 * Math.PI);
+        ctx.strokeStyle = HIGHLIGHT;
+        ctx.lineWidth = 3;
+        ctx.setLineDash([5, 3]);
+        ctx.stroke();
+        ctx.setLineDash([]);
       }
       ctx.beginPath();
       ctx.arc(0, 0, RADIUS, 0, 2 * Math.PI);

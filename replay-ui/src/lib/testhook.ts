@@ -5,6 +5,7 @@
  * bundle in dist/ has none of it. It only reads state and calls what the buttons call.
  */
 import type { Ref, ShallowRef } from "vue";
+import L from "leaflet";
 import type { Speed } from "./clock";
 import type { ReplayEngine } from "./engine";
 import type { MapView } from "./mapview";
@@ -28,6 +29,8 @@ export interface ReplayHookContext {
   timeline: () => unknown;
   /** The annotations read at the playhead, what the map draws of them, the edit tool. */
   annotations: () => unknown;
+  /** The incidents panel's list (ids, as listed) and its pick. */
+  incidents: () => { listed: string[]; picked: string | null };
 }
 
 export function exposeReplay(c: ReplayHookContext): void {
@@ -110,5 +113,15 @@ export function exposeReplay(c: ReplayHookContext): void {
     },
     timeline: c.timeline,
     annotations: c.annotations,
+    /** The incidents panel's list and pick, and what the map shows of the pick: the robots
+     * ringed, the trails drawn (robot, colour, points) and whether its place is marked. */
+    incidents: () => {
+      const v = view.value;
+      const layers = v ? v.incidentLayer.getLayers() : [];
+      const trails = layers.filter((l): l is L.Polyline => l instanceof L.Polyline).map((l) => ({
+        colour: l.options.color, points: (l.getLatLngs() as unknown[][]).flat().length,
+      }));
+      return { ...c.incidents(), highlighted: v?.highlighted ?? [], trails, marked: layers.some((l) => l instanceof L.CircleMarker) };
+    },
   };
 }

@@ -21,6 +21,11 @@ export interface UrlState {
    * lists and the plots show; and the robots plotted. */
   span: [number, number] | null;
   plot: string[];
+  /** The incidents panel's filters (kinds: none is every kind; its robot) and the incident
+   * picked in it (its id). */
+  incidentKinds: string[];
+  incidentRobot: string | null;
+  incident: string | null;
   /** What was wrong with the address's `t`, to tell the user (null: nothing). */
   tProblem: string | null;
 }
@@ -84,12 +89,15 @@ export function parseUrlState(search: string): UrlState {
     changeRobot: q.get("crobot"),
     span: parseSpan(q.get("span")),
     plot: (q.get("plot") ?? "").split(",").filter(Boolean),
+    incidentKinds: (q.get("ikind") ?? "").split(",").filter(Boolean),
+    incidentRobot: q.get("irobot"),
+    incident: q.get("inc"),
     tProblem,
   };
 }
 
 /** The side panels a link can open. */
-export const PANELS = ["changes", "fleet", "conflicts", "plots", "annotations"] as const;
+export const PANELS = ["changes", "fleet", "conflicts", "plots", "annotations", "incidents"] as const;
 
 /** "2026-11-24T13:00:00Z,2026-11-24T14:00:00Z" (or epoch ms): a span of at least a second. */
 function parseSpan(v: string | null): [number, number] | null {
@@ -134,6 +142,9 @@ export function formatUrlState(s: Omit<UrlState, "tProblem">): string {
   if (s.changeRobot) q.set("crobot", s.changeRobot);
   if (s.span) q.set("span", s.span.map((t) => new Date(Math.round(t)).toISOString()).join(","));
   if (s.plot.length) q.set("plot", s.plot.join(","));
+  if (s.incidentKinds.length) q.set("ikind", s.incidentKinds.join(","));
+  if (s.incidentRobot) q.set("irobot", s.incidentRobot);
+  if (s.incident) q.set("inc", s.incident);
   return `?${q.toString()}`;
 }
 
