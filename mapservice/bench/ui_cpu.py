@@ -17,14 +17,19 @@ the ratio holds where absolute figures drift.
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlparse
 
 import psutil
 
 from mapservice.bench.procstat import cpu_seconds
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Page, Playwright, Route
 
 PAUSED_BACK_MS = 600_000
 MODES = ("live", "paused")
@@ -45,10 +50,10 @@ def _browser_root(before: set[int]) -> psutil.Process:
     raise RuntimeError("bench ui: the launched Chromium's process was not found")
 
 
-def _serve_build(page, ui_dir: Path) -> None:
+def _serve_build(page: Page, ui_dir: Path) -> None:
     """The page's own files from `ui_dir`; everything under /api/ from the service."""
 
-    def fulfil(route) -> None:
+    def fulfil(route: Route) -> None:
         path = urlparse(route.request.url).path
         f = ui_dir / (path.lstrip("/") or "index.html")
         if f.is_file():
@@ -60,7 +65,7 @@ def _serve_build(page, ui_dir: Path) -> None:
 
 
 def page_cpu(
-    pw, url: str, ui_dir: Path, query: str, load_s: float, seconds: float
+    pw: Playwright, url: str, ui_dir: Path, query: str, load_s: float, seconds: float
 ) -> dict[str, float]:
     """One fresh browser with one page of `ui_dir`'s build at `url` + `query`: Chromium's
     CPU over `seconds` (% of a core), after `load_s` of loading."""
@@ -83,13 +88,13 @@ def page_cpu(
 
 
 def page_cpu_phase(
-    pw,
+    pw: Playwright,
     url: str,
     builds: dict[str, Path],
     pairs: int,
     load_s: float,
     seconds: float,
-) -> dict:
+) -> dict[str, Any]:
     """`pairs` rounds; in each, every build live then paused, the builds' order alternating
     from one round to the next (a drift of the machine weighs on both alike)."""
     for name, d in builds.items():
@@ -114,7 +119,7 @@ def page_cpu_phase(
                 )
         rounds.append(got)
     medians = {n: {m: statistics.median(v) for m, v in by.items()} for n, by in runs.items()}
-    out: dict = {
+    out: dict[str, Any] = {
         "url": url,
         "builds": {n: str(d) for n, d in builds.items()},
         "load_s": load_s,
@@ -136,7 +141,7 @@ def page_cpu_phase(
     return out
 
 
-def main(args) -> None:
+def main(args: argparse.Namespace) -> None:
     """The `--page-cpu-url` mode of `bench ui`: no history loaded, only the pages measured."""
     import json
 
@@ -149,7 +154,7 @@ def main(args) -> None:
     builds = {"this": TEST_UI_DIR}
     if args.page_cpu_baseline:
         builds = {"baseline": Path(args.page_cpu_baseline), "this": TEST_UI_DIR}
-    out: dict = {"machine": machine_facts(), "yardstick_ms_before": yardstick_ms()}
+    out: dict[str, Any] = {"machine": machine_facts(), "yardstick_ms_before": yardstick_ms()}
     with sync_playwright() as pw:
         out["page_cpu"] = page_cpu_phase(
             pw,
@@ -166,7 +171,7 @@ def main(args) -> None:
         Path(args.json).write_text(json.dumps(out, indent=2))
 
 
-def add_arguments(p) -> None:
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--page-cpu-url",
         default=None,

@@ -10,6 +10,8 @@ import msgspec
 from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneViolation
 from mapservice.core.commands import StoredCommandEvent
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
+from mapservice.core.incident_ports import IncidentFeed as IncidentFeed
+from mapservice.core.incident_ports import IncidentReader as IncidentReader
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
@@ -41,16 +43,6 @@ class LiveFeed(Protocol):
 
     def publish(self, events: Sequence[Envelope]) -> None:
         """Called after `events` are in the history, so queryable."""
-
-
-class IncidentFeed(Protocol):
-    """Where stored incident findings go for live viewers (mapservice/core/live_incidents.py);
-    never blocks."""
-
-    def publish_incidents(
-        self, found: Sequence[Incident], retracted: Sequence[Incident], found_ms: int
-    ) -> None:
-        """Called after the findings are stored, so listed."""
 
 
 # The records are frozen and hold only immutable values, so none can be part of a reference
@@ -398,22 +390,6 @@ class AnnotationReader(Protocol):
         self, from_ms: int, to_ms: int, limit: int = 100_000
     ) -> list[ZoneViolation]:
         """The zone violations with from_ms <= time < to_ms, by time."""
-
-
-class IncidentReader(Protocol):
-    """The incidents found in the history (ClickHouse: `incident_reads`)."""
-
-    def incidents(
-        self,
-        from_ms: int,
-        to_ms: int,
-        kinds: Sequence[str] = (),
-        robot_id: str | None = None,
-        limit: int = 10_000,
-    ) -> list[Incident]:
-        """The incidents meeting [from_ms, to_ms) (start < to_ms, end >= from_ms), of
-        `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
-        id; as last found, retracted ones left out."""
 
 
 class CommandReader(Protocol):

@@ -67,7 +67,9 @@ def test_a_change_is_encoded_once_and_queued_on_the_2019_topic_and_its_areas(mon
         def __init__(self) -> None:
             self.queued: list[tuple[str, bytes]] = []
 
-        def publish(self, topic: str, payload: bytes, qos: int) -> SimpleNamespace:
+        def publish(
+            self, topic: str, payload: bytes, qos: int, retain: bool = False
+        ) -> SimpleNamespace:
             self.queued.append((topic, payload))
             return SimpleNamespace(rc=mqtt.MQTT_ERR_SUCCESS)
 
