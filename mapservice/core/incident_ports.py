@@ -1,4 +1,4 @@
-"""The incidents' ports: where the stored findings are read from and announced to."""
+"""Where the stored incident findings are announced to (the live stream)."""
 
 from __future__ import annotations
 
@@ -7,22 +7,6 @@ from typing import TYPE_CHECKING, Protocol
 
 if TYPE_CHECKING:
     from mapservice.core.incident_model import Incident
-
-
-class IncidentReader(Protocol):
-    """The incidents found in the history (ClickHouse: `incident_reads`)."""
-
-    def incidents(
-        self,
-        from_ms: int,
-        to_ms: int,
-        kinds: Sequence[str] = (),
-        robot_id: str | None = None,
-        limit: int = 10_000,
-    ) -> list[Incident]:
-        """The incidents meeting [from_ms, to_ms) (start < to_ms, end >= from_ms), of
-        `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
-        id; as last found, retracted ones left out."""
 
 
 class IncidentFeed(Protocol):

@@ -11,7 +11,6 @@ from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneV
 from mapservice.core.commands import StoredCommandEvent
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
 from mapservice.core.incident_ports import IncidentFeed as IncidentFeed
-from mapservice.core.incident_ports import IncidentReader as IncidentReader
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
@@ -390,6 +389,22 @@ class AnnotationReader(Protocol):
         self, from_ms: int, to_ms: int, limit: int = 100_000
     ) -> list[ZoneViolation]:
         """The zone violations with from_ms <= time < to_ms, by time."""
+
+
+class IncidentReader(Protocol):
+    """The incidents found in the history (ClickHouse: `incident_reads`)."""
+
+    def incidents(
+        self,
+        from_ms: int,
+        to_ms: int,
+        kinds: Sequence[str] = (),
+        robot_id: str | None = None,
+        limit: int = 10_000,
+    ) -> list[Incident]:
+        """The incidents meeting [from_ms, to_ms) (start < to_ms, end >= from_ms), of
+        `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
+        id; as last found, retracted ones left out."""
 
 
 class CommandReader(Protocol):
