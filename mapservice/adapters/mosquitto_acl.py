@@ -52,7 +52,7 @@ def render_acl(
         "# edits between the markers are overwritten. Anything not allowed here is denied.",
         "#",
         "# Every robot (its MQTT username is its robotId) publishes only on topics naming itself",
-        "# and reads its own commands; every user reads the advertisements and the incident alerts.",
+        "# and reads its own commands; every user reads the advertisements.",
         *_patterns(rules_of(policy, Identity.ROBOT, Identity.EVERYONE)),
     ]
     if vehicle_rules := rules_of(policy, Identity.VEHICLE):

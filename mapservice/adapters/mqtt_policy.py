@@ -178,9 +178,10 @@ def access_policy(topics: AclTopics) -> tuple[Rule, ...]:
         Rule(Identity.EVERYONE, sub, topics.advertisement_topic),
         Rule(Identity.EVERYONE, sub, topics.area_advertisement_filter),
         Rule(Identity.EVERYONE, sub, topics.zone_advertisement_topic),
-        # Everyone may hear of the incidents (the plant's systems subscribe); no robot may
-        # raise or fake one.
-        Rule(Identity.EVERYONE, sub, f"{topics.incident_alert_root}+"),
+        # The plant's systems hear of the incidents as a master control (which reads every
+        # vehicle's messages anyway): an incident names robots and where they were, which
+        # no robot may learn of another; no robot may raise or fake one.
+        Rule(master, sub, f"{topics.incident_alert_root}+"),
     ]
     if vda:
         rows += [

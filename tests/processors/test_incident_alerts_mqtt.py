@@ -1,7 +1,7 @@
 """Through a real Mosquitto checking identities (the ACL as `mapservice up --auth` writes
-it): the processors' alerts reach a subscriber of `iot/incidents/+` for every kind, a
-subscriber that comes later gets the last alert of each kind (retained), and a robot's
-attempt to publish a fake incident there is refused."""
+it): the processors' alerts reach a master control (the plant's systems) subscribed to
+`iot/incidents/+` for every kind, one that comes later gets the last alert of each kind
+(retained), and a robot may neither read them nor publish a fake one."""
 
 from __future__ import annotations
 
@@ -59,7 +59,9 @@ def test_alerts_reach_subscribers_and_robots_cannot_fake_them(
 ) -> None:
     broker = mosquitto_identities
     # one connection per username (the broker makes the client id the username)
-    reader, other = broker.files.add_robot("reader-1"), broker.files.add_robot("reader-2")
+    reader = broker.files.add_robot("mapservice-master-plant-1")
+    other = broker.files.add_robot("mapservice-master-plant-2")
+    robot = broker.files.add_robot("reader-robot")
     broker.start()
     advertiser = MqttAdvertiser(
         Settings(
@@ -72,7 +74,7 @@ def test_alerts_reach_subscribers_and_robots_cannot_fake_them(
     floor.mqtt = advertiser
     floor.start()
     advertiser.start()
-    live = Subscriber(broker.port, "reader-1", reader.password)
+    live = Subscriber(broker.port, "mapservice-master-plant-1", reader.password)
     try:
         assert advertiser.connected.wait(10)
         for t in range(60):
@@ -90,7 +92,7 @@ def test_alerts_reach_subscribers_and_robots_cannot_fake_them(
         wait_for(lambda: stored <= {d["id"] for _, d, _ in live.docs})
         assert all(topic == f"iot/incidents/{d['kind']}" for topic, d, _ in live.docs)
         # a robot may not publish there: the broker refuses it (MQTT 5 PUBACK, not authorized)
-        probe = ProbeClient(broker.port, "reader-2", other.password)
+        probe = ProbeClient(broker.port, "reader-robot", robot.password)
         try:
             fake = json.dumps({"kind": "stuck", "event": "new", "id": "fake"}).encode()
             for kind in KINDS:
@@ -101,7 +103,7 @@ def test_alerts_reach_subscribers_and_robots_cannot_fake_them(
         # a late subscriber gets the last alert of each kind, retained
         with live.lock:
             last = {d["kind"]: d for _, d, _ in live.docs}
-        later = Subscriber(broker.port, "reader-2", other.password)
+        later = Subscriber(broker.port, "mapservice-master-plant-2", other.password)
         try:
             wait_for(lambda: len(later.docs) == len(KINDS))
             assert all(retained for _, _, retained in later.docs)
