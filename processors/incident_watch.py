@@ -74,7 +74,11 @@ class IncidentWatch:
         self.alerts, self.feed = alerts, feed
         self.keep_ms = round(settings.incident_memory_s * 1000)
         self.tracker = IncidentTracker(
-            self._read, incidents.incidents, thresholds_of(settings), self.keep_ms
+            self._read,
+            incidents.incidents,
+            thresholds_of(settings),
+            self.keep_ms,
+            round(settings.incident_refresh_s * 1000),
         )
 
     def _read(self, from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:

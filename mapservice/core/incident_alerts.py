@@ -2,10 +2,12 @@
 same fields as `GET /api/v1/incidents` lists, plus what happened to the incident), its MQTT
 topic, and which of new / changed / ended / retracted a finding is.
 
-The processors write a finding each time an incident is found again differently (a stuck
-robot's run grows, a near miss's closest distance drops), when it ends, and when a late
-pose breaks it (retracted). An alert says which, so a receiver can open, update and close
-its own record of the incident keyed by `id`, and drop it on a retraction.
+An alert goes out when an incident begins, each time it is found again differently in more
+than how long it has lasted so far (a near miss's closest distance drops, a stuck robot
+turns critical: incident_model.settled), when it ends, and when a late pose breaks it
+(retracted); not for the refreshes of an ongoing one's end the store gets. An alert says
+which, so a receiver can open, update and close its own record of the incident keyed by
+`id`, and drop it on a retraction.
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from mapservice.core.incident_model import Incident
+from mapservice.core.incident_model import Incident, settled
 
 # What happened to the incident, as of this finding.
 ALERT_EVENTS = ("new", "changed", "ended", "retracted")
@@ -49,42 +51,45 @@ def alert_document(incident: Incident, event: str, found_ms: int) -> dict[str, A
 
 
 class AlertLedger:
-    """Which incidents alerts were sent for, and whether each was ongoing then: what makes a
-    finding `new`, `changed` or `ended`. Seeded with the incidents stored when the views are
-    rebuilt (a restart does not announce them again as new), and kept to the incidents the
-    detection still holds (`keep`): a finding of one forgotten since is announced as new,
-    with the same id."""
+    """Which incidents alerts were sent for, and each as it was then (settled): what makes a
+    finding `new`, `changed` or `ended`, or not worth an alert. Seeded with the incidents
+    stored when the views are rebuilt (a restart does not announce them again as new), and
+    kept to the incidents the detection still holds (`keep`): a finding of one forgotten
+    since is announced as new, with the same id."""
 
     def __init__(self) -> None:
-        self._ongoing: dict[str, bool] = {}
+        self._sent: dict[str, Incident] = {}
 
     def __len__(self) -> int:
-        return len(self._ongoing)
+        return len(self._sent)
 
     def seed(self, incidents: Iterable[Incident]) -> None:
-        self._ongoing = {i.incident_id: i.ongoing for i in incidents}
+        self._sent = {i.incident_id: settled(i) for i in incidents}
 
     def classify(
         self, found: Iterable[Incident], retracted: Iterable[Incident]
     ) -> list[tuple[str, Incident]]:
-        """(event, incident) for each finding, and remembers them."""
+        """(event, incident) for each finding an alert is due for, and remembers them."""
         out: list[tuple[str, Incident]] = []
         for incident in found:
-            was = self._ongoing.get(incident.incident_id)
+            now = settled(incident)
+            was = self._sent.get(incident.incident_id)
+            if was == now:
+                continue  # only lasted longer
             if was is None:
                 event = "new"
-            elif was and not incident.ongoing:
+            elif was.ongoing and not incident.ongoing:
                 event = "ended"
             else:
                 event = "changed"
-            self._ongoing[incident.incident_id] = incident.ongoing
+            self._sent[incident.incident_id] = now
             out.append((event, incident))
         for incident in retracted:
-            self._ongoing.pop(incident.incident_id, None)
+            self._sent.pop(incident.incident_id, None)
             out.append(("retracted", incident))
         return out
 
     def keep(self, ids: Iterable[str]) -> None:
         """Forgets every incident but these (the ones the detection still holds)."""
         wanted = set(ids)
-        self._ongoing = {k: v for k, v in self._ongoing.items() if k in wanted}
+        self._sent = {k: v for k, v in self._sent.items() if k in wanted}

@@ -41,15 +41,24 @@ def joined_own(before: Incident, after: Incident, th: IncidentThresholds) -> Inc
 
 
 def join_runs(
-    before: Incident, before_closest: Closest, after: Incident, after_closest: Closest
+    before: Incident,
+    before_closest: Closest,
+    after: Incident,
+    after_closest: Closest,
+    first_tick: int,
 ) -> tuple[Incident, Closest]:
-    """A run found earlier (`before`, over ticks that cannot change any more) and its
-    continuation found over the later ticks (`after`, starting at most a tick after
-    `before` ends; the two may share ticks) as the rule finds the whole run: its start, id
-    and data edge from `before`, its end and whether it goes on from `after`, its figures
-    from the closer of the two closest ticks (the earlier of equal ones)."""
-    best = min(before_closest, after_closest)
-    figures = before if best == before_closest else after
+    """A run found earlier (`before`) and its continuation found over the ticks from
+    `first_tick` on (`after`, starting at most a tick after `before` ends; the two may
+    share a tick) as the rule finds the whole run: its start, id and data edge from
+    `before`, its end and whether it goes on from `after`, its figures from the closer of
+    the two closest ticks (the earlier of equal ones). A closest tick of `before` at or
+    after `first_tick` was judged again in `after`: a tick on a robot's newest pose is
+    placed from the pose before it until a later one comes (the same place, the last bit
+    aside, but other evidence), and every earlier tick of `before` was farther."""
+    if before_closest.tick_ms >= first_tick or after_closest < before_closest:
+        best, figures = after_closest, after
+    else:
+        best, figures = before_closest, before
     return (
         msgspec.structs.replace(
             after,
@@ -86,7 +95,9 @@ def carried_on(
         figures = fresh_closest[run.incident_id]
         before = joinable.get(run.robots)
         if before is not None and run.start_ms == first_tick:
-            run, figures = join_runs(before, known_closest[before.incident_id], run, figures)
+            run, figures = join_runs(
+                before, known_closest[before.incident_id], run, figures, first_tick
+            )
             joined.add(run.robots)
         found.append(run)
         closest[run.incident_id] = figures

@@ -91,6 +91,24 @@ class Incident(msgspec.Struct, frozen=True):
     from_data_edge: bool = False
 
 
+# Kinds whose figure and last piece of evidence follow an ongoing run's end: the seconds
+# stopped (to the newest pose) or silent (to the clock).
+GROWING_KINDS = ("stuck", "offline")
+
+
+def settled(incident: Incident) -> Incident:
+    """The incident without what grows while it goes on: an ongoing one's end, and for a
+    stuck or silent robot the length and the newest pose that follow it. Two findings of an
+    incident that settle alike differ only in how long it has lasted so far."""
+    if not incident.ongoing:
+        return incident
+    if incident.kind in GROWING_KINDS:
+        return msgspec.structs.replace(
+            incident, end_ms=0, measure=0.0, evidence=incident.evidence[:1]
+        )
+    return msgspec.structs.replace(incident, end_ms=0)
+
+
 def incident_id(kind: str, robots: Sequence[str], start_ms: int) -> str:
     return _incident_id(kind, tuple(robots), start_ms)
 

@@ -15,9 +15,13 @@ What a batch can change, for poses of robots R from instant `a` on:
 The rules re-run from `lookback_ms` before that; a run that reaches back to where they
 started (`from_data_edge`) is run again from further back, from memory or the store.
 
-An ongoing silence (`offline`) grows with the clock, not with batches: `tick` finds robots
-that fell silent; its end and length are refreshed when it ends or turns critical, not on
-every tick (the stored row says when it was last found; readers extend an ongoing one to now).
+An ongoing incident grows with every batch (a near miss's end, a stuck robot's seconds) or
+with the clock (a silence, which `tick` finds): what is held here follows it exactly, but a
+finding that only moved its end (incident_model.settled) is written again only when its end
+crossed into another `refresh_ms` step. So a run that goes on costs a row every refresh, not
+one per batch, and the stored row of an ongoing incident lags its end by less than a
+refresh (readers extend an ongoing silence to now); any other change, and its end, is
+written with the batch that found it.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from collections.abc import Callable, Iterable, Sequence
 import msgspec
 
 from mapservice.core.incident_joins import carried_on, joined_own
+from mapservice.core.incident_model import settled
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
@@ -51,14 +56,6 @@ ReadPoses = Callable[[int, int, str | None], list[PoseRow]]
 ReadIncidents = Callable[[int, int], list[Incident]]
 
 
-def _key(incident: Incident) -> Incident:
-    """What a new finding must differ in to be written again: all but an ongoing silence's
-    end and length, which grow with the clock."""
-    if incident.kind == "offline" and incident.ongoing:
-        return msgspec.structs.replace(incident, end_ms=0, measure=0.0)
-    return incident
-
-
 def _ts(pose: PoseRow) -> int:
     return pose.ts_ms
 
@@ -70,11 +67,15 @@ class IncidentTracker:
         read_incidents: ReadIncidents,
         thresholds: IncidentThresholds | None = None,
         keep_ms: int = 300_000,
+        refresh_ms: int = 10_000,
     ) -> None:
+        if refresh_ms <= 0:
+            raise ValueError("refresh_ms must be positive")
         self.read = read
         self.read_incidents = read_incidents
         self.th = thresholds or IncidentThresholds()
         self.keep_ms = keep_ms
+        self.refresh_ms = refresh_ms
         self.tracks: dict[str, list[PoseRow]] = {}
         # A robot's track holds every stored pose of it at or after its instant here (this
         # default for robots not named; and before it, the robot's newest); earlier ones
@@ -251,12 +252,18 @@ class IncidentTracker:
     # --- finding ------------------------------------------------------------------------
 
     def _note(self, incident: Incident) -> None:
-        before = self.current.get(incident.incident_id)
-        if before is not None and _key(before) == _key(incident):
+        key = incident.incident_id
+        before = self.current.get(key)
+        self.current[key] = incident
+        if (
+            before is not None
+            and key not in self.found  # else the newest finding replaces the one waiting
+            and before.end_ms // self.refresh_ms == incident.end_ms // self.refresh_ms
+            and settled(before) == settled(incident)
+        ):
             return
-        self.current[incident.incident_id] = incident
-        self.found[incident.incident_id] = incident
-        self.retracted.pop(incident.incident_id, None)
+        self.found[key] = incident
+        self.retracted.pop(key, None)
 
     def _drop(self, incident: Incident) -> None:
         self.current.pop(incident.incident_id, None)

@@ -97,3 +97,12 @@ class LiveSettings(BaseModel):
         description="How much recent history the processors keep in memory to find "
         "incidents; poses older than this (late ones) are read from the store.",
     )
+    incident_refresh_s: float = Field(
+        10.0,
+        ge=1,
+        le=300,
+        description="How often the stored row of an ongoing incident is brought up to "
+        "its end (and announced on the live stream) while nothing else about it changes: "
+        "a run that goes on costs a row this often, not one per stored batch. Begins, "
+        "ends and other changes are written at once; alerts go out only for those.",
+    )

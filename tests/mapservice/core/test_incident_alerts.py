@@ -5,13 +5,21 @@ needs it."""
 
 from __future__ import annotations
 
+import msgspec
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from mapservice.api.routers.incidents import Incident as ListedIncident
 from mapservice.core.incident_alerts import ALERT_EVENTS, AlertLedger, alert_document, alert_topic
-from mapservice.core.incident_model import KINDS, SEVERITIES, Incident, PoseRef, incident_id
+from mapservice.core.incident_model import (
+    KINDS,
+    SEVERITIES,
+    Incident,
+    PoseRef,
+    incident_id,
+    settled,
+)
 
 
 def incident(kind: str, start_ms: int, ongoing: bool, end_ms: int | None = None) -> Incident:
@@ -51,38 +59,81 @@ def test_an_unknown_event_is_refused() -> None:
         alert_document(incident("stuck", 0, True), "opened", 0)
 
 
-# A sequence of findings: (incident number, ongoing?, retracted?)
-steps = st.lists(st.tuples(st.integers(0, 4), st.booleans(), st.booleans()), max_size=40)
+# A sequence of findings: (incident number, kind, ongoing?, retracted?, end, closest)
+steps = st.lists(
+    st.tuples(
+        st.integers(0, 4),
+        st.sampled_from(("stuck", "near_miss")),
+        st.booleans(),
+        st.booleans(),
+        st.integers(5_000, 60_000),
+        st.sampled_from((0.3, 0.4)),
+    ),
+    max_size=40,
+)
+
+
+def found_as(kind: str, n: int, ongoing: bool, end_ms: int, closest: float) -> Incident:
+    i = incident(kind, n * 1000, ongoing, end_ms=n * 1000 + end_ms)
+    if kind == "stuck":  # its figure follows its end
+        return msgspec.structs.replace(i, measure=(i.end_ms - i.start_ms) / 1000)
+    # its figure and evidence are its closest tick's, wherever its end is
+    at = i.start_ms + round(closest * 1000)
+    closest_tick = (PoseRef("a", at, 1.5, -2.0), PoseRef("b", at, 1.5 + closest, -2.0))
+    return msgspec.structs.replace(i, measure=closest, evidence=closest_tick)
 
 
 @given(steps, st.sets(st.integers(0, 4)))
 def test_the_ledger_names_each_finding_as_a_receivers_record_needs(steps, stored) -> None:
     """A receiver that opens on `new`, updates on `changed`, closes on `ended` and drops on
-    `retracted` holds exactly the incidents last found, each as last found; one the ledger
-    was seeded with (stored before a restart) is never announced as new."""
+    `retracted` holds every incident last found as last found, but for how long an ongoing
+    one has lasted: a finding that differs from the last alert in that alone sends none.
+    One the ledger was seeded with (stored before a restart) is never announced as new."""
     ledger = AlertLedger()
-    ledger.seed(incident("stuck", n * 1000, ongoing=True) for n in stored)
-    record: dict[str, bool] = {f"stuck-{n}": True for n in stored}  # the receiver's, by id
-    expected = dict(record)
-    for n, ongoing, retract in steps:
-        i = incident("stuck", n * 1000, ongoing)
-        key = f"stuck-{n}"
+    seeded = [found_as("stuck", n, True, 5_000, 0.4) for n in stored]
+    ledger.seed(seeded)
+    record = {i.incident_id: settled(i) for i in seeded}  # the receiver's, by id
+    for n, kind, ongoing, retract, end_ms, closest in steps:
+        i = found_as(kind, n, ongoing, end_ms, closest)
         if retract:
             ((event, _),) = ledger.classify([], [i])
             assert event == "retracted"
-            record.pop(key, None)
-            expected.pop(key, None)
+            record.pop(i.incident_id, None)
             continue
-        ((event, _),) = ledger.classify([i], [])
-        if key not in record:
+        alerts = ledger.classify([i], [])
+        was = record.get(i.incident_id)
+        if was == settled(i):
+            assert alerts == []
+            continue
+        ((event, _),) = alerts
+        if was is None:
             assert event == "new"
-        elif record[key] and not ongoing:
+        elif was.ongoing and not ongoing:
             assert event == "ended"
         else:
             assert event == "changed"
-        record[key] = ongoing
-        expected[key] = ongoing
-    assert record == expected
+        record[i.incident_id] = settled(i)
+
+
+def test_an_ongoing_runs_growing_length_alone_sends_no_alert() -> None:
+    ledger = AlertLedger()
+    first = found_as("stuck", 1, True, 30_000, 0.0)
+    assert [e for e, _ in ledger.classify([first], [])] == ["new"]
+    for end in range(30_500, 120_000, 500):
+        assert ledger.classify([found_as("stuck", 1, True, end, 0.0)], []) == []
+    critical = msgspec.structs.replace(
+        found_as("stuck", 1, True, 130_000, 0.0), severity="critical"
+    )
+    assert [e for e, _ in ledger.classify([critical], [])] == ["changed"]
+    near = found_as("near_miss", 2, True, 10_000, 0.4)
+    assert [e for e, _ in ledger.classify([near], [])] == ["new"]
+    assert ledger.classify([found_as("near_miss", 2, True, 20_000, 0.4)], []) == []
+    assert [e for e, _ in ledger.classify([found_as("near_miss", 2, True, 21_000, 0.3)], [])] == [
+        "changed"
+    ]
+    assert [e for e, _ in ledger.classify([found_as("near_miss", 2, False, 22_000, 0.3)], [])] == [
+        "ended"
+    ]
 
 
 def test_the_ledger_forgets_what_the_detection_let_go_of() -> None:
@@ -90,4 +141,4 @@ def test_the_ledger_forgets_what_the_detection_let_go_of() -> None:
     a, b = incident("offline", 0, True), incident("offline", 1000, True)
     ledger.classify([a, b], [])
     ledger.keep([b.incident_id])
-    assert [e for e, _ in ledger.classify([a, b], [])] == ["new", "changed"]
+    assert [(e, i.incident_id) for e, i in ledger.classify([a, b], [])] == [("new", a.incident_id)]

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from mapservice.core import incident_tracker, near_miss
 from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.incident_model import settled
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
 from mapservice.core.ports import PoseRow
@@ -43,16 +44,21 @@ def reader(store: MemoryStore):
     return read
 
 
-def normal(incidents: list[Incident]) -> list[Incident]:
-    """An ongoing silence's end and length are the finder's clock: left out."""
+REFRESH_MS = IncidentTracker(lambda f, t, r: [], lambda f, t: []).refresh_ms
+
+
+def normal(incidents: list[Incident]) -> list[tuple[Incident, int]]:
+    """Each incident but for how long an ongoing one has lasted so far, which the store
+    holds to the refresh step (and an ongoing silence's is the finder's clock)."""
     return sorted(
         (
-            msgspec.structs.replace(i, end_ms=0, measure=0.0, from_data_edge=False)
-            if i.kind == "offline" and i.ongoing
-            else msgspec.structs.replace(i, from_data_edge=False)
+            (
+                settled(msgspec.structs.replace(i, from_data_edge=False)),
+                i.end_ms // REFRESH_MS if i.ongoing and i.kind != "offline" else 0,
+            )
             for i in incidents
         ),
-        key=lambda i: i.incident_id,
+        key=lambda pair: pair[0].incident_id,
     )
 
 
@@ -207,8 +213,9 @@ def test_the_live_case_judges_only_the_robots_whose_new_poses_can_start_somethin
     monkeypatch.setattr(incident_tracker, "stuck_incidents", counted)
     tracker.add(batches[-1], t0 + 45_000)
     assert set(judged) == standing | low
-    found, _ = tracker.take()
-    assert {i.robots[0] for i in found if i.kind == "stuck"} == standing
+    going_on = [i for i in tracker.current.values() if i.kind == "stuck" and i.ongoing]
+    assert {i.robots[0] for i in going_on} == standing
+    assert all(i.end_ms >= t0 + 44_000 for i in going_on)  # to the batch's poses
 
 
 @pytest.mark.parametrize("pairs", [2, 9])
@@ -278,3 +285,79 @@ def test_a_near_miss_going_on_costs_each_batch_its_new_ticks_only(seconds, monke
     [expected] = [i for i in detect(poses, t0 + seconds * 1000 + 500, th) if i.kind == "near_miss"]
     assert normal([run]) == normal([expected])
     assert run.ongoing and run.end_ms - run.start_ms >= (seconds - 1) * 1000
+
+
+@pytest.mark.parametrize("refresh_ms", [2_000, 10_000])
+def test_an_incident_going_on_is_written_once_a_refresh_and_its_end_at_once(refresh_ms) -> None:
+    """A robot stuck with a path, and two robots side by side, for four minutes, a batch
+    every half second: each incident is written when it begins, once each time its end
+    crosses a refresh step, when it changes otherwise (its closest tick), and when it
+    ends, with the end the rule finds; what is stored meanwhile lags its end by less than
+    a refresh (not a row every batch)."""
+    th = IncidentThresholds()
+    t0 = 1_795_255_200_000
+    seconds = 240
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 600_000, refresh_ms)
+    stored: dict[str, Incident] = {}
+    refreshes: dict[str, int] = {}
+    poses: list[PoseRow] = []
+    for half in range(2 * seconds + 1):
+        s, odd = divmod(half, 2)
+        at = t0 + s * 1000 + 500 * odd
+        # the pair drives on side by side, closest at the 30th second; at the end "b"
+        # turns away; "c" stands still
+        batch = [
+            fleet_pose(
+                robot,
+                at + k,
+                s * 0.5 + (5.0 if robot == "b" and half >= 470 else 0),
+                y - (0.1 if robot == "b" and s == 30 else 0),
+                80,
+            )
+            for k, (robot, y) in enumerate((("a", 0.0), ("b", 0.4), ("c", 20.0)))
+            if odd == k % 2 or robot == "c"
+        ]
+        batch = [p if p.robot_id != "c" else fleet_pose("c", at + 2, 3.0, 20.0, 80) for p in batch]
+        poses += batch
+        tracker.add(batch, at + 300)
+        for i in tracker.take()[0]:
+            before = stored.get(i.incident_id)
+            if before is not None and settled(before) == settled(i):  # lasted longer only
+                refreshes[i.incident_id] = refreshes.get(i.incident_id, 0) + 1
+            stored[i.incident_id] = i
+        for i in tracker.current.values():
+            if i.ongoing:  # never behind by a refresh
+                assert i.end_ms - stored[i.incident_id].end_ms < refresh_ms
+    expected = {i.incident_id: i for i in detect(poses, at + 300, th)}
+    assert {i.kind for i in expected.values()} == {"near_miss", "stuck"}
+    near = next(i for i in expected.values() if i.kind == "near_miss")
+    assert not near.ongoing  # ended by "b" turning away: written at once, exactly
+    got = stored[near.incident_id]
+    assert {
+        f: getattr(got, f) for f in got.__struct_fields__ if getattr(got, f) != getattr(near, f)
+    } == {}
+    for key, incident in expected.items():
+        steps = (incident.end_ms - incident.start_ms) / refresh_ms
+        assert refreshes[key] <= steps + 1  # and enough: never a refresh behind, above
+
+
+@pytest.mark.parametrize("offset_ms", [0, 1, 250, 499, 500, 501])
+def test_a_near_miss_carried_on_across_a_tick_on_a_newest_pose_is_the_rules(offset_ms) -> None:
+    """Two robots side by side at one distance, one's poses on the ticks: a tick on a
+    robot's newest pose is placed from the pose before it until the next comes, then from
+    that next (the same place, the last bit aside, other evidence). The run carried on
+    batch by batch is the one the rule finds over the whole history, evidence and all."""
+    th = IncidentThresholds()
+    t0 = 1_795_255_200_000
+    tracker = IncidentTracker(lambda f, t, r: [], lambda f, t: [], th, 600_000)
+    poses: list[PoseRow] = []
+    for half in range(2 * 60):
+        s, odd = divmod(half, 2)
+        robot, y, at = ("b", 0.4, t0 + s * 1000 + offset_ms) if odd else ("a", 0.0, t0 + s * 1000)
+        poses.append(fleet_pose(robot, at, s * 0.5, y, 80))
+        tracker.add(poses[-1:], at + 100)
+    [run] = [i for i in tracker.current.values() if i.kind == "near_miss"]
+    [rule] = [i for i in detect(poses, poses[-1].ts_ms + 100, th) if i.kind == "near_miss"]
+    assert msgspec.structs.replace(run, from_data_edge=False) == msgspec.structs.replace(
+        rule, from_data_edge=False
+    )
