@@ -23,34 +23,50 @@ ROS_UNKNOWN = 205  # a cell no chunk covers yet (ROS map_server's grey)
 
 class Floor:
     """The whole map as one image, updated chunk by chunk (contents read from the store by
-    hash, each once)."""
+    hash, each once). Writes are drawn when the image is next read, not as they come: a
+    live floor nobody is shown costs a dict entry per write (decompressing and pasting a
+    chunk costs about a hundred times that), and a cell written again before then is
+    drawn once."""
 
     def __init__(self, meta: MapMetaSet, store: TimeTravelReader):
         self.meta, self.store = meta, store
-        self.pixels = np.full((meta.height, meta.width), ROS_UNKNOWN, dtype=np.uint8)
+        self._pixels = np.full((meta.height, meta.width), ROS_UNKNOWN, dtype=np.uint8)
         self._contents: dict[str, tuple[int, int, bytes]] = {}
+        self._pending: dict[tuple[int, int], str] = {}  # (row, column) -> its newest hash
 
     def apply(self, changes: Iterable[tuple[int, int, str]]) -> None:
-        """Draws each (row, column, content hash hex) in order (a later one wins)."""
-        changes = list(changes)
-        missing = [bytes.fromhex(h) for _, _, h in changes if h not in self._contents]
+        """Takes each (row, column, content hash hex) in order (a later one wins)."""
+        for row, col, digest in changes:
+            self._pending[(row, col)] = digest
+
+    @property
+    def pixels(self) -> np.ndarray:
+        """The image, every write taken so far drawn."""
+        if self._pending:
+            pending, self._pending = self._pending, {}
+            self._draw(pending)
+        return self._pixels
+
+    def _draw(self, pending: Mapping[tuple[int, int], str]) -> None:
+        missing = [bytes.fromhex(h) for h in set(pending.values()) if h not in self._contents]
         if missing:
             for stored_hash, stored in self.store.chunk_contents(missing).items():
                 self._contents[stored_hash.hex()] = stored
         cw, ch = self.meta.chunk_width, self.meta.chunk_height
-        for row, col, digest in changes:
+        for (row, col), digest in pending.items():
             content = self._contents.get(digest)
             if content is None:
                 continue  # contents older than the retention: the chunk stays as it was
             width, height, data = content
             tile = np.frombuffer(zlib.decompress(data), dtype=np.uint8).reshape(height, width)
-            self.pixels[row * ch : row * ch + height, col * cw : col * cw + width] = tile[
+            self._pixels[row * ch : row * ch + height, col * cw : col * cw + width] = tile[
                 : self.meta.height - row * ch, : self.meta.width - col * cw
             ]
 
     def reset(self) -> None:
         """Every cell unknown again (a seek draws the map at its instant from scratch)."""
-        self.pixels.fill(ROS_UNKNOWN)
+        self._pending.clear()
+        self._pixels.fill(ROS_UNKNOWN)
 
     def grid(self, ts_ms: int) -> Any:
         from foxglove_schemas_protobuf.Grid_pb2 import Grid

@@ -287,9 +287,10 @@ def test_the_live_feed_builds_messages_only_for_a_channel_someone_takes(
     sink, tmp_path, monkeypatch
 ):
     """On the SDK's own channels: with no client (no sink) the live stream moves the scene
-    (its robots, its floor) but builds no message; with a sink (an MCAP writer on the same
-    context, as a client's subscription is one) every pose, transform, state and write is
-    sent, and the floor."""
+    (its robots, its floor) but builds no message and draws no write into the floor (no
+    chunk read or decompressed) until the floor is looked at; with a sink (an MCAP writer
+    on the same context, as a client's subscription is one) every pose, transform, state
+    and write is sent, and the floor."""
     import foxglove
 
     from mapservice.adapters import foxglove_scene
@@ -313,6 +314,11 @@ def test_the_live_feed_builds_messages_only_for_a_channel_someone_takes(
     try:
         feed._draw_now()
         built.clear()
+        read = store.chunk_contents
+        reads: list[int] = []
+        monkeypatch.setattr(
+            store, "chunk_contents", lambda hashes: reads.append(len(hashes)) or read(hashes)
+        )
         feed._apply(live)
     finally:
         feed.close()
@@ -329,5 +335,10 @@ def test_the_live_feed_builds_messages_only_for_a_channel_someone_takes(
         assert built.count("transform_message") == poses
         assert not scene.floor_dirty  # the floor went out
     else:
-        assert built == []
+        assert built == [] and reads == []
         assert scene.floor_dirty  # kept for a client that subscribes: `resend` draws it
+    chunks = store.map_at(T0 + 700_000)
+    expected = stitch(
+        store.latest_meta(), chunks, read([bytes.fromhex(c.content_hash) for c in chunks])
+    )
+    assert np.array_equal(scene.floor.pixels, expected)
