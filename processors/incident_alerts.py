@@ -1,4 +1,5 @@
-"""Tells the plant's systems of every incident finding once it is stored: on MQTT, one
+"""Tells the plant's systems of every incident once its finding is stored (when it begins,
+changes severity, ends or is retracted: mapservice/core/incident_alerts.py): on MQTT, one
 topic per kind (`<incident_alert_topic_root><kind>`, QoS 1), and to the webhooks operators
 registered (webhook_delivery.py). Runs on the store thread right after the findings' insert
 returned, and only hands the alerts over: the MQTT client's thread (advertising.py) and the

@@ -2,12 +2,14 @@
 same fields as `GET /api/v1/incidents` lists, plus what happened to the incident), its MQTT
 topic, and which of new / changed / ended / retracted a finding is.
 
-An alert goes out when an incident begins, each time it is found again differently in more
-than how long it has lasted so far (a near miss's closest distance drops, a stuck robot
-turns critical: incident_model.settled), when it ends, and when a late pose breaks it
-(retracted); not for the refreshes of an ongoing one's end the store gets. An alert says
-which, so a receiver can open, update and close its own record of the incident keyed by
-`id`, and drop it on a retraction.
+An alert goes out when an incident begins, when its severity changes while it goes on (a
+near miss comes within half the distance, a robot stuck for five minutes: a receiver
+escalates), when it ends (with its final figures and evidence) and when a late pose breaks
+it (retracted). Not for what is refined in between: a near miss's closest distance dropping
+by a few centimetres, a stuck run's growing length, which the store and the live page get;
+a receiver pages people on alerts, and two robots passing each other would otherwise send
+one a batch. An alert says which, so a receiver can open, update and close its own record
+of the incident keyed by `id`, and drop it on a retraction.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Any
 
-from mapservice.core.incident_model import Incident, settled
+from mapservice.core.incident_model import Incident
 
 # What happened to the incident, as of this finding.
 ALERT_EVENTS = ("new", "changed", "ended", "retracted")
@@ -50,21 +52,26 @@ def alert_document(incident: Incident, event: str, found_ms: int) -> dict[str, A
     }
 
 
+def _alerted(incident: Incident) -> tuple[bool, str, tuple[str, ...]]:
+    """What a finding must differ in from the last alert of its incident to be alerted."""
+    return incident.ongoing, incident.severity, incident.robots
+
+
 class AlertLedger:
-    """Which incidents alerts were sent for, and each as it was then (settled): what makes a
-    finding `new`, `changed` or `ended`, or not worth an alert. Seeded with the incidents
-    stored when the views are rebuilt (a restart does not announce them again as new), and
-    kept to the incidents the detection still holds (`keep`): a finding of one forgotten
-    since is announced as new, with the same id."""
+    """Which incidents alerts were sent for, and each as it was then: what makes a finding
+    `new`, `changed` or `ended`, or not worth an alert. Seeded with the incidents stored
+    when the views are rebuilt (a restart does not announce them again as new), and kept
+    to the incidents the detection still holds (`keep`): a finding of one forgotten since
+    is announced as new, with the same id."""
 
     def __init__(self) -> None:
-        self._sent: dict[str, Incident] = {}
+        self._sent: dict[str, tuple[bool, str, tuple[str, ...]]] = {}
 
     def __len__(self) -> int:
         return len(self._sent)
 
     def seed(self, incidents: Iterable[Incident]) -> None:
-        self._sent = {i.incident_id: settled(i) for i in incidents}
+        self._sent = {i.incident_id: _alerted(i) for i in incidents}
 
     def classify(
         self, found: Iterable[Incident], retracted: Iterable[Incident]
@@ -72,13 +79,13 @@ class AlertLedger:
         """(event, incident) for each finding an alert is due for, and remembers them."""
         out: list[tuple[str, Incident]] = []
         for incident in found:
-            now = settled(incident)
+            now = _alerted(incident)
             was = self._sent.get(incident.incident_id)
             if was == now:
-                continue  # only lasted longer
+                continue  # refined, or lasted longer
             if was is None:
                 event = "new"
-            elif was.ongoing and not incident.ongoing:
+            elif was[0] and not incident.ongoing:
                 event = "ended"
             else:
                 event = "changed"

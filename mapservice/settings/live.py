@@ -104,5 +104,5 @@ class LiveSettings(BaseModel):
         description="How often the stored row of an ongoing incident is brought up to "
         "its end (and announced on the live stream) while nothing else about it changes: "
         "a run that goes on costs a row this often, not one per stored batch. Begins, "
-        "ends and other changes are written at once; alerts go out only for those.",
+        "ends and other changes are written at once.",
     )

@@ -18,7 +18,6 @@ from mapservice.core.incident_model import (
     Incident,
     PoseRef,
     incident_id,
-    settled,
 )
 
 
@@ -66,33 +65,43 @@ steps = st.lists(
         st.sampled_from(("stuck", "near_miss")),
         st.booleans(),
         st.booleans(),
-        st.integers(5_000, 60_000),
-        st.sampled_from((0.3, 0.4)),
+        st.integers(5_000, 400_000),
+        st.sampled_from((0.3, 0.4, 0.6)),
     ),
     max_size=40,
 )
 
 
 def found_as(kind: str, n: int, ongoing: bool, end_ms: int, closest: float) -> Incident:
+    """A finding as the rules make it: a stuck run's figure and severity follow its length,
+    a near miss's its closest tick's (and its evidence)."""
     i = incident(kind, n * 1000, ongoing, end_ms=n * 1000 + end_ms)
-    if kind == "stuck":  # its figure follows its end
-        return msgspec.structs.replace(i, measure=(i.end_ms - i.start_ms) / 1000)
-    # its figure and evidence are its closest tick's, wherever its end is
+    if kind == "stuck":
+        still_s = (i.end_ms - i.start_ms) / 1000
+        return msgspec.structs.replace(
+            i, measure=still_s, severity="critical" if still_s >= 300 else "warning"
+        )
     at = i.start_ms + round(closest * 1000)
     closest_tick = (PoseRef("a", at, 1.5, -2.0), PoseRef("b", at, 1.5 + closest, -2.0))
-    return msgspec.structs.replace(i, measure=closest, evidence=closest_tick)
+    return msgspec.structs.replace(
+        i,
+        measure=closest,
+        evidence=closest_tick,
+        severity="critical" if closest < 0.5 else "warning",
+    )
 
 
 @given(steps, st.sets(st.integers(0, 4)))
 def test_the_ledger_names_each_finding_as_a_receivers_record_needs(steps, stored) -> None:
     """A receiver that opens on `new`, updates on `changed`, closes on `ended` and drops on
-    `retracted` holds every incident last found as last found, but for how long an ongoing
-    one has lasted: a finding that differs from the last alert in that alone sends none.
-    One the ledger was seeded with (stored before a restart) is never announced as new."""
+    `retracted` holds every incident found, whether it goes on and its severity as last
+    found: a finding that differs from the last alert in neither (a closer near miss of the
+    same severity, a longer stuck run) sends none. One the ledger was seeded with (stored
+    before a restart) is never announced as new."""
     ledger = AlertLedger()
     seeded = [found_as("stuck", n, True, 5_000, 0.4) for n in stored]
     ledger.seed(seeded)
-    record = {i.incident_id: settled(i) for i in seeded}  # the receiver's, by id
+    record = {i.incident_id: (i.ongoing, i.severity) for i in seeded}  # the receiver's
     for n, kind, ongoing, retract, end_ms, closest in steps:
         i = found_as(kind, n, ongoing, end_ms, closest)
         if retract:
@@ -102,38 +111,36 @@ def test_the_ledger_names_each_finding_as_a_receivers_record_needs(steps, stored
             continue
         alerts = ledger.classify([i], [])
         was = record.get(i.incident_id)
-        if was == settled(i):
+        if was == (i.ongoing, i.severity):
             assert alerts == []
             continue
         ((event, _),) = alerts
         if was is None:
             assert event == "new"
-        elif was.ongoing and not ongoing:
+        elif was[0] and not ongoing:
             assert event == "ended"
         else:
             assert event == "changed"
-        record[i.incident_id] = settled(i)
+        record[i.incident_id] = (i.ongoing, i.severity)
 
 
-def test_an_ongoing_runs_growing_length_alone_sends_no_alert() -> None:
+def test_an_incident_refined_while_it_goes_on_sends_no_alert_until_its_severity_changes() -> None:
     ledger = AlertLedger()
     first = found_as("stuck", 1, True, 30_000, 0.0)
     assert [e for e, _ in ledger.classify([first], [])] == ["new"]
-    for end in range(30_500, 120_000, 500):
+    for end in range(30_500, 300_000, 500):
         assert ledger.classify([found_as("stuck", 1, True, end, 0.0)], []) == []
-    critical = msgspec.structs.replace(
-        found_as("stuck", 1, True, 130_000, 0.0), severity="critical"
-    )
+    critical = found_as("stuck", 1, True, 300_000, 0.0)
     assert [e for e, _ in ledger.classify([critical], [])] == ["changed"]
-    near = found_as("near_miss", 2, True, 10_000, 0.4)
+    near = found_as("near_miss", 2, True, 10_000, 0.8)
     assert [e for e, _ in ledger.classify([near], [])] == ["new"]
-    assert ledger.classify([found_as("near_miss", 2, True, 20_000, 0.4)], []) == []
-    assert [e for e, _ in ledger.classify([found_as("near_miss", 2, True, 21_000, 0.3)], [])] == [
+    for closer in (0.7, 0.6, 0.55):
+        assert ledger.classify([found_as("near_miss", 2, True, 20_000, closer)], []) == []
+    assert [e for e, _ in ledger.classify([found_as("near_miss", 2, True, 21_000, 0.4)], [])] == [
         "changed"
     ]
-    assert [e for e, _ in ledger.classify([found_as("near_miss", 2, False, 22_000, 0.3)], [])] == [
-        "ended"
-    ]
+    [(event, last)] = ledger.classify([found_as("near_miss", 2, False, 22_000, 0.3)], [])
+    assert event == "ended" and last.measure == 0.3  # the final figures
 
 
 def test_the_ledger_forgets_what_the_detection_let_go_of() -> None:
