@@ -250,6 +250,8 @@ class HistoryConsumer:
                 # (which may repeat what is stored) are applied.
                 await self.views.rebuild()
         if not records:
+            if self.views is not None:
+                self.views.clock.caught_up()  # nothing waiting: not behind the stream
             await self.settle()  # idle: the views catch up at once
             self._timed_store(0.0)
             return 0

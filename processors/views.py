@@ -46,6 +46,7 @@ from .incident_watch import IncidentWatch
 from .latest_map import LatestMap
 from .presence import Presence
 from .store_thread import StoreThread
+from .stream_clock import StreamClock
 from .webhook_delivery import WebhookDeliveries
 from .zone_watch import ZONE_VIOLATIONS, Zones
 
@@ -82,6 +83,8 @@ class LiveViews:
         self.store_thread = store_thread
         self.advertiser = advertiser
         self.now_ms = now_ms
+        # silences (who is online, `offline` incidents) are judged by the stream's clock
+        self.clock = StreamClock(now_ms)
         self.ads = (
             None if advertiser is None else AdvertisementQueue(advertiser, settings.public_base_url)
         )
@@ -99,7 +102,7 @@ class LiveViews:
         )
         alerts = IncidentAlerts(settings.incident_alert_topic_root, self.ads, webhooks)
         self.incidents = IncidentWatch(
-            settings, history, incidents, writer, now_ms, alerts=alerts, feed=live
+            settings, history, incidents, writer, self.clock.now_ms, alerts=alerts, feed=live
         )
         self.loaded = False
 
@@ -154,6 +157,7 @@ class LiveViews:
 
     async def on_stored(self, events: Sequence[Envelope]) -> None:
         """After a batch is in the history, before it is acknowledged."""
+        self.clock.stored(events)
         if not self.loaded:
             # The rebuild at assignment failed: rebuild now (this batch is in it already,
             # so its changes go unadvertised) rather than let older writes win.
@@ -189,7 +193,7 @@ class LiveViews:
 
     def check_presence(self) -> tuple[set[str], set[str]]:
         """Logs robots going online/offline; returns (came online, went offline)."""
-        return self.presence.check(self.now_ms())
+        return self.presence.check(self.clock.now_ms())
 
     async def tick(self) -> None:
         """Once a second: robots going online and offline, and the incidents of silences."""

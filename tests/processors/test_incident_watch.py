@@ -88,7 +88,10 @@ class Floor:
         asyncio.run(self.consumer.run_once())
 
     def tick(self, seconds: float) -> None:
+        """The clock moves on; the consumer polls and finds nothing more."""
         self.now += round(seconds * 1000)
+        self.clock.t += 1
+        asyncio.run(self.consumer.run_once())
         asyncio.run(self.views.tick())
         asyncio.run(self.views.write_found_until_done())
 
@@ -178,3 +181,34 @@ def test_each_stored_finding_is_announced_once_after_it_is_stored(ev, feed_fails
     # What the announcements add up to is what the store lists.
     assert found_ids == {i.incident_id for i in floor.stored()}
     assert [i.kind for i in floor.stored()] == ["offline"]
+
+
+@pytest.mark.parametrize("behind_s", [12, 30, 120])
+def test_a_replica_behind_the_stream_finds_silent_only_the_robots_the_stream_shows_silent(
+    ev, behind_s
+) -> None:
+    """A backlog read late (after a restart, or a replica slower than the fleet for a
+    while): 20 robots' poses every second, each batch stored `behind_s` after the gateway
+    received it, and one robot falling silent halfway. Judged by the wall clock every robot
+    would be silent (offline in the fleet, an `offline` incident and an alert each); judged
+    by the stream as far as it is stored, only the one that fell silent is. Once a poll
+    finds nothing more to read, the wall clock judges: everyone has fallen silent."""
+    floor = Floor()
+    robots = [f"r{k:02d}" for k in range(20)]
+    for t in range(60):
+        floor.now = NOW - 120_000 + (t + behind_s) * 1000  # when the batch is read
+        floor.send(
+            ev,
+            *[
+                (r, t, 3.0 * k, 0.5 * t, 80.0, None)
+                for k, r in enumerate(robots)
+                if r != "r00" or t < 30
+            ],
+        )
+        asyncio.run(floor.views.tick())
+        asyncio.run(floor.views.write_found_until_done())
+    assert floor.views.presence.online == set(robots) - {"r00"}
+    assert [i.robots for i in floor.stored() if i.kind == "offline"] == [("r00",)]
+    floor.tick(11)  # the consumer finds nothing more: caught up, and the floor is quiet
+    assert floor.views.presence.online == set()
+    assert {i.robots for i in floor.stored() if i.kind == "offline"} == {(r,) for r in robots}
