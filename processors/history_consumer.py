@@ -34,6 +34,10 @@ if TYPE_CHECKING:
 
 log = structlog.get_logger(__name__)
 
+# A poll that waited this long (or a whole shortest window) and found nothing means the
+# stream holds nothing more yet.
+CAUGHT_UP_WAIT_S = 0.05
+
 COMMIT_FAILURES = Counter(
     "mapservice_sink_commit_failures_total",
     "Batches stored but not committed (they will be re-delivered)",
@@ -230,9 +234,8 @@ class HistoryConsumer:
     async def run_once(self) -> int:
         """One batch: poll, store, and (when due) derive the pose views and commit.
         Returns how many records it handled."""
-        records: list[SourceRecord] = await self._call(
-            self.source.poll, self.batch_size, self.poll_timeout()
-        )
+        timeout = self.poll_timeout()
+        records: list[SourceRecord] = await self._call(self.source.poll, self.batch_size, timeout)
         previous, self._last_poll_returned = self._last_poll_returned, self.monotonic()
         if records and math.isfinite(previous) and self._last_poll_returned > previous:
             # Gathered since the previous poll returned (an idle poll leaves the rate be:
@@ -250,8 +253,10 @@ class HistoryConsumer:
                 # (which may repeat what is stored) are applied.
                 await self.views.rebuild()
         if not records:
-            if self.views is not None:
-                self.views.clock.caught_up()  # nothing waiting: not behind the stream
+            if self.views is not None and timeout >= min(CAUGHT_UP_WAIT_S, self.min_batch_seconds):
+                # waited and found nothing: not behind the stream (a poll that may not wait,
+                # after a long store, can come back empty with a backlog still to fetch)
+                self.views.clock.caught_up()
             await self.settle()  # idle: the views catch up at once
             self._timed_store(0.0)
             return 0

@@ -88,9 +88,8 @@ class Floor:
         asyncio.run(self.consumer.run_once())
 
     def tick(self, seconds: float) -> None:
-        """The clock moves on; the consumer polls and finds nothing more."""
+        """The clock moves on; the consumer polls, waits its window and finds nothing more."""
         self.now += round(seconds * 1000)
-        self.clock.t += 1
         asyncio.run(self.consumer.run_once())
         asyncio.run(self.views.tick())
         asyncio.run(self.views.write_found_until_done())
@@ -209,6 +208,12 @@ def test_a_replica_behind_the_stream_finds_silent_only_the_robots_the_stream_sho
         asyncio.run(floor.views.write_found_until_done())
     assert floor.views.presence.online == set(robots) - {"r00"}
     assert [i.robots for i in floor.stored() if i.kind == "offline"] == [("r00",)]
-    floor.tick(11)  # the consumer finds nothing more: caught up, and the floor is quiet
+    # a poll that may not wait (after a long store) and comes back empty proves nothing
+    floor.now += 5_000  # (behind by 12 s or more: everyone silent by the wall clock)
+    floor.clock.t += 5
+    asyncio.run(floor.consumer.run_once())
+    asyncio.run(floor.views.tick())
+    assert floor.views.presence.online == set(robots) - {"r00"}
+    floor.tick(6)  # the consumer finds nothing more: caught up, and the floor is quiet
     assert floor.views.presence.online == set()
     assert {i.robots for i in floor.stored() if i.kind == "offline"} == {(r,) for r in robots}
