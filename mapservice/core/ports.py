@@ -16,6 +16,7 @@ if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
     from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
+    from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 
 
 class Clock(Protocol):
@@ -417,6 +418,28 @@ class CommandReader(Protocol):
         one robot, if named), oldest first."""
 
 
+class WebhookRegistry(Protocol):
+    """The webhooks operators registered and their replicas' delivery reports
+    (mapservice/core/webhook_registry.py; ClickHouse: `webhook_registry`). The API saves
+    and removes webhooks and reads the reports; the processors read the webhooks and report."""
+
+    def save_webhook(self, webhook: RegisteredWebhook, changed_ms: int) -> None:
+        """Registers `webhook`, or changes it (a resume): the row saved latest (by
+        `changed_ms`; on a tie the later save) is the webhook's."""
+
+    def remove_webhook(self, webhook_id: str, changed_ms: int) -> None:
+        """Removes the webhook as of `changed_ms` (a later save brings it back)."""
+
+    def webhooks(self) -> list[RegisteredWebhook]:
+        """The webhooks registered, oldest first (then by id)."""
+
+    def report_webhooks(self, reports: Sequence[WebhookReport]) -> None:
+        """Each replica's latest report per webhook replaces its earlier ones."""
+
+    def webhook_reports(self) -> list[WebhookReport]:
+        """Every replica's latest report per webhook, by webhook then replica."""
+
+
 class VdaReader(Protocol):
     """VDA 5050 vehicles' facts beyond their poses (ClickHouse: `vda_reads`)."""
 
@@ -487,6 +510,7 @@ class HistoryStore(
     IncidentReader,
     CommandReader,
     VdaReader,
+    WebhookRegistry,
     ChangeFeed,
     LegacyQueries,
     StoreAdmin,
