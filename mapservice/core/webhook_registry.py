@@ -13,11 +13,10 @@ delivery when it sees a resume newer than the last one it applied.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 
 import msgspec
 
-from mapservice.core.incident_model import KINDS
 from mapservice.core.webhooks import Webhook, WebhookHealth, derived_secret
 
 WEBHOOK_ID = re.compile(r"wh-[0-9a-f]{16}")
@@ -90,16 +89,6 @@ class WebhookState(msgspec.Struct, frozen=True):
     dropped: int
     queued: int
     replicas: int  # how many replicas reported it lately (0: none yet, or none running)
-
-
-def check_kinds(kinds: Iterable[str]) -> tuple[str, ...]:
-    """The incident kinds a webhook asks for, sorted without repeats; ValueError naming an
-    unknown one."""
-    wanted = sorted(set(kinds))
-    unknown = [k for k in wanted if k not in KINDS]
-    if unknown:
-        raise ValueError(f"unknown incident kind {unknown[0][:40]!r}; the kinds are {', '.join(KINDS)}")
-    return tuple(wanted)
 
 
 def combined_state(reports: Sequence[WebhookReport], now_ms: int, fresh_ms: int) -> WebhookState:

@@ -70,6 +70,12 @@ EXPECTED_OPERATION_IDS = {
     "sendCommand",
     "listCommands",  # api/routers/commands.py (operators' commands to robots)
     "getCallerAccess",  # api/routers/caller.py (the replay page offers editing to operators)
+    # api/routers/webhooks.py (the incident alerts' webhooks)
+    "registerWebhook",
+    "listWebhooks",
+    "showWebhookSecret",
+    "removeWebhook",
+    "resumeWebhook",
 }
 
 
