@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 import socket
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 
 import structlog
 
@@ -73,13 +73,15 @@ class WebhookRegistrySync:
         now = self.now_ms()
         self.registry.report_webhooks(
             [
-                WebhookReport.of(webhook_id, self.replica, now, health, self.deliveries.queued(webhook_id))
+                WebhookReport.of(
+                    webhook_id, self.replica, now, health, self.deliveries.queued(webhook_id)
+                )
                 for webhook_id, health in self.deliveries.health().items()
             ]
         )
         return len(webhooks)
 
-    async def tick(self, run: Callable) -> None:
+    async def tick(self, run: Callable[[Callable[[], int]], Awaitable[int]]) -> None:
         """One timer tick through `run` (the store thread's): a failure is logged and the
         next tick tries again, the deliveries going on as they were."""
         try:

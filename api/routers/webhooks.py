@@ -18,7 +18,6 @@ import secrets
 from typing import Annotated
 
 import msgspec
-
 from fastapi import APIRouter, Depends, HTTPException, Path, Response
 from pydantic import BaseModel, Field
 
@@ -127,7 +126,10 @@ def _states(
     fresh_ms = int(max(60.0, 3 * settings.webhook_registry_poll_s) * 1000)
     reports = store.webhook_reports()
     return [
-        _out(w, combined_state([r for r in reports if r.webhook_id == w.webhook_id], now_ms, fresh_ms))
+        _out(
+            w,
+            combined_state([r for r in reports if r.webhook_id == w.webhook_id], now_ms, fresh_ms),
+        )
         for w in webhooks
     ]
 

@@ -36,7 +36,10 @@ class RegisteredWebhook(msgspec.Struct, frozen=True):
     def to_deliver(self, signing_key: str) -> Webhook:
         """The webhook as the deliveries need it, with its derived secret."""
         return Webhook(
-            self.webhook_id, self.url, derived_secret(signing_key, self.webhook_id), frozenset(self.kinds)
+            self.webhook_id,
+            self.url,
+            derived_secret(signing_key, self.webhook_id),
+            frozenset(self.kinds),
         )
 
 

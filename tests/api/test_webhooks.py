@@ -181,7 +181,9 @@ def test_the_list_folds_the_fresh_reports_of_the_processors_replicas() -> None:
     w.store.report_webhooks(
         [
             WebhookReport(hook, "a:1", NOW, "", "", NOW - 2_000, "delivered", 7, 0, 0, 0),
-            WebhookReport(hook, "b:2", NOW, paused, "HTTP 500", NOW - 1_000, "HTTP 500", 3, 6, 1, 4),
+            WebhookReport(
+                hook, "b:2", NOW, paused, "HTTP 500", NOW - 1_000, "HTTP 500", 3, 6, 1, 4
+            ),
             # a replica gone a while ago: its pause is no one's now
             WebhookReport(hook, "c:3", NOW - 61_000, "gone", "x", NOW - 61_000, "x", 100, 1, 0, 0),
         ]

@@ -85,6 +85,6 @@ class ClickHouseWebhookRegistry:
             for w, replica, at, paused, error, tried, result, *counts in rows
         ]
 
-    def _insert(self, table: str, rows: list, columns: Sequence[str]) -> None:
+    def _insert(self, table: str, rows: list[list[object]], columns: Sequence[str]) -> None:
         with self.connection.lock:
             self.connection.insert(table, rows, list(columns))

@@ -15,7 +15,16 @@ from mapservice.adapters.clickhouse import analyst_schema
 
 WEBHOOKS = "webhooks"
 REPORTS = "webhook_reports"
-WEBHOOK_COLUMNS = ("webhook_id", "url", "kinds", "created", "created_by", "resumed", "removed", "changed")
+WEBHOOK_COLUMNS = (
+    "webhook_id",
+    "url",
+    "kinds",
+    "created",
+    "created_by",
+    "resumed",
+    "removed",
+    "changed",
+)
 REPORT_COLUMNS = (
     "webhook_id",
     "replica",
