@@ -44,15 +44,12 @@ from mapservice.core.ports import (
     RetentionResult,
     TimelineBucket,
     TrackBucket,
-    VdaConnectionRow,
-    VdaErrorRow,
-    VdaFacts,
-    VdaFactsheetRow,
 )
 from mapservice.core.retention import DAY_MS
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 from mapservice.core.track_buckets import fold_track_buckets
+from mapservice.core.vda_facts import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
 from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 from mapservice.testing.memory_incidents import IncidentLog
 from mapservice.testing.memory_webhooks import WebhookLog

@@ -26,6 +26,14 @@ ROBOT = "robot-" + "o" * 32
 ADMIN = "admin-" + "a" * 32
 KEY = "signing-key-" + "k" * 32
 URL = "https://mes.plant.example:8443/hooks/incidents?line=3"
+# api/routers/webhooks.py's operations (tests/api/test_api.py expects them in the document)
+WEBHOOK_OPERATION_IDS = {
+    "registerWebhook",
+    "listWebhooks",
+    "showWebhookSecret",
+    "removeWebhook",
+    "resumeWebhook",
+}
 
 
 class World:
