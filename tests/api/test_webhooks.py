@@ -15,15 +15,19 @@ from mapservice.adapters.clock import ManualClock
 from mapservice.api.app import create_app
 from mapservice.core.webhook_registry import WEBHOOK_ID, WebhookReport
 from mapservice.core.webhooks import derived_secret, signed_headers, verify
-from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
+from tests.api.access_kit import (
+    ADMIN_TOKEN,
+    NOW,
+    OPERATOR_TOKEN,
+    READER_TOKEN,
+    ROBOT_TOKENS,
+    WRITER_TOKENS,
+    settings_for,
+)
 
-NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
-OPERATOR = "operator-" + "p" * 32
-READER = "viewer-" + "r" * 32
-WRITER = "writer-" + "w" * 32
-ROBOT = "robot-" + "o" * 32
-ADMIN = "admin-" + "a" * 32
+OPERATOR, READER, WRITER, ADMIN = OPERATOR_TOKEN, READER_TOKEN, WRITER_TOKENS[0], ADMIN_TOKEN
+ROBOT = ROBOT_TOKENS["agv-7"]
 KEY = "signing-key-" + "k" * 32
 URL = "https://mes.plant.example:8443/hooks/incidents?line=3"
 # api/routers/webhooks.py's operations (tests/api/test_api.py expects them in the document)
@@ -38,15 +42,7 @@ WEBHOOK_OPERATION_IDS = {
 
 class World:
     def __init__(self, **settings) -> None:
-        self.settings = Settings(
-            api_operator_tokens=OPERATOR,
-            api_reader_tokens=READER,
-            api_writer_tokens=WRITER,
-            api_robot_tokens=f"agv-1={ROBOT}",
-            api_rate_limit="",
-            admin_token=ADMIN,
-            **{"webhook_signing_key": KEY, "webhooks_max": 3, **settings},
-        )
+        self.settings = settings_for("open", **{"webhook_signing_key": KEY, **settings})
         self.store = MemoryStore()
         self.clock = ManualClock(NOW)
         self.client = TestClient(create_app(self.settings, self.store, {}, self.clock))
