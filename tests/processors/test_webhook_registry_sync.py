@@ -124,3 +124,41 @@ def test_a_registry_that_cannot_be_read_leaves_the_deliveries_as_they_were(caplo
         assert replica.deliveries.offer(alert()) == 1
     finally:
         replica.deliveries.close()
+
+
+def test_reports_are_written_when_they_change_and_all_at_least_every_heartbeat() -> None:
+    port = free_port()
+    receiver = Receiver(port)
+    replica = Replica()
+    written: list[list[str]] = []
+    report = replica.store.report_webhooks
+
+    def counted(reports) -> None:
+        written.append([r.webhook_id for r in reports])
+        report(reports)
+
+    replica.store.report_webhooks = counted  # type: ignore[method-assign]
+    try:
+        one, two = registered(1, port), registered(2, port, ("near_miss",))
+        replica.store.save_webhook(one, NOW)
+        replica.store.save_webhook(two, NOW)
+        replica.sync.sync()
+        assert written == [[one.webhook_id, two.webhook_id]]  # the first: all
+        replica.now += 1_000
+        replica.sync.sync()
+        assert len(written) == 1  # nothing changed, the heartbeat not due
+        assert replica.deliveries.offer(alert("stuck")) == 1  # to the first only
+        wait_for(lambda: replica.deliveries.health()[one.webhook_id].delivered == 1)
+        replica.now += 1_000
+        replica.sync.sync()
+        assert written[1:] == [[one.webhook_id]]  # only what changed
+        replica.now = NOW + replica.sync.heartbeat_ms - 1
+        replica.sync.sync()
+        assert len(written) == 2
+        replica.now += 1
+        replica.sync.sync()  # the heartbeat: all again, though unchanged
+        assert written[2:] == [[one.webhook_id, two.webhook_id]]
+        assert replica.report(one.webhook_id).replicas == 1
+    finally:
+        replica.deliveries.close()
+        receiver.close()
