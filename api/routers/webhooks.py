@@ -15,7 +15,7 @@ secret is derived from the service's signing key (mapservice/core/webhooks.py:
 from __future__ import annotations
 
 import secrets
-from typing import Annotated
+from typing import Annotated, Literal
 
 import msgspec
 from fastapi import APIRouter, Depends, HTTPException, Path, Response
@@ -58,7 +58,7 @@ class WebhookOut(BaseModel):
     createdBy: str  # the credential's name, never the token
     created_ms: int
     resumed_ms: int | None  # the latest resume asked for
-    state: str  # active | paused: a delivery failed every try; resume it once fixed
+    state: Literal["active", "paused"]  # paused: a delivery failed every try; resume it
     pausedReason: str
     lastTry_ms: int | None  # when the last try ended (None: none yet)
     lastResult: str  # that try's result: delivered, or its error

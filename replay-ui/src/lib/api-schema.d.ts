@@ -1693,8 +1693,11 @@ export interface components {
             resumed_ms: number | null;
             /** Secret */
             secret: string;
-            /** State */
-            state: string;
+            /**
+             * State
+             * @enum {string}
+             */
+            state: "active" | "paused";
             /** Url */
             url: string;
         };
@@ -1746,8 +1749,11 @@ export interface components {
             replicas: number;
             /** Resumed Ms */
             resumed_ms: number | null;
-            /** State */
-            state: string;
+            /**
+             * State
+             * @enum {string}
+             */
+            state: "active" | "paused";
             /** Url */
             url: string;
         };
