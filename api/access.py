@@ -47,7 +47,10 @@ _WHAT = {
     Scope.READ: "reading",
     Scope.WRITE: "writing",
     Scope.ADMIN: "this administrative operation",
-    Scope.OPERATE: "editing the annotations (points of interest, zones) or commanding robots",
+    Scope.OPERATE: (
+        "editing the annotations (points of interest, zones), commanding robots or managing "
+        "the incident alerts' webhooks"
+    ),
     Scope.METRICS: "reading the metrics",
 }
 

@@ -54,6 +54,7 @@ from .routers import (
     tracks,
     ui,
     vda5050,
+    webhooks,
     zone_violations,
 )
 
@@ -75,6 +76,7 @@ ROUTERS = (
     commands,
     costmap_filters,
     incidents,
+    webhooks,
     zone_violations,
     exports,
     stats,

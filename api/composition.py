@@ -23,7 +23,7 @@ from mapservice.adapters.kafka_publisher import KafkaPublisher
 from mapservice.core.live_messages import LiveText
 from mapservice.core.ports import HistoryStore
 from mapservice.core.store_roles import StoreRoles
-from mapservice.runtime.secrets import with_local_api_secrets
+from mapservice.runtime.secrets import with_local_api_secrets, with_local_webhook_key
 from mapservice.settings import Settings
 from mapservice.sql.apps import analyst_app
 
@@ -116,7 +116,7 @@ async def compose_api(
     hub.ready = relay.assigned.is_set
     # Local mode: the API's tokens generated on first start, kept in the data dir
     # (`mapservice up` prints where); production: as set, validated by Settings.
-    settings = with_local_api_secrets(settings)
+    settings = with_local_webhook_key(with_local_api_secrets(settings))
     clock = clock_from_settings(settings)
     app = create_app(
         settings,

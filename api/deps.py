@@ -27,6 +27,7 @@ from mapservice.core.ports import (
     TableExports,
     TimeTravelReader,
     VdaReader,
+    WebhookRegistry,
 )
 from mapservice.core.store_roles import StoreRoles
 from mapservice.core.wire2019 import parse_query_instant
@@ -101,6 +102,7 @@ AnnotationsDep = Annotated[AnnotationReader, Depends(_role(lambda r: r.annotatio
 IncidentsDep = Annotated[IncidentReader, Depends(_role(lambda r: r.incidents))]
 CommandsDep = Annotated[CommandReader, Depends(_role(lambda r: r.commands))]
 VdaDep = Annotated[VdaReader, Depends(_role(lambda r: r.vda))]
+WebhooksDep = Annotated[WebhookRegistry, Depends(_role(lambda r: r.webhooks))]
 ChangesDep = Annotated[ChangeFeed, Depends(_role(lambda r: r.changes))]
 LegacyDep = Annotated[LegacyQueries, Depends(_role(lambda r: r.legacy))]
 AdminDep = Annotated[StoreAdmin, Depends(_role(lambda r: r.admin))]

@@ -3,7 +3,9 @@ it needs at construction, nothing pointing back.
 
     store thread ─┬─> history sink ──> history consumer <── Kafka batch source
                   └─> live views ────┘
-    faust app: runs the consumer, the dead letters' agent, the snapshot timer, presence
+                        └─> incident alerts ──> webhook deliveries (threads of their own)
+    faust app: runs the consumer, the dead letters' agent, the snapshot timer, presence,
+               the webhook registry's sync
 
 The process entry (mapservice/server.py) makes the store (with embedded chDB one per
 process, shared with the API), composes the processors around it, starts and stops them,
@@ -24,6 +26,7 @@ from mapservice.adapters.kafka_batch_source import KafkaBatchSource
 from mapservice.adapters.kafka_live_publisher import KafkaLivePublisher
 from mapservice.core.ports import HistoryStore
 from mapservice.core.store_roles import StoreRoles
+from mapservice.runtime.secrets import with_local_webhook_key
 from mapservice.settings import Settings
 
 from .advertiser import MqttAdvertiser
@@ -32,6 +35,8 @@ from .history_consumer import COMMIT_FAILURES, HistoryConsumer, HistoryConsumerS
 from .sink import HistorySink
 from .store_thread import StoreThread
 from .views import LiveViews
+from .webhook_delivery import WebhookDeliveries
+from .webhook_registry_sync import WebhookRegistrySync, delivery_policy
 
 Check = Callable[[], bool]
 
@@ -47,6 +52,7 @@ class Processors:
     views: LiveViews
     consumer: HistoryConsumer
     live: KafkaLivePublisher
+    webhooks: WebhookDeliveries | None = None  # None: no signing key, no webhooks
 
     def running(self) -> bool:
         return not self.app.should_stop
@@ -71,13 +77,19 @@ class Processors:
         return self.sink.health.status()
 
     async def start(self) -> None:
+        if self.webhooks is not None:
+            self.webhooks.start()
         await self.app.start()
 
     async def stop(self) -> None:
         """The app (the consumer settles and closes its source), then the live stream's
-        producer, then the store thread once what was handed to it is done."""
+        producer and the webhooks' workers (a send under way ends within its timeout),
+        then the store thread once what was handed to it is done."""
         await self.app.stop()
-        await asyncio.get_running_loop().run_in_executor(None, self.live.close)
+        loop = asyncio.get_running_loop()
+        await loop.run_in_executor(None, self.live.close)
+        if self.webhooks is not None:
+            await loop.run_in_executor(None, self.webhooks.close)
         self.store_thread.close()
 
 
@@ -85,6 +97,8 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
     """Builds the processors around the store's roles (a whole store is cut into them
     here): each part is handed the roles it uses, none the whole store. Nothing connects until `Processors.start`."""
     roles = StoreRoles.of(store)
+    # Local mode: the webhooks' signing key generated once in the data dir, as the API's.
+    settings = with_local_webhook_key(settings)
     app = faust_app(settings)
     # The service's clock (the wall clock unless settings simulate one): the timers, the
     # retention step and the views all read it.
@@ -92,6 +106,18 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
     store_thread = StoreThread()
     live = KafkaLivePublisher(settings)
     sink = HistorySink(roles.writer, live, thread=store_thread, retention_ms=settings.retention_ms)
+
+    # The incident alerts' webhooks: delivered on threads of their own, the registry
+    # re-read (and the deliveries reported) by a timer on every replica.
+    signing_key = settings.webhook_signing_key.get_secret_value()
+    webhooks = WebhookDeliveries(delivery_policy(settings)) if signing_key else None
+    if webhooks is not None:
+        registry_sync = WebhookRegistrySync(roles.webhooks, webhooks, signing_key, now_ms)
+
+        async def sync_webhooks() -> None:
+            await registry_sync.tick(store_thread.run)
+
+        app.timer(settings.webhook_registry_poll_s)(sync_webhooks)
 
     # Live views: latest map + advertisements, robots, conflicts; rebuilt by the history
     # consumer on every partition assignment.
@@ -106,6 +132,7 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
         advertiser=advertiser,
         store_thread=store_thread,
         now_ms=now_ms,
+        webhooks=webhooks,
         live=live,
     )
 
@@ -161,4 +188,4 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
             sink, roles.snapshots, roles.retention, now_ms, int(settings.snapshot_grace_s * 1000)
         )
     )
-    return Processors(app, store_thread, sink, views, consumer, live)
+    return Processors(app, store_thread, sink, views, consumer, live, webhooks)

@@ -250,11 +250,11 @@ class WebhookDeliveries:
             self._queued -= 1
             QUEUED.set(self._queued)
             hook.tries, hook.due = 0, 0.0
-            hook.health.succeeded()
+            hook.health.succeeded(int(self.wall_s() * 1000))
             DELIVERIES.labels("delivered").inc()
         else:
             hook.tries += 1
-            hook.health.tried_and_failed(error)
+            hook.health.tried_and_failed(error, int(self.wall_s() * 1000))
             DELIVERIES.labels("failed_try").inc()
             if hook.tries >= self.policy.max_tries:
                 hook.health.pause(hook.tries)

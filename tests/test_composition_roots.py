@@ -49,6 +49,7 @@ ROLES = [
     ports.IncidentReader,
     ports.CommandReader,
     ports.VdaReader,
+    ports.WebhookRegistry,
     ports.ChangeFeed,
     ports.LegacyQueries,
     ports.StoreAdmin,

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query
 from pydantic import BaseModel
 
-from mapservice.core.ports import VdaFacts
+from mapservice.core.vda_facts import VdaFacts
 from mapservice.core.vda_ids import vehicle_of
 from mapservice.core.wire2019 import format_timestamp
 

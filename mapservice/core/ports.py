@@ -16,6 +16,8 @@ if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
     from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
+    from mapservice.core.vda_facts import VdaFacts
+    from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 
 
 class Clock(Protocol):
@@ -180,37 +182,6 @@ class TrackBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     battery_min: float | None
     battery_max: float | None
     battery_mean: float | None
-
-
-class VdaErrorRow(msgspec.Struct, frozen=True, gc=False):
-    ts_ms: int
-    level: str
-    type: str
-    description: str
-
-
-class VdaConnectionRow(msgspec.Struct, frozen=True, gc=False):
-    ts_ms: int  # when the state holds (a CONNECTIONBROKEN: when it was received)
-    state: str  # ONLINE, OFFLINE, CONNECTIONBROKEN
-    sent_ms: int  # the message's own timestamp
-
-
-class VdaFactsheetRow(msgspec.Struct, frozen=True, gc=False):
-    ts_ms: int
-    vda_version: str
-    factsheet: str  # the JSON the vehicle sent
-
-
-class VdaFacts(msgspec.Struct, frozen=True, gc=False):
-    """A VDA 5050 vehicle's facts beyond its poses, in [from, to), oldest first."""
-
-    errors: list[VdaErrorRow]
-    connections: list[VdaConnectionRow]
-    factsheet: VdaFactsheetRow | None  # the latest before `to`
-    # States without errors right after a state with some: the errors of a state hold
-    # until the next state, so these end them (the errors at T are those of the latest
-    # error instant or clear at or before T).
-    error_clears: list[int] = []
 
 
 class ChangeFeed(Protocol):
@@ -417,6 +388,28 @@ class CommandReader(Protocol):
         one robot, if named), oldest first."""
 
 
+class WebhookRegistry(Protocol):
+    """The webhooks operators registered and their replicas' delivery reports
+    (mapservice/core/webhook_registry.py; ClickHouse: `webhook_registry`). The API saves
+    and removes webhooks and reads the reports; the processors read the webhooks and report."""
+
+    def save_webhook(self, webhook: RegisteredWebhook, changed_ms: int) -> None:
+        """Registers `webhook`, or changes it (a resume): the row saved latest (by
+        `changed_ms`; on a tie the later save) is the webhook's."""
+
+    def remove_webhook(self, webhook_id: str, changed_ms: int) -> None:
+        """Removes the webhook as of `changed_ms` (a later save brings it back)."""
+
+    def webhooks(self) -> list[RegisteredWebhook]:
+        """The webhooks registered, oldest first (then by id)."""
+
+    def report_webhooks(self, reports: Sequence[WebhookReport]) -> None:
+        """Each replica's latest report per webhook replaces its earlier ones."""
+
+    def webhook_reports(self) -> list[WebhookReport]:
+        """Every replica's latest report per webhook, by webhook then replica."""
+
+
 class VdaReader(Protocol):
     """VDA 5050 vehicles' facts beyond their poses (ClickHouse: `vda_reads`)."""
 
@@ -487,6 +480,7 @@ class HistoryStore(
     IncidentReader,
     CommandReader,
     VdaReader,
+    WebhookRegistry,
     ChangeFeed,
     LegacyQueries,
     StoreAdmin,

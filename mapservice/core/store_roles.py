@@ -31,6 +31,7 @@ from mapservice.core.ports import (
     TableExports,
     TimeTravelReader,
     VdaReader,
+    WebhookRegistry,
 )
 
 
@@ -110,6 +111,7 @@ class StoreRoles:
     incidents: IncidentReader
     commands: CommandReader
     vda: VdaReader
+    webhooks: WebhookRegistry
     changes: ChangeFeed
     legacy: LegacyQueries
     admin: StoreAdmin
@@ -133,6 +135,7 @@ class StoreRoles:
             incidents=narrowed(store, IncidentReader),
             commands=narrowed(store, CommandReader),
             vda=narrowed(store, VdaReader),
+            webhooks=narrowed(store, WebhookRegistry),
             changes=narrowed(store, ChangeFeed),
             legacy=narrowed(store, LegacyQueries),
             admin=narrowed(store, StoreAdmin),

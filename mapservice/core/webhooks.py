@@ -8,6 +8,11 @@ Signing: the body is signed with HMAC-SHA256 under the webhook's secret, over
 `X-Mapservice-Timestamp`), sent as `X-Mapservice-Signature: sha256=<hex>`. The timestamp
 inside the signature stops a captured delivery from being replayed later: a receiver
 refuses a timestamp further than its tolerance from its own clock (`verify`).
+
+A webhook's secret is derived, not stored: HMAC-SHA256 of its id under the service's
+signing key (`derived_secret`). The API shows it to the operator who registers the webhook;
+the processors derive it again for each delivery, so no table holds a secret, and a new
+signing key changes every webhook's secret at once.
 """
 
 from __future__ import annotations
@@ -32,6 +37,14 @@ def signature(secret: str, timestamp_s: int, body: bytes) -> str:
     """`sha256=<hex>` of HMAC-SHA256(secret, f"{timestamp_s}." + body)."""
     mac = hmac.new(secret.encode(), f"{timestamp_s}.".encode() + body, hashlib.sha256)
     return "sha256=" + mac.hexdigest()
+
+
+def derived_secret(signing_key: str, webhook_id: str) -> str:
+    """The secret a webhook's deliveries are signed with: hex HMAC-SHA256 of its id under
+    the service's signing key (64 characters, so a valid secret, `check_secret`)."""
+    if not signing_key:
+        raise ValueError("no signing key: webhook secrets cannot be derived")
+    return hmac.new(signing_key.encode(), webhook_id.encode(), hashlib.sha256).hexdigest()
 
 
 def signed_headers(secret: str, timestamp_s: int, body: bytes) -> dict[str, str]:
@@ -101,17 +114,21 @@ class WebhookHealth:
     dropped: int = 0
     last_error: str = ""
     paused_reason: str = ""
+    last_try_ms: int = 0  # when the last try ended (0: none yet)
+    last_result: str = ""  # of that try: "delivered" or its error
 
     @property
     def state(self) -> str:
         return "paused" if self.paused_reason else "active"
 
-    def succeeded(self) -> None:
+    def succeeded(self, at_ms: int) -> None:
         self.delivered += 1
+        self.last_try_ms, self.last_result = at_ms, "delivered"
 
-    def tried_and_failed(self, error: str) -> None:
+    def tried_and_failed(self, error: str, at_ms: int) -> None:
         self.failed_tries += 1
         self.last_error = error
+        self.last_try_ms, self.last_result = at_ms, error
 
     def pause(self, tries: int) -> None:
         self.paused_reason = f"a delivery failed {tries} tries in a row; last: {self.last_error}"

@@ -20,6 +20,7 @@ ADMIN_TOKEN_FILE = "admin-token"
 WRITER_TOKEN_FILE = "writer-token"
 READER_TOKEN_FILE = "reader-token"
 OPERATOR_TOKEN_FILE = "operator-token"
+WEBHOOK_SIGNING_KEY_FILE = "webhook-signing-key"
 
 
 def secrets_dir(data_dir: Path) -> Path:
@@ -81,6 +82,16 @@ def with_local_api_secrets(settings: Settings) -> Settings:
     if settings.api_read_access == "token" and not token_list(settings.api_reader_tokens):
         update["api_reader_tokens"] = SecretStr(local_secret(settings.data_dir, READER_TOKEN_FILE))
     return settings.model_copy(update=update) if update else settings
+
+
+def with_local_webhook_key(settings: Settings) -> Settings:
+    """In local mode, the settings with the webhooks' signing key generated (or read back)
+    from the data dir when unset, so the API and the processors of one data dir derive the
+    same secrets; in production, as they are (without a key, no webhooks)."""
+    if settings.mode != "local" or settings.webhook_signing_key.get_secret_value():
+        return settings
+    key = SecretStr(local_secret(settings.data_dir, WEBHOOK_SIGNING_KEY_FILE))
+    return settings.model_copy(update={"webhook_signing_key": key})
 
 
 def api_secrets(settings: Settings) -> ApiSecrets:

@@ -126,6 +126,12 @@ class Settings(
                         f"MAPSERVICE_{name.upper()} holds a token of {len(short[0])} characters; "
                         f"production mode needs at least {MIN_TOKEN_CHARS} (openssl rand -hex 32)"
                     )
+            key = self.webhook_signing_key.get_secret_value()
+            if key and len(key) < MIN_TOKEN_CHARS:
+                raise ValueError(
+                    f"MAPSERVICE_WEBHOOK_SIGNING_KEY has {len(key)} characters; production mode "
+                    f"needs at least {MIN_TOKEN_CHARS} (openssl rand -hex 32)"
+                )
             if self.resolved_clickhouse_dsn.startswith("http") and (
                 self.clickhouse_password.get_secret_value() == DEFAULT_CLICKHOUSE_PASSWORD
             ):

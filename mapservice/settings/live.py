@@ -3,7 +3,7 @@ delivery, conflicts, clock skew and robots going offline (the 2019 document's id
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, SecretStr
 
 from mapservice.core.areas import DEFAULT_AREA_CHUNKS
 
@@ -45,6 +45,49 @@ class LiveSettings(BaseModel):
             "Root of the incident alerts' MQTT topics: every finding (new, changed, ended, "
             "retracted) on <root><kind>, QoS 1, the last of each kind retained. Only the "
             "processors may publish there; every user may subscribe."
+        ),
+    )
+    webhook_signing_key: SecretStr = Field(
+        SecretStr(""),
+        description=(
+            "Key every webhook's secret is derived from (hex HMAC-SHA256 of the webhook's id "
+            "under it), so no secret is stored; the API and every processors replica need the "
+            "same one, and changing it changes every webhook's secret. Empty: generated on first "
+            "start in local mode (DATA_DIR/secrets/webhook-signing-key); in production, set it "
+            "(at least 32 characters) to register and deliver to webhooks."
+        ),
+    )
+    webhooks_max: int = Field(
+        20, ge=0, le=1000, description="Webhooks that may be registered at once (409 beyond)."
+    )
+    webhook_registry_poll_s: float = Field(
+        5.0,
+        gt=0,
+        description=(
+            "How often each processors replica re-reads the registered webhooks (a new, removed "
+            "or resumed one takes effect within this long) and reports its deliveries to them."
+        ),
+    )
+    webhook_timeout_s: float = Field(
+        5.0, gt=0, description="A webhook delivery's try fails without a 2xx answer within this."
+    )
+    webhook_max_tries: int = Field(
+        6,
+        ge=1,
+        description=(
+            "Tries of one delivery (waiting 1, 2, 4 ... s between them, up to "
+            "webhook_backoff_cap_s) before its webhook is paused with the reason."
+        ),
+    )
+    webhook_backoff_cap_s: float = Field(
+        60.0, gt=0, description="Longest wait between two tries of a webhook delivery."
+    )
+    webhook_max_queued: int = Field(
+        10_000,
+        ge=1,
+        description=(
+            "Deliveries waiting in each processors replica, all webhooks together; past it "
+            "the oldest is dropped and counted."
         ),
     )
     robot_topic_root: str = Field(

@@ -44,16 +44,15 @@ from mapservice.core.ports import (
     RetentionResult,
     TimelineBucket,
     TrackBucket,
-    VdaConnectionRow,
-    VdaErrorRow,
-    VdaFacts,
-    VdaFactsheetRow,
 )
 from mapservice.core.retention import DAY_MS
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 from mapservice.core.track_buckets import fold_track_buckets
+from mapservice.core.vda_facts import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
+from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 from mapservice.testing.memory_incidents import IncidentLog
+from mapservice.testing.memory_webhooks import WebhookLog
 
 
 def _iso_day(ms: int) -> str:
@@ -80,6 +79,7 @@ class MemoryStore:
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
         self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
         self._incidents = IncidentLog()
+        self._webhooks = WebhookLog()  # state, not history: the retention keeps it
         self._commands: dict[tuple[int, str], StoredCommandEvent] = {}  # (time, event id)
         self._lock = threading.Lock()
 
@@ -156,6 +156,21 @@ class MemoryStore:
         limit: int = 10_000,
     ) -> list[Incident]:
         return self._incidents.incidents(from_ms, to_ms, kinds, robot_id, limit)
+
+    def save_webhook(self, webhook: RegisteredWebhook, changed_ms: int) -> None:
+        self._webhooks.save_webhook(webhook, changed_ms)
+
+    def remove_webhook(self, webhook_id: str, changed_ms: int) -> None:
+        self._webhooks.remove_webhook(webhook_id, changed_ms)
+
+    def webhooks(self) -> list[RegisteredWebhook]:
+        return self._webhooks.webhooks()
+
+    def report_webhooks(self, reports: Sequence[WebhookReport]) -> None:
+        self._webhooks.report_webhooks(reports)
+
+    def webhook_reports(self) -> list[WebhookReport]:
+        return self._webhooks.webhook_reports()
 
     def zone_violations(
         self, from_ms: int, to_ms: int, limit: int = 100_000

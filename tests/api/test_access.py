@@ -77,6 +77,12 @@ SCOPES = {
     "sendCommand": "operator",
     "listCommands": "read",
     "getCallerAccess": "read",
+    # the incident alerts' webhooks: the plant's integration, an operator's business
+    "registerWebhook": "operator",
+    "listWebhooks": "operator",
+    "showWebhookSecret": "operator",
+    "removeWebhook": "operator",
+    "resumeWebhook": "operator",
 }
 
 # What each credential gets per scope: a status, or "ok" (anything the operation answers

@@ -14,6 +14,7 @@ from mapservice.api.routers.chunk_contents import IMMUTABLE
 from mapservice.core.wire2019 import content_hash
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
+from tests.api.test_webhooks import WEBHOOK_OPERATION_IDS
 
 NOW = 1_795_255_200_000  # 2026-11-21T10:00:00Z
 HOUR = 3_600_000
@@ -70,7 +71,7 @@ EXPECTED_OPERATION_IDS = {
     "sendCommand",
     "listCommands",  # api/routers/commands.py (operators' commands to robots)
     "getCallerAccess",  # api/routers/caller.py (the replay page offers editing to operators)
-}
+} | WEBHOOK_OPERATION_IDS
 
 
 @pytest.fixture

@@ -45,10 +45,16 @@ def _store() -> MemoryStore:
     return store
 
 
-# As administrator (every scope), without the rate limit: the fuzzer is one fast client.
+# As administrator (every scope), without the rate limit: the fuzzer is one fast client;
+# with a webhook signing key, so that webhooks are registered (without one: 503, by design).
 # Built at import, before the tests' environment: its host name named here.
 APP = create_app(
-    Settings(admin_token=ADMIN_TOKEN, api_rate_limit="", api_allowed_hosts=["testserver"]),
+    Settings(
+        admin_token=ADMIN_TOKEN,
+        api_rate_limit="",
+        api_allowed_hosts=["testserver"],
+        webhook_signing_key="fuzz-signing-key-" + "0" * 32,
+    ),
     _store(),
     {"kafka": lambda: True},
     ManualClock(NOW),

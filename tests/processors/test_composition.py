@@ -22,6 +22,8 @@ PARTS = (
     "LiveViews",
     "KafkaBatchSource",
     "HistoryConsumer",
+    "WebhookDeliveries",
+    "WebhookRegistrySync",
 )
 
 
@@ -64,6 +66,11 @@ def test_each_part_is_built_once_and_handed_to_the_parts_that_use_it(processors,
     assert p.consumer.sink is p.sink and p.consumer.views is p.views
     source = built["KafkaBatchSource"][0]
     assert p.consumer.source is source and source.on_assigned == p.consumer.on_assigned
+    # The incidents found reach the webhooks' deliveries, which the registry sync keeps
+    # in step with the webhooks registered (through the store's registry role only).
+    deliveries, sync = built["WebhookDeliveries"][0], built["WebhookRegistrySync"][0]
+    assert p.webhooks is deliveries and p.views.incidents.alerts.webhooks is deliveries
+    assert sync.deliveries is deliveries and sync.registry.role.__name__ == "WebhookRegistry"
 
 
 def test_nothing_points_back_from_the_sink_or_the_views(processors) -> None:
@@ -107,3 +114,27 @@ def test_the_apps_shutdown_stops_the_views_advertiser(settings, built, monkeypat
     finally:
         p.store_thread.close()
     assert stopped == ["views", "advertiser"]
+
+
+def test_the_webhooks_are_delivered_with_the_data_dirs_signing_key(settings, built) -> None:
+    """Local mode: the signing key is generated once in the data dir and read back by the
+    API and the processors alike, so both derive the same secrets; the deliveries take
+    the delivery settings."""
+    from mapservice.runtime.secrets import WEBHOOK_SIGNING_KEY_FILE, secrets_dir
+
+    settings = settings.model_copy(update={"webhook_max_tries": 2, "webhook_timeout_s": 0.5})
+    p = compose_processors(settings, MemoryStore())
+    p.store_thread.close()
+    key = (secrets_dir(settings.data_dir) / WEBHOOK_SIGNING_KEY_FILE).read_text().strip()
+    assert len(key) >= 32 and built["WebhookRegistrySync"][0].signing_key == key
+    assert p.webhooks.policy.max_tries == 2 and p.webhooks.policy.timeout_s == 0.5
+
+
+def test_without_a_signing_key_no_webhook_is_delivered_to(settings, built) -> None:
+    """Production without MAPSERVICE_WEBHOOK_SIGNING_KEY: the processors run without
+    webhooks (the API refuses to register one, saying why)."""
+    settings = settings.model_copy(update={"mode": "production"})
+    p = compose_processors(settings, MemoryStore())
+    p.store_thread.close()
+    assert p.webhooks is None and p.views.incidents.alerts.webhooks is None
+    assert built["WebhookDeliveries"] == [] and built["WebhookRegistrySync"] == []

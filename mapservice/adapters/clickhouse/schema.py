@@ -30,6 +30,7 @@ from mapservice.adapters.clickhouse import (
     track_schema,
     vda_schema,
     vda_views,
+    webhook_schema,
 )
 
 
@@ -270,6 +271,12 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "incidents: near misses, stuck and silent robots, low batteries, as found",
             incident_schema.statements(database),
         ),
+        Migration(
+            20,
+            "webhooks: the incident alerts' webhooks operators registered, and each "
+            "processors replica's report of its deliveries",
+            webhook_schema.statements(database),
+        ),
     ]
 
 
@@ -313,7 +320,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 19
+SCHEMA_VERSION = 20
 
 # Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
 # map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).

@@ -6,9 +6,9 @@ each role of the store (mapservice/core/ports.py) is an adapter of its own over 
 own module: `migrations` (StoreSchema), `writes` (HistoryWriter), `reads` (TimeTravelReader,
 with `track_reads`), `snapshots` (SnapshotKeeper), `retention` (RetentionKeeper),
 `conflict_reads` (ConflictReader), `annotation_reads` (AnnotationReader), `incident_reads`
-(IncidentReader), `command_reads`
-(CommandReader), `vda_reads` (VdaReader), `change_feed` (ChangeFeed), `legacy` (the 2019
-REST listings) and `admin` (StoreAdmin, TableExports).
+(IncidentReader), `command_reads` (CommandReader), `vda_reads` (VdaReader),
+`webhook_registry` (WebhookRegistry), `change_feed` (ChangeFeed), `legacy` (the 2019 REST
+listings) and `admin` (StoreAdmin, TableExports).
 
 `clickhouse_roles` builds them over one connection, sharing what two roles must share (the
 snapshot keeper that knows the newest snapshot): what a composition root hands out, one
@@ -35,6 +35,7 @@ from mapservice.adapters.clickhouse.retention import ClickHouseRetention
 from mapservice.adapters.clickhouse.snapshots import ClickHouseSnapshots
 from mapservice.adapters.clickhouse.track_reads import ClickHouseTrackReads
 from mapservice.adapters.clickhouse.vda_reads import ClickHouseVdaReads
+from mapservice.adapters.clickhouse.webhook_registry import ClickHouseWebhookRegistry
 from mapservice.adapters.clickhouse.writes import ClickHouseHistoryWriter
 from mapservice.adapters.clock import clock_from_settings
 from mapservice.core.store_roles import StoreRoles
@@ -62,6 +63,7 @@ def clickhouse_roles(
         incidents=ClickHouseIncidentReads(connection),
         commands=ClickHouseCommandReads(connection),
         vda=ClickHouseVdaReads(connection),
+        webhooks=ClickHouseWebhookRegistry(connection),
         changes=ClickHouseChangeFeed(connection),
         legacy=ClickHouseLegacyQueries(connection, clock_ms),
         admin=admin,

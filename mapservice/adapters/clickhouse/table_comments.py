@@ -332,6 +332,40 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
             "retracted": "A later history no longer holds it (a late pose broke it)",
         },
     ),
+    "webhooks": (
+        "State: the webhooks operators registered for the incident alerts (schema v20). "
+        "Read with FINAL and leave out removed rows; no secret is stored (each is derived "
+        "from the service's signing key).",
+        {
+            "webhook_id": "The webhook (wh- and 16 hex digits)",
+            "url": "Where its deliveries are POSTed (http or https, no credentials)",
+            "kinds": "The incident kinds it gets; empty: all",
+            "created": "When it was registered (UTC)",
+            "created_by": "The name of the credential that registered it, never the token",
+            "resumed": "The latest resume an operator asked for (UTC; the epoch: none)",
+            "removed": "It was removed at `changed`",
+            "changed": "When this row was saved (the latest row is the webhook's)",
+        },
+    ),
+    "webhook_reports": (
+        "State: each processors replica's latest report of its deliveries to each webhook "
+        "(schema v20), counts since that replica started. Read with FINAL; a replica gone "
+        "leaves its last report behind.",
+        {
+            "webhook_id": "The webhook",
+            "replica": "The processors replica (host:pid)",
+            "reported": "When it reported (UTC)",
+            "paused_reason": "Why its deliveries are paused (a delivery failed every try); "
+            "empty: active",
+            "last_error": "The last failed try's error",
+            "last_try": "When its last try ended (UTC; the epoch: none yet)",
+            "last_result": "That try's result: delivered, or its error",
+            "delivered": "Deliveries the receiver answered 2xx",
+            "failed_tries": "Tries that failed (no answer in time, refused, not 2xx)",
+            "dropped": "Deliveries dropped unsent (the queues' bound)",
+            "queued": "Deliveries waiting to be sent",
+        },
+    ),
 }
 
 

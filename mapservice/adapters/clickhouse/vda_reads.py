@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections import defaultdict
 
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
-from mapservice.core.ports import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
+from mapservice.core.vda_facts import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
 
 
 class ClickHouseVdaReads:

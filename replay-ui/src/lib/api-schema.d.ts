@@ -731,6 +731,97 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/webhooks": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * List Webhooks
+         * @description The registered webhooks, oldest first, each with how its deliveries fare: active or
+         *     paused (and why), the last try, the counts, over the processors replicas.
+         */
+        get: operations["listWebhooks"];
+        put?: never;
+        /**
+         * Register Webhook
+         * @description Registers a webhook: every incident finding (new, changed, ended, retracted) of its
+         *     kinds is POSTed to it, signed with the secret this answer holds. The processors take it
+         *     up within MAPSERVICE_WEBHOOK_REGISTRY_POLL_S.
+         */
+        post: operations["registerWebhook"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/api/v1/webhooks/{webhook_id}": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        get?: never;
+        put?: never;
+        post?: never;
+        /**
+         * Remove Webhook
+         * @description Removes the webhook: the processors stop delivering to it (what they had queued for
+         *     it is dropped) within MAPSERVICE_WEBHOOK_REGISTRY_POLL_S.
+         */
+        delete: operations["removeWebhook"];
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/api/v1/webhooks/{webhook_id}/resume": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        get?: never;
+        put?: never;
+        /**
+         * Resume Webhook
+         * @description Resumes a paused webhook once its receiver is fixed: the processors send what waited
+         *     for it, oldest first, within MAPSERVICE_WEBHOOK_REGISTRY_POLL_S (202: asked; the list
+         *     shows when it is active again). Send `{}` as the JSON body.
+         */
+        post: operations["resumeWebhook"];
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
+    "/api/v1/webhooks/{webhook_id}/secret": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Show Webhook Secret
+         * @description The webhook's secret again (derived, never stored: the same as when it was
+         *     registered, while MAPSERVICE_WEBHOOK_SIGNING_KEY stays).
+         */
+        get: operations["showWebhookSecret"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/zone-violations": {
         parameters: {
             query?: never;
@@ -1569,6 +1660,109 @@ export interface components {
             truncated: boolean;
             /** Violations */
             violations: components["schemas"]["Violation"][];
+        };
+        /** WebhookCreated */
+        WebhookCreated: {
+            /** Createdby */
+            createdBy: string;
+            /** Created Ms */
+            created_ms: number;
+            /** Delivered */
+            delivered: number;
+            /** Dropped */
+            dropped: number;
+            /** Failedtries */
+            failedTries: number;
+            /** Id */
+            id: string;
+            /** Kinds */
+            kinds: string[];
+            /** Lasterror */
+            lastError: string;
+            /** Lastresult */
+            lastResult: string;
+            /** Lasttry Ms */
+            lastTry_ms: number | null;
+            /** Pausedreason */
+            pausedReason: string;
+            /** Queued */
+            queued: number;
+            /** Replicas */
+            replicas: number;
+            /** Resumed Ms */
+            resumed_ms: number | null;
+            /** Secret */
+            secret: string;
+            /**
+             * State
+             * @enum {string}
+             */
+            state: "active" | "paused";
+            /** Url */
+            url: string;
+        };
+        /**
+         * WebhookIn
+         * @description Where to POST the incident alerts (http or https, no credentials in it: each delivery
+         *     is signed), and which incident kinds (none: all).
+         */
+        WebhookIn: {
+            /** Kinds */
+            kinds?: ("near_miss" | "stuck" | "offline" | "battery_low")[];
+            /** Url */
+            url: string;
+        };
+        /** WebhookList */
+        WebhookList: {
+            /** Max */
+            max: number;
+            /** Webhooks */
+            webhooks: components["schemas"]["WebhookOut"][];
+        };
+        /** WebhookOut */
+        WebhookOut: {
+            /** Createdby */
+            createdBy: string;
+            /** Created Ms */
+            created_ms: number;
+            /** Delivered */
+            delivered: number;
+            /** Dropped */
+            dropped: number;
+            /** Failedtries */
+            failedTries: number;
+            /** Id */
+            id: string;
+            /** Kinds */
+            kinds: string[];
+            /** Lasterror */
+            lastError: string;
+            /** Lastresult */
+            lastResult: string;
+            /** Lasttry Ms */
+            lastTry_ms: number | null;
+            /** Pausedreason */
+            pausedReason: string;
+            /** Queued */
+            queued: number;
+            /** Replicas */
+            replicas: number;
+            /** Resumed Ms */
+            resumed_ms: number | null;
+            /**
+             * State
+             * @enum {string}
+             */
+            state: "active" | "paused";
+            /** Url */
+            url: string;
+        };
+        /** WebhookSecret */
+        WebhookSecret: {
+            /** Id */
+            id: string;
+            /** Secret */
+            secret: string;
         };
     };
     responses: never;
@@ -3859,6 +4053,307 @@ export interface operations {
                 content: {
                     "application/json": components["schemas"]["Timeline"];
                 };
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    listWebhooks: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["WebhookList"];
+                };
+            };
+            /** @description no credential, or a token that is none of this service's */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    registerWebhook: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody: {
+            content: {
+                "application/json": components["schemas"]["WebhookIn"];
+            };
+        };
+        responses: {
+            /** @description Successful Response */
+            201: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["WebhookCreated"];
+                };
+            };
+            /** @description no credential, or a token that is none of this service's */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the body is not sent as application/json */
+            415: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    removeWebhook: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                /** @description The webhook's id (wh- and 16 hex digits) */
+                webhook_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            204: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description no credential, or a token that is none of this service's */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    resumeWebhook: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                /** @description The webhook's id (wh- and 16 hex digits) */
+                webhook_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            202: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["WebhookOut"];
+                };
+            };
+            /** @description no credential, or a token that is none of this service's */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the body is not sent as application/json */
+            415: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    showWebhookSecret: {
+        parameters: {
+            query?: never;
+            header?: never;
+            path: {
+                /** @description The webhook's id (wh- and 16 hex digits) */
+                webhook_id: string;
+            };
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["WebhookSecret"];
+                };
+            };
+            /** @description no credential, or a token that is none of this service's */
+            401: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the token lacks the `operator` scope: an operator or admin token (MAPSERVICE_API_OPERATOR_TOKENS, MAPSERVICE_ADMIN_TOKEN) */
+            403: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
             };
             /** @description Validation Error */
             422: {

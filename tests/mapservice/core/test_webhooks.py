@@ -17,6 +17,7 @@ from mapservice.core.webhooks import (
     WebhookHealth,
     backoff_s,
     check_secret,
+    derived_secret,
     signed_headers,
     verify,
 )
@@ -129,9 +130,26 @@ def test_a_short_long_or_unprintable_secret_is_refused(secret) -> None:
 
 def test_a_paused_webhook_says_why_and_a_resume_clears_it() -> None:
     health = WebhookHealth()
-    health.tried_and_failed("HTTP 500")
+    health.tried_and_failed("HTTP 500", 1_000)
+    assert (health.last_try_ms, health.last_result) == (1_000, "HTTP 500")
     health.pause(6)
     assert health.state == "paused" and "6 tries" in health.paused_reason
     assert "HTTP 500" in health.paused_reason
     health.resume()
     assert health.state == "active" and health.last_error == "HTTP 500"
+    health.succeeded(2_000)
+    assert (health.last_try_ms, health.last_result, health.delivered) == (2_000, "delivered", 1)
+    assert health.last_error == "HTTP 500"  # the last failure stays told
+
+
+@given(st.text(min_size=1, max_size=64), st.text(min_size=1, max_size=64))
+def test_a_derived_secret_is_a_valid_one_and_differs_by_key_and_webhook(key, webhook_id) -> None:
+    secret = derived_secret(key, webhook_id)
+    assert check_secret(secret) == secret == derived_secret(key, webhook_id)
+    assert derived_secret(key + "x", webhook_id) != secret
+    assert derived_secret(key, webhook_id + "x") != secret
+
+
+def test_no_secret_is_derived_without_a_key() -> None:
+    with pytest.raises(ValueError, match="no signing key"):
+        derived_secret("", "wh-0000000000000001")

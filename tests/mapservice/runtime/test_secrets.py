@@ -6,15 +6,20 @@ from __future__ import annotations
 import stat
 import threading
 
+import pytest
+from pydantic import ValidationError
+
 from mapservice.runtime.secrets import (
     ADMIN_TOKEN_FILE,
     READER_TOKEN_FILE,
+    WEBHOOK_SIGNING_KEY_FILE,
     WRITER_TOKEN_FILE,
     api_secrets,
     local_secret,
     secrets_dir,
     stored_secret,
     with_local_api_secrets,
+    with_local_webhook_key,
 )
 from mapservice.settings import MIN_TOKEN_CHARS, Settings
 from mapservice.sql.credentials import analyst_password
@@ -32,6 +37,29 @@ def test_local_mode_generates_admin_and_writer_tokens_once(tmp_path) -> None:
         assert mode == 0o600, oct(mode)
     assert stat.S_IMODE(secrets_dir(tmp_path).stat().st_mode) == 0o700
     assert not (secrets_dir(tmp_path) / READER_TOKEN_FILE).exists()  # reads are open
+
+
+def test_local_mode_generates_the_webhook_signing_key_once_and_production_never(tmp_path) -> None:
+    """Every process of a data dir derives the same webhook secrets: the key is generated
+    once (0600) and read back; a key that is set wins; production generates none."""
+    first = with_local_webhook_key(Settings(data_dir=tmp_path)).webhook_signing_key
+    again = with_local_webhook_key(Settings(data_dir=tmp_path)).webhook_signing_key
+    assert first.get_secret_value() == again.get_secret_value()
+    assert len(first.get_secret_value()) >= MIN_TOKEN_CHARS
+    mode = stat.S_IMODE((secrets_dir(tmp_path) / WEBHOOK_SIGNING_KEY_FILE).stat().st_mode)
+    assert mode == 0o600, oct(mode)
+    set_ = Settings(data_dir=tmp_path, webhook_signing_key="k" * 32)
+    assert with_local_webhook_key(set_) is set_
+    elsewhere = tmp_path / "production"
+    prod = Settings(data_dir=elsewhere, mode="production", admin_token="a" * 32)
+    assert with_local_webhook_key(prod) is prod
+    assert not secrets_dir(elsewhere).exists()
+
+
+def test_production_refuses_a_short_webhook_signing_key() -> None:
+    with pytest.raises(ValidationError, match="MAPSERVICE_WEBHOOK_SIGNING_KEY has 31"):
+        Settings(mode="production", admin_token="a" * 32, webhook_signing_key="k" * 31)
+    Settings(mode="production", admin_token="a" * 32, webhook_signing_key="k" * 32)
 
 
 def test_reader_token_only_where_reads_need_one(tmp_path) -> None:
