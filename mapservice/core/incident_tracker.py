@@ -292,6 +292,10 @@ class IncidentTracker:
             out.update(unique_poses(rows))
         return {r: t for r, t in out.items() if t}
 
+    def track(self, robot: str, from_ms: int) -> list[PoseRow]:
+        """The stored poses of `robot` from `from_ms` on, and its newest before, in order."""
+        return self._tracks(robot, from_ms).get(robot, [])
+
     def _held(self, robot: str) -> int:
         return self.held_from.get(robot, self.held_from_ms)
 
