@@ -291,8 +291,10 @@ class EventIncidentTracker:
         for i in known:
             mine[(_family(i), i.robots[0])].append(i)
         for (family, robot), m in sorted(touched.items()):
-            cut = m - margin[family]
-            before = [i for i in mine.get((family, robot), []) if i.ongoing or i.end_ms >= cut]
+            theirs = mine.get((family, robot), [])
+            # an ongoing run is judged again from its start: the new records may end it
+            cut = min([m - margin[family], *(i.start_ms for i in theirs if i.ongoing)])
+            before = [i for i in theirs if i.ongoing or i.end_ms >= cut]
             start = min([cut, *(i.start_ms for i in before)])
             fresh = self._rule(family, robot, start, now_ms)
             self._replace(before, [i for i in fresh if i.ongoing or i.end_ms >= cut])
