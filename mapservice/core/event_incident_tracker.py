@@ -59,9 +59,13 @@ def is_event_incident(incident: Incident) -> bool:
 
 
 def _family(incident: Incident) -> str:
-    return {"zone_violation": "zone", "conflict": "conflict", "vda_error": "vda"}.get(
-        incident.kind, "connection"
-    )
+    """Which records an incident is found from (FAMILIES, or a command's)."""
+    return {
+        "zone_violation": "zone",
+        "conflict": "conflict",
+        "vda_error": "vda",
+        "offline": "connection",
+    }.get(incident.kind, "command")
 
 
 def _key(incident: Incident) -> Incident:
@@ -127,7 +131,8 @@ class EventIncidentTracker:
         self._remember(records)
         touched = {(f, r): held_from_ms for f, robots in self.records.items() for r in robots}
         for i in self.current.values():
-            touched[(_family(i), i.robots[0])] = held_from_ms
+            if _family(i) in FAMILIES:
+                touched[(_family(i), i.robots[0])] = held_from_ms
         self._redo(touched, set(self.issued), now_ms)
 
     def add(self, poses: Sequence[PoseRow], records: EventRecords, now_ms: int) -> None:
@@ -217,14 +222,15 @@ class EventIncidentTracker:
                     del rows[key]
         self.held_from_ms = cut
         self.held_from = {r: t for r, t in since.items() if t < cut}
-        old = {
-            k
-            for k, c in self.issued.items()
-            if k not in self.pending and c.ts_ms < cut - self.th.command_ack_timeout_ms
-        }
-        for k in old:
-            del self.issued[k]
-            self.acks.pop(k, None)
+        for k, c in list(self.issued.items()):
+            if k not in self.pending and c.ts_ms < since.get(c.event.robot_id, cut):
+                del self.issued[k]
+        for k, acks in list(self.acks.items()):
+            kept = [a for a in acks if a.ts_ms >= since.get(a.event.robot_id, cut)]
+            if kept:
+                self.acks[k] = kept
+            else:
+                del self.acks[k]
         self.current_from_ms = cut - reach
         self.current = {
             k: i for k, i in self.current.items() if i.ongoing or i.end_ms >= cut - reach
@@ -255,13 +261,13 @@ class EventIncidentTracker:
                 if known is None or (m.ts_ms, m.event_id) < (known.ts_ms, known.event_id):
                     self.issued[command] = m
                     self.pending.add(command)
-            elif m.event_id not in {a.event_id for a in self.acks[command]}:
-                self.acks[command].append(m)
+            else:  # of two with one id, the last given, as the store keeps the last written
+                acks = self.acks[command]
+                acks[:] = [a for a in acks if a.event_id != m.event_id] + [m]
 
     def _commands_of(self, commands: Iterable[StoredCommandEvent]) -> set[str]:
         """The commands `commands` name, their issues and acks brought into memory first
-        (an ack counts until the deadline: its command was issued at most the timeout
-        before it)."""
+        (an ack counts within the timeout of its command's issue, before or after)."""
         ids: set[str] = set()
         robots: dict[str, int] = {}
         for c in commands:
@@ -269,10 +275,7 @@ class EventIncidentTracker:
             earliest = c.ts_ms - self.th.command_ack_timeout_ms
             robots[c.event.robot_id] = min(earliest, robots.get(c.event.robot_id, earliest))
         for robot, earliest in robots.items():
-            if earliest < self._held(robot):
-                self._remember(
-                    EventRecords(commands=self.read(earliest, self._held(robot), robot).commands)
-                )
+            self._hold(robot, earliest)
         return ids
 
     def _redo(self, touched: dict[tuple[str, str], int], commands: set[str], now_ms: int) -> None:
@@ -282,7 +285,16 @@ class EventIncidentTracker:
             "vda": 0,
             "connection": 0,
         }
-        cuts = [m - margin[f] for (f, _), m in touched.items()]
+        # An ongoing run is judged again from its start (the new records may end it), and
+        # so is every run ending after that: all of them known, read from the store if
+        # memory lacks them (ongoing ones it always holds).
+        ongoing: dict[tuple[str, str], int] = {}
+        for i in self.current.values():
+            key = (_family(i), i.robots[0])
+            if i.ongoing and key in touched:
+                ongoing[key] = min(i.start_ms, ongoing.get(key, i.start_ms))
+        cut_of = {key: min(m - margin[key[0]], ongoing.get(key, m)) for key, m in touched.items()}
+        cuts = [*cut_of.values()]
         cuts += [self.issued[k].ts_ms for k in commands if k in self.issued]
         if not cuts:
             return
@@ -290,11 +302,8 @@ class EventIncidentTracker:
         mine: dict[tuple[str, str], list[Incident]] = defaultdict(list)
         for i in known:
             mine[(_family(i), i.robots[0])].append(i)
-        for (family, robot), m in sorted(touched.items()):
-            theirs = mine.get((family, robot), [])
-            # an ongoing run is judged again from its start: the new records may end it
-            cut = min([m - margin[family], *(i.start_ms for i in theirs if i.ongoing)])
-            before = [i for i in theirs if i.ongoing or i.end_ms >= cut]
+        for (family, robot), cut in sorted(cut_of.items()):
+            before = [i for i in mine.get((family, robot), []) if i.ongoing or i.end_ms >= cut]
             start = min([cut, *(i.start_ms for i in before)])
             fresh = self._rule(family, robot, start, now_ms)
             self._replace(before, [i for i in fresh if i.ongoing or i.end_ms >= cut])
@@ -306,6 +315,7 @@ class EventIncidentTracker:
             if issued.ts_ms + self.th.command_ack_timeout_ms < now_ms:
                 self.pending.discard(k)
             robot = issued.event.robot_id
+            self._hold(robot, issued.ts_ms - self.th.command_ack_timeout_ms)  # its acks
             failed = command_failed(issued, self.acks.get(k, []), now_ms, self.th)
             was = by_id.get(incident_id("command_failed", (robot, k), issued.ts_ms))
             self._replace([was] if was else [], [placed(failed, self._locate)] if failed else [])
@@ -327,12 +337,15 @@ class EventIncidentTracker:
     def _rows(self, family: str, robot: str, start: int) -> dict[Any, Any]:
         """The robot's records of the family from `start` on (read from the store into
         memory if it does not hold them)."""
-        if start < self._held(robot):
-            read = self.read(start, self._held(robot), robot)
-            self._remember(read)
-            self.held_from[robot] = start
+        self._hold(robot, start)
         rows = self.records[family].get(robot, {})
         return {k: v for k, v in rows.items() if _instant(k) >= start}
+
+    def _hold(self, robot: str, start: int) -> None:
+        """Memory holds the robot's records from `start` on (read from the store if not)."""
+        if start < self._held(robot):
+            self._remember(self.read(start, self._held(robot), robot))
+            self.held_from[robot] = start
 
     def _locate(self, robot: str, ts_ms: int) -> tuple[float, float] | None:
         track = self.track(robot, ts_ms + 1)

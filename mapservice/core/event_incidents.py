@@ -17,9 +17,11 @@ incidents.
 - **vda_error**: a FATAL error a VDA 5050 vehicle reports in its `state`, of one type: from
   the first state that lists it to the first later state that does not (a state's errors
   hold until its next state), ongoing while no such state came. Critical.
-- **command_failed**: a command the robot refused (its ack `rejected`: from the issue to the
-  ack), or did not acknowledge within `command_ack_timeout_ms` of the issue (judged once the
-  history is known past the deadline: from the issue to the deadline). Warning.
+- **command_failed**: a command the robot refused (its first ack `rejected`: from the issue
+  to the ack), or did not acknowledge within `command_ack_timeout_ms` of the issue (judged
+  once the history is known past the deadline: from the issue to the deadline). An ack
+  counts within the timeout of the issue, before it too (a robot's clock may run behind).
+  Warning.
 - **offline** (connection): a VDA 5050 vehicle's `connection` state OFFLINE or
   CONNECTIONBROKEN: from it to the next ONLINE, ongoing (up to `until_ms`) until then. Of
   several states at one instant the last by name counts (ONLINE over OFFLINE over
@@ -319,9 +321,11 @@ def command_failed(
     """A command's failure, if it failed: `acks` are the command's acks (any order)."""
     command = issued.event
     deadline = issued.ts_ms + th.command_ack_timeout_ms
-    ack = min(acks, key=lambda a: (a.ts_ms, a.event_id), default=None)
+    # an ack counts within the timeout of the issue (a robot's clock may run behind)
+    timely = [a for a in acks if abs(a.ts_ms - issued.ts_ms) <= th.command_ack_timeout_ms]
+    ack = min(timely, key=lambda a: (a.ts_ms, a.event_id), default=None)
     robot = command.robot_id
-    if ack is not None and ack.ts_ms <= deadline:
+    if ack is not None:
         if not isinstance(ack.event, CommandAcknowledged) or ack.event.status != "rejected":
             return None
         end, refs = max(ack.ts_ms, issued.ts_ms), [(robot, issued.ts_ms), (robot, ack.ts_ms)]

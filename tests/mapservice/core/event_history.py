@@ -88,7 +88,7 @@ def floor_records(seed: int, robots: Sequence[str], t0: int, seconds: int) -> li
         t = t0 + rng.randint(0, 3000)
         errors: list[tuple[str, str]] = []
         while t < t0 + seconds * 1000:
-            if rng.random() < 0.15:
+            if rng.random() < 0.25:
                 errors = [
                     (rng.choice(("FATAL", "FATAL", "WARNING")), rng.choice(("e1", "e2", "e3")))
                     for _ in range(rng.randint(0, 2))
