@@ -153,7 +153,9 @@ class IncidentWatch:
         stored = self.incidents.incidents(since - self.tracker.th.lookback_ms, horizon_ms)
         own = [i for i in stored if not is_event_incident(i)]
         self.tracker.load(self._read(since, horizon_ms, None), since, own, now)
-        self.events.load(self.sources.read(since, horizon_ms, None), since, stored, now)
+        self.events.load(
+            self.sources.read(since, horizon_ms, None), since, stored, now, self.tracker.tracks
+        )
         self.unplaced = EventRecords()
         if self.alerts is not None:
             self.alerts.seed([*self.tracker.current.values(), *self.events.current.values()])

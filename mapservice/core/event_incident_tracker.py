@@ -29,6 +29,7 @@ from mapservice.core.event_incidents import (
     command_failed,
     conflict_incidents,
     connection_offline_incidents,
+    grows_with_the_clock,
     is_connection_offline,
     later_state,
     merged_errors,
@@ -70,8 +71,8 @@ def _family(incident: Incident) -> str:
 
 def _key(incident: Incident) -> Incident:
     """What a new finding must differ in to be written again: an ongoing disconnection's
-    end and length grow with the clock."""
-    if incident.kind == "offline" and incident.ongoing:
+    or error's end and length grow with the clock."""
+    if grows_with_the_clock(incident):
         return msgspec.structs.replace(incident, end_ms=0, measure=0.0)
     return incident
 
@@ -115,10 +116,12 @@ class EventIncidentTracker:
         held_from_ms: int,
         stored: Sequence[Incident],
         now_ms: int,
+        robots: Iterable[str] = (),
     ) -> None:
         """Starts from the stored records from `held_from_ms` on and the incidents stored
         that meet that span; the rules then run over them, for what was not yet found.
-        Call after the pose tracker loaded (its poses place the incidents)."""
+        Call after the pose tracker loaded (its poses place the incidents), with the robots
+        it holds (`robots`): one may stand in a zone since before the span."""
         self.records = {f: defaultdict(dict) for f in FAMILIES}
         self.issued.clear()
         self.acks.clear()
@@ -129,7 +132,8 @@ class EventIncidentTracker:
         self.found.clear()
         self.retracted.clear()
         self._remember(records)
-        touched = {(f, r): held_from_ms for f, robots in self.records.items() for r in robots}
+        touched = {(f, r): held_from_ms for f, held in self.records.items() for r in held}
+        touched.update({("zone", r): held_from_ms for r in robots})
         for i in self.current.values():
             if _family(i) in FAMILIES:
                 touched[(_family(i), i.robots[0])] = held_from_ms
@@ -176,10 +180,12 @@ class EventIncidentTracker:
         if due:
             self._redo({}, set(due), now_ms)
         for incident in list(self.current.values()):
-            if incident.kind != "offline" or not incident.ongoing:
+            if not grows_with_the_clock(incident):
                 continue
             off_s = (now_ms - incident.start_ms) / 1000
-            severity = "critical" if off_s >= OFFLINE_CRITICAL_S else "warning"
+            severity = incident.severity
+            if incident.kind == "offline":
+                severity = "critical" if off_s >= OFFLINE_CRITICAL_S else "warning"
             if severity != incident.severity or now_ms - incident.end_ms > self.keep_ms // 2:
                 # rewritten as it turns critical, and now and then so that a reload of the
                 # recent incidents (those ending in memory's span) still meets it
@@ -305,7 +311,7 @@ class EventIncidentTracker:
         for (family, robot), cut in sorted(cut_of.items()):
             before = [i for i in mine.get((family, robot), []) if i.ongoing or i.end_ms >= cut]
             start = min([cut, *(i.start_ms for i in before)])
-            fresh = self._rule(family, robot, start, now_ms)
+            fresh = self._rule(family, robot, start, cut, now_ms)
             self._replace(before, [i for i in fresh if i.ongoing or i.end_ms >= cut])
         by_id = {i.incident_id: i for i in known}
         for k in sorted(commands):
@@ -320,19 +326,33 @@ class EventIncidentTracker:
             was = by_id.get(incident_id("command_failed", (robot, k), issued.ts_ms))
             self._replace([was] if was else [], [placed(failed, self._locate)] if failed else [])
 
-    def _rule(self, family: str, robot: str, start: int, now_ms: int) -> list[Incident]:
-        rows = self._rows(family, robot, start)
+    def _rule(self, family: str, robot: str, start: int, cut: int, now_ms: int) -> list[Incident]:
         if family == "zone":
-            track = self.track(robot, start - self.th.offline_after_ms)
-            return zone_violation_incidents(track, rows, self.th)
+            return self._zone_runs(robot, start, cut)
+        rows = self._rows(family, robot, start)
         found: list[Incident]
         if family == "conflict":
             found = conflict_incidents(list(rows.values()), self.th)
         elif family == "vda":
-            found = vda_error_incidents([rows[t] for t in sorted(rows)])
+            found = vda_error_incidents([rows[t] for t in sorted(rows)], now_ms)
         else:
             found = connection_offline_incidents([rows[t] for t in sorted(rows)], now_ms)
         return [placed(i, self._locate) for i in found]
+
+    def _zone_runs(self, robot: str, start: int, cut: int) -> list[Incident]:
+        """The robot's zone runs from `start` on, each whole: one kept (ongoing, or ending
+        at or after `cut`) that reaches back to the first pose read is read again from
+        further back (a robot may stand in a zone for longer than memory holds)."""
+        reach = self.th.offline_after_ms
+        while True:
+            track = self.track(robot, start - reach)
+            zones = self._rows("zone", robot, track[0].ts_ms if track else start)
+            fresh = zone_violation_incidents(track, zones, self.th)
+            if not track or track[0].ts_ms >= start - reach:
+                return fresh  # the robot's first pose: nothing before
+            if not any(i.from_data_edge and (i.ongoing or i.end_ms >= cut) for i in fresh):
+                return fresh
+            reach *= 2
 
     def _rows(self, family: str, robot: str, start: int) -> dict[Any, Any]:
         """The robot's records of the family from `start` on (read from the store into

@@ -16,7 +16,8 @@ incidents.
   figure is how many conflicting chunk writes.
 - **vda_error**: a FATAL error a VDA 5050 vehicle reports in its `state`, of one type: from
   the first state that lists it to the first later state that does not (a state's errors
-  hold until its next state), ongoing while no such state came. Critical.
+  hold until its next state); while no such state came it is ongoing, up to `until_ms`.
+  Critical.
 - **command_failed**: a command the robot refused (its first ack `rejected`: from the issue
   to the ack), or did not acknowledge within `command_ack_timeout_ms` of the issue (judged
   once the history is known past the deadline: from the issue to the deadline). An ack
@@ -241,34 +242,36 @@ def conflict_incidents(rows: Sequence[ConflictRow], th: IncidentThresholds) -> l
     return incidents
 
 
-def vda_error_incidents(states: Sequence[VdaErrorsAt]) -> list[Incident]:
+def vda_error_incidents(states: Sequence[VdaErrorsAt], until_ms: int) -> list[Incident]:
     """`states`: one vehicle's states, one per instant, in time order."""
     opened: dict[str, int] = {}  # error type -> the index of the state that first listed it
     incidents = []
 
-    def close(kind_of: str, first: int, last: int, ongoing: bool) -> None:
-        robot, start, end = states[first].robot_id, states[first].ts_ms, states[last].ts_ms
+    def found(error_type: str, first: int, end: VdaErrorsAt | None) -> None:
+        robot, start = states[first].robot_id, states[first].ts_ms
+        end_ms = end.ts_ms if end is not None else max(until_ms, states[-1].ts_ms)
+        refs = [(robot, start)] + ([(robot, end.ts_ms)] if end is not None else [])
         incidents.append(
             _message_incident(
                 "vda_error",
-                kind_of,
-                [(robot, start), (robot, end)],
+                error_type,
+                refs,
                 robots=(robot,),
-                end_ms=end,
-                ongoing=ongoing,
+                end_ms=end_ms,
+                ongoing=end is None,
                 severity="critical",
-                measure=(end - start) / 1000,
+                measure=(end_ms - start) / 1000,
             )
         )
 
     for i, state in enumerate(states):
         listed = {t for t, _ in state.fatal}
         for error_type in [t for t in opened if t not in listed]:
-            close(error_type, opened.pop(error_type), i, False)
+            found(error_type, opened.pop(error_type), state)
         for error_type in sorted(listed - set(opened)):
             opened[error_type] = i
     for error_type, first in opened.items():
-        close(error_type, first, len(states) - 1, True)
+        found(error_type, first, None)
     return incidents
 
 
@@ -303,6 +306,12 @@ def connection_offline_incidents(states: Sequence[ConnectionAt], until_ms: int) 
     if start is not None:
         found(start, None)
     return incidents
+
+
+def grows_with_the_clock(incident: Incident) -> bool:
+    """An ongoing silence, disconnection or error lasts up to now: its end and length are
+    the finder's clock, not the history's."""
+    return incident.ongoing and incident.kind in ("offline", "vda_error")
 
 
 def is_connection_offline(incident: Incident) -> bool:
@@ -425,7 +434,7 @@ def detect_events(
     for states in by_instant(
         (s for s in records.vda_states if s.ts_ms <= until_ms), merged_errors
     ).values():
-        located += vda_error_incidents(states)
+        located += vda_error_incidents(states, until_ms)
     for conns in by_instant(
         (c for c in records.connections if c.ts_ms <= until_ms), later_state
     ).values():

@@ -16,7 +16,12 @@ from hypothesis import strategies as st
 
 from mapservice.core import incident_tracker, near_miss
 from mapservice.core.event_incident_tracker import EventIncidentTracker, is_event_incident
-from mapservice.core.event_incidents import EVENT_KINDS, detect_all, records_of
+from mapservice.core.event_incidents import (
+    EVENT_KINDS,
+    detect_all,
+    grows_with_the_clock,
+    records_of,
+)
 from mapservice.core.events import Envelope, PoseReported, make_envelope
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
@@ -56,11 +61,12 @@ def reader(store: MemoryStore):
 
 
 def normal(incidents: list[Incident]) -> list[Incident]:
-    """An ongoing silence's end and length are the finder's clock: left out."""
+    """An ongoing silence's (disconnection's, error's) end and length are the finder's
+    clock: left out."""
     return sorted(
         (
             msgspec.structs.replace(i, end_ms=0, measure=0.0, from_data_edge=False)
-            if i.kind == "offline" and i.ongoing
+            if grows_with_the_clock(i)
             else msgspec.structs.replace(i, from_data_edge=False)
             for i in incidents
         ),
@@ -127,7 +133,8 @@ class Trackers:
         stored = self.store.incidents(since - th.lookback_ms, now + 1)
         own = [i for i in stored if not is_event_incident(i)]
         self.poses.load(reader(self.store)(since, now + 1, None), since, own, now)
-        self.events.load(stored_records(self.store, since, now + 1, None), since, stored, now)
+        records = stored_records(self.store, since, now + 1, None)
+        self.events.load(records, since, stored, now, self.poses.tracks)
         self.write(now)
 
     def add(self, batch: list[Envelope], records: list[Record], now: int) -> None:
