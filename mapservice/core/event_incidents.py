@@ -56,11 +56,11 @@ from mapservice.core.incident_model import (
     pose_ref,
 )
 from mapservice.core.incidents import detect, flag_runs, presence_runs, unique_poses
+from mapservice.core.liveview import OFF_STATES
 from mapservice.core.ports import ConflictRow, PoseRow, VdaFacts
 
 # The kinds found here (and `offline` from a connection state).
 EVENT_KINDS = ("zone_violation", "conflict", "vda_error", "command_failed")
-OFF_STATES = ("OFFLINE", "CONNECTIONBROKEN")
 # the robot's newest pose at or before an instant, as (x, y); None if it has none
 Locate = Callable[[str, int], tuple[float, float] | None]
 
