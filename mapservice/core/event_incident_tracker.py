@@ -37,6 +37,7 @@ from mapservice.core.event_incidents import (
     vda_error_incidents,
     zone_violation_incidents,
 )
+from mapservice.core.incident_findings import UnstoredFindings
 from mapservice.core.incident_model import (
     OFFLINE_CRITICAL_S,
     Incident,
@@ -77,7 +78,7 @@ def _key(incident: Incident) -> Incident:
     return incident
 
 
-class EventIncidentTracker:
+class EventIncidentTracker(UnstoredFindings):
     def __init__(
         self,
         read: ReadRecords,
@@ -193,20 +194,6 @@ class EventIncidentTracker:
                     incident, end_ms=now_ms, measure=off_s, severity=severity
                 )
                 self._note(grown, force=True)
-
-    def take(self) -> tuple[list[Incident], list[Incident]]:
-        found, retracted = list(self.found.values()), list(self.retracted.values())
-        self.found.clear()
-        self.retracted.clear()
-        return found, retracted
-
-    def give_back(self, found: Sequence[Incident], retracted: Sequence[Incident]) -> None:
-        for incident in found:
-            if incident.incident_id not in self.retracted:
-                self.found.setdefault(incident.incident_id, incident)
-        for incident in retracted:
-            if incident.incident_id not in self.found:
-                self.retracted.setdefault(incident.incident_id, incident)
 
     def forget(self, now_ms: int) -> None:
         """Lets go of records older than `keep_ms` (a robot's since its ongoing incident of
@@ -408,17 +395,6 @@ class EventIncidentTracker:
         self.current[incident.incident_id] = incident
         self.found[incident.incident_id] = incident
         self.retracted.pop(incident.incident_id, None)
-
-    def _replace(self, before: Iterable[Incident], fresh: Iterable[Incident]) -> None:
-        fresh_ids = set()
-        for incident in fresh:
-            fresh_ids.add(incident.incident_id)
-            self._note(incident)
-        for incident in before:
-            if incident.incident_id not in fresh_ids:
-                self.current.pop(incident.incident_id, None)
-                self.found.pop(incident.incident_id, None)
-                self.retracted[incident.incident_id] = incident
 
 
 def _instant(key: int | tuple[int, int, int]) -> int:

@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import msgspec
 
+from mapservice.core.incident_findings import UnstoredFindings
 from mapservice.core.incident_joins import carried_on, joined_own
 from mapservice.core.incidents import (
     Incident,
@@ -63,7 +64,7 @@ def _ts(pose: PoseRow) -> int:
     return pose.ts_ms
 
 
-class IncidentTracker:
+class IncidentTracker(UnstoredFindings):
     def __init__(
         self,
         read: ReadPoses,
@@ -202,23 +203,6 @@ class IncidentTracker:
                 continue
             for incident in offline_incidents(track[-1:], now_ms, self.th):
                 self._note(incident)
-
-    def take(self) -> tuple[list[Incident], list[Incident]]:
-        """The findings to store since the last call: (found or changed, retracted)."""
-        found, retracted = list(self.found.values()), list(self.retracted.values())
-        self.found.clear()
-        self.retracted.clear()
-        return found, retracted
-
-    def give_back(self, found: Sequence[Incident], retracted: Sequence[Incident]) -> None:
-        """Findings `take` gave that could not be stored: taken again next time, unless a
-        later finding of the same incident replaced them."""
-        for incident in found:
-            if incident.incident_id not in self.retracted:
-                self.found.setdefault(incident.incident_id, incident)
-        for incident in retracted:
-            if incident.incident_id not in self.found:
-                self.retracted.setdefault(incident.incident_id, incident)
 
     def forget(self, now_ms: int) -> None:
         """Lets go of poses older than `keep_ms` (each robot's newest before stays, and a
@@ -481,12 +465,3 @@ class IncidentTracker:
             track = self.tracks.get(robot, [])
             return bool(track) and track[0].ts_ms < ts_ms
         return bool(self.read(ts_ms - self.th.lookback_ms, ts_ms, robot))
-
-    def _replace(self, before: Iterable[Incident], fresh: Iterable[Incident]) -> None:
-        fresh_ids = set()
-        for incident in fresh:
-            fresh_ids.add(incident.incident_id)
-            self._note(incident)
-        for incident in before:
-            if incident.incident_id not in fresh_ids:
-                self._drop(incident)
