@@ -297,6 +297,11 @@ class EventIncidentTracker(UnstoredFindings):
             mine[(_family(i), i.robots[0])].append(i)
         for (family, robot), cut in sorted(cut_of.items()):
             before = [i for i in mine.get((family, robot), []) if i.ongoing or i.end_ms >= cut]
+            if family == "zone":
+                went_on = self._zone_going_on(robot, before, touched[(family, robot)])
+                if went_on is not None:
+                    self._replace(before, went_on)
+                    continue
             start = min([cut, *(i.start_ms for i in before)])
             fresh = self._rule(family, robot, start, cut, now_ms)
             self._replace(before, [i for i in fresh if i.ongoing or i.end_ms >= cut])
@@ -325,6 +330,36 @@ class EventIncidentTracker(UnstoredFindings):
         else:
             found = connection_offline_incidents([rows[t] for t in sorted(rows)], now_ms)
         return [placed(i, self._locate) for i in found]
+
+    def _zone_going_on(
+        self, robot: str, before: list[Incident], first_new_ms: int
+    ) -> list[Incident] | None:
+        """The robot's zone runs when its one ongoing run's poses are all older than the new
+        records (the live case): judged from that run's last pose on only, the run carried
+        on from it (a robot may stand in a zone for longer than memory holds, and its
+        poses since the run began are not read again each batch). None when that does not
+        fit (then the slow way)."""
+        if len(before) != 1 or not before[0].ongoing or first_new_ms <= before[0].end_ms:
+            return None
+        going = before[0]
+        track = self.track(robot, going.end_ms)
+        zones = self._rows("zone", robot, track[0].ts_ms if track else going.end_ms)
+        fresh = zone_violation_incidents(track, zones, self.th)
+        runs = [i for i in fresh if i.start_ms <= going.end_ms <= i.end_ms]
+        if len(runs) != 1:
+            return None
+        run = runs[0]
+        carried = msgspec.structs.replace(
+            run,
+            incident_id=going.incident_id,
+            start_ms=going.start_ms,
+            x=going.x,
+            y=going.y,
+            measure=(run.end_ms - going.start_ms) / 1000,
+            evidence=(going.evidence[0], run.evidence[1]),
+            from_data_edge=False,
+        )
+        return [carried, *(i for i in fresh if i.start_ms > going.end_ms)]
 
     def _zone_runs(self, robot: str, start: int, cut: int) -> list[Incident]:
         """The robot's zone runs from `start` on, each whole: one kept (ongoing, or ending
