@@ -128,6 +128,8 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
         annotations=roles.annotations,
         conflicts=roles.conflicts,
         incidents=roles.incidents,
+        commands=roles.commands,
+        vda=roles.vda,
         writer=roles.writer,
         advertiser=advertiser,
         store_thread=store_thread,

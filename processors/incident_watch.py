@@ -5,7 +5,12 @@ stored incidents lag the history by up to sink_views_seconds). Touched only in t
 thread: its reads of the history beyond memory (late poses) are store calls. Once stored,
 the findings are announced on the live stream (mapservice/core/live_incidents.py: a live
 page lists them without asking) and handed to the alerts (incident_alerts.py), which only
-queue them."""
+queue them.
+
+Two trackers: the poses' incidents (incident_tracker.py) and those of the records stored
+beside them (event_incident_tracker.py: zone violations and conflicts, which the views find
+and store before they are given here, VDA 5050 states and connection states, commands and
+acks), placed by the first's poses. Each reads back only the incidents it finds."""
 
 from __future__ import annotations
 
@@ -14,15 +19,23 @@ from collections.abc import Callable, Sequence
 import structlog
 from prometheus_client import Counter, Histogram
 
+from mapservice.core.annotations import ZoneViolation
+from mapservice.core.event_incident_tracker import EventIncidentTracker, is_event_incident
+from mapservice.core.event_incidents import EventRecords, records_of, vda_records_of
 from mapservice.core.events import Envelope
 from mapservice.core.incident_tracker import IncidentTracker
-from mapservice.core.incidents import IncidentThresholds
+from mapservice.core.incidents import Incident, IncidentThresholds
 from mapservice.core.ports import (
+    AnnotationReader,
+    CommandReader,
+    ConflictReader,
+    ConflictRow,
     HistoryWriter,
     IncidentFeed,
     IncidentReader,
     PoseRow,
     TimeTravelReader,
+    VdaReader,
 )
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.settings import Settings
@@ -56,7 +69,45 @@ def thresholds_of(settings: Settings) -> IncidentThresholds:
         stuck_ms=round(settings.incident_stuck_s * 1000),
         offline_after_ms=round(settings.robot_offline_after_s * 1000),
         battery_low_percent=settings.incident_battery_low_percent,
+        command_ack_timeout_ms=round(settings.incident_command_ack_timeout_s * 1000),
+        conflict_gap_ms=round(settings.conflict_window_s * 1000),
     )
+
+
+class EventSources:
+    """The stored records the event incidents are found from, read back for a span."""
+
+    def __init__(
+        self,
+        annotations: AnnotationReader,
+        conflicts: ConflictReader,
+        commands: CommandReader,
+        vda: VdaReader,
+    ) -> None:
+        self.annotations, self.conflicts = annotations, conflicts
+        self.commands, self.vda = commands, vda
+
+    def read(self, from_ms: int, to_ms: int, robot: str | None) -> EventRecords:
+        """The records stored in [from_ms, to_ms), of `robot` (every robot if None)."""
+        if to_ms <= from_ms:
+            return EventRecords()
+        if robot is None:
+            facts = self.vda.vda_fleet_facts(from_ms, to_ms, limit=READ_LIMIT)
+        else:
+            facts = {robot: self.vda.vda_facts(robot, from_ms, to_ms, limit=READ_LIMIT)}
+        out = vda_records_of(facts)
+        out.violations = [
+            v
+            for v in self.annotations.zone_violations(from_ms, to_ms, limit=READ_LIMIT)
+            if robot in (None, v.robot_id)
+        ]
+        out.conflicts = [
+            c
+            for c in self.conflicts.conflicts(from_ms, to_ms, limit=READ_LIMIT)
+            if robot in (None, c.robot_b)
+        ]
+        out.commands = self.commands.command_events(from_ms, to_ms, robot, limit=READ_LIMIT)
+        return out
 
 
 class IncidentWatch:
@@ -67,19 +118,33 @@ class IncidentWatch:
         incidents: IncidentReader,
         writer: HistoryWriter,
         now_ms: Callable[[], int],
+        sources: EventSources,
         alerts: IncidentAlerts | None = None,
         feed: IncidentFeed | None = None,
     ) -> None:
         self.history, self.writer, self.now_ms = history, writer, now_ms
         self.alerts, self.feed = alerts, feed
+        self.incidents = incidents
         self.keep_ms = round(settings.incident_memory_s * 1000)
+        th = thresholds_of(settings)
         self.tracker = IncidentTracker(
             self._read,
-            incidents.incidents,
-            thresholds_of(settings),
+            self._pose_incidents,
+            th,
             self.keep_ms,
             round(settings.incident_refresh_s * 1000),
         )
+        self.events = EventIncidentTracker(
+            sources.read, self._event_incidents, self.tracker.track, th, self.keep_ms
+        )
+        self.sources = sources
+        self.unplaced = EventRecords()  # findings of the views for the next batch
+
+    def _pose_incidents(self, from_ms: int, to_ms: int) -> list[Incident]:
+        return [i for i in self.incidents.incidents(from_ms, to_ms) if not is_event_incident(i)]
+
+    def _event_incidents(self, from_ms: int, to_ms: int) -> list[Incident]:
+        return [i for i in self.incidents.incidents(from_ms, to_ms) if is_event_incident(i)]
 
     def _read(self, from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:
         """The stored poses in [from_ms, to_ms) (of `robot`, or all), and each robot's
@@ -91,33 +156,65 @@ class IncidentWatch:
         """The recent history from the store, and the incidents stored over it."""
         now = self.now_ms()
         since = now - self.keep_ms
-        stored = self.tracker.read_incidents(since - self.tracker.th.lookback_ms, horizon_ms)
-        self.tracker.load(self._read(since, horizon_ms, None), since, stored, now)
+        stored = self.incidents.incidents(since - self.tracker.th.lookback_ms, horizon_ms)
+        own = [i for i in stored if not is_event_incident(i)]
+        self.tracker.load(self._read(since, horizon_ms, None), since, own, now)
+        self.events.load(
+            self.sources.read(since, horizon_ms, None), since, stored, now, self.tracker.tracks
+        )
+        self.unplaced = EventRecords()
         if self.alerts is not None:
-            self.alerts.seed(self.tracker.current.values())
+            self.alerts.seed([*self.tracker.current.values(), *self.events.current.values()])
 
-    def find(self, events: Sequence[Envelope]) -> int:
-        """Runs the rules over what the stored batch can change; returns how many findings
-        now wait to be written."""
+    def stored_conflicts(self, rows: Sequence[ConflictRow]) -> None:
+        """Conflicts the views stored: their incidents are found with the next batch or
+        tick (conflicts are written with the findings, after the batch's `find`)."""
+        self.unplaced.conflicts += rows
+
+    def find(self, events: Sequence[Envelope], violations: Sequence[ZoneViolation] = ()) -> int:
+        """Runs the rules over what the stored batch can change (`violations`: the zone
+        violations the views found in it, stored already); returns how many findings now
+        wait to be written."""
         with INCIDENT_CHECK_SECONDS.time():
-            self.tracker.add(pose_rows_of(events), self.now_ms())
-        return len(self.tracker.found) + len(self.tracker.retracted)
+            now = self.now_ms()
+            poses = pose_rows_of(events)
+            self.tracker.add(poses, now)
+            records = records_of(events)
+            records.violations += violations
+            records.extend(self.unplaced)
+            self.unplaced = EventRecords()
+            self.events.add(poses, records, now)
+        return self.waiting()
+
+    def waiting(self) -> int:
+        """How many findings wait to be written."""
+        t, e = self.tracker, self.events
+        return len(t.found) + len(t.retracted) + len(e.found) + len(e.retracted)
 
     def tick(self) -> None:
-        """Robots that fell silent as the clock moved."""
-        self.tracker.tick(self.now_ms())
+        """Robots that fell silent as the clock moved, commands left without an ack, and
+        the conflicts stored since the last batch."""
+        now = self.now_ms()
+        self.tracker.tick(now)
+        if self.unplaced.conflicts:
+            records, self.unplaced = self.unplaced, EventRecords()
+            self.events.add([], records, now)
+        self.events.tick(now)
 
     def write(self) -> int:
         """Stores the findings since the last call; returns how many rows."""
         found, retracted = self.tracker.take()
-        if not found and not retracted:
+        more_found, more_retracted = self.events.take()
+        if not (found or retracted or more_found or more_retracted):
             return 0
         now = self.now_ms()
         try:
-            self.writer.append_incidents(found, now, retracted)
+            self.writer.append_incidents([*found, *more_found], now, [*retracted, *more_retracted])
         except BaseException:
             self.tracker.give_back(found, retracted)  # written with the next try
+            self.events.give_back(more_found, more_retracted)
             raise
+        found, retracted = [*found, *more_found], [*retracted, *more_retracted]
         if self.feed is not None:
             # Best effort, like the rest of the live stream: the findings are stored, and a
             # page that missed the announcement reads them from the list.
@@ -131,6 +228,8 @@ class IncidentWatch:
         if self.alerts is not None:
             self.alerts.announce(found, retracted, now)
         self.tracker.forget(now)
+        self.events.forget(now)
         if self.alerts is not None:
-            self.alerts.keep(self.tracker.current, len(self.tracker.current))
+            held = [*self.tracker.current, *self.events.current]
+            self.alerts.keep(held, len(held))
         return len(found) + len(retracted)

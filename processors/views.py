@@ -25,16 +25,24 @@ import structlog
 
 from mapservice.adapters.clock import SystemClock
 from mapservice.core.annotations import ANNOTATION_EVENTS
-from mapservice.core.events import Envelope, pose_of
+from mapservice.core.commands import CommandAcknowledged, CommandIssued
+from mapservice.core.events import (
+    Envelope,
+    VdaConnectionReported,
+    VdaStateReported,
+    pose_of,
+)
 from mapservice.core.liveview import RobotState
 from mapservice.core.ports import (
     AnnotationReader,
     ChunkState,
+    CommandReader,
     ConflictReader,
     HistoryWriter,
     IncidentFeed,
     IncidentReader,
     TimeTravelReader,
+    VdaReader,
 )
 from mapservice.runtime.retry import until_done
 from mapservice.settings import Settings
@@ -42,7 +50,7 @@ from mapservice.settings import Settings
 from .advertising import AdvertisementQueue, Advertiser
 from .conflict_recorder import ConflictWatch
 from .incident_alerts import IncidentAlerts
-from .incident_watch import IncidentWatch
+from .incident_watch import EventSources, IncidentWatch
 from .latest_map import LatestMap
 from .presence import Presence
 from .store_thread import StoreThread
@@ -51,6 +59,8 @@ from .webhook_delivery import WebhookDeliveries
 from .zone_watch import ZONE_VIOLATIONS, Zones
 
 log = structlog.get_logger(__name__)
+# What, besides poses, the incidents are found from (event_incidents.py)
+INCIDENT_RECORDS = (VdaStateReported, VdaConnectionReported, CommandIssued, CommandAcknowledged)
 
 __all__ = ["Advertiser", "LiveViews"]
 
@@ -58,7 +68,8 @@ __all__ = ["Advertiser", "LiveViews"]
 class LiveViews:
     """Rebuilt from the map and robots at an instant (`history`), the standing zones
     (`annotations`) and the writes near new ones (`conflicts`); the conflicts and zone
-    violations found are stored through `writer`, the incidents announced on `live`."""
+    violations found are stored through `writer`, the incidents announced on `live`
+    (found also from the commands' acks, `commands`, and VDA 5050 vehicles' states, `vda`)."""
 
     def __init__(
         self,
@@ -68,6 +79,8 @@ class LiveViews:
         annotations: AnnotationReader,
         conflicts: ConflictReader,
         incidents: IncidentReader,
+        commands: CommandReader,
+        vda: VdaReader,
         writer: HistoryWriter,
         advertiser: Advertiser | None,
         store_thread: StoreThread,
@@ -102,7 +115,14 @@ class LiveViews:
         )
         alerts = IncidentAlerts(settings.incident_alert_topic_root, self.ads, webhooks)
         self.incidents = IncidentWatch(
-            settings, history, incidents, writer, self.clock.now_ms, alerts=alerts, feed=live
+            settings,
+            history,
+            incidents,
+            writer,
+            self.clock.now_ms,
+            EventSources(annotations, conflicts, commands, vda),
+            alerts=alerts,
+            feed=live,
         )
         self.loaded = False
 
@@ -151,7 +171,10 @@ class LiveViews:
         """Stores the conflicts and incidents found since the last call; returns how many
         rows. Called with the pose views, before offsets are committed
         (HistoryConsumer.settle)."""
-        return self.write_conflicts() + self.incidents.write()
+        rows = self.conflicts.unwritten.rows()
+        written = self.write_conflicts()
+        self.incidents.stored_conflicts(rows)
+        return written + self.incidents.write()
 
     # --- in the event loop ----------------------------------------------------------------
 
@@ -168,7 +191,6 @@ class LiveViews:
         has_poses = any(pose_of(e.payload) is not None for e in events)
         if has_poses:
             self.presence.apply(events)
-            await self._until_done(self.incidents.find, events)
         zones_changed = False
         for e in events:
             if isinstance(e.payload, ANNOTATION_EVENTS):
@@ -176,11 +198,13 @@ class LiveViews:
         if zones_changed:
             horizon = self._horizon_ms()
             await self._until_done(lambda _: self.zones.rebuild_keep_out(horizon), None)
-        if has_poses:
-            found = self.zones.violations(events)
-            if found:
-                await self._until_done(self.writer.append_zone_violations, found)
-                ZONE_VIOLATIONS.inc(len(found))
+        found = self.zones.violations(events) if has_poses else []
+        if found:
+            await self._until_done(self.writer.append_zone_violations, found)
+            ZONE_VIOLATIONS.inc(len(found))
+        if has_poses or any(isinstance(e.payload, INCIDENT_RECORDS) for e in events):
+            # after the violations are stored: their incidents are what the store holds
+            await self._until_done(lambda evs: self.incidents.find(evs, found), events)
 
     def flush(self) -> None:
         """Waits until every advertisement handed over so far was published (tests)."""
@@ -203,8 +227,7 @@ class LiveViews:
 
     async def write_found_until_done(self) -> None:
         """`write_found` on the store thread, retried until it succeeds."""
-        tracker = self.incidents.tracker
-        if len(self.conflicts.unwritten) or tracker.found or tracker.retracted:
+        if len(self.conflicts.unwritten) or self.incidents.waiting():
             await self._until_done(lambda _: self.write_found(), None)
 
     async def _until_done(self, fn: Callable[[Any], object], batch: Any) -> None:

@@ -1,8 +1,9 @@
 """Incidents: what went wrong on the floor, found by the processors from the robots' poses
 (the rules in mapservice/core/incidents.py: near misses, stuck and silent robots, low
-batteries), meeting a time window, by start; filtered by kind and robot. An ongoing silence
-lasts up to now: its end and length are read as of now (the store keeps when it was last
-found)."""
+batteries) and the records stored beside them (event_incidents.py: keep-out zone violations,
+map conflicts, VDA 5050 FATAL errors and disconnections, failed commands), meeting a time
+window, by start; filtered by kind and robot. An ongoing silence or disconnection lasts up
+to now: its end and length are read as of now (the store keeps when it was last found)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
+from mapservice.core.event_incidents import grows_with_the_clock
+from mapservice.core.incident_model import KINDS
 from mapservice.core.incidents import Incident as FoundIncident
 
 from ..access import READ
@@ -18,7 +21,8 @@ from ..deps import ClockDep, IncidentsDep, SettingsDep, WindowQuery
 
 router = APIRouter(prefix="/api/v1/incidents", tags=["incidents"], dependencies=[Depends(READ)])
 
-Kind = Literal["near_miss", "stuck", "offline", "battery_low"]
+# the kinds as the rules name them (one definition: incident_model.KINDS)
+Kind = Literal[KINDS]  # type: ignore[valid-type]
 
 
 class Evidence(BaseModel):
@@ -38,8 +42,9 @@ class Incident(BaseModel):
     x: float
     y: float
     severity: Literal["warning", "critical"]
-    # closest distance in m (near_miss), seconds stopped (stuck) or silent (offline),
-    # lowest level in % (battery_low)
+    # closest distance in m (near_miss), seconds stopped (stuck), silent or disconnected
+    # (offline), inside (zone_violation), the error held (vda_error) or waited for the ack
+    # (command_failed), lowest level in % (battery_low), conflicting chunk writes (conflict)
     measure: float
     evidence: list[Evidence]
 
@@ -53,7 +58,7 @@ class Incidents(BaseModel):
 
 def _as_of(i: FoundIncident, now_ms: int) -> Incident:
     end, measure = i.end_ms, i.measure
-    if i.kind == "offline" and i.ongoing and now_ms > end:
+    if grows_with_the_clock(i) and now_ms > end:
         end, measure = now_ms, (now_ms - i.start_ms) / 1000
     return Incident(
         id=i.incident_id,

@@ -5,11 +5,16 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query
 from pydantic import BaseModel
 
-from mapservice.core.liveview import clock_skew_ms, is_online, skew_flagged
+from mapservice.core.liveview import (
+    CONNECTION_STATE_HOLDS_MS,
+    clock_skew_ms,
+    is_online,
+    skew_flagged,
+)
 from mapservice.core.wire2019 import format_timestamp
 
 from ..access import READ
-from ..deps import AtDep, HistoryDep, SettingsDep
+from ..deps import AtDep, HistoryDep, SettingsDep, VdaDep
 from .poses import Pose
 
 router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depends(READ)])
@@ -17,7 +22,9 @@ router = APIRouter(prefix="/api/v1/robots", tags=["robots"], dependencies=[Depen
 
 class RobotAt(Pose):
     age_ms: int
-    online: bool  # age_ms <= robot_offline_after_s
+    # age_ms <= robot_offline_after_s, and not OFFLINE or CONNECTIONBROKEN by a VDA 5050
+    # vehicle's latest connection state of the hour before
+    online: bool
     clock_skew_ms: int  # receive time - event time of this pose
     clock_skew_flag: bool  # |clock_skew_ms| > clock_skew_threshold_s
 
@@ -52,6 +59,7 @@ def get_robots_at(
     ),
     *,
     store: HistoryDep,
+    vda: VdaDep,
     settings: SettingsDep,
 ) -> RobotsAt:
     """Every robot's latest pose at `at`, a page of at most `limit` robots in robotId
@@ -59,6 +67,8 @@ def get_robots_at(
     # One more than the page: whether a next page exists, without reading every robot.
     rows = store.robots_at(at_ms, after=after, limit=limit + 1)
     page = rows[:limit]
+    since = at_ms - CONNECTION_STATE_HOLDS_MS
+    states = vda.connection_states_at(at_ms, since, [r.robot_id for r in page])
     return RobotsAt(
         at_ms=at_ms,
         next_after=page[-1].robot_id if len(rows) > limit else None,
@@ -75,7 +85,11 @@ def get_robots_at(
                 loaded=r.loaded,
                 path=list(r.path) if r.path is not None else None,
                 age_ms=at_ms - r.ts_ms,
-                online=is_online(at_ms - r.ts_ms, settings.robot_offline_after_s),
+                online=is_online(
+                    at_ms - r.ts_ms,
+                    settings.robot_offline_after_s,
+                    states[r.robot_id].state if r.robot_id in states else None,
+                ),
                 clock_skew_ms=clock_skew_ms(r.receive_time_ms, r.ts_ms),
                 clock_skew_flag=skew_flagged(
                     clock_skew_ms(r.receive_time_ms, r.ts_ms), settings.clock_skew_threshold_s

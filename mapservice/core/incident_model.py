@@ -27,9 +27,21 @@ class Placed(Protocol):
     def y(self) -> float: ...
 
 
-KINDS = ("near_miss", "stuck", "offline", "battery_low")
+# The first four are found from the poses (incidents.py), the others from the messages and
+# findings stored beside them (event_incidents.py; `offline` also from a vehicle's connection).
+KINDS = (
+    "near_miss",
+    "stuck",
+    "offline",
+    "battery_low",
+    "zone_violation",
+    "conflict",
+    "vda_error",
+    "command_failed",
+)
 SEVERITIES = ("warning", "critical")
 STUCK_CRITICAL_S = 300  # stood still this long: critical
+OFFLINE_CRITICAL_S = 300  # silent or disconnected this long: critical
 
 
 @dataclass(frozen=True)
@@ -43,6 +55,10 @@ class IncidentThresholds:
     offline_after_ms: int = 10_000
     battery_low_percent: float = 15.0
     tick_ms: int = 500
+    # a command without an ack this long after it was issued failed
+    command_ack_timeout_ms: int = 10_000
+    # one robot's conflicting writes no further apart than this are one conflict incident
+    conflict_gap_ms: int = 60_000
 
     def __post_init__(self) -> None:
         for name in ("near_miss_m", "stuck_m", "battery_low_percent"):
@@ -50,9 +66,11 @@ class IncidentThresholds:
                 raise ValueError(f"{name} must be positive")
         if self.moving_m_s < 0:
             raise ValueError("moving_m_s must not be negative")
-        for name in ("stuck_ms", "offline_after_ms", "tick_ms"):
+        for name in ("stuck_ms", "offline_after_ms", "tick_ms", "command_ack_timeout_ms"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive")
+        if self.conflict_gap_ms < 0:
+            raise ValueError("conflict_gap_ms must not be negative")
 
     @property
     def lookback_ms(self) -> int:
@@ -83,7 +101,9 @@ class Incident(msgspec.Struct, frozen=True):
     y: float
     severity: str
     # The kind's own figure: the closest distance in metres (near_miss), the seconds stopped
-    # (stuck) or silent (offline), the lowest level in percent (battery_low).
+    # (stuck), silent or disconnected (offline), inside the zone (zone_violation), the error
+    # held (vda_error) or waited for the ack (command_failed), the lowest level in percent
+    # (battery_low), the conflicting chunk writes (conflict).
     measure: float
     evidence: tuple[PoseRef, ...]
     # The run began at the first pose the rule was given: it may reach further back than the

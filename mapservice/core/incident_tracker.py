@@ -31,6 +31,7 @@ from collections.abc import Callable, Iterable, Sequence
 
 import msgspec
 
+from mapservice.core.incident_findings import UnstoredFindings
 from mapservice.core.incident_joins import carried_on, joined_own
 from mapservice.core.incident_model import settled
 from mapservice.core.incidents import (
@@ -60,7 +61,7 @@ def _ts(pose: PoseRow) -> int:
     return pose.ts_ms
 
 
-class IncidentTracker:
+class IncidentTracker(UnstoredFindings):
     def __init__(
         self,
         read: ReadPoses,
@@ -204,23 +205,6 @@ class IncidentTracker:
             for incident in offline_incidents(track[-1:], now_ms, self.th):
                 self._note(incident)
 
-    def take(self) -> tuple[list[Incident], list[Incident]]:
-        """The findings to store since the last call: (found or changed, retracted)."""
-        found, retracted = list(self.found.values()), list(self.retracted.values())
-        self.found.clear()
-        self.retracted.clear()
-        return found, retracted
-
-    def give_back(self, found: Sequence[Incident], retracted: Sequence[Incident]) -> None:
-        """Findings `take` gave that could not be stored: taken again next time, unless a
-        later finding of the same incident replaced them."""
-        for incident in found:
-            if incident.incident_id not in self.retracted:
-                self.found.setdefault(incident.incident_id, incident)
-        for incident in retracted:
-            if incident.incident_id not in self.found:
-                self.retracted.setdefault(incident.incident_id, incident)
-
     def forget(self, now_ms: int) -> None:
         """Lets go of poses older than `keep_ms` (each robot's newest before stays, and a
         robot's poses since an ongoing incident of its own began) and of the incidents
@@ -265,11 +249,6 @@ class IncidentTracker:
         self.found[key] = incident
         self.retracted.pop(key, None)
 
-    def _drop(self, incident: Incident) -> None:
-        self.current.pop(incident.incident_id, None)
-        self.found.pop(incident.incident_id, None)
-        self.retracted[incident.incident_id] = incident
-
     def _tracks(self, robot: str | None, from_ms: int) -> dict[str, list[PoseRow]]:
         """The stored poses of `robot` (of every robot if None) from `from_ms` on, with
         each robot's newest before it, per robot in time order: from memory, and before the
@@ -298,6 +277,10 @@ class IncidentTracker:
                 rows += track[bisect.bisect_left(track, self._held(r), key=_ts) :]
             out.update(unique_poses(rows))
         return {r: t for r, t in out.items() if t}
+
+    def track(self, robot: str, from_ms: int) -> list[PoseRow]:
+        """The stored poses of `robot` from `from_ms` on, and its newest before, in order."""
+        return self._tracks(robot, from_ms).get(robot, [])
 
     def _held(self, robot: str) -> int:
         return self.held_from.get(robot, self.held_from_ms)
@@ -484,12 +467,3 @@ class IncidentTracker:
             track = self.tracks.get(robot, [])
             return bool(track) and track[0].ts_ms < ts_ms
         return bool(self.read(ts_ms - self.th.lookback_ms, ts_ms, robot))
-
-    def _replace(self, before: Iterable[Incident], fresh: Iterable[Incident]) -> None:
-        fresh_ids = set()
-        for incident in fresh:
-            fresh_ids.add(incident.incident_id)
-            self._note(incident)
-        for incident in before:
-            if incident.incident_id not in fresh_ids:
-                self._drop(incident)

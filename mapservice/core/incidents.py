@@ -33,6 +33,7 @@ from collections.abc import Iterable, Sequence
 
 from mapservice.core.incident_model import (
     KINDS,
+    OFFLINE_CRITICAL_S,
     SEVERITIES,
     STUCK_CRITICAL_S,
     Incident,
@@ -54,10 +55,12 @@ __all__ = [
     "battery_low_at",
     "battery_low_incidents",
     "detect",
+    "flag_runs",
     "incident_id",
     "is_charging",
     "near_miss_incidents",
     "offline_incidents",
+    "presence_runs",
     "stuck_incidents",
     "stuck_possible_at",
     "unique_poses",
@@ -91,7 +94,7 @@ def detect(
     return found
 
 
-def _presences(track: Sequence[PoseRow], offline_after_ms: int) -> list[tuple[int, int]]:
+def presence_runs(track: Sequence[PoseRow], offline_after_ms: int) -> list[tuple[int, int]]:
     """[first, last] indexes of the runs of poses with no silence over `offline_after_ms`."""
     runs: list[tuple[int, int]] = []
     start = 0
@@ -104,7 +107,7 @@ def _presences(track: Sequence[PoseRow], offline_after_ms: int) -> list[tuple[in
     return runs
 
 
-def _runs(flags: Sequence[bool], presences: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
+def flag_runs(flags: Sequence[bool], presences: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
     """[first, last] indexes of the maximal runs of true flags inside each presence."""
     runs: list[tuple[int, int]] = []
     for first, last in presences:
@@ -143,7 +146,7 @@ def stuck_incidents(
 ) -> list[Incident]:
     """`judged_from_ms`: the condition is judged at the poses from then on only (the
     earlier ones are only looked back on), for a caller that knows the runs before."""
-    presences = _presences(track, th.offline_after_ms)
+    presences = presence_runs(track, th.offline_after_ms)
     limit_mm2 = (th.stuck_m * 1000) ** 2  # as stuck_possible_at
     flags = [False] * len(track)
     for first, last in presences:
@@ -168,7 +171,7 @@ def stuck_incidents(
         -1,
     )
     incidents = []
-    for a, b in _runs(flags, presences):
+    for a, b in flag_runs(flags, presences):
         start_ms = track[a].ts_ms - th.stuck_ms
         still_s = (track[b].ts_ms - start_ms) / 1000
         robot = track[a].robot_id
@@ -212,7 +215,7 @@ def battery_low_at(pose: PoseRow, th: IncidentThresholds) -> bool:
 def battery_low_incidents(track: Sequence[PoseRow], th: IncidentThresholds) -> list[Incident]:
     flags = [battery_low_at(p, th) for p in track]
     incidents = []
-    for a, b in _runs(flags, _presences(track, th.offline_after_ms)):
+    for a, b in flag_runs(flags, presence_runs(track, th.offline_after_ms)):
         run = track[a : b + 1]
         lowest = min(run, key=lambda p: (p.battery_level, p.ts_ms))
         level = float(lowest.battery_level or 0.0)
@@ -260,7 +263,7 @@ def offline_incidents(
                 ongoing=ongoing,
                 x=before.x,
                 y=before.y,
-                severity="critical" if silent_s >= 300 else "warning",
+                severity="critical" if silent_s >= OFFLINE_CRITICAL_S else "warning",
                 measure=silent_s,
                 evidence=evidence,
             )

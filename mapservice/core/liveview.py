@@ -117,8 +117,17 @@ def skew_flagged(skew_ms: int, threshold_s: float) -> bool:
     return abs(skew_ms) > threshold_s * 1000
 
 
-def is_online(age_ms: int, offline_after_s: float) -> bool:
-    return age_ms <= offline_after_s * 1000
+def is_online(age_ms: int, offline_after_s: float, connection: str | None = None) -> bool:
+    """Heard from within `offline_after_s`, and not OFFLINE or CONNECTIONBROKEN by its
+    latest connection state (a VDA 5050 vehicle's, where one holds)."""
+    return age_ms <= offline_after_s * 1000 and connection not in OFF_STATES
+
+
+# A VDA 5050 vehicle says it went OFFLINE, or its broker that the connection broke.
+OFF_STATES = ("OFFLINE", "CONNECTIONBROKEN")
+# A connection state holds this long at most as far as the robots at an instant go (as
+# the replay's fleet panel reads them: the hour before the playhead).
+CONNECTION_STATE_HOLDS_MS = 3_600_000
 
 
 def apply_poses(view: dict[str, RobotState], events: Iterable[Envelope]) -> list[str]:

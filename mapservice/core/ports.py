@@ -420,6 +420,12 @@ class VdaReader(Protocol):
         """Every VDA 5050 vehicle's facts of the window (each at most `limit` rows a kind),
         by robot id: those with an error, clear or connection state in it."""
 
+    def connection_states_at(
+        self, at_ms: int, since_ms: int, robots: Sequence[str]
+    ) -> dict[str, VdaConnectionRow]:
+        """Of `robots`, each VDA 5050 vehicle's latest connection state with since_ms <
+        time <= at_ms, by robot id (of several at one instant, the last by name: ONLINE)."""
+
 
 class LegacyQueries(Protocol):
     """The 2019 REST contract's listings (mapservice/core/legacy_query.py has the query

@@ -134,6 +134,12 @@ class LiveSettings(BaseModel):
     incident_battery_low_percent: float = Field(
         15.0, gt=0, le=100, description="A battery below this level, not charging, is low."
     )
+    incident_command_ack_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="A command the robot has not acknowledged this long after it was "
+        "issued is a command_failed incident (as is one it rejected).",
+    )
     incident_memory_s: float = Field(
         300.0,
         ge=60,

@@ -226,6 +226,15 @@ class MemoryStore:
             error_clears=clears[:limit],
         )
 
+    def connection_states_at(
+        self, at_ms: int, since_ms: int, robots: Sequence[str]
+    ) -> dict[str, VdaConnectionRow]:
+        wanted, out = set(robots), {}
+        for (robot, ts, _), row in sorted(self._vda_connections.items()):
+            if robot in wanted and since_ms < ts <= at_ms:
+                out[robot] = row  # the latest, of one instant the last by name
+        return out
+
     def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
         robots = {
             k[0]

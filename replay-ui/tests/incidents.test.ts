@@ -175,6 +175,11 @@ describe("incidents", () => {
     expect(measureText(i("stuck", 45))).toBe("stuck 45 s");
     expect(measureText(i("offline", 125, true))).toBe("silent 2 min 5 s so far");
     expect(measureText(i("battery_low", 12.4))).toBe("lowest 12 %");
+    expect(measureText(i("zone_violation", 8, true))).toBe("inside 8 s so far");
+    expect(measureText(i("conflict", 1))).toBe("1 chunk write");
+    expect(measureText(i("conflict", 3))).toBe("3 chunk writes");
+    expect(measureText(i("vda_error", 40))).toBe("error 40 s");
+    expect(measureText(i("command_failed", 10))).toBe("waited 10 s");
     expect(incidentSeek({ start_ms: T0 })).toBe(T0 - LEAD_MS);
     expect(LEAD_MS).toBeGreaterThanOrEqual(2000);
     const [a, b] = trailWindow({ start_ms: T0, end_ms: T0 + 3 * 3_600_000 });

@@ -66,6 +66,33 @@ def test_robots_at_carry_online_and_clock_skew(client) -> None:
     }
 
 
+@pytest.mark.parametrize(
+    ("states", "at", "online"),
+    [
+        ([], 0, True),
+        ([("OFFLINE", -500)], 0, False),  # at once, not when its last pose ages out
+        ([("OFFLINE", -500)], -501, True),
+        ([("CONNECTIONBROKEN", -500)], 0, False),
+        ([("OFFLINE", -800), ("ONLINE", -200)], 0, True),  # back online
+        ([("ONLINE", -200)], 9_001, False),  # online, but silent too long
+        ([("OFFLINE", -3_600_000)], 0, True),  # a state of more than an hour ago
+        ([("OFFLINE", -3_600_000)], -1, False),
+    ],
+)
+def test_a_vehicle_is_offline_at_an_instant_by_its_connection_state(ev, states, at, online):
+    """A VDA 5050 vehicle's latest connection state of the hour before the instant makes it
+    offline (OFFLINE, CONNECTIONBROKEN) even while its last pose is recent."""
+    from tests.mapservice.core.event_history import connection
+
+    store = MemoryStore()
+    store.append([ev.pose("Acme:1", NOW - 1_000), ev.pose("plain", NOW - 1_000)])
+    store.append([connection("Acme:1", NOW + dt, state) for state, dt in states])
+    client = TestClient(create_app(Settings(), store, {}, ManualClock(NOW + 60_000)))
+    body = client.get("/api/v1/robots", params={"at": NOW + at}).json()
+    got = {r["robotId"]: r["online"] for r in body["robots"]}
+    assert got == {"Acme:1": online, "plain": at <= 9_000}
+
+
 def test_robot_thresholds_come_from_settings(store) -> None:
     """The offline and skew thresholds are the settings'."""
     app = create_app(

@@ -50,6 +50,8 @@ def live_views(
         annotations=store,
         conflicts=store,
         incidents=store,
+        commands=store,
+        vda=store,
         writer=store,
         advertiser=advertiser,
         store_thread=thread,

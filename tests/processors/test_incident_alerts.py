@@ -7,9 +7,46 @@ from __future__ import annotations
 
 import asyncio
 
+from mapservice.core.annotations import AnnotationCreated, Zone
+from mapservice.core.events import encode, make_envelope
 from mapservice.core.incident_model import KINDS
-from tests.processors.history_consumer_kit import live_views
+from tests.conftest import chunk_event, meta_event
+from tests.mapservice.core.event_history import ack, issue, vda_state
+from tests.processors.history_consumer_kit import NOW, POSES, live_views
 from tests.processors.test_incident_watch import PATH, Floor, IncidentLog
+
+T0 = NOW - 120_000
+PIT = Zone("pit", "keep_out", ((19.0, 19.0), (21.0, 19.0), (21.0, 21.0), (19.0, 21.0)))
+
+
+def every_kind(floor: Floor, ev) -> None:
+    """A minute of a floor where every kind of incident happens: s stands still with a
+    path for 40 s; a passes b at 0.5 m; c's battery runs low in a keep-out zone; b writes a
+    chunk a wrote otherwise; a refuses a command; vehicle v reports a fatal error."""
+    before = [
+        meta_event(T0 - 10_000),  # the map the zone's pixels are on: (-1.5, 2.0) to (23.5, 22)
+        make_envelope("operator:ab12", T0 - 5000, T0 - 5000, AnnotationCreated("pit", "op", PIT)),
+    ]
+    at = {
+        2: [issue("a", T0 + 2000, "go"), chunk_event("a", T0 + 2000, pixels=bytes(10_000))],
+        3: [
+            ack("a", T0 + 3000, "go", "rejected"),
+            chunk_event("b", T0 + 3000, pixels=bytes([7]) * 10_000),
+        ],
+        5: [vda_state("v", T0 + 5000, [("FATAL", "lift")])],
+    }
+    for e in before:
+        floor.source.append(POSES, encode(e))
+    for t in range(60):
+        for e in at.get(t, []):
+            floor.source.append(POSES, encode(e))
+        floor.send(
+            ev,
+            ("s", t, 5.0 if t < 40 else 5.0 + t - 40, 5.0, 80.0, PATH),
+            ("a", t, float(t) * 0.5, 3.0, 80.0, PATH),
+            ("b", t, 15.0, 3.5, 80.0, None),
+            ("c", t, 20.0, 20.0, 20.0 - t * 0.25, None),
+        )
 
 
 class Captured:
@@ -55,14 +92,7 @@ class AlertFloor(Floor):
 
 def test_every_stored_finding_is_announced_on_its_kinds_topic_after_it_is_stored(ev) -> None:
     floor = AlertFloor()
-    for t in range(60):
-        floor.send(
-            ev,
-            ("s", t, 5.0 if t < 40 else 5.0 + t - 40, 5.0, 80.0, PATH),
-            ("a", t, float(t) * 0.5, 0.0, 80.0, PATH),
-            ("b", t, 15.0, 0.5, 80.0, None),
-            ("c", t, 20.0, 20.0, 20.0 - t * 0.25, None),
-        )
+    every_kind(floor, ev)
     floor.tick(11)  # everyone falls silent
     alerts = floor.alerts()
     assert {a["kind"] for a in alerts} == set(KINDS)

@@ -20,8 +20,7 @@ from tests.fixtures.mosquitto import (
     ProbeClient,
     mosquitto_identities,  # noqa: F401 (a fixture)
 )
-from tests.processors.test_incident_alerts import AlertFloor
-from tests.processors.test_incident_watch import PATH
+from tests.processors.test_incident_alerts import AlertFloor, every_kind
 
 
 class Subscriber:
@@ -77,14 +76,7 @@ def test_alerts_reach_subscribers_and_robots_cannot_fake_them(
     live = Subscriber(broker.port, "mapservice-master-plant-1", reader.password)
     try:
         assert advertiser.connected.wait(10)
-        for t in range(60):
-            floor.send(
-                ev,
-                ("s", t, 5.0 if t < 40 else 5.0 + t - 40, 5.0, 80.0, PATH),
-                ("a", t, float(t) * 0.5, 0.0, 80.0, PATH),
-                ("b", t, 15.0, 0.5, 80.0, None),
-                ("c", t, 20.0, 20.0, 20.0 - t * 0.25, None),
-            )
+        every_kind(floor, ev)
         floor.tick(11)
         floor.views.flush()
         wait_for(lambda: {d["kind"] for _, d, _ in live.docs} == set(KINDS))

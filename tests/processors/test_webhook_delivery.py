@@ -85,6 +85,8 @@ class WebhookFloor(Floor):
             annotations=self.store,
             conflicts=self.store,
             incidents=self.store,
+            commands=self.store,
+            vda=self.store,
             writer=self.store,
             advertiser=None,
             store_thread=self.consumer.sink.thread,

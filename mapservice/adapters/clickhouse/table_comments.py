@@ -312,22 +312,32 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
     ),
     "incidents": (
         "What went wrong on the floor, found by the processors from the poses: near misses, "
-        "stuck and silent robots, low batteries (schema v19). One row per finding: read with "
-        "FINAL and leave out retracted rows.",
+        "stuck and silent robots, low batteries; and from the records beside them: keep-out "
+        "zone violations, map conflicts, VDA 5050 FATAL errors and disconnections, failed "
+        "commands (schema v19). One row per finding: read with FINAL and leave out "
+        "retracted rows.",
         {
             "incident_id": "The incident: a digest of its kind, robots and start",
-            "kind": "near_miss, stuck, offline or battery_low",
-            "robots": "The robots involved (two for a near miss), sorted",
+            "kind": "near_miss, stuck, offline, battery_low, zone_violation, conflict, "
+            "vda_error or command_failed",
+            "robots": "The robots involved (two for a near miss; a conflict: the robot whose "
+            "writes conflicted, then the others), sorted",
             "start": "When it began (UTC): the first close tick, when the robot stopped, its "
-            "last report before the silence, its first low report",
-            "end": "When it was last seen (UTC); now for a silence still going on",
-            "ongoing": "It still held at the newest pose known when it was found",
-            "x": "Where, in metres (a near miss: halfway between the robots at their closest)",
+            "last report before the silence, its first low report, the first message or "
+            "pose that made it",
+            "end": "When it was last seen (UTC); now for a silence, disconnection or error "
+            "still going on",
+            "ongoing": "It still held at the newest pose or message known when it was found",
+            "x": "Where, in metres (a near miss: halfway between the robots at their "
+            "closest; one found from messages: where its robot last was)",
             "y": "Where, in metres",
             "severity": "warning or critical",
             "measure": "The closest distance in metres (near_miss), the seconds stopped "
-            "(stuck) or silent (offline), the lowest level in percent (battery_low)",
-            "evidence": "The poses that made it, as JSON [[robot_id, ts_ms, x, y], ...]",
+            "(stuck), silent or disconnected (offline), inside (zone_violation), in error "
+            "(vda_error) or waiting for the ack (command_failed), the lowest level in percent "
+            "(battery_low), the conflicting chunk writes (conflict)",
+            "evidence": "The poses (or the messages, by robot and instant, where the robot "
+            "was) that made it, as JSON [[robot_id, ts_ms, x, y], ...]",
             "found": "When the processors found it (the latest finding replaces earlier ones)",
             "retracted": "A later history no longer holds it (a late pose broke it)",
         },

@@ -5,6 +5,7 @@ them), connection states and latest factsheets, of one vehicle or the whole flee
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
 
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.core.vda_facts import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
@@ -22,6 +23,22 @@ class ClickHouseVdaReads:
     def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
         facts = self._vda_facts(None, from_ms, to_ms, limit)
         return {r: f for r, f in facts.items() if f.errors or f.connections or f.error_clears}
+
+    def connection_states_at(
+        self, at_ms: int, since_ms: int, robots: Sequence[str]
+    ) -> dict[str, VdaConnectionRow]:
+        if not robots:
+            return {}
+        rows = self.connection.rows(
+            f"SELECT robot_id, toUnixTimestamp64Milli(ts), state, toUnixTimestamp64Milli(sent_ts) "
+            f"FROM {self.connection.database}.vda_connections FINAL "
+            "WHERE robot_id IN {r:Array(String)} "
+            "AND ts > fromUnixTimestamp64Milli({f:Int64}) "
+            "AND ts <= fromUnixTimestamp64Milli({t:Int64}) "
+            "ORDER BY robot_id, ts DESC, state DESC LIMIT 1 BY robot_id",
+            {"r": list(robots), "f": since_ms, "t": at_ms},
+        )
+        return {r: VdaConnectionRow(int(t), s, int(sent)) for r, t, s, sent in rows}
 
     def _vda_facts(
         self, robot_id: str | None, from_ms: int, to_ms: int, limit: int

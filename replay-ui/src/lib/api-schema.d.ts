@@ -1296,7 +1296,7 @@ export interface components {
              * Kind
              * @enum {string}
              */
-            kind: "near_miss" | "stuck" | "offline" | "battery_low";
+            kind: "near_miss" | "stuck" | "offline" | "battery_low" | "zone_violation" | "conflict" | "vda_error" | "command_failed";
             /** Measure */
             measure: number;
             /** Ongoing */
@@ -3512,7 +3512,7 @@ export interface operations {
                 /** @description End (exclusive), ISO 8601 or epoch ms */
                 to: string;
                 /** @description Only these kinds (repeat it). */
-                kind?: ("near_miss" | "stuck" | "offline" | "battery_low")[] | null;
+                kind?: ("near_miss" | "stuck" | "offline" | "battery_low" | "zone_violation" | "conflict" | "vda_error" | "command_failed")[] | null;
                 /** @description Only those with it. */
                 robot?: string | null;
                 limit?: number;

@@ -30,6 +30,10 @@ export const KIND_STYLE: Record<IncidentKind, { label: string; many: string; col
   stuck: { label: "stuck", many: "stuck", colour: "#ff7f0e" },
   offline: { label: "offline", many: "offline", colour: "#7f7f7f" },
   battery_low: { label: "battery low", many: "battery low", colour: "#b8a000" },
+  zone_violation: { label: "zone violation", many: "zone violations", colour: "#9467bd" },
+  conflict: { label: "conflict", many: "conflicts", colour: "#8c564b" },
+  vda_error: { label: "VDA error", many: "VDA errors", colour: "#e377c2" },
+  command_failed: { label: "command failed", many: "commands failed", colour: "#17becf" },
 };
 export const KINDS = Object.keys(KIND_STYLE) as IncidentKind[];
 
@@ -150,7 +154,8 @@ export function neighbourIncident(sorted: Incident[], pickedId: string | null, p
   return null;
 }
 
-/** What an incident's figure says: "0.42 m apart", "stuck 45 s", "silent 2 min 5 s", "lowest 12 %". */
+/** What an incident's figure says: "0.42 m apart", "stuck 45 s", "silent 2 min 5 s", "lowest 12 %",
+ * "inside 8 s", "3 chunk writes", "error 40 s", "waited 10 s". */
 export function measureText(i: Pick<Incident, "kind" | "measure" | "ongoing">): string {
   const secs = (s: number) => (s < 120 ? `${Math.round(s)} s` : `${Math.floor(s / 60)} min ${Math.round(s % 60)} s`);
   switch (i.kind) {
@@ -158,6 +163,10 @@ export function measureText(i: Pick<Incident, "kind" | "measure" | "ongoing">): 
     case "stuck": return `stuck ${secs(i.measure)}${i.ongoing ? " so far" : ""}`;
     case "offline": return `silent ${secs(i.measure)}${i.ongoing ? " so far" : ""}`;
     case "battery_low": return `lowest ${Math.round(i.measure)} %`;
+    case "zone_violation": return `inside ${secs(i.measure)}${i.ongoing ? " so far" : ""}`;
+    case "conflict": return `${Math.round(i.measure)} chunk write${i.measure === 1 ? "" : "s"}`;
+    case "vda_error": return `error ${secs(i.measure)}${i.ongoing ? " so far" : ""}`;
+    case "command_failed": return `waited ${secs(i.measure)}`;
   }
 }
 

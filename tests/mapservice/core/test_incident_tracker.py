@@ -1,7 +1,9 @@
-"""Live detection equals recomputation: random floors' poses arrive in batches, out of order,
-some of them late (beyond what the tracker holds in memory) or twice, with restarts in
-between (a new tracker loaded from the store); what the tracker found and stored, batch
-by batch, is what the rules find over the whole stored history."""
+"""Live detection equals recomputation: random floors' poses and the records beside them
+(zone violations, conflicts, VDA 5050 states and connection states, commands and acks)
+arrive in batches, out of order, some of them late (beyond what the trackers hold in
+memory) or twice, with restarts in between (new trackers loaded from the store); what the
+trackers found and stored, batch by batch, is what the rules find over the whole stored
+history."""
 
 from __future__ import annotations
 
@@ -13,13 +15,28 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapservice.core import incident_tracker, near_miss
-from mapservice.core.events import PoseReported, make_envelope
+from mapservice.core.event_incident_tracker import EventIncidentTracker, is_event_incident
+from mapservice.core.event_incidents import (
+    EVENT_KINDS,
+    detect_all,
+    grows_with_the_clock,
+    records_of,
+)
+from mapservice.core.events import Envelope, PoseReported, make_envelope
 from mapservice.core.incident_model import settled
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
 from mapservice.core.ports import PoseRow
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.testing.memory_store import MemoryStore
+from tests.mapservice.core.event_history import (
+    Record,
+    floor_records,
+    record_time,
+    store_records,
+    stored_records,
+    violations_of,
+)
 from tests.mapservice.core.test_incidents import floor_history
 
 KEEP_MS = 45_000  # short: late poses and long incidents reach beyond memory
@@ -48,38 +65,49 @@ REFRESH_MS = IncidentTracker(lambda f, t, r: [], lambda f, t: []).refresh_ms
 
 
 def normal(incidents: list[Incident]) -> list[tuple[Incident, int]]:
-    """Each incident but for how long an ongoing one has lasted so far, which the store
-    holds to the refresh step (and an ongoing silence's is the finder's clock)."""
-    return sorted(
-        (
-            (
-                settled(msgspec.structs.replace(i, from_data_edge=False)),
-                i.end_ms // REFRESH_MS if i.ongoing and i.kind != "offline" else 0,
-            )
-            for i in incidents
-        ),
-        key=lambda pair: pair[0].incident_id,
-    )
+    """Each incident but for how long an ongoing one has lasted so far: an ongoing
+    silence's (disconnection's, error's) end and length are the finder's clock, left out;
+    an ongoing near miss, stuck robot or low battery is stored to the refresh step."""
+
+    def key(i: Incident) -> tuple[Incident, int]:
+        i = msgspec.structs.replace(i, from_data_edge=False)
+        if grows_with_the_clock(i):
+            return msgspec.structs.replace(i, end_ms=0, measure=0.0), 0
+        if i.ongoing and not is_event_incident(i):
+            return settled(i), i.end_ms // REFRESH_MS
+        return i, 0
+
+    return sorted((key(i) for i in incidents), key=lambda pair: pair[0].incident_id)
 
 
-def arrivals(seed: int) -> list[tuple[int, list]]:
-    """The history's poses as batches of one second of arrival: most within half a second
-    of their time, some late by up to two minutes, some twice."""
+def arrivals(seed: int) -> list[tuple[int, list, list[Record]]]:
+    """The history's poses and records as batches of one second of arrival: most within
+    half a second of their time, some late by up to two minutes, some twice. A pose's zone
+    violation comes with it."""
     rng = random.Random(seed)
-    timed = []
-    for p in floor_history(seed):
+    poses = floor_history(seed)
+    t0 = min(p.ts_ms for p in poses)
+    robots = sorted({p.robot_id for p in poses})
+    timed: list[tuple[int, PoseRow | Record]] = []
+    for item in [*poses, *floor_records(seed, robots, t0, 240)]:
+        ts = item.ts_ms if isinstance(item, PoseRow) else record_time(item)
         delay = (
             rng.choice((0, 50, 200, 500)) if rng.random() > 0.06 else rng.randint(5_000, 120_000)
         )
-        timed.append((p.ts_ms + delay, p))
+        timed.append((ts + delay, item))
         if rng.random() < 0.05:
-            timed.append((p.ts_ms + delay + rng.randint(0, 30_000), p))
+            timed.append((ts + delay + rng.randint(0, 30_000), item))
     timed.sort(key=lambda t: t[0])
-    batches: dict[int, list] = {}
-    for at, p in timed:
+    batches: dict[int, tuple[list, list[Record]]] = {}
+    for at, item in timed:
         arrive = -(-at // 1000) * 1000
-        batches.setdefault(arrive, []).append(envelope(p, at))
-    return sorted(batches.items())
+        events, records = batches.setdefault(arrive, ([], []))
+        if isinstance(item, PoseRow):
+            events.append(envelope(item, at))
+            records += violations_of([item])
+        else:
+            records.append(item)
+    return [(at, events, records) for at, (events, records) in sorted(batches.items())]
 
 
 @settings(max_examples=10, deadline=None)
@@ -88,36 +116,73 @@ def test_what_is_found_live_is_what_the_history_holds(seed, restarts):
     check_live_equals_recomputed(seed, restarts)
 
 
+class Trackers:
+    """The processors' two trackers over one store, as processors/incident_watch.py
+    drives them."""
+
+    def __init__(self, store: MemoryStore, th: IncidentThresholds) -> None:
+        self.store = store
+
+        def own(f: int, t: int) -> list[Incident]:
+            return [i for i in store.incidents(f, t) if not is_event_incident(i)]
+
+        def events(f: int, t: int) -> list[Incident]:
+            return [i for i in store.incidents(f, t) if is_event_incident(i)]
+
+        self.poses = IncidentTracker(reader(store), own, th, KEEP_MS)
+        self.events = EventIncidentTracker(
+            lambda f, t, r: stored_records(store, f, t, r), events, self.poses.track, th, KEEP_MS
+        )
+
+    def load(self, now: int) -> None:
+        since, th = now - KEEP_MS, self.poses.th
+        stored = self.store.incidents(since - th.lookback_ms, now + 1)
+        own = [i for i in stored if not is_event_incident(i)]
+        self.poses.load(reader(self.store)(since, now + 1, None), since, own, now)
+        records = stored_records(self.store, since, now + 1, None)
+        self.events.load(records, since, stored, now, self.poses.tracks)
+        self.write(now)
+
+    def add(self, batch: list[Envelope], records: list[Record], now: int) -> None:
+        findings = store_records(self.store, records)
+        self.store.append(batch)
+        poses = pose_rows_of(batch)
+        self.poses.add(poses, now)
+        findings.extend(records_of(r for r in records if isinstance(r, Envelope)))
+        self.events.add(poses, findings, now)
+        self.tick(now)
+        self.poses.forget(now)
+        self.events.forget(now)
+
+    def tick(self, now: int) -> None:
+        self.poses.tick(now)
+        self.events.tick(now)
+        self.write(now)
+
+    def write(self, now: int) -> None:
+        for tracker in (self.poses, self.events):
+            found, retracted = tracker.take()
+            self.store.append_incidents(found, now, retracted)
+
+
 def check_live_equals_recomputed(seed: int, restarts: int) -> None:
     rng = random.Random(restarts)
     th = IncidentThresholds()
     store = MemoryStore()
-    tracker = IncidentTracker(reader(store), store.incidents, th, KEEP_MS)
+    trackers = Trackers(store, th)
     now = 0
-    for now, batch in arrivals(seed):
-        if rng.random() < 0.03:  # a restart: a new tracker, from the store
-            tracker = IncidentTracker(reader(store), store.incidents, th, KEEP_MS)
-            since = now - KEEP_MS
-            tracker.load(
-                reader(store)(since, now + 1, None),
-                since,
-                store.incidents(since - th.lookback_ms, now + 1),
-                now,
-            )
-            found, retracted = tracker.take()
-            store.append_incidents(found, now, retracted)
-        store.append(batch)
-        tracker.add(pose_rows_of(batch), now)
-        tracker.tick(now)
-        found, retracted = tracker.take()
-        store.append_incidents(found, now, retracted)
-        tracker.forget(now)
-    tracker.tick(now)
-    found, retracted = tracker.take()
-    store.append_incidents(found, now, retracted)
+    for now, batch, records in arrivals(seed):
+        if rng.random() < 0.03:  # a restart: new trackers, from the store
+            trackers = Trackers(store, th)
+            trackers.load(now)
+        trackers.add(batch, records, now)
+    trackers.tick(now)
 
-    expected = detect(store.poses(0, now + 1, limit=10**9), now, th)
-    assert expected
+    expected = detect_all(
+        store.poses(0, now + 1, limit=10**9), stored_records(store, 0, now + 1, None), now, th
+    )
+    # (a floor's robots may stay out of the keep-out squares, its vehicles free of errors)
+    assert len({i.kind for i in expected} & set(EVENT_KINDS)) >= 3
     assert normal(store.incidents(0, now + 1)) == normal(expected)
 
 

@@ -159,3 +159,41 @@ def test_the_fleets_facts_and_the_states_that_clear_errors(store) -> None:
     # A window starting at the clear still sees it (the state before counts).
     assert store.vda_fleet_facts(NOW - 6_000, NOW)["Acme:001"].error_clears == [NOW - 6_000]
     assert store.vda_fleet_facts(NOW - 60_000, NOW - 8_500) == {}
+
+
+def test_each_vehicles_connection_state_at_an_instant(store) -> None:
+    """The latest state at or before the instant and after `since`, of the robots asked
+    for; of two at one instant ONLINE."""
+    v = "2.1.0"
+    store.append(
+        events(
+            Settings(),
+            [
+                (
+                    "connection",
+                    vda.connection(v, "Acme", "1", NOW - 10_000, "ONLINE"),
+                    NOW - 10_000,
+                ),
+                ("connection", vda.connection(v, "Acme", "1", NOW - 5_000, "OFFLINE"), NOW - 5_000),
+                ("connection", vda.connection(v, "Acme", "2", NOW - 4_000, "OFFLINE"), NOW - 4_000),
+                ("connection", vda.connection(v, "Acme", "2", NOW - 4_000, "ONLINE"), NOW - 4_000),
+                # the last will: offline when the broker sent it
+                (
+                    "connection",
+                    vda.connection(v, "Acme", "3", NOW - 60_000, "CONNECTIONBROKEN"),
+                    NOW - 3_000,
+                ),
+            ],
+        )
+    )
+    robots = ["Acme:1", "Acme:2", "Acme:3", "Other:9"]
+
+    def at(at_ms: int, since_ms: int = NOW - 3_600_000, asked=robots) -> dict[str, str]:
+        return {r: c.state for r, c in store.connection_states_at(at_ms, since_ms, asked).items()}
+
+    assert at(NOW - 5_001) == {"Acme:1": "ONLINE"}
+    assert at(NOW - 5_000) == {"Acme:1": "OFFLINE"}
+    assert at(NOW) == {"Acme:1": "OFFLINE", "Acme:2": "ONLINE", "Acme:3": "CONNECTIONBROKEN"}
+    assert at(NOW, since_ms=NOW - 5_000) == {"Acme:2": "ONLINE", "Acme:3": "CONNECTIONBROKEN"}
+    assert at(NOW, asked=["Acme:3"]) == {"Acme:3": "CONNECTIONBROKEN"}
+    assert at(NOW, asked=[]) == {}
