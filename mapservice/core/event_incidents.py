@@ -57,7 +57,8 @@ from mapservice.core.incident_model import (
 )
 from mapservice.core.incidents import detect, flag_runs, presence_runs, unique_poses
 from mapservice.core.liveview import OFF_STATES
-from mapservice.core.ports import ConflictRow, PoseRow, VdaFacts
+from mapservice.core.ports import ConflictRow, PoseRow
+from mapservice.core.vda_facts import VdaFacts
 
 # The kinds found here (and `offline` from a connection state).
 EVENT_KINDS = ("zone_violation", "conflict", "vda_error", "command_failed")

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
     from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
-    from mapservice.core.vda_facts import VdaFacts
+    from mapservice.core.vda_facts import VdaConnectionRow, VdaFacts
     from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 
 
