@@ -14,6 +14,7 @@ from mapservice.core.incident_ports import IncidentFeed as IncidentFeed
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
+    from mapservice.core.heatmaps import HeatmapCell
     from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
 
@@ -407,6 +408,16 @@ class IncidentReader(Protocol):
         id; as last found, retracted ones left out."""
 
 
+class HeatmapReader(Protocol):
+    """The heatmaps' cells (mapservice/core/heatmaps.py's rule; ClickHouse: `heatmap_reads`)."""
+
+    def heatmap_cells(
+        self, from_ms: int, to_ms: int, factor: int, limit: int = 1_000_000
+    ) -> list[HeatmapCell]:
+        """The cells of `factor` finest cells a side holding a sample of [from_ms, to_ms),
+        by (i, j), at most `limit`."""
+
+
 class CommandReader(Protocol):
     """Operators' commands to robots and the robots' answers (ClickHouse: `command_reads`)."""
 
@@ -485,6 +496,7 @@ class HistoryStore(
     ConflictReader,
     AnnotationReader,
     IncidentReader,
+    HeatmapReader,
     CommandReader,
     VdaReader,
     ChangeFeed,

@@ -21,6 +21,7 @@ from mapservice.core.ports import (
     CommandReader,
     ConflictReader,
     HistoryStore,
+    HeatmapReader,
     HistoryWriter,
     IncidentReader,
     LegacyQueries,
@@ -108,6 +109,7 @@ class StoreRoles:
     conflicts: ConflictReader
     annotations: AnnotationReader
     incidents: IncidentReader
+    heatmaps: HeatmapReader
     commands: CommandReader
     vda: VdaReader
     changes: ChangeFeed
@@ -131,6 +133,7 @@ class StoreRoles:
             conflicts=narrowed(store, ConflictReader),
             annotations=narrowed(store, AnnotationReader),
             incidents=narrowed(store, IncidentReader),
+            heatmaps=narrowed(store, HeatmapReader),
             commands=narrowed(store, CommandReader),
             vda=narrowed(store, VdaReader),
             changes=narrowed(store, ChangeFeed),

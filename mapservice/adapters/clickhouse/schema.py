@@ -11,7 +11,7 @@ Choices, and why:
 
 The later migrations' statements come from the module of their concern (the pose tables'
 re-layouts: pose_schema.py; the analysts' comments and views: analyst_schema.py; VDA 5050,
-annotations, commands, tracks, bursts, retention: their *_schema.py); this module numbers them.
+annotations, commands, tracks, bursts, incidents, heatmaps, retention: their *_schema.py); this module numbers them.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from mapservice.adapters.clickhouse import (
     annotation_schema,
     burst_schema,
     command_schema,
+    heatmap_schema,
     incident_schema,
     pose_schema,
     retention_schema,
@@ -270,6 +271,11 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "incidents: near misses, stuck and silent robots, low batteries, as found",
             incident_schema.statements(database),
         ),
+        Migration(
+            20,
+            "heatmap_cells: per 10 minutes and 0.5 m cell the robots' samples, for heatmaps",
+            heatmap_schema.statements(database),
+        ),
     ]
 
 
@@ -313,7 +319,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 19
+SCHEMA_VERSION = 20
 
 # Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
 # map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
@@ -331,7 +337,8 @@ DAY_PARTITIONED = (
     "chunk_seconds",
 )
 # Dropped by day by the retention step, older than the snapshot carrying the floor: those, and
-# later tables (VDA 5050 facts but factsheets, zone violations, commands, tracks, bursts).
+# later tables (VDA 5050 facts but factsheets, zone violations, commands, tracks, bursts,
+# incidents, heatmap cells).
 RETAINED_BY_DAY = (
     *DAY_PARTITIONED,
     *vda_schema.RETAINED_BY_DAY,
@@ -340,4 +347,5 @@ RETAINED_BY_DAY = (
     track_schema.TABLE,
     burst_schema.TABLE,
     incident_schema.TABLE,
+    heatmap_schema.TABLE,
 )
