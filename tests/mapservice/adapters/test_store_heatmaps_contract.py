@@ -83,9 +83,9 @@ def test_cells_of_constructed_poses(store, ev, t0) -> None:
         (20, 20): (1, 0, 1, 0.05),
     }
     assert _by_cell(store.heatmap_cells(s + 2_001, s + 3_000, 1)) == {}
-    assert store.heatmap_cells(s, s + 60_000, 1, limit=2) == store.heatmap_cells(
-        s, s + 60_000, 1
-    )[:2]
+    assert (
+        store.heatmap_cells(s, s + 60_000, 1, limit=2) == store.heatmap_cells(s, s + 60_000, 1)[:2]
+    )
     with pytest.raises(ValueError):
         store.heatmap_cells(s, s + 60_000, 0)
 
