@@ -50,7 +50,8 @@ def ramp(fraction: np.ndarray) -> np.ndarray:
     at = np.clip(fraction, 0.0, 1.0) * (len(RAMP) - 1)
     low = np.minimum(np.floor(at).astype(int), len(RAMP) - 2)
     mix = (at - low)[..., None]
-    return np.rint(RAMP[low] * (1 - mix) + RAMP[low + 1] * mix).astype(np.uint8)
+    rgb: np.ndarray = np.rint(RAMP[low] * (1 - mix) + RAMP[low + 1] * mix).astype(np.uint8)
+    return rgb
 
 
 def heatmap_png(values: Mapping[tuple[int, int], float], scale: int = 1) -> bytes:

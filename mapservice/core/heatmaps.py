@@ -30,12 +30,11 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol, TypeVar
 
 import msgspec
 
 from mapservice.core.incident_model import Incident, IncidentThresholds
-from mapservice.core.ports import PoseRow
 
 FINEST_CELL_MM = 500
 FINEST_CELL_M = FINEST_CELL_MM / 1000
@@ -54,6 +53,22 @@ UNITS: dict[str, str] = {
     "speed": "m/s",
     "incidents": "incidents",
 }
+
+
+class Pose(Protocol):
+    """What the rule reads of a pose (ports.PoseRow has it)."""
+
+    @property
+    def robot_id(self) -> str: ...
+    @property
+    def ts_ms(self) -> int: ...
+    @property
+    def x(self) -> float: ...
+    @property
+    def y(self) -> float: ...
+
+
+P = TypeVar("P", bound=Pose)
 
 
 @dataclass(frozen=True)
@@ -103,9 +118,9 @@ def _mm(metres: float) -> int:
     return round(metres * 1000)
 
 
-def samples_of(track: Sequence[PoseRow]) -> list[PoseRow]:
+def samples_of(track: Sequence[P]) -> list[P]:
     """One robot's samples: its first pose of each whole second (`track` in time order)."""
-    out: list[PoseRow] = []
+    out: list[P] = []
     for pose in track:
         if not out or pose.ts_ms // SAMPLE_MS != out[-1].ts_ms // SAMPLE_MS:
             out.append(pose)
@@ -113,20 +128,20 @@ def samples_of(track: Sequence[PoseRow]) -> list[PoseRow]:
 
 
 def fold_heatmap(
-    poses: Iterable[PoseRow], from_ms: int, to_ms: int, factor: int, rule: HeatmapRule
+    poses: Iterable[Pose], from_ms: int, to_ms: int, factor: int, rule: HeatmapRule
 ) -> list[HeatmapCell]:
     """The cells of `factor` finest cells a side holding a sample of [from_ms, to_ms), by
     (i, j); `poses` in any order, one per robot and instant (the module's rule)."""
     start = from_ms // SAMPLE_MS * SAMPLE_MS - rule.lookback_ms
-    tracks: dict[str, list[PoseRow]] = defaultdict(list)
+    tracks: dict[str, list[Pose]] = defaultdict(list)
     for pose in poses:
         if start <= pose.ts_ms < to_ms:
             tracks[pose.robot_id].append(pose)
     side = FINEST_CELL_MM * factor
-    sums: dict[tuple[int, int], list] = {}
+    sums: dict[tuple[int, int], list[float]] = {}
     for track in tracks.values():
         track.sort(key=lambda p: p.ts_ms)
-        previous: PoseRow | None = None
+        previous: Pose | None = None
         for sample in samples_of(track):
             before, previous = previous, sample
             if sample.ts_ms // SAMPLE_MS * SAMPLE_MS < from_ms:
@@ -141,7 +156,10 @@ def fold_heatmap(
             cell[1] += dx * dx + dy * dy < reach * reach
             cell[2] += 1
             cell[3] += (dx * dx + dy * dy) ** 0.5 / dt  # mm/ms is m/s
-    return [HeatmapCell(i, j, *sums[(i, j)]) for i, j in sorted(sums)]
+    return [
+        HeatmapCell(i, j, int(n), int(still), int(speeds), total)
+        for (i, j), (n, still, speeds, total) in sorted(sums.items())
+    ]
 
 
 def incident_cells(incidents: Iterable[Incident], factor: int) -> dict[tuple[int, int], int]:

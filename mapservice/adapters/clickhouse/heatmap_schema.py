@@ -19,7 +19,8 @@ safe to run twice. Partitioned by day and dropped by day with the rest of the hi
 from __future__ import annotations
 
 from mapservice.adapters.clickhouse import analyst_schema
-from mapservice.core.heatmaps import BUCKET_MS, FINEST_CELL_MM, SAMPLE_MS, HeatmapRule
+from mapservice.core.heatmaps import BUCKET_MS as BUCKET_MS
+from mapservice.core.heatmaps import FINEST_CELL_MM, SAMPLE_MS, HeatmapRule
 
 TABLE = "heatmap_cells"
 BUCKET_S = BUCKET_MS // 1000

@@ -243,23 +243,6 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
             "built": "When the row was written",
         },
     ),
-    "heatmap_cells": (
-        "Derived: per 10-minute bucket and 0.5 m cell the robots' samples (a robot's first "
-        "pose of each second), still samples and known speeds there, for the heatmaps "
-        "(mapservice/core/heatmaps.py has the rule), for the buckets before the newest "
-        "snapshot, written by the snapshot builds (schema v20). Duplicates until merged: "
-        "read with FINAL.",
-        {
-            "bucket": "The bucket's start (UTC)",
-            "i": "The cell's column: x in [i * 0.5, (i + 1) * 0.5) metres",
-            "j": "The cell's row: y in [j * 0.5, (j + 1) * 0.5) metres",
-            "samples": "Robot-seconds: the robots' samples in the cell (occupancy)",
-            "still": "Samples slower than the moving threshold (dwell seconds)",
-            "speeds": "Samples whose speed is known (the previous within the offline threshold)",
-            "speed_sum": "The sum of those speeds, m/s (mean speed = speed_sum / speeds)",
-            "built": "When the row was written",
-        },
-    ),
     "pose_tracks": (
         "Derived: every pose of poses again, sorted by (robot_id, ts), for "
         "reads of one robot over a window (its plots and track), written by a "
@@ -347,6 +330,23 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
             "evidence": "The poses that made it, as JSON [[robot_id, ts_ms, x, y], ...]",
             "found": "When the processors found it (the latest finding replaces earlier ones)",
             "retracted": "A later history no longer holds it (a late pose broke it)",
+        },
+    ),
+    "heatmap_cells": (
+        "Derived: per 10-minute bucket and 0.5 m cell the robots' samples (a robot's first "
+        "pose of each second), still samples and known speeds there, for the heatmaps "
+        "(mapservice/core/heatmaps.py has the rule), for the buckets before the newest "
+        "snapshot, written by the snapshot builds (schema v20). Duplicates until merged: "
+        "read with FINAL.",
+        {
+            "bucket": "The bucket's start (UTC)",
+            "i": "The cell's column: x in [i * 0.5, (i + 1) * 0.5) metres",
+            "j": "The cell's row: y in [j * 0.5, (j + 1) * 0.5) metres",
+            "samples": "Robot-seconds: the robots' samples in the cell (occupancy)",
+            "still": "Samples slower than the moving threshold (dwell seconds)",
+            "speeds": "Samples whose speed is known (the previous within the offline threshold)",
+            "speed_sum": "The sum of those speeds, m/s (mean speed = speed_sum / speeds)",
+            "built": "When the row was written",
         },
     ),
 }
