@@ -50,7 +50,8 @@ def ramp(fraction: np.ndarray) -> np.ndarray:
     at = np.clip(fraction, 0.0, 1.0) * (len(RAMP) - 1)
     low = np.minimum(np.floor(at).astype(int), len(RAMP) - 2)
     mix = (at - low)[..., None]
-    rgb: np.ndarray = np.rint(RAMP[low] * (1 - mix) + RAMP[low + 1] * mix).astype(np.uint8)
+    # Halves rounded up, as the legend's Math.round: the same colour on the page and in the PNG.
+    rgb: np.ndarray = np.floor(RAMP[low] * (1 - mix) + RAMP[low + 1] * mix + 0.5).astype(np.uint8)
     return rgb
 
 
