@@ -3,7 +3,8 @@
  * keeps it), its read for the timeline's span (the cells as JSON for the legend and their
  * box, then the same as a PNG for the map), and the legend's scale bar. A span sliding with
  * playback is read again once it moved by 2 % of its length, at most every 300 ms; a newer
- * read cancels the one before.
+ * read cancels the one before. The page's frame loop rests when nothing moves: the picture
+ * is laid on the map when read (or once the map knows its floor), the scale on each zoom.
  */
 import { computed, ref, shallowRef, watch, type ShallowRef } from "vue";
 import { getJson } from "../lib/api";
@@ -23,6 +24,7 @@ export interface HeatmapDeps {
 /** A span that moved less than this share of its length is not read again. */
 const MOVE_SHARE = 0.02;
 const SETTLE_MS = 300;
+const RETRY_MS = 200;
 
 export function useHeatmap(d: HeatmapDeps) {
   /** Shown: its kind and cell; the controls keep both while it is off. */
@@ -36,19 +38,25 @@ export function useHeatmap(d: HeatmapDeps) {
   const bar = computed(() => (metresPerPx.value > 0 ? scaleBar(metresPerPx.value) : null));
   const reads = new Superseding();
   let picture: string | null = null; // the object URL of the PNG shown
-  let drawn = true; // the grid read last is on the map (false while the map has no floor yet)
+  let retry: ReturnType<typeof setTimeout> | null = null;
   let read: { key: string; from: number; to: number } | null = null;
   let timer: ReturnType<typeof setTimeout> | null = null;
 
+  /** Lays the grid read last on the map; until the map knows its floor, tries again. */
   function draw() {
     const g = grid.value;
     const v = d.view.value;
-    if (!v) return;
+    if (retry) clearTimeout(retry);
+    retry = null;
+    if (!v) {
+      retry = setTimeout(draw, RETRY_MS);
+      return;
+    }
     const box = g?.box ? {
       x0: g.box.i0 * g.cell_m, y0: g.box.j0 * g.cell_m,
       x1: (g.box.i0 + g.box.columns) * g.cell_m, y1: (g.box.j0 + g.box.rows) * g.cell_m,
     } : null;
-    drawn = v.showHeatmap(on.value && box ? picture : null, box);
+    if (!v.showHeatmap(on.value && box ? picture : null, box)) retry = setTimeout(draw, RETRY_MS);
   }
 
   async function load(s: HeatmapState, span: [number, number]) {
@@ -75,6 +83,8 @@ export function useHeatmap(d: HeatmapDeps) {
     const s = state.value;
     if (!s) {
       reads.cancel();
+      if (retry) clearTimeout(retry);
+      retry = null;
       read = null;
       loading.value = false;
       d.view.value?.showHeatmap(null, null);
@@ -94,12 +104,12 @@ export function useHeatmap(d: HeatmapDeps) {
 
   watch(() => [state.value, ...d.span()], schedule, { immediate: true });
 
-  /** With the page's summary: the scale follows the zoom; a grid read before the floor was
-   * known is drawn once it is. */
-  function tick() {
-    metresPerPx.value = d.view.value?.metresPerScreenPixel() ?? 0;
-    if (!drawn && d.view.value?.meta) draw();
-  }
+  // The scale bar follows the view's zoom.
+  const rescale = () => (metresPerPx.value = d.view.value?.metresPerScreenPixel() ?? 0);
+  watch(d.view, (v) => {
+    v?.map.on("zoomend", rescale);
+    rescale();
+  }, { immediate: true });
 
-  return { on, choice, state, grid, loading, error, bar, tick };
+  return { on, choice, state, grid, loading, error, bar };
 }
