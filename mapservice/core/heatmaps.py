@@ -27,14 +27,15 @@ lie before the span (the rule looks back one offline threshold). Cells are squar
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol, TypeVar
+from typing import Literal, TypeVar
 
 import msgspec
 
-from mapservice.core.incident_model import Incident, IncidentThresholds
+from mapservice.core.incident_model import Incident, IncidentThresholds, Placed
 
 FINEST_CELL_MM = 500
 FINEST_CELL_M = FINEST_CELL_MM / 1000
@@ -55,20 +56,7 @@ UNITS: dict[str, str] = {
 }
 
 
-class Pose(Protocol):
-    """What the rule reads of a pose (ports.PoseRow has it)."""
-
-    @property
-    def robot_id(self) -> str: ...
-    @property
-    def ts_ms(self) -> int: ...
-    @property
-    def x(self) -> float: ...
-    @property
-    def y(self) -> float: ...
-
-
-P = TypeVar("P", bound=Pose)
+P = TypeVar("P", bound=Placed)
 
 
 @dataclass(frozen=True)
@@ -104,7 +92,7 @@ class HeatmapCell(msgspec.Struct, frozen=True, gc=False, array_like=True):
 def cell_factor(cell_m: float) -> int:
     """The whole number of finest cells a side of a `cell_m` cell is; ValueError (with the
     sizes allowed) for any other size."""
-    factor = round(cell_m / FINEST_CELL_M)
+    factor = round(cell_m / FINEST_CELL_M) if math.isfinite(cell_m) else 0
     if not 1 <= factor <= MAX_CELL_FACTOR or abs(factor * FINEST_CELL_M - cell_m) > 1e-9:
         raise ValueError(
             f"cell ({cell_m} m) must be a multiple of {FINEST_CELL_M} m from {FINEST_CELL_M} "
@@ -128,12 +116,12 @@ def samples_of(track: Sequence[P]) -> list[P]:
 
 
 def fold_heatmap(
-    poses: Iterable[Pose], from_ms: int, to_ms: int, factor: int, rule: HeatmapRule
+    poses: Iterable[Placed], from_ms: int, to_ms: int, factor: int, rule: HeatmapRule
 ) -> list[HeatmapCell]:
     """The cells of `factor` finest cells a side holding a sample of [from_ms, to_ms), by
     (i, j); `poses` in any order, one per robot and instant (the module's rule)."""
     start = from_ms // SAMPLE_MS * SAMPLE_MS - rule.lookback_ms
-    tracks: dict[str, list[Pose]] = defaultdict(list)
+    tracks: dict[str, list[Placed]] = defaultdict(list)
     for pose in poses:
         if start <= pose.ts_ms < to_ms:
             tracks[pose.robot_id].append(pose)
@@ -141,7 +129,7 @@ def fold_heatmap(
     sums: dict[tuple[int, int], list[float]] = {}
     for track in tracks.values():
         track.sort(key=lambda p: p.ts_ms)
-        previous: Pose | None = None
+        previous: Placed | None = None
         for sample in samples_of(track):
             before, previous = previous, sample
             if sample.ts_ms // SAMPLE_MS * SAMPLE_MS < from_ms:
