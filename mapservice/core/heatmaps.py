@@ -92,7 +92,8 @@ class HeatmapCell(msgspec.Struct, frozen=True, gc=False, array_like=True):
 def cell_factor(cell_m: float) -> int:
     """The whole number of finest cells a side of a `cell_m` cell is; ValueError (with the
     sizes allowed) for any other size."""
-    factor = round(cell_m / FINEST_CELL_M) if math.isfinite(cell_m) else 0
+    within = math.isfinite(cell_m) and 0 < cell_m < 2 * MAX_CELL_FACTOR * FINEST_CELL_M
+    factor = round(cell_m / FINEST_CELL_M) if within else 0
     if not 1 <= factor <= MAX_CELL_FACTOR or abs(factor * FINEST_CELL_M - cell_m) > 1e-9:
         raise ValueError(
             f"cell ({cell_m} m) must be a multiple of {FINEST_CELL_M} m from {FINEST_CELL_M} "

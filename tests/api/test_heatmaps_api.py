@@ -129,6 +129,7 @@ def test_the_csv_has_every_measure_of_every_cell(client) -> None:
         ({"kind": "occupancy", "cell": "nan"}, 400, "multiple of 0.5 m"),
         ({"kind": "occupancy", "cell": "inf"}, 400, "multiple of 0.5 m"),
         ({"kind": "occupancy", "cell": -1}, 400, "multiple of 0.5 m"),
+        ({"kind": "occupancy", "cell": 1.7e308}, 400, "multiple of 0.5 m"),
         ({"kind": "occupancy", "format": "gif"}, 422, "png"),
         ({"kind": "occupancy", "format": "png", "scale": 0}, 400, "between 1 and 16"),
         ({"kind": "occupancy", "format": "png", "scale": 17}, 400, "between 1 and 16"),
