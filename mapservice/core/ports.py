@@ -11,6 +11,10 @@ from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneV
 from mapservice.core.commands import StoredCommandEvent
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
 from mapservice.core.incident_ports import IncidentFeed as IncidentFeed
+from mapservice.core.vda_rows import VdaConnectionRow as VdaConnectionRow
+from mapservice.core.vda_rows import VdaErrorRow as VdaErrorRow
+from mapservice.core.vda_rows import VdaFacts as VdaFacts
+from mapservice.core.vda_rows import VdaFactsheetRow as VdaFactsheetRow
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
@@ -181,37 +185,6 @@ class TrackBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
     battery_min: float | None
     battery_max: float | None
     battery_mean: float | None
-
-
-class VdaErrorRow(msgspec.Struct, frozen=True, gc=False):
-    ts_ms: int
-    level: str
-    type: str
-    description: str
-
-
-class VdaConnectionRow(msgspec.Struct, frozen=True, gc=False):
-    ts_ms: int  # when the state holds (a CONNECTIONBROKEN: when it was received)
-    state: str  # ONLINE, OFFLINE, CONNECTIONBROKEN
-    sent_ms: int  # the message's own timestamp
-
-
-class VdaFactsheetRow(msgspec.Struct, frozen=True, gc=False):
-    ts_ms: int
-    vda_version: str
-    factsheet: str  # the JSON the vehicle sent
-
-
-class VdaFacts(msgspec.Struct, frozen=True, gc=False):
-    """A VDA 5050 vehicle's facts beyond its poses, in [from, to), oldest first."""
-
-    errors: list[VdaErrorRow]
-    connections: list[VdaConnectionRow]
-    factsheet: VdaFactsheetRow | None  # the latest before `to`
-    # States without errors right after a state with some: the errors of a state hold
-    # until the next state, so these end them (the errors at T are those of the latest
-    # error instant or clear at or before T).
-    error_clears: list[int] = []
 
 
 class ChangeFeed(Protocol):
