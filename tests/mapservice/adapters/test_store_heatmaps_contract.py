@@ -102,29 +102,32 @@ def test_cells_across_built_buckets_equal_the_cells_before(store, ev, t0) -> Non
     assert _by_cell(store.heatmap_cells(s - BUCKET_MS, s + 2 * BUCKET_MS, 1)) == FINEST_WITH_LEAD
 
 
-# Tracks: (offset in ms, x, y) per pose, positions on a small floor so cells repeat; some
-# sent again; a silent gap; several robots; stored in shuffled batches.
+# Tracks: a start and (gap from the pose before in ms, x, y, step) per pose: mostly a
+# second apart, some faster or a little slower, now and then a silence over the offline
+# threshold; positions on a small floor so cells repeat, many a few centimetres from the
+# pose before (standing, creeping: dwell; step 0 is a jump). Some poses sent again, several
+# robots, stored in shuffled batches.
 _pose = st.tuples(
-    st.one_of(st.integers(0, 3 * BUCKET_MS), st.integers(0, 200).map(lambda k: k * 700)),
+    st.sampled_from([1000, 1000, 1000, 400, 1500, 10_000, 10_001, 45_000]),
     st.integers(-3000, 3000).map(lambda mm: mm / 1000),
     st.integers(-3000, 3000).map(lambda mm: mm / 1000),
+    st.sampled_from([0, 1, 1, 30, 49, 50, 80]),  # mm along x from the pose before (0: jump)
 )
+_track = st.tuples(st.integers(0, 2 * BUCKET_MS), st.lists(_pose, min_size=20, max_size=80))
 
 
 @settings(
-    max_examples=10,
+    max_examples=20,
     deadline=None,
     database=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(
-    tracks=st.lists(
-        st.lists(_pose, min_size=1, max_size=40, unique_by=lambda p: p[0]), min_size=1, max_size=3
-    ),
+    tracks=st.lists(_track, min_size=1, max_size=3),
     resent=st.lists(st.integers(0, 39), max_size=10),
     batches=st.integers(1, 3),
-    built=st.integers(0, 4 * BUCKET_MS),
-    cut=st.tuples(st.integers(0, 2 * BUCKET_MS - 1), st.integers(0, 2 * BUCKET_MS - 1)),
+    built=st.one_of(st.integers(0, 4 * BUCKET_MS), st.just(4 * BUCKET_MS)),
+    cut=st.tuples(st.integers(0, BUCKET_MS), st.integers(0, BUCKET_MS)),
     factor=st.sampled_from([1, 2, 5]),
     order=st.randoms(use_true_random=False),
 )
@@ -135,11 +138,13 @@ def test_cells_equal_a_plain_fold_of_the_raw_poses(
     # after the earlier examples' and before its own poses are late.
     base = t0 - t0 % BUCKET_MS - 100 * 3_600_000 + next(_examples) * 6 * BUCKET_MS
     robots = [f"h{next(_robots)}" for _ in tracks]
-    events = [
-        ev.pose(robot, base + t, x=x, y=y)
-        for robot, track in zip(robots, tracks, strict=True)
-        for t, x, y in track
-    ]
+    events = []
+    for robot, (t, track) in zip(robots, tracks, strict=True):
+        at = None
+        for gap, x, y, step in track:
+            t += gap
+            at = (x, y) if at is None or not step else (round(at[0] + step / 1000, 3), at[1])
+            events.append(ev.pose(robot, base + t, x=at[0], y=at[1]))
     events += [events[i] for i in resent if i < len(events)]
     order.shuffle(events)
     for k in range(min(batches, len(events))):
