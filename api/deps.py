@@ -21,6 +21,7 @@ from mapservice.core.ports import (
     CommandReader,
     ConflictReader,
     EventPublisher,
+    HeatmapReader,
     IncidentReader,
     LegacyQueries,
     StoreAdmin,
@@ -100,6 +101,7 @@ HistoryDep = Annotated[TimeTravelReader, Depends(_role(lambda r: r.history))]
 ConflictsDep = Annotated[ConflictReader, Depends(_role(lambda r: r.conflicts))]
 AnnotationsDep = Annotated[AnnotationReader, Depends(_role(lambda r: r.annotations))]
 IncidentsDep = Annotated[IncidentReader, Depends(_role(lambda r: r.incidents))]
+HeatmapsDep = Annotated[HeatmapReader, Depends(_role(lambda r: r.heatmaps))]
 CommandsDep = Annotated[CommandReader, Depends(_role(lambda r: r.commands))]
 VdaDep = Annotated[VdaReader, Depends(_role(lambda r: r.vda))]
 WebhooksDep = Annotated[WebhookRegistry, Depends(_role(lambda r: r.webhooks))]

@@ -47,6 +47,7 @@ ROLES = [
     ports.ConflictReader,
     ports.AnnotationReader,
     ports.IncidentReader,
+    ports.HeatmapReader,
     ports.CommandReader,
     ports.VdaReader,
     ports.WebhookRegistry,

@@ -11,12 +11,16 @@ from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneV
 from mapservice.core.commands import StoredCommandEvent
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
 from mapservice.core.incident_ports import IncidentFeed as IncidentFeed
+from mapservice.core.vda_facts import VdaConnectionRow as VdaConnectionRow
+from mapservice.core.vda_facts import VdaErrorRow as VdaErrorRow
+from mapservice.core.vda_facts import VdaFacts as VdaFacts
+from mapservice.core.vda_facts import VdaFactsheetRow as VdaFactsheetRow
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
+    from mapservice.core.heatmaps import HeatmapCell
     from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
-    from mapservice.core.vda_facts import VdaConnectionRow, VdaFacts
     from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 
 
@@ -378,6 +382,16 @@ class IncidentReader(Protocol):
         id; as last found, retracted ones left out."""
 
 
+class HeatmapReader(Protocol):
+    """The heatmaps' cells (mapservice/core/heatmaps.py's rule; ClickHouse: `heatmap_reads`)."""
+
+    def heatmap_cells(
+        self, from_ms: int, to_ms: int, factor: int, limit: int = 1_000_000
+    ) -> list[HeatmapCell]:
+        """The cells of `factor` finest cells a side holding a sample of [from_ms, to_ms),
+        by (i, j), at most `limit`."""
+
+
 class CommandReader(Protocol):
     """Operators' commands to robots and the robots' answers (ClickHouse: `command_reads`)."""
 
@@ -484,6 +498,7 @@ class HistoryStore(
     ConflictReader,
     AnnotationReader,
     IncidentReader,
+    HeatmapReader,
     CommandReader,
     VdaReader,
     WebhookRegistry,

@@ -39,7 +39,8 @@ def stitch(
 
 
 def png(pixels: np.ndarray, scale: float = 1.0) -> bytes:
-    image = Image.fromarray(pixels, mode="L")
+    """A PNG of grey pixels (rows x columns) or RGBA ones (rows x columns x 4)."""
+    image = Image.fromarray(pixels, mode="L" if pixels.ndim == 2 else "RGBA")
     if scale != 1.0:
         size = (max(1, round(image.width * scale)), max(1, round(image.height * scale)))
         image = image.resize(size, Image.Resampling.NEAREST)

@@ -20,6 +20,7 @@ from mapservice.core.ports import (
     ChangeFeed,
     CommandReader,
     ConflictReader,
+    HeatmapReader,
     HistoryStore,
     HistoryWriter,
     IncidentReader,
@@ -109,6 +110,7 @@ class StoreRoles:
     conflicts: ConflictReader
     annotations: AnnotationReader
     incidents: IncidentReader
+    heatmaps: HeatmapReader
     commands: CommandReader
     vda: VdaReader
     webhooks: WebhookRegistry
@@ -133,6 +135,7 @@ class StoreRoles:
             conflicts=narrowed(store, ConflictReader),
             annotations=narrowed(store, AnnotationReader),
             incidents=narrowed(store, IncidentReader),
+            heatmaps=narrowed(store, HeatmapReader),
             commands=narrowed(store, CommandReader),
             vda=narrowed(store, VdaReader),
             webhooks=narrowed(store, WebhookRegistry),

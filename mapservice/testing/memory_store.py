@@ -33,6 +33,7 @@ from mapservice.core.events import (
     VdaFactsheetReported,
     VdaStateReported,
 )
+from mapservice.core.heatmaps import HeatmapCell, HeatmapRule, fold_heatmap
 from mapservice.core.incidents import Incident
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
 from mapservice.core.ports import (
@@ -60,8 +61,9 @@ def _iso_day(ms: int) -> str:
 
 
 class MemoryStore:
-    def __init__(self, retention_days: int = 7) -> None:
+    def __init__(self, retention_days: int = 7, heatmap_rule: HeatmapRule | None = None) -> None:
         self.retention_days = retention_days
+        self.heatmap_rule = heatmap_rule or HeatmapRule()
         # The floor carried across the retention boundary: per chunk, the winning write at
         # the last boundary applied (ClickHouse: the anchor snapshot's rows).
         self._carried: dict[tuple[int, int], ChunkState] = {}
@@ -291,6 +293,15 @@ class MemoryStore:
     ) -> list[TrackBucket]:
         rows = self.poses(from_ms, to_ms, robot_id, limit=len(self._poses))
         return fold_track_buckets(rows, from_ms, to_ms, bucket_ms)
+
+    def heatmap_cells(
+        self, from_ms: int, to_ms: int, factor: int, limit: int = 1_000_000
+    ) -> list[HeatmapCell]:
+        if factor < 1:
+            raise ValueError("factor must be positive")
+        start = from_ms - from_ms % 1000 - self.heatmap_rule.lookback_ms
+        rows = self.poses(start, to_ms, None, limit=len(self._poses))
+        return fold_heatmap(rows, from_ms, to_ms, factor, self.heatmap_rule)[:limit]
 
     def chunk_events(self, from_ms: int, to_ms: int, limit: int = 100_000) -> list[ChunkRow]:
         rows = [r for r in self._chunks.values() if from_ms <= r.ts_ms < to_ms]

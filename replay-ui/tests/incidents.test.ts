@@ -162,7 +162,7 @@ describe("incidents", () => {
         changeRobot: null, span: null, plot: [],
         incidentKinds: KINDS.filter(() => rnd() < 0.5) as string[],
         incidentRobot: rnd() < 0.5 ? null : `robot ${Math.floor(rnd() * 9)}/ü`,
-        incident: rnd() < 0.3 ? null : Math.floor(rnd() * 2 ** 40).toString(16) };
+        incident: rnd() < 0.3 ? null : Math.floor(rnd() * 2 ** 40).toString(16), heatmap: null };
       expect(parseUrlState(formatUrlState(s))).toEqual({ ...s, tProblem: null });
     }
     expect(formatUrlState({ ...parseUrlState("?t=5"), incidentKinds: ["stuck", "offline"], incidentRobot: "r1", incident: "abc" }))

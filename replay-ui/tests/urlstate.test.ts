@@ -5,7 +5,7 @@ describe("url state", () => {
   it("round-trips time, speed, direction, play and view", () => {
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10, 0, 5), speed: 3600 as const, dir: -1 as const,
       playing: true, view: { zoom: -1.5, lat: -100.5, lng: 200 }, follow: "r-1",
-      layers: null, selected: null, panels: [], area: null, changeRobot: null, span: null, plot: [], incidentKinds: [], incidentRobot: null, incident: null };
+      layers: null, selected: null, panels: [], area: null, changeRobot: null, span: null, plot: [], incidentKinds: [], incidentRobot: null, incident: null, heatmap: null };
     expect(parseUrlState(formatUrlState(s))).toEqual({ ...s, tProblem: null });
   });
 
@@ -14,7 +14,7 @@ describe("url state", () => {
       view: null, follow: "sim-001",
       layers: { names: false, battery: true, paths: true, borders: true, info: true, infoMode: "writer" as const, conflicts: false, annotations: true },
       selected: "sim-001", panels: ["changes", "fleet", "annotations"], area: [1, 2, 3, 4] as [number, number, number, number], changeRobot: "sim-002",
-      span: null, plot: [], incidentKinds: [], incidentRobot: null, incident: null };
+      span: null, plot: [], incidentKinds: [], incidentRobot: null, incident: null, heatmap: null };
     const url = formatUrlState(s);
     expect(url).toContain("layers=battery%2Cpaths%2Cborders%2Cinfo-writer%2Cannotations");
     expect(parseUrlState(url)).toEqual({ ...s, tProblem: null });
@@ -28,7 +28,7 @@ describe("url state", () => {
     const span: [number, number] = [Date.UTC(2026, 10, 21, 9, 30), Date.UTC(2026, 10, 21, 10, 15, 30)];
     const s = { live: false, t: Date.UTC(2026, 10, 21, 10), speed: 1 as const, dir: 1 as const, playing: false,
       view: null, follow: null, layers: null, selected: "sim-001", panels: ["fleet", "plots"], area: null,
-      changeRobot: null, span, plot: ["sim-002", "sim-003"], incidentKinds: [], incidentRobot: null, incident: null };
+      changeRobot: null, span, plot: ["sim-002", "sim-003"], incidentKinds: [], incidentRobot: null, incident: null, heatmap: null };
     const url = formatUrlState(s);
     expect(url).toContain("span=2026-11-21T09%3A30%3A00.000Z%2C2026-11-21T10%3A15%3A30.000Z");
     expect(parseUrlState(url)).toEqual({ ...s, tProblem: null });
@@ -41,7 +41,7 @@ describe("url state", () => {
 
   it("live links carry no replay speed or direction", () => {
     const url = formatUrlState({ live: true, t: 5, speed: 3600, dir: -1, playing: true, view: null, follow: null,
-      layers: null, selected: null, panels: [], area: null, changeRobot: null, span: null, plot: [], incidentKinds: [], incidentRobot: null, incident: null });
+      layers: null, selected: null, panels: [], area: null, changeRobot: null, span: null, plot: [], incidentKinds: [], incidentRobot: null, incident: null, heatmap: null });
     expect(url).toBe("?live=1");
   });
 

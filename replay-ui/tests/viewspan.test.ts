@@ -168,7 +168,7 @@ describe("the timeline's view and the playhead", () => {
       const view = live ? fitSpan(now - len, now, bounds) : followPlayhead(fitSpan(t - rnd() * len, t + len, bounds), t, bounds);
       expect(holds(view, t)).toBe(true);
       const state = { live, t, speed: 60 as const, dir: 1 as const, playing: false, view: null, follow: null, layers: null,
-        selected: null, panels: ["changes"], area: null, changeRobot: null, span: view, plot: [], incidentKinds: [], incidentRobot: null, incident: null };
+        selected: null, panels: ["changes"], area: null, changeRobot: null, span: view, plot: [], incidentKinds: [], incidentRobot: null, incident: null, heatmap: null };
       const reopened = parseUrlState(formatUrlState(state));
       expect(reopened).toEqual({ ...state, t: live ? null : t, speed: live ? 1 : 60, tProblem: null });
       expect(openingSpan(reopened, bounds)).toEqual(view);

@@ -74,6 +74,7 @@ SCOPES = {
     "importKeepOutMask": "operator",
     "listZoneViolations": "read",
     "listIncidents": "read",
+    "getHeatmap": "read",
     "sendCommand": "operator",
     "listCommands": "read",
     "getCallerAccess": "read",

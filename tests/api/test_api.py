@@ -68,6 +68,7 @@ EXPECTED_OPERATION_IDS = {
     "getCostmapFilterInfo",
     "listZoneViolations",
     "listIncidents",
+    "getHeatmap",
     "sendCommand",
     "listCommands",  # api/routers/commands.py (operators' commands to robots)
     "getCallerAccess",  # api/routers/caller.py (the replay page offers editing to operators)

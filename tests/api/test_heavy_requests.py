@@ -8,7 +8,9 @@ restarts the pod), and the request gets its answer within a stated bound.
 - an image bomb and a checkerboard as a keep-out mask to import;
 - a gzip bomb and a 5,000-field multipart body on /clickhouse;
 - the worst statements an analyst may send: one that runs until the time limit and one that
-  grows until the memory limit.
+  grows until the memory limit;
+- a week's heatmap of the fleet as the largest picture allowed (16 M pixels), and one whose
+  picture would be larger.
 
 Each run prints its figures and the machine's load average (`-rP` shows them)."""
 
@@ -57,6 +59,9 @@ ZONE_WITHIN_S = 10.0
 # A map of 80 x 80 chunks of 100 px at 5 cm: 400 m square, 64 M cells (the rasterising cap).
 CHUNKS = 80
 ORIGIN, RESOLUTION = (-1.5, 2.0), 0.05
+# The heatmap's picture: 4,000 x 4,000 cells, the 16 M pixels allowed.
+HEATMAP_SIDE_CELLS = 4000
+HEATMAP_WITHIN_S = 20.0
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +73,7 @@ def api(tmp_path_factory):
     settings = settings_for("open", api_host="127.0.0.1", api_port=free_port())
     store = MemoryStore()
     store.append([meta_event(NOW - 86_400_000, chunk_rows=CHUNKS, chunk_cols=CHUNKS)])
+    store.append(fleet_poses())
     sql = clickhouse_http_app(engine, [SqlUser(*ANALYST, read_only=True)])
     app = create_app(
         settings, store, {}, ManualClock(NOW), publisher=MemoryPublisher(), sql_app=sql
@@ -75,6 +81,26 @@ def api(tmp_path_factory):
     with ServedApi(app, settings) as served:
         yield served.url
     engine.close()
+
+
+def fleet_poses() -> list:
+    """Six hours of five robots driving loops (a pose a second), and two robots standing
+    at opposite corners of a square of HEATMAP_SIDE_CELLS 0.5 m cells: the heatmap's picture
+    is that square, one pixel a cell."""
+    from tests.conftest import pose_event
+
+    start = NOW - 6 * 3_600_000
+    poses = [
+        pose_event(f"r{r}", t, 10.0 + 5 * r + (t // 1000 % 600) * 0.1, 20.0 + r)
+        for r in range(5)
+        for t in range(start, NOW, 1000)
+    ]
+    far = (HEATMAP_SIDE_CELLS - 1) * 0.5 + 0.25
+    return [
+        *poses,
+        pose_event("corner-a", start, 0.25, 0.25),
+        pose_event("corner-b", start, far, far),
+    ]
 
 
 def probed(api: str, label: str, send):
@@ -220,3 +246,26 @@ def test_the_worst_analyst_statement_is_stopped_while_the_probes_answer(
     reply = run.assert_responsive(max_heavy_s=ANALYST_TIME_LIMIT_S + REFUSAL_WITHIN_S)
     (limit,) = [name for name in stopped_by if f"({name})" in reply.text] or [reply.text]
     assert reply.status_code == stopped_by[limit], reply.text
+
+
+# --- heatmaps ------------------------------------------------------------------------------
+
+
+def get_heatmap(api: str, **params) -> httpx.Response:
+    week = {"from": NOW - 7 * 86_400_000 + 120_000, "to": NOW, "kind": "occupancy"}
+    return httpx.get(f"{api}/api/v1/heatmap", params={**week, **params}, timeout=60)
+
+
+def test_the_largest_heatmap_picture_is_drawn_while_the_probes_answer(api) -> None:
+    run = probed(api, "a week's heatmap, 16 M pixels", lambda: get_heatmap(api, format="png"))
+    reply = run.assert_responsive(max_heavy_s=HEATMAP_WITHIN_S)
+    assert reply.status_code == 200, reply.text
+    assert reply.content[16:24] == HEATMAP_SIDE_CELLS.to_bytes(4, "big") * 2  # IHDR size
+
+
+def test_a_heatmap_picture_over_the_cap_is_a_422_while_the_probes_answer(api) -> None:
+    run = probed(
+        api, "heatmap picture over the cap", lambda: get_heatmap(api, format="png", scale=2)
+    )
+    reply = run.assert_responsive(max_heavy_s=HEATMAP_WITHIN_S)
+    assert reply.status_code == 422 and "pixels" in reply.text, reply.text

@@ -150,10 +150,10 @@ def guide_examples() -> list[tuple[str, str, list[str]]]:
 
 
 def test_the_guide_has_an_example_per_common_question() -> None:
-    """Eight questions the issue names, the robots inside keep-out zones and two of VDA 5050
-    vehicles, each with its query and its columns."""
+    """Eight questions the issue names, the robots inside keep-out zones, two of VDA 5050
+    vehicles and the heatmaps, each with its query and its columns."""
     titles = [t for t, _, _ in guide_examples()]
-    assert len(titles) == 11 and all(columns for _, _, columns in guide_examples()), titles
+    assert len(titles) == 12 and all(columns for _, _, columns in guide_examples()), titles
 
 
 @pytest.mark.parametrize("title,sql,columns", guide_examples(), ids=lambda v: str(v)[:40])

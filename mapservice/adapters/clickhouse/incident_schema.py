@@ -12,6 +12,7 @@ start's day and dropped by day with the rest of the history (schema.RETAINED_BY_
 from __future__ import annotations
 
 from mapservice.adapters.clickhouse import analyst_schema
+from mapservice.adapters.clickhouse.table_comments import INCIDENTS_V19_COMMENTS
 
 TABLE = "incidents"
 COLUMNS = (
@@ -50,5 +51,10 @@ def statements(db: str) -> tuple[str, ...]:
         ) ENGINE = ReplacingMergeTree(found)
         PARTITION BY toDate(start)
         ORDER BY (start, kind, incident_id)""",
-        *analyst_schema.comment_statements(db, analyst_schema.comments_of(TABLE)),
+        *analyst_schema.comment_statements(db, INCIDENTS_V19_COMMENTS),
     )
+
+
+def kinds_comments(db: str) -> tuple[str, ...]:
+    """Migration 22: the incidents table's comments for every kind found."""
+    return tuple(analyst_schema.comment_statements(db, analyst_schema.comments_of(TABLE)))

@@ -11,7 +11,7 @@ Choices, and why:
 
 The later migrations' statements come from the module of their concern (the pose tables'
 re-layouts: pose_schema.py; the analysts' comments and views: analyst_schema.py; VDA 5050,
-annotations, commands, tracks, bursts, retention: their *_schema.py); this module numbers them.
+annotations, commands, tracks, bursts, incidents, heatmaps, retention: their *_schema.py); this module numbers them.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from mapservice.adapters.clickhouse import (
     annotation_schema,
     burst_schema,
     command_schema,
+    heatmap_schema,
     incident_schema,
     pose_schema,
     retention_schema,
@@ -277,6 +278,16 @@ def migrations(database: str, retention_days: int) -> list[Migration]:
             "processors replica's report of its deliveries",
             webhook_schema.statements(database),
         ),
+        Migration(
+            21,
+            "heatmap_cells: per 10 minutes and 0.5 m cell the robots' samples, for heatmaps",
+            heatmap_schema.statements(database),
+        ),
+        Migration(
+            22,
+            "incidents: the comments of the kinds found from the records beside the poses",
+            incident_schema.kinds_comments(database),
+        ),
     ]
 
 
@@ -338,7 +349,8 @@ DAY_PARTITIONED = (
     "chunk_seconds",
 )
 # Dropped by day by the retention step, older than the snapshot carrying the floor: those, and
-# later tables (VDA 5050 facts but factsheets, zone violations, commands, tracks, bursts).
+# later tables (VDA 5050 facts but factsheets, zone violations, commands, tracks, bursts,
+# incidents, heatmap cells).
 RETAINED_BY_DAY = (
     *DAY_PARTITIONED,
     *vda_schema.RETAINED_BY_DAY,
@@ -347,4 +359,5 @@ RETAINED_BY_DAY = (
     track_schema.TABLE,
     burst_schema.TABLE,
     incident_schema.TABLE,
+    heatmap_schema.TABLE,
 )

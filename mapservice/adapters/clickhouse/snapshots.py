@@ -1,11 +1,11 @@
 """The store's snapshots: building them (one at a time or in bulk runs), finding the newest
 and the nearest valid one, and repairing those a late event made wrong. Each build also
-writes `chunk_seconds` (schema v9) for the seconds before its snapshot, so those rows are
-valid exactly where the snapshots are.
+writes `chunk_seconds` (schema v9), `chunk_bursts` (v18) and `heatmap_cells` (v21) for the
+time before its snapshot, so those rows are valid exactly where the snapshots are.
 
 `ClickHouseSnapshots` (the SnapshotKeeper role) runs on the writer client of the
 `connection.ClickHouseConnection` it holds and depends on nothing else of the store but
-the schema modules (the chunk_seconds and chunk_bursts queries). It also knows the newest
+the schema modules (the chunk_seconds, chunk_bursts and heatmap_cells queries). It also knows the newest
 snapshot: the writer (a late event notes a repair) and the retention (its anchor) are
 handed the same instance.
 """
@@ -15,9 +15,10 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from mapservice.adapters.clickhouse import burst_schema
+from mapservice.adapters.clickhouse import burst_schema, heatmap_schema
 from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS, ClickHouseConnection
 from mapservice.adapters.clickhouse.pose_schema import CHUNK_SECONDS_SELECT
+from mapservice.core.heatmaps import HeatmapRule
 
 NO_SNAPSHOT_RECHECK_S = 5.0
 
@@ -25,9 +26,15 @@ NO_SNAPSHOT_RECHECK_S = 5.0
 class ClickHouseSnapshots:
     """Snapshots of the map and the robots every `snapshot_every_ms`."""
 
-    def __init__(self, connection: ClickHouseConnection, snapshot_every_ms: int = 600_000) -> None:
+    def __init__(
+        self,
+        connection: ClickHouseConnection,
+        snapshot_every_ms: int = 600_000,
+        heatmap_rule: HeatmapRule | None = None,
+    ) -> None:
         self.connection = connection
         self.snapshot_every_ms = snapshot_every_ms
+        self.heatmap_rule = heatmap_rule or HeatmapRule()
         self._last_snapshot_ms: int | None = None  # newest snapshot built, once known
         self._no_snapshot_until = 0.0  # monotonic time until which "no snapshot yet" holds
 
@@ -92,6 +99,7 @@ class ClickHouseSnapshots:
         )
         self._write_chunk_seconds(prev_ms, snap_ms)
         self._write_chunk_bursts(prev_ms, snap_ms)
+        self._write_heatmap_cells(prev_ms, snap_ms)
         c.command(
             f"INSERT INTO {db}.snapshot_log (snap_ts, built, chunks, robots) "
             "SELECT fromUnixTimestamp64Milli({s:Int64}), now64(3), "
@@ -124,6 +132,21 @@ class ClickHouseSnapshots:
             f"PREWHERE {since}ts < fromUnixTimestamp64Milli({{s:Int64}}) {burst_schema.BURSTS_KEPT} "
             f"{FINAL_SETTINGS}",
             parameters={"p": (prev_ms or 0) // b * b, "s": snap_ms // b * b},
+        )
+
+    def _write_heatmap_cells(self, prev_ms: int | None, snap_ms: int) -> None:
+        """heatmap_cells for the whole buckets in [prev, snap) (all before snap without a
+        previous snapshot), from poses FINAL: consecutive builds tile the buckets."""
+        b = heatmap_schema.BUCKET_MS
+        lo, hi = (prev_ms or 0) // b * b, snap_ms // b * b
+        if lo >= hi:
+            return  # no whole bucket ended since the previous build
+        self.connection.client.command(
+            heatmap_schema.buckets_insert(
+                self.connection.database, "{p:Int64}", "{s:Int64}", self.heatmap_rule
+            )
+            + f" {FINAL_SETTINGS}",
+            parameters={"p": lo, "s": hi},
         )
 
     def note_repair(self, from_ms: int) -> None:
@@ -313,6 +336,7 @@ class ClickHouseSnapshots:
         )
         self._write_chunk_seconds(prev_ms, last_ms)
         self._write_chunk_bursts(prev_ms, last_ms)
+        self._write_heatmap_cells(prev_ms, last_ms)
         window = (
             "snap_ts >= fromUnixTimestamp64Milli({a:Int64}) AND "
             "snap_ts <= fromUnixTimestamp64Milli({b:Int64})"

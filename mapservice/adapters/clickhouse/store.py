@@ -6,9 +6,9 @@ each role of the store (mapservice/core/ports.py) is an adapter of its own over 
 own module: `migrations` (StoreSchema), `writes` (HistoryWriter), `reads` (TimeTravelReader,
 with `track_reads`), `snapshots` (SnapshotKeeper), `retention` (RetentionKeeper),
 `conflict_reads` (ConflictReader), `annotation_reads` (AnnotationReader), `incident_reads`
-(IncidentReader), `command_reads` (CommandReader), `vda_reads` (VdaReader),
-`webhook_registry` (WebhookRegistry), `change_feed` (ChangeFeed), `legacy` (the 2019 REST
-listings) and `admin` (StoreAdmin, TableExports).
+(IncidentReader), `heatmap_reads` (HeatmapReader), `command_reads` (CommandReader),
+`vda_reads` (VdaReader), `webhook_registry` (WebhookRegistry), `change_feed` (ChangeFeed),
+`legacy` (the 2019 REST listings) and `admin` (StoreAdmin, TableExports).
 
 `clickhouse_roles` builds them over one connection, sharing what two roles must share (the
 snapshot keeper that knows the newest snapshot): what a composition root hands out, one
@@ -27,6 +27,7 @@ from mapservice.adapters.clickhouse.change_feed import ClickHouseChangeFeed
 from mapservice.adapters.clickhouse.command_reads import ClickHouseCommandReads
 from mapservice.adapters.clickhouse.conflict_reads import ClickHouseConflictReads
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.adapters.clickhouse.heatmap_reads import ClickHouseHeatmapReads
 from mapservice.adapters.clickhouse.incident_reads import ClickHouseIncidentReads
 from mapservice.adapters.clickhouse.legacy import ClickHouseLegacyQueries
 from mapservice.adapters.clickhouse.migrations import ClickHouseSchema
@@ -38,6 +39,7 @@ from mapservice.adapters.clickhouse.vda_reads import ClickHouseVdaReads
 from mapservice.adapters.clickhouse.webhook_registry import ClickHouseWebhookRegistry
 from mapservice.adapters.clickhouse.writes import ClickHouseHistoryWriter
 from mapservice.adapters.clock import clock_from_settings
+from mapservice.core.heatmaps import HeatmapRule
 from mapservice.core.store_roles import StoreRoles
 from mapservice.settings import Settings
 
@@ -46,10 +48,13 @@ def clickhouse_roles(
     connection: ClickHouseConnection,
     snapshot_every_ms: int = 600_000,
     clock_ms: Callable[[], int] | None = None,
+    heatmap_rule: HeatmapRule | None = None,
 ) -> StoreRoles:
     """Every role of the store over `connection`, each an adapter of its own. `clock_ms` is
-    the service's clock (the newest-first 2019 listing looks just before "now" on it)."""
-    snapshots = ClickHouseSnapshots(connection, snapshot_every_ms)
+    the service's clock (the newest-first 2019 listing looks just before "now" on it);
+    `heatmap_rule` the thresholds the heatmaps are built and read with."""
+    rule = heatmap_rule or HeatmapRule()
+    snapshots = ClickHouseSnapshots(connection, snapshot_every_ms, rule)
     conflicts = ClickHouseConflictReads(connection)
     admin = ClickHouseAdmin(connection)
     return StoreRoles(
@@ -61,6 +66,7 @@ def clickhouse_roles(
         conflicts=conflicts,
         annotations=ClickHouseAnnotationReads(connection),
         incidents=ClickHouseIncidentReads(connection),
+        heatmaps=ClickHouseHeatmapReads(connection, rule),
         commands=ClickHouseCommandReads(connection),
         vda=ClickHouseVdaReads(connection),
         webhooks=ClickHouseWebhookRegistry(connection),
@@ -75,12 +81,18 @@ def clickhouse_roles_from_settings(
     settings: Settings, connection: ClickHouseConnection | None = None
 ) -> StoreRoles:
     """`clickhouse_roles` as the settings configure them (over a new connection unless one
-    is given): the snapshot interval and the service's clock."""
+    is given): the snapshot interval, the service's clock and the incidents' thresholds."""
     return clickhouse_roles(
         connection or ClickHouseConnection.from_settings(settings),
         int(settings.snapshot_every_s * 1000),
         clock_from_settings(settings).now_ms,
+        heatmap_rule_of(settings),
     )
+
+
+def heatmap_rule_of(settings: Settings) -> HeatmapRule:
+    """The heatmaps' thresholds: the incidents' moving speed and offline silence."""
+    return HeatmapRule(settings.incident_moving_m_s, round(settings.robot_offline_after_s * 1000))
 
 
 class ClickHouseStore:

@@ -376,8 +376,52 @@ LATER_TABLE_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
             "queued": "Deliveries waiting to be sent",
         },
     ),
+    "heatmap_cells": (
+        "Derived: per 10-minute bucket and 0.5 m cell the robots' samples (a robot's first "
+        "pose of each second), still samples and known speeds there, for the heatmaps "
+        "(mapservice/core/heatmaps.py has the rule), for the buckets before the newest "
+        "snapshot, written by the snapshot builds (schema v21). Duplicates until merged: "
+        "read with FINAL.",
+        {
+            "bucket": "The bucket's start (UTC)",
+            "i": "The cell's column: x in [i * 0.5, (i + 1) * 0.5) metres",
+            "j": "The cell's row: y in [j * 0.5, (j + 1) * 0.5) metres",
+            "samples": "Robot-seconds: the robots' samples in the cell (occupancy)",
+            "still": "Samples slower than the moving threshold (dwell seconds)",
+            "speeds": "Samples whose speed is known (the previous within the offline threshold)",
+            "speed_sum": "The sum of those speeds, m/s (mean speed = speed_sum / speeds)",
+            "built": "When the row was written",
+        },
+    ),
 }
 
 
 # Schema v9 re-creates pose_keyframes (sorted by time): its comments again.
 TABLE_COMMENTS_V9_KEYFRAMES = {"pose_keyframes": TABLE_COMMENTS["pose_keyframes"]}
+
+# Schema v19 created incidents with the comments of the first four kinds; v22 replaces them
+# with LATER_TABLE_COMMENTS' (a released migration's statements never change).
+INCIDENTS_V19_COMMENTS: dict[str, tuple[str, dict[str, str]]] = {
+    "incidents": (
+        "What went wrong on the floor, found by the processors from the poses: near misses, "
+        "stuck and silent robots, low batteries (schema v19). One row per finding: read with "
+        "FINAL and leave out retracted rows.",
+        {
+            "incident_id": "The incident: a digest of its kind, robots and start",
+            "kind": "near_miss, stuck, offline or battery_low",
+            "robots": "The robots involved (two for a near miss), sorted",
+            "start": "When it began (UTC): the first close tick, when the robot stopped, its "
+            "last report before the silence, its first low report",
+            "end": "When it was last seen (UTC); now for a silence still going on",
+            "ongoing": "It still held at the newest pose known when it was found",
+            "x": "Where, in metres (a near miss: halfway between the robots at their closest)",
+            "y": "Where, in metres",
+            "severity": "warning or critical",
+            "measure": "The closest distance in metres (near_miss), the seconds stopped "
+            "(stuck) or silent (offline), the lowest level in percent (battery_low)",
+            "evidence": "The poses that made it, as JSON [[robot_id, ts_ms, x, y], ...]",
+            "found": "When the processors found it (the latest finding replaces earlier ones)",
+            "retracted": "A later history no longer holds it (a late pose broke it)",
+        },
+    )
+}

@@ -1,11 +1,12 @@
 /**
  * The address bar holds what the page shows (the instant or live, speed and direction, the
  * map's view, the followed and selected robots, layers, panels, the change feed's filter,
- * the timeline's span, the plotted robots, the incidents panel's filters and pick), so a copied link opens the same page. Written
+ * the timeline's span, the plotted robots, the incidents panel's filters and pick, the heatmap), so a copied link opens the same page. Written
  * with replaceState (no history entry per frame), only when it changed.
  */
 import type { Ref, ShallowRef } from "vue";
 import type { ReplayEngine } from "../lib/engine";
+import type { HeatmapState } from "../lib/heatmap";
 import type { LayerToggles, MapView } from "../lib/mapview";
 import { formatUrlState } from "../lib/urlstate";
 
@@ -22,6 +23,8 @@ export interface UrlSyncDeps {
   plotted: Ref<string[]>;
   /** The incidents panel's filters and pick. */
   incidents: () => { kinds: string[]; robot: string | null; picked: string | null };
+  /** The heatmap shown (null: none). */
+  heatmap: () => HeatmapState | null;
 }
 
 export function useUrlSync(d: UrlSyncDeps) {
@@ -39,6 +42,7 @@ export function useUrlSync(d: UrlSyncDeps) {
       span: d.span(),
       plot: d.plotted.value,
       ...((i) => ({ incidentKinds: i.kinds, incidentRobot: i.robot, incident: i.picked }))(d.incidents()),
+      heatmap: d.heatmap(),
     });
     if (url !== lastUrl) {
       lastUrl = url;

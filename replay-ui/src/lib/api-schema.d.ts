@@ -505,6 +505,26 @@ export interface paths {
         patch?: never;
         trace?: never;
     };
+    "/api/v1/heatmap": {
+        parameters: {
+            query?: never;
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        /**
+         * Get Heatmap
+         * @description A heatmap of [from, to) (windows up to the retention): occupancy (robot-seconds: each robot counts once per second it reported, in the cell of its first pose of that second), dwell (those seconds with the robot slower than the incidents' moving threshold), speed (their mean speed, m/s, each from the robot's previous second when no longer than the offline threshold before) or incidents (found, meeting the window, counted where they were), on cells of `cell` metres (a multiple of 0.5 m up to 20 m). format=json: the cells with a value; png: their bounding box, `scale` pixels a cell, north up, transparent where empty, coloured from the lowest to the largest value; csv: every measure of every cell. 400 for a bad cell size or scale; 422 for more than 1,000,000 cells.
+         */
+        get: operations["getHeatmap"];
+        put?: never;
+        post?: never;
+        delete?: never;
+        options?: never;
+        head?: never;
+        patch?: never;
+        trace?: never;
+    };
     "/api/v1/incidents": {
         parameters: {
             query?: never;
@@ -1265,6 +1285,46 @@ export interface components {
         HTTPValidationError: {
             /** Detail */
             detail?: components["schemas"]["ValidationError"][];
+        };
+        /** HeatmapBox */
+        HeatmapBox: {
+            /** Columns */
+            columns: number;
+            /** I0 */
+            i0: number;
+            /** J0 */
+            j0: number;
+            /** Rows */
+            rows: number;
+        };
+        /** HeatmapGrid */
+        HeatmapGrid: {
+            box: components["schemas"]["HeatmapBox"] | null;
+            /** Cell M */
+            cell_m: number;
+            /** Cells */
+            cells: [
+                number,
+                number,
+                number
+            ][];
+            /** From Ms */
+            from_ms: number;
+            /** Incidents Truncated */
+            incidents_truncated: boolean;
+            /**
+             * Kind
+             * @enum {string}
+             */
+            kind: "occupancy" | "dwell" | "speed" | "incidents";
+            /** Max */
+            max: number;
+            /** To Ms */
+            to_ms: number;
+            /** Total */
+            total: number;
+            /** Unit */
+            unit: string;
         };
         /** HistoryStatus */
         HistoryStatus: {
@@ -3476,6 +3536,63 @@ export interface operations {
                 };
                 content: {
                     "application/vnd.apache.parquet": unknown;
+                    "text/csv": unknown;
+                };
+            };
+            /** @description Validation Error */
+            422: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HTTPValidationError"];
+                };
+            };
+            /** @description over MAPSERVICE_API_RATE_LIMIT, or this caller is over its share of the pool's queue (api/admission.py); Retry-After says when to try again */
+            429: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+            /** @description the API's pool for this kind of request is full (api/admission.py); Retry-After says when to try again */
+            503: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content?: never;
+            };
+        };
+    };
+    getHeatmap: {
+        parameters: {
+            query: {
+                /** @description Start (inclusive), ISO 8601 or epoch ms */
+                from: string;
+                /** @description End (exclusive), ISO 8601 or epoch ms */
+                to: string;
+                /** @description occupancy, dwell, speed or incidents */
+                kind: "occupancy" | "dwell" | "speed" | "incidents";
+                /** @description The cells' side in metres */
+                cell?: number;
+                format?: "json" | "png" | "csv";
+                /** @description PNG pixels a cell, 1 to 16 */
+                scale?: number;
+            };
+            header?: never;
+            path?: never;
+            cookie?: never;
+        };
+        requestBody?: never;
+        responses: {
+            /** @description Successful Response */
+            200: {
+                headers: {
+                    [name: string]: unknown;
+                };
+                content: {
+                    "application/json": components["schemas"]["HeatmapGrid"];
+                    "image/png": unknown;
                     "text/csv": unknown;
                 };
             };

@@ -5,7 +5,7 @@
 import L from "leaflet";
 import { AnnotationLayer } from "./annotationlayer";
 import type { RobotView } from "./engine";
-import { chunkBounds, gridBounds, latLngToPixel, metresToLatLng, metresToPixel, pixelToLatLng, type Pixel } from "./geo";
+import { chunkBounds, gridBounds, latLngToPixel, metresToLatLng, metresToPixel, pixelToLatLng, resolutionOf, type Pixel } from "./geo";
 import type { ChunkImages } from "./images";
 import { ChunkLayer, gridLines, InfoLayer, type InfoMode } from "./layers";
 import type { MapState } from "./mapstate";
@@ -26,6 +26,8 @@ export interface LayerToggles {
 
 /** The pane of the picked chunk's outline. */
 const PICKED_PANE = "picked";
+/** The heatmap's pane: over the floor's chunks, under the picked outline and the robots. */
+const HEATMAP_PANE = "heatmap";
 
 export class MapView {
   readonly map: L.Map;
@@ -43,6 +45,8 @@ export class MapView {
   /** The robots of the picked incident (ringed), its place and its robots' trails. */
   highlighted: string[] = [];
   incidentLayer = L.layerGroup();
+  /** The heatmap's picture over the floor (lib/heatmap.ts), or none. */
+  heatmap: L.ImageOverlay | null = null;
   meta: MapMeta | null = null;
   follow: string | null = null;
   onRobotClick: (id: string) => void = () => {};
@@ -64,6 +68,7 @@ export class MapView {
     this.map.setView([0, 0], 0);
     // Above the overlay pane (400: chunks, conflict boxes, trail), below the markers (600).
     this.map.createPane(PICKED_PANE).style.zIndex = "450";
+    this.map.createPane(HEATMAP_PANE).style.zIndex = "420";
     this.robots = new RobotLayer(() => this.meta, () => ({
       names: this.toggles?.names ?? true, battery: this.toggles?.battery ?? true,
       paths: this.toggles?.paths ?? true, selected: this.selected, highlighted: this.highlighted,
@@ -159,6 +164,23 @@ export class MapView {
     L.circleMarker(metresToLatLng(meta, incident.x, incident.y),
       { radius: 14, color: incident.colour, weight: 3, fillOpacity: 0.15, interactive: true })
       .bindTooltip(incident.title).addTo(this.incidentLayer);
+  }
+
+  /** The heatmap's picture (`url`: its cells' box, north up) over the box's corners in
+   * metres (lowest x and y, highest x and y); null: none. True when it is drawn. */
+  showHeatmap(url: string | null, box: { x0: number; y0: number; x1: number; y1: number } | null): boolean {
+    this.heatmap?.remove();
+    this.heatmap = null;
+    const meta = this.meta;
+    if (!url || !box || !meta) return !url;
+    const bounds = L.latLngBounds(metresToLatLng(meta, box.x0, box.y0), metresToLatLng(meta, box.x1, box.y1));
+    this.heatmap = L.imageOverlay(url, bounds, { pane: HEATMAP_PANE, className: "heatmap", interactive: false }).addTo(this.map);
+    return true;
+  }
+
+  /** Metres one screen pixel spans at the view's zoom (0 before a map is known). */
+  metresPerScreenPixel(): number {
+    return this.meta ? resolutionOf(this.meta) / 2 ** this.map.getZoom() : 0;
   }
 
   showConflicts(conflicts: Conflict[], t: number, windowMs: number): void {

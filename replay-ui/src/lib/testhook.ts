@@ -31,6 +31,9 @@ export interface ReplayHookContext {
   annotations: () => unknown;
   /** The incidents panel's list (ids, as listed) and its pick. */
   incidents: () => { listed: string[]; picked: string | null };
+  /** The heatmap's last read (its grid), whether one is under way or failed, and whether the
+   * map shows its picture. */
+  heatmap: () => { grid: unknown; loading: boolean; error: string | null; drawn: boolean };
 }
 
 export function exposeReplay(c: ReplayHookContext): void {
@@ -123,5 +126,6 @@ export function exposeReplay(c: ReplayHookContext): void {
       }));
       return { ...c.incidents(), highlighted: v?.highlighted ?? [], trails, marked: layers.some((l) => l instanceof L.CircleMarker) };
     },
+    heatmap: c.heatmap,
   };
 }

@@ -1,5 +1,6 @@
 /** What the address bar carries, so a link reopens the same moment, speed and view. */
 import { isSpeed, type Speed } from "./clock";
+import { formatHeatmap, parseHeatmap, type HeatmapState } from "./heatmap";
 import { oldestReadable } from "./retention";
 
 export interface UrlState {
@@ -26,6 +27,8 @@ export interface UrlState {
   incidentKinds: string[];
   incidentRobot: string | null;
   incident: string | null;
+  /** The heatmap over the floor (its kind and cell size; null: none), of the timeline's span. */
+  heatmap: HeatmapState | null;
   /** What was wrong with the address's `t`, to tell the user (null: nothing). */
   tProblem: string | null;
 }
@@ -92,6 +95,7 @@ export function parseUrlState(search: string): UrlState {
     incidentKinds: (q.get("ikind") ?? "").split(",").filter(Boolean),
     incidentRobot: q.get("irobot"),
     incident: q.get("inc"),
+    heatmap: parseHeatmap(q.get("heat")),
     tProblem,
   };
 }
@@ -145,6 +149,7 @@ export function formatUrlState(s: Omit<UrlState, "tProblem">): string {
   if (s.incidentKinds.length) q.set("ikind", s.incidentKinds.join(","));
   if (s.incidentRobot) q.set("irobot", s.incidentRobot);
   if (s.incident) q.set("inc", s.incident);
+  if (s.heatmap) q.set("heat", formatHeatmap(s.heatmap));
   return `?${q.toString()}`;
 }
 
