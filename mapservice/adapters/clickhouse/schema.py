@@ -331,7 +331,7 @@ def _conflicts_per_write(db: str, ttl_days: int) -> tuple[str, ...]:
     )
 
 
-SCHEMA_VERSION = 20
+SCHEMA_VERSION = 22
 
 # Tables partitioned by day (toDate of their time column), whose TTL schema v11 removed;
 # map_meta, snapshot_log and snapshot_repairs are not (retention.py deletes their old rows).
