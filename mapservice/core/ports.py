@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING, Protocol
 import msgspec
 
 from mapservice.core.annotations import AnnotationEdit, CurrentAnnotation, ZoneViolation
+from mapservice.core.bucket_rows import TimelineBucket as TimelineBucket
+from mapservice.core.bucket_rows import TrackBucket as TrackBucket
 from mapservice.core.commands import StoredCommandEvent
 from mapservice.core.events import ChunkUpdated, DeadLetter, Envelope, MapMetaSet
 from mapservice.core.incident_ports import IncidentFeed as IncidentFeed
@@ -158,34 +160,6 @@ class RetentionResult(msgspec.Struct, frozen=True):
     first_day_kept: str | None
     partitions_dropped: int
     contents_renewed: int
-
-
-class TimelineBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
-    """Activity in [start_ms, start_ms + bucket_ms): chunk writes, conflicts (by their
-    `ts`) and robots with at least one pose."""
-
-    start_ms: int
-    chunk_changes: int
-    conflicts: int
-    robots_active: int
-
-
-class TrackBucket(msgspec.Struct, frozen=True, gc=False, array_like=True):
-    """One robot over one bucket [start_ms, start_ms + bucket_ms) of a window, from every
-    pose it stored there (core/track_buckets.py has the rule): its poses, the steps that end
-    in the bucket (from the robot's previous pose in the window), their length in metres
-    (x, y) and the time they span, and the battery's range and mean over its poses."""
-
-    start_ms: int
-    poses: int
-    steps: int
-    distance_m: float
-    step_ms: int  # the time the steps span: distance_m / step_ms is the mean speed
-    first_ms: int
-    last_ms: int
-    battery_min: float | None
-    battery_max: float | None
-    battery_mean: float | None
 
 
 class ChangeFeed(Protocol):

@@ -29,9 +29,6 @@ from mapservice.core.events import (
     DeadLetter,
     Envelope,
     MapMetaSet,
-    VdaConnectionReported,
-    VdaFactsheetReported,
-    VdaStateReported,
 )
 from mapservice.core.heatmaps import HeatmapCell, HeatmapRule, fold_heatmap
 from mapservice.core.incidents import Incident
@@ -50,9 +47,10 @@ from mapservice.core.retention import DAY_MS
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.core.timetravel import fold_map, fold_robots, timeline_buckets
 from mapservice.core.track_buckets import fold_track_buckets
-from mapservice.core.vda_facts import VdaConnectionRow, VdaErrorRow, VdaFacts, VdaFactsheetRow
+from mapservice.core.vda_facts import VdaConnectionRow, VdaFacts
 from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
 from mapservice.testing.memory_incidents import IncidentLog
+from mapservice.testing.memory_vda import VdaLog
 from mapservice.testing.memory_webhooks import WebhookLog
 
 
@@ -73,11 +71,7 @@ class MemoryStore:
         self._metas: dict[tuple[int, str], MapMetaSet] = {}
         self._dead: list[DeadLetter] = []
         self._conflicts: dict[tuple[int, int, int, str], ConflictRow] = {}
-        # VDA 5050 facts, on their natural identities (as the tables' sort keys).
-        self._vda_errors: dict[tuple, VdaErrorRow] = {}
-        self._vda_connections: dict[tuple, VdaConnectionRow] = {}
-        self._vda_factsheets: dict[tuple, VdaFactsheetRow] = {}
-        self._vda_error_counts: dict[tuple[str, int], int] = {}  # per state (vda_states)
+        self._vda = VdaLog()
         self._annotation_edits: dict[tuple[str, int, str], AnnotationEdit] = {}
         self._zone_violations: dict[tuple[int, str, str], ZoneViolation] = {}
         self._incidents = IncidentLog()
@@ -99,7 +93,7 @@ class MemoryStore:
         with self._lock:
             for e in events:
                 p = e.payload
-                self._append_vda(e)
+                self._vda.append(e)
                 if (row := next(iter(pose_rows_of((e,))), None)) is not None:
                     self._poses[(e.robot_id, e.event_time_ms)] = row
                 elif isinstance(p, ChunkUpdated):
@@ -191,61 +185,16 @@ class MemoryStore:
             edits = [e for e in self._annotation_edits.values() if from_ms <= e.ts_ms < to_ms]
         return sorted(edits, key=lambda e: (e.ts_ms, e.event_id))[:limit]
 
-    def _append_vda(self, e: Envelope) -> None:
-        p, at, robot = e.payload, e.event_time_ms, e.robot_id
-        if isinstance(p, VdaStateReported):
-            self._vda_error_counts[(robot, at)] = len(p.errors)
-            for err in p.errors:
-                self._vda_errors[(robot, at, err.level, err.type, err.description)] = VdaErrorRow(
-                    at, err.level, err.type, err.description
-                )
-        elif isinstance(p, VdaConnectionReported):
-            self._vda_connections[(robot, at, p.state)] = VdaConnectionRow(
-                at, p.state, p.sent_time_ms
-            )
-        elif isinstance(p, VdaFactsheetReported):
-            self._vda_factsheets[(robot, at)] = VdaFactsheetRow(at, p.vda_version, p.factsheet_json)
-
     def vda_facts(self, robot_id: str, from_ms: int, to_ms: int, limit: int = 10_000) -> VdaFacts:
-        def within(rows: dict) -> list:
-            return [
-                v for k, v in sorted(rows.items()) if k[0] == robot_id and from_ms <= k[1] < to_ms
-            ]
-
-        sheets = [
-            v for k, v in sorted(self._vda_factsheets.items()) if k[0] == robot_id and k[1] < to_ms
-        ]
-        counts = sorted((k[1], n) for k, n in self._vda_error_counts.items() if k[0] == robot_id)
-        clears = [
-            t
-            for (_, before), (t, n) in zip(counts, counts[1:], strict=False)
-            if n == 0 and before > 0 and from_ms <= t < to_ms
-        ]
-        return VdaFacts(
-            errors=within(self._vda_errors)[:limit],
-            connections=within(self._vda_connections)[:limit],
-            factsheet=sheets[-1] if sheets else None,
-            error_clears=clears[:limit],
-        )
+        return self._vda.vda_facts(robot_id, from_ms, to_ms, limit)
 
     def connection_states_at(
         self, at_ms: int, since_ms: int, robots: Sequence[str]
     ) -> dict[str, VdaConnectionRow]:
-        wanted, out = set(robots), {}
-        for (robot, ts, _), row in sorted(self._vda_connections.items()):
-            if robot in wanted and since_ms < ts <= at_ms:
-                out[robot] = row  # the latest, of one instant the last by name
-        return out
+        return self._vda.connection_states_at(at_ms, since_ms, robots)
 
     def vda_fleet_facts(self, from_ms: int, to_ms: int, limit: int = 10_000) -> dict[str, VdaFacts]:
-        robots = {
-            k[0]
-            for rows in (self._vda_errors, self._vda_connections, self._vda_error_counts)
-            for k in rows
-            if from_ms <= k[1] < to_ms
-        }
-        facts = {r: self.vda_facts(r, from_ms, to_ms, limit) for r in sorted(robots)}
-        return {r: f for r, f in facts.items() if f.errors or f.connections or f.error_clears}
+        return self._vda.vda_fleet_facts(from_ms, to_ms, limit)
 
     def append_dead_letters(self, records: Sequence[DeadLetter]) -> None:
         with self._lock:
@@ -372,9 +321,7 @@ class MemoryStore:
                 for p in fold_robots(list(self._poses.values()), boundary).values()
             }
             self._commands = {k: v for k, v in self._commands.items() if k[0] >= cut}
-            for facts in (self._vda_errors, self._vda_connections):  # keyed (robot, ts, ...)
-                for k in [k for k in facts if k[1] < cut]:
-                    del facts[k]
+            self._vda.drop_before(cut)
             old_chunks = [k for k in self._chunks if k[0] < cut]
             old_poses = [k for k in self._poses if k[1] < cut and k not in carried_poses]
             if not old_chunks and not old_poses:
@@ -385,8 +332,8 @@ class MemoryStore:
             self._carried = fold_map([*self._carried.values(), *self._chunks.values()], boundary)
             for k in old_chunks:
                 del self._chunks[k]
-            for k in old_poses:
-                del self._poses[k]
+            for key in old_poses:
+                del self._poses[key]
             self._conflicts = {k: v for k, v in self._conflicts.items() if k[0] >= cut}
             self._zone_violations = {k: v for k, v in self._zone_violations.items() if k[0] >= cut}
             self._incidents.forget_before(cut)

@@ -1768,7 +1768,7 @@ export interface components {
          */
         WebhookIn: {
             /** Kinds */
-            kinds?: ("near_miss" | "stuck" | "offline" | "battery_low")[];
+            kinds?: ("near_miss" | "stuck" | "offline" | "battery_low" | "zone_violation" | "conflict" | "vda_error" | "command_failed")[];
             /** Url */
             url: string;
         };
