@@ -287,6 +287,10 @@ class IncidentTracker(UnstoredFindings):
 
     def _redo(self, robots: set[str], from_ms: int, now_ms: int) -> None:
         """Everything the poses of `robots` from `from_ms` on can change, the slow way."""
+        # Each robot's own rules look back from a silence before from_ms: one read of every
+        # robot's poses there, not one read of the store per robot (a rebuild of a thousand
+        # robots would take minutes, longer than the consumer's poll interval).
+        self._cover(from_ms - self.th.offline_after_ms - self.th.lookback_ms)
         known = self._known(from_ms - self.th.lookback_ms)
         for robot in sorted(robots):
             self._redo_own(robot, from_ms - self.th.offline_after_ms, now_ms, known)

@@ -231,6 +231,58 @@ def test_a_batch_of_poses_older_than_memory_reads_the_store_once() -> None:
     assert len(reads) <= 2, reads
 
 
+@pytest.mark.parametrize("robots", [1, 12, 60])
+def test_a_rebuild_reads_the_store_a_few_times_whatever_the_number_of_robots(robots) -> None:
+    """A rebuild (after a restart or a rebalance, on the processors' store thread) reads the
+    poses before memory's span that each robot's rules look back on in one read, not a read
+    per robot: at a thousand robots that was minutes, longer than the consumer's poll
+    interval, so the group rebalanced and the rebuild began again. Robots that move, stand
+    still with a path (stuck from before the span: its start is read from further back),
+    run low and fall silent; what the rebuild finds is what the rules find over the
+    history."""
+    th = IncidentThresholds()
+    store = MemoryStore()
+    reads = []
+
+    def read(from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:
+        reads.append((from_ms, to_ms, robot))
+        return reader(store)(from_ms, to_ms, robot)
+
+    t0 = 1_795_255_200_000
+    now = t0 + 240_000
+    rnd = random.Random(robots)
+    history = []
+    for r in range(robots):
+        x, y = 3.0 * r, round(rnd.uniform(0, 40), 1)
+        kind = r % 4
+        for k in range(240):
+            if kind == 3 and 170 <= k < 200:
+                continue  # silent for 30 s
+            if kind != 1:  # robot 1 of each four stands still with a path: stuck
+                x += 0.5
+            battery = 10.0 if kind == 2 and k > 200 else 60.0
+            history.append(fleet_pose(f"r{r:03d}", t0 + k * 1000, x, y, battery))
+    store.append([envelope(p, p.ts_ms) for p in history])
+    held_from = now - KEEP_MS
+    # what the processors stored before the restart: every incident as the rules find it
+    expected = [i for i in detect(history, now, th) if i.end_ms >= held_from - th.lookback_ms]
+    tracker = IncidentTracker(read, store.incidents, th, KEEP_MS)
+    tracker.load(read(held_from, now + 1, None), held_from, expected, now)
+    # A robot whose own incident goes on from before what memory holds (stuck since the
+    # history began) has its run read back from its start, alone: those reads follow the
+    # incidents that go on that long, not the fleet.
+    long_ongoing = {
+        i.robots[0]
+        for i in expected
+        if i.ongoing and i.kind != "near_miss" and i.start_ms < t0 + 60_000
+    }
+    assert len(reads) <= 4 + 2 * len(long_ongoing), (len(reads), long_ongoing, reads[:8])
+    found = [i for i in tracker.current.values() if i.end_ms >= held_from - th.lookback_ms]
+    assert normal(found) == normal(expected)
+    if robots >= 4:
+        assert {i.kind for i in expected} >= {"stuck", "battery_low", "offline"}
+
+
 def fleet_pose(robot: str, ts: int, x: float, y: float, battery: float) -> PoseRow:
     return PoseRow(robot, ts, x, y, 0, 0, 0, 0, 1, battery, False, None, ((0.0, 0.0),), ts)
 
