@@ -12,9 +12,9 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import mode
 import structlog
@@ -33,10 +33,15 @@ if TYPE_CHECKING:
     from .views import LiveViews
 
 log = structlog.get_logger(__name__)
+T = TypeVar("T")
 
 # A poll that waited this long (or a whole shortest window) and found nothing means the
 # stream holds nothing more yet.
 CAUGHT_UP_WAIT_S = 0.05
+# While a batch's store, its views or a rebuild runs longer than this, the source is asked
+# to keep this member in its group this often (EventSource.stay_in_group): well inside the
+# shortest max.poll.interval.ms the consumer is given (10 s, kafka_batch_source.py).
+STAY_IN_GROUP_EVERY_S = 2.0
 
 COMMIT_FAILURES = Counter(
     "mapservice_sink_commit_failures_total",
@@ -247,24 +252,20 @@ class HistoryConsumer:
             # The group changed: the pose views of what this replica stored are derived
             # first. The source commits no offset read before the change (its partition
             # may be another's now), so those records are delivered again: stored once.
-            await self.settle()
+            await self._in_group(self.settle())
             if self.views is not None:
                 # New partitions: rebuild the views from the history before their events
                 # (which may repeat what is stored) are applied.
-                await self.views.rebuild()
+                await self._in_group(self.views.rebuild())
         if not records:
             if self.views is not None and timeout >= min(CAUGHT_UP_WAIT_S, self.min_batch_seconds):
                 # waited and found nothing: not behind the stream (a poll that may not wait,
                 # after a long store, can come back empty with a backlog still to fetch)
                 self.views.clock.caught_up()
-            await self.settle()  # idle: the views catch up at once
+            await self._in_group(self.settle())  # idle: the views catch up at once
             self._timed_store(0.0)
             return 0
-        # Moving on would let the next commit cover this batch: retry it instead.
-        async for attempt in until_done("history batch", 0.5, records=len(records)):
-            with attempt:
-                self.heartbeat.beat()
-                stored = await self._store(records)
+        stored = await self._in_group(self._store_until_done(records))
         # The window is sized by the batch's own store time; the views' insert, once per
         # views_seconds, would make it jump.
         self._timed_store(self.monotonic() - self._last_poll_returned)
@@ -277,8 +278,33 @@ class HistoryConsumer:
             self.monotonic() - self._underived_since >= self.views_seconds
             or len(self._underived) >= self.batch_size
         ):
-            await self.settle()
+            await self._in_group(self.settle())
         return len(records)
+
+    async def _store_until_done(self, records: list[SourceRecord]) -> list:
+        # Moving on would let the next commit cover this batch: retry it instead.
+        async for attempt in until_done("history batch", 0.5, records=len(records)):
+            with attempt:
+                self.heartbeat.beat()
+                stored = await self._store(records)
+        return stored
+
+    async def _in_group(self, work: Awaitable[T]) -> T:
+        """`work`, while the source keeps this member in its group every
+        STAY_IN_GROUP_EVERY_S: a ClickHouse outage retried for a minute, or a rebuild
+        longer than the poll interval, would else make it leave the group, and the
+        rejoin's rebuild cost as much again (a loop while rebuilds outlast the interval).
+        The source's calls run on the consumer's thread, one at a time with its polls."""
+        task = asyncio.ensure_future(work)
+        while True:
+            done, _ = await asyncio.wait({task}, timeout=STAY_IN_GROUP_EVERY_S)
+            if done:
+                return task.result()
+            try:
+                await self._call(self.source.stay_in_group)
+            except BaseException:
+                task.cancel()
+                raise
 
     async def settle(self) -> None:
         """Derives the pose views of the stored events and writes the conflicts found in

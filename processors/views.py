@@ -147,13 +147,14 @@ class LiveViews:
         # Each part's seconds are logged: a rebuild runs on the store thread, and one longer
         # than the consumer's poll interval costs the group another rebalance.
         took: dict[str, float] = {}
-        for name, part in (
+        parts: tuple[tuple[str, Callable[[], None]], ...] = (
             ("map", lambda: self.map.load(self.history, horizon)),
             ("presence", lambda: self.presence.load(self.history, horizon)),
             ("zones", lambda: self.zones.load(horizon)),
             ("conflicts", lambda: self.conflicts.load(horizon)),
             ("incidents", lambda: self.incidents.load(horizon)),
-        ):
+        )
+        for name, part in parts:
             started = time.perf_counter()
             part()
             took[name] = round(time.perf_counter() - started, 3)

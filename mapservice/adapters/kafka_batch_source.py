@@ -38,6 +38,9 @@ STATS_INTERVAL_MS = 5000
 # partition is read again from the first missing offset, up to GAP_REREADS times in a row;
 # a gap still there after that is taken as real (records deleted under the reader) and logged.
 GAP_REREADS = 5
+# A paused poll hands out nothing; any it returns anyway (fetched before the pause) are
+# sought back to. Up to this many per call.
+STAY_MAX_RECORDS = 1000
 OFFSET_GAPS = Counter(
     "mapservice_consumer_offset_gaps_total",
     "Jumps past unseen offsets: read again, or accepted after GAP_REREADS tries",
@@ -66,8 +69,9 @@ STALE_COMMITS = Counter(
 
 
 def consumer_config(settings: Settings, group_id: str) -> dict:
-    # A batch may take this long between polls (a stalled insert) before the member leaves
-    # its group; the session (heartbeats, sent by librdkafka's own thread) may be shorter.
+    # How long between polls before the member leaves its group: work longer than this (a
+    # stalled insert, a rebuild) keeps it in with `stay_in_group`. The session
+    # (heartbeats, sent by librdkafka's own thread) may be shorter.
     poll_ms = max(int(settings.kafka_rebalance_timeout_s * 1000), 10_000)
     session_ms = int(
         max(settings.kafka_rebalance_timeout_s, settings.kafka_session_timeout_s) * 1000
@@ -226,6 +230,23 @@ class KafkaBatchSource:
                 SourceRecord(m.topic(), m.partition(), m.offset(), m.value() or b"", membership)
             )
         return out
+
+    def stay_in_group(self) -> None:
+        """A poll with every owned partition paused: max.poll.interval.ms counts from the
+        last poll, so a member whose batch or rebuild takes longer than it would leave the
+        group and, rejoined, rebuild again. Kafka's own way for long work between polls.
+        Records pausing leaves in the queue (fetched before) are read again, not handed out."""
+        assert self.consumer is not None, "start() first"
+        paused = self.consumer.assignment()
+        self.consumer.pause(paused)
+        try:
+            messages = self.consumer.consume(STAY_MAX_RECORDS, 0)
+            taken = [m for m in messages if m.error() is None]
+            if taken:
+                self._read_again(taken)
+        finally:
+            owned = {(tp.topic, tp.partition) for tp in self.consumer.assignment()}
+            self.consumer.resume([tp for tp in paused if (tp.topic, tp.partition) in owned])
 
     def _read_again(self, messages: list) -> bool:
         """Seeks each partition of `messages` this member still owns back to its first

@@ -128,6 +128,12 @@ class EventSource(Protocol):
         """Marks the records consumed; False when they will be delivered again instead
         (a source that commits asynchronously may also learn that only later)."""
 
+    def stay_in_group(self) -> None:
+        """Called every few seconds while the consumer works long between polls (a views
+        rebuild, inserts retried through an outage): keeps its membership without handing
+        out records, which the next poll delivers in order. A group change meanwhile is
+        taken as in a poll."""
+
     def close(self) -> None: ...
 
 

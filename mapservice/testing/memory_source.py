@@ -24,6 +24,7 @@ class MemorySource:
         self.started = False
         self.fail_commits = False
         self.membership = 0  # counts the group's changes (SourceRecord.membership)
+        self.stays = 0  # calls of stay_in_group
         self._lock = threading.Lock()
 
     def append(self, topic: str, value: bytes, partition: int = 0) -> SourceRecord:
@@ -54,6 +55,10 @@ class MemorySource:
                 key = (r.topic, r.partition)
                 self.committed[key] = max(self.committed.get(key, 0), r.offset + 1)
         return len(current) == len(records)
+
+    def stay_in_group(self) -> None:
+        """The twin's group never drops a member for a long pause: nothing to do but count."""
+        self.stays += 1
 
     def rebalance(self) -> None:
         """The group changed (a member joined or left) and this member got its partitions

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import time
+
+import pytest
 
 from mapservice.core.events import encode
+from mapservice.processors import history_consumer
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
 from mapservice.testing.memory_source import MemorySource
@@ -183,3 +187,41 @@ def test_failing_inserts_are_reported_and_commit_nothing_until_they_succeed(ev) 
     assert gauge("mapservice_history_insert_failing_since_timestamp_seconds") == 0.0
     assert gauge("mapservice_history_last_insert_timestamp_seconds") > 0
     assert store.counts().poses == 5 and source.committed == {(POSES, 0): 5}
+
+
+class SlowStore(MemoryStore):
+    """Each append takes `seconds`, as an insert into a loaded ClickHouse may."""
+
+    def __init__(self, seconds: float) -> None:
+        super().__init__()
+        self.seconds = seconds
+
+    def append_events(self, events) -> None:
+        time.sleep(self.seconds)
+        super().append_events(events)
+
+
+@pytest.mark.parametrize(
+    ("store", "stays"),
+    [
+        pytest.param(lambda: MemoryStore(), 0, id="quick-insert"),
+        pytest.param(lambda: SlowStore(0.5), 3, id="slow-insert"),
+        pytest.param(lambda: FlakyStore(failures=2), 3, id="insert-retried"),
+    ],
+)
+def test_the_member_stays_in_its_group_while_a_batch_takes_long(ev, monkeypatch, store, stays):
+    """A batch whose store takes longer than the stay interval (a slow or failing insert,
+    retried; a rebuild goes the same way) asks the source to keep the member in its group
+    meanwhile, and polls nothing: Kafka would else drop the member after
+    max.poll.interval.ms, and its rejoin would rebuild the views again. A quick one does
+    not ask."""
+    monkeypatch.setattr(history_consumer, "STAY_IN_GROUP_EVERY_S", 0.1)
+    source, made = MemorySource(), store()
+    for i in range(3):
+        source.append(POSES, encode(ev.pose("r1", NOW + i * 1000)))
+    drain(consumer_for(made, source))
+    assert made.counts().poses == 3 and source.committed == {(POSES, 0): 3}
+    if stays:
+        assert source.stays >= stays
+    else:
+        assert source.stays == 0
