@@ -112,18 +112,26 @@ def test_one_caller_cannot_take_the_pool_alone() -> None:
     store = StuckStore()
     app = create_app(Settings(api_caller_concurrency=2, api_read_workers=8), store)
 
+    async def entered(count: int) -> None:
+        # Waited for, not slept on: a loaded machine may take seconds to start a thread.
+        deadline = time.monotonic() + 30
+        while store.entered < count:
+            assert time.monotonic() < deadline, (store.entered, count)
+            await asyncio.sleep(0.02)
+
     async def scenario():
         mine = [asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots")) for _ in range(2)]
-        await asyncio.sleep(0.3)
+        await entered(2)
         third = asyncio.create_task(_get(app, "10.0.0.1", "/api/v1/robots"))
         other = asyncio.create_task(_get(app, "10.0.0.2", "/api/v1/robots"))
+        await entered(3)  # the other's, served at once
         await asyncio.sleep(0.3)
-        entered = store.entered  # the two of 10.0.0.1 and the other's, not the third
+        reads = store.entered  # the two of 10.0.0.1 and the other's, not the third
         store.release.set()
-        return entered, await third, await other, await asyncio.gather(*mine)
+        return reads, await third, await other, await asyncio.gather(*mine)
 
-    entered, third, other, mine = asyncio.run(scenario())
-    assert entered == 3
+    reads, third, other, mine = asyncio.run(scenario())
+    assert reads == 3
     assert third.status_code == 200 and other.status_code == 200
     assert all(r.status_code == 200 for r in mine)
 
