@@ -26,6 +26,7 @@ from mapservice.core.commands import CommandIssued, StoredCommandEvent
 from mapservice.core.event_incidents import (
     EVENT_KINDS,
     EventRecords,
+    Locate,
     command_failed,
     conflict_incidents,
     connection_offline_incidents,
@@ -42,6 +43,7 @@ from mapservice.core.incident_model import (
     OFFLINE_CRITICAL_S,
     Incident,
     IncidentThresholds,
+    PoseRef,
     incident_id,
 )
 from mapservice.core.ports import PoseRow
@@ -303,7 +305,7 @@ class EventIncidentTracker(UnstoredFindings):
                     self._replace(before, went_on)
                     continue
             start = min([cut, *(i.start_ms for i in before)])
-            fresh = self._rule(family, robot, start, cut, now_ms)
+            fresh = self._rule(family, robot, start, cut, now_ms, before)
             self._replace(before, [i for i in fresh if i.ongoing or i.end_ms >= cut])
         by_id = {i.incident_id: i for i in known}
         for k in sorted(commands):
@@ -318,7 +320,20 @@ class EventIncidentTracker(UnstoredFindings):
             was = by_id.get(incident_id("command_failed", (robot, k), issued.ts_ms))
             self._replace([was] if was else [], [placed(failed, self._locate)] if failed else [])
 
-    def _rule(self, family: str, robot: str, start: int, cut: int, now_ms: int) -> list[Incident]:
+    def _rule(
+        self,
+        family: str,
+        robot: str,
+        start: int,
+        cut: int,
+        now_ms: int,
+        before: Sequence[Incident] = (),
+    ) -> list[Incident]:
+        """The family's incidents of `robot` from `start` on, placed. An evidence the known
+        incidents (`before`) hold keeps its place: a run that goes on (conflicts a few
+        seconds apart for an hour) is judged again from its start with every batch, and
+        its first evidence lies before memory's poses, so locating it again would read
+        the store each batch. A late pose that moves it is placed by `_place_again`."""
         if family == "zone":
             return self._zone_runs(robot, start, cut)
         rows = self._rows(family, robot, start)
@@ -329,7 +344,8 @@ class EventIncidentTracker(UnstoredFindings):
             found = vda_error_incidents([rows[t] for t in sorted(rows)], now_ms)
         else:
             found = connection_offline_incidents([rows[t] for t in sorted(rows)], now_ms)
-        return [placed(i, self._locate) for i in found]
+        locate = self._locator([e for i in before for e in i.evidence])
+        return [placed(i, locate) for i in found]
 
     def _zone_going_on(
         self, robot: str, before: list[Incident], first_new_ms: int
@@ -389,6 +405,16 @@ class EventIncidentTracker(UnstoredFindings):
             self._remember(self.read(start, self._held(robot), robot))
             self.held_from[robot] = start
 
+    def _locator(self, kept: Iterable[PoseRef]) -> Locate:
+        """Places evidence where `kept` placed it already, and the rest from the poses."""
+        places = {(e.robot_id, e.ts_ms): (e.x, e.y) for e in kept}
+
+        def locate(robot: str, ts_ms: int) -> tuple[float, float] | None:
+            place = places.get((robot, ts_ms))
+            return place if place is not None else self._locate(robot, ts_ms)
+
+        return locate
+
     def _locate(self, robot: str, ts_ms: int) -> tuple[float, float] | None:
         track = self.track(robot, ts_ms + 1)
         return (track[0].x, track[0].y) if track and track[0].ts_ms <= ts_ms else None
@@ -401,7 +427,11 @@ class EventIncidentTracker(UnstoredFindings):
                 e.ts_ms >= first_pose.get(e.robot_id, e.ts_ms + 1) for e in incident.evidence
             ):
                 continue
-            self._note(placed(incident, self._locate))
+            # only the evidence at or after its robot's first new pose can move
+            kept = [
+                e for e in incident.evidence if e.ts_ms < first_pose.get(e.robot_id, e.ts_ms + 1)
+            ]
+            self._note(placed(incident, self._locator(kept)))
 
     def _cover(self, from_ms: int) -> None:
         """Memory holds every robot's records from `from_ms` on: read from the store at
