@@ -101,10 +101,10 @@ def _incident(at_ms: int, incident: Incident, event: str) -> Message:
 
 
 def incidents_at(store: IncidentReader, at_ms: int) -> list[Message]:
-    """The incidents going on at `at_ms` (begun at or before it, not ended before it), each
-    as known then."""
+    """The incidents going on at `at_ms` (begun at or before it, not ended before it; one
+    ending at it as its end), each as known then."""
     return [
-        _incident(at_ms, i, "ongoing")
+        _incident(at_ms, i, "end" if not i.ongoing and i.end_ms <= at_ms else "ongoing")
         for i in store.incidents(at_ms, at_ms + 1, limit=_LIMIT)
         if i.start_ms <= at_ms
     ]
