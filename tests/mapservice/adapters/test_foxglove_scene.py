@@ -20,7 +20,6 @@ from mapservice.adapters.foxglove_messages import (
 )
 from mapservice.adapters.foxglove_replay import ReplaySession
 from mapservice.adapters.foxglove_scene import FoxgloveScene
-from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.adapters.mcap_channels import (
     MAP_CHANGES_TOPIC,
     MAP_TOPIC,
@@ -29,6 +28,7 @@ from mapservice.adapters.mcap_channels import (
     pose_topic,
     state_topic,
 )
+from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.core.live_messages import live_record_texts, live_records
 from mapservice.core.render import stitch
 from mapservice.testing.memory_store import MemoryStore
