@@ -1,6 +1,7 @@
-"""What the processors found, on one Foxglove SDK context: the incidents (`/incidents`), the
-conflicts (`/conflicts`) and each VDA 5050 vehicle's errors and connection state, with the
-MCAP export's topics, schemas and messages (mcap_findings.py). Part of a scene
+"""What the processors found, on one Foxglove SDK context: the incidents (`/incidents`, their
+markers on `/incidents/markers`), the conflicts (`/conflicts`) and each VDA 5050 vehicle's
+errors and connection state, with the MCAP export's topics, schemas and messages
+(mcap_findings.py). Part of a scene
 (foxglove_scene.py), driven by its owner's thread: a seek's picture (the incidents going on
 and the errors standing at T), a replay's span, the live stream's incident messages, and
 the live re-read of conflicts and VDA 5050 facts (they are not on the live topic).
@@ -21,6 +22,7 @@ from mapservice.adapters.foxglove_channels import FoxgloveChannels
 from mapservice.adapters.mcap_channels import (
     CONFLICT_SCHEMA_NAME,
     CONFLICTS_TOPIC,
+    INCIDENT_MARKERS_TOPIC,
     INCIDENT_SCHEMA_NAME,
     INCIDENTS_TOPIC,
 )
@@ -29,6 +31,7 @@ from mapservice.adapters.mcap_findings import (
     Message,
     conflict_messages,
     incident_doc,
+    incident_marker,
     incident_messages,
     incident_of_live,
     incidents_at,
@@ -52,7 +55,10 @@ class FoxgloveFindings:
         self.sent = 0  # messages sent (tests, metrics)
         self._read_to: int | None = None  # live: where the last re-read ended
         self._read_keys: set[tuple[int, str, str]] = set()  # what it sent of its span
+        from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
         channels.declare_json(INCIDENTS_TOPIC, INCIDENT_SCHEMA_NAME)
+        channels.declare_protobuf(INCIDENT_MARKERS_TOPIC, SceneUpdate)
         channels.declare_json(CONFLICTS_TOPIC, CONFLICT_SCHEMA_NAME)
 
     def draw_at(self, at_ms: int) -> None:
@@ -78,6 +84,8 @@ class FoxgloveFindings:
                 self.latest[topic] = (ts_ms, schema, doc)
             if self.channels.listened(topic):
                 self.channels.json(topic, schema, doc, ts_ms)
+            if topic == INCIDENTS_TOPIC and self.channels.listened(INCIDENT_MARKERS_TOPIC):
+                self.channels.protobuf(INCIDENT_MARKERS_TOPIC, incident_marker(doc, ts_ms), ts_ms)
             self.sent += 1
 
     def _keep_incident(self, ts_ms: int, doc: dict[str, Any]) -> None:
@@ -120,6 +128,10 @@ class FoxgloveFindings:
         if topic == INCIDENTS_TOPIC:
             for ts_ms, doc in list(self.going_on.values()):
                 self.channels.json(INCIDENTS_TOPIC, INCIDENT_SCHEMA_NAME, doc, ts_ms)
+            return True
+        if topic == INCIDENT_MARKERS_TOPIC:
+            for ts_ms, doc in list(self.going_on.values()):
+                self.channels.protobuf(topic, incident_marker(doc, ts_ms), ts_ms)
             return True
         if topic == CONFLICTS_TOPIC:
             return True  # each conflict is an instant's: nothing stands

@@ -149,6 +149,8 @@ CONNECTION_SCHEMA = {
     "required": ["state", "online", "sent_ms"],
 }
 INCIDENTS_TOPIC = "/incidents"
+# Each incident going on as a marker at its place (foxglove.SceneUpdate), gone at its end.
+INCIDENT_MARKERS_TOPIC = "/incidents/markers"
 CONFLICTS_TOPIC = "/conflicts"
 
 # What one incident message says happened (`ongoing`: it was going on when the reader's

@@ -3,7 +3,8 @@
 `foxglove.PosesInFrame`, its frame in the map as `foxglove.FrameTransform` on `/tf`, and its
 battery, charging and loaded flags as a JSON channel whose JSON schema states the units; a
 VDA 5050 vehicle's errors and warnings and its connection state as JSON channels too, and
-the incidents and conflicts (mcap_findings); the operators' annotations standing as `foxglove.SceneUpdate` on `/annotations` and their
+the incidents (with their markers as `foxglove.SceneUpdate`) and conflicts (mcap_findings);
+the operators' annotations standing as `foxglove.SceneUpdate` on `/annotations` and their
 commands with the robots' answers as JSON on `/commands` (mcap_annotations). Topic names and
 JSON schemas: mcap_channels; the messages: foxglove_messages (the Foxglove WebSocket server
 sends the same). CSV and Parquet: table_export.
@@ -36,6 +37,7 @@ from mapservice.adapters.mcap_channels import (
     CONFLICT_SCHEMA_NAME,
     CONNECTION_SCHEMA_NAME,
     ERRORS_SCHEMA_NAME,
+    INCIDENT_MARKERS_TOPIC,
     INCIDENT_SCHEMA_NAME,
     JSON_SCHEMAS,
     MAP_TOPIC,
@@ -45,7 +47,12 @@ from mapservice.adapters.mcap_channels import (
     pose_topic,
     state_topic,
 )
-from mapservice.adapters.mcap_findings import conflict_messages, incident_messages, vda_messages
+from mapservice.adapters.mcap_findings import (
+    conflict_messages,
+    incident_messages,
+    markers_of,
+    vda_messages,
+)
 from mapservice.core.ports import (
     AnnotationReader,
     CommandReader,
@@ -71,6 +78,7 @@ class McapCounts:
     commands: int = 0
     transforms: int = 0  # foxglove.FrameTransform on /tf, one with each pose
     incidents: int = 0  # messages on /incidents (a start, an end, one going on at the start)
+    incident_markers: int = 0  # SceneUpdates on /incidents/markers, one per incident message
     conflicts: int = 0
 
 
@@ -163,7 +171,9 @@ def _side_messages(
     at `from_ms` and after each edit, the commands with the robots' answers, the incidents
     (those going on at `from_ms`, each start and end) and the conflicts."""
     out: list[tuple[int, str, str | None, object]] = list(vda_messages(sources.vda, from_ms, to_ms))
-    out += incident_messages(sources.incidents, from_ms, to_ms)
+    incidents = incident_messages(sources.incidents, from_ms, to_ms)
+    out += incidents
+    out += markers_of(incidents)
     out += conflict_messages(sources.conflicts, from_ms, to_ms)
     out += [
         (t, ANNOTATIONS_TOPIC, None, scene_update(t, standing))
@@ -222,6 +232,8 @@ def export_mcap(
                 counts.incidents += 1
             elif schema == CONFLICT_SCHEMA_NAME:
                 counts.conflicts += 1
+            elif topic == INCIDENT_MARKERS_TOPIC:
+                counts.incident_markers += 1
             else:
                 counts.annotation_updates += 1
             side_next += 1

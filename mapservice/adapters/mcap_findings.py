@@ -3,6 +3,10 @@ WebSocket server send the same): incidents on `/incidents` and conflicts on `/co
 (JSON, their schemas: mcap_channels), and a VDA 5050 vehicle's errors and connection states on its
 own channels (mcap_channels: `/robots/<id>/errors`, `/robots/<id>/connection`).
 
+Each incident message has its marker on `/incidents/markers` (a `foxglove.SceneUpdate`: a
+sphere at its place, red when critical, amber else, labelled with its kind and robots,
+deleted at its end).
+
 An incident is one message at its start and one at its end (an ongoing one: its start
 only), each saying what was known of it then: at its start it is ongoing with no end, and
 its evidence is the poses up to that instant; its kind's figure is the one last found. A
@@ -17,13 +21,16 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from mapservice.adapters.mcap_annotations import label_at, paint
 from mapservice.adapters.mcap_channels import (
     CONFLICT_SCHEMA_NAME,
     CONFLICTS_TOPIC,
     CONNECTION_SCHEMA_NAME,
     ERRORS_SCHEMA_NAME,
+    INCIDENT_MARKERS_TOPIC,
     INCIDENT_SCHEMA_NAME,
     INCIDENTS_TOPIC,
+    MAP_FRAME,
     connection_topic,
     errors_topic,
 )
@@ -83,6 +90,44 @@ def incident_of_live(listed: Mapping[str, Any]) -> Incident:
             for e in listed["evidence"]
         ),
     )
+
+
+_SEVERITY_RGBA = {"critical": (0.9, 0.1, 0.1, 1.0), "warning": (1.0, 0.65, 0.0, 1.0)}
+
+
+def incident_marker(doc: Mapping[str, Any], ts_ms: int) -> Any:
+    """An incident message's marker (foxglove.SceneUpdate): its entity drawn, or deleted
+    once it ended or was retracted."""
+    from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    update = SceneUpdate()
+    if doc["event"] in ("end", "retracted"):
+        deletion = update.deletions.add()
+        deletion.timestamp.FromMilliseconds(ts_ms)
+        deletion.type, deletion.id = SceneEntityDeletion.Type.MATCHING_ID, doc["id"]
+        return update
+    entity = update.entities.add()
+    entity.timestamp.FromMilliseconds(ts_ms)
+    entity.frame_id, entity.id = MAP_FRAME, doc["id"]
+    rgba = _SEVERITY_RGBA.get(doc["severity"], _SEVERITY_RGBA["warning"])
+    sphere = entity.spheres.add()
+    sphere.pose.position.x, sphere.pose.position.y = doc["x"], doc["y"]
+    sphere.pose.orientation.w = 1.0
+    sphere.size.x = sphere.size.y = sphere.size.z = 0.6
+    paint(sphere.color, (*rgba[:3], 0.6))
+    label_at(entity, doc["x"], doc["y"], f"{doc['kind']} ({', '.join(doc['robots'])})", rgba)
+    return update
+
+
+def markers_of(messages: list[Message]) -> list[tuple[int, str, None, Any]]:
+    """The markers of the incident messages among `messages` (log time, topic, no JSON
+    schema: protobuf, SceneUpdate)."""
+    return [
+        (t, INCIDENT_MARKERS_TOPIC, None, incident_marker(doc, t))
+        for t, topic, _, doc in messages
+        if topic == INCIDENTS_TOPIC
+    ]
 
 
 def conflict_doc(conflict: ConflictRow) -> dict[str, Any]:

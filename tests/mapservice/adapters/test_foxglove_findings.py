@@ -14,6 +14,7 @@ import random
 import pytest
 from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 from mapservice.adapters.foxglove_findings import FoxgloveFindings
 from mapservice.adapters.foxglove_replay import ReplaySession
@@ -22,6 +23,7 @@ from mapservice.adapters.mcap_channels import (
     CONFLICT_SCHEMA,
     CONFLICTS_TOPIC,
     ERRORS_SCHEMA_NAME,
+    INCIDENT_MARKERS_TOPIC,
     INCIDENT_SCHEMA,
     INCIDENTS_TOPIC,
     JSON_SCHEMAS,
@@ -227,7 +229,18 @@ def test_the_mcap_export_holds_the_incidents_and_conflicts_of_its_window():
     assert [(t, m["row"], m["column"]) for top, t, m in read if top == CONFLICTS_TOPIC] == [
         (w0 + 3_000, 0, 1)
     ]
-    assert (counts.incidents, counts.conflicts) == (7, 1)
+    # Each incident message's marker: drawn while it goes on, deleted at its end.
+    decoder = DecoderFactory()
+    markers = [
+        (m.log_time // 1_000_000, decoder.decoder_for(c.message_encoding, s)(m.data))
+        for s, c, m in make_reader(io.BytesIO(out.getvalue())).iter_messages()
+        if c.topic == INCIDENT_MARKERS_TOPIC
+    ]
+    assert [(t, [e.id for e in u.entities], [d.id for d in u.deletions]) for t, u in markers] == [
+        (t, [] if event == "end" else [id_], [id_] if event == "end" else [])
+        for t, event, id_, _ in got
+    ]
+    assert (counts.incidents, counts.incident_markers, counts.conflicts) == (7, 7, 1)
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -307,6 +320,10 @@ def test_playing_sends_every_start_end_conflict_and_error_of_the_span_at_its_tim
     assert error_instants == [
         t for k, (t, n) in enumerate(states) if t >= at and (n or (k and states[k - 1][1]))
     ]
+    markers = channels.on(INCIDENT_MARKERS_TOPIC)
+    assert [(t, [e.id for e in u.entities] or [d.id for d in u.deletions]) for t, u in markers] == [
+        (t, [m["id"]]) for t, m in channels.on(INCIDENTS_TOPIC)
+    ]
     order = [
         t
         for top, t, _ in channels.sent
@@ -348,7 +365,13 @@ def test_the_live_feed_sends_each_announced_incident_and_the_new_conflicts_once(
         feed._apply(live([stuck(T0 + 50_000, True), near], [], T0 + 50_000))
         mark = len(channels.sent)
         scene.resend(INCIDENTS_TOPIC)  # a late subscriber: the incident going on
-        assert [m["id"] for _, _, m in channels.sent[mark:]] == [stuck(0, True).incident_id]
+        scene.resend(INCIDENT_MARKERS_TOPIC)  # and its marker
+        [(top, _, doc), (marker_top, _, marker)] = channels.sent[mark:]
+        assert (top, doc["id"]) == (INCIDENTS_TOPIC, stuck(0, True).incident_id)
+        assert (marker_top, [e.id for e in marker.entities]) == (
+            INCIDENT_MARKERS_TOPIC,
+            [doc["id"]],
+        )
         del channels.sent[mark:]
         feed._apply(live([], [stuck(T0 + 50_000, True)], T0 + 60_000))
         feed._apply(live([stuck(T0 + 70_000, False)], [], T0 + 70_000))
@@ -360,6 +383,7 @@ def test_the_live_feed_sends_each_announced_incident_and_the_new_conflicts_once(
         feed._apply([])
     finally:
         feed.close()
+    assert len(channels.on(INCIDENT_MARKERS_TOPIC)) == len(channels.on(INCIDENTS_TOPIC))
     sent = [(t, m["event"], m["kind"], m["end_ms"]) for t, m in channels.on(INCIDENTS_TOPIC)]
     assert sent == [
         (T0 + 40_000, "start", "stuck", None),
