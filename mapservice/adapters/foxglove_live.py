@@ -104,7 +104,10 @@ class FoxgloveLive(ServerListener):
                     changes = []
                 self.scene.pose(pose_row_of_live(message))
             elif kind == "incident":
-                self.scene.findings.live_incident(message)
+                try:
+                    self.scene.findings.live_incident(message)
+                except (KeyError, TypeError, ValueError) as exc:  # the batch's others go on
+                    log.warning("foxglove live feed: bad incident message", error=repr(exc))
             elif kind == "chunk":
                 changes.append(
                     ChunkChange(

@@ -419,3 +419,24 @@ def test_findings_resend_nothing_for_a_topic_not_theirs():
     findings_view = FoxgloveFindings(channels, sources(MemoryStore()))  # type: ignore[arg-type]
     assert not findings_view.resend("/map")
     assert findings_view.resend(CONFLICTS_TOPIC) and channels.sent == []
+
+
+def test_a_malformed_incident_message_is_skipped_and_the_rest_of_its_batch_drawn():
+    from mapservice.adapters.foxglove_live import FoxgloveLive
+    from mapservice.adapters.mcap_channels import pose_topic
+    from mapservice.core.live_messages import live_records
+
+    store = MemoryStore()
+    store.append([meta_event(T0 - 100_000)])
+    channels = Recorder()
+    scene = FoxgloveScene(channels, sources(store))  # type: ignore[arg-type]
+    feed = FoxgloveLive(scene, lambda: T0, grid_every_s=3600, annotations_every_s=3600)
+    [pose] = [
+        m for r in live_records([pose_event("a", T0, x=1.0, y=2.0)]) for m in live_record_texts(r)
+    ]
+    bad = {"type": "incident", "ts_ms": T0, "retracted": False, "incident": {"id": "x"}}
+    try:
+        feed._apply([bad, pose])
+    finally:
+        feed.close()
+    assert channels.on(INCIDENTS_TOPIC) == [] and len(channels.on(pose_topic("a"))) == 1
