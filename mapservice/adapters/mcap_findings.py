@@ -1,7 +1,7 @@
 """What the processors found, as Foxglove channels (the MCAP export and the Foxglove
 WebSocket server send the same): incidents on `/incidents` and conflicts on `/conflicts`
-(JSON, their schemas: mcap_channels), and a VDA 5050 vehicle's errors and connection states on its
-own channels (mcap_channels: `/robots/<id>/errors`, `/robots/<id>/connection`).
+(JSON, their schemas: mcap_channels), and a VDA 5050 vehicle's errors and connection
+states on its own channels (`/robots/<id>/errors`, `/robots/<id>/connection`).
 
 Each incident message has its marker on `/incidents/markers` (a `foxglove.SceneUpdate`: a
 sphere at its place, red when critical, amber else, labelled with its kind and robots,
@@ -14,7 +14,7 @@ reader that starts at T (a seek, an export's start) gets the incidents going on 
 Live, each finding the processors announce is one message (a start, an update of an
 ongoing one, an end, or a retraction: the live detection dropped it).
 
-May depend on: the ports and the incident model."""
+May depend on: the ports, the incident model and the annotations' drawing helpers."""
 
 from __future__ import annotations
 
