@@ -82,6 +82,9 @@ class FoxgloveFindings:
                 self._keep_incident(ts_ms, doc)
             elif topic != CONFLICTS_TOPIC:
                 self.latest[topic] = (ts_ms, schema, doc)
+            # Advertised first: a client subscribes to a vehicle's new channel on its
+            # advertisement and gets this message then (`resend`).
+            self.channels.declare_json(topic, schema)
             if self.channels.listened(topic):
                 self.channels.json(topic, schema, doc, ts_ms)
             if topic == INCIDENTS_TOPIC and self.channels.listened(INCIDENT_MARKERS_TOPIC):

@@ -152,6 +152,7 @@ def scene_update(ts_ms: int, annotations: dict[str, Shape]):
         entity = update.entities.add()
         entity.timestamp.FromMilliseconds(ts_ms)
         entity.frame_id, entity.id = _MAP_FRAME, annotation_id
+        entity.lifetime.SetInParent()  # zero: until deleted (present, as Foxglove's schema wants)
         for key, value in (
             ("shape", "zone" if isinstance(shape, Zone) else "poi"),
             ("kind", shape.kind),

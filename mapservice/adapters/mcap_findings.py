@@ -110,6 +110,7 @@ def incident_marker(doc: Mapping[str, Any], ts_ms: int) -> Any:
     entity = update.entities.add()
     entity.timestamp.FromMilliseconds(ts_ms)
     entity.frame_id, entity.id = MAP_FRAME, doc["id"]
+    entity.lifetime.SetInParent()  # zero: until deleted (present, as Foxglove's schema wants)
     rgba = _SEVERITY_RGBA.get(doc["severity"], _SEVERITY_RGBA["warning"])
     sphere = entity.spheres.add()
     sphere.pose.position.x, sphere.pose.position.y = doc["x"], doc["y"]

@@ -250,7 +250,8 @@ def test_live_sends_each_incident_found_and_vda_errors_on_their_channels(fox):
         )
         assert found["valid"] and found["msg"]["kind"] == "battery_low", found
         assert found["msg"]["event"] == "start" and found["msg"]["end_ms"] is None
-        listed = fox.api("/api/v1/incidents", **{"from": 0, "to": int(time.time() * 1000) + 1})
+        now = int(time.time() * 1000)
+        listed = fox.api("/api/v1/incidents", **{"from": now - 86_400_000, "to": now + 1})
         assert found["msg"]["id"] in {i["id"] for i in listed.json()["incidents"]}
         serial = str(random.randrange(10**6))
         state = vda.state(
