@@ -138,6 +138,18 @@ class _McapOut:
         self.writer.finish()
 
 
+# The count each side message adds to, by its JSON schema (a protobuf one's: by its topic);
+# the rest are the annotations' SceneUpdates.
+_COUNTED = {
+    ERRORS_SCHEMA_NAME: "vda_errors",
+    CONNECTION_SCHEMA_NAME: "vda_connections",
+    COMMANDS_SCHEMA_NAME: "commands",
+    INCIDENT_SCHEMA_NAME: "incidents",
+    CONFLICT_SCHEMA_NAME: "conflicts",
+    INCIDENT_MARKERS_TOPIC: "incident_markers",
+}
+
+
 @dataclass(frozen=True)
 class ReplaySources:
     """The store's roles a replay (an export, the Foxglove server) reads: the map and poses
@@ -213,8 +225,8 @@ def export_mcap(
     side_next = 0
 
     def write_side(until_ms: int) -> None:
-        """The VDA, annotation and command messages before `until_ms` not yet written (log
-        times stay in order)."""
+        """The side messages (VDA, annotations, commands, incidents, conflicts) before
+        `until_ms` not yet written (log times stay in order)."""
         nonlocal side_next
         while side_next < len(side) and side[side_next][0] < until_ms:
             ts_ms, topic, schema, payload = side[side_next]
@@ -222,20 +234,8 @@ def export_mcap(
                 writer.json(topic, schema, payload, ts_ms)
             else:
                 writer.protobuf(topic, payload, ts_ms)
-            if schema == ERRORS_SCHEMA_NAME:
-                counts.vda_errors += 1
-            elif schema == CONNECTION_SCHEMA_NAME:
-                counts.vda_connections += 1
-            elif schema == COMMANDS_SCHEMA_NAME:
-                counts.commands += 1
-            elif schema == INCIDENT_SCHEMA_NAME:
-                counts.incidents += 1
-            elif schema == CONFLICT_SCHEMA_NAME:
-                counts.conflicts += 1
-            elif topic == INCIDENT_MARKERS_TOPIC:
-                counts.incident_markers += 1
-            else:
-                counts.annotation_updates += 1
+            counted = _COUNTED.get(schema or topic, "annotation_updates")
+            setattr(counts, counted, getattr(counts, counted) + 1)
             side_next += 1
 
     def write_grid(ts_ms: int) -> None:
