@@ -20,6 +20,7 @@ from fastapi import FastAPI
 from mapservice.adapters.clock import clock_from_settings
 from mapservice.adapters.kafka_live_relay import KafkaLiveRelay
 from mapservice.adapters.kafka_publisher import KafkaPublisher
+from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.core.live_messages import LiveText
 from mapservice.core.ports import HistoryStore
 from mapservice.core.store_roles import StoreRoles
@@ -134,7 +135,7 @@ async def compose_api(
     server = uvicorn.Server(api_server_config(app, settings))
     roles = StoreRoles.of(store)
     foxglove = (
-        FoxgloveService(settings, roles.history, roles.annotations, hub, clock.now_ms)
+        FoxgloveService(settings, ReplaySources.of(roles), hub, clock.now_ms)
         if settings.foxglove_enabled
         else None
     )

@@ -19,7 +19,7 @@ from mapservice.adapters.foxglove_channels import FoxgloveChannels
 from mapservice.adapters.foxglove_live import FoxgloveLive
 from mapservice.adapters.foxglove_replay import ReplaySession
 from mapservice.adapters.foxglove_scene import FoxgloveScene
-from mapservice.core.ports import AnnotationReader, TimeTravelReader
+from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.settings import Settings
 
 from .credentials import Credentials
@@ -36,8 +36,7 @@ class FoxgloveService:
     """Starts and stops the live server, its feed and the gate."""
 
     settings: Settings
-    history: TimeTravelReader
-    annotations: AnnotationReader
+    sources: ReplaySources
     hub: LiveHub
     now_ms: Callable[[], int]
     port: int = 0  # the public port, once started
@@ -51,7 +50,7 @@ class FoxgloveService:
         import foxglove
 
         context = foxglove.Context()
-        scene = FoxgloveScene(FoxgloveChannels(context), self.history, self.annotations)
+        scene = FoxgloveScene(FoxgloveChannels(context), self.sources)
         self.live = FoxgloveLive(
             scene,
             self.now_ms,
@@ -91,8 +90,7 @@ class FoxgloveService:
         loop = asyncio.get_running_loop()
         now = self.now_ms()
         session = ReplaySession(
-            self.history,
-            self.annotations,
+            self.sources,
             start_ms=now - self.settings.retention_ms,
             end_ms=now,
             backlog=self.settings.foxglove_backlog,

@@ -21,7 +21,7 @@ from ..streaming import BoundedPipe, produce
 
 async def replay_sources(roles: RolesDep) -> ReplaySources:
     """The roles a replay export reads, and no other."""
-    return ReplaySources(roles.history, roles.vda, roles.annotations, roles.commands)
+    return ReplaySources.of(roles)
 
 
 ReplaySourcesDep = Annotated[ReplaySources, Depends(replay_sources)]

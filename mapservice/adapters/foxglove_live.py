@@ -1,9 +1,10 @@
 """The live Foxglove server's feed: one scene (foxglove_scene.py) on one SDK context, drawn
 at start from the store (the floor, every robot's latest pose and the annotations, as at
 now) and then moved by the live stream the replay UI's WebSocket gets too (the API's
-`LiveHub`, fed by the live topic's relay): each pose and chunk write as it is stored. The
-floor's grid goes out at most every `foxglove_grid_every_s`; zones and points of interest
-are re-read every `foxglove_annotations_every_s` (their edits are not on the live topic).
+`LiveHub`, fed by the live topic's relay): each pose and chunk write as it is stored, each
+incident as the processors announce it. The floor's grid goes out at most every
+`foxglove_grid_every_s`; zones and points of interest, conflicts and VDA 5050 facts are
+re-read every `foxglove_annotations_every_s` (they are not on the live topic).
 
 Every change of the scene happens on one worker thread of its own (store reads, protobuf
 building and the SDK's logging are not the event loop's work); the SDK's subscribe
@@ -102,6 +103,11 @@ class FoxgloveLive(ServerListener):
                     self.scene.chunk_changes(changes)
                     changes = []
                 self.scene.pose(pose_row_of_live(message))
+            elif kind == "incident":
+                try:
+                    self.scene.findings.live_incident(message)
+                except (KeyError, TypeError, ValueError) as exc:  # the batch's others go on
+                    log.warning("foxglove live feed: bad incident message", error=repr(exc))
             elif kind == "chunk":
                 changes.append(
                     ChunkChange(
@@ -119,5 +125,7 @@ class FoxgloveLive(ServerListener):
             self.scene.grid()
             self._last_grid = now
         if now - self._last_annotations >= self.annotations_every_s:
-            self.scene.annotations_at(self.now_ms())
+            now_ms = self.now_ms()
+            self.scene.annotations_at(now_ms)
+            self.scene.findings.reread(now_ms)
             self._last_annotations = now

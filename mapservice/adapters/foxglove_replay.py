@@ -2,14 +2,14 @@
 start and end (the SDK's playback-control capability), driven by the app's own controls.
 A seek to T draws the floor, the robots and the annotations at T (foxglove_scene.py: as
 `/api/v1/map?at=` and `/api/v1/robots?at=` read them); play at a speed streams the stored
-chunk writes and poses in event-time order, tick after tick, every one of them whatever the
+chunk writes, poses, incidents, conflicts and VDA 5050 facts in event-time order, tick after tick, every one of them whatever the
 speed (a tick that takes longer only slows the playback down: none is skipped); pause stops.
 
 Each session has its own SDK context and server (a loopback port the gate pipes one client
 to): the protocol's playback state is the server's, so two clients would otherwise fight
 over one playhead. One player thread per session does the store reads and the logging.
 
-May depend on: the ports (reads through the scene and `TimeTravelReader`)."""
+May depend on: the ports (reads through the scene and the replay sources)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ from foxglove.websocket import ServerListener
 from mapservice.adapters.foxglove_channels import FoxgloveChannels
 from mapservice.adapters.foxglove_messages import window_changes, window_poses
 from mapservice.adapters.foxglove_scene import ChunkChange, FoxgloveScene
-from mapservice.core.ports import AnnotationReader, ChunkRow, TimeTravelReader
+from mapservice.adapters.mcap_export import ReplaySources
+from mapservice.core.ports import ChunkRow
 
 log = structlog.get_logger(__name__)
 
@@ -51,14 +52,9 @@ class ReplaySession(ServerListener):
     """One client's replay: its SDK server (`start` returns its port) and its player."""
 
     def __init__(
-        self,
-        history: TimeTravelReader,
-        annotations: AnnotationReader,
-        start_ms: int,
-        end_ms: int,
-        backlog: int = 1024,
+        self, sources: ReplaySources, start_ms: int, end_ms: int, backlog: int = 1024
     ) -> None:
-        self.history, self.annotations = history, annotations
+        self.sources = sources
         self.start_ms, self.end_ms, self.backlog = start_ms, end_ms, backlog
         self.playhead = Playhead(at_ms=end_ms)
         self.lock = threading.Lock()
@@ -74,7 +70,7 @@ class ReplaySession(ServerListener):
         from foxglove.websocket import Capability
 
         context = foxglove.Context()
-        self.scene = FoxgloveScene(FoxgloveChannels(context), self.history, self.annotations)
+        self.scene = FoxgloveScene(FoxgloveChannels(context), self.sources)
         self.server = foxglove.start_server(
             name="mapservice replay",
             host="127.0.0.1",
@@ -186,11 +182,19 @@ class ReplaySession(ServerListener):
             self.server.broadcast_playback_state(state)
 
     def _play(self, scene: FoxgloveScene, from_ms: int, to_ms: int) -> None:
-        """[from_ms, to_ms)'s chunk writes and poses, in event-time order (writes first at
-        one instant, as the map at that instant holds them), then the floor once."""
-        changes = window_changes(self.history, from_ms, to_ms)
-        i = 0
-        for pose in window_poses(self.history, from_ms, to_ms):
+        """[from_ms, to_ms)'s chunk writes, poses and findings (incidents, conflicts, VDA
+        5050 facts), in event-time order (writes and findings first at one instant, as the
+        map at that instant holds them), then the floor once."""
+        history = self.sources.history
+        changes = window_changes(history, from_ms, to_ms)
+        found = scene.findings.play(from_ms, to_ms)
+        i = k = 0
+        for pose in window_poses(history, from_ms, to_ms):
+            f = k
+            while f < len(found) and found[f][0] <= pose.ts_ms:
+                f += 1
+            scene.findings.send(found[k:f])
+            k = f
             j = i
             while j < len(changes) and changes[j].ts_ms <= pose.ts_ms:
                 j += 1
@@ -200,6 +204,7 @@ class ReplaySession(ServerListener):
             scene.pose(pose)
         if i < len(changes):
             self.sent_changes += scene.chunk_changes(_change(c) for c in changes[i:])
+        scene.findings.send(found[k:])
         scene.grid(to_ms - 1)
 
 

@@ -1,5 +1,6 @@
 """What a Foxglove client sees of the plant, on one SDK context: the floor, every robot
-(pose, transform, state, planned path), each stored chunk write and the annotations, kept
+(pose, transform, state, planned path), each stored chunk write, the annotations and what
+was found (incidents, conflicts, VDA 5050 errors: foxglove_findings.py), kept
 as they were last sent so that a client subscribing later gets the current picture, and
 drawn whole at an instant (the floor and robots at T, as `/api/v1/map?at=` and
 `/api/v1/robots?at=` read them: snapshot plus events). Fed by the live stream
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from mapservice.adapters.foxglove_channels import FoxgloveChannels
+from mapservice.adapters.foxglove_findings import FoxgloveFindings
 from mapservice.adapters.foxglove_messages import (
     Floor,
     path_message,
@@ -34,8 +36,9 @@ from mapservice.adapters.mcap_channels import (
     pose_topic,
     state_topic,
 )
+from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.core.annotations import Shape
-from mapservice.core.ports import AnnotationReader, PoseRow, TimeTravelReader
+from mapservice.core.ports import PoseRow
 
 # A page of robots_at: a floor of this many robots is drawn in one read.
 _ROBOTS_PAGE = 10_000
@@ -55,13 +58,14 @@ class ChunkChange:
 class FoxgloveScene:
     """The channels' current picture and how it changes."""
 
-    def __init__(
-        self,
-        channels: FoxgloveChannels,
-        history: TimeTravelReader,
-        annotations: AnnotationReader,
-    ) -> None:
-        self.channels, self.history, self.annotation_store = channels, history, annotations
+    def __init__(self, channels: FoxgloveChannels, sources: ReplaySources) -> None:
+        self.channels, self.history, self.annotation_store = (
+            channels,
+            sources.history,
+            sources.annotations,
+        )
+        # The incidents, conflicts and VDA 5050 errors (their channels declared there).
+        self.findings = FoxgloveFindings(channels, sources)
         self.floor: Floor | None = None
         self.floor_ms = 0  # the instant the floor shows
         self.floor_dirty = False  # chunk writes applied since the last grid sent
@@ -88,7 +92,8 @@ class FoxgloveScene:
     # --- the picture at an instant ------------------------------------------------------
 
     def draw_at(self, at_ms: int) -> None:
-        """The floor, every robot and the annotations as they stood at `at_ms`."""
+        """The floor, every robot, the annotations, the incidents going on and each VDA 5050
+        vehicle's errors as they stood at `at_ms`."""
         meta = self.history.latest_meta()
         self.floor = Floor(meta, self.history) if meta is not None else None
         if self.floor is not None:
@@ -105,6 +110,7 @@ class FoxgloveScene:
                 break
             after = page[-1].robot_id
         self.annotations_at(at_ms, force=True)
+        self.findings.draw_at(at_ms)
 
     def annotations_at(self, at_ms: int, force: bool = False) -> bool:
         """Sends the annotations standing at `at_ms` if they changed (or `force`); whether
@@ -183,6 +189,8 @@ class FoxgloveScene:
     def resend(self, topic: str) -> None:
         """The current message of `topic` again (a client just subscribed to it: the
         protocol keeps no last message for it)."""
+        if self.findings.resend(topic):
+            return
         if topic == MAP_TOPIC and self.floor is not None:
             self.channels.protobuf(MAP_TOPIC, self.floor.grid(self.floor_ms), self.floor_ms)
             self.floor_dirty = False

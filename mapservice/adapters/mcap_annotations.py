@@ -152,6 +152,7 @@ def scene_update(ts_ms: int, annotations: dict[str, Shape]):
         entity = update.entities.add()
         entity.timestamp.FromMilliseconds(ts_ms)
         entity.frame_id, entity.id = _MAP_FRAME, annotation_id
+        entity.lifetime.SetInParent()  # zero: until deleted (present, as Foxglove's schema wants)
         for key, value in (
             ("shape", "zone" if isinstance(shape, Zone) else "poi"),
             ("kind", shape.kind),
@@ -166,17 +167,19 @@ def scene_update(ts_ms: int, annotations: dict[str, Shape]):
     return update
 
 
-def _color(target, rgba: tuple[float, float, float, float]) -> None:
+def paint(target, rgba: tuple[float, float, float, float]) -> None:
+    """A Foxglove primitive's colour."""
     target.r, target.g, target.b, target.a = rgba
 
 
-def _text(entity, x: float, y: float, text: str, rgba) -> None:
+def label_at(entity, x: float, y: float, text: str, rgba) -> None:
+    """A text on the entity at (x, y) of the map, facing the viewer at any zoom."""
     label = entity.texts.add()
     label.pose.position.x, label.pose.position.y, label.pose.position.z = x, y, 0.3
     label.pose.orientation.w = 1.0
     label.billboard, label.scale_invariant, label.font_size = True, True, 14.0
     label.text = text
-    _color(label.color, rgba)
+    paint(label.color, rgba)
 
 
 def _draw_zone(entity, zone: Zone) -> None:
@@ -191,9 +194,9 @@ def _draw_zone(entity, zone: Zone) -> None:
         for x, y in ring:
             point = line.points.add()
             point.x, point.y = x, y
-        _color(line.color, rgba)
+        paint(line.color, rgba)
     xs, ys = [p[0] for p in zone.polygon], [p[1] for p in zone.polygon]
-    _text(entity, sum(xs) / len(xs), sum(ys) / len(ys), zone_label(zone), rgba)
+    label_at(entity, sum(xs) / len(xs), sum(ys) / len(ys), zone_label(zone), rgba)
 
 
 def _draw_poi(entity, poi: PointOfInterest) -> None:
@@ -201,5 +204,5 @@ def _draw_poi(entity, poi: PointOfInterest) -> None:
     marker.pose.position.x, marker.pose.position.y = poi.x, poi.y
     marker.pose.orientation.w = 1.0
     marker.size.x = marker.size.y = marker.size.z = 0.3
-    _color(marker.color, _POI_RGBA)
-    _text(entity, poi.x, poi.y, f"{poi.name} ({poi.kind})", _POI_RGBA)
+    paint(marker.color, _POI_RGBA)
+    label_at(entity, poi.x, poi.y, f"{poi.name} ({poi.kind})", _POI_RGBA)

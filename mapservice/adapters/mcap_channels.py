@@ -1,14 +1,16 @@
 """The Foxglove channels, as a reader (Foxglove, Lichtblick, a script) finds them in an MCAP
 export and on the Foxglove WebSocket server alike: topic names, the map's and the robots'
 frames, and the JSON schemas of the JSON channels (the robot state with its units, a chunk
-change, a VDA 5050 vehicle's errors and connection state, the commands).
+change, a VDA 5050 vehicle's errors and connection state, the commands, an incident, a
+conflict).
 
-Data and naming only (foxglove_messages.py builds the messages, mcap_export.py writes the
-file, foxglove_live.py and foxglove_replay.py serve them)."""
+Data and naming only (foxglove_messages.py and mcap_findings.py build the messages,
+mcap_export.py writes the file, foxglove_live.py and foxglove_replay.py serve them)."""
 
 from __future__ import annotations
 
 from mapservice.adapters.mcap_annotations import COMMANDS_SCHEMA, COMMANDS_SCHEMA_NAME
+from mapservice.core.incident_model import KINDS, SEVERITIES
 
 MAP_TOPIC = "/map"
 MAP_FRAME = "map"
@@ -146,6 +148,91 @@ CONNECTION_SCHEMA = {
     },
     "required": ["state", "online", "sent_ms"],
 }
+INCIDENTS_TOPIC = "/incidents"
+# Each incident going on as a marker at its place (foxglove.SceneUpdate), gone at its end.
+INCIDENT_MARKERS_TOPIC = "/incidents/markers"
+CONFLICTS_TOPIC = "/conflicts"
+
+# What one incident message says happened (`ongoing`: it was going on when the reader's
+# span began).
+INCIDENT_EVENTS = ("start", "ongoing", "update", "end", "retracted")
+
+INCIDENT_SCHEMA_NAME = "mapservice.Incident"
+INCIDENT_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": INCIDENT_SCHEMA_NAME,
+    "description": "An incident as known at the message's time: its start, an update while "
+    "it goes on, its end, or its retraction (as GET /api/v1/incidents lists it)",
+    "type": "object",
+    "properties": {
+        "event": {"type": "string", "enum": list(INCIDENT_EVENTS)},
+        "id": {"type": "string", "description": "the incident's id (its messages share it)"},
+        "kind": {"type": "string", "enum": list(KINDS)},
+        "robots": {"type": "array", "items": {"type": "string"}},
+        "start_ms": {"type": "integer", "description": "when it began, ms since the epoch"},
+        "end_ms": {
+            "type": ["integer", "null"],
+            "description": "when it ended (null while it goes on), ms since the epoch",
+        },
+        "ongoing": {"type": "boolean"},
+        "severity": {"type": "string", "enum": list(SEVERITIES)},
+        "x": {"type": "number", "description": "where (metres, map frame)"},
+        "y": {"type": "number", "description": "where (metres, map frame)"},
+        "measure": {
+            "type": "number",
+            "description": "the kind's figure as last found: metres (near_miss), seconds "
+            "(stuck, offline, zone_violation, vda_error, command_failed), % (battery_low), "
+            "chunk writes (conflict)",
+        },
+        "evidence": {
+            "type": "array",
+            "description": "the stored poses that made it, up to the message's time",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "robot_id": {"type": "string"},
+                    "ts_ms": {"type": "integer"},
+                    "x": {"type": "number"},
+                    "y": {"type": "number"},
+                },
+                "required": ["robot_id", "ts_ms", "x", "y"],
+            },
+        },
+    },
+    "required": [
+        "event",
+        "id",
+        "kind",
+        "robots",
+        "start_ms",
+        "end_ms",
+        "ongoing",
+        "severity",
+        "x",
+        "y",
+        "measure",
+        "evidence",
+    ],
+}
+
+CONFLICT_SCHEMA_NAME = "mapservice.Conflict"
+CONFLICT_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": CONFLICT_SCHEMA_NAME,
+    "description": "Two robots wrote different contents to one chunk within the conflict "
+    "window, at the later write's time (both writes: GET /api/v1/chunks/history)",
+    "type": "object",
+    "properties": {
+        "row": {"type": "integer", "minimum": 0},
+        "column": {"type": "integer", "minimum": 0},
+        "ts_ms": {"type": "integer", "description": "the later write's event time"},
+        "robot_b": {"type": "string", "description": "who wrote the later write"},
+        "robot_a": {"type": "string", "description": "who wrote the earlier one"},
+        "ts_a_ms": {"type": "integer", "description": "the earlier write's event time"},
+    },
+    "required": ["row", "column", "ts_ms", "robot_b", "robot_a", "ts_a_ms"],
+}
+
 # Every JSON channel's schema by name: a channel whose schema is here is JSON, else protobuf.
 JSON_SCHEMAS = {
     STATE_SCHEMA_NAME: STATE_SCHEMA,
@@ -153,6 +240,8 @@ JSON_SCHEMAS = {
     ERRORS_SCHEMA_NAME: ERRORS_SCHEMA,
     CONNECTION_SCHEMA_NAME: CONNECTION_SCHEMA,
     COMMANDS_SCHEMA_NAME: COMMANDS_SCHEMA,
+    INCIDENT_SCHEMA_NAME: INCIDENT_SCHEMA,
+    CONFLICT_SCHEMA_NAME: CONFLICT_SCHEMA,
 }
 
 

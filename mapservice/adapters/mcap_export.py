@@ -2,8 +2,9 @@
 `foxglove.Grid`; per robot its pose as `foxglove.PoseInFrame`, its planned path as
 `foxglove.PosesInFrame`, its frame in the map as `foxglove.FrameTransform` on `/tf`, and its
 battery, charging and loaded flags as a JSON channel whose JSON schema states the units; a
-VDA 5050 vehicle's errors and warnings and its connection state as JSON channels too; the
-operators' annotations standing as `foxglove.SceneUpdate` on `/annotations` and their
+VDA 5050 vehicle's errors and warnings and its connection state as JSON channels too, and
+the incidents (with their markers as `foxglove.SceneUpdate`) and conflicts (mcap_findings);
+the operators' annotations standing as `foxglove.SceneUpdate` on `/annotations` and their
 commands with the robots' answers as JSON on `/commands` (mcap_annotations). Topic names and
 JSON schemas: mcap_channels; the messages: foxglove_messages (the Foxglove WebSocket server
 sends the same). CSV and Parquet: table_export.
@@ -33,25 +34,35 @@ from mapservice.adapters.mcap_annotations import (
     scene_update,
 )
 from mapservice.adapters.mcap_channels import (
+    CONFLICT_SCHEMA_NAME,
     CONNECTION_SCHEMA_NAME,
     ERRORS_SCHEMA_NAME,
+    INCIDENT_MARKERS_TOPIC,
+    INCIDENT_SCHEMA_NAME,
     JSON_SCHEMAS,
     MAP_TOPIC,
     STATE_SCHEMA_NAME,
     TF_TOPIC,
-    connection_topic,
-    errors_topic,
     path_topic,
     pose_topic,
     state_topic,
 )
+from mapservice.adapters.mcap_findings import (
+    conflict_messages,
+    incident_messages,
+    markers_of,
+    vda_messages,
+)
 from mapservice.core.ports import (
     AnnotationReader,
     CommandReader,
+    ConflictReader,
+    IncidentReader,
     PoseRow,
     TimeTravelReader,
     VdaReader,
 )
+from mapservice.core.store_roles import StoreRoles
 
 
 @dataclass
@@ -66,6 +77,9 @@ class McapCounts:
     annotation_updates: int = 0  # SceneUpdates on /annotations (the start's state is one)
     commands: int = 0
     transforms: int = 0  # foxglove.FrameTransform on /tf, one with each pose
+    incidents: int = 0  # messages on /incidents (a start, an end, one going on at the start)
+    incident_markers: int = 0  # SceneUpdates on /incidents/markers, one per incident message
+    conflicts: int = 0
 
 
 class _McapOut:
@@ -124,50 +138,41 @@ class _McapOut:
         self.writer.finish()
 
 
+# The count each side message adds to, by its JSON schema (a protobuf one's: by its topic);
+# the rest are the annotations' SceneUpdates.
+_COUNTED = {
+    ERRORS_SCHEMA_NAME: "vda_errors",
+    CONNECTION_SCHEMA_NAME: "vda_connections",
+    COMMANDS_SCHEMA_NAME: "commands",
+    INCIDENT_SCHEMA_NAME: "incidents",
+    CONFLICT_SCHEMA_NAME: "conflicts",
+    INCIDENT_MARKERS_TOPIC: "incident_markers",
+}
+
+
 @dataclass(frozen=True)
 class ReplaySources:
-    """The store's roles a replay export reads: the map and poses (`history`), VDA 5050
-    facts, the annotations and the commands."""
+    """The store's roles a replay (an export, the Foxglove server) reads: the map and poses
+    (`history`), VDA 5050 facts, the annotations, the commands, the incidents and the
+    conflicts."""
 
     history: TimeTravelReader
     vda: VdaReader
     annotations: AnnotationReader
     commands: CommandReader
+    incidents: IncidentReader
+    conflicts: ConflictReader
 
-
-def _vda_messages(store: VdaReader, from_ms: int, to_ms: int) -> list[tuple[int, str, str, dict]]:
-    """The window's VDA 5050 errors (one message per error instant and per clear) and
-    connection states, as (log time, topic, schema name, document), in time order."""
-    out: list[tuple[int, str, str, dict]] = []
-    for robot_id, facts in store.vda_fleet_facts(from_ms, to_ms, limit=1_000_000).items():
-        instants: dict[int, list[dict]] = {t: [] for t in facts.error_clears}
-        for e in facts.errors:
-            instants.setdefault(e.ts_ms, []).append(
-                {"level": e.level, "type": e.type, "description": e.description}
-            )
-        out += [
-            (
-                t,
-                errors_topic(robot_id),
-                ERRORS_SCHEMA_NAME,
-                {
-                    "count": len(errs),
-                    "fatal": sum(e["level"] != "WARNING" for e in errs),
-                    "errors": errs,
-                },
-            )
-            for t, errs in instants.items()
-        ]
-        out += [
-            (
-                c.ts_ms,
-                connection_topic(robot_id),
-                CONNECTION_SCHEMA_NAME,
-                {"state": c.state, "online": c.state == "ONLINE", "sent_ms": c.sent_ms},
-            )
-            for c in facts.connections
-        ]
-    return sorted(out, key=lambda m: (m[0], m[1]))
+    @classmethod
+    def of(cls, roles: StoreRoles) -> ReplaySources:
+        return cls(
+            roles.history,
+            roles.vda,
+            roles.annotations,
+            roles.commands,
+            roles.incidents,
+            roles.conflicts,
+        )
 
 
 def _side_messages(
@@ -175,10 +180,13 @@ def _side_messages(
 ) -> list[tuple[int, str, str | None, object]]:
     """Everything besides the map and poses, as (log time, topic, JSON schema name or None
     for a protobuf message, message), in time order: VDA 5050 facts, the annotations standing
-    at `from_ms` and after each edit, and the commands with the robots' answers."""
-    out: list[tuple[int, str, str | None, object]] = list(
-        _vda_messages(sources.vda, from_ms, to_ms)
-    )
+    at `from_ms` and after each edit, the commands with the robots' answers, the incidents
+    (those going on at `from_ms`, each start and end) and the conflicts."""
+    out: list[tuple[int, str, str | None, object]] = list(vda_messages(sources.vda, from_ms, to_ms))
+    incidents = incident_messages(sources.incidents, from_ms, to_ms)
+    out += incidents
+    out += markers_of(incidents)
+    out += conflict_messages(sources.conflicts, from_ms, to_ms)
     out += [
         (t, ANNOTATIONS_TOPIC, None, scene_update(t, standing))
         for t, standing in annotation_states(sources.annotations, from_ms, to_ms)
@@ -203,7 +211,7 @@ def export_mcap(
     one grid per `grid_every_ms`, and the last state), every pose with its state (battery,
     charging, loaded), and each robot's planned path when it changes (an empty path when
     the robot drops it), VDA 5050 vehicles' errors and connection states, the annotations
-    standing at `from_ms` and after each edit, and the commands. Returns the counts."""
+    standing at `from_ms` and after each edit, the commands, the incidents and the conflicts. Returns the counts."""
     store = sources.history
     meta = store.latest_meta()
     if meta is None:
@@ -217,8 +225,8 @@ def export_mcap(
     side_next = 0
 
     def write_side(until_ms: int) -> None:
-        """The VDA, annotation and command messages before `until_ms` not yet written (log
-        times stay in order)."""
+        """The side messages (VDA, annotations, commands, incidents, conflicts) before
+        `until_ms` not yet written (log times stay in order)."""
         nonlocal side_next
         while side_next < len(side) and side[side_next][0] < until_ms:
             ts_ms, topic, schema, payload = side[side_next]
@@ -226,14 +234,8 @@ def export_mcap(
                 writer.json(topic, schema, payload, ts_ms)
             else:
                 writer.protobuf(topic, payload, ts_ms)
-            if schema == ERRORS_SCHEMA_NAME:
-                counts.vda_errors += 1
-            elif schema == CONNECTION_SCHEMA_NAME:
-                counts.vda_connections += 1
-            elif schema == COMMANDS_SCHEMA_NAME:
-                counts.commands += 1
-            else:
-                counts.annotation_updates += 1
+            counted = _COUNTED.get(schema or topic, "annotation_updates")
+            setattr(counts, counted, getattr(counts, counted) + 1)
             side_next += 1
 
     def write_grid(ts_ms: int) -> None:

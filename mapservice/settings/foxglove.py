@@ -64,5 +64,8 @@ class FoxgloveSettings(BaseModel):
     foxglove_annotations_every_s: float = Field(
         5.0,
         gt=0,
-        description="Live: how often the standing zones and points of interest are re-read.",
+        description=(
+            "Live: how often the standing zones and points of interest, and the conflicts "
+            "and VDA 5050 errors and connection states stored since, are re-read."
+        ),
     )

@@ -44,7 +44,7 @@ DOCK = PointOfInterest("dock 1", "station", 1.0, 1.0)
 
 def _sources(store) -> ReplaySources:
     """Every role a replay export reads, from the test's one store."""
-    return ReplaySources(store, store, store, store)
+    return ReplaySources(store, store, store, store, store, store)
 
 
 def _at(t_ms: int, payload, who: str = "operator:ab12"):

@@ -37,7 +37,7 @@ T0 = (time.time_ns() // 1_000_000 // 1000) * 1000 - 3_600_000
 
 def _sources(store) -> ReplaySources:
     """Every role a replay export reads, from the test's one store."""
-    return ReplaySources(store, store, store, store)
+    return ReplaySources(store, store, store, store, store, store)
 
 
 def history(store) -> None:

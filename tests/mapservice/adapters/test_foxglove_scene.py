@@ -28,6 +28,7 @@ from mapservice.adapters.mcap_channels import (
     pose_topic,
     state_topic,
 )
+from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.core.live_messages import live_record_texts, live_records
 from mapservice.core.render import stitch
 from mapservice.testing.memory_store import MemoryStore
@@ -96,6 +97,10 @@ def history(seed: int) -> tuple[MemoryStore, list]:
     return store, events
 
 
+def sources(store: MemoryStore) -> ReplaySources:
+    return ReplaySources(store, store, store, store, store, store)
+
+
 def grid_pixels(grid: Any) -> np.ndarray:
     rows = len(grid.data) // grid.row_stride
     return np.flipud(np.frombuffer(grid.data, dtype=np.uint8).reshape(rows, grid.row_stride))
@@ -106,7 +111,7 @@ def test_a_seek_draws_the_floor_and_robots_as_the_api_reads_them(seed):
     store, _ = history(seed)
     rng = random.Random(seed)
     channels = Recorder()
-    scene = FoxgloveScene(channels, store, store)  # type: ignore[arg-type]
+    scene = FoxgloveScene(channels, sources(store))  # type: ignore[arg-type]
     for at in sorted(T0 + rng.randrange(-1_000, 610_000) for _ in range(4)):
         channels.sent.clear()
         scene.draw_at(at)
@@ -154,9 +159,9 @@ def test_playing_sends_every_write_and_pose_in_order_and_the_floor_as_at_the_end
     it ends with is the map at the step's end."""
     store, _ = history(seed)
     rng = random.Random(seed)
-    session = ReplaySession(store, store, T0, T0 + 600_000)
+    session = ReplaySession(sources(store), T0, T0 + 600_000)
     channels = Recorder()
-    scene = FoxgloveScene(channels, store, store)  # type: ignore[arg-type]
+    scene = FoxgloveScene(channels, sources(store))  # type: ignore[arg-type]
     at = T0 + rng.randrange(0, 100_000)
     scene.draw_at(at)
     cursor = at
@@ -224,7 +229,7 @@ def test_live_messages_move_the_picture_as_the_stored_rows_do():
             stored.path,
         )
     channels = Recorder()
-    scene = FoxgloveScene(channels, store, store)  # type: ignore[arg-type]
+    scene = FoxgloveScene(channels, sources(store))  # type: ignore[arg-type]
     scene.draw_at(T0 + 300_000)
     channels.sent.clear()
     scene.resend(MAP_TOPIC)
@@ -253,7 +258,7 @@ def test_the_live_feed_sends_each_write_and_pose_of_the_stream_and_the_floor_the
     ordered = sorted(events[1:], key=lambda e: (e.event_time_ms, e.robot_id))
     live = [text for record in live_records(ordered) for text in live_record_texts(record)]
     channels = Recorder()
-    scene = FoxgloveScene(channels, store, store)  # type: ignore[arg-type]
+    scene = FoxgloveScene(channels, sources(store))  # type: ignore[arg-type]
     feed = FoxgloveLive(scene, lambda: T0 - 1, grid_every_s=1e-9, annotations_every_s=3600)
     try:
         feed._draw_now()
@@ -309,7 +314,7 @@ def test_the_live_feed_builds_messages_only_for_a_channel_someone_takes(
     context = foxglove.Context()
     writer = foxglove.open_mcap(tmp_path / "sink.mcap", context=context) if sink else None
     channels = FoxgloveChannels(context)
-    scene = FoxgloveScene(channels, store, store)
+    scene = FoxgloveScene(channels, sources(store))
     feed = FoxgloveLive(scene, lambda: T0 - 1, grid_every_s=1e-9, annotations_every_s=3600)
     try:
         feed._draw_now()
