@@ -22,6 +22,7 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 from mapservice.core.incidents import IncidentThresholds, detect
 from mapservice.core.ports import HistoryWriter, TimeTravelReader
@@ -101,7 +102,7 @@ def find_incidents(
     return out
 
 
-def find_or_reuse(chdb_dir: Path, database: str, start_ms: int, end_ms: int) -> dict:
+def find_or_reuse(chdb_dir: Path, database: str, start_ms: int, end_ms: int) -> dict[str, Any]:
     """The incidents of the history loaded into `database` of `chdb_dir`, found once: the
     record of the finding is kept beside the data (`incidents-<database>.json`) and read back
     on a reused directory. Opens the directory itself (the API process must not hold it)."""
@@ -111,7 +112,7 @@ def find_or_reuse(chdb_dir: Path, database: str, start_ms: int, end_ms: int) -> 
 
     marker = chdb_dir.parent / f"incidents-{database}.json"
     if marker.exists():
-        doc = json.loads(marker.read_text())
+        doc: dict[str, Any] = json.loads(marker.read_text())
         if (doc["start_ms"], doc["end_ms"]) == (start_ms, end_ms):
             return {**doc, "reused": True}
     store = ClickHouseStore(f"chdb://{chdb_dir.resolve()}", database=database)

@@ -18,20 +18,26 @@ process on a ClickHouseStore.
 from __future__ import annotations
 
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from mapservice.bench.incident_history import FoundIncidents
+from mapservice.bench.incident_reads import ReadPlan
 from mapservice.bench.ui_reads import latency_summary
+from mapservice.core.heatmaps import HeatmapCell
+
+if TYPE_CHECKING:
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
 
 DAY_MS = 86_400_000
 
 
-def naive_incident_scan(store, from_ms: int, to_ms: int) -> list[tuple]:
+def naive_incident_scan(store: ClickHouseStore, from_ms: int, to_ms: int) -> list[Any]:
     """Per robot, a fold of every pose column the incident rules read over [from, to)."""
     from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS
 
     with store.lock:
-        return store.client.query(
+        rows: list[Any] = store.client.query(
             "SELECT robot_id, count(), min(ts), max(ts), sum(x_mm), sum(y_mm), min(battery), "
             f"countIf(has_path), uniqExact(charging) FROM {store.database}.poses FINAL "
             "PREWHERE ts >= fromUnixTimestamp64Milli({f:Int64}) "
@@ -39,13 +45,15 @@ def naive_incident_scan(store, from_ms: int, to_ms: int) -> list[tuple]:
             f"GROUP BY robot_id ORDER BY robot_id {FINAL_SETTINGS}",
             parameters={"f": from_ms, "t": to_ms},
         ).result_rows
+    return rows
 
 
-def naive_heatmap(store, from_ms: int, to_ms: int, factor: int = 1) -> list:
+def naive_heatmap(
+    store: ClickHouseStore, from_ms: int, to_ms: int, factor: int = 1
+) -> list[HeatmapCell]:
     """The heatmap's cells of `factor` finest cells a side from every pose of [from, to)."""
     from mapservice.adapters.clickhouse import heatmap_schema
     from mapservice.adapters.clickhouse.connection import FINAL_SETTINGS
-    from mapservice.core.heatmaps import HeatmapCell
 
     samples = heatmap_schema.samples_select(
         store.database, "{f:Int64}", "{t:Int64}", store.roles.heatmaps.heatmap_rule
@@ -58,10 +66,12 @@ def naive_heatmap(store, from_ms: int, to_ms: int, factor: int = 1) -> list:
             f"{FINAL_SETTINGS}",
             parameters={"f": from_ms, "t": to_ms, "k": factor},
         ).result_rows
-    return [HeatmapCell(int(i), int(j), int(n), int(s), int(k), float(v)) for i, j, n, s, k, v in rows]
+    return [
+        HeatmapCell(int(i), int(j), int(n), int(s), int(k), float(v)) for i, j, n, s, k, v in rows
+    ]
 
 
-def heatmap_mismatches(got: list, want: list) -> int:
+def heatmap_mismatches(got: list[HeatmapCell], want: list[HeatmapCell]) -> int:
     """Cells that differ between two heatmaps (the speed sums to a relative 1e-9: summed in
     another order)."""
     a = {(c.i, c.j): c for c in got}
@@ -69,20 +79,22 @@ def heatmap_mismatches(got: list, want: list) -> int:
     bad = 0
     for key in a.keys() | b.keys():
         x, y = a.get(key), b.get(key)
-        if x is None or y is None or (x.samples, x.still, x.speeds) != (y.samples, y.still, y.speeds):
+        if x is None or y is None:
+            bad += 1
+        elif (x.samples, x.still, x.speeds) != (y.samples, y.still, y.speeds):
             bad += 1
         elif abs(x.speed_sum - y.speed_sum) > 1e-9 * max(1.0, abs(y.speed_sum)):
             bad += 1
     return bad
 
 
-def naive_phase(store, plan, week_repeats: int) -> dict[str, Any]:
+def naive_phase(store: ClickHouseStore, plan: ReadPlan, week_repeats: int) -> dict[str, Any]:
     """The naive queries over the plan's windows: the scan of each day, and of the week and
     the week's heatmap `week_repeats` times (each after one untimed run); then the week's
     heatmap from the store checked against the naive one."""
     times: dict[str, list[float]] = {"incidents_day": [], "incidents_week": [], "heatmap_week": []}
 
-    def timed(key: str, fn, *args) -> Any:
+    def timed(key: str, fn: Callable[..., Any], *args: Any) -> Any:
         t0 = time.perf_counter()
         out = fn(*args)
         times[key].append((time.perf_counter() - t0) * 1000)
@@ -108,7 +120,7 @@ def naive_phase(store, plan, week_repeats: int) -> dict[str, Any]:
     return out
 
 
-def recompute_estimate(found: FoundIncidents | dict, history_ms: int) -> dict[str, float]:
+def recompute_estimate(found: FoundIncidents | dict[str, Any], history_ms: int) -> dict[str, float]:
     """What recomputing a day's and a week's incidents from the poses costs, as finding
     the history's took (reading its windows through the store and running the rules)."""
     doc = found if isinstance(found, dict) else vars(found)

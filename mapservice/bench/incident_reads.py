@@ -72,20 +72,19 @@ def api_reads(client: Any, plan: ReadPlan) -> dict[str, Any]:
         r.raise_for_status()
         return ms, r
 
-    times: dict[str, list[float]] = {
-        "incidents_day": [],
-        "incidents_week": [],
-        **{f"heatmap_{k}_week": [] for k in HEATMAP_KINDS},
-        **{f"heatmap_{k}_week_json": [] for k in HEATMAP_KINDS},
-    }
+    times: dict[str, list[float]] = {"incidents_day": [], "incidents_week": []}
+    for kind in HEATMAP_KINDS:
+        times[f"heatmap_{kind}_week"], times[f"heatmap_{kind}_week_json"] = [], []
     listed: dict[str, list[int]] = {"incidents_day": [], "incidents_week": []}
     truncated = dict.fromkeys(listed, 0)
     cells: dict[str, int] = {}
     wf, wt = plan.week
     for i, day in enumerate([plan.days[0], *plan.days]):
         if i == 1:  # the warm-up round is not counted
-            for v in (*times.values(), *listed.values()):
+            for v in times.values():
                 v.clear()
+            for n in listed.values():
+                n.clear()
             truncated = dict.fromkeys(listed, 0)
         for key, (f, t) in (("incidents_day", day), ("incidents_week", plan.week)):
             ms, r = get("/api/v1/incidents", {"from": f, "to": t, "limit": INCIDENT_LIMIT})

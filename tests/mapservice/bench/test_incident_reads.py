@@ -13,7 +13,7 @@ import sys
 import httpx
 import pytest
 
-from mapservice.bench.incident_history import find_incidents
+from mapservice.bench.incident_history import find_incidents, find_or_reuse
 from mapservice.bench.incident_naive import heatmap_mismatches
 from mapservice.bench.incident_reads import DAY_MS, api_reads, plan_reads
 from mapservice.core.heatmaps import HeatmapCell
@@ -161,9 +161,8 @@ def test_heatmap_mismatches_count_cells_that_differ() -> None:
 
 def test_the_command_times_the_reads_beside_the_naive_queries(tmp_path) -> None:
     """A tiny history through `bench ui` with only the incident reads (no browser): its
-    incidents found and written, each read's figures beside its naive query's, the heatmap
-    from `heatmap_cells` equal to the one from every pose, and a reused directory not
-    searched again."""
+    incidents found and written, each read's figures beside its naive query's, and the
+    heatmap from `heatmap_cells` equal to the one from every pose."""
     out = tmp_path / "incidents.json"
     command = [
         sys.executable,
@@ -191,7 +190,14 @@ def test_the_command_times_the_reads_beside_the_naive_queries(tmp_path) -> None:
     assert doc["summary"]["heatmap_occupancy_week_p95_ms"] > 0
     assert doc["summary"]["naive_heatmap_occupancy_week_p95_ms"] > 0
     assert doc["yardstick_ms"] > 0 and doc["machine"]["git"]
-    subprocess.run(command, check=True, capture_output=True, timeout=300)
-    again = json.loads(out.read_text())
-    assert again["incidents_found"]["reused"] and again["seek_history"]["reused"]
-    assert again["incident_reads"]["incidents_week"]["listed_max"] == reads["incidents_week"]["listed_max"]
+    marker = json.loads((tmp_path / "data" / "incidents-bench_seek.json").read_text())
+    assert marker["total"] == found["total"] and "reused" not in marker
+
+
+def test_a_reused_directory_reads_back_its_incidents_without_searching(tmp_path) -> None:
+    """The record beside the data names the loaded span: the same span is not searched
+    again (the directory is not even opened)."""
+    doc = {"start_ms": 1, "end_ms": 2, "total": 7, "by_kind": {"near_miss": 7}}
+    (tmp_path / "incidents-bench_seek.json").write_text(json.dumps(doc))
+    again = find_or_reuse(tmp_path / "no-such-dir", "bench_seek", 1, 2)
+    assert again == {**doc, "reused": True}
