@@ -116,8 +116,27 @@ def naive_phase(store: ClickHouseStore, plan: ReadPlan, week_repeats: int) -> di
         "cells": len(want),
         "mismatches": heatmap_mismatches(got, want),
         "samples": sum(c.samples for c in want),
+        **prebuilt_share(store, wf, wt),
     }
     return out
+
+
+def prebuilt_share(store: ClickHouseStore, from_ms: int, to_ms: int) -> dict[str, Any]:
+    """How much of [from, to) the heatmap read takes from `heatmap_cells` (the whole
+    10-minute buckets the snapshot builders wrote), the rest being read from the poses."""
+    from mapservice.adapters.clickhouse import heatmap_schema
+
+    b = heatmap_schema.BUCKET_MS
+    with store.lock:
+        ((rows, first, last),) = store.client.query(
+            "SELECT count(), toUnixTimestamp64Milli(toDateTime64(min(bucket), 3)), "
+            f"toUnixTimestamp64Milli(toDateTime64(max(bucket), 3)) FROM {store.database}."
+            f"{heatmap_schema.TABLE} FINAL WHERE bucket >= toDateTime(intDiv({{f:Int64}}, 1000)) "
+            "AND bucket < toDateTime(intDiv({t:Int64}, 1000))",
+            parameters={"f": from_ms, "t": to_ms},
+        ).result_rows
+    covered = (int(last) + b - int(first)) if rows else 0
+    return {"prebuilt_rows": int(rows), "prebuilt_share": round(covered / (to_ms - from_ms), 4)}
 
 
 def recompute_estimate(found: FoundIncidents | dict[str, Any], history_ms: int) -> dict[str, float]:

@@ -185,6 +185,9 @@ def test_the_command_times_the_reads_beside_the_naive_queries(tmp_path) -> None:
     assert reads["incidents_week"]["listed_max"] <= found["total"]
     assert reads["heatmap_occupancy_week"]["cells"] == naive["heatmap_check"]["cells"] > 0
     assert naive["heatmap_check"]["mismatches"] == 0
+    # The loader built the snapshots, and with them the heatmap's 10-minute buckets.
+    assert naive["heatmap_check"]["prebuilt_rows"] > 0
+    assert 0.5 < naive["heatmap_check"]["prebuilt_share"] <= 1
     assert naive["heatmap_check"]["samples"] == doc["seek_history"]["poses"]
     assert naive["incidents_week"]["n"] == 1 and naive["recompute"]["day_s"] > 0
     assert doc["summary"]["heatmap_occupancy_week_p95_ms"] > 0
