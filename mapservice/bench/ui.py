@@ -13,6 +13,11 @@ measured before then include that contention).
   The first seek (cold picture cache) is reported apart.
 - panel reads (`--panel-reads`): the plots' track request, the timeline's upload marks and
   the change feed's first page over 1 h, 1 d and 7 d spans (mapservice/bench/ui_reads.py).
+- incident reads (`--incident-reads`): the incidents panel's list for a day and the week and
+  the week's heatmaps, each beside its naive query over the raw poses
+  (mapservice/bench/incident_reads.py); the history's incidents are found first
+  (incident_history.py). Without a browser phase (`--seeks 0 --high-speeds ""
+  --play-seconds 0`) no browser and no UI build are needed.
 - frames: `--frame-minutes` of `--frame-robots` robots; the page plays at 8x for
   `--play-seconds` and reports the script time of each animation frame (engine step,
   chunk drawing, robot markers) and the interval between frames.
@@ -47,10 +52,15 @@ what the page must show after playing in ui_expected.py, the panel reads in ui_r
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from mapservice.bench.ui_browser import frame_phase, seek_phase, speeds_phase
 from mapservice.bench.ui_cpu import add_arguments as add_page_cpu_arguments
@@ -60,9 +70,12 @@ from mapservice.local.checkout import TEST_UI_DIR
 
 
 def main(args) -> None:
-    from playwright.sync_api import sync_playwright
+    from mapservice.bench.machine import machine_facts
+    from mapservice.bench.yardstick import yardstick_ms
 
-    if not (TEST_UI_DIR / "index.html").exists():
+    speeds = [int(s) for s in args.high_speeds.split(",") if s.strip()]
+    browser = bool(args.seeks or speeds or args.play_seconds > 0 or args.page_cpu_url)
+    if browser and not (TEST_UI_DIR / "index.html").exists():
         raise SystemExit(
             f"bench ui: the UI's test build ({TEST_UI_DIR}) is missing; run `make ui` first"
         )
@@ -76,15 +89,17 @@ def main(args) -> None:
     tmp = Path(args.data_dir or tempfile.mkdtemp(prefix="bench-ui-"))
     tmp.mkdir(parents=True, exist_ok=True)
     end = time.time_ns() // 1_000_000 - 600_000
-    speeds = [int(s) for s in args.high_speeds.split(",") if s.strip()]
     out: dict = {
+        "command": "mapservice " + " ".join(sys.argv[1:]),
+        "machine": machine_facts(),
+        "data_dir": str(tmp),
         "days": args.days,
         "robots": args.robots,
         "frame_robots": args.frame_robots,
         "frame_minutes": args.frame_minutes,
     }
     try:
-        with sync_playwright() as pw:
+        with _playwright(browser) as pw:
             t0 = time.perf_counter()
             result, reused = load_or_reuse(
                 tmp, "bench_seek", args.days, args.robots, end, args.reuse
@@ -95,6 +110,21 @@ def main(args) -> None:
                 "load_s": round(time.perf_counter() - t0, 1),
                 "reused": reused,
             }
+            plan = None
+            if args.incident_reads:
+                from mapservice.bench.incident_history import find_or_reuse
+                from mapservice.bench.incident_reads import plan_reads
+                from mapservice.settings import Settings
+
+                out["incidents_found"] = find_or_reuse(
+                    tmp / "ch", "bench_seek", result.start_ms, result.end_ms
+                )
+                oldest = time.time_ns() // 1_000_000 - Settings().retention_ms + 60_000
+                plan = plan_reads(
+                    result.start_ms, result.end_ms, args.incident_reads, args.seed, oldest
+                )
+            out["yardstick_ms"] = yardstick_ms()
+            out["loadavg_before"] = os.getloadavg()
             with ApiProcess(tmp / "ch", "bench_seek", tmp / "logs" / "api-seek.log") as api:
                 if args.seeks:
                     out["seek"] = seek_phase(
@@ -108,6 +138,11 @@ def main(args) -> None:
                         api.url, result.start_ms, result.end_ms, args.panel_reads, args.seed
                     )
                     print(json.dumps(out["panel_reads"], indent=2), flush=True)
+                if plan is not None:
+                    from mapservice.bench.incident_reads import incident_reads_phase
+
+                    out["incident_reads"] = incident_reads_phase(api.url, plan)
+                    print(json.dumps(out["incident_reads"], indent=2), flush=True)
                 if speeds:
                     out["speeds"] = speeds_phase(
                         pw,
@@ -130,6 +165,11 @@ def main(args) -> None:
                 )
                 with ApiProcess(tmp / "ch", "bench_frames", tmp / "logs" / "api-frames.log") as api:
                     out["frames"] = frame_phase(pw, api.url, result.start_ms, args.play_seconds)
+        if plan is not None:
+            out["incident_naive"] = naive_incident_reads(
+                tmp / "ch", plan, args.incident_naive_reads, out["incidents_found"]
+            )
+        out["loadavg_after"] = os.getloadavg()
     finally:
         if not args.data_dir:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -145,13 +185,59 @@ def main(args) -> None:
 
 def summary(out: dict) -> dict:
     """Seek p95 beside the panel reads' p95 per span (the acceptance: plots and the change
-    feed's first page within 300 ms p95 on a 200-robot week, seek within its target)."""
+    feed's first page within 300 ms p95 on a 200-robot week, seek within its target), and
+    the incident reads' p95 beside their naive queries' (the week's within 300 ms)."""
     doc: dict = {"seek_p95_ms": out.get("seek", {}).get("p95_ms")}
     for span, reads in out.get("panel_reads", {}).items():
         for key in ("plot_track", "changes_first_page", "uploads"):
             if key in reads:
                 doc[f"{key}_{span}_p95_ms"] = reads[key]["p95_ms"]
                 doc[f"{key}_{span}_refused"] = reads[key]["refused_422"]
+    reads, naive = out.get("incident_reads", {}), out.get("incident_naive", {})
+    for key, naive_key in INCIDENT_FIGURES:
+        if key in reads:
+            doc[f"{key}_p95_ms"] = reads[key]["p95_ms"]
+        if naive_key in naive:
+            doc[f"naive_{key}_p95_ms"] = naive[naive_key]["p95_ms"]
+    if reads:
+        week = [reads[k]["p95_ms"] for k, _ in INCIDENT_FIGURES if k.endswith("_week")]
+        doc["week_within_300_ms"] = max(week) <= INCIDENT_TARGET_MS
+    return doc
+
+
+# Each incident read's figure and the naive query it is set beside.
+INCIDENT_FIGURES = (
+    ("incidents_day", "incidents_day"),
+    ("incidents_week", "incidents_week"),
+    ("heatmap_occupancy_week", "heatmap_week"),
+    ("heatmap_incidents_week", "incidents_week"),
+)
+INCIDENT_TARGET_MS = 300.0
+
+
+@contextmanager
+def _playwright(needed: bool) -> Iterator[Any]:
+    """Playwright while a phase drives the browser; the API's reads alone need none."""
+    if not needed:
+        yield None
+        return
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as pw:
+        yield pw
+
+
+def naive_incident_reads(chdb_dir: Path, plan, repeats: int, found: dict) -> dict:
+    """The naive queries of the incident reads, in this process once the API is gone."""
+    from mapservice.adapters.clickhouse.store import ClickHouseStore
+    from mapservice.bench.incident_naive import naive_phase, recompute_estimate
+
+    store = ClickHouseStore(f"chdb://{chdb_dir.resolve()}", database="bench_seek")
+    try:
+        doc = naive_phase(store, plan, repeats)
+    finally:
+        store.close()
+    doc["recompute"] = recompute_estimate(found, found["end_ms"] - found["start_ms"])
     return doc
 
 
@@ -180,6 +266,20 @@ def add_parser(kinds) -> None:
         default=40,
         help="instants per span (1 h, 1 d, 7 d) at which the plots' track request, the timeline's "
         "upload marks and the change feed's first page are timed (0: none)",
+    )
+    p.add_argument(
+        "--incident-reads",
+        type=int,
+        default=0,
+        help="random days at which the incidents panel's list is timed, and as many times the "
+        "week's list and the week's heatmaps (occupancy, incidents); the history's incidents "
+        "are found first (0: none)",
+    )
+    p.add_argument(
+        "--incident-naive-reads",
+        type=int,
+        default=3,
+        help="times the naive queries over the week's raw poses run beside the incident reads",
     )
     p.add_argument(
         "--frame-robots",

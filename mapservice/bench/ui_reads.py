@@ -33,11 +33,22 @@ def plot_window(from_ms: int, to_ms: int, width_px: int = PLOT_WIDTH_PX) -> tupl
     return start, step
 
 
-def _pct(values: list[float], q: float) -> float | None:
+def percentile(values: list[float], q: float) -> float | None:
+    """The nearest-rank percentile `q` of `values` (None without any), to 0.1."""
     if not values:
         return None
     s = sorted(values)
     return round(s[min(len(s) - 1, max(0, math.ceil(q / 100 * len(s)) - 1))], 1)
+
+
+def latency_summary(values: list[float]) -> dict[str, Any]:
+    """n, p50, p95 and max of milliseconds."""
+    return {
+        "n": len(values),
+        "p50_ms": percentile(values, 50),
+        "p95_ms": percentile(values, 95),
+        "max_ms": percentile(values, 100),
+    }
 
 
 def panel_reads_phase(
@@ -89,15 +100,8 @@ def panel_reads_phase(
                     if key == "plot_track":
                         points.append(len(r.json()["points"]))
             out[name] = {
-                k: {
-                    "n": len(v),
-                    "p50_ms": _pct(v, 50),
-                    "p95_ms": _pct(v, 95),
-                    "max_ms": _pct(v, 100),
-                    "refused_422": refused[k],
-                }
-                for k, v in times.items()
+                k: {**latency_summary(v), "refused_422": refused[k]} for k, v in times.items()
             }
-            out[name]["plot_track"]["points_p50"] = _pct([float(p) for p in points], 50)
+            out[name]["plot_track"]["points_p50"] = percentile([float(p) for p in points], 50)
             out[name]["plot_track"]["step_ms"] = plot_window(0, span)[1]
     return out
