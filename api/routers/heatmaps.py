@@ -98,7 +98,10 @@ def get_heatmap(
             f"more than {MAX_CELLS:,} cells of {cell:g} m hold a value; use a larger cell "
             f"(e.g. cell={min(MAX_CELL_FACTOR, factor * 2) * FINEST_CELL_M:g}) or a shorter span",
         )
-    found = incidents.incidents(f, t, limit=MAX_INCIDENTS + 1)
+    # The incidents only where they are shown: a week's read of them (and their evidence)
+    # took seconds that an occupancy, dwell or speed picture does not need.
+    wanted = format == "csv" or kind == "incidents"
+    found = incidents.incidents(f, t, limit=MAX_INCIDENTS + 1) if wanted else []
     heatmap = Heatmap(
         f, t, factor * FINEST_CELL_M, cells, incident_cells(found[:MAX_INCIDENTS], factor)
     )

@@ -168,3 +168,27 @@ def test_an_empty_span_is_an_empty_grid_and_a_transparent_pixel(client) -> None:
     assert body["cells"] == [] and body["box"] is None and body["max"] == 0
     image = Image.open(io.BytesIO(get(client, kind="dwell", format="png", **params).content))
     assert image.size == (1, 1) and image.getpixel((0, 0))[3] == 0
+
+
+@pytest.mark.parametrize(
+    ("kind", "format", "reads"),
+    [
+        ("occupancy", "json", 0),
+        ("dwell", "png", 0),
+        ("speed", "json", 0),
+        ("incidents", "json", 1),
+        ("incidents", "png", 1),
+        ("occupancy", "csv", 1),
+    ],
+)
+def test_incidents_are_read_only_where_they_are_shown(
+    client, store, monkeypatch, kind, format, reads
+) -> None:
+    """A week's incidents (with their evidence) take seconds to read: a picture of
+    occupancy, dwell or speed does not read them; the incidents kind and the CSV (which
+    has every measure) do."""
+    calls = []
+    read = store.incidents
+    monkeypatch.setattr(store, "incidents", lambda *a, **k: calls.append(a) or read(*a, **k))
+    assert get(client, kind=kind, format=format).status_code == 200
+    assert len(calls) == reads
