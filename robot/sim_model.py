@@ -44,6 +44,16 @@ class SimConfig:
     pallet_m: tuple[float, float] = (1.0, 1.2)
     door_max_m: float = 3.0
     max_path_points: int = 1000
+    # Incidents as a real floor has them (robot/sim_incidents.py sets them from the incident
+    # rules' thresholds; 0: never). Each robot now and then stands still on its route for a
+    # while (an obstacle, a person in the way), drops off the network, or drives on below
+    # its charge level before it goes to a charger.
+    stall_every_s: float = 0.0  # mean time between one robot's stalls
+    stall_s: tuple[float, float] = (40.0, 120.0)
+    dropout_every_s: float = 0.0  # mean time between one robot's silences
+    dropout_s: tuple[float, float] = (15.0, 60.0)
+    late_charge_share: float = 0.0  # of the charges, those started late
+    late_charge_battery: tuple[float, float] = (8.0, 12.0)  # the level a late one starts at
 
 
 @dataclass(frozen=True)
@@ -58,6 +68,11 @@ class Robot:
     loaded: bool = False
     wait_s: float = 0.0
     charging: bool = False
+    stall_s: float = 0.0  # still standing on its route this long
+    silent_s: float = 0.0  # still off the network this long: it reports nothing
+    next_stall_ms: int = 0
+    next_dropout_ms: int = 0
+    charge_below: float = -1.0  # goes to a charger below this level (negative: the config's)
 
 
 @dataclass(frozen=True)
