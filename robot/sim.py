@@ -45,6 +45,7 @@ from .sim_model import (
     sim_robot_id,
     to_metres,
 )
+from .sim_traffic import Traffic
 from .sim_zones import speed_at, with_zones
 from .zones import FloorZones
 
@@ -96,7 +97,7 @@ def new_state(
     free = drivable(ros_map)
     config, grid, cells = _plan_grid(free, ros_map.resolution, config, robots)
     rng = _rng(seed, -1, "setup")
-    picked = rng.sample(cells, config.stations + config.chargers)
+    picked = _spaced(cells, config.stations + config.chargers, config, rng)
     stations, chargers = tuple(picked[: config.stations]), tuple(picked[config.stations :])
     fleet = []
     for i, cell in enumerate(rng.sample(cells, min(robots, capacity(len(cells))))):
@@ -123,6 +124,22 @@ def new_state(
         seed,
         next_change_ms=t_ms + int(config.change_every_s * 1000),
     )
+
+
+def _spaced(cells: list[Cell], n: int, config: SimConfig, rng: random.Random) -> list[Cell]:
+    """`n` of the cells at random, at least `station_spacing_m` apart where the floor has
+    room (two stations side by side would have their robots pass within a hand's width)."""
+    picked = rng.sample(cells, n)
+    if config.station_spacing_m <= 0:
+        return picked
+    apart = config.station_spacing_m / config.cell_m
+    spaced: list[Cell] = []
+    for cell in [*picked, *rng.sample(cells, min(len(cells), 50 * n))]:
+        if all(math.dist(cell, other) >= apart for other in spaced):
+            spaced.append(cell)
+            if len(spaced) == n:
+                return spaced
+    return picked
 
 
 def capacity(reachable_cells: int) -> int:
@@ -338,8 +355,10 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
                 robots=tuple(replan_blocked(state, r) if r.waypoints else r for r in state.robots),
             )
     robots = []
-    for robot in state.robots:
-        robot = _robot_step(state, robot, partial(_rng, state.seed, state.tick, robot.robot_id))
+    traffic = Traffic(state)
+    for before in state.robots:
+        robot = _robot_step(state, before, partial(_rng, state.seed, state.tick, before.robot_id))
+        robot = traffic.move(before, robot)
         robot = network(c, robot, t_ms, state.seed, state.tick)
         robots.append(robot)
         if robot.silent_s > 0:

@@ -30,6 +30,9 @@ LATE_CHARGE_SHARE = 0.15
 STALL_TIMES = (1.4, 4.0)
 SILENCE_TIMES = (1.5, 6.0)
 LATE_LEVEL_SHARE = (0.65, 0.9)
+GIVE_WAY_TIMES = 1.5
+STATION_SPACING_TIMES = 4.0
+GIVE_WAY_STUCK_SHARE = 0.6  # of the stuck window, the longest a robot stands giving way
 DRIVING = ("to_pick", "to_drop", "to_charger", "leave_zone")
 
 
@@ -45,6 +48,11 @@ def for_incidents(config: SimConfig, th: IncidentThresholds) -> SimConfig:
         dropout_s=(offline_s * SILENCE_TIMES[0], offline_s * SILENCE_TIMES[1]),
         late_charge_share=LATE_CHARGE_SHARE,
         late_charge_battery=(low * LATE_LEVEL_SHARE[0], low * LATE_LEVEL_SHARE[1]),
+        # robots give way to each other, keeping well clear of a near miss: one happens
+        # where waiting ran out
+        give_way_m=th.near_miss_m * GIVE_WAY_TIMES,
+        give_way_s=stuck_s * GIVE_WAY_STUCK_SHARE,
+        station_spacing_m=th.near_miss_m * STATION_SPACING_TIMES,
         # the ordinary charge starts well above the line
         low_battery=max(config.low_battery, low * 1.5),
     )

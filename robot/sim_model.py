@@ -54,6 +54,11 @@ class SimConfig:
     dropout_s: tuple[float, float] = (15.0, 60.0)
     late_charge_share: float = 0.0  # of the charges, those started late
     late_charge_battery: tuple[float, float] = (8.0, 12.0)  # the level a late one starts at
+    # Robots give way (robot/sim_traffic.py): none within this of another, standing for this
+    # long at most (0: they drive through each other)
+    give_way_m: float = 0.0
+    give_way_s: float = 18.0
+    station_spacing_m: float = 0.0  # between any two stations or chargers, where there is room
 
 
 @dataclass(frozen=True)
@@ -73,6 +78,7 @@ class Robot:
     next_stall_ms: int = 0
     next_dropout_ms: int = 0
     charge_below: float = -1.0  # goes to a charger below this level (negative: the config's)
+    still_s: float = 0.0  # has stood where it is this long (kept while robots give way)
 
 
 @dataclass(frozen=True)

@@ -4,13 +4,16 @@ rules (mapservice/core/incidents.py) find it over what the robots reported."""
 
 from __future__ import annotations
 
+import math
 from collections import Counter
+from dataclasses import replace
 
 import pytest
 
 from mapservice.adapters.ros_map import load_ros_map
 from mapservice.core.incident_model import IncidentThresholds
 from mapservice.core.incidents import detect
+from mapservice.core.ports import PoseRow
 from mapservice.core.stored_rows import pose_rows_of
 from mapservice.local.demo_history import simulate
 from mapservice.robot import DEFAULT_MAP, sim
@@ -112,3 +115,48 @@ def _still_with_route(track) -> list[float]:
                 runs.append((a.t_ms - first.t_ms) / 1000)
             first = None
     return runs
+
+
+def test_robots_give_way_and_stations_stand_apart(floor) -> None:
+    """Robots wait for each other where routes cross and stations and chargers stand apart:
+    fewer near misses than robots driving through each other (head-on in an aisle they
+    still pass close: their routes run down its middle), on stations spaced out."""
+    th = IncidentThresholds()
+    config = for_incidents(sim.SimConfig(change_every_s=0), th)
+    state = sim.new_state(floor, 5, seed=3, config=config)
+    places = [*state.stations, *state.chargers]
+    assert all(
+        math.dist(a, b) * config.cell_m >= config.station_spacing_m
+        for i, a in enumerate(places)
+        for b in places[i + 1 :]
+    )
+
+    def near_misses(config) -> int:
+        state = sim.new_state(floor, 5, seed=3, config=config)
+        rows = []
+        for _ in range(2400):
+            state, out = sim.step(state)
+            rows += [
+                PoseRow(
+                    p.robot_id,
+                    p.t_ms,
+                    p.x,
+                    p.y,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    1.0,
+                    p.battery,
+                    p.charging,
+                    p.loaded,
+                    p.path or None,
+                    p.t_ms,
+                )
+                for p in out.poses
+            ]
+        return sum(1 for i in detect(rows, state.t_ms, th) if i.kind == "near_miss")
+
+    giving_way = near_misses(config)
+    driving_through = near_misses(replace(config, give_way_m=0.0, station_spacing_m=0.0))
+    assert giving_way < 0.85 * driving_through, (giving_way, driving_through)
