@@ -74,6 +74,7 @@ __all__ = [
     "with_zones",
 ]
 _route = route_to
+RESERVE_BATTERY = 2.0  # %
 
 
 # --- set-up ------------------------------------------------------------------------------
@@ -303,7 +304,9 @@ def _drive(state: SimState, robot: Robot) -> Robot:
     """A tick of driving along the waypoints, arriving if they end."""
     c = state.config
     speed_px = speed_at(state, robot.pos) * c.dt_s / state.ros_map.resolution
-    robot = _advance(robot, speed_px, max(0.0, robot.battery - c.drain_per_s * c.dt_s))
+    # The battery management keeps a reserve for the way to a charger: never drained below.
+    reserve = min(robot.battery, RESERVE_BATTERY)
+    robot = _advance(robot, speed_px, max(reserve, robot.battery - c.drain_per_s * c.dt_s))
     if not robot.waypoints:
         robot = _arrive(state, robot)
     return robot

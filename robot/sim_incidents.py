@@ -25,11 +25,11 @@ EVERY_S = 5400.0
 # every quarter hour or so, about three an hour for five robots.
 LATE_CHARGE_SHARE = 0.15
 # How far past its threshold each behaviour goes: a stall lasts 1.4-4 times the stuck
-# window, a silence 1.5-6 times the offline threshold, a late charge starts at 65-90 % of
+# window, a silence 1.5-6 times the offline threshold, a late charge starts at 75-95 % of
 # the battery_low level.
 STALL_TIMES = (1.4, 4.0)
 SILENCE_TIMES = (1.5, 6.0)
-LATE_LEVEL_SHARE = (0.65, 0.9)
+LATE_LEVEL_SHARE = (0.75, 0.95)
 GIVE_WAY_TIMES = 1.5
 STATION_SPACING_TIMES = 4.0
 GIVE_WAY_STUCK_SHARE = 0.6  # of the stuck window, the longest a robot stands giving way

@@ -41,8 +41,9 @@ class Traffic:
             return evolve(after, still_s=before.still_s + self.dt_s)
         mine = self._along(before, after)
         # Only a robot that has not stood for long already waits: standing with its route
-        # for the stuck window would be an incident.
-        if before.still_s <= self.max_wait_s and self._in_the_way(before, mine):
+        # for the stuck window would be an incident. Nor does one arriving: it will stand
+        # there anyway.
+        if before.still_s <= self.max_wait_s and after.waypoints and self._in_the_way(before, mine):
             self.places[before.robot_id] = [before.pos]
             self.waiting.add(before.robot_id)
             # A robot about to leave where it stood (a charger) stays as it was, without
