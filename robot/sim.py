@@ -40,6 +40,7 @@ from .sim_model import (
     SimConfig,
     SimState,
     StepOut,
+    advance_along,
     evolve,
     route_to,
     sim_robot_id,
@@ -174,27 +175,6 @@ def _plan_grid(
             "robot); use a map with more free space"
         )
     return best
-
-
-def advance_along(
-    pos: Point, yaw: float, waypoints: tuple[Point, ...], distance_px: float
-) -> tuple[Point, float, int]:
-    """Where driving `distance_px` along the waypoints from `pos` ends: the position, the
-    heading, and how many waypoints it reached. Plain values, no Robot: the demo history
-    interpolates poses between steps with it millions of times."""
-    passed, n = 0, len(waypoints)
-    while passed < n and distance_px > 1e-9:
-        tx, ty = waypoints[passed]
-        d = math.hypot(tx - pos[0], ty - pos[1])
-        if d > 1e-9:
-            yaw = math.atan2(-(ty - pos[1]), tx - pos[0])  # image rows grow downwards
-        if d <= distance_px:
-            pos, distance_px = (tx, ty), distance_px - d
-            passed += 1
-        else:
-            f = distance_px / d
-            pos, distance_px = (pos[0] + (tx - pos[0]) * f, pos[1] + (ty - pos[1]) * f), 0.0
-    return pos, yaw, passed
 
 
 def _advance(robot: Robot, distance_px: float, battery: float) -> Robot:

@@ -5,6 +5,7 @@ it shares (with its cache): plain values, no behaviour. `robot/sim.py` steps the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, TypeVar
 
@@ -235,3 +236,24 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
     if robot.waypoints:
         return (robot.waypoints[0],) + entry.waypoints[1:]
     return entry.waypoints
+
+
+def advance_along(
+    pos: Point, yaw: float, waypoints: tuple[Point, ...], distance_px: float
+) -> tuple[Point, float, int]:
+    """Where driving `distance_px` along the waypoints from `pos` ends: the position, the
+    heading, and how many waypoints it reached. Plain values, no Robot: the demo history
+    interpolates poses between steps with it millions of times."""
+    passed, n = 0, len(waypoints)
+    while passed < n and distance_px > 1e-9:
+        tx, ty = waypoints[passed]
+        d = math.hypot(tx - pos[0], ty - pos[1])
+        if d > 1e-9:
+            yaw = math.atan2(-(ty - pos[1]), tx - pos[0])  # image rows grow downwards
+        if d <= distance_px:
+            pos, distance_px = (tx, ty), distance_px - d
+            passed += 1
+        else:
+            f = distance_px / d
+            pos, distance_px = (pos[0] + (tx - pos[0]) * f, pos[1] + (ty - pos[1]) * f), 0.0
+    return pos, yaw, passed

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from .sim_model import Point, Robot, SimState, evolve
+from .sim_model import Point, Robot, SimState, advance_along, evolve
 
 
 class Traffic:
@@ -58,8 +58,6 @@ class Traffic:
 
     def _along(self, before: Robot, after: Robot) -> list[Point]:
         """The robot's places at the tick's seconds, driving from `before` to `after`."""
-        from .sim import advance_along  # the step's own geometry (sim.py imports this module)
-
         if not before.waypoints:  # leaving: its route is new, the move is short of a tick
             return [
                 (
