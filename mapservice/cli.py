@@ -183,6 +183,7 @@ def cmd_demo_history(args) -> None:
     from mapservice.adapters.clickhouse.store import ClickHouseStore
     from mapservice.adapters.clock import SystemClock
     from mapservice.local.demo_history import backfill
+    from mapservice.processors.incident_watch import thresholds_of
 
     settings = Settings(data_dir=data_dir)
     store = ClickHouseStore.from_settings(settings)
@@ -219,12 +220,14 @@ def cmd_demo_history(args) -> None:
                 now_ms=SystemClock().now_ms(),
                 conflict_window_ms=int(settings.conflict_window_s * 1000),
                 progress=progress,
+                thresholds=thresholds_of(settings),
             )
     finally:
         store.close()
     console.print(
         f"wrote {days:g} days of demo history in {result.seconds:.0f} s: {result.poses:,} poses, "
-        f"{result.chunk_writes:,} map changes, {result.conflicts} conflicts"
+        f"{result.chunk_writes:,} map changes, {result.conflicts} conflicts, "
+        f"{result.incidents:,} incidents"
     )
 
 

@@ -157,6 +157,12 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         help="mean time between map changes (pallets, doors); 0: none",
     )
     sim.add_argument(
+        "--no-incidents",
+        action="store_true",
+        help="no incidents on purpose (by default robots now and then stall on their route, "
+        "drop off the network and charge late, a few of each an hour for five robots)",
+    )
+    sim.add_argument(
         "--load-test",
         action="store_true",
         help="the 2019 load test instead: robots in circles, the same chunks "

@@ -28,6 +28,7 @@ from mapservice.adapters.ros_map import RosMap, drivable, meta_for
 
 from .floor_changes import _protected, _with_pixels, change_map, replan_blocked
 from .planning import Cell, PlanGrid, grid_for, largest_component, plan_cell_sizes
+from .sim_incidents import charge_below, first_due, network, next_charge_level, stalled
 from .sim_model import (
     MAX_CACHED_ROUTES,
     ChunkOut,
@@ -39,11 +40,13 @@ from .sim_model import (
     SimConfig,
     SimState,
     StepOut,
+    advance_along,
     evolve,
     route_to,
     sim_robot_id,
     to_metres,
 )
+from .sim_traffic import Traffic
 from .sim_zones import speed_at, with_zones
 from .zones import FloorZones
 
@@ -72,6 +75,7 @@ __all__ = [
     "with_zones",
 ]
 _route = route_to
+RESERVE_BATTERY = 2.0  # %
 
 
 # --- set-up ------------------------------------------------------------------------------
@@ -95,7 +99,7 @@ def new_state(
     free = drivable(ros_map)
     config, grid, cells = _plan_grid(free, ros_map.resolution, config, robots)
     rng = _rng(seed, -1, "setup")
-    picked = rng.sample(cells, config.stations + config.chargers)
+    picked = _spaced(cells, config.stations + config.chargers, config, rng)
     stations, chargers = tuple(picked[: config.stations]), tuple(picked[config.stations :])
     fleet = []
     for i, cell in enumerate(rng.sample(cells, min(robots, capacity(len(cells))))):
@@ -107,6 +111,8 @@ def new_state(
                 battery=round(rng.uniform(40, 100), 1),
             )
         )
+    due = _rng(seed, -1, "incidents")
+    fleet = [first_due(config, robot, due, t_ms) for robot in fleet]
     return SimState(
         ros_map,
         meta_for(ros_map, chunk_width, chunk_height),
@@ -120,6 +126,22 @@ def new_state(
         seed,
         next_change_ms=t_ms + int(config.change_every_s * 1000),
     )
+
+
+def _spaced(cells: list[Cell], n: int, config: SimConfig, rng: random.Random) -> list[Cell]:
+    """`n` of the cells at random, at least `station_spacing_m` apart where the floor has
+    room (two stations side by side would have their robots pass within a hand's width)."""
+    picked = rng.sample(cells, n)
+    if config.station_spacing_m <= 0:
+        return picked
+    apart = config.station_spacing_m / config.cell_m
+    spaced: list[Cell] = []
+    for cell in [*picked, *rng.sample(cells, min(len(cells), 50 * n))]:
+        if all(math.dist(cell, other) >= apart for other in spaced):
+            spaced.append(cell)
+            if len(spaced) == n:
+                return spaced
+    return picked
 
 
 def capacity(reachable_cells: int) -> int:
@@ -155,27 +177,6 @@ def _plan_grid(
     return best
 
 
-def advance_along(
-    pos: Point, yaw: float, waypoints: tuple[Point, ...], distance_px: float
-) -> tuple[Point, float, int]:
-    """Where driving `distance_px` along the waypoints from `pos` ends: the position, the
-    heading, and how many waypoints it reached. Plain values, no Robot: the demo history
-    interpolates poses between steps with it millions of times."""
-    passed, n = 0, len(waypoints)
-    while passed < n and distance_px > 1e-9:
-        tx, ty = waypoints[passed]
-        d = math.hypot(tx - pos[0], ty - pos[1])
-        if d > 1e-9:
-            yaw = math.atan2(-(ty - pos[1]), tx - pos[0])  # image rows grow downwards
-        if d <= distance_px:
-            pos, distance_px = (tx, ty), distance_px - d
-            passed += 1
-        else:
-            f = distance_px / d
-            pos, distance_px = (pos[0] + (tx - pos[0]) * f, pos[1] + (ty - pos[1]) * f), 0.0
-    return pos, yaw, passed
-
-
 def _advance(robot: Robot, distance_px: float, battery: float) -> Robot:
     """The robot driven `distance_px` along its waypoints, its battery then at `battery`."""
     pos, yaw, passed = advance_along(robot.pos, robot.yaw, robot.waypoints, distance_px)
@@ -187,12 +188,23 @@ def _advance(robot: Robot, distance_px: float, battery: float) -> Robot:
 
 def _next_task(state: SimState, robot: Robot, rng: random.Random) -> Robot:
     """Picks what to do next and plans the route; stays put if nothing is reachable."""
-    if robot.battery < state.config.low_battery and robot.task != "to_charger":
-        options = [("to_charger", i, c) for i, c in enumerate(state.chargers)]
+    at_chargers, at_stations = _taken(state, robot)
+    if robot.battery < charge_below(state.config, robot) and robot.task != "to_charger":
+        options = [
+            ("to_charger", i, c) for i, c in enumerate(state.chargers) if i not in at_chargers
+        ]
     elif robot.loaded:
-        options = [("to_drop", i, c) for i, c in enumerate(state.stations) if i != robot.target]
+        options = [
+            ("to_drop", i, c)
+            for i, c in enumerate(state.stations)
+            if i != robot.target and i not in at_stations
+        ]
     else:
-        options = [("to_pick", i, c) for i, c in enumerate(state.stations) if i != robot.target]
+        options = [
+            ("to_pick", i, c)
+            for i, c in enumerate(state.stations)
+            if i != robot.target and i not in at_stations
+        ]
     rng.shuffle(options)
     if robot.task == "to_charger" or (options and options[0][0] == "to_charger"):
         here = robot.pos
@@ -202,6 +214,20 @@ def _next_task(state: SimState, robot: Robot, rng: random.Random) -> Robot:
         if route is not None:
             return evolve(robot, task=task, target=index, waypoints=route)
     return evolve(robot, task="idle", wait_s=state.config.dwell_s)
+
+
+def _taken(state: SimState, robot: Robot) -> tuple[set[int], set[int]]:
+    """The chargers and stations other robots drive to or stand at: a robot picks another
+    (two robots sharing a station would pass within a hand's width there all shift)."""
+    chargers, stations = set(), set()
+    for other in state.robots:
+        if other.robot_id == robot.robot_id or other.target < 0:
+            continue
+        if other.task in ("to_charger", "charging"):
+            chargers.add(other.target)
+        elif other.task in ("to_pick", "to_drop", "dwell"):
+            stations.add(other.target)
+    return chargers, stations
 
 
 def _arrive(state: SimState, robot: Robot) -> Robot:
@@ -224,9 +250,18 @@ def _robot_step(state: SimState, robot: Robot, make_rng: Callable[[], random.Ran
     if robot.task == "charging":
         battery = min(100.0, robot.battery + c.charge_per_s * c.dt_s)
         if battery >= c.full_battery:
-            return _next_task(
-                state, evolve(robot, battery=battery, charging=False, task="idle"), make_rng()
+            rng = make_rng()
+            charged = evolve(
+                robot,
+                battery=battery,
+                charging=False,
+                task="idle",
+                charge_below=next_charge_level(c, rng),
             )
+            robot = _next_task(state, charged, rng)
+            # It leaves at once: a robot reporting its new route where it stood charging
+            # for longer than the stuck window would look stuck.
+            return _drive(state, robot) if robot.waypoints else robot
         return evolve(robot, battery=battery)
     if robot.task in ("dwell", "idle"):
         robot = evolve(
@@ -234,11 +269,24 @@ def _robot_step(state: SimState, robot: Robot, make_rng: Callable[[], random.Ran
             battery=max(0.0, robot.battery - c.idle_drain_per_s * c.dt_s),
             wait_s=robot.wait_s - c.dt_s,
         )
-        return _next_task(state, robot, make_rng()) if robot.wait_s <= 0 else robot
+        if robot.wait_s > 0:
+            return robot
+        waited = robot.task == "idle"  # for a charger, maybe: it may have stood a while
+        robot = _next_task(state, robot, make_rng())
+        return _drive(state, robot) if waited and robot.waypoints else robot
     if not robot.waypoints:
         return _arrive(state, robot)
+    standing = stalled(c, robot, state.t_ms, state.seed, state.tick)
+    return standing if standing is not None else _drive(state, robot)
+
+
+def _drive(state: SimState, robot: Robot) -> Robot:
+    """A tick of driving along the waypoints, arriving if they end."""
+    c = state.config
     speed_px = speed_at(state, robot.pos) * c.dt_s / state.ros_map.resolution
-    robot = _advance(robot, speed_px, max(0.0, robot.battery - c.drain_per_s * c.dt_s))
+    # The battery management keeps a reserve for the way to a charger: never drained below.
+    reserve = min(robot.battery, RESERVE_BATTERY)
+    robot = _advance(robot, speed_px, max(reserve, robot.battery - c.drain_per_s * c.dt_s))
     if not robot.waypoints:
         robot = _arrive(state, robot)
     return robot
@@ -290,9 +338,14 @@ def step(state: SimState) -> tuple[SimState, StepOut]:
                 robots=tuple(replan_blocked(state, r) if r.waypoints else r for r in state.robots),
             )
     robots = []
-    for robot in state.robots:
-        robot = _robot_step(state, robot, partial(_rng, state.seed, state.tick, robot.robot_id))
+    traffic = Traffic(state)
+    for before in state.robots:
+        robot = _robot_step(state, before, partial(_rng, state.seed, state.tick, before.robot_id))
+        robot = traffic.move(before, robot)
+        robot = network(c, robot, t_ms, state.seed, state.tick)
         robots.append(robot)
+        if robot.silent_s > 0:
+            continue  # off the network: it reports nothing
         here = to_metres(state, robot.pos)
         x, y = here
         out.poses.append(

@@ -40,10 +40,12 @@ def cmd_sim(args) -> None:
     from rich.live import Live
 
     from mapservice.core.areas import AreaGrid
+    from mapservice.processors.incident_watch import thresholds_of
 
     from .api_client import writer_token
     from .faults import Faults
     from .sim import SimConfig
+    from .sim_incidents import for_incidents
     from .simrun import SimRunner, progress_table
     from .zone_feed import ZoneFeed
 
@@ -54,6 +56,11 @@ def cmd_sim(args) -> None:
         else ZoneFeed(args.api or settings.public_base_url, writer_token(args.token))
     )
 
+    config = SimConfig(change_every_s=args.change_every)
+    if not args.no_incidents:
+        # Sized against the processors' own thresholds, so each one is an incident.
+        config = for_incidents(config, thresholds_of(settings))
+
     def make_runner() -> SimRunner:
         return SimRunner(
             mqtt_url,
@@ -62,7 +69,7 @@ def cmd_sim(args) -> None:
             seed=args.seed,
             prefix=args.prefix,
             faults=Faults(args.clock_skew, args.loss, args.bad_rate),
-            config=SimConfig(change_every_s=args.change_every),
+            config=config,
             mqtt_conn=conn,
             zone_feed=feed,
             zone_topic=settings.zone_advertisement_topic,

@@ -5,6 +5,7 @@ it shares (with its cache): plain values, no behaviour. `robot/sim.py` steps the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, TypeVar
 
@@ -44,6 +45,21 @@ class SimConfig:
     pallet_m: tuple[float, float] = (1.0, 1.2)
     door_max_m: float = 3.0
     max_path_points: int = 1000
+    # Incidents as a real floor has them (robot/sim_incidents.py sets them from the incident
+    # rules' thresholds; 0: never). Each robot now and then stands still on its route for a
+    # while (an obstacle, a person in the way), drops off the network, or drives on below
+    # its charge level before it goes to a charger.
+    stall_every_s: float = 0.0  # mean time between one robot's stalls
+    stall_s: tuple[float, float] = (40.0, 120.0)
+    dropout_every_s: float = 0.0  # mean time between one robot's silences
+    dropout_s: tuple[float, float] = (15.0, 60.0)
+    late_charge_share: float = 0.0  # of the charges, those started late
+    late_charge_battery: tuple[float, float] = (8.0, 12.0)  # the level a late one starts at
+    # Robots give way (robot/sim_traffic.py): none within this of another, standing for this
+    # long at most (0: they drive through each other)
+    give_way_m: float = 0.0
+    give_way_s: float = 18.0
+    station_spacing_m: float = 0.0  # between any two stations or chargers, where there is room
 
 
 @dataclass(frozen=True)
@@ -58,6 +74,12 @@ class Robot:
     loaded: bool = False
     wait_s: float = 0.0
     charging: bool = False
+    stall_s: float = 0.0  # still standing on its route this long
+    silent_s: float = 0.0  # still off the network this long: it reports nothing
+    next_stall_ms: int = 0
+    next_dropout_ms: int = 0
+    charge_below: float = -1.0  # goes to a charger below this level (negative: the config's)
+    still_s: float = 0.0  # has stood where it is this long (kept while robots give way)
 
 
 @dataclass(frozen=True)
@@ -214,3 +236,24 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
     if robot.waypoints:
         return (robot.waypoints[0],) + entry.waypoints[1:]
     return entry.waypoints
+
+
+def advance_along(
+    pos: Point, yaw: float, waypoints: tuple[Point, ...], distance_px: float
+) -> tuple[Point, float, int]:
+    """Where driving `distance_px` along the waypoints from `pos` ends: the position, the
+    heading, and how many waypoints it reached. Plain values, no Robot: the demo history
+    interpolates poses between steps with it millions of times."""
+    passed, n = 0, len(waypoints)
+    while passed < n and distance_px > 1e-9:
+        tx, ty = waypoints[passed]
+        d = math.hypot(tx - pos[0], ty - pos[1])
+        if d > 1e-9:
+            yaw = math.atan2(-(ty - pos[1]), tx - pos[0])  # image rows grow downwards
+        if d <= distance_px:
+            pos, distance_px = (tx, ty), distance_px - d
+            passed += 1
+        else:
+            f = distance_px / d
+            pos, distance_px = (pos[0] + (tx - pos[0]) * f, pos[1] + (ty - pos[1]) * f), 0.0
+    return pos, yaw, passed

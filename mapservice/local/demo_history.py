@@ -34,9 +34,11 @@ import structlog
 from mapservice.adapters.ros_map import RosMap, meta_for, slice_chunks
 from mapservice.core.change_feed import UPLOADER_ID
 from mapservice.core.events import ChunkUpdated, Envelope, PoseReported, make_envelope
+from mapservice.core.incident_model import IncidentThresholds
 from mapservice.core.ports import HistoryStore, chunk_rows_of
 from mapservice.core.retention import DAY_MS
 from mapservice.core.wire2019 import content_hash
+from mapservice.local.demo_incidents import store_incidents
 from mapservice.processors.conflict_recorder import record_conflicts
 
 log = structlog.get_logger(__name__)
@@ -49,6 +51,7 @@ CONFLICT_EVERY = (
 )
 UPLOAD_ROBOT_ID = UPLOADER_ID  # as `mapservice map upload` writes the map
 BATCH_POSES = 100_000
+SIMULATION_SHARE = 0.9  # of the progress shown; finding the incidents is the rest
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,7 @@ class BackfillResult:
     chunk_writes: int
     conflicts: int
     snapshots: int
+    incidents: int
     seconds: float
 
 
@@ -116,12 +120,24 @@ def _misread(pixels: bytes, rng: random.Random, unknown: int) -> bytes:
 
 
 def simulate(
-    ros_map: RosMap, robots: int, start_ms: int, end_ms: int, *, seed: int = 7, prefix: str = "sim"
+    ros_map: RosMap,
+    robots: int,
+    start_ms: int,
+    end_ms: int,
+    *,
+    seed: int = 7,
+    prefix: str = "sim",
+    thresholds: IncidentThresholds | None = None,
 ) -> Iterator[tuple[int, list[Envelope]]]:
-    """(simulated time reached, events) batches of the fast-forwarded shift, in time order."""
+    """(simulated time reached, events) batches of the fast-forwarded shift, in time order;
+    its robots' incidents (stalls, silences, late charges) sized against `thresholds`."""
     from mapservice.robot import sim
+    from mapservice.robot.sim_incidents import for_incidents
 
-    config = sim.SimConfig(dt_s=STEP_S, change_every_s=CHANGE_EVERY_S)
+    config = for_incidents(
+        sim.SimConfig(dt_s=STEP_S, change_every_s=CHANGE_EVERY_S),
+        thresholds or IncidentThresholds(),
+    )
     state = sim.new_state(ros_map, robots, seed=seed, t_ms=start_ms, config=config, prefix=prefix)
     meta = state.meta
     rng = random.Random(f"{seed}:demo-history")
@@ -145,11 +161,15 @@ def simulate(
     while state.t_ms < end_ms:
         before = state
         state, out = sim.step(state)
-        # Poses between the steps: each robot advanced along its own path.
-        for robot in before.robots:
+        # Poses between the steps: each robot advanced along its own path (one standing
+        # stands; one off the network reports nothing).
+        for robot, after in zip(before.robots, state.robots, strict=True):
+            if after.silent_s > 0:
+                continue
+            moves = after.pos != robot.pos
             for k in range(POSE_EVERY_S, STEP_S, POSE_EVERY_S):
                 pos, yaw, passed = sim.advance_along(
-                    robot.pos, robot.yaw, robot.waypoints, speed_px * k
+                    robot.pos, robot.yaw, robot.waypoints, speed_px * k if moves else 0.0
                 )
                 here = sim.to_metres(before, pos)
                 batch.append(
@@ -226,9 +246,12 @@ def backfill(
     seed: int = 7,
     prefix: str = "sim",
     progress: Callable[[float], None] | None = None,
+    thresholds: IncidentThresholds | None = None,
 ) -> BackfillResult:
-    """Writes `days` of simulated history ending at `now_ms` into `store` (migrated)."""
+    """Writes `days` of simulated history ending at `now_ms` into `store` (migrated), and
+    the incidents the processors' rules (`thresholds`) find in it."""
     started = time.monotonic()
+    th = thresholds or IncidentThresholds()
     start_ms = now_ms - int(days * DAY_MS)
     store.append(map_events(ros_map, start_ms))
     totals = {"poses": 0, "chunk_writes": 0, "conflicts": 0}
@@ -251,13 +274,14 @@ def backfill(
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="demo-history") as writer:
         pending = None
         for reached, events in simulate(
-            ros_map, robots, start_ms + 1000, now_ms, seed=seed, prefix=prefix
+            ros_map, robots, start_ms + 1000, now_ms, seed=seed, prefix=prefix, thresholds=th
         ):
             if pending is not None:
                 pending.result()
             pending = writer.submit(write, events)
             if progress is not None:
-                progress(min(1.0, (reached - start_ms) / (now_ms - start_ms)))
+                done = min(1.0, (reached - start_ms) / (now_ms - start_ms))
+                progress(SIMULATION_SHARE * done)
         if pending is not None:
             pending.result()
     poses, chunk_writes, conflicts = totals["poses"], totals["chunk_writes"], totals["conflicts"]
@@ -266,6 +290,15 @@ def backfill(
         if hasattr(store, "build_snapshots_bulk")
         else store.build_snapshots(now_ms)
     )
+    found = store_incidents(
+        store,
+        start_ms,
+        now_ms,
+        th,
+        None
+        if progress is None
+        else lambda done: progress(SIMULATION_SHARE + (1 - SIMULATION_SHARE) * done),
+    )
     result = BackfillResult(
         start_ms,
         now_ms,
@@ -273,6 +306,7 @@ def backfill(
         chunk_writes,
         conflicts,
         snapshots,
+        sum(found.values()),
         round(time.monotonic() - started, 1),
     )
     log.info("demo history written", **dict(vars(result).items()))

@@ -12,6 +12,11 @@ comes last):
 - on the timeline's 7 d span the change feed lists the week's changes (no error, no "zoom
   in"), the map upload of the week's first instant is one upload mark, and the plots draw
   a robot's battery over the week;
+- the demo week has incidents: three hours two days ago the incidents panel lists what
+  `GET /api/v1/incidents` serves (stuck, offline, battery_low and near misses among them:
+  the simulator makes them), a click on a stuck robot's lands a few seconds before it with
+  the robot ringed and its trail drawn, and the heatmap's incidents kind draws with its
+  legend (screenshots in test-artifacts/ui/first-run-incident*.png);
 - the README's try-it block: its mosquitto_pub pose is queryable within 2 s; Ctrl-C stops
   everything; a second `up` on the same data dir still has it.
 """
@@ -203,6 +208,63 @@ def test_a_fresh_weeks_7d_span_lists_changes_marks_the_upload_and_plots(up, page
     )
     plot = page.evaluate(f"() => window.__replay.plots().robots['{robot}']")
     assert len({b for b in plot["battery"] if b is not None}) > 1
+    assert page.errors == []
+
+
+LEAD_MS = 5000  # replay-ui/src/lib/incidents.ts LEAD_MS
+
+
+def test_the_demo_weeks_incidents_are_listed_picked_and_mapped(up, page) -> None:
+    api = up.api_url
+    open_replay(page, api, timeout_ms=TIMEOUT_MS)
+    now = page.evaluate("() => Date.now()") // 1000 * 1000  # the address's span is in seconds
+    span = (now - 2 * DAY_MS - 3 * HOUR_MS, now - 2 * DAY_MS)
+    served = up.api("/api/v1/incidents", **{"from": span[0], "to": span[1]}).json()
+    assert not served["truncated"]
+    incidents = served["incidents"]
+    kinds = {i["kind"] for i in incidents}
+    assert {"stuck", "offline", "battery_low", "near_miss"} <= kinds, kinds
+    # The panel lists them as the API serves them (newest first).
+    open_replay(
+        page,
+        api,
+        f"?t={span[0] + 30_000}&span={iso(span[0])},{iso(span[1])}&panels=incidents",
+        timeout_ms=TIMEOUT_MS,
+    )
+    page.wait_for_selector('[data-testid="incident-panel"]')
+    expected = [i["id"] for i in reversed(incidents)]
+    page.wait_for_function(
+        f"() => JSON.stringify(window.__replay.incidents().listed) === '{json.dumps(expected)}'",
+        timeout=TIMEOUT_MS,
+    )
+    # A click on a stuck robot's lands a few seconds before it, the robot ringed, its trail drawn.
+    stuck = next(i for i in incidents if i["kind"] == "stuck")
+    page.locator(f'[data-testid="incident-row"][data-id="{stuck["id"]}"]').click()
+    page.wait_for_function(
+        f"() => window.__replay.playhead === {stuck['start_ms'] - LEAD_MS}"
+        " && window.__replay.complete"
+        f" && window.__replay.incidents().trails.length === {len(stuck['robots'])}",
+        timeout=TIMEOUT_MS,
+    )
+    picked = page.evaluate("() => window.__replay.incidents()")
+    assert picked["picked"] == stuck["id"] and picked["marked"]
+    assert sorted(picked["highlighted"]) == sorted(stuck["robots"])
+    assert all(t["points"] >= 2 for t in picked["trails"]), picked["trails"]
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    (ARTIFACTS / "first-run-incident.png").write_bytes(page.screenshot())
+    # The heatmap of the span's incidents, with its legend.
+    page.check('[data-testid="heatmap-on"]')
+    page.select_option('[data-testid="heatmap-kind"]', "incidents")
+    page.wait_for_function(
+        "() => { const h = window.__replay.heatmap(); return h.grid && h.grid.kind === 'incidents'"
+        " && !h.loading && h.drawn; }",
+        timeout=TIMEOUT_MS,
+    )
+    heat = page.evaluate("() => window.__replay.heatmap()")
+    assert not heat["error"] and heat["grid"]["box"] is not None, heat
+    assert "incidents" in page.inner_text('[data-testid="heatmap-legend"]')
+    assert page.locator(".leaflet-heatmap-pane img.heatmap").count() == 1
+    (ARTIFACTS / "first-run-incident-heatmap.png").write_bytes(page.screenshot())
     assert page.errors == []
 
 
