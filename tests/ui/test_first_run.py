@@ -228,15 +228,21 @@ def test_the_demo_weeks_incidents_are_listed_picked_and_mapped(up, page) -> None
     open_replay(
         page,
         api,
-        f"?t={span[0] + 30_000}&span={iso(span[0])},{iso(span[1])}&panels=incidents",
+        f"?t={span[0] + 30_000}&span={span[0]},{span[1]}&panels=incidents",
         timeout_ms=TIMEOUT_MS,
     )
     page.wait_for_selector('[data-testid="incident-panel"]')
     expected = [i["id"] for i in reversed(incidents)]
-    page.wait_for_function(
-        f"() => JSON.stringify(window.__replay.incidents().listed) === '{json.dumps(expected)}'",
-        timeout=TIMEOUT_MS,
-    )
+    deadline = time.monotonic() + TIMEOUT_MS / 1000
+    while (listed := page.evaluate("() => window.__replay.incidents().listed")) != expected:
+        assert time.monotonic() < deadline, (
+            len(listed),
+            len(expected),
+            sorted(set(listed) - set(expected))[:5],
+            sorted(set(expected) - set(listed))[:5],
+            page.evaluate("() => [location.search, window.__replay.span]"),
+        )
+        time.sleep(0.2)
     # A click on a stuck robot's lands a few seconds before it, the robot ringed, its trail drawn.
     stuck = next(i for i in incidents if i["kind"] == "stuck")
     page.locator(f'[data-testid="incident-row"][data-id="{stuck["id"]}"]').click()
