@@ -206,7 +206,10 @@ class EventIncidentTracker(UnstoredFindings):
         reach = self.th.lookback_ms
         since: dict[str, int] = {}
         for i in self.current.values():
-            if i.ongoing:
+            # a conflict run is never ongoing, but the next conflict within the gap extends
+            # it, and each batch then judges it from its start: its records stay too
+            extendable = i.kind == "conflict" and i.end_ms + self.th.conflict_gap_ms >= now_ms
+            if i.ongoing or extendable:
                 since[i.robots[0]] = min(since.get(i.robots[0], cut), i.start_ms - reach)
         # memory never grows back: what was let go of is read from the store
         since = {r: max(t, self._held(r)) for r, t in since.items()}

@@ -60,9 +60,10 @@ def test_a_robot_standing_in_a_zone_for_long_is_carried_on_from_memory() -> None
 
 def test_a_conflict_run_that_goes_on_is_placed_from_memory() -> None:
     """Two robots' writes contradict each other every 5 s for ten minutes: one conflict
-    incident that grows. Each batch judges it again from its start, whose evidence lies
-    before memory's poses: its places are kept from the known incident, not located
-    again from the store each batch (a query a batch per such robot, growing with the
+    incident that grows. Each batch judges it again from its start, whose records and
+    evidence lie before memory's span: the run's records stay in memory while a conflict
+    may still extend it, and its places are kept from the known incident, not read and
+    located again from the store each batch (a query a batch per such robot, growing with the
     history: half of `serve`'s CPU at 20 robots in an hour's soak). The run is the one
     the rules find over the history."""
     th, keep_ms = IncidentThresholds(), 120_000
@@ -74,9 +75,12 @@ def test_a_conflict_run_that_goes_on_is_placed_from_memory() -> None:
         return reader(store)(from_ms, to_ms, robot)
 
     poses = IncidentTracker(read, lambda f, t: [], th, keep_ms)
-    events = EventIncidentTracker(
-        lambda f, t, r: stored_records(store, f, t, r), lambda f, t: [], poses.track, th, keep_ms
-    )
+
+    def read_records(from_ms: int, to_ms: int, robot: str | None) -> EventRecords:
+        reads.append((from_ms, to_ms, robot))
+        return stored_records(store, from_ms, to_ms, robot)
+
+    events = EventIncidentTracker(read_records, lambda f, t: [], poses.track, th, keep_ms)
     poses.load([], T0, [], T0)
     events.load(EventRecords(), T0, [], T0)
     late_reads = 0
