@@ -309,10 +309,23 @@ def connection_offline_incidents(states: Sequence[ConnectionAt], until_ms: int) 
     return incidents
 
 
+# An ongoing incident of these kinds (a silence, a disconnection, an error held) lasts up
+# to now: its end and length are the finder's clock, not the history's, and its stored end
+# is only when it was last found.
+CLOCK_GROWN_KINDS = ("offline", "vda_error")
+
+
 def grows_with_the_clock(incident: Incident) -> bool:
-    """An ongoing silence, disconnection or error lasts up to now: its end and length are
-    the finder's clock, not the history's."""
-    return incident.ongoing and incident.kind in ("offline", "vda_error")
+    """Whether `incident` lasts up to now (CLOCK_GROWN_KINDS, ongoing)."""
+    return incident.ongoing and incident.kind in CLOCK_GROWN_KINDS
+
+
+def meets(incident: Incident, from_ms: int, to_ms: int) -> bool:
+    """Whether `incident` meets [from_ms, to_ms): begun before its end and not ended before
+    its start (one growing with the clock has not ended)."""
+    return incident.start_ms < to_ms and (
+        incident.end_ms >= from_ms or grows_with_the_clock(incident)
+    )
 
 
 def is_connection_offline(incident: Incident) -> bool:

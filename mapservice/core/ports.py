@@ -357,7 +357,8 @@ class IncidentReader(Protocol):
         robot_id: str | None = None,
         limit: int = 10_000,
     ) -> list[Incident]:
-        """The incidents meeting [from_ms, to_ms) (start < to_ms, end >= from_ms), of
+        """The incidents meeting [from_ms, to_ms) (event_incidents.meets: start < to_ms,
+        end >= from_ms or ongoing and growing with the clock), of
         `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
         id; as last found, retracted ones left out."""
 

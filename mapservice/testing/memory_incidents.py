@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 
+from mapservice.core.event_incidents import meets
 from mapservice.core.incidents import Incident
 
 
@@ -39,8 +40,7 @@ class IncidentLog:
                 i
                 for _, gone, i in self._latest.values()
                 if not gone
-                and i.start_ms < to_ms
-                and i.end_ms >= from_ms
+                and meets(i, from_ms, to_ms)
                 and (not kinds or i.kind in kinds)
                 and (robot_id is None or robot_id in i.robots)
             ]

@@ -10,6 +10,7 @@ from typing import Any
 import msgspec
 
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.core.event_incidents import CLOCK_GROWN_KINDS
 from mapservice.core.incidents import Incident, PoseRef
 
 _evidence = msgspec.json.Decoder(tuple[PoseRef, ...])
@@ -70,10 +71,17 @@ class ClickHouseIncidentReads:
     ) -> list[Incident]:
         where = [
             "start < fromUnixTimestamp64Milli({to:Int64})",
-            "end >= fromUnixTimestamp64Milli({f:Int64})",
+            # meets(): an ongoing silence's stored end is when it was last found
+            "(end >= fromUnixTimestamp64Milli({f:Int64}) "
+            "OR (ongoing AND kind IN {grown:Array(String)}))",
             "NOT retracted",
         ]
-        params: dict[str, Any] = {"f": from_ms, "to": to_ms, "n": limit}
+        params: dict[str, Any] = {
+            "f": from_ms,
+            "to": to_ms,
+            "n": limit,
+            "grown": list(CLOCK_GROWN_KINDS),
+        }
         if kinds:
             where.append("kind IN {kinds:Array(String)}")
             params["kinds"] = list(kinds)

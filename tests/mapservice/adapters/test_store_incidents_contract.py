@@ -82,6 +82,26 @@ def test_reads_meet_the_window_and_filter_by_kind_and_robot(store, t0) -> None:
     assert len(store.incidents(t0, t0 + 60_000, limit=3)) == 3
 
 
+def test_reads_meet_the_window_at_both_ends_and_an_ongoing_silence_throughout(store, t0) -> None:
+    """[from, to): an incident ended before `from` is left out, one begun before it and
+    ended inside is listed; an ongoing silence (its stored end when last found, before
+    `from`) lasts up to now and is listed, an ongoing stuck robot's run is not."""
+    rows = [
+        incident(t0, "stuck", ("r1",), 0, 9_999),  # ended just before from
+        incident(t0, "near_miss", ("r1", "r2"), 2_000, 10_000),  # ended just at from
+        incident(t0, "battery_low", ("r2",), 5_000, 15_000),  # begun before, ended inside
+        incident(t0, "offline", ("r3",), 1_000, 4_000, ongoing=True),  # silent since
+        incident(t0, "stuck", ("r4",), 3_000, 5_000, ongoing=True),  # no report since
+        incident(t0, "offline", ("r5",), 30_000, 40_000, ongoing=True),  # begun at to
+    ]
+    store.append_incidents(rows, t0 + 60_000)
+    got = [(i.kind, i.robots) for i in store.incidents(t0 + 10_000, t0 + 30_000)]
+    assert got == [("offline", ("r3",)), ("near_miss", ("r1", "r2")), ("battery_low", ("r2",))]
+    assert [i.kind for i in store.incidents(t0 + 4_001, t0 + 5_000, kinds=["offline"])] == [
+        "offline"
+    ]
+
+
 @settings(
     max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
