@@ -322,10 +322,9 @@ def grows_with_the_clock(incident: Incident) -> bool:
 
 def meets(incident: Incident, from_ms: int, to_ms: int) -> bool:
     """Whether `incident` meets [from_ms, to_ms): begun before its end and not ended before
-    its start (one growing with the clock has not ended)."""
-    return incident.start_ms < to_ms and (
-        incident.end_ms >= from_ms or grows_with_the_clock(incident)
-    )
+    its start; an ongoing one has not ended (its end is only where it was last found: a
+    silence's grows with the clock, a run's waits for the robot's next pose)."""
+    return incident.start_ms < to_ms and (incident.end_ms >= from_ms or incident.ongoing)
 
 
 def is_connection_offline(incident: Incident) -> bool:

@@ -358,7 +358,7 @@ class IncidentReader(Protocol):
         limit: int = 10_000,
     ) -> list[Incident]:
         """The incidents meeting [from_ms, to_ms) (event_incidents.meets: start < to_ms,
-        end >= from_ms or ongoing and growing with the clock), of
+        end >= from_ms or ongoing), of
         `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
         id; as last found, retracted ones left out."""
 

@@ -10,7 +10,6 @@ from typing import Any
 import msgspec
 
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
-from mapservice.core.event_incidents import CLOCK_GROWN_KINDS
 from mapservice.core.incidents import Incident, PoseRef
 
 _evidence = msgspec.json.Decoder(tuple[PoseRef, ...])
@@ -71,17 +70,11 @@ class ClickHouseIncidentReads:
     ) -> list[Incident]:
         where = [
             "start < fromUnixTimestamp64Milli({to:Int64})",
-            # meets(): an ongoing silence's stored end is when it was last found
-            "(end >= fromUnixTimestamp64Milli({f:Int64}) "
-            "OR (ongoing AND kind IN {grown:Array(String)}))",
+            # event_incidents.meets: an ongoing one's stored end is where it was last found
+            "(end >= fromUnixTimestamp64Milli({f:Int64}) OR ongoing)",
             "NOT retracted",
         ]
-        params: dict[str, Any] = {
-            "f": from_ms,
-            "to": to_ms,
-            "n": limit,
-            "grown": list(CLOCK_GROWN_KINDS),
-        }
+        params: dict[str, Any] = {"f": from_ms, "to": to_ms, "n": limit}
         if kinds:
             where.append("kind IN {kinds:Array(String)}")
             params["kinds"] = list(kinds)

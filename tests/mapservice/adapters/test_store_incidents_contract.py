@@ -84,8 +84,8 @@ def test_reads_meet_the_window_and_filter_by_kind_and_robot(store, t0) -> None:
 
 def test_reads_meet_the_window_at_both_ends_and_an_ongoing_silence_throughout(store, t0) -> None:
     """[from, to): an incident ended before `from` is left out, one begun before it and
-    ended inside is listed; an ongoing silence (its stored end when last found, before
-    `from`) lasts up to now and is listed, an ongoing stuck robot's run is not."""
+    ended inside is listed, and so is an ongoing one whose stored end (where it was last
+    found) lies before `from`: it has not ended."""
     rows = [
         incident(t0, "stuck", ("r1",), 0, 9_999),  # ended just before from
         incident(t0, "near_miss", ("r1", "r2"), 2_000, 10_000),  # ended just at from
@@ -96,7 +96,12 @@ def test_reads_meet_the_window_at_both_ends_and_an_ongoing_silence_throughout(st
     ]
     store.append_incidents(rows, t0 + 60_000)
     got = [(i.kind, i.robots) for i in store.incidents(t0 + 10_000, t0 + 30_000)]
-    assert got == [("offline", ("r3",)), ("near_miss", ("r1", "r2")), ("battery_low", ("r2",))]
+    assert got == [
+        ("offline", ("r3",)),
+        ("near_miss", ("r1", "r2")),
+        ("stuck", ("r4",)),
+        ("battery_low", ("r2",)),
+    ]
     assert [i.kind for i in store.incidents(t0 + 4_001, t0 + 5_000, kinds=["offline"])] == [
         "offline"
     ]

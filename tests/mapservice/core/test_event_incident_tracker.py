@@ -111,3 +111,58 @@ def test_a_conflict_run_that_goes_on_is_placed_from_memory() -> None:
     )
     assert normal([going]) == normal([i for i in expected if i.kind == "conflict"])
     assert going.start_ms == T0 + 4000 and going.measure == 120
+
+
+def test_a_zone_run_left_ongoing_by_a_stop_is_ended_when_its_next_poses_come_again() -> None:
+    """A robot stands in a zone (its run stored ongoing) and reports twice more in it; the
+    processors stop after those poses and violations were stored but before their
+    incidents were found, and restart well past memory's span, so the run's stored end
+    lies before what they read back; the two poses come again (redelivered): the first
+    run is no longer ongoing, as the rules find over the stored history."""
+    th, keep_ms = IncidentThresholds(), 120_000
+    store = MemoryStore()
+
+    def trackers(now: int) -> tuple[IncidentTracker, EventIncidentTracker]:
+        poses = IncidentTracker(reader(store), store.incidents, th, keep_ms)
+        events = EventIncidentTracker(
+            lambda f, t, r: stored_records(store, f, t, r),
+            store.incidents,
+            poses.track,
+            th,
+            keep_ms,
+        )
+        # as the processors load: the incidents meeting memory's span, and its records
+        since, horizon = now - keep_ms, now + 1
+        stored = store.incidents(since - th.lookback_ms, horizon)
+        poses.load(reader(store)(since, horizon, None), since, stored, now)
+        events.load(stored_records(store, since, horizon, None), since, stored, now, poses.tracks)
+        return poses, events
+
+    def stored_batch(times: list[int], now: int) -> tuple[list[PoseRow], EventRecords]:
+        batch = [
+            PoseRow("r", t, 1.0, 1.0, 0, 0, 0, 0, 1, 80.0, False, None, None, now) for t in times
+        ]
+        violations = violations_of(batch)
+        store.append([envelope(p, now) for p in batch])
+        store.append_zone_violations(violations)
+        return batch, EventRecords(violations=violations)
+
+    def found(now: int, trackers_: tuple[IncidentTracker, EventIncidentTracker], batch) -> None:
+        poses, events = trackers_
+        poses.add(batch[0], now)
+        events.add(*batch, now)
+        for tracker in trackers_:
+            done, retracted = tracker.take()
+            store.append_incidents(done, now, retracted)
+
+    found(T0 + 500, trackers(T0), stored_batch([T0], T0 + 500))
+    later = [T0 + 60_000, T0 + 120_000]
+    stored_batch(later, T0 + 120_500)  # stored, then the processors stopped
+    now = T0 + 120_000 + 3 * keep_ms
+    found(now, trackers(now), stored_batch(later, now))  # redelivered
+    zoned = [i for i in store.incidents(0, now + 1) if i.kind == "zone_violation"]
+    expected = detect_all(
+        store.poses(0, now + 1, limit=10**9), stored_records(store, 0, now + 1, None), now, th
+    )
+    assert normal(zoned) == normal([i for i in expected if i.kind == "zone_violation"])
+    assert [i.ongoing for i in zoned] == [False, False, True]
