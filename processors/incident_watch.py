@@ -182,8 +182,8 @@ class IncidentWatch:
             records = records_of(events)
             records.violations += violations
             records.extend(self.unplaced)
-            self.unplaced = EventRecords()
             self.events.add(poses, records, now)
+            self.unplaced = EventRecords()  # once found: a retried batch finds them again
         return self.waiting()
 
     def waiting(self) -> int:
@@ -197,8 +197,8 @@ class IncidentWatch:
         now = self.now_ms()
         self.tracker.tick(now)
         if self.unplaced.conflicts:
-            records, self.unplaced = self.unplaced, EventRecords()
-            self.events.add([], records, now)
+            self.events.add([], self.unplaced, now)
+            self.unplaced = EventRecords()  # once found: a failed read keeps them for the next
         self.events.tick(now)
 
     def write(self) -> int:

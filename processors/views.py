@@ -231,10 +231,15 @@ class LiveViews:
         return self.presence.check(self.clock.now_ms())
 
     async def tick(self) -> None:
-        """Once a second: robots going online and offline, and the incidents of silences."""
+        """Once a second: robots going online and offline, and the incidents of silences.
+        A store that fails meanwhile (restarting) fails this tick only: raised out of the
+        app's timer, it would crash the app, its timers (snapshots, retention) with it."""
         self.check_presence()
         if self.loaded:
-            await self.store_thread.run(self.incidents.tick)
+            try:
+                await self.store_thread.run(self.incidents.tick)
+            except Exception as exc:  # noqa: BLE001 - whatever the store raises; the next tick tries again
+                log.warning("incidents not judged this tick", error=str(exc))
 
     async def write_found_until_done(self) -> None:
         """`write_found` on the store thread, retried until it succeeds."""

@@ -11,6 +11,7 @@ import pytest
 
 from mapservice.core.events import encode
 from mapservice.core.incidents import detect
+from mapservice.core.ports import ConflictRow
 from mapservice.processors.history_consumer import HistoryConsumer
 from mapservice.processors.sink import HistorySink
 from mapservice.settings import Settings
@@ -217,3 +218,28 @@ def test_a_replica_behind_the_stream_finds_silent_only_the_robots_the_stream_sho
     floor.tick(6)  # the consumer finds nothing more: caught up, and the floor is quiet
     assert floor.views.presence.online == set()
     assert {i.robots for i in floor.stored() if i.kind == "offline"} == {(r,) for r in robots}
+
+
+def test_a_store_failing_in_a_tick_fails_that_tick_only_and_keeps_what_it_was_to_judge(
+    ev, monkeypatch
+) -> None:
+    """The once-a-second tick reads the store (placing conflicts, silences): a store that
+    fails meanwhile (restarting) must not raise out of the app's timer (it would crash the
+    app, and its snapshot and retention timers with it), and the conflicts that tick was
+    to judge are judged by the next."""
+    floor = Floor()
+    floor.send(ev, ("a", 0, 1.0, 1.0, 80.0, None), ("b", 0, 2.0, 1.0, 80.0, None))
+    watch = floor.views.incidents
+    conflict = ConflictRow(0, 0, NOW - 120_000, "a", NOW - 125_000, "b")
+    watch.stored_conflicts([conflict])
+
+    def away(*args, **kwargs):
+        raise ConnectionError("clickhouse restarting")
+
+    monkeypatch.setattr(watch.events, "add", away)
+    asyncio.run(floor.views.tick())
+    assert watch.unplaced.conflicts == [conflict]
+    monkeypatch.undo()
+    floor.tick(1)
+    assert [i.kind for i in floor.stored() if i.kind == "conflict"] == ["conflict"]
+    assert watch.unplaced.conflicts == []
