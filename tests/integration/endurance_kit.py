@@ -1,8 +1,8 @@
 """The endurance test's (test_retention_endurance.py) robots, operator and clock: a simulated
 clock the stack's processes share, a QoS 1 publisher that remembers what was acknowledged
-(the writes, poses and conflicts the checks fold by brute force), an operator annotating
-through the API who remembers each edit (and folds them), and the analyst's view of the
-history's size."""
+(the writes, poses and conflicts the checks fold by brute force), the scenes it drives for
+the incident rules, an operator annotating through the API who remembers each edit (and
+folds them), and the analyst's view of the history's size."""
 
 from __future__ import annotations
 
@@ -11,6 +11,9 @@ import time
 import httpx
 
 from mapservice.adapters.mqtt_client import make_client, parse_mqtt_url
+from mapservice.core.event_incidents import CLOCK_GROWN_KINDS, grows_with_the_clock
+from mapservice.core.incident_model import Incident, IncidentThresholds
+from mapservice.core.ports import PoseRow
 from mapservice.core.wire2019 import (
     content_hash,
     encode_chunk_create,
@@ -51,6 +54,42 @@ class Write:
         self.pixels, self.content_hash = pixels, content_hash(pixels).hex()
 
 
+def incident_fields(incident: Incident | dict) -> tuple:
+    """What the endurance test compares of an incident, as the rules found it or as
+    GET /api/v1/incidents lists it: everything but the id (the key), and but the end and
+    length of one that grows with the clock (the finder's clock, compared apart)."""
+    if isinstance(incident, dict):
+        i = incident
+        evidence = tuple((e["robotId"], e["ts_ms"], e["x"], e["y"]) for e in i["evidence"])
+        grows = i["ongoing"] and i["kind"] in CLOCK_GROWN_KINDS
+        end, measure = (None, None) if grows else (i["end_ms"], i["measure"])
+        return (
+            i["kind"],
+            tuple(i["robots"]),
+            i["start_ms"],
+            end,
+            i["ongoing"],
+            i["x"],
+            i["y"],
+            i["severity"],
+            measure,
+            evidence,
+        )
+    grows = grows_with_the_clock(incident)
+    return (
+        incident.kind,
+        incident.robots,
+        incident.start_ms,
+        None if grows else incident.end_ms,
+        incident.ongoing,
+        incident.x,
+        incident.y,
+        incident.severity,
+        None if grows else incident.measure,
+        tuple((e.robot_id, e.ts_ms, e.x, e.y) for e in incident.evidence),
+    )
+
+
 def kafka_keeps_records(stack: Stack) -> bool:
     """Whether a restart of the stack's Kafka broker keeps the topics' records: a stack
     that says so (`kafka_keeps_records`, or `kafka` naming its broker: Apache Kafka keeps
@@ -83,20 +122,46 @@ def analyst_number(stack: Stack, sql: str) -> int | None:
     return int(text) if r.status_code == 200 and text.lstrip("-").isdigit() else None
 
 
-def history_bytes(stack: Stack) -> int | None:
-    """Bytes of the history's active parts, as an analyst reads them through the API
-    (None while the API is away, e.g. restarting)."""
-    return analyst_number(
-        stack, "SELECT sum(total_bytes) FROM system.tables WHERE database = '{db}'"
+def bytes_by_table(stack: Stack) -> dict[str, int]:
+    """The history's active bytes per table, as an analyst reads them through the API's
+    /clickhouse (analyst SQL on system.tables; empty while the API is away, e.g.
+    restarting): their sum is the flat-storage check's figure."""
+    password = analyst_password_file(stack.data_dir).read_text().strip()
+    database = stack.settings().clickhouse_database
+    sql = (
+        f"SELECT name, total_bytes FROM system.tables WHERE database = '{database}' "
+        "AND total_bytes > 0 ORDER BY total_bytes DESC FORMAT TSV"
     )
+    try:
+        r = httpx.post(
+            f"{stack.api_url}/clickhouse/",
+            content=sql.encode(),
+            auth=("analyst", password),
+            timeout=10,
+        )
+    except httpx.HTTPError:
+        return {}
+    if r.status_code != 200:
+        return {}
+    return {name: int(n) for name, n in (line.split("\t") for line in r.text.splitlines())}
+
+
+# Each day-partitioned history table the retention drops, with the SQL of its oldest
+# instant (epoch ms).
+OLDEST_SQL = {
+    "chunk_events": "toUnixTimestamp64Milli(min(ts))",
+    "zone_violations": "toUnixTimestamp64Milli(min(ts))",
+    "incidents": "toUnixTimestamp64Milli(min(start))",
+    "heatmap_cells": "toUnixTimestamp(min(bucket)) * 1000",
+}
 
 
 def oldest_history_ms(stack: Stack) -> int | None:
-    """The oldest chunk write and zone violation the history holds (the earlier of the two,
-    ms), as an analyst reads them; None while unknown."""
+    """The oldest row of the history's day-partitioned tables (OLDEST_SQL; the earliest of
+    them, ms), as an analyst reads them; None while unknown."""
     oldest = []
-    for table in ("chunk_events", "zone_violations"):
-        ms = analyst_number(stack, f"SELECT toUnixTimestamp64Milli(min(ts)) FROM {{db}}.{table}")
+    for table, sql in OLDEST_SQL.items():
+        ms = analyst_number(stack, f"SELECT {sql} FROM {{db}}.{table}")
         if ms is None:
             return None
         oldest.append(ms)
@@ -114,6 +179,7 @@ class Drive:
         self.pending: list = []
         self.written: list[Write] = []
         self.poses: list[tuple[str, int]] = []
+        self.pose_rows: list[PoseRow] = []  # the same poses as the store keeps them
         self.conflicts: set[tuple] = set()
 
     def publish(self, topic: str, payload: bytes) -> None:
@@ -128,12 +194,53 @@ class Drive:
         )
         return w
 
-    def pose(self, robot: str, ts: int, x: float) -> None:
+    def pose(
+        self,
+        robot: str,
+        ts: int,
+        x: float,
+        y: float = 2.0,
+        battery: float = 50.0,
+        path: tuple[tuple[float, float], ...] | None = None,
+    ) -> None:
+        # whole millimetres, as the store keeps positions: the rules' brute force reads
+        # what the processors read
+        x, y = round(x * 1000) / 1000, round(y * 1000) / 1000
         self.poses.append((robot, ts))
+        self.pose_rows.append(
+            PoseRow(robot, ts, x, y, 0.0, 0.0, 0.0, 0.0, 1.0, battery, False, None, path, ts)
+        )
         self.publish(
             f"iot/coordinates/{robot}",
-            encode_coordinates(robot, format_timestamp(ts), x, 2.0, battery_level=50.0),
+            encode_coordinates(
+                robot,
+                format_timestamp(ts),
+                x,
+                y,
+                battery_level=battery,
+                path=None if path is None else list(path),
+            ),
         )
+
+    def scene(self, still: str, passing: str, start_ms: int, th: IncidentThresholds) -> int:
+        """Two robots report densely (every half offline threshold) for a stuck window and
+        more, 4 m from the others' lane: `still` stands with a path ahead (stuck), `passing`
+        drives by it at twice the moving speed, half the near-miss distance beside it (a
+        near miss), its last pose's battery just below the low level (battery_low). Both
+        fall silent after it (offline, as between any two of the drive's poses). Returns
+        the scene's last instant."""
+        every = th.offline_after_ms // 2
+        n = th.stuck_ms // every + 3
+        span_m = 2 * th.moving_m_s * (n - 1) * every / 1000
+        x0, y0 = 5.0, 6.0
+        for k in range(n):
+            ts = start_ms + k * every
+            self.pose(still, ts, x0, y0, path=((x0 + 1.0, y0), (x0 + 2.0, y0)))
+            low = k == n - 1
+            battery = th.battery_low_percent - 1 if low else 50.0
+            x = x0 - span_m / 2 + span_m * k / (n - 1)
+            self.pose(passing, ts, x, y0 + th.near_miss_m / 2, battery=battery)
+        return start_ms + (n - 1) * every
 
     def acknowledged(self) -> None:
         for info in self.pending:
