@@ -9,8 +9,15 @@ a store takes ~100 ms and more, and there CPU is what the whole stack lacks (BEN
 live ingest). So the window is sized to keep storing at STORE_SHARE of the loop's time: short while
 stores are quick, growing to the longest window as they slow down (a busier machine makes
 them slower too, so the loop backs off exactly when CPU gets scarce). It is also long enough
-to gather FILL_EVENTS at the recent arrival rate: a quiet plant does not pay that fixed cost
-ten times a second for a handful of events.
+to gather FILL_EVENTS at the recent arrival rate, up to its own bound (the quiet window): a
+quiet plant does not pay that fixed cost five times a second for a handful of events.
+
+The fixed cost is not only the insert's. Each insert is a new part of every table it writes,
+and ClickHouse merges a day's partition with its newest parts: while a partition is small (a
+few MiB compressed, the first hours of a day at tens of robots) each merge rewrites the whole
+of it, so the merging work of a quiet plant grows through the morning with every insert
+(20 robots stored five times a second: `serve`'s merge threads from 3 % to 12 % of a core in
+25 minutes). Fewer, fuller inserts cut that in proportion.
 """
 
 from __future__ import annotations
@@ -28,15 +35,24 @@ FILL_EVENTS = 50
 
 
 def batch_window(
-    store_s: float, shortest_s: float, longest_s: float, events_per_s: float | None = None
+    store_s: float,
+    shortest_s: float,
+    longest_s: float,
+    events_per_s: float | None = None,
+    quiet_s: float | None = None,
 ) -> float:
-    """The window that keeps a store of `store_s` at STORE_SHARE of the loop and gathers
-    FILL_EVENTS at `events_per_s` (None: not known yet), within [shortest_s, longest_s] (a
-    shortest beyond the longest is the longest)."""
-    wanted = store_s / STORE_SHARE
+    """The window that keeps a store of `store_s` at STORE_SHARE of the loop, within
+    [shortest_s, longest_s] (a shortest beyond the longest is the longest), and gathers
+    FILL_EVENTS at `events_per_s` (None: not known yet) within [shortest_s, quiet_s] (None:
+    the longest). The store's rule keeps its own bound: a slow store under load never waits
+    longer than `longest_s` for the sake of the quiet window."""
+    floor = min(shortest_s, longest_s)
+    window = min(longest_s, max(floor, store_s / STORE_SHARE))
     if events_per_s is not None:
-        wanted = max(wanted, FILL_EVENTS / events_per_s if events_per_s > 0 else longest_s)
-    return min(longest_s, max(min(shortest_s, longest_s), wanted))
+        quiet = longest_s if quiet_s is None else quiet_s
+        gather = FILL_EVENTS / events_per_s if events_per_s > 0 else quiet
+        window = max(window, min(quiet, max(floor, gather)))
+    return window
 
 
 def smoothed(previous_s: float | None, sample_s: float) -> float:

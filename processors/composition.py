@@ -172,6 +172,7 @@ def compose_processors(settings: Settings, store: HistoryStore | StoreRoles) -> 
         batch,
         within,
         min_batch_seconds=settings.sink_batch_min_seconds,
+        quiet_batch_seconds=settings.sink_quiet_batch_seconds,
         views_seconds=settings.sink_views_seconds,
         now_ms=now_ms,
     )

@@ -171,6 +171,7 @@ class HistoryConsumer:
         batch_size: int,
         batch_seconds: float,
         min_batch_seconds: float | None = None,
+        quiet_batch_seconds: float | None = None,
         now_ms: Callable[[], int] = SystemClock().now_ms,
         monotonic: Callable[[], float] = time.monotonic,
         views_seconds: float = 1.0,
@@ -183,6 +184,9 @@ class HistoryConsumer:
         # The shortest window, taken while batches are stored quickly (batch_window.py);
         # None: always the longest.
         self.min_batch_seconds = batch_seconds if min_batch_seconds is None else min_batch_seconds
+        # The longest a batch waits to gather a worthwhile size at a quiet plant's arrival
+        # rate (batch_window.py); None: the longest window.
+        self.quiet_batch_seconds = quiet_batch_seconds
         self.window_s = batch_seconds  # until stores were timed
         BATCH_WINDOW.set(self.window_s)
         self._store_s: float | None = None  # running store time per batch (smoothed)
@@ -232,7 +236,11 @@ class HistoryConsumer:
         fill a batch, so the first events after a pause wait least)."""
         self._store_s = smoothed(self._store_s, store_s)
         self.window_s = batch_window(
-            self._store_s, self.min_batch_seconds, self.batch_seconds, self._events_per_s
+            self._store_s,
+            self.min_batch_seconds,
+            self.batch_seconds,
+            self._events_per_s,
+            self.quiet_batch_seconds,
         )
         BATCH_WINDOW.set(self.window_s)
 

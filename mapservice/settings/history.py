@@ -78,6 +78,19 @@ class HistorySettings(BaseModel):
             "wait grows toward sink_batch_seconds as storing slows down."
         ),
     )
+    # Each store writes a part of every table it fills, and a small day partition is
+    # rewritten whole by the merge its new parts start: a quiet plant gathers about
+    # batch_window.FILL_EVENTS a batch for up to this long (its events' freshness: the live
+    # stream follows the store) instead of storing a handful five times a second.
+    sink_quiet_batch_seconds: float = Field(
+        0.5,
+        gt=0,
+        description=(
+            "Longest wait to fill a history batch at a quiet plant's arrival rate (about 50 "
+            "events a batch, while storing is quick); the live stream follows the store, so a "
+            "plant of a few dozen robots sees its events up to this much later."
+        ),
+    )
     # Feeding the pose views costs a fixed ~30 ms per insert: paid once a second, not per
     # batch (processors/history_consumer.py).
     sink_views_seconds: float = Field(

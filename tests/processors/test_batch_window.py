@@ -53,3 +53,29 @@ def test_the_window_also_gathers_a_batch_worth_its_fixed_cost(store_s, events_pe
     assert window >= batch_window(store_s, 0.1, 0.2)  # never shorter than the store's own
     if events_per_s >= FILL_EVENTS / 0.1:
         assert window == batch_window(store_s, 0.1, 0.2)
+
+
+@pytest.mark.parametrize("quiet_s", [0.2, 0.5, 1.0])
+@pytest.mark.parametrize("events_per_s", [0.0, 1.0, 24.0, 120.0, 480.0, 1200.0, 6000.0])
+@pytest.mark.parametrize("store_s", [0.0, 0.01, 0.03, 0.06, 0.15, 0.4])
+def test_a_quiet_plant_gathers_for_its_own_longer_window(store_s, events_per_s, quiet_s) -> None:
+    """The gathering rule is bounded by the quiet window, the store's rule by the longest:
+    24 events a second (20 robots) wait the whole quiet window, a plant that brings
+    FILL_EVENTS within the shortest window keeps the store's own, and a slow store never
+    waits beyond the longest unless the arrival rate is quiet."""
+    window = batch_window(store_s, 0.1, 0.2, events_per_s, quiet_s)
+    gather = FILL_EVENTS / events_per_s if events_per_s else float("inf")
+    own = batch_window(store_s, 0.1, 0.2)
+    assert own == pytest.approx(min(0.2, max(0.1, store_s / STORE_SHARE)))
+    assert window == pytest.approx(max(own, min(quiet_s, max(0.1, gather))))
+    assert own <= window <= max(0.2, quiet_s)
+    if events_per_s >= FILL_EVENTS / 0.1:
+        assert window == own
+    if events_per_s <= FILL_EVENTS / quiet_s:
+        assert window == pytest.approx(max(own, quiet_s))
+
+
+def test_without_a_quiet_window_the_longest_bounds_the_gathering() -> None:
+    """None (a consumer built without one) is the longest window, as before."""
+    for rate in (0.0, 24.0, 300.0):
+        assert batch_window(0.01, 0.1, 0.2, rate, None) == batch_window(0.01, 0.1, 0.2, rate, 0.2)

@@ -36,6 +36,7 @@ def timeouts_asked(
     min_batch_seconds: float | None = None,
     idle_polls: int = 0,
     per_batch: int = FILL_EVENTS,
+    quiet_batch_seconds: float | None = None,
 ) -> list[float]:
     """The poll timeouts of a consumer whose window is at most 200 ms (at least
     `min_batch_seconds`; None: always 200 ms), over `batches` stores of `per_batch` events
@@ -61,6 +62,7 @@ def timeouts_asked(
         batch_size=max(100, per_batch),
         batch_seconds=0.2,
         min_batch_seconds=min_batch_seconds,
+        quiet_batch_seconds=quiet_batch_seconds,
         now_ms=lambda: NOW,
         monotonic=clock,
     )
@@ -184,11 +186,32 @@ def test_a_quiet_plant_gathers_its_events_for_the_longest_window(ev, per_batch) 
     assert asked[2:] == [0.19] * 4
 
 
+@pytest.mark.parametrize("per_batch", [1, 2, 5, 12, 20])
+def test_a_quiet_plant_gathers_its_events_for_the_quiet_window(ev, per_batch) -> None:
+    """With a quiet window of 500 ms (the default), a plant that brings fewer than
+    FILL_EVENTS in it stores every 500 ms (less the store), once the running rate has
+    settled on what the longer waits gather: a fifth of a second's batches were each a part
+    of every table written and a merge of the day's partition started."""
+    asked = timeouts_asked(
+        ev, 0.01, batches=10, min_batch_seconds=0.1, per_batch=per_batch, quiet_batch_seconds=0.5
+    )
+    assert asked[1:] == sorted(asked[1:])  # lengthens as the rate settles, never beyond
+    assert asked[-4:] == [0.49] * 4
+
+
 @pytest.mark.parametrize("per_batch", [FILL_EVENTS, 2 * FILL_EVENTS, 5 * FILL_EVENTS])
-def test_a_busy_plant_keeps_the_shortest_window(ev, per_batch) -> None:
+@pytest.mark.parametrize("quiet_batch_seconds", [None, 0.5])
+def test_a_busy_plant_keeps_the_shortest_window(ev, per_batch, quiet_batch_seconds) -> None:
     """Quick stores of full batches (1,000 robots and more): the shortest window, as
     before."""
-    asked = timeouts_asked(ev, 0.01, batches=6, min_batch_seconds=0.1, per_batch=per_batch)
+    asked = timeouts_asked(
+        ev,
+        0.01,
+        batches=6,
+        min_batch_seconds=0.1,
+        per_batch=per_batch,
+        quiet_batch_seconds=quiet_batch_seconds,
+    )
     assert asked[1:] == [0.09] * 5
 
 
