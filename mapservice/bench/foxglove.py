@@ -48,6 +48,9 @@ SETTLE_S = 5.0  # the fleet's pipeline, then the clients' subscriptions, at thei
 CONNECT_TIMEOUT_S = 120.0
 SEEK_TIMEOUT_S = 120.0
 SEEK_GAP_S = 0.5  # between seeks: the previous seek's last reads are done
+# Poses published this long before the measurement's end count in the delivered share (each
+# has had the time to reach every client; later ones may still be on their way).
+DELIVERY_GRACE_MS = 3000
 POSE_PREFIX = "robot-"  # the load fleet's robot ids (robot/loadgen.py fleet_robot_id)
 
 
@@ -184,6 +187,7 @@ def live_phase(args, base: Path, say: Progress) -> dict:
             node = psutil.Process(clients.pid)
             meter = CpuMeter(stack.procs, [], fleet.pids)
             before = clients.send(op="start")
+            start_ms = time.time_ns() // 1_000_000
             cpu0, node0, poses0 = meter.snapshot(), cpu_seconds(node), fleet.stats.poses
             t0 = time.monotonic()
             while (left := args.seconds - (time.monotonic() - t0)) > 0:
@@ -196,11 +200,12 @@ def live_phase(args, base: Path, say: Progress) -> dict:
                     f"{fleet.stats.poses - poses0:,} poses"
                 )
             clients.send(op="stop")
-            cpu1, node1, poses1 = meter.snapshot(), cpu_seconds(node), fleet.stats.poses
+            cpu1, node1 = meter.snapshot(), cpu_seconds(node)
+            window = (start_ms, time.time_ns() // 1_000_000 - DELIVERY_GRACE_MS)
             report = clients.wait_for(lambda e: e["event"] == "report", 60, before)
-        doc.update(
-            live_figures(report, cpu0, cpu1, node1 - node0, poses1 - poses0, doc, args.clients)
-        )
+        published = [ts for kind, _, ts, _ in list(fleet.stats.published) if kind == "pose"]
+        doc["poses_published_while_measured"] = fleet.stats.poses - poses0
+        doc.update(live_figures(report, cpu0, cpu1, node1 - node0, published, window, doc))
     finally:
         if fleet is not None:
             fleet.stop()
@@ -211,9 +216,16 @@ def live_phase(args, base: Path, say: Progress) -> dict:
 
 
 def live_figures(
-    report: dict, cpu0: dict, cpu1: dict, node_cpu_s: float, published: int, doc: dict, k: int
+    report: dict,
+    cpu0: dict,
+    cpu1: dict,
+    node_cpu_s: float,
+    published_ts: list[int],
+    window: tuple[int, int],
+    doc: dict,
 ) -> dict:
-    """The live phase's figures from the clients' report and the CPU snapshots."""
+    """The live phase's figures from the clients' report and the CPU snapshots; the share
+    of poses delivered over the poses whose timestamps lie in `window` (ms, inclusive)."""
     from mapservice.bench.ingest.cpu import CpuMeter
 
     wall = cpu1["_wall"] - cpu0["_wall"]
@@ -223,7 +235,12 @@ def live_figures(
     latencies = [v for c in clients for v in c["latencies"]]
     seconds = report["seconds"]
     per_client = [c["messages"] / seconds for c in clients]
-    received = [c["poses"] / published if published else 0.0 for c in clients]
+    lo, hi = window
+    published = sum(1 for ts in published_ts if lo <= ts <= hi)
+    received = [
+        sum(1 for ts in c["pose_log_ms"] if lo <= ts <= hi) / published if published else 0.0
+        for c in clients
+    ]
     figures = {
         "seconds": round(wall, 1),
         "messages_received": messages,
@@ -235,7 +252,7 @@ def live_figures(
         "bytes_per_s_per_client_median": round(
             statistics.median(c["bytes"] / seconds for c in clients)
         ),
-        "poses_published": published,
+        "poses_published_in_window": published,
         "poses_received_fraction_min": round(min(received), 4),
         "poses_received_fraction_median": round(statistics.median(received), 4),
         "pose_latency_samples": len(latencies),

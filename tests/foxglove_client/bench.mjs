@@ -9,7 +9,7 @@
 //     as they appear). Counts messages and bytes per client; for each pose of a robot whose
 //     id starts with P, the delivery latency: receipt (Date.now()) minus the message's log
 //     time (the pose's own timestamp, which the bench fleet sets to the wall clock as it
-//     publishes). {"op": "start"} zeroes the counts, {"op": "stop"} prints them
+//     publishes; each pose's log time is reported too). {"op": "start"} zeroes the counts, {"op": "stop"} prints them
 //     ({"event": "report", ...}); every 2 s a {"event": "progress"} line.
 //   node bench.mjs seek URL [--quiet-ms Q]
 //     One client with the playback-control capability. {"op": "seek", "at_ms": T} pauses
@@ -66,7 +66,8 @@ function connect(index, onMessage, onInfo) {
 function live() {
   const clients = Number(option("--clients", "10"));
   const prefix = option("--pose-prefix", "");
-  const counts = Array.from({ length: clients }, () => ({ messages: 0, bytes: 0, poses: 0, latencies: [] }));
+  const fresh = () => ({ messages: 0, bytes: 0, poses: 0, latencies: [], pose_log_ms: [] });
+  const counts = Array.from({ length: clients }, fresh);
   const states = counts.map((count, i) =>
     connect(i, (topic, logMs, bytes) => {
       count.messages += 1;
@@ -75,12 +76,13 @@ function live() {
       if (pose && pose[1].startsWith(prefix)) {
         count.poses += 1;
         count.latencies.push(Date.now() - logMs);
+        count.pose_log_ms.push(logMs);
       }
     }),
   );
   let since = performance.now();
   const zero = () => {
-    for (const c of counts) Object.assign(c, { messages: 0, bytes: 0, poses: 0, latencies: [] });
+    for (const c of counts) Object.assign(c, fresh());
     since = performance.now();
   };
   setInterval(
