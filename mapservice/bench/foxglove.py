@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import psutil
@@ -43,6 +44,9 @@ from mapservice.bench.foxglove_clients import NodeClients
 from mapservice.bench.procstat import cpu_seconds
 from mapservice.bench.ui_browser import percentile
 from mapservice.bench.workdir import DATA_DIR_HELP, bench_data_dir
+
+if TYPE_CHECKING:
+    from mapservice.local.stack import Stack
 
 SETTLE_S = 5.0  # the fleet's pipeline, then the clients' subscriptions, at their pace
 CONNECT_TIMEOUT_S = 120.0
@@ -68,14 +72,14 @@ class Progress:
             log.write(stamped + "\n")
 
 
-def main(args) -> None:
+def main(args: argparse.Namespace) -> None:
     from mapservice.bench.machine import machine_facts
 
     if min(args.robots, args.clients, args.seconds) <= 0 or args.seeks < 0:
         raise SystemExit("--robots, --clients and --seconds must be positive, --seeks not negative")
     with bench_data_dir(args.data_dir, "bench-foxglove-") as base:
         say = Progress(base / "bench-foxglove.log")
-        out: dict = {
+        out: dict[str, Any] = {
             "benchmark": "foxglove",
             "command": "mapservice " + " ".join(sys.argv[1:]),
             "machine": machine_facts(),
@@ -98,9 +102,9 @@ def main(args) -> None:
         Path(args.json).write_text(json.dumps(out, indent=2))
 
 
-def summary(out: dict) -> dict:
+def summary(out: dict[str, Any]) -> dict[str, Any]:
     """The figures BENCHMARKS.md quotes."""
-    doc: dict = {}
+    doc: dict[str, Any] = {}
     live = out.get("live")
     if live:
         for key in (
@@ -123,7 +127,7 @@ def summary(out: dict) -> dict:
 # --- live fan-out -------------------------------------------------------------------------
 
 
-def live_phase(args, base: Path, say: Progress) -> dict:
+def live_phase(args: argparse.Namespace, base: Path, say: Progress) -> dict[str, Any]:
     from mapservice.adapters.ros_map import load_ros_map, meta_for
     from mapservice.bench.fleet.rawfleet import RawFleet
     from mapservice.bench.ingest.cpu import CpuMeter
@@ -144,7 +148,7 @@ def live_phase(args, base: Path, say: Progress) -> dict:
         env["MAPSERVICE_FOXGLOVE_MAX_SUBSCRIPTIONS"] = str(channels)
     kafka = "" if args.kafka == "auto" else args.kafka
     stack = Stack(base / "live", mqtt=args.mqtt, apart=True, kafka=kafka, extra_env=env)
-    doc: dict = {"robots": args.robots, "clients": args.clients, "settings": env}
+    doc: dict[str, Any] = {"robots": args.robots, "clients": args.clients, "settings": env}
     fleet = None
     driver = None
     try:
@@ -216,14 +220,14 @@ def live_phase(args, base: Path, say: Progress) -> dict:
 
 
 def live_figures(
-    report: dict,
-    cpu0: dict,
-    cpu1: dict,
+    report: dict[str, Any],
+    cpu0: dict[str, Any],
+    cpu1: dict[str, Any],
     node_cpu_s: float,
     published_ts: list[int],
     window: tuple[int, int],
-    doc: dict,
-) -> dict:
+    doc: dict[str, Any],
+) -> dict[str, Any]:
     """The live phase's figures from the clients' report and the CPU snapshots; the share
     of poses delivered over the poses whose timestamps lie in `window` (ms, inclusive)."""
     from mapservice.bench.ingest.cpu import CpuMeter
@@ -288,7 +292,7 @@ def _wait_receiving(clients: NodeClients, k: int) -> None:
     )
 
 
-def _sleep_alive(stack, seconds: float) -> None:
+def _sleep_alive(stack: Stack, seconds: float) -> None:
     """Sleeps, failing as soon as a component exited."""
     deadline = time.monotonic() + seconds
     while (left := deadline - time.monotonic()) > 0:
@@ -301,7 +305,7 @@ def _sleep_alive(stack, seconds: float) -> None:
 # --- seek to first frame ------------------------------------------------------------------
 
 
-def seek_phase(args, base: Path, say: Progress) -> dict:
+def seek_phase(args: argparse.Namespace, base: Path, say: Progress) -> dict[str, Any]:
     from mapservice.bench.ui_setup import ApiProcess, load_or_reuse
     from mapservice.bench.yardstick import yardstick_ms
     from mapservice.local.embedded import free_port
@@ -312,7 +316,7 @@ def seek_phase(args, base: Path, say: Progress) -> dict:
     loaded, reused = load_or_reuse(
         base, "bench_seek", args.days, args.seek_robots, end, reuse=bool(args.data_dir)
     )
-    doc: dict = {
+    doc: dict[str, Any] = {
         "days": args.days,
         "robots": args.seek_robots,
         "poses": loaded.poses,
@@ -373,7 +377,7 @@ def seek_phase(args, base: Path, say: Progress) -> dict:
     return doc
 
 
-def _one_seek(client: NodeClients, http: httpx.Client, at_ms: int) -> dict:
+def _one_seek(client: NodeClients, http: httpx.Client, at_ms: int) -> dict[str, Any]:
     """One paused seek to `at_ms`: when the floor and each robot standing at T arrived."""
     time.sleep(SEEK_GAP_S)
     before = client.send(op="seek", at_ms=at_ms)
@@ -400,7 +404,7 @@ def _r(ms: float) -> float:
     return round(ms, 1)
 
 
-def add_parser(kinds) -> None:
+def add_parser(kinds: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = kinds.add_parser(
         "foxglove",
         help="the Foxglove WebSocket server: live fan-out to Foxglove's npm client (CPU per "

@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from mapservice.local.checkout import FOXGLOVE_CLIENT_DIR
 
@@ -50,13 +50,13 @@ class NodeClients:
         ensure_installed()
         if log_path:
             log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.stderr = open(log_path, "ab") if log_path else subprocess.DEVNULL
+        self.stderr: IO[bytes] | None = open(log_path, "ab") if log_path else None
         self.proc = subprocess.Popen(
             ["node", "bench.mjs", mode, url, *args],
             cwd=FOXGLOVE_CLIENT_DIR,
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
-            stderr=self.stderr,
+            stderr=self.stderr or subprocess.DEVNULL,
             text=True,
             start_new_session=True,
         )
@@ -122,7 +122,7 @@ class NodeClients:
             except (OSError, subprocess.TimeoutExpired):
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(5)
-        if self.stderr is not subprocess.DEVNULL:
+        if self.stderr is not None:
             self.stderr.close()
 
     def __enter__(self) -> NodeClients:

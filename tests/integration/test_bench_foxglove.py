@@ -14,6 +14,8 @@ import pytest
 from tests.fixtures.npm import npm_installed
 from tests.fixtures.paths import ROOT
 
+pytestmark = pytest.mark.long  # a stack's start, a history's load and an API's: minutes
+
 
 @pytest.mark.timeout(600)
 def test_bench_foxglove_reports_cpu_per_message_latency_and_seek_frames(tmp_path) -> None:
