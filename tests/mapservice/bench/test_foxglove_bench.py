@@ -172,6 +172,7 @@ def test_a_frame_is_complete_when_the_floor_and_every_standing_robot_arrived() -
         "at_ms": 1_000,
         "robots": 2,
         "missing": 0,
+        "missing_robots": [],
         "answer_ms": 2.0,
         "grid_ms": 40.0,
         "frame_ms": 90.2,
@@ -181,7 +182,7 @@ def test_a_frame_is_complete_when_the_floor_and_every_standing_robot_arrived() -
 def test_a_floor_later_than_every_pose_ends_the_frame_and_missing_robots_are_counted() -> None:
     assert _one_seek(SeekClient(120.0, {"a": 10.0}), RobotsApi(["a"]), 5)["frame_ms"] == 120.0
     got = _one_seek(SeekClient(10.0, {"a": 20.0}), RobotsApi(["a", "b", "c"]), 5)
-    assert (got["robots"], got["missing"]) == (3, 2)
+    assert (got["robots"], got["missing"], got["missing_robots"]) == (3, 2, ["b", "c"])
 
 
 def test_the_summary_quotes_both_phases_and_every_flag_says_what_it_does() -> None:
