@@ -62,6 +62,7 @@ class ReplaySession(ServerListener):
         self.scene: FoxgloveScene | None = None
         self.server: Any = None
         self.sent_changes = 0  # chunk writes played (tests)
+        self._subscribed = threading.Event()  # the client's first subscription came
         self._stopping = threading.Event()
         self._thread = threading.Thread(target=self._run, name="foxglove-replay", daemon=True)
 
@@ -81,7 +82,6 @@ class ReplaySession(ServerListener):
             playback_time_range=(self.start_ms * _NS_PER_MS, self.end_ms * _NS_PER_MS),
             message_backlog_size=self.backlog,
         )
-        self.commands.put(("seek", self.end_ms))  # the picture at the window's end: now
         self._thread.start()
         return int(self.server.port)
 
@@ -96,6 +96,13 @@ class ReplaySession(ServerListener):
     # --- the SDK's ServerListener (its threads) -----------------------------------------
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
+        # The first picture (at the window's end: now) is drawn once the client subscribed,
+        # not as the server starts: robot channels made while the client was still being
+        # connected to the SDK's server were, in about one session of seven, advertised to
+        # it and subscribed but never sent (their robots missing from every frame after).
+        if not self._subscribed.is_set():
+            self._subscribed.set()
+            self.commands.put(("seek", self.end_ms))
         self.commands.put(("resend", str(channel.topic)))
 
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
@@ -110,6 +117,7 @@ class ReplaySession(ServerListener):
             head.playing = request.playback_command == PlaybackCommand.Play
             seek = request.seek_time
             if seek is not None:
+                self._subscribed.set()  # its own seek's picture, not the first one, after it
                 head.at_ms = min(max(int(seek) // _NS_PER_MS, self.start_ms), self.end_ms)
                 head.ended = False
                 self.commands.put(("seek", head.at_ms))

@@ -154,6 +154,10 @@ def add_bench_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -
 
     add_fanout_parser(kinds)
 
+    from mapservice.bench.foxglove import add_parser as add_foxglove_parser
+
+    add_foxglove_parser(kinds)
+
 
 def _run_ingest(args: argparse.Namespace) -> None:
     if args.kafka == "both" or getattr(args, "compare", None):

@@ -37,15 +37,21 @@ def api_env(chdb_dir: Path, database: str, port: int) -> dict[str, str]:
 
 class ApiProcess:
     """`mapservice api` on a free port in its own process; the caller has closed the chDB
-    directory first (one process may open it at a time). Stopped with SIGTERM on exit."""
+    directory first (one process may open it at a time). Stopped with SIGTERM on exit.
+    `extra_env` overrides settings (a Foxglove port the caller knows, say)."""
 
     def __init__(
-        self, chdb_dir: Path, database: str, log_path: Path, timeout_s: float = 120
+        self,
+        chdb_dir: Path,
+        database: str,
+        log_path: Path,
+        timeout_s: float = 120,
+        extra_env: dict[str, str] | None = None,
     ) -> None:
         from mapservice.local.embedded import free_port
 
         self.port = free_port()
-        self.env = api_env(chdb_dir, database, self.port)
+        self.env = {**api_env(chdb_dir, database, self.port), **(extra_env or {})}
         self.log_path = log_path
         self.timeout_s = timeout_s
         self.proc: subprocess.Popen | None = None

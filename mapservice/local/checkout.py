@@ -16,3 +16,6 @@ ROOT = Path(__file__).resolve().parents[2]
 TEST_UI_DIR = ROOT / "replay-ui" / "dist-test"
 # The environment that has an API (a stack's, an `up`'s, a lone `mapservice api`) serve it.
 TEST_UI_ENV = {"MAPSERVICE_UI_DIR": str(TEST_UI_DIR)}
+# Foxglove's own npm WebSocket client: the integration test's (client.mjs) and
+# `mapservice bench foxglove`'s (bench.mjs), one package.json for both.
+FOXGLOVE_CLIENT_DIR = ROOT / "tests" / "foxglove_client"

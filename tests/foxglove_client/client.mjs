@@ -17,6 +17,8 @@ import protobuf from "protobufjs";
 import descriptor from "protobufjs/ext/descriptor/index.js";
 import WebSocket from "ws";
 
+import { decodePlaybackState, encodePlaybackRequest } from "./playback.mjs";
+
 const { FoxgloveClient } = wsProtocol; // a CommonJS package
 
 const args = process.argv.slice(2);
@@ -168,8 +170,8 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
     msg: summary(channel.schemaName, msg),
   });
 });
-// Playback control (protocol opcodes: client 3, server 5), by the npm client where it has
-// it, else encoded and read here as the protocol defines them.
+// Playback control, by the npm client where it has it, else encoded and read as the
+// protocol defines them (playback.mjs).
 const nativePlayback = typeof client.sendPlaybackControlRequest === "function";
 const playbackState = (state) =>
   out({
@@ -184,17 +186,8 @@ if (nativePlayback) {
   client.on("playbackState", playbackState);
 } else {
   ws.on("message", (raw, isBinary) => {
-    const data = raw instanceof ArrayBuffer ? Buffer.from(raw) : raw;
-    if (!isBinary || data[0] !== 5) return;
-    const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
-    const idLength = view.getUint32(15, true);
-    playbackState({
-      status: view.getUint8(1),
-      currentTime: view.getBigUint64(2, true),
-      playbackSpeed: view.getFloat32(10, true),
-      didSeek: view.getUint8(14) !== 0,
-      requestId: Buffer.from(data.subarray(19, 19 + idLength)).toString("utf8"),
-    });
+    const state = decodePlaybackState(raw, isBinary);
+    if (state) playbackState(state);
   });
 }
 
@@ -203,16 +196,7 @@ function sendPlayback(request) {
     client.sendPlaybackControlRequest(request);
     return;
   }
-  const id = Buffer.from(request.requestId, "utf8");
-  const buffer = Buffer.alloc(1 + 1 + 4 + 1 + 8 + 4 + id.length);
-  buffer.writeUInt8(3, 0);
-  buffer.writeUInt8(request.playbackCommand, 1);
-  buffer.writeFloatLE(request.playbackSpeed, 2);
-  buffer.writeUInt8(request.seekTime === undefined ? 0 : 1, 6);
-  buffer.writeBigUInt64LE(request.seekTime ?? 0n, 7);
-  buffer.writeUInt32LE(id.length, 15);
-  id.copy(buffer, 19);
-  ws.send(buffer);
+  ws.send(encodePlaybackRequest(request));
 }
 client.on("time", ({ timestamp }) => out({ event: "time", at_ms: Number(BigInt(timestamp) / 1000000n) }));
 

@@ -113,7 +113,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
 
         # Warm-up: proves MQTT -> gateway -> Kafka -> processors -> ClickHouse -> API is live.
         with console.status(f"run {run}/{runs}: warm-up (waiting for the pipeline to consume)..."):
-            warm_keys = _warm_up(stack, ros_map)
+            warm_keys = warm_up(stack, ros_map)
         result["warmup_s"] = time.monotonic() - t_start - result["stack_start_s"]
 
         loadgen, fleet = _load_fleet(args, stack, ros_map, console, f"run {run}/{runs}")
@@ -387,7 +387,7 @@ def run_once(args, data_dir: Path, run: int, runs: int, console) -> dict:
     return result
 
 
-def _warm_up(stack, ros_map) -> set[Key]:
+def warm_up(stack, ros_map) -> set[Key]:
     """One extra robot publishes for a few seconds; returns its events once all are queryable
     (the pipeline MQTT -> gateway -> Kafka -> processors -> ClickHouse -> API is live)."""
     from mapservice.robot.loadgen import RobotFleet
