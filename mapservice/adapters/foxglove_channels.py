@@ -66,6 +66,10 @@ class FoxgloveChannels:
         channel = self._channels.get(topic)
         return channel is not None and channel.has_sinks()
 
+    def any_listened(self) -> bool:
+        """Whether a client takes any channel's messages now (none connected: nothing)."""
+        return any(channel.has_sinks() for channel in list(self._channels.values()))
+
     def protobuf(self, topic: str, message: Any, ts_ms: int) -> None:
         channel = self.declare_protobuf(topic, type(message))
         channel.log(message.SerializeToString(), log_time=ts_ms * _NS_PER_MS)

@@ -55,6 +55,7 @@ class FoxgloveFindings:
         self.sent = 0  # messages sent (tests, metrics)
         self._read_to: int | None = None  # live: where the last re-read ended
         self._read_keys: set[tuple[int, str, str]] = set()  # what it sent of its span
+        self._unheard = False  # live: re-reads were skipped while no client listened
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
         channels.declare_json(INCIDENTS_TOPIC, INCIDENT_SCHEMA_NAME)
@@ -116,7 +117,18 @@ class FoxgloveFindings:
 
     def reread(self, now_ms: int) -> int:
         """Live: the conflicts and VDA 5050 facts stored since the last re-read (its last
-        `LATE_MS` read again, what it sent left out); how many were new."""
+        `LATE_MS` read again, what it sent left out); how many were new.
+
+        While no client listens to any channel nothing is read: a server nobody watches
+        cost a quiet plant's processors two store reads every few seconds (a third of the
+        Foxglove feed's CPU at 20 robots). The first re-read a client hears again takes each
+        vehicle's standing errors first, as a seek does, for its late subscribers."""
+        if not self.channels.any_listened():
+            self._read_to, self._read_keys, self._unheard = now_ms + 1, set(), True
+            return 0
+        if self._unheard:
+            self._unheard = False
+            self.send(vda_errors_at(self.sources.vda, now_ms))
         from_ms = (now_ms if self._read_to is None else self._read_to) - LATE_MS
         read = conflict_messages(self.sources.conflicts, from_ms, now_ms + 1)
         read += vda_messages(self.sources.vda, from_ms, now_ms + 1)

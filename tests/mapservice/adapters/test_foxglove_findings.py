@@ -256,8 +256,9 @@ def test_a_seek_sends_the_incidents_going_on_and_the_errors_standing_at_t(seed):
         channels.sent.clear()
         scene.draw_at(at)
         sent = channels.on(INCIDENTS_TOPIC)
+        # An ongoing one is going on after its stored end too (only where it was last found).
         assert {m["id"] for _, m in sent} == {
-            i.incident_id for i in incidents if i.start_ms <= at <= i.end_ms
+            i.incident_id for i in incidents if i.start_ms <= at and (at <= i.end_ms or i.ongoing)
         }
         for t, m in sent:
             i = next(i for i in incidents if i.incident_id == m["id"])
@@ -440,3 +441,54 @@ def test_a_malformed_incident_message_is_skipped_and_the_rest_of_its_batch_drawn
     finally:
         feed.close()
     assert channels.on(INCIDENTS_TOPIC) == [] and len(channels.on(pose_topic("a"))) == 1
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_live_feed_no_client_listens_to_reads_no_findings_until_one_does(seed):
+    """With no client connected the live feed's re-reads read neither conflicts nor VDA 5050
+    facts; once a client listens, the next re-read sends each vehicle's standing errors
+    and the conflicts of the last `LATE_MS`, as a feed that never paused would have."""
+    from mapservice.adapters.foxglove_findings import LATE_MS
+    from mapservice.adapters.foxglove_live import FoxgloveLive
+    from mapservice.adapters.mcap_findings import vda_errors_at
+
+    rng = random.Random(seed)
+    store = MemoryStore()
+    store.append([meta_event(T0 - 100_000)])
+    vda_errors(store, rng)
+    reads: list[str] = []
+    conflicts, vda_fleet_facts = store.conflicts, store.vda_fleet_facts
+    store.conflicts = lambda *a, **k: reads.append("conflicts") or conflicts(*a, **k)  # type: ignore[method-assign]
+    store.vda_fleet_facts = lambda *a, **k: reads.append("vda") or vda_fleet_facts(*a, **k)  # type: ignore[method-assign]
+    now = [T0 + 100_000]
+    channels = Recorder()
+    channels.clients = False
+    feed = FoxgloveLive(
+        FoxgloveScene(channels, sources(store)),  # type: ignore[arg-type]
+        lambda: now[0],
+        grid_every_s=1e-9,
+        annotations_every_s=1e-9,
+    )
+    try:
+        feed._draw_now()
+        reads.clear()
+        recent = T0 + SPAN - rng.randrange(1, LATE_MS // 5_000) * 5_000  # one of the ticks
+        for t in range(T0 + 100_000, T0 + SPAN, 5_000):
+            now[0] = t
+            if t == T0 + 300_000:
+                store.append_conflicts([ConflictRow(0, 0, t, "a", t - 1_000, "b")])  # long ago
+            if t == recent:
+                store.append_conflicts([ConflictRow(1, 2, t, "a", t - 1_000, "b")])
+            feed._apply([])
+        assert reads == []
+        channels.sent.clear()
+        channels.clients = True
+        now[0] = T0 + SPAN
+        feed._apply([])
+    finally:
+        feed.close()
+    assert "conflicts" in reads and "vda" in reads
+    assert [(t, m["column"]) for t, m in channels.on(CONFLICTS_TOPIC)] == [(recent, 2)]
+    standing = {topic: doc for _, topic, _, doc in vda_errors_at(store, T0 + SPAN)}
+    sent = {top: doc for top, _, doc in channels.sent if top in standing}
+    assert sent == standing

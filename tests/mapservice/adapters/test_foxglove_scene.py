@@ -43,6 +43,7 @@ class Recorder:
 
     def __init__(self) -> None:
         self.sent: list[tuple[str, int, Any]] = []
+        self.clients = True  # whether a client listens (to every channel)
 
     def declare_protobuf(self, topic: str, message_class: Any) -> None:
         pass
@@ -51,7 +52,10 @@ class Recorder:
         pass
 
     def listened(self, topic: str) -> bool:
-        return True
+        return self.clients
+
+    def any_listened(self) -> bool:
+        return self.clients
 
     def protobuf(self, topic: str, message: Any, ts_ms: int) -> None:
         self.sent.append((topic, ts_ms, message))
