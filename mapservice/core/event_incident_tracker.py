@@ -44,6 +44,7 @@ from mapservice.core.incident_model import (
     Incident,
     IncidentThresholds,
     PoseRef,
+    can_still_grow,
     incident_id,
 )
 from mapservice.core.ports import PoseRow
@@ -122,7 +123,8 @@ class EventIncidentTracker(UnstoredFindings):
         robots: Iterable[str] = (),
     ) -> None:
         """Starts from the stored records from `held_from_ms` on and the incidents stored
-        that meet that span; the rules then run over them, for what was not yet found.
+        that meet that span or can still grow (incident_model.incidents_to_load); the
+        rules then run over them, for what was not yet found.
         Call after the pose tracker loaded (its poses place the incidents), with the robots
         it holds (`robots`): one may stand in a zone since before the span."""
         self.records = {f: defaultdict(dict) for f in FAMILIES}
@@ -198,19 +200,18 @@ class EventIncidentTracker(UnstoredFindings):
                 self._note(grown, force=True)
 
     def forget(self, now_ms: int) -> None:
-        """Lets go of records older than `keep_ms` (a robot's since its ongoing incident of
-        that family began stay) and of the incidents that ended before them."""
+        """Lets go of records older than `keep_ms` (a robot's since an incident of it that
+        can still grow began stay: each batch that extends it judges it from its start)
+        and of the incidents that ended before them and cannot grow."""
         cut = now_ms - self.keep_ms
         if cut - self.held_from_ms < max(1, self.keep_ms // 20):
             return
         reach = self.th.lookback_ms
         since: dict[str, int] = {}
-        for i in self.current.values():
-            # a conflict run is never ongoing, but the next conflict within the gap extends
-            # it, and each batch then judges it from its start: its records stay too
-            extendable = i.kind == "conflict" and i.end_ms + self.th.conflict_gap_ms >= now_ms
-            if i.ongoing or extendable:
-                since[i.robots[0]] = min(since.get(i.robots[0], cut), i.start_ms - reach)
+        growing = {k for k, i in self.current.items() if can_still_grow(i, now_ms, self.th)}
+        for k in growing:
+            i = self.current[k]
+            since[i.robots[0]] = min(since.get(i.robots[0], cut), i.start_ms - reach)
         # memory never grows back: what was let go of is read from the store
         since = {r: max(t, self._held(r)) for r, t in since.items()}
         for robots in self.records.values():
@@ -231,7 +232,7 @@ class EventIncidentTracker(UnstoredFindings):
                 del self.acks[k]
         self.current_from_ms = cut - reach
         self.current = {
-            k: i for k, i in self.current.items() if i.ongoing or i.end_ms >= cut - reach
+            k: i for k, i in self.current.items() if k in growing or i.end_ms >= cut - reach
         }
 
     # --- finding ------------------------------------------------------------------------

@@ -33,7 +33,7 @@ import msgspec
 
 from mapservice.core.incident_findings import UnstoredFindings
 from mapservice.core.incident_joins import carried_on, joined_own
-from mapservice.core.incident_model import settled
+from mapservice.core.incident_model import can_still_grow, settled
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
@@ -101,7 +101,8 @@ class IncidentTracker(UnstoredFindings):
     ) -> None:
         """Starts from the stored history: `poses` every stored pose from `held_from_ms` on
         (and each robot's newest before it), `stored` the incidents stored that meet that
-        span. The rules then run over it, for what was stored but not yet found."""
+        span or can still grow (incident_model.incidents_to_load). The rules then run over
+        it, for what was stored but not yet found."""
         self.tracks = unique_poses(poses)
         self.recent.reset()
         self.held_from_ms = held_from_ms
@@ -207,8 +208,8 @@ class IncidentTracker(UnstoredFindings):
 
     def forget(self, now_ms: int) -> None:
         """Lets go of poses older than `keep_ms` (each robot's newest before stays, and a
-        robot's poses since an ongoing incident of its own began) and of the incidents
-        that ended before them and are not ongoing."""
+        robot's poses since an incident of it that can still grow began) and of the
+        incidents that ended before them and cannot grow."""
         cut = now_ms - self.keep_ms
         # In steps of a twentieth of what is kept, not every batch: each step walks every
         # robot's track, and what is held a little longer is only read from memory again.
@@ -216,10 +217,11 @@ class IncidentTracker(UnstoredFindings):
             return
         reach = self.th.lookback_ms
         since = dict.fromkeys(self.tracks, cut)
-        for i in self.current.values():
-            if i.ongoing:
-                for r in i.robots:
-                    since[r] = min(since.get(r, cut), i.start_ms - reach)
+        growing = {k for k, i in self.current.items() if can_still_grow(i, now_ms, self.th)}
+        for k in growing:
+            i = self.current[k]
+            for r in i.robots:
+                since[r] = min(since.get(r, cut), i.start_ms - reach)
         # memory never grows back: what was let go of is read from the store
         since = {r: max(t, self._held(r)) for r, t in since.items()}
         self.held_from_ms = cut
@@ -229,7 +231,7 @@ class IncidentTracker(UnstoredFindings):
             del track[: max(0, at - 1)]
         self.current_from_ms = cut - reach
         self.current = {
-            k: i for k, i in self.current.items() if i.ongoing or i.end_ms >= cut - reach
+            k: i for k, i in self.current.items() if k in growing or i.end_ms >= cut - reach
         }
         self.closest = {k: c for k, c in self.closest.items() if k in self.current}
 

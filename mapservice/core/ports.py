@@ -356,10 +356,13 @@ class IncidentReader(Protocol):
         kinds: Sequence[str] = (),
         robot_id: str | None = None,
         limit: int = 10_000,
+        ongoing_to_now: bool = False,
     ) -> list[Incident]:
         """The incidents meeting [from_ms, to_ms) (start < to_ms, end >= from_ms), of
         `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
-        id; as last found, retracted ones left out."""
+        id; as last found, retracted ones left out. `ongoing_to_now`: an ongoing one as
+        lasting up to now (start < to_ms), whatever its stored end, which lags (it is
+        written again only now and then)."""
 
 
 class HeatmapReader(Protocol):

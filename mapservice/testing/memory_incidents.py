@@ -33,6 +33,7 @@ class IncidentLog:
         kinds: Sequence[str] = (),
         robot_id: str | None = None,
         limit: int = 10_000,
+        ongoing_to_now: bool = False,
     ) -> list[Incident]:
         with self._lock:
             found = [
@@ -40,7 +41,7 @@ class IncidentLog:
                 for _, gone, i in self._latest.values()
                 if not gone
                 and i.start_ms < to_ms
-                and i.end_ms >= from_ms
+                and (i.end_ms >= from_ms or (ongoing_to_now and i.ongoing))
                 and (not kinds or i.kind in kinds)
                 and (robot_id is None or robot_id in i.robots)
             ]

@@ -150,8 +150,9 @@ class MemoryStore:
         kinds: Sequence[str] = (),
         robot_id: str | None = None,
         limit: int = 10_000,
+        ongoing_to_now: bool = False,
     ) -> list[Incident]:
-        return self._incidents.incidents(from_ms, to_ms, kinds, robot_id, limit)
+        return self._incidents.incidents(from_ms, to_ms, kinds, robot_id, limit, ongoing_to_now)
 
     def save_webhook(self, webhook: RegisteredWebhook, changed_ms: int) -> None:
         self._webhooks.save_webhook(webhook, changed_ms)

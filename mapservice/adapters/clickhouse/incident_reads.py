@@ -67,10 +67,12 @@ class ClickHouseIncidentReads:
         kinds: Sequence[str] = (),
         robot_id: str | None = None,
         limit: int = 10_000,
+        ongoing_to_now: bool = False,
     ) -> list[Incident]:
+        meets = "end >= fromUnixTimestamp64Milli({f:Int64})"
         where = [
             "start < fromUnixTimestamp64Milli({to:Int64})",
-            "end >= fromUnixTimestamp64Milli({f:Int64})",
+            f"({meets} OR ongoing)" if ongoing_to_now else meets,
             "NOT retracted",
         ]
         params: dict[str, Any] = {"f": from_ms, "to": to_ms, "n": limit}

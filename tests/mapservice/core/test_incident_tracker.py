@@ -23,7 +23,7 @@ from mapservice.core.event_incidents import (
     records_of,
 )
 from mapservice.core.events import Envelope, PoseReported, make_envelope
-from mapservice.core.incident_model import settled
+from mapservice.core.incident_model import incidents_to_load, settled
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
 from mapservice.core.ports import PoseRow
@@ -136,7 +136,9 @@ class Trackers:
 
     def load(self, now: int) -> None:
         since, th = now - KEEP_MS, self.poses.th
-        stored = self.store.incidents(since - th.lookback_ms, now + 1)
+        stored = incidents_to_load(
+            lambda f, t: self.store.incidents(f, t, ongoing_to_now=True), since, now + 1, now, th
+        )
         own = [i for i in stored if not is_event_incident(i)]
         self.poses.load(reader(self.store)(since, now + 1, None), since, own, now)
         records = stored_records(self.store, since, now + 1, None)
