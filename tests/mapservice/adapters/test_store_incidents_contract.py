@@ -82,6 +82,28 @@ def test_reads_meet_the_window_and_filter_by_kind_and_robot(store, t0) -> None:
     assert len(store.incidents(t0, t0 + 60_000, limit=3)) == 3
 
 
+def test_an_ongoing_incident_read_as_lasting_up_to_now_meets_every_span_after_its_start(
+    store, t0
+) -> None:
+    """The live detection's restart reads an ongoing incident whatever its stored end (it
+    lags: rewritten only now and then); one that ended stays within its bounds, and none
+    meets a span before its start."""
+    going = incident(t0, "offline", ("r1",), 0, 10_000, ongoing=True)
+    ended = incident(t0, "offline", ("r2",), 0, 10_000)
+    later = incident(t0, "offline", ("r3",), 90_000, 95_000, ongoing=True)
+    store.append_incidents([going, ended, later], t0 + 96_000)
+
+    def robots(from_ms: int, to_ms: int, **kwargs) -> list[str]:
+        return sorted(i.robots[0] for i in store.incidents(t0 + from_ms, t0 + to_ms, **kwargs))
+
+    assert robots(50_000, 60_000) == []
+    assert robots(50_000, 60_000, ongoing_to_now=True) == ["r1"]
+    assert robots(10_000, 60_000, ongoing_to_now=True) == ["r1", "r2"]
+    assert robots(10_001, 90_001, ongoing_to_now=True) == ["r1", "r3"]
+    assert robots(-5_000, 0, ongoing_to_now=True) == []
+    assert robots(50_000, 100_000, kinds=["stuck"], ongoing_to_now=True) == []
+
+
 @settings(
     max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
