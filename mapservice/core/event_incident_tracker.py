@@ -192,8 +192,8 @@ class EventIncidentTracker(UnstoredFindings):
             if incident.kind == "offline":
                 severity = "critical" if off_s >= OFFLINE_CRITICAL_S else "warning"
             if severity != incident.severity or now_ms - incident.end_ms > self.keep_ms // 2:
-                # rewritten as it turns critical, and now and then so that a reload of the
-                # recent incidents (those ending in memory's span) still meets it
+                # rewritten as it turns critical, and now and then so that a read of a
+                # recent span (the list's) still meets it by its stored end
                 grown = msgspec.structs.replace(
                     incident, end_ms=now_ms, measure=off_s, severity=severity
                 )
