@@ -27,6 +27,7 @@ from mapservice.core.event_incidents import (
     EVENT_KINDS,
     EventRecords,
     Locate,
+    VdaErrorsAt,
     command_failed,
     conflict_incidents,
     connection_offline_incidents,
@@ -101,6 +102,8 @@ class EventIncidentTracker(UnstoredFindings):
         self.issued: dict[str, StoredCommandEvent] = {}  # by command id
         self.acks: dict[str, list[StoredCommandEvent]] = defaultdict(list)
         self.pending: set[str] = set()  # commands issued whose ack deadline has not passed
+        # each vehicle's newest VDA state given since the load (all of them, as stored)
+        self.newest_state: dict[str, int] = {}
         # Memory holds each robot's records from its instant here (the default for robots
         # not named) on; earlier ones are read from the store.
         self.held_from_ms = 0
@@ -131,6 +134,7 @@ class EventIncidentTracker(UnstoredFindings):
         self.issued.clear()
         self.acks.clear()
         self.pending.clear()
+        self.newest_state.clear()
         self.held_from_ms, self.held_from = held_from_ms, {}
         self.current = {i.incident_id: i for i in stored if is_event_incident(i)}
         self.current_from_ms = held_from_ms - self.th.lookback_ms
@@ -162,6 +166,7 @@ class EventIncidentTracker(UnstoredFindings):
         self._cover(min(touched.values(), default=now_ms) - self.th.lookback_ms)
         commands = self._commands_of(records.commands)
         self._remember(records)
+        self._read_clears_again(records.vda_states, now_ms)
         first_pose: dict[str, int] = {}
         for p in poses:
             first_pose[p.robot_id] = min(p.ts_ms, first_pose.get(p.robot_id, p.ts_ms))
@@ -263,6 +268,31 @@ class EventIncidentTracker(UnstoredFindings):
             else:  # of two with one id, the last given, as the store keeps the last written
                 acks = self.acks[command]
                 acks[:] = [a for a in acks if a.event_id != m.event_id] + [m]
+
+    def _read_clears_again(self, states: Sequence[VdaErrorsAt], now_ms: int) -> None:
+        """A state with a FATAL error that comes before a stored state of its vehicle: the
+        next state, if it has no errors, ends it. Of the states without errors the store
+        gives only those after one with errors (the others change nothing) as they were
+        when read, so memory read from the store may lack the one a late state now ends
+        its errors with: read again from the store (the late ones stored). Memory knows
+        which states are the newest from those it was given since it was loaded: the
+        first state with errors of each vehicle after that is read again once, the late
+        ones later on."""
+        earliest: dict[str, int] = {}
+        for state in states:
+            if state.fatal:
+                earliest[state.robot_id] = min(
+                    state.ts_ms, earliest.get(state.robot_id, state.ts_ms)
+                )
+        for robot, ts in earliest.items():
+            newest = self.newest_state.get(robot)
+            if newest is None or ts < newest:
+                until = max(now_ms, newest or now_ms) + 1
+                start = max(ts, self._held(robot))
+                self._remember(EventRecords(vda_states=self.read(start, until, robot).vda_states))
+        for state in states:
+            newest = self.newest_state.get(state.robot_id, state.ts_ms)
+            self.newest_state[state.robot_id] = max(newest, state.ts_ms)
 
     def _commands_of(self, commands: Iterable[StoredCommandEvent]) -> set[str]:
         """The commands `commands` name, their issues and acks brought into memory first
@@ -453,9 +483,7 @@ class EventIncidentTracker(UnstoredFindings):
         if cut_ms >= self.current_from_ms:
             return list(self.current.values())
         stored = self.read_incidents(cut_ms, self.current_from_ms)
-        known = {i.incident_id: i for i in stored if is_event_incident(i)}
-        known.update(self.current)
-        return list(known.values())
+        return self._held_over(i for i in stored if is_event_incident(i))
 
     def _note(self, incident: Incident, force: bool = False) -> None:
         before = self.current.get(incident.incident_id)

@@ -1,11 +1,8 @@
 """The live detection of the event incidents in the live case: a robot standing in a
 keep-out zone for longer than memory holds is carried on batch by batch from memory, not
-read again from the store, and its run is the one the rules find; and across a restart,
-an incident that goes on from long before it."""
+read again from the store, and its run is the one the rules find."""
 
 from __future__ import annotations
-
-import pytest
 
 from mapservice.core.event_incident_tracker import EventIncidentTracker
 from mapservice.core.event_incidents import EventRecords, detect_all
@@ -13,20 +10,8 @@ from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import IncidentThresholds
 from mapservice.core.ports import ConflictRow, PoseRow
 from mapservice.testing.memory_store import MemoryStore
-from tests.mapservice.core.event_history import (
-    connection,
-    stored_records,
-    vda_state,
-    violations_of,
-)
-from tests.mapservice.core.test_incident_tracker import (
-    KEEP_MS,
-    Trackers,
-    envelope,
-    fleet_pose,
-    normal,
-    reader,
-)
+from tests.mapservice.core.event_history import stored_records, violations_of
+from tests.mapservice.core.test_incident_tracker import envelope, normal, reader
 
 T0 = 1_795_255_200_000
 
@@ -126,61 +111,3 @@ def test_a_conflict_run_that_goes_on_is_placed_from_memory() -> None:
     )
     assert normal([going]) == normal([i for i in expected if i.kind == "conflict"])
     assert going.start_ms == T0 + 4000 and going.measure == 120
-
-
-@pytest.mark.parametrize(
-    ("began", "after_restart", "restart_s", "ongoing", "severity"),
-    [
-        # the vehicle's connection drops and stays down past the critical length
-        pytest.param("disconnected", None, 320, True, "critical", id="turns-critical"),
-        # it comes back after the restart: the disconnection ends there
-        pytest.param(
-            "disconnected",
-            connection("v", T0 + 210_000, "ONLINE"),
-            200,
-            False,
-            "warning",
-            id="reconnects",
-        ),
-        # a FATAL error held from before the restart, cleared after it
-        pytest.param(
-            "fatal error", vda_state("v", T0 + 210_000, []), 200, False, "critical", id="cleared"
-        ),
-    ],
-)
-def test_an_incident_going_on_from_long_before_a_restart_is_judged_again_after_it(
-    began, after_restart, restart_s, ongoing, severity
-) -> None:
-    """A vehicle falls silent (its poses stop, its connection drops or a FATAL error
-    holds): the incidents are stored, and rewritten now and then while they go on. The
-    processors stop, and start again (new trackers, loaded from the store) after the stored
-    end lags by more than memory holds and its lookback: the disconnection's or error's
-    records lie before memory, but it can still grow, so it is loaded and judged again. It
-    turns critical, or ends, as the rules over the whole stored history say (loaded only
-    when it met memory's span, it kept its warning severity and never ended)."""
-    th = IncidentThresholds()
-    store = MemoryStore()
-    trackers = Trackers(store, th)
-    trackers.load(T0)
-    first = connection("v", T0 + 1_000, "OFFLINE")
-    if began == "fatal error":
-        first = vda_state("v", T0 + 1_000, [("FATAL", "e1")])
-    pose = fleet_pose("v", T0, 1.0, 1.0, 80.0)
-    trackers.add([envelope(pose, T0 + 500)], [first], T0 + 1_500)
-    trackers.tick(T0 + 100_000)  # written again while it goes on, then the processors stop
-    [stored] = [i for i in store.incidents(0, T0 + 1_000_000) if i.start_ms == T0 + 1_000]
-    now = T0 + restart_s * 1000
-    assert stored.ongoing and stored.end_ms < now - KEEP_MS - th.lookback_ms
-    trackers = Trackers(store, th)
-    trackers.load(now)
-    if after_restart is not None:
-        now += 11_000
-        trackers.add([], [after_restart], now)
-    trackers.tick(now)
-
-    [going] = [i for i in store.incidents(0, now + 1) if i.start_ms == T0 + 1_000]
-    assert (going.ongoing, going.severity) == (ongoing, severity)
-    expected = detect_all(
-        store.poses(0, now + 1, limit=10**9), stored_records(store, 0, now + 1, None), now, th
-    )
-    assert normal(store.incidents(0, now + 1)) == normal(expected)
