@@ -45,7 +45,6 @@ def assert_as_recomputed(store: MemoryStore, now: int, th: IncidentThresholds) -
         # a late FATAL state before a state without errors that memory, read from the
         # store, lacked
         pytest.param(1262, 2796, False, id="late-error-before-a-state-without-errors"),
-        pytest.param(1972, 4724, False, id="late-error-before-a-state-without-errors-2"),
         # a retracted error read back from the store before its retraction was stored
         pytest.param(1576, 9114, False, id="retracted-error-read-back"),
         # after a downtime: a disconnection retracted, read back before that was stored
