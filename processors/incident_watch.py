@@ -23,6 +23,7 @@ from mapservice.core.annotations import ZoneViolation
 from mapservice.core.event_incident_tracker import EventIncidentTracker, is_event_incident
 from mapservice.core.event_incidents import EventRecords, records_of, vda_records_of
 from mapservice.core.events import Envelope
+from mapservice.core.incident_model import incidents_to_load
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds
 from mapservice.core.ports import (
@@ -156,7 +157,13 @@ class IncidentWatch:
         """The recent history from the store, and the incidents stored over it."""
         now = self.now_ms()
         since = now - self.keep_ms
-        stored = self.incidents.incidents(since - self.tracker.th.lookback_ms, horizon_ms)
+        stored = incidents_to_load(
+            self.incidents.incidents,
+            since,
+            horizon_ms,
+            now,
+            self.tracker.th,
+        )
         own = [i for i in stored if not is_event_incident(i)]
         self.tracker.load(self._read(since, horizon_ms, None), since, own, now)
         self.events.load(

@@ -27,6 +27,7 @@ from mapservice.core.event_incidents import (
     EVENT_KINDS,
     EventRecords,
     Locate,
+    VdaErrorsAt,
     command_failed,
     conflict_incidents,
     connection_offline_incidents,
@@ -44,6 +45,7 @@ from mapservice.core.incident_model import (
     Incident,
     IncidentThresholds,
     PoseRef,
+    can_still_grow,
     incident_id,
 )
 from mapservice.core.ports import PoseRow
@@ -100,6 +102,8 @@ class EventIncidentTracker(UnstoredFindings):
         self.issued: dict[str, StoredCommandEvent] = {}  # by command id
         self.acks: dict[str, list[StoredCommandEvent]] = defaultdict(list)
         self.pending: set[str] = set()  # commands issued whose ack deadline has not passed
+        # each vehicle's newest VDA state given since the load (all of them, as stored)
+        self.newest_state: dict[str, int] = {}
         # Memory holds each robot's records from its instant here (the default for robots
         # not named) on; earlier ones are read from the store.
         self.held_from_ms = 0
@@ -122,13 +126,15 @@ class EventIncidentTracker(UnstoredFindings):
         robots: Iterable[str] = (),
     ) -> None:
         """Starts from the stored records from `held_from_ms` on and the incidents stored
-        that meet that span; the rules then run over them, for what was not yet found.
+        that meet that span or can still grow (incident_model.incidents_to_load); the
+        rules then run over them, for what was not yet found.
         Call after the pose tracker loaded (its poses place the incidents), with the robots
         it holds (`robots`): one may stand in a zone since before the span."""
         self.records = {f: defaultdict(dict) for f in FAMILIES}
         self.issued.clear()
         self.acks.clear()
         self.pending.clear()
+        self.newest_state.clear()
         self.held_from_ms, self.held_from = held_from_ms, {}
         self.current = {i.incident_id: i for i in stored if is_event_incident(i)}
         self.current_from_ms = held_from_ms - self.th.lookback_ms
@@ -160,6 +166,7 @@ class EventIncidentTracker(UnstoredFindings):
         self._cover(min(touched.values(), default=now_ms) - self.th.lookback_ms)
         commands = self._commands_of(records.commands)
         self._remember(records)
+        self._read_clears_again(records.vda_states, now_ms)
         first_pose: dict[str, int] = {}
         for p in poses:
             first_pose[p.robot_id] = min(p.ts_ms, first_pose.get(p.robot_id, p.ts_ms))
@@ -190,27 +197,26 @@ class EventIncidentTracker(UnstoredFindings):
             if incident.kind == "offline":
                 severity = "critical" if off_s >= OFFLINE_CRITICAL_S else "warning"
             if severity != incident.severity or now_ms - incident.end_ms > self.keep_ms // 2:
-                # rewritten as it turns critical, and now and then so that a reload of the
-                # recent incidents (those ending in memory's span) still meets it
+                # rewritten as it turns critical, and now and then so that a read of a
+                # recent span (the list's) still meets it by its stored end
                 grown = msgspec.structs.replace(
                     incident, end_ms=now_ms, measure=off_s, severity=severity
                 )
                 self._note(grown, force=True)
 
     def forget(self, now_ms: int) -> None:
-        """Lets go of records older than `keep_ms` (a robot's since its ongoing incident of
-        that family began stay) and of the incidents that ended before them."""
+        """Lets go of records older than `keep_ms` (a robot's since an incident of it that
+        can still grow began stay: each batch that extends it judges it from its start)
+        and of the incidents that ended before them and cannot grow."""
         cut = now_ms - self.keep_ms
         if cut - self.held_from_ms < max(1, self.keep_ms // 20):
             return
         reach = self.th.lookback_ms
         since: dict[str, int] = {}
-        for i in self.current.values():
-            # a conflict run is never ongoing, but the next conflict within the gap extends
-            # it, and each batch then judges it from its start: its records stay too
-            extendable = i.kind == "conflict" and i.end_ms + self.th.conflict_gap_ms >= now_ms
-            if i.ongoing or extendable:
-                since[i.robots[0]] = min(since.get(i.robots[0], cut), i.start_ms - reach)
+        growing = {k for k, i in self.current.items() if can_still_grow(i, now_ms, self.th)}
+        for k in growing:
+            i = self.current[k]
+            since[i.robots[0]] = min(since.get(i.robots[0], cut), i.start_ms - reach)
         # memory never grows back: what was let go of is read from the store
         since = {r: max(t, self._held(r)) for r, t in since.items()}
         for robots in self.records.values():
@@ -231,7 +237,7 @@ class EventIncidentTracker(UnstoredFindings):
                 del self.acks[k]
         self.current_from_ms = cut - reach
         self.current = {
-            k: i for k, i in self.current.items() if i.ongoing or i.end_ms >= cut - reach
+            k: i for k, i in self.current.items() if k in growing or i.end_ms >= cut - reach
         }
 
     # --- finding ------------------------------------------------------------------------
@@ -262,6 +268,31 @@ class EventIncidentTracker(UnstoredFindings):
             else:  # of two with one id, the last given, as the store keeps the last written
                 acks = self.acks[command]
                 acks[:] = [a for a in acks if a.event_id != m.event_id] + [m]
+
+    def _read_clears_again(self, states: Sequence[VdaErrorsAt], now_ms: int) -> None:
+        """A state with a FATAL error that comes before a stored state of its vehicle: the
+        next state, if it has no errors, ends it. Of the states without errors the store
+        gives only those after one with errors (the others change nothing) as they were
+        when read, so memory read from the store may lack the one a late state now ends
+        its errors with: read again from the store (the late ones stored). Memory knows
+        which states are the newest from those it was given since it was loaded: the
+        first state with errors of each vehicle after that is read again once, the late
+        ones later on."""
+        earliest: dict[str, int] = {}
+        for state in states:
+            if state.fatal:
+                earliest[state.robot_id] = min(
+                    state.ts_ms, earliest.get(state.robot_id, state.ts_ms)
+                )
+        for robot, ts in earliest.items():
+            newest = self.newest_state.get(robot)
+            if newest is None or ts < newest:
+                until = max(now_ms, newest or now_ms) + 1
+                start = max(ts, self._held(robot))
+                self._remember(EventRecords(vda_states=self.read(start, until, robot).vda_states))
+        for state in states:
+            newest = self.newest_state.get(state.robot_id, state.ts_ms)
+            self.newest_state[state.robot_id] = max(newest, state.ts_ms)
 
     def _commands_of(self, commands: Iterable[StoredCommandEvent]) -> set[str]:
         """The commands `commands` name, their issues and acks brought into memory first
@@ -452,9 +483,7 @@ class EventIncidentTracker(UnstoredFindings):
         if cut_ms >= self.current_from_ms:
             return list(self.current.values())
         stored = self.read_incidents(cut_ms, self.current_from_ms)
-        known = {i.incident_id: i for i in stored if is_event_incident(i)}
-        known.update(self.current)
-        return list(known.values())
+        return self._held_over(i for i in stored if is_event_incident(i))
 
     def _note(self, incident: Incident, force: bool = False) -> None:
         before = self.current.get(incident.incident_id)

@@ -42,6 +42,14 @@ class UnstoredFindings:
             if incident.incident_id not in self.found:
                 self.retracted.setdefault(incident.incident_id, incident)
 
+    def _held_over(self, stored: Iterable[Incident]) -> list[Incident]:
+        """What is known of the incidents: those `stored` as found here, each by its
+        latest finding held, and those retracted here left out (the store still holds
+        them until the retraction is stored: found again from it, one would come back)."""
+        known = {i.incident_id: i for i in stored if i.incident_id not in self.retracted}
+        known.update(self.current)
+        return list(known.values())
+
     def _replace(self, before: Iterable[Incident], fresh: Iterable[Incident]) -> None:
         """`fresh` found where `before` was: what is not found again is retracted."""
         fresh_ids = set()

@@ -1,12 +1,12 @@
 """What an incident is (mapservice/core/incidents.py finds them): its kinds, the thresholds
-of the rules, the record of one, and its id."""
+of the rules, the record of one, its id, and whether it can still grow."""
 
 from __future__ import annotations
 
 import functools
 import hashlib
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -127,6 +127,40 @@ def settled(incident: Incident) -> Incident:
             incident, end_ms=0, measure=0.0, evidence=incident.evidence[:1]
         )
     return msgspec.structs.replace(incident, end_ms=0)
+
+
+def can_still_grow(incident: Incident, now_ms: int, th: IncidentThresholds) -> bool:
+    """Whether what comes after `now_ms` may still extend the incident, so that the live
+    detection holds it, and what it is judged from, whatever its end: an ongoing one (its
+    stored end lags: it is written again only now and then, never while the processors are
+    down), or a conflict run that a conflict within the gap would join (never ongoing, but
+    judged again from its start). Every such incident ends at or after
+    `still_growing_from(now_ms, th)` or is ongoing."""
+    return incident.ongoing or (
+        incident.kind == "conflict" and incident.end_ms >= still_growing_from(now_ms, th)
+    )
+
+
+def still_growing_from(now_ms: int, th: IncidentThresholds) -> int:
+    """The earliest end of an incident that can still grow and is not ongoing."""
+    return now_ms - th.conflict_gap_ms
+
+
+def incidents_to_load(
+    read: Callable[[int, int], list[Incident]],
+    held_from_ms: int,
+    until_ms: int,
+    now_ms: int,
+    th: IncidentThresholds,
+) -> list[Incident]:
+    """What a restart of the live detection loads (its memory holding the history from
+    `held_from_ms` on): the stored incidents meeting that span from a lookback before it, as
+    the rules look back, and every one that can still grow, whatever its stored end. `read`:
+    (from_ms, to_ms) -> the stored incidents meeting [from_ms, to_ms), an ongoing one whatever
+    its stored end (IncidentReader.incidents)."""
+    span_from = held_from_ms - th.lookback_ms
+    stored = read(min(span_from, still_growing_from(now_ms, th)), until_ms)
+    return [i for i in stored if i.end_ms >= span_from or can_still_grow(i, now_ms, th)]
 
 
 def incident_id(kind: str, robots: Sequence[str], start_ms: int) -> str:

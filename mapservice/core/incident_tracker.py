@@ -33,7 +33,7 @@ import msgspec
 
 from mapservice.core.incident_findings import UnstoredFindings
 from mapservice.core.incident_joins import carried_on, joined_own
-from mapservice.core.incident_model import settled
+from mapservice.core.incident_model import can_still_grow, settled
 from mapservice.core.incidents import (
     Incident,
     IncidentThresholds,
@@ -101,7 +101,8 @@ class IncidentTracker(UnstoredFindings):
     ) -> None:
         """Starts from the stored history: `poses` every stored pose from `held_from_ms` on
         (and each robot's newest before it), `stored` the incidents stored that meet that
-        span. The rules then run over it, for what was stored but not yet found."""
+        span or can still grow (incident_model.incidents_to_load). The rules then run over
+        it, for what was stored but not yet found."""
         self.tracks = unique_poses(poses)
         self.recent.reset()
         self.held_from_ms = held_from_ms
@@ -186,7 +187,7 @@ class IncidentTracker(UnstoredFindings):
                     continue
             self._redo_own(robot, first_new - th.offline_after_ms, now_ms, known)
         late = {p.robot_id for p in placed_later}
-        self._redo_near_misses(set(newest_before), changed_from, known, late)
+        self._redo_near_misses(set(newest_before), changed_from, known, now_ms, late)
 
     def _pose_before(self, robot: str, ts_ms: int, default: int) -> int:
         """The time of the stored pose of `robot` before `ts_ms` (`default` if none)."""
@@ -207,8 +208,8 @@ class IncidentTracker(UnstoredFindings):
 
     def forget(self, now_ms: int) -> None:
         """Lets go of poses older than `keep_ms` (each robot's newest before stays, and a
-        robot's poses since an ongoing incident of its own began) and of the incidents
-        that ended before them and are not ongoing."""
+        robot's poses since an incident of it that can still grow began) and of the
+        incidents that ended before them and cannot grow."""
         cut = now_ms - self.keep_ms
         # In steps of a twentieth of what is kept, not every batch: each step walks every
         # robot's track, and what is held a little longer is only read from memory again.
@@ -216,10 +217,11 @@ class IncidentTracker(UnstoredFindings):
             return
         reach = self.th.lookback_ms
         since = dict.fromkeys(self.tracks, cut)
-        for i in self.current.values():
-            if i.ongoing:
-                for r in i.robots:
-                    since[r] = min(since.get(r, cut), i.start_ms - reach)
+        growing = {k for k, i in self.current.items() if can_still_grow(i, now_ms, self.th)}
+        for k in growing:
+            i = self.current[k]
+            for r in i.robots:
+                since[r] = min(since.get(r, cut), i.start_ms - reach)
         # memory never grows back: what was let go of is read from the store
         since = {r: max(t, self._held(r)) for r, t in since.items()}
         self.held_from_ms = cut
@@ -229,7 +231,7 @@ class IncidentTracker(UnstoredFindings):
             del track[: max(0, at - 1)]
         self.current_from_ms = cut - reach
         self.current = {
-            k: i for k, i in self.current.items() if i.ongoing or i.end_ms >= cut - reach
+            k: i for k, i in self.current.items() if k in growing or i.end_ms >= cut - reach
         }
         self.closest = {k: c for k, c in self.closest.items() if k in self.current}
 
@@ -294,7 +296,7 @@ class IncidentTracker(UnstoredFindings):
         known = self._known(from_ms - self.th.lookback_ms)
         for robot in sorted(robots):
             self._redo_own(robot, from_ms - self.th.offline_after_ms, now_ms, known)
-        self._redo_near_misses(robots, from_ms, known)
+        self._redo_near_misses(robots, from_ms, known, now_ms)
 
     def _cover(self, from_ms: int) -> None:
         """Memory holds every stored pose from `from_ms` on (and each robot's newest before
@@ -368,9 +370,7 @@ class IncidentTracker(UnstoredFindings):
         """The latest finding of every incident ongoing or ending at or after `cut_ms`."""
         if cut_ms >= self.current_from_ms:
             return list(self.current.values())
-        known = {i.incident_id: i for i in self.read_incidents(cut_ms, self.current_from_ms)}
-        known.update(self.current)
-        return list(known.values())
+        return self._held_over(self.read_incidents(cut_ms, self.current_from_ms))
 
     def _redo_own(
         self, robot: str, cut_ms: int, now_ms: int, known: Iterable[Incident] | None = None
@@ -391,7 +391,7 @@ class IncidentTracker(UnstoredFindings):
                 break  # what reaches the data's edge starts there: the history has no more
             start -= 2 * (cut_ms - start)
         self._replace(
-            [i for i in mine if i.end_ms >= cut_ms or i.ongoing],
+            [i for i in mine if i.end_ms >= cut_ms or can_still_grow(i, now_ms, self.th)],
             [i for i in fresh if i.end_ms >= cut_ms],
         )
 
@@ -400,13 +400,15 @@ class IncidentTracker(UnstoredFindings):
         robots: set[str],
         changed_from_ms: int,
         known: Iterable[Incident],
+        now_ms: int,
         late: set[str] | None = None,
     ) -> None:
         """The near misses of pairs with a robot of `robots` at the ticks from
         `changed_from_ms` on, each run from its start: the ticks before are unchanged, so
         a known run that reaches them keeps its start (`known`: every incident ongoing or
-        ending at or after changed_from_ms - lookback). `late`: the robots with poses
-        placed before their newest (None: any may have)."""
+        ending at or after changed_from_ms - lookback). A run that can still grow reaches
+        them whatever its end: read from the store after a restart, its end lags.
+        `late`: the robots with poses placed before their newest (None: any may have)."""
         tick = self.th.tick_ms
         first_tick = -(-changed_from_ms // tick) * tick
         reaching = [
@@ -414,7 +416,7 @@ class IncidentTracker(UnstoredFindings):
             for i in known
             if i.kind == "near_miss"
             and robots.intersection(i.robots)
-            and i.end_ms >= first_tick - tick
+            and (i.end_ms >= first_tick - tick or can_still_grow(i, now_ms, self.th))
         ]
         # A run begun before the changed ticks whose robots' new poses all came after their
         # newest has no tick that can change: carried on from its closest tick found here
@@ -462,8 +464,13 @@ class IncidentTracker(UnstoredFindings):
             lambda robot: self.tracks[robot][-1].ts_ms,
         )
         self.closest.update(closest)
-        # A run that ends before the changed ticks is unchanged: the one known stands.
-        self._replace(reaching, [i for i in fresh if i.end_ms >= first_tick - tick])
+        # A run that ends before the changed ticks is unchanged: the one known stands (one
+        # known as going on is found again, its end with it).
+        judged = {i.incident_id for i in reaching}
+        self._replace(
+            reaching,
+            [i for i in fresh if i.end_ms >= first_tick - tick or i.incident_id in judged],
+        )
 
     def _earlier_exists(self, robot: str, ts_ms: int) -> bool:
         """Whether the store holds a pose of `robot` before `ts_ms`."""

@@ -360,7 +360,9 @@ class IncidentReader(Protocol):
         """The incidents meeting [from_ms, to_ms) (event_incidents.meets: start < to_ms,
         end >= from_ms or ongoing), of
         `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
-        id; as last found, retracted ones left out."""
+        id; as last found, retracted ones left out. An ongoing one meets every window after
+        its start, whatever its stored end, which lags (it is written again only now and
+        then)."""
 
 
 class HeatmapReader(Protocol):

@@ -87,3 +87,22 @@ def test_a_command_left_without_an_ack_fails_when_the_clock_passes_its_deadline(
     # its ack, in time by the robot's clock but stored late, retracts it
     send(floor, ev, 11, ack("r", at(9.5), "c1", "accepted"))
     assert not [i for i in floor.stored() if i.kind == "command_failed"]
+
+
+def test_a_disconnection_from_before_a_restart_turns_critical_after_it(ev) -> None:
+    """A vehicle's connection breaks, and the processors stop before it has lasted five
+    minutes; they start again (the views rebuilt from the store) after its stored end lags
+    by more than their memory: the disconnection is loaded all the same, and turns
+    critical with the clock, as the rules over the stored history say."""
+    floor = Floor()
+    for s in range(15):
+        send(floor, ev, s, *([connection("v", at(10), "CONNECTIONBROKEN")] if s == 10 else []))
+        floor.tick(0)
+    [broken] = [i for i in floor.stored() if i.start_ms == at(10)]
+    assert broken.ongoing and broken.severity == "warning"
+    floor.now = at(10 + 400)  # the processors were down
+    floor.start()
+    floor.tick(0)
+    [broken] = [i for i in floor.stored() if i.start_ms == at(10)]
+    assert broken.ongoing and broken.severity == "critical"
+    assert normal(floor.stored()) == normal(expected(floor))

@@ -107,6 +107,25 @@ def test_reads_meet_the_window_at_both_ends_and_an_ongoing_silence_throughout(st
     ]
 
 
+def test_an_ongoing_incident_meets_every_span_after_its_start(store, t0) -> None:
+    """The live detection's restart reads an ongoing incident whatever its stored end (it
+    lags: rewritten only now and then), as every read does; one that ended stays within its
+    bounds, and none meets a span before its start."""
+    going = incident(t0, "offline", ("r1",), 0, 10_000, ongoing=True)
+    ended = incident(t0, "offline", ("r2",), 0, 10_000)
+    later = incident(t0, "offline", ("r3",), 90_000, 95_000, ongoing=True)
+    store.append_incidents([going, ended, later], t0 + 96_000)
+
+    def robots(from_ms: int, to_ms: int, **kwargs) -> list[str]:
+        return sorted(i.robots[0] for i in store.incidents(t0 + from_ms, t0 + to_ms, **kwargs))
+
+    assert robots(50_000, 60_000) == ["r1"]
+    assert robots(10_000, 60_000) == ["r1", "r2"]
+    assert robots(10_001, 90_001) == ["r1", "r3"]
+    assert robots(-5_000, 0) == []
+    assert robots(50_000, 100_000, kinds=["stuck"]) == []
+
+
 @settings(
     max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )

@@ -1,9 +1,9 @@
 """Live detection equals recomputation: random floors' poses and the records beside them
 (zone violations, conflicts, VDA 5050 states and connection states, commands and acks)
 arrive in batches, out of order, some of them late (beyond what the trackers hold in
-memory) or twice, with restarts in between (new trackers loaded from the store); what the
-trackers found and stored, batch by batch, is what the rules find over the whole stored
-history."""
+memory) or twice, with restarts in between (new trackers loaded from the store), some
+after a downtime; what the trackers found and stored, batch by batch, is what the rules
+find over the whole stored history (named cases: test_incident_restarts.py)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from mapservice.core.event_incidents import (
     records_of,
 )
 from mapservice.core.events import Envelope, PoseReported, make_envelope
-from mapservice.core.incident_model import settled
+from mapservice.core.incident_model import incidents_to_load, settled
 from mapservice.core.incident_tracker import IncidentTracker
 from mapservice.core.incidents import Incident, IncidentThresholds, detect
 from mapservice.core.ports import PoseRow
@@ -110,10 +110,27 @@ def arrivals(seed: int) -> list[tuple[int, list, list[Record]]]:
     return [(at, events, records) for at, (events, records) in sorted(batches.items())]
 
 
+def with_downtimes(batches: list[tuple[int, list, list[Record]]], rng: random.Random):
+    """The batches, but now and then the processors are down for 30 s to 400 s: what
+    arrives meanwhile comes as one batch when they start again (restarted: True)."""
+    k = 0
+    while k < len(batches):
+        now, events, records = batches[k]
+        k += 1
+        down = rng.random() < 0.02
+        if down:
+            now += rng.randint(30_000, 400_000)
+            events, records = list(events), list(records)
+            while k < len(batches) and batches[k][0] <= now:
+                events, records = events + batches[k][1], records + batches[k][2]
+                k += 1
+        yield now, events, records, down
+
+
 @settings(max_examples=10, deadline=None)
-@given(st.integers(0, 10_000), st.integers(0, 10_000))
-def test_what_is_found_live_is_what_the_history_holds(seed, restarts):
-    check_live_equals_recomputed(seed, restarts)
+@given(st.integers(0, 10_000), st.integers(0, 10_000), st.booleans())
+def test_what_is_found_live_is_what_the_history_holds(seed, restarts, downtimes):
+    check_live_equals_recomputed(seed, restarts, downtimes)
 
 
 class Trackers:
@@ -136,7 +153,7 @@ class Trackers:
 
     def load(self, now: int) -> None:
         since, th = now - KEEP_MS, self.poses.th
-        stored = self.store.incidents(since - th.lookback_ms, now + 1)
+        stored = incidents_to_load(self.store.incidents, since, now + 1, now, th)
         own = [i for i in stored if not is_event_incident(i)]
         self.poses.load(reader(self.store)(since, now + 1, None), since, own, now)
         records = stored_records(self.store, since, now + 1, None)
@@ -165,14 +182,17 @@ class Trackers:
             self.store.append_incidents(found, now, retracted)
 
 
-def check_live_equals_recomputed(seed: int, restarts: int) -> None:
+def check_live_equals_recomputed(seed: int, restarts: int, downtimes: bool = False) -> None:
     rng = random.Random(restarts)
     th = IncidentThresholds()
     store = MemoryStore()
     trackers = Trackers(store, th)
     now = 0
-    for now, batch, records in arrivals(seed):
-        if rng.random() < 0.03:  # a restart: new trackers, from the store
+    batches = arrivals(seed)
+    # the downtimes drawn first, then the restarts
+    timeline = list(with_downtimes(batches, rng)) if downtimes else [(*b, False) for b in batches]
+    for now, batch, records, down in timeline:
+        if down or rng.random() < 0.03:  # a restart: new trackers, from the store
             trackers = Trackers(store, th)
             trackers.load(now)
         trackers.add(batch, records, now)
