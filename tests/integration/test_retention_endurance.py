@@ -44,23 +44,7 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.adapters.ros_map import load_ros_map, meta_for, slice_chunks
-from mapservice.core.annotations import ZoneViolation
-from mapservice.core.event_incidents import (
-    EventRecords,
-    detect_all,
-    grows_with_the_clock,
-    meets,
-)
-from mapservice.core.heatmaps import (
-    BUCKET_MS,
-    FINEST_CELL_M,
-    SAMPLE_MS,
-    Heatmap,
-    HeatmapRule,
-    fold_heatmap,
-    incident_cells,
-)
-from mapservice.core.ports import ConflictRow
+from mapservice.core.heatmaps import BUCKET_MS, SAMPLE_MS
 from mapservice.core.timetravel import fold_map
 from mapservice.core.wire2019 import format_timestamp
 from mapservice.local.stack import Stack
@@ -69,12 +53,12 @@ from mapservice.settings import Settings
 from tests.fixtures.paths import MAPS
 
 from .conftest import wait_for_meta
+from .endurance_findings import check_findings
 from .endurance_kit import (
     Drive,
     Operator,
     SimClock,
     bytes_by_table,
-    incident_fields,
     kafka_keeps_records,
     oldest_history_ms,
 )
@@ -92,8 +76,6 @@ POSES_PER_TURN = 6  # per robot and turn of the drive loop (~0.2 real s, ~30 sim
 CONFLICT_GAP_MS = 20_000  # within the 60 s conflict window
 SCENE_EVERY_MS = 8 * HOUR  # the incident scenes (Drive.scene), away from the chunk changes
 SCENE_AFTER_MS = 60_000  # a scene begins this long after the turn's previous poses
-# An ongoing silence's end is the API's clock when it answers, the rules' the checks' clock.
-ONGOING_END_TOLERANCE_MS = 120_000
 # Restarts along the way (simulated day: component). "kafka" only where its broker keeps
 # its records across a restart (kafka_keeps_records).
 RESTARTS = {
@@ -389,57 +371,8 @@ def test_25_days_with_every_restart_through_the_pipeline(sim_stack) -> None:
     assert {(v["robotId"], v["ts_ms"]) for v in violations["violations"]} == want_violations
     assert {v["zoneId"] for v in violations["violations"]} == {"zone-wash"}
 
-    # The incidents of the retention: what the rules find in everything acknowledged (read
-    # from a day before it, longer than any incident here but the last silences), as found
-    # live through every restart. Every field is compared exactly but an ongoing silence's
-    # end and length, which are the clock's of whoever answers (within a tolerance).
-    since = lo - DAY
-    poses = [p for p in drive.pose_rows if p.ts_ms >= since]
-    records = EventRecords(
-        violations=[
-            ZoneViolation(p.ts_ms, p.robot_id, "zone-wash", p.x, p.y)
-            for p in poses
-            if p.robot_id == ROBOTS[0]
-        ],
-        conflicts=[ConflictRow(*c) for c in drive.conflicts if c[2] >= since],
-    )
-    listed = get("/api/v1/incidents", **{"from": str(lo), "to": str(now), "limit": "100000"})
-    assert not listed["truncated"]
-    recomputed = detect_all(poses, records, clock.now_ms(), th)
-    want_incidents = [i for i in recomputed if meets(i, lo, now)]
-    got_incidents = {i["id"]: i for i in listed["incidents"]}
-    assert {k: incident_fields(i) for k, i in got_incidents.items()} == {
-        i.incident_id: incident_fields(i) for i in want_incidents
-    }
-    answered = clock.now_ms()
-    for i in want_incidents:
-        if grows_with_the_clock(i):
-            assert i.end_ms - ONGOING_END_TOLERANCE_MS <= got_incidents[i.incident_id]["end_ms"]
-            assert got_incidents[i.incident_id]["end_ms"] <= answered
-    kinds = {i.kind for i in want_incidents}
-    assert {"stuck", "near_miss", "battery_low", "offline", "zone_violation", "conflict"} <= kinds
-    for kind in ("stuck", "near_miss", "battery_low"):  # the scenes': ~3 a day
-        assert sum(i.kind == kind for i in want_incidents) >= RETENTION_DAYS * 2, kind
-
-    # The heatmaps of the retention's whole buckets: the rule's fold of the acknowledged
-    # poses (occupancy and dwell in samples, exactly; incidents where they were).
-    h_from, h_to = -(-lo // BUCKET_MS) * BUCKET_MS, now // BUCKET_MS * BUCKET_MS
-    want_map = Heatmap(
-        h_from,
-        h_to,
-        FINEST_CELL_M,
-        fold_heatmap(poses, h_from, h_to, 1, HeatmapRule.of(th)),
-        incident_cells((i for i in recomputed if meets(i, h_from, h_to)), 1),
-    )
-    for kind in ("occupancy", "dwell", "incidents"):
-        grid = get(
-            "/api/v1/heatmap", **{"from": str(h_from), "to": str(h_to), "kind": kind, "cell": "0.5"}
-        )
-        assert {(i, j): v for i, j, v in grid["cells"]} == want_map.values(kind), kind
-    occupancy = sum(want_map.values("occupancy").values())
-    # a robot-second per pose: no robot reports twice in a second here
-    assert occupancy == sum(h_from <= ts < h_to for _, ts in drive.poses)
-    assert sum(want_map.values("dwell").values()) >= RETENTION_DAYS * 2  # the scenes stand
+    # The incidents and heatmaps of the retention against the rules over what was acknowledged.
+    check_findings(get, drive, clock.now_ms, th, lo, now, ROBOTS[0], RETENTION_DAYS)
     # The retention's step at this clock (its timer may have been days behind): checked
     # below, with the stack stopped.
     kept_from = end - (RETENTION_DAYS + 1) * DAY
