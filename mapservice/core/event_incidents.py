@@ -320,13 +320,6 @@ def grows_with_the_clock(incident: Incident) -> bool:
     return incident.ongoing and incident.kind in CLOCK_GROWN_KINDS
 
 
-def meets(incident: Incident, from_ms: int, to_ms: int) -> bool:
-    """Whether `incident` meets [from_ms, to_ms): begun before its end and not ended before
-    its start; an ongoing one has not ended (its end is only where it was last found: a
-    silence's grows with the clock, a run's waits for the robot's next pose)."""
-    return incident.start_ms < to_ms and (incident.end_ms >= from_ms or incident.ongoing)
-
-
 def is_connection_offline(incident: Incident) -> bool:
     """Whether an `offline` incident was found from a connection state (not a silence)."""
     return incident.kind == "offline" and incident.incident_id == incident_id(

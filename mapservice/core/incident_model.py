@@ -129,6 +129,13 @@ def settled(incident: Incident) -> Incident:
     return msgspec.structs.replace(incident, end_ms=0)
 
 
+def meets(incident: Incident, from_ms: int, to_ms: int) -> bool:
+    """Whether `incident` meets [from_ms, to_ms): begun before its end and not ended before
+    its start; an ongoing one has not ended (its end is only where it was last found: a
+    silence's grows with the clock, a run's waits for the robot's next pose)."""
+    return incident.start_ms < to_ms and (incident.end_ms >= from_ms or incident.ongoing)
+
+
 def can_still_grow(incident: Incident, now_ms: int, th: IncidentThresholds) -> bool:
     """Whether what comes after `now_ms` may still extend the incident, so that the live
     detection holds it, and what it is judged from, whatever its end: an ongoing one (its

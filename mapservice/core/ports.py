@@ -357,7 +357,7 @@ class IncidentReader(Protocol):
         robot_id: str | None = None,
         limit: int = 10_000,
     ) -> list[Incident]:
-        """The incidents meeting [from_ms, to_ms) (event_incidents.meets: start < to_ms,
+        """The incidents meeting [from_ms, to_ms) (incident_model.meets: start < to_ms,
         end >= from_ms or ongoing), of
         `kinds` (all if empty) and involving `robot_id` (any if None), by start, kind and
         id; as last found, retracted ones left out. An ongoing one meets every window after

@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Sequence
 
-from mapservice.core.event_incidents import meets
+from mapservice.core.incident_model import meets
 from mapservice.core.incidents import Incident
 
 

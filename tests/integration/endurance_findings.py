@@ -8,7 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 from mapservice.core.annotations import ZoneViolation
-from mapservice.core.event_incidents import EventRecords, detect_all, grows_with_the_clock, meets
+from mapservice.core.event_incidents import EventRecords, detect_all, grows_with_the_clock
 from mapservice.core.heatmaps import (
     BUCKET_MS,
     FINEST_CELL_M,
@@ -17,6 +17,7 @@ from mapservice.core.heatmaps import (
     fold_heatmap,
     incident_cells,
 )
+from mapservice.core.incident_model import meets
 from mapservice.core.incidents import IncidentThresholds
 from mapservice.core.ports import ConflictRow
 

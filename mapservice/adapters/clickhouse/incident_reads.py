@@ -70,7 +70,7 @@ class ClickHouseIncidentReads:
     ) -> list[Incident]:
         where = [
             "start < fromUnixTimestamp64Milli({to:Int64})",
-            # event_incidents.meets: an ongoing one's stored end is where it was last found
+            # incident_model.meets: an ongoing one's stored end is where it was last found
             "(end >= fromUnixTimestamp64Milli({f:Int64}) OR ongoing)",
             "NOT retracted",
         ]
