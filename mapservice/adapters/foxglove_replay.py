@@ -72,6 +72,9 @@ class ReplaySession(ServerListener):
 
         context = foxglove.Context()
         self.scene = FoxgloveScene(FoxgloveChannels(context), self.sources)
+        # Every robot's channels before the client connects (declare_robots_at says why).
+        robots = self.scene.declare_robots_at(self.end_ms)
+        log.debug("foxglove replay session channels declared", robots=robots)
         self.server = foxglove.start_server(
             name="mapservice replay",
             host="127.0.0.1",

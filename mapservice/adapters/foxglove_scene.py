@@ -91,6 +91,28 @@ class FoxgloveScene:
 
     # --- the picture at an instant ------------------------------------------------------
 
+    def declare_robots_at(self, at_ms: int) -> int:
+        """Declares the channels of every robot standing at `at_ms` (each robot of the
+        history up to then), sending nothing; how many robots. A server does this before its
+        client connects: the SDK advertises a channel made later to a connected client before
+        it records the advertisement, so a client quick to subscribe is told "unknown channel"
+        and never gets that robot (seen on a loaded machine); channels made before the client
+        connects come in its first advertisement, which its subscriptions cannot overtake."""
+        count, after = 0, None
+        while True:
+            page = self.history.robots_at(at_ms, after=after, limit=_ROBOTS_PAGE)
+            for row in page:
+                self._declare_robot(row.robot_id)
+            count += len(page)
+            if len(page) < _ROBOTS_PAGE:
+                return count
+            after = page[-1].robot_id
+
+    def _declare_robot(self, robot_id: str) -> None:
+        self.channels.declare_protobuf(pose_topic(robot_id), self._classes["pose"])
+        self.channels.declare_protobuf(path_topic(robot_id), self._classes["path"])
+        self.channels.declare_json(state_topic(robot_id), STATE_SCHEMA_NAME)
+
     def draw_at(self, at_ms: int) -> None:
         """The floor, every robot, the annotations, the incidents going on and each VDA 5050
         vehicle's errors as they stood at `at_ms`."""

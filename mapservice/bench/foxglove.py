@@ -361,6 +361,7 @@ def seek_phase(args: argparse.Namespace, base: Path, say: Progress) -> dict[str,
                 f"frame {seek['frame_ms']:.0f} ms ({seek['robots']} robots"
                 + (f", {seek['missing']} missing)" if seek["missing"] else ")")
             )
+        doc["server_errors"] = client.server_errors()[:10]
     frames = [s["frame_ms"] for s in timed if not s["missing"]]
     doc.update(
         {

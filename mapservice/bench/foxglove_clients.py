@@ -30,3 +30,8 @@ class NodeClients(NodeScript):
         """The clients' connections that closed (refused or dropped by the server)."""
         with self._changed:
             return [e for e in self.events if e["event"] == "closed"]
+
+    def server_errors(self) -> list[str]:
+        """The error statuses the server sent the clients (a refused subscription...)."""
+        with self._changed:
+            return [str(e["message"]) for e in self.events if e["event"] == "status"]

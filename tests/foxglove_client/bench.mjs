@@ -53,6 +53,10 @@ function connect(index, onMessage, onInfo) {
     state.closed = `${ev?.code ?? ""} ${ev?.reason ?? ""}`;
     out({ event: "closed", client: index, reason: state.closed });
   });
+  // The server's errors (an "Unknown channel ID" answer to a subscription among them).
+  client.on("status", (s) => {
+    if (s.level >= 2) out({ event: "status", client: index, level: s.level, message: s.message });
+  });
   client.on("advertise", (channels) => {
     for (const channel of channels) topics.set(client.subscribe(channel.id), channel.topic);
   });

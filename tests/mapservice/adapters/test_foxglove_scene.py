@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from api.foxglove_gate import SDK_SUBPROTOCOL
 from mapservice.adapters.foxglove_messages import (
     pose_row_of_live,
     window_changes,
@@ -382,5 +383,39 @@ def test_a_replay_session_draws_its_first_picture_once_its_client_subscribed():
         session.on_subscribe(None, _Channel(MAP_TOPIC))
         assert _wait_until(lambda: session.scene is not None and session.scene.robots != {})
         assert session.scene.floor_ms == T0 + 600_000
+    finally:
+        session.stop()
+
+
+def test_a_replay_session_advertises_every_robot_of_its_window_when_its_client_connects():
+    """Before the client subscribes to anything: the SDK advertises a channel made while a
+    client is connected before it records that advertisement, so a client quick to
+    subscribe was told "unknown channel" and never got that robot (on a loaded machine,
+    `mapservice bench foxglove` missed one robot in every seek). The first advertisement,
+    made as the client connects, is one its subscriptions cannot overtake."""
+    import json
+
+    from websockets.sync.client import connect
+
+    store, _ = history(2)
+    session = ReplaySession(sources(store), T0, T0 + 600_000)
+    port = session.start()
+    try:
+        # The SDK's own subprotocol (the API's gate offers clients the older name too).
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=[SDK_SUBPROTOCOL]) as ws:
+            advertised: set[str] = set()
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                try:
+                    message = ws.recv(timeout=0.2)
+                except TimeoutError:
+                    continue
+                if isinstance(message, str) and (doc := json.loads(message))["op"] == "advertise":
+                    advertised |= {c["topic"] for c in doc["channels"]}
+            robots = {r.robot_id for r in store.robots_at(T0 + 600_000)}
+            assert robots == {"r0", "r1", "r2"}
+            for robot in robots:
+                assert {pose_topic(robot), path_topic(robot), state_topic(robot)} <= advertised
+            assert session.scene is not None and session.scene.robots == {}  # nothing drawn yet
     finally:
         session.stop()
