@@ -184,24 +184,45 @@ def gauge(stack: Stack, name: str) -> float:
     return float(line.split()[1])
 
 
-def fill(directory: Path) -> Path:
-    """Writes a file until the disk under `directory` has no byte left."""
-    filler = directory / "filler"
-    block = b"\0" * (1 << 20)
-    with open(filler, "wb", buffering=0) as f:
-        try:
-            while True:
-                f.write(block)
-        except OSError as exc:
-            assert exc.errno == errno.ENOSPC, exc
-    with open(filler, "ab", buffering=0) as f:  # what is left, byte by byte in small steps
-        for size in (4096, 1):
+class Filler:
+    """A file that takes every byte left on the disk under `directory`, and keeps taking
+    what ClickHouse frees meanwhile (a failed insert's temporary part removed, merged
+    parts cleaned up) until `free()`: a full disk stays full, as a real one does. Filled
+    once only, the bytes freed let small inserts succeed now and then, each success said
+    "storing again", and readiness could stay true for the whole wait."""
+
+    def __init__(self, directory: Path) -> None:
+        self.path = directory / "filler"
+        self._file = open(self.path, "ab", buffering=0)
+        self._stop = threading.Event()
+        self.top_ups = 0  # times freed space was taken again
+        self._take()
+        self._thread = threading.Thread(target=self._keep_full, name="disk-filler", daemon=True)
+        self._thread.start()
+
+    def _take(self) -> bool:
+        """Writes until ENOSPC, in ever smaller steps down to a byte; whether it wrote."""
+        wrote = False
+        for size in (1 << 20, 4096, 1):
+            block = b"\0" * size
             try:
                 while True:
-                    f.write(b"\0" * size)
+                    self._file.write(block)
+                    wrote = True
             except OSError as exc:
                 assert exc.errno == errno.ENOSPC, exc
-    return filler
+        return wrote
+
+    def _keep_full(self) -> None:
+        while not self._stop.wait(0.05):
+            if self._take():
+                self.top_ups += 1
+
+    def free(self) -> None:
+        self._stop.set()
+        self._thread.join(10)
+        self._file.close()
+        self.path.unlink()
 
 
 def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_nothing(
@@ -223,7 +244,7 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
             ),
         )
         assert get(f"{api}/readyz")[0] == 200
-        filler = fill(stack.data_dir / "clickhouse")
+        filler = Filler(stack.data_dir / "clickhouse")
         full_at = time.monotonic()
 
         _code, body = until(
@@ -257,7 +278,7 @@ def test_a_full_disk_makes_it_unready_with_the_reason_and_it_recovers_losing_not
         # Still refused after a while, not a single failure's blip.
         assert get(f"{api}/readyz")[0] == 503
 
-        filler.unlink()
+        filler.free()
         freed_at = time.monotonic()
         until(
             "ready again after the space was freed",
