@@ -60,6 +60,8 @@ log = structlog.get_logger(__name__)
 
 # A late pose's read of the history beyond memory: one window of every robot's poses.
 READ_LIMIT = 5_000_000
+# The stored incidents' first read asks for this many; more are read in larger reads.
+_FIRST_READ_LIMIT = 10_000
 
 
 def thresholds_of(settings: Settings) -> IncidentThresholds:
@@ -141,11 +143,23 @@ class IncidentWatch:
         self.sources = sources
         self.unplaced = EventRecords()  # findings of the views for the next batch
 
+    def stored_incidents(self, from_ms: int, to_ms: int) -> list[Incident]:
+        """Every stored incident meeting [from_ms, to_ms), however many: the reader's
+        limit is raised until the answer is shorter than it. The rules judge against what
+        they load; a read cut at a limit (by start) dropped the newest incidents, those a
+        restart most needs, from a busy plant's memory span."""
+        limit = _FIRST_READ_LIMIT
+        while True:
+            found = self.incidents.incidents(from_ms, to_ms, limit=limit)
+            if len(found) < limit:
+                return found
+            limit *= 4
+
     def _pose_incidents(self, from_ms: int, to_ms: int) -> list[Incident]:
-        return [i for i in self.incidents.incidents(from_ms, to_ms) if not is_event_incident(i)]
+        return [i for i in self.stored_incidents(from_ms, to_ms) if not is_event_incident(i)]
 
     def _event_incidents(self, from_ms: int, to_ms: int) -> list[Incident]:
-        return [i for i in self.incidents.incidents(from_ms, to_ms) if is_event_incident(i)]
+        return [i for i in self.stored_incidents(from_ms, to_ms) if is_event_incident(i)]
 
     def _read(self, from_ms: int, to_ms: int, robot: str | None) -> list[PoseRow]:
         """The stored poses in [from_ms, to_ms) (of `robot`, or all), and each robot's
@@ -158,7 +172,7 @@ class IncidentWatch:
         now = self.now_ms()
         since = now - self.keep_ms
         stored = incidents_to_load(
-            self.incidents.incidents,
+            self.stored_incidents,
             since,
             horizon_ms,
             now,

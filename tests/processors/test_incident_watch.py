@@ -243,3 +243,38 @@ def test_a_store_failing_in_a_tick_fails_that_tick_only_and_keeps_what_it_was_to
     floor.tick(1)
     assert [i.kind for i in floor.stored() if i.kind == "conflict"] == ["conflict"]
     assert watch.unplaced.conflicts == []
+
+
+def test_a_restart_loads_every_stored_incident_of_its_span_however_many() -> None:
+    """More incidents in the memory span than one read's limit (a busy plant's near
+    misses): the reads ordered by start were cut at 10,000, dropping the newest, those a
+    restart most needs (the one still going on, here)."""
+    from mapservice.core.incident_model import SEVERITIES, PoseRef, incident_id
+    from mapservice.core.incidents import Incident
+
+    def near_miss(start_ms: int, ongoing: bool) -> Incident:
+        robots = ("a", "b")
+        return Incident(
+            incident_id=incident_id("near_miss", robots, start_ms),
+            kind="near_miss",
+            robots=robots,
+            start_ms=start_ms,
+            end_ms=start_ms + 1,
+            ongoing=ongoing,
+            x=1.0,
+            y=1.0,
+            severity=SEVERITIES[0],
+            measure=0.4,
+            evidence=(PoseRef("a", start_ms, 1.0, 1.0), PoseRef("b", start_ms + 1, 1.4, 1.0)),
+        )
+
+    floor = Floor()
+    first = NOW - 60_000
+    many = [near_miss(first + k, ongoing=False) for k in range(12_000)]
+    last = near_miss(first + 40_000, ongoing=True)
+    floor.store.append_incidents([*many, last], NOW - 1_000)
+    watch = floor.views.incidents
+    stored = watch.stored_incidents(first, NOW)
+    assert len(stored) == 12_001 and stored[-1] == last
+    floor.start()  # the restart's load keeps the ongoing one
+    assert last.incident_id in floor.views.incidents.tracker.current
