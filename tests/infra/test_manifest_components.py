@@ -23,6 +23,7 @@ from tests.infra.manifests import (
     container_argv,
     health_port,
     jobs,
+    k8s_docs,
     k8s_env,
     load_all,
     secret_keys_from_readme,
@@ -159,7 +160,11 @@ def test_the_api_as_deployed_guards_metrics_and_docs_but_not_probes():
         "token",
         "open",
     )
-    api = TestClient(create_app(settings, MemoryStore(), {"clickhouse": lambda: True}))
+    # By the pod's address, as the kubelet and Prometheus ask.
+    api = TestClient(
+        create_app(settings, MemoryStore(), {"clickhouse": lambda: True}),
+        base_url="http://10.0.0.7",
+    )
     for kind, get in probes(container).items():
         assert api.get(get["path"]).status_code == 200, kind
     token = {"Authorization": f"Bearer {DUMMY_SECRET}"}  # every Secret key holds it here
@@ -281,3 +286,31 @@ def test_the_schema_cluster_is_the_installations_replicated_cluster():
         }
     ).resolved_clickhouse_dsn
     assert f"clickhouse-{chi['metadata']['name']}." in host  # the operator's Service for the CHI
+
+
+def test_every_ingress_host_is_a_name_the_api_pods_answer_and_reaches_a_port_they_serve():
+    """The API's HTTP and its Foxglove port each have an ingress; every routed host is one
+    the pods answer (a host they do not know gets a 421 from the API and the Foxglove gate
+    alike), with TLS for it; every backend is a port of the Service."""
+    from mapservice.api.limits import allowed_hosts, host_allowed
+
+    [(api, container)] = [
+        (w, c) for w, c in workloads() if w["metadata"]["name"] == "mapservice-api"
+    ]
+    allowed = allowed_hosts(settings_from(k8s_env(api, container)))
+    ports = {
+        doc["metadata"]["name"]: {p["name"] for p in doc["spec"]["ports"]}
+        for doc in k8s_docs()
+        if doc["kind"] == "Service"
+    }
+    routed = set()
+    for ingress in (doc for doc in k8s_docs() if doc["kind"] == "Ingress"):
+        tls_hosts = {h for t in ingress["spec"].get("tls", []) for h in t["hosts"]}
+        for rule in ingress["spec"]["rules"]:
+            assert host_allowed(rule["host"], allowed), (ingress["metadata"]["name"], allowed)
+            assert rule["host"] in tls_hosts, ingress["metadata"]["name"]
+            for path in rule["http"]["paths"]:
+                service = path["backend"]["service"]
+                assert service["port"]["name"] in ports[service["name"]]
+                routed.add((service["name"], service["port"]["name"]))
+    assert {("mapservice-api", "http"), ("mapservice-api", "foxglove")} <= routed
