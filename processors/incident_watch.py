@@ -217,10 +217,17 @@ class IncidentWatch:
         the conflicts stored since the last batch."""
         now = self.now_ms()
         self.tracker.tick(now)
-        if self.unplaced.conflicts:
-            self.events.add([], self.unplaced, now)
-            self.unplaced = EventRecords()  # once found: a failed read keeps them for the next
+        self.judge_stored_conflicts(now)
         self.events.tick(now)
+
+    def judge_stored_conflicts(self, now_ms: int | None = None) -> None:
+        """The conflicts stored since the last batch, judged now: called as they are stored,
+        before their batches' offsets are committed. Left to the next batch or tick, a stop
+        in between committed conflicts never judged, and a restart after more than
+        `incident_memory_s` (which reads back only that span) never judged them."""
+        if self.unplaced.conflicts:
+            self.events.add([], self.unplaced, self.now_ms() if now_ms is None else now_ms)
+            self.unplaced = EventRecords()  # once found: a failed read keeps them for the next
 
     def write(self) -> int:
         """Stores the findings since the last call; returns how many rows."""

@@ -185,6 +185,7 @@ class LiveViews:
         rows = self.conflicts.unwritten.rows()
         written = self.write_conflicts()
         self.incidents.stored_conflicts(rows)
+        self.incidents.judge_stored_conflicts()  # their incidents written with them
         return written + self.incidents.write()
 
     # --- in the event loop ----------------------------------------------------------------

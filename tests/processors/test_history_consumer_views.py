@@ -274,3 +274,15 @@ def test_a_stop_with_the_conflicts_insert_failing_leaves_the_batches_uncommitted
     stopping.set()
     asyncio.run(asyncio.wait_for(consumer.run(stopping), 5))
     assert store.conflict_writes == [] and source.committed == {} and source.started is False
+
+
+def test_a_conflicts_incident_is_stored_before_its_batch_is_committed(ev) -> None:
+    """Judged as the conflict is stored, not at the next batch or tick: a stop in between
+    left a committed conflict unjudged, for good if the restart came more than the
+    incidents' memory later."""
+    _consumer, source, store, batch = conflicting_consumer(ev, views_seconds=0.0)
+    batch(0, "a")
+    batch(1, "b")
+    assert store.conflict_writes and source.committed == {(CHUNKS, 0): 2}
+    [incident] = [i for i in store.incidents(NOW - 60_000, NOW + 60_000) if i.kind == "conflict"]
+    assert set(incident.robots) == {"a", "b"}
