@@ -17,7 +17,7 @@ from pydantic import BaseModel
 
 class JsonRows:
     """`struct(*values)` builds one row (the model's fields, in order); `response(rows)`
-    is the JSON list of them."""
+    is the JSON of them (a list of rows, or one: a row may hold another model's rows)."""
 
     def __init__(self, model: type[BaseModel]) -> None:
         self.struct = msgspec.defstruct(
@@ -26,5 +26,5 @@ class JsonRows:
         )
         self._encode = msgspec.json.Encoder().encode
 
-    def response(self, rows: list[Any]) -> Response:
+    def response(self, rows: Any) -> Response:
         return Response(self._encode(rows), media_type="application/json")

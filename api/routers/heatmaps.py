@@ -18,10 +18,11 @@ from mapservice.core.heatmaps import (
     FINEST_CELL_M,
     MAX_CELL_FACTOR,
     UNITS,
+    CountedIncidents,
     Heatmap,
+    HeatmapCell,
     Kind,
     cell_factor,
-    incident_cells,
 )
 
 from ..access import READ
@@ -91,20 +92,21 @@ def get_heatmap(
     if not 1 <= scale <= MAX_SCALE:
         raise HTTPException(400, f"scale ({scale}) must be between 1 and {MAX_SCALE}")
     f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
-    cells = heatmaps.heatmap_cells(f, t, factor, limit=MAX_CELLS + 1)
+    # Each read only where it is shown: the incidents kind is counted from the incidents
+    # alone, the other kinds from the samples alone; the CSV has every measure.
+    cells: list[HeatmapCell] = []
+    if format == "csv" or kind != "incidents":
+        cells = heatmaps.heatmap_cells(f, t, factor, limit=MAX_CELLS + 1)
     if len(cells) > MAX_CELLS:
         raise HTTPException(
             422,
             f"more than {MAX_CELLS:,} cells of {cell:g} m hold a value; use a larger cell "
             f"(e.g. cell={min(MAX_CELL_FACTOR, factor * 2) * FINEST_CELL_M:g}) or a shorter span",
         )
-    # The incidents only where they are shown: a week's read of them (and their evidence)
-    # took seconds that an occupancy, dwell or speed picture does not need.
-    wanted = format == "csv" or kind == "incidents"
-    found = incidents.incidents(f, t, limit=MAX_INCIDENTS + 1) if wanted else []
-    heatmap = Heatmap(
-        f, t, factor * FINEST_CELL_M, cells, incident_cells(found[:MAX_INCIDENTS], factor)
-    )
+    counted = CountedIncidents({}, False)
+    if format == "csv" or kind == "incidents":
+        counted = incidents.incidents_per_cell(f, t, factor, limit=MAX_INCIDENTS)
+    heatmap = Heatmap(f, t, factor * FINEST_CELL_M, cells, counted.cells)
     if format == "csv":
         return Response(
             heatmap_csv(heatmap),
@@ -132,5 +134,5 @@ def get_heatmap(
         total=sum(values.values()),
         box=HeatmapBox(i0=box[0], j0=box[1], columns=box[2], rows=box[3]) if box else None,
         cells=[(i, j, v) for (i, j), v in sorted(values.items())],
-        incidents_truncated=len(found) > MAX_INCIDENTS,
+        incidents_truncated=counted.truncated,
     )

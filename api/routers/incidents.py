@@ -7,9 +7,9 @@ to now: its end and length are read as of now (the store keeps when it was last 
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel
 
 from mapservice.core.event_incidents import grows_with_the_clock
@@ -18,6 +18,7 @@ from mapservice.core.incidents import Incident as FoundIncident
 
 from ..access import READ
 from ..deps import ClockDep, IncidentsDep, SettingsDep, WindowQuery
+from ..json_rows import JsonRows
 
 router = APIRouter(prefix="/api/v1/incidents", tags=["incidents"], dependencies=[Depends(READ)])
 
@@ -56,22 +57,30 @@ class Incidents(BaseModel):
     truncated: bool
 
 
-def _as_of(i: FoundIncident, now_ms: int) -> Incident:
+# The page's JSON without a pydantic model per incident and per evidence (json_rows): a
+# week's first page of 5,000 took ~60 µs an incident to build as models.
+_EVIDENCE = JsonRows(Evidence)
+_INCIDENT = JsonRows(Incident)
+_PAGE = JsonRows(Incidents)
+
+
+def _as_of(i: FoundIncident, now_ms: int) -> Any:
+    """`Incident`'s row (json_rows) of a found incident, its end and length as of now."""
     end, measure = i.end_ms, i.measure
     if grows_with_the_clock(i) and now_ms > end:
         end, measure = now_ms, (now_ms - i.start_ms) / 1000
-    return Incident(
-        id=i.incident_id,
-        kind=i.kind,
-        robots=list(i.robots),
-        start_ms=i.start_ms,
-        end_ms=end,
-        ongoing=i.ongoing,
-        x=i.x,
-        y=i.y,
-        severity=i.severity,
-        measure=measure,
-        evidence=[Evidence(robotId=e.robot_id, ts_ms=e.ts_ms, x=e.x, y=e.y) for e in i.evidence],
+    return _INCIDENT.struct(
+        i.incident_id,
+        i.kind,
+        list(i.robots),
+        i.start_ms,
+        end,
+        i.ongoing,
+        i.x,
+        i.y,
+        i.severity,
+        measure,
+        [_EVIDENCE.struct(e.robot_id, e.ts_ms, e.x, e.y) for e in i.evidence],
     )
 
 
@@ -84,14 +93,11 @@ def list_incidents(
     kind: Annotated[list[Kind] | None, Query(description="Only these kinds (repeat it).")] = None,
     robot: Annotated[str | None, Query(max_length=256, description="Only those with it.")] = None,
     limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
-) -> Incidents:
+) -> Response:
     """The incidents meeting the window (begun before its end, not ended before its start)."""
     f, t = window.in_retention(settings.retention_ms, settings, clock.now_ms())
     rows = store.incidents(f, t, list(kind or ()), robot, limit + 1)
     now = clock.now_ms()
-    return Incidents(
-        from_ms=f,
-        to_ms=t,
-        truncated=len(rows) > limit,
-        incidents=[_as_of(i, now) for i in rows[:limit]],
+    return _PAGE.response(
+        _PAGE.struct(f, t, [_as_of(i, now) for i in rows[:limit]], len(rows) > limit)
     )

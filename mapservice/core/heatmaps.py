@@ -31,7 +31,7 @@ import math
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Literal, TypeVar
+from typing import Literal, NamedTuple, TypeVar
 
 import msgspec
 
@@ -158,6 +158,19 @@ def incident_cells(incidents: Iterable[Incident], factor: int) -> dict[tuple[int
     for incident in incidents:
         counts[(_mm(incident.x) // side, _mm(incident.y) // side)] += 1
     return dict(counts)
+
+
+class CountedIncidents(NamedTuple):
+    """The incidents per cell of a span (`incident_cells` of the first `limit` of them as
+    the incidents list orders them) and whether more than `limit` met the span."""
+
+    cells: dict[tuple[int, int], int]
+    truncated: bool
+
+
+def count_incidents(listed: Sequence[Incident], factor: int, limit: int) -> CountedIncidents:
+    """`listed`: a span's incidents in the list's order, `limit` + 1 of them when more meet it."""
+    return CountedIncidents(incident_cells(listed[:limit], factor), len(listed) > limit)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ from mapservice.core.vda_facts import VdaFactsheetRow as VdaFactsheetRow
 
 if TYPE_CHECKING:
     from mapservice.core.change_feed import ChangeEntry, ChangeQuery
-    from mapservice.core.heatmaps import HeatmapCell
+    from mapservice.core.heatmaps import CountedIncidents, HeatmapCell
     from mapservice.core.incident_model import Incident
     from mapservice.core.legacy_query import ChunkQuery, PoseQuery
     from mapservice.core.webhook_registry import RegisteredWebhook, WebhookReport
@@ -363,6 +363,13 @@ class IncidentReader(Protocol):
         id; as last found, retracted ones left out. An ongoing one meets every window after
         its start, whatever its stored end, which lags (it is written again only now and
         then)."""
+
+    def incidents_per_cell(
+        self, from_ms: int, to_ms: int, factor: int, limit: int = 100_000
+    ) -> CountedIncidents:
+        """How many of the first `limit` incidents meeting [from_ms, to_ms) (as `incidents`
+        lists them, every kind and robot) lie in each cell of `factor` finest cells a side
+        (heatmaps.incident_cells), and whether more met it; without reading their evidence."""
 
 
 class HeatmapReader(Protocol):

@@ -30,7 +30,13 @@ from mapservice.core.events import (
     Envelope,
     MapMetaSet,
 )
-from mapservice.core.heatmaps import HeatmapCell, HeatmapRule, fold_heatmap
+from mapservice.core.heatmaps import (
+    CountedIncidents,
+    HeatmapCell,
+    HeatmapRule,
+    count_incidents,
+    fold_heatmap,
+)
 from mapservice.core.incidents import Incident
 from mapservice.core.legacy_query import ChunkQuery, PoseQuery, select
 from mapservice.core.ports import (
@@ -152,6 +158,14 @@ class MemoryStore:
         limit: int = 10_000,
     ) -> list[Incident]:
         return self._incidents.incidents(from_ms, to_ms, kinds, robot_id, limit)
+
+    def incidents_per_cell(
+        self, from_ms: int, to_ms: int, factor: int, limit: int = 100_000
+    ) -> CountedIncidents:
+        if factor < 1:
+            raise ValueError("factor must be positive")
+        listed = self._incidents.incidents(from_ms, to_ms, limit=limit + 1)
+        return count_incidents(listed, factor, limit)
 
     def save_webhook(self, webhook: RegisteredWebhook, changed_ms: int) -> None:
         self._webhooks.save_webhook(webhook, changed_ms)

@@ -171,24 +171,31 @@ def test_an_empty_span_is_an_empty_grid_and_a_transparent_pixel(client) -> None:
 
 
 @pytest.mark.parametrize(
-    ("kind", "format", "reads"),
+    ("kind", "format", "cells", "counts"),
     [
-        ("occupancy", "json", 0),
-        ("dwell", "png", 0),
-        ("speed", "json", 0),
-        ("incidents", "json", 1),
-        ("incidents", "png", 1),
-        ("occupancy", "csv", 1),
+        ("occupancy", "json", 1, 0),
+        ("dwell", "png", 1, 0),
+        ("speed", "json", 1, 0),
+        ("incidents", "json", 0, 1),
+        ("incidents", "png", 0, 1),
+        ("occupancy", "csv", 1, 1),
     ],
 )
-def test_incidents_are_read_only_where_they_are_shown(
-    client, store, monkeypatch, kind, format, reads
+def test_each_read_only_where_it_is_shown(
+    client, store, monkeypatch, kind, format, cells, counts
 ) -> None:
-    """A week's incidents (with their evidence) take seconds to read: a picture of
-    occupancy, dwell or speed does not read them; the incidents kind and the CSV (which
-    has every measure) do."""
-    calls = []
-    read = store.incidents
-    monkeypatch.setattr(store, "incidents", lambda *a, **k: calls.append(a) or read(*a, **k))
+    """A week's incidents with their evidence took seconds to read, and the samples' cells
+    are not what an incidents picture shows: occupancy, dwell and speed read the cells
+    only, the incidents kind only the incidents' counts per cell (never the incidents
+    themselves), the CSV (every measure) both."""
+    calls: dict[str, int] = {"heatmap_cells": 0, "incidents_per_cell": 0, "incidents": 0}
+    for name in calls:
+        read = getattr(store, name)
+
+        def counted(*a, _name=name, _read=read, **k):
+            calls[_name] += 1
+            return _read(*a, **k)
+
+        monkeypatch.setattr(store, name, counted)
     assert get(client, kind=kind, format=format).status_code == 200
-    assert len(calls) == reads
+    assert calls == {"heatmap_cells": cells, "incidents_per_cell": counts, "incidents": 0}

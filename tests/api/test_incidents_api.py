@@ -103,3 +103,17 @@ def test_the_limit_truncates(client) -> None:
         "/api/v1/incidents", params={"from": NOW - 120_000, "to": NOW, "limit": 1}
     ).json()
     assert len(body["incidents"]) == 1 and body["truncated"]
+
+
+def test_the_page_is_the_documented_model_field_for_field(client) -> None:
+    """The page is encoded without pydantic models: it must still be exactly what the
+    OpenAPI model (`Incidents`) documents, every field in its order, none more."""
+    from mapservice.api.routers.incidents import Incident, Incidents
+
+    reply = client.get("/api/v1/incidents", params={"from": NOW - 120_000, "to": NOW})
+    assert reply.status_code == 200 and reply.headers["content-type"] == "application/json"
+    body = reply.json()
+    model = Incidents.model_validate(body, strict=True)
+    assert body == model.model_dump(mode="json") and len(body["incidents"]) >= 4
+    assert list(body) == list(Incidents.model_fields)
+    assert all(list(i) == list(Incident.model_fields) for i in body["incidents"])
