@@ -367,9 +367,8 @@ class IncidentReader(Protocol):
     def incidents_per_cell(
         self, from_ms: int, to_ms: int, factor: int, limit: int = 100_000
     ) -> CountedIncidents:
-        """How many of the first `limit` incidents meeting [from_ms, to_ms) (as `incidents`
-        lists them, every kind and robot) lie in each cell of `factor` finest cells a side
-        (heatmaps.incident_cells), and whether more met it; without reading their evidence."""
+        """Of the first `limit` incidents `incidents` lists for [from_ms, to_ms), how many lie
+        in each cell of `factor` finest cells a side (heatmaps.incident_cells); more met?"""
 
 
 class HeatmapReader(Protocol):
