@@ -9,19 +9,21 @@ allows a merge once that weight reaches `merge_selector_base` times the range's 
 part, and prefers the widest range. While a day's partition is a few MiB on disk (the
 first hours of each day at tens of robots) the fixed cost makes every part look alike, so
 with the default base (5) it merges the WHOLE partition with every few new parts: the
-work per insert grows with the partition, and a quiet plant's process spends most of its
-CPU rewriting its own day. A base of 20 makes a merge wait for about 20 parts of like
+work per insert grows with the partition, and so does the CPU of the process that holds
+the engine. A base of 20 makes a merge wait for about 20 parts of like
 weight: the new parts merge among themselves, the day's big part is left alone until
 about 20 parts its size stand beside it, and the rows merged per insert fall several
-times. `min_parts_to_merge_at_once` does the opposite of what it promises here: with one
-big part and fewer than its count of small ones, the only range wide enough is the whole
-partition, rewritten every N inserts all day long.
+times. `min_parts_to_merge_at_once` (tried) is worse: once a partition holds one big part
+and fewer than N small ones, the only range wide enough is the whole partition, which is
+then rewritten every N inserts all day long.
 
-What the base costs: a partition keeps more active parts (tens, not a handful), which a
-read with FINAL merges as it reads. The bound stays far from the engine's limits: the
-selector lowers its base towards 2 as a partition's parts pass a few dozen, and as its
-parts age, so the count levels off well under `parts_to_delay_insert` (1000) and
-`parts_to_throw_insert` (3000).
+What the base costs: a partition keeps more active parts (ten to twenty, not a handful),
+which a read with FINAL merges as it reads (the newest seconds' window reads about a
+quarter slower, older windows the same: BENCHMARKS.md). The count stays bounded, far from
+the engine's limits: the selector lowers its base linearly towards 1 (merge any two
+parts) as a partition's active parts go from 10 to 50, and as a range's youngest part
+ages from 10 s to an hour, so a partition levels off under 50 parts while the merges keep
+pace, well under `parts_to_delay_insert` (1000) and `parts_to_throw_insert` (3000).
 """
 
 from __future__ import annotations
