@@ -27,6 +27,7 @@ from typing import Any
 
 import structlog
 
+from mapservice.adapters.clickhouse.merge_policy import set_on_every_merge_tree_table
 from mapservice.runtime.insert_health import code_of, describe
 
 log = structlog.get_logger(__name__)
@@ -64,8 +65,8 @@ def keep_merged_sources(
     query_rows: Callable[[str], Iterable[tuple[Any, ...]]],
 ) -> list[str]:
     """Sets `old_parts_lifetime` to MERGED_SOURCES_KEPT_S on the database's MergeTree
-    tables where the engine's default is shorter (chDB's 0) and the table does not set it;
-    returns them. Nothing to do on a ClickHouse server (its default is that already)."""
+    tables where the engine's default is shorter (chDB's 0) and the table does not set it
+    so already; returns them. Nothing to do on a ClickHouse server (its default is that already)."""
     ((default,),) = list(
         query_rows(
             "SELECT toUInt64OrZero(value) FROM system.merge_tree_settings "
@@ -74,19 +75,9 @@ def keep_merged_sources(
     )
     if int(default) >= MERGED_SOURCES_KEPT_S:
         return []
-    tables = [
-        name
-        for (name,) in query_rows(
-            f"SELECT name FROM system.tables WHERE database = '{database}' "
-            "AND engine LIKE '%MergeTree' AND NOT is_temporary "
-            "AND positionCaseInsensitive(engine_full, 'old_parts_lifetime') = 0"
-        )
-    ]
-    for table in tables:
-        command(
-            f"ALTER TABLE {database}.{table} MODIFY SETTING "
-            f"old_parts_lifetime = {MERGED_SOURCES_KEPT_S}"
-        )
+    tables = set_on_every_merge_tree_table(
+        database, {"old_parts_lifetime": MERGED_SOURCES_KEPT_S}, command, query_rows
+    )
     if tables:
         log.info(
             "merged parts' sources kept on disk for a while, to restore them should a full "

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 import socket
 import time
+from typing import Any
 
 import clickhouse_connect.driver.exceptions
 import structlog
@@ -18,6 +19,7 @@ import structlog
 from mapservice.adapters.clickhouse.broken_parts import keep_merged_sources
 from mapservice.adapters.clickhouse.cluster import for_cluster
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
+from mapservice.adapters.clickhouse.merge_policy import apply_merge_policy
 from mapservice.adapters.clickhouse.schema import checksums, migrations
 
 log = structlog.get_logger(__name__)
@@ -104,8 +106,12 @@ class ClickHouseSchema:
             finally:
                 ddl(f"DROP TABLE IF EXISTS {db}.{MIGRATION_LOCK} SYNC")
             self.connection.forget_insert_contexts()  # column types may have changed
-            keep_merged_sources(db, ddl, lambda sql: c.query(sql).result_rows)
+            keep_merged_sources(db, ddl, self._rows)
+            apply_merge_policy(db, ddl, self._rows)
             return version
+
+    def _rows(self, sql: str) -> list[tuple[Any, ...]]:
+        return list(self.connection.client.query(sql).result_rows)
 
     def _ddl(self, statement: str) -> None:
         """A schema statement, ON CLUSTER with Replicated engines where a cluster is set."""
