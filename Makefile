@@ -109,18 +109,16 @@ up: $(STAMP) ui mosquitto java
 # passed for a step when ARGS selects only other steps' tests):
 # - the tests marked `alone`, which judge time under load (probes, latencies), one at a
 #   time; beside them
+# - the fast tests, on one pytest-xdist worker per core and one more, at the lowest CPU
+#   priority (`chrt --idle`, Linux's SCHED_IDLE): the `alone` tests' processes are scheduled
+#   first and the fast tests take only the CPU they leave (they left 65 % of two cores idle,
+#   the 25-day endurance test mostly waits on its timers). Not `nice 19`: that would take
+#   away the nice values some tests set and check (chDB's merge threads). Their output is
+#   kept in a file and shown when they end;
 # - then the integration tests, which start brokers and servers and mostly wait on them, on
 #   INTEGRATION_WORKERS workers, a whole module to a worker (its stack is module-scoped),
-#   each worker's stacks on ports of their own (tests/conftest.py);
-# - beside both, from the start, the fast tests, on one pytest-xdist worker per core and one
-#   more, at the lowest CPU priority (`chrt --idle`, Linux's SCHED_IDLE): the other steps'
-#   processes are scheduled first and the fast tests take only the CPU they leave (the
-#   `alone` step left 65 % of two cores idle, the 25-day endurance test mostly waits on its
-#   timers; the integration step 29 %). Waiting for them before the integration step cost
-#   the run about four minutes of their running alone. Not `nice 19`: that would take away
-#   the nice values some tests set and check (chDB's merge threads). Their output is kept
-#   in a file and shown when they end. The fast step has half of the ports, the other two
-#   the other half (MAPSERVICE_LOCAL_PORT_SLICE).
+#   each worker's stacks on ports of their own (tests/conftest.py); the two steps that run
+#   together have a half of the ports each (MAPSERVICE_LOCAL_PORT_SLICE).
 # A worker more than the cores: at one per core the machine was idle a quarter of the
 # time (the fast step 76 % busy, the integration step 71 %, on 2 cores: tests wait on
 # subprocesses, brokers and timers), which the extra worker fills.
@@ -132,11 +130,11 @@ test: $(STAMP) system-deps ui test-ui
 	@# The Apache Kafka jars, once (a minute at most; the tests' brokers run from them).
 	$(PY) -m mapservice.local.kafka_broker fetch
 	@fast=0; parallel=0; alone=0; mkdir -p $(TEST_LOGS); fast_log=$(TEST_LOGS)/fast-tests.log; \
-	echo "The fast tests run beside the alone and then the integration tests at the lowest CPU priority; their output, shown when they end: $$fast_log"; \
+	echo "The fast tests run beside the alone tests at the lowest CPU priority; their output, shown when they end: $$fast_log"; \
 	MAPSERVICE_LOCAL_PORT_SLICE=0/2 chrt --idle 0 $(PY) -m pytest -m "not integration" -n $(TEST_WORKERS) --durations=15 --junitxml=$(TEST_LOGS)/fast-tests.xml $(ARGS) > $$fast_log 2>&1 & fast_pid=$$!; \
 	MAPSERVICE_LOCAL_PORT_SLICE=1/2 $(PY) -m pytest -m "integration and alone" --durations=10 --junitxml=$(TEST_LOGS)/alone-tests.xml $(ARGS) || alone=$$?; \
-	MAPSERVICE_LOCAL_PORT_SLICE=1/2 $(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 --junitxml=$(TEST_LOGS)/integration-tests.xml $(ARGS) || parallel=$$?; \
 	wait $$fast_pid || fast=$$?; cat $$fast_log; \
+	$(PY) -m pytest -m "integration and not alone" -n $(INTEGRATION_WORKERS) --dist loadfile --durations=30 --junitxml=$(TEST_LOGS)/integration-tests.xml $(ARGS) || parallel=$$?; \
 	echo "fast tests: exit $$fast; integration tests alone: exit $$alone; integration tests: exit $$parallel"; \
 	if [ $$fast -eq 5 ] && [ $$parallel -eq 5 ] && [ $$alone -eq 5 ]; then exit 5; fi; \
 	for rc in $$fast $$parallel $$alone; do [ $$rc -eq 0 -o $$rc -eq 5 ] || exit 1; done

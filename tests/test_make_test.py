@@ -1,5 +1,5 @@
-"""How `make test` runs its three steps: the `alone` tests, then the integration tests, with the
-fast tests beside both at the lowest CPU priority (SCHED_IDLE), on the other half of the ports; every step
+"""How `make test` runs its three steps: the `alone` tests with the fast tests beside them at
+the lowest CPU priority (SCHED_IDLE), each on half of the ports, then the integration tests; every step
 always runs and any failure fails the target. The recipe is run for real, by make, with a
 stand-in for the venv's Python that records how each step was started."""
 
@@ -32,8 +32,8 @@ RECORDER = textwrap.dedent(
     argv = sys.argv[1:]
     marks = argv[argv.index("-m", 1) + 1] if argv[:2] == ["-m", "pytest"] else None
     started = time.time()
-    if marks is not None:  # the fast step the longest: the others need not wait for it
-        time.sleep(3.0 if marks == "not integration" else 1.0)
+    if marks is not None:
+        time.sleep(1.0)
     with open(os.environ["RECORDED"], "a") as f:
         f.write(json.dumps({{"marks": marks, "policy": os.sched_getscheduler(0), "start": started,
                              "end": time.time(),
@@ -74,7 +74,7 @@ def run_make_test(tmp_path: Path, failing: str | None = None) -> tuple[int, dict
     return result.returncode, steps
 
 
-def test_the_fast_tests_run_beside_the_alone_and_integration_tests_at_the_lowest_priority(
+def test_the_fast_tests_run_beside_the_alone_tests_at_the_lowest_priority_on_other_ports(
     tmp_path: Path,
 ) -> None:
     code, steps = run_make_test(tmp_path)
@@ -86,10 +86,9 @@ def test_the_fast_tests_run_beside_the_alone_and_integration_tests_at_the_lowest
     assert fast["start"] < alone["end"] and alone["start"] < fast["end"], (
         "the two steps ran one after the other"
     )
-    # The integration step follows the alone step without waiting for the fast one.
-    assert alone["end"] <= integration["start"] < fast["end"], "it waited for the fast step"
+    assert integration["start"] >= max(fast["end"], alone["end"])
     assert {fast["slice"], alone["slice"]} == {"0/2", "1/2"}
-    assert integration["slice"] == alone["slice"]
+    assert integration["slice"] is None
 
 
 @pytest.mark.parametrize("failing", sorted(STEPS))
