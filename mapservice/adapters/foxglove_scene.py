@@ -12,7 +12,7 @@ May depend on: the ports (the store's time-travel and annotation reads)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -98,14 +98,20 @@ class FoxgloveScene:
         it records the advertisement, so a client quick to subscribe is told "unknown channel"
         and never gets that robot (seen on a loaded machine); channels made before the client
         connects come in its first advertisement, which its subscriptions cannot overtake."""
-        count, after = 0, None
+        count = 0
+        for row in self._robots_at(at_ms):
+            self._declare_robot(row.robot_id)
+            count += 1
+        return count
+
+    def _robots_at(self, at_ms: int) -> Iterator[PoseRow]:
+        """Every robot's pose at `at_ms` (robots_at), a page of them at a time."""
+        after: str | None = None
         while True:
             page = self.history.robots_at(at_ms, after=after, limit=_ROBOTS_PAGE)
-            for row in page:
-                self._declare_robot(row.robot_id)
-            count += len(page)
+            yield from page
             if len(page) < _ROBOTS_PAGE:
-                return count
+                return
             after = page[-1].robot_id
 
     def _declare_robot(self, robot_id: str) -> None:
@@ -123,14 +129,8 @@ class FoxgloveScene:
             self.floor_ms, self.floor_dirty = at_ms, False
             self.channels.protobuf(MAP_TOPIC, self.floor.grid(at_ms), at_ms)
         self.robots, self._paths = {}, {}
-        after: str | None = None
-        while True:
-            page = self.history.robots_at(at_ms, after=after, limit=_ROBOTS_PAGE)
-            for row in page:
-                self.pose(row, path_always=True)
-            if len(page) < _ROBOTS_PAGE:
-                break
-            after = page[-1].robot_id
+        for row in self._robots_at(at_ms):
+            self.pose(row, path_always=True)
         self.annotations_at(at_ms, force=True)
         self.findings.draw_at(at_ms)
 
