@@ -153,6 +153,10 @@ class KafkaBatchSource:
         self._rereads: dict[tuple[str, int], int] = {}  # rereads in a row of a partition's gap
         self._membership = 0  # counts assignments and revocations (SourceRecord.membership)
         self._member_id: str | None = None  # librdkafka's, when the partitions were assigned
+        # Partitions `stay_in_group` paused that the group took away before it could resume
+        # them: librdkafka keeps a partition's pause through its revocation and a later
+        # assignment (confluentinc/librdkafka#1849), so they are resumed once assigned again.
+        self._left_paused: set[tuple[str, int]] = set()
 
     def start(self) -> None:
         self.consumer = Consumer(self.config)
@@ -188,6 +192,8 @@ class KafkaBatchSource:
         out = []
         rewound: set[tuple[str, int]] = set()  # partitions read again: the rest comes again too
         before = self._membership
+        if self._left_paused:
+            self._resume_left_paused()
         messages = self.consumer.consume(max_records, timeout_s)
         # Rebalance callbacks run inside consume(), and the batch may hold records fetched
         # on either side of them: such a batch can never be committed. Handed out, its
@@ -245,8 +251,23 @@ class KafkaBatchSource:
             if taken:
                 self._read_again(taken)
         finally:
+            # A rebalance inside that consume may have taken partitions away: resumed when
+            # the group hands them back, or a partition paused for good stops the history.
             owned = {(tp.topic, tp.partition) for tp in self.consumer.assignment()}
             self.consumer.resume([tp for tp in paused if (tp.topic, tp.partition) in owned])
+            self._left_paused |= {(tp.topic, tp.partition) for tp in paused} - owned
+            if self._left_paused:
+                self._resume_left_paused()
+
+    def _resume_left_paused(self) -> None:
+        """Resumes the partitions `stay_in_group` left paused that this member owns again."""
+        back = [
+            tp for tp in self.consumer.assignment() if (tp.topic, tp.partition) in self._left_paused
+        ]
+        if back:
+            self.consumer.resume(back)
+            self._left_paused -= {(tp.topic, tp.partition) for tp in back}
+            log.info("partitions paused before the group changed resumed", count=len(back))
 
     def _read_again(self, messages: list) -> bool:
         """Seeks each partition of `messages` this member still owns back to its first
