@@ -1,7 +1,7 @@
 import { describe, expect, it } from "vitest";
 import {
-  bodyOf, closeRing, movedZone, sameEdit, speedTint, timelineMarks, type AnnotationEdit, crossesEdit, describe as describeAnnotation, hatchSegments, insideRing, insideZone,
-  signedArea, translate, violationEpisodes, violationsAt, type Point, type ZoneDoc, type ZoneViolation,
+  bodyOf, closeRing, movedZone, sameEdit, speedTint, timelineMarks, type Annotation, type AnnotationEdit, crossesEdit, describe as describeAnnotation, hatchSegments, insideRing, insideZone,
+  signedArea, translate, unreflectedEdits, violationEpisodes, violationsAt, type Point, type ZoneDoc, type ZoneViolation,
 } from "../src/lib/annotations";
 
 const square: Point[] = [[0, 0], [4, 0], [4, 4], [0, 4]];
@@ -136,5 +136,28 @@ describe("edits", () => {
     const fast = speedTint({ ...keepOut, kind: "speed_limit", speed_limit: 1.5, speed_unit: "m/s" });
     expect(slow).toBeGreaterThan(fast);
     expect(speedTint({ ...keepOut, kind: "speed_limit", speed_limit: 100, speed_unit: "percent" })).toBeCloseTo(0.12, 9);
+  });
+});
+
+describe("unreflectedEdits", () => {
+  const doc: ZoneDoc = keepOut;
+  const stored = (id: string, changed: number): Annotation =>
+    ({ id, annotation: doc, created_ms: 10, created_by: "o", changed_ms: changed, changed_by: "o" });
+  const edit = (id: string, change: AnnotationEdit["change"], ts: number): AnnotationEdit =>
+    ({ ts_ms: ts, event_id: `local:${ts}`, id, change, by: "you", annotation: change === "removed" ? null : doc });
+  // Every kind of edit against a list that shows it, one read before the store had it, and an instant before the edit.
+  const cases: [AnnotationEdit, Annotation[], Annotation[]][] = [
+    [edit("z", "created", 100), [stored("z", 100)], []],
+    [edit("z", "changed", 100), [stored("z", 100)], [stored("z", 60)]],
+    [edit("z", "changed", 100), [stored("z", 150)], [stored("z", 99)]], // changed again later: shown
+    [edit("z", "removed", 100), [], [stored("z", 60)]],
+  ];
+  it.each(cases)("finds an edit the read at or after it does not show (%o)", (e, shows, stale) => {
+    expect(unreflectedEdits([e], shows, 100)).toEqual([]);
+    expect(unreflectedEdits([e], shows, 5_000)).toEqual([]);
+    expect(unreflectedEdits([e], stale, 100)).toEqual([e]);
+    expect(unreflectedEdits([e], stale, 5_000)).toEqual([e]);
+    expect(unreflectedEdits([e], stale, 99)).toEqual([]); // before the edit, the old state is right
+    expect(unreflectedEdits([e], [...stale, stored("other", 100)], 100)).toEqual([e]);
   });
 });

@@ -53,6 +53,7 @@ def seek_and_read(page, t: int) -> dict:
             const r = window.__replay;
             if (r.playhead !== t || !r.complete) return false;
             const a = r.annotations();
+            if (!a.settled) return false;  // read before the store held this page's edit
             if (a.loadedAt === t) return true;
             const lo = Math.min(a.loadedAt, t), hi = Math.max(a.loadedAt, t);
             return Number.isFinite(a.loadedAt) && !a.marks.some(([, ts]) => ts > lo && ts <= hi);

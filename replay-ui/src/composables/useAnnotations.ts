@@ -11,7 +11,7 @@
 import { computed, onBeforeUnmount, onMounted, reactive, ref, shallowRef, type ShallowRef } from "vue";
 import { AnnotationApi } from "../lib/annotationapi";
 import {
-  closeRing, crossesEdit, movedZone, sameEdit, timelineMarks, violationEpisodes, violationsAt,
+  closeRing, crossesEdit, movedZone, sameEdit, timelineMarks, unreflectedEdits, violationEpisodes, violationsAt,
   type Annotation, type AnnotationDoc, type AnnotationEdit, type Point, type PoiKind, type ZoneDoc, type ZoneKind, type ZoneViolation,
 } from "../lib/annotations";
 import { setApiToken } from "../lib/auth";
@@ -33,6 +33,9 @@ export const VIOLATION_SHOWN_MS = 30_000;
 
 /** How long this page's own edit is kept while the store's edits do not hold it yet. */
 const PENDING_MS = 120_000;
+
+/** How often the annotations at the playhead are read again while they lack this page's edit. */
+const LAGGING_READ_MS = 500;
 
 export function useAnnotations(d: AnnotationDeps) {
   const api = new AnnotationApi(d.base);
@@ -66,6 +69,9 @@ export function useAnnotations(d: AnnotationDeps) {
   /** This page's own edits, until the store's edits hold them (a second or two): the
    * playhead crossing one must read the annotations again before the store has it. */
   let pending: AnnotationEdit[] = [];
+  /** When `list` was read without one of this page's edits at or before its instant (0:
+   * it shows them all): read again every LAGGING_READ_MS until the store holds them. */
+  let laggingSince = 0;
 
   async function loadList(t: number) {
     listLoading = true;
@@ -73,6 +79,8 @@ export function useAnnotations(d: AnnotationDeps) {
     try {
       list.value = await api.at(t);
       loadedAt = t;
+      const recent = pending.filter((p) => Date.now() - p.ts_ms < PENDING_MS);
+      laggingSince = unreflectedEdits(recent, list.value, t).length ? Date.now() : 0;
     } catch (e) {
       error.value = `annotations at the playhead could not be read: ${(e as Error).message}`;
       loadedAt = t; // not again every frame: the next edit crossed or seek asks again
@@ -114,7 +122,8 @@ export function useAnnotations(d: AnnotationDeps) {
     if (!winLoading && (moved || stale)) void loadWindow(from, to);
     // Outside the span the edits were read for, an edit may be unknown: read again every 10 s of playhead.
     const unknown = !(t >= win.from && t < win.until && loadedAt >= win.from && loadedAt < win.until);
-    if (!listLoading && (dirty || Number.isNaN(loadedAt) || crossesEdit(edits.value, loadedAt, t)
+    const lagging = laggingSince > 0 && Date.now() - laggingSince > LAGGING_READ_MS;
+    if (!listLoading && (dirty || lagging || Number.isNaN(loadedAt) || crossesEdit(edits.value, loadedAt, t)
         || (unknown && Math.abs(t - loadedAt) > 10_000))) void loadList(t);
     redraw(t);
   }
@@ -264,7 +273,7 @@ export function useAnnotations(d: AnnotationDeps) {
   /** What the browser tests read (window.__replay.annotations()). */
   function hook() {
     const layer = d.view.value?.annotations;
-    return { loadedAt, ids: list.value.map((a) => a.id), drawn: layer?.drawn ?? null, tool: layer?.active ?? null,
+    return { loadedAt, settled: laggingSince === 0, ids: list.value.map((a) => a.id), drawn: layer?.drawn ?? null, tool: layer?.active ?? null,
       vertices: layer?.vertices ?? 0, operator: operator.value,
       shown: !!layer && !!d.view.value?.map.hasLayer(layer.group), marks: marks.value.map((m) => [m.kind, m.ts_ms]) };
   }

@@ -207,6 +207,21 @@ export function bodyOf(a: AnnotationDoc): Record<string, unknown> {
   return Object.fromEntries(Object.entries(a).filter(([, v]) => v !== null && v !== undefined));
 }
 
+/**
+ * This page's own edits at or before `t` that the annotations read at `t` do not show
+ * yet: a read made before the store held them (they reach it a second or so after the
+ * API took them). A creation or change shows as the annotation changed at its instant or
+ * later, a removal as the annotation gone.
+ */
+export function unreflectedEdits(mine: readonly AnnotationEdit[], list: readonly Annotation[], t: number): AnnotationEdit[] {
+  const byId = new Map(list.map((a) => [a.id, a]));
+  return mine.filter((e) => {
+    if (e.ts_ms > t) return false;
+    const a = byId.get(e.id);
+    return e.change === "removed" ? a !== undefined : a === undefined || a.changed_ms < e.ts_ms;
+  });
+}
+
 /** The store's record of an edit this page made (a removal's instant is known only roughly: the server's clock). */
 export function sameEdit(stored: AnnotationEdit, mine: AnnotationEdit): boolean {
   return stored.id === mine.id && stored.change === mine.change
