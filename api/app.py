@@ -184,7 +184,13 @@ def create_app(
             allow_origins=settings.api_allowed_origins,
             allow_methods=["GET", "POST", "PUT", "DELETE"],
             allow_headers=["Authorization", "Content-Type"],
-            expose_headers=["Retry-After", "X-Map-At-Ms", "X-Chunk-Width", "X-Chunk-Height"],
+            expose_headers=[
+                "Retry-After",
+                "X-Map-At-Ms",
+                "X-Chunk-Width",
+                "X-Chunk-Height",
+                heatmaps.SUMMARY_HEADER,
+            ],
             max_age=600,
         )
     # Outermost: a request under another site's host name (DNS rebinding) reaches nothing,

@@ -44,7 +44,10 @@ class HeatmapBox(BaseModel):
     rows: int
 
 
-class HeatmapGrid(BaseModel):
+class HeatmapSummary(BaseModel):
+    """What a heatmap's picture needs beside it (its legend and where it lies): the PNG
+    answer carries it in its SUMMARY_HEADER, so a page asks once for both."""
+
     kind: Kind
     unit: str
     from_ms: int
@@ -53,15 +56,33 @@ class HeatmapGrid(BaseModel):
     max: float  # the largest value (0 without a cell)
     total: float  # the values' sum (occupancy: robot-seconds; mean speed: meaningless)
     box: HeatmapBox | None  # the cells' bounding box (None without a cell)
-    cells: list[tuple[int, int, float]]  # (i, j, value), by (i, j); cells without one left out
     incidents_truncated: bool  # more than MAX_INCIDENTS incidents: counts are of the first
+
+
+class HeatmapGrid(HeatmapSummary):
+    cells: list[tuple[int, int, float]]  # (i, j, value), by (i, j); cells without one left out
+
+
+# The PNG answer's summary of its heatmap (HeatmapSummary as JSON, without the cells).
+SUMMARY_HEADER = "X-Heatmap-Summary"
 
 
 @router.get(
     "",
     operation_id="getHeatmap",
     response_model=HeatmapGrid,
-    responses={200: {"content": {"image/png": {}, "text/csv": {}}}},
+    responses={
+        200: {
+            "content": {"image/png": {}, "text/csv": {}},
+            "headers": {
+                SUMMARY_HEADER: {
+                    "description": "PNG only: the heatmap's HeatmapSummary as JSON (the "
+                    "grid without its cells: kind, unit, span, cell size, max, total, box)",
+                    "schema": {"type": "string"},
+                }
+            },
+        }
+    },
     description="A heatmap of [from, to) (windows up to the retention): occupancy "
     "(robot-seconds: each robot counts once per second it reported, in the cell of its first "
     "pose of that second), dwell (those seconds with the robot slower than the incidents' "
@@ -70,7 +91,9 @@ class HeatmapGrid(BaseModel):
     f"window, counted where they were), on cells of `cell` metres (a multiple of "
     f"{FINEST_CELL_M} m up to {MAX_CELL_FACTOR * FINEST_CELL_M:g} m). format=json: the cells "
     "with a value; png: their bounding box, `scale` pixels a cell, north up, transparent "
-    "where empty, coloured from the lowest to the largest value; csv: every measure of every "
+    "where empty, coloured from the lowest to the largest value, with the grid's summary "
+    f"(everything but the cells) as JSON in its {SUMMARY_HEADER} header, so that one request "
+    "draws it with its legend; csv: every measure of every "
     f"cell. 400 for a bad cell size or scale; 422 for more than {MAX_CELLS:,} cells.",
 )
 def get_heatmap(
@@ -115,16 +138,7 @@ def get_heatmap(
         )
     values = heatmap.values(kind)
     box = bounds(values)
-    if format == "png":
-        pixels = (box[2] * box[3] if box else 1) * scale * scale
-        if pixels > MAX_PNG_PIXELS:
-            raise HTTPException(
-                422,
-                f"the picture would be {pixels:,} pixels, more than {MAX_PNG_PIXELS:,}; "
-                "use a smaller scale or a larger cell",
-            )
-        return Response(heatmap_png(values, scale), media_type="image/png")
-    return HeatmapGrid(
+    summary = HeatmapSummary(
         kind=kind,
         unit=UNITS[kind],
         from_ms=f,
@@ -133,6 +147,21 @@ def get_heatmap(
         max=max(values.values(), default=0.0),
         total=sum(values.values()),
         box=HeatmapBox(i0=box[0], j0=box[1], columns=box[2], rows=box[3]) if box else None,
-        cells=[(i, j, v) for (i, j), v in sorted(values.items())],
         incidents_truncated=counted.truncated,
+    )
+    if format == "png":
+        pixels = (box[2] * box[3] if box else 1) * scale * scale
+        if pixels > MAX_PNG_PIXELS:
+            raise HTTPException(
+                422,
+                f"the picture would be {pixels:,} pixels, more than {MAX_PNG_PIXELS:,}; "
+                "use a smaller scale or a larger cell",
+            )
+        return Response(
+            heatmap_png(values, scale),
+            media_type="image/png",
+            headers={SUMMARY_HEADER: summary.model_dump_json()},
+        )
+    return HeatmapGrid(
+        **summary.model_dump(), cells=[(i, j, v) for (i, j), v in sorted(values.items())]
     )

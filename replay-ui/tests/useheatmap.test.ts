@@ -7,16 +7,16 @@ import { parseUrlState } from "../src/lib/urlstate";
 const GRID = { kind: "occupancy", unit: "robot-seconds", from_ms: 0, to_ms: 1, cell_m: 0.5, max: 3, total: 4,
   box: { i0: 2, j0: -1, columns: 3, rows: 2 }, cells: [[2, -1, 1], [4, 0, 3]] };
 
-/** fetch as the API answers the heatmap's reads; every URL asked is kept. */
-function api() {
+/** fetch as the API answers the heatmap's read (a PNG with the grid's summary in a
+ * header; a picture without it when `headerless`); every URL asked is kept. */
+function api(headerless = false) {
   const asked: URL[] = [];
   vi.stubGlobal("fetch", async (url: string) => {
     const u = new URL(url, "http://x");
     asked.push(u);
     const grid = { ...GRID, kind: u.searchParams.get("kind"), cell_m: Number(u.searchParams.get("cell")) };
-    return u.searchParams.get("format") === "png"
-      ? new Response(new Blob([new Uint8Array([137, 80, 78, 71])]), { status: 200 })
-      : new Response(JSON.stringify(grid), { status: 200 });
+    const headers: Record<string, string> = headerless ? {} : { "X-Heatmap-Summary": JSON.stringify(grid) };
+    return new Response(new Blob([new Uint8Array([137, 80, 78, 71])]), { status: 200, headers });
   });
   vi.stubGlobal("URL", Object.assign(URL, { createObjectURL: () => "blob:heat", revokeObjectURL: () => {} }));
   return asked;
@@ -53,7 +53,7 @@ describe("the heatmap layer", () => {
     const h = useHeatmap({ base: "", view, initial: parseUrlState("?heat=occupancy,2"), span: () => [1000, 3_601_000] });
     await settle();
     expect(asked.map((u) => [u.searchParams.get("kind"), u.searchParams.get("cell"), u.searchParams.get("format")]))
-      .toEqual([["occupancy", "2", "json"], ["occupancy", "2", "png"]]);
+      .toEqual([["occupancy", "2", "png"]]); // one request: the legend's summary is its header
     expect(h.grid.value?.kind).toBe("occupancy");
     expect(shown).toEqual([]);
     floor = true;
@@ -71,16 +71,16 @@ describe("the heatmap layer", () => {
     expect(asked).toEqual([]); // off: nothing read
     h.on.value = true;
     await settle();
-    expect(asked.length).toBe(2);
+    expect(asked.length).toBe(1);
     span.value = [1000, 101_000]; // 1 %
     await settle(350);
-    expect(asked.length).toBe(2);
+    expect(asked.length).toBe(1);
     span.value = [5000, 105_000]; // 5 %
     await settle(350);
-    expect(asked.length).toBe(4);
+    expect(asked.length).toBe(2);
     h.choice.value = { kind: "speed", cell: 1 };
     await settle(350);
-    expect(asked.slice(-2).map((u) => [u.searchParams.get("kind"), u.searchParams.get("cell")])).toEqual([["speed", "1"], ["speed", "1"]]);
+    expect(asked.slice(-1).map((u) => [u.searchParams.get("kind"), u.searchParams.get("cell")])).toEqual([["speed", "1"]]);
     expect(h.state.value).toEqual({ kind: "speed", cell: 1 });
     // Off: the picture goes, nothing more is read.
     h.on.value = false;
@@ -89,6 +89,16 @@ describe("the heatmap layer", () => {
     expect(h.state.value).toBeNull();
     span.value = [50_000, 150_000];
     await settle(350);
-    expect(asked.length).toBe(6);
+    expect(asked.length).toBe(3);
+  });
+
+  it("says what to do when the picture comes without its summary (a server older than the page)", async () => {
+    api(true);
+    const { view, shown } = fakeView(() => true);
+    const h = useHeatmap({ base: "", view, initial: parseUrlState("?heat=dwell"), span: () => [0, 100_000] });
+    await settle();
+    expect(h.error.value).toMatch(/X-Heatmap-Summary.*reload the page/);
+    expect(h.grid.value).toBeNull();
+    expect(shown).toEqual([]);
   });
 });

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from PIL import Image
 
 from mapservice.adapters.clock import ManualClock
 from mapservice.api.app import create_app
+from mapservice.api.routers.heatmaps import SUMMARY_HEADER
 from mapservice.core.heatmap_render import ALPHA, CSV_COLUMNS, RAMP
 from mapservice.core.incidents import detect
 from mapservice.settings import Settings
@@ -103,6 +105,36 @@ def test_the_png_is_the_cells_box_at_the_scale(client) -> None:
     assert tuple(pixels[y + 1, x + 1]) == (*RAMP[-1].astype(int), ALPHA)
     filled = {(c[0], c[1]) for c in body["cells"]}
     assert int((pixels[:, :, 3] > 0).sum()) == len(filled) * 9  # empty cells transparent
+
+
+@pytest.mark.parametrize("kind", ["occupancy", "dwell", "speed", "incidents"])
+@pytest.mark.parametrize(
+    ("cell", "window"),
+    [
+        (0.5, (T0, NOW)),
+        (2.0, (T0 + 30_000, NOW - 10_000)),
+        (0.5, (NOW - 86_400_000, NOW - 80_000_000)),  # nothing there: no box
+    ],
+)
+def test_the_png_carries_the_grid_s_summary_so_one_request_draws_it(
+    client, kind, cell, window
+) -> None:
+    """The page asks once: the PNG's header holds everything of the JSON but its cells."""
+    params = {"kind": kind, "cell": cell, "from": window[0], "to": window[1]}
+    grid = client.get("/api/v1/heatmap", params=params).json()
+    reply = client.get("/api/v1/heatmap", params={**params, "format": "png"})
+    assert reply.status_code == 200
+    summary = json.loads(reply.headers[SUMMARY_HEADER])
+    del grid["cells"]
+    assert summary == grid
+    image = Image.open(io.BytesIO(reply.content))
+    box = summary["box"]
+    assert image.size == ((box["columns"], box["rows"]) if box else (1, 1))
+    for other in ("json", "csv"):
+        assert (
+            SUMMARY_HEADER
+            not in client.get("/api/v1/heatmap", params={**params, "format": other}).headers
+        )
 
 
 def test_the_csv_has_every_measure_of_every_cell(client) -> None:

@@ -1,16 +1,15 @@
 /**
  * The heatmap layer's state: which heatmap is shown (kind and cell size, or none; the address
- * keeps it), its read for the timeline's span (the cells as JSON for the legend and their
- * box, then the same as a PNG for the map), and the legend's scale bar. A span sliding with
+ * keeps it), its read for the timeline's span (one PNG for the map, its header the
+ * summary for the legend and the box), and the legend's scale bar. A span sliding with
  * playback is read again once it moved by 2 % of its length, at most every 300 ms; a newer
  * read cancels the one before. The page's frame loop rests when nothing moves: the picture
  * is laid on the map when read (or once the map knows its floor), the scale on each zoom.
  */
 import { computed, ref, shallowRef, watch, type ShallowRef } from "vue";
-import { getJson } from "../lib/api";
-import { DEFAULT_CELL_M, heatmapUrl, scaleBar, type HeatmapGrid, type HeatmapState } from "../lib/heatmap";
+import { DEFAULT_CELL_M, heatmapUrl, scaleBar, summaryOf, type HeatmapState, type HeatmapSummary } from "../lib/heatmap";
 import type { MapView } from "../lib/mapview";
-import { ApiError, Superseding, errorText, getBlob } from "../lib/request";
+import { ApiError, Superseding, errorText, getBlobAnswer } from "../lib/request";
 import type { UrlState } from "../lib/urlstate";
 
 export interface HeatmapDeps {
@@ -31,7 +30,7 @@ export function useHeatmap(d: HeatmapDeps) {
   const on = ref(d.initial.heatmap !== null);
   const choice = ref<HeatmapState>(d.initial.heatmap ?? { kind: "occupancy", cell: DEFAULT_CELL_M });
   const state = computed<HeatmapState | null>(() => (on.value ? { ...choice.value } : null));
-  const grid = shallowRef<HeatmapGrid | null>(null);
+  const grid = shallowRef<HeatmapSummary | null>(null);
   const loading = ref(false);
   const error = ref<string | null>(null);
   const metresPerPx = ref(0);
@@ -64,10 +63,10 @@ export function useHeatmap(d: HeatmapDeps) {
     loading.value = true;
     try {
       const now = Date.now();
-      const g = await getJson<HeatmapGrid>(heatmapUrl(d.base, s, span, now), "the heatmap", signal);
-      const png = g.box ? await getBlob(heatmapUrl(d.base, s, span, now, "png"), "the heatmap's picture", signal) : null;
+      const answer = await getBlobAnswer(heatmapUrl(d.base, s, span, now, "png"), "the heatmap", signal);
+      const g = summaryOf(answer.headers);
       if (picture) URL.revokeObjectURL(picture);
-      picture = png ? URL.createObjectURL(png) : null;
+      picture = g.box ? URL.createObjectURL(answer.blob) : null;
       grid.value = g;
       error.value = null;
       draw();

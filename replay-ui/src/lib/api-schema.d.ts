@@ -514,7 +514,7 @@ export interface paths {
         };
         /**
          * Get Heatmap
-         * @description A heatmap of [from, to) (windows up to the retention): occupancy (robot-seconds: each robot counts once per second it reported, in the cell of its first pose of that second), dwell (those seconds with the robot slower than the incidents' moving threshold), speed (their mean speed, m/s, each from the robot's previous second when no longer than the offline threshold before) or incidents (found, meeting the window, counted where they were), on cells of `cell` metres (a multiple of 0.5 m up to 20 m). format=json: the cells with a value; png: their bounding box, `scale` pixels a cell, north up, transparent where empty, coloured from the lowest to the largest value; csv: every measure of every cell. 400 for a bad cell size or scale; 422 for more than 1,000,000 cells.
+         * @description A heatmap of [from, to) (windows up to the retention): occupancy (robot-seconds: each robot counts once per second it reported, in the cell of its first pose of that second), dwell (those seconds with the robot slower than the incidents' moving threshold), speed (their mean speed, m/s, each from the robot's previous second when no longer than the offline threshold before) or incidents (found, meeting the window, counted where they were), on cells of `cell` metres (a multiple of 0.5 m up to 20 m). format=json: the cells with a value; png: their bounding box, `scale` pixels a cell, north up, transparent where empty, coloured from the lowest to the largest value, with the grid's summary (everything but the cells) as JSON in its X-Heatmap-Summary header, so that one request draws it with its legend; csv: every measure of every cell. 400 for a bad cell size or scale; 422 for more than 1,000,000 cells.
          */
         get: operations["getHeatmap"];
         put?: never;
@@ -3588,6 +3588,8 @@ export interface operations {
             /** @description Successful Response */
             200: {
                 headers: {
+                    /** @description PNG only: the heatmap's HeatmapSummary as JSON (the grid without its cells: kind, unit, span, cell size, max, total, box) */
+                    "X-Heatmap-Summary"?: string;
                     [name: string]: unknown;
                 };
                 content: {

@@ -1,7 +1,7 @@
 /**
- * The heatmap layer: which heatmap (kind and cell size) the address keeps, the API's reads
- * of it (GET /api/v1/heatmap: its cells as JSON for the legend and the box, the same as a
- * translucent PNG for the map), the legend's colour ramp (the PNG's: the API's
+ * The heatmap layer: which heatmap (kind and cell size) the address keeps, the API's read
+ * of it (GET /api/v1/heatmap as a translucent PNG for the map, whose header carries the
+ * grid's summary for the legend and the box), the legend's colour ramp (the PNG's: the API's
  * mapservice/core/heatmap_render.py draws with these stops) and the map's scale bar.
  */
 import { oldestReadable } from "./retention";
@@ -24,8 +24,8 @@ export interface HeatmapState {
   cell: number;
 }
 
-/** The API's JSON answer (the fields the page uses). */
-export interface HeatmapGrid {
+/** The grid's summary the PNG answer carries in its SUMMARY_HEADER (the fields the page uses). */
+export interface HeatmapSummary {
   kind: HeatmapKind;
   unit: string;
   from_ms: number;
@@ -34,7 +34,16 @@ export interface HeatmapGrid {
   max: number;
   total: number;
   box: { i0: number; j0: number; columns: number; rows: number } | null;
-  cells: [number, number, number][];
+}
+
+/** The PNG answer's header holding its HeatmapSummary as JSON (api/routers/heatmaps.py). */
+export const SUMMARY_HEADER = "X-Heatmap-Summary";
+
+/** The summary of a PNG answer's headers; an error when it has none (a server too old for the page). */
+export function summaryOf(headers: Headers): HeatmapSummary {
+  const raw = headers.get(SUMMARY_HEADER);
+  if (!raw) throw new Error(`the heatmap's picture came without its ${SUMMARY_HEADER} header: reload the page`);
+  return JSON.parse(raw) as HeatmapSummary;
 }
 
 /** Low to high, as the PNG's ramp. */

@@ -229,6 +229,11 @@ export async function getJson<T>(url: string, what = "the data", signal?: AbortS
 /** GET `url`'s bytes (a picture), asked again while the server is busy; a failure is an
  * ApiError in a user's words about `what`, as getJson's. */
 export async function getBlob(url: string, what: string, signal?: AbortSignal): Promise<Blob> {
+  return (await getBlobAnswer(url, what, signal)).blob;
+}
+
+/** `getBlob`'s body with the answer's headers (what the body alone does not say). */
+export async function getBlobAnswer(url: string, what: string, signal?: AbortSignal): Promise<{ blob: Blob; headers: Headers }> {
   let r: Response;
   try {
     r = await fetchRetrying(url, { signal });
@@ -237,7 +242,7 @@ export async function getBlob(url: string, what: string, signal?: AbortSignal): 
     throw new ApiError(0, explainUnreachable(what), String(e));
   }
   if (!r.ok) throw new ApiError(r.status, explainFailure(what, r.status), await r.text().catch(() => ""));
-  return r.blob();
+  return { blob: await r.blob(), headers: r.headers };
 }
 
 /** One read of a kind at a time: asking again cancels the read before, whose answer would

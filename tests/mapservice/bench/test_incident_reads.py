@@ -127,8 +127,9 @@ def fake_api(status: dict[str, int], asked: list[httpx.URL]) -> httpx.Client:
 
 
 def test_the_reads_ask_as_the_page_does_and_count_after_the_warm_up() -> None:
-    """The list as the panel asks it (limit 5,000, no filter); the heatmap's PNG only when
-    its JSON has cells; one untimed round first."""
+    """The list as the panel asks it (limit 5,000, no filter); the heatmap's PNG as the
+    page asks it (its legend in its header), the JSON of every cell beside it; one untimed
+    round first."""
     plan = plan_reads(T0, T0 + 8 * DAY_MS, 3, seed=2, oldest_ms=0)
     asked: list[httpx.URL] = []
     out = api_reads(fake_api({}, asked), plan)
@@ -140,7 +141,9 @@ def test_the_reads_ask_as_the_page_does_and_count_after_the_warm_up() -> None:
     assert len(lists) == 8 and {u.params["limit"] for u in lists} == {"5000"}
     assert not any("kind" in u.params or "robot" in u.params for u in lists)
     maps = [(u.params["kind"], u.params["format"]) for u in asked if u.path == "/api/v1/heatmap"]
-    assert maps.count(("occupancy", "png")) == 4 and ("incidents", "png") not in maps
+    assert {m: maps.count(m) for m in set(maps)} == {
+        (kind, form): 4 for kind in ("occupancy", "incidents") for form in ("png", "json")
+    }
     assert {u.params["cell"] for u in asked if u.path == "/api/v1/heatmap"} == {"0.5"}
 
 
