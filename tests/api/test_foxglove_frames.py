@@ -71,7 +71,7 @@ def test_the_count_is_the_models_however_the_bytes_come(seed):
         said = count.feed(stream[fed : fed + n])
         fed += n
     if over_at is None:
-        assert said is None and count.subscriptions == model
+        assert said is None and count.subscriptions.keys() == model
     else:
         assert said is not None and "MAPSERVICE_FOXGLOVE_MAX_SUBSCRIPTIONS" in said
         assert fed >= over_at  # not before the message that went over
