@@ -26,7 +26,7 @@ from mapservice.api.foxglove_frames import SubscriptionCount
 from mapservice.api.foxglove_gate import SDK_SUBPROTOCOL, FoxgloveGate, Upstream
 from mapservice.api.foxglove_resubscribe import MAX_ATTEMPTS, ServerStream
 from tests.api.test_foxglove_frames import frame
-from tests.api.test_foxglove_gate import READER, settings
+from tests.api.test_foxglove_gate import READER, SWITCHING, request, settings
 
 # --- the SDK's side read with generated streams --------------------------------------------
 
@@ -145,6 +145,63 @@ def _unmask(client_frame: bytes) -> bytes:
         n = int.from_bytes(client_frame[2:4], "big")
     mask, payload = client_frame[at : at + 4], client_frame[at + 4 : at + 4 + n]
     return bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+def test_the_gate_sends_it_again_between_two_of_the_clients_messages():
+    """Over a raw upstream: the SDK's answer never reaches the client, and the subscription
+    goes again only once the client's message then in progress (fragmented) has ended."""
+
+    async def main() -> tuple[bytes, bytes]:
+        connected: asyncio.Future = asyncio.get_running_loop().create_future()
+
+        async def serve(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+            await reader.readuntil(b"\r\n\r\n")
+            writer.write(SWITCHING)
+            writer.write(text({"op": "advertise", "channels": [{"id": 5, "topic": "/r9"}]}))
+            connected.set_result((reader, writer))
+
+        upstream = await asyncio.start_server(serve, "127.0.0.1", 0)
+        up_port = upstream.sockets[0].getsockname()[1]
+
+        async def route() -> Upstream:
+            return Upstream(up_port)
+
+        s = settings()
+        gate = FoxgloveGate(s, Credentials(s), {"/": route})
+        port = await gate.start("127.0.0.1", 0)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(request(f"/?token={READER}"))
+        await reader.readuntil(b"\r\n\r\n")
+        up_reader, up_writer = await connected
+        subscribe = frame(0x1, b'{"op":"subscribe","subscriptions":[{"id":1,"channelId":5}]}')
+        first = frame(0x1, b'{"op":"subscribe",', fin=False)
+        writer.write(subscribe + first)
+        async with asyncio.timeout(5):
+            got = await up_reader.readexactly(len(subscribe + first))
+        up_writer.write(unknown(5))  # the SDK lost it
+        await asyncio.sleep(0.3)  # long past the first delay: held for the message's end
+        rest = frame(0x0, b'"subscriptions":[]}')
+        writer.write(rest)
+        async with asyncio.timeout(5):
+            got += await up_reader.readexactly(len(rest))
+            again = await up_reader.read(200)
+        assert got == subscribe + first + rest  # the client's own bytes, uncut
+        to_client = b""
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(0.3):
+                while chunk := await reader.read(1000):
+                    to_client += chunk
+        writer.close()
+        await gate.stop()
+        upstream.close()
+        return again, to_client
+
+    again, to_client = asyncio.run(main())
+    assert json.loads(_unmask(again)) == {
+        "op": "subscribe",
+        "subscriptions": [{"id": 1, "channelId": 5}],
+    }
+    assert b"advertise" in to_client and b"Unknown channel" not in to_client
 
 
 # --- live, a robot first seen while a client is connected ----------------------------------
