@@ -207,6 +207,13 @@ def test_the_gate_sends_it_again_between_two_of_the_clients_messages():
 # --- live, a robot first seen while a client is connected ----------------------------------
 
 
+def foxglove_client(url: str):
+    """A WebSocket client of the SDK's protocol, as Foxglove's app connects."""
+    from websockets.asyncio.client import connect
+
+    return connect(url, subprotocols=[SDK_SUBPROTOCOL], compression=None, max_size=None)
+
+
 class LosingShim:
     """In front of the SDK's server: relays each WebSocket message both ways, but answers
     the first `losses` subscriptions to each channel whose topic starts with `prefix` as the
@@ -231,15 +238,8 @@ class LosingShim:
             self._server.close()
 
     async def _relay(self, gate_side) -> None:
-        from websockets.asyncio.client import connect
-
         losing: set[int] = set()
-        async with connect(
-            f"ws://127.0.0.1:{self.sdk_port}",
-            subprotocols=[SDK_SUBPROTOCOL],
-            compression=None,
-            max_size=None,
-        ) as sdk:
+        async with foxglove_client(f"ws://127.0.0.1:{self.sdk_port}") as sdk:
 
             async def down() -> None:
                 async for message in sdk:
@@ -297,7 +297,6 @@ def test_a_live_client_gets_a_robot_first_seen_while_it_is_connected(losses):
 
 async def _live_client_gets_new_robot(losses: int) -> None:
     import foxglove
-    from websockets.asyncio.client import connect
 
     from mapservice.adapters.foxglove_channels import FoxgloveChannels
     from mapservice.adapters.foxglove_live import FoxgloveLive
@@ -330,12 +329,7 @@ async def _live_client_gets_new_robot(losses: int) -> None:
     got: dict[str, int] = {}
     statuses: list[str] = []
     try:
-        async with connect(
-            f"ws://127.0.0.1:{port}/?token={READER}",
-            subprotocols=[SDK_SUBPROTOCOL],
-            compression=None,
-            max_size=None,
-        ) as ws:
+        async with foxglove_client(f"ws://127.0.0.1:{port}/?token={READER}") as ws:
 
             async def read_until(done) -> bool:
                 try:
