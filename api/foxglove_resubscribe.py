@@ -64,37 +64,42 @@ class ServerStream:
     def feed(self, data: bytes) -> tuple[bytes, list[Resubscribe]]:
         if self._held:
             data, self._held = bytes(self._held) + data, bytearray()
-        out = bytearray()
         again: list[Resubscribe] = []
-        pos, end = 0, len(data)
+        swallowed: list[tuple[int, int]] = []  # the frames not passed on: (start, end)
+        end = len(data)
+        pos = min(self._pass, end)  # the rest of a frame passed on unread
+        self._pass -= pos
         while pos < end:
-            if self._pass:
-                taken = min(self._pass, end - pos)
-                out += data[pos : pos + taken]
-                pos += taken
-                self._pass -= taken
-                continue
             header = _header(data, pos)
             if header is None:  # cut within a frame's header: the rest comes with the next bytes
-                self._held += data[pos:]
                 break
             readable, size, length = header
+            frame_end = pos + size + length
             if not readable or length > MAX_HELD_BYTES:
-                out += data[pos : pos + size]
-                pos += size
-                self._pass = length
-                continue
-            if end - pos < size + length:
-                self._held += data[pos:]
+                if frame_end > end:
+                    self._pass = frame_end - end
+                    pos = end
+                    break
+            elif frame_end > end:  # a text frame is held until it is whole
                 break
-            payload = data[pos + size : pos + size + length]
-            resubscribe = self._read(payload)
-            if resubscribe is None:
-                out += data[pos : pos + size + length]
-            else:  # the SDK's answer swallowed: the subscription goes again
-                again.append(resubscribe)
-            pos += size + length
-        return bytes(out), again
+            else:
+                resubscribe = self._read(data[pos + size : frame_end])
+                if (
+                    resubscribe is not None
+                ):  # the SDK's answer swallowed: the subscription goes again
+                    again.append(resubscribe)
+                    swallowed.append((pos, frame_end))
+            pos = frame_end
+        if pos < end:
+            self._held += data[pos:]
+        if not swallowed:
+            return (data if pos == end else data[:pos]), again
+        kept, at = [], 0
+        for cut_start, cut_end in swallowed:
+            kept.append(data[at:cut_start])
+            at = cut_end
+        kept.append(data[at:pos])
+        return b"".join(kept), again
 
     def _read(self, payload: bytes) -> Resubscribe | None:
         """Notes an (un)advertisement; for the SDK's "unknown channel" answer to a
