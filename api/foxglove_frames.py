@@ -1,13 +1,15 @@
 """A Foxglove client's WebSocket frames, read as the gate passes them on unchanged: how many
 channels it is subscribed to (the protocol's `subscribe` and `unsubscribe` text messages),
-so that the gate can close a client that subscribes to more than its cap. Binary frames
-(the client's publishing, playback control) are skipped, not buffered."""
+so that the gate can close a client that subscribes to more than its cap, and which channel
+each subscription names (the gate sends one again that the SDK lost: foxglove_resubscribe.py).
+Binary frames (the client's publishing, playback control) are skipped, not buffered."""
 
 from __future__ import annotations
 
 import json
+import os
 
-_TEXT, _CONTINUATION = 0x1, 0x0
+_TEXT, _CONTINUATION, _CONTROL = 0x1, 0x0, 0x8
 MAX_TEXT_BYTES = 1024 * 1024  # a subscribe to thousands of channels is well below
 
 
@@ -16,11 +18,26 @@ class SubscriptionCount:
 
     def __init__(self, cap: int) -> None:
         self.cap = cap
-        self.subscriptions: set[int] = set()
+        self.subscriptions: dict[int, int] = {}  # subscription id -> channel id
         self._buf = bytearray()
         self._skip = 0  # bytes of a frame not read (binary)
         self._text = bytearray()  # a text message's fragments so far
         self._in_text = False
+        self._in_message = False  # between the fragments of a message (text or binary)
+
+    @property
+    def at_boundary(self) -> bool:
+        """Whether the bytes fed so far end between two messages: a frame of the gate's own
+        may go to the server here without cutting one of the client's."""
+        return not (self._buf or self._skip or self._in_message)
+
+    def subscription_to(self, channel_id: int) -> int | None:
+        """The client's (latest) subscription to `channel_id`, if it holds one."""
+        found = None
+        for subscription, channel in self.subscriptions.items():
+            if channel == channel_id:
+                found = subscription
+        return found
 
     def feed(self, data: bytes) -> str | None:
         if self._skip:
@@ -35,6 +52,8 @@ class SubscriptionCount:
             if isinstance(frame, str):
                 return frame
             fin, opcode, payload = frame
+            if opcode < _CONTROL:  # control frames may come between a message's fragments
+                self._in_message = not fin
             if opcode == _TEXT or (opcode == _CONTINUATION and self._in_text):
                 self._text += payload
                 self._in_text = not fin
@@ -73,18 +92,14 @@ class SubscriptionCount:
             else:
                 self._skip = length - available
                 buf.clear()
-            return (True, opcode, b"")
+            return (fin, opcode, b"")
         if length > MAX_TEXT_BYTES:
             return f"a text message over {MAX_TEXT_BYTES} bytes"
         if len(buf) < at + length:
             return None
         payload = bytes(buf[at : at + length])
         del buf[: at + length]
-        keys = (mask * (length // 4 + 1))[:length]
-        unmasked = (int.from_bytes(payload, "big") ^ int.from_bytes(keys, "big")).to_bytes(
-            length, "big"
-        )
-        return (fin, opcode, unmasked)
+        return (fin, opcode, _mask(payload, mask))
 
     def _message(self, text: bytes) -> str | None:
         try:
@@ -96,10 +111,12 @@ class SubscriptionCount:
         if message.get("op") == "subscribe":
             for s in message.get("subscriptions") or ():
                 if isinstance(s, dict) and isinstance(s.get("id"), int):
-                    self.subscriptions.add(s["id"])
+                    channel = s.get("channelId")
+                    self.subscriptions[s["id"]] = channel if isinstance(channel, int) else -1
         elif message.get("op") == "unsubscribe":
             for i in message.get("subscriptionIds") or ():
-                self.subscriptions.discard(i)
+                if isinstance(i, int):
+                    self.subscriptions.pop(i, None)
         if len(self.subscriptions) > self.cap:
             return (
                 f"more than {self.cap} subscriptions "
@@ -112,3 +129,22 @@ def close_frame(code: int, reason: str) -> bytes:
     """A server's (unmasked) close frame with `code` and `reason` (cut to fit 125 bytes)."""
     body = code.to_bytes(2, "big") + reason.encode()[:123]
     return bytes([0x88, len(body)]) + body
+
+
+def client_text_frame(text: bytes) -> bytes:
+    """A client's (masked) text frame of `text`, as the server must be sent one."""
+    n = len(text)
+    if n < 126:
+        head = bytes([0x81, 0x80 | n])
+    elif n < 65536:
+        head = bytes([0x81, 0x80 | 126]) + n.to_bytes(2, "big")
+    else:
+        head = bytes([0x81, 0x80 | 127]) + n.to_bytes(8, "big")
+    mask = os.urandom(4)
+    return head + mask + _mask(text, mask)
+
+
+def _mask(data: bytes, key: bytes) -> bytes:
+    """`data` XOR the 4-byte `key` repeated (RFC 6455 masking; unmasking is the same)."""
+    keys = (key * (len(data) // 4 + 1))[: len(data)]
+    return (int.from_bytes(data, "big") ^ int.from_bytes(keys, "big")).to_bytes(len(data), "big")

@@ -8,7 +8,9 @@ ways, to the SDK server its path names (`/`: live; `/replay`: a replay session's
 
 A client that does not read is dropped after `foxglove_send_timeout_s`: the gate stops
 reading the SDK's side meanwhile, so the SDK's own queue for it (`foxglove_backlog`
-messages, the oldest dropped) is all that waits."""
+messages, the oldest dropped) is all that waits. A subscription the SDK lost to its own
+race (a channel advertised before the SDK recorded it) is sent again
+(foxglove_resubscribe.py)."""
 
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from .credentials import (
     subprotocol_token,
 )
 from .foxglove_frames import SubscriptionCount, close_frame
+from .foxglove_resubscribe import Resubscribe, ServerStream
 from .limits import allowed_hosts, host_allowed, origin_allowed
 
 log = structlog.get_logger(__name__)
@@ -261,14 +264,35 @@ class FoxgloveGate:
         timeout_s = self.settings.foxglove_send_timeout_s
         writer.transport.set_write_buffer_limits(high=_CHUNK * 4)
         up_writer.write(head)
-        if renamed:  # the answer names the protocol as the client offered it
+        try:
             async with asyncio.timeout(HEAD_TIMEOUT_S):
                 answer = await up_reader.readuntil(b"\r\n\r\n")
-            if answer.startswith(b"HTTP/1.1 101"):
-                answer = _set_header(answer, "Sec-WebSocket-Protocol", OLD_SUBPROTOCOL)
-            writer.write(answer)
+        except (TimeoutError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
+            log.warning("foxglove upstream gave no answer to the upgrade", port=port)
+            up_writer.close()
+            return
+        upgraded = answer.startswith(b"HTTP/1.1 101")
+        if renamed and upgraded:  # the answer names the protocol as the client offered it
+            answer = _set_header(answer, "Sec-WebSocket-Protocol", OLD_SUBPROTOCOL)
+        writer.write(answer)
 
         counted = SubscriptionCount(self.settings.foxglove_max_subscriptions)
+        # The SDK's frames are read once it switched protocols (not an HTTP error's body).
+        server_side = ServerStream(counted) if upgraded else None
+        # The gate's own frames for the SDK wait for the end of the client's message.
+        own_frames: list[bytes] = []
+        timers: list[asyncio.TimerHandle] = []
+        loop = asyncio.get_running_loop()
+
+        def to_server(frame: bytes) -> None:
+            own_frames.append(frame)
+            if counted.at_boundary:
+                up_writer.write(b"".join(own_frames))
+                own_frames.clear()
+
+        def again(resubscribe: Resubscribe) -> None:
+            log.debug("foxglove subscription sent again", channel=resubscribe.channel_id)
+            timers.append(loop.call_later(resubscribe.delay_s, to_server, resubscribe.frame()))
 
         async def copy(
             src: asyncio.StreamReader, dst: asyncio.StreamWriter, to_client: bool
@@ -281,7 +305,14 @@ class FoxgloveGate:
                         async with asyncio.timeout(2.0):
                             await writer.drain()
                     return
+                if to_client and server_side is not None:
+                    data, lost = server_side.feed(data)
+                    for resubscribe in lost:
+                        again(resubscribe)
                 dst.write(data)
+                if not to_client and own_frames and counted.at_boundary:
+                    dst.write(b"".join(own_frames))
+                    own_frames.clear()
                 if to_client:
                     try:
                         async with asyncio.timeout(timeout_s):
@@ -302,6 +333,8 @@ class FoxgloveGate:
         try:
             await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
         finally:
+            for timer in timers:
+                timer.cancel()
             for t in tasks:
                 t.cancel()
             for t in tasks:

@@ -96,8 +96,9 @@ class FoxgloveScene:
         history up to then), sending nothing; how many robots. A server does this before its
         client connects: the SDK advertises a channel made later to a connected client before
         it records the advertisement, so a client quick to subscribe is told "unknown channel"
-        and never gets that robot (seen on a loaded machine); channels made before the client
-        connects come in its first advertisement, which its subscriptions cannot overtake."""
+        (seen on a loaded machine; the API's gate then subscribes it again); channels made
+        before the client connects come in its first advertisement, which its subscriptions
+        cannot overtake, and need none of that."""
         count = 0
         for row in self._robots_at(at_ms):
             self._declare_robot(row.robot_id)

@@ -1,7 +1,8 @@
 """The gate's count of a client's subscriptions from the WebSocket frames it passes on:
 for generated sessions (subscribes and unsubscribes of random ids, binary frames between
 them, text messages fragmented, frames of every length encoding, the bytes cut anywhere),
-the count is the model's and the client is named over its cap exactly when the model is;
+the count is the model's and the client is named over its cap exactly when the model is,
+and the bytes read end between two messages exactly where one ended;
 and through the gate, a client that subscribes to one channel too many is closed with 1008."""
 
 from __future__ import annotations
@@ -31,12 +32,12 @@ def frame(opcode: int, payload: bytes, fin: bool = True) -> bytes:
     return head + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
 
 
-def text_frames(message: dict, rng: random.Random) -> bytes:
+def text_frames(message: dict, rng: random.Random) -> list[bytes]:
     data = json.dumps(message).encode()
     if rng.random() < 0.3 and len(data) > 2:  # fragmented
         cut = rng.randrange(1, len(data))
-        return frame(0x1, data[:cut], fin=False) + frame(0x0, data[cut:])
-    return frame(0x1, data)
+        return [frame(0x1, data[:cut], fin=False), frame(0x0, data[cut:])]
+    return [frame(0x1, data)]
 
 
 @pytest.mark.parametrize("seed", range(20))
@@ -48,9 +49,23 @@ def test_the_count_is_the_models_however_the_bytes_come(seed):
     stream = b""
     over_at = None  # the message after which the model is over the cap
     messages = 0
+    ends = {0}  # the offsets at which a message ends (a frame of the gate's may go)
+    frame_ends = [0]  # and at which a frame does (cut there often)
+
+    def add(frames: list[bytes]) -> None:
+        nonlocal stream
+        for f in frames:
+            stream += f
+            frame_ends.append(len(stream))
+        ends.add(len(stream))
+
     while messages < 60 and over_at is None:
         if rng.random() < 0.2:
-            stream += frame(0x2, os.urandom(rng.choice((10, 200, 70_000))))  # binary: skipped
+            payload = os.urandom(rng.choice((10, 200, 70_000)))
+            if rng.random() < 0.3:  # fragmented, with a ping between the fragments
+                add([frame(0x2, payload[:5], fin=False), frame(0x9, b"p"), frame(0x0, payload[5:])])
+            else:
+                add([frame(0x2, payload)])  # binary: skipped
             continue
         if rng.random() < 0.6 or not model:
             ids = [rng.randrange(200) for _ in range(rng.randrange(1, 6))]
@@ -60,7 +75,7 @@ def test_the_count_is_the_models_however_the_bytes_come(seed):
             ids = rng.sample(sorted(model), rng.randrange(1, len(model) + 1))
             message = {"op": "unsubscribe", "subscriptionIds": ids}
             model -= set(ids)
-        stream += text_frames(message, rng)
+        add(text_frames(message, rng))
         messages += 1
         if len(model) > cap:
             over_at = len(stream)
@@ -68,10 +83,13 @@ def test_the_count_is_the_models_however_the_bytes_come(seed):
     fed = 0
     while fed < len(stream) and said is None:
         n = rng.randrange(1, 5000)
+        if rng.random() < 0.5:  # to the end of a frame
+            n = next(end for end in frame_ends if end > fed) - fed
         said = count.feed(stream[fed : fed + n])
         fed += n
+        assert said is not None or count.at_boundary == (min(fed, len(stream)) in ends)
     if over_at is None:
-        assert said is None and count.subscriptions == model
+        assert said is None and count.subscriptions.keys() == model
     else:
         assert said is not None and "MAPSERVICE_FOXGLOVE_MAX_SUBSCRIPTIONS" in said
         assert fed >= over_at  # not before the message that went over
