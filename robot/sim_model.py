@@ -227,7 +227,10 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
         # side as far as the floor now allows.
         if route_clear(grid, entry.cell_array):
             entry.checked_on = grid
-            entry.waypoints = _waypoints(state, grid, entry.cells)
+            if state.config.keep_side_m > 0:  # the centre line's waypoints stay as they were
+                moved = _waypoints(state, grid, entry.cells)
+                if moved != entry.waypoints:
+                    entry.waypoints = moved
         else:
             entry = None
     if entry is None:
