@@ -55,7 +55,7 @@ class Traffic:
         # Only a robot that has not stood for long already waits: standing with its route
         # for the stuck window would be an incident. Nor does one arriving: it will stand
         # there anyway.
-        blocked = self._in_the_way(before, mine)
+        blocked = bool(after.waypoints) and self._in_the_way(before, mine)
         if blocked and before.still_s > self.max_wait_s:
             around = self._around(before, after)
             if around is not None:
@@ -76,8 +76,6 @@ class Traffic:
     def _around(self, before: Robot, after: Robot) -> tuple[Robot, list[Point]] | None:
         """`after` driven as far on a route around the robots near `before` instead, and its
         places this tick; None when there is no such route or it ends within the tick."""
-        if not after.waypoints:  # arriving: the way in is short, the goal its own
-            return None
         g = self.grid
         here, goal = g.cell_at(*before.pos), g.cell_at(*after.waypoints[-1])
         others = np.zeros(g.shape, dtype=bool)
