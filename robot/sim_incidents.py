@@ -33,10 +33,6 @@ LATE_LEVEL_SHARE = (0.75, 0.95)
 GIVE_WAY_TIMES = 1.5
 STATION_SPACING_TIMES = 4.0
 GIVE_WAY_STUCK_SHARE = 0.6  # of the stuck window, the longest a robot stands giving way
-# How far to the right of its route's centre line a robot keeps, in near-miss distances:
-# two robots meeting head-on pass twice that apart where both have room, and more than the
-# near-miss distance where only one has (the other drives along a wall).
-KEEP_SIDE_TIMES = 1.2
 DRIVING = ("to_pick", "to_drop", "to_charger", "leave_zone")
 
 
@@ -57,7 +53,6 @@ def for_incidents(config: SimConfig, th: IncidentThresholds) -> SimConfig:
         give_way_m=th.near_miss_m * GIVE_WAY_TIMES,
         give_way_s=stuck_s * GIVE_WAY_STUCK_SHARE,
         station_spacing_m=th.near_miss_m * STATION_SPACING_TIMES,
-        keep_side_m=th.near_miss_m * KEEP_SIDE_TIMES,
         # the ordinary charge starts well above the line
         low_battery=max(config.low_battery, low * 1.5),
     )

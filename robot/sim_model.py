@@ -15,8 +15,7 @@ from mapservice.adapters.ros_map import RosMap
 from mapservice.core.events import MapMetaSet
 
 from .chunks import metres_geometry
-from .planning import Cell, PlanGrid, plan, route_clear
-from .sim_lanes import keep_to_side
+from .planning import Cell, PlanGrid, plan, route_clear, simplify
 from .zones import NO_ZONES, FloorZones
 
 Point = tuple[float, float]  # continuous image coordinates (u = column, v = row)
@@ -60,9 +59,6 @@ class SimConfig:
     # long at most (0: they drive through each other)
     give_way_m: float = 0.0
     give_way_s: float = 18.0
-    # Robots keep this far to the right of their route's centre line where the floor has
-    # room (robot/sim_lanes.py; 0: they drive down the middle)
-    keep_side_m: float = 0.0
     station_spacing_m: float = 0.0  # between any two stations or chargers, where there is room
 
 
@@ -223,14 +219,9 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
     start = grid.cell_at(*start_pt)
     entry = state.routes.get((start, goal))
     if entry is not None and entry.checked_on is not grid:
-        # The floor changed since: keep the route only if it is still drivable, kept to the
-        # side as far as the floor now allows.
+        # The floor changed since: keep the route only if it is still drivable.
         if route_clear(grid, entry.cell_array):
             entry.checked_on = grid
-            if state.config.keep_side_m > 0:  # the centre line's waypoints stay as they were
-                moved = _waypoints(state, grid, entry.cells)
-                if moved != entry.waypoints:
-                    entry.waypoints = moved
         else:
             entry = None
     if entry is None:
@@ -240,20 +231,11 @@ def route_to(state: SimState, robot: Robot, goal: Cell) -> tuple[Point, ...] | N
         if len(state.routes) > MAX_CACHED_ROUTES:
             state.routes.clear()
         entry = state.routes[(start, goal)] = RouteEntry(
-            cells, _waypoints(state, grid, cells), grid
+            cells, tuple(grid.centre_px(c) for c in simplify(cells)), grid
         )
     if robot.waypoints:
-        # From the robot's next waypoint, through its cell's centre where the route starts
-        # (a waypoint kept to the side is not that centre), on along the new route.
-        first = entry.waypoints[0]
-        head = (robot.waypoints[0],) if robot.waypoints[0] == first else (robot.waypoints[0], first)
-        return head + entry.waypoints[1:]
+        return (robot.waypoints[0],) + entry.waypoints[1:]
     return entry.waypoints
-
-
-def _waypoints(state: SimState, grid: PlanGrid, cells: list[Cell]) -> tuple[Point, ...]:
-    """The waypoints of a planned route: along its cells, kept to the side as configured."""
-    return keep_to_side(grid, cells, state.config.keep_side_m / state.ros_map.resolution)
 
 
 def advance_along(

@@ -1,11 +1,8 @@
 """Giving way: a robot about to drive within `give_way_m` of another robot (closer than it
 is now) waits where it stands instead, as long as it stands there for `give_way_s` at most
-(less than the stuck window, so that giving way is no incident). When waiting runs out (the
-other stands on its route, or waits for it in turn) it drives around: a route planned on the
-grid with the cells within `give_way_m` of the robots near it blocked, kept to its side as
-any route. Only where there is no way around (the other stands on its goal, an aisle too
-narrow for two) does it drive on anyway, and a near miss happens. So robots whose routes
-cross pass one after the other, and a robot standing in the way is passed at a distance.
+(less than the stuck window, so that giving way is no incident); then it drives on anyway
+(two robots meeting head-on in an aisle would wait for each other for ever). So robots whose
+routes cross pass one after the other, and a near miss happens only where waiting ran out.
 
 A tick's move is judged at every second of it (the demo history steps 12 s at a time) against
 where the robots moved before it in the tick were at that second, and where the others stand.
@@ -15,10 +12,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
-from .planning import PlanGrid, dilate, plan
-from .sim_lanes import keep_to_side
 from .sim_model import Point, Robot, SimState, advance_along, evolve
 
 
@@ -33,11 +26,6 @@ class Traffic:
         # it waits a tick only if it would then have stood for at most give_way_s
         self.max_wait_s, self.dt_s = c.give_way_s - c.dt_s, c.dt_s
         self.idle_drain = c.idle_drain_per_s * c.dt_s
-        self.grid, self.side_px = state.grid, c.keep_side_m / state.ros_map.resolution
-        # the cells around a robot a detour keeps off: within give_way_m of its cell
-        self.detour_radius = math.ceil(
-            c.give_way_m / (state.grid.cell_px * state.ros_map.resolution)
-        )
         # robot id -> its places at the tick's seconds (robots not moved yet: where they are)
         self.places: dict[str, list[Point]] = {r.robot_id: [r.pos] for r in state.robots}
         self.starts = {r.robot_id: r.pos for r in state.robots}
@@ -55,12 +43,7 @@ class Traffic:
         # Only a robot that has not stood for long already waits: standing with its route
         # for the stuck window would be an incident. Nor does one arriving: it will stand
         # there anyway.
-        blocked = bool(after.waypoints) and self._in_the_way(before, mine)
-        if blocked and before.still_s > self.max_wait_s:
-            around = self._around(before, after)
-            if around is not None:
-                after, mine = around
-        elif blocked:
+        if before.still_s <= self.max_wait_s and after.waypoints and self._in_the_way(before, mine):
             self.places[before.robot_id] = [before.pos]
             self.waiting.add(before.robot_id)
             # A robot about to leave where it stood (a charger) stays as it was, without
@@ -72,30 +55,6 @@ class Traffic:
             )
         self.places[before.robot_id] = mine
         return evolve(after, still_s=0.0)
-
-    def _around(self, before: Robot, after: Robot) -> tuple[Robot, list[Point]] | None:
-        """`after` driven as far on a route around the robots near `before` instead, and its
-        places this tick; None when there is no such route or it ends within the tick."""
-        g = self.grid
-        here, goal = g.cell_at(*before.pos), g.cell_at(*after.waypoints[-1])
-        others = np.zeros(g.shape, dtype=bool)
-        for other, theirs in self.places.items():
-            if other != before.robot_id:
-                others[g.cell_at(*theirs[-1])] = others[g.cell_at(*self.starts[other])] = True
-        keep_off = dilate(others, self.detour_radius)
-        keep_off[here] = keep_off[goal] = False
-        grid = PlanGrid(g.cell_px, g.ok & ~keep_off)
-        cells = plan(grid, here, goal)
-        if cells is None:
-            return None
-        route = (before.pos, *keep_to_side(grid, cells, self.side_px))
-        pos, yaw, passed = advance_along(
-            before.pos, before.yaw, route, _route_length(before, after)
-        )
-        if passed >= len(route):
-            return None
-        moved = evolve(after, pos=pos, yaw=yaw, waypoints=route[passed:])
-        return moved, self._along(evolve(before, waypoints=route), moved)
 
     def _along(self, before: Robot, after: Robot) -> list[Point]:
         """The robot's places at the tick's seconds, driving from `before` to `after`."""

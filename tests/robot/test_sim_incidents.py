@@ -22,10 +22,6 @@ from mapservice.robot.sim_incidents import for_incidents
 END_MS = 1_795_255_200_000
 HOURS = 3
 OWN_KINDS = ("stuck", "offline", "battery_low")
-# At most this many near misses an hour for five robots on the demo floor, over each seed's
-# hours: robots keeping to their side and driving around one standing in their way meet
-# 50-85 times an hour on seeds 1-4, down their routes' middles 91-118 times.
-NEAR_MISSES_PER_HOUR = 88
 
 
 @pytest.fixture(scope="module")
@@ -52,9 +48,6 @@ def test_each_behaviour_happens_at_a_floors_rate_and_crosses_its_threshold(floor
         assert per_hour.get(kind, 0) > 0, f"no {kind} in {HOURS} h: {per_hour}"
     for kind in OWN_KINDS:
         assert per_hour[kind] <= 12, f"a storm of {kind}: {per_hour}"
-    # Near misses where routes cross and waiting ran out, not at every meeting in an aisle
-    # (robots keep to their side and drive around one standing in the way).
-    assert per_hour["near_miss"] <= NEAR_MISSES_PER_HOUR, f"a storm of near misses: {per_hour}"
     # a late charge goes well below the line (a robot queueing for a charger may dip below it)
     lows = [i.measure for i in incidents if i.kind == "battery_low"]
     assert min(lows) <= 0.9 * th.battery_low_percent, lows
@@ -125,9 +118,9 @@ def _still_with_route(track) -> list[float]:
 
 
 def test_robots_give_way_and_stations_stand_apart(floor) -> None:
-    """Robots wait for each other where routes cross, keep to their side and stations and
-    chargers stand apart: fewer near misses than robots driving through each other down
-    their routes' middles, on stations spaced out."""
+    """Robots wait for each other where routes cross and stations and chargers stand apart:
+    fewer near misses than robots driving through each other (head-on in an aisle they
+    still pass close: their routes run down its middle), on stations spaced out."""
     th = IncidentThresholds()
     config = for_incidents(sim.SimConfig(change_every_s=0), th)
     state = sim.new_state(floor, 5, seed=3, config=config)
@@ -165,44 +158,5 @@ def test_robots_give_way_and_stations_stand_apart(floor) -> None:
         return sum(1 for i in detect(rows, state.t_ms, th) if i.kind == "near_miss")
 
     giving_way = near_misses(config)
-    driving_through = near_misses(
-        replace(config, give_way_m=0.0, station_spacing_m=0.0, keep_side_m=0.0)
-    )
+    driving_through = near_misses(replace(config, give_way_m=0.0, station_spacing_m=0.0))
     assert giving_way < 0.85 * driving_through, (giving_way, driving_through)
-
-
-def test_a_robot_whose_wait_ran_out_drives_around_the_one_in_its_way(floor) -> None:
-    """A robot stands (charging) on another's route; the other, done waiting for it, plans
-    around it rather than through it: its new route keeps more than a near miss away."""
-    th = IncidentThresholds()
-    config = for_incidents(sim.SimConfig(change_every_s=0), th)
-    state = sim.new_state(floor, 2, seed=3, config=config)
-    g, res = state.grid, floor.resolution
-    driver, standing = state.robots
-    start = g.centre_px(state.stations[0])
-    driver = replace(driver, pos=start, waypoints=(), battery=80.0, still_s=0.0)
-    route = sim._route(state, driver, state.stations[1])
-    assert route is not None
-    walked = _walk(route)
-    middle = walked[len(walked) // 2]
-    standing = replace(standing, pos=middle, waypoints=(), task="charging", battery=50.0)
-    # about to come within give_way_m of it this second, waited out
-    near = next(p for p in walked if math.dist(p, middle) * res < 2.0)
-    ahead = tuple(p for p in route if math.dist(p, start) > math.dist(near, start))
-    driver = replace(
-        driver, pos=near, waypoints=ahead, task="to_pick", target=1, still_s=config.give_way_s
-    )
-    state = replace(state, robots=(driver, standing))
-    after, _ = sim.step(state)
-    moved = after.robots[0]
-    assert moved.pos != near
-    closest = min(math.dist(p, middle) for p in _walk((moved.pos, *moved.waypoints))) * res
-    assert closest > th.near_miss_m, closest
-
-
-def _walk(route, step_px: float = 1.0) -> list:
-    points = []
-    for (u0, v0), (u1, v1) in zip(route, route[1:], strict=False):
-        n = max(1, math.ceil(math.hypot(u1 - u0, v1 - v0) / step_px))
-        points += [(u0 + (u1 - u0) * k / n, v0 + (v1 - v0) * k / n) for k in range(n)]
-    return [*points, route[-1]]
