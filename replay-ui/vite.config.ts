@@ -28,5 +28,8 @@ export default defineConfig({
   test: {
     include: ["tests/**/*.test.ts"],
     environment: "node",
+    // Generated-case tests take a second or two alone; on a loaded 2-core CI machine the
+    // default 5 s turned a passing run into a timeout. Assertions decide, not the clock.
+    testTimeout: 60_000,
   },
 });

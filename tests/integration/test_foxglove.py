@@ -9,18 +9,14 @@ another site's Origin and one client more than the cap. One `up` for every check
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 import os
 import random
 import time
 
 import httpx
-import numpy as np
 import paho.mqtt.publish as mqtt_publish
 import pytest
-from PIL import Image
 from websockets.sync.client import connect
 
 from mapservice.adapters.mcap_channels import (
@@ -29,14 +25,18 @@ from mapservice.adapters.mcap_channels import (
     ERRORS_SCHEMA_NAME,
     INCIDENT_SCHEMA_NAME,
     INCIDENTS_TOPIC,
-    MAP_CHANGES_TOPIC,
     MAP_TOPIC,
     errors_topic,
-    path_topic,
-    pose_topic,
-    state_topic,
 )
 from mapservice.core.wire2019 import format_timestamp
+from tests.fixtures.foxglove_checks import (
+    all_valid,
+    assert_a_seek_brings_what_the_api_reads,
+    assert_live_sends_the_floor_and_a_mqtt_pose_within_a_second,
+    assert_playing_sends_every_stored_chunk_write,
+    on,
+    seek,
+)
 from tests.fixtures.foxglove_client import FoxgloveNodeClient
 from tests.fixtures.up import UP_ENV, Up
 
@@ -76,62 +76,9 @@ def fox(tmp_path_factory):
         up.stop()
 
 
-def png_pixels_digest(png: bytes) -> str:
-    """The digest of a foxglove.Grid's data holding this image (its rows bottom up)."""
-    pixels = np.asarray(Image.open(io.BytesIO(png)).convert("L"))
-    return hashlib.sha256(np.flipud(pixels).tobytes()).hexdigest()
-
-
-def on(event: dict, topic: str) -> bool:
-    return event["event"] == "message" and event["topic"] == topic
-
-
-def all_valid(client: FoxgloveNodeClient) -> None:
-    advertised = [e for e in client.events if e["event"] == "advertise"]
-    assert advertised and all(e["known"] for e in advertised), advertised
-    bad = [e for e in client.messages() if not e["valid"]]
-    assert not bad, bad[:3]
-
-
 def test_live_sends_the_floor_at_once_and_a_mqtt_pose_within_a_second(fox):
     with FoxgloveNodeClient(fox.live, token=fox.token) as client:
-        info = client.wait_for(lambda e: e["event"] == "serverInfo", 15)
-        assert "playbackControl" not in info["capabilities"]
-        grid = client.wait_for(lambda e: on(e, MAP_TOPIC), 15)
-        assert grid["msg"]["data_len"] > 0 and grid["msg"]["column_count"] > 0
-        robot = f"fox-{random.randrange(10**6)}"
-        x, y = round(random.uniform(2, 20), 2), round(random.uniform(2, 20), 2)
-        body = {
-            "robotId": robot,
-            "timestamp": format_timestamp(int(time.time() * 1000)),
-            "pose": {
-                "position": {"x": x, "y": y, "z": 0},
-                "orientation": {"x": 0, "y": 0, "z": 0, "w": 1},
-            },
-            "status": {"battery": {"battery_level": 3, "charging": False}, "loaded": True},
-        }
-        client.quiet(0.3, 15)
-        sent = time.monotonic()
-        mqtt_publish.single(
-            f"iot/coordinates/{robot}", json.dumps(body), qos=1, port=fox.up.mqtt_port
-        )
-        pose = client.wait_for(lambda e: on(e, pose_topic(robot)), 10)
-        assert (
-            pose["msg"]["pose"]["position"]["x"] == x and pose["msg"]["pose"]["position"]["y"] == y
-        )
-        state = client.wait_for(lambda e: on(e, state_topic(robot)), 5)
-        assert state["msg"]["loaded"] is True and state["msg"]["battery_level"] == 3
-        assert pose["at"] - sent <= 1.0, f"the pose took {pose['at'] - sent:.2f} s"
-        all_valid(client)
-
-
-def seek(client: FoxgloveNodeClient, at_ms: int) -> list[dict]:
-    """The messages a paused seek to `at_ms` brings (until the client is quiet)."""
-    before = client.send(op="playback", command="pause", speed=1, seek_ms=at_ms)
-    client.wait_for(lambda e: e["event"] == "playbackState" and e["did_seek"], 10, before)
-    client.wait_for(lambda e: on(e, MAP_TOPIC) and e["log_ms"] == at_ms, 20, before)
-    end = client.quiet(0.5, 20)
-    return client.messages(before, end)
+        assert_live_sends_the_floor_and_a_mqtt_pose_within_a_second(client, fox.up.mqtt_port)
 
 
 def test_seeks_bring_the_floor_and_robots_the_api_reads(fox):
@@ -152,31 +99,7 @@ def test_seeks_bring_the_floor_and_robots_the_api_reads(fox):
         assert abs(end - now) < 60_000 and end - start == pytest.approx(7 * 86_400_000, abs=2000)
         client.quiet(0.5, 20)
         for at_ms in instants:
-            messages = seek(client, at_ms)
-            grids = [m for m in messages if m["topic"] == MAP_TOPIC and m["log_ms"] == at_ms]
-            png = fox.api("/api/v1/map/png", at=at_ms).content
-            assert grids[-1]["msg"]["data_sha256"] == png_pixels_digest(png), at_ms
-            robots = fox.api("/api/v1/robots", at=at_ms).json()["robots"]
-            assert robots, f"no robot at {at_ms}"
-            latest = {m["topic"]: m["msg"] for m in messages}
-            sent_robots = {t for t in latest if t.endswith("/pose")}
-            assert sent_robots == {pose_topic(r["robotId"]) for r in robots}
-            for r in robots:
-                pose = latest[pose_topic(r["robotId"])]["pose"]
-                p, q = pose["position"], pose["orientation"]
-                assert [p["x"], p["y"], p["z"]] == r["position"]
-                assert [q["x"], q["y"], q["z"], q["w"]] == r["orientation"]
-                state = latest[state_topic(r["robotId"])]
-                assert (state["battery_level"], state["charging"], state["loaded"]) == (
-                    r["battery_level"],
-                    r["charging"],
-                    r["loaded"],
-                )
-                path = [
-                    [s["position"]["x"], s["position"]["y"]]
-                    for s in latest[path_topic(r["robotId"])]["poses"]
-                ]
-                assert path == (r["path"] or [])
+            assert_a_seek_brings_what_the_api_reads(client, fox.api, at_ms)
         all_valid(client)
 
 
@@ -189,31 +112,8 @@ def test_playing_at_60x_sends_every_stored_chunk_write(fox):
     with FoxgloveNodeClient(fox.replay, token=fox.token) as client:
         client.wait_for(lambda e: e["event"] == "serverInfo", 15)
         client.quiet(0.5, 20)
-        seek(client, first - 1000)
-        before = client.send(op="playback", command="play", speed=60)
-        time.sleep(4)
-        paused = client.send(op="playback", command="pause", speed=60)
-        state = client.wait_for(
-            lambda e: e["event"] == "playbackState" and e["status"] == 1, 10, paused
-        )
-        end = client.quiet(0.5, 20)
-        played = client.messages(before, end)
-        # Every write up to the last instant played was sent (a step sends all of its own).
-        reached = max(m["log_ms"] for m in played) + 1
-        assert reached >= first + 60_000, "60x for 4 s played less than a minute"
-        assert state["current_ms"] >= first + 60_000
-        expected = fox.api(
-            "/api/v1/chunk-events", **{"from": first - 1000, "to": reached}, limit=100_000
-        ).json()
-        got = [m["msg"] for m in played if m["topic"] == MAP_CHANGES_TOPIC]
-        assert [
-            (g["row"], g["column"], g["robot_id"], g["content_hash"], g["ts_ms"]) for g in got
-        ] == [
-            (e["row"], e["column"], e["robotId"], e["content_hash"], e["ts_ms"]) for e in expected
-        ]
-        last_grid = [m for m in played if m["topic"] == MAP_TOPIC][-1]
-        png = fox.api("/api/v1/map/png", at=last_grid["log_ms"]).content
-        assert last_grid["msg"]["data_sha256"] == png_pixels_digest(png)
+        played = assert_playing_sends_every_stored_chunk_write(client, fox.api, first - 1000, 60, 4)
+        assert played >= 1
         all_valid(client)
 
 

@@ -17,6 +17,9 @@ comes last):
   the simulator makes them), a click on a stuck robot's lands a few seconds before it with
   the robot ringed and its trail drawn, and the heatmap's incidents kind draws with its
   legend (screenshots in test-artifacts/ui/first-run-incident*.png);
+- Foxglove's own client (npm `@foxglove/ws-protocol`) connects live (the floor at once, an
+  MQTT pose within a second) and on replay seeks over the demo week (the floor and robots
+  equal to the API's reads at each instant) and plays 60x for 10 s skipping no write;
 - the README's try-it block: its mosquitto_pub pose is queryable within 2 s; Ctrl-C stops
   everything; a second `up` on the same data dir still has it.
 """
@@ -26,6 +29,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import random
 import subprocess
 import time
 
@@ -40,6 +44,13 @@ from mapservice.cli import build_parser
 from mapservice.core.wire2019 import content_hash
 from mapservice.local.embedded import ensure_port_free
 from mapservice.robot.chunks import meta_from_json, metres_to_pixel
+from tests.fixtures.foxglove_checks import (
+    all_valid,
+    assert_a_seek_brings_what_the_api_reads,
+    assert_live_sends_the_floor_and_a_mqtt_pose_within_a_second,
+    assert_playing_sends_every_stored_chunk_write,
+)
+from tests.fixtures.foxglove_client import FoxgloveNodeClient
 from tests.fixtures.paths import MAPS, README, ROOT
 from tests.fixtures.up import Up
 from tests.ui.test_plots_timeline import iso
@@ -288,6 +299,51 @@ def try_it_block() -> str:
 def stop_up(up: Up) -> int | None:
     up.stop()
     return up.proc.returncode
+
+
+def test_foxglove_connects_live_and_seeks_and_plays_the_demo_week_as_the_api_reads_it(up) -> None:
+    """Foxglove's own client on the newcomer's `up`: live, the floor at once and a pose
+    over MQTT within a second; on replay, seeks spread over the demo week bring the floor
+    and the robots the API reads at each instant, and 60x for 10 s from just before one of
+    the simulator's chunk writes sends every stored write it passes."""
+
+    def api_get(path: str, **params) -> httpx.Response:
+        response = httpx.get(f"{up.api_url}{path}", params=params, timeout=60)
+        response.raise_for_status()
+        return response
+
+    with FoxgloveNodeClient(f"ws://127.0.0.1:{up.foxglove_port}/") as client:
+        assert_live_sends_the_floor_and_a_mqtt_pose_within_a_second(client, up.mqtt_port)
+    now = int(time.time() * 1000)
+    rng = random.Random(now)
+    instants = [
+        now - 6 * DAY_MS - 22 * HOUR_MS,
+        *sorted(now - rng.randrange(HOUR_MS, 6 * DAY_MS) for _ in range(3)),
+        now - 2 * DAY_MS,
+        now - HOUR_MS,
+    ]
+    by_robots = [  # the simulator's chunk writes, a day at a time (the route's longest span)
+        w["ts_ms"]
+        for back in range(1, 7)
+        for w in api_get(
+            "/api/v1/chunk-events",
+            **{"from": now - (back + 1) * DAY_MS, "to": now - back * DAY_MS},
+            limit=100_000,
+        ).json()
+        if w["robotId"].startswith("sim-")
+    ]
+    assert by_robots, "the demo week's robots changed no chunk"
+    with FoxgloveNodeClient(f"ws://127.0.0.1:{up.foxglove_port}/replay") as client:
+        info = client.wait_for(lambda e: e["event"] == "serverInfo", 15)
+        assert "playbackControl" in info["capabilities"]
+        client.quiet(0.5, 20)
+        compared = [assert_a_seek_brings_what_the_api_reads(client, api_get, t) for t in instants]
+        assert min(compared) >= 1 and max(compared) >= SIM_ROBOTS, compared
+        played = assert_playing_sends_every_stored_chunk_write(
+            client, api_get, rng.choice(by_robots) - 1000, 60, 10
+        )
+        assert played >= 1
+        all_valid(client)
 
 
 def test_try_it_block_against_mapservice_up(up):
