@@ -34,6 +34,7 @@ import msgspec
 import structlog
 from prometheus_client import Counter, Gauge
 
+from mapservice.adapters.webhook_destinations import DestinationPolicy, guarded_client
 from mapservice.core.webhooks import (
     DELIVERY_HEADER,
     WEBHOOK_ID_HEADER,
@@ -80,6 +81,8 @@ class DeliveryPolicy:
     backoff_cap_s: float = 60.0
     max_queued: int = 10_000
     workers: int = 2
+    # Where deliveries may connect (public addresses unless the plant names more).
+    destinations: DestinationPolicy = field(default_factory=DestinationPolicy)
 
 
 class WebhookDeliveries:
@@ -94,9 +97,7 @@ class WebhookDeliveries:
         wall_s: Callable[[], float] = time.time,
     ) -> None:
         self.policy = policy
-        self.client = client or httpx.Client(
-            timeout=policy.timeout_s, follow_redirects=False, trust_env=False
-        )
+        self.client = client or guarded_client(policy.destinations, policy.timeout_s)
         self.monotonic, self.wall_s = monotonic, wall_s
         self._hooks: dict[str, _Hook] = {}
         self._queued = 0
@@ -234,6 +235,13 @@ class WebhookDeliveries:
         except httpx.TimeoutException:
             return f"no answer within {self.policy.timeout_s:g} s"
         except httpx.HTTPError as exc:
+            return f"{type(exc).__name__}: {exc}"[:500]
+        except Exception as exc:  # noqa: BLE001 - a worker that died would stop every webhook
+            # A URL stored before a stricter check, or one the client cannot send to: the
+            # try fails with the reason and the worker goes on with the other webhooks.
+            log.warning(
+                "webhook delivery could not be sent", webhook=webhook.webhook_id, exc_info=True
+            )
             return f"{type(exc).__name__}: {exc}"[:500]
         if 200 <= response.status_code < 300:
             return ""

@@ -22,6 +22,7 @@ from collections.abc import Awaitable, Callable
 import msgspec
 import structlog
 
+from mapservice.adapters.webhook_destinations import destination_policy
 from mapservice.core.ports import WebhookRegistry
 from mapservice.core.webhook_registry import WebhookReport
 from mapservice.settings import Settings
@@ -37,6 +38,7 @@ def delivery_policy(settings: Settings) -> DeliveryPolicy:
         max_tries=settings.webhook_max_tries,
         backoff_cap_s=settings.webhook_backoff_cap_s,
         max_queued=settings.webhook_max_queued,
+        destinations=destination_policy(settings),
     )
 
 

@@ -21,6 +21,7 @@ import msgspec
 from fastapi import APIRouter, Depends, HTTPException, Path, Response
 from pydantic import BaseModel, Field
 
+from mapservice.adapters.webhook_destinations import Unresolved, destination_policy
 from mapservice.adapters.webhook_urls import URL_MAX_CHARS, check_url
 from mapservice.core.ports import WebhookRegistry
 from mapservice.core.webhook_registry import (
@@ -155,6 +156,12 @@ def register_webhook(
     key = signing_key(settings)
     try:
         url = check_url(body.url)
+        # Where it resolves now (a thread of the pool: this route is sync); each delivery
+        # checks again where it connects. A name this API cannot resolve is taken: the
+        # processors may see another DNS, and the webhook's state will say if they cannot.
+        destination_policy(settings).check_url(url)
+    except Unresolved:
+        pass
     except ValueError as exc:
         raise HTTPException(422, f"url: {exc}") from None
     registered = store.webhooks()

@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from urllib.parse import urlsplit
 
+import httpx
+
 URL_MAX_CHARS = 2048
 _HOST = re.compile(r"[A-Za-z0-9.\-\[\]:]+")
 
@@ -33,4 +35,8 @@ def check_url(url: str) -> str:
         raise ValueError("the URL's port must be 1 to 65535")
     if parts.fragment or url.endswith("#"):
         raise ValueError("the URL must not have a fragment")
+    try:
+        httpx.URL(url)  # the delivery client's own parser: what it refuses is never sent
+    except httpx.InvalidURL as exc:
+        raise ValueError(f"the URL is malformed: {exc}") from None
     return url

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import ipaddress
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -28,6 +29,23 @@ TIMESTAMP_HEADER = "X-Mapservice-Timestamp"
 WEBHOOK_ID_HEADER = "X-Mapservice-Webhook"
 DELIVERY_HEADER = "X-Mapservice-Delivery"
 SECRET_MIN_CHARS = 16
+
+IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+def parse_networks(text: str) -> tuple[IPNetwork, ...]:
+    """MAPSERVICE_WEBHOOK_NETWORKS: CIDRs separated by commas or spaces ("" for none)."""
+    out: list[IPNetwork] = []
+    for part in text.replace(",", " ").split():
+        try:
+            out.append(ipaddress.ip_network(part, strict=False))
+        except ValueError as exc:
+            raise ValueError(
+                f"{part!r} is not a network (write e.g. 10.20.0.0/16): {exc}"
+            ) from None
+    return tuple(out)
+
+
 SECRET_MAX_CHARS = 256
 # A secret is text a plant's system can keep in its configuration: printable ASCII.
 _SECRET = re.compile(r"[\x21-\x7e]+")

@@ -3,9 +3,10 @@ delivery, conflicts, clock skew and robots going offline (the 2019 document's id
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field, SecretStr
+from pydantic import BaseModel, Field, SecretStr, field_validator
 
 from mapservice.core.areas import DEFAULT_AREA_CHUNKS
+from mapservice.core.webhooks import parse_networks
 
 
 class LiveSettings(BaseModel):
@@ -82,6 +83,16 @@ class LiveSettings(BaseModel):
     webhook_backoff_cap_s: float = Field(
         60.0, gt=0, description="Longest wait between two tries of a webhook delivery."
     )
+    webhook_networks: str = Field(
+        "",
+        description=(
+            "Networks besides the public Internet that webhooks may be sent to (CIDRs, comma "
+            "separated, e.g. the plant's receivers' 10.20.0.0/16; 127.0.0.0/8 for a receiver on "
+            "this machine). Checked on every address a delivery connects to, after DNS; "
+            "loopback, link-local (cloud metadata), private and reserved addresses outside "
+            "them are refused, and the service's own store, Kafka and MQTT endpoints always."
+        ),
+    )
     webhook_max_queued: int = Field(
         10_000,
         ge=1,
@@ -155,3 +166,9 @@ class LiveSettings(BaseModel):
         "a run that goes on costs a row this often, not one per stored batch. Begins, "
         "ends and other changes are written at once.",
     )
+
+    @field_validator("webhook_networks")
+    @classmethod
+    def _networks(cls, value: str) -> str:
+        parse_networks(value)  # refused at start, with what is wrong, not at a delivery
+        return value

@@ -6,6 +6,7 @@ The queue's bound drops the oldest and counts it."""
 
 from __future__ import annotations
 
+import dataclasses
 import http.server
 import json
 import threading
@@ -13,7 +14,8 @@ import time
 
 import pytest
 
-from mapservice.core.webhooks import DELIVERY_HEADER, Webhook, backoff_s, verify
+from mapservice.adapters.webhook_destinations import DestinationPolicy
+from mapservice.core.webhooks import DELIVERY_HEADER, Webhook, backoff_s, parse_networks, verify
 from mapservice.local.embedded import free_port
 from mapservice.processors.views import LiveViews
 from mapservice.processors.webhook_delivery import DELIVERIES, DeliveryPolicy, WebhookDeliveries
@@ -23,8 +25,14 @@ from tests.processors.test_incident_watch import PATH, Floor
 SECRET = "s3cret-for-the-plant-0123"
 # A batch of four poses takes milliseconds to store: one that waited for a try would take
 # the timeout, far beyond what a loaded machine adds.
+# The receivers are on this machine: its loopback network is named, as a plant names its own.
 POLICY = DeliveryPolicy(
-    timeout_s=1.0, max_tries=3, backoff_base_s=0.1, backoff_cap_s=0.25, max_queued=1000
+    timeout_s=1.0,
+    max_tries=3,
+    backoff_base_s=0.1,
+    backoff_cap_s=0.25,
+    max_queued=1000,
+    destinations=DestinationPolicy(networks=parse_networks("127.0.0.0/8")),
 )
 
 
@@ -216,7 +224,7 @@ def test_a_full_queue_drops_the_oldest_and_counts_it() -> None:
 
 def test_a_receiver_back_before_the_tries_run_out_gets_everything_without_a_resume(ev) -> None:
     port = free_port()
-    patient = DeliveryPolicy(timeout_s=1.0, max_tries=6, backoff_base_s=0.2, backoff_cap_s=1.0)
+    patient = dataclasses.replace(POLICY, max_tries=6, backoff_base_s=0.2, backoff_cap_s=1.0)
     deliveries = WebhookDeliveries(patient)
     deliveries.set_webhooks([Webhook("w1", f"http://127.0.0.1:{port}/", SECRET)])
     deliveries.start()
@@ -235,3 +243,29 @@ def test_a_receiver_back_before_the_tries_run_out_gets_everything_without_a_resu
         deliveries.close()
         if receiver is not None:
             receiver.close()
+
+
+def test_a_url_the_client_cannot_send_to_fails_its_tries_and_the_worker_goes_on() -> None:
+    """A stored URL the delivery client cannot parse (one registered before the API checked
+    it with that parser): its tries fail with the reason, and the one worker still delivers
+    to the other webhook (a worker that died would have stopped every webhook)."""
+    port = free_port()
+    receiver = Receiver(port)
+    deliveries = WebhookDeliveries(dataclasses.replace(POLICY, workers=1))
+    deliveries.set_webhooks(
+        [
+            Webhook("bad", f"http://0177.0.0.1:{port}/", SECRET),
+            Webhook("good", f"http://127.0.0.1:{port}/", SECRET),
+        ]
+    )
+    deliveries.start()
+    try:
+        for n in range(3):
+            deliveries.offer({"event": "new", "found_ms": n, "id": f"i{n}", "kind": "stuck"})
+        wait_for(lambda: deliveries.health()["bad"].paused_reason)
+        assert "InvalidURL" in deliveries.health()["bad"].paused_reason
+        wait_for(lambda: deliveries.queued("good") == 0)
+        assert len(receiver.delivered()) == 3
+    finally:
+        deliveries.close()
+        receiver.close()
