@@ -34,7 +34,7 @@ import msgspec
 import structlog
 from prometheus_client import Counter, Gauge
 
-from mapservice.adapters.webhook_destinations import DestinationPolicy, guarded_client
+from mapservice.adapters.webhook_destinations import DestinationPolicy, guarded_client, try_within
 from mapservice.core.webhooks import (
     DELIVERY_HEADER,
     WEBHOOK_ID_HEADER,
@@ -231,7 +231,16 @@ class WebhookDeliveries:
         headers[WEBHOOK_ID_HEADER] = webhook.webhook_id
         headers[DELIVERY_HEADER] = delivery.delivery_id
         try:
-            response = self.client.post(webhook.url, content=delivery.body, headers=headers)
+            # The answer's status is all a delivery needs: its body is never read (a receiver
+            # answering without end would fill the memory), and the try ends within the
+            # timeout in all, however slowly the receiver answers.
+            with (
+                try_within(self.policy.timeout_s),
+                self.client.stream(
+                    "POST", webhook.url, content=delivery.body, headers=headers
+                ) as response,
+            ):
+                status = response.status_code
         except httpx.TimeoutException:
             return f"no answer within {self.policy.timeout_s:g} s"
         except httpx.HTTPError as exc:
@@ -243,9 +252,9 @@ class WebhookDeliveries:
                 "webhook delivery could not be sent", webhook=webhook.webhook_id, exc_info=True
             )
             return f"{type(exc).__name__}: {exc}"[:500]
-        if 200 <= response.status_code < 300:
+        if 200 <= status < 300:
             return ""
-        return f"HTTP {response.status_code}"
+        return f"HTTP {status}"
 
     def _sent(self, hook: _Hook, delivery: _Delivery, error: str) -> None:
         hook.sending = False

@@ -17,7 +17,11 @@ from __future__ import annotations
 
 import ipaddress
 import socket
-from collections.abc import Callable, Iterable
+import ssl
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import urlsplit
@@ -174,6 +178,61 @@ def destination_policy(settings: Settings, resolver: Resolver = resolve) -> Dest
     )
 
 
+_deadlines = threading.local()
+
+
+@contextmanager
+def try_within(seconds: float) -> Iterator[None]:
+    """Bounds everything this thread's delivery client does inside the block (connecting,
+    TLS, sending, reading the answer) to `seconds` in all: httpx's timeouts bound each
+    socket operation, so a receiver trickling its answer a byte at a time would hold a
+    delivery worker, and every webhook behind it, for ever."""
+    _deadlines.at = time.monotonic() + seconds
+    try:
+        yield
+    finally:
+        _deadlines.at = None
+
+
+def _within(timeout: float | None, timed_out: type[Exception]) -> float | None:
+    """`timeout` cut to what is left of this thread's deadline (None: none is set)."""
+    at: float | None = getattr(_deadlines, "at", None)
+    if at is None:
+        return timeout
+    left = at - time.monotonic()
+    if left <= 0:
+        raise timed_out("the delivery's time ran out")
+    return left if timeout is None else min(timeout, left)
+
+
+class DeadlineStream(httpcore.NetworkStream):
+    """A connection whose every operation ends by the deadline of `try_within`."""
+
+    def __init__(self, stream: httpcore.NetworkStream) -> None:
+        self._stream = stream
+
+    def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        return self._stream.read(max_bytes, _within(timeout, httpcore.ReadTimeout))
+
+    def write(self, buffer: bytes, timeout: float | None = None) -> None:
+        self._stream.write(buffer, _within(timeout, httpcore.WriteTimeout))
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def start_tls(
+        self,
+        ssl_context: ssl.SSLContext,
+        server_hostname: str | None = None,
+        timeout: float | None = None,
+    ) -> httpcore.NetworkStream:
+        wait = _within(timeout, httpcore.ConnectTimeout)
+        return DeadlineStream(self._stream.start_tls(ssl_context, server_hostname, wait))
+
+    def get_extra_info(self, info: str) -> Any:
+        return self._stream.get_extra_info(info)
+
+
 class GuardedBackend(httpcore.NetworkBackend):
     """httpcore's own network backend, connecting only where the policy permits: the host
     of each new connection resolved here, every address checked, then connected to by
@@ -198,8 +257,9 @@ class GuardedBackend(httpcore.NetworkBackend):
         error: Exception | None = None
         for address in addresses:
             try:
-                return self._backend.connect_tcp(
-                    address, port, timeout, local_address, socket_options
+                wait = _within(timeout, httpcore.ConnectTimeout)
+                return DeadlineStream(
+                    self._backend.connect_tcp(address, port, wait, local_address, socket_options)
                 )
             except (httpcore.ConnectError, httpcore.ConnectTimeout) as exc:
                 error = exc
@@ -235,7 +295,7 @@ class GuardedTransport(httpx.HTTPTransport):
 
 def guarded_client(policy: DestinationPolicy, timeout_s: float) -> httpx.Client:
     """The delivery client: no redirect followed, no proxy from the environment, every
-    connection through the policy."""
+    connection through the policy, each try bounded in all by `try_within`."""
     return httpx.Client(
         timeout=timeout_s,
         follow_redirects=False,

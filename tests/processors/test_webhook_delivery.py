@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import http.server
 import json
+import socket
 import threading
 import time
 
@@ -269,3 +270,84 @@ def test_a_url_the_client_cannot_send_to_fails_its_tries_and_the_worker_goes_on(
     finally:
         deliveries.close()
         receiver.close()
+
+
+# How a hostile or broken receiver can answer: (sent at once, then a byte every 0.2 s,
+# then 64 KiB pieces without end or not). A status arrives at once only where it is 500.
+OK, FAILED = b"HTTP/1.1 200 OK\r\n", b"HTTP/1.1 500 Oops\r\n"
+ANSWERS = {
+    "trickled status line": (b"", OK + b"Content-Length: 0\r\n\r\n", False),
+    "trickled header without end": (OK, b"X-Pad: " + b"a" * 100_000, False),
+    "endless body": (FAILED + b"Content-Length: 100000000000\r\n\r\n", b"", True),
+    "trickled body": (FAILED + b"Content-Length: 100000\r\n\r\n", b"b" * 100_000, False),
+    "silent after reading": (b"", b"", False),
+}
+
+
+class HostileReceiver:
+    """Reads each request, then answers as `ANSWERS` says, until the client leaves."""
+
+    def __init__(self, at_once: bytes, trickled: bytes, endless: bool) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.at_once, self.trickled, self.endless = at_once, trickled, endless
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                conn, _ = self.server.accept()
+            except OSError:
+                return
+            threading.Thread(target=self._answer, args=(conn,), daemon=True).start()
+
+    def _answer(self, conn: socket.socket) -> None:
+        with conn:
+            try:
+                conn.recv(65536)
+                conn.sendall(self.at_once)
+                for b in self.trickled:
+                    conn.sendall(bytes([b]))
+                    time.sleep(0.2)
+                while self.endless:
+                    conn.sendall(b"z" * 65536)
+                time.sleep(60)
+            except OSError:
+                return
+
+    def close(self) -> None:
+        self.server.close()
+
+
+@pytest.mark.parametrize("answer", ANSWERS)
+def test_a_receiver_answering_slowly_or_without_end_costs_one_timeout_a_try(answer) -> None:
+    """One worker, a hostile receiver and a healthy one: each try at the hostile one ends
+    within the timeout in all (not per socket read), its answer's body is never read into
+    memory, and the healthy webhook gets every alert meanwhile."""
+    hostile = HostileReceiver(*ANSWERS[answer])
+    port = free_port()
+    healthy = Receiver(port)
+    deliveries = WebhookDeliveries(dataclasses.replace(POLICY, workers=1))
+    deliveries.set_webhooks(
+        [
+            Webhook("hostile", f"http://127.0.0.1:{hostile.port}/", SECRET),
+            Webhook("healthy", f"http://127.0.0.1:{port}/", SECRET),
+        ]
+    )
+    deliveries.start()
+    started = time.monotonic()
+    try:
+        for n in range(3):
+            deliveries.offer({"event": "new", "found_ms": n, "id": f"i{n}", "kind": "stuck"})
+        wait_for(lambda: deliveries.queued("healthy") == 0, 20)
+        wait_for(lambda: deliveries.health()["hostile"].paused_reason, 20)
+        took = time.monotonic() - started
+        # Three tries of at most the timeout each, the backoffs between them, and slack.
+        assert took < POLICY.max_tries * POLICY.timeout_s + 3, took
+        health = deliveries.health()["hostile"]
+        assert health.delivered == 0 and health.failed_tries == POLICY.max_tries, health
+        assert len(healthy.delivered()) == 3
+    finally:
+        deliveries.close()
+        healthy.close()
+        hostile.close()
