@@ -2,8 +2,11 @@
 start and end (the SDK's playback-control capability), driven by the app's own controls.
 A seek to T draws the floor, the robots and the annotations at T (foxglove_scene.py: as
 `/api/v1/map?at=` and `/api/v1/robots?at=` read them); play at a speed streams the stored
-chunk writes, poses, incidents, conflicts and VDA 5050 facts in event-time order, tick after tick, every one of them whatever the
-speed (a tick that takes longer only slows the playback down: none is skipped); pause stops.
+chunk writes, poses, incidents, conflicts and VDA 5050 facts in event-time order, tick after
+tick, every one of them whatever the speed. Playback follows the wall clock: a tick plays
+what the speed covers since the last one, so slow reads (a loaded machine) make the windows
+longer, not the playback slower; only past `MAX_TICK_WINDOWS` nominal windows a tick does the
+playback fall behind (none is skipped then either); pause stops.
 
 Each session has its own SDK context and server (a loopback port the gate pipes one client
 to): the protocol's playback state is the server's, so two clients would otherwise fight
@@ -32,6 +35,9 @@ log = structlog.get_logger(__name__)
 
 _NS_PER_MS = 1_000_000
 TICK_S = 0.1  # wall time per playback step
+# A tick plays at most this many ticks' worth of history (a store read of bounded size);
+# a playback further behind the wall clock than that falls behind rather than reading more.
+MAX_TICK_WINDOWS = 8
 # A seek's picture goes out this long after the seek's answer (the SDK sends the answer on
 # its control queue as the callback returns; the picture must not overtake it, the app
 # clears what it holds on a seek).
@@ -46,6 +52,7 @@ class Playhead:
     speed: float = 1.0
     playing: bool = False
     ended: bool = False
+    wall_s: float = 0.0  # while playing: the monotonic instant `at_ms` stands for
 
 
 class ReplaySession(ServerListener):
@@ -126,6 +133,7 @@ class ReplaySession(ServerListener):
                 self.commands.put(("seek", head.at_ms))
             if head.playing and head.at_ms >= self.end_ms:
                 head.playing, head.ended = False, True
+            head.wall_s = time.monotonic()  # playing from here, at this speed, from now
             return self._state(did_seek=seek is not None, request_id=request.request_id)
 
     def _state(self, did_seek: bool, request_id: str | None) -> Any:
@@ -177,13 +185,21 @@ class ReplaySession(ServerListener):
             head = self.playhead
             if not head.playing:
                 return
-            from_ms = head.at_ms
-            to_ms = min(self.end_ms, from_ms + max(1, int(TICK_S * 1000 * head.speed)))
+            from_ms, speed = head.at_ms, head.speed
+            due_ms = int((time.monotonic() - head.wall_s) * 1000 * speed)
+            step_ms = min(due_ms, int(MAX_TICK_WINDOWS * TICK_S * 1000 * speed))
+            to_ms = min(self.end_ms, from_ms + max(1, step_ms))
         self._play(scene, from_ms, to_ms)
         with self.lock:
             if head.at_ms != from_ms or not head.playing:
                 return  # a seek or pause came meanwhile: it decides where the playhead is
             head.at_ms = to_ms
+            # What was played moves the wall clock's mark on; a playback that could not keep
+            # up is behind by at most one window (it does not race to catch up later).
+            head.wall_s = max(
+                head.wall_s + (to_ms - from_ms) / 1000 / speed,
+                time.monotonic() - MAX_TICK_WINDOWS * TICK_S,
+            )
             ended = to_ms >= self.end_ms
             if ended:
                 head.playing, head.ended = False, True

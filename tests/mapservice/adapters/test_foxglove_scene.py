@@ -419,3 +419,60 @@ def test_a_replay_session_advertises_every_robot_of_its_window_when_its_client_c
             assert session.scene is not None and session.scene.robots == {}  # nothing drawn yet
     finally:
         session.stop()
+
+
+class _SlowReplay(ReplaySession):
+    """A session whose every window read takes `read_s` (a loaded machine), recording them."""
+
+    read_s = 0.3
+
+    def __init__(self, *args: Any) -> None:
+        super().__init__(*args)
+        self.windows: list[tuple[int, int]] = []
+
+    def _play(self, scene: FoxgloveScene, from_ms: int, to_ms: int) -> None:
+        time.sleep(self.read_s)
+        self.windows.append((from_ms, to_ms))
+        super()._play(scene, from_ms, to_ms)
+
+
+@pytest.mark.parametrize("read_s", [0.0, 0.3])
+def test_playing_keeps_its_speed_when_reads_are_slow_and_skips_no_window(read_s):
+    """At 60x for 2 s, a player whose every read takes 0.3 s still covers about two minutes
+    (its windows grow; they used to stay 6 s each and the playback ran at 15x), and the
+    windows it played follow each other without a gap."""
+    from foxglove.websocket import PlaybackCommand
+
+    store, _ = history(3)
+    session = _SlowReplay(sources(store), T0, T0 + 3_600_000)
+    session.read_s = read_s
+    session.start()
+    try:
+        session.on_subscribe(None, _Channel(MAP_TOPIC))
+
+        def control(command: Any, seek_ms: int | None = None) -> None:
+            session.on_playback_control_request(
+                type(
+                    "Request",
+                    (),
+                    {
+                        "playback_speed": 60.0,
+                        "playback_command": command,
+                        "seek_time": None if seek_ms is None else seek_ms * 1_000_000,
+                        "request_id": "r",
+                    },
+                )()
+            )
+
+        control(PlaybackCommand.Pause, T0)
+        assert _wait_until(lambda: session.scene is not None and session.scene.floor_ms == T0)
+        control(PlaybackCommand.Play)
+        time.sleep(2.0)
+        control(PlaybackCommand.Pause)
+        played = session.playhead.at_ms - T0
+        assert played >= 0.75 * 2.0 * 60 * 1000, played
+        windows = [w for w in session.windows if w[0] >= T0]
+        assert windows[0][0] == T0
+        assert all(a[1] == b[0] for a, b in zip(windows, windows[1:], strict=False)), windows
+    finally:
+        session.stop()
