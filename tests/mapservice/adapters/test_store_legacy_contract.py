@@ -14,7 +14,7 @@ import pytest
 from mapservice.core.legacy_query import parse_chunk_query, parse_pose_query
 from mapservice.core.wire2019 import content_hash
 from mapservice.testing.memory_store import MemoryStore
-from tests.conftest import sparse_snapshots
+from tests.conftest import clone_migrated, sparse_snapshots
 from tests.mapservice.adapters.store_contract import clickhouse_store
 
 # --- the 2019 REST contract: list_chunks, list_poses, delete_* ----------------------------
@@ -147,6 +147,7 @@ def test_adapters_agree_on_legacy_queries(chdb_dir, ev, t0, params) -> None:
     """ClickHouse answers every 2019 query exactly as the in-memory fold does."""
     params = {k: str(t0 + int(v[2:])) if v.startswith("T+") else v for k, v in params.items()}
     memory, clickhouse = MemoryStore(), clickhouse_store(chdb_dir)
+    clone_migrated(chdb_dir, clickhouse.database)
     try:
         for s in (memory, clickhouse):
             s.migrate()

@@ -19,6 +19,7 @@ from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.core.ports import ChunkRow
 from mapservice.core.wire2019 import content_hash
 from mapservice.testing.memory_store import MemoryStore
+from tests.conftest import clone_migrated
 from tests.mapservice.adapters.store_contract import clickhouse_store, random_pixels
 
 # --- windows, order, filters -------------------------------------------------------------
@@ -207,6 +208,7 @@ def test_whole_minute_downsampling_matches_every_pose(chdb_dir, ev, m0) -> None:
     # Late: an earlier pose of a minute that already has a keyframe; and a rewrite.
     late = [ev.pose("r0", m0 + 120_000, x=42.0), ev.pose("r1", m0 + times[0], x=-1.0)]
     memory, clickhouse = MemoryStore(), clickhouse_store(chdb_dir)
+    clone_migrated(chdb_dir, clickhouse.database)
     try:
         for s in (memory, clickhouse):
             s.migrate()

@@ -18,6 +18,7 @@ from mapservice.core.events import PoseReported, make_envelope
 from mapservice.core.ports import Counts, PoseRow
 from mapservice.core.wire2019 import content_hash
 from mapservice.testing.memory_store import MemoryStore
+from tests.conftest import clone_migrated
 from tests.mapservice.adapters.store_contract import clickhouse_store, random_pixels
 
 # --- schema -----------------------------------------------------------------------------
@@ -211,6 +212,7 @@ def test_adapters_return_identical_rows(chdb_dir, ev, t0) -> None:
         ev.meta(t0 + 4),
     ]
     memory, clickhouse = MemoryStore(), clickhouse_store(chdb_dir)
+    clone_migrated(chdb_dir, clickhouse.database)
     try:
         for s in (memory, clickhouse):
             s.migrate()

@@ -20,6 +20,7 @@ from mapservice.bench.history_loader import TTL_GUARD_MS, load_history, plan_win
 from mapservice.core.events import ChunkUpdated, PoseReported, make_envelope
 from mapservice.core.timetravel import fold_map, fold_robots
 from mapservice.core.wire2019 import content_hash
+from tests.conftest import clone_migrated
 
 MAP = "maps/warehouse.yaml"
 EVERY_MS = 60_000
@@ -47,7 +48,11 @@ def _store(path) -> ClickHouseStore:
 
 
 def _load(path, ros_map, end_ms, **kw):
+    """A load into a new database: cloned from the module's migrated template, so the
+    loader's own migrate() finds every migration applied (test_cli_load_history loads into
+    a database the loader migrates)."""
     store = _store(path)
+    clone_migrated(path, store.database)
     result = load_history(
         store,
         ros_map,
@@ -189,6 +194,7 @@ def test_loader_derives_the_rows_live_ingest_derives(loaded, chdb_dir) -> None:
     with exactly the rows the same events appended in the sink's small batches give."""
     store, result = loaded
     live = _store(chdb_dir)
+    clone_migrated(chdb_dir, live.database)
     try:
         live.migrate()
         events = [

@@ -24,6 +24,7 @@ from mapservice.adapters.clickhouse.broken_parts import (
 from mapservice.adapters.clickhouse.connection import ClickHouseConnection
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.runtime.insert_health import code_of
+from tests.conftest import clone_migrated
 from tests.mapservice.adapters.store_contract import clickhouse_store
 
 ROBOTS = ("r1", "r2", "r3")
@@ -68,6 +69,7 @@ def store_with_a_cut_part(chdb_dir, ev, t0, which: str) -> Iterator[tuple]:
     """A migrated chDB store holding the batches' poses, its merged poses part cut short
     (`which` files emptied); yields the store, the batches sent and what was cut."""
     store = clickhouse_store(chdb_dir)
+    clone_migrated(chdb_dir, store.database)
     try:
         store.migrate()
         sent = batches(ev, t0)

@@ -14,13 +14,14 @@ from mapservice.adapters.clickhouse.writes import (
     REREAD_MAX_SPANS,
     reread_spans,
 )
-from tests.conftest import pose_event
+from tests.conftest import clone_migrated, pose_event
 
 
 @pytest.fixture
-def store(open_store):
+def store(open_store, chdb_dir):
     """A new migrated database in the module's chDB (tests/conftest.py)."""
     s = open_store("clickhouse")
+    clone_migrated(chdb_dir, s.database)
     s.migrate()
     yield s
     s.close()

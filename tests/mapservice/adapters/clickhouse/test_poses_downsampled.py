@@ -12,6 +12,7 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.testing.memory_store import MemoryStore
+from tests.conftest import clone_migrated
 
 
 @pytest.fixture
@@ -87,6 +88,7 @@ def test_adapters_agree_on_a_fleet(chdb_dir, ev, t0) -> None:
     ]
     memory = MemoryStore()
     ch = ClickHouseStore(f"chdb://{chdb_dir}", database="downsample_fleet")
+    clone_migrated(chdb_dir, ch.database)
     try:
         for s in (memory, ch):
             s.migrate()

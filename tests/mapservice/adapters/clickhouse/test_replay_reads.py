@@ -11,6 +11,7 @@ import pytest
 
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.testing.memory_store import MemoryStore
+from tests.conftest import clone_migrated
 
 _db = itertools.count()
 
@@ -21,6 +22,7 @@ def store(chdb_dir):
     s = ClickHouseStore(
         f"chdb://{chdb_dir}", database=f"replay_{next(_db)}", snapshot_every_ms=600_000
     )
+    clone_migrated(chdb_dir, s.database)
     s.migrate()
     yield s
     s.close()
@@ -96,6 +98,7 @@ def _stores(chdb_dir, ev, h0):
     ch = ClickHouseStore(
         f"chdb://{chdb_dir}", database=f"replay_{next(_db)}", snapshot_every_ms=600_000
     )
+    clone_migrated(chdb_dir, ch.database)
     ch.migrate()
     events, late = _history(ev, h0)
     for s in (memory, ch):

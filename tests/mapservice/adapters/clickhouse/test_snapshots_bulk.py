@@ -110,6 +110,7 @@ def test_robots_at_mixes_recent_and_silent_robots(chdb_dir):
     store = ClickHouseStore(
         f"chdb://{chdb_dir}", database=f"bulk_{next(_db)}", snapshot_every_ms=EVERY_MS
     )
+    clone_migrated(chdb_dir, store.database)
     try:
         store.migrate()
         store.append(

@@ -11,6 +11,7 @@ import pytest
 from mapservice.adapters.clickhouse.schema import SCHEMA_VERSION
 from mapservice.adapters.clickhouse.store import ClickHouseStore
 from mapservice.core.events import PoseReported, make_envelope
+from tests.conftest import clone_migrated
 from tests.mapservice.adapters.store_contract import clickhouse_store, random_pixels
 
 # --- ClickHouse specifics -----------------------------------------------------------------
@@ -19,6 +20,7 @@ from tests.mapservice.adapters.store_contract import clickhouse_store, random_pi
 def test_clickhouse_writes_content_once_per_hash_and_day(chdb_dir, ev, t0) -> None:
     """ClickHouse inserts a content's pixels once per day, not once per chunk write."""
     store = clickhouse_store(chdb_dir)
+    clone_migrated(chdb_dir, store.database)
     try:
         store.migrate()
         pixels = random_pixels(8)
@@ -54,6 +56,7 @@ def test_clickhouse_reads_do_not_wait_for_a_writer(chdb_dir, ev, t0) -> None:
     import threading
 
     store = clickhouse_store(chdb_dir)
+    clone_migrated(chdb_dir, store.database)
     try:
         store.migrate()
         store.append([ev.pose("r1", t0), ev.chunk("r1", t0, 0, 0)])
