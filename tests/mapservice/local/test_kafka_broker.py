@@ -282,7 +282,9 @@ def test_consumer_groups_resume_from_their_committed_offsets_after_a_sigkilled_n
         reopened.close()
 
 
-def test_an_idle_controller_appends_no_op_records_as_the_setting_says(monkeypatch, tmp_path) -> None:
+def test_an_idle_controller_appends_no_op_records_as_the_setting_says(
+    monkeypatch, tmp_path
+) -> None:
     """The embedded node's controller writes its idle no-op records every
     MAPSERVICE_EMBEDDED_KAFKA_METADATA_IDLE_MS, not at Kafka's 500 ms."""
     started: list[kafka_broker.KafkaNodeConfig] = []
