@@ -40,6 +40,10 @@ log = structlog.get_logger(__name__)
 
 
 RETRY_DELAY_S = 0.2  # a record whose delivery failed is produced again this much later
+# The gateway loop's wait for delivery reports: short while failed records wait for their
+# retry, else long (a report ends the wait at once).
+RETRY_POLL_S = 0.05
+IDLE_POLL_S = 0.5
 FAILURE_LOG_EVERY_S = 5.0  # in an outage every record fails: one warning per interval
 
 
@@ -393,9 +397,16 @@ class MqttGateway:
     def _poll(self) -> None:
         """Serves the producer's delivery reports, acknowledges what they confirmed, and
         produces again what failed and is due."""
-        self.publisher.poll(0.05)
+        self.publisher.poll(self.poll_timeout())
         self._send_acks()
         self.ingestor.retry_due()
+
+    def poll_timeout(self) -> float:
+        """How long the loop may wait for delivery reports. The producer's poll returns as
+        soon as one comes, so only a retry falling due needs the short wait; otherwise the
+        wait bounds how soon a stop is noticed. (A fixed 50 ms woke a quiet plant's gateway
+        20 times a second: a third of its CPU at 20 robots.)"""
+        return RETRY_POLL_S if self.ingestor.retries_waiting else IDLE_POLL_S
 
     def _send_acks(self) -> None:
         acks = []

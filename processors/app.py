@@ -29,6 +29,9 @@ SNAPSHOT_RUNS = Counter(
 )
 
 
+FAUST_HEARTBEAT_S = 3.0
+
+
 def faust_broker_url(settings: Settings) -> str:
     return ";".join(f"kafka://{h.strip()}" for h in settings.kafka_bootstrap.split(","))
 
@@ -36,6 +39,7 @@ def faust_broker_url(settings: Settings) -> str:
 def faust_app(settings: Settings) -> faust.App:
     """The faust app the processors run in (its agents, timers and services are added by
     the composition, composition.py)."""
+    session_s = max(settings.kafka_rebalance_timeout_s, settings.kafka_session_timeout_s)
     return faust.App(
         "mapservice-processors",
         broker=faust_broker_url(settings),
@@ -50,10 +54,11 @@ def faust_app(settings: Settings) -> faust.App:
         broker_commit_interval=1.0,
         # tansu holds a join for the whole rebalance timeout; short keeps start-up quick.
         broker_rebalance_timeout=settings.kafka_rebalance_timeout_s,
-        broker_session_timeout=max(
-            settings.kafka_rebalance_timeout_s, settings.kafka_session_timeout_s
-        ),
-        broker_heartbeat_interval=1.0,
+        broker_session_timeout=session_s,
+        # The faust group carries only the dead letters and the leader's timer: a heartbeat
+        # every 3 s (aiokafka's default; a third of the session at most) instead of every
+        # second, the largest of `serve`'s timers at a quiet plant, a Kafka request each.
+        broker_heartbeat_interval=min(FAUST_HEARTBEAT_S, session_s / 3),
         producer_partitioner=None,
         topic_replication_factor=settings.kafka_replication,
     )

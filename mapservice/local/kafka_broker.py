@@ -421,6 +421,7 @@ def start_embedded(
             data_dir,
             port,
             heap_mb=settings.embedded_kafka_heap_mb,
+            metadata_idle_ms=settings.embedded_kafka_metadata_idle_ms,
             retention_hours=settings.embedded_kafka_retention_hours,
             retention_bytes=settings.embedded_kafka_retention_bytes,
             sasl_users=sasl_users,

@@ -45,6 +45,9 @@ class KafkaNodeConfig:
     voters: str = ""  # id@host:port,...; empty: this node alone
     replication: int = 1  # of internal and new topics
     min_insync_replicas: int = 1
+    # How often the controller appends a no-op record to the metadata log while nothing
+    # else changes it (metadata.max.idle.interval.ms; Kafka's default 500 ms).
+    metadata_idle_ms: int = 5000
     # (username, password) pairs: both listeners then take only SASL/PLAIN clients that
     # name one of them (kafka_auth.py); the first is the node's own, for its controller
     # connection. Empty: no authentication (anyone who reaches the port may produce).
@@ -95,6 +98,10 @@ class KafkaNodeConfig:
                 # expired (9 s by default); heartbeats stay in this one process.
                 "broker.heartbeat.interval.ms=1000",
                 "broker.session.timeout.ms=4000",
+                # An idle controller otherwise appends (and flushes) a no-op record to the
+                # metadata log twice a second, and the broker applies each one: a fixed cost
+                # that follows time, not work. Nothing of one node waits for them.
+                f"metadata.max.idle.interval.ms={self.metadata_idle_ms}",
                 # Few threads: one small node on a shared machine.
                 "num.network.threads=2",
                 "num.io.threads=2",

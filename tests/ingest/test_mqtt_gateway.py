@@ -157,3 +157,29 @@ def test_closing_a_gateway_releases_its_kafka_clients_without_waiting_for_kafka(
     assert gateway.kafka_ready.call.func.admin is None
     with pytest.raises(RuntimeError, match="closed"):
         gateway.publisher.publish("t", b"k", b"v", results.append)
+
+
+def test_the_loop_waits_long_for_delivery_reports_unless_a_retry_is_waiting(
+    gateway, settings, wire, clock
+) -> None:
+    """A quiet gateway's loop waits up to IDLE_POLL_S in the producer's poll (a delivery
+    report ends it at once); while a failed record waits for its retry, RETRY_POLL_S."""
+    from mapservice.ingest.gateway import IDLE_POLL_S, RETRY_POLL_S
+
+    gateway = memory_gateway(gateway, settings, clock)
+    waits: list[float] = []
+    serve = gateway.publisher.poll
+
+    def poll(timeout: float = 0.0) -> None:
+        waits.append(timeout)
+        serve(timeout)
+
+    gateway.publisher.poll = poll
+    gateway._poll()
+    gateway.ingestor.handle("iot/coordinates/blabla", wire.pose(), lambda: None)
+    gateway.publisher.fail_with = RuntimeError("broker away")
+    gateway._poll()  # the delivery fails: the record waits for its retry
+    assert gateway.ingestor.retries_waiting == 1
+    gateway._poll()
+    assert waits == [IDLE_POLL_S, IDLE_POLL_S, RETRY_POLL_S]
+    assert RETRY_POLL_S <= 0.05 < 0.5 <= IDLE_POLL_S

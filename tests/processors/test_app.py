@@ -55,3 +55,16 @@ def test_ssl_ca_file_is_loaded_into_the_faust_context(tmp_path):
         _faust_credentials(
             Settings(kafka_security_protocol="SSL", kafka_ssl_ca_file=tmp_path / "missing.pem")
         )
+
+
+def test_the_faust_group_heartbeats_every_three_seconds_within_a_third_of_its_session(tmp_path):
+    """A quiet plant's `serve` pays a heartbeat every 3 s, not every second; a short
+    session still gets three heartbeats in it."""
+    from mapservice.processors.app import faust_app
+
+    default = faust_app(Settings(data_dir=tmp_path)).conf
+    assert (default.broker_heartbeat_interval, default.broker_session_timeout) == (3.0, 10.0)
+    short = faust_app(
+        Settings(data_dir=tmp_path, kafka_session_timeout_s=3, kafka_rebalance_timeout_s=3)
+    ).conf
+    assert short.broker_heartbeat_interval == 1.0

@@ -18,6 +18,7 @@ from rich.console import Console
 from mapservice.local import embedded, kafka_broker
 from mapservice.local.stack import Stack
 from mapservice.local.up import embedded_kafka_intro, kafka_keeps
+from mapservice.settings import Settings
 
 
 def fake_mvn(tmp_path: Path, script: str) -> Path:
@@ -279,3 +280,21 @@ def test_consumer_groups_resume_from_their_committed_offsets_after_a_sigkilled_n
     finally:
         kept.close()
         reopened.close()
+
+
+def test_an_idle_controller_appends_no_op_records_as_the_setting_says(
+    monkeypatch, tmp_path
+) -> None:
+    """The embedded node's controller writes its idle no-op records every
+    MAPSERVICE_EMBEDDED_KAFKA_METADATA_IDLE_MS, not at Kafka's 500 ms."""
+    started: list[kafka_broker.KafkaNodeConfig] = []
+    monkeypatch.setattr(kafka_broker, "start_kafka", lambda node, *a, **k: started.append(node))
+
+    def idle_ms(settings: Settings) -> str:
+        kafka_broker.start_embedded("apache", tmp_path / "data", 1234, settings)
+        props = dict(line.split("=", 1) for line in started[-1].properties().splitlines() if line)
+        return props["metadata.max.idle.interval.ms"]
+
+    assert idle_ms(Settings()) == "5000"
+    assert idle_ms(Settings(embedded_kafka_metadata_idle_ms=500)) == "500"
+    assert idle_ms(Settings(embedded_kafka_metadata_idle_ms=0)) == "0"
