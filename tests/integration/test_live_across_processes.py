@@ -120,11 +120,14 @@ def test_a_restarted_replica_streams_again_from_now(stack) -> None:
     with connect(live_url(stack.second_api_port), open_timeout=10) as two:
         ts = publish_pose(stack, "apart-after")
         got = [json.loads(two.recv(timeout=20))]
-        while got[-1]["robotId"] != "apart-after":
+        while got[-1].get("robotId") != "apart-after":
             got.append(json.loads(two.recv(timeout=20)))
     assert got[-1]["ts_ms"] == ts
-    # Nothing from before the restart: neither the marker nor the pose before it.
-    assert [m["robotId"] for m in got] == ["apart-after"], got
+    # Nothing from before the restart: neither the marker nor the pose before it. (What the
+    # processors find meanwhile, such as the earlier robots falling silent, comes as it
+    # is found: incidents name their robots in a list and are no replay.)
+    poses = [m for m in got if m["type"] == "pose"]
+    assert [m["robotId"] for m in poses] == ["apart-after"], got
 
 
 def test_the_ui_live_mode_shows_a_pose_stored_by_another_process(stack, page) -> None:
