@@ -246,23 +246,33 @@ def test_a_receiver_back_before_the_tries_run_out_gets_everything_without_a_resu
             receiver.close()
 
 
+def started(
+    webhooks: list[Webhook], policy: DeliveryPolicy = POLICY, alerts: int = 0
+) -> WebhookDeliveries:
+    """Deliveries to `webhooks` under `policy`, started, with `alerts` stuck alerts offered."""
+    deliveries = WebhookDeliveries(policy)
+    deliveries.set_webhooks(webhooks)
+    deliveries.start()
+    for n in range(alerts):
+        deliveries.offer({"event": "new", "found_ms": n, "id": f"i{n}", "kind": "stuck"})
+    return deliveries
+
+
 def test_a_url_the_client_cannot_send_to_fails_its_tries_and_the_worker_goes_on() -> None:
     """A stored URL the delivery client cannot parse (one registered before the API checked
     it with that parser): its tries fail with the reason, and the one worker still delivers
     to the other webhook (a worker that died would have stopped every webhook)."""
     port = free_port()
     receiver = Receiver(port)
-    deliveries = WebhookDeliveries(dataclasses.replace(POLICY, workers=1))
-    deliveries.set_webhooks(
+    deliveries = started(
         [
             Webhook("bad", f"http://0177.0.0.1:{port}/", SECRET),
             Webhook("good", f"http://127.0.0.1:{port}/", SECRET),
-        ]
+        ],
+        dataclasses.replace(POLICY, workers=1),
+        alerts=3,
     )
-    deliveries.start()
     try:
-        for n in range(3):
-            deliveries.offer({"event": "new", "found_ms": n, "id": f"i{n}", "kind": "stuck"})
         wait_for(lambda: deliveries.health()["bad"].paused_reason)
         assert "InvalidURL" in deliveries.health()["bad"].paused_reason
         wait_for(lambda: deliveries.queued("good") == 0)
@@ -327,21 +337,19 @@ def test_a_receiver_answering_slowly_or_without_end_costs_one_timeout_a_try(answ
     hostile = HostileReceiver(*ANSWERS[answer])
     port = free_port()
     healthy = Receiver(port)
-    deliveries = WebhookDeliveries(dataclasses.replace(POLICY, workers=1))
-    deliveries.set_webhooks(
+    began = time.monotonic()
+    deliveries = started(
         [
             Webhook("hostile", f"http://127.0.0.1:{hostile.port}/", SECRET),
             Webhook("healthy", f"http://127.0.0.1:{port}/", SECRET),
-        ]
+        ],
+        dataclasses.replace(POLICY, workers=1),
+        alerts=3,
     )
-    deliveries.start()
-    started = time.monotonic()
     try:
-        for n in range(3):
-            deliveries.offer({"event": "new", "found_ms": n, "id": f"i{n}", "kind": "stuck"})
         wait_for(lambda: deliveries.queued("healthy") == 0, 20)
         wait_for(lambda: deliveries.health()["hostile"].paused_reason, 20)
-        took = time.monotonic() - started
+        took = time.monotonic() - began
         # Three tries of at most the timeout each, the backoffs between them, and slack.
         assert took < POLICY.max_tries * POLICY.timeout_s + 3, took
         health = deliveries.health()["hostile"]

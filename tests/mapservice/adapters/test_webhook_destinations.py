@@ -25,7 +25,7 @@ from mapservice.local.embedded import free_port
 from mapservice.processors.webhook_delivery import WebhookDeliveries
 from mapservice.settings import Settings
 from tests.api.test_webhooks import World
-from tests.processors.test_webhook_delivery import POLICY, SECRET, Receiver, wait_for
+from tests.processors.test_webhook_delivery import POLICY, SECRET, Receiver, started, wait_for
 
 RNG = random.Random(20261201)
 LOOPBACK_NET = parse_networks("127.0.0.0/8")
@@ -103,12 +103,9 @@ def test_public_addresses_are_taken(address) -> None:
 
 
 def deliver(policy: DestinationPolicy, url: str, alerts: int = 1) -> WebhookDeliveries:
-    deliveries = WebhookDeliveries(dataclasses.replace(POLICY, destinations=policy))
-    deliveries.set_webhooks([Webhook("w1", url, SECRET)])
-    deliveries.start()
-    for n in range(alerts):
-        deliveries.offer({"event": "new", "found_ms": n, "id": f"i{n}", "kind": "stuck"})
-    return deliveries
+    return started(
+        [Webhook("w1", url, SECRET)], dataclasses.replace(POLICY, destinations=policy), alerts
+    )
 
 
 LOOPBACK_FORMS = ["127.0.0.1", "localhost", "2130706433", "0x7f000001", "0x7f.1", "127.1"]
