@@ -7,7 +7,6 @@ holds more than that, and the probes answer at once meanwhile."""
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import threading
 import time
@@ -16,7 +15,6 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-import uvicorn
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
@@ -26,6 +24,8 @@ from mapservice.api.limits import WEBSOCKET_MAX_MESSAGE_BYTES
 from mapservice.api.live_hub import LiveHub
 from mapservice.settings import Settings
 from mapservice.testing.memory_store import MemoryStore
+from tests.api.test_foxglove_frames import frame
+from tests.api.test_slow_clients import served
 
 MESSAGE_TOO_BIG = 1009
 
@@ -35,20 +35,12 @@ def api_served(compression: bool) -> Iterator[tuple[int, LiveHub]]:
     """The API on uvicorn as `mapservice api` configures it, in a thread."""
     settings = Settings(api_host="127.0.0.1", api_port=0, api_live_compression=compression)
     hub = LiveHub()
-    config = api_server_config(create_app(settings, MemoryStore(), live_hub=hub), settings)
+    app = create_app(settings, MemoryStore(), live_hub=hub)
+    config = api_server_config(app, settings)
     config.lifespan = "off"
     config.timeout_graceful_shutdown = 1  # a live route runs until its client goes
-    server = uvicorn.Server(config)
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
-    thread.start()
-    while not server.started:
-        time.sleep(0.02)
-    try:
-        yield server.servers[0].sockets[0].getsockname()[1], hub
-    finally:
-        server.should_exit = True
-        thread.join(10)
+    with served(app, config) as (port, _):
+        yield port, hub
 
 
 def _close_code(ws, message: str | bytes) -> int | None:
@@ -125,8 +117,7 @@ def test_compressed_bombs_on_many_connections_leave_the_probes_fast():
                     close_timeout=0.5,
                 ) as ws:
                     # The deflated frame as the extension would send it (RSV1 set).
-                    frame = _deflated_binary_frame(wire[:-4])
-                    ws.socket.sendall(frame)
+                    ws.socket.sendall(_deflated_binary_frame(wire[:-4]))
                     try:
                         ws.recv(timeout=1.5)
                     except (TimeoutError, ConnectionClosed):
@@ -141,16 +132,5 @@ def test_compressed_bombs_on_many_connections_leave_the_probes_fast():
 
 def _deflated_binary_frame(payload: bytes) -> bytes:
     """A client's masked binary frame, FIN and RSV1 (permessage-deflate) set."""
-    import os
-
-    n = len(payload)
-    head = bytes([0x80 | 0x40 | 0x2])
-    if n < 126:
-        head += bytes([0x80 | n])
-    elif n < 65536:
-        head += bytes([0x80 | 126]) + n.to_bytes(2, "big")
-    else:
-        head += bytes([0x80 | 127]) + n.to_bytes(8, "big")
-    mask = os.urandom(4)
-    masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-    return head + mask + masked
+    plain = frame(0x2, payload)
+    return bytes([plain[0] | 0x40]) + plain[1:]

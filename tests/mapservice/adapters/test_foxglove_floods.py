@@ -68,8 +68,9 @@ class Spy:
 
 
 @contextlib.asynccontextmanager
-async def live_server() -> AsyncIterator[int]:
-    """The live server on a generated history, its feed running; yields its port."""
+async def live_server() -> AsyncIterator[tuple[int, asyncio.Queue]]:
+    """The live server on a generated history (`history(3)`, now at its end), its feed
+    running: its port and the feed's queue of live messages."""
     import foxglove
 
     from mapservice.adapters.foxglove_channels import FoxgloveChannels
@@ -82,9 +83,10 @@ async def live_server() -> AsyncIterator[int]:
     server = foxglove.start_server(
         name="live", host="127.0.0.1", port=0, context=context, server_listener=live
     )
-    feed = asyncio.ensure_future(live.run(asyncio.Queue()))
+    queue: asyncio.Queue = asyncio.Queue()
+    feed = asyncio.ensure_future(live.run(queue))
     try:
-        yield server.port
+        yield server.port, queue
     finally:
         feed.cancel()
         with contextlib.suppress(BaseException):
@@ -151,7 +153,7 @@ def test_a_flood_of_subscribes_resends_a_channel_once_a_second_and_the_last_gets
     async def main() -> tuple[int, int, int]:
         async with contextlib.AsyncExitStack() as stack:
             if server == "live":
-                port = await stack.enter_async_context(live_server())
+                port, _ = await stack.enter_async_context(live_server())
             else:
                 port = (await stack.enter_async_context(replay_server())).server.port
             url = f"ws://127.0.0.1:{port}"
