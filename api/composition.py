@@ -31,6 +31,7 @@ from mapservice.sql.apps import analyst_app
 from .app import create_app
 from .foxglove_service import FoxgloveService
 from .http_timeouts import header_deadline_protocol
+from .limits import WEBSOCKET_MAX_MESSAGE_BYTES
 from .live_hub import LiveHub
 
 Check = Callable[[], bool]
@@ -40,7 +41,9 @@ def api_server_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
     """uvicorn for the API. log_config=None: uvicorn's records, its access log included, go
     through the process's logging setup (mapservice.runtime.logs: JSON lines in JSON mode).
     A request's head must arrive within api_header_timeout_s and an idle keep-alive
-    connection is closed after api_idle_timeout_s (slowloris; api/http_timeouts.py)."""
+    connection is closed after api_idle_timeout_s (slowloris; api/http_timeouts.py). A
+    WebSocket client's message over WEBSOCKET_MAX_MESSAGE_BYTES is refused (1009) by the
+    websockets library as it reads and inflates it (api/limits.py)."""
     return uvicorn.Config(
         app,
         host=settings.api_host,
@@ -51,6 +54,7 @@ def api_server_config(app: FastAPI, settings: Settings) -> uvicorn.Config:
         http=header_deadline_protocol(settings.api_header_timeout_s),
         timeout_keep_alive=settings.api_idle_timeout_s,
         ws_per_message_deflate=settings.api_live_compression,
+        ws_max_size=WEBSOCKET_MAX_MESSAGE_BYTES,
     )
 
 

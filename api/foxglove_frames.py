@@ -2,7 +2,10 @@
 channels it is subscribed to (the protocol's `subscribe` and `unsubscribe` text messages),
 so that the gate can close a client that subscribes to more than its cap, and which channel
 each subscription names (the gate sends one again that the SDK lost: foxglove_resubscribe.py).
-Binary frames (the client's publishing, playback control) are skipped, not buffered."""
+Binary frames (playback control) are skipped, not buffered, but counted: a client's message
+of either kind over `MAX_MESSAGE_BYTES` closes it as soon as its frames' headers say so
+(the SDK would read a binary one whole, up to 16 MiB, for requests of a few bytes), as does
+a control frame over the 125 bytes RFC 6455 allows."""
 
 from __future__ import annotations
 
@@ -10,7 +13,8 @@ import json
 import os
 
 _TEXT, _CONTINUATION, _CONTROL = 0x1, 0x0, 0x8
-MAX_TEXT_BYTES = 1024 * 1024  # a subscribe to thousands of channels is well below
+MAX_MESSAGE_BYTES = 1024 * 1024  # a subscribe to thousands of channels is well below
+_MAX_CONTROL_BYTES = 125
 
 
 class SubscriptionCount:
@@ -24,6 +28,7 @@ class SubscriptionCount:
         self._text = bytearray()  # a text message's fragments so far
         self._in_text = False
         self._in_message = False  # between the fragments of a message (text or binary)
+        self._binary = 0  # bytes of the binary message so far
 
     @property
     def at_boundary(self) -> bool:
@@ -57,8 +62,8 @@ class SubscriptionCount:
             if opcode == _TEXT or (opcode == _CONTINUATION and self._in_text):
                 self._text += payload
                 self._in_text = not fin
-                if len(self._text) > MAX_TEXT_BYTES:
-                    return f"a text message over {MAX_TEXT_BYTES} bytes"
+                if len(self._text) > MAX_MESSAGE_BYTES:
+                    return _too_large("text")
                 if fin:
                     reason = self._message(bytes(self._text))
                     self._text.clear()
@@ -85,6 +90,14 @@ class SubscriptionCount:
             return None
         mask, at = bytes(buf[at : at + 4]), at + 4
         is_text = opcode == _TEXT or (opcode == _CONTINUATION and self._in_text)
+        if opcode >= _CONTROL and length > _MAX_CONTROL_BYTES:
+            return f"a control frame over {_MAX_CONTROL_BYTES} bytes (RFC 6455)"
+        if not is_text and opcode < _CONTROL:
+            self._binary += length
+            if self._binary > MAX_MESSAGE_BYTES:
+                return _too_large("binary")
+            if fin:
+                self._binary = 0
         if not is_text:  # skipped as it streams by
             available = len(buf) - at
             if available >= length:
@@ -93,8 +106,8 @@ class SubscriptionCount:
                 self._skip = length - available
                 buf.clear()
             return (fin, opcode, b"")
-        if length > MAX_TEXT_BYTES:
-            return f"a text message over {MAX_TEXT_BYTES} bytes"
+        if length > MAX_MESSAGE_BYTES:
+            return _too_large("text")
         if len(buf) < at + length:
             return None
         payload = bytes(buf[at : at + length])
@@ -123,6 +136,10 @@ class SubscriptionCount:
                 "(MAPSERVICE_FOXGLOVE_MAX_SUBSCRIPTIONS); subscribe to fewer channels"
             )
         return None
+
+
+def _too_large(kind: str) -> str:
+    return f"a {kind} message over {MAX_MESSAGE_BYTES} bytes"
 
 
 def close_frame(code: int, reason: str) -> bytes:

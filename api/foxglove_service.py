@@ -94,6 +94,7 @@ class FoxgloveService:
             start_ms=now - self.settings.retention_ms,
             end_ms=now,
             backlog=self.settings.foxglove_backlog,
+            max_speed=self.settings.foxglove_max_speed,
         )
         port = await loop.run_in_executor(None, session.start)
 

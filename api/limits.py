@@ -17,6 +17,12 @@ from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 ECHO_MAX = 200  # characters of a rejected input a reply may repeat
+# The largest message a WebSocket client may send (uvicorn's `ws_max_size`, enforced by the
+# websockets library as it reads and inflates a frame; one over it closes the connection
+# with 1009). The API's one WebSocket, /api/v1/live, takes no message at all: uvicorn's
+# 16 MiB default let each client park a message that size (inflated from a few kB with
+# permessage-deflate) in a server that never reads it.
+WEBSOCKET_MAX_MESSAGE_BYTES = 4 * 1024
 
 
 async def send_refusal(

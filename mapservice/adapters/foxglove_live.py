@@ -8,7 +8,8 @@ re-read every `foxglove_annotations_every_s` (they are not on the live topic).
 
 Every change of the scene happens on one worker thread of its own (store reads, protobuf
 building and the SDK's logging are not the event loop's work); the SDK's subscribe
-callback queues its re-send there too.
+callback asks for its channel's re-send there too, paced (foxglove_resends.py: a flood of
+subscribes costs one re-send per channel a second, not one per message).
 
 May depend on: the ports (reads through the scene), the live messages."""
 
@@ -25,6 +26,7 @@ import structlog
 from foxglove.websocket import ServerListener
 
 from mapservice.adapters.foxglove_messages import pose_row_of_live
+from mapservice.adapters.foxglove_resends import PacedResends
 from mapservice.adapters.foxglove_scene import ChunkChange, FoxgloveScene
 
 log = structlog.get_logger(__name__)
@@ -47,16 +49,18 @@ class FoxgloveLive(ServerListener):
         self.grid_every_s, self.annotations_every_s = grid_every_s, annotations_every_s
         self.worker = ThreadPoolExecutor(1, thread_name_prefix="foxglove-live")
         self.applied = 0  # live messages drawn (tests, metrics)
+        self.resends = PacedResends()
         self._last_grid = 0.0
         self._last_annotations = 0.0
 
     # --- the SDK's ServerListener -------------------------------------------------------
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
-        """A client subscribed: the channel's current message again (on the worker)."""
-        topic = str(channel.topic)
-        with contextlib.suppress(RuntimeError):  # shut down: nothing to send
-            self.worker.submit(self._guarded, self.scene.resend, topic)
+        """A client subscribed: the channel's current message again (on the worker; one
+        sent less than a second ago goes again with the feed's tick when that is up)."""
+        if self.resends.ask(str(channel.topic)):
+            with contextlib.suppress(RuntimeError):  # shut down: nothing to send
+                self.worker.submit(self._guarded, self._resend_due)
 
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
         return None
@@ -67,7 +71,7 @@ class FoxgloveLive(ServerListener):
         """Draws the scene at now, then every message of `queue` (until cancelled)."""
         loop = asyncio.get_running_loop()
         await loop.run_in_executor(self.worker, self._guarded, self._draw_now)
-        tick = min(self.grid_every_s, self.annotations_every_s)
+        tick = min(self.grid_every_s, self.annotations_every_s, self.resends.every_s)
         while True:
             batch: list[Mapping[str, Any]] = []
             try:
@@ -89,6 +93,10 @@ class FoxgloveLive(ServerListener):
             work(*args)
         except Exception as exc:
             log.warning("foxglove live feed step failed", error=str(exc))
+
+    def _resend_due(self) -> None:
+        for topic in self.resends.due():
+            self.scene.resend(topic)
 
     def _draw_now(self) -> None:
         self.scene.draw_at(self.now_ms())
@@ -129,3 +137,4 @@ class FoxgloveLive(ServerListener):
             self.scene.annotations_at(now_ms)
             self.scene.findings.reread(now_ms)
             self._last_annotations = now
+        self._resend_due()

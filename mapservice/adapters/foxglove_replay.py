@@ -6,7 +6,11 @@ chunk writes, poses, incidents, conflicts and VDA 5050 facts in event-time order
 tick, every one of them whatever the speed. Playback follows the wall clock: a tick plays
 what the speed covers since the last one, so slow reads (a loaded machine) make the windows
 longer, not the playback slower; only past `MAX_TICK_WINDOWS` nominal windows a tick does the
-playback fall behind (none is skipped then either); pause stops.
+playback fall behind (none is skipped then either); pause stops. A client's requests
+cost bounded work however many it sends: the speed is held to `max_speed` (a step reads
+at most that many seconds of history per second; a NaN or non-positive speed keeps the
+one before), a seek not yet drawn is replaced by a later one (only the latest is
+drawn), and its subscribes re-send each channel at most once a second (foxglove_resends.py).
 
 Each session has its own SDK context and server (a loopback port the gate pipes one client
 to): the protocol's playback state is the server's, so two clients would otherwise fight
@@ -16,6 +20,7 @@ May depend on: the ports (reads through the scene and the replay sources)."""
 
 from __future__ import annotations
 
+import math
 import queue
 import threading
 import time
@@ -27,6 +32,7 @@ from foxglove.websocket import ServerListener
 
 from mapservice.adapters.foxglove_channels import FoxgloveChannels
 from mapservice.adapters.foxglove_messages import window_changes, window_poses
+from mapservice.adapters.foxglove_resends import PacedResends
 from mapservice.adapters.foxglove_scene import ChunkChange, FoxgloveScene
 from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.core.ports import ChunkRow
@@ -42,6 +48,8 @@ MAX_TICK_WINDOWS = 8
 # its control queue as the callback returns; the picture must not overtake it, the app
 # clears what it holds on a seek).
 _AFTER_ANSWER_S = 0.02
+# The fastest playback (history seconds a wall second): settings.foxglove_max_speed.
+DEFAULT_MAX_SPEED = 3600.0
 
 
 @dataclass
@@ -59,13 +67,23 @@ class ReplaySession(ServerListener):
     """One client's replay: its SDK server (`start` returns its port) and its player."""
 
     def __init__(
-        self, sources: ReplaySources, start_ms: int, end_ms: int, backlog: int = 1024
+        self,
+        sources: ReplaySources,
+        start_ms: int,
+        end_ms: int,
+        backlog: int = 1024,
+        max_speed: float = DEFAULT_MAX_SPEED,
     ) -> None:
         self.sources = sources
         self.start_ms, self.end_ms, self.backlog = start_ms, end_ms, backlog
+        self.max_speed = max_speed
         self.playhead = Playhead(at_ms=end_ms)
         self.lock = threading.Lock()
+        # The player's work: "seek" (draws `_seek_to`), "resend" (what `resends` has due),
+        # "stop"; each is queued only when none like it waits, so the queue stays short.
         self.commands: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self.resends = PacedResends()
+        self._seek_to: int | None = None  # the latest seek not drawn yet (under `lock`)
         self.scene: FoxgloveScene | None = None
         self.server: Any = None
         self.sent_changes = 0  # chunk writes played (tests)
@@ -112,8 +130,10 @@ class ReplaySession(ServerListener):
         # it and subscribed but never sent (their robots missing from every frame after).
         if not self._subscribed.is_set():
             self._subscribed.set()
-            self.commands.put(("seek", self.end_ms))
-        self.commands.put(("resend", str(channel.topic)))
+            with self.lock:
+                self._seek(self.end_ms)
+        if self.resends.ask(str(channel.topic)):
+            self.commands.put(("resend", None))
 
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
         return None
@@ -123,18 +143,25 @@ class ReplaySession(ServerListener):
 
         with self.lock:
             head = self.playhead
-            head.speed = float(request.playback_speed) if request.playback_speed > 0 else head.speed
+            head.speed = _speed(float(request.playback_speed), head.speed, self.max_speed)
             head.playing = request.playback_command == PlaybackCommand.Play
             seek = request.seek_time
             if seek is not None:
                 self._subscribed.set()  # its own seek's picture, not the first one, after it
                 head.at_ms = min(max(int(seek) // _NS_PER_MS, self.start_ms), self.end_ms)
                 head.ended = False
-                self.commands.put(("seek", head.at_ms))
+                self._seek(head.at_ms)
             if head.playing and head.at_ms >= self.end_ms:
                 head.playing, head.ended = False, True
             head.wall_s = time.monotonic()  # playing from here, at this speed, from now
             return self._state(did_seek=seek is not None, request_id=request.request_id)
+
+    def _seek(self, at_ms: int) -> None:
+        """The picture at `at_ms` is to be drawn (replacing a seek not drawn yet); under
+        `lock`."""
+        if self._seek_to is None:
+            self.commands.put(("seek", None))
+        self._seek_to = at_ms
 
     def _state(self, did_seek: bool, request_id: str | None) -> Any:
         from foxglove.websocket import PlaybackState, PlaybackStatus
@@ -165,6 +192,8 @@ class ReplaySession(ServerListener):
                 command, arg = "tick", None
             try:
                 self._do(command, arg)
+                if command != "resend":  # those a subscribe asked for, once they are due
+                    self._do("resend", None)
             except Exception as exc:  # a failed read ends no session: the next command goes on
                 log.warning("foxglove replay step failed", command=command, error=str(exc))
 
@@ -173,10 +202,14 @@ class ReplaySession(ServerListener):
         assert scene is not None
         if command == "seek":
             time.sleep(_AFTER_ANSWER_S)
-            scene.draw_at(int(arg))
-            self.server.broadcast_time(int(arg) * _NS_PER_MS)
+            with self.lock:
+                at_ms, self._seek_to = self._seek_to, None
+            if at_ms is not None:
+                scene.draw_at(at_ms)
+                self.server.broadcast_time(at_ms * _NS_PER_MS)
         elif command == "resend":
-            scene.resend(str(arg))
+            for topic in self.resends.due():
+                scene.resend(topic)
         elif command == "tick":
             self._tick(scene)
 
@@ -233,6 +266,15 @@ class ReplaySession(ServerListener):
             self.sent_changes += scene.chunk_changes(_change(c) for c in changes[i:])
         scene.findings.send(found[k:])
         scene.grid(to_ms - 1)
+
+
+def _speed(requested: float, current: float, max_speed: float) -> float:
+    """The playback speed a request sets, held to `max_speed` (an infinite one too); one
+    that is no speed (NaN, zero or less: the protocol's float allows them) keeps
+    `current`."""
+    if math.isnan(requested) or requested <= 0:
+        return current
+    return min(requested, max_speed)
 
 
 def _change(row: ChunkRow) -> ChunkChange:

@@ -53,6 +53,15 @@ class FoxgloveSettings(BaseModel):
             "disconnected."
         ),
     )
+    foxglove_max_speed: float = Field(
+        3600.0,
+        gt=0,
+        description=(
+            "Replay: the fastest playback, in history seconds a second; a client asking for "
+            "more plays at this (its playback state says so). Each playback step reads what "
+            "its speed covers, so this bounds a step's read of the store."
+        ),
+    )
     foxglove_grid_every_s: float = Field(
         1.0,
         gt=0,

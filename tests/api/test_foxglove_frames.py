@@ -14,7 +14,7 @@ import random
 
 import pytest
 
-from mapservice.api.foxglove_frames import SubscriptionCount
+from mapservice.api.foxglove_frames import MAX_MESSAGE_BYTES, SubscriptionCount
 from tests.api.test_foxglove_gate import Upstream101, gate_over, request, settings
 
 
@@ -99,6 +99,52 @@ def test_unmasked_frames_and_huge_texts_are_refused():
     assert "masked" in SubscriptionCount(5).feed(bytes([0x81, 0x02]) + b"{}")
     huge = bytes([0x81, 0x80 | 127]) + (10**7).to_bytes(8, "big") + b"abcd"
     assert "over" in SubscriptionCount(5).feed(huge)
+
+
+@pytest.mark.parametrize("opcode", [0x1, 0x2], ids=["text", "binary"])
+@pytest.mark.parametrize("pieces", [1, 3, 40])
+@pytest.mark.parametrize("extra", [0, 1, 10**7])
+def test_a_message_over_the_limit_is_refused_however_it_is_cut(opcode, pieces, extra):
+    """Text or binary (the SDK reads a binary message whole, up to 16 MiB, for requests of
+    a few bytes: playback control), in one frame or fragments, fed in any slices: refused
+    as soon as its frames' headers say it is over MAX_MESSAGE_BYTES, before its payload;
+    one at the limit passes. The headers alone are sent, with just enough payload."""
+    size = MAX_MESSAGE_BYTES + extra
+    cuts = sorted(random.Random(size * pieces).sample(range(1, size), pieces - 1))
+    lengths = [b - a for a, b in zip([0, *cuts], [*cuts, size], strict=True)]
+    count = SubscriptionCount(5)
+    reason = None
+    for i, length in enumerate(lengths):
+        code = opcode if i == 0 else 0x0
+        head = frame(code, b"", fin=i == len(lengths) - 1)
+        head = head[:1] + _length_field(length) + head[2:]
+        reason = count.feed(head)
+        if reason:
+            break
+        payload = b"\x00" * length if opcode == 0x2 else b" " * length
+        reason = count.feed(payload)  # what it unmasks to does not matter here
+        if reason:
+            break
+    if extra:
+        assert reason is not None and "over" in reason, reason
+        assert str(MAX_MESSAGE_BYTES) in reason
+    else:
+        assert reason is None and count.at_boundary
+
+
+def _length_field(n: int) -> bytes:
+    """A masked frame's second byte and extended length for a payload of `n` bytes."""
+    if n < 126:
+        return bytes([0x80 | n])
+    if n < 65536:
+        return bytes([0x80 | 126]) + n.to_bytes(2, "big")
+    return bytes([0x80 | 127]) + n.to_bytes(8, "big")
+
+
+def test_control_frames_over_125_bytes_are_refused():
+    """RFC 6455 allows 125; the gate passes a ping on unread, so it must not be larger."""
+    assert SubscriptionCount(5).feed(frame(0x9, b"p" * 125)) is None
+    assert "125" in SubscriptionCount(5).feed(frame(0x9, b"p" * 126))
 
 
 def test_a_client_over_its_cap_is_closed_with_1008_through_the_gate():

@@ -296,26 +296,15 @@ def test_a_live_client_gets_a_robot_first_seen_while_it_is_connected(losses):
 
 
 async def _live_client_gets_new_robot(losses: int) -> None:
-    import foxglove
-
-    from mapservice.adapters.foxglove_channels import FoxgloveChannels
-    from mapservice.adapters.foxglove_live import FoxgloveLive
-    from mapservice.adapters.foxglove_scene import FoxgloveScene
     from mapservice.adapters.mcap_channels import pose_topic, state_topic
     from mapservice.core.live_messages import live_record_texts, live_records
     from tests.conftest import pose_event
-    from tests.mapservice.adapters.test_foxglove_scene import T0, history, sources
+    from tests.mapservice.adapters.test_foxglove_floods import live_server
+    from tests.mapservice.adapters.test_foxglove_scene import T0
 
-    store, _ = history(3)
-    context = foxglove.Context()
-    scene = FoxgloveScene(FoxgloveChannels(context), sources(store))
-    live = FoxgloveLive(scene, lambda: T0 + 600_000, grid_every_s=3600, annotations_every_s=3600)
-    server = foxglove.start_server(
-        name="live", host="127.0.0.1", port=0, context=context, server_listener=live
-    )
-    queue: asyncio.Queue = asyncio.Queue()
-    feed = asyncio.ensure_future(live.run(queue))
-    shim = LosingShim(server.port, "/robots/r9/", losses)
+    stack = contextlib.AsyncExitStack()
+    sdk_port, queue = await stack.enter_async_context(live_server())
+    shim = LosingShim(sdk_port, "/robots/r9/", losses)
     await shim.start()
     s = settings()
 
@@ -374,8 +363,4 @@ async def _live_client_gets_new_robot(losses: int) -> None:
     finally:
         await gate.stop()
         shim.close()
-        feed.cancel()
-        with contextlib.suppress(BaseException):
-            await feed
-        server.stop()
-        live.close()
+        await stack.aclose()

@@ -48,9 +48,13 @@ class EndlessCsvStore(MemoryStore):
 
 
 @contextmanager
-def served(app) -> Iterator[tuple[int, asyncio.AbstractEventLoop]]:
-    """`app` on a real uvicorn in a thread: its port and its event loop."""
-    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_config=None, lifespan="off")
+def served(
+    app, config: uvicorn.Config | None = None
+) -> Iterator[tuple[int, asyncio.AbstractEventLoop]]:
+    """`app` on a real uvicorn in a thread (`config`, or uvicorn's defaults on a free
+    port): its port and its event loop."""
+    if config is None:
+        config = uvicorn.Config(app, host="127.0.0.1", port=0, log_config=None, lifespan="off")
     server = uvicorn.Server(config)
     loop = asyncio.new_event_loop()
     thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
