@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import time
+from collections.abc import Coroutine
+from typing import Any
 
 import structlog
 from fastapi import APIRouter, Depends, WebSocket, WebSocketDisconnect
@@ -88,8 +90,9 @@ async def live(
         return
     queue = hub.subscribe()
     timeout_s = settings.api_live_send_timeout_s
+    send = (_send_batches if batched else _send_each)(_Sender(websocket, timeout_s), queue)
     try:
-        await (_send_batches if batched else _send_each)(_Sender(websocket, timeout_s), queue)
+        await _until_either(send, _drop_what_the_client_sends(websocket))
     except WebSocketDisconnect:
         pass
     except TimeoutError:
@@ -108,6 +111,32 @@ async def live(
                 )
     finally:
         hub.unsubscribe(queue)
+
+
+async def _until_either(*steps: Coroutine[Any, Any, None]) -> None:
+    """Runs `steps` together until one ends; the others are cancelled and its exception,
+    if any, raised."""
+    tasks = [asyncio.ensure_future(step) for step in steps]
+    try:
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        # Not awaited: when the server cancels this route (a shutdown), an await here would
+        # be cancelled again; the tasks end at their next step.
+        for task in tasks:
+            task.cancel()
+    for task in done:
+        task.result()
+
+
+async def _drop_what_the_client_sends(websocket: WebSocket) -> None:
+    """Reads and drops each message the client sends (the stream takes none; the largest is
+    uvicorn's ws_max_size, api/limits.py) until it closes: a message left unread stops the
+    server reading the connection, so the client's close and pongs would go unseen and its
+    slot stay taken until a send timed out."""
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            raise WebSocketDisconnect(message.get("code", 1000), message.get("reason"))
 
 
 class _Sender:

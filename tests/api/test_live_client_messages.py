@@ -85,6 +85,9 @@ def test_a_client_message_over_the_limit_is_refused_with_1009(compression, binar
         assert code in (MESSAGE_TOO_BIG, -1)
 
 
+# The probes are timed: run alone, as the other heavy requests' (tests/api/test_heavy_requests.py).
+@pytest.mark.integration
+@pytest.mark.alone
 def test_compressed_bombs_on_many_connections_leave_the_probes_fast():
     """With compression on, 10 connections each send a 16 MiB message of zeros (16 kB on
     the wire): each is closed with 1009 once the limit is inflated, and /healthz answers
@@ -134,3 +137,27 @@ def _deflated_binary_frame(payload: bytes) -> bytes:
     """A client's masked binary frame, FIN and RSV1 (permessage-deflate) set."""
     plain = frame(0x2, payload)
     return bytes([plain[0] | 0x40]) + plain[1:]
+
+
+@pytest.mark.parametrize(
+    "sent",
+    [[], ["ping"], [b"\x00\x01"], ["x" * WEBSOCKET_MAX_MESSAGE_BYTES] * 3, ["hello"] * 50],
+    ids=["nothing", "a text", "a binary", "three at the limit", "fifty"],
+)
+def test_a_client_that_closes_frees_its_slot_at_once_whatever_it_sent(sent):
+    """The stream takes no message, yet reads and drops what a client sends: a message left
+    unread stopped the server reading the connection, so the client's close went unseen and
+    its slot (one of MAPSERVICE_API_MAX_LIVE_CLIENTS) stayed taken on a quiet floor until
+    the keepalive gave up. The floor is quiet here: no event is sent to notice it by."""
+    with api_served(False) as (port, hub):
+        with connect(f"ws://127.0.0.1:{port}/api/v1/live", close_timeout=2) as ws:
+            deadline = time.monotonic() + 5
+            while hub.subscribers < 1 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert hub.subscribers == 1
+            for message in sent:
+                ws.send(message)
+        deadline = time.monotonic() + 5
+        while hub.subscribers and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert hub.subscribers == 0, "the closed client still holds its slot"
