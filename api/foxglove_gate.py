@@ -6,9 +6,12 @@ Host that is not one of the service's names: 421; an Origin of another site: 403
 client cap: 503), and otherwise hands the request and then the connection's bytes, both
 ways, to the SDK server its path names (`/`: live; `/replay`: a replay session's own).
 
-A client that does not read is dropped after `foxglove_send_timeout_s`: the gate stops
-reading the SDK's side meanwhile, so the SDK's own queue for it (`foxglove_backlog`
-messages, the oldest dropped) is all that waits. A subscription the SDK lost to its own
+The gate reads the SDK's side of a connection as it comes and holds what the client has
+not taken yet, up to `foxglove_client_buffer_mb`: a client further behind (it reads slower
+than its subscriptions send) is dropped, as is one that takes no bytes for
+`foxglove_send_timeout_s` while some wait for it. Waiting for the client instead would move
+the backlog into the SDK's own queue for it, which is counted in messages (`foxglove_backlog`),
+not bytes: a thousand floor grids of megabytes each for a client reading a trickle. A subscription the SDK lost to its own
 race (a channel advertised before the SDK recorded it) is sent again
 (foxglove_resubscribe.py)."""
 
@@ -262,7 +265,9 @@ class FoxgloveGate:
     ) -> None:
         up_reader, up_writer = await asyncio.open_connection("127.0.0.1", port, limit=_CHUNK)
         timeout_s = self.settings.foxglove_send_timeout_s
-        writer.transport.set_write_buffer_limits(high=_CHUNK * 4)
+        most_behind = int(self.settings.foxglove_client_buffer_mb * 2**20)
+        # No pause below the budget: what the client has not taken is counted, not waited on.
+        writer.transport.set_write_buffer_limits(high=most_behind + _CHUNK)
         up_writer.write(head)
         try:
             async with asyncio.timeout(HEAD_TIMEOUT_S):
@@ -294,6 +299,8 @@ class FoxgloveGate:
             log.debug("foxglove subscription sent again", channel=resubscribe.channel_id)
             timers.append(loop.call_later(resubscribe.delay_s, to_server, resubscribe.frame()))
 
+        behind = _Behind(writer.transport, most_behind, timeout_s, loop.time)
+
         async def copy(
             src: asyncio.StreamReader, dst: asyncio.StreamWriter, to_client: bool
         ) -> None:
@@ -314,11 +321,8 @@ class FoxgloveGate:
                     dst.write(b"".join(own_frames))
                     own_frames.clear()
                 if to_client:
-                    try:
-                        async with asyncio.timeout(timeout_s):
-                            await dst.drain()
-                    except TimeoutError:
-                        log.info("foxglove client dropped: it does not read", timeout_s=timeout_s)
+                    if reason := behind.wrote(len(data)):
+                        log.info("foxglove client dropped", reason=reason)
                         # Closed at once, its unsent bytes thrown away: a close would wait
                         # for them to be sent first, i.e. for ever.
                         dst.transport.abort()
@@ -343,3 +347,43 @@ class FoxgloveGate:
             up_writer.close()
             with contextlib.suppress(Exception):
                 await up_writer.wait_closed()
+
+
+class _Behind:
+    """How far a client is behind what the gate wrote it: the bytes its connection has not
+    taken yet, and when it last took any."""
+
+    def __init__(
+        self,
+        transport: asyncio.WriteTransport,
+        most_bytes: int,
+        timeout_s: float,
+        clock: Callable[[], float],
+    ) -> None:
+        self.transport, self.most_bytes, self.timeout_s, self.clock = (
+            transport,
+            most_bytes,
+            timeout_s,
+            clock,
+        )
+        self.written = self.taken = 0
+        self.took_at = clock()
+
+    def wrote(self, n: int) -> str | None:
+        """After `n` more bytes were written: why the client must go, or None."""
+        self.written += n
+        pending = self.transport.get_write_buffer_size()
+        now = self.clock()
+        if self.written - pending > self.taken or not pending:
+            self.taken, self.took_at = self.written - pending, now
+        if pending > self.most_bytes:
+            return (
+                f"{pending} bytes behind, more than MAPSERVICE_FOXGLOVE_CLIENT_BUFFER_MB: "
+                "it reads slower than its subscriptions send"
+            )
+        if now - self.took_at > self.timeout_s:
+            return (
+                f"it took no bytes for {self.timeout_s:g} s "
+                "(MAPSERVICE_FOXGLOVE_SEND_TIMEOUT_S): it does not read"
+            )
+        return None

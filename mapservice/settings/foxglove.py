@@ -53,6 +53,17 @@ class FoxgloveSettings(BaseModel):
             "disconnected."
         ),
     )
+    foxglove_client_buffer_mb: float = Field(
+        16.0,
+        gt=0,
+        description=(
+            "What the gate holds for one client that has not taken it yet, in MB (binary "
+            "megabytes); a client further behind (it reads slower than its subscriptions "
+            "send: the floor's grid is megabytes a second on a busy floor) is disconnected. "
+            "The gate reads the SDK's side at once, so the SDK's own queue, counted in "
+            "messages, not bytes, stays empty."
+        ),
+    )
     foxglove_max_speed: float = Field(
         3600.0,
         gt=0,

@@ -7,6 +7,7 @@ that answers the upgrade and then sends without end."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import socket
 import time
@@ -25,10 +26,11 @@ SWITCHING = (
 
 
 class Upstream101:
-    """Answers any request with 101 and then, if `flood`, sends 64 kB blocks until closed."""
+    """Answers any request with 101 and then, if `flood`, sends 64 kB blocks until closed:
+    as fast as they are taken, or `rate` bytes a second."""
 
-    def __init__(self, flood: bool) -> None:
-        self.flood = flood
+    def __init__(self, flood: bool, rate: float | None = None) -> None:
+        self.flood, self.rate = flood, rate
         self.heads: list[bytes] = []
         self.port = 0
         self.closed = 0
@@ -45,6 +47,8 @@ class Upstream101:
             while self.flood:
                 writer.write(block)
                 await writer.drain()
+                if self.rate is not None:
+                    await asyncio.sleep(len(block) / self.rate)
             await reader.read()  # until the gate closes its side
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
@@ -227,6 +231,64 @@ def test_a_client_that_does_not_read_is_dropped_and_one_that_reads_is_not():
         assert gate.clients == 0, "the client that does not read was not dropped"
         assert upstream.closed >= 2  # and the upstream's side of it closed too
         sleeper.close()
+        await gate.stop()
+
+    asyncio.run(main())
+
+
+@pytest.mark.parametrize("reads_per_s", [24.0, 36.0, 48.0])
+def test_a_client_reading_slower_than_it_is_sent_is_dropped_and_one_keeping_up_is_not(
+    reads_per_s,
+):
+    """The upstream sends 4 MB/s (a busy floor's grids). A client reading less (64 kB reads,
+    `reads_per_s` of them: 1.5-3 MB/s) takes bytes all along, so no timeout ends it, yet it
+    falls further behind for ever: the gate used to wait for it and leave the backlog to the
+    SDK's queue, counted in messages of up to megabytes each. It is dropped once it is
+    foxglove_client_buffer_mb behind; a client reading as fast as it is sent stays."""
+    rate = 4 * 2**20
+
+    async def main() -> None:
+        upstream = Upstream101(flood=True, rate=rate)
+        gate, port = await gate_over(
+            upstream, settings(foxglove_send_timeout_s=1.0, foxglove_client_buffer_mb=1.0)
+        )
+        keeper_r, keeper_w = await asyncio.open_connection("127.0.0.1", port)
+        keeper_w.write(request())
+        await keeper_r.readuntil(b"\r\n\r\n")
+        # Its receive buffer small from the start, so that what it has not read shows soon.
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 65536)
+        sock.setblocking(False)
+        await asyncio.get_running_loop().sock_connect(sock, ("127.0.0.1", port))
+        slow_r, slow_w = await asyncio.open_connection(sock=sock, limit=65536)
+        slow_w.write(request())
+        await slow_r.readuntil(b"\r\n\r\n")
+
+        async def keep_up() -> int:
+            got = 0
+            while data := await keeper_r.read(2**20):
+                got += len(data)
+            return got
+
+        keeper = asyncio.ensure_future(keep_up())
+        started = time.monotonic()
+        dropped_after = None
+        assert gate.clients == 2
+        while time.monotonic() - started < 20:
+            # (What its socket holds it may read on after the gate dropped it.)
+            with contextlib.suppress(ConnectionError):
+                await slow_r.read(65536)
+            if gate.clients < 2:
+                dropped_after = time.monotonic() - started
+                break
+            await asyncio.sleep(1 / reads_per_s)
+        assert dropped_after is not None, "the client reading a trickle was never dropped"
+        # Once its socket's buffers (a few MB at most) and the gate's MB filled.
+        assert dropped_after < 15, dropped_after
+        assert not keeper.done(), "the client keeping up was dropped"
+        assert gate.clients == 1
+        keeper_w.close()
+        await asyncio.wait_for(keeper, 10)
         await gate.stop()
 
     asyncio.run(main())
