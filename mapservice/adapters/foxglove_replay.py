@@ -36,6 +36,7 @@ from mapservice.adapters.foxglove_resends import PacedResends
 from mapservice.adapters.foxglove_scene import ChunkChange, FoxgloveScene
 from mapservice.adapters.mcap_export import ReplaySources
 from mapservice.core.ports import ChunkRow
+from mapservice.settings.foxglove import FoxgloveSettings
 
 log = structlog.get_logger(__name__)
 
@@ -48,8 +49,8 @@ MAX_TICK_WINDOWS = 8
 # its control queue as the callback returns; the picture must not overtake it, the app
 # clears what it holds on a seek).
 _AFTER_ANSWER_S = 0.02
-# The fastest playback (history seconds a wall second): settings.foxglove_max_speed.
-DEFAULT_MAX_SPEED = 3600.0
+# The fastest playback (history seconds a wall second), the setting's own default.
+DEFAULT_MAX_SPEED: float = FoxgloveSettings.model_fields["foxglove_max_speed"].default
 
 
 @dataclass

@@ -57,8 +57,3 @@ class PacedResends:
                 self._pending.discard(topic)
                 self._last[topic] = now
             return out
-
-    @property
-    def pending(self) -> int:
-        with self._lock:
-            return len(self._pending)
