@@ -13,6 +13,7 @@ records in memory only.
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import os
 import re
@@ -26,8 +27,16 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import structlog
+
 from mapservice.local import kafka_cds
-from mapservice.local.embedded import ensure_port_free, free_port, start_tansu, wait_for_port
+from mapservice.local.embedded import (
+    ensure_port_free,
+    free_port,
+    port_is_free,
+    start_tansu,
+    wait_for_port,
+)
 from mapservice.local.kafka_auth import TANSU_NO_AUTH
 from mapservice.local.kafka_node import LOG4J2_YAML as LOG4J2_YAML
 from mapservice.local.kafka_node import NODE_ID as NODE_ID
@@ -35,6 +44,8 @@ from mapservice.local.kafka_node import KafkaNodeConfig as KafkaNodeConfig
 
 if TYPE_CHECKING:
     from mapservice.settings import Settings
+
+log = structlog.get_logger(__name__)
 
 POM = Path(__file__).parent / "kafka" / "pom.xml"
 # Start fast and small: the serial collector and the client compiler (C1) only; the JDK's
@@ -217,6 +228,7 @@ def start_kafka(
             f"an Apache Kafka from an earlier run still holds {config.log_dir} (pid {earlier}, "
             f"left behind by a killed `mapservice up`?): stop it with `kill {earlier}`"
         )
+    config = with_free_controller_port(config)
     proc = launch(config, log_file, jars_dir, preexec_fn=preexec_fn)
     try:
         wait_ready(config, proc, timeout_s)
@@ -232,6 +244,23 @@ def start_kafka(
         proc = launch(config, log_file, jars_dir, preexec_fn=preexec_fn, sharing=())
         wait_ready(config, proc, timeout_s)
     return proc
+
+
+def with_free_controller_port(config: KafkaNodeConfig) -> KafkaNodeConfig:
+    """The node alone with another controller port if something took its own since it was
+    chosen. That port is told to no client and to no other node, so it is the node's to
+    change; it was free when chosen, but processes side by side choose free ports the same
+    way and one of them may bind it first. A cluster's nodes keep theirs: the voters name
+    them."""
+    if config.voters or port_is_free(config.controller_port):
+        return config
+    chosen = dataclasses.replace(config, controller_port=free_port())
+    log.info(
+        "the Kafka controller's port was taken since it was chosen: another chosen",
+        taken=config.controller_port,
+        port=chosen.controller_port,
+    )
+    return chosen
 
 
 def wait_ready(config: KafkaNodeConfig, proc: subprocess.Popen, timeout_s: float) -> None:

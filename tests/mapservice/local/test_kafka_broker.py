@@ -4,6 +4,7 @@ in force, and tansu only as the fallback where no Java is found (said with its c
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import stat
@@ -298,3 +299,35 @@ def test_an_idle_controller_appends_no_op_records_as_the_setting_says(
     assert idle_ms(Settings()) == "5000"
     assert idle_ms(Settings(embedded_kafka_metadata_idle_ms=500)) == "500"
     assert idle_ms(Settings(embedded_kafka_metadata_idle_ms=0)) == "0"
+
+
+@pytest.mark.parametrize("held_by", ["listening", "bound"])
+def test_a_controller_port_taken_since_it_was_chosen_is_chosen_again(
+    monkeypatch, tmp_path, held_by
+) -> None:
+    """Another process binding the node's chosen controller port before the node starts
+    (free ports are chosen alike by processes side by side) does not stop the start: the
+    node alone gets another; a cluster's node keeps the one its voters name."""
+    import socket
+
+    launched: list[kafka_broker.KafkaNodeConfig] = []
+    monkeypatch.setattr(
+        kafka_broker, "launch", lambda config, *a, **k: launched.append(config) or object()
+    )
+    monkeypatch.setattr(kafka_broker, "wait_ready", lambda *a, **k: None)
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        if held_by == "listening":
+            holder.listen()
+        taken = holder.getsockname()[1]
+        node = kafka_broker.KafkaNodeConfig(
+            log_dir=tmp_path / "kafka" / "log", port=embedded.free_port(), controller_port=taken
+        )
+        kafka_broker.start_kafka(node)
+        assert launched[-1].controller_port != taken
+        assert embedded.port_is_free(launched[-1].controller_port)
+        assert launched[-1].port == node.port and launched[-1].log_dir == node.log_dir
+
+        voter = dataclasses.replace(node, voters=f"1@127.0.0.1:{taken}")
+        kafka_broker.start_kafka(voter)
+        assert launched[-1] == voter
